@@ -1,0 +1,33 @@
+"""Retriever: closed-loop robot agents with explicit time.
+
+Flows (``step``) on clocks (``Rate``, ``Trigger``, ``Hybrid``), edges with sync policies
+(``Latest``, ``Window``, ``ActionChunking``, …), compiled to an IR and run by a backend.
+"""
+
+from .backends import available_backends, init
+from .clocks import Clock, Hybrid, Rate, Trigger
+from .errors import (
+    BackendError,
+    CausalityError,
+    ClockError,
+    CodecError,
+    GraphError,
+    InternalError,
+    IRError,
+    RetrieverError,
+    RetrieverWarning,
+    StepError,
+)
+from .flow import EventStream, Flow, io
+from .ir import IR
+from .pipeline import Pipeline
+from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
+from .trace import Event, StepRecord, Trace
+
+__all__ = sorted([
+    "IR", "MISSING", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
+    "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
+    "InternalError", "Latest", "LatestDistinct", "Pipeline", "Queue", "Rate", "RetrieverError",
+    "RetrieverWarning", "StepError", "StepRecord", "SyncPolicy", "Trace", "Trigger", "Window",
+    "available_backends", "init", "io",
+])

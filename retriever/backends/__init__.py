@@ -1,0 +1,43 @@
+"""Backends by name, and the process-wide default chosen with ``retriever.init(backend=...)``."""
+
+from __future__ import annotations
+
+from ..errors import BackendError
+from .base import Backend, NodeStats, Session
+
+_default = "inproc"
+
+
+def _registry() -> dict[str, Backend]:
+    from .inproc import InprocBackend
+
+    return {"inproc": InprocBackend()}
+
+
+def available_backends() -> list[str]:
+    return sorted(_registry())
+
+
+def _lookup(name: str) -> Backend:
+    registry = _registry()
+    if name not in registry:
+        raise BackendError(f"unknown backend {name!r}; available: {', '.join(sorted(registry))}")
+    return registry[name]
+
+
+def init(backend: str = "inproc") -> None:
+    """Set the backend ``pipe.run()`` uses when none is named (the seed's ``retriever.init``)."""
+    global _default
+    _lookup(backend)
+    _default = backend
+
+
+def default_backend() -> str:
+    return _default
+
+
+def open_backend(name: str, graph, **options) -> Session:
+    return _lookup(name).open(graph, **options)
+
+
+__all__ = ["Backend", "NodeStats", "Session", "available_backends", "default_backend", "init", "open_backend"]

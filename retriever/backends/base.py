@@ -1,0 +1,68 @@
+"""The one seam every backend implements: open a session on a compiled graph, advance it.
+
+A backend turns a :class:`~retriever.graph.Graph` into a :class:`Session`. Sessions keep their
+own notion of ``now`` and a :class:`~retriever.trace.Trace`; the conformance suite in
+``tests/backends`` holds every backend to the traces of the in-process reference.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+from ..graph import Graph
+from ..trace import Trace
+
+
+@dataclass
+class NodeStats:
+    """Counters of one node over a run."""
+
+    ticks: int = 0
+    steps: int = 0
+    skips: int = 0
+    errors: int = 0
+    step_ns: int = 0  # total wall time spent inside step()
+
+    @property
+    def mean_step_s(self) -> float:
+        return self.step_ns / self.steps / 1e9 if self.steps else 0.0
+
+
+class Session(ABC):
+    """One run of one graph on one backend."""
+
+    backend_name: str = ""
+    #: whether ``pipe.step(dt)`` may drive this session (virtual time)
+    steppable: bool = False
+
+    def __init__(self, graph: Graph):
+        self.graph = graph
+        self.trace = Trace()
+        self.now_ns = 0
+
+    @abstractmethod
+    def advance(self, until_ns: int) -> None:
+        """Execute every tick with ``t < until_ns``; afterwards ``now_ns == until_ns``."""
+
+    def run_to_end(self) -> None:
+        from ..errors import BackendError
+
+        raise BackendError(f"backend '{self.backend_name}' needs a duration: pipe.run(duration=seconds)")
+
+    @abstractmethod
+    def stats(self) -> dict[str, NodeStats]:
+        """Per-node counters so far."""
+
+    def close(self) -> None:
+        """Release resources (processes, sessions, files). Idempotent."""
+
+
+class Backend(ABC):
+    """Factory of sessions; registered by name in :mod:`retriever.backends`."""
+
+    name: str = ""
+
+    @abstractmethod
+    def open(self, graph: Graph, **options: object) -> Session:
+        ...

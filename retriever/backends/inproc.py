@@ -1,0 +1,241 @@
+"""The in-process backend: a discrete-event executor in virtual, superdense time.
+
+This is the reference semantics every other backend is tested against (DESIGN.md §3–§4).
+
+    pending ticks (heap of tags)                   one tick of node v at tag τ
+    ┌──────────────────────────┐                   ┌───────────────────────────────────────┐
+    │ (0,0): {cam, pol}        │  pop smallest τ   │ each input port: policy.select(H≤τ)   │
+    │ (0,1): {ctrl}            │ ────────────────▶ │ MISSING on a required port → skipped  │
+    │ (5000000,0): {ctrl}      │                   │ else commit, step(), emit outputs at  │
+    └──────────────────────────┘                   │ (t+latency,0) or (t,m+1); schedule    │
+                ▲                                  │ the trigger ticks they cause          │
+                └──────────────────────────────────┴───────────────────────────────────────┘
+
+Why ticks at one tag may run in any order: every output of a tick at τ carries a tag > τ, and a
+tick reads only events with tag ≤ τ, so no tick at τ can see another's outputs. The trace is
+compared in canonical order, so ``tie_break_seed`` (shuffling same-tag ticks) must not change it;
+the property tests check exactly that.
+"""
+
+from __future__ import annotations
+
+import random
+from heapq import heappop, heappush
+from time import perf_counter_ns
+from typing import Any
+
+from ..errors import CausalityError, StepError
+from ..flow._base import Flow, make_invoker, make_output_reader
+from ..graph import Graph, Node
+from ..sync import MISSING, PortBuffer
+from ..trace import Event, StepRecord
+from .base import Backend, NodeStats, Session
+
+
+class _NodeRuntime:
+    """Everything the hot loop needs about one node, flattened into slots."""
+
+    __slots__ = ("index", "id", "flow", "invoke", "read", "latency_ns", "on_error", "inputs",
+                 "downstream", "seq", "clock", "k", "next_rate_tag", "stats", "cycle")
+
+    def __init__(self, index: int, node: Node):
+        self.index = index
+        self.id = node.id
+        self.flow: Flow = node.flow
+        self.invoke = make_invoker(node.flow, node.spec)
+        self.read = make_output_reader(node.spec)
+        self.latency_ns = node.settings.latency_ns
+        self.on_error = node.settings.on_error
+        # (port, buffer, policy, port spec) per input port
+        self.inputs: list[tuple[str, PortBuffer, Any, Any]] = []
+        # output port -> [(consumer index, consumer buffer, delay ns, whether it triggers the consumer)]
+        self.downstream: dict[str, list[tuple[int, PortBuffer, int, bool]]] = {}
+        self.seq: dict[str, int] = {}
+        self.clock = node.clock
+        self.k = 0
+        self.next_rate_tag: tuple[int, int] | None = None
+        self.stats = NodeStats()
+        self.cycle: list[str] = []
+
+
+class InprocSession(Session):
+    backend_name = "inproc"
+    steppable = True
+
+    def __init__(self, graph: Graph, tie_break_seed: int | None = None):
+        super().__init__(graph)
+        self.max_microsteps = graph.max_microsteps
+        self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
+        self._heap: list[tuple[int, int]] = []
+        self._pending: dict[tuple[int, int], set[int]] = {}
+        self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
+        by_id = {rt.id: rt for rt in self._nodes}
+        self._wire(graph, by_id)
+        for rt in self._nodes:
+            if type(rt.flow).reset is not Flow.reset:
+                rt.flow.reset()  # the paper's flows initialise their state in reset()
+            if rt.clock.hz is not None:
+                rt.next_rate_tag = (rt.clock.tick_time(0), 0)
+                self._schedule(rt.next_rate_tag, rt.index)
+
+    # ---------------------------------------------------------------------------------------
+    # Wiring
+    # ---------------------------------------------------------------------------------------
+    def _wire(self, graph: Graph, by_id: dict[str, _NodeRuntime]) -> None:
+        buffers: dict[tuple[str, str], PortBuffer] = {}
+        policies: dict[tuple[str, str], Any] = {}
+        for e in graph.edges:
+            key = (e.dst, e.dst_port)
+            buf = buffers.setdefault(key, PortBuffer())
+            policies[key] = e.sync
+            dst = graph.nodes[e.dst]
+            by_id[e.src].downstream.setdefault(e.src_port, []).append(
+                (by_id[e.dst].index, buf, e.delay_ns, dst.triggers_on(e.dst_port)))
+        for node in graph.nodes.values():
+            rt = by_id[node.id]
+            for port, spec in node.inputs.items():
+                key = (node.id, port)
+                if key in buffers:
+                    rt.inputs.append((port, buffers[key], policies[key], spec))
+                elif spec.required:
+                    rt.inputs.append((port, PortBuffer(), _AlwaysMissing, spec))
+                # an unfed optional port always takes its fallback
+            for cycle in graph.instantaneous_cycles:
+                if node.id in cycle:
+                    i = cycle.index(node.id)
+                    rt.cycle = cycle[i:] + cycle[:i]
+                    break
+        self._unfed_fallbacks = {
+            by_id[n.id].index: {p: s for p, s in n.inputs.items() if (n.id, p) not in buffers and not s.required}
+            for n in graph.nodes.values()
+        }
+
+    def _schedule(self, tag: tuple[int, int], index: int) -> None:
+        waiting = self._pending.get(tag)
+        if waiting is None:
+            self._pending[tag] = {index}
+            heappush(self._heap, tag)
+        else:
+            waiting.add(index)
+
+    # ---------------------------------------------------------------------------------------
+    # The loop
+    # ---------------------------------------------------------------------------------------
+    def advance(self, until_ns: int) -> None:
+        heap, pending, nodes, rng = self._heap, self._pending, self._nodes, self._rng
+        while heap and heap[0][0] < until_ns:
+            tag = heappop(heap)
+            indices = pending.pop(tag)
+            if len(indices) == 1:
+                order = indices
+            elif rng is None:
+                order = sorted(indices)
+            else:
+                order = list(indices)
+                order.sort()
+                rng.shuffle(order)
+            for index in order:
+                rt = nodes[index]
+                if tag == rt.next_rate_tag:
+                    rt.k += 1
+                    rt.next_rate_tag = (rt.clock.tick_time(rt.k), 0)
+                    self._schedule(rt.next_rate_tag, index)
+                self._tick(rt, tag)
+        self.now_ns = max(self.now_ns, until_ns)
+
+    def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
+        stats = rt.stats
+        stats.ticks += 1
+        values: dict[str, Any] = {}
+        consumed: dict[str, tuple] = {}
+        missing: list[str] | None = None
+        commits: list | None = None
+        dropped: dict[str, int] | None = None
+        for port, buf, policy, spec in rt.inputs:
+            value, ids, n_dropped, commit = policy.select(buf, tau)
+            if value is MISSING:
+                if spec.required:
+                    (missing := missing or []).append(port)
+                else:
+                    values[port] = spec.fallback()
+                continue
+            values[port] = value
+            consumed[port] = ids
+            if commit is not None:
+                (commits := commits or []).append((policy, buf, commit))
+            if n_dropped:
+                (dropped := dropped or {})[port] = n_dropped
+        if missing is not None:
+            stats.skips += 1
+            self.trace.steps.append(StepRecord(rt.id, tau, {}, (), "skipped", {"missing": missing}))
+            return
+        if commits is not None:
+            for policy, buf, commit in commits:
+                policy.commit_to(buf, commit)
+        fallbacks = self._unfed_fallbacks[rt.index]
+        if fallbacks:
+            for port, spec in fallbacks.items():
+                values[port] = spec.fallback()
+
+        start = perf_counter_ns()
+        try:
+            outputs = rt.read(rt.invoke(values))
+        except Exception as exc:
+            stats.step_ns += perf_counter_ns() - start
+            self._failed(rt, tau, consumed, exc)
+            return
+        stats.step_ns += perf_counter_ns() - start
+        stats.steps += 1
+
+        out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
+        produced = []
+        if outputs:
+            events, seqs, node_id = self.trace.events, rt.seq, rt.id
+            for port, value in outputs:
+                seq = seqs.get(port, 0)
+                seqs[port] = seq + 1
+                ev = Event(out_tag, node_id, port, seq, value)
+                events.append(ev)
+                produced.append((node_id, port, seq))
+                for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
+                    arrival = (out_tag[0] + delay_ns, out_tag[1]) if delay_ns else out_tag
+                    buf.insert((arrival, node_id, port, seq, ev))
+                    if triggers:
+                        if arrival[1] > self.max_microsteps:
+                            raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
+                        self._schedule(arrival, consumer)
+        self.trace.steps.append(StepRecord(rt.id, tau, consumed, tuple(produced), "ok", dropped))
+
+    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception) -> None:
+        rt.stats.errors += 1
+        detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
+        self.trace.steps.append(StepRecord(rt.id, tau, consumed, (), "error", detail))
+        if rt.on_error == "stop":
+            raise StepError(rt.id, tau, exc) from exc
+        if rt.on_error == "restart":
+            rt.flow.reset()
+
+    def stats(self) -> dict[str, NodeStats]:
+        return {rt.id: rt.stats for rt in self._nodes}
+
+
+class _AlwaysMissingPolicy:
+    """Stands in for the policy of a required port nothing feeds: every tick is skipped."""
+
+    def select(self, buf, tau):
+        return MISSING, None, 0, None
+
+
+_AlwaysMissing = _AlwaysMissingPolicy()
+
+
+class InprocBackend(Backend):
+    name = "inproc"
+
+    def open(self, graph: Graph, tie_break_seed: int | None = None, **options: object) -> InprocSession:
+        if options:
+            from ..errors import BackendError
+
+            raise BackendError(f"the inproc backend takes no options {sorted(options)} "
+                               "(it accepts tie_break_seed=)")
+        return InprocSession(graph, tie_break_seed=tie_break_seed)

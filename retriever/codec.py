@@ -1,0 +1,119 @@
+"""Retriever's value codec: msgpack plus a few extension types, never pickle.
+
+Used for trace digests today, and for the MCAP log and the Zenoh wire. Round-trips exactly:
+
+- ``None``, bool, int (any size), float (bit-exact), str, bytes, list, dict (any msgpack keys);
+- tuples (kept as tuples), numpy arrays of any non-object dtype and shape, numpy scalars;
+- dataclasses (including ``@io`` types), rebuilt by importing ``module:QualName``.
+
+Anything else raises :class:`CodecError` naming the type and the path to it inside the value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from .errors import CodecError
+
+EXT_NDARRAY = 1
+EXT_TUPLE = 2
+EXT_BIGINT = 3
+EXT_DATACLASS = 4
+EXT_NPSCALAR = 5
+
+_INT64_MIN, _UINT64_MAX = -(1 << 63), (1 << 64) - 1
+
+
+def type_path(cls: type) -> str:
+    """``module:QualName`` of a class, the form used in IR ``type`` fields and the codec."""
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def import_type(path: str) -> Any:
+    """Import ``module:QualName``. Raises ImportError/AttributeError with the path in the message."""
+    module_name, _, qualname = path.partition(":")
+    if not module_name or not qualname:
+        raise ImportError(f"{path!r} is not of the form 'module:QualName'")
+    obj: Any = importlib.import_module(module_name)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _array_payload(arr: np.ndarray) -> bytes:
+    if arr.dtype.hasobject:
+        raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {arr.dtype})")
+    return msgpack.packb(
+        [arr.dtype.str, list(arr.shape), np.ascontiguousarray(arr).tobytes()], use_bin_type=True
+    )
+
+
+def _default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return msgpack.ExtType(EXT_NDARRAY, _array_payload(obj))
+    if isinstance(obj, np.generic):
+        return msgpack.ExtType(EXT_NPSCALAR, _array_payload(np.asarray(obj)))
+    if isinstance(obj, tuple):
+        return msgpack.ExtType(EXT_TUPLE, packb(list(obj)))
+    if isinstance(obj, int):  # beyond 64 bits
+        return msgpack.ExtType(EXT_BIGINT, str(obj).encode())
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+        return msgpack.ExtType(EXT_DATACLASS, packb([type_path(type(obj)), fields]))
+    raise CodecError(
+        f"cannot encode a value of type {type(obj).__module__}.{type(obj).__qualname__}\n"
+        "    hint: use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses"
+    )
+
+
+def _ext_hook(code: int, data: bytes) -> Any:
+    if code == EXT_NDARRAY or code == EXT_NPSCALAR:
+        dtype, shape, raw = msgpack.unpackb(data, raw=False)
+        arr = np.frombuffer(raw, dtype=np.dtype(dtype)).reshape(shape).copy()
+        return arr[()] if code == EXT_NPSCALAR else arr
+    if code == EXT_TUPLE:
+        return tuple(unpackb(data))
+    if code == EXT_BIGINT:
+        return int(data.decode())
+    if code == EXT_DATACLASS:
+        path, fields = unpackb(data)
+        try:
+            cls = import_type(path)
+        except (ImportError, AttributeError) as e:
+            raise CodecError(f"cannot decode a {path}: the class cannot be imported ({e})") from None
+        return cls(**fields)
+    raise CodecError(f"unknown msgpack extension type {code}")
+
+
+def packb(value: Any) -> bytes:
+    """Encode a value to bytes. Raises CodecError for values the codec does not know."""
+    try:
+        return msgpack.packb(value, default=_default, use_bin_type=True, strict_types=True)
+    except OverflowError:
+        return msgpack.packb(_widen(value), default=_default, use_bin_type=True, strict_types=True)
+
+
+def _widen(value: Any) -> Any:
+    # msgpack raises OverflowError instead of calling `default` for ints beyond 64 bits.
+    if type(value) is int and not (_INT64_MIN <= value <= _UINT64_MAX):
+        return msgpack.ExtType(EXT_BIGINT, str(value).encode())
+    if type(value) is list:
+        return [_widen(v) for v in value]
+    if type(value) is tuple:
+        return msgpack.ExtType(EXT_TUPLE, packb(list(value)))
+    if type(value) is dict:
+        return {_widen(k): _widen(v) for k, v in value.items()}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        fields = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+        return msgpack.ExtType(EXT_DATACLASS, packb([type_path(type(value)), fields]))
+    return value
+
+
+def unpackb(data: bytes) -> Any:
+    """Decode bytes made by :func:`packb`."""
+    return msgpack.unpackb(data, ext_hook=_ext_hook, raw=False, strict_map_key=False)

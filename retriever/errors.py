@@ -1,0 +1,113 @@
+"""Exceptions and warnings raised by Retriever.
+
+    RetrieverError                 base of everything Retriever raises on purpose
+    ├── GraphError                 build_ir() found problems; all of them, one per line
+    ├── ClockError (ValueError)    a clock was declared with an impossible value
+    ├── IRError                    an IR document is malformed, of another version, or names unknown things
+    ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
+    ├── BackendError               an unknown backend, or a backend that cannot run this graph
+    ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
+    ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
+    └── InternalError              a bug in Retriever itself; please report it
+
+    RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
+
+Every message names the thing (by its qualified name, ``node.port``), says what was expected
+and what arrived, and where a common misuse is likely, ends with a one-line ``hint:``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+class RetrieverError(Exception):
+    """Base class of every error Retriever raises on purpose."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a graph: what and where, plus how to fix it."""
+
+    message: str
+    hint: str | None = None
+
+    def __str__(self) -> str:
+        return self.message if self.hint is None else f"{self.message}\n    hint: {self.hint}"
+
+
+class GraphError(RetrieverError):
+    """The graph cannot be compiled; ``problems`` lists every reason at once."""
+
+    def __init__(self, pipeline: str, problems: list[Problem]):
+        self.pipeline = pipeline
+        self.problems = list(problems)
+        count = len(self.problems)
+        lines = [f"pipeline '{pipeline}' has {count} problem{'s' if count != 1 else ''}:"]
+        lines += [f"  - {p}" for p in self.problems]
+        super().__init__("\n".join(lines))
+
+
+class ClockError(RetrieverError, ValueError):
+    """A clock was declared with a value no schedule can follow."""
+
+
+class IRError(RetrieverError):
+    """An IR document is malformed, of an unsupported version, or names unknown things."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = list(problems)
+        lines = [f"invalid IR ({source}):"] + [f"  - {p}" for p in self.problems]
+        super().__init__("\n".join(lines))
+
+
+class CodecError(RetrieverError, TypeError):
+    """A value cannot be encoded (or decoded) by Retriever's msgpack codec."""
+
+
+class BackendError(RetrieverError):
+    """An unknown backend was asked for, or a backend cannot run this graph."""
+
+
+class StepError(RetrieverError):
+    """A flow's ``step()`` raised. The original exception is chained as ``__cause__``."""
+
+    def __init__(self, node: str, tag: tuple[int, int], cause: BaseException):
+        self.node = node
+        self.tag = tag
+        from .time import format_tag
+
+        super().__init__(
+            f"{node}.step() raised {type(cause).__name__}: {cause} (tick at {format_tag(tag)})\n"
+            f"    hint: set on_error='skip_tick' or 'restart' on '{node}' "
+            f"(flow.configure(on_error=...)) to keep the pipeline running"
+        )
+
+
+class CausalityError(RetrieverError):
+    """An instant ran more than ``max_microsteps`` microsteps: an instantaneous (Zeno) loop."""
+
+    def __init__(self, cycle: list[str], tag: tuple[int, int], max_microsteps: int):
+        self.cycle = cycle
+        self.tag = tag
+        from .time import format_tag
+
+        loop = " → ".join(cycle + cycle[:1]) if cycle else "(no declared cycle found)"
+        super().__init__(
+            f"Zeno loop: the instant at {format_tag(tag)} ran past max_microsteps={max_microsteps} "
+            f"around the cycle {loop}\n"
+            "    hint: break the cycle in time: give a flow on it latency= (flow.configure(latency=0.01)), "
+            "put delay= on one of its edges, or clock one of its flows with Rate(hz=...)"
+        )
+
+
+class InternalError(RetrieverError):
+    """A bug in Retriever itself, not in your program. Please report it with the traceback."""
+
+    def __init__(self, message: str):
+        super().__init__(f"{message} (this is a bug in Retriever, not in your program; please report it)")
+
+
+class RetrieverWarning(UserWarning):
+    """Something legal but probably unintended, e.g. an instantaneous cycle."""

@@ -1,0 +1,412 @@
+"""``Flow``: a stateful Python object with a synchronous ``step``; and ``@io`` message types.
+
+Only ``step`` is required. Two styles, both first-class:
+
+- **typed**: ``class F(Flow[In, Out])`` with ``step(self, inp: In) -> Out``. ``In``/``Out`` are
+  ``@io`` dataclasses whose fields are the ports; ``Flow[None, Out]`` is a source. A type that is
+  not an ``@io`` dataclass is a single port named after it in snake_case (``ActionChunk`` →
+  ``action_chunk``).
+- **untyped** (the paper's Listing 1): ``class F(Flow)`` whose ``step`` takes one parameter per
+  input port and returns a dict of output ports (a missing key, or ``None``, is no event).
+
+A flow is callable directly, ``flow(inp)``, with no runtime involved: that is one method call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import re
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Callable, Generic, TypeVar
+
+from .. import _context
+from ..clocks import Clock
+from ..time import is_finite_number, seconds_to_ns
+
+In = TypeVar("In")
+Out = TypeVar("Out")
+
+ON_ERROR = ("stop", "skip_tick", "restart")
+ON_OVERRUN = ("skip", "error")
+ON_DEADLINE_MISS = ("publish_late", "drop", "error")
+
+class _NoDefault:
+    def __repr__(self) -> str:
+        return "NO_DEFAULT"
+
+
+_NO_DEFAULT: Any = _NoDefault()
+
+
+# ---------------------------------------------------------------------------------------------
+# @io message types
+# ---------------------------------------------------------------------------------------------
+def io(cls: type | None = None, /, **dataclass_kwargs: Any):
+    """Declare a typed message: its fields are ports. Use on (or above) ``@dataclass``."""
+
+    def wrap(c: type) -> type:
+        if not dataclasses.is_dataclass(c):
+            c = dataclass(c, **dataclass_kwargs)
+        c.__retriever_io__ = True
+        return c
+
+    return wrap if cls is None else wrap(cls)
+
+
+def is_io(tp: object) -> bool:
+    return isinstance(tp, type) and tp.__dict__.get("__retriever_io__", False) is True
+
+
+# ---------------------------------------------------------------------------------------------
+# Ports
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PortSpec:
+    """One input or output port: its name, declared type and (inputs) its MISSING fallback."""
+
+    name: str
+    type: Any = Any  # a class, a typing form, or a str naming an unresolved type
+    default: Any = _NO_DEFAULT
+    default_factory: Any = _NO_DEFAULT
+    optional: bool = False
+
+    @property
+    def required(self) -> bool:
+        """True when MISSING on this port skips the tick (no default, not Optional)."""
+        return self.default is _NO_DEFAULT and self.default_factory is _NO_DEFAULT and not self.optional
+
+    def fallback(self) -> Any:
+        """The value a MISSING input becomes: the default, a fresh factory value, or None."""
+        if self.default is not _NO_DEFAULT:
+            return self.default
+        if self.default_factory is not _NO_DEFAULT:
+            return self.default_factory()
+        return None
+
+    @property
+    def type_name(self) -> str:
+        return type_name(self.type)
+
+
+def snake_case(name: str) -> str:
+    s = re.sub(r"(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", "_", name)
+    return re.sub(r"\W+", "_", s).strip("_").lower()
+
+
+def type_name(tp: Any) -> str:
+    """Readable, stable name of a port type as the IR records it."""
+    if tp is Any or tp is inspect.Parameter.empty:
+        return "Any"
+    if isinstance(tp, str):
+        return tp
+    if isinstance(tp, typing.ForwardRef):
+        return tp.__forward_arg__
+    if tp is type(None):
+        return "None"
+    if isinstance(tp, type) and not typing.get_args(tp):
+        return tp.__qualname__ if tp.__module__ == "builtins" else f"{tp.__module__}.{tp.__qualname__}"
+    return repr(tp).replace("typing.", "")
+
+
+def _is_optional(tp: Any) -> bool:
+    origin = typing.get_origin(tp)
+    return origin in (typing.Union, types.UnionType) and type(None) in typing.get_args(tp)
+
+
+def _resolve(tp: Any, module: str) -> Any:
+    """Resolve a string/ForwardRef against the module it was written in; keep it opaque if unknown."""
+    if isinstance(tp, typing.ForwardRef):
+        tp = tp.__forward_arg__
+    if isinstance(tp, str):
+        namespace = vars(sys.modules[module]) if module in sys.modules else {}
+        try:
+            return eval(tp, dict(namespace))  # annotations are code the user wrote
+        except Exception:
+            return tp
+    return tp
+
+
+def _io_ports(cls: type) -> dict[str, PortSpec]:
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:
+        hints = {}
+    ports = {}
+    for f in dataclasses.fields(cls):
+        tp = hints.get(f.name, _resolve(f.type, cls.__module__))
+        default = _NO_DEFAULT if f.default is dataclasses.MISSING else f.default
+        factory = _NO_DEFAULT if f.default_factory is dataclasses.MISSING else f.default_factory
+        ports[f.name] = PortSpec(f.name, tp, default, factory, _is_optional(tp))
+    return ports
+
+
+def _single_port(tp: Any) -> dict[str, PortSpec]:
+    name = snake_case(type_name(tp).rpartition(".")[2].split("[")[0]) or "value"
+    return {name: PortSpec(name, tp)}
+
+
+# ---------------------------------------------------------------------------------------------
+# What a Flow class declares
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class FlowSpec:
+    """The ports and calling convention of a Flow class, derived once per class."""
+
+    cls: type
+    has_step: bool
+    typed: bool
+    in_mode: str  # "io" | "single" | "params" | "none"
+    out_mode: str  # "io" | "single" | "dict"
+    in_type: Any = None
+    out_type: Any = None
+    inputs: dict[str, PortSpec] = field(default_factory=dict)
+    outputs: dict[str, PortSpec] | None = None  # None: untyped, ports named by outgoing edges
+    source_takes_arg: bool = False
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def is_source(self) -> bool:
+        return self.in_mode == "none"
+
+
+_specs: dict[type, FlowSpec] = {}
+
+
+def _flow_type_args(cls: type) -> tuple[Any, Any] | None:
+    for klass in cls.__mro__:
+        for base in klass.__dict__.get("__orig_bases__", ()):
+            if typing.get_origin(base) is Flow:
+                args = typing.get_args(base)
+                if len(args) == 2 and not any(isinstance(a, TypeVar) for a in args):
+                    return args
+    return None
+
+
+def flow_spec(cls: type) -> FlowSpec:
+    """The :class:`FlowSpec` of a Flow subclass (cached)."""
+    spec = _specs.get(cls)
+    if spec is None:
+        spec = _specs[cls] = _derive_spec(cls)
+    return spec
+
+
+def _derive_spec(cls: type) -> FlowSpec:
+    step = getattr(cls, "step", None)
+    has_step = step is not None and step is not Flow.step
+    params = []
+    if has_step:
+        try:
+            params = list(inspect.signature(step).parameters.values())[1:]
+        except (TypeError, ValueError):
+            params = []
+    args = _flow_type_args(cls)
+    if args is not None:
+        in_t, out_t = (_resolve(a, cls.__module__) for a in args)
+        spec = FlowSpec(cls, has_step, True, "none", "single", in_t, out_t)
+        if in_t is None or in_t is type(None):
+            spec.in_mode = "none"
+            spec.source_takes_arg = bool(params) and params[0].kind in (
+                inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+        elif is_io(in_t):
+            spec.in_mode, spec.inputs = "io", _io_ports(in_t)
+        else:
+            spec.in_mode, spec.inputs = "single", _single_port(in_t)
+        if is_io(out_t):
+            spec.out_mode, spec.outputs = "io", _io_ports(out_t)
+        elif out_t is None or out_t is type(None):
+            spec.out_mode, spec.outputs = "io", {}
+        else:
+            spec.out_mode, spec.outputs = "single", _single_port(out_t)
+        return spec
+    spec = FlowSpec(cls, has_step, False, "params", "dict")
+    try:
+        hints = typing.get_type_hints(step) if has_step else {}
+    except Exception:
+        hints = {}
+    for p in params:
+        if p.kind in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD):
+            spec.problems.append(
+                f"step(…, {'*' if p.kind is p.VAR_POSITIONAL else '**'}{p.name}) cannot declare ports; "
+                "name one parameter per input port")
+            continue
+        tp = hints.get(p.name, Any)
+        default = _NO_DEFAULT if p.default is inspect.Parameter.empty else p.default
+        spec.inputs[p.name] = PortSpec(p.name, tp, default, optional=_is_optional(tp))
+    if not spec.inputs:
+        spec.in_mode = "none"
+    return spec
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-instance runtime settings (kept off the user's attribute namespace)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class FlowSettings:
+    args: tuple
+    kwargs: dict
+    clock: Clock | None = None
+    name: str | None = None
+    latency: float = 0.0
+    latency_ns: int = 0
+    on_error: str = "stop"
+    on_overrun: str = "skip"
+    on_deadline_miss: str = "publish_late"
+
+
+def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
+    if value not in allowed:
+        raise ValueError(f"{owner}: {name}={value!r} is not one of {', '.join(map(repr, allowed))}")
+    return value
+
+
+class Flow(Generic[In, Out]):
+    """A stateful module with a synchronous ``step``; the runtime decides when and with what.
+
+    Subclasses implement ``step`` and, optionally, ``reset``. They need not call
+    ``super().__init__()``. Bind a clock with ``flow @ Rate(hz=30)``; wire with ``a.then(b)``.
+    """
+
+    _retriever: FlowSettings
+
+    def __new__(cls, *args: Any, **kwargs: Any):
+        self = super().__new__(cls)
+        self.__dict__["_retriever"] = FlowSettings(args, dict(kwargs))
+        pipe = _context.current_pipeline()
+        if pipe is not None:
+            pipe.add(self)
+        return self
+
+    def step(self, *args: Any, **kwargs: Any) -> Any:
+        raise NotImplementedError(
+            f"{type(self).__qualname__} has no step() method\n"
+            "    hint: define step(self, inp) (typed) or step(self, port_a, ...) (untyped)")
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        """Call ``step`` directly, with no runtime: ``flow(In(...))``."""
+        return self.step(*args, **kwargs)
+
+    def reset(self) -> None:
+        """Restore the initial state. By default, re-run ``__init__`` with the original arguments.
+
+        Override it when construction is expensive (a model load) or state lives elsewhere.
+        Backends call it on ``pipe.reset()``, on ``on_error="restart"``, and at the start of a
+        run for classes that define their own ``reset`` (the paper's pattern of initialising
+        state there).
+        """
+        settings = self._retriever
+        self.__dict__.clear()
+        self.__dict__["_retriever"] = settings
+        init = type(self).__init__
+        if init is not object.__init__:
+            init(self, *settings.args, **settings.kwargs)
+
+    # -- graph building -------------------------------------------------------------------
+    def __matmul__(self, clock: Clock):
+        if not isinstance(clock, Clock):
+            return NotImplemented
+        self._retriever.clock = clock
+        return self
+
+    def configure(self, *, name: str | None = None, latency: float | None = None,
+                  on_error: str | None = None, on_overrun: str | None = None,
+                  on_deadline_miss: str | None = None):
+        """Set this flow's node id, logical execution time (seconds) and failure policies.
+
+        Returns the flow, so it chains: ``Policy().configure(latency=0.3) @ Rate(hz=2)``.
+        """
+        s = self._retriever
+        owner = type(self).__qualname__
+        if name is not None:
+            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):
+                raise ValueError(f"{owner}: node name {name!r} must be an identifier-like str "
+                                 "(letters, digits, _ and -; it becomes a key-space segment)")
+            s.name = name
+        if latency is not None:
+            if not is_finite_number(latency) or latency < 0:
+                raise ValueError(f"{owner}: latency={latency!r} must be a finite number of seconds >= 0")
+            s.latency, s.latency_ns = latency, seconds_to_ns(latency)
+        if on_error is not None:
+            s.on_error = _choice(owner, "on_error", on_error, ON_ERROR)
+        if on_overrun is not None:
+            s.on_overrun = _choice(owner, "on_overrun", on_overrun, ON_OVERRUN)
+        if on_deadline_miss is not None:
+            s.on_deadline_miss = _choice(owner, "on_deadline_miss", on_deadline_miss, ON_DEADLINE_MISS)
+        return self
+
+    def named(self, name: str):
+        """Set this flow's node id; shorthand for ``configure(name=...)``."""
+        return self.configure(name=name)
+
+    def then(self, other: "Flow", sync=None, map: dict[str, str] | None = None,
+             delay: float = 0.0, qsize: int = 10) -> "Flow":
+        """Connect this flow to ``other`` in the current pipeline; returns ``other`` to chain."""
+        pipe = _context.current_pipeline()
+        if pipe is None:
+            raise RuntimeError(
+                f"{type(self).__qualname__}.then(...) was called outside a `with Pipeline(...)` block\n"
+                "    hint: wrap the wiring in `with Pipeline(\"name\") as pipe:` or use pipe.connect(a, b)")
+        pipe.connect(self, other, sync=sync, map=map, delay=delay, qsize=qsize, _stacklevel=3)
+        return other
+
+    def __repr__(self) -> str:
+        s = self._retriever
+        name = f" {s.name!r}" if s.name else ""
+        clock = f" @ {s.clock!r}" if s.clock is not None else ""
+        return f"<{type(self).__qualname__}{name}{clock}>"
+
+
+# ---------------------------------------------------------------------------------------------
+# Calling a flow from a runtime
+# ---------------------------------------------------------------------------------------------
+def make_invoker(flow: Flow, spec: FlowSpec) -> Callable[[dict], Any]:
+    """A function ``values -> raw step output`` for one flow instance."""
+    step = flow.step
+    if spec.in_mode == "io":
+        in_type = spec.in_type
+        return lambda values: step(in_type(**values))
+    if spec.in_mode == "single":
+        (port,) = spec.inputs
+        return lambda values: step(values[port])
+    if spec.in_mode == "params":
+        return lambda values: step(**values)
+    if spec.source_takes_arg:
+        return lambda values: step(None)
+    return lambda values: step()
+
+
+class OutputError(TypeError):
+    """A step returned something its declared output type cannot be read from."""
+
+
+def make_output_reader(spec: FlowSpec) -> Callable[[Any], list[tuple[str, Any]]]:
+    """A function ``raw step output -> [(port, value), ...]`` skipping ``None`` (no event)."""
+    if spec.out_mode == "io":
+        out_type, names = spec.out_type, tuple(spec.outputs or ())
+
+        def read_io(raw):
+            if raw is None:
+                return []
+            if type(raw) is out_type or isinstance(raw, out_type):
+                return [(n, v) for n in names if (v := getattr(raw, n)) is not None]
+            if isinstance(raw, dict):
+                return [(k, v) for k, v in raw.items() if v is not None]
+            raise OutputError(f"step() returned {type(raw).__qualname__}, expected {type_name(out_type)}")
+
+        return read_io
+    if spec.out_mode == "single":
+        (port,) = spec.outputs
+        return lambda raw: [] if raw is None else [(port, raw)]
+
+    def read_dict(raw):
+        if raw is None:
+            return []
+        if isinstance(raw, dict):
+            return [(k, v) for k, v in raw.items() if v is not None]
+        raise OutputError(f"an untyped flow's step() must return a dict of output ports or None, "
+                          f"got {type(raw).__qualname__}")
+
+    return read_dict

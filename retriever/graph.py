@@ -1,0 +1,428 @@
+"""Compile a pipeline's declarations into a resolved, validated graph — a pure function.
+
+``compile_graph`` resolves node ids and port matching, checks types, clocks and triggers, finds
+cycles, and collects **every** problem before raising one :class:`GraphError`. The resulting
+:class:`Graph` is what backends execute and what the IR serializes.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from .clocks import Clock
+from .codec import type_path
+from .errors import GraphError, Problem
+from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case, type_name
+from .sync import ActionChunking, SyncPolicy
+from .time import seconds_to_ns
+
+if TYPE_CHECKING:
+    from .ir import IR
+    from .pipeline import DeclaredEdge
+
+MAX_CYCLES_LISTED = 64
+
+
+@dataclass
+class Node:
+    """A flow placed in a graph, with its resolved id and ports."""
+
+    id: str
+    flow: Flow
+    spec: FlowSpec
+    inputs: dict[str, PortSpec]
+    outputs: dict[str, PortSpec]
+    params: dict[str, Any]
+    rebuild_problem: str | None = None
+
+    @property
+    def settings(self) -> FlowSettings:
+        return self.flow._retriever
+
+    @property
+    def clock(self) -> Clock:
+        return self.settings.clock  # type: ignore[return-value]
+
+    def triggers_on(self, port: str) -> bool:
+        clock = self.clock
+        return clock.triggered and (not clock.trigger_ports or port in clock.trigger_ports)
+
+
+@dataclass
+class Edge:
+    """One resolved port-to-port connection."""
+
+    src: str
+    src_port: str
+    dst: str
+    dst_port: str
+    sync: SyncPolicy
+    delay: float = 0.0
+    qsize: int = 10
+
+    @property
+    def delay_ns(self) -> int:
+        return seconds_to_ns(self.delay)
+
+    def __str__(self) -> str:
+        return f"{self.src}.{self.src_port} → {self.dst}.{self.dst_port}"
+
+
+@dataclass
+class Graph:
+    """A validated graph: nodes in registration order, edges in declaration order."""
+
+    name: str
+    nodes: dict[str, Node]
+    edges: list[Edge]
+    max_microsteps: int = 1000
+    cycles: list[list[str]] = field(default_factory=list)
+    instantaneous_cycles: list[list[str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def to_ir(self) -> "IR":
+        from .ir import IR, graph_to_doc
+
+        return IR(graph_to_doc(self))
+
+
+# ---------------------------------------------------------------------------------------------
+# Type compatibility
+# ---------------------------------------------------------------------------------------------
+def _opaque(tp: Any) -> bool:
+    return tp is Any or isinstance(tp, (str, typing.ForwardRef, typing.TypeVar)) or tp is inspect.Parameter.empty
+
+
+def fits(out_t: Any, in_t: Any) -> bool:
+    """Whether a value declared as ``out_t`` is acceptable where ``in_t`` is declared (lenient)."""
+    if _opaque(out_t) or _opaque(in_t) or out_t == in_t:
+        return True
+    in_origin, out_origin = typing.get_origin(in_t), typing.get_origin(out_t)
+    if in_origin in (typing.Union, types.UnionType):
+        return any(fits(out_t, arm) for arm in typing.get_args(in_t))
+    if out_origin in (typing.Union, types.UnionType):
+        return all(fits(arm, in_t) for arm in typing.get_args(out_t))
+    if in_origin is typing.Literal or out_origin is typing.Literal:
+        return True
+    in_cls, out_cls = in_origin or in_t, out_origin or out_t
+    if not (isinstance(in_cls, type) and isinstance(out_cls, type)):
+        return True
+    if in_cls is float and out_cls is int:  # PEP 484 numeric tower
+        return True
+    if in_cls is complex and out_cls in (int, float):
+        return True
+    try:
+        if not issubclass(out_cls, in_cls):
+            return False
+    except TypeError:
+        return True
+    in_args, out_args = typing.get_args(in_t), typing.get_args(out_t)
+    if in_args and out_args and len(in_args) == len(out_args) and Ellipsis not in in_args + out_args:
+        return all(fits(o, i) for o, i in zip(out_args, in_args))
+    return True
+
+
+def _fits_through(out_t: Any, in_t: Any, sync: SyncPolicy) -> bool:
+    if isinstance(sync, ActionChunking):
+        return True  # a chunk of rows arrives as one row; row types are not declared
+    if sync.delivers_list:
+        if _opaque(in_t):
+            return True
+        origin = typing.get_origin(in_t) or in_t
+        if origin in (list, typing.Sequence) or (isinstance(origin, type) and issubclass(origin, list)):
+            args = typing.get_args(in_t)
+            return not args or fits(out_t, args[0])
+        if typing.get_origin(in_t) in (typing.Union, types.UnionType):
+            return any(_fits_through(out_t, arm, sync) for arm in typing.get_args(in_t))
+        return False
+    return fits(out_t, in_t)
+
+
+# ---------------------------------------------------------------------------------------------
+# Constructor parameters (for rebuilding a flow from the IR alone)
+# ---------------------------------------------------------------------------------------------
+def _jsonable(value: Any) -> bool:
+    if value is None or isinstance(value, (bool, int, str)):
+        return True
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, (list, tuple)):
+        return all(_jsonable(v) for v in value)
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _jsonable(v) for k, v in value.items())
+    return False
+
+
+def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None]:
+    """The flow's constructor arguments by name, and why it cannot be rebuilt from them (or None)."""
+    cls = type(flow)
+    settings = flow._retriever
+    problem = None
+    if "<locals>" in cls.__qualname__:
+        problem = f"class {cls.__qualname__} is defined inside a function, so it cannot be imported"
+    elif cls.__module__ == "__main__":
+        problem = f"class {cls.__qualname__} lives in __main__; move it to an importable module"
+    if cls.__init__ is object.__init__:
+        if settings.args or settings.kwargs:
+            return {}, problem or "constructor arguments given but __init__ takes none"
+        return {}, problem
+    try:
+        bound = inspect.signature(cls.__init__).bind(None, *settings.args, **settings.kwargs)
+    except TypeError as e:
+        return {}, problem or f"constructor arguments do not match __init__: {e}"
+    params = dict(list(bound.arguments.items())[1:])
+    shown = {}
+    for name, value in params.items():
+        if _jsonable(value):
+            shown[name] = list(value) if isinstance(value, tuple) else value
+        else:
+            shown[name] = {"$unserializable": f"{type(value).__module__}.{type(value).__qualname__}"}
+            problem = problem or (
+                f"argument '{name}' is a {type(value).__qualname__}, which the IR cannot carry "
+                "(only JSON/msgpack values: numbers, str, lists, dicts)")
+    return json.loads(json.dumps(shown)), problem
+
+
+# ---------------------------------------------------------------------------------------------
+# Cycles
+# ---------------------------------------------------------------------------------------------
+def elementary_cycles(succ: dict[str, list[str]], order: list[str], limit: int = MAX_CYCLES_LISTED) -> list[list[str]]:
+    """Simple cycles, each listed once starting from its first node in ``order``."""
+    rank = {n: i for i, n in enumerate(order)}
+    found: list[list[str]] = []
+    for start in order:
+        stack = [(start, iter(sorted(set(succ.get(start, ())), key=rank.__getitem__)))]
+        path = [start]
+        on_path = {start}
+        while stack and len(found) < limit:
+            node, it = stack[-1]
+            nxt = next(it, None)
+            if nxt is None:
+                stack.pop()
+                on_path.discard(path.pop())
+                continue
+            if nxt == start:
+                found.append(list(path))
+            elif nxt not in on_path and rank[nxt] > rank[start]:
+                path.append(nxt)
+                on_path.add(nxt)
+                stack.append((nxt, iter(sorted(set(succ.get(nxt, ())), key=rank.__getitem__))))
+    return found
+
+
+# ---------------------------------------------------------------------------------------------
+# The compiler
+# ---------------------------------------------------------------------------------------------
+def _assign_ids(flows: list[Flow], problems: list[Problem]) -> dict[int, str]:
+    ids: dict[int, str] = {}
+    taken: dict[str, Flow] = {}
+    for f in flows:
+        name = f._retriever.name
+        if name is None:
+            continue
+        if name in taken:
+            problems.append(Problem(
+                f"node id '{name}' is used by two flows ({type(taken[name]).__qualname__} and "
+                f"{type(f).__qualname__})", "give each flow its own name with flow.configure(name=...)"))
+        taken[name] = f
+        ids[id(f)] = name
+    for f in flows:
+        if id(f) in ids:
+            continue
+        base = snake_case(type(f).__name__)
+        if base.endswith("_flow") and base != "_flow":
+            base = base[: -len("_flow")]
+        base = base or "flow"
+        name, n = base, 1
+        while name in taken:
+            n += 1
+            name = f"{base}_{n}"
+        taken[name] = f
+        ids[id(f)] = name
+    return ids
+
+
+def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], max_microsteps: int = 1000) -> Graph:
+    problems: list[Problem] = []
+    warnings: list[str] = []
+    ids = _assign_ids(flows, problems)
+
+    nodes: dict[str, Node] = {}
+    for f in flows:
+        spec = flow_spec(type(f))
+        node_id = ids[id(f)]
+        params, rebuild_problem = constructor_params(f)
+        nodes[node_id] = Node(node_id, f, spec, dict(spec.inputs),
+                              dict(spec.outputs) if spec.outputs is not None else {}, params, rebuild_problem)
+        where = f"flow '{node_id}' ({type_path(type(f))})"
+        if not spec.has_step:
+            problems.append(Problem(f"{where} has no step() method",
+                                    "define step(self, inp) (typed) or step(self, port, ...) (untyped)"))
+        for p in spec.problems:
+            problems.append(Problem(f"{where}: {p}"))
+
+    edges: list[Edge] = []
+    for decl in declared:
+        edges.extend(_resolve_edge(decl, nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]], problems))
+
+    # Untyped producers' output ports are the ones their edges name.
+    for e in edges:
+        src = nodes[e.src]
+        if src.spec.outputs is None and e.src_port not in src.outputs:
+            src.outputs[e.src_port] = PortSpec(e.src_port)
+
+    _check_fan_in_and_duplicates(edges, problems)
+    _check_clocks(nodes, edges, problems)
+    edges = [_bind_policy(e, nodes[e.dst]) for e in edges]
+
+    fed = {(e.dst, e.dst_port) for e in edges}
+    for node in nodes.values():
+        for port, spec in node.inputs.items():
+            if spec.required and (node.id, port) not in fed:
+                warnings.append(f"input port {node.id}.{port} has no incoming edge and no default: "
+                                f"every tick of '{node.id}' will be skipped (connect it, or give it a default)")
+
+    if problems:
+        raise GraphError(name, problems)
+
+    order = list(nodes)
+    succ: dict[str, list[str]] = {n: [] for n in order}
+    inst: dict[str, list[str]] = {n: [] for n in order}
+    for e in edges:
+        succ[e.src].append(e.dst)
+        if e.delay_ns == 0 and nodes[e.src].settings.latency_ns == 0 and nodes[e.dst].triggers_on(e.dst_port):
+            inst[e.src].append(e.dst)
+    cycles = elementary_cycles(succ, order)
+    instantaneous = elementary_cycles(inst, order)
+    for c in instantaneous:
+        loop = " → ".join(c + c[:1])
+        warnings.append(
+            f"instantaneous cycle {loop}: every link is a zero-latency, undelayed edge into a trigger port, "
+            f"so it runs in microsteps within one instant and stops with an error past "
+            f"max_microsteps={max_microsteps} (fix: latency=, delay=, or a Rate clock on the cycle)")
+    return Graph(name, nodes, edges, max_microsteps, cycles, instantaneous, warnings)
+
+
+def _ports_list(ports: dict[str, PortSpec]) -> str:
+    return ", ".join(sorted(ports)) or "(none)"
+
+
+def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Problem]) -> list[Edge]:
+    label = f"edge {src.id} → {dst.id}" + (f" ({decl.where})" if decl.where else "")
+    sync = decl.sync
+    if dst.spec.is_source:
+        problems.append(Problem(f"{label}: '{dst.id}' is a source (it has no input ports)",
+                                "connect into a flow whose step() takes inputs"))
+        return []
+    typed_src = src.spec.outputs is not None
+    pairs: list[tuple[str, str]] = []
+    if decl.map is not None:
+        for out_port, in_port in decl.map.items():
+            ok = True
+            if typed_src and out_port not in src.outputs:
+                problems.append(Problem(
+                    f"{label}: map names output port '{out_port}', but {src.id} has no such output "
+                    f"(outputs: {_ports_list(src.outputs)})", "map goes {output_port: input_port}"))
+                ok = False
+            if in_port not in dst.inputs:
+                problems.append(Problem(
+                    f"{label}: map names input port '{in_port}', but {dst.id} has no such input "
+                    f"(inputs: {_ports_list(dst.inputs)})", "map goes {output_port: input_port}"))
+                ok = False
+            if ok:
+                pairs.append((out_port, in_port))
+    elif not typed_src:
+        if len(dst.inputs) == 1:
+            (port,) = dst.inputs
+            pairs.append((port, port))
+        else:
+            problems.append(Problem(
+                f"{label}: {src.id} is untyped, so its outputs cannot be matched by name to "
+                f"{dst.id}'s inputs ({_ports_list(dst.inputs)}); the match is ambiguous",
+                f"pass map={{'<output>': '<input>'}} to say which port of {dst.id} it feeds"))
+    else:
+        common = [p for p in src.outputs if p in dst.inputs]
+        if common:
+            pairs = [(p, p) for p in common]
+        else:
+            candidates = [(o, i) for o, os in src.outputs.items() for i, is_ in dst.inputs.items()
+                          if _fits_through(os.type, is_.type, sync)]
+            if len(candidates) == 1:
+                pairs = candidates
+            elif not candidates:
+                problems.append(Problem(
+                    f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "
+                    f"{dst.id} ({_ports_list(dst.inputs)}) by name or type",
+                    "pass map={'<output>': '<input>'}"))
+            else:
+                shown = ", ".join(f"{o}→{i}" for o, i in candidates)
+                problems.append(Problem(
+                    f"{label}: ambiguous port matching: no names in common and several type-compatible "
+                    f"pairs ({shown})", "pass map={'<output>': '<input>'} to choose"))
+    edges = []
+    for out_port, in_port in pairs:
+        out_spec = src.outputs.get(out_port)
+        in_spec = dst.inputs[in_port]
+        if out_spec is not None and not _fits_through(out_spec.type, in_spec.type, sync):
+            expected = in_spec.type_name
+            what = f"list of {out_spec.type_name}" if sync.delivers_list else out_spec.type_name
+            problems.append(Problem(
+                f"{label}: type mismatch on {src.id}.{out_port} → {dst.id}.{in_port}: the input expects "
+                f"{expected}, the edge delivers {what}",
+                "Window and Queue deliver lists" if sync.delivers_list else
+                "fix one of the annotations, or route the port elsewhere with map="))
+            continue
+        edges.append(Edge(src.id, out_port, dst.id, in_port, sync, decl.delay, decl.qsize))
+    return edges
+
+
+def _check_fan_in_and_duplicates(edges: list[Edge], problems: list[Problem]) -> None:
+    by_port: dict[tuple[str, str], Edge] = {}
+    seen: set[tuple[str, str, str, str]] = set()
+    for e in edges:
+        key = (e.src, e.src_port, e.dst, e.dst_port)
+        if key in seen:
+            problems.append(Problem(f"edge {e} is declared twice", "remove the duplicate connect/then"))
+            continue
+        seen.add(key)
+        first = by_port.setdefault((e.dst, e.dst_port), e)
+        if first is not e and first.sync != e.sync:
+            problems.append(Problem(
+                f"fan-in into {e.dst}.{e.dst_port} mixes sync policies: {first} uses {first.sync!r}, "
+                f"{e} uses {e.sync!r}", "several producers into one port are merged by tag and "
+                "sampled by one policy: give every edge into the port the same sync="))
+
+
+def _check_clocks(nodes: dict[str, Node], edges: list[Edge], problems: list[Problem]) -> None:
+    for node in nodes.values():
+        clock = node.settings.clock
+        if clock is None:
+            problems.append(Problem(f"flow '{node.id}' has no clock",
+                                    f"bind one: {type(node.flow).__name__}(...) @ Rate(hz=...) or @ Trigger(\"port\")"))
+            continue
+        for port in clock.trigger_ports:
+            if port not in node.inputs:
+                problems.append(Problem(
+                    f"{clock!r} on '{node.id}': '{node.id}' has no input port '{port}' "
+                    f"(inputs: {_ports_list(node.inputs)})", "trigger on one of the flow's input ports"))
+        if clock.triggered and clock.hz is None and not node.inputs:
+            problems.append(Problem(f"'{node.id}' is a source clocked by {clock!r}, so it never ticks",
+                                    "clock a source with Rate(hz=...)"))
+    for e in edges:
+        if isinstance(e.sync, ActionChunking) and e.sync.control_hz is None and nodes[e.dst].clock is not None \
+                and nodes[e.dst].clock.hz is None:
+            problems.append(Problem(f"edge {e}: ActionChunking needs control_hz= because '{e.dst}' has no rate",
+                                    "ActionChunking(control_hz=200, chunk_steps=...)"))
+
+
+def _bind_policy(edge: Edge, dst: Node) -> Edge:
+    if isinstance(edge.sync, ActionChunking) and edge.sync.control_hz is None and dst.clock is not None:
+        hz = getattr(dst.clock, "hz_value", None)
+        edge.sync = edge.sync.bound_to_rate(hz)
+    return edge

@@ -1,0 +1,296 @@
+"""The IR: a graph as explicit, versioned JSON — the deployment artifact (DESIGN.md §6).
+
+``pipe.build_ir()`` returns an :class:`IR`; ``IR.load(path)`` validates a saved one and reports
+every problem at once; ``Pipeline.from_ir(ir)`` rebuilds a runnable pipeline from it alone.
+Keys are sorted, so the JSON text is stable and a golden file can pin it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .clocks import clock_from_ir
+from .errors import IRError
+from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
+from .sync import policy_from_ir
+
+if TYPE_CHECKING:
+    from .graph import Graph
+
+IR_VERSION = "1.0.0"
+
+
+def graph_to_doc(graph: "Graph") -> dict:
+    nodes = []
+    for node in graph.nodes.values():
+        s = node.settings
+        doc = {
+            "id": node.id,
+            "type": f"{type(node.flow).__module__}:{type(node.flow).__qualname__}",
+            "params": node.params,
+            "config": {
+                "clock": s.clock.to_ir(),
+                "latency": s.latency,
+                "on_error": s.on_error,
+                "on_overrun": s.on_overrun,
+                "on_deadline_miss": s.on_deadline_miss,
+            },
+            "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
+            "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
+            "rebuildable": node.rebuild_problem is None,
+        }
+        if node.rebuild_problem is not None:
+            doc["rebuild_problem"] = node.rebuild_problem
+        nodes.append(doc)
+    edges = [
+        {
+            "source": {"node": e.src, "port": e.src_port},
+            "destination": {"node": e.dst, "port": e.dst_port},
+            "adapter": e.sync.to_ir(),
+            "qsize": e.qsize,
+            "delay": e.delay,
+        }
+        for e in graph.edges
+    ]
+    return {
+        "version": IR_VERSION,
+        "metadata": {
+            "name": graph.name,
+            "validated": True,
+            "optimized": False,
+            "max_microsteps": graph.max_microsteps,
+            "warnings": list(graph.warnings),
+        },
+        "nodes": nodes,
+        "edges": edges,
+        "topology": {
+            "node_count": len(graph.nodes),
+            "edge_count": len(graph.edges),
+            "has_cycle": bool(graph.cycles),
+            "cycles": graph.cycles,
+            "instantaneous_cycles": graph.instantaneous_cycles,
+        },
+    }
+
+
+class IR:
+    """A compiled graph as data. Build with ``pipe.build_ir()`` or ``IR.load(path)``."""
+
+    def __init__(self, doc: dict, *, source: str = "<memory>"):
+        validate_doc(doc, source)
+        self.doc = doc
+
+    # -- accessors ---------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return self.doc["metadata"]["name"]
+
+    @property
+    def nodes(self) -> list[dict]:
+        return self.doc["nodes"]
+
+    @property
+    def edges(self) -> list[dict]:
+        return self.doc["edges"]
+
+    @property
+    def topology(self) -> dict:
+        return self.doc["topology"]
+
+    @property
+    def warnings(self) -> list[str]:
+        return list(self.doc["metadata"].get("warnings", []))
+
+    def node(self, node_id: str) -> dict:
+        for n in self.nodes:
+            if n["id"] == node_id:
+                return n
+        raise KeyError(f"IR '{self.name}' has no node '{node_id}' (nodes: {', '.join(n['id'] for n in self.nodes)})")
+
+    # -- serialization -------------------------------------------------------------------------
+    def to_json(self, indent: int | None = 2) -> str:
+        return json.dumps(self.doc, indent=indent, sort_keys=True, ensure_ascii=False) + "\n"
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.write_text(self.to_json(), encoding="utf-8")
+        return path
+
+    @classmethod
+    def from_json(cls, text: str, *, source: str = "<string>") -> "IR":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise IRError(source, [f"not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}"]) from None
+        return cls(doc, source=source)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "IR":
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as e:
+            raise IRError(str(path), [f"cannot read the file: {e.strerror or e}"]) from None
+        except UnicodeDecodeError:
+            raise IRError(str(path), ["not a text file (expected UTF-8 JSON)"]) from None
+        return cls.from_json(text, source=str(path))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, IR) and self.doc == other.doc
+
+    def __repr__(self) -> str:
+        t = self.topology
+        return f"<IR '{self.name}' v{self.doc['version']}: {t['node_count']} nodes, {t['edge_count']} edges>"
+
+    # -- pictures ------------------------------------------------------------------------------
+    def visualize(self, format: str = "dot") -> str:
+        """The graph as Graphviz DOT (``"dot"``) or Mermaid (``"mermaid"``) text."""
+        if format == "dot":
+            return _to_dot(self)
+        if format == "mermaid":
+            return _to_mermaid(self)
+        raise ValueError(f"unknown format {format!r}; expected 'dot' or 'mermaid'")
+
+
+def _clock_label(clock: dict) -> str:
+    (kind, p), = clock.items()
+    if kind == "Rate":
+        return f"Rate {p['hz']} Hz"
+    if kind == "Trigger":
+        return "Trigger(" + ", ".join(p.get("ports", [])) + ")"
+    return f"Hybrid {p['hz']} Hz + (" + ", ".join(p.get("trigger", [])) + ")"
+
+
+def _adapter_label(adapter: dict) -> str:
+    (name, p), = adapter.items()
+    args = ", ".join(f"{k}={v}" for k, v in sorted(p.items()) if v is not None)
+    return f"{name}({args})"
+
+
+def _edge_label(e: dict) -> str:
+    label = f"{e['source']['port']} → {e['destination']['port']}\\n{_adapter_label(e['adapter'])}"
+    if e.get("delay"):
+        label += f"\\ndelay {e['delay']} s"
+    return label
+
+
+def _to_dot(ir: IR) -> str:
+    lines = [f'digraph "{ir.name}" {{', "  rankdir=LR;", '  node [shape=box, style=rounded, fontname="Helvetica"];']
+    for n in ir.nodes:
+        latency = n["config"].get("latency") or 0
+        extra = f"\\nlatency {latency} s" if latency else ""
+        lines.append(f'  "{n["id"]}" [label="{n["id"]}\\n{_clock_label(n["config"]["clock"])}{extra}"];')
+    for e in ir.edges:
+        lines.append(f'  "{e["source"]["node"]}" -> "{e["destination"]["node"]}" [label="{_edge_label(e)}"];')
+    lines.append("}")
+    return "\n".join(lines) + "\n"
+
+
+def _to_mermaid(ir: IR) -> str:
+    lines = ["flowchart LR"]
+    for n in ir.nodes:
+        lines.append(f'  {n["id"]}["{n["id"]}<br/>{_clock_label(n["config"]["clock"])}"]')
+    for e in ir.edges:
+        label = _edge_label(e).replace("\\n", "<br/>")
+        lines.append(f'  {e["source"]["node"]} -->|"{label}"| {e["destination"]["node"]}')
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation of a document (every problem at once)
+# ---------------------------------------------------------------------------------------------
+def _expect(problems: list[str], where: str, value: Any, kind: type | tuple, what: str) -> bool:
+    if isinstance(value, kind):
+        return True
+    problems.append(f"{where}: expected {what}, got {json.dumps(value) if _dumpable(value) else type(value).__name__}")
+    return False
+
+
+def _dumpable(value: Any) -> bool:
+    try:
+        json.dumps(value)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def validate_doc(doc: Any, source: str) -> None:
+    problems: list[str] = []
+    if not isinstance(doc, dict):
+        raise IRError(source, [f"the document must be a JSON object, got {type(doc).__name__}"])
+    version = doc.get("version")
+    if not isinstance(version, str):
+        problems.append("'version' is missing (expected \"1.0.0\")")
+    elif version.split(".")[0] != IR_VERSION.split(".")[0]:
+        problems.append(f"version {version!r} is not supported by this Retriever (it reads {IR_VERSION}); "
+                        "rebuild the IR with this version: retriever ir FILE --out PATH")
+    for key, kind, what in (("metadata", dict, "an object"), ("nodes", list, "a list"),
+                            ("edges", list, "a list"), ("topology", dict, "an object")):
+        if key not in doc:
+            problems.append(f"'{key}' is missing (expected {what})")
+        else:
+            _expect(problems, f"'{key}'", doc[key], kind, what)
+    if problems:
+        raise IRError(source, problems)
+    meta = doc["metadata"]
+    if not isinstance(meta.get("name"), str):
+        problems.append("metadata.name: expected the pipeline name (a string)")
+    ids: dict[str, dict] = {}
+    for i, n in enumerate(doc["nodes"]):
+        where = f"nodes[{i}]"
+        if not _expect(problems, where, n, dict, "an object"):
+            continue
+        nid = n.get("id")
+        if not isinstance(nid, str) or not nid:
+            problems.append(f"{where}.id: expected a non-empty string")
+            continue
+        where = f"node '{nid}'"
+        if nid in ids:
+            problems.append(f"{where}: duplicate node id")
+        ids[nid] = n
+        if not isinstance(n.get("type"), str) or ":" not in n.get("type", ""):
+            problems.append(f"{where}.type: expected 'module:Class', got {n.get('type')!r}")
+        _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
+        for key in ("inputs", "outputs"):
+            _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")
+        config = n.get("config")
+        if _expect(problems, f"{where}.config", config, dict, "an object"):
+            try:
+                clock_from_ir(config.get("clock"))
+            except ValueError as e:
+                problems.append(f"{where}.config.clock: {e}".split("\n")[0])
+            latency = config.get("latency", 0)
+            if not isinstance(latency, (int, float)) or isinstance(latency, bool) or latency < 0:
+                problems.append(f"{where}.config.latency: expected seconds >= 0, got {latency!r}")
+            for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
+                                 ("on_deadline_miss", ON_DEADLINE_MISS)):
+                if key in config and config[key] not in allowed:
+                    problems.append(f"{where}.config.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
+    for i, e in enumerate(doc["edges"]):
+        where = f"edges[{i}]"
+        if not _expect(problems, where, e, dict, "an object"):
+            continue
+        for end, ports_key in (("source", "outputs"), ("destination", "inputs")):
+            ref = e.get(end)
+            if not isinstance(ref, dict) or not isinstance(ref.get("node"), str) or not isinstance(ref.get("port"), str):
+                problems.append(f"{where}.{end}: expected {{\"node\": ..., \"port\": ...}}, got {ref!r}")
+                continue
+            node = ids.get(ref["node"])
+            if node is None:
+                problems.append(f"{where}.{end}: unknown node '{ref['node']}'")
+            elif isinstance(node.get(ports_key), dict) and ref["port"] not in node[ports_key]:
+                problems.append(f"{where}.{end}: node '{ref['node']}' has no {ports_key[:-1]} port '{ref['port']}'")
+        try:
+            policy_from_ir(e.get("adapter"))
+        except ValueError as err:
+            problems.append(f"{where}.adapter: {err}")
+        delay = e.get("delay", 0)
+        if not isinstance(delay, (int, float)) or isinstance(delay, bool) or delay < 0:
+            problems.append(f"{where}.delay: expected seconds >= 0, got {delay!r}")
+        qsize = e.get("qsize", 10)
+        if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
+            problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
+    if problems:
+        raise IRError(source, problems)

@@ -1,0 +1,259 @@
+"""``Pipeline``: declare flows and edges, compile them, run them on a backend.
+
+    with Pipeline("agent") as pipe:
+        cam.then(policy, sync=Latest()).then(ctrl, sync=ActionChunking(control_hz=200))
+    ir = pipe.build_ir()            # validate everything, raise once
+    trace = pipe.run(duration=10)   # default backend: retriever.init(backend=...) or "inproc"
+
+``run`` and ``step`` continue from where the last call stopped; ``reset`` returns to T0.
+"""
+
+from __future__ import annotations
+
+import inspect
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from . import _context
+from .backends import Session, open_backend
+from .clocks import clock_from_ir
+from .codec import import_type
+from .errors import BackendError, IRError, RetrieverWarning
+from .flow._base import Flow
+from .graph import Graph, compile_graph
+from .ir import IR
+from .sync import Latest, SyncPolicy, policy_from_ir
+from .time import NS_PER_S, is_finite_number, seconds_to_ns
+from .trace import Trace
+
+
+@dataclass
+class DeclaredEdge:
+    """An edge as the user wrote it; ports are resolved by ``compile_graph``."""
+
+    src: Flow
+    dst: Flow
+    sync: SyncPolicy
+    map: dict[str, str] | None
+    delay: float
+    qsize: int
+    where: str | None
+
+
+class Pipeline:
+    """A graph of flows. Use as a context manager so ``a.then(b)`` knows where to add the edge."""
+
+    def __init__(self, name: str = "pipeline", *, max_microsteps: int = 1000):
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a pipeline name must be a non-empty string, got {name!r}")
+        if not isinstance(max_microsteps, int) or max_microsteps < 1:
+            raise ValueError(f"max_microsteps must be an integer >= 1, got {max_microsteps!r}")
+        self.name = name
+        self.max_microsteps = max_microsteps
+        self._flows: list[Flow] = []
+        self._edges: list[DeclaredEdge] = []
+        self._graph: Graph | None = None
+        self._session: Session | None = None
+
+    # -- declaring ---------------------------------------------------------------------------
+    def __enter__(self) -> "Pipeline":
+        _context.push(self)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        _context.pop(self)
+
+    def add(self, flow: Flow, name: str | None = None) -> Flow:
+        """Add a flow (flows join automatically when created inside ``with`` or wired)."""
+        if not isinstance(flow, Flow):
+            raise TypeError(f"Pipeline.add expects a Flow, got {type(flow).__qualname__}")
+        if name is not None:
+            flow.configure(name=name)
+        if not any(f is flow for f in self._flows):
+            self._flows.append(flow)
+            self._changed()
+        return flow
+
+    def connect(self, src: Flow, dst: Flow, sync: SyncPolicy | None = None, map: dict[str, str] | None = None,
+                delay: float = 0.0, qsize: int = 10, *, _stacklevel: int = 2) -> Flow:
+        """Add an edge ``src → dst``; returns ``dst``. Ports are matched when the graph compiles."""
+        for role, f in (("source", src), ("destination", dst)):
+            if not isinstance(f, Flow):
+                raise TypeError(f"connect(): the {role} must be a Flow instance, got {type(f).__qualname__}"
+                                + ("\n    hint: instantiate it: MyFlow() @ Rate(hz=...)" if isinstance(f, type) else ""))
+        if sync is None:
+            sync = Latest()
+        if not isinstance(sync, SyncPolicy):
+            hint = "\n    hint: instantiate it: sync=Latest()" if isinstance(sync, type) else ""
+            raise TypeError(f"connect(): sync must be a sync policy such as Latest(), got {sync!r}{hint}")
+        if map is not None and (not isinstance(map, dict) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in map.items())):
+            raise TypeError(f"connect(): map must be a dict {{output_port: input_port}} of str, got {map!r}")
+        if not is_finite_number(delay) or delay < 0:
+            raise ValueError(f"connect(): delay must be a finite number of seconds >= 0, got {delay!r}")
+        if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
+            raise ValueError(f"connect(): qsize must be an integer >= 1, got {qsize!r}")
+        self.add(src)
+        self.add(dst)
+        frame = sys._getframe(_stacklevel - 1)
+        where = f"{Path(frame.f_code.co_filename).name}:{frame.f_lineno}"
+        self._edges.append(DeclaredEdge(src, dst, sync, dict(map) if map is not None else None, delay, qsize, where))
+        self._changed()
+        return dst
+
+    def _changed(self) -> None:
+        self._graph = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    @property
+    def flows(self) -> list[Flow]:
+        return list(self._flows)
+
+    # -- compiling ---------------------------------------------------------------------------
+    def compile(self) -> Graph:
+        """Resolve and validate the graph (cached until the pipeline changes)."""
+        if self._graph is None:
+            self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps)
+            for w in self._graph.warnings:
+                warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=3)
+        return self._graph
+
+    def build_ir(self) -> IR:
+        """Validate the graph, reporting every problem in one GraphError, and return its IR."""
+        return self.compile().to_ir()
+
+    @classmethod
+    def from_ir(cls, ir: IR) -> "Pipeline":
+        """Rebuild a runnable pipeline from an IR alone: import each ``type``, call it with ``params``."""
+        meta = ir.doc["metadata"]
+        pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", 1000))
+        flows: dict[str, Flow] = {}
+        problems = []
+        with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
+            for node in ir.nodes:
+                _rebuild_node(node, flows, problems)
+        if problems:
+            raise IRError(f"IR '{ir.name}'", problems)
+        for e in ir.edges:
+            src, dst = flows[e["source"]["node"]], flows[e["destination"]["node"]]
+            pipe.connect(src, dst, sync=policy_from_ir(e["adapter"]), map={e["source"]["port"]: e["destination"]["port"]},
+                         delay=e.get("delay", 0.0), qsize=e.get("qsize", 10))
+        return pipe
+
+    # -- running -----------------------------------------------------------------------------
+
+    # -- running -----------------------------------------------------------------------------
+    def _session_for(self, backend: str | None, options: dict) -> Session:
+        from .backends import default_backend
+
+        name = backend or default_backend()
+        if self._session is not None:
+            if backend is not None and self._session.backend_name != name:
+                raise BackendError(
+                    f"pipeline '{self.name}' is already running on backend '{self._session.backend_name}', "
+                    f"not '{name}'\n    hint: call pipe.reset() before switching backends")
+            if options:
+                raise BackendError(f"backend options {sorted(options)} can only be given on the first run/step "
+                                   "after construction or pipe.reset()")
+            return self._session
+        self._session = open_backend(name, self.compile(), **options)
+        return self._session
+
+    def run(self, duration: float | None = None, backend: str | None = None, **options: Any) -> Trace:
+        """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace."""
+        session = self._session_for(backend, options)
+        if duration is None:
+            session.run_to_end()
+        else:
+            _check_seconds("run", "duration", duration)
+            session.advance(session.now_ns + seconds_to_ns(duration))
+        return session.trace
+
+    def step(self, dt: float, **options: Any) -> Trace:
+        """Advance virtual time by ``dt`` seconds (in-process backend) and return the trace so far."""
+        _check_seconds("step", "dt", dt)
+        session = self._session_for("inproc" if self._session is None else None, options)
+        if not session.steppable:
+            raise BackendError(f"pipe.step() needs the in-process backend; this pipeline runs on '{session.backend_name}'")
+        session.advance(session.now_ns + seconds_to_ns(dt))
+        return session.trace
+
+    def reset(self) -> None:
+        """Return to T0: drop the run's state and trace and reset every flow."""
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        for f in self._flows:
+            f.reset()
+
+    @property
+    def trace(self) -> Trace:
+        """The trace of the current run (empty before the first run/step)."""
+        return self._session.trace if self._session is not None else Trace()
+
+    @property
+    def now(self) -> float:
+        """Current virtual time in seconds since T0."""
+        return 0.0 if self._session is None else self._session.now_ns / NS_PER_S
+
+    def stats(self) -> dict[str, Any]:
+        """Per-node counters of the current run: ticks, steps, skips, errors, mean step time."""
+        return {} if self._session is None else self._session.stats()
+
+    def __repr__(self) -> str:
+        return f"<Pipeline '{self.name}': {len(self._flows)} flows, {len(self._edges)} edges>"
+
+
+def _check_seconds(method: str, name: str, value: Any) -> None:
+    if not is_finite_number(value) or value < 0:
+        raise ValueError(f"pipe.{method}({name}={value!r}): {name} must be a finite number of seconds >= 0")
+
+
+def _construct(cls: type, params: dict) -> Flow:
+    args: list = []
+    kwargs: dict = {}
+    sig = inspect.signature(cls.__init__) if cls.__init__ is not object.__init__ else None
+    if sig is None:
+        return cls()
+    for p in list(sig.parameters.values())[1:]:
+        if p.name not in params:
+            continue
+        value = params[p.name]
+        if p.kind is p.POSITIONAL_ONLY:
+            args.append(value)
+        elif p.kind is p.VAR_POSITIONAL:
+            args.extend(value)
+        elif p.kind is p.VAR_KEYWORD:
+            kwargs.update(value)
+        else:
+            kwargs[p.name] = value
+    return cls(*args, **kwargs)
+
+
+def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> None:
+    nid = node["id"]
+    if not node.get("rebuildable", True):
+        problems.append(f"node '{nid}' cannot be rebuilt from the IR: {node.get('rebuild_problem')}")
+        return
+    try:
+        flow_cls = import_type(node["type"])
+    except (ImportError, AttributeError) as e:
+        problems.append(f"node '{nid}': cannot import {node['type']} ({e})")
+        return
+    if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
+        problems.append(f"node '{nid}': {node['type']} is not a Flow class")
+        return
+    try:
+        flow = _construct(flow_cls, node["params"])
+    except Exception as e:
+        problems.append(f"node '{nid}': {node['type']}(**{node['params']!r}) raised {type(e).__name__}: {e}")
+        return
+    config = node["config"]
+    flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
+                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"))
+    flows[nid] = flow @ clock_from_ir(config["clock"])

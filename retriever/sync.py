@@ -1,0 +1,380 @@
+"""Sync policies: what a tick consumes from an edge, decided by event time (DESIGN.md §4).
+
+At a tick with tag ``τ`` the runtime hands each policy the edge's history ``H``: the upstream
+events with tag ``≤ τ``, oldest first (fan-in merged by tag, then producer id, then seq). The
+policy returns one value or ``MISSING``. Nothing about arrival order or wall time enters.
+
+Runtime interface (used by every backend):
+
+    select(buf, tau) -> (value, consumed_ids, dropped, commit)
+    commit_to(buf, commit)        # applied only when the tick is not skipped
+
+``buf`` is a :class:`PortBuffer`. Splitting select from commit is what lets a skipped tick
+consume nothing: ``Queue`` and ``LatestDistinct`` events stay for the next tick.
+"""
+
+from __future__ import annotations
+
+from bisect import insort
+from fractions import Fraction
+from typing import Any
+
+from .time import NS_PER_S, exact_rational, is_finite_number, seconds_to_ns
+
+
+class _Missing:
+    """The absence of a value on a port at a tick."""
+
+    _instance = None
+
+    def __new__(cls):
+        if cls._instance is None:
+            cls._instance = super().__new__(cls)
+        return cls._instance
+
+    def __repr__(self) -> str:
+        return "MISSING"
+
+    def __bool__(self) -> bool:
+        return False
+
+    def __reduce__(self):
+        return "MISSING"
+
+
+MISSING: Any = _Missing()
+
+# Trim consumed history in batches so per-tick cost stays O(1) amortized.
+_TRIM_BATCH = 64
+
+
+class PortBuffer:
+    """The merged, tag-ordered history of one consumer input port.
+
+    Entries are ``(arrival_tag, producer, port, seq, event)`` tuples; the first four fields are
+    unique, so tuple order is exactly the fan-in order of DESIGN.md §10.8. ``visible`` counts the
+    entries with ``arrival_tag ≤`` the tag of the consumer's current tick.
+    """
+
+    __slots__ = ("entries", "visible", "cursor", "last_id")
+
+    def __init__(self) -> None:
+        self.entries: list[tuple] = []
+        self.visible = 0
+        self.cursor = 0  # Queue: index of the first event not yet consumed
+        self.last_id: Any = None  # LatestDistinct: id of the last event consumed
+
+    def insert(self, entry: tuple) -> None:
+        entries = self.entries
+        if not entries or entries[-1] < entry:
+            entries.append(entry)
+        else:
+            insort(entries, entry)
+
+    def advance(self, tau: tuple[int, int]) -> int:
+        entries, n = self.entries, self.visible
+        end = len(entries)
+        while n < end and entries[n][0] <= tau:
+            n += 1
+        self.visible = n
+        return n
+
+    def trim(self, keep_from: int) -> None:
+        """Forget entries before index ``keep_from``, which no future tick can select."""
+        if keep_from >= _TRIM_BATCH:
+            del self.entries[:keep_from]
+            self.visible -= keep_from
+            self.cursor = max(0, self.cursor - keep_from)
+
+
+class SyncPolicy:
+    """Base of sync policies. Subclasses are small immutable values."""
+
+    __slots__ = ()
+    #: key of this policy in the IR's ``adapter`` object
+    ir_name: str = ""
+
+    def params(self) -> dict:
+        return {}
+
+    def to_ir(self) -> dict:
+        return {self.ir_name: self.params()}
+
+    #: whether a consumer receives a list of upstream values (Window, Queue) rather than one
+    delivers_list = False
+
+    def select(self, buf: PortBuffer, tau: tuple[int, int]):
+        raise NotImplementedError
+
+    def commit_to(self, buf: PortBuffer, commit: Any) -> None:
+        """Record consumption; called only for ticks that run ``step``."""
+
+    def __eq__(self, other: object) -> bool:
+        return type(self) is type(other) and self.params() == other.params()
+
+    def __hash__(self) -> int:
+        return hash((type(self), tuple(sorted(self.params().items()))))
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.params().items() if v is not None)
+        return f"{type(self).__name__}({args})"
+
+
+def _nonneg_seconds(owner: str, name: str, value: object, allow_none: bool = True) -> int | None:
+    if value is None and allow_none:
+        return None
+    if not is_finite_number(value) or value < 0:
+        raise ValueError(f"{owner}({name}={value!r}): {name} must be a finite number of seconds >= 0")
+    return seconds_to_ns(value)
+
+
+def _positive_int(owner: str, name: str, value: object, allow_none: bool = True) -> None:
+    if value is None and allow_none:
+        return
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"{owner}({name}={value!r}): {name} must be an integer >= 1")
+
+
+class Latest(SyncPolicy):
+    """The newest event of H; MISSING if H is empty or the newest is older than ``staleness`` s."""
+
+    __slots__ = ("staleness", "_staleness_ns")
+    ir_name = "latest"
+
+    def __init__(self, staleness: float | None = None):
+        self._staleness_ns = _nonneg_seconds("Latest", "staleness", staleness)
+        self.staleness = staleness
+
+    def params(self) -> dict:
+        return {"staleness": self.staleness}
+
+    def select(self, buf, tau):
+        n = buf.advance(tau)
+        if not n:
+            return MISSING, None, 0, None
+        entry = buf.entries[n - 1]
+        if self._staleness_ns is not None and tau[0] - entry[0][0] > self._staleness_ns:
+            return MISSING, None, 0, None
+        buf.trim(n - 1)
+        ev = entry[4]
+        return ev.value, (ev.id,), 0, None
+
+
+class LatestDistinct(SyncPolicy):
+    """The newest event of H if this consumer has not consumed it on this port before, else MISSING."""
+
+    __slots__ = ()
+    ir_name = "latest_distinct"
+
+    def select(self, buf, tau):
+        n = buf.advance(tau)
+        if not n:
+            return MISSING, None, 0, None
+        ev = buf.entries[n - 1][4]
+        eid = ev.id
+        if eid == buf.last_id:
+            return MISSING, None, 0, None
+        buf.trim(n - 1)
+        return ev.value, (eid,), 0, eid
+
+    def commit_to(self, buf, commit):
+        buf.last_id = commit
+
+
+class Window(SyncPolicy):
+    """The values of H within ``duration`` s of τ (inclusive), the newest ``buffer_size``, oldest first.
+
+    Never MISSING: an empty window is an empty list.
+    """
+
+    __slots__ = ("buffer_size", "duration", "_duration_ns")
+    ir_name = "window"
+    delivers_list = True
+
+    def __init__(self, buffer_size: int | None = None, duration: float | None = None):
+        _positive_int("Window", "buffer_size", buffer_size)
+        self._duration_ns = _nonneg_seconds("Window", "duration", duration)
+        self.buffer_size = buffer_size
+        self.duration = duration
+
+    def params(self) -> dict:
+        return {"buffer_size": self.buffer_size, "duration": self.duration}
+
+    def select(self, buf, tau):
+        n = buf.advance(tau)
+        entries = buf.entries
+        lo = 0
+        if self.buffer_size is not None:
+            lo = max(0, n - self.buffer_size)
+        if self._duration_ns is not None:
+            horizon = tau[0] - self._duration_ns
+            while lo < n and entries[lo][0][0] < horizon:
+                lo += 1
+        window = [e[4] for e in entries[lo:n]]
+        if self.buffer_size is not None or self._duration_ns is not None:
+            buf.trim(lo)
+        return [ev.value for ev in window], tuple(ev.id for ev in window), 0, None
+
+
+class Queue(SyncPolicy):
+    """The events of H this consumer has not consumed yet, oldest first.
+
+    Beyond ``maxsize`` the oldest are dropped (and count as consumed); the step record counts
+    the drops. Never MISSING: nothing new is an empty list.
+    """
+
+    __slots__ = ("maxsize",)
+    ir_name = "queue"
+    delivers_list = True
+
+    def __init__(self, maxsize: int | None = None):
+        _positive_int("Queue", "maxsize", maxsize)
+        self.maxsize = maxsize
+
+    def params(self) -> dict:
+        return {"maxsize": self.maxsize}
+
+    def select(self, buf, tau):
+        n = buf.advance(tau)
+        start = buf.cursor
+        dropped = 0
+        if self.maxsize is not None and n - start > self.maxsize:
+            dropped = n - start - self.maxsize
+            start = n - self.maxsize
+        batch = [e[4] for e in buf.entries[start:n]]
+        return [ev.value for ev in batch], tuple(ev.id for ev in batch), dropped, n
+
+    def commit_to(self, buf, commit):
+        buf.cursor = commit
+        buf.trim(commit)
+
+
+class Exact(SyncPolicy):
+    """The value whose tag time is within ``tolerance`` s of τ's time (nearest; earlier on ties), else MISSING."""
+
+    __slots__ = ("tolerance", "_tolerance_ns")
+    ir_name = "exact"
+
+    def __init__(self, tolerance: float = 0.0):
+        self._tolerance_ns = _nonneg_seconds("Exact", "tolerance", tolerance, allow_none=False)
+        self.tolerance = tolerance
+
+    def params(self) -> dict:
+        return {"tolerance": self.tolerance}
+
+    def select(self, buf, tau):
+        n = buf.advance(tau)
+        if not n:
+            return MISSING, None, 0, None
+        entries = buf.entries
+        best_t = entries[n - 1][0][0]  # every event of H is at or before τ: the newest is nearest
+        if tau[0] - best_t > self._tolerance_ns:
+            return MISSING, None, 0, None
+        i = n - 1
+        while i > 0 and entries[i - 1][0][0] == best_t:  # earliest of the events at that time
+            i -= 1
+        ev = entries[i][4]
+        buf.trim(i)
+        return ev.value, (ev.id,), 0, None
+
+
+class ActionChunking(SyncPolicy):
+    """Sample a time-indexed action chunk at the consumer's tick (DESIGN.md §4, §10.7).
+
+    The upstream value is a chunk: a sequence of action rows (list, tuple or array), or an
+    object/dict with ``actions`` (the rows) and optionally ``t0`` (its start: int ns, or float
+    seconds). Without ``t0`` a chunk starts at its event's tag time. At τ the newest chunk that
+    has started gives row ``floor((τ.t − t0) · control_hz / 1e9)``; past its ``chunk_steps``
+    rows the last row is held, or MISSING with ``on_exhausted="missing"``.
+
+    ``control_hz`` defaults to the consumer's own rate; ``chunk_steps`` to the chunk's length.
+    """
+
+    __slots__ = ("control_hz", "chunk_steps", "on_exhausted", "_hz")
+    ir_name = "action_chunking"
+
+    def __init__(self, control_hz: float | None = None, chunk_steps: int | None = None,
+                 on_exhausted: str = "hold"):
+        if control_hz is not None and (not is_finite_number(control_hz) or control_hz <= 0):
+            raise ValueError(f"ActionChunking(control_hz={control_hz!r}): control_hz must be a finite number > 0")
+        _positive_int("ActionChunking", "chunk_steps", chunk_steps)
+        if on_exhausted not in ("hold", "missing"):
+            raise ValueError(
+                f"ActionChunking(on_exhausted={on_exhausted!r}): expected 'hold' or 'missing'"
+            )
+        self.control_hz = control_hz
+        self.chunk_steps = chunk_steps
+        self.on_exhausted = on_exhausted
+        self._hz: Fraction | None = None if control_hz is None else exact_rational(control_hz)
+
+    def params(self) -> dict:
+        return {"control_hz": self.control_hz, "chunk_steps": self.chunk_steps,
+                "on_exhausted": self.on_exhausted}
+
+    def bound_to_rate(self, hz: float | None) -> "ActionChunking":
+        """This policy with ``control_hz`` filled in from the consumer's clock, if it was left out."""
+        if self.control_hz is not None or hz is None:
+            return self
+        return ActionChunking(control_hz=hz, chunk_steps=self.chunk_steps, on_exhausted=self.on_exhausted)
+
+    def select(self, buf, tau):
+        if self._hz is None:
+            raise ValueError("ActionChunking has no control_hz and its consumer has no rate to take it from")
+        n = buf.advance(tau)
+        entries = buf.entries
+        t = tau[0]
+        for i in range(n - 1, -1, -1):
+            ev = entries[i][4]
+            rows, t0 = chunk_rows(ev.value, entries[i][0][0])
+            if t0 <= t:
+                break
+        else:
+            return MISSING, None, 0, None
+        buf.trim(i)
+        length = len(rows) if self.chunk_steps is None else min(self.chunk_steps, len(rows))
+        if length == 0:
+            return MISSING, None, 0, None
+        hz = self._hz
+        row = ((t - t0) * hz.numerator) // (NS_PER_S * hz.denominator)
+        if row >= length:
+            if self.on_exhausted == "missing":
+                return MISSING, None, 0, None
+            row = length - 1
+        return rows[row], (ev.id,), 0, None
+
+
+def chunk_rows(value: Any, tag_time: int) -> tuple[Any, int]:
+    """Split an action-chunk value into (rows, start time in ns)."""
+    t0 = None
+    if isinstance(value, dict) and "actions" in value:
+        rows, t0 = value["actions"], value.get("t0")
+    elif hasattr(value, "actions"):
+        rows, t0 = value.actions, getattr(value, "t0", None)
+    else:
+        rows = value
+    if t0 is None:
+        return rows, tag_time
+    if isinstance(t0, float):
+        return rows, seconds_to_ns(t0)
+    return rows, int(t0)
+
+
+POLICIES: dict[str, type[SyncPolicy]] = {
+    cls.ir_name: cls for cls in (Latest, LatestDistinct, Window, Queue, Exact, ActionChunking)
+}
+
+
+def policy_from_ir(doc: object) -> SyncPolicy:
+    """Rebuild a policy from its IR form, e.g. ``{"latest": {"staleness": 0.1}}``."""
+    if not isinstance(doc, dict) or len(doc) != 1:
+        raise ValueError(f"an adapter must be an object with one key, got {doc!r}")
+    (name, params), = doc.items()
+    cls = POLICIES.get(name)
+    if cls is None:
+        raise ValueError(f"unknown sync policy {name!r}; known: {', '.join(sorted(POLICIES))}")
+    if not isinstance(params, dict):
+        raise ValueError(f"adapter {name}: parameters must be an object, got {params!r}")
+    try:
+        return cls(**params)
+    except TypeError as e:
+        raise ValueError(f"adapter {name}: bad parameters {params!r} ({e})") from None

@@ -1,0 +1,132 @@
+"""The trace of a run: every event and every step record, comparable and digestible.
+
+Two traces are equal when they hold the same events and step records, whatever order ticks at
+one tag happened to run in: both are compared in canonical order (events by tag, node, port,
+seq; steps by tag, node). ``digest()`` is a SHA-256 over that canonical form, so it is stable
+across processes and machines.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any, Iterator, NamedTuple
+
+from .codec import packb
+from .time import format_tag
+
+EventId = tuple[str, str, int]
+
+
+class Event(NamedTuple):
+    """One value on one output port. ``(node, port, seq)`` is its id, unique in a run."""
+
+    tag: tuple[int, int]
+    node: str
+    port: str
+    seq: int
+    value: Any
+
+    @property
+    def id(self) -> EventId:
+        return (self.node, self.port, self.seq)
+
+    @property
+    def qualified_port(self) -> str:
+        return f"{self.node}.{self.port}"
+
+
+class StepRecord(NamedTuple):
+    """What one tick of one node did.
+
+    ``consumed`` maps each input port to the ids of the events its policy selected (ports that
+    got MISSING or a default are absent); ``produced`` lists the ids of the events emitted;
+    ``status`` is ``ok``, ``skipped`` or ``error``; ``detail`` holds the missing ports, Queue
+    drop counts or the error text, when there are any.
+    """
+
+    node: str
+    tag: tuple[int, int]
+    consumed: dict[str, tuple[EventId, ...]]
+    produced: tuple[EventId, ...]
+    status: str
+    detail: dict | None = None
+
+    def __str__(self) -> str:
+        extra = f" {self.detail}" if self.detail else ""
+        return f"{self.node} @ {format_tag(self.tag)}: {self.status}{extra}"
+
+
+def _event_key(ev: Event):
+    return (ev.tag, ev.node, ev.port, ev.seq)
+
+
+def _step_key(rec: StepRecord):
+    return (rec.tag, rec.node)
+
+
+class Trace:
+    """Events and step records of a run, in the order the backend recorded them."""
+
+    def __init__(self, events: list[Event] | None = None, steps: list[StepRecord] | None = None):
+        self.events: list[Event] = events if events is not None else []
+        self.steps: list[StepRecord] = steps if steps is not None else []
+
+    # -- queries ---------------------------------------------------------------------------
+    def events_of(self, node: str, port: str | None = None) -> list[Event]:
+        """Events of one node (one port, if given), in tag order."""
+        found = [e for e in self.events if e.node == node and (port is None or e.port == port)]
+        return sorted(found, key=_event_key)
+
+    def values_of(self, node: str, port: str) -> list[Any]:
+        return [e.value for e in self.events_of(node, port)]
+
+    def steps_of(self, node: str) -> list[StepRecord]:
+        """Step records of one node, in tick order."""
+        return sorted((s for s in self.steps if s.node == node), key=_step_key)
+
+    def canonical(self) -> tuple[list[Event], list[StepRecord]]:
+        return sorted(self.events, key=_event_key), sorted(self.steps, key=_step_key)
+
+    # -- comparison ------------------------------------------------------------------------
+    def _encoded(self) -> Iterator[bytes]:
+        events, steps = self.canonical()
+        for e in events:
+            yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
+        for s in steps:
+            consumed = sorted(s.consumed.items())
+            yield packb(("step", s.node, s.tag, consumed, s.produced, s.status, s.detail))
+
+    def digest(self) -> str:
+        """Hex SHA-256 of the canonical trace: equal traces, equal digests, on any machine."""
+        h = hashlib.sha256()
+        for chunk in self._encoded():
+            h.update(len(chunk).to_bytes(8, "little"))
+            h.update(chunk)
+        return h.hexdigest()
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Trace):
+            return NotImplemented
+        if len(self.events) != len(other.events) or len(self.steps) != len(other.steps):
+            return False
+        return all(a == b for a, b in zip(self._encoded(), other._encoded()))
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def first_difference(self, other: "Trace") -> str | None:
+        """Describe the first canonical record where two traces differ, or None if equal."""
+        mine, theirs = list(self._encoded()), list(other._encoded())
+        records_a = [*self.canonical()[0], *self.canonical()[1]]
+        records_b = [*other.canonical()[0], *other.canonical()[1]]
+        for i, (a, b) in enumerate(zip(mine, theirs)):
+            if a != b:
+                return f"record {i}: {records_a[i]!r} != {records_b[i]!r}"
+        if len(mine) != len(theirs):
+            return f"lengths differ: {len(mine)} records vs {len(theirs)}"
+        return None
+
+    def __len__(self) -> int:
+        return len(self.events)
+
+    def __repr__(self) -> str:
+        return f"<Trace {len(self.events)} events, {len(self.steps)} steps>"
