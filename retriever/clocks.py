@@ -50,12 +50,15 @@ class Clock:
 
 
 class _Periodic(Clock):
-    __slots__ = ("hz_value", "offset", "_rate", "offset_ns")
+    __slots__ = ("hz_value", "offset", "_rate", "offset_ns", "_step_num", "_step_den")
 
     def _init_rate(self, owner: str, hz: float, offset: float) -> None:
         self._rate, self.offset_ns = _check_rate(owner, hz, offset)
         self.hz_value = hz
         self.offset = offset
+        # t_k = offset + floor(k * 1e9 * q / p) for hz = p/q; plain ints, since Fraction attributes are slow
+        self._step_num = NS_PER_S * self._rate.denominator
+        self._step_den = self._rate.numerator
 
     @property
     def hz(self) -> Fraction:  # type: ignore[override]
@@ -64,8 +67,7 @@ class _Periodic(Clock):
 
     def tick_time(self, k: int, t0: int = 0) -> int:
         """Time in ns of tick ``k``: ``t0 + offset + floor(k * 1e9 / hz)``, exact, no drift."""
-        rate = self._rate
-        return t0 + self.offset_ns + (k * NS_PER_S * rate.denominator) // rate.numerator
+        return t0 + self.offset_ns + (k * self._step_num) // self._step_den
 
     def first_tick_at_or_after(self, t: int, t0: int = 0) -> int:
         """The smallest ``k`` whose tick time is ``>= t``."""

@@ -51,9 +51,10 @@ _TRIM_BATCH = 64
 class PortBuffer:
     """The merged, tag-ordered history of one consumer input port.
 
-    Entries are ``(arrival_tag, producer, port, seq, event)`` tuples; the first four fields are
-    unique, so tuple order is exactly the fan-in order of DESIGN.md §10.8. ``visible`` counts the
-    entries with ``arrival_tag ≤`` the tag of the consumer's current tick.
+    Entries are ``(arrival_tag, producer, port, seq, value)`` tuples; the first four fields are
+    unique (``producer, port, seq`` is the event id), so tuple order is exactly the fan-in order
+    of DESIGN.md §10.8 and values are never compared. ``visible`` counts the entries with
+    ``arrival_tag ≤`` the tag of the consumer's current tick.
     """
 
     __slots__ = ("entries", "visible", "cursor", "last_id")
@@ -149,15 +150,19 @@ class Latest(SyncPolicy):
         return {"staleness": self.staleness}
 
     def select(self, buf, tau):
-        n = buf.advance(tau)
+        entries, n = buf.entries, buf.visible
+        end = len(entries)
+        while n < end and entries[n][0] <= tau:  # PortBuffer.advance, inlined: the hottest path
+            n += 1
+        buf.visible = n
         if not n:
             return MISSING, None, 0, None
-        entry = buf.entries[n - 1]
+        entry = entries[n - 1]
         if self._staleness_ns is not None and tau[0] - entry[0][0] > self._staleness_ns:
             return MISSING, None, 0, None
-        buf.trim(n - 1)
-        ev = entry[4]
-        return ev.value, (ev.id,), 0, None
+        if n > _TRIM_BATCH:
+            buf.trim(n - 1)
+        return entry[4], ((entry[1], entry[2], entry[3]),), 0, None
 
 
 class LatestDistinct(SyncPolicy):
@@ -170,12 +175,12 @@ class LatestDistinct(SyncPolicy):
         n = buf.advance(tau)
         if not n:
             return MISSING, None, 0, None
-        ev = buf.entries[n - 1][4]
-        eid = ev.id
+        entry = buf.entries[n - 1]
+        eid = (entry[1], entry[2], entry[3])
         if eid == buf.last_id:
             return MISSING, None, 0, None
         buf.trim(n - 1)
-        return ev.value, (eid,), 0, eid
+        return entry[4], (eid,), 0, eid
 
     def commit_to(self, buf, commit):
         buf.last_id = commit
@@ -210,10 +215,10 @@ class Window(SyncPolicy):
             horizon = tau[0] - self._duration_ns
             while lo < n and entries[lo][0][0] < horizon:
                 lo += 1
-        window = [e[4] for e in entries[lo:n]]
+        window = entries[lo:n]
         if self.buffer_size is not None or self._duration_ns is not None:
             buf.trim(lo)
-        return [ev.value for ev in window], tuple(ev.id for ev in window), 0, None
+        return [e[4] for e in window], tuple((e[1], e[2], e[3]) for e in window), 0, None
 
 
 class Queue(SyncPolicy):
@@ -241,8 +246,8 @@ class Queue(SyncPolicy):
         if self.maxsize is not None and n - start > self.maxsize:
             dropped = n - start - self.maxsize
             start = n - self.maxsize
-        batch = [e[4] for e in buf.entries[start:n]]
-        return [ev.value for ev in batch], tuple(ev.id for ev in batch), dropped, n
+        batch = buf.entries[start:n]
+        return [e[4] for e in batch], tuple((e[1], e[2], e[3]) for e in batch), dropped, n
 
     def commit_to(self, buf, commit):
         buf.cursor = commit
@@ -273,9 +278,9 @@ class Exact(SyncPolicy):
         i = n - 1
         while i > 0 and entries[i - 1][0][0] == best_t:  # earliest of the events at that time
             i -= 1
-        ev = entries[i][4]
+        entry = entries[i]
         buf.trim(i)
-        return ev.value, (ev.id,), 0, None
+        return entry[4], ((entry[1], entry[2], entry[3]),), 0, None
 
 
 class ActionChunking(SyncPolicy):
@@ -324,8 +329,8 @@ class ActionChunking(SyncPolicy):
         entries = buf.entries
         t = tau[0]
         for i in range(n - 1, -1, -1):
-            ev = entries[i][4]
-            rows, t0 = chunk_rows(ev.value, entries[i][0][0])
+            entry = entries[i]
+            rows, t0 = chunk_rows(entry[4], entry[0][0])
             if t0 <= t:
                 break
         else:
@@ -340,7 +345,7 @@ class ActionChunking(SyncPolicy):
             if self.on_exhausted == "missing":
                 return MISSING, None, 0, None
             row = length - 1
-        return rows[row], (ev.id,), 0, None
+        return rows[row], ((entry[1], entry[2], entry[3]),), 0, None
 
 
 def chunk_rows(value: Any, tag_time: int) -> tuple[Any, int]:

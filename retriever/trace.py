@@ -65,11 +65,34 @@ def _step_key(rec: StepRecord):
 
 
 class Trace:
-    """Events and step records of a run, in the order the backend recorded them."""
+    """Events and step records of a run, in the order the backend recorded them.
 
-    def __init__(self, events: list[Event] | None = None, steps: list[StepRecord] | None = None):
-        self.events: list[Event] = events if events is not None else []
-        self.steps: list[StepRecord] = steps if steps is not None else []
+    Backends append plain tuples to ``raw_events`` and ``raw_steps`` (named tuples cost several
+    times more to build, and most runs never look at most records); ``events`` and ``steps``
+    present them as :class:`Event` and :class:`StepRecord`, converted on first access.
+    """
+
+    def __init__(self, events: list | None = None, steps: list | None = None):
+        self.raw_events: list[tuple] = [tuple(e) for e in events or ()]
+        self.raw_steps: list[tuple] = [tuple(s) for s in steps or ()]
+        self._events: list[Event] = []
+        self._steps: list[StepRecord] = []
+
+    @property
+    def events(self) -> list[Event]:
+        """Every event, as :class:`Event`, in recording order."""
+        done, raw = self._events, self.raw_events
+        if len(done) < len(raw):
+            done.extend(map(Event._make, raw[len(done):]))
+        return done
+
+    @property
+    def steps(self) -> list[StepRecord]:
+        """Every step record, as :class:`StepRecord`, in recording order."""
+        done, raw = self._steps, self.raw_steps
+        if len(done) < len(raw):
+            done.extend(map(StepRecord._make, raw[len(done):]))
+        return done
 
     # -- queries ---------------------------------------------------------------------------
     def events_of(self, node: str, port: str | None = None) -> list[Event]:
@@ -107,7 +130,7 @@ class Trace:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Trace):
             return NotImplemented
-        if len(self.events) != len(other.events) or len(self.steps) != len(other.steps):
+        if len(self.raw_events) != len(other.raw_events) or len(self.raw_steps) != len(other.raw_steps):
             return False
         return all(a == b for a, b in zip(self._encoded(), other._encoded()))
 
@@ -126,7 +149,7 @@ class Trace:
         return None
 
     def __len__(self) -> int:
-        return len(self.events)
+        return len(self.raw_events)
 
     def __repr__(self) -> str:
-        return f"<Trace {len(self.events)} events, {len(self.steps)} steps>"
+        return f"<Trace {len(self.raw_events)} events, {len(self.raw_steps)} steps>"

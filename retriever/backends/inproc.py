@@ -28,7 +28,6 @@ from ..errors import CausalityError, StepError
 from ..flow._base import Flow, make_invoker, make_output_reader
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
-from ..trace import Event, StepRecord
 from .base import Backend, NodeStats, Session
 
 
@@ -102,8 +101,7 @@ class InprocSession(Session):
                 # an unfed optional port always takes its fallback
             for cycle in graph.instantaneous_cycles:
                 if node.id in cycle:
-                    i = cycle.index(node.id)
-                    rt.cycle = cycle[i:] + cycle[:i]
+                    rt.cycle = cycle
                     break
         self._unfed_fallbacks = {
             by_id[n.id].index: {p: s for p, s in n.inputs.items() if (n.id, p) not in buffers and not s.required}
@@ -167,7 +165,7 @@ class InprocSession(Session):
                 (dropped := dropped or {})[port] = n_dropped
         if missing is not None:
             stats.skips += 1
-            self.trace.steps.append(StepRecord(rt.id, tau, {}, (), "skipped", {"missing": missing}))
+            self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}))
             return
         if commits is not None:
             for policy, buf, commit in commits:
@@ -190,26 +188,25 @@ class InprocSession(Session):
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
         produced = []
         if outputs:
-            events, seqs, node_id = self.trace.events, rt.seq, rt.id
+            events, seqs, node_id = self.trace.raw_events, rt.seq, rt.id
             for port, value in outputs:
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
-                ev = Event(out_tag, node_id, port, seq, value)
-                events.append(ev)
+                events.append((out_tag, node_id, port, seq, value))
                 produced.append((node_id, port, seq))
                 for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
                     arrival = (out_tag[0] + delay_ns, out_tag[1]) if delay_ns else out_tag
-                    buf.insert((arrival, node_id, port, seq, ev))
+                    buf.insert((arrival, node_id, port, seq, value))
                     if triggers:
                         if arrival[1] > self.max_microsteps:
                             raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
                         self._schedule(arrival, consumer)
-        self.trace.steps.append(StepRecord(rt.id, tau, consumed, tuple(produced), "ok", dropped))
+        self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped))
 
     def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception) -> None:
         rt.stats.errors += 1
         detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
-        self.trace.steps.append(StepRecord(rt.id, tau, consumed, (), "error", detail))
+        self.trace.raw_steps.append((rt.id, tau, consumed, (), "error", detail))
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
         if rt.on_error == "restart":

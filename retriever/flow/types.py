@@ -39,7 +39,7 @@ class EventStream(Generic[T]):
         ev = Event(tag, self.name, "value", len(self._events), value)
         self._events.append(ev)
         for buf in self._buffers.values():
-            buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev))
+            buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev.value))
         return ev
 
     def sample(self, policy: SyncPolicy, now: float | int | Tag) -> Any:
@@ -49,7 +49,7 @@ class EventStream(Generic[T]):
         if buf is None:
             buf = self._buffers[id(policy)] = PortBuffer()
             for ev in self._events:
-                buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev))
+                buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev.value))
         value, _ids, _dropped, commit = policy.select(buf, tau)
         policy.commit_to(buf, commit)
         return value
