@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import traceback
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -11,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from .errors import RetrieverError
+from .errors import RetrieverError, RetrieverWarning
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
@@ -30,13 +31,25 @@ def _fail(exc: BaseException) -> None:
         traceback.print_exception(exc)
     text = str(exc) if isinstance(exc, RetrieverError) else f"{type(exc).__name__}: {exc}"
     first, *rest = text.split("\n")
-    _err.print(f"[bold red]error:[/] {first}", highlight=False)
+    _err.print(f"[bold red]error:[/] {first}", highlight=False, markup=True)
+    listed = any(line.startswith("  - ") for line in rest)  # hints of listed problems stay under them
     for line in rest:
-        _err.print(line.replace("    hint:", "[bold]hint:[/]", 1) if line.lstrip().startswith("hint:") else line,
-                   highlight=False)
+        if not listed and line.startswith("    hint:"):
+            line = line.lstrip()
+        _err.print(line, highlight=False, markup=False)
     if not _state["debug"] and not isinstance(exc, RetrieverError):
         _err.print("(run with --debug for the traceback)", highlight=False)
     raise typer.Exit(code=1)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    if issubclass(category, RetrieverWarning):
+        _err.print(f"warning: {message}", highlight=False, markup=False)
+    else:
+        _err.print(f"warning: {category.__name__}: {message} ({filename}:{lineno})", highlight=False, markup=False)
+
+
+warnings.showwarning = _show_warning
 
 
 def _load(target: str):

@@ -48,9 +48,9 @@ def import_type(path: str) -> Any:
 def _array_payload(arr: np.ndarray) -> bytes:
     if arr.dtype.hasobject:
         raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {arr.dtype})")
-    return msgpack.packb(
-        [arr.dtype.str, list(arr.shape), np.ascontiguousarray(arr).tobytes()], use_bin_type=True
-    )
+    # Structured dtypes need their full description; plain ones travel as their short string.
+    descr = np.lib.format.dtype_to_descr(arr.dtype) if arr.dtype.fields else arr.dtype.str
+    return packb([descr, list(arr.shape), np.ascontiguousarray(arr).tobytes()])
 
 
 def _default(obj: Any) -> Any:
@@ -73,8 +73,9 @@ def _default(obj: Any) -> Any:
 
 def _ext_hook(code: int, data: bytes) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
-        dtype, shape, raw = msgpack.unpackb(data, raw=False)
-        arr = np.frombuffer(raw, dtype=np.dtype(dtype)).reshape(shape).copy()
+        descr, shape, raw = unpackb(data)
+        dtype = np.dtype(descr) if isinstance(descr, str) else np.lib.format.descr_to_dtype(descr)
+        arr = np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
         return arr[()] if code == EXT_NPSCALAR else arr
     if code == EXT_TUPLE:
         return tuple(unpackb(data))
@@ -91,11 +92,35 @@ def _ext_hook(code: int, data: bytes) -> Any:
 
 
 def packb(value: Any) -> bytes:
-    """Encode a value to bytes. Raises CodecError for values the codec does not know."""
+    """Encode a value to bytes. Raises CodecError naming the type and where it sits in the value."""
     try:
-        return msgpack.packb(value, default=_default, use_bin_type=True, strict_types=True)
-    except OverflowError:
-        return msgpack.packb(_widen(value), default=_default, use_bin_type=True, strict_types=True)
+        try:
+            return msgpack.packb(value, default=_default, use_bin_type=True, strict_types=True)
+        except OverflowError:
+            return msgpack.packb(_widen(value), default=_default, use_bin_type=True, strict_types=True)
+    except CodecError as e:
+        path = _path_to_unencodable(value)
+        if path:
+            first, _, rest = str(e).partition("\n")
+            raise CodecError(f"{first} at value{path}" + (f"\n{rest}" if rest else "")) from None
+        raise
+
+
+def _path_to_unencodable(value: Any, path: str = "") -> str | None:
+    """Where in a nested value the first thing the codec cannot encode sits, e.g. ``['a'][1]``."""
+    if value is None or isinstance(value, (bool, int, float, str, bytes, np.ndarray, np.generic)):
+        return None
+    if isinstance(value, (list, tuple)):
+        items = enumerate(value)
+    elif isinstance(value, dict):
+        items = value.items()
+    elif dataclasses.is_dataclass(value) and not isinstance(value, type):
+        found = (_path_to_unencodable(getattr(value, f.name), f"{path}.{f.name}") for f in dataclasses.fields(value))
+        return next((p for p in found if p is not None), None)
+    else:
+        return path
+    found = (_path_to_unencodable(v, f"{path}[{k!r}]") for k, v in items)
+    return next((p for p in found if p is not None), None)
 
 
 def _widen(value: Any) -> Any:

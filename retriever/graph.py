@@ -128,14 +128,23 @@ def fits(out_t: Any, in_t: Any) -> bool:
     return True
 
 
+def _event_type(out_t: Any) -> Any:
+    """The type of the events an output port emits: ``Optional[X]`` emits X (None is no event)."""
+    if typing.get_origin(out_t) in (typing.Union, types.UnionType):
+        arms = [a for a in typing.get_args(out_t) if a is not type(None)]
+        return arms[0] if len(arms) == 1 else typing.Union[tuple(arms)]
+    return out_t
+
+
 def _fits_through(out_t: Any, in_t: Any, sync: SyncPolicy) -> bool:
+    out_t = _event_type(out_t)
     if isinstance(sync, ActionChunking):
         return True  # a chunk of rows arrives as one row; row types are not declared
     if sync.delivers_list:
         if _opaque(in_t):
             return True
         origin = typing.get_origin(in_t) or in_t
-        if origin in (list, typing.Sequence) or (isinstance(origin, type) and issubclass(origin, list)):
+        if isinstance(origin, type) and issubclass(list, origin) and origin is not object:
             args = typing.get_args(in_t)
             return not args or fits(out_t, args[0])
         if typing.get_origin(in_t) in (typing.Union, types.UnionType):
@@ -257,6 +266,8 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     for f in flows:
         spec = flow_spec(type(f))
         node_id = ids[id(f)]
+        if node_id in nodes:
+            continue  # a duplicate name, already reported
         params, rebuild_problem = constructor_params(f)
         nodes[node_id] = Node(node_id, f, spec, dict(spec.inputs),
                               dict(spec.outputs) if spec.outputs is not None else {}, params, rebuild_problem)
@@ -269,7 +280,9 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
 
     edges: list[Edge] = []
     for decl in declared:
-        edges.extend(_resolve_edge(decl, nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]], problems))
+        src, dst = nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]]
+        if src.flow is decl.src and dst.flow is decl.dst:  # else an endpoint's name is duplicated
+            edges.extend(_resolve_edge(decl, src, dst, problems))
 
     # Untyped producers' output ports are the ones their edges name.
     for e in edges:
@@ -287,6 +300,13 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
             if spec.required and (node.id, port) not in fed:
                 warnings.append(f"input port {node.id}.{port} has no incoming edge and no default: "
                                 f"every tick of '{node.id}' will be skipped (connect it, or give it a default)")
+        clock = node.settings.clock
+        if clock is not None and clock.triggered and clock.hz is None and node.inputs:
+            watched = clock.trigger_ports or tuple(node.inputs)
+            if not any((node.id, p) in fed for p in watched):
+                warnings.append(f"'{node.id}' is clocked by {clock!r} but nothing feeds "
+                                f"{'its inputs' if not clock.trigger_ports else ', '.join(node.id + '.' + p for p in watched)}, "
+                                "so it never ticks (connect a trigger port, or clock it with Rate/Hybrid)")
 
     if problems:
         raise GraphError(name, problems)

@@ -81,9 +81,11 @@ class Pipeline:
                 delay: float = 0.0, qsize: int = 10, *, _stacklevel: int = 2) -> Flow:
         """Add an edge ``src → dst``; returns ``dst``. Ports are matched when the graph compiles."""
         for role, f in (("source", src), ("destination", dst)):
+            if isinstance(f, type):
+                raise TypeError(f"connect(): the {role} must be a Flow instance, got the class {f.__qualname__}\n"
+                                f"    hint: instantiate it: {f.__qualname__}() @ Rate(hz=...)")
             if not isinstance(f, Flow):
-                raise TypeError(f"connect(): the {role} must be a Flow instance, got {type(f).__qualname__}"
-                                + ("\n    hint: instantiate it: MyFlow() @ Rate(hz=...)" if isinstance(f, type) else ""))
+                raise TypeError(f"connect(): the {role} must be a Flow instance, got {type(f).__qualname__}")
         if sync is None:
             sync = Latest()
         if not isinstance(sync, SyncPolicy):
@@ -120,7 +122,7 @@ class Pipeline:
         if self._graph is None:
             self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps)
             for w in self._graph.warnings:
-                warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=3)
+                warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=_user_stacklevel())
         return self._graph
 
     def build_ir(self) -> IR:
@@ -144,8 +146,6 @@ class Pipeline:
             pipe.connect(src, dst, sync=policy_from_ir(e["adapter"]), map={e["source"]["port"]: e["destination"]["port"]},
                          delay=e.get("delay", 0.0), qsize=e.get("qsize", 10))
         return pipe
-
-    # -- running -----------------------------------------------------------------------------
 
     # -- running -----------------------------------------------------------------------------
     def _session_for(self, backend: str | None, options: dict) -> Session:
@@ -209,6 +209,15 @@ class Pipeline:
         return f"<Pipeline '{self.name}': {len(self._flows)} flows, {len(self._edges)} edges>"
 
 
+def _user_stacklevel() -> int:
+    """The warnings stacklevel of the first frame outside this package (the user's line)."""
+    package = str(Path(__file__).parent)
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
 def _check_seconds(method: str, name: str, value: Any) -> None:
     if not is_finite_number(value) or value < 0:
         raise ValueError(f"pipe.{method}({name}={value!r}): {name} must be a finite number of seconds >= 0")
@@ -219,8 +228,16 @@ def _construct(cls: type, params: dict) -> Flow:
     kwargs: dict = {}
     sig = inspect.signature(cls.__init__) if cls.__init__ is not object.__init__ else None
     if sig is None:
+        if params:
+            raise TypeError(f"__init__ takes no arguments, the IR gives {sorted(params)}")
         return cls()
-    for p in list(sig.parameters.values())[1:]:
+    declared = list(sig.parameters.values())[1:]
+    names = {p.name for p in declared}
+    unknown = sorted(set(params) - names)
+    if unknown and not any(p.kind is p.VAR_KEYWORD for p in declared):
+        raise TypeError(f"__init__ has no parameter {', '.join(map(repr, unknown))} "
+                        f"(it takes: {', '.join(sorted(names)) or 'nothing'})")
+    for p in declared:
         if p.name not in params:
             continue
         value = params[p.name]

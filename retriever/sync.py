@@ -10,7 +10,8 @@ Runtime interface (used by every backend):
     commit_to(buf, commit)        # applied only when the tick is not skipped
 
 ``buf`` is a :class:`PortBuffer`. Splitting select from commit is what lets a skipped tick
-consume nothing: ``Queue`` and ``LatestDistinct`` events stay for the next tick.
+consume nothing: ``Queue`` and ``LatestDistinct`` events stay for the next tick. A ``commit``
+of ``None`` means nothing to record; committing it is a no-op.
 """
 
 from __future__ import annotations
@@ -183,7 +184,8 @@ class LatestDistinct(SyncPolicy):
         return entry[4], (eid,), 0, eid
 
     def commit_to(self, buf, commit):
-        buf.last_id = commit
+        if commit is not None:  # None: this tick saw MISSING here and consumed nothing
+            buf.last_id = commit
 
 
 class Window(SyncPolicy):
@@ -293,13 +295,15 @@ class ActionChunking(SyncPolicy):
     rows the last row is held, or MISSING with ``on_exhausted="missing"``.
 
     ``control_hz`` defaults to the consumer's own rate; ``chunk_steps`` to the chunk's length.
+    ``horizon_ms`` (the paper's Appendix D-D spelling) bounds a chunk's validity in time as well:
+    at ``τ.t − t0 ≥ horizon`` it is exhausted like a chunk past its last row.
     """
 
-    __slots__ = ("control_hz", "chunk_steps", "on_exhausted", "_hz")
+    __slots__ = ("control_hz", "chunk_steps", "on_exhausted", "horizon_ms", "_hz", "_horizon_ns")
     ir_name = "action_chunking"
 
     def __init__(self, control_hz: float | None = None, chunk_steps: int | None = None,
-                 on_exhausted: str = "hold"):
+                 on_exhausted: str = "hold", horizon_ms: float | None = None):
         if control_hz is not None and (not is_finite_number(control_hz) or control_hz <= 0):
             raise ValueError(f"ActionChunking(control_hz={control_hz!r}): control_hz must be a finite number > 0")
         _positive_int("ActionChunking", "chunk_steps", chunk_steps)
@@ -307,20 +311,25 @@ class ActionChunking(SyncPolicy):
             raise ValueError(
                 f"ActionChunking(on_exhausted={on_exhausted!r}): expected 'hold' or 'missing'"
             )
+        if horizon_ms is not None and (not is_finite_number(horizon_ms) or horizon_ms <= 0):
+            raise ValueError(f"ActionChunking(horizon_ms={horizon_ms!r}): horizon_ms must be a finite number > 0")
         self.control_hz = control_hz
         self.chunk_steps = chunk_steps
         self.on_exhausted = on_exhausted
+        self.horizon_ms = horizon_ms
         self._hz: Fraction | None = None if control_hz is None else exact_rational(control_hz)
+        self._horizon_ns = None if horizon_ms is None else round(horizon_ms * 1e6)
 
     def params(self) -> dict:
         return {"control_hz": self.control_hz, "chunk_steps": self.chunk_steps,
-                "on_exhausted": self.on_exhausted}
+                "on_exhausted": self.on_exhausted, "horizon_ms": self.horizon_ms}
 
     def bound_to_rate(self, hz: float | None) -> "ActionChunking":
         """This policy with ``control_hz`` filled in from the consumer's clock, if it was left out."""
         if self.control_hz is not None or hz is None:
             return self
-        return ActionChunking(control_hz=hz, chunk_steps=self.chunk_steps, on_exhausted=self.on_exhausted)
+        return ActionChunking(control_hz=hz, chunk_steps=self.chunk_steps, on_exhausted=self.on_exhausted,
+                              horizon_ms=self.horizon_ms)
 
     def select(self, buf, tau):
         if self._hz is None:
@@ -336,10 +345,12 @@ class ActionChunking(SyncPolicy):
         else:
             return MISSING, None, 0, None
         buf.trim(i)
+        hz = self._hz
         length = len(rows) if self.chunk_steps is None else min(self.chunk_steps, len(rows))
+        if self._horizon_ns is not None:  # rows that start before the horizon
+            length = min(length, -(-(self._horizon_ns * hz.numerator) // (NS_PER_S * hz.denominator)))
         if length == 0:
             return MISSING, None, 0, None
-        hz = self._hz
         row = ((t - t0) * hz.numerator) // (NS_PER_S * hz.denominator)
         if row >= length:
             if self.on_exhausted == "missing":

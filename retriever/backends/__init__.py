@@ -15,13 +15,15 @@ def _registry() -> dict[str, Backend]:
 
 
 def available_backends() -> list[str]:
+    """Names of the backends ``pipe.run(backend=...)`` and ``retriever.init`` accept."""
     return sorted(_registry())
 
 
 def _lookup(name: str) -> Backend:
     registry = _registry()
     if name not in registry:
-        raise BackendError(f"unknown backend {name!r}; available: {', '.join(sorted(registry))}")
+        raise BackendError(f"unknown backend {name!r}; available: {', '.join(sorted(registry))}\n"
+                           f"    hint: use backend=\"inproc\" for deterministic virtual time")
     return registry[name]
 
 

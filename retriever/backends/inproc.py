@@ -195,7 +195,7 @@ class InprocSession(Session):
                 events.append((out_tag, node_id, port, seq, value))
                 produced.append((node_id, port, seq))
                 for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
-                    arrival = (out_tag[0] + delay_ns, out_tag[1]) if delay_ns else out_tag
+                    arrival = (out_tag[0] + delay_ns, 0) if delay_ns else out_tag
                     buf.insert((arrival, node_id, port, seq, value))
                     if triggers:
                         if arrival[1] > self.max_microsteps:

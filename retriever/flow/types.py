@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Generic, TypeVar
 
-from ..sync import PortBuffer, SyncPolicy
+from ..sync import MISSING, LatestDistinct, PortBuffer, Queue, SyncPolicy
 from ..time import Tag, seconds_to_ns
 from ..trace import Event
 
@@ -21,14 +21,16 @@ T = TypeVar("T")
 class EventStream(Generic[T]):
     """A tag-ordered stream of values from one producer port, sampled like an edge would be.
 
-    Consumption state (Queue cursors, LatestDistinct) is kept per policy object, so repeated
-    ``sample`` calls with one policy behave like successive ticks of one consumer.
+    Policies that consume (``Queue``, ``LatestDistinct``) keep their state per policy object, so
+    repeated ``sample`` calls with one such object behave like successive ticks of one consumer
+    and must move forward in time. Other policies are pure functions of the stream and ``now``.
     """
 
     def __init__(self, name: str = "stream"):
         self.name = name
         self._events: list[Event] = []
-        self._buffers: dict[int, PortBuffer] = {}
+        # id(policy) -> (policy, buffer, last tag sampled); the policy is held so its id stays unique
+        self._consumers: dict[int, tuple[SyncPolicy, PortBuffer, Tag]] = {}
 
     def append(self, t: float | int | Tag, value: T) -> Event:
         """Add a value at time ``t`` (seconds, or a ``(ns, microstep)`` tag); times must not decrease."""
@@ -38,20 +40,32 @@ class EventStream(Generic[T]):
                              f"{self._events[-1].tag}; append in time order")
         ev = Event(tag, self.name, "value", len(self._events), value)
         self._events.append(ev)
-        for buf in self._buffers.values():
+        for _policy, buf, _last in self._consumers.values():
             buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev.value))
         return ev
+
+    def _fresh_buffer(self) -> PortBuffer:
+        buf = PortBuffer()
+        buf.entries = [(ev.tag, ev.node, ev.port, ev.seq, ev.value) for ev in self._events]
+        return buf
 
     def sample(self, policy: SyncPolicy, now: float | int | Tag) -> Any:
         """What a tick at ``now`` would receive through ``policy`` (MISSING if nothing)."""
         tau = now if isinstance(now, tuple) else (seconds_to_ns(now), 0)
-        buf = self._buffers.get(id(policy))
-        if buf is None:
-            buf = self._buffers[id(policy)] = PortBuffer()
-            for ev in self._events:
-                buf.insert((ev.tag, ev.node, ev.port, ev.seq, ev.value))
+        if not isinstance(policy, (Queue, LatestDistinct)):
+            return policy.select(self._fresh_buffer(), tau)[0]
+        entry = self._consumers.get(id(policy))
+        if entry is None:
+            buf = self._fresh_buffer()
+        else:
+            _policy, buf, last = entry
+            if tau < last:
+                raise ValueError(f"EventStream {self.name!r}: {policy!r} consumes events, so its samples must "
+                                 f"move forward in time; {tau} is before the previous {last}")
+        self._consumers[id(policy)] = (policy, buf, tau)
         value, _ids, _dropped, commit = policy.select(buf, tau)
-        policy.commit_to(buf, commit)
+        if value is not MISSING and commit is not None:
+            policy.commit_to(buf, commit)
         return value
 
     def __len__(self) -> int:

@@ -1,0 +1,363 @@
+"""The ``retriever`` command, run as users run it: a subprocess of the installed console script."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from retriever import IR, Pipeline
+
+ROOT = Path(__file__).resolve().parent.parent
+QUICKSTART = ROOT / "examples" / "quickstart.py"
+GOLDEN = Path(__file__).parent / "golden"
+RETRIEVER = Path(sys.executable).parent / "retriever"
+
+
+def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8")
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
+    return subprocess.run([str(RETRIEVER), *args], capture_output=True, text=True, cwd=cwd or ROOT, env=env,
+                          timeout=120)
+
+
+@functools.cache
+def quickstart_ir(fmt: str) -> str:
+    """``retriever ir examples/quickstart.py --format FMT`` (stdout), run once per format."""
+    result = cli("ir", str(QUICKSTART), "--format", fmt)
+    assert result.returncode == 0, result.stderr
+    return result.stdout
+
+
+def assert_cli_error(result: subprocess.CompletedProcess, message: str, hint: str | None = None) -> None:
+    """Exit status non-zero, ``error: …`` first on stderr, an optional ``hint: …`` (indented under
+    its item when the error lists several problems), no traceback."""
+    assert result.returncode != 0, result
+    assert result.stderr.startswith("error: "), result.stderr
+    assert re.search(message, result.stderr, re.MULTILINE), result.stderr
+    if hint is not None:
+        assert re.search(r"^(    )?hint: " + hint, result.stderr, re.MULTILINE), result.stderr
+    assert "Traceback" not in result.stderr
+    assert "Traceback" not in result.stdout
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+FLOWS = '''
+from retriever import Flow, Pipeline, Rate, Trigger, io
+
+
+@io
+class Num:
+    x: int
+
+
+class Source(Flow[None, Num]):
+    def step(self, inp):
+        return Num(1)
+
+
+class Sink(Flow[Num, None]):
+    def step(self, inp):
+        return None
+'''
+
+
+# ---------------------------------------------------------------------------------------------
+# retriever run
+# ---------------------------------------------------------------------------------------------
+def test_run_prints_a_table_with_every_node():
+    result = cli("run", str(QUICKSTART), "--backend", "inproc", "--duration", "1")
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert "quickstart: 1 s on inproc" in out
+    assert re.search(r"node\s*┃\s*ticks\s*┃\s*steps\s*┃\s*skips\s*┃\s*errors\s*┃\s*mean step", out), out
+    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │\s*[\d.]+ µs │", out))
+    assert set(rows) == {"camera", "policy", "controller"}, out
+    ticks = {node: [int(n) for n in re.findall(r"\d+", row)] for node, row in rows.items()}
+    assert ticks["camera"] == [30, 30, 0, 0]
+    assert ticks["controller"][0] == 200
+    assert ticks["policy"][0] == 2
+    assert all(t == s + k + e for t, s, k, e in ticks.values())
+    assert re.search(r"\d+ events · \d+ steps · trace digest [0-9a-f]{16}", out)
+    assert result.stderr == ""
+
+
+def test_run_digest_is_the_in_process_digest():
+    from retriever._loading import load_pipeline
+
+    pipe = load_pipeline(str(QUICKSTART))
+    pipe.reset()
+    expected = pipe.run(duration=0.5).digest()[:16]
+    result = cli("run", str(QUICKSTART), "--duration", "0.5")
+    assert result.returncode == 0, result.stderr
+    assert f"trace digest {expected}" in result.stdout
+
+
+def test_run_file_colon_attr():
+    result = cli("run", f"{QUICKSTART}:pipe", "--duration", "0.1")
+    assert result.returncode == 0, result.stderr
+    assert "quickstart: 0.1 s on inproc" in result.stdout
+
+
+def test_run_an_ir_file(tmp_path: Path):
+    from tests import ir_flows
+
+    pipe = ir_flows.build()
+    path = pipe.build_ir().save(tmp_path / "small.ir.json")
+    expected = pipe.run(duration=2.0).digest()[:16]
+    result = cli("run", str(path), "--duration", "2", pythonpath=ROOT)
+    assert result.returncode == 0, result.stderr
+    for node in ("camera", "planner", "controller", "logger"):
+        assert f"│ {node} " in result.stdout
+    assert f"trace digest {expected}" in result.stdout
+
+
+def test_run_unknown_backend():
+    result = cli("run", str(QUICKSTART), "--backend", "dora", "--duration", "1")
+    assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc$")
+
+
+def test_run_a_step_that_raises(tmp_path: Path):
+    script = write(tmp_path / "failing.py", FLOWS + '''
+
+class Broken(Flow[None, Num]):
+    def step(self, inp):
+        return Num(1 // 0)
+
+
+with Pipeline("failing") as pipe:
+    Broken() @ Rate(hz=10)
+''')
+    result = cli("run", str(script), "--duration", "1")
+    assert_cli_error(result, r"^error: broken\.step\(\) raised ZeroDivisionError: integer division or modulo by zero "
+                             r"\(tick at t=0\.000000000s m=0\)", hint=r"set on_error='skip_tick' or 'restart'")
+
+
+ZENO = '''
+from retriever import Flow, Pipeline, Rate, Trigger
+
+
+class Relay(Flow):
+    def step(self, a=None):
+        return {"a": 1}
+
+
+with Pipeline("zeno", max_microsteps=10) as pipe:
+    a, b = Relay() @ Trigger("a"), Relay() @ Trigger("a")
+    a.then(b).then(a)
+    (Relay() @ Rate(hz=1)).then(a)
+'''
+
+
+def test_run_a_zeno_loop(tmp_path: Path):
+    script = write(tmp_path / "zeno.py", ZENO)
+    result = cli("run", str(script), "--duration", "1")
+    assert result.returncode != 0
+    assert re.search(r"^error: Zeno loop: the instant at t=0\.000000000s m=\d+ ran past max_microsteps=10 around the "
+                     r"cycle relay(_2)? → relay(_2)? → relay(_2)?\nhint: break the cycle in time", result.stderr,
+                     re.MULTILINE), result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_build_warnings_print_as_warning_lines(tmp_path: Path):
+    script = write(tmp_path / "zeno.py", ZENO)
+    result = cli("ir", str(script))
+    assert result.returncode == 0, result.stderr
+    # a RetrieverWarning is user-facing text like an error: "warning: …", not Python's
+    # "path/to/retriever/pipeline.py:169: RetrieverWarning: …" followed by a source line
+    assert result.stderr.startswith("warning: pipeline 'zeno': instantaneous cycle relay → relay_2 → relay"), \
+        result.stderr
+    assert "RetrieverWarning" not in result.stderr
+    assert ".py:" not in result.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# retriever ir
+# ---------------------------------------------------------------------------------------------
+def test_ir_json_by_default():
+    result = cli("ir", str(QUICKSTART))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == quickstart_ir("json")
+    doc = json.loads(result.stdout)
+    assert doc["version"] == "1.0.0"
+    assert doc["metadata"]["name"] == "quickstart"
+    assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
+    assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]
+    assert IR(doc).to_json() == result.stdout
+
+
+def test_ir_json_is_the_library_json():
+    from retriever._loading import load_pipeline
+
+    expected = load_pipeline(str(QUICKSTART)).build_ir().to_json()
+    assert quickstart_ir("json") == expected
+
+
+@pytest.mark.parametrize("fmt, node_text, edge_text", [
+    ("dot", '"{node}" [label=', '"{src}" -> "{dst}"'),
+    ("mermaid", '  {node}["{node}<br/>', "  {src} -->|"),
+])
+def test_ir_pictures_contain_every_node_and_edge(fmt, node_text, edge_text):
+    text = quickstart_ir(fmt)
+    for node in ("camera", "policy", "controller"):
+        assert node_text.format(node=node) in text
+    for src, dst in (("camera", "policy"), ("policy", "controller"), ("controller", "policy")):
+        assert edge_text.format(src=src, dst=dst) in text
+    assert text.count("-->" if fmt == "mermaid" else " -> ") == 3
+    if fmt == "mermaid":
+        assert text.startswith("flowchart LR\n")
+    else:
+        assert text.startswith('digraph "quickstart" {')
+
+
+@pytest.mark.parametrize("fmt", ["json", "dot", "mermaid"])
+def test_ir_out_writes_the_file(tmp_path: Path, fmt: str):
+    out = tmp_path / f"quickstart.{fmt}"
+    result = cli("ir", f"{QUICKSTART}:pipe", "--format", fmt, "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == ""
+    assert result.stderr.strip() == f"wrote {out}"
+    assert out.read_text(encoding="utf-8") == quickstart_ir(fmt)
+
+
+def test_ir_out_json_loads_back(tmp_path: Path):
+    out = tmp_path / "quickstart.ir.json"
+    assert cli("ir", str(QUICKSTART), "-o", str(out)).returncode == 0
+    assert IR.load(out).name == "quickstart"
+
+
+def test_ir_unknown_format():
+    result = cli("ir", str(QUICKSTART), "--format", "svg")
+    assert_cli_error(result, r"^error: unknown format 'svg'$", hint=r"use --format json, dot or mermaid")
+
+
+# ---------------------------------------------------------------------------------------------
+# Errors loading FILE[:ATTR]
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("command", ["run", "ir"])
+def test_missing_file(command: str):
+    result = cli(command, "no/such/file.py")
+    assert_cli_error(result, r"^error: no such file: no/such/file\.py$",
+                     hint=r"give a Python file defining a Pipeline, e\.g\. retriever run examples/quickstart\.py")
+
+
+def test_file_without_a_pipeline(tmp_path: Path):
+    write(tmp_path / "empty.py", FLOWS)
+    result = cli("run", "empty.py", cwd=tmp_path)
+    assert_cli_error(result, r"^error: empty\.py defines no Pipeline at module level$",
+                     hint=r"build it at module level: with Pipeline\(\"name\"\) as pipe: \.\.\.")
+
+
+def test_cli_error_text_matches_golden_file(tmp_path: Path):
+    write(tmp_path / "empty.py", FLOWS)
+    result = cli("ir", "empty.py", cwd=tmp_path)
+    golden = GOLDEN / "cli_no_pipeline.txt"
+    if os.environ.get("RETRIEVER_UPDATE_GOLDEN") == "1":
+        golden.write_text(result.stderr, encoding="utf-8")
+    assert result.returncode == 1
+    assert result.stdout == ""
+    assert result.stderr == golden.read_text(encoding="utf-8")
+
+
+def test_file_with_several_pipelines_hints_at_file_colon_attr(tmp_path: Path):
+    write(tmp_path / "two.py", FLOWS + '''
+
+with Pipeline("one") as first:
+    Source() @ Rate(hz=1)
+
+with Pipeline("two") as second:
+    Source() @ Rate(hz=1)
+''')
+    result = cli("run", "two.py", cwd=tmp_path)
+    assert_cli_error(result, r"^error: two\.py defines several Pipelines \(first, second\)$",
+                     hint=r"name one: two\.py:first")
+    ok = cli("run", "two.py:second", "--duration", "1", cwd=tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    assert "two: 1 s on inproc" in ok.stdout
+
+
+def test_file_colon_unknown_attr():
+    result = cli("ir", f"{QUICKSTART}:nope")
+    assert_cli_error(result, r"quickstart\.py has no Pipeline named 'nope' \(it has: pipe\)")
+
+
+def test_file_with_a_graph_error(tmp_path: Path):
+    write(tmp_path / "bad.py", FLOWS + '''
+
+class NoStep(Flow[Num, None]):
+    pass
+
+
+with Pipeline("bad") as pipe:
+    Source().then(NoStep() @ Trigger("y"))
+''')
+    for command in ("run", "ir"):
+        result = cli(command, "bad.py", cwd=tmp_path)
+        assert_cli_error(result, r"^error: pipeline 'bad' has 3 problems:\n"
+                                 r"  - flow 'no_step' \(bad:NoStep\) has no step\(\) method\n",
+                         hint=r"define step\(self, inp\)")
+        assert "  - flow 'source' has no clock\n" in result.stderr
+        assert "  - Trigger('y') on 'no_step': 'no_step' has no input port 'y' (inputs: x)\n" in result.stderr
+        assert result.stderr.count("hint: ") == 3
+
+
+def test_graph_error_hints_stay_under_their_problem(tmp_path: Path):
+    write(tmp_path / "bad.py", FLOWS + '''
+
+with Pipeline("bad") as pipe:
+    Source().then(Sink() @ Trigger("y"))
+''')
+    result = cli("ir", "bad.py", cwd=tmp_path)
+    lines = result.stderr.splitlines()
+    assert lines[0] == "error: pipeline 'bad' has 2 problems:"
+    # each hint belongs to the problem above it, so it is indented under that "  - " line
+    assert lines[1].startswith("  - flow 'source' has no clock")
+    assert lines[2].startswith("    hint: bind one"), result.stderr
+
+
+def test_file_that_raises_while_importing(tmp_path: Path):
+    write(tmp_path / "oops.py", "x = 1 / 0\n")
+    result = cli("run", "oops.py", cwd=tmp_path)
+    assert_cli_error(result, r"^error: ZeroDivisionError: division by zero\n\(run with --debug for the traceback\)")
+
+
+def test_debug_shows_the_traceback(tmp_path: Path):
+    write(tmp_path / "oops.py", "x = 1 / 0\n")
+    result = cli("--debug", "run", "oops.py", cwd=tmp_path)
+    assert result.returncode != 0
+    assert "Traceback (most recent call last)" in result.stderr
+    assert "error: ZeroDivisionError: division by zero" in result.stderr
+
+
+def test_debug_shows_the_traceback_of_a_retriever_error():
+    result = cli("--debug", "run", str(QUICKSTART), "--backend", "dora")
+    assert result.returncode != 0
+    assert "Traceback (most recent call last)" in result.stderr
+    assert "BackendError" in result.stderr
+    assert "error: unknown backend 'dora'" in result.stderr
+
+
+def test_no_arguments_prints_help():
+    result = cli()
+    assert "run" in result.stdout + result.stderr
+    assert "ir" in result.stdout + result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_load_pipeline_in_process_matches_the_cli_target_syntax():
+    from retriever._loading import load_pipeline
+
+    pipe = load_pipeline(f"{QUICKSTART}:pipe")
+    assert isinstance(pipe, Pipeline) and pipe.name == "quickstart"

@@ -1,0 +1,572 @@
+"""Bad input: each case raises (or warns) once, with a message that names the thing, says what was
+expected and what arrived, and gives a hint for common misuse."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import pytest
+
+import retriever
+from retriever import (
+    IR,
+    BackendError,
+    CausalityError,
+    ClockError,
+    Flow,
+    GraphError,
+    Hybrid,
+    IRError,
+    Latest,
+    LatestDistinct,
+    Pipeline,
+    Queue,
+    Rate,
+    RetrieverError,
+    RetrieverWarning,
+    StepError,
+    Trigger,
+    Window,
+    io,
+)
+from retriever.errors import InternalError
+from tests import ir_flows
+
+
+@io
+class Num:
+    x: int
+
+
+@io
+class Real:
+    x: float
+
+
+@io
+class Text:
+    s: str
+
+
+@io
+class Pair:
+    a: int
+    b: int
+
+
+@io
+class PairIn:
+    p: int
+    q: int
+
+
+class NumSource(Flow[None, Num]):
+    def step(self, inp):
+        return Num(1)
+
+
+class TextSource(Flow[None, Text]):
+    def step(self, inp):
+        return Text("a")
+
+
+class PairSource(Flow[None, Pair]):
+    def step(self, inp):
+        return Pair(1, 2)
+
+
+class RealSink(Flow[Real, None]):
+    def step(self, inp):
+        return None
+
+
+class PairSink(Flow[PairIn, None]):
+    def step(self, inp):
+        return None
+
+
+class NoStep(Flow[None, Num]):
+    pass
+
+
+class Counter(Flow[None, Num]):
+    """Counts its steps; raises on the ``fail_at``-th step since construction/reset."""
+
+    def __init__(self, fail_at: int = 3):
+        self.fail_at = fail_at
+        self.n = 0
+
+    def step(self, inp):
+        self.n += 1
+        if self.n == self.fail_at:
+            raise KeyError("no such joint")
+        return Num(self.n)
+
+
+class Monitor(Flow):
+    def step(self, fb=None, tick=None):
+        return {"skill": 1}
+
+
+class Policy(Flow):
+    def step(self, skill):
+        return {"fb": 1}
+
+
+class Ticker(Flow):
+    def step(self):
+        return {"tick": 1}
+
+
+# ---------------------------------------------------------------------------------------------
+# Graph errors (build_ir)
+# ---------------------------------------------------------------------------------------------
+def test_flow_without_step():
+    with Pipeline("p") as pipe:
+        NoStep() @ Rate(hz=1)
+    with pytest.raises(GraphError, match=r"pipeline 'p' has 1 problem:\n"
+                                         r"  - flow 'no_step' \(tests\.test_errors:NoStep\) has no step\(\) method\n"
+                                         r"    hint: define step\(self, inp\)"):
+        pipe.build_ir()
+
+
+def test_flow_without_step_called_directly():
+    with pytest.raises(NotImplementedError, match=r"NoStep has no step\(\) method\n    hint: define step"):
+        NoStep()(None)
+
+
+def test_unknown_output_port_in_map():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1), map={"y": "x"})
+    with pytest.raises(GraphError, match=r"edge num_source → real_sink \(test_errors\.py:\d+\): map names output port "
+                                         r"'y', but num_source has no such output \(outputs: x\)\n"
+                                         r"    hint: map goes \{output_port: input_port\}"):
+        pipe.build_ir()
+
+
+def test_unknown_input_port_in_map():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1), map={"x": "z"})
+    with pytest.raises(GraphError, match=r"map names input port 'z', but real_sink has no such input \(inputs: x\)"):
+        pipe.build_ir()
+
+
+def test_ambiguous_port_matching_by_type():
+    with Pipeline("p") as pipe:
+        (PairSource() @ Rate(hz=1)).then(PairSink() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"edge pair_source → pair_sink \(.*\): ambiguous port matching: no names in "
+                                         r"common and several type-compatible pairs \(a→p, a→q, b→p, b→q\)\n"
+                                         r"    hint: pass map=\{'<output>': '<input>'\} to choose"):
+        pipe.build_ir()
+
+
+def test_ambiguous_port_matching_from_an_untyped_producer():
+    with Pipeline("p") as pipe:
+        (Ticker() @ Rate(hz=1)).then(PairSink() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"ticker is untyped, so its outputs cannot be matched by name to pair_sink's "
+                                         r"inputs \(p, q\); the match is ambiguous\n"
+                                         r"    hint: pass map=\{'<output>': '<input>'\} to say which port "
+                                         r"of pair_sink"):
+        pipe.build_ir()
+
+
+def test_no_matching_port():
+    with Pipeline("p") as pipe:
+        (TextSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"no output of text_source \(s\) matches an input of real_sink \(x\) "
+                                         r"by name or type"):
+        pipe.build_ir()
+
+
+def test_edge_whose_output_type_does_not_fit_the_input_type():
+    with Pipeline("p") as pipe:
+        (TextSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1), map={"s": "x"})
+    with pytest.raises(GraphError, match=r"type mismatch on text_source\.s → real_sink\.x: the input expects float, "
+                                         r"the edge delivers str\n    hint: fix one of the annotations"):
+        pipe.build_ir()
+
+
+def test_window_into_a_scalar_port_hints_that_windows_deliver_lists():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1), sync=Window(buffer_size=2))
+    with pytest.raises(GraphError, match=r"the input expects float, the edge delivers list of int\n"
+                                         r"    hint: Window and Queue deliver lists"):
+        pipe.build_ir()
+
+
+def test_edge_into_a_source():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(TextSource() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"'text_source' is a source \(it has no input ports\)"):
+        pipe.build_ir()
+
+
+def test_trigger_on_a_port_the_flow_does_not_have():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Trigger("y"))
+    with pytest.raises(GraphError, match=r"Trigger\('y'\) on 'real_sink': 'real_sink' has no input port 'y' "
+                                         r"\(inputs: x\)\n    hint: trigger on one of the flow's input ports"):
+        pipe.build_ir()
+
+
+def test_hybrid_trigger_on_a_port_the_flow_does_not_have():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Hybrid(hz=5, trigger=["y"]))
+    with pytest.raises(GraphError, match=r"Hybrid\(hz=5, trigger=\['y'\]\) on 'real_sink': 'real_sink' has no "
+                                         r"input port 'y'"):
+        pipe.build_ir()
+
+
+def test_source_on_a_trigger_never_ticks():
+    with Pipeline("p") as pipe:
+        NumSource() @ Trigger()
+    with pytest.raises(GraphError, match=r"'num_source' is a source clocked by Trigger\(\), so it never ticks\n"
+                                         r"    hint: clock a source with Rate\(hz=\.\.\.\)"):
+        pipe.build_ir()
+
+
+def test_flow_with_no_clock():
+    with Pipeline("p") as pipe:
+        NumSource().then(RealSink() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"flow 'num_source' has no clock\n"
+                                         r"    hint: bind one: NumSource\(\.\.\.\) @ Rate\(hz=\.\.\.\) or @ Trigger"):
+        pipe.build_ir()
+
+
+def test_duplicate_node_names():
+    with Pipeline("p") as pipe:
+        (NumSource().named("a") @ Rate(hz=1)).then(RealSink().named("a") @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"node id 'a' is used by two flows \(NumSource and RealSink\)\n"
+                                         r"    hint: give each flow its own name") as info:
+        pipe.build_ir()
+    # The collision must not cascade into phantom problems about an edge a → a.
+    assert info.value.problems == [info.value.problems[0]], str(info.value)
+
+
+def test_fan_in_with_mixed_policies():
+    with Pipeline("p") as pipe:
+        sink = RealSink() @ Rate(hz=1)
+        (NumSource() @ Rate(hz=1)).then(sink, sync=Latest())
+        (NumSource() @ Rate(hz=1)).then(sink, sync=LatestDistinct())
+    with pytest.raises(GraphError, match=r"fan-in into real_sink\.x mixes sync policies: num_source\.x → real_sink\.x "
+                                         r"uses Latest\(\), num_source_2\.x → real_sink\.x uses LatestDistinct\(\)\n"
+                                         r"    hint: .*give every edge into the port the same sync="):
+        pipe.build_ir()
+
+
+def test_fan_in_with_differently_parametrised_policies():
+    with Pipeline("p") as pipe:
+        sink = RealSink() @ Rate(hz=1)
+        (NumSource() @ Rate(hz=1)).then(sink, sync=Latest(staleness=0.1))
+        (NumSource() @ Rate(hz=1)).then(sink, sync=Latest())
+    with pytest.raises(GraphError, match=r"mixes sync policies: .* uses Latest\(staleness=0\.1\), .* uses Latest\(\)"):
+        pipe.build_ir()
+
+
+def test_edge_declared_twice():
+    with Pipeline("p") as pipe:
+        src, sink = NumSource() @ Rate(hz=1), RealSink() @ Rate(hz=1)
+        src.then(sink)
+        src.then(sink)
+    with pytest.raises(GraphError, match=r"edge num_source\.x → real_sink\.x is declared twice"):
+        pipe.build_ir()
+
+
+def test_required_port_with_no_edge_warns():
+    with Pipeline("p") as pipe:
+        RealSink() @ Rate(hz=1)
+    with pytest.warns(RetrieverWarning, match=r"pipeline 'p': input port real_sink\.x has no incoming edge and no "
+                                              r"default: every tick of 'real_sink' will be skipped"):
+        ir = pipe.build_ir()
+    assert any("real_sink.x" in w for w in ir.warnings)
+
+
+def test_warnings_point_at_the_users_code():
+    with Pipeline("p") as pipe:
+        RealSink() @ Rate(hz=1)
+    with pytest.warns(RetrieverWarning) as built:
+        pipe.build_ir()
+    assert built[0].filename == __file__
+    with Pipeline("q") as pipe:
+        RealSink() @ Rate(hz=1)
+    with pytest.warns(RetrieverWarning) as ran:
+        pipe.run(duration=1)  # compiles on first run: the warning is still about this line, not pipeline.py
+    assert ran[0].filename == __file__, f"{ran[0].filename}:{ran[0].lineno}"
+
+
+def test_build_ir_reports_all_problems_in_one_graph_error():
+    with Pipeline("many") as pipe:
+        NoStep() @ Rate(hz=1)
+        (NumSource() @ Rate(hz=1)).then(RealSink(), map={"y": "x"})
+        (TextSource() @ Rate(hz=1)).then(RealSink() @ Trigger("q"), map={"s": "x"})
+        (PairSource() @ Rate(hz=1)).then(PairSink() @ Rate(hz=1))
+    with pytest.raises(GraphError) as info:
+        pipe.build_ir()
+    err = info.value
+    assert err.pipeline == "many"
+    expected = [
+        r"flow 'no_step' \(tests\.test_errors:NoStep\) has no step\(\) method",
+        r"map names output port 'y', but num_source has no such output",
+        r"type mismatch on text_source\.s → real_sink_2\.x",
+        r"ambiguous port matching",
+        r"flow 'real_sink' has no clock",
+        r"Trigger\('q'\) on 'real_sink_2': 'real_sink_2' has no input port 'q'",
+    ]
+    assert len(err.problems) == len(expected), str(err)
+    text = str(err)
+    assert text.startswith(f"pipeline 'many' has {len(expected)} problems:\n")
+    for pattern in expected:
+        assert any(re.search(pattern, str(p)) for p in err.problems), pattern
+        assert re.search(r"\n  - .*" + pattern, text), pattern
+
+
+def test_graph_error_is_a_retriever_error():
+    assert issubclass(GraphError, RetrieverError)
+    with Pipeline("p") as pipe:
+        NoStep() @ Rate(hz=1)
+    with pytest.raises(RetrieverError):
+        pipe.run(duration=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# Declaration errors (raised at once)
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("hz", [0, -1, -0.5, float("nan"), float("inf"), True, "30", None])
+def test_rate_with_an_impossible_hz(hz):
+    with pytest.raises(ClockError, match=re.escape(f"Rate(hz={hz!r}): hz must be a finite number > 0, got {hz!r}")
+                       + r"\n    hint: for an event-driven flow use Trigger\(\"port\"\) instead of a rate"):
+        Rate(hz=hz)
+
+
+def test_clock_error_is_a_value_error():
+    with pytest.raises(ValueError):
+        Rate(hz=math.nan)
+
+
+@pytest.mark.parametrize("offset", [-0.1, float("nan"), float("inf")])
+def test_rate_with_an_impossible_offset(offset):
+    with pytest.raises(ClockError, match=re.escape(f"Rate(offset={offset!r}): offset must be a finite number of "
+                                                   "seconds >= 0")):
+        Rate(hz=10, offset=offset)
+
+
+def test_hybrid_with_an_impossible_hz():
+    with pytest.raises(ClockError, match=r"Hybrid\(hz=0\): hz must be a finite number > 0"):
+        Hybrid(hz=0, trigger=["x"])
+
+
+@pytest.mark.parametrize("port", ["", 3, None])
+def test_trigger_with_a_bad_port_name(port):
+    with pytest.raises(ClockError, match=r"Trigger: trigger ports must be non-empty port names \(str\), got "
+                                         + re.escape(repr(port))):
+        Trigger(port)
+
+
+def test_connect_with_a_class_instead_of_an_instance_hints_to_instantiate():
+    with pytest.raises(TypeError, match=r"connect\(\): the source must be a Flow instance, got the class NumSource\n"
+                                        r"    hint: instantiate it: \w+\(\) @ Rate\(hz=\.\.\.\)"):
+        Pipeline("p").connect(NumSource, RealSink() @ Rate(hz=1))
+
+
+def test_connect_with_a_policy_class_instead_of_an_instance_hints_to_instantiate():
+    with pytest.raises(TypeError, match=r"connect\(\): sync must be a sync policy such as Latest\(\), got "
+                                        r"<class 'retriever\.sync\.Latest'>\n"
+                                        r"    hint: instantiate it: sync=Latest\(\)"):
+        Pipeline("p").connect(NumSource() @ Rate(hz=1), RealSink() @ Rate(hz=1), sync=Latest)
+
+
+def test_then_with_a_policy_class_hints_too():
+    with Pipeline("p"), pytest.raises(TypeError, match=r"hint: instantiate it: sync=Latest\(\)"):
+        (NumSource() @ Rate(hz=1)).then(RealSink() @ Rate(hz=1), sync=Latest)
+
+
+def test_then_outside_a_pipeline_block():
+    with pytest.raises(RuntimeError, match=r"NumSource\.then\(\.\.\.\) was called outside a `with Pipeline\(\.\.\.\)` "
+                                           r"block\n    hint: wrap the wiring"):
+        NumSource().then(RealSink())
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"map": ["x"]}, r"connect\(\): map must be a dict \{output_port: input_port\} of str, got \['x'\]"),
+    ({"delay": -1}, r"connect\(\): delay must be a finite number of seconds >= 0, got -1"),
+    ({"qsize": 0}, r"connect\(\): qsize must be an integer >= 1, got 0"),
+])
+def test_connect_with_bad_edge_options(kwargs, message):
+    with pytest.raises((TypeError, ValueError), match=message):
+        Pipeline("p").connect(NumSource() @ Rate(hz=1), RealSink() @ Rate(hz=1), **kwargs)
+
+
+def test_unknown_backend_names_the_available_ones():
+    with pytest.raises(BackendError, match=r"unknown backend 'dora'; available: inproc"):
+        retriever.init(backend="dora")
+    assert retriever.available_backends() == ["inproc"]
+
+
+def test_run_on_an_unknown_backend():
+    with Pipeline("p") as pipe:
+        NumSource() @ Rate(hz=1)
+    with pytest.raises(BackendError, match=r"unknown backend 'zenoh-x'; available: inproc"):
+        pipe.run(duration=1, backend="zenoh-x")
+
+
+@pytest.mark.parametrize("name, value, allowed", [
+    ("on_error", "ignore", "'stop', 'skip_tick', 'restart'"),
+    ("on_overrun", "queue", "'skip', 'error'"),
+    ("on_deadline_miss", "late", "'publish_late', 'drop', 'error'"),
+])
+def test_failure_policy_values_are_checked(name, value, allowed):
+    with pytest.raises(ValueError, match=re.escape(f"Counter: {name}={value!r} is not one of {allowed}")):
+        Counter().configure(**{name: value})
+
+
+@pytest.mark.parametrize("on_error", ["stop", "skip_tick", "restart"])
+def test_failure_policy_values_are_accepted_and_recorded_in_the_ir(on_error):
+    with Pipeline("p") as pipe:
+        Counter().configure(on_error=on_error) @ Rate(hz=1)
+    assert pipe.build_ir().node("counter")["config"]["on_error"] == on_error
+
+
+@pytest.mark.parametrize("latency", [-0.1, float("nan"), "fast"])
+def test_bad_latency(latency):
+    with pytest.raises(ValueError, match=re.escape(f"Counter: latency={latency!r} must be a finite number of "
+                                                   "seconds >= 0")):
+        Counter().configure(latency=latency)
+
+
+@pytest.mark.parametrize("name", ["has space", "a/b", "", "1st"])
+def test_bad_node_name(name):
+    with pytest.raises(ValueError, match=re.escape(f"Counter: node name {name!r} must be an identifier-like str")):
+        Counter().named(name)
+
+
+# ---------------------------------------------------------------------------------------------
+# Run-time errors
+# ---------------------------------------------------------------------------------------------
+def _zeno_pipeline(max_microsteps: int = 20) -> Pipeline:
+    with Pipeline("zeno", max_microsteps=max_microsteps) as pipe:
+        monitor = Monitor() @ Trigger("fb", "tick")
+        policy = Policy() @ Trigger("skill")
+        (Ticker() @ Rate(hz=1)).then(monitor, map={"tick": "tick"})
+        monitor.then(policy, map={"skill": "skill"})
+        policy.then(monitor, map={"fb": "fb"})
+    return pipe
+
+
+def test_instantaneous_cycle_warns_at_build_time_naming_the_cycle():
+    with pytest.warns(RetrieverWarning, match=r"instantaneous cycle monitor → policy → monitor: every link is a "
+                                              r"zero-latency, undelayed edge into a trigger port"):
+        ir = _zeno_pipeline().build_ir()
+    assert ir.topology["instantaneous_cycles"] == [["monitor", "policy"]]
+
+
+def test_zeno_loop_at_run_time_names_the_cycle_and_the_tag():
+    pipe = _zeno_pipeline(max_microsteps=20)
+    with pytest.warns(RetrieverWarning), pytest.raises(CausalityError) as info:
+        pipe.run(duration=1)
+    err = info.value
+    assert re.search(r"Zeno loop: the instant at t=0\.000000000s m=\d+ ran past max_microsteps=20 around the cycle "
+                     r"(monitor → policy → monitor|policy → monitor → policy)\n"
+                     r"    hint: break the cycle in time: give a flow on it latency=", str(err)), str(err)
+    assert set(err.cycle) == {"monitor", "policy"}
+    assert err.tag[0] == 0
+
+
+def test_zeno_loop_is_broken_by_latency():
+    pipe = _zeno_pipeline()
+    pipe.flows[1].configure(latency=0.01)
+    trace = pipe.run(duration=0.1)
+    assert len(trace.steps_of("policy")) == 10
+
+
+def test_step_that_raises_stops_the_run_naming_node_and_tick():
+    with Pipeline("p") as pipe:
+        Counter(fail_at=3) @ Rate(hz=10)
+    with pytest.raises(StepError, match=r"counter\.step\(\) raised KeyError: 'no such joint' "
+                                        r"\(tick at t=0\.200000000s m=0\)\n"
+                                        r"    hint: set on_error='skip_tick' or 'restart' on 'counter'") as info:
+        pipe.run(duration=1)
+    err = info.value
+    assert isinstance(err.__cause__, KeyError)
+    assert err.__cause__.args == ("no such joint",)
+    assert (err.node, err.tag) == ("counter", (200_000_000, 0))
+    record = pipe.trace.steps_of("counter")[-1]
+    assert record.status == "error"
+    assert record.detail == {"error": "KeyError: 'no such joint'", "on_error": "stop"}
+
+
+def test_step_that_raises_with_skip_tick_keeps_running():
+    with Pipeline("p") as pipe:
+        Counter(fail_at=3).configure(on_error="skip_tick") @ Rate(hz=10)
+    trace = pipe.run(duration=1)
+    statuses = [s.status for s in trace.steps_of("counter")]
+    assert statuses == ["ok", "ok", "error"] + ["ok"] * 7
+    assert trace.values_of("counter", "x") == [1, 2, 4, 5, 6, 7, 8, 9, 10]
+    assert pipe.stats()["counter"].errors == 1
+
+
+def test_step_that_raises_with_restart_resets_the_flow():
+    with Pipeline("p") as pipe:
+        Counter(fail_at=3).configure(on_error="restart") @ Rate(hz=10)
+    trace = pipe.run(duration=1)
+    # the state restarts after each failure, so it fails every third tick
+    assert [s.status for s in trace.steps_of("counter")] == ["ok", "ok", "error"] * 3 + ["ok"]
+    assert trace.values_of("counter", "x") == [1, 2, 1, 2, 1, 2, 1]
+    assert trace.steps_of("counter")[2].detail["on_error"] == "restart"
+
+
+def test_step_returning_the_wrong_type_is_a_step_error():
+    class Wrong(Flow[None, Num]):
+        def step(self, inp):
+            return "not a Num"
+
+    with Pipeline("p") as pipe:
+        Wrong() @ Rate(hz=1)
+    with pytest.raises(StepError, match=r"wrong\.step\(\) raised OutputError: step\(\) returned str, expected "
+                                        r"tests\.test_errors\.Num"):
+        pipe.run(duration=1)
+
+
+# ---------------------------------------------------------------------------------------------
+# IR documents
+# ---------------------------------------------------------------------------------------------
+def _ir_doc() -> dict:
+    return json.loads(ir_flows.build().build_ir().to_json())
+
+
+def test_malformed_ir_text():
+    with pytest.raises(IRError, match=r"invalid IR \(<string>\):\n  - not valid JSON: Expecting value at line 1, "
+                                      r"column 1"):
+        IR.from_json("nodes: []")
+
+
+def test_wrong_version_ir():
+    doc = _ir_doc()
+    doc["version"] = "2.0.0"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.0\.0\); "
+                                      r"rebuild the IR with this version: retriever ir FILE --out PATH"):
+        IR.from_json(json.dumps(doc))
+
+
+def test_unknown_policy_in_an_ir():
+    doc = _ir_doc()
+    doc["edges"][0]["adapter"] = {"newest": {}}
+    with pytest.raises(IRError, match=r"edges\[0\]\.adapter: unknown sync policy 'newest'; known: action_chunking, "
+                                      r"exact, latest, latest_distinct, queue, window"):
+        IR.from_json(json.dumps(doc))
+
+
+@pytest.mark.parametrize("policy, message", [
+    (lambda: Window(buffer_size=0), r"Window\(buffer_size=0\): buffer_size must be an integer >= 1"),
+    (lambda: Queue(maxsize=-1), r"Queue\(maxsize=-1\): maxsize must be an integer >= 1"),
+    (lambda: Latest(staleness=-1), r"Latest\(staleness=-1\): staleness must be a finite number of seconds >= 0"),
+])
+def test_bad_policy_parameters(policy, message):
+    with pytest.raises(ValueError, match=message):
+        policy()
+
+
+def test_internal_error_says_it_is_a_bug_in_retriever():
+    assert str(InternalError("heap out of order")) == (
+        "heap out of order (this is a bug in Retriever, not in your program; please report it)")

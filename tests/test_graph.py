@@ -1,0 +1,468 @@
+"""Compiling a pipeline: port matching, type compatibility, node ids, cycles (retriever/graph.py)."""
+
+from __future__ import annotations
+
+from typing import Any, Optional, Sequence
+
+import pytest
+
+from retriever import (
+    ActionChunking,
+    Flow,
+    GraphError,
+    Latest,
+    Pipeline,
+    Queue,
+    Rate,
+    RetrieverWarning,
+    Trigger,
+    Window,
+    io,
+)
+from retriever.graph import fits
+
+
+@io
+class XY:
+    x: int
+    y: int
+
+
+@io
+class XYZIn:
+    x: float
+    y: int
+    z: Optional[str] = None
+
+
+@io
+class Mixed:
+    label: str
+    count: int
+
+
+@io
+class Amount:
+    amount: float
+
+
+@io
+class Num:
+    x: int
+
+
+@io
+class Recent:
+    recent: list[float]
+
+
+@io
+class Words:
+    words: list[str]
+
+
+@io
+class Row:
+    row: float
+
+
+@io
+class Done:
+    done: Optional[bool] = None  # sparse: None means no event
+
+
+@io
+class DoneIn:
+    done: bool
+
+
+class XYSource(Flow[None, XY]):
+    def step(self, inp):
+        return XY(1, 2)
+
+
+class XYZSink(Flow[XYZIn, None]):
+    def step(self, inp):
+        return None
+
+
+class MixedSource(Flow[None, Mixed]):
+    def step(self, inp):
+        return Mixed("a", 3)
+
+
+class AmountSink(Flow[Amount, None]):
+    def step(self, inp):
+        return None
+
+
+class NumSource(Flow[None, Num]):
+    def __init__(self):
+        self.n = 0
+
+    def step(self, inp):
+        self.n += 1
+        return Num(self.n)
+
+
+class RecentSink(Flow[Recent, None]):
+    def step(self, inp):
+        return None
+
+
+class WordsSink(Flow[Words, None]):
+    def step(self, inp):
+        return None
+
+
+class RowSink(Flow[Row, None]):
+    def step(self, inp):
+        return None
+
+
+class DoneSource(Flow[None, Done]):
+    def step(self, inp):
+        return Done(True)
+
+
+class DoneSink(Flow[DoneIn, None]):
+    def step(self, inp):
+        return None
+
+
+class UntypedSource(Flow):
+    def step(self):
+        return {"x": 7}
+
+
+class UntypedSink(Flow):
+    def __init__(self):
+        self.got = []
+
+    def step(self, x):
+        self.got.append(x)
+
+
+class CameraFlow(Flow[None, Num]):
+    def step(self, inp):
+        return Num(0)
+
+
+class HTTPServerFlow(Flow[None, Num]):
+    def step(self, inp):
+        return Num(0)
+
+
+class Relay(Flow):
+    def step(self, a=None):
+        return {"a": a}
+
+
+def _edges(pipe: Pipeline) -> list[tuple[str, str, str, str]]:
+    return [(e["source"]["node"], e["source"]["port"], e["destination"]["node"], e["destination"]["port"])
+            for e in pipe.build_ir().edges]
+
+
+# ---------------------------------------------------------------------------------------------
+# Port matching
+# ---------------------------------------------------------------------------------------------
+def test_ports_match_by_name():
+    with Pipeline("p") as pipe:
+        (XYSource() @ Rate(hz=1)).then(XYZSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("xy_source", "x", "xyz_sink", "x"), ("xy_source", "y", "xyz_sink", "y")]
+
+
+def test_single_type_compatible_pair_matches_without_names_in_common():
+    with Pipeline("p") as pipe:
+        (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("mixed_source", "count", "amount_sink", "amount")]
+
+
+def test_map_routes_ports_explicitly():
+    with Pipeline("p") as pipe:
+        (XYSource() @ Rate(hz=1)).then(XYZSink() @ Rate(hz=1), map={"y": "x", "x": "y"})
+    assert _edges(pipe) == [("xy_source", "y", "xyz_sink", "x"), ("xy_source", "x", "xyz_sink", "y")]
+
+
+def test_pipe_connect_is_the_same_as_then():
+    with Pipeline("p") as pipe:
+        src, sink = XYSource() @ Rate(hz=1), XYZSink() @ Rate(hz=1)
+        assert pipe.connect(src, sink, map={"x": "y", "y": "x"}) is sink
+    assert _edges(pipe) == [("xy_source", "x", "xyz_sink", "y"), ("xy_source", "y", "xyz_sink", "x")]
+
+
+def test_then_returns_the_destination_so_chains_read_left_to_right():
+    with Pipeline("p") as pipe:
+        a, b, c = Relay() @ Rate(hz=1), Relay() @ Trigger("a"), Relay() @ Trigger("a")
+        assert a.then(b).then(c) is c
+    assert _edges(pipe) == [("relay", "a", "relay_2", "a"), ("relay_2", "a", "relay_3", "a")]
+
+
+def test_untyped_producer_into_a_single_port_consumer():
+    with Pipeline("p") as pipe:
+        (UntypedSource() @ Rate(hz=10)).then(AmountSink() @ Rate(hz=10), map={"x": "amount"})
+        sink = UntypedSink() @ Trigger()
+        pipe.connect(pipe.flows[0], sink)
+    ir = pipe.build_ir()
+    assert _edges(pipe) == [("untyped_source", "x", "amount_sink", "amount"),
+                            ("untyped_source", "x", "untyped_sink", "x")]
+    # an untyped producer's output ports are the ones its edges name
+    assert ir.node("untyped_source")["outputs"] == {"x": "Any"}
+    assert ir.node("untyped_sink")["inputs"] == {"x": "Any"}
+    pipe.run(duration=0.3)
+    assert sink.got == [7, 7, 7]
+
+
+def test_untyped_producer_into_a_single_typed_port_takes_its_name():
+    with Pipeline("p") as pipe:
+        (UntypedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("untyped_source", "amount", "amount_sink", "amount")]
+
+
+def test_typed_producer_into_an_untyped_consumer_matches_by_name():
+    with Pipeline("p") as pipe:
+        (XYSource() @ Rate(hz=1)).then(UntypedSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("xy_source", "x", "untyped_sink", "x")]
+
+
+def test_fan_in_with_one_policy_is_allowed():
+    with Pipeline("p") as pipe:
+        sink = RecentSink() @ Rate(hz=1)
+        (NumSource() @ Rate(hz=2)).then(sink, sync=Window(buffer_size=4), map={"x": "recent"})
+        (NumSource() @ Rate(hz=2)).then(sink, sync=Window(buffer_size=4), map={"x": "recent"})
+    assert len(_edges(pipe)) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# Type compatibility
+# ---------------------------------------------------------------------------------------------
+class Base:
+    pass
+
+
+class Derived(Base):
+    pass
+
+
+@pytest.mark.parametrize("out_t, in_t", [
+    (int, int),
+    (int, float),  # PEP 484 numeric tower
+    (int, complex),
+    (float, complex),
+    (bool, int),
+    (Derived, Base),
+    (int, Optional[float]),
+    (int, float | None),
+    (list[int], list[float]),
+    (dict[str, int], dict[str, float]),
+    (Any, int),
+    (int, Any),
+    ("SomeForwardRef", int),
+    (list[int], list),
+    (list, list[int]),
+])
+def test_types_that_fit(out_t, in_t):
+    assert fits(out_t, in_t)
+
+
+@pytest.mark.parametrize("out_t, in_t", [
+    (float, int),
+    (str, float),
+    (Base, Derived),
+    (list[str], list[int]),
+    (Optional[str], int),
+    (int | str, int),
+    (dict[str, str], dict[str, int]),
+])
+def test_types_that_do_not_fit(out_t, in_t):
+    assert not fits(out_t, in_t)
+
+
+def test_sparse_optional_output_fits_a_required_input_of_its_type():
+    # DESIGN §4: a None in an output field means "no event on that port", so an Optional[bool]
+    # output only ever delivers bools.
+    with Pipeline("p") as pipe:
+        (DoneSource() @ Rate(hz=1)).then(DoneSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("done_source", "done", "done_sink", "done")]
+
+
+def test_int_output_into_float_input_builds():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1), map={"x": "amount"})
+    assert _edges(pipe) == [("num_source", "x", "amount_sink", "amount")]
+
+
+def test_int_output_into_optional_input_builds():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(XYZSink() @ Rate(hz=1), map={"x": "x"})
+        (MixedSource() @ Rate(hz=1)).then(pipe.flows[1], map={"label": "z", "count": "y"})
+    assert len(_edges(pipe)) == 3
+
+
+@pytest.mark.parametrize("sync", [Window(buffer_size=3), Queue(maxsize=3)])
+def test_window_and_queue_deliver_lists(sync):
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RecentSink() @ Rate(hz=1), sync=sync, map={"x": "recent"})
+    assert _edges(pipe) == [("num_source", "x", "recent_sink", "recent")]
+
+
+@pytest.mark.parametrize("sync", [Window(buffer_size=3), Queue(maxsize=3)])
+def test_window_and_queue_check_the_element_type(sync):
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(WordsSink() @ Rate(hz=1), sync=sync, map={"x": "words"})
+    with pytest.raises(GraphError, match=r"type mismatch on num_source\.x → words_sink\.words: the input expects "
+                                         r"list\[str\], the edge delivers list of int"):
+        pipe.build_ir()
+
+
+def test_list_input_fed_by_latest_is_a_mismatch():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RecentSink() @ Rate(hz=1), sync=Latest(), map={"x": "recent"})
+    with pytest.raises(GraphError, match=r"the input expects list\[float\], the edge delivers int"):
+        pipe.build_ir()
+
+
+def test_type_mismatch_through_name_matching():
+    with Pipeline("p") as pipe:
+        (MixedSource() @ Rate(hz=1)).then(WordsSink() @ Rate(hz=1), map={"count": "words"})
+    with pytest.raises(GraphError, match=r"the input expects list\[str\], the edge delivers int"):
+        pipe.build_ir()
+
+
+def test_action_chunking_delivers_rows_whatever_the_annotation():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(RowSink() @ Rate(hz=10), sync=ActionChunking(chunk_steps=4),
+                                        map={"x": "row"})
+    assert _edges(pipe) == [("num_source", "x", "row_sink", "row")]
+
+
+def test_window_into_an_unannotated_port_is_fine():
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(UntypedSink() @ Rate(hz=1), sync=Window(buffer_size=2))
+    assert _edges(pipe) == [("num_source", "x", "untyped_sink", "x")]
+
+
+def test_sequence_annotation_accepts_a_window():
+    @io
+    class SeqIn:
+        values: Sequence[int]
+
+    class SeqSink(Flow[SeqIn, None]):
+        def step(self, inp):
+            return None
+
+    with Pipeline("p") as pipe:
+        (NumSource() @ Rate(hz=1)).then(SeqSink() @ Rate(hz=1), sync=Window(buffer_size=2), map={"x": "values"})
+    assert len(_edges(pipe)) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Node ids
+# ---------------------------------------------------------------------------------------------
+def test_default_node_ids_come_from_the_class_name():
+    with Pipeline("p") as pipe:
+        CameraFlow() @ Rate(hz=1)
+        HTTPServerFlow() @ Rate(hz=1)
+        XYSource() @ Rate(hz=1)
+    assert [n["id"] for n in pipe.build_ir().nodes] == ["camera", "http_server", "xy_source"]
+
+
+def test_default_node_ids_are_deduplicated():
+    with Pipeline("p") as pipe:
+        for _ in range(3):
+            CameraFlow() @ Rate(hz=1)
+    assert [n["id"] for n in pipe.build_ir().nodes] == ["camera", "camera_2", "camera_3"]
+
+
+def test_explicit_names_are_kept_and_defaults_avoid_them():
+    with Pipeline("p") as pipe:
+        CameraFlow() @ Rate(hz=1)
+        CameraFlow().named("camera") @ Rate(hz=1)
+        CameraFlow().configure(name="wrist-cam") @ Rate(hz=1)
+        CameraFlow() @ Rate(hz=1)
+    assert [n["id"] for n in pipe.build_ir().nodes] == ["camera_2", "camera", "wrist-cam", "camera_3"]
+
+
+def test_pipe_add_with_a_name():
+    pipe = Pipeline("p")
+    pipe.add(CameraFlow() @ Rate(hz=1), name="head")
+    assert [n["id"] for n in pipe.build_ir().nodes] == ["head"]
+
+
+def test_node_ids_are_the_trace_names():
+    with Pipeline("p") as pipe:
+        CameraFlow() @ Rate(hz=1)
+        CameraFlow().named("wrist") @ Rate(hz=1)
+    trace = pipe.run(duration=1)
+    assert sorted({e.node for e in trace.events}) == ["camera", "wrist"]
+    assert sorted(pipe.stats()) == ["camera", "wrist"]
+
+
+def test_flows_are_added_once_however_often_they_are_wired():
+    with Pipeline("p") as pipe:
+        src = NumSource() @ Rate(hz=1)
+        src.then(UntypedSink() @ Rate(hz=1))
+        src.then(UntypedSink() @ Rate(hz=1))
+        pipe.add(src)
+    assert [n["id"] for n in pipe.build_ir().nodes] == ["num_source", "untyped_sink", "untyped_sink_2"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Topology and cycles
+# ---------------------------------------------------------------------------------------------
+def test_dag_has_no_cycle():
+    with Pipeline("p") as pipe:
+        (XYSource() @ Rate(hz=1)).then(XYZSink() @ Rate(hz=1))
+    topo = pipe.build_ir().topology
+    assert topo == {"node_count": 2, "edge_count": 2, "has_cycle": False, "cycles": [],
+                    "instantaneous_cycles": []}
+
+
+def test_cycles_are_listed_in_topology():
+    with Pipeline("p") as pipe:
+        a, b, c = Relay() @ Rate(hz=10), Relay() @ Rate(hz=10), Relay() @ Rate(hz=10)
+        a.then(b).then(c).then(a)
+        b.then(a)
+    ir = pipe.build_ir()
+    assert ir.topology["has_cycle"] is True
+    assert sorted(ir.topology["cycles"]) == [["relay", "relay_2"], ["relay", "relay_2", "relay_3"]]
+    assert ir.topology["instantaneous_cycles"] == []  # every link goes into a Rate flow
+
+
+def test_instantaneous_cycles_are_listed_and_warned():
+    with Pipeline("p") as pipe:
+        a, b = Relay() @ Trigger("a"), Relay() @ Trigger("a")
+        a.then(b).then(a)
+        (Relay() @ Rate(hz=1)).then(a)
+    with pytest.warns(RetrieverWarning, match=r"instantaneous cycle relay → relay_2 → relay"):
+        ir = pipe.build_ir()
+    assert ir.topology["cycles"] == [["relay", "relay_2"]]
+    assert ir.topology["instantaneous_cycles"] == [["relay", "relay_2"]]
+    assert any("instantaneous cycle relay → relay_2 → relay" in w for w in ir.warnings)
+
+
+@pytest.mark.parametrize("breaker", ["delay", "latency", "rate"])
+def test_a_delay_latency_or_rate_makes_a_cycle_non_instantaneous(breaker, recwarn):
+    with Pipeline("p") as pipe:
+        a = Relay() @ (Rate(hz=10) if breaker == "rate" else Trigger("a"))
+        b = Relay() @ Trigger("a")
+        if breaker == "latency":
+            b.configure(latency=0.01)
+        a.then(b)
+        b.then(a, delay=0.01 if breaker == "delay" else 0.0)
+        (Relay() @ Rate(hz=1)).then(a)
+    ir = pipe.build_ir()
+    assert ir.topology["cycles"] == [["relay", "relay_2"]]
+    assert ir.topology["instantaneous_cycles"] == []
+    assert not [w for w in recwarn if issubclass(w.category, RetrieverWarning)]
+
+
+def test_compile_is_cached_until_the_pipeline_changes():
+    with Pipeline("p") as pipe:
+        src = NumSource() @ Rate(hz=1)
+    first = pipe.compile()
+    assert pipe.compile() is first
+    with pipe:
+        src.then(UntypedSink() @ Rate(hz=1))
+    assert pipe.compile() is not first
+    assert len(pipe.compile().edges) == 1

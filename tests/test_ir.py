@@ -1,0 +1,350 @@
+"""The IR: golden JSON, round trip to an identical trace, validation of loaded documents, pictures."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from retriever import IR, IRError, Pipeline, Rate
+from tests import ir_flows
+
+GOLDEN = Path(__file__).parent / "golden" / "small_pipeline.ir.json"
+
+
+@pytest.fixture
+def ir() -> IR:
+    return ir_flows.build().build_ir()
+
+
+@pytest.fixture
+def doc(ir: IR) -> dict:
+    return json.loads(ir.to_json())
+
+
+def _load(tmp_path: Path, text: str) -> IR:
+    path = tmp_path / "pipeline.ir.json"
+    path.write_text(text, encoding="utf-8")
+    return IR.load(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Golden file
+# ---------------------------------------------------------------------------------------------
+def test_ir_json_matches_golden_file(ir: IR):
+    text = ir.to_json()
+    if os.environ.get("RETRIEVER_UPDATE_GOLDEN") == "1":
+        GOLDEN.write_text(text, encoding="utf-8")
+    assert GOLDEN.exists(), f"{GOLDEN} is missing; run with RETRIEVER_UPDATE_GOLDEN=1 to create it"
+    assert text == GOLDEN.read_text(encoding="utf-8"), (
+        "the IR format changed; if on purpose, regenerate with RETRIEVER_UPDATE_GOLDEN=1 and review the diff")
+
+
+def test_golden_file_loads_and_rebuilds():
+    loaded = IR.load(GOLDEN)
+    assert loaded.name == "small"
+    assert [n["type"] for n in loaded.nodes] == [
+        "tests.ir_flows:Camera", "tests.ir_flows:Planner", "tests.ir_flows:Controller", "tests.ir_flows:Logger"]
+    assert Pipeline.from_ir(loaded).build_ir() == loaded
+
+
+def test_to_json_is_stable_with_sorted_keys(ir: IR):
+    text = ir.to_json()
+    assert text == ir_flows.build().build_ir().to_json()
+
+    def check_sorted(value):
+        if isinstance(value, dict):
+            assert list(value) == sorted(value)
+            for v in value.values():
+                check_sorted(v)
+        elif isinstance(value, list):
+            for v in value:
+                check_sorted(v)
+
+    check_sorted(json.loads(text))
+
+
+def test_ir_shape_follows_the_design(ir: IR):
+    doc = ir.doc
+    assert doc["version"] == "1.0.0"
+    assert doc["metadata"]["name"] == "small"
+    assert doc["metadata"]["validated"] is True
+    assert doc["metadata"]["optimized"] is False
+    planner = ir.node("planner")
+    assert planner["type"] == "tests.ir_flows:Planner"
+    assert planner["params"] == {"steps": 4, "gains": [0.5, 0.25]}
+    assert planner["config"]["clock"] == {"Rate": {"hz": 2, "offset": 0.0}}
+    assert planner["config"]["latency"] == 0.25
+    assert planner["config"]["on_error"] == "skip_tick"
+    assert planner["inputs"] == {"recent": "list[float]", "feedback": "float | None"}
+    assert planner["outputs"] == {"chunk": "list[float]"}
+    feedback = [e for e in ir.edges if e["destination"] == {"node": "planner", "port": "feedback"}]
+    assert feedback == [{"source": {"node": "controller", "port": "position"},
+                         "destination": {"node": "planner", "port": "feedback"},
+                         "adapter": {"latest": {"staleness": 0.5}}, "qsize": 10, "delay": 0.02}]
+    topo = ir.topology
+    assert (topo["node_count"], topo["edge_count"], topo["has_cycle"]) == (4, 4, True)
+    assert topo["cycles"] == [["planner", "controller"]]
+
+
+def test_action_chunking_control_hz_defaults_to_the_consumer_rate_in_the_ir(ir: IR):
+    (edge,) = [e for e in ir.edges if e["destination"]["node"] == "controller"]
+    assert edge["adapter"] == {"action_chunking": {"chunk_steps": 4, "control_hz": 50, "on_exhausted": "hold", "horizon_ms": None}}
+
+
+def test_node_lookup_names_the_known_nodes(ir: IR):
+    with pytest.raises(KeyError, match=r"no node 'ghost' \(nodes: camera, planner, controller, logger\)"):
+        ir.node("ghost")
+
+
+# ---------------------------------------------------------------------------------------------
+# Round trip
+# ---------------------------------------------------------------------------------------------
+def test_round_trip_build_save_load_run_gives_the_identical_trace(tmp_path: Path):
+    pipe = ir_flows.build()
+    ir = pipe.build_ir()
+    path = ir.save(tmp_path / "small.ir.json")
+    loaded = IR.load(path)
+    assert loaded == ir
+    rebuilt = Pipeline.from_ir(loaded)
+    assert rebuilt.build_ir().to_json() == ir.to_json()
+
+    original = pipe.run(duration=2.0)
+    again = rebuilt.run(duration=2.0)
+    assert len(original.events) > 100
+    assert {s.node for s in original.steps} == {"camera", "planner", "controller", "logger"}
+    assert again == original
+    assert again.digest() == original.digest()
+    assert again.first_difference(original) is None
+
+
+def test_round_trip_from_json_string(ir: IR):
+    assert IR.from_json(ir.to_json()) == ir
+
+
+def test_rebuilt_pipeline_is_independent_of_an_enclosing_with_block(ir: IR):
+    with Pipeline("outer") as outer:
+        rebuilt = Pipeline.from_ir(ir)
+    assert outer.flows == []
+    assert len(rebuilt.flows) == 4
+
+
+# ---------------------------------------------------------------------------------------------
+# Flows that cannot be rebuilt from the IR
+# ---------------------------------------------------------------------------------------------
+def _tool_pipeline() -> Pipeline:
+    with Pipeline("tooled") as pipe:
+        ir_flows.Tool(object(), steps=2) @ Rate(hz=10)
+    return pipe
+
+
+def test_unrebuildable_flow_is_marked_in_the_ir_with_the_argument_named():
+    pipe = _tool_pipeline()
+    node = pipe.build_ir().node("tool")
+    assert node["rebuildable"] is False
+    assert "'model'" in node["rebuild_problem"]
+    assert "object" in node["rebuild_problem"]
+    assert node["params"]["steps"] == 2
+    assert node["params"]["model"] == {"$unserializable": "builtins.object"}
+
+
+def test_unrebuildable_flow_still_runs_in_process():
+    trace = _tool_pipeline().run(duration=0.25)
+    assert trace.values_of("tool", "k") == [2, 2, 2]
+
+
+def test_from_ir_refuses_an_unrebuildable_flow_naming_node_and_argument():
+    ir = _tool_pipeline().build_ir()
+    with pytest.raises(IRError, match=r"node 'tool' cannot be rebuilt from the IR: argument 'model'"):
+        Pipeline.from_ir(ir)
+
+
+def test_rebuildable_nodes_are_marked(ir: IR):
+    assert all(n["rebuildable"] is True and "rebuild_problem" not in n for n in ir.nodes)
+
+
+def test_from_ir_with_an_unimportable_type_names_the_node(doc: dict):
+    doc["nodes"][0]["type"] = "tests.no_such_module:Camera"
+    with pytest.raises(IRError, match=r"node 'camera': cannot import tests\.no_such_module:Camera"):
+        Pipeline.from_ir(IR(doc))
+
+
+def test_from_ir_with_a_type_that_is_not_a_flow(doc: dict):
+    doc["nodes"][0]["type"] = "tests.ir_flows:Frame"
+    with pytest.raises(IRError, match=r"node 'camera': tests\.ir_flows:Frame is not a Flow class"):
+        Pipeline.from_ir(IR(doc))
+
+
+def test_from_ir_when_the_constructor_raises_names_the_node(doc: dict):
+    doc["nodes"][1]["params"] = {"steps": 4, "gains": 5}
+    with pytest.raises(IRError, match=r"node 'planner': tests\.ir_flows:Planner\(\*\*\{.*\}\) raised TypeError"):
+        Pipeline.from_ir(IR(doc))
+
+
+def test_from_ir_refuses_params_the_constructor_does_not_take(doc: dict):
+    # A misspelt parameter must not be dropped silently: the flow would run with the default.
+    doc["nodes"][2]["params"] = {"gian": 0.9}
+    with pytest.raises(IRError, match=r"node 'controller'.*'gian'"):
+        Pipeline.from_ir(IR(doc))
+
+
+# ---------------------------------------------------------------------------------------------
+# IR.load: every malformed document is an IRError naming the problem
+# ---------------------------------------------------------------------------------------------
+def test_load_non_json(tmp_path: Path):
+    with pytest.raises(IRError, match=r"invalid IR \(.*pipeline\.ir\.json\):\n"
+                                      r"  - not valid JSON: .* at line 1, column 2"):
+        _load(tmp_path, "{nodes: []}")
+
+
+def test_load_json_array(tmp_path: Path):
+    with pytest.raises(IRError, match=r"the document must be a JSON object, got list"):
+        _load(tmp_path, "[1, 2, 3]")
+
+
+def test_load_missing_keys_lists_each_one(tmp_path: Path):
+    with pytest.raises(IRError) as info:
+        _load(tmp_path, json.dumps({"version": "1.0.0", "nodes": []}))
+    assert info.value.problems == [
+        "'metadata' is missing (expected an object)",
+        "'edges' is missing (expected a list)",
+        "'topology' is missing (expected an object)",
+    ]
+
+
+def test_load_missing_version(tmp_path: Path, doc: dict):
+    del doc["version"]
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.0\.0\"\)"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_wrong_version(tmp_path: Path, doc: dict):
+    doc["version"] = "2.0.0"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.0\.0\)"
+                                      r"; rebuild the IR"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_unknown_adapter(tmp_path: Path, doc: dict):
+    doc["edges"][1]["adapter"] = {"freshest": {}}
+    with pytest.raises(IRError, match=r"edges\[1\]\.adapter: unknown sync policy 'freshest'; known: action_chunking, "
+                                      r"exact, latest, latest_distinct, queue, window"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_adapter_with_bad_parameters(tmp_path: Path, doc: dict):
+    doc["edges"][0]["adapter"] = {"window": {"buffer_size": 3, "size": 4}}
+    with pytest.raises(IRError, match=r"edges\[0\]\.adapter: adapter window: bad parameters"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_unknown_clock_kind(tmp_path: Path, doc: dict):
+    doc["nodes"][1]["config"]["clock"] = {"Sometimes": {"hz": 3}}
+    with pytest.raises(IRError, match=r"node 'planner'\.config\.clock: unknown clock kind 'Sometimes'; "
+                                      r"expected Rate, Trigger or Hybrid"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_impossible_rate(tmp_path: Path, doc: dict):
+    doc["nodes"][0]["config"]["clock"] = {"Rate": {"hz": 0}}
+    with pytest.raises(IRError, match=r"node 'camera'\.config\.clock: Rate\(hz=0\): hz must be a finite number > 0"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_edge_naming_an_unknown_node(tmp_path: Path, doc: dict):
+    doc["edges"][0]["source"]["node"] = "ghost"
+    with pytest.raises(IRError, match=r"edges\[0\]\.source: unknown node 'ghost'"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_edge_naming_an_unknown_port(tmp_path: Path, doc: dict):
+    doc["edges"][2]["destination"]["port"] = "ghost"
+    with pytest.raises(IRError, match=r"edges\[2\]\.destination: node 'planner' has no input port 'ghost'"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_unknown_on_error(tmp_path: Path, doc: dict):
+    doc["nodes"][2]["config"]["on_error"] = "ignore"
+    with pytest.raises(IRError, match=r"node 'controller'\.config\.on_error: 'ignore' is not one of "
+                                      r"stop, skip_tick, restart"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_duplicate_node_id(tmp_path: Path, doc: dict):
+    doc["nodes"][1]["id"] = "camera"
+    with pytest.raises(IRError, match=r"node 'camera': duplicate node id"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_missing_file(tmp_path: Path):
+    with pytest.raises(IRError, match=r"cannot read the file: No such file or directory"):
+        IR.load(tmp_path / "absent.json")
+
+
+def test_load_binary_file(tmp_path: Path):
+    path = tmp_path / "binary.json"
+    path.write_bytes(b"\xff\xfe\x00\x01")
+    with pytest.raises(IRError, match=r"not a text file \(expected UTF-8 JSON\)"):
+        IR.load(path)
+
+
+def test_load_reports_every_problem_at_once(tmp_path: Path, doc: dict):
+    doc["nodes"][0]["config"]["clock"] = {"Sometimes": {}}
+    doc["nodes"][2]["config"]["latency"] = -1
+    doc["edges"][0]["adapter"] = {"freshest": {}}
+    doc["edges"][1]["source"]["node"] = "ghost"
+    doc["edges"][3]["qsize"] = 0
+    with pytest.raises(IRError) as info:
+        _load(tmp_path, json.dumps(doc))
+    err = info.value
+    assert err.source.endswith("pipeline.ir.json")
+    assert len(err.problems) == 5
+    for expected in ("node 'camera'.config.clock: unknown clock kind 'Sometimes'",
+                     "node 'controller'.config.latency: expected seconds >= 0, got -1",
+                     "edges[0].adapter: unknown sync policy 'freshest'",
+                     "edges[1].source: unknown node 'ghost'",
+                     "edges[3].qsize: expected an integer >= 1, got 0"):
+        assert any(p.startswith(expected) for p in err.problems), expected
+        assert expected in str(err)
+    assert str(err).count("\n  - ") == 5
+
+
+def test_ir_constructor_validates_too(doc: dict):
+    broken = copy.deepcopy(doc)
+    broken["version"] = "0.9.0"
+    with pytest.raises(IRError, match=r"invalid IR \(<memory>\)"):
+        IR(broken)
+
+
+# ---------------------------------------------------------------------------------------------
+# Pictures
+# ---------------------------------------------------------------------------------------------
+def test_visualize_dot_contains_every_node_and_edge(ir: IR):
+    dot = ir.visualize("dot")
+    assert dot.startswith('digraph "small" {')
+    for n in ir.nodes:
+        assert f'"{n["id"]}" [label="{n["id"]}' in dot
+    for e in ir.edges:
+        assert f'"{e["source"]["node"]}" -> "{e["destination"]["node"]}" [label="{e["source"]["port"]} → ' \
+               f'{e["destination"]["port"]}' in dot
+    assert "delay 0.02 s" in dot
+    assert dot.count(" -> ") == len(ir.edges)
+
+
+def test_visualize_mermaid_contains_every_node_and_edge(ir: IR):
+    mermaid = ir.visualize("mermaid")
+    assert mermaid.startswith("flowchart LR\n")
+    for n in ir.nodes:
+        assert f'  {n["id"]}["{n["id"]}<br/>' in mermaid
+    for e in ir.edges:
+        assert f'  {e["source"]["node"]} -->|"{e["source"]["port"]} → {e["destination"]["port"]}<br/>' in mermaid
+        assert f'| {e["destination"]["node"]}\n' in mermaid
+    assert mermaid.count("-->") == len(ir.edges)
+
+
+def test_visualize_unknown_format(ir: IR):
+    with pytest.raises(ValueError, match=r"unknown format 'svg'; expected 'dot' or 'mermaid'"):
+        ir.visualize("svg")
