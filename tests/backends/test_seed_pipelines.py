@@ -219,7 +219,11 @@ def test_project_page_pipeline_as_written_leaves_trigger_ports_unfed(backend, ch
     belief's Trigger("inspection_done") or planner's Trigger("replan_request"), so those two
     flows never tick (and without a plan the VLA and the controller never step)."""
     pipe = build_retriever0_page(add_omitted_edges=False)
-    graph = pipe.compile()
+    with pytest.warns(RetrieverWarning) as caught:
+        graph = pipe.compile()
+    never = " | ".join(str(w.message) for w in caught)
+    assert "'belief_memory' is clocked by Trigger('inspection_done') but nothing feeds" in never
+    assert "'vlm_plan' is clocked by Trigger('replan_request') but nothing feeds" in never
     fed = {(e.dst, e.dst_port) for e in graph.edges}
     assert ("belief_memory", "inspection_done") not in fed
     assert ("vlm_plan", "replan_request") not in fed
@@ -298,7 +302,11 @@ def test_appendix_dd_wiring(backend, check_trace):
     round-trips through the IR. As written nothing feeds belief's "inspection_done" or teleop's
     "teleop_event", so belief, planner and teleop never tick, and no plan reaches the monitor."""
     pipe = build_appendix_dd()
-    ir = pipe.build_ir()
+    with pytest.warns(RetrieverWarning) as caught:
+        ir = pipe.build_ir()
+    never = [str(w.message) for w in caught if "never ticks" in str(w.message)]
+    assert any("'belief_memory' is clocked by Trigger('inspection_done')" in m for m in never), never
+    assert any("'teleop' is clocked by Trigger('teleop_event')" in m for m in never), never
     assert {n["id"] for n in ir.nodes} == DD_NODES
     pairs = {(e["source"]["node"], e["source"]["port"], e["destination"]["node"], e["destination"]["port"])
              for e in ir.edges}
