@@ -347,12 +347,14 @@ class ActionChunking(SyncPolicy):
         buf.trim(i)
         hz = self._hz
         length = len(rows) if self.chunk_steps is None else min(self.chunk_steps, len(rows))
-        if self._horizon_ns is not None:  # rows that start before the horizon
-            length = min(length, -(-(self._horizon_ns * hz.numerator) // (NS_PER_S * hz.denominator)))
         if length == 0:
             return MISSING, None, 0, None
         row = ((t - t0) * hz.numerator) // (NS_PER_S * hz.denominator)
-        if row >= length:
+        exhausted = row >= length
+        if self._horizon_ns is not None and t - t0 >= self._horizon_ns:
+            exhausted = True  # past the horizon; "hold" keeps the last row that started before it
+            length = min(length, -(-(self._horizon_ns * hz.numerator) // (NS_PER_S * hz.denominator)))
+        if exhausted:
             if self.on_exhausted == "missing":
                 return MISSING, None, 0, None
             row = length - 1

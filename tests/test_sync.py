@@ -17,6 +17,7 @@ can see them, which is all the runtime promises (an event is produced before its
 from __future__ import annotations
 
 import math
+import random
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
@@ -41,7 +42,7 @@ from retriever import (
 )
 from retriever.sync import PortBuffer
 
-SETTINGS = settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MS = 1_000_000  # ns
 
 
@@ -89,37 +90,38 @@ def scenarios(draw, make_value=plain_value, long: bool = False):
     Short scenarios are drawn field by field, so failures shrink well. ``long`` ones are dense
     (70–160 events over 120 time units) so the buffer's batched trimming (every 64 entries) kicks
     in; they come from one seeded ``Random`` because drawing hundreds of fields is slow.
-    ``make_value`` turns a random non-negative int into an event value.
+    ``make_value`` turns a random non-negative int into an event value. Each event enters the
+    buffer at a random moment before the first tick that can see it (``insert`` ∈ [0, 1) of the
+    way there), in random order across producers.
     """
     unit = draw(st.sampled_from([1, MS]))
     producers = draw(st.sampled_from([("a",), ("b", "a"), ("c", "a", "b")]))
-    rnd = draw(st.randoms(use_true_random=False))
     if long:
+        rnd = random.Random(draw(st.integers(0, 2**32)))  # an int seed shrinks fast; a Random does not
         horizon = 120
-        raw = [(rnd.choice(producers), rnd.randint(0, horizon), rnd.randint(0, 3))
-               for _ in range(rnd.randint(70, 160))]
+        raw = [(rnd.choice(producers), rnd.randint(0, horizon), rnd.randint(0, 3), rnd.randrange(10**6),
+                rnd.random()) for _ in range(rnd.randint(70, 160))]
         tick_units = [(rnd.randint(0, horizon + 5), rnd.randint(0, 4)) for _ in range(rnd.randint(1, 80))]
+        skips = [rnd.random() < 0.3 for _ in range(len(tick_units))]
     else:
         horizon = 30
-        raw = draw(st.lists(st.tuples(st.sampled_from(producers), st.integers(0, horizon), st.integers(0, 3)),
-                            max_size=40))
+        raw = draw(st.lists(st.tuples(st.sampled_from(producers), st.integers(0, horizon), st.integers(0, 3),
+                                      st.integers(0, 10**6), st.floats(0, 1, exclude_max=True)), max_size=40))
         tick_units = draw(st.lists(st.tuples(st.integers(0, horizon + 5), st.integers(0, 4)), min_size=1, max_size=30))
-    events = []
+        skips = draw(st.lists(st.booleans(), min_size=len(tick_units), max_size=len(tick_units)))
+    ticks = [(t * unit, m) for t, m in sorted(set(tick_units))]
+    skipped = skips[:len(ticks)]
+    events, inserts = [], [[] for _ in ticks]
     for p in producers:
         # one producer port emits at most once per tag, with seq increasing in tag order
-        for seq, (t, m) in enumerate(sorted({(t, m) for q, t, m in raw if q == p})):
-            events.append(RefEvent((t * unit, m), p, seq, make_value(rnd.randrange(10**6))))
-    ticks = [(t * unit, m) for t, m in sorted(set(tick_units))]
-    if long:
-        skipped = [rnd.random() < 0.3 for _ in ticks]
-    else:
-        skipped = draw(st.lists(st.booleans(), min_size=len(ticks), max_size=len(ticks)))
-    # Each event enters the buffer at a random moment before the first tick that can see it
-    # (events no tick sees go in at a random moment too), in random order across producers.
-    inserts: list[list[RefEvent]] = [[] for _ in ticks]
-    for ev in rnd.sample(events, len(events)):
-        first_seen = next((i for i, tau in enumerate(ticks) if tau >= ev.tag), len(ticks) - 1)
-        inserts[rnd.randint(0, first_seen)].append(ev)
+        mine = sorted({(t, m): (n, f) for q, t, m, n, f in raw if q == p}.items())
+        for seq, ((t, m), (n, frac)) in enumerate(mine):
+            ev = RefEvent((t * unit, m), p, seq, make_value(n))
+            events.append(ev)
+            first_seen = next((i for i, tau in enumerate(ticks) if tau >= ev.tag), len(ticks) - 1)
+            inserts[int(frac * (first_seen + 1))].append(ev)
+    # within one moment, insert in an order unrelated to (tag, producer, seq)
+    inserts = [sorted(batch, key=lambda e: (e.seq * 7919 + ord(e.node)) % 997) for batch in inserts]
     return Scenario(unit, events, ticks, skipped, inserts)
 
 
@@ -209,7 +211,7 @@ def ref_window(buffer_size, duration_ns):
         for tau in sc.ticks:
             h = [e for e in history(sc, tau) if duration_ns is None or tau[0] - e.tag[0] <= duration_ns]
             if buffer_size is not None:
-                h = h[len(h) - buffer_size:] if len(h) > buffer_size else h
+                h = h[-buffer_size:]
             out.append(([e.value for e in h], tuple(e.id for e in h), 0))
         return out
     return ref
@@ -352,6 +354,41 @@ def test_action_chunking_matches_reference(data, hz, on_exhausted):
     check(policy, ref_action_chunking(hz, steps, on_exhausted), sc)
 
 
+@SETTINGS
+@given(data=chunk_scenarios(), hz=st.sampled_from([200, 1000, 30, 33.3, 7, 2.5e8]),
+       on_exhausted=st.sampled_from(["hold", "missing"]), horizon=st.integers(1, 40))
+def test_action_chunking_horizon_matches_reference(data, hz, on_exhausted, horizon):
+    """ActionChunking(horizon_ms=): at τ.t − t0 ≥ horizon a chunk is exhausted like one past its last row.
+
+    Pinned to the policy's docstring (the paper's Appendix D-D ``horizon_ms``; DESIGN §4 is
+    silent). When exhausted by the horizon, ``hold`` keeps the last row that started before it.
+    """
+    sc, steps = data
+    horizon_ns = horizon * sc.unit
+    horizon_ms = horizon_ns / 1e6
+    assert round(horizon_ms * 1e6) == horizon_ns
+    rate = Fraction(repr(hz)) if isinstance(hz, float) else Fraction(hz)
+    policy = ActionChunking(control_hz=hz, chunk_steps=steps, on_exhausted=on_exhausted, horizon_ms=horizon_ms)
+    plain = ref_action_chunking(hz, steps, on_exhausted)
+
+    def ref(sc):
+        out = []
+        for tau, want in zip(sc.ticks, plain(sc)):
+            started = [e for e in history(sc, tau)
+                       if (e.value["t0"] if isinstance(e.value, dict) else e.tag[0]) <= tau[0]]
+            if started:
+                e = started[-1]
+                t0 = e.value["t0"] if isinstance(e.value, dict) else e.tag[0]
+                rows = e.value["actions"] if isinstance(e.value, dict) else e.value
+                if tau[0] - t0 >= horizon_ns:
+                    last = min(steps, math.ceil(horizon_ns * rate / 10**9)) - 1
+                    want = (rows[last], (e.id,), 0) if on_exhausted == "hold" else NOTHING
+            out.append(want)
+        return out
+
+    check(policy, ref, sc)
+
+
 # ---------------------------------------------------------------------------------------------
 # DESIGN.md §10.5 and §10.7, exactly
 # ---------------------------------------------------------------------------------------------
@@ -460,27 +497,30 @@ def test_window_example_10_5_in_a_pipeline():
 
 
 def test_skipped_tick_keeps_queue_example_10_6():
-    """§10.6: a tick skipped for a missing required port consumes nothing; its Queue events stay queued."""
+    """§10.6: a tick skipped for a missing required port consumes nothing; Queue and LatestDistinct events stay."""
     with Pipeline("s106") as pipe:
         img = Ticker(prefix="img").named("img") @ Rate(10, offset=0.05)  # first image at (50, 1) ms
         q = Ticker(prefix="q").named("q") @ Rate(100)
+        once = Ticker(count=1, prefix="once").named("once") @ Rate(100, offset=0.01)  # one event at (10, 1)
         both = Both().named("both") @ Rate(40)                          # ticks at 0, 25, 50, 75 ms
         img.then(both, sync=Latest(), map={"out": "img"})
         q.then(both, sync=Queue(), map={"out": "items"})
+        once.then(both, sync=LatestDistinct(), map={"out": "once"})
     trace = pipe.run(duration=0.08)
     recs = {s.tag[0] // MS: s for s in trace.steps_of("both")}
     assert recs[0].status == recs[25].status == recs[50].status == "skipped"
     assert recs[25].detail == {"missing": ["img"]}
+    assert recs[25].consumed == {} and recs[25].produced == ()
     assert recs[75].status == "ok"
     by_id = {e.id: e.value for e in trace.events}
-    assert by_id[recs[75].produced[0]] == ["img0", ["q0", "q1", "q2", "q3", "q4", "q5", "q6", "q7"]]
+    assert by_id[recs[75].produced[0]] == ["img0", ["q0", "q1", "q2", "q3", "q4", "q5", "q6", "q7"], "once0"]
 
 
 class Both(Flow):
-    """Needs an image; also drains a queue."""
+    """Needs an image; also drains a queue and takes a LatestDistinct value when there is one."""
 
-    def step(self, img, items):
-        return {"out": [img, items]}
+    def step(self, img, items, once=None):
+        return {"out": [img, items, once]}
 
 
 class Planner(Flow):
@@ -568,8 +608,8 @@ def test_fan_in_merge_order(rates, latencies, delays, policy, consumer):
     """Two producers into one port: the consumer sees H merged by (arrival tag, producer id, seq).
 
     Producers are declared in reverse id order ("zeta" before "alpha") so registration order
-    cannot stand in for id order. Each edge's delay shifts its stream; ticks, LET and equal
-    rates make many equal arrival tags.
+    cannot stand in for id order. An edge's delay shifts its stream to (t + delay, 0); equal
+    rates, LET and delays make many equal arrival tags.
     """
     with Pipeline("fanin") as pipe:
         zeta = Ticker(prefix="z").configure(name="zeta", latency=latencies[0]) @ Rate(rates[0])
@@ -579,8 +619,11 @@ def test_fan_in_merge_order(rates, latencies, delays, policy, consumer):
         pipe.connect(alpha, echo, sync=policy, map={"out": "x"}, delay=delays[1])
     trace = pipe.run(duration=0.3)
     delay_ns = {"zeta": round(delays[0] * 1e9), "alpha": round(delays[1] * 1e9)}
-    upstream = [((e.tag[0] + delay_ns[e.node], e.tag[1]), e.node, e.seq, e) for e in trace.events
-                if e.node in delay_ns]
+
+    def arrival(e):  # a delayed edge delivers at (t + delay, 0)
+        return (e.tag[0] + delay_ns[e.node], 0) if delay_ns[e.node] else e.tag
+
+    upstream = [(arrival(e), e.node, e.seq, e) for e in trace.events if e.node in delay_ns]
     upstream.sort(key=lambda x: x[:3])
     by_id = {e.id: e.value for e in trace.events}
     consumed: set = set()

@@ -19,6 +19,7 @@ the property tests check exactly that.
 
 from __future__ import annotations
 
+import gc
 import random
 from heapq import heappop, heappush
 from time import perf_counter_ns
@@ -120,6 +121,18 @@ class InprocSession(Session):
     # The loop
     # ---------------------------------------------------------------------------------------
     def advance(self, until_ns: int) -> None:
+        # Every step appends trace records that live as long as the run, so each automatic *full*
+        # collection re-walks the whole trace: about half the loop's time on long runs (measured,
+        # benchmarks/README.md). Hold off full collections while the loop runs; young collections,
+        # which reclaim the cyclic garbage flows make, go on as usual.
+        thresholds = gc.get_threshold()
+        gc.set_threshold(thresholds[0], thresholds[1], 1 << 30)
+        try:
+            self._advance(until_ns)
+        finally:
+            gc.set_threshold(*thresholds)
+
+    def _advance(self, until_ns: int) -> None:
         heap, pending, nodes, rng = self._heap, self._pending, self._nodes, self._rng
         while heap and heap[0][0] < until_ns:
             tag = heappop(heap)
@@ -190,6 +203,8 @@ class InprocSession(Session):
         if outputs:
             events, seqs, node_id = self.trace.raw_events, rt.seq, rt.id
             for port, value in outputs:
+                if value is None:  # sparse output: no event
+                    continue
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
                 events.append((out_tag, node_id, port, seq, value))

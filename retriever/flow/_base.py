@@ -382,8 +382,9 @@ class OutputError(TypeError):
     """A step returned something its declared output type cannot be read from."""
 
 
-def make_output_reader(spec: FlowSpec) -> Callable[[Any], list[tuple[str, Any]]]:
-    """A function ``raw step output -> [(port, value), ...]`` skipping ``None`` (no event)."""
+def make_output_reader(spec: FlowSpec) -> Callable[[Any], Any]:
+    """A function ``raw step output -> iterable of (port, value)``; a ``None`` value is no event
+    and the caller skips it (so a dict output is handed over as its ``items()``, uncopied)."""
     if spec.out_mode == "io":
         out_type, names = spec.out_type, tuple(spec.outputs or ())
 
@@ -393,7 +394,7 @@ def make_output_reader(spec: FlowSpec) -> Callable[[Any], list[tuple[str, Any]]]
             if type(raw) is out_type or isinstance(raw, out_type):
                 return [(n, v) for n in names if (v := getattr(raw, n)) is not None]
             if isinstance(raw, dict):
-                return [(k, v) for k, v in raw.items() if v is not None]
+                return raw.items()
             raise OutputError(f"step() returned {type(raw).__qualname__}, expected {type_name(out_type)}")
 
         return read_io
@@ -402,10 +403,12 @@ def make_output_reader(spec: FlowSpec) -> Callable[[Any], list[tuple[str, Any]]]
         return lambda raw: [] if raw is None else [(port, raw)]
 
     def read_dict(raw):
+        if type(raw) is dict:
+            return raw.items()
         if raw is None:
-            return []
+            return ()
         if isinstance(raw, dict):
-            return [(k, v) for k, v in raw.items() if v is not None]
+            return raw.items()
         raise OutputError(f"an untyped flow's step() must return a dict of output ports or None, "
                           f"got {type(raw).__qualname__}")
 
