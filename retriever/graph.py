@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from .clocks import Clock
 from .codec import type_path
 from .errors import GraphError, Problem
-from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case, type_name
+from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case
 from .sync import ActionChunking, SyncPolicy
 from .time import seconds_to_ns
 

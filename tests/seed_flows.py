@@ -27,7 +27,7 @@ Three families, one per seed listing:
   ``ExecMonitorFlow``, ``VLASkillFlow``, ``ControllerFlow``, ``TeleopFlow``.
 """
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Optional
 import zlib
 
