@@ -124,18 +124,14 @@ def _path_to_unencodable(value: Any, path: str = "") -> str | None:
 
 
 def _widen(value: Any) -> Any:
-    # msgpack raises OverflowError instead of calling `default` for ints beyond 64 bits.
+    # msgpack raises OverflowError instead of calling `default` for ints beyond 64 bits. Tuples and
+    # dataclasses need no case here: `_default` encodes them through packb, which widens again.
     if type(value) is int and not (_INT64_MIN <= value <= _UINT64_MAX):
         return msgpack.ExtType(EXT_BIGINT, str(value).encode())
     if type(value) is list:
         return [_widen(v) for v in value]
-    if type(value) is tuple:
-        return msgpack.ExtType(EXT_TUPLE, packb(list(value)))
     if type(value) is dict:
         return {_widen(k): _widen(v) for k, v in value.items()}
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        fields = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
-        return msgpack.ExtType(EXT_DATACLASS, packb([type_path(type(value)), fields]))
     return value
 
 

@@ -111,8 +111,8 @@ class Trace:
         return sorted(self.events, key=_event_key), sorted(self.steps, key=_step_key)
 
     # -- comparison ------------------------------------------------------------------------
-    def _encoded(self) -> Iterator[bytes]:
-        events, steps = self.canonical()
+    def _encoded(self, canonical: tuple[list[Event], list[StepRecord]] | None = None) -> Iterator[bytes]:
+        events, steps = canonical or self.canonical()
         for e in events:
             yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
         for s in steps:
@@ -138,9 +138,9 @@ class Trace:
 
     def first_difference(self, other: "Trace") -> str | None:
         """Describe the first canonical record where two traces differ, or None if equal."""
-        mine, theirs = list(self._encoded()), list(other._encoded())
-        records_a = [*self.canonical()[0], *self.canonical()[1]]
-        records_b = [*other.canonical()[0], *other.canonical()[1]]
+        canon_a, canon_b = self.canonical(), other.canonical()
+        mine, theirs = list(self._encoded(canon_a)), list(other._encoded(canon_b))
+        records_a, records_b = [*canon_a[0], *canon_a[1]], [*canon_b[0], *canon_b[1]]
         for i, (a, b) in enumerate(zip(mine, theirs)):
             if a != b:
                 return f"record {i}: {records_a[i]!r} != {records_b[i]!r}"

@@ -36,7 +36,7 @@ class _NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots."""
 
     __slots__ = ("index", "id", "flow", "invoke", "read", "latency_ns", "on_error", "inputs",
-                 "downstream", "seq", "clock", "k", "next_rate_tag", "stats", "cycle")
+                 "downstream", "seq", "clock", "k", "next_rate_tag", "stats", "cycle", "fallbacks")
 
     def __init__(self, index: int, node: Node):
         self.index = index
@@ -56,6 +56,8 @@ class _NodeRuntime:
         self.next_rate_tag: tuple[int, int] | None = None
         self.stats = NodeStats()
         self.cycle: list[str] = []
+        # optional input ports nothing feeds: they take their fallback on every tick
+        self.fallbacks: dict[str, Any] = {}
 
 
 class InprocSession(Session):
@@ -99,15 +101,12 @@ class InprocSession(Session):
                     rt.inputs.append((port, buffers[key], policies[key], spec))
                 elif spec.required:
                     rt.inputs.append((port, PortBuffer(), _AlwaysMissing, spec))
-                # an unfed optional port always takes its fallback
+                else:
+                    rt.fallbacks[port] = spec
             for cycle in graph.instantaneous_cycles:
                 if node.id in cycle:
                     rt.cycle = cycle
                     break
-        self._unfed_fallbacks = {
-            by_id[n.id].index: {p: s for p, s in n.inputs.items() if (n.id, p) not in buffers and not s.required}
-            for n in graph.nodes.values()
-        }
 
     def _schedule(self, tag: tuple[int, int], index: int) -> None:
         waiting = self._pending.get(tag)
@@ -183,7 +182,7 @@ class InprocSession(Session):
         if commits is not None:
             for policy, buf, commit in commits:
                 policy.commit_to(buf, commit)
-        fallbacks = self._unfed_fallbacks[rt.index]
+        fallbacks = rt.fallbacks
         if fallbacks:
             for port, spec in fallbacks.items():
                 values[port] = spec.fallback()
