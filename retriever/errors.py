@@ -8,6 +8,7 @@
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
+    ├── LogError                   an event log cannot be written, read or replayed as asked
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
@@ -100,6 +101,14 @@ class CausalityError(RetrieverError):
             "    hint: break the cycle in time: give a flow on it latency= (flow.configure(latency=0.01)), "
             "put delay= on one of its edges, or clock one of its flows with Rate(hz=...)"
         )
+
+
+class LogError(RetrieverError):
+    """An MCAP event log is missing, not MCAP, corrupt, truncated, or cannot be replayed."""
+
+    def __init__(self, message: str, hint: str | None = None):
+        self.hint = hint
+        super().__init__(message if hint is None else f"{message}\n    hint: {hint}")
 
 
 class InternalError(RetrieverError):

@@ -25,10 +25,22 @@ class Event(NamedTuple):
     port: str
     seq: int
     value: Any
+    #: wall-clock (Unix ns) time the event was published; recorded in the log, not compared
+    publish_ns: int = 0
 
     @property
     def id(self) -> EventId:
         return (self.node, self.port, self.seq)
+
+    # wall-clock fields are measurements, not part of what a run computed
+    def __eq__(self, other: object) -> bool:
+        return self[:5] == other[:5] if isinstance(other, Event) else NotImplemented
+
+    def __ne__(self, other: object) -> bool:
+        return self[:5] != other[:5] if isinstance(other, Event) else NotImplemented
+
+    def __hash__(self) -> int:
+        return hash(self[:5])
 
     @property
     def qualified_port(self) -> str:
@@ -41,7 +53,8 @@ class StepRecord(NamedTuple):
     ``consumed`` maps each input port to the ids of the events its policy selected (ports that
     got MISSING or a default are absent); ``produced`` lists the ids of the events emitted;
     ``status`` is ``ok``, ``skipped`` or ``error``; ``detail`` holds the missing ports, Queue
-    drop counts or the error text, when there are any.
+    drop counts or the error text, when there are any. ``wall_start_ns`` (Unix ns) and
+    ``wall_ns`` say when ``step()`` ran and for how long; they are logged but never compared.
     """
 
     node: str
@@ -50,6 +63,17 @@ class StepRecord(NamedTuple):
     produced: tuple[EventId, ...]
     status: str
     detail: dict | None = None
+    wall_start_ns: int = 0
+    wall_ns: int = 0
+
+    def __eq__(self, other: object) -> bool:
+        return self[:6] == other[:6] if isinstance(other, StepRecord) else NotImplemented
+
+    def __ne__(self, other: object) -> bool:
+        return self[:6] != other[:6] if isinstance(other, StepRecord) else NotImplemented
+
+    def __hash__(self) -> int:
+        return hash((self.node, self.tag, self.status))
 
     def __str__(self) -> str:
         extra = f" {self.detail}" if self.detail else ""
@@ -67,14 +91,15 @@ def _step_key(rec: StepRecord):
 class Trace:
     """Events and step records of a run, in the order the backend recorded them.
 
-    Backends append plain tuples to ``raw_events`` and ``raw_steps`` (named tuples cost several
-    times more to build, and most runs never look at most records); ``events`` and ``steps``
-    present them as :class:`Event` and :class:`StepRecord`, converted on first access.
+    Backends append plain tuples of every field to ``raw_events`` and ``raw_steps`` (named tuples
+    cost several times more to build, and most runs never look at most records); ``events`` and
+    ``steps`` present them as :class:`Event` and :class:`StepRecord`, converted on first access.
     """
 
     def __init__(self, events: list | None = None, steps: list | None = None):
-        self.raw_events: list[tuple] = [tuple(e) for e in events or ()]
-        self.raw_steps: list[tuple] = [tuple(s) for s in steps or ()]
+        # full-length tuples, so the lazy conversion below can use the fast ``_make``
+        self.raw_events: list[tuple] = [tuple(Event(*e)) for e in events or ()]
+        self.raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
         self._events: list[Event] = []
         self._steps: list[StepRecord] = []
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import gc
 import random
 from heapq import heappop, heappush
-from time import perf_counter_ns
+from time import time_ns
 from typing import Any
 
 from ..errors import CausalityError, StepError
@@ -177,7 +177,7 @@ class InprocSession(Session):
                 (dropped := dropped or {})[port] = n_dropped
         if missing is not None:
             stats.skips += 1
-            self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}))
+            self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
             return
         if commits is not None:
             for policy, buf, commit in commits:
@@ -187,14 +187,16 @@ class InprocSession(Session):
             for port, spec in fallbacks.items():
                 values[port] = spec.fallback()
 
-        start = perf_counter_ns()
+        start = time_ns()
         try:
             outputs = rt.read(rt.invoke(values))
         except Exception as exc:
-            stats.step_ns += perf_counter_ns() - start
-            self._failed(rt, tau, consumed, exc)
+            wall = time_ns() - start
+            stats.step_ns += wall
+            self._failed(rt, tau, consumed, exc, start, wall)
             return
-        stats.step_ns += perf_counter_ns() - start
+        end = time_ns()
+        stats.step_ns += end - start
         stats.steps += 1
 
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
@@ -206,7 +208,7 @@ class InprocSession(Session):
                     continue
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
-                events.append((out_tag, node_id, port, seq, value))
+                events.append((out_tag, node_id, port, seq, value, end))
                 produced.append((node_id, port, seq))
                 for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
                     arrival = (out_tag[0] + delay_ns, 0) if delay_ns else out_tag
@@ -215,12 +217,13 @@ class InprocSession(Session):
                         if arrival[1] > self.max_microsteps:
                             raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
                         self._schedule(arrival, consumer)
-        self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped))
+        self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
 
-    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception) -> None:
+    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception,
+                start: int, wall: int) -> None:
         rt.stats.errors += 1
         detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
-        self.trace.raw_steps.append((rt.id, tau, consumed, (), "error", detail))
+        self.trace.raw_steps.append((rt.id, tau, consumed, (), "error", detail, start, wall))
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
         if rt.on_error == "restart":
