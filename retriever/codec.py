@@ -45,12 +45,16 @@ def import_type(path: str) -> Any:
     return obj
 
 
+_pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
+
+
 def _array_payload(arr: np.ndarray) -> bytes:
-    if arr.dtype.hasobject:
-        raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {arr.dtype})")
+    dtype = arr.dtype
+    if dtype.hasobject:
+        raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {dtype})")
     # Structured dtypes need their full description; plain ones travel as their short string.
-    descr = np.lib.format.dtype_to_descr(arr.dtype) if arr.dtype.fields else arr.dtype.str
-    return packb([descr, list(arr.shape), np.ascontiguousarray(arr).tobytes()])
+    descr = np.lib.format.dtype_to_descr(dtype) if dtype.fields else dtype.str
+    return _pack_plain((descr, arr.shape, arr.tobytes()))
 
 
 def _default(obj: Any) -> Any:
@@ -99,11 +103,50 @@ def packb(value: Any) -> bytes:
         except OverflowError:
             return msgpack.packb(_widen(value), default=_default, use_bin_type=True, strict_types=True)
     except CodecError as e:
-        path = _path_to_unencodable(value)
-        if path:
-            first, _, rest = str(e).partition("\n")
-            raise CodecError(f"{first} at value{path}" + (f"\n{rest}" if rest else "")) from None
-        raise
+        raise _located(e, value) from None
+
+
+def _located(error: CodecError, value: Any) -> CodecError:
+    path = _path_to_unencodable(value)
+    if not path:
+        return error
+    first, _, rest = str(error).partition("\n")
+    return CodecError(f"{first} at value{path}" + (f"\n{rest}" if rest else ""))
+
+
+def _ext_bytes(code: int, payload: bytes) -> bytes:
+    """The msgpack encoding of ``ExtType(code, payload)`` (ext 8/16/32 by size)."""
+    n = len(payload)
+    if n < 0x100:
+        head = bytes((0xC7, n, code))
+    elif n < 0x10000:
+        head = b"\xc8" + n.to_bytes(2, "big") + bytes((code,))
+    else:
+        head = b"\xc9" + n.to_bytes(4, "big") + bytes((code,))
+    return head + payload
+
+
+class Encoder:
+    """:func:`packb` with a reusable packer, for hot loops (the log writer, the wire).
+
+    Not thread-safe: give each thread its own. Nested values (tuples, arrays, dataclasses) still
+    go through :func:`packb`, so the shared packer is never re-entered.
+    """
+
+    __slots__ = ("_pack",)
+
+    def __init__(self) -> None:
+        self._pack = msgpack.Packer(default=_default, use_bin_type=True, strict_types=True).pack
+
+    def pack(self, value: Any) -> bytes:
+        if type(value) is np.ndarray:  # the commonest payload: skip msgpack's `default` round trip
+            return _ext_bytes(EXT_NDARRAY, _array_payload(value))
+        try:
+            return self._pack(value)
+        except OverflowError:
+            return packb(value)
+        except CodecError as e:
+            raise _located(e, value) from None
 
 
 def _path_to_unencodable(value: Any, path: str = "") -> str | None:

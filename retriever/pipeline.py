@@ -160,18 +160,34 @@ class Pipeline:
             if options:
                 raise BackendError(f"backend options {sorted(options)} can only be given on the first run/step "
                                    "after construction or pipe.reset()")
+            if self._session.logged_to is not None:
+                raise BackendError(f"this run of pipeline '{self.name}' was logged to {self._session.logged_to}, "
+                                   "and that log is finished\n    hint: call pipe.reset() to start a new run")
             return self._session
         self._session = open_backend(name, self.compile(), **options)
         return self._session
 
-    def run(self, duration: float | None = None, backend: str | None = None, **options: Any) -> Trace:
-        """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace."""
-        session = self._session_for(backend, options)
-        if duration is None:
-            session.run_to_end()
-        else:
+    def run(self, duration: float | None = None, backend: str | None = None, log: str | Path | None = None,
+            **options: Any) -> Trace:
+        """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace.
+
+        ``log="run.mcap"`` records the run, from T0, in an MCAP event log that is complete when
+        ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it.
+        """
+        if duration is not None:
             _check_seconds("run", "duration", duration)
-            session.advance(session.now_ns + seconds_to_ns(duration))
+        session = self._session_for(backend, options)
+        if log is not None:
+            _open_log(session, log)
+        try:
+            if duration is None:
+                session.run_to_end()
+            else:
+                session.advance(session.now_ns + seconds_to_ns(duration))
+        except BaseException as exc:
+            _close_log(session, exc)
+            raise
+        _close_log(session)
         return session.trace
 
     def step(self, dt: float, **options: Any) -> Trace:
@@ -216,6 +232,28 @@ def _user_stacklevel() -> int:
     while frame is not None and frame.f_code.co_filename.startswith(package):
         frame, level = frame.f_back, level + 1
     return level
+
+
+def _open_log(session: Session, path: str | Path) -> None:
+    from .log.writer import LogWriter
+
+    if session.now_ns != 0 or session.trace.raw_steps:
+        raise BackendError("log= records a run from T0: give it on the first run after construction or pipe.reset()")
+    session.log = LogWriter(path, session.graph, backend=session.backend_name, seeds=session.seeds())
+
+
+def _close_log(session: Session, exc: BaseException | None = None) -> None:
+    writer = session.log
+    if writer is None:
+        return
+    session.log = None
+    session.logged_to = writer.path
+    if exc is None:
+        status, error = "finished", ""
+    else:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "error"
+        error = f"{type(exc).__name__}: {exc}"
+    writer.close(session.trace, session.now_ns, status=status, error=error, stats=session.stats())
 
 
 def _check_seconds(method: str, name: str, value: Any) -> None:

@@ -9,9 +9,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from ..graph import Graph
 from ..trace import Trace
+
+if TYPE_CHECKING:
+    from ..log.writer import LogWriter
 
 
 @dataclass
@@ -36,10 +40,19 @@ class Session(ABC):
     #: whether ``pipe.step(dt)`` may drive this session (virtual time)
     steppable: bool = False
 
+    #: records between two hand-overs of the trace to the log writer
+    LOG_BATCH = 4096
+
     def __init__(self, graph: Graph):
         self.graph = graph
         self.trace = Trace()
         self.now_ns = 0
+        self.log: LogWriter | None = None
+        self.logged_to = None  # the path of this run's finished log, if it had one
+
+    def seeds(self) -> dict:
+        """The seeds this run depends on, recorded in the log's run metadata."""
+        return {}
 
     @abstractmethod
     def advance(self, until_ns: int) -> None:

@@ -67,6 +67,7 @@ class InprocSession(Session):
     def __init__(self, graph: Graph, tie_break_seed: int | None = None):
         super().__init__(graph)
         self.max_microsteps = graph.max_microsteps
+        self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
         self._heap: list[tuple[int, int]] = []
         self._pending: dict[tuple[int, int], set[int]] = {}
@@ -133,7 +134,12 @@ class InprocSession(Session):
 
     def _advance(self, until_ns: int) -> None:
         heap, pending, nodes, rng = self._heap, self._pending, self._nodes, self._rng
+        log, steps = self.log, self.trace.raw_steps
+        log_at = len(steps) + self.LOG_BATCH if log is not None else float("inf")
         while heap and heap[0][0] < until_ns:
+            if len(steps) >= log_at:
+                log.write(self.trace)
+                log_at = len(steps) + self.LOG_BATCH
             tag = heappop(heap)
             indices = pending.pop(tag)
             if len(indices) == 1:
@@ -231,6 +237,9 @@ class InprocSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return {rt.id: rt.stats for rt in self._nodes}
+
+    def seeds(self) -> dict:
+        return {} if self._rng is None else {"tie_break_seed": self._tie_break_seed}
 
 
 class _AlwaysMissingPolicy:

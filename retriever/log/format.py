@@ -1,0 +1,117 @@
+"""What a Retriever log holds and how each record is encoded (DESIGN.md §8).
+
+One MCAP file per run, ``profile="retriever"``:
+
+=====================  =========================================================================
+channel ``data/N/P``   one per output port ``N.P``; a message per event: ``log_time`` = tag time
+                       (ns since T0), ``publish_time`` = wall clock (Unix ns), ``sequence`` = seq,
+                       data = msgpack ``[microstep, value]`` (value in :mod:`retriever.codec`)
+channel ``steps``      a message per step: ``log_time`` = tick time, ``publish_time`` = wall start,
+                       ``sequence`` = step index, data = msgpack ``[node, microstep, consumed,
+                       produced, status, detail, wall_ns]`` with ``consumed`` = ``{port: [[node,
+                       port, seq], ...]}`` and ``produced`` = ``[[node, port, seq], ...]``
+attachment             ``pipeline.ir.json``: the IR the run executed
+metadata               ``retriever.run`` (written first) and ``retriever.end`` (written last;
+                       absent when the writer was killed), plus ``retriever.recovered``
+=====================  =========================================================================
+"""
+
+from __future__ import annotations
+
+import getpass
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+from importlib import metadata as importlib_metadata
+from typing import Any
+
+import msgpack
+
+PROFILE = "retriever"
+FORMAT_VERSION = "1"
+MESSAGE_ENCODING = "msgpack"
+STEPS_TOPIC = "steps"
+IR_ATTACHMENT = "pipeline.ir.json"
+RUN_METADATA = "retriever.run"
+END_METADATA = "retriever.end"
+RECOVERED_METADATA = "retriever.recovered"
+PACKAGES = ("retriever", "eclipse-zenoh", "msgpack", "numpy", "mcap", "mujoco")
+
+
+def data_topic(node: str, port: str) -> str:
+    return f"data/{node}/{port}"
+
+
+def parse_data_topic(topic: str) -> tuple[str, str] | None:
+    parts = topic.split("/")
+    return (parts[1], parts[2]) if len(parts) == 3 and parts[0] == "data" else None
+
+
+def split_event(data: bytes) -> tuple[int, bytes]:
+    """``[microstep, value]`` → microstep and the value's own msgpack bytes, undecoded."""
+    if len(data) < 3 or data[0] != 0x92:
+        raise ValueError("an event message must be a msgpack array of 2: [microstep, value]")
+    if data[1] < 0x80:  # positive fixint: the common case
+        return data[1], data[2:]
+    unpacker = msgpack.Unpacker()
+    unpacker.feed(data[1:])
+    microstep = unpacker.unpack()
+    if not isinstance(microstep, int) or microstep < 0:
+        raise ValueError(f"an event's microstep must be an integer >= 0, got {microstep!r}")
+    return microstep, data[1 + unpacker.tell():]
+
+
+def decode_step(data: bytes) -> tuple:
+    """A steps message → ``(node, microstep, consumed, produced, status, detail, wall_ns)``,
+    event ids as tuples like the in-memory trace has them."""
+    node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, raw=False)
+    consumed = {port: tuple(tuple(i) for i in ids) for port, ids in consumed.items()}
+    return node, microstep, consumed, tuple(tuple(i) for i in produced), status, detail, wall_ns
+
+
+def package_versions() -> dict[str, str]:
+    versions = {}
+    for name in PACKAGES:
+        try:
+            versions[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            pass
+    return versions
+
+
+def _git_revision() -> str:
+    try:
+        done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    if done.returncode != 0:
+        return ""
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                           text=True, timeout=5).stdout.strip()
+    return done.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_unix_ns: int) -> dict[str, str]:
+    """The ``retriever.run`` record: enough to know what ran, where, and how to run it again."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = ""
+    return {
+        "format": FORMAT_VERSION,
+        "pipeline": pipeline,
+        "backend": backend,
+        "seeds": json.dumps(seeds, sort_keys=True),
+        "started_unix_ns": str(started_unix_ns),
+        "packages": json.dumps(package_versions(), sort_keys=True),
+        "python": platform.python_version(),
+        "git_revision": _git_revision(),
+        "host": socket.gethostname(),
+        "user": user,
+        "pid": str(os.getpid()),
+        "cwd": os.getcwd(),
+        "command_line": json.dumps(sys.argv),
+    }

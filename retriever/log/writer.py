@@ -1,0 +1,110 @@
+"""``LogWriter``: stream a run's trace into an MCAP file as the run goes.
+
+A session calls :meth:`LogWriter.write` with its trace every few thousand records; each call
+encodes the records appended since the last one. The chunk is closed and the file flushed at
+least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import msgpack
+
+from ..codec import Encoder
+from ..errors import CodecError, LogError
+from . import format as fmt
+from .mcap_writer import McapWriter
+
+if TYPE_CHECKING:
+    from ..graph import Graph
+    from ..trace import Trace
+
+
+_MICROSTEPS = [bytes((m,)) for m in range(128)]
+
+
+class LogWriter:
+    """Writes one run to ``path``: the IR and run metadata first, then events and steps."""
+
+    def __init__(self, path: str | Path, graph: "Graph", *, backend: str, seeds: dict[str, Any] | None = None,
+                 flush_interval: float = 0.1):
+        self.path = Path(path)
+        try:
+            self._file = open(self.path, "wb")
+        except OSError as e:
+            raise LogError(f"cannot create the log {self.path}: {e.strerror}",
+                           "pass log= a path in a directory that exists and is writable") from None
+        version = fmt.package_versions().get("retriever", "dev")
+        self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
+        self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
+        self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {}, time.time_ns()))
+        self._channels: dict[tuple[str, str], int] = {}
+        for node in sorted(graph.nodes.values(), key=lambda n: n.id):
+            for port, spec in node.outputs.items():
+                self._add_channel(node.id, port, spec.type)
+        self._steps_channel = self._mcap.add_channel(fmt.STEPS_TOPIC, fmt.MESSAGE_ENCODING, {})
+        self._mcap.flush()
+        self._events_done = 0
+        self._steps_done = 0
+        self._encode = Encoder().pack
+        self._pack_step = msgpack.Packer(use_bin_type=True).pack
+        self._flush_interval = flush_interval
+        self._last_flush = time.monotonic()
+        self.closed = False
+
+    def _add_channel(self, node: str, port: str, port_type: Any = None) -> int:
+        type_name = "" if port_type is None else getattr(port_type, "__qualname__", str(port_type))
+        channel = self._mcap.add_channel(fmt.data_topic(node, port), fmt.MESSAGE_ENCODING,
+                                         {"node": node, "port": port, "type": type_name})
+        self._channels[(node, port)] = channel
+        return channel
+
+    def write(self, trace: "Trace") -> None:
+        """Encode the records appended to ``trace`` since the last call; flush if it is time."""
+        events, steps = trace.raw_events, trace.raw_steps
+        add, encode, channels = self._mcap.add_message, self._encode, self._channels
+        if len(events) > self._events_done:
+            for tag, node, port, seq, value, published in events[self._events_done:]:
+                channel = channels.get((node, port)) or self._add_channel(node, port)
+                try:
+                    # [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
+                    data = b"\x92" + _MICROSTEPS[tag[1]] + encode(value) if tag[1] < 128 else encode([tag[1], value])
+                except CodecError as e:
+                    raise LogError(f"event {node}.{port} #{seq} cannot be logged: {e}",
+                                   f"make {node}.{port} carry numbers, str, bytes, lists, dicts, numpy "
+                                   "arrays or @io dataclasses") from None
+                add(channel, tag[0], published, seq, data)
+            self._events_done = len(events)
+        if len(steps) > self._steps_done:
+            pack, channel, index = self._pack_step, self._steps_channel, self._steps_done
+            for node, tag, consumed, produced, status, detail, start, wall in steps[self._steps_done:]:
+                add(channel, tag[0], start, index, pack((node, tag[1], consumed, produced, status, detail, wall)))
+                index += 1
+            self._steps_done = index
+        now = time.monotonic()
+        if now - self._last_flush >= self._flush_interval:
+            self._mcap.flush()
+            self._last_flush = now
+
+    def close(self, trace: "Trace", end_ns: int, *, status: str = "finished", error: str = "",
+              stats: dict | None = None) -> None:
+        """Write what is left and the ``retriever.end`` record, then finish the file."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.write(trace)
+        finally:
+            end = {"status": status, "end_ns": str(end_ns), "events": str(self._events_done),
+                   "steps": str(self._steps_done), "finished_unix_ns": str(time.time_ns())}
+            if error:
+                end["error"] = error
+            if stats:
+                end["stats"] = json.dumps({node: vars(s) for node, s in sorted(stats.items())}, sort_keys=True)
+            self._mcap.add_metadata(fmt.END_METADATA, end)
+            self._mcap.finish()
+            self._file.close()
