@@ -14,12 +14,14 @@ from .errors import (
     GraphError,
     InternalError,
     IRError,
+    LogError,
     RetrieverError,
     RetrieverWarning,
     StepError,
 )
 from .flow import EventStream, Flow, io
 from .ir import IR
+from .log import read_log
 from .pipeline import Pipeline
 from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
 from .trace import Event, StepRecord, Trace
@@ -27,7 +29,7 @@ from .trace import Event, StepRecord, Trace
 __all__ = sorted([
     "IR", "MISSING", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
-    "InternalError", "Latest", "LatestDistinct", "Pipeline", "Queue", "Rate", "RetrieverError",
+    "InternalError", "Latest", "LatestDistinct", "LogError", "Pipeline", "Queue", "Rate", "RetrieverError",
     "RetrieverWarning", "StepError", "StepRecord", "SyncPolicy", "Trace", "Trigger", "Window",
-    "available_backends", "init", "io",
+    "available_backends", "init", "io", "read_log",
 ])

@@ -66,12 +66,15 @@ def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(help="Backend: inproc (default).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run (virtual time on inproc).")] = 10.0,
+    log: Annotated[Optional[Path], typer.Option(help="Record the run in this MCAP event log.")] = None,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time."""
     pipe = _load(target)
     try:
-        trace = pipe.run(duration=duration, backend=backend)
+        trace = pipe.run(duration=duration, backend=backend, log=log)
     except Exception as exc:
+        if log is not None and log.exists():
+            _err.print(f"the run up to the error is in {log}", highlight=False)
         _fail(exc)
     table = Table(title=f"{pipe.name}: {duration:g} s on {backend or 'inproc'}", title_justify="left")
     for col in ("node", "ticks", "steps", "skips", "errors", "mean step"):
@@ -81,6 +84,9 @@ def run(
     _out.print(table)
     _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · trace digest {trace.digest()[:16]}",
                highlight=False)
+    if log is not None:
+        _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
+                   highlight=False)
 
 
 @app.command("ir")
@@ -103,6 +109,177 @@ def ir_command(
     else:
         out.write_text(text, encoding="utf-8")
         _err.print(f"wrote {out}", highlight=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Logs
+# ---------------------------------------------------------------------------------------------
+log_app = typer.Typer(no_args_is_help=True, help="Inspect, print and recover MCAP event logs.")
+app.add_typer(log_app, name="log")
+
+
+def _read(path: Path, salvage: bool = False):
+    from .log import read_log
+
+    try:
+        return read_log(path, salvage=salvage)
+    except Exception as exc:
+        _fail(exc)
+
+
+def _replay_pipeline(target: Optional[str]):
+    return None if target is None else _load(target)
+
+
+@app.command()
+def replay(
+    path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log written by run --log / pipe.run(log=).")],
+    pipeline: Annotated[Optional[str], typer.Option(metavar="FILE[:ATTR]",
+                                                    help="Replay this pipeline instead of the log's IR.")] = None,
+    resim: Annotated[bool, typer.Option("--resim", help="Re-run the whole graph from the logged sources.")] = False,
+) -> None:
+    """Re-execute a logged run and compare every output byte for byte (exit 0 only if identical)."""
+    from rich.progress import Progress
+
+    from .log import replay as replay_log, resim as resim_log
+
+    log = _read(path)
+    pipe = _replay_pipeline(pipeline)
+    try:
+        if resim:
+            result = resim_log(log, pipe)
+        else:
+            with Progress(console=_err, transient=True, disable=not _err.is_terminal) as bar:
+                task = bar.add_task("replaying", total=None)
+                result = replay_log(log, pipe, progress=lambda done, total: bar.update(task, completed=done, total=total))
+    except Exception as exc:
+        _fail(exc)
+    source = f"--pipeline {pipeline}" if pipeline else "the IR in the log"
+    if resim:
+        _out.print(f"re-simulated {path} to t={result.horizon_ns / 1e9:g} s with {source}: "
+                   f"{result.steps_compared} steps and {result.events_compared} events compared", highlight=False)
+        if result.identical:
+            _out.print("[bold green]identical[/]: the log is one run of this graph")
+            return
+        _out.print(f"[bold red]DIVERGED[/]: {result.difference}", highlight=False)
+        raise typer.Exit(code=1)
+    table = Table(title=f"replay of {path} ({source})", title_justify="left")
+    for col in ("node", "steps", "replayed", "identical", "divergent"):
+        table.add_column(col, justify="left" if col == "node" else "right")
+    for node, n in result.nodes.items():
+        if n.replayed == 0 and n.steps:
+            table.add_row(node, str(n.steps), "source", "", "")
+        else:
+            table.add_row(node, str(n.steps), str(n.replayed), str(n.identical),
+                          f"[bold red]{n.divergent}[/]" if n.divergent else "0")
+    _out.print(table)
+    if result.identical:
+        _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte")
+        return
+    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
+               f"First:\n  {result.divergences[0]}", highlight=False)
+    raise typer.Exit(code=1)
+
+
+@log_app.command("info")
+def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
+    """Nodes, ports, counts, rates, time span, step statuses and run metadata of a log."""
+    from .log.reader import run_info
+
+    log = _read(path)
+    info = run_info(log)
+    run, end = log.run, log.end or {}
+    state = "complete" if log.end else "incomplete (no end record: the run was killed)"
+    if "retriever.recovered" in log.metadata:
+        state += f"; recovered from {log.metadata['retriever.recovered'].get('source')}"
+    lines = [("file", f"{path} ({path.stat().st_size / 1e6:.2f} MB, {state})"),
+             ("pipeline", run.get("pipeline", "?")), ("backend", run.get("backend", "?")),
+             ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
+             ("virtual end", f"{int(end['end_ns']) / 1e9:g} s" if "end_ns" in end else "?"),
+             ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
+             ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
+             ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
+             ("command", " ".join(__import__("json").loads(run.get("command_line", "[]"))))]
+    for key, value in lines:
+        _out.print(f"[bold]{key:>12}[/]  {value}", highlight=False)
+    table = Table(title="channels", title_justify="left")
+    for col in ("topic", "type", "messages", "first (s)", "last (s)", "rate (Hz)"):
+        table.add_column(col, justify="left" if col in ("topic", "type") else "right")
+    for channel in sorted(log.channels.values(), key=lambda c: c.topic):
+        count = info["counts"].get(channel.topic, 0)
+        lo, hi = info["span"].get(channel.topic, (0, 0))
+        rate = f"{(count - 1) / ((hi - lo) / 1e9):.4g}" if count > 1 and hi > lo else ""
+        table.add_row(channel.topic, channel.metadata.get("type", ""), str(count),
+                      f"{lo / 1e9:g}" if count else "", f"{hi / 1e9:g}" if count else "", rate)
+    _out.print(table)
+    statuses = Table(title="steps by status", title_justify="left")
+    names = sorted({s for node in info["statuses"].values() for s in node})
+    statuses.add_column("node")
+    for name in names:
+        statuses.add_column(name, justify="right")
+    for node, counts in sorted(info["statuses"].items()):
+        statuses.add_row(node, *(str(counts.get(name, 0)) for name in names))
+    _out.print(statuses)
+
+
+@log_app.command("cat")
+def log_cat(
+    path: Annotated[Path, typer.Argument(metavar="LOG.mcap")],
+    node: Annotated[Optional[str], typer.Option(help="Only this node's events.")] = None,
+    port: Annotated[Optional[str], typer.Option(help="Only this output port.")] = None,
+    steps: Annotated[bool, typer.Option("--steps", help="Print step records instead of events.")] = False,
+    limit: Annotated[Optional[int], typer.Option(help="Print at most this many.")] = None,
+) -> None:
+    """Print decoded events (or step records), in tag order."""
+    import numpy as np
+
+    from .time import format_tag
+
+    log = _read(path)
+    shown = 0
+    np.set_printoptions(threshold=16, edgeitems=2)
+    try:
+        if steps:
+            records = sorted((s for s in log.iter_steps() if node is None or s.node == node), key=lambda s: (s.tag, s.node))
+            for s in records[:limit]:
+                consumed = {p: [f"{n}.{q}#{i}" for n, q, i in ids] for p, ids in s.consumed.items()}
+                produced = [f"{n}.{q}#{i}" for n, q, i in s.produced]
+                extra = f" {s.detail}" if s.detail else ""
+                _out.print(f"{format_tag(s.tag)}  {s.node}  {s.status}{extra}  consumed={consumed} produced={produced} "
+                           f"wall={s.wall_ns / 1e3:.1f}µs", highlight=False, markup=False, soft_wrap=True)
+                shown += 1
+        else:
+            events = sorted((e for e in log.iter_events() if (node is None or e.node == node)
+                             and (port is None or e.port == port)), key=lambda e: (e.tag, e.node, e.port, e.seq))
+            for e in events[:limit]:
+                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e)!r}",
+                           highlight=False, markup=False, soft_wrap=True)
+                shown += 1
+    except Exception as exc:
+        _fail(exc)
+    if shown == 0:
+        known = sorted({f"{c.metadata.get('node')}.{c.metadata.get('port')}" for c in log.channels.values()
+                        if c.metadata.get("node")})
+        _err.print(f"nothing matched; the log's ports are: {', '.join(known)}", highlight=False)
+
+
+@log_app.command("recover")
+def log_recover(
+    path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log whose writer was killed or that was damaged.")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Default: LOG.recovered.mcap.")] = None,
+) -> None:
+    """Rebuild a readable log from one whose writer was killed (everything before the damage)."""
+    from .log import recover
+
+    try:
+        result = recover(path, out)
+    except Exception as exc:
+        _fail(exc)
+    if result.output is None:
+        _out.print(f"{path} is complete and undamaged; nothing to recover", highlight=False)
+        return
+    _out.print(f"recovered {result.events} events and {result.steps} steps into {result.output}\n"
+               f"  {path}: {result.damage}\n  next: retriever replay {result.output}", highlight=False)
 
 
 def main() -> None:

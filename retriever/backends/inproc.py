@@ -72,7 +72,7 @@ class InprocSession(Session):
         self._heap: list[tuple[int, int]] = []
         self._pending: dict[tuple[int, int], set[int]] = {}
         self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
-        by_id = {rt.id: rt for rt in self._nodes}
+        self._by_id = by_id = {rt.id: rt for rt in self._nodes}
         self._wire(graph, by_id)
         for rt in self._nodes:
             if type(rt.flow).reset is not Flow.reset:
@@ -240,6 +240,30 @@ class InprocSession(Session):
 
     def seeds(self) -> dict:
         return {} if self._rng is None else {"tie_break_seed": self._tie_break_seed}
+
+    # ---------------------------------------------------------------------------------------
+    # Hooks for replay (retriever.log.replay): drive ticks from a log instead of the clocks
+    # ---------------------------------------------------------------------------------------
+    def take_routes(self) -> dict[tuple[str, str], list[tuple[PortBuffer, int]]]:
+        """Stop delivering outputs; return where each ``(node, port)`` delivered, with its delay,
+        so the caller can deliver logged events instead."""
+        routes: dict[tuple[str, str], list[tuple[PortBuffer, int]]] = {}
+        for rt in self._nodes:
+            for port, consumers in rt.downstream.items():
+                routes[(rt.id, port)] = [(buf, delay_ns) for _, buf, delay_ns, _ in consumers]
+            rt.downstream = {}
+        return routes
+
+    def tick(self, node: str, tau: tuple[int, int]) -> None:
+        """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
+        self._tick(self._by_id[node], tau)
+
+    def replace_step(self, node: str, outputs: Any) -> None:
+        """Make ``node``'s ticks emit ``next(outputs)`` (an iterable of ``(port, value)``) instead
+        of calling its ``step()``: replayed sources."""
+        rt = self._by_id[node]
+        rt.invoke = lambda values: next(outputs)
+        rt.read = lambda raw: raw
 
 
 class _AlwaysMissingPolicy:

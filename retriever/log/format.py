@@ -26,6 +26,7 @@ import socket
 import subprocess
 import sys
 from importlib import metadata as importlib_metadata
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -82,20 +83,39 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def _git_revision() -> str:
+def _git_revision(folder: str) -> str:
+    """``HEAD`` of the repository holding ``folder`` (``-dirty`` if tracked files changed), or ""."""
     try:
-        done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=folder)
+        if done.returncode != 0:
+            return ""
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=5, cwd=folder).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return ""
-    if done.returncode != 0:
-        return ""
-    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                           text=True, timeout=5).stdout.strip()
     return done.stdout.strip() + ("-dirty" if dirty else "")
 
 
-def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_unix_ns: int) -> dict[str, str]:
+def import_roots(modules: list[str]) -> list[str]:
+    """The ``sys.path`` folders these modules were imported from, so a replay on the same
+    machine can import the flow classes again from any working directory."""
+    roots: list[str] = []
+    for name in modules:
+        file = getattr(sys.modules.get(name), "__file__", None)
+        if not file:
+            continue
+        path = Path(file).resolve()
+        depth = name.count(".") + (1 if path.name == "__init__.py" else 0)
+        root = str(path.parents[depth])
+        if root not in roots:
+            roots.append(root)
+    return roots
+
+
+def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_unix_ns: int,
+                 flow_modules: list[str]) -> dict[str, str]:
     """The ``retriever.run`` record: enough to know what ran, where, and how to run it again."""
+    roots = import_roots(flow_modules)
     try:
         user = getpass.getuser()
     except (KeyError, OSError):
@@ -108,7 +128,8 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
         "started_unix_ns": str(started_unix_ns),
         "packages": json.dumps(package_versions(), sort_keys=True),
         "python": platform.python_version(),
-        "git_revision": _git_revision(),
+        "git_revision": _git_revision(roots[0] if roots else os.getcwd()),
+        "python_path": json.dumps(roots),
         "host": socket.gethostname(),
         "user": user,
         "pid": str(os.getpid()),

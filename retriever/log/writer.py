@@ -41,7 +41,9 @@ class LogWriter:
         version = fmt.package_versions().get("retriever", "dev")
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
         self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
-        self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {}, time.time_ns()))
+        modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
+        self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {}, time.time_ns(),
+                                                                    modules))
         self._channels: dict[tuple[str, str], int] = {}
         for node in sorted(graph.nodes.values(), key=lambda n: n.id):
             for port, spec in node.outputs.items():

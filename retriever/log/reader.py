@@ -1,0 +1,191 @@
+"""Read a Retriever log back: validate it, and present its IR, metadata, events and steps.
+
+One sequential pass with ``mcap``'s stream reader, CRCs checked (chunk contents and the data
+section), so a flipped byte is an error and not silently wrong data. A file whose writer was
+killed ends mid-record: :func:`read_log` refuses it with a hint, ``read_log(...,
+salvage=True)`` (what ``retriever log recover`` uses) keeps every record before the damage.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator
+
+from mcap.exceptions import EndOfFile, InvalidMagic
+from mcap.records import Attachment, Channel, Footer, Message, Metadata
+from mcap.stream_reader import CRCValidationError, StreamReader
+
+from ..codec import unpackb
+from ..errors import CodecError, IRError, LogError
+from ..ir import IR
+from ..trace import Event, StepRecord, Trace
+from . import format as fmt
+
+
+@dataclass(frozen=True)
+class LogChannel:
+    id: int
+    topic: str
+    message_encoding: str
+    metadata: dict[str, str]
+
+
+@dataclass(frozen=True)
+class LoggedEvent:
+    """An event as logged: the value stays msgpack bytes until asked for (``RunLog.value``)."""
+
+    tag: tuple[int, int]
+    node: str
+    port: str
+    seq: int
+    raw_value: bytes
+    publish_ns: int
+
+    @property
+    def id(self) -> tuple[str, str, int]:
+        return (self.node, self.port, self.seq)
+
+
+@dataclass
+class RunLog:
+    """Everything one log file holds, in file order."""
+
+    path: Path
+    channels: dict[int, LogChannel] = field(default_factory=dict)
+    attachments: dict[str, Attachment] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    messages: list[Message] = field(default_factory=list)
+    complete: bool = False  # the writer finished the file (footer read)
+    damage: str | None = None  # why reading stopped early, when salvaging
+
+    # -- what the run was --------------------------------------------------------------------
+    @property
+    def run(self) -> dict[str, str]:
+        return self.metadata.get(fmt.RUN_METADATA, {})
+
+    @property
+    def end(self) -> dict[str, str] | None:
+        return self.metadata.get(fmt.END_METADATA)
+
+    @property
+    def ir(self) -> IR:
+        attachment = self.attachments.get(fmt.IR_ATTACHMENT)
+        if attachment is None:
+            raise LogError(f"{self.path} holds no pipeline IR (attachment {fmt.IR_ATTACHMENT!r})",
+                           "was it written by Retriever? pass the pipeline yourself with --pipeline FILE:ATTR")
+        try:
+            return IR.from_json(bytes(attachment.data).decode())
+        except (IRError, UnicodeDecodeError, ValueError) as e:
+            raise LogError(f"the IR stored in {self.path} is invalid: {e}",
+                           "pass the pipeline yourself with --pipeline FILE:ATTR") from None
+
+    # -- its records -------------------------------------------------------------------------
+    def iter_events(self) -> Iterator[LoggedEvent]:
+        """Every event, in file order, value undecoded."""
+        ports = {c.id: parsed for c in self.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
+        for m in self.messages:
+            port = ports.get(m.channel_id)
+            if port is None:
+                continue
+            try:
+                microstep, raw = fmt.split_event(m.data)
+            except ValueError as e:
+                raise LogError(f"{self.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+            yield LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+
+    def iter_steps(self) -> Iterator[StepRecord]:
+        steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
+        for m in self.messages:
+            if m.channel_id in steps:
+                try:
+                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+                except Exception as e:
+                    raise LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})") from None
+                yield StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
+                                 m.publish_time, wall_ns)
+
+    def value(self, event: LoggedEvent) -> Any:
+        try:
+            return unpackb(event.raw_value)
+        except CodecError as e:
+            raise LogError(f"{self.path}: cannot decode event {event.node}.{event.port} #{event.seq}: {e}",
+                           "the value's class must be importable where you replay") from None
+
+    def trace(self) -> Trace:
+        """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""
+        events = [Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns) for e in self.iter_events()]
+        return Trace(events, list(self.iter_steps()))
+
+
+def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
+    """Read and validate a log. ``salvage=True`` keeps the records before a tear or corruption
+    instead of raising (``log.complete`` and ``log.damage`` then say what happened)."""
+    path = Path(path)
+    try:
+        stream = open(path, "rb")
+    except FileNotFoundError:
+        raise LogError(f"no such log file: {path}") from None
+    except OSError as e:
+        raise LogError(f"cannot open the log {path}: {e.strerror}") from None
+    log = RunLog(path)
+    with stream:
+        reader = StreamReader(stream, validate_crcs=True)
+        try:
+            for record in reader.records:
+                _take(log, record)
+        except InvalidMagic:
+            if not log.channels and not log.messages:
+                raise LogError(f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)",
+                               "retriever reads the .mcap files written by pipe.run(log=...) or --log") from None
+            _damaged(log, salvage, "its last bytes are not the MCAP magic", stream)
+        except EndOfFile:
+            _damaged(log, salvage, "it ends in the middle of a record: its writer was stopped before finishing",
+                     stream)
+        except CRCValidationError as e:
+            _damaged(log, salvage, f"a CRC check failed ({e}): the file was damaged after it was written", stream)
+        except Exception as e:  # McapError, struct.error, zstd errors, bad UTF-8... anything a damaged byte causes
+            _damaged(log, salvage, f"a record cannot be parsed ({type(e).__name__}: {e})", stream)
+    return log
+
+
+def _take(log: RunLog, record: Any) -> None:
+    if isinstance(record, Message):
+        if record.channel_id not in log.channels:
+            raise ValueError(f"message on unknown channel {record.channel_id}")
+        log.messages.append(record)
+    elif isinstance(record, Channel):
+        log.channels[record.id] = LogChannel(record.id, record.topic, record.message_encoding, dict(record.metadata))
+    elif isinstance(record, Attachment):
+        log.attachments[record.name] = record
+    elif isinstance(record, Metadata):
+        log.metadata[record.name] = dict(record.metadata)
+    elif isinstance(record, Footer):
+        log.complete = True
+
+
+def _damaged(log: RunLog, salvage: bool, why: str, stream) -> None:
+    where = f"near byte {stream.tell()}" if not stream.closed else ""
+    log.damage = f"{why} ({where}; {len(log.messages)} messages read before it)"
+    if not salvage:
+        raise LogError(f"{log.path} cannot be read: {log.damage}",
+                       f"`retriever log recover {log.path}` writes a readable copy of everything before the damage")
+
+
+def run_info(log: RunLog) -> dict[str, Any]:
+    """The figures ``retriever log info`` prints."""
+    counts: dict[str, int] = {}
+    span: dict[str, list[int]] = {}
+    by_channel = log.channels
+    for m in log.messages:
+        topic = by_channel[m.channel_id].topic
+        counts[topic] = counts.get(topic, 0) + 1
+        lo_hi = span.setdefault(topic, [m.log_time, m.log_time])
+        lo_hi[0], lo_hi[1] = min(lo_hi[0], m.log_time), max(lo_hi[1], m.log_time)
+    statuses: dict[str, dict[str, int]] = {}
+    for s in log.iter_steps():
+        node = statuses.setdefault(s.node, {})
+        node[s.status] = node.get(s.status, 0) + 1
+    packages = json.loads(log.run.get("packages", "{}") or "{}")
+    return {"counts": counts, "span": span, "statuses": statuses, "packages": packages}

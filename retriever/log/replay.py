@@ -1,0 +1,232 @@
+"""Re-execute a logged run and compare it with the log, byte for byte.
+
+``replay`` (the default) isolates every flow: each logged step of a non-source node runs again
+on inputs rebuilt from the *logged* events with the edge's policy, so one divergent node cannot
+hide or cause divergence elsewhere. Per step it checks the consumed event ids against the log,
+then the status, the produced ids and tags, and every output value's msgpack bytes.
+
+``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
+and compares the full trace: it proves the log is one consistent run of this graph.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import warnings
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from ..backends.inproc import InprocSession
+from ..codec import Encoder
+from ..errors import IRError, LogError, RetrieverWarning, StepError
+from ..pipeline import Pipeline
+from ..time import format_tag
+from ..trace import Trace
+from .reader import LoggedEvent, RunLog
+
+MAX_DIVERGENCES_KEPT = 20
+PROGRESS_EVERY = 2000
+
+
+@dataclass
+class Divergence:
+    """One step whose replay differs from the log."""
+
+    node: str
+    tag: tuple[int, int]
+    what: str  # "value", "inputs", "status", "outputs", "error"
+    port: str | None
+    logged: Any
+    replayed: Any
+
+    def __str__(self) -> str:
+        where = f"{self.node}.{self.port}" if self.port else self.node
+        return (f"{where} at tick {format_tag(self.tag)}: {self.what} differs\n"
+                f"      logged:   {_short(self.logged)}\n"
+                f"      replayed: {_short(self.replayed)}")
+
+
+@dataclass
+class NodeReplay:
+    steps: int = 0  # logged steps of this node
+    replayed: int = 0  # of those, re-executed (non-sources)
+    identical: int = 0
+    divergent: int = 0
+
+
+@dataclass
+class ReplayReport:
+    nodes: dict[str, NodeReplay] = field(default_factory=dict)
+    divergences: list[Divergence] = field(default_factory=list)  # the first MAX_DIVERGENCES_KEPT
+    divergent_steps: int = 0
+
+    @property
+    def identical(self) -> bool:
+        return self.divergent_steps == 0
+
+    @property
+    def steps_replayed(self) -> int:
+        return sum(n.replayed for n in self.nodes.values())
+
+
+def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
+    """The pipeline to replay: the given one, or the one rebuilt from the log's IR."""
+    if pipeline is None:
+        for root in reversed(json.loads(log.run.get("python_path", "[]"))):
+            if root not in sys.path and os.path.isdir(root):
+                sys.path.insert(0, root)  # where the run imported its flow classes from
+        try:
+            pipeline = Pipeline.from_ir(log.ir)
+        except IRError as e:
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}",
+                           "if a class moved or was renamed, pass the pipeline with --pipeline FILE:ATTR") from None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)  # the original run already showed them
+        graph = pipeline.compile()
+    logged_nodes = {s.node for s in log.iter_steps()}
+    unknown = sorted(logged_nodes - set(graph.nodes))
+    if unknown:
+        raise LogError(f"{log.path} has steps of node(s) {', '.join(unknown)}, which pipeline "
+                       f"'{graph.name}' does not have (it has: {', '.join(sorted(graph.nodes))})",
+                       "replay with the pipeline that wrote the log")
+    return pipeline
+
+
+def replay(log: RunLog, pipeline: Pipeline | None = None,
+           progress: Callable[[int, int], None] | None = None) -> ReplayReport:
+    """Re-execute every non-source step of ``log``; see the module docstring."""
+    pipeline = pipeline_for(log, pipeline)
+    graph = pipeline.compile()
+    session = InprocSession(graph)
+    routes = session.take_routes()
+    trace = session.trace
+    encode = Encoder().pack
+
+    # Logged events, in arrival order at each consumer (an edge's delay shifts it).
+    events = list(log.iter_events())
+    logged = {e.id: e for e in events}
+    deliveries = []
+    for e in events:
+        consumers = routes.get((e.node, e.port))
+        if consumers:
+            value = log.value(e)
+            for buf, delay_ns in consumers:
+                arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
+                deliveries.append((arrival, buf, (arrival, e.node, e.port, e.seq, value)))
+    deliveries.sort(key=lambda d: d[0])
+
+    steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
+    sources = {nid for nid, node in graph.nodes.items() if not node.inputs}
+    report = ReplayReport({nid: NodeReplay() for nid in sorted(graph.nodes)})
+    delivered = 0
+    for i, step in enumerate(steps):
+        if progress is not None and i % PROGRESS_EVERY == 0:
+            progress(i, len(steps))
+        stats = report.nodes[step.node]
+        stats.steps += 1
+        if step.node in sources:
+            continue
+        while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
+            _, buf, entry = deliveries[delivered]
+            buf.insert(entry)
+            delivered += 1
+        del trace.raw_events[:], trace.raw_steps[:]
+        try:
+            session.tick(step.node, step.tag)
+        except StepError:
+            pass  # on_error="stop": the error step is recorded; compare it like any other
+        stats.replayed += 1
+        found = _compare(step, trace, logged, encode)
+        if found is None:
+            stats.identical += 1
+            continue
+        stats.divergent += 1
+        report.divergent_steps += 1
+        if len(report.divergences) < MAX_DIVERGENCES_KEPT:
+            report.divergences.append(found)
+    if progress is not None:
+        progress(len(steps), len(steps))
+    return report
+
+
+def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode) -> Divergence | None:
+    (_, tag, consumed, produced, status, detail, *_), = trace.raw_steps
+
+    def differs(what: str, logged_value: Any, replayed: Any, port: str | None = None) -> Divergence:
+        return Divergence(step.node, step.tag, what, port, logged_value, replayed)
+
+    if consumed != step.consumed:
+        port = next((p for p in sorted(set(consumed) | set(step.consumed)) if consumed.get(p) != step.consumed.get(p)))
+        return differs("inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
+    if status != step.status:
+        return differs("status", _status(step.status, step.detail), _status(status, detail))
+    if status == "error" and (detail or {}).get("error") != (step.detail or {}).get("error"):
+        return differs("error", step.detail.get("error"), detail.get("error"))
+    if produced != step.produced:
+        return differs("outputs (produced event ids)", list(step.produced), list(produced))
+    for ev in trace.raw_events:
+        tag, node, port, seq, value = ev[:5]
+        original = logged.get((node, port, seq))
+        if original is None:
+            return differs("value", "<not in the log: the log ends here>", value, port)
+        if tag != original.tag:
+            return differs("output tag", format_tag(original.tag), format_tag(tag), port)
+        if encode(value) != original.raw_value:
+            from ..codec import unpackb
+
+            return differs("value", unpackb(original.raw_value), value, port)
+    return None
+
+
+def _status(status: str, detail: dict | None) -> str:
+    return f"{status} {detail}" if detail else status
+
+
+def _short(value: Any, limit: int = 300) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} chars)"
+
+
+# -------------------------------------------------------------------------------------------
+# Re-simulation
+# -------------------------------------------------------------------------------------------
+@dataclass
+class ResimReport:
+    horizon_ns: int
+    steps_compared: int
+    events_compared: int
+    difference: str | None
+
+    @property
+    def identical(self) -> bool:
+        return self.difference is None
+
+
+def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
+    """Re-run the graph in virtual time from the logged source events; compare the trace."""
+    pipeline = pipeline_for(log, pipeline)
+    graph = pipeline.compile()
+    original = log.trace()
+    end = log.end
+    if end is not None and end.get("status") == "finished":
+        horizon = int(end["end_ns"])
+    else:  # a recovered or failed run: its last instant may be cut short, compare before it
+        horizon = max((s.tag[0] for s in original.steps), default=0)
+
+    session = InprocSession(graph)
+    values = {e.id: e.value for e in original.events}
+    for nid, node in graph.nodes.items():
+        if not node.inputs:
+            ticks = sorted((s for s in original.steps if s.node == nid), key=lambda s: s.tag)
+            session.replace_step(nid, iter([[(i[1], values[i]) for i in s.produced] for s in ticks]))
+    try:
+        session.advance(horizon)
+    except StepError as e:
+        return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
+    kept_steps = [s for s in original.steps if s.tag[0] < horizon]
+    kept_ids = {i for s in kept_steps for i in s.produced}
+    expected = Trace([e for e in original.events if e.id in kept_ids], kept_steps)
+    again = session.trace
+    return ResimReport(horizon, len(kept_steps), len(expected.raw_events), expected.first_difference(again))
