@@ -72,7 +72,8 @@ class ReplayReport:
 
 
 def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
-    """The pipeline to replay: the given one, or the one rebuilt from the log's IR."""
+    """The pipeline to replay: the given one (its flows reset to their initial state), or the
+    one rebuilt from the log's IR."""
     if pipeline is None:
         for root in reversed(json.loads(log.run.get("python_path", "[]"))):
             if root not in sys.path and os.path.isdir(root):
@@ -82,6 +83,8 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
         except IRError as e:
             raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}",
                            "if a class moved or was renamed, pass the pipeline with --pipeline FILE:ATTR") from None
+    else:
+        pipeline.reset()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)  # the original run already showed them
         graph = pipeline.compile()

@@ -1,0 +1,276 @@
+"""Replay and re-simulation: identical on deterministic runs, and divergence caught and named.
+
+The random graphs of the schedule-independence suite (every policy, delays, latency, triggers,
+cycles) are logged and replayed; flows that are nondeterministic on purpose must be caught.
+"""
+
+from __future__ import annotations
+
+import random
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+
+from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, StepError, io
+from retriever.log import read_log, replay, resim
+from tests.backends.test_schedule_independence import graphs
+
+REPO = Path(__file__).resolve().parents[2]
+QUICKSTART = REPO / "examples" / "quickstart.py"
+
+
+# -- flows ------------------------------------------------------------------------------------
+@io
+@dataclass
+class Reading:
+    x: float
+
+
+class Counter(Flow[None, Reading]):
+    def __init__(self):
+        self.k = 0
+
+    def step(self) -> Reading:
+        self.k += 1
+        return Reading(x=float(self.k))
+
+
+class Smoother(Flow[Reading, Reading]):
+    """Deterministic and stateful: replay must rebuild its state from its own past steps."""
+
+    def __init__(self, alpha: float = 0.5):
+        self.alpha, self.y = alpha, 0.0
+
+    def step(self, inp: Reading) -> Reading:
+        self.y = self.alpha * inp.x + (1 - self.alpha) * self.y
+        return Reading(x=self.y)
+
+
+class Dice(Flow[Reading, Reading]):
+    """Nondeterministic on purpose: an unseeded random draw."""
+
+    def step(self, inp: Reading) -> Reading:
+        return Reading(x=inp.x + random.random())
+
+
+class Stopwatch(Flow[Reading, Reading]):
+    """Nondeterministic on purpose: reads the wall clock."""
+
+    def step(self, inp: Reading) -> Reading:
+        return Reading(x=inp.x + time.perf_counter())
+
+
+class Fragile(Flow[Reading, Reading]):
+    """Raises on every third input; on_error decides what happens next."""
+
+    def __init__(self):
+        self.seen = 0
+
+    def step(self, inp: Reading) -> Reading:
+        self.seen += 1
+        if self.seen % 3 == 0:
+            raise ValueError(f"third input {inp.x}")
+        return Reading(x=inp.x * 2)
+
+
+class Batcher(Flow):
+    """Untyped, Queue-fed: commit state (what was consumed) must replay exactly."""
+
+    def step(self, x):
+        return {"total": float(sum(x)), "count": len(x)}
+
+
+def chain(middle: type[Flow], *, on_error: str = "stop") -> Pipeline:
+    with Pipeline("chain") as pipe:
+        src = Counter() @ Rate(hz=50)
+        mid = middle().configure(on_error=on_error) @ Rate(hz=20)
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(mid, sync=Latest()).then(sink, sync=Latest())
+    return pipe
+
+
+def logged(pipe: Pipeline, tmp_path: Path, duration: float = 2.0, name: str = "run.mcap"):
+    path = tmp_path / name
+    pipe.run(duration=duration, log=path)
+    return read_log(path)
+
+
+# -- identical ----------------------------------------------------------------------------------
+def test_quickstart_replays_and_resimulates_identically(tmp_path):
+    from retriever._loading import load_pipeline
+
+    pipe = load_pipeline(str(QUICKSTART))
+    pipe.reset()  # the module's pipeline is shared by every test that loads it
+    log = logged(pipe, tmp_path, duration=5)
+    report = replay(log)
+    assert report.identical, report.divergences[:1]
+    assert report.nodes["camera"].replayed == 0  # a source: its events are the input
+    assert report.nodes["controller"].replayed == report.nodes["controller"].steps == 1000
+    assert report.nodes["policy"].identical == 10
+    again = resim(log)
+    assert again.identical, again.difference
+    assert again.steps_compared == 1160
+
+
+def test_stateful_flows_replay_from_their_own_history(tmp_path):
+    log = logged(chain(Smoother), tmp_path)
+    report = replay(log)
+    assert report.identical
+    assert report.steps_replayed == report.nodes["smoother"].steps + report.nodes["smoother_2"].steps == 60
+
+
+def test_queue_consumption_replays_exactly(tmp_path):
+    with Pipeline("batches") as pipe:
+        src = Counter() @ Rate(hz=30)
+        batch = Batcher() @ Rate(hz=7)
+        src.then(batch, sync=Queue(maxsize=3))
+    log = logged(pipe, tmp_path)
+    assert replay(log).identical
+    assert resim(log).identical
+
+
+@pytest.mark.parametrize("on_error", ["skip_tick", "restart"])
+def test_error_steps_replay_with_the_same_error(tmp_path, on_error):
+    log = logged(chain(Fragile, on_error=on_error), tmp_path)
+    errors = [s for s in log.iter_steps() if s.status == "error"]
+    assert errors and all("third input" in s.detail["error"] for s in errors)
+    report = replay(log)
+    assert report.identical, report.divergences[:1]
+    assert resim(log).identical
+
+
+def test_a_run_stopped_by_an_error_is_logged_and_replays(tmp_path):
+    path = tmp_path / "stopped.mcap"
+    with pytest.raises(StepError, match="fragile"):
+        chain(Fragile).run(duration=2.0, log=path)
+    log = read_log(path)
+    assert log.end["status"] == "error" and "third input" in log.end["error"]
+    assert log.iter_steps().__next__() is not None
+    assert replay(log).identical
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(spec=graphs())
+def test_random_graphs_replay_and_resimulate_identically(spec, tmp_path_factory):
+    """Every policy, delay, latency, trigger and cycle the schedule-independence suite draws."""
+    tmp = tmp_path_factory.mktemp("random")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        pipe = spec.build()
+        live = pipe.run(duration=1.0, log=tmp / "r.mcap")
+        log = read_log(tmp / "r.mcap")
+        assert log.trace() == live
+        report = replay(log, spec.build())
+        assert report.identical, f"{spec}\n{report.divergences[:1]}"
+        again = resim(log, spec.build())
+        assert again.identical, f"{spec}\n{again.difference}"
+
+
+# -- divergence -------------------------------------------------------------------------------
+@pytest.mark.parametrize("culprit", [Dice, Stopwatch])
+def test_nondeterministic_flow_is_caught_and_named(tmp_path, culprit):
+    log = logged(chain(culprit), tmp_path)
+    report = replay(log)
+    assert not report.identical
+    node = culprit.__name__.lower()
+    # every tick diverges but the first, at t=0, which had no input yet (a skip, verified as such)
+    assert report.nodes[node].replayed == 40 and report.nodes[node].divergent == 39
+    assert report.nodes["smoother"].divergent == 0  # fed the *logged* outputs, so unaffected
+    first = report.divergences[0]
+    assert (first.node, first.port, first.what) == (node, "x", "value")
+    assert first.tag == (50_000_000, 0)
+    assert first.logged != first.replayed
+    assert f"{node}.x at tick t=0.050000000s" in str(first)
+
+
+def test_changed_step_is_caught_by_replay_with_another_pipeline(tmp_path):
+    log = logged(chain(Smoother), tmp_path)
+    with Pipeline("chain") as changed:
+        src = Counter() @ Rate(hz=50)
+        mid = Smoother(alpha=0.9) @ Rate(hz=20)  # same ids, different behaviour
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(mid, sync=Latest()).then(sink, sync=Latest())
+    report = replay(log, changed)
+    assert report.nodes["smoother"].divergent > 0 and report.nodes["smoother_2"].divergent == 0
+
+
+def test_changed_policy_is_reported_as_different_inputs(tmp_path):
+    log = logged(chain(Smoother), tmp_path)
+    with Pipeline("chain") as changed:
+        src = Counter() @ Rate(hz=50)
+        mid = Smoother() @ Rate(hz=20)
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(mid, sync=Latest(), delay=0.03).then(sink, sync=Latest())
+    first = replay(log, changed).divergences[0]
+    assert first.node == "smoother" and first.what.startswith("inputs") and first.port == "x"
+
+
+def test_replay_with_a_pipeline_lacking_a_logged_node_is_an_error(tmp_path):
+    log = logged(chain(Smoother), tmp_path)
+    with Pipeline("other") as other:
+        Counter() @ Rate(hz=50)
+    with pytest.raises(LogError, match="smoother.*does not have"):
+        replay(log, other)
+
+
+def test_cli_replay_exit_status_and_report(tmp_path):
+    """Exit 0 and 'identical' for the quickstart; exit 1, DIVERGED and the culprit otherwise."""
+    cli = [str(Path(sys.executable).parent / "retriever")]
+    path = tmp_path / "q.mcap"
+    done = subprocess.run([*cli, "run", str(QUICKSTART), "--duration", "2", "--log", str(path)],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr
+    done = subprocess.run([*cli, "replay", str(path)], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "identical" in done.stdout and "controller" in done.stdout
+    done = subprocess.run([*cli, "replay", "--resim", str(path)], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=120)
+    assert done.returncode == 0 and "identical" in done.stdout, done.stdout + done.stderr
+
+    noisy = tmp_path / "noisy.py"
+    noisy.write_text(
+        "import random\n"
+        "from retriever import Flow, Pipeline, Rate, Latest\n"
+        "class Tick(Flow):\n    def step(self):\n        return {'x': 1.0}\n"
+        "class Noisy(Flow):\n    def step(self, x):\n        return {'y': x + random.random()}\n"
+        "with Pipeline('noisy') as pipe:\n    (Tick() @ Rate(hz=10)).then(Noisy() @ Rate(hz=10), sync=Latest())\n")
+    log = tmp_path / "noisy.mcap"
+    subprocess.run([*cli, "run", str(noisy), "--duration", "1", "--log", str(log)], check=True,
+                   capture_output=True, cwd=tmp_path, timeout=120)
+    done = subprocess.run([*cli, "replay", str(log)], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert done.returncode == 1
+    assert "DIVERGED" in done.stdout and "noisy.y at tick t=0.1" in done.stdout
+    assert "Traceback" not in done.stdout + done.stderr
+
+
+def test_replay_from_another_directory_finds_the_flow_classes(tmp_path):
+    """The log records where the flows were imported from; replay works from any directory."""
+    from retriever._loading import load_pipeline
+
+    path = tmp_path / "q.mcap"
+    pipe = load_pipeline(str(QUICKSTART))
+    pipe.reset()  # the module's pipeline is shared by every test that loads it
+    pipe.run(duration=1, log=path)
+    code = ("import sys; from retriever.log import read_log, replay; "
+            f"r = replay(read_log({str(path)!r})); sys.exit(0 if r.identical else 1)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr
+
+
+def test_log_only_at_the_start_of_a_run(tmp_path):
+    pipe = chain(Smoother)
+    pipe.step(0.5)
+    with pytest.raises(Exception, match="from T0"):
+        pipe.run(duration=1, log=tmp_path / "late.mcap")
+    pipe.reset()
+    pipe.run(duration=1, log=tmp_path / "ok.mcap")
+    with pytest.raises(Exception, match="reset"):
+        pipe.run(duration=1)  # the logged run is finished; continuing it would go unrecorded
+    assert np.isfinite(read_log(tmp_path / "ok.mcap").trace().values_of("smoother", "x")[-1])
