@@ -18,6 +18,7 @@ metadata               ``retriever.run`` (written first) and ``retriever.end`` (
 
 from __future__ import annotations
 
+import functools
 import getpass
 import json
 import os
@@ -73,7 +74,9 @@ def decode_step(data: bytes) -> tuple:
     return node, microstep, consumed, tuple(tuple(i) for i in produced), status, detail, wall_ns
 
 
+@functools.cache
 def package_versions() -> dict[str, str]:
+    """Installed versions of Retriever and the packages a run depends on (read once per process)."""
     versions = {}
     for name in PACKAGES:
         try:

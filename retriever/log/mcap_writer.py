@@ -52,7 +52,7 @@ class McapWriter:
         self._offset = 0
         self._data_crc = 0
         self._chunk_size = chunk_size
-        self._compressor = zstandard.ZstdCompressor(level=3)
+        self._compressor = zstandard.ZstdCompressor(level=1)
         self._channels: list[Channel] = []
         self._chunk = bytearray()
         self._chunk_index: dict[int, list[int]] = {}  # channel -> [log_time, offset, log_time, offset, ...]
@@ -100,16 +100,22 @@ class McapWriter:
 
     # -- messages --------------------------------------------------------------------------
     def add_message(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
-        chunk = self._chunk
-        index = self._chunk_index.get(channel_id)
-        if index is None:
-            index = self._chunk_index[channel_id] = []
-        index += (log_time, len(chunk))
-        chunk += _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence & _U32,
-                               log_time, publish_time)
-        chunk += data
-        if len(chunk) >= self._chunk_size:
-            self._close_chunk()
+        self.add_messages(((channel_id, log_time, publish_time, sequence, data),))
+
+    def add_messages(self, messages) -> None:
+        """Append ``(channel_id, log_time, publish_time, sequence, data)`` messages to the open chunk."""
+        chunk, index, pack, limit = self._chunk, self._chunk_index, _MESSAGE.pack, self._chunk_size
+        for channel_id, log_time, publish_time, sequence, data in messages:
+            entries = index.get(channel_id)
+            if entries is None:
+                entries = index[channel_id] = []
+            entries += (log_time, len(chunk))
+            chunk += pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence & _U32,
+                          log_time, publish_time)
+            chunk += data
+            if len(chunk) >= limit:
+                self._close_chunk()
+                chunk, index = self._chunk, self._chunk_index
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS: it now survives a kill."""

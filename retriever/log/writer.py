@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from ..trace import Trace
 
 
-_MICROSTEPS = [bytes((m,)) for m in range(128)]
+_HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
 
 
 class LogWriter:
@@ -68,29 +68,39 @@ class LogWriter:
     def write(self, trace: "Trace") -> None:
         """Encode the records appended to ``trace`` since the last call; flush if it is time."""
         events, steps = trace.raw_events, trace.raw_steps
-        add, encode, channels = self._mcap.add_message, self._encode, self._channels
         if len(events) > self._events_done:
-            for tag, node, port, seq, value, published in events[self._events_done:]:
-                channel = channels.get((node, port)) or self._add_channel(node, port)
-                try:
-                    # [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
-                    data = b"\x92" + _MICROSTEPS[tag[1]] + encode(value) if tag[1] < 128 else encode([tag[1], value])
-                except CodecError as e:
-                    raise LogError(f"event {node}.{port} #{seq} cannot be logged: {e}",
-                                   f"make {node}.{port} carry numbers, str, bytes, lists, dicts, numpy "
-                                   "arrays or @io dataclasses") from None
-                add(channel, tag[0], published, seq, data)
+            new = events[self._events_done:]
+            channels, encode = self._channels, self._encode
+            try:
+                # [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
+                batch = [(channels.get((node, port)) or self._add_channel(node, port), tag[0], published, seq,
+                          _HEADS[tag[1]] + encode(value) if tag[1] < 128 else encode([tag[1], value]))
+                         for tag, node, port, seq, value, published in new]
+            except CodecError:
+                raise self._unencodable(new) from None
+            self._mcap.add_messages(batch)
             self._events_done = len(events)
         if len(steps) > self._steps_done:
-            pack, channel, index = self._pack_step, self._steps_channel, self._steps_done
-            for node, tag, consumed, produced, status, detail, start, wall in steps[self._steps_done:]:
-                add(channel, tag[0], start, index, pack((node, tag[1], consumed, produced, status, detail, wall)))
-                index += 1
-            self._steps_done = index
+            pack, channel = self._pack_step, self._steps_channel
+            self._mcap.add_messages([
+                (channel, tag[0], start, index, pack((node, tag[1], consumed, produced, status, detail, wall)))
+                for index, (node, tag, consumed, produced, status, detail, start, wall)
+                in enumerate(steps[self._steps_done:], self._steps_done)])
+            self._steps_done = len(steps)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
             self._mcap.flush()
             self._last_flush = now
+
+    def _unencodable(self, events: list[tuple]) -> LogError:
+        for tag, node, port, seq, value, _ in events:
+            try:
+                self._encode(value)
+            except CodecError as e:
+                return LogError(f"event {node}.{port} #{seq} (at t={tag[0] / 1e9:g} s) cannot be logged: {e}",
+                                f"make {node}.{port} carry numbers, str, bytes, lists, dicts, numpy arrays "
+                                "or @io dataclasses")
+        return LogError("an event cannot be logged (the codec refused a value it later accepted)")
 
     def close(self, trace: "Trace", end_ns: int, *, status: str = "finished", error: str = "",
               stats: dict | None = None) -> None:
