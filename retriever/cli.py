@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 import traceback
 import warnings
@@ -52,6 +53,10 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 warnings.showwarning = _show_warning
 
 
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def _load(target: str):
     from ._loading import load_pipeline
 
@@ -70,8 +75,12 @@ def run(
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time."""
     pipe = _load(target)
+    signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
     try:
         trace = pipe.run(duration=duration, backend=backend, log=log)
+    except KeyboardInterrupt:
+        _err.print("interrupted" + (f"; the run so far is in {log}" if log is not None else ""), highlight=False)
+        raise typer.Exit(code=130) from None
     except Exception as exc:
         if log is not None and log.exists():
             _err.print(f"the run up to the error is in {log}", highlight=False)

@@ -250,10 +250,13 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     session.logged_to = writer.path
     if exc is None:
         status, error = "finished", ""
+    elif isinstance(exc, KeyboardInterrupt):
+        status, error = "interrupted", "stopped by Ctrl-C or SIGTERM"
     else:
-        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "error"
-        error = f"{type(exc).__name__}: {exc}"
-    writer.close(session.trace, session.now_ns, status=status, error=error, stats=session.stats())
+        status, error = "error", f"{type(exc).__name__}: {exc}"
+    steps = session.trace.raw_steps
+    end_ns = max(session.now_ns, steps[-1][1][0] if steps else 0)  # a stopped run ends at its last tick
+    writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats())
 
 
 def _check_seconds(method: str, name: str, value: Any) -> None:
