@@ -1,0 +1,44 @@
+"""SIGTERM and Ctrl-C stop a logged run cleanly: the log is finished, marked, and replays."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from retriever.log import read_log, replay, resim
+
+REPO = Path(__file__).resolve().parents[2]
+RETRIEVER = Path(sys.executable).parent / "retriever"
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_finishes_the_log(tmp_path, sig):
+    path = tmp_path / "long.mcap"
+    proc = subprocess.Popen([str(RETRIEVER), "run", str(REPO / "examples" / "quickstart.py"), "--duration", "1e6",
+                             "--log", str(path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60  # a generous bound, not a speed threshold
+        while not (path.exists() and path.stat().st_size > 100_000):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the run never logged 100 kB"
+            time.sleep(0.05)
+        os.kill(proc.pid, sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and str(path) in err
+    assert "Traceback" not in err
+    log = read_log(path)  # complete: no recovery needed
+    assert log.complete and log.end["status"] == "interrupted"
+    assert int(log.end["end_ns"]) > 0
+    assert replay(log).identical
+    assert resim(log).identical
