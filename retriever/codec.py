@@ -48,13 +48,32 @@ def import_type(path: str) -> Any:
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
 
 
+_array_heads: dict[tuple, bytes] = {}  # (dtype, shape) -> the msgpack bytes of "[descr, shape, " below
+
+
 def _array_payload(arr: np.ndarray) -> bytes:
-    dtype = arr.dtype
-    if dtype.hasobject:
-        raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {dtype})")
-    # Structured dtypes need their full description; plain ones travel as their short string.
-    descr = np.lib.format.dtype_to_descr(dtype) if dtype.fields else dtype.str
-    return _pack_plain((descr, arr.shape, arr.tobytes()))
+    """msgpack ``[descr, shape, raw bytes]``, built from a cached head: this is the hot path of
+    logging and the wire, where the same few dtypes and shapes repeat."""
+    key = (arr.dtype, arr.shape)
+    head = _array_heads.get(key)
+    if head is None:
+        dtype = arr.dtype
+        if dtype.hasobject:
+            raise CodecError(f"numpy arrays of dtype object cannot be encoded (dtype {dtype})")
+        # Structured dtypes need their full description; plain ones travel as their short string.
+        descr = np.lib.format.dtype_to_descr(dtype) if dtype.fields else dtype.str
+        head = b"\x93" + _pack_plain(descr) + _pack_plain(list(arr.shape))
+        if len(_array_heads) < 4096:
+            _array_heads[key] = head
+    raw = arr.tobytes()
+    n = len(raw)
+    if n < 0x100:
+        size = bytes((0xC4, n))
+    elif n < 0x10000:
+        size = b"\xc5" + n.to_bytes(2, "big")
+    else:
+        size = b"\xc6" + n.to_bytes(4, "big")
+    return head + size + raw
 
 
 def _default(obj: Any) -> Any:

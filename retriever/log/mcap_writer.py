@@ -2,7 +2,7 @@
 
 Why not ``mcap.writer.Writer``: it builds a dataclass and updates statistics per message, about
 2.8 µs each (measured), which alone would triple the cost of a logged in-process step. Here a
-message is one ``struct.pack`` into the open chunk; every other record (header, channels,
+batch of messages is one list comprehension of ``struct.pack`` joined into the open chunk; every other record (header, channels,
 chunks, indexes, attachments, metadata, summary, footer) is written with the ``mcap`` package's
 own record classes, and the result is read back by the plain ``mcap`` reader in the tests.
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections import Counter
 from typing import BinaryIO
 
 import zstandard
@@ -55,11 +56,11 @@ class McapWriter:
         self._compressor = zstandard.ZstdCompressor(level=1)
         self._channels: list[Channel] = []
         self._chunk = bytearray()
-        self._chunk_index: dict[int, list[int]] = {}  # channel -> [log_time, offset, log_time, offset, ...]
+        self._chunk_times: list[int] | None = None  # [earliest, latest] log time in the open chunk
         self._chunk_indexes: list[ChunkIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
-        self._message_counts: dict[int, int] = {}
+        self._message_counts: Counter[int] = Counter()
         self._start_time: int | None = None
         self._end_time = 0
         self._finished = False
@@ -100,22 +101,26 @@ class McapWriter:
 
     # -- messages --------------------------------------------------------------------------
     def add_message(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
-        self.add_messages(((channel_id, log_time, publish_time, sequence, data),))
+        self.add_messages([(channel_id, log_time, publish_time, sequence, data)])
 
-    def add_messages(self, messages) -> None:
+    def add_messages(self, messages: list[tuple[int, int, int, int, bytes]]) -> None:
         """Append ``(channel_id, log_time, publish_time, sequence, data)`` messages to the open chunk."""
-        chunk, index, pack, limit = self._chunk, self._chunk_index, _MESSAGE.pack, self._chunk_size
-        for channel_id, log_time, publish_time, sequence, data in messages:
-            entries = index.get(channel_id)
-            if entries is None:
-                entries = index[channel_id] = []
-            entries += (log_time, len(chunk))
-            chunk += pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence & _U32,
-                          log_time, publish_time)
-            chunk += data
-            if len(chunk) >= limit:
-                self._close_chunk()
-                chunk, index = self._chunk, self._chunk_index
+        if not messages:
+            return
+        pack = _MESSAGE.pack
+        self._chunk += b"".join([pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence & _U32,
+                                      log_time, publish_time) + data
+                                 for channel_id, log_time, publish_time, sequence, data in messages])
+        times = [m[1] for m in messages]
+        low, high = min(times), max(times)
+        if self._chunk_times is None:
+            self._chunk_times = [low, high]
+        else:
+            self._chunk_times[0] = min(self._chunk_times[0], low)
+            self._chunk_times[1] = max(self._chunk_times[1], high)
+        self._message_counts.update(m[0] for m in messages)
+        if len(self._chunk) >= self._chunk_size:
+            self._close_chunk()
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS: it now survives a kill."""
@@ -123,27 +128,19 @@ class McapWriter:
         self._stream.flush()
 
     def _close_chunk(self) -> None:
+        # No message index records: they are optional in MCAP, readers scan a chunk without them,
+        # and they cost 16 uncompressed bytes and a Python-level append per message.
         if not self._chunk:
             return
-        data, index = bytes(self._chunk), self._chunk_index
-        self._chunk, self._chunk_index = bytearray(), {}
-        times = [t for entries in index.values() for t in entries[::2]]
-        start, end = min(times), max(times)
+        data, (start, end) = bytes(self._chunk), self._chunk_times
+        self._chunk, self._chunk_times = bytearray(), None
         compressed = self._compressor.compress(data)
         chunk_offset, chunk_length = self._write_record(Chunk(
             message_start_time=start, message_end_time=end, uncompressed_size=len(data),
             uncompressed_crc=zlib.crc32(data), compression="zstd", data=compressed))
-        index_offsets: dict[int, int] = {}
-        index_start = self._offset
-        for channel_id, entries in index.items():
-            n = len(entries) // 2
-            index_offsets[channel_id] = self._offset
-            self._write(struct.pack(f"<BQHI{2 * n}Q", Opcode.MESSAGE_INDEX, 2 + 4 + 16 * n, channel_id, 16 * n, *entries))
-            self._message_counts[channel_id] = self._message_counts.get(channel_id, 0) + n
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
-            chunk_length=chunk_length, message_index_offsets=index_offsets,
-            message_index_length=self._offset - index_start, compression="zstd",
+            chunk_length=chunk_length, message_index_offsets={}, message_index_length=0, compression="zstd",
             compressed_size=len(compressed), uncompressed_size=len(data)))
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
