@@ -59,6 +59,7 @@ class RunLog:
     messages: list[Message] = field(default_factory=list)
     complete: bool = False  # the writer finished the file (footer read)
     damage: str | None = None  # why reading stopped early, when salvaging
+    _steps: list[StepRecord] | None = field(default=None, repr=False)
 
     # -- what the run was --------------------------------------------------------------------
     @property
@@ -96,6 +97,12 @@ class RunLog:
             yield LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
 
     def iter_steps(self) -> Iterator[StepRecord]:
+        """Every step record, in file order (decoded once, then kept)."""
+        if self._steps is None:
+            self._steps = list(self._decode_steps())
+        return iter(self._steps)
+
+    def _decode_steps(self) -> Iterator[StepRecord]:
         steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
         for m in self.messages:
             if m.channel_id in steps:
