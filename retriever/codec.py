@@ -133,10 +133,16 @@ def _located(error: CodecError, value: Any) -> CodecError:
     return CodecError(f"{first} at value{path}" + (f"\n{rest}" if rest else ""))
 
 
+_FIXEXT = {1: 0xD4, 2: 0xD5, 4: 0xD6, 8: 0xD7, 16: 0xD8}
+
+
 def _ext_bytes(code: int, payload: bytes) -> bytes:
-    """The msgpack encoding of ``ExtType(code, payload)`` (ext 8/16/32 by size)."""
+    """Exactly msgpack's encoding of ``ExtType(code, payload)``: fixext 1/2/4/8/16, else ext 8/16/32."""
     n = len(payload)
-    if n < 0x100:
+    fixed = _FIXEXT.get(n)
+    if fixed is not None:
+        head = bytes((fixed, code))
+    elif n < 0x100:
         head = bytes((0xC7, n, code))
     elif n < 0x10000:
         head = b"\xc8" + n.to_bytes(2, "big") + bytes((code,))

@@ -7,6 +7,7 @@ own notion of ``now`` and a :class:`~retriever.trace.Trace`; the conformance sui
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -40,8 +41,10 @@ class Session(ABC):
     #: whether ``pipe.step(dt)`` may drive this session (virtual time)
     steppable: bool = False
 
-    #: records between two hand-overs of the trace to the log writer
+    #: most steps between two hand-overs of the trace to the log writer, and the wall time
+    #: aimed for between them (slow steps mean smaller batches, so a kill loses little)
     LOG_BATCH = 4096
+    LOG_HANDOVER_S = 0.02
 
     def __init__(self, graph: Graph):
         self.graph = graph
@@ -49,10 +52,24 @@ class Session(ABC):
         self.now_ns = 0
         self.log: LogWriter | None = None
         self.logged_to = None  # the path of this run's finished log, if it had one
+        self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
 
     def seeds(self) -> dict:
         """The seeds this run depends on, recorded in the log's run metadata."""
         return {}
+
+    def write_log(self) -> int:
+        """Hand the trace to the log writer; return how many steps to run before the next
+        hand-over, sized from the recent step rate to come back every ``LOG_HANDOVER_S``."""
+        assert self.log is not None
+        self.log.write(self.trace)
+        now, done = time.monotonic(), len(self.trace.raw_steps)
+        last_time, last_done = self._log_mark
+        self._log_mark = (now, done)
+        if now <= last_time or done <= last_done:
+            return 1
+        rate = (done - last_done) / (now - last_time)
+        return max(1, min(self.LOG_BATCH, int(rate * self.LOG_HANDOVER_S)))
 
     @abstractmethod
     def advance(self, until_ns: int) -> None:

@@ -135,11 +135,10 @@ class InprocSession(Session):
     def _advance(self, until_ns: int) -> None:
         heap, pending, nodes, rng = self._heap, self._pending, self._nodes, self._rng
         log, steps = self.log, self.trace.raw_steps
-        log_at = len(steps) + self.LOG_BATCH if log is not None else float("inf")
+        log_at = len(steps) + 1 if log is not None else float("inf")
         while heap and heap[0][0] < until_ns:
             if len(steps) >= log_at:
-                log.write(self.trace)
-                log_at = len(steps) + self.LOG_BATCH
+                log_at = len(steps) + self.write_log()
             tag = heappop(heap)
             indices = pending.pop(tag)
             if len(indices) == 1:

@@ -89,6 +89,7 @@ class McapWriter:
         return channel.id
 
     def add_attachment(self, name: str, media_type: str, data: bytes, log_time: int = 0, create_time: int = 0) -> None:
+        self._close_chunk()  # keep the file in call order: messages added before come first
         record = Attachment(log_time=log_time, create_time=create_time, name=name, media_type=media_type, data=data)
         offset, length = self._write_record(record)
         self._attachment_indexes.append(AttachmentIndex(
@@ -96,6 +97,7 @@ class McapWriter:
             data_size=len(data), name=name, media_type=media_type))
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._close_chunk()  # keep the file in call order: messages added before come first
         offset, length = self._write_record(Metadata(name=name, metadata=dict(data)))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
 

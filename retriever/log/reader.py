@@ -9,11 +9,13 @@ salvage=True)`` (what ``retriever log recover`` uses) keeps every record before 
 from __future__ import annotations
 
 import json
+import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from mcap.exceptions import EndOfFile, InvalidMagic
+from mcap.exceptions import EndOfFile
 from mcap.records import Attachment, Channel, Footer, Message, Metadata
 from mcap.stream_reader import CRCValidationError, StreamReader
 
@@ -22,6 +24,7 @@ from ..errors import CodecError, IRError, LogError
 from ..ir import IR
 from ..trace import Event, StepRecord, Trace
 from . import format as fmt
+from .mcap_writer import MAGIC
 
 
 @dataclass(frozen=True)
@@ -113,7 +116,15 @@ class RunLog:
                 yield StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
                                  m.publish_time, wall_ns)
 
+    def add_import_paths(self) -> None:
+        """Put the folders the run imported its flows from on ``sys.path`` (those that exist
+        here), so its classes can be imported again from any working directory."""
+        for root in reversed(json.loads(self.run.get("python_path", "[]") or "[]")):
+            if root not in sys.path and os.path.isdir(root):
+                sys.path.insert(0, root)
+
     def value(self, event: LoggedEvent) -> Any:
+        self.add_import_paths()
         try:
             return unpackb(event.raw_value)
         except CodecError as e:
@@ -133,27 +144,29 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
     try:
         stream = open(path, "rb")
     except FileNotFoundError:
-        raise LogError(f"no such log file: {path}") from None
+        raise LogError(f"no such log file: {path}", "give the path of a .mcap file written by --log / log=") from None
     except OSError as e:
-        raise LogError(f"cannot open the log {path}: {e.strerror}") from None
+        raise LogError(f"cannot open the log {path}: {e.strerror}",
+                       "give the path of a .mcap file written by --log / log=") from None
     log = RunLog(path)
     with stream:
+        if stream.read(len(MAGIC)) != MAGIC:
+            raise LogError(f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)",
+                           "retriever reads the .mcap files written by pipe.run(log=...) or --log")
+        stream.seek(0)
+        size = os.fstat(stream.fileno()).st_size
         reader = StreamReader(stream, validate_crcs=True)
         try:
             for record in reader.records:
                 _take(log, record)
-        except InvalidMagic:
-            if not log.channels and not log.messages:
-                raise LogError(f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)",
-                               "retriever reads the .mcap files written by pipe.run(log=...) or --log") from None
-            _damaged(log, salvage, "its last bytes are not the MCAP magic", stream)
-        except EndOfFile:
-            _damaged(log, salvage, "it ends in the middle of a record: its writer was stopped before finishing",
-                     stream)
         except CRCValidationError as e:
             _damaged(log, salvage, f"a CRC check failed ({e}): the file was damaged after it was written", stream)
-        except Exception as e:  # McapError, struct.error, zstd errors, bad UTF-8... anything a damaged byte causes
-            _damaged(log, salvage, f"a record cannot be parsed ({type(e).__name__}: {e})", stream)
+        except Exception as e:  # EndOfFile, struct.error, zstd errors, bad UTF-8... what a tear or a bad byte causes
+            if isinstance(e, EndOfFile) or stream.tell() >= size:
+                why = "it ends in the middle of a record: its writer was stopped before finishing"
+            else:
+                why = f"a record cannot be parsed ({type(e).__name__}: {e})"
+            _damaged(log, salvage, why, stream)
     return log
 
 

@@ -11,9 +11,6 @@ and compares the full trace: it proves the log is one consistent run of this gra
 
 from __future__ import annotations
 
-import json
-import os
-import sys
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -75,9 +72,7 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     """The pipeline to replay: the given one (its flows reset to their initial state), or the
     one rebuilt from the log's IR."""
     if pipeline is None:
-        for root in reversed(json.loads(log.run.get("python_path", "[]"))):
-            if root not in sys.path and os.path.isdir(root):
-                sys.path.insert(0, root)  # where the run imported its flow classes from
+        log.add_import_paths()
         try:
             pipeline = Pipeline.from_ir(log.ir)
         except IRError as e:

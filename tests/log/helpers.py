@@ -1,0 +1,81 @@
+"""Shared helpers of the event-log tests: the ``retriever`` command as a subprocess, MCAP record
+scanning for damage tests, and comparing logged records."""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+QUICKSTART = ROOT / "examples" / "quickstart.py"
+RETRIEVER = Path(sys.executable).parent / "retriever"
+GOLDEN = ROOT / "tests" / "golden"
+
+CHUNK = 0x06
+MAGIC_LEN = 8
+
+
+def cli_env(pythonpath: Path | None = None) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    # no .pyc: tests rewrite a flow module within the same second, same size or not
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8", PYTHONDONTWRITEBYTECODE="1")
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
+    return env
+
+
+def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
+    """``retriever ARGS`` as users run it; ``subprocess.run`` waits for (and on timeout kills) it."""
+    return subprocess.run([str(RETRIEVER), *map(str, args)], check=False, capture_output=True, text=True, cwd=cwd or ROOT,
+                          env=cli_env(pythonpath), timeout=120)
+
+
+def assert_cli_error(result: subprocess.CompletedProcess, message: str, hint: str | None = None) -> None:
+    """Exit status 1, ``error: …`` first on stderr, the ``hint: …`` line if given, no traceback."""
+    assert result.returncode == 1, (result.returncode, result.stdout, result.stderr)
+    assert result.stderr.startswith("error: "), result.stderr
+    assert re.search(message, result.stderr, re.MULTILINE), result.stderr
+    if hint is not None:
+        assert re.search(r"^(    )?hint: " + hint, result.stderr, re.MULTILINE), result.stderr
+    assert "Traceback" not in result.stderr + result.stdout
+    assert "run with --debug" not in result.stderr, "a LogError must not look like an unexpected exception"
+
+
+def records(data: bytes) -> list[tuple[int, int, int]]:
+    """``(opcode, offset, length)`` of every top-level MCAP record, read from the raw bytes."""
+    found, pos = [], MAGIC_LEN
+    while pos + 9 <= len(data):
+        opcode, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
+        found.append((opcode, pos, length))
+        pos += 9 + length
+        if opcode == 0x02:  # footer
+            break
+    return found
+
+
+def chunks(data: bytes) -> list[tuple[int, int]]:
+    """``(offset, length)`` of every chunk record."""
+    return [(offset, length) for opcode, offset, length in records(data) if opcode == CHUNK]
+
+
+def chunk_payload_offset(data: bytes, chunk_offset: int) -> int:
+    """Where a chunk's compressed records start (after start/end time, sizes, CRC, compression)."""
+    pos = chunk_offset + 9 + 8 + 8 + 8 + 4
+    compression_len = struct.unpack_from("<I", data, pos)[0]
+    return pos + 4 + compression_len + 8
+
+
+def flip(path: Path, offset: int, out: Path) -> Path:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    out.write_bytes(bytes(data))
+    return out
+
+
+def cut(path: Path, size: int, out: Path) -> Path:
+    out.write_bytes(path.read_bytes()[:size])
+    return out

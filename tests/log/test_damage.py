@@ -1,0 +1,431 @@
+"""Bad logs: not MCAP, missing, truncated, corrupted, or written by code that has since changed.
+Each is a ``LogError`` with a hint through the API, and ``error: …`` with exit status 1 and no
+traceback through the CLI; ``retriever log recover`` salvages what can be salvaged."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import secrets
+import sys
+from pathlib import Path
+
+import pytest
+
+from retriever import LogError, read_log
+from retriever._loading import load_pipeline
+from retriever.backends.inproc import InprocSession
+from retriever.log import LogWriter, recover, replay, resim
+from tests.log.helpers import (
+    QUICKSTART,
+    assert_cli_error,
+    chunk_payload_offset,
+    chunks,
+    cli,
+    cut,
+    flip,
+)
+
+RECOVER_HINT = r"`retriever log recover .*` writes a readable copy of everything before the damage"
+DAMAGED = r"cannot be read: (it ends in the middle of a record|a record cannot be parsed|its last bytes are not the " \
+          r"MCAP magic|a CRC check failed)"
+
+
+def _quickstart_log(path: Path, duration: float):
+    pipe = load_pipeline(str(QUICKSTART))
+    pipe.reset()
+    try:
+        return pipe.run(duration=duration, log=path)
+    finally:
+        pipe.reset()
+
+
+@pytest.fixture(scope="module")
+def one_chunk(tmp_path_factory) -> Path:
+    """A complete 5 s quickstart log: its messages are one chunk, then indexes and summary."""
+    path = tmp_path_factory.mktemp("one") / "quickstart.mcap"
+    _quickstart_log(path, 5.0)
+    assert len(chunks(path.read_bytes())) == 1
+    return path
+
+
+@pytest.fixture(scope="module")
+def many_chunks(tmp_path_factory) -> Path:
+    """A complete 20 s quickstart log cut into many chunks: the writer gets the trace every 500
+    steps and flushes (closes the chunk) on every hand-over."""
+    path = tmp_path_factory.mktemp("many") / "quickstart.mcap"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(InprocSession, "LOG_BATCH", 500)
+        mp.setitem(LogWriter.__init__.__kwdefaults__, "flush_interval", 0.0)
+        _quickstart_log(path, 20.0)
+    assert len(chunks(path.read_bytes())) >= 8
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# Not a log at all
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture
+def text_file(tmp_path: Path) -> Path:
+    path = tmp_path / "notes.mcap"
+    path.write_text("these are my notes about the run, not a log\n", encoding="utf-8")
+    return path
+
+
+def test_a_text_file_is_not_an_mcap_file(text_file: Path):
+    with pytest.raises(LogError, match=r"notes\.mcap is not an MCAP file \(it does not start with the MCAP magic "
+                                       r"bytes\)\n    hint: retriever reads the \.mcap files written by "):
+        read_log(text_file)
+    with pytest.raises(LogError, match="is not an MCAP file"):
+        read_log(text_file, salvage=True)  # salvaging cannot make a log out of it either
+    with pytest.raises(LogError, match="is not an MCAP file"):
+        recover(text_file)
+
+
+@pytest.mark.parametrize("command", [["replay"], ["replay", "--resim"], ["log", "info"], ["log", "cat"],
+                                     ["log", "recover"]], ids=" ".join)
+def test_cli_on_a_text_file(text_file: Path, command):
+    result = cli(*command, text_file)
+    assert_cli_error(result, r"^error: .*notes\.mcap is not an MCAP file", hint=r"retriever reads the \.mcap files")
+
+
+def test_a_short_text_file_is_not_an_mcap_file(tmp_path: Path):
+    path = tmp_path / "short.mcap"
+    path.write_text("hello\n", encoding="utf-8")
+    with pytest.raises(LogError, match="is not an MCAP file"):
+        read_log(path)
+
+
+def test_a_missing_file(tmp_path: Path):
+    missing = tmp_path / "nope.mcap"
+    with pytest.raises(LogError, match=r"^no such log file: .*nope\.mcap\n    hint: give the path of a \.mcap file"):
+        read_log(missing)
+    with pytest.raises(LogError, match="no such log file"):
+        recover(missing)
+    for command in (["replay"], ["log", "recover"]):
+        assert_cli_error(cli(*command, missing), r"^error: no such log file: .*nope\.mcap$", "give the path")
+
+
+def test_a_directory_is_not_a_log(tmp_path: Path):
+    with pytest.raises(LogError, match=r"cannot open the log .*: Is a directory"):
+        read_log(tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Truncated
+# ---------------------------------------------------------------------------------------------
+CUTS = {"last byte": lambda n: n - 1, "final magic": lambda n: n - 8, "inside the summary": lambda n: n - 100,
+        "halfway": lambda n: n // 2, "inside the header": lambda n: 20}
+
+
+@pytest.mark.parametrize("where", CUTS)
+def test_a_truncated_log_is_refused_with_a_recover_hint(one_chunk: Path, tmp_path: Path, where):
+    torn = cut(one_chunk, CUTS[where](one_chunk.stat().st_size), tmp_path / "torn.mcap")
+    with pytest.raises(LogError, match=DAMAGED + r".*\n    hint: " + RECOVER_HINT):
+        read_log(torn)
+    salvaged = read_log(torn, salvage=True)
+    assert salvaged.damage and "messages read before it" in salvaged.damage
+    assert salvaged.complete == (where in ("last byte", "final magic"))  # complete: the footer was read
+
+
+@pytest.mark.parametrize("where", ["last byte", "halfway"])
+def test_cli_on_a_truncated_log(one_chunk: Path, tmp_path: Path, where):
+    torn = cut(one_chunk, CUTS[where](one_chunk.stat().st_size), tmp_path / "torn.mcap")
+    assert_cli_error(cli("replay", torn), r"^error: .*torn\.mcap " + DAMAGED, hint=RECOVER_HINT)
+
+
+def test_cli_log_info_on_a_truncated_log(one_chunk: Path, tmp_path: Path):
+    torn = cut(one_chunk, one_chunk.stat().st_size - 100, tmp_path / "torn.mcap")
+    assert_cli_error(cli("log", "info", torn), r"^error: .*torn\.mcap " + DAMAGED, hint=RECOVER_HINT)
+
+
+# ---------------------------------------------------------------------------------------------
+# Corrupted: one flipped byte inside a chunk
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("where", [0.1, 0.5, 0.9])
+def test_a_flipped_byte_inside_a_chunk_is_detected(one_chunk: Path, tmp_path: Path, where):
+    data = one_chunk.read_bytes()
+    (offset, length), = chunks(data)
+    start = chunk_payload_offset(data, offset)
+    damaged = flip(one_chunk, start + int((offset + 9 + length - start) * where), tmp_path / "flipped.mcap")
+    with pytest.raises(LogError, match=r"cannot be read: (a CRC check failed|a record cannot be parsed).*\n"
+                                       r"    hint: " + RECOVER_HINT):
+        read_log(damaged)
+    assert read_log(damaged, salvage=True).messages == [], "nothing of the damaged chunk may be kept"
+
+
+def test_cli_on_a_flipped_byte(one_chunk: Path, tmp_path: Path):
+    data = one_chunk.read_bytes()
+    (offset, length), = chunks(data)
+    damaged = flip(one_chunk, offset + length // 2, tmp_path / "flipped.mcap")
+    assert_cli_error(cli("replay", damaged), r"^error: .*flipped\.mcap cannot be read: "
+                                             r"(a CRC check failed|a record cannot be parsed)", hint=RECOVER_HINT)
+
+
+def test_salvaging_a_corrupt_chunk_keeps_the_chunks_before_it(many_chunks: Path, tmp_path: Path):
+    """A flipped byte in the third chunk: the first two chunks' messages are kept, byte for byte,
+    and recover writes them into a log that replays."""
+    original = read_log(many_chunks)
+    data = many_chunks.read_bytes()
+    third, length = chunks(data)[2]
+    damaged = flip(many_chunks, third + 9 + length // 2, tmp_path / "flipped.mcap")
+    with pytest.raises(LogError, match=r"cannot be read: (a CRC check failed|a record cannot be parsed)"):
+        read_log(damaged)
+    salvaged = read_log(damaged, salvage=True)
+    kept = len(salvaged.messages)
+    assert 0 < kept < len(original.messages)
+    assert [_fields(m) for m in salvaged.messages] == [_fields(m) for m in original.messages[:kept]]
+    result = recover(damaged, tmp_path / "flipped.recovered.mcap")
+    assert result.messages == kept
+    assert replay(read_log(result.output)).identical
+
+
+# ---------------------------------------------------------------------------------------------
+# Recover
+# ---------------------------------------------------------------------------------------------
+def _fields(m):
+    return (m.channel_id, m.log_time, m.publish_time, m.sequence, bytes(m.data))
+
+
+def _by_topic(log) -> dict[str, list[tuple]]:
+    """Each topic's messages in file order (log_time, publish_time, sequence, data)."""
+    topics = {c.id: c.topic for c in log.channels.values()}
+    found: dict[str, list[tuple]] = {}
+    for m in log.messages:
+        found.setdefault(topics[m.channel_id], []).append(_fields(m)[1:])
+    return found
+
+
+def test_recover_a_truncated_log_gives_a_consistent_prefix(many_chunks: Path, tmp_path: Path):
+    """Cut halfway: the recovered file is complete and readable, holds the IR and metadata, and
+    per channel the first messages of the original, identical; events match the original's."""
+    original = read_log(many_chunks)
+    torn = cut(many_chunks, many_chunks.stat().st_size // 2, tmp_path / "torn.mcap")
+    result = recover(torn)
+    assert result.output == tmp_path / "torn.recovered.mcap"
+    assert 0 < result.events < len(list(original.iter_events()))
+    assert 0 < result.steps < len(list(original.iter_steps()))
+    assert result.damage.startswith(("it ends in the middle of a record", "a record cannot be parsed"))
+
+    recovered = read_log(result.output)
+    assert recovered.complete and recovered.damage is None
+    assert recovered.ir == original.ir
+    assert recovered.run == original.run
+    assert recovered.metadata["retriever.recovered"]["source"] == str(torn)
+    assert {c.topic for c in recovered.channels.values()} == {c.topic for c in original.channels.values()}
+    before, after = _by_topic(original), _by_topic(recovered)
+    for topic, messages in after.items():
+        assert messages == before[topic][:len(messages)], f"{topic} is not a prefix of the original"
+    originals = {e.id: e for e in original.iter_events()}
+    for e in recovered.iter_events():
+        assert e == originals[e.id]
+    assert list(recovered.iter_steps()) == list(original.iter_steps())[:result.steps]
+    assert replay(recovered).identical
+    assert resim(recovered).identical
+
+
+def test_cli_recover_then_replay(many_chunks: Path, tmp_path: Path):
+    torn = cut(many_chunks, many_chunks.stat().st_size * 2 // 3, tmp_path / "torn.mcap")
+    result = cli("log", "recover", torn, "-o", tmp_path / "saved.mcap")
+    assert result.returncode == 0, result.stderr
+    assert "recovered " in result.stdout and f"into {tmp_path / 'saved.mcap'}" in result.stdout
+    assert "next: retriever replay" in result.stdout
+    replayed = cli("replay", tmp_path / "saved.mcap")
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+    assert "identical:" in replayed.stdout
+    resimulated = cli("replay", "--resim", tmp_path / "saved.mcap")
+    assert resimulated.returncode == 0, resimulated.stdout + resimulated.stderr
+    info = cli("log", "info", tmp_path / "saved.mcap")
+    assert info.returncode == 0, info.stderr
+    assert "recovered from" in info.stdout
+
+
+def test_recover_a_complete_log_has_nothing_to_do(one_chunk: Path):
+    result = recover(one_chunk)
+    assert result.output is None and result.damage is None
+    assert not (one_chunk.parent / "quickstart.recovered.mcap").exists()
+    done = cli("log", "recover", one_chunk)
+    assert done.returncode == 0, done.stderr
+    assert "is complete and undamaged; nothing to recover" in done.stdout
+
+
+def test_recover_refuses_to_overwrite_its_input(one_chunk: Path, tmp_path: Path):
+    torn = cut(one_chunk, one_chunk.stat().st_size - 1, tmp_path / "torn.mcap")
+    with pytest.raises(LogError, match=r"recover would overwrite its input .*\n    hint: pass another path with -o"):
+        recover(torn, torn)
+    assert_cli_error(cli("log", "recover", torn, "-o", torn), "recover would overwrite its input",
+                     hint="pass another path with -o")
+
+
+def test_recover_with_nothing_readable(one_chunk: Path, tmp_path: Path):
+    torn = cut(one_chunk, 20, tmp_path / "torn.mcap")
+    with pytest.raises(LogError, match=r"nothing in .*torn\.mcap can be recovered"):
+        recover(torn)
+    assert_cli_error(cli("log", "recover", torn), r"^error: nothing in .*torn\.mcap can be recovered")
+
+
+def test_a_log_cut_inside_a_chunk_header_is_diagnosed_as_torn(one_chunk: Path, tmp_path: Path):
+    """A cut in a chunk's compressed data says "it ends in the middle of a record: its writer was
+    stopped before finishing"; the same tear a few bytes earlier, inside the chunk's length,
+    times, sizes or CRC, claims the file holds a record that cannot be parsed."""
+    data = one_chunk.read_bytes()
+    (offset, length), = chunks(data)
+    in_data = cut(one_chunk, offset + length // 2, tmp_path / "torn.mcap")
+    with pytest.raises(LogError, match="it ends in the middle of a record: its writer was stopped before finishing"):
+        read_log(in_data)
+    misdiagnosed = []
+    for size in range(offset + 1, chunk_payload_offset(data, offset)):
+        torn = cut(one_chunk, size, tmp_path / "torn.mcap")
+        with pytest.raises(LogError) as raised:
+            read_log(torn)
+        if "it ends in the middle of a record" not in str(raised.value):
+            misdiagnosed.append((size - offset, str(raised.value).split(": ", 2)[-1].split(" (near")[0]))
+    assert misdiagnosed == []
+
+
+@pytest.fixture(scope="module")
+def size_chunks(tmp_path_factory) -> Path:
+    """A complete 60 s quickstart log whose chunks close only when they reach the writer's size
+    limit (no timed flushes): several chunks, the last one written by finish()."""
+    path = tmp_path_factory.mktemp("size") / "quickstart.mcap"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(LogWriter.__init__.__kwdefaults__, "flush_interval", 1e9)
+        _quickstart_log(path, 60.0)
+    assert len(chunks(path.read_bytes())) >= 2
+    return path
+
+
+def test_resim_of_a_log_torn_in_its_last_chunk(size_chunks: Path, tmp_path: Path):
+    """A writer killed while finish() writes the last chunk leaves an end record that says the
+    run finished at 60 s; the recovered file is a consistent prefix (replay agrees) but resim
+    trusts end_ns: 'the re-simulation stopped: camera.step() raised StopIteration'."""
+    last, length = chunks(size_chunks.read_bytes())[-1]
+    torn = cut(size_chunks, last + length // 2, tmp_path / "torn.mcap")
+    result = recover(torn)
+    assert result.events > 0
+    recovered = read_log(result.output)
+    assert replay(recovered).identical
+    report = resim(recovered)
+    assert report.identical, report.difference
+
+
+# ---------------------------------------------------------------------------------------------
+# The code changed since the log was written
+# ---------------------------------------------------------------------------------------------
+FLOWS = '''
+from retriever import Flow, Pipeline, Rate, Trigger, io
+
+
+@io
+class Num:
+    x: int
+
+
+class Source(Flow[None, Num]):
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp):
+        self.k += 1
+        return Num(self.k)
+
+
+class {cls}(Flow[Num, Num]):
+    def step(self, inp):
+        return Num({expr})
+
+
+with Pipeline("drift") as pipe:
+    src = Source() @ Rate(hz=10)
+    dbl = {cls}().named("double") @ Trigger()
+    src.then(dbl)
+'''
+
+
+@pytest.fixture
+def drift(tmp_path: Path, monkeypatch):
+    """A flow module in tmp_path (a unique module name), imported and run with a log, in this
+    process; ``(module path, module name, log path)``. Modules and sys.path are restored after."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    name = f"drift_{secrets.token_hex(4)}"
+    module = tmp_path / "flows" / f"{name}.py"
+    module.parent.mkdir()
+    module.write_text(FLOWS.format(cls="Double", expr="inp.x * 2"), encoding="utf-8")
+    log = tmp_path / "drift.mcap"
+    try:
+        trace = load_pipeline(str(module)).run(duration=1.0, log=log)
+        assert [e.value for e in trace.events_of("double", "x")][:3] == [2, 4, 6]
+        yield module, name, log
+    finally:
+        sys.modules.pop(name, None)
+
+
+def _rewrite(module: Path, name: str, text: str | None) -> None:
+    """Change (or, with None, delete) the module, and forget the imported one."""
+    if text is None:
+        module.unlink()
+    else:
+        module.write_text(text, encoding="utf-8")
+    sys.modules.pop(name, None)
+    importlib.invalidate_caches()
+
+
+IR_HINT = r"if a class moved or was renamed, pass the pipeline with --pipeline FILE:ATTR"
+
+
+def test_replay_when_the_flow_class_was_renamed(drift):
+    module, name, log = drift
+    _rewrite(module, name, FLOWS.format(cls="Doubler", expr="inp.x * 2"))
+    with pytest.raises(LogError, match=rf"cannot rebuild the pipeline from the IR in .*drift\.mcap: invalid IR.*\n"
+                                       rf".*node 'double': cannot import {name}:Double \(module '{name}' has no "
+                                       rf"attribute 'Double'\)\n    hint: {IR_HINT}"):
+        replay(read_log(log))
+    with pytest.raises(LogError, match="cannot rebuild the pipeline"):
+        resim(read_log(log))
+    assert_cli_error(cli("replay", log), r"^error: cannot rebuild the pipeline from the IR in .*drift\.mcap",
+                     hint=IR_HINT)
+    assert re.search(rf"node 'double': cannot import {name}:Double", cli("replay", "--resim", log).stderr)
+    # the hint's remedy: the renamed class keeps the node id, so the current file replays the log
+    fixed = cli("replay", log, "--pipeline", f"{module}:pipe")
+    assert fixed.returncode == 0, fixed.stdout + fixed.stderr
+    assert "identical:" in fixed.stdout
+
+
+def test_replay_when_the_flow_module_is_gone(drift):
+    module, name, log = drift
+    _rewrite(module, name, None)
+    with pytest.raises(LogError, match=rf"cannot import {name}:Source \(No module named '{name}'\)(.|\n)*"
+                                       rf"cannot import {name}:Double(.|\n)*hint: {IR_HINT}"):
+        replay(read_log(log))
+    assert_cli_error(cli("replay", log), rf"node 'source': cannot import {name}:Source \(No module named '{name}'\)",
+                     hint=IR_HINT)
+
+
+def test_replay_with_a_pipeline_that_lacks_the_logged_nodes(drift):
+    _, _, log = drift
+    assert_cli_error(cli("replay", log, "--pipeline", f"{QUICKSTART}:pipe"),
+                     r"has steps of node\(s\) double, source, which pipeline 'quickstart' does not have",
+                     hint="replay with the pipeline that wrote the log")
+
+
+def test_replay_when_a_step_changed_reports_the_divergence(drift):
+    module, name, log = drift
+    _rewrite(module, name, FLOWS.format(cls="Double", expr="inp.x * 2 + 1"))
+    report = replay(read_log(log))
+    assert not report.identical
+    assert report.nodes["double"].divergent == report.nodes["double"].replayed == 10
+    assert report.nodes["source"].replayed == 0
+    first = report.divergences[0]
+    assert (first.node, first.port, first.tag, first.what) == ("double", "x", (0, 1), "value")
+    assert (first.logged, first.replayed) == (2, 3)
+    assert not resim(read_log(log)).identical
+
+    result = cli("replay", log)
+    assert result.returncode == 1
+    assert "Traceback" not in result.stdout + result.stderr
+    assert re.search(r"DIVERGED: 10 of 10 replayed steps differ\. First:\n\s+double\.x at tick t=0\.000000000s m=1: "
+                     r"value differs\n\s+logged:\s+2\n\s+replayed:\s+3", result.stdout), result.stdout
+    resimulated = cli("replay", "--resim", log)
+    assert resimulated.returncode == 1
+    assert "DIVERGED" in resimulated.stdout and "node='double'" in resimulated.stdout

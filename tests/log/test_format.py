@@ -1,0 +1,432 @@
+"""The MCAP event log's format: a golden small log read with plain ``mcap``, exact value round
+trips through a real log, and the logged trace equal to the live one."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import struct
+import subprocess
+import sys
+import warnings
+from itertools import count
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from retriever import LogError, RetrieverWarning, read_log
+from retriever._loading import load_pipeline
+from retriever.codec import Encoder, packb
+from retriever.log import replay, resim
+from tests.log import log_flows
+from tests.log.helpers import CHUNK, GOLDEN, QUICKSTART, ROOT, cli, records
+from tests.log.plain_mcap import decoded_records, digest, read_plain, unpack
+
+GOLDEN_LOG = GOLDEN / "small_log.json"
+SMALL_TOPICS = {"data/counter/k", "data/counter/level", "data/counter/pose", "data/accumulate/total",
+                "data/accumulate/window", "data/tally/count", "steps"}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """The golden pipeline run 0.5 s with ``log=``: ``(path, live trace)``."""
+    path = tmp_path_factory.mktemp("small") / "small.mcap"
+    trace = log_flows.build_small().run(duration=0.5, log=path)
+    return path, trace
+
+
+@pytest.fixture(scope="module")
+def small_plain(small):
+    return read_plain(small[0])
+
+
+# ---------------------------------------------------------------------------------------------
+# The golden small log, read with mcap + msgpack only
+# ---------------------------------------------------------------------------------------------
+def test_small_log_is_a_valid_mcap_file_with_the_retriever_profile(small_plain):
+    """Header profile, CRCs (chunks, data section, summary), one channel per port plus steps."""
+    assert small_plain["profile"] == "retriever"
+    assert small_plain["library"].startswith("retriever ")
+    assert small_plain["summary_crc_ok"], "the footer's summary CRC does not match the summary section"
+    channels = small_plain["channels"]
+    assert {c.topic for c in channels.values()} == SMALL_TOPICS
+    assert len(channels) == len(SMALL_TOPICS), "one channel per topic"
+    for c in channels.values():
+        assert c.message_encoding == "msgpack"
+        assert c.schema_id == 0
+        if c.topic != "steps":
+            _, node, port = c.topic.split("/")
+            assert (c.metadata["node"], c.metadata["port"]) == (node, port)
+    types = {c.topic: c.metadata.get("type") for c in channels.values()}
+    assert types["data/counter/pose"] == "Labelled"
+    assert types["data/counter/k"] == "int"
+    assert types["data/tally/count"] == ""  # an untyped port
+
+
+def test_message_counts_and_statistics(small, small_plain):
+    """5 readings (×3 ports), 3 summaries (×2 ports), 2 tallies, one step record per tick; the
+    summary's statistics agree with what the data section holds."""
+    _, trace = small
+    by_topic: dict[str, int] = {}
+    for topic, _ in small_plain["messages"]:
+        by_topic[topic] = by_topic.get(topic, 0) + 1
+    assert by_topic == {"data/counter/k": 5, "data/counter/level": 5, "data/counter/pose": 5,
+                        "data/accumulate/total": 3, "data/accumulate/window": 3, "data/tally/count": 1,
+                        "steps": 11}
+    assert sum(by_topic.values()) - by_topic["steps"] == len(trace.events)
+    assert by_topic["steps"] == len(trace.steps)
+    stats = small_plain["statistics"]
+    ids = {c.topic: c.id for c in small_plain["channels"].values()}
+    assert stats.message_count == sum(by_topic.values())
+    assert stats.channel_message_counts == {ids[t]: n for t, n in by_topic.items()}
+    assert stats.channel_count == len(SMALL_TOPICS)
+    assert (stats.attachment_count, stats.metadata_count) == (1, 2)
+    assert stats.message_start_time == 0
+    assert stats.message_end_time == max(m.log_time for _, m in small_plain["messages"])
+
+
+def test_events_log_time_is_tag_time_sequence_is_seq_data_is_microstep_value(small, small_plain):
+    """Each event message, in trace order: log_time = tag time, sequence = seq, publish_time =
+    the wall clock it was published at, data = msgpack ``[microstep, value]`` with the value in
+    the codec's encoding."""
+    _, trace = small
+    events = [(topic, m) for topic, m in small_plain["messages"] if topic != "steps"]
+    assert len(events) == len(trace.events)
+    for (topic, m), e in zip(events, trace.events):
+        assert topic == f"data/{e.node}/{e.port}"
+        assert (m.log_time, m.sequence, m.publish_time) == (e.tag[0], e.seq, e.publish_ns)
+        assert m.data == b"\x92" + msgpack.packb(e.tag[1]) + packb(e.value), (e, m.data)
+        microstep, _ = unpack(m.data)
+        assert microstep == e.tag[1]
+
+
+def test_step_records(small, small_plain):
+    """Each step message: log_time = tick time, sequence = step index, publish_time = wall start,
+    data = ``[node, microstep, consumed, produced, status, detail, wall_ns]``."""
+    _, trace = small
+    steps = [m for topic, m in small_plain["messages"] if topic == "steps"]
+    assert [m.sequence for m in steps] == list(range(len(trace.steps)))
+    for m, s in zip(steps, trace.steps):
+        assert (m.log_time, m.publish_time) == (s.tag[0], s.wall_start_ns)
+        node, microstep, consumed, produced, status, detail, wall_ns = unpack(m.data)
+        assert (node, microstep, status, detail, wall_ns) == (s.node, s.tag[1], s.status, s.detail, s.wall_ns)
+        assert consumed == {port: [list(i) for i in ids] for port, ids in s.consumed.items()}
+        assert produced == [list(i) for i in s.produced]
+    tally = [unpack(m.data) for m in steps if unpack(m.data)[0] == "tally"]
+    assert [t[2] for t in tally] == [{"total": [["accumulate", "total", 0]]}, {"total": [["accumulate", "total", 1]]},
+                                     {"total": [["accumulate", "total", 2]]}]
+
+
+def test_ir_attachment_and_run_metadata(small, small_plain):
+    """The IR attachment is the pipeline's IR JSON; retriever.run comes first, retriever.end last."""
+    _, trace = small
+    attachment = small_plain["attachments"]["pipeline.ir.json"]
+    assert attachment.media_type == "application/json"
+    ir = json.loads(bytes(attachment.data))
+    assert [n["id"] for n in ir["nodes"]] == ["counter", "accumulate", "tally"]
+    assert [n["type"] for n in ir["nodes"]] == ["tests.log.log_flows:Counter", "tests.log.log_flows:Accumulate",
+                                                "tests.log.log_flows:Tally"]
+    assert ir == json.loads(log_flows.build_small().build_ir().to_json())
+
+    names = [name for name, _ in small_plain["metadata"]]
+    assert names == ["retriever.run", "retriever.end"]
+    run, end = (data for _, data in small_plain["metadata"])
+    assert (run["format"], run["pipeline"], run["backend"], run["seeds"]) == ("1", "small_log", "inproc", "{}")
+    assert {"mcap", "msgpack", "numpy", "retriever"} <= set(json.loads(run["packages"]))
+    assert str(ROOT) in json.loads(run["python_path"])  # where tests.log.log_flows was imported from
+    assert int(run["pid"]) == os.getpid()
+    assert isinstance(json.loads(run["command_line"]), list)
+    assert int(run["started_unix_ns"]) <= int(end["finished_unix_ns"])
+    assert (end["status"], end["end_ns"]) == ("finished", "500000000")
+    assert (int(end["events"]), int(end["steps"])) == (len(trace.events), len(trace.steps))
+    stats = json.loads(end["stats"])
+    assert {n: (s["ticks"], s["steps"], s["skips"], s["errors"]) for n, s in stats.items()} == {
+        "counter": (5, 5, 0, 0), "accumulate": (3, 3, 0, 0), "tally": (3, 3, 0, 0)}
+
+
+def test_small_log_matches_golden_file(small_plain):
+    """Every deterministic field of every record, and a digest of them, against the golden file
+    (regenerate with RETRIEVER_UPDATE_GOLDEN=1 and review the diff)."""
+    found = decoded_records(small_plain)
+    doc = {"digest": digest(found), "records": found}
+    if os.environ.get("RETRIEVER_UPDATE_GOLDEN") == "1":
+        GOLDEN_LOG.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    assert GOLDEN_LOG.exists(), f"{GOLDEN_LOG} is missing; run with RETRIEVER_UPDATE_GOLDEN=1 to create it"
+    golden = json.loads(GOLDEN_LOG.read_text(encoding="utf-8"))
+    assert golden["digest"] == digest(golden["records"]), "the golden file was edited by hand"
+    for key in golden["records"]:
+        assert found[key] == golden["records"][key], (
+            f"{key} of the log changed; if on purpose, regenerate with RETRIEVER_UPDATE_GOLDEN=1 and review the diff")
+    assert doc["digest"] == golden["digest"]
+
+
+def test_a_second_run_writes_the_same_records(small_plain, tmp_path):
+    """Two runs of the same pipeline differ only in wall-clock fields."""
+    path = tmp_path / "again.mcap"
+    log_flows.build_small().run(duration=0.5, log=path)
+    assert decoded_records(read_plain(path)) == decoded_records(small_plain)
+
+
+def test_readable_without_retriever(small):
+    """The reading side needs only mcap and msgpack: it works where importing retriever fails."""
+    code = ("import sys; sys.modules['retriever'] = None\n"
+            "from tests.log.plain_mcap import read_plain, decoded_records, digest\n"
+            f"print(digest(decoded_records(read_plain({str(small[0])!r}))))\n"
+            "assert not any(m == 'retriever' or m.startswith('retriever.') for m in sys.modules if sys.modules[m])\n")
+    done = subprocess.run([sys.executable, "-c", code], check=False, capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == json.loads(GOLDEN_LOG.read_text(encoding="utf-8"))["digest"]
+
+
+def test_end_record_is_written_after_every_message(small):
+    """format.py: ``retriever.end`` is written last, so a file torn before its end holds none.
+    The writer adds it in close() while the last chunk is still open, and finish() writes that
+    chunk after it."""
+    data = small[0].read_bytes()
+    layout = records(data)
+    end_offset = max(offset for opcode, offset, _ in layout if opcode == 0x0C)  # the last metadata record
+    last_chunk = max(offset for opcode, offset, _ in layout if opcode == CHUNK)
+    assert end_offset > last_chunk
+
+
+# ---------------------------------------------------------------------------------------------
+# Values round-trip exactly through a real log
+# ---------------------------------------------------------------------------------------------
+def assert_same(a, b, path="value"):
+    """Type for type, float and array bit for bit."""
+    assert type(a) is type(b), f"{path}: {type(a).__name__} came back as {type(b).__name__}"
+    if isinstance(a, float):
+        assert struct.pack("<d", a) == struct.pack("<d", b), f"{path}: {a!r} != {b!r} bit for bit"
+    elif isinstance(a, np.ndarray):
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), f"{path}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
+        assert np.ascontiguousarray(a).tobytes() == b.tobytes(), f"{path}: array bytes differ"
+    elif isinstance(a, np.generic):
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f"{path}: {a!r} != {b!r}"
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), f"{path}: length {len(a)} != {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{path}[{i}]")
+    elif isinstance(a, dict):
+        assert list(a) == list(b), f"{path}: keys {list(a)} != {list(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{path}[{k!r}]")
+    elif dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            assert_same(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}")
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"
+
+
+DTYPES = ["bool", "int8", "uint8", ">i2", "int32", "uint32", "int64", "uint64", "float16", "float32", ">f8",
+          "float64", "complex128", "<U3", "S2", "datetime64[ms]"]
+big_ints = st.integers(min_value=-(2**150), max_value=2**150)
+ints = st.integers() | big_ints | st.sampled_from([2**63 - 1, 2**63, 2**64 - 1, 2**64, -(2**63), -(2**63) - 1])
+floats = st.floats() | st.sampled_from([-0.0, math.nan, -math.nan, math.inf, -math.inf, 5e-324,
+                                        struct.unpack("<d", struct.pack("<Q", 0x7FF8_0000_0000_0001))[0]])
+
+
+@st.composite
+def arrays(draw):
+    dtype = np.dtype(draw(st.sampled_from(DTYPES)))
+    arr = draw(hnp.arrays(dtype, hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=3)))
+    return arr.T if draw(st.booleans()) else arr  # transposed: not C-contiguous
+
+
+leaves = (st.none() | st.booleans() | ints | floats | st.text(max_size=6) | st.binary(max_size=6) | arrays()
+          | st.sampled_from([np.float32(-0.0), np.int64(-(2**63)), np.uint64(2**64 - 1), np.bool_(True)]))
+keys = st.text(max_size=4) | st.integers(min_value=-(2**63), max_value=2**64 - 1) | st.binary(max_size=3)
+
+
+def nested_io(children):
+    points = st.builds(log_flows.Point, floats, floats, st.lists(children, max_size=2).map(tuple))
+    return st.builds(log_flows.Labelled, st.text(max_size=4), points, st.dictionaries(keys, children, max_size=2))
+
+
+values = st.recursive(leaves, lambda children: (st.lists(children, max_size=3)
+                                                | st.lists(children, max_size=3).map(tuple)
+                                                | st.dictionaries(keys, children, max_size=3)
+                                                | nested_io(children)), max_leaves=12)
+top_level = values.filter(lambda v: v is not None)  # None on an untyped port is "no event"
+_file_number = count()
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.lists(top_level, min_size=1, max_size=3))
+def test_values_round_trip_exactly_through_a_log(tmp_path_factory, emitted):
+    """Whatever a source emits comes back from the file equal bit for bit, with the bytes the
+    writer's encoder gives and, once decoded, the codec's canonical bytes; resim agrees."""
+    path = tmp_path_factory.getbasetemp() / f"roundtrip-{next(_file_number)}.mcap"
+    trace = log_flows.build_emit(emitted).run(duration=len(emitted) / 10, log=path)
+    assert len(trace.events) == len(emitted)
+    log = read_log(path)
+    events = list(log.iter_events())
+    assert [(e.node, e.port, e.seq, e.tag) for e in events] == [("emit", "value", k, (k * 100_000_000, 1))
+                                                               for k in range(len(emitted))]
+    encode = Encoder().pack
+    for value, event in zip(emitted, events):
+        back = log.value(event)
+        assert_same(value, back)
+        assert event.raw_value == encode(value)
+        assert packb(back) == packb(value)
+    assert log.trace() == trace
+    assert resim(log).identical
+    path.unlink()
+
+
+def test_special_values_round_trip(tmp_path):
+    """The corner cases named in the codec's promise, each through a real log."""
+    nan_with_payload = struct.unpack("<d", struct.pack("<Q", 0x7FF8_0000_0000_0001))[0]
+    emitted = [
+        -0.0, math.nan, nan_with_payload, -math.inf, 2**200, -(2**64) - 1,
+        np.zeros((0, 3), dtype=">i4"), np.array(7, dtype=np.uint16), np.zeros((2, 0)),
+        {b"k": [1, (2, 3)], 2**70: {"deep": [None, True]}},
+        log_flows.Labelled("l", log_flows.Point(-0.0, math.inf, (np.arange(3), 2**65)), {1: b"\x00"}),
+        [log_flows.Reading(k=1, level=0.5, pose=log_flows.Labelled("p", log_flows.Point(1.0, 2.0)))],
+    ]
+    path = tmp_path / "special.mcap"
+    log_flows.build_emit(emitted).run(duration=len(emitted) / 10, log=path)
+    log = read_log(path)
+    events = list(log.iter_events())
+    assert len(events) == len(emitted)
+    for value, event in zip(emitted, events):
+        assert_same(value, log.value(event))
+
+
+@pytest.mark.parametrize("value", [np.array(1.5), np.zeros(7, dtype=np.uint8), np.array(-1, dtype=np.int64)],
+                         ids=["0-d float64", "uint8[7]", "0-d int64"])
+def test_logged_bytes_are_the_codec_encoding(tmp_path, value):
+    """format.py: an event's value is msgpack 'in retriever.codec'; for arrays whose payload is
+    16 bytes the log holds ``c7 10 01 …`` while ``codec.packb`` gives ``d8 01 …``."""
+    path = tmp_path / "array.mcap"
+    log_flows.build_emit([value]).run(duration=0.1, log=path)
+    (event,) = read_log(path).iter_events()
+    assert event.raw_value == packb(value)
+
+
+def test_replay_of_deep_microsteps_with_arrays_is_identical(tmp_path):
+    """At microstep >= 128 the writer packs ``[microstep, value]`` with msgpack's own packer
+    (fixext16 for a 0-d float64 array), while replay re-encodes the value with ``Encoder.pack``
+    (ext8): the same array compares unequal ("logged: array(24.)  replayed: array(24.)")."""
+    path = tmp_path / "deep.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        trace = log_flows.build_deep(hops=150).run(duration=1, log=path)
+    assert max(e.tag[1] for e in trace.events) > 128
+    log = read_log(path)
+    assert log.trace() == trace
+    report = replay(log)
+    assert report.identical, "\n".join(map(str, report.divergences[:1]))
+
+
+def test_deep_microsteps_below_128_replay_identically(tmp_path):
+    """The same graph kept under microstep 128 replays identically (the control for the test above)."""
+    path = tmp_path / "shallow.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        trace = log_flows.build_deep(hops=100).run(duration=1, log=path)
+    assert 100 <= max(e.tag[1] for e in trace.events) < 128
+    log = read_log(path)
+    assert log.trace() == trace
+    assert replay(log).identical
+    assert resim(log).identical
+
+
+def test_event_at_microstep_beyond_127_is_read_back(tmp_path):
+    """Microsteps >= 128 take the writer's general ``[microstep, value]`` path; the reader splits it."""
+    path = tmp_path / "deep.mcap"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        trace = log_flows.build_deep(hops=300).run(duration=1, log=path)
+    log = read_log(path)
+    deepest = max(log.iter_events(), key=lambda e: e.tag[1])
+    assert deepest.tag[1] == max(e.tag[1] for e in trace.events) > 255  # a uint16 microstep
+    assert log.trace() == trace
+
+
+# ---------------------------------------------------------------------------------------------
+# The logged trace is the live trace
+# ---------------------------------------------------------------------------------------------
+def _assert_log_is_the_run(path: Path, live) -> None:
+    log = read_log(path)
+    assert log.complete and log.damage is None
+    logged = log.trace()
+    assert logged.first_difference(live) is None
+    assert logged == live
+    assert logged.digest() == live.digest()
+    assert replay(log).identical
+    assert resim(log).identical
+
+
+def test_quickstart_log_trace_equals_live_trace(tmp_path):
+    pipe = load_pipeline(str(QUICKSTART))
+    pipe.reset()
+    live = pipe.run(duration=3.0, log=tmp_path / "quickstart.mcap")
+    assert len(live.events) > 500
+    _assert_log_is_the_run(tmp_path / "quickstart.mcap", live)
+    pipe.reset()
+    assert pipe.run(duration=3.0).digest() == live.digest(), "logging changed the run"
+
+
+@pytest.mark.filterwarnings("ignore::retriever.RetrieverWarning")  # the ping ⇄ pong cycle is instantaneous on purpose
+def test_delay_latency_trigger_and_cycles_log_trace_equals_live_trace(tmp_path):
+    """Edge delay, LET latency (events tagged at a later time, microstep 0), Trigger clocks, a
+    cycle broken by the delay and an instantaneous cycle running several microsteps."""
+    live = log_flows.build_timing().run(duration=3.0, log=tmp_path / "timing.mcap")
+    tags = {(e.node, e.tag[1]) for e in live.events}
+    assert ("mixer", 0) in tags  # latency: published at (t + 0.05 s, 0)
+    assert max(m for node, m in tags if node in ("ping", "pong")) >= 4
+    assert any(s.node == "mixer" and "feedback" in s.consumed for s in live.steps)
+    _assert_log_is_the_run(tmp_path / "timing.mcap", live)
+    log = read_log(tmp_path / "timing.mcap")
+    mixer = [e for e in log.iter_events() if e.node == "mixer"]
+    assert all(e.tag[0] % 50_000_000 == 0 and e.tag[1] == 0 for e in mixer)
+
+
+def test_log_of_the_ir_flows_pipeline_replays(tmp_path):
+    """The IR tests' small pipeline (Window, ActionChunking, Queue, delay, latency, Trigger)."""
+    from tests import ir_flows
+
+    live = ir_flows.build().run(duration=2.0, log=tmp_path / "ir.mcap")
+    _assert_log_is_the_run(tmp_path / "ir.mcap", live)
+
+
+def _assert_cat_shows_two_poses(result) -> None:
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("t=0.000000000s m=1  counter.pose #0  Labelled(label='p1'")
+    assert lines[1].startswith("t=0.100000000s m=1  counter.pose #1  Labelled(label='p2'")
+
+
+def test_log_cat_prints_decoded_events_in_tag_order(small):
+    """``retriever log cat`` decodes @io values through the codec when their class is importable."""
+    _assert_cat_shows_two_poses(cli("log", "cat", small[0], "--node", "counter", "--port", "pose", "--limit", "2",
+                                    pythonpath=ROOT))
+
+
+def test_log_cat_finds_the_value_classes_where_replay_does(small):
+    """The run metadata records where the flow modules were imported from "so a replay on the
+    same machine can import the flow classes again from any working directory"; ``replay`` uses
+    it, ``log cat`` does not: 'cannot decode a tests.log.log_flows:Point: the class cannot be
+    imported (No module named 'tests')'."""
+    _assert_cat_shows_two_poses(cli("log", "cat", small[0], "--node", "counter", "--port", "pose", "--limit", "2"))
+
+
+def test_log_info_on_the_small_log(small):
+    result = cli("log", "info", small[0])
+    assert result.returncode == 0, result.stderr
+    assert "complete" in result.stdout and "small_log" in result.stdout and "finished" in result.stdout
+    assert "data/counter/pose" in result.stdout
+
+
+def test_log_to_a_missing_folder_is_a_log_error(tmp_path):
+    """log= on a folder that does not exist is a LogError at the start, not a traceback at the end."""
+    with pytest.raises(LogError, match=r"cannot create the log .*missing.*\n    hint: pass log= a path"):
+        log_flows.build_small().run(duration=0.1, log=tmp_path / "missing" / "x.mcap")
