@@ -39,8 +39,10 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
-_MESSAGE = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
-_MESSAGE_FIELDS = 2 + 4 + 8 + 8
+#: The head of a Message record: ``MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data),
+#: channel_id, sequence & 0xFFFFFFFF, log_time, publish_time) + data`` is the whole record.
+MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+MESSAGE_FIELDS = 2 + 4 + 8 + 8
 _U32 = 0xFFFFFFFF
 
 
@@ -109,18 +111,24 @@ class McapWriter:
         """Append ``(channel_id, log_time, publish_time, sequence, data)`` messages to the open chunk."""
         if not messages:
             return
-        pack = _MESSAGE.pack
-        self._chunk += b"".join([pack(Opcode.MESSAGE, _MESSAGE_FIELDS + len(data), channel_id, sequence & _U32,
-                                      log_time, publish_time) + data
-                                 for channel_id, log_time, publish_time, sequence, data in messages])
+        pack = MESSAGE_HEAD.pack
+        records = [pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel_id, sequence & _U32, log_time,
+                        publish_time) + data for channel_id, log_time, publish_time, sequence, data in messages]
         times = [m[1] for m in messages]
-        low, high = min(times), max(times)
+        self.add_records(records, min(times), max(times), Counter(m[0] for m in messages))
+
+    def add_records(self, records: list[bytes], start: int, end: int, counts: dict[int, int]) -> None:
+        """Append whole Message records (built with :data:`MESSAGE_HEAD`), whose log times lie in
+        ``[start, end]`` and which ``counts`` counts per channel: the hot path of the log writer."""
+        if not records:
+            return
+        self._chunk += b"".join(records)
         if self._chunk_times is None:
-            self._chunk_times = [low, high]
+            self._chunk_times = [start, end]
         else:
-            self._chunk_times[0] = min(self._chunk_times[0], low)
-            self._chunk_times[1] = max(self._chunk_times[1], high)
-        self._message_counts.update(m[0] for m in messages)
+            self._chunk_times[0] = min(self._chunk_times[0], start)
+            self._chunk_times[1] = max(self._chunk_times[1], end)
+        self._message_counts.update(counts)
         if len(self._chunk) >= self._chunk_size:
             self._close_chunk()
 

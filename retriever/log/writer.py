@@ -9,21 +9,25 @@ from __future__ import annotations
 
 import json
 import time
+from collections import Counter
+from operator import itemgetter
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import msgpack
+from mcap.opcode import Opcode
 
 from ..codec import Encoder
 from ..errors import CodecError, LogError
 from . import format as fmt
-from .mcap_writer import McapWriter
+from .mcap_writer import MESSAGE_FIELDS, MESSAGE_HEAD, McapWriter
 
 if TYPE_CHECKING:
     from ..graph import Graph
     from ..trace import Trace
 
 
+_first, _second, _node_port = itemgetter(0), itemgetter(1), itemgetter(1, 2)
 _HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
 
 
@@ -66,26 +70,39 @@ class LogWriter:
         return channel
 
     def write(self, trace: "Trace") -> None:
-        """Encode the records appended to ``trace`` since the last call; flush if it is time."""
+        """Encode the records appended to ``trace`` since the last call; flush if it is time.
+
+        One comprehension per kind builds whole MCAP message records: this runs for every event
+        and step of a logged run, so it avoids every intermediate object it can.
+        """
         events, steps = trace.raw_events, trace.raw_steps
+        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
         if len(events) > self._events_done:
             new = events[self._events_done:]
             channels, encode = self._channels, self._encode
             try:
-                # [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
-                batch = [(channels.get((node, port)) or self._add_channel(node, port), tag[0], published, seq,
-                          _HEADS[tag[1]] + encode(value) if tag[1] < 128 else encode([tag[1], value]))
-                         for tag, node, port, seq, value, published in new]
+                # data = [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
+                records = [head(op, fields + len(data := _HEADS[tag[1]] + encode(value) if tag[1] < 128
+                                                 else encode([tag[1], value])),
+                                channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
+                                published) + data
+                           for tag, node, port, seq, value, published in new]
             except CodecError:
                 raise self._unencodable(new) from None
-            self._mcap.add_messages(batch)
+            tags = list(map(_first, new))
+            counts = Counter(map(_node_port, new))
+            self._mcap.add_records(records, min(tags)[0], max(tags)[0],
+                                   {channels[key]: n for key, n in counts.items()})
             self._events_done = len(events)
         if len(steps) > self._steps_done:
             pack, channel = self._pack_step, self._steps_channel
-            self._mcap.add_messages([
-                (channel, tag[0], start, index, pack((node, tag[1], consumed, produced, status, detail, wall)))
-                for index, (node, tag, consumed, produced, status, detail, start, wall)
-                in enumerate(steps[self._steps_done:], self._steps_done)])
+            new = steps[self._steps_done:]
+            records = [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                            channel, index & u32, tag[0], start) + data
+                       for index, (node, tag, consumed, produced, status, detail, start, wall)
+                       in enumerate(new, self._steps_done)]
+            tags = list(map(_second, new))
+            self._mcap.add_records(records, min(tags)[0], max(tags)[0], {channel: len(new)})
             self._steps_done = len(steps)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
