@@ -8,7 +8,8 @@ own record classes, and the result is read back by the plain ``mcap`` reader in 
 
 Crash safety comes from the layout: channels, attachments and metadata go straight into the data
 section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
-CRC of its contents) and flushes the file. A killed writer leaves complete chunks followed by at
+CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
+I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it. A killed writer leaves complete chunks followed by at
 most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriever log recover``).
 """
 
@@ -17,6 +18,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from typing import BinaryIO
 
 import zstandard
@@ -52,24 +54,39 @@ class McapWriter:
 
     def __init__(self, stream: BinaryIO, *, profile: str = "", library: str = "", chunk_size: int = 1 << 20):
         self._stream = stream
-        self._offset = 0
-        self._data_crc = 0
         self._chunk_size = chunk_size
         self._compressor = zstandard.ZstdCompressor(level=1)
         self._channels: list[Channel] = []
         self._chunk = bytearray()
         self._chunk_times: list[int] | None = None  # [earliest, latest] log time in the open chunk
-        self._chunk_indexes: list[ChunkIndex] = []
-        self._attachment_indexes: list[AttachmentIndex] = []
-        self._metadata_indexes: list[MetadataIndex] = []
         self._message_counts: Counter[int] = Counter()
         self._start_time: int | None = None
         self._end_time = 0
         self._finished = False
-        self._write(MAGIC)
-        self._write_record(Header(profile=profile, library=library))
+        # Owned by the I/O thread until finish() joins it:
+        self._offset = 0
+        self._data_crc = 0
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._attachment_indexes: list[AttachmentIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix="retriever-log-io")
+        self._failure: BaseException | None = None
+        self._submit(self._write, MAGIC)
+        self._submit(self._write_record, Header(profile=profile, library=library))
 
-    # -- records outside chunks -----------------------------------------------------------
+    # -- the I/O thread -------------------------------------------------------------------
+    def _submit(self, job, *args) -> None:
+        if self._failure is not None:
+            raise self._failure
+        self._io.submit(self._run, job, args)
+
+    def _run(self, job, args) -> None:
+        if self._failure is None:
+            try:
+                job(*args)
+            except BaseException as e:  # reported to the caller at its next call
+                self._failure = e
+
     def _write(self, data: bytes | bytearray) -> None:
         self._stream.write(data)
         self._data_crc = zlib.crc32(data, self._data_crc)
@@ -87,21 +104,27 @@ class McapWriter:
         channel = Channel(id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
                           metadata=dict(metadata), schema_id=0)
         self._channels.append(channel)
-        self._write_record(channel)
+        self._submit(self._write_record, channel)
         return channel.id
 
     def add_attachment(self, name: str, media_type: str, data: bytes, log_time: int = 0, create_time: int = 0) -> None:
         self._close_chunk()  # keep the file in call order: messages added before come first
         record = Attachment(log_time=log_time, create_time=create_time, name=name, media_type=media_type, data=data)
+        self._submit(self._write_attachment, record)
+
+    def _write_attachment(self, record: Attachment) -> None:
         offset, length = self._write_record(record)
         self._attachment_indexes.append(AttachmentIndex(
-            offset=offset, length=length, log_time=log_time, create_time=create_time,
-            data_size=len(data), name=name, media_type=media_type))
+            offset=offset, length=length, log_time=record.log_time, create_time=record.create_time,
+            data_size=len(record.data), name=record.name, media_type=record.media_type))
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._close_chunk()  # keep the file in call order: messages added before come first
-        offset, length = self._write_record(Metadata(name=name, metadata=dict(data)))
-        self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
+        self._submit(self._write_metadata, Metadata(name=name, metadata=dict(data)))
+
+    def _write_metadata(self, record: Metadata) -> None:
+        offset, length = self._write_record(record)
+        self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=record.name))
 
     # -- messages --------------------------------------------------------------------------
     def add_message(self, channel_id: int, log_time: int, publish_time: int, sequence: int, data: bytes) -> None:
@@ -133,17 +156,23 @@ class McapWriter:
             self._close_chunk()
 
     def flush(self) -> None:
-        """Close the open chunk and push everything to the OS: it now survives a kill."""
+        """Close the open chunk and push everything to the OS (as soon as the I/O thread gets
+        there): it then survives a kill."""
         self._close_chunk()
-        self._stream.flush()
+        self._submit(self._stream.flush)
 
     def _close_chunk(self) -> None:
         # No message index records: they are optional in MCAP, readers scan a chunk without them,
         # and they cost 16 uncompressed bytes and a Python-level append per message.
         if not self._chunk:
             return
-        data, (start, end) = bytes(self._chunk), self._chunk_times
+        data, (start, end) = self._chunk, self._chunk_times
         self._chunk, self._chunk_times = bytearray(), None
+        self._start_time = start if self._start_time is None else min(self._start_time, start)
+        self._end_time = max(self._end_time, end)
+        self._submit(self._write_chunk, data, start, end)
+
+    def _write_chunk(self, data: bytearray, start: int, end: int) -> None:
         compressed = self._compressor.compress(data)
         chunk_offset, chunk_length = self._write_record(Chunk(
             message_start_time=start, message_end_time=end, uncompressed_size=len(data),
@@ -152,8 +181,6 @@ class McapWriter:
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
             chunk_length=chunk_length, message_index_offsets={}, message_index_length=0, compression="zstd",
             compressed_size=len(compressed), uncompressed_size=len(data)))
-        self._start_time = start if self._start_time is None else min(self._start_time, start)
-        self._end_time = max(self._end_time, end)
 
     # -- the end ---------------------------------------------------------------------------
     def finish(self) -> None:
@@ -162,6 +189,9 @@ class McapWriter:
             return
         self._finished = True
         self._close_chunk()
+        self._io.shutdown(wait=True)  # every queued write is done: the thread's state is ours now
+        if self._failure is not None:
+            raise self._failure
         self._write_record(DataEnd(data_section_crc=self._data_crc))
         summary_start = self._offset
         summary = RecordBuilder()
