@@ -15,11 +15,10 @@ both sides; the timed logged run includes creating the log (IR, metadata, channe
 it (last chunk, summary, footer). Ratio = best time with logging / best time without.
 
 Log size: the file's bytes per record (events + step records), split into compressed chunks,
-message indexes and the rest; and a separate estimate per event and per step record: each kind's
-MCAP message records (the 31-byte header + payload, rebuilt exactly from the log) compressed on
-their own by the writer's zstd compressor, in pieces of its chunk size cap, plus the 16-byte
-uncompressed message-index entry every message gets. Estimates × counts add up to the file size
-within about 1%.
+message indexes (if the writer wrote any; it no longer does) and the rest; and a separate estimate
+per event and per step record: each kind's MCAP message records (the 31-byte header + payload,
+rebuilt exactly from the log) compressed on their own by the writer's zstd compressor, in pieces of
+its chunk size cap. Estimates × counts add up to the file size within a few percent.
 
 Replay: on the recorded quickstart log, ``read_log`` + ``replay`` (re-execute every non-source
 step, compare bytes) and ``read_log`` + ``resim`` (re-run the graph from the logged sources), each
@@ -69,7 +68,6 @@ TARGET_REPLAY_X = 50.0
 QUICKSTART = ROOT / "examples" / "quickstart.py"
 
 MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
-MESSAGE_INDEX_ENTRY = 16  # (log time, offset) in the chunk's message index, written uncompressed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,12 +147,13 @@ def log_size(path: Path, events: int, steps: int) -> dict:
         payload[kind] += len(m.data)
     probe = McapWriter(io.BytesIO())  # the writer's own compressor and chunk size cap, whatever they are now
     comp, piece = probe._compressor, probe._chunk_size
+    probe.finish()
     out = {"size": size, "per_record": size / (events + steps), "chunks": chunks, "indexes": indexes,
            "other": size - chunks - indexes}
     for kind, data in kinds.items():
         n = events if kind == "event" else steps
         compressed = sum(len(comp.compress(bytes(data[i:i + piece]))) for i in range(0, len(data), piece))
-        out["est_" + kind] = (compressed + MESSAGE_INDEX_ENTRY * n) / n if n else 0.0
+        out["est_" + kind] = compressed / n if n else 0.0
         out["raw_" + kind] = payload[kind] / n if n else 0.0
         out["raw_record_" + kind] = len(data) / n if n else 0.0
     return out
@@ -286,9 +285,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['raw_record_event']:>5.0f} {r['raw_record_step']:>5.0f}")
     print()
     print("B/record = file size / (events + step records), split into the zstd chunks, the message indexes")
-    print(f"(uncompressed, {MESSAGE_INDEX_ENTRY} B per message) and the rest (IR, metadata, channels, summary).")
-    print("est. = one kind's MCAP message records compressed on their own by the writer's zstd compressor, plus")
-    print("their index entries, per record; payload = mean msgpack bytes per record; record = payload + the 31 B")
+    print("(uncompressed; none since the writer stopped writing them) and the rest (IR, metadata, channels, summary).")
+    print("est. = one kind's MCAP message records compressed on their own by the writer's zstd compressor,")
+    print("per record; payload = mean msgpack bytes per record; record = payload + the 31 B")
     print("MCAP message header (channel, sequence, log time, publish time), before compression.")
     print()
 
