@@ -1,7 +1,7 @@
 """``LogWriter``: stream a run's trace into an MCAP file as the run goes.
 
-A session calls :meth:`LogWriter.write` with its trace every few thousand records; each call
-encodes the records appended since the last one. The chunk is closed and the file flushed at
+A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall time (at most
+every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
 """
 
