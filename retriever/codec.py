@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import sys
 from typing import Any
 
 import msgpack
@@ -94,18 +95,21 @@ def _default(obj: Any) -> Any:
     )
 
 
-def _ext_hook(code: int, data: bytes) -> Any:
+def _ext_hook(code: int, data: bytes, *, import_modules: bool = True) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
         descr, shape, raw = unpackb(data)
         dtype = np.dtype(descr) if isinstance(descr, str) else np.lib.format.descr_to_dtype(descr)
         arr = np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
         return arr[()] if code == EXT_NPSCALAR else arr
     if code == EXT_TUPLE:
-        return tuple(unpackb(data))
+        return tuple(unpackb(data, import_modules=import_modules))
     if code == EXT_BIGINT:
         return int(data.decode())
     if code == EXT_DATACLASS:
-        path, fields = unpackb(data)
+        path, fields = unpackb(data, import_modules=import_modules)
+        if not import_modules and path.partition(":")[0] not in sys.modules:
+            raise CodecError(f"refusing to decode a {path}: its module is not imported here, and a message "
+                             "may not make this process import code")
         try:
             cls = import_type(path)
         except (ImportError, AttributeError) as e:
@@ -203,6 +207,12 @@ def _widen(value: Any) -> Any:
     return value
 
 
-def unpackb(data: bytes) -> Any:
-    """Decode bytes made by :func:`packb`."""
-    return msgpack.unpackb(data, ext_hook=_ext_hook, raw=False, strict_map_key=False)
+def unpackb(data: bytes, *, import_modules: bool = True) -> Any:
+    """Decode bytes made by :func:`packb`. With ``import_modules=False`` (bytes from the network)
+    a dataclass is rebuilt only if its module is already imported."""
+    hook = _ext_hook if import_modules else _ext_hook_no_imports
+    return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
+
+
+def _ext_hook_no_imports(code: int, data: bytes) -> Any:
+    return _ext_hook(code, data, import_modules=False)

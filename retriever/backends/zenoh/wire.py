@@ -1,0 +1,172 @@
+"""The Zenoh runtime's key space and message envelopes (DESIGN.md §7).
+
+Key space, under ``retriever/<namespace>/``::
+
+    data/<node>/<port>     events        [1, [t, m], seq, [wt, wm], producer, port, value]
+    progress/<node>        watermarks    [1, [wt, wm], producer]
+
+A data message is a msgpack array: format version ``1``, the event's tag, its seq (per node and
+port, from 0), the producer's watermark after it (no later event of that producer will have a tag
+``≤`` it), the producer node and port (as in the key), and the value in Retriever's codec (numpy
+arrays, tuples, big ints and dataclasses as msgpack extension types 1–5, see ``codec.py``).
+A plain Zenoh subscriber on ``retriever/<ns>/data/**`` can decode it with any msgpack library.
+
+Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
+runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never
+make the receiving process import a module it has not imported already.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any, NamedTuple
+
+import msgpack
+
+from ...codec import Encoder, unpackb
+from ...errors import CodecError, RetrieverError
+
+WIRE_VERSION = 1
+ROOT = "retriever"
+_CHUNK = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+
+Tag = tuple[int, int]
+
+
+class WireError(RetrieverError):
+    """A message on the key space is not a Retriever message of this version."""
+
+
+def check_chunk(kind: str, name: str) -> str:
+    """A namespace, node or port must be one plain key-expression chunk."""
+    if not isinstance(name, str) or not _CHUNK.fullmatch(name):
+        raise ValueError(f"{kind} {name!r} cannot be a Zenoh key chunk: use letters, digits, '_', '-' and '.'"
+                         " (no '/', '*', '$', '?', '#', and not empty)")
+    return name
+
+
+class KeySpace:
+    """Key expressions of one namespace."""
+
+    def __init__(self, namespace: str):
+        self.namespace = check_chunk("namespace", namespace)
+        self.prefix = f"{ROOT}/{namespace}"
+
+    def data(self, node: str, port: str) -> str:
+        return f"{self.prefix}/data/{node}/{port}"
+
+    def all_data(self) -> str:
+        return f"{self.prefix}/data/**"
+
+    def progress(self, node: str) -> str:
+        return f"{self.prefix}/progress/{node}"
+
+    def all_progress(self) -> str:
+        return f"{self.prefix}/progress/*"
+
+    def status(self, *parts: str) -> str:
+        return "/".join((self.prefix, "status", *parts))
+
+    def workers(self, name: str = "*") -> str:
+        return f"{self.prefix}/workers/{name}"
+
+    def ctl(self, name: str) -> str:
+        return f"{self.prefix}/ctl/{name}"
+
+    def parse_data(self, key: str) -> tuple[str, str] | None:
+        """``(node, port)`` of a data key of this namespace, else None."""
+        head = self.prefix + "/data/"
+        if not key.startswith(head):
+            return None
+        parts = key[len(head):].split("/")
+        return (parts[0], parts[1]) if len(parts) == 2 else None
+
+
+class DataMessage(NamedTuple):
+    tag: Tag
+    seq: int
+    watermark: Tag
+    producer: str
+    port: str
+    value: Any
+
+
+class WireEncoder:
+    """Encodes this process's messages (one per thread: it reuses a packer)."""
+
+    def __init__(self) -> None:
+        self._encode = Encoder().pack
+        self._pack = msgpack.Packer(use_bin_type=True).pack
+
+    def data(self, tag: Tag, seq: int, watermark: Tag, producer: str, port: str, value: Any) -> bytes:
+        head = self._pack([WIRE_VERSION, tag, seq, watermark, producer, port])
+        # The array's header says 7 elements; the head packed 6: patch the count, append the value.
+        return b"\x97" + head[1:] + self._encode(value)
+
+    def progress(self, watermark: Tag, producer: str) -> bytes:
+        return self._pack([WIRE_VERSION, watermark, producer])
+
+
+def _tag(what: str, raw: Any) -> Tag:
+    if (type(raw) is not list or len(raw) != 2 or type(raw[0]) is not int or type(raw[1]) is not int
+            or raw[0] < 0 or raw[1] < 0):
+        raise WireError(f"{what} must be [t_ns, microstep] of two integers >= 0, got {raw!r:.80}")
+    return (raw[0], raw[1])
+
+
+def _fields(data: bytes, count: int, kind: str) -> list:
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise WireError(f"a {kind} message must be bytes, got {type(data).__name__}")
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=False, max_buffer_size=len(data) + 1)
+    unpacker.feed(data)
+    try:
+        size = unpacker.read_array_header()
+    except Exception:
+        raise WireError(f"a {kind} message must be a msgpack array") from None
+    if size != count:
+        raise WireError(f"a {kind} message must be an array of {count}, got {size} elements")
+    fields = []
+    try:
+        for _ in range(count - 1 if kind == "data" else count):
+            fields.append(unpacker.unpack())
+    except Exception as e:
+        raise WireError(f"a {kind} message is not valid msgpack ({type(e).__name__})") from None
+    if fields[0] != WIRE_VERSION:
+        raise WireError(f"a {kind} message of wire format {fields[0]!r:.20}; this process speaks {WIRE_VERSION}")
+    if kind == "data":
+        fields.append(data[unpacker.tell():])  # the value, decoded by the codec
+    elif unpacker.tell() != len(data):
+        raise WireError(f"a {kind} message has trailing bytes")
+    return fields
+
+
+def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
+    """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key."""
+    _, tag, seq, watermark, producer, port, value = _fields(data, 7, "data")
+    tag, watermark = _tag("tag", tag), _tag("watermark", watermark)
+    if type(seq) is not int or seq < 0:
+        raise WireError(f"seq must be an integer >= 0, got {seq!r:.40}")
+    if type(producer) is not str or type(port) is not str:
+        raise WireError("producer and port must be strings")
+    if expected is not None and (producer, port) != expected:
+        raise WireError(f"a message for {producer}.{port} arrived on the key of {expected[0]}.{expected[1]}")
+    if watermark < tag:
+        raise WireError(f"watermark {watermark} is before the event's own tag {tag}")
+    try:
+        value = unpackb(value, import_modules=False)
+    except CodecError as e:
+        raise WireError(f"the value of {producer}.{port} #{seq} cannot be decoded: {e}") from None
+    except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
+        raise WireError(f"the value of {producer}.{port} #{seq} is not valid msgpack ({type(e).__name__})") from None
+    return DataMessage(tag, seq, watermark, producer, port, value)
+
+
+def decode_progress(data: bytes, expected: str | None = None) -> tuple[Tag, str]:
+    """Decode and validate a progress message: ``(watermark, producer)``."""
+    _, watermark, producer = _fields(data, 3, "progress")
+    watermark = _tag("watermark", watermark)
+    if type(producer) is not str:
+        raise WireError("producer must be a string")
+    if expected is not None and producer != expected:
+        raise WireError(f"progress of {producer} arrived on the key of {expected}")
+    return watermark, producer
