@@ -1,0 +1,65 @@
+"""Zenoh sessions the way the embedded runtime opens them: peer mode, loopback, no multicast.
+
+The run's *hub* is the session of the process that starts the run. It listens on
+``tcp/127.0.0.1:7447`` when that port is free, else on a free port, so that worker processes and
+any Zenoh client (a plain ``zenoh`` subscriber watching ``retriever/<ns>/data/**``) can join it.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+
+import zenoh
+
+DEFAULT_PORT = 7447
+LOOPBACK = "127.0.0.1"
+
+
+def endpoint(port: int, host: str = LOOPBACK) -> str:
+    return f"tcp/{host}:{port}"
+
+
+def port_is_free(port: int, host: str = LOOPBACK) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, port))
+        except OSError:
+            return False
+    return True
+
+
+def free_port(host: str = LOOPBACK) -> int:
+    """A TCP port nothing listens on now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def peer_config(*, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Config:
+    """Peer mode, multicast scouting off, explicit endpoints, quick reconnects."""
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
+    return config
+
+
+def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5) -> tuple[zenoh.Session, str]:
+    """Open the run's hub session; returns it and the endpoint it listens on. Close it (``with``)."""
+    port = preferred_port if port_is_free(preferred_port) else free_port()
+    last: Exception | None = None
+    for _ in range(attempts):
+        try:
+            return zenoh.open(peer_config(listen=[endpoint(port)])), endpoint(port)
+        except zenoh.ZError as e:  # taken between the check and the bind: try another
+            last = e
+            port = free_port()
+    raise OSError(f"could not open a Zenoh hub on 127.0.0.1 after {attempts} attempts: {last}")
+
+
+def open_peer(hub_endpoint: str) -> zenoh.Session:
+    """A worker's or client's session, joined to the hub. Close it (``with``)."""
+    return zenoh.open(peer_config(connect=[hub_endpoint]))

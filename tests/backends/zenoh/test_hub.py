@@ -1,0 +1,85 @@
+"""The hub over real Zenoh sessions in separate processes: endpoints, and garbage on the key space.
+
+A client process joins the hub, handshakes, then puts valid data messages and garbage on the
+run's data keys; the hub side decodes each with the wire decoder. Garbage must come out as
+WireError, one per message, and the valid messages around it must arrive intact.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from retriever.backends.zenoh.hub import DEFAULT_PORT, port_is_free, open_hub
+from retriever.backends.zenoh.wire import KeySpace, WireError, decode_data
+
+CLIENT = r"""
+import sys, time
+import zenoh
+from retriever.backends.zenoh.hub import open_peer
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+
+keys, enc = KeySpace("hubtest"), WireEncoder()
+acked = []
+with open_peer(sys.argv[1]) as s:
+    sub = s.declare_subscriber(keys.status("ack"), lambda sample: acked.append(1))
+    deadline = time.monotonic() + 20  # bound only: the hub acks as soon as it hears us
+    seq = 0
+    while not acked:
+        assert time.monotonic() < deadline, "no ack from the hub"
+        s.put(keys.data("client", "hello"), enc.data((seq, 0), seq, (seq, 0), "client", "hello", seq))
+        seq += 1
+        time.sleep(0.05)
+    for garbage in (b"", b"not msgpack at all", b"\x93\x01\x02\x03"):
+        s.put(keys.data("client", "x"), garbage)
+    s.put(keys.data("client", "x"), enc.data((7, 1), 0, (7, 1), "client", "x", {"ok": [1.5]}))
+    sub.undeclare()
+"""
+
+
+def test_hub_prefers_7447_then_a_free_port():
+    was_free = port_is_free(DEFAULT_PORT)
+    first, first_at = open_hub()
+    with first:
+        if was_free:
+            assert first_at == f"tcp/127.0.0.1:{DEFAULT_PORT}"
+        second, second_at = open_hub()  # 7447 is taken now (by us, or by whoever had it)
+        with second:
+            assert second_at != first_at and second_at.startswith("tcp/127.0.0.1:")
+
+
+def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_path):
+    keys = KeySpace("hubtest")
+    good, bad, done = [], [], threading.Event()
+    hub, where = open_hub()
+    with hub:
+        def on_data(sample):
+            try:
+                msg = decode_data(sample.payload.to_bytes(), keys.parse_data(str(sample.key_expr)))
+            except WireError as e:
+                bad.append(str(e))
+                return
+            good.append(msg)
+            if msg.port == "hello" and len(good) == 1:
+                hub.put(keys.status("ack"), b"")
+            if msg.port == "x":
+                done.set()
+
+        sub = hub.declare_subscriber(keys.all_data(), on_data)
+        client = subprocess.Popen([sys.executable, "-c", CLIENT, where], cwd=Path(__file__).resolve().parents[3],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert done.wait(60), "the final valid message never arrived"
+            _, err = client.communicate(timeout=60)
+        finally:
+            if client.poll() is None:
+                client.kill()
+                client.wait()
+        sub.undeclare()
+    assert client.returncode == 0, err
+    assert len(bad) == 3, bad
+    assert any("msgpack array" in b for b in bad) and any("array of 7, got 3" in b for b in bad)
+    last = good[-1]
+    assert (last.producer, last.port, last.tag, last.value) == ("client", "x", (7, 1), {"ok": [1.5]})
