@@ -3,7 +3,6 @@ trips through a real log, and the logged trace equal to the live one."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -26,6 +25,7 @@ from retriever._loading import load_pipeline
 from retriever.codec import Encoder, packb
 from retriever.log import replay, resim
 from tests.log import log_flows
+from tests.test_codec import assert_same
 from tests.log.helpers import CHUNK, GOLDEN, QUICKSTART, ROOT, cli, records
 from tests.log.plain_mcap import decoded_records, digest, read_plain, unpack
 
@@ -199,31 +199,6 @@ def test_end_record_is_written_after_every_message(small):
 # ---------------------------------------------------------------------------------------------
 # Values round-trip exactly through a real log
 # ---------------------------------------------------------------------------------------------
-def assert_same(a, b, path="value"):
-    """Type for type, float and array bit for bit."""
-    assert type(a) is type(b), f"{path}: {type(a).__name__} came back as {type(b).__name__}"
-    if isinstance(a, float):
-        assert struct.pack("<d", a) == struct.pack("<d", b), f"{path}: {a!r} != {b!r} bit for bit"
-    elif isinstance(a, np.ndarray):
-        assert (a.dtype, a.shape) == (b.dtype, b.shape), f"{path}: {a.dtype}{a.shape} != {b.dtype}{b.shape}"
-        assert np.ascontiguousarray(a).tobytes() == b.tobytes(), f"{path}: array bytes differ"
-    elif isinstance(a, np.generic):
-        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f"{path}: {a!r} != {b!r}"
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), f"{path}: length {len(a)} != {len(b)}"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{path}[{i}]")
-    elif isinstance(a, dict):
-        assert list(a) == list(b), f"{path}: keys {list(a)} != {list(b)}"
-        for k in a:
-            assert_same(a[k], b[k], f"{path}[{k!r}]")
-    elif dataclasses.is_dataclass(a):
-        for f in dataclasses.fields(a):
-            assert_same(getattr(a, f.name), getattr(b, f.name), f"{path}.{f.name}")
-    else:
-        assert a == b, f"{path}: {a!r} != {b!r}"
-
-
 DTYPES = ["bool", "int8", "uint8", ">i2", "int32", "uint32", "int64", "uint64", "float16", "float32", ">f8",
           "float64", "complex128", "<U3", "S2", "datetime64[ms]"]
 big_ints = st.integers(min_value=-(2**150), max_value=2**150)
