@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import signal
 import sys
 import traceback
@@ -136,10 +137,6 @@ def _read(path: Path, salvage: bool = False):
         _fail(exc)
 
 
-def _replay_pipeline(target: Optional[str]):
-    return None if target is None else _load(target)
-
-
 @app.command()
 def replay(
     path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log written by run --log / pipe.run(log=).")],
@@ -153,7 +150,7 @@ def replay(
     from .log import replay as replay_log, resim as resim_log
 
     log = _read(path)
-    pipe = _replay_pipeline(pipeline)
+    pipe = None if pipeline is None else _load(pipeline)
     try:
         if resim:
             result = resim_log(log, pipe)
@@ -208,7 +205,7 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
              ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
-             ("command", " ".join(__import__("json").loads(run.get("command_line", "[]"))))]
+             ("command", " ".join(json.loads(run.get("command_line", "[]"))))]
     for key, value in lines:
         _out.print(f"[bold]{key:>12}[/]  {value}", highlight=False)
     table = Table(title="channels", title_justify="left")

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from ..backends.inproc import InprocSession
-from ..codec import Encoder
+from ..codec import Encoder, unpackb
 from ..errors import IRError, LogError, RetrieverWarning, StepError
 from ..pipeline import Pipeline
 from ..time import format_tag
@@ -172,8 +172,6 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode) -> Di
         if tag != original.tag:
             return differs("output tag", format_tag(original.tag), format_tag(tag), port)
         if encode(value) != original.raw_value:
-            from ..codec import unpackb
-
             return differs("value", unpackb(original.raw_value), value, port)
     return None
 
