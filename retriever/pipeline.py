@@ -11,11 +11,14 @@
 from __future__ import annotations
 
 import inspect
+import signal
 import sys
+import threading
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
@@ -180,10 +183,11 @@ class Pipeline:
         if log is not None:
             _open_log(session, log)
         try:
-            if duration is None:
-                session.run_to_end()
-            else:
-                session.advance(session.now_ns + seconds_to_ns(duration))
+            with _stop_between_ticks(session):
+                if duration is None:
+                    session.run_to_end()
+                else:
+                    session.advance(session.now_ns + seconds_to_ns(duration))
         except BaseException as exc:
             _close_log(session, exc)
             raise
@@ -232,6 +236,28 @@ def _user_stacklevel() -> int:
     while frame is not None and frame.f_code.co_filename.startswith(package):
         frame, level = frame.f_back, level + 1
     return level
+
+
+@contextmanager
+def _stop_between_ticks(session: Session) -> Iterator[None]:
+    """While a logged run goes, Ctrl-C and SIGTERM ask it to stop at the next hand-over to the log
+    writer (between two ticks) instead of raising wherever the interpreter happens to be, which
+    could leave a tick half recorded. A second signal stops at once."""
+    if session.log is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request_stop(signum, frame) -> None:
+        if session.stop_requested:
+            raise KeyboardInterrupt
+        session.stop_requested = True
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _open_log(session: Session, path: str | Path) -> None:

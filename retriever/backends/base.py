@@ -53,6 +53,7 @@ class Session(ABC):
         self.log: LogWriter | None = None
         self.logged_to = None  # the path of this run's finished log, if it had one
         self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
+        self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
 
     def seeds(self) -> dict:
         """The seeds this run depends on, recorded in the log's run metadata."""
@@ -60,9 +61,12 @@ class Session(ABC):
 
     def write_log(self) -> int:
         """Hand the trace to the log writer; return how many steps to run before the next
-        hand-over, sized from the recent step rate to come back every ``LOG_HANDOVER_S``."""
+        hand-over, sized from the recent step rate to come back every ``LOG_HANDOVER_S``.
+        Between two ticks the trace is whole: a requested stop happens here."""
         assert self.log is not None
         self.log.write(self.trace)
+        if self.stop_requested:
+            raise KeyboardInterrupt
         now, done = time.monotonic(), len(self.trace.raw_steps)
         last_time, last_done = self._log_mark
         self._log_mark = (now, done)
