@@ -65,6 +65,7 @@ class Edge:
     sync: SyncPolicy
     delay: float = 0.0
     qsize: int = 10
+    deadline: float | None = None  # real time: longest wait for this edge (None: the pipeline's)
 
     @property
     def delay_ns(self) -> int:
@@ -82,6 +83,8 @@ class Graph:
     nodes: dict[str, Node]
     edges: list[Edge]
     max_microsteps: int = 1000
+    realtime: str = "soft"
+    deadline: float = 0.1
     cycles: list[list[str]] = field(default_factory=list)
     instantaneous_cycles: list[list[str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
@@ -257,7 +260,8 @@ def _assign_ids(flows: list[Flow], problems: list[Problem]) -> dict[int, str]:
     return ids
 
 
-def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], max_microsteps: int = 1000) -> Graph:
+def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], max_microsteps: int = 1000,
+                  realtime: str = "soft", deadline: float = 0.1) -> Graph:
     problems: list[Problem] = []
     warnings: list[str] = []
     ids = _assign_ids(flows, problems)
@@ -326,7 +330,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
             f"instantaneous cycle {loop}: every link is a zero-latency, undelayed edge into a trigger port, "
             f"so it runs in microsteps within one instant and stops with an error past "
             f"max_microsteps={max_microsteps} (fix: latency=, delay=, or a Rate clock on the cycle)")
-    return Graph(name, nodes, edges, max_microsteps, cycles, instantaneous, warnings)
+    return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings)
 
 
 def _ports_list(ports: dict[str, PortSpec]) -> str:
@@ -398,7 +402,7 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
                 "Window and Queue deliver lists" if sync.delivers_list else
                 "fix one of the annotations, or route the port elsewhere with map="))
             continue
-        edges.append(Edge(src.id, out_port, dst.id, in_port, sync, decl.delay, decl.qsize))
+        edges.append(Edge(src.id, out_port, dst.id, in_port, sync, decl.delay, decl.qsize, decl.deadline))
     return edges
 
 

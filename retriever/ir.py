@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 from .clocks import clock_from_ir
 from .errors import IRError
+from .time import is_finite_number
 from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
 from .sync import policy_from_ir
 
@@ -20,6 +21,10 @@ if TYPE_CHECKING:
     from .graph import Graph
 
 IR_VERSION = "1.0.0"
+#: the paper's three real-time modes: how a run escalates missed deadlines and overruns
+REALTIME_MODES = ("hard", "soft", "best_effort")
+#: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
+DEFAULT_DEADLINE = 0.1
 
 
 def graph_to_doc(graph: "Graph") -> dict:
@@ -51,6 +56,7 @@ def graph_to_doc(graph: "Graph") -> dict:
             "adapter": e.sync.to_ir(),
             "qsize": e.qsize,
             "delay": e.delay,
+            "deadline": e.deadline,
         }
         for e in graph.edges
     ]
@@ -61,6 +67,8 @@ def graph_to_doc(graph: "Graph") -> dict:
             "validated": True,
             "optimized": False,
             "max_microsteps": graph.max_microsteps,
+            "realtime": graph.realtime,
+            "deadline": graph.deadline,
             "warnings": list(graph.warnings),
         },
         "nodes": nodes,
@@ -237,6 +245,11 @@ def validate_doc(doc: Any, source: str) -> None:
     meta = doc["metadata"]
     if not isinstance(meta.get("name"), str):
         problems.append("metadata.name: expected the pipeline name (a string)")
+    if meta.get("realtime", "soft") not in REALTIME_MODES:
+        problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
+    deadline = meta.get("deadline", DEFAULT_DEADLINE)
+    if not is_finite_number(deadline) or deadline < 0:
+        problems.append(f"metadata.deadline: expected seconds >= 0, got {deadline!r}")
     ids: dict[str, dict] = {}
     for i, n in enumerate(doc["nodes"]):
         where = f"nodes[{i}]"
@@ -292,5 +305,8 @@ def validate_doc(doc: Any, source: str) -> None:
         qsize = e.get("qsize", 10)
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
+        deadline = e.get("deadline")
+        if deadline is not None and (not is_finite_number(deadline) or deadline < 0):
+            problems.append(f"{where}.deadline: expected seconds >= 0 or null, got {deadline!r}")
     if problems:
         raise IRError(source, problems)

@@ -27,7 +27,7 @@ from .codec import import_type
 from .errors import BackendError, IRError, RetrieverWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
-from .ir import IR
+from .ir import DEFAULT_DEADLINE, IR, REALTIME_MODES
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import NS_PER_S, is_finite_number, seconds_to_ns
 from .trace import Trace
@@ -44,18 +44,31 @@ class DeclaredEdge:
     delay: float
     qsize: int
     where: str | None
+    deadline: float | None = None
 
 
 class Pipeline:
     """A graph of flows. Use as a context manager so ``a.then(b)`` knows where to add the edge."""
 
-    def __init__(self, name: str = "pipeline", *, max_microsteps: int = 1000):
+    def __init__(self, name: str = "pipeline", *, max_microsteps: int = 1000, realtime: str = "soft",
+                 deadline: float = DEFAULT_DEADLINE):
+        """``realtime`` and ``deadline`` matter on real-time backends (DESIGN.md §5): ``deadline``
+        is how long a tick waits for an input edge that is not complete up to its tag (edges may
+        override it), ``realtime`` how misses escalate: ``"hard"`` stops the run at the first
+        overrun, deadline miss or incomplete edge; ``"soft"`` applies each flow's ``on_overrun`` /
+        ``on_deadline_miss``; ``"best_effort"`` counts and logs misses and never stops."""
         if not isinstance(name, str) or not name:
             raise ValueError(f"a pipeline name must be a non-empty string, got {name!r}")
         if not isinstance(max_microsteps, int) or max_microsteps < 1:
             raise ValueError(f"max_microsteps must be an integer >= 1, got {max_microsteps!r}")
+        if realtime not in REALTIME_MODES:
+            raise ValueError(f"Pipeline(realtime={realtime!r}): expected one of {', '.join(map(repr, REALTIME_MODES))}")
+        if not is_finite_number(deadline) or deadline < 0:
+            raise ValueError(f"Pipeline(deadline={deadline!r}): deadline must be a finite number of seconds >= 0")
         self.name = name
         self.max_microsteps = max_microsteps
+        self.realtime = realtime
+        self.deadline = deadline
         self._flows: list[Flow] = []
         self._edges: list[DeclaredEdge] = []
         self._graph: Graph | None = None
@@ -81,8 +94,10 @@ class Pipeline:
         return flow
 
     def connect(self, src: Flow, dst: Flow, sync: SyncPolicy | None = None, map: dict[str, str] | None = None,
-                delay: float = 0.0, qsize: int = 10, *, _stacklevel: int = 2) -> Flow:
-        """Add an edge ``src → dst``; returns ``dst``. Ports are matched when the graph compiles."""
+                delay: float = 0.0, qsize: int = 10, deadline: float | None = None, *,
+                _stacklevel: int = 2) -> Flow:
+        """Add an edge ``src → dst``; returns ``dst``. Ports are matched when the graph compiles.
+        ``deadline`` (seconds, real-time backends) overrides the pipeline's for this edge."""
         for role, f in (("source", src), ("destination", dst)):
             if isinstance(f, type):
                 raise TypeError(f"connect(): the {role} must be a Flow instance, got the class {f.__qualname__}\n"
@@ -101,11 +116,14 @@ class Pipeline:
             raise ValueError(f"connect(): delay must be a finite number of seconds >= 0, got {delay!r}")
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             raise ValueError(f"connect(): qsize must be an integer >= 1, got {qsize!r}")
+        if deadline is not None and (not is_finite_number(deadline) or deadline < 0):
+            raise ValueError(f"connect(): deadline must be a finite number of seconds >= 0 or None, got {deadline!r}")
         self.add(src)
         self.add(dst)
         frame = sys._getframe(_stacklevel - 1)
         where = f"{Path(frame.f_code.co_filename).name}:{frame.f_lineno}"
-        self._edges.append(DeclaredEdge(src, dst, sync, dict(map) if map is not None else None, delay, qsize, where))
+        self._edges.append(DeclaredEdge(src, dst, sync, dict(map) if map is not None else None, delay, qsize, where,
+                                        deadline))
         self._changed()
         return dst
 
@@ -123,7 +141,8 @@ class Pipeline:
     def compile(self) -> Graph:
         """Resolve and validate the graph (cached until the pipeline changes)."""
         if self._graph is None:
-            self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps)
+            self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps,
+                                        self.realtime, self.deadline)
             for w in self._graph.warnings:
                 warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=_user_stacklevel())
         return self._graph
@@ -136,7 +155,8 @@ class Pipeline:
     def from_ir(cls, ir: IR) -> "Pipeline":
         """Rebuild a runnable pipeline from an IR alone: import each ``type``, call it with ``params``."""
         meta = ir.doc["metadata"]
-        pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", 1000))
+        pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", 1000), realtime=meta.get("realtime", "soft"),
+                   deadline=meta.get("deadline", DEFAULT_DEADLINE))
         flows: dict[str, Flow] = {}
         problems = []
         with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
@@ -147,7 +167,7 @@ class Pipeline:
         for e in ir.edges:
             src, dst = flows[e["source"]["node"]], flows[e["destination"]["node"]]
             pipe.connect(src, dst, sync=policy_from_ir(e["adapter"]), map={e["source"]["port"]: e["destination"]["port"]},
-                         delay=e.get("delay", 0.0), qsize=e.get("qsize", 10))
+                         delay=e.get("delay", 0.0), qsize=e.get("qsize", 10), deadline=e.get("deadline"))
         return pipe
 
     # -- running -----------------------------------------------------------------------------

@@ -84,7 +84,9 @@ def test_ir_shape_follows_the_design(ir: IR):
     feedback = [e for e in ir.edges if e["destination"] == {"node": "planner", "port": "feedback"}]
     assert feedback == [{"source": {"node": "controller", "port": "position"},
                          "destination": {"node": "planner", "port": "feedback"},
-                         "adapter": {"latest": {"staleness": 0.5}}, "qsize": 10, "delay": 0.02}]
+                         "adapter": {"latest": {"staleness": 0.5}}, "qsize": 10, "delay": 0.02,
+                         "deadline": None}]
+    assert (doc["metadata"]["realtime"], doc["metadata"]["deadline"]) == ("soft", 0.1)
     topo = ir.topology
     assert (topo["node_count"], topo["edge_count"], topo["has_cycle"]) == (4, 4, True)
     assert topo["cycles"] == [["planner", "controller"]]

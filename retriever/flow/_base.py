@@ -342,14 +342,14 @@ class Flow(Generic[In, Out]):
         return self.configure(name=name)
 
     def then(self, other: "Flow", sync=None, map: dict[str, str] | None = None,
-             delay: float = 0.0, qsize: int = 10) -> "Flow":
+             delay: float = 0.0, qsize: int = 10, deadline: float | None = None) -> "Flow":
         """Connect this flow to ``other`` in the current pipeline; returns ``other`` to chain."""
         pipe = _context.current_pipeline()
         if pipe is None:
             raise RuntimeError(
                 f"{type(self).__qualname__}.then(...) was called outside a `with Pipeline(...)` block\n"
                 "    hint: wrap the wiring in `with Pipeline(\"name\") as pipe:` or use pipe.connect(a, b)")
-        pipe.connect(self, other, sync=sync, map=map, delay=delay, qsize=qsize, _stacklevel=3)
+        pipe.connect(self, other, sync=sync, map=map, delay=delay, qsize=qsize, deadline=deadline, _stacklevel=3)
         return other
 
     def __repr__(self) -> str:
