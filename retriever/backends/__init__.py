@@ -10,8 +10,9 @@ _default = "inproc"
 
 def _registry() -> dict[str, Backend]:
     from .inproc import InprocBackend
+    from .zenoh import ZenohBackend
 
-    return {"inproc": InprocBackend()}
+    return {"inproc": InprocBackend(), "zenoh": ZenohBackend()}
 
 
 def available_backends() -> list[str]:

@@ -1,2 +1,27 @@
-"""The real-time backend over Eclipse Zenoh (DESIGN.md §5, §7). So far: its wire format (wire.py) and
-its sessions (hub.py); the runtime itself is the next step."""
+"""The real-time backend over Eclipse Zenoh (DESIGN.md §5, §7): one OS process per flow.
+
+    wire.py     key space and msgpack envelopes
+    hub.py      peer sessions: the run's hub and the workers joining it
+    loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns)
+    worker.py   the worker process around a loop
+    session.py  the coordinator: starts workers, agrees on T0, collects the trace and the log
+"""
+
+from __future__ import annotations
+
+from ...errors import BackendError
+from ...graph import Graph
+from ..base import Backend
+
+
+class ZenohBackend(Backend):
+    name = "zenoh"
+    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet")
+
+    def open(self, graph: Graph, **options: object):
+        unknown = sorted(set(options) - set(self.OPTIONS))
+        if unknown:
+            raise BackendError(f"the zenoh backend takes no options {unknown} (it accepts {', '.join(self.OPTIONS)})")
+        from .session import ZenohSession
+
+        return ZenohSession(graph, **options)

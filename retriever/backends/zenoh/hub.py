@@ -61,5 +61,21 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5) -> tuple[zen
 
 
 def open_peer(hub_endpoint: str) -> zenoh.Session:
-    """A worker's or client's session, joined to the hub. Close it (``with``)."""
-    return zenoh.open(peer_config(connect=[hub_endpoint]))
+    """A worker's or client's session, joined to the hub. Close it (``with``).
+
+    It listens on a free loopback port too: peers do not route for each other, so two workers
+    exchange messages over the direct link that gossip (learning of each other from the hub)
+    opens between them, which is also the fastest path."""
+    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint]))
+
+
+def wait_for_peers(session: zenoh.Session, count: int, timeout: float) -> bool:
+    """Wait until ``session`` has direct links to ``count`` peers; False on timeout."""
+    import time
+
+    give_up = time.monotonic() + timeout
+    while len(session.info.peers_zid()) < count:
+        if time.monotonic() > give_up:
+            return False
+        time.sleep(0.005)
+    return True

@@ -2,14 +2,19 @@
 
 Key space, under ``retriever/<namespace>/``::
 
-    data/<node>/<port>     events        [1, [t, m], seq, [wt, wm], producer, port, value]
-    progress/<node>        watermarks    [1, [wt, wm], producer]
+    data/<node>/<port>     events          [1, [t, m], seq, [ft, fm], producer, port, value]
+    progress/<node>        frontiers       [1, [ft, fm], producer]   (also a queryable: ask for it)
+    status/steps/<node>    step records    [1, node, [record, ...]]
+    status/node/<node>     worker state    [1, node, state, info]
+    ctl/run                control         [1, op, args]
 
-A data message is a msgpack array: format version ``1``, the event's tag, its seq (per node and
-port, from 0), the producer's watermark after it (no later event of that producer will have a tag
-``≤`` it), the producer node and port (as in the key), and the value in Retriever's codec (numpy
-arrays, tuples, big ints and dataclasses as msgpack extension types 1–5, see ``codec.py``).
-A plain Zenoh subscriber on ``retriever/<ns>/data/**`` can decode it with any msgpack library.
+A data message is a msgpack array: format version ``1``, the event's tag (``t`` in integer ns since
+the run's start ``T0``, microstep ``m``), its seq (per node and port, from 0), the producer's
+*frontier* after it (every later event of this producer has a tag ``≥`` it, so a consumer's edge is
+complete up to any tag ``<`` it: the watermark of DESIGN.md §5), the producer node and port (as in
+the key), and the value in Retriever's codec (numpy arrays, tuples, big ints and dataclasses as
+msgpack extension types 1–5, see ``codec.py``). A plain Zenoh subscriber on
+``retriever/<ns>/data/**`` can decode it with any msgpack library.
 
 Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
 runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never
@@ -67,6 +72,15 @@ class KeySpace:
     def status(self, *parts: str) -> str:
         return "/".join((self.prefix, "status", *parts))
 
+    def steps(self, node: str) -> str:
+        return f"{self.prefix}/status/steps/{node}"
+
+    def node_status(self, node: str) -> str:
+        return f"{self.prefix}/status/node/{node}"
+
+    def run_control(self) -> str:
+        return f"{self.prefix}/ctl/run"
+
     def workers(self, name: str = "*") -> str:
         return f"{self.prefix}/workers/{name}"
 
@@ -85,7 +99,7 @@ class KeySpace:
 class DataMessage(NamedTuple):
     tag: Tag
     seq: int
-    watermark: Tag
+    frontier: Tag
     producer: str
     port: str
     value: Any
@@ -98,13 +112,23 @@ class WireEncoder:
         self._encode = Encoder().pack
         self._pack = msgpack.Packer(use_bin_type=True).pack
 
-    def data(self, tag: Tag, seq: int, watermark: Tag, producer: str, port: str, value: Any) -> bytes:
-        head = self._pack([WIRE_VERSION, tag, seq, watermark, producer, port])
+    def data(self, tag: Tag, seq: int, frontier: Tag, producer: str, port: str, value: Any) -> bytes:
+        head = self._pack([WIRE_VERSION, tag, seq, frontier, producer, port])
         # The array's header says 7 elements; the head packed 6: patch the count, append the value.
         return b"\x97" + head[1:] + self._encode(value)
 
-    def progress(self, watermark: Tag, producer: str) -> bytes:
-        return self._pack([WIRE_VERSION, watermark, producer])
+    def progress(self, frontier: Tag, producer: str) -> bytes:
+        return self._pack([WIRE_VERSION, frontier, producer])
+
+    def steps(self, node: str, records: list) -> bytes:
+        """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)``."""
+        return self._pack([WIRE_VERSION, node, records])
+
+    def status(self, node: str, state: str, info: dict) -> bytes:
+        return self._pack([WIRE_VERSION, node, state, info])
+
+    def control(self, op: str, args: dict) -> bytes:
+        return self._pack([WIRE_VERSION, op, args])
 
 
 def _tag(what: str, raw: Any) -> Tag:
@@ -142,31 +166,70 @@ def _fields(data: bytes, count: int, kind: str) -> list:
 
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
     """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key."""
-    _, tag, seq, watermark, producer, port, value = _fields(data, 7, "data")
-    tag, watermark = _tag("tag", tag), _tag("watermark", watermark)
+    _, tag, seq, frontier, producer, port, value = _fields(data, 7, "data")
+    tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
     if type(seq) is not int or seq < 0:
         raise WireError(f"seq must be an integer >= 0, got {seq!r:.40}")
     if type(producer) is not str or type(port) is not str:
         raise WireError("producer and port must be strings")
     if expected is not None and (producer, port) != expected:
         raise WireError(f"a message for {producer}.{port} arrived on the key of {expected[0]}.{expected[1]}")
-    if watermark < tag:
-        raise WireError(f"watermark {watermark} is before the event's own tag {tag}")
+    if frontier < tag:
+        raise WireError(f"frontier {frontier} is before the event's own tag {tag}")
     try:
         value = unpackb(value, import_modules=False)
     except CodecError as e:
         raise WireError(f"the value of {producer}.{port} #{seq} cannot be decoded: {e}") from None
     except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
         raise WireError(f"the value of {producer}.{port} #{seq} is not valid msgpack ({type(e).__name__})") from None
-    return DataMessage(tag, seq, watermark, producer, port, value)
+    return DataMessage(tag, seq, frontier, producer, port, value)
 
 
 def decode_progress(data: bytes, expected: str | None = None) -> tuple[Tag, str]:
-    """Decode and validate a progress message: ``(watermark, producer)``."""
-    _, watermark, producer = _fields(data, 3, "progress")
-    watermark = _tag("watermark", watermark)
+    """Decode and validate a progress message: ``(frontier, producer)``."""
+    _, frontier, producer = _fields(data, 3, "progress")
+    frontier = _tag("frontier", frontier)
     if type(producer) is not str:
         raise WireError("producer must be a string")
     if expected is not None and producer != expected:
         raise WireError(f"progress of {producer} arrived on the key of {expected}")
-    return watermark, producer
+    return frontier, producer
+
+
+class StepBatch(NamedTuple):
+    node: str
+    records: list  # (tag, consumed, produced, status, detail, wall_start_ns, wall_ns)
+
+
+def decode_steps(data: bytes, expected: str | None = None) -> StepBatch:
+    """Decode a batch of step records; ids come back as tuples, as in the trace."""
+    _, node, records = _fields(data, 3, "steps")
+    if type(node) is not str or (expected is not None and node != expected) or type(records) is not list:
+        raise WireError(f"a steps message must carry its node ({expected}) and a list of records")
+    out = []
+    try:
+        for tag, consumed, produced, status, detail, start, wall in records:
+            out.append((_tag("tag", tag),
+                        {port: tuple(map(tuple, ids)) for port, ids in consumed.items()},
+                        tuple(map(tuple, produced)), str(status), detail, int(start), int(wall)))
+    except WireError:
+        raise
+    except Exception as e:
+        raise WireError(f"a steps message of {node} has a malformed record ({type(e).__name__}: {e})") from None
+    return StepBatch(node, out)
+
+
+def decode_status(data: bytes) -> tuple[str, str, dict]:
+    """``(node, state, info)`` of a worker's status message."""
+    _, node, state, info = _fields(data, 4, "status")
+    if type(node) is not str or type(state) is not str or type(info) is not dict:
+        raise WireError("a status message is [1, node, state, info]")
+    return node, state, info
+
+
+def decode_control(data: bytes) -> tuple[str, dict]:
+    """``(op, args)`` of a control message."""
+    _, op, args = _fields(data, 3, "control")
+    if type(op) is not str or type(args) is not dict:
+        raise WireError("a control message is [1, op, args]")
+    return op, args

@@ -79,7 +79,7 @@ def test_progress_round_trip():
     (msgpack.packb([1, [0], 0, [0, 0], "a", "b", 1]), "tag must be"),
     (msgpack.packb([1, [0, -1], 0, [0, 0], "a", "b", 1]), "tag must be"),
     (msgpack.packb([1, [0, 0], -3, [0, 0], "a", "b", 1]), "seq must be"),
-    (msgpack.packb([1, [9, 0], 0, [5, 0], "a", "b", 1]), "watermark .* before the event's own tag"),
+    (msgpack.packb([1, [9, 0], 0, [5, 0], "a", "b", 1]), "frontier .* before the event's own tag"),
     (msgpack.packb([1, [0, 0], 0, [0, 0], 7, "b", 1]), "producer and port must be strings"),
     (msgpack.packb([1, [0, 0], 0, [0, 0], "x", "b", 1]), "for x.b arrived on the key of a.b"),
     (msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b", 1]) + b"\x01", "not valid msgpack"),

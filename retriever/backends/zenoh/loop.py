@@ -1,0 +1,560 @@
+"""One node's real-time loop, inside its worker process (DESIGN.md §3, §5).
+
+    subscriber threads ──(key, bytes)──▶ inbox ──▶ main thread: decode, insert into PortBuffers,
+                                                  advance producer frontiers, schedule trigger ticks
+    main thread:  next tick τ = min(next Rate tick, pending trigger tags)
+                  wait until wall ≥ τ.t and every input edge is complete up to τ (its producer's
+                  frontier > τ), at most the edge's deadline → select inputs, step(), publish
+                  (ASAP: stamped at completion; LET: stamped τ + latency, released then)
+
+Tags are ``(ns since T0, microstep)``. A *frontier* is a producer's promise: every later event of
+it has a tag ``≥`` the frontier. Producers send theirs on data messages, on progress messages
+after ticks whose outputs do not carry it, and on demand: a consumer kept waiting by an idle or
+busy producer asks its ``progress/<node>`` queryable, which answers from the producer's state.
+"""
+
+from __future__ import annotations
+
+import heapq
+import queue
+import sys
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+import zenoh
+
+from ...errors import RetrieverError
+from ...flow._base import make_invoker, make_output_reader
+from ...graph import Node
+from ...sync import MISSING, PortBuffer
+from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress
+
+#: a frontier no event reaches: the producer is finished
+NEVER = (1 << 62, 0)
+#: how long a blocked tick waits for a data or progress message before asking the producer
+PROBE_AFTER_NS = 500_000
+#: how often step records go to the coordinator (and at most how many at once)
+FLUSH_EVERY_NS = 20_000_000
+FLUSH_MAX = 512
+
+#: after asking a producer for its frontier, how long before asking again
+ASK_EVERY_NS = 2_000_000
+
+_DATA, _PROGRESS, _CONTROL = 0, 1, 2
+_TICKED, _DONE = "ticked", "done"
+
+
+class StopRun(RetrieverError):
+    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard"."""
+
+    def __init__(self, message: str, tag: tuple[int, int] | None = None):
+        super().__init__(message)
+        self.tag = tag
+
+
+class InEdge:
+    """One incoming edge: where its events go and how long a tick waits for it."""
+
+    __slots__ = ("src", "src_port", "port", "buf", "delay_ns", "triggers", "deadline_ns")
+
+    def __init__(self, src: str, src_port: str, port: str, buf: PortBuffer, delay_ns: int, triggers: bool,
+                 deadline_ns: int):
+        self.src, self.src_port, self.port, self.buf = src, src_port, port, buf
+        self.delay_ns, self.triggers, self.deadline_ns = delay_ns, triggers, deadline_ns
+
+
+class NodeLoop:
+    """Runs one node in real time from ``T0`` until ``end`` (both HLC Unix ns)."""
+
+    def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
+                 inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None):
+        self.session, self.keys, self.node, self.id = session, keys, node, node.id
+        self.edges = edges
+        self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
+        self.fallbacks = fallbacks
+        self.realtime = realtime
+        settings = node.settings
+        self.latency_ns = settings.latency_ns
+        self.on_error, self.on_overrun, self.on_deadline_miss = (
+            settings.on_error, settings.on_overrun, settings.on_deadline_miss)
+        if realtime == "best_effort":  # misses are counted and logged, never fatal
+            self.on_overrun = "skip"
+            self.on_deadline_miss = "publish_late" if self.on_deadline_miss == "error" else self.on_deadline_miss
+        self.clock = node.clock
+        self.invoke = make_invoker(node.flow, node.spec)
+        self.read = make_output_reader(node.spec)
+        self.encoder = WireEncoder()
+        self.seqs: dict[str, int] = dict(seqs or {})
+        self.ports = list(node.outputs)
+        self.single_port = len(self.ports) == 1
+
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.lock = threading.Lock()  # guards what the progress queryable reads
+        self.frontiers: dict[str, tuple[int, int]] = {e.src: (0, 0) for e in edges}
+        self.last_seq: dict[tuple[str, str], int] = {}
+        self.pending: list[tuple[int, int]] = []  # trigger tick tags (a heap, deduplicated below)
+        self.pending_set: set[tuple[int, int]] = set()
+        self.k = 0
+        self.next_rate: tuple[int, int] | None = None
+        self.running: tuple[int, int] | None = None  # the tag of the tick in progress
+        self.last_tick: tuple[int, int] = (-1, 0)
+        self.held: list[tuple] = []  # LET outputs waiting for release: (tag, port, value, seq)
+        self.t0 = 0
+        self.end = 0
+        self.stopping = False
+
+        self.records: list = []  # step records not yet sent
+        self.last_flush = 0
+        self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
+        self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
+        self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
+        self.last_stamp = 0  # ASAP: output tags never go back
+        self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
+        self._declared: list = []
+
+    # ---------------------------------------------------------------------------------------
+    # Wiring to Zenoh
+    # ---------------------------------------------------------------------------------------
+    def declare(self) -> None:
+        """Subscribe to the inputs, the producers' progress and the run's control; answer
+        progress queries. Call before announcing readiness."""
+        put = self.inbox.put
+        s, keys = self.session, self.keys
+        for src, src_port in sorted({(e.src, e.src_port) for e in self.edges}):
+            self._declared.append(s.declare_subscriber(
+                keys.data(src, src_port),
+                lambda sample, k=(src, src_port): put((_DATA, k, sample.payload.to_bytes()))))
+        for src in sorted(self.frontiers):
+            self._declared.append(s.declare_subscriber(
+                keys.progress(src), lambda sample, k=src: put((_PROGRESS, k, sample.payload.to_bytes()))))
+        self._declared.append(s.declare_subscriber(
+            keys.run_control(), lambda sample: put((_CONTROL, None, sample.payload.to_bytes()))))
+        self._declared.append(s.declare_queryable(keys.progress(self.id), self._answer_progress))
+        self.publishers = {port: s.declare_publisher(keys.data(self.id, port), express=True) for port in self.ports}
+        self.progress_publisher = s.declare_publisher(keys.progress(self.id), express=True)
+
+    def undeclare(self) -> None:
+        for d in [*self._declared, *getattr(self, "publishers", {}).values()]:
+            d.undeclare()
+        self._declared = []
+        self.publishers = {}
+
+    def _answer_progress(self, query: zenoh.Query) -> None:
+        query.reply(self.keys.progress(self.id), WireEncoder().progress(self.frontier(), self.id))
+
+    # ---------------------------------------------------------------------------------------
+    # Time
+    # ---------------------------------------------------------------------------------------
+    def now(self) -> int:
+        """Wall time since T0, ns."""
+        return time.time_ns() - self.t0
+
+    def hlc(self) -> int:
+        """HLC time since T0, ns: what ASAP outputs are stamped with."""
+        return self.session.new_timestamp().get_time_as_ntp64().as_nanos() - self.t0
+
+    def frontier(self) -> tuple[int, int]:
+        """Every later output of this node will have a tag ≥ this (thread-safe)."""
+        with self.lock:
+            lower = self.running or self._next_tick_bound()
+            if lower >= (self.end, 0) and self.running is None:
+                own = NEVER
+            elif self.latency_ns:
+                own = (lower[0] + self.latency_ns, 0)
+            else:
+                own = (max(self.hlc(), lower[0] + 1, self.last_stamp), 0)
+            if self.held:
+                own = min(own, self.held[0][0])
+            return own
+
+    def _next_tick_bound(self) -> tuple[int, int]:
+        """No future tick of this node has a tag below this."""
+        bound = self.next_rate if self.next_rate is not None else NEVER
+        if self.pending:
+            bound = min(bound, self.pending[0])
+        for e in self.edges:
+            if e.triggers:
+                f = self.frontiers[e.src]
+                bound = min(bound, (f[0] + e.delay_ns, 0) if e.delay_ns else f)
+        return bound
+
+    # ---------------------------------------------------------------------------------------
+    # The loop
+    # ---------------------------------------------------------------------------------------
+    def run(self, t0: int, end: int, resume: bool = False) -> None:
+        """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
+        join a run in progress (a restarted flow) at its next Rate tick."""
+        self.t0, self.end = t0, end
+        if self.clock.hz is not None:
+            if resume:
+                now = self.now()
+                while self.clock.tick_time(self.k) < now:
+                    self.k += 1
+            with self.lock:
+                self.next_rate = (self.clock.tick_time(self.k), 0)
+        self.last_flush = self.now()
+        self._publish_progress()
+        while not self.stopping:
+            self._drain()
+            if self.stopping:
+                break
+            now = self.now()
+            self._release(now)
+            wake = self._try_tick(now)
+            if wake is _TICKED:
+                continue  # look again at once
+            if wake is _DONE:
+                break
+            if now - self.last_flush >= FLUSH_EVERY_NS:
+                self.flush()
+            if self.held:
+                wake = min(wake, self.held[0][0][0])
+            self._wait(wake - self.now())
+        self._finish()
+
+    def _wait(self, ns: int) -> None:
+        if ns <= 0:
+            return
+        try:
+            item = self.inbox.get(timeout=min(ns, 100_000_000) / 1e9)
+        except queue.Empty:
+            return
+        self._handle(item)
+
+    def _drain(self) -> None:
+        get = self.inbox.get_nowait
+        while True:
+            try:
+                item = get()
+            except queue.Empty:
+                return
+            self._handle(item)
+
+    def _try_tick(self, now: int) -> int | str:
+        """Run the next tick if it is due and its inputs are complete (or past deadline):
+        ``_TICKED``. Else the wall time (ns since T0) to look again, or ``_DONE``."""
+        with self.lock:
+            tau = self.next_rate
+            if self.pending and (tau is None or self.pending[0] < tau):
+                tau = self.pending[0]
+        if tau is None or tau[0] >= self.end:
+            return self._done_waiting(now)
+        if tau[0] > now:
+            return tau[0]
+        incomplete, wake = self._incomplete(tau, now)
+        if wake is not None:
+            return wake
+        with self.lock:
+            self.running = tau
+            if tau == self.next_rate:
+                self.k += 1
+                self.next_rate = (self.clock.tick_time(self.k), 0)
+            if self.pending and self.pending[0] == tau:
+                heapq.heappop(self.pending)
+                self.pending_set.discard(tau)
+        self._tick(tau, incomplete)
+        return _TICKED
+
+    def _incomplete(self, tau: tuple[int, int], now: int) -> tuple[list[str], int | None]:
+        """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
+        look again if some edge may still complete in time."""
+        late_ports, wake = [], None
+        for e in self.edges:
+            f = self.frontiers[e.src]
+            if e.delay_ns:
+                f = (f[0] + e.delay_ns, 0)
+            if f > tau:
+                continue
+            if now >= tau[0] + e.deadline_ns:
+                late_ports.append(e.port)
+                continue
+            wake = min(tau[0] + e.deadline_ns, wake if wake is not None else tau[0] + e.deadline_ns,
+                       self._ask(e.src, now, tau[0]))
+        return sorted(set(late_ports)), wake
+
+    def _ask(self, src: str, now: int, since: int) -> int:
+        """Ask a producer for its frontier once a wait has lasted ``PROBE_AFTER_NS`` past
+        ``since``, then at most every ``ASK_EVERY_NS``; returns when to look again."""
+        if now < since + PROBE_AFTER_NS:
+            return since + PROBE_AFTER_NS
+        after = self.ask_after.get(src, 0)
+        if now < after:
+            return after
+        self.ask_after[src] = now + ASK_EVERY_NS
+        put = self.inbox.put
+
+        def on_reply(reply: zenoh.Reply, src: str = src) -> None:
+            if reply.ok is not None:
+                put((_PROGRESS, src, reply.ok.payload.to_bytes()))
+            else:
+                put((_PROGRESS, src, None))
+
+        self.session.get(self.keys.progress(src), handler=on_reply, timeout=1.0)
+        return now + ASK_EVERY_NS
+
+    def _done_waiting(self, now: int) -> int | str:
+        """No tick below ``end`` is known: finished once no edge can still trigger one."""
+        if self.held:
+            return self.held[0][0][0]
+        wake: int | None = None
+        end_tag = (self.end, 0)
+        for e in self.edges:
+            if not e.triggers:
+                continue
+            f = self.frontiers[e.src]
+            if e.delay_ns:
+                f = (f[0] + e.delay_ns, 0)
+            if f >= end_tag or now >= self.end + e.deadline_ns:
+                continue
+            again = min(self.end + e.deadline_ns, self._ask(e.src, now, self.end))
+            wake = again if wake is None else min(wake, again)
+        return _DONE if wake is None else wake
+
+    def _overran(self, tau: tuple[int, int], wall: int, done: int) -> None:
+        """After a Rate tick's step outlasted the period: skip the ticks that came due meanwhile
+        but the newest (on_overrun="skip"), or stop (on_overrun="error", realtime="hard")."""
+        clock = self.clock
+        missed = 0
+        with self.lock:
+            while clock.tick_time(self.k + 1) <= done and clock.tick_time(self.k) < self.end:
+                self.k += 1
+                missed += 1
+            self.next_rate = (clock.tick_time(self.k), 0)
+        if not missed:
+            return
+        self.counts["overrun"] += missed
+        self.pending_detail["overrun_skipped"] = self.pending_detail.get("overrun_skipped", 0) + missed
+        if self.realtime == "hard" or self.on_overrun == "error":
+            raise StopRun(f"{self.id} overran its period: the step at t={tau[0] / 1e9:.6f} s took "
+                          f"{wall / 1e6:.3f} ms, {missed} tick(s) missed\n    hint: make step() faster, lower the "
+                          f"rate, or set on_overrun='skip' (realtime='{self.realtime}')", tau)
+
+    # ---------------------------------------------------------------------------------------
+    # Messages
+    # ---------------------------------------------------------------------------------------
+    def _handle(self, item: tuple) -> None:
+        kind, key, data = item
+        if kind == _DATA:
+            try:
+                msg = decode_data(data, expected=key)
+            except WireError as e:
+                self._garbage(key, e)
+                return
+            seq_key = (msg.producer, msg.port)
+            if msg.seq <= self.last_seq.get(seq_key, -1):
+                self._garbage(key, WireError(f"seq {msg.seq} repeats or goes back"))
+                return
+            self.last_seq[seq_key] = msg.seq
+            self._advance_frontier(msg.producer, msg.frontier)
+            for e in self.edges:
+                if e.src == msg.producer and e.src_port == msg.port:
+                    self._deliver(e, msg)
+        elif kind == _PROGRESS:
+            if data is None:
+                return  # the query timed out
+            try:
+                frontier, producer = decode_progress(data, expected=key)
+            except WireError as e:
+                self._garbage(key, e)
+                return
+            self._advance_frontier(producer, frontier)
+        else:
+            try:
+                op, _ = decode_control(data)
+            except WireError as e:
+                self._garbage("ctl/run", e)
+                return
+            if op == "stop":
+                self.stopping = True
+
+    def _advance_frontier(self, producer: str, frontier: tuple[int, int]) -> None:
+        if frontier > self.frontiers[producer]:
+            with self.lock:
+                self.frontiers[producer] = frontier
+
+    def _deliver(self, e: InEdge, msg) -> None:
+        arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
+        if arrival <= self.last_tick:  # a tick at or after this tag already ran without it
+            self.counts["late"] += 1
+            late = self.pending_detail.setdefault("late", {})
+            late[e.port] = late.get(e.port, 0) + 1
+            return
+        e.buf.insert((arrival, msg.producer, msg.port, msg.seq, msg.value))
+        if e.triggers and arrival[0] < self.end and arrival not in self.pending_set:
+            with self.lock:
+                self.pending_set.add(arrival)
+                heapq.heappush(self.pending, arrival)
+
+    def _garbage(self, key: Any, error: WireError) -> None:
+        self.counts["garbage"] += 1
+        if self.counts["garbage"] <= 3:
+            print(f"retriever worker {self.id}: dropped a message on {key}: {error}", file=sys.stderr, flush=True)
+
+    # ---------------------------------------------------------------------------------------
+    # A tick
+    # ---------------------------------------------------------------------------------------
+    def _tick(self, tau: tuple[int, int], incomplete: list[str]) -> None:
+        self.last_tick = tau
+        detail: dict[str, Any] | None = self.pending_detail or None
+        self.pending_detail = {}
+        if incomplete:
+            self.counts["incomplete"] += 1
+            detail = {**(detail or {}), "incomplete": incomplete}
+            if self.realtime == "hard":
+                self._record(tau, {}, (), "error", detail, time.time_ns(), 0)
+                raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
+                              f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
+                              "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
+        values: dict[str, Any] = {}
+        consumed: dict[str, tuple] = {}
+        missing: list[str] | None = None
+        commits: list | None = None
+        dropped: dict[str, int] | None = None
+        for port, buf, policy, spec in self.inputs:
+            value, ids, n_dropped, commit = policy.select(buf, tau)
+            if value is MISSING:
+                if spec.required:
+                    (missing := missing or []).append(port)
+                else:
+                    values[port] = spec.fallback()
+                continue
+            values[port] = value
+            consumed[port] = ids
+            if commit is not None:
+                (commits := commits or []).append((policy, buf, commit))
+            if n_dropped:
+                (dropped := dropped or {})[port] = n_dropped
+        if dropped:
+            detail = {**(detail or {}), **dropped}
+        if missing is not None:
+            self._finish_tick(tau, {}, (), "skipped", {**(detail or {}), "missing": missing}, time.time_ns(), 0)
+            return
+        for policy, buf, commit in commits or ():
+            policy.commit_to(buf, commit)
+        for port, spec in self.fallbacks.items():
+            values[port] = spec.fallback()
+
+        start = time.time_ns()
+        try:
+            outputs = list(self.read(self.invoke(values)))
+        except Exception as exc:
+            wall = time.time_ns() - start
+            error = f"{type(exc).__name__}: {exc}"
+            self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
+                              start, wall)
+            if self.on_error == "stop":
+                raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
+            if self.on_error == "restart":
+                raise RestartFlow(tau) from exc
+            return
+        wall = time.time_ns() - start
+        self._emit(tau, consumed, outputs, detail, start, wall)
+        if self.period_ns and wall > self.period_ns:
+            self._overran(tau, wall, start + wall - self.t0)
+
+    def _emit(self, tau, consumed, outputs, detail, start, wall) -> None:
+        events = [(port, value) for port, value in outputs if value is not None]
+        produced = []
+        seqs = self.seqs
+        if self.latency_ns:
+            tag = (tau[0] + self.latency_ns, 0)
+        else:
+            self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp)
+            tag = (self.last_stamp, 0)
+        batch = []
+        for port, value in events:
+            seq = seqs.get(port, 0)
+            seqs[port] = seq + 1
+            produced.append((self.id, port, seq))
+            batch.append((tag, port, value, seq))
+        status = "ok"
+        if self.latency_ns:
+            finished = start + wall - self.t0
+            if finished > tag[0]:  # the step outlasted its logical execution time
+                self.counts["deadline_miss"] += 1
+                detail = {**(detail or {}), "deadline_miss_ns": finished - tag[0],
+                          "on_deadline_miss": self.on_deadline_miss}
+                if self.realtime == "hard" or self.on_deadline_miss == "error":
+                    self._finish_tick(tau, consumed, (), "error", detail, start, wall)
+                    raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s finished "
+                                  f"{(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: raise latency=, "
+                                  "or set on_deadline_miss='publish_late' or 'drop'", tau)
+                if self.on_deadline_miss == "drop":
+                    for _, port, _, _ in batch:
+                        seqs[port] -= 1
+                    self._finish_tick(tau, consumed, (), "ok", detail, start, wall)
+                    return
+                self._release(finished)  # earlier ticks' held outputs go first
+                self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
+                return
+            with self.lock:
+                for item in batch:
+                    heapq.heappush(self.held, item)
+            self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall)
+            return
+        self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
+
+    def _finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
+        self._record(tau, consumed, produced, status, detail, start, wall)
+        with self.lock:
+            self.running = None
+        self._publish(publish)
+
+    def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
+        self.records.append((tau, consumed, produced, status, detail, start, wall))
+        if len(self.records) >= FLUSH_MAX:
+            self.flush()
+
+    def _release(self, now: int) -> None:
+        """Publish held LET outputs whose tag time has come."""
+        if not self.held or self.held[0][0][0] > now:
+            return
+        batch = []
+        with self.lock:
+            while self.held and self.held[0][0][0] <= now:
+                batch.append(heapq.heappop(self.held))
+        self._publish(batch)
+
+    def _publish(self, batch: list) -> None:
+        """Send events (each but the last carries its own tag as frontier, the last the node's
+        frontier), then a progress message if some consumer's port did not get the frontier."""
+        frontier = self.frontier()
+        data, publishers = self.encoder.data, self.publishers
+        last = len(batch) - 1
+        for i, (tag, port, value, seq) in enumerate(batch):
+            publishers[port].put(data(tag, seq, frontier if i == last else tag, self.id, port, value))
+        if not (batch and self.single_port):
+            self._publish_progress(frontier)
+
+    def _publish_progress(self, frontier: tuple[int, int] | None = None) -> None:
+        self.progress_publisher.put(self.encoder.progress(frontier or self.frontier(), self.id))
+
+    # ---------------------------------------------------------------------------------------
+    # The end
+    # ---------------------------------------------------------------------------------------
+    def _finish(self) -> None:
+        """Release what is held (tags past the end still belong to the run), promise nothing more."""
+        with self.lock:
+            batch = sorted(self.held)
+            self.held = []
+            self.next_rate = None
+            self.pending, self.pending_set = [], set()
+        self._publish(batch)
+        self._publish_progress(NEVER)
+        self.flush()
+
+    def flush(self) -> None:
+        if self.records:
+            self.session.put(self.keys.steps(self.id), self.encoder.steps(self.id, self.records))
+            self.records = []
+        self.last_flush = self.now()
+
+
+class RestartFlow(Exception):
+    """on_error="restart": the worker process exits to be restarted with a fresh flow."""
+
+    def __init__(self, tag: tuple[int, int]):
+        super().__init__(f"restart after the tick at {tag}")
+        self.tag = tag

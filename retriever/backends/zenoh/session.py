@@ -1,0 +1,338 @@
+"""The coordinator of a real-time run on Zenoh: the embedded default (DESIGN.md §5, §7).
+
+    pipe.run(duration=10, backend="zenoh")
+        │ open the hub (tcp/127.0.0.1:7447, else a free port), write SPEC.json (IR + python path)
+        │ start one worker process per node ──▶ each says `ready` on status/node/<node>
+        │ put `start` {T0 = HLC now + margin, end} on ctl/run
+        │ collect data/** (events) and status/steps/* (step records) into the trace and the log
+        ▼ every worker says `done` (or one fails: `stop` the rest) → processes reaped, sessions closed
+
+Tags in the trace and the log are ns since ``T0``, so a run's trace compares with the in-process
+backend's directly. Workers are started and stopped by PID; none outlives the run (each also asks
+the kernel for SIGTERM when its parent dies).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+from ...errors import BackendError, StepError
+from ...graph import Graph
+from ..base import NodeStats, Session
+from .hub import open_hub
+from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_status, decode_steps
+from .worker import EXIT_RESTART
+
+_DATA, _STATUS = 0, 1
+
+
+class RemoteError(Exception):
+    """An exception raised in a worker process, carried back as text."""
+
+
+class ZenohSession(Session):
+    backend_name = "zenoh"
+
+    def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
+                 start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False):
+        super().__init__(graph)
+        _check_deployable(graph)
+        self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
+        self.keys = KeySpace(self.namespace)
+        self.startup_timeout = startup_timeout
+        self.start_margin_ns = round(start_margin * 1e9)
+        self.t0: int | None = None  # HLC Unix ns of the run's start
+        self.end_ns = 0  # the run's end, ns since T0
+        self.counts: Counter = Counter()
+        self._stats = {nid: NodeStats() for nid in graph.nodes}
+        self._workers: dict[str, subprocess.Popen] = {}
+        self._state: dict[str, str] = {}
+        self._failure: tuple[str, dict] | None = None
+        self._ran = False
+        self._closed = False
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._dir = Path(tempfile.mkdtemp(prefix="retriever-run-"))
+        self._encoder = WireEncoder()
+        self._hub = None
+        try:
+            self._hub, self.endpoint = open_hub(hub_port)
+            if not quiet:
+                print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
+                      f"watch it with a subscriber on {self.keys.all_data()}", file=sys.stderr, flush=True)
+            put = self._inbox.put
+            self._subscribers = [
+                self._hub.declare_subscriber(self.keys.all_data(), lambda s: put(
+                    (_DATA, str(s.key_expr), s.payload.to_bytes(), time.time_ns()))),
+                self._hub.declare_subscriber(self.keys.status("**"), lambda s: put(
+                    (_STATUS, str(s.key_expr), s.payload.to_bytes(), 0))),
+            ]
+            self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
+                          "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {}}
+            self._write_spec()
+            for nid in graph.nodes:
+                self._spawn(nid)
+        except BaseException:
+            self.close()
+            raise
+
+    # ---------------------------------------------------------------------------------------
+    # Processes
+    # ---------------------------------------------------------------------------------------
+    def _write_spec(self) -> None:
+        tmp = self._dir / "spec.json.tmp"
+        tmp.write_text(json.dumps(self._spec))
+        tmp.replace(self._dir / "spec.json")
+
+    def _spawn(self, nid: str, join: tuple[int, int] | None = None) -> None:
+        cmd = [sys.executable, "-m", "retriever.backends.zenoh.worker", str(self._dir / "spec.json"), nid]
+        if join is not None:
+            cmd += ["--join", str(join[0]), str(join[1])]
+        with open(self._dir / f"{nid}.stderr", "ab") as err:
+            self._workers[nid] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                                  stderr=err, start_new_session=True)
+        self._state[nid] = "starting"
+
+    def worker_pids(self) -> dict[str, int]:
+        """PIDs of the worker processes, by node (for tests and tools)."""
+        return {nid: p.pid for nid, p in self._workers.items()}
+
+    def _stderr_tail(self, nid: str, lines: int = 15) -> str:
+        try:
+            text = (self._dir / f"{nid}.stderr").read_text(errors="replace").strip().splitlines()
+        except OSError:
+            return ""
+        return "\n".join("        " + line for line in text[-lines:])
+
+    # ---------------------------------------------------------------------------------------
+    # Running
+    # ---------------------------------------------------------------------------------------
+    def advance(self, until_ns: int) -> None:
+        if self._ran:
+            raise BackendError("a real-time run on the zenoh backend cannot be continued: wall time went on\n"
+                               "    hint: give the whole duration to one pipe.run(duration=...), or pipe.reset()")
+        self._ran = True
+        try:
+            self._await(lambda: all(s == "ready" for s in self._state.values()),
+                        time.monotonic() + self.startup_timeout, "start")
+            self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
+            self.end_ns = until_ns
+            self._hub.put(self.keys.run_control(), self._encoder.control("start", {"t0": self.t0, "end": until_ns}))
+            slack = max(self._deadlines(), 1.0) + 10.0
+            self._await(lambda: all(s == "done" for s in self._state.values()),
+                        time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
+        except BaseException:
+            self._stop_workers()
+            raise
+        self.now_ns = until_ns
+        self._reap()
+
+    def _deadlines(self) -> float:
+        deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
+        return max([self.graph.deadline, *deadlines])
+
+    def _await(self, condition, give_up: float, what: str) -> None:
+        """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``."""
+        next_write = time.monotonic()
+        while not condition():
+            try:
+                item = self._inbox.get(timeout=0.02)
+                self._handle(item)
+                while True:
+                    self._handle(self._inbox.get_nowait())
+            except queue.Empty:
+                pass
+            if self._failure is not None:
+                self._raise_failure()
+            self._check_processes()
+            now = time.monotonic()
+            if self.log is not None and now >= next_write:
+                self.write_log()
+                next_write = now + self.LOG_HANDOVER_S
+            if now > give_up:
+                waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
+                raise BackendError(f"zenoh run: worker(s) {', '.join(waiting)} did not {what} in time\n"
+                                   + "".join(f"    {n} stderr:\n{self._stderr_tail(n)}\n" for n in waiting))
+        if self.log is not None:
+            self.write_log()
+
+    def _handle(self, item: tuple) -> None:
+        kind, key, data, received = item
+        if kind == _DATA:
+            expected = self.keys.parse_data(key)
+            try:
+                msg = decode_data(data, expected=expected)
+            except WireError as e:
+                self._garbage(key, e)
+                return
+            self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, received))
+            return
+        if key.startswith(self.keys.status("steps") + "/"):
+            try:
+                batch = decode_steps(data, expected=key.rsplit("/", 1)[1])
+            except WireError as e:
+                self._garbage(key, e)
+                return
+            steps, stats = self.trace.raw_steps, self._stats.get(batch.node)
+            if stats is None:
+                self._garbage(key, WireError(f"step records of an unknown node '{batch.node}'"))
+                return
+            for tag, consumed, produced, status, detail, start, wall in batch.records:
+                steps.append((batch.node, tag, consumed, produced, status, detail, start, wall))
+                stats.ticks += 1
+                if status == "ok":
+                    stats.steps += 1
+                    stats.step_ns += wall
+                elif status == "skipped":
+                    stats.skips += 1
+                else:
+                    stats.errors += 1
+                    stats.step_ns += wall
+            return
+        try:
+            node, state, info = decode_status(data)
+        except WireError as e:
+            self._garbage(key, e)
+            return
+        if node not in self._state:
+            self._garbage(key, WireError(f"status of an unknown node '{node}'"))
+            return
+        for name, n in info.get("counts", {}).items():
+            self.counts[name] += n
+        if state == "failed":
+            self._failure = (node, info)
+        elif state == "restart":
+            self._spec["seqs"][node] = info.get("seqs", {})
+        self._state[node] = state
+
+    def _garbage(self, key: str, error: WireError) -> None:
+        self.counts["garbage"] += 1
+        if self.counts["garbage"] <= 3:
+            print(f"retriever: dropped a message on {key}: {error}", file=sys.stderr, flush=True)
+
+    def _check_processes(self) -> None:
+        for nid, proc in list(self._workers.items()):
+            code = proc.poll()
+            if code is None or self._state[nid] == "done":
+                continue
+            if code == EXIT_RESTART and self._state[nid] == "restart":
+                self._write_spec()
+                self._spawn(nid, join=(self.t0, self.end_ns))
+                self._state[nid] = "ready"
+                continue
+            if self._failure is None:
+                self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
+                                                f"before it finished\n{self._stderr_tail(nid)}"})
+            self._raise_failure()
+
+    def _raise_failure(self) -> None:
+        node, info = self._failure
+        error = info.get("error", "failed")
+        tb = info.get("traceback")
+        if tb:
+            error += "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines())
+        tag = info.get("tag")
+        settings = self.graph.nodes[node].settings if node in self.graph.nodes else None
+        if tag is not None and settings is not None and ".step() raised " in error:
+            raise StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
+        raise BackendError(f"zenoh run stopped: {error}")
+
+    # ---------------------------------------------------------------------------------------
+    # Stopping
+    # ---------------------------------------------------------------------------------------
+    def _stop_workers(self, grace: float = 5.0) -> None:
+        """Ask every live worker to stop, collect what they send, then make sure they are gone."""
+        if self._hub is None:
+            return
+        try:
+            self._hub.put(self.keys.run_control(), self._encoder.control("stop", {}))
+        except Exception:
+            pass
+        give_up = time.monotonic() + grace
+        while time.monotonic() < give_up and any(p.poll() is None for p in self._workers.values()):
+            try:
+                self._handle(self._inbox.get(timeout=0.02))
+            except queue.Empty:
+                pass
+        while True:
+            try:
+                self._handle(self._inbox.get_nowait())
+            except queue.Empty:
+                break
+        self._reap()
+
+    def _reap(self, grace: float = 5.0) -> None:
+        """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
+        procs = list(self._workers.values())
+        deadline = time.monotonic() + grace
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if any(p.poll() is None for p in self._workers.values()):
+            self._stop_workers(grace=2.0)
+        if self._hub is not None:
+            for sub in getattr(self, "_subscribers", ()):
+                sub.undeclare()
+            self._hub.close()
+            self._hub = None
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def stats(self) -> dict[str, NodeStats]:
+        return self._stats
+
+    def seeds(self) -> dict:
+        return {}
+
+
+def _check_deployable(graph: Graph) -> None:
+    problems = [f"  {nid}: {node.rebuild_problem}" for nid, node in graph.nodes.items()
+                if node.rebuild_problem is not None]
+    if problems:
+        raise BackendError("the zenoh backend runs each flow in its own process, rebuilt from the IR (type + "
+                           "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)
+                           + "\n    hint: give the flow msgpack-serializable constructor arguments, "
+                           "or run it in-process: backend=\"inproc\"")
+
+
+def _python_path() -> list[str]:
+    """The import path the flows came from, for the workers (absolute directories only)."""
+    out = []
+    for entry in sys.path:
+        path = os.path.abspath(entry or ".")
+        if os.path.isdir(path) and path not in out:
+            out.append(path)
+    return out
+
+
+def _main_file(graph: Graph) -> str | None:
+    """The ``__main__`` script, when some flow class is defined in it."""
+    if not any(type(n.flow).__module__ == "__main__" for n in graph.nodes.values()):
+        return None
+    path = getattr(sys.modules.get("__main__"), "__file__", None)
+    if path is None:
+        raise BackendError("a flow class is defined in an interactive __main__, which worker processes cannot "
+                           "import\n    hint: move the flow classes to a module or a script file")
+    return os.path.abspath(path)

@@ -1,0 +1,192 @@
+"""A worker process: one flow of a run, rebuilt from the IR, ticking in real time.
+
+    python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END SEQS]
+
+The coordinator (``retriever.backends.zenoh.session``) writes ``SPEC.json`` — the IR, the hub's
+endpoint, the namespace and the Python path the flows were imported from — and starts one worker
+per node. A worker joins the hub, declares its subscriptions, says ``ready`` on
+``status/node/<node>``, and waits for ``start`` (T0 and the end) on ``ctl/run``; ``--join`` skips
+the wait (a flow restarted by ``on_error="restart"`` joins the running run). It exits when its
+node is done, on ``stop``, on SIGTERM, or when its parent dies; its session always closes.
+
+Exit codes: 0 done or stopped, 1 failed (the status message says why), 3 restart requested.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import json
+import os
+import signal
+import sys
+import traceback
+import warnings
+from pathlib import Path
+
+EXIT_FAILED = 1
+EXIT_RESTART = 3
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGTERM this process when its parent dies, so no worker outlives its run."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _import_main(path: str) -> None:
+    """Flows defined in the coordinator's ``__main__`` script: import it the way multiprocessing
+    does (as ``__mp_main__``, so its ``if __name__ == "__main__":`` block does not run)."""
+    spec = importlib.util.spec_from_file_location("__mp_main__", path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot import the main script {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["__mp_main__"] = module
+    spec.loader.exec_module(module)
+    sys.modules["__main__"] = module
+
+
+def build_loop(spec: dict, node_id: str, session):
+    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop."""
+    from ...flow._base import Flow
+    from ...graph import compile_graph
+    from ...ir import DEFAULT_DEADLINE, IR
+    from ...pipeline import _rebuild_node
+    from ...sync import PortBuffer, policy_from_ir
+    from ...time import seconds_to_ns
+    from ..inproc import _AlwaysMissing
+    from .loop import InEdge, NodeLoop
+    from .wire import KeySpace
+
+    ir = IR(spec["ir"], source="the run's IR")
+    meta = ir.doc["metadata"]
+    flows: dict = {}
+    problems: list[str] = []
+    _rebuild_node(ir.node(node_id), flows, problems)
+    if problems:
+        raise RuntimeError("; ".join(problems))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        graph = compile_graph(ir.name, [flows[node_id]], [], meta.get("max_microsteps", 1000),
+                              meta.get("realtime", "soft"), meta.get("deadline", DEFAULT_DEADLINE))
+    node = graph.nodes[node_id]
+    default_deadline = meta.get("deadline", DEFAULT_DEADLINE)
+    buffers: dict[str, PortBuffer] = {}
+    policies: dict = {}
+    edges = []
+    for e in ir.edges:
+        if e["destination"]["node"] != node_id:
+            continue
+        port = e["destination"]["port"]
+        buf = buffers.setdefault(port, PortBuffer())
+        policies[port] = policy_from_ir(e["adapter"])
+        deadline = e.get("deadline")
+        edges.append(InEdge(e["source"]["node"], e["source"]["port"], port, buf, seconds_to_ns(e.get("delay", 0.0)),
+                            node.triggers_on(port),
+                            seconds_to_ns(default_deadline if deadline is None else deadline)))
+    inputs, fallbacks = [], {}
+    for port, port_spec in node.inputs.items():
+        if port in buffers:
+            inputs.append((port, buffers[port], policies[port], port_spec))
+        elif port_spec.required:
+            inputs.append((port, PortBuffer(), _AlwaysMissing, port_spec))
+        else:
+            fallbacks[port] = port_spec
+    if type(node.flow).reset is not Flow.reset:
+        node.flow.reset()  # the paper's flows initialise their state in reset()
+    return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
+                    realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id))
+
+
+def main(argv: list[str]) -> int:
+    _die_with_parent()
+    if os.getppid() == 1:
+        return EXIT_FAILED  # the coordinator is already gone
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us
+    spec_path, node_id = argv[0], argv[1]
+    join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
+    spec = json.loads(Path(spec_path).read_text())
+    for path in reversed(spec.get("python_path", [])):
+        if path not in sys.path:
+            sys.path.insert(0, path)
+    if spec.get("main_file"):
+        _import_main(spec["main_file"])
+
+    from .hub import open_peer, wait_for_peers
+    from .loop import _CONTROL, RestartFlow, StopRun
+    from .wire import KeySpace, WireEncoder, WireError, decode_control
+
+    keys = KeySpace(spec["namespace"])
+    encoder = WireEncoder()
+    with open_peer(spec["hub"]) as session:
+        def status(state: str, **info) -> None:
+            session.put(keys.node_status(node_id), encoder.status(node_id, state, info))
+
+        try:
+            loop = build_loop(spec, node_id, session)
+        except BaseException as exc:
+            status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",
+                   traceback=traceback.format_exc())
+            return EXIT_FAILED
+        stop_item = (_CONTROL, None, encoder.control("stop", {}))
+
+        def on_sigterm(signum, frame) -> None:
+            loop.stopping = True
+            loop.inbox.put(stop_item)
+
+        signal.signal(signal.SIGTERM, on_sigterm)
+        loop.declare()
+        try:
+            if join is not None:
+                t0, end = int(join[1]), int(join[2])
+            else:
+                # a direct link to every other worker and the hub, before anything is published
+                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0)
+                status("ready", pid=os.getpid(), linked=linked)
+                early = []
+                while True:
+                    item = loop.inbox.get()
+                    if item[0] != _CONTROL:
+                        early.append(item)
+                        continue
+                    try:
+                        op, args = decode_control(item[2])
+                    except WireError:
+                        loop.counts["garbage"] += 1
+                        continue
+                    if op == "start":
+                        t0, end = int(args["t0"]), int(args["end"])
+                        break
+                    if op == "stop":
+                        status("done", counts=dict(loop.counts), seqs=loop.seqs)
+                        return 0
+                for item in early:
+                    loop.inbox.put(item)
+            loop.run(t0, end, resume=join is not None)
+        except RestartFlow as exc:
+            loop.flush()
+            status("restart", tag=list(exc.tag), seqs=loop.seqs, counts=dict(loop.counts),
+                   error=f"{type(exc.__cause__).__name__}: {exc.__cause__}")
+            loop.undeclare()
+            return EXIT_RESTART
+        except StopRun as exc:
+            loop.flush()
+            status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts))
+            loop.undeclare()
+            return EXIT_FAILED
+        except BaseException as exc:
+            loop.flush()
+            status("failed", error=f"worker '{node_id}' crashed: {type(exc).__name__}: {exc}",
+                   traceback=traceback.format_exc(), counts=dict(loop.counts))
+            loop.undeclare()
+            return EXIT_FAILED
+        status("done", counts=dict(loop.counts), seqs=loop.seqs)
+        loop.undeclare()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
