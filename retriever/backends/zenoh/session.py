@@ -14,6 +14,7 @@ the kernel for SIGTERM when its parent dies).
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
 import queue
@@ -65,6 +66,7 @@ class ZenohSession(Session):
         self._dir = Path(tempfile.mkdtemp(prefix="retriever-run-"))
         self._encoder = WireEncoder()
         self._hub = None
+        atexit.register(self.close)  # an open Zenoh session can hang the interpreter's exit
         try:
             self._hub, self.endpoint = open_hub(hub_port)
             if not quiet:
@@ -133,9 +135,10 @@ class ZenohSession(Session):
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
             self._stop_workers()
+            self.close()
             raise
         self.now_ns = until_ns
-        self._reap()
+        self.close()  # a real-time run is over when its time is: workers reaped, hub closed
 
     def _deadlines(self) -> float:
         deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
@@ -299,6 +302,7 @@ class ZenohSession(Session):
             self._hub.close()
             self._hub = None
         shutil.rmtree(self._dir, ignore_errors=True)
+        atexit.unregister(self.close)
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
