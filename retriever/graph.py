@@ -171,15 +171,26 @@ def _jsonable(value: Any) -> bool:
     return False
 
 
+#: the rebuild problem of a flow class defined in ``__main__``: the only one a backend that
+#: imports the main script the way multiprocessing does (the zenoh workers) can get past
+IN_MAIN = "lives in __main__"
+
+
 def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None]:
     """The flow's constructor arguments by name, and why it cannot be rebuilt from them (or None)."""
+    params, problem = _params(flow)
+    cls = type(flow)
+    if "<locals>" in cls.__qualname__:
+        problem = f"class {cls.__qualname__} is defined inside a function, so it cannot be imported"
+    elif cls.__module__ == "__main__" and problem is None:
+        problem = f"class {cls.__qualname__} {IN_MAIN}; move it to an importable module"
+    return params, problem
+
+
+def _params(flow: Flow) -> tuple[dict[str, Any], str | None]:
     cls = type(flow)
     settings = flow._retriever
     problem = None
-    if "<locals>" in cls.__qualname__:
-        problem = f"class {cls.__qualname__} is defined inside a function, so it cannot be imported"
-    elif cls.__module__ == "__main__":
-        problem = f"class {cls.__qualname__} lives in __main__; move it to an importable module"
     if cls.__init__ is object.__init__:
         if settings.args or settings.kwargs:
             return {}, problem or "constructor arguments given but __init__ takes none"

@@ -301,7 +301,8 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     else:
         status, error = "error", f"{type(exc).__name__}: {exc}"
     steps = session.trace.raw_steps
-    end_ns = max(session.now_ns, steps[-1][1][0] if steps else 0)  # a stopped run ends at its last tick
+    # a stopped run ends at its last tick (real-time backends append records as they arrive)
+    end_ns = max(session.now_ns, max((rec[1][0] for rec in steps), default=0))
     writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats())
 
 

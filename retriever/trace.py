@@ -47,6 +47,20 @@ class Event(NamedTuple):
         return f"{self.node}.{self.port}"
 
 
+#: step-record detail keys that say *when* things happened in a real-time run, not *what*: a LET
+#: output released late, events that arrived after their tick, ticks skipped after an overrun.
+#: They are logged but, like the wall-clock fields, never compared.
+TIMING_DETAIL = frozenset({"deadline_miss_ns", "on_deadline_miss", "late", "overrun_skipped"})
+
+
+def semantic_detail(detail: dict | None) -> dict | None:
+    """``detail`` without its timing keys (None when nothing else is left)."""
+    if not detail or TIMING_DETAIL.isdisjoint(detail):
+        return detail
+    rest = {k: v for k, v in detail.items() if k not in TIMING_DETAIL}
+    return rest or None
+
+
 class StepRecord(NamedTuple):
     """What one tick of one node did.
 
@@ -54,7 +68,8 @@ class StepRecord(NamedTuple):
     got MISSING or a default are absent); ``produced`` lists the ids of the events emitted;
     ``status`` is ``ok``, ``skipped`` or ``error``; ``detail`` holds the missing ports, Queue
     drop counts or the error text, when there are any. ``wall_start_ns`` (Unix ns) and
-    ``wall_ns`` say when ``step()`` ran and for how long; they are logged but never compared.
+    ``wall_ns`` say when ``step()`` ran and for how long; they are logged but never compared,
+    and neither are the timing keys of ``detail`` (:data:`TIMING_DETAIL`).
     """
 
     node: str
@@ -67,10 +82,13 @@ class StepRecord(NamedTuple):
     wall_ns: int = 0
 
     def __eq__(self, other: object) -> bool:
-        return self[:6] == other[:6] if isinstance(other, StepRecord) else NotImplemented
+        if not isinstance(other, StepRecord):
+            return NotImplemented
+        return self[:5] == other[:5] and semantic_detail(self.detail) == semantic_detail(other.detail)
 
     def __ne__(self, other: object) -> bool:
-        return self[:6] != other[:6] if isinstance(other, StepRecord) else NotImplemented
+        equal = self.__eq__(other)
+        return equal if equal is NotImplemented else not equal
 
     def __hash__(self) -> int:
         return hash((self.node, self.tag, self.status))
@@ -142,7 +160,7 @@ class Trace:
             yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
         for s in steps:
             consumed = sorted(s.consumed.items())
-            yield packb(("step", s.node, s.tag, consumed, s.produced, s.status, s.detail))
+            yield packb(("step", s.node, s.tag, consumed, s.produced, s.status, semantic_detail(s.detail)))
 
     def digest(self) -> str:
         """Hex SHA-256 of the canonical trace: equal traces, equal digests, on any machine."""

@@ -126,7 +126,7 @@ def test_run_an_ir_file(tmp_path: Path):
 
 def test_run_unknown_backend():
     result = cli("run", str(QUICKSTART), "--backend", "dora", "--duration", "1")
-    assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc$")
+    assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc, zenoh$")
 
 
 def test_run_a_step_that_raises(tmp_path: Path):

@@ -399,9 +399,9 @@ def test_connect_with_bad_edge_options(kwargs, message):
 
 
 def test_unknown_backend_names_the_available_ones():
-    with pytest.raises(BackendError, match=r"unknown backend 'dora'; available: inproc"):
+    with pytest.raises(BackendError, match=r"unknown backend 'dora'; available: inproc, zenoh"):
         retriever.init(backend="dora")
-    assert retriever.available_backends() == ["inproc"]
+    assert retriever.available_backends() == ["inproc", "zenoh"]
 
 
 def test_run_on_an_unknown_backend():

@@ -69,13 +69,13 @@ def open_peer(hub_endpoint: str) -> zenoh.Session:
     return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint]))
 
 
-def wait_for_peers(session: zenoh.Session, count: int, timeout: float) -> bool:
-    """Wait until ``session`` has direct links to ``count`` peers; False on timeout."""
+def wait_for_peers(session: zenoh.Session, count: int, timeout: float, stop=lambda: False) -> bool:
+    """Wait until ``session`` has direct links to ``count`` peers; False on timeout or ``stop()``."""
     import time
 
     give_up = time.monotonic() + timeout
     while len(session.info.peers_zid()) < count:
-        if time.monotonic() > give_up:
+        if time.monotonic() > give_up or stop():
             return False
         time.sleep(0.005)
     return True

@@ -69,7 +69,8 @@ class NodeLoop:
     """Runs one node in real time from ``T0`` until ``end`` (both HLC Unix ns)."""
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
-                 inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None):
+                 inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None,
+                 ports: list[str] | None = None):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -87,13 +88,20 @@ class NodeLoop:
         self.read = make_output_reader(node.spec)
         self.encoder = WireEncoder()
         self.seqs: dict[str, int] = dict(seqs or {})
-        self.ports = list(node.outputs)
+        self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.single_port = len(self.ports) == 1
 
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()  # guards what the progress queryable reads
-        self.frontiers: dict[str, tuple[int, int]] = {e.src: (0, 0) for e in edges}
-        self.last_seq: dict[tuple[str, str], int] = {}
+        # per input stream (producer, port): its frontier, the next seq to take in order,
+        # out-of-order arrivals, and progress messages waiting for the seqs they come after
+        streams = {(e.src, e.src_port) for e in edges}
+        self.frontiers: dict[tuple[str, str], tuple[int, int]] = {k: (0, 0) for k in streams}
+        self.expect: dict[tuple[str, str], int | None] = {k: 0 for k in streams}
+        self.early: dict[tuple[str, str], dict[int, Any]] = {k: {} for k in streams}
+        self.waiting: dict[tuple[str, str], list[tuple[int, tuple[int, int]]]] = {k: [] for k in streams}
+        self.sources = sorted({e.src for e in edges})
+        self.sent: dict[str, int] = {port: seq - 1 for port, seq in self.seqs.items()}  # last seq put
         self.pending: list[tuple[int, int]] = []  # trigger tick tags (a heap, deduplicated below)
         self.pending_set: set[tuple[int, int]] = set()
         self.k = 0
@@ -101,6 +109,7 @@ class NodeLoop:
         self.running: tuple[int, int] | None = None  # the tag of the tick in progress
         self.last_tick: tuple[int, int] = (-1, 0)
         self.held: list[tuple] = []  # LET outputs waiting for release: (tag, port, value, seq)
+        self.sending: tuple[int, int] | None = None  # lowest tag of outputs being put right now
         self.t0 = 0
         self.end = 0
         self.stopping = False
@@ -126,7 +135,7 @@ class NodeLoop:
             self._declared.append(s.declare_subscriber(
                 keys.data(src, src_port),
                 lambda sample, k=(src, src_port): put((_DATA, k, sample.payload.to_bytes()))))
-        for src in sorted(self.frontiers):
+        for src in self.sources:
             self._declared.append(s.declare_subscriber(
                 keys.progress(src), lambda sample, k=src: put((_PROGRESS, k, sample.payload.to_bytes()))))
         self._declared.append(s.declare_subscriber(
@@ -142,7 +151,8 @@ class NodeLoop:
         self.publishers = {}
 
     def _answer_progress(self, query: zenoh.Query) -> None:
-        query.reply(self.keys.progress(self.id), WireEncoder().progress(self.frontier(), self.id))
+        frontier = self.frontier()  # first: the seqs read after it can only be later ones
+        query.reply(self.keys.progress(self.id), WireEncoder().progress(frontier, self.id, dict(self.sent)))
 
     # ---------------------------------------------------------------------------------------
     # Time
@@ -155,8 +165,9 @@ class NodeLoop:
         """HLC time since T0, ns: what ASAP outputs are stamped with."""
         return self.session.new_timestamp().get_time_as_ntp64().as_nanos() - self.t0
 
-    def frontier(self) -> tuple[int, int]:
-        """Every later output of this node will have a tag ≥ this (thread-safe)."""
+    def frontier(self, sent: bool = False) -> tuple[int, int]:
+        """Every later output of this node will have a tag ≥ this (thread-safe). ``sent``: as
+        if the outputs being put now were out already (the frontier they carry)."""
         with self.lock:
             lower = self.running or self._next_tick_bound()
             if lower >= (self.end, 0) and self.running is None:
@@ -167,6 +178,8 @@ class NodeLoop:
                 own = (max(self.hlc(), lower[0] + 1, self.last_stamp), 0)
             if self.held:
                 own = min(own, self.held[0][0])
+            if self.sending is not None and not sent:
+                own = min(own, self.sending)
             return own
 
     def _next_tick_bound(self) -> tuple[int, int]:
@@ -176,7 +189,7 @@ class NodeLoop:
             bound = min(bound, self.pending[0])
         for e in self.edges:
             if e.triggers:
-                f = self.frontiers[e.src]
+                f = self.frontiers[(e.src, e.src_port)]
                 bound = min(bound, (f[0] + e.delay_ns, 0) if e.delay_ns else f)
         return bound
 
@@ -187,6 +200,8 @@ class NodeLoop:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
         self.t0, self.end = t0, end
+        if resume:
+            self.expect = dict.fromkeys(self.expect)  # join the streams where they are now
         if self.clock.hz is not None:
             if resume:
                 now = self.now()
@@ -262,7 +277,7 @@ class NodeLoop:
         look again if some edge may still complete in time."""
         late_ports, wake = [], None
         for e in self.edges:
-            f = self.frontiers[e.src]
+            f = self.frontiers[(e.src, e.src_port)]
             if e.delay_ns:
                 f = (f[0] + e.delay_ns, 0)
             if f > tau:
@@ -303,7 +318,7 @@ class NodeLoop:
         for e in self.edges:
             if not e.triggers:
                 continue
-            f = self.frontiers[e.src]
+            f = self.frontiers[(e.src, e.src_port)]
             if e.delay_ns:
                 f = (f[0] + e.delay_ns, 0)
             if f >= end_tag or now >= self.end + e.deadline_ns:
@@ -342,24 +357,18 @@ class NodeLoop:
             except WireError as e:
                 self._garbage(key, e)
                 return
-            seq_key = (msg.producer, msg.port)
-            if msg.seq <= self.last_seq.get(seq_key, -1):
-                self._garbage(key, WireError(f"seq {msg.seq} repeats or goes back"))
-                return
-            self.last_seq[seq_key] = msg.seq
-            self._advance_frontier(msg.producer, msg.frontier)
-            for e in self.edges:
-                if e.src == msg.producer and e.src_port == msg.port:
-                    self._deliver(e, msg)
+            self._in_order(key, msg)
         elif kind == _PROGRESS:
             if data is None:
                 return  # the query timed out
             try:
-                frontier, producer = decode_progress(data, expected=key)
+                progress = decode_progress(data, expected=key)
             except WireError as e:
                 self._garbage(key, e)
                 return
-            self._advance_frontier(producer, frontier)
+            for stream in self.frontiers:
+                if stream[0] == progress.producer:
+                    self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
         else:
             try:
                 op, _ = decode_control(data)
@@ -369,10 +378,45 @@ class NodeLoop:
             if op == "stop":
                 self.stopping = True
 
-    def _advance_frontier(self, producer: str, frontier: tuple[int, int]) -> None:
-        if frontier > self.frontiers[producer]:
+    def _in_order(self, stream: tuple[str, str], msg) -> None:
+        """Take a stream's events in seq order (Zenoh may reorder across routes); a frontier
+        holds once every seq before it has been taken."""
+        expect = self.expect[stream]
+        if expect is None:  # a restarted flow joins streams wherever they are
+            expect = msg.seq
+        if msg.seq < expect or msg.seq in self.early[stream]:
+            self._garbage(stream, WireError(f"seq {msg.seq} of {stream[0]}.{stream[1]} arrived twice"))
+            return
+        if msg.seq > expect:
+            self.early[stream][msg.seq] = msg
+            return
+        early = self.early[stream]
+        while msg is not None:
+            self._advance_frontier(stream, msg.frontier)
+            for e in self.edges:
+                if e.src == msg.producer and e.src_port == msg.port:
+                    self._deliver(e, msg)
+            expect += 1
+            msg = early.pop(expect, None)
+        self.expect[stream] = expect
+        waiting = self.waiting[stream]
+        if waiting:
+            ready = [f for seq, f in waiting if seq < expect]
+            if ready:
+                self.waiting[stream] = [(seq, f) for seq, f in waiting if seq >= expect]
+                self._advance_frontier(stream, max(ready))
+
+    def _progress(self, stream: tuple[str, str], after_seq: int, frontier: tuple[int, int]) -> None:
+        expect = self.expect[stream]
+        if after_seq < (expect if expect is not None else 0):
+            self._advance_frontier(stream, frontier)
+        else:
+            self.waiting[stream].append((after_seq, frontier))
+
+    def _advance_frontier(self, stream: tuple[str, str], frontier: tuple[int, int]) -> None:
+        if frontier > self.frontiers[stream]:
             with self.lock:
-                self.frontiers[producer] = frontier
+                self.frontiers[stream] = frontier
 
     def _deliver(self, e: InEdge, msg) -> None:
         arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
@@ -500,6 +544,8 @@ class NodeLoop:
         self._record(tau, consumed, produced, status, detail, start, wall)
         with self.lock:
             self.running = None
+            if publish:
+                self.sending = publish[0][0]
         self._publish(publish)
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
@@ -515,21 +561,29 @@ class NodeLoop:
         with self.lock:
             while self.held and self.held[0][0][0] <= now:
                 batch.append(heapq.heappop(self.held))
+            self.sending = batch[0][0]
         self._publish(batch)
 
     def _publish(self, batch: list) -> None:
         """Send events (each but the last carries its own tag as frontier, the last the node's
         frontier), then a progress message if some consumer's port did not get the frontier."""
-        frontier = self.frontier()
+        frontier = self.frontier(sent=True)
         data, publishers = self.encoder.data, self.publishers
         last = len(batch) - 1
         for i, (tag, port, value, seq) in enumerate(batch):
-            publishers[port].put(data(tag, seq, frontier if i == last else tag, self.id, port, value))
+            publisher = publishers.get(port)
+            if publisher is None:  # an output port no edge uses (an untyped flow's extra key)
+                publisher = publishers[port] = self.session.declare_publisher(self.keys.data(self.id, port))
+            publisher.put(data(tag, seq, frontier if i == last else tag, self.id, port, value))
+            self.sent[port] = seq
+        if self.sending is not None:
+            with self.lock:
+                self.sending = None  # only now may a progress query promise past these tags
         if not (batch and self.single_port):
             self._publish_progress(frontier)
 
     def _publish_progress(self, frontier: tuple[int, int] | None = None) -> None:
-        self.progress_publisher.put(self.encoder.progress(frontier or self.frontier(), self.id))
+        self.progress_publisher.put(self.encoder.progress(frontier or self.frontier(), self.id, self.sent))
 
     # ---------------------------------------------------------------------------------------
     # The end
@@ -539,6 +593,7 @@ class NodeLoop:
         with self.lock:
             batch = sorted(self.held)
             self.held = []
+            self.sending = batch[0][0] if batch else None
             self.next_rate = None
             self.pending, self.pending_set = [], set()
         self._publish(batch)

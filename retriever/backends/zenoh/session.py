@@ -29,11 +29,11 @@ from collections import Counter
 from pathlib import Path
 
 from ...errors import BackendError, StepError
-from ...graph import Graph
+from ...graph import IN_MAIN, Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
 from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_status, decode_steps
-from .worker import EXIT_RESTART
+from .worker import EXIT_FAILED, EXIT_RESTART
 
 _DATA, _STATUS = 0, 1
 
@@ -59,6 +59,8 @@ class ZenohSession(Session):
         self._stats = {nid: NodeStats() for nid in graph.nodes}
         self._workers: dict[str, subprocess.Popen] = {}
         self._state: dict[str, str] = {}
+        self._exited: dict[str, float] = {}  # node -> when its process was first seen gone
+        self._event_ids: set[tuple[str, str, int]] = set()
         self._failure: tuple[str, dict] | None = None
         self._ran = False
         self._closed = False
@@ -79,7 +81,9 @@ class ZenohSession(Session):
                 self._hub.declare_subscriber(self.keys.status("**"), lambda s: put(
                     (_STATUS, str(s.key_expr), s.payload.to_bytes(), 0))),
             ]
-            self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
+            ir = graph.to_ir().doc
+            self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
+            self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {}}
             self._write_spec()
             for nid in graph.nodes:
@@ -172,12 +176,20 @@ class ZenohSession(Session):
     def _handle(self, item: tuple) -> None:
         kind, key, data, received = item
         if kind == _DATA:
-            expected = self.keys.parse_data(key)
+            stream = self.keys.parse_data(key)
+            if stream not in self._streams:
+                self._garbage(key, WireError("no output port of this run has this key"))
+                return
             try:
-                msg = decode_data(data, expected=expected)
+                msg = decode_data(data, expected=stream)
             except WireError as e:
                 self._garbage(key, e)
                 return
+            event_id = (msg.producer, msg.port, msg.seq)
+            if event_id in self._event_ids:
+                self._garbage(key, WireError(f"event {event_id} arrived twice"))
+                return
+            self._event_ids.add(event_id)
             self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, received))
             return
         if key.startswith(self.keys.status("steps") + "/"):
@@ -230,8 +242,13 @@ class ZenohSession(Session):
                 continue
             if code == EXIT_RESTART and self._state[nid] == "restart":
                 self._write_spec()
+                self._exited.pop(nid, None)
                 self._spawn(nid, join=(self.t0, self.end_ns))
                 self._state[nid] = "ready"
+                continue
+            # its last messages may still be on the way: give them a moment before calling it dead
+            exited = self._exited.setdefault(nid, time.monotonic())
+            if code in (0, EXIT_RESTART, EXIT_FAILED) and time.monotonic() - exited < 2.0:
                 continue
             if self._failure is None:
                 self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
@@ -312,8 +329,11 @@ class ZenohSession(Session):
 
 
 def _check_deployable(graph: Graph) -> None:
+    """Every flow must be rebuildable from the IR; a class in ``__main__`` is, when the main
+    script is a file (workers import it as ``__mp_main__``, like multiprocessing)."""
+    main_file = getattr(sys.modules.get("__main__"), "__file__", None)
     problems = [f"  {nid}: {node.rebuild_problem}" for nid, node in graph.nodes.items()
-                if node.rebuild_problem is not None]
+                if node.rebuild_problem is not None and not (main_file and IN_MAIN in node.rebuild_problem)]
     if problems:
         raise BackendError("the zenoh backend runs each flow in its own process, rebuilt from the IR (type + "
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)

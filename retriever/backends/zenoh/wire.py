@@ -3,7 +3,8 @@
 Key space, under ``retriever/<namespace>/``::
 
     data/<node>/<port>     events          [1, [t, m], seq, [ft, fm], producer, port, value]
-    progress/<node>        frontiers       [1, [ft, fm], producer]   (also a queryable: ask for it)
+    progress/<node>        frontiers       [1, [ft, fm], producer, {port: last seq sent}]
+                                           (also a queryable: ask for it)
     status/steps/<node>    step records    [1, node, [record, ...]]
     status/node/<node>     worker state    [1, node, state, info]
     ctl/run                control         [1, op, args]
@@ -15,6 +16,10 @@ complete up to any tag ``<`` it: the watermark of DESIGN.md §5), the producer n
 the key), and the value in Retriever's codec (numpy arrays, tuples, big ints and dataclasses as
 msgpack extension types 1–5, see ``codec.py``). A plain Zenoh subscriber on
 ``retriever/<ns>/data/**`` can decode it with any msgpack library.
+
+Zenoh keeps messages in order per key, not across keys, so a progress message says which events
+it comes after: its frontier holds for a consumer of ``port`` once that consumer has received
+every seq of ``port`` up to the one named (seqs are dense, so gaps show what is in flight).
 
 Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
 runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never
@@ -117,8 +122,8 @@ class WireEncoder:
         # The array's header says 7 elements; the head packed 6: patch the count, append the value.
         return b"\x97" + head[1:] + self._encode(value)
 
-    def progress(self, frontier: Tag, producer: str) -> bytes:
-        return self._pack([WIRE_VERSION, frontier, producer])
+    def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
+        return self._pack([WIRE_VERSION, frontier, producer, sent])
 
     def steps(self, node: str, records: list) -> bytes:
         """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)``."""
@@ -185,15 +190,23 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
     return DataMessage(tag, seq, frontier, producer, port, value)
 
 
-def decode_progress(data: bytes, expected: str | None = None) -> tuple[Tag, str]:
-    """Decode and validate a progress message: ``(frontier, producer)``."""
-    _, frontier, producer = _fields(data, 3, "progress")
+class Progress(NamedTuple):
+    frontier: Tag
+    producer: str
+    sent: dict[str, int]  # port -> the last seq published on it before this message
+
+
+def decode_progress(data: bytes, expected: str | None = None) -> Progress:
+    """Decode and validate a progress message."""
+    _, frontier, producer, sent = _fields(data, 4, "progress")
     frontier = _tag("frontier", frontier)
     if type(producer) is not str:
         raise WireError("producer must be a string")
     if expected is not None and producer != expected:
         raise WireError(f"progress of {producer} arrived on the key of {expected}")
-    return frontier, producer
+    if type(sent) is not dict or not all(type(k) is str and type(v) is int and v >= -1 for k, v in sent.items()):
+        raise WireError("the seqs of a progress message must map port names to integers >= -1")
+    return Progress(frontier, producer, sent)
 
 
 class StepBatch(NamedTuple):

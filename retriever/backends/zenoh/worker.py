@@ -52,7 +52,7 @@ def _import_main(path: str) -> None:
 def build_loop(spec: dict, node_id: str, session):
     """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop."""
     from ...flow._base import Flow
-    from ...graph import compile_graph
+    from ...graph import IN_MAIN, compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
     from ...pipeline import _rebuild_node
     from ...sync import PortBuffer, policy_from_ir
@@ -65,7 +65,10 @@ def build_loop(spec: dict, node_id: str, session):
     meta = ir.doc["metadata"]
     flows: dict = {}
     problems: list[str] = []
-    _rebuild_node(ir.node(node_id), flows, problems)
+    node_doc = dict(ir.node(node_id))
+    if spec.get("main_file") and IN_MAIN in node_doc.get("rebuild_problem", ""):
+        node_doc["rebuildable"] = True  # _import_main made __main__ importable here
+    _rebuild_node(node_doc, flows, problems)
     if problems:
         raise RuntimeError("; ".join(problems))
     with warnings.catch_warnings():
@@ -98,7 +101,8 @@ def build_loop(spec: dict, node_id: str, session):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
-                    realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id))
+                    realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id),
+                    ports=sorted(ir.node(node_id)["outputs"]))
 
 
 def main(argv: list[str]) -> int:
@@ -144,7 +148,10 @@ def main(argv: list[str]) -> int:
                 t0, end = int(join[1]), int(join[2])
             else:
                 # a direct link to every other worker and the hub, before anything is published
-                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0)
+                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0, stop=lambda: loop.stopping)
+                if loop.stopping:
+                    loop.undeclare()
+                    return 0
                 status("ready", pid=os.getpid(), linked=linked)
                 early = []
                 while True:

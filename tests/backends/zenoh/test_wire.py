@@ -64,8 +64,8 @@ def test_a_plain_msgpack_reader_can_decode_data_messages():
 
 
 def test_progress_round_trip():
-    data = WireEncoder().progress((99, 3), "controller")
-    assert decode_progress(data, "controller") == ((99, 3), "controller")
+    data = WireEncoder().progress((99, 3), "controller", {"chunk": 4, "state": -1})
+    assert decode_progress(data, "controller") == ((99, 3), "controller", {"chunk": 4, "state": -1})
     with pytest.raises(WireError, match="progress of controller arrived on the key of camera"):
         decode_progress(data, "camera")
 

@@ -1,0 +1,108 @@
+"""Flows for the Zenoh lifecycle tests (tests/backends/zenoh/test_lifecycle.py).
+
+Importable by worker processes (``tests.backends.zenoh.lifecycle_flows``), small, cheap and
+slow-rated: the tests are about processes, not speed. ``retriever run`` loads this file as a
+script too (``lifecycle_flows.py:pipe`` and ``lifecycle_flows.py:napping``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from retriever import Flow, Latest, Pipeline, Rate, io
+
+SOURCE_HZ = 20
+SINK_HZ = 10
+
+
+@io
+@dataclass
+class Count:
+    n: int
+
+
+class Counter(Flow[None, Count]):
+    """A source: 1, 2, 3, … one per tick."""
+
+    def __init__(self, start: int = 0):
+        self.start = start
+        self.k = start
+
+    def reset(self) -> None:
+        self.k = self.start
+
+    def step(self, inp: None) -> Count:
+        self.k += 1
+        return Count(n=self.k)
+
+
+class Total(Flow[Count, Count]):
+    """A sink that keeps the newest count it saw (and passes it on)."""
+
+    def __init__(self):
+        self.last = 0
+
+    def reset(self) -> None:
+        self.last = 0
+
+    def step(self, inp: Count) -> Count:
+        self.last = inp.n
+        return Count(n=inp.n)
+
+
+@io
+@dataclass
+class MaybeCount:
+    n: int = 0  # a default: the sink steps on every tick, input or not (no skips)
+
+
+class Sink(Flow[MaybeCount, Count]):
+    """A sink that never skips: its step count is its tick count."""
+
+    def step(self, inp: MaybeCount) -> Count:
+        return Count(n=inp.n)
+
+
+class Scaled(Flow[None, Count]):
+    """A source whose constructor takes any object (a callable scales the count): fine
+    in-process, but the IR cannot carry a lambda, a set or a plain object."""
+
+    def __init__(self, fn=None):
+        self.fn = fn
+        self.k = 0
+
+    def step(self, inp: None) -> Count:
+        self.k += 1
+        return Count(n=self.fn(self.k) if callable(self.fn) else self.k)
+
+
+class Nap(Flow[None, Count]):
+    """A source whose step takes ``nap`` seconds of wall time (a slow model)."""
+
+    def __init__(self, nap: float = 2.0):
+        self.nap = nap
+
+    def step(self, inp: None) -> Count:
+        time.sleep(self.nap)
+        return Count(n=1)
+
+
+def two_node_pipeline(name: str = "lifecycle", source_hz: float = SOURCE_HZ, sink_hz: float = SINK_HZ,
+                      sink: type[Flow] = Total) -> Pipeline:
+    """counter @ source_hz ──n (Latest)──▶ total @ sink_hz (a ``sink`` flow, node id "total")"""
+    with Pipeline(name) as p:
+        counter = Counter() @ Rate(hz=source_hz)
+        total = sink().configure(name="total") @ Rate(hz=sink_hz)
+        counter.then(total, sync=Latest())
+    return p
+
+
+# `retriever run tests/backends/zenoh/lifecycle_flows.py:pipe --backend zenoh ...` runs this one.
+pipe = two_node_pipeline()
+
+# counter @ 20 Hz beside nap @ 0.25 Hz, whose first step (at T0) lasts 2 s: stopped within those
+# 2 s, nap's last step record reaches the coordinator after counter's later ones.
+with Pipeline("napping") as napping:
+    Counter() @ Rate(hz=SOURCE_HZ)
+    Nap(nap=2.0) @ Rate(hz=0.25)

@@ -1,0 +1,573 @@
+"""Process lifecycle and bad input on the Zenoh backend, with real processes and real sessions.
+
+- Ctrl-C / SIGTERM to ``retriever run --backend zenoh --log``: exit 130, the log finished and
+  marked ``interrupted``, every worker of the run reaped before the CLI exits.
+- SIGKILL of the coordinator: its workers exit by themselves (PR_SET_PDEATHSIG), also one still
+  waiting for its peers at startup.
+- SIGKILL of one worker: the run stops with a BackendError naming the node; no worker survives.
+- Garbage on the run's key space from a foreign process joined to the hub: counted and dropped,
+  the run completes with the right step counts. Well-formed envelopes that are not the run's
+  (an unknown producer, a repeated event id) stay out of the trace.
+- Flows that cannot be rebuilt from the IR are refused before any process starts.
+- Flow classes defined in a script's ``__main__`` run on zenoh.
+
+Every test runs under a fixture that fails it when a worker process it created (directly, through
+a subprocess, or orphaned) is still alive afterwards. Waits are bounded polls, never speed checks.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import secrets
+import select
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from retriever import BackendError, Flow, LogError, Pipeline, Rate, read_log
+from retriever.backends.zenoh.hub import endpoint, free_port
+
+from .lifecycle_flows import Count, Scaled, Sink, two_node_pipeline
+
+ROOT = Path(__file__).resolve().parents[3]
+FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
+RETRIEVER = Path(sys.executable).parent / "retriever"
+WORKER_MODULE = "retriever.backends.zenoh.worker"
+TOKEN_VAR = "RETRIEVER_LIFECYCLE_TEST_TOKEN"
+
+BOUND_S = 60.0  # generous bound on any wait: a loaded 2-core machine, other test runs beside us
+POLL_S = 0.02
+ORPHAN_EXIT_S = 10.0  # workers of a SIGKILLed coordinator exit by themselves within this
+
+
+# ---------------------------------------------------------------------------------------------
+# /proc
+# ---------------------------------------------------------------------------------------------
+Ident = tuple[int, int]  # (pid, start time in clock ticks): a process, even if its pid is reused
+
+
+def _stat(pid: int) -> tuple[str, int, int] | None:
+    """(state, ppid, start time) of a process, or None when it is gone."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except (FileNotFoundError, ProcessLookupError, PermissionError):
+        return None
+    fields = text[text.rindex(")") + 2:].split()  # the name (field 2) may hold spaces and parens
+    return fields[0], int(fields[1]), int(fields[19])
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _has_token(pid: int, token: str) -> bool:
+    try:
+        return f"{TOKEN_VAR}={token}".encode() in Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+    except OSError:
+        return False
+
+
+def _pids() -> list[int]:
+    return [int(name) for name in os.listdir("/proc") if name.isdigit()]
+
+
+def _alive(ident: Ident) -> bool:
+    """Still running (a zombie has exited: PID 1 here does not reap orphans)."""
+    st = _stat(ident[0])
+    return st is not None and st[2] == ident[1] and st[0] not in "ZX"
+
+
+def _worker_children(parent: int) -> dict[Ident, str]:
+    """Live worker processes whose parent is ``parent``, with their command lines."""
+    found = {}
+    for pid in _pids():
+        st = _stat(pid)
+        if st is None or st[1] != parent or st[0] in "ZX":
+            continue
+        cmd = _cmdline(pid)
+        if WORKER_MODULE in cmd:
+            found[(pid, st[2])] = cmd
+    return found
+
+
+def _ident(pid: int) -> Ident:
+    st = _stat(pid)
+    assert st is not None, f"process {pid} is gone"
+    return (pid, st[2])
+
+
+def _poll(condition, what: str, bound: float = BOUND_S):
+    """Poll ``condition()`` until it returns something truthy (returned); fail after ``bound`` s."""
+    deadline = time.monotonic() + bound
+    while True:
+        value = condition()
+        if value:
+            return value
+        assert time.monotonic() < deadline, f"no {what} after {bound:g} s"
+        time.sleep(POLL_S)
+
+
+def _logged_steps(path: Path) -> int:
+    """Step records in a log being written (0 while it has none or cannot be read yet)."""
+    if not path.exists() or path.stat().st_size == 0:
+        return 0
+    try:
+        return len(list(read_log(path, salvage=True).iter_steps()))
+    except (LogError, OSError):  # the magic bytes not written yet: look again
+        return 0
+
+
+def _leftover_workers(token: str) -> dict[Ident, str]:
+    """Live worker processes that this test created: children of this process, or any process
+    carrying this test's environment token (started by a subprocess of ours, maybe orphaned)."""
+    me = os.getpid()
+    found = {}
+    for pid in _pids():
+        st = _stat(pid)
+        if st is None or st[0] in "ZX":
+            continue
+        cmd = _cmdline(pid)
+        if WORKER_MODULE in cmd and (st[1] == me or _has_token(pid, token)):
+            found[(pid, st[2])] = cmd
+    return found
+
+
+@pytest.fixture(autouse=True)
+def no_leftover_workers(monkeypatch):
+    """Every process a test starts inherits a token in its environment; afterwards no worker
+    process with that token (or whose parent is this process) may still be alive. Leftovers are
+    killed by PID, then the test fails."""
+    token = secrets.token_hex(8)
+    monkeypatch.setenv(TOKEN_VAR, token)
+    yield token
+    deadline = time.monotonic() + ORPHAN_EXIT_S
+    while (left := _leftover_workers(token)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if left:
+        for pid, start in left:
+            if _alive((pid, start)):
+                os.kill(pid, signal.SIGKILL)
+        pytest.fail("worker processes outlived the test (killed now):\n"
+                    + "\n".join(f"  pid {pid}: {cmd}" for (pid, _), cmd in left.items()))
+
+
+@pytest.fixture
+def namespace(no_leftover_workers) -> str:
+    return f"lifecycle-{no_leftover_workers}"
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(timeout=BOUND_S)
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "FORCE_COLOR"}
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8", PYTHONDONTWRITEBYTECODE="1")
+    return env
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Ctrl-C and SIGTERM to `retriever run --backend zenoh`
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_path, sig):
+    path = tmp_path / "run.mcap"
+    with open(tmp_path / "stdout.txt", "wb") as out, open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([str(RETRIEVER), "run", f"{FLOWS_FILE}:pipe", "--backend", "zenoh", "--duration",
+                                 "60", "--log", str(path)], stdout=out, stderr=err, cwd=ROOT, env=_env())
+    try:
+        def going() -> dict[Ident, str] | None:
+            assert proc.poll() is None, f"the run exited ({proc.returncode}) before the signal: " + \
+                (tmp_path / "stderr.txt").read_text()
+            workers = _worker_children(proc.pid)  # scanned while it runs: afterwards they are orphans or gone
+            return workers if len(workers) == 2 and _logged_steps(path) > 0 else None
+
+        workers = _poll(going, "2 worker processes and a logged step")
+        assert all(cmd.split()[-1] in ("counter", "total") for cmd in workers.values()), workers
+        os.kill(proc.pid, sig)
+        assert proc.wait(timeout=BOUND_S) == 130, (tmp_path / "stderr.txt").read_text()
+    finally:
+        _kill(proc)
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert "interrupted" in stderr and str(path) in stderr, stderr
+    assert "Traceback" not in stderr, stderr
+    alive = [ident for ident in workers if _alive(ident)]
+    assert not alive, f"worker(s) {alive} of the interrupted run are still alive after the CLI exited"
+
+    log = read_log(path)  # complete: no recovery needed
+    assert log.complete and log.end is not None
+    assert log.end["status"] == "interrupted", log.end
+    assert log.end["error"] == "stopped by Ctrl-C or SIGTERM", log.end
+    assert log.run["backend"] == "zenoh"
+    assert {s.node for s in log.iter_steps()} == {"counter", "total"}
+
+
+def test_an_interrupted_cli_run_logs_its_last_tick_as_its_end(tmp_path):
+    path = tmp_path / "run.mcap"
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([str(RETRIEVER), "run", f"{FLOWS_FILE}:napping", "--backend", "zenoh", "--duration",
+                                 "60", "--log", str(path)], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+                                env=_env())
+    try:
+        def going() -> bool:
+            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
+            try:
+                steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
+            except (LogError, OSError):
+                return False
+            # counter ticked past T0 while nap is still inside its first, 2 s long step
+            assert not any(s.node == "nap" for s in steps), "nap's first step ended before the signal"
+            return any(s.node == "counter" and s.tag[0] > 0 for s in steps)
+
+        _poll(going, "a logged counter tick after T0")
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=BOUND_S) == 130, (tmp_path / "stderr.txt").read_text()
+    finally:
+        _kill(proc)
+    log = read_log(path)
+    assert log.complete and log.end["status"] == "interrupted", log.end
+    steps = list(log.iter_steps())
+    assert {s.node for s in steps} == {"counter", "nap"}
+    last_tick = max(s.tag[0] for s in steps)
+    assert int(log.end["end_ns"]) >= last_tick > 0, (log.end["end_ns"], last_tick)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. SIGKILL of the coordinator
+# ---------------------------------------------------------------------------------------------
+COORDINATOR = r"""
+import sys
+from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+
+pipe = two_node_pipeline("orphaned")
+pipe.run(duration=60, backend="zenoh", quiet=True, namespace=sys.argv[1], log=sys.argv[2])
+"""
+
+
+def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespace):
+    path = tmp_path / "run.mcap"
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", COORDINATOR, namespace, str(path)], stdout=subprocess.DEVNULL,
+                                stderr=err, cwd=ROOT, env=_env())
+    try:
+        def going() -> dict[Ident, str] | None:
+            assert proc.poll() is None, f"the coordinator exited ({proc.returncode}): " + \
+                (tmp_path / "stderr.txt").read_text()
+            workers = _worker_children(proc.pid)
+            return workers if len(workers) == 2 and _logged_steps(path) > 0 else None
+
+        workers = _poll(going, "2 worker processes and a logged step")
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
+    finally:
+        _kill(proc)
+    # they get SIGTERM from the kernel (PR_SET_PDEATHSIG), stop their loop and close their session
+    _poll(lambda: not any(_alive(ident) for ident in workers),
+          f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
+
+
+SLOW_START = r"""
+# Test-only: a worker of node 'total' starts slowly (an interpreter on a busy machine, a cold disk
+# cache), so the other worker is still waiting for its peers when the coordinator dies.
+import time
+
+try:
+    _argv = open("/proc/self/cmdline", "rb").read().split(b"\0")
+    if b"retriever.backends.zenoh.worker" in _argv and b"total" in _argv:
+        time.sleep(float(%r))
+except OSError:
+    pass
+"""
+
+
+def _catches(pid: int, sig: int) -> bool:
+    """Whether the process has a handler installed for ``sig`` (SigCgt in /proc/PID/status)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("SigCgt:"):
+                return bool(int(line.split()[1], 16) >> (sig - 1) & 1)
+    except OSError:
+        pass
+    return False
+
+
+def test_a_worker_still_waiting_for_its_peers_exits_when_its_coordinator_is_sigkilled(tmp_path, namespace):
+    slow_s = 8.0  # 'total' sleeps this long before main(): then it sees its parent gone and exits
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(SLOW_START % slow_s, encoding="utf-8")
+    env = _env()
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", COORDINATOR, namespace, str(tmp_path / "run.mcap")],
+                                stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT, env=env)
+    workers: dict[str, Ident] = {}
+    try:
+        def waiting() -> bool:
+            assert proc.poll() is None, f"the coordinator exited ({proc.returncode}): " + \
+                (tmp_path / "stderr.txt").read_text()
+            workers.update({cmd.split()[-1]: ident for ident, cmd in _worker_children(proc.pid).items()})
+            # 'counter' has declared its SIGTERM handler (then its keys, then waits for its peers)
+            return "counter" in workers and "total" in workers and _catches(workers["counter"][0], signal.SIGTERM)
+
+        _poll(waiting, "the 'counter' worker waiting for its peers")
+        if _catches(workers["total"][0], signal.SIGTERM):
+            pytest.skip(f"the slow worker started within {slow_s:g} s: not the situation under test")
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
+        _poll(lambda: not _alive(workers["counter"]), "exit of the orphaned 'counter' worker (it got SIGTERM)",
+              bound=ORPHAN_EXIT_S)
+    finally:
+        _kill(proc)
+        for ident in workers.values():  # ours, by PID: the fixture then checks nothing is left
+            if _alive(ident):
+                os.kill(ident[0], signal.SIGKILL)
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. SIGKILL of one worker
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("victim", ["counter", "total"])
+def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
+    pipe = two_node_pipeline("killworker")
+    pids: dict[str, int] = {}
+    idents: dict[str, Ident] = {}
+    done = threading.Event()
+
+    def killer() -> None:
+        """Once the run is going (step records arrived), SIGKILL the victim's worker by PID."""
+        deadline = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < deadline:
+            session = pipe._session
+            if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 0:
+                pids.update(session.worker_pids())
+                idents.update({node: _ident(pid) for node, pid in pids.items()})
+                os.kill(pids[victim], signal.SIGKILL)
+                return
+            time.sleep(POLL_S)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    try:
+        # the duration only bounds a run whose kill never came; the kill ends it after ~1 s
+        with pytest.raises(BackendError) as caught:
+            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert pids, "the killer never saw the run going"
+    message = str(caught.value)
+    assert f"'{victim}'" in message and f"pid {pids[victim]}" in message, message
+    assert "exited with code -9" in message, message
+    survivors = {node: ident for node, ident in idents.items() if _alive(ident)}
+    assert not survivors, f"worker(s) {survivors} survived the failed run"
+    assert pipe._session.worker_pids() == pids
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. Garbage on the key space from a foreign process
+# ---------------------------------------------------------------------------------------------
+GARBAGE = r"""
+import sys, threading, time
+from retriever.backends.zenoh.hub import open_peer
+from retriever.backends.zenoh.wire import KeySpace
+
+keys = KeySpace(sys.argv[1])
+seen = threading.Event()
+GARBAGE = [b"", b"not msgpack at all", b"\x93\x01\x02\x03", b"\x97\x01\xc1"]
+with open_peer(sys.argv[2]) as s:
+    sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
+    print("ready", flush=True)
+    assert seen.wait(60), "never saw the run's data"  # a bound only: the run sends within a second
+    for _ in range(3):  # during the run: its first event has been seen; it lasts 2 s
+        for key in (keys.data("counter", "n"), keys.steps("total"), keys.steps("counter"),
+                    keys.node_status("counter"), keys.progress("counter"), keys.run_control()):
+            for junk in GARBAGE:
+                s.put(key, junk)
+        time.sleep(0.1)
+    sub.undeclare()
+print("sent", flush=True)
+"""
+
+
+def _read_line(proc: subprocess.Popen, bound: float = BOUND_S) -> str:
+    deadline = time.monotonic() + bound
+    while time.monotonic() < deadline:
+        if select.select([proc.stdout], [], [], 0.1)[0]:
+            return proc.stdout.readline()
+        assert proc.poll() is None, proc.communicate()
+    raise AssertionError(f"no line from the client after {bound:g} s")
+
+
+def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespace):
+    port = free_port()  # the hub's; the client connects first and its session retries until it is up
+    client = subprocess.Popen([sys.executable, "-c", GARBAGE, namespace, endpoint(port)], cwd=ROOT, env=_env(),
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _read_line(client) == "ready\n"
+        pipe = two_node_pipeline("garbage", source_hz=10, sink_hz=5, sink=Sink)
+        pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True)
+        out, err = client.communicate(timeout=BOUND_S)
+    finally:
+        _kill(client)
+    session = pipe._session
+    assert session.endpoint == endpoint(port), "the hub did not get the port the client connects to"
+    assert client.returncode == 0, err
+    assert out.splitlines()[-1] == "sent", out
+    assert session.counts["garbage"] >= 1, session.counts
+    stats = pipe.stats()
+    assert (stats["counter"].ticks, stats["counter"].steps, stats["counter"].errors) == (20, 20, 0)
+    assert (stats["total"].ticks, stats["total"].steps, stats["total"].errors) == (10, 10, 0)
+    trace = pipe.trace
+    assert sorted(e.value for e in trace.events if e.node == "counter") == list(range(1, 21))
+    assert {s.status for s in trace.steps} == {"ok"}
+
+
+SPOOF = r"""
+import sys, threading, time
+from retriever.backends.zenoh.hub import open_peer
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+
+keys, enc = KeySpace(sys.argv[1]), WireEncoder()
+seen = threading.Event()
+with open_peer(sys.argv[2]) as s:
+    sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
+    print("ready", flush=True)
+    assert seen.wait(60), "never saw the run's data"
+    # well-formed envelopes that are not the run's: a producer that is no node of the graph, a
+    # key that is not data/<node>/<port>, and an event id (counter, n, 0) the run already used
+    s.put(keys.data("ghost", "x"), enc.data((5, 0), 0, (5, 0), "ghost", "x", 42))
+    s.put(keys.data("counter", "n") + "/extra", enc.data((5, 0), 0, (5, 0), "counter", "n", 42))
+    s.put(keys.data("counter", "n"), enc.data((5, 0), 0, (5, 0), "counter", "n", 42))
+    time.sleep(0.3)
+    sub.undeclare()
+print("sent", flush=True)
+"""
+
+
+def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_path, namespace):
+    port = free_port()
+    client = subprocess.Popen([sys.executable, "-c", SPOOF, namespace, endpoint(port)], cwd=ROOT, env=_env(),
+                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert _read_line(client) == "ready\n"
+        pipe = two_node_pipeline("spoofed", source_hz=10, sink_hz=5, sink=Sink)
+        trace = pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True,
+                         log=tmp_path / "run.mcap")
+        out, err = client.communicate(timeout=BOUND_S)
+    finally:
+        _kill(client)
+    assert pipe._session.endpoint == endpoint(port)
+    assert client.returncode == 0 and out.splitlines()[-1] == "sent", err
+    stats = pipe.stats()
+    assert (stats["counter"].steps, stats["total"].steps) == (20, 10)
+    ids = [e.id for e in trace.events]
+    assert {e.node for e in trace.events} == {"counter", "total"}, sorted({e.node for e in trace.events})
+    assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
+    assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. Flows that cannot be rebuilt from the IR
+# ---------------------------------------------------------------------------------------------
+def _local_class_flow() -> Flow:
+    class Local(Flow[None, Count]):
+        def step(self, inp: None) -> Count:
+            return Count(n=1)
+
+    return Local()
+
+
+UNBUILDABLE = {
+    "lambda": (lambda: Scaled(fn=lambda k: 2 * k), "scaled", r"argument 'fn' is a function"),
+    "object": (lambda: Scaled(fn=object()), "scaled", r"argument 'fn' is a object"),
+    "set": (lambda: Scaled(fn={1, 2}), "scaled", r"argument 'fn' is a set"),
+    "local-class": (_local_class_flow, "local", r"defined inside a function"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(UNBUILDABLE))
+def test_a_flow_that_cannot_be_rebuilt_is_refused_before_any_process_starts(tmp_path, namespace, case):
+    make, node, why = UNBUILDABLE[case]
+    with Pipeline("unbuildable") as pipe:
+        source = make() @ Rate(hz=10)
+        sink = Sink() @ Rate(hz=5)
+        source.then(sink)
+    before = set(_worker_children(os.getpid()))
+    with pytest.raises(BackendError) as caught:
+        pipe.run(duration=1.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+    message = str(caught.value)
+    assert f"  {node}: " in message, message  # names the flow...
+    assert re.search(why, message), message  # ...and why
+    assert "sink" not in message.split("cannot be rebuilt that way:", 1)[1].split("hint:")[0], message
+    assert 'backend="inproc"' in message, message
+    assert pipe._session is None
+    assert set(_worker_children(os.getpid())) == before, "a worker process was started"
+    if case != "local-class":
+        pipe.reset()
+        trace = pipe.run(duration=1.0)  # in-process, as the hint says
+        assert len(trace.steps) == 15
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. Flow classes in a script's __main__
+# ---------------------------------------------------------------------------------------------
+MAIN_SCRIPT = r'''
+from dataclasses import dataclass
+
+from retriever import Flow, Latest, Pipeline, Rate, io
+
+
+@io
+@dataclass
+class Num:
+    n: int = 0
+
+
+class Tick(Flow[None, Num]):
+    def __init__(self, step: int = 1):
+        self.increment = step
+        self.k = 0
+
+    def step(self, inp: None) -> Num:
+        self.k += self.increment
+        return Num(n=self.k)
+
+
+class Echo(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        return Num(n=inp.n)
+
+
+with Pipeline("mainscript") as pipe:
+    tick = Tick(step=2) @ Rate(hz=10)
+    tick.then(Echo() @ Rate(hz=5), sync=Latest())
+
+if __name__ == "__main__":  # worker processes import this file as __mp_main__: this does not run there
+    import sys
+    pipe.run(duration=1.0, backend="zenoh", namespace=sys.argv[1], quiet=True)
+    print(sorted((node, s.ticks, s.steps, s.errors) for node, s in pipe.stats().items()))
+    print(max(e.value for e in pipe.trace.events if e.node == "tick"))
+'''
+
+
+def test_flow_classes_in_a_scripts_main_run_on_zenoh(tmp_path, namespace):
+    script = tmp_path / "script.py"
+    script.write_text(MAIN_SCRIPT, encoding="utf-8")
+    result = subprocess.run([sys.executable, str(script), namespace], check=False, cwd=tmp_path, env=_env(), capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    stats, last = result.stdout.splitlines()[-2:]
+    assert stats == "[('echo', 5, 5, 0), ('tick', 10, 10, 0)]", result.stdout
+    assert last == "20", result.stdout  # Tick(step=2) was rebuilt with its argument
