@@ -83,6 +83,8 @@ class ZenohSession(Session):
             ]
             ir = graph.to_ir().doc
             self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
+            # untyped flows may emit on ports no edge names (a dict step's extra keys)
+            self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {}}
             self._write_spec()
@@ -177,7 +179,7 @@ class ZenohSession(Session):
         kind, key, data, received = item
         if kind == _DATA:
             stream = self.keys.parse_data(key)
-            if stream not in self._streams:
+            if stream not in self._streams and not (stream and stream[0] in self._open_outputs):
                 self._garbage(key, WireError("no output port of this run has this key"))
                 return
             try:
