@@ -42,6 +42,9 @@ FLUSH_MAX = 512
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
 
+#: every message of a run is needed: block rather than drop when a link is congested
+RELIABLE = zenoh.CongestionControl.BLOCK
+
 _DATA, _PROGRESS, _CONTROL = 0, 1, 2
 _TICKED, _DONE = "ticked", "done"
 
@@ -141,8 +144,13 @@ class NodeLoop:
         self._declared.append(s.declare_subscriber(
             keys.run_control(), lambda sample: put((_CONTROL, None, sample.payload.to_bytes()))))
         self._declared.append(s.declare_queryable(keys.progress(self.id), self._answer_progress))
-        self.publishers = {port: s.declare_publisher(keys.data(self.id, port), express=True) for port in self.ports}
-        self.progress_publisher = s.declare_publisher(keys.progress(self.id), express=True)
+        self.publishers = {port: self._publisher(keys.data(self.id, port)) for port in self.ports}
+        self.progress_publisher = self._publisher(keys.progress(self.id))
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        # BLOCK, not Zenoh's default DROP: a dropped event would leave a gap in its stream's seqs
+        # that no frontier can cross (a slow consumer backs its producer up instead)
+        return self.session.declare_publisher(key, express=True, congestion_control=RELIABLE)
 
     def undeclare(self) -> None:
         for d in [*self._declared, *getattr(self, "publishers", {}).values()]:
@@ -573,7 +581,7 @@ class NodeLoop:
         for i, (tag, port, value, seq) in enumerate(batch):
             publisher = publishers.get(port)
             if publisher is None:  # an output port no edge uses (an untyped flow's extra key)
-                publisher = publishers[port] = self.session.declare_publisher(self.keys.data(self.id, port))
+                publisher = publishers[port] = self._publisher(self.keys.data(self.id, port))
             publisher.put(data(tag, seq, frontier if i == last else tag, self.id, port, value))
             self.sent[port] = seq
         if self.sending is not None:
@@ -602,7 +610,8 @@ class NodeLoop:
 
     def flush(self) -> None:
         if self.records:
-            self.session.put(self.keys.steps(self.id), self.encoder.steps(self.id, self.records))
+            self.session.put(self.keys.steps(self.id), self.encoder.steps(self.id, self.records),
+                             congestion_control=RELIABLE)
             self.records = []
         self.last_flush = self.now()
 

@@ -32,6 +32,7 @@ from ...errors import BackendError, StepError
 from ...graph import IN_MAIN, Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
+from .loop import RELIABLE
 from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_status, decode_steps
 from .worker import EXIT_FAILED, EXIT_RESTART
 
@@ -135,7 +136,8 @@ class ZenohSession(Session):
                         time.monotonic() + self.startup_timeout, "start")
             self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             self.end_ns = until_ns
-            self._hub.put(self.keys.run_control(), self._encoder.control("start", {"t0": self.t0, "end": until_ns}))
+            self._hub.put(self.keys.run_control(), self._encoder.control("start", {"t0": self.t0, "end": until_ns}),
+                          congestion_control=RELIABLE)
             slack = max(self._deadlines(), 1.0) + 10.0
             self._await(lambda: all(s == "done" for s in self._state.values()),
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
@@ -277,7 +279,7 @@ class ZenohSession(Session):
         if self._hub is None:
             return
         try:
-            self._hub.put(self.keys.run_control(), self._encoder.control("stop", {}))
+            self._hub.put(self.keys.run_control(), self._encoder.control("stop", {}), congestion_control=RELIABLE)
         except Exception:
             pass
         give_up = time.monotonic() + grace

@@ -120,14 +120,14 @@ def main(argv: list[str]) -> int:
         _import_main(spec["main_file"])
 
     from .hub import open_peer, wait_for_peers
-    from .loop import _CONTROL, RestartFlow, StopRun
+    from .loop import _CONTROL, RELIABLE, RestartFlow, StopRun
     from .wire import KeySpace, WireEncoder, WireError, decode_control
 
     keys = KeySpace(spec["namespace"])
     encoder = WireEncoder()
     with open_peer(spec["hub"]) as session:
         def status(state: str, **info) -> None:
-            session.put(keys.node_status(node_id), encoder.status(node_id, state, info))
+            session.put(keys.node_status(node_id), encoder.status(node_id, state, info), congestion_control=RELIABLE)
 
         try:
             loop = build_loop(spec, node_id, session)

@@ -1,0 +1,172 @@
+"""Flows for tests/backends/zenoh/test_realtime_semantics.py.
+
+The Zenoh backend runs each flow in its own worker process, rebuilt from the IR (``type`` +
+``params``), so these are module-level classes whose constructor arguments are msgpack-able.
+They report what the tests need (their process id, their call count since ``reset()``, the
+value they got) through their outputs, never through shared objects.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from retriever import Flow, io
+
+from ..test_conformance import ABIn, PairSource  # noqa: F401  (re-exported for the tests)
+
+
+@io
+@dataclass
+class Value:
+    value: Any = None
+
+
+@io
+@dataclass
+class XIn:
+    x: Any
+
+
+@io
+@dataclass
+class OptXIn:
+    x: Any | None
+
+
+@io
+@dataclass
+class Report:
+    report: Any = None
+
+
+class Ticker(Flow[None, Value]):
+    """A source: emits its tick index k = 0, 1, 2, …"""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        return Value(self.k - 1)
+
+
+class Faulty(Flow[XIn, Report]):
+    """Raises ``ValueError(f"{message} at x={x}")`` when its input ``x`` is in ``fail_at``; else
+    reports ``{"pid": os.getpid(), "calls": calls since reset, "x": x}``. The call counter
+    lives in ``reset()``, the state a restart must renew."""
+
+    def __init__(self, fail_at: list, message: str = "boom"):
+        self.fail_at = list(fail_at)
+        self.message = message
+        self.calls = 0
+
+    def reset(self) -> None:
+        self.calls = 0
+
+    def step(self, inp: XIn) -> Report:
+        self.calls += 1
+        if inp.x in self.fail_at:
+            raise ValueError(f"{self.message} at x={inp.x}")
+        return Report({"pid": os.getpid(), "calls": self.calls, "x": inp.x})
+
+
+class Sleepy(Flow[None, Value]):
+    """A source whose step sleeps ``sleep`` seconds at the ticks (call indices) in ``at``
+    (every tick when ``at`` is None); emits the call index."""
+
+    def __init__(self, sleep: float, at: list | None = None):
+        self.sleep = sleep
+        self.at = at
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        k = self.k
+        self.k += 1
+        if self.at is None or k in self.at:
+            time.sleep(self.sleep)
+        return Value(k)
+
+
+class Stall(Flow[XIn, Value]):
+    """Forwards its input; when the input is in ``at``, freezes its whole process (SIGSTOP) for
+    ``seconds`` — its Zenoh threads too, as a machine hiccup or a GC pause would — so it can
+    neither publish nor answer progress queries. A helper process sends SIGCONT."""
+
+    def __init__(self, seconds: float, at: list):
+        self.seconds = seconds
+        self.at = list(at)
+
+    def step(self, inp: XIn) -> Value:
+        if inp.x in self.at:
+            subprocess.Popen(["/bin/sh", "-c", f"sleep {self.seconds}; kill -CONT {os.getpid()}"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            os.kill(os.getpid(), signal.SIGSTOP)
+        return Value(inp.x)
+
+
+class Probe(Flow[OptXIn, Report]):
+    """Reports what its optional input ``x`` got (None when MISSING)."""
+
+    def step(self, inp: OptXIn) -> Report:
+        return Report(inp.x)
+
+
+class Echo(Flow[XIn, Value]):
+    """Required input ``x``; forwards it."""
+
+    def step(self, inp: XIn) -> Value:
+        return Value(inp.x)
+
+
+@io
+@dataclass
+class WinIn:
+    x: list
+
+
+class WindowProbe(Flow[WinIn, Report]):
+    """Reports the list a Window/Queue edge handed it."""
+
+    def step(self, inp: WinIn) -> Report:
+        return Report(list(inp.x))
+
+
+class PairProbe(Flow[ABIn, Report]):
+    """Reports ``[a, b]`` as it got them (None when MISSING)."""
+
+    def step(self, inp: ABIn) -> Report:
+        return Report([inp.a, inp.b])
+
+
+class BigTicker(Flow[None, Value]):
+    """A source emitting ``[k, size bytes]`` at each tick k (a camera frame's worth)."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        return Value([self.k - 1, bytes([self.k % 256]) * self.size])
+
+
+class BigStall(Flow[XIn, Value]):
+    """Takes ``[k, blob]`` and emits k; when k is in ``at``, freezes its whole process (SIGSTOP)
+    for ``seconds``, as ``Stall`` does: it reads nothing from the network meanwhile."""
+
+    def __init__(self, seconds: float, at: list):
+        self.seconds = seconds
+        self.at = list(at)
+
+    def step(self, inp: XIn) -> Value:
+        k = inp.x[0]
+        if k in self.at:
+            subprocess.Popen(["/bin/sh", "-c", f"sleep {self.seconds}; kill -CONT {os.getpid()}"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            os.kill(os.getpid(), signal.SIGSTOP)
+        return Value(k)
