@@ -1,0 +1,244 @@
+"""CPU used by an idle 100 Hz flow on the zenoh backend, from /proc, against bare baselines.
+
+``pipe.run(duration, backend="zenoh")`` of one flow, ``Idle() @ Rate(hz)`` (``step`` does
+nothing and returns nothing; ``benchmarks/zenoh_flows.py``), run in a background thread. Once
+the run has started (``T0``) and ``--settle`` seconds have passed, the script reads
+``utime + stime`` from ``/proc/<pid>/stat`` (all threads) of the flow's worker process
+(``pipe._session.worker_pids()``) and of this process (the coordinator: hub session, trace
+collection), waits ``--seconds``, reads again: CPU % = CPU seconds / wall seconds × 100
+(100% = one core). Per-thread figures come from ``/proc/<pid>/task/*/stat``.
+
+Baselines, in separate processes over the same window (they are idle, so they barely disturb
+each other):
+
+- ``sleep loop``: a bare Python loop ``time.sleep``ing to each next 10 ms deadline;
+- ``zenoh session``: a zenoh-python peer session joined to a listening peer, doing nothing
+  (Zenoh's own background threads);
+- ``zenoh session + 100 Hz put``: the sleep loop putting a 20-byte message on a key each tick
+  through a declared publisher (what an idle Retriever node also does: it publishes its
+  progress every tick).
+
+Target: the worker ≤ 3% of a core (ROS 2 rclpy measured 16% for an idle 100 Hz timer).
+
+    .venv/bin/python benchmarks/idle_cpu.py                # 20 s window, about 25 s
+    .venv/bin/python benchmarks/idle_cpu.py --seconds 60 --hz 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
+sys.path.insert(0, str(HERE))  # zenoh_flows: the workers get this path from the coordinator
+
+from latency import free_port
+
+TARGET_PCT = 3.0
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def _stat_cpu(path: Path) -> tuple[str, float]:
+    text = path.read_text()
+    comm = text[text.index("(") + 1: text.rindex(")")]
+    fields = text.rsplit(")", 1)[1].split()
+    return comm, (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def cpu_seconds(pid: int) -> float:
+    return _stat_cpu(Path(f"/proc/{pid}/stat"))[1]
+
+
+def thread_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds per thread name (threads of one name summed)."""
+    out: dict[str, float] = defaultdict(float)
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            comm, cpu = _stat_cpu(task / "stat")
+        except (OSError, ValueError):
+            continue
+        out[comm] += cpu
+    return dict(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Baseline processes (this script with --baseline KIND)
+# ---------------------------------------------------------------------------------------------
+def baseline(kind: str, hz: float, seconds: float, endpoint: str) -> int:
+    period = round(1e9 / hz)
+    end = time.time_ns() + int(seconds * 1e9)
+    if kind == "sleep":
+        deadline = time.time_ns() + period
+        while deadline < end:
+            wait = deadline - time.time_ns()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+            deadline += period
+        return 0
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if kind == "listen":
+        c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    else:
+        c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    with zenoh.open(c) as session:
+        if kind in ("listen", "session"):
+            time.sleep(seconds)
+            return 0
+        pub = session.declare_publisher(f"bench/idle/{os.getpid()}")
+        payload = b"x" * 20
+        deadline = time.time_ns() + period
+        while deadline < end:
+            wait = deadline - time.time_ns()
+            if wait > 0:
+                time.sleep(wait / 1e9)
+            pub.put(payload)
+            deadline += period
+        pub.undeclare()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--baseline":
+        return baseline(argv[1], float(argv[2]), float(argv[3]), argv[4])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seconds", type=float, default=20.0, help="measurement window (default 20)")
+    p.add_argument("--hz", type=float, default=100.0, help="the idle flow's rate (default 100)")
+    p.add_argument("--settle", type=float, default=2.0, help="seconds after T0 before measuring (default 2)")
+    p.add_argument("--threads", action="store_true", help="also print CPU per thread of the worker and coordinator")
+    p.add_argument("--profile", action="store_true",
+                   help="diagnostic: the flow is zenoh_probe.ProbeIdle, which times the worker main thread's CPU "
+                        "per node-loop method (the timing itself adds a little CPU)")
+    args = p.parse_args(argv)
+    if args.profile:
+        import tempfile
+
+        profile_dir = tempfile.mkdtemp(prefix="idle-cpu-profile-")
+        os.environ["RETRIEVER_BENCH_CPU_PROFILE"] = profile_dir  # inherited by the worker
+
+    from zenoh_flows import Idle
+
+    from retriever import Pipeline, Rate
+
+    print(f"retriever idle CPU: one Idle() @ Rate({args.hz:g}) flow on the zenoh backend, vs bare baselines")
+    from importlib.metadata import version
+
+    print(f"python {platform.python_version()}, {platform.machine()}, {platform.system()}, {os.cpu_count()} cpus; "
+          f"eclipse-zenoh {version('eclipse-zenoh')}; {datetime.datetime.now().isoformat(timespec='seconds')}")
+    print(f"window {args.seconds:g} s, from T0 + {args.settle:g} s; CPU = (utime + stime) / wall, "
+          f"clock tick {1 / CLK_TCK * 1e3:g} ms; load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print()
+
+    if args.profile:
+        from zenoh_probe import ProbeIdle as Idle
+    with Pipeline("idle_cpu") as pipe:
+        Idle().named("idle") @ Rate(hz=args.hz)
+    duration = args.settle + args.seconds + 1.0
+    result: dict = {}
+
+    def go():
+        try:
+            pipe.run(duration=duration, backend="zenoh", quiet=True)
+        except BaseException as e:  # noqa: BLE001 - reported by the main thread
+            result["error"] = e
+
+    runner = threading.Thread(target=go)
+    runner.start()
+    session = None
+    while runner.is_alive() and (session is None or session.t0 is None):
+        session = pipe._session
+        time.sleep(0.005)
+    if "error" in result or session is None or session.t0 is None:
+        runner.join()
+        raise SystemExit(f"the run did not start: {result.get('error')}")
+    worker = session.worker_pids()["idle"]
+    me = [sys.executable, str(Path(__file__).resolve()), "--baseline"]
+    listen = f"tcp/127.0.0.1:{free_port()}"
+    span = str(args.settle + args.seconds + 2)
+    procs = {"listen": subprocess.Popen(me + ["listen", str(args.hz), span, listen])}
+    time.sleep(0.3)
+    procs["sleep"] = subprocess.Popen(me + ["sleep", str(args.hz), span, listen])
+    procs["session"] = subprocess.Popen(me + ["session", str(args.hz), span, listen])
+    procs["put"] = subprocess.Popen(me + ["put", str(args.hz), span, listen])
+    time.sleep(max(0.0, (session.t0 + args.settle * 1e9 - time.time_ns()) / 1e9))
+
+    pids = {"worker": worker, "coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()}}
+    before = {k: cpu_seconds(pid) for k, pid in pids.items()}
+    threads0 = {k: thread_cpu(pids[k]) for k in ("worker", "coordinator")}
+    w0 = time.monotonic()
+    time.sleep(args.seconds)
+    after = {k: cpu_seconds(pid) for k, pid in pids.items()}
+    threads1 = {k: thread_cpu(pids[k]) for k in ("worker", "coordinator")}
+    wall = time.monotonic() - w0
+    runner.join()
+    for proc in procs.values():
+        proc.wait()
+    if "error" in result:
+        raise result["error"]
+    pct = {k: (after[k] - before[k]) / wall * 100 for k in pids}
+    ticks = sum(1 for r in pipe.trace.steps if r.node == "idle")
+
+    rows = [
+        ("retriever-zenoh worker", "worker", f"Idle() @ Rate({args.hz:g}): node loop + its zenoh session"),
+        ("retriever coordinator", "coordinator", "this process: hub session, collects step records"),
+        ("bare sleep loop", "sleep", f"time.sleep to each next {1e3 / args.hz:g} ms deadline"),
+        ("zenoh session", "session", "zenoh-python peer session, joined, doing nothing"),
+        (f"zenoh session + {args.hz:g} Hz put", "put", "the sleep loop + Publisher.put(20 B) each tick"),
+        ("zenoh listening peer", "listen", "the peer the two above joined"),
+    ]
+    head = f"{'process':<28} │ {'CPU % of a core':>15} │ what"
+    print(head)
+    print("─" * (len(head) + 50))
+    for name, key, what in rows:
+        print(f"{name:<28} │ {pct[key]:>15.2f} │ {what}")
+    print()
+    if args.threads:
+        for k in ("worker", "coordinator"):
+            per = {n: (threads1[k].get(n, 0.0) - threads0[k].get(n, 0.0)) / wall * 100 for n in threads1[k]}
+            busy = sorted(((v, n) for n, v in per.items() if v > 0), reverse=True)
+            print(f"{k} threads (% of a core): " + ", ".join(f"{n} {v:.2f}" for v, n in busy))
+        print()
+    if args.profile:
+        import shutil
+
+        files = list(Path(profile_dir).glob("*.json"))
+        if files:
+            prof = json.loads(files[0].read_text())
+            cpu, calls = prof["cpu_ns"], prof["calls"]
+            n = max(1, calls.get("ticks", 1))
+            total = cpu.get("run (main thread, total)", 0)
+            print(f"worker main thread, whole run ({n} ticks, {cpu.get('run (wall)', 0) / 1e9:.1f} s wall): "
+                  f"{total / 1e3 / n:.1f} µs CPU per tick = {total / max(1, cpu.get('run (wall)', 1)) * 100:.2f}% of a core")
+            for name in ("_try_tick", "flush", "_wait", "_drain", "_release"):
+                if name in cpu:
+                    print(f"  {name:<10} {cpu[name] / 1e3 / n:7.1f} µs CPU per tick   ({calls[name] / n:.2f} calls per tick)")
+            rest = total - sum(cpu.get(k, 0) for k in ("_try_tick", "flush", "_wait", "_drain", "_release"))
+            print(f"  {'loop rest':<10} {rest / 1e3 / n:7.1f} µs CPU per tick")
+            print("  (_try_tick: the tick: select, step, step record, publish progress; _wait: the timed wait and "
+                  "handling a message that ends it)")
+            print()
+        shutil.rmtree(profile_dir, ignore_errors=True)
+    print(f"idle flow ticks in the run: {ticks} (expected {int(duration * args.hz)}); "
+          f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    ok = pct["worker"] <= TARGET_PCT
+    print(f"target: worker <= {TARGET_PCT:g}% of a core: {pct['worker']:.2f}% {'PASS' if ok else 'MISS'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

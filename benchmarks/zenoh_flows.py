@@ -1,0 +1,107 @@
+"""Flows used by the Zenoh benchmarks (latency.py, control_jitter.py, idle_cpu.py).
+
+The zenoh backend rebuilds every flow in its own worker process from the IR (``module:Class`` +
+constructor arguments), so benchmark flows live here, in an importable module, with
+msgpack-serializable constructor arguments only. The benchmark scripts put ``benchmarks/`` on
+``sys.path``; the coordinator hands its ``sys.path`` to the workers.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from retriever import Flow, io
+
+
+# ---------------------------------------------------------------------------------------------
+# latency.py
+# ---------------------------------------------------------------------------------------------
+@io
+@dataclass
+class Frame:
+    frame: dict  # {"data": uint8 ndarray, "sent_ns": int}: one port, one message per step
+
+
+@io
+@dataclass
+class Lat:
+    lat: list  # [sent_ns, received_ns, size]
+
+
+# Typed flows: they ran on the zenoh backend from the start (at e6109b6 an untyped flow with
+# outputs crashed in its worker with a KeyError on the port; fixed since, in 0351d30).
+class PayloadSource(Flow[None, Frame]):
+    """Emits ``{"data": uint8[size], "sent_ns": wall ns}`` on port ``frame``.
+
+    The array is allocated once (a camera driver would hand over a fresh buffer; allocating 16 MiB
+    per tick would only add noise to both sides). Its first bytes change each step, so no layer
+    could skip or dedupe anything. ``sent_ns`` is taken last, right before ``step`` returns."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.data = np.zeros(size, dtype=np.uint8)
+        self.k = 0
+
+    def step(self) -> Frame:
+        self.k += 1
+        self.data[: min(8, self.size)] = self.k % 256
+        return Frame(frame={"data": self.data, "sent_ns": time.time_ns()})
+
+
+class LatencySink(Flow[Frame, Lat]):
+    """Triggered by ``frame``: outputs ``lat`` = [sent_ns, received_ns, size] with
+    ``received_ns`` = ``time.time_ns()`` first thing in ``step``. The events of ``lat`` are the
+    measurement (one per received frame)."""
+
+    def step(self, inp: Frame) -> Lat:
+        received = time.time_ns()
+        return Lat(lat=[inp.frame["sent_ns"], received, int(inp.frame["data"].size)])
+
+
+# ---------------------------------------------------------------------------------------------
+# control_jitter.py / idle_cpu.py
+# ---------------------------------------------------------------------------------------------
+class Idle(Flow):
+    """Does nothing and outputs nothing (a step record per tick is what it leaves)."""
+
+    def step(self):
+        return None
+
+
+class Burner(Flow):
+    """Burns the CPU: each step spins in a Python loop for ``busy_s`` seconds, outputs nothing.
+
+    On ``Rate(hz)`` with ``busy_s`` just under ``1/hz`` this keeps one core busy the whole run
+    without overrunning its own period."""
+
+    def __init__(self, busy_s: float):
+        self.busy_s = busy_s
+
+    def step(self):
+        end = time.perf_counter() + self.busy_s
+        n = 0
+        while time.perf_counter() < end:
+            n += 1
+
+
+# ---------------------------------------------------------------------------------------------
+# zenoh_drops.py
+# ---------------------------------------------------------------------------------------------
+@io
+@dataclass
+class Count:
+    count: int
+
+
+class Counter(Flow[None, Count]):
+    """Outputs 1, 2, 3, ... (one small event per tick)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self) -> Count:
+        self.k += 1
+        return Count(count=self.k)
