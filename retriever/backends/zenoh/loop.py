@@ -73,7 +73,7 @@ class NodeLoop:
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None,
-                 ports: list[str] | None = None):
+                 ports: list[str] | None = None, consumed: bool = True):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -93,6 +93,7 @@ class NodeLoop:
         self.seqs: dict[str, int] = dict(seqs or {})
         self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.single_port = len(self.ports) == 1
+        self.consumed = consumed  # whether any flow consumes this one (else no progress messages)
 
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()  # guards what the progress queryable reads
@@ -247,8 +248,10 @@ class NodeLoop:
         self._handle(item)
 
     def _drain(self) -> None:
+        """Handle what is queued now, not what arrives meanwhile: a consumer with a backlog
+        still gets to tick between batches."""
         get = self.inbox.get_nowait
-        while True:
+        for _ in range(max(1, self.inbox.qsize())):
             try:
                 item = get()
             except queue.Empty:
@@ -587,7 +590,7 @@ class NodeLoop:
         if self.sending is not None:
             with self.lock:
                 self.sending = None  # only now may a progress query promise past these tags
-        if not (batch and self.single_port):
+        if self.consumed and not (batch and self.single_port):
             self._publish_progress(frontier)
 
     def _publish_progress(self, frontier: tuple[int, int] | None = None) -> None:
@@ -598,11 +601,15 @@ class NodeLoop:
     # ---------------------------------------------------------------------------------------
     def _finish(self) -> None:
         """Release what is held (tags past the end still belong to the run), promise nothing more."""
+        self._drain()
         with self.lock:
             batch = sorted(self.held)
             self.held = []
             self.sending = batch[0][0] if batch else None
             self.next_rate = None
+            unrun = sum(1 for tag in self.pending if tag[0] < self.end)
+            if unrun:  # triggered before the end, but their inputs never completed in time
+                self.counts["unrun_ticks"] += unrun
             self.pending, self.pending_set = [], set()
         self._publish(batch)
         self._publish_progress(NEVER)

@@ -102,7 +102,8 @@ def build_loop(spec: dict, node_id: str, session):
         node.flow.reset()  # the paper's flows initialise their state in reset()
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id),
-                    ports=sorted(ir.node(node_id)["outputs"]))
+                    ports=sorted(ir.node(node_id)["outputs"]),
+                    consumed=any(e["source"]["node"] == node_id for e in ir.edges))
 
 
 def main(argv: list[str]) -> int:
