@@ -28,7 +28,7 @@ import zenoh
 from ...errors import RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
-from ...sync import MISSING, PortBuffer
+from ...sync import PortBuffer, select_inputs
 from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress
 
 #: a frontier no event reaches: the producer is finished
@@ -462,25 +462,7 @@ class NodeLoop:
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
                               f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
                               "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
-        values: dict[str, Any] = {}
-        consumed: dict[str, tuple] = {}
-        missing: list[str] | None = None
-        commits: list | None = None
-        dropped: dict[str, int] | None = None
-        for port, buf, policy, spec in self.inputs:
-            value, ids, n_dropped, commit = policy.select(buf, tau)
-            if value is MISSING:
-                if spec.required:
-                    (missing := missing or []).append(port)
-                else:
-                    values[port] = spec.fallback()
-                continue
-            values[port] = value
-            consumed[port] = ids
-            if commit is not None:
-                (commits := commits or []).append((policy, buf, commit))
-            if n_dropped:
-                (dropped := dropped or {})[port] = n_dropped
+        values, consumed, missing, commits, dropped = select_inputs(self.inputs, tau)
         if dropped:
             detail = {**(detail or {}), **dropped}
         if missing is not None:
