@@ -328,9 +328,6 @@ class ZenohSession(Session):
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
 
-    def seeds(self) -> dict:
-        return {}
-
 
 def _check_deployable(graph: Graph) -> None:
     """Every flow must be rebuildable from the IR; a class in ``__main__`` is, when the main
