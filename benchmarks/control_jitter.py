@@ -36,7 +36,6 @@ import os
 import platform
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -103,7 +102,7 @@ def stats(late_ns: list[int], period_ns: int, expected: int) -> dict:
 
 
 def run(args) -> dict:
-    from zenoh_flows import Burner, Idle
+    from zenoh_flows import BackgroundRun, Burner, Idle
 
     from retriever import Pipeline, Rate
 
@@ -117,24 +116,8 @@ def run(args) -> dict:
         if args.busy > 0:
             Burner(args.busy).named("burn") @ Rate(hz=args.burn_hz)
 
-    result: dict = {}
-
-    def go():
-        try:
-            result["trace"] = pipe.run(duration=args.seconds, backend="zenoh", quiet=True)
-        except BaseException as e:  # noqa: BLE001 - reported by the main thread
-            result["error"] = e
-
-    runner = threading.Thread(target=go)
-    runner.start()
-    session = None
-    while runner.is_alive() and (session is None or session.t0 is None):
-        session = pipe._session
-        time.sleep(0.005)
-    if "error" in result or session is None or session.t0 is None:
-        runner.join()
-        raise SystemExit(f"the run did not start: {result.get('error')}")
-    t0 = session.t0
+    run = BackgroundRun(pipe, args.seconds)
+    session, t0 = run.session, run.t0
     pids = session.worker_pids()
     bare = None
     n_bare = int(args.seconds * 1e9) // period_ns
@@ -145,10 +128,7 @@ def run(args) -> dict:
     cpu0, w0 = {n: cpu_seconds(p) for n, p in pids.items()}, time.monotonic()
     time.sleep(max(0.0, (t0 + (args.seconds - 0.2) * 1e9 - time.time_ns()) / 1e9))
     cpu1, w1 = {n: cpu_seconds(p) for n, p in pids.items()}, time.monotonic()
-    runner.join()
-    if "error" in result:
-        raise result["error"]
-    trace = result["trace"]
+    trace = run.finish()
     warm_ns = int(args.warmup * 1e9)
     ctrl = [r for r in trace.steps if r.node == "ctrl" and r.tag[0] >= warm_ns]
     late = [r.wall_start_ns - (t0 + r.tag[0]) for r in ctrl if r.status == "ok"]

@@ -33,7 +33,6 @@ import os
 import platform
 import subprocess
 import sys
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -131,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         profile_dir = tempfile.mkdtemp(prefix="idle-cpu-profile-")
         os.environ["RETRIEVER_BENCH_CPU_PROFILE"] = profile_dir  # inherited by the worker
 
-    from zenoh_flows import Idle
+    from zenoh_flows import BackgroundRun, Idle
 
     from retriever import Pipeline, Rate
 
@@ -149,23 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     with Pipeline("idle_cpu") as pipe:
         Idle().named("idle") @ Rate(hz=args.hz)
     duration = args.settle + args.seconds + 1.0
-    result: dict = {}
-
-    def go():
-        try:
-            pipe.run(duration=duration, backend="zenoh", quiet=True)
-        except BaseException as e:  # noqa: BLE001 - reported by the main thread
-            result["error"] = e
-
-    runner = threading.Thread(target=go)
-    runner.start()
-    session = None
-    while runner.is_alive() and (session is None or session.t0 is None):
-        session = pipe._session
-        time.sleep(0.005)
-    if "error" in result or session is None or session.t0 is None:
-        runner.join()
-        raise SystemExit(f"the run did not start: {result.get('error')}")
+    run = BackgroundRun(pipe, duration)
+    session = run.session
     worker = session.worker_pids()["idle"]
     me = [sys.executable, str(Path(__file__).resolve()), "--baseline"]
     listen = f"tcp/127.0.0.1:{free_port()}"
@@ -185,11 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     after = {k: cpu_seconds(pid) for k, pid in pids.items()}
     threads1 = {k: thread_cpu(pids[k]) for k in ("worker", "coordinator")}
     wall = time.monotonic() - w0
-    runner.join()
+    run.finish()
     for proc in procs.values():
         proc.wait()
-    if "error" in result:
-        raise result["error"]
     pct = {k: (after[k] - before[k]) / wall * 100 for k in pids}
     ticks = sum(1 for r in pipe.trace.steps if r.node == "idle")
 

@@ -8,6 +8,7 @@ msgpack-serializable constructor arguments only. The benchmark scripts put ``ben
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 
@@ -105,3 +106,38 @@ class Counter(Flow[None, Count]):
     def step(self) -> Count:
         self.k += 1
         return Count(count=self.k)
+
+
+# ---------------------------------------------------------------------------------------------
+# control_jitter.py, idle_cpu.py: measure a run from outside while it goes
+# ---------------------------------------------------------------------------------------------
+class BackgroundRun:
+    """``pipe.run(duration, backend="zenoh")`` in a thread; the constructor returns once the run
+    has agreed its T0 (``.session``: the ZenohSession, ``.t0``), ``finish()`` joins it and returns
+    the trace (or re-raises the run's error)."""
+
+    def __init__(self, pipe, duration: float):
+        self._result: dict = {}
+
+        def go() -> None:
+            try:
+                self._result["trace"] = pipe.run(duration=duration, backend="zenoh", quiet=True)
+            except BaseException as e:  # noqa: BLE001 - re-raised by finish()
+                self._result["error"] = e
+
+        self._runner = threading.Thread(target=go)
+        self._runner.start()
+        session = None
+        while self._runner.is_alive() and (session is None or session.t0 is None):
+            session = pipe._session
+            time.sleep(0.005)
+        if "error" in self._result or session is None or session.t0 is None:
+            self._runner.join()
+            raise SystemExit(f"the run did not start: {self._result.get('error')}")
+        self.session, self.t0 = session, session.t0
+
+    def finish(self):
+        self._runner.join()
+        if "error" in self._result:
+            raise self._result["error"]
+        return self._result["trace"]
