@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import socket
+import time
 
 import zenoh
 
@@ -71,8 +72,6 @@ def open_peer(hub_endpoint: str) -> zenoh.Session:
 
 def wait_for_peers(session: zenoh.Session, count: int, timeout: float, stop=lambda: False) -> bool:
     """Wait until ``session`` has direct links to ``count`` peers; False on timeout or ``stop()``."""
-    import time
-
     give_up = time.monotonic() + timeout
     while len(session.info.peers_zid()) < count:
         if time.monotonic() > give_up or stop():

@@ -176,7 +176,8 @@ class NodeLoop:
 
     def frontier(self, sent: bool = False) -> tuple[int, int]:
         """Every later output of this node will have a tag ≥ this (thread-safe). ``sent``: as
-        if the outputs being put now were out already (the frontier they carry)."""
+        if the outputs being put now were out already (the frontier they carry); the main
+        thread, which just stamped them, then skips reading the HLC again."""
         with self.lock:
             lower = self.running or self._next_tick_bound()
             if lower >= (self.end, 0) and self.running is None:
@@ -184,7 +185,8 @@ class NodeLoop:
             elif self.latency_ns:
                 own = (lower[0] + self.latency_ns, 0)
             else:
-                own = (max(self.hlc(), lower[0] + 1, self.last_stamp), 0)
+                stamp = self.last_stamp if sent else max(self.hlc(), self.last_stamp)
+                own = (max(stamp, lower[0] + 1), 0)
             if self.held:
                 own = min(own, self.held[0][0])
             if self.sending is not None and not sent:
@@ -198,9 +200,13 @@ class NodeLoop:
             bound = min(bound, self.pending[0])
         for e in self.edges:
             if e.triggers:
-                f = self.frontiers[(e.src, e.src_port)]
-                bound = min(bound, (f[0] + e.delay_ns, 0) if e.delay_ns else f)
+                bound = min(bound, self._edge_frontier(e))
         return bound
+
+    def _edge_frontier(self, e: InEdge) -> tuple[int, int]:
+        """The producer's frontier as this edge delivers it (a delay shifts it, microstep 0)."""
+        f = self.frontiers[(e.src, e.src_port)]
+        return (f[0] + e.delay_ns, 0) if e.delay_ns else f
 
     # ---------------------------------------------------------------------------------------
     # The loop
@@ -288,9 +294,7 @@ class NodeLoop:
         look again if some edge may still complete in time."""
         late_ports, wake = [], None
         for e in self.edges:
-            f = self.frontiers[(e.src, e.src_port)]
-            if e.delay_ns:
-                f = (f[0] + e.delay_ns, 0)
+            f = self._edge_frontier(e)
             if f > tau:
                 continue
             if now >= tau[0] + e.deadline_ns:
@@ -329,9 +333,7 @@ class NodeLoop:
         for e in self.edges:
             if not e.triggers:
                 continue
-            f = self.frontiers[(e.src, e.src_port)]
-            if e.delay_ns:
-                f = (f[0] + e.delay_ns, 0)
+            f = self._edge_frontier(e)
             if f >= end_tag or now >= self.end + e.deadline_ns:
                 continue
             again = min(self.end + e.deadline_ns, self._ask(e.src, now, self.end))
