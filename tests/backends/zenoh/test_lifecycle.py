@@ -476,6 +476,7 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert {e.node for e in trace.events} == {"counter", "total"}, sorted({e.node for e in trace.events})
     assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
     assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
+    assert pipe._session.counts["garbage"] >= 3  # the three spoofed envelopes did arrive, and were refused
 
 
 # ---------------------------------------------------------------------------------------------
