@@ -28,11 +28,10 @@ are dropped. Sizes run one after another (raw, then retriever-zenoh, then inproc
 overlapping. Reported: median and p99 per side, and retriever-zenoh / raw. Target (the issue):
 retriever-zenoh median ≤ 1.2× raw zenoh at every size.
 
-Note what the two real-time sides do differently by design: Retriever's coordinator (this
-process) subscribes to every data key to build the trace, so the source's session sends each
-frame to two subscribers, and this process decodes every frame too; raw zenoh has one subscriber.
-``--raw-hub`` adds a second plain subscriber process to the raw side, to see what that costs, and
-``--hub-sink-only`` takes the frames out of the coordinator's subscription.
+Retriever's coordinator (this process) is not on the frames' path: each worker reports the
+data messages it published, with its step records, in a batch up to 20 ms later.
+``--raw-hub`` adds a second plain subscriber process to the raw side, to see what a second
+subscriber on the path would cost.
 
 Diagnostics: ``--breakdown`` stamps each stage of the path per message (``zenoh_probe.py`` in the
 workers; the raw side stamps its own); ``--codec`` times the copy steps of both paths in this
@@ -43,7 +42,6 @@ process, with minor page faults, and the cost of a cold call after an idle gap.
     .venv/bin/python benchmarks/latency.py --breakdown          # where the time goes
     .venv/bin/python benchmarks/latency.py --codec              # copies and page faults, in-process
     .venv/bin/python benchmarks/latency.py --raw-hub --sides raw
-    .venv/bin/python benchmarks/latency.py --hub-sink-only --sides raw,zenoh
 """
 
 from __future__ import annotations
@@ -251,7 +249,7 @@ ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
     ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx, the sink's callback thread gets the GIL"),
     ("to_bytes", "cb_in", "cb_out", "sample.payload.to_bytes() in the callback"),
     ("inbox→main", "cb_out", "handle", "SimpleQueue put, the main thread wakes and takes it"),
-    ("decode", "handle", "decoded", "wire.decode_data (msgpack + codec, array copied)"),
+    ("decode", "handle", "decoded", "wire.decode_data (msgpack + codec; arrays are views)"),
     ("deliver", "decoded", "delivered", "seq check, frontier, PortBuffer.insert, trigger tag queued"),
     ("→step()", "delivered", "received", "loop: drain, _try_tick, _incomplete, select, invoke"),
     ("total", "sent", "received", "= the latency"),
@@ -411,9 +409,6 @@ def main(argv: list[str] | None = None) -> int:
                    help="diagnostic: a second raw subscriber process (Retriever's coordinator also subscribes)")
     p.add_argument("--raw-express", action="store_true",
                    help="diagnostic: the raw publisher declared with express=True, as Retriever's are")
-    p.add_argument("--hub-sink-only", action="store_true",
-                   help="diagnostic: the coordinator (this process) subscribes to the sink's data only, not to the "
-                        "source's frames (the trace then lacks them; latency is read from the sink's events)")
     p.add_argument("--breakdown", action="store_true",
                    help="diagnostic: instead of the comparison, time each stage of the path per message "
                         "(retriever-zenoh with benchmarks/zenoh_probe.py, and raw zenoh)")
@@ -429,17 +424,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     sides = [s.strip() for s in args.sides.split(",") if s.strip()]
     total = args.warmup + args.samples
-    if args.hub_sink_only:
-        from retriever.backends.zenoh.wire import KeySpace
-
-        KeySpace.all_data = lambda self: f"{self.prefix}/data/sink/**"  # this process only; workers unaffected
     if args.breakdown:
         print(f"latency breakdown, {args.hz:g} Hz, {args.warmup} warm-up + {args.samples} samples per size; "
               f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
               + ("; raw side with a 2nd subscriber (--raw-hub)" if args.raw_hub else "")
           + ("; raw publisher express (--raw-express)" if args.raw_express else "")
-              + ("; raw publisher express (--raw-express)" if args.raw_express else "")
-              + ("; coordinator subscribed to the sink only (--hub-sink-only)" if args.hub_sink_only else ""))
+              + ("; raw publisher express (--raw-express)" if args.raw_express else ""))
         probed, raw = {}, {}
         for size in sizes:
             raw[size] = run_raw(size, total, args.hz, args.warmup, args.raw_hub, args.raw_express)
@@ -458,8 +448,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.hz:g} Hz, {args.warmup} warm-up + {args.samples} samples per size and side; "
           f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
           + ("; raw side with a 2nd subscriber (--raw-hub)" if args.raw_hub else "")
-          + ("; raw publisher express (--raw-express)" if args.raw_express else "")
-          + ("; coordinator subscribed to the sink only (--hub-sink-only)" if args.hub_sink_only else ""))
+          + ("; raw publisher express (--raw-express)" if args.raw_express else ""))
     print()
 
     rows = []

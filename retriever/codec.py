@@ -7,12 +7,19 @@ Used for trace digests today, and for the MCAP log and the Zenoh wire. Round-tri
 - dataclasses (including ``@io`` types), rebuilt by importing ``module:QualName``.
 
 Anything else raises :class:`CodecError` naming the type and the path to it inside the value.
+
+Between processes (the Zenoh wire) arrays may travel *out of band*: :class:`OutOfBandEncoder`
+packs each array as ``ExtType(6, [descr, shape, index])`` and hands its bytes back as the
+``index``-th buffer, uncopied; :func:`unpackb_out_of_band` rebuilds it as a read-only view of that
+buffer. The sender then copies each array once (into the message) and the receiver not at all.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
+import math
 import sys
 from typing import Any
 
@@ -26,6 +33,7 @@ EXT_TUPLE = 2
 EXT_BIGINT = 3
 EXT_DATACLASS = 4
 EXT_NPSCALAR = 5
+EXT_NDARRAY_OOB = 6  # [descr, shape, buffer index]: the bytes travel beside the msgpack
 
 _INT64_MIN, _UINT64_MAX = -(1 << 63), (1 << 64) - 1
 
@@ -52,9 +60,9 @@ _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it neve
 _array_heads: dict[tuple, bytes] = {}  # (dtype, shape) -> the msgpack bytes of "[descr, shape, " below
 
 
-def _array_payload(arr: np.ndarray) -> bytes:
-    """msgpack ``[descr, shape, raw bytes]``, built from a cached head: this is the hot path of
-    logging and the wire, where the same few dtypes and shapes repeat."""
+def _array_head(arr: np.ndarray) -> bytes:
+    """The msgpack bytes of ``[descr, shape, `` (an array of 3 whose last item follows), cached:
+    this is the hot path of logging and the wire, where the same few dtypes and shapes repeat."""
     key = (arr.dtype, arr.shape)
     head = _array_heads.get(key)
     if head is None:
@@ -66,6 +74,16 @@ def _array_payload(arr: np.ndarray) -> bytes:
         head = b"\x93" + _pack_plain(descr) + _pack_plain(list(arr.shape))
         if len(_array_heads) < 4096:
             _array_heads[key] = head
+    return head
+
+
+def _array_dtype(descr: Any) -> np.dtype:
+    return np.dtype(descr) if isinstance(descr, str) else np.lib.format.descr_to_dtype(descr)
+
+
+def _array_payload(arr: np.ndarray) -> bytes:
+    """msgpack ``[descr, shape, raw bytes]``."""
+    head = _array_head(arr)
     raw = arr.tobytes()
     n = len(raw)
     if n < 0x100:
@@ -95,18 +113,19 @@ def _default(obj: Any) -> Any:
     )
 
 
-def _ext_hook(code: int, data: bytes, *, import_modules: bool = True) -> Any:
+def _ext_hook(code: int, data: bytes, *, import_modules: bool = True, buffers: list | None = None) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
         descr, shape, raw = unpackb(data)
-        dtype = np.dtype(descr) if isinstance(descr, str) else np.lib.format.descr_to_dtype(descr)
-        arr = np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
+        arr = np.frombuffer(raw, dtype=_array_dtype(descr)).reshape(shape).copy()
         return arr[()] if code == EXT_NPSCALAR else arr
+    if code == EXT_NDARRAY_OOB:
+        return _out_of_band_array(data, buffers)
     if code == EXT_TUPLE:
-        return tuple(unpackb(data, import_modules=import_modules))
+        return tuple(_unpack(data, import_modules, buffers))
     if code == EXT_BIGINT:
         return int(data.decode())
     if code == EXT_DATACLASS:
-        path, fields = unpackb(data, import_modules=import_modules)
+        path, fields = _unpack(data, import_modules, buffers)
         if not import_modules and path.partition(":")[0] not in sys.modules:
             raise CodecError(f"refusing to decode a {path}: its module is not imported here, and a message "
                              "may not make this process import code")
@@ -116,6 +135,19 @@ def _ext_hook(code: int, data: bytes, *, import_modules: bool = True) -> Any:
             raise CodecError(f"cannot decode a {path}: the class cannot be imported ({e})") from None
         return cls(**fields)
     raise CodecError(f"unknown msgpack extension type {code}")
+
+
+def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
+    """A read-only array over its buffer: no copy."""
+    descr, shape, index = msgpack.unpackb(data, raw=False)
+    if buffers is None or type(index) is not int or not 0 <= index < len(buffers):
+        raise CodecError(f"an out-of-band array refers to buffer {index!r:.20}, which the message does not carry")
+    dtype = _array_dtype(descr)
+    buf = buffers[index]
+    if type(shape) is not list or len(buf) != dtype.itemsize * math.prod(shape):
+        raise CodecError(f"an out-of-band array of shape {shape!r:.40} and dtype {dtype} does not fit its "
+                         f"buffer of {len(buf)} bytes")
+    return np.frombuffer(buf, dtype=dtype).reshape(shape)
 
 
 def packb(value: Any) -> bytes:
@@ -214,5 +246,66 @@ def unpackb(data: bytes, *, import_modules: bool = True) -> Any:
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
 
 
+def unpackb_out_of_band(data: bytes | memoryview, buffers: list, *, import_modules: bool = False) -> Any:
+    """Decode what :class:`OutOfBandEncoder` packed, given its buffers (any bytes-like objects,
+    e.g. memoryviews of the received message). Arrays come back as read-only views of them."""
+    return _unpack(data, import_modules, buffers)
+
+
+def _unpack(data: bytes, import_modules: bool, buffers: list | None) -> Any:
+    if buffers is None:
+        hook = _ext_hook if import_modules else _ext_hook_no_imports
+    else:
+        hook = functools.partial(_ext_hook, import_modules=import_modules, buffers=buffers)
+    return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
+
+
 def _ext_hook_no_imports(code: int, data: bytes) -> Any:
     return _ext_hook(code, data, import_modules=False)
+
+
+class OutOfBandEncoder:
+    """Packs a value with its arrays' bytes left out: each array becomes ``ExtType(6, [descr,
+    shape, index])`` and ``buffers[index]`` is a flat uint8 view of its memory (a non-contiguous
+    array is made contiguous first). The caller joins header and buffers into one message: one
+    copy per array, where in-band encoding makes several. Not thread-safe: one per thread."""
+
+    __slots__ = ("_buffers", "_pack")
+
+    def __init__(self) -> None:
+        self._buffers: list[np.ndarray] = []
+        self._pack = msgpack.Packer(default=self._default, use_bin_type=True, strict_types=True).pack
+
+    def pack(self, value: Any) -> tuple[bytes, list[np.ndarray]]:
+        """``(msgpack bytes, buffers)``; the buffers are views of the value's arrays: send them
+        before the arrays change."""
+        self._buffers = buffers = []
+        try:
+            try:
+                return self._pack(value), buffers
+            except OverflowError:
+                self._buffers = buffers = []
+                return self._nested(value), buffers
+        except CodecError as e:
+            raise _located(e, value) from None
+
+    def _nested(self, value: Any) -> bytes:
+        # a fresh packer per nested value: msgpack's packer is not re-entrant
+        try:
+            return msgpack.packb(value, default=self._default, use_bin_type=True, strict_types=True)
+        except OverflowError:
+            return msgpack.packb(_widen(value), default=self._default, use_bin_type=True, strict_types=True)
+
+    def _default(self, obj: Any) -> Any:
+        if isinstance(obj, np.ndarray):
+            head = _array_head(obj)  # raises for dtype object
+            if not obj.flags.c_contiguous:
+                obj = np.ascontiguousarray(obj)
+            self._buffers.append(obj.reshape(-1).view(np.uint8))
+            return msgpack.ExtType(EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1))
+        if isinstance(obj, tuple):
+            return msgpack.ExtType(EXT_TUPLE, self._nested(list(obj)))
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+            return msgpack.ExtType(EXT_DATACLASS, self._nested([type_path(type(obj)), fields]))
+        return _default(obj)

@@ -35,9 +35,11 @@ from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_data,
 NEVER = (1 << 62, 0)
 #: how long a blocked tick waits for a data or progress message before asking the producer
 PROBE_AFTER_NS = 500_000
-#: how often step records go to the coordinator (and at most how many at once)
-FLUSH_EVERY_NS = 20_000_000
+#: how long step records and published events may wait before they go to the coordinator, and
+#: at most how many records or bytes of events go at once
+FLUSH_AFTER_NS = 20_000_000
 FLUSH_MAX = 512
+FLUSH_MAX_BYTES = 64 << 20
 
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
@@ -118,8 +120,10 @@ class NodeLoop:
         self.end = 0
         self.stopping = False
 
-        self.records: list = []  # step records not yet sent
-        self.last_flush = 0
+        self.records: list = []  # step records not yet reported to the coordinator
+        self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
+        self.published_bytes = 0
+        self.flush_due: int | None = None  # when the oldest unreported record or event must go
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
@@ -224,7 +228,6 @@ class NodeLoop:
                     self.k += 1
             with self.lock:
                 self.next_rate = (self.clock.tick_time(self.k), 0)
-        self.last_flush = self.now()
         self._publish_progress()
         while not self.stopping:
             self._drain()
@@ -237,8 +240,11 @@ class NodeLoop:
                 continue  # look again at once
             if wake is _DONE:
                 break
-            if now - self.last_flush >= FLUSH_EVERY_NS:
-                self.flush()
+            if self.flush_due is not None:
+                if now >= self.flush_due:
+                    self.flush()
+                else:
+                    wake = min(wake, self.flush_due)
             if self.held:
                 wake = min(wake, self.held[0][0][0])
             self._wait(wake - self.now())
@@ -545,7 +551,9 @@ class NodeLoop:
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
-        if len(self.records) >= FLUSH_MAX:
+        if self.flush_due is None:
+            self.flush_due = self.now() + FLUSH_AFTER_NS
+        elif len(self.records) >= FLUSH_MAX:
             self.flush()
 
     def _release(self, now: int) -> None:
@@ -569,8 +577,16 @@ class NodeLoop:
             publisher = publishers.get(port)
             if publisher is None:  # an output port no edge uses (an untyped flow's extra key)
                 publisher = publishers[port] = self._publisher(self.keys.data(self.id, port))
-            publisher.put(data(tag, seq, frontier if i == last else tag, self.id, port, value))
+            message = data(tag, seq, frontier if i == last else tag, self.id, port, value)
+            publisher.put(message)
             self.sent[port] = seq
+            self.published.append((time.time_ns(), message))
+            self.published_bytes += len(message)
+        if batch:
+            if self.published_bytes >= FLUSH_MAX_BYTES:
+                self.flush()
+            elif self.flush_due is None:  # held LET outputs are released after their record went
+                self.flush_due = self.now() + FLUSH_AFTER_NS
         if self.sending is not None:
             with self.lock:
                 self.sending = None  # only now may a progress query promise past these tags
@@ -600,11 +616,12 @@ class NodeLoop:
         self.flush()
 
     def flush(self) -> None:
-        if self.records:
-            self.session.put(self.keys.steps(self.id), self.encoder.steps(self.id, self.records),
+        """Report step records and published events to the coordinator."""
+        if self.records or self.published:
+            self.session.put(self.keys.report(self.id), self.encoder.report(self.id, self.records, self.published),
                              congestion_control=RELIABLE)
-            self.records = []
-        self.last_flush = self.now()
+            self.records, self.published, self.published_bytes = [], [], 0
+        self.flush_due = None
 
 
 class RestartFlow(Exception):

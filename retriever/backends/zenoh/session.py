@@ -4,7 +4,8 @@
         │ open the hub (tcp/127.0.0.1:7447, else a free port), write SPEC.json (IR + python path)
         │ start one worker process per node ──▶ each says `ready` on status/node/<node>
         │ put `start` {T0 = HLC now + margin, end} on ctl/run
-        │ collect data/** (events) and status/steps/* (step records) into the trace and the log
+        │ collect status/report/* (the events each worker published, its step records) into the
+        │ trace and the log: the coordinator is not on the events' path
         ▼ every worker says `done` (or one fails: `stop` the rest) → processes reaped, sessions closed
 
 Tags in the trace and the log are ns since ``T0``, so a run's trace compares with the in-process
@@ -33,10 +34,8 @@ from ...graph import IN_MAIN, Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
 from .loop import RELIABLE
-from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_status, decode_steps
+from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_RESTART
-
-_DATA, _STATUS = 0, 1
 
 
 class RemoteError(Exception):
@@ -76,12 +75,8 @@ class ZenohSession(Session):
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
                       f"watch it with a subscriber on {self.keys.all_data()}", file=sys.stderr, flush=True)
             put = self._inbox.put
-            self._subscribers = [
-                self._hub.declare_subscriber(self.keys.all_data(), lambda s: put(
-                    (_DATA, str(s.key_expr), s.payload.to_bytes(), time.time_ns()))),
-                self._hub.declare_subscriber(self.keys.status("**"), lambda s: put(
-                    (_STATUS, str(s.key_expr), s.payload.to_bytes(), 0))),
-            ]
+            self._subscribers = [self._hub.declare_subscriber(
+                self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes())))]
             ir = graph.to_ir().doc
             self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
             # untyped flows may emit on ports no edge names (a dict step's extra keys)
@@ -178,36 +173,22 @@ class ZenohSession(Session):
             self.write_log()
 
     def _handle(self, item: tuple) -> None:
-        kind, key, data, received = item
-        if kind == _DATA:
-            stream = self.keys.parse_data(key)
-            if stream not in self._streams and not (stream and stream[0] in self._open_outputs):
-                self._garbage(key, WireError("no output port of this run has this key"))
-                return
+        key, data = item
+        if key.startswith(self.keys.status("report") + "/"):
             try:
-                msg = decode_data(data, expected=stream)
+                report = decode_report(data, expected=key.rsplit("/", 1)[1])
             except WireError as e:
                 self._garbage(key, e)
                 return
-            event_id = (msg.producer, msg.port, msg.seq)
-            if event_id in self._event_ids:
-                self._garbage(key, WireError(f"event {event_id} arrived twice"))
-                return
-            self._event_ids.add(event_id)
-            self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, received))
-            return
-        if key.startswith(self.keys.status("steps") + "/"):
-            try:
-                batch = decode_steps(data, expected=key.rsplit("/", 1)[1])
-            except WireError as e:
-                self._garbage(key, e)
-                return
-            steps, stats = self.trace.raw_steps, self._stats.get(batch.node)
+            stats = self._stats.get(report.node)
             if stats is None:
-                self._garbage(key, WireError(f"step records of an unknown node '{batch.node}'"))
+                self._garbage(key, WireError(f"a report of an unknown node '{report.node}'"))
                 return
-            for tag, consumed, produced, status, detail, start, wall in batch.records:
-                steps.append((batch.node, tag, consumed, produced, status, detail, start, wall))
+            for wall, message in report.events:
+                self._event(key, report.node, wall, message)
+            steps = self.trace.raw_steps
+            for tag, consumed, produced, status, detail, start, wall in report.records:
+                steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
                 stats.ticks += 1
                 if status == "ok":
                     stats.steps += 1
@@ -233,6 +214,24 @@ class ZenohSession(Session):
         elif state == "restart":
             self._spec["seqs"][node] = info.get("seqs", {})
         self._state[node] = state
+
+    def _event(self, key: str, node: str, wall: int, message: bytes) -> None:
+        try:
+            msg = decode_data(message)
+        except WireError as e:
+            self._garbage(key, e)
+            return
+        stream = (msg.producer, msg.port)
+        if msg.producer != node or (stream not in self._streams and node not in self._open_outputs):
+            self._garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
+                                         "which is no output port of it"))
+            return
+        event_id = (msg.producer, msg.port, msg.seq)
+        if event_id in self._event_ids:
+            self._garbage(key, WireError(f"event {event_id} arrived twice"))
+            return
+        self._event_ids.add(event_id)
+        self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, wall))
 
     def _garbage(self, key: str, error: WireError) -> None:
         self.counts["garbage"] += 1

@@ -2,24 +2,32 @@
 
 Key space, under ``retriever/<namespace>/``::
 
-    data/<node>/<port>     events          [1, [t, m], seq, [ft, fm], producer, port, value]
-    progress/<node>        frontiers       [1, [ft, fm], producer, {port: last seq sent}]
+    data/<node>/<port>     events          [envelope, buffer, ...]   (bins; see below)
+    progress/<node>        frontiers       [2, [ft, fm], producer, {port: last seq sent}]
                                            (also a queryable: ask for it)
-    status/steps/<node>    step records    [1, node, [record, ...]]
-    status/node/<node>     worker state    [1, node, state, info]
-    ctl/run                control         [1, op, args]
+    status/report/<node>   for the run's   [2, node, [step record, ...], [[wall_ns, data message], ...]]
+                           coordinator
+    status/node/<node>     worker state    [2, node, state, info]
+    ctl/run                control         [2, op, args]
 
-A data message is a msgpack array: format version ``1``, the event's tag (``t`` in integer ns since
-the run's start ``T0``, microstep ``m``), its seq (per node and port, from 0), the producer's
-*frontier* after it (every later event of this producer has a tag ``≥`` it, so a consumer's edge is
-complete up to any tag ``<`` it: the watermark of DESIGN.md §5), the producer node and port (as in
-the key), and the value in Retriever's codec (numpy arrays, tuples, big ints and dataclasses as
-msgpack extension types 1–5, see ``codec.py``). A plain Zenoh subscriber on
-``retriever/<ns>/data/**`` can decode it with any msgpack library.
+A data message is a msgpack array of bins. The first is the *envelope*, the msgpack array
+``[2, [t, m], seq, [ft, fm], producer, port, value]``: format version ``2``, the event's tag
+(``t`` in integer ns since the run's start ``T0``, microstep ``m``), its seq (per node and port,
+from 0), the producer's *frontier* after it (every later event of this producer has a tag ``≥``
+it, so a consumer's edge is complete up to any tag ``<`` it: the watermark of DESIGN.md §5), the
+producer node and port (as in the key), and the value in Retriever's codec (tuples, big ints,
+dataclasses and numpy scalars as msgpack extension types 2–5, see ``codec.py``). Numpy arrays
+travel *out of band*: in the value an array is extension type 6, ``[dtype descr, shape, i]``, and
+its raw bytes (C order) are the bin after the envelope numbered ``i`` (from 0). The sender copies
+an array once, into the message, and the receiver's arrays are read-only views of the message.
+A plain Zenoh subscriber on ``retriever/<ns>/data/**`` can decode it with any msgpack library.
 
 Zenoh keeps messages in order per key, not across keys, so a progress message says which events
 it comes after: its frontier holds for a consumer of ``port`` once that consumer has received
 every seq of ``port`` up to the one named (seqs are dense, so gaps show what is in flight).
+
+Workers do not make the coordinator subscribe to their data: they report the data messages they
+published, with their step records, in batches (``status/report``), off the path of the events.
 
 Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
 runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never
@@ -29,16 +37,19 @@ make the receiving process import a module it has not imported already.
 from __future__ import annotations
 
 import re
+import struct
 from typing import Any, NamedTuple
 
 import msgpack
 
-from ...codec import Encoder, unpackb
+from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
 
-WIRE_VERSION = 1
+WIRE_VERSION = 2
 ROOT = "retriever"
 _CHUNK = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+_BIN32 = struct.Struct(">BI")
+_BIN_SIZE = {0xC4: struct.Struct(">B"), 0xC5: struct.Struct(">H"), 0xC6: struct.Struct(">I")}
 
 Tag = tuple[int, int]
 
@@ -77,8 +88,8 @@ class KeySpace:
     def status(self, *parts: str) -> str:
         return "/".join((self.prefix, "status", *parts))
 
-    def steps(self, node: str) -> str:
-        return f"{self.prefix}/status/steps/{node}"
+    def report(self, node: str) -> str:
+        return f"{self.prefix}/status/report/{node}"
 
     def node_status(self, node: str) -> str:
         return f"{self.prefix}/status/node/{node}"
@@ -111,29 +122,42 @@ class DataMessage(NamedTuple):
 
 
 class WireEncoder:
-    """Encodes this process's messages (one per thread: it reuses a packer)."""
+    """Encodes this process's messages (one per thread: it reuses packers)."""
 
     def __init__(self) -> None:
-        self._encode = Encoder().pack
+        self._values = OutOfBandEncoder()
         self._pack = msgpack.Packer(use_bin_type=True).pack
 
     def data(self, tag: Tag, seq: int, frontier: Tag, producer: str, port: str, value: Any) -> bytes:
         head = self._pack([WIRE_VERSION, tag, seq, frontier, producer, port])
-        # The array's header says 7 elements; the head packed 6: patch the count, append the value.
-        return b"\x97" + head[1:] + self._encode(value)
+        body, buffers = self._values.pack(value)
+        count = 1 + len(buffers)
+        # the envelope's array header says 7 elements; the head packed 6: patch the count
+        parts = [_array_header(count), _BIN32.pack(0xC6, len(head) + len(body)), b"\x97", memoryview(head)[1:], body]
+        for buf in buffers:
+            parts.append(_BIN32.pack(0xC6, buf.nbytes))
+            parts.append(buf)
+        return b"".join(parts)  # the one copy of each array
 
     def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
         return self._pack([WIRE_VERSION, frontier, producer, sent])
 
-    def steps(self, node: str, records: list) -> bytes:
-        """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)``."""
-        return self._pack([WIRE_VERSION, node, records])
+    def report(self, node: str, records: list, events: list[tuple[int, bytes]]) -> bytes:
+        """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)`` and
+        the data messages published, as ``(wall_ns, message)``."""
+        return self._pack([WIRE_VERSION, node, records, events])
 
     def status(self, node: str, state: str, info: dict) -> bytes:
         return self._pack([WIRE_VERSION, node, state, info])
 
     def control(self, op: str, args: dict) -> bytes:
         return self._pack([WIRE_VERSION, op, args])
+
+
+def _array_header(count: int) -> bytes:
+    if count < 16:
+        return bytes((0x90 + count,))
+    return b"\xdc" + count.to_bytes(2, "big") if count < 0x10000 else b"\xdd" + count.to_bytes(4, "big")
 
 
 def _tag(what: str, raw: Any) -> Tag:
@@ -146,32 +170,68 @@ def _tag(what: str, raw: Any) -> Tag:
 def _fields(data: bytes, count: int, kind: str) -> list:
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise WireError(f"a {kind} message must be bytes, got {type(data).__name__}")
-    unpacker = msgpack.Unpacker(raw=False, strict_map_key=False, max_buffer_size=len(data) + 1)
-    unpacker.feed(data)
     try:
-        size = unpacker.read_array_header()
-    except Exception:
-        raise WireError(f"a {kind} message must be a msgpack array") from None
-    if size != count:
-        raise WireError(f"a {kind} message must be an array of {count}, got {size} elements")
-    fields = []
-    try:
-        for _ in range(count - 1 if kind == "data" else count):
-            fields.append(unpacker.unpack())
-    except Exception as e:
+        fields = msgpack.unpackb(data, raw=False, strict_map_key=False)
+    except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
         raise WireError(f"a {kind} message is not valid msgpack ({type(e).__name__})") from None
+    if type(fields) is not list:
+        raise WireError(f"a {kind} message must be a msgpack array")
+    if len(fields) != count:
+        raise WireError(f"a {kind} message must be an array of {count}, got {len(fields)} elements")
     if fields[0] != WIRE_VERSION:
         raise WireError(f"a {kind} message of wire format {fields[0]!r:.20}; this process speaks {WIRE_VERSION}")
-    if kind == "data":
-        fields.append(data[unpacker.tell():])  # the value, decoded by the codec
-    elif unpacker.tell() != len(data):
-        raise WireError(f"a {kind} message has trailing bytes")
     return fields
 
 
+def _bins(data: bytes) -> list[memoryview]:
+    """The bins of a msgpack array of bins, as views of ``data`` (no copy)."""
+    try:
+        first = data[0]
+        if 0x90 <= first <= 0x9F:
+            count, pos = first - 0x90, 1
+        elif first == 0xDC:
+            count, pos = int.from_bytes(data[1:3], "big"), 3
+        elif first == 0xDD:
+            count, pos = int.from_bytes(data[1:5], "big"), 5
+        else:
+            raise WireError("a data message must be a msgpack array of bins")
+        view, bins = memoryview(data), []
+        for _ in range(count):
+            size_format = _BIN_SIZE.get(data[pos])
+            if size_format is None:
+                raise WireError("a data message must be a msgpack array of bins")
+            start = pos + 1 + size_format.size
+            end = start + size_format.unpack_from(data, pos + 1)[0]
+            if end > len(data):
+                raise WireError("a data message is truncated")
+            bins.append(view[start:end])
+            pos = end
+    except (IndexError, struct.error):
+        raise WireError("a data message is truncated") from None
+    if pos != len(data):
+        raise WireError("a data message has trailing bytes")
+    if not bins:
+        raise WireError("a data message must hold an envelope")
+    return bins
+
+
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
-    """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key."""
-    _, tag, seq, frontier, producer, port, value = _fields(data, 7, "data")
+    """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key.
+    Its arrays are read-only views of ``data``."""
+    if not isinstance(data, (bytes, bytearray)):
+        raise WireError(f"a data message must be bytes, got {type(data).__name__}")
+    envelope, *buffers = _bins(data)
+    try:
+        fields = unpackb_out_of_band(envelope, buffers, import_modules=False)
+    except CodecError as e:
+        raise WireError(f"the value of a data message cannot be decoded: {e}") from None
+    except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
+        raise WireError(f"a data message is not valid msgpack ({type(e).__name__})") from None
+    if type(fields) is not list or len(fields) != 7:
+        raise WireError("a data message's envelope must be an array of 7")
+    version, tag, seq, frontier, producer, port, value = fields
+    if version != WIRE_VERSION:
+        raise WireError(f"a data message of wire format {version!r:.20}; this process speaks {WIRE_VERSION}")
     tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
     if type(seq) is not int or seq < 0:
         raise WireError(f"seq must be an integer >= 0, got {seq!r:.40}")
@@ -181,12 +241,6 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
         raise WireError(f"a message for {producer}.{port} arrived on the key of {expected[0]}.{expected[1]}")
     if frontier < tag:
         raise WireError(f"frontier {frontier} is before the event's own tag {tag}")
-    try:
-        value = unpackb(value, import_modules=False)
-    except CodecError as e:
-        raise WireError(f"the value of {producer}.{port} #{seq} cannot be decoded: {e}") from None
-    except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
-        raise WireError(f"the value of {producer}.{port} #{seq} is not valid msgpack ({type(e).__name__})") from None
     return DataMessage(tag, seq, frontier, producer, port, value)
 
 
@@ -209,16 +263,21 @@ def decode_progress(data: bytes, expected: str | None = None) -> Progress:
     return Progress(frontier, producer, sent)
 
 
-class StepBatch(NamedTuple):
+class Report(NamedTuple):
     node: str
     records: list  # (tag, consumed, produced, status, detail, wall_start_ns, wall_ns)
+    events: list  # (wall_ns, data message bytes)
 
 
-def decode_steps(data: bytes, expected: str | None = None) -> StepBatch:
-    """Decode a batch of step records; ids come back as tuples, as in the trace."""
-    _, node, records = _fields(data, 3, "steps")
+def decode_report(data: bytes, expected: str | None = None) -> Report:
+    """Decode a worker's report; ids in records come back as tuples, as in the trace. The data
+    messages are left encoded: decode each with :func:`decode_data`."""
+    _, node, records, events = _fields(data, 4, "report")
     if type(node) is not str or (expected is not None and node != expected) or type(records) is not list:
-        raise WireError(f"a steps message must carry its node ({expected}) and a list of records")
+        raise WireError(f"a report must carry its node ({expected}) and a list of records")
+    if type(events) is not list or not all(type(e) is list and len(e) == 2 and type(e[0]) is int
+                                           and type(e[1]) is bytes for e in events):
+        raise WireError(f"the events of a report of {node} must be [wall_ns, data message] pairs")
     out = []
     try:
         for tag, consumed, produced, status, detail, start, wall in records:
@@ -228,8 +287,8 @@ def decode_steps(data: bytes, expected: str | None = None) -> StepBatch:
     except WireError:
         raise
     except Exception as e:
-        raise WireError(f"a steps message of {node} has a malformed record ({type(e).__name__}: {e})") from None
-    return StepBatch(node, out)
+        raise WireError(f"a report of {node} has a malformed record ({type(e).__name__}: {e})") from None
+    return Report(node, out, events)
 
 
 def decode_status(data: bytes) -> tuple[str, str, dict]:

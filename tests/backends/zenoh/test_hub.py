@@ -80,6 +80,6 @@ def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_p
         sub.undeclare()
     assert client.returncode == 0, err
     assert len(bad) == 3, bad
-    assert any("msgpack array" in b for b in bad) and any("array of 7, got 3" in b for b in bad)
+    assert any("msgpack array of bins" in b for b in bad) and any("truncated" in b for b in bad)
     last = good[-1]
     assert (last.producer, last.port, last.tag, last.value) == ("client", "x", (7, 1), {"ok": [1.5]})

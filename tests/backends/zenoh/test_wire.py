@@ -20,6 +20,7 @@ from retriever.backends.zenoh.wire import (
     WireError,
     decode_data,
     decode_progress,
+    decode_report,
 )
 from retriever.codec import packb
 
@@ -58,9 +59,49 @@ def test_data_round_trip(value):
     assert isinstance(msg, DataMessage)
 
 
+@pytest.mark.parametrize("value", [
+    {"left": np.zeros((4, 6), np.uint8), "right": np.ones((2, 3, 5), ">f4")[:, ::2]},  # non-contiguous
+    (np.arange(3), [np.float64(2.5), np.zeros(0, np.int8)]),
+    Pose(xyz=np.arange(3.0)),
+    np.zeros(3, "M8[ns]"),
+    np.zeros(2, dtype=[("a", "<i4"), ("b", "<f8")]),
+])
+def test_arrays_anywhere_in_a_value_travel_out_of_band(value):
+    data = WireEncoder().data((1, 0), 0, (1, 0), "a", "b", value)
+    assert len(msgpack.unpackb(data)) > 1  # envelope + one bin per array
+    assert packb(decode_data(data, ("a", "b")).value) == packb(value)
+
+
+def test_received_arrays_are_read_only_views_of_the_message():
+    frame = np.arange(1 << 16, dtype=np.uint16).reshape(256, 256)
+    data = WireEncoder().data((1, 0), 0, (1, 0), "cam", "frame", {"image": frame, "t": 3})
+    image = decode_data(data, ("cam", "frame")).value["image"]
+    assert np.array_equal(image, frame) and not image.flags.writeable
+    start = np.frombuffer(data, np.uint8).__array_interface__["data"][0]
+    inside = image.__array_interface__["data"][0]
+    assert start <= inside and inside + image.nbytes <= start + len(data)  # no copy was made
+    with pytest.raises(ValueError, match="read-only"):
+        image[0, 0] = 1
+
+
 def test_a_plain_msgpack_reader_can_decode_data_messages():
-    data = WireEncoder().data((5, 0), 0, (5, 0), "cam", "frame", {"x": 1.0})
-    assert msgpack.unpackb(data) == [1, [5, 0], 0, [5, 0], "cam", "frame", {"x": 1.0}]
+    """The README's recipe: unpack the array of bins, unpack the envelope, arrays from the bins."""
+    data = WireEncoder().data((5, 0), 0, (5, 0), "cam", "frame", {"x": 1.0, "image": np.eye(2, dtype="<f4")})
+    envelope, *buffers = msgpack.unpackb(data)
+
+    def ext_hook(code, payload):
+        assert code == 6
+        descr, shape, index = msgpack.unpackb(payload)
+        return np.frombuffer(buffers[index], dtype=descr).reshape(shape)
+
+    decoded = msgpack.unpackb(envelope, ext_hook=ext_hook)
+    assert decoded[:6] == [2, [5, 0], 0, [5, 0], "cam", "frame"]
+    assert decoded[6]["x"] == 1.0 and np.array_equal(decoded[6]["image"], np.eye(2))
+
+
+def _message(envelope: list, *buffers: bytes) -> bytes:
+    """A data message built by hand, the way another msgpack library would."""
+    return msgpack.packb([msgpack.packb(envelope), *buffers])
 
 
 def test_progress_round_trip():
@@ -70,23 +111,37 @@ def test_progress_round_trip():
         decode_progress(data, "camera")
 
 
+def _ext_array(descr, shape, index):
+    return msgpack.ExtType(6, msgpack.packb([descr, shape, index]))
+
+
 @pytest.mark.parametrize("data, match", [
-    (b"", "msgpack array"),
-    (b"hello world", "msgpack array"),
-    (msgpack.packb({"tag": 1}), "msgpack array"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b"]), "array of 7, got 6"),
-    (msgpack.packb([2, [0, 0], 0, [0, 0], "a", "b", 1]), "wire format 2"),
-    (msgpack.packb([1, [0], 0, [0, 0], "a", "b", 1]), "tag must be"),
-    (msgpack.packb([1, [0, -1], 0, [0, 0], "a", "b", 1]), "tag must be"),
-    (msgpack.packb([1, [0, 0], -3, [0, 0], "a", "b", 1]), "seq must be"),
-    (msgpack.packb([1, [9, 0], 0, [5, 0], "a", "b", 1]), "frontier .* before the event's own tag"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], 7, "b", 1]), "producer and port must be strings"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], "x", "b", 1]), "for x.b arrived on the key of a.b"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b", 1]) + b"\x01", "not valid msgpack"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b", msgpack.ExtType(99, b"")]), "cannot be decoded"),
-    (msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b",
-                    msgpack.ExtType(4, msgpack.packb(["not_imported_module_xyz:Thing", {}]))]),
+    (b"", "truncated"),
+    (b"hello world", "msgpack array of bins"),
+    (msgpack.packb({"tag": 1}), "msgpack array of bins"),
+    (msgpack.packb([2, [0, 0], 0, [0, 0], "a", "b", 1]), "msgpack array of bins"),  # not framed
+    (msgpack.packb([]), "must hold an envelope"),
+    (b"\x91\xc6\x00\x00\x01\x00abc", "truncated"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", 1]) + b"\x01", "trailing bytes"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b"]), "array of 7"),
+    (_message({"tag": 1}), "array of 7"),
+    (_message([1, [0, 0], 0, [0, 0], "a", "b", 1]), "wire format 1"),
+    (_message([2, [0], 0, [0, 0], "a", "b", 1]), "tag must be"),
+    (_message([2, [0, -1], 0, [0, 0], "a", "b", 1]), "tag must be"),
+    (_message([2, [0, 0], -3, [0, 0], "a", "b", 1]), "seq must be"),
+    (_message([2, [9, 0], 0, [5, 0], "a", "b", 1]), "frontier .* before the event's own tag"),
+    (_message([2, [0, 0], 0, [0, 0], 7, "b", 1]), "producer and port must be strings"),
+    (_message([2, [0, 0], 0, [0, 0], "x", "b", 1]), "for x.b arrived on the key of a.b"),
+    (msgpack.packb([msgpack.packb([2, [0, 0], 0, [0, 0], "a", "b", 1]) + b"\x01"]), "not valid msgpack"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", msgpack.ExtType(99, b"")]), "cannot be decoded"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b",
+               msgpack.ExtType(4, msgpack.packb(["not_imported_module_xyz:Thing", {}]))]),
      "refusing to decode .*not_imported_module_xyz"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [2], 0)]), "buffer 0, which the message does not"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [2], 1)], b"\x00" * 16), "buffer 1"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [3], 0)], b"\x00" * 16), "does not fit"),
+    (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("no such dtype", [2], 0)], b"\x00" * 16),
+     "cannot be decoded|not valid"),
 ])
 def test_garbage_is_a_wire_error(data, match):
     with pytest.raises(WireError, match=match):
@@ -96,20 +151,38 @@ def test_garbage_is_a_wire_error(data, match):
 def test_a_message_cannot_make_the_receiver_import_a_module():
     module = "json.tool"  # importable, but not imported by this test process
     sys.modules.pop(module, None)
-    data = msgpack.packb([1, [0, 0], 0, [0, 0], "a", "b",
-                          msgpack.ExtType(4, msgpack.packb([f"{module}:main", {}]))])
+    data = _message([2, [0, 0], 0, [0, 0], "a", "b", msgpack.ExtType(4, msgpack.packb([f"{module}:main", {}]))])
     with pytest.raises(WireError, match="refusing"):
         decode_data(data, ("a", "b"))
     assert module not in sys.modules
 
 
+def test_report_round_trip():
+    enc = WireEncoder()
+    event = enc.data((7, 0), 3, (8, 0), "cam", "frame", np.arange(4))
+    record = ((7, 0), {"x": [["src", "out", 1]]}, [["cam", "frame", 3]], "ok", None, 11, 12)
+    report = decode_report(enc.report("cam", [record], [(123, event)]), "cam")
+    assert report.node == "cam"
+    assert report.records == [((7, 0), {"x": (("src", "out", 1),)}, (("cam", "frame", 3),), "ok", None, 11, 12)]
+    assert report.events == [[123, event]]
+    with pytest.raises(WireError, match="must carry its node"):
+        decode_report(enc.report("cam", [record], []), "other")
+    with pytest.raises(WireError, match="wall_ns, data message"):
+        decode_report(msgpack.packb([2, "cam", [], [[1, "text"]]]), "cam")
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=64) | st.builds(lambda parts: msgpack.packb(parts), st.lists(
     st.one_of(st.integers(-5, 2**64 - 1), st.text(max_size=5), st.lists(st.integers(-2, 5), max_size=3),
-              st.binary(max_size=8), st.none()), max_size=8)))
+              st.binary(max_size=8), st.none()), max_size=8))
+       | st.builds(lambda parts: msgpack.packb([msgpack.packb(parts), b"\x00" * 8]), st.lists(
+           st.one_of(st.integers(-5, 5), st.text(max_size=3), st.just([0, 0]),
+                     st.builds(_ext_array, st.sampled_from(["<f8", "|u1", "<i4"]), st.lists(st.integers(-1, 9),
+                                                                                           max_size=2),
+                               st.integers(-1, 2))), max_size=8)))
 def test_any_bytes_decode_or_raise_wire_error(data):
     """Fuzz: nothing but a DataMessage or a WireError ever comes out of the decoders."""
-    for decode in (decode_data, decode_progress):
+    for decode in (decode_data, decode_progress, decode_report):
         try:
             decode(data)
         except WireError:
