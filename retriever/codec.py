@@ -77,8 +77,18 @@ def _array_head(arr: np.ndarray) -> bytes:
     return head
 
 
+_dtypes: dict[str, np.dtype] = {}  # descr string -> dtype, for the decoders' hot path
+
+
 def _array_dtype(descr: Any) -> np.dtype:
-    return np.dtype(descr) if isinstance(descr, str) else np.lib.format.descr_to_dtype(descr)
+    if type(descr) is str:
+        dtype = _dtypes.get(descr)
+        if dtype is None:
+            dtype = np.dtype(descr)
+            if len(_dtypes) < 1024:
+                _dtypes[descr] = dtype
+        return dtype
+    return np.lib.format.descr_to_dtype(descr)
 
 
 def _array_payload(arr: np.ndarray) -> bytes:

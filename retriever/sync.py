@@ -58,13 +58,16 @@ class PortBuffer:
     ``arrival_tag ≤`` the tag of the consumer's current tick.
     """
 
-    __slots__ = ("entries", "visible", "cursor", "last_id")
+    __slots__ = ("entries", "visible", "cursor", "last_id", "trim_batch")
 
-    def __init__(self) -> None:
+    def __init__(self, trim_batch: int = _TRIM_BATCH) -> None:
         self.entries: list[tuple] = []
         self.visible = 0
         self.cursor = 0  # Queue: index of the first event not yet consumed
         self.last_id: Any = None  # LatestDistinct: id of the last event consumed
+        # forget consumed entries once this many piled up: batches make it cheap in virtual time;
+        # a real-time backend forgets at once (each entry may hold a camera frame)
+        self.trim_batch = trim_batch
 
     def insert(self, entry: tuple) -> None:
         entries = self.entries
@@ -83,7 +86,7 @@ class PortBuffer:
 
     def trim(self, keep_from: int) -> None:
         """Forget entries before index ``keep_from``, which no future tick can select."""
-        if keep_from >= _TRIM_BATCH:
+        if keep_from >= self.trim_batch:
             del self.entries[:keep_from]
             self.visible -= keep_from
             self.cursor = max(0, self.cursor - keep_from)
@@ -191,7 +194,7 @@ class Latest(SyncPolicy):
         entry = entries[n - 1]
         if self._staleness_ns is not None and tau[0] - entry[0][0] > self._staleness_ns:
             return MISSING, None, 0, None
-        if n > _TRIM_BATCH:
+        if n > buf.trim_batch:
             buf.trim(n - 1)
         return entry[4], ((entry[1], entry[2], entry[3]),), 0, None
 

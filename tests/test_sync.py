@@ -70,6 +70,7 @@ class Scenario:
     ticks: list[tuple[int, int]]
     skipped: list[bool]
     inserts: list[list[RefEvent]]  # inserts[i]: events put into the buffer just before tick i
+    trim_batch: int = 64  # the PortBuffer's: inproc's batches, or 1 as in the real-time backend
 
     def seconds(self, units: int) -> float:
         """``units`` time units as the float seconds a user would write."""
@@ -95,6 +96,7 @@ def scenarios(draw, make_value=plain_value, long: bool = False):
     way there), in random order across producers.
     """
     unit = draw(st.sampled_from([1, MS]))
+    trim_batch = draw(st.sampled_from([64, 2, 1]))
     producers = draw(st.sampled_from([("a",), ("b", "a"), ("c", "a", "b")]))
     if long:
         rnd = random.Random(draw(st.integers(0, 2**32)))  # an int seed shrinks fast; a Random does not
@@ -122,7 +124,7 @@ def scenarios(draw, make_value=plain_value, long: bool = False):
             inserts[int(frac * (first_seen + 1))].append(ev)
     # within one moment, insert in an order unrelated to (tag, producer, seq)
     inserts = [sorted(batch, key=lambda e: (e.seq * 7919 + ord(e.node)) % 997) for batch in inserts]
-    return Scenario(unit, events, ticks, skipped, inserts)
+    return Scenario(unit, events, ticks, skipped, inserts, trim_batch)
 
 
 def any_scenario(make_value=plain_value):
@@ -143,7 +145,7 @@ def run_policy(policy, sc: Scenario, commit_missing: bool = True) -> list[tuple]
     ``commit_missing=False`` mirrors ``backends/inproc.py``, which never commits a port whose
     value was MISSING; the documented interface commits every non-skipped tick.
     """
-    buf = PortBuffer()
+    buf = PortBuffer(trim_batch=sc.trim_batch)
     results = []
     for i, tau in enumerate(sc.ticks):
         for ev in sc.inserts[i]:

@@ -15,7 +15,9 @@ busy producer asks its ``progress/<node>`` queryable, which answers from the pro
 
 from __future__ import annotations
 
+import contextlib
 import heapq
+import os
 import queue
 import sys
 import threading
@@ -40,6 +42,9 @@ PROBE_AFTER_NS = 500_000
 FLUSH_AFTER_NS = 20_000_000
 FLUSH_MAX = 512
 FLUSH_MAX_BYTES = 64 << 20
+#: published messages at least this big reach the coordinator as files in the run's shared-memory
+#: directory (one copy, and none on its side) instead of inside the report
+SPILL_BYTES = 64 << 10
 
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
@@ -75,7 +80,7 @@ class NodeLoop:
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None,
-                 ports: list[str] | None = None, consumed: bool = True):
+                 ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -96,6 +101,7 @@ class NodeLoop:
         self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.single_port = len(self.ports) == 1
         self.consumed = consumed  # whether any flow consumes this one (else no progress messages)
+        self.spill_dir = spill_dir  # the coordinator's directory on this host, if it shares one
 
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()  # guards what the progress queryable reads
@@ -123,6 +129,7 @@ class NodeLoop:
         self.records: list = []  # step records not yet reported to the coordinator
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
+        self.spilled = 0  # files written to spill_dir
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
@@ -542,12 +549,12 @@ class NodeLoop:
         self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
 
     def _finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
-        self._record(tau, consumed, produced, status, detail, start, wall)
         with self.lock:
             self.running = None
             if publish:
                 self.sending = publish[0][0]
-        self._publish(publish)
+        self._publish(publish)  # first: the record is for the coordinator, and can wait
+        self._record(tau, consumed, produced, status, detail, start, wall)
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
@@ -618,10 +625,36 @@ class NodeLoop:
     def flush(self) -> None:
         """Report step records and published events to the coordinator."""
         if self.records or self.published:
-            self.session.put(self.keys.report(self.id), self.encoder.report(self.id, self.records, self.published),
+            events = self.published
+            if self.spill_dir is not None:
+                events = [(wall, self._spill(message)) if len(message) >= SPILL_BYTES else (wall, message)
+                          for wall, message in events]
+            self.session.put(self.keys.report(self.id), self.encoder.report(self.id, self.records, events),
                              congestion_control=RELIABLE)
             self.records, self.published, self.published_bytes = [], [], 0
         self.flush_due = None
+
+
+    def _spill(self, message: bytes) -> bytes | str:
+        """Write a published message to a file of the spill directory, whose name goes in the
+        report (the coordinator maps the file and removes it); the message itself if that fails."""
+        self.spilled += 1
+        name = f"{self.id}.{os.getpid()}.{self.spilled}.msg"
+        try:
+            fd = os.open(os.path.join(self.spill_dir, name), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError:  # the directory is gone or full: the report carries it
+            return message
+        try:
+            view = memoryview(message)
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join(self.spill_dir, name))
+            return message
+        finally:
+            os.close(fd)
+        return name
 
 
 class RestartFlow(Exception):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import mmap
 import os
 import queue
 import secrets
@@ -65,7 +66,7 @@ class ZenohSession(Session):
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._dir = Path(tempfile.mkdtemp(prefix="retriever-run-"))
+        self._dir = _run_dir()
         self._encoder = WireEncoder()
         self._hub = None
         atexit.register(self.close)  # an open Zenoh session can hang the interpreter's exit
@@ -82,7 +83,8 @@ class ZenohSession(Session):
             # untyped flows may emit on ports no edge names (a dict step's extra keys)
             self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
-                          "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {}}
+                          "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {},
+                          "spill_dir": str(self._dir)}
             self._write_spec()
             for nid in graph.nodes:
                 self._spawn(nid)
@@ -215,9 +217,9 @@ class ZenohSession(Session):
             self._spec["seqs"][node] = info.get("seqs", {})
         self._state[node] = state
 
-    def _event(self, key: str, node: str, wall: int, message: bytes) -> None:
+    def _event(self, key: str, node: str, wall: int, message: bytes | str) -> None:
         try:
-            msg = decode_data(message)
+            msg = decode_data(message if type(message) is bytes else self._unspill(node, message))
         except WireError as e:
             self._garbage(key, e)
             return
@@ -232,6 +234,24 @@ class ZenohSession(Session):
             return
         self._event_ids.add(event_id)
         self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, wall))
+
+    def _unspill(self, node: str, name: str) -> mmap.mmap:
+        """A message a worker wrote to a file of the run directory: mapped (its arrays are views
+        of the mapping), and the file removed (the mapping keeps its pages)."""
+        if not name.startswith(f"{node}.") or not name.endswith(".msg") or "/" in name or name.startswith("."):
+            raise WireError(f"{node} reported an event in the file {name!r:.80}, which is not one of its files")
+        path = self._dir / name
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError as e:
+            raise WireError(f"{node} reported an event in {path}, which cannot be opened: {e.strerror}") from None
+        try:
+            path.unlink()
+            return mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+        except (OSError, ValueError) as e:  # ValueError: an empty file
+            raise WireError(f"{node} reported an event in {path}, which cannot be mapped: {e}") from None
+        finally:
+            os.close(fd)
 
     def _garbage(self, key: str, error: WireError) -> None:
         self.counts["garbage"] += 1
@@ -339,6 +359,14 @@ def _check_deployable(graph: Graph) -> None:
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)
                            + "\n    hint: give the flow msgpack-serializable constructor arguments, "
                            "or run it in-process: backend=\"inproc\"")
+
+
+def _run_dir() -> Path:
+    """The run's directory: the spec, the workers' stderr, and big events on their way to the
+    coordinator. In shared memory when the host has it (no disk I/O for those events)."""
+    shm = Path("/dev/shm")
+    base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK | os.X_OK) else None
+    return Path(tempfile.mkdtemp(prefix="retriever-run-", dir=base))
 
 
 def _python_path() -> list[str]:

@@ -6,7 +6,7 @@ Key space, under ``retriever/<namespace>/``::
     progress/<node>        frontiers       [2, [ft, fm], producer, {port: last seq sent}]
                                            (also a queryable: ask for it)
     status/report/<node>   for the run's   [2, node, [step record, ...], [[wall_ns, data message], ...]]
-                           coordinator
+                           coordinator     (a big message on the coordinator's host: a file name)
     status/node/<node>     worker state    [2, node, state, info]
     ctl/run                control         [2, op, args]
 
@@ -36,6 +36,7 @@ make the receiving process import a module it has not imported already.
 
 from __future__ import annotations
 
+import mmap
 import re
 import struct
 from typing import Any, NamedTuple
@@ -142,9 +143,10 @@ class WireEncoder:
     def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
         return self._pack([WIRE_VERSION, frontier, producer, sent])
 
-    def report(self, node: str, records: list, events: list[tuple[int, bytes]]) -> bytes:
+    def report(self, node: str, records: list, events: list[tuple[int, bytes | str]]) -> bytes:
         """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)`` and
-        the data messages published, as ``(wall_ns, message)``."""
+        the data messages published, as ``(wall_ns, message)``; a message may instead be the name
+        of a file holding it, in the coordinator's directory on the worker's host."""
         return self._pack([WIRE_VERSION, node, records, events])
 
     def status(self, node: str, state: str, info: dict) -> bytes:
@@ -218,7 +220,7 @@ def _bins(data: bytes) -> list[memoryview]:
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
     """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key.
     Its arrays are read-only views of ``data``."""
-    if not isinstance(data, (bytes, bytearray)):
+    if not isinstance(data, (bytes, bytearray, mmap.mmap)):
         raise WireError(f"a data message must be bytes, got {type(data).__name__}")
     envelope, *buffers = _bins(data)
     try:
@@ -266,7 +268,7 @@ def decode_progress(data: bytes, expected: str | None = None) -> Progress:
 class Report(NamedTuple):
     node: str
     records: list  # (tag, consumed, produced, status, detail, wall_start_ns, wall_ns)
-    events: list  # (wall_ns, data message bytes)
+    events: list  # (wall_ns, data message bytes, or the name of a file holding them)
 
 
 def decode_report(data: bytes, expected: str | None = None) -> Report:
@@ -276,8 +278,8 @@ def decode_report(data: bytes, expected: str | None = None) -> Report:
     if type(node) is not str or (expected is not None and node != expected) or type(records) is not list:
         raise WireError(f"a report must carry its node ({expected}) and a list of records")
     if type(events) is not list or not all(type(e) is list and len(e) == 2 and type(e[0]) is int
-                                           and type(e[1]) is bytes for e in events):
-        raise WireError(f"the events of a report of {node} must be [wall_ns, data message] pairs")
+                                           and type(e[1]) in (bytes, str) for e in events):
+        raise WireError(f"the events of a report of {node} must be [wall_ns, data message or file name] pairs")
     out = []
     try:
         for tag, consumed, produced, status, detail, start, wall in records:

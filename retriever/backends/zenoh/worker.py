@@ -15,6 +15,7 @@ Exit codes: 0 done or stopped, 1 failed (the status message says why), 3 restart
 from __future__ import annotations
 
 import ctypes
+import faulthandler
 import importlib.util
 import json
 import os
@@ -33,6 +34,19 @@ def _die_with_parent() -> None:
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _keep_freed_memory() -> None:
+    """glibc: serve blocks up to 32 MiB from the heap and keep freed memory mapped. A worker
+    allocates and frees a message-sized buffer per event; by default glibc returns big blocks to
+    the kernel at once, so every event paid a page fault per 4 KiB again (a 16 MiB frame: 4096
+    faults, about 6 ms on the benchmark machine, against 1 ms for the copy itself)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD (the most glibc allows)
+        libc.mallopt(-1, 512 << 20)  # M_TRIM_THRESHOLD
     except (OSError, AttributeError):
         pass
 
@@ -84,7 +98,7 @@ def build_loop(spec: dict, node_id: str, session):
         if e["destination"]["node"] != node_id:
             continue
         port = e["destination"]["port"]
-        buf = buffers.setdefault(port, PortBuffer())
+        buf = buffers.setdefault(port, PortBuffer(trim_batch=1))
         policies[port] = policy_from_ir(e["adapter"])
         deadline = e.get("deadline")
         edges.append(InEdge(e["source"]["node"], e["source"]["port"], port, buf, seconds_to_ns(e.get("delay", 0.0)),
@@ -103,11 +117,14 @@ def build_loop(spec: dict, node_id: str, session):
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id),
                     ports=sorted(ir.node(node_id)["outputs"]),
-                    consumed=any(e["source"]["node"] == node_id for e in ir.edges))
+                    consumed=any(e["source"]["node"] == node_id for e in ir.edges),
+                    spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None)
 
 
 def main(argv: list[str]) -> int:
     _die_with_parent()
+    _keep_freed_memory()
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: where is a stuck worker?
     if os.getppid() == 1:
         return EXIT_FAILED  # the coordinator is already gone
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us

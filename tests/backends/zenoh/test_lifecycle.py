@@ -455,6 +455,9 @@ with open_peer(sys.argv[2]) as s:
     s.put(keys.report("ghost"), enc.report("ghost", [], [(1, enc.data((5, 0), 0, (5, 0), "ghost", "x", 42))]))
     s.put(keys.report("counter"), enc.report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "total", "sum", 42))]))
     s.put(keys.report("counter"), enc.report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "counter", "n", 42))]))
+    # and events in files of the run directory that are not there, or not the node's
+    s.put(keys.report("counter"), enc.report("counter", [], [(1, "counter.1.999999.msg")]))
+    s.put(keys.report("counter"), enc.report("counter", [], [(1, "../../etc/passwd")]))
     time.sleep(0.3)
     sub.undeclare()
 print("sent", flush=True)
@@ -481,9 +484,9 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert {e.node for e in trace.events} == {"counter", "total"}, sorted({e.node for e in trace.events})
     assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
     assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
-    # the duplicate data message, refused by the consumer of counter.n, and the three reports,
+    # the duplicate data message, refused by the consumer of counter.n, and the five reports,
     # refused by the coordinator (the ghost's data keys reach no Retriever process: none listens)
-    assert pipe._session.counts["garbage"] >= 4, pipe._session.counts
+    assert pipe._session.counts["garbage"] >= 6, pipe._session.counts
 
 
 # ---------------------------------------------------------------------------------------------

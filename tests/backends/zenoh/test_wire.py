@@ -168,7 +168,7 @@ def test_report_round_trip():
     with pytest.raises(WireError, match="must carry its node"):
         decode_report(enc.report("cam", [record], []), "other")
     with pytest.raises(WireError, match="wall_ns, data message"):
-        decode_report(msgpack.packb([2, "cam", [], [[1, "text"]]]), "cam")
+        decode_report(msgpack.packb([2, "cam", [], [[1, 2.5]]]), "cam")
 
 
 @settings(max_examples=300, deadline=None)

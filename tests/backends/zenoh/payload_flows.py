@@ -1,0 +1,47 @@
+"""Flows for tests/backends/zenoh/test_payloads.py (module level: workers rebuild them from the IR)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from retriever import Flow, io
+
+
+@io
+@dataclass
+class Frame:
+    image: np.ndarray
+    k: int
+
+
+@io
+@dataclass
+class Seen:
+    k: int
+    checksum: int
+
+
+def frame(k: int, size: int) -> np.ndarray:
+    """Frame k: content that differs in every byte position and from frame to frame."""
+    return ((np.arange(size, dtype=np.uint32) * 2654435761 + k) >> 7).astype(np.uint8)
+
+
+class Camera(Flow[None, Frame]):
+    """Frames of ``size`` bytes, reshaped to rows of 1 KiB, one per tick."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.k = 0
+
+    def step(self, inp: None) -> Frame:
+        self.k += 1
+        return Frame(image=frame(self.k, self.size).reshape(-1, 1024), k=self.k)
+
+
+class Viewer(Flow[Frame, Seen]):
+    """What it got: frame k and a checksum of its bytes."""
+
+    def step(self, inp: Frame) -> Seen:
+        return Seen(k=inp.k, checksum=int(inp.image.sum(dtype=np.uint64)))

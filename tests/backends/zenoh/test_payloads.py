@@ -1,0 +1,51 @@
+"""Large arrays on the zenoh backend: they arrive intact, reach the coordinator's trace and log
+through the run directory (files it maps and removes), and the log replays. See wire.py (arrays
+out of band; test_wire.py checks they are read-only views) and loop.py (SPILL_BYTES)."""
+
+from __future__ import annotations
+
+import glob
+import os
+
+import numpy as np
+
+import retriever.log
+from retriever import Pipeline, Rate, Trigger, read_log
+from retriever.backends.zenoh.loop import SPILL_BYTES
+
+from .payload_flows import Camera, Viewer, frame
+
+SIZE = 1 << 20  # 1 MiB: well above SPILL_BYTES, so every frame takes the file path
+
+
+def test_large_frames_arrive_intact_and_are_logged(tmp_path):
+    assert SIZE >= 4 * SPILL_BYTES
+    before = set(glob.glob("/dev/shm/retriever-run-*"))
+    with Pipeline("frames", deadline=1.0) as pipe:
+        camera = Camera(SIZE).configure(name="camera") @ Rate(hz=10)
+        viewer = Viewer().configure(name="viewer") @ Trigger("image")
+        camera.then(viewer)
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=1.5, backend="zenoh", quiet=True, log=path)
+
+    session = pipe._session
+    assert session.counts["garbage"] == 0, session.counts
+    assert not os.path.exists(session._dir), "the run directory outlived the run"
+    assert set(glob.glob("/dev/shm/retriever-run-*")) <= before
+
+    def port(events, node, name):  # one event per tick on each port (an @io field), in seq order
+        return [e.value for e in sorted(events, key=lambda e: e.seq) if e.node == node and e.port == name]
+
+    images = port(trace.events, "camera", "image")
+    assert len(images) == 15
+    for k, image in enumerate(images, 1):  # the coordinator's copy of each frame, from the mapped file
+        assert image.shape == (SIZE // 1024, 1024) and np.array_equal(image.reshape(-1), frame(k, SIZE)), k
+    assert port(trace.events, "viewer", "k") == list(range(1, 16))
+    assert port(trace.events, "viewer", "checksum") == [int(frame(k, SIZE).sum(dtype=np.uint64)) for k in range(1, 16)]
+
+    log = read_log(path)
+    logged = [log.value(e) for e in sorted(log.iter_events(), key=lambda e: e.seq)
+              if e.node == "camera" and e.port == "image"]
+    assert len(logged) == 15 and all(np.array_equal(a, b) for a, b in zip(logged, images))
+    report = retriever.log.replay(log)
+    assert report.identical, report.divergences[:3]
