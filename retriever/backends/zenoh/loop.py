@@ -134,7 +134,7 @@ class NodeLoop:
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
-        self.last_stamp = 0  # ASAP: output tags never go back
+        self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
         self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
         self._declared: list = []
 
@@ -196,7 +196,8 @@ class NodeLoop:
             elif self.latency_ns:
                 own = (lower[0] + self.latency_ns, 0)
             else:
-                stamp = self.last_stamp if sent else max(self.hlc(), self.last_stamp)
+                # the tick in progress, or the next, is stamped past the last stamp and the HLC now
+                stamp = self.last_stamp + 1 if sent else max(self.hlc(), self.last_stamp + 1)
                 own = (max(stamp, lower[0] + 1), 0)
             if self.held:
                 own = min(own, self.held[0][0])
@@ -242,16 +243,15 @@ class NodeLoop:
                 break
             now = self.now()
             self._release(now)
+            if self.flush_due is not None and now >= self.flush_due:
+                self.flush()  # also when ticks run back to back: a late node still reports
             wake = self._try_tick(now)
             if wake is _TICKED:
                 continue  # look again at once
             if wake is _DONE:
                 break
             if self.flush_due is not None:
-                if now >= self.flush_due:
-                    self.flush()
-                else:
-                    wake = min(wake, self.flush_due)
+                wake = min(wake, self.flush_due)
             if self.held:
                 wake = min(wake, self.held[0][0][0])
             self._wait(wake - self.now())
@@ -513,7 +513,9 @@ class NodeLoop:
         if self.latency_ns:
             tag = (tau[0] + self.latency_ns, 0)
         else:
-            self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp)
+            # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
+            # when the node runs late (the tag then passes the next tick's time)
+            self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp + 1)
             tag = (self.last_stamp, 0)
         batch = []
         for port, value in events:
