@@ -19,6 +19,7 @@ import faulthandler
 import importlib.util
 import json
 import os
+import shutil
 import signal
 import sys
 import traceback
@@ -122,6 +123,18 @@ def build_loop(spec: dict, node_id: str, session):
 
 
 def main(argv: list[str]) -> int:
+    """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
+    (the spec, stderr files and unreported events, in /dev/shm), which no one else would."""
+    parent = os.getppid()
+    try:
+        return _serve(argv)
+    finally:
+        run_dir = Path(argv[0]).parent
+        if os.getppid() != parent and run_dir.name.startswith("retriever-run-"):
+            shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def _serve(argv: list[str]) -> int:
     _die_with_parent()
     _keep_freed_memory()
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: where is a stuck worker?

@@ -268,6 +268,8 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
             return workers if len(workers) == 2 and _logged_steps(path) > 0 else None
 
         workers = _poll(going, "2 worker processes and a logged step")
+        run_dir = Path(next(iter(workers.values())).split()[-2]).parent  # ... worker SPEC NODE
+        assert run_dir.name.startswith("retriever-run-") and run_dir.is_dir(), workers
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
     finally:
@@ -275,6 +277,8 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
     # they get SIGTERM from the kernel (PR_SET_PDEATHSIG), stop their loop and close their session
     _poll(lambda: not any(_alive(ident) for ident in workers),
           f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
+    # and remove the run directory, which the coordinator no longer can
+    assert not run_dir.exists(), sorted(p.name for p in run_dir.iterdir())
 
 
 SLOW_START = r"""
