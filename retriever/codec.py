@@ -21,6 +21,7 @@ import functools
 import importlib
 import math
 import sys
+from collections.abc import Callable
 from typing import Any
 
 import msgpack
@@ -108,15 +109,21 @@ def _array_payload(arr: np.ndarray) -> bytes:
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
         return msgpack.ExtType(EXT_NDARRAY, _array_payload(obj))
+    return _extension(obj, packb)
+
+
+def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType:
+    """The extension type of anything but an ndarray; ``pack_nested`` encodes the values inside
+    tuples and dataclasses (with the caller's array encoding)."""
     if isinstance(obj, np.generic):
         return msgpack.ExtType(EXT_NPSCALAR, _array_payload(np.asarray(obj)))
     if isinstance(obj, tuple):
-        return msgpack.ExtType(EXT_TUPLE, packb(list(obj)))
+        return msgpack.ExtType(EXT_TUPLE, pack_nested(list(obj)))
     if isinstance(obj, int):  # beyond 64 bits
         return msgpack.ExtType(EXT_BIGINT, str(obj).encode())
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
-        return msgpack.ExtType(EXT_DATACLASS, packb([type_path(type(obj)), fields]))
+        return msgpack.ExtType(EXT_DATACLASS, pack_nested([type_path(type(obj)), fields]))
     raise CodecError(
         f"cannot encode a value of type {type(obj).__module__}.{type(obj).__qualname__}\n"
         "    hint: use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses"
@@ -163,12 +170,17 @@ def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
 def packb(value: Any) -> bytes:
     """Encode a value to bytes. Raises CodecError naming the type and where it sits in the value."""
     try:
-        try:
-            return msgpack.packb(value, default=_default, use_bin_type=True, strict_types=True)
-        except OverflowError:
-            return msgpack.packb(_widen(value), default=_default, use_bin_type=True, strict_types=True)
+        return _pack_with(value, _default)
     except CodecError as e:
         raise _located(e, value) from None
+
+
+def _pack_with(value: Any, default: Callable[[Any], Any]) -> bytes:
+    # a fresh packer per call: nested values re-enter here, and msgpack's packer is not re-entrant
+    try:
+        return msgpack.packb(value, default=default, use_bin_type=True, strict_types=True)
+    except OverflowError:
+        return msgpack.packb(_widen(value), default=default, use_bin_type=True, strict_types=True)
 
 
 def _located(error: CodecError, value: Any) -> CodecError:
@@ -300,11 +312,7 @@ class OutOfBandEncoder:
             raise _located(e, value) from None
 
     def _nested(self, value: Any) -> bytes:
-        # a fresh packer per nested value: msgpack's packer is not re-entrant
-        try:
-            return msgpack.packb(value, default=self._default, use_bin_type=True, strict_types=True)
-        except OverflowError:
-            return msgpack.packb(_widen(value), default=self._default, use_bin_type=True, strict_types=True)
+        return _pack_with(value, self._default)
 
     def _default(self, obj: Any) -> Any:
         if isinstance(obj, np.ndarray):
@@ -313,9 +321,4 @@ class OutOfBandEncoder:
                 obj = np.ascontiguousarray(obj)
             self._buffers.append(obj.reshape(-1).view(np.uint8))
             return msgpack.ExtType(EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1))
-        if isinstance(obj, tuple):
-            return msgpack.ExtType(EXT_TUPLE, self._nested(list(obj)))
-        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-            fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
-            return msgpack.ExtType(EXT_DATACLASS, self._nested([type_path(type(obj)), fields]))
-        return _default(obj)
+        return _extension(obj, self._nested)

@@ -238,7 +238,7 @@ class ZenohSession(Session):
     def _unspill(self, node: str, name: str) -> mmap.mmap:
         """A message a worker wrote to a file of the run directory: mapped (its arrays are views
         of the mapping), and the file removed (the mapping keeps its pages)."""
-        if not name.startswith(f"{node}.") or not name.endswith(".msg") or "/" in name or name.startswith("."):
+        if not name.startswith(f"{node}.") or not name.endswith(".msg") or "/" in name:
             raise WireError(f"{node} reported an event in the file {name!r:.80}, which is not one of its files")
         path = self._dir / name
         try:

@@ -283,13 +283,15 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
 
 SLOW_START = r"""
 # Test-only: a worker of node 'total' starts slowly (an interpreter on a busy machine, a cold disk
-# cache), so the other worker is still waiting for its peers when the coordinator dies.
-import time
+# cache): it holds before main() until the test creates the gate file, so the other worker is
+# still waiting for its peers when the coordinator dies.
+import os, time
 
 try:
     _argv = open("/proc/self/cmdline", "rb").read().split(b"\0")
     if b"retriever.backends.zenoh.worker" in _argv and b"total" in _argv:
-        time.sleep(float(%r))
+        while not os.path.exists(%r):
+            time.sleep(0.02)
 except OSError:
     pass
 """
@@ -307,10 +309,10 @@ def _catches(pid: int, sig: int) -> bool:
 
 
 def test_a_worker_still_waiting_for_its_peers_exits_when_its_coordinator_is_sigkilled(tmp_path, namespace):
-    slow_s = 8.0  # 'total' sleeps this long before main(): then it sees its parent gone and exits
+    gate = tmp_path / "gate"  # 'total' holds before main() until it exists; then it sees its parent gone
     site = tmp_path / "site"
     site.mkdir()
-    (site / "sitecustomize.py").write_text(SLOW_START % slow_s, encoding="utf-8")
+    (site / "sitecustomize.py").write_text(SLOW_START % str(gate), encoding="utf-8")
     env = _env()
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(site), env.get("PYTHONPATH")]))
     with open(tmp_path / "stderr.txt", "wb") as err:
@@ -326,13 +328,13 @@ def test_a_worker_still_waiting_for_its_peers_exits_when_its_coordinator_is_sigk
             return "counter" in workers and "total" in workers and _catches(workers["counter"][0], signal.SIGTERM)
 
         _poll(waiting, "the 'counter' worker waiting for its peers")
-        if _catches(workers["total"][0], signal.SIGTERM):
-            pytest.skip(f"the slow worker started within {slow_s:g} s: not the situation under test")
+        assert not _catches(workers["total"][0], signal.SIGTERM), "'total' passed its gate"
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
         _poll(lambda: not _alive(workers["counter"]), "exit of the orphaned 'counter' worker (it got SIGTERM)",
               bound=ORPHAN_EXIT_S)
     finally:
+        gate.touch()
         _kill(proc)
         for ident in workers.values():  # ours, by PID: the fixture then checks nothing is left
             if _alive(ident):
