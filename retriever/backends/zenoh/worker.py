@@ -130,8 +130,21 @@ def main(argv: list[str]) -> int:
         return _serve(argv)
     finally:
         run_dir = Path(argv[0]).parent
-        if os.getppid() != parent and run_dir.name.startswith("retriever-run-"):
+        if _orphaned(parent) and run_dir.name.startswith("retriever-run-"):
             shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def _orphaned(parent: int) -> bool:
+    """Whether the coordinator that started this worker is dead or dying. Its main thread's exit
+    sends PR_SET_PDEATHSIG, and may leave its other threads, and our ppid, for a moment longer:
+    the main thread's state (that of /proc/<pid>) is then already Z."""
+    if os.getppid() != parent:
+        return True
+    try:
+        stat = Path(f"/proc/{parent}/stat").read_text()
+    except OSError:
+        return True
+    return stat[stat.rindex(")") + 2] in "ZX"
 
 
 def _serve(argv: list[str]) -> int:
