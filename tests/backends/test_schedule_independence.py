@@ -29,7 +29,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, given, reject, settings
 from hypothesis import strategies as st
 
 from retriever import (
@@ -44,6 +44,7 @@ from retriever import (
     Queue,
     Rate,
     RetrieverWarning,
+    StepError,
     Trigger,
     Window,
 )
@@ -63,6 +64,30 @@ def fold(x) -> int:
     return x % P
 
 
+# Why each run has a step budget: delayed feedback into Trigger flows makes tick trains whose tags
+# are sums of the graph's delays and latencies, so the number of ticks grows faster than linearly
+# with the run and nothing in the generator bounds it (3000 generated graphs ran 1 s in at most
+# 47k steps, but the tail is not ruled out, and each step's records live as long as the run). A
+# run that spends more than STEP_BUDGET steps stops and its example is rejected; runs are
+# deterministic, so every run of one graph spends the same. Each example's time and memory stay
+# bounded.
+STEP_BUDGET = 100_000  # steps per run
+
+
+class OverBudget(Exception):
+    """A run spent its STEP_BUDGET (raised from a step, so it stops the run as a StepError)."""
+
+
+class Budget:
+    left = STEP_BUDGET
+
+    @classmethod
+    def spend(cls) -> None:
+        cls.left -= 1
+        if cls.left < 0:
+            raise OverBudget(f"more than {STEP_BUDGET} steps")
+
+
 # ---------------------------------------------------------------------------------------------
 # Flows (module level, so the graphs are ordinary, IR-rebuildable programs)
 # ---------------------------------------------------------------------------------------------
@@ -73,6 +98,7 @@ class Src(Flow):
         self.salt, self.sparse, self.n = salt, sparse, 0
 
     def step(self):
+        Budget.spend()
         self.n += 1
         if self.sparse and self.n % self.sparse == 0:
             return None
@@ -86,6 +112,7 @@ class Chunker(Flow):
         self.salt, self.n = salt, 0
 
     def step(self):
+        Budget.spend()
         self.n += 1
         return {"out": [(self.n * 100 + i + self.salt) % P for i in range(4)]}
 
@@ -97,6 +124,7 @@ class Mix(Flow):
         self.salt, self.sparse, self.state, self.n = salt, sparse, salt, 0
 
     def mix(self, a, b, c) -> int:
+        Budget.spend()
         self.n += 1
         self.state = (self.state * 1_000_003 + self.salt + 31 * fold(a) + 17 * fold(b) + 7 * fold(c) + self.n) % P
         return self.state
@@ -256,10 +284,17 @@ def graphs(draw) -> GraphSpec:
 
 
 def run(spec: GraphSpec, duration: float, **options):
+    """Build and run ``spec``; an example whose run spends more than STEP_BUDGET steps is rejected."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)  # instantaneous cycles, unfed ports: intended here
         pipe = spec.build()
-        return pipe, pipe.run(duration=duration, **options)
+        Budget.left = STEP_BUDGET
+        try:
+            return pipe, pipe.run(duration=duration, **options)
+        except StepError as error:
+            if isinstance(error.__cause__, OverBudget):
+                reject()
+            raise
 
 
 DURATION = 1.0
@@ -292,6 +327,7 @@ def test_fresh_pipelines_give_equal_traces(spec):
     assert first.digest() == second.digest()
     pipe.reset()
     assert pipe.now == 0.0 and not pipe.trace.steps
+    Budget.left = STEP_BUDGET
     again = pipe.run(duration=DURATION)
     assert again.digest() == first.digest(), first.first_difference(again)
 
@@ -310,6 +346,7 @@ def test_increments_give_the_one_run_trace(spec, cuts, use_run):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
         pipe = spec.build()
+        Budget.left = STEP_BUDGET  # the whole run kept within it, so these increments do too
         bounds = [0, *sorted(cuts), round(DURATION * 1000)]
         for (lo, hi), by_run in zip(zip(bounds, bounds[1:]), use_run):
             dt = (hi - lo) / 1000
