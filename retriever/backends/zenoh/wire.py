@@ -130,6 +130,10 @@ class WireEncoder:
         self._pack = msgpack.Packer(use_bin_type=True).pack
 
     def data(self, tag: Tag, seq: int, frontier: Tag, producer: str, port: str, value: Any) -> bytes:
+        return b"".join(self.data_parts(tag, seq, frontier, producer, port, value))  # the one copy of each array
+
+    def data_parts(self, tag: Tag, seq: int, frontier: Tag, producer: str, port: str, value: Any) -> list:
+        """The pieces of :meth:`data`'s message, uncopied: its arrays' memory is among them."""
         head = self._pack([WIRE_VERSION, tag, seq, frontier, producer, port])
         body, buffers = self._values.pack(value)
         count = 1 + len(buffers)
@@ -138,7 +142,7 @@ class WireEncoder:
         for buf in buffers:
             parts.append(_BIN32.pack(0xC6, buf.nbytes))
             parts.append(buf)
-        return b"".join(parts)  # the one copy of each array
+        return parts
 
     def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
         return self._pack([WIRE_VERSION, frontier, producer, sent])
