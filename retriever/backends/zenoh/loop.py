@@ -428,7 +428,7 @@ class NodeLoop:
             except WireError as e:
                 self._garbage(key, e)
                 return
-            self._arrived(key, data)
+            self._arrived(key, data, self.now())
             self._in_order(key, msg)
         elif kind == _PROGRESS:
             if data is None:
@@ -450,9 +450,8 @@ class NodeLoop:
             if op == "stop":
                 self.stopping = True
 
-    def _arrived(self, stream: tuple[str, str], data: bytes) -> None:
+    def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""
-        now = self.now()
         last = self.arrivals.get(stream)
         gap = now - last[0] if last is not None else 0
         self.arrivals[stream] = (now, gap, data)

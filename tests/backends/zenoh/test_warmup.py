@@ -1,0 +1,86 @@
+"""The node loop's warm-up (loop.WARM_AHEAD_NS): when it plans one, and that it runs.
+
+A real NodeLoop, rebuilt from the IR as a worker does, on a real (unconnected) Zenoh session.
+The plan is a function of logical values (now, the next wake, what was sent and received), so
+no test here waits on the clock. That warming up leaves traces unchanged is the conformance
+suite's business: it runs with warm-ups on.
+"""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+
+from retriever import Pipeline, Rate, Trigger
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.loop import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
+from retriever.backends.zenoh.wire import WireEncoder
+from retriever.backends.zenoh.worker import build_loop
+
+from .payload_flows import Camera, Viewer, frame
+
+MS = 1_000_000
+
+
+@pytest.fixture(scope="module")
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def spec():
+    with Pipeline("warmup") as pipe:
+        cam = Camera(size=4096).named("cam") @ Rate(20)
+        cam.then(Viewer().named("viewer") @ Trigger("image"))
+    return {"ir": pipe.compile().to_ir().doc, "namespace": "warmup-test"}
+
+
+def message(k: int) -> bytes:
+    return WireEncoder().data((k * 50 * MS, 0), k, (k * 50 * MS + 1, 0), "cam", "image",
+                              frame(k, 4096).reshape(-1, 1024))
+
+
+def test_a_producer_warms_up_before_its_next_tick_once_it_has_sent(session, spec):
+    loop = build_loop(spec, "cam", session)
+    tick = 50 * MS
+    loop.next_rate = (tick, 0)
+    assert loop._warm_target(0, tick) == (None, None), "nothing sent yet: nothing to warm"
+
+    loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+    assert loop._warm_target(0, tick) == (tick, None)
+    loop._warm(None)  # encodes the last event; nothing is published (no publishers declared)
+    loop.warmed_for = tick
+    assert loop._warm_target(0, tick) == (None, None), "once per tick"
+    assert loop._warm_target(tick - WARM_AFTER_IDLE_NS + 1, tick) == (None, None), \
+        "a sleep shorter than WARM_AFTER_IDLE_NS leaves the caches warm"
+
+
+def test_a_consumer_foresees_a_periodic_stream_and_decodes_its_last_message(session, spec):
+    loop = build_loop(spec, "viewer", session)
+    far = 10_000 * MS  # a Trigger node with nothing pending waits long
+    stream = ("cam", "image")
+    loop._arrived(stream, message(1), 50 * MS)
+    assert loop._warm_target(51 * MS, far) == (None, None), "one arrival: no period yet"
+
+    loop._arrived(stream, message(2), 100 * MS)
+    target, data = loop._warm_target(101 * MS, far)
+    assert target == 150 * MS and data == message(2)
+    loop._warm(data)  # decodes it; delivers nothing
+    assert not loop.pending
+    assert all(not e.buf.entries for e in loop.edges), "a warm-up must not deliver"
+
+    # the foreseen arrival must lie ahead and before the wake it would delay
+    assert loop._warm_target(151 * MS, far) == (None, None)
+    assert loop._warm_target(101 * MS, 120 * MS) == (None, None)
+    assert loop._warm_target(150 * MS - WARM_AHEAD_NS, far) == (None, None)
+
+
+def test_the_nearest_stream_is_warmed_for(session, spec):
+    loop = build_loop(spec, "viewer", session)
+    slow, fast = ("cam", "image"), ("other", "out")
+    for k, t in enumerate((0, 100 * MS, 200 * MS)):
+        loop._arrived(slow, message(k), t)
+    loop._arrived(fast, b"fast-1", 190 * MS)
+    loop._arrived(fast, b"fast-2", 210 * MS)
+    assert loop._warm_target(211 * MS, 10_000 * MS) == (230 * MS, b"fast-2")
