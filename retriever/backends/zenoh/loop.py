@@ -294,11 +294,16 @@ class NodeLoop:
         return target, message
 
     def _warm(self, message: bytes | None) -> None:
-        """Run the encoder and the decoder once, results unused (see WARM_AHEAD_NS)."""
-        if self.warm_publish is not None:
-            self.encoder.data_parts(*self.warm_publish)
-        if message is not None:
-            decode_data(message)  # it decoded when it arrived
+        """Run the encoder and the decoder once, results unused (see WARM_AHEAD_NS). Both did
+        this work before; should it fail now (a flow changed a value it had emitted), the
+        warm-up is simply skipped: it never stops a run."""
+        try:
+            if self.warm_publish is not None:
+                self.encoder.data_parts(*self.warm_publish)
+            if message is not None:
+                decode_data(message)
+        except Exception:
+            self.warm_publish = None
 
     def _wait(self, ns: int) -> bool:
         """Wait at most ``ns`` for a message and handle it; whether one came."""

@@ -84,3 +84,11 @@ def test_the_nearest_stream_is_warmed_for(session, spec):
     loop._arrived(fast, b"fast-1", 190 * MS)
     loop._arrived(fast, b"fast-2", 210 * MS)
     assert loop._warm_target(211 * MS, 10_000 * MS) == (230 * MS, b"fast-2")
+
+
+def test_a_warm_up_that_fails_is_skipped_not_raised(session, spec):
+    """A flow may change a value after emitting it; warming up on it must not stop the run."""
+    loop = build_loop(spec, "cam", session)
+    loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", [object()])  # not encodable
+    loop._warm(b"not a data message")
+    assert loop.warm_publish is None
