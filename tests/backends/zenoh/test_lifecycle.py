@@ -385,7 +385,7 @@ def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
 # 4. Garbage on the key space from a foreign process
 # ---------------------------------------------------------------------------------------------
 GARBAGE = r"""
-import sys, threading, time
+import sys, threading
 from retriever.backends.zenoh.hub import open_peer
 from retriever.backends.zenoh.wire import KeySpace
 
@@ -396,12 +396,12 @@ with open_peer(sys.argv[2]) as s:
     sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
     print("ready", flush=True)
     assert seen.wait(60), "never saw the run's data"  # a bound only: the run sends within a second
-    for _ in range(3):  # during the run: its first event has been seen; it lasts 2 s
-        for key in (keys.data("counter", "n"), keys.report("total"), keys.report("counter"),
-                    keys.node_status("counter"), keys.progress("counter"), keys.run_control()):
-            for junk in GARBAGE:
-                s.put(key, junk)
-        time.sleep(0.1)
+    # during the run: its first event has been seen; it lasts 2 s
+    for key in (keys.data("counter", "n"), keys.report("total"), keys.report("counter"),
+                keys.node_status("counter"), keys.progress("counter"), keys.run_control()):
+        for junk in GARBAGE:
+            s.put(key, junk)
+    sys.stdin.readline()  # the session stays open (its puts delivered) until the run has ended
     sub.undeclare()
 print("sent", flush=True)
 """
@@ -419,12 +419,12 @@ def _read_line(proc: subprocess.Popen, bound: float = BOUND_S) -> str:
 def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespace):
     port = free_port()  # the hub's; the client connects first and its session retries until it is up
     client = subprocess.Popen([sys.executable, "-c", GARBAGE, namespace, endpoint(port)], cwd=ROOT, env=_env(),
-                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _read_line(client) == "ready\n"
         pipe = two_node_pipeline("garbage", source_hz=10, sink_hz=5, sink=Sink)
         pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True)
-        out, err = client.communicate(timeout=BOUND_S)
+        out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
     session = pipe._session
@@ -441,7 +441,7 @@ def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespa
 
 
 SPOOF = r"""
-import sys, threading, time
+import sys, threading
 from retriever.backends.zenoh.hub import open_peer
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
@@ -464,7 +464,7 @@ with open_peer(sys.argv[2]) as s:
     # and events in files of the run directory that are not there, or not the node's
     s.put(keys.report("counter"), enc.report("counter", [], [(1, "counter.1.999999.msg")]))
     s.put(keys.report("counter"), enc.report("counter", [], [(1, "../../etc/passwd")]))
-    time.sleep(0.3)
+    sys.stdin.readline()  # the session stays open (its puts delivered) until the run has ended
     sub.undeclare()
 print("sent", flush=True)
 """
@@ -473,13 +473,13 @@ print("sent", flush=True)
 def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_path, namespace):
     port = free_port()
     client = subprocess.Popen([sys.executable, "-c", SPOOF, namespace, endpoint(port)], cwd=ROOT, env=_env(),
-                              stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _read_line(client) == "ready\n"
         pipe = two_node_pipeline("spoofed", source_hz=10, sink_hz=5, sink=Sink)
         trace = pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True,
                          log=tmp_path / "run.mcap")
-        out, err = client.communicate(timeout=BOUND_S)
+        out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
     assert pipe._session.endpoint == endpoint(port)
