@@ -64,28 +64,30 @@ def fold(x) -> int:
     return x % P
 
 
-# Why each run has a step budget: delayed feedback into Trigger flows makes tick trains whose tags
-# are sums of the graph's delays and latencies, so the number of ticks grows faster than linearly
-# with the run and nothing in the generator bounds it (3000 generated graphs ran 1 s in at most
-# 47k steps, but the tail is not ruled out, and each step's records live as long as the run). A
-# run that spends more than STEP_BUDGET steps stops and its example is rejected; runs are
-# deterministic, so every run of one graph spends the same. Each example's time and memory stay
-# bounded.
-STEP_BUDGET = 100_000  # steps per run
+# Why each run has a work budget: delayed feedback into Trigger flows makes tick trains whose tags
+# are sums of the graph's delays and latencies, so the number of ticks grows exponentially with
+# the run and nothing in the generator bounds it. Counting steps alone is not enough: such a train
+# feeding a Window(duration=...) makes windows of thousands of values, every tick consumes them
+# all, and each step record keeps their ids, so memory grows as steps × window size. (CI, where
+# Hypothesis derandomises, met such a graph: 4430-value windows at 0.97 s, pytest past 6 GB and
+# killed.) So every step spends one unit plus one per value it receives; a run that spends more
+# than WORK_BUDGET stops and its example is rejected. Runs are deterministic, so every run of one
+# graph spends the same, and each example's time and memory stay bounded.
+WORK_BUDGET = 200_000  # per run: steps + values consumed
 
 
 class OverBudget(Exception):
-    """A run spent its STEP_BUDGET (raised from a step, so it stops the run as a StepError)."""
+    """A run spent its WORK_BUDGET (raised from a step, so it stops the run as a StepError)."""
 
 
 class Budget:
-    left = STEP_BUDGET
+    left = WORK_BUDGET
 
     @classmethod
-    def spend(cls) -> None:
-        cls.left -= 1
+    def spend(cls, *inputs) -> None:
+        cls.left -= 1 + sum(len(x) for x in inputs if type(x) is list)
         if cls.left < 0:
-            raise OverBudget(f"more than {STEP_BUDGET} steps")
+            raise OverBudget(f"more than {WORK_BUDGET} steps and values consumed")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -124,7 +126,7 @@ class Mix(Flow):
         self.salt, self.sparse, self.state, self.n = salt, sparse, salt, 0
 
     def mix(self, a, b, c) -> int:
-        Budget.spend()
+        Budget.spend(a, b, c)
         self.n += 1
         self.state = (self.state * 1_000_003 + self.salt + 31 * fold(a) + 17 * fold(b) + 7 * fold(c) + self.n) % P
         return self.state
@@ -284,11 +286,11 @@ def graphs(draw) -> GraphSpec:
 
 
 def run(spec: GraphSpec, duration: float, **options):
-    """Build and run ``spec``; an example whose run spends more than STEP_BUDGET steps is rejected."""
+    """Build and run ``spec``; an example whose run spends more than WORK_BUDGET is rejected."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)  # instantaneous cycles, unfed ports: intended here
         pipe = spec.build()
-        Budget.left = STEP_BUDGET
+        Budget.left = WORK_BUDGET
         try:
             return pipe, pipe.run(duration=duration, **options)
         except StepError as error:
@@ -327,7 +329,7 @@ def test_fresh_pipelines_give_equal_traces(spec):
     assert first.digest() == second.digest()
     pipe.reset()
     assert pipe.now == 0.0 and not pipe.trace.steps
-    Budget.left = STEP_BUDGET
+    Budget.left = WORK_BUDGET
     again = pipe.run(duration=DURATION)
     assert again.digest() == first.digest(), first.first_difference(again)
 
@@ -346,7 +348,7 @@ def test_increments_give_the_one_run_trace(spec, cuts, use_run):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
         pipe = spec.build()
-        Budget.left = STEP_BUDGET  # the whole run kept within it, so these increments do too
+        Budget.left = WORK_BUDGET  # the whole run kept within it, so these increments do too
         bounds = [0, *sorted(cuts), round(DURATION * 1000)]
         for (lo, hi), by_run in zip(zip(bounds, bounds[1:]), use_run):
             dt = (hi - lo) / 1000
