@@ -255,3 +255,37 @@ def test_decoding_a_dataclass_that_cannot_be_imported():
     data = msgpack.packb(msgpack.ExtType(EXT_DATACLASS, packb(["tests.no_such_module:Gone", {"x": 1}])))
     with pytest.raises(CodecError, match=r"cannot decode a tests\.no_such_module:Gone: the class cannot be imported"):
         unpackb(data)
+
+
+# ---------------------------------------------------------------------------------------------
+# Nested values reuse this thread's packers (codec._IdlePackers)
+# ---------------------------------------------------------------------------------------------
+NESTED = [(i, (i + 1, Point(float(i), 2.0, ((i, 2**70),))), [(), (b"x",)]) for i in range(50)]
+
+
+def test_an_error_deep_inside_a_value_leaves_later_encodings_intact():
+    expected = [packb(v) for v in NESTED]
+    for bad in [(1, (2, Opaque())), Point(1.0, 2.0, (Opaque(),)), (1, (2, {3}))]:
+        with pytest.raises(CodecError):
+            packb(bad)
+        assert [packb(v) for v in NESTED] == expected
+
+
+def test_threads_packing_nested_values_at_once_get_the_same_bytes():
+    import threading
+
+    expected = [packb(v) for v in NESTED]
+    results: dict[int, list[bytes]] = {}
+    start = threading.Barrier(4)
+
+    def pack_all(k: int) -> None:
+        start.wait()
+        results[k] = [packb(v) for _ in range(20) for v in NESTED]
+
+    threads = [threading.Thread(target=pack_all, args=(k,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(results[k] == expected * 20 for k in range(4))
+    assert [unpackb(b) for b in expected] == NESTED

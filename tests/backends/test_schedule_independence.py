@@ -25,6 +25,7 @@ out after ``limit`` microsteps (DESIGN §10.9's monitor ⇄ policy, with a flow 
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass, field
 
@@ -285,18 +286,26 @@ def graphs(draw) -> GraphSpec:
     return GraphSpec(nodes, edges)
 
 
+@contextlib.contextmanager
+def budget():
+    """A fresh WORK_BUDGET for one run of a generated graph (a run, a replay, a re-simulation);
+    the example is rejected if the run spends it all."""
+    Budget.left = WORK_BUDGET
+    try:
+        yield
+    except StepError as error:
+        if isinstance(error.__cause__, OverBudget):
+            reject()
+        raise
+
+
 def run(spec: GraphSpec, duration: float, **options):
-    """Build and run ``spec``; an example whose run spends more than WORK_BUDGET is rejected."""
+    """Build and run ``spec`` within a fresh budget."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)  # instantaneous cycles, unfed ports: intended here
         pipe = spec.build()
-        Budget.left = WORK_BUDGET
-        try:
+        with budget():
             return pipe, pipe.run(duration=duration, **options)
-        except StepError as error:
-            if isinstance(error.__cause__, OverBudget):
-                reject()
-            raise
 
 
 DURATION = 1.0
@@ -329,8 +338,8 @@ def test_fresh_pipelines_give_equal_traces(spec):
     assert first.digest() == second.digest()
     pipe.reset()
     assert pipe.now == 0.0 and not pipe.trace.steps
-    Budget.left = WORK_BUDGET
-    again = pipe.run(duration=DURATION)
+    with budget():
+        again = pipe.run(duration=DURATION)
     assert again.digest() == first.digest(), first.first_difference(again)
 
 
