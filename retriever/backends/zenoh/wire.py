@@ -86,6 +86,10 @@ class KeySpace:
     def all_progress(self) -> str:
         return f"{self.prefix}/progress/*"
 
+    def warm(self, node: str) -> str:
+        """Where a node puts empty messages to warm its send path; no one subscribes."""
+        return f"{self.prefix}/warm/{node}"
+
     def status(self, *parts: str) -> str:
         return "/".join((self.prefix, "status", *parts))
 

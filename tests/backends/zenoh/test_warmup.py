@@ -8,13 +8,15 @@ suite's business: it runs with warm-ups on.
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 import zenoh
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
-from retriever.backends.zenoh.wire import WireEncoder
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from retriever.backends.zenoh.worker import build_loop
 
 from .payload_flows import Camera, Viewer, frame
@@ -49,11 +51,37 @@ def test_a_producer_warms_up_before_its_next_tick_once_it_has_sent(session, spec
 
     loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
     assert loop._warm_target(0, tick) == (tick, None)
-    loop._warm(None)  # encodes the last event; nothing is published (no publishers declared)
     loop.warmed_for = tick
     assert loop._warm_target(0, tick) == (None, None), "once per tick"
     assert loop._warm_target(tick - WARM_AFTER_IDLE_NS + 1, tick) == (None, None), \
         "a sleep shorter than WARM_AFTER_IDLE_NS leaves the caches warm"
+
+
+def test_a_producer_warm_up_puts_only_on_its_warm_key(session, spec):
+    """It encodes its last event and reads the HLC, and puts one empty message on warm/cam:
+    nothing on data/** or progress/**, so no consumer and no watcher of the data sees it."""
+    keys = KeySpace(spec["namespace"])
+    seen, done = [], threading.Event()
+
+    def on_sample(sample) -> None:
+        seen.append((str(sample.key_expr), sample.payload.to_bytes()))
+        if str(sample.key_expr).endswith("/zz/end"):
+            done.set()
+
+    watcher = session.declare_subscriber(f"{keys.prefix}/**", on_sample)
+    loop = build_loop(spec, "cam", session)
+    loop.declare()
+    try:
+        loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+        loop._warm(None)
+        assert loop.warm_publish is not None, "the warm-up failed"
+        session.put(f"{keys.prefix}/zz/end", b"")  # local delivery keeps the session's order
+        assert done.wait(timeout=30), "the session's own sentinel never came back"
+        assert seen == [(keys.warm("cam"), b""), (f"{keys.prefix}/zz/end", b"")]
+        assert loop.sent == {} and not loop.published, "a warm-up sends no event"
+    finally:
+        loop.undeclare()
+        watcher.undeclare()
 
 
 def test_a_consumer_foresees_a_periodic_stream_and_decodes_its_last_message(session, spec):
