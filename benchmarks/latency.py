@@ -23,9 +23,10 @@ For each payload size (uint8 numpy arrays), in one run of this script:
   the payload back into an array (``np.frombuffer(sample.payload.to_bytes())``) and takes
   ``time.time_ns()``. Same peer mode, same loopback TCP as the Retriever workers.
 
-Each side sends ``--warmup`` + ``--samples`` messages at ``--hz``; the first ``--warmup`` received
-are dropped. Sizes run one after another (raw, then retriever-zenoh, then inproc), never
-overlapping. Reported: median and p99 per side, and retriever-zenoh / raw. Target (the issue):
+Per size, each side runs ``--rounds`` times, interleaved (raw, zenoh, inproc, then the reverse
+order, ...), so that the machine's drift over a minute falls on all sides alike; each run sends
+``--warmup`` + ``--samples``/``--rounds`` messages at ``--hz`` and drops its first ``--warmup``.
+Runs never overlap. Reported: median and p99 per side, and retriever-zenoh / raw. Target (the issue):
 retriever-zenoh median ≤ 1.2× raw zenoh at every size.
 
 Retriever's coordinator (this process) is not on the frames' path: each worker reports the
@@ -405,6 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=100, help="samples kept per size and side (default 100)")
     p.add_argument("--warmup", type=int, default=10, help="first messages dropped (default 10)")
     p.add_argument("--sides", default="raw,zenoh,inproc", help="comma-separated: raw, zenoh, inproc")
+    p.add_argument("--rounds", type=int, default=2,
+                   help="runs per size and side, interleaved across sides (default 2); the samples are split "
+                        "among them and each run drops its own warm-up")
     p.add_argument("--raw-hub", action="store_true",
                    help="diagnostic: a second raw subscriber process (Retriever's coordinator also subscribes)")
     p.add_argument("--raw-express", action="store_true",
@@ -445,22 +449,30 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"python {platform.python_version()}, {platform.machine()}, {platform.system()}, {os.cpu_count()} cpus; "
           f"eclipse-zenoh {version('eclipse-zenoh')}; {datetime.datetime.now().isoformat(timespec='seconds')}")
-    print(f"{args.hz:g} Hz, {args.warmup} warm-up + {args.samples} samples per size and side; "
+    print(f"{args.hz:g} Hz, {args.rounds} interleaved rounds per size, each {args.warmup} warm-up + "
+          f"{-(-args.samples // args.rounds)} samples per side; "
           f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
           + ("; raw side with a 2nd subscriber (--raw-hub)" if args.raw_hub else "")
           + ("; raw publisher express (--raw-express)" if args.raw_express else ""))
     print()
 
     rows = []
+    order = [side for side in ("raw", "zenoh", "inproc") if side in sides]
+    per_round = args.warmup + -(-args.samples // args.rounds)
+    total = per_round * args.rounds
     for size in sizes:
         row = {"size": size}
         t = time.perf_counter()
-        for side in ("raw", "zenoh", "inproc"):
-            if side not in sides:
-                continue
-            out = (run_raw(size, total, args.hz, args.warmup, args.raw_hub, args.raw_express) if side == "raw"
-                   else run_retriever(size, total, args.hz, args.warmup, side))
-            row[side] = {**summary(out["lat"]), "received": out["received"]}
+        lat: dict[str, list] = {side: [] for side in order}
+        received = dict.fromkeys(order, 0)
+        for r in range(args.rounds):  # interleaved, order reversed every other round: drift hits all sides
+            for side in order if r % 2 == 0 else order[::-1]:
+                out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express) if side == "raw"
+                       else run_retriever(size, per_round, args.hz, args.warmup, side))
+                lat[side] += out["lat"]
+                received[side] += out["received"]
+        for side in order:
+            row[side] = {**summary(lat[side]), "received": received[side]}
         rows.append(row)
         parts = [f"{k} med {row[k]['med']:.0f} µs ({row[k]['received']}/{total} received)"
                  for k in ("raw", "zenoh", "inproc") if k in row]
@@ -488,7 +500,8 @@ def main(argv: list[str] | None = None) -> int:
     print("latency = receiver's time.time_ns() with the array in hand − sender's time.time_ns() before the send;")
     print("inproc hand-off = wall time from the source's step returning to the sink's step starting (virtual time,")
     print("one thread, array passed by reference): the in-process scheduler's cost, not a transport latency.")
-    print(f"received = messages that arrived, of {total} sent (the first {args.warmup} are dropped as warm-up);")
+    print(f"received = messages that arrived, of {total} sent (the first {args.warmup} of each round are dropped "
+          "as warm-up);")
     print("a size passes only if retriever-zenoh received as many as raw zenoh.")
     print(f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if "raw" in sides and "zenoh" in sides:
