@@ -7,8 +7,8 @@ only inside the workers of a probed run. Stamps (wall ns, the same clock in ever
 
     source worker                                    sink worker
     sent      step() takes time.time_ns()            cb_in     zenoh callback entered (network thread)
-    publish   NodeLoop._publish entered               cb_out    payload.to_bytes() returned (then: inbox.put)
-    encoded   WireEncoder.data returned               handle    main thread takes it (NodeLoop._handle)
+    publish   NodeLoop._publish entered               cb_out    payload.to_bytes() returned
+    encoded   WireEncoder.data returned               handle    NodeLoop._handle entered (callback or main thread)
     put_in    Publisher.put called                    decoded   wire.decode_data returned
     put_out   Publisher.put returned                  delivered NodeLoop._deliver returned (PortBuffer.insert)
                                                       received  sink's step() starts
@@ -36,8 +36,8 @@ STAMPS: dict[str, int] = {}
 FAULTS: dict[str, int] = {}  # minor page faults of the process (ru_minflt) at some of the stamps
 # sink side, one dict of stamps per data message, in arrival order (a burst of messages handled
 # before the next tick must not overwrite each other's stamps)
-ARRIVED: deque = deque()  # callback done, main thread not yet
-HANDLED: deque = deque()  # handled by the main thread, its step not yet run
+ARRIVED: deque = deque()  # callback done, not handled yet
+HANDLED: deque = deque()  # handled (callback or main thread), its step not yet run
 _current: list = [None]
 _now = time.time_ns
 
@@ -92,7 +92,7 @@ def _install() -> None:
 
         def to_bytes(self):
             out = self._p.to_bytes()
-            self.rec["cb_out"] = _now()  # the callback puts it on the inbox right after this
+            self.rec["cb_out"] = _now()  # then the callback handles it, or queues it for the main thread
             self.rec["f_cb_out"] = _flt()
             ARRIVED.append(self.rec)
             return out

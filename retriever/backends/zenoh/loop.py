@@ -1,7 +1,9 @@
 """One node's real-time loop, inside its worker process (DESIGN.md §3, §5).
 
     subscriber threads ──(key, bytes)──▶ inbox ──▶ main thread: decode, insert into PortBuffers,
-                                                  advance producer frontiers, schedule trigger ticks
+            │                                     advance producer frontiers, schedule trigger ticks
+            └── main thread idle, short steps, node on no cycle: do all of that, and the ticks it
+                makes ready, right there (see INLINE_STEP_NS)
     main thread:  next tick τ = min(next Rate tick, pending trigger tags)
                   wait until wall ≥ τ.t and every input edge is complete up to τ (its producer's
                   frontier > τ), at most the edge's deadline → select inputs, step(), publish
@@ -63,10 +65,24 @@ ASK_EVERY_NS = 2_000_000
 WARM_AHEAD_NS = 1_000_000
 WARM_AFTER_IDLE_NS = 4_000_000
 
+#: Running on the receiving thread. A data message that arrives while the main thread sleeps is
+#: handled on Zenoh's thread that received it: decoded, delivered, and the ticks it makes ready
+#: run there too, as a plain subscriber callback would. Handing it to the main thread instead
+#: costs a thread wake-up: on this VM (an idle vCPU woken by an IPI) 20–40 µs of a 64 B
+#: message's ~500 µs, and 0.05–0.1× of the ratio to raw Zenoh (benchmarks/README.md, latency.py
+#: with and without). Only steps known to be short run there (the node's last step took under
+#: INLINE_STEP_NS): meanwhile that link receives nothing more. And only on nodes on no cycle of
+#: the graph, so that a put blocked by a congested link can never wait, around a cycle, on a
+#: receiving thread that is itself blocked in a put. Either way the same ticks run with the same
+#: inputs: where a tick runs changes how soon, never what.
+INLINE_STEP_NS = 1_000_000
+
 #: every message of a run is needed: block rather than drop when a link is congested
 RELIABLE = zenoh.CongestionControl.BLOCK
 
-_DATA, _PROGRESS, _CONTROL = 0, 1, 2
+_DATA, _PROGRESS, _CONTROL, _NUDGE = 0, 1, 2, 3
+#: put in the inbox after work done on a receiving thread: the main thread looks again
+_NUDGED = (_NUDGE, None, None)
 _TICKED, _DONE = "ticked", "done"
 
 
@@ -94,7 +110,8 @@ class NodeLoop:
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None,
-                 ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None):
+                 ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
+                 inline: bool = False):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -119,6 +136,14 @@ class NodeLoop:
 
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()  # guards what the progress queryable reads
+        # The loop's state belongs to whoever holds `turn`: the thread that built the loop (the
+        # worker's main thread), except while it waits for a message in _wait. A receiving thread
+        # that takes it then does the main thread's work itself (INLINE_STEP_NS).
+        self.turn = threading.Lock()
+        self.turn.acquire()
+        self.inline = inline  # whether this node may run ticks on a receiving thread at all
+        self.last_wall: int | None = None  # how long the last step took; None before the first
+        self.failure: BaseException | None = None  # raised on a receiving thread, for run() to raise
         # per input stream (producer, port): its frontier, the next seq to take in order,
         # out-of-order arrivals, and progress messages waiting for the seqs they come after
         streams = {(e.src, e.src_port) for e in edges}
@@ -165,11 +190,12 @@ class NodeLoop:
         """Subscribe to the inputs, the producers' progress and the run's control; answer
         progress queries. Call before announcing readiness."""
         put = self.inbox.put
+        receive = self._receive if self.inline else put
         s, keys = self.session, self.keys
         for src, src_port in sorted({(e.src, e.src_port) for e in self.edges}):
             self._declared.append(s.declare_subscriber(
                 keys.data(src, src_port),
-                lambda sample, k=(src, src_port): put((_DATA, k, sample.payload.to_bytes()))))
+                lambda sample, k=(src, src_port): receive((_DATA, k, sample.payload.to_bytes()))))
         for src in self.sources:
             self._declared.append(s.declare_subscriber(
                 keys.progress(src), lambda sample, k=src: put((_PROGRESS, k, sample.payload.to_bytes()))))
@@ -195,6 +221,34 @@ class NodeLoop:
     def _answer_progress(self, query: zenoh.Query) -> None:
         frontier = self.frontier()  # first: the seqs read after it can only be later ones
         query.reply(self.keys.progress(self.id), WireEncoder().progress(frontier, self.id, dict(self.sent)))
+
+    def _receive(self, item: tuple) -> None:
+        """A data message, on the Zenoh thread that received it: handled right here if the main
+        thread is waiting for one (and the loop's work done, see INLINE_STEP_NS), else queued."""
+        if self.failure is None and self.turn.acquire(blocking=False):
+            try:
+                self._serve(item)
+            except BaseException as exc:  # StopRun, RestartFlow, or a bug: the main thread raises it
+                self.failure = exc
+            finally:
+                self.turn.release()
+                self.inbox.put(_NUDGED)  # the main thread's wake-up time may have changed
+        else:
+            self.inbox.put(item)
+
+    def _serve(self, item: tuple) -> None:
+        """The main thread's work for one message: what was queued before it, the message, held
+        outputs now due, then the ticks now ready, while steps stay short."""
+        if self.inbox.qsize():
+            self._drain()
+        self._handle(item)
+        if self.stopping:
+            return
+        now = self.now()
+        self._release(now)
+        while (self.last_wall is not None and self.last_wall < INLINE_STEP_NS
+               and self._try_tick(now) is _TICKED):
+            now = self.now()
 
     # ---------------------------------------------------------------------------------------
     # Time
@@ -318,9 +372,16 @@ class NodeLoop:
         """Wait at most ``ns`` for a message and handle it; whether one came."""
         if ns <= 0:
             return False
+        self.turn.release()  # a receiving thread may do the work meanwhile
         try:
             item = self.inbox.get(timeout=min(ns, 100_000_000) / 1e9)
         except queue.Empty:
+            item = None
+        finally:
+            self.turn.acquire()
+        if self.failure is not None:
+            raise self.failure
+        if item is None:
             return False
         self._handle(item)
         return True
@@ -444,6 +505,8 @@ class NodeLoop:
                 return
             self._arrived(key, data, self.now())
             self._in_order(key, msg)
+        elif kind == _NUDGE:
+            return
         elif kind == _PROGRESS:
             if data is None:
                 return  # the query timed out
@@ -558,7 +621,7 @@ class NodeLoop:
         try:
             outputs = list(self.read(self.invoke(values)))
         except Exception as exc:
-            wall = time.time_ns() - start
+            wall = self.last_wall = time.time_ns() - start
             error = f"{type(exc).__name__}: {exc}"
             self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
                               start, wall)
@@ -568,6 +631,7 @@ class NodeLoop:
                 raise RestartFlow(tau) from exc
             return
         wall = time.time_ns() - start
+        self.last_wall = wall
         self._emit(tau, consumed, outputs, detail, start, wall)
         if self.period_ns and wall > self.period_ns:
             self._overran(tau, wall, start + wall - self.t0)

@@ -119,7 +119,25 @@ def build_loop(spec: dict, node_id: str, session):
                     realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
-                    spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None)
+                    spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
+                    inline=not on_a_cycle(ir.edges, node_id))
+
+
+def on_a_cycle(edges: list[dict], node_id: str) -> bool:
+    """Whether a path of IR edges leads from ``node_id`` back to it (delays and clocks aside)."""
+    after: dict[str, set[str]] = {}
+    for e in edges:
+        after.setdefault(e["source"]["node"], set()).add(e["destination"]["node"])
+    seen: set[str] = set()
+    todo = list(after.get(node_id, ()))
+    while todo:
+        n = todo.pop()
+        if n == node_id:
+            return True
+        if n not in seen:
+            seen.add(n)
+            todo.extend(after.get(n, ()))
+    return False
 
 
 def main(argv: list[str]) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -92,6 +93,14 @@ class Sleepy(Flow[None, Value]):
         return Value(k)
 
 
+def freeze_now() -> None:
+    """Stop this whole process (SIGSTOP) before returning. Sent to the calling thread, so that
+    this thread starts the stop itself: a SIGSTOP sent to the process is taken by its main
+    thread, and a step running on another thread (a Zenoh receiving thread, see
+    loop.INLINE_STEP_NS) would go on for as long as the main thread takes to be scheduled."""
+    signal.pthread_kill(threading.get_ident(), signal.SIGSTOP)
+
+
 class Stall(Flow[XIn, Value]):
     """Forwards its input; when the input is in ``at``, freezes its whole process (SIGSTOP) for
     ``seconds`` — its Zenoh threads too, as a machine hiccup or a GC pause would — so it can
@@ -105,7 +114,7 @@ class Stall(Flow[XIn, Value]):
         if inp.x in self.at:
             subprocess.Popen(["/bin/sh", "-c", f"sleep {self.seconds}; kill -CONT {os.getpid()}"],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            os.kill(os.getpid(), signal.SIGSTOP)
+            freeze_now()
         return Value(inp.x)
 
 
@@ -168,5 +177,29 @@ class BigStall(Flow[XIn, Value]):
         if k in self.at:
             subprocess.Popen(["/bin/sh", "-c", f"sleep {self.seconds}; kill -CONT {os.getpid()}"],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            os.kill(os.getpid(), signal.SIGSTOP)
+            freeze_now()
         return Value(k)
+
+
+class WhereRun(Flow[XIn, Report]):
+    """Reports its input and whether its step ran on its process's main thread; sleeps ``sleep``
+    seconds first when given (a step that is slow on purpose)."""
+
+    def __init__(self, sleep: float = 0.0):
+        self.sleep = sleep
+
+    def step(self, inp: XIn) -> Report:
+        if self.sleep:
+            time.sleep(self.sleep)
+        return Report({"x": inp.x, "main": threading.current_thread() is threading.main_thread()})
+
+
+class Counter(Flow[OptXIn, Value]):
+    """Emits its tick index k = 0, 1, 2, …, whatever its optional input holds."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp: OptXIn) -> Value:
+        self.k += 1
+        return Value(self.k - 1)

@@ -1,0 +1,148 @@
+"""Steps on the receiving thread (loop.INLINE_STEP_NS): where a tick runs, and what may not.
+
+A data message that arrives while a node's main thread waits is handled on the Zenoh thread that
+received it, and the ticks it makes ready run there too, when the node's last step was short
+and the node is on no cycle. The first tests run real pipelines and ask each step where it ran;
+the last ones drive a real NodeLoop by hand (as test_warmup does) to show what happens to a step
+that raises there and to a message that comes while the main thread is busy: no test here
+depends on timing for its verdict.
+"""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+
+from retriever import Latest, Pipeline, Rate, Trigger
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.loop import _DATA, _NUDGE, INLINE_STEP_NS, StopRun
+from retriever.backends.zenoh.wire import WireEncoder
+from retriever.backends.zenoh.worker import build_loop, on_a_cycle
+
+from .semantics_flows import Counter, Faulty, Ticker, WhereRun
+
+MS = 1_000_000
+
+
+def run(pipe: Pipeline, duration: float):
+    return pipe.run(duration=duration, backend="zenoh", quiet=True)
+
+
+def where(trace, node: str) -> list[bool]:
+    """Per step of ``node`` in tick order: whether it ran on the main thread."""
+    by_id = {e.id: e for e in trace.events}
+    return [by_id[s.produced[0]].value["main"] for s in trace.steps_of(node) if s.status == "ok"]
+
+
+def test_short_steps_of_a_node_on_no_cycle_run_on_the_receiving_thread():
+    with Pipeline("inline_chain") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest())
+    trace = run(pipe, 1.0)
+    ran = where(trace, "where")
+    assert len(ran) >= 15, trace.steps_of("where")
+    assert ran[0] is True, "the first step, of unknown length, runs on the main thread"
+    # later steps run on the receiving thread when the main thread is waiting, which it does for
+    # almost all of the 50 ms between messages
+    assert ran.count(False) >= 1, ran
+    xs = [e.value["x"] for e in trace.events_of("where")]
+    assert xs == list(range(len(xs))), "every input, once, in order"
+
+
+def test_a_node_on_a_cycle_runs_every_step_on_its_main_thread():
+    with Pipeline("inline_cycle") as pipe:
+        count = Counter().configure(name="count") @ Rate(hz=20)
+        echo = WhereRun().configure(name="where") @ Trigger("x")
+        count.then(echo, sync=Latest(), map={"value": "x"})
+        echo.then(count, sync=Latest(), map={"report": "x"})
+    trace = run(pipe, 1.0)
+    ran = where(trace, "where")
+    assert len(ran) >= 15 and all(ran), ran
+
+
+def test_a_node_whose_last_step_took_long_runs_the_next_on_its_main_thread():
+    with Pipeline("inline_slow") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        slow = WhereRun(sleep=2 * INLINE_STEP_NS / 1e9).configure(name="where") @ Trigger("x")
+        src.then(slow, sync=Latest())
+    trace = run(pipe, 1.0)
+    ran = where(trace, "where")
+    assert len(ran) >= 15 and all(ran), ran
+
+
+def test_cycles_are_found_through_any_number_of_nodes():
+    def edge(a: str, b: str) -> dict:
+        return {"source": {"node": a, "port": "o"}, "destination": {"node": b, "port": "i"}}
+
+    edges = [edge("a", "b"), edge("b", "c"), edge("c", "a"), edge("c", "d"), edge("e", "e")]
+    assert [n for n in "abcde" if on_a_cycle(edges, n)] == ["a", "b", "c", "e"]
+
+
+# ---------------------------------------------------------------------------------------------
+# A NodeLoop driven by hand: the test thread plays the receiving thread
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+def faulty_loop(session):
+    with Pipeline("inline_by_hand") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(Faulty(fail_at=[1], message="inline-boom").configure(name="faulty") @ Trigger("x"),
+                 sync=Latest())
+    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "inline-test"}, "faulty", session)
+    assert loop.inline, "faulty is on no cycle"
+    loop.declare()
+    loop.t0, loop.end = 0, 1 << 62  # as run() sets them
+    loop.last_wall = 0  # as after a short step
+    return loop
+
+
+def data(k: int) -> tuple:
+    message = WireEncoder().data((k * 50 * MS, 0), k, (k * 50 * MS + 1, 0), "counter", "value", k)
+    return (_DATA, ("counter", "value"), message)
+
+
+def test_a_message_that_comes_while_the_main_thread_waits_is_stepped_on_arrival(session):
+    loop = faulty_loop(session)
+    try:
+        loop.turn.release()  # the main thread waits in _wait
+        loop._receive(data(0))
+        assert [r[3] for r in loop.records] == ["ok"], "the tick ran on the receiving thread"
+        assert loop.sent == {"report": 0}, "and published"
+        assert loop.inbox.get_nowait()[0] == _NUDGE, "the main thread is told to look again"
+        assert loop.turn.acquire(blocking=False), "the receiving thread gave the loop back"
+    finally:
+        loop.undeclare()
+
+
+def test_a_message_that_comes_while_the_main_thread_works_is_queued_for_it(session):
+    loop = faulty_loop(session)
+    try:
+        # the main thread holds the loop (it is not waiting)
+        loop._receive(data(0))
+        assert not loop.records and not loop.pending and not loop.sent
+        assert loop.inbox.get_nowait() == data(0)
+    finally:
+        loop.undeclare()
+
+
+def test_a_step_that_raises_on_the_receiving_thread_stops_the_run_from_the_main_thread(session):
+    loop = faulty_loop(session)
+    try:
+        loop.turn.release()
+        loop._receive(data(0))
+        loop._receive(data(1))  # Faulty raises at x=1; on_error="stop"
+        assert isinstance(loop.failure, StopRun) and "inline-boom at x=1" in str(loop.failure)
+        assert [r[3] for r in loop.records] == ["ok", "error"], "the failed tick is recorded"
+        loop._receive(data(2))  # after a failure, messages only queue: nothing more runs
+        assert len(loop.records) == 2
+        # the main thread, back from its wait, raises it (the worker then reports the failure)
+        assert loop.turn.acquire(blocking=False), "the receiving thread gave the loop back"
+        with pytest.raises(StopRun, match="inline-boom at x=1") as info:
+            loop._wait(10 * MS)
+        assert isinstance(info.value.__cause__, ValueError)
+    finally:
+        loop.undeclare()
