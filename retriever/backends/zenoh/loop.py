@@ -17,9 +17,7 @@ busy producer asks its ``progress/<node>`` queryable, which answers from the pro
 
 from __future__ import annotations
 
-import contextlib
 import heapq
-import os
 import queue
 import sys
 import threading
@@ -33,7 +31,8 @@ from ...errors import RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
-from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress
+from .reporter import Reporter
+from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress
 
 #: a frontier no event reaches: the producer is finished
 NEVER = (1 << 62, 0)
@@ -76,9 +75,6 @@ WARM_AFTER_IDLE_NS = 4_000_000
 #: receiving thread that is itself blocked in a put. Either way the same ticks run with the same
 #: inputs: where a tick runs changes how soon, never what.
 INLINE_STEP_NS = 1_000_000
-
-#: every message of a run is needed: block rather than drop when a link is congested
-RELIABLE = zenoh.CongestionControl.BLOCK
 
 _DATA, _PROGRESS, _CONTROL, _NUDGE = 0, 1, 2, 3
 #: put in the inbox after work done on a receiving thread: the main thread looks again
@@ -132,7 +128,8 @@ class NodeLoop:
         self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.single_port = len(self.ports) == 1
         self.consumed = consumed  # whether any flow consumes this one (else no progress messages)
-        self.spill_dir = spill_dir  # the coordinator's directory on this host, if it shares one
+        # the coordinator's directory on this host, if it shares one, takes the big messages
+        self.reporter = Reporter(session, keys.report(self.id), self.id, spill_dir=spill_dir, spill_bytes=SPILL_BYTES)
 
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.lock = threading.Lock()  # guards what the progress queryable reads
@@ -168,7 +165,6 @@ class NodeLoop:
         self.records: list = []  # step records not yet reported to the coordinator
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
-        self.spilled = 0  # files written to spill_dir
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
@@ -754,41 +750,19 @@ class NodeLoop:
             self.pending, self.pending_set = [], set()
         self._publish(batch)
         self._publish_progress(NEVER)
-        self.flush()
+        self.finish_reports()
 
     def flush(self) -> None:
-        """Report step records and published events to the coordinator."""
+        """Hand step records and published events to the reporter, for the coordinator."""
         if self.records or self.published:
-            events = self.published
-            if self.spill_dir is not None:
-                events = [(wall, self._spill(message)) if len(message) >= SPILL_BYTES else (wall, message)
-                          for wall, message in events]
-            self.session.put(self.keys.report(self.id), self.encoder.report(self.id, self.records, events),
-                             congestion_control=RELIABLE)
+            self.reporter.send(self.records, self.published)
             self.records, self.published, self.published_bytes = [], [], 0
         self.flush_due = None
 
-
-    def _spill(self, message: bytes) -> bytes | str:
-        """Write a published message to a file of the spill directory, whose name goes in the
-        report (the coordinator maps the file and removes it); the message itself if that fails."""
-        self.spilled += 1
-        name = f"{self.id}.{os.getpid()}.{self.spilled}.msg"
-        try:
-            fd = os.open(os.path.join(self.spill_dir, name), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except OSError:  # the directory is gone or full: the report carries it
-            return message
-        try:
-            view = memoryview(message)
-            while view:
-                view = view[os.write(fd, view):]
-        except OSError:
-            with contextlib.suppress(OSError):
-                os.unlink(os.path.join(self.spill_dir, name))
-            return message
-        finally:
-            os.close(fd)
-        return name
+    def finish_reports(self) -> None:
+        """Report what is left and return once every report is out (before a last status)."""
+        self.flush()
+        self.reporter.close()
 
 
 class RestartFlow(Exception):

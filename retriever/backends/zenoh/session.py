@@ -34,8 +34,7 @@ from ...errors import BackendError, StepError
 from ...graph import IN_MAIN, Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
-from .loop import RELIABLE
-from .wire import KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
+from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_RESTART
 
 

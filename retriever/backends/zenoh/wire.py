@@ -42,9 +42,14 @@ import struct
 from typing import Any, NamedTuple
 
 import msgpack
+import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
+
+#: every message of a run is needed: block rather than drop when a link is congested (a dropped
+#: event would leave a gap in its stream's seqs that no frontier can cross)
+RELIABLE = zenoh.CongestionControl.BLOCK
 
 WIRE_VERSION = 2
 ROOT = "retriever"

@@ -182,8 +182,8 @@ def _serve(argv: list[str]) -> int:
         _import_main(spec["main_file"])
 
     from .hub import open_peer, wait_for_peers
-    from .loop import _CONTROL, RELIABLE, RestartFlow, StopRun
-    from .wire import KeySpace, WireEncoder, WireError, decode_control
+    from .loop import _CONTROL, RestartFlow, StopRun
+    from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_control
 
     keys = KeySpace(spec["namespace"])
     encoder = WireEncoder()
@@ -236,18 +236,18 @@ def _serve(argv: list[str]) -> int:
                     loop.inbox.put(item)
             loop.run(t0, end, resume=join is not None)
         except RestartFlow as exc:
-            loop.flush()
+            loop.finish_reports()
             status("restart", tag=list(exc.tag), seqs=loop.seqs, counts=dict(loop.counts),
                    error=f"{type(exc.__cause__).__name__}: {exc.__cause__}")
             loop.undeclare()
             return EXIT_RESTART
         except StopRun as exc:
-            loop.flush()
+            loop.finish_reports()
             status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts))
             loop.undeclare()
             return EXIT_FAILED
         except BaseException as exc:
-            loop.flush()
+            loop.finish_reports()
             status("failed", error=f"worker '{node_id}' crashed: {type(exc).__name__}: {exc}",
                    traceback=traceback.format_exc(), counts=dict(loop.counts))
             loop.undeclare()

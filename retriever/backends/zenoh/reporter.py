@@ -1,0 +1,108 @@
+"""A worker's reports to the coordinator, sent from a thread of their own.
+
+A node loop batches its step records and the data messages it published (loop.FLUSH_AFTER_NS)
+and hands each batch to its :class:`Reporter`. The reporter writes the big messages to files of
+the run's spill directory (the coordinator maps them: one copy, none on its side) and puts the
+report on ``status/report/<node>``. Both take time that has nothing to do with the node's
+ticks: writing 16 MiB to fresh shared memory took 60 ms on this VM, longer than a 20 Hz period,
+and a node that did it between ticks fell 0.4 s behind in 3 s (benchmarks/README.md). On their
+own thread they overlap the loop (file writes and puts release the GIL).
+
+Reports go out in the order they were handed over. At most MAX_PENDING wait; a loop further
+ahead waits for the reporter, as it would for a congested link. :meth:`Reporter.close` returns
+once every report is out, so a worker's last status message comes after its last report.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import threading
+
+import zenoh
+
+from ...errors import RetrieverError
+from .wire import RELIABLE, WireEncoder
+
+#: reports handed over and not yet sent, at most (each at most loop.FLUSH_MAX_BYTES of events)
+MAX_PENDING = 4
+
+
+
+class ReportError(RetrieverError):
+    """A report could not be sent: the coordinator will not get this worker's records."""
+
+
+class Reporter:
+    """Sends one node's reports, in order, from its own thread (started on the first report)."""
+
+    def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int):
+        self.session, self.key, self.node = session, key, node
+        self.spill_dir, self.spill_bytes = spill_dir, spill_bytes
+        self.encoder = WireEncoder()  # this thread's own
+        self.queue: queue.SimpleQueue = queue.SimpleQueue()
+        self.room = threading.Semaphore(MAX_PENDING)
+        self.thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        self.spilled = 0  # files written to spill_dir
+
+    def send(self, records: list, events: list[tuple[int, bytes]]) -> None:
+        """Hand over step records and ``(wall ns, data message)`` pairs; waits only while
+        MAX_PENDING reports are still unsent."""
+        self._raise()
+        if self.thread is None:
+            self.thread = threading.Thread(target=self._run, name=f"retriever-report-{self.node}", daemon=True)
+            self.thread.start()
+        self.room.acquire()
+        self.queue.put((records, events))
+
+    def close(self) -> None:
+        """Return once every report handed over is out (then no more may be sent)."""
+        if self.thread is not None:
+            self.queue.put(None)
+            self.thread.join()
+            self.thread = None
+        self._raise()
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            raise ReportError(f"worker '{self.node}' could not report to the coordinator: "
+                              f"{type(self.error).__name__}: {self.error}") from self.error
+
+    def _run(self) -> None:
+        while (item := self.queue.get()) is not None:
+            try:
+                if self.error is None:
+                    self._put(*item)
+            except BaseException as exc:  # told to the loop at its next report
+                self.error = exc
+            finally:
+                self.room.release()
+
+    def _put(self, records: list, events: list[tuple[int, bytes]]) -> None:
+        if self.spill_dir is not None:
+            events = [(wall, self._spill(message)) if len(message) >= self.spill_bytes else (wall, message)
+                      for wall, message in events]
+        self.session.put(self.key, self.encoder.report(self.node, records, events), congestion_control=RELIABLE)
+
+    def _spill(self, message: bytes) -> bytes | str:
+        """Write a published message to a file of the spill directory, whose name goes in the
+        report (the coordinator maps the file and removes it); the message itself if that fails."""
+        self.spilled += 1
+        name = f"{self.node}.{os.getpid()}.{self.spilled}.msg"
+        try:
+            fd = os.open(os.path.join(self.spill_dir, name), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except OSError:  # the directory is gone or full: the report carries it
+            return message
+        try:
+            view = memoryview(message)
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join(self.spill_dir, name))
+            return message
+        finally:
+            os.close(fd)
+        return name

@@ -1,0 +1,112 @@
+"""The reporter (reporter.py): a worker's reports leave from their own thread, in order, big
+messages through the spill directory; at most MAX_PENDING wait; a failure is told, not lost.
+
+Real Zenoh session and subscriber; each test waits on events its own messages set, never on time
+alone (the timeouts only bound a broken run).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import zenoh
+
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.reporter import MAX_PENDING, Reporter, ReportError
+from retriever.backends.zenoh.wire import KeySpace, decode_report
+
+KEYS = KeySpace("reporter-test")
+KEY = KEYS.report("cam")
+SENTINEL = f"{KEYS.prefix}/zz/end"
+RECORD = ((5, 0), {"x": (("src", "value", 1),)}, (("cam", "image", 0),), "ok", None, 100, 7)
+
+
+@pytest.fixture(scope="module")
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+class Received(list):
+    """The reports put on KEY, decoded, in arrival order; ``settle()`` returns once everything
+    put before it has arrived (the session delivers its own puts in order)."""
+
+    def __init__(self, session):
+        super().__init__()
+        self.session, self.done = session, threading.Event()
+        self.sub = session.declare_subscriber(f"{KEYS.prefix}/**", self._on_sample)
+
+    def _on_sample(self, sample) -> None:
+        if str(sample.key_expr) == SENTINEL:
+            self.done.set()
+        else:
+            self.append(decode_report(sample.payload.to_bytes()))
+
+    def settle(self) -> "Received":
+        self.session.put(SENTINEL, b"")
+        assert self.done.wait(timeout=30), "the session's own sentinel never came back"
+        return self
+
+
+@pytest.fixture
+def reports(session):
+    got = Received(session)
+    yield got
+    got.sub.undeclare()
+
+
+def test_reports_go_out_in_order_and_close_returns_once_they_are_out(session, reports, tmp_path):
+    reporter = Reporter(session, KEY, "cam", spill_dir=str(tmp_path), spill_bytes=1000)
+    big = b"B" * 1000
+    for k in range(6):
+        reporter.send([RECORD], [(k, b"small"), (k, big)])
+    reporter.close()
+    assert reporter.thread is None
+    reports.settle()
+    assert [[wall for wall, _ in r.events] for r in reports] == [[k, k] for k in range(6)]
+    for k, report in enumerate(reports):
+        assert report.node == "cam" and report.records == [RECORD]
+        small, spilled = report.events[0][1], report.events[1][1]
+        assert small == b"small", "messages under spill_bytes travel inside the report"
+        assert isinstance(spilled, str) and (tmp_path / spilled).read_bytes() == big, "big ones as files"
+    assert len({r.events[1][1] for r in reports}) == 6, "one file per message"
+
+
+def test_without_a_spill_directory_big_messages_travel_in_the_report(session, reports):
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=10)
+    reporter.send([], [(1, b"x" * 100)])
+    reporter.close()
+    assert [r.events for r in reports.settle()] == [[[1, b"x" * 100]]]
+
+
+def test_at_most_max_pending_reports_wait_then_the_loop_waits_too(session, reports):
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20)
+    link_free = threading.Event()
+    put = reporter._put
+
+    def congested(records, events):  # a put that blocks until the link frees up
+        assert link_free.wait(timeout=30), "the test never freed the link"
+        put(records, events)
+
+    reporter._put = congested
+    for k in range(MAX_PENDING):
+        reporter.send([], [(k, b"m")])  # none of these waits
+    assert not reporter.room.acquire(blocking=False), f"a {MAX_PENDING + 1}th send would wait"
+    link_free.set()
+    reporter.close()
+    assert [r.events[0][0] for r in reports.settle()] == list(range(MAX_PENDING)), "nothing lost or reordered"
+
+
+def test_a_failed_report_is_raised_naming_the_node(session):
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20)
+
+    def broken(records, events):
+        raise RuntimeError("link down")
+
+    reporter._put = broken
+    reporter.send([], [(1, b"m")])
+    with pytest.raises(ReportError, match="worker 'cam' could not report to the coordinator: RuntimeError: link down"):
+        reporter.close()
+    with pytest.raises(ReportError):
+        reporter.send([], [(2, b"m")])
