@@ -38,7 +38,12 @@ def free_port(host: str = LOOPBACK) -> int:
 
 
 def peer_config(*, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Config:
-    """Peer mode, multicast scouting off, explicit endpoints, quick reconnects."""
+    """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
+
+    Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
+    it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
+    latency instead of 1.1×, benchmarks/README.md). Its cost: each session has a segment in
+    /dev/shm, which a SIGKILLed process leaves behind."""
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
