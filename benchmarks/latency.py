@@ -119,6 +119,9 @@ def _config(listen: str | None = None, connect: str | None = None):
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
     c.insert_json5("connect/endpoints", json.dumps(connect.split(",") if connect else []))
+    pool = os.environ.get("LATENCY_RAW_SHM_POOL")  # --raw-shm-pool, handed to the raw processes
+    if pool:
+        c.insert_json5("transport/shared_memory/transport_optimization/pool_size", pool)
     return c
 
 
@@ -411,6 +414,9 @@ def main(argv: list[str] | None = None) -> int:
                         "among them and each run drops its own warm-up")
     p.add_argument("--raw-hub", action="store_true",
                    help="diagnostic: a second raw subscriber process (Retriever's coordinator also subscribes)")
+    p.add_argument("--raw-shm-pool", action="store_true",
+                   help="diagnostic: the raw sessions get the shared-memory pool Retriever's get "
+                        "(hub.shm_pool_bytes) instead of Zenoh's default 16 MiB")
     p.add_argument("--raw-express", action="store_true",
                    help="diagnostic: the raw publisher declared with express=True, as Retriever's are")
     p.add_argument("--breakdown", action="store_true",
@@ -421,6 +427,10 @@ def main(argv: list[str] | None = None) -> int:
                         "in this process, with page fault counts")
     args = p.parse_args(argv)
     sizes = [parse_size(s) for s in args.sizes]
+    if args.raw_shm_pool:
+        from retriever.backends.zenoh.hub import shm_pool_bytes
+
+        os.environ["LATENCY_RAW_SHM_POOL"] = str(shm_pool_bytes())
     if args.codec:
         print(f"codec and copy costs; load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         codec_costs(sizes, args.hz, min(args.samples, 40))
@@ -432,8 +442,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"latency breakdown, {args.hz:g} Hz, {args.warmup} warm-up + {args.samples} samples per size; "
               f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
               + ("; raw side with a 2nd subscriber (--raw-hub)" if args.raw_hub else "")
-          + ("; raw publisher express (--raw-express)" if args.raw_express else "")
-              + ("; raw publisher express (--raw-express)" if args.raw_express else ""))
+              + ("; raw publisher express (--raw-express)" if args.raw_express else "")
+              + ("; raw sessions with Retriever's shm pool (--raw-shm-pool)" if args.raw_shm_pool else ""))
         probed, raw = {}, {}
         for size in sizes:
             raw[size] = run_raw(size, total, args.hz, args.warmup, args.raw_hub, args.raw_express)
@@ -453,7 +463,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{-(-args.samples // args.rounds)} samples per side; "
           f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
           + ("; raw side with a 2nd subscriber (--raw-hub)" if args.raw_hub else "")
-          + ("; raw publisher express (--raw-express)" if args.raw_express else ""))
+          + ("; raw publisher express (--raw-express)" if args.raw_express else "")
+          + ("; raw sessions with Retriever's shm pool (--raw-shm-pool)" if args.raw_shm_pool else ""))
     print()
 
     rows = []

@@ -8,6 +8,7 @@ any Zenoh client (a plain ``zenoh`` subscriber watching ``retriever/<ns>/data/**
 from __future__ import annotations
 
 import json
+import os
 import socket
 import time
 
@@ -15,6 +16,16 @@ import zenoh
 
 DEFAULT_PORT = 7447
 LOOPBACK = "127.0.0.1"
+
+#: Zenoh copies a message bigger than 3 KiB between peers on one host into a shared-memory pool
+#: of the sender's and sends a reference (its "transport optimization", on by default). A message
+#: that does not fit goes over TCP instead: with Zenoh's default 16 MiB pool, every 16 MiB frame
+#: did (17.5 ms at 20 Hz here; 5.4 ms through a 128 MiB pool). So the pool gets up to
+#: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
+#: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
+SHM_POOL_MAX = 128 << 20
+SHM_POOL_MIN = 16 << 20
+SHM_POOL_SHARE = 8
 
 
 def endpoint(port: int, host: str = LOOPBACK) -> str:
@@ -37,16 +48,30 @@ def free_port(host: str = LOOPBACK) -> int:
         return s.getsockname()[1]
 
 
+def shm_pool_bytes(free_bytes: int | None = None) -> int:
+    """The shared-memory pool for a session (SHM_POOL_MAX): ``free_bytes`` is what /dev/shm has
+    free (read now if not given; 0 if there is no /dev/shm)."""
+    if free_bytes is None:
+        try:
+            st = os.statvfs("/dev/shm")
+            free_bytes = st.f_bavail * st.f_frsize
+        except OSError:
+            free_bytes = 0
+    return max(SHM_POOL_MIN, min(SHM_POOL_MAX, free_bytes // SHM_POOL_SHARE))
+
+
 def peer_config(*, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
     it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
-    latency instead of 1.1×, benchmarks/README.md). Its cost: each session has a segment in
-    /dev/shm, which a SIGKILLed process leaves behind."""
+    latency instead of 1.1×, benchmarks/README.md), and its pool is sized by
+    :func:`shm_pool_bytes`. Its cost: each session has a segment in /dev/shm, which a
+    SIGKILLed process leaves behind."""
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes()))
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")

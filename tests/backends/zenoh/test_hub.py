@@ -7,12 +7,22 @@ WireError, one per message, and the valid messages around it must arrive intact.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import threading
 from pathlib import Path
 
-from retriever.backends.zenoh.hub import DEFAULT_PORT, port_is_free, open_hub
+from retriever.backends.zenoh.hub import (
+    DEFAULT_PORT,
+    SHM_POOL_MAX,
+    SHM_POOL_MIN,
+    SHM_POOL_SHARE,
+    open_hub,
+    peer_config,
+    port_is_free,
+    shm_pool_bytes,
+)
 from retriever.backends.zenoh.wire import KeySpace, WireError, decode_data
 
 CLIENT = r"""
@@ -83,3 +93,14 @@ def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_p
     assert any("msgpack array of bins" in b for b in bad) and any("truncated" in b for b in bad)
     last = good[-1]
     assert (last.producer, last.port, last.tag, last.value) == ("client", "x", (7, 1), {"ok": [1.5]})
+
+
+def test_the_shared_memory_pool_grows_with_what_dev_shm_has_free():
+    """Big messages between local peers go through Zenoh's shared-memory pool only if they fit
+    (hub.SHM_POOL_MAX); the pool never takes much of a small /dev/shm (Docker: 64 MB)."""
+    assert shm_pool_bytes(0) == SHM_POOL_MIN, "no /dev/shm: Zenoh's default"
+    assert shm_pool_bytes(64 * 10**6) == SHM_POOL_MIN
+    assert shm_pool_bytes(SHM_POOL_SHARE * (48 << 20)) == 48 << 20
+    assert shm_pool_bytes(12 << 30) == SHM_POOL_MAX
+    optimization = json.loads(peer_config().get_json("transport/shared_memory/transport_optimization"))
+    assert optimization["enabled"] and optimization["pool_size"] == shm_pool_bytes()
