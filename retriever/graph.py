@@ -40,6 +40,9 @@ class Node:
     outputs: dict[str, PortSpec]
     params: dict[str, Any]
     rebuild_problem: str | None = None
+    #: the rebuild problem is only that the class lives in ``__main__``: a backend that imports
+    #: the main script the way multiprocessing does (the zenoh workers) can rebuild it
+    rebuild_needs_main: bool = False
 
     @property
     def settings(self) -> FlowSettings:
@@ -171,20 +174,16 @@ def _jsonable(value: Any) -> bool:
     return False
 
 
-#: the rebuild problem of a flow class defined in ``__main__``: the only one a backend that
-#: imports the main script the way multiprocessing does (the zenoh workers) can get past
-IN_MAIN = "lives in __main__"
-
-
-def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None]:
-    """The flow's constructor arguments by name, and why it cannot be rebuilt from them (or None)."""
+def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None, bool]:
+    """The flow's constructor arguments by name, why it cannot be rebuilt from them (or None),
+    and whether that is only because its class lives in ``__main__`` (Node.rebuild_needs_main)."""
     params, problem = _params(flow)
     cls = type(flow)
     if "<locals>" in cls.__qualname__:
         problem = f"class {cls.__qualname__} is defined inside a function, so it cannot be imported"
     elif cls.__module__ == "__main__" and problem is None:
-        problem = f"class {cls.__qualname__} {IN_MAIN}; move it to an importable module"
-    return params, problem
+        return params, f"class {cls.__qualname__} lives in __main__; move it to an importable module", True
+    return params, problem, False
 
 
 def _params(flow: Flow) -> tuple[dict[str, Any], str | None]:
@@ -283,9 +282,10 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
         node_id = ids[id(f)]
         if node_id in nodes:
             continue  # a duplicate name, already reported
-        params, rebuild_problem = constructor_params(f)
+        params, rebuild_problem, needs_main = constructor_params(f)
         nodes[node_id] = Node(node_id, f, spec, dict(spec.inputs),
-                              dict(spec.outputs) if spec.outputs is not None else {}, params, rebuild_problem)
+                              dict(spec.outputs) if spec.outputs is not None else {}, params, rebuild_problem,
+                              needs_main)
         where = f"flow '{node_id}' ({type_path(type(f))})"
         if not spec.has_step:
             problems.append(Problem(f"{where} has no step() method",

@@ -48,6 +48,8 @@ def graph_to_doc(graph: "Graph") -> dict:
         }
         if node.rebuild_problem is not None:
             doc["rebuild_problem"] = node.rebuild_problem
+        if node.rebuild_needs_main:
+            doc["rebuild_needs_main"] = True
         nodes.append(doc)
     edges = [
         {

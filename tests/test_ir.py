@@ -165,7 +165,23 @@ def test_from_ir_refuses_an_unrebuildable_flow_naming_node_and_argument():
 
 
 def test_rebuildable_nodes_are_marked(ir: IR):
-    assert all(n["rebuildable"] is True and "rebuild_problem" not in n for n in ir.nodes)
+    assert all(n["rebuildable"] is True and "rebuild_problem" not in n and "rebuild_needs_main" not in n
+               for n in ir.nodes)
+
+
+def test_a_flow_class_in_main_is_marked_as_needing_only_the_main_script():
+    """A worker that imports the main script (the zenoh backend) can rebuild such a flow, so the
+    IR says when that is its only problem, and not when its arguments are a problem too."""
+    in_main = type("Tool", (ir_flows.Tool,), {"__module__": "__main__", "__qualname__": "Tool"})
+    with Pipeline("mains") as pipe:
+        in_main(1, steps=2).named("plain") @ Rate(hz=10)
+        in_main(object(), steps=2).named("opaque") @ Rate(hz=10)
+    ir = pipe.build_ir()
+    plain, opaque = ir.node("plain"), ir.node("opaque")
+    assert plain["rebuildable"] is False and plain["rebuild_needs_main"] is True
+    assert "lives in __main__" in plain["rebuild_problem"]
+    assert opaque["rebuildable"] is False and "rebuild_needs_main" not in opaque
+    assert "'model'" in opaque["rebuild_problem"]
 
 
 def test_from_ir_with_an_unimportable_type_names_the_node(doc: dict):

@@ -31,7 +31,7 @@ from collections import Counter
 from pathlib import Path
 
 from ...errors import BackendError, StepError
-from ...graph import IN_MAIN, Graph
+from ...graph import Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
@@ -352,7 +352,7 @@ def _check_deployable(graph: Graph) -> None:
     script is a file (workers import it as ``__mp_main__``, like multiprocessing)."""
     main_file = getattr(sys.modules.get("__main__"), "__file__", None)
     problems = [f"  {nid}: {node.rebuild_problem}" for nid, node in graph.nodes.items()
-                if node.rebuild_problem is not None and not (main_file and IN_MAIN in node.rebuild_problem)]
+                if node.rebuild_problem is not None and not (main_file and node.rebuild_needs_main)]
     if problems:
         raise BackendError("the zenoh backend runs each flow in its own process, rebuilt from the IR (type + "
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)

@@ -67,7 +67,7 @@ def _import_main(path: str) -> None:
 def build_loop(spec: dict, node_id: str, session):
     """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop."""
     from ...flow._base import Flow
-    from ...graph import IN_MAIN, compile_graph
+    from ...graph import compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
     from ...pipeline import _rebuild_node
     from ...sync import PortBuffer, policy_from_ir
@@ -81,7 +81,7 @@ def build_loop(spec: dict, node_id: str, session):
     flows: dict = {}
     problems: list[str] = []
     node_doc = dict(ir.node(node_id))
-    if spec.get("main_file") and IN_MAIN in node_doc.get("rebuild_problem", ""):
+    if spec.get("main_file") and node_doc.get("rebuild_needs_main"):
         node_doc["rebuildable"] = True  # _import_main made __main__ importable here
     _rebuild_node(node_doc, flows, problems)
     if problems:
