@@ -65,6 +65,12 @@ class _Periodic(Clock):
         """The rate as an exact rational."""
         return self._rate
 
+    @property
+    def schedule(self) -> tuple[int, int, int]:
+        """``(offset_ns, num, den)`` with ``tick_time(k) == offset_ns + k * num // den``: clocks with
+        equal schedules tick at the same times (the inproc backend runs their nodes as one group)."""
+        return self.offset_ns, self._step_num, self._step_den
+
     def tick_time(self, k: int, t0: int = 0) -> int:
         """Time in ns of tick ``k``: ``t0 + offset + floor(k * 1e9 / hz)``, exact, no drift."""
         return t0 + self.offset_ns + (k * self._step_num) // self._step_den

@@ -54,7 +54,9 @@ class PortBuffer:
 
     Entries are ``(arrival_tag, producer, port, seq, value)`` tuples; the first four fields are
     unique (``producer, port, seq`` is the event id), so tuple order is exactly the fan-in order
-    of DESIGN.md §10.8 and values are never compared. ``visible`` counts the entries with
+    of DESIGN.md §10.8 and values are never compared. A backend may append fields of its own
+    (inproc adds the event's ``(id,)`` tuple, which its compiled ticks record as consumed);
+    policies read only the first five. ``visible`` counts the entries with
     ``arrival_tag ≤`` the tag of the consumer's current tick.
     """
 

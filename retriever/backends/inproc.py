@@ -15,6 +15,13 @@ Why ticks at one tag may run in any order: every output of a tick at τ carries 
 tick reads only events with tag ≤ τ, so no tick at τ can see another's outputs. The trace is
 compared in canonical order, so ``tie_break_seed`` (shuffling same-tag ticks) must not change it;
 the property tests check exactly that.
+
+Two things keep the loop near the cost of the trace it must record (benchmarks/step_overhead.py):
+nodes whose clocks share one Rate schedule are one ``_RateGroup`` with one heap entry per tick,
+and nodes whose inputs are all ``Latest()`` run a tick function generated for them
+(``_inproc_ticks``), which does what ``_tick`` does with the node's ports, calling convention and
+consumers inlined. ``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two
+to the same trace.
 """
 
 from __future__ import annotations
@@ -29,19 +36,22 @@ from ..errors import CausalityError, StepError
 from ..flow._base import Flow, make_invoker, make_output_reader
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
+from . import _inproc_ticks
 from .base import Backend, NodeStats, Session
 
 
 class _NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots."""
 
-    __slots__ = ("index", "id", "flow", "invoke", "read", "latency_ns", "on_error", "inputs",
-                 "downstream", "seq", "clock", "k", "next_rate_tag", "stats", "cycle", "fallbacks")
+    __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
+                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced")
 
     def __init__(self, index: int, node: Node):
         self.index = index
         self.id = node.id
         self.flow: Flow = node.flow
+        self.spec = node.spec
+        self.replaced = False  # replace_step() swapped step() for logged outputs
         self.invoke = make_invoker(node.flow, node.spec)
         self.read = make_output_reader(node.spec)
         self.latency_ns = node.settings.latency_ns
@@ -52,12 +62,31 @@ class _NodeRuntime:
         self.downstream: dict[str, list[tuple[int, PortBuffer, int, bool]]] = {}
         self.seq: dict[str, int] = {}
         self.clock = node.clock
-        self.k = 0
-        self.next_rate_tag: tuple[int, int] | None = None
         self.stats = NodeStats()
         self.cycle: list[str] = []
         # optional input ports nothing feeds: they take their fallback on every tick
         self.fallbacks: dict[str, Any] = {}
+
+
+class _RateGroup:
+    """The Rate/Hybrid nodes whose clocks have one schedule: their rate ticks at ``(t_k, 0)``
+    always come due together, so they share one heap entry per tick instead of one per node."""
+
+    __slots__ = ("order", "ticks", "k", "next_tag", "offset_ns", "step_num", "step_den")
+
+    def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
+        self.order = order  # node indices, sorted: the tick order when nothing else is due at the tag
+        self.ticks: tuple = ()  # their tick functions, in that order (InprocSession._tick_functions)
+        self.k = 0
+        # the clocks' tick_time(k) is offset_ns + k * step_num // step_den (inlined in the loop)
+        self.offset_ns, self.step_num, self.step_den = schedule
+        self.next_tag = (self.offset_ns, 0)
+
+    def advance(self) -> tuple[int, int]:
+        """Move to the next tick; return its tag."""
+        self.k += 1
+        self.next_tag = (self.offset_ns + self.k * self.step_num // self.step_den, 0)
+        return self.next_tag
 
 
 class InprocSession(Session):
@@ -70,16 +99,27 @@ class InprocSession(Session):
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
         self._heap: list[tuple[int, int]] = []
-        self._pending: dict[tuple[int, int], set[int]] = {}
+        # tag -> the nodes due: a rate group alone (the common case), or a set of node indices,
+        # and then the rate groups due at that tag are in _rate_due
+        self._pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
+        self._rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
         self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
         self._by_id = by_id = {rt.id: rt for rt in self._nodes}
         self._wire(graph, by_id)
+        groups: dict[tuple[int, int, int], list[int]] = {}
         for rt in self._nodes:
             if type(rt.flow).reset is not Flow.reset:
                 rt.flow.reset()  # the paper's flows initialise their state in reset()
             if rt.clock.hz is not None:
-                rt.next_rate_tag = (rt.clock.tick_time(0), 0)
-                self._schedule(rt.next_rate_tag, rt.index)
+                groups.setdefault(rt.clock.schedule, []).append(rt.index)
+        self._groups = [_RateGroup(schedule, tuple(indices)) for schedule, indices in groups.items()]
+        for group in self._groups:
+            self._schedule_group(group)
+        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
+        # _tick; built on the first advance() (see _tick_functions)
+        self._ticks: list | None = None
+        self._flushes: list = []  # flush() of each compiled tick: hand its counts to stats and rt.seq
+        self._generic_only = False  # set by take_routes(): replay delivers events itself
 
     # ---------------------------------------------------------------------------------------
     # Wiring
@@ -87,9 +127,11 @@ class InprocSession(Session):
     def _wire(self, graph: Graph, by_id: dict[str, _NodeRuntime]) -> None:
         buffers: dict[tuple[str, str], PortBuffer] = {}
         policies: dict[tuple[str, str], Any] = {}
+        self._feeds: dict[int, int] = {}  # id(buffer) -> how many edges feed it
         for e in graph.edges:
             key = (e.dst, e.dst_port)
             buf = buffers.setdefault(key, PortBuffer())
+            self._feeds[id(buf)] = self._feeds.get(id(buf), 0) + 1
             policies[key] = e.sync
             dst = graph.nodes[e.dst]
             by_id[e.src].downstream.setdefault(e.src_port, []).append(
@@ -114,8 +156,54 @@ class InprocSession(Session):
         if waiting is None:
             self._pending[tag] = {index}
             heappush(self._heap, tag)
-        else:
+        elif type(waiting) is set:
             waiting.add(index)
+        else:  # a rate group is due there: share the tag
+            self._rate_due[tag] = [waiting]
+            self._pending[tag] = {*waiting.order, index}
+
+    def _schedule_group(self, group: _RateGroup) -> None:
+        tag = group.next_tag
+        waiting = self._pending.get(tag)
+        if waiting is None:
+            self._pending[tag] = group
+            heappush(self._heap, tag)
+            return
+        if type(waiting) is not set:
+            self._rate_due[tag] = [waiting]
+            self._pending[tag] = waiting = set(waiting.order)
+        else:
+            self._rate_due.setdefault(tag, [])
+        waiting.update(group.order)
+        self._rate_due[tag].append(group)
+
+    def _flush(self) -> None:
+        for flush in self._flushes:
+            flush()
+
+    def _drop_compiled(self) -> None:
+        """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
+        (from rt.seq, which the generic path may change in between)."""
+        self._flush()
+        self._ticks, self._flushes = None, []
+
+    def _tick_functions(self) -> list:
+        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick: compiled where
+        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`."""
+        if self._ticks is not None:
+            return self._ticks
+        ticks = []
+        for rt in self._nodes:
+            compiled = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._feeds)
+            if compiled is None:
+                ticks.append(lambda tau, _, rt=rt, tick=self._tick: tick(rt, tau))
+            else:
+                ticks.append(compiled[0])
+                self._flushes.append(compiled[1])
+        for group in self._groups:
+            group.ticks = tuple(ticks[i] for i in group.order)
+        self._ticks = ticks
+        return ticks
 
     # ---------------------------------------------------------------------------------------
     # The loop
@@ -130,32 +218,49 @@ class InprocSession(Session):
         try:
             self._advance(until_ns)
         finally:
+            self._flush()
             gc.set_threshold(*thresholds)
 
     def _advance(self, until_ns: int) -> None:
-        heap, pending, nodes, rng = self._heap, self._pending, self._nodes, self._rng
+        heap, pending, rate_due, rng = self._heap, self._pending, self._rate_due, self._rng
+        ticks = self._tick_functions()
         log, steps = self.log, self.trace.raw_steps
         log_at = len(steps) + 1 if log is not None else float("inf")
         while heap and heap[0][0] < until_ns:
             if len(steps) >= log_at:
                 log_at = len(steps) + self.write_log()
             tag = heappop(heap)
-            indices = pending.pop(tag)
-            if len(indices) == 1:
-                order = indices
-            elif rng is None:
-                order = sorted(indices)
+            due = pending.pop(tag)
+            if type(due) is _RateGroup:  # one rate group's tick, nothing else: its nodes in order
+                due.k = k = due.k + 1  # due.advance(), inlined
+                due.next_tag = next_tag = (due.offset_ns + k * due.step_num // due.step_den, 0)
+                if next_tag in pending:
+                    self._schedule_group(due)
+                else:  # _schedule_group, inlined for the common case
+                    pending[next_tag] = due
+                    heappush(heap, next_tag)
+                if rng is None or len(due.order) == 1:
+                    order = due.ticks
+                else:
+                    indices = list(due.order)
+                    rng.shuffle(indices)
+                    order = [ticks[i] for i in indices]
             else:
-                order = list(indices)
-                order.sort()
-                rng.shuffle(order)
-            for index in order:
-                rt = nodes[index]
-                if tag == rt.next_rate_tag:
-                    rt.k += 1
-                    rt.next_rate_tag = (rt.clock.tick_time(rt.k), 0)
-                    self._schedule(rt.next_rate_tag, index)
-                self._tick(rt, tag)
+                groups = rate_due.pop(tag, None)
+                if groups is not None:  # rate ticks: schedule each group's next one
+                    for group in groups:
+                        group.advance()
+                        self._schedule_group(group)
+                if len(due) == 1:
+                    order = [ticks[i] for i in due]
+                else:
+                    indices = sorted(due)
+                    if rng is not None:
+                        rng.shuffle(indices)
+                    order = [ticks[i] for i in indices]
+            next_microstep = (tag[0], tag[1] + 1)
+            for tick in order:
+                tick(tag, next_microstep)
         self.now_ns = max(self.now_ns, until_ns)
 
     def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
@@ -183,8 +288,7 @@ class InprocSession(Session):
             if n_dropped:
                 (dropped := dropped or {})[port] = n_dropped
         if missing is not None:
-            stats.skips += 1
-            self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
+            self._skipped(rt, tau, missing)
             return
         if commits is not None:
             for policy, buf, commit in commits:
@@ -205,7 +309,11 @@ class InprocSession(Session):
         end = time_ns()
         stats.step_ns += end - start
         stats.steps += 1
+        self._emit(rt, tau, outputs, consumed, start, end, dropped)
 
+    def _emit(self, rt: _NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
+              dropped: dict | None = None) -> None:
+        """Record and deliver the outputs of a tick that ran, and its step record."""
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
         produced = []
         if outputs:
@@ -216,15 +324,22 @@ class InprocSession(Session):
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
                 events.append((out_tag, node_id, port, seq, value, end))
-                produced.append((node_id, port, seq))
+                eid = (node_id, port, seq)
+                produced.append(eid)
+                # buffer entries carry the consumed-ids tuple a Latest() consumer records for them
+                ids = (eid,)
                 for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
                     arrival = (out_tag[0] + delay_ns, 0) if delay_ns else out_tag
-                    buf.insert((arrival, node_id, port, seq, value))
+                    buf.insert((arrival, node_id, port, seq, value, ids))
                     if triggers:
                         if arrival[1] > self.max_microsteps:
                             raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
                         self._schedule(arrival, consumer)
         self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+
+    def _skipped(self, rt: _NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
+        rt.stats.skips += 1
+        self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
 
     def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception,
                 start: int, wall: int) -> None:
@@ -237,6 +352,7 @@ class InprocSession(Session):
             rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:
+        self._flush()
         return {rt.id: rt.stats for rt in self._nodes}
 
     def seeds(self) -> dict:
@@ -253,16 +369,21 @@ class InprocSession(Session):
             for port, consumers in rt.downstream.items():
                 routes[(rt.id, port)] = [(buf, delay_ns) for _, buf, delay_ns, _ in consumers]
             rt.downstream = {}
+        self._drop_compiled()
+        self._generic_only = True  # compiled ticks deliver, and expect inproc entries
         return routes
 
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
+        self._drop_compiled()  # compiled ticks keep their own seq counters
         self._tick(self._by_id[node], tau)
 
     def replace_step(self, node: str, outputs: Any) -> None:
         """Make ``node``'s ticks emit ``next(outputs)`` (an iterable of ``(port, value)``) instead
         of calling its ``step()``: replayed sources."""
         rt = self._by_id[node]
+        self._drop_compiled()
+        rt.replaced = True
         rt.invoke = lambda values: next(outputs)
         rt.read = lambda raw: raw
 

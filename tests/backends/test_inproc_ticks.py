@@ -1,0 +1,293 @@
+"""The compiled per-node ticks of the inproc backend (backends/_inproc_ticks.py) against the
+generic ``InprocSession._tick``: the same graph, run once with every node it can compile
+compiled and once with none, must record the same events and step records in the same order
+(wall-clock fields aside), the same stats, and fail the same way.
+
+This is what keeps the two paths in sync: a change to ``_tick`` (or to ``Latest``, the output
+readers, the invokers) that the generated code does not follow fails here.
+"""
+
+from __future__ import annotations
+
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Optional
+from unittest import mock
+
+from hypothesis import given
+
+from retriever import Flow, Hybrid, Latest, Pipeline, Rate, RetrieverWarning, StepError, Trigger, io
+from retriever.backends import _inproc_ticks
+
+from .test_schedule_independence import DURATION, SETTINGS, budget, graphs
+
+
+@contextmanager
+def generic_only():
+    with mock.patch.object(_inproc_ticks, "compile_tick", return_value=None):
+        yield
+
+
+@contextmanager
+def counting():
+    """Count the nodes compile_tick compiles."""
+    compiled = []
+    real = _inproc_ticks.compile_tick
+
+    def spy(session, rt, feeds):
+        result = real(session, rt, feeds)
+        if result is not None:
+            compiled.append(rt.id)
+        return result
+
+    with mock.patch.object(_inproc_ticks, "compile_tick", spy):
+        yield compiled
+
+
+def records(trace) -> tuple[list, list]:
+    """Every record in recording order, without the wall-clock fields."""
+    return [e[:5] for e in trace.raw_events], [s[:6] for s in trace.raw_steps]
+
+
+def outcome(build, runs, **options):
+    """Run ``build()``'s pipeline in the increments ``runs``; the records, stats, and error if any."""
+    pipe = build()
+    error = None
+    try:
+        for duration in runs:
+            pipe.run(duration=duration, **options)
+    except Exception as exc:  # noqa: BLE001 - compared below
+        error = f"{type(exc).__name__}: {exc}"
+    stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
+    return records(pipe.trace), stats, error
+
+
+def assert_same(build, runs=(1.0,), min_compiled=1, **options):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        with counting() as compiled:
+            fast = outcome(build, runs, **options)
+        with generic_only():
+            generic = outcome(build, runs, **options)
+    assert len(set(compiled)) >= min_compiled, f"only {sorted(set(compiled))} compiled"
+    assert fast[2] == generic[2]
+    assert fast[1] == generic[1]
+    (fast_events, fast_steps), (events, steps) = fast[0], generic[0]
+    assert len(fast_steps) == len(steps) and len(fast_events) == len(events)
+    for a, b in zip(fast_steps, steps):
+        assert a == b
+    for a, b in zip(fast_events, events):
+        assert a == b
+    return fast
+
+
+# ---------------------------------------------------------------------------------------------
+# Flows that take every route through a compiled tick
+# ---------------------------------------------------------------------------------------------
+@io
+@dataclass
+class Num:
+    x: Any
+
+
+@io
+@dataclass
+class Two:
+    a: Any = None
+    b: Any = None
+
+
+@io
+@dataclass
+class ReqOpt:
+    a: Any
+    b: Optional[Any]
+
+
+@io
+@dataclass
+class WithUnfed:
+    a: Any
+    extra: Optional[Any]
+
+
+class Count(Flow[None, Num]):
+    """k, with no event every ``sparse``-th tick, a dict every ``as_dict``-th, None every ``none``-th."""
+
+    def __init__(self, sparse: int = 0, as_dict: int = 0, none: int = 0, fail: int = 0):
+        self.sparse, self.as_dict, self.none, self.fail, self.k = sparse, as_dict, none, fail, 0
+
+    def step(self) -> Num:
+        self.k += 1
+        if self.fail and self.k % self.fail == 0:
+            raise ValueError(f"fail at {self.k}")
+        if self.none and self.k % self.none == 0:
+            return None
+        if self.as_dict and self.k % self.as_dict == 0:
+            return {"x": -self.k}
+        return Num(None if self.sparse and self.k % self.sparse == 0 else self.k)
+
+
+class Split(Flow[Num, Two]):
+    def step(self, inp: Num) -> Two:
+        return Two(a=inp.x, b=None if inp.x % 3 == 0 else inp.x * 10)
+
+
+class Join(Flow[ReqOpt, Num]):
+    def step(self, inp: ReqOpt) -> Num:
+        return Num((inp.a, inp.b))
+
+
+class UsesUnfed(Flow[WithUnfed, Num]):
+    def step(self, inp: WithUnfed) -> Num:
+        return Num((inp.a, inp.extra))
+
+
+class Plain(Flow[int, int]):
+    """One typed port in, one out (not @io)."""
+
+    def step(self, x: int) -> int:
+        return x + 1
+
+
+class Both(Flow[Two, Num]):
+    def step(self, inp: Two) -> Num:
+        return Num((inp.a, inp.b))
+
+
+class Untyped(Flow):
+    def step(self, x, y=7, z: Optional[int] = None):
+        if isinstance(x, int) and x % 5 == 0:
+            return None
+        return {"out": (x, y, z), "side": None if isinstance(x, int) and x % 2 else x, "unwired": 1}
+
+
+class UntypedSource(Flow):
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"x": self.k}
+
+
+def chain(variant: str):
+    def build():
+        with Pipeline(f"chain_{variant}") as pipe:
+            if variant == "typed":
+                prev = Count().named("src") @ Rate(1000)
+                for i in range(1, 4):
+                    prev = prev.then(Join().named(f"s{i}") @ Rate(1000), map={"x": "a"}, sync=Latest())
+            else:
+                prev = UntypedSource().named("src") @ Rate(1000)
+                for i in range(1, 4):
+                    prev = prev.then(Untyped().named(f"s{i}") @ Rate(1000), map={"out": "x"}, sync=Latest())
+        return pipe
+    return build
+
+
+def mixed():
+    """Fan-in, multi-output, optional and unfed ports, typed single ports, latency, delays,
+    triggers in microsteps, Hybrid clocks, outputs of another type, errors that continue."""
+    with Pipeline("mixed") as pipe:
+        a = Count(sparse=4, as_dict=7, none=11).named("a") @ Rate(100)
+        b = Count(sparse=3).named("b").configure(latency=0.004) @ Rate(30, offset=0.002)
+        split = Split().named("split") @ Trigger()
+        join = Join().named("join") @ Rate(100)
+        join2 = Join().named("join2") @ Hybrid(50, trigger=["a"])
+        unfed = UsesUnfed().named("unfed") @ Rate(40)
+        both = Both().named("both") @ Trigger("b")
+        plain_src = Count().named("psrc").configure(on_error="skip_tick") @ Rate(60)
+        plain = Plain().named("plain") @ Trigger()
+        plain2 = Plain().named("plain2") @ Rate(60)
+        u = Untyped().named("u") @ Rate(100)
+        u2 = Untyped().named("u2") @ Trigger()
+        flaky = Count(fail=5).named("flaky").configure(on_error="skip_tick") @ Rate(100)
+        pipe.connect(a, split, map={"x": "x"}, sync=Latest())
+        pipe.connect(split, join, map={"a": "a"}, sync=Latest())
+        pipe.connect(split, join, map={"b": "b"}, sync=Latest(), delay=0.01)
+        pipe.connect(b, join2, map={"x": "a"}, sync=Latest())
+        pipe.connect(a, join2, map={"x": "a"}, sync=Latest())  # fan-in: two producers, one port
+        pipe.connect(flaky, join2, map={"x": "b"}, sync=Latest(), delay=0.003)
+        pipe.connect(join, unfed, map={"x": "a"}, sync=Latest())
+        pipe.connect(split, both, map={"a": "a", "b": "b"}, sync=Latest())
+        pipe.connect(plain_src, plain, map={"x": "int"}, sync=Latest())
+        pipe.connect(plain, plain2, map={"int": "int"}, sync=Latest())
+        pipe.connect(a, u, map={"x": "x"}, sync=Latest())
+        pipe.connect(u, u2, map={"out": "x"}, sync=Latest())
+        pipe.connect(u, u2, map={"side": "y"}, sync=Latest(), delay=0.005)
+    return pipe
+
+
+def test_chains_compile_every_node_and_match():
+    for variant in ("typed", "untyped"):
+        assert_same(chain(variant), runs=(0.2, 0.0005, 0.3), min_compiled=4)
+
+
+def test_mixed_graph_matches():
+    assert_same(mixed, runs=(0.5, 0.25, 0.25), min_compiled=10)
+
+
+def test_mixed_graph_matches_under_tie_breaking():
+    for seed in (0, 1, 7):
+        assert_same(mixed, tie_break_seed=seed, min_compiled=10)
+
+
+def test_stop_on_error_matches():
+    def build():
+        with Pipeline("stop") as pipe:
+            src = Count(fail=13).named("src") @ Rate(100)
+            src.then(Join().named("j") @ Rate(100), map={"x": "a"}, sync=Latest())
+        return pipe
+
+    fast = assert_same(build, min_compiled=2)
+    assert fast[2].startswith(StepError.__name__)
+
+
+def test_reset_then_run_repeats_the_trace():
+    pipe = mixed()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        first = records(pipe.run(duration=0.3))
+        pipe.reset()
+        again = records(pipe.run(duration=0.3))
+    assert first == again
+
+
+@SETTINGS
+@given(spec=graphs())
+def test_random_graphs_match(spec):
+    """The random multi-rate graphs of the schedule-independence properties (Mix/Need flows
+    with Latest edges compile; every other policy stays generic), compiled vs generic."""
+    def build():
+        return spec.build()
+
+    def run_in_budget(**options):
+        with budget():
+            return outcome(build, (DURATION,), **options)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        fast = run_in_budget()
+        with generic_only():
+            generic = run_in_budget()
+    assert fast == generic
+
+
+def test_a_tick_between_runs_keeps_seqs_unique():
+    """session.tick() (the replay hook) runs the generic path between two runs of compiled ticks."""
+    def ids(pipe):
+        return [e[1:4] for e in pipe.trace.raw_events]
+
+    results = []
+    for patch in (counting, generic_only):
+        with patch():
+            pipe = chain("typed")()
+            pipe.run(duration=0.01)
+            session = pipe._session
+            session.tick("src", (pipe.trace.raw_steps[-1][1][0], 5))
+            pipe.run(duration=0.01)
+            results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))
+            assert len(set(ids(pipe))) == len(ids(pipe))
+    assert results[0] == results[1]
