@@ -64,6 +64,20 @@ def test_rate_has_no_drift(hz, k):
     assert clock.tick_time(k) - clock.tick_time(k - 1) in (math.floor(period), math.ceil(period))
 
 
+@SETTINGS
+@given(hz=RATES, k=st.integers(0, 10**13), offset=OFFSETS)
+def test_schedule_spells_out_tick_time(hz, k, offset):
+    """``schedule`` is what the inproc backend groups clocks by and ticks with, inline."""
+    offset_ns, num, den = Rate(hz, offset=offset).schedule
+    assert offset_ns + k * num // den == Rate(hz, offset=offset).tick_time(k)
+
+
+def test_equal_schedules_tick_together():
+    assert Rate(30).schedule == Hybrid(30, trigger=["x"]).schedule == Rate(30.0, offset=0.0).schedule
+    assert Rate(30).schedule != Rate(30, offset=0.01).schedule
+    assert Rate(30).schedule != Rate(31).schedule
+
+
 @pytest.mark.parametrize("hz, period_ns", [(10, 100 * MS), (200, 5 * MS), (1000, MS), (0.5, 2 * NS), (4, 250 * MS)])
 def test_rate_with_exact_period_is_a_lattice(hz, period_ns):
     """A rate whose period is a whole number of ns ticks at exactly k·period, even at k = 10^12."""
