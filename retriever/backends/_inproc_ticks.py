@@ -58,7 +58,7 @@ def _select(i: int, port: str, required: bool, only: bool, trim_batch: int) -> s
 """
 
 
-def _deliver(rt: Any, port: Any, names: dict, indent: str, port_expr: str, feeds: dict) -> str:
+def _deliver(rt: Any, port: Any, names: dict, port_expr: str, feeds: dict) -> str:
     """Deliver the event just recorded on ``port`` to each consumer (``PortBuffer.insert`` inlined).
 
     A buffer that only this port feeds gets its entries in order (a node's ticks run in tag order,
@@ -87,7 +87,7 @@ if arrival[1] > max_microsteps:
     raise CausalityError(rt.cycle or nodes[consumer{c}].cycle, tau, max_microsteps)
 schedule(arrival, consumer{c})
 """)
-    return "".join(indent + line + "\n" for line in "".join(out).splitlines())
+    return "".join(out)
 
 
 # one event on a port whose seq counter lives in the generated code ({seq}), or in rt.seq ({seq} None)
@@ -219,14 +219,14 @@ def compile_tick(session: Any, rt: Any, feeds: dict) -> tuple[Callable, Callable
                    "        if value is None:\n            continue\n")
         for j, port in enumerate(known):
             body = _record("port", seq_of[port]) + "produced.append(eid)\n"
-            body += _deliver(rt, port, names, "", "port", feeds)
+            body += _deliver(rt, port, names, "port", feeds)
             src.append(f"        {'if' if j == 0 else 'elif'} port == {port!r}:\n" + _indent(body, "            "))
         body = _record("port", None) + "produced.append(eid)\n"
         src.append(("        else:\n" + _indent(body, "            ")) if known else _indent(body, "        "))
         src.append("    " + record.format("ids if len(produced) == 1 else tuple(produced)"))
     elif len(reads) == 1:  # one output port: its ids tuple is the step's produced tuple
         port = known[0]
-        body = _record(repr(port), seq_of[port]) + _deliver(rt, port, names, "", repr(port), feeds)
+        body = _record(repr(port), seq_of[port]) + _deliver(rt, port, names, repr(port), feeds)
         src.append("    value = v0\n    if value is not None:\n" + _indent(body, "        "))
         src.append("        " + record.format("ids"))
         src.append("    else:\n        " + record.format("()"))
@@ -234,7 +234,7 @@ def compile_tick(session: Any, rt: Any, feeds: dict) -> tuple[Callable, Callable
         src.append("    produced = []\n")
         for j, port in enumerate(known):
             body = _record(repr(port), seq_of[port]) + "produced.append(eid)\n"
-            body += _deliver(rt, port, names, "", repr(port), feeds)
+            body += _deliver(rt, port, names, repr(port), feeds)
             src.append(f"    value = v{j}\n    if value is not None:\n" + _indent(body, "        "))
         src.append("    " + record.format("tuple(produced)"))
     src.append(f"""\
