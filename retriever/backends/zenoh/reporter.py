@@ -8,9 +8,16 @@ ticks: writing 16 MiB to fresh shared memory took 60 ms on this VM, longer than 
 and a node that did it between ticks fell 0.4 s behind in 3 s (benchmarks/README.md). On their
 own thread they overlap the loop (file writes and puts release the GIL).
 
-Reports go out in the order they were handed over. At most MAX_PENDING wait; a loop further
-ahead waits for the reporter, as it would for a congested link. :meth:`Reporter.close` returns
-once every report is out, so a worker's last status message comes after its last report.
+Reports go out in the order they were handed over. At most MAX_PENDING reports, holding at most
+MAX_PENDING_BYTES of messages, wait; a loop further ahead waits for the reporter, as it would for
+a congested link. The bound is in bytes because big messages are what falls behind: on this VM,
+memory never touched since boot is handed out at ~280 MB/s, so spilling 16 MiB frames at 20 Hz
+(320 MB/s) fell ~10 ms further behind with each frame until the machine had used that much memory
+once. With room for four reports of one frame each (the old bound), the loop then stalled within
+seconds, and the last frames of a run got tags past its end; 256 MiB (16 such frames) lets a
+stretch of several seconds pass without touching the ticks.
+:meth:`Reporter.close` returns once every report is out, so a worker's last status message comes
+after its last report.
 """
 
 from __future__ import annotations
@@ -25,8 +32,10 @@ import zenoh
 from ...errors import RetrieverError
 from .wire import RELIABLE, WireEncoder
 
-#: reports handed over and not yet sent, at most (each at most loop.FLUSH_MAX_BYTES of events)
-MAX_PENDING = 4
+#: reports handed over and not yet sent, at most; and the bytes of messages they hold, at most
+#: (a single report bigger than that still goes, once nothing else waits)
+MAX_PENDING = 64
+MAX_PENDING_BYTES = 256 << 20
 
 
 
@@ -37,25 +46,39 @@ class ReportError(RetrieverError):
 class Reporter:
     """Sends one node's reports, in order, from its own thread (started on the first report)."""
 
-    def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int):
+    def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int,
+                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES):
         self.session, self.key, self.node = session, key, node
         self.spill_dir, self.spill_bytes = spill_dir, spill_bytes
+        self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
         self.encoder = WireEncoder()  # this thread's own
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
-        self.room = threading.Semaphore(MAX_PENDING)
+        self.room = threading.Condition()  # guards the two counts below
+        self.pending = 0  # reports handed over, not yet sent
+        self.pending_bytes = 0  # bytes of the messages in them
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.spilled = 0  # files written to spill_dir
 
     def send(self, records: list, events: list[tuple[int, bytes]]) -> None:
-        """Hand over step records and ``(wall ns, data message)`` pairs; waits only while
-        MAX_PENDING reports are still unsent."""
+        """Hand over step records and ``(wall ns, data message)`` pairs; waits only while the
+        reports still unsent leave no room for these (MAX_PENDING, MAX_PENDING_BYTES)."""
         self._raise()
         if self.thread is None:
             self.thread = threading.Thread(target=self._run, name=f"retriever-report-{self.node}", daemon=True)
             self.thread.start()
-        self.room.acquire()
-        self.queue.put((records, events))
+        size = sum(len(message) for _, message in events)
+        with self.room:
+            self.room.wait_for(lambda: self.has_room(size) or self.error is not None)
+            self._raise()
+            self.pending += 1
+            self.pending_bytes += size
+        self.queue.put((records, events, size))
+
+    def has_room(self, size: int) -> bool:
+        """Whether a report holding ``size`` bytes of messages would go without waiting."""
+        return self.pending == 0 or (self.pending < self.max_pending
+                                     and self.pending_bytes + size <= self.max_pending_bytes)
 
     def close(self) -> None:
         """Return once every report handed over is out (then no more may be sent)."""
@@ -72,13 +95,17 @@ class Reporter:
 
     def _run(self) -> None:
         while (item := self.queue.get()) is not None:
+            records, events, size = item
             try:
                 if self.error is None:
-                    self._put(*item)
+                    self._put(records, events)
             except BaseException as exc:  # told to the loop at its next report
                 self.error = exc
             finally:
-                self.room.release()
+                with self.room:
+                    self.pending -= 1
+                    self.pending_bytes -= size
+                    self.room.notify_all()
 
     def _put(self, records: list, events: list[tuple[int, bytes]]) -> None:
         if self.spill_dir is not None:

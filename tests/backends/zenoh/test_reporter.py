@@ -1,5 +1,6 @@
 """The reporter (reporter.py): a worker's reports leave from their own thread, in order, big
-messages through the spill directory; at most MAX_PENDING wait; a failure is told, not lost.
+messages through the spill directory; at most MAX_PENDING reports and MAX_PENDING_BYTES of messages
+wait; a failure is told, not lost.
 
 Real Zenoh session and subscriber; each test waits on events its own messages set, never on time
 alone (the timeouts only bound a broken run).
@@ -8,12 +9,13 @@ alone (the timeouts only bound a broken run).
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 import zenoh
 
 from retriever.backends.zenoh.hub import peer_config
-from retriever.backends.zenoh.reporter import MAX_PENDING, Reporter, ReportError
+from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, Reporter, ReportError
 from retriever.backends.zenoh.wire import KeySpace, decode_report
 
 KEYS = KeySpace("reporter-test")
@@ -80,22 +82,70 @@ def test_without_a_spill_directory_big_messages_travel_in_the_report(session, re
     assert [r.events for r in reports.settle()] == [[[1, b"x" * 100]]]
 
 
+class CongestedLink:
+    """Makes a reporter's puts block until ``free()``: its reports pile up unsent."""
+
+    def __init__(self, reporter: Reporter):
+        self.free_now = threading.Event()
+        self.put = reporter._put
+        reporter._put = self._put
+
+    def _put(self, records, events):
+        assert self.free_now.wait(timeout=30), "the test never freed the link"
+        self.put(records, events)
+
+    def free(self) -> None:
+        self.free_now.set()
+
+
 def test_at_most_max_pending_reports_wait_then_the_loop_waits_too(session, reports):
     reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20)
-    link_free = threading.Event()
-    put = reporter._put
-
-    def congested(records, events):  # a put that blocks until the link frees up
-        assert link_free.wait(timeout=30), "the test never freed the link"
-        put(records, events)
-
-    reporter._put = congested
+    link = CongestedLink(reporter)
     for k in range(MAX_PENDING):
+        assert reporter.has_room(1)
         reporter.send([], [(k, b"m")])  # none of these waits
-    assert not reporter.room.acquire(blocking=False), f"a {MAX_PENDING + 1}th send would wait"
-    link_free.set()
+    assert not reporter.has_room(1), f"a {MAX_PENDING + 1}th send would wait"
+    link.free()
     reporter.close()
     assert [r.events[0][0] for r in reports.settle()] == list(range(MAX_PENDING)), "nothing lost or reordered"
+
+
+def test_the_bytes_held_by_waiting_reports_are_bounded_too(session, reports):
+    assert MAX_PENDING_BYTES >= 16 * (16 << 20), "room for 16 frames of 16 MiB (see the reporter's docstring)"
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending_bytes=250)
+    link = CongestedLink(reporter)
+    reporter.send([], [(0, b"a" * 100)])
+    reporter.send([], [(1, b"b" * 100)])
+    assert not reporter.has_room(100), "a third message of 100 bytes would pass 250"
+    assert reporter.has_room(50)
+    link.free()
+    reporter.close()
+    assert reporter.has_room(1000), "with nothing waiting, even a report over the bound goes"
+    assert [r.events[0][0] for r in reports.settle()] == [0, 1]
+
+
+def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports):
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending=1)
+    link = CongestedLink(reporter)
+    reporter.send([], [(0, b"m")])
+    sent = threading.Event()
+
+    def second() -> None:
+        reporter.send([], [(1, b"m")])
+        sent.set()
+
+    loop = threading.Thread(target=second)
+    loop.start()
+    give_up = time.monotonic() + 30  # a bound for a broken run, not a threshold
+    while not reporter.room._waiters:  # until the second send waits for room
+        assert loop.is_alive() and time.monotonic() < give_up, "the second send did not wait for room"
+        time.sleep(0.001)
+    assert not sent.is_set(), "the second send waits while the first report is unsent"
+    link.free()
+    assert sent.wait(timeout=30), "the waiting send never went"
+    loop.join()
+    reporter.close()
+    assert [r.events[0][0] for r in reports.settle()] == [0, 1]
 
 
 def test_a_failed_report_is_raised_naming_the_node(session):
