@@ -505,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
         ok = ratio_med <= TARGET_RATIO and zen["received"] >= raw["received"]  # a lost frame is no pass
         all_ok &= ok or not both
         print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw['p99']:>7.0f} │ {zen['med']:>8.0f} {zen['p99']:>9.0f} │ "
-              f"{ratio_med:>4.1f}× {ratio_p99:>4.1f}× │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
+              f"{ratio_med:>5.2f} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
               f"{raw['received']:>4} {zen['received']:>4} │ {('PASS' if ok else 'MISS') if both else '-'}")
     print()
     print("latency = receiver's time.time_ns() with the array in hand − sender's time.time_ns() before the send;")

@@ -14,8 +14,8 @@ a congested link. The bound is in bytes because big messages are what falls behi
 memory never touched since boot is handed out at ~280 MB/s, so spilling 16 MiB frames at 20 Hz
 (320 MB/s) fell ~10 ms further behind with each frame until the machine had used that much memory
 once. With room for four reports of one frame each (the old bound), the loop then stalled within
-seconds, and the last frames of a run got tags past its end; 256 MiB (16 such frames) lets a
-stretch of several seconds pass without touching the ticks.
+seconds, and the last frames of a run got tags past its end. 256 MiB (16 such frames) lets a
+longer stretch pass; how much longer depends on the machine (benchmarks/README.md, latency.py).
 :meth:`Reporter.close` returns once every report is out, so a worker's last status message comes
 after its last report.
 """
