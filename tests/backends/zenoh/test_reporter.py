@@ -9,7 +9,6 @@ alone (the timeouts only bound a broken run).
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 import zenoh
@@ -124,8 +123,21 @@ def test_the_bytes_held_by_waiting_reports_are_bounded_too(session, reports):
     assert [r.events[0][0] for r in reports.settle()] == [0, 1]
 
 
+class WatchedRoom(threading.Condition):
+    """The reporter's condition, telling the test when a send starts waiting for room."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waiting = threading.Event()
+
+    def wait(self, timeout=None):
+        self.waiting.set()
+        return super().wait(timeout)
+
+
 def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports):
     reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending=1)
+    reporter.room = room = WatchedRoom()
     link = CongestedLink(reporter)
     reporter.send([], [(0, b"m")])
     sent = threading.Event()
@@ -136,10 +148,7 @@ def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports)
 
     loop = threading.Thread(target=second)
     loop.start()
-    give_up = time.monotonic() + 30  # a bound for a broken run, not a threshold
-    while not reporter.room._waiters:  # until the second send waits for room
-        assert loop.is_alive() and time.monotonic() < give_up, "the second send did not wait for room"
-        time.sleep(0.001)
+    assert room.waiting.wait(timeout=30), "the second send did not wait for room"
     assert not sent.is_set(), "the second send waits while the first report is unsent"
     link.free()
     assert sent.wait(timeout=30), "the waiting send never went"
