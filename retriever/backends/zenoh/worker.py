@@ -29,6 +29,15 @@ from pathlib import Path
 EXIT_FAILED = 1
 EXIT_RESTART = 3
 
+#: The ``ready`` status carries this much padding, so that Zenoh sends it through the session's
+#: shared-memory pool (messages over 3 KiB between peers on one host go that way). Zenoh creates
+#: the pool on its first such message and writes all of it (128 MiB: ~37k page faults, 130 ms
+#: here, more on memory the VM has not touched). Sent with ``ready``, that happens before T0 (or
+#: before a restarted flow joins); left to the first big frame, it held that put for 130 ms and
+#: the source's next ticks started up to 120 ms late (benchmarks/README.md, latency.py at 16 MiB).
+#: The coordinator gets ``ready`` only once the pool exists: the message is in it.
+READY_PADDING = 4096
+
 
 def _die_with_parent() -> None:
     """Linux: SIGTERM this process when its parent dies, so no worker outlives its run."""
@@ -208,13 +217,14 @@ def _serve(argv: list[str]) -> int:
         try:
             if join is not None:
                 t0, end = int(join[1]), int(join[2])
+                status("ready", pid=os.getpid(), padding=bytes(READY_PADDING))  # the pool, before it joins
             else:
                 # a direct link to every other worker and the hub, before anything is published
                 linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0, stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
-                status("ready", pid=os.getpid(), linked=linked)
+                status("ready", pid=os.getpid(), linked=linked, padding=bytes(READY_PADDING))
                 early = []
                 while True:
                     item = loop.inbox.get()

@@ -45,3 +45,24 @@ class Viewer(Flow[Frame, Seen]):
 
     def step(self, inp: Frame) -> Seen:
         return Seen(k=inp.k, checksum=int(inp.image.sum(dtype=np.uint64)))
+
+
+@io
+@dataclass
+class Mapped:
+    zenoh_shm: int
+
+
+class ShmWatcher(Flow[None, Mapped]):
+    """The size of the biggest Zenoh shared-memory segment (``/dev/shm/*.zenoh``) mapped into its
+    own process when it steps: the session's pool, once Zenoh has created it."""
+
+    def step(self, inp: None) -> Mapped:
+        sizes = [0]
+        with open("/proc/self/maps") as maps:
+            for line in maps:
+                fields = line.split()
+                if len(fields) >= 6 and fields[5].startswith("/dev/shm/") and fields[5].endswith(".zenoh"):
+                    start, end = (int(x, 16) for x in fields[0].split("-"))
+                    sizes.append(end - start)
+        return Mapped(zenoh_shm=max(sizes))

@@ -11,9 +11,10 @@ import numpy as np
 
 import retriever.log
 from retriever import Pipeline, Rate, Trigger, read_log
+from retriever.backends.zenoh.hub import SHM_POOL_MIN
 from retriever.backends.zenoh.loop import SPILL_BYTES
 
-from .payload_flows import Camera, Viewer, frame
+from .payload_flows import Camera, ShmWatcher, Viewer, frame
 
 SIZE = 1 << 20  # 1 MiB: well above SPILL_BYTES, so every frame takes the file path
 
@@ -49,3 +50,14 @@ def test_large_frames_arrive_intact_and_are_logged(tmp_path):
     assert len(logged) == 15 and all(np.array_equal(a, b) for a, b in zip(logged, images))
     report = retriever.log.replay(log)
     assert report.identical, report.divergences[:3]
+
+
+def test_each_worker_has_its_shared_memory_pool_before_t0():
+    """Zenoh creates a session's shared-memory pool on its first big message, writing all of it
+    (130 ms for 128 MiB here): a worker makes that happen with its ``ready`` status, so no tick
+    pays for it. The first step of a flow that has sent nothing yet finds the pool mapped."""
+    with Pipeline("pool") as pipe:
+        ShmWatcher().configure(name="watcher") @ Rate(hz=10)
+    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
+    first = min(trace.events, key=lambda e: e.seq)
+    assert first.value >= SHM_POOL_MIN, f"no Zenoh pool mapped at the first step: biggest segment {first.value} B"
