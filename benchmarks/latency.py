@@ -27,7 +27,8 @@ Per size, each side runs ``--rounds`` times, interleaved (raw, zenoh, inproc, th
 order, ...), so that the machine's drift over a minute falls on all sides alike; each run sends
 ``--warmup`` + ``--samples``/``--rounds`` messages at ``--hz`` and drops its first ``--warmup``.
 Runs never overlap. Reported: median and p99 per side, and retriever-zenoh / raw. Target (the issue):
-retriever-zenoh median ≤ 1.2× raw zenoh at every size.
+retriever-zenoh median ≤ 1.2× raw zenoh at every size. A source frame the sink did not step on is
+listed with its tag against the run's end and its tick's lateness: sent after the end, or lost.
 
 Retriever's coordinator (this process) is not on the frames' path: each worker reports the
 data messages it published, with its step records, in a batch up to 20 ms later.
@@ -239,8 +240,27 @@ def run_retriever(size: int, total: int, hz: float, warmup: int, backend: str) -
     if any(ev.value[2] != size for ev in events):
         raise SystemExit(f"{backend}: the sink got a payload of the wrong size")
     lat = [ev.value[1] - ev.value[0] for ev in events[warmup:]]
+    out = {"lat": lat, "received": len(events), "unseen": _unseen(pipe, trace, events) if backend == "zenoh" else []}
     pipe.reset()
-    return {"lat": lat, "received": len(events)}
+    return out
+
+
+def _unseen(pipe, trace, sink_events) -> list[str]:
+    """Why the sink did not step on some of the source's frames: each such frame's seq, its tag
+    against the run's end, and how late its source tick started (ms)."""
+    seen = {ev.value[0] for ev in sink_events}
+    session = pipe._session
+    starts = {st.tag: st.wall_start_ns for st in trace.steps if st.node == "src"}
+    produced = {ids[2]: st.tag for st in trace.steps if st.node == "src" for ids in st.produced}
+    why = []
+    for ev in sorted((ev for ev in trace.events if ev.node == "src"), key=lambda ev: ev.seq):
+        if ev.value["sent_ns"] in seen:
+            continue
+        tick = produced.get(ev.seq)
+        late = (starts[tick] - session.t0 - tick[0]) / 1e6 if tick in starts else float("nan")
+        why.append(f"frame {ev.seq}: tag {(ev.tag[0] - session.end_ns) / 1e6:+.1f} ms from the run's end, "
+                   f"its tick started {late:.1f} ms late")
+    return why
 
 
 # ---------------------------------------------------------------------------------------------
@@ -476,18 +496,22 @@ def main(argv: list[str] | None = None) -> int:
         t = time.perf_counter()
         lat: dict[str, list] = {side: [] for side in order}
         received = dict.fromkeys(order, 0)
+        unseen: list[str] = []
         for r in range(args.rounds):  # interleaved, order reversed every other round: drift hits all sides
             for side in order if r % 2 == 0 else order[::-1]:
                 out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express) if side == "raw"
                        else run_retriever(size, per_round, args.hz, args.warmup, side))
                 lat[side] += out["lat"]
                 received[side] += out["received"]
+                unseen += out.get("unseen", [])
         for side in order:
             row[side] = {**summary(lat[side]), "received": received[side]}
         rows.append(row)
         parts = [f"{k} med {row[k]['med']:.0f} µs ({row[k]['received']}/{total} received)"
                  for k in ("raw", "zenoh", "inproc") if k in row]
         print(f"  {fmt_size(size):>8}: " + ", ".join(parts) + f"  [{time.perf_counter() - t:.1f} s]", flush=True)
+        for line in unseen:  # a frame the sink never stepped on: sent after the run's end, or lost?
+            print(f"            retriever-zenoh did not step on {line}", flush=True)
     print()
 
     nan = float("nan")
