@@ -260,6 +260,9 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
         late = (starts[tick] - session.t0 - tick[0]) / 1e6 if tick in starts else float("nan")
         why.append(f"frame {ev.seq}: tag {(ev.tag[0] - session.end_ns) / 1e6:+.1f} ms from the run's end, "
                    f"its tick started {late:.1f} ms late")
+    if why and session.counts["report_waits"]:
+        why.append(f"(the loops waited for their reporters {session.counts['report_waits']} times, "
+                   f"{session.counts['report_wait_ns'] / 1e6:.0f} ms in all)")
     return why
 
 

@@ -167,7 +167,7 @@ class NodeLoop:
         self.published_bytes = 0
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
-        self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss
+        self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
         self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
         self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
@@ -760,9 +760,13 @@ class NodeLoop:
         self.flush_due = None
 
     def finish_reports(self) -> None:
-        """Report what is left and return once every report is out (before a last status)."""
+        """Report what is left and return once every report is out (before a last status), and
+        count how often and how long the loop waited for the reporter (it then ran late)."""
         self.flush()
         self.reporter.close()
+        if self.reporter.waits:
+            self.counts["report_waits"] = self.reporter.waits
+            self.counts["report_wait_ns"] = self.reporter.waited_ns
 
 
 class RestartFlow(Exception):

@@ -26,6 +26,7 @@ import contextlib
 import os
 import queue
 import threading
+import time
 
 import zenoh
 
@@ -59,6 +60,8 @@ class Reporter:
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.spilled = 0  # files written to spill_dir
+        self.waits = 0  # sends that had to wait for room
+        self.waited_ns = 0  # and for how long in all (the loop's time, not its ticks')
 
     def send(self, records: list, events: list[tuple[int, bytes]]) -> None:
         """Hand over step records and ``(wall ns, data message)`` pairs; waits only while the
@@ -69,7 +72,11 @@ class Reporter:
             self.thread.start()
         size = sum(len(message) for _, message in events)
         with self.room:
-            self.room.wait_for(lambda: self.has_room(size) or self.error is not None)
+            if not self.has_room(size):
+                start = time.monotonic_ns()
+                self.room.wait_for(lambda: self.has_room(size) or self.error is not None)
+                self.waits += 1
+                self.waited_ns += time.monotonic_ns() - start
             self._raise()
             self.pending += 1
             self.pending_bytes += size

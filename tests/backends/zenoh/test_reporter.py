@@ -106,6 +106,7 @@ def test_at_most_max_pending_reports_wait_then_the_loop_waits_too(session, repor
     assert not reporter.has_room(1), f"a {MAX_PENDING + 1}th send would wait"
     link.free()
     reporter.close()
+    assert reporter.waits == 0 and reporter.waited_ns == 0
     assert [r.events[0][0] for r in reports.settle()] == list(range(MAX_PENDING)), "nothing lost or reordered"
 
 
@@ -155,6 +156,7 @@ def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports)
     loop.join()
     reporter.close()
     assert [r.events[0][0] for r in reports.settle()] == [0, 1]
+    assert reporter.waits == 1 and reporter.waited_ns > 0, "the wait is counted (the node loop reports it)"
 
 
 def test_a_failed_report_is_raised_naming_the_node(session):
