@@ -44,6 +44,7 @@ process, with minor page faults, and the cost of a cold call after an idle gap.
     .venv/bin/python benchmarks/latency.py --breakdown          # where the time goes
     .venv/bin/python benchmarks/latency.py --codec              # copies and page faults, in-process
     .venv/bin/python benchmarks/latency.py --raw-hub --sides raw
+    .venv/bin/python benchmarks/latency.py --control            # raw run twice: the run's own noise
 """
 
 from __future__ import annotations
@@ -247,7 +248,8 @@ def run_retriever(size: int, total: int, hz: float, warmup: int, backend: str) -
 
 def _unseen(pipe, trace, sink_events) -> list[str]:
     """Why the sink did not step on some of the source's frames: each such frame's seq, its tag
-    against the run's end, and how late its source tick started (ms)."""
+    against the run's end and how late its source tick started (ms); then how often and how long
+    the loops waited for their reporters, if they did."""
     seen = {ev.value[0] for ev in sink_events}
     session = pipe._session
     starts = {st.tag: st.wall_start_ns for st in trace.steps if st.node == "src"}
@@ -258,11 +260,12 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
             continue
         tick = produced.get(ev.seq)
         late = (starts[tick] - session.t0 - tick[0]) / 1e6 if tick in starts else float("nan")
-        why.append(f"frame {ev.seq}: tag {(ev.tag[0] - session.end_ns) / 1e6:+.1f} ms from the run's end, "
+        why.append(f"retriever-zenoh did not step on frame {ev.seq}: tag {(ev.tag[0] - session.end_ns) / 1e6:+.1f} ms "
+                   "from the run's end, "
                    f"its tick started {late:.1f} ms late")
     if why and session.counts["report_waits"]:
-        why.append(f"(the loops waited for their reporters {session.counts['report_waits']} times, "
-                   f"{session.counts['report_wait_ns'] / 1e6:.0f} ms in all)")
+        why.append(f"the loops waited for their reporters {session.counts['report_waits']} times, "
+                   f"{session.counts['report_wait_ns'] / 1e6:.0f} ms in all")
     return why
 
 
@@ -432,6 +435,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=100, help="samples kept per size and side (default 100)")
     p.add_argument("--warmup", type=int, default=10, help="first messages dropped (default 10)")
     p.add_argument("--sides", default="raw,zenoh,inproc", help="comma-separated: raw, zenoh, inproc")
+    p.add_argument("--control", action="store_true",
+                   help="also run raw zenoh a second time per round (side raw2, right after retriever-zenoh) and "
+                        "print raw2/raw: the ratio two identical sides reach in this run, i.e. its noise")
     p.add_argument("--rounds", type=int, default=2,
                    help="runs per size and side, interleaved across sides (default 2); the samples are split "
                         "among them and each run drops its own warm-up")
@@ -460,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         return 0
     sides = [s.strip() for s in args.sides.split(",") if s.strip()]
+    if args.control:
+        sides.append("raw2")
     total = args.warmup + args.samples
     if args.breakdown:
         print(f"latency breakdown, {args.hz:g} Hz, {args.warmup} warm-up + {args.samples} samples per size; "
@@ -491,7 +499,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
 
     rows = []
-    order = [side for side in ("raw", "zenoh", "inproc") if side in sides]
+    order = [side for side in ("raw", "zenoh", "raw2", "inproc") if side in sides]
     per_round = args.warmup + -(-args.samples // args.rounds)
     total = per_round * args.rounds
     for size in sizes:
@@ -502,7 +510,8 @@ def main(argv: list[str] | None = None) -> int:
         unseen: list[str] = []
         for r in range(args.rounds):  # interleaved, order reversed every other round: drift hits all sides
             for side in order if r % 2 == 0 else order[::-1]:
-                out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express) if side == "raw"
+                out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express)
+                       if side in ("raw", "raw2")
                        else run_retriever(size, per_round, args.hz, args.warmup, side))
                 lat[side] += out["lat"]
                 received[side] += out["received"]
@@ -511,10 +520,10 @@ def main(argv: list[str] | None = None) -> int:
             row[side] = {**summary(lat[side]), "received": received[side]}
         rows.append(row)
         parts = [f"{k} med {row[k]['med']:.0f} µs ({row[k]['received']}/{total} received)"
-                 for k in ("raw", "zenoh", "inproc") if k in row]
+                 for k in ("raw", "zenoh", "raw2", "inproc") if k in row]
         print(f"  {fmt_size(size):>8}: " + ", ".join(parts) + f"  [{time.perf_counter() - t:.1f} s]", flush=True)
         for line in unseen:  # a frame the sink never stepped on: sent after the run's end, or lost?
-            print(f"            retriever-zenoh did not step on {line}", flush=True)
+            print(f"            {line}", flush=True)
     print()
 
     nan = float("nan")
@@ -535,6 +544,15 @@ def main(argv: list[str] | None = None) -> int:
               f"{ratio_med:>5.2f} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
               f"{raw['received']:>4} {zen['received']:>4} │ {('PASS' if ok else 'MISS') if both else '-'}")
     print()
+    if args.control and "raw" in sides:
+        print("control: raw zenoh run twice per round (raw2 right after retriever-zenoh); the ratio of two identical")
+        print("sides shows how far one run's medians move by themselves:")
+        print(f"{'payload':>8} │ {'raw µs':>7} {'raw2 µs':>7} │ {'raw2/raw':>8} │ {'zenoh/raw2':>10}")
+        for r in rows:
+            raw, raw2, zen = r["raw"], r["raw2"], r.get("zenoh", {"med": nan})
+            print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw2['med']:>7.0f} │ {raw2['med'] / raw['med']:>8.2f} │ "
+                  f"{zen['med'] / raw2['med']:>10.2f}")
+        print()
     print("latency = receiver's time.time_ns() with the array in hand − sender's time.time_ns() before the send;")
     print("inproc hand-off = wall time from the source's step returning to the sink's step starting (virtual time,")
     print("one thread, array passed by reference): the in-process scheduler's cost, not a transport latency.")
