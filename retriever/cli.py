@@ -14,6 +14,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from .backends import default_backend
 from .errors import RetrieverError, RetrieverWarning
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -70,8 +71,10 @@ def _load(target: str):
 @app.command()
 def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
-    backend: Annotated[Optional[str], typer.Option(help="Backend: inproc (default).")] = None,
-    duration: Annotated[float, typer.Option(help="Seconds to run (virtual time on inproc).")] = 10.0,
+    backend: Annotated[Optional[str], typer.Option(
+        help="Backend: inproc (virtual time, one process) or zenoh (real time, a process per flow). "
+             "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
+    duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh.")] = 10.0,
     log: Annotated[Optional[Path], typer.Option(help="Record the run in this MCAP event log.")] = None,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time."""
@@ -86,7 +89,7 @@ def run(
         if log is not None and log.exists():
             _err.print(f"the run up to the error is in {log}", highlight=False)
         _fail(exc)
-    table = Table(title=f"{pipe.name}: {duration:g} s on {backend or 'inproc'}", title_justify="left")
+    table = Table(title=f"{pipe.name}: {duration:g} s on {backend or default_backend()}", title_justify="left")
     for col in ("node", "ticks", "steps", "skips", "errors", "mean step"):
         table.add_column(col, justify="left" if col == "node" else "right")
     for node, s in sorted(pipe.stats().items()):

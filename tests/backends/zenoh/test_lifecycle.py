@@ -213,6 +213,39 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
     assert {s.node for s in log.iter_steps()} == {"counter", "total"}
 
 
+CHOSEN_BY_INIT = """
+import retriever
+from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+
+retriever.init(backend="zenoh")
+pipe = two_node_pipeline("chosen_by_init")
+"""
+
+
+def test_cli_runs_a_file_on_the_backend_it_chose_with_init(tmp_path):
+    """`retriever run FILE` without --backend, on a file that calls retriever.init(backend="zenoh"):
+    a whole real-time run, the hub's endpoint on stderr, the table of every node titled with the
+    backend that ran, every worker reaped."""
+    path = tmp_path / "chosen.py"
+    path.write_text(CHOSEN_BY_INIT, encoding="utf-8")
+    env = _env()
+    env["PYTHONPATH"] = str(ROOT)
+    with subprocess.Popen([str(RETRIEVER), "run", str(path), "--duration", "1"], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env) as proc:
+        try:
+            out, err = proc.communicate(timeout=BOUND_S)
+        finally:
+            _kill(proc)
+    assert proc.returncode == 0, err
+    assert "chosen_by_init: 1 s on zenoh" in out, out
+    assert re.search(r"Zenoh hub listening on tcp/127\.0\.0\.1:\d+", err), err
+    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │", out))
+    counts = {node: [int(n) for n in re.findall(r"\d+", row)] for node, row in rows.items()}
+    assert set(counts) == {"counter", "total"}, out
+    assert counts["counter"][0] == 20 and counts["total"][0] == 10, out  # every tick with t < 1 s
+    assert all(ticks == steps + skips and errors == 0 for ticks, steps, skips, errors in counts.values()), out
+
+
 def test_an_interrupted_cli_run_logs_its_last_tick_as_its_end(tmp_path):
     path = tmp_path / "run.mcap"
     with open(tmp_path / "stderr.txt", "wb") as err:
