@@ -7,6 +7,7 @@ import signal
 import sys
 import traceback
 import warnings
+from collections import Counter
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -93,13 +94,39 @@ def run(
     for col in ("node", "ticks", "steps", "skips", "errors", "mean step"):
         table.add_column(col, justify="left" if col == "node" else "right")
     for node, s in sorted(pipe.stats().items()):
-        table.add_row(node, str(s.ticks), str(s.steps), str(s.skips), str(s.errors), f"{s.mean_step_s * 1e6:.1f} µs")
+        mean = f"{s.mean_step_s * 1e6:.1f} µs" if s.mean_step_s < 0.01 else f"{s.mean_step_s * 1e3:.1f} ms"
+        table.add_row(node, str(s.ticks), str(s.steps), str(s.skips), str(s.errors), mean)
     _out.print(table)
+    for node, s in sorted(pipe.stats().items()):  # what a real-time run counted, node by node
+        if any(s.counts.values()):
+            _out.print(f"{node} counted: {_counters(s.counts)}", highlight=False)
+    unowned = Counter(pipe.counts())
+    unowned.subtract(sum((Counter(s.counts) for s in pipe.stats().values()), Counter()))
+    if +unowned:
+        _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
     _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · trace digest {trace.digest()[:16]}",
                highlight=False)
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)
+
+
+_COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplete edge", "overrun": "ticks skipped after overruns",
+                   "deadline_miss": "LET deadline misses", "unrun_ticks": "ticks never run",
+                   "garbage": "garbage messages dropped", "report_waits": "waits for the log"}
+
+
+def _counters(counts: dict[str, int]) -> str:
+    """``3 late events, 2 waits for the log (171 ms)``: a run's counters (base.COUNTERS) in words."""
+    parts = []
+    for name, n in sorted(counts.items()):
+        if not n or name == "report_wait_ns":
+            continue
+        part = f"{n} {_COUNTER_LABELS.get(name, name)}"
+        if name == "report_waits" and counts.get("report_wait_ns"):
+            part += f" ({counts['report_wait_ns'] / 1e6:.0f} ms)"
+        parts.append(part)
+    return ", ".join(parts)
 
 
 @app.command("ir")
@@ -209,6 +236,8 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(json.loads(run.get("command_line", "[]"))))]
+    if end.get("counts"):
+        lines.insert(4, ("counted", _counters(json.loads(end["counts"]))))
     for key, value in lines:
         _out.print(f"[bold]{key:>12}[/]  {value}", highlight=False)
     table = Table(title="channels", title_justify="left")

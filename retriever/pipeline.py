@@ -242,8 +242,16 @@ class Pipeline:
         return 0.0 if self._session is None else self._session.now_ns / NS_PER_S
 
     def stats(self) -> dict[str, Any]:
-        """Per-node counters of the current run: ticks, steps, skips, errors, mean step time."""
+        """Per-node counters of the current run: ticks, steps, skips, errors, mean step time, and
+        what a real-time backend counted for the node (``.counts``, see :meth:`counts`)."""
         return {} if self._session is None else self._session.stats()
+
+    def counts(self) -> dict[str, int]:
+        """What the current run counted, summed over its nodes (and the coordinator): events that
+        arrived late, incomplete edges, overruns, LET deadline misses, unrun ticks, dropped
+        garbage messages, waits for the log (``retriever.backends.base.COUNTERS`` says which is
+        which). Only real-time backends count these; what was never counted is absent."""
+        return {} if self._session is None else {name: n for name, n in self._session.counts.items() if n}
 
     def __repr__(self) -> str:
         return f"<Pipeline '{self.name}': {len(self._flows)} flows, {len(self._edges)} edges>"
@@ -303,7 +311,7 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     steps = session.trace.raw_steps
     # a stopped run ends at its last tick (real-time backends append records as they arrive)
     end_ns = max(session.now_ns, max((rec[1][0] for rec in steps), default=0))
-    writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats())
+    writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
 
 
 def _check_seconds(method: str, name: str, value: Any) -> None:

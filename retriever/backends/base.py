@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from ..graph import Graph
@@ -17,6 +18,20 @@ from ..trace import Trace
 
 if TYPE_CHECKING:
     from ..log.writer import LogWriter
+
+
+#: the counters of a real-time run (``pipe.counts()``, ``pipe.stats()[node].counts``, the log's end
+#: record), what each counts, and what to do about it
+COUNTERS = {
+    "late": "events that arrived after the tick that could have used them (never applied to it)",
+    "incomplete": "ticks that ran with an edge not complete up to their tag (its deadline passed)",
+    "overrun": "ticks skipped because a step outlasted its period (on_overrun)",
+    "deadline_miss": "LET outputs whose step finished after tick + latency (on_deadline_miss)",
+    "unrun_ticks": "ticks triggered before the end whose inputs never completed in time",
+    "garbage": "messages on the run's key space that were not the run's, dropped",
+    "report_waits": "times a node's loop waited for its reporter (recording fell behind)",
+    "report_wait_ns": "how long those waits lasted in all, ns",
+}
 
 
 @dataclass
@@ -28,6 +43,8 @@ class NodeStats:
     skips: int = 0
     errors: int = 0
     step_ns: int = 0  # total wall time spent inside step()
+    #: what a real-time backend counted for this node (see :data:`COUNTERS`); absent means none
+    counts: dict[str, int] = field(default_factory=dict)
 
     @property
     def mean_step_s(self) -> float:
@@ -54,6 +71,8 @@ class Session(ABC):
         self.logged_to = None  # the path of this run's finished log, if it had one
         self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
         self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
+        #: the run's counters (COUNTERS): every node's, plus what no node owns (the coordinator's garbage)
+        self.counts: Counter = Counter()
 
     def seeds(self) -> dict:
         """The seeds this run depends on, recorded in the log's run metadata."""

@@ -120,7 +120,7 @@ class LogWriter:
         return LogError("an event cannot be logged (the codec refused a value it later accepted)")
 
     def close(self, trace: "Trace", end_ns: int, *, status: str = "finished", error: str = "",
-              stats: dict | None = None) -> None:
+              stats: dict | None = None, counts: dict | None = None) -> None:
         """Write what is left and the ``retriever.end`` record, then finish the file."""
         if self.closed:
             return
@@ -133,7 +133,11 @@ class LogWriter:
             if error:
                 end["error"] = error
             if stats:
-                end["stats"] = json.dumps({node: vars(s) for node, s in sorted(stats.items())}, sort_keys=True)
+                # a node's real-time counters only when it has some: in-process logs stay as they were
+                end["stats"] = json.dumps({node: {k: v for k, v in vars(s).items() if v or k != "counts"}
+                                           for node, s in sorted(stats.items())}, sort_keys=True)
+            if counts:
+                end["counts"] = json.dumps({name: n for name, n in sorted(counts.items()) if n})
             self._mcap.add_metadata(fmt.END_METADATA, end)
             self._mcap.finish()
             self._file.close()

@@ -478,9 +478,12 @@ def test_init_sets_the_backend_run_uses(restore_default_backend):
     assert default_backend() == "inproc"
     with Pipeline("p") as pipe:
         Clock() @ Rate(hz=10)
+    assert pipe.counts() == {} and pipe.stats() == {}  # nothing has run yet
     trace = pipe.run(duration=1.0)
     assert trace.values_of("clock", "k") == list(range(1, 11))
     assert pipe.stats()["clock"].ticks == 10
+    # in virtual time nothing is late, incomplete or overrun: no real-time counters
+    assert pipe.counts() == {} and pipe.stats()["clock"].counts == {}
 
 
 def test_a_failed_init_keeps_the_previous_backend(restore_default_backend):

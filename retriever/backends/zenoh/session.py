@@ -27,7 +27,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 
 from ...errors import BackendError, StepError
@@ -55,7 +54,6 @@ class ZenohSession(Session):
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
-        self.counts: Counter = Counter()
         self._stats = {nid: NodeStats() for nid in graph.nodes}
         self._workers: dict[str, subprocess.Popen] = {}
         self._state: dict[str, str] = {}
@@ -208,8 +206,14 @@ class ZenohSession(Session):
         if node not in self._state:
             self._garbage(key, WireError(f"status of an unknown node '{node}'"))
             return
-        for name, n in info.get("counts", {}).items():
+        counts = info.get("counts", {})
+        if type(counts) is not dict or not all(type(k) is str and type(v) is int for k, v in counts.items()):
+            self._garbage(key, WireError(f"status of {node} with counts that are not names and integers"))
+            counts = {}
+        node_counts = self._stats[node].counts
+        for name, n in counts.items():
             self.counts[name] += n
+            node_counts[name] = node_counts.get(name, 0) + n
         if state == "failed":
             self._failure = (node, info)
         elif state == "restart":

@@ -17,6 +17,7 @@ a subprocess, or orphaned) is still alive afterwards. Waits are bounded polls, n
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import secrets
@@ -215,17 +216,24 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
 
 CHOSEN_BY_INIT = """
 import retriever
-from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+from retriever import Latest, Pipeline, Rate
+from tests.backends.zenoh.lifecycle_flows import Counter, Total
+from tests.backends.zenoh.semantics_flows import Sleepy
 
 retriever.init(backend="zenoh")
-pipe = two_node_pipeline("chosen_by_init")
+with Pipeline("chosen_by_init") as pipe:
+    counter = Counter() @ Rate(hz=20)
+    total = Total().configure(name="total") @ Rate(hz=10)
+    counter.then(total, sync=Latest())
+    Sleepy(sleep=0.25).configure(name="slow") @ Rate(hz=10)  # every step 2.5 periods long
 """
 
 
 def test_cli_runs_a_file_on_the_backend_it_chose_with_init(tmp_path):
     """`retriever run FILE` without --backend, on a file that calls retriever.init(backend="zenoh"):
     a whole real-time run, the hub's endpoint on stderr, the table of every node titled with the
-    backend that ran, every worker reaped."""
+    backend that ran, what the run counted (the overrunning node's skipped ticks), every worker
+    reaped."""
     path = tmp_path / "chosen.py"
     path.write_text(CHOSEN_BY_INIT, encoding="utf-8")
     env = _env()
@@ -241,9 +249,12 @@ def test_cli_runs_a_file_on_the_backend_it_chose_with_init(tmp_path):
     assert re.search(r"Zenoh hub listening on tcp/127\.0\.0\.1:\d+", err), err
     rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │", out))
     counts = {node: [int(n) for n in re.findall(r"\d+", row)] for node, row in rows.items()}
-    assert set(counts) == {"counter", "total"}, out
+    assert set(counts) == {"counter", "total", "slow"}, out
     assert counts["counter"][0] == 20 and counts["total"][0] == 10, out  # every tick with t < 1 s
     assert all(ticks == steps + skips and errors == 0 for ticks, steps, skips, errors in counts.values()), out
+    skipped = re.search(r"^slow counted: (\d+) ticks skipped after overruns$", out, re.MULTILINE)
+    assert skipped and counts["slow"][0] + int(skipped[1]) == 10, out  # each tick ran or was skipped
+    assert "counter counted" not in out and "total counted" not in out, out
 
 
 def test_an_interrupted_cli_run_logs_its_last_tick_as_its_end(tmp_path):
@@ -464,7 +475,7 @@ def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespa
     assert session.endpoint == endpoint(port), "the hub did not get the port the client connects to"
     assert client.returncode == 0, err
     assert out.splitlines()[-1] == "sent", out
-    assert session.counts["garbage"] >= 1, session.counts
+    assert pipe.counts()["garbage"] >= 1, pipe.counts()
     stats = pipe.stats()
     assert (stats["counter"].ticks, stats["counter"].steps, stats["counter"].errors) == (20, 20, 0)
     assert (stats["total"].ticks, stats["total"].steps, stats["total"].errors) == (10, 10, 0)
@@ -525,7 +536,17 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
     # the duplicate data message, refused by the consumer of counter.n, and the five reports,
     # refused by the coordinator (the ghost's data keys reach no Retriever process: none listens)
-    assert pipe._session.counts["garbage"] >= 6, pipe._session.counts
+    assert pipe.counts()["garbage"] >= 6, pipe.counts()
+    assert stats["total"].counts["garbage"] >= 1 and "garbage" not in stats["counter"].counts, stats
+    assert pipe.counts()["garbage"] - stats["total"].counts["garbage"] >= 5, (pipe.counts(), stats)
+    # all of it in the log's end record, and in `retriever log info`
+    end = read_log(tmp_path / "run.mcap").end
+    assert json.loads(end["counts"]) == pipe.counts(), end
+    assert json.loads(end["stats"])["total"]["counts"] == stats["total"].counts, end
+    info = subprocess.run([str(RETRIEVER), "log", "info", str(tmp_path / "run.mcap")], capture_output=True, text=True,
+                          cwd=ROOT, env=_env(), timeout=BOUND_S)
+    assert info.returncode == 0, info.stderr
+    assert re.search(rf"counted +{pipe.counts()['garbage']} garbage messages dropped", info.stdout), info.stdout
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """Real-time semantics of the Zenoh backend (DESIGN.md §3 time, §4 sync, §5 real time).
 
 Every test is a real run (0.5–2 s of pipeline time, one worker process per flow) observed only
-through what the runtime reports: the trace (events and step records), ``pipe._session.counts``
-(``garbage``, ``late``, ``incomplete``, ``overrun``, ``deadline_miss`` as the workers counted
-them) and the error a failed run raises. The flows live in ``semantics_flows.py``: importable
+through what the runtime reports: the trace (events and step records), ``pipe.counts()`` and
+``pipe.stats()[node].counts`` (``garbage``, ``late``, ``incomplete``, ``overrun``,
+``deadline_miss`` as the workers counted them) and the error a failed run raises. The flows live in ``semantics_flows.py``: importable
 module-level classes with msgpack-able arguments, so each worker can rebuild its flow from the IR.
 
 Timing: nothing here asserts that something is fast. The scenarios are built so that what they
@@ -54,7 +54,11 @@ def run(pipe: Pipeline, duration: float, **kw):
 
 
 def counts(pipe: Pipeline) -> Counter:
-    return pipe._session.counts
+    """The run's counters (absent ones read 0); each is the sum of the nodes' own."""
+    run_counts = pipe.counts()
+    by_node = sum((Counter(s.counts) for s in pipe.stats().values()), Counter())
+    assert +by_node == Counter(run_counts), (by_node, run_counts)
+    return Counter(run_counts)
 
 
 def events_by_id(trace) -> dict:
@@ -250,6 +254,7 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
         assert s.consumed["x"] == (("prod", "value", 1),), s
     # it arrived after ticks at or past its tag had run: late, counted, told on a later record
     assert counts(pipe)["late"] >= 1
+    assert pipe.stats()["probe"].counts["late"] == counts(pipe)["late"]  # the consumer counted them
     told = sum(n for s in recs for n in detail(s).get("late", {}).values())
     assert 1 <= told <= counts(pipe)["late"]
     assert all(set(detail(s).get("late", {})) <= {"x"} for s in recs)
@@ -372,6 +377,7 @@ def test_overrun_skips_the_ticks_that_came_due_and_says_so():
         assert k - prev - 1 == detail(rec).get("overrun_skipped", 0), (prev, k, rec)
     # every tick below the end either ran once or was counted skipped once
     assert len(recs) + counts(pipe)["overrun"] == 10, (len(recs), counts(pipe))
+    assert pipe.stats()["slow"].counts == {"overrun": 10 - len(recs)}
     assert all(s.status == "ok" and len(s.produced) == 1 for s in recs)
 
 
