@@ -263,9 +263,10 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
         why.append(f"retriever-zenoh did not step on frame {ev.seq}: tag {(ev.tag[0] - session.end_ns) / 1e6:+.1f} ms "
                    "from the run's end, "
                    f"its tick started {late:.1f} ms late")
-    if why and session.counts["report_waits"]:
-        why.append(f"the loops waited for their reporters {session.counts['report_waits']} times, "
-                   f"{session.counts['report_wait_ns'] / 1e6:.0f} ms in all")
+    counts = pipe.counts()
+    if why and counts.get("report_waits"):
+        why.append(f"the loops waited for their reporters {counts['report_waits']} times, "
+                   f"{counts['report_wait_ns'] / 1e6:.0f} ms in all")
     return why
 
 
