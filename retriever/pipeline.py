@@ -199,9 +199,18 @@ class Pipeline:
         """
         if duration is not None:
             _check_seconds("run", "duration", duration)
+        fresh = self._session is None
         session = self._session_for(backend, options)
-        if log is not None:
-            _open_log(session, log)
+        try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
+            if duration is None and type(session).run_to_end is Session.run_to_end:
+                session.run_to_end()  # raises: this backend needs a duration
+            if log is not None:
+                _open_log(session, log)
+        except BaseException:
+            if fresh:
+                self._session = None
+                session.close()
+            raise
         try:
             with _stop_between_ticks(session):
                 if duration is None:

@@ -26,7 +26,9 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+import weakref
 from pathlib import Path
 
 from ...errors import BackendError, StepError
@@ -35,6 +37,24 @@ from ..base import NodeStats, Session
 from .hub import open_hub
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_RESTART
+
+
+#: sessions not closed yet
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+def _close_open_sessions() -> None:
+    """Close what a program left open (an error before its run, a forgotten pipe.reset()): its
+    workers are stopped and its hub closed. At exit Python joins the threads Zenoh started before
+    it runs atexit hooks, and an open session's threads never end: the process hung there."""
+    for session in list(_OPEN):
+        session.close()
+
+
+try:  # threading's own exit hooks run before that join (concurrent.futures uses them too)
+    threading._register_atexit(_close_open_sessions)
+except (AttributeError, RuntimeError):  # another Python: atexit, which may come too late
+    atexit.register(_close_open_sessions)
 
 
 class RemoteError(Exception):
@@ -66,7 +86,7 @@ class ZenohSession(Session):
         self._dir = _run_dir()
         self._encoder = WireEncoder()
         self._hub = None
-        atexit.register(self.close)  # an open Zenoh session can hang the interpreter's exit
+        _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
         try:
             self._hub, self.endpoint = open_hub(hub_port)
             if not quiet:
@@ -297,8 +317,15 @@ class ZenohSession(Session):
     # Stopping
     # ---------------------------------------------------------------------------------------
     def _stop_workers(self, grace: float = 5.0) -> None:
-        """Ask every live worker to stop, collect what they send, then make sure they are gone."""
+        """Ask every live worker to stop, collect what they send, then make sure they are gone.
+        Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
         if self._hub is None:
+            return
+        if self.t0 is None:
+            for p in self._workers.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            self._reap()
             return
         try:
             self._hub.put(self.keys.run_control(), self._encoder.control("stop", {}), congestion_control=RELIABLE)
@@ -345,7 +372,7 @@ class ZenohSession(Session):
             self._hub.close()
             self._hub = None
         shutil.rmtree(self._dir, ignore_errors=True)
-        atexit.unregister(self.close)
+        _OPEN.discard(self)
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats

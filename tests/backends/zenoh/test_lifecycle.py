@@ -549,6 +549,47 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert re.search(rf"counted +{pipe.counts()['garbage']} garbage messages dropped", info.stdout), info.stdout
 
 
+REFUSED_THEN_RUN = """
+import sys
+from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+
+pipe = two_node_pipeline("refused")
+for attempt in ({"log": sys.argv[1] + "/no/such/dir/run.mcap"}, {}):  # no duration: refused too
+    try:
+        pipe.run(backend="zenoh", quiet=True, **({"duration": 0.5} if attempt else {}), **attempt)
+    except Exception as exc:
+        print(type(exc).__name__, flush=True)
+pipe.run(0.5, backend="zenoh", quiet=True, log=sys.argv[1] + "/run.mcap")  # the same options again
+print(sorted((n, s.ticks) for n, s in pipe.stats().items()), flush=True)
+if sys.argv[2] == "leave-open":  # the script ends with a session open: its workers must not hang the exit
+    other = two_node_pipeline("left_open")
+    other._session_for("zenoh", {"quiet": True})  # started workers, never run nor closed
+    print(len(other._session.worker_pids()), flush=True)
+"""
+
+
+@pytest.mark.parametrize("ending", ["closed", "leave-open"])
+def test_a_run_refused_before_its_start_leaves_nothing_behind(tmp_path, ending):
+    """A log that cannot be created, or no duration: the error comes at once, the workers already
+    started are stopped, the pipeline runs afterwards with the same options, and a script that
+    ends with a session still open exits (Zenoh's threads used to keep it from exiting)."""
+    script = tmp_path / "refused.py"
+    script.write_text(REFUSED_THEN_RUN, encoding="utf-8")
+    env = _env()
+    env["PYTHONPATH"] = str(ROOT)
+    with subprocess.Popen([sys.executable, str(script), str(tmp_path), ending], stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env) as proc:
+        try:
+            out, err = proc.communicate(timeout=BOUND_S)
+        finally:
+            _kill(proc)
+    assert proc.returncode == 0, err
+    lines = out.splitlines()
+    assert lines[:3] == ["LogError", "BackendError", "[('counter', 10), ('total', 5)]"], out
+    assert lines[3:] == (["2"] if ending == "leave-open" else []), out
+    assert read_log(tmp_path / "run.mcap").complete
+
+
 # ---------------------------------------------------------------------------------------------
 # 5. Flows that cannot be rebuilt from the IR
 # ---------------------------------------------------------------------------------------------
