@@ -33,7 +33,11 @@ def endpoint(port: int, host: str = LOOPBACK) -> str:
 
 
 def port_is_free(port: int, host: str = LOOPBACK) -> bool:
+    """Whether a listener could bind ``port`` now. Like Zenoh's, the probe may reuse the address
+    of connections in TIME_WAIT: without that, the port of the last run's hub looked taken for a
+    minute after it closed, and the next run moved to a random port."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind((host, port))
         except OSError:

@@ -8,6 +8,7 @@ WireError, one per message, and the valid messages around it must arrive intact.
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 import threading
@@ -59,6 +60,24 @@ def test_hub_prefers_7447_then_a_free_port():
         with second:
             assert second_at != first_at and second_at.startswith("tcp/127.0.0.1:")
 
+
+
+def test_a_port_whose_last_connection_is_in_time_wait_is_free():
+    """The hub of the run before closed its connections first: their side waits in TIME_WAIT on
+    the hub's port for a minute. The next run's hub must still get that port."""
+    with socket.socket() as listener:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind(("127.0.0.1", 0))
+        port = listener.getsockname()[1]
+        listener.listen()
+        client = socket.create_connection(("127.0.0.1", port))
+        conn, _ = listener.accept()
+        conn.close()  # the listening side closes first: its end of the connection goes to TIME_WAIT
+        client.close()
+    assert port_is_free(port)
+    hub, at = open_hub(port)
+    with hub:
+        assert at == f"tcp/127.0.0.1:{port}"
 
 def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_path):
     keys = KeySpace("hubtest")
