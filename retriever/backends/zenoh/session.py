@@ -67,6 +67,7 @@ class ZenohSession(Session):
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
                  start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False):
         super().__init__(graph)
+        _refuse_in_a_worker(graph)
         _check_deployable(graph)
         self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = KeySpace(self.namespace)
@@ -376,6 +377,16 @@ class ZenohSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
+
+
+def _refuse_in_a_worker(graph: Graph) -> None:
+    from . import worker
+
+    if worker.serving is not None:
+        raise BackendError(f"pipeline '{graph.name}' was started in the worker process of node '{worker.serving}', "
+                           "while it imported its flow: a module of the run starts a pipeline when it is imported "
+                           "(workers import the modules of their flows, the main script as __mp_main__)\n"
+                           "    hint: start the run under `if __name__ == \"__main__\":`")
 
 
 def _check_deployable(graph: Graph) -> None:

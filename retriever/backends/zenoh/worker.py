@@ -38,6 +38,10 @@ EXIT_RESTART = 3
 #: The coordinator gets ``ready`` only once the pool exists: the message is in it.
 READY_PADDING = 4096
 
+#: the node this process serves, once it is a worker: a run started here (a flow's module that
+#: runs a pipeline when imported) is refused, or every worker would start a run of its own
+serving: str | None = None
+
 
 def _die_with_parent() -> None:
     """Linux: SIGTERM this process when its parent dies, so no worker outlives its run."""
@@ -182,13 +186,14 @@ def _serve(argv: list[str]) -> int:
         return EXIT_FAILED  # the coordinator is already gone
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us
     spec_path, node_id = argv[0], argv[1]
+    from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
+
+    worker.serving = node_id
     join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
     spec = json.loads(Path(spec_path).read_text())
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
             sys.path.insert(0, path)
-    if spec.get("main_file"):
-        _import_main(spec["main_file"])
 
     from .hub import open_peer, wait_for_peers
     from .loop import _CONTROL, RestartFlow, StopRun
@@ -201,6 +206,8 @@ def _serve(argv: list[str]) -> int:
             session.put(keys.node_status(node_id), encoder.status(node_id, state, info), congestion_control=RELIABLE)
 
         try:
+            if spec.get("main_file"):
+                _import_main(spec["main_file"])
             loop = build_loop(spec, node_id, session)
         except BaseException as exc:
             status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",

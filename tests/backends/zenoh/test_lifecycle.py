@@ -683,3 +683,34 @@ def test_flow_classes_in_a_scripts_main_run_on_zenoh(tmp_path, namespace):
     stats, last = result.stdout.splitlines()[-2:]
     assert stats == "[('echo', 5, 5, 0), ('tick', 10, 10, 0)]", result.stdout
     assert last == "20", result.stdout  # Tick(step=2) was rebuilt with its argument
+
+
+UNGUARDED_SCRIPT = '''
+from retriever import Flow, Pipeline, Rate
+
+
+class Tick(Flow[None, int]):
+    def step(self, inp: None) -> int:
+        return 1
+
+
+with Pipeline("unguarded") as pipe:
+    Tick() @ Rate(hz=10)
+pipe.run(duration=0.5, backend="zenoh", quiet=True)  # no `if __name__ == "__main__":`
+'''
+
+
+def test_a_script_that_runs_its_pipeline_when_imported_is_refused_in_the_worker(tmp_path):
+    """Workers import the main script (as __mp_main__) to rebuild its flows; without a main guard
+    that import would start a run in every worker, each starting workers of its own."""
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED_SCRIPT, encoding="utf-8")
+    result = subprocess.run([sys.executable, str(script)], check=False, cwd=tmp_path, env=_env(), capture_output=True,
+                            text=True, timeout=BOUND_S)
+    assert result.returncode == 1, result.stderr
+    last = result.stderr.strip().splitlines()
+    error = next(line for line in last if line.startswith("retriever.errors.BackendError"))
+    assert "cannot build node 'tick'" in error and "was started in the worker process of node 'tick'" in error, error
+    assert 'hint: start the run under `if __name__ == "__main__":`' in result.stderr
+    stopped = [line for line in last if line.strip().startswith("retriever.errors.BackendError: zenoh run stopped")]
+    assert len(stopped) == 1, result.stderr  # no run nested inside the worker
