@@ -740,17 +740,25 @@ class NodeLoop:
         """Release what is held (tags past the end still belong to the run), promise nothing more."""
         self._drain()
         with self.lock:
-            batch = sorted(self.held)
-            self.held = []
-            self.sending = batch[0][0] if batch else None
             self.next_rate = None
             unrun = sum(1 for tag in self.pending if tag[0] < self.end)
             if unrun:  # triggered before the end, but their inputs never completed in time
                 self.counts["unrun_ticks"] += unrun
             self.pending, self.pending_set = [], set()
-        self._publish(batch)
+        self.release_held()
         self._publish_progress(NEVER)
         self.finish_reports()
+
+    def release_held(self) -> None:
+        """Publish every held LET output now, before its time: this loop ends (the run's end, or
+        its process restarts or stops). Their seqs are in step records already, and consumers
+        take events by tag, not by arrival: early, they change no tick; missing, they would
+        leave a gap in their stream that no consumer's edge completes past."""
+        with self.lock:
+            batch = sorted(self.held)
+            self.held = []
+            self.sending = batch[0][0] if batch else None
+        self._publish(batch)
 
     def flush(self) -> None:
         """Hand step records and published events to the reporter, for the coordinator."""

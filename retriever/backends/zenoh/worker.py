@@ -253,12 +253,14 @@ def _serve(argv: list[str]) -> int:
                     loop.inbox.put(item)
             loop.run(t0, end, resume=join is not None)
         except RestartFlow as exc:
+            loop.release_held()
             loop.finish_reports()
             status("restart", tag=list(exc.tag), seqs=loop.seqs, counts=dict(loop.counts),
                    error=f"{type(exc.__cause__).__name__}: {exc.__cause__}")
             loop.undeclare()
             return EXIT_RESTART
         except StopRun as exc:
+            loop.release_held()
             loop.finish_reports()
             status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts))
             loop.undeclare()

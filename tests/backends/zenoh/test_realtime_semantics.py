@@ -199,6 +199,25 @@ def test_on_error_restart_runs_a_fresh_flow_in_a_new_process():
     assert [e.seq for e in trace.events_of("faulty", "report")] == list(range(len(before) + len(after)))
 
 
+def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
+    """A LET flow holds each output until tick + latency. When a step raises and the flow's
+    process is restarted, the outputs it still held are published first: their seqs are in
+    earlier step records, and a gap in a stream's seqs would leave every consumer of it
+    incomplete for the rest of the run."""
+    with Pipeline("let_restart") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=[3], message="kaboom-18").configure(name="faulty", on_error="restart",
+                                                                  latency=0.15) @ Trigger("x")
+        src.then(bad, sync=Latest())
+    trace = run(pipe, 2.0)
+    check_trace_basics(pipe, trace)  # every produced event is in the trace; seqs dense
+    recs = trace.steps_of("faulty")
+    bad_tick = next(s for s in recs if s.status == "error").tag
+    held = [s for s in recs if s.produced and bad_tick[0] - 150 * MS < s.tag[0] < bad_tick[0]]
+    assert held, "no output was held when the step raised"  # x = 1, 2: due after x = 3's tick
+    assert any(s.tag > bad_tick and s.produced for s in recs), "no step succeeded after the restart"
+
+
 # =============================================================================================
 # 2. Edge deadlines: complete, incomplete, late
 # =============================================================================================
