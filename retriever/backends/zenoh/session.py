@@ -131,6 +131,24 @@ class ZenohSession(Session):
         """PIDs of the worker processes, by node (for tests and tools)."""
         return {nid: p.pid for nid, p in self._workers.items()}
 
+    def _dump_stacks(self, nodes: list[str], wait: float = 1.0) -> None:
+        """Have these workers print every thread's Python stack to their stderr (SIGUSR1)."""
+        sizes = {}
+        for nid in nodes:
+            proc = self._workers.get(nid)
+            if proc is not None and proc.poll() is None:
+                sizes[nid] = self._stderr_size(nid)
+                proc.send_signal(signal.SIGUSR1)
+        give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
+        while any(self._stderr_size(nid) == size for nid, size in sizes.items()) and time.monotonic() < give_up:
+            time.sleep(0.02)
+
+    def _stderr_size(self, nid: str) -> int:
+        try:
+            return (self._dir / f"{nid}.stderr").stat().st_size
+        except OSError:
+            return 0
+
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
         try:
             text = (self._dir / f"{nid}.stderr").read_text(errors="replace").strip().splitlines()
@@ -187,8 +205,16 @@ class ZenohSession(Session):
                 next_write = now + self.LOG_HANDOVER_S
             if now > give_up:
                 waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
+                self._dump_stacks(waiting)
+                if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
+                    for nid in waiting:
+                        self._workers[nid].kill()
                 raise BackendError(f"zenoh run: worker(s) {', '.join(waiting)} did not {what} in time\n"
-                                   + "".join(f"    {n} stderr:\n{self._stderr_tail(n)}\n" for n in waiting))
+                                   + "".join(f"    {n} stderr (its stacks last):\n{self._stderr_tail(n, 60)}\n"
+                                             for n in waiting)
+                                   + ("    hint: a flow that takes longer to load needs pipe.run(..., startup_timeout="
+                                      f"seconds) (now {self.startup_timeout:g})" if what == "start" else
+                                      "    hint: the stacks show where a step that did not return is"))
         if self.log is not None:
             self.write_log()
 
@@ -343,7 +369,7 @@ class ZenohSession(Session):
                 self._handle(self._inbox.get_nowait())
             except queue.Empty:
                 break
-        self._reap()
+        self._reap(grace=0.5)  # they had their grace: the ones left are stuck
 
     def _reap(self, grace: float = 5.0) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""

@@ -22,6 +22,8 @@ import os
 import shutil
 import signal
 import sys
+import threading
+import time
 import traceback
 import warnings
 from pathlib import Path
@@ -50,6 +52,26 @@ def _die_with_parent() -> None:
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+
+
+#: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
+#: to), then the process exits anyway: a flow stuck in its step never looks at the request
+ORPHAN_GRACE_S = 3.0
+
+
+def _watch_parent(parent: int, run_dir: Path) -> None:
+    """From a thread of its own: once the coordinator is gone, exit within ORPHAN_GRACE_S, with
+    every thread's stack on stderr, even when the step never returns (faulthandler's timer needs
+    no GIL); and remove the run directory, which no one else will."""
+    while not _orphaned(parent):
+        time.sleep(0.5)
+    faulthandler.dump_traceback_later(ORPHAN_GRACE_S, exit=True)
+    _remove_run_dir(run_dir)
+
+
+def _remove_run_dir(run_dir: Path) -> None:
+    if run_dir.name.startswith("retriever-run-"):
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _keep_freed_memory() -> None:
@@ -157,12 +179,13 @@ def main(argv: list[str]) -> int:
     """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
     (the spec, stderr files and unreported events, in /dev/shm), which no one else would."""
     parent = os.getppid()
+    run_dir = Path(argv[0]).parent
+    threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
     try:
         return _serve(argv)
     finally:
-        run_dir = Path(argv[0]).parent
-        if _orphaned(parent) and run_dir.name.startswith("retriever-run-"):
-            shutil.rmtree(run_dir, ignore_errors=True)
+        if _orphaned(parent):
+            _remove_run_dir(run_dir)
 
 
 def _orphaned(parent: int) -> bool:

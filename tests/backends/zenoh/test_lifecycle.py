@@ -34,7 +34,7 @@ import pytest
 from retriever import BackendError, Flow, LogError, Pipeline, Rate, read_log
 from retriever.backends.zenoh.hub import endpoint, free_port
 
-from .lifecycle_flows import Count, Scaled, Sink, two_node_pipeline
+from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, two_node_pipeline
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -323,6 +323,60 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
           f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
     # and remove the run directory, which the coordinator no longer can
     assert not run_dir.exists(), sorted(p.name for p in run_dir.iterdir())
+
+
+STUCK_COORDINATOR = r"""
+import sys
+from retriever import Pipeline, Rate
+from tests.backends.zenoh.lifecycle_flows import Counter, Nap
+
+with Pipeline("stuck") as pipe:
+    Counter() @ Rate(hz=20)
+    Nap(nap=600.0) @ Rate(hz=1)  # its first step, at T0, does not return within the test
+pipe.run(duration=60, backend="zenoh", quiet=True, namespace=sys.argv[1], log=sys.argv[2])
+"""
+
+
+def test_a_worker_stuck_in_its_step_exits_when_its_coordinator_is_sigkilled(tmp_path, namespace):
+    """SIGTERM (PR_SET_PDEATHSIG) only asks a worker's loop to stop, and a step that never
+    returns never looks: the worker's watch on its parent ends the process anyway."""
+    path = tmp_path / "run.mcap"
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([sys.executable, "-c", STUCK_COORDINATOR, namespace, str(path)],
+                                stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT, env=_env())
+    try:
+        def napping() -> dict[Ident, str] | None:
+            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
+            workers = _worker_children(proc.pid)  # scanned while the coordinator lives
+            try:
+                steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
+            except (LogError, OSError):
+                return None
+            # counter ticked past T0, so nap is inside its first step (at T0), which lasts 600 s
+            ticked = any(s.node == "counter" and s.tag[0] > 0 for s in steps)
+            return workers if len(workers) == 2 and ticked else None
+
+        workers = _poll(napping, "a logged counter tick after T0")
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
+    finally:
+        _kill(proc)
+    _poll(lambda: not any(_alive(ident) for ident in workers),
+          f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
+
+
+def test_a_run_whose_step_does_not_return_fails_with_that_steps_stack(namespace):
+    """A 0.3 s run whose nap node sleeps 600 s in its first step: the run fails after its
+    slack, naming the node and showing where its step is (the worker's stack, asked by SIGUSR1)."""
+    with Pipeline("hung") as pipe:
+        Counter() @ Rate(hz=20)  # a node that finishes
+        Nap(nap=600.0) @ Rate(hz=1)
+    with pytest.raises(BackendError) as caught:
+        pipe.run(duration=0.3, backend="zenoh", namespace=namespace, quiet=True)
+    message = str(caught.value)
+    assert "worker(s) nap did not finish in time" in message, message
+    assert re.search(r'File ".*lifecycle_flows\.py", line \d+ in step', message), message
+    assert "hint: the stacks show where a step that did not return is" in message, message
 
 
 SLOW_START = r"""
