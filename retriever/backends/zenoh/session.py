@@ -80,6 +80,7 @@ class ZenohSession(Session):
         self._state: dict[str, str] = {}
         self._exited: dict[str, float] = {}  # node -> when its process was first seen gone
         self._event_ids: set[tuple[str, str, int]] = set()
+        self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
         self._ran = False
         self._closed = False
@@ -234,6 +235,10 @@ class ZenohSession(Session):
                 self._event(key, report.node, wall, message)
             steps = self.trace.raw_steps
             for tag, consumed, produced, status, detail, start, wall in report.records:
+                if (report.node, tag) in self._ticks:
+                    self._garbage(key, WireError(f"a second step record of {report.node} at {tag}"))
+                    continue
+                self._ticks.add((report.node, tag))
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
                 stats.ticks += 1
                 if status == "ok":
@@ -332,13 +337,14 @@ class ZenohSession(Session):
         node, info = self._failure
         error = info.get("error", "failed")
         tb = info.get("traceback")
-        if tb:
-            error += "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines())
+        where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
         tag = info.get("tag")
         settings = self.graph.nodes[node].settings if node in self.graph.nodes else None
         if tag is not None and settings is not None and ".step() raised " in error:
-            raise StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
-        raise BackendError(f"zenoh run stopped: {error}")
+            failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
+            failure.args = (failure.args[0] + where,)
+            raise failure
+        raise BackendError(f"zenoh run stopped: {error}{where}")
 
     # ---------------------------------------------------------------------------------------
     # Stopping

@@ -296,9 +296,12 @@ def decode_report(data: bytes, expected: str | None = None) -> Report:
     out = []
     try:
         for tag, consumed, produced, status, detail, start, wall in records:
-            out.append((_tag("tag", tag),
-                        {port: tuple(map(tuple, ids)) for port, ids in consumed.items()},
-                        tuple(map(tuple, produced)), str(status), detail, int(start), int(wall)))
+            if (type(consumed) is not dict or not all(type(p) is str for p in consumed)
+                    or status not in STEP_STATUSES or (detail is not None and type(detail) is not dict)
+                    or type(start) is not int or type(wall) is not int):
+                raise WireError(f"a report of {node} has a malformed record")
+            out.append((_tag("tag", tag), {port: _event_ids(ids) for port, ids in consumed.items()},
+                        _event_ids(produced), status, detail, start, wall))
     except WireError:
         raise
     except Exception as e:
@@ -306,12 +309,30 @@ def decode_report(data: bytes, expected: str | None = None) -> Report:
     return Report(node, out, events)
 
 
+#: what a step record's status may be (loop.py)
+STEP_STATUSES = ("ok", "skipped", "error")
+
+
+def _event_ids(ids: Any) -> tuple:
+    """``[[node, port, seq], …]`` → a tuple of event ids, or WireError."""
+    if type(ids) is not list or not all(type(i) is list and len(i) == 3 and type(i[0]) is str and type(i[1]) is str
+                                        and type(i[2]) is int and i[2] >= 0 for i in ids):
+        raise WireError("event ids in a step record must be [node, port, seq] triples")
+    return tuple(map(tuple, ids))
+
+
 def decode_status(data: bytes) -> tuple[str, str, dict]:
     """``(node, state, info)`` of a worker's status message."""
     _, node, state, info = _fields(data, 4, "status")
     if type(node) is not str or type(state) is not str or type(info) is not dict:
-        raise WireError("a status message is [1, node, state, info]")
+        raise WireError("a status message is [2, node, state, info]")
+    if state not in NODE_STATES:
+        raise WireError(f"a status message of state {state!r:.20}; a worker's states are {', '.join(NODE_STATES)}")
     return node, state, info
+
+
+#: what a worker says on status/node/<node> (worker.py)
+NODE_STATES = ("ready", "done", "failed", "restart")
 
 
 def decode_control(data: bytes) -> tuple[str, dict]:

@@ -285,7 +285,9 @@ def _serve(argv: list[str]) -> int:
         except StopRun as exc:
             loop.release_held()
             loop.finish_reports()
-            status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts))
+            cause = exc.__cause__  # the exception a step raised: where in the flow's code
+            status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
+                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None)
             loop.undeclare()
             return EXIT_FAILED
         except BaseException as exc:

@@ -544,11 +544,13 @@ from retriever.backends.zenoh.hub import open_peer
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
 keys, enc = KeySpace(sys.argv[1]), WireEncoder()
-seen = threading.Event()
+seen, reported = threading.Event(), threading.Event()
 with open_peer(sys.argv[2]) as s:
     sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
+    reports = s.declare_subscriber(keys.report("counter"), lambda sample: reported.set())
     print("ready", flush=True)
     assert seen.wait(60), "never saw the run's data"
+    assert reported.wait(60), "never saw counter's first report"  # its tick at T0 is in it
     # well-formed envelopes that are not the run's: a producer that is no node of the graph, a
     # key that is not data/<node>/<port>, and an event id (counter, n, 0) the run already used
     s.put(keys.data("ghost", "x"), enc.data((5, 0), 0, (5, 0), "ghost", "x", 42))
@@ -562,8 +564,12 @@ with open_peer(sys.argv[2]) as s:
     # and events in files of the run directory that are not there, or not the node's
     s.put(keys.report("counter"), enc.report("counter", [], [(1, "counter.1.999999.msg")]))
     s.put(keys.report("counter"), enc.report("counter", [], [(1, "../../etc/passwd")]))
+    # and step records: a second one for counter's tick at T0, and one whose event ids are not ids
+    s.put(keys.report("counter"), enc.report("counter", [((0, 0), {}, (), "ok", None, 0, 0)], []))
+    s.put(keys.report("counter"), enc.report("counter", [((50, 0), {"n": [["a"]]}, (), "ok", None, 0, 0)], []))
     sys.stdin.readline()  # the session stays open (its puts delivered) until the run has ended
     sub.undeclare()
+    reports.undeclare()
 print("sent", flush=True)
 """
 
@@ -588,11 +594,13 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert {e.node for e in trace.events} == {"counter", "total"}, sorted({e.node for e in trace.events})
     assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
     assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
-    # the duplicate data message, refused by the consumer of counter.n, and the five reports,
+    # the duplicate data message, refused by the consumer of counter.n, and the seven reports,
     # refused by the coordinator (the ghost's data keys reach no Retriever process: none listens)
-    assert pipe.counts()["garbage"] >= 6, pipe.counts()
+    assert pipe.counts()["garbage"] >= 8, pipe.counts()
     assert stats["total"].counts["garbage"] >= 1 and "garbage" not in stats["counter"].counts, stats
-    assert pipe.counts()["garbage"] - stats["total"].counts["garbage"] >= 5, (pipe.counts(), stats)
+    assert pipe.counts()["garbage"] - stats["total"].counts["garbage"] >= 7, (pipe.counts(), stats)
+    ticks = [s.tag for s in trace.steps_of("counter")]
+    assert ticks == sorted(set(ticks)) and len(ticks) == 20, ticks  # one record per tick, the worker's
     # all of it in the log's end record, and in `retriever log info`
     end = read_log(tmp_path / "run.mcap").end
     assert json.loads(end["counts"]) == pipe.counts(), end

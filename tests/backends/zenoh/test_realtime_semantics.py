@@ -20,6 +20,7 @@ tick + latency), ``error``/``on_error``.
 
 from __future__ import annotations
 
+import re
 from collections import Counter
 
 import pytest
@@ -141,6 +142,9 @@ def test_on_error_stop_raises_step_error_naming_node_and_user_message():
     assert "faulty" in str(err) and "kaboom-17 at x=3" in str(err), str(err)
     assert "ValueError" in str(err)
     assert err.tag[0] > 0
+    # where in the flow's code, from the worker: the raise line of Faulty.step
+    assert re.search(r'worker traceback:\n.*File ".*semantics_flows\.py", line \d+, in step\n.*raise ValueError',
+                     str(err), re.DOTALL), str(err)
     # the failing tick is in the trace, flushed before the worker reported the failure
     errors = [s for s in pipe.trace.steps_of("faulty") if s.status == "error"]
     assert len(errors) == 1, pipe.trace.steps_of("faulty")

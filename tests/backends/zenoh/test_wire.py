@@ -21,6 +21,7 @@ from retriever.backends.zenoh.wire import (
     decode_data,
     decode_progress,
     decode_report,
+    decode_status,
 )
 from retriever.codec import packb
 
@@ -169,6 +170,27 @@ def test_report_round_trip():
         decode_report(enc.report("cam", [record], []), "other")
     with pytest.raises(WireError, match="wall_ns, data message"):
         decode_report(msgpack.packb([2, "cam", [], [[1, 2.5]]]), "cam")
+
+
+@pytest.mark.parametrize("record", [
+    [[7, 0], {"x": [["a"]]}, [], "ok", None, 1, 2],  # an event id that is not [node, port, seq]
+    [[7, 0], {"x": [["src", "out", -1]]}, [], "ok", None, 1, 2],
+    [[7, 0], {}, [["cam", "frame", "3"]], "ok", None, 1, 2],
+    [[7, 0], {}, [], "finished", None, 1, 2],  # not a status a loop writes
+    [[7, 0], {}, [], "ok", [1], 1, 2],  # detail: a map or nil
+    [[7, 0], {}, [], "ok", None, "notanint", 2],
+    [[7, 0], {1: []}, [], "ok", None, 1, 2],  # ports are names
+    [[7, 0], {}, [], "ok", None, 1],
+], ids=["short-id", "negative-seq", "seq-as-text", "status", "detail", "start", "port", "six-fields"])
+def test_a_malformed_step_record_is_a_wire_error(record):
+    with pytest.raises(WireError, match="malformed record|event ids"):
+        decode_report(msgpack.packb([2, "cam", [record], []]), "cam")
+
+
+def test_a_status_of_an_unknown_state_is_a_wire_error():
+    assert decode_status(WireEncoder().status("cam", "done", {"counts": {}}))[1] == "done"
+    with pytest.raises(WireError, match="state"):
+        decode_status(WireEncoder().status("cam", "bogus-state", {}))
 
 
 @settings(max_examples=300, deadline=None)
