@@ -658,9 +658,11 @@ class NodeLoop:
                           "on_deadline_miss": self.on_deadline_miss}
                 if self.realtime == "hard" or self.on_deadline_miss == "error":
                     self._finish_tick(tau, consumed, (), "error", detail, start, wall)
+                    hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
+                            f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
+                            "raise latency=, or set on_deadline_miss='publish_late' or 'drop'")
                     raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s finished "
-                                  f"{(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: raise latency=, "
-                                  "or set on_deadline_miss='publish_late' or 'drop'", tau)
+                                  f"{(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
                 if self.on_deadline_miss == "drop":
                     for _, port, _, _ in batch:
                         seqs[port] -= 1

@@ -430,8 +430,8 @@ def _check_deployable(graph: Graph) -> None:
     if problems:
         raise BackendError("the zenoh backend runs each flow in its own process, rebuilt from the IR (type + "
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)
-                           + "\n    hint: give the flow msgpack-serializable constructor arguments, "
-                           "or run it in-process: backend=\"inproc\"")
+                           + "\n    hint: define flow classes at a module's top level and give them "
+                           "msgpack-serializable constructor arguments, or run in-process: backend=\"inproc\"")
 
 
 def _run_dir() -> Path:

@@ -376,6 +376,7 @@ def test_let_deadline_miss_error_stops_the_run_naming_the_node():
         run(pipe, 1.0)
     msg = str(info.value)
     assert "let missed its LET deadline" in msg and "t=0.200000" in msg, msg
+    assert "hint: raise latency=, or set on_deadline_miss='publish_late' or 'drop'" in msg, msg
     miss = next(s for s in pipe.trace.steps_of("let") if s.tag == (200 * MS, 0))
     assert miss.status == "error" and miss.produced == ()
     assert detail(miss)["on_deadline_miss"] == "error"
@@ -449,6 +450,7 @@ def test_hard_realtime_stops_at_a_let_deadline_miss_even_with_publish_late():
         run(pipe, 1.0)
     msg = str(info.value)
     assert "let missed its LET deadline" in msg and "t=0.200000" in msg, msg
+    assert "realtime='soft', where on_deadline_miss (now 'publish_late') decides" in msg, msg
 
 
 def test_best_effort_never_stops_for_overruns_or_deadline_misses():
