@@ -528,6 +528,25 @@ def test_step_returning_the_wrong_type_is_a_step_error():
         pipe.run(duration=1)
 
 
+def test_a_typed_step_returning_a_dict_with_an_undeclared_port_is_a_step_error():
+    class Partial(Flow[None, Num]):
+        def __init__(self, ports: list):
+            self.ports = ports
+
+        def step(self, inp):
+            return dict.fromkeys(self.ports, 1)
+
+    with Pipeline("fine") as pipe:  # a dict of declared ports is fine
+        Partial(["x"]) @ Rate(hz=1)
+    assert pipe.run(duration=1).values_of("partial", "x") == [1]
+    with Pipeline("p") as pipe:
+        Partial(["x", "bogus"]) @ Rate(hz=1)
+    with pytest.raises(StepError, match=r"partial\.step\(\) raised OutputError: step\(\) returned a dict with "
+                                        r"port\(s\) 'bogus', which tests\.test_errors\.Num does not declare "
+                                        r"\(its ports: x\)"):
+        pipe.run(duration=1)
+
+
 # ---------------------------------------------------------------------------------------------
 # IR documents
 # ---------------------------------------------------------------------------------------------

@@ -387,6 +387,7 @@ def make_output_reader(spec: FlowSpec) -> Callable[[Any], Any]:
     and the caller skips it (so a dict output is handed over as its ``items()``, uncopied)."""
     if spec.out_mode == "io":
         out_type, names = spec.out_type, tuple(spec.outputs or ())
+        known = frozenset(names)
 
         def read_io(raw):
             if raw is None:
@@ -394,6 +395,10 @@ def make_output_reader(spec: FlowSpec) -> Callable[[Any], Any]:
             if type(raw) is out_type or isinstance(raw, out_type):
                 return [(n, v) for n in names if (v := getattr(raw, n)) is not None]
             if isinstance(raw, dict):
+                if not known.issuperset(raw):
+                    unknown = ", ".join(repr(k) for k in raw if k not in known)
+                    raise OutputError(f"step() returned a dict with port(s) {unknown}, which {type_name(out_type)} "
+                                      f"does not declare (its ports: {', '.join(names)})")
                 return raw.items()
             raise OutputError(f"step() returned {type(raw).__qualname__}, expected {type_name(out_type)}")
 

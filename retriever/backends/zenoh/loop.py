@@ -27,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from ...errors import RetrieverError
+from ...errors import CodecError, RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
@@ -714,7 +714,11 @@ class NodeLoop:
             publisher = publishers.get(port)
             if publisher is None:  # an output port no edge uses (an untyped flow's extra key)
                 publisher = publishers[port] = self._publisher(self.keys.data(self.id, port))
-            message = data(tag, seq, frontier if i == last else tag, self.id, port, value)
+            try:
+                message = data(tag, seq, frontier if i == last else tag, self.id, port, value)
+            except CodecError as e:  # the step returned it; in-process it would have gone by reference
+                raise StopRun(f"{self.id}.{port}: the event at t={tag[0] / 1e9:.6f} s cannot be sent to another "
+                              f"process: {e}", tag) from None
             publisher.put(message)
             if self.consumed:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, self.id, port, value)

@@ -56,6 +56,17 @@ class Ticker(Flow[None, Value]):
         return Value(self.k - 1)
 
 
+class Unsendable(Flow[None, Value]):
+    """A source whose third output is a value no process boundary can carry (an ``object()``)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        return Value(object() if self.k == 3 else self.k)
+
+
 class Faulty(Flow[XIn, Report]):
     """Raises ``ValueError(f"{message} at x={x}")`` when its input ``x`` is in ``fail_at``; else
     reports ``{"pid": os.getpid(), "calls": calls since reset, "x": x}``. The call counter

@@ -40,6 +40,7 @@ from .semantics_flows import (
     Sleepy,
     Stall,
     Ticker,
+    Unsendable,
     WindowProbe,
 )
 
@@ -220,6 +221,19 @@ def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
     held = [s for s in recs if s.produced and bad_tick[0] - 150 * MS < s.tag[0] < bad_tick[0]]
     assert held, "no output was held when the step raised"  # x = 1, 2: due after x = 3's tick
     assert any(s.tag > bad_tick and s.produced for s in recs), "no step succeeded after the restart"
+
+
+def test_an_output_that_cannot_be_sent_stops_the_run_naming_its_port_and_time():
+    """In-process an output goes by reference; between processes it must encode. One that cannot
+    stops the run with the node, port and event time, not as a crash of the worker."""
+    with Pipeline("unsendable") as pipe:
+        Unsendable().configure(name="odd") @ Rate(hz=10)
+    with pytest.raises(BackendError) as info:
+        run(pipe, 1.0)
+    msg = str(info.value)
+    assert "odd.value: the event at t=0.2" in msg and "cannot be sent to another process" in msg, msg
+    assert "cannot encode a value of type builtins.object" in msg and "crashed" not in msg, msg
+    assert [s.tag[0] for s in pipe.trace.steps_of("odd")] == [0, 100 * MS]  # the two before it
 
 
 # =============================================================================================
