@@ -71,8 +71,16 @@ class Session(ABC):
         self.logged_to = None  # the path of this run's finished log, if it had one
         self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
         self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
-        #: the run's counters (COUNTERS): every node's, plus what no node owns (the coordinator's garbage)
-        self.counts: Counter = Counter()
+        #: what the run counted that no node owns (COUNTERS; a coordinator's dropped garbage)
+        self.own_counts: Counter = Counter()
+
+    @property
+    def counts(self) -> Counter:
+        """The run's counters (COUNTERS): every node's, plus the session's own."""
+        total = Counter(self.own_counts)
+        for s in self.stats().values():
+            total.update(s.counts)
+        return total
 
     def seeds(self) -> dict:
         """The seeds this run depends on, recorded in the log's run metadata."""

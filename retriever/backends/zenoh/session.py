@@ -264,7 +264,6 @@ class ZenohSession(Session):
             counts = {}
         node_counts = self._stats[node].counts
         for name, n in counts.items():
-            self.counts[name] += n
             node_counts[name] = node_counts.get(name, 0) + n
         if state == "failed":
             self._failure = (node, info)
@@ -309,8 +308,8 @@ class ZenohSession(Session):
             os.close(fd)
 
     def _garbage(self, key: str, error: WireError) -> None:
-        self.counts["garbage"] += 1
-        if self.counts["garbage"] <= 3:
+        self.own_counts["garbage"] += 1
+        if self.own_counts["garbage"] <= 3:
             print(f"retriever: dropped a message on {key}: {error}", file=sys.stderr, flush=True)
 
     def _check_processes(self) -> None:

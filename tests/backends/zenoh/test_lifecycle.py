@@ -172,6 +172,19 @@ def _kill(proc: subprocess.Popen) -> None:
         proc.wait(timeout=BOUND_S)
 
 
+def _run_importing_tests(cmd: list[str], cwd: Path) -> tuple[int, str, str]:
+    """Run ``cmd`` to its end (within BOUND_S) with this checkout on PYTHONPATH, so a script
+    outside it can import ``tests``; its exit code, stdout and stderr."""
+    env = _env()
+    env["PYTHONPATH"] = str(ROOT)
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env) as proc:
+        try:
+            out, err = proc.communicate(timeout=BOUND_S)
+        finally:
+            _kill(proc)
+    return proc.returncode, out, err
+
+
 def _env() -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k != "FORCE_COLOR"}
     env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8", PYTHONDONTWRITEBYTECODE="1")
@@ -236,15 +249,8 @@ def test_cli_runs_a_file_on_the_backend_it_chose_with_init(tmp_path):
     reaped."""
     path = tmp_path / "chosen.py"
     path.write_text(CHOSEN_BY_INIT, encoding="utf-8")
-    env = _env()
-    env["PYTHONPATH"] = str(ROOT)
-    with subprocess.Popen([str(RETRIEVER), "run", str(path), "--duration", "1"], stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env) as proc:
-        try:
-            out, err = proc.communicate(timeout=BOUND_S)
-        finally:
-            _kill(proc)
-    assert proc.returncode == 0, err
+    code, out, err = _run_importing_tests([str(RETRIEVER), "run", str(path), "--duration", "1"], tmp_path)
+    assert code == 0, err
     assert "chosen_by_init: 1 s on zenoh" in out, out
     assert re.search(r"Zenoh hub listening on tcp/127\.0\.0\.1:\d+", err), err
     rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │", out))
@@ -637,15 +643,8 @@ def test_a_run_refused_before_its_start_leaves_nothing_behind(tmp_path, ending):
     ends with a session still open exits (Zenoh's threads used to keep it from exiting)."""
     script = tmp_path / "refused.py"
     script.write_text(REFUSED_THEN_RUN, encoding="utf-8")
-    env = _env()
-    env["PYTHONPATH"] = str(ROOT)
-    with subprocess.Popen([sys.executable, str(script), str(tmp_path), ending], stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=env) as proc:
-        try:
-            out, err = proc.communicate(timeout=BOUND_S)
-        finally:
-            _kill(proc)
-    assert proc.returncode == 0, err
+    code, out, err = _run_importing_tests([sys.executable, str(script), str(tmp_path), ending], tmp_path)
+    assert code == 0, err
     lines = out.splitlines()
     assert lines[:3] == ["LogError", "BackendError", "[('counter', 10), ('total', 5)]"], out
     assert lines[3:] == (["2"] if ending == "leave-open" else []), out
