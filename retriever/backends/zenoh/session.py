@@ -35,6 +35,7 @@ from ...errors import BackendError, StepError
 from ...graph import Graph
 from ..base import NodeStats, Session
 from .hub import open_hub
+from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_RESTART
 
@@ -85,6 +86,7 @@ class ZenohSession(Session):
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._output: dict[str, WorkerOutput] = {}  # what each node's worker prints
         self._dir = _run_dir()
         self._encoder = WireEncoder()
         self._hub = None
@@ -123,9 +125,9 @@ class ZenohSession(Session):
         cmd = [sys.executable, "-m", "retriever.backends.zenoh.worker", str(self._dir / "spec.json"), nid]
         if join is not None:
             cmd += ["--join", str(join[0]), str(join[1])]
-        with open(self._dir / f"{nid}.stderr", "ab") as err:
-            self._workers[nid] = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                                  stderr=err, start_new_session=True)
+        self._workers[nid] = proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                                     stderr=subprocess.PIPE, start_new_session=True)
+        self._output.setdefault(nid, WorkerOutput(nid)).attach(proc)
         self._state[nid] = "starting"
 
     def worker_pids(self) -> dict[str, int]:
@@ -134,28 +136,19 @@ class ZenohSession(Session):
 
     def _dump_stacks(self, nodes: list[str], wait: float = 1.0) -> None:
         """Have these workers print every thread's Python stack to their stderr (SIGUSR1)."""
-        sizes = {}
+        before = {}
         for nid in nodes:
             proc = self._workers.get(nid)
             if proc is not None and proc.poll() is None:
-                sizes[nid] = self._stderr_size(nid)
+                before[nid] = self._output[nid].stderr_lines
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
-        while any(self._stderr_size(nid) == size for nid, size in sizes.items()) and time.monotonic() < give_up:
-            time.sleep(0.02)
-
-    def _stderr_size(self, nid: str) -> int:
-        try:
-            return (self._dir / f"{nid}.stderr").stat().st_size
-        except OSError:
-            return 0
+        for nid, lines in before.items():
+            self._output[nid].settle(lines, max(0.0, give_up - time.monotonic()))
 
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
-        try:
-            text = (self._dir / f"{nid}.stderr").read_text(errors="replace").strip().splitlines()
-        except OSError:
-            return ""
-        return "\n".join("        " + line for line in text[-lines:])
+        output = self._output.get(nid)
+        return output.tail(lines) if output is not None else ""
 
     # ---------------------------------------------------------------------------------------
     # Running
@@ -328,6 +321,7 @@ class ZenohSession(Session):
             if code in (0, EXIT_RESTART, EXIT_FAILED) and time.monotonic() - exited < 2.0:
                 continue
             if self._failure is None:
+                self._output[nid].drain()
                 self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
                                                 f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
@@ -398,6 +392,9 @@ class ZenohSession(Session):
         self._closed = True
         if any(p.poll() is None for p in self._workers.values()):
             self._stop_workers(grace=2.0)
+        give_up = time.monotonic() + 1.0  # their last lines, before the run returns
+        for output in self._output.values():
+            output.drain(max(0.0, give_up - time.monotonic()))
         if self._hub is not None:
             for sub in getattr(self, "_subscribers", ()):
                 sub.undeclare()
@@ -434,7 +431,7 @@ def _check_deployable(graph: Graph) -> None:
 
 
 def _run_dir() -> Path:
-    """The run's directory: the spec, the workers' stderr, and big events on their way to the
+    """The run's directory: the spec and big events on their way to the
     coordinator. In shared memory when the host has it (no disk I/O for those events)."""
     shm = Path("/dev/shm")
     base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK | os.X_OK) else None

@@ -177,7 +177,7 @@ def on_a_cycle(edges: list[dict], node_id: str) -> bool:
 
 def main(argv: list[str]) -> int:
     """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
-    (the spec, stderr files and unreported events, in /dev/shm), which no one else would."""
+    (the spec and unreported events, in /dev/shm), which no one else would."""
     parent = os.getppid()
     run_dir = Path(argv[0]).parent
     threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
@@ -205,6 +205,7 @@ def _serve(argv: list[str]) -> int:
     _die_with_parent()
     _keep_freed_memory()
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: where is a stuck worker?
+    sys.stdout.reconfigure(line_buffering=True)  # a pipe to the coordinator: a flow's print shows at once
     if os.getppid() == 1:
         return EXIT_FAILED  # the coordinator is already gone
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us

@@ -9,7 +9,8 @@
   the run completes with the right step counts. Well-formed envelopes that are not the run's
   (an unknown producer, a repeated event id) stay out of the trace.
 - Flows that cannot be rebuilt from the IR are refused before any process starts.
-- Flow classes defined in a script's ``__main__`` run on zenoh.
+- Flow classes defined in a script's ``__main__`` run on zenoh; what they print shows on the
+  caller's stdout and stderr, each line prefixed with the node, before ``pipe.run`` returns.
 
 Every test runs under a fixture that fails it when a worker process it created (directly, through
 a subprocess, or orphaned) is still alive afterwards. Waits are bounded polls, never speed checks.
@@ -744,6 +745,47 @@ def test_flow_classes_in_a_scripts_main_run_on_zenoh(tmp_path, namespace):
     stats, last = result.stdout.splitlines()[-2:]
     assert stats == "[('echo', 5, 5, 0), ('tick', 10, 10, 0)]", result.stdout
     assert last == "20", result.stdout  # Tick(step=2) was rebuilt with its argument
+
+
+PRINTING_SCRIPT = '''
+import sys
+
+from retriever import Flow, Pipeline, Rate
+
+
+class Chatty(Flow[None, int]):
+    def __init__(self):
+        self.n = 0
+
+    def step(self, inp: None) -> int:
+        if self.n == 0:
+            print("warming up", file=sys.stderr)
+        print(f"tick {self.n}")
+        self.n += 1
+        if self.n == 4:
+            print("last words", end="", file=sys.stderr)  # no newline, and the process ends after it
+        return self.n
+
+
+with Pipeline("printing") as pipe:
+    Chatty() @ Rate(hz=10)
+
+if __name__ == "__main__":
+    pipe.run(duration=0.4, backend="zenoh", namespace=sys.argv[1], quiet=True)
+    print("run returned")
+'''
+
+
+def test_what_a_flow_prints_shows_on_the_callers_streams_prefixed_with_its_node(tmp_path, namespace):
+    script = tmp_path / "printing.py"
+    script.write_text(PRINTING_SCRIPT, encoding="utf-8")
+    result = subprocess.run([sys.executable, str(script), namespace], check=False, cwd=tmp_path, env=_env(),
+                            capture_output=True, text=True, timeout=BOUND_S)
+    assert result.returncode == 0, result.stderr
+    # every line, in order, before pipe.run returned
+    assert result.stdout.splitlines() == ["[chatty] tick 0", "[chatty] tick 1", "[chatty] tick 2", "[chatty] tick 3",
+                                          "run returned"], result.stdout
+    assert result.stderr.splitlines() == ["[chatty] warming up", "[chatty] last words"], result.stderr
 
 
 UNGUARDED_SCRIPT = '''

@@ -1,0 +1,78 @@
+"""What worker processes print, on the coordinator's own stdout and stderr.
+
+A flow's ``print`` runs in its worker process. The coordinator reads each worker's stdout and
+stderr through pipes, from a thread per stream, and writes every line to its own stream of the
+same name prefixed with the node (``[camera] warming up``), as dora and ROS launch files do. It
+keeps the last lines of each stderr for its error messages: a crashed worker's traceback, a stuck
+worker's stacks.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+
+#: one line at a time on the coordinator's streams, whichever worker it comes from
+_WRITING = threading.Lock()
+
+
+class WorkerOutput:
+    """The output of one node's worker processes (a restarted flow gets a new process)."""
+
+    def __init__(self, node: str, keep: int = 200):
+        self.node = node
+        self.stderr_lines = 0  # how many lines its stderr has had
+        self._tail: deque[str] = deque(maxlen=keep)
+        self._pumps: list[threading.Thread] = []
+
+    def attach(self, proc: subprocess.Popen) -> None:
+        """Forward this process's stdout and stderr (both ``subprocess.PIPE``) until it closes them."""
+        self._pumps = [p for p in self._pumps if p.is_alive()]
+        for pipe, name in ((proc.stdout, "stdout"), (proc.stderr, "stderr")):
+            pump = threading.Thread(target=self._pump, args=(pipe, name), daemon=True,
+                                    name=f"retriever-{name}-{self.node}")
+            pump.start()
+            self._pumps.append(pump)
+
+    def _pump(self, pipe, name: str) -> None:
+        prefix = f"[{self.node}] "
+        with pipe:
+            for raw in iter(pipe.readline, b""):
+                line = raw.decode(errors="replace").rstrip("\r\n")
+                if name == "stderr":
+                    self._tail.append(line)
+                    self.stderr_lines += 1
+                stream = getattr(sys, name)  # looked up per line: pytest and rich replace it
+                with _WRITING:
+                    try:
+                        stream.write(prefix + line + "\n")
+                        stream.flush()
+                    except (OSError, ValueError, AttributeError):  # closed or gone: the line is in the tail
+                        pass
+
+    def drain(self, timeout: float = 1.0) -> None:
+        """Wait (at most ``timeout``) until an exited process's last lines are read."""
+        give_up = time.monotonic() + timeout
+        for pump in self._pumps:
+            pump.join(max(0.0, give_up - time.monotonic()))
+
+    def settle(self, since: int, timeout: float) -> None:
+        """Wait until stderr has had lines beyond ``since`` and then none for 0.1 s, at most
+        ``timeout``: a stack dump written by a signal handler, read in full."""
+        give_up = time.monotonic() + timeout
+        while self.stderr_lines == since and time.monotonic() < give_up:
+            time.sleep(0.02)
+        seen = -1
+        while seen != self.stderr_lines and time.monotonic() < give_up:
+            seen = self.stderr_lines
+            time.sleep(0.1)
+
+    def tail(self, lines: int = 15) -> str:
+        """The last lines of its stderr, indented for an error message."""
+        text = list(self._tail)[-lines:]
+        while text and not text[-1].strip():
+            text.pop()
+        return "\n".join("        " + line for line in text)
