@@ -112,6 +112,7 @@ def run(
 
 
 _COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplete edge", "overrun": "ticks skipped after overruns",
+                   "restart_skipped": "ticks skipped during restarts",
                    "deadline_miss": "LET deadline misses", "unrun_ticks": "ticks never run",
                    "garbage": "garbage messages dropped", "report_waits": "waits for the log"}
 

@@ -26,6 +26,7 @@ COUNTERS = {
     "late": "events that arrived after the tick that could have used them (never applied to it)",
     "incomplete": "ticks that ran with an edge not complete up to their tag (its deadline passed)",
     "overrun": "ticks skipped because a step outlasted its period (on_overrun)",
+    "restart_skipped": "Rate ticks skipped while a flow's process restarted (on_error='restart')",
     "deadline_miss": "LET outputs whose step finished after tick + latency (on_deadline_miss)",
     "unrun_ticks": "ticks triggered before the end whose inputs never completed in time",
     "garbage": "messages on the run's key space that were not the run's, dropped",

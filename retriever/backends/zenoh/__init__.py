@@ -2,9 +2,10 @@
 
     wire.py     key space and msgpack envelopes
     hub.py      peer sessions: the run's hub and the workers joining it
-    loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns)
+    loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
     worker.py   the worker process around a loop
     session.py  the coordinator: starts workers, agrees on T0, collects the trace and the log
+    output.py   what workers print, on the coordinator's streams, prefixed with the node
 """
 
 from __future__ import annotations

@@ -104,6 +104,24 @@ def open_peer(hub_endpoint: str) -> zenoh.Session:
     return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint]))
 
 
+def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,
+                     stop=lambda: False, gone=lambda: set()) -> set[str]:
+    """Query ``selector`` until a reply has come from each of ``keys`` that is not ``gone()``,
+    at most ``timeout`` s; the keys that never answered. A reply travels on the link between
+    the two sessions, after the declarations each had sent on it: once a peer answers, each
+    knows the other's subscribers (peers do not route for each other: there is no other path)."""
+    missing = set(keys)
+    give_up = time.monotonic() + timeout
+    while missing and time.monotonic() < give_up and not stop():
+        for reply in session.get(selector, timeout=0.25):
+            if reply.ok is not None:
+                missing.discard(str(reply.ok.key_expr))
+        missing -= gone()
+        if missing:
+            time.sleep(0.02)
+    return missing
+
+
 def wait_for_peers(session: zenoh.Session, count: int, timeout: float, stop=lambda: False) -> bool:
     """Wait until ``session`` has direct links to ``count`` peers; False on timeout or ``stop()``."""
     give_up = time.monotonic() + timeout

@@ -32,7 +32,8 @@ from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
 from .reporter import Reporter
-from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress
+from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, decode_control, decode_data,
+                   decode_progress)
 
 #: a frontier no event reaches: the producer is finished
 NEVER = (1 << 62, 0)
@@ -76,6 +77,10 @@ WARM_AFTER_IDLE_NS = 4_000_000
 #: inputs: where a tick runs changes how soon, never what.
 INLINE_STEP_NS = 1_000_000
 
+#: while its flow is being restarted, how often a loop with a tick due looks again (it also
+#: wakes for every message, the coordinator's handover among them)
+RESTART_POLL_NS = 50_000_000
+
 _DATA, _PROGRESS, _CONTROL, _NUDGE = 0, 1, 2, 3
 #: put in the inbox after work done on a receiving thread: the main thread looks again
 _NUDGED = (_NUDGE, None, None)
@@ -105,7 +110,7 @@ class NodeLoop:
     """Runs one node in real time from ``T0`` until ``end`` (both HLC Unix ns)."""
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
-                 inputs: list[tuple], fallbacks: dict, *, realtime: str, seqs: dict[str, int] | None = None,
+                 inputs: list[tuple], fallbacks: dict, *, realtime: str,
                  ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
                  inline: bool = False):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
@@ -124,7 +129,7 @@ class NodeLoop:
         self.invoke = make_invoker(node.flow, node.spec)
         self.read = make_output_reader(node.spec)
         self.encoder = WireEncoder()
-        self.seqs: dict[str, int] = dict(seqs or {})
+        self.seqs: dict[str, int] = {}  # per output port, the next event's seq
         self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.single_port = len(self.ports) == 1
         self.consumed = consumed  # whether any flow consumes this one (else no progress messages)
@@ -145,7 +150,7 @@ class NodeLoop:
         # out-of-order arrivals, and progress messages waiting for the seqs they come after
         streams = {(e.src, e.src_port) for e in edges}
         self.frontiers: dict[tuple[str, str], tuple[int, int]] = {k: (0, 0) for k in streams}
-        self.expect: dict[tuple[str, str], int | None] = {k: 0 for k in streams}
+        self.expect: dict[tuple[str, str], int] = {k: 0 for k in streams}
         self.early: dict[tuple[str, str], dict[int, Any]] = {k: {} for k in streams}
         self.waiting: dict[tuple[str, str], list[tuple[int, tuple[int, int]]]] = {k: [] for k in streams}
         self.sources = sorted({e.src for e in edges})
@@ -161,6 +166,12 @@ class NodeLoop:
         self.t0 = 0
         self.end = 0
         self.stopping = False
+        # on_error="restart" (see "Restarting" below): after a failed step, ticks wait for the
+        # new process, which takes this loop's state over once the coordinator says so
+        self.restarting = False
+        self.handing_over = False
+        self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
+        self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
 
         self.records: list = []  # step records not yet reported to the coordinator
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
@@ -185,6 +196,11 @@ class NodeLoop:
     def declare(self) -> None:
         """Subscribe to the inputs, the producers' progress and the run's control; answer
         progress queries. Call before announcing readiness."""
+        self.declare_inputs()
+        self.declare_outputs()
+
+    def declare_inputs(self) -> None:
+        """What this node listens to: its input streams, their producers' progress, the run's control."""
         put = self.inbox.put
         receive = self._receive if self.inline else put
         s, keys = self.session, self.keys
@@ -197,6 +213,10 @@ class NodeLoop:
                 keys.progress(src), lambda sample, k=src: put((_PROGRESS, k, sample.payload.to_bytes()))))
         self._declared.append(s.declare_subscriber(
             keys.run_control(), lambda sample: put((_CONTROL, None, sample.payload.to_bytes()))))
+
+    def declare_outputs(self) -> None:
+        """What this node speaks on: its data and progress keys, and the answer to progress queries."""
+        s, keys = self.session, self.keys
         self._declared.append(s.declare_queryable(keys.progress(self.id), self._answer_progress))
         self.publishers = {port: self._publisher(keys.data(self.id, port)) for port in self.ports}
         self.progress_publisher = self._publisher(keys.progress(self.id))
@@ -300,12 +320,8 @@ class NodeLoop:
         join a run in progress (a restarted flow) at its next Rate tick."""
         self.t0, self.end = t0, end
         if resume:
-            self.expect = dict.fromkeys(self.expect)  # join the streams where they are now
-        if self.clock.hz is not None:
-            if resume:
-                now = self.now()
-                while self.clock.tick_time(self.k) < now:
-                    self.k += 1
+            self._skip_missed_ticks(self.now(), "restart_skipped", "restart_skipped")
+        elif self.clock.hz is not None:
             with self.lock:
                 self.next_rate = (self.clock.tick_time(self.k), 0)
         self._publish_progress()
@@ -333,7 +349,8 @@ class NodeLoop:
                     self.warmed_for = target
                 continue
             self._wait(wake - self.now())
-        self._finish()
+        if not self.handing_over:
+            self._finish()
 
     def _warm_target(self, now: int, wake: int) -> tuple[int | None, bytes | None]:
         """The predictable moment before ``wake`` to warm up for, after a long enough sleep, and
@@ -404,6 +421,8 @@ class NodeLoop:
             return self._done_waiting(now)
         if tau[0] > now:
             return tau[0]
+        if self.restarting:  # due, but the flow is being restarted: the new process will run it
+            return now + RESTART_POLL_NS
         incomplete, wake = self._incomplete(tau, now)
         if wake is not None:
             return wake
@@ -472,21 +491,28 @@ class NodeLoop:
     def _overran(self, tau: tuple[int, int], wall: int, done: int) -> None:
         """After a Rate tick's step outlasted the period: skip the ticks that came due meanwhile
         but the newest (on_overrun="skip"), or stop (on_overrun="error", realtime="hard")."""
-        clock = self.clock
-        missed = 0
-        with self.lock:
-            while clock.tick_time(self.k + 1) <= done and clock.tick_time(self.k) < self.end:
-                self.k += 1
-                missed += 1
-            self.next_rate = (clock.tick_time(self.k), 0)
-        if not missed:
-            return
-        self.counts["overrun"] += missed
-        self.pending_detail["overrun_skipped"] = self.pending_detail.get("overrun_skipped", 0) + missed
-        if self.realtime == "hard" or self.on_overrun == "error":
+        missed = self._skip_missed_ticks(done, "overrun", "overrun_skipped")
+        if missed and (self.realtime == "hard" or self.on_overrun == "error"):
             raise StopRun(f"{self.id} overran its period: the step at t={tau[0] / 1e9:.6f} s took "
                           f"{wall / 1e6:.3f} ms, {missed} tick(s) missed\n    hint: make step() faster, lower the "
                           f"rate, or set on_overrun='skip' (realtime='{self.realtime}')", tau)
+
+    def _skip_missed_ticks(self, now: int, counter: str, detail_key: str) -> int:
+        """Skip the Rate ticks that came due before ``now`` but the newest, which runs next;
+        count them under ``counter`` and tell the next record under ``detail_key``."""
+        if self.clock.hz is None:
+            return 0
+        clock = self.clock
+        missed = 0
+        with self.lock:
+            while clock.tick_time(self.k + 1) <= now and clock.tick_time(self.k) < self.end:
+                self.k += 1
+                missed += 1
+            self.next_rate = (clock.tick_time(self.k), 0)
+        if missed:
+            self.counts[counter] += missed
+            self.pending_detail[detail_key] = self.pending_detail.get(detail_key, 0) + missed
+        return missed
 
     # ---------------------------------------------------------------------------------------
     # Messages
@@ -516,12 +542,14 @@ class NodeLoop:
                     self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
         else:
             try:
-                op, _ = decode_control(data)
+                op, args = decode_control(data)
             except WireError as e:
                 self._garbage("ctl/run", e)
                 return
             if op == "stop":
                 self.stopping = True
+            elif op == "handover" and args.get("node") == self.id and self.restarting:
+                self.stopping = self.handing_over = True
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""
@@ -533,8 +561,8 @@ class NodeLoop:
         """Take a stream's events in seq order (Zenoh may reorder across routes); a frontier
         holds once every seq before it has been taken."""
         expect = self.expect[stream]
-        if expect is None:  # a restarted flow joins streams wherever they are
-            expect = msg.seq
+        if msg.seq < self.taken_over.get(stream, 0) and (msg.seq < expect or msg.seq in self.early[stream]):
+            return  # the process this one took over from had it (both listened meanwhile)
         if msg.seq < expect or msg.seq in self.early[stream]:
             self._garbage(stream, WireError(f"seq {msg.seq} of {stream[0]}.{stream[1]} arrived twice"))
             return
@@ -558,8 +586,7 @@ class NodeLoop:
                 self._advance_frontier(stream, max(ready))
 
     def _progress(self, stream: tuple[str, str], after_seq: int, frontier: tuple[int, int]) -> None:
-        expect = self.expect[stream]
-        if after_seq < (expect if expect is not None else 0):
+        if after_seq < self.expect[stream]:
             self._advance_frontier(stream, frontier)
         else:
             self.waiting[stream].append((after_seq, frontier))
@@ -624,7 +651,9 @@ class NodeLoop:
             if self.on_error == "stop":
                 raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
             if self.on_error == "restart":
-                raise RestartFlow(tau) from exc
+                self.restarting = True
+                if self.on_restart is not None:
+                    self.on_restart(tau, error)
             return
         wall = time.time_ns() - start
         self.last_wall = wall
@@ -740,6 +769,57 @@ class NodeLoop:
         self.progress_publisher.put(self.encoder.progress(frontier or self.frontier(), self.id, self.sent))
 
     # ---------------------------------------------------------------------------------------
+    # Restarting (on_error="restart")
+    # ---------------------------------------------------------------------------------------
+    # A step raised. This process runs no more ticks, but keeps receiving (its input buffers
+    # stay whole) and answering for its frontier (it stays at the tick due), releases held LET
+    # outputs on time, and says `restart`. The coordinator starts a new process, which listens
+    # to the same inputs and says `ready`; then it tells this one to hand over: this loop stops,
+    # and its state goes to the new process in a file. The new loop goes on from that state
+    # with a fresh flow, so what it consumes is what one process would have consumed: a log
+    # replays, the replay resetting the flow at the error record as the in-process backend does.
+    # Rate ticks that came due meanwhile are skipped but the newest (like an overrun), and
+    # triggered ticks run late.
+
+    def handover_state(self) -> dict:
+        """This loop's state, for the process that takes over (call after ``undeclare``: the
+        messages already queued are taken in first, and no more come)."""
+        self._drain()
+        streams = sorted(self.frontiers)
+        return {
+            "buffers": [[port, buf.entries, buf.visible, buf.cursor, buf.last_id] for port, buf, *_ in self.inputs],
+            "streams": [[src, port, self.frontiers[(src, port)], self.expect[(src, port)],
+                         [tuple(m) for m in self.early[(src, port)].values()], self.waiting[(src, port)]]
+                        for src, port in streams],
+            "pending": self.pending, "k": self.k, "next_rate": self.next_rate, "last_tick": self.last_tick,
+            "last_stamp": self.last_stamp, "held": self.held, "seqs": self.seqs, "sent": self.sent,
+            "pending_detail": self.pending_detail,
+        }
+
+    def take_over(self, state: dict) -> None:
+        """Go on from the state of the process this one replaces (see :meth:`handover_state`)."""
+        buffers = {port: buf for port, buf, *_ in self.inputs}
+        for port, entries, visible, cursor, last_id in state["buffers"]:
+            buf = buffers[port]
+            buf.entries, buf.visible, buf.cursor, buf.last_id = [tuple(e) for e in entries], visible, cursor, last_id
+        for src, port, frontier, expect, early, waiting in state["streams"]:
+            stream = (src, port)
+            self.frontiers[stream], self.expect[stream] = tuple(frontier), expect
+            self.early[stream] = {m[1]: DataMessage(*m) for m in early}
+            self.waiting[stream] = [(seq, tuple(f)) for seq, f in waiting]
+            self.taken_over[stream] = max([expect, *(seq + 1 for seq in self.early[stream])])
+        self.pending = [tuple(t) for t in state["pending"]]
+        heapq.heapify(self.pending)
+        self.pending_set = set(self.pending)
+        self.k, self.last_stamp = state["k"], state["last_stamp"]
+        self.next_rate = tuple(state["next_rate"]) if state["next_rate"] is not None else None
+        self.last_tick = tuple(state["last_tick"])
+        self.held = [tuple(h) for h in state["held"]]
+        heapq.heapify(self.held)
+        self.seqs, self.sent = dict(state["seqs"]), dict(state["sent"])
+        self.pending_detail = dict(state["pending_detail"])
+
+    # ---------------------------------------------------------------------------------------
     # The end
     # ---------------------------------------------------------------------------------------
     def _finish(self) -> None:
@@ -781,11 +861,3 @@ class NodeLoop:
         if self.reporter.waits:
             self.counts["report_waits"] = self.reporter.waits
             self.counts["report_wait_ns"] = self.reporter.waited_ns
-
-
-class RestartFlow(Exception):
-    """on_error="restart": the worker process exits to be restarted with a fresh flow."""
-
-    def __init__(self, tag: tuple[int, int]):
-        super().__init__(f"restart after the tick at {tag}")
-        self.tag = tag

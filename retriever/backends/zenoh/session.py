@@ -37,7 +37,7 @@ from ..base import NodeStats, Session
 from .hub import open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
-from .worker import EXIT_FAILED, EXIT_RESTART
+from .worker import EXIT_FAILED, EXIT_HANDED_OVER
 
 
 #: sessions not closed yet
@@ -77,9 +77,11 @@ class ZenohSession(Session):
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
         self._stats = {nid: NodeStats() for nid in graph.nodes}
-        self._workers: dict[str, subprocess.Popen] = {}
+        self._workers: dict[str, subprocess.Popen] = {}  # each node's process
+        self._retiring: dict[str, subprocess.Popen] = {}  # a restarting node's old process, until it hands over
+        self._retired: list[subprocess.Popen] = []  # old processes that handed over, to reap
         self._state: dict[str, str] = {}
-        self._exited: dict[str, float] = {}  # node -> when its process was first seen gone
+        self._exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         self._event_ids: set[tuple[str, str, int]] = set()
         self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
@@ -97,14 +99,15 @@ class ZenohSession(Session):
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
                       f"watch it with a subscriber on {self.keys.all_data()}", file=sys.stderr, flush=True)
             put = self._inbox.put
-            self._subscribers = [self._hub.declare_subscriber(
-                self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes())))]
+            self._subscribers = [
+                self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
+                self._hub.declare_queryable(self.keys.finished(), self._answer_finished)]
             ir = graph.to_ir().doc
             self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
             # untyped flows may emit on ports no edge names (a dict step's extra keys)
             self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
-                          "python_path": _python_path(), "main_file": _main_file(graph), "seqs": {},
+                          "python_path": _python_path(), "main_file": _main_file(graph),
                           "spill_dir": str(self._dir)}
             self._write_spec()
             for nid in graph.nodes:
@@ -129,6 +132,10 @@ class ZenohSession(Session):
                                                      stderr=subprocess.PIPE, start_new_session=True)
         self._output.setdefault(nid, WorkerOutput(nid)).attach(proc)
         self._state[nid] = "starting"
+
+    def _processes(self) -> list[subprocess.Popen]:
+        """Every worker process this run started."""
+        return [*self._workers.values(), *self._retiring.values(), *self._retired]
 
     def worker_pids(self) -> dict[str, int]:
         """PIDs of the worker processes, by node (for tests and tools)."""
@@ -163,8 +170,7 @@ class ZenohSession(Session):
                         time.monotonic() + self.startup_timeout, "start")
             self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             self.end_ns = until_ns
-            self._hub.put(self.keys.run_control(), self._encoder.control("start", {"t0": self.t0, "end": until_ns}),
-                          congestion_control=RELIABLE)
+            self._control("start", {"t0": self.t0, "end": until_ns})
             slack = max(self._deadlines(), 1.0) + 10.0
             self._await(lambda: all(s == "done" for s in self._state.values()),
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
@@ -251,6 +257,13 @@ class ZenohSession(Session):
         if node not in self._state:
             self._garbage(key, WireError(f"status of an unknown node '{node}'"))
             return
+        # a restart spawns a process: only the node's running process may ask for one, and only
+        # the old one may say it handed over
+        sayer = {"restart": self._workers[node], "handed_over": self._retiring.get(node)}.get(state)
+        if state in ("restart", "handed_over") and (sayer is None or info.get("pid") != sayer.pid):
+            self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
+                                         f"which is not the process of {node} that could say it"))
+            return
         counts = info.get("counts", {})
         if type(counts) is not dict or not all(type(k) is str and type(v) is int for k, v in counts.items()):
             self._garbage(key, WireError(f"status of {node} with counts that are not names and integers"))
@@ -260,9 +273,31 @@ class ZenohSession(Session):
             node_counts[name] = node_counts.get(name, 0) + n
         if state == "failed":
             self._failure = (node, info)
-        elif state == "restart":
-            self._spec["seqs"][node] = info.get("seqs", {})
+        elif state == "restart":  # its old process keeps listening until the new one takes over
+            self._retiring[node] = self._workers[node]
+            self._spawn(node, join=(self.t0, self.end_ns))
+            return
+        elif state == "ready" and node in self._retiring:
+            if self._state[node] == "done":  # the run ended while it restarted: stopped at close
+                return
+            self._control("handover", {"node": node})
+        elif state == "handed_over":
+            self._retired.append(self._retiring.pop(node))
+            self._control("resume", {"node": node})
+            return
+        elif state == "done":
+            old = self._retiring.pop(node, None)
+            if old is not None:
+                self._retired.append(old)
         self._state[node] = state
+
+    def _answer_finished(self, query) -> None:
+        """Which nodes are done (a restarted flow's process waits for answers from the others)."""
+        done = sorted(node for node, state in list(self._state.items()) if state == "done")
+        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done}))
+
+    def _control(self, op: str, args: dict) -> None:
+        self._hub.put(self.keys.run_control(), self._encoder.control(op, args), congestion_control=RELIABLE)
 
     def _event(self, key: str, node: str, wall: int, message: bytes | str) -> None:
         try:
@@ -306,19 +341,13 @@ class ZenohSession(Session):
             print(f"retriever: dropped a message on {key}: {error}", file=sys.stderr, flush=True)
 
     def _check_processes(self) -> None:
-        for nid, proc in list(self._workers.items()):
+        for nid, proc in [*self._workers.items(), *self._retiring.items()]:
             code = proc.poll()
             if code is None or self._state[nid] == "done":
                 continue
-            if code == EXIT_RESTART and self._state[nid] == "restart":
-                self._write_spec()
-                self._exited.pop(nid, None)
-                self._spawn(nid, join=(self.t0, self.end_ns))
-                self._state[nid] = "ready"
-                continue
             # its last messages may still be on the way: give them a moment before calling it dead
-            exited = self._exited.setdefault(nid, time.monotonic())
-            if code in (0, EXIT_RESTART, EXIT_FAILED) and time.monotonic() - exited < 2.0:
+            exited = self._exited.setdefault(proc.pid, time.monotonic())
+            if code in (0, EXIT_HANDED_OVER, EXIT_FAILED) and time.monotonic() - exited < 2.0:
                 continue
             if self._failure is None:
                 self._output[nid].drain()
@@ -348,17 +377,17 @@ class ZenohSession(Session):
         if self._hub is None:
             return
         if self.t0 is None:
-            for p in self._workers.values():
+            for p in self._processes():
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
             self._reap()
             return
         try:
-            self._hub.put(self.keys.run_control(), self._encoder.control("stop", {}), congestion_control=RELIABLE)
+            self._control("stop", {})
         except Exception:
             pass
         give_up = time.monotonic() + grace
-        while time.monotonic() < give_up and any(p.poll() is None for p in self._workers.values()):
+        while time.monotonic() < give_up and any(p.poll() is None for p in self._processes()):
             try:
                 self._handle(self._inbox.get(timeout=0.02))
             except queue.Empty:
@@ -372,7 +401,7 @@ class ZenohSession(Session):
 
     def _reap(self, grace: float = 5.0) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
-        procs = list(self._workers.values())
+        procs = self._processes()
         deadline = time.monotonic() + grace
         for p in procs:
             try:
@@ -390,7 +419,7 @@ class ZenohSession(Session):
         if self._closed:
             return
         self._closed = True
-        if any(p.poll() is None for p in self._workers.values()):
+        if any(p.poll() is None for p in self._processes()):
             self._stop_workers(grace=2.0)
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
         for output in self._output.values():

@@ -104,6 +104,10 @@ class KeySpace:
     def node_status(self, node: str) -> str:
         return f"{self.prefix}/status/node/{node}"
 
+    def finished(self) -> str:
+        """The coordinator's queryable: which nodes are done."""
+        return f"{self.prefix}/status/finished"
+
     def run_control(self) -> str:
         return f"{self.prefix}/ctl/run"
 
@@ -332,7 +336,7 @@ def decode_status(data: bytes) -> tuple[str, str, dict]:
 
 
 #: what a worker says on status/node/<node> (worker.py)
-NODE_STATES = ("ready", "done", "failed", "restart")
+NODE_STATES = ("ready", "done", "failed", "restart", "handed_over")
 
 
 def decode_control(data: bytes) -> tuple[str, dict]:

@@ -1,15 +1,21 @@
 """A worker process: one flow of a run, rebuilt from the IR, ticking in real time.
 
-    python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END SEQS]
+    python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END]
 
 The coordinator (``retriever.backends.zenoh.session``) writes ``SPEC.json`` — the IR, the hub's
 endpoint, the namespace and the Python path the flows were imported from — and starts one worker
 per node. A worker joins the hub, declares its subscriptions, says ``ready`` on
-``status/node/<node>``, and waits for ``start`` (T0 and the end) on ``ctl/run``; ``--join`` skips
-the wait (a flow restarted by ``on_error="restart"`` joins the running run). It exits when its
-node is done, on ``stop``, on SIGTERM, or when its parent dies; its session always closes.
+``status/node/<node>``, and waits for ``start`` (T0 and the end) on ``ctl/run``.
 
-Exit codes: 0 done or stopped, 1 failed (the status message says why), 3 restart requested.
+on_error="restart": the failed worker says ``restart`` and goes on listening (see "Restarting" in
+loop.py); the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
+and waits. The coordinator then puts ``handover`` {node}: the old worker writes its loop's state
+to ``<run dir>/<node>.handover``, says ``handed_over`` and exits; then ``resume`` {node}: the new
+one reads the state and goes on with a fresh flow.
+
+A worker exits when its node is done, on ``stop``, on SIGTERM, or when its parent dies; its
+session always closes. Every status it sends carries its pid. Exit codes: 0 done or stopped,
+1 failed (the status message says why), 3 handed over to a restarted flow.
 """
 
 from __future__ import annotations
@@ -27,9 +33,13 @@ import time
 import traceback
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .loop import NodeLoop
 
 EXIT_FAILED = 1
-EXIT_RESTART = 3
+EXIT_HANDED_OVER = 3
 
 #: The ``ready`` status carries this much padding, so that Zenoh sends it through the session's
 #: shared-memory pool (messages over 3 KiB between peers on one host go that way). Zenoh creates
@@ -53,6 +63,10 @@ def _die_with_parent() -> None:
     except (OSError, AttributeError):
         pass
 
+
+#: how long a restarted flow's process waits for its producers and consumers to answer before it
+#: says ready anyway (one that never answers has finished, or is stuck)
+NEIGHBOR_TIMEOUT_S = 10.0
 
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
 #: to), then the process exits anyway: a flow stuck in its step never looks at the request
@@ -151,7 +165,7 @@ def build_loop(spec: dict, node_id: str, session):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
-                    realtime=meta.get("realtime", "soft"), seqs=spec.get("seqs", {}).get(node_id),
+                    realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
@@ -219,14 +233,17 @@ def _serve(argv: list[str]) -> int:
         if path not in sys.path:
             sys.path.insert(0, path)
 
-    from .hub import open_peer, wait_for_peers
-    from .loop import _CONTROL, RestartFlow, StopRun
-    from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_control
+    from ...codec import packb, unpackb
+    from .hub import open_peer, wait_for_answers, wait_for_peers
+    from .loop import _CONTROL, StopRun
+    from .wire import RELIABLE, KeySpace, WireEncoder
 
     keys = KeySpace(spec["namespace"])
     encoder = WireEncoder()
+    handover_file = Path(spec_path).parent / f"{node_id}.handover"
     with open_peer(spec["hub"]) as session:
         def status(state: str, **info) -> None:
+            info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), encoder.status(node_id, state, info), congestion_control=RELIABLE)
 
         try:
@@ -244,45 +261,41 @@ def _serve(argv: list[str]) -> int:
             loop.inbox.put(stop_item)
 
         signal.signal(signal.SIGTERM, on_sigterm)
-        loop.declare()
+        loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
-            if join is not None:
+            if join is not None:  # a restarted flow: listen now, take the old process's place when told
+                loop.declare_inputs()
+                # links to its producers and consumers, each knowing the other's subscribers:
+                # once the old process stops, a message that reached neither would be a gap
+                neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
+                             if node_id in (e["source"]["node"], e["destination"]["node"])}
+                wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in neighbors},
+                                 timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
+                                 gone=lambda: {keys.progress(n) for n in _finished_nodes(session, keys)})
                 t0, end = int(join[1]), int(join[2])
-                status("ready", pid=os.getpid(), padding=bytes(READY_PADDING))  # the pool, before it joins
+                status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
+                if _await_control(loop, "resume", node_id) is None:
+                    status("done", counts=dict(loop.counts))
+                    loop.undeclare()
+                    return 0
+                loop.take_over(unpackb(handover_file.read_bytes()))
+                handover_file.unlink()
+                loop.declare_outputs()
             else:
+                loop.declare()
                 # a direct link to every other worker and the hub, before anything is published
                 linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0, stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
-                status("ready", pid=os.getpid(), linked=linked, padding=bytes(READY_PADDING))
-                early = []
-                while True:
-                    item = loop.inbox.get()
-                    if item[0] != _CONTROL:
-                        early.append(item)
-                        continue
-                    try:
-                        op, args = decode_control(item[2])
-                    except WireError:
-                        loop.counts["garbage"] += 1
-                        continue
-                    if op == "start":
-                        t0, end = int(args["t0"]), int(args["end"])
-                        break
-                    if op == "stop":
-                        status("done", counts=dict(loop.counts), seqs=loop.seqs)
-                        return 0
-                for item in early:
-                    loop.inbox.put(item)
+                status("ready", linked=linked, padding=bytes(READY_PADDING))
+                start = _await_control(loop, "start", node_id)
+                if start is None:
+                    status("done", counts=dict(loop.counts))
+                    loop.undeclare()
+                    return 0
+                t0, end = int(start["t0"]), int(start["end"])
             loop.run(t0, end, resume=join is not None)
-        except RestartFlow as exc:
-            loop.release_held()
-            loop.finish_reports()
-            status("restart", tag=list(exc.tag), seqs=loop.seqs, counts=dict(loop.counts),
-                   error=f"{type(exc.__cause__).__name__}: {exc.__cause__}")
-            loop.undeclare()
-            return EXIT_RESTART
         except StopRun as exc:
             loop.release_held()
             loop.finish_reports()
@@ -297,9 +310,63 @@ def _serve(argv: list[str]) -> int:
                    traceback=traceback.format_exc(), counts=dict(loop.counts))
             loop.undeclare()
             return EXIT_FAILED
-        status("done", counts=dict(loop.counts), seqs=loop.seqs)
+        if loop.handing_over:
+            loop.undeclare()  # first: no message may arrive after the state is taken
+            state = packb(loop.handover_state())
+            loop.finish_reports()
+            tmp = handover_file.with_suffix(".tmp")
+            tmp.write_bytes(state)
+            tmp.replace(handover_file)
+            status("handed_over", counts=dict(loop.counts))
+            return EXIT_HANDED_OVER
+        status("done", counts=dict(loop.counts))
         loop.undeclare()
     return 0
+
+
+def _finished_nodes(session, keys) -> set[str]:
+    """The nodes the coordinator knows are done (they will not answer, nor send, again)."""
+    from .wire import WireError, decode_control
+
+    done: set[str] = set()
+    for reply in session.get(keys.finished(), timeout=0.25):
+        if reply.ok is None:
+            continue
+        try:
+            _, args = decode_control(reply.ok.payload.to_bytes())
+        except WireError:
+            continue
+        nodes = args.get("nodes")
+        if type(nodes) is list:
+            done.update(n for n in nodes if type(n) is str)
+    return done
+
+
+def _await_control(loop: NodeLoop, wanted: str, node_id: str) -> dict | None:
+    """Wait for the run's control to say ``wanted`` (to this node, if it names one): its
+    arguments; None on ``stop``. What else arrives meanwhile is put back in the loop's inbox."""
+    from .loop import _CONTROL
+    from .wire import WireError, decode_control
+
+    early = []
+    try:
+        while True:
+            item = loop.inbox.get()
+            if item[0] != _CONTROL:
+                early.append(item)
+                continue
+            try:
+                op, args = decode_control(item[2])
+            except WireError:
+                loop.counts["garbage"] += 1
+                continue
+            if op == "stop":
+                return None
+            if op == wanted and args.get("node", node_id) == node_id:
+                return args
+    finally:
+        for item in early:
+            loop.inbox.put(item)
 
 
 if __name__ == "__main__":

@@ -69,12 +69,14 @@ class Unsendable(Flow[None, Value]):
 
 class Faulty(Flow[XIn, Report]):
     """Raises ``ValueError(f"{message} at x={x}")`` when its input ``x`` is in ``fail_at``; else
-    reports ``{"pid": os.getpid(), "calls": calls since reset, "x": x}``. The call counter
-    lives in ``reset()``, the state a restart must renew."""
+    reports ``{"pid": os.getpid(), "calls": calls since reset, "x": x}`` (without the pid when
+    ``with_pid`` is false: a replay runs in another process). The call counter lives in
+    ``reset()``, the state a restart must renew."""
 
-    def __init__(self, fail_at: list, message: str = "boom"):
+    def __init__(self, fail_at: list, message: str = "boom", with_pid: bool = True):
         self.fail_at = list(fail_at)
         self.message = message
+        self.with_pid = with_pid
         self.calls = 0
 
     def reset(self) -> None:
@@ -84,7 +86,8 @@ class Faulty(Flow[XIn, Report]):
         self.calls += 1
         if inp.x in self.fail_at:
             raise ValueError(f"{self.message} at x={inp.x}")
-        return Report({"pid": os.getpid(), "calls": self.calls, "x": inp.x})
+        report = {"calls": self.calls, "x": inp.x}
+        return Report({"pid": os.getpid(), **report} if self.with_pid else report)
 
 
 class Sleepy(Flow[None, Value]):

@@ -574,6 +574,9 @@ with open_peer(sys.argv[2]) as s:
     # and step records: a second one for counter's tick at T0, and one whose event ids are not ids
     s.put(keys.report("counter"), enc.report("counter", [((0, 0), {}, (), "ok", None, 0, 0)], []))
     s.put(keys.report("counter"), enc.report("counter", [((50, 0), {"n": [["a"]]}, (), "ok", None, 0, 0)], []))
+    # and statuses asking to restart a node, or saying one handed over, from a process not its
+    s.put(keys.node_status("counter"), enc.status("counter", "restart", {"pid": 1, "tag": [0, 0], "error": "no"}))
+    s.put(keys.node_status("total"), enc.status("total", "handed_over", {"pid": 1}))
     sys.stdin.readline()  # the session stays open (its puts delivered) until the run has ended
     sub.undeclare()
     reports.undeclare()
@@ -601,11 +604,12 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
     assert {e.node for e in trace.events} == {"counter", "total"}, sorted({e.node for e in trace.events})
     assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
     assert {e.node for e in read_log(tmp_path / "run.mcap").iter_events()} == {"counter", "total"}
-    # the duplicate data message, refused by the consumer of counter.n, and the seven reports,
-    # refused by the coordinator (the ghost's data keys reach no Retriever process: none listens)
-    assert pipe.counts()["garbage"] >= 8, pipe.counts()
+    # the duplicate data message, refused by the consumer of counter.n, and the seven reports and
+    # two statuses, refused by the coordinator (the ghost's data keys reach no Retriever process)
+    assert pipe.counts()["garbage"] >= 10, pipe.counts()
     assert stats["total"].counts["garbage"] >= 1 and "garbage" not in stats["counter"].counts, stats
-    assert pipe.counts()["garbage"] - stats["total"].counts["garbage"] >= 7, (pipe.counts(), stats)
+    assert pipe.counts()["garbage"] - stats["total"].counts["garbage"] >= 9, (pipe.counts(), stats)
+    assert "restart_skipped" not in pipe.counts()
     ticks = [s.tag for s in trace.steps_of("counter")]
     assert ticks == sorted(set(ticks)) and len(ticks) == 20, ticks  # one record per tick, the worker's
     # all of it in the log's end record, and in `retriever log info`

@@ -14,7 +14,8 @@ process. Where a check needs a margin, the margin is hundreds of milliseconds.
 Step-record ``detail`` keys (loop.py): ``incomplete`` (ports whose edge was not complete up to the
 tick within its deadline), ``late`` ({port: n} events that arrived after their tick ran, told on
 the next record), ``overrun_skipped`` (ticks skipped after a step outlasted its period, told on
-the next record), ``deadline_miss_ns``/``on_deadline_miss`` (a LET step finished after
+the next record), ``restart_skipped`` (Rate ticks skipped while the flow's process restarted,
+told on the next record), ``deadline_miss_ns``/``on_deadline_miss`` (a LET step finished after
 tick + latency), ``error``/``on_error``.
 """
 
@@ -221,6 +222,73 @@ def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
     held = [s for s in recs if s.produced and bad_tick[0] - 150 * MS < s.tag[0] < bad_tick[0]]
     assert held, "no output was held when the step raised"  # x = 1, 2: due after x = 3's tick
     assert any(s.tag > bad_tick and s.produced for s in recs), "no step succeeded after the restart"
+
+
+def test_a_restarted_flow_takes_over_its_inputs_and_pending_ticks_and_the_log_replays(tmp_path):
+    """A restart spawns a new process, which takes over the old one's state (input buffers and
+    streams, ticks due, seqs) once it listens to the same inputs: no input is lost meanwhile.
+    So a triggered flow runs a tick for every event (late, after the restart), a Rate flow skips
+    the ticks that came due meanwhile but the newest (counted as ``restart_skipped`` and told on
+    its next record), and the log replays bit for bit, the replay resetting the flow at the
+    error record; its consumer gets every output of both processes. Before the takeover the new
+    process started with empty buffers: its first tick was skipped as missing and the replay
+    diverged there; the ticks due meanwhile had no record and were not counted."""
+    with Pipeline("takeover", deadline=1.0) as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        on_events = Faulty(fail_at=[3], with_pid=False).configure(name="on_events", on_error="restart") @ Trigger("x")
+        on_rate = Faulty(fail_at=[5, 6], with_pid=False).configure(name="on_rate", on_error="restart") @ Rate(hz=10)
+        sink = Probe().configure(name="sink") @ Trigger("x")
+        src.then(on_events, sync=Latest())
+        src.then(on_rate, sync=Latest())
+        on_events.then(sink, sync=Latest(), map={"report": "x"})
+    path = tmp_path / "run.mcap"
+    trace = run(pipe, 3.0, log=path)  # time enough for a slow restart
+    by_id = check_trace_basics(pipe, trace)
+    assert counts(pipe)["garbage"] == 0
+
+    # every event of the counter triggered a tick of on_events that consumed it, restart or not
+    events = trace.events_of("counter", "value")
+    recs = trace.steps_of("on_events")
+    assert [s.tag for s in recs] == [e.tag for e in events if e.tag[0] < 3 * S]
+    assert [s.consumed["x"] for s in recs] == [(e.id,) for e in events if e.tag[0] < 3 * S]
+    assert [s.status for s in recs].count("error") == 1
+    reports = [by_id[s.produced[0]].value for s in recs if s.status == "ok"]
+    assert [r["x"] for r in reports] == [x for x in range(len(recs)) if x != 3]
+    assert [r["calls"] for r in reports] == [1, 2, 3] + list(range(1, len(reports) - 2))  # reset
+    # downstream, the new process's outputs continue the old one's stream: nothing stalls
+    produced = [s.produced for s in recs if s.produced and by_id[s.produced[0]].tag[0] < 3 * S]
+    assert [s.consumed["x"] for s in trace.steps_of("sink")] == produced
+
+    # on_rate: each of its 30 ticks ran or was skipped while its flow restarted, and says so
+    recs = trace.steps_of("on_rate")
+    errors = [s for s in recs if s.status == "error"]
+    assert len(errors) == 1, recs
+    skipped = pipe.stats()["on_rate"].counts.get("restart_skipped", 0)
+    assert len(recs) + skipped == 30, (len(recs), skipped)
+    after = [s for s in recs if s.tag > errors[0].tag]
+    assert after and all(s.status == "ok" for s in after), after
+    assert detail(after[0]).get("restart_skipped", 0) == skipped, after[0]
+    assert all(tick_index(s.tag, 10) == k for k, s in enumerate(recs[:recs.index(errors[0]) + 1]))
+
+    report = retriever.log.replay(retriever.read_log(path))
+    assert report.identical, report.divergences[:3]
+    assert report.nodes["on_events"].replayed == len(trace.steps_of("on_events"))
+
+
+def test_a_restart_across_the_runs_end_still_runs_the_tick_triggered_before_it():
+    """The step at x = 18 (t = 0.9 s of a 1 s run) raises; x = 19 triggers a tick at 0.95 s while
+    the flow restarts. The new process takes over after the end, when the counter has finished
+    (it does not wait for an answer from a finished node), and runs that tick late."""
+    with Pipeline("restart_at_end") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=[18], with_pid=False).configure(name="faulty", on_error="restart") @ Trigger("x")
+        src.then(bad, sync=Latest())
+    trace = run(pipe, 1.0)
+    by_id = check_trace_basics(pipe, trace)
+    recs = trace.steps_of("faulty")
+    assert [s.consumed["x"] for s in recs] == [(e.id,) for e in trace.events_of("counter", "value")]
+    assert [s.status for s in recs][-3:] == ["ok", "error", "ok"]
+    assert by_id[recs[-1].produced[0]].value == {"calls": 1, "x": 19}
 
 
 def test_an_output_that_cannot_be_sent_stops_the_run_naming_its_port_and_time():
