@@ -280,8 +280,10 @@ def _user_stacklevel() -> int:
 def _stop_between_ticks(session: Session) -> Iterator[None]:
     """While a logged run goes, Ctrl-C and SIGTERM ask it to stop at the next hand-over to the log
     writer (between two ticks) instead of raising wherever the interpreter happens to be, which
-    could leave a tick half recorded. A second signal stops at once."""
-    if session.log is None or threading.current_thread() is not threading.main_thread():
+    could leave a tick half recorded. A second signal stops at once. A run that holds processes
+    stops on SIGTERM as on Ctrl-C (KeyboardInterrupt), logged or not, unless the program
+    handles SIGTERM itself."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
 
@@ -290,7 +292,16 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
             raise KeyboardInterrupt
         session.stop_requested = True
 
-    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    def terminate(signum, frame) -> None:
+        raise SystemExit(128 + signum)  # what a shell reports for a process SIGTERM ended
+
+    if session.log is not None:
+        handlers = {signal.SIGINT: request_stop, signal.SIGTERM: request_stop}
+    elif session.holds_processes and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        handlers = {signal.SIGTERM: terminate}
+    else:
+        handlers = {}
+    previous = {sig: signal.signal(sig, handler) for sig, handler in handlers.items()}
     try:
         yield
     finally:

@@ -58,6 +58,9 @@ class Session(ABC):
     backend_name: str = ""
     #: whether ``pipe.step(dt)`` may drive this session (virtual time)
     steppable: bool = False
+    #: whether the run holds other processes and shared memory: SIGTERM then stops it like Ctrl-C
+    #: (its default would end this process at once, and leave what Zenoh put in /dev/shm)
+    holds_processes: bool = False
 
     #: most steps between two hand-overs of the trace to the log writer, and the wall time
     #: aimed for between them (slow steps mean smaller batches, so a kill loses little)

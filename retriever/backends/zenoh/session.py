@@ -64,6 +64,7 @@ class RemoteError(Exception):
 
 class ZenohSession(Session):
     backend_name = "zenoh"
+    holds_processes = True
 
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
                  start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False):

@@ -228,6 +228,65 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
     assert {s.node for s in log.iter_steps()} == {"counter", "total"}
 
 
+PLAIN_SCRIPT = """
+from retriever import Flow, Pipeline, Rate
+
+
+class Tick(Flow[None, int]):
+    def __init__(self):
+        self.n = 0
+
+    def step(self, inp: None) -> int:
+        if self.n == 0:
+            print("stepped")
+        self.n += 1
+        return self.n
+
+
+with Pipeline("plain") as pipe:
+    Tick() @ Rate(hz=10)
+
+if __name__ == "__main__":
+    pipe.run(duration=60, backend="zenoh", quiet=True)  # no log=, no signal handler of its own
+"""
+
+
+def _zenoh_segments(pids: list[int]) -> set[str]:
+    """The Zenoh shared-memory segments these processes have mapped."""
+    found = set()
+    for pid in pids:
+        try:
+            found |= set(re.findall(r"/dev/shm/\S+\.zenoh", Path(f"/proc/{pid}/maps").read_text()))
+        except OSError:
+            pass
+    return found
+
+
+def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp_path):
+    """SIGTERM's default would end the script at once: its workers die with it, but the Zenoh
+    segments in /dev/shm stay (Zenoh removes them at exit(), which a signal skips). During a
+    run that holds processes, SIGTERM ends the script with SystemExit(143) instead: workers
+    stopped, sessions closed, segments removed, the exit status a shell expects."""
+    script = tmp_path / "plain.py"
+    script.write_text(PLAIN_SCRIPT, encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=tmp_path, env=_env())
+    try:
+        assert _read_line(proc) == "[tick] stepped\n"  # the run has started
+        workers = _worker_children(proc.pid)
+        assert len(workers) == 1, workers
+        segments = _zenoh_segments([proc.pid, *(pid for pid, _ in workers)])
+        assert segments, "no Zenoh segment mapped: nothing to check"
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=BOUND_S)
+    finally:
+        _kill(proc)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err, err
+    assert not [ident for ident in workers if _alive(ident)]
+    assert not [path for path in segments if os.path.exists(path)], segments
+
+
 CHOSEN_BY_INIT = """
 import retriever
 from retriever import Latest, Pipeline, Rate
