@@ -239,12 +239,12 @@ def _serve(argv: list[str]) -> int:
     from .wire import RELIABLE, KeySpace, WireEncoder
 
     keys = KeySpace(spec["namespace"])
-    encoder = WireEncoder()
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
     with open_peer(spec["hub"]) as session:
-        def status(state: str, **info) -> None:
+        def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
-            session.put(keys.node_status(node_id), encoder.status(node_id, state, info), congestion_control=RELIABLE)
+            session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
+                        congestion_control=RELIABLE)
 
         try:
             if spec.get("main_file"):
@@ -254,7 +254,7 @@ def _serve(argv: list[str]) -> int:
             status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",
                    traceback=traceback.format_exc())
             return EXIT_FAILED
-        stop_item = (_CONTROL, None, encoder.control("stop", {}))
+        stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
 
         def on_sigterm(signum, frame) -> None:
             loop.stopping = True
