@@ -229,6 +229,8 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
 
 
 PLAIN_SCRIPT = """
+import sys
+
 from retriever import Flow, Pipeline, Rate
 
 
@@ -247,7 +249,9 @@ with Pipeline("plain") as pipe:
     Tick() @ Rate(hz=10)
 
 if __name__ == "__main__":
-    pipe.run(duration=60, backend="zenoh", quiet=True)  # no log=, no signal handler of its own
+    # no log=, no signal handler of its own; a hub port of its own, so that no stray peer of an
+    # earlier test (retrying its connection to 7447) joins it and maps segments into it
+    pipe.run(duration=60, backend="zenoh", quiet=True, hub_port=int(sys.argv[1]))
 """
 
 
@@ -269,8 +273,8 @@ def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp
     stopped, sessions closed, segments removed, the exit status a shell expects."""
     script = tmp_path / "plain.py"
     script.write_text(PLAIN_SCRIPT, encoding="utf-8")
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=tmp_path, env=_env())
+    proc = subprocess.Popen([sys.executable, str(script), str(free_port())], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
     try:
         assert _read_line(proc) == "[tick] stepped\n"  # the run has started
         workers = _worker_children(proc.pid)
