@@ -561,10 +561,11 @@ class NodeLoop:
         """Take a stream's events in seq order (Zenoh may reorder across routes); a frontier
         holds once every seq before it has been taken."""
         expect = self.expect[stream]
-        if msg.seq < self.taken_over.get(stream, 0) and (msg.seq < expect or msg.seq in self.early[stream]):
-            return  # the process this one took over from had it (both listened meanwhile)
         if msg.seq < expect or msg.seq in self.early[stream]:
-            self._garbage(stream, WireError(f"seq {msg.seq} of {stream[0]}.{stream[1]} arrived twice"))
+            # a duplicate; below taken_over it is one the process this one took over from had
+            # too (both listened meanwhile): expected, not garbage
+            if msg.seq >= self.taken_over.get(stream, 0):
+                self._garbage(stream, WireError(f"seq {msg.seq} of {stream[0]}.{stream[1]} arrived twice"))
             return
         if msg.seq > expect:
             self.early[stream][msg.seq] = msg
