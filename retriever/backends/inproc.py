@@ -361,13 +361,15 @@ class InprocSession(Session):
     # ---------------------------------------------------------------------------------------
     # Hooks for replay (retriever.log.replay): drive ticks from a log instead of the clocks
     # ---------------------------------------------------------------------------------------
-    def take_routes(self) -> dict[tuple[str, str], list[tuple[PortBuffer, int]]]:
-        """Stop delivering outputs; return where each ``(node, port)`` delivered, with its delay,
-        so the caller can deliver logged events instead."""
-        routes: dict[tuple[str, str], list[tuple[PortBuffer, int]]] = {}
+    def take_routes(self) -> dict[tuple[str, str], list[tuple[tuple[str, str], PortBuffer, int]]]:
+        """Stop delivering outputs; return where each ``(node, port)`` delivered: the consuming
+        ``(node, port)``, its buffer and the edge's delay, so the caller can deliver logged
+        events instead."""
+        owners = {id(buf): (rt.id, port) for rt in self._nodes for port, buf, _, _ in rt.inputs}
+        routes: dict[tuple[str, str], list[tuple[tuple[str, str], PortBuffer, int]]] = {}
         for rt in self._nodes:
             for port, consumers in rt.downstream.items():
-                routes[(rt.id, port)] = [(buf, delay_ns) for _, buf, delay_ns, _ in consumers]
+                routes[(rt.id, port)] = [(owners[id(buf)], buf, delay_ns) for _, buf, delay_ns, _ in consumers]
             rt.downstream = {}
         self._drop_compiled()
         self._generic_only = True  # compiled ticks deliver, and expect inproc entries

@@ -2,7 +2,8 @@
 
 ``replay`` (the default) isolates every flow: each logged step of a non-source node runs again
 on inputs rebuilt from the *logged* events with the edge's policy, so one divergent node cannot
-hide or cause divergence elsewhere. Per step it checks the consumed event ids against the log,
+hide or cause divergence elsewhere. Events a real-time consumer dropped as late (its step
+records name them) are withheld from it, as they were in the run. Per step it checks the consumed event ids against the log,
 then the status, the produced ids and tags, and every output value's msgpack bytes.
 
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
@@ -102,7 +103,11 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     trace = session.trace
     encode = Encoder().pack
 
-    # Logged events, in arrival order at each consumer (an edge's delay shifts it).
+    steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
+    # Logged events, in arrival order at each consumer (an edge's delay shifts it), but for the
+    # late ones: in real time they reached a consumer after a tick at or past their tag had run
+    # without them, and the consumer dropped them.
+    withheld = late_events(steps)
     events = list(log.iter_events())
     logged = {e.id: e for e in events}
     deliveries = []
@@ -110,12 +115,13 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
         consumers = routes.get((e.node, e.port))
         if consumers:
             value = log.value(e)
-            for buf, delay_ns in consumers:
+            for consumer, buf, delay_ns in consumers:
+                if (consumer, e.id) in withheld:
+                    continue
                 arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
                 deliveries.append((arrival, buf, (arrival, e.node, e.port, e.seq, value)))
     deliveries.sort(key=lambda d: d[0])
 
-    steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
     sources = {nid for nid, node in graph.nodes.items() if not node.inputs}
     # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
     # is then checked for causality (after the tick), not recomputed.
@@ -151,6 +157,15 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     if progress is not None:
         progress(len(steps), len(steps))
     return report
+
+
+def late_events(steps) -> set[tuple[tuple[str, str], tuple[str, str, int]]]:
+    """``((consumer node, port), event id)`` of every event a real-time consumer dropped as late,
+    from the step records' ``late`` detail (``{port: [event id, ...]}``, told on the record after
+    it arrived)."""
+    return {((s.node, port), (node, out, seq))
+            for s in steps if s.detail and "late" in s.detail
+            for port, ids in s.detail["late"].items() for node, out, seq in ids}
 
 
 def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:

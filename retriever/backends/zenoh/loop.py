@@ -601,8 +601,9 @@ class NodeLoop:
         arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
         if arrival <= self.last_tick:  # a tick at or after this tag already ran without it
             self.counts["late"] += 1
-            late = self.pending_detail.setdefault("late", {})
-            late[e.port] = late.get(e.port, 0) + 1
+            # by id: a replay must withhold exactly these from this port (log/replay.py)
+            self.pending_detail.setdefault("late", {}).setdefault(e.port, []).append(
+                (msg.producer, msg.port, msg.seq))
             return
         e.buf.insert((arrival, msg.producer, msg.port, msg.seq, msg.value))
         if e.triggers and arrival[0] < self.end and arrival not in self.pending_set:

@@ -12,8 +12,8 @@ nothing) and from the loop's bookkeeping, never from how quickly a loaded machin
 process. Where a check needs a margin, the margin is hundreds of milliseconds.
 
 Step-record ``detail`` keys (loop.py): ``incomplete`` (ports whose edge was not complete up to the
-tick within its deadline), ``late`` ({port: n} events that arrived after their tick ran, told on
-the next record), ``overrun_skipped`` (ticks skipped after a step outlasted its period, told on
+tick within its deadline), ``late`` ({port: [event id, ...]} events that arrived after their
+tick ran, told on the next record), ``overrun_skipped`` (ticks skipped after a step outlasted its period, told on
 the next record), ``restart_skipped`` (Rate ticks skipped while the flow's process restarted,
 told on the next record), ``deadline_miss_ns``/``on_deadline_miss`` (a LET step finished after
 tick + latency), ``error``/``on_error``.
@@ -330,16 +330,18 @@ def test_busy_asap_producer_still_completes_its_edges():
         assert [by_id[i].value for i in s.consumed["x"]] == [1], s
 
 
-def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_never_consumed():
+def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_never_consumed(tmp_path):
     """A LET producer (latency 50 ms) blocked 0.8 s in its tick at 0.2 s promises nothing past
     0.25 s (its output's tag) until it finishes: the consumer's ticks from 0.25 s wait the edge's
     deadline (30 ms), then run with what they have, marked incomplete. The output (tag 0.25 s)
-    arrives after those ticks ran: it is late, counted and told, and no tick consumes it."""
+    arrives after those ticks ran: it is late, counted and told by id, no tick consumes it, and
+    the log replays (the replay withholds it from the consumer as the run did)."""
     with Pipeline("blocked_let") as pipe:
         prod = Sleepy(sleep=0.8, at=[2]).configure(name="prod", latency=0.05) @ Rate(hz=10)
         probe = Probe().configure(name="probe") @ Rate(hz=20)
         prod.then(probe, sync=Latest(), deadline=0.03)
-    trace = run(pipe, 1.5)
+    path = tmp_path / "blocked.mcap"
+    trace = run(pipe, 1.5, log=path)
     check_trace_basics(pipe, trace)
     recs = trace.steps_of("probe")
     incomplete = [s for s in recs if "incomplete" in detail(s)]
@@ -360,11 +362,16 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
     # it arrived after ticks at or past its tag had run: late, counted, told on a later record
     assert counts(pipe)["late"] >= 1
     assert pipe.stats()["probe"].counts["late"] == counts(pipe)["late"]  # the consumer counted them
-    told = sum(n for s in recs for n in detail(s).get("late", {}).values())
-    assert 1 <= told <= counts(pipe)["late"]
+    told = [tuple(i) for s in recs for ids in detail(s).get("late", {}).values() for i in ids]
+    assert 1 <= len(told) <= counts(pipe)["late"]
+    assert late_event.id in told, told
     assert all(set(detail(s).get("late", {})) <= {"x"} for s in recs)
     # … and never consumed, by any tick
     assert all(late_event.id not in ids for s in recs for ids in s.consumed.values())
+    # without the late event withheld, the replay's ticks from 0.3 s would consume it
+    report = retriever.log.replay(retriever.read_log(path))
+    assert report.identical, "\n".join(map(str, report.divergences))
+    assert report.nodes["probe"].replayed == len(recs)
     # the producer's own record says it missed its LET deadline; its output kept tag t + latency
     blocked = next(s for s in trace.steps_of("prod") if s.tag == (200 * MS, 0))
     assert detail(blocked)["on_deadline_miss"] == "publish_late"
@@ -373,17 +380,19 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
     assert any("incomplete" not in detail(s) for s in recs if s.tag > incomplete[-1].tag)
 
 
-def test_frozen_asap_producer_makes_the_edge_incomplete():
+def test_frozen_asap_producer_makes_the_edge_incomplete(tmp_path):
     """An ASAP producer whose whole process is frozen (SIGSTOP for 0.5 s: a machine hiccup, not a
     busy step) can neither publish nor answer progress queries: the consumer's edge is not
-    complete up to its ticks; each waits the deadline (30 ms) and runs with older inputs."""
+    complete up to its ticks; each waits the deadline (30 ms) and runs with older inputs. The log
+    replays."""
     with Pipeline("frozen_asap") as pipe:
         src = Ticker().configure(name="counter") @ Rate(hz=20)
         stall = Stall(seconds=0.5, at=[4]).configure(name="stall") @ Trigger("x")
         probe = Probe().configure(name="probe") @ Rate(hz=20, offset=0.01)
         src.then(stall, sync=Latest())
         stall.then(probe, sync=Latest(), deadline=0.03)
-    trace = run(pipe, 1.5)
+    path = tmp_path / "frozen.mcap"
+    trace = run(pipe, 1.5, log=path)
     by_id = check_trace_basics(pipe, trace)
     recs = trace.steps_of("probe")
     incomplete = [s for s in recs if "incomplete" in detail(s)]
@@ -403,6 +412,8 @@ def test_frozen_asap_producer_makes_the_edge_incomplete():
     # the stall ran every trigger tick once it thawed, and the edge completed again
     assert [by_id[s.produced[0]].value for s in trace.steps_of("stall")] == list(range(len(trace.steps_of("stall"))))
     assert any("incomplete" not in detail(s) for s in recs if s.tag > incomplete[-1].tag)
+    report = retriever.log.replay(retriever.read_log(path))
+    assert report.identical, "\n".join(map(str, report.divergences))
 
 
 # =============================================================================================
