@@ -47,10 +47,27 @@ class Event(NamedTuple):
         return f"{self.node}.{self.port}"
 
 
+#: What a step record's status may be (DESIGN.md §8). ``skipped``: the tick did not step (an
+#: input's policy had nothing, ``detail["missing"]``; or, realtime="hard", an incomplete edge
+#: stopped the run). ``error``: step() raised. The others stepped and returned, in real time:
+#: ``incomplete``, with an edge not complete up to the tick (``detail["incomplete"]``);
+#: ``overrun``, the step outlasted its Rate period; ``late``, a LET step finished after tick +
+#: latency (``detail["on_deadline_miss"]`` says what became of its outputs).
+STEP_STATUSES = ("ok", "skipped", "incomplete", "late", "overrun", "error")
+#: statuses of a step that returned
+STEPPED = frozenset({"ok", "incomplete", "late", "overrun"})
+#: statuses that say when a step ran, not what it did: they compare as ``ok``
+TIMING_STATUSES = frozenset({"late", "overrun"})
+
 #: step-record detail keys that say *when* things happened in a real-time run, not *what*: a LET
 #: output released late, events that arrived after their tick, ticks skipped after an overrun.
 #: They are logged but, like the wall-clock fields, never compared.
 TIMING_DETAIL = frozenset({"deadline_miss_ns", "on_deadline_miss", "late", "overrun_skipped"})
+
+
+def semantic_status(status: str) -> str:
+    """``status`` as traces compare it: timing statuses read ``ok``."""
+    return "ok" if status in TIMING_STATUSES else status
 
 
 def semantic_detail(detail: dict | None) -> dict | None:
@@ -66,7 +83,7 @@ class StepRecord(NamedTuple):
 
     ``consumed`` maps each input port to the ids of the events its policy selected (ports that
     got MISSING or a default are absent); ``produced`` lists the ids of the events emitted;
-    ``status`` is ``ok``, ``skipped`` or ``error``; ``detail`` holds the missing ports, Queue
+    ``status`` is one of :data:`STEP_STATUSES`; ``detail`` holds the missing ports, Queue
     drop counts or the error text, when there are any. ``wall_start_ns`` (Unix ns) and
     ``wall_ns`` say when ``step()`` ran and for how long; they are logged but never compared,
     and neither are the timing keys of ``detail`` (:data:`TIMING_DETAIL`).
@@ -84,14 +101,15 @@ class StepRecord(NamedTuple):
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, StepRecord):
             return NotImplemented
-        return self[:5] == other[:5] and semantic_detail(self.detail) == semantic_detail(other.detail)
+        return (self[:4] == other[:4] and semantic_status(self.status) == semantic_status(other.status)
+                and semantic_detail(self.detail) == semantic_detail(other.detail))
 
     def __ne__(self, other: object) -> bool:
         equal = self.__eq__(other)
         return equal if equal is NotImplemented else not equal
 
     def __hash__(self) -> int:
-        return hash((self.node, self.tag, self.status))
+        return hash((self.node, self.tag, semantic_status(self.status)))
 
     def __str__(self) -> str:
         extra = f" {self.detail}" if self.detail else ""
@@ -160,7 +178,8 @@ class Trace:
             yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
         for s in steps:
             consumed = sorted(s.consumed.items())
-            yield packb(("step", s.node, s.tag, consumed, s.produced, s.status, semantic_detail(s.detail)))
+            yield packb(("step", s.node, s.tag, consumed, s.produced, semantic_status(s.status),
+                         semantic_detail(s.detail)))
 
     def digest(self) -> str:
         """Hex SHA-256 of the canonical trace: equal traces, equal digests, on any machine."""

@@ -380,6 +380,21 @@ class InprocSession(Session):
         self._drop_compiled()  # compiled ticks keep their own seq counters
         self._tick(self._by_id[node], tau)
 
+    def retract(self, node: str) -> None:
+        """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that
+        missed its deadline drops them: out of the trace, its record's ``produced`` emptied,
+        their seqs used again. Only after :meth:`take_routes` (nothing was delivered): replay."""
+        if not self._generic_only:
+            raise RuntimeError("retract() needs take_routes() first: outputs were delivered")
+        steps, events = self.trace.raw_steps, self.trace.raw_events
+        i = max(i for i, s in enumerate(steps) if s[0] == node)
+        produced = set(steps[i][3])
+        steps[i] = (*steps[i][:3], (), *steps[i][4:])
+        events[:] = [e for e in events if (e[1], e[2], e[3]) not in produced]
+        seqs = self._by_id[node].seq
+        for _, port, seq in produced:
+            seqs[port] = min(seqs[port], seq)
+
     def replace_step(self, node: str, outputs: Any) -> None:
         """Make ``node``'s ticks emit ``next(outputs)`` (an iterable of ``(port, value)``) instead
         of calling its ``step()``: replayed sources."""

@@ -21,7 +21,7 @@ from ..codec import Encoder, unpackb
 from ..errors import IRError, LogError, RetrieverWarning, StepError
 from ..pipeline import Pipeline
 from ..time import format_tag
-from ..trace import Trace
+from ..trace import STEPPED, Trace
 from .reader import LoggedEvent, RunLog
 
 MAX_DIVERGENCES_KEPT = 20
@@ -134,7 +134,7 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
             progress(i, len(steps))
         stats = report.nodes[step.node]
         stats.steps += 1
-        if step.node in sources:
+        if step.node in sources or not _stepped(step):
             continue
         while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
             _, buf, entry = deliveries[delivered]
@@ -145,6 +145,8 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
             session.tick(step.node, step.tag)
         except StepError:
             pass  # on_error="stop": the error step is recorded; compare it like any other
+        if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
+            session.retract(step.node)  # the run dropped what this step returned
         stats.replayed += 1
         found = _compare(step, trace, logged, encode, step.node in stamped)
         if found is None:
@@ -177,7 +179,7 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamp
     if consumed != step.consumed:
         port = next((p for p in sorted(set(consumed) | set(step.consumed)) if consumed.get(p) != step.consumed.get(p)))
         return differs("inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
-    if status != step.status:
+    if status != ("ok" if step.status in STEPPED else step.status):
         return differs("status", _status(step.status, step.detail), _status(status, detail))
     if status == "error" and (detail or {}).get("error") != (step.detail or {}).get("error"):
         return differs("error", step.detail.get("error"), detail.get("error"))
@@ -197,6 +199,12 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamp
         if encode(value) != original.raw_value:
             return differs("value", unpackb(original.raw_value), value, port)
     return None
+
+
+def _stepped(step) -> bool:
+    """Whether the run called step() at this tick or its policy skipped it: every tick but one
+    that a real-time run stopped before stepping (realtime="hard", an incomplete edge)."""
+    return step.status != "skipped" or "missing" in (step.detail or {})
 
 
 def _status(status: str, detail: dict | None) -> str:

@@ -626,8 +626,8 @@ class NodeLoop:
         if incomplete:
             self.counts["incomplete"] += 1
             detail = {**(detail or {}), "incomplete": incomplete}
-            if self.realtime == "hard":
-                self._record(tau, {}, (), "error", detail, time.time_ns(), 0)
+            if self.realtime == "hard":  # the tick does not step: skipped, and the run stops
+                self._record(tau, {}, (), "skipped", detail, time.time_ns(), 0)
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
                               f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
                               "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
@@ -659,11 +659,15 @@ class NodeLoop:
             return
         wall = time.time_ns() - start
         self.last_wall = wall
-        self._emit(tau, consumed, outputs, detail, start, wall)
-        if self.period_ns and wall > self.period_ns:
+        overran = self.period_ns and wall > self.period_ns
+        self._emit(tau, consumed, outputs, detail, start, wall,
+                   "overrun" if overran else "incomplete" if incomplete else "ok")
+        if overran:
             self._overran(tau, wall, start + wall - self.t0)
 
-    def _emit(self, tau, consumed, outputs, detail, start, wall) -> None:
+    def _emit(self, tau, consumed, outputs, detail, start, wall, status) -> None:
+        """Publish a step's outputs (or hold them, LET) and record it with ``status``: ``ok``,
+        ``incomplete`` or ``overrun``, or ``late`` when it misses its LET deadline."""
         events = [(port, value) for port, value in outputs if value is not None]
         produced = []
         seqs = self.seqs
@@ -680,24 +684,26 @@ class NodeLoop:
             seqs[port] = seq + 1
             produced.append((self.id, port, seq))
             batch.append((tag, port, value, seq))
-        status = "ok"
         if self.latency_ns:
             finished = start + wall - self.t0
             if finished > tag[0]:  # the step outlasted its logical execution time
                 self.counts["deadline_miss"] += 1
+                stop = self.realtime == "hard" or self.on_deadline_miss == "error"
+                # what was done with the outputs: published late, or dropped (and the run stopped)
                 detail = {**(detail or {}), "deadline_miss_ns": finished - tag[0],
-                          "on_deadline_miss": self.on_deadline_miss}
-                if self.realtime == "hard" or self.on_deadline_miss == "error":
-                    self._finish_tick(tau, consumed, (), "error", detail, start, wall)
+                          "on_deadline_miss": "error" if stop else self.on_deadline_miss}
+                status = "late"
+                if stop or self.on_deadline_miss == "drop":
+                    for _, port, _, _ in batch:
+                        seqs[port] -= 1
+                    self._finish_tick(tau, consumed, (), status, detail, start, wall)
+                if stop:
                     hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
                             f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
                             "raise latency=, or set on_deadline_miss='publish_late' or 'drop'")
                     raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s finished "
                                   f"{(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
                 if self.on_deadline_miss == "drop":
-                    for _, port, _, _ in batch:
-                        seqs[port] -= 1
-                    self._finish_tick(tau, consumed, (), "ok", detail, start, wall)
                     return
                 self._release(finished)  # earlier ticks' held outputs go first
                 self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from ...errors import BackendError, StepError
 from ...graph import Graph
+from ...trace import STEPPED
 from ..base import NodeStats, Session
 from .hub import open_hub
 from .output import WorkerOutput
@@ -241,7 +242,7 @@ class ZenohSession(Session):
                 self._ticks.add((report.node, tag))
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
                 stats.ticks += 1
-                if status == "ok":
+                if status in STEPPED:
                     stats.steps += 1
                     stats.step_ns += wall
                 elif status == "skipped":

@@ -46,6 +46,7 @@ import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
+from ...trace import STEP_STATUSES
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
 #: event would leave a gap in its stream's seqs that no frontier can cross)
@@ -311,10 +312,6 @@ def decode_report(data: bytes, expected: str | None = None) -> Report:
     except Exception as e:
         raise WireError(f"a report of {node} has a malformed record ({type(e).__name__}: {e})") from None
     return Report(node, out, events)
-
-
-#: what a step record's status may be (loop.py)
-STEP_STATUSES = ("ok", "skipped", "error")
 
 
 def _event_ids(ids: Any) -> tuple:

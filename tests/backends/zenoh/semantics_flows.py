@@ -107,6 +107,19 @@ class Sleepy(Flow[None, Value]):
         return Value(k)
 
 
+class SlowEcho(Flow[XIn, Value]):
+    """Forwards its input; sleeps ``sleep`` seconds first when the input is in ``at``."""
+
+    def __init__(self, sleep: float, at: list):
+        self.sleep = sleep
+        self.at = list(at)
+
+    def step(self, inp: XIn) -> Value:
+        if inp.x in self.at:
+            time.sleep(self.sleep)
+        return Value(inp.x)
+
+
 def freeze_now() -> None:
     """Stop this whole process (SIGSTOP) before returning. Sent to the calling thread, so that
     this thread starts the stop itself: a SIGSTOP sent to the process is taken by its main

@@ -29,6 +29,7 @@ import pytest
 import retriever
 import retriever.log
 from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, Window
+from retriever.trace import STEP_STATUSES, STEPPED
 
 from .semantics_flows import (
     BigStall,
@@ -39,6 +40,7 @@ from .semantics_flows import (
     PairSource,
     Probe,
     Sleepy,
+    SlowEcho,
     Stall,
     Ticker,
     Unsendable,
@@ -86,7 +88,10 @@ def check_trace_basics(pipe: Pipeline, trace) -> dict:
       complete and incomplete edges alike: an incomplete tick runs with *less*, never with later;
     - outputs (§3): a LET flow's carry exactly (t + latency, 0); an ASAP flow's are stamped at
       completion, strictly after the tick;
-    - a skipped or failed tick produced nothing.
+    - statuses (DESIGN §8) agree with the detail: ``incomplete`` names its edges, ``late`` its
+      deadline miss, and a tick with an incomplete edge that stepped says ``incomplete`` unless
+      it says ``late`` or ``overrun`` (which say more);
+    - a skipped or failed tick produced nothing, nor did a late one whose outputs were dropped.
     """
     graph = pipe.compile()
     by_id = events_by_id(trace)
@@ -99,8 +104,12 @@ def check_trace_basics(pipe: Pipeline, trace) -> dict:
     for rec in trace.steps:
         assert (rec.node, rec.tag) not in seen, f"two records for {rec.node} at {rec.tag}"
         seen.add((rec.node, rec.tag))
-        assert rec.status in ("ok", "skipped", "error"), rec
-        if rec.status != "ok":
+        assert rec.status in STEP_STATUSES, rec
+        if rec.status == "incomplete" or (rec.status in STEPPED and "incomplete" in detail(rec)):
+            assert detail(rec)["incomplete"] and rec.status in ("incomplete", "late", "overrun"), rec
+        assert (rec.status == "late") == ("deadline_miss_ns" in detail(rec) and rec.status != "error"), rec
+        dropped = rec.status == "late" and detail(rec)["on_deadline_miss"] in ("drop", "error")
+        if rec.status not in STEPPED or dropped:
             assert rec.produced == (), rec
         for ids in rec.consumed.values():
             for eid in ids:
@@ -434,7 +443,7 @@ def test_let_deadline_miss_publish_late_keeps_the_let_tag_and_flags_the_record()
     trace = run(pipe, 1.0)
     by_id = check_trace_basics(pipe, trace)  # every LET output at exactly t + latency
     miss = next(s for s in trace.steps_of("let") if s.tag == (200 * MS, 0))
-    assert miss.status == "ok"
+    assert miss.status == "late"
     assert detail(miss)["on_deadline_miss"] == "publish_late"
     assert detail(miss)["deadline_miss_ns"] >= 250 * MS  # finished ≥ 0.5 s, due at 0.25 s
     assert len(miss.produced) == 1
@@ -452,7 +461,7 @@ def test_let_deadline_miss_drop_publishes_nothing_for_that_step():
     trace = run(pipe, 1.0)
     by_id = check_trace_basics(pipe, trace)  # seqs stay dense across the drop
     miss = next(s for s in trace.steps_of("let") if s.tag == (200 * MS, 0))
-    assert detail(miss)["on_deadline_miss"] == "drop"
+    assert miss.status == "late" and detail(miss)["on_deadline_miss"] == "drop"
     assert detail(miss)["deadline_miss_ns"] >= 250 * MS
     assert miss.produced == ()
     assert 2 not in trace.values_of("let", "value")
@@ -471,7 +480,7 @@ def test_let_deadline_miss_error_stops_the_run_naming_the_node():
     assert "let missed its LET deadline" in msg and "t=0.200000" in msg, msg
     assert "hint: raise latency=, or set on_deadline_miss='publish_late' or 'drop'" in msg, msg
     miss = next(s for s in pipe.trace.steps_of("let") if s.tag == (200 * MS, 0))
-    assert miss.status == "error" and miss.produced == ()
+    assert miss.status == "late" and miss.produced == ()  # the run stopped, its outputs dropped
     assert detail(miss)["on_deadline_miss"] == "error"
 
 
@@ -495,7 +504,7 @@ def test_overrun_skips_the_ticks_that_came_due_and_says_so():
     # every tick below the end either ran once or was counted skipped once
     assert len(recs) + counts(pipe)["overrun"] == 10, (len(recs), counts(pipe))
     assert pipe.stats()["slow"].counts == {"overrun": 10 - len(recs)}
-    assert all(s.status == "ok" and len(s.produced) == 1 for s in recs)
+    assert all(s.status == "overrun" and len(s.produced) == 1 for s in recs)
 
 
 def test_overrun_with_on_overrun_error_stops_the_run():
@@ -525,7 +534,7 @@ def test_hard_realtime_stops_at_the_first_incomplete_edge():
     recs = pipe.trace.steps_of("probe")
     incomplete = [s for s in recs if "incomplete" in detail(s)]
     assert len(incomplete) == 1 and incomplete[0] == recs[-1], recs  # the first one stopped it
-    assert incomplete[0].status == "error"
+    assert incomplete[0].status == "skipped" and incomplete[0].consumed == {}  # before stepping
 
 
 def test_hard_realtime_stops_at_an_overrun_even_with_on_overrun_skip():
@@ -546,6 +555,42 @@ def test_hard_realtime_stops_at_a_let_deadline_miss_even_with_publish_late():
     assert "realtime='soft', where on_deadline_miss (now 'publish_late') decides" in msg, msg
 
 
+@pytest.mark.parametrize("stop", ["deadline_miss_drop", "deadline_miss_error", "hard_incomplete"])
+def test_a_log_whose_steps_dropped_outputs_or_stopped_the_run_replays(tmp_path, stop):
+    """What the run did at a step, the replay does: a LET step that missed its deadline had its
+    outputs dropped (``drop``; ``error``, which also stops the run), so the replay drops what
+    the step returns and reuses its seqs; a tick that realtime="hard" stopped before stepping
+    (an incomplete edge) is not stepped again. Without that, the first diverges at the step
+    and at every later output's seq, the others at the stopping record."""
+    on_miss = {"deadline_miss_drop": "drop", "deadline_miss_error": "error"}.get(stop, "publish_late")
+    with Pipeline(stop, realtime="hard" if stop == "hard_incomplete" else "soft") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=10)
+        if stop == "hard_incomplete":
+            mid = Stall(seconds=0.8, at=[3]).configure(name="mid") @ Trigger("x")
+        else:  # the LET flow's step at x == 2 sleeps 0.3 s: 0.25 s past its deadline
+            mid = SlowEcho(sleep=0.3, at=[2]).configure(
+                name="mid", latency=0.05, on_deadline_miss=on_miss) @ Trigger("x")
+        probe = Probe().configure(name="probe") @ Rate(hz=10, offset=0.01)
+        src.then(mid, sync=Latest())
+        mid.then(probe, sync=Latest(), deadline=0.15)
+    path = tmp_path / "run.mcap"
+    if stop == "deadline_miss_drop":
+        trace = run(pipe, 1.0, log=path)
+    else:
+        with pytest.raises(BackendError):
+            run(pipe, 1.5, log=path)
+        trace = pipe.trace
+    check_trace_basics(pipe, trace)
+    node = "probe" if stop == "hard_incomplete" else "mid"
+    last = trace.steps_of(node)[-1] if stop != "deadline_miss_drop" else next(
+        s for s in trace.steps_of(node) if s.status == "late")
+    assert last.status == ("skipped" if stop == "hard_incomplete" else "late"), last
+    report = retriever.log.replay(retriever.read_log(path))
+    assert report.identical, "\n".join(map(str, report.divergences))
+    stopped = 1 if stop == "hard_incomplete" else 0  # the tick that did not step is not replayed
+    assert report.nodes[node].replayed == len(trace.steps_of(node)) - stopped
+
+
 def test_best_effort_never_stops_for_overruns_or_deadline_misses():
     with Pipeline("best_effort", realtime="best_effort") as pipe:
         Sleepy(sleep=0.25).configure(name="slow", on_overrun="error") @ Rate(hz=10)
@@ -561,10 +606,11 @@ def test_best_effort_never_stops_for_overruns_or_deadline_misses():
     assert trace.steps_of("slow")[-1].tag[0] >= 500 * MS  # it went on after its overruns
     miss = next(s for s in trace.steps_of("let") if s.tag == (200 * MS, 0))
     # counted, flagged, and published late (an "error" miss is downgraded to publish_late)
-    assert miss.status == "ok" and detail(miss)["on_deadline_miss"] == "publish_late"
+    assert miss.status == "late" and detail(miss)["on_deadline_miss"] == "publish_late"
     assert detail(miss)["deadline_miss_ns"] >= 250 * MS
     assert by_id[miss.produced[0]].tag == (250 * MS, 0)
-    assert all(s.status == "ok" for s in trace.steps)
+    assert all(s.status == "overrun" for s in trace.steps_of("slow"))
+    assert all(s.status in STEPPED for s in trace.steps)
 
 
 # =============================================================================================
