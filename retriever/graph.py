@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import inspect
 import json
-import math
 import types
 import typing
 from dataclasses import dataclass, field
@@ -17,8 +16,9 @@ from typing import TYPE_CHECKING, Any
 
 from .clocks import Clock
 from .codec import type_path
-from .errors import GraphError, Problem
+from .errors import CodecError, GraphError, Problem
 from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case
+from .ir import param_to_ir
 from .sync import ActionChunking, SyncPolicy
 from .time import seconds_to_ns
 
@@ -162,18 +162,6 @@ def _fits_through(out_t: Any, in_t: Any, sync: SyncPolicy) -> bool:
 # ---------------------------------------------------------------------------------------------
 # Constructor parameters (for rebuilding a flow from the IR alone)
 # ---------------------------------------------------------------------------------------------
-def _jsonable(value: Any) -> bool:
-    if value is None or isinstance(value, (bool, int, str)):
-        return True
-    if isinstance(value, float):
-        return math.isfinite(value)
-    if isinstance(value, (list, tuple)):
-        return all(_jsonable(v) for v in value)
-    if isinstance(value, dict):
-        return all(isinstance(k, str) and _jsonable(v) for k, v in value.items())
-    return False
-
-
 def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None, bool]:
     """The flow's constructor arguments by name, why it cannot be rebuilt from them (or None),
     and whether that is only because its class lives in ``__main__`` (Node.rebuild_needs_main)."""
@@ -201,13 +189,13 @@ def _params(flow: Flow) -> tuple[dict[str, Any], str | None]:
     params = dict(list(bound.arguments.items())[1:])
     shown = {}
     for name, value in params.items():
-        if _jsonable(value):
-            shown[name] = list(value) if isinstance(value, tuple) else value
-        else:
+        try:
+            shown[name] = param_to_ir(value)
+        except CodecError:
             shown[name] = {"$unserializable": f"{type(value).__module__}.{type(value).__qualname__}"}
             problem = problem or (
-                f"argument '{name}' is a {type(value).__qualname__}, which the IR cannot carry "
-                "(only JSON/msgpack values: numbers, str, lists, dicts)")
+                f"argument '{name}' is a {type(value).__qualname__}, which the IR cannot carry (only msgpack "
+                "values: numbers, str, bytes, lists, tuples, dicts, numpy arrays, @io dataclasses)")
     return json.loads(json.dumps(shown)), problem
 
 

@@ -7,12 +7,18 @@ Keys are sorted, so the JSON text is stable and a golden file can pin it.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from .clocks import clock_from_ir
-from .errors import IRError
+from .codec import packb, unpackb
+from .errors import CodecError, IRError
 from .time import is_finite_number
 from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
 from .sync import policy_from_ir
@@ -20,11 +26,52 @@ from .sync import policy_from_ir
 if TYPE_CHECKING:
     from .graph import Graph
 
-IR_VERSION = "1.0.0"
+#: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`)
+IR_VERSION = "1.1.0"
 #: the paper's three real-time modes: how a run escalates missed deadlines and overruns
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
+
+
+def param_to_ir(value: Any) -> Any:
+    """A constructor argument as the IR holds it: JSON values as they are; what JSON would
+    change or cannot hold, tagged so that a worker rebuilds the very value (DESIGN §6: msgpack
+    values). A tuple is ``{"$tuple": [...]}``; anything else the codec encodes (numpy arrays and
+    scalars, bytes, non-finite floats, @io dataclasses, dicts with non-str or ``$`` keys) is
+    ``{"$msgpack": base64 of retriever.codec.packb}``. Raises CodecError for what it cannot."""
+    if value is None or isinstance(value, str) or (isinstance(value, int) and not isinstance(value, np.generic)):
+        return value
+    if isinstance(value, float) and not isinstance(value, np.generic) and math.isfinite(value):
+        return value
+    if type(value) is list:
+        return [param_to_ir(v) for v in value]
+    if type(value) is tuple:
+        return {"$tuple": [param_to_ir(v) for v in value]}
+    if type(value) is dict and all(isinstance(k, str) and not k.startswith("$") for k in value):
+        return {k: param_to_ir(v) for k, v in value.items()}
+    return {"$msgpack": base64.b64encode(packb(value)).decode("ascii")}
+
+
+def param_from_ir(value: Any) -> Any:
+    """The constructor argument that :func:`param_to_ir` stored. Raises ValueError for a
+    malformed tag; a dataclass is rebuilt only if its module is already imported (an IR may
+    not make a worker import code its allowlist did not)."""
+    if type(value) is list:
+        return [param_from_ir(v) for v in value]
+    if type(value) is not dict:
+        return value
+    if len(value) == 1 and "$tuple" in value and type(value["$tuple"]) is list:
+        return tuple(param_from_ir(v) for v in value["$tuple"])
+    if len(value) == 1 and "$msgpack" in value:
+        try:
+            return unpackb(base64.b64decode(value["$msgpack"], validate=True), import_modules=False)
+        except (TypeError, binascii.Error, CodecError, ValueError) as e:
+            raise ValueError(f"a $msgpack value that does not decode ({type(e).__name__}: {e})") from None
+    if any(k.startswith("$") for k in value):
+        raise ValueError(f"an object with reserved key(s) {sorted(k for k in value if k.startswith('$'))} "
+                         "(IR tags are {\"$tuple\": [...]} and {\"$msgpack\": base64})")
+    return {k: param_from_ir(v) for k, v in value.items()}
 
 
 def graph_to_doc(graph: "Graph") -> dict:
@@ -232,7 +279,7 @@ def validate_doc(doc: Any, source: str) -> None:
         raise IRError(source, [f"the document must be a JSON object, got {type(doc).__name__}"])
     version = doc.get("version")
     if not isinstance(version, str):
-        problems.append("'version' is missing (expected \"1.0.0\")")
+        problems.append(f"'version' is missing (expected \"{IR_VERSION}\")")
     elif version.split(".")[0] != IR_VERSION.split(".")[0]:
         problems.append(f"version {version!r} is not supported by this Retriever (it reads {IR_VERSION}); "
                         "rebuild the IR with this version: retriever ir FILE --out PATH")

@@ -27,7 +27,7 @@ from .codec import import_type
 from .errors import BackendError, IRError, RetrieverWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
-from .ir import DEFAULT_DEADLINE, IR, REALTIME_MODES
+from .ir import DEFAULT_DEADLINE, IR, REALTIME_MODES, param_from_ir
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import NS_PER_S, is_finite_number, seconds_to_ns
 from .trace import Trace
@@ -382,10 +382,18 @@ def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> No
     if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
         problems.append(f"node '{nid}': {node['type']} is not a Flow class")
         return
+    params = {}
+    for name, value in node["params"].items():
+        try:
+            params[name] = param_from_ir(value)
+        except ValueError as e:
+            problems.append(f"node '{nid}': params.{name} is {e}")
+    if len(params) < len(node["params"]):
+        return
     try:
-        flow = _construct(flow_cls, node["params"])
+        flow = _construct(flow_cls, params)
     except Exception as e:
-        problems.append(f"node '{nid}': {node['type']}(**{node['params']!r}) raised {type(e).__name__}: {e}")
+        problems.append(f"node '{nid}': {node['type']}(**{params!r}) raised {type(e).__name__}: {e}")
         return
     config = node["config"]
     flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),

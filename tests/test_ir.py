@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from retriever import IR, IRError, Pipeline, Rate
@@ -69,13 +71,13 @@ def test_to_json_is_stable_with_sorted_keys(ir: IR):
 
 def test_ir_shape_follows_the_design(ir: IR):
     doc = ir.doc
-    assert doc["version"] == "1.0.0"
+    assert doc["version"] == "1.1.0"
     assert doc["metadata"]["name"] == "small"
     assert doc["metadata"]["validated"] is True
     assert doc["metadata"]["optimized"] is False
     planner = ir.node("planner")
     assert planner["type"] == "tests.ir_flows:Planner"
-    assert planner["params"] == {"steps": 4, "gains": [0.5, 0.25]}
+    assert planner["params"] == {"steps": 4, "gains": {"$tuple": [0.5, 0.25]}}  # rebuilt as a tuple
     assert planner["config"]["clock"] == {"Rate": {"hz": 2, "offset": 0.0}}
     assert planner["config"]["latency"] == 0.25
     assert planner["config"]["on_error"] == "skip_tick"
@@ -125,6 +127,89 @@ def test_round_trip_build_save_load_run_gives_the_identical_trace(tmp_path: Path
 
 def test_round_trip_from_json_string(ir: IR):
     assert IR.from_json(ir.to_json()) == ir
+
+
+def _same(a, b) -> bool:
+    """Equal, of the same types all the way down (arrays: dtype, shape and contents)."""
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return a.dtype == b.dtype and a.shape == b.shape and bool((a == b).all())
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(map(_same, a, b))
+    if isinstance(a, dict):
+        return list(a) == list(b) and all(_same(a[k], b[k]) for k in a)
+    return a == b or (a != a and b != b)  # NaN
+
+
+ARGUMENTS = [
+    (0.5, 0.25),
+    [(1, 2), ((3,), [4, {"k": (5,)}])],
+    np.arange(6, dtype=np.float32).reshape(2, 3),
+    np.int16(-7),
+    b"\x00raw",
+    float("inf"),
+    {1: "int key"},
+    {"$tuple": "a user's dict, not a tag"},
+    ir_flows.Frame(brightness=0.5, k=3),
+    {"plain": [1, 2.5, "x", None, True]},
+]
+
+
+@pytest.mark.parametrize("value", ARGUMENTS, ids=lambda v: type(v).__name__)
+def test_a_constructor_argument_comes_back_from_the_ir_as_it_was_given(tmp_path: Path, value):
+    """DESIGN §6: a worker rebuilds a flow from msgpack-able arguments, so what JSON would turn
+    into something else (a tuple into a list) or cannot hold is tagged in the IR, and a flow
+    rebuilt from a saved IR gets the very value, type and all, as in-process."""
+    with Pipeline("args") as pipe:
+        ir_flows.Tool(value) @ Rate(hz=10)
+    node = pipe.build_ir().node("tool")
+    assert node["rebuildable"] is True, node
+    ir = IR.load(pipe.build_ir().save(tmp_path / "args.ir.json"))
+    (flow,) = Pipeline.from_ir(ir).flows
+    assert _same(flow.model, value), (flow.model, value)
+
+
+def test_json_values_stay_readable_in_the_ir_and_tuples_say_so():
+    with Pipeline("readable") as pipe:
+        ir_flows.Tool({"gains": [0.5, 1], "shape": (64, 48)}) @ Rate(hz=10)
+    params = pipe.build_ir().node("tool")["params"]
+    assert params == {"model": {"gains": [0.5, 1], "shape": {"$tuple": [64, 48]}}}
+
+
+@pytest.mark.parametrize("bad, says", [
+    ({"$msgpack": "not base64!"}, r"params\.model is a \$msgpack value that does not decode"),
+    ({"$msgpack": "kgE="}, r"params\.model is a \$msgpack value that does not decode"),  # cut short
+    ({"$tuple": [1], "x": 2}, r"params\.model is an object with reserved key\(s\) \['\$tuple'\]"),
+    ({"$set": [1]}, r"params\.model is an object with reserved key\(s\) \['\$set'\]"),
+])
+def test_a_malformed_tagged_argument_is_refused_naming_node_and_argument(bad, says):
+    with Pipeline("tagged") as pipe:
+        ir_flows.Tool(1) @ Rate(hz=10)
+    doc = json.loads(pipe.build_ir().to_json())
+    doc["nodes"][0]["params"]["model"] = bad
+    with pytest.raises(IRError, match=r"node 'tool': " + says):
+        Pipeline.from_ir(IR(doc))
+
+
+def test_a_tagged_dataclass_does_not_make_the_rebuild_import_its_module(tmp_path: Path):
+    """An IR may not make a worker import code (its allowlist decides what it imports): a
+    tagged dataclass of a module nobody imported is refused, naming the module."""
+    from retriever.codec import packb
+    import base64
+
+    @dataclasses.dataclass
+    class Stray:
+        x: int
+    Stray.__module__, Stray.__qualname__ = "tests.never_imported_module", "Stray"
+    with Pipeline("stray") as pipe:
+        ir_flows.Tool(1) @ Rate(hz=10)
+    doc = json.loads(pipe.build_ir().to_json())
+    tagged = base64.b64encode(packb(Stray(1))).decode()
+    doc["nodes"][0]["params"]["model"] = {"$msgpack": tagged}
+    with pytest.raises(IRError, match=r"params\.model is a \$msgpack value that does not decode .*"
+                                      r"tests\.never_imported_module"):
+        Pipeline.from_ir(IR(doc))
 
 
 def test_rebuilt_pipeline_is_independent_of_an_enclosing_with_block(ir: IR):
@@ -235,13 +320,13 @@ def test_load_missing_keys_lists_each_one(tmp_path: Path):
 
 def test_load_missing_version(tmp_path: Path, doc: dict):
     del doc["version"]
-    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.0\.0\"\)"):
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.1\.0\"\)"):
         _load(tmp_path, json.dumps(doc))
 
 
 def test_load_wrong_version(tmp_path: Path, doc: dict):
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.0\.0\)"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.1\.0\)"
                                       r"; rebuild the IR"):
         _load(tmp_path, json.dumps(doc))
 

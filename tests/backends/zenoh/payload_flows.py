@@ -66,3 +66,13 @@ class ShmWatcher(Flow[None, Mapped]):
                     start, end = (int(x, 16) for x in fields[0].split("-"))
                     sizes.append(end - start)
         return Mapped(zenoh_shm=max(sizes))
+
+
+class Holder(Flow[None, dict]):
+    """Emits what its constructor got, with the type of each part: how a worker rebuilt it."""
+
+    def __init__(self, value):
+        self.value = value
+
+    def step(self, inp: None) -> dict:
+        return {"types": [type(v).__name__ for v in self.value], "value": self.value}

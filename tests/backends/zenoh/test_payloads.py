@@ -14,7 +14,7 @@ from retriever import Pipeline, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import SHM_POOL_MIN
 from retriever.backends.zenoh.loop import SPILL_BYTES
 
-from .payload_flows import Camera, ShmWatcher, Viewer, frame
+from .payload_flows import Camera, Holder, ShmWatcher, Viewer, frame
 
 SIZE = 1 << 20  # 1 MiB: well above SPILL_BYTES, so every frame takes the file path
 
@@ -61,3 +61,15 @@ def test_each_worker_has_its_shared_memory_pool_before_t0():
     trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
     first = min(trace.events, key=lambda e: e.seq)
     assert first.value >= SHM_POOL_MIN, f"no Zenoh pool mapped at the first step: biggest segment {first.value} B"
+
+
+def test_a_worker_rebuilds_its_flow_with_the_arguments_as_given():
+    """Tuples, arrays and numpy scalars pass through the IR tagged (ir.param_to_ir), so the flow
+    in its worker gets what the flow in-process gets: not a list for a tuple."""
+    value = ((640, 480), np.eye(2, dtype=np.float32), np.int16(3), [1, (2,)])
+    with Pipeline("arguments") as pipe:
+        Holder(value).configure(name="holder") @ Rate(hz=10)
+    (first, *_) = pipe.run(duration=0.3, backend="zenoh", quiet=True).values_of("holder", "dict")  # one output port, named by its type
+    assert first["types"] == ["tuple", "ndarray", "int16", "list"], first
+    assert first["value"][0] == (640, 480) and first["value"][3] == [1, (2,)]
+    assert np.array_equal(first["value"][1], np.eye(2)) and first["value"][1].dtype == np.float32
