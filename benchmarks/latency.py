@@ -69,6 +69,7 @@ sys.path.insert(0, str(HERE))  # zenoh_flows: the workers get this path from the
 import numpy as np
 
 TARGET_RATIO = 1.2
+BOOTSTRAP_RESAMPLES = 2000
 DEFAULT_SIZES = ["64", "1Ki", "16Ki", "256Ki", "1Mi", "4Mi", "16Mi"]
 ATTACH = struct.Struct("<qq")  # seq, sent_ns
 
@@ -101,7 +102,21 @@ def quantile(sorted_values: list, q: float) -> float:
 def summary(lat_ns: list[int]) -> dict:
     s = sorted(lat_ns)
     return {"n": len(s), "med": quantile(s, 0.5) / 1e3, "p99": quantile(s, 0.99) / 1e3,
-            "min": s[0] / 1e3 if s else float("nan"), "max": s[-1] / 1e3 if s else float("nan")}
+            "min": s[0] / 1e3 if s else float("nan"), "max": s[-1] / 1e3 if s else float("nan"),
+            "lat": s}
+
+
+def ratio_interval(num_ns: list[int], den_ns: list[int], resamples: int = BOOTSTRAP_RESAMPLES) -> tuple[float, float]:
+    """95% bootstrap interval of median(num) / median(den): how far the ratio of two medians of
+    this many samples moves by sampling alone (seeded, so a result reprints the same)."""
+    if not num_ns or not den_ns:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(0)
+    num, den = np.asarray(num_ns, dtype=float), np.asarray(den_ns, dtype=float)
+    ratios = (np.median(rng.choice(num, (resamples, num.size)), axis=1)
+              / np.median(rng.choice(den, (resamples, den.size)), axis=1))
+    lo, hi = np.percentile(ratios, [2.5, 97.5])
+    return float(lo), float(hi)
 
 
 def free_port() -> int:
@@ -528,31 +543,33 @@ def main(argv: list[str] | None = None) -> int:
     print()
 
     nan = float("nan")
-    head = (f"{'payload':>8} │ {'raw zenoh µs':>15} │ {'retriever-zenoh µs':>18} │ {'zenoh/raw':>11} │ "
+    head = (f"{'payload':>8} │ {'raw zenoh µs':>15} │ {'retriever-zenoh µs':>18} │ {'zenoh/raw':>23} │ "
             f"{'inproc hand-off µs':>18} │ {'received':>9} │ ≤{TARGET_RATIO:g}× (median)")
     print(head)
-    print(f"{'':>8} │ {'median':>7} {'p99':>7} │ {'median':>8} {'p99':>9} │ {'med':>5} {'p99':>5} │ "
+    print(f"{'':>8} │ {'median':>7} {'p99':>7} │ {'median':>8} {'p99':>9} │ {'med':>5} {'95% CI':>11} {'p99':>5} │ "
           f"{'median':>8} {'p99':>9} │ {'raw':>4} {'ret':>4} │")
     print("─" * len(head))
     all_ok = True
     for r in rows:
         raw, zen, inp = (r.get(k, {"med": nan, "p99": nan, "n": 0, "received": 0}) for k in ("raw", "zenoh", "inproc"))
         ratio_med, ratio_p99 = zen["med"] / raw["med"], zen["p99"] / raw["p99"]
+        lo, hi = ratio_interval(zen.get("lat", []), raw.get("lat", []))
         both = "raw" in r and "zenoh" in r
         ok = ratio_med <= TARGET_RATIO and zen["received"] >= raw["received"]  # a lost frame is no pass
         all_ok &= ok or not both
         print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw['p99']:>7.0f} │ {zen['med']:>8.0f} {zen['p99']:>9.0f} │ "
-              f"{ratio_med:>5.2f} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
+              f"{ratio_med:>5.2f} {f'{lo:.2f}–{hi:.2f}':>11} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
               f"{raw['received']:>4} {zen['received']:>4} │ {('PASS' if ok else 'MISS') if both else '-'}")
     print()
     if args.control and "raw" in sides:
         print("control: raw zenoh run twice per round (raw2 right after retriever-zenoh); the ratio of two identical")
         print("sides shows how far one run's medians move by themselves:")
-        print(f"{'payload':>8} │ {'raw µs':>7} {'raw2 µs':>7} │ {'raw2/raw':>8} │ {'zenoh/raw2':>10}")
+        print(f"{'payload':>8} │ {'raw µs':>7} {'raw2 µs':>7} │ {'raw2/raw':>8} {'95% CI':>11} │ {'zenoh/raw2':>10}")
         for r in rows:
             raw, raw2, zen = r["raw"], r["raw2"], r.get("zenoh", {"med": nan})
-            print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw2['med']:>7.0f} │ {raw2['med'] / raw['med']:>8.2f} │ "
-                  f"{zen['med'] / raw2['med']:>10.2f}")
+            lo, hi = ratio_interval(raw2["lat"], raw["lat"])
+            print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw2['med']:>7.0f} │ {raw2['med'] / raw['med']:>8.2f} "
+                  f"{f'{lo:.2f}–{hi:.2f}':>11} │ {zen['med'] / raw2['med']:>10.2f}")
         print()
     print("latency = receiver's time.time_ns() with the array in hand − sender's time.time_ns() before the send;")
     print("inproc hand-off = wall time from the source's step returning to the sink's step starting (virtual time,")
@@ -560,6 +577,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"received = messages that arrived, of {total} sent (the first {args.warmup} of each round are dropped "
           "as warm-up);")
     print("a size passes only if retriever-zenoh received as many as raw zenoh.")
+    print(f"95% CI = bootstrap interval of the ratio of medians ({BOOTSTRAP_RESAMPLES} resamples of each side's "
+          "samples): its spread by sampling alone.")
     print(f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if "raw" in sides and "zenoh" in sides:
         print(f"target: retriever-zenoh median <= {TARGET_RATIO:g}x raw zenoh at every size -> "
