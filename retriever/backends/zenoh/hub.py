@@ -28,6 +28,32 @@ SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
 
 
+#: Zenoh removes a /dev/shm/*.zenoh segment only when it can lock it exclusively: when the last
+#: process that maps it lets go, or in a scan of every segment at a process's exit() (and at its
+#: first shared-memory use), which skips the segments still mapped, by anyone, the exiting
+#: process included. A closed session lets go of its segments on a Zenoh thread 1–50 ms later
+#: (measured), so a program that exited right after its run's hub closed sometimes left the hub's
+#: segment behind. Closing a hub waits for that, at most this long.
+SEGMENT_RELEASE_S = 0.5
+
+
+def mapped_segments() -> set[str]:
+    """The Zenoh shared-memory segments this process maps (Linux; elsewhere none)."""
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as maps:
+            return {line.rsplit(None, 1)[-1] for line in maps if line.rstrip().endswith(".zenoh")}
+    except OSError:
+        return set()
+
+
+def await_segments_released(before: set[str], bound: float = SEGMENT_RELEASE_S) -> None:
+    """After a session's close(): wait until this process maps no Zenoh segment but ``before``
+    (what it mapped before it opened that session), at most ``bound`` s."""
+    give_up = time.monotonic() + bound
+    while mapped_segments() - before and time.monotonic() < give_up:
+        time.sleep(0.002)
+
+
 def endpoint(port: int, host: str = LOOPBACK) -> str:
     return f"tcp/{host}:{port}"
 

@@ -35,7 +35,7 @@ from ...errors import BackendError, StepError
 from ...graph import Graph
 from ...trace import STEPPED
 from ..base import NodeStats, Session
-from .hub import open_hub
+from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER
@@ -95,6 +95,7 @@ class ZenohSession(Session):
         self._encoder = WireEncoder()
         self._hub = None
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
+        self._segments_before = mapped_segments()  # other sessions' of this process
         try:
             self._hub, self.endpoint = open_hub(hub_port)
             if not quiet:
@@ -431,6 +432,7 @@ class ZenohSession(Session):
                 sub.undeclare()
             self._hub.close()
             self._hub = None
+            await_segments_released(self._segments_before)  # so that exit() can remove them
         shutil.rmtree(self._dir, ignore_errors=True)
         _OPEN.discard(self)
 

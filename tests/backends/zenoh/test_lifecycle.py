@@ -288,12 +288,11 @@ def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp
     assert proc.returncode == 143, err
     assert "Traceback" not in err, err
     assert not [ident for ident in workers if _alive(ident)]
-    # removed at exit (without the SystemExit every one stays). Known gap: in full CI runs one of
-    # the three was sometimes left, mapped by no live process; which process leaves it is not
-    # known yet (issue 4's note), so this checks that the script's exit removed segments at all
+    # removed at exit (without the SystemExit every one stays; without the coordinator waiting
+    # for Zenoh to let go of its hub's segment, about 1 run in 8 left that one: hub.py)
     in_use = _zenoh_segments(_pids())
     left = [path for path in segments if os.path.exists(path) and path not in in_use]
-    assert len(left) < len(segments), segments
+    assert not left, (left, segments)
 
 
 CHOSEN_BY_INIT = """
