@@ -26,9 +26,13 @@ For each payload size (uint8 numpy arrays), in one run of this script:
 Per size, each side runs ``--rounds`` times, interleaved (raw, zenoh, inproc, then the reverse
 order, ...), so that the machine's drift over a minute falls on all sides alike; each run sends
 ``--warmup`` + ``--samples``/``--rounds`` messages at ``--hz`` and drops its first ``--warmup``.
-Runs never overlap. Reported: median and p99 per side, and retriever-zenoh / raw. Target (the issue):
-retriever-zenoh median ≤ 1.2× raw zenoh at every size. A source frame the sink did not step on is
-listed with its tag against the run's end and its tick's lateness: sent after the end, or lost.
+Runs never overlap. Reported: median and p99 per side, and retriever-zenoh / raw with a 95%
+bootstrap interval (how far the ratio of two medians of this many samples moves by sampling
+alone). Target (the issue): retriever-zenoh median ≤ 1.2× raw zenoh at every size; it is judged
+with ``--samples 500 --rounds 5``, since the ratio of 100-sample medians moves by ±10% on this VM
+(``--control`` shows it on two identical sides). Separately, a source frame the sink did not step
+on is listed with its tag against the run's end and its tick's lateness (sent after the end, or
+lost), and the last line says whether there was any.
 
 Retriever's coordinator (this process) is not on the frames' path: each worker reports the
 data messages it published, with its step records, in a batch up to 20 ms later.
@@ -40,6 +44,7 @@ workers; the raw side stamps its own); ``--codec`` times the copy steps of both 
 process, with minor page faults, and the cost of a cold call after an idle gap.
 
     .venv/bin/python benchmarks/latency.py                      # all sizes, about 100 s
+    .venv/bin/python benchmarks/latency.py --samples 500 --rounds 5 --control   # the judging run, 11 min
     .venv/bin/python benchmarks/latency.py --sizes 64 1Mi --samples 200
     .venv/bin/python benchmarks/latency.py --breakdown          # where the time goes
     .venv/bin/python benchmarks/latency.py --codec              # copies and page faults, in-process
@@ -549,14 +554,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'':>8} │ {'median':>7} {'p99':>7} │ {'median':>8} {'p99':>9} │ {'med':>5} {'95% CI':>11} {'p99':>5} │ "
           f"{'median':>8} {'p99':>9} │ {'raw':>4} {'ret':>4} │")
     print("─" * len(head))
-    all_ok = True
+    all_ok, short = True, []
     for r in rows:
         raw, zen, inp = (r.get(k, {"med": nan, "p99": nan, "n": 0, "received": 0}) for k in ("raw", "zenoh", "inproc"))
         ratio_med, ratio_p99 = zen["med"] / raw["med"], zen["p99"] / raw["p99"]
         lo, hi = ratio_interval(zen.get("lat", []), raw.get("lat", []))
         both = "raw" in r and "zenoh" in r
-        ok = ratio_med <= TARGET_RATIO and zen["received"] >= raw["received"]  # a lost frame is no pass
+        ok = ratio_med <= TARGET_RATIO
         all_ok &= ok or not both
+        if both and zen["received"] < raw["received"]:
+            short.append(f"{fmt_size(r['size'])}: {zen['received']} of {raw['received']}")
         print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw['p99']:>7.0f} │ {zen['med']:>8.0f} {zen['p99']:>9.0f} │ "
               f"{ratio_med:>5.2f} {f'{lo:.2f}–{hi:.2f}':>11} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
               f"{raw['received']:>4} {zen['received']:>4} │ {('PASS' if ok else 'MISS') if both else '-'}")
@@ -576,13 +583,15 @@ def main(argv: list[str] | None = None) -> int:
     print("one thread, array passed by reference): the in-process scheduler's cost, not a transport latency.")
     print(f"received = messages that arrived, of {total} sent (the first {args.warmup} of each round are dropped "
           "as warm-up);")
-    print("a size passes only if retriever-zenoh received as many as raw zenoh.")
     print(f"95% CI = bootstrap interval of the ratio of medians ({BOOTSTRAP_RESAMPLES} resamples of each side's "
           "samples): its spread by sampling alone.")
     print(f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if "raw" in sides and "zenoh" in sides:
         print(f"target: retriever-zenoh median <= {TARGET_RATIO:g}x raw zenoh at every size -> "
               f"{'met' if all_ok else 'NOT met'}")
+        # not the issue's target, but no less a fault: each is listed above with its cause
+        print("every frame stepped on by retriever-zenoh's sink -> "
+              + (f"NO ({'; '.join(short)} received)" if short else "yes"))
     return 0
 
 
