@@ -2,9 +2,13 @@
 
 ``replay`` (the default) isolates every flow: each logged step of a non-source node runs again
 on inputs rebuilt from the *logged* events with the edge's policy, so one divergent node cannot
-hide or cause divergence elsewhere. Events a real-time consumer dropped as late (its step
-records name them) are withheld from it, as they were in the run. Per step it checks the consumed event ids against the log,
+hide or cause divergence elsewhere. Per step it checks the consumed event ids against the log,
 then the status, the produced ids and tags, and every output value's msgpack bytes.
+
+What a real-time run did, the replay does: events a consumer dropped as late (its step records
+name them) are withheld from it; a LET step whose deadline miss dropped its outputs has them
+taken back (their seqs used again); a tick the run stopped before stepping is not stepped; and
+``incomplete``, ``late`` and ``overrun`` steps compare as ``ok`` (the replay cannot be late).
 
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
 and compares the full trace: it proves the log is one consistent run of this graph.
