@@ -221,7 +221,9 @@ class NodeLoop:
         self.publishers = {port: self._publisher(keys.data(self.id, port)) for port in self.ports}
         self.progress_publisher = self._publisher(keys.progress(self.id))
         self.warm_publisher = s.declare_publisher(keys.warm(self.id), express=True)
-        self._declared.append(self.warm_publisher)
+        # every declaration undeclared at the end: one left holds the session, and with it its
+        # shared memory, which then outlives the process in /dev/shm (Zenoh's exit() skips it)
+        self._declared += [self.progress_publisher, self.warm_publisher]
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         # BLOCK, not Zenoh's default DROP: a dropped event would leave a gap in its stream's seqs
