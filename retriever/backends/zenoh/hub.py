@@ -46,11 +46,11 @@ def mapped_segments() -> set[str]:
         return set()
 
 
-def await_segments_released(before: set[str], bound: float = SEGMENT_RELEASE_S) -> None:
-    """After a session's close(): wait until this process maps no Zenoh segment but ``before``
-    (what it mapped before it opened that session), at most ``bound`` s."""
+def await_segments_released(segments: set[str], bound: float = SEGMENT_RELEASE_S) -> None:
+    """After a session's close() and the last reference to it dropped: wait until this process
+    maps none of ``segments`` (the session's own), at most ``bound`` s."""
     give_up = time.monotonic() + bound
-    while mapped_segments() - before and time.monotonic() < give_up:
+    while mapped_segments() & segments and time.monotonic() < give_up:
         time.sleep(0.002)
 
 

@@ -95,9 +95,11 @@ class ZenohSession(Session):
         self._encoder = WireEncoder()
         self._hub = None
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
-        self._segments_before = mapped_segments()  # other sessions' of this process
+        self._hub_segments: set[str] = set()
         try:
+            before = mapped_segments()
             self._hub, self.endpoint = open_hub(hub_port)
+            self._hub_segments = mapped_segments() - before  # the hub session's own
             if not quiet:
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
                       f"watch it with a subscriber on {self.keys.all_data()}", file=sys.stderr, flush=True)
@@ -432,7 +434,7 @@ class ZenohSession(Session):
                 sub.undeclare()
             self._hub.close()
             self._hub = None
-            await_segments_released(self._segments_before)  # so that exit() can remove them
+            await_segments_released(self._hub_segments)  # so that exit() can remove them
         shutil.rmtree(self._dir, ignore_errors=True)
         _OPEN.discard(self)
 
