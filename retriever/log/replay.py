@@ -111,7 +111,7 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     # Logged events, in arrival order at each consumer (an edge's delay shifts it), but for the
     # late ones: in real time they reached a consumer after a tick at or past their tag had run
     # without them, and the consumer dropped them.
-    withheld = late_events(steps)
+    withheld = _late_events(steps)
     events = list(log.iter_events())
     logged = {e.id: e for e in events}
     deliveries = []
@@ -165,7 +165,7 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     return report
 
 
-def late_events(steps) -> set[tuple[tuple[str, str], tuple[str, str, int]]]:
+def _late_events(steps) -> set[tuple[tuple[str, str], tuple[str, str, int]]]:
     """``((consumer node, port), event id)`` of every event a real-time consumer dropped as late,
     from the step records' ``late`` detail (``{port: [event id, ...]}``, told on the record after
     it arrived)."""

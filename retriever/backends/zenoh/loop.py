@@ -694,21 +694,20 @@ class NodeLoop:
                 # what was done with the outputs: published late, or dropped (and the run stopped)
                 detail = {**(detail or {}), "deadline_miss_ns": finished - tag[0],
                           "on_deadline_miss": "error" if stop else self.on_deadline_miss}
-                status = "late"
                 if stop or self.on_deadline_miss == "drop":
                     for _, port, _, _ in batch:
                         seqs[port] -= 1
-                    self._finish_tick(tau, consumed, (), status, detail, start, wall)
-                if stop:
-                    hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
-                            f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
-                            "raise latency=, or set on_deadline_miss='publish_late' or 'drop'")
-                    raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s finished "
-                                  f"{(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
-                if self.on_deadline_miss == "drop":
+                    self._finish_tick(tau, consumed, (), "late", detail, start, wall)
+                    if stop:
+                        hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
+                                f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
+                                "raise latency=, or set on_deadline_miss='publish_late' or 'drop'")
+                        raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s "
+                                      f"finished {(finished - tag[0]) / 1e6:.3f} ms after t+latency\n    hint: {hint}",
+                                      tau)
                     return
                 self._release(finished)  # earlier ticks' held outputs go first
-                self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
+                self._finish_tick(tau, consumed, tuple(produced), "late", detail, start, wall, publish=batch)
                 return
             with self.lock:
                 for item in batch:

@@ -18,6 +18,7 @@ a subprocess, or orphaned) is still alive afterwards. Waits are bounded polls, n
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import re
@@ -31,9 +32,11 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from retriever import BackendError, Flow, LogError, Pipeline, Rate, read_log
-from retriever.backends.zenoh.hub import endpoint, free_port
+from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
+from retriever.backends.zenoh.worker import build_loop
 
 from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, two_node_pipeline
 
@@ -301,28 +304,21 @@ def test_a_node_loop_undeclares_everything_it_declared_so_its_session_lets_go_of
     and a process's exit() cleanup skips what it still maps. A publisher the loop never
     undeclared (its progress publisher) kept a worker's session, so its segment outlived it
     in /dev/shm; in-process it left one after every test run that built loops by hand."""
-    import gc
-
-    import zenoh
-
-    from retriever.backends.zenoh.hub import mapped_segments, peer_config
-    from retriever.backends.zenoh.worker import build_loop
-
     pipe = two_node_pipeline("undeclared")
     before = mapped_segments()
     session = zenoh.open(peer_config())
+    own = mapped_segments() - before
+    assert own, "the session maps a segment of its own"
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": f"undeclare-{secrets.token_hex(3)}"},
                       node, session)
     loop.declare()
-    assert mapped_segments() - before, "the session maps a segment of its own"
     loop.undeclare()
     session.close()
     del loop, session
     gc.collect()
-    give_up = time.monotonic() + 5.0  # it takes about 1 ms
-    while mapped_segments() - before and time.monotonic() < give_up:
-        time.sleep(0.005)
-    assert not mapped_segments() - before, "something declared on the session still holds it"
+    # Zenoh lets go on a thread of its own, about 1 ms later: a generous bound, not a threshold
+    await_segments_released(own, bound=5.0)
+    assert not mapped_segments() & own, "something declared on the session still holds it"
 
 
 CHOSEN_BY_INIT = """
