@@ -291,7 +291,7 @@ def log_cat(
             events = sorted((e for e in log.iter_events() if (node is None or e.node == node)
                              and (port is None or e.port == port)), key=lambda e: (e.tag, e.node, e.port, e.seq))
             for e in events[:limit]:
-                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e)!r}",
+                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e, keep_unregistered=True)!r}",
                            highlight=False, markup=False, soft_wrap=True)
                 shown += 1
     except Exception as exc:

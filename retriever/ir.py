@@ -55,8 +55,8 @@ def param_to_ir(value: Any) -> Any:
 
 def param_from_ir(value: Any) -> Any:
     """The constructor argument that :func:`param_to_ir` stored. Raises ValueError for a
-    malformed tag; a dataclass is rebuilt only if its module is already imported (an IR may
-    not make a worker import code its allowlist did not)."""
+    malformed tag; a dataclass is rebuilt only as a value type this process registered (``@io``),
+    never by importing or calling what the IR names."""
     if type(value) is list:
         return [param_from_ir(v) for v in value]
     if type(value) is not dict:
@@ -65,7 +65,7 @@ def param_from_ir(value: Any) -> Any:
         return tuple(param_from_ir(v) for v in value["$tuple"])
     if len(value) == 1 and "$msgpack" in value:
         try:
-            return unpackb(base64.b64decode(value["$msgpack"], validate=True), import_modules=False)
+            return unpackb(base64.b64decode(value["$msgpack"], validate=True))
         except (TypeError, binascii.Error, CodecError, ValueError) as e:
             raise ValueError(f"a $msgpack value that does not decode ({type(e).__name__}: {e})") from None
     if any(k.startswith("$") for k in value):

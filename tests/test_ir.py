@@ -194,18 +194,17 @@ def test_a_malformed_tagged_argument_is_refused_naming_node_and_argument(bad, sa
 
 def test_a_tagged_dataclass_does_not_make_the_rebuild_import_its_module(tmp_path: Path):
     """An IR may not make a worker import code (its allowlist decides what it imports): a
-    tagged dataclass of a module nobody imported is refused, naming the module."""
-    from retriever.codec import packb
+    tagged dataclass that is no registered value type is refused, naming it."""
     import base64
 
-    @dataclasses.dataclass
-    class Stray:
-        x: int
-    Stray.__module__, Stray.__qualname__ = "tests.never_imported_module", "Stray"
+    import msgpack
+
+    from retriever.codec import packb
+
     with Pipeline("stray") as pipe:
         ir_flows.Tool(1) @ Rate(hz=10)
     doc = json.loads(pipe.build_ir().to_json())
-    tagged = base64.b64encode(packb(Stray(1))).decode()
+    tagged = base64.b64encode(msgpack.packb(msgpack.ExtType(4, packb(["tests.never_imported_module:Stray", {"x": 1}])))).decode()
     doc["nodes"][0]["params"]["model"] = {"$msgpack": tagged}
     with pytest.raises(IRError, match=r"params\.model is a \$msgpack value that does not decode .*"
                                       r"tests\.never_imported_module"):

@@ -25,6 +25,7 @@ from typing import Any, Callable, Generic, TypeVar
 
 from .. import _context
 from ..clocks import Clock
+from ..codec import is_value_type, register_value_type
 from ..time import is_finite_number, seconds_to_ns
 
 In = TypeVar("In")
@@ -46,15 +47,37 @@ _NO_DEFAULT: Any = _NoDefault()
 # @io message types
 # ---------------------------------------------------------------------------------------------
 def io(cls: type | None = None, /, **dataclass_kwargs: Any):
-    """Declare a typed message: its fields are ports. Use on (or above) ``@dataclass``."""
+    """Declare a typed message: its fields are ports. Use on (or above) ``@dataclass``.
+
+    It also registers the class as a value type: the only kind of class the codec rebuilds from
+    a message, a log or an IR (by its ``module:QualName``), in any process that defined it; and
+    with it the dataclasses its fields are annotated with (``Optional[Pose]``, ``list[Pose]``),
+    so that a plain dataclass nested in a message travels too."""
 
     def wrap(c: type) -> type:
         if not dataclasses.is_dataclass(c):
             c = dataclass(c, **dataclass_kwargs)
         c.__retriever_io__ = True
+        _register_with_nested(c)
         return c
 
     return wrap if cls is None else wrap(cls)
+
+
+def _register_with_nested(cls: type) -> None:
+    register_value_type(cls)
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:  # a forward reference not resolvable yet: the fields' own types, as written
+        hints = {f.name: f.type for f in dataclasses.fields(cls)}
+    pending = list(hints.values())
+    while pending:
+        tp = pending.pop()
+        if isinstance(tp, type) and dataclasses.is_dataclass(tp):
+            if not is_value_type(tp):
+                _register_with_nested(tp)
+        else:
+            pending.extend(typing.get_args(tp))
 
 
 def is_io(tp: object) -> bool:
