@@ -92,10 +92,10 @@ def test_a_plain_dataclass_is_refused_when_encoding_with_the_fix():
 # ---------------------------------------------------------------------------------------------
 # The wire: a data message to a consumer's worker, a report to the coordinator
 # ---------------------------------------------------------------------------------------------
-def _data_message(value_bytes: bytes) -> bytes:
+def _data_message(value_bytes: bytes, producer: str = "camera", port: str = "frame") -> bytes:
     """A data message ``[envelope]`` whose envelope ``[2, tag, seq, frontier, producer, port,
     value]`` carries ``value_bytes`` as its value."""
-    head = [WIRE_VERSION, [0, 1], 0, [0, 1], "camera", "frame"]
+    head = [WIRE_VERSION, [0, 1], 0, [0, 1], producer, port]
     envelope = b"\x97" + b"".join(msgpack.packb(x) for x in head) + value_bytes
     return msgpack.packb([envelope])
 

@@ -48,6 +48,16 @@ FLUSH_MAX_BYTES = 64 << 20
 #: directory (one copy, and none on its side) instead of inside the report
 SPILL_BYTES = 64 << 10
 
+#: What a message may claim, past which it is refused as garbage (never applied): a frontier is a
+#: producer's promise, and a producer can promise no tag past the run's end plus its latency
+#: (its ticks end there; LET outputs are stamped tick + latency), except NEVER once it is done and,
+#: without latency, its HLC stamp at completion: at most CLOCK_AHEAD_MAX_NS past this process's
+#: clock, the skew Zenoh's own HLC tolerates between sessions (500 ms). A seq may arrive ahead of
+#: the next one expected (Zenoh orders per route; a message may overtake on another), by a few,
+#: not by EARLY_SEQS_MAX: a message that far ahead would hold its stream's gap open forever.
+CLOCK_AHEAD_MAX_NS = 500_000_000
+EARLY_SEQS_MAX = 4096
+
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
 
@@ -98,12 +108,13 @@ class StopRun(RetrieverError):
 class InEdge:
     """One incoming edge: where its events go and how long a tick waits for it."""
 
-    __slots__ = ("src", "src_port", "port", "buf", "delay_ns", "triggers", "deadline_ns")
+    __slots__ = ("src", "src_port", "port", "buf", "delay_ns", "triggers", "deadline_ns", "src_latency_ns")
 
     def __init__(self, src: str, src_port: str, port: str, buf: PortBuffer, delay_ns: int, triggers: bool,
-                 deadline_ns: int):
+                 deadline_ns: int, src_latency_ns: int = 0):
         self.src, self.src_port, self.port, self.buf = src, src_port, port, buf
         self.delay_ns, self.triggers, self.deadline_ns = delay_ns, triggers, deadline_ns
+        self.src_latency_ns = src_latency_ns  # the producer's declared latency: how far past the end it stamps
 
 
 class NodeLoop:
@@ -153,6 +164,7 @@ class NodeLoop:
         self.expect: dict[tuple[str, str], int] = {k: 0 for k in streams}
         self.early: dict[tuple[str, str], dict[int, Any]] = {k: {} for k in streams}
         self.waiting: dict[tuple[str, str], list[tuple[int, tuple[int, int]]]] = {k: [] for k in streams}
+        self.src_latency_ns = {(e.src, e.src_port): e.src_latency_ns for e in edges}
         self.sources = sorted({e.src for e in edges})
         self.sent: dict[str, int] = {port: seq - 1 for port, seq in self.seqs.items()}  # last seq put
         self.pending: list[tuple[int, int]] = []  # trigger tick tags (a heap, deduplicated below)
@@ -524,6 +536,7 @@ class NodeLoop:
         if kind == _DATA:
             try:
                 msg = decode_data(data, expected=key)
+                self._check_claims(key, msg.seq, msg.frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
@@ -536,12 +549,14 @@ class NodeLoop:
                 return  # the query timed out
             try:
                 progress = decode_progress(data, expected=key)
+                streams = [s for s in self.frontiers if s[0] == progress.producer]
+                for stream in streams:
+                    self._check_claims(stream, progress.sent.get(stream[1], -1), progress.frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
-            for stream in self.frontiers:
-                if stream[0] == progress.producer:
-                    self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
+            for stream in streams:
+                self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
         else:
             try:
                 op, args = decode_control(data)
@@ -552,6 +567,24 @@ class NodeLoop:
                 self.stopping = True
             elif op == "handover" and args.get("node") == self.id and self.restarting:
                 self.stopping = self.handing_over = True
+
+    def _check_claims(self, stream: tuple[str, str], seq: int, frontier: tuple[int, int]) -> None:
+        """Refuse a seq from the future or a frontier its producer cannot promise (see
+        CLOCK_AHEAD_MAX_NS): applied, one would hold the stream back, or make every later event
+        of it late, for the rest of the run."""
+        expect = self.expect[stream]
+        if seq > expect + EARLY_SEQS_MAX:
+            raise WireError(f"seq {seq} of {stream[0]}.{stream[1]} is {seq - expect} past the next one expected "
+                            f"({expect}): a seq from the future")
+        if frontier == NEVER:
+            return
+        if frontier > NEVER:
+            raise WireError(f"frontier {frontier} of {stream[0]} is past every tag a run has")
+        if self.end:  # the run has started: its end is known
+            limit = max(self.end + self.src_latency_ns[stream] + 1, self.now() + CLOCK_AHEAD_MAX_NS)
+            if frontier[0] > limit:
+                raise WireError(f"frontier {frontier} of {stream[0]} is past what it can promise now "
+                                f"(t <= {limit} ns: the run's end plus its latency, or its clock)")
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""

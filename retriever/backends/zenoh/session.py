@@ -35,6 +35,7 @@ from ...errors import BackendError, StepError
 from ...graph import Graph
 from ...trace import STEPPED
 from ..base import NodeStats, Session
+from .access import SECRET_MIN_BYTES, AccessError, RunAccess, read_secret, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
@@ -68,12 +69,17 @@ class ZenohSession(Session):
     holds_processes = True
 
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
-                 start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False):
+                 start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
+                 secret: str | os.PathLike | bytes | None = None):
         super().__init__(graph)
         _refuse_in_a_worker(graph)
         _check_deployable(graph)
         self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = KeySpace(self.namespace)
+        try:
+            self._access = RunAccess.create(self.namespace, _secret_bytes(secret))
+        except AccessError as e:
+            raise BackendError(str(e)) from None
         self.startup_timeout = startup_timeout
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
@@ -97,12 +103,17 @@ class ZenohSession(Session):
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
         self._hub_segments: set[str] = set()
         try:
+            dictionary = self._access.write_dictionary(self._dir)
+            auth = self._access.session_config(dictionary)
             before = mapped_segments()
-            self._hub, self.endpoint = open_hub(hub_port)
+            self._hub, self.endpoint = open_hub(hub_port, access=auth)
             self._hub_segments = mapped_segments() - before  # the hub session's own
+            #: a Zenoh config file with which a client joins the run as a read-only watcher
+            self.watch_config = self._access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
             if not quiet:
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
-                      f"watch it with a subscriber on {self.keys.all_data()}", file=sys.stderr, flush=True)
+                      f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber "
+                      f"on {self.keys.all_data()}", file=sys.stderr, flush=True)
             put = self._inbox.put
             self._subscribers = [
                 self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
@@ -113,7 +124,7 @@ class ZenohSession(Session):
             self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph),
-                          "spill_dir": str(self._dir)}
+                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary)}
             self._write_spec()
             for nid in graph.nodes:
                 self._spawn(nid)
@@ -125,9 +136,7 @@ class ZenohSession(Session):
     # Processes
     # ---------------------------------------------------------------------------------------
     def _write_spec(self) -> None:
-        tmp = self._dir / "spec.json.tmp"
-        tmp.write_text(json.dumps(self._spec))
-        tmp.replace(self._dir / "spec.json")
+        write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
 
     def _spawn(self, nid: str, join: tuple[int, int] | None = None) -> None:
         cmd = [sys.executable, "-m", "retriever.backends.zenoh.worker", str(self._dir / "spec.json"), nid]
@@ -463,6 +472,15 @@ def _check_deployable(graph: Graph) -> None:
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)
                            + "\n    hint: define flow classes at a module's top level and give them "
                            "msgpack-serializable constructor arguments, or run in-process: backend=\"inproc\"")
+
+
+def _secret_bytes(secret: str | os.PathLike | bytes | None) -> bytes | None:
+    """The deployment secret: given as bytes, or as the path of a file holding it."""
+    if secret is None or isinstance(secret, bytes):
+        if secret is not None and len(secret) < 16:
+            raise AccessError(f"a secret needs at least {SECRET_MIN_BYTES} bytes, got {len(secret)}")
+        return secret
+    return read_secret(secret)
 
 
 def _run_dir() -> Path:

@@ -153,7 +153,8 @@ def build_loop(spec: dict, node_id: str, session):
         deadline = e.get("deadline")
         edges.append(InEdge(e["source"]["node"], e["source"]["port"], port, buf, seconds_to_ns(e.get("delay", 0.0)),
                             node.triggers_on(port),
-                            seconds_to_ns(default_deadline if deadline is None else deadline)))
+                            seconds_to_ns(default_deadline if deadline is None else deadline),
+                            seconds_to_ns(ir.node(e["source"]["node"])["config"].get("latency") or 0.0)))
     inputs, fallbacks = [], {}
     for port, port_spec in node.inputs.items():
         if port in buffers:
@@ -234,13 +235,15 @@ def _serve(argv: list[str]) -> int:
             sys.path.insert(0, path)
 
     from ...codec import packb, unpackb
+    from .access import RunAccess
     from .hub import open_peer, wait_for_answers, wait_for_peers
     from .loop import _CONTROL, StopRun
     from .wire import RELIABLE, KeySpace, WireEncoder
 
     keys = KeySpace(spec["namespace"])
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
-    with open_peer(spec["hub"]) as session:
+    access, dictionary = RunAccess.from_spec(spec["access"])
+    with open_peer(spec["hub"], access=access.session_config(dictionary)) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),

@@ -5,9 +5,10 @@
 - SIGKILL of the coordinator: its workers exit by themselves (PR_SET_PDEATHSIG), also one still
   waiting for its peers at startup.
 - SIGKILL of one worker: the run stops with a BackendError naming the node; no worker survives.
-- Garbage on the run's key space from a foreign process joined to the hub: counted and dropped,
-  the run completes with the right step counts. Well-formed envelopes that are not the run's
-  (an unknown producer, a repeated event id) stay out of the trace.
+- Garbage on the run's key space from a process joined to the hub with the run's credentials (a
+  buggy or compromised insider; strangers get no link at all, test_access.py): counted and
+  dropped, the run completes with the right step counts. Well-formed envelopes that are not the
+  run's (an unknown producer, a repeated event id) stay out of the trace.
 - Flows that cannot be rebuilt from the IR are refused before any process starts.
 - Flow classes defined in a script's ``__main__`` run on zenoh; what they print shows on the
   caller's stdout and stderr, each line prefixed with the node, before ``pipe.run`` returns.
@@ -582,15 +583,26 @@ def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
 # ---------------------------------------------------------------------------------------------
 # 4. Garbage on the key space from a foreign process
 # ---------------------------------------------------------------------------------------------
-GARBAGE = r"""
-import sys, threading
+INSIDER = r"""
+import sys
+from pathlib import Path
+from retriever.backends.zenoh.access import RunAccess, read_secret
 from retriever.backends.zenoh.hub import open_peer
+
+def join(namespace, hub, secret_file, directory):
+    # a session with the run's own credentials, derived from the deployment secret
+    access = RunAccess.create(namespace, read_secret(secret_file))
+    return open_peer(hub, access=access.session_config(access.write_dictionary(Path(directory))))
+"""
+
+GARBAGE = INSIDER + r"""
+import threading
 from retriever.backends.zenoh.wire import KeySpace
 
 keys = KeySpace(sys.argv[1])
 seen = threading.Event()
 GARBAGE = [b"", b"not msgpack at all", b"\x93\x01\x02\x03", b"\x97\x01\xc1"]
-with open_peer(sys.argv[2]) as s:
+with join(*sys.argv[1:5]) as s:
     sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
     print("ready", flush=True)
     assert seen.wait(60), "never saw the run's data"  # a bound only: the run sends within a second
@@ -614,14 +626,23 @@ def _read_line(proc: subprocess.Popen, bound: float = BOUND_S) -> str:
     raise AssertionError(f"no line from the client after {bound:g} s")
 
 
-def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespace):
+def _secret(tmp_path: Path) -> Path:
+    path = tmp_path / "secret"
+    path.write_text(secrets.token_hex(32))
+    path.chmod(0o600)
+    return path
+
+
+def test_garbage_from_an_insider_is_counted_and_the_run_completes(namespace, tmp_path):
     port = free_port()  # the hub's; the client connects first and its session retries until it is up
-    client = subprocess.Popen([sys.executable, "-c", GARBAGE, namespace, endpoint(port)], cwd=ROOT, env=_env(),
+    secret = _secret(tmp_path)
+    client = subprocess.Popen([sys.executable, "-c", GARBAGE, namespace, endpoint(port), secret, tmp_path],
+                              cwd=ROOT, env=_env(),
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _read_line(client) == "ready\n"
         pipe = two_node_pipeline("garbage", source_hz=10, sink_hz=5, sink=Sink)
-        pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True)
+        pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True, secret=secret)
         out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
@@ -638,14 +659,13 @@ def test_garbage_from_a_foreign_process_is_counted_and_the_run_completes(namespa
     assert {s.status for s in trace.steps} == {"ok"}
 
 
-SPOOF = r"""
-import sys, threading
-from retriever.backends.zenoh.hub import open_peer
+SPOOF = INSIDER + r"""
+import threading
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
 keys, enc = KeySpace(sys.argv[1]), WireEncoder()
 seen, reported = threading.Event(), threading.Event()
-with open_peer(sys.argv[2]) as s:
+with join(*sys.argv[1:5]) as s:
     sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
     reports = s.declare_subscriber(keys.report("counter"), lambda sample: reported.set())
     print("ready", flush=True)
@@ -679,13 +699,15 @@ print("sent", flush=True)
 
 def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_path, namespace):
     port = free_port()
-    client = subprocess.Popen([sys.executable, "-c", SPOOF, namespace, endpoint(port)], cwd=ROOT, env=_env(),
+    secret = _secret(tmp_path)
+    client = subprocess.Popen([sys.executable, "-c", SPOOF, namespace, endpoint(port), secret, tmp_path],
+                              cwd=ROOT, env=_env(),
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert _read_line(client) == "ready\n"
         pipe = two_node_pipeline("spoofed", source_hz=10, sink_hz=5, sink=Sink)
         trace = pipe.run(duration=2.0, backend="zenoh", namespace=namespace, hub_port=port, quiet=True,
-                         log=tmp_path / "run.mcap")
+                         log=tmp_path / "run.mcap", secret=secret)
         out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
