@@ -44,6 +44,12 @@ EXT_NDARRAY_OOB = 6  # [descr, shape, buffer index]: the bytes travel beside the
 
 _INT64_MIN, _UINT64_MAX = -(1 << 63), (1 << 64) - 1
 
+#: extension values (tuples, dataclasses) nested deeper than this do not decode. Each level is a
+#: nested msgpack decode, which takes ~45 KiB of C stack (msgpack's unpack context lives there):
+#: unbounded, a message of a few hundred bytes nesting tuples overflowed the stack and killed the
+#: process (a 2 MiB thread, such as Zenoh's, at ~45 levels). Found by benchmarks/fuzz.py.
+MAX_EXT_DEPTH = 16
+
 
 def type_path(cls: type) -> str:
     """``module:QualName`` of a class, the form used in IR ``type`` fields and the codec."""
@@ -180,7 +186,8 @@ def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType
     )
 
 
-def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffers: list | None = None) -> Any:
+def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffers: list | None = None,
+              depth: int = 0) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
         descr, shape, raw = msgpack.unpackb(data, raw=False)
         arr = np.frombuffer(raw, dtype=_array_dtype(descr)).reshape(shape).copy()
@@ -188,11 +195,11 @@ def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffer
     if code == EXT_NDARRAY_OOB:
         return _out_of_band_array(data, buffers)
     if code == EXT_TUPLE:
-        return tuple(_unpack(data, keep_unregistered, buffers))
+        return tuple(_unpack(data, keep_unregistered, buffers, depth + 1))
     if code == EXT_BIGINT:
         return int(data.decode())
     if code == EXT_DATACLASS:
-        return _dataclass(*_dataclass_parts(_unpack(data, keep_unregistered, buffers)), keep_unregistered)
+        return _dataclass(*_dataclass_parts(_unpack(data, keep_unregistered, buffers, depth + 1)), keep_unregistered)
     raise CodecError(f"unknown msgpack extension type {code}")
 
 
@@ -365,11 +372,14 @@ def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
     return _unpack(data, False, buffers)
 
 
-def _unpack(data: bytes, keep_unregistered: bool, buffers: list | None) -> Any:
-    if buffers is None and not keep_unregistered:
+def _unpack(data: bytes, keep_unregistered: bool, buffers: list | None, depth: int = 0) -> Any:
+    if depth > MAX_EXT_DEPTH:
+        raise CodecError(f"a value nests tuples or dataclasses deeper than {MAX_EXT_DEPTH} levels, which this "
+                         f"codec does not decode\n    hint: nest tuples and @io dataclasses at most {MAX_EXT_DEPTH} deep")
+    if buffers is None and not keep_unregistered and not depth:
         hook = _ext_hook
     else:
-        hook = functools.partial(_ext_hook, keep_unregistered=keep_unregistered, buffers=buffers)
+        hook = functools.partial(_ext_hook, keep_unregistered=keep_unregistered, buffers=buffers, depth=depth)
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
 
 

@@ -289,3 +289,61 @@ def test_threads_packing_nested_values_at_once_get_the_same_bytes():
         t.join()
     assert all(results[k] == expected * 20 for k in range(4))
     assert [unpackb(b) for b in expected] == NESTED
+
+
+#: a process that decodes tuples nested ``depth`` deep, on a thread with a 2 MiB stack (as
+#: Zenoh's are), through the codec and a wire data message; it prints what each raised
+DEEP_DECODE = r"""
+import sys, threading
+import msgpack
+from retriever.backends.zenoh.wire import WireError, decode_data
+from retriever.codec import unpackb
+
+depth = int(sys.argv[1])
+value = msgpack.packb(None)
+for _ in range(depth):
+    value = msgpack.packb(msgpack.ExtType(2, b"\x91" + value))
+envelope = b"\x97" + b"".join(msgpack.packb(x) for x in [2, [0, 0], 0, [0, 0], "a", "b"]) + value
+
+def decode():
+    for name, call, error in (("codec", lambda: unpackb(value), Exception),
+                              ("wire", lambda: decode_data(msgpack.packb([envelope])), WireError)):
+        try:
+            call()
+            print(name, "decoded")
+        except error as e:
+            print(name, type(e).__name__, e)
+
+threading.stack_size(2 << 20)
+thread = threading.Thread(target=decode)
+thread.start()
+thread.join()
+"""
+
+
+@pytest.mark.parametrize("depth", [50, 400])
+def test_a_value_nesting_tuples_too_deep_is_refused_not_a_crash(depth):
+    # unbounded, each level a nested msgpack decode, 50 levels (a 200-byte message) overflowed
+    # a 2 MiB thread's stack: the process died of SIGSEGV (found by benchmarks/fuzz.py)
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", DEEP_DECODE, str(depth)], capture_output=True, text=True,
+                          cwd=root, env={"PYTHONPATH": str(root)}, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.splitlines() == [
+        "codec CodecError a value nests tuples or dataclasses deeper than 16 levels, which this codec does not "
+        "decode", "    hint: nest tuples and @io dataclasses at most 16 deep",
+        "wire WireError the value of a data message cannot be decoded: a value nests tuples or dataclasses deeper "
+        "than 16 levels, which this codec does not decode", "    hint: nest tuples and @io dataclasses at most 16 deep"]
+
+
+def test_values_nested_as_deep_as_the_codec_decodes_round_trip():
+    value: object = Point(1.0, 2.0, tags=())  # 2 levels: the dataclass and its tuple
+    for _ in range(14):
+        value = (value,)
+    assert unpackb(packb(value)) == value
+    with pytest.raises(CodecError, match="deeper than 16 levels"):
+        unpackb(packb((value,)))
