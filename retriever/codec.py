@@ -26,6 +26,7 @@ import dataclasses
 import functools
 import importlib
 import math
+import re
 import threading
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -132,15 +133,34 @@ def _array_head(arr: np.ndarray) -> bytes:
 _dtypes: dict[str, np.dtype] = {}  # descr string -> dtype, for the decoders' hot path
 
 
+#: a plain dtype as ``dtype.str`` spells it (``<f8``, ``|u1``, ``<U3``, ``<M8[ns]``). Only these
+#: reach numpy: its dtype parser takes far more (comma lists, ``(2,)f8`` shapes, which it reads with
+#: ``ast.literal_eval``), and a decoder has no business compiling text from a message
+_TYPESTR = re.compile(r"[<>|=]?[A-Za-z?]\d{0,9}(\[\d{0,9}[A-Za-z]{1,2}\])?")
+
+
 def _array_dtype(descr: Any) -> np.dtype:
     if type(descr) is str:
         dtype = _dtypes.get(descr)
         if dtype is None:
+            if not _TYPESTR.fullmatch(descr):
+                raise CodecError(f"an array's dtype {descr!r:.40} is not a numpy type string such as '<f8'")
             dtype = np.dtype(descr)
             if len(_dtypes) < 1024:
                 _dtypes[descr] = dtype
         return dtype
+    if not _structured_descr(descr):
+        raise CodecError(f"an array's dtype {descr!r:.60} is not a numpy type string or [[name, type(, shape)], ...]")
     return np.lib.format.descr_to_dtype(descr)
+
+
+def _structured_descr(descr: Any) -> bool:
+    """Whether ``descr`` is a structured dtype's description as ``dtype_to_descr`` makes it."""
+    return type(descr) is list and all(
+        type(f) is list and len(f) in (2, 3) and type(f[0]) is str
+        and (_TYPESTR.fullmatch(f[1]) if type(f[1]) is str else _structured_descr(f[1]))
+        and (len(f) == 2 or (type(f[2]) is list and all(type(n) is int for n in f[2])))
+        for f in descr)
 
 
 def _array_payload(arr: np.ndarray) -> bytes:
@@ -188,6 +208,15 @@ def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType
 
 def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffers: list | None = None,
               depth: int = 0) -> Any:
+    try:
+        return _ext_value(code, data, keep_unregistered, buffers, depth)
+    except CodecError:
+        raise
+    except Exception as e:  # what numpy, int() or msgpack raise on a damaged or forged value
+        raise CodecError(f"a malformed value of msgpack extension type {code} ({type(e).__name__}: {e})"[:300]) from None
+
+
+def _ext_value(code: int, data: bytes, keep_unregistered: bool, buffers: list | None, depth: int) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
         descr, shape, raw = msgpack.unpackb(data, raw=False)
         arr = np.frombuffer(raw, dtype=_array_dtype(descr)).reshape(shape).copy()

@@ -347,3 +347,40 @@ def test_values_nested_as_deep_as_the_codec_decodes_round_trip():
     assert unpackb(packb(value)) == value
     with pytest.raises(CodecError, match="deeper than 16 levels"):
         unpackb(packb((value,)))
+
+
+def _ext(code: int, payload) -> bytes:
+    import msgpack
+
+    return msgpack.packb(msgpack.ExtType(code, msgpack.packb(payload, use_bin_type=True)))
+
+
+@pytest.mark.parametrize("data", [
+    _ext(1, 5),  # an array that is no [descr, shape, bytes]
+    _ext(1, ["<f8", "abc", b"\0" * 8]),  # a shape that is text
+    _ext(1, ["<f8", [2, 19], b"\0" * 8]),  # a shape its bytes do not fill
+    _ext(5, ["<f8", [], None]),
+    __import__("msgpack").packb(__import__("msgpack").ExtType(3, b"nan")),  # a big int that is none
+    __import__("msgpack").packb(__import__("msgpack").ExtType(3, b"\xff")),
+])
+def test_a_malformed_extension_value_is_a_codec_error(data):
+    # found by benchmarks/fuzz.py: numpy's and int()'s own errors escaped, where callers catch CodecError
+    with pytest.raises(CodecError, match="a malformed value of msgpack extension type"):
+        unpackb(data)
+
+
+@pytest.mark.parametrize("descr", ["(2,)f8", "i4,f8", "f8 ", {"descr": "O"}, [["a", "(2,)f8"]], [["a", "<f8", ["2"]]]])
+def test_a_dtype_numpy_would_parse_as_text_is_refused_without_compiling_it(descr):
+    # numpy reads "(2,)f8" with ast.literal_eval (a compile() of the message's text), found by
+    # benchmarks/fuzz.py's audit hook: only type strings such as '<f8' reach numpy now
+    import sys
+
+    compiled = []
+    armed = [True]
+    sys.addaudithook(lambda event, args: compiled.append(args[0]) if armed[0] and event == "compile" else None)
+    try:
+        with pytest.raises(CodecError, match="an array's dtype .* is not a numpy type string"):
+            unpackb(_ext(1, [descr, [1], b"\0" * 16]))
+    finally:
+        armed[0] = False
+    assert compiled == []
