@@ -19,7 +19,6 @@ import numpy as np
 from .clocks import clock_from_ir
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
-from .time import is_finite_number
 from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
 from .sync import policy_from_ir
 
@@ -32,6 +31,8 @@ IR_VERSION = "1.1.0"
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
+#: durations in an IR are below this many seconds: their nanoseconds fit in a signed 64-bit int
+MAX_SECONDS = (2**63 - 1) // 10**9
 
 
 def param_to_ir(value: Any) -> Any:
@@ -181,6 +182,9 @@ class IR:
             doc = json.loads(text)
         except json.JSONDecodeError as e:
             raise IRError(source, [f"not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}"]) from None
+        except RecursionError:
+            raise IRError(source, ["not an IR: its JSON nests arrays or objects deeper than Python's recursion "
+                                   "limit"]) from None
         return cls(doc, source=source)
 
     @classmethod
@@ -273,6 +277,12 @@ def _dumpable(value: Any) -> bool:
         return False
 
 
+def _seconds(value: Any) -> bool:
+    """A duration as an IR holds it: a finite number of seconds >= 0 whose ns fit in 64 bits
+    (``is_finite_number`` overflows on a huge int, and NaN compares false with everything)."""
+    return type(value) in (int, float) and 0 <= value <= MAX_SECONDS
+
+
 def validate_doc(doc: Any, source: str) -> None:
     problems: list[str] = []
     if not isinstance(doc, dict):
@@ -292,13 +302,16 @@ def validate_doc(doc: Any, source: str) -> None:
     if problems:
         raise IRError(source, problems)
     meta = doc["metadata"]
-    if not isinstance(meta.get("name"), str):
-        problems.append("metadata.name: expected the pipeline name (a string)")
+    if not isinstance(meta.get("name"), str) or not meta["name"]:
+        problems.append("metadata.name: expected the pipeline name (a non-empty string)")
     if meta.get("realtime", "soft") not in REALTIME_MODES:
         problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
     deadline = meta.get("deadline", DEFAULT_DEADLINE)
-    if not is_finite_number(deadline) or deadline < 0:
-        problems.append(f"metadata.deadline: expected seconds >= 0, got {deadline!r}")
+    if not _seconds(deadline):
+        problems.append(f"metadata.deadline: expected seconds >= 0, got {deadline!r:.40}")
+    microsteps = meta.get("max_microsteps", 1000)
+    if type(microsteps) is not int or microsteps < 1:
+        problems.append(f"metadata.max_microsteps: expected an integer >= 1, got {microsteps!r:.40}")
     ids: dict[str, dict] = {}
     for i, n in enumerate(doc["nodes"]):
         where = f"nodes[{i}]"
@@ -321,11 +334,11 @@ def validate_doc(doc: Any, source: str) -> None:
         if _expect(problems, f"{where}.config", config, dict, "an object"):
             try:
                 clock_from_ir(config.get("clock"))
-            except ValueError as e:
+            except (ValueError, TypeError, OverflowError) as e:
                 problems.append(f"{where}.config.clock: {e}".split("\n")[0])
             latency = config.get("latency", 0)
-            if not isinstance(latency, (int, float)) or isinstance(latency, bool) or latency < 0:
-                problems.append(f"{where}.config.latency: expected seconds >= 0, got {latency!r}")
+            if not _seconds(latency):
+                problems.append(f"{where}.config.latency: expected seconds >= 0, got {latency!r:.40}")
             for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
                                  ("on_deadline_miss", ON_DEADLINE_MISS)):
                 if key in config and config[key] not in allowed:
@@ -346,16 +359,16 @@ def validate_doc(doc: Any, source: str) -> None:
                 problems.append(f"{where}.{end}: node '{ref['node']}' has no {ports_key[:-1]} port '{ref['port']}'")
         try:
             policy_from_ir(e.get("adapter"))
-        except ValueError as err:
+        except (ValueError, TypeError, OverflowError) as err:
             problems.append(f"{where}.adapter: {err}")
         delay = e.get("delay", 0)
-        if not isinstance(delay, (int, float)) or isinstance(delay, bool) or delay < 0:
-            problems.append(f"{where}.delay: expected seconds >= 0, got {delay!r}")
+        if not _seconds(delay):
+            problems.append(f"{where}.delay: expected seconds >= 0, got {delay!r:.40}")
         qsize = e.get("qsize", 10)
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
         deadline = e.get("deadline")
-        if deadline is not None and (not is_finite_number(deadline) or deadline < 0):
+        if deadline is not None and not _seconds(deadline):
             problems.append(f"{where}.deadline: expected seconds >= 0 or null, got {deadline!r}")
     if problems:
         raise IRError(source, problems)

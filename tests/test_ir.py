@@ -450,3 +450,34 @@ def test_visualize_mermaid_contains_every_node_and_edge(ir: IR):
 def test_visualize_unknown_format(ir: IR):
     with pytest.raises(ValueError, match=r"unknown format 'svg'; expected 'dot' or 'mermaid'"):
         ir.visualize("svg")
+
+
+# Found by benchmarks/fuzz.py: IRs that passed validation and then made Pipeline.from_ir raise
+# ValueError, TypeError or OverflowError, and JSON nested past the recursion limit.
+def _broken(change) -> str:
+    doc = ir_flows.build().build_ir().doc
+    change(doc)
+    return json.dumps(doc, allow_nan=True)
+
+
+def _node(doc: dict, nid: str = "planner") -> dict:
+    return next(n for n in doc["nodes"] if n["id"] == nid)
+
+
+@pytest.mark.parametrize("change, problem", [
+    (lambda d: _node(d)["config"].update(latency=float("nan")), r"node 'planner'\.config\.latency: expected seconds >= 0, got nan"),
+    (lambda d: d["edges"][0].update(delay=float("inf")), r"edges\[0\]\.delay: expected seconds >= 0, got inf"),
+    (lambda d: d["metadata"].update(deadline=10**400), r"metadata\.deadline: expected seconds >= 0"),
+    (lambda d: d["metadata"].update(max_microsteps=0), r"metadata\.max_microsteps: expected an integer >= 1, got 0"),
+    (lambda d: d["metadata"].update(name=""), r"metadata\.name: expected the pipeline name \(a non-empty string\)"),
+    (lambda d: _node(d, "logger")["config"].update(clock={"Trigger": {"ports": True}}), r"node 'logger'\.config\.clock"),
+    (lambda d: _node(d, "camera")["config"].update(clock={"Rate": {"hz": 10**400}}), r"node 'camera'\.config\.clock"),
+])
+def test_an_ir_value_no_pipeline_can_take_is_an_ir_error(change, problem):
+    with pytest.raises(IRError, match=problem):
+        Pipeline.from_ir(IR.from_json(_broken(change)))
+
+
+def test_json_nested_past_the_recursion_limit_is_an_ir_error():
+    with pytest.raises(IRError, match="nests arrays or objects deeper than Python's recursion limit"):
+        IR.from_json('{"nodes": ' + "[" * 100_000 + "]" * 100_000 + "}")
