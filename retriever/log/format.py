@@ -32,6 +32,8 @@ from typing import Any
 
 import msgpack
 
+from ..trace import STEP_STATUSES
+
 PROFILE = "retriever"
 FORMAT_VERSION = "1"
 MESSAGE_ENCODING = "msgpack"
@@ -60,7 +62,10 @@ def split_event(data: bytes) -> tuple[int, bytes]:
         return data[1], data[2:]
     unpacker = msgpack.Unpacker()
     unpacker.feed(data[1:])
-    microstep = unpacker.unpack()
+    try:
+        microstep = unpacker.unpack()
+    except Exception as e:  # msgpack's OutOfData, FormatError...: a damaged record
+        raise ValueError(f"its microstep is not valid msgpack ({type(e).__name__})") from None
     if not isinstance(microstep, int) or microstep < 0:
         raise ValueError(f"an event's microstep must be an integer >= 0, got {microstep!r}")
     return microstep, data[1 + unpacker.tell():]
@@ -70,8 +75,27 @@ def decode_step(data: bytes) -> tuple:
     """A steps message → ``(node, microstep, consumed, produced, status, detail, wall_ns)``,
     event ids as tuples like the in-memory trace has them."""
     node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, raw=False)
-    consumed = {port: tuple(tuple(i) for i in ids) for port, ids in consumed.items()}
-    return node, microstep, consumed, tuple(tuple(i) for i in produced), status, detail, wall_ns
+    # what readers (log info, replay) rely on; a damaged or forged record is a ValueError here
+    if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
+            or not all(type(p) is str for p in consumed) or status not in STEP_STATUSES or type(wall_ns) is not int
+            or not (detail is None or (type(detail) is dict and all(type(k) is str for k in detail)))
+            or (detail is None and status in ("late", "error"))):
+        raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
+    late = (detail or {}).get("late", {})
+    if type(late) is not dict:
+        raise ValueError("its late events are not {port: [event id, ...]}")
+    for ids in late.values():
+        _event_ids(ids)
+    consumed = {port: _event_ids(ids) for port, ids in consumed.items()}
+    return node, microstep, consumed, _event_ids(produced), status, detail, wall_ns
+
+
+def _event_ids(ids: Any) -> tuple:
+    """``[[node, port, seq], ...]`` → a tuple of event ids, or ValueError."""
+    if type(ids) is not list or not all(type(i) is list and len(i) == 3 and type(i[0]) is str and type(i[1]) is str
+                                        and type(i[2]) is int and i[2] >= 0 for i in ids):
+        raise ValueError("its event ids are not [node, port, seq] triples")
+    return tuple(map(tuple, ids))
 
 
 @functools.cache

@@ -213,5 +213,11 @@ def run_info(log: RunLog) -> dict[str, Any]:
     for s in log.iter_steps():
         node = statuses.setdefault(s.node, {})
         node[s.status] = node.get(s.status, 0) + 1
-    packages = json.loads(log.run.get("packages", "{}") or "{}")
+    try:
+        packages = json.loads(log.run.get("packages", "{}") or "{}")
+    except ValueError:
+        packages = None
+    if type(packages) is not dict or not all(type(v) is str for v in packages.values()):
+        raise LogError(f"{log.path}: the run record's packages are not a JSON object of versions",
+                       "the file is damaged: retriever log recover")
     return {"counts": counts, "span": span, "statuses": statuses, "packages": packages}

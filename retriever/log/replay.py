@@ -114,6 +114,10 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     withheld = _late_events(steps)
     events = list(log.iter_events())
     logged = {e.id: e for e in events}
+    if len(logged) < len(events):
+        twice = next(e for i, e in enumerate(events) if any(e.id == f.id for f in events[:i]))
+        raise LogError(f"{log.path}: event {twice.node}.{twice.port} #{twice.seq} is logged twice",
+                       "the file is damaged or was edited: retriever replay reads logs as a run wrote them")
     deliveries = []
     for e in events:
         consumers = routes.get((e.node, e.port))
@@ -201,8 +205,16 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamp
         elif tag != original.tag:
             return differs("output tag", format_tag(original.tag), format_tag(tag), port)
         if encode(value) != original.raw_value:
-            return differs("value", unpackb(original.raw_value, keep_unregistered=True), value, port)
+            return differs("value", _logged_value(original), value, port)
     return None
+
+
+def _logged_value(event: LoggedEvent) -> Any:
+    """A logged value to show beside the replayed one: itself, or what it is when it does not decode."""
+    try:
+        return unpackb(event.raw_value, keep_unregistered=True)
+    except Exception as e:  # a damaged value differs from any replayed one: say what it is
+        return f"<{len(event.raw_value)} bytes that do not decode: {type(e).__name__}>"
 
 
 def _stepped(step) -> bool:

@@ -429,3 +429,114 @@ def test_replay_when_a_step_changed_reports_the_divergence(drift):
     resimulated = cli("replay", "--resim", log)
     assert resimulated.returncode == 1
     assert "DIVERGED" in resimulated.stdout and "node='double'" in resimulated.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# Records that parse but are not what a run writes (found by benchmarks/fuzz.py): LogError, not
+# TypeError, AttributeError or msgpack's OutOfData from `log info`, `.trace()` and `replay`
+# ---------------------------------------------------------------------------------------------
+def _rewritten(source: Path, out: Path, change) -> Path:
+    """``source`` written again by the MCAP writer, its messages ``[channel topic, log_time,
+    publish_time, sequence, data]`` and run record passed through ``change`` first."""
+    import msgpack  # noqa: F401 - the changes use it
+
+    from retriever.log.mcap_writer import McapWriter
+
+    log = read_log(source)
+    messages = [[log.channels[m.channel_id].topic, m.log_time, m.publish_time, m.sequence, bytes(m.data)]
+                for m in log.messages]
+    metadata = {name: dict(data) for name, data in log.metadata.items()}
+    change(messages, metadata)
+    with open(out, "wb") as f:
+        writer = McapWriter(f, profile="retriever")
+        ids = {c.topic: writer.add_channel(c.topic, c.message_encoding, c.metadata) for c in log.channels.values()}
+        for a in log.attachments.values():
+            writer.add_attachment(a.name, a.media_type, bytes(a.data), a.log_time, a.create_time)
+        for name, data in metadata.items():
+            writer.add_metadata(name, data)
+        for topic, log_time, publish_time, sequence, data in messages:
+            writer.add_message(ids[topic], log_time, publish_time, sequence, data)
+        writer.finish()
+    return out
+
+
+def _first(messages: list, topic: str) -> list:
+    return next(m for m in messages if m[0] == topic)
+
+
+def _small_log(tmp_path: Path) -> Path:
+    from tests.log.log_flows import build_small
+
+    path = tmp_path / "small.mcap"
+    build_small().run(duration=0.5, log=path)
+    return path
+
+
+def _step_field(index: int, value):
+    def change(messages, metadata):
+        import msgpack
+
+        step = _first(messages, "steps")
+        record = msgpack.unpackb(step[4])
+        record[index] = value
+        step[4] = msgpack.packb(record)
+    return change
+
+
+@pytest.mark.parametrize("change", [
+    _step_field(0, ["counter"]),  # a node that is no name
+    _step_field(1, 1.5),  # a microstep that is no integer
+    _step_field(3, [["counter", "out"]]),  # an event id that is no triple
+    _step_field(4, "exploded"),  # no status
+    _step_field(5, {"late": 5}),
+])
+def test_a_step_record_that_is_not_one_is_a_log_error_everywhere(tmp_path, change):
+    from retriever.log.reader import run_info
+    from tests.log.log_flows import build_small
+
+    log = read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change))
+    for read in (log.trace, lambda: run_info(log), lambda: replay(log, build_small())):
+        with pytest.raises(LogError, match=r"step record #\d+ is malformed \(it is not|its event ids|its late"):
+            read()
+
+
+def test_an_event_whose_microstep_is_cut_short_is_a_log_error(tmp_path):
+    def change(messages, metadata):
+        _first(messages, "data/counter/k")[4] = b"\x92\xcd\x01"  # a uint16 microstep missing a byte
+
+    log = read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change))
+    with pytest.raises(LogError, match=r"event counter\.k #\d+ is malformed \(its microstep is not valid msgpack"):
+        log.trace()
+
+
+def test_an_event_logged_twice_is_a_log_error_in_replay(tmp_path):
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        messages.append(list(_first(messages, "data/counter/k")))
+
+    log = read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change))
+    with pytest.raises(LogError, match=r"event counter\.k #0 is logged twice"):
+        replay(log, build_small())
+
+
+def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        event = _first(messages, "data/tally/count")
+        event[4] = event[4][:2] + b"\xc1"  # microstep, then a byte msgpack never uses
+
+    report = replay(read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)), build_small())
+    assert report.divergences[0].logged == "<1 bytes that do not decode: FormatError>"
+
+
+def test_log_info_of_a_run_record_whose_packages_are_not_json_is_a_log_error(tmp_path):
+    from retriever.log.reader import run_info
+
+    def change(messages, metadata):
+        metadata["retriever.run"]["packages"] = "{"
+
+    log = read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change))
+    with pytest.raises(LogError, match="the run record's packages are not a JSON object of versions"):
+        run_info(log)
