@@ -251,7 +251,7 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
     if type(fields) is not list or len(fields) != 7:
         raise WireError("a data message's envelope must be an array of 7")
     version, tag, seq, frontier, producer, port, value = fields
-    if version != WIRE_VERSION:
+    if type(version) is not int or version != WIRE_VERSION:  # an array's != is an array
         raise WireError(f"a data message of wire format {version!r:.20}; this process speaks {WIRE_VERSION}")
     tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
     if type(seq) is not int or seq < 0:

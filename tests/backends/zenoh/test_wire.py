@@ -242,3 +242,13 @@ def test_the_readmes_plain_msgpack_snippet_decodes_every_kind_of_value():
             assert isinstance(got, msgpack.ExtType) and got.code in (2, 5)  # left to retriever/codec.py
         else:
             assert got == value
+
+
+def test_a_data_message_whose_version_is_an_array_is_garbage():
+    # found by benchmarks/fuzz.py: the envelope decodes with the codec, and an array's != is an
+    # array, whose truth value raised ValueError
+    from retriever.codec import packb
+
+    envelope = b"\x97" + packb(np.array([2, 2])) + b"".join(msgpack.packb(x) for x in [[0, 0], 0, [0, 0], "a", "b", 1])
+    with pytest.raises(WireError, match=r"a data message of wire format array\(\[2, 2\]\); this process speaks 2"):
+        decode_data(msgpack.packb([envelope]))
