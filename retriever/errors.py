@@ -9,6 +9,7 @@
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
     ├── LogError                   an event log cannot be written, read or replayed as asked
+    │   └── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
@@ -109,6 +110,11 @@ class LogError(RetrieverError):
     def __init__(self, message: str, hint: str | None = None):
         self.hint = hint
         super().__init__(message if hint is None else f"{message}\n    hint: {hint}")
+
+
+class LogWriteError(LogError):
+    """The OS refused a write to a run's log (its disk is full, it is a device that takes no data,
+    an I/O error): the run was stopped, and the file is not a record of it."""
 
 
 class InternalError(RetrieverError):

@@ -18,7 +18,7 @@ import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
@@ -31,6 +31,9 @@ from .ir import DEFAULT_DEADLINE, IR, REALTIME_MODES, param_from_ir
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import NS_PER_S, is_finite_number, seconds_to_ns
 from .trace import Trace
+
+if TYPE_CHECKING:
+    from .log.writer import LogFile
 
 
 @dataclass
@@ -191,25 +194,33 @@ class Pipeline:
         return self._session
 
     def run(self, duration: float | None = None, backend: str | None = None, log: str | Path | None = None,
-            **options: Any) -> Trace:
+            overwrite: bool = False, **options: Any) -> Trace:
         """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace.
 
         ``log="run.mcap"`` records the run, from T0, in an MCAP event log that is complete when
-        ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it.
+        ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it. An existing
+        file is refused unless ``overwrite=True``; a path that cannot be written is refused
+        before the run starts, and a write that fails during the run stops it (``LogWriteError``).
         """
         if duration is not None:
             _check_seconds("run", "duration", duration)
+        log_file = None if log is None else _create_log_file(log, overwrite)  # before any worker starts
         fresh = self._session is None
-        session = self._session_for(backend, options)
         try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
-            if duration is None and type(session).run_to_end is Session.run_to_end:
-                session.run_to_end()  # raises: this backend needs a duration
-            if log is not None:
-                _open_log(session, log)
+            session = self._session_for(backend, options)
+            try:
+                if duration is None and type(session).run_to_end is Session.run_to_end:
+                    session.run_to_end()  # raises: this backend needs a duration
+                if log_file is not None:
+                    _open_log(session, log_file)
+            except BaseException:
+                if fresh:
+                    self._session = None
+                    session.close()
+                raise
         except BaseException:
-            if fresh:
-                self._session = None
-                session.close()
+            if log_file is not None:
+                log_file.discard()
             raise
         try:
             with _stop_between_ticks(session):
@@ -309,12 +320,18 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
             signal.signal(sig, handler)
 
 
-def _open_log(session: Session, path: str | Path) -> None:
+def _create_log_file(path: str | Path, overwrite: bool) -> LogFile:
+    from .log.writer import LogFile
+
+    return LogFile(path, overwrite=overwrite)
+
+
+def _open_log(session: Session, file: LogFile) -> None:
     from .log.writer import LogWriter
 
     if session.now_ns != 0 or session.trace.raw_steps:
         raise BackendError("log= records a run from T0: give it on the first run after construction or pipe.reset()")
-    session.log = LogWriter(path, session.graph, backend=session.backend_name, seeds=session.seeds())
+    session.log = LogWriter(file, session.graph, backend=session.backend_name, seeds=session.seeds())
 
 
 def _close_log(session: Session, exc: BaseException | None = None) -> None:

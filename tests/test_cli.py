@@ -23,8 +23,8 @@ RETRIEVER = Path(sys.executable).parent / "retriever"
 def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
     env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8")
-    if pythonpath is not None:
-        env["PYTHONPATH"] = str(pythonpath)
+    # this checkout's retriever, not whichever one the venv's editable install points at
+    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (pythonpath, ROOT) if p is not None)
     return subprocess.run([str(RETRIEVER), *args], capture_output=True, text=True, cwd=cwd or ROOT, env=env,
                           timeout=120)
 
