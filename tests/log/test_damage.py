@@ -15,7 +15,7 @@ import pytest
 from retriever import LogError, read_log
 from retriever._loading import load_pipeline
 from retriever.backends.inproc import InprocSession
-from retriever.log import LogWriter, recover, replay, resim
+from retriever.log import Divergence, LogWriter, recover, replay, resim
 from tests.log.helpers import (
     QUICKSTART,
     assert_cli_error,
@@ -429,3 +429,60 @@ def test_replay_when_a_step_changed_reports_the_divergence(drift):
     resimulated = cli("replay", "--resim", log)
     assert resimulated.returncode == 1
     assert "DIVERGED" in resimulated.stdout and "node='double'" in resimulated.stdout
+
+
+ARRAY_FLOWS = '''
+import numpy as np
+from retriever import Flow, Pipeline, Rate, Trigger
+
+
+class Source(Flow):
+    def step(self):
+        return {{"x": np.linspace(0.0, 1.0, 12).reshape(3, 4)}}
+
+
+class Scale(Flow):
+    def step(self, x):
+        y = x * 2.0
+        y[1, 2] += {nudge}
+        return {{"y": y, "total": float(y.sum())}}
+
+
+with Pipeline("nudge") as pipe:
+    src = Source() @ Rate(hz=10)
+    scale = Scale().named("scale") @ Trigger()
+    src.then(scale)
+'''
+
+
+def test_replay_shows_a_difference_of_1e_7(tmp_path: Path, monkeypatch):
+    """A step that now adds 1e-7 to one element: the replay names the array's dtype and shape,
+    how many elements differ, where the largest difference is and how large, with values that
+    show it; a float output is printed in full."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    name = f"nudge_{secrets.token_hex(4)}"
+    module = tmp_path / "flows" / f"{name}.py"
+    module.parent.mkdir()
+    module.write_text(ARRAY_FLOWS.format(nudge="0.0"), encoding="utf-8")
+    log = tmp_path / "nudge.mcap"
+    try:
+        load_pipeline(str(module)).run(duration=0.1, log=log)
+        _rewrite(module, name, ARRAY_FLOWS.format(nudge="1e-7"))
+        first, = replay(read_log(log)).divergences
+    finally:
+        sys.modules.pop(name, None)
+    text = str(first)
+    assert re.search(r"^scale\.y at tick t=0\.000000000s m=1: value differs\n", text), text
+    assert "1.0909090909090908" in text and "1.0909091909090909" in text, text  # each value in full
+    assert re.search(r"\n      float64 \(3, 4\): 1 of 12 elements differ\n      largest difference at \[1, 2\]: "
+                     r"logged 1\.0909090909090908, replayed 1\.0909091909090909 \(absolute 1\.0000000\d*e-07, "
+                     r"relative 9\.16666\d*e-08\)$", text), text
+    total = str(Divergence("scale", (0, 1), "value", "total", 12.0, 12.0000001))  # the step's float output
+    assert re.search(r"^scale\.total at .*\n      logged:   12\.0\n      replayed: 12\.0000001\n      difference: "
+                     r"absolute 9\.99999993922529e-08, relative 8\.333333282687741e-09$", total), total
+    result = cli("replay", log)
+    assert result.returncode == 1
+    assert re.search(r"DIVERGED: 1 of 1 replayed steps differ\. First:\n\s+scale\.y at tick t=0\.000000000s m=1: "
+                     r"value differs\n(.*\n){6,}\s+float64 \(3, 4\): 1 of 12 elements differ\n\s+largest difference at "
+                     r"\[1, 2\]", result.stdout), result.stdout
