@@ -38,7 +38,7 @@ from ..base import NodeStats, Session
 from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
-from .worker import EXIT_FAILED, EXIT_HANDED_OVER
+from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
 
 #: sessions not closed yet
@@ -98,7 +98,7 @@ class ZenohSession(Session):
         self._hub_segments: set[str] = set()
         try:
             before = mapped_segments()
-            self._hub, self.endpoint = open_hub(hub_port)
+            self._hub, self.endpoint = open_hub(hub_port, sessions=run_sessions(len(graph.nodes)))
             self._hub_segments = mapped_segments() - before  # the hub session's own
             if not quiet:
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "

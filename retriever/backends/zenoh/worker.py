@@ -172,6 +172,12 @@ def build_loop(spec: dict, node_id: str, session):
                     inline=not on_a_cycle(ir.edges, node_id))
 
 
+def run_sessions(nodes: int) -> int:
+    """How many Zenoh sessions a run of ``nodes`` nodes has: a worker's each, and the hub (they
+    share the run's shared memory, hub.shm_pool_bytes)."""
+    return nodes + 1
+
+
 def on_a_cycle(edges: list[dict], node_id: str) -> bool:
     """Whether a path of IR edges leads from ``node_id`` back to it (delays and clocks aside)."""
     after: dict[str, set[str]] = {}
@@ -240,7 +246,7 @@ def _serve(argv: list[str]) -> int:
 
     keys = KeySpace(spec["namespace"])
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
-    with open_peer(spec["hub"]) as session:
+    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"]))) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
