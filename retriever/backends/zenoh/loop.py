@@ -174,6 +174,7 @@ class NodeLoop:
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
 
         self.records: list = []  # step records not yet reported to the coordinator
+        self.recorded = 0  # step records made in all (the coordinator checks it got every tick)
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
@@ -726,6 +727,7 @@ class NodeLoop:
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
+        self.recorded += 1
         if self.flush_due is None:
             self.flush_due = self.now() + FLUSH_AFTER_NS
         elif len(self.records) >= FLUSH_MAX:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import math
 import mmap
 import os
 import queue
@@ -33,6 +34,7 @@ from pathlib import Path
 
 from ...errors import BackendError, StepError
 from ...graph import Graph
+from ...time import NS_PER_S
 from ...trace import STEPPED
 from ..base import NodeStats, Session
 from .hub import await_segments_released, mapped_segments, open_hub
@@ -87,6 +89,7 @@ class ZenohSession(Session):
         self._event_ids: set[tuple[str, str, int]] = set()
         self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
+        self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -185,6 +188,30 @@ class ZenohSession(Session):
             raise
         self.now_ns = until_ns
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
+        self._check_every_flow_ticked()
+
+    def _check_every_flow_ticked(self) -> None:
+        """A flow with a rate that had ticks due in the run's window, and ran none, fails the
+        run (issue 17: a run of 50 flows exited 0 with 47 at 0 ticks): a run that looks fine
+        with flows missing is worse than none. Its worker's ``done`` says what it saw."""
+        idle = []
+        for nid, node in self.graph.nodes.items():
+            due = _ticks_due(node.clock, self.end_ns)
+            if due == 0 or self._stats[nid].ticks > 0:
+                continue
+            said = self._done_info.get(nid, {})
+            if said.get("ticks"):
+                why = f"its worker ran {said['ticks']} ticks, whose step records never reached the coordinator"
+            elif "started_ns" in said:
+                why = f"its worker ran none; the run's start reached it {said['started_ns'] / 1e9:.2f} s after T0"
+            else:
+                why = "its worker stopped before the run's start reached it"
+            idle.append(f"    {nid} ({node.clock!r}): 0 of {due} ticks; {why}")
+        if idle:
+            raise BackendError(f"zenoh run: {len(idle)} flow(s) never ticked in the run's {self.end_ns / 1e9:g} s, "
+                               "though their clocks had ticks due:\n" + "\n".join(idle)
+                               + "\n    hint: a machine too loaded to start the run's processes in time needs a "
+                               f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
 
     def _deadlines(self) -> float:
         deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
@@ -291,6 +318,7 @@ class ZenohSession(Session):
             self._control("resume", {"node": node})
             return
         elif state == "done":
+            self._done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
             old = self._retiring.pop(node, None)
             if old is not None:
                 self._retired.append(old)
@@ -440,6 +468,15 @@ class ZenohSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
+
+
+def _ticks_due(clock, end_ns: int) -> int:
+    """How many ticks of a rate clock fall in [0, end_ns) (ticks at offset + floor(k * 1e9 / hz),
+    clocks.Rate); 0 for a clock without a rate (a Trigger ticks only on what arrives)."""
+    hz = getattr(clock, "hz", None)
+    if hz is None or end_ns <= clock.offset_ns:
+        return 0
+    return math.ceil((end_ns - clock.offset_ns) * hz / NS_PER_S)
 
 
 def _refuse_in_a_worker(graph: Graph) -> None:

@@ -267,6 +267,7 @@ def _serve(argv: list[str]) -> int:
             loop.inbox.put(stop_item)
 
         signal.signal(signal.SIGTERM, on_sigterm)
+        started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
             if join is not None:  # a restarted flow: listen now, take the old process's place when told
@@ -301,6 +302,8 @@ def _serve(argv: list[str]) -> int:
                     loop.undeclare()
                     return 0
                 t0, end = int(start["t0"]), int(start["end"])
+                # after T0 when the start came late (a loaded machine): after the end, no tick ran
+                started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
             loop.run(t0, end, resume=join is not None)
         except StopRun as exc:
             loop.release_held()
@@ -325,7 +328,7 @@ def _serve(argv: list[str]) -> int:
             tmp.replace(handover_file)
             status("handed_over", counts=dict(loop.counts))
             return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts))
+        status("done", counts=dict(loop.counts), started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
     return 0
 
