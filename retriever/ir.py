@@ -19,7 +19,7 @@ import numpy as np
 from .clocks import clock_from_ir
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
-from .time import is_finite_number
+from .time import max_microsteps_problem, seconds_problem
 from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
 from .sync import policy_from_ir
 
@@ -32,6 +32,8 @@ IR_VERSION = "1.1.0"
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
+#: microsteps one instant may run before the run stops with a Zeno-loop error
+DEFAULT_MAX_MICROSTEPS = 1000
 
 
 def param_to_ir(value: Any) -> Any:
@@ -273,6 +275,12 @@ def _dumpable(value: Any) -> bool:
         return False
 
 
+def _check_seconds(problems: list[str], where: str, name: str, value: Any) -> None:
+    problem = seconds_problem(name, value)
+    if problem is not None:
+        problems.append(f"{where}: {problem}")
+
+
 def validate_doc(doc: Any, source: str) -> None:
     problems: list[str] = []
     if not isinstance(doc, dict):
@@ -296,9 +304,10 @@ def validate_doc(doc: Any, source: str) -> None:
         problems.append("metadata.name: expected the pipeline name (a string)")
     if meta.get("realtime", "soft") not in REALTIME_MODES:
         problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
-    deadline = meta.get("deadline", DEFAULT_DEADLINE)
-    if not is_finite_number(deadline) or deadline < 0:
-        problems.append(f"metadata.deadline: expected seconds >= 0, got {deadline!r}")
+    _check_seconds(problems, "metadata.deadline", "deadline", meta.get("deadline", DEFAULT_DEADLINE))
+    problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))
+    if problem is not None:
+        problems.append(f"metadata.max_microsteps: {problem}")
     ids: dict[str, dict] = {}
     for i, n in enumerate(doc["nodes"]):
         where = f"nodes[{i}]"
@@ -323,9 +332,7 @@ def validate_doc(doc: Any, source: str) -> None:
                 clock_from_ir(config.get("clock"))
             except ValueError as e:
                 problems.append(f"{where}.config.clock: {e}".split("\n")[0])
-            latency = config.get("latency", 0)
-            if not isinstance(latency, (int, float)) or isinstance(latency, bool) or latency < 0:
-                problems.append(f"{where}.config.latency: expected seconds >= 0, got {latency!r}")
+            _check_seconds(problems, f"{where}.config.latency", "latency", config.get("latency", 0))
             for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
                                  ("on_deadline_miss", ON_DEADLINE_MISS)):
                 if key in config and config[key] not in allowed:
@@ -348,14 +355,11 @@ def validate_doc(doc: Any, source: str) -> None:
             policy_from_ir(e.get("adapter"))
         except ValueError as err:
             problems.append(f"{where}.adapter: {err}")
-        delay = e.get("delay", 0)
-        if not isinstance(delay, (int, float)) or isinstance(delay, bool) or delay < 0:
-            problems.append(f"{where}.delay: expected seconds >= 0, got {delay!r}")
+        _check_seconds(problems, f"{where}.delay", "delay", e.get("delay", 0))
         qsize = e.get("qsize", 10)
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
-        deadline = e.get("deadline")
-        if deadline is not None and (not is_finite_number(deadline) or deadline < 0):
-            problems.append(f"{where}.deadline: expected seconds >= 0 or null, got {deadline!r}")
+        if e.get("deadline") is not None:
+            _check_seconds(problems, f"{where}.deadline", "deadline", e["deadline"])
     if problems:
         raise IRError(source, problems)

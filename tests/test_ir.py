@@ -6,6 +6,7 @@ import copy
 import dataclasses
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -357,6 +358,44 @@ def test_load_impossible_rate(tmp_path: Path, doc: dict):
         _load(tmp_path, json.dumps(doc))
 
 
+def test_load_reports_every_number_out_of_range_at_once(tmp_path: Path, doc: dict):
+    """NaN and infinite latency or delay, a rate faster than 1 GHz, times past int64 nanoseconds and
+    a bad max_microsteps passed validation (or ran into a bare OverflowError, or hung) before."""
+    doc["metadata"]["max_microsteps"] = 0
+    doc["metadata"]["deadline"] = 1e300
+    doc["nodes"][0]["config"]["clock"] = {"Rate": {"hz": 1e300}}
+    doc["nodes"][1]["config"]["latency"] = float("nan")
+    doc["nodes"][2]["config"]["latency"] = 1e300
+    doc["edges"][0]["delay"] = float("inf")
+    doc["edges"][1]["delay"] = 1e12
+    doc["edges"][2]["deadline"] = float("-inf")
+    text = json.dumps(doc)  # JSON readers accept NaN and Infinity, and so does json.loads
+    assert "NaN" in text and "Infinity" in text
+    with pytest.raises(IRError) as info:
+        _load(tmp_path, text)
+    too_long = "must be at most 9.223e+09 s (about 292 years: times are int64 nanoseconds)"
+    assert info.value.problems == [
+        f"metadata.deadline: deadline {too_long}, got 1e+300",
+        "metadata.max_microsteps: max_microsteps must be an integer from 1 to 2**63 - 1 (how many microsteps one "
+        "instant may run before the run stops with a Zeno-loop error), got 0",
+        "node 'camera'.config.clock: Rate(hz=1e+300): hz must be at most 1e+09 (a tick period of at least 1 ns: "
+        "ticks are integer nanoseconds), got 1e+300",
+        "node 'planner'.config.latency: latency must be a finite number of seconds >= 0, got nan",
+        f"node 'controller'.config.latency: latency {too_long}, got 1e+300",
+        "edges[0].delay: delay must be a finite number of seconds >= 0, got inf",
+        f"edges[1].delay: delay {too_long}, got 1000000000000.0",
+        "edges[2].deadline: deadline must be a finite number of seconds >= 0, got -inf",
+    ]
+
+
+@pytest.mark.parametrize("value", ["1000", 1.5, True, -3, None], ids=repr)
+def test_load_bad_max_microsteps(tmp_path: Path, doc: dict, value):
+    doc["metadata"]["max_microsteps"] = value
+    with pytest.raises(IRError, match=r"metadata\.max_microsteps: max_microsteps must be an integer from 1 to "
+                                      r"2\*\*63 - 1 .*, got " + re.escape(repr(value))):
+        _load(tmp_path, json.dumps(doc))
+
+
 def test_load_edge_naming_an_unknown_node(tmp_path: Path, doc: dict):
     doc["edges"][0]["source"]["node"] = "ghost"
     with pytest.raises(IRError, match=r"edges\[0\]\.source: unknown node 'ghost'"):
@@ -406,7 +445,7 @@ def test_load_reports_every_problem_at_once(tmp_path: Path, doc: dict):
     assert err.source.endswith("pipeline.ir.json")
     assert len(err.problems) == 5
     for expected in ("node 'camera'.config.clock: unknown clock kind 'Sometimes'",
-                     "node 'controller'.config.latency: expected seconds >= 0, got -1",
+                     "node 'controller'.config.latency: latency must be a finite number of seconds >= 0, got -1",
                      "edges[0].adapter: unknown sync policy 'freshest'",
                      "edges[1].source: unknown node 'ghost'",
                      "edges[3].qsize: expected an integer >= 1, got 0"):

@@ -25,7 +25,7 @@ from typing import Any, Callable, Generic, TypeVar
 
 from .. import _context
 from ..clocks import Clock
-from ..time import is_finite_number, seconds_to_ns
+from ..time import seconds_problem, seconds_to_ns
 
 In = TypeVar("In")
 Out = TypeVar("Out")
@@ -326,8 +326,10 @@ class Flow(Generic[In, Out]):
                                  "(letters, digits, _ and -; it becomes a key-space segment)")
             s.name = name
         if latency is not None:
-            if not is_finite_number(latency) or latency < 0:
-                raise ValueError(f"{owner}: latency={latency!r} must be a finite number of seconds >= 0")
+            problem = seconds_problem("latency", latency)
+            if problem is not None:
+                raise ValueError(f"{owner}.configure(latency={latency!r}): {problem}\n    hint: latency is the flow's logical execution time, "
+                                 "the seconds from a tick to its outputs")
             s.latency, s.latency_ns = latency, seconds_to_ns(latency)
         if on_error is not None:
             s.on_error = _choice(owner, "on_error", on_error, ON_ERROR)
