@@ -145,6 +145,46 @@ with Pipeline("failing") as pipe:
                              r"\(tick at t=0\.000000000s m=0\)", hint=r"set on_error='skip_tick' or 'restart'")
 
 
+def test_run_a_step_that_calls_sys_exit(tmp_path: Path):
+    """It exited silently with the step's status (3) before."""
+    script = write(tmp_path / "exiting.py", FLOWS + '''
+import sys
+
+
+class Exiting(Flow[None, Num]):
+    def step(self, inp):
+        sys.exit(3)
+
+
+with Pipeline("exiting") as pipe:
+    Exiting() @ Rate(hz=10)
+''')
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert result.returncode == 1
+    assert_cli_error(result, r"^error: exiting\.step\(\) raised SystemExit: 3 \(tick at t=0\.000000000s m=0\)",
+                     hint=r"set on_error='skip_tick' or 'restart'")
+
+
+def test_run_a_step_returning_an_unencodable_value(tmp_path: Path):
+    """It ran to the end, then died with a traceback in trace.digest() before."""
+    script = write(tmp_path / "locking.py", FLOWS + '''
+import threading
+
+
+class Locking(Flow):
+    def step(self):
+        return {"lock": threading.Lock()}
+
+
+with Pipeline("locking") as pipe:
+    Locking() @ Rate(hz=10)
+''')
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert_cli_error(result, r"^error: locking\.lock: the step at t=0\.000000000s m=0 returned a value the run cannot "
+                             r"record: cannot encode a value of type _thread\.lock$",
+                     hint=r"use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses")
+
+
 ZENO = '''
 from retriever import Flow, Pipeline, Rate, Trigger
 

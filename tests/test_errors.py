@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
+import threading
 
 import pytest
 
@@ -14,6 +16,7 @@ from retriever import (
     IR,
     ActionChunking,
     BackendError,
+    CodecError,
     CausalityError,
     ClockError,
     Flow,
@@ -565,6 +568,82 @@ def test_step_that_raises_stops_the_run_naming_node_and_tick():
     record = pipe.trace.steps_of("counter")[-1]
     assert record.status == "error"
     assert record.detail == {"error": "KeyError: 'no such joint'", "on_error": "stop"}
+
+
+class Exits(Flow[None, Num]):
+    """Calls sys.exit(3) on every ``every``-th step."""
+
+    def __init__(self, every: int = 2):
+        self.every, self.n = every, 0
+
+    def step(self, inp):
+        self.n += 1
+        if self.n % self.every == 0:
+            sys.exit(3)
+        return Num(self.n)
+
+
+def test_sys_exit_in_a_step_is_that_steps_error():
+    """sys.exit(3) in a step ended the inproc run, and the program, silently with status 3."""
+    with Pipeline("p") as pipe:
+        Exits() @ Rate(hz=10)
+    with pytest.raises(StepError, match=r"exits\.step\(\) raised SystemExit: 3 \(tick at t=0\.100000000s m=0\)\n"
+                                        r"    hint: set on_error='skip_tick'") as info:
+        pipe.run(duration=1)
+    assert isinstance(info.value.__cause__, SystemExit)
+    assert pipe.trace.steps[-1].detail == {"error": "SystemExit: 3", "on_error": "stop"}
+
+
+def test_sys_exit_in_a_step_follows_on_error():
+    with Pipeline("p") as pipe:
+        Exits().configure(on_error="skip_tick") @ Rate(hz=10)
+    trace = pipe.run(duration=1)
+    assert [s.status for s in trace.steps] == ["ok", "error"] * 5
+    assert pipe.stats()["exits"].errors == 5
+
+
+def test_keyboard_interrupt_in_a_step_still_stops_the_program():
+    class Interrupted(Flow[None, Num]):
+        def step(self, inp):
+            raise KeyboardInterrupt
+
+    with Pipeline("p") as pipe:
+        Interrupted().configure(on_error="skip_tick") @ Rate(hz=10)
+    with pytest.raises(KeyboardInterrupt):
+        pipe.run(duration=1)
+
+
+class Unrecordable(Flow):
+    """Returns, on its ``bad_at``-th step, a value the codec cannot encode on port ``y``."""
+
+    def __init__(self, bad: str = "lock", bad_at: int = 2):
+        self.bad, self.bad_at, self.n = bad, bad_at, 0
+
+    def step(self):
+        self.n += 1
+        if self.n != self.bad_at:
+            return {"x": self.n, "y": [self.n]}
+        value = {"lock": threading.Lock(), "set": {"a": {1, 2}}}[self.bad]
+        return {"x": self.n, "y": value}
+
+
+@pytest.mark.parametrize("on_error", ["stop", "skip_tick"])
+@pytest.mark.parametrize("bad, what", [("lock", "cannot encode a value of type _thread.lock"),
+                                       ("set", "cannot encode a value of type builtins.set at value['a']")])
+def test_a_step_returning_an_unencodable_value_stops_the_run_at_that_step(bad, what, on_error):
+    """inproc ran such a run to the end and then failed in trace.digest(); it stops at the step, as
+    zenoh (which cannot send the value) does, whatever on_error says: the flow has a bug."""
+    with Pipeline("p") as pipe:
+        Unrecordable(bad).named("u").configure(on_error=on_error) @ Rate(hz=10)
+    with pytest.raises(CodecError, match=re.escape(
+            f"u.y: the step at t=0.100000000s m=0 returned a value the run cannot record: {what}\n"
+            "    hint: use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses")):
+        pipe.run(duration=1)
+    last = pipe.trace.steps[-1]
+    assert (last.tag, last.status, last.produced) == ((100_000_000, 0), "error", (("u", "x", 1),))
+    assert last.detail["error"].startswith("CodecError: u.y: the step at t=0.100000000s m=0")
+    assert pipe.stats()["u"].errors == 1
+    pipe.trace.digest()  # what was recorded can be digested
 
 
 def test_step_that_raises_with_skip_tick_keeps_running():
