@@ -15,6 +15,7 @@ import signal
 import sys
 import threading
 import warnings
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +25,7 @@ from . import _context
 from .backends import Session, open_backend
 from .clocks import clock_from_ir
 from .codec import import_type
-from .errors import BackendError, IRError, RetrieverWarning
+from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES, param_from_ir
@@ -88,9 +89,18 @@ class Pipeline:
         """Add a flow (flows join automatically when created inside ``with`` or wired)."""
         if not isinstance(flow, Flow):
             raise TypeError(f"Pipeline.add expects a Flow, got {type(flow).__qualname__}")
+        settings = flow._retriever
+        owner = settings.pipeline() if settings.pipeline is not None else None
+        if owner is not None and owner is not self:
+            raise GraphError(self.name, [Problem(
+                f"{flow!r} belongs to pipeline '{owner.name}', where it was created or first wired, so it cannot "
+                f"join pipeline '{self.name}'",
+                f"a flow belongs to one pipeline: make a new instance for '{self.name}', e.g. "
+                f"{type(flow).__qualname__}(...) @ Rate(hz=...)")])
         if name is not None:
             flow.configure(name=name)
-        if not any(f is flow for f in self._flows):
+        if owner is None:
+            settings.pipeline = weakref.ref(self)
             self._flows.append(flow)
             self._changed()
         return flow
