@@ -275,6 +275,15 @@ def _dumpable(value: Any) -> bool:
         return False
 
 
+def is_type_path(value: object) -> bool:
+    """Whether ``value`` has the form of an IR node ``type``, ``module:QualName``, both parts dotted
+    identifiers: checked before anything is imported (an IR is code: loading it imports these)."""
+    if not isinstance(value, str):
+        return False
+    module, colon, qualname = value.partition(":")
+    return bool(colon) and all(part.isidentifier() for part in (*module.split("."), *qualname.split(".")))
+
+
 def _check_seconds(problems: list[str], where: str, name: str, value: Any) -> None:
     problem = seconds_problem(name, value)
     if problem is not None:
@@ -321,8 +330,9 @@ def validate_doc(doc: Any, source: str) -> None:
         if nid in ids:
             problems.append(f"{where}: duplicate node id")
         ids[nid] = n
-        if not isinstance(n.get("type"), str) or ":" not in n.get("type", ""):
-            problems.append(f"{where}.type: expected 'module:Class', got {n.get('type')!r}")
+        if not is_type_path(n.get("type")):
+            problems.append(f"{where}.type: expected 'module:Class' (dotted identifiers, e.g. "
+                            f"'my_robot.flows:Camera'), got {n.get('type')!r}")
         _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
         for key in ("inputs", "outputs"):
             _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")

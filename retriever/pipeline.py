@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import inspect
 import signal
 import sys
@@ -174,10 +175,13 @@ class Pipeline:
         pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS),
                    realtime=meta.get("realtime", "soft"), deadline=meta.get("deadline", DEFAULT_DEADLINE))
         flows: dict[str, Flow] = {}
-        problems = []
-        with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
-            for node in ir.nodes:
-                _rebuild_node(node, flows, problems)
+        problems: list[str] = []
+        # everything that can be checked without importing, for every node, before importing any
+        params = {node["id"]: _node_params(node, problems) for node in ir.nodes}
+        if not problems:
+            with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
+                for node in ir.nodes:
+                    _construct_node(node, params[node["id"]], flows, problems)
         if problems:
             raise IRError(f"IR '{ir.name}'", problems)
         for e in ir.edges:
@@ -394,10 +398,37 @@ def _construct(cls: type, params: dict) -> Flow:
 
 
 def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> None:
+    """Rebuild one node of a validated IR into ``flows`` (or say why not in ``problems``)."""
+    params = _node_params(node, problems)
+    if params is not None:
+        _construct_node(node, params, flows, problems)
+
+
+def _node_params(node: dict, problems: list[str]) -> dict | None:
+    """What can be checked of a node before importing its module: that it is rebuildable, that its
+    params decode (which imports nothing) and that its module can be found (without running it)."""
     nid = node["id"]
     if not node.get("rebuildable", True):
         problems.append(f"node '{nid}' cannot be rebuilt from the IR: {node.get('rebuild_problem')}")
-        return
+        return None
+    params = {}
+    for name, value in node["params"].items():
+        try:
+            params[name] = param_from_ir(value)
+        except ValueError as e:
+            problems.append(f"node '{nid}': params.{name} is {e}")
+    top = node["type"].partition(":")[0].partition(".")[0]
+    if top not in sys.modules and importlib.util.find_spec(top) is None:
+        problems.append(f"node '{nid}': cannot import {node['type']}: no module named '{top}' on the import path\n"
+                        f"    hint: run from the folder that holds {top}.py (or the {top} package), or add that "
+                        "folder to PYTHONPATH")
+        return None
+    return params if len(params) == len(node["params"]) else None
+
+
+def _construct_node(node: dict, params: dict, flows: dict[str, Flow], problems: list[str]) -> None:
+    """Import the node's class, refuse anything but a Flow subclass, call it with ``params``."""
+    nid = node["id"]
     try:
         flow_cls = import_type(node["type"])
     except (ImportError, AttributeError) as e:
@@ -405,14 +436,6 @@ def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> No
         return
     if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
         problems.append(f"node '{nid}': {node['type']} is not a Flow class")
-        return
-    params = {}
-    for name, value in node["params"].items():
-        try:
-            params[name] = param_from_ir(value)
-        except ValueError as e:
-            problems.append(f"node '{nid}': params.{name} is {e}")
-    if len(params) < len(node["params"]):
         return
     try:
         flow = _construct(flow_cls, params)

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +219,62 @@ def test_rebuilt_pipeline_is_independent_of_an_enclosing_with_block(ir: IR):
         rebuilt = Pipeline.from_ir(ir)
     assert outer.flows == []
     assert len(rebuilt.flows) == 4
+
+
+# ---------------------------------------------------------------------------------------------
+# An IR is code: what is checked before anything is imported (issue 17 §3)
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", ["tests.ir_flows", "tests.ir_flows:", ":Camera", "os.system('x'):A", "a b:C",
+                                 "tests.ir_flows:Camera()", "tests..ir_flows:Camera", "a:B:C", 3, None], ids=repr)
+def test_a_type_must_be_module_colon_dotted_identifiers(tmp_path: Path, doc: dict, bad):
+    doc["nodes"][1]["type"] = bad
+    with pytest.raises(IRError, match=re.escape(f"node 'planner'.type: expected 'module:Class' (dotted identifiers, "
+                                                f"e.g. 'my_robot.flows:Camera'), got {bad!r}")):
+        _load(tmp_path, json.dumps(doc))
+
+
+def _side_effect_module(tmp_path: Path, monkeypatch) -> tuple[str, Path]:
+    """A module on the import path whose import, and whose class's construction, leave a mark."""
+    name = f"ir_side_effect_{tmp_path.name.replace('-', '_')}"
+    marks = tmp_path / "marks"
+    (tmp_path / f"{name}.py").write_text(
+        "from pathlib import Path\n"
+        f"MARKS = Path({str(marks)!r})\n"
+        "with MARKS.open('a') as f:\n    f.write('imported\\n')\n"
+        "class NotAFlow:\n"
+        "    def __init__(self, *args, **kwargs):\n"
+        "        with MARKS.open('a') as f:\n            f.write('called\\n')\n", encoding="utf-8")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    return name, marks
+
+
+def test_no_module_is_imported_while_any_node_has_a_problem(tmp_path: Path, doc: dict, monkeypatch):
+    """``this:Camera`` printed the Zen of Python: the first node's module was imported before a
+    later node's problem was found."""
+    name, marks = _side_effect_module(tmp_path, monkeypatch)
+    doc["nodes"][0]["type"] = f"{name}:NotAFlow"
+    doc["nodes"][3]["params"] = {"bad": {"$msgpack": "not base64!"}}
+    with pytest.raises(IRError, match=r"node 'logger': params\.bad is a \$msgpack value that does not decode"):
+        Pipeline.from_ir(IR(doc))
+    assert not marks.exists() and name not in sys.modules
+
+
+def test_a_type_that_is_not_a_flow_is_refused_before_it_is_called(tmp_path: Path, doc: dict, monkeypatch):
+    name, marks = _side_effect_module(tmp_path, monkeypatch)
+    doc["nodes"][0]["type"] = f"{name}:NotAFlow"
+    with pytest.raises(IRError, match=re.escape(f"node 'camera': {name}:NotAFlow is not a Flow class")):
+        Pipeline.from_ir(IR(doc))
+    assert marks.read_text() == "imported\n"
+
+
+def test_a_module_not_on_the_import_path_is_named_with_a_hint(doc: dict):
+    doc["nodes"][2]["type"] = "no_such_flows_module.sub:Camera"
+    with pytest.raises(IRError, match=re.escape(
+            "node 'controller': cannot import no_such_flows_module.sub:Camera: no module named "
+            "'no_such_flows_module' on the import path\n    hint: run from the folder that holds "
+            "no_such_flows_module.py (or the no_such_flows_module package), or add that folder to PYTHONPATH")):
+        Pipeline.from_ir(IR(doc))
 
 
 # ---------------------------------------------------------------------------------------------
