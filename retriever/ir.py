@@ -11,6 +11,7 @@ import base64
 import binascii
 import json
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,8 +27,12 @@ from .sync import policy_from_ir
 if TYPE_CHECKING:
     from .graph import Graph
 
-#: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`)
-IR_VERSION = "1.1.0"
+#: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
+#: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from
+IR_VERSION = "1.2.0"
+#: set on a module that Retriever imported from a script file (``retriever run FILE.py``): the
+#: folder it put on ``sys.path`` for it, which the IR records so that it can import the module again
+SCRIPT_FOLDER_ATTR = "__retriever_folder__"
 #: the paper's three real-time modes: how a run escalates missed deadlines and overruns
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
@@ -111,17 +116,21 @@ def graph_to_doc(graph: "Graph") -> dict:
         }
         for e in graph.edges
     ]
+    metadata = {
+        "name": graph.name,
+        "validated": True,
+        "optimized": False,
+        "max_microsteps": graph.max_microsteps,
+        "realtime": graph.realtime,
+        "deadline": graph.deadline,
+        "warnings": list(graph.warnings),
+    }
+    folders = _script_folders(type(node.flow).__module__ for node in graph.nodes.values())
+    if folders:
+        metadata["module_folders"] = folders
     return {
         "version": IR_VERSION,
-        "metadata": {
-            "name": graph.name,
-            "validated": True,
-            "optimized": False,
-            "max_microsteps": graph.max_microsteps,
-            "realtime": graph.realtime,
-            "deadline": graph.deadline,
-            "warnings": list(graph.warnings),
-        },
+        "metadata": metadata,
         "nodes": nodes,
         "edges": edges,
         "topology": {
@@ -132,6 +141,17 @@ def graph_to_doc(graph: "Graph") -> dict:
             "instantaneous_cycles": graph.instantaneous_cycles,
         },
     }
+
+
+def _script_folders(modules) -> dict[str, str]:
+    """``{module: folder}`` for the modules Retriever imported from script files: a module that the
+    import path does not hold by itself (``retriever run q.json`` adds the folder back)."""
+    folders = {}
+    for name in modules:
+        folder = getattr(sys.modules.get(name), SCRIPT_FOLDER_ATTR, None)
+        if isinstance(folder, str):
+            folders[name] = folder
+    return dict(sorted(folders.items()))
 
 
 class IR:
@@ -314,6 +334,10 @@ def validate_doc(doc: Any, source: str) -> None:
     if meta.get("realtime", "soft") not in REALTIME_MODES:
         problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
     _check_seconds(problems, "metadata.deadline", "deadline", meta.get("deadline", DEFAULT_DEADLINE))
+    folders = meta.get("module_folders", {})
+    if not (isinstance(folders, dict) and all(is_type_path(f"{module}:X") and isinstance(folder, str)
+                                              for module, folder in folders.items())):
+        problems.append(f"metadata.module_folders: expected an object of module name: folder, got {folders!r}")
     problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))
     if problem is not None:
         problems.append(f"metadata.max_microsteps: {problem}")

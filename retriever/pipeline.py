@@ -177,7 +177,8 @@ class Pipeline:
         flows: dict[str, Flow] = {}
         problems: list[str] = []
         # everything that can be checked without importing, for every node, before importing any
-        params = {node["id"]: _node_params(node, problems) for node in ir.nodes}
+        folders = meta.get("module_folders", {})
+        params = {node["id"]: _node_params(node, problems, folders) for node in ir.nodes}
         if not problems:
             with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
                 for node in ir.nodes:
@@ -404,7 +405,7 @@ def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> No
         _construct_node(node, params, flows, problems)
 
 
-def _node_params(node: dict, problems: list[str]) -> dict | None:
+def _node_params(node: dict, problems: list[str], folders: dict[str, str] | None = None) -> dict | None:
     """What can be checked of a node before importing its module: that it is rebuildable, that its
     params decode (which imports nothing) and that its module can be found (without running it)."""
     nid = node["id"]
@@ -417,11 +418,14 @@ def _node_params(node: dict, problems: list[str]) -> dict | None:
             params[name] = param_from_ir(value)
         except ValueError as e:
             problems.append(f"node '{nid}': params.{name} is {e}")
-    top = node["type"].partition(":")[0].partition(".")[0]
+    module = node["type"].partition(":")[0]
+    top = module.partition(".")[0]
     if top not in sys.modules and importlib.util.find_spec(top) is None:
-        problems.append(f"node '{nid}': cannot import {node['type']}: no module named '{top}' on the import path\n"
-                        f"    hint: run from the folder that holds {top}.py (or the {top} package), or add that "
-                        "folder to PYTHONPATH")
+        folder = (folders or {}).get(module)
+        where = (f"the IR was built with it from {folder}: run there, or PYTHONPATH={folder}" if folder else
+                 f"run from the folder that holds {top}.py (or the {top} package), or add that folder to PYTHONPATH")
+        problems.append(f"node '{nid}': cannot import {node['type']} (no module named '{top}' on the import path)\n"
+                        f"    hint: {where}")
         return None
     return params if len(params) == len(node["params"]) else None
 

@@ -124,6 +124,61 @@ def test_run_an_ir_file(tmp_path: Path):
     assert f"trace digest {expected}" in result.stdout
 
 
+SCRIPT_FLOWS = FLOWS + '''
+
+with Pipeline("scripted") as pipe:
+    (Source() @ Rate(hz=10)).then(Sink() @ Trigger())
+'''
+
+
+def test_run_an_ir_saved_from_a_script_from_anywhere(tmp_path: Path):
+    """The IR records the folder of a script's flows (metadata.module_folders): "No module named
+    'quickstart'" was the answer even inside the script's folder."""
+    (tmp_path / "project").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    script = write(tmp_path / "project" / "scripted.py", SCRIPT_FLOWS)
+    saved = tmp_path / "elsewhere" / "scripted.ir.json"
+    built = cli("ir", str(script), "--out", str(saved), pythonpath=ROOT)
+    assert built.returncode == 0, built.stderr
+    assert json.loads(saved.read_text())["metadata"]["module_folders"] == {"scripted": str(tmp_path / "project")}
+    for cwd in (tmp_path, tmp_path / "elsewhere", tmp_path / "project"):
+        result = cli("run", str(saved), "--duration", "1", cwd=cwd, pythonpath=ROOT)
+        assert result.returncode == 0, result.stderr
+        assert "│ source " in result.stdout and "│ sink " in result.stdout
+
+
+def test_run_an_ir_beside_its_script_or_from_its_folder(tmp_path: Path):
+    """Without the recorded folder (an IR of 1.1.0, or one moved to another machine), the IR file's
+    folder and the working directory are on the import path."""
+    script = write(tmp_path / "scripted.py", SCRIPT_FLOWS)
+    built = cli("ir", str(script), "--out", str(tmp_path / "beside.ir.json"), pythonpath=ROOT)
+    assert built.returncode == 0, built.stderr
+    doc = json.loads((tmp_path / "beside.ir.json").read_text())
+    del doc["metadata"]["module_folders"]
+    write(tmp_path / "beside.ir.json", json.dumps(doc))
+    (tmp_path / "sub").mkdir()
+    write(tmp_path / "sub" / "below.ir.json", json.dumps(doc))
+    failed = cli("run", "below.ir.json", "--duration", "1", cwd=tmp_path / "sub", pythonpath=ROOT)
+    assert failed.returncode == 1 and "no module named 'scripted'" in failed.stderr, failed.stderr
+    for cwd, target in ((tmp_path / "sub", "../beside.ir.json"), (tmp_path, "sub/below.ir.json")):
+        result = cli("run", target, "--duration", "1", cwd=cwd, pythonpath=ROOT)
+        assert result.returncode == 0, result.stderr
+
+
+def test_run_an_ir_whose_flows_cannot_be_found_names_the_folder(tmp_path: Path):
+    script = write(tmp_path / "scripted.py", SCRIPT_FLOWS)
+    saved = tmp_path / "elsewhere.ir.json"
+    assert cli("ir", str(script), "--out", str(saved), pythonpath=ROOT).returncode == 0
+    doc = json.loads(saved.read_text())
+    doc["metadata"]["module_folders"] = {"scripted": "/gone/project"}
+    (tmp_path / "other").mkdir()
+    write(tmp_path / "other" / "moved.ir.json", json.dumps(doc))
+    result = cli("run", "moved.ir.json", "--duration", "1", cwd=tmp_path / "other", pythonpath=ROOT)
+    assert_cli_error(result, r"^  - node 'source': cannot import scripted:Source \(no module named 'scripted' on the "
+                             r"import path\)$",
+                     hint=r"the IR was built with it from /gone/project: run there, or PYTHONPATH=/gone/project$")
+
+
 def test_run_unknown_backend():
     result = cli("run", str(QUICKSTART), "--backend", "dora", "--duration", "1")
     assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc, zenoh$")
@@ -231,7 +286,7 @@ def test_ir_json_by_default():
     assert result.returncode == 0, result.stderr
     assert result.stdout == quickstart_ir("json")
     doc = json.loads(result.stdout)
-    assert doc["version"] == "1.1.0"
+    assert doc["version"] == "1.2.0"
     assert doc["metadata"]["name"] == "quickstart"
     assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
     assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]

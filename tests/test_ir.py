@@ -73,7 +73,7 @@ def test_to_json_is_stable_with_sorted_keys(ir: IR):
 
 def test_ir_shape_follows_the_design(ir: IR):
     doc = ir.doc
-    assert doc["version"] == "1.1.0"
+    assert doc["version"] == "1.2.0"
     assert doc["metadata"]["name"] == "small"
     assert doc["metadata"]["validated"] is True
     assert doc["metadata"]["optimized"] is False
@@ -224,6 +224,32 @@ def test_rebuilt_pipeline_is_independent_of_an_enclosing_with_block(ir: IR):
 # ---------------------------------------------------------------------------------------------
 # An IR is code: what is checked before anything is imported (issue 17 §3)
 # ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", [["/x"], {"a b": "/x"}, {"flows": 3}], ids=repr)
+def test_load_bad_module_folders(tmp_path: Path, doc: dict, bad):
+    doc["metadata"]["module_folders"] = bad
+    with pytest.raises(IRError, match=re.escape(f"metadata.module_folders: expected an object of module name: "
+                                                f"folder, got {bad!r}")):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_an_ir_of_a_script_records_the_folder_of_its_flows(tmp_path: Path):
+    from retriever._loading import load_pipeline
+
+    script = tmp_path / "folder_flows.py"
+    script.write_text("from tests.ir_flows import build\npipe = build()\n", encoding="utf-8")
+    (tmp_path / "local_flows.py").write_text(
+        "from retriever import Flow\nclass Local(Flow):\n    def step(self):\n        return {'x': 1}\n",
+        encoding="utf-8")
+    assert "module_folders" not in load_pipeline(str(script)).build_ir().doc["metadata"]  # tests.ir_flows: importable
+    script.write_text("from retriever import Flow, Pipeline, Rate\n"
+                      "class Here(Flow):\n    def step(self):\n        return {'x': 1}\n"
+                      "with Pipeline('here') as pipe:\n    Here() @ Rate(hz=1)\n", encoding="utf-8")
+    sys.modules.pop("folder_flows", None)
+    ir = load_pipeline(str(script)).build_ir()
+    assert ir.doc["metadata"]["module_folders"] == {"folder_flows": str(tmp_path)}
+    assert IR.from_json(ir.to_json()) == ir
+
+
 @pytest.mark.parametrize("bad", ["tests.ir_flows", "tests.ir_flows:", ":Camera", "os.system('x'):A", "a b:C",
                                  "tests.ir_flows:Camera()", "tests..ir_flows:Camera", "a:B:C", 3, None], ids=repr)
 def test_a_type_must_be_module_colon_dotted_identifiers(tmp_path: Path, doc: dict, bad):
@@ -271,8 +297,8 @@ def test_a_type_that_is_not_a_flow_is_refused_before_it_is_called(tmp_path: Path
 def test_a_module_not_on_the_import_path_is_named_with_a_hint(doc: dict):
     doc["nodes"][2]["type"] = "no_such_flows_module.sub:Camera"
     with pytest.raises(IRError, match=re.escape(
-            "node 'controller': cannot import no_such_flows_module.sub:Camera: no module named "
-            "'no_such_flows_module' on the import path\n    hint: run from the folder that holds "
+            "node 'controller': cannot import no_such_flows_module.sub:Camera (no module named "
+            "'no_such_flows_module' on the import path)\n    hint: run from the folder that holds "
             "no_such_flows_module.py (or the no_such_flows_module package), or add that folder to PYTHONPATH")):
         Pipeline.from_ir(IR(doc))
 
@@ -378,13 +404,19 @@ def test_load_missing_keys_lists_each_one(tmp_path: Path):
 
 def test_load_missing_version(tmp_path: Path, doc: dict):
     del doc["version"]
-    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.1\.0\"\)"):
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.2\.0\"\)"):
         _load(tmp_path, json.dumps(doc))
+
+
+def test_an_ir_of_version_1_1_still_loads(tmp_path: Path, doc: dict):
+    """1.2.0 only added an optional key (metadata.module_folders)."""
+    doc["version"] = "1.1.0"
+    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.2.0"
 
 
 def test_load_wrong_version(tmp_path: Path, doc: dict):
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.1\.0\)"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\)"
                                       r"; rebuild the IR"):
         _load(tmp_path, json.dumps(doc))
 
