@@ -354,7 +354,7 @@ def validate_doc(doc: Any, source: str) -> None:
         if nid in ids:
             problems.append(f"{where}: duplicate node id")
         ids[nid] = n
-        if not is_type_path(n.get("type")):
+        if not is_type_path(n.get("type")) and (n.get("rebuildable", True) or not isinstance(n.get("type"), str)):
             problems.append(f"{where}.type: expected 'module:Class' (dotted identifiers, e.g. "
                             f"'my_robot.flows:Camera'), got {n.get('type')!r}")
         _expect(problems, f"{where}.params", n.get("params"), dict, "an object")

@@ -422,10 +422,10 @@ def _node_params(node: dict, problems: list[str], folders: dict[str, str] | None
     top = module.partition(".")[0]
     if top not in sys.modules and importlib.util.find_spec(top) is None:
         folder = (folders or {}).get(module)
-        where = (f"the IR was built with it from {folder}: run there, or PYTHONPATH={folder}" if folder else
+        where = (f"the IR was built with it from {folder}: run there, or PYTHONPATH={folder}"
+                 if folder and folder not in sys.path else
                  f"run from the folder that holds {top}.py (or the {top} package), or add that folder to PYTHONPATH")
-        problems.append(f"node '{nid}': cannot import {node['type']} (no module named '{top}' on the import path)\n"
-                        f"    hint: {where}")
+        problems.append(f"node '{nid}': cannot import {node['type']} (No module named '{top}')\n    hint: {where}")
         return None
     return params if len(params) == len(node["params"]) else None
 

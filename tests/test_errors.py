@@ -713,7 +713,7 @@ def test_malformed_ir_text():
 def test_wrong_version_ir():
     doc = _ir_doc()
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.1\.0\); "
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\); "
                                       r"rebuild the IR with this version: retriever ir FILE --out PATH"):
         IR.from_json(json.dumps(doc))
 

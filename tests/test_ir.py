@@ -297,8 +297,8 @@ def test_a_type_that_is_not_a_flow_is_refused_before_it_is_called(tmp_path: Path
 def test_a_module_not_on_the_import_path_is_named_with_a_hint(doc: dict):
     doc["nodes"][2]["type"] = "no_such_flows_module.sub:Camera"
     with pytest.raises(IRError, match=re.escape(
-            "node 'controller': cannot import no_such_flows_module.sub:Camera (no module named "
-            "'no_such_flows_module' on the import path)\n    hint: run from the folder that holds "
+            "node 'controller': cannot import no_such_flows_module.sub:Camera (No module named "
+            "'no_such_flows_module')\n    hint: run from the folder that holds "
             "no_such_flows_module.py (or the no_such_flows_module package), or add that folder to PYTHONPATH")):
         Pipeline.from_ir(IR(doc))
 
