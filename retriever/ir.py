@@ -301,7 +301,11 @@ def is_type_path(value: object) -> bool:
     if not isinstance(value, str):
         return False
     module, colon, qualname = value.partition(":")
-    return bool(colon) and all(part.isidentifier() for part in (*module.split("."), *qualname.split(".")))
+    return bool(colon) and _is_dotted(module) and _is_dotted(qualname)
+
+
+def _is_dotted(name: object) -> bool:
+    return isinstance(name, str) and all(part.isidentifier() for part in name.split("."))
 
 
 def _check_seconds(problems: list[str], where: str, name: str, value: Any) -> None:
@@ -335,7 +339,7 @@ def validate_doc(doc: Any, source: str) -> None:
         problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
     _check_seconds(problems, "metadata.deadline", "deadline", meta.get("deadline", DEFAULT_DEADLINE))
     folders = meta.get("module_folders", {})
-    if not (isinstance(folders, dict) and all(is_type_path(f"{module}:X") and isinstance(folder, str)
+    if not (isinstance(folders, dict) and all(_is_dotted(module) and isinstance(folder, str)
                                               for module, folder in folders.items())):
         problems.append(f"metadata.module_folders: expected an object of module name: folder, got {folders!r}")
     problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))

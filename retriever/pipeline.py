@@ -52,8 +52,8 @@ class DeclaredEdge:
 class Pipeline:
     """A graph of flows. Use as a context manager so ``a.then(b)`` knows where to add the edge."""
 
-    def __init__(self, name: str = "pipeline", *, max_microsteps: int = DEFAULT_MAX_MICROSTEPS, realtime: str = "soft",
-                 deadline: float = DEFAULT_DEADLINE):
+    def __init__(self, name: str = "pipeline", *, max_microsteps: int = DEFAULT_MAX_MICROSTEPS,
+                 realtime: str = "soft", deadline: float = DEFAULT_DEADLINE):
         """``realtime`` and ``deadline`` matter on real-time backends (DESIGN.md §5): ``deadline``
         is how long a tick waits for an input edge that is not complete up to its tag (edges may
         override it), ``realtime`` how misses escalate: ``"hard"`` stops the run at the first

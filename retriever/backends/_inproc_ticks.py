@@ -93,7 +93,8 @@ schedule(arrival, consumer{c})
 # one event on a port whose seq counter lives in the generated code ({seq}), or in rt.seq ({seq} None),
 # after the events in {produced}; a value not of a plain type goes to session.check_output first
 def _record(port_expr: str, seq: str | None, produced: str) -> str:
-    check = f"if type(value) not in plain:\n    check_output(rt, tau, {port_expr}, value, consumed, start, {produced})\n"
+    check = (f"if type(value) not in plain:\n"
+             f"    check_output(rt, tau, {port_expr}, value, consumed, start, {produced})\n")
     if seq is None:
         count = f"seq = seqs.get({port_expr}, 0)\nseqs[{port_expr}] = seq + 1\n"
     else:

@@ -382,7 +382,8 @@ class InprocSession(Session):
             error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned a value the run cannot "
                                f"record: {e}")
             rt.stats.errors += 1
-            detail = {"error": f"CodecError: {str(error).partition(chr(10))[0]}", "on_error": "stop"}
+            first_line = str(error).split("\n", 1)[0]
+            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
             self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
                                          time_ns() - start))
             raise error from None

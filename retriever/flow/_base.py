@@ -340,8 +340,8 @@ class Flow(Generic[In, Out]):
         if latency is not None:
             problem = seconds_problem("latency", latency)
             if problem is not None:
-                raise ValueError(f"{owner}.configure(latency={latency!r}): {problem}\n    hint: latency is the flow's logical execution time, "
-                                 "the seconds from a tick to its outputs")
+                raise ValueError(f"{owner}.configure(latency={latency!r}): {problem}\n    hint: latency is the "
+                                 "flow's logical execution time, the seconds from a tick to its outputs")
             s.latency, s.latency_ns = latency, seconds_to_ns(latency)
         if on_error is not None:
             s.on_error = _choice(owner, "on_error", on_error, ON_ERROR)
