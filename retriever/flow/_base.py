@@ -26,7 +26,8 @@ from typing import Any, Callable, Generic, TypeVar
 from .. import _context
 from ..clocks import Clock
 from ..codec import is_value_type, register_value_type
-from ..time import is_finite_number, seconds_to_ns
+from ..errors import ClockError
+from ..time import seconds_problem, seconds_to_ns
 
 In = TypeVar("In")
 Out = TypeVar("Out")
@@ -278,6 +279,8 @@ class FlowSettings:
     on_error: str = "stop"
     on_overrun: str = "skip"
     on_deadline_miss: str = "publish_late"
+    #: the pipeline the flow belongs to (a weak reference: a flow does not keep a pipeline alive)
+    pipeline: Callable[[], Any] | None = field(default=None, repr=False, compare=False)
 
 
 def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
@@ -329,9 +332,18 @@ class Flow(Generic[In, Out]):
 
     # -- graph building -------------------------------------------------------------------
     def __matmul__(self, clock: Clock):
+        """Bind the flow's clock, in the pipeline of the enclosing ``with`` block if there is one."""
         if not isinstance(clock, Clock):
             return NotImplemented
-        self._retriever.clock = clock
+        settings = self._retriever
+        if settings.clock is not None and settings.clock != clock:
+            raise ClockError(f"{self!r} @ {clock!r}: the flow already has the clock {settings.clock!r}, and a flow "
+                             "has one clock\n    hint: to tick on a rate and on events, bind one Hybrid(hz=..., "
+                             "trigger=[...])")
+        pipe = _context.current_pipeline()
+        if pipe is not None:
+            pipe.add(self)  # raises if the flow belongs to another pipeline
+        settings.clock = clock
         return self
 
     def configure(self, *, name: str | None = None, latency: float | None = None,
@@ -349,8 +361,10 @@ class Flow(Generic[In, Out]):
                                  "(letters, digits, _ and -; it becomes a key-space segment)")
             s.name = name
         if latency is not None:
-            if not is_finite_number(latency) or latency < 0:
-                raise ValueError(f"{owner}: latency={latency!r} must be a finite number of seconds >= 0")
+            problem = seconds_problem("latency", latency)
+            if problem is not None:
+                raise ValueError(f"{owner}.configure(latency={latency!r}): {problem}\n    hint: latency is the "
+                                 "flow's logical execution time, the seconds from a tick to its outputs")
             s.latency, s.latency_ns = latency, seconds_to_ns(latency)
         if on_error is not None:
             s.on_error = _choice(owner, "on_error", on_error, ON_ERROR)
