@@ -27,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from ...errors import CodecError, RetrieverError
+from ...errors import CausalityError, CodecError, RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
@@ -88,11 +88,13 @@ _TICKED, _DONE = "ticked", "done"
 
 
 class StopRun(RetrieverError):
-    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard"."""
+    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
+    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
 
-    def __init__(self, message: str, tag: tuple[int, int] | None = None):
+    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
         super().__init__(message)
         self.tag = tag
+        self.zeno = zeno
 
 
 class InEdge:
@@ -112,7 +114,8 @@ class NodeLoop:
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str,
                  ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
-                 inline: bool = False):
+                 inline: bool = False, cycle: list[str] | None = None, instant_ports: frozenset = frozenset(),
+                 max_microsteps: int = 1000):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -181,6 +184,13 @@ class NodeLoop:
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
         self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
+        # On an instantaneous cycle (DESIGN.md §3 Causality) an ASAP output of a tick at (t, m) is
+        # stamped (HLC, m + 1): time moves on at every hop in real time, so the microstep is what
+        # counts the hops of one instant, and past max_microsteps an output that would trigger
+        # another tick (on one of instant_ports) stops the run, as in-process (a Zeno loop).
+        self.cycle = cycle
+        self.instant_ports = instant_ports if cycle else frozenset()
+        self.max_microsteps = max_microsteps
         self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
         self._declared: list = []
         # warming up (WARM_AHEAD_NS): the last event published, as encoder arguments; per input
@@ -676,10 +686,13 @@ class NodeLoop:
         if self.latency_ns:
             tag = (tau[0] + self.latency_ns, 0)
         else:
+            microstep = tau[1] + 1 if self.instant_ports else 0
+            if microstep > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
+                self._zeno(tau)
             # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
             # when the node runs late (the tag then passes the next tick's time)
             self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp + 1)
-            tag = (self.last_stamp, 0)
+            tag = (self.last_stamp, microstep)
         batch = []
         for port, value in events:
             seq = seqs.get(port, 0)
@@ -715,6 +728,13 @@ class NodeLoop:
             self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall)
             return
         self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
+
+    def _zeno(self, tau: tuple[int, int]) -> None:
+        """Stop the run: the instant of ``tau`` ran past max_microsteps. The tick's outputs are
+        not published and it has no record, as in-process (the run's end record says why)."""
+        with self.lock:
+            self.running = None
+        raise StopRun(str(CausalityError(self.cycle, tau, self.max_microsteps)), tau, zeno=True)
 
     def _finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         with self.lock:

@@ -31,7 +31,7 @@ import time
 import weakref
 from pathlib import Path
 
-from ...errors import BackendError, StepError
+from ...errors import BackendError, CausalityError, StepError
 from ...graph import Graph
 from ...trace import STEPPED
 from ..base import NodeStats, Session
@@ -367,6 +367,9 @@ class ZenohSession(Session):
         where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
         tag = info.get("tag")
         settings = self.graph.nodes[node].settings if node in self.graph.nodes else None
+        cycle = next((c for c in self.graph.instantaneous_cycles if node in c), None)
+        if info.get("zeno") is True and cycle is not None and _is_tag(tag):
+            raise CausalityError(cycle, tuple(tag), self.graph.max_microsteps)
         if tag is not None and settings is not None and ".step() raised " in error:
             failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
             failure.args = (failure.args[0] + where,)
@@ -440,6 +443,10 @@ class ZenohSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
+
+
+def _is_tag(value: object) -> bool:
+    return type(value) is list and len(value) == 2 and all(type(x) is int for x in value)
 
 
 def _refuse_in_a_worker(graph: Graph) -> None:
