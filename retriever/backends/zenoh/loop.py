@@ -48,6 +48,14 @@ FLUSH_MAX_BYTES = 64 << 20
 #: directory (one copy, and none on its side) instead of inside the report
 SPILL_BYTES = 64 << 10
 
+#: Consumed events reach the log through their producer's report, which may be lost with its
+#: process (kill -9). So a consumer keeps the message of each event it received until the
+#: coordinator says it has the event (control ``have``: per stream, the last seq its producer
+#: reported), and holds back its step records that consumed an event the coordinator lacks, for
+#: at most HOLD_RECORDS_NS; past that, or when the loop ends, a record goes with the messages of
+#: those events, and the coordinator takes them as the producer's (each event is logged once).
+HOLD_RECORDS_NS = 200_000_000
+
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
 
@@ -177,6 +185,9 @@ class NodeLoop:
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
 
         self.records: list = []  # step records not yet reported to the coordinator
+        self.held_records: list[tuple[int, tuple]] = []  # (held since, record): see HOLD_RECORDS_NS
+        self.kept: dict[tuple[str, str, int], tuple[int, bytes]] = {}  # event id -> (arrival wall ns, message)
+        self.have: dict[tuple[str, str], int] = {}  # per input stream, the last seq the coordinator has
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
@@ -538,6 +549,8 @@ class NodeLoop:
                 self._garbage(key, e)
                 return
             self._arrived(key, data, self.now())
+            if msg.seq > self.have.get(key, -1):
+                self.kept[(msg.producer, msg.port, msg.seq)] = (time.time_ns(), data)
             self._in_order(key, msg)
         elif kind == _NUDGE:
             return
@@ -562,6 +575,8 @@ class NodeLoop:
                 self.stopping = True
             elif op == "handover" and args.get("node") == self.id and self.restarting:
                 self.stopping = self.handing_over = True
+            elif op == "have":
+                self._coordinator_has(args)
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""
@@ -875,17 +890,54 @@ class NodeLoop:
             self.sending = batch[0][0] if batch else None
         self._publish(batch)
 
-    def flush(self) -> None:
-        """Hand step records and published events to the reporter, for the coordinator."""
-        if self.records or self.published:
-            self.reporter.send(self.records, self.published)
-            self.records, self.published, self.published_bytes = [], [], 0
-        self.flush_due = None
+    def _coordinator_has(self, args: dict) -> None:
+        """Control ``have`` {streams: [[producer, port, last seq], …]}: forget those messages."""
+        streams = args.get("streams")
+        if type(streams) is not list:
+            self._garbage("ctl/run", WireError("a 'have' control message without a list of streams"))
+            return
+        for item in streams:
+            if (type(item) is list and len(item) == 3 and type(item[0]) is str and type(item[1]) is str
+                    and type(item[2]) is int and (item[0], item[1]) in self.frontiers):
+                stream = (item[0], item[1])
+                self.have[stream] = max(self.have.get(stream, -1), item[2])
+        if self.kept:
+            self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
+
+    def _unlogged(self, record: tuple) -> list[tuple[str, str, int]]:
+        """The events a step record consumed that the coordinator may not have."""
+        have, me = self.have, self.id  # its own events go in its own reports, before its records
+        return [eid for ids in record[1].values() for eid in ids if eid[0] != me and eid[2] > have.get(eid[:2], -1)]
+
+    def flush(self, final: bool = False) -> None:
+        """Hand step records and published events to the reporter, for the coordinator: records
+        that consumed an event it may lack wait (HOLD_RECORDS_NS), in order; past that, or when
+        ``final``, they go with the messages of those events."""
+        held = self.held_records
+        if self.records:
+            since = time.monotonic_ns()
+            held.extend((since, record) for record in self.records)
+            self.records = []
+        ready = 0
+        if held:
+            give_up = time.monotonic_ns() - HOLD_RECORDS_NS
+            while ready < len(held) and (final or held[ready][0] <= give_up or not self._unlogged(held[ready][1])):
+                ready += 1
+        records = [record for _, record in held[:ready]]
+        del held[:ready]
+        events = self.published
+        carried = {eid for record in records for eid in self._unlogged(record)}
+        if carried:
+            events = events + [self.kept[eid] for eid in sorted(carried) if eid in self.kept]
+        if records or events:
+            self.reporter.send(records, events)
+        self.published, self.published_bytes = [], 0
+        self.flush_due = self.now() + FLUSH_AFTER_NS if held else None
 
     def finish_reports(self) -> None:
         """Report what is left and return once every report is out (before a last status), and
         count how often and how long the loop waited for the reporter (it then ran late)."""
-        self.flush()
+        self.flush(final=True)
         self.reporter.close()
         if self.reporter.waits:
             self.counts["report_waits"] = self.reporter.waits

@@ -41,6 +41,9 @@ from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decod
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER
 
 
+#: how often, at most, the coordinator tells the consumers which events it has (control `have`)
+HAVE_EVERY_S = 0.02
+
 #: sessions not closed yet
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
@@ -85,6 +88,12 @@ class ZenohSession(Session):
         self._state: dict[str, str] = {}
         self._exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         self._event_ids: set[tuple[str, str, int]] = set()
+        # events a consumer's report carried for its producer (loop.HOLD_RECORDS_NS), and per
+        # stream the last seq the coordinator has, told to the consumers (control `have`)
+        self._carried: set[tuple[str, str, int]] = set()
+        self._have: dict[tuple[str, str], int] = {}
+        self._have_told: dict[tuple[str, str], int] = {}
+        self._feeds = {(e.src, e.src_port, e.dst) for e in graph.edges}
         self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
         self._ran = False
@@ -192,7 +201,7 @@ class ZenohSession(Session):
 
     def _await(self, condition, give_up: float, what: str) -> None:
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``."""
-        next_write = time.monotonic()
+        next_write = next_have = time.monotonic()
         while not condition():
             try:
                 item = self._inbox.get(timeout=0.02)
@@ -208,6 +217,9 @@ class ZenohSession(Session):
             if self.log is not None and now >= next_write:
                 self.write_log()
                 next_write = now + self.LOG_HANDOVER_S
+            if now >= next_have:
+                self._tell_have()
+                next_have = now + HAVE_EVERY_S
             if now > give_up:
                 waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
                 self._dump_stacks(waiting)
@@ -311,16 +323,43 @@ class ZenohSession(Session):
             self._garbage(key, e)
             return
         stream = (msg.producer, msg.port)
-        if msg.producer != node or (stream not in self._streams and node not in self._open_outputs):
+        event_id = (msg.producer, msg.port, msg.seq)
+        if msg.producer != node:  # carried by a consumer, for a producer whose report may be lost
+            if (msg.producer, msg.port, node) not in self._feeds:
+                self._garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
+                                             "which is no output port of it nor one it consumes"))
+            elif event_id not in self._event_ids:
+                self._carried.add(event_id)
+                self._take_event(event_id, msg, wall)
+            return
+        if stream not in self._streams and node not in self._open_outputs:
             self._garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
                                          "which is no output port of it"))
             return
-        event_id = (msg.producer, msg.port, msg.seq)
+        if event_id in self._carried:  # its producer's report came after all
+            self._carried.discard(event_id)
+            return
         if event_id in self._event_ids:
             self._garbage(key, WireError(f"event {event_id} arrived twice"))
             return
+        self._take_event(event_id, msg, wall)
+
+    def _take_event(self, event_id: tuple[str, str, int], msg, wall: int) -> None:
         self._event_ids.add(event_id)
+        producer, port, seq = event_id
+        have = self._have.get((producer, port), -1)
+        while (producer, port, have + 1) in self._event_ids:  # every seq up to it (carried ones may skip)
+            have += 1
+        self._have[(producer, port)] = have
         self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, wall))
+
+    def _tell_have(self) -> None:
+        """Tell the consumers which events the coordinator has (the last seq of each stream that
+        moved on since last told): they forget those messages and report the records that wait."""
+        moved = [[src, port, seq] for (src, port), seq in self._have.items() if self._have_told.get((src, port)) != seq]
+        if moved:
+            self._control("have", {"streams": moved})
+            self._have_told.update(((src, port), seq) for src, port, seq in moved)
 
     def _unspill(self, node: str, name: str) -> mmap.mmap:
         """A message a worker wrote to a file of the run directory: mapped (its arrays are views

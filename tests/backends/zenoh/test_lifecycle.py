@@ -34,11 +34,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from retriever import BackendError, Flow, LogError, Pipeline, Rate, read_log
+from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
 from retriever.backends.zenoh.worker import build_loop
+from retriever.log import replay
 
-from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, two_node_pipeline
+from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, Total, two_node_pipeline
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -577,6 +578,52 @@ def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
     survivors = {node: ident for node, ident in idents.items() if _alive(ident)}
     assert not survivors, f"worker(s) {survivors} survived the failed run"
     assert pipe._session.worker_pids() == pids
+
+
+def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its_producer(tmp_path, namespace):
+    """A producer reports the events it published in batches (up to 20 ms old); a consumer that
+    got one may report its step first. SIGKILL the producer right then (the moment a consumer
+    record whose event the coordinator lacks shows up, or after 40 records if none ever does):
+    the producer's batch is lost, but every event a logged step consumed must still be in the
+    trace and the log (the consumer carries it), so the log replays. Before, it was missing."""
+    with Pipeline("killproducer") as pipe:
+        counter = Counter() @ Rate(hz=100)
+        total = Total().configure(name="total") @ Trigger()
+        counter.then(total, sync=Latest())
+    path = tmp_path / "run.mcap"
+    killed: dict[str, object] = {}
+    done = threading.Event()
+
+    def killer() -> None:
+        deadline = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < deadline:
+            session = pipe._session
+            if session is not None and session.t0 is not None:
+                steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
+                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session._event_ids]
+                if unknown or len(steps) >= 40:
+                    killed["race"] = bool(unknown)
+                    os.kill(session.worker_pids()["counter"], signal.SIGKILL)
+                    return
+            time.sleep(0.001)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(BackendError, match=r"worker process of 'counter' \(pid \d+\) exited with code -9"):
+            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True, log=path)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert killed, "the killer never saw the run going"
+    for trace in (pipe.trace, read_log(path, salvage=True).trace()):
+        ids = {ev.id for ev in trace.events}
+        consumed = [eid for s in trace.steps for eid_list in s.consumed.values() for eid in eid_list]
+        assert consumed, "no step consumed anything"
+        missing = sorted(set(consumed) - ids)
+        assert not missing, f"logged steps consumed events that are not logged: {missing[:5]} (race: {killed})"
+    report = replay(read_log(path, salvage=True))
+    assert report.identical, report.divergences[:3]
 
 
 # ---------------------------------------------------------------------------------------------
