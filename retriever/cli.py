@@ -57,6 +57,7 @@ warnings.showwarning = _show_warning
 
 
 def _interrupt(signum, frame) -> None:
+    _state["signal"] = signum
     raise KeyboardInterrupt
 
 
@@ -85,7 +86,9 @@ def run(
         trace = pipe.run(duration=duration, backend=backend, log=log)
     except KeyboardInterrupt:
         _err.print("interrupted" + (f"; the run so far is in {log}" if log is not None else ""), highlight=False)
-        raise typer.Exit(code=130) from None
+        # during a logged run the pipeline's own handler took the signal (it stops between ticks)
+        signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
+        raise typer.Exit(code=128 + signum) from None
     except Exception as exc:
         if log is not None and log.exists():
             _err.print(f"the run up to the error is in {log}", highlight=False)

@@ -291,6 +291,7 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
         if session.stop_requested:
             raise KeyboardInterrupt
         session.stop_requested = True
+        session.stop_signal = signum
 
     def terminate(signum, frame) -> None:
         raise SystemExit(128 + signum)  # what a shell reports for a process SIGTERM ended

@@ -75,6 +75,7 @@ class Session(ABC):
         self.logged_to = None  # the path of this run's finished log, if it had one
         self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
         self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
+        self.stop_signal: int | None = None  # and which of the two it was
         #: what the run counted that no node owns (COUNTERS; a coordinator's dropped garbage)
         self.own_counts: Counter = Counter()
 

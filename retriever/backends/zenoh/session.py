@@ -41,6 +41,12 @@ from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decod
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER
 
 
+#: after `stop`, how long workers have to send their last reports and exit; one still running is
+#: stuck in a step (a loop looks at `stop` between steps only): its stacks are printed, it is killed
+STOP_GRACE_S = 1.5
+#: how long, at most, a worker's stack dump (SIGUSR1, written at once by a C handler) takes to read
+STACKS_WAIT_S = 0.5
+
 #: how often, at most, the coordinator tells the consumers which events it has (control `have`)
 HAVE_EVERY_S = 0.02
 
@@ -155,13 +161,15 @@ class ZenohSession(Session):
         """PIDs of the worker processes, by node (for tests and tools)."""
         return {nid: p.pid for nid, p in self._workers.items()}
 
-    def _dump_stacks(self, nodes: list[str], wait: float = 1.0) -> None:
-        """Have these workers print every thread's Python stack to their stderr (SIGUSR1)."""
+    def _dump_stacks(self, nodes: list[str], wait: float = STACKS_WAIT_S, show: bool = True) -> None:
+        """Have these workers print every thread's Python stack to their stderr (SIGUSR1): on
+        the coordinator's stderr (``show``), or only kept for an error message that shows them."""
         before = {}
         for nid in nodes:
             proc = self._workers.get(nid)
             if proc is not None and proc.poll() is None:
                 before[nid] = self._output[nid].stderr_lines
+                self._output[nid].forwarding = show
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
@@ -222,7 +230,7 @@ class ZenohSession(Session):
                 next_have = now + HAVE_EVERY_S
             if now > give_up:
                 waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
-                self._dump_stacks(waiting)
+                self._dump_stacks(waiting, show=False)  # the error below shows them
                 if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
                     for nid in waiting:
                         self._workers[nid].kill()
@@ -418,9 +426,10 @@ class ZenohSession(Session):
     # ---------------------------------------------------------------------------------------
     # Stopping
     # ---------------------------------------------------------------------------------------
-    def _stop_workers(self, grace: float = 5.0) -> None:
-        """Ask every live worker to stop, collect what they send, then make sure they are gone.
-        Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
+    def _stop_workers(self, grace: float = STOP_GRACE_S) -> None:
+        """Ask every live worker to stop, collect what they send, then make sure they are gone:
+        one still running after ``grace`` is stuck in a step, so its stacks are printed and it is
+        killed. Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
         if self._hub is None:
             return
         if self.t0 is None:
@@ -444,7 +453,15 @@ class ZenohSession(Session):
                 self._handle(self._inbox.get_nowait())
             except queue.Empty:
                 break
-        self._reap(grace=0.5)  # they had their grace: the ones left are stuck
+        stuck = sorted(nid for nid, p in [*self._workers.items(), *self._retiring.items()] if p.poll() is None)
+        if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
+            print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
+                  "then SIGKILL:", file=sys.stderr, flush=True)
+            self._dump_stacks(stuck)
+            for p in self._processes():
+                if p.poll() is None:
+                    p.kill()
+        self._reap(grace=0.5)
 
     def _reap(self, grace: float = 5.0) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
@@ -467,7 +484,7 @@ class ZenohSession(Session):
             return
         self._closed = True
         if any(p.poll() is None for p in self._processes()):
-            self._stop_workers(grace=2.0)
+            self._stop_workers()
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
         for output in self._output.values():
             output.drain(max(0.0, give_up - time.monotonic()))
