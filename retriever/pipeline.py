@@ -398,5 +398,6 @@ def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> No
         return
     config = node["config"]
     flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
-                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"))
+                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"),
+                   max_restarts=config.get("max_restarts"), restart_window=config.get("restart_window"))
     flows[nid] = flow @ clock_from_ir(config["clock"])

@@ -31,10 +31,10 @@ import time
 import weakref
 from pathlib import Path
 
-from ...errors import BackendError, CausalityError, StepError
+from ...errors import BackendError, CausalityError, RestartLimitError, StepError
 from ...graph import Graph
 from ...trace import STEPPED
-from ..base import NodeStats, Session
+from ..base import NodeStats, RestartBudget, Session
 from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
@@ -88,6 +88,8 @@ class ZenohSession(Session):
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
         self._stats = {nid: NodeStats() for nid in graph.nodes}
+        self._restarts = {nid: RestartBudget(node.settings.max_restarts, node.settings.restart_window)
+                          for nid, node in graph.nodes.items()}
         self._workers: dict[str, subprocess.Popen] = {}  # each node's process
         self._retiring: dict[str, subprocess.Popen] = {}  # a restarting node's old process, until it hands over
         self._retired: list[subprocess.Popen] = []  # old processes that handed over, to reap
@@ -102,6 +104,7 @@ class ZenohSession(Session):
         self._feeds = {(e.src, e.src_port, e.dst) for e in graph.edges}
         self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
+        self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -299,6 +302,15 @@ class ZenohSession(Session):
         if state == "failed":
             self._failure = (node, info)
         elif state == "restart":  # its old process keeps listening until the new one takes over
+            tag = info.get("tag")
+            budget = self._restarts[node]
+            tag = tuple(tag) if _is_tag(tag) else (self._run_time(), 0)
+            if not budget.take(tag[0]):
+                self._limit = RestartLimitError(node, tag, str(info.get("error", "")), budget.max_restarts,
+                                                budget.window_s)
+                self._failure = (node, {"error": str(self._limit)})
+                return
+            node_counts["restarts"] = node_counts.get("restarts", 0) + 1
             self._retiring[node] = self._workers[node]
             self._spawn(node, join=(self.t0, self.end_ns))
             return
@@ -315,6 +327,10 @@ class ZenohSession(Session):
             if old is not None:
                 self._retired.append(old)
         self._state[node] = state
+
+    def _run_time(self) -> int:
+        """Now, in ns since T0 (0 before the start)."""
+        return max(0, time.time_ns() - self.t0) if self.t0 is not None else 0
 
     def _answer_finished(self, query) -> None:
         """Which nodes are done (a restarted flow's process waits for answers from the others)."""
@@ -414,6 +430,8 @@ class ZenohSession(Session):
         where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
         tag = info.get("tag")
         settings = self.graph.nodes[node].settings if node in self.graph.nodes else None
+        if self._limit is not None:
+            raise self._limit
         cycle = next((c for c in self.graph.instantaneous_cycles if node in c), None)
         if info.get("zeno") is True and cycle is not None and _is_tag(tag):
             raise CausalityError(cycle, tuple(tag), self.graph.max_microsteps)

@@ -29,6 +29,7 @@ import pytest
 import retriever
 import retriever.log
 from retriever import BackendError, CausalityError, Latest, Pipeline, Rate, StepError, Trigger, Window
+from retriever.errors import RestartLimitError
 from retriever.trace import STEP_STATUSES, STEPPED
 
 from ..test_conformance import _cycle_pipeline, quiet_build
@@ -213,6 +214,23 @@ def test_on_error_restart_runs_a_fresh_flow_in_a_new_process():
     assert min(r["x"] for r in after) > 3
     # the restarted flow continues the port's seqs (checked dense in check_trace_basics)
     assert [e.seq for e in trace.events_of("faulty", "report")] == list(range(len(before) + len(after)))
+
+
+def test_on_error_restart_stops_past_its_restart_budget():
+    """A flow that fails on every input, under on_error="restart" with max_restarts=2: its third
+    failure stops the run with the in-process RestartLimitError naming it, and the restarts are
+    counted (it was restarted 18 times in 5 s, and the run returned as if nothing happened)."""
+    with Pipeline("restart_budget") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=list(range(10_000)), message="always").configure(
+            name="faulty", on_error="restart", max_restarts=2, restart_window=60.0) @ Trigger("x")
+        src.then(bad, sync=Latest())
+    with pytest.raises(RestartLimitError, match=r"^flow 'faulty' failed again after 2 restart\(s\) within 60 s "
+                                                r"\(max_restarts=2, restart_window=60\): ValueError: always at x=\d+ "
+                                                r"\(tick at t=\d+\.\d+s m=0\)\n    hint: fix what makes 'faulty' fail"):
+        run(pipe, 30.0)  # a bound only: the third failure ends the run
+    assert pipe.stats()["faulty"].counts.get("restarts") == 2
+    assert [s.status for s in pipe.trace.steps_of("faulty")].count("error") == 3
 
 
 def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
