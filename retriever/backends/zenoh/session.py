@@ -102,6 +102,10 @@ class ZenohSession(Session):
         self._have: dict[tuple[str, str], int] = {}
         self._have_told: dict[tuple[str, str], int] = {}
         self._feeds = {(e.src, e.src_port, e.dst) for e in graph.edges}
+        # reports handled, and reports sent as the node's processes said when they ended: Zenoh
+        # orders messages per key only, so a last report may come after the `done` status
+        self._reports = {nid: 0 for nid in graph.nodes}
+        self._reports_sent = {nid: 0 for nid in graph.nodes}
         self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
         self._failure: tuple[str, dict] | None = None
         self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
@@ -197,7 +201,8 @@ class ZenohSession(Session):
             self.end_ns = until_ns
             self._control("start", {"t0": self.t0, "end": until_ns})
             slack = max(self._deadlines(), 1.0) + 10.0
-            self._await(lambda: all(s == "done" for s in self._state.values()),
+            self._await(lambda: all(s == "done" for s in self._state.values())
+                        and all(self._reports[n] >= self._reports_sent[n] for n in self._reports),
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
             self._stop_workers()
@@ -232,7 +237,8 @@ class ZenohSession(Session):
                 self._tell_have()
                 next_have = now + HAVE_EVERY_S
             if now > give_up:
-                waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
+                waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done")
+                                 or self._reports[n] < self._reports_sent[n])
                 self._dump_stacks(waiting, show=False)  # the error below shows them
                 if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
                     for nid in waiting:
@@ -258,6 +264,7 @@ class ZenohSession(Session):
             if stats is None:
                 self._garbage(key, WireError(f"a report of an unknown node '{report.node}'"))
                 return
+            self._reports[report.node] += 1
             for wall, message in report.events:
                 self._event(key, report.node, wall, message)
             steps = self.trace.raw_steps
@@ -299,6 +306,8 @@ class ZenohSession(Session):
         node_counts = self._stats[node].counts
         for name, n in counts.items():
             node_counts[name] = node_counts.get(name, 0) + n
+        if state in ("done", "handed_over") and type(info.get("reports")) is int:
+            self._reports_sent[node] += info["reports"]
         if state == "failed":
             self._failure = (node, info)
         elif state == "restart":  # its old process keeps listening until the new one takes over

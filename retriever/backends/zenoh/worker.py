@@ -337,9 +337,9 @@ def _serve(argv: list[str]) -> int:
             tmp = handover_file.with_suffix(".tmp")
             tmp.write_bytes(state)
             tmp.replace(handover_file)
-            status("handed_over", counts=dict(loop.counts))
+            status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
             return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts))
+        status("done", counts=dict(loop.counts), reports=loop.reporter.sent)
         loop.undeclare()
     return 0
 
