@@ -95,6 +95,9 @@ def graph_to_doc(graph: "Graph") -> dict:
                 "on_error": s.on_error,
                 "on_overrun": s.on_overrun,
                 "on_deadline_miss": s.on_deadline_miss,
+                # the restart budget, where it applies
+                **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
+                   if s.on_error == "restart" else {}),
             },
             "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
             "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
@@ -375,6 +378,12 @@ def validate_doc(doc: Any, source: str) -> None:
                                  ("on_deadline_miss", ON_DEADLINE_MISS)):
                 if key in config and config[key] not in allowed:
                     problems.append(f"{where}.config.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
+            restarts = config.get("max_restarts", 0)
+            if type(restarts) is not int or restarts < 0:
+                problems.append(f"{where}.config.max_restarts: expected an integer >= 0, got {restarts!r}")
+            window = config.get("restart_window", 1.0)
+            if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
+                problems.append(f"{where}.config.restart_window: expected seconds > 0, got {window!r}")
     for i, e in enumerate(doc["edges"]):
         where = f"edges[{i}]"
         if not _expect(problems, where, e, dict, "an object"):

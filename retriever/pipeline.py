@@ -314,6 +314,7 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
         if session.stop_requested:
             raise KeyboardInterrupt
         session.stop_requested = True
+        session.stop_signal = signum
 
     def terminate(signum, frame) -> None:
         raise SystemExit(128 + signum)  # what a shell reports for a process SIGTERM ended
@@ -456,5 +457,6 @@ def _construct_node(node: dict, params: dict, flows: dict[str, Flow], problems: 
         return
     config = node["config"]
     flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
-                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"))
+                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"),
+                   max_restarts=config.get("max_restarts"), restart_window=config.get("restart_window"))
     flows[nid] = flow @ clock_from_ir(config["clock"])

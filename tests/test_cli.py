@@ -455,3 +455,35 @@ def test_load_pipeline_in_process_matches_the_cli_target_syntax():
 
     pipe = load_pipeline(f"{QUICKSTART}:pipe")
     assert isinstance(pipe, Pipeline) and pipe.name == "quickstart"
+
+
+FLAKY = '''
+from retriever import Flow, Pipeline, Rate
+
+
+class Flaky(Flow[None, int]):
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp):
+        self.k += 1
+        if self.k == 2:
+            raise ValueError("second call")
+        return self.k
+
+
+with Pipeline("flaky") as pipe:
+    Flaky().configure(on_error="skip_tick") @ Rate(hz=10)
+'''
+
+
+def test_a_run_whose_errors_were_absorbed_exits_1_unless_allowed(tmp_path: Path):
+    """on_error='skip_tick' lets the run go on; the run still had an error: the table, then
+    error/hint and exit 1 (it exited 0), unless --allow-errors."""
+    script = write(tmp_path / "flaky.py", FLAKY)
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert_cli_error(result, r"^error: the run went on, but had errors \(flaky: 1 step error\(s\)\)$",
+                     hint=r"the error records say what raised")
+    assert re.search(r"^│ flaky +│ +10 │ +9 │ +0 │ +1 │", result.stdout, re.MULTILINE), result.stdout
+    allowed = cli("run", str(script), "--duration", "1", "--allow-errors", pythonpath=ROOT)
+    assert allowed.returncode == 0 and allowed.stderr == "", allowed.stderr

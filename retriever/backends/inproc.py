@@ -35,13 +35,13 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import CausalityError, CodecError, StepError
+from ..errors import CausalityError, CodecError, RestartLimitError, StepError
 from ..flow._base import Flow, make_invoker, make_output_reader
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
 from ..time import format_tag
 from . import _inproc_ticks
-from .base import Backend, NodeStats, Session
+from .base import Backend, NodeStats, RestartBudget, Session
 
 
 #: the types of output values the codec always encodes (None: no event). An output of another type
@@ -70,7 +70,7 @@ class _NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots."""
 
     __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
-                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced")
+                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts")
 
     def __init__(self, index: int, node: Node):
         self.index = index
@@ -82,6 +82,7 @@ class _NodeRuntime:
         self.read = make_output_reader(node.spec)
         self.latency_ns = node.settings.latency_ns
         self.on_error = node.settings.on_error
+        self.restarts = RestartBudget(node.settings.max_restarts, node.settings.restart_window)
         # (port, buffer, policy, port spec) per input port
         self.inputs: list[tuple[str, PortBuffer, Any, Any]] = []
         # output port -> [(consumer index, consumer buffer, delay ns, whether it triggers the consumer)]
@@ -400,6 +401,10 @@ class InprocSession(Session):
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
         if rt.on_error == "restart":
+            budget = rt.restarts
+            if not budget.take(tau[0]):
+                raise RestartLimitError(rt.id, tau, exc, budget.max_restarts, budget.window_s) from exc
+            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
             rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:

@@ -333,7 +333,8 @@ def test_configure_and_named_return_the_flow_and_land_in_the_ir():
     node = pipe.build_ir().node("vla")
     assert node["params"] == {"gain": 2.0, "bias": 1.0}
     assert node["config"] == {"clock": {"Rate": {"hz": 2, "offset": 0.0}}, "latency": 0.3, "on_error": "restart",
-                              "on_overrun": "error", "on_deadline_miss": "drop"}
+                              "on_overrun": "error", "on_deadline_miss": "drop",
+                              "max_restarts": 5, "restart_window": 10.0}  # the restart budget's defaults
 
 
 def test_flows_created_inside_a_with_block_join_the_innermost_pipeline():

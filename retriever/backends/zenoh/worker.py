@@ -165,12 +165,31 @@ def build_loop(spec: dict, node_id: str, session):
             fallbacks[port] = port_spec
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
+    cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
-                    inline=not on_a_cycle(ir.edges, node_id))
+                    inline=not on_a_cycle(ir.edges, node_id),
+                    cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
+                    max_microsteps=meta.get("max_microsteps", 1000))
+
+
+def instant_ports(ir, node_id: str) -> frozenset[str]:
+    """The output ports of ``node_id`` whose events trigger a tick at their own tag: those of its
+    undelayed edges into a trigger port (the node has no latency: it is on an instantaneous cycle)."""
+    from ...clocks import clock_from_ir
+
+    clocks = {n["id"]: clock_from_ir(n["config"]["clock"]) for n in ir.nodes}
+    ports = set()
+    for e in ir.edges:
+        src, dst = e["source"], e["destination"]
+        clock = clocks[dst["node"]]
+        if (src["node"] == node_id and not e.get("delay") and clock.triggered
+                and (not clock.trigger_ports or dst["port"] in clock.trigger_ports)):
+            ports.add(src["port"])
+    return frozenset(ports)
 
 
 def on_a_cycle(edges: list[dict], node_id: str) -> bool:
@@ -304,7 +323,8 @@ def _serve(argv: list[str]) -> int:
             loop.finish_reports()
             cause = exc.__cause__  # the exception a step raised: where in the flow's code
             status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
-                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None)
+                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
+                   zeno=exc.zeno)
             loop.undeclare()
             return EXIT_FAILED
         except BaseException as exc:
@@ -320,9 +340,9 @@ def _serve(argv: list[str]) -> int:
             tmp = handover_file.with_suffix(".tmp")
             tmp.write_bytes(state)
             tmp.replace(handover_file)
-            status("handed_over", counts=dict(loop.counts))
+            status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
             return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts))
+        status("done", counts=dict(loop.counts), reports=loop.reporter.sent)
         loop.undeclare()
     return 0
 
