@@ -97,14 +97,18 @@ def shm_pool_bytes(free_bytes: int | None = None, sessions: int = 1) -> int:
     return max(SHM_POOL_MIN, min(SHM_POOL_MAX, run_share // max(1, sessions)))
 
 
-def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1) -> zenoh.Config:
+def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
+                access: dict[str, str] | None = None) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
     it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
     latency instead of 1.1×, benchmarks/README.md), and its pool is sized by
     :func:`shm_pool_bytes` for one of the run's ``sessions``. Its cost: each session has a
-    segment in /dev/shm, which a SIGKILLed process leaves behind."""
+    segment in /dev/shm, which a SIGKILLed process leaves behind.
+
+    ``access``: the config entries that make the session one of a run's (``access.py``:
+    authentication and access control); without it, the session admits anyone."""
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
@@ -112,31 +116,34 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
+    for key, value in (access or {}).items():
+        config.insert_json5(key, value)
     return config
 
 
-def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: int = 1) -> tuple[zenoh.Session, str]:
+def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: int = 1,
+             access: dict[str, str] | None = None) -> tuple[zenoh.Session, str]:
     """Open the run's hub session, one of the run's ``sessions``; returns it and the endpoint it
     listens on. Close it (``with``)."""
     port = preferred_port if port_is_free(preferred_port) else free_port()
     last: Exception | None = None
     for _ in range(attempts):
         try:
-            return zenoh.open(peer_config(listen=[endpoint(port)], sessions=sessions)), endpoint(port)
+            return zenoh.open(peer_config(listen=[endpoint(port)], sessions=sessions, access=access)), endpoint(port)
         except zenoh.ZError as e:  # taken between the check and the bind: try another
             last = e
             port = free_port()
     raise OSError(f"could not open a Zenoh hub on 127.0.0.1 after {attempts} attempts: {last}")
 
 
-def open_peer(hub_endpoint: str, sessions: int = 1) -> zenoh.Session:
+def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
     It listens on a free loopback port too: peers do not route for each other, so two workers
     exchange messages over the direct link that gossip (learning of each other from the hub)
     opens between them, which is also the fastest path."""
-    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint], sessions=sessions))
+    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint], sessions=sessions, access=access))
 
 
 def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,
