@@ -57,6 +57,7 @@ warnings.showwarning = _show_warning
 
 
 def _interrupt(signum, frame) -> None:
+    _state["signal"] = signum
     raise KeyboardInterrupt
 
 
@@ -78,8 +79,12 @@ def run(
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh.")] = 10.0,
     log: Annotated[Optional[Path], typer.Option(help="Record the run in this MCAP event log.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
+    allow_errors: Annotated[bool, typer.Option(
+        "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted "
+                               "(on_error='skip_tick' or 'restart' absorbed them).")] = False,
 ) -> None:
-    """Run a pipeline and print per-node ticks, steps, skips and mean step time."""
+    """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
+    step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
     pipe = _load(target)
     before = _identity(log)
     signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
@@ -88,7 +93,9 @@ def run(
     except KeyboardInterrupt:
         recorded = _identity(log) not in (None, before)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
-        raise typer.Exit(code=130) from None
+        # during a logged run the pipeline's own handler took the signal (it stops between ticks)
+        signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
+        raise typer.Exit(code=128 + signum) from None
     except Exception as exc:
         # only a log this run wrote holds it (a refused run leaves the file as it was; a log that
         # could not be written says so in its own error)
@@ -114,6 +121,23 @@ def run(
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)
+    if not allow_errors:
+        _fail_on_errors(pipe)
+
+
+def _fail_on_errors(pipe) -> None:
+    """A run whose steps raised, or whose flows restarted, fails (exit 1) though it went on."""
+    stats = pipe.stats()
+    errors = {node: s.errors for node, s in sorted(stats.items()) if s.errors}
+    restarts = {node: s.counts["restarts"] for node, s in sorted(stats.items()) if s.counts.get("restarts")}
+    if not errors and not restarts:
+        return
+    parts = [f"{node}: {n} step error(s)" + (f", {restarts[node]} restart(s)" if node in restarts else "")
+             for node, n in errors.items()]
+    parts += [f"{node}: {n} restart(s)" for node, n in restarts.items() if node not in errors]
+    _fail(RetrieverError(f"the run went on, but had errors ({'; '.join(parts)})\n"
+                         "    hint: the error records say what raised (retriever log cat LOG --steps); pass "
+                         "--allow-errors when on_error='skip_tick' or 'restart' is meant to absorb them"))
 
 
 def _identity(path: Path | None) -> tuple[int, int, int, int] | None:
@@ -305,7 +329,7 @@ def log_cat(
             events = sorted((e for e in log.iter_events() if (node is None or e.node == node)
                              and (port is None or e.port == port)), key=lambda e: (e.tag, e.node, e.port, e.seq))
             for e in events[:limit]:
-                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e)!r}",
+                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e, keep_unregistered=True)!r}",
                            highlight=False, markup=False, soft_wrap=True)
                 shown += 1
     except Exception as exc:

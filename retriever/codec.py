@@ -4,9 +4,15 @@ Used for trace digests today, and for the MCAP log and the Zenoh wire. Round-tri
 
 - ``None``, bool, int (any size), float (bit-exact), str, bytes, list, dict (any msgpack keys);
 - tuples (kept as tuples), numpy arrays of any non-object dtype and shape, numpy scalars;
-- dataclasses (including ``@io`` types), rebuilt by importing ``module:QualName``.
+- registered value types (``@io`` dataclasses), as ``["module:QualName", {field: value}]``.
 
 Anything else raises :class:`CodecError` naming the type and the path to it inside the value.
+
+Decoding never imports or calls anything it was not given by this process: a dataclass is rebuilt
+only as a class that this process registered (``@io`` calls :func:`register_value_type`), found by
+its registered path. Bytes from the network, a log or an IR file are hostile: a path that is not
+registered here (``os:system``) is a :class:`CodecError`, or, for tools that only show values
+(``retriever log cat``), an inert :class:`UnregisteredValue`.
 
 Between processes (the Zenoh wire) arrays may travel *out of band*: :class:`OutOfBandEncoder`
 packs each array as ``ExtType(6, [descr, shape, index])`` and hands its bytes back as the
@@ -18,12 +24,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 import math
-import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import msgpack
 import numpy as np
@@ -45,15 +49,43 @@ def type_path(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
-def import_type(path: str) -> Any:
-    """Import ``module:QualName``. Raises ImportError/AttributeError with the path in the message."""
-    module_name, _, qualname = path.partition(":")
-    if not module_name or not qualname:
-        raise ImportError(f"{path!r} is not of the form 'module:QualName'")
-    obj: Any = importlib.import_module(module_name)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
+#: classes this process registered as value types, by the path their values carry
+_value_types: dict[str, type] = {}
+
+#: a class defined in the main script lives in ``__main__`` in the process that ran the script,
+#: and in ``__mp_main__`` in a worker that imported it (as multiprocessing does): one path for both
+_MODULE_ALIASES = {"__mp_main__": "__main__"}
+
+
+def value_type_path(cls: type) -> str:
+    """The path a value of ``cls`` carries, the same in every process of a run."""
+    module = _MODULE_ALIASES.get(cls.__module__, cls.__module__)
+    return f"{module}:{cls.__qualname__}"
+
+
+def register_value_type(cls: type) -> type:
+    """Let values of the dataclass ``cls`` be encoded, and decoded back into ``cls`` in this
+    process. ``@io`` does this; the last class registered under a path wins (a re-run cell)."""
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        raise TypeError(f"only dataclasses can be value types, not {cls!r}")
+    cls.__retriever_value_type__ = True
+    _value_types[value_type_path(cls)] = cls
+    return cls
+
+
+def is_value_type(cls: type) -> bool:
+    return cls.__dict__.get("__retriever_value_type__", False) is True
+
+
+class UnregisteredValue(NamedTuple):
+    """A dataclass value whose class this process has not registered, kept inert: what
+    ``retriever log cat`` shows instead of calling anything."""
+
+    path: str
+    fields: dict
+
+    def __repr__(self) -> str:
+        return f"<{self.path}>(" + ", ".join(f"{k}={v!r}" for k, v in self.fields.items()) + ")"
 
 
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
@@ -122,37 +154,61 @@ def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType
         return msgpack.ExtType(EXT_TUPLE, pack_nested(list(obj)))
     if isinstance(obj, int):  # beyond 64 bits
         return msgpack.ExtType(EXT_BIGINT, str(obj).encode())
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+    if is_value_type(type(obj)):
         fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
-        return msgpack.ExtType(EXT_DATACLASS, pack_nested([type_path(type(obj)), fields]))
+        return msgpack.ExtType(EXT_DATACLASS, pack_nested([value_type_path(type(obj)), fields]))
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        raise CodecError(
+            f"cannot encode a {type(obj).__module__}.{type(obj).__qualname__}: a dataclass that is not a "
+            "registered value type, which no process could decode\n"
+            "    hint: decorate the class with @io (from retriever import io)")
     raise CodecError(
         f"cannot encode a value of type {type(obj).__module__}.{type(obj).__qualname__}\n"
         "    hint: use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses"
     )
 
 
-def _ext_hook(code: int, data: bytes, *, import_modules: bool = True, buffers: list | None = None) -> Any:
+def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffers: list | None = None) -> Any:
     if code == EXT_NDARRAY or code == EXT_NPSCALAR:
-        descr, shape, raw = unpackb(data)
+        descr, shape, raw = msgpack.unpackb(data, raw=False)
         arr = np.frombuffer(raw, dtype=_array_dtype(descr)).reshape(shape).copy()
         return arr[()] if code == EXT_NPSCALAR else arr
     if code == EXT_NDARRAY_OOB:
         return _out_of_band_array(data, buffers)
     if code == EXT_TUPLE:
-        return tuple(_unpack(data, import_modules, buffers))
+        return tuple(_unpack(data, keep_unregistered, buffers))
     if code == EXT_BIGINT:
         return int(data.decode())
     if code == EXT_DATACLASS:
-        path, fields = _unpack(data, import_modules, buffers)
-        if not import_modules and path.partition(":")[0] not in sys.modules:
-            raise CodecError(f"refusing to decode a {path}: its module is not imported here, and a message "
-                             "may not make this process import code")
-        try:
-            cls = import_type(path)
-        except (ImportError, AttributeError) as e:
-            raise CodecError(f"cannot decode a {path}: the class cannot be imported ({e})") from None
-        return cls(**fields)
+        return _dataclass(*_dataclass_parts(_unpack(data, keep_unregistered, buffers)), keep_unregistered)
     raise CodecError(f"unknown msgpack extension type {code}")
+
+
+def _dataclass_parts(decoded: Any) -> tuple[str, dict]:
+    if (type(decoded) is not list or len(decoded) != 2 or type(decoded[0]) is not str
+            or type(decoded[1]) is not dict or not all(type(k) is str for k in decoded[1])):
+        raise CodecError("a dataclass value must be [\"module:QualName\", {field: value}]")
+    return decoded[0], decoded[1]
+
+
+def _dataclass(path: str, fields: dict, keep_unregistered: bool) -> Any:
+    """Rebuild a registered value type; nothing is imported, and only a registered class called."""
+    cls = _value_types.get(path)
+    if cls is None:
+        if keep_unregistered:
+            return UnregisteredValue(path, fields)
+        raise CodecError(f"cannot decode a value of type {path[:200]!r}: no value type of that name is registered "
+                         "in this process, and decoding never imports or calls anything else\n"
+                         "    hint: import the module that defines it (its @io class registers itself) before "
+                         "decoding")
+    known = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise CodecError(f"cannot decode a {path}: it has no field(s) {', '.join(unknown)[:200]}")
+    try:
+        return cls(**fields)
+    except Exception as e:
+        raise CodecError(f"cannot decode a {path}: its constructor raised {type(e).__name__}: {e}") from None
 
 
 def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
@@ -284,29 +340,25 @@ def _widen(value: Any) -> Any:
     return value
 
 
-def unpackb(data: bytes, *, import_modules: bool = True) -> Any:
-    """Decode bytes made by :func:`packb`. With ``import_modules=False`` (bytes from the network)
-    a dataclass is rebuilt only if its module is already imported."""
-    hook = _ext_hook if import_modules else _ext_hook_no_imports
-    return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
+def unpackb(data: bytes, *, keep_unregistered: bool = False) -> Any:
+    """Decode bytes made by :func:`packb`. A dataclass comes back as its registered value type;
+    one not registered here raises CodecError, or with ``keep_unregistered=True`` (tools that only
+    show values) comes back as an :class:`UnregisteredValue`."""
+    return _unpack(data, keep_unregistered, None)
 
 
-def unpackb_out_of_band(data: bytes | memoryview, buffers: list, *, import_modules: bool = False) -> Any:
+def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
     """Decode what :class:`OutOfBandEncoder` packed, given its buffers (any bytes-like objects,
     e.g. memoryviews of the received message). Arrays come back as read-only views of them."""
-    return _unpack(data, import_modules, buffers)
+    return _unpack(data, False, buffers)
 
 
-def _unpack(data: bytes, import_modules: bool, buffers: list | None) -> Any:
-    if buffers is None:
-        hook = _ext_hook if import_modules else _ext_hook_no_imports
+def _unpack(data: bytes, keep_unregistered: bool, buffers: list | None) -> Any:
+    if buffers is None and not keep_unregistered:
+        hook = _ext_hook
     else:
-        hook = functools.partial(_ext_hook, import_modules=import_modules, buffers=buffers)
+        hook = functools.partial(_ext_hook, keep_unregistered=keep_unregistered, buffers=buffers)
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
-
-
-def _ext_hook_no_imports(code: int, data: bytes) -> Any:
-    return _ext_hook(code, data, import_modules=False)
 
 
 class OutOfBandEncoder:

@@ -7,6 +7,7 @@
     ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
+    │   └── RestartLimitError      ... once more than max_restarts within restart_window (on_error="restart")
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
     ├── LogError                   an event log cannot be written, read or replayed as asked
     │   └── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
@@ -85,6 +86,23 @@ class StepError(RetrieverError):
             f"    hint: set on_error='skip_tick' or 'restart' on '{node}' "
             f"(flow.configure(on_error=...)) to keep the pipeline running"
         )
+
+
+class RestartLimitError(StepError):
+    """A flow with ``on_error="restart"`` needed more restarts than its budget allows."""
+
+    def __init__(self, node: str, tag: tuple[int, int], cause: BaseException | str, max_restarts: int,
+                 window: float):
+        self.node, self.tag = node, tag
+        from .time import format_tag
+
+        what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
+        RetrieverError.__init__(
+            self,
+            f"flow '{node}' failed again after {max_restarts} restart(s) within {window:g} s "
+            f"(max_restarts={max_restarts}, restart_window={window:g}): {what} (tick at {format_tag(tag)})\n"
+            f"    hint: fix what makes '{node}' fail (each failure is an error record of the trace and the log), "
+            "or raise its budget: flow.configure(max_restarts=..., restart_window=...)")
 
 
 class CausalityError(RetrieverError):

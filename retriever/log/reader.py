@@ -122,13 +122,19 @@ class RunLog:
             if root not in sys.path and os.path.isdir(root):
                 sys.path.insert(0, root)
 
-    def value(self, event: LoggedEvent) -> Any:
-        self.add_import_paths()
+    def value(self, event: LoggedEvent, *, keep_unregistered: bool = False) -> Any:
+        """The event's value. Decoding imports and calls nothing: a dataclass comes back as the
+        value type this process registered (``@io``) under its path, else it is an error, or with
+        ``keep_unregistered=True`` an inert :class:`retriever.codec.UnregisteredValue`."""
         try:
-            return unpackb(event.raw_value)
+            return unpackb(event.raw_value, keep_unregistered=keep_unregistered)
         except CodecError as e:
             raise LogError(f"{self.path}: cannot decode event {event.node}.{event.port} #{event.seq}: {e}",
-                           "the value's class must be importable where you replay") from None
+                           "import the modules that define the run's @io types before reading its values "
+                           "(retriever replay imports the flows' modules the IR names)") from None
+        except Exception as e:  # msgpack's own errors on a damaged value
+            raise LogError(f"{self.path}: event {event.node}.{event.port} #{event.seq} is not valid msgpack "
+                           f"({type(e).__name__})", "the file is damaged: retriever log recover") from None
 
     def trace(self) -> Trace:
         """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""

@@ -207,7 +207,7 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamp
         elif tag != original.tag:
             return differs("output tag", format_tag(original.tag), format_tag(tag), port)
         if encode(value) != original.raw_value:
-            return differs("value", unpackb(original.raw_value), value, port)
+            return differs("value", unpackb(original.raw_value, keep_unregistered=True), value, port)
     return None
 
 

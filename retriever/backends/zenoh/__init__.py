@@ -1,6 +1,7 @@
 """The real-time backend over Eclipse Zenoh (DESIGN.md §5, §7): one OS process per flow.
 
     wire.py     key space and msgpack envelopes
+    access.py   who may join a run (Zenoh authentication) and what a watcher may do (access control)
     hub.py      peer sessions: the run's hub and the workers joining it
     loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
     worker.py   the worker process around a loop
@@ -17,7 +18,7 @@ from ..base import Backend
 
 class ZenohBackend(Backend):
     name = "zenoh"
-    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet")
+    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret")
 
     def open(self, graph: Graph, **options: object):
         unknown = sorted(set(options) - set(self.OPTIONS))

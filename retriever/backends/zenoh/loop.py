@@ -27,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from ...errors import CodecError, RetrieverError
+from ...errors import CausalityError, CodecError, RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
@@ -47,6 +47,24 @@ FLUSH_MAX_BYTES = 64 << 20
 #: published messages at least this big reach the coordinator as files in the run's shared-memory
 #: directory (one copy, and none on its side) instead of inside the report
 SPILL_BYTES = 64 << 10
+
+#: What a message may claim, past which it is refused as garbage (never applied): a frontier is a
+#: producer's promise, and a producer can promise no tag past the run's end plus its latency
+#: (its ticks end there; LET outputs are stamped tick + latency), except NEVER once it is done and,
+#: without latency, its HLC stamp at completion: at most CLOCK_AHEAD_MAX_NS past this process's
+#: clock, the skew Zenoh's own HLC tolerates between sessions (500 ms). A seq may arrive ahead of
+#: the next one expected (Zenoh orders per route; a message may overtake on another), by a few,
+#: not by EARLY_SEQS_MAX: a message that far ahead would hold its stream's gap open forever.
+CLOCK_AHEAD_MAX_NS = 500_000_000
+EARLY_SEQS_MAX = 4096
+
+#: Consumed events reach the log through their producer's report, which may be lost with its
+#: process (kill -9). So a consumer keeps the message of each event it received until the
+#: coordinator says it has the event (control ``have``: per stream, the last seq its producer
+#: reported), and holds back its step records that consumed an event the coordinator lacks, for
+#: at most HOLD_RECORDS_NS; past that, or when the loop ends, a record goes with the messages of
+#: those events, and the coordinator takes them as the producer's (each event is logged once).
+HOLD_RECORDS_NS = 200_000_000
 
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
@@ -88,22 +106,25 @@ _TICKED, _DONE = "ticked", "done"
 
 
 class StopRun(RetrieverError):
-    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard"."""
+    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
+    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
 
-    def __init__(self, message: str, tag: tuple[int, int] | None = None):
+    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
         super().__init__(message)
         self.tag = tag
+        self.zeno = zeno
 
 
 class InEdge:
     """One incoming edge: where its events go and how long a tick waits for it."""
 
-    __slots__ = ("src", "src_port", "port", "buf", "delay_ns", "triggers", "deadline_ns")
+    __slots__ = ("src", "src_port", "port", "buf", "delay_ns", "triggers", "deadline_ns", "src_latency_ns")
 
     def __init__(self, src: str, src_port: str, port: str, buf: PortBuffer, delay_ns: int, triggers: bool,
-                 deadline_ns: int):
+                 deadline_ns: int, src_latency_ns: int = 0):
         self.src, self.src_port, self.port, self.buf = src, src_port, port, buf
         self.delay_ns, self.triggers, self.deadline_ns = delay_ns, triggers, deadline_ns
+        self.src_latency_ns = src_latency_ns  # the producer's declared latency: how far past the end it stamps
 
 
 class NodeLoop:
@@ -112,7 +133,8 @@ class NodeLoop:
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str,
                  ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
-                 inline: bool = False):
+                 inline: bool = False, cycle: list[str] | None = None, instant_ports: frozenset = frozenset(),
+                 max_microsteps: int = 1000):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -153,6 +175,7 @@ class NodeLoop:
         self.expect: dict[tuple[str, str], int] = {k: 0 for k in streams}
         self.early: dict[tuple[str, str], dict[int, Any]] = {k: {} for k in streams}
         self.waiting: dict[tuple[str, str], list[tuple[int, tuple[int, int]]]] = {k: [] for k in streams}
+        self.src_latency_ns = {(e.src, e.src_port): e.src_latency_ns for e in edges}
         self.sources = sorted({e.src for e in edges})
         self.sent: dict[str, int] = {port: seq - 1 for port, seq in self.seqs.items()}  # last seq put
         self.pending: list[tuple[int, int]] = []  # trigger tick tags (a heap, deduplicated below)
@@ -174,6 +197,10 @@ class NodeLoop:
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
 
         self.records: list = []  # step records not yet reported to the coordinator
+        self.recorded = 0  # step records made in all (the coordinator checks it got every tick)
+        self.held_records: list[tuple[int, tuple]] = []  # (held since, record): see HOLD_RECORDS_NS
+        self.kept: dict[tuple[str, str, int], tuple[int, bytes]] = {}  # event id -> (arrival wall ns, message)
+        self.have: dict[tuple[str, str], int] = {}  # per input stream, the last seq the coordinator has
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
@@ -181,6 +208,13 @@ class NodeLoop:
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
         self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
+        # On an instantaneous cycle (DESIGN.md §3 Causality) an ASAP output of a tick at (t, m) is
+        # stamped (HLC, m + 1): time moves on at every hop in real time, so the microstep is what
+        # counts the hops of one instant, and past max_microsteps an output that would trigger
+        # another tick (on one of instant_ports) stops the run, as in-process (a Zeno loop).
+        self.cycle = cycle
+        self.instant_ports = instant_ports if cycle else frozenset()
+        self.max_microsteps = max_microsteps
         self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
         self._declared: list = []
         # warming up (WARM_AHEAD_NS): the last event published, as encoder arguments; per input
@@ -524,10 +558,13 @@ class NodeLoop:
         if kind == _DATA:
             try:
                 msg = decode_data(data, expected=key)
+                self._check_claims(key, msg.seq, msg.frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
             self._arrived(key, data, self.now())
+            if msg.seq > self.have.get(key, -1):
+                self.kept[(msg.producer, msg.port, msg.seq)] = (time.time_ns(), data)
             self._in_order(key, msg)
         elif kind == _NUDGE:
             return
@@ -536,12 +573,14 @@ class NodeLoop:
                 return  # the query timed out
             try:
                 progress = decode_progress(data, expected=key)
+                streams = [s for s in self.frontiers if s[0] == progress.producer]
+                for stream in streams:
+                    self._check_claims(stream, progress.sent.get(stream[1], -1), progress.frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
-            for stream in self.frontiers:
-                if stream[0] == progress.producer:
-                    self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
+            for stream in streams:
+                self._progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
         else:
             try:
                 op, args = decode_control(data)
@@ -552,6 +591,26 @@ class NodeLoop:
                 self.stopping = True
             elif op == "handover" and args.get("node") == self.id and self.restarting:
                 self.stopping = self.handing_over = True
+            elif op == "have":
+                self._coordinator_has(args)
+
+    def _check_claims(self, stream: tuple[str, str], seq: int, frontier: tuple[int, int]) -> None:
+        """Refuse a seq from the future or a frontier its producer cannot promise (see
+        CLOCK_AHEAD_MAX_NS): applied, one would hold the stream back, or make every later event
+        of it late, for the rest of the run."""
+        expect = self.expect[stream]
+        if seq > expect + EARLY_SEQS_MAX:
+            raise WireError(f"seq {seq} of {stream[0]}.{stream[1]} is {seq - expect} past the next one expected "
+                            f"({expect}): a seq from the future")
+        if frontier == NEVER:
+            return
+        if frontier > NEVER:
+            raise WireError(f"frontier {frontier} of {stream[0]} is past every tag a run has")
+        if self.end:  # the run has started: its end is known
+            limit = max(self.end + self.src_latency_ns[stream] + 1, self.now() + CLOCK_AHEAD_MAX_NS)
+            if frontier[0] > limit:
+                raise WireError(f"frontier {frontier} of {stream[0]} is past what it can promise now "
+                                f"(t <= {limit} ns: the run's end plus its latency, or its clock)")
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""
@@ -676,10 +735,13 @@ class NodeLoop:
         if self.latency_ns:
             tag = (tau[0] + self.latency_ns, 0)
         else:
+            microstep = tau[1] + 1 if self.instant_ports else 0
+            if microstep > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
+                self._zeno(tau)
             # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
             # when the node runs late (the tag then passes the next tick's time)
             self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp + 1)
-            tag = (self.last_stamp, 0)
+            tag = (self.last_stamp, microstep)
         batch = []
         for port, value in events:
             seq = seqs.get(port, 0)
@@ -716,6 +778,13 @@ class NodeLoop:
             return
         self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
 
+    def _zeno(self, tau: tuple[int, int]) -> None:
+        """Stop the run: the instant of ``tau`` ran past max_microsteps. The tick's outputs are
+        not published and it has no record, as in-process (the run's end record says why)."""
+        with self.lock:
+            self.running = None
+        raise StopRun(str(CausalityError(self.cycle, tau, self.max_microsteps)), tau, zeno=True)
+
     def _finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         with self.lock:
             self.running = None
@@ -726,6 +795,7 @@ class NodeLoop:
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
+        self.recorded += 1
         if self.flush_due is None:
             self.flush_due = self.now() + FLUSH_AFTER_NS
         elif len(self.records) >= FLUSH_MAX:
@@ -855,17 +925,54 @@ class NodeLoop:
             self.sending = batch[0][0] if batch else None
         self._publish(batch)
 
-    def flush(self) -> None:
-        """Hand step records and published events to the reporter, for the coordinator."""
-        if self.records or self.published:
-            self.reporter.send(self.records, self.published)
-            self.records, self.published, self.published_bytes = [], [], 0
-        self.flush_due = None
+    def _coordinator_has(self, args: dict) -> None:
+        """Control ``have`` {streams: [[producer, port, last seq], …]}: forget those messages."""
+        streams = args.get("streams")
+        if type(streams) is not list:
+            self._garbage("ctl/run", WireError("a 'have' control message without a list of streams"))
+            return
+        for item in streams:
+            if (type(item) is list and len(item) == 3 and type(item[0]) is str and type(item[1]) is str
+                    and type(item[2]) is int and (item[0], item[1]) in self.frontiers):
+                stream = (item[0], item[1])
+                self.have[stream] = max(self.have.get(stream, -1), item[2])
+        if self.kept:
+            self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
+
+    def _unlogged(self, record: tuple) -> list[tuple[str, str, int]]:
+        """The events a step record consumed that the coordinator may not have."""
+        have, me = self.have, self.id  # its own events go in its own reports, before its records
+        return [eid for ids in record[1].values() for eid in ids if eid[0] != me and eid[2] > have.get(eid[:2], -1)]
+
+    def flush(self, final: bool = False) -> None:
+        """Hand step records and published events to the reporter, for the coordinator: records
+        that consumed an event it may lack wait (HOLD_RECORDS_NS), in order; past that, or when
+        ``final``, they go with the messages of those events."""
+        held = self.held_records
+        if self.records:
+            since = time.monotonic_ns()
+            held.extend((since, record) for record in self.records)
+            self.records = []
+        ready = 0
+        if held:
+            give_up = time.monotonic_ns() - HOLD_RECORDS_NS
+            while ready < len(held) and (final or held[ready][0] <= give_up or not self._unlogged(held[ready][1])):
+                ready += 1
+        records = [record for _, record in held[:ready]]
+        del held[:ready]
+        events = self.published
+        carried = {eid for record in records for eid in self._unlogged(record)}
+        if carried:
+            events = events + [self.kept[eid] for eid in sorted(carried) if eid in self.kept]
+        if records or events:
+            self.reporter.send(records, events)
+        self.published, self.published_bytes = [], 0
+        self.flush_due = self.now() + FLUSH_AFTER_NS if held else None
 
     def finish_reports(self) -> None:
         """Report what is left and return once every report is out (before a last status), and
         count how often and how long the loop waited for the reporter (it then ran late)."""
-        self.flush()
+        self.flush(final=True)
         self.reporter.close()
         if self.reporter.waits:
             self.counts["report_waits"] = self.reporter.waits

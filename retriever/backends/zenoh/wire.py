@@ -31,7 +31,8 @@ published, with their step records, in batches (``status/report``), off the path
 
 Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
 runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never
-make the receiving process import a module it has not imported already.
+decode only into classes the receiving process registered as value types (``@io``): nothing
+in a message is ever imported or called.
 """
 
 from __future__ import annotations
@@ -242,7 +243,7 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
         raise WireError(f"a data message must be bytes, got {type(data).__name__}")
     envelope, *buffers = _bins(data)
     try:
-        fields = unpackb_out_of_band(envelope, buffers, import_modules=False)
+        fields = unpackb_out_of_band(envelope, buffers)
     except CodecError as e:
         raise WireError(f"the value of a data message cannot be decoded: {e}") from None
     except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...

@@ -153,7 +153,8 @@ def build_loop(spec: dict, node_id: str, session):
         deadline = e.get("deadline")
         edges.append(InEdge(e["source"]["node"], e["source"]["port"], port, buf, seconds_to_ns(e.get("delay", 0.0)),
                             node.triggers_on(port),
-                            seconds_to_ns(default_deadline if deadline is None else deadline)))
+                            seconds_to_ns(default_deadline if deadline is None else deadline),
+                            seconds_to_ns(ir.node(e["source"]["node"])["config"].get("latency") or 0.0)))
     inputs, fallbacks = [], {}
     for port, port_spec in node.inputs.items():
         if port in buffers:
@@ -164,12 +165,37 @@ def build_loop(spec: dict, node_id: str, session):
             fallbacks[port] = port_spec
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
+    cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
-                    inline=not on_a_cycle(ir.edges, node_id))
+                    inline=not on_a_cycle(ir.edges, node_id),
+                    cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
+                    max_microsteps=meta.get("max_microsteps", 1000))
+
+
+def instant_ports(ir, node_id: str) -> frozenset[str]:
+    """The output ports of ``node_id`` whose events trigger a tick at their own tag: those of its
+    undelayed edges into a trigger port (the node has no latency: it is on an instantaneous cycle)."""
+    from ...clocks import clock_from_ir
+
+    clocks = {n["id"]: clock_from_ir(n["config"]["clock"]) for n in ir.nodes}
+    ports = set()
+    for e in ir.edges:
+        src, dst = e["source"], e["destination"]
+        clock = clocks[dst["node"]]
+        if (src["node"] == node_id and not e.get("delay") and clock.triggered
+                and (not clock.trigger_ports or dst["port"] in clock.trigger_ports)):
+            ports.add(src["port"])
+    return frozenset(ports)
+
+
+def run_sessions(nodes: int) -> int:
+    """How many Zenoh sessions a run of ``nodes`` nodes has: a worker's each, and the hub (they
+    share the run's shared memory, hub.shm_pool_bytes)."""
+    return nodes + 1
 
 
 def on_a_cycle(edges: list[dict], node_id: str) -> bool:
@@ -234,13 +260,16 @@ def _serve(argv: list[str]) -> int:
             sys.path.insert(0, path)
 
     from ...codec import packb, unpackb
+    from .access import RunAccess
     from .hub import open_peer, wait_for_answers, wait_for_peers
     from .loop import _CONTROL, StopRun
     from .wire import RELIABLE, KeySpace, WireEncoder
 
     keys = KeySpace(spec["namespace"])
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
-    with open_peer(spec["hub"]) as session:
+    access, dictionary = RunAccess.from_spec(spec["access"])
+    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])),
+                   access=access.session_config(dictionary)) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
@@ -261,6 +290,7 @@ def _serve(argv: list[str]) -> int:
             loop.inbox.put(stop_item)
 
         signal.signal(signal.SIGTERM, on_sigterm)
+        started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
             if join is not None:  # a restarted flow: listen now, take the old process's place when told
@@ -295,13 +325,16 @@ def _serve(argv: list[str]) -> int:
                     loop.undeclare()
                     return 0
                 t0, end = int(start["t0"]), int(start["end"])
+                # after T0 when the start came late (a loaded machine): after the end, no tick ran
+                started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
             loop.run(t0, end, resume=join is not None)
         except StopRun as exc:
             loop.release_held()
             loop.finish_reports()
             cause = exc.__cause__  # the exception a step raised: where in the flow's code
             status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
-                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None)
+                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
+                   zeno=exc.zeno)
             loop.undeclare()
             return EXIT_FAILED
         except BaseException as exc:
@@ -317,9 +350,9 @@ def _serve(argv: list[str]) -> int:
             tmp = handover_file.with_suffix(".tmp")
             tmp.write_bytes(state)
             tmp.replace(handover_file)
-            status("handed_over", counts=dict(loop.counts))
+            status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
             return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts))
+        status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
     return 0
 

@@ -18,6 +18,7 @@ from retriever.backends.zenoh.hub import (
     DEFAULT_PORT,
     SHM_POOL_MAX,
     SHM_POOL_MIN,
+    SHM_POOL_RUN_MAX,
     SHM_POOL_SHARE,
     open_hub,
     peer_config,
@@ -123,3 +124,17 @@ def test_the_shared_memory_pool_grows_with_what_dev_shm_has_free():
     assert shm_pool_bytes(12 << 30) == SHM_POOL_MAX
     optimization = json.loads(peer_config().get_json("transport/shared_memory/transport_optimization"))
     assert optimization["enabled"] and optimization["pool_size"] == shm_pool_bytes()
+
+
+def test_the_processes_of_a_run_share_one_shared_memory_budget():
+    """Every process of a run writes its whole pool: 50 flows at SHM_POOL_MAX each wrote 6.4 GB
+    while they started, and some never received the run's start. A run's pools together stay
+    within SHM_POOL_RUN_MAX (and the share of /dev/shm), each at least Zenoh's default."""
+    free = 24 << 30  # this machine's /dev/shm
+    assert shm_pool_bytes(free, sessions=3) == SHM_POOL_MAX, "a small run keeps the biggest pool"
+    for sessions in (11, 26, 51):
+        assert sessions * shm_pool_bytes(free, sessions=sessions) <= SHM_POOL_RUN_MAX
+    assert shm_pool_bytes(free, sessions=101) == SHM_POOL_MIN
+    assert shm_pool_bytes(SHM_POOL_SHARE * (480 << 20), sessions=10) == 48 << 20, "the /dev/shm share is split too"
+    optimization = json.loads(peer_config(sessions=51).get_json("transport/shared_memory/transport_optimization"))
+    assert optimization["pool_size"] == shm_pool_bytes(sessions=51)

@@ -138,7 +138,7 @@ def _ext_array(descr, shape, index):
     (_message([2, [0, 0], 0, [0, 0], "a", "b", msgpack.ExtType(99, b"")]), "cannot be decoded"),
     (_message([2, [0, 0], 0, [0, 0], "a", "b",
                msgpack.ExtType(4, msgpack.packb(["not_imported_module_xyz:Thing", {}]))]),
-     "refusing to decode .*not_imported_module_xyz"),
+     "'not_imported_module_xyz:Thing': no value type of that name is registered"),
     (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [2], 0)]), "buffer 0, which the message does not"),
     (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [2], 1)], b"\x00" * 16), "buffer 1"),
     (_message([2, [0, 0], 0, [0, 0], "a", "b", _ext_array("<f8", [3], 0)], b"\x00" * 16), "does not fit"),
@@ -154,7 +154,7 @@ def test_a_message_cannot_make_the_receiver_import_a_module():
     module = "json.tool"  # importable, but not imported by this test process
     sys.modules.pop(module, None)
     data = _message([2, [0, 0], 0, [0, 0], "a", "b", msgpack.ExtType(4, msgpack.packb([f"{module}:main", {}]))])
-    with pytest.raises(WireError, match="refusing"):
+    with pytest.raises(WireError, match="no value type of that name is registered in this process"):
         decode_data(data, ("a", "b"))
     assert module not in sys.modules
 

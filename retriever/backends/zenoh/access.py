@@ -1,0 +1,143 @@
+"""Who may join a run, and what they may do there: Zenoh's own authentication and access control.
+
+Every session of a run (the coordinator's hub and each worker) listens with Zenoh's user/password
+authentication (``transport/auth/usrpwd``): a link is opened only by a peer that proves it knows
+a password of the run's dictionary, so a process without the run's credentials gets no link to
+any of its sessions and none of its messages arrive. Two users per run:
+
+    retriever-run    the run's own processes: every message, both ways
+    retriever-watch  a watcher: may subscribe (and see liveliness), never write. Each session's
+                     access control (``access_control``) drops, on ingress from this user, every
+                     put, delete, query, reply, queryable and liveliness token
+
+Passwords are per run: random, or derived from a deployment secret (``secret=``, a file), so
+that processes started elsewhere with the same secret can join the same namespace. They reach the
+workers in the run's spec file, in the run's private directory (mode 0700); the dictionary file
+Zenoh reads is there too. A watcher gets a Zenoh config file of its own (JSON5, mode 0600) that
+holds the watcher's password only: ``zenoh.Config.from_file(path)`` joins the hub, in client
+mode, read-only.
+
+Zenoh authenticates the side that connects to the side that listens, not the other way round:
+the user name of a link is known on its listening end only. So the access control cannot
+``deny`` by default (the run's own links would be refused on their connecting end): it allows
+by default and denies the watcher's writes, and a process with no password never gets a link.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import os
+import secrets
+from dataclasses import dataclass
+from pathlib import Path
+
+RUN_USER = "retriever-run"
+WATCH_USER = "retriever-watch"
+
+#: what a watcher may not send: everything that writes, asks a queryable to run, or announces
+WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "liveliness_token", "liveliness_query"]
+
+#: the fewest bytes a deployment secret file must hold
+SECRET_MIN_BYTES = 16
+
+
+class AccessError(ValueError):
+    """A deployment secret that cannot be used."""
+
+
+def read_secret(path: str | os.PathLike) -> bytes:
+    """A deployment secret from its file, which only its owner may read."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+        data = path.read_bytes().strip()
+    except OSError as e:
+        raise AccessError(f"cannot read the secret file {path}: {e.strerror}") from None
+    if mode & 0o077:
+        raise AccessError(f"the secret file {path} can be read by other users (mode {mode & 0o777:o})\n"
+                          f"    hint: chmod 600 {path}")
+    if len(data) < SECRET_MIN_BYTES:
+        raise AccessError(f"the secret file {path} holds {len(data)} bytes; a secret needs at least "
+                          f"{SECRET_MIN_BYTES}\n    hint: python -c \"import secrets; print(secrets.token_hex(32))\" "
+                          f"> {path}; chmod 600 {path}")
+    return data
+
+
+@dataclass(frozen=True)
+class RunAccess:
+    """A run's credentials: the password of its own processes and the watchers' password."""
+
+    run_password: str
+    watch_password: str
+
+    @classmethod
+    def create(cls, namespace: str, secret: bytes | None = None) -> RunAccess:
+        """Fresh random passwords, or with ``secret`` the ones every holder of it derives for
+        ``namespace`` (a watcher's password tells nothing of the run's)."""
+        if secret is None:
+            return cls(secrets.token_hex(32), secrets.token_hex(32))
+
+        def derive(role: str) -> str:
+            return hmac.new(secret, f"retriever/{role}/{namespace}".encode(), hashlib.sha256).hexdigest()
+
+        return cls(derive("run"), derive("watch"))
+
+    # -----------------------------------------------------------------------------------------
+    # Files
+    # -----------------------------------------------------------------------------------------
+    def write_dictionary(self, directory: Path) -> Path:
+        """The user:password lines Zenoh checks a connecting peer against (mode 0600)."""
+        return write_private(directory / "zenoh-users.txt",
+                              f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n")
+
+    def write_watcher_config(self, path: Path, hub_endpoint: str) -> Path:
+        """A Zenoh config (JSON5, mode 0600) with which ``zenoh.Config.from_file`` joins the
+        hub as a read-only watcher."""
+        config = {
+            "mode": "client",
+            "connect": {"endpoints": [hub_endpoint]},
+            "scouting": {"multicast": {"enabled": False}},
+            "transport": {"auth": {"usrpwd": {"user": WATCH_USER, "password": self.watch_password}}},
+        }
+        text = ("// Watch a Retriever run, read-only: zenoh.Config.from_file(this file).\n"
+                "// It holds the run's watcher password: keep it private.\n" + json.dumps(config, indent=2) + "\n")
+        return write_private(path, text)
+
+    # -----------------------------------------------------------------------------------------
+    # Zenoh config of a run's own session
+    # -----------------------------------------------------------------------------------------
+    def session_config(self, dictionary_file: Path) -> dict[str, str]:
+        """The entries (key → JSON5 value) that make a session one of the run's: it proves the
+        run's password when it connects, checks every peer that connects to it, and drops what
+        a watcher sends."""
+        usrpwd = {"user": RUN_USER, "password": self.run_password, "dictionary_file": str(dictionary_file)}
+        acl = {
+            "enabled": True,
+            "default_permission": "allow",
+            "rules": [{"id": "watchers_read_only", "messages": WATCHER_MAY_NOT, "flows": ["ingress"],
+                       "permission": "deny", "key_exprs": ["**"]}],
+            "subjects": [{"id": "watchers", "usernames": [WATCH_USER]}],
+            "policies": [{"rules": ["watchers_read_only"], "subjects": ["watchers"]}],
+        }
+        return {"transport/auth/usrpwd": json.dumps(usrpwd), "access_control": json.dumps(acl)}
+
+    def to_spec(self, dictionary_file: Path) -> dict:
+        return {"run_password": self.run_password, "watch_password": self.watch_password,
+                "dictionary_file": str(dictionary_file)}
+
+    @classmethod
+    def from_spec(cls, spec: dict) -> tuple[RunAccess, Path]:
+        return cls(spec["run_password"], spec["watch_password"]), Path(spec["dictionary_file"])
+
+
+def write_private(path: Path, text: str) -> Path:
+    """Write ``text`` to a new file only its owner can read (created so, never widened)."""
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.fchmod(fd, 0o600)  # a leftover .tmp keeps its mode through O_CREAT
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(text)
+    os.replace(tmp, path)
+    return path

@@ -1,0 +1,233 @@
+"""Only a run's own processes write to its key space (issue 17 §2; access.py).
+
+A run is started as users start one (a script, its endpoint line on stderr). Beside it, an
+attacker connected to the run's endpoint sends everything that steered a run before: values a
+flow would consume (by the next seqs), ``ctl/run stop``, a forged ``failed`` status, a progress
+message whose frontier is 2^64−1, and forged reports with step records. As a stranger (no
+credentials, or a guessed password) it gets no link at all; as a watcher (the run's watcher
+config file) it reads the data stream, and its writes are dropped by Zenoh's access control. In
+every case the run makes all its ticks, exits 0, counts no garbage (nothing arrived), and its log
+replays identically. The watcher's config and the run's secrets are files only their owner reads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import stat
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+import retriever
+from retriever.backends.zenoh.access import RUN_USER
+from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+
+ROOT = Path(__file__).resolve().parents[3]
+BOUND_S = 60.0  # a bound on any wait, never a speed check
+RUN_S = 3.0
+
+RUN = r"""
+import json, sys
+from tests.backends.zenoh.lifecycle_flows import Sink, two_node_pipeline
+
+pipe = two_node_pipeline("guarded", source_hz=10, sink_hz=5, sink=Sink)
+pipe.run(duration=float(sys.argv[3]), backend="zenoh", namespace=sys.argv[1], hub_port=int(sys.argv[2]),
+         log=sys.argv[4], secret=sys.argv[5] if len(sys.argv) > 5 else None)
+print(json.dumps({"stats": {n: [s.ticks, s.steps, s.errors] for n, s in pipe.stats().items()},
+                  "counts": pipe.counts()}), flush=True)
+"""
+
+WATCH_LINE = re.compile(r"watch it read-only with zenoh\.Config\.from_file\('([^']+)'\)")
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    env.update(PYTHONPATH=str(ROOT), NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1")
+    return env
+
+
+class Run:
+    """The run's script as a process, and the lines of its stderr (read on a thread)."""
+
+    def __init__(self, tmp_path: Path, namespace: str, secret: Path | None = None):
+        self.port, self.log = free_port(), tmp_path / "run.mcap"
+        self.proc = subprocess.Popen([sys.executable, "-c", RUN, namespace, str(self.port), str(RUN_S), str(self.log),
+                                      *([str(secret)] if secret else [])],
+                                     cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stderr), daemon=True)
+        self.reader.start()
+
+    def watch_config(self) -> Path:
+        give_up = time.monotonic() + BOUND_S
+        while time.monotonic() < give_up:
+            for line in list(self.lines):
+                found = WATCH_LINE.search(line)
+                if found:
+                    return Path(found.group(1))
+            assert self.proc.poll() is None, "".join(self.lines)
+            time.sleep(0.02)
+        raise AssertionError("the run printed no watcher config:\n" + "".join(self.lines))
+
+    def result(self) -> dict:
+        out, _ = self.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
+        self.reader.join(5)
+        assert self.proc.returncode == 0, "".join(self.lines)
+        return json.loads(out.splitlines()[-1])
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture
+def namespace() -> str:
+    return f"access-{os.getpid()}-{time.monotonic_ns() % 10**9}"
+
+
+def _attack(session: zenoh.Session, keys: KeySpace, until: float) -> int:
+    """Everything that once steered a run, again and again until ``until``; how many puts."""
+    enc, sent, seq = WireEncoder(), 0, 0
+    while time.monotonic() < until:
+        for k in range(seq, seq + 5):  # the next seqs of counter.n: values total would consume
+            session.put(keys.data("counter", "n"), enc.data((k * 100_000_000, 1), k, (k * 100_000_000, 1),
+                                                            "counter", "n", {"n": -999}))
+        seq += 5
+        session.put(keys.run_control(), enc.control("stop", {}))
+        session.put(keys.node_status("total"), enc.status("total", "failed", {"error": "forged", "pid": 1}))
+        session.put(keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0}))
+        session.put(keys.report("counter"), enc.report("counter", [((7, 0), {}, (), "ok", None, 0, 0)], []))
+        sent += 9
+        time.sleep(0.05)
+    return sent
+
+
+def _assert_untouched(run: Run) -> None:
+    result = run.result()
+    assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
+    assert "garbage" not in result["counts"], result  # nothing the attacker sent reached the run
+    log = retriever.read_log(run.log)
+    assert log.end["status"] == "finished", log.end
+    assert {e.node for e in log.iter_events()} == {"counter", "total"}
+    report = retriever.log.replay(log)
+    assert report.identical, "\n".join(map(str, report.divergences))
+
+
+@pytest.mark.parametrize("credentials", [None, {"user": RUN_USER, "password": "guessed"}])
+def test_a_stranger_gets_no_link_and_cannot_steer_the_run(tmp_path, namespace, credentials):
+    run = Run(tmp_path, namespace)
+    try:
+        hub = endpoint(run.port)
+        run.watch_config()  # the hub is up
+        config = peer_config(connect=[hub])
+        if credentials is not None:
+            config.insert_json5("transport/auth/usrpwd", json.dumps(credentials))
+        with zenoh.open(config) as stranger:
+            sent = _attack(stranger, KeySpace(namespace), time.monotonic() + RUN_S)
+            assert sent > 0
+            assert list(stranger.info.peers_zid()) == [], "a stranger got a link to the run"
+        _assert_untouched(run)
+    finally:
+        run.kill()
+
+
+def test_a_watcher_reads_the_data_and_cannot_write(tmp_path, namespace):
+    run = Run(tmp_path, namespace)
+    try:
+        path = run.watch_config()
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+        for private in path.parent.iterdir():  # the spec (the run's password), the dictionary
+            assert stat.S_IMODE(private.stat().st_mode) & 0o077 == 0, private
+        keys = KeySpace(namespace)
+        seen: list[str] = []
+        with zenoh.open(zenoh.Config.from_file(str(path))) as watcher:
+            sub = watcher.declare_subscriber(keys.all_data(), lambda sample: seen.append(str(sample.key_expr)))
+            give_up = time.monotonic() + BOUND_S
+            while not seen and time.monotonic() < give_up:
+                time.sleep(0.02)
+            assert seen, "the watcher saw no data"
+            _attack(watcher, keys, time.monotonic() + RUN_S)
+            sub.undeclare()
+        assert set(seen) >= {keys.data("counter", "n"), keys.data("total", "n")}, sorted(set(seen))
+        _assert_untouched(run)
+    finally:
+        run.kill()
+
+
+def test_a_deployment_secret_must_be_private_and_long_enough(tmp_path):
+    from retriever import BackendError
+    from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+
+    secret = tmp_path / "secret"
+    secret.write_text("0123456789abcdef0123456789abcdef")
+    secret.chmod(0o644)
+    with pytest.raises(BackendError, match=r"can be read by other users \(mode 644\)\n    hint: chmod 600"):
+        two_node_pipeline("secret").run(duration=0.1, backend="zenoh", quiet=True, secret=secret)
+    secret.write_text("short")
+    secret.chmod(0o600)
+    with pytest.raises(BackendError, match=r"holds 5 bytes; a secret needs at least 16"):
+        two_node_pipeline("secret").run(duration=0.1, backend="zenoh", quiet=True, secret=secret)
+
+
+def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
+    """A process holding the run's credentials (a bug, or a compromised host) is still checked: a
+    frontier past any tag or past what its producer can promise, a seq from the future, a value
+    naming a callable (``os:system``), a status of a node that is not there: each refused and
+    counted as garbage, never applied: the consumer makes every tick with no late event."""
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.hub import open_peer
+    from tests.test_decoding_attacks import _data_message, forged
+
+    secret = tmp_path / "secret"
+    secret.write_text("a deployment secret of 32 bytes.")
+    secret.chmod(0o600)
+    marker = tmp_path / "pwned"
+    run = Run(tmp_path, namespace, secret)
+    try:
+        hub = endpoint(run.port)
+        run.watch_config()
+        access = RunAccess.create(namespace, read_secret(secret))
+        keys, enc = KeySpace(namespace), WireEncoder()
+        end = round(RUN_S * 1e9)
+        with open_peer(hub, access=access.session_config(access.write_dictionary(tmp_path))) as insider:
+            seen: list[str] = []
+            sub = insider.declare_subscriber(keys.all_data(), lambda sample: seen.append(str(sample.key_expr)))
+            give_up = time.monotonic() + BOUND_S
+            while not seen and time.monotonic() < give_up:
+                time.sleep(0.02)
+            assert seen, "the insider saw no data"
+            claims = [
+                (keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0})),
+                (keys.progress("counter"), enc.progress((end + 10**10, 0), "counter", {"n": 0})),
+                (keys.progress("counter"), enc.progress((1, 0), "counter", {"n": 10**6})),
+                (keys.data("counter", "n"), enc.data((end + 10**10, 1), 10**6, (end + 10**10, 1), "counter", "n",
+                                                    {"n": -999})),
+                (keys.data("counter", "n"), _data_message(forged("os:system", marker), "counter", "n")),
+                (keys.node_status("ghost"), enc.status("ghost", "failed", {"error": "forged", "pid": 1})),
+            ]
+            for key, message in claims:
+                insider.put(key, message)
+            sub.undeclare()
+        result = run.result()
+    finally:
+        run.kill()
+    assert not marker.exists(), "a decoded value ran code"
+    assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
+    assert result["counts"].get("garbage", 0) >= len(claims), result
+    assert "late" not in result["counts"], result
+    # applied, the frontier past every tag made all 15 of total's ticks incomplete (a loaded
+    # machine may make a few so on its own)
+    assert result["counts"].get("incomplete", 0) < 5, result
+    report = retriever.log.replay(retriever.read_log(run.log))
+    assert report.identical, "\n".join(map(str, report.divergences))
+
