@@ -142,14 +142,16 @@ class ZenohSession(Session):
             put = self._inbox.put
             self._subscribers = [
                 self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
-                self._hub.declare_queryable(self.keys.finished(), self._answer_finished)]
+                self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
+                self._hub.declare_queryable(self.keys.start(), self._answer_start)]
             ir = graph.to_ir().doc
             self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
             # untyped flows may emit on ports no edge names (a dict step's extra keys)
             self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph),
-                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary)}
+                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
+                          "startup_timeout": self.startup_timeout}
             self._write_spec()
             for nid in graph.nodes:
                 self._spawn(nid)
@@ -359,6 +361,14 @@ class ZenohSession(Session):
             self._retiring[node] = self._workers[node]
             self._spawn(node, join=(self.t0, self.end_ns))
             return
+        elif state == "ready" and info.get("linked") is False and self._failure is None:
+            # peers do not route for each other: a worker without a link to another would never
+            # get that one's events, nor it this one's
+            self._failure = (node, {"error": (
+                f"the worker of '{node}' has direct links to {info.get('peers')!r:.10} of the {len(self._state)} other "
+                f"processes of the run after {self.startup_timeout:g} s\n    hint: on a loaded machine, give it "
+                f"longer: pipe.run(..., startup_timeout=seconds)")})
+            return
         elif state == "ready" and node in self._retiring:
             if self._state[node] == "done":  # the run ended while it restarted: stopped at close
                 return
@@ -382,6 +392,13 @@ class ZenohSession(Session):
         """Which nodes are done (a restarted flow's process waits for answers from the others)."""
         done = sorted(node for node, state in list(self._state.items()) if state == "done")
         query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done}))
+
+    def _answer_start(self, query) -> None:
+        """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
+        have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
+        t0 = self.t0
+        if t0 is not None:
+            query.reply(self.keys.start(), WireEncoder().control("start", {"t0": t0, "end": self.end_ns}))
 
     def _control(self, op: str, args: dict) -> None:
         self._hub.put(self.keys.run_control(), self._encoder.control(op, args), congestion_control=RELIABLE)

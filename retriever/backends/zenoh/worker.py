@@ -68,6 +68,12 @@ def _die_with_parent() -> None:
 #: says ready anyway (one that never answers has finished, or is stuck)
 NEIGHBOR_TIMEOUT_S = 10.0
 
+#: A worker that said ``ready`` and has not seen ``start`` after this long asks the coordinator's
+#: ``ctl/start`` queryable for it, and again every as long: a ``start`` put can be missed (at 50
+#: flows on 2 cores, 14 workers that said ready never saw it; the cause in Zenoh is not known),
+#: and a worker that missed it would wait until the run gave up on it.
+START_ASK_S = 0.5
+
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
 #: to), then the process exits anyway: a flow stuck in its step never looks at the request
 ORPHAN_GRACE_S = 3.0
@@ -314,12 +320,13 @@ def _serve(argv: list[str]) -> int:
             else:
                 loop.declare()
                 # a direct link to every other worker and the hub, before anything is published
-                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0, stop=lambda: loop.stopping)
+                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=spec.get("startup_timeout", 60.0),
+                                        stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
-                status("ready", linked=linked, padding=bytes(READY_PADDING))
-                start = _await_control(loop, "start", node_id)
+                status("ready", linked=linked, peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
+                start = _await_control(loop, "start", node_id, ask=lambda: _ask_start(session, keys, loop))
                 if start is None:
                     status("done", counts=dict(loop.counts))
                     loop.undeclare()
@@ -375,16 +382,32 @@ def _finished_nodes(session, keys) -> set[str]:
     return done
 
 
-def _await_control(loop: NodeLoop, wanted: str, node_id: str) -> dict | None:
+def _ask_start(session, keys, loop: NodeLoop) -> None:
+    """Ask the coordinator for the run's start; its answer joins the loop's inbox as control."""
+    from .loop import _CONTROL
+
+    for reply in session.get(keys.start(), timeout=START_ASK_S):
+        if reply.ok is not None:
+            loop.inbox.put((_CONTROL, None, reply.ok.payload.to_bytes()))
+
+
+def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict | None:
     """Wait for the run's control to say ``wanted`` (to this node, if it names one): its
-    arguments; None on ``stop``. What else arrives meanwhile is put back in the loop's inbox."""
+    arguments; None on ``stop``. ``ask()``, if given, is called after every START_ASK_S without
+    it. What else arrives meanwhile is put back in the loop's inbox."""
+    import queue
+
     from .loop import _CONTROL
     from .wire import WireError, decode_control
 
     early = []
     try:
         while True:
-            item = loop.inbox.get()
+            try:
+                item = loop.inbox.get(timeout=START_ASK_S if ask is not None else None)
+            except queue.Empty:
+                ask()
+                continue
             if item[0] != _CONTROL:
                 early.append(item)
                 continue
