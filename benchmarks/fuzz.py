@@ -147,7 +147,8 @@ class Guard:
             path, mode, flags = args
             writes = (isinstance(mode, str) and any(c in mode for c in "wax+")) or (
                 mode is None and isinstance(flags, int) and flags & _WRITE_FLAGS)
-            if not writes or str(path) in self.may_write:
+            # an int is a descriptor os.open made: its own event named the path, checked then
+            if not writes or str(path) in self.may_write or type(path) is int:
                 return
         elif event not in _FORBIDDEN and not event.startswith(("os.exec", "os.spawn", "os.posix_spawn")):
             return
@@ -626,12 +627,8 @@ class CoordinatorTarget(Target):
     def _session(self) -> ZenohSession:
         s = ZenohSession.__new__(ZenohSession)
         Session.__init__(s, self.graph)
-        ir = self.graph.to_ir().doc
-        s.keys = KeySpace(NAMESPACE)
-        s._stats = {nid: NodeStats() for nid in self.graph.nodes}
-        s._event_ids, s._ticks, s._dir = set(), set(), self.spill
-        s._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
-        s._open_outputs = {nid for nid, node in self.graph.nodes.items() if node.spec.out_mode == "dict"}
+        s.keys, s._dir = KeySpace(NAMESPACE), self.spill
+        s._init_records(self.graph)  # what __init__ keeps of reports, without Zenoh or processes
         return s
 
     def seeds(self) -> list[bytes]:

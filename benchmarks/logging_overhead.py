@@ -85,7 +85,7 @@ class Workload:
         pipe.step(0.0)  # open the session outside the timed region (no tick has t < 0)
         gc.collect()
         t0 = time.perf_counter()
-        trace = pipe.run(duration=self.duration, log=log)
+        trace = pipe.run(duration=self.duration, log=log, overwrite=True)  # each repeat logs to the same path
         elapsed = time.perf_counter() - t0
         events, steps = len(trace.raw_events), len(trace.raw_steps)
         pipe.reset()
@@ -200,7 +200,7 @@ def profile(workloads: list[Workload], tmp: Path, top: int) -> None:
             w.pipe.reset()
             w.pipe.step(0.0)
             show(f"{w.name}, {w.duration:g} s virtual, logging {'on' if log else 'off'}",
-                 w.pipe.run, duration=w.duration, log=log)
+                 w.pipe.run, duration=w.duration, log=log, overwrite=True)
             w.pipe.reset()
     path = tmp / "quickstart.mcap"
     show("read_log + replay of the quickstart log", lambda: replay(read_log(path)))

@@ -141,3 +141,13 @@ class BackgroundRun:
         if "error" in self._result:
             raise self._result["error"]
         return self._result["trace"]
+
+
+# ---------------------------------------------------------------------------------------------
+# scale.py
+# ---------------------------------------------------------------------------------------------
+class Keep(Flow[Count, Count]):
+    """Passes on the newest count it was given (a consumer of a camera-like source)."""
+
+    def step(self, inp: Count) -> Count:
+        return Count(count=inp.count)

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
 from .errors import RetrieverError
-from .ir import IR
+from .ir import IR, SCRIPT_FOLDER_ATTR
 from .pipeline import Pipeline
 
 
@@ -26,7 +27,9 @@ def load_pipeline(target: str) -> Pipeline:
         raise LoadError(f"no such file: {path_text}\n    hint: give a Python file defining a Pipeline, e.g. "
                         "retriever run examples/quickstart.py")
     if path.suffix == ".json":
-        return Pipeline.from_ir(IR.load(path))
+        ir = IR.load(path)
+        _add_import_folders(ir, path)
+        return Pipeline.from_ir(ir)
     module = _import_file(path)
     if attr:
         obj = getattr(module, attr, None)
@@ -49,6 +52,19 @@ def _pipelines(module) -> list[str]:
     return sorted(name for name, value in vars(module).items() if isinstance(value, Pipeline))
 
 
+def _add_import_folders(ir: IR, path: Path) -> None:
+    """Put where the IR's flows can be imported from on ``sys.path``: first the folders it recorded
+    for the modules of script files (those that exist here), last the IR file's folder and the
+    working directory, so that an IR saved from a script runs beside that script too."""
+    recorded = [folder for folder in ir.doc["metadata"].get("module_folders", {}).values() if os.path.isdir(folder)]
+    for folder in reversed(recorded):
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
+    for folder in (str(path.resolve().parent), os.getcwd()):
+        if folder not in sys.path:
+            sys.path.append(folder)
+
+
 def _import_file(path: Path):
     """Import a file as a module named after it, with its folder on sys.path, so the IR's
     ``module:Class`` types stay importable for rebuilding and replay."""
@@ -63,6 +79,7 @@ def _import_file(path: Path):
     if spec is None or spec.loader is None:
         raise LoadError(f"cannot import {path} as a Python module")
     module = importlib.util.module_from_spec(spec)
+    setattr(module, SCRIPT_FOLDER_ATTR, folder)  # an IR of its flows records it (metadata.module_folders)
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)

@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .backends import default_backend
-from .errors import RetrieverError, RetrieverWarning
+from .errors import LogWriteError, RetrieverError, RetrieverWarning
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
@@ -57,6 +57,7 @@ warnings.showwarning = _show_warning
 
 
 def _interrupt(signum, frame) -> None:
+    _state["signal"] = signum
     raise KeyboardInterrupt
 
 
@@ -77,17 +78,28 @@ def run(
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh.")] = 10.0,
     log: Annotated[Optional[Path], typer.Option(help="Record the run in this MCAP event log.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
+    allow_errors: Annotated[bool, typer.Option(
+        "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted "
+                               "(on_error='skip_tick' or 'restart' absorbed them).")] = False,
 ) -> None:
-    """Run a pipeline and print per-node ticks, steps, skips and mean step time."""
+    """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
+    step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
     pipe = _load(target)
+    before = _identity(log)
     signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
     try:
-        trace = pipe.run(duration=duration, backend=backend, log=log)
+        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force)
     except KeyboardInterrupt:
-        _err.print("interrupted" + (f"; the run so far is in {log}" if log is not None else ""), highlight=False)
-        raise typer.Exit(code=130) from None
+        recorded = _identity(log) not in (None, before)
+        _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
+        # during a logged run the pipeline's own handler took the signal (it stops between ticks)
+        signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
+        raise typer.Exit(code=128 + signum) from None
     except Exception as exc:
-        if log is not None and log.exists():
+        # only a log this run wrote holds it (a refused run leaves the file as it was; a log that
+        # could not be written says so in its own error)
+        if _identity(log) not in (None, before) and not isinstance(exc, LogWriteError):
             _err.print(f"the run up to the error is in {log}", highlight=False)
         _fail(exc)
     table = Table(title=f"{pipe.name}: {duration:g} s on {backend or default_backend()}", title_justify="left")
@@ -109,6 +121,32 @@ def run(
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)
+    if not allow_errors:
+        _fail_on_errors(pipe)
+
+
+def _fail_on_errors(pipe) -> None:
+    """A run whose steps raised, or whose flows restarted, fails (exit 1) though it went on."""
+    stats = pipe.stats()
+    errors = {node: s.errors for node, s in sorted(stats.items()) if s.errors}
+    restarts = {node: s.counts["restarts"] for node, s in sorted(stats.items()) if s.counts.get("restarts")}
+    if not errors and not restarts:
+        return
+    parts = [f"{node}: {n} step error(s)" + (f", {restarts[node]} restart(s)" if node in restarts else "")
+             for node, n in errors.items()]
+    parts += [f"{node}: {n} restart(s)" for node, n in restarts.items() if node not in errors]
+    _fail(RetrieverError(f"the run went on, but had errors ({'; '.join(parts)})\n"
+                         "    hint: the error records say what raised (retriever log cat LOG --steps); pass "
+                         "--allow-errors when on_error='skip_tick' or 'restart' is meant to absorb them"))
+
+
+def _identity(path: Path | None) -> tuple[int, int, int, int] | None:
+    """What tells one file at ``path`` from another or from its earlier self (None: no file)."""
+    try:
+        st = path.stat() if path is not None else None
+    except OSError:
+        return None
+    return None if st is None else (st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size)
 
 
 _COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplete edge", "overrun": "ticks skipped after overruns",
@@ -306,12 +344,13 @@ def log_cat(
 def log_recover(
     path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log whose writer was killed or that was damaged.")],
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Default: LOG.recovered.mcap.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the output file if it exists.")] = False,
 ) -> None:
     """Rebuild a readable log from one whose writer was killed (everything before the damage)."""
     from .log import recover
 
     try:
-        result = recover(path, out)
+        result = recover(path, out, overwrite=force)
     except Exception as exc:
         _fail(exc)
     if result.output is None:

@@ -9,17 +9,18 @@ from __future__ import annotations
 from fractions import Fraction
 
 from .errors import ClockError
-from .time import NS_PER_S, exact_rational, is_finite_number, seconds_to_ns
+from .time import MAX_HZ, NS_PER_S, exact_rational, is_finite_number, rate_problem, seconds_problem, seconds_to_ns
 
 
 def _check_rate(owner: str, hz: object, offset: object) -> tuple[Fraction, int]:
-    if not is_finite_number(hz) or hz <= 0:
-        raise ClockError(
-            f"{owner}(hz={hz!r}): hz must be a finite number > 0, got {hz!r}\n"
-            "    hint: for an event-driven flow use Trigger(\"port\") instead of a rate"
-        )
-    if not is_finite_number(offset) or offset < 0:
-        raise ClockError(f"{owner}(offset={offset!r}): offset must be a finite number of seconds >= 0")
+    problem = rate_problem("hz", hz)
+    if problem is not None:
+        hint = ("time counts integer nanoseconds: use hz <= 1e9" if is_finite_number(hz) and hz > MAX_HZ
+                else "for an event-driven flow use Trigger(\"port\") instead of a rate")
+        raise ClockError(f"{owner}(hz={hz!r}): {problem}\n    hint: {hint}")
+    problem = seconds_problem("offset", offset)
+    if problem is not None:
+        raise ClockError(f"{owner}(offset={offset!r}): {problem}")
     return exact_rational(hz), seconds_to_ns(offset)
 
 

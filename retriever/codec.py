@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 import math
 import re
 import threading
@@ -94,17 +93,6 @@ class UnregisteredValue(NamedTuple):
 
     def __repr__(self) -> str:
         return f"<{self.path}>(" + ", ".join(f"{k}={v!r}" for k, v in self.fields.items()) + ")"
-
-
-def import_type(path: str) -> Any:
-    """Import ``module:QualName``. Raises ImportError/AttributeError with the path in the message."""
-    module_name, _, qualname = path.partition(":")
-    if not module_name or not qualname:
-        raise ImportError(f"{path!r} is not of the form 'module:QualName'")
-    obj: Any = importlib.import_module(module_name)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python

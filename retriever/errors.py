@@ -7,8 +7,10 @@
     ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
+    │   └── RestartLimitError      ... once more than max_restarts within restart_window (on_error="restart")
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
     ├── LogError                   an event log cannot be written, read or replayed as asked
+    │   └── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
@@ -86,6 +88,23 @@ class StepError(RetrieverError):
         )
 
 
+class RestartLimitError(StepError):
+    """A flow with ``on_error="restart"`` needed more restarts than its budget allows."""
+
+    def __init__(self, node: str, tag: tuple[int, int], cause: BaseException | str, max_restarts: int,
+                 window: float):
+        self.node, self.tag = node, tag
+        from .time import format_tag
+
+        what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
+        RetrieverError.__init__(
+            self,
+            f"flow '{node}' failed again after {max_restarts} restart(s) within {window:g} s "
+            f"(max_restarts={max_restarts}, restart_window={window:g}): {what} (tick at {format_tag(tag)})\n"
+            f"    hint: fix what makes '{node}' fail (each failure is an error record of the trace and the log), "
+            "or raise its budget: flow.configure(max_restarts=..., restart_window=...)")
+
+
 class CausalityError(RetrieverError):
     """An instant ran more than ``max_microsteps`` microsteps: an instantaneous (Zeno) loop."""
 
@@ -109,6 +128,11 @@ class LogError(RetrieverError):
     def __init__(self, message: str, hint: str | None = None):
         self.hint = hint
         super().__init__(message if hint is None else f"{message}\n    hint: {hint}")
+
+
+class LogWriteError(LogError):
+    """The OS refused a write to a run's log (its disk is full, it is a device that takes no data,
+    an I/O error): the run was stopped, and the file is not a record of it."""
 
 
 class InternalError(RetrieverError):

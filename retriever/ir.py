@@ -11,6 +11,7 @@ import base64
 import binascii
 import json
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,20 +20,25 @@ import numpy as np
 from .clocks import clock_from_ir
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
+from .time import max_microsteps_problem, seconds_problem
 from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
 from .sync import policy_from_ir
 
 if TYPE_CHECKING:
     from .graph import Graph
 
-#: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`)
-IR_VERSION = "1.1.0"
+#: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
+#: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from
+IR_VERSION = "1.2.0"
+#: set on a module that Retriever imported from a script file (``retriever run FILE.py``): the
+#: folder it put on ``sys.path`` for it, which the IR records so that it can import the module again
+SCRIPT_FOLDER_ATTR = "__retriever_folder__"
 #: the paper's three real-time modes: how a run escalates missed deadlines and overruns
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
-#: durations in an IR are below this many seconds: their nanoseconds fit in a signed 64-bit int
-MAX_SECONDS = (2**63 - 1) // 10**9
+#: microsteps one instant may run before the run stops with a Zeno-loop error
+DEFAULT_MAX_MICROSTEPS = 1000
 
 
 def param_to_ir(value: Any) -> Any:
@@ -89,6 +95,9 @@ def graph_to_doc(graph: "Graph") -> dict:
                 "on_error": s.on_error,
                 "on_overrun": s.on_overrun,
                 "on_deadline_miss": s.on_deadline_miss,
+                # the restart budget, where it applies
+                **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
+                   if s.on_error == "restart" else {}),
             },
             "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
             "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
@@ -110,17 +119,21 @@ def graph_to_doc(graph: "Graph") -> dict:
         }
         for e in graph.edges
     ]
+    metadata = {
+        "name": graph.name,
+        "validated": True,
+        "optimized": False,
+        "max_microsteps": graph.max_microsteps,
+        "realtime": graph.realtime,
+        "deadline": graph.deadline,
+        "warnings": list(graph.warnings),
+    }
+    folders = _script_folders(type(node.flow).__module__ for node in graph.nodes.values())
+    if folders:
+        metadata["module_folders"] = folders
     return {
         "version": IR_VERSION,
-        "metadata": {
-            "name": graph.name,
-            "validated": True,
-            "optimized": False,
-            "max_microsteps": graph.max_microsteps,
-            "realtime": graph.realtime,
-            "deadline": graph.deadline,
-            "warnings": list(graph.warnings),
-        },
+        "metadata": metadata,
         "nodes": nodes,
         "edges": edges,
         "topology": {
@@ -131,6 +144,17 @@ def graph_to_doc(graph: "Graph") -> dict:
             "instantaneous_cycles": graph.instantaneous_cycles,
         },
     }
+
+
+def _script_folders(modules) -> dict[str, str]:
+    """``{module: folder}`` for the modules Retriever imported from script files: a module that the
+    import path does not hold by itself (``retriever run q.json`` adds the folder back)."""
+    folders = {}
+    for name in modules:
+        folder = getattr(sys.modules.get(name), SCRIPT_FOLDER_ATTR, None)
+        if isinstance(folder, str):
+            folders[name] = folder
+    return dict(sorted(folders.items()))
 
 
 class IR:
@@ -277,10 +301,23 @@ def _dumpable(value: Any) -> bool:
         return False
 
 
-def _seconds(value: Any) -> bool:
-    """A duration as an IR holds it: a finite number of seconds >= 0 whose ns fit in 64 bits
-    (``is_finite_number`` overflows on a huge int, and NaN compares false with everything)."""
-    return type(value) in (int, float) and 0 <= value <= MAX_SECONDS
+def is_type_path(value: object) -> bool:
+    """Whether ``value`` has the form of an IR node ``type``, ``module:QualName``, both parts dotted
+    identifiers: checked before anything is imported (an IR is code: loading it imports these)."""
+    if not isinstance(value, str):
+        return False
+    module, colon, qualname = value.partition(":")
+    return bool(colon) and _is_dotted(module) and _is_dotted(qualname)
+
+
+def _is_dotted(name: object) -> bool:
+    return isinstance(name, str) and all(part.isidentifier() for part in name.split("."))
+
+
+def _check_seconds(problems: list[str], where: str, name: str, value: Any) -> None:
+    problem = seconds_problem(name, value)
+    if problem is not None:
+        problems.append(f"{where}: {problem}")
 
 
 def validate_doc(doc: Any, source: str) -> None:
@@ -306,12 +343,14 @@ def validate_doc(doc: Any, source: str) -> None:
         problems.append("metadata.name: expected the pipeline name (a non-empty string)")
     if meta.get("realtime", "soft") not in REALTIME_MODES:
         problems.append(f"metadata.realtime: expected one of {', '.join(REALTIME_MODES)}, got {meta.get('realtime')!r}")
-    deadline = meta.get("deadline", DEFAULT_DEADLINE)
-    if not _seconds(deadline):
-        problems.append(f"metadata.deadline: expected seconds >= 0, got {deadline!r:.40}")
-    microsteps = meta.get("max_microsteps", 1000)
-    if type(microsteps) is not int or microsteps < 1:
-        problems.append(f"metadata.max_microsteps: expected an integer >= 1, got {microsteps!r:.40}")
+    _check_seconds(problems, "metadata.deadline", "deadline", meta.get("deadline", DEFAULT_DEADLINE))
+    folders = meta.get("module_folders", {})
+    if not (isinstance(folders, dict) and all(_is_dotted(module) and isinstance(folder, str)
+                                              for module, folder in folders.items())):
+        problems.append(f"metadata.module_folders: expected an object of module name: folder, got {folders!r}")
+    problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))
+    if problem is not None:
+        problems.append(f"metadata.max_microsteps: {problem}")
     ids: dict[str, dict] = {}
     for i, n in enumerate(doc["nodes"]):
         where = f"nodes[{i}]"
@@ -325,8 +364,9 @@ def validate_doc(doc: Any, source: str) -> None:
         if nid in ids:
             problems.append(f"{where}: duplicate node id")
         ids[nid] = n
-        if not isinstance(n.get("type"), str) or ":" not in n.get("type", ""):
-            problems.append(f"{where}.type: expected 'module:Class', got {n.get('type')!r}")
+        if not is_type_path(n.get("type")) and (n.get("rebuildable", True) or not isinstance(n.get("type"), str)):
+            problems.append(f"{where}.type: expected 'module:Class' (dotted identifiers, e.g. "
+                            f"'my_robot.flows:Camera'), got {n.get('type')!r}")
         _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
         for key in ("inputs", "outputs"):
             _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")
@@ -336,13 +376,17 @@ def validate_doc(doc: Any, source: str) -> None:
                 clock_from_ir(config.get("clock"))
             except (ValueError, TypeError, OverflowError) as e:
                 problems.append(f"{where}.config.clock: {e}".split("\n")[0])
-            latency = config.get("latency", 0)
-            if not _seconds(latency):
-                problems.append(f"{where}.config.latency: expected seconds >= 0, got {latency!r:.40}")
+            _check_seconds(problems, f"{where}.config.latency", "latency", config.get("latency", 0))
             for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
                                  ("on_deadline_miss", ON_DEADLINE_MISS)):
                 if key in config and config[key] not in allowed:
                     problems.append(f"{where}.config.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
+            restarts = config.get("max_restarts", 0)
+            if type(restarts) is not int or restarts < 0:
+                problems.append(f"{where}.config.max_restarts: expected an integer >= 0, got {restarts!r}")
+            window = config.get("restart_window", 1.0)
+            if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
+                problems.append(f"{where}.config.restart_window: expected seconds > 0, got {window!r}")
     for i, e in enumerate(doc["edges"]):
         where = f"edges[{i}]"
         if not _expect(problems, where, e, dict, "an object"):
@@ -361,14 +405,11 @@ def validate_doc(doc: Any, source: str) -> None:
             policy_from_ir(e.get("adapter"))
         except (ValueError, TypeError, OverflowError) as err:
             problems.append(f"{where}.adapter: {err}")
-        delay = e.get("delay", 0)
-        if not _seconds(delay):
-            problems.append(f"{where}.delay: expected seconds >= 0, got {delay!r:.40}")
+        _check_seconds(problems, f"{where}.delay", "delay", e.get("delay", 0))
         qsize = e.get("qsize", 10)
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
-        deadline = e.get("deadline")
-        if deadline is not None and not _seconds(deadline):
-            problems.append(f"{where}.deadline: expected seconds >= 0 or null, got {deadline!r}")
+        if e.get("deadline") is not None:
+            _check_seconds(problems, f"{where}.deadline", "deadline", e["deadline"])
     if problems:
         raise IRError(source, problems)

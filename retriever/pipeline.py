@@ -10,27 +10,31 @@
 
 from __future__ import annotations
 
+import importlib.util
 import inspect
 import signal
 import sys
 import threading
 import warnings
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
 from .clocks import clock_from_ir
-from .codec import import_type
-from .errors import BackendError, IRError, RetrieverWarning
+from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
-from .ir import DEFAULT_DEADLINE, IR, REALTIME_MODES, param_from_ir
+from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES, param_from_ir
 from .sync import Latest, SyncPolicy, policy_from_ir
-from .time import NS_PER_S, is_finite_number, seconds_to_ns
+from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import Trace
+
+if TYPE_CHECKING:
+    from .log.writer import LogFile
 
 
 @dataclass
@@ -50,8 +54,8 @@ class DeclaredEdge:
 class Pipeline:
     """A graph of flows. Use as a context manager so ``a.then(b)`` knows where to add the edge."""
 
-    def __init__(self, name: str = "pipeline", *, max_microsteps: int = 1000, realtime: str = "soft",
-                 deadline: float = DEFAULT_DEADLINE):
+    def __init__(self, name: str = "pipeline", *, max_microsteps: int = DEFAULT_MAX_MICROSTEPS,
+                 realtime: str = "soft", deadline: float = DEFAULT_DEADLINE):
         """``realtime`` and ``deadline`` matter on real-time backends (DESIGN.md §5): ``deadline``
         is how long a tick waits for an input edge that is not complete up to its tag (edges may
         override it), ``realtime`` how misses escalate: ``"hard"`` stops the run at the first
@@ -59,12 +63,14 @@ class Pipeline:
         ``on_deadline_miss``; ``"best_effort"`` counts and logs misses and never stops."""
         if not isinstance(name, str) or not name:
             raise ValueError(f"a pipeline name must be a non-empty string, got {name!r}")
-        if not isinstance(max_microsteps, int) or max_microsteps < 1:
-            raise ValueError(f"max_microsteps must be an integer >= 1, got {max_microsteps!r}")
+        problem = max_microsteps_problem(max_microsteps)
+        if problem is not None:
+            raise ValueError(f"Pipeline(max_microsteps={max_microsteps!r}): {problem}")
         if realtime not in REALTIME_MODES:
             raise ValueError(f"Pipeline(realtime={realtime!r}): expected one of {', '.join(map(repr, REALTIME_MODES))}")
-        if not is_finite_number(deadline) or deadline < 0:
-            raise ValueError(f"Pipeline(deadline={deadline!r}): deadline must be a finite number of seconds >= 0")
+        problem = seconds_problem("deadline", deadline)
+        if problem is not None:
+            raise ValueError(f"Pipeline(deadline={deadline!r}): {problem}")
         self.name = name
         self.max_microsteps = max_microsteps
         self.realtime = realtime
@@ -86,9 +92,18 @@ class Pipeline:
         """Add a flow (flows join automatically when created inside ``with`` or wired)."""
         if not isinstance(flow, Flow):
             raise TypeError(f"Pipeline.add expects a Flow, got {type(flow).__qualname__}")
+        settings = flow._retriever
+        owner = settings.pipeline() if settings.pipeline is not None else None
+        if owner is not None and owner is not self:
+            raise GraphError(self.name, [Problem(
+                f"{flow!r} belongs to pipeline '{owner.name}', where it was created or first wired, so it cannot "
+                f"join pipeline '{self.name}'",
+                f"a flow belongs to one pipeline: make a new instance for '{self.name}', e.g. "
+                f"{type(flow).__qualname__}(...) @ Rate(hz=...)")])
         if name is not None:
             flow.configure(name=name)
-        if not any(f is flow for f in self._flows):
+        if owner is None:
+            settings.pipeline = weakref.ref(self)
             self._flows.append(flow)
             self._changed()
         return flow
@@ -112,12 +127,16 @@ class Pipeline:
         if map is not None and (not isinstance(map, dict) or not all(
                 isinstance(k, str) and isinstance(v, str) for k, v in map.items())):
             raise TypeError(f"connect(): map must be a dict {{output_port: input_port}} of str, got {map!r}")
-        if not is_finite_number(delay) or delay < 0:
-            raise ValueError(f"connect(): delay must be a finite number of seconds >= 0, got {delay!r}")
+        edge = f"edge {type(src).__qualname__} → {type(dst).__qualname__}"
+        problem = seconds_problem("delay", delay)
+        if problem is not None:
+            raise ValueError(f"connect(): {edge}: {problem}\n    hint: delay is the seconds an event takes along "
+                             "the edge")
         if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
             raise ValueError(f"connect(): qsize must be an integer >= 1, got {qsize!r}")
-        if deadline is not None and (not is_finite_number(deadline) or deadline < 0):
-            raise ValueError(f"connect(): deadline must be a finite number of seconds >= 0 or None, got {deadline!r}")
+        problem = None if deadline is None else seconds_problem("deadline", deadline)
+        if problem is not None:
+            raise ValueError(f"connect(): {edge}: {problem} (or None: the pipeline's)")
         self.add(src)
         self.add(dst)
         frame = sys._getframe(_stacklevel - 1)
@@ -155,13 +174,17 @@ class Pipeline:
     def from_ir(cls, ir: IR) -> "Pipeline":
         """Rebuild a runnable pipeline from an IR alone: import each ``type``, call it with ``params``."""
         meta = ir.doc["metadata"]
-        pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", 1000), realtime=meta.get("realtime", "soft"),
-                   deadline=meta.get("deadline", DEFAULT_DEADLINE))
+        pipe = cls(ir.name, max_microsteps=meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS),
+                   realtime=meta.get("realtime", "soft"), deadline=meta.get("deadline", DEFAULT_DEADLINE))
         flows: dict[str, Flow] = {}
-        problems = []
-        with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
-            for node in ir.nodes:
-                _rebuild_node(node, flows, problems)
+        problems: list[str] = []
+        # everything that can be checked without importing, for every node, before importing any
+        folders = meta.get("module_folders", {})
+        params = {node["id"]: _node_params(node, problems, folders) for node in ir.nodes}
+        if not problems:
+            with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
+                for node in ir.nodes:
+                    _construct_node(node, params[node["id"]], flows, problems)
         if problems:
             raise IRError(f"IR '{ir.name}'", problems)
         for e in ir.edges:
@@ -191,25 +214,33 @@ class Pipeline:
         return self._session
 
     def run(self, duration: float | None = None, backend: str | None = None, log: str | Path | None = None,
-            **options: Any) -> Trace:
+            overwrite: bool = False, **options: Any) -> Trace:
         """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace.
 
         ``log="run.mcap"`` records the run, from T0, in an MCAP event log that is complete when
-        ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it.
+        ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it. An existing
+        file is refused unless ``overwrite=True``; a path that cannot be written is refused
+        before the run starts, and a write that fails during the run stops it (``LogWriteError``).
         """
         if duration is not None:
-            _check_seconds("run", "duration", duration)
+            _check_seconds("run", "duration", duration, self._now_ns())
+        log_file = None if log is None else _create_log_file(log, overwrite)  # before any worker starts
         fresh = self._session is None
-        session = self._session_for(backend, options)
         try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
-            if duration is None and type(session).run_to_end is Session.run_to_end:
-                session.run_to_end()  # raises: this backend needs a duration
-            if log is not None:
-                _open_log(session, log)
+            session = self._session_for(backend, options)
+            try:
+                if duration is None and type(session).run_to_end is Session.run_to_end:
+                    session.run_to_end()  # raises: this backend needs a duration
+                if log_file is not None:
+                    _open_log(session, log_file)
+            except BaseException:
+                if fresh:
+                    self._session = None
+                    session.close()
+                raise
         except BaseException:
-            if fresh:
-                self._session = None
-                session.close()
+            if log_file is not None:
+                log_file.discard()
             raise
         try:
             with _stop_between_ticks(session):
@@ -225,7 +256,7 @@ class Pipeline:
 
     def step(self, dt: float, **options: Any) -> Trace:
         """Advance virtual time by ``dt`` seconds (in-process backend) and return the trace so far."""
-        _check_seconds("step", "dt", dt)
+        _check_seconds("step", "dt", dt, self._now_ns())
         session = self._session_for("inproc" if self._session is None else None, options)
         if not session.steppable:
             raise BackendError(f"pipe.step() needs the in-process backend; this pipeline runs on '{session.backend_name}'")
@@ -248,7 +279,10 @@ class Pipeline:
     @property
     def now(self) -> float:
         """Current virtual time in seconds since T0."""
-        return 0.0 if self._session is None else self._session.now_ns / NS_PER_S
+        return self._now_ns() / NS_PER_S
+
+    def _now_ns(self) -> int:
+        return 0 if self._session is None else self._session.now_ns
 
     def stats(self) -> dict[str, Any]:
         """Per-node counters of the current run: ticks, steps, skips, errors, mean step time, and
@@ -291,6 +325,7 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
         if session.stop_requested:
             raise KeyboardInterrupt
         session.stop_requested = True
+        session.stop_signal = signum
 
     def terminate(signum, frame) -> None:
         raise SystemExit(128 + signum)  # what a shell reports for a process SIGTERM ended
@@ -309,12 +344,18 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
             signal.signal(sig, handler)
 
 
-def _open_log(session: Session, path: str | Path) -> None:
+def _create_log_file(path: str | Path, overwrite: bool) -> LogFile:
+    from .log.writer import LogFile
+
+    return LogFile(path, overwrite=overwrite)
+
+
+def _open_log(session: Session, file: LogFile) -> None:
     from .log.writer import LogWriter
 
     if session.now_ns != 0 or session.trace.raw_steps:
         raise BackendError("log= records a run from T0: give it on the first run after construction or pipe.reset()")
-    session.log = LogWriter(path, session.graph, backend=session.backend_name, seeds=session.seeds())
+    session.log = LogWriter(file, session.graph, backend=session.backend_name, seeds=session.seeds())
 
 
 def _close_log(session: Session, exc: BaseException | None = None) -> None:
@@ -335,9 +376,14 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
 
 
-def _check_seconds(method: str, name: str, value: Any) -> None:
-    if not is_finite_number(value) or value < 0:
-        raise ValueError(f"pipe.{method}({name}={value!r}): {name} must be a finite number of seconds >= 0")
+def _check_seconds(method: str, name: str, value: Any, now_ns: int) -> None:
+    problem = seconds_problem(name, value)
+    if problem is None and now_ns + seconds_to_ns(value) > MAX_TIME_NS:
+        problem = (f"the run is at {now_ns / NS_PER_S:g} s, and {name} would take it past {MAX_SECONDS:.4g} s "
+                   "(about 292 years: times are int64 nanoseconds)")
+    if problem is not None:
+        raise ValueError(f"pipe.{method}({name}={value!r}): {problem}\n    hint: run for a number of seconds "
+                         "that ends within 292 years of T0, e.g. duration=10")
 
 
 def _construct(cls: type, params: dict) -> Flow:
@@ -370,25 +416,56 @@ def _construct(cls: type, params: dict) -> Flow:
 
 
 def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> None:
+    """Rebuild one node of a validated IR into ``flows`` (or say why not in ``problems``)."""
+    params = _node_params(node, problems)
+    if params is not None:
+        _construct_node(node, params, flows, problems)
+
+
+def _node_params(node: dict, problems: list[str], folders: dict[str, str] | None = None) -> dict | None:
+    """What can be checked of a node before importing its module: that it is rebuildable, that its
+    params decode (which imports nothing) and that its module can be found (without running it)."""
     nid = node["id"]
     if not node.get("rebuildable", True):
         problems.append(f"node '{nid}' cannot be rebuilt from the IR: {node.get('rebuild_problem')}")
-        return
-    try:
-        flow_cls = import_type(node["type"])
-    except (ImportError, AttributeError) as e:
-        problems.append(f"node '{nid}': cannot import {node['type']} ({e})")
-        return
-    if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
-        problems.append(f"node '{nid}': {node['type']} is not a Flow class")
-        return
+        return None
     params = {}
     for name, value in node["params"].items():
         try:
             params[name] = param_from_ir(value)
         except ValueError as e:
             problems.append(f"node '{nid}': params.{name} is {e}")
-    if len(params) < len(node["params"]):
+    module = node["type"].partition(":")[0]
+    top = module.partition(".")[0]
+    if top not in sys.modules and importlib.util.find_spec(top) is None:
+        folder = (folders or {}).get(module)
+        where = (f"the IR was built with it from {folder}: run there, or PYTHONPATH={folder}"
+                 if folder and folder not in sys.path else
+                 f"run from the folder that holds {top}.py (or the {top} package), or add that folder to PYTHONPATH")
+        problems.append(f"node '{nid}': cannot import {node['type']} (No module named '{top}')\n    hint: {where}")
+        return None
+    return params if len(params) == len(node["params"]) else None
+
+
+def _import_type(path: str) -> Any:
+    """Import ``module:QualName`` (an IR node's checked ``type``): an IR file is code."""
+    module_name, _, qualname = path.partition(":")
+    obj: Any = importlib.import_module(module_name)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _construct_node(node: dict, params: dict, flows: dict[str, Flow], problems: list[str]) -> None:
+    """Import the node's class, refuse anything but a Flow subclass, call it with ``params``."""
+    nid = node["id"]
+    try:
+        flow_cls = _import_type(node["type"])
+    except (ImportError, AttributeError) as e:
+        problems.append(f"node '{nid}': cannot import {node['type']} ({e})")
+        return
+    if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
+        problems.append(f"node '{nid}': {node['type']} is not a Flow class")
         return
     try:
         flow = _construct(flow_cls, params)
@@ -397,5 +474,6 @@ def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> No
         return
     config = node["config"]
     flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
-                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"))
+                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"),
+                   max_restarts=config.get("max_restarts"), restart_window=config.get("restart_window"))
     flows[nid] = flow @ clock_from_ir(config["clock"])

@@ -20,7 +20,7 @@ from bisect import insort
 from fractions import Fraction
 from typing import Any
 
-from .time import NS_PER_S, exact_rational, is_finite_number, seconds_to_ns
+from .time import MAX_SECONDS, NS_PER_S, exact_rational, is_finite_number, rate_problem, seconds_problem, seconds_to_ns
 
 
 class _Missing:
@@ -160,8 +160,9 @@ class SyncPolicy:
 def _nonneg_seconds(owner: str, name: str, value: object, allow_none: bool = True) -> int | None:
     if value is None and allow_none:
         return None
-    if not is_finite_number(value) or value < 0:
-        raise ValueError(f"{owner}({name}={value!r}): {name} must be a finite number of seconds >= 0")
+    problem = seconds_problem(name, value)
+    if problem is not None:
+        raise ValueError(f"{owner}({name}={value!r}): {problem}")
     return seconds_to_ns(value)
 
 
@@ -339,8 +340,9 @@ class ActionChunking(SyncPolicy):
 
     def __init__(self, control_hz: float | None = None, chunk_steps: int | None = None,
                  on_exhausted: str = "hold", horizon_ms: float | None = None):
-        if control_hz is not None and (not is_finite_number(control_hz) or control_hz <= 0):
-            raise ValueError(f"ActionChunking(control_hz={control_hz!r}): control_hz must be a finite number > 0")
+        problem = None if control_hz is None else rate_problem("control_hz", control_hz)
+        if problem is not None:
+            raise ValueError(f"ActionChunking(control_hz={control_hz!r}): {problem}")
         _positive_int("ActionChunking", "chunk_steps", chunk_steps)
         if on_exhausted not in ("hold", "missing"):
             raise ValueError(
@@ -348,6 +350,9 @@ class ActionChunking(SyncPolicy):
             )
         if horizon_ms is not None and (not is_finite_number(horizon_ms) or horizon_ms <= 0):
             raise ValueError(f"ActionChunking(horizon_ms={horizon_ms!r}): horizon_ms must be a finite number > 0")
+        if horizon_ms is not None and horizon_ms > MAX_SECONDS * 1e3:
+            raise ValueError(f"ActionChunking(horizon_ms={horizon_ms!r}): horizon_ms must be at most "
+                             f"{MAX_SECONDS * 1e3:.4g} (about 292 years: times are int64 nanoseconds)")
         self.control_hz = control_hz
         self.chunk_steps = chunk_steps
         self.on_exhausted = on_exhausted

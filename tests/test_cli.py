@@ -23,8 +23,8 @@ RETRIEVER = Path(sys.executable).parent / "retriever"
 def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
     env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8")
-    if pythonpath is not None:
-        env["PYTHONPATH"] = str(pythonpath)
+    # this checkout's retriever, not whichever one the venv's editable install points at
+    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (pythonpath, ROOT) if p is not None)
     return subprocess.run([str(RETRIEVER), *args], capture_output=True, text=True, cwd=cwd or ROOT, env=env,
                           timeout=120)
 
@@ -124,6 +124,60 @@ def test_run_an_ir_file(tmp_path: Path):
     assert f"trace digest {expected}" in result.stdout
 
 
+SCRIPT_FLOWS = FLOWS + '''
+
+with Pipeline("scripted") as pipe:
+    (Source() @ Rate(hz=10)).then(Sink() @ Trigger())
+'''
+
+
+def test_run_an_ir_saved_from_a_script_from_anywhere(tmp_path: Path):
+    """The IR records the folder of a script's flows (metadata.module_folders): "No module named
+    'quickstart'" was the answer even inside the script's folder."""
+    (tmp_path / "project").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    script = write(tmp_path / "project" / "scripted.py", SCRIPT_FLOWS)
+    saved = tmp_path / "elsewhere" / "scripted.ir.json"
+    built = cli("ir", str(script), "--out", str(saved), pythonpath=ROOT)
+    assert built.returncode == 0, built.stderr
+    assert json.loads(saved.read_text())["metadata"]["module_folders"] == {"scripted": str(tmp_path / "project")}
+    for cwd in (tmp_path, tmp_path / "elsewhere", tmp_path / "project"):
+        result = cli("run", str(saved), "--duration", "1", cwd=cwd, pythonpath=ROOT)
+        assert result.returncode == 0, result.stderr
+        assert "│ source " in result.stdout and "│ sink " in result.stdout
+
+
+def test_run_an_ir_beside_its_script_or_from_its_folder(tmp_path: Path):
+    """Without the recorded folder (an IR of 1.1.0, or one moved to another machine), the IR file's
+    folder and the working directory are on the import path."""
+    script = write(tmp_path / "scripted.py", SCRIPT_FLOWS)
+    built = cli("ir", str(script), "--out", str(tmp_path / "beside.ir.json"), pythonpath=ROOT)
+    assert built.returncode == 0, built.stderr
+    doc = json.loads((tmp_path / "beside.ir.json").read_text())
+    del doc["metadata"]["module_folders"]
+    write(tmp_path / "beside.ir.json", json.dumps(doc))
+    (tmp_path / "sub").mkdir()
+    write(tmp_path / "sub" / "below.ir.json", json.dumps(doc))
+    failed = cli("run", "below.ir.json", "--duration", "1", cwd=tmp_path / "sub", pythonpath=ROOT)
+    assert failed.returncode == 1 and "No module named 'scripted'" in failed.stderr, failed.stderr
+    for cwd, target in ((tmp_path / "sub", "../beside.ir.json"), (tmp_path, "sub/below.ir.json")):
+        result = cli("run", target, "--duration", "1", cwd=cwd, pythonpath=ROOT)
+        assert result.returncode == 0, result.stderr
+
+
+def test_run_an_ir_whose_flows_cannot_be_found_names_the_folder(tmp_path: Path):
+    script = write(tmp_path / "scripted.py", SCRIPT_FLOWS)
+    saved = tmp_path / "elsewhere.ir.json"
+    assert cli("ir", str(script), "--out", str(saved), pythonpath=ROOT).returncode == 0
+    doc = json.loads(saved.read_text())
+    doc["metadata"]["module_folders"] = {"scripted": "/gone/project"}
+    (tmp_path / "other").mkdir()
+    write(tmp_path / "other" / "moved.ir.json", json.dumps(doc))
+    result = cli("run", "moved.ir.json", "--duration", "1", cwd=tmp_path / "other", pythonpath=ROOT)
+    assert_cli_error(result, r"^  - node 'source': cannot import scripted:Source \(No module named 'scripted'\)$",
+                     hint=r"the IR was built with it from /gone/project: run there, or PYTHONPATH=/gone/project$")
+
+
 def test_run_unknown_backend():
     result = cli("run", str(QUICKSTART), "--backend", "dora", "--duration", "1")
     assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc, zenoh$")
@@ -143,6 +197,46 @@ with Pipeline("failing") as pipe:
     result = cli("run", str(script), "--duration", "1")
     assert_cli_error(result, r"^error: broken\.step\(\) raised ZeroDivisionError: integer division or modulo by zero "
                              r"\(tick at t=0\.000000000s m=0\)", hint=r"set on_error='skip_tick' or 'restart'")
+
+
+def test_run_a_step_that_calls_sys_exit(tmp_path: Path):
+    """It exited silently with the step's status (3) before."""
+    script = write(tmp_path / "exiting.py", FLOWS + '''
+import sys
+
+
+class Exiting(Flow[None, Num]):
+    def step(self, inp):
+        sys.exit(3)
+
+
+with Pipeline("exiting") as pipe:
+    Exiting() @ Rate(hz=10)
+''')
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert result.returncode == 1
+    assert_cli_error(result, r"^error: exiting\.step\(\) raised SystemExit: 3 \(tick at t=0\.000000000s m=0\)",
+                     hint=r"set on_error='skip_tick' or 'restart'")
+
+
+def test_run_a_step_returning_an_unencodable_value(tmp_path: Path):
+    """It ran to the end, then died with a traceback in trace.digest() before."""
+    script = write(tmp_path / "locking.py", FLOWS + '''
+import threading
+
+
+class Locking(Flow):
+    def step(self):
+        return {"lock": threading.Lock()}
+
+
+with Pipeline("locking") as pipe:
+    Locking() @ Rate(hz=10)
+''')
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert_cli_error(result, r"^error: locking\.lock: the step at t=0\.000000000s m=0 returned a value the run cannot "
+                             r"record: cannot encode a value of type _thread\.lock$",
+                     hint=r"use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses")
 
 
 ZENO = '''
@@ -191,7 +285,7 @@ def test_ir_json_by_default():
     assert result.returncode == 0, result.stderr
     assert result.stdout == quickstart_ir("json")
     doc = json.loads(result.stdout)
-    assert doc["version"] == "1.1.0"
+    assert doc["version"] == "1.2.0"
     assert doc["metadata"]["name"] == "quickstart"
     assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
     assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]
@@ -361,3 +455,35 @@ def test_load_pipeline_in_process_matches_the_cli_target_syntax():
 
     pipe = load_pipeline(f"{QUICKSTART}:pipe")
     assert isinstance(pipe, Pipeline) and pipe.name == "quickstart"
+
+
+FLAKY = '''
+from retriever import Flow, Pipeline, Rate
+
+
+class Flaky(Flow[None, int]):
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp):
+        self.k += 1
+        if self.k == 2:
+            raise ValueError("second call")
+        return self.k
+
+
+with Pipeline("flaky") as pipe:
+    Flaky().configure(on_error="skip_tick") @ Rate(hz=10)
+'''
+
+
+def test_a_run_whose_errors_were_absorbed_exits_1_unless_allowed(tmp_path: Path):
+    """on_error='skip_tick' lets the run go on; the run still had an error: the table, then
+    error/hint and exit 1 (it exited 0), unless --allow-errors."""
+    script = write(tmp_path / "flaky.py", FLAKY)
+    result = cli("run", str(script), "--duration", "1", pythonpath=ROOT)
+    assert_cli_error(result, r"^error: the run went on, but had errors \(flaky: 1 step error\(s\)\)$",
+                     hint=r"the error records say what raised")
+    assert re.search(r"^│ flaky +│ +10 │ +9 │ +0 │ +1 │", result.stdout, re.MULTILINE), result.stdout
+    allowed = cli("run", str(script), "--duration", "1", "--allow-errors", pythonpath=ROOT)
+    assert allowed.returncode == 0 and allowed.stderr == "", allowed.stderr

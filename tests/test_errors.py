@@ -6,13 +6,17 @@ from __future__ import annotations
 import json
 import math
 import re
+import sys
+import threading
 
 import pytest
 
 import retriever
 from retriever import (
     IR,
+    ActionChunking,
     BackendError,
+    CodecError,
     CausalityError,
     ClockError,
     Flow,
@@ -390,7 +394,7 @@ def test_then_outside_a_pipeline_block():
 
 @pytest.mark.parametrize("kwargs, message", [
     ({"map": ["x"]}, r"connect\(\): map must be a dict \{output_port: input_port\} of str, got \['x'\]"),
-    ({"delay": -1}, r"connect\(\): delay must be a finite number of seconds >= 0, got -1"),
+    ({"delay": -1}, r"connect\(\): edge NumSource → RealSink: delay must be a finite number of seconds >= 0, got -1"),
     ({"qsize": 0}, r"connect\(\): qsize must be an integer >= 1, got 0"),
 ])
 def test_connect_with_bad_edge_options(kwargs, message):
@@ -430,8 +434,8 @@ def test_failure_policy_values_are_accepted_and_recorded_in_the_ir(on_error):
 
 @pytest.mark.parametrize("latency", [-0.1, float("nan"), "fast"])
 def test_bad_latency(latency):
-    with pytest.raises(ValueError, match=re.escape(f"Counter: latency={latency!r} must be a finite number of "
-                                                   "seconds >= 0")):
+    with pytest.raises(ValueError, match=re.escape(f"Counter.configure(latency={latency!r}): latency must be a "
+                                                   "finite number of seconds >= 0")):
         Counter().configure(latency=latency)
 
 
@@ -439,6 +443,76 @@ def test_bad_latency(latency):
 def test_bad_node_name(name):
     with pytest.raises(ValueError, match=re.escape(f"Counter: node name {name!r} must be an identifier-like str")):
         Counter().named(name)
+
+
+# ---------------------------------------------------------------------------------------------
+# Numbers beyond what integer-nanosecond time holds (issue 17 §3): no hang, no bare OverflowError
+# ---------------------------------------------------------------------------------------------
+TOO_LONG = "must be at most 9.223e+09 s (about 292 years: times are int64 nanoseconds)"
+
+
+@pytest.mark.parametrize("make, owner", [(lambda hz: Rate(hz), "Rate"), (lambda hz: Hybrid(hz, trigger="a"), "Hybrid")],
+                         ids=["Rate", "Hybrid"])
+@pytest.mark.parametrize("hz", [1e300, 2e9, 10**9 + 1], ids=repr)
+def test_a_rate_faster_than_one_tick_per_nanosecond_is_refused(make, owner, hz):
+    """Rate(hz=1e300) had a period of 0 ns and hung inproc; hz above 1e9 ran two ticks at one tag."""
+    with pytest.raises(ClockError, match=re.escape(
+            f"{owner}(hz={hz!r}): hz must be at most 1e+09 (a tick period of at least 1 ns: ticks are integer "
+            f"nanoseconds), got {hz!r}\n    hint: time counts integer nanoseconds: use hz <= 1e9")):
+        make(hz)
+
+
+def test_a_rate_slower_than_one_tick_per_292_years_is_refused():
+    with pytest.raises(ClockError, match=re.escape("Rate(hz=1e-300): hz must be at least 1.084e-10 (a tick period "
+                                                   "of at most about 292 years), got 1e-300")):
+        Rate(hz=1e-300)
+
+
+def test_the_fastest_rate_ticks_every_nanosecond():
+    with Pipeline("p") as pipe:
+        NumSource() @ Rate(hz=1e9)
+    steps = pipe.run(duration=5e-9).steps
+    assert [s.tag for s in steps] == [(t, 0) for t in range(5)]
+
+
+@pytest.mark.parametrize("build, message", [
+    (lambda: Rate(hz=1, offset=1e300), f"Rate(offset=1e+300): offset {TOO_LONG}, got 1e+300"),
+    (lambda: Counter().configure(latency=1e300), f"Counter.configure(latency=1e+300): latency {TOO_LONG}, got 1e+300"
+                                                 "\n    hint: latency is the flow's logical execution time"),
+    (lambda: Pipeline("p").connect(NumSource() @ Rate(hz=1), RealSink() @ Rate(hz=1), delay=1e300),
+     f"connect(): edge NumSource → RealSink: delay {TOO_LONG}, got 1e+300\n    hint: delay is the seconds"),
+    (lambda: Pipeline("p").connect(NumSource() @ Rate(hz=1), RealSink() @ Rate(hz=1), deadline=float("inf")),
+     "connect(): edge NumSource → RealSink: deadline must be a finite number of seconds >= 0, got inf"),
+    (lambda: Pipeline("p", deadline=1e300), f"Pipeline(deadline=1e+300): deadline {TOO_LONG}, got 1e+300"),
+    (lambda: Latest(staleness=1e300), f"Latest(staleness=1e+300): staleness {TOO_LONG}"),
+    (lambda: Window(duration=1e20), f"Window(duration=1e+20): duration {TOO_LONG}"),
+    (lambda: ActionChunking(horizon_ms=1e300), "ActionChunking(horizon_ms=1e+300): horizon_ms must be at most "
+                                               "9.223e+12 (about 292 years"),
+    (lambda: ActionChunking(control_hz=1e300), "ActionChunking(control_hz=1e+300): control_hz must be at most 1e+09"),
+], ids=["offset", "latency", "delay", "deadline", "pipeline deadline", "staleness", "window", "horizon", "control_hz"])
+def test_huge_seconds_are_refused_where_they_are_given(build, message):
+    """Each of these raised a bare OverflowError (some only at build_ir() or run()) before."""
+    with pytest.raises(ValueError, match=re.escape(message)):
+        build()
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, True, "10", 2**63], ids=repr)
+def test_bad_max_microsteps(value):
+    with pytest.raises(ValueError, match=re.escape(f"Pipeline(max_microsteps={value!r}): max_microsteps must be an "
+                                                   f"integer from 1 to 2**63 - 1 (how many microsteps")):
+        Pipeline("p", max_microsteps=value)
+
+
+def test_a_run_that_would_end_past_292_years_is_refused():
+    with Pipeline("p") as pipe:
+        NumSource() @ Rate(hz=1e-9)
+    with pytest.raises(ValueError, match=re.escape(f"pipe.run(duration=1e+300): duration {TOO_LONG}, got 1e+300\n"
+                                                   "    hint: run for a number of seconds")):
+        pipe.run(duration=1e300)
+    pipe.run(duration=9e9)
+    with pytest.raises(ValueError, match=re.escape("pipe.step(dt=300000000.0): the run is at 9e+09 s, and dt would take "
+                                                   "it past 9.223e+09 s")):
+        pipe.step(dt=3e8)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -494,6 +568,82 @@ def test_step_that_raises_stops_the_run_naming_node_and_tick():
     record = pipe.trace.steps_of("counter")[-1]
     assert record.status == "error"
     assert record.detail == {"error": "KeyError: 'no such joint'", "on_error": "stop"}
+
+
+class Exits(Flow[None, Num]):
+    """Calls sys.exit(3) on every ``every``-th step."""
+
+    def __init__(self, every: int = 2):
+        self.every, self.n = every, 0
+
+    def step(self, inp):
+        self.n += 1
+        if self.n % self.every == 0:
+            sys.exit(3)
+        return Num(self.n)
+
+
+def test_sys_exit_in_a_step_is_that_steps_error():
+    """sys.exit(3) in a step ended the inproc run, and the program, silently with status 3."""
+    with Pipeline("p") as pipe:
+        Exits() @ Rate(hz=10)
+    with pytest.raises(StepError, match=r"exits\.step\(\) raised SystemExit: 3 \(tick at t=0\.100000000s m=0\)\n"
+                                        r"    hint: set on_error='skip_tick'") as info:
+        pipe.run(duration=1)
+    assert isinstance(info.value.__cause__, SystemExit)
+    assert pipe.trace.steps[-1].detail == {"error": "SystemExit: 3", "on_error": "stop"}
+
+
+def test_sys_exit_in_a_step_follows_on_error():
+    with Pipeline("p") as pipe:
+        Exits().configure(on_error="skip_tick") @ Rate(hz=10)
+    trace = pipe.run(duration=1)
+    assert [s.status for s in trace.steps] == ["ok", "error"] * 5
+    assert pipe.stats()["exits"].errors == 5
+
+
+def test_keyboard_interrupt_in_a_step_still_stops_the_program():
+    class Interrupted(Flow[None, Num]):
+        def step(self, inp):
+            raise KeyboardInterrupt
+
+    with Pipeline("p") as pipe:
+        Interrupted().configure(on_error="skip_tick") @ Rate(hz=10)
+    with pytest.raises(KeyboardInterrupt):
+        pipe.run(duration=1)
+
+
+class Unrecordable(Flow):
+    """Returns, on its ``bad_at``-th step, a value the codec cannot encode on port ``y``."""
+
+    def __init__(self, bad: str = "lock", bad_at: int = 2):
+        self.bad, self.bad_at, self.n = bad, bad_at, 0
+
+    def step(self):
+        self.n += 1
+        if self.n != self.bad_at:
+            return {"x": self.n, "y": [self.n]}
+        value = {"lock": threading.Lock(), "set": {"a": {1, 2}}}[self.bad]
+        return {"x": self.n, "y": value}
+
+
+@pytest.mark.parametrize("on_error", ["stop", "skip_tick"])
+@pytest.mark.parametrize("bad, what", [("lock", "cannot encode a value of type _thread.lock"),
+                                       ("set", "cannot encode a value of type builtins.set at value['a']")])
+def test_a_step_returning_an_unencodable_value_stops_the_run_at_that_step(bad, what, on_error):
+    """inproc ran such a run to the end and then failed in trace.digest(); it stops at the step, as
+    zenoh (which cannot send the value) does, whatever on_error says: the flow has a bug."""
+    with Pipeline("p") as pipe:
+        Unrecordable(bad).named("u").configure(on_error=on_error) @ Rate(hz=10)
+    with pytest.raises(CodecError, match=re.escape(
+            f"u.y: the step at t=0.100000000s m=0 returned a value the run cannot record: {what}\n"
+            "    hint: use numbers, str, bytes, lists, dicts, numpy arrays or @io dataclasses")):
+        pipe.run(duration=1)
+    last = pipe.trace.steps[-1]
+    assert (last.tag, last.status, last.produced) == ((100_000_000, 0), "error", (("u", "x", 1),))
+    assert last.detail["error"].startswith("CodecError: u.y: the step at t=0.100000000s m=0")
+    assert pipe.stats()["u"].errors == 1
+    pipe.trace.digest()  # what was recorded can be digested
 
 
 def test_step_that_raises_with_skip_tick_keeps_running():
@@ -563,7 +713,7 @@ def test_malformed_ir_text():
 def test_wrong_version_ir():
     doc = _ir_doc()
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.1\.0\); "
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\); "
                                       r"rebuild the IR with this version: retriever ir FILE --out PATH"):
         IR.from_json(json.dumps(doc))
 

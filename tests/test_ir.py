@@ -6,6 +6,8 @@ import copy
 import dataclasses
 import json
 import os
+import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +73,7 @@ def test_to_json_is_stable_with_sorted_keys(ir: IR):
 
 def test_ir_shape_follows_the_design(ir: IR):
     doc = ir.doc
-    assert doc["version"] == "1.1.0"
+    assert doc["version"] == "1.2.0"
     assert doc["metadata"]["name"] == "small"
     assert doc["metadata"]["validated"] is True
     assert doc["metadata"]["optimized"] is False
@@ -219,6 +221,88 @@ def test_rebuilt_pipeline_is_independent_of_an_enclosing_with_block(ir: IR):
 
 
 # ---------------------------------------------------------------------------------------------
+# An IR is code: what is checked before anything is imported (issue 17 §3)
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", [["/x"], {"a b": "/x"}, {"flows": 3}], ids=repr)
+def test_load_bad_module_folders(tmp_path: Path, doc: dict, bad):
+    doc["metadata"]["module_folders"] = bad
+    with pytest.raises(IRError, match=re.escape(f"metadata.module_folders: expected an object of module name: "
+                                                f"folder, got {bad!r}")):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_an_ir_of_a_script_records_the_folder_of_its_flows(tmp_path: Path):
+    from retriever._loading import load_pipeline
+
+    script = tmp_path / "folder_flows.py"
+    script.write_text("from tests.ir_flows import build\npipe = build()\n", encoding="utf-8")
+    (tmp_path / "local_flows.py").write_text(
+        "from retriever import Flow\nclass Local(Flow):\n    def step(self):\n        return {'x': 1}\n",
+        encoding="utf-8")
+    assert "module_folders" not in load_pipeline(str(script)).build_ir().doc["metadata"]  # tests.ir_flows: importable
+    script.write_text("from retriever import Flow, Pipeline, Rate\n"
+                      "class Here(Flow):\n    def step(self):\n        return {'x': 1}\n"
+                      "with Pipeline('here') as pipe:\n    Here() @ Rate(hz=1)\n", encoding="utf-8")
+    sys.modules.pop("folder_flows", None)
+    ir = load_pipeline(str(script)).build_ir()
+    assert ir.doc["metadata"]["module_folders"] == {"folder_flows": str(tmp_path)}
+    assert IR.from_json(ir.to_json()) == ir
+
+
+@pytest.mark.parametrize("bad", ["tests.ir_flows", "tests.ir_flows:", ":Camera", "os.system('x'):A", "a b:C",
+                                 "tests.ir_flows:Camera()", "tests..ir_flows:Camera", "a:B:C", 3, None], ids=repr)
+def test_a_type_must_be_module_colon_dotted_identifiers(tmp_path: Path, doc: dict, bad):
+    doc["nodes"][1]["type"] = bad
+    with pytest.raises(IRError, match=re.escape(f"node 'planner'.type: expected 'module:Class' (dotted identifiers, "
+                                                f"e.g. 'my_robot.flows:Camera'), got {bad!r}")):
+        _load(tmp_path, json.dumps(doc))
+
+
+def _side_effect_module(tmp_path: Path, monkeypatch) -> tuple[str, Path]:
+    """A module on the import path whose import, and whose class's construction, leave a mark."""
+    name = f"ir_side_effect_{tmp_path.name.replace('-', '_')}"
+    marks = tmp_path / "marks"
+    (tmp_path / f"{name}.py").write_text(
+        "from pathlib import Path\n"
+        f"MARKS = Path({str(marks)!r})\n"
+        "with MARKS.open('a') as f:\n    f.write('imported\\n')\n"
+        "class NotAFlow:\n"
+        "    def __init__(self, *args, **kwargs):\n"
+        "        with MARKS.open('a') as f:\n            f.write('called\\n')\n", encoding="utf-8")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    return name, marks
+
+
+def test_no_module_is_imported_while_any_node_has_a_problem(tmp_path: Path, doc: dict, monkeypatch):
+    """``this:Camera`` printed the Zen of Python: the first node's module was imported before a
+    later node's problem was found."""
+    name, marks = _side_effect_module(tmp_path, monkeypatch)
+    doc["nodes"][0]["type"] = f"{name}:NotAFlow"
+    doc["nodes"][3]["params"] = {"bad": {"$msgpack": "not base64!"}}
+    with pytest.raises(IRError, match=r"node 'logger': params\.bad is a \$msgpack value that does not decode"):
+        Pipeline.from_ir(IR(doc))
+    assert not marks.exists() and name not in sys.modules
+
+
+def test_a_type_that_is_not_a_flow_is_refused_before_it_is_called(tmp_path: Path, doc: dict, monkeypatch):
+    name, marks = _side_effect_module(tmp_path, monkeypatch)
+    doc["nodes"][0]["type"] = f"{name}:NotAFlow"
+    with pytest.raises(IRError, match=re.escape(f"node 'camera': {name}:NotAFlow is not a Flow class")):
+        Pipeline.from_ir(IR(doc))
+    assert marks.read_text() == "imported\n"
+
+
+def test_a_module_not_on_the_import_path_is_named_with_a_hint(doc: dict):
+    doc["nodes"][2]["type"] = "no_such_flows_module.sub:Camera"
+    with pytest.raises(IRError, match=re.escape(
+            "node 'controller': cannot import no_such_flows_module.sub:Camera (No module named "
+            "'no_such_flows_module')\n    hint: run from the folder that holds "
+            "no_such_flows_module.py (or the no_such_flows_module package), or add that folder to PYTHONPATH")):
+        Pipeline.from_ir(IR(doc))
+
+
+# ---------------------------------------------------------------------------------------------
 # Flows that cannot be rebuilt from the IR
 # ---------------------------------------------------------------------------------------------
 def _tool_pipeline() -> Pipeline:
@@ -319,13 +403,19 @@ def test_load_missing_keys_lists_each_one(tmp_path: Path):
 
 def test_load_missing_version(tmp_path: Path, doc: dict):
     del doc["version"]
-    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.1\.0\"\)"):
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.2\.0\"\)"):
         _load(tmp_path, json.dumps(doc))
+
+
+def test_an_ir_of_version_1_1_still_loads(tmp_path: Path, doc: dict):
+    """1.2.0 only added an optional key (metadata.module_folders)."""
+    doc["version"] = "1.1.0"
+    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.2.0"
 
 
 def test_load_wrong_version(tmp_path: Path, doc: dict):
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.1\.0\)"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\)"
                                       r"; rebuild the IR"):
         _load(tmp_path, json.dumps(doc))
 
@@ -353,6 +443,44 @@ def test_load_unknown_clock_kind(tmp_path: Path, doc: dict):
 def test_load_impossible_rate(tmp_path: Path, doc: dict):
     doc["nodes"][0]["config"]["clock"] = {"Rate": {"hz": 0}}
     with pytest.raises(IRError, match=r"node 'camera'\.config\.clock: Rate\(hz=0\): hz must be a finite number > 0"):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_load_reports_every_number_out_of_range_at_once(tmp_path: Path, doc: dict):
+    """NaN and infinite latency or delay, a rate faster than 1 GHz, times past int64 nanoseconds and
+    a bad max_microsteps passed validation (or ran into a bare OverflowError, or hung) before."""
+    doc["metadata"]["max_microsteps"] = 0
+    doc["metadata"]["deadline"] = 1e300
+    doc["nodes"][0]["config"]["clock"] = {"Rate": {"hz": 1e300}}
+    doc["nodes"][1]["config"]["latency"] = float("nan")
+    doc["nodes"][2]["config"]["latency"] = 1e300
+    doc["edges"][0]["delay"] = float("inf")
+    doc["edges"][1]["delay"] = 1e12
+    doc["edges"][2]["deadline"] = float("-inf")
+    text = json.dumps(doc)  # JSON readers accept NaN and Infinity, and so does json.loads
+    assert "NaN" in text and "Infinity" in text
+    with pytest.raises(IRError) as info:
+        _load(tmp_path, text)
+    too_long = "must be at most 9.223e+09 s (about 292 years: times are int64 nanoseconds)"
+    assert info.value.problems == [
+        f"metadata.deadline: deadline {too_long}, got 1e+300",
+        "metadata.max_microsteps: max_microsteps must be an integer from 1 to 2**63 - 1 (how many microsteps one "
+        "instant may run before the run stops with a Zeno-loop error), got 0",
+        "node 'camera'.config.clock: Rate(hz=1e+300): hz must be at most 1e+09 (a tick period of at least 1 ns: "
+        "ticks are integer nanoseconds), got 1e+300",
+        "node 'planner'.config.latency: latency must be a finite number of seconds >= 0, got nan",
+        f"node 'controller'.config.latency: latency {too_long}, got 1e+300",
+        "edges[0].delay: delay must be a finite number of seconds >= 0, got inf",
+        f"edges[1].delay: delay {too_long}, got 1000000000000.0",
+        "edges[2].deadline: deadline must be a finite number of seconds >= 0, got -inf",
+    ]
+
+
+@pytest.mark.parametrize("value", ["1000", 1.5, True, -3, None], ids=repr)
+def test_load_bad_max_microsteps(tmp_path: Path, doc: dict, value):
+    doc["metadata"]["max_microsteps"] = value
+    with pytest.raises(IRError, match=r"metadata\.max_microsteps: max_microsteps must be an integer from 1 to "
+                                      r"2\*\*63 - 1 .*, got " + re.escape(repr(value))):
         _load(tmp_path, json.dumps(doc))
 
 
@@ -405,7 +533,7 @@ def test_load_reports_every_problem_at_once(tmp_path: Path, doc: dict):
     assert err.source.endswith("pipeline.ir.json")
     assert len(err.problems) == 5
     for expected in ("node 'camera'.config.clock: unknown clock kind 'Sometimes'",
-                     "node 'controller'.config.latency: expected seconds >= 0, got -1",
+                     "node 'controller'.config.latency: latency must be a finite number of seconds >= 0, got -1",
                      "edges[0].adapter: unknown sync policy 'freshest'",
                      "edges[1].source: unknown node 'ghost'",
                      "edges[3].qsize: expected an integer >= 1, got 0"):
@@ -465,10 +593,10 @@ def _node(doc: dict, nid: str = "planner") -> dict:
 
 
 @pytest.mark.parametrize("change, problem", [
-    (lambda d: _node(d)["config"].update(latency=float("nan")), r"node 'planner'\.config\.latency: expected seconds >= 0, got nan"),
-    (lambda d: d["edges"][0].update(delay=float("inf")), r"edges\[0\]\.delay: expected seconds >= 0, got inf"),
-    (lambda d: d["metadata"].update(deadline=10**400), r"metadata\.deadline: expected seconds >= 0"),
-    (lambda d: d["metadata"].update(max_microsteps=0), r"metadata\.max_microsteps: expected an integer >= 1, got 0"),
+    (lambda d: _node(d)["config"].update(latency=float("nan")), r"node 'planner'\.config\.latency: latency must be a finite number of seconds >= 0, got nan"),
+    (lambda d: d["edges"][0].update(delay=float("inf")), r"edges\[0\]\.delay: delay must be a finite number of seconds >= 0, got inf"),
+    (lambda d: d["metadata"].update(deadline=10**400), r"metadata\.deadline: deadline must be at most 9\.223e\+09 s"),
+    (lambda d: d["metadata"].update(max_microsteps=0), r"metadata\.max_microsteps: max_microsteps must be an integer from 1 .*, got 0"),
     (lambda d: d["metadata"].update(name=""), r"metadata\.name: expected the pipeline name \(a non-empty string\)"),
     (lambda d: _node(d, "logger")["config"].update(clock={"Trigger": {"ports": True}}), r"node 'logger'\.config\.clock"),
     (lambda d: _node(d, "camera")["config"].update(clock={"Rate": {"hz": 10**400}}), r"node 'camera'\.config\.clock"),

@@ -90,13 +90,16 @@ schedule(arrival, consumer{c})
     return "".join(out)
 
 
-# one event on a port whose seq counter lives in the generated code ({seq}), or in rt.seq ({seq} None)
-def _record(port_expr: str, seq: str | None) -> str:
+# one event on a port whose seq counter lives in the generated code ({seq}), or in rt.seq ({seq} None),
+# after the events in {produced}; a value not of a plain type goes to session.check_output first
+def _record(port_expr: str, seq: str | None, produced: str) -> str:
+    check = (f"if type(value) not in plain:\n"
+             f"    check_output(rt, tau, {port_expr}, value, consumed, start, {produced})\n")
     if seq is None:
         count = f"seq = seqs.get({port_expr}, 0)\nseqs[{port_expr}] = seq + 1\n"
     else:
         count = f"seq = {seq}\n{seq} = seq + 1\n"
-    return count + f"""\
+    return check + count + f"""\
 ids = (eid := (node_id, {port_expr}, seq),)
 events_append((out_tag, node_id, {port_expr}, seq, value, end))
 """
@@ -142,6 +145,7 @@ def compile_tick(session: Any, rt: Any, feeds: dict) -> tuple[Callable, Callable
         "failed": session._failed, "rt": rt, "schedule": session._schedule,
         "max_microsteps": session.max_microsteps, "CausalityError": CausalityError,
         "nodes": session._nodes, "in_type": spec.in_type, "out_type": spec.out_type,
+        "plain": type(session).plain_types, "check_output": session.check_output,
     }
     seqs = ", ".join(seq_of.values())
     src = ["ticks_n = steps_n = step_ns = 0\n"]
@@ -198,7 +202,9 @@ def compile_tick(session: Any, rt: Any, feeds: dict) -> tuple[Callable, Callable
 {read_lines}            outputs = None
         else:
             outputs = read(raw)
-    except Exception as exc:
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # SystemExit too, as in _tick
         wall = time_ns() - start
         step_ns += wall
         ticks_n += 1
@@ -218,22 +224,22 @@ def compile_tick(session: Any, rt: Any, feeds: dict) -> tuple[Callable, Callable
         src.append("    produced = []\n    for port, value in raw.items():\n"
                    "        if value is None:\n            continue\n")
         for j, port in enumerate(known):
-            body = _record("port", seq_of[port]) + "produced.append(eid)\n"
+            body = _record("port", seq_of[port], "produced") + "produced.append(eid)\n"
             body += _deliver(rt, port, names, "port", feeds)
             src.append(f"        {'if' if j == 0 else 'elif'} port == {port!r}:\n" + _indent(body, "            "))
-        body = _record("port", None) + "produced.append(eid)\n"
+        body = _record("port", None, "produced") + "produced.append(eid)\n"
         src.append(("        else:\n" + _indent(body, "            ")) if known else _indent(body, "        "))
         src.append("    " + record.format("ids if len(produced) == 1 else tuple(produced)"))
     elif len(reads) == 1:  # one output port: its ids tuple is the step's produced tuple
         port = known[0]
-        body = _record(repr(port), seq_of[port]) + _deliver(rt, port, names, repr(port), feeds)
+        body = _record(repr(port), seq_of[port], "()") + _deliver(rt, port, names, repr(port), feeds)
         src.append("    value = v0\n    if value is not None:\n" + _indent(body, "        "))
         src.append("        " + record.format("ids"))
         src.append("    else:\n        " + record.format("()"))
     else:
         src.append("    produced = []\n")
         for j, port in enumerate(known):
-            body = _record(repr(port), seq_of[port]) + "produced.append(eid)\n"
+            body = _record(repr(port), seq_of[port], "produced") + "produced.append(eid)\n"
             body += _deliver(rt, port, names, repr(port), feeds)
             src.append(f"    value = v{j}\n    if value is not None:\n" + _indent(body, "        "))
         src.append("    " + record.format("tuple(produced)"))

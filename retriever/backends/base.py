@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -32,7 +32,28 @@ COUNTERS = {
     "garbage": "messages on the run's key space that were not the run's, dropped",
     "report_waits": "times a node's loop waited for its reporter (recording fell behind)",
     "report_wait_ns": "how long those waits lasted in all, ns",
+    "restarts": "times a flow was restarted (on_error='restart'), after its step raised or its process died",
+    "crash_restarts": "of those, restarts after the flow's process died (its state could not be handed over)",
 }
+
+
+class RestartBudget:
+    """The restarts of one flow with on_error="restart", by run time: at most ``max_restarts``
+    within any ``restart_window`` seconds (FlowSettings); the same rule on every backend."""
+
+    def __init__(self, max_restarts: int, window_s: float):
+        self.max_restarts, self.window_s = max_restarts, window_s
+        self.window_ns = round(window_s * 1e9)
+        self.times: deque[int] = deque()
+
+    def take(self, t_ns: int) -> bool:
+        """Count a restart at run time ``t_ns``; False, counting nothing, if the budget is spent."""
+        while self.times and self.times[0] <= t_ns - self.window_ns:
+            self.times.popleft()
+        if len(self.times) >= self.max_restarts:
+            return False
+        self.times.append(t_ns)
+        return True
 
 
 @dataclass
@@ -75,6 +96,7 @@ class Session(ABC):
         self.logged_to = None  # the path of this run's finished log, if it had one
         self._log_mark = (time.monotonic(), 0)  # wall time and step count at the last hand-over
         self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
+        self.stop_signal: int | None = None  # and which of the two it was
         #: what the run counted that no node owns (COUNTERS; a coordinator's dropped garbage)
         self.own_counts: Counter = Counter()
 

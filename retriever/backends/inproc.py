@@ -32,19 +32,45 @@ from heapq import heappop, heappush
 from time import time_ns
 from typing import Any
 
-from ..errors import CausalityError, StepError
+import numpy as np
+
+from ..codec import packb
+from ..errors import CausalityError, CodecError, RestartLimitError, StepError
 from ..flow._base import Flow, make_invoker, make_output_reader
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
+from ..time import format_tag
 from . import _inproc_ticks
-from .base import Backend, NodeStats, Session
+from .base import Backend, NodeStats, RestartBudget, Session
+
+
+#: the types of output values the codec always encodes (None: no event). An output of another type
+#: is checked before it is recorded, so that a step returning what the trace cannot hold fails at
+#: that step, as it does on a real-time backend, and not at the end in ``trace.digest()``; these
+#: need no check, which keeps it off the hot path (benchmarks/step_overhead.py)
+PLAIN_TYPES = frozenset({int, float, str, bytes, bool, type(None)})
+
+
+def _encodes_surely(value: Any) -> bool:
+    """Whether the codec is sure to encode ``value``, seen without encoding it: plain values and
+    arrays of a non-object dtype, inside lists, tuples and dicts. False means: ask the codec."""
+    kind = type(value)
+    if kind in PLAIN_TYPES:
+        return True
+    if kind is np.ndarray:
+        return not value.dtype.hasobject
+    if kind is list or kind is tuple:
+        return all(map(_encodes_surely, value))
+    if kind is dict:
+        return all(map(_encodes_surely, value)) and all(map(_encodes_surely, value.values()))
+    return False
 
 
 class _NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots."""
 
     __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
-                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced")
+                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts")
 
     def __init__(self, index: int, node: Node):
         self.index = index
@@ -56,6 +82,7 @@ class _NodeRuntime:
         self.read = make_output_reader(node.spec)
         self.latency_ns = node.settings.latency_ns
         self.on_error = node.settings.on_error
+        self.restarts = RestartBudget(node.settings.max_restarts, node.settings.restart_window)
         # (port, buffer, policy, port spec) per input port
         self.inputs: list[tuple[str, PortBuffer, Any, Any]] = []
         # output port -> [(consumer index, consumer buffer, delay ns, whether it triggers the consumer)]
@@ -92,6 +119,7 @@ class _RateGroup:
 class InprocSession(Session):
     backend_name = "inproc"
     steppable = True
+    plain_types = PLAIN_TYPES  # for the compiled ticks (_inproc_ticks), which this module imports
 
     def __init__(self, graph: Graph, tie_break_seed: int | None = None):
         super().__init__(graph)
@@ -301,7 +329,9 @@ class InprocSession(Session):
         start = time_ns()
         try:
             outputs = rt.read(rt.invoke(values))
-        except Exception as exc:
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error
             wall = time_ns() - start
             stats.step_ns += wall
             self._failed(rt, tau, consumed, exc, start, wall)
@@ -321,6 +351,8 @@ class InprocSession(Session):
             for port, value in outputs:
                 if value is None:  # sparse output: no event
                     continue
+                if type(value) not in PLAIN_TYPES:
+                    self.check_output(rt, tau, port, value, consumed, start, produced)
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
                 events.append((out_tag, node_id, port, seq, value, end))
@@ -337,11 +369,31 @@ class InprocSession(Session):
                         self._schedule(arrival, consumer)
         self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
 
+    def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
+                     start: int, produced: list | tuple) -> None:
+        """Before an output not of a plain type is recorded: stop the run (CodecError naming the
+        node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
+        cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
+        failure of one tick. The error record lists the events of the tick already ``produced``."""
+        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
+            return
+        try:
+            packb(value)
+        except CodecError as e:
+            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned a value the run cannot "
+                               f"record: {e}")
+            rt.stats.errors += 1
+            first_line = str(error).split("\n", 1)[0]
+            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
+            self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
+                                         time_ns() - start))
+            raise error from None
+
     def _skipped(self, rt: _NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
         rt.stats.skips += 1
         self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
 
-    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: Exception,
+    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
                 start: int, wall: int) -> None:
         rt.stats.errors += 1
         detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
@@ -349,6 +401,10 @@ class InprocSession(Session):
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
         if rt.on_error == "restart":
+            budget = rt.restarts
+            if not budget.take(tau[0]):
+                raise RestartLimitError(rt.id, tau, exc, budget.max_restarts, budget.window_s) from exc
+            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
             rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:

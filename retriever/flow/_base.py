@@ -26,7 +26,8 @@ from typing import Any, Callable, Generic, TypeVar
 from .. import _context
 from ..clocks import Clock
 from ..codec import is_value_type, register_value_type
-from ..time import is_finite_number, seconds_to_ns
+from ..errors import ClockError
+from ..time import seconds_problem, seconds_to_ns
 
 In = TypeVar("In")
 Out = TypeVar("Out")
@@ -34,6 +35,10 @@ Out = TypeVar("Out")
 ON_ERROR = ("stop", "skip_tick", "restart")
 ON_OVERRUN = ("skip", "error")
 ON_DEADLINE_MISS = ("publish_late", "drop", "error")
+#: on_error="restart": at most this many restarts of a flow within any RESTART_WINDOW_S seconds of
+#: run time; one more stops the run (systemd's StartLimitBurst and StartLimitIntervalSec defaults)
+MAX_RESTARTS = 5
+RESTART_WINDOW_S = 10.0
 
 class _NoDefault:
     def __repr__(self) -> str:
@@ -278,6 +283,10 @@ class FlowSettings:
     on_error: str = "stop"
     on_overrun: str = "skip"
     on_deadline_miss: str = "publish_late"
+    #: the pipeline the flow belongs to (a weak reference: a flow does not keep a pipeline alive)
+    pipeline: Callable[[], Any] | None = field(default=None, repr=False, compare=False)
+    max_restarts: int = MAX_RESTARTS
+    restart_window: float = RESTART_WINDOW_S
 
 
 def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
@@ -329,15 +338,27 @@ class Flow(Generic[In, Out]):
 
     # -- graph building -------------------------------------------------------------------
     def __matmul__(self, clock: Clock):
+        """Bind the flow's clock, in the pipeline of the enclosing ``with`` block if there is one."""
         if not isinstance(clock, Clock):
             return NotImplemented
-        self._retriever.clock = clock
+        settings = self._retriever
+        if settings.clock is not None and settings.clock != clock:
+            raise ClockError(f"{self!r} @ {clock!r}: the flow already has the clock {settings.clock!r}, and a flow "
+                             "has one clock\n    hint: to tick on a rate and on events, bind one Hybrid(hz=..., "
+                             "trigger=[...])")
+        pipe = _context.current_pipeline()
+        if pipe is not None:
+            pipe.add(self)  # raises if the flow belongs to another pipeline
+        settings.clock = clock
         return self
 
     def configure(self, *, name: str | None = None, latency: float | None = None,
                   on_error: str | None = None, on_overrun: str | None = None,
-                  on_deadline_miss: str | None = None):
-        """Set this flow's node id, logical execution time (seconds) and failure policies.
+                  on_deadline_miss: str | None = None, max_restarts: int | None = None,
+                  restart_window: float | None = None):
+        """Set this flow's node id, logical execution time (seconds) and failure policies;
+        with ``on_error="restart"``, at most ``max_restarts`` restarts within any
+        ``restart_window`` seconds of run time (more stop the run).
 
         Returns the flow, so it chains: ``Policy().configure(latency=0.3) @ Rate(hz=2)``.
         """
@@ -349,8 +370,10 @@ class Flow(Generic[In, Out]):
                                  "(letters, digits, _ and -; it becomes a key-space segment)")
             s.name = name
         if latency is not None:
-            if not is_finite_number(latency) or latency < 0:
-                raise ValueError(f"{owner}: latency={latency!r} must be a finite number of seconds >= 0")
+            problem = seconds_problem("latency", latency)
+            if problem is not None:
+                raise ValueError(f"{owner}.configure(latency={latency!r}): {problem}\n    hint: latency is the "
+                                 "flow's logical execution time, the seconds from a tick to its outputs")
             s.latency, s.latency_ns = latency, seconds_to_ns(latency)
         if on_error is not None:
             s.on_error = _choice(owner, "on_error", on_error, ON_ERROR)
@@ -358,6 +381,15 @@ class Flow(Generic[In, Out]):
             s.on_overrun = _choice(owner, "on_overrun", on_overrun, ON_OVERRUN)
         if on_deadline_miss is not None:
             s.on_deadline_miss = _choice(owner, "on_deadline_miss", on_deadline_miss, ON_DEADLINE_MISS)
+        if max_restarts is not None:
+            if type(max_restarts) is not int or max_restarts < 0:
+                raise ValueError(f"{owner}: max_restarts={max_restarts!r} must be an integer >= 0")
+            s.max_restarts = max_restarts
+        if restart_window is not None:
+            problem = seconds_problem("restart_window", restart_window)
+            if problem is not None or restart_window == 0:
+                raise ValueError(f"{owner}: {problem or 'restart_window must be more than 0 s, got 0'}")
+            s.restart_window = restart_window
         return self
 
     def named(self, name: str):

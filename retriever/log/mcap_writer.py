@@ -48,6 +48,10 @@ MESSAGE_FIELDS = 2 + 4 + 8 + 8
 _U32 = 0xFFFFFFFF
 
 
+def _nothing() -> None:
+    """A job for the I/O thread whose end tells that every job queued before it is done."""
+
+
 class McapWriter:
     """Write one MCAP file: ``add_channel``, ``add_message``…, ``flush`` as often as data must
     survive a crash, ``finish`` once."""
@@ -160,6 +164,17 @@ class McapWriter:
         there): it then survives a kill."""
         self._close_chunk()
         self._submit(self._stream.flush)
+
+    def wait(self) -> None:
+        """Block until every queued write reached the OS; raise the first write that failed."""
+        self._io.submit(_nothing).result()
+        if self._failure is not None:
+            raise self._failure
+
+    def abandon(self) -> None:
+        """Stop writing after a failure: let the I/O thread end; the file stays as it is."""
+        self._finished = True
+        self._io.shutdown(wait=True)
 
     def _close_chunk(self) -> None:
         # No message index records: they are optional in MCAP, readers scan a chunk without them,

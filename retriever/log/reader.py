@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from mcap.exceptions import EndOfFile
 from mcap.records import Attachment, Channel, Footer, Message, Metadata
 from mcap.stream_reader import CRCValidationError, StreamReader
 
@@ -161,19 +160,115 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
                            "retriever reads the .mcap files written by pipe.run(log=...) or --log")
         stream.seek(0)
         size = os.fstat(stream.fileno()).st_size
-        reader = StreamReader(stream, validate_crcs=True)
+        tracked = _Tracked(stream)
+        reader = StreamReader(tracked, validate_crcs=True)
         try:
             for record in reader.records:
                 _take(log, record)
-        except CRCValidationError as e:
-            _damaged(log, salvage, f"a CRC check failed ({e}): the file was damaged after it was written", stream)
-        except Exception as e:  # EndOfFile, struct.error, zstd errors, bad UTF-8... what a tear or a bad byte causes
-            if isinstance(e, EndOfFile) or stream.tell() >= size:
-                why = "it ends in the middle of a record: its writer was stopped before finishing"
-            else:
-                why = f"a record cannot be parsed ({type(e).__name__}: {e})"
-            _damaged(log, salvage, why, stream)
+        except Exception as e:  # EndOfFile, CRCs, struct.error, zstd errors, bad UTF-8: a tear or a bad byte
+            _damaged(log, salvage, _diagnose(stream, size, tracked.last_read_at, e))
     return log
+
+
+class _Tracked:
+    """A file as the MCAP reader reads it, remembering where its last read began: a read that
+    fails begins inside the record that is damaged (a damaged length may make it end far past)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._pos = 0
+        self.last_read_at = 0
+
+    def read(self, n: int = -1) -> bytes:
+        self.last_read_at = self._pos
+        data = self._stream.read(n)
+        self._pos += len(data)
+        return data
+
+
+# -- telling a torn file from a corrupt one ---------------------------------------------------
+#: Every MCAP record's fields after its opcode and length: a number is a fixed-size field, "4" /
+#: "8" a field prefixed with its length in 4 / 8 bytes (strings, maps, data). None: a Message,
+#: whose data runs to the record's end. A record whose fields add up to another length than its
+#: own says was damaged: a writer stopped mid-record leaves a consistent record that is cut short.
+_LAYOUTS: dict[int, tuple[str, list | None]] = {
+    0x01: ("Header", ["4", "4"]), 0x02: ("Footer", [20]), 0x03: ("Schema", [2, "4", "4", "4"]),
+    0x04: ("Channel", [2, 2, "4", "4", "4"]), 0x05: ("Message", None), 0x06: ("Chunk", [8, 8, 8, 4, "4", "8"]),
+    0x07: ("MessageIndex", [2, "4"]), 0x08: ("ChunkIndex", [8, 8, 8, 8, "4", 8, "4", 8, 8]),
+    0x09: ("Attachment", [8, 8, "4", "4", "8", 4]), 0x0A: ("AttachmentIndex", [8, 8, 8, 8, 8, "4", "4"]),
+    0x0B: ("Statistics", [8, 2, 4, 4, 4, 4, 8, 8, "4"]), 0x0C: ("Metadata", ["4", "4"]),
+    0x0D: ("MetadataIndex", [8, 8, "4"]), 0x0E: ("SummaryOffset", [1, 8, 8]), 0x0F: ("DataEnd", [4]),
+}
+_RECORD_HEAD = 9  # opcode (1 byte) and length (8)
+
+
+def _fields_length(stream, start: int, length: int, present: int, layout: list) -> int | None:
+    """What a record's fields add up to (as soon as they pass ``length``, the record's own), reading
+    their length prefixes from the file; None when the record is cut before a prefix (then
+    nothing can be told)."""
+    offset = 0
+    for field in layout:
+        if offset > length:
+            break
+        if isinstance(field, int):
+            offset += field
+            continue
+        width = int(field)
+        if offset + width > present:
+            return None
+        stream.seek(start + offset)
+        offset += width + int.from_bytes(stream.read(width), "little")
+    return offset
+
+
+def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bool]:
+    """The top-level records ``(offset, name, length)`` up to the first that is damaged or cut,
+    and what is wrong with that one (None if none is), and whether it is cut short (a tear)
+    rather than damaged. A file that ends with the MCAP magic was finished: nothing in it is a tear."""
+    stream.seek(size - len(MAGIC))
+    finished = size >= 2 * len(MAGIC) and stream.read(len(MAGIC)) == MAGIC
+    records: list[tuple[int, str, int]] = []
+    pos = len(MAGIC)
+    while pos < size:
+        if pos + _RECORD_HEAD > size:
+            return records, f"it ends in the middle of the record at byte {pos}", not finished
+        stream.seek(pos)
+        opcode = stream.read(1)[0]
+        length = int.from_bytes(stream.read(8), "little")
+        if opcode not in _LAYOUTS:
+            return records, f"the record at byte {pos} is of no MCAP type (opcode 0x{opcode:02x})", False
+        name, layout = _LAYOUTS[opcode]
+        present = min(length, size - pos - _RECORD_HEAD)
+        fields = None if layout is None else _fields_length(stream, pos + _RECORD_HEAD, length, present, layout)
+        if fields is not None and fields != length:
+            return records, (f"the {name} record at byte {pos} says it is {length} bytes long, but its fields "
+                             f"add up to {'more' if fields > length else fields}"), False
+        if pos + _RECORD_HEAD + length > size:
+            return records, (f"it ends in the middle of the {name} record at byte {pos} ({present} of its "
+                             f"{length} bytes are there)"), not finished
+        records.append((pos, name, length))
+        if opcode == 0x02:  # the footer: the magic follows, and the file ends
+            after = size - (pos + _RECORD_HEAD + length)
+            if not finished and after < len(MAGIC):
+                return records, f"it ends {len(MAGIC) - after} bytes short of its closing magic bytes", True
+            break
+        pos += _RECORD_HEAD + length
+    return records, None, False
+
+
+def _diagnose(stream, size: int, where: int, error: Exception) -> str:
+    """Why reading stopped at byte ``where``: a tear (the writer was stopped) or damage (a byte
+    changed after it was written), and at which record."""
+    records, problem, torn = _walk(stream, size)
+    if problem is not None and torn:
+        return f"{problem}: its writer was stopped before finishing"
+    if problem is not None:
+        return f"it is corrupt: {problem}; the file was damaged after it was written (this is not a stopped writer)"
+    at = next(((offset, name) for offset, name, length in reversed(records) if offset <= where), None)
+    record = f"the {at[1]} record at byte {at[0]}" if at else f"byte {where}"
+    what = (f"a CRC check failed ({error})" if isinstance(error, CRCValidationError)
+            else f"a record cannot be parsed ({type(error).__name__}: {error})")
+    return f"it is corrupt at {record}: {what}; the file was damaged after it was written"
 
 
 def _take(log: RunLog, record: Any) -> None:
@@ -191,12 +286,14 @@ def _take(log: RunLog, record: Any) -> None:
         log.complete = True
 
 
-def _damaged(log: RunLog, salvage: bool, why: str, stream) -> None:
-    where = f"near byte {stream.tell()}" if not stream.closed else ""
-    log.damage = f"{why} ({where}; {len(log.messages)} messages read before it)"
+def _damaged(log: RunLog, salvage: bool, why: str) -> None:
+    log.damage = f"{why} ({len(log.messages)} messages read before it)"
     if not salvage:
         raise LogError(f"{log.path} cannot be read: {log.damage}",
-                       f"`retriever log recover {log.path}` writes a readable copy of everything before the damage")
+                       f"`retriever log recover {log.path}` writes a readable copy of everything before the damage"
+                       if log.messages else
+                       f"no message comes before the damage: `retriever log recover {log.path}` can keep only "
+                       "the run's metadata")
 
 
 def run_info(log: RunLog) -> dict[str, Any]:

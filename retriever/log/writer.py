@@ -7,18 +7,22 @@ least every ``flush_interval`` seconds of wall time, which bounds what a ``kill 
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import stat
 import time
 from collections import Counter
+from contextlib import contextmanager
 from operator import itemgetter
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Iterator
 
 import msgpack
 from mcap.opcode import Opcode
 
 from ..codec import Encoder
-from ..errors import CodecError, LogError
+from ..errors import CodecError, LogError, LogWriteError
 from . import format as fmt
 from .mcap_writer import MESSAGE_FIELDS, MESSAGE_HEAD, McapWriter
 
@@ -29,38 +33,120 @@ if TYPE_CHECKING:
 
 _first, _second, _node_port = itemgetter(0), itemgetter(1), itemgetter(1, 2)
 _HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
+# what became of the run when its log could not be written
+RUN_NOT_STARTED = "the run did not start"
+RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
+RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
+
+
+def describe_os_error(e: OSError) -> str:
+    """``No space left on device (ENOSPC)``: what the OS said, and the name to search for."""
+    name = errno.errorcode.get(e.errno or 0)
+    return f"{e.strerror or e}" + (f" ({name})" if name else "")
+
+
+def _folder(path: Path) -> tuple[str, str]:
+    return (f"cannot create the log {path}: it is a folder",
+            f"pass --log / log= a file path, e.g. {path / 'run.mcap'}")
+
+
+class LogFile:
+    """The file a run's log goes to, opened before the run starts, so that a path that cannot be
+    a log (it exists, it is a folder, its folder is missing or read-only) is refused before any
+    worker starts and before anything is written.
+
+    An existing file is kept unless ``overwrite``; even then it is emptied only when the writer
+    starts (:meth:`start`), so a run refused before its start leaves it untouched.
+    """
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False):
+        self.path = Path(path)
+        existed = os.path.lexists(self.path)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC | (0 if overwrite else os.O_EXCL)
+        try:
+            fd = os.open(self.path, flags, 0o666)
+        except FileExistsError:
+            if self.path.is_dir():
+                raise LogError(*_folder(self.path)) from None
+            raise LogError(f"the log {self.path} already exists; a run does not overwrite a file",
+                           "pass --force (retriever run) or overwrite=True (pipe.run) to replace it, "
+                           "or log to another path") from None
+        except IsADirectoryError:
+            raise LogError(*_folder(self.path)) from None
+        except OSError as e:
+            raise LogError(f"cannot create the log {self.path}: {describe_os_error(e)}",
+                           "pass --log / log= a path in a folder that exists and is writable") from None
+        self.stream = os.fdopen(fd, "wb")
+        self.regular = stat.S_ISREG(os.fstat(fd).st_mode)
+        self._remove_on_discard = self.regular and not existed
+
+    def start(self) -> None:
+        """The writer takes the file: empty it (a file being overwritten)."""
+        if self.regular:
+            self.stream.truncate(0)
+            self._remove_on_discard = True
+
+    def discard(self) -> None:
+        """The run did not start, or its log could not be begun: close the file and remove what
+        this run created or emptied, so that no file claims to hold the run."""
+        try:
+            self.stream.close()
+        except OSError:  # the buffered bytes the OS refused (ENOSPC, EIO): nothing is kept anyway
+            pass
+        if self._remove_on_discard:
+            self.path.unlink(missing_ok=True)
 
 
 class LogWriter:
-    """Writes one run to ``path``: the IR and run metadata first, then events and steps."""
+    """Writes one run to ``file``: the IR and run metadata first, then events and steps.
 
-    def __init__(self, path: str | Path, graph: "Graph", *, backend: str, seeds: dict[str, Any] | None = None,
+    The first records reach the OS before the constructor returns, so a file that takes no data
+    (a full disk, ``/dev/full``) fails here, before the run starts. A write that fails later
+    raises :class:`LogWriteError` from :meth:`write` (at most ``flush_interval`` after it), which
+    stops the run.
+    """
+
+    def __init__(self, file: LogFile, graph: "Graph", *, backend: str, seeds: dict[str, Any] | None = None,
                  flush_interval: float = 0.1):
-        self.path = Path(path)
-        try:
-            self._file = open(self.path, "wb")
-        except OSError as e:
-            raise LogError(f"cannot create the log {self.path}: {e.strerror}",
-                           "pass log= a path in a directory that exists and is writable") from None
+        self.path = file.path
+        file.start()
+        self._file = file.stream
         version = fmt.package_versions().get("retriever", "dev")
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
-        self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
-        modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
-        self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {}, time.time_ns(),
-                                                                    modules))
-        self._channels: dict[tuple[str, str], int] = {}
-        for node in sorted(graph.nodes.values(), key=lambda n: n.id):
-            for port, spec in node.outputs.items():
-                self._add_channel(node.id, port, spec.type)
-        self._steps_channel = self._mcap.add_channel(fmt.STEPS_TOPIC, fmt.MESSAGE_ENCODING, {})
-        self._mcap.flush()
+        self.closed = False
+        self.failed = False
+        with self._refused_writes(RUN_NOT_STARTED):
+            self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
+            modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
+            self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {},
+                                                                        time.time_ns(), modules))
+            self._channels: dict[tuple[str, str], int] = {}
+            for node in sorted(graph.nodes.values(), key=lambda n: n.id):
+                for port, spec in node.outputs.items():
+                    self._add_channel(node.id, port, spec.type)
+            self._steps_channel = self._mcap.add_channel(fmt.STEPS_TOPIC, fmt.MESSAGE_ENCODING, {})
+            self._mcap.flush()
+            self._mcap.wait()
         self._events_done = 0
         self._steps_done = 0
         self._encode = Encoder().pack
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
-        self.closed = False
+
+    @contextmanager
+    def _refused_writes(self, outcome: str) -> Iterator[None]:
+        """Turn the OS refusing a write (ENOSPC, EIO, EFBIG, ...) into a LogWriteError that names
+        the file and says what became of the run; the writer then writes nothing more."""
+        try:
+            yield
+        except OSError as e:
+            self.failed = True
+            self._mcap.abandon()
+            raise LogWriteError(f"cannot write the log {self.path}: {describe_os_error(e)}; {outcome}",
+                                "log to a disk with room, or to a path that takes files"
+                                + ("" if outcome == RUN_NOT_STARTED else
+                                   f" (`retriever log recover {self.path}` salvages what reached it)")) from None
 
     def _add_channel(self, node: str, port: str, port_type: Any = None) -> int:
         type_name = "" if port_type is None else getattr(port_type, "__qualname__", str(port_type))
@@ -71,8 +157,12 @@ class LogWriter:
 
     def write(self, trace: "Trace") -> None:
         """Encode the records appended to ``trace`` since the last call; flush if it is time.
+        Raises :class:`LogWriteError` when the OS refused a write (the run must stop)."""
+        with self._refused_writes(RUN_STOPPED):
+            self._write(trace)
 
-        One comprehension per kind builds whole MCAP message records: this runs for every event
+    def _write(self, trace: "Trace") -> None:
+        """One comprehension per kind builds whole MCAP message records: this runs for every event
         and step of a logged run, so it avoids every intermediate object it can.
         """
         events, steps = trace.raw_events, trace.raw_steps
@@ -126,8 +216,22 @@ class LogWriter:
             return
         self.closed = True
         try:
-            self.write(trace)
+            if not self.failed:
+                with self._refused_writes(RUN_UNFINISHED_LOG):
+                    self._finish(trace, end_ns, status, error, stats, counts)
+                    self._file.close()
         finally:
+            if not self._file.closed:
+                try:
+                    self._file.close()
+                except OSError:  # bytes the OS refused: the failure was already raised
+                    pass
+
+    def _finish(self, trace: "Trace", end_ns: int, status: str, error: str, stats: dict | None,
+                counts: dict | None) -> None:
+        try:
+            self._write(trace)
+        finally:  # a value the codec refused still leaves a finished log that says so
             end = {"status": status, "end_ns": str(end_ns), "events": str(self._events_done),
                    "steps": str(self._steps_done), "finished_unix_ns": str(time.time_ns())}
             if error:
@@ -140,4 +244,3 @@ class LogWriter:
                 end["counts"] = json.dumps({name: n for name, n in sorted(counts.items()) if n})
             self._mcap.add_metadata(fmt.END_METADATA, end)
             self._mcap.finish()
-            self._file.close()

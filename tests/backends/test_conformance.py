@@ -22,6 +22,7 @@ from retriever import (
     ActionChunking, BackendError, CausalityError, Exact, Flow, Hybrid, Latest, LatestDistinct, Pipeline, Queue,
     Rate, RetrieverWarning, StepError, Trigger, Window, io,
 )
+from retriever.errors import RestartLimitError
 
 MS = 1_000_000
 S = 1_000_000_000
@@ -992,6 +993,26 @@ def test_on_error_restart_calls_reset(backend, check_trace):
     assert trace.values_of("r", "n") == [1, 2, 1, 2, 1, 2]
     assert trace.values_of("r", "fresh")[2:] == [True, False, True, False]  # first output after each reset()
     assert "call 3 fails" in str(step_at(trace, "r", (200 * MS, 0)).detail)
+
+
+def test_on_error_restart_stops_past_its_restart_budget(backend):
+    """§5 on_error="restart" has a budget: at most max_restarts restarts within any
+    restart_window seconds of run time; the next failure stops the run, naming the flow and its
+    error. Restarts are counted. (A flow failing every tick was restarted without end.)"""
+    with Pipeline("budget") as pipe:
+        Restartable(fail_on=1).named("r").configure(on_error="restart", max_restarts=3, restart_window=1.0) @ Rate(10)
+    with pytest.raises(RestartLimitError, match=r"^flow 'r' failed again after 3 restart\(s\) within 1 s "
+                                                r"\(max_restarts=3, restart_window=1\): RuntimeError: call 1 fails "
+                                                r"\(tick at t=0\.300000000s m=0\)\n    hint: fix what makes 'r' fail"):
+        pipe.run(duration=5.0, backend=backend)
+    assert [s.status for s in pipe.trace.steps_of("r")] == ["error"] * 4
+    assert pipe.stats()["r"].counts == {"restarts": 3}
+
+    # restarts 0.3 s apart, one allowed per 0.25 s: the window never holds two
+    with Pipeline("spaced") as pipe:
+        Restartable(fail_on=3).named("r").configure(on_error="restart", max_restarts=1, restart_window=0.25) @ Rate(10)
+    pipe.run(duration=2.0, backend=backend)
+    assert pipe.stats()["r"].counts == {"restarts": 6}
 
 
 def test_on_error_stop_raises_step_error(backend):

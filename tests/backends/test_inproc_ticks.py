@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Optional
 from unittest import mock
 
+import pytest
 from hypothesis import given
 
 from retriever import Flow, Hybrid, Latest, Pipeline, Rate, RetrieverWarning, StepError, Trigger, io
@@ -243,6 +244,58 @@ def test_stop_on_error_matches():
 
     fast = assert_same(build, min_compiled=2)
     assert fast[2].startswith(StepError.__name__)
+
+
+class TwoUnencodable(Flow[Num, Two]):
+    def step(self, inp: Num) -> Two:
+        return Two(a=[inp.x], b={inp.x} if inp.x == 5 else (inp.x,))
+
+
+class OneUnencodable(Flow[int, int]):
+    def step(self, x: int) -> int:
+        return {x} if x == 5 else x
+
+
+class UntypedUnencodable(Flow):
+    def step(self, x):
+        return {"out": [x], "side": {x} if x == 5 else {"k": x}}
+
+
+@pytest.mark.parametrize("flow, ports", [(TwoUnencodable, {"x": "x"}), (OneUnencodable, {"x": "int"}),
+                                         (UntypedUnencodable, {"x": "x"})], ids=["io", "single", "untyped"])
+def test_an_unencodable_output_stops_both_paths_alike(flow, ports):
+    """The compiled ticks check outputs not of a plain type before recording them, as _emit does."""
+    def build():
+        with Pipeline("unencodable") as pipe:
+            src = Count().named("src") @ Rate(100)
+            pipe.connect(src, flow().named("f") @ Rate(100), map=ports, sync=Latest())
+        return pipe
+
+    fast = assert_same(build, min_compiled=2)
+    assert fast[2].startswith("CodecError: f.") and "the step at t=0.050000000s m=0 returned a value" in fast[2]
+    assert fast[0][1][-1][4] == "error"
+
+
+class Exits(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        if inp.x % 4 == 0:
+            raise SystemExit(inp.x)
+        return Num(inp.x)
+
+
+@pytest.mark.parametrize("on_error", ["stop", "skip_tick"])
+def test_sys_exit_in_a_step_is_its_error_on_both_paths(on_error):
+    def build():
+        with Pipeline("exits") as pipe:
+            src = Count().named("src") @ Rate(100)
+            src.then(Exits().named("e").configure(on_error=on_error) @ Rate(100), map={"x": "x"}, sync=Latest())
+        return pipe
+
+    fast = assert_same(build, min_compiled=2)
+    if on_error == "stop":
+        assert fast[2].startswith("StepError: e.step() raised SystemExit: 4")
+    else:
+        assert fast[2] is None and fast[1]["e"][3] == 24
 
 
 def test_reset_then_run_repeats_the_trace():

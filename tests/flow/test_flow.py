@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from typing import Optional
 
@@ -11,7 +12,7 @@ import pytest
 import retriever
 import retriever.flow
 import retriever.flow.adapter
-from retriever import MISSING, Flow, GraphError, Pipeline, Rate, StepError, io
+from retriever import MISSING, ClockError, Flow, GraphError, Pipeline, Rate, StepError, io
 from retriever.backends import default_backend
 from retriever.flow import EventStream, Hybrid, Latest, Trigger, Window
 from retriever.flow.adapter import ActionChunking, LatestDistinct, Queue
@@ -271,8 +272,42 @@ def test_matmul_binds_the_clock_and_returns_the_flow():
     rate = Rate(hz=30)
     assert (flow @ rate) is flow
     assert repr(flow) == "<Clock @ Rate(hz=30)>"
-    assert (flow @ Trigger("k")) is flow  # rebinding replaces the clock
-    assert repr(flow) == "<Clock @ Trigger('k')>"
+    assert (flow @ Rate(hz=30)) is flow  # the same clock again changes nothing
+
+
+def test_a_second_clock_is_refused_with_a_hint_at_hybrid():
+    """A second ``@`` silently replaced the clock before."""
+    flow = Clock() @ Rate(hz=30)
+    with pytest.raises(ClockError, match=re.escape(
+            "<Clock @ Rate(hz=30)> @ Trigger('k'): the flow already has the clock Rate(hz=30), and a flow has one "
+            "clock\n    hint: to tick on a rate and on events, bind one Hybrid(hz=..., trigger=[...])")):
+        flow @ Trigger("k")
+    assert flow._retriever.clock == Rate(hz=30)
+
+
+def test_binding_a_flow_of_another_pipeline_is_refused():
+    """``s @ Rate(5)`` in a second ``with Pipeline`` gave that pipeline a 0-node IR, silently."""
+    with Pipeline("first") as first:
+        flow = Clock()
+    with Pipeline("second") as second:
+        with pytest.raises(GraphError, match=re.escape(
+                "pipeline 'second' has 1 problem:\n  - <Clock> belongs to pipeline 'first', where it was created "
+                "or first wired, so it cannot join pipeline 'second'\n    hint: a flow belongs to one pipeline: make "
+                "a new instance for 'second', e.g. Clock(...) @ Rate(hz=...)")):
+            flow @ Rate(hz=5)
+        with pytest.raises(GraphError, match="belongs to pipeline 'first'"):
+            second.connect(flow, Clock() @ Trigger())
+    assert flow._retriever.clock is None
+    assert len(second.flows) == 1  # the fresh Clock() only
+    assert first.flows == [flow]
+
+
+def test_a_flow_made_outside_a_pipeline_joins_the_one_it_is_bound_in():
+    flow = Clock()
+    with Pipeline("p") as pipe:
+        flow @ Rate(hz=5)
+    assert pipe.flows == [flow]
+    assert pipe.build_ir().topology["node_count"] == 1
 
 
 def test_matmul_with_something_that_is_not_a_clock():
@@ -298,7 +333,8 @@ def test_configure_and_named_return_the_flow_and_land_in_the_ir():
     node = pipe.build_ir().node("vla")
     assert node["params"] == {"gain": 2.0, "bias": 1.0}
     assert node["config"] == {"clock": {"Rate": {"hz": 2, "offset": 0.0}}, "latency": 0.3, "on_error": "restart",
-                              "on_overrun": "error", "on_deadline_miss": "drop"}
+                              "on_overrun": "error", "on_deadline_miss": "drop",
+                              "max_restarts": 5, "restart_window": 10.0}  # the restart budget's defaults
 
 
 def test_flows_created_inside_a_with_block_join_the_innermost_pipeline():

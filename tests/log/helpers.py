@@ -23,8 +23,8 @@ def cli_env(pythonpath: Path | None = None) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
     # no .pyc: tests rewrite a flow module within the same second, same size or not
     env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8", PYTHONDONTWRITEBYTECODE="1")
-    if pythonpath is not None:
-        env["PYTHONPATH"] = str(pythonpath)
+    # this checkout's retriever, not whichever one the venv's editable install points at
+    env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (pythonpath, ROOT) if p is not None)
     return env
 
 

@@ -15,7 +15,7 @@ import pytest
 from retriever import LogError, read_log
 from retriever._loading import load_pipeline
 from retriever.backends.inproc import InprocSession
-from retriever.log import LogWriter, recover, replay, resim
+from retriever.log import Divergence, LogWriter, recover, replay, resim
 from tests.log.helpers import (
     QUICKSTART,
     assert_cli_error,
@@ -23,12 +23,13 @@ from tests.log.helpers import (
     chunks,
     cli,
     cut,
+    records,
     flip,
 )
 
-RECOVER_HINT = r"`retriever log recover .*` writes a readable copy of everything before the damage"
-DAMAGED = r"cannot be read: (it ends in the middle of a record|a record cannot be parsed|its last bytes are not the " \
-          r"MCAP magic|a CRC check failed)"
+RECOVER_HINT = (r"(`retriever log recover .*` writes a readable copy of everything before the damage|no message comes "
+                r"before the damage: `retriever log recover .*` can keep only the run's metadata)")
+DAMAGED = r"cannot be read: (it ends in the middle of|it ends \d+ bytes short of its closing magic|it is corrupt)"
 
 
 def _quickstart_log(path: Path, duration: float):
@@ -148,7 +149,7 @@ def test_a_flipped_byte_inside_a_chunk_is_detected(one_chunk: Path, tmp_path: Pa
     (offset, length), = chunks(data)
     start = chunk_payload_offset(data, offset)
     damaged = flip(one_chunk, start + int((offset + 9 + length - start) * where), tmp_path / "flipped.mcap")
-    with pytest.raises(LogError, match=r"cannot be read: (a CRC check failed|a record cannot be parsed).*\n"
+    with pytest.raises(LogError, match=r"cannot be read: it is corrupt.*(a CRC check failed|a record cannot be parsed).*\n"
                                        r"    hint: " + RECOVER_HINT):
         read_log(damaged)
     assert read_log(damaged, salvage=True).messages == [], "nothing of the damaged chunk may be kept"
@@ -159,7 +160,7 @@ def test_cli_on_a_flipped_byte(one_chunk: Path, tmp_path: Path):
     (offset, length), = chunks(data)
     damaged = flip(one_chunk, offset + length // 2, tmp_path / "flipped.mcap")
     assert_cli_error(cli("replay", damaged), r"^error: .*flipped\.mcap cannot be read: "
-                                             r"(a CRC check failed|a record cannot be parsed)", hint=RECOVER_HINT)
+                                             r"it is corrupt.*(a CRC check failed|a record cannot be parsed)", hint=RECOVER_HINT)
 
 
 def test_salvaging_a_corrupt_chunk_keeps_the_chunks_before_it(many_chunks: Path, tmp_path: Path):
@@ -169,7 +170,7 @@ def test_salvaging_a_corrupt_chunk_keeps_the_chunks_before_it(many_chunks: Path,
     data = many_chunks.read_bytes()
     third, length = chunks(data)[2]
     damaged = flip(many_chunks, third + 9 + length // 2, tmp_path / "flipped.mcap")
-    with pytest.raises(LogError, match=r"cannot be read: (a CRC check failed|a record cannot be parsed)"):
+    with pytest.raises(LogError, match=r"cannot be read: it is corrupt.*(a CRC check failed|a record cannot be parsed)"):
         read_log(damaged)
     salvaged = read_log(damaged, salvage=True)
     kept = len(salvaged.messages)
@@ -205,7 +206,7 @@ def test_recover_a_truncated_log_gives_a_consistent_prefix(many_chunks: Path, tm
     assert result.output == tmp_path / "torn.recovered.mcap"
     assert 0 < result.events < len(list(original.iter_events()))
     assert 0 < result.steps < len(list(original.iter_steps()))
-    assert result.damage.startswith(("it ends in the middle of a record", "a record cannot be parsed"))
+    assert result.damage.startswith("it ends in the middle of the ")
 
     recovered = read_log(result.output)
     assert recovered.complete and recovered.damage is None
@@ -271,14 +272,15 @@ def test_a_log_cut_inside_a_chunk_header_is_diagnosed_as_torn(one_chunk: Path, t
     data = one_chunk.read_bytes()
     (offset, length), = chunks(data)
     in_data = cut(one_chunk, offset + length // 2, tmp_path / "torn.mcap")
-    with pytest.raises(LogError, match="it ends in the middle of a record: its writer was stopped before finishing"):
+    with pytest.raises(LogError, match=r"it ends in the middle of the Chunk record at byte \d+ \(\d+ of its \d+ bytes "
+                                       r"are there\): its writer was stopped before finishing"):
         read_log(in_data)
     misdiagnosed = []
     for size in range(offset + 1, chunk_payload_offset(data, offset)):
         torn = cut(one_chunk, size, tmp_path / "torn.mcap")
         with pytest.raises(LogError) as raised:
             read_log(torn)
-        if "it ends in the middle of a record" not in str(raised.value):
+        if "its writer was stopped before finishing" not in str(raised.value):
             misdiagnosed.append((size - offset, str(raised.value).split(": ", 2)[-1].split(" (near")[0]))
     assert misdiagnosed == []
 
@@ -540,3 +542,84 @@ def test_log_info_of_a_run_record_whose_packages_are_not_json_is_a_log_error(tmp
     log = read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change))
     with pytest.raises(LogError, match="the run record's packages are not a JSON object of versions"):
         run_info(log)
+
+ARRAY_FLOWS = '''
+import numpy as np
+from retriever import Flow, Pipeline, Rate, Trigger
+
+
+class Source(Flow):
+    def step(self):
+        return {{"x": np.linspace(0.0, 1.0, 12).reshape(3, 4)}}
+
+
+class Scale(Flow):
+    def step(self, x):
+        y = x * 2.0
+        y[1, 2] += {nudge}
+        return {{"y": y, "total": float(y.sum())}}
+
+
+with Pipeline("nudge") as pipe:
+    src = Source() @ Rate(hz=10)
+    scale = Scale().named("scale") @ Trigger()
+    src.then(scale)
+'''
+
+
+def test_replay_shows_a_difference_of_1e_7(tmp_path: Path, monkeypatch):
+    """A step that now adds 1e-7 to one element: the replay names the array's dtype and shape,
+    how many elements differ, where the largest difference is and how large, with values that
+    show it; a float output is printed in full."""
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    name = f"nudge_{secrets.token_hex(4)}"
+    module = tmp_path / "flows" / f"{name}.py"
+    module.parent.mkdir()
+    module.write_text(ARRAY_FLOWS.format(nudge="0.0"), encoding="utf-8")
+    log = tmp_path / "nudge.mcap"
+    try:
+        load_pipeline(str(module)).run(duration=0.1, log=log)
+        _rewrite(module, name, ARRAY_FLOWS.format(nudge="1e-7"))
+        first, = replay(read_log(log)).divergences
+    finally:
+        sys.modules.pop(name, None)
+    text = str(first)
+    assert re.search(r"^scale\.y at tick t=0\.000000000s m=1: value differs\n", text), text
+    assert "1.0909090909090908" in text and "1.0909091909090909" in text, text  # each value in full
+    assert re.search(r"\n      float64 \(3, 4\): 1 of 12 elements differ\n      largest difference at \[1, 2\]: "
+                     r"logged 1\.0909090909090908, replayed 1\.0909091909090909 \(absolute 1\.0000000\d*e-07, "
+                     r"relative 9\.16666\d*e-08\)$", text), text
+    total = str(Divergence("scale", (0, 1), "value", "total", 12.0, 12.0000001))  # the step's float output
+    assert re.search(r"^scale\.total at .*\n      logged:   12\.0\n      replayed: 12\.0000001\n      difference: "
+                     r"absolute 9\.99999993922529e-08, relative 8\.333333282687741e-09$", total), total
+    result = cli("replay", log)
+    assert result.returncode == 1
+    assert re.search(r"DIVERGED: 1 of 1 replayed steps differ\. First:\n\s+scale\.y at tick t=0\.000000000s m=1: "
+                     r"value differs\n(.*\n){6,}\s+float64 \(3, 4\): 1 of 12 elements differ\n\s+largest difference at "
+                     r"\[1, 2\]", result.stdout), result.stdout
+
+
+@pytest.mark.parametrize("where", ["header length", "channel length", "metadata text", "chunk length"])
+def test_a_flipped_byte_early_in_a_log_is_corruption_not_a_stopped_writer(one_chunk: Path, tmp_path: Path, where):
+    """A byte changed in a record's length or text, early in a finished log, used to be reported
+    as "its writer was stopped": it says the file is corrupt, at which record, and that
+    recover keeps what comes before."""
+    data = one_chunk.read_bytes()
+    first = {0x01: None, 0x04: None, 0x0C: None, 0x06: None}
+    for opcode, offset, _ in records(data):
+        if opcode in first and first[opcode] is None:
+            first[opcode] = offset
+    offset = {"header length": first[0x01] + 2, "channel length": first[0x04] + 2,
+              "metadata text": first[0x0C] + 9 + 6, "chunk length": first[0x06] + 2}[where]
+    damaged = flip(one_chunk, offset, tmp_path / "flipped.mcap")
+    record = {"header length": ("Header", first[0x01]), "channel length": ("Channel", first[0x04]),
+              "metadata text": ("Metadata", first[0x0C]), "chunk length": ("Chunk", first[0x06])}[where]
+    corrupt = rf"cannot be read: it is corrupt(: the| at the) {record[0]} record at byte {record[1]}"
+    with pytest.raises(LogError, match=corrupt) as raised:
+        read_log(damaged)
+    assert "writer was stopped" not in str(raised.value)
+    for command in (["log", "info"], ["log", "cat"], ["replay"]):
+        result = cli(*command, damaged)
+        assert_cli_error(result, r"^error: .*flipped\.mcap " + corrupt)
+        assert "writer was stopped" not in result.stderr

@@ -394,5 +394,5 @@ def test_log_info_on_the_small_log(small):
 
 def test_log_to_a_missing_folder_is_a_log_error(tmp_path):
     """log= on a folder that does not exist is a LogError at the start, not a traceback at the end."""
-    with pytest.raises(LogError, match=r"cannot create the log .*missing.*\n    hint: pass log= a path"):
+    with pytest.raises(LogError, match=r"cannot create the log .*missing.*: No such file or directory \(ENOENT\)\n    hint: pass --log / log= a path"):
         log_flows.build_small().run(duration=0.1, log=tmp_path / "missing" / "x.mcap")

@@ -90,7 +90,8 @@ class Batcher(Flow):
 def chain(middle: type[Flow], *, on_error: str = "stop") -> Pipeline:
     with Pipeline("chain") as pipe:
         src = Counter() @ Rate(hz=50)
-        mid = middle().configure(on_error=on_error) @ Rate(hz=20)
+        # a budget for every failure of a 2 s run (on_error="restart" stops past max_restarts)
+        mid = middle().configure(on_error=on_error, max_restarts=100) @ Rate(hz=20)
         sink = Smoother(alpha=0.25) @ Rate(hz=10)
         src.then(mid, sync=Latest()).then(sink, sync=Latest())
     return pipe

@@ -23,9 +23,15 @@ LOOPBACK = "127.0.0.1"
 #: did (17.5 ms at 20 Hz here; 5.4 ms through a 128 MiB pool). So the pool gets up to
 #: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
 #: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
+#: Every process of a run has a pool, and writes all of it (worker.py READY_PADDING), so the
+#: run's processes share that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each
+#: wrote 6.4 GB of /dev/shm while they started, spent 13-35 s of system time on the page faults
+#: (2 cores), and in one run of two 14 of them never received the run's start; with 16 MiB each,
+#: 6.5 s and all started (benchmarks/README.md, "Scale").
 SHM_POOL_MAX = 128 << 20
 SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
+SHM_POOL_RUN_MAX = 1 << 30
 
 
 #: Zenoh removes a /dev/shm/*.zenoh segment only when it can lock it exclusively: when the last
@@ -78,62 +84,76 @@ def free_port(host: str = LOOPBACK) -> int:
         return s.getsockname()[1]
 
 
-def shm_pool_bytes(free_bytes: int | None = None) -> int:
-    """The shared-memory pool for a session (SHM_POOL_MAX): ``free_bytes`` is what /dev/shm has
-    free (read now if not given; 0 if there is no /dev/shm)."""
+def shm_pool_bytes(free_bytes: int | None = None, sessions: int = 1) -> int:
+    """The shared-memory pool for one of a run's ``sessions`` (SHM_POOL_MAX): ``free_bytes`` is
+    what /dev/shm has free (read now if not given; 0 if there is no /dev/shm)."""
     if free_bytes is None:
         try:
             st = os.statvfs("/dev/shm")
             free_bytes = st.f_bavail * st.f_frsize
         except OSError:
             free_bytes = 0
-    return max(SHM_POOL_MIN, min(SHM_POOL_MAX, free_bytes // SHM_POOL_SHARE))
+    run_share = min(SHM_POOL_RUN_MAX, free_bytes // SHM_POOL_SHARE)
+    return max(SHM_POOL_MIN, min(SHM_POOL_MAX, run_share // max(1, sessions)))
 
 
-def peer_config(*, listen: list[str] = (), connect: list[str] = (), access: dict[str, str] | None = None) -> zenoh.Config:
+#: Gossip makes two workers that learn of each other (from the hub) link up directly; by default
+#: both open a link at once, and Zenoh keeps one. With authentication, whose handshake is longer,
+#: that race lost both now and then: 1 run in 10 had a worker pair with no link (a consumer that
+#: never got an event; it waited 20 s for the link first). So only the peer of greater Zenoh id
+#: opens it: 0 in 48 runs (tests/backends/zenoh/test_access.py's runs).
+GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
+
+
+def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
+                access: dict[str, str] | None = None) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
     it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
     latency instead of 1.1×, benchmarks/README.md), and its pool is sized by
-    :func:`shm_pool_bytes`. Its cost: each session has a segment in /dev/shm, which a
-    SIGKILLed process leaves behind.
+    :func:`shm_pool_bytes` for one of the run's ``sessions``. Its cost: each session has a
+    segment in /dev/shm, which a SIGKILLed process leaves behind.
 
     ``access``: the config entries that make the session one of a run's (``access.py``:
     authentication and access control); without it, the session admits anyone."""
     config = zenoh.Config()
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes()))
+    config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes(sessions=sessions)))
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
+    # of two peers that learn of each other, only one opens the link (see GOSSIP_ONE_WAY)
+    config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
     for key, value in (access or {}).items():
         config.insert_json5(key, value)
     return config
 
 
-def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5,
+def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: int = 1,
              access: dict[str, str] | None = None) -> tuple[zenoh.Session, str]:
-    """Open the run's hub session; returns it and the endpoint it listens on. Close it (``with``)."""
+    """Open the run's hub session, one of the run's ``sessions``; returns it and the endpoint it
+    listens on. Close it (``with``)."""
     port = preferred_port if port_is_free(preferred_port) else free_port()
     last: Exception | None = None
     for _ in range(attempts):
         try:
-            return zenoh.open(peer_config(listen=[endpoint(port)], access=access)), endpoint(port)
+            return zenoh.open(peer_config(listen=[endpoint(port)], sessions=sessions, access=access)), endpoint(port)
         except zenoh.ZError as e:  # taken between the check and the bind: try another
             last = e
             port = free_port()
     raise OSError(f"could not open a Zenoh hub on 127.0.0.1 after {attempts} attempts: {last}")
 
 
-def open_peer(hub_endpoint: str, access: dict[str, str] | None = None) -> zenoh.Session:
-    """A worker's or client's session, joined to the hub. Close it (``with``).
+def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None) -> zenoh.Session:
+    """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
+    (``with``).
 
     It listens on a free loopback port too: peers do not route for each other, so two workers
     exchange messages over the direct link that gossip (learning of each other from the hub)
     opens between them, which is also the fastest path."""
-    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint], access=access))
+    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint], sessions=sessions, access=access))
 
 
 def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,

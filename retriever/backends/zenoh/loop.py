@@ -27,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from ...errors import CodecError, RetrieverError
+from ...errors import CausalityError, CodecError, RetrieverError
 from ...flow._base import make_invoker, make_output_reader
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
@@ -57,6 +57,14 @@ SPILL_BYTES = 64 << 10
 #: not by EARLY_SEQS_MAX: a message that far ahead would hold its stream's gap open forever.
 CLOCK_AHEAD_MAX_NS = 500_000_000
 EARLY_SEQS_MAX = 4096
+
+#: Consumed events reach the log through their producer's report, which may be lost with its
+#: process (kill -9). So a consumer keeps the message of each event it received until the
+#: coordinator says it has the event (control ``have``: per stream, the last seq its producer
+#: reported), and holds back its step records that consumed an event the coordinator lacks, for
+#: at most HOLD_RECORDS_NS; past that, or when the loop ends, a record goes with the messages of
+#: those events, and the coordinator takes them as the producer's (each event is logged once).
+HOLD_RECORDS_NS = 200_000_000
 
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
@@ -98,11 +106,13 @@ _TICKED, _DONE = "ticked", "done"
 
 
 class StopRun(RetrieverError):
-    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard"."""
+    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
+    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
 
-    def __init__(self, message: str, tag: tuple[int, int] | None = None):
+    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
         super().__init__(message)
         self.tag = tag
+        self.zeno = zeno
 
 
 class InEdge:
@@ -123,7 +133,8 @@ class NodeLoop:
     def __init__(self, session: zenoh.Session, keys: KeySpace, node: Node, edges: list[InEdge],
                  inputs: list[tuple], fallbacks: dict, *, realtime: str,
                  ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
-                 inline: bool = False):
+                 inline: bool = False, cycle: list[str] | None = None, instant_ports: frozenset = frozenset(),
+                 max_microsteps: int = 1000):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
@@ -186,6 +197,10 @@ class NodeLoop:
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
 
         self.records: list = []  # step records not yet reported to the coordinator
+        self.recorded = 0  # step records made in all (the coordinator checks it got every tick)
+        self.held_records: list[tuple[int, tuple]] = []  # (held since, record): see HOLD_RECORDS_NS
+        self.kept: dict[tuple[str, str, int], tuple[int, bytes]] = {}  # event id -> (arrival wall ns, message)
+        self.have: dict[tuple[str, str], int] = {}  # per input stream, the last seq the coordinator has
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
@@ -193,6 +208,13 @@ class NodeLoop:
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
         self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
+        # On an instantaneous cycle (DESIGN.md §3 Causality) an ASAP output of a tick at (t, m) is
+        # stamped (HLC, m + 1): time moves on at every hop in real time, so the microstep is what
+        # counts the hops of one instant, and past max_microsteps an output that would trigger
+        # another tick (on one of instant_ports) stops the run, as in-process (a Zeno loop).
+        self.cycle = cycle
+        self.instant_ports = instant_ports if cycle else frozenset()
+        self.max_microsteps = max_microsteps
         self.period_ns = round(1e9 / float(self.clock.hz)) if self.clock.hz is not None else 0
         self._declared: list = []
         # warming up (WARM_AHEAD_NS): the last event published, as encoder arguments; per input
@@ -541,6 +563,8 @@ class NodeLoop:
                 self._garbage(key, e)
                 return
             self._arrived(key, data, self.now())
+            if msg.seq > self.have.get(key, -1):
+                self.kept[(msg.producer, msg.port, msg.seq)] = (time.time_ns(), data)
             self._in_order(key, msg)
         elif kind == _NUDGE:
             return
@@ -567,6 +591,8 @@ class NodeLoop:
                 self.stopping = True
             elif op == "handover" and args.get("node") == self.id and self.restarting:
                 self.stopping = self.handing_over = True
+            elif op == "have":
+                self._coordinator_has(args)
 
     def _check_claims(self, stream: tuple[str, str], seq: int, frontier: tuple[int, int]) -> None:
         """Refuse a seq from the future or a frontier its producer cannot promise (see
@@ -709,10 +735,13 @@ class NodeLoop:
         if self.latency_ns:
             tag = (tau[0] + self.latency_ns, 0)
         else:
+            microstep = tau[1] + 1 if self.instant_ports else 0
+            if microstep > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
+                self._zeno(tau)
             # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
             # when the node runs late (the tag then passes the next tick's time)
             self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp + 1)
-            tag = (self.last_stamp, 0)
+            tag = (self.last_stamp, microstep)
         batch = []
         for port, value in events:
             seq = seqs.get(port, 0)
@@ -749,6 +778,13 @@ class NodeLoop:
             return
         self._finish_tick(tau, consumed, tuple(produced), status, detail, start, wall, publish=batch)
 
+    def _zeno(self, tau: tuple[int, int]) -> None:
+        """Stop the run: the instant of ``tau`` ran past max_microsteps. The tick's outputs are
+        not published and it has no record, as in-process (the run's end record says why)."""
+        with self.lock:
+            self.running = None
+        raise StopRun(str(CausalityError(self.cycle, tau, self.max_microsteps)), tau, zeno=True)
+
     def _finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         with self.lock:
             self.running = None
@@ -759,6 +795,7 @@ class NodeLoop:
 
     def _record(self, tau, consumed, produced, status, detail, start, wall) -> None:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
+        self.recorded += 1
         if self.flush_due is None:
             self.flush_due = self.now() + FLUSH_AFTER_NS
         elif len(self.records) >= FLUSH_MAX:
@@ -888,17 +925,54 @@ class NodeLoop:
             self.sending = batch[0][0] if batch else None
         self._publish(batch)
 
-    def flush(self) -> None:
-        """Hand step records and published events to the reporter, for the coordinator."""
-        if self.records or self.published:
-            self.reporter.send(self.records, self.published)
-            self.records, self.published, self.published_bytes = [], [], 0
-        self.flush_due = None
+    def _coordinator_has(self, args: dict) -> None:
+        """Control ``have`` {streams: [[producer, port, last seq], …]}: forget those messages."""
+        streams = args.get("streams")
+        if type(streams) is not list:
+            self._garbage("ctl/run", WireError("a 'have' control message without a list of streams"))
+            return
+        for item in streams:
+            if (type(item) is list and len(item) == 3 and type(item[0]) is str and type(item[1]) is str
+                    and type(item[2]) is int and (item[0], item[1]) in self.frontiers):
+                stream = (item[0], item[1])
+                self.have[stream] = max(self.have.get(stream, -1), item[2])
+        if self.kept:
+            self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
+
+    def _unlogged(self, record: tuple) -> list[tuple[str, str, int]]:
+        """The events a step record consumed that the coordinator may not have."""
+        have, me = self.have, self.id  # its own events go in its own reports, before its records
+        return [eid for ids in record[1].values() for eid in ids if eid[0] != me and eid[2] > have.get(eid[:2], -1)]
+
+    def flush(self, final: bool = False) -> None:
+        """Hand step records and published events to the reporter, for the coordinator: records
+        that consumed an event it may lack wait (HOLD_RECORDS_NS), in order; past that, or when
+        ``final``, they go with the messages of those events."""
+        held = self.held_records
+        if self.records:
+            since = time.monotonic_ns()
+            held.extend((since, record) for record in self.records)
+            self.records = []
+        ready = 0
+        if held:
+            give_up = time.monotonic_ns() - HOLD_RECORDS_NS
+            while ready < len(held) and (final or held[ready][0] <= give_up or not self._unlogged(held[ready][1])):
+                ready += 1
+        records = [record for _, record in held[:ready]]
+        del held[:ready]
+        events = self.published
+        carried = {eid for record in records for eid in self._unlogged(record)}
+        if carried:
+            events = events + [self.kept[eid] for eid in sorted(carried) if eid in self.kept]
+        if records or events:
+            self.reporter.send(records, events)
+        self.published, self.published_bytes = [], 0
+        self.flush_due = self.now() + FLUSH_AFTER_NS if held else None
 
     def finish_reports(self) -> None:
         """Report what is left and return once every report is out (before a last status), and
         count how often and how long the loop waited for the reporter (it then ran late)."""
-        self.flush()
+        self.flush(final=True)
         self.reporter.close()
         if self.reporter.waits:
             self.counts["report_waits"] = self.reporter.waits

@@ -27,6 +27,9 @@ class WorkerOutput:
         self.stderr_lines = 0  # how many lines its stderr has had
         self._tail: deque[str] = deque(maxlen=keep)
         self._pumps: list[threading.Thread] = []
+        #: whether its stderr lines go on to the coordinator's stderr; off, they only go to the
+        #: tail (stacks dumped for an error message, which shows them: printed once)
+        self.forwarding = True
 
     def attach(self, proc: subprocess.Popen) -> None:
         """Forward this process's stdout and stderr (both ``subprocess.PIPE``) until it closes them."""
@@ -45,6 +48,8 @@ class WorkerOutput:
                 if name == "stderr":
                     self._tail.append(line)
                     self.stderr_lines += 1
+                    if not self.forwarding:
+                        continue
                 stream = getattr(sys, name)  # looked up per line: pytest and rich replace it
                 with _WRITING:
                     try:

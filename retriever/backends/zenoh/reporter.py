@@ -60,6 +60,7 @@ class Reporter:
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.spilled = 0  # files written to spill_dir
+        self.sent = 0  # reports put (the last status says how many: the coordinator waits for them all)
         self.waits = 0  # sends that had to wait for room
         self.waited_ns = 0  # and for how long in all (the loop's time, not its ticks')
 
@@ -119,6 +120,7 @@ class Reporter:
             events = [(wall, self._spill(message)) if len(message) >= self.spill_bytes else (wall, message)
                       for wall, message in events]
         self.session.put(self.key, self.encoder.report(self.node, records, events), congestion_control=RELIABLE)
+        self.sent += 1
 
     def _spill(self, message: bytes) -> bytes | str:
         """Write a published message to a file of the spill directory, whose name goes in the

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import math
 import mmap
 import os
 import queue
@@ -31,16 +32,26 @@ import time
 import weakref
 from pathlib import Path
 
-from ...errors import BackendError, StepError
+from ...errors import BackendError, CausalityError, RestartLimitError, StepError
 from ...graph import Graph
+from ...time import NS_PER_S
 from ...trace import STEPPED
-from ..base import NodeStats, Session
+from ..base import NodeStats, RestartBudget, Session
 from .access import SECRET_MIN_BYTES, AccessError, RunAccess, read_secret, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
-from .worker import EXIT_FAILED, EXIT_HANDED_OVER
+from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
+
+#: after `stop`, how long workers have to send their last reports and exit; one still running is
+#: stuck in a step (a loop looks at `stop` between steps only): its stacks are printed, it is killed
+STOP_GRACE_S = 1.5
+#: how long, at most, a worker's stack dump (SIGUSR1, written at once by a C handler) takes to read
+STACKS_WAIT_S = 0.5
+
+#: how often, at most, the coordinator tells the consumers which events it has (control `have`)
+HAVE_EVERY_S = 0.02
 
 #: sessions not closed yet
 _OPEN: weakref.WeakSet = weakref.WeakSet()
@@ -84,15 +95,12 @@ class ZenohSession(Session):
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
-        self._stats = {nid: NodeStats() for nid in graph.nodes}
+        self._init_records(graph)
         self._workers: dict[str, subprocess.Popen] = {}  # each node's process
         self._retiring: dict[str, subprocess.Popen] = {}  # a restarting node's old process, until it hands over
         self._retired: list[subprocess.Popen] = []  # old processes that handed over, to reap
         self._state: dict[str, str] = {}
         self._exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
-        self._event_ids: set[tuple[str, str, int]] = set()
-        self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
-        self._failure: tuple[str, dict] | None = None
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -106,7 +114,7 @@ class ZenohSession(Session):
             dictionary = self._access.write_dictionary(self._dir)
             auth = self._access.session_config(dictionary)
             before = mapped_segments()
-            self._hub, self.endpoint = open_hub(hub_port, access=auth)
+            self._hub, self.endpoint = open_hub(hub_port, sessions=run_sessions(len(graph.nodes)), access=auth)
             self._hub_segments = mapped_segments() - before  # the hub session's own
             #: a Zenoh config file with which a client joins the run as a read-only watcher
             self.watch_config = self._access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
@@ -117,20 +125,44 @@ class ZenohSession(Session):
             put = self._inbox.put
             self._subscribers = [
                 self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
-                self._hub.declare_queryable(self.keys.finished(), self._answer_finished)]
+                self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
+                self._hub.declare_queryable(self.keys.start(), self._answer_start)]
             ir = graph.to_ir().doc
-            self._streams = {(n["id"], port) for n in ir["nodes"] for port in n["outputs"]}
-            # untyped flows may emit on ports no edge names (a dict step's extra keys)
-            self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph),
-                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary)}
+                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
+                          "startup_timeout": self.startup_timeout}
             self._write_spec()
             for nid in graph.nodes:
                 self._spawn(nid)
         except BaseException:
             self.close()
             raise
+
+    def _init_records(self, graph: Graph) -> None:
+        """What the coordinator keeps of the run's reports and statuses (no Zenoh, no process:
+        benchmarks/fuzz.py feeds forged reports to ``_handle`` on just this)."""
+        self._stats = {nid: NodeStats() for nid in graph.nodes}
+        self._restarts = {nid: RestartBudget(node.settings.max_restarts, node.settings.restart_window)
+                          for nid, node in graph.nodes.items()}
+        self._event_ids: set[tuple[str, str, int]] = set()
+        # events a consumer's report carried for its producer (loop.HOLD_RECORDS_NS), and per
+        # stream the last seq the coordinator has, told to the consumers (control `have`)
+        self._carried: set[tuple[str, str, int]] = set()
+        self._have: dict[tuple[str, str], int] = {}
+        self._have_told: dict[tuple[str, str], int] = {}
+        self._feeds = {(e.src, e.src_port, e.dst) for e in graph.edges}
+        # reports handled, and reports sent as the node's processes said when they ended: Zenoh
+        # orders messages per key only, so a last report may come after the `done` status
+        self._reports = {nid: 0 for nid in graph.nodes}
+        self._reports_sent = {nid: 0 for nid in graph.nodes}
+        self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
+        self._failure: tuple[str, dict] | None = None
+        self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
+        self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
+        self._streams = {(nid, port) for nid, node in graph.nodes.items() for port in node.outputs}
+        # untyped flows may emit on ports no edge names (a dict step's extra keys)
+        self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
 
     # ---------------------------------------------------------------------------------------
     # Processes
@@ -155,13 +187,15 @@ class ZenohSession(Session):
         """PIDs of the worker processes, by node (for tests and tools)."""
         return {nid: p.pid for nid, p in self._workers.items()}
 
-    def _dump_stacks(self, nodes: list[str], wait: float = 1.0) -> None:
-        """Have these workers print every thread's Python stack to their stderr (SIGUSR1)."""
+    def _dump_stacks(self, nodes: list[str], wait: float = STACKS_WAIT_S, show: bool = True) -> None:
+        """Have these workers print every thread's Python stack to their stderr (SIGUSR1): on
+        the coordinator's stderr (``show``), or only kept for an error message that shows them."""
         before = {}
         for nid in nodes:
             proc = self._workers.get(nid)
             if proc is not None and proc.poll() is None:
                 before[nid] = self._output[nid].stderr_lines
+                self._output[nid].forwarding = show
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
@@ -186,7 +220,8 @@ class ZenohSession(Session):
             self.end_ns = until_ns
             self._control("start", {"t0": self.t0, "end": until_ns})
             slack = max(self._deadlines(), 1.0) + 10.0
-            self._await(lambda: all(s == "done" for s in self._state.values()),
+            self._await(lambda: all(s == "done" for s in self._state.values())
+                        and all(self._reports[n] >= self._reports_sent[n] for n in self._reports),
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
             self._stop_workers()
@@ -194,6 +229,30 @@ class ZenohSession(Session):
             raise
         self.now_ns = until_ns
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
+        self._check_every_flow_ticked()
+
+    def _check_every_flow_ticked(self) -> None:
+        """A flow with a rate that had ticks due in the run's window, and ran none, fails the
+        run (issue 17: a run of 50 flows exited 0 with 47 at 0 ticks): a run that looks fine
+        with flows missing is worse than none. Its worker's ``done`` says what it saw."""
+        idle = []
+        for nid, node in self.graph.nodes.items():
+            due = _ticks_due(node.clock, self.end_ns)
+            if due == 0 or self._stats[nid].ticks > 0:
+                continue
+            said = self._done_info.get(nid, {})
+            if said.get("ticks"):
+                why = f"its worker ran {said['ticks']} ticks, whose step records never reached the coordinator"
+            elif "started_ns" in said:
+                why = f"its worker ran none; the run's start reached it {said['started_ns'] / 1e9:.2f} s after T0"
+            else:
+                why = "its worker stopped before the run's start reached it"
+            idle.append(f"    {nid} ({node.clock!r}): 0 of {due} ticks; {why}")
+        if idle:
+            raise BackendError(f"zenoh run: {len(idle)} flow(s) never ticked in the run's {self.end_ns / 1e9:g} s, "
+                               "though their clocks had ticks due:\n" + "\n".join(idle)
+                               + "\n    hint: a machine too loaded to start the run's processes in time needs a "
+                               f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
 
     def _deadlines(self) -> float:
         deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
@@ -201,7 +260,7 @@ class ZenohSession(Session):
 
     def _await(self, condition, give_up: float, what: str) -> None:
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``."""
-        next_write = time.monotonic()
+        next_write = next_have = time.monotonic()
         while not condition():
             try:
                 item = self._inbox.get(timeout=0.02)
@@ -217,9 +276,13 @@ class ZenohSession(Session):
             if self.log is not None and now >= next_write:
                 self.write_log()
                 next_write = now + self.LOG_HANDOVER_S
+            if now >= next_have:
+                self._tell_have()
+                next_have = now + HAVE_EVERY_S
             if now > give_up:
-                waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done"))
-                self._dump_stacks(waiting)
+                waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done")
+                                 or self._reports[n] < self._reports_sent[n])
+                self._dump_stacks(waiting, show=False)  # the error below shows them
                 if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
                     for nid in waiting:
                         self._workers[nid].kill()
@@ -244,6 +307,7 @@ class ZenohSession(Session):
             if stats is None:
                 self._garbage(key, WireError(f"a report of an unknown node '{report.node}'"))
                 return
+            self._reports[report.node] += 1
             for wall, message in report.events:
                 self._event(key, report.node, wall, message)
             steps = self.trace.raw_steps
@@ -285,11 +349,30 @@ class ZenohSession(Session):
         node_counts = self._stats[node].counts
         for name, n in counts.items():
             node_counts[name] = node_counts.get(name, 0) + n
+        if state in ("done", "handed_over") and type(info.get("reports")) is int:
+            self._reports_sent[node] += info["reports"]
         if state == "failed":
             self._failure = (node, info)
         elif state == "restart":  # its old process keeps listening until the new one takes over
+            tag = info.get("tag")
+            budget = self._restarts[node]
+            tag = tuple(tag) if _is_tag(tag) else (self._run_time(), 0)
+            if not budget.take(tag[0]):
+                self._limit = RestartLimitError(node, tag, str(info.get("error", "")), budget.max_restarts,
+                                                budget.window_s)
+                self._failure = (node, {"error": str(self._limit)})
+                return
+            node_counts["restarts"] = node_counts.get("restarts", 0) + 1
             self._retiring[node] = self._workers[node]
             self._spawn(node, join=(self.t0, self.end_ns))
+            return
+        elif state == "ready" and info.get("linked") is False and self._failure is None:
+            # peers do not route for each other: a worker without a link to another would never
+            # get that one's events, nor it this one's
+            self._failure = (node, {"error": (
+                f"the worker of '{node}' has direct links to {info.get('peers')!r:.10} of the {len(self._state)} other "
+                f"processes of the run after {self.startup_timeout:g} s\n    hint: on a loaded machine, give it "
+                f"longer: pipe.run(..., startup_timeout=seconds)")})
             return
         elif state == "ready" and node in self._retiring:
             if self._state[node] == "done":  # the run ended while it restarted: stopped at close
@@ -300,15 +383,27 @@ class ZenohSession(Session):
             self._control("resume", {"node": node})
             return
         elif state == "done":
+            self._done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
             old = self._retiring.pop(node, None)
             if old is not None:
                 self._retired.append(old)
         self._state[node] = state
 
+    def _run_time(self) -> int:
+        """Now, in ns since T0 (0 before the start)."""
+        return max(0, time.time_ns() - self.t0) if self.t0 is not None else 0
+
     def _answer_finished(self, query) -> None:
         """Which nodes are done (a restarted flow's process waits for answers from the others)."""
         done = sorted(node for node, state in list(self._state.items()) if state == "done")
         query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done}))
+
+    def _answer_start(self, query) -> None:
+        """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
+        have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
+        t0 = self.t0
+        if t0 is not None:
+            query.reply(self.keys.start(), WireEncoder().control("start", {"t0": t0, "end": self.end_ns}))
 
     def _control(self, op: str, args: dict) -> None:
         self._hub.put(self.keys.run_control(), self._encoder.control(op, args), congestion_control=RELIABLE)
@@ -320,16 +415,43 @@ class ZenohSession(Session):
             self._garbage(key, e)
             return
         stream = (msg.producer, msg.port)
-        if msg.producer != node or (stream not in self._streams and node not in self._open_outputs):
+        event_id = (msg.producer, msg.port, msg.seq)
+        if msg.producer != node:  # carried by a consumer, for a producer whose report may be lost
+            if (msg.producer, msg.port, node) not in self._feeds:
+                self._garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
+                                             "which is no output port of it nor one it consumes"))
+            elif event_id not in self._event_ids:
+                self._carried.add(event_id)
+                self._take_event(event_id, msg, wall)
+            return
+        if stream not in self._streams and node not in self._open_outputs:
             self._garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
                                          "which is no output port of it"))
             return
-        event_id = (msg.producer, msg.port, msg.seq)
+        if event_id in self._carried:  # its producer's report came after all
+            self._carried.discard(event_id)
+            return
         if event_id in self._event_ids:
             self._garbage(key, WireError(f"event {event_id} arrived twice"))
             return
+        self._take_event(event_id, msg, wall)
+
+    def _take_event(self, event_id: tuple[str, str, int], msg, wall: int) -> None:
         self._event_ids.add(event_id)
+        producer, port, seq = event_id
+        have = self._have.get((producer, port), -1)
+        while (producer, port, have + 1) in self._event_ids:  # every seq up to it (carried ones may skip)
+            have += 1
+        self._have[(producer, port)] = have
         self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, wall))
+
+    def _tell_have(self) -> None:
+        """Tell the consumers which events the coordinator has (the last seq of each stream that
+        moved on since last told): they forget those messages and report the records that wait."""
+        moved = [[src, port, seq] for (src, port), seq in self._have.items() if self._have_told.get((src, port)) != seq]
+        if moved:
+            self._control("have", {"streams": moved})
+            self._have_told.update(((src, port), seq) for src, port, seq in moved)
 
     def _unspill(self, node: str, name: str) -> mmap.mmap:
         """A message a worker wrote to a file of the run directory: mapped (its arrays are views
@@ -376,6 +498,11 @@ class ZenohSession(Session):
         where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
         tag = info.get("tag")
         settings = self.graph.nodes[node].settings if node in self.graph.nodes else None
+        if self._limit is not None:
+            raise self._limit
+        cycle = next((c for c in self.graph.instantaneous_cycles if node in c), None)
+        if info.get("zeno") is True and cycle is not None and _is_tag(tag):
+            raise CausalityError(cycle, tuple(tag), self.graph.max_microsteps)
         if tag is not None and settings is not None and ".step() raised " in error:
             failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
             failure.args = (failure.args[0] + where,)
@@ -385,9 +512,10 @@ class ZenohSession(Session):
     # ---------------------------------------------------------------------------------------
     # Stopping
     # ---------------------------------------------------------------------------------------
-    def _stop_workers(self, grace: float = 5.0) -> None:
-        """Ask every live worker to stop, collect what they send, then make sure they are gone.
-        Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
+    def _stop_workers(self, grace: float = STOP_GRACE_S) -> None:
+        """Ask every live worker to stop, collect what they send, then make sure they are gone:
+        one still running after ``grace`` is stuck in a step, so its stacks are printed and it is
+        killed. Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
         if self._hub is None:
             return
         if self.t0 is None:
@@ -411,7 +539,15 @@ class ZenohSession(Session):
                 self._handle(self._inbox.get_nowait())
             except queue.Empty:
                 break
-        self._reap(grace=0.5)  # they had their grace: the ones left are stuck
+        stuck = sorted(nid for nid, p in [*self._workers.items(), *self._retiring.items()] if p.poll() is None)
+        if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
+            print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
+                  "then SIGKILL:", file=sys.stderr, flush=True)
+            self._dump_stacks(stuck)
+            for p in self._processes():
+                if p.poll() is None:
+                    p.kill()
+        self._reap(grace=0.5)
 
     def _reap(self, grace: float = 5.0) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
@@ -434,7 +570,7 @@ class ZenohSession(Session):
             return
         self._closed = True
         if any(p.poll() is None for p in self._processes()):
-            self._stop_workers(grace=2.0)
+            self._stop_workers()
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
         for output in self._output.values():
             output.drain(max(0.0, give_up - time.monotonic()))
@@ -449,6 +585,19 @@ class ZenohSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
+
+
+def _ticks_due(clock, end_ns: int) -> int:
+    """How many ticks of a rate clock fall in [0, end_ns) (ticks at offset + floor(k * 1e9 / hz),
+    clocks.Rate); 0 for a clock without a rate (a Trigger ticks only on what arrives)."""
+    hz = getattr(clock, "hz", None)
+    if hz is None or end_ns <= clock.offset_ns:
+        return 0
+    return math.ceil((end_ns - clock.offset_ns) * hz / NS_PER_S)
+
+
+def _is_tag(value: object) -> bool:
+    return type(value) is list and len(value) == 2 and all(type(x) is int for x in value)
 
 
 def _refuse_in_a_worker(graph: Graph) -> None:

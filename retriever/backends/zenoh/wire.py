@@ -113,6 +113,10 @@ class KeySpace:
     def run_control(self) -> str:
         return f"{self.prefix}/ctl/run"
 
+    def start(self) -> str:
+        """The coordinator's queryable: the run's ``start`` (T0 and the end), once there is one."""
+        return f"{self.prefix}/ctl/start"
+
     def workers(self, name: str = "*") -> str:
         return f"{self.prefix}/workers/{name}"
 

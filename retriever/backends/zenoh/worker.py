@@ -68,6 +68,12 @@ def _die_with_parent() -> None:
 #: says ready anyway (one that never answers has finished, or is stuck)
 NEIGHBOR_TIMEOUT_S = 10.0
 
+#: A worker that said ``ready`` and has not seen ``start`` after this long asks the coordinator's
+#: ``ctl/start`` queryable for it, and again every as long: a ``start`` put can be missed (at 50
+#: flows on 2 cores, 14 workers that said ready never saw it; the cause in Zenoh is not known),
+#: and a worker that missed it would wait until the run gave up on it.
+START_ASK_S = 0.5
+
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
 #: to), then the process exits anyway: a flow stuck in its step never looks at the request
 ORPHAN_GRACE_S = 3.0
@@ -165,12 +171,37 @@ def build_loop(spec: dict, node_id: str, session):
             fallbacks[port] = port_spec
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
+    cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
-                    inline=not on_a_cycle(ir.edges, node_id))
+                    inline=not on_a_cycle(ir.edges, node_id),
+                    cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
+                    max_microsteps=meta.get("max_microsteps", 1000))
+
+
+def instant_ports(ir, node_id: str) -> frozenset[str]:
+    """The output ports of ``node_id`` whose events trigger a tick at their own tag: those of its
+    undelayed edges into a trigger port (the node has no latency: it is on an instantaneous cycle)."""
+    from ...clocks import clock_from_ir
+
+    clocks = {n["id"]: clock_from_ir(n["config"]["clock"]) for n in ir.nodes}
+    ports = set()
+    for e in ir.edges:
+        src, dst = e["source"], e["destination"]
+        clock = clocks[dst["node"]]
+        if (src["node"] == node_id and not e.get("delay") and clock.triggered
+                and (not clock.trigger_ports or dst["port"] in clock.trigger_ports)):
+            ports.add(src["port"])
+    return frozenset(ports)
+
+
+def run_sessions(nodes: int) -> int:
+    """How many Zenoh sessions a run of ``nodes`` nodes has: a worker's each, and the hub (they
+    share the run's shared memory, hub.shm_pool_bytes)."""
+    return nodes + 1
 
 
 def on_a_cycle(edges: list[dict], node_id: str) -> bool:
@@ -243,7 +274,8 @@ def _serve(argv: list[str]) -> int:
     keys = KeySpace(spec["namespace"])
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
     access, dictionary = RunAccess.from_spec(spec["access"])
-    with open_peer(spec["hub"], access=access.session_config(dictionary)) as session:
+    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])),
+                   access=access.session_config(dictionary)) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
@@ -264,6 +296,7 @@ def _serve(argv: list[str]) -> int:
             loop.inbox.put(stop_item)
 
         signal.signal(signal.SIGTERM, on_sigterm)
+        started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
             if join is not None:  # a restarted flow: listen now, take the old process's place when told
@@ -287,24 +320,28 @@ def _serve(argv: list[str]) -> int:
             else:
                 loop.declare()
                 # a direct link to every other worker and the hub, before anything is published
-                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=20.0, stop=lambda: loop.stopping)
+                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=spec.get("startup_timeout", 60.0),
+                                        stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
-                status("ready", linked=linked, padding=bytes(READY_PADDING))
-                start = _await_control(loop, "start", node_id)
+                status("ready", linked=linked, peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
+                start = _await_control(loop, "start", node_id, ask=lambda: _ask_start(session, keys, loop))
                 if start is None:
                     status("done", counts=dict(loop.counts))
                     loop.undeclare()
                     return 0
                 t0, end = int(start["t0"]), int(start["end"])
+                # after T0 when the start came late (a loaded machine): after the end, no tick ran
+                started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
             loop.run(t0, end, resume=join is not None)
         except StopRun as exc:
             loop.release_held()
             loop.finish_reports()
             cause = exc.__cause__  # the exception a step raised: where in the flow's code
             status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
-                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None)
+                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
+                   zeno=exc.zeno)
             loop.undeclare()
             return EXIT_FAILED
         except BaseException as exc:
@@ -320,9 +357,9 @@ def _serve(argv: list[str]) -> int:
             tmp = handover_file.with_suffix(".tmp")
             tmp.write_bytes(state)
             tmp.replace(handover_file)
-            status("handed_over", counts=dict(loop.counts))
+            status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
             return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts))
+        status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
     return 0
 
@@ -345,16 +382,32 @@ def _finished_nodes(session, keys) -> set[str]:
     return done
 
 
-def _await_control(loop: NodeLoop, wanted: str, node_id: str) -> dict | None:
+def _ask_start(session, keys, loop: NodeLoop) -> None:
+    """Ask the coordinator for the run's start; its answer joins the loop's inbox as control."""
+    from .loop import _CONTROL
+
+    for reply in session.get(keys.start(), timeout=START_ASK_S):
+        if reply.ok is not None:
+            loop.inbox.put((_CONTROL, None, reply.ok.payload.to_bytes()))
+
+
+def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict | None:
     """Wait for the run's control to say ``wanted`` (to this node, if it names one): its
-    arguments; None on ``stop``. What else arrives meanwhile is put back in the loop's inbox."""
+    arguments; None on ``stop``. ``ask()``, if given, is called after every START_ASK_S without
+    it. What else arrives meanwhile is put back in the loop's inbox."""
+    import queue
+
     from .loop import _CONTROL
     from .wire import WireError, decode_control
 
     early = []
     try:
         while True:
-            item = loop.inbox.get()
+            try:
+                item = loop.inbox.get(timeout=START_ASK_S if ask is not None else None)
+            except queue.Empty:
+                ask()
+                continue
             if item[0] != _CONTROL:
                 early.append(item)
                 continue

@@ -101,8 +101,14 @@ def two_node_pipeline(name: str = "lifecycle", source_hz: float = SOURCE_HZ, sin
 # `retriever run tests/backends/zenoh/lifecycle_flows.py:pipe --backend zenoh ...` runs this one.
 pipe = two_node_pipeline()
 
-# counter @ 20 Hz beside nap @ 0.25 Hz, whose first step (at T0) lasts 2 s: stopped within those
-# 2 s, nap's last step record reaches the coordinator after counter's later ones.
+# counter @ 20 Hz beside nap @ 0.25 Hz, whose first step (at T0) lasts 1 s: stopped within that
+# second, nap's last step record reaches the coordinator after counter's later ones (a worker has
+# session.STOP_GRACE_S to finish its step and report after `stop`).
 with Pipeline("napping") as napping:
     Counter() @ Rate(hz=SOURCE_HZ)
-    Nap(nap=2.0) @ Rate(hz=0.25)
+    Nap(nap=1.0) @ Rate(hz=0.25)
+
+# counter @ 20 Hz beside nap, whose first step (at T0) does not return within any test
+with Pipeline("hung") as hung:
+    Counter() @ Rate(hz=SOURCE_HZ)
+    Nap(nap=600.0) @ Rate(hz=1)

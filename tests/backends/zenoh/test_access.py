@@ -156,6 +156,8 @@ def test_a_watcher_reads_the_data_and_cannot_write(tmp_path, namespace):
             while not seen and time.monotonic() < give_up:
                 time.sleep(0.02)
             assert seen, "the watcher saw no data"
+            # a query is no read: the coordinator's ctl/start never hears it
+            assert [r for r in watcher.get(keys.start(), timeout=1.0) if r.ok is not None] == []
             _attack(watcher, keys, time.monotonic() + RUN_S)
             sub.undeclare()
         assert set(seen) >= {keys.data("counter", "n"), keys.data("total", "n")}, sorted(set(seen))
@@ -206,6 +208,11 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
             while not seen and time.monotonic() < give_up:
                 time.sleep(0.02)
             assert seen, "the insider saw no data"
+            # what a worker that missed the start asks for: the run's T0 and end
+            from retriever.backends.zenoh.wire import decode_control
+            answers = [decode_control(r.ok.payload.to_bytes()) for r in insider.get(keys.start(), timeout=BOUND_S)
+                       if r.ok is not None]
+            assert [(op, args["end"]) for op, args in answers] == [("start", end)], answers
             claims = [
                 (keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0})),
                 (keys.progress("counter"), enc.progress((end + 10**10, 0), "counter", {"n": 0})),

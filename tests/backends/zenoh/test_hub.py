@@ -18,8 +18,11 @@ from retriever.backends.zenoh.hub import (
     DEFAULT_PORT,
     SHM_POOL_MAX,
     SHM_POOL_MIN,
+    SHM_POOL_RUN_MAX,
     SHM_POOL_SHARE,
+    free_port,
     open_hub,
+    open_peer,
     peer_config,
     port_is_free,
     shm_pool_bytes,
@@ -123,3 +126,57 @@ def test_the_shared_memory_pool_grows_with_what_dev_shm_has_free():
     assert shm_pool_bytes(12 << 30) == SHM_POOL_MAX
     optimization = json.loads(peer_config().get_json("transport/shared_memory/transport_optimization"))
     assert optimization["enabled"] and optimization["pool_size"] == shm_pool_bytes()
+
+
+def test_the_processes_of_a_run_share_one_shared_memory_budget():
+    """Every process of a run writes its whole pool: 50 flows at SHM_POOL_MAX each wrote 6.4 GB
+    while they started, and some never received the run's start. A run's pools together stay
+    within SHM_POOL_RUN_MAX (and the share of /dev/shm), each at least Zenoh's default."""
+    free = 24 << 30  # this machine's /dev/shm
+    assert shm_pool_bytes(free, sessions=3) == SHM_POOL_MAX, "a small run keeps the biggest pool"
+    for sessions in (11, 26, 51):
+        assert sessions * shm_pool_bytes(free, sessions=sessions) <= SHM_POOL_RUN_MAX
+    assert shm_pool_bytes(free, sessions=101) == SHM_POOL_MIN
+    assert shm_pool_bytes(SHM_POOL_SHARE * (480 << 20), sessions=10) == 48 << 20, "the /dev/shm share is split too"
+    optimization = json.loads(peer_config(sessions=51).get_json("transport/shared_memory/transport_optimization"))
+    assert optimization["pool_size"] == shm_pool_bytes(sessions=51)
+
+
+def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
+    """A ``start`` put can be missed (seen at 50 flows): a worker that said ready asks the
+    coordinator's ``ctl/start`` queryable every START_ASK_S until it has the start, which joins
+    its inbox like the put would have; other messages that came meanwhile stay for the loop."""
+    import queue
+    from collections import Counter
+
+    from retriever.backends.zenoh.loop import _DATA
+    from retriever.backends.zenoh.worker import _ask_start, _await_control
+    from retriever.backends.zenoh.wire import WireEncoder
+
+    keys = KeySpace("missed-start")
+    hub, at = open_hub(free_port())
+    asked = []
+
+    def answer(query) -> None:
+        asked.append(1)
+        if len(asked) >= 2:  # the coordinator has no start before the run's: no reply the first time
+            query.reply(keys.start(), WireEncoder().control("start", {"t0": 123, "end": 456}))
+
+    class Inbox:  # the part of a NodeLoop that _await_control uses
+        inbox: queue.SimpleQueue = queue.SimpleQueue()
+        counts: Counter = Counter()
+
+    loop = Inbox()
+    data = (_DATA, ("a", "b"), b"early")
+    loop.inbox.put(data)
+    with hub:
+        queryable = hub.declare_queryable(keys.start(), answer)
+        with open_peer(at) as worker:
+            start = _await_control(loop, "start", "n", ask=lambda: _ask_start(worker, keys, loop))
+        queryable.undeclare()
+    assert start == {"t0": 123, "end": 456}
+    assert len(asked) >= 2
+    left = []
+    while not loop.inbox.empty():
+        left.append(loop.inbox.get_nowait())
+    assert left == [data]

@@ -35,11 +35,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from retriever import BackendError, Flow, LogError, Pipeline, Rate, read_log
+from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
 from retriever.backends.zenoh.worker import build_loop
+from retriever.log import replay
 
-from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, two_node_pipeline
+from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, Total, two_node_pipeline
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -215,7 +216,7 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
         workers = _poll(going, "2 worker processes and a logged step")
         assert all(cmd.split()[-1] in ("counter", "total") for cmd in workers.values()), workers
         os.kill(proc.pid, sig)
-        assert proc.wait(timeout=BOUND_S) == 130, (tmp_path / "stderr.txt").read_text()
+        assert proc.wait(timeout=BOUND_S) == 128 + sig, (tmp_path / "stderr.txt").read_text()
     finally:
         _kill(proc)
     stderr = (tmp_path / "stderr.txt").read_text()
@@ -466,9 +467,10 @@ def test_a_worker_stuck_in_its_step_exits_when_its_coordinator_is_sigkilled(tmp_
           f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
 
 
-def test_a_run_whose_step_does_not_return_fails_with_that_steps_stack(namespace):
+def test_a_run_whose_step_does_not_return_fails_with_that_steps_stack(namespace, capsys):
     """A 0.3 s run whose nap node sleeps 600 s in its first step: the run fails after its
-    slack, naming the node and showing where its step is (the worker's stack, asked by SIGUSR1)."""
+    slack, naming the node and showing where its step is (the worker's stack, asked by SIGUSR1),
+    once: in the error, not also on stderr (it was printed twice)."""
     with Pipeline("hung") as pipe:
         Counter() @ Rate(hz=20)  # a node that finishes
         Nap(nap=600.0) @ Rate(hz=1)
@@ -476,8 +478,51 @@ def test_a_run_whose_step_does_not_return_fails_with_that_steps_stack(namespace)
         pipe.run(duration=0.3, backend="zenoh", namespace=namespace, quiet=True)
     message = str(caught.value)
     assert "worker(s) nap did not finish in time" in message, message
-    assert re.search(r'File ".*lifecycle_flows\.py", line \d+ in step', message), message
+    assert len(re.findall(r'File ".*lifecycle_flows\.py", line \d+ in step', message)) == 1, message
     assert "hint: the stacks show where a step that did not return is" in message, message
+    assert "lifecycle_flows.py" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_stops_a_cli_run_with_a_hung_step_promptly_printing_its_stack_once(tmp_path, sig):
+    """nap's first step never returns. SIGTERM (or Ctrl-C) to `retriever run`: the workers get
+    `stop`; nap cannot look at it, so after session.STOP_GRACE_S its stack is printed (once,
+    prefixed with the node) and it is killed. It took 7.7 s (5 s of grace, then SIGTERM, which a
+    loop only notes, then 2 s more before SIGKILL), and printed no stack."""
+    from retriever.backends.zenoh.session import STACKS_WAIT_S, STOP_GRACE_S
+
+    path = tmp_path / "run.mcap"
+    with open(tmp_path / "stderr.txt", "wb") as err:
+        proc = subprocess.Popen([str(RETRIEVER), "run", f"{FLOWS_FILE}:hung", "--backend", "zenoh", "--duration",
+                                 "60", "--log", str(path)], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+                                env=_env())
+    try:
+        def going() -> dict[Ident, str] | None:
+            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
+            workers = _worker_children(proc.pid)
+            try:
+                steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
+            except (LogError, OSError):
+                return None
+            # counter ticked past T0, so nap is inside its first step (at T0)
+            ticked = any(s.node == "counter" and s.tag[0] > 0 for s in steps)
+            return workers if len(workers) == 2 and ticked else None
+
+        workers = _poll(going, "the run going, nap in its first step")
+        os.kill(proc.pid, sig)
+        signalled = time.monotonic()
+        code = proc.wait(timeout=BOUND_S)
+        took = time.monotonic() - signalled
+    finally:
+        _kill(proc)
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert code == 128 + sig, stderr
+    # a bound from the structure, with a margin for a loaded machine: 7.7 s before
+    assert took < STOP_GRACE_S + STACKS_WAIT_S + 3.0, (took, stderr)
+    assert "worker(s) nap did not stop within" in stderr, stderr
+    assert len(re.findall(r'\[nap\] +File ".*lifecycle_flows\.py", line \d+ in step', stderr)) == 1, stderr
+    assert "Traceback" not in stderr, stderr
+    assert not [ident for ident in workers if _alive(ident)], "a worker outlived the CLI"
 
 
 SLOW_START = r"""
@@ -578,6 +623,52 @@ def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
     survivors = {node: ident for node, ident in idents.items() if _alive(ident)}
     assert not survivors, f"worker(s) {survivors} survived the failed run"
     assert pipe._session.worker_pids() == pids
+
+
+def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its_producer(tmp_path, namespace):
+    """A producer reports the events it published in batches (up to 20 ms old); a consumer that
+    got one may report its step first. SIGKILL the producer right then (the moment a consumer
+    record whose event the coordinator lacks shows up, or after 40 records if none ever does):
+    the producer's batch is lost, but every event a logged step consumed must still be in the
+    trace and the log (the consumer carries it), so the log replays. Before, it was missing."""
+    with Pipeline("killproducer") as pipe:
+        counter = Counter() @ Rate(hz=100)
+        total = Total().configure(name="total") @ Trigger()
+        counter.then(total, sync=Latest())
+    path = tmp_path / "run.mcap"
+    killed: dict[str, object] = {}
+    done = threading.Event()
+
+    def killer() -> None:
+        deadline = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < deadline:
+            session = pipe._session
+            if session is not None and session.t0 is not None:
+                steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
+                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session._event_ids]
+                if unknown or len(steps) >= 40:
+                    killed["race"] = bool(unknown)
+                    os.kill(session.worker_pids()["counter"], signal.SIGKILL)
+                    return
+            time.sleep(0.001)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(BackendError, match=r"worker process of 'counter' \(pid \d+\) exited with code -9"):
+            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True, log=path)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert killed, "the killer never saw the run going"
+    for trace in (pipe.trace, read_log(path, salvage=True).trace()):
+        ids = {ev.id for ev in trace.events}
+        consumed = [eid for s in trace.steps for eid_list in s.consumed.values() for eid in eid_list]
+        assert consumed, "no step consumed anything"
+        missing = sorted(set(consumed) - ids)
+        assert not missing, f"logged steps consumed events that are not logged: {missing[:5]} (race: {killed})"
+    report = replay(read_log(path, salvage=True))
+    assert report.identical, report.divergences[:3]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -28,9 +28,11 @@ import pytest
 
 import retriever
 import retriever.log
-from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, Window
+from retriever import BackendError, CausalityError, Latest, Pipeline, Rate, StepError, Trigger, Window
+from retriever.errors import RestartLimitError
 from retriever.trace import STEP_STATUSES, STEPPED
 
+from ..test_conformance import _cycle_pipeline, quiet_build
 from .semantics_flows import (
     BigStall,
     BigTicker,
@@ -212,6 +214,23 @@ def test_on_error_restart_runs_a_fresh_flow_in_a_new_process():
     assert min(r["x"] for r in after) > 3
     # the restarted flow continues the port's seqs (checked dense in check_trace_basics)
     assert [e.seq for e in trace.events_of("faulty", "report")] == list(range(len(before) + len(after)))
+
+
+def test_on_error_restart_stops_past_its_restart_budget():
+    """A flow that fails on every input, under on_error="restart" with max_restarts=2: its third
+    failure stops the run with the in-process RestartLimitError naming it, and the restarts are
+    counted (it was restarted 18 times in 5 s, and the run returned as if nothing happened)."""
+    with Pipeline("restart_budget") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=list(range(10_000)), message="always").configure(
+            name="faulty", on_error="restart", max_restarts=2, restart_window=60.0) @ Trigger("x")
+        src.then(bad, sync=Latest())
+    with pytest.raises(RestartLimitError, match=r"^flow 'faulty' failed again after 2 restart\(s\) within 60 s "
+                                                r"\(max_restarts=2, restart_window=60\): ValueError: always at x=\d+ "
+                                                r"\(tick at t=\d+\.\d+s m=0\)\n    hint: fix what makes 'faulty' fail"):
+        run(pipe, 30.0)  # a bound only: the third failure ends the run
+    assert pipe.stats()["faulty"].counts.get("restarts") == 2
+    assert [s.status for s in pipe.trace.steps_of("faulty")].count("error") == 3
 
 
 def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
@@ -696,3 +715,31 @@ def test_a_consumer_frozen_for_a_moment_still_gets_every_event():
     assert len(sent) >= 20
     assert got[-1:] == sent[-1:], f"the consumer's last frame is {got[-1:]}, the camera's {sent[-1:]}"
     assert got == sent, f"frames the consumer never got: {sorted(set(sent) - set(got))}"
+
+
+# =============================================================================================
+# 6. Zeno loops (DESIGN.md §3 Causality)
+# =============================================================================================
+def test_a_zeno_loop_stops_the_run_with_the_error_it_stops_with_in_process():
+    """monitor ⇄ policy, both zero-latency triggers, never stop: in-process the instant runs past
+    max_microsteps and the run stops with a CausalityError naming the cycle and the tag. On
+    zenoh each output is stamped when its step ends (ASAP), so time moves on at every hop; the
+    microstep counts the hops instead, and the run stops at the same count with the same error
+    (before this, it busy-looped for the whole duration and returned a trace)."""
+    errors = {}
+    for backend in ("inproc", "zenoh"):
+        pipe = _cycle_pipeline(limit=10**9, max_microsteps=50)
+        quiet_build(pipe)
+        with pytest.raises(CausalityError) as caught:
+            pipe.run(duration=3.0, backend=backend, **({"quiet": True} if backend == "zenoh" else {}))
+        errors[backend] = caught.value
+        assert max(s.tag[1] for s in pipe.trace.steps) <= 50, backend
+    inproc, zenoh = errors["inproc"], errors["zenoh"]
+    assert zenoh.cycle == inproc.cycle and set(zenoh.cycle) == {"monitor", "policy"}
+    assert zenoh.tag[1] == inproc.tag[1] == 50
+    assert zenoh.tag[0] > 0  # the instant began at the kick's HLC time, and time went on meanwhile
+    same = re.compile(r"the instant at t=\d+\.\d+s m=50 ran past max_microsteps=50 around the cycle "
+                      r"(monitor → policy → monitor|policy → monitor → policy)\n"
+                      r"    hint: break the cycle in time: give a flow on it latency=")
+    assert same.search(str(inproc)) and same.search(str(zenoh)), (str(inproc), str(zenoh))
+    assert str(zenoh).replace(f"{zenoh.tag[0] / 1e9:.9f}", "T") == str(inproc).replace("0.000000000", "T")

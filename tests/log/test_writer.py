@@ -1,0 +1,152 @@
+"""Where a run's log goes: an existing file is kept unless asked; a path that cannot be a log is
+refused before the run starts; a write the OS refuses during the run stops it with the path and
+the OS error; no message claims a run is in a file that does not hold it."""
+
+from __future__ import annotations
+
+import resource
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from retriever import LogError, read_log
+from retriever.errors import LogWriteError
+from retriever.log import recover, replay
+from tests.log import log_flows
+from tests.log.helpers import QUICKSTART, RETRIEVER, assert_cli_error, cli, cli_env
+
+NOTES = "my notes, not a log\n"
+EXISTS = r"the log .*notes\.mcap already exists; a run does not overwrite a file"
+EXISTS_HINT = r"pass --force \(retriever run\) or overwrite=True \(pipe\.run\) to replace it, or log to another path"
+#: file sizes the OS refuses to go past (RLIMIT_FSIZE): a disk that fills up during the run,
+#: after a few chunks (in-process chunks reach the writer's 1 MiB limit; a real-time quickstart
+#: log grows about 10 kB/s, its IR and metadata take 4 kB)
+FULL_AFTER_BYTES = {"inproc": 3_000_000, "zenoh": 20_000}
+
+
+@pytest.fixture
+def notes(tmp_path: Path) -> Path:
+    path = tmp_path / "notes.mcap"
+    path.write_text(NOTES, encoding="utf-8")
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# An existing file
+# ---------------------------------------------------------------------------------------------
+def test_a_run_does_not_overwrite_an_existing_file(notes: Path):
+    pipe = log_flows.build_small()
+    with pytest.raises(LogError, match=EXISTS + r"\n    hint: " + EXISTS_HINT):
+        pipe.run(duration=0.5, log=notes)
+    assert notes.read_text(encoding="utf-8") == NOTES
+    assert pipe.trace.steps == [], "the refused run must not have started"
+    trace = pipe.run(duration=0.5, log=notes, overwrite=True)
+    assert read_log(notes).trace() == trace
+
+
+def test_cli_run_refuses_an_existing_log_unless_forced(notes: Path):
+    assert_cli_error(cli("run", QUICKSTART, "--duration", "1", "--log", notes), "^error: " + EXISTS, hint=EXISTS_HINT)
+    assert notes.read_text(encoding="utf-8") == NOTES
+    forced = cli("run", QUICKSTART, "--duration", "1", "--log", notes, "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert replay(read_log(notes)).identical
+
+
+def test_a_refused_zenoh_run_starts_no_hub_and_no_worker(notes: Path):
+    """The check comes before the backend opens: no hub endpoint is printed, no worker started."""
+    result = cli("run", QUICKSTART, "--backend", "zenoh", "--duration", "1", "--log", notes)
+    assert_cli_error(result, "^error: " + EXISTS, hint=EXISTS_HINT)
+    assert "Zenoh hub listening" not in result.stdout + result.stderr
+    assert notes.read_text(encoding="utf-8") == NOTES
+
+
+def test_a_run_refused_after_the_file_was_created_removes_it(tmp_path: Path):
+    """A run refused once the log file exists (a second run= of a pipeline with log=) leaves no
+    empty file that would claim to hold it."""
+    pipe = log_flows.build_small()
+    pipe.run(duration=0.5)
+    with pytest.raises(Exception, match="log= records a run from T0"):
+        pipe.run(duration=0.5, log=tmp_path / "late.mcap")
+    assert not (tmp_path / "late.mcap").exists()
+
+
+def test_recover_does_not_overwrite_an_existing_file(notes: Path, tmp_path: Path):
+    log = tmp_path / "run.mcap"
+    log_flows.build_small().run(duration=0.5, log=log)
+    torn = tmp_path / "torn.mcap"
+    torn.write_bytes(log.read_bytes()[:-100])
+    with pytest.raises(LogError, match=r"notes\.mcap already exists; recover does not overwrite a file\n    hint: "
+                                       r"pass --force \(retriever log recover\) or overwrite=True"):
+        recover(torn, notes)
+    assert notes.read_text(encoding="utf-8") == NOTES
+    assert_cli_error(cli("log", "recover", torn, "-o", notes), "recover does not overwrite a file",
+                     hint=r"pass --force \(retriever log recover\)")
+    done = cli("log", "recover", torn, "-o", notes, "--force")
+    assert done.returncode == 0, done.stderr
+    assert read_log(notes).complete
+
+
+# ---------------------------------------------------------------------------------------------
+# A path that cannot be a log
+# ---------------------------------------------------------------------------------------------
+def test_a_folder_is_not_a_log(tmp_path: Path):
+    for overwrite in (False, True):
+        with pytest.raises(LogError, match=r"cannot create the log .*: it is a folder\n    hint: pass --log / log= a "
+                                           r"file path, e.g. .*run\.mcap"):
+            log_flows.build_small().run(duration=0.5, log=tmp_path, overwrite=overwrite)
+
+
+def test_a_log_that_takes_no_bytes_fails_before_the_run(tmp_path: Path):
+    """/dev/full opens, and refuses every write with ENOSPC: the first write, made before the
+    run starts, says so with the path."""
+    pipe = log_flows.build_small()
+    with pytest.raises(LogError, match=r"the log /dev/full already exists"):
+        pipe.run(duration=0.5, log="/dev/full")
+    with pytest.raises(LogWriteError, match=r"cannot write the log /dev/full: No space left on device \(ENOSPC\); "
+                                            r"the run did not start\n    hint: log to a disk with room"):
+        pipe.run(duration=0.5, log="/dev/full", overwrite=True)
+    assert pipe.trace.steps == []
+
+
+def test_cli_on_a_log_that_takes_no_bytes():
+    result = cli("run", QUICKSTART, "--duration", "1", "--log", "/dev/full", "--force")
+    assert_cli_error(result, r"^error: cannot write the log /dev/full: No space left on device \(ENOSPC\); "
+                             r"the run did not start", hint="log to a disk with room")
+    assert "is in /dev/full" not in result.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# The disk fills up during the run
+# ---------------------------------------------------------------------------------------------
+def _run_on_a_small_disk(log: Path, size: int, *args: str) -> subprocess.CompletedProcess:
+    """``retriever run quickstart --log LOG ARGS`` in a process whose files cannot grow past
+    ``size`` bytes (Python ignores SIGXFSZ, so a write past it fails with EFBIG)."""
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (size, size))
+
+    result = subprocess.run([str(RETRIEVER), "run", str(QUICKSTART), "--log", str(log), *args], capture_output=True,
+                            text=True, env=cli_env(), preexec_fn=limit, timeout=120)
+    result.stderr = "".join(line for line in result.stderr.splitlines(keepends=True)
+                            if not line.startswith("retriever: Zenoh hub listening"))  # zenoh's endpoint line
+    return result
+
+
+@pytest.mark.parametrize("backend", ["inproc", "zenoh"])
+def test_a_disk_that_fills_during_the_run_stops_it(tmp_path: Path, backend):
+    """A run of 1e6 s (in-process) or 60 s (real time) whose log stops growing: the run stops
+    within a flush interval, with the path and the OS error, and what reached the file is
+    salvaged by recover."""
+    log = tmp_path / "run.mcap"
+    size = FULL_AFTER_BYTES[backend]
+    result = _run_on_a_small_disk(log, size, "--backend", backend, "--duration", "1e6" if backend == "inproc" else "60")
+    assert_cli_error(result, r"^error: cannot write the log .*run\.mcap: File too large \(EFBIG\); the run was "
+                             r"stopped, and the file holds only what was written before",
+                     hint=r"log to a disk with room, or to a path that takes files \(`retriever log recover .*run"
+                          r"\.mcap` salvages what reached it\)")
+    assert "the run up to the error is in" not in result.stderr
+    assert log.stat().st_size <= size
+    salvaged = recover(log, tmp_path / "saved.mcap")
+    assert salvaged.steps > 0 and read_log(salvaged.output).complete
+    if backend == "inproc":  # a real-time log cut mid-run may hold a step whose output event was not written yet
+        assert replay(read_log(salvaged.output)).identical
