@@ -706,7 +706,9 @@ class NodeLoop:
         start = time.time_ns()
         try:
             outputs = list(self.read(self.invoke(values)))
-        except Exception as exc:
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error, as in-process
             wall = self.last_wall = time.time_ns() - start
             error = f"{type(exc).__name__}: {exc}"
             self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},

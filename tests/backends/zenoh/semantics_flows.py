@@ -9,6 +9,7 @@ value they got) through their outputs, never through shared objects.
 from __future__ import annotations
 
 import os
+import sys
 import signal
 import subprocess
 import threading
@@ -73,10 +74,11 @@ class Faulty(Flow[XIn, Report]):
     ``with_pid`` is false: a replay runs in another process). The call counter lives in
     ``reset()``, the state a restart must renew."""
 
-    def __init__(self, fail_at: list, message: str = "boom", with_pid: bool = True):
+    def __init__(self, fail_at: list, message: str = "boom", with_pid: bool = True, exit_code: int | None = None):
         self.fail_at = list(fail_at)
         self.message = message
         self.with_pid = with_pid
+        self.exit_code = exit_code  # sys.exit(exit_code) instead of raising, when set
         self.calls = 0
 
     def reset(self) -> None:
@@ -85,6 +87,8 @@ class Faulty(Flow[XIn, Report]):
     def step(self, inp: XIn) -> Report:
         self.calls += 1
         if inp.x in self.fail_at:
+            if self.exit_code is not None:
+                sys.exit(self.exit_code)
             raise ValueError(f"{self.message} at x={inp.x}")
         report = {"calls": self.calls, "x": inp.x}
         return Report({"pid": os.getpid(), **report} if self.with_pid else report)

@@ -189,6 +189,25 @@ def test_on_error_skip_tick_records_the_error_and_goes_on_with_the_same_state():
     assert counts(pipe)["garbage"] == 0
 
 
+def test_sys_exit_in_a_step_is_that_steps_error_as_in_process():
+    """sys.exit(3) in a step ended its worker process, and the run with a process that "exited
+    with code 3"; in-process it is the step's error (tests/test_errors.py): here too."""
+    with Pipeline("exits") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=[3], exit_code=3).configure(name="faulty", on_error="skip_tick") @ Trigger("x")
+        src.then(bad, sync=Latest())
+    trace = run(pipe, 1.0)
+    recs = trace.steps_of("faulty")
+    errors = [s for s in recs if s.status == "error"]
+    assert [detail(s) for s in errors] == [{"error": "SystemExit: 3", "on_error": "skip_tick"}], recs
+    assert all(s.status == "ok" for s in recs if s.tag > errors[0].tag) and recs[-1].tag > errors[0].tag
+    with Pipeline("exits_stop") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(Faulty(fail_at=[3], exit_code=3).configure(name="faulty") @ Trigger("x"), sync=Latest())
+    with pytest.raises(StepError, match=r"faulty\.step\(\) raised (RemoteError: )?SystemExit: 3"):
+        run(pipe, 1.0)
+
+
 def test_on_error_restart_runs_a_fresh_flow_in_a_new_process():
     pipe = faulty_pipeline("err_restart", "restart")
     trace = run(pipe, 2.0)
