@@ -15,9 +15,12 @@ from .errors import (
     InternalError,
     IRError,
     LogError,
+    LogWriteError,
+    RestartLimitError,
     RetrieverError,
     RetrieverWarning,
     StepError,
+    UnregisteredTypeError,
 )
 from .flow import EventStream, Flow, io
 from .ir import IR
@@ -29,7 +32,7 @@ from .trace import Event, StepRecord, Trace
 __all__ = sorted([
     "IR", "MISSING", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
-    "InternalError", "Latest", "LatestDistinct", "LogError", "Pipeline", "Queue", "Rate", "RetrieverError",
-    "RetrieverWarning", "StepError", "StepRecord", "SyncPolicy", "Trace", "Trigger", "Window",
-    "available_backends", "init", "io", "read_log",
+    "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "Queue", "Rate",
+    "RestartLimitError", "RetrieverError", "RetrieverWarning", "StepError", "StepRecord", "SyncPolicy", "Trace",
+    "Trigger", "UnregisteredTypeError", "Window", "available_backends", "init", "io", "read_log",
 ])

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 import msgpack
 import numpy as np
 
-from .errors import CodecError
+from .errors import CodecError, UnregisteredTypeError
 
 EXT_NDARRAY = 1
 EXT_TUPLE = 2
@@ -171,18 +171,37 @@ def _default(obj: Any) -> Any:
     return _extension(obj, packb)
 
 
+class _Depth(threading.local):
+    level = 0
+
+
+_depth = _Depth()
+
+
+def _nested(pack_nested: Callable[[Any], bytes], inner: Any) -> bytes:
+    """Pack what a tuple or dataclass holds, one level deeper: never past what decodes."""
+    if _depth.level >= MAX_EXT_DEPTH:
+        raise CodecError(f"a value nests tuples or dataclasses deeper than {MAX_EXT_DEPTH} levels, which this "
+                         f"codec does not decode\n    hint: nest tuples and @io dataclasses at most {MAX_EXT_DEPTH} deep")
+    _depth.level += 1
+    try:
+        return pack_nested(inner)
+    finally:
+        _depth.level -= 1
+
+
 def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType:
     """The extension type of anything but an ndarray; ``pack_nested`` encodes the values inside
     tuples and dataclasses (with the caller's array encoding)."""
     if isinstance(obj, np.generic):
         return msgpack.ExtType(EXT_NPSCALAR, _array_payload(np.asarray(obj)))
     if isinstance(obj, tuple):
-        return msgpack.ExtType(EXT_TUPLE, pack_nested(list(obj)))
+        return msgpack.ExtType(EXT_TUPLE, _nested(pack_nested, list(obj)))
     if isinstance(obj, int):  # beyond 64 bits
         return msgpack.ExtType(EXT_BIGINT, str(obj).encode())
     if is_value_type(type(obj)):
         fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
-        return msgpack.ExtType(EXT_DATACLASS, pack_nested([value_type_path(type(obj)), fields]))
+        return msgpack.ExtType(EXT_DATACLASS, _nested(pack_nested, [value_type_path(type(obj)), fields]))
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         raise CodecError(
             f"cannot encode a {type(obj).__module__}.{type(obj).__qualname__}: a dataclass that is not a "
@@ -233,7 +252,7 @@ def _dataclass(path: str, fields: dict, keep_unregistered: bool) -> Any:
     if cls is None:
         if keep_unregistered:
             return UnregisteredValue(path, fields)
-        raise CodecError(f"cannot decode a value of type {path[:200]!r}: no value type of that name is registered "
+        raise UnregisteredTypeError(f"cannot decode a value of type {path[:200]!r}: no value type of that name is registered "
                          "in this process, and decoding never imports or calls anything else\n"
                          "    hint: import the module that defines it (its @io class registers itself) before "
                          "decoding")

@@ -5,6 +5,7 @@
     ├── ClockError (ValueError)    a clock was declared with an impossible value
     ├── IRError                    an IR document is malformed, of another version, or names unknown things
     ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
+    │   └── UnregisteredTypeError  ... or decoded: it names a class this process registered no value type for
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
     │   └── RestartLimitError      ... once more than max_restarts within restart_window (on_error="restart")
@@ -67,6 +68,11 @@ class IRError(RetrieverError):
 
 class CodecError(RetrieverError, TypeError):
     """A value cannot be encoded (or decoded) by Retriever's msgpack codec."""
+
+
+class UnregisteredTypeError(CodecError):
+    """A value names a dataclass that is no value type registered in this process (``@io``);
+    decoding imports and calls nothing to find one."""
 
 
 class BackendError(RetrieverError):

@@ -345,8 +345,14 @@ def test_values_nested_as_deep_as_the_codec_decodes_round_trip():
     for _ in range(14):
         value = (value,)
     assert unpackb(packb(value)) == value
+    # one level more is refused when encoding: no process could decode it
     with pytest.raises(CodecError, match="deeper than 16 levels"):
-        unpackb(packb((value,)))
+        packb((value,))
+    from retriever.codec import OutOfBandEncoder
+
+    with pytest.raises(CodecError, match="deeper than 16 levels"):
+        OutOfBandEncoder().pack((value,))
+    assert unpackb(packb(value)) == value  # the depth count is back at 0 after the error
 
 
 def _ext(code: int, payload) -> bytes:

@@ -19,7 +19,7 @@ from mcap.records import Attachment, Channel, Footer, Message, Metadata
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
-from ..errors import CodecError, IRError, LogError
+from ..errors import CodecError, IRError, LogError, UnregisteredTypeError
 from ..ir import IR
 from ..trace import Event, StepRecord, Trace
 from . import format as fmt
@@ -128,10 +128,14 @@ class RunLog:
         ``keep_unregistered=True`` an inert :class:`retriever.codec.UnregisteredValue`."""
         try:
             return unpackb(event.raw_value, keep_unregistered=keep_unregistered)
-        except CodecError as e:
-            raise LogError(f"{self.path}: cannot decode event {event.node}.{event.port} #{event.seq}: {e}",
+        except UnregisteredTypeError as e:
+            raise LogError(f"{self.path}: cannot decode event {event.node}.{event.port} #{event.seq}: "
+                           f"{str(e).partition(chr(10))[0]}",
                            "import the modules that define the run's @io types before reading its values "
                            "(retriever replay imports the flows' modules the IR names)") from None
+        except CodecError as e:
+            raise LogError(f"{self.path}: event {event.node}.{event.port} #{event.seq} is damaged: "
+                           f"{str(e).partition(chr(10))[0]}", "the file was changed after it was written") from None
         except Exception as e:  # msgpack's own errors on a damaged value
             raise LogError(f"{self.path}: event {event.node}.{event.port} #{event.seq} is not valid msgpack "
                            f"({type(e).__name__})", "the file is damaged: retriever log recover") from None
