@@ -13,16 +13,42 @@ from typing import Annotated, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from .backends import default_backend
 from .errors import LogWriteError, RetrieverError, RetrieverWarning
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
-_out = Console()
-_err = Console(stderr=True, soft_wrap=True)
 _state = {"debug": False}
+
+
+def _visible(text: str) -> str:
+    """``text`` with its control characters shown escaped (``\\x1b``), newlines and tabs kept: a
+    log's or an IR's strings reach the terminal, where an escape sequence could retitle it,
+    recolour it or plant a hyperlink."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in text)
+
+
+class _Console(Console):
+    """Rich's console, but a string is never markup unless the call says ``markup=True`` (whose
+    text escapes what it interpolates), and its control characters are shown escaped."""
+
+    def print(self, *objects, **kwargs) -> None:
+        super().print(*(_visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
+
+
+def _cell(value: object) -> Text:
+    """A table cell holding a value that may come from a file: plain text, never markup."""
+    return Text(_visible(str(value)))
+
+
+_out = _Console(markup=False)
+_err = _Console(stderr=True, soft_wrap=True, markup=False)
 
 
 @app.callback()
@@ -35,7 +61,7 @@ def _fail(exc: BaseException) -> None:
         traceback.print_exception(exc)
     text = str(exc) if isinstance(exc, RetrieverError) else f"{type(exc).__name__}: {exc}"
     first, *rest = text.split("\n")
-    _err.print(f"[bold red]error:[/] {first}", highlight=False, markup=True)
+    _err.print(f"[bold red]error:[/] {escape(_visible(first))}", highlight=False, markup=True)
     listed = any(line.startswith("  - ") for line in rest)  # hints of listed problems stay under them
     for line in rest:
         if not listed and line.startswith("    hint:"):
@@ -82,6 +108,10 @@ def run(
     allow_errors: Annotated[bool, typer.Option(
         "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted "
                                "(on_error='skip_tick' or 'restart' absorbed them).")] = False,
+    secret: Annotated[Optional[Path], typer.Option(
+        help="zenoh: a deployment secret file (>= 16 bytes, mode 600) the run's passwords derive from, so "
+             "that processes holding it can join the run's namespace (--namespace).")] = None,
+    namespace: Annotated[Optional[str], typer.Option(help="zenoh: the run's namespace (default: a fresh one).")] = None,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
@@ -89,7 +119,8 @@ def run(
     before = _identity(log)
     signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
     try:
-        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force)
+        zenoh_options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
+        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **zenoh_options)
     except KeyboardInterrupt:
         recorded = _identity(log) not in (None, before)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
@@ -234,25 +265,29 @@ def replay(
         _out.print(f"re-simulated {path} to t={result.horizon_ns / 1e9:g} s with {source}: "
                    f"{result.steps_compared} steps and {result.events_compared} events compared", highlight=False)
         if result.identical:
-            _out.print("[bold green]identical[/]: the log is one run of this graph")
+            _out.print("[bold green]identical[/]: the log is one run of this graph", markup=True)
             return
-        _out.print(f"[bold red]DIVERGED[/]: {result.difference}", highlight=False)
+        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}", highlight=False, markup=True)
         raise typer.Exit(code=1)
     table = Table(title=f"replay of {path} ({source})", title_justify="left")
     for col in ("node", "steps", "replayed", "identical", "divergent"):
         table.add_column(col, justify="left" if col == "node" else "right")
     for node, n in result.nodes.items():
         if n.replayed == 0 and n.steps:
-            table.add_row(node, str(n.steps), "source", "", "")
+            table.add_row(_cell(node), str(n.steps), "source", "", "")
         else:
-            table.add_row(node, str(n.steps), str(n.replayed), str(n.identical),
-                          f"[bold red]{n.divergent}[/]" if n.divergent else "0")
+            table.add_row(_cell(node), str(n.steps), str(n.replayed), str(n.identical),
+                          Text(str(n.divergent), style="bold red") if n.divergent else "0")
     _out.print(table)
     if result.identical:
-        _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte")
+        cut = sum(n.cut for n in result.nodes.values())
+        _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte"
+                   + (f" ({cut} at the end not compared: the log was cut short and lost events they consumed or produced)"
+                      if cut else ""),
+                   markup=True)
         return
     _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
-               f"First:\n  {result.divergences[0]}", highlight=False)
+               f"First:\n  {escape(_visible(str(result.divergences[0])))}", highlight=False, markup=True)
     raise typer.Exit(code=1)
 
 
@@ -262,7 +297,13 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
     from .log.reader import run_info
 
     log = _read(path)
-    info = run_info(log)
+    try:
+        _print_info(path, log, run_info(log))
+    except Exception as exc:  # a damaged or forged log: its records or metadata do not parse
+        _fail(exc)
+
+
+def _print_info(path: Path, log, info: dict) -> None:
     run, end = log.run, log.end or {}
     state = "complete" if log.end else "incomplete (no end record: the run was killed)"
     if "retriever.recovered" in log.metadata:
@@ -274,11 +315,11 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
              ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
-             ("command", " ".join(json.loads(run.get("command_line", "[]"))))]
+             ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
     if end.get("counts"):
-        lines.insert(4, ("counted", _counters(json.loads(end["counts"]))))
+        lines.insert(4, ("counted", _counters(_metadata_json(path, "counts", end["counts"], dict))))
     for key, value in lines:
-        _out.print(f"[bold]{key:>12}[/]  {value}", highlight=False)
+        _out.print(Text.assemble((f"{key:>12}", "bold"), "  ", _visible(str(value))), highlight=False)
     table = Table(title="channels", title_justify="left")
     for col in ("topic", "type", "messages", "first (s)", "last (s)", "rate (Hz)"):
         table.add_column(col, justify="left" if col in ("topic", "type") else "right")
@@ -286,17 +327,31 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
         count = info["counts"].get(channel.topic, 0)
         lo, hi = info["span"].get(channel.topic, (0, 0))
         rate = f"{(count - 1) / ((hi - lo) / 1e9):.4g}" if count > 1 and hi > lo else ""
-        table.add_row(channel.topic, channel.metadata.get("type", ""), str(count),
+        table.add_row(_cell(channel.topic), _cell(channel.metadata.get("type", "")), str(count),
                       f"{lo / 1e9:g}" if count else "", f"{hi / 1e9:g}" if count else "", rate)
     _out.print(table)
     statuses = Table(title="steps by status", title_justify="left")
     names = sorted({s for node in info["statuses"].values() for s in node})
     statuses.add_column("node")
     for name in names:
-        statuses.add_column(name, justify="right")
+        statuses.add_column(_cell(name), justify="right")
     for node, counts in sorted(info["statuses"].items()):
-        statuses.add_row(node, *(str(counts.get(name, 0)) for name in names))
+        statuses.add_row(_cell(node), *(str(counts.get(name, 0)) for name in names))
     _out.print(statuses)
+
+
+def _metadata_json(path: Path, key: str, text: str, kind: type):
+    """A JSON value of the log's metadata, or a LogError naming the file and the key."""
+    from .errors import LogError
+
+    try:
+        value = json.loads(text)
+    except (TypeError, ValueError):
+        value = None
+    if not isinstance(value, kind):
+        raise LogError(f"{path}: its metadata '{key}' is not a JSON {kind.__name__} ({str(text)[:60]!r})",
+                       "the file was changed after it was written")
+    return value
 
 
 @log_app.command("cat")

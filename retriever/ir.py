@@ -11,6 +11,7 @@ import base64
 import binascii
 import json
 import math
+import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +38,8 @@ SCRIPT_FOLDER_ATTR = "__retriever_folder__"
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
+#: what a node id may be: one segment of the key space (flow ``configure(name=)`` checks the same)
+NODE_ID = r"[A-Za-z_][A-Za-z0-9_\-]*"
 #: microsteps one instant may run before the run stops with a Zeno-loop error
 DEFAULT_MAX_MICROSTEPS = 1000
 
@@ -357,8 +360,9 @@ def validate_doc(doc: Any, source: str) -> None:
         if not _expect(problems, where, n, dict, "an object"):
             continue
         nid = n.get("id")
-        if not isinstance(nid, str) or not nid:
-            problems.append(f"{where}.id: expected a non-empty string")
+        if not isinstance(nid, str) or not re.fullmatch(NODE_ID, nid):
+            problems.append(f"{where}.id: expected a node name of letters, digits, _ and - (it becomes a key-space "
+                            f"segment), got {nid!r:.60}")
             continue
         where = f"node '{nid}'"
         if nid in ids:

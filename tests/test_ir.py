@@ -598,6 +598,7 @@ def _node(doc: dict, nid: str = "planner") -> dict:
     (lambda d: d["metadata"].update(deadline=10**400), r"metadata\.deadline: deadline must be at most 9\.223e\+09 s"),
     (lambda d: d["metadata"].update(max_microsteps=0), r"metadata\.max_microsteps: max_microsteps must be an integer from 1 .*, got 0"),
     (lambda d: d["metadata"].update(name=""), r"metadata\.name: expected the pipeline name \(a non-empty string\)"),
+    (lambda d: d["nodes"][0].update(id="../../etc/x"), r"nodes\[0\]\.id: expected a node name of letters, digits"),
     (lambda d: _node(d, "logger")["config"].update(clock={"Trigger": {"ports": True}}), r"node 'logger'\.config\.clock"),
     (lambda d: _node(d, "camera")["config"].update(clock={"Rate": {"hz": 10**400}}), r"node 'camera'\.config\.clock"),
 ])

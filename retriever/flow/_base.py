@@ -365,7 +365,7 @@ class Flow(Generic[In, Out]):
         s = self._retriever
         owner = type(self).__qualname__
         if name is not None:
-            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):
+            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):  # ir.NODE_ID
                 raise ValueError(f"{owner}: node name {name!r} must be an identifier-like str "
                                  "(letters, digits, _ and -; it becomes a key-space segment)")
             s.name = name

@@ -118,7 +118,15 @@ class RunLog:
     def add_import_paths(self) -> None:
         """Put the folders the run imported its flows from on ``sys.path`` (those that exist
         here), so its classes can be imported again from any working directory."""
-        for root in reversed(json.loads(self.run.get("python_path", "[]") or "[]")):
+        try:
+            roots = json.loads(self.run.get("python_path", "[]") or "[]")
+        except ValueError:
+            roots = None
+        if type(roots) is not list or not all(type(root) is str for root in roots):
+            raise LogError(f"{self.path}: the run record's python_path is not a JSON list of folders",
+                           "the file was changed after it was written; give the pipeline yourself: "
+                           "retriever replay LOG --pipeline FILE")
+        for root in reversed(roots):
             if root not in sys.path and os.path.isdir(root):
                 sys.path.insert(0, root)
 

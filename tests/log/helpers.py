@@ -79,3 +79,42 @@ def flip(path: Path, offset: int, out: Path) -> Path:
 def cut(path: Path, size: int, out: Path) -> Path:
     out.write_bytes(path.read_bytes()[:size])
     return out
+
+
+def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None) -> Path:
+    """A copy of the log ``src`` made with the ``mcap`` writer, as a forger would: ``metadata(name,
+    dict)`` changes a metadata record in place, ``keep(topic, message)`` drops messages it says no
+    to, ``add`` holds metadata records to add ({name: {key: value}})."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as f:
+        reader = make_reader(f)
+        header = reader.get_header()
+        messages = list(reader.iter_messages())
+        attachments = list(reader.iter_attachments())
+        metas = list(reader.iter_metadata())
+    with open(dst, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile=header.profile, library=header.library)
+        channels: dict[int, int] = {}
+        for _, channel, message in messages:
+            if keep is not None and not keep(channel.topic, message):
+                continue
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, 0,
+                                                               dict(channel.metadata))
+            writer.add_message(channels[channel.id], log_time=message.log_time, data=message.data,
+                               publish_time=message.publish_time, sequence=message.sequence)
+        for a in attachments:
+            writer.add_attachment(create_time=a.create_time, log_time=a.log_time, name=a.name,
+                                  media_type=a.media_type, data=a.data)
+        for record in metas:
+            values = dict(record.metadata)
+            if metadata is not None:
+                metadata(record.name, values)
+            writer.add_metadata(record.name, values)
+        for name, values in (add or {}).items():
+            writer.add_metadata(name, values)
+        writer.finish()
+    return dst

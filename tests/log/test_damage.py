@@ -16,6 +16,7 @@ from retriever import LogError, read_log
 from retriever._loading import load_pipeline
 from retriever.backends.inproc import InprocSession
 from retriever.log import Divergence, LogWriter, recover, replay, resim
+from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import (
     QUICKSTART,
     assert_cli_error,
@@ -25,6 +26,7 @@ from tests.log.helpers import (
     cut,
     records,
     flip,
+    rewrite,
 )
 
 RECOVER_HINT = (r"(`retriever log recover .*` writes a readable copy of everything before the damage|no message comes "
@@ -623,3 +625,83 @@ def test_a_flipped_byte_early_in_a_log_is_corruption_not_a_stopped_writer(one_ch
         result = cli(*command, damaged)
         assert_cli_error(result, r"^error: .*flipped\.mcap " + corrupt)
         assert "writer was stopped" not in result.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# Forged strings in a log reach the terminal inert; a log cut short replays what it holds
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture
+def small_log(tmp_path: Path) -> Path:
+    from tests.log.log_flows import build_small
+
+    path = tmp_path / "small.mcap"
+    build_small().run(duration=0.5, log=path)
+    return path
+
+
+def test_a_logs_strings_reach_the_terminal_as_text_not_escape_codes_or_markup(small_log, tmp_path):
+    """``log info`` printed a log's host as Rich markup with its control characters: an escape
+    sequence retitled the terminal, recoloured it, planted a hyperlink; a stray ``[/]`` crashed it."""
+    host = "\x1b]0;TITLE\x07\x1b[31mRED[/] [link=http://evil]click[/link]"
+
+    def forge(name, values):
+        if name == "retriever.run":
+            values["host"] = host
+
+    result = cli("log", "info", rewrite(small_log, tmp_path / "forged.mcap", metadata=forge))
+    assert result.returncode == 0, result.stderr
+    assert "\x1b" not in result.stdout and "\x07" not in result.stdout
+    assert r"\x1b]0;TITLE\x07\x1b[31mRED[/] [link=http://evil]click[/link]" in result.stdout, result.stdout
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("command_line", "not json", r"its metadata 'command_line' is not a JSON list \('not json'\)"),
+    ("packages", "[1, 2]", r"the run record's packages are not a JSON object of versions"),
+])
+def test_log_info_on_forged_metadata_is_an_error_not_a_traceback(small_log, tmp_path, key, value, message):
+    def forge(name, values):
+        if name == "retriever.run":
+            values[key] = value
+
+    result = cli("log", "info", rewrite(small_log, tmp_path / "forged.mcap", metadata=forge))
+    assert_cli_error(result, r"^error: .*" + message)
+
+
+def test_an_error_keeps_its_bracketed_text(small_log, tmp_path):
+    """The first line of an error was printed as markup: ``[node, microstep, …]`` vanished."""
+    import msgpack
+
+    def keep(topic, message):
+        if topic == "steps":
+            message.data = msgpack.packb(["counter", 0, {}, [], "ok", None, 1.5])  # wall_ns a float
+        return True
+
+    result = cli("log", "cat", "--steps", rewrite(small_log, tmp_path / "forged.mcap", keep=keep))
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert "(it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step)" in \
+        result.stderr.splitlines()[0], result.stderr
+
+
+def test_a_log_cut_short_replays_the_steps_it_holds(small_log, tmp_path):
+    """A step record can outlive the events it produced when a log is cut (its writer killed, or
+    damage, then ``recover``): replay re-executes it but cannot compare it, and says so; before, it
+    reported the honest run as DIVERGED (``<not in the log: the log ends here>``). A complete log
+    that lacks an event is no record of the run: that stays a divergence."""
+    log = read_log(small_log)
+    last = max((s for s in log.iter_steps() if s.produced and s.node == "accumulate"), key=lambda s: s.tag)
+    lost = set(last.produced)
+
+    def keep(topic, message) -> bool:
+        return not (topic.startswith("data/") and (*topic[len("data/"):].split("/"), message.sequence) in lost)
+
+    assert not replay(read_log(rewrite(small_log, tmp_path / "missing.mcap", keep=keep))).identical
+    cut = rewrite(small_log, tmp_path / "cut.mcap", keep=keep,
+                  add={RECOVERED_METADATA: {"source": str(small_log)}})  # as `retriever log recover` marks it
+    report = replay(read_log(cut))
+    assert report.identical, report.divergences
+    # the step that produced the lost event, and the one that consumed it
+    assert (report.nodes["accumulate"].cut, report.nodes["tally"].cut) == (1, 1)
+    result = cli("replay", cut)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "(2 at the end not compared: the log was cut short and lost events they consumed or produced)" in \
+        result.stdout.replace("\n", " ")

@@ -238,3 +238,23 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
     report = retriever.log.replay(retriever.read_log(run.log))
     assert report.identical, "\n".join(map(str, report.divergences))
 
+
+
+def test_retriever_run_takes_the_secret_and_refuses_one_others_can_read(tmp_path):
+    secret = tmp_path / "secret"
+    secret.write_text("0123456789abcdef0123456789abcdef")
+    secret.chmod(0o644)
+    result = subprocess.run([str(Path(sys.executable).parent / "retriever"), "run",
+                             "tests/backends/zenoh/lifecycle_flows.py:pipe", "--backend", "zenoh", "--duration", "0.2",
+                             "--secret", str(secret), "--namespace", "cli-secret"],
+                            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert result.stderr.startswith("error: the secret file"), result.stderr
+    assert "can be read by other users (mode 644)" in result.stderr and "hint: chmod 600" in result.stderr
+    secret.chmod(0o600)
+    result = subprocess.run([str(Path(sys.executable).parent / "retriever"), "run",
+                             "tests/backends/zenoh/lifecycle_flows.py:pipe", "--backend", "zenoh", "--duration", "0.2",
+                             "--secret", str(secret), "--namespace", "cli-secret"],
+                            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "namespace 'cli-secret'" in result.stderr
