@@ -32,6 +32,8 @@ import time
 import weakref
 from pathlib import Path
 
+import zenoh
+
 from ...errors import BackendError, CausalityError, RestartLimitError, StepError
 from ...graph import Graph
 from ...time import NS_PER_S
@@ -577,7 +579,14 @@ class ZenohSession(Session):
         if self._hub is not None:
             for sub in getattr(self, "_subscribers", ()):
                 sub.undeclare()
-            self._hub.close()
+            try:
+                self._hub.close()
+            except zenoh.ZError as e:
+                # Zenoh gives up after 10 s on a link whose peer stopped reading (a watcher
+                # suspended with SIGSTOP, its socket full): the run is over and recorded all the
+                # same; the hub's session goes with this process
+                print(f"retriever: the run's hub did not close in time: a peer connected to it stopped reading "
+                      f"(a suspended watcher?) ({e})", file=sys.stderr, flush=True)
             self._hub = None
             await_segments_released(self._hub_segments)  # so that exit() can remove them
         shutil.rmtree(self._dir, ignore_errors=True)

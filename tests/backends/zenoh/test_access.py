@@ -258,3 +258,58 @@ def test_retriever_run_takes_the_secret_and_refuses_one_others_can_read(tmp_path
                             cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "namespace 'cli-secret'" in result.stderr
+
+
+SUSPENDED_WATCHER = r"""
+import sys, time, zenoh
+got = []
+with zenoh.open(zenoh.Config.from_file(sys.argv[1])) as watcher:
+    sub = watcher.declare_subscriber(sys.argv[2], lambda sample: got.append(1))
+    while not got:
+        time.sleep(0.01)
+    print("watching", flush=True)
+    time.sleep(600)  # SIGSTOPped here, then SIGKILLed by the test
+"""
+
+BIG_RUN = r"""
+import json, sys
+from retriever import Latest, Pipeline, Rate, Trigger
+from tests.backends.zenoh.semantics_flows import BigTicker, Echo
+
+with Pipeline("watched") as pipe:
+    cam = BigTicker(size=2_000_000).configure(name="cam") @ Rate(hz=25)
+    cam.then(Echo().configure(name="sink") @ Trigger("x"), sync=Latest())
+pipe.run(duration=4.0, backend="zenoh", namespace=sys.argv[1])
+print(json.dumps({n: [s.ticks, s.steps] for n, s in pipe.stats().items()}), flush=True)
+"""
+
+
+def test_a_watcher_that_stops_reading_neither_stalls_nor_fails_the_run(namespace):
+    """A watcher suspended (SIGSTOP) while 2 MB frames stream to it fills its socket: the run's
+    events go peer to peer and every tick is made; the hub's close, which waits on that link,
+    timed out and raised a bare ZError from pipe.run. Now the run ends, saying why it was slow."""
+    import signal
+
+    run = subprocess.Popen([sys.executable, "-c", BIG_RUN, namespace], cwd=ROOT, env=_env(),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    watcher = None
+    try:
+        path = None
+        for line in run.stderr:
+            found = WATCH_LINE.search(line)
+            if found:
+                path = found.group(1)
+                break
+        assert path, "the run printed no watcher config"
+        watcher = subprocess.Popen([sys.executable, "-c", SUSPENDED_WATCHER, path, KeySpace(namespace).all_data()],
+                                   stdout=subprocess.PIPE, text=True)
+        assert watcher.stdout.readline() == "watching\n"
+        os.kill(watcher.pid, signal.SIGSTOP)
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        for proc in (run, watcher):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    assert run.returncode == 0, err
+    assert json.loads(out.splitlines()[-1]) == {"cam": [100, 100], "sink": [100, 100]}
