@@ -43,6 +43,10 @@ class Clock:
     def to_ir(self) -> dict:
         raise NotImplementedError
 
+    def triggers_on(self, port: str) -> bool:
+        """Whether an event arriving on input ``port`` makes a tick (no ports named: any)."""
+        return self.triggered and (not self.trigger_ports or port in self.trigger_ports)
+
     def __eq__(self, other: object) -> bool:
         return type(self) is type(other) and self.to_ir() == other.to_ir()
 

@@ -53,8 +53,7 @@ class Node:
         return self.settings.clock  # type: ignore[return-value]
 
     def triggers_on(self, port: str) -> bool:
-        clock = self.clock
-        return clock.triggered and (not clock.trigger_ports or port in clock.trigger_ports)
+        return self.clock.triggers_on(port)
 
 
 @dataclass

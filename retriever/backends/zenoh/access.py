@@ -65,6 +65,15 @@ def read_secret(path: str | os.PathLike) -> bytes:
     return data
 
 
+def secret_bytes(secret: str | os.PathLike | bytes | None) -> bytes | None:
+    """The deployment secret: given as bytes, or as the path of a file holding it (read_secret)."""
+    if secret is None or isinstance(secret, bytes):
+        if secret is not None and len(secret) < SECRET_MIN_BYTES:
+            raise AccessError(f"a secret needs at least {SECRET_MIN_BYTES} bytes, got {len(secret)}")
+        return secret
+    return read_secret(secret)
+
+
 @dataclass(frozen=True)
 class RunAccess:
     """A run's credentials: the password of its own processes and the watchers' password."""

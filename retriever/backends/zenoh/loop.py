@@ -562,9 +562,10 @@ class NodeLoop:
             except WireError as e:
                 self._garbage(key, e)
                 return
-            self._arrived(key, data, self.now())
+            arrival = time.time_ns()
+            self._arrived(key, data, arrival - self.t0)
             if msg.seq > self.have.get(key, -1):
-                self.kept[(msg.producer, msg.port, msg.seq)] = (time.time_ns(), data)
+                self.kept[(msg.producer, msg.port, msg.seq)] = (arrival, data)
             self._in_order(key, msg)
         elif kind == _NUDGE:
             return
@@ -606,11 +607,13 @@ class NodeLoop:
             return
         if frontier > NEVER:
             raise WireError(f"frontier {frontier} of {stream[0]} is past every tag a run has")
-        if self.end:  # the run has started: its end is known
-            limit = max(self.end + self.src_latency_ns[stream] + 1, self.now() + CLOCK_AHEAD_MAX_NS)
+        if self.end and frontier[0] > self.end + self.src_latency_ns[stream] + 1:  # the run started: end known
+            # past the run's end plus the producer's latency only an ASAP stamp can be, near the clock
+            limit = self.now() + CLOCK_AHEAD_MAX_NS
             if frontier[0] > limit:
-                raise WireError(f"frontier {frontier} of {stream[0]} is past what it can promise now "
-                                f"(t <= {limit} ns: the run's end plus its latency, or its clock)")
+                raise WireError(f"frontier {frontier} of {stream[0]} is past what it can promise now (t <= "
+                                f"{self.end + self.src_latency_ns[stream] + 1} ns, the run's end plus its latency, "
+                                f"or {limit} ns, its clock)")
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
         """Note when a stream's message came, to foresee its next one (see WARM_AHEAD_NS)."""

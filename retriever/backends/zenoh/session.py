@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import atexit
 import json
-import math
 import mmap
 import os
 import queue
@@ -36,10 +35,9 @@ import zenoh
 
 from ...errors import BackendError, CausalityError, RestartLimitError, StepError
 from ...graph import Graph
-from ...time import NS_PER_S
 from ...trace import STEPPED
 from ..base import NodeStats, RestartBudget, Session
-from .access import SECRET_MIN_BYTES, AccessError, RunAccess, read_secret, write_private
+from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
@@ -90,7 +88,7 @@ class ZenohSession(Session):
         self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = KeySpace(self.namespace)
         try:
-            self._access = RunAccess.create(self.namespace, _secret_bytes(secret))
+            self._access = RunAccess.create(self.namespace, secret_bytes(secret))
         except AccessError as e:
             raise BackendError(str(e)) from None
         self.startup_timeout = startup_timeout
@@ -597,12 +595,10 @@ class ZenohSession(Session):
 
 
 def _ticks_due(clock, end_ns: int) -> int:
-    """How many ticks of a rate clock fall in [0, end_ns) (ticks at offset + floor(k * 1e9 / hz),
-    clocks.Rate); 0 for a clock without a rate (a Trigger ticks only on what arrives)."""
-    hz = getattr(clock, "hz", None)
-    if hz is None or end_ns <= clock.offset_ns:
-        return 0
-    return math.ceil((end_ns - clock.offset_ns) * hz / NS_PER_S)
+    """How many ticks of a rate clock fall in [0, end_ns): the first at or after the end counts
+    them; 0 for a clock without a rate (a Trigger ticks only on what arrives)."""
+    first_at_or_after = getattr(clock, "first_tick_at_or_after", None)
+    return first_at_or_after(end_ns) if first_at_or_after is not None else 0
 
 
 def _is_tag(value: object) -> bool:
@@ -630,15 +626,6 @@ def _check_deployable(graph: Graph) -> None:
                            "params), and these flows cannot be rebuilt that way:\n" + "\n".join(problems)
                            + "\n    hint: define flow classes at a module's top level and give them "
                            "msgpack-serializable constructor arguments, or run in-process: backend=\"inproc\"")
-
-
-def _secret_bytes(secret: str | os.PathLike | bytes | None) -> bytes | None:
-    """The deployment secret: given as bytes, or as the path of a file holding it."""
-    if secret is None or isinstance(secret, bytes):
-        if secret is not None and len(secret) < 16:
-            raise AccessError(f"a secret needs at least {SECRET_MIN_BYTES} bytes, got {len(secret)}")
-        return secret
-    return read_secret(secret)
 
 
 def _run_dir() -> Path:

@@ -191,9 +191,7 @@ def instant_ports(ir, node_id: str) -> frozenset[str]:
     ports = set()
     for e in ir.edges:
         src, dst = e["source"], e["destination"]
-        clock = clocks[dst["node"]]
-        if (src["node"] == node_id and not e.get("delay") and clock.triggered
-                and (not clock.trigger_ports or dst["port"] in clock.trigger_ports)):
+        if src["node"] == node_id and not e.get("delay") and clocks[dst["node"]].triggers_on(dst["port"]):
             ports.add(src["port"])
     return frozenset(ports)
 

@@ -63,19 +63,25 @@ class Run:
                                       *([str(secret)] if secret else [])],
                                      cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
-        self.reader = threading.Thread(target=lambda: self.lines.extend(self.proc.stderr), daemon=True)
+        self.watch_path: Path | None = None
+        self.printed = threading.Event()  # the watcher config line came, or stderr ended without it
+        self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
 
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line)
+            found = WATCH_LINE.search(line)
+            if found and self.watch_path is None:
+                self.watch_path = Path(found.group(1))
+                self.printed.set()
+        self.printed.set()
+
     def watch_config(self) -> Path:
-        give_up = time.monotonic() + BOUND_S
-        while time.monotonic() < give_up:
-            for line in list(self.lines):
-                found = WATCH_LINE.search(line)
-                if found:
-                    return Path(found.group(1))
-            assert self.proc.poll() is None, "".join(self.lines)
-            time.sleep(0.02)
-        raise AssertionError("the run printed no watcher config:\n" + "".join(self.lines))
+        """The watcher config file the run printed (once it has: the hub is up)."""
+        self.printed.wait(BOUND_S)
+        assert self.watch_path is not None, "the run printed no watcher config:\n" + "".join(self.lines)
+        return self.watch_path
 
     def result(self) -> dict:
         out, _ = self.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
@@ -94,6 +100,18 @@ def namespace() -> str:
     return f"access-{os.getpid()}-{time.monotonic_ns() % 10**9}"
 
 
+def _subscribe(session: zenoh.Session, keys: KeySpace) -> tuple[list[str], threading.Event, object]:
+    """Subscribe to the run's data: the keys seen, an event set at the first, the subscriber."""
+    seen: list[str] = []
+    first = threading.Event()
+
+    def on_sample(sample) -> None:
+        seen.append(str(sample.key_expr))
+        first.set()
+
+    return seen, first, session.declare_subscriber(keys.all_data(), on_sample)
+
+
 def _attack(session: zenoh.Session, keys: KeySpace, until: float) -> int:
     """Everything that once steered a run, again and again until ``until``; how many puts."""
     enc, sent, seq = WireEncoder(), 0, 0
@@ -107,7 +125,8 @@ def _attack(session: zenoh.Session, keys: KeySpace, until: float) -> int:
         session.put(keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0}))
         session.put(keys.report("counter"), enc.report("counter", [((7, 0), {}, (), "ok", None, 0, 0)], []))
         sent += 9
-        time.sleep(0.05)
+        time.sleep(0.05)  # pacing over the run's wall time (it runs in real time), not a wait: a
+        # flood with no pause would take the 2 cores from the run it attacks
     return sent
 
 
@@ -149,13 +168,9 @@ def test_a_watcher_reads_the_data_and_cannot_write(tmp_path, namespace):
         for private in path.parent.iterdir():  # the spec (the run's password), the dictionary
             assert stat.S_IMODE(private.stat().st_mode) & 0o077 == 0, private
         keys = KeySpace(namespace)
-        seen: list[str] = []
         with zenoh.open(zenoh.Config.from_file(str(path))) as watcher:
-            sub = watcher.declare_subscriber(keys.all_data(), lambda sample: seen.append(str(sample.key_expr)))
-            give_up = time.monotonic() + BOUND_S
-            while not seen and time.monotonic() < give_up:
-                time.sleep(0.02)
-            assert seen, "the watcher saw no data"
+            seen, first, sub = _subscribe(watcher, keys)
+            assert first.wait(BOUND_S), "the watcher saw no data"
             # a query is no read: the coordinator's ctl/start never hears it
             assert [r for r in watcher.get(keys.start(), timeout=1.0) if r.ok is not None] == []
             _attack(watcher, keys, time.monotonic() + RUN_S)
@@ -202,12 +217,8 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
         keys, enc = KeySpace(namespace), WireEncoder()
         end = round(RUN_S * 1e9)
         with open_peer(hub, access=access.session_config(access.write_dictionary(tmp_path))) as insider:
-            seen: list[str] = []
-            sub = insider.declare_subscriber(keys.all_data(), lambda sample: seen.append(str(sample.key_expr)))
-            give_up = time.monotonic() + BOUND_S
-            while not seen and time.monotonic() < give_up:
-                time.sleep(0.02)
-            assert seen, "the insider saw no data"
+            _, first, sub = _subscribe(insider, keys)
+            assert first.wait(BOUND_S), "the insider saw no data"
             # what a worker that missed the start asks for: the run's T0 and end
             from retriever.backends.zenoh.wire import decode_control
             answers = [decode_control(r.ok.payload.to_bytes()) for r in insider.get(keys.start(), timeout=BOUND_S)
@@ -243,32 +254,33 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
 def test_retriever_run_takes_the_secret_and_refuses_one_others_can_read(tmp_path):
     secret = tmp_path / "secret"
     secret.write_text("0123456789abcdef0123456789abcdef")
+
+    def run_with_the_secret() -> subprocess.CompletedProcess:
+        return subprocess.run([str(Path(sys.executable).parent / "retriever"), "run",
+                               "tests/backends/zenoh/lifecycle_flows.py:pipe", "--backend", "zenoh", "--duration",
+                               "0.2", "--secret", str(secret), "--namespace", "cli-secret"],
+                              cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+
     secret.chmod(0o644)
-    result = subprocess.run([str(Path(sys.executable).parent / "retriever"), "run",
-                             "tests/backends/zenoh/lifecycle_flows.py:pipe", "--backend", "zenoh", "--duration", "0.2",
-                             "--secret", str(secret), "--namespace", "cli-secret"],
-                            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+    result = run_with_the_secret()
     assert result.returncode == 1, result.stdout + result.stderr
     assert result.stderr.startswith("error: the secret file"), result.stderr
     assert "can be read by other users (mode 644)" in result.stderr and "hint: chmod 600" in result.stderr
     secret.chmod(0o600)
-    result = subprocess.run([str(Path(sys.executable).parent / "retriever"), "run",
-                             "tests/backends/zenoh/lifecycle_flows.py:pipe", "--backend", "zenoh", "--duration", "0.2",
-                             "--secret", str(secret), "--namespace", "cli-secret"],
-                            cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+    result = run_with_the_secret()
     assert result.returncode == 0, result.stdout + result.stderr
     assert "namespace 'cli-secret'" in result.stderr
 
 
 SUSPENDED_WATCHER = r"""
-import sys, time, zenoh
-got = []
+import sys, threading, zenoh
+got = threading.Event()
 with zenoh.open(zenoh.Config.from_file(sys.argv[1])) as watcher:
-    sub = watcher.declare_subscriber(sys.argv[2], lambda sample: got.append(1))
-    while not got:
-        time.sleep(0.01)
+    sub = watcher.declare_subscriber(sys.argv[2], lambda sample: got.set())
+    got.wait(60)
     print("watching", flush=True)
-    time.sleep(600)  # SIGSTOPped here, then SIGKILLed by the test
+    sys.stdin.readline()  # SIGSTOPped here; once resumed, told to end: its session closes
+    sub.undeclare()
 """
 
 BIG_RUN = r"""
@@ -302,10 +314,14 @@ def test_a_watcher_that_stops_reading_neither_stalls_nor_fails_the_run(namespace
                 break
         assert path, "the run printed no watcher config"
         watcher = subprocess.Popen([sys.executable, "-c", SUSPENDED_WATCHER, path, KeySpace(namespace).all_data()],
-                                   stdout=subprocess.PIPE, text=True)
+                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         assert watcher.stdout.readline() == "watching\n"
         os.kill(watcher.pid, signal.SIGSTOP)
         out, err = run.communicate(timeout=BOUND_S)
+        # resumed and told to end, the watcher closes its session: killed, it would leave its
+        # shared-memory segment in /dev/shm
+        os.kill(watcher.pid, signal.SIGCONT)
+        watcher.communicate(input="end\n", timeout=BOUND_S)
     finally:
         for proc in (run, watcher):
             if proc is not None and proc.poll() is None:

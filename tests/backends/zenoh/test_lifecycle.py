@@ -439,6 +439,22 @@ pipe.run(duration=60, backend="zenoh", quiet=True, namespace=sys.argv[1], log=sy
 """
 
 
+def _nap_in_its_first_step(proc: subprocess.Popen, path: Path, stderr: Path):
+    """A ``_poll`` condition on a logged run of counter and nap (whose first step, at T0, never
+    returns): the run's two workers once counter logged a tick after T0, else None."""
+    def check() -> dict[Ident, str] | None:
+        assert proc.poll() is None, stderr.read_text()
+        workers = _worker_children(proc.pid)  # scanned while the coordinator lives
+        try:
+            steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
+        except (LogError, OSError):
+            return None
+        ticked = any(s.node == "counter" and s.tag[0] > 0 for s in steps)
+        return workers if len(workers) == 2 and ticked else None
+
+    return check
+
+
 def test_a_worker_stuck_in_its_step_exits_when_its_coordinator_is_sigkilled(tmp_path, namespace):
     """SIGTERM (PR_SET_PDEATHSIG) only asks a worker's loop to stop, and a step that never
     returns never looks: the worker's watch on its parent ends the process anyway."""
@@ -447,18 +463,7 @@ def test_a_worker_stuck_in_its_step_exits_when_its_coordinator_is_sigkilled(tmp_
         proc = subprocess.Popen([sys.executable, "-c", STUCK_COORDINATOR, namespace, str(path)],
                                 stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT, env=_env())
     try:
-        def napping() -> dict[Ident, str] | None:
-            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
-            workers = _worker_children(proc.pid)  # scanned while the coordinator lives
-            try:
-                steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
-            except (LogError, OSError):
-                return None
-            # counter ticked past T0, so nap is inside its first step (at T0), which lasts 600 s
-            ticked = any(s.node == "counter" and s.tag[0] > 0 for s in steps)
-            return workers if len(workers) == 2 and ticked else None
-
-        workers = _poll(napping, "a logged counter tick after T0")
+        workers = _poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"), "a logged counter tick after T0")
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
     finally:
@@ -497,18 +502,8 @@ def test_a_signal_stops_a_cli_run_with_a_hung_step_promptly_printing_its_stack_o
                                  "60", "--log", str(path)], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
                                 env=_env())
     try:
-        def going() -> dict[Ident, str] | None:
-            assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()
-            workers = _worker_children(proc.pid)
-            try:
-                steps = list(read_log(path, salvage=True).iter_steps()) if path.exists() else []
-            except (LogError, OSError):
-                return None
-            # counter ticked past T0, so nap is inside its first step (at T0)
-            ticked = any(s.node == "counter" and s.tag[0] > 0 for s in steps)
-            return workers if len(workers) == 2 and ticked else None
-
-        workers = _poll(going, "the run going, nap in its first step")
+        workers = _poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"),
+                        "the run going, nap in its first step")
         os.kill(proc.pid, sig)
         signalled = time.monotonic()
         code = proc.wait(timeout=BOUND_S)
