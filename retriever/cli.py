@@ -318,6 +318,12 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
     if end.get("counts"):
         lines.insert(4, ("counted", _counters(_metadata_json(path, "counts", end["counts"], dict))))
+    for i, fault in enumerate(log.faults):  # a process that died: what became of its flow
+        what = "restarted afresh" if fault.get("restarted") == "true" else "not restarted"
+        lost = f", {len(fault['lost_events'])} unpublished output(s) lost" if fault["lost_events"] else ""
+        lines.insert(5 + i, ("fault", f"{fault['node']}: its process (pid {fault.get('pid', '?')}) "
+                                      f"{fault.get('exit', 'died')} at t={int(fault.get('at_ns', 0)) / 1e9:g} s; "
+                                      f"{what}{lost}"))
     for key, value in lines:
         _out.print(Text.assemble((f"{key:>12}", "bold"), "  ", _visible(str(value))), highlight=False)
     table = Table(title="channels", title_justify="left")

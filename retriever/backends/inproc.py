@@ -451,6 +451,21 @@ class InprocSession(Session):
         for _, port, seq in produced:
             seqs[port] = min(seqs[port], seq)
 
+    def restart_afresh(self, node: str, seqs: dict[str, int]) -> list[tuple[PortBuffer, list[tuple]]]:
+        """Start ``node`` afresh, as a real-time run did after its process died: the flow reset,
+        its input buffers emptied, its ports' next seqs from ``seqs``. Returns each buffer with
+        the entries it held. Only after :meth:`take_routes`: replay."""
+        if not self._generic_only:
+            raise RuntimeError("restart_afresh() needs take_routes() first: outputs were delivered")
+        rt = self._by_id[node]
+        rt.flow.reset()
+        held = []
+        for _, buf, _, _ in rt.inputs:
+            held.append((buf, buf.entries))
+            buf.entries, buf.visible, buf.cursor, buf.last_id = [], 0, 0, None
+        rt.seq.update(seqs)
+        return held
+
     def replace_step(self, node: str, outputs: Any) -> None:
         """Make ``node``'s ticks emit ``next(outputs)`` (an iterable of ``(port, value)``) instead
         of calling its ``step()``: replayed sources."""

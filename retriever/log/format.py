@@ -12,7 +12,10 @@ channel ``steps``      a message per step: ``log_time`` = tick time, ``publish_t
                        port, seq], ...]}`` and ``produced`` = ``[[node, port, seq], ...]``
 attachment             ``pipeline.ir.json``: the IR the run executed
 metadata               ``retriever.run`` (written first) and ``retriever.end`` (written last;
-                       absent when the writer was killed), plus ``retriever.recovered``
+                       absent when the writer was killed), plus ``retriever.recovered``, and
+                       ``retriever.fault.N`` (N = 1, 2, ...) when a run's process was lost: node,
+                       at_ns, exit, restarted, seqs (JSON: the new process's first seq per port)
+                       and lost_events (JSON: ids its step records produced that were never logged)``
 =====================  =========================================================================
 """
 
@@ -42,6 +45,7 @@ IR_ATTACHMENT = "pipeline.ir.json"
 RUN_METADATA = "retriever.run"
 END_METADATA = "retriever.end"
 RECOVERED_METADATA = "retriever.recovered"
+FAULT_METADATA = "retriever.fault."
 PACKAGES = ("retriever", "eclipse-zenoh", "msgpack", "numpy", "mcap", "mujoco")
 
 
@@ -85,12 +89,37 @@ def decode_step(data: bytes) -> tuple:
     if type(late) is not dict:
         raise ValueError("its late events are not {port: [event id, ...]}")
     for ids in late.values():
-        _event_ids(ids)
-    consumed = {port: _event_ids(ids) for port, ids in consumed.items()}
-    return node, microstep, consumed, _event_ids(produced), status, detail, wall_ns
+        event_ids(ids)
+    _check_restart_detail(detail or {})
+    consumed = {port: event_ids(ids) for port, ids in consumed.items()}
+    return node, microstep, consumed, event_ids(produced), status, detail, wall_ns
 
 
-def _event_ids(ids: Any) -> tuple:
+def _check_restart_detail(detail: dict) -> None:
+    """What replay reads of a restart (zenoh/loop.py, "Restarting after a lost process"), or ValueError:
+    ``restart_gap`` {port: [[node, port, first seq given up, first seq taken], ...]} on a consumer's
+    record, ``restarted`` {seqs: {port: seq}, inputs: {port: [[node, port, first seq], ...]}} on the
+    first record of a flow started afresh."""
+    gaps = detail.get("restart_gap", {})
+    if type(gaps) is not dict or not all(type(g) is list and all(_is_range(r) for r in g) for g in gaps.values()):
+        raise ValueError("its restart gaps are not {port: [[node, port, from seq, to seq], ...]}")
+    restarted = detail.get("restarted")
+    if restarted is None:
+        return
+    seqs, inputs = (restarted.get("seqs"), restarted.get("inputs")) if type(restarted) is dict else (None, None)
+    if (type(seqs) is not dict or not all(type(p) is str and type(n) is int and n >= 0 for p, n in seqs.items())
+            or type(inputs) is not dict or not all(type(p) is str for p in inputs)):
+        raise ValueError("its restart is not {seqs: {port: seq}, inputs: {port: [event id, ...]}}")
+    for ids in inputs.values():
+        event_ids(ids)
+
+
+def _is_range(item: Any) -> bool:
+    return (type(item) is list and len(item) == 4 and type(item[0]) is str and type(item[1]) is str
+            and all(type(n) is int and n >= 0 for n in item[2:]))
+
+
+def event_ids(ids: Any) -> tuple:
     """``[[node, port, seq], ...]`` → a tuple of event ids, or ValueError."""
     if type(ids) is not list or not all(type(i) is list and len(i) == 3 and type(i[0]) is str and type(i[1]) is str
                                         and type(i[2]) is int and i[2] >= 0 for i in ids):

@@ -84,6 +84,25 @@ class RunLog:
             raise LogError(f"the IR stored in {self.path} is invalid: {e}",
                            "pass the pipeline yourself with --pipeline FILE:ATTR") from None
 
+    @property
+    def faults(self) -> list[dict[str, Any]]:
+        """The run's lost processes (``retriever.fault.N`` records), in order, JSON fields decoded."""
+        faults = []
+        for name in sorted((n for n in self.metadata if n.startswith(fmt.FAULT_METADATA)),
+                           key=lambda n: (len(n), n)):
+            record = self.metadata[name]
+            try:
+                lost = json.loads(record.get("lost_events", "[]"))
+                seqs = json.loads(record.get("seqs", "{}"))
+                lost = list(fmt.event_ids(lost))
+            except ValueError:
+                lost = seqs = None
+            if type(record.get("node")) is not str or lost is None or type(seqs) is not dict:
+                raise LogError(f"{self.path}: the fault record {name} is malformed",
+                               "the file was changed after it was written")
+            faults.append({**record, "seqs": seqs, "lost_events": lost})
+        return faults
+
     # -- its records -------------------------------------------------------------------------
     def iter_events(self) -> Iterator[LoggedEvent]:
         """Every event, in file order, value undecoded."""

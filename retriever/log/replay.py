@@ -9,6 +9,11 @@ What a real-time run did, the replay does: events a consumer dropped as late (it
 name them) are withheld from it; a LET step whose deadline miss dropped its outputs has them
 taken back (their seqs used again); a tick the run stopped before stepping is not stepped; and
 ``incomplete``, ``late`` and ``overrun`` steps compare as ``ok`` (the replay cannot be late).
+A flow whose process died and was started afresh (on_error="restart") starts afresh at its first
+record after (``restarted``: flow reset, input buffers emptied, events from where the new process
+took each stream on); its consumers are withheld the dead process's events they never got
+(``restart_gap``); and its steps whose outputs died with it (the log's fault records) are
+re-executed but not compared.
 
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
 and compares the full trace: it proves the log is one consistent run of this graph.
@@ -119,6 +124,7 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     # late ones: in real time they reached a consumer after a tick at or past their tag had run
     # without them, and the consumer dropped them.
     withheld = _late_events(steps)
+    gaps = _restart_gaps(steps)
     events = list(log.iter_events())
     logged = {e.id: e for e in events}
     if len(logged) < len(events):
@@ -131,11 +137,13 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
         if consumers:
             value = log.value(e)
             for consumer, buf, delay_ns in consumers:
-                if (consumer, e.id) in withheld:
+                if (consumer, e.id) in withheld or _in_gap(gaps.get(consumer), e):
                     continue
                 arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
-                deliveries.append((arrival, buf, (arrival, e.node, e.port, e.seq, value)))
+                deliveries.append((arrival, consumer[0], buf, (arrival, e.node, e.port, e.seq, value)))
     deliveries.sort(key=lambda d: d[0])
+    lost = {event_id for fault in log.faults for event_id in fault["lost_events"]}
+    floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
 
     sources = {nid for nid, node in graph.nodes.items() if not node.inputs}
     # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
@@ -152,11 +160,15 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
             progress(i, len(steps))
         stats = report.nodes[step.node]
         stats.steps += 1
+        restarted = (step.detail or {}).get("restarted")
+        if restarted is not None:
+            _restart_afresh(session, step.node, restarted, floors)
         if step.node in sources or not _stepped(step):
             continue
         while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
-            _, buf, entry = deliveries[delivered]
-            buf.insert(entry)
+            _, consumer, buf, entry = deliveries[delivered]
+            if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
+                buf.insert(entry)
             delivered += 1
         del trace.raw_events[:], trace.raw_steps[:]
         try:
@@ -166,8 +178,9 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
         if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
             session.retract(step.node)  # the run dropped what this step returned
         stats.replayed += 1
-        if cut_short and any(event_id not in logged for event_id in
-                             (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
+        if (cut_short and any(event_id not in logged for event_id in
+                              (*step.produced, *(i for ids in step.consumed.values() for i in ids)))
+                or lost and not lost.isdisjoint(step.produced)):
             stats.cut += 1
             continue
         found = _compare(step, trace, logged, encode, step.node in stamped)
@@ -190,6 +203,34 @@ def _late_events(steps) -> set[tuple[tuple[str, str], tuple[str, str, int]]]:
     return {((s.node, port), (node, out, seq))
             for s in steps if s.detail and "late" in s.detail
             for port, ids in s.detail["late"].items() for node, out, seq in ids}
+
+
+def _restart_gaps(steps) -> dict[tuple[str, str], list[tuple[str, str, int, int]]]:
+    """Per ``(consumer node, port)``, the seq ranges ``[lo, hi)`` of a restarted producer's
+    streams it gave up (the dead process's events it never got), from its records' ``restart_gap``."""
+    gaps: dict[tuple[str, str], list[tuple[str, str, int, int]]] = {}
+    for s in steps:
+        for port, ranges in ((s.detail or {}).get("restart_gap") or {}).items():
+            gaps.setdefault((s.node, port), []).extend(tuple(r) for r in ranges)
+    return gaps
+
+
+def _in_gap(ranges: list[tuple[str, str, int, int]] | None, event: LoggedEvent) -> bool:
+    """Whether ``event`` falls in one of a consumer port's restart gaps."""
+    return ranges is not None and any(src == event.node and port == event.port and lo <= event.seq < hi
+                                      for src, port, lo, hi in ranges)
+
+
+def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: dict) -> None:
+    """Start ``node`` afresh at its first record after its process died: its buffers keep only
+    the events from where the new process took each stream on, and later ones below are not given."""
+    for port, ids in restarted["inputs"].items():
+        for src, src_port, first in ids:
+            floors[(node, src, src_port)] = first
+    for buf, entries in session.restart_afresh(node, restarted["seqs"]):
+        for entry in entries:
+            if entry[3] >= floors.get((node, entry[1], entry[2]), 0):
+                buf.insert(entry)
 
 
 def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:

@@ -129,6 +129,7 @@ class LogWriter:
             self._mcap.wait()
         self._events_done = 0
         self._steps_done = 0
+        self._faults = 0
         self._encode = Encoder().pack
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
@@ -198,6 +199,15 @@ class LogWriter:
         if now - self._last_flush >= self._flush_interval:
             self._mcap.flush()
             self._last_flush = now
+
+    def add_fault(self, fault: dict) -> None:
+        """Log what went wrong with one of the run's processes (``retriever.fault.N``): its text
+        fields as they are, the rest as JSON."""
+        self._faults += 1
+        record = {key: value if type(value) is str else json.dumps(value, sort_keys=True)
+                  for key, value in fault.items()}
+        with self._refused_writes(RUN_STOPPED):
+            self._mcap.add_metadata(f"{fmt.FAULT_METADATA}{self._faults}", record)
 
     def _unencodable(self, events: list[tuple]) -> LogError:
         for tag, node, port, seq, value, _ in events:

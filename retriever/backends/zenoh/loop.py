@@ -66,6 +66,14 @@ EARLY_SEQS_MAX = 4096
 #: those events, and the coordinator takes them as the producer's (each event is logged once).
 HOLD_RECORDS_NS = 200_000_000
 
+#: A flow whose process died (kill -9, a segfault) under on_error="restart" starts afresh in a
+#: new process, its state lost (see "Restarting after a lost process" below). Its streams go on
+#: from a seq past every one the dead process may have used: the coordinator knows the seqs it
+#: reported; at most its last unreported batch (FLUSH_MAX records, and the reporter's queue) was
+#: published unknown to the coordinator, far fewer than RESTART_SEQ_GAP. A consumer told that a
+#: producer was lost takes its seqs up to that far ahead (EARLY_SEQS_MAX is for running streams).
+RESTART_SEQ_GAP = 1 << 16
+
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
 
@@ -195,6 +203,8 @@ class NodeLoop:
         self.handing_over = False
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
+        self.lost_producers: set[str] = set()  # producers whose process died, until they restart
+        self.fresh_inputs: dict[str, list] = {}  # a fresh process: per input port, where its streams began
 
         self.records: list = []  # step records not yet reported to the coordinator
         self.recorded = 0  # step records made in all (the coordinator checks it got every tick)
@@ -594,13 +604,18 @@ class NodeLoop:
                 self.stopping = self.handing_over = True
             elif op == "have":
                 self._coordinator_has(args)
+            elif op == "lost" and args.get("node") in self.sources:
+                self.lost_producers.add(args["node"])
+            elif op == "restarted" and args.get("node") in self.sources:
+                self._producer_restarted(args["node"], args.get("seqs"))
 
     def _check_claims(self, stream: tuple[str, str], seq: int, frontier: tuple[int, int]) -> None:
         """Refuse a seq from the future or a frontier its producer cannot promise (see
         CLOCK_AHEAD_MAX_NS): applied, one would hold the stream back, or make every later event
         of it late, for the rest of the run."""
         expect = self.expect[stream]
-        if seq > expect + EARLY_SEQS_MAX:
+        ahead = EARLY_SEQS_MAX + (RESTART_SEQ_GAP if stream[0] in self.lost_producers else 0)
+        if seq > expect + ahead:
             raise WireError(f"seq {seq} of {stream[0]}.{stream[1]} is {seq - expect} past the next one expected "
                             f"({expect}): a seq from the future")
         if frontier == NEVER:
@@ -902,6 +917,80 @@ class NodeLoop:
         heapq.heapify(self.held)
         self.seqs, self.sent = dict(state["seqs"]), dict(state["sent"])
         self.pending_detail = dict(state["pending_detail"])
+
+    # ---------------------------------------------------------------------------------------
+    # Restarting after a lost process (on_error="restart", the process died: kill -9, segfault)
+    # ---------------------------------------------------------------------------------------
+    # Nothing can be handed over: the flow starts afresh in a new process, with empty input
+    # buffers. The coordinator says `lost` {node} at once; the new process subscribes to its
+    # inputs and learns from each producer's progress answer the seq its streams go on from
+    # (older ones it ignores), links to its consumers and says `ready`. The coordinator then
+    # puts `restarted` {node, seqs}: the new process's first seq per output port, past every one
+    # the dead process may have used (RESTART_SEQ_GAP). Each consumer of it gives up the seqs it
+    # still missed from the dead process, tells its next record which (``restart_gap``, so a
+    # replay withholds exactly those), and takes the stream on from there. The new process's
+    # first record says where its inputs began (``restarted``): a replay resets the flow and
+    # empties its buffers there, as the run did.
+
+    def sync_inputs(self, answers: dict[str, Any]) -> None:
+        """Take each input stream on from where its producer stands now (a fresh process):
+        ``answers`` maps a producer to its progress answer, or to None when it is finished."""
+        first: dict[str, list] = {}
+        for e in self.edges:
+            stream = (e.src, e.src_port)
+            if e.src not in answers:  # it never answered: its events are taken from seq 0
+                continue
+            answer = answers[e.src]
+            if answer is None:
+                self.frontiers[stream] = NEVER
+                self.taken_over[stream] = self.expect[stream] = 1 << 62
+                continue
+            expect = answer.sent.get(e.src_port, -1) + 1
+            self.frontiers[stream] = max(self.frontiers[stream], answer.frontier)
+            self.expect[stream] = self.taken_over[stream] = expect  # older ones may still arrive: ignored
+            first.setdefault(e.port, []).append([e.src, e.src_port, expect])
+        self.fresh_inputs = {port: sorted(ids) for port, ids in first.items()}
+
+    def start_fresh(self, seqs: dict[str, int], t0: int) -> None:
+        """Go on from the coordinator's ``restarted``: each output port's first seq, Rate ticks from now."""
+        self.seqs = {port: seq for port, seq in seqs.items()}
+        self.sent = {port: seq - 1 for port, seq in seqs.items()}
+        self.pending_detail["restarted"] = {"seqs": dict(sorted(seqs.items())), "inputs": self.fresh_inputs}
+        if self.clock.hz is not None:  # run() starts at this tick
+            self.k = self.clock.first_tick_at_or_after(time.time_ns() - t0)
+
+    def _producer_restarted(self, producer: str, seqs: Any) -> None:
+        """Control ``restarted`` {node: producer, seqs: {port: first seq}}: see above."""
+        if type(seqs) is not dict or not all(type(k) is str and type(v) is int and v >= 0 for k, v in seqs.items()):
+            self._garbage("ctl/run", WireError(f"a 'restarted' control message of {producer} without its seqs"))
+            return
+        self.lost_producers.discard(producer)
+        # records that consumed an event of the dead process the coordinator lacks go now, with
+        # it: the coordinator's next `have` jumps over the seqs this one gives up
+        self.flush(final=True)
+        for stream in [s for s in self.frontiers if s[0] == producer]:
+            first = seqs.get(stream[1])
+            if first is None:
+                continue
+            expect = self.expect[stream]
+            if expect > first:
+                self._garbage(stream, WireError(f"{producer}.{stream[1]} restarted at seq {first}, below seqs "
+                                                f"already taken ({expect - 1})"))
+                continue
+            for e in self.edges:
+                if (e.src, e.src_port) == stream:
+                    gaps = self.pending_detail.setdefault("restart_gap", {}).setdefault(e.port, [])
+                    gaps.append([producer, stream[1], expect, first])
+            later = {seq: msg for seq, msg in self.early[stream].items() if seq >= first}
+            waiting = self.waiting[stream]
+            promised = [f for seq, f in waiting if seq < first]  # the dead process's, and the new one's start
+            self.waiting[stream] = [(seq, f) for seq, f in waiting if seq >= first]
+            self.expect[stream], self.early[stream] = first, {}
+            self.taken_over[stream] = first  # what the dead process sent and arrives now is ignored
+            if promised:
+                self._advance_frontier(stream, max(promised))
+            for seq in sorted(later):
+                self._in_order(stream, later[seq])
 
     # ---------------------------------------------------------------------------------------
     # The end

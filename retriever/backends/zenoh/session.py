@@ -39,6 +39,7 @@ from ...trace import STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
+from .loop import RESTART_SEQ_GAP
 from .output import WorkerOutput
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
@@ -160,6 +161,14 @@ class ZenohSession(Session):
         self._failure: tuple[str, dict] | None = None
         self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
         self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
+        # a lost process (see "Restarting after a lost process" in loop.py): the nodes starting
+        # afresh, by what became of the old process; per stream, the highest seq known (events
+        # and records); event ids that records produced and no report carried yet
+        self._fresh: dict[str, dict] = {}
+        self._max_seq: dict[tuple[str, str], int] = {}
+        self._unseen: set[tuple[str, str, int]] = set()
+        #: what went wrong with the run's processes, as the log's fault records have it
+        self.faults: list[dict] = []
         self._streams = {(nid, port) for nid, node in graph.nodes.items() for port in node.outputs}
         # untyped flows may emit on ports no edge names (a dict step's extra keys)
         self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
@@ -170,10 +179,12 @@ class ZenohSession(Session):
     def _write_spec(self) -> None:
         write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
 
-    def _spawn(self, nid: str, join: tuple[int, int] | None = None) -> None:
+    def _spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
+        """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
+        over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         cmd = [sys.executable, "-m", "retriever.backends.zenoh.worker", str(self._dir / "spec.json"), nid]
         if join is not None:
-            cmd += ["--join", str(join[0]), str(join[1])]
+            cmd += ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
         self._workers[nid] = proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                                      stderr=subprocess.PIPE, start_new_session=True)
         self._output.setdefault(nid, WorkerOutput(nid)).attach(proc)
@@ -228,6 +239,9 @@ class ZenohSession(Session):
             self.close()
             raise
         self.now_ns = until_ns
+        for fault in list(self._fresh.values()):  # lost, and the run ended before the new process started
+            self._record_fault(fault, None)
+        self._fresh.clear()
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
         self._check_every_flow_ticked()
 
@@ -317,6 +331,11 @@ class ZenohSession(Session):
                     continue
                 self._ticks.add((report.node, tag))
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
+                for event_id in produced:  # a LET output is published after its record went
+                    if event_id not in self._event_ids:
+                        self._unseen.add(event_id)
+                    if event_id[2] > self._max_seq.get(event_id[:2], -1):
+                        self._max_seq[event_id[:2]] = event_id[2]
                 stats.ticks += 1
                 if status in STEPPED:
                     stats.steps += 1
@@ -374,6 +393,8 @@ class ZenohSession(Session):
                 f"processes of the run after {self.startup_timeout:g} s\n    hint: on a loaded machine, give it "
                 f"longer: pipe.run(..., startup_timeout=seconds)")})
             return
+        elif state == "ready" and node in self._fresh:
+            self._restart_afresh(node)
         elif state == "ready" and node in self._retiring:
             if self._state[node] == "done":  # the run ended while it restarted: stopped at close
                 return
@@ -438,7 +459,10 @@ class ZenohSession(Session):
 
     def _take_event(self, event_id: tuple[str, str, int], msg, wall: int) -> None:
         self._event_ids.add(event_id)
+        self._unseen.discard(event_id)
         producer, port, seq = event_id
+        if seq > self._max_seq.get((producer, port), -1):
+            self._max_seq[(producer, port)] = seq
         have = self._have.get((producer, port), -1)
         while (producer, port, have + 1) in self._event_ids:  # every seq up to it (carried ones may skip)
             have += 1
@@ -481,6 +505,10 @@ class ZenohSession(Session):
             code = proc.poll()
             if code is None or self._state[nid] == "done":
                 continue
+            if (code not in (0, EXIT_HANDED_OVER, EXIT_FAILED) and self.t0 is not None and self._failure is None
+                    and self.graph.nodes[nid].settings.on_error == "restart"):
+                self._lost(nid, proc, code)
+                return  # the processes of the node changed: look again next time
             # its last messages may still be on the way: give them a moment before calling it dead
             exited = self._exited.setdefault(proc.pid, time.monotonic())
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED) and time.monotonic() - exited < 2.0:
@@ -490,6 +518,55 @@ class ZenohSession(Session):
                 self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
                                                 f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
+
+    # ---------------------------------------------------------------------------------------
+    # A lost process (on_error="restart"; see "Restarting after a lost process" in loop.py)
+    # ---------------------------------------------------------------------------------------
+    def _lost(self, nid: str, proc: subprocess.Popen, code: int) -> None:
+        """A worker process of ``nid`` died after the start: within the restart budget, start the
+        flow afresh in a new process (a hand-over in progress dies with it); else fail the run."""
+        at = self._run_time()
+        why = f"its worker process (pid {proc.pid}) {_exit_text(code)}"
+        budget = self._restarts[nid]
+        if not budget.take(at):
+            self._limit = RestartLimitError(nid, (at, 0), why, budget.max_restarts, budget.window_s)
+            self._failure = (nid, {"error": str(self._limit)})
+            return
+        counts = self._stats[nid].counts
+        for name in ("restarts", "crash_restarts"):
+            counts[name] = counts.get(name, 0) + 1
+        print(f"retriever: flow '{nid}': {why} at t={at / 1e9:.3f} s; starting it afresh (on_error='restart')",
+              file=sys.stderr, flush=True)
+        for other in (self._workers.get(nid), self._retiring.pop(nid, None)):
+            if other is not None:
+                if other.poll() is None:
+                    other.kill()
+                self._retired.append(other)
+        self._control("lost", {"node": nid})
+        self._fresh[nid] = {"node": nid, "at_ns": at, "pid": proc.pid, "exit": _exit_text(code)}
+        self._spawn(nid, join=(self.t0, self.end_ns), fresh=True)
+
+    def _restart_afresh(self, nid: str) -> None:
+        """The new process of ``nid`` is ready: its streams go on past every seq the dead one may
+        have used; the consumers and it are told (control ``restarted``), the log gets the fault."""
+        ports = {port for node, port in self._max_seq if node == nid} | set(self.graph.nodes[nid].outputs)
+        seqs = {port: self._max_seq.get((nid, port), -1) + 1 + RESTART_SEQ_GAP for port in sorted(ports)}
+        for port, first in seqs.items():  # the consumers give up the seqs below: nothing to wait for
+            self._have[(nid, port)] = max(self._have.get((nid, port), -1), first - 1)
+        self._record_fault(self._fresh.pop(nid), seqs)
+        self._control("restarted", {"node": nid, "seqs": seqs})
+
+    def _record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
+        """Keep a lost process's fault, and log it: the outputs its step records claimed and no
+        report carried (LET outputs it still held) are lost, which a replay must know."""
+        nid = fault["node"]
+        lost = sorted(event_id for event_id in self._unseen if event_id[0] == nid)
+        self._unseen.difference_update(lost)
+        fault = {"kind": "process_lost", **fault, "restarted": seqs is not None, "seqs": seqs or {},
+                 "lost_events": [list(event_id) for event_id in lost]}
+        self.faults.append(fault)
+        if self.log is not None:
+            self.log.add_fault(fault)
 
     def _raise_failure(self) -> None:
         node, info = self._failure
@@ -599,6 +676,16 @@ def _ticks_due(clock, end_ns: int) -> int:
     them; 0 for a clock without a rate (a Trigger ticks only on what arrives)."""
     first_at_or_after = getattr(clock, "first_tick_at_or_after", None)
     return first_at_or_after(end_ns) if first_at_or_after is not None else 0
+
+
+def _exit_text(code: int) -> str:
+    """How a process ended, from its exit status: ``killed by SIGKILL``, ``exited with code 7``."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
 
 
 def _is_tag(value: object) -> bool:

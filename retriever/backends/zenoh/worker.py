@@ -1,6 +1,6 @@
 """A worker process: one flow of a run, rebuilt from the IR, ticking in real time.
 
-    python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END]
+    python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END | --fresh T0 END]
 
 The coordinator (``retriever.backends.zenoh.session``) writes ``SPEC.json`` — the IR, the hub's
 endpoint, the namespace and the Python path the flows were imported from — and starts one worker
@@ -11,7 +11,10 @@ on_error="restart": the failed worker says ``restart`` and goes on listening (se
 loop.py); the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
 and waits. The coordinator then puts ``handover`` {node}: the old worker writes its loop's state
 to ``<run dir>/<node>.handover``, says ``handed_over`` and exits; then ``resume`` {node}: the new
-one reads the state and goes on with a fresh flow.
+one reads the state and goes on with a fresh flow. A worker process that died (kill -9, a
+segfault) has no state to hand over: the coordinator starts one with ``--fresh``, which starts
+the flow afresh on fresh inputs once told ``restarted`` (see "Restarting after a lost process"
+in loop.py).
 
 A worker exits when its node is done, on ``stop``, on SIGTERM, or when its parent dies; its
 session always closes. Every status it sends carries its pid. Exit codes: 0 done or stopped,
@@ -258,6 +261,7 @@ def _serve(argv: list[str]) -> int:
 
     worker.serving = node_id
     join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
+    fresh = argv[2:5] if len(argv) >= 5 and argv[2] == "--fresh" else None
     spec = json.loads(Path(spec_path).read_text())
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
@@ -297,7 +301,17 @@ def _serve(argv: list[str]) -> int:
         started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
-            if join is not None:  # a restarted flow: listen now, take the old process's place when told
+            if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
+                t0, end = int(fresh[1]), int(fresh[2])
+                seqs = _join_afresh(session, keys, spec, node_id, loop,
+                                    ready=lambda: status("ready", padding=bytes(READY_PADDING)))
+                if seqs is None:
+                    status("done", counts=dict(loop.counts))
+                    loop.undeclare()
+                    return 0
+                loop.start_fresh(seqs, t0)
+                loop.declare_outputs()
+            elif join is not None:  # a restarted flow: listen now, take the old process's place when told
                 loop.declare_inputs()
                 # links to its producers and consumers, each knowing the other's subscribers:
                 # once the old process stops, a message that reached neither would be a gap
@@ -360,6 +374,46 @@ def _serve(argv: list[str]) -> int:
         status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
     return 0
+
+
+def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready) -> dict[str, int] | None:
+    """A flow whose process died, in its new process: subscribe to the inputs, take each stream
+    on from where its producer stands (its progress answer: the reply comes on the link after
+    our subscriptions, so every later event reaches us), link to the consumers, say ``ready``
+    and wait for the coordinator's ``restarted``: the first seq of each output port. None on ``stop``."""
+    from .hub import wait_for_answers
+    from .wire import WireError, decode_progress
+
+    loop.declare_inputs()
+    producers = {e["source"]["node"] for e in spec["ir"]["edges"] if e["destination"]["node"] == node_id}
+    consumers = {e["destination"]["node"] for e in spec["ir"]["edges"] if e["source"]["node"] == node_id}
+    answers: dict = {}
+    give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
+    while not loop.stopping and time.monotonic() < give_up:
+        for src in sorted(producers - set(answers)):
+            for reply in session.get(keys.progress(src), timeout=0.25):
+                try:
+                    answers[src] = decode_progress(reply.ok.payload.to_bytes(), expected=src)
+                except (AttributeError, WireError):  # no answer (reply.err), or not a progress message
+                    continue
+        answers.update((n, None) for n in (producers - set(answers)) & _finished_nodes(session, keys))
+        if producers <= set(answers):
+            break
+        time.sleep(0.02)
+    if loop.stopping:
+        return None
+    loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
+    wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in consumers},
+                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
+                     gone=lambda: {keys.progress(n) for n in _finished_nodes(session, keys)})
+    ready()
+    args = _await_control(loop, "restarted", node_id)
+    if args is None:
+        return None
+    seqs = args.get("seqs")
+    if type(seqs) is not dict or not all(type(seqs.get(p)) is int for p in loop.ports):
+        raise RuntimeError(f"the coordinator's 'restarted' for {node_id} carries no seq for each output port")
+    return {p: s for p, s in seqs.items() if type(p) is str and type(s) is int and s >= 0}
 
 
 def _finished_nodes(session, keys) -> set[str]:

@@ -7,6 +7,8 @@ script too (``lifecycle_flows.py:pipe`` and ``lifecycle_flows.py:napping``).
 
 from __future__ import annotations
 
+import ctypes
+import os
 import time
 from dataclasses import dataclass
 
@@ -86,6 +88,20 @@ class Nap(Flow[None, Count]):
     def step(self, inp: None) -> Count:
         time.sleep(self.nap)
         return Count(n=1)
+
+
+class SegfaultOnce(Flow[Count, Count]):
+    """Passes its input on; its first step ever (in any process: ``marker`` is a file that says
+    it happened) crashes the process with a segmentation fault, as a bad native extension would."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def step(self, inp: Count) -> Count:
+        if not os.path.exists(self.marker):
+            open(self.marker, "w").close()
+            ctypes.string_at(0)  # SIGSEGV
+        return Count(n=inp.n)
 
 
 def two_node_pipeline(name: str = "lifecycle", source_hz: float = SOURCE_HZ, sink_hz: float = SINK_HZ,

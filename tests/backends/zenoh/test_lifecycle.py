@@ -5,6 +5,8 @@
 - SIGKILL of the coordinator: its workers exit by themselves (PR_SET_PDEATHSIG), also one still
   waiting for its peers at startup.
 - SIGKILL of one worker: the run stops with a BackendError naming the node; no worker survives.
+  Under on_error="restart" the flow starts afresh in a new process and the log replays, within
+  its restart budget.
 - Garbage on the run's key space from a process joined to the hub with the run's credentials (a
   buggy or compromised insider; strangers get no link at all, test_access.py): counted and
   dropped, the run completes with the right step counts. Well-formed envelopes that are not the
@@ -35,12 +37,12 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
+from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, RestartLimitError, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
 from retriever.backends.zenoh.worker import build_loop
 from retriever.log import replay
 
-from .lifecycle_flows import Count, Counter, Nap, Scaled, Sink, Total, two_node_pipeline
+from .lifecycle_flows import Count, Counter, Nap, Scaled, SegfaultOnce, Sink, Total, two_node_pipeline
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -664,6 +666,122 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
         assert not missing, f"logged steps consumed events that are not logged: {missing[:5]} (race: {killed})"
     report = replay(read_log(path, salvage=True))
     assert report.identical, report.divergences[:3]
+
+
+def _restartable_chain(name: str, **settings) -> Pipeline:
+    """counter @ 50 Hz ──n──▶ mid @ Trigger (LET 50 ms) ──n──▶ total @ Trigger, each with
+    on_error="restart": a source, a flow between two others that holds its outputs, a sink."""
+    with Pipeline(name) as pipe:
+        counter = Counter().configure(name="counter", on_error="restart", **settings) @ Rate(hz=50)
+        mid = Total().configure(name="mid", on_error="restart", latency=0.05, **settings) @ Trigger()
+        total = Total().configure(name="total", on_error="restart", **settings) @ Trigger()
+        counter.then(mid, sync=Latest()).then(total, sync=Latest())
+    return pipe
+
+
+def _kill_when(pipe: Pipeline, victim: str, ready, kills: list[int], done: threading.Event) -> threading.Thread:
+    """A thread that SIGKILLs ``victim``'s worker (by PID) each time ``ready(session, kills)``
+    says so, recording the PIDs in ``kills``, until ``done``."""
+    def killer() -> None:
+        deadline = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < deadline:
+            session = pipe._session
+            if session is not None and session.t0 is not None and ready(session, kills):
+                pid = session.worker_pids()[victim]
+                kills.append(pid)
+                os.kill(pid, signal.SIGKILL)
+            time.sleep(0.005)
+
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    return thread
+
+
+@pytest.mark.parametrize("victim", ["counter", "mid", "total"])
+def test_a_sigkilled_worker_of_a_flow_with_on_error_restart_starts_afresh_and_the_log_replays(
+        tmp_path, namespace, victim):
+    """issue 17: on_error="restart" covers a worker process that dies. The flow starts afresh in a
+    new process (its state is lost: nothing to hand over), the rest of the pipeline goes on, the
+    new process's streams go on past every seq the dead one used, and the log says what happened
+    (a fault record; ``restarted`` on the flow's first record after; ``restart_gap`` on its
+    consumers' records), so that it replays identically."""
+    pipe = _restartable_chain("killrestart")
+    path = tmp_path / "run.mcap"
+    kills: list[int] = []
+    done = threading.Event()
+    thread = _kill_when(pipe, victim, lambda session, kills: not kills and len(session.trace.raw_steps) > 60,
+                        kills, done)
+    try:
+        trace = pipe.run(duration=3.0, backend="zenoh", namespace=namespace, quiet=True, log=path)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert len(kills) == 1, "the killer never saw the run going"
+    assert pipe.counts()["restarts"] == pipe.counts()["crash_restarts"] == 1
+    assert pipe.stats()[victim].counts == {"restarts": 1, "crash_restarts": 1} | {
+        k: v for k, v in pipe.stats()[victim].counts.items() if k not in ("restarts", "crash_restarts")}
+    after = [s for s in trace.steps_of(victim) if s.detail and "restarted" in s.detail]
+    assert len(after) == 1, "the flow's first record after the kill says it restarted afresh"
+    first = after[0].detail["restarted"]["seqs"]["n"]
+    assert first > 1 << 16, first
+    produced_after = [s for s in trace.steps_of(victim) if s.tag >= after[0].tag and s.produced]
+    assert produced_after and all(eid[2] >= first for s in produced_after for eid in s.produced)
+    # the pipeline recovered end to end: the sink stepped on new inputs after the restart
+    assert any(s.tag > after[0].tag and s.consumed for s in trace.steps_of("total"))
+    consumer = {"counter": "mid", "mid": "total"}.get(victim)
+    if consumer is not None:  # it took the new process's stream on, past the dead one's seqs
+        gaps = [s.detail["restart_gap"] for s in trace.steps_of(consumer) if s.detail and "restart_gap" in s.detail]
+        assert len(gaps) == 1 and gaps[0]["n"][0][:2] == [victim, "n"] and gaps[0]["n"][0][3] == first, gaps
+        assert any(eid[:2] == (victim, "n") and eid[2] >= first
+                   for s in trace.steps_of(consumer) for ids in s.consumed.values() for eid in ids)
+    log = read_log(path)
+    (fault,) = log.faults
+    assert fault["node"] == victim and fault["pid"] == str(kills[0]) and fault["exit"] == "was killed by SIGKILL"
+    assert fault["seqs"] == {"n": first}
+    ids = {ev.id for ev in log.trace().events}
+    consumed = {eid for s in log.trace().steps for eid_list in s.consumed.values() for eid in eid_list}
+    assert consumed and consumed <= ids, sorted(consumed - ids)[:5]
+    report = replay(log)
+    assert report.identical, report.divergences[:3]
+    assert report.nodes[victim].steps == len(trace.steps_of(victim))
+    if victim == "mid":  # it held the outputs of its last 50 ms (LET), whose records had gone out
+        assert fault["lost_events"] and all(eid not in ids for eid in fault["lost_events"])
+        assert report.nodes["mid"].cut >= 1  # re-executed, not compared: their outputs died with it
+
+
+def test_a_flow_that_segfaults_under_on_error_restart_starts_afresh(tmp_path, namespace):
+    with Pipeline("segfault") as pipe:
+        counter = Counter() @ Rate(hz=50)
+        crash = SegfaultOnce(str(tmp_path / "crashed")).configure(name="crash", on_error="restart") @ Trigger()
+        counter.then(crash, sync=Latest())
+    trace = pipe.run(duration=2.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+    assert pipe.stats()["crash"].counts.get("crash_restarts") == 1
+    (fault,) = read_log(tmp_path / "run.mcap").faults
+    assert fault["node"] == "crash" and fault["exit"] == "was killed by SIGSEGV"
+    assert [s.status for s in trace.steps_of("crash")].count("ok") > 10  # it went on afresh
+    assert replay(read_log(tmp_path / "run.mcap")).identical
+
+
+def test_a_flow_whose_process_dies_past_its_restart_budget_stops_the_run_naming_it(namespace):
+    """Killed once more than max_restarts allows: RestartLimitError, as for a step that raises."""
+    pipe = _restartable_chain("killbudget", max_restarts=1, restart_window=60.0)
+    kills: list[int] = []
+    done = threading.Event()
+
+    def ready(session, kills) -> bool:  # once the run goes, then once the new process has stepped
+        steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
+        return len(kills) < 2 and len(steps) > 20 and (not kills or any(s[5] and "restarted" in s[5] for s in steps))
+
+    thread = _kill_when(pipe, "total", ready, kills, done)
+    try:
+        with pytest.raises(RestartLimitError, match=r"^flow 'total' failed again after 1 restart\(s\) within 60 s "
+                                                    r"\(max_restarts=1, restart_window=60\): its worker process "
+                                                    r"\(pid \d+\) was killed by SIGKILL"):
+            pipe.run(duration=30, backend="zenoh", namespace=namespace, quiet=True)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert len(kills) == 2 and f"pid {kills[1]}" in str(pipe._session._limit)
 
 
 # ---------------------------------------------------------------------------------------------

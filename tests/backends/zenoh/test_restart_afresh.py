@@ -1,0 +1,181 @@
+"""A flow started afresh after its process died (on_error="restart"; loop.py, "Restarting after a
+lost process"), piece by piece: a real NodeLoop driven by hand (the test thread plays Zenoh's
+receiving thread and the coordinator), and the log records a replay reads, attacked. The whole
+story with real processes killed by SIGKILL is in test_lifecycle.py. No test here waits on time.
+"""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+import zenoh
+
+from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.loop import _CONTROL, _DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
+from retriever.backends.zenoh.wire import Progress, WireEncoder
+from retriever.backends.zenoh.worker import build_loop
+from retriever.log import format as fmt
+from retriever.log.writer import LogFile, LogWriter
+
+from .semantics_flows import Ticker, WhereRun
+
+MS = 1_000_000
+STREAM = ("counter", "value")
+FIRST = RESTART_SEQ_GAP + 7  # the seq a restarted counter's stream goes on from, in these tests
+
+
+@pytest.fixture(scope="module")
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+@pytest.fixture
+def loop(session):
+    """The loop of ``where`` (Trigger on x, a Queue of counter's values), as run() leaves it."""
+    with Pipeline("afresh_by_hand") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where", on_error="restart") @ Trigger("x"), sync=Queue(maxsize=100))
+    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "afresh-test"}, "where", session)
+    loop.declare()
+    loop.t0, loop.end = 0, 1 << 62
+    yield loop
+    loop.undeclare()
+
+
+def data(seq: int, t_ms: int) -> tuple:
+    message = WireEncoder().data((t_ms * MS, 0), seq, (t_ms * MS + 1, 0), "counter", "value", seq)
+    return (_DATA, STREAM, message)
+
+
+def control(op: str, args: dict) -> tuple:
+    return (_CONTROL, None, WireEncoder().control(op, args))
+
+
+def tick_all(loop) -> None:
+    """Run every tick that is ready (the inputs here are complete up to their tags)."""
+    while loop._try_tick(1 << 61) == "ticked":
+        pass
+
+
+def consumed(record) -> list[int]:
+    return [eid[2] for ids in record[1].values() for eid in ids]
+
+
+# ---------------------------------------------------------------------------------------------
+# A consumer of a producer that died and was restarted
+# ---------------------------------------------------------------------------------------------
+def test_a_consumer_gives_up_the_dead_producers_missing_seqs_and_takes_the_new_stream_on(loop):
+    for seq, t in ((0, 50), (1, 100)):
+        loop._handle(data(seq, t))
+    loop._handle(control("lost", {"node": "counter"}))
+    loop._handle(data(FIRST + 1, 300))  # the new process's second event overtook the coordinator's word
+    loop._handle(data(3, 150))  # the dead process's: seq 2 never came
+    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop._handle(data(FIRST, 250))
+    loop._handle(data(2, 120))  # the dead process's missing one, too late: ignored, not garbage
+    tick_all(loop)
+    assert [consumed(r) for r in loop.records] == [[0], [1], [FIRST], [FIRST + 1]]
+    assert [r[0][0] // MS for r in loop.records] == [50, 100, 250, 300]
+    # the next record says which seqs it gave up, so that a replay withholds those
+    assert loop.records[0][4] == {"restart_gap": {"x": [["counter", "value", 2, FIRST]]}}
+    assert loop.counts["garbage"] == 0 and loop.expect[STREAM] == FIRST + 2
+
+
+def test_without_word_of_a_lost_producer_a_seq_that_far_ahead_is_garbage(loop):
+    loop._handle(data(0, 50))
+    loop._handle(data(EARLY_SEQS_MAX + 5, 300))  # a seq from the future: an insider's nonsense
+    assert loop.counts["garbage"] == 1 and not loop.early[STREAM]
+
+
+def test_a_restart_below_seqs_already_taken_is_refused(loop):
+    for seq, t in ((0, 50), (1, 100)):
+        loop._handle(data(seq, t))
+    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": 1}}))
+    loop._handle(control("restarted", {"node": "counter", "seqs": ["value", 9]}))
+    assert loop.counts["garbage"] == 2 and loop.expect[STREAM] == 2 and "restart_gap" not in loop.pending_detail
+
+
+def test_word_of_another_nodes_restart_changes_nothing(loop):
+    loop._handle(data(0, 50))
+    loop._handle(control("lost", {"node": "where"}))
+    loop._handle(control("restarted", {"node": "somebody", "seqs": {"value": FIRST}}))
+    assert loop.expect[STREAM] == 1 and not loop.lost_producers and loop.counts["garbage"] == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# The new process of a flow whose process died
+# ---------------------------------------------------------------------------------------------
+def test_a_fresh_process_takes_each_stream_on_from_where_its_producer_stands(loop):
+    loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": 9})})
+    assert loop.frontiers[STREAM] == (400 * MS, 0)
+    loop._handle(data(8, 380))  # published before the producer answered: not this process's
+    loop._handle(data(10, 450))
+    loop.start_fresh({"report": FIRST}, 0)
+    tick_all(loop)
+    (record,) = loop.records
+    assert consumed(record) == [10] and record[2] == (("where", "report", FIRST),)
+    assert record[4] == {"restarted": {"seqs": {"report": FIRST}, "inputs": {"x": [["counter", "value", 10]]}}}
+    assert loop.counts["garbage"] == 0
+
+
+def test_a_fresh_process_waits_for_nothing_from_a_finished_producer(loop):
+    loop.sync_inputs({"counter": None})
+    assert loop.frontiers[STREAM] == NEVER and loop.fresh_inputs == {}
+
+
+# ---------------------------------------------------------------------------------------------
+# What a replay reads of it, from a hostile log
+# ---------------------------------------------------------------------------------------------
+def step(detail: dict) -> bytes:
+    return msgpack.packb(["where", 0, {}, [], "ok", detail, 0])
+
+
+@pytest.mark.parametrize("detail", [
+    {"restart_gap": []},
+    {"restart_gap": {"x": [["counter", "value", 2]]}},
+    {"restart_gap": {"x": [["counter", "value", -1, 5]]}},
+    {"restart_gap": {"x": [["counter", 7, 2, 5]]}},
+    {"restarted": {"seqs": {"report": 3}}},
+    {"restarted": {"seqs": {"report": "3"}, "inputs": {}}},
+    {"restarted": {"seqs": {}, "inputs": {"x": [["counter", "value"]]}}},
+    {"restarted": ["seqs"]},
+])
+def test_a_malformed_restart_in_a_step_record_is_refused(detail):
+    with pytest.raises(ValueError, match="its restart|its event ids"):
+        fmt.decode_step(step(detail))
+
+
+def test_a_well_formed_restart_in_a_step_record_is_read():
+    detail = {"restart_gap": {"x": [["counter", "value", 2, FIRST]]},
+              "restarted": {"seqs": {"report": FIRST}, "inputs": {"x": [["counter", "value", 10]]}}}
+    assert fmt.decode_step(step(detail))[5] == detail
+
+
+def _log_with_fault(path, fault: dict):
+    with Pipeline("faulty_log") as pipe:
+        Ticker().configure(name="counter") @ Rate(hz=20)
+    writer = LogWriter(LogFile(path), pipe.compile(), backend="zenoh")
+    writer.add_fault(fault)
+    writer.close(pipe.trace, 0)
+    return read_log(path)
+
+
+def test_a_fault_record_reads_back_as_written(tmp_path):
+    log = _log_with_fault(tmp_path / "run.mcap", {"kind": "process_lost", "node": "counter", "at_ns": 5,
+                                                  "seqs": {"value": FIRST}, "lost_events": [["counter", "value", 3]]})
+    assert log.faults == [{"kind": "process_lost", "node": "counter", "at_ns": "5", "seqs": {"value": FIRST},
+                           "lost_events": [("counter", "value", 3)]}]
+
+
+@pytest.mark.parametrize("fault", [
+    {"node": "counter", "lost_events": "[[\"counter\", \"value\"]]"},
+    {"node": "counter", "lost_events": "not json"},
+    {"node": "counter", "seqs": "[1]"},
+    {"lost_events": "[]"},
+])
+def test_a_malformed_fault_record_is_a_log_error(tmp_path, fault):
+    log = _log_with_fault(tmp_path / "run.mcap", fault)
+    with pytest.raises(LogError, match=r"the fault record retriever\.fault\.1 is malformed"):
+        log.faults
