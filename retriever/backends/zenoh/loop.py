@@ -955,6 +955,11 @@ class NodeLoop:
         """Go on from the coordinator's ``restarted``: each output port's first seq, Rate ticks from now."""
         self.seqs = {port: seq for port, seq in seqs.items()}
         self.sent = {port: seq - 1 for port, seq in seqs.items()}
+        for e in self.edges:  # a feedback edge to itself: its inputs are its new outputs
+            if e.src == self.id and e.src_port in seqs:
+                stream = (e.src, e.src_port)
+                self.expect[stream] = self.taken_over[stream] = seqs[e.src_port]
+                self.fresh_inputs.setdefault(e.port, []).append([e.src, e.src_port, seqs[e.src_port]])
         self.pending_detail["restarted"] = {"seqs": dict(sorted(seqs.items())), "inputs": self.fresh_inputs}
         if self.clock.hz is not None:  # run() starts at this tick
             self.k = self.clock.first_tick_at_or_after(time.time_ns() - t0)

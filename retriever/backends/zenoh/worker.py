@@ -385,8 +385,9 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
     from .wire import WireError, decode_progress
 
     loop.declare_inputs()
-    producers = {e["source"]["node"] for e in spec["ir"]["edges"] if e["destination"]["node"] == node_id}
-    consumers = {e["destination"]["node"] for e in spec["ir"]["edges"] if e["source"]["node"] == node_id}
+    # its own outputs fed back to it start with the seqs it gets below (start_fresh)
+    producers = {e["source"]["node"] for e in spec["ir"]["edges"] if e["destination"]["node"] == node_id} - {node_id}
+    consumers = {e["destination"]["node"] for e in spec["ir"]["edges"] if e["source"]["node"] == node_id} - {node_id}
     answers: dict = {}
     give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
     while not loop.stopping and time.monotonic() < give_up:
@@ -472,6 +473,8 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
                 return None
             if op == wanted and args.get("node", node_id) == node_id:
                 return args
+            if op in ("lost", "restarted"):  # of a producer: the loop must know, once it runs
+                early.append(item)
     finally:
         for item in early:
             loop.inbox.put(item)

@@ -90,6 +90,20 @@ class Nap(Flow[None, Count]):
         return Count(n=1)
 
 
+class Looped(Flow):
+    """Counts its ticks on ``n``, which is fed back to it (``feedback``, optional: untyped with a default)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def step(self, feedback=None):
+        self.k += 1
+        return {"n": self.k}
+
+
 class SegfaultOnce(Flow[Count, Count]):
     """Passes its input on; its first step ever (in any process: ``marker`` is a file that says
     it happened) crashes the process with a segmentation fault, as a bad native extension would."""

@@ -42,7 +42,7 @@ from retriever.backends.zenoh.hub import await_segments_released, endpoint, free
 from retriever.backends.zenoh.worker import build_loop
 from retriever.log import replay
 
-from .lifecycle_flows import Count, Counter, Nap, Scaled, SegfaultOnce, Sink, Total, two_node_pipeline
+from .lifecycle_flows import Count, Counter, Looped, Nap, Scaled, SegfaultOnce, Sink, Total, two_node_pipeline
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -747,6 +747,29 @@ def test_a_sigkilled_worker_of_a_flow_with_on_error_restart_starts_afresh_and_th
     if victim == "mid":  # it held the outputs of its last 50 ms (LET), whose records had gone out
         assert fault["lost_events"] and all(eid not in ids for eid in fault["lost_events"])
         assert report.nodes["mid"].cut >= 1  # re-executed, not compared: their outputs died with it
+
+
+def test_a_flow_fed_back_to_itself_restarts_afresh_after_a_sigkill(tmp_path, namespace):
+    """Its new process takes its own stream on from its own first seq (it waited 10 s for an
+    answer from itself before, and missed the run)."""
+    with Pipeline("selfloop") as pipe:
+        loop = Looped().configure(name="loop", on_error="restart") @ Rate(hz=50)
+        loop.then(Total().configure(name="sink") @ Trigger(), sync=Latest())
+        loop.then(loop, sync=Latest(), map={"n": "feedback"})
+    kills: list[int] = []
+    done = threading.Event()
+    thread = _kill_when(pipe, "loop", lambda session, kills: not kills and len(session.trace.raw_steps) > 40,
+                        kills, done)
+    try:
+        trace = pipe.run(duration=2.5, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    (after,) = [s for s in trace.steps_of("loop") if s.detail and "restarted" in s.detail]
+    first = after.detail["restarted"]["seqs"]["n"]
+    assert after.detail["restarted"]["inputs"] == {"feedback": [["loop", "n", first]]}
+    assert len([s for s in trace.steps_of("loop") if s.tag > after.tag]) > 10
+    assert replay(read_log(tmp_path / "run.mcap")).identical
 
 
 def test_a_flow_that_segfaults_under_on_error_restart_starts_afresh(tmp_path, namespace):
