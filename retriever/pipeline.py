@@ -10,8 +10,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import inspect
 import signal
 import sys
 import threading
@@ -24,11 +22,11 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
-from .clocks import clock_from_ir
 from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
-from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES, param_from_ir
+from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
+from .rebuild import check_node, construct_node
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import Trace
@@ -180,11 +178,11 @@ class Pipeline:
         problems: list[str] = []
         # everything that can be checked without importing, for every node, before importing any
         folders = meta.get("module_folders", {})
-        params = {node["id"]: _node_params(node, problems, folders) for node in ir.nodes}
+        params = {node["id"]: check_node(node, problems, folders) for node in ir.nodes}
         if not problems:
             with pipe:  # flows join this pipeline, not whatever `with` block encloses the call
                 for node in ir.nodes:
-                    _construct_node(node, params[node["id"]], flows, problems)
+                    construct_node(node, params[node["id"]], flows, problems)
         if problems:
             raise IRError(f"IR '{ir.name}'", problems)
         for e in ir.edges:
@@ -384,96 +382,3 @@ def _check_seconds(method: str, name: str, value: Any, now_ns: int) -> None:
     if problem is not None:
         raise ValueError(f"pipe.{method}({name}={value!r}): {problem}\n    hint: run for a number of seconds "
                          "that ends within 292 years of T0, e.g. duration=10")
-
-
-def _construct(cls: type, params: dict) -> Flow:
-    args: list = []
-    kwargs: dict = {}
-    sig = inspect.signature(cls.__init__) if cls.__init__ is not object.__init__ else None
-    if sig is None:
-        if params:
-            raise TypeError(f"__init__ takes no arguments, the IR gives {sorted(params)}")
-        return cls()
-    declared = list(sig.parameters.values())[1:]
-    names = {p.name for p in declared}
-    unknown = sorted(set(params) - names)
-    if unknown and not any(p.kind is p.VAR_KEYWORD for p in declared):
-        raise TypeError(f"__init__ has no parameter {', '.join(map(repr, unknown))} "
-                        f"(it takes: {', '.join(sorted(names)) or 'nothing'})")
-    for p in declared:
-        if p.name not in params:
-            continue
-        value = params[p.name]
-        if p.kind is p.POSITIONAL_ONLY:
-            args.append(value)
-        elif p.kind is p.VAR_POSITIONAL:
-            args.extend(value)
-        elif p.kind is p.VAR_KEYWORD:
-            kwargs.update(value)
-        else:
-            kwargs[p.name] = value
-    return cls(*args, **kwargs)
-
-
-def _rebuild_node(node: dict, flows: dict[str, Flow], problems: list[str]) -> None:
-    """Rebuild one node of a validated IR into ``flows`` (or say why not in ``problems``)."""
-    params = _node_params(node, problems)
-    if params is not None:
-        _construct_node(node, params, flows, problems)
-
-
-def _node_params(node: dict, problems: list[str], folders: dict[str, str] | None = None) -> dict | None:
-    """What can be checked of a node before importing its module: that it is rebuildable, that its
-    params decode (which imports nothing) and that its module can be found (without running it)."""
-    nid = node["id"]
-    if not node.get("rebuildable", True):
-        problems.append(f"node '{nid}' cannot be rebuilt from the IR: {node.get('rebuild_problem')}")
-        return None
-    params = {}
-    for name, value in node["params"].items():
-        try:
-            params[name] = param_from_ir(value)
-        except ValueError as e:
-            problems.append(f"node '{nid}': params.{name} is {e}")
-    module = node["type"].partition(":")[0]
-    top = module.partition(".")[0]
-    if top not in sys.modules and importlib.util.find_spec(top) is None:
-        folder = (folders or {}).get(module)
-        where = (f"the IR was built with it from {folder}: run there, or PYTHONPATH={folder}"
-                 if folder and folder not in sys.path else
-                 f"run from the folder that holds {top}.py (or the {top} package), or add that folder to PYTHONPATH")
-        problems.append(f"node '{nid}': cannot import {node['type']} (No module named '{top}')\n    hint: {where}")
-        return None
-    return params if len(params) == len(node["params"]) else None
-
-
-def _import_type(path: str) -> Any:
-    """Import ``module:QualName`` (an IR node's checked ``type``): an IR file is code."""
-    module_name, _, qualname = path.partition(":")
-    obj: Any = importlib.import_module(module_name)
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _construct_node(node: dict, params: dict, flows: dict[str, Flow], problems: list[str]) -> None:
-    """Import the node's class, refuse anything but a Flow subclass, call it with ``params``."""
-    nid = node["id"]
-    try:
-        flow_cls = _import_type(node["type"])
-    except (ImportError, AttributeError) as e:
-        problems.append(f"node '{nid}': cannot import {node['type']} ({e})")
-        return
-    if not (isinstance(flow_cls, type) and issubclass(flow_cls, Flow)):
-        problems.append(f"node '{nid}': {node['type']} is not a Flow class")
-        return
-    try:
-        flow = _construct(flow_cls, params)
-    except Exception as e:
-        problems.append(f"node '{nid}': {node['type']}(**{params!r}) raised {type(e).__name__}: {e}")
-        return
-    config = node["config"]
-    flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
-                   on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"),
-                   max_restarts=config.get("max_restarts"), restart_window=config.get("restart_window"))
-    flows[nid] = flow @ clock_from_ir(config["clock"])

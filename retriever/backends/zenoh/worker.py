@@ -127,7 +127,7 @@ def build_loop(spec: dict, node_id: str, session):
     from ...flow._base import Flow
     from ...graph import compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
-    from ...pipeline import _rebuild_node
+    from ...rebuild import rebuild_node
     from ...sync import PortBuffer, policy_from_ir
     from ...time import seconds_to_ns
     from ..inproc import _AlwaysMissing
@@ -141,7 +141,7 @@ def build_loop(spec: dict, node_id: str, session):
     node_doc = dict(ir.node(node_id))
     if spec.get("main_file") and node_doc.get("rebuild_needs_main"):
         node_doc["rebuildable"] = True  # _import_main made __main__ importable here
-    _rebuild_node(node_doc, flows, problems)
+    rebuild_node(node_doc, flows, problems)
     if problems:
         raise RuntimeError("; ".join(problems))
     with warnings.catch_warnings():
