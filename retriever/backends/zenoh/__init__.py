@@ -5,7 +5,8 @@
     hub.py      peer sessions: the run's hub and the workers joining it
     loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
     worker.py   the worker process around a loop
-    session.py  the coordinator: starts workers, agrees on T0, collects the trace and the log
+    host.py     where worker processes run (this machine: LocalHost), and how they are started
+    session.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
     output.py   what workers print, on the coordinator's streams, prefixed with the node
 """
 

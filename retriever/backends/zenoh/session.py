@@ -40,7 +40,7 @@ from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
 from .loop import RESTART_SEQ_GAP
-from .output import WorkerOutput
+from .host import LocalHost, WorkerProcess
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
@@ -97,16 +97,16 @@ class ZenohSession(Session):
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
         self._init_records(graph)
-        self._workers: dict[str, subprocess.Popen] = {}  # each node's process
-        self._retiring: dict[str, subprocess.Popen] = {}  # a restarting node's old process, until it hands over
-        self._retired: list[subprocess.Popen] = []  # old processes that handed over, to reap
+        self._workers: dict[str, WorkerProcess] = {}  # each node's process
+        self._retiring: dict[str, WorkerProcess] = {}  # a restarting node's old process, until it hands over
+        self._retired: list[WorkerProcess] = []  # old processes that handed over, to reap
         self._state: dict[str, str] = {}
         self._exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         self._ran = False
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
-        self._output: dict[str, WorkerOutput] = {}  # what each node's worker prints
         self._dir = _run_dir()
+        self._host = LocalHost(self._dir / "spec.json")
         self._encoder = WireEncoder()
         self._hub = None
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
@@ -182,15 +182,11 @@ class ZenohSession(Session):
     def _spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
-        cmd = [sys.executable, "-m", "retriever.backends.zenoh.worker", str(self._dir / "spec.json"), nid]
-        if join is not None:
-            cmd += ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
-        self._workers[nid] = proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                                     stderr=subprocess.PIPE, start_new_session=True)
-        self._output.setdefault(nid, WorkerOutput(nid)).attach(proc)
+        mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
+        self._workers[nid] = self._host.spawn(nid, mode)
         self._state[nid] = "starting"
 
-    def _processes(self) -> list[subprocess.Popen]:
+    def _processes(self) -> list[WorkerProcess]:
         """Every worker process this run started."""
         return [*self._workers.values(), *self._retiring.values(), *self._retired]
 
@@ -205,16 +201,16 @@ class ZenohSession(Session):
         for nid in nodes:
             proc = self._workers.get(nid)
             if proc is not None and proc.poll() is None:
-                before[nid] = self._output[nid].stderr_lines
-                self._output[nid].forwarding = show
+                output = self._host.output(nid)
+                before[nid] = output.stderr_lines
+                output.forwarding = show
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
-            self._output[nid].settle(lines, max(0.0, give_up - time.monotonic()))
+            self._host.output(nid).settle(lines, max(0.0, give_up - time.monotonic()))
 
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
-        output = self._output.get(nid)
-        return output.tail(lines) if output is not None else ""
+        return self._host.output(nid).tail(lines)
 
     # ---------------------------------------------------------------------------------------
     # Running
@@ -514,7 +510,7 @@ class ZenohSession(Session):
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED) and time.monotonic() - exited < 2.0:
                 continue
             if self._failure is None:
-                self._output[nid].drain()
+                self._host.output(nid).drain()
                 self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
                                                 f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
@@ -522,7 +518,7 @@ class ZenohSession(Session):
     # ---------------------------------------------------------------------------------------
     # A lost process (on_error="restart"; see "Restarting after a lost process" in loop.py)
     # ---------------------------------------------------------------------------------------
-    def _lost(self, nid: str, proc: subprocess.Popen, code: int) -> None:
+    def _lost(self, nid: str, proc: WorkerProcess, code: int) -> None:
         """A worker process of ``nid`` died after the start: within the restart budget, start the
         flow afresh in a new process (a hand-over in progress dies with it); else fail the run."""
         at = self._run_time()
@@ -649,7 +645,7 @@ class ZenohSession(Session):
         if any(p.poll() is None for p in self._processes()):
             self._stop_workers()
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
-        for output in self._output.values():
+        for output in self._host.outputs():
             output.drain(max(0.0, give_up - time.monotonic()))
         if self._hub is not None:
             for sub in getattr(self, "_subscribers", ()):

@@ -1,0 +1,75 @@
+"""Where a run's worker processes run: the coordinator starts, watches and stops them through a host.
+
+    Host           starts a node's worker process (``spawn``), keeps what it prints (``output``)
+    └── LocalHost  this machine: children of the coordinator, their output read through pipes
+
+A worker process is to the coordinator what ``subprocess.Popen`` is (:class:`WorkerProcess`):
+``pid``, ``poll()``, ``wait(timeout)``, ``send_signal()``, ``kill()``. The coordinator's logic —
+readiness, T0, reports, the log, restarts, lost processes — does not care which host a process
+runs on (issue 18: the embedded run is a deployment with one local host).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Protocol
+
+from .output import WorkerOutput
+
+WORKER_MODULE = "retriever.backends.zenoh.worker"
+
+
+class WorkerProcess(Protocol):
+    """One node's worker process, as the coordinator sees it (``subprocess.Popen`` is one)."""
+
+    pid: int
+
+    def poll(self) -> int | None: ...
+
+    def wait(self, timeout: float | None = None) -> int: ...  # subprocess.TimeoutExpired past it
+
+    def send_signal(self, sig: int) -> None: ...
+
+    def kill(self) -> None: ...
+
+
+class Host(ABC):
+    """Starts worker processes of one run somewhere, and keeps what each node's processes print."""
+
+    def __init__(self) -> None:
+        self._outputs: dict[str, WorkerOutput] = {}
+
+    @abstractmethod
+    def spawn(self, node: str, mode: Sequence[str] = ()) -> WorkerProcess:
+        """Start a worker process for ``node``; ``mode``: its extra arguments (``--join T0 END``...)."""
+
+    def output(self, node: str) -> WorkerOutput:
+        """What ``node``'s worker processes printed (all of them: a restart makes a new one)."""
+        output = self._outputs.get(node)
+        if output is None:
+            output = self._outputs[node] = WorkerOutput(node)
+        return output
+
+    def outputs(self) -> list[WorkerOutput]:
+        return list(self._outputs.values())
+
+
+class LocalHost(Host):
+    """This machine: each worker process is a child of the coordinator, in a session of its own
+    (a Ctrl-C at the terminal reaches the coordinator only, which stops them), reading the run's
+    spec from the coordinator's run directory."""
+
+    def __init__(self, spec_path: Path):
+        super().__init__()
+        self.spec_path = spec_path
+
+    def spawn(self, node: str, mode: Sequence[str] = ()) -> subprocess.Popen:
+        cmd = [sys.executable, "-m", WORKER_MODULE, str(self.spec_path), node, *mode]
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                start_new_session=True)
+        self.output(node).attach(proc)
+        return proc
