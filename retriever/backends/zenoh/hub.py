@@ -146,14 +146,17 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: in
     raise OSError(f"could not open a Zenoh hub on 127.0.0.1 after {attempts} attempts: {last}")
 
 
-def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None) -> zenoh.Session:
+def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None,
+              listen: list[str] | None = None) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
-    It listens on a free loopback port too: peers do not route for each other, so two workers
-    exchange messages over the direct link that gossip (learning of each other from the hub)
-    opens between them, which is also the fastest path."""
-    return zenoh.open(peer_config(listen=[endpoint(0)], connect=[hub_endpoint], sessions=sessions, access=access))
+    It listens too, on a free loopback port unless ``listen`` says where (a worker on another
+    machine: an address the others reach it at, port 0): peers do not route for each other, so
+    two workers exchange messages over the direct link that gossip (learning of each other from
+    the hub) opens between them, which is also the fastest path."""
+    return zenoh.open(peer_config(listen=listen or [endpoint(0)], connect=[hub_endpoint], sessions=sessions,
+                                  access=access))
 
 
 def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,

@@ -41,22 +41,25 @@ class WorkerOutput:
             self._pumps.append(pump)
 
     def _pump(self, pipe, name: str) -> None:
-        prefix = f"[{self.node}] "
         with pipe:
             for raw in iter(pipe.readline, b""):
-                line = raw.decode(errors="replace").rstrip("\r\n")
-                if name == "stderr":
-                    self._tail.append(line)
-                    self.stderr_lines += 1
-                    if not self.forwarding:
-                        continue
-                stream = getattr(sys, name)  # looked up per line: pytest and rich replace it
-                with _WRITING:
-                    try:
-                        stream.write(prefix + line + "\n")
-                        stream.flush()
-                    except (OSError, ValueError, AttributeError):  # closed or gone: the line is in the tail
-                        pass
+                self.feed(name, raw.decode(errors="replace").rstrip("\r\n"))
+
+    def feed(self, name: str, line: str) -> None:
+        """One line the node's process wrote to ``name`` (``stdout`` or ``stderr``): kept if
+        stderr, and written to the coordinator's stream of that name, prefixed with the node."""
+        if name == "stderr":
+            self._tail.append(line)
+            self.stderr_lines += 1
+            if not self.forwarding:
+                return
+        stream = getattr(sys, name)  # looked up per line: pytest and rich replace it
+        with _WRITING:
+            try:
+                stream.write(f"[{self.node}] {line}\n")
+                stream.flush()
+            except (OSError, ValueError, AttributeError):  # closed or gone: the line is in the tail
+                pass
 
     def drain(self, timeout: float = 1.0) -> None:
         """Wait (at most ``timeout``) until an exited process's last lines are read."""

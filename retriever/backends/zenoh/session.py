@@ -40,7 +40,7 @@ from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, open_hub
 from .loop import RESTART_SEQ_GAP
-from .host import LocalHost, WorkerProcess
+from .host import Host, LocalHost, WorkerProcess
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
@@ -106,16 +106,16 @@ class ZenohSession(Session):
         self._closed = False
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._dir = _run_dir()
-        self._host = LocalHost(self._dir / "spec.json")
+        self._hosts: dict[str, Host] = {}  # where each node's processes run
         self._encoder = WireEncoder()
         self._hub = None
+        self._subscribers: list = []
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
         self._hub_segments: set[str] = set()
         try:
             dictionary = self._access.write_dictionary(self._dir)
-            auth = self._access.session_config(dictionary)
             before = mapped_segments()
-            self._hub, self.endpoint = open_hub(hub_port, sessions=run_sessions(len(graph.nodes)), access=auth)
+            self._open_hub(hub_port, self._access.session_config(dictionary))
             self._hub_segments = mapped_segments() - before  # the hub session's own
             #: a Zenoh config file with which a client joins the run as a read-only watcher
             self.watch_config = self._access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
@@ -123,22 +123,35 @@ class ZenohSession(Session):
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
                       f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber "
                       f"on {self.keys.all_data()}", file=sys.stderr, flush=True)
-            put = self._inbox.put
-            self._subscribers = [
-                self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
-                self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
-                self._hub.declare_queryable(self.keys.start(), self._answer_start)]
-            ir = graph.to_ir().doc
-            self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
+            self._listen()
+            self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph),
                           "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
                           "startup_timeout": self.startup_timeout}
-            self._write_spec()
+            self._hosts = self._place()
             for nid in graph.nodes:
                 self._spawn(nid)
         except BaseException:
             self.close()
             raise
+
+    def _open_hub(self, port: int, access: dict[str, str]) -> None:
+        """Open the run's own session (``self._hub``), which the workers join at ``self.endpoint``."""
+        self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access)
+
+    def _listen(self) -> None:
+        """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
+        put = self._inbox.put
+        self._subscribers += [
+            self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
+            self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
+            self._hub.declare_queryable(self.keys.start(), self._answer_start)]
+
+    def _place(self) -> dict[str, Host]:
+        """Every node on this machine: the spec in the run directory, the workers its children."""
+        write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
+        host = LocalHost(self._dir / "spec.json")
+        return {nid: host for nid in self.graph.nodes}
 
     def _init_records(self, graph: Graph) -> None:
         """What the coordinator keeps of the run's reports and statuses (no Zenoh, no process:
@@ -176,14 +189,11 @@ class ZenohSession(Session):
     # ---------------------------------------------------------------------------------------
     # Processes
     # ---------------------------------------------------------------------------------------
-    def _write_spec(self) -> None:
-        write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
-
     def _spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
-        self._workers[nid] = self._host.spawn(nid, mode)
+        self._workers[nid] = self._hosts[nid].spawn(nid, mode)
         self._state[nid] = "starting"
 
     def _processes(self) -> list[WorkerProcess]:
@@ -201,16 +211,17 @@ class ZenohSession(Session):
         for nid in nodes:
             proc = self._workers.get(nid)
             if proc is not None and proc.poll() is None:
-                output = self._host.output(nid)
+                output = self._hosts[nid].output(nid)
                 before[nid] = output.stderr_lines
                 output.forwarding = show
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
-            self._host.output(nid).settle(lines, max(0.0, give_up - time.monotonic()))
+            self._hosts[nid].output(nid).settle(lines, max(0.0, give_up - time.monotonic()))
 
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
-        return self._host.output(nid).tail(lines)
+        host = self._hosts.get(nid)
+        return host.output(nid).tail(lines) if host is not None else ""
 
     # ---------------------------------------------------------------------------------------
     # Running
@@ -510,7 +521,7 @@ class ZenohSession(Session):
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED) and time.monotonic() - exited < 2.0:
                 continue
             if self._failure is None:
-                self._host.output(nid).drain()
+                self._hosts[nid].output(nid).drain()
                 self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
                                                 f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
@@ -645,10 +656,10 @@ class ZenohSession(Session):
         if any(p.poll() is None for p in self._processes()):
             self._stop_workers()
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
-        for output in self._host.outputs():
+        for output in {id(o): o for host in self._hosts.values() for o in host.outputs()}.values():
             output.drain(max(0.0, give_up - time.monotonic()))
         if self._hub is not None:
-            for sub in getattr(self, "_subscribers", ()):
+            for sub in self._subscribers:
                 sub.undeclare()
             try:
                 self._hub.close()

@@ -275,9 +275,11 @@ def _serve(argv: list[str]) -> int:
 
     keys = KeySpace(spec["namespace"])
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
-    access, dictionary = RunAccess.from_spec(spec["access"])
+    # a deployment started --insecure has no access entry: anyone on its network may join
+    config = RunAccess.from_spec(spec["access"]) if spec.get("access") else None
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])),
-                   access=access.session_config(dictionary)) as session:
+                   access=config[0].session_config(config[1]) if config else None,
+                   listen=spec.get("listen")) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),

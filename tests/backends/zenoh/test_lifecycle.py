@@ -669,11 +669,11 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
 
 
 def _restartable_chain(name: str, **settings) -> Pipeline:
-    """counter @ 50 Hz ──n──▶ mid @ Trigger (LET 50 ms) ──n──▶ total @ Trigger, each with
+    """counter @ 50 Hz ──n──▶ mid @ Trigger (LET 300 ms) ──n──▶ total @ Trigger, each with
     on_error="restart": a source, a flow between two others that holds its outputs, a sink."""
     with Pipeline(name) as pipe:
         counter = Counter().configure(name="counter", on_error="restart", **settings) @ Rate(hz=50)
-        mid = Total().configure(name="mid", on_error="restart", latency=0.05, **settings) @ Trigger()
+        mid = Total().configure(name="mid", on_error="restart", latency=0.3, **settings) @ Trigger()
         total = Total().configure(name="total", on_error="restart", **settings) @ Trigger()
         counter.then(mid, sync=Latest()).then(total, sync=Latest())
     return pipe
@@ -744,7 +744,7 @@ def test_a_sigkilled_worker_of_a_flow_with_on_error_restart_starts_afresh_and_th
     report = replay(log)
     assert report.identical, report.divergences[:3]
     assert report.nodes[victim].steps == len(trace.steps_of(victim))
-    if victim == "mid":  # it held the outputs of its last 50 ms (LET), whose records had gone out
+    if victim == "mid":  # it held the outputs of its last 300 ms (LET), whose records went out (within ~0.2 s)
         assert fault["lost_events"] and all(eid not in ids for eid in fault["lost_events"])
         assert report.nodes["mid"].cut >= 1  # re-executed, not compared: their outputs died with it
 
