@@ -129,7 +129,7 @@ class ZenohSession(Session):
                 self._hub.declare_queryable(self.keys.start(), self._answer_start)]
             ir = graph.to_ir().doc
             self._spec = {"ir": ir, "namespace": self.namespace, "hub": self.endpoint,
-                          "python_path": _python_path(), "main_file": _main_file(graph),
+                          "python_path": _python_path(), "main_file": _main_file(graph), "argv": list(sys.argv),
                           "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
                           "startup_timeout": self.startup_timeout}
             self._write_spec()
