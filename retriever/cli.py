@@ -421,5 +421,31 @@ def log_recover(
                f"  {path}: {result.damage}\n  next: retriever replay {result.output}", highlight=False)
 
 
+# ---------------------------------------------------------------------------------------------
+# Deployment secrets
+# ---------------------------------------------------------------------------------------------
+secret_app = typer.Typer(no_args_is_help=True, help="Deployment secrets: who may join a zenoh run.")
+app.add_typer(secret_app, name="secret")
+
+
+@secret_app.command("new")
+def secret_new(
+    path: Annotated[Path, typer.Argument(metavar="FILE", help="Where to write the secret, e.g. lab.key.")],
+    force: Annotated[bool, typer.Option("--force", help="Replace FILE if it exists.")] = False,
+) -> None:
+    """Write a fresh deployment secret (random, mode 0600) for retriever run --secret FILE."""
+    from .backends.zenoh.access import SECRET_NEW_BYTES, new_secret
+
+    try:
+        new_secret(path, overwrite=force)
+    except Exception as exc:
+        _fail(exc)
+    _out.print(f"wrote a new deployment secret to {path} ({SECRET_NEW_BYTES} random bytes as hex text, mode 600)\n"
+               f"  use it: retriever run SCRIPT.py --backend zenoh --secret {path} [--namespace NS]  "
+               f"(in Python: pipe.run(backend=\"zenoh\", secret=\"{path}\"))\n"
+               f"  every machine of the deployment needs this same file: copy it privately (scp; never a chat or "
+               f"a repository) and keep it mode 600", highlight=False, soft_wrap=True)
+
+
 def main() -> None:
     app()

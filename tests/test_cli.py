@@ -487,3 +487,52 @@ def test_a_run_whose_errors_were_absorbed_exits_1_unless_allowed(tmp_path: Path)
     assert re.search(r"^│ flaky +│ +10 │ +9 │ +0 │ +1 │", result.stdout, re.MULTILINE), result.stdout
     allowed = cli("run", str(script), "--duration", "1", "--allow-errors", pythonpath=ROOT)
     assert allowed.returncode == 0 and allowed.stderr == "", allowed.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# retriever secret new
+# ---------------------------------------------------------------------------------------------
+def secret_new(path: Path, *args: str) -> subprocess.CompletedProcess:
+    """``retriever secret new PATH`` under a umask that would leave any file world-readable."""
+    old = os.umask(0)  # the child inherits it
+    try:
+        return cli("secret", "new", str(path), *args)
+    finally:
+        os.umask(old)
+
+
+def test_secret_new_writes_a_private_secret_that_run_takes(tmp_path: Path):
+    key = tmp_path / "lab.key"
+    result = secret_new(key)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"wrote a new deployment secret to {key} (32 random bytes as hex text, "
+                                    f"mode 600)\n"), result.stdout
+    assert f"use it: retriever run SCRIPT.py --backend zenoh --secret {key}" in result.stdout
+    assert "every machine of the deployment needs this same file: copy it privately" in result.stdout
+    assert key.stat().st_mode & 0o777 == 0o600
+    assert len(key.read_text()) == 65
+    run = cli("run", str(QUICKSTART), "--duration", "0.5", "--backend", "zenoh", "--secret", str(key))
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "quickstart: 0.5 s on zenoh" in run.stdout
+
+
+def test_secret_new_keeps_an_existing_file_unless_forced(tmp_path: Path):
+    key = tmp_path / "lab.key"
+    assert secret_new(key).returncode == 0
+    old = key.read_text()
+    assert_cli_error(secret_new(key), r"^error: the secret file .*lab\.key already exists; a new secret would lock "
+                                      r"out every machine holding the old one$",
+                     hint=r"pass --force \(retriever secret new\)")
+    assert key.read_text() == old
+    forced = secret_new(key, "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert key.read_text() != old and key.stat().st_mode & 0o777 == 0o600
+
+
+def test_secret_new_refuses_a_folder_and_a_missing_folder(tmp_path: Path):
+    assert_cli_error(secret_new(tmp_path), r"^error: cannot write the secret file .*: it is a folder$",
+                     hint=r"pass a file path, e\.g\. .*deployment\.key$")
+    assert_cli_error(secret_new(tmp_path / "keys" / "lab.key"),
+                     r"^error: cannot write the secret file .*lab\.key: the folder .*keys does not exist$",
+                     hint=r"mkdir -p .*keys$")
+    assert list(tmp_path.iterdir()) == []

@@ -11,11 +11,11 @@ any of its sessions and none of its messages arrive. Two users per run:
                      put, delete, query, reply, queryable and liveliness token
 
 Passwords are per run: random, or derived from a deployment secret (``secret=``, a file), so
-that processes started elsewhere with the same secret can join the same namespace. They reach the
-workers in the run's spec file, in the run's private directory (mode 0700); the dictionary file
-Zenoh reads is there too. A watcher gets a Zenoh config file of its own (JSON5, mode 0600) that
-holds the watcher's password only: ``zenoh.Config.from_file(path)`` joins the hub, in client
-mode, read-only.
+that processes started elsewhere with the same secret can join the same namespace (new_secret,
+``retriever secret new FILE``, writes a fresh one). They reach the workers in the run's spec
+file, in the run's private directory (mode 0700); the dictionary file Zenoh reads is there too.
+A watcher gets a Zenoh config file of its own (JSON5, mode 0600) that holds the watcher's
+password only: ``zenoh.Config.from_file(path)`` joins the hub, in client mode, read-only.
 
 Zenoh authenticates the side that connects to the side that listens, not the other way round:
 the user name of a link is known on its listening end only. So the access control cannot
@@ -33,6 +33,8 @@ import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
+from ...errors import RetrieverError
+
 RUN_USER = "retriever-run"
 WATCH_USER = "retriever-watch"
 
@@ -42,9 +44,12 @@ WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "live
 #: the fewest bytes a deployment secret file must hold
 SECRET_MIN_BYTES = 16
 
+#: the random bytes of a secret new_secret writes (as hex text: 64 characters and a newline)
+SECRET_NEW_BYTES = 32
 
-class AccessError(ValueError):
-    """A deployment secret that cannot be used."""
+
+class AccessError(RetrieverError, ValueError):
+    """A deployment secret that cannot be read, used or written."""
 
 
 def read_secret(path: str | os.PathLike) -> bytes:
@@ -60,9 +65,42 @@ def read_secret(path: str | os.PathLike) -> bytes:
                           f"    hint: chmod 600 {path}")
     if len(data) < SECRET_MIN_BYTES:
         raise AccessError(f"the secret file {path} holds {len(data)} bytes; a secret needs at least "
-                          f"{SECRET_MIN_BYTES}\n    hint: python -c \"import secrets; print(secrets.token_hex(32))\" "
-                          f"> {path}; chmod 600 {path}")
+                          f"{SECRET_MIN_BYTES}\n    hint: make a new one with: retriever secret new {path} --force")
     return data
+
+
+def new_secret(path: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Write a fresh deployment secret to ``path``: SECRET_NEW_BYTES random bytes (``secrets``)
+    as hex text and a newline, which read_secret takes as it is (it strips the newline). The
+    file is created mode 0600, whatever the umask, so it is never readable by others, not even
+    for a moment. An existing file is refused unless ``overwrite``; then it is replaced at once
+    (a new file moved over it), so a machine reading it sees the old secret or the new one."""
+    path = Path(path)
+    if path.is_dir():
+        raise AccessError(f"cannot write the secret file {path}: it is a folder\n"
+                          f"    hint: pass a file path, e.g. {path / 'deployment.key'}")
+    if not path.parent.is_dir():
+        raise AccessError(f"cannot write the secret file {path}: the folder {path.parent} does not exist\n"
+                          f"    hint: mkdir -p {path.parent}")
+    text = secrets.token_hex(SECRET_NEW_BYTES) + "\n"
+    try:
+        if overwrite:
+            return write_private(path, text)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        raise AccessError(f"the secret file {path} already exists; a new secret would lock out every machine "
+                          f"holding the old one\n    hint: pass --force (retriever secret new) or overwrite=True "
+                          f"(new_secret) to replace it anyway") from None
+    except OSError as e:
+        raise AccessError(f"cannot write the secret file {path}: {e.strerror}") from None
+    try:
+        with os.fdopen(fd, "w", encoding="ascii") as f:
+            os.fchmod(fd, 0o600)  # the umask may have taken the owner's own bits away
+            f.write(text)
+    except OSError as e:
+        path.unlink(missing_ok=True)  # a part of a secret is no secret
+        raise AccessError(f"cannot write the secret file {path}: {e.strerror}") from None
+    return path
 
 
 def secret_bytes(secret: str | os.PathLike | bytes | None) -> bytes | None:

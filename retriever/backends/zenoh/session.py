@@ -125,7 +125,7 @@ class ZenohSession(Session):
                       f"on {self.keys.all_data()}", file=sys.stderr, flush=True)
             self._listen()
             self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
-                          "python_path": _python_path(), "main_file": _main_file(graph),
+                          "python_path": _python_path(), "main_file": _main_file(graph), "argv": list(sys.argv),
                           "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
                           "startup_timeout": self.startup_timeout}
             self._hosts = self._place()

@@ -3,9 +3,10 @@
     python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END | --fresh T0 END]
 
 The coordinator (``retriever.backends.zenoh.session``) writes ``SPEC.json`` — the IR, the hub's
-endpoint, the namespace and the Python path the flows were imported from — and starts one worker
-per node. A worker joins the hub, declares its subscriptions, says ``ready`` on
-``status/node/<node>``, and waits for ``start`` (T0 and the end) on ``ctl/run``.
+endpoint, the namespace, the Python path the flows were imported from and the coordinator's
+``sys.argv``, which the worker takes as its own — and starts one worker per node. A worker joins
+the hub, declares its subscriptions, says ``ready`` on ``status/node/<node>``, and waits for
+``start`` (T0 and the end) on ``ctl/run``.
 
 on_error="restart": the failed worker says ``restart`` and goes on listening (see "Restarting" in
 loop.py); the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
@@ -266,6 +267,10 @@ def _serve(argv: list[str]) -> int:
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
             sys.path.insert(0, path)
+    # the coordinator's sys.argv, as multiprocessing gives its children the parent's: a script or
+    # a flow's module that parses sys.argv when imported (argparse at module level) must see its
+    # own arguments, not this worker's (SPEC.json NODE), or it parses the wrong ones and exits
+    sys.argv = spec.get("argv", sys.argv)
 
     from ...codec import packb, unpackb
     from .access import RunAccess

@@ -13,7 +13,8 @@
   run's (an unknown producer, a repeated event id) stay out of the trace.
 - Flows that cannot be rebuilt from the IR are refused before any process starts.
 - Flow classes defined in a script's ``__main__`` run on zenoh; what they print shows on the
-  caller's stdout and stderr, each line prefixed with the node, before ``pipe.run`` returns.
+  caller's stdout and stderr, each line prefixed with the node, before ``pipe.run`` returns. A
+  script that parses ``sys.argv`` when imported parses the caller's arguments in the workers too.
 
 Every test runs under a fixture that fails it when a worker process it created (directly, through
 a subprocess, or orphaned) is still alive afterwards. Waits are bounded polls, never speed checks.
@@ -1132,6 +1133,17 @@ def test_what_a_flow_prints_shows_on_the_callers_streams_prefixed_with_its_node(
     assert result.stdout.splitlines() == ["[chatty] tick 0", "[chatty] tick 1", "[chatty] tick 2", "[chatty] tick 3",
                                           "run returned"], result.stdout
     assert result.stderr.splitlines() == ["[chatty] warming up", "[chatty] last words"], result.stderr
+
+
+def test_a_script_parsing_its_arguments_when_imported_gets_them_in_the_workers(namespace):
+    """The workers import the script with the caller's sys.argv, as multiprocessing's children do:
+    argparse at module level sees ``--rate 7``, not the worker's own ``SPEC.json NODE`` (which it
+    refuses, exit 2), and the flow's value comes from it."""
+    script = Path(__file__).resolve().parent / "argv_script.py"
+    code, out, err = _run_importing_tests([sys.executable, str(script), "--rate", "7", "--namespace", namespace],
+                                          cwd=ROOT)
+    assert code == 0, err
+    assert out.splitlines()[-1] == "[7]", out
 
 
 UNGUARDED_SCRIPT = '''
