@@ -161,14 +161,19 @@ def _fail_on_errors(pipe) -> None:
     stats = pipe.stats()
     errors = {node: s.errors for node, s in sorted(stats.items()) if s.errors}
     restarts = {node: s.counts["restarts"] for node, s in sorted(stats.items()) if s.counts.get("restarts")}
+    crashes = sum(s.counts.get("crash_restarts", 0) for s in stats.values())
     if not errors and not restarts:
         return
     parts = [f"{node}: {n} step error(s)" + (f", {restarts[node]} restart(s)" if node in restarts else "")
              for node, n in errors.items()]
     parts += [f"{node}: {n} restart(s)" for node, n in restarts.items() if node not in errors]
+    where = ("the error records say what raised (retriever log cat LOG --steps)" if errors else "")
+    if crashes:
+        where += ("; " if where else "") + (f"{crashes} restart(s) followed a process that died: retriever log "
+                                            "info LOG shows each fault")
     _fail(RetrieverError(f"the run went on, but had errors ({'; '.join(parts)})\n"
-                         "    hint: the error records say what raised (retriever log cat LOG --steps); pass "
-                         "--allow-errors when on_error='skip_tick' or 'restart' is meant to absorb them"))
+                         f"    hint: {where}; pass --allow-errors when on_error='skip_tick' or 'restart' is meant "
+                         "to absorb them"))
 
 
 def _identity(path: Path | None) -> tuple[int, int, int, int] | None:
@@ -281,10 +286,12 @@ def replay(
     _out.print(table)
     if result.identical:
         cut = sum(n.cut for n in result.nodes.values())
+        lost = sum(n.lost for n in result.nodes.values())
+        notes = ([f"{cut} at the end not compared: the log was cut short and lost events they consumed or produced"]
+                 if cut else []) + ([f"{lost} not compared: their outputs died unpublished with their process "
+                                     "(retriever log info shows the fault)"] if lost else [])
         _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte"
-                   + (f" ({cut} at the end not compared: the log was cut short and lost events they consumed or produced)"
-                      if cut else ""),
-                   markup=True)
+                   + "".join(f" ({note})" for note in notes), markup=True)
         return
     _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
                f"First:\n  {escape(_visible(str(result.divergences[0])))}", highlight=False, markup=True)
@@ -322,7 +329,7 @@ def _print_info(path: Path, log, info: dict) -> None:
         what = "restarted afresh" if fault.get("restarted") == "true" else "not restarted"
         lost = f", {len(fault['lost_events'])} unpublished output(s) lost" if fault["lost_events"] else ""
         lines.insert(5 + i, ("fault", f"{fault['node']}: its process (pid {fault.get('pid', '?')}) "
-                                      f"{fault.get('exit', 'died')} at t={int(fault.get('at_ns', 0)) / 1e9:g} s; "
+                                      f"{fault.get('exit', 'died')} at t={int(fault.get('at_ns', '0')) / 1e9:g} s; "
                                       f"{what}{lost}"))
     for key, value in lines:
         _out.print(Text.assemble((f"{key:>12}", "bold"), "  ", _visible(str(value))), highlight=False)

@@ -97,17 +97,20 @@ class StepError(RetrieverError):
 class RestartLimitError(StepError):
     """A flow with ``on_error="restart"`` needed more restarts than its budget allows."""
 
-    def __init__(self, node: str, tag: tuple[int, int], cause: BaseException | str, max_restarts: int,
+    def __init__(self, node: str, tag: tuple[int, int] | None, cause: BaseException | str, max_restarts: int,
                  window: float):
+        """``tag``: the tick whose step raised; None when the flow's process died (zenoh)."""
         self.node, self.tag = node, tag
         from .time import format_tag
 
         what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
+        where = (f" (tick at {format_tag(tag)})", "each failure is an error record of the trace and the log") \
+            if tag is not None else ("", "retriever log info shows each process that died")
         RetrieverError.__init__(
             self,
             f"flow '{node}' failed again after {max_restarts} restart(s) within {window:g} s "
-            f"(max_restarts={max_restarts}, restart_window={window:g}): {what} (tick at {format_tag(tag)})\n"
-            f"    hint: fix what makes '{node}' fail (each failure is an error record of the trace and the log), "
+            f"(max_restarts={max_restarts}, restart_window={window:g}): {what}{where[0]}\n"
+            f"    hint: fix what makes '{node}' fail ({where[1]}), "
             "or raise its budget: flow.configure(max_restarts=..., restart_window=...)")
 
 

@@ -92,12 +92,15 @@ class RunLog:
                            key=lambda n: (len(n), n)):
             record = self.metadata[name]
             try:
-                lost = json.loads(record.get("lost_events", "[]"))
+                lost = list(fmt.event_ids(json.loads(record.get("lost_events", "[]"))))
                 seqs = json.loads(record.get("seqs", "{}"))
-                lost = list(fmt.event_ids(lost))
-            except ValueError:
+            except (ValueError, RecursionError):  # not JSON, not event ids, nested past the limit
                 lost = seqs = None
-            if type(record.get("node")) is not str or lost is None or type(seqs) is not dict:
+            node = record.get("node")
+            if (type(node) is not str or lost is None or type(seqs) is not dict
+                    or any(event_id[0] != node for event_id in lost)
+                    or not all(type(n) is int and n >= 0 for n in seqs.values())
+                    or not (record.get("at_ns", "0").isdigit() and len(record.get("at_ns", "0")) <= 20)):
                 raise LogError(f"{self.path}: the fault record {name} is malformed",
                                "the file was changed after it was written")
             faults.append({**record, "seqs": seqs, "lost_events": lost})

@@ -68,6 +68,7 @@ class NodeReplay:
     identical: int = 0
     divergent: int = 0
     cut: int = 0  # re-executed, not compared: a log cut short lost their outputs (recovered, salvaged)
+    lost: int = 0  # re-executed, not compared: their outputs died unpublished with their process (a fault)
 
 
 @dataclass
@@ -142,7 +143,9 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
                 arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
                 deliveries.append((arrival, consumer[0], buf, (arrival, e.node, e.port, e.seq, value)))
     deliveries.sort(key=lambda d: d[0])
-    lost = {event_id for fault in log.faults for event_id in fault["lost_events"]}
+    # a lost process's outputs that its records claim and no report carried: not comparable (a
+    # consumer may still have carried one in: that one is in the log, and compared)
+    lost = {event_id for fault in log.faults for event_id in fault["lost_events"]} - logged.keys()
     floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
 
     sources = {nid for nid, node in graph.nodes.items() if not node.inputs}
@@ -178,9 +181,11 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
         if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
             session.retract(step.node)  # the run dropped what this step returned
         stats.replayed += 1
-        if (cut_short and any(event_id not in logged for event_id in
-                              (*step.produced, *(i for ids in step.consumed.values() for i in ids)))
-                or lost and not lost.isdisjoint(step.produced)):
+        if lost and not lost.isdisjoint(step.produced):
+            stats.lost += 1
+            continue
+        if cut_short and any(event_id not in logged for event_id in
+                             (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
             stats.cut += 1
             continue
         found = _compare(step, trace, logged, encode, step.node in stamped)
@@ -378,6 +383,11 @@ class ResimReport:
 
 def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
     """Re-run the graph in virtual time from the logged source events; compare the trace."""
+    if log.faults:  # the run lost state with a process: no re-run from the start can match it
+        nodes = ", ".join(sorted({fault["node"] for fault in log.faults}))
+        raise LogError(f"{log.path}: a process of the run died (of {nodes}), so its flow lost its state there: "
+                       "--resim re-runs every flow from its start, which this run did not",
+                       "retriever replay LOG (without --resim) follows the run through its restarts")
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
     original = log.trace()

@@ -40,8 +40,13 @@ class WorkerProcess(Protocol):
 class Host(ABC):
     """Starts worker processes of one run somewhere, and keeps what each node's processes print."""
 
+    #: a short name for messages (a worker daemon's name)
+    name = "this machine"
+
     def __init__(self) -> None:
         self._outputs: dict[str, WorkerOutput] = {}
+        #: False once the host is known lost (a worker daemon's liveliness token went)
+        self.alive = True
 
     @abstractmethod
     def spawn(self, node: str, mode: Sequence[str] = ()) -> WorkerProcess:

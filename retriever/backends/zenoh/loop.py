@@ -965,23 +965,36 @@ class NodeLoop:
             self.k = self.clock.first_tick_at_or_after(time.time_ns() - t0)
 
     def _producer_restarted(self, producer: str, seqs: Any) -> None:
-        """Control ``restarted`` {node: producer, seqs: {port: first seq}}: see above."""
+        """Control ``restarted`` {node: producer, seqs: {port: first seq}}: see above. Checked for
+        sense first (a forged one would cut this consumer off a live producer): the producer was
+        said ``lost``, and each first seq lies where the coordinator puts it, past every seq taken
+        by at most RESTART_SEQ_GAP + EARLY_SEQS_MAX. A process that took its inputs on afresh from
+        the producer's own answer (sync_inputs) needs no word of it: one it has caught up is ignored."""
+        streams = [s for s in self.frontiers if s[0] == producer]
         if type(seqs) is not dict or not all(type(k) is str and type(v) is int and v >= 0 for k, v in seqs.items()):
             self._garbage("ctl/run", WireError(f"a 'restarted' control message of {producer} without its seqs"))
+            return
+        if producer not in self.lost_producers:
+            if any(seqs.get(s[1], -1) > self.expect[s] for s in streams):
+                self._garbage("ctl/run", WireError(f"a 'restarted' control message of {producer}, which was not "
+                                                   "said lost: refused"))
+            return
+        wild = [s for s in streams if s[1] in seqs and not 0 <= seqs[s[1]] - self.expect[s] <= RESTART_SEQ_GAP
+                + EARLY_SEQS_MAX]
+        if wild:
+            self._garbage("ctl/run", WireError(f"a 'restarted' control message of {producer} puts "
+                                               f"{producer}.{wild[0][1]} at seq {seqs[wild[0][1]]}, where its stream "
+                                               f"is at {self.expect[wild[0]]}: refused"))
             return
         self.lost_producers.discard(producer)
         # records that consumed an event of the dead process the coordinator lacks go now, with
         # it: the coordinator's next `have` jumps over the seqs this one gives up
         self.flush(final=True)
-        for stream in [s for s in self.frontiers if s[0] == producer]:
+        for stream in streams:
             first = seqs.get(stream[1])
             if first is None:
                 continue
             expect = self.expect[stream]
-            if expect > first:
-                self._garbage(stream, WireError(f"{producer}.{stream[1]} restarted at seq {first}, below seqs "
-                                                f"already taken ({expect - 1})"))
-                continue
             for e in self.edges:
                 if (e.src, e.src_port) == stream:
                     gaps = self.pending_detail.setdefault("restart_gap", {}).setdefault(e.port, [])

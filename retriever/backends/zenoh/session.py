@@ -51,6 +51,10 @@ STOP_GRACE_S = 1.5
 #: how long, at most, a worker's stack dump (SIGUSR1, written at once by a C handler) takes to read
 STACKS_WAIT_S = 0.5
 
+#: how long after a worker process ended by itself (exit code 0, 1 or 3) the coordinator waits for
+#: the status that says why (Zenoh may deliver it after the exit is seen): none by then, it died
+EXIT_GRACE_S = 2.0
+
 #: how often, at most, the coordinator tells the consumers which events it has (control `have`)
 HAVE_EVERY_S = 0.02
 
@@ -85,13 +89,10 @@ class ZenohSession(Session):
                  secret: str | os.PathLike | bytes | None = None):
         super().__init__(graph)
         _refuse_in_a_worker(graph)
-        _check_deployable(graph)
+        self._check_deployable()
         self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
         self.keys = KeySpace(self.namespace)
-        try:
-            self._access = RunAccess.create(self.namespace, secret_bytes(secret))
-        except AccessError as e:
-            raise BackendError(str(e)) from None
+        self._access = self._run_access(secret)
         self.startup_timeout = startup_timeout
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
@@ -113,20 +114,23 @@ class ZenohSession(Session):
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
         self._hub_segments: set[str] = set()
         try:
-            dictionary = self._access.write_dictionary(self._dir)
+            access = self._access
+            dictionary = access.write_dictionary(self._dir) if access else None
             before = mapped_segments()
-            self._open_hub(hub_port, self._access.session_config(dictionary))
+            self._open_hub(hub_port, access.session_config(dictionary) if access else None)
             self._hub_segments = mapped_segments() - before  # the hub session's own
             #: a Zenoh config file with which a client joins the run as a read-only watcher
-            self.watch_config = self._access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
+            self.watch_config = (access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
+                                 if access else None)
             if not quiet:
+                watch = (f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber on "
+                         if access else "anyone on its network may join it (insecure); watch it with a subscriber on ")
                 print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
-                      f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber "
-                      f"on {self.keys.all_data()}", file=sys.stderr, flush=True)
+                      f"{watch}{self.keys.all_data()}", file=sys.stderr, flush=True)
             self._listen()
             self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph), "argv": list(sys.argv),
-                          "spill_dir": str(self._dir), "access": self._access.to_spec(dictionary),
+                          "spill_dir": str(self._dir), "access": access.to_spec(dictionary) if access else None,
                           "startup_timeout": self.startup_timeout}
             self._hosts = self._place()
             for nid in graph.nodes:
@@ -135,7 +139,18 @@ class ZenohSession(Session):
             self.close()
             raise
 
-    def _open_hub(self, port: int, access: dict[str, str]) -> None:
+    def _check_deployable(self) -> None:
+        """Every flow must be rebuildable from the IR in another process (_check_deployable)."""
+        _check_deployable(self.graph)
+
+    def _run_access(self, secret) -> RunAccess | None:
+        """The run's credentials: random, or derived from the deployment secret (access.py)."""
+        try:
+            return RunAccess.create(self.namespace, secret_bytes(secret))
+        except AccessError as e:
+            raise BackendError(str(e)) from None
+
+    def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
         """Open the run's own session (``self._hub``), which the workers join at ``self.endpoint``."""
         self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access)
 
@@ -143,7 +158,8 @@ class ZenohSession(Session):
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
         put = self._inbox.put
         self._subscribers += [
-            self._hub.declare_subscriber(self.keys.status("**"), lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
+            self._hub.declare_subscriber(self.keys.status("**"),
+                                         lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
             self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
             self._hub.declare_queryable(self.keys.start(), self._answer_start)]
 
@@ -178,6 +194,7 @@ class ZenohSession(Session):
         # afresh, by what became of the old process; per stream, the highest seq known (events
         # and records); event ids that records produced and no report carried yet
         self._fresh: dict[str, dict] = {}
+        self._unrecovered: list[dict] = []  # faults of processes not started afresh, logged at the end
         self._max_seq: dict[tuple[str, str], int] = {}
         self._unseen: set[tuple[str, str, int]] = set()
         #: what went wrong with the run's processes, as the log's fault records have it
@@ -242,13 +259,12 @@ class ZenohSession(Session):
                         and all(self._reports[n] >= self._reports_sent[n] for n in self._reports),
                         time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
-            self._stop_workers()
+            self._stop_workers()  # their last reports, then: which outputs died with a process
+            self._record_faults_left()
             self.close()
             raise
         self.now_ns = until_ns
-        for fault in list(self._fresh.values()):  # lost, and the run ended before the new process started
-            self._record_fault(fault, None)
-        self._fresh.clear()
+        self._record_faults_left()
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
         self._check_every_flow_ticked()
 
@@ -422,9 +438,11 @@ class ZenohSession(Session):
         return max(0, time.time_ns() - self.t0) if self.t0 is not None else 0
 
     def _answer_finished(self, query) -> None:
-        """Which nodes are done (a restarted flow's process waits for answers from the others)."""
+        """Which nodes are done, and which start afresh after their process died (a restarted
+        flow's process waits for answers from the others, but from these)."""
         done = sorted(node for node, state in list(self._state.items()) if state == "done")
-        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done}))
+        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done,
+                                                                             "restarting": sorted(self._fresh)}))
 
     def _answer_start(self, query) -> None:
         """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
@@ -512,18 +530,30 @@ class ZenohSession(Session):
             code = proc.poll()
             if code is None or self._state[nid] == "done":
                 continue
-            if (code not in (0, EXIT_HANDED_OVER, EXIT_FAILED) and self.t0 is not None and self._failure is None
-                    and self.graph.nodes[nid].settings.on_error == "restart"):
+            host = self._hosts[nid]
+            if not host.alive and self._failure is None:
+                nodes = sorted(n for n, h in self._hosts.items() if h is host)
+                self._failure = (nid, {"error": f"worker '{host.name}' was lost (its liveliness token went): its "
+                                                f"node(s) {', '.join(nodes)} stopped\n    hint: is the machine up, "
+                                                "and on the network? `retriever workers` lists the workers up"})
+                self._raise_failure()
+            if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
+                # a worker's own exit: its last status may still be on the way (it says why it ended)
+                exited = self._exited.setdefault(proc.pid, time.monotonic())
+                if time.monotonic() - exited < EXIT_GRACE_S:
+                    continue
+            # it died, or ended without a word (os._exit in a step): its state is lost
+            if self._failure is not None:
+                self._raise_failure()
+            if self.t0 is not None and self.graph.nodes[nid].settings.on_error == "restart":
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time
-            # its last messages may still be on the way: give them a moment before calling it dead
-            exited = self._exited.setdefault(proc.pid, time.monotonic())
-            if code in (0, EXIT_HANDED_OVER, EXIT_FAILED) and time.monotonic() - exited < 2.0:
-                continue
-            if self._failure is None:
-                self._hosts[nid].output(nid).drain()
-                self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) exited with code {code} "
-                                                f"before it finished\n{self._stderr_tail(nid)}"})
+            self._hosts[nid].output(nid).drain()
+            if self.t0 is not None:  # the log says what died, and which of its outputs with it
+                self._unrecovered.append({"node": nid, "at_ns": self._run_time(), "pid": proc.pid,
+                                          "exit": _exit_text(code)})
+            self._failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) {_exit_text(code)} "
+                                            f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
 
     # ---------------------------------------------------------------------------------------
@@ -533,16 +563,19 @@ class ZenohSession(Session):
         """A worker process of ``nid`` died after the start: within the restart budget, start the
         flow afresh in a new process (a hand-over in progress dies with it); else fail the run."""
         at = self._run_time()
-        why = f"its worker process (pid {proc.pid}) {_exit_text(code)}"
+        why = f"its worker process (pid {proc.pid}) {_exit_text(code)} at t={at / 1e9:.3f} s"
+        if nid in self._fresh:  # the last one died before it was ready: that fault stands on its own
+            self._record_fault(self._fresh.pop(nid), None)
         budget = self._restarts[nid]
         if not budget.take(at):
-            self._limit = RestartLimitError(nid, (at, 0), why, budget.max_restarts, budget.window_s)
+            self._limit = RestartLimitError(nid, None, why, budget.max_restarts, budget.window_s)
+            self._unrecovered.append({"node": nid, "at_ns": at, "pid": proc.pid, "exit": _exit_text(code)})
             self._failure = (nid, {"error": str(self._limit)})
             return
         counts = self._stats[nid].counts
         for name in ("restarts", "crash_restarts"):
             counts[name] = counts.get(name, 0) + 1
-        print(f"retriever: flow '{nid}': {why} at t={at / 1e9:.3f} s; starting it afresh (on_error='restart')",
+        print(f"retriever: flow '{nid}': {why}; starting it afresh (on_error='restart')",
               file=sys.stderr, flush=True)
         for other in (self._workers.get(nid), self._retiring.pop(nid, None)):
             if other is not None:
@@ -574,6 +607,14 @@ class ZenohSession(Session):
         self.faults.append(fault)
         if self.log is not None:
             self.log.add_fault(fault)
+
+    def _record_faults_left(self) -> None:
+        """Log the faults of processes that died and were not started afresh (not allowed, out
+        of budget, or the run ended first), once their last reports are in."""
+        for fault in [*self._fresh.values(), *self._unrecovered]:
+            self._record_fault(fault, None)
+        self._fresh.clear()
+        self._unrecovered.clear()
 
     def _raise_failure(self) -> None:
         node, info = self._failure
@@ -659,6 +700,7 @@ class ZenohSession(Session):
         for output in {id(o): o for host in self._hosts.values() for o in host.outputs()}.values():
             output.drain(max(0.0, give_up - time.monotonic()))
         if self._hub is not None:
+            self._release_hosts()
             for sub in self._subscribers:
                 sub.undeclare()
             try:
@@ -673,6 +715,9 @@ class ZenohSession(Session):
             await_segments_released(self._hub_segments)  # so that exit() can remove them
         shutil.rmtree(self._dir, ignore_errors=True)
         _OPEN.discard(self)
+
+    def _release_hosts(self) -> None:
+        """Let go of the hosts, the run over (a worker daemon forgets it); on this machine, nothing."""
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats

@@ -123,6 +123,14 @@ class KeySpace:
     def ctl(self, name: str) -> str:
         return f"{self.prefix}/ctl/{name}"
 
+    def worker_events(self, name: str) -> str:
+        """Where the worker daemon ``name`` tells what became of its processes (remote.py)."""
+        return f"{self.prefix}/workers/{name}/events"
+
+    def deployment(self) -> str:
+        """The running deployment's coordinator: its liveliness token and its queryable (status, stop)."""
+        return f"{self.prefix}/deployment"
+
     def parse_data(self, key: str) -> tuple[str, str] | None:
         """``(node, port)`` of a data key of this namespace, else None."""
         head = self.prefix + "/data/"

@@ -326,7 +326,7 @@ def _serve(argv: list[str]) -> int:
                              if node_id in (e["source"]["node"], e["destination"]["node"])}
                 wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in neighbors},
                                  timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
-                                 gone=lambda: {keys.progress(n) for n in _finished_nodes(session, keys)})
+                                 gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
                 t0, end = int(join[1]), int(join[2])
                 status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
                 if _await_control(loop, "resume", node_id) is None:
@@ -387,8 +387,11 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
     """A flow whose process died, in its new process: subscribe to the inputs, take each stream
     on from where its producer stands (its progress answer: the reply comes on the link after
     our subscriptions, so every later event reaches us), link to the consumers, say ``ready``
-    and wait for the coordinator's ``restarted``: the first seq of each output port. None on ``stop``."""
+    and wait for the coordinator's ``restarted``: the first seq of each output port. None on
+    ``stop``. A neighbour that is itself starting afresh is not waited for as a consumer (each
+    would wait for the other), only as a producer (it answers once restarted, not waiting for us)."""
     from .hub import wait_for_answers
+    from .loop import RESTART_SEQ_GAP
     from .wire import WireError, decode_progress
 
     loop.declare_inputs()
@@ -404,7 +407,8 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
                     answers[src] = decode_progress(reply.ok.payload.to_bytes(), expected=src)
                 except (AttributeError, WireError):  # no answer (reply.err), or not a progress message
                     continue
-        answers.update((n, None) for n in (producers - set(answers)) & _finished_nodes(session, keys))
+        done, _ = _coordinator_says(session, keys)
+        answers.update((n, None) for n in (producers - set(answers)) & done)
         if producers <= set(answers):
             break
         time.sleep(0.02)
@@ -413,22 +417,52 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
     loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
     wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in consumers},
                      timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
-                     gone=lambda: {keys.progress(n) for n in _finished_nodes(session, keys)})
+                     gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))})
+    _drop_queued(loop, "restarted", node_id)  # the coordinator's comes after `ready`: one before is not its
     ready()
     args = _await_control(loop, "restarted", node_id)
     if args is None:
         return None
     seqs = args.get("seqs")
-    if type(seqs) is not dict or not all(type(seqs.get(p)) is int for p in loop.ports):
-        raise RuntimeError(f"the coordinator's 'restarted' for {node_id} carries no seq for each output port")
+    if type(seqs) is not dict or not all(type(seqs.get(p)) is int and seqs[p] >= RESTART_SEQ_GAP for p in loop.ports):
+        raise RuntimeError(f"the 'restarted' for {node_id} carries no seq past {RESTART_SEQ_GAP} for each output "
+                           f"port: {seqs!r:.200}")
     return {p: s for p, s in seqs.items() if type(p) is str and type(s) is int and s >= 0}
 
 
-def _finished_nodes(session, keys) -> set[str]:
-    """The nodes the coordinator knows are done (they will not answer, nor send, again)."""
+def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
+    """Forget the control messages ``op`` to ``node_id`` queued in the loop's inbox; keep the rest."""
+    import queue
+
+    from .loop import _CONTROL
+    from .wire import WireError, decode_control
+
+    kept = []
+    while True:
+        try:
+            item = loop.inbox.get_nowait()
+        except queue.Empty:
+            break
+        if item[0] == _CONTROL:
+            try:
+                got, args = decode_control(item[2])
+                if got == op and args.get("node") == node_id:
+                    loop.counts["garbage"] += 1
+                    continue
+            except WireError:
+                pass
+        kept.append(item)
+    for item in kept:
+        loop.inbox.put(item)
+
+
+def _coordinator_says(session, keys) -> tuple[set[str], set[str]]:
+    """The nodes the coordinator knows are done (they will not answer, nor send, again), and
+    those starting afresh after their process died."""
     from .wire import WireError, decode_control
 
     done: set[str] = set()
+    restarting: set[str] = set()
     for reply in session.get(keys.finished(), timeout=0.25):
         if reply.ok is None:
             continue
@@ -436,10 +470,11 @@ def _finished_nodes(session, keys) -> set[str]:
             _, args = decode_control(reply.ok.payload.to_bytes())
         except WireError:
             continue
-        nodes = args.get("nodes")
-        if type(nodes) is list:
-            done.update(n for n in nodes if type(n) is str)
-    return done
+        for found, key in ((done, "nodes"), (restarting, "restarting")):
+            names = args.get(key)
+            if type(names) is list:
+                found.update(n for n in names if type(n) is str)
+    return done, restarting
 
 
 def _ask_start(session, keys, loop: NodeLoop) -> None:

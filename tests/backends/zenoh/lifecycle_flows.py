@@ -118,6 +118,20 @@ class SegfaultOnce(Flow[Count, Count]):
         return Count(n=inp.n)
 
 
+class ExitOnce(Flow[Count, Count]):
+    """Passes its input on; its first step ever (``marker``: a file that says it happened) ends
+    its process with os._exit(0), a clean exit code, without a word to the coordinator."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def step(self, inp: Count) -> Count:
+        if not os.path.exists(self.marker):
+            open(self.marker, "w").close()
+            os._exit(0)
+        return Count(n=inp.n)
+
+
 def two_node_pipeline(name: str = "lifecycle", source_hz: float = SOURCE_HZ, sink_hz: float = SINK_HZ,
                       sink: type[Flow] = Total) -> Pipeline:
     """counter @ source_hz ──n (Latest)──▶ total @ sink_hz (a ``sink`` flow, node id "total")"""

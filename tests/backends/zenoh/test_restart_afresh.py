@@ -89,12 +89,32 @@ def test_without_word_of_a_lost_producer_a_seq_that_far_ahead_is_garbage(loop):
     assert loop.counts["garbage"] == 1 and not loop.early[STREAM]
 
 
-def test_a_restart_below_seqs_already_taken_is_refused(loop):
+@pytest.mark.parametrize("seqs", [{"value": 1}, {"value": 2 + RESTART_SEQ_GAP + EARLY_SEQS_MAX + 1}, ["value", 9]])
+def test_a_restart_where_the_coordinator_would_not_put_it_is_refused(loop, seqs):
+    """Below seqs taken, or further ahead than a dead process's unreported events reach."""
     for seq, t in ((0, 50), (1, 100)):
         loop._handle(data(seq, t))
-    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": 1}}))
-    loop._handle(control("restarted", {"node": "counter", "seqs": ["value", 9]}))
-    assert loop.counts["garbage"] == 2 and loop.expect[STREAM] == 2 and "restart_gap" not in loop.pending_detail
+    loop._handle(control("lost", {"node": "counter"}))
+    loop._handle(control("restarted", {"node": "counter", "seqs": seqs}))
+    assert loop.counts["garbage"] == 1 and loop.expect[STREAM] == 2 and "restart_gap" not in loop.pending_detail
+    loop._handle(data(2, 150))  # the stream goes on
+    assert loop.expect[STREAM] == 3
+
+
+def test_a_restart_of_a_producer_not_said_lost_is_refused(loop):
+    """A forged one would cut this consumer off a live producer for the rest of the run."""
+    loop._handle(data(0, 50))
+    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop._handle(data(1, 100))
+    assert loop.counts["garbage"] == 1 and loop.expect[STREAM] == 2
+
+
+def test_a_restart_a_fresh_process_caught_up_with_is_ignored(loop):
+    """Its inputs were taken on from the producer's own answer (it restarted too): nothing to do."""
+    loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": FIRST - 1})})
+    loop._handle(data(FIRST, 450))
+    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    assert loop.counts["garbage"] == 0 and loop.expect[STREAM] == FIRST + 1 and not loop.pending_detail
 
 
 def test_word_of_another_nodes_restart_changes_nothing(loop):

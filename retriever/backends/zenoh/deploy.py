@@ -1,0 +1,151 @@
+"""A deployment: the coordinator of session.py, with its nodes on worker daemons (DESIGN.md §7).
+
+    retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
+        │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
+        │ tokens workers/<name>) and ask each for its info: protocol, labels, load, clock offset
+        │ place every node (placement.py: pins, labels, load), refuse what cannot be met, all at once
+        │ prepare each chosen worker (remote.py: the spec; it checks every class it will import)
+        │ declare the deployment's liveliness token: a worker stops its flows once it goes
+        ▼ from here on as the embedded run: spawn, ready, T0, reports, the log, faults, stop
+
+A worker that is lost mid-run (its token went) takes its nodes' processes with it: the run fails
+naming it (re-placing its nodes on another worker is not built yet).
+"""
+
+from __future__ import annotations
+
+import secrets
+import sys
+
+import zenoh
+
+from ...errors import BackendError, PlacementError
+from ...graph import Graph
+from ...placement import Placement, WorkerInfo, load_placement, place
+from .access import AccessError, RunAccess, secret_bytes
+from .daemon import PROTOCOL_VERSION, WorkerError, check_security, describe
+from .hub import peer_config, wait_for_peers
+from .remote import RemoteHost
+from .session import ZenohSession
+
+#: how long the coordinator waits for links to its --connect endpoints before it looks for workers
+JOIN_S = 5.0
+#: how long a liveliness get for the namespace's workers waits for answers
+DISCOVER_S = 2.0
+#: clock offsets between the coordinator and a worker: past the first a warning, past the second
+#: (by default) the deployment is refused: Rate ticks and T0 come from each worker's clock
+CLOCK_WARN_NS = 1_000_000
+CLOCK_REFUSE_NS = 10_000_000
+
+
+class DeploySession(ZenohSession):
+    """A run of a graph on the worker daemons of a namespace."""
+
+    def __init__(self, graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
+                 placement: Placement | str | None = None, secret=None, insecure: bool = False,
+                 startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
+                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9):
+        try:
+            check_security(secret, insecure, "retriever deploy")
+        except WorkerError as e:
+            raise BackendError(str(e)) from None
+        if not connect and not listen:
+            raise BackendError("a deployment needs --connect ENDPOINT (a worker's) or --listen ENDPOINT, where its "
+                               "workers are reached\n    hint: retriever deploy app.py --connect tcp/HOST:7447")
+        self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
+        self._placement = load_placement(placement) if isinstance(placement, str) else placement
+        self._run_id = secrets.token_hex(6)
+        self._max_offset_ns = round(max_clock_offset * 1e9)
+        self._remotes: dict[str, RemoteHost] = {}
+        self._token = None
+        #: where each node runs: worker name by node
+        self.placed: dict[str, str] = {}
+        #: what each worker said of itself when the deployment started (its info, its clock offset)
+        self.workers: dict[str, dict] = {}
+        super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
+                         quiet=quiet, secret=secret)
+
+    # -- the coordinator's steps, for workers elsewhere ----------------------------------------
+    def _check_deployable(self) -> None:
+        super()._check_deployable()
+        in_main = sorted(nid for nid, node in self.graph.nodes.items() if type(node.flow).__module__ == "__main__")
+        if in_main:
+            raise BackendError(f"flow(s) {', '.join(in_main)} are classes of the script being run (__main__), which "
+                               "a worker cannot import\n    hint: move them to a module on the workers' --path, "
+                               "or deploy the script as FILE:ATTR so that it is imported as a module")
+
+    def _run_access(self, secret) -> RunAccess | None:
+        if self._insecure:
+            return None
+        try:
+            return RunAccess.create(self.namespace, secret_bytes(secret))
+        except AccessError as e:
+            raise BackendError(str(e)) from None
+
+    def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
+        self._hub = zenoh.open(peer_config(listen=self._listen_at, connect=self._connect, access=access))
+        self.endpoint = (self._listen_at or self._connect)[0]
+        wait_for_peers(self._hub, len(self._connect), JOIN_S)
+
+    def _place(self) -> dict:
+        found = self._discover()
+        candidates = [WorkerInfo(name, frozenset(info.get("labels") or ()), len(info.get("nodes") or ()),
+                                 info.get("host")) for name, info in sorted(found.items())]
+        try:
+            self.placed = place(sorted(self.graph.nodes), self._placement, candidates)
+        except PlacementError as e:
+            raise BackendError(str(e)) from None
+        spec = {k: v for k, v in self._spec.items() if k not in ("access", "python_path", "spill_dir", "main_file")}
+        for name in sorted(set(self.placed.values())):
+            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+            host.prepare(spec, sorted(n for n, w in self.placed.items() if w == name))
+        self._token = self._hub.liveliness().declare_token(self.keys.deployment())
+        self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
+        return {nid: self._remotes[name] for nid, name in self.placed.items()}
+
+    def _discover(self) -> dict[str, dict]:
+        """The namespace's live workers and their info; every problem with them at once."""
+        names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
+                        for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok})
+        if not names:
+            raise BackendError(f"no worker is up in namespace '{self.namespace}' (reached through "
+                               f"{', '.join(self._connect or self._listen_at)})\n    hint: start one on each machine: "
+                               f"retriever-worker --name NAME --namespace {self.namespace} --secret FILE")
+        problems, found = [], {}
+        for name in names:
+            worker = describe(self._hub, self.namespace, name)
+            info = worker.info
+            if info is None:
+                problems.append(f"worker '{name}' did not say what it is: {worker.error}")
+            elif info.get("protocol") != PROTOCOL_VERSION:
+                problems.append(f"worker '{name}' speaks protocol {info.get('protocol')!r:.20}, this coordinator "
+                                f"{PROTOCOL_VERSION}\n    hint: install the same Retriever version on both machines "
+                                f"(the worker has {info.get('packages', {}).get('retriever', '?')!r:.30})")
+            elif worker.offset_ns is not None and abs(worker.offset_ns) > self._max_offset_ns:
+                problems.append(f"worker '{name}' (host {info.get('host')}) has a clock {worker.offset_ns / 1e6:+.3f} ms "
+                                f"off this machine's, past {self._max_offset_ns / 1e6:g} ms\n    hint: sync both "
+                                "clocks (chrony or ntpd, or PTP on a robot's LAN), then deploy again")
+            else:
+                if worker.offset_ns is not None and abs(worker.offset_ns) > CLOCK_WARN_NS:
+                    print(f"retriever: warning: worker '{name}' has a clock {worker.offset_ns / 1e6:+.3f} ms off "
+                          "this machine's", file=sys.stderr, flush=True)
+                found[name] = {**info, "offset_ns": worker.offset_ns}
+        if problems:
+            raise BackendError("the deployment cannot start:\n" + "\n".join(f"  - {p}" for p in problems))
+        self.workers = found
+        return found
+
+    def _worker_token(self, sample: zenoh.Sample) -> None:
+        """A worker's liveliness: gone, its processes are as good as killed."""
+        if sample.kind == zenoh.SampleKind.DELETE:
+            host = self._remotes.get(str(sample.key_expr).rsplit("/", 1)[-1])
+            if host is not None:
+                host.lost()
+
+    def _release_hosts(self) -> None:
+        for host in self._remotes.values():
+            host.end()
+            host.close()
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None

@@ -1,0 +1,153 @@
+"""Worker processes on a worker daemon (``retriever-worker``, daemon.py), here or on another machine.
+
+    coordinator                                          daemon <name>
+      query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec
+      query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid}
+      query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
+      query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
+      subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines}
+
+A remote worker process answers the coordinator as a local one does (host.WorkerProcess): its
+exit code arrives as an ``exit`` event, or, when the daemon itself is lost (its liveliness token
+went), every process of it counts as killed (:meth:`RemoteHost.lost`).
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import threading
+from collections.abc import Sequence
+import zenoh
+
+from ...errors import BackendError
+from .host import Host
+from .wire import KeySpace, WireEncoder, WireError, decode_control
+
+#: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
+REQUEST_TIMEOUT_S = 10.0
+#: the exit code of a process whose daemon was lost: as if SIGKILLed
+LOST_CODE = -signal.SIGKILL
+
+
+class RemoteProcess:
+    """A node's worker process, a child of a daemon: what the coordinator knows of it."""
+
+    def __init__(self, host: RemoteHost, node: str, pid: int):
+        self.host, self.node, self.pid = host, node, pid
+        self.returncode: int | None = None
+        self._exited = threading.Event()
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        if not self._exited.wait(timeout):
+            raise subprocess.TimeoutExpired(f"{self.host.name}:{self.pid}", timeout or 0.0)
+        return self.returncode
+
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            try:
+                self.host.request("signal", {"pid": self.pid, "signal": int(sig)})
+            except BackendError:  # it exited meanwhile, or its daemon is gone: its exit event says so
+                pass
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def exited(self, code: int) -> None:
+        if self.returncode is None:
+            self.returncode = code
+            self._exited.set()
+
+
+class RemoteHost(Host):
+    """The worker daemon ``name``, for one run of the coordinator's session."""
+
+    def __init__(self, session: zenoh.Session, keys: KeySpace, name: str, run: str):
+        super().__init__()
+        self.session, self.keys, self.name, self.run = session, keys, name, run
+        self.processes: dict[int, RemoteProcess] = {}
+        self.garbage = 0  # events on its key that were not its daemon's
+        self._events = session.declare_subscriber(keys.worker_events(name), self._event)
+
+    # -- requests ------------------------------------------------------------------------------
+    def request(self, op: str, args: dict) -> dict:
+        """Ask the daemon; its answer's arguments, or a BackendError saying what it answered."""
+        payload = WireEncoder().control(op, {"run": self.run, **args})
+        replies = list(self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S))
+        for reply in replies:
+            if reply.ok is None:
+                raise BackendError(f"worker '{self.name}' refused {op}: {_text(reply.err.payload.to_bytes())}")
+            try:
+                _, answer = decode_control(reply.ok.payload.to_bytes())
+            except WireError as e:
+                raise BackendError(f"worker '{self.name}' answered {op} with garbage: {e}") from None
+            return answer
+        raise BackendError(f"worker '{self.name}' did not answer {op} within {REQUEST_TIMEOUT_S:g} s"
+                           "\n    hint: is it still up? `retriever workers` lists the workers that are")
+
+    def prepare(self, spec: dict, nodes: Sequence[str]) -> None:
+        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run."""
+        self.request("prepare", {"spec": spec, "nodes": list(nodes)})
+
+    def spawn(self, node: str, mode: Sequence[str] = ()) -> RemoteProcess:
+        answer = self.request("spawn", {"node": node, "mode": list(mode)})
+        pid = answer.get("pid")
+        if type(pid) is not int:
+            raise BackendError(f"worker '{self.name}' answered spawn of '{node}' without a pid")
+        proc = self.processes[pid] = RemoteProcess(self, node, pid)
+        return proc
+
+    def end(self) -> None:
+        """Ask the daemon to stop what is left of the run and forget it (best effort)."""
+        try:
+            self.request("end", {})
+        except BackendError:
+            pass
+
+    def close(self) -> None:
+        self._events.undeclare()
+
+    # -- what the daemon tells ---------------------------------------------------------------
+    def lost(self) -> None:
+        """The daemon is gone (its liveliness token went): its processes are as good as killed."""
+        self.alive = False
+        for proc in list(self.processes.values()):
+            proc.exited(LOST_CODE)
+
+    def _event(self, sample: zenoh.Sample) -> None:
+        try:
+            op, args = decode_control(sample.payload.to_bytes())
+        except WireError:
+            self.garbage += 1
+            return
+        if args.get("run") != self.run:
+            return  # another run's (the daemon serves one at a time; a late event of the last one)
+        if op == "exit":
+            proc = self.processes.get(args.get("pid"))
+            if proc is not None and type(args.get("code")) is int:
+                proc.exited(args["code"])
+                return
+        elif op == "output":
+            node, stream, lines = args.get("node"), args.get("stream"), args.get("lines")
+            if (type(node) is str and stream in ("stdout", "stderr") and type(lines) is list
+                    and all(type(line) is str for line in lines)):
+                output = self.output(node)
+                for line in lines:
+                    output.feed(stream, line)
+                return
+        self.garbage += 1
+
+
+def _text(data: bytes) -> str:
+    """What a daemon's error reply says (``[2, "error", {message}]``), or its bytes as text."""
+    try:
+        _, args = decode_control(data)
+        message = args.get("message")
+        if type(message) is str:
+            return message[:4000]
+    except WireError:
+        pass
+    return data.decode("utf-8", errors="replace")[:2000]

@@ -1,0 +1,244 @@
+"""What a worker daemon runs for a coordinator: one run's spec and its worker processes.
+
+The coordinator side is remote.py; the ops here join the daemon's control queryable
+(daemon.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock:
+
+    prepare {run, spec, nodes}   check the IR and each node's class (the allowlist, before anything
+                                 is imported), keep the spec in a private folder, made for this host
+    spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
+                                 does: {pid}; what it prints goes to the coordinator, and its exit
+    signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
+    end {run}                    stop what is left of the run, remove its folder
+
+A daemon serves one run at a time, and ends it by itself when its coordinator's liveliness token
+goes (the coordinator died, or lost the network): its processes get SIGTERM, then, still there
+after COORDINATOR_GRACE_S, SIGKILL. Its worker processes die with it (PR_SET_PDEATHSIG).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from ...errors import IRError
+from ...ir import IR
+from ...rebuild import check_node
+from .access import RunAccess, write_private
+from .host import WORKER_MODULE
+from .wire import RELIABLE, KeySpace, WireEncoder, WireError
+
+#: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
+#: issue's bound is 3 s from the coordinator's death to the flows' stop)
+COORDINATOR_GRACE_S = 2.0
+#: lines of a process's output sent at most per event, and how long a line waits for company
+OUTPUT_BATCH = 64
+OUTPUT_FLUSH_S = 0.05
+#: the signals a coordinator may send a run's process
+SIGNALS = (signal.SIGUSR1, signal.SIGTERM, signal.SIGKILL)
+
+
+class Run:
+    """One prepared run: its folder (0700), its spec for this host, its processes by pid."""
+
+    def __init__(self, run_id: str, folder: Path, nodes: list[str]):
+        self.id, self.folder, self.nodes = run_id, folder, set(nodes)
+        self.processes: dict[int, tuple[str, subprocess.Popen]] = {}
+        self.coordinator_gone: threading.Timer | None = None
+        self.watch = None  # the liveliness subscriber on the coordinator's token
+
+
+class DaemonRuns:
+    """The runs ops of one daemon (see the module docstring)."""
+
+    def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
+                 access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
+                 paths: tuple[str, ...]):
+        self.session, self.name, self.keys = session, name, KeySpace(namespace)
+        self.listen, self.access, self.allowed, self.refusal = listen, access, allowed, refusal
+        self.paths = [str(Path(p).resolve()) for p in paths]
+        self.run: Run | None = None
+        self._events = session.declare_publisher(self.keys.worker_events(name), congestion_control=RELIABLE)
+
+    @property
+    def ops(self) -> dict[str, Callable[[dict], dict]]:
+        return {"prepare": self.prepare, "spawn": self.spawn, "signal": self.signal, "end": self.end}
+
+    def nodes(self) -> list[str]:
+        """The nodes whose processes run now."""
+        run = self.run
+        return sorted({node for node, proc in run.processes.values() if proc.poll() is None}) if run else []
+
+    # -- ops -----------------------------------------------------------------------------------
+    def prepare(self, args: dict) -> dict:
+        run_id, spec, nodes = args.get("run"), args.get("spec"), args.get("nodes")
+        if type(run_id) is not str or type(spec) is not dict or type(nodes) is not list \
+                or not all(type(n) is str for n in nodes):
+            raise WireError("prepare needs {run, spec, nodes}")
+        if self.run is not None and self.run.id != run_id:
+            if any(proc.poll() is None for _, proc in self.run.processes.values()):
+                raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
+                                "\n    hint: `retriever stop` it first, or deploy to other workers")
+            self._end(self.run)
+        ir_doc = spec.get("ir")
+        try:
+            ir = IR(ir_doc, source=f"the IR a coordinator sent worker '{self.name}'")
+        except (IRError, TypeError, ValueError) as e:
+            raise WireError(str(e)) from None
+        problems = self._check(ir, nodes)
+        if problems:
+            raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
+                            + "\n".join(f"  - {p}" for p in problems))
+        folder = Path(tempfile.mkdtemp(prefix="retriever-run-"))  # mode 0700
+        self.run = run = Run(run_id, folder, nodes)
+        write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
+        run.watch = self.session.liveliness().declare_subscriber(
+            self.keys.deployment(), lambda sample: self._coordinator_token(run, sample), history=True)
+        return {"nodes": sorted(nodes)}
+
+    def spawn(self, args: dict) -> dict:
+        run = self._run_of(args)
+        node, mode = args.get("node"), args.get("mode")
+        if node not in run.nodes:
+            raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
+        if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
+                               and all(type(x) is str and x.lstrip("-").isdigit() for x in mode[1:]))):
+            raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END]")
+        proc = subprocess.Popen([sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                start_new_session=True)
+        run.processes[proc.pid] = (node, proc)
+        for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
+            threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,
+                             name=f"retriever-{stream}-{node}").start()
+        threading.Thread(target=self._await_exit, args=(run.id, node, proc), daemon=True,
+                         name=f"retriever-exit-{node}").start()
+        return {"pid": proc.pid}
+
+    def signal(self, args: dict) -> dict:
+        run = self._run_of(args)
+        pid, sig = args.get("pid"), args.get("signal")
+        if pid not in run.processes or sig not in SIGNALS:
+            raise WireError(f"signal {sig!r:.20} to pid {pid!r:.20}: not a process of run {run.id} or not a "
+                            "signal a coordinator may send")
+        proc = run.processes[pid][1]
+        if proc.poll() is None:
+            proc.send_signal(sig)
+        return {}
+
+    def end(self, args: dict) -> dict:
+        run = self._run_of(args)
+        self._end(run)
+        return {}
+
+    # -- inside ----------------------------------------------------------------------------------
+    def _run_of(self, args: dict) -> Run:
+        run = self.run
+        if run is None or args.get("run") != run.id:
+            raise WireError(f"worker '{self.name}' has no run {args.get('run')!r:.40}")
+        return run
+
+    def _check(self, ir: IR, nodes: list[str]) -> list[str]:
+        """Every problem with running ``nodes`` of ``ir`` here, before anything is imported."""
+        known = {n["id"]: n for n in ir.nodes}
+        problems = []
+        for nid in nodes:
+            node = known.get(nid)
+            if node is None:
+                problems.append(f"node '{nid}' is not in the IR")
+                continue
+            module = node["type"].partition(":")[0]
+            if node.get("rebuild_needs_main"):
+                problems.append(f"node '{nid}': its class {node['type']} is defined in the coordinator's main "
+                                "script, which a worker cannot import\n    hint: move the flow classes to a module "
+                                "on the worker's --path")
+            elif not self.allowed(module):
+                problems.append(f"node '{nid}' ({node['type']}): {self.refusal(module)}")
+            else:
+                check_node(node, problems, ir.doc["metadata"].get("module_folders", {}))
+        return problems
+
+    def _local_spec(self, spec: dict, folder: Path) -> dict:
+        """The coordinator's spec as this host runs it: its Python path, its credentials, its
+        address; no shared folder with the coordinator, no main script."""
+        local = {k: spec[k] for k in ("ir", "namespace", "argv", "startup_timeout") if k in spec}
+        local["namespace"] = self.keys.namespace
+        local["python_path"] = [*self.paths, *(p for p in sys.path if p and os.path.isdir(p))]
+        local["main_file"] = local["spill_dir"] = None
+        local["access"] = (self.access.to_spec(self.access.write_dictionary(folder)) if self.access else None)
+        host, port = _split(self.listen[0]) if self.listen else ("127.0.0.1", None)
+        local["hub"] = f"tcp/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec["hub"]
+        local["listen"] = [f"tcp/{host}:0"]
+        return local
+
+    def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:
+        """Send what a process prints to the coordinator, in batches of lines."""
+        lines: list[str] = []
+        last = time.monotonic()
+        with pipe:
+            for raw in iter(pipe.readline, b""):
+                lines.append(raw.decode(errors="replace").rstrip("\r\n"))
+                if len(lines) >= OUTPUT_BATCH or time.monotonic() - last >= OUTPUT_FLUSH_S:
+                    self._tell("output", {"run": run_id, "node": node, "stream": stream, "lines": lines})
+                    lines, last = [], time.monotonic()
+        if lines:
+            self._tell("output", {"run": run_id, "node": node, "stream": stream, "lines": lines})
+
+    def _await_exit(self, run_id: str, node: str, proc: subprocess.Popen) -> None:
+        code = proc.wait()
+        self._tell("exit", {"run": run_id, "node": node, "pid": proc.pid, "code": code})
+
+    def _tell(self, op: str, args: dict) -> None:
+        try:
+            self._events.put(WireEncoder().control(op, args))
+        except zenoh.ZError:  # the daemon is closing
+            pass
+
+    def _coordinator_token(self, run: Run, sample: zenoh.Sample) -> None:
+        """The coordinator's liveliness: gone, the run ends here too (its flows must not run on)."""
+        if sample.kind == zenoh.SampleKind.DELETE and self.run is run:
+            print(f"retriever-worker {self.name}: the coordinator of run {run.id} is gone; stopping its "
+                  f"nodes ({', '.join(self.nodes()) or 'none running'})", file=sys.stderr, flush=True)
+            threading.Thread(target=self._end, args=(run,), daemon=True).start()
+
+    def _end(self, run: Run) -> None:
+        """SIGTERM every live process of the run, SIGKILL what is left after the grace, forget it."""
+        procs = [proc for _, proc in run.processes.values() if proc.poll() is None]
+        for proc in procs:
+            proc.send_signal(signal.SIGTERM)
+        give_up = time.monotonic() + COORDINATOR_GRACE_S
+        for proc in procs:
+            try:
+                proc.wait(timeout=max(0.0, give_up - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if run.watch is not None:
+            run.watch.undeclare()
+            run.watch = None
+        shutil.rmtree(run.folder, ignore_errors=True)
+        if self.run is run:
+            self.run = None
+
+    def close(self) -> None:
+        """The daemon stops: so does its run."""
+        if self.run is not None:
+            self._end(self.run)
+        self._events.undeclare()
+
+
+def _split(endpoint: str) -> tuple[str, str | None]:
+    """``tcp/10.0.0.2:7447`` → ``("10.0.0.2", "7447")``; an address without a port: (address, None)."""
+    address = endpoint.partition("/")[2].split("#")[0]
+    host, _, port = address.rpartition(":")
+    return (host, port) if host else (address, None)
