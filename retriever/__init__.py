@@ -16,6 +16,7 @@ from .errors import (
     IRError,
     LogError,
     LogWriteError,
+    PlacementError,
     RestartLimitError,
     RetrieverError,
     RetrieverWarning,
@@ -32,7 +33,8 @@ from .trace import Event, StepRecord, Trace
 __all__ = sorted([
     "IR", "MISSING", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
-    "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "Queue", "Rate",
-    "RestartLimitError", "RetrieverError", "RetrieverWarning", "StepError", "StepRecord", "SyncPolicy", "Trace",
-    "Trigger", "UnregisteredTypeError", "Window", "available_backends", "init", "io", "read_log",
+    "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
+    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "StepError", "StepRecord",
+    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "Window", "available_backends", "init", "io",
+    "read_log",
 ])

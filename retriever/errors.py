@@ -4,6 +4,7 @@
     ├── GraphError                 build_ir() found problems; all of them, one per line
     ├── ClockError (ValueError)    a clock was declared with an impossible value
     ├── IRError                    an IR document is malformed, of another version, or names unknown things
+    ├── PlacementError             a placement file is malformed, or the nodes cannot go on the workers up
     ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
     │   └── UnregisteredTypeError  ... or decoded: it names a class this process registered no value type for
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
@@ -31,7 +32,7 @@ class RetrieverError(Exception):
 
 @dataclass(frozen=True)
 class Problem:
-    """One thing wrong with a graph: what and where, plus how to fix it."""
+    """One thing wrong with a graph or a placement: what and where, plus how to fix it."""
 
     message: str
     hint: str | None = None
@@ -63,6 +64,21 @@ class IRError(RetrieverError):
         self.source = source
         self.problems = list(problems)
         lines = [f"invalid IR ({source}):"] + [f"  - {p}" for p in self.problems]
+        super().__init__("\n".join(lines))
+
+
+class PlacementError(RetrieverError):
+    """A placement cannot be read or met (``retriever deploy``); ``problems`` lists every reason at once.
+
+    ``source`` is the placement file, or None for an automatic placement (no ``--placement``)."""
+
+    def __init__(self, source: str | None, problems: list[Problem]):
+        self.source = source
+        self.problems = list(problems)
+        count = len(self.problems)
+        what = f"placement {source}" if source is not None else "automatic placement (no --placement file)"
+        lines = [f"{what} has {count} problem{'s' if count != 1 else ''}:"]
+        lines += [f"  - {p}" for p in self.problems]
         super().__init__("\n".join(lines))
 
 

@@ -1,0 +1,292 @@
+"""Placement: which worker runs each node of an IR, for ``retriever deploy`` (DESIGN.md §7, issue 18).
+
+A placement file pins nodes to workers by name, or asks for workers with labels::
+
+    [nodes]
+    camera = "arm-pc"                                    # on the worker named arm-pc
+    policy = { labels = ["gpu"] }                        # on a worker that has every one of these labels
+    planner = { worker = "gpu-box", labels = ["gpu"] }   # on gpu-box, which must have these labels
+    # nodes not listed go to any worker, spread by load
+
+:func:`load_placement` reads and validates a file; :func:`place` maps an IR's nodes onto the
+workers that are up. Each reports every problem at once, in one :class:`PlacementError`, before
+anything starts. Pure: the only I/O is :func:`load_placement` reading its file.
+"""
+
+from __future__ import annotations
+
+import difflib
+import shlex
+import tomllib
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import PlacementError, Problem
+
+#: how a hint tells the user to start a worker daemon (issue 18); labels are added as ``--labels A,B``
+WORKER_COMMAND = "retriever-worker --name NAME"
+#: a message lists at most this many names: an IR, a placement or the workers up may be large
+LISTED_NAMES = 20
+#: a name in a message is cut after this many characters (of its repr)
+SHOWN_CHARS = 60
+#: the two keys of a node's table
+ENTRY_KEYS = ("worker", "labels")
+#: the hint of a document that is no placement at all
+EXAMPLE_HINT = ('a placement is a [nodes] table: camera = "arm-pc" pins a node, policy = { labels = ["gpu"] } '
+                'asks for labels (see deploy/placement.example.toml)')
+#: what TOML calls the values a placement document may hold in the wrong place
+_TOML_KINDS = {dict: "a table", list: "an array", int: "an integer", float: "a float", bool: "a boolean"}
+_ENTRY_FORMS = 'a worker name ("arm-pc") or a table ({ labels = ["gpu"] }, optionally with worker = "NAME")'
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """Where one node may run: on the worker named ``worker`` if set, which must have every label in ``labels``."""
+
+    worker: str | None = None
+    labels: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True)
+class Placement:
+    """A validated placement: a constraint per listed node (by node id); other nodes are placed by load."""
+
+    nodes: Mapping[str, Constraint]
+    source: str = "<memory>"
+
+
+@dataclass(frozen=True)
+class WorkerInfo:
+    """A worker that is up: its name (unique among the workers up), its labels, how many nodes it already
+    runs (its load), and the host it runs on, if known."""
+
+    name: str
+    labels: frozenset[str] = frozenset()
+    nodes: int = 0
+    host: str | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading a placement file
+# ---------------------------------------------------------------------------------------------
+def load_placement(path: str | Path) -> Placement:
+    """A placement from its TOML file. Anything wrong (unreadable, not TOML, not a placement) raises
+    one PlacementError naming the file, with tomllib's line and column for a syntax error."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as e:
+        raise PlacementError(source, [Problem(f"cannot read the file: {e.strerror or e}")]) from None
+    except UnicodeDecodeError:
+        raise PlacementError(source, [Problem("not a text file (expected UTF-8 TOML)")]) from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise PlacementError(source, [Problem(f"not valid TOML: {e}", EXAMPLE_HINT)]) from None
+    except RecursionError:
+        raise PlacementError(source, [Problem("not a placement: it nests arrays or tables deeper than Python's "
+                                              "recursion limit", EXAMPLE_HINT)]) from None
+    return parse_placement(doc, source)
+
+
+def parse_placement(doc: object, source: str = "<memory>") -> Placement:
+    """A placement from a parsed document (a TOML file's tables). Validates all of it and raises one
+    PlacementError listing every problem; only a ``[nodes]`` table of node = worker or table is accepted."""
+    if not isinstance(doc, dict):
+        raise PlacementError(source, [Problem(f"expected a document with a [nodes] table, got {_show(doc)}")])
+    problems = [Problem(f"unknown top-level key {_show(key)}", "a placement has only a [nodes] table")
+                for key in doc if key != "nodes"]
+    table = doc.get("nodes", {})
+    if not isinstance(table, dict):
+        problems.append(Problem(f"[nodes]: expected a table of node = worker, got {_show(table)}", EXAMPLE_HINT))
+        table = {}
+    nodes = {}
+    for node, value in table.items():
+        constraint = _constraint(node, value, problems)
+        if constraint is not None:
+            nodes[node] = constraint
+    if problems:
+        raise PlacementError(source, problems)
+    return Placement(nodes, source)
+
+
+def _constraint(node: object, value: object, problems: list[Problem]) -> Constraint | None:
+    """One ``[nodes]`` entry as a Constraint, or None after adding its problems."""
+    if not isinstance(node, str):
+        problems.append(Problem(f"[nodes] has a key that is {_show(node)}; a node name is a string"))
+        return None
+    where = f"[nodes] {_show(node)}"
+    if isinstance(value, str):
+        if value:
+            return Constraint(worker=value)
+        problems.append(Problem(f"{where}: the worker name is empty", "name a worker that is up, or remove the line"))
+        return None
+    if not isinstance(value, dict):
+        problems.append(Problem(f"{where}: expected {_ENTRY_FORMS}, got {_show(value)}"))
+        return None
+    before = len(problems)
+    problems += [Problem(f"{where}: unknown key {_show(key)}", 'a node\'s table has only worker = "NAME" and '
+                         'labels = ["LABEL", ...]') for key in value if key not in ENTRY_KEYS]
+    if not any(key in value for key in ENTRY_KEYS):
+        problems.append(Problem(f"{where}: says neither worker nor labels", f"write {_ENTRY_FORMS}"))
+    worker = value.get("worker")
+    if "worker" in value and not (isinstance(worker, str) and worker):
+        problems.append(Problem(f"{where}: worker: expected a worker name (a non-empty string), got {_show(worker)}"))
+    labels = _labels(where, value["labels"], problems) if "labels" in value else frozenset()
+    return Constraint(worker, labels) if len(problems) == before else None
+
+
+def _labels(where: str, labels: object, problems: list[Problem]) -> frozenset[str]:
+    """A node's ``labels``: a non-empty list of non-empty strings (problems added otherwise)."""
+    if isinstance(labels, str):
+        problems.append(Problem(f"{where}: labels: expected a list, got the string {_show(labels)}",
+                                f"write labels = [{_show(labels)}]"))
+    elif not isinstance(labels, list) or not labels:
+        problems.append(Problem(f"{where}: labels: expected a non-empty list of labels, got {_show(labels)}",
+                                'write labels = ["gpu"], or leave labels out'))
+    else:
+        bad = next((i for i, label in enumerate(labels) if not (isinstance(label, str) and label)), None)
+        if bad is None:
+            return frozenset(labels)
+        problems.append(Problem(f"{where}: labels[{bad}]: expected a label (a non-empty string), "
+                                f"got {_show(labels[bad])}"))
+    return frozenset()
+
+
+# ---------------------------------------------------------------------------------------------
+# Placing nodes on workers
+# ---------------------------------------------------------------------------------------------
+def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[WorkerInfo]) -> dict[str, str]:
+    """Each node's worker: node id -> worker name, in the order of ``node_ids``.
+
+    A pinned node goes to its worker; a node with labels to the least-loaded worker that has them
+    all; any other node to the least-loaded worker. A worker's load is the nodes it already runs
+    plus those placed so far; ties go to the first name. Pins are placed first, then the other
+    nodes, fewest eligible workers first (so a node with labels goes before one any worker may run),
+    ties by node id. Pure and deterministic: which worker a node gets depends on neither the order
+    of ``node_ids`` nor that of ``workers``. A placement that cannot be met raises one
+    PlacementError listing every problem, and nothing is placed.
+    """
+    nodes = list(dict.fromkeys(node_ids))
+    rules = dict(placement.nodes) if placement is not None else {}
+    source = placement.source if placement is not None else None
+    problems = _unknown_nodes(rules, nodes) + _worker_problems(rules, workers, source, bool(nodes))
+    if problems:
+        raise PlacementError(source, problems)
+    eligible = {node: _eligible(rules.get(node, Constraint()), workers) for node in nodes}
+    load = {w.name: w.nodes for w in workers}
+    chosen = {}
+    for node in sorted(nodes, key=lambda n: (rules.get(n, Constraint()).worker is None, len(eligible[n]), n)):
+        chosen[node] = min(eligible[node], key=lambda name: (load[name], name))
+        load[chosen[node]] += 1
+    return {node: chosen[node] for node in nodes}
+
+
+def _eligible(constraint: Constraint, workers: Sequence[WorkerInfo]) -> list[str]:
+    """The names of the workers up that may run a node under ``constraint``."""
+    return [w.name for w in workers if constraint.worker in (None, w.name) and constraint.labels <= w.labels]
+
+
+def _unknown_nodes(rules: Mapping[str, Constraint], nodes: list[str]) -> list[Problem]:
+    """A problem for each node the placement names that the IR does not have."""
+    problems, known = [], set(nodes)
+    for name in rules:
+        if name not in known:
+            close = difflib.get_close_matches(name, nodes, n=1)
+            hint = f"did you mean {_show(close[0])}?" if close else "use the IR's node ids, or remove the line"
+            has = f"its nodes: {_names(nodes)}" if nodes else "it has no nodes"
+            problems.append(Problem(f"[nodes] {_show(name)}: the IR has no such node ({has})", hint))
+    return problems
+
+
+def _worker_problems(rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo], source: str | None,
+                     has_nodes: bool) -> list[Problem]:
+    """Problems with the workers up: none at all, two of one name, pins and labels they cannot meet."""
+    if not workers:
+        return [Problem("no worker is up", f"start one on each machine that should run nodes: {WORKER_COMMAND} "
+                        "[--labels A,B], in this deployment's namespace")] if has_nodes else []
+    problems = _duplicate_names(workers)
+    up = {w.name: w for w in workers}
+    for node, constraint in rules.items():
+        if constraint.worker is None:
+            problems += _missing_labels(node, constraint.labels, workers, source)
+        elif constraint.worker not in up:
+            problems.append(_not_up(node, constraint.worker, up))
+        elif not constraint.labels <= up[constraint.worker].labels:
+            problems.append(_pinned_without_labels(node, constraint, up[constraint.worker]))
+    return problems
+
+
+def _duplicate_names(workers: Sequence[WorkerInfo]) -> list[Problem]:
+    """A problem for each name that more than one worker up has: a pin to it would be ambiguous."""
+    counts = Counter(w.name for w in workers)
+    return [Problem(f"{count} workers are up under the name {_show(name)} (hosts: "
+                    f"{_cut(_show(w.host) if w.host else 'unknown' for w in workers if w.name == name)})",
+                    "give each worker its own --name") for name, count in sorted(counts.items()) if count > 1]
+
+
+def _not_up(node: str, worker: str, up: Mapping[str, WorkerInfo]) -> Problem:
+    close = difflib.get_close_matches(worker, sorted(up), n=1)
+    hint = (f"did you mean {_show(close[0])}? " if close else "") + \
+        f"Start it ({WORKER_COMMAND.replace('NAME', _arg(worker))}), or pin {_show(node)} to a worker that is up"
+    return Problem(f"[nodes] {_show(node)} is pinned to worker {_show(worker)}, which is not up "
+                   f"(workers up: {_names(sorted(up))})", hint)
+
+
+def _pinned_without_labels(node: str, constraint: Constraint, worker: WorkerInfo) -> Problem:
+    missing = sorted(constraint.labels - worker.labels)
+    return Problem(f"[nodes] {_show(node)} is pinned to worker {_show(worker.name)}, which lacks the label(s) "
+                   f"{_names(missing)} that {_show(node)} needs (it has {_labels_of(worker)})",
+                   f"start {_show(worker.name)} with {_label_flags(constraint.labels)}, or drop worker or labels "
+                   f"from the entry of {_show(node)}")
+
+
+def _missing_labels(node: str, labels: frozenset[str], workers: Sequence[WorkerInfo],
+                    source: str | None) -> list[Problem]:
+    if any(labels <= w.labels for w in workers):
+        return []
+    has = _cut((f"{_show(w.name)} has {_labels_of(w)}" for w in sorted(workers, key=lambda w: w.name)), "; ")
+    return [Problem(f"[nodes] {_show(node)} needs the label(s) {_names(sorted(labels))}, and no worker up has "
+                    f"all of them ({has})",
+                    f"start a worker with them ({WORKER_COMMAND} {_label_flags(labels)}), or change the labels "
+                    f"of {_show(node)} in {source}")]
+
+
+def _labels_of(worker: WorkerInfo) -> str:
+    return _names(sorted(worker.labels)) if worker.labels else "no labels"
+
+
+# ---------------------------------------------------------------------------------------------
+# Message helpers
+# ---------------------------------------------------------------------------------------------
+def _show(value: object) -> str:
+    """A value for a message: a string quoted and escaped (no control character reaches a terminal)
+    and cut when long; anything else by its type only (it may be huge, or nested deeply)."""
+    if isinstance(value, str):
+        text = repr(value)
+        return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "…"
+    return _TOML_KINDS.get(type(value), f"a value of type {type(value).__name__}")
+
+
+def _names(names: Iterable[str]) -> str:
+    """Names for a message, each quoted by :func:`_show`, comma-separated, cut after LISTED_NAMES."""
+    return _cut(_show(name) for name in names)
+
+
+def _cut(texts: Iterable[str], sep: str = ", ") -> str:
+    """Texts already fit for a message, joined by ``sep``, cut after LISTED_NAMES."""
+    texts = list(texts)
+    more = len(texts) - LISTED_NAMES
+    return sep.join(texts[:LISTED_NAMES]) + (f"{sep}… ({more} more)" if more > 0 else "")
+
+
+def _arg(text: str) -> str:
+    """A name as a shell argument in a hint's command; a name a shell cannot take as typed is shown quoted."""
+    return shlex.quote(text) if text.isprintable() and len(text) <= SHOWN_CHARS else _show(text)
+
+
+def _label_flags(labels: Iterable[str]) -> str:
+    """The worker command's option that gives it ``labels``."""
+    return f"--labels {_arg(','.join(sorted(labels)))}"
