@@ -115,12 +115,48 @@ def run(
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
-    pipe = _load(target)
+    options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
+    _execute(_load(target), duration, backend, log, force, allow_errors, options,
+             f"{duration:g} s on {backend or default_backend()}")
+
+
+@app.command()
+def deploy(
+    target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
+    placement: Annotated[Optional[Path], typer.Option(
+        help="A placement file (TOML): in its nodes table, NODE = \"WORKER\" or { labels = [\"gpu\"] }; others by load.")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(
+        help="Zenoh endpoint of a worker (or router) to join, e.g. tcp/10.0.0.2:7447; repeatable.")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(
+        help="Zenoh endpoint this coordinator listens on for workers; repeatable.")] = None,
+    namespace: Annotated[str, typer.Option(help="The workers' namespace.")] = "default",
+    duration: Annotated[float, typer.Option(help="Seconds to run (wall time).")] = 10.0,
+    log: Annotated[Optional[Path], typer.Option(help="Record the whole deployment in this MCAP event log.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
+    secret: Annotated[Optional[Path], typer.Option(
+        help="The deployment secret (retriever secret new FILE), the same file as the workers'.")] = None,
+    insecure: Annotated[bool, typer.Option(
+        "--insecure", help="Join without a secret: anyone on the network may join (a trusted lab only).")] = False,
+    allow_errors: Annotated[bool, typer.Option(
+        "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted.")] = False,
+) -> None:
+    """Run a pipeline on the worker daemons of a namespace (retriever-worker on each machine):
+    place every node (pins and labels from --placement, the rest by load), start all at one T0,
+    log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
+    options = {"connect": connect or [], "listen": listen or [], "namespace": namespace,
+               "placement": str(placement) if placement is not None else None,
+               "secret": secret, "insecure": insecure}
+    _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
+             f"{duration:g} s on the workers of namespace '{namespace}'")
+
+
+def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,
+             options: dict, title: str) -> None:
+    """Run ``pipe``, print its table and counters, and exit as ``retriever run`` documents."""
     before = _identity(log)
     signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
     try:
-        zenoh_options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
-        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **zenoh_options)
+        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)
     except KeyboardInterrupt:
         recorded = _identity(log) not in (None, before)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
@@ -133,12 +169,14 @@ def run(
         if _identity(log) not in (None, before) and not isinstance(exc, LogWriteError):
             _err.print(f"the run up to the error is in {log}", highlight=False)
         _fail(exc)
-    table = Table(title=f"{pipe.name}: {duration:g} s on {backend or default_backend()}", title_justify="left")
-    for col in ("node", "ticks", "steps", "skips", "errors", "mean step"):
-        table.add_column(col, justify="left" if col == "node" else "right")
+    placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
+    table = Table(title=f"{pipe.name}: {title}", title_justify="left")
+    for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step"):
+        table.add_column(col, justify="left" if col in ("node", "worker") else "right")
     for node, s in sorted(pipe.stats().items()):
         mean = f"{s.mean_step_s * 1e6:.1f} µs" if s.mean_step_s < 0.01 else f"{s.mean_step_s * 1e3:.1f} ms"
-        table.add_row(node, str(s.ticks), str(s.steps), str(s.skips), str(s.errors), mean)
+        table.add_row(node, *((_cell(placed[node]),) if placed else ()), str(s.ticks), str(s.steps), str(s.skips),
+                      str(s.errors), mean)
     _out.print(table)
     for node, s in sorted(pipe.stats().items()):  # what a real-time run counted, node by node
         if any(s.counts.values()):

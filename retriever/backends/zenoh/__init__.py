@@ -6,6 +6,9 @@
     loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
     worker.py   the worker process around a loop
     host.py     where worker processes run (this machine: LocalHost), and how they are started
+    remote.py   worker processes on a worker daemon (RemoteHost), as the coordinator sees them
+    runs.py     what a worker daemon runs for a coordinator: a run's spec and its processes
+    deploy.py   a deployment: the coordinator with its nodes placed on worker daemons
     session.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
     output.py   what workers print, on the coordinator's streams, prefixed with the node
 """
@@ -20,11 +23,25 @@ from ..base import Backend
 class ZenohBackend(Backend):
     name = "zenoh"
     OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret")
+    #: options of a deployment on worker daemons (deploy.py): given any of the first two, the
+    #: run's nodes go to the workers reached there instead of processes of this machine
+    DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset")
 
     def open(self, graph: Graph, **options: object):
-        unknown = sorted(set(options) - set(self.OPTIONS))
+        deploy = options.get("connect") is not None or options.get("listen") is not None
+        accepted = [*self.OPTIONS, *self.DEPLOY_OPTIONS] if deploy else [*self.OPTIONS, "connect", "listen"]
+        if deploy:
+            accepted.remove("hub_port")
+        unknown = sorted(set(options) - set(accepted))
         if unknown:
-            raise BackendError(f"the zenoh backend takes no options {unknown} (it accepts {', '.join(self.OPTIONS)})")
+            raise BackendError(f"the zenoh backend takes no options {unknown} "
+                               f"{'in a deployment (connect= or listen= given) ' if deploy else ''}"
+                               f"(it accepts {', '.join(accepted)})")
+        if deploy:
+            from .deploy import DeploySession
+
+            return DeploySession(graph, **options)
         from .session import ZenohSession
 
+        options.pop("connect", None), options.pop("listen", None)
         return ZenohSession(graph, **options)
