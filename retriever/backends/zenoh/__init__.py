@@ -7,6 +7,7 @@
     worker.py   the worker process around a loop
     session.py  the coordinator: starts workers, agrees on T0, collects the trace and the log
     output.py   what workers print, on the coordinator's streams, prefixed with the node
+    daemon.py   a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
 """
 
 from __future__ import annotations
