@@ -465,6 +465,102 @@ def log_recover(
     _out.print(f"recovered {result.events} events and {result.steps} steps into {result.output}\n"
                f"  {path}: {result.damage}\n  next: retriever replay {result.output}", highlight=False)
 
+# ---------------------------------------------------------------------------------------------
+# Workers on many machines (backends/zenoh/daemon.py)
+# ---------------------------------------------------------------------------------------------
+_SECRET_HELP = "A deployment secret file (>= 16 bytes, mode 600): only holders of it may join."
+_INSECURE_HELP = "Join without a secret: anyone who reaches the endpoints may. Only for a lab on a trusted network."
+
+
+def worker(
+    name: Annotated[Optional[str], typer.Option(help="This worker's name, unique in its namespace.")] = None,
+    labels: Annotated[Optional[str], typer.Option(metavar="A,B", help="Labels placement may ask for.")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(
+        metavar="ENDPOINT", help="Listen here (repeatable). Default: tcp/0.0.0.0:7447.")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT", help="Connect here (repeatable).")] = None,
+    namespace: Annotated[Optional[str], typer.Option(help="The deployment's namespace (default: default).")] = None,
+    path: Annotated[Optional[list[Path]], typer.Option(
+        metavar="DIR", help="A folder flows are imported from; its modules are allowed (repeatable).")] = None,
+    allow: Annotated[Optional[list[str]], typer.Option(
+        metavar="MODULE_PATTERN",
+        help="Also allow flow classes from modules matching this (fnmatch; repeatable).")] = None,
+    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
+    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+    config: Annotated[Optional[Path], typer.Option(
+        metavar="worker.toml", help="Settings from this TOML file (the same keys); flags override it.")] = None,
+) -> None:
+    """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
+    SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
+    and --allow patterns."""
+    from .backends.zenoh.daemon import load_settings, serve
+
+    try:
+        settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
+                                 namespace=namespace, path=[str(p) for p in path] if path else None,
+                                 allow=allow, secret=None if secret is None else str(secret), insecure=insecure)
+        code = serve(settings)
+    except Exception as exc:
+        _fail(exc)
+    raise typer.Exit(code=code)
+
+
+app.command("worker")(worker)
+
+
+@app.command("workers")
+def workers_command(
+    connect: Annotated[Optional[list[str]], typer.Option(
+        metavar="ENDPOINT", help="A worker (or a peer linked to workers) to ask (repeatable). "
+                                 "Default: tcp/127.0.0.1:7447.")] = None,
+    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
+    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
+    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+) -> None:
+    """List the live workers of a namespace: labels, host, pid, version, clock offset, nodes."""
+    from .backends.zenoh.daemon import DEFAULT_CONNECT, list_workers
+
+    endpoints = connect or [DEFAULT_CONNECT]
+    try:
+        listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure)
+    except Exception as exc:
+        _fail(exc)
+    for endpoint in listing.unreachable:
+        _err.print(f"warning: no session at {endpoint}: nothing listens there, or it wants another --secret",
+                   highlight=False)
+    if not listing.workers:
+        _out.print(f"no workers in namespace '{namespace}' at {', '.join(endpoints)}\n"
+                   f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tcp/0.0.0.0:7447 "
+                   "--secret FILE, then: retriever workers --connect tcp/HOST:7447 --secret FILE",
+                   highlight=False, soft_wrap=True)
+        return
+    _out.print(_workers_table(listing.workers, namespace))
+
+
+def _workers_table(workers: list, namespace: str) -> Table:
+    """One row per worker; its info came from the network: every cell is plain text."""
+    table = Table(title=f"workers in namespace '{namespace}'", title_justify="left")
+    for col in ("name", "labels", "host", "pid", "version", "clock offset", "nodes"):
+        table.add_column(col, justify="right" if col in ("pid", "clock offset") else "left")
+    for w in workers:
+        if w.info is None:
+            table.add_row(_cell(w.name), Text(_visible(w.error or "no answer"), style="red"), "", "", "", "", "")
+            continue
+        info = w.info
+        offset = "?" if w.offset_ns is None else f"{w.offset_ns / 1e6:+.2f} ms"
+        packages = info.get("packages") if isinstance(info.get("packages"), dict) else {}
+        labels = ", ".join(map(str, info.get("labels") or [])) or "-"
+        nodes = ", ".join(map(str, info.get("nodes") or [])) or "-"
+        table.add_row(_cell(w.name), _cell(labels), _cell(info.get("host", "?")), _cell(info.get("pid", "?")),
+                      _cell(packages.get("retriever", "?")), offset, _cell(nodes))
+    return table
+
+
+def worker_main() -> None:
+    """``retriever-worker``: the same command as ``retriever worker``."""
+    standalone = typer.Typer(add_completion=False)
+    standalone.command()(worker)
+    standalone()
+
 
 # ---------------------------------------------------------------------------------------------
 # Deployment secrets
@@ -494,3 +590,7 @@ def secret_new(
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -353,7 +353,8 @@ def _open_log(session: Session, file: LogFile) -> None:
 
     if session.now_ns != 0 or session.trace.raw_steps:
         raise BackendError("log= records a run from T0: give it on the first run after construction or pipe.reset()")
-    session.log = LogWriter(file, session.graph, backend=session.backend_name, seeds=session.seeds())
+    session.log = LogWriter(file, session.graph, backend=session.backend_name, seeds=session.seeds(),
+                            extra=session.log_metadata())
 
 
 def _close_log(session: Session, exc: BaseException | None = None) -> None:

@@ -112,6 +112,10 @@ class Session(ABC):
         """The seeds this run depends on, recorded in the log's run metadata."""
         return {}
 
+    def log_metadata(self) -> dict[str, str]:
+        """More of the log's run metadata (text values): a deployment's workers and placement."""
+        return {}
+
     def write_log(self) -> int:
         """Hand the trace to the log writer; return how many steps to run before the next
         hand-over, sized from the recent step rate to come back every ``LOG_HANDOVER_S``.

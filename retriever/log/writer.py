@@ -107,7 +107,7 @@ class LogWriter:
     """
 
     def __init__(self, file: LogFile, graph: "Graph", *, backend: str, seeds: dict[str, Any] | None = None,
-                 flush_interval: float = 0.1):
+                 flush_interval: float = 0.1, extra: dict[str, str] | None = None):
         self.path = file.path
         file.start()
         self._file = file.stream
@@ -118,8 +118,8 @@ class LogWriter:
         with self._refused_writes(RUN_NOT_STARTED):
             self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
-            self._mcap.add_metadata(fmt.RUN_METADATA, fmt.run_metadata(graph.name, backend, seeds or {},
-                                                                        time.time_ns(), modules))
+            self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
+                                                                           time.time_ns(), modules), **(extra or {})})
             self._channels: dict[tuple[str, str], int] = {}
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
                 for port, spec in node.outputs.items():

@@ -11,6 +11,7 @@
     deploy.py   a deployment: the coordinator with its nodes placed on worker daemons
     session.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
     output.py   what workers print, on the coordinator's streams, prefixed with the node
+    daemon.py   a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
 """
 
 from __future__ import annotations

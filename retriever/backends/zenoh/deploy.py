@@ -14,6 +14,7 @@ naming it (re-placing its nodes on another worker is not built yet).
 
 from __future__ import annotations
 
+import json
 import secrets
 import sys
 
@@ -141,6 +142,13 @@ class DeploySession(ZenohSession):
             host = self._remotes.get(str(sample.key_expr).rsplit("/", 1)[-1])
             if host is not None:
                 host.lost()
+
+    def log_metadata(self) -> dict[str, str]:
+        """``deployment``: which worker ran each node, and what each worker said of itself."""
+        workers = {name: {k: info.get(k) for k in ("host", "pid", "labels", "python", "packages", "offset_ns")}
+                   for name, info in self.workers.items()}
+        return {"deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers},
+                                         sort_keys=True)}
 
     def _release_hosts(self) -> None:
         for host in self._remotes.values():

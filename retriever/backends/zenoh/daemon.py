@@ -1,0 +1,507 @@
+"""A long-lived worker daemon (``retriever-worker``), on each machine flows may run on.
+
+A daemon joins a namespace with a Zenoh peer session (multicast scouting off, its own listen and
+connect endpoints) and stays until SIGINT or SIGTERM. Under ``retriever/<namespace>/``::
+
+    workers/<name>   its liveliness token: there while it runs (a killed daemon's goes in ms)
+    ctl/<name>       its control queryable
+
+A control query carries ``WireEncoder().control(op, args)`` (``[2, op, args]``) and gets one
+reply of the same shape, ``[2, op, answer]``; an op it does not know, or a payload that is no
+control message, gets ``reply_err`` with ``[2, "error", {"message": ...}]`` and is counted,
+never fatal. Its ops (``WorkerDaemon.ops``):
+
+    info    {} -> {protocol, name, labels, host, pid, python, packages, clock_ns, nodes, counts}
+
+``retriever deploy`` (the coordinator) adds ``launch`` and ``stop``: a worker imports flow
+classes only from the modules its allowlist admits (:func:`module_allowed`; ``--path`` and
+``--allow``), and refuses others with :func:`refusal`'s message.
+
+Who may talk to it: with ``--secret FILE`` its session admits only peers that hold the secret
+(``access.py``: passwords derived from it for the namespace, access control); without one it
+refuses to start unless ``--insecure`` says so (a lab on a trusted network).
+"""
+
+from __future__ import annotations
+
+import importlib.machinery
+import os
+import platform
+import re
+import shutil
+import signal
+import socket
+import sys
+import tempfile
+import threading
+import tomllib
+import traceback
+from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from fnmatch import fnmatchcase
+from pathlib import Path
+from typing import NamedTuple
+
+import zenoh
+
+from ...errors import RetrieverError
+from ...log.format import package_versions
+from .access import AccessError, RunAccess, read_secret
+from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers
+from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
+
+#: the version of the control protocol on ctl/<name>: a coordinator tells what a worker understands
+PROTOCOL_VERSION = 1
+DEFAULT_NAMESPACE = "default"
+#: Zenoh's own port, on every interface: where a coordinator on another machine finds the worker
+DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+#: where ``retriever workers`` looks when told nowhere: a worker on this machine, at DEFAULT_LISTEN
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+#: flow classes from these packages (and their modules) are always allowed: Retriever's own flows
+#: and the agents package
+ALWAYS_ALLOWED = ("retriever", "agents")
+
+#: how long a starting daemon waits for links to its --connect endpoints before it looks for a
+#: worker of its name: a link takes milliseconds on a LAN; an endpoint down longer is joined later,
+#: in the background (Zenoh retries), unchecked
+JOIN_S = 3.0
+#: a bound on an answer to a liveliness get or a control query (0.4 ms on loopback, ms on a LAN)
+QUERY_S = 2.0
+#: info queries per worker that measure its clock's offset: the first crossed a new route and took
+#: 10-20 ms one way (an offset of -9 ms between two processes of one host), later ones 0.5 ms
+CLOCK_SAMPLES = 5
+#: how often the main thread wakes while it waits for SIGINT/SIGTERM: a signal the kernel gives
+#: one of Zenoh's threads runs our (main-thread) handler only when the main thread wakes
+STOP_CHECK_S = 0.5
+
+#: a run's coordinator answers on ctl/run and ctl/start of its namespace (wire.KeySpace): no
+#: worker's ctl/<name> may be one of them
+RESERVED_NAMES = ("run", "start")
+CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure")
+_ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
+
+
+class WorkerError(RetrieverError):
+    """A worker that cannot start as asked, or a worker query that got no answer."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Settings: flags over a worker.toml
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class WorkerSettings:
+    name: str
+    labels: tuple[str, ...] = ()
+    listen: tuple[str, ...] = (DEFAULT_LISTEN,)
+    connect: tuple[str, ...] = ()
+    namespace: str = DEFAULT_NAMESPACE
+    path: tuple[str, ...] = ()
+    allow: tuple[str, ...] = ()
+    secret: str | None = None
+    insecure: bool = False
+
+
+def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
+    """A worker's settings: ``flags`` (CONFIG_KEYS; None = not given) over the TOML file
+    ``config``, whose relative paths are relative to its folder. Every problem is reported at
+    once, one a line."""
+    problems: list[str] = []
+    values = _read_config(Path(config), problems) if config is not None else {}
+    if flags.get("secret") is not None or flags.get("insecure"):
+        values.pop("secret", None)  # a flag's choice of security replaces the file's
+        values.pop("insecure", None)
+    values.update({k: v for k, v in flags.items() if v is not None and v is not False})
+    if isinstance(values.get("labels"), str):
+        values["labels"] = [label.strip() for label in values["labels"].split(",") if label.strip()]
+    settings = _validate(values, problems)
+    if problems:
+        raise WorkerError("the worker's settings have problems:\n" + "\n".join(f"  - {p}" for p in problems))
+    return settings
+
+
+def _read_config(path: Path, problems: list[str]) -> dict:
+    try:
+        with path.open("rb") as f:
+            values = tomllib.load(f)
+    except OSError as e:
+        raise WorkerError(f"cannot read the worker config {path}: {e.strerror}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise WorkerError(f"the worker config {path} is not valid TOML: {e}") from None
+    for key in sorted(set(values) - set(CONFIG_KEYS)):
+        problems.append(f"{path}: unknown key '{key}' (a worker config has {', '.join(CONFIG_KEYS)})")
+        del values[key]
+    for key in ("path", "secret"):  # relative to the file, wherever the worker starts
+        if isinstance(values.get(key), list):
+            values[key] = [str(path.parent / p) if isinstance(p, str) else p for p in values[key]]
+        elif isinstance(values.get(key), str):
+            values[key] = str(path.parent / values[key])
+    return values
+
+
+def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
+    def strings(key: str) -> tuple[str, ...]:
+        value = values.get(key, ())
+        value = [value] if isinstance(value, str) else value
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            problems.append(f"'{key}' must be a list of strings, got {value!r:.60}")
+            return ()
+        return tuple(value)
+
+    name, namespace = values.get("name"), values.get("namespace", DEFAULT_NAMESPACE)
+    if name is None:
+        problems.append('a worker needs a name: --name NAME (or name = "..." in --config)')
+    elif name in RESERVED_NAMES:
+        problems.append(f"a worker may not be named '{name}': ctl/{name} is a run's own key; pick another --name")
+    else:
+        _check_chunk("worker name", name, problems)
+    _check_chunk("namespace", namespace, problems)
+    labels = strings("labels")
+    for label in labels:
+        _check_chunk("label", label, problems)
+    listen, connect = strings("listen") or (DEFAULT_LISTEN,), strings("connect")
+    for endpoint in (*listen, *connect):
+        if not _ENDPOINT.fullmatch(endpoint):
+            problems.append(f"endpoint {endpoint!r} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
+                            "e.g. tcp/0.0.0.0:7447")
+    paths = []
+    for given in strings("path"):
+        paths.append(str(Path(given).resolve()))
+        if not Path(given).is_dir():
+            problems.append(f"--path {given}: no such directory")
+    secret, insecure = values.get("secret"), values.get("insecure", False)
+    if secret is not None and not isinstance(secret, (str, os.PathLike)):
+        problems.append(f"'secret' must be the path of a file, got {secret!r:.60}")
+    if not isinstance(insecure, bool):
+        problems.append(f"'insecure' must be true or false, got {insecure!r:.60}")
+    if problems:
+        return None
+    return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
+                          None if secret is None else str(secret), insecure)
+
+
+def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
+    try:
+        check_chunk(kind, value)
+    except ValueError as e:
+        problems.append(str(e))
+
+
+# ---------------------------------------------------------------------------------------------
+# Who may join: a deployment secret, or --insecure
+# ---------------------------------------------------------------------------------------------
+def check_security(secret: object, insecure: bool, command: str) -> None:
+    """Refuse to join without a secret unless ``--insecure`` says that is meant."""
+    if secret is not None and insecure:
+        raise WorkerError(f"{command} takes --secret FILE or --insecure, not both")
+    if secret is None and not insecure:
+        raise WorkerError(
+            f"{command} needs --secret FILE (a deployment secret: only processes holding it may join) "
+            "or --insecure (anyone who reaches its endpoints may)\n"
+            "    hint: python -c \"import secrets; print(secrets.token_hex(32))\" > worker.secret; "
+            "chmod 600 worker.secret; then pass --secret worker.secret to every worker and coordinator")
+
+
+@contextmanager
+def open_access(namespace: str, secret: str | None) -> Iterator[dict[str, str] | None]:
+    """The Zenoh config entries that make a session one of the namespace's deployment, derived
+    from the secret (access.py), or None without one. The dictionary file Zenoh checks peers
+    against lives in a private (0700) folder, removed when this ends."""
+    if secret is None:
+        yield None
+        return
+    try:
+        access = RunAccess.create(namespace, read_secret(secret))
+    except AccessError as e:
+        raise WorkerError(str(e)) from None
+    folder = Path(tempfile.mkdtemp(prefix="retriever-worker-"))  # mkdtemp: mode 0700
+    try:
+        yield access.session_config(access.write_dictionary(folder))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# The allowlist: which modules a flow class may come from
+# ---------------------------------------------------------------------------------------------
+def path_modules(paths: list[str]) -> list[str]:
+    """The top-level modules and packages in the folders ``paths`` (what importing from them finds)."""
+    suffixes = sorted(importlib.machinery.all_suffixes(), key=len, reverse=True)
+    found = set()
+    for folder in paths:
+        try:
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue
+        for entry in entries:
+            if entry.is_dir():
+                stem = entry.name
+            else:
+                stem = next((entry.name[:-len(s)] for s in suffixes if entry.name.endswith(s)), "")
+            if stem.isidentifier() and not stem.startswith("__"):  # not __init__, __pycache__
+                found.add(stem)
+    return sorted(found)
+
+
+def module_allowed(module: str, allow: list[str], paths: list[str]) -> bool:
+    """Whether a flow class may be imported from ``module``: the module or a package holding it
+    is in ALWAYS_ALLOWED, found in a ``paths`` folder, or matches an ``allow`` pattern (fnmatch,
+    case-sensitive: ``mylab.*``)."""
+    parts = module.split(".") if isinstance(module, str) else [""]
+    if not all(part.isidentifier() for part in parts):
+        return False
+    patterns = [*ALWAYS_ALLOWED, *path_modules(paths), *allow]
+    prefixes = [".".join(parts[:i]) for i in range(1, len(parts) + 1)]
+    return any(fnmatchcase(prefix, pattern) for prefix in prefixes for pattern in patterns)
+
+
+def refusal(module: str, allow: list[str], paths: list[str], worker: str | None = None) -> str:
+    """Why a flow class from ``module`` is refused, and the flag that would allow it."""
+    who = f"worker '{worker}'" if worker else "this worker"
+    admitted = [f"{', '.join(ALWAYS_ALLOWED)} (always)"]
+    if paths:
+        admitted.append(f"modules in --path {' '.join(paths)}: {', '.join(path_modules(paths)) or 'none'}")
+    if allow:
+        admitted.append(f"--allow {' '.join(allow)}")
+    top = module.split(".")[0]
+    return (f"{who} does not import flow classes from module '{module}': its allowlist admits "
+            f"{'; '.join(admitted)}\n"
+            f"    hint: start the worker with --allow {module}, or with --path DIR for the folder holding {top}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The daemon
+# ---------------------------------------------------------------------------------------------
+class WorkerDaemon:
+    """The worker's answers on ctl/<name>, on Zenoh's threads (hence the lock)."""
+
+    def __init__(self, settings: WorkerSettings, session: zenoh.Session):
+        self.settings, self.session = settings, session
+        self.keys = KeySpace(settings.namespace)
+        #: what it counted: "refused" control messages (garbage, unknown ops), "failed" ops
+        self.counts: Counter[str] = Counter()
+        #: the nodes it runs, by node id: ``launch`` and ``stop`` (retriever deploy) fill it
+        self.nodes: dict[str, object] = {}
+        self._lock = threading.Lock()
+        # read once: info answers at once, reading the clock last (a query measures its offset)
+        self._packages = package_versions()
+        #: op -> handler(args) -> answer; retriever deploy adds "launch" and "stop"
+        self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info}
+
+    def info(self, args: dict) -> dict:
+        return {"protocol": PROTOCOL_VERSION, "name": self.settings.name, "labels": list(self.settings.labels),
+                "host": socket.gethostname(), "pid": os.getpid(), "python": platform.python_version(),
+                "packages": self._packages, "clock_ns": hlc_now_ns(self.session),
+                "nodes": sorted(self.nodes), "counts": dict(self.counts)}
+
+    def module_allowed(self, module: str) -> bool:
+        return module_allowed(module, list(self.settings.allow), list(self.settings.path))
+
+    def refusal(self, module: str) -> str:
+        return refusal(module, list(self.settings.allow), list(self.settings.path), self.settings.name)
+
+    def answer(self, query: zenoh.Query) -> None:
+        """The queryable's callback: one reply per query, never an exception into Zenoh."""
+        encoder = WireEncoder()  # one per call: callbacks may run on several threads at once
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            op, args = decode_control(payload)
+            handler = self.ops.get(op)
+            if handler is None:
+                raise WireError(f"worker '{self.settings.name}' knows no op {op!r:.40} "
+                                f"(it knows {', '.join(self.ops)})")
+            with self._lock:
+                answer = handler(args)
+        except WireError as e:
+            with self._lock:
+                self.counts["refused"] += 1
+            query.reply_err(encoder.control("error", {"message": str(e)}))
+            return
+        except Exception as e:  # a bug in an op: the daemon stays up and says so
+            with self._lock:
+                self.counts["failed"] += 1
+            traceback.print_exc()
+            query.reply_err(encoder.control("error", {"message": f"{type(e).__name__}: {e}"}))
+            return
+        query.reply(self.keys.ctl(self.settings.name), encoder.control(op, answer))
+
+
+def hlc_now_ns(session: zenoh.Session) -> int:
+    """The session's hybrid logical clock, now, in ns since the Unix epoch."""
+    return session.new_timestamp().get_time_as_ntp64().as_nanos()
+
+
+def ask(session: zenoh.Session, namespace: str, name: str, op: str, args: dict | None = None,
+        timeout: float = QUERY_S) -> dict:
+    """Send ``op`` to worker ``name`` and return its answer; WorkerError if it refused or said nothing."""
+    selector = KeySpace(namespace).ctl(name)
+    for reply in session.get(selector, payload=WireEncoder().control(op, args or {}), timeout=timeout):
+        try:
+            if reply.ok is not None:
+                got, answer = decode_control(reply.ok.payload.to_bytes())
+                if got == op:
+                    return answer
+            else:
+                _, error = decode_control(reply.err.payload.to_bytes())
+                raise WorkerError(f"worker '{name}' refused {op}: {error.get('message', '?')}")
+        except WireError as e:
+            raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None
+    raise WorkerError(f"worker '{name}' did not answer {op} within {timeout:g} s")
+
+
+def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) -> int:
+    """Run the daemon until SIGINT or SIGTERM; 0 once its session closed."""
+    say = say or (lambda line: print(line, file=sys.stderr, flush=True))
+    check_security(settings.secret, settings.insecure, "retriever-worker")
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    if settings.insecure:
+        say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
+            f"{', '.join(settings.listen)} may join namespace '{settings.namespace}' and control it; "
+            "only for a lab on a trusted network")
+    with open_access(settings.namespace, settings.secret) as access:
+        _serve_until(settings, stop, access, say)
+    return 0
+
+
+def _serve_until(settings: WorkerSettings, stop: threading.Event, access: dict[str, str] | None,
+                 say: Callable[[str], None]) -> None:
+    """Join, check the name is free, answer until ``stop``, close."""
+    config = peer_config(listen=settings.listen, connect=settings.connect, access=access)
+    try:
+        taken, counts = in_session(config, lambda session: _announce_and_answer(settings, session, stop, say))
+    except zenoh.ZError as e:
+        raise WorkerError(f"retriever-worker '{settings.name}' cannot open its Zenoh session on "
+                          f"{', '.join(settings.listen)}: {e}\n    hint: is the port taken? "
+                          "choose another with --listen tcp/0.0.0.0:PORT") from None
+    if taken is not None:
+        raise WorkerError(taken)
+    refused = counts.get("refused", 0)
+    say(f"retriever-worker '{settings.name}' stopped"
+        + (f"; it refused {refused} control message(s)" if refused else ""))
+
+
+def in_session(config: zenoh.Config, use: Callable[[zenoh.Session], object]):
+    """``use(session)`` in a session of its own, closed after, its shared-memory segments let go
+    of: exit() removes only segments no one maps (hub.SEGMENT_RELEASE_S). ``use`` returns what
+    went wrong rather than raise it: a traceback would hold the session."""
+    before = mapped_segments()
+    session = zenoh.open(config)
+    segments = mapped_segments() - before  # the session's own
+    try:
+        with session:
+            return use(session)
+    finally:
+        del session  # the last reference
+        await_segments_released(segments)
+
+
+def _announce_and_answer(settings: WorkerSettings, session: zenoh.Session, stop: threading.Event,
+                         say: Callable[[str], None]) -> tuple[str | None, dict[str, int]]:
+    """Unless a worker of its name runs (its refusal then), answer on ctl/<name> and hold the
+    token until ``stop``; what it counted."""
+    keys = KeySpace(settings.namespace)
+    wait_for_peers(session, len(settings.connect), JOIN_S, stop=stop.is_set)
+    taken = name_taken(session, settings.namespace, settings.name)
+    if taken is not None:
+        return taken, {}
+    daemon = WorkerDaemon(settings, session)
+    # the queryable before the token: whoever sees the worker can ask it at once
+    queryable = session.declare_queryable(keys.ctl(settings.name), daemon.answer)
+    token = session.liveliness().declare_token(keys.workers(settings.name))
+    say(_start_line(settings))
+    while not stop.wait(STOP_CHECK_S):
+        pass
+    token.undeclare()
+    queryable.undeclare()
+    return None, dict(daemon.counts)
+
+
+def name_taken(session: zenoh.Session, namespace: str, name: str) -> str | None:
+    """Why this worker may not start, if a worker of its name is live in the namespace (among
+    the peers linked now); else None."""
+    keys = KeySpace(namespace)
+    if not any(r.ok is not None for r in session.liveliness().get(keys.workers(name), timeout=QUERY_S)):
+        return None
+    try:
+        info = ask(session, namespace, name, "info")
+        other = f"on host {info.get('host', '?')}, pid {info.get('pid', '?')}"
+    except WorkerError as e:
+        other = f"({e})"
+    return (f"a worker named '{name}' already runs in namespace '{namespace}' {other}\n"
+            f"    hint: pick another --name, or stop that worker first")
+
+
+def _start_line(settings: WorkerSettings) -> str:
+    allowed = [*ALWAYS_ALLOWED, *path_modules(list(settings.path)), *settings.allow]
+    parts = [f"retriever-worker '{settings.name}' in namespace '{settings.namespace}'",
+             f"listening on {', '.join(settings.listen)}"]
+    if settings.connect:
+        parts.append(f"connecting to {', '.join(settings.connect)}")
+    parts.append(f"labels {', '.join(settings.labels) or '(none)'}")
+    parts.append(f"flows from {', '.join(allowed)}")
+    return "; ".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------
+# Listing: retriever workers
+# ---------------------------------------------------------------------------------------------
+class WorkerInfo(NamedTuple):
+    name: str
+    info: dict | None  # its info answer, or None
+    offset_ns: int | None  # its clock minus ours (NTP-style: theirs minus the midpoint of the query)
+    error: str | None  # why there is no info
+
+
+class Listing(NamedTuple):
+    workers: list[WorkerInfo]
+    unreachable: list[str]  # endpoints that admitted no session
+
+
+def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret: str | None = None,
+                 insecure: bool = False) -> Listing:
+    """The live workers of ``namespace`` that the peers at ``connect`` know, each with its info.
+
+    A client session per endpoint: the peer it joins routes for it, so it sees every worker
+    that peer is linked to, not only itself."""
+    check_security(secret, insecure, "retriever workers")
+    keys = KeySpace(namespace)
+    found: dict[str, WorkerInfo] = {}
+    unreachable = []
+
+    def look(session: zenoh.Session) -> None:
+        for reply in session.liveliness().get(keys.workers(), timeout=QUERY_S):
+            if reply.ok is not None:
+                name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+                found.setdefault(name, describe(session, namespace, name))
+
+    with open_access(namespace, secret) as access:
+        for endpoint in connect:
+            config = peer_config(connect=[endpoint], access=access)
+            config.insert_json5("mode", '"client"')
+            try:
+                in_session(config, look)
+            except zenoh.ZError:  # nothing listens there, or it wants credentials we lack
+                unreachable.append(endpoint)
+    return Listing(sorted(found.values()), unreachable)
+
+
+def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
+    """Worker ``name``'s info, and its clock's offset from ours, measured as NTP does: our HLC
+    before and after a query brackets the worker's reading, so offset = theirs - midpoint, off by
+    at most half the round trip; of CLOCK_SAMPLES queries, the one of shortest round trip counts."""
+    samples = []
+    for _ in range(CLOCK_SAMPLES):
+        before = hlc_now_ns(session)
+        try:
+            info = ask(session, namespace, name, "info")
+        except WorkerError as e:
+            return WorkerInfo(name, None, None, str(e))
+        after = hlc_now_ns(session)
+        samples.append((after - before, before, after, info))
+    _, before, after, info = min(samples, key=lambda sample: sample[0])
+    theirs = info.get("clock_ns")
+    offset = theirs - (before + after) // 2 if type(theirs) is int else None
+    return WorkerInfo(name, info, offset, None)

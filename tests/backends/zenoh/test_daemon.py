@@ -1,0 +1,411 @@
+"""Worker daemons (``retriever-worker``) and ``retriever workers`` (issue 18; daemon.py).
+
+Daemons run as real processes (``python -m retriever.cli worker``) on loopback ports picked by
+the test; a plain Zenoh session stands for a coordinator or a stranger. Every process a test
+starts is killed by its PID at the end, and every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from retriever.backends.zenoh.daemon import (
+    CONFIG_KEYS,
+    DEFAULT_LISTEN,
+    PROTOCOL_VERSION,
+    WorkerError,
+    ask,
+    load_settings,
+    module_allowed,
+    open_access,
+    refusal,
+)
+from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_control
+
+ROOT = Path(__file__).resolve().parents[3]
+BOUND_S = 60.0  # a bound on any wait, never a speed check
+SECRET = "a deployment secret of 32 bytes."
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    env.update(PYTHONPATH=str(ROOT), NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1", COLUMNS="200")
+    return env
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "retriever.cli", *args], cwd=ROOT, env=_env(),
+                          capture_output=True, text=True, timeout=BOUND_S)
+
+
+class Worker:
+    """A daemon process, and the lines of its stderr (read on a thread)."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT, env=_env(),
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.started = threading.Event()  # its start line came, or its stderr ended without one
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line)
+            if line.startswith("retriever-worker '") and " in namespace '" in line:
+                self.started.set()
+        self.started.set()
+
+    def wait_started(self) -> Worker:
+        assert self.started.wait(BOUND_S) and self.proc.poll() is None, "the worker did not start:\n" + self.stderr()
+        return self
+
+    def stop(self, signum: int = signal.SIGTERM) -> int:
+        os.kill(self.proc.pid, signum)
+        return self.proc.wait(BOUND_S)
+
+    def stderr(self) -> str:
+        if self.proc.poll() is not None:
+            self.reader.join(BOUND_S)
+        return "".join(self.lines)
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@pytest.fixture
+def namespace() -> str:
+    return f"daemon-{os.getpid()}-{time.monotonic_ns() % 10**9}"
+
+
+@pytest.fixture
+def workers():
+    """Start workers (``workers(*args)``); each is killed at the end."""
+    started: list[Worker] = []
+
+    def start(*args: str) -> Worker:
+        started.append(Worker(*args))
+        return started[-1]
+
+    yield start
+    for worker in started:
+        worker.kill()
+
+
+def _client(port: int, access: dict[str, str] | None = None) -> zenoh.Session:
+    config = peer_config(connect=[endpoint(port)], access=access)
+    config.insert_json5("mode", '"client"')
+    return zenoh.open(config)
+
+
+def _live(session: zenoh.Session, keys: KeySpace) -> list[str]:
+    return sorted(str(r.ok.key_expr) for r in session.liveliness().get(keys.workers(), timeout=2.0) if r.ok is not None)
+
+
+# ---------------------------------------------------------------------------------------------
+# A daemon on a real session
+# ---------------------------------------------------------------------------------------------
+def test_a_daemon_announces_itself_and_answers_info(workers, namespace):
+    port = free_port()
+    worker = workers("--name", "w1", "--labels", "gpu,arm", "--listen", endpoint(port), "--namespace", namespace,
+                     "--insecure").wait_started()
+    keys = KeySpace(namespace)
+    with _client(port) as session:
+        assert _live(session, keys) == [keys.workers("w1")]
+        before = time.time_ns()
+        info = ask(session, namespace, "w1", "info")
+        after = time.time_ns()
+    assert info["protocol"] == PROTOCOL_VERSION == 1
+    assert (info["name"], info["labels"], info["nodes"]) == ("w1", ["gpu", "arm"], [])
+    assert (info["host"], info["pid"]) == (socket.gethostname(), worker.proc.pid)
+    assert info["python"] == ".".join(map(str, sys.version_info[:3]))
+    assert info["packages"]["retriever"] and info["packages"]["eclipse-zenoh"]
+    assert before - 10**9 < info["clock_ns"] < after + 10**9, "one host, one clock (a sanity bound, not a speed check)"
+    assert worker.stop() == 0
+    err = worker.stderr()
+    assert "warning: retriever-worker 'w1' runs with --insecure" in err and "trusted network" in err
+    assert f"retriever-worker 'w1' in namespace '{namespace}'; listening on {endpoint(port)}; labels gpu, arm; " \
+           "flows from retriever, agents" in err
+
+
+def test_retriever_workers_lists_two_daemons_with_their_labels(workers, namespace):
+    """Two daemons, the second linked to the first: `retriever workers` connects to the first
+    only, which routes for it, and lists both."""
+    first, second = free_port(), free_port()
+    a = workers("--name", "alpha", "--labels", "gpu,arm", "--listen", endpoint(first), "--namespace", namespace,
+                "--insecure")
+    a.wait_started()
+    b = workers("--name", "beta", "--labels", "cpu", "--listen", endpoint(second), "--connect", endpoint(first),
+                "--namespace", namespace, "--insecure")
+    b.wait_started()
+    keys = KeySpace(namespace)
+    seen, both = set(), threading.Event()
+
+    def on_token(sample) -> None:
+        seen.add(str(sample.key_expr))
+        if len(seen) == 2:
+            both.set()
+
+    with _client(first) as session:  # the first daemon knows the second's token
+        session.liveliness().declare_subscriber(keys.workers(), on_token, history=True)
+        assert both.wait(BOUND_S), seen
+    result = _cli("workers", "--connect", endpoint(first), "--namespace", namespace, "--insecure")
+    assert result.returncode == 0, result.stderr
+    rows = {line.split("│")[1].strip(): [cell.strip() for cell in line.split("│")[2:-1]]
+            for line in result.stdout.splitlines() if line.startswith("│")}
+    assert set(rows) == {"alpha", "beta"}, result.stdout
+    host = socket.gethostname()
+    assert rows["alpha"][:3] == ["gpu, arm", host, str(a.proc.pid)]
+    assert rows["beta"][:3] == ["cpu", host, str(b.proc.pid)]
+    for labels, _, _, version, offset, nodes in rows.values():
+        assert version == "0.1.0" and nodes == "-"
+        assert offset.endswith(" ms") and abs(float(offset[:-3])) < 1000, offset  # one host: a sanity bound
+    assert "name" in result.stdout and "clock offset" in result.stdout
+
+
+def test_no_workers_says_how_to_start_one(namespace):
+    port = free_port()  # nothing listens there
+    result = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith(f"no workers in namespace '{namespace}' at {endpoint(port)}")
+    assert "start one: retriever-worker --name NAME" in result.stdout
+    assert f"warning: no session at {endpoint(port)}" in result.stderr
+
+
+def test_a_second_worker_of_one_name_refuses_to_start(workers, namespace):
+    first = free_port()
+    a = workers("--name", "twin", "--listen", endpoint(first), "--namespace", namespace, "--insecure").wait_started()
+    b = workers("--name", "twin", "--listen", endpoint(free_port()), "--connect", endpoint(first),
+                "--namespace", namespace, "--insecure")
+    assert b.proc.wait(BOUND_S) == 1
+    err = b.stderr()
+    assert f"error: a worker named 'twin' already runs in namespace '{namespace}' on host {socket.gethostname()}, " \
+           f"pid {a.proc.pid}\nhint: pick another --name, or stop that worker first" in err, err
+    assert "Traceback" not in err
+    with _client(first) as session:  # the first goes on
+        assert ask(session, namespace, "twin", "info")["pid"] == a.proc.pid
+
+
+# ---------------------------------------------------------------------------------------------
+# Who may join
+# ---------------------------------------------------------------------------------------------
+def test_a_worker_and_the_listing_need_a_secret_or_insecure(tmp_path):
+    for command, args in (("retriever-worker", ["worker", "--name", "w"]), ("retriever workers", ["workers"])):
+        result = _cli(*args)
+        assert result.returncode == 1
+        assert result.stderr.startswith(f"error: {command} needs --secret FILE (a deployment secret"), result.stderr
+        assert "or --insecure" in result.stderr and "\nhint: python -c" in result.stderr
+        assert "Traceback" not in result.stderr
+    secret = tmp_path / "secret"
+    secret.write_text(SECRET)
+    result = _cli("worker", "--name", "w", "--secret", str(secret), "--insecure")
+    assert result.returncode == 1 and "takes --secret FILE or --insecure, not both" in result.stderr
+    secret.chmod(0o644)
+    result = _cli("worker", "--name", "w", "--secret", str(secret), "--listen", endpoint(free_port()))
+    assert result.returncode == 1
+    assert "can be read by other users (mode 644)\nhint: chmod 600" in result.stderr, result.stderr
+
+
+def test_without_the_secret_a_peer_sees_nothing(workers, namespace, tmp_path):
+    """A daemon with --secret admits only sessions that hold it: a plain Zenoh peer or client,
+    or one with another secret, gets no session; it sees no token and no answer."""
+    secret, other = tmp_path / "secret", tmp_path / "other"
+    secret.write_text(SECRET)
+    other.write_text(SECRET.upper())
+    for path in (secret, other):
+        path.chmod(0o600)
+    port = free_port()
+    workers("--name", "guarded", "--listen", endpoint(port), "--namespace", namespace,
+            "--secret", str(secret)).wait_started()
+    keys = KeySpace(namespace)
+    with zenoh.open(peer_config(connect=[endpoint(port)])) as stranger:  # a peer's open does not fail
+        assert _live(stranger, keys) == []
+        assert [r for r in stranger.get(keys.ctl("guarded"), payload=WireEncoder().control("info", {}),
+                                        timeout=2.0)] == []
+        assert list(stranger.info.peers_zid()) == [], "a stranger got a session with the worker"
+    with pytest.raises(zenoh.ZError):  # a client's does
+        _client(port)
+    with open_access(namespace, str(other)) as wrong, pytest.raises(zenoh.ZError):
+        _client(port, wrong)
+    with open_access(namespace, str(secret)) as access, _client(port, access) as insider:
+        assert _live(insider, keys) == [keys.workers("guarded")]
+        assert ask(insider, namespace, "guarded", "info")["name"] == "guarded"
+    listed = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--secret", str(secret))
+    assert listed.returncode == 0 and "guarded" in listed.stdout, listed.stdout + listed.stderr
+    unlisted = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
+    assert unlisted.stdout.startswith("no workers"), unlisted.stdout
+    assert "it wants another --secret" in unlisted.stderr
+
+
+def test_garbage_and_unknown_ops_get_error_replies_and_the_daemon_goes_on(workers, namespace):
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
+    keys = KeySpace(namespace)
+    bad = [b"\xc1 garbage", None, WireEncoder().control("frobnicate", {}), b"\x93\x01\xa4info\x80",  # wire version 1
+           b"\x93\x02\xa4info\x90"]  # args a list
+    with _client(port) as session:
+        for payload in bad:
+            replies = list(session.get(keys.ctl("w"), payload=payload, timeout=BOUND_S))
+            assert len(replies) == 1 and replies[0].ok is None, payload
+            op, args = decode_control(replies[0].err.payload.to_bytes())
+            assert op == "error" and args["message"], payload
+            if payload == WireEncoder().control("frobnicate", {}):
+                assert args["message"] == "worker 'w' knows no op 'frobnicate' (it knows info)"
+        with pytest.raises(WorkerError, match="worker 'w' refused frobnicate: worker 'w' knows no op"):
+            ask(session, namespace, "w", "frobnicate")
+        info = ask(session, namespace, "w", "info")
+    assert info["counts"] == {"refused": len(bad) + 1}
+    assert worker.stop() == 0
+    assert f"retriever-worker 'w' stopped; it refused {len(bad) + 1} control message(s)" in worker.stderr()
+
+
+def _segments(pid: int) -> set[str]:
+    with open(f"/proc/{pid}/maps", encoding="utf-8", errors="replace") as maps:
+        return {line.rsplit(None, 1)[-1] for line in maps if line.rstrip().endswith(".zenoh")}
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_the_daemon_cleanly(workers, namespace, signum):
+    """SIGTERM or SIGINT: exit 0, its token gone, its shared-memory segments removed."""
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
+    segments = _segments(worker.proc.pid)
+    assert segments, "a Zenoh session maps its shared-memory segment when it opens"
+    assert worker.stop(signum) == 0, worker.stderr()
+    assert "retriever-worker 'w' stopped" in worker.stderr()
+    assert "Traceback" not in worker.stderr()
+    assert not [s for s in segments if os.path.exists(s)], "the daemon left its segment in /dev/shm"
+
+
+# ---------------------------------------------------------------------------------------------
+# Settings
+# ---------------------------------------------------------------------------------------------
+def test_flags_override_the_config_file(tmp_path):
+    (tmp_path / "flows").mkdir()
+    config = tmp_path / "worker.toml"
+    config.write_text('name = "arm-1"\nlabels = ["gpu", "arm"]\nlisten = ["tcp/0.0.0.0:7448"]\n'
+                      'namespace = "lab"\npath = ["flows"]\nallow = ["mylab.*"]\nsecret = "worker.secret"\n')
+    settings = load_settings(config)
+    assert (settings.name, settings.labels, settings.listen, settings.connect, settings.namespace) == \
+           ("arm-1", ("gpu", "arm"), ("tcp/0.0.0.0:7448",), (), "lab")
+    # relative paths are the file's folder's, wherever the worker starts
+    assert settings.path == (str(tmp_path / "flows"),) and settings.secret == str(tmp_path / "worker.secret")
+    assert (settings.allow, settings.insecure) == (("mylab.*",), False)
+    flagged = load_settings(config, name="arm-2", labels="cpu", connect=["tcp/10.0.0.1:7447"], insecure=True)
+    assert (flagged.name, flagged.labels, flagged.connect) == ("arm-2", ("cpu",), ("tcp/10.0.0.1:7447",))
+    assert (flagged.secret, flagged.insecure) == (None, True), "a flag's --insecure replaces the file's secret"
+    assert flagged.listen == ("tcp/0.0.0.0:7448",) and flagged.allow == ("mylab.*",)
+    assert load_settings(name="bare").listen == (DEFAULT_LISTEN,) and load_settings(name="bare").namespace == "default"
+
+
+def test_a_config_file_with_unknown_keys_or_wrong_values_is_refused(tmp_path):
+    config = tmp_path / "worker.toml"
+    config.write_text('nmae = "arm-1"\nlabels = "gpu,arm"\nlisten = [7447]\ninsecure = "yes"\npath = ["nowhere"]\n')
+    with pytest.raises(WorkerError) as refused:
+        load_settings(config)
+    assert str(refused.value) == (
+        "the worker's settings have problems:\n"
+        f"  - {config}: unknown key 'nmae' (a worker config has {', '.join(CONFIG_KEYS)})\n"
+        "  - a worker needs a name: --name NAME (or name = \"...\" in --config)\n"
+        "  - 'listen' must be a list of strings, got [7447]\n"
+        f"  - --path {tmp_path / 'nowhere'}: no such directory\n"
+        "  - 'insecure' must be true or false, got 'yes'")
+    config.write_text('name = "w"\nlabels = "gpu, arm"\n')
+    assert load_settings(config).labels == ("gpu", "arm"), "labels as in --labels"
+    with pytest.raises(WorkerError, match=r"a worker may not be named 'start': ctl/start is a run's own key"):
+        load_settings(name="start")
+    config.write_text("name = ")
+    with pytest.raises(WorkerError, match=r"the worker config .* is not valid TOML"):
+        load_settings(config)
+    config.write_text('name = "w"\nfoo = 1\n')
+    result = _cli("worker", "--config", str(config), "--insecure")
+    assert result.returncode == 1
+    assert result.stderr == (f"error: the worker's settings have problems:\n  - {config}: unknown key 'foo' "
+                             f"(a worker config has {', '.join(CONFIG_KEYS)})\n"), result.stderr
+
+
+def test_the_example_config_and_unit_are_in_deploy():
+    import tomllib
+
+    example = tomllib.loads((ROOT / "deploy" / "worker.example.toml").read_text())
+    assert set(example) <= set(CONFIG_KEYS) and example["name"]
+    unit = (ROOT / "deploy" / "retriever-worker.service").read_text()
+    assert "ExecStart=" in unit and "--config" in unit and "Restart=on-failure" in unit and "User=" in unit
+
+
+def test_retriever_worker_is_the_same_command():
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    assert 'retriever-worker = "retriever.cli:worker_main"' in pyproject
+    run = [sys.executable, "-c", "import sys; from retriever.cli import worker_main; "
+                                 "sys.argv[0] = 'retriever-worker'; worker_main()"]
+    shown = subprocess.run([*run, "--help"], cwd=ROOT, env=_env(), capture_output=True, text=True, timeout=BOUND_S)
+    for flag in ("--name", "--labels", "--listen", "--connect", "--namespace", "--path", "--allow", "--secret",
+                 "--insecure", "--config"):
+        assert flag in shown.stdout, flag
+    refused = subprocess.run([*run, "--name", "w"], cwd=ROOT, env=_env(), capture_output=True, text=True,
+                             timeout=BOUND_S)
+    assert refused.returncode == 1 and refused.stderr.startswith("error: retriever-worker needs --secret FILE")
+
+
+# ---------------------------------------------------------------------------------------------
+# The allowlist
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture
+def flows_dir(tmp_path) -> str:
+    (tmp_path / "mylab").mkdir()
+    (tmp_path / "mylab" / "__init__.py").write_text("")
+    (tmp_path / "tool.py").write_text("")
+    (tmp_path / "fast.cpython-311-x86_64-linux-gnu.so").write_text("")
+    (tmp_path / "data.txt").write_text("")
+    (tmp_path / "__pycache__").mkdir()
+    (tmp_path / "not-a-module").mkdir()
+    return str(tmp_path)
+
+
+@pytest.mark.parametrize("module, allow, on_path, allowed", [
+    ("retriever", [], False, True),
+    ("retriever.flow.base", [], False, True),
+    ("agents.planner", [], False, True),
+    ("retrieverx", [], False, False),  # a package allows its modules, not its name's prefix
+    ("Retriever", [], False, False),  # module names are case-sensitive
+    ("os", [], False, False),
+    ("subprocess", [], True, False),
+    ("mylab", [], True, True),
+    ("mylab.flows.arm", [], True, True),
+    ("tool", [], True, True),
+    ("fast", [], True, True),  # an extension module
+    ("data", [], True, False),  # data.txt is no module
+    ("__pycache__", [], True, False),
+    ("mylab", [], False, False),  # not without its --path
+    ("os.path", ["os"], False, True),
+    ("other.x", ["other.*"], False, True),
+    ("other", ["other.*"], False, False),  # the pattern says other's modules, not other itself
+    ("lab_arm.flows", ["lab_*"], False, True),
+    ("anything.at.all", ["*"], False, True),
+    ("", ["*"], False, False),
+    ("a..b", ["*"], False, False),
+    ("os;rm", ["*"], False, False),
+])
+def test_module_allowed(flows_dir, module, allow, on_path, allowed):
+    assert module_allowed(module, allow, [flows_dir] if on_path else []) is allowed
+
+
+def test_a_refusal_names_the_module_and_the_flags_that_allow_it(flows_dir):
+    message = refusal("os.path", ["other.*"], [flows_dir], worker="arm-1")
+    assert message == (
+        "worker 'arm-1' does not import flow classes from module 'os.path': its allowlist admits retriever, agents "
+        f"(always); modules in --path {flows_dir}: fast, mylab, tool; --allow other.*\n"
+        "    hint: start the worker with --allow os.path, or with --path DIR for the folder holding os")

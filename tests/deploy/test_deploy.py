@@ -1,0 +1,107 @@
+"""`retriever deploy` across hosts of the netns lab: worker daemons on two hosts, the coordinator on
+a third, real TCP between separate network stacks, the deployment secret on every session.
+
+Each test starts its own daemons (stopped by the lab's fixture, by PID) and its own coordinator;
+waits are bounded polls on what the processes print.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from retriever import read_log
+from retriever.log import replay
+
+HERE = Path(__file__).resolve().parent
+PYTHON = sys.executable
+FLOWS = HERE / "deploy_flows.py"
+BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
+
+
+@pytest.fixture
+def secret(tmp_path) -> Path:
+    path = tmp_path / "lab.key"
+    path.write_text(secrets.token_hex(32) + "\n")
+    path.chmod(0o600)
+    return path
+
+
+def start_worker(host, name: str, secret: Path, *extra: str) -> subprocess.Popen:
+    """A daemon on ``host``, listening on its address; returns once it is up (its start line)."""
+    proc = host.popen([PYTHON, "-m", "retriever.cli", "worker", "--name", name, "--listen",
+                       f"tcp/{host.address}:7447", "--secret", str(secret), *extra],
+                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    give_up = time.monotonic() + BOUND_S
+    seen = []
+    while time.monotonic() < give_up:
+        if select.select([proc.stderr], [], [], 0.1)[0]:
+            line = proc.stderr.readline()
+            seen.append(line)
+            if line.startswith(f"retriever-worker '{name}' in namespace"):
+                return proc
+        assert proc.poll() is None, f"worker {name} exited {proc.returncode}: {''.join(seen)}{proc.stderr.read()}"
+    raise AssertionError(f"worker {name} did not come up within {BOUND_S:g} s: {''.join(seen)}")
+
+
+def deploy(host, workers, secret: Path, *extra: str, timeout: float = BOUND_S) -> subprocess.CompletedProcess:
+    """``retriever deploy`` run on ``host``, joining the daemons on ``workers``."""
+    connect = [arg for w in workers for arg in ("--connect", f"tcp/{w.address}:7447")]
+    return host.run([PYTHON, "-m", "retriever.cli", "deploy", *extra, *connect, "--secret", str(secret)],
+                    timeout=timeout, cwd=str(HERE.parents[1]))
+
+
+def test_a_deployment_runs_across_three_hosts_as_placed_and_its_log_replays(hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--labels", "robot")
+    start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--labels", "gpu,big")
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nrelay = { labels = ["gpu"] }\n')
+    log = tmp_path / "run.mcap"
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--placement", str(placement),
+                  "--duration", "3", "--log", str(log))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "arm-pc" in done.stdout and "gpu-box" in done.stdout, done.stdout  # the table's worker column
+    run = read_log(log).run
+    deployment = json.loads(run["deployment"])
+    assert deployment["placed"]["counter"] == "arm-pc" and deployment["placed"]["relay"] == "gpu-box"
+    assert set(deployment["workers"]) == {"arm-pc", "gpu-box"}
+    trace = read_log(log).trace()
+    assert len(trace.steps_of("counter")) >= 50 and len(trace.steps_of("sink")) >= 40
+    assert replay(read_log(log)).identical
+
+
+def test_a_placement_that_cannot_be_met_is_refused_before_anything_starts(hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ncounter = "nowhere"\nrelay = { labels = ["gpu"] }\nsink = "arm-pc"\n')
+    done = deploy(coordinator, [arm], secret, f"{FLOWS}:pipe", "--placement", str(placement), "--duration", "2")
+    assert done.returncode == 1
+    assert "nowhere" in done.stderr and "gpu" in done.stderr, done.stderr  # every problem at once
+
+
+def test_a_worker_refuses_a_flow_class_its_allowlist_does_not_admit(hosts, secret):
+    coordinator, arm, _ = hosts
+    start_worker(arm, "arm-pc", secret)  # no --path: deploy_flows is not admitted
+    done = deploy(coordinator, [arm], secret, f"{FLOWS}:pipe", "--duration", "2")
+    assert done.returncode == 1
+    assert "does not import flow classes from module 'deploy_flows'" in done.stderr, done.stderr
+    assert "--allow deploy_flows" in done.stderr, done.stderr
+
+
+def test_a_coordinator_without_the_secret_finds_no_worker(hosts, secret, tmp_path):
+    coordinator, arm, _ = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    other = tmp_path / "other.key"
+    other.write_text(secrets.token_hex(32) + "\n")
+    other.chmod(0o600)
+    done = deploy(coordinator, [arm], other, f"{FLOWS}:pipe", "--duration", "2")
+    assert done.returncode == 1 and "no worker is up in namespace 'default'" in done.stderr, done.stderr
