@@ -13,9 +13,10 @@ never fatal. Its ops (``WorkerDaemon.ops``):
 
     info    {} -> {protocol, name, labels, host, pid, python, packages, clock_ns, nodes, counts}
 
-``retriever deploy`` (the coordinator) adds ``launch`` and ``stop``: a worker imports flow
-classes only from the modules its allowlist admits (:func:`module_allowed`; ``--path`` and
-``--allow``), and refuses others with :func:`refusal`'s message.
+and, for ``retriever deploy`` (the coordinator, remote.py), ``prepare``, ``spawn``, ``signal``
+and ``end`` (runs.py): a worker imports flow classes only from the modules its allowlist admits
+(:func:`module_allowed`; ``--path`` and ``--allow``), and refuses others with :func:`refusal`'s
+message, before anything is imported.
 
 Who may talk to it: with ``--secret FILE`` its session admits only peers that hold the secret
 (``access.py``: passwords derived from it for the namespace, access control); without one it
@@ -50,6 +51,7 @@ from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, read_secret
 from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers
+from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
 
 #: the version of the control protocol on ctl/<name>: a coordinator tells what a worker understands
@@ -281,19 +283,22 @@ class WorkerDaemon:
         self.keys = KeySpace(settings.namespace)
         #: what it counted: "refused" control messages (garbage, unknown ops), "failed" ops
         self.counts: Counter[str] = Counter()
-        #: the nodes it runs, by node id: ``launch`` and ``stop`` (retriever deploy) fill it
-        self.nodes: dict[str, object] = {}
         self._lock = threading.Lock()
         # read once: info answers at once, reading the clock last (a query measures its offset)
         self._packages = package_versions()
-        #: op -> handler(args) -> answer; retriever deploy adds "launch" and "stop"
-        self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info}
+        #: what it runs for a coordinator (runs.py): prepare, spawn, signal, end
+        self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen,
+                               access=RunAccess.create(settings.namespace, read_secret(settings.secret))
+                               if settings.secret is not None else None,
+                               allowed=self.module_allowed, refusal=self.refusal, paths=settings.path)
+        #: op -> handler(args) -> answer
+        self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
 
     def info(self, args: dict) -> dict:
         return {"protocol": PROTOCOL_VERSION, "name": self.settings.name, "labels": list(self.settings.labels),
                 "host": socket.gethostname(), "pid": os.getpid(), "python": platform.python_version(),
                 "packages": self._packages, "clock_ns": hlc_now_ns(self.session),
-                "nodes": sorted(self.nodes), "counts": dict(self.counts)}
+                "nodes": self.runs.nodes(), "counts": dict(self.counts)}
 
     def module_allowed(self, module: str) -> bool:
         return module_allowed(module, list(self.settings.allow), list(self.settings.path))
@@ -416,6 +421,7 @@ def _announce_and_answer(settings: WorkerSettings, session: zenoh.Session, stop:
         pass
     token.undeclare()
     queryable.undeclare()
+    daemon.runs.close()  # what it still runs stops with it
     return None, dict(daemon.counts)
 
 

@@ -31,6 +31,8 @@ from .session import ZenohSession
 
 #: how long the coordinator waits for links to its --connect endpoints before it looks for workers
 JOIN_S = 5.0
+#: where a coordinator told only --connect listens: every address of its machine, a port the OS picks
+ANY_ADDRESS = "tcp/0.0.0.0:0"
 #: how long a liveliness get for the namespace's workers waits for answers
 DISCOVER_S = 2.0
 #: clock offsets between the coordinator and a worker: past the first a warning, past the second
@@ -84,9 +86,17 @@ class DeploySession(ZenohSession):
             raise BackendError(str(e)) from None
 
     def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
-        self._hub = zenoh.open(peer_config(listen=self._listen_at, connect=self._connect, access=access))
+        # it listens even when told only where to connect: peers do not route for each other, so
+        # each worker process opens a link of its own to it (gossip tells them where), or the
+        # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
+        listen = self._listen_at or [ANY_ADDRESS]
+        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access))
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
+
+    def _where(self) -> str:
+        return (f"deployment joined through {', '.join(self._connect)}" if self._connect else
+                f"deployment listening on {', '.join(self._listen_at)}")
 
     def _place(self) -> dict:
         found = self._discover()

@@ -67,6 +67,9 @@ class DaemonRuns:
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.listen, self.access, self.allowed, self.refusal = listen, access, allowed, refusal
         self.paths = [str(Path(p).resolve()) for p in paths]
+        for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
+            if folder not in sys.path:
+                sys.path.insert(0, folder)
         self.run: Run | None = None
         self._events = session.declare_publisher(self.keys.worker_events(name), congestion_control=RELIABLE)
 

@@ -125,8 +125,8 @@ class ZenohSession(Session):
             if not quiet:
                 watch = (f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber on "
                          if access else "anyone on its network may join it (insecure); watch it with a subscriber on ")
-                print(f"retriever: Zenoh hub listening on {self.endpoint} (namespace '{self.namespace}'); "
-                      f"{watch}{self.keys.all_data()}", file=sys.stderr, flush=True)
+                print(f"retriever: {self._where()} (namespace '{self.namespace}'); {watch}{self.keys.all_data()}",
+                      file=sys.stderr, flush=True)
             self._listen()
             self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph), "argv": list(sys.argv),
@@ -153,6 +153,10 @@ class ZenohSession(Session):
     def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
         """Open the run's own session (``self._hub``), which the workers join at ``self.endpoint``."""
         self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access)
+
+    def _where(self) -> str:
+        """Where the run's hub is, for the line that says how to watch it."""
+        return f"Zenoh hub listening on {self.endpoint}"
 
     def _listen(self) -> None:
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
