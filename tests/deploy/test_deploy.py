@@ -105,3 +105,92 @@ def test_a_coordinator_without_the_secret_finds_no_worker(hosts, secret, tmp_pat
     other.chmod(0o600)
     done = deploy(coordinator, [arm], other, f"{FLOWS}:pipe", "--duration", "2")
     assert done.returncode == 1 and "no worker is up in namespace 'default'" in done.stderr, done.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# Faults
+# ---------------------------------------------------------------------------------------------
+def flow_processes(daemon_pid: int) -> list[int]:
+    """The live worker processes (flows) a daemon started."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if int(fields[1]) == daemon_pid and fields[0] not in "ZX" and b"retriever.backends.zenoh.worker" in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+def start_deploy(host, workers, secret: Path, *extra: str) -> subprocess.Popen:
+    connect = [arg for w in workers for arg in ("--connect", f"tcp/{w.address}:7447")]
+    return host.popen([PYTHON, "-m", "retriever.cli", "deploy", f"{FLOWS}:pipe", *extra, *connect,
+                       "--secret", str(secret)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                      cwd=str(HERE.parents[1]))
+
+
+def poll(condition, what: str, bound: float = BOUND_S):
+    give_up = time.monotonic() + bound
+    while not (value := condition()):
+        assert time.monotonic() < give_up, f"no {what} within {bound:g} s"
+        time.sleep(0.02)
+    return value
+
+
+def test_the_flows_of_a_killed_coordinator_stop_within_3_s_and_the_workers_stay_up(hosts, secret):
+    coordinator, arm, gpu = hosts
+    daemons = [start_worker(arm, "arm-pc", secret, "--path", str(HERE)),
+               start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60")
+    poll(lambda: all(flow_processes(d.pid) for d in daemons), "flow processes on both workers")
+    time.sleep(0.5)  # they run (not a wait for an event: a kill mid-run is the point)
+    run.kill()
+    killed = time.monotonic()
+    poll(lambda: not any(flow_processes(d.pid) for d in daemons), "stop of the flows", bound=10.0)
+    assert time.monotonic() - killed < 3.0 + 0.5  # the bound, plus this poll's own slack
+    assert all(d.poll() is None for d in daemons), "a worker daemon went down with its coordinator"
+    again = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--duration", "1")
+    assert again.returncode == 0, again.stderr  # and they take new work
+
+
+def test_a_worker_killed_mid_run_stops_the_deployment_naming_it(hosts, secret):
+    """Re-placing its nodes on another worker is not built yet: the run stops, saying which
+    worker was lost and which nodes with it; the other worker's flows stop too."""
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60")
+    poll(lambda: flow_processes(victim.pid), "flow processes on gpu-box")
+    time.sleep(0.5)
+    victim.kill()
+    try:
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 1, err
+    assert "worker 'gpu-box' was lost" in err and "stopped" in err, err
+
+
+def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--namespace", "lab-a")
+    start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--namespace", "lab-b")
+    listed = coordinator.run([PYTHON, "-m", "retriever.cli", "workers", "--connect", f"tcp/{arm.address}:7447",
+                              "--connect", f"tcp/{gpu.address}:7447", "--namespace", "lab-a", "--secret", str(secret)],
+                             timeout=BOUND_S)
+    assert "arm-pc" in listed.stdout and "gpu-box" not in listed.stdout, listed.stdout + listed.stderr
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--namespace", "lab-b", "--duration", "1.5",
+                  "--placement", str(_pin_all(coordinator, "arm-pc")))
+    assert done.returncode == 1 and "arm-pc" in done.stderr and "not up" in done.stderr, done.stderr
+
+
+def _pin_all(host, worker: str) -> Path:
+    path = Path(f"/tmp/{host.name}-pin.toml")
+    path.write_text(f'[nodes]\ncounter = "{worker}"\n')
+    return path

@@ -530,17 +530,17 @@ class ZenohSession(Session):
             print(f"retriever: dropped a message on {key}: {error}", file=sys.stderr, flush=True)
 
     def _check_processes(self) -> None:
+        for host in {id(h): h for h in self._hosts.values()}.values():
+            if not host.alive and self._failure is None:  # its flows stopped with it, whatever they said
+                nodes = sorted(n for n, h in self._hosts.items() if h is host)
+                self._failure = (nodes[0], {"error": f"worker '{host.name}' was lost (its liveliness token went): "
+                                                     f"its node(s) {', '.join(nodes)} stopped\n    hint: is the machine "
+                                                     "up, and on the network? `retriever workers` lists the workers up"})
+                self._raise_failure()
         for nid, proc in [*self._workers.items(), *self._retiring.items()]:
             code = proc.poll()
             if code is None or self._state[nid] == "done":
                 continue
-            host = self._hosts[nid]
-            if not host.alive and self._failure is None:
-                nodes = sorted(n for n, h in self._hosts.items() if h is host)
-                self._failure = (nid, {"error": f"worker '{host.name}' was lost (its liveliness token went): its "
-                                                f"node(s) {', '.join(nodes)} stopped\n    hint: is the machine up, "
-                                                "and on the network? `retriever workers` lists the workers up"})
-                self._raise_failure()
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
                 # a worker's own exit: its last status may still be on the way (it says why it ended)
                 exited = self._exited.setdefault(proc.pid, time.monotonic())
