@@ -34,12 +34,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ...errors import RetrieverError
+from .wire import ROOT
 
 RUN_USER = "retriever-run"
 WATCH_USER = "retriever-watch"
 
 #: what a watcher may not send: everything that writes, asks a queryable to run, or announces
 WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "liveliness_token", "liveliness_query"]
+
+#: what a run's session never sends a watcher: the coordinator's control (ctl/run). The hub puts
+#: it with congestion control BLOCK, which the workers need; to a watcher that stopped reading
+#: (its link's queue full of the data it gets, dropped when congested: hub.forward_dropping),
+#: such a put would wait up to Zenoh's `wait_before_close` (5 s), and the coordinator with it
+#: (a `start` the workers got 5 s late). A watcher has no use for it.
+WATCHER_UNSEEN = [f"{ROOT}/*/ctl/**"]
 
 #: the fewest bytes a deployment secret file must hold
 SECRET_MIN_BYTES = 16
@@ -157,16 +165,18 @@ class RunAccess:
     # -----------------------------------------------------------------------------------------
     def session_config(self, dictionary_file: Path) -> dict[str, str]:
         """The entries (key → JSON5 value) that make a session one of the run's: it proves the
-        run's password when it connects, checks every peer that connects to it, and drops what
-        a watcher sends."""
+        run's password when it connects, checks every peer that connects to it, drops what a
+        watcher sends, and sends a watcher none of the run's control (WATCHER_UNSEEN)."""
         usrpwd = {"user": RUN_USER, "password": self.run_password, "dictionary_file": str(dictionary_file)}
         acl = {
             "enabled": True,
             "default_permission": "allow",
             "rules": [{"id": "watchers_read_only", "messages": WATCHER_MAY_NOT, "flows": ["ingress"],
-                       "permission": "deny", "key_exprs": ["**"]}],
+                       "permission": "deny", "key_exprs": ["**"]},
+                      {"id": "watchers_see_no_control", "messages": ["put", "delete"], "flows": ["egress"],
+                       "permission": "deny", "key_exprs": WATCHER_UNSEEN}],
             "subjects": [{"id": "watchers", "usernames": [WATCH_USER]}],
-            "policies": [{"rules": ["watchers_read_only"], "subjects": ["watchers"]}],
+            "policies": [{"rules": ["watchers_read_only", "watchers_see_no_control"], "subjects": ["watchers"]}],
         }
         return {"transport/auth/usrpwd": json.dumps(usrpwd), "access_control": json.dumps(acl)}
 

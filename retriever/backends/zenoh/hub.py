@@ -14,6 +14,8 @@ import time
 
 import zenoh
 
+from .wire import KeySpace
+
 DEFAULT_PORT = 7447
 LOOPBACK = "127.0.0.1"
 
@@ -131,11 +133,38 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     return config
 
 
+def forward_dropping(keys: KeySpace) -> dict[str, str]:
+    """The config entries (key → JSON5 value) with which the hub forwards what the run's
+    processes publish with congestion control DROP instead of their BLOCK.
+
+    The hub forwards those messages to its Zenoh clients only, the watchers: peers do not route
+    for each other, so the run's own events go worker to worker (open_peer). A BLOCK message
+    waits for room in its link's queue up to Zenoh's `wait_before_close` (5 s), then the link is
+    closed; and the hub forwards on the thread that read the message from the producer's link.
+    So to a watcher that stopped reading (SIGSTOP: its socket full), the hub's thread reading
+    the cam's link waited 5 s, then closed the watcher's link; meanwhile the cam's own put of a
+    frame waited on its full link to the hub, and after 5 s the cam closed that link ("Unable
+    to push non droppable network message ... Closing transport!"), reports and statuses queued
+    on it lost: the run failed 1 in 5 times, more under load (a worker that "did not finish in
+    time" or "exited before it finished", a sink short of events; test_access.py). With DROP,
+    a message to a congested link is dropped at once: a watcher that cannot keep up misses
+    messages, the run never waits for it. Only the hub's forwarding changes: the workers' puts
+    keep BLOCK on their links, and the coordinator's control (ctl/run, not in these keys) too;
+    watchers never get that (access.py, WATCHER_UNSEEN)."""
+    rule = {"id": "forward_to_watchers_dropping", "messages": ["put", "delete"], "flows": ["egress"],
+            "key_exprs": [keys.all_data(), keys.progress("**"), keys.status("**"), keys.warm("**")],
+            "overwrite": {"congestion_control": "drop"}}
+    return {"qos/network": json.dumps([rule])}
+
+
 def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: int = 1,
-             access: dict[str, str] | None = None) -> tuple[zenoh.Session, str]:
+             access: dict[str, str] | None = None, keys: KeySpace | None = None) -> tuple[zenoh.Session, str]:
     """Open the run's hub session, one of the run's ``sessions``; returns it and the endpoint it
-    listens on. Close it (``with``)."""
+    listens on. Close it (``with``). ``keys``: the run's key space, whose messages it forwards
+    to watchers dropping (forward_dropping)."""
     port = preferred_port if port_is_free(preferred_port) else free_port()
+    if keys is not None:
+        access = {**(access or {}), **forward_dropping(keys)}
     last: Exception | None = None
     for _ in range(attempts):
         try:

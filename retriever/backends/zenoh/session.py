@@ -152,7 +152,8 @@ class ZenohSession(Session):
 
     def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
         """Open the run's own session (``self._hub``), which the workers join at ``self.endpoint``."""
-        self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access)
+        self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access,
+                                            keys=self.keys)
 
     def _where(self) -> str:
         """Where the run's hub is, for the line that says how to watch it."""
@@ -710,9 +711,11 @@ class ZenohSession(Session):
             try:
                 self._hub.close()
             except zenoh.ZError as e:
-                # Zenoh gives up after 10 s on a link whose peer stopped reading (a watcher
-                # suspended with SIGSTOP, its socket full): the run is over and recorded all the
-                # same; the hub's session goes with this process
+                # a link whose peer stopped reading (a watcher suspended with SIGSTOP, its
+                # socket full) holds the close 10 s: Zenoh sets SO_LINGER 10 s on its TCP
+                # sockets, and close() waits that long for unsent bytes (strace: the main thread
+                # in close() 10.2 s), as long as the session's close timeout (10 s). The run is
+                # over and recorded all the same; the hub's session goes with this process
                 print(f"retriever: the run's hub did not close in time: a peer connected to it stopped reading "
                       f"(a suspended watcher?) ({e})", file=sys.stderr, flush=True)
             self._hub = None
