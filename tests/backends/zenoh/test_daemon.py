@@ -263,13 +263,74 @@ def test_garbage_and_unknown_ops_get_error_replies_and_the_daemon_goes_on(worker
             op, args = decode_control(replies[0].err.payload.to_bytes())
             assert op == "error" and args["message"], payload
             if payload == WireEncoder().control("frobnicate", {}):
-                assert args["message"] == "worker 'w' knows no op 'frobnicate' (it knows info)"
+                assert args["message"] == ("worker 'w' knows no op 'frobnicate' "
+                                           "(it knows info, prepare, spawn, signal, end)")
         with pytest.raises(WorkerError, match="worker 'w' refused frobnicate: worker 'w' knows no op"):
             ask(session, namespace, "w", "frobnicate")
         info = ask(session, namespace, "w", "info")
     assert info["counts"] == {"refused": len(bad) + 1}
     assert worker.stop() == 0
     assert f"retriever-worker 'w' stopped; it refused {len(bad) + 1} control message(s)" in worker.stderr()
+
+
+def _ir_doc(node_type: str = "deploy_flows:Counter") -> dict:
+    """The netns tests' pipeline, as a worker with --path tests/deploy imports it (deploy_flows)."""
+    from tests.deploy.deploy_flows import pipe
+
+    doc = pipe.build_ir().doc
+    for node in doc["nodes"]:
+        node["type"] = node["type"].replace("tests.deploy.deploy_flows:", "deploy_flows:")
+        if node["id"] == "counter":
+            node["type"] = node_type
+    return doc
+
+
+def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_started(workers, namespace, tmp_path):
+    """prepare, spawn, signal and end, from a session that may talk to the daemon (here: an
+    insecure one) but asks for what a coordinator never would: each refused with an error reply
+    that says why, nothing imported (a marker module would write a file), nothing started."""
+    marker = tmp_path / "imported"
+    (tmp_path / "evil_flows.py").write_text(f"open({str(marker)!r}, 'w').close()\n")
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(ROOT / "tests" / "deploy")).wait_started()
+    refused = {
+        ("prepare", "os:system"): "does not import flow classes from module 'os'",
+        ("prepare", "evil_flows:Flow"): "does not import flow classes from module 'evil_flows'",
+        ("spawn", None): "has no run",
+        ("signal", None): "has no run",
+        ("end", None): "has no run",
+        ("prepare", "deploy_flows:Nowhere.__init__"): None,  # allowed module: found, not imported here
+    }
+    with _client(port) as session:
+        for (op, node_type), expected in refused.items():
+            if op == "prepare":
+                args = {"run": "r1", "spec": {"ir": _ir_doc(node_type), "namespace": namespace}, "nodes": ["counter"]}
+            else:
+                args = {"run": "never-prepared", "node": "counter", "mode": [], "pid": 1, "signal": 9}
+            if expected is None:
+                ask(session, namespace, "w", op, args)  # the flow process would find it is no Flow, and say so
+                continue
+            with pytest.raises(WorkerError, match=expected):
+                ask(session, namespace, "w", op, args)
+        for args in ({"run": "r1", "spec": {"ir": {"nodes": "x"}}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc()}, "nodes": ["nobody"]},
+                     {"run": 7, "spec": {}, "nodes": []}):
+            with pytest.raises(WorkerError, match="refused prepare"):
+                ask(session, namespace, "w", "prepare", args)
+        ask(session, namespace, "w", "prepare", {"run": "r2", "spec": {"ir": _ir_doc(), "namespace": namespace,
+                                                                       "hub": endpoint(port)}, "nodes": ["counter"]})
+        for args, expected in (({"node": "relay", "mode": []}, "was not prepared"),
+                               ({"node": "counter", "mode": ["--join", "1; rm -rf /", "2"]}, "spawn mode"),
+                               ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode")):
+            with pytest.raises(WorkerError, match=expected):
+                ask(session, namespace, "w", "spawn", {"run": "r2", **args})
+        with pytest.raises(WorkerError, match="not a process of run r2"):
+            ask(session, namespace, "w", "signal", {"run": "r2", "pid": os.getpid(), "signal": 9})
+        assert ask(session, namespace, "w", "info")["nodes"] == []
+        ask(session, namespace, "w", "end", {"run": "r2"})
+    assert not marker.exists(), "a module named in a request was imported"
+    assert worker.stop() == 0
 
 
 def _segments(pid: int) -> set[str]:
