@@ -139,13 +139,16 @@ def deploy(
         "--insecure", help="Join without a secret: anyone on the network may join (a trusted lab only).")] = False,
     allow_errors: Annotated[bool, typer.Option(
         "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted.")] = False,
+    on_worker_loss: Annotated[str, typer.Option(
+        help="A worker lost mid-run: 'replace' starts its nodes afresh on other workers their placement "
+             "allows; 'stop' stops the run.")] = "replace",
 ) -> None:
     """Run a pipeline on the worker daemons of a namespace (retriever-worker on each machine):
     place every node (pins and labels from --placement, the rest by load), start all at one T0,
     log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
     options = {"connect": connect or [], "listen": listen or [], "namespace": namespace,
                "placement": str(placement) if placement is not None else None,
-               "secret": secret, "insecure": insecure}
+               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss}
     _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
              f"{duration:g} s on the workers of namespace '{namespace}'")
 
@@ -198,8 +201,9 @@ def _fail_on_errors(pipe) -> None:
     """A run whose steps raised, or whose flows restarted, fails (exit 1) though it went on."""
     stats = pipe.stats()
     errors = {node: s.errors for node, s in sorted(stats.items()) if s.errors}
-    restarts = {node: s.counts["restarts"] for node, s in sorted(stats.items()) if s.counts.get("restarts")}
-    crashes = sum(s.counts.get("crash_restarts", 0) for s in stats.values())
+    restarts = {node: s.counts.get("restarts", 0) + s.counts.get("moves", 0) for node, s in sorted(stats.items())
+                if s.counts.get("restarts") or s.counts.get("moves")}
+    crashes = sum(s.counts.get("crash_restarts", 0) + s.counts.get("moves", 0) for s in stats.values())
     if not errors and not restarts:
         return
     parts = [f"{node}: {n} step error(s)" + (f", {restarts[node]} restart(s)" if node in restarts else "")

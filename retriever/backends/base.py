@@ -34,6 +34,7 @@ COUNTERS = {
     "report_wait_ns": "how long those waits lasted in all, ns",
     "restarts": "times a flow was restarted (on_error='restart'), after its step raised or its process died",
     "crash_restarts": "of those, restarts after the flow's process died (its state could not be handed over)",
+    "moves": "times a flow started afresh on another worker after its worker was lost (retriever deploy)",
 }
 
 

@@ -158,13 +158,12 @@ def test_the_flows_of_a_killed_coordinator_stop_within_3_s_and_the_workers_stay_
     assert again.returncode == 0, again.stderr  # and they take new work
 
 
-def test_a_worker_killed_mid_run_stops_the_deployment_naming_it(hosts, secret):
-    """Re-placing its nodes on another worker is not built yet: the run stops, saying which
-    worker was lost and which nodes with it; the other worker's flows stop too."""
+def test_a_worker_killed_mid_run_stops_the_deployment_naming_it_when_told_to(hosts, secret):
+    """on_worker_loss="stop": the run stops, saying which worker was lost and which nodes with it."""
     coordinator, arm, gpu = hosts
     start_worker(arm, "arm-pc", secret, "--path", str(HERE))
     victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
-    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60")
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--on-worker-loss", "stop")
     poll(lambda: flow_processes(victim.pid), "flow processes on gpu-box")
     time.sleep(0.5)
     victim.kill()
@@ -175,6 +174,41 @@ def test_a_worker_killed_mid_run_stops_the_deployment_naming_it(hosts, secret):
             run.kill()
     assert run.returncode == 1, err
     assert "worker 'gpu-box' was lost" in err and "stopped" in err, err
+
+
+def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_log_replays(hosts, secret, tmp_path):
+    """on_worker_loss="replace" (the default): the relay's worker is SIGKILLed; the relay starts
+    afresh on the least loaded worker its placement allows, the sink goes on consuming what it
+    sends, and the log says where it went and replays."""
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    spare = start_worker(coordinator, "spare", secret, "--path", str(HERE))
+    placement = tmp_path / "place.toml"
+    # relay goes by load: to gpu-box (0 nodes, before 'spare' by name), then to spare
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nsink = "arm-pc"\n')
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "6", "--placement",
+                       str(placement), "--log", str(log), "--allow-errors")
+    poll(lambda: flow_processes(victim.pid), "the relay's process on gpu-box")
+    time.sleep(1.0)
+    victim.kill()
+    try:
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, err
+    assert "worker 'gpu-box' was lost; its node 'relay' starts afresh on worker 'spare'" in err, err
+    recorded = read_log(log)
+    (fault,) = recorded.faults
+    assert fault["node"] == "relay" and fault["moved_to"] == "spare", fault
+    assert json.loads(recorded.run["deployment"])["placed"]["relay"] == "gpu-box"  # where it started
+    trace = recorded.trace()
+    (after,) = [s for s in trace.steps_of("relay") if s.detail and "restarted" in s.detail]
+    assert any(s.tag > after.tag and s.consumed for s in trace.steps_of("sink"))
+    assert replay(recorded).identical
+    assert spare.poll() is None
 
 
 def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):

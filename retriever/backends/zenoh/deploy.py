@@ -8,8 +8,10 @@
         │ declare the deployment's liveliness token: a worker stops its flows once it goes
         ▼ from here on as the embedded run: spawn, ready, T0, reports, the log, faults, stop
 
-A worker that is lost mid-run (its token went) takes its nodes' processes with it: the run fails
-naming it (re-placing its nodes on another worker is not built yet).
+A worker that is lost mid-run (its token went) takes its nodes' processes with it; with
+``on_worker_loss="replace"`` (the default) each of them starts afresh on another worker that its
+placement allows, as a flow whose process died does (loop.py); with "stop", or nowhere to go,
+the run stops naming the worker.
 """
 
 from __future__ import annotations
@@ -31,6 +33,9 @@ from .session import ZenohSession
 
 #: how long the coordinator waits for links to its --connect endpoints before it looks for workers
 JOIN_S = 5.0
+#: what a deployment does with the nodes of a worker it lost: start them afresh on another worker
+#: that their placement allows (the least loaded), or stop
+WORKER_LOSS = ("replace", "stop")
 #: where a coordinator told only --connect listens: every address of its machine, a port the OS picks
 ANY_ADDRESS = "tcp/0.0.0.0:0"
 #: how long a liveliness get for the namespace's workers waits for answers
@@ -47,7 +52,7 @@ class DeploySession(ZenohSession):
     def __init__(self, graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
                  placement: Placement | str | None = None, secret=None, insecure: bool = False,
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
-                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9):
+                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace"):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -55,6 +60,9 @@ class DeploySession(ZenohSession):
         if not connect and not listen:
             raise BackendError("a deployment needs --connect ENDPOINT (a worker's) or --listen ENDPOINT, where its "
                                "workers are reached\n    hint: retriever deploy app.py --connect tcp/HOST:7447")
+        if on_worker_loss not in WORKER_LOSS:
+            raise BackendError(f"on_worker_loss={on_worker_loss!r} is none of {', '.join(WORKER_LOSS)}")
+        self._on_worker_loss = on_worker_loss
         self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
         self._placement = load_placement(placement) if isinstance(placement, str) else placement
         self._run_id = secrets.token_hex(6)
@@ -106,10 +114,9 @@ class DeploySession(ZenohSession):
             self.placed = place(sorted(self.graph.nodes), self._placement, candidates)
         except PlacementError as e:
             raise BackendError(str(e)) from None
-        spec = {k: v for k, v in self._spec.items() if k not in ("access", "python_path", "spill_dir", "main_file")}
         for name in sorted(set(self.placed.values())):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
-            host.prepare(spec, sorted(n for n, w in self.placed.items() if w == name))
+            host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
@@ -152,6 +159,55 @@ class DeploySession(ZenohSession):
             host = self._remotes.get(str(sample.key_expr).rsplit("/", 1)[-1])
             if host is not None:
                 host.lost()
+
+    # -- a worker lost -------------------------------------------------------------------------
+    def _host_lost(self, host, nodes: list[str]) -> None:
+        """on_worker_loss="replace": each of its nodes starts afresh on the least loaded worker
+        still up that its placement allows (as a flow whose process died: loop.py); the log's
+        fault record says where it went. Any node that has nowhere to go stops the run."""
+        if self._on_worker_loss == "stop" or self.t0 is None:
+            return super()._host_lost(host, nodes)
+        self._remotes.pop(host.name, None)
+        self.workers.pop(host.name, None)
+        targets, problems = {}, []
+        for nid in nodes:
+            target = self._replacement(nid, targets)
+            if target is None:
+                problems.append(nid)
+            targets[nid] = target
+        if problems:
+            return super()._host_lost(host, nodes)
+        at = self._run_time()
+        for name in sorted(set(targets.values())):
+            remote = self._remotes.get(name)
+            if remote is None:
+                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+            remote.prepare(self._remote_spec(), sorted(n for n, w in targets.items() if w == name))
+        for nid, name in sorted(targets.items()):
+            print(f"retriever: worker '{host.name}' was lost; its node '{nid}' starts afresh on worker '{name}'",
+                  file=sys.stderr, flush=True)
+            self._hosts[nid], self.placed[nid] = self._remotes[name], name
+            counts = self._stats[nid].counts
+            counts["moves"] = counts.get("moves", 0) + 1
+            self._start_afresh(nid, {"node": nid, "at_ns": at, "pid": self._workers[nid].pid,
+                                     "exit": f"was lost with its worker '{host.name}'", "moved_to": name})
+
+    def _replacement(self, nid: str, chosen: dict[str, str]) -> str | None:
+        """The least loaded worker still up that ``nid``'s placement allows (ties by name), or None."""
+        rule = self._placement.nodes.get(nid) if self._placement is not None else None
+        load = {name: 0 for name in self.workers}
+        for worker in [*self.placed.values(), *chosen.values()]:
+            if worker in load:
+                load[worker] += 1
+        eligible = [name for name, info in self.workers.items()
+                    if rule is None or ((rule.worker is None or rule.worker == name)
+                                        and rule.labels <= set(info.get("labels") or ()))]
+        return min(eligible, key=lambda name: (load[name], name), default=None)
+
+    def _remote_spec(self) -> dict:
+        """The run's spec as workers get it: what depends on this machine left out (each worker
+        fills in its own Python path, credentials and address: runs.py)."""
+        return {k: v for k, v in self._spec.items() if k not in ("access", "python_path", "spill_dir", "main_file")}
 
     def log_metadata(self) -> dict[str, str]:
         """``deployment``: which worker ran each node, and what each worker said of itself."""

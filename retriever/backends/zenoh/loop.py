@@ -197,6 +197,7 @@ class NodeLoop:
         self.t0 = 0
         self.end = 0
         self.stopping = False
+        self.abandoned = False  # its process's parent died: it stops without finishing (worker.py)
         # on_error="restart" (see "Restarting" below): after a failed step, ticks wait for the
         # new process, which takes this loop's state over once the coordinator says so
         self.restarting = False
@@ -395,7 +396,7 @@ class NodeLoop:
                     self.warmed_for = target
                 continue
             self._wait(wake - self.now())
-        if not self.handing_over:
+        if not self.handing_over and not self.abandoned:
             self._finish()
 
     def _warm_target(self, now: int, wake: int) -> tuple[int | None, bytes | None]:

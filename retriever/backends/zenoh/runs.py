@@ -54,8 +54,8 @@ class Run:
     def __init__(self, run_id: str, folder: Path, nodes: list[str]):
         self.id, self.folder, self.nodes = run_id, folder, set(nodes)
         self.processes: dict[int, tuple[str, subprocess.Popen]] = {}
-        self.coordinator_gone: threading.Timer | None = None
         self.watch = None  # the liveliness subscriber on the coordinator's token
+        self.ir: dict = {}
 
 
 class DaemonRuns:
@@ -88,6 +88,13 @@ class DaemonRuns:
         if type(run_id) is not str or type(spec) is not dict or type(nodes) is not list \
                 or not all(type(n) is str for n in nodes):
             raise WireError("prepare needs {run, spec, nodes}")
+        if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
+            problems = self._check(IR(self.run.ir, source="the run's IR"), nodes)
+            if problems:
+                raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
+                                + "\n".join(f"  - {p}" for p in problems))
+            self.run.nodes.update(nodes)
+            return {"nodes": sorted(self.run.nodes)}
         if self.run is not None and self.run.id != run_id:
             if any(proc.poll() is None for _, proc in self.run.processes.values()):
                 raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
@@ -104,6 +111,7 @@ class DaemonRuns:
                             + "\n".join(f"  - {p}" for p in problems))
         folder = Path(tempfile.mkdtemp(prefix="retriever-run-"))  # mode 0700
         self.run = run = Run(run_id, folder, nodes)
+        run.ir = ir.doc
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), lambda sample: self._coordinator_token(run, sample), history=True)

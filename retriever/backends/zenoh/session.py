@@ -533,11 +533,10 @@ class ZenohSession(Session):
     def _check_processes(self) -> None:
         for host in {id(h): h for h in self._hosts.values()}.values():
             if not host.alive and self._failure is None:  # its flows stopped with it, whatever they said
-                nodes = sorted(n for n, h in self._hosts.items() if h is host)
-                self._failure = (nodes[0], {"error": f"worker '{host.name}' was lost (its liveliness token went): "
-                                                     f"its node(s) {', '.join(nodes)} stopped\n    hint: is the machine "
-                                                     "up, and on the network? `retriever workers` lists the workers up"})
-                self._raise_failure()
+                self._host_lost(host, sorted(n for n, h in self._hosts.items() if h is host))
+                if self._failure is not None:
+                    self._raise_failure()
+                return  # the nodes moved: look again next time
         for nid, proc in [*self._workers.items(), *self._retiring.items()]:
             code = proc.poll()
             if code is None or self._state[nid] == "done":
@@ -561,6 +560,12 @@ class ZenohSession(Session):
                                             f"before it finished\n{self._stderr_tail(nid)}"})
             self._raise_failure()
 
+    def _host_lost(self, host: Host, nodes: list[str]) -> None:
+        """A host went with the nodes on it: the run stops (a deployment may move them instead)."""
+        self._failure = (nodes[0], {"error": f"worker '{host.name}' was lost (its liveliness token went): its node(s) "
+                                             f"{', '.join(nodes)} stopped\n    hint: is the machine up, and on the "
+                                             "network? `retriever workers` lists the workers up"})
+
     # ---------------------------------------------------------------------------------------
     # A lost process (on_error="restart"; see "Restarting after a lost process" in loop.py)
     # ---------------------------------------------------------------------------------------
@@ -582,13 +587,18 @@ class ZenohSession(Session):
             counts[name] = counts.get(name, 0) + 1
         print(f"retriever: flow '{nid}': {why}; starting it afresh (on_error='restart')",
               file=sys.stderr, flush=True)
+        self._start_afresh(nid, {"node": nid, "at_ns": at, "pid": proc.pid, "exit": _exit_text(code)})
+
+    def _start_afresh(self, nid: str, fault: dict) -> None:
+        """Start ``nid`` afresh in a new process on its host (see "Restarting after a lost process"
+        in loop.py); ``fault``: what became of the old one, logged once the new one is ready."""
         for other in (self._workers.get(nid), self._retiring.pop(nid, None)):
             if other is not None:
                 if other.poll() is None:
                     other.kill()
                 self._retired.append(other)
         self._control("lost", {"node": nid})
-        self._fresh[nid] = {"node": nid, "at_ns": at, "pid": proc.pid, "exit": _exit_text(code)}
+        self._fresh[nid] = fault
         self._spawn(nid, join=(self.t0, self.end_ns), fresh=True)
 
     def _restart_afresh(self, nid: str) -> None:

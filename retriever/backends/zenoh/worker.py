@@ -19,7 +19,8 @@ in loop.py).
 
 A worker exits when its node is done, on ``stop``, on SIGTERM, or when its parent dies; its
 session always closes. Every status it sends carries its pid. Exit codes: 0 done or stopped,
-1 failed (the status message says why), 3 handed over to a restarted flow.
+1 failed (the status message says why), 3 handed over to a restarted flow, 4 its parent died (it
+said nothing: as if killed).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ if TYPE_CHECKING:
 
 EXIT_FAILED = 1
 EXIT_HANDED_OVER = 3
+EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended without a word
 
 #: The ``ready`` status carries this much padding, so that Zenoh sends it through the session's
 #: shared-memory pool (messages over 3 KiB between peers on one host go that way). Zenoh creates
@@ -230,7 +232,7 @@ def main(argv: list[str]) -> int:
     run_dir = Path(argv[0]).parent
     threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
     try:
-        return _serve(argv)
+        return _serve(argv, parent)
     finally:
         if _orphaned(parent):
             _remove_run_dir(run_dir)
@@ -249,7 +251,7 @@ def _orphaned(parent: int) -> bool:
     return stat[stat.rindex(")") + 2] in "ZX"
 
 
-def _serve(argv: list[str]) -> int:
+def _serve(argv: list[str], parent: int) -> int:
     _die_with_parent()
     _keep_freed_memory()
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: where is a stuck worker?
@@ -301,6 +303,9 @@ def _serve(argv: list[str]) -> int:
         stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
 
         def on_sigterm(signum, frame) -> None:
+            # its parent died (PR_SET_PDEATHSIG): the run goes on without this process, which
+            # ends without a word, as if killed, promising its consumers nothing (not "done")
+            loop.abandoned = _orphaned(parent)
             loop.stopping = True
             loop.inbox.put(stop_item)
 
@@ -354,6 +359,9 @@ def _serve(argv: list[str]) -> int:
                 # after T0 when the start came late (a loaded machine): after the end, no tick ran
                 started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
             loop.run(t0, end, resume=join is not None)
+            if loop.abandoned:
+                loop.undeclare()
+                return EXIT_ABANDONED
         except StopRun as exc:
             loop.release_held()
             loop.finish_reports()
