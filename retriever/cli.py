@@ -142,13 +142,16 @@ def deploy(
     on_worker_loss: Annotated[str, typer.Option(
         help="A worker lost mid-run: 'replace' starts its nodes afresh on other workers their placement "
              "allows; 'stop' stops the run.")] = "replace",
+    lease: Annotated[Optional[float], typer.Option(
+        metavar="SECONDS", help="How long a link that went silent (a partition) is kept before its worker counts "
+                                "as lost: Zenoh's lease (default 10).")] = None,
 ) -> None:
     """Run a pipeline on the worker daemons of a namespace (retriever-worker on each machine):
     place every node (pins and labels from --placement, the rest by load), start all at one T0,
     log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
     options = {"connect": connect or [], "listen": listen or [], "namespace": namespace,
                "placement": str(placement) if placement is not None else None,
-               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss}
+               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss, "lease": lease}
     _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
              f"{duration:g} s on the workers of namespace '{namespace}'")
 
@@ -492,6 +495,9 @@ def worker(
     insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
     config: Annotated[Optional[Path], typer.Option(
         metavar="worker.toml", help="Settings from this TOML file (the same keys); flags override it.")] = None,
+    lease: Annotated[Optional[float], typer.Option(
+        metavar="SECONDS", help="How long a link that went silent (a partition) is kept: Zenoh's lease "
+                                "(default 10). A coordinator cut off for this long has its flows stopped.")] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
     SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
@@ -501,7 +507,8 @@ def worker(
     try:
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
-                                 allow=allow, secret=None if secret is None else str(secret), insecure=insecure)
+                                 allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
+                                 lease=lease)
         code = serve(settings)
     except Exception as exc:
         _fail(exc)

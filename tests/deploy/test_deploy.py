@@ -211,6 +211,40 @@ def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_lo
     assert spare.poll() is None
 
 
+def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_takes_new_work(
+        lab, hosts, secret):
+    """nftables drops everything of gpu-box's host: within the lease (1 s here) the coordinator
+    counts it lost and moves its node; gpu-box, cut off from the coordinator as long, stops its
+    flows (their safe state). Healed, it takes the next deployment."""
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--lease", "1")
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--lease", "1")
+    start_worker(coordinator, "spare", secret, "--path", str(HERE), "--lease", "1")
+    placement = Path(f"/tmp/{coordinator.name}-part.toml")
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nsink = "arm-pc"\n')  # relay: gpu-box by load
+    run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
+                       str(placement), "--lease", "1", "--allow-errors")
+    poll(lambda: flow_processes(victim.pid), "the relay's process on gpu-box")
+    time.sleep(1.0)
+    lab.partition(gpu)
+    cut = time.monotonic()
+    poll(lambda: not flow_processes(victim.pid), "the partitioned worker's flows stopping", bound=15.0)
+    assert time.monotonic() - cut < 1.0 + 2.0 + 2.0  # the lease, the flows' SIGTERM grace, slack
+    try:
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0 and "its node 'relay' starts afresh on worker 'spare'" in err, err
+    lab.heal(gpu)
+    assert victim.poll() is None, "the partitioned worker went down"
+    placement.write_text('[nodes]\nrelay = "gpu-box"\n')
+    again = poll(lambda: (d := deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--duration", "1",
+                                      "--placement", str(placement))).returncode == 0 and d,
+                 "a deployment on the healed worker")
+    assert "gpu-box" in again.stdout
+
+
 def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):
     coordinator, arm, gpu = hosts
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--namespace", "lab-a")

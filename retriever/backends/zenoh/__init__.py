@@ -26,7 +26,8 @@ class ZenohBackend(Backend):
     OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret")
     #: options of a deployment on worker daemons (deploy.py): given any of the first two, the
     #: run's nodes go to the workers reached there instead of processes of this machine
-    DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset", "on_worker_loss")
+    DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset", "on_worker_loss",
+                      "lease")
 
     def open(self, graph: Graph, **options: object):
         deploy = options.get("connect") is not None or options.get("listen") is not None

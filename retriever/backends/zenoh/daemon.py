@@ -81,7 +81,9 @@ STOP_CHECK_S = 0.5
 #: a run's coordinator answers on ctl/run and ctl/start of its namespace (wire.KeySpace): no
 #: worker's ctl/<name> may be one of them
 RESERVED_NAMES = ("run", "start")
-CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure")
+CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease")
+#: the bounds of --lease, seconds: how long a link that went silent (a partition) is kept
+LEASE_RANGE = (0.1, 3600.0)
 _ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
 
 
@@ -103,6 +105,7 @@ class WorkerSettings:
     allow: tuple[str, ...] = ()
     secret: str | None = None
     insecure: bool = False
+    lease: float | None = None  # seconds; None: Zenoh's (10 s)
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
@@ -177,10 +180,14 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
         problems.append(f"'secret' must be the path of a file, got {secret!r:.60}")
     if not isinstance(insecure, bool):
         problems.append(f"'insecure' must be true or false, got {insecure!r:.60}")
+    lease = values.get("lease")
+    if lease is not None and (type(lease) not in (int, float) or not LEASE_RANGE[0] <= lease <= LEASE_RANGE[1]):
+        problems.append(f"'lease' must be seconds from {LEASE_RANGE[0]:g} to {LEASE_RANGE[1]:g}, got {lease!r:.60}")
     if problems:
         return None
     return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
-                          None if secret is None else str(secret), insecure)
+                          None if secret is None else str(secret), insecure,
+                          None if lease is None else float(lease))
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
@@ -374,7 +381,7 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
 def _serve_until(settings: WorkerSettings, stop: threading.Event, access: dict[str, str] | None,
                  say: Callable[[str], None]) -> None:
     """Join, check the name is free, answer until ``stop``, close."""
-    config = peer_config(listen=settings.listen, connect=settings.connect, access=access)
+    config = peer_config(listen=settings.listen, connect=settings.connect, access=access, lease=settings.lease)
     try:
         taken, counts = in_session(config, lambda session: _announce_and_answer(settings, session, stop, say))
     except zenoh.ZError as e:

@@ -52,7 +52,8 @@ class DeploySession(ZenohSession):
     def __init__(self, graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
                  placement: Placement | str | None = None, secret=None, insecure: bool = False,
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
-                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace"):
+                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
+                 lease: float | None = None):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -62,7 +63,7 @@ class DeploySession(ZenohSession):
                                "workers are reached\n    hint: retriever deploy app.py --connect tcp/HOST:7447")
         if on_worker_loss not in WORKER_LOSS:
             raise BackendError(f"on_worker_loss={on_worker_loss!r} is none of {', '.join(WORKER_LOSS)}")
-        self._on_worker_loss = on_worker_loss
+        self._on_worker_loss, self._lease = on_worker_loss, lease
         self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
         self._placement = load_placement(placement) if isinstance(placement, str) else placement
         self._run_id = secrets.token_hex(6)
@@ -98,7 +99,7 @@ class DeploySession(ZenohSession):
         # each worker process opens a link of its own to it (gossip tells them where), or the
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
         listen = self._listen_at or [ANY_ADDRESS]
-        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access))
+        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access, lease=self._lease))
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
 

@@ -108,7 +108,7 @@ GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
 
 
 def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
-                access: dict[str, str] | None = None) -> zenoh.Config:
+                access: dict[str, str] | None = None, lease: float | None = None) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
@@ -128,6 +128,8 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
     # of two peers that learn of each other, only one opens the link (see GOSSIP_ONE_WAY)
     config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
+    if lease is not None:  # how long a silent link lives (a partition): Zenoh's default is 10 s
+        config.insert_json5("transport/link/tx/lease", str(round(lease * 1000)))
     for key, value in (access or {}).items():
         config.insert_json5(key, value)
     return config

@@ -89,6 +89,8 @@ class DaemonRuns:
                 or not all(type(n) is str for n in nodes):
             raise WireError("prepare needs {run, spec, nodes}")
         if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
+            if spec.get("ir") != self.run.ir:
+                raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
             problems = self._check(IR(self.run.ir, source="the run's IR"), nodes)
             if problems:
                 raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
