@@ -547,6 +547,66 @@ def workers_command(
     _out.print(_workers_table(listing.workers, namespace))
 
 
+@app.command("status")
+def status_command(
+    connect: Annotated[Optional[list[str]], typer.Option(
+        metavar="ENDPOINT", help="A worker of the deployment to ask through (repeatable). "
+                                 "Default: tcp/127.0.0.1:7447.")] = None,
+    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
+    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
+    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+) -> None:
+    """Show the running deployment of a namespace, from any machine: per node its worker, state,
+    ticks, steps, skips, errors and counters."""
+    answer = _ask_deployment(connect, namespace, secret, insecure, "status")
+    title = (f"{answer.get('pipeline')!s:.60} in namespace '{namespace}': "
+             + (f"t = {answer.get('t_ns', 0) / 1e9:.1f} of {answer.get('end_ns', 0) / 1e9:g} s"
+                if answer.get("started") else "starting"))
+    table = Table(title=_visible(title), title_justify="left")
+    for col in ("node", "worker", "state", "ticks", "steps", "skips", "errors", "counted"):
+        table.add_column(col, justify="left" if col in ("node", "worker", "state", "counted") else "right")
+    nodes = answer.get("nodes") if type(answer.get("nodes")) is dict else {}
+    for node, n in sorted(nodes.items()):
+        n = n if type(n) is dict else {}
+        counts = n.get("counts") if type(n.get("counts")) is dict else {}
+        table.add_row(*(_cell(str(v)) for v in (node, n.get("worker"), n.get("state"), n.get("ticks"), n.get("steps"),
+                                                 n.get("skips"), n.get("errors"))),
+                      _cell(", ".join(f"{k} {v}" for k, v in sorted(counts.items()))))
+    _out.print(table)
+
+
+@app.command("stop")
+def stop_command(
+    connect: Annotated[Optional[list[str]], typer.Option(
+        metavar="ENDPOINT", help="A worker of the deployment to ask through (repeatable). "
+                                 "Default: tcp/127.0.0.1:7447.")] = None,
+    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
+    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
+    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+) -> None:
+    """Stop the running deployment of a namespace, from any machine, as Ctrl-C at its coordinator
+    would: every node stops, its log is finished; the workers stay up."""
+    answer = _ask_deployment(connect, namespace, secret, insecure, "stop")
+    _out.print(f"stopping deployment {_visible(str(answer.get('pipeline')))!s:.60} in namespace '{namespace}'",
+               highlight=False)
+
+
+def _ask_deployment(connect, namespace: str, secret, insecure: bool, op: str) -> dict:
+    from .backends.zenoh.daemon import DEFAULT_CONNECT
+    from .backends.zenoh.deploy import ask_deployment
+
+    endpoints = connect or [DEFAULT_CONNECT]
+    try:
+        answer = ask_deployment(endpoints, namespace, op, secret, insecure)
+    except Exception as exc:
+        _fail(exc)
+    if answer is None:
+        _fail(RetrieverError(f"no deployment runs in namespace '{namespace}' at {', '.join(endpoints)}\n"
+                             "    hint: retriever workers lists the workers (and the nodes they run); "
+                             "is --namespace or --secret another?"))
+    return answer
+
+
 def _workers_table(workers: list, namespace: str) -> Table:
     """One row per worker; its info came from the network: every cell is plain text."""
     table = Table(title=f"workers in namespace '{namespace}'", title_justify="left")

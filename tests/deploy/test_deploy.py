@@ -245,6 +245,38 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     assert "gpu-box" in again.stdout
 
 
+def test_status_and_stop_from_another_machine(hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    daemons = [start_worker(arm, "arm-pc", secret, "--path", str(HERE)),
+               start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--log", str(log))
+    poll(lambda: all(flow_processes(d.pid) for d in daemons), "flow processes on both workers")
+    ask = [PYTHON, "-m", "retriever.cli"]
+    where = ["--connect", f"tcp/{gpu.address}:7447", "--secret", str(secret)]
+
+    def status() -> str:
+        shown = arm.run([*ask, "status", *where], timeout=BOUND_S)
+        assert shown.returncode == 0, shown.stderr
+        return shown.stdout if " t = " in shown.stdout else ""
+
+    shown = poll(status, "a status of the running deployment")
+    assert "lab in namespace 'default'" in shown and "counter" in shown and "arm-pc" in shown, shown
+    stopped = arm.run([*ask, "stop", *where], timeout=BOUND_S)
+    assert stopped.returncode == 0 and "stopping deployment lab" in stopped.stdout, stopped.stderr
+    try:
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 130, err  # as Ctrl-C at the coordinator
+    assert read_log(log).end["status"] == "interrupted"
+    poll(lambda: not any(flow_processes(d.pid) for d in daemons), "the flows stopping", bound=10.0)
+    assert all(d.poll() is None for d in daemons)
+    none = arm.run([*ask, "status", *where], timeout=BOUND_S)
+    assert none.returncode == 1 and "no deployment runs in namespace 'default'" in none.stderr, none.stderr
+
+
 def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):
     coordinator, arm, gpu = hosts
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--namespace", "lab-a")

@@ -26,9 +26,10 @@ from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...placement import Placement, WorkerInfo, load_placement, place
 from .access import AccessError, RunAccess, secret_bytes
-from .daemon import PROTOCOL_VERSION, WorkerError, check_security, describe
+from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session, open_access
 from .hub import peer_config, wait_for_peers
 from .remote import RemoteHost
+from .wire import KeySpace, WireEncoder, WireError, decode_control
 from .session import ZenohSession
 
 #: how long the coordinator waits for links to its --connect endpoints before it looks for workers
@@ -119,6 +120,7 @@ class DeploySession(ZenohSession):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
+        self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), self._answer))
         self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
 
@@ -160,6 +162,41 @@ class DeploySession(ZenohSession):
             host = self._remotes.get(str(sample.key_expr).rsplit("/", 1)[-1])
             if host is not None:
                 host.lost()
+
+    # -- retriever status / stop -------------------------------------------------------------------
+    def _answer(self, query: zenoh.Query) -> None:
+        """``status``: the deployment, node by node; ``stop``: end it now, as Ctrl-C here would."""
+        encoder = WireEncoder()
+        try:
+            op, _ = decode_control(query.payload.to_bytes() if query.payload is not None else b"")
+        except WireError as e:
+            query.reply_err(encoder.control("error", {"message": str(e)}))
+            return
+        if op == "stop":
+            self.stop_requested = True
+            query.reply(self.keys.deployment(), encoder.control("stop", {"pipeline": self.graph.name}))
+        elif op == "status":
+            for _ in range(3):  # read on Zenoh's thread while the run updates it: a copy may collide
+                try:
+                    status = self.status()
+                    break
+                except RuntimeError:
+                    continue
+            else:
+                query.reply_err(encoder.control("error", {"message": "busy: ask again"}))
+                return
+            query.reply(self.keys.deployment(), encoder.control("status", status))
+        else:
+            query.reply_err(encoder.control("error", {"message": f"the deployment knows no op {op!r:.40} "
+                                                                  "(it knows status, stop)"}))
+
+    def status(self) -> dict:
+        """What ``retriever status`` shows: the run's time, and per node its worker and counters."""
+        nodes = {nid: {"worker": self.placed.get(nid), "state": self._state.get(nid), "ticks": s.ticks,
+                       "steps": s.steps, "skips": s.skips, "errors": s.errors, "counts": dict(s.counts)}
+                 for nid, s in sorted(self._stats.items())}
+        return {"pipeline": self.graph.name, "run": self._run_id, "t_ns": self._run_time(), "end_ns": self.end_ns,
+                "started": self.t0 is not None, "nodes": nodes}
 
     # -- a worker lost -------------------------------------------------------------------------
     def _host_lost(self, host, nodes: list[str]) -> None:
@@ -224,3 +261,33 @@ class DeploySession(ZenohSession):
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+
+
+def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False) -> dict | None:
+    """Ask the namespace's running deployment (``status`` or ``stop``) through the peers at
+    ``connect`` (its workers): its answer, or None when no deployment runs there."""
+    check_security(secret, insecure, f"retriever {op}")
+    keys = KeySpace(namespace)
+    found: list[dict] = []
+
+    def ask(session: zenoh.Session) -> None:
+        for reply in session.get(keys.deployment(), payload=WireEncoder().control(op, {}), timeout=QUERY_S):
+            if reply.ok is None:
+                raise WorkerError(f"the deployment refused {op}: {reply.err.payload.to_bytes()[:200]!r}")
+            try:
+                found.append(decode_control(reply.ok.payload.to_bytes())[1])
+            except WireError as e:
+                raise WorkerError(f"the deployment answered {op} with garbage: {e}") from None
+            return
+
+    with open_access(namespace, None if secret is None else str(secret)) as access:
+        for endpoint in connect:
+            config = peer_config(connect=[endpoint], access=access)
+            config.insert_json5("mode", '"client"')
+            try:
+                in_session(config, ask)
+            except zenoh.ZError:  # nothing listens there, or it wants another secret
+                continue
+            if found:
+                return found[0]
+    return None

@@ -304,6 +304,8 @@ class ZenohSession(Session):
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``."""
         next_write = next_have = time.monotonic()
         while not condition():
+            if self.stop_requested:  # asked from afar (retriever stop): as Ctrl-C here would
+                raise KeyboardInterrupt
             try:
                 item = self._inbox.get(timeout=0.02)
                 self._handle(item)
