@@ -120,6 +120,23 @@ def run(
              f"{duration:g} s on {backend or default_backend()}")
 
 
+_TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "
+                       "certificate of the deployment; with --tls-cert and --tls-key every link is mutual TLS "
+                       "(endpoints tls/HOST:PORT).")
+_TLS_CERT = typer.Option("--tls-cert", metavar="FILE", help="TLS: this machine's certificate (PEM), naming the "
+                         "addresses it is reached at.")
+_TLS_KEY = typer.Option("--tls-key", metavar="FILE", help="TLS: this machine's private key (PEM).")
+
+
+def _tls(ca, cert, key):
+    from .backends.zenoh.access import TlsFiles
+
+    try:
+        return TlsFiles.of(ca, cert, key)
+    except Exception as exc:
+        _fail(exc)
+
+
 @app.command()
 def deploy(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
@@ -145,13 +162,17 @@ def deploy(
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept before its worker counts "
                                 "as lost: Zenoh's lease (default 10).")] = None,
+    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
+    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
+    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
 ) -> None:
     """Run a pipeline on the worker daemons of a namespace (retriever-worker on each machine):
     place every node (pins and labels from --placement, the rest by load), start all at one T0,
     log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
     options = {"connect": connect or [], "listen": listen or [], "namespace": namespace,
                "placement": str(placement) if placement is not None else None,
-               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss, "lease": lease}
+               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss, "lease": lease,
+               "tls": _tls(tls_ca, tls_cert, tls_key)}
     _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
              f"{duration:g} s on the workers of namespace '{namespace}'")
 
@@ -498,6 +519,9 @@ def worker(
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept: Zenoh's lease "
                                 "(default 10). A coordinator cut off for this long has its flows stopped.")] = None,
+    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
+    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
+    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
     SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
@@ -508,7 +532,8 @@ def worker(
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease)
+                                 lease=lease, **{k: None if v is None else str(v) for k, v in
+                                                 (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)
     except Exception as exc:
         _fail(exc)
@@ -526,13 +551,17 @@ def workers_command(
     namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
     secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
+    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
+    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
 ) -> None:
     """List the live workers of a namespace: labels, host, pid, version, clock offset, nodes."""
     from .backends.zenoh.daemon import DEFAULT_CONNECT, list_workers
 
     endpoints = connect or [DEFAULT_CONNECT]
     try:
-        listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure)
+        listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure,
+                               _tls(tls_ca, tls_cert, tls_key))
     except Exception as exc:
         _fail(exc)
     for endpoint in listing.unreachable:
@@ -555,10 +584,13 @@ def status_command(
     namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
     secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
+    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
+    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
 ) -> None:
     """Show the running deployment of a namespace, from any machine: per node its worker, state,
     ticks, steps, skips, errors and counters."""
-    answer = _ask_deployment(connect, namespace, secret, insecure, "status")
+    answer = _ask_deployment(connect, namespace, secret, insecure, "status", _tls(tls_ca, tls_cert, tls_key))
     title = (f"{answer.get('pipeline')!s:.60} in namespace '{namespace}': "
              + (f"t = {answer.get('t_ns', 0) / 1e9:.1f} of {answer.get('end_ns', 0) / 1e9:g} s"
                 if answer.get("started") else "starting"))
@@ -583,21 +615,24 @@ def stop_command(
     namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
     secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
     insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
+    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
+    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
+    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
 ) -> None:
     """Stop the running deployment of a namespace, from any machine, as Ctrl-C at its coordinator
     would: every node stops, its log is finished; the workers stay up."""
-    answer = _ask_deployment(connect, namespace, secret, insecure, "stop")
+    answer = _ask_deployment(connect, namespace, secret, insecure, "stop", _tls(tls_ca, tls_cert, tls_key))
     _out.print(f"stopping deployment {_visible(str(answer.get('pipeline')))!s:.60} in namespace '{namespace}'",
                highlight=False)
 
 
-def _ask_deployment(connect, namespace: str, secret, insecure: bool, op: str) -> dict:
+def _ask_deployment(connect, namespace: str, secret, insecure: bool, op: str, tls=None) -> dict:
     from .backends.zenoh.daemon import DEFAULT_CONNECT
     from .backends.zenoh.deploy import ask_deployment
 
     endpoints = connect or [DEFAULT_CONNECT]
     try:
-        answer = ask_deployment(endpoints, namespace, op, secret, insecure)
+        answer = ask_deployment(endpoints, namespace, op, secret, insecure, tls)
     except Exception as exc:
         _fail(exc)
     if answer is None:

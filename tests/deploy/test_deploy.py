@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import secrets
 import select
+import shutil
 import subprocess
 import sys
 import time
@@ -275,6 +276,53 @@ def test_status_and_stop_from_another_machine(hosts, secret, tmp_path):
     assert all(d.poll() is None for d in daemons)
     none = arm.run([*ask, "status", *where], timeout=BOUND_S)
     assert none.returncode == 1 and "no deployment runs in namespace 'default'" in none.stderr, none.stderr
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True, timeout=BOUND_S)
+
+
+def _certificates(folder: Path, hosts) -> None:
+    """A CA, a certificate per host naming its address (and loopback), and a rogue self-signed one."""
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=lab-ca",
+             "-keyout", "ca.key", "-out", "ca.pem", cwd=folder)
+    for host in hosts:
+        _openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={host.name}", "-keyout", f"{host.name}.key",
+                 "-out", f"{host.name}.csr", cwd=folder)
+        (folder / f"{host.name}.ext").write_text(f"subjectAltName=IP:{host.address},IP:127.0.0.1\n")
+        _openssl("x509", "-req", "-in", f"{host.name}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+                 "-days", "1", "-extfile", f"{host.name}.ext", "-out", f"{host.name}.pem", cwd=folder)
+    _openssl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=rogue",
+             "-addext", f"subjectAltName=IP:{hosts[0].address}", "-keyout", "rogue.key", "-out", "rogue.pem",
+             cwd=folder)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="the TLS test makes certificates with openssl")
+def test_with_mutual_tls_only_machines_with_a_certificate_of_the_ca_join(hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    _certificates(tmp_path, hosts)
+
+    def tls(host, name: str | None = None) -> list[str]:
+        name = name or host.name
+        return ["--tls-ca", str(tmp_path / "ca.pem"), "--tls-cert", str(tmp_path / f"{name}.pem"),
+                "--tls-key", str(tmp_path / f"{name}.key")]
+
+    for host, name in ((arm, "arm-pc"), (gpu, "gpu-box")):
+        proc = host.popen([PYTHON, "-m", "retriever.cli", "worker", "--name", name, "--listen",
+                           f"tls/{host.address}:7447", "--secret", str(secret), "--path", str(HERE), *tls(host)],
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        poll(lambda: select.select([proc.stderr], [], [], 0.1)[0] and proc.stderr.readline().startswith(
+            f"retriever-worker '{name}'"), f"worker {name} up")
+    connect = ["--connect", f"tls/{arm.address}:7447", "--connect", f"tls/{gpu.address}:7447"]
+    done = coordinator.run([PYTHON, "-m", "retriever.cli", "deploy", f"{FLOWS}:pipe", *connect, "--secret",
+                            str(secret), "--duration", "2", *tls(coordinator)], timeout=BOUND_S, cwd=str(HERE.parents[1]))
+    assert done.returncode == 0 and "arm-pc" in done.stdout and "gpu-box" in done.stdout, done.stderr
+    listing = [PYTHON, "-m", "retriever.cli", "workers", *connect, "--secret", str(secret)]
+    for what, extra in (("no certificate", []), ("a certificate of another CA", tls(coordinator, "rogue"))):
+        seen = coordinator.run([*listing, *extra], timeout=BOUND_S)
+        assert "arm-pc" not in seen.stdout and "no session at" in seen.stderr, (what, seen.stdout, seen.stderr)
+    seen = coordinator.run([*listing, *tls(coordinator)], timeout=BOUND_S)
+    assert "arm-pc" in seen.stdout and "gpu-box" in seen.stdout, seen.stderr
 
 
 def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):

@@ -27,7 +27,7 @@ class ZenohBackend(Backend):
     #: options of a deployment on worker daemons (deploy.py): given any of the first two, the
     #: run's nodes go to the workers reached there instead of processes of this machine
     DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset", "on_worker_loss",
-                      "lease")
+                      "lease", "tls")
 
     def open(self, graph: Graph, **options: object):
         deploy = options.get("connect") is not None or options.get("listen") is not None

@@ -189,6 +189,45 @@ class RunAccess:
         return cls(spec["run_password"], spec["watch_password"]), Path(spec["dictionary_file"])
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """Mutual TLS on every link of a deployment (Zenoh's ``tls/`` endpoints): the CA that signs
+    every certificate of the deployment, and this machine's certificate and key (PEM files). Each
+    side of a link proves itself with its certificate, which must name the address it is reached
+    at (subjectAltName); a peer without a certificate of that CA gets no link."""
+
+    ca: str
+    cert: str
+    key: str
+
+    @classmethod
+    def of(cls, ca: object = None, cert: object = None, key: object = None) -> TlsFiles | None:
+        """The three files (all or none given: None), each checked to be there."""
+        given = {"--tls-ca": ca, "--tls-cert": cert, "--tls-key": key}
+        if all(v is None for v in given.values()):
+            return None
+        missing = [flag for flag, v in given.items() if v is None]
+        if missing:
+            raise AccessError(f"TLS needs all of --tls-ca, --tls-cert and --tls-key; {', '.join(missing)} missing")
+        for flag, path in given.items():
+            if not os.path.isfile(str(path)):
+                raise AccessError(f"{flag} {path}: no such file")
+        return cls(*(os.path.abspath(str(v)) for v in given.values()))
+
+    def session_config(self) -> dict[str, str]:
+        """The config entries (key → JSON5 value) of a session whose links are all mutual TLS."""
+        return {"transport/link/tls": json.dumps({
+            "root_ca_certificate": self.ca, "enable_mtls": True,
+            "listen_certificate": self.cert, "listen_private_key": self.key,
+            "connect_certificate": self.cert, "connect_private_key": self.key})}
+
+    def check_endpoints(self, endpoints) -> None:
+        """A TLS deployment listens and connects on ``tls/`` endpoints only."""
+        plain = [e for e in endpoints if not str(e).startswith("tls/")]
+        if plain:
+            raise AccessError(f"with TLS every endpoint is tls/HOST:PORT, not {', '.join(plain)}")
+
+
 def write_private(path: Path, text: str) -> Path:
     """Write ``text`` to a new file only its owner can read (created so, never widened)."""
     tmp = path.with_name(path.name + ".tmp")

@@ -49,7 +49,7 @@ import zenoh
 
 from ...errors import RetrieverError
 from ...log.format import package_versions
-from .access import AccessError, RunAccess, read_secret
+from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
@@ -81,7 +81,10 @@ STOP_CHECK_S = 0.5
 #: a run's coordinator answers on ctl/run and ctl/start of its namespace (wire.KeySpace): no
 #: worker's ctl/<name> may be one of them
 RESERVED_NAMES = ("run", "start")
-CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease")
+CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease",
+               "tls_ca", "tls_cert", "tls_key")
+#: where a worker with TLS listens unless told: DEFAULT_LISTEN, over TLS
+DEFAULT_TLS_LISTEN = "tls/0.0.0.0:7447"
 #: the bounds of --lease, seconds: how long a link that went silent (a partition) is kept
 LEASE_RANGE = (0.1, 3600.0)
 _ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
@@ -106,6 +109,7 @@ class WorkerSettings:
     secret: str | None = None
     insecure: bool = False
     lease: float | None = None  # seconds; None: Zenoh's (10 s)
+    tls: TlsFiles | None = None  # mutual TLS on every link (access.TlsFiles)
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
@@ -137,7 +141,7 @@ def _read_config(path: Path, problems: list[str]) -> dict:
     for key in sorted(set(values) - set(CONFIG_KEYS)):
         problems.append(f"{path}: unknown key '{key}' (a worker config has {', '.join(CONFIG_KEYS)})")
         del values[key]
-    for key in ("path", "secret"):  # relative to the file, wherever the worker starts
+    for key in ("path", "secret", "tls_ca", "tls_cert", "tls_key"):  # relative to the file, wherever it starts
         if isinstance(values.get(key), list):
             values[key] = [str(path.parent / p) if isinstance(p, str) else p for p in values[key]]
         elif isinstance(values.get(key), str):
@@ -165,7 +169,18 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
     labels = strings("labels")
     for label in labels:
         _check_chunk("label", label, problems)
-    listen, connect = strings("listen") or (DEFAULT_LISTEN,), strings("connect")
+    try:
+        tls = TlsFiles.of(values.get("tls_ca"), values.get("tls_cert"), values.get("tls_key"))
+    except AccessError as e:
+        problems.append(str(e))
+        tls = None
+    listen = strings("listen") or ((DEFAULT_TLS_LISTEN if tls else DEFAULT_LISTEN),)
+    connect = strings("connect")
+    if tls is not None:
+        try:
+            tls.check_endpoints([*listen, *connect])
+        except AccessError as e:
+            problems.append(str(e))
     for endpoint in (*listen, *connect):
         if not _ENDPOINT.fullmatch(endpoint):
             problems.append(f"endpoint {endpoint!r} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
@@ -187,7 +202,7 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
         return None
     return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
                           None if secret is None else str(secret), insecure,
-                          None if lease is None else float(lease))
+                          None if lease is None else float(lease), tls)
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
@@ -208,17 +223,20 @@ def check_security(secret: object, insecure: bool, command: str) -> None:
         raise WorkerError(
             f"{command} needs --secret FILE (a deployment secret: only processes holding it may join) "
             "or --insecure (anyone who reaches its endpoints may)\n"
-            "    hint: python -c \"import secrets; print(secrets.token_hex(32))\" > worker.secret; "
-            "chmod 600 worker.secret; then pass --secret worker.secret to every worker and coordinator")
+            "    hint: retriever secret new lab.key, copy it privately to every machine, and pass "
+            "--secret lab.key to every worker and coordinator")
 
 
 @contextmanager
-def open_access(namespace: str, secret: str | None) -> Iterator[dict[str, str] | None]:
+def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
+                ) -> Iterator[dict[str, str] | None]:
     """The Zenoh config entries that make a session one of the namespace's deployment, derived
-    from the secret (access.py), or None without one. The dictionary file Zenoh checks peers
-    against lives in a private (0700) folder, removed when this ends."""
+    from the secret (access.py), with ``tls`` mutual TLS on its links, or None without either.
+    The dictionary file Zenoh checks peers against lives in a private (0700) folder, removed
+    when this ends."""
+    links = tls.session_config() if tls is not None else {}
     if secret is None:
-        yield None
+        yield links or None
         return
     try:
         access = RunAccess.create(namespace, read_secret(secret))
@@ -226,7 +244,7 @@ def open_access(namespace: str, secret: str | None) -> Iterator[dict[str, str] |
         raise WorkerError(str(e)) from None
     folder = Path(tempfile.mkdtemp(prefix="retriever-worker-"))  # mkdtemp: mode 0700
     try:
-        yield access.session_config(access.write_dictionary(folder))
+        yield {**access.session_config(access.write_dictionary(folder)), **links}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 
@@ -297,7 +315,8 @@ class WorkerDaemon:
         self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen,
                                access=RunAccess.create(settings.namespace, read_secret(settings.secret))
                                if settings.secret is not None else None,
-                               allowed=self.module_allowed, refusal=self.refusal, paths=settings.path)
+                               allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
+                               tls=settings.tls)
         #: op -> handler(args) -> answer
         self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
 
@@ -373,7 +392,7 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
         say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
             f"{', '.join(settings.listen)} may join namespace '{settings.namespace}' and control it; "
             "only for a lab on a trusted network")
-    with open_access(settings.namespace, settings.secret) as access:
+    with open_access(settings.namespace, settings.secret, settings.tls) as access:
         _serve_until(settings, stop, access, say)
     return 0
 
@@ -474,7 +493,7 @@ class Listing(NamedTuple):
 
 
 def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret: str | None = None,
-                 insecure: bool = False) -> Listing:
+                 insecure: bool = False, tls: TlsFiles | None = None) -> Listing:
     """The live workers of ``namespace`` that the peers at ``connect`` know, each with its info.
 
     A client session per endpoint: the peer it joins routes for it, so it sees every worker
@@ -490,7 +509,7 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
                 name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
                 found.setdefault(name, describe(session, namespace, name))
 
-    with open_access(namespace, secret) as access:
+    with open_access(namespace, secret, tls) as access:
         for endpoint in connect:
             config = peer_config(connect=[endpoint], access=access)
             config.insert_json5("mode", '"client"')

@@ -25,7 +25,7 @@ import zenoh
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...placement import Placement, WorkerInfo, load_placement, place
-from .access import AccessError, RunAccess, secret_bytes
+from .access import AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session, open_access
 from .hub import peer_config, wait_for_peers
 from .remote import RemoteHost
@@ -54,7 +54,7 @@ class DeploySession(ZenohSession):
                  placement: Placement | str | None = None, secret=None, insecure: bool = False,
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
                  max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
-                 lease: float | None = None):
+                 lease: float | None = None, tls: TlsFiles | None = None):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -64,7 +64,12 @@ class DeploySession(ZenohSession):
                                "workers are reached\n    hint: retriever deploy app.py --connect tcp/HOST:7447")
         if on_worker_loss not in WORKER_LOSS:
             raise BackendError(f"on_worker_loss={on_worker_loss!r} is none of {', '.join(WORKER_LOSS)}")
-        self._on_worker_loss, self._lease = on_worker_loss, lease
+        self._on_worker_loss, self._lease, self._tls = on_worker_loss, lease, tls
+        if tls is not None:
+            try:
+                tls.check_endpoints([*connect, *listen])
+            except AccessError as e:
+                raise BackendError(str(e)) from None
         self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
         self._placement = load_placement(placement) if isinstance(placement, str) else placement
         self._run_id = secrets.token_hex(6)
@@ -99,8 +104,10 @@ class DeploySession(ZenohSession):
         # it listens even when told only where to connect: peers do not route for each other, so
         # each worker process opens a link of its own to it (gossip tells them where), or the
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
-        listen = self._listen_at or [ANY_ADDRESS]
-        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access, lease=self._lease))
+        listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
+        links = self._tls.session_config() if self._tls is not None else {}
+        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
+                                           lease=self._lease))
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
 
@@ -263,7 +270,8 @@ class DeploySession(ZenohSession):
             self._token = None
 
 
-def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False) -> dict | None:
+def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False,
+                   tls: TlsFiles | None = None) -> dict | None:
     """Ask the namespace's running deployment (``status`` or ``stop``) through the peers at
     ``connect`` (its workers): its answer, or None when no deployment runs there."""
     check_security(secret, insecure, f"retriever {op}")
@@ -280,7 +288,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
                 raise WorkerError(f"the deployment answered {op} with garbage: {e}") from None
             return
 
-    with open_access(namespace, None if secret is None else str(secret)) as access:
+    with open_access(namespace, None if secret is None else str(secret), tls) as access:
         for endpoint in connect:
             config = peer_config(connect=[endpoint], access=access)
             config.insert_json5("mode", '"client"')

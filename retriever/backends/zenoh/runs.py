@@ -34,7 +34,7 @@ import zenoh
 from ...errors import IRError
 from ...ir import IR
 from ...rebuild import check_node
-from .access import RunAccess, write_private
+from .access import RunAccess, TlsFiles, write_private
 from .host import WORKER_MODULE
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
@@ -63,9 +63,9 @@ class DaemonRuns:
 
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
-                 paths: tuple[str, ...]):
+                 paths: tuple[str, ...], tls: TlsFiles | None = None):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
-        self.listen, self.access, self.allowed, self.refusal = listen, access, allowed, refusal
+        self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
         self.paths = [str(Path(p).resolve()) for p in paths]
         for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
             if folder not in sys.path:
@@ -189,9 +189,10 @@ class DaemonRuns:
         local["python_path"] = [*self.paths, *(p for p in sys.path if p and os.path.isdir(p))]
         local["main_file"] = local["spill_dir"] = None
         local["access"] = (self.access.to_spec(self.access.write_dictionary(folder)) if self.access else None)
-        host, port = _split(self.listen[0]) if self.listen else ("127.0.0.1", None)
-        local["hub"] = f"tcp/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec["hub"]
-        local["listen"] = [f"tcp/{host}:0"]
+        proto, host, port = _split(self.listen[0]) if self.listen else ("tcp", "127.0.0.1", None)
+        local["hub"] = f"{proto}/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec["hub"]
+        local["listen"] = [f"{proto}/{host}:0"]
+        local["tls"] = vars(self.tls) if self.tls is not None else None
         return local
 
     def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:
@@ -250,8 +251,8 @@ class DaemonRuns:
         self._events.undeclare()
 
 
-def _split(endpoint: str) -> tuple[str, str | None]:
-    """``tcp/10.0.0.2:7447`` → ``("10.0.0.2", "7447")``; an address without a port: (address, None)."""
-    address = endpoint.partition("/")[2].split("#")[0]
-    host, _, port = address.rpartition(":")
-    return (host, port) if host else (address, None)
+def _split(endpoint: str) -> tuple[str, str, str | None]:
+    """``tcp/10.0.0.2:7447`` → ``("tcp", "10.0.0.2", "7447")``; without a port: (proto, address, None)."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.split("#")[0].rpartition(":")
+    return (proto, host, port) if host else (proto, address, None)

@@ -275,7 +275,7 @@ def _serve(argv: list[str], parent: int) -> int:
     sys.argv = spec.get("argv", sys.argv)
 
     from ...codec import packb, unpackb
-    from .access import RunAccess
+    from .access import RunAccess, TlsFiles
     from .hub import open_peer, wait_for_answers, wait_for_peers
     from .loop import _CONTROL, StopRun
     from .wire import RELIABLE, KeySpace, WireEncoder
@@ -284,8 +284,9 @@ def _serve(argv: list[str], parent: int) -> int:
     handover_file = Path(spec_path).parent / f"{node_id}.handover"
     # a deployment started --insecure has no access entry: anyone on its network may join
     config = RunAccess.from_spec(spec["access"]) if spec.get("access") else None
-    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])),
-                   access=config[0].session_config(config[1]) if config else None,
+    access = {**(config[0].session_config(config[1]) if config else {}),
+              **(TlsFiles(**spec["tls"]).session_config() if spec.get("tls") else {})}  # a TLS deployment's links
+    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
                    listen=spec.get("listen")) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
