@@ -315,7 +315,8 @@ def test_with_mutual_tls_only_machines_with_a_certificate_of_the_ca_join(hosts, 
             f"retriever-worker '{name}'"), f"worker {name} up")
     connect = ["--connect", f"tls/{arm.address}:7447", "--connect", f"tls/{gpu.address}:7447"]
     done = coordinator.run([PYTHON, "-m", "retriever.cli", "deploy", f"{FLOWS}:pipe", *connect, "--secret",
-                            str(secret), "--duration", "2", *tls(coordinator)], timeout=BOUND_S, cwd=str(HERE.parents[1]))
+                            str(secret), "--duration", "2", *tls(coordinator)],
+                           timeout=BOUND_S, cwd=str(HERE.parents[1]))
     assert done.returncode == 0 and "arm-pc" in done.stdout and "gpu-box" in done.stdout, done.stderr
     listing = [PYTHON, "-m", "retriever.cli", "workers", *connect, "--secret", str(secret)]
     for what, extra in (("no certificate", []), ("a certificate of another CA", tls(coordinator, "rogue"))):
