@@ -128,6 +128,10 @@ _TLS_CERT = typer.Option("--tls-cert", metavar="FILE", help="TLS: this machine's
 _TLS_KEY = typer.Option("--tls-key", metavar="FILE", help="TLS: this machine's private key (PEM).")
 
 
+#: how often the live status table of a deployment is redrawn
+LIVE_EVERY_S = 0.5
+
+
 def _tls(ca, cert, key):
     from .backends.zenoh.access import TlsFiles
 
@@ -174,14 +178,16 @@ def deploy(
                "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss, "lease": lease,
                "tls": _tls(tls_ca, tls_cert, tls_key)}
     _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
-             f"{duration:g} s on the workers of namespace '{namespace}'")
+             f"{duration:g} s on the workers of namespace '{namespace}'", live=namespace)
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,
-             options: dict, title: str) -> None:
-    """Run ``pipe``, print its table and counters, and exit as ``retriever run`` documents."""
+             options: dict, title: str, live: str | None = None) -> None:
+    """Run ``pipe``, print its table and counters, and exit as ``retriever run`` documents;
+    ``live``: a deployment's namespace, whose status table shows while it runs (on a terminal)."""
     before = _identity(log)
     signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
+    watching = _show_live(pipe, live) if live is not None and _err.is_terminal else None
     try:
         trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)
     except KeyboardInterrupt:
@@ -196,6 +202,10 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
         if _identity(log) not in (None, before) and not isinstance(exc, LogWriteError):
             _err.print(f"the run up to the error is in {log}", highlight=False)
         _fail(exc)
+    finally:
+        if watching is not None:  # the live table goes before the final one is printed
+            watching[0].set()
+            watching[1].join(timeout=2.0)
     placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step"):
@@ -219,6 +229,30 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
                    highlight=False)
     if not allow_errors:
         _fail_on_errors(pipe)
+
+
+def _show_live(pipe, namespace: str):
+    """Show the deployment's status table on stderr, refreshed, until the returned event is set
+    (then join the returned thread: the table is cleared)."""
+    import threading
+
+    from rich.live import Live
+
+    done = threading.Event()
+
+    def show() -> None:
+        with Live(console=_err, refresh_per_second=2, transient=True) as live:
+            while not done.wait(LIVE_EVERY_S):
+                session = pipe._session
+                if session is not None and hasattr(session, "status"):
+                    try:
+                        live.update(_status_table(session.status(), namespace))
+                    except RuntimeError:  # read while the run updates it: next time
+                        continue
+
+    thread = threading.Thread(target=show, name="retriever-live", daemon=True)
+    thread.start()
+    return done, thread
 
 
 def _fail_on_errors(pipe) -> None:
@@ -591,20 +625,29 @@ def status_command(
     """Show the running deployment of a namespace, from any machine: per node its worker, state,
     ticks, steps, skips, errors and counters."""
     answer = _ask_deployment(connect, namespace, secret, insecure, "status", _tls(tls_ca, tls_cert, tls_key))
+    _out.print(_status_table(answer, namespace))
+
+
+def _status_table(answer: dict, namespace: str) -> Table:
+    """A deployment's status (DeploySession.status, maybe from the network: every cell plain
+    text): per node its worker, state, rate achieved, steps, skips, errors, CPU and counters."""
+    t_s = answer.get("t_ns", 0) / 1e9 if type(answer.get("t_ns")) is int else 0.0
     title = (f"{answer.get('pipeline')!s:.60} in namespace '{namespace}': "
-             + (f"t = {answer.get('t_ns', 0) / 1e9:.1f} of {answer.get('end_ns', 0) / 1e9:g} s"
-                if answer.get("started") else "starting"))
-    table = Table(title=_visible(title), title_justify="left")
-    for col in ("node", "worker", "state", "ticks", "steps", "skips", "errors", "counted"):
+             + (f"t = {t_s:.1f} of {answer.get('end_ns', 0) / 1e9:g} s" if answer.get("started") else "starting"))
+    table = Table(title=Text(_visible(title)), title_justify="left")
+    for col in ("node", "worker", "state", "rate (Hz)", "steps", "skips", "errors", "cpu", "counted"):
         table.add_column(col, justify="left" if col in ("node", "worker", "state", "counted") else "right")
     nodes = answer.get("nodes") if type(answer.get("nodes")) is dict else {}
     for node, n in sorted(nodes.items()):
         n = n if type(n) is dict else {}
         counts = n.get("counts") if type(n.get("counts")) is dict else {}
-        table.add_row(*(_cell(str(v)) for v in (node, n.get("worker"), n.get("state"), n.get("ticks"), n.get("steps"),
-                                                 n.get("skips"), n.get("errors"))),
+        ticks, cpu = n.get("ticks"), n.get("cpu_s")
+        rate = f"{ticks / t_s:.1f}" if type(ticks) is int and t_s > 0 else ""
+        load = f"{100 * cpu / t_s:.0f}%" if type(cpu) in (int, float) and t_s > 0 else ""
+        table.add_row(*(_cell(str(v)) for v in (node, n.get("worker"), n.get("state"), rate, n.get("steps"),
+                                                 n.get("skips"), n.get("errors"), load)),
                       _cell(", ".join(f"{k} {v}" for k, v in sorted(counts.items()))))
-    _out.print(table)
+    return table
 
 
 @app.command("stop")

@@ -536,3 +536,21 @@ def test_secret_new_refuses_a_folder_and_a_missing_folder(tmp_path: Path):
                      r"^error: cannot write the secret file .*lab\.key: the folder .*keys does not exist$",
                      hint=r"mkdir -p .*keys$")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_deployments_status_table_shows_forged_answers_as_plain_text():
+    """`retriever status` prints what a coordinator answered over the network: markup, escape
+    codes and wrong types stay inert text, and nothing raises."""
+    from rich.console import Console
+
+    from retriever.cli import _status_table
+
+    answer = {"pipeline": "[bold]x[/]\x1b]0;pwned\x07", "started": True, "t_ns": 2_000_000_000, "end_ns": 10**10,
+              "nodes": {"cam": {"worker": "arm\x1b[31m", "state": "running", "ticks": 60, "steps": 60, "skips": 0,
+                                "errors": 0, "cpu_s": 0.5, "counts": {"late": 2}},
+                        "[/]": "not a dict", "odd": {"ticks": "many", "cpu_s": "lots", "counts": [1]}}}
+    console = Console(record=True, width=200, color_system=None)
+    console.print(_status_table(answer, "lab"))
+    text = console.export_text()
+    assert "30.0" in text and "25%" in text and "late 2" in text  # 60 ticks in 2 s; 0.5 s of CPU
+    assert "\x1b" not in text and "[bold]x[/]" in text

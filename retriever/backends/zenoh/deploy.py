@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import secrets
 import sys
+import threading
 
 import zenoh
 
@@ -32,6 +33,8 @@ from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, decode_control
 from .session import ZenohSession
 
+#: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
+USAGE_EVERY_S = 1.0
 #: how long the coordinator waits for links to its --connect endpoints before it looks for workers
 JOIN_S = 5.0
 #: what a deployment does with the nodes of a worker it lost: start them afresh on another worker
@@ -76,6 +79,8 @@ class DeploySession(ZenohSession):
         self._max_offset_ns = round(max_clock_offset * 1e9)
         self._remotes: dict[str, RemoteHost] = {}
         self._token = None
+        self._cpu: dict[str, float] = {}  # node -> CPU seconds of its process, last read (_watch_usage)
+        self._usage_stop = threading.Event()
         #: where each node runs: worker name by node
         self.placed: dict[str, str] = {}
         #: what each worker said of itself when the deployment started (its info, its clock offset)
@@ -127,6 +132,7 @@ class DeploySession(ZenohSession):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
+        threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
         self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), self._answer))
         self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
@@ -197,12 +203,28 @@ class DeploySession(ZenohSession):
             query.reply_err(encoder.control("error", {"message": f"the deployment knows no op {op!r:.40} "
                                                                   "(it knows status, stop)"}))
 
+    def _watch_usage(self) -> None:
+        """From a thread of its own, while the deployment runs: each node's CPU seconds so far, as
+        its worker reads them, every USAGE_EVERY_S (a worker that does not answer is skipped)."""
+        while not self._closed and not self._usage_stop.wait(USAGE_EVERY_S):
+            for remote in list(self._remotes.values()):
+                try:
+                    answer = remote.request("usage", {}).get("cpu_s")
+                except BackendError:
+                    continue
+                if type(answer) is dict:
+                    self._cpu.update((n, v) for n, v in answer.items() if type(v) in (int, float))
+
     def status(self) -> dict:
-        """What ``retriever status`` shows: the run's time, and per node its worker and counters."""
+        """What ``retriever status`` shows: the run's time, and per node its worker, counters and
+        the CPU seconds its process used so far (as last read)."""
+        used = dict(self._cpu)
         nodes = {nid: {"worker": self.placed.get(nid), "state": self._state.get(nid), "ticks": s.ticks,
-                       "steps": s.steps, "skips": s.skips, "errors": s.errors, "counts": dict(s.counts)}
+                       "steps": s.steps, "skips": s.skips, "errors": s.errors, "counts": dict(s.counts),
+                       **({"cpu_s": used[nid]} if nid in used else {})}
                  for nid, s in sorted(self._stats.items())}
-        return {"pipeline": self.graph.name, "run": self._run_id, "t_ns": self._run_time(), "end_ns": self.end_ns,
+        return {"pipeline": self.graph.name, "run": self._run_id, "t_ns": min(self._run_time(), self.end_ns),
+                "end_ns": self.end_ns,
                 "started": self.t0 is not None, "nodes": nodes}
 
     # -- a worker lost -------------------------------------------------------------------------
@@ -262,6 +284,7 @@ class DeploySession(ZenohSession):
                                          sort_keys=True)}
 
     def _release_hosts(self) -> None:
+        self._usage_stop.set()
         for host in self._remotes.values():
             host.end()
             host.close()

@@ -75,7 +75,8 @@ class DaemonRuns:
 
     @property
     def ops(self) -> dict[str, Callable[[dict], dict]]:
-        return {"prepare": self.prepare, "spawn": self.spawn, "signal": self.signal, "end": self.end}
+        return {"prepare": self.prepare, "spawn": self.spawn, "signal": self.signal, "end": self.end,
+                "usage": self.usage}
 
     def nodes(self) -> list[str]:
         """The nodes whose processes run now."""
@@ -148,6 +149,16 @@ class DaemonRuns:
         if proc.poll() is None:
             proc.send_signal(sig)
         return {}
+
+    def usage(self, args: dict) -> dict:
+        """``{cpu_s: {node: seconds}}``: the CPU time of each live process of the run, by node."""
+        run = self._run_of(args)
+        cpu = {}
+        for pid, (node, proc) in list(run.processes.items()):
+            seconds = cpu_seconds(pid) if proc.poll() is None else None
+            if seconds is not None:
+                cpu[node] = seconds
+        return {"cpu_s": cpu}
 
     def end(self, args: dict) -> dict:
         run = self._run_of(args)
@@ -249,6 +260,16 @@ class DaemonRuns:
         if self.run is not None:
             self._end(self.run)
         self._events.undeclare()
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User plus system CPU time of process ``pid`` so far (Linux /proc), or None."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _split(endpoint: str) -> tuple[str, str, str | None]:
