@@ -150,8 +150,8 @@ def deploy(
         help="Zenoh endpoint of a worker (or router) to join, e.g. tcp/10.0.0.2:7447; repeatable.")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(
         help="Zenoh endpoint this coordinator listens on for workers; repeatable.")] = None,
-    namespace: Annotated[str, typer.Option(help="The workers' namespace.")] = "default",
-    duration: Annotated[float, typer.Option(help="Seconds to run (wall time).")] = 10.0,
+    namespace: Annotated[Optional[str], typer.Option(help="The workers' namespace (default: default).")] = None,
+    duration: Annotated[Optional[float], typer.Option(help="Seconds to run (wall time; default 10).")] = None,
     log: Annotated[Optional[Path], typer.Option(help="Record the whole deployment in this MCAP event log.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     secret: Annotated[Optional[Path], typer.Option(
@@ -160,25 +160,46 @@ def deploy(
         "--insecure", help="Join without a secret: anyone on the network may join (a trusted lab only).")] = False,
     allow_errors: Annotated[bool, typer.Option(
         "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted.")] = False,
-    on_worker_loss: Annotated[str, typer.Option(
-        help="A worker lost mid-run: 'replace' starts its nodes afresh on other workers their placement "
-             "allows; 'stop' stops the run.")] = "replace",
+    on_worker_loss: Annotated[Optional[str], typer.Option(
+        help="A worker lost mid-run: 'replace' (the default) starts its nodes afresh on other workers their "
+             "placement allows; 'stop' stops the run.")] = None,
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept before its worker counts "
                                 "as lost: Zenoh's lease (default 10).")] = None,
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    config: Annotated[Optional[Path], typer.Option(
+        metavar="deploy.toml", help="Settings from this TOML file (keys as the flags: connect, placement, "
+                                    "secret, tls_ca, ...); flags override it.")] = None,
 ) -> None:
     """Run a pipeline on the worker daemons of a namespace (retriever-worker on each machine):
     place every node (pins and labels from --placement, the rest by load), start all at one T0,
     log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
-    options = {"connect": connect or [], "listen": listen or [], "namespace": namespace,
-               "placement": str(placement) if placement is not None else None,
-               "secret": secret, "insecure": insecure, "on_worker_loss": on_worker_loss, "lease": lease,
-               "tls": _tls(tls_ca, tls_cert, tls_key)}
-    _execute(_load(target), duration, "zenoh", log, force, allow_errors, options,
-             f"{duration:g} s on the workers of namespace '{namespace}'", live=namespace)
+    from .backends.zenoh.deploy import load_deploy_config
+
+    try:
+        given = load_deploy_config(config) if config is not None else {}
+    except Exception as exc:
+        _fail(exc)
+    flags = {"connect": connect, "listen": listen, "namespace": namespace, "placement": placement,
+             "duration": duration, "log": log, "secret": secret, "insecure": insecure or None,
+             "on_worker_loss": on_worker_loss, "lease": lease, "tls_ca": tls_ca, "tls_cert": tls_cert,
+             "tls_key": tls_key}
+    if secret is not None or insecure:  # a flag's choice of security replaces the file's
+        given.pop("secret", None), given.pop("insecure", None)
+    settings = {"namespace": "default", "duration": 10.0, "on_worker_loss": "replace", **given,
+                **{k: v for k, v in flags.items() if v is not None}}
+    get = settings.get
+    options = {"connect": list(get("connect", [])), "listen": list(get("listen", [])),
+               "namespace": get("namespace"), "placement": None if get("placement") is None else str(get("placement")),
+               "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
+               "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key"))}
+    if get("max_clock_offset") is not None:
+        options["max_clock_offset"] = get("max_clock_offset")
+    log = None if get("log") is None else Path(get("log"))
+    _execute(_load(target), get("duration"), "zenoh", log, force, allow_errors, options,
+             f"{get('duration'):g} s on the workers of namespace '{get('namespace')}'", live=get("namespace"))
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,

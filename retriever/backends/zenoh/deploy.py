@@ -17,9 +17,12 @@ the run stops naming the worker.
 from __future__ import annotations
 
 import json
+import os
 import secrets
 import sys
 import threading
+import tomllib
+from pathlib import Path
 
 import zenoh
 
@@ -322,3 +325,48 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
             if found:
                 return found[0]
     return None
+
+
+#: what a deploy.toml may hold, with the kind of each value: the flags of retriever deploy
+DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "namespace": "text", "placement": "path",
+                 "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool",
+                 "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
+                 "tls_ca": "path", "tls_cert": "path", "tls_key": "path"}
+
+
+def load_deploy_config(path: str | os.PathLike) -> dict:
+    """The settings of ``retriever deploy --config deploy.toml`` (DEPLOY_CONFIG; relative paths
+    are relative to the file's folder); every problem at once, one a line."""
+    path = Path(path)
+    try:
+        values = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as e:
+        raise BackendError(f"cannot read the deploy config {path}: {e}") from None
+    problems = [f"'{key!s:.40}' is no setting of retriever deploy (it takes: {', '.join(DEPLOY_CONFIG)})"
+                for key in values if key not in DEPLOY_CONFIG]
+    settings = {}
+    for key, kind in DEPLOY_CONFIG.items():
+        if key not in values:
+            continue
+        value = values[key]
+        if kind == "endpoints":
+            value = [value] if isinstance(value, str) else value
+            ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+        elif kind == "seconds":
+            ok = type(value) in (int, float) and 0 <= value <= 1e9
+        elif kind == "bool":
+            ok = isinstance(value, bool)
+        else:
+            ok = isinstance(value, str)
+            if ok and kind == "path":
+                value = str(path.parent / value) if not os.path.isabs(value) else value
+        if not ok:
+            problems.append(f"'{key}' must be {DEPLOY_KINDS[kind]}, got {value!r:.60}")
+        settings[key] = value
+    if problems:
+        raise BackendError(f"the deploy config {path} has problems:\n" + "\n".join(f"  - {p}" for p in problems))
+    return settings
+
+
+DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",
+                "bool": "true or false", "text": "a string", "path": "a file path (a string)"}

@@ -470,3 +470,29 @@ def test_a_refusal_names_the_module_and_the_flags_that_allow_it(flows_dir):
         "worker 'arm-1' does not import flow classes from module 'os.path': its allowlist admits retriever, agents "
         f"(always); modules in --path {flows_dir}: fast, mylab, tool; --allow other.*\n"
         "    hint: start the worker with --allow os.path, or with --path DIR for the folder holding os")
+
+
+def test_retriever_deploy_takes_its_settings_from_a_config_file(workers, namespace, tmp_path):
+    port = free_port()
+    workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+            "--path", str(ROOT / "tests" / "deploy")).wait_started()
+    config = tmp_path / "deploy.toml"
+    config.write_text(f'connect = "{endpoint(port)}"\nnamespace = "{namespace}"\ninsecure = true\n'
+                      'duration = 1.0\nlog = "run.mcap"\n')
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "run.mcap").exists(), "the log goes where the file says, relative to it"
+    config.write_text('connect = 7447\nlease = "long"\nport = 1\n')
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
+    assert done.returncode == 1
+    for problem in ("'port' is no setting of retriever deploy", "'connect' must be an endpoint",
+                    "'lease' must be a number of seconds"):
+        assert problem in done.stderr, done.stderr
+
+
+def test_the_example_deploy_config_reads():
+    from retriever.backends.zenoh.deploy import load_deploy_config
+
+    settings = load_deploy_config(ROOT / "deploy" / "deploy.example.toml")
+    assert settings["placement"] == str(ROOT / "deploy" / "placement.example.toml")
+    assert settings["on_worker_loss"] == "replace" and len(settings["connect"]) == 2
