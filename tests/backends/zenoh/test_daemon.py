@@ -496,3 +496,41 @@ def test_the_example_deploy_config_reads():
     settings = load_deploy_config(ROOT / "deploy" / "deploy.example.toml")
     assert settings["placement"] == str(ROOT / "deploy" / "placement.example.toml")
     assert settings["on_worker_loss"] == "replace" and len(settings["connect"]) == 2
+
+
+def test_a_deployment_refuses_a_worker_of_another_protocol_and_one_whose_clock_is_off(namespace):
+    """Two workers as a coordinator sees them (a liveliness token and an info answer), one from a
+    future version, one whose clock reads 50 ms ahead: the deployment is refused before anything
+    starts, naming both and what to do."""
+    from retriever import BackendError
+    from tests.deploy.deploy_flows import pipe
+
+    port = free_port()
+    keys = KeySpace(namespace)
+
+    def answer(protocol: int, ahead_ns: int):
+        def reply(query: zenoh.Query) -> None:
+            name = str(query.key_expr).rsplit("/", 1)[-1]
+            info = {"protocol": protocol, "name": name, "labels": [], "host": "elsewhere", "pid": 1, "nodes": [],
+                    "packages": {"retriever": "9.9"},
+                    "clock_ns": session.new_timestamp().get_time_as_ntp64().as_nanos() + ahead_ns}
+            query.reply(keys.ctl(name), WireEncoder().control("info", info))
+        return reply
+
+    with zenoh.open(peer_config(listen=[endpoint(port)])) as session:
+        declared = [session.declare_queryable(keys.ctl("future"), answer(PROTOCOL_VERSION + 1, 0)),
+                    session.declare_queryable(keys.ctl("skewed"), answer(PROTOCOL_VERSION, 50_000_000)),
+                    session.liveliness().declare_token(keys.workers("future")),
+                    session.liveliness().declare_token(keys.workers("skewed"))]
+        try:
+            with pytest.raises(BackendError, match=r"the deployment cannot start:\n"
+                                                   r"  - worker 'future' speaks protocol 2, this coordinator 1\n"
+                                                   r"    hint: install the same Retriever version .*'9.9'\)\n"
+                                                   r"  - worker 'skewed' \(host elsewhere\) has a clock \+[45]\d\.\d+ ms"
+                                                   r" off this machine's, past 10 ms\n    hint: sync both clocks"):
+                pipe.run(duration=1, backend="zenoh", connect=[endpoint(port)], namespace=namespace, insecure=True,
+                         quiet=True)
+        finally:
+            for item in declared:
+                item.undeclare()
+            pipe.reset()
