@@ -162,7 +162,7 @@ def deploy(
         "--allow-errors", help="Exit 0 after a run whose steps raised or whose flows restarted.")] = False,
     on_worker_loss: Annotated[Optional[str], typer.Option(
         help="A worker lost mid-run: 'replace' (the default) starts its nodes afresh on other workers their "
-             "placement allows; 'stop' stops the run.")] = None,
+             "placement allows; 'wait' on it once it is back; 'stop' stops the run.")] = None,
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept before its worker counts "
                                 "as lost: Zenoh's lease (default 10).")] = None,

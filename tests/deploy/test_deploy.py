@@ -212,6 +212,37 @@ def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_lo
     assert spare.poll() is None
 
 
+def test_the_nodes_of_a_lost_worker_start_afresh_on_it_once_it_is_back_when_told_to_wait(hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nsink = "arm-pc"\nrelay = "gpu-box"\n')
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "8", "--placement", str(placement),
+                       "--log", str(log), "--allow-errors", "--on-worker-loss", "wait")
+    poll(lambda: flow_processes(victim.pid), "the relay's process on gpu-box")
+    time.sleep(1.0)
+    victim.kill()
+    victim.wait(BOUND_S)
+    back = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    try:
+        out, err = run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, err
+    assert "waiting for it to come back" in err and "its node 'relay' starts afresh on worker 'gpu-box'" in err, err
+    recorded = read_log(log)
+    (fault,) = recorded.faults
+    assert fault["node"] == "relay" and fault["moved_to"] == "gpu-box", fault
+    trace = recorded.trace()
+    (after,) = [s for s in trace.steps_of("relay") if s.detail and "restarted" in s.detail]
+    assert any(s.tag > after.tag and s.consumed for s in trace.steps_of("sink"))
+    assert replay(recorded).identical
+    assert back.poll() is None
+
+
 def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_takes_new_work(
         lab, hosts, secret):
     """nftables drops everything of gpu-box's host: within the lease (1 s here) the coordinator

@@ -41,8 +41,8 @@ USAGE_EVERY_S = 1.0
 #: how long the coordinator waits for links to its --connect endpoints before it looks for workers
 JOIN_S = 5.0
 #: what a deployment does with the nodes of a worker it lost: start them afresh on another worker
-#: that their placement allows (the least loaded), or stop
-WORKER_LOSS = ("replace", "stop")
+#: that their placement allows (the least loaded), or on it once it is back, or stop
+WORKER_LOSS = ("replace", "wait", "stop")
 #: where a coordinator told only --connect listens: every address of its machine, a port the OS picks
 ANY_ADDRESS = "tcp/0.0.0.0:0"
 #: how long a liveliness get for the namespace's workers waits for answers
@@ -83,6 +83,8 @@ class DeploySession(ZenohSession):
         self._remotes: dict[str, RemoteHost] = {}
         self._token = None
         self._cpu: dict[str, float] = {}  # node -> CPU seconds of its process, last read (_watch_usage)
+        self._waiting: dict[str, dict] = {}  # lost workers waited for (on_worker_loss="wait"): nodes, when
+        self._returned: set[str] = set()  # of those, the ones whose token came back
         self._usage_stop = threading.Event()
         #: where each node runs: worker name by node
         self.placed: dict[str, str] = {}
@@ -174,10 +176,13 @@ class DeploySession(ZenohSession):
 
     def _worker_token(self, sample: zenoh.Sample) -> None:
         """A worker's liveliness: gone, its processes are as good as killed."""
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
         if sample.kind == zenoh.SampleKind.DELETE:
-            host = self._remotes.get(str(sample.key_expr).rsplit("/", 1)[-1])
+            host = self._remotes.get(name)
             if host is not None:
                 host.lost()
+        elif name in self._waiting:  # back (on_worker_loss="wait"): the main loop moves its nodes there
+            self._returned.add(name)
 
     # -- retriever status / stop -------------------------------------------------------------------
     def _answer(self, query: zenoh.Query) -> None:
@@ -234,9 +239,12 @@ class DeploySession(ZenohSession):
     def _host_lost(self, host, nodes: list[str]) -> None:
         """on_worker_loss="replace": each of its nodes starts afresh on the least loaded worker
         still up that its placement allows (as a flow whose process died: loop.py); the log's
-        fault record says where it went. Any node that has nowhere to go stops the run."""
+        fault record says where it went. Any node that has nowhere to go stops the run.
+        "wait": they start afresh on it once a worker of its name is up again (see _await_return)."""
         if self._on_worker_loss == "stop" or self.t0 is None:
             return super()._host_lost(host, nodes)
+        if self._on_worker_loss == "wait":
+            return self._await_return(host, nodes)
         self._remotes.pop(host.name, None)
         self.workers.pop(host.name, None)
         targets, problems = {}, []
@@ -247,20 +255,43 @@ class DeploySession(ZenohSession):
             targets[nid] = target
         if problems:
             return super()._host_lost(host, nodes)
-        at = self._run_time()
+        self._move(host.name, targets, self._run_time())
+
+    def _await_return(self, host, nodes: list[str]) -> None:
+        """on_worker_loss="wait": the run goes on without the nodes (their consumers see a gap);
+        once a worker of the lost one's name is up again (its token back), they start afresh there."""
+        name = host.name
+        waiting = self._waiting.get(name)
+        if waiting is None:
+            waiting = self._waiting[name] = {"nodes": nodes, "at": self._run_time()}
+            print(f"retriever: worker '{name}' was lost with node(s) {', '.join(nodes)}; waiting for it to come "
+                  "back (on_worker_loss='wait')", file=sys.stderr, flush=True)
+        if name not in self._returned:
+            return
+        self._returned.discard(name)
+        worker = describe(self._hub, self.namespace, name)
+        if worker.info is None or worker.info.get("protocol") != PROTOCOL_VERSION:
+            return  # not (yet) a worker that answers as one: wait on
+        del self._waiting[name]
+        self.workers[name] = {**worker.info, "offset_ns": worker.offset_ns}
+        self._remotes.pop(name).close()
+        self._move(name, {nid: name for nid in nodes}, waiting["at"])
+
+    def _move(self, lost: str, targets: dict[str, str], at: int) -> None:
+        """Start each node of ``targets`` afresh on its worker there (the lost worker's nodes)."""
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
                 remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             remote.prepare(self._remote_spec(), sorted(n for n, w in targets.items() if w == name))
         for nid, name in sorted(targets.items()):
-            print(f"retriever: worker '{host.name}' was lost; its node '{nid}' starts afresh on worker '{name}'",
+            print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
                   file=sys.stderr, flush=True)
             self._hosts[nid], self.placed[nid] = self._remotes[name], name
             counts = self._stats[nid].counts
             counts["moves"] = counts.get("moves", 0) + 1
             self._start_afresh(nid, {"node": nid, "at_ns": at, "pid": self._workers[nid].pid,
-                                     "exit": f"was lost with its worker '{host.name}'", "moved_to": name})
+                                     "exit": f"was lost with its worker '{lost}'", "moved_to": name})
 
     def _replacement(self, nid: str, chosen: dict[str, str]) -> str | None:
         """The least loaded worker still up that ``nid``'s placement allows (ties by name), or None."""
@@ -273,6 +304,13 @@ class DeploySession(ZenohSession):
                     if rule is None or ((rule.worker is None or rule.worker == name)
                                         and rule.labels <= set(info.get("labels") or ()))]
         return min(eligible, key=lambda name: (load[name], name), default=None)
+
+    def _record_faults_left(self) -> None:
+        for waiting in self._waiting.values():  # lost, and never back in the run's time
+            self._unrecovered += [{"node": nid, "at_ns": waiting["at"], "pid": self._workers[nid].pid,
+                                   "exit": "was lost with its worker"} for nid in waiting["nodes"]]
+        self._waiting.clear()
+        super()._record_faults_left()
 
     def _remote_spec(self) -> dict:
         """The run's spec as workers get it: what depends on this machine left out (each worker

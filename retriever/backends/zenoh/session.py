@@ -538,11 +538,10 @@ class ZenohSession(Session):
                 self._host_lost(host, sorted(n for n, h in self._hosts.items() if h is host))
                 if self._failure is not None:
                     self._raise_failure()
-                return  # the nodes moved: look again next time
         for nid, proc in [*self._workers.items(), *self._retiring.items()]:
             code = proc.poll()
-            if code is None or self._state[nid] == "done":
-                continue
+            if code is None or self._state[nid] == "done" or not self._hosts[nid].alive:
+                continue  # running, finished, or gone with its host (above)
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
                 # a worker's own exit: its last status may still be on the way (it says why it ended)
                 exited = self._exited.setdefault(proc.pid, time.monotonic())
