@@ -6,7 +6,7 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
     wire-data     wire.decode_data                    wire-progress   wire.decode_progress
     wire-report   wire.decode_report                  wire-status     wire.decode_status
     wire-control  wire.decode_control
-    coordinator   the zenoh coordinator's report handling (ZenohSession._handle), after the
+    coordinator   the zenoh coordinator's report handling (Coordinator._handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
     ir            IR.from_json, then Pipeline.from_ir (flow types only from a fixed set, plus
                   names of callables that must be refused as no Flow: an IR is code by design)
@@ -68,7 +68,7 @@ import numpy as np  # noqa: E402
 
 from retriever import IR, IRError, LogError, Pipeline, read_log  # noqa: E402
 from retriever.backends.base import NodeStats, Session  # noqa: E402
-from retriever.backends.zenoh.session import ZenohSession  # noqa: E402
+from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress, decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
@@ -86,7 +86,7 @@ HANG_S = 10.0
 #: the run of the genuine pipeline whose messages, reports and log seed the campaign
 RUN_S = 0.5
 NAMESPACE = "fuzz"
-#: garbage messages a coordinator prints before it only counts them (session.py)
+#: garbage messages a coordinator prints before it only counts them (coordinator.py)
 GARBAGE_PRINTED = 3
 
 #: callables a forged dataclass value names: decoding must never import or call them
@@ -601,8 +601,8 @@ class DataTarget(WireTarget):
 class CoordinatorTarget(Target):
     """Fuzzed reports fed to the coordinator's message handler after the genuine run's reports.
 
-    The handler is ``ZenohSession._handle`` itself, on a session object that holds what
-    ``ZenohSession.__init__`` sets for it (the trace, the key space, the streams, the seen ids and
+    The handler is ``Coordinator._handle`` itself, on a session object that holds what
+    ``Coordinator.__init__`` sets for it (the trace, the key space, the streams, the seen ids and
     ticks) and no Zenoh session or process. Before fuzzing, the genuine reports go through it and
     the trace it builds must equal the in-process run's."""
 
@@ -620,12 +620,12 @@ class CoordinatorTarget(Target):
             self.base._handle(item)
         if self.base.trace != self.genuine.trace or self.base.own_counts["garbage"]:
             raise SystemExit("the coordinator harness does not rebuild the genuine run's trace from its reports: "
-                             "ZenohSession._handle changed; update CoordinatorTarget._session")
+                             "Coordinator._handle changed; update CoordinatorTarget._session")
         self.nodes = sorted(self.graph.nodes)
         self.insider_claims = 0
 
-    def _session(self) -> ZenohSession:
-        s = ZenohSession.__new__(ZenohSession)
+    def _session(self) -> Coordinator:
+        s = Coordinator.__new__(Coordinator)
         Session.__init__(s, self.graph)
         s.keys, s._dir = KeySpace(NAMESPACE), self.spill
         s._init_records(self.graph)  # what __init__ keeps of reports, without Zenoh or processes
@@ -672,7 +672,7 @@ class CoordinatorTarget(Target):
             raise Dropped(s.own_counts["garbage"] - GARBAGE_PRINTED)
         return forged
 
-    def _forged(self, s: ZenohSession, key: str) -> int:
+    def _forged(self, s: Coordinator, key: str) -> int:
         """How many records that the report's node could not make reached the trace; counts the
         ones it could (an insider's claims about its own outputs) in ``insider_claims``."""
         base, node = self.base.trace, key.rsplit("/", 1)[1]

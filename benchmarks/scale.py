@@ -57,7 +57,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     from zenoh_flows import Counter, Keep
 
     from retriever import Latest, Pipeline, Rate
-    from retriever.backends.zenoh.session import _ticks_due
+    from retriever.backends.zenoh.coordinator import _ticks_due
 
     with Pipeline(f"scale{flows}") as pipe:
         camera = Counter() @ Rate(hz=source_hz)

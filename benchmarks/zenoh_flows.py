@@ -113,7 +113,7 @@ class Counter(Flow[None, Count]):
 # ---------------------------------------------------------------------------------------------
 class BackgroundRun:
     """``pipe.run(duration, backend="zenoh")`` in a thread; the constructor returns once the run
-    has agreed its T0 (``.session``: the ZenohSession, ``.t0``), ``finish()`` joins it and returns
+    has agreed its T0 (``.session``: the Coordinator, ``.t0``), ``finish()`` joins it and returns
     the trace (or re-raises the run's error)."""
 
     def __init__(self, pipe, duration: float):

@@ -650,7 +650,7 @@ def status_command(
 
 
 def _status_table(answer: dict, namespace: str) -> Table:
-    """A deployment's status (DeploySession.status, maybe from the network: every cell plain
+    """A deployment's status (Deployment.status, maybe from the network: every cell plain
     text): per node its worker, state, rate achieved, steps, skips, errors, CPU and counters."""
     t_s = answer.get("t_ns", 0) / 1e9 if type(answer.get("t_ns")) is int else 0.0
     title = (f"{answer.get('pipeline')!s:.60} in namespace '{namespace}': "

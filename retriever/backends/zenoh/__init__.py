@@ -1,17 +1,17 @@
 """The real-time backend over Eclipse Zenoh (DESIGN.md §5, §7): one OS process per flow.
 
-    wire.py     key space and msgpack envelopes
-    access.py   who may join a run (Zenoh authentication) and what a watcher may do (access control)
-    hub.py      peer sessions: the run's hub and the workers joining it
-    loop.py     one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
-    worker.py   the worker process around a loop
-    host.py     where worker processes run (this machine: LocalHost), and how they are started
-    remote.py   worker processes on a worker daemon (RemoteHost), as the coordinator sees them
-    runs.py     what a worker daemon runs for a coordinator: a run's spec and its processes
-    deploy.py   a deployment: the coordinator with its nodes placed on worker daemons
-    session.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
-    output.py   what workers print, on the coordinator's streams, prefixed with the node
-    daemon.py   a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
+    wire.py         key space and msgpack envelopes
+    access.py       who may join a run (Zenoh authentication, TLS) and what a watcher may do (access control)
+    hub.py          peer sessions: the run's hub and the workers joining it
+    loop.py         one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
+    worker.py       the worker process around a loop
+    output.py       what workers print, on the coordinator's streams, prefixed with the node
+    host.py         where worker processes run (this machine: LocalHost), and how they are started
+    coordinator.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
+    remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
+    deploy.py       a deployment: the coordinator with its nodes placed on worker daemons
+    daemon.py       a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
+    runs.py         what a worker daemon runs for a coordinator: a run's spec and its processes
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ class ZenohBackend(Backend):
                                f"{'in a deployment (connect= or listen= given) ' if deploy else ''}"
                                f"(it accepts {', '.join(accepted)})")
         if deploy:
-            from .deploy import DeploySession
+            from .deploy import Deployment
 
-            return DeploySession(graph, **options)
-        from .session import ZenohSession
+            return Deployment(graph, **options)
+        from .coordinator import Coordinator
 
         options.pop("connect", None), options.pop("listen", None)
-        return ZenohSession(graph, **options)
+        return Coordinator(graph, **options)

@@ -1,4 +1,4 @@
-"""A deployment: the coordinator of session.py, with its nodes on worker daemons (DESIGN.md §7).
+"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (DESIGN.md §7).
 
     retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
         │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
@@ -34,7 +34,7 @@ from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, desc
 from .hub import peer_config, wait_for_peers
 from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, decode_control
-from .session import ZenohSession
+from .coordinator import Coordinator
 
 #: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
 USAGE_EVERY_S = 1.0
@@ -53,7 +53,7 @@ CLOCK_WARN_NS = 1_000_000
 CLOCK_REFUSE_NS = 10_000_000
 
 
-class DeploySession(ZenohSession):
+class Deployment(Coordinator):
     """A run of a graph on the worker daemons of a namespace."""
 
     def __init__(self, graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",

@@ -2,7 +2,7 @@
 
     python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END | --fresh T0 END]
 
-The coordinator (``retriever.backends.zenoh.session``) writes ``SPEC.json`` — the IR, the hub's
+The coordinator (``retriever.backends.zenoh.coordinator``) writes ``SPEC.json`` — the IR, the hub's
 endpoint, the namespace, the Python path the flows were imported from and the coordinator's
 ``sys.argv``, which the worker takes as its own — and starts one worker per node. A worker joins
 the hub, declares its subscriptions, says ``ready`` on ``status/node/<node>``, and waits for

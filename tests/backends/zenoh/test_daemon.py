@@ -207,7 +207,7 @@ def test_a_worker_and_the_listing_need_a_secret_or_insecure(tmp_path):
         result = _cli(*args)
         assert result.returncode == 1
         assert result.stderr.startswith(f"error: {command} needs --secret FILE (a deployment secret"), result.stderr
-        assert "or --insecure" in result.stderr and "\nhint: python -c" in result.stderr
+        assert "or --insecure" in result.stderr and "\nhint: retriever secret new lab.key" in result.stderr
         assert "Traceback" not in result.stderr
     secret = tmp_path / "secret"
     secret.write_text(SECRET)
@@ -264,7 +264,7 @@ def test_garbage_and_unknown_ops_get_error_replies_and_the_daemon_goes_on(worker
             assert op == "error" and args["message"], payload
             if payload == WireEncoder().control("frobnicate", {}):
                 assert args["message"] == ("worker 'w' knows no op 'frobnicate' "
-                                           "(it knows info, prepare, spawn, signal, end)")
+                                           "(it knows info, prepare, spawn, signal, end, usage)")
         with pytest.raises(WorkerError, match="worker 'w' refused frobnicate: worker 'w' knows no op"):
             ask(session, namespace, "w", "frobnicate")
         info = ask(session, namespace, "w", "info")

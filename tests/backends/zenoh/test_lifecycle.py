@@ -498,7 +498,7 @@ def test_a_signal_stops_a_cli_run_with_a_hung_step_promptly_printing_its_stack_o
     `stop`; nap cannot look at it, so after session.STOP_GRACE_S its stack is printed (once,
     prefixed with the node) and it is killed. It took 7.7 s (5 s of grace, then SIGTERM, which a
     loop only notes, then 2 s more before SIGKILL), and printed no stack."""
-    from retriever.backends.zenoh.session import STACKS_WAIT_S, STOP_GRACE_S
+    from retriever.backends.zenoh.coordinator import STACKS_WAIT_S, STOP_GRACE_S
 
     path = tmp_path / "run.mcap"
     with open(tmp_path / "stderr.txt", "wb") as err:

@@ -8,7 +8,7 @@ import signal
 import pytest
 
 from retriever import BackendError, Latest, Pipeline, Rate
-from retriever.backends.zenoh.session import _ticks_due
+from retriever.backends.zenoh.coordinator import _ticks_due
 from tests.backends.zenoh.lifecycle_flows import SINK_HZ, SOURCE_HZ, Counter, Total
 
 RUN_S = 1.0

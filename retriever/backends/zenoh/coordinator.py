@@ -80,7 +80,7 @@ class RemoteError(Exception):
     """An exception raised in a worker process, carried back as text."""
 
 
-class ZenohSession(Session):
+class Coordinator(Session):
     backend_name = "zenoh"
     holds_processes = True
 
