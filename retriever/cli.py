@@ -145,7 +145,8 @@ def _tls(ca, cert, key):
 def deploy(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     placement: Annotated[Optional[Path], typer.Option(
-        help="A placement file (TOML): in its nodes table, NODE = \"WORKER\" or { labels = [\"gpu\"] }; others by load.")] = None,
+        help="A placement file (TOML): in its nodes table, NODE = \"WORKER\" or { labels = [\"gpu\"] }; "
+             "others by load.")] = None,
     connect: Annotated[Optional[list[str]], typer.Option(
         help="Zenoh endpoint of a worker (or router) to join, e.g. tcp/10.0.0.2:7447; repeatable.")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(
@@ -598,17 +599,24 @@ def worker(
 app.command("worker")(worker)
 
 
+# the options every command that joins a namespace takes (workers, status, stop)
+_Secret = Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)]
+_Insecure = Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)]
+_TlsCa = Annotated[Optional[Path], _TLS_CA]
+_TlsCert = Annotated[Optional[Path], _TLS_CERT]
+_TlsKey = Annotated[Optional[Path], _TLS_KEY]
+_Namespace = Annotated[str, typer.Option(help="The deployment's namespace.")]
+_Through = Annotated[Optional[list[str]], typer.Option(
+    metavar="ENDPOINT", help="A worker of the deployment to ask through (repeatable). Default: tcp/127.0.0.1:7447.")]
+
+
 @app.command("workers")
 def workers_command(
     connect: Annotated[Optional[list[str]], typer.Option(
         metavar="ENDPOINT", help="A worker (or a peer linked to workers) to ask (repeatable). "
                                  "Default: tcp/127.0.0.1:7447.")] = None,
-    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
-    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
-    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
-    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
-    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
-    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    namespace: _Namespace = "default", secret: _Secret = None, insecure: _Insecure = False,
+    tls_ca: _TlsCa = None, tls_cert: _TlsCert = None, tls_key: _TlsKey = None,
 ) -> None:
     """List the live workers of a namespace: labels, host, pid, version, clock offset, nodes."""
     from .backends.zenoh.daemon import DEFAULT_CONNECT, list_workers
@@ -633,15 +641,8 @@ def workers_command(
 
 @app.command("status")
 def status_command(
-    connect: Annotated[Optional[list[str]], typer.Option(
-        metavar="ENDPOINT", help="A worker of the deployment to ask through (repeatable). "
-                                 "Default: tcp/127.0.0.1:7447.")] = None,
-    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
-    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
-    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
-    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
-    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
-    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    connect: _Through = None, namespace: _Namespace = "default", secret: _Secret = None, insecure: _Insecure = False,
+    tls_ca: _TlsCa = None, tls_cert: _TlsCert = None, tls_key: _TlsKey = None,
 ) -> None:
     """Show the running deployment of a namespace, from any machine: per node its worker, state,
     ticks, steps, skips, errors and counters."""
@@ -673,15 +674,8 @@ def _status_table(answer: dict, namespace: str) -> Table:
 
 @app.command("stop")
 def stop_command(
-    connect: Annotated[Optional[list[str]], typer.Option(
-        metavar="ENDPOINT", help="A worker of the deployment to ask through (repeatable). "
-                                 "Default: tcp/127.0.0.1:7447.")] = None,
-    namespace: Annotated[str, typer.Option(help="The deployment's namespace.")] = "default",
-    secret: Annotated[Optional[Path], typer.Option(metavar="FILE", help=_SECRET_HELP)] = None,
-    insecure: Annotated[bool, typer.Option("--insecure", help=_INSECURE_HELP)] = False,
-    tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
-    tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
-    tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    connect: _Through = None, namespace: _Namespace = "default", secret: _Secret = None, insecure: _Insecure = False,
+    tls_ca: _TlsCa = None, tls_cert: _TlsCert = None, tls_key: _TlsKey = None,
 ) -> None:
     """Stop the running deployment of a namespace, from any machine, as Ctrl-C at its coordinator
     would: every node stops, its log is finished; the workers stay up."""
