@@ -145,6 +145,15 @@ def going(log: Path, steps: int = 20) -> bool:
         return False
 
 
+def finish(run: subprocess.Popen) -> tuple[str, str]:
+    """What a coordinator printed by its end (killed if it is still running past BOUND_S)."""
+    try:
+        return run.communicate(timeout=BOUND_S)
+    finally:
+        if run.poll() is None:
+            run.kill()
+
+
 def poll(condition, what: str, bound: float = BOUND_S):
     give_up = time.monotonic() + bound
     while not (value := condition()):
@@ -179,11 +188,7 @@ def test_a_worker_killed_mid_run_stops_the_deployment_naming_it_when_told_to(hos
                        "--log", str(log))
     poll(lambda: going(log), "the run going")
     victim.kill()
-    try:
-        out, err = run.communicate(timeout=BOUND_S)
-    finally:
-        if run.poll() is None:
-            run.kill()
+    out, err = finish(run)
     assert run.returncode == 1, err
     assert "worker 'gpu-box' was lost" in err and "stopped" in err, err
 
@@ -204,11 +209,7 @@ def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_lo
                        str(placement), "--log", str(log), "--allow-errors")
     poll(lambda: going(log), "the run going")
     victim.kill()
-    try:
-        out, err = run.communicate(timeout=BOUND_S)
-    finally:
-        if run.poll() is None:
-            run.kill()
+    out, err = finish(run)
     assert run.returncode == 0, err
     assert "worker 'gpu-box' was lost; its node 'relay' starts afresh on worker 'spare'" in err, err
     recorded = read_log(log)
@@ -235,11 +236,7 @@ def test_the_nodes_of_a_lost_worker_start_afresh_on_it_once_it_is_back_when_told
     victim.kill()
     victim.wait(BOUND_S)
     back = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
-    try:
-        out, err = run.communicate(timeout=BOUND_S)
-    finally:
-        if run.poll() is None:
-            run.kill()
+    out, err = finish(run)
     assert run.returncode == 0, err
     assert "waiting for it to come back" in err and "its node 'relay' starts afresh on worker 'gpu-box'" in err, err
     recorded = read_log(log)
@@ -272,11 +269,7 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     cut = time.monotonic()
     poll(lambda: not flow_processes(victim.pid), "the partitioned worker's flows stopping", bound=15.0)
     assert time.monotonic() - cut < 1.0 + 2.0 + 2.0  # the lease, the flows' SIGTERM grace, slack
-    try:
-        out, err = run.communicate(timeout=BOUND_S)
-    finally:
-        if run.poll() is None:
-            run.kill()
+    out, err = finish(run)
     assert run.returncode == 0 and "its node 'relay' starts afresh on worker 'spare'" in err, err
     lab.heal(gpu)
     assert victim.poll() is None, "the partitioned worker went down"
@@ -306,11 +299,7 @@ def test_status_and_stop_from_another_machine(hosts, secret, tmp_path):
     assert "lab in namespace 'default'" in shown and "counter" in shown and "arm-pc" in shown, shown
     stopped = arm.run([*ask, "stop", *where], timeout=BOUND_S)
     assert stopped.returncode == 0 and "stopping deployment lab" in stopped.stdout, stopped.stderr
-    try:
-        out, err = run.communicate(timeout=BOUND_S)
-    finally:
-        if run.poll() is None:
-            run.kill()
+    out, err = finish(run)
     assert run.returncode == 130, err  # as Ctrl-C at the coordinator
     assert read_log(log).end["status"] == "interrupted"
     poll(lambda: not any(flow_processes(d.pid) for d in daemons), "the flows stopping", bound=10.0)
