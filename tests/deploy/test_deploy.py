@@ -11,6 +11,7 @@ import json
 import secrets
 import select
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -191,6 +192,9 @@ def test_a_worker_killed_mid_run_stops_the_deployment_naming_it_when_told_to(hos
     out, err = finish(run)
     assert run.returncode == 1, err
     assert "worker 'gpu-box' was lost" in err and "stopped" in err, err
+    recorded = read_log(log, salvage=True)
+    assert [f["node"] for f in recorded.faults] == ["relay"], recorded.faults  # what went with it
+    assert replay(recorded).identical
 
 
 def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_log_replays(hosts, secret, tmp_path):
@@ -355,6 +359,41 @@ def test_with_mutual_tls_only_machines_with_a_certificate_of_the_ca_join(hosts, 
     # a TLS handshake on a loaded machine may outlast a listing's patience: ask until both show
     poll(lambda: all(w in coordinator.run([*listing, *tls(coordinator)], timeout=BOUND_S).stdout
                      for w in ("arm-pc", "gpu-box")), "both workers listed over TLS")
+
+
+def test_a_hung_workers_flows_stop_when_their_nodes_move(hosts, secret, tmp_path):
+    """SIGSTOP of gpu-box's daemon: its token goes after the lease, the relay moves; the old relay
+    process, still alive and linked, is told it was lost and stops (it ran on beside its
+    replacement: a second record of each tick, garbage, a log that did not replay)."""
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--lease", "1")
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--lease", "1")
+    start_worker(coordinator, "spare", secret, "--path", str(HERE), "--lease", "1")
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nsink = "arm-pc"\n')  # relay: gpu-box by load
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
+                       str(placement), "--lease", "1", "--allow-errors", "--log", str(log))
+    poll(lambda: going(log), "the run going")
+    old = flow_processes(victim.pid)
+    victim.send_signal(signal.SIGSTOP)
+    try:
+        poll(lambda: not any(Path(f"/proc/{pid}").exists() for pid in old), "the hung worker's flows stopping",
+             bound=15.0)
+        out, err = finish(run)
+    finally:
+        victim.send_signal(signal.SIGCONT)
+    assert run.returncode == 0 and "starts afresh on worker 'spare'" in err, err
+    assert "dropped a message" not in err and "a second step record" not in err, err
+    assert replay(read_log(log)).identical
+
+
+def test_two_workers_of_one_name_that_never_met_are_refused(hosts, secret):
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "twin", secret, "--path", str(HERE))
+    start_worker(gpu, "twin", secret, "--path", str(HERE))  # not linked to the other: it starts
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--duration", "1")
+    assert done.returncode == 1 and "several workers are named 'twin'" in done.stderr, done.stderr
 
 
 def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):

@@ -562,7 +562,11 @@ class Coordinator(Session):
             self._raise_failure()
 
     def _host_lost(self, host: Host, nodes: list[str]) -> None:
-        """A host went with the nodes on it: the run stops (a deployment may move them instead)."""
+        """A host went with the nodes on it: the run stops (a deployment may move them instead),
+        and the log says which processes went with it (their faults, once their last reports are in)."""
+        if self.t0 is not None:
+            self._unrecovered += [{"node": nid, "at_ns": self._run_time(), "pid": self._workers[nid].pid,
+                                   "exit": f"was lost with its worker '{host.name}'"} for nid in nodes]
         self._failure = (nodes[0], {"error": f"worker '{host.name}' was lost (its liveliness token went): its node(s) "
                                              f"{', '.join(nodes)} stopped\n    hint: is the machine up, and on the "
                                              "network? `retriever workers` lists the workers up"})

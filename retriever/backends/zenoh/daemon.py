@@ -54,6 +54,8 @@ from .hub import await_segments_released, mapped_segments, peer_config, wait_for
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
 
+#: the largest control request a worker reads (a prepare carries the run's IR)
+MAX_REQUEST_BYTES = 8 << 20
 #: the version of the control protocol on ctl/<name>: a coordinator tells what a worker understands
 PROTOCOL_VERSION = 1
 DEFAULT_NAMESPACE = "default"
@@ -316,7 +318,7 @@ class WorkerDaemon:
                                access=RunAccess.create(settings.namespace, read_secret(settings.secret))
                                if settings.secret is not None else None,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
-                               tls=settings.tls)
+                               tls=settings.tls, lease=settings.lease)
         #: op -> handler(args) -> answer
         self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
 
@@ -337,6 +339,8 @@ class WorkerDaemon:
         encoder = WireEncoder()  # one per call: callbacks may run on several threads at once
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
+            if len(payload) > MAX_REQUEST_BYTES:  # an IR of hundreds of flows is well below it
+                raise WireError(f"a request of {len(payload)} bytes, past {MAX_REQUEST_BYTES}: refused")
             op, args = decode_control(payload)
             handler = self.ops.get(op)
             if handler is None:

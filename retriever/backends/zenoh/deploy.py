@@ -133,10 +133,11 @@ class Deployment(Coordinator):
             self.placed = place(sorted(self.graph.nodes), self._placement, candidates)
         except PlacementError as e:
             raise BackendError(str(e)) from None
+        # the token first: a worker prepares a run only while its coordinator's token is there
+        self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         for name in sorted(set(self.placed.values())):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
-        self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
         self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), self._answer))
         self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
@@ -144,11 +145,18 @@ class Deployment(Coordinator):
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
-        names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
-                        for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok})
+        tokens = [str(r.ok.key_expr).rsplit("/", 1)[-1]
+                  for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok]
+        names = sorted(set(tokens))
+        twice = sorted(name for name in names if tokens.count(name) > 1)
+        if twice:  # workers that never linked to each other, so neither refused to start
+            raise BackendError(f"several workers are named {', '.join(map(repr, twice))} in namespace "
+                               f"'{self.namespace}': a node placed on that name could run twice\n    hint: give each "
+                               "worker a name of its own (retriever workers --connect ... lists them), then deploy")
         if not names:
             raise BackendError(f"no worker is up in namespace '{self.namespace}' (reached through "
-                               f"{', '.join(self._connect or self._listen_at)})\n    hint: start one on each machine: "
+                               f"{', '.join(self._connect or self._listen_at)}), or none holds this --secret"
+                               f"{' and TLS certificate' if self._tls else ''}\n    hint: start one on each machine: "
                                f"retriever-worker --name NAME --namespace {self.namespace} --secret FILE")
         problems, found = [], {}
         for name in names:
@@ -264,6 +272,8 @@ class Deployment(Coordinator):
         waiting = self._waiting.get(name)
         if waiting is None:
             waiting = self._waiting[name] = {"nodes": nodes, "at": self._run_time()}
+            for nid in nodes:  # their processes, if a hung worker still has them, stop; consumers know
+                self._control("lost", {"node": nid})
             print(f"retriever: worker '{name}' was lost with node(s) {', '.join(nodes)}; waiting for it to come "
                   "back (on_worker_loss='wait')", file=sys.stderr, flush=True)
         if name not in self._returned:

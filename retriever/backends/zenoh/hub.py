@@ -178,7 +178,7 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: in
 
 
 def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None,
-              listen: list[str] | None = None) -> zenoh.Session:
+              listen: list[str] | None = None, lease: float | None = None) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
@@ -187,7 +187,7 @@ def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | Non
     two workers exchange messages over the direct link that gossip (learning of each other from
     the hub) opens between them, which is also the fastest path."""
     return zenoh.open(peer_config(listen=listen or [endpoint(0)], connect=[hub_endpoint], sessions=sessions,
-                                  access=access))
+                                  access=access, lease=lease))
 
 
 def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,

@@ -605,6 +605,10 @@ class NodeLoop:
                 self.stopping = self.handing_over = True
             elif op == "have":
                 self._coordinator_has(args)
+            elif op == "lost" and args.get("node") == self.id:
+                # the coordinator counts this process dead (its worker daemon hung or was cut off)
+                # and starts another: this one must not run on beside it, nor promise anything
+                self.abandoned = self.stopping = True
             elif op == "lost" and args.get("node") in self.sources:
                 self.lost_producers.add(args["node"])
             elif op == "restarted" and args.get("node") in self.sources:

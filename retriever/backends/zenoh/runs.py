@@ -44,6 +44,10 @@ COORDINATOR_GRACE_S = 2.0
 #: lines of a process's output sent at most per event, and how long a line waits for company
 OUTPUT_BATCH = 64
 OUTPUT_FLUSH_S = 0.05
+#: how many processes of one node may run at once: its own, and the one taking over while it restarts
+MAX_PROCESSES_PER_NODE = 2
+#: how long a prepare waits for the coordinator's liveliness token to answer
+COORDINATOR_ASK_S = 2.0
 #: the signals a coordinator may send a run's process
 SIGNALS = (signal.SIGUSR1, signal.SIGTERM, signal.SIGKILL)
 
@@ -63,9 +67,10 @@ class DaemonRuns:
 
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
-                 paths: tuple[str, ...], tls: TlsFiles | None = None):
+                 paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
+        self.lease = lease  # its flows' links go silent as fast as its own (a partition)
         self.paths = [str(Path(p).resolve()) for p in paths]
         for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
             if folder not in sys.path:
@@ -112,6 +117,9 @@ class DaemonRuns:
         if problems:
             raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
                             + "\n".join(f"  - {p}" for p in problems))
+        if not self._coordinator_up():
+            raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "
+                            f"({self.keys.deployment()}) is up: none is (its processes would never be stopped)")
         folder = Path(tempfile.mkdtemp(prefix="retriever-run-"))  # mode 0700
         self.run = run = Run(run_id, folder, nodes)
         run.ir = ir.doc
@@ -126,8 +134,12 @@ class DaemonRuns:
         if node not in run.nodes:
             raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
-                               and all(type(x) is str and x.lstrip("-").isdigit() for x in mode[1:]))):
-            raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END]")
+                               and all(type(x) is str and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
+            raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
+        live = [pid for pid, (n, proc) in run.processes.items() if n == node and proc.poll() is None]
+        if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
+            raise WireError(f"node '{node}' already runs in {len(live)} processes on worker '{self.name}' "
+                            f"(pids {', '.join(map(str, live))})")
         proc = subprocess.Popen([sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 start_new_session=True)
@@ -172,6 +184,17 @@ class DaemonRuns:
             raise WireError(f"worker '{self.name}' has no run {args.get('run')!r:.40}")
         return run
 
+    def _coordinator_up(self) -> bool:
+        """Whether a coordinator's liveliness token is up (a coordinator declares it just before
+        it prepares: it may still be on its way here, so ask again for COORDINATOR_ASK_S)."""
+        give_up = time.monotonic() + COORDINATOR_ASK_S
+        while True:
+            if any(r.ok is not None for r in self.session.liveliness().get(self.keys.deployment(), timeout=0.5)):
+                return True
+            if time.monotonic() >= give_up:
+                return False
+            time.sleep(0.05)
+
     def _check(self, ir: IR, nodes: list[str]) -> list[str]:
         """Every problem with running ``nodes`` of ``ir`` here, before anything is imported."""
         known = {n["id"]: n for n in ir.nodes}
@@ -204,6 +227,7 @@ class DaemonRuns:
         local["hub"] = f"{proto}/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec["hub"]
         local["listen"] = [f"{proto}/{host}:0"]
         local["tls"] = vars(self.tls) if self.tls is not None else None
+        local["lease"] = self.lease
         return local
 
     def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:

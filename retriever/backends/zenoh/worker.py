@@ -287,7 +287,7 @@ def _serve(argv: list[str], parent: int) -> int:
     access = {**(config[0].session_config(config[1]) if config else {}),
               **(TlsFiles(**spec["tls"]).session_config() if spec.get("tls") else {})}  # a TLS deployment's links
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
-                   listen=spec.get("listen")) as session:
+                   listen=spec.get("listen"), lease=spec.get("lease")) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),

@@ -303,6 +303,9 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
         ("prepare", "deploy_flows:Nowhere.__init__"): None,  # allowed module: found, not imported here
     }
     with _client(port) as session:
+        with pytest.raises(WorkerError, match=r"prepares runs only for a coordinator whose liveliness token"):
+            ask(session, namespace, "w", "prepare", {"run": "r0", "spec": {"ir": _ir_doc()}, "nodes": ["counter"]})
+        token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator now
         for (op, node_type), expected in refused.items():
             if op == "prepare":
                 args = {"run": "r1", "spec": {"ir": _ir_doc(node_type), "namespace": namespace}, "nodes": ["counter"]}
@@ -322,13 +325,18 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                                                                        "hub": endpoint(port)}, "nodes": ["counter"]})
         for args, expected in (({"node": "relay", "mode": []}, "was not prepared"),
                                ({"node": "counter", "mode": ["--join", "1; rm -rf /", "2"]}, "spawn mode"),
+                               ({"node": "counter", "mode": ["--fresh", "-5", "-1"]}, "spawn mode"),
+                               ({"node": "counter", "mode": ["--join", "0", "1" + "0" * 26]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode")):
             with pytest.raises(WorkerError, match=expected):
                 ask(session, namespace, "w", "spawn", {"run": "r2", **args})
         with pytest.raises(WorkerError, match="not a process of run r2"):
             ask(session, namespace, "w", "signal", {"run": "r2", "pid": os.getpid(), "signal": 9})
         assert ask(session, namespace, "w", "info")["nodes"] == []
+        with pytest.raises(WorkerError, match=r"a request of \d+ bytes, past \d+: refused"):
+            ask(session, namespace, "w", "prepare", {"run": "r3", "spec": {"pad": "x" * (9 << 20)}, "nodes": []})
         ask(session, namespace, "w", "end", {"run": "r2"})
+        token.undeclare()
     assert not marker.exists(), "a module named in a request was imported"
     assert worker.stop() == 0
 
