@@ -146,6 +146,19 @@ def going(log: Path, steps: int = 20) -> bool:
         return False
 
 
+def wait_going(run: subprocess.Popen, log: Path) -> None:
+    """Until the coordinator's run is going (steps in its log); what it said if it ended first."""
+    try:
+        poll(lambda: going(log) or run.poll() is not None, "the run going")
+    except AssertionError:
+        run.kill()
+        out, err = run.communicate()
+        raise AssertionError(f"the run did not go within {BOUND_S:g} s; the coordinator said:\n{out}\n{err}") from None
+    if run.poll() is not None:
+        out, err = run.communicate()
+        raise AssertionError(f"the coordinator ended (exit {run.returncode}) before its run went:\n{out}\n{err}")
+
+
 def finish(run: subprocess.Popen) -> tuple[str, str]:
     """What a coordinator printed by its end (killed if it is still running past BOUND_S)."""
     try:
@@ -169,7 +182,7 @@ def test_the_flows_of_a_killed_coordinator_stop_within_3_s_and_the_workers_stay_
                start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
     log = tmp_path / "run.mcap"
     run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--log", str(log))
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     run.kill()
     killed = time.monotonic()
     poll(lambda: not any(flow_processes(d.pid) for d in daemons), "stop of the flows", bound=10.0)
@@ -187,7 +200,7 @@ def test_a_worker_killed_mid_run_stops_the_deployment_naming_it_when_told_to(hos
     log = tmp_path / "run.mcap"
     run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--on-worker-loss", "stop",
                        "--log", str(log))
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     victim.kill()
     out, err = finish(run)
     assert run.returncode == 1, err
@@ -211,7 +224,7 @@ def test_the_nodes_of_a_worker_killed_mid_run_start_afresh_on_another_and_the_lo
     log = tmp_path / "run.mcap"
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "6", "--placement",
                        str(placement), "--log", str(log), "--allow-errors")
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     victim.kill()
     out, err = finish(run)
     assert run.returncode == 0, err
@@ -236,7 +249,7 @@ def test_the_nodes_of_a_lost_worker_start_afresh_on_it_once_it_is_back_when_told
     log = tmp_path / "run.mcap"
     run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "8", "--placement", str(placement),
                        "--log", str(log), "--allow-errors", "--on-worker-loss", "wait")
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     victim.kill()
     victim.wait(BOUND_S)
     back = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
@@ -268,7 +281,7 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     log.unlink(missing_ok=True)
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
                        str(placement), "--lease", "1", "--allow-errors", "--log", str(log))
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     lab.partition(gpu)
     cut = time.monotonic()
     poll(lambda: not flow_processes(victim.pid), "the partitioned worker's flows stopping", bound=15.0)
@@ -374,7 +387,7 @@ def test_a_hung_workers_flows_stop_when_their_nodes_move(hosts, secret, tmp_path
     log = tmp_path / "run.mcap"
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
                        str(placement), "--lease", "1", "--allow-errors", "--log", str(log))
-    poll(lambda: going(log), "the run going")
+    wait_going(run, log)
     old = flow_processes(victim.pid)
     victim.send_signal(signal.SIGSTOP)
     try:
