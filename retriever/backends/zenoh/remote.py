@@ -17,6 +17,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import threading
+import time
 from collections.abc import Sequence
 import zenoh
 
@@ -26,6 +27,10 @@ from .wire import KeySpace, WireEncoder, WireError, decode_control
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
 REQUEST_TIMEOUT_S = 10.0
+#: how often, and how far apart, a prepare is asked again of a daemon that has not yet seen the
+#: coordinator's liveliness token (declared just before: it travels in milliseconds)
+PREPARE_TRIES = 20
+PREPARE_AGAIN_S = 0.1
 #: the exit code of a process whose daemon was lost: as if SIGKILLed
 LOST_CODE = -signal.SIGKILL
 
@@ -89,8 +94,16 @@ class RemoteHost(Host):
                            "\n    hint: is it still up? `retriever workers` lists the workers that are")
 
     def prepare(self, spec: dict, nodes: Sequence[str]) -> None:
-        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run."""
-        self.request("prepare", {"spec": spec, "nodes": list(nodes)})
+        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run. It takes
+        a run only while the coordinator's liveliness token is up, which it may not have seen yet."""
+        for attempt in range(PREPARE_TRIES):
+            try:
+                self.request("prepare", {"spec": spec, "nodes": list(nodes)})
+                return
+            except BackendError as e:
+                if "liveliness token" not in str(e) or attempt == PREPARE_TRIES - 1:
+                    raise
+                time.sleep(PREPARE_AGAIN_S)
 
     def spawn(self, node: str, mode: Sequence[str] = ()) -> RemoteProcess:
         answer = self.request("spawn", {"node": node, "mode": list(mode)})

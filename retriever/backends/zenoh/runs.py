@@ -46,8 +46,6 @@ OUTPUT_BATCH = 64
 OUTPUT_FLUSH_S = 0.05
 #: how many processes of one node may run at once: its own, and the one taking over while it restarts
 MAX_PROCESSES_PER_NODE = 2
-#: how long a prepare waits for the coordinator's liveliness token to answer
-COORDINATOR_ASK_S = 2.0
 #: the signals a coordinator may send a run's process
 SIGNALS = (signal.SIGUSR1, signal.SIGTERM, signal.SIGKILL)
 
@@ -77,6 +75,11 @@ class DaemonRuns:
                 sys.path.insert(0, folder)
         self.run: Run | None = None
         self._events = session.declare_publisher(self.keys.worker_events(name), congestion_control=RELIABLE)
+        # how many coordinators' liveliness tokens are up (a callback counts them: asking Zenoh
+        # from inside a query's callback blocked it past the coordinator's patience)
+        self._coordinators = 0
+        self._coordinator_watch = session.liveliness().declare_subscriber(
+            self.keys.deployment(), self._coordinator_seen, history=True)
 
     @property
     def ops(self) -> dict[str, Callable[[dict], dict]]:
@@ -185,15 +188,12 @@ class DaemonRuns:
         return run
 
     def _coordinator_up(self) -> bool:
-        """Whether a coordinator's liveliness token is up (a coordinator declares it just before
-        it prepares: it may still be on its way here, so ask again for COORDINATOR_ASK_S)."""
-        give_up = time.monotonic() + COORDINATOR_ASK_S
-        while True:
-            if any(r.ok is not None for r in self.session.liveliness().get(self.keys.deployment(), timeout=0.5)):
-                return True
-            if time.monotonic() >= give_up:
-                return False
-            time.sleep(0.05)
+        """Whether a coordinator's liveliness token is up (one declared just before it prepares
+        may still be on its way: the coordinator asks again, remote.PREPARE_TRIES)."""
+        return self._coordinators > 0
+
+    def _coordinator_seen(self, sample: zenoh.Sample) -> None:
+        self._coordinators = max(0, self._coordinators + (1 if sample.kind == zenoh.SampleKind.PUT else -1))
 
     def _check(self, ir: IR, nodes: list[str]) -> list[str]:
         """Every problem with running ``nodes`` of ``ir`` here, before anything is imported."""
@@ -283,6 +283,7 @@ class DaemonRuns:
         """The daemon stops: so does its run."""
         if self.run is not None:
             self._end(self.run)
+        self._coordinator_watch.undeclare()
         self._events.undeclare()
 
 
