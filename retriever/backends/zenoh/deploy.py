@@ -145,10 +145,10 @@ class Deployment(Coordinator):
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
-        tokens = [str(r.ok.key_expr).rsplit("/", 1)[-1]
-                  for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok]
-        names = sorted(set(tokens))
-        twice = sorted(name for name in names if tokens.count(name) > 1)
+        names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
+                        for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok})
+        # tokens of one key are one to Zenoh: ask each name who answers, every reply kept
+        twice = [name for name in names if self._answering(name) > 1]
         if twice:  # workers that never linked to each other, so neither refused to start
             raise BackendError(f"several workers are named {', '.join(map(repr, twice))} in namespace "
                                f"'{self.namespace}': a node placed on that name could run twice\n    hint: give each "
@@ -181,6 +181,18 @@ class Deployment(Coordinator):
             raise BackendError("the deployment cannot start:\n" + "\n".join(f"  - {p}" for p in problems))
         self.workers = found
         return found
+
+    def _answering(self, name: str) -> int:
+        """How many daemons answer as worker ``name`` (distinct pids and hosts)."""
+        who = set()
+        for reply in self._hub.get(self.keys.ctl(name), payload=WireEncoder().control("info", {}), timeout=QUERY_S,
+                                   consolidation=zenoh.ConsolidationMode.NONE):
+            try:
+                _, info = decode_control(reply.ok.payload.to_bytes())
+            except (AttributeError, WireError):  # an error reply, or garbage
+                continue
+            who.add((str(info.get("host")), str(info.get("pid"))))
+        return len(who)
 
     def _worker_token(self, sample: zenoh.Sample) -> None:
         """A worker's liveliness: gone, its processes are as good as killed."""
