@@ -9,7 +9,7 @@ processes on different hosts talk over real TCP between network stacks, and each
 
 The coordinator is this script on host 1, ``--coordinate JOB.json``: it runs the pipeline the way
 ``retriever deploy`` does, from Python (``pipe.run(backend="zenoh", connect=[...], secret=...,
-placement=...)``: the same ``DeploySession``), and stamps its steps with ``time.time_ns()`` by
+placement=...)``: the same ``Deployment``), and stamps its steps with ``time.time_ns()`` by
 wrapping a few of its methods (``instrument``). Every namespace reads this machine's one clock,
 so wall-clock stamps taken in different hosts compare directly.
 
@@ -99,7 +99,7 @@ RETRIES = 1
 STACKS_S = 1.0
 #: seconds of the coordinator's own bound for every flow to say ready (its default): part 1, part 2
 STARTUP_S = 60.0
-#: the deploy default (DeploySession): from the last ``ready`` to T0
+#: the deploy default (Deployment): from the last ``ready`` to T0
 START_MARGIN_S = 0.5
 #: a wait for the flow processes of the last run to be gone from every daemon, before the next run
 IDLE_S = 30.0
@@ -144,15 +144,15 @@ def instrument(stamps: dict) -> None:
     ``ready`` (when it came, and the peers its worker had linked then), the moment every flow was
     ready (the ``start`` control, put right after T0 is chosen) with the CPU used by then; and
     print the error that makes a session close early (a hang in the close would hide it)."""
-    from retriever.backends.zenoh import session as session_module
-    from retriever.backends.zenoh.deploy import DeploySession
+    from retriever.backends.zenoh import coordinator as session_module
+    from retriever.backends.zenoh.deploy import Deployment
     from retriever.backends.zenoh.remote import RemoteHost
 
-    for cls, method, key in ((DeploySession, "__init__", "session"), (DeploySession, "_open_hub", "join"),
-                             (DeploySession, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
+    for cls, method, key in ((Deployment, "__init__", "session"), (Deployment, "_open_hub", "join"),
+                             (Deployment, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
                              (RemoteHost, "spawn", "spawn")):
         _time_calls(cls, method, key, stamps)
-    control, close, decode_status = (session_module.ZenohSession._control, session_module.ZenohSession.close,
+    control, close, decode_status = (session_module.Coordinator._control, session_module.Coordinator.close,
                                      session_module.decode_status)
     ready_at, ready_peers = stamps.setdefault("ready_at", {}), stamps.setdefault("ready_peers", {})
 
@@ -178,7 +178,7 @@ def instrument(stamps: dict) -> None:
                   f"started): {spans}", file=sys.stderr, flush=True)
         close(self)
 
-    session_module.ZenohSession._control, session_module.ZenohSession.close = timed_control, told_close
+    session_module.Coordinator._control, session_module.Coordinator.close = timed_control, told_close
     session_module.decode_status = noted_status
 
 
