@@ -38,7 +38,7 @@ from ...graph import Graph
 from ...trace import STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
-from .hub import await_segments_released, mapped_segments, open_hub
+from .hub import await_segments_released, mapped_segments, new_zid, open_hub
 from .loop import RESTART_SEQ_GAP
 from .host import Host, LocalHost, WorkerProcess
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
@@ -131,7 +131,10 @@ class Coordinator(Session):
             self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
                           "python_path": _python_path(), "main_file": _main_file(graph), "argv": list(sys.argv),
                           "spill_dir": str(self._dir), "access": access.to_spec(dictionary) if access else None,
-                          "startup_timeout": self.startup_timeout}
+                          "startup_timeout": self.startup_timeout,
+                          # each first process's session id, and the hub's: a worker says ready once
+                          # linked to its neighbours and the hub, whatever other peers it has
+                          "zids": {nid: new_zid() for nid in graph.nodes}, "hub_zid": str(self._hub.zid())}
             self._hosts = self._place()
             for nid in graph.nodes:
                 self._spawn(nid)
@@ -418,10 +421,13 @@ class Coordinator(Session):
         elif state == "ready" and info.get("linked") is False and self._failure is None:
             # peers do not route for each other: a worker without a link to another would never
             # get that one's events, nor it this one's
+            unlinked = info.get("unlinked")
+            unlinked = (", ".join(f"'{n:.60}'" for n in unlinked[:8] if type(n) is str)
+                        if type(unlinked) is list else "some of its neighbours")
             self._failure = (node, {"error": (
-                f"the worker of '{node}' has direct links to {info.get('peers')!r:.10} of the {len(self._state)} other "
-                f"processes of the run after {self.startup_timeout:g} s\n    hint: on a loaded machine, give it "
-                f"longer: pipe.run(..., startup_timeout=seconds)")})
+                f"the worker of '{node}' has no direct link to {unlinked} after {self.startup_timeout:g} s\n"
+                f"    hint: on a loaded machine, give it longer: pipe.run(..., startup_timeout=seconds); across "
+                f"machines, each must reach the others at the address it listens on (retriever-worker --listen)")})
             return
         elif state == "ready" and node in self._fresh:
             self._restart_afresh(node)

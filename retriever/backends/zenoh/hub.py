@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import socket
 import time
 
@@ -108,7 +109,8 @@ GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
 
 
 def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
-                access: dict[str, str] | None = None, lease: float | None = None) -> zenoh.Config:
+                access: dict[str, str] | None = None, lease: float | None = None,
+                zid: str | None = None) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
@@ -118,8 +120,11 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     segment in /dev/shm, which a SIGKILLed process leaves behind.
 
     ``access``: the config entries that make the session one of a run's (``access.py``:
-    authentication and access control); without it, the session admits anyone."""
+    authentication and access control); without it, the session admits anyone. ``zid``: the
+    session's Zenoh id (:func:`new_zid`), for one the others must know before it exists."""
     config = zenoh.Config()
+    if zid is not None:
+        config.insert_json5("id", json.dumps(zid))
     config.insert_json5("mode", '"peer"')
     config.insert_json5("scouting/multicast/enabled", "false")
     config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes(sessions=sessions)))
@@ -178,7 +183,7 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: in
 
 
 def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None,
-              listen: list[str] | None = None, lease: float | None = None) -> zenoh.Session:
+              listen: list[str] | None = None, lease: float | None = None, zid: str | None = None) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
@@ -187,7 +192,7 @@ def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | Non
     two workers exchange messages over the direct link that gossip (learning of each other from
     the hub) opens between them, which is also the fastest path."""
     return zenoh.open(peer_config(listen=listen or [endpoint(0)], connect=[hub_endpoint], sessions=sessions,
-                                  access=access, lease=lease))
+                                  access=access, lease=lease, zid=zid))
 
 
 def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], timeout: float,
@@ -208,6 +213,12 @@ def wait_for_answers(session: zenoh.Session, selector: str, keys: set[str], time
     return missing
 
 
+def new_zid() -> str:
+    """A random Zenoh session id, as ``str(session.zid())`` spells it (lowercase hex, 32 digits,
+    no leading zero): given to a session in its config, the others know it before it opens."""
+    return secrets.choice("123456789abcdef") + secrets.token_hex(16)[1:]
+
+
 def wait_for_peers(session: zenoh.Session, count: int, timeout: float, stop=lambda: False) -> bool:
     """Wait until ``session`` has direct links to ``count`` peers; False on timeout or ``stop()``."""
     give_up = time.monotonic() + timeout
@@ -216,3 +227,15 @@ def wait_for_peers(session: zenoh.Session, count: int, timeout: float, stop=lamb
             return False
         time.sleep(0.005)
     return True
+
+
+def wait_for_links(session: zenoh.Session, zids: set[str], timeout: float, stop=lambda: False) -> set[str]:
+    """Wait until ``session`` has a direct link to each of the sessions ``zids``: those it has
+    none to at the timeout or ``stop()`` (none: all linked). Counting links is not enough where
+    sessions of others (a worker daemon) are peers too."""
+    give_up = time.monotonic() + timeout
+    while missing := zids - {str(z) for z in session.info.peers_zid()}:
+        if time.monotonic() > give_up or stop():
+            return missing
+        time.sleep(0.005)
+    return set()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shutil
 import signal
 import subprocess
@@ -44,6 +45,7 @@ COORDINATOR_GRACE_S = 2.0
 #: lines of a process's output sent at most per event, and how long a line waits for company
 OUTPUT_BATCH = 64
 OUTPUT_FLUSH_S = 0.05
+MAX_LINE_BYTES = 1 << 16
 #: how many processes of one node may run at once: its own, and the one taking over while it restarts
 MAX_PROCESSES_PER_NODE = 2
 #: the signals a coordinator may send a run's process
@@ -231,17 +233,42 @@ class DaemonRuns:
         return local
 
     def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:
-        """Send what a process prints to the coordinator, in batches of lines."""
+        """Send what a process prints to the coordinator, in batches of lines: a batch goes when
+        it is full or its first line has waited OUTPUT_FLUSH_S, whether or not more output comes
+        (a stack dump's last lines are its most telling, and nothing may follow them)."""
+        fd = pipe.fileno()
         lines: list[str] = []
-        last = time.monotonic()
-        with pipe:
-            for raw in iter(pipe.readline, b""):
-                lines.append(raw.decode(errors="replace").rstrip("\r\n"))
-                if len(lines) >= OUTPUT_BATCH or time.monotonic() - last >= OUTPUT_FLUSH_S:
-                    self._tell("output", {"run": run_id, "node": node, "stream": stream, "lines": lines})
-                    lines, last = [], time.monotonic()
-        if lines:
+        partial = b""
+        first = 0.0  # when the oldest held line came
+
+        def send() -> None:
+            nonlocal lines
             self._tell("output", {"run": run_id, "node": node, "stream": stream, "lines": lines})
+            lines = []
+
+        with pipe:
+            while True:
+                wait = max(0.0, first + OUTPUT_FLUSH_S - time.monotonic()) if lines else None
+                if not select.select([fd], [], [], wait)[0]:
+                    send()  # the batch waited long enough
+                    continue
+                chunk = os.read(fd, 1 << 16)
+                if not chunk:
+                    break
+                *complete, partial = (partial + chunk).split(b"\n")
+                if len(partial) > MAX_LINE_BYTES:  # a line without end: sent in pieces, not held forever
+                    complete.append(partial)
+                    partial = b""
+                for raw in complete:
+                    if not lines:
+                        first = time.monotonic()
+                    lines.append(raw.decode(errors="replace").rstrip("\r"))
+                    if len(lines) >= OUTPUT_BATCH:
+                        send()
+        if partial:
+            lines.append(partial.decode(errors="replace").rstrip("\r"))
+        if lines:
+            send()
 
     def _await_exit(self, run_id: str, node: str, proc: subprocess.Popen) -> None:
         code = proc.wait()

@@ -276,7 +276,7 @@ def _serve(argv: list[str], parent: int) -> int:
 
     from ...codec import packb, unpackb
     from .access import RunAccess, TlsFiles
-    from .hub import open_peer, wait_for_answers, wait_for_peers
+    from .hub import open_peer, wait_for_answers, wait_for_links
     from .loop import _CONTROL, StopRun
     from .wire import RELIABLE, KeySpace, WireEncoder
 
@@ -286,8 +286,11 @@ def _serve(argv: list[str], parent: int) -> int:
     config = RunAccess.from_spec(spec["access"]) if spec.get("access") else None
     access = {**(config[0].session_config(config[1]) if config else {}),
               **(TlsFiles(**spec["tls"]).session_config() if spec.get("tls") else {})}  # a TLS deployment's links
+    # the first process of a node has the session id the others expect (a restarted one, whose
+    # old process may still be linked, has its own: it finds its neighbours by their answers)
+    zid = spec.get("zids", {}).get(node_id) if fresh is None and join is None else None
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
-                   listen=spec.get("listen"), lease=spec.get("lease")) as session:
+                   listen=spec.get("listen"), lease=spec.get("lease"), zid=zid) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
@@ -344,14 +347,23 @@ def _serve(argv: list[str], parent: int) -> int:
                 loop.declare_outputs()
             else:
                 loop.declare()
-                # a direct link to every other worker and the hub, before anything is published
-                linked = wait_for_peers(session, len(spec["ir"]["nodes"]), timeout=spec.get("startup_timeout", 60.0),
-                                        stop=lambda: loop.stopping)
+                # a direct link to the hub and each neighbour, before anything is published
+                # (peers do not route for each other)
+                unlinked = wait_for_links(session, _links_needed(spec, node_id),
+                                          timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
-                status("ready", linked=linked, peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
-                start = _await_control(loop, "start", node_id, ask=lambda: _ask_start(session, keys, loop))
+
+                def ready() -> None:
+                    status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
+                           peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
+
+                ready()
+                # said again with each ask: a put made as a link came up may reach the hub before
+                # its subscriptions did, and be dropped (the coordinator then waited for it forever)
+                start = _await_control(loop, "start", node_id,
+                                       ask=lambda: (ready(), _ask_start(session, keys, loop)))
                 if start is None:
                     status("done", counts=dict(loop.counts))
                     loop.undeclare()
@@ -390,6 +402,24 @@ def _serve(argv: list[str], parent: int) -> int:
         status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
     return 0
+
+
+def _links_needed(spec: dict, node_id: str) -> set[str]:
+    """The Zenoh ids of the sessions a node's first process must be linked to before it says
+    ready: the hub's, and its producers' and consumers' (an old spec without ids: none)."""
+    zids = spec.get("zids")
+    if not zids or not spec.get("hub_zid"):
+        return set()
+    neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
+                 if node_id in (e["source"]["node"], e["destination"]["node"])} - {node_id}
+    return {spec["hub_zid"], *(zids[n] for n in neighbors if n in zids)}
+
+
+def _names_of(spec: dict, zids: set[str]) -> list[str]:
+    """What the sessions ``zids`` are, by node name ("the coordinator" for the hub)."""
+    names = {z: n for n, z in spec.get("zids", {}).items()}
+    names[spec.get("hub_zid")] = "the coordinator"
+    return sorted(names.get(z, z) for z in zids)
 
 
 def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready) -> dict[str, int] | None:
