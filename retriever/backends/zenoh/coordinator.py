@@ -202,6 +202,7 @@ class Coordinator(Session):
         # afresh, by what became of the old process; per stream, the highest seq known (events
         # and records); event ids that records produced and no report carried yet
         self._fresh: dict[str, dict] = {}
+        self._restarted: dict[str, dict[str, int]] = {}  # a node started afresh: its seqs, till its next status
         self._unrecovered: list[dict] = []  # faults of processes not started afresh, logged at the end
         self._max_seq: dict[tuple[str, str], int] = {}
         self._unseen: set[tuple[str, str, int]] = set()
@@ -403,6 +404,8 @@ class Coordinator(Session):
             node_counts[name] = node_counts.get(name, 0) + n
         if state in ("done", "handed_over") and type(info.get("reports")) is int:
             self._reports_sent[node] += info["reports"]
+        if state != "ready":
+            self._restarted.pop(node, None)
         if state == "failed":
             self._failure = (node, info)
         elif state == "restart":  # its old process keeps listening until the new one takes over
@@ -431,6 +434,9 @@ class Coordinator(Session):
             return
         elif state == "ready" and node in self._fresh:
             self._restart_afresh(node)
+        elif state == "ready" and node in self._restarted:
+            # said again: it has not seen `restarted` yet (worker.START_ASK_S), nor, maybe, its consumers
+            self._control("restarted", {"node": node, "seqs": self._restarted[node]})
         elif state == "ready" and node in self._retiring:
             if self._state[node] == "done":  # the run ended while it restarted: stopped at close
                 return
@@ -609,6 +615,7 @@ class Coordinator(Session):
                     other.kill()
                 self._retired.append(other)
         self._control("lost", {"node": nid})
+        self._restarted.pop(nid, None)
         self._fresh[nid] = fault
         self._spawn(nid, join=(self.t0, self.end_ns), fresh=True)
 
@@ -620,6 +627,7 @@ class Coordinator(Session):
         for port, first in seqs.items():  # the consumers give up the seqs below: nothing to wait for
             self._have[(nid, port)] = max(self._have.get((nid, port), -1), first - 1)
         self._record_fault(self._fresh.pop(nid), seqs)
+        self._restarted[nid] = seqs
         self._control("restarted", {"node": nid, "seqs": seqs})
 
     def _record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:

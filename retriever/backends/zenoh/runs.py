@@ -28,6 +28,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import zenoh
@@ -71,6 +72,7 @@ class DaemonRuns:
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
         self.lease = lease  # its flows' links go silent as fast as its own (a partition)
+        self._spawner = ThreadPoolExecutor(1, thread_name_prefix="retriever-spawner")
         self.paths = [str(Path(p).resolve()) for p in paths]
         for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
             if folder not in sys.path:
@@ -145,9 +147,11 @@ class DaemonRuns:
         if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
             raise WireError(f"node '{node}' already runs in {len(live)} processes on worker '{self.name}' "
                             f"(pids {', '.join(map(str, live))})")
-        proc = subprocess.Popen([sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
-                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                start_new_session=True)
+        # from a thread that lives as long as the daemon: a worker gets PR_SET_PDEATHSIG when the
+        # thread that started it ends, which a thread of Zenoh's (this op's) may do at any time
+        proc = self._spawner.submit(
+            subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True).result()
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
             threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,
@@ -312,6 +316,7 @@ class DaemonRuns:
             self._end(self.run)
         self._coordinator_watch.undeclare()
         self._events.undeclare()
+        self._spawner.shutdown(wait=False)
 
 
 def cpu_seconds(pid: int) -> float | None:

@@ -61,11 +61,20 @@ READY_PADDING = 4096
 serving: str | None = None
 
 
+#: The signal a worker gets when the thread that started it dies (PR_SET_PDEATHSIG): its own, not
+#: SIGTERM, which a coordinator or daemon sends to stop a worker that goes on finishing. Told
+#: apart, a worker whose parent was SIGKILLed ends without a word, whatever ``_orphaned`` sees:
+#: a parent's threads die one by one, and the one that started it may be gone while
+#: /proc still shows the process alive (a daemon's worker then said "done" with a final
+#: frontier, and its consumer finished before the node's restart elsewhere could reach it).
+PARENT_DIED = signal.SIGUSR2
+
+
 def _die_with_parent() -> None:
-    """Linux: SIGTERM this process when its parent dies, so no worker outlives its run."""
+    """Linux: PARENT_DIED to this process when its parent dies, so no worker outlives its run."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        libc.prctl(1, PARENT_DIED)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
 
@@ -74,10 +83,13 @@ def _die_with_parent() -> None:
 #: says ready anyway (one that never answers has finished, or is stuck)
 NEIGHBOR_TIMEOUT_S = 10.0
 
-#: A worker that said ``ready`` and has not seen ``start`` after this long asks the coordinator's
-#: ``ctl/start`` queryable for it, and again every as long: a ``start`` put can be missed (at 50
-#: flows on 2 cores, 14 workers that said ready never saw it; the cause in Zenoh is not known),
-#: and a worker that missed it would wait until the run gave up on it.
+#: A worker that said ``ready`` and has not seen ``start`` after this long says ``ready`` again
+#: and asks the coordinator's ``ctl/start`` queryable for the start, and again every as long (a
+#: restarted one waiting for ``resume`` or ``restarted`` says ready again). Either put can be
+#: missed: one put as a link comes up may precede the subscriptions the other side declares on
+#: it, and Zenoh drops what has no known subscriber (at 50 flows on 2 cores, 14 workers that said
+#: ready never saw the start; a deployment waited for a ready that never came). A worker that
+#: missed it would wait until the run gave up on it.
 START_ASK_S = 0.5
 
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
@@ -307,13 +319,20 @@ def _serve(argv: list[str], parent: int) -> int:
         stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
 
         def on_sigterm(signum, frame) -> None:
-            # its parent died (PR_SET_PDEATHSIG): the run goes on without this process, which
-            # ends without a word, as if killed, promising its consumers nothing (not "done")
+            # asked to stop; when its parent is dead (a SIGTERM sent by someone else then), it
+            # ends as on PARENT_DIED
             loop.abandoned = _orphaned(parent)
             loop.stopping = True
             loop.inbox.put(stop_item)
 
+        def on_parent_died(signum, frame) -> None:
+            # the run goes on without this process, which ends without a word, as if killed,
+            # promising its consumers nothing (not "done")
+            loop.abandoned = loop.stopping = True
+            loop.inbox.put(stop_item)
+
         signal.signal(signal.SIGTERM, on_sigterm)
+        signal.signal(PARENT_DIED, on_parent_died)
         started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
         try:
@@ -337,8 +356,13 @@ def _serve(argv: list[str], parent: int) -> int:
                                  timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
                                  gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
                 t0, end = int(join[1]), int(join[2])
-                status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
-                if _await_control(loop, "resume", node_id) is None:
+                _link_to_hub(session, spec, loop)
+
+                def say_ready() -> None:
+                    status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
+
+                say_ready()
+                if _await_control(loop, "resume", node_id, ask=say_ready) is None:
                     status("done", counts=dict(loop.counts))
                     loop.undeclare()
                     return 0
@@ -415,6 +439,16 @@ def _links_needed(spec: dict, node_id: str) -> set[str]:
     return {spec["hub_zid"], *(zids[n] for n in neighbors if n in zids)}
 
 
+def _link_to_hub(session, spec: dict, loop: NodeLoop) -> None:
+    """Wait (NEIGHBOR_TIMEOUT_S at most) for a direct link to the coordinator's session: a
+    process on another machine joins through its worker daemon and finds the hub by gossip,
+    and a status it put before that link was up went nowhere (peers do not route)."""
+    from .hub import wait_for_links
+
+    if spec.get("hub_zid"):
+        wait_for_links(session, {spec["hub_zid"]}, NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping)
+
+
 def _names_of(spec: dict, zids: set[str]) -> list[str]:
     """What the sessions ``zids`` are, by node name ("the coordinator" for the hub)."""
     names = {z: n for n, z in spec.get("zids", {}).items()}
@@ -458,8 +492,9 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
                      timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
                      gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))})
     _drop_queued(loop, "restarted", node_id)  # the coordinator's comes after `ready`: one before is not its
+    _link_to_hub(session, spec, loop)
     ready()
-    args = _await_control(loop, "restarted", node_id)
+    args = _await_control(loop, "restarted", node_id, ask=ready)  # said again: see START_ASK_S
     if args is None:
         return None
     seqs = args.get("seqs")

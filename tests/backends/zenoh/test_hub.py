@@ -14,18 +14,23 @@ import sys
 import threading
 from pathlib import Path
 
+import zenoh
+
 from retriever.backends.zenoh.hub import (
     DEFAULT_PORT,
     SHM_POOL_MAX,
     SHM_POOL_MIN,
     SHM_POOL_RUN_MAX,
     SHM_POOL_SHARE,
+    endpoint,
     free_port,
+    new_zid,
     open_hub,
     open_peer,
     peer_config,
     port_is_free,
     shm_pool_bytes,
+    wait_for_links,
 )
 from retriever.backends.zenoh.wire import KeySpace, WireError, decode_data
 
@@ -180,3 +185,17 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     while not loop.inbox.empty():
         left.append(loop.inbox.get_nowait())
     assert left == [data]
+
+
+def test_a_session_given_a_new_zid_has_it_and_a_peer_waits_for_a_link_to_it_by_that_id():
+    zids = {new_zid() for _ in range(200)}
+    assert len(zids) == 200 and all(len(z) == 32 and z[0] != "0" and int(z, 16) for z in zids)
+    port = free_port()
+    mine, theirs, never = new_zid(), new_zid(), new_zid()
+    with zenoh.open(peer_config(listen=[endpoint(port)], zid=mine)) as listener:
+        assert str(listener.zid()) == mine  # as str(zid) spells it: the others compare by that
+        with open_peer(endpoint(port), zid=theirs) as joiner:
+            assert wait_for_links(listener, {theirs}, timeout=30.0) == set()
+            assert wait_for_links(joiner, {mine}, timeout=30.0) == set()
+            # one that never comes: named, once the bound is out
+            assert wait_for_links(joiner, {mine, never}, timeout=0.2) == {never}

@@ -40,7 +40,7 @@ import zenoh
 
 from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, RestartLimitError, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker import EXIT_ABANDONED, PARENT_DIED, build_loop
 from retriever.log import replay
 
 from .lifecycle_flows import (Count, Counter, ExitOnce, Looped, Nap, Scaled, SegfaultOnce, Sink, Total,
@@ -1258,3 +1258,35 @@ def test_a_script_that_runs_its_pipeline_when_imported_is_refused_in_the_worker(
     assert 'hint: start the run under `if __name__ == "__main__":`' in result.stderr
     stopped = [line for line in last if line.strip().startswith("retriever.errors.BackendError: zenoh run stopped")]
     assert len(stopped) == 1, result.stderr  # no run nested inside the worker
+
+
+def test_a_worker_whose_parent_died_ends_without_a_word_though_its_parent_still_looks_alive(namespace):
+    """PR_SET_PDEATHSIG comes when the *thread* that started a worker ends: of a SIGKILLed
+    daemon, maybe while /proc still shows the daemon alive. The worker must not take it for a
+    request to stop and finish ("done", a final frontier: its consumer finished, and the node's
+    restart elsewhere never reached it): it ends without a word (exit 4), as if killed."""
+    pipe = two_node_pipeline("parentdied")
+    pids: dict[str, int] = {}
+    done = threading.Event()
+
+    def told() -> None:
+        deadline = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < deadline:
+            session = pipe._session
+            if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 0:
+                pids.update(session.worker_pids())
+                os.kill(pids["counter"], PARENT_DIED)  # this process, its parent, alive and well
+                return
+            time.sleep(POLL_S)
+
+    thread = threading.Thread(target=told, daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(BackendError) as caught:
+            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True)
+    finally:
+        done.set()
+        thread.join(timeout=BOUND_S)
+    assert pids, "the run was never seen going"
+    message = str(caught.value)
+    assert f"'counter' (pid {pids['counter']})" in message and f"exited with code {EXIT_ABANDONED}" in message, message
