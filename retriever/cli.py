@@ -18,7 +18,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .backends import default_backend
-from .errors import LogWriteError, RetrieverError, RetrieverWarning
+from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
@@ -112,10 +112,17 @@ def run(
         help="zenoh: a deployment secret file (>= 16 bytes, mode 600) the run's passwords derive from, so "
              "that processes holding it can join the run's namespace (--namespace).")] = None,
     namespace: Annotated[Optional[str], typer.Option(help="zenoh: the run's namespace (default: a fresh one).")] = None,
+    virtual_time: Annotated[bool, typer.Option(
+        "--virtual-time", help="zenoh: one process per flow, advanced in lockstep in logical time: the trace is "
+                               "inproc's; --duration is then virtual seconds.")] = False,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
+    if virtual_time:
+        if (backend or default_backend()) != "zenoh":
+            _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)"))
+        options["virtual_time"] = True
     _execute(_load(target), duration, backend, log, force, allow_errors, options,
              f"{duration:g} s on {backend or default_backend()}")
 
@@ -170,6 +177,10 @@ def deploy(
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    virtual_time: Annotated[bool, typer.Option(
+        "--virtual-time", help="Advance every node in lockstep from the coordinator, in logical time: the trace "
+                               "is the in-process backend's, however long the steps take; --duration is then "
+                               "virtual seconds.")] = False,
     config: Annotated[Optional[Path], typer.Option(
         metavar="deploy.toml", help="Settings from this TOML file (keys as the flags: connect, placement, "
                                     "secret, tls_ca, ...); flags override it.")] = None,
@@ -186,7 +197,7 @@ def deploy(
     flags = {"connect": connect, "listen": listen, "namespace": namespace, "placement": placement,
              "duration": duration, "log": log, "secret": secret, "insecure": insecure or None,
              "on_worker_loss": on_worker_loss, "lease": lease, "tls_ca": tls_ca, "tls_cert": tls_cert,
-             "tls_key": tls_key}
+             "tls_key": tls_key, "virtual_time": virtual_time or None}
     if secret is not None or insecure:  # a flag's choice of security replaces the file's
         given.pop("secret", None), given.pop("insecure", None)
     settings = {"namespace": "default", "duration": 10.0, "on_worker_loss": "replace", **given,
@@ -195,12 +206,14 @@ def deploy(
     options = {"connect": list(get("connect", [])), "listen": list(get("listen", [])),
                "namespace": get("namespace"), "placement": None if get("placement") is None else str(get("placement")),
                "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
-               "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key"))}
+               "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key")),
+               "virtual_time": bool(get("virtual_time"))}
     if get("max_clock_offset") is not None:
         options["max_clock_offset"] = get("max_clock_offset")
     log = None if get("log") is None else Path(get("log"))
     _execute(_load(target), get("duration"), "zenoh", log, force, allow_errors, options,
-             f"{get('duration'):g} s on the workers of namespace '{get('namespace')}'", live=get("namespace"))
+             f"{get('duration'):g} s{' of virtual time' if get('virtual_time') else ''} on the workers of namespace "
+             f"'{get('namespace')}'", live=get("namespace"))
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,

@@ -501,7 +501,7 @@ def test_ex6_skipped_tick_consumes_nothing(backend, check_trace):
         cam.then(pol, sync=Latest(), map={"value": "img"})
         ticker.then(pol, sync=Queue(), map={"value": "q"})
         once.then(pol, sync=LatestDistinct(), map={"value": "ld"})
-    trace = pipe.run(duration=0.65, backend=backend)
+    trace = pipe.run(duration=0.65, backend=backend)  # ex6
     check_trace(pipe, trace)
     for t in (0, 200 * MS):
         rec = step_at(trace, "pol", (t, 0))
@@ -1028,8 +1028,11 @@ def test_on_error_stop_raises_step_error(backend):
     assert err.node == "flaky"
     assert err.tag == (300 * MS, 0)
     assert "flaky" in str(err) and "t=0.300000000s m=0" in str(err)
-    assert isinstance(err.__cause__, ValueError)
-    assert str(err.__cause__) == "boom at 3"
+    if backend == "inproc":
+        assert isinstance(err.__cause__, ValueError)
+        assert str(err.__cause__) == "boom at 3"
+    else:  # raised in another process: its type and message, as text (nothing is unpickled)
+        assert "ValueError: boom at 3" in str(err)
     assert step_at(pipe.trace, "flaky", (300 * MS, 0)).status == "error"
     assert [v for _, v in saw(pipe.trace, "sink")] == [0, 1, 2]
 
@@ -1121,6 +1124,7 @@ def _load_quickstart(monkeypatch):
     spec = importlib.util.spec_from_file_location("quickstart", QUICKSTART)
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "quickstart", module)
+    monkeypatch.syspath_prepend(str(QUICKSTART.parent))  # where another process imports it from
     spec.loader.exec_module(module)
     return module
 

@@ -86,8 +86,20 @@ class Coordinator(Session):
 
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
                  start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
-                 secret: str | os.PathLike | bytes | None = None):
+                 secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False):
         super().__init__(graph)
+        #: lockstep virtual time (loop.py): the trace is the in-process backend's, however long it takes
+        self.virtual_time = bool(virtual_time)
+        self._granted = 0  # virtual time: the ticks below this (ns since T0) may run
+        self._reached: dict[str, int] = {}  # per node, the last grant it said it reached
+        self._last_grant = (0.0, 0.0)  # (when granted, when put last), monotonic s
+        if self.virtual_time and graph.instantaneous_cycles:
+            cycle = graph.instantaneous_cycles[0]
+            raise BackendError(
+                f"zenoh in virtual time cannot run the instantaneous cycle {' → '.join([*cycle, cycle[0]])} (yet): "
+                "each of its flows waits for the other's promise of what comes next, one microstep at a time\n"
+                "    hint: give an edge of the cycle a delay= or a flow on it a latency=, or run it on inproc "
+                "(virtual time too) or on zenoh in real time")
         _refuse_in_a_worker(graph)
         self._check_deployable()
         self.namespace = namespace or f"run-{os.getpid()}-{secrets.token_hex(3)}"
@@ -134,7 +146,8 @@ class Coordinator(Session):
                           "startup_timeout": self.startup_timeout,
                           # each first process's session id, and the hub's: a worker says ready once
                           # linked to its neighbours and the hub, whatever other peers it has
-                          "zids": {nid: new_zid() for nid in graph.nodes}, "hub_zid": str(self._hub.zid())}
+                          "zids": {nid: new_zid() for nid in graph.nodes}, "hub_zid": str(self._hub.zid()),
+                          "virtual_time": self.virtual_time}
             self._hosts = self._place()
             for nid in graph.nodes:
                 self._spawn(nid)
@@ -262,11 +275,20 @@ class Coordinator(Session):
                         time.monotonic() + self.startup_timeout, "start")
             self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             self.end_ns = until_ns
-            self._control("start", {"t0": self.t0, "end": until_ns})
-            slack = max(self._deadlines(), 1.0) + 10.0
-            self._await(lambda: all(s == "done" for s in self._state.values())
-                        and all(self._reports[n] >= self._reports_sent[n] for n in self._reports),
-                        time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
+
+            def finished() -> bool:
+                return (all(s == "done" for s in self._state.values())
+                        and all(self._reports[n] >= self._reports_sent[n] for n in self._reports))
+
+            if self.virtual_time:
+                self._granted = min(self._window_ns(), until_ns)
+                self._last_grant = (time.monotonic(), time.monotonic())
+                self._control("start", {"t0": self.t0, "end": until_ns, "grant": self._granted})
+                self._await(lambda: self._lockstep() and finished(), float("inf"), "finish")
+            else:
+                self._control("start", {"t0": self.t0, "end": until_ns})
+                slack = max(self._deadlines(), 1.0) + 10.0
+                self._await(finished, time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
             self._stop_workers()  # their last reports, then: which outputs died with a process
             self._record_faults_left()
@@ -299,6 +321,49 @@ class Coordinator(Session):
                                "though their clocks had ticks due:\n" + "\n".join(idle)
                                + "\n    hint: a machine too loaded to start the run's processes in time needs a "
                                f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
+
+    # ---------------------------------------------------------------------------------------
+    # Lockstep virtual time (see loop.py's docstring)
+    # ---------------------------------------------------------------------------------------
+    #: how far each grant reaches past the last, in virtual ns: the nodes run that much of the
+    #: run between two barriers (a source never runs further ahead of its slowest consumer)
+    LOCKSTEP_WINDOW_NS = 50_000_000
+    #: how long (wall) without a grant reached before it is put again (a put may be missed), and
+    #: before the run fails naming the nodes that did not reach it
+    REGRANT_S = 0.5
+    LOCKSTEP_STALL_S = 120.0
+
+    def log_metadata(self) -> dict[str, str]:
+        """``time``: a run in lockstep virtual time says so (its wall times mean nothing)."""
+        return {"time": "virtual"} if self.virtual_time else {}
+
+    def _window_ns(self) -> int:
+        return self.LOCKSTEP_WINDOW_NS
+
+    def _lockstep(self) -> bool:
+        """Grant the next window once every node not done has reached this one; whether the
+        last grant (the run's end) is out. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
+        now = time.monotonic()
+        behind = sorted(n for n, s in self._state.items() if s != "done" and self._reached.get(n, -1) < self._granted)
+        if not behind and self._granted < self.end_ns:
+            self._granted = min(self._granted + self._window_ns(), self.end_ns)
+            self._last_grant = (now, now)
+            self._control("grant", {"until": self._granted})
+            return False
+        if behind and now - self._last_grant[1] > self.REGRANT_S:  # a put may be missed: again
+            self._last_grant = (self._last_grant[0], now)
+            self._control("grant", {"until": self._granted})
+        if now - self._last_grant[0] > self.LOCKSTEP_STALL_S:
+            waiting = behind or sorted(n for n, s in self._state.items()
+                                       if s != "done" or self._reports[n] < self._reports_sent[n])
+            self._dump_stacks(waiting, show=False)
+            raise BackendError(
+                f"zenoh run (virtual time): worker(s) {', '.join(waiting)} did not "
+                + (f"reach t={self._granted / 1e9:g} s" if behind else "finish")
+                + f" within {self.LOCKSTEP_STALL_S:g} s of wall time\n"
+                + "".join(f"    {n} stderr (its stacks last):\n{self._stderr_tail(n, 60)}\n" for n in waiting)
+                + "    hint: the stacks show where a step that did not return is")
+        return self._granted >= self.end_ns
 
     def _deadlines(self) -> float:
         deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
@@ -395,6 +460,15 @@ class Coordinator(Session):
             self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
                                          f"which is not the process of {node} that could say it"))
             return
+        if state == "reached":  # virtual time: from the node's own process, a grant it has had
+            until = info.get("until")
+            if (not self.virtual_time or self._workers.get(node) is None or info.get("pid") != self._workers[node].pid
+                    or type(until) is not int or until > self._granted):
+                self._garbage(key, WireError(f"a 'reached' status of {node} ({until!r:.30}, pid "
+                                             f"{info.get('pid')!r:.20}) that is not of its process, of a grant made"))
+                return
+            self._reached[node] = max(self._reached.get(node, -1), until)
+            return
         counts = info.get("counts", {})
         if type(counts) is not dict or not all(type(k) is str and type(v) is int for k, v in counts.items()):
             self._garbage(key, WireError(f"status of {node} with counts that are not names and integers"))
@@ -457,10 +531,16 @@ class Coordinator(Session):
         return max(0, time.time_ns() - self.t0) if self.t0 is not None else 0
 
     def _answer_finished(self, query) -> None:
-        """Which nodes are done, and which start afresh after their process died (a restarted
-        flow's process waits for answers from the others, but from these)."""
-        done = sorted(node for node, state in list(self._state.items()) if state == "done")
-        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done,
+        """Which nodes are done, which of them have every report in, and which start afresh
+        after their process died (a restarted flow's process waits for answers from the others,
+        but from these)."""
+        states = list(self._state.items())
+        done = sorted(node for node, state in states if state == "done")
+        # and whose every report is in: their processes may now close their sessions (worker.py,
+        # REPORTS_TAKEN_S)
+        complete = sorted(node for node, state in states if state in ("done", "handed_over")
+                          and self._reports.get(node, 0) >= self._reports_sent.get(node, 0))
+        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done, "complete": complete,
                                                                              "restarting": sorted(self._fresh)}))
 
     def _answer_start(self, query) -> None:

@@ -60,7 +60,7 @@ class Deployment(Coordinator):
                  placement: Placement | str | None = None, secret=None, insecure: bool = False,
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
                  max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
-                 lease: float | None = None, tls: TlsFiles | None = None):
+                 lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -91,7 +91,7 @@ class Deployment(Coordinator):
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
-                         quiet=quiet, secret=secret)
+                         quiet=quiet, secret=secret, virtual_time=virtual_time)
 
     # -- the coordinator's steps, for workers elsewhere ----------------------------------------
     def _check_deployable(self) -> None:
@@ -343,7 +343,8 @@ class Deployment(Coordinator):
         """``deployment``: which worker ran each node, and what each worker said of itself."""
         workers = {name: {k: info.get(k) for k in ("host", "pid", "labels", "python", "packages", "offset_ns")}
                    for name, info in self.workers.items()}
-        return {"deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers},
+        return {**super().log_metadata(),
+                "deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers},
                                          sort_keys=True)}
 
     def _release_hosts(self) -> None:
@@ -389,7 +390,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
 
 #: what a deploy.toml may hold, with the kind of each value: the flags of retriever deploy
 DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "namespace": "text", "placement": "path",
-                 "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool",
+                 "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool", "virtual_time": "bool",
                  "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
                  "tls_ca": "path", "tls_cert": "path", "tls_key": "path"}
 

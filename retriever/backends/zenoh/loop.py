@@ -13,6 +13,14 @@ Tags are ``(ns since T0, microstep)``. A *frontier* is a producer's promise: eve
 it has a tag ``≥`` the frontier. Producers send theirs on data messages, on progress messages
 after ticks whose outputs do not carry it, and on demand: a consumer kept waiting by an idle or
 busy producer asks its ``progress/<node>`` queryable, which answers from the producer's state.
+
+Virtual time (``virtual=True``, ``retriever deploy --virtual-time``): the same loop with logical
+time only, so that the run's trace is the in-process backend's. A tick runs once its inputs are
+complete, however long that takes (no deadline), outputs are stamped as in-process ((t, m + 1),
+or (t + latency, 0) published at once), nothing overruns, and the wall clock only paces waiting
+and asking. The coordinator advances all nodes in lockstep: a node runs the ticks below its
+*grant* (control ``grant`` {until}), then says ``reached`` {until} (a status) and waits; once every
+node not done has reached it, the coordinator grants the next window (coordinator.py).
 """
 
 from __future__ import annotations
@@ -103,6 +111,10 @@ WARM_AFTER_IDLE_NS = 4_000_000
 #: inputs: where a tick runs changes how soon, never what.
 INLINE_STEP_NS = 1_000_000
 
+#: virtual time: how long a loop at its grant, or with no tick known below it, waits before
+#: looking again (any message wakes it sooner: the next grant, a frontier)
+VIRTUAL_IDLE_NS = 100_000_000
+
 #: while its flow is being restarted, how often a loop with a tick due looks again (it also
 #: wakes for every message, the coordinator's handover among them)
 RESTART_POLL_NS = 50_000_000
@@ -142,12 +154,19 @@ class NodeLoop:
                  inputs: list[tuple], fallbacks: dict, *, realtime: str,
                  ports: list[str] | None = None, consumed: bool = True, spill_dir: str | None = None,
                  inline: bool = False, cycle: list[str] | None = None, instant_ports: frozenset = frozenset(),
-                 max_microsteps: int = 1000):
+                 max_microsteps: int = 1000, virtual: bool = False):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
         self.fallbacks = fallbacks
         self.realtime = realtime
+        # virtual time (see the module docstring): ticks below `granted` (ns since T0) may run;
+        # `reached`, the last grant this node said it reached; on_reached(until) says so
+        self.virtual = virtual
+        self.granted = 0
+        self.reached = -1
+        self.on_reached = None
+        self.blocked: tuple[tuple[int, int], int] | None = None  # (tick, since when, wall ns): waiting for inputs
         settings = node.settings
         self.latency_ns = settings.latency_ns
         self.on_error, self.on_overrun, self.on_deadline_miss = (
@@ -334,6 +353,8 @@ class NodeLoop:
                 own = NEVER
             elif self.latency_ns:
                 own = (lower[0] + self.latency_ns, 0)
+            elif self.virtual:
+                own = (lower[0], lower[1] + 1)
             else:
                 # the tick in progress, or the next, is stamped past the last stamp and the HLC now
                 stamp = self.last_stamp + 1 if sent else max(self.hlc(), self.last_stamp + 1)
@@ -366,7 +387,7 @@ class NodeLoop:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
         self.t0, self.end = t0, end
-        if resume:
+        if resume and not self.virtual:  # (in virtual time no tick came due meanwhile: time waited)
             self._skip_missed_ticks(self.now(), "restart_skipped", "restart_skipped")
         elif self.clock.hz is not None:
             with self.lock:
@@ -464,9 +485,15 @@ class NodeLoop:
             tau = self.next_rate
             if self.pending and (tau is None or self.pending[0] < tau):
                 tau = self.pending[0]
-        if tau is None or tau[0] >= self.end:
+        if self.virtual:
+            bound = self._next_tick_bound()
+            if bound >= (self.end, 0) or bound >= (self.granted, 0):
+                return self._done_waiting(now) if bound >= (self.end, 0) else self._at_grant(now)
+            if tau is None or tau >= (self.granted, 0):  # a tick below the grant may still be triggered
+                return self._ask_triggers(now)
+        elif tau is None or tau[0] >= self.end:
             return self._done_waiting(now)
-        if tau[0] > now:
+        elif tau[0] > now:
             return tau[0]
         if self.restarting:  # due, but the flow is being restarted: the new process will run it
             return now + RESTART_POLL_NS
@@ -492,12 +519,45 @@ class NodeLoop:
             f = self._edge_frontier(e)
             if f > tau:
                 continue
+            if self.virtual:  # no deadline: wait for it, asking its producer now and then
+                since = self._blocked_since(tau, now)
+                again = self._ask(e.src, now, since)
+                wake = again if wake is None else min(wake, again)
+                continue
             if now >= tau[0] + e.deadline_ns:
                 late_ports.append(e.port)
                 continue
             wake = min(tau[0] + e.deadline_ns, wake if wake is not None else tau[0] + e.deadline_ns,
                        self._ask(e.src, now, tau[0]))
         return sorted(set(late_ports)), wake
+
+    def _blocked_since(self, tau: tuple[int, int], now: int) -> int:
+        """Virtual time: since when (wall, ns since T0) the tick ``tau`` waits for its inputs."""
+        if self.blocked is None or self.blocked[0] != tau:
+            self.blocked = (tau, now)
+        return self.blocked[1]
+
+    def _ask_triggers(self, now: int) -> int:
+        """Virtual time: no tick below the grant is known, but a trigger edge may still bring one:
+        ask its producer for its frontier now and then; when to look again."""
+        wake = now + VIRTUAL_IDLE_NS
+        since = self._blocked_since((self.granted, -1), now)
+        for e in self.edges:
+            if e.triggers and self._edge_frontier(e) < (self.granted, 0):
+                wake = min(wake, self._ask(e.src, now, since))
+        return wake
+
+    def _at_grant(self, now: int) -> int:
+        """Virtual time: every tick below the grant has run; say so once (with this node's
+        frontier to its consumers first), then wait for the next grant."""
+        if self.reached < self.granted and not self.restarting:  # (the new process will say it)
+            self.reached = self.granted
+            if self.consumed:
+                self._publish_progress()
+            self.flush()
+            if self.on_reached is not None:
+                self.on_reached(self.granted)
+        return now + VIRTUAL_IDLE_NS
 
     def _ask(self, src: str, now: int, since: int) -> int:
         """Ask a producer for its frontier once a wait has lasted ``PROBE_AFTER_NS`` past
@@ -529,7 +589,7 @@ class NodeLoop:
             if not e.triggers:
                 continue
             f = self._edge_frontier(e)
-            if f >= end_tag or now >= self.end + e.deadline_ns:
+            if f >= end_tag or (now >= self.end + e.deadline_ns and not self.virtual):
                 continue
             again = min(self.end + e.deadline_ns, self._ask(e.src, now, self.end))
             wake = again if wake is None else min(wake, again)
@@ -605,6 +665,14 @@ class NodeLoop:
                 self.stopping = self.handing_over = True
             elif op == "have":
                 self._coordinator_has(args)
+            elif op == "grant" and self.virtual:
+                until = args.get("until")
+                if type(until) is int and until >= 0:
+                    self.granted = max(self.granted, min(until, self.end))
+                    if until <= self.reached and self.on_reached is not None:  # our word was missed: again
+                        self.on_reached(self.reached)
+                else:
+                    self._garbage("ctl/run", WireError(f"a 'grant' control message with until {until!r:.30}"))
             elif op == "lost" and args.get("node") == self.id:
                 # the coordinator counts this process dead (its worker daemon hung or was cut off)
                 # and starts another: this one must not run on beside it, nor promise anything
@@ -745,7 +813,7 @@ class NodeLoop:
             return
         wall = time.time_ns() - start
         self.last_wall = wall
-        overran = self.period_ns and wall > self.period_ns
+        overran = self.period_ns and wall > self.period_ns and not self.virtual
         self._emit(tau, consumed, outputs, detail, start, wall,
                    "overrun" if overran else "incomplete" if incomplete else "ok")
         if overran:
@@ -759,6 +827,10 @@ class NodeLoop:
         seqs = self.seqs
         if self.latency_ns:
             tag = (tau[0] + self.latency_ns, 0)
+        elif self.virtual:  # as in-process: one microstep later
+            if tau[1] + 1 > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
+                self._zeno(tau)
+            tag = (tau[0], tau[1] + 1)
         else:
             microstep = tau[1] + 1 if self.instant_ports else 0
             if microstep > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
@@ -773,7 +845,7 @@ class NodeLoop:
             seqs[port] = seq + 1
             produced.append((self.id, port, seq))
             batch.append((tag, port, value, seq))
-        if self.latency_ns:
+        if self.latency_ns and not self.virtual:  # (in virtual time, LET outputs go at once: the tag says when)
             finished = start + wall - self.t0
             if finished > tag[0]:  # the step outlasted its logical execution time
                 self.counts["deadline_miss"] += 1

@@ -346,7 +346,8 @@ def decode_status(data: bytes) -> tuple[str, str, dict]:
 
 
 #: what a worker says on status/node/<node> (worker.py)
-NODE_STATES = ("ready", "done", "failed", "restart", "handed_over")
+#: "reached": in virtual time, the node has run every tick below the coordinator's grant (loop.py)
+NODE_STATES = ("ready", "done", "failed", "restart", "handed_over", "reached")
 
 
 def decode_control(data: bytes) -> tuple[str, dict]:

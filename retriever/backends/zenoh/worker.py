@@ -92,6 +92,12 @@ NEIGHBOR_TIMEOUT_S = 10.0
 #: missed it would wait until the run gave up on it.
 START_ASK_S = 0.5
 
+#: After its last status (done, handed over), a worker keeps its session open until the coordinator
+#: has every report it sent, at most this long. A report over 3 KiB goes through Zenoh's shared
+#: memory, and one whose sender had closed its session by the time the receiver read it was
+#: dropped (the sender's buffers no longer valid): the coordinator waited for it forever.
+REPORTS_TAKEN_S = 5.0
+
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
 #: to), then the process exits anyway: a flow stuck in its step never looks at the request
 ORPHAN_GRACE_S = 3.0
@@ -197,7 +203,7 @@ def build_loop(spec: dict, node_id: str, session):
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
                     inline=not on_a_cycle(ir.edges, node_id),
                     cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
-                    max_microsteps=meta.get("max_microsteps", 1000))
+                    max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")))
 
 
 def instant_ports(ir, node_id: str) -> frozenset[str]:
@@ -335,6 +341,8 @@ def _serve(argv: list[str], parent: int) -> int:
         signal.signal(PARENT_DIED, on_parent_died)
         started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
         loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
+        if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
+            loop.on_reached = lambda until: status("reached", until=until)
         try:
             if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
                 t0, end = int(fresh[1]), int(fresh[2])
@@ -375,6 +383,13 @@ def _serve(argv: list[str], parent: int) -> int:
                 # (peers do not route for each other)
                 unlinked = wait_for_links(session, _links_needed(spec, node_id),
                                           timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
+                # and each producer knows this node's subscriptions: its answer to a query comes
+                # on the link after them (an event put before that went to no one: a gap in its
+                # stream's seqs that no frontier crosses, and this node waited for it forever)
+                producers = {e["source"]["node"] for e in spec["ir"]["edges"]
+                             if e["destination"]["node"] == node_id} - {node_id}
+                wait_for_answers(session, keys.all_progress(), {keys.progress(p) for p in producers},
+                                 timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
@@ -393,6 +408,8 @@ def _serve(argv: list[str], parent: int) -> int:
                     loop.undeclare()
                     return 0
                 t0, end = int(start["t0"]), int(start["end"])
+                if loop.virtual:  # lockstep: the ticks below the first grant may run
+                    loop.granted = max(0, min(int(start.get("grant", 0)), end))
                 # after T0 when the start came late (a loaded machine): after the end, no tick ran
                 started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
             loop.run(t0, end, resume=join is not None)
@@ -422,9 +439,11 @@ def _serve(argv: list[str], parent: int) -> int:
             tmp.write_bytes(state)
             tmp.replace(handover_file)
             status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
+            _await_reports_taken(session, keys, node_id)
             return EXIT_HANDED_OVER
         status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
         loop.undeclare()
+        _await_reports_taken(session, keys, node_id)
     return 0
 
 
@@ -533,10 +552,16 @@ def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
 def _coordinator_says(session, keys) -> tuple[set[str], set[str]]:
     """The nodes the coordinator knows are done (they will not answer, nor send, again), and
     those starting afresh after their process died."""
+    said = _finished(session, keys) or {}
+    return said.get("nodes", set()), said.get("restarting", set())
+
+
+def _finished(session, keys) -> dict[str, set[str]] | None:
+    """The coordinator's ``finished`` answer: ``nodes`` (done), ``complete`` (done, every report
+    in), ``restarting``; None when it did not answer."""
     from .wire import WireError, decode_control
 
-    done: set[str] = set()
-    restarting: set[str] = set()
+    said: dict[str, set[str]] | None = None
     for reply in session.get(keys.finished(), timeout=0.25):
         if reply.ok is None:
             continue
@@ -544,11 +569,23 @@ def _coordinator_says(session, keys) -> tuple[set[str], set[str]]:
             _, args = decode_control(reply.ok.payload.to_bytes())
         except WireError:
             continue
-        for found, key in ((done, "nodes"), (restarting, "restarting")):
+        said = said or {"nodes": set(), "complete": set(), "restarting": set()}
+        for key, found in said.items():
             names = args.get(key)
             if type(names) is list:
                 found.update(n for n in names if type(n) is str)
-    return done, restarting
+    return said
+
+
+def _await_reports_taken(session, keys, node_id: str) -> None:
+    """After its last status, until the coordinator has every report of this node (its
+    ``finished`` answer says so), at most REPORTS_TAKEN_S, or until it does not answer."""
+    give_up = time.monotonic() + REPORTS_TAKEN_S
+    while time.monotonic() < give_up:
+        said = _finished(session, keys)
+        if said is None or node_id in said["complete"]:
+            return
+        time.sleep(0.02)
 
 
 def _ask_start(session, keys, loop: NodeLoop) -> None:
