@@ -7,6 +7,7 @@ waits are bounded polls on what the processes print.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import secrets
 import select
@@ -78,6 +79,31 @@ def test_a_deployment_runs_across_three_hosts_as_placed_and_its_log_replays(host
     trace = read_log(log).trace()
     assert len(trace.steps_of("counter")) >= 50 and len(trace.steps_of("sink")) >= 40
     assert replay(read_log(log)).identical
+
+
+def test_in_virtual_time_a_deployment_across_hosts_has_the_in_process_trace(hosts, secret, tmp_path):
+    """--virtual-time: the conformance suite's flows (every clock and policy, LET, a delayed
+    cycle) on two workers of other hosts, advanced in lockstep by the coordinator on a third:
+    the log's trace is the in-process backend's, tick for tick and value for value, and replays."""
+    coordinator, arm, gpu = hosts
+    repo = str(HERE.parents[1])
+    start_worker(arm, "arm-pc", secret, "--path", repo)
+    start_worker(gpu, "gpu-box", secret, "--path", repo)
+    log = tmp_path / "run.mcap"
+    done = deploy(coordinator, [arm, gpu], secret, f"{HERE / 'lockstep_flows.py'}:pipe", "--virtual-time",
+                  "--duration", "1", "--log", str(log))
+    assert done.returncode == 0, done.stdout + done.stderr
+    recorded = read_log(log)
+    placed = json.loads(recorded.run["deployment"])["placed"]
+    assert set(placed.values()) == {"arm-pc", "gpu-box"}, placed  # spread by load: both hosts ran nodes
+    assert recorded.run["time"] == "virtual"
+    spec = importlib.util.spec_from_file_location("lockstep_flows", HERE / "lockstep_flows.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    reference = module.pipe.run(duration=1.0, backend="inproc")
+    trace = recorded.trace()
+    assert trace.first_difference(reference) is None and trace.digest() == reference.digest()
+    assert replay(recorded).identical
 
 
 def test_a_placement_that_cannot_be_met_is_refused_before_anything_starts(hosts, secret, tmp_path):

@@ -234,6 +234,7 @@ class DaemonRuns:
         local["listen"] = [f"{proto}/{host}:0"]
         local["tls"] = vars(self.tls) if self.tls is not None else None
         local["lease"] = None  # Zenoh's: see the note on the partition test (tests/deploy)
+        local.update(_checked_timing(spec, set(known_nodes(local))))
         return local
 
     def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:
@@ -317,6 +318,29 @@ class DaemonRuns:
         self._coordinator_watch.undeclare()
         self._events.undeclare()
         self._spawner.shutdown(wait=False)
+
+
+def known_nodes(spec: dict) -> list[str]:
+    return [n.get("id") for n in spec.get("ir", {}).get("nodes", []) if isinstance(n, dict)]
+
+
+def _checked_timing(spec: dict, nodes: set[str]) -> dict:
+    """What a coordinator's spec says of the processes' start and time, checked: the Zenoh ids
+    of each node's first process and of its own session (worker.py waits for links to them), and
+    whether the run is in virtual time. A malformed one is refused (WireError), not guessed at."""
+    zids, hub_zid, virtual = spec.get("zids", {}), spec.get("hub_zid"), spec.get("virtual_time", False)
+
+    def zid_ok(z) -> bool:
+        return type(z) is str and 1 <= len(z) <= 32 and all(c in "0123456789abcdef" for c in z) and z[0] != "0"
+
+    if (type(zids) is not dict or not all(type(k) is str and k in nodes and zid_ok(v) for k, v in zids.items())
+            or len(set(zids.values())) != len(zids)):
+        raise WireError("the spec's zids are not one distinct Zenoh id (lowercase hex) per node of its IR")
+    if hub_zid is not None and not zid_ok(hub_zid):
+        raise WireError(f"the spec's hub_zid {hub_zid!r:.40} is not a Zenoh id (lowercase hex)")
+    if type(virtual) is not bool:
+        raise WireError(f"the spec's virtual_time {virtual!r:.20} is not true or false")
+    return {"zids": zids, "hub_zid": hub_zid, "virtual_time": virtual}
 
 
 def cpu_seconds(pid: int) -> float | None:

@@ -330,7 +330,14 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                 ask(session, namespace, "w", op, args)
         for args in ({"run": "r1", "spec": {"ir": {"nodes": "x"}}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc()}, "nodes": ["nobody"]},
-                     {"run": 7, "spec": {}, "nodes": []}):
+                     {"run": 7, "spec": {}, "nodes": []},
+                     # what the processes' start and time rest on: ids of Zenoh sessions, the clock's kind
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "0bad"}}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "a" * 33}}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"ghost": "abc"}}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": ["abc"]}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "hub_zid": "../etc"}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
                 ask(session, namespace, "w", "prepare", args)
         ask(session, namespace, "w", "prepare", {"run": "r2", "spec": {"ir": _ir_doc(), "namespace": namespace,
