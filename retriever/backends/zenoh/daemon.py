@@ -378,7 +378,10 @@ def ask(session: zenoh.Session, namespace: str, name: str, op: str, args: dict |
                 if got == op:
                     return answer
             else:
-                _, error = decode_control(reply.err.payload.to_bytes())
+                try:
+                    _, error = decode_control(reply.err.payload.to_bytes())
+                except WireError:  # Zenoh's own error reply (the query timed out): no answer
+                    break
                 raise WorkerError(f"worker '{name}' refused {op}: {error.get('message', '?')}")
         except WireError as e:
             raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None

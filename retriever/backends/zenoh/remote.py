@@ -84,7 +84,10 @@ class RemoteHost(Host):
         replies = list(self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S))
         for reply in replies:
             if reply.ok is None:
-                raise BackendError(f"worker '{self.name}' refused {op}: {_text(reply.err.payload.to_bytes())}")
+                message = _daemon_error(reply.err.payload.to_bytes())
+                if message is None:  # Zenoh's own error reply (its query timed out): no answer
+                    break
+                raise BackendError(f"worker '{self.name}' refused {op}: {message}")
             try:
                 _, answer = decode_control(reply.ok.payload.to_bytes())
             except WireError as e:
@@ -154,13 +157,12 @@ class RemoteHost(Host):
         self.garbage += 1
 
 
-def _text(data: bytes) -> str:
-    """What a daemon's error reply says (``[2, "error", {message}]``), or its bytes as text."""
+def _daemon_error(data: bytes) -> str | None:
+    """What a daemon's error reply says (``[2, "error", {message}]``); None for an error reply
+    that is not a daemon's (Zenoh's own, "Timeout", when the query went unanswered)."""
     try:
         _, args = decode_control(data)
-        message = args.get("message")
-        if type(message) is str:
-            return message[:4000]
     except WireError:
-        pass
-    return data.decode("utf-8", errors="replace")[:2000]
+        return None
+    message = args.get("message")
+    return message[:4000] if type(message) is str else "(an error without a message)"

@@ -561,3 +561,19 @@ def test_a_deployment_refuses_a_worker_of_another_protocol_and_one_whose_clock_i
             for item in declared:
                 item.undeclare()
             pipe.reset()
+
+
+def test_a_daemon_that_does_not_answer_is_said_to_not_answer_not_to_refuse(workers, namespace):
+    """A hung daemon (SIGSTOP): Zenoh ends the query with an error reply of its own ("Timeout"),
+    which is no refusal of the daemon's (it was reported as "refused info: Timeout")."""
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
+    with _client(port) as session:
+        assert ask(session, namespace, "w", "info")["name"] == "w"
+        os.kill(worker.proc.pid, signal.SIGSTOP)
+        try:
+            with pytest.raises(WorkerError, match=r"^worker 'w' did not answer info within 1 s$"):
+                ask(session, namespace, "w", "info", timeout=1.0)
+        finally:
+            os.kill(worker.proc.pid, signal.SIGCONT)
+    assert worker.stop() == 0
