@@ -631,7 +631,8 @@ def workers_command(
     namespace: _Namespace = "default", secret: _Secret = None, insecure: _Insecure = False,
     tls_ca: _TlsCa = None, tls_cert: _TlsCert = None, tls_key: _TlsKey = None,
 ) -> None:
-    """List the live workers of a namespace: labels, host, pid, version, clock offset, nodes."""
+    """List the live workers of a namespace: labels, host, pid, version, clock offset, nodes.
+    Exits 1 when it found none (nothing listens, another --secret, or no worker is up)."""
     from .backends.zenoh.daemon import DEFAULT_CONNECT, list_workers
 
     endpoints = connect or [DEFAULT_CONNECT]
@@ -648,7 +649,7 @@ def workers_command(
                    f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tcp/0.0.0.0:7447 "
                    "--secret FILE, then: retriever workers --connect tcp/HOST:7447 --secret FILE",
                    highlight=False, soft_wrap=True)
-        return
+        raise typer.Exit(code=1)  # a script waiting for its workers (`until retriever workers ...`) can tell
     _out.print(_workers_table(listing.workers, namespace))
 
 

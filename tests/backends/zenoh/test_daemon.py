@@ -179,7 +179,7 @@ def test_retriever_workers_lists_two_daemons_with_their_labels(workers, namespac
 def test_no_workers_says_how_to_start_one(namespace):
     port = free_port()  # nothing listens there
     result = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
-    assert result.returncode == 0, result.stderr
+    assert result.returncode == 1, result.stderr  # found none: a script waiting for its workers can tell
     assert result.stdout.startswith(f"no workers in namespace '{namespace}' at {endpoint(port)}")
     assert "start one: retriever-worker --name NAME" in result.stdout
     assert f"warning: no session at {endpoint(port)}" in result.stderr
@@ -246,7 +246,7 @@ def test_without_the_secret_a_peer_sees_nothing(workers, namespace, tmp_path):
     listed = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--secret", str(secret))
     assert listed.returncode == 0 and "guarded" in listed.stdout, listed.stdout + listed.stderr
     unlisted = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
-    assert unlisted.stdout.startswith("no workers"), unlisted.stdout
+    assert unlisted.returncode == 1 and unlisted.stdout.startswith("no workers"), unlisted.stdout
     assert "it wants another --secret" in unlisted.stderr
 
 
