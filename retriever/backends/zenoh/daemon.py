@@ -244,11 +244,30 @@ def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
         access = RunAccess.create(namespace, read_secret(secret))
     except AccessError as e:
         raise WorkerError(str(e)) from None
-    folder = Path(tempfile.mkdtemp(prefix="retriever-worker-"))  # mkdtemp: mode 0700
+    reap_stale_folders()
+    folder = Path(tempfile.mkdtemp(prefix=f"retriever-worker-{os.getpid()}-"))  # mkdtemp: mode 0700
     try:
         yield {**access.session_config(access.write_dictionary(folder)), **links}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def reap_stale_folders() -> list[Path]:
+    """Remove this user's ``retriever-worker-PID-*`` folders (Zenoh's password file of a daemon)
+    whose daemon is gone: a SIGKILLed one could not remove its own. Those removed."""
+    removed = []
+    for folder in Path(tempfile.gettempdir()).glob("retriever-worker-*-*"):
+        pid = folder.name.split("-")[2]
+        try:
+            if not pid.isdigit() or folder.lstat().st_uid != os.getuid() or not folder.is_dir():
+                continue
+            os.kill(int(pid), 0)  # raises if no such process
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+        except OSError:  # another user's process (EPERM), or the folder went meanwhile
+            continue
+    return removed
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ from retriever.backends.zenoh.daemon import (
     load_settings,
     module_allowed,
     open_access,
+    reap_stale_folders,
     refusal,
 )
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
@@ -577,3 +579,28 @@ def test_a_daemon_that_does_not_answer_is_said_to_not_answer_not_to_refuse(worke
         finally:
             os.kill(worker.proc.pid, signal.SIGCONT)
     assert worker.stop() == 0
+
+
+def test_the_password_folders_of_dead_daemons_are_reaped_those_of_live_ones_kept(tmp_path, namespace):
+    """A SIGKILLed daemon leaves its retriever-worker-PID-* folder (its Zenoh password file):
+    the next daemon to open its access removes the folders whose daemon is gone, no other."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    secret = tmp_path / "lab.key"
+    secret.write_text("s" * 40 + "\n")
+    secret.chmod(0o600)
+    base = Path(tempfile.gettempdir())
+    dead = base / f"retriever-worker-{gone.pid}-test{os.getpid()}"
+    alive = base / f"retriever-worker-{os.getpid()}-test{os.getpid()}"
+    odd = base / f"retriever-worker-notapid-test{os.getpid()}"
+    for folder in (dead, alive, odd):
+        folder.mkdir()
+    try:
+        with open_access(namespace, str(secret)) as access:
+            assert access
+            assert not dead.exists() and alive.exists() and odd.exists()
+        assert alive not in reap_stale_folders()
+    finally:
+        for folder in (dead, alive, odd):
+            if folder.exists():
+                folder.rmdir()
