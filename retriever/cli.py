@@ -121,10 +121,11 @@ def run(
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
     if virtual_time:
         if (backend or default_backend()) != "zenoh":
-            _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)"))
+            _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
+                               "    hint: retriever run FILE --backend zenoh --virtual-time, or drop --virtual-time"))
         options["virtual_time"] = True
     _execute(_load(target), duration, backend, log, force, allow_errors, options,
-             f"{duration:g} s on {backend or default_backend()}")
+             f"{duration:g} s{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
 
 
 _TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "

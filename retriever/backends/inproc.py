@@ -493,6 +493,8 @@ class InprocBackend(Backend):
         if options:
             from ..errors import BackendError
 
+            hint = ("\n    hint: inproc always runs in virtual time; virtual_time=True is for backend='zenoh' "
+                    "(one process per flow, the same trace)" if "virtual_time" in options else "")
             raise BackendError(f"the inproc backend takes no options {sorted(options)} "
-                               "(it accepts tie_break_seed=)")
+                               f"(it accepts tie_break_seed=){hint}")
         return InprocSession(graph, tie_break_seed=tie_break_seed)

@@ -460,14 +460,18 @@ class Coordinator(Session):
             self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
                                          f"which is not the process of {node} that could say it"))
             return
-        if state == "reached":  # virtual time: from the node's own process, a grant it has had
+        if state == "reached":  # virtual time: from the node's own process
             until = info.get("until")
-            if (not self.virtual_time or self._workers.get(node) is None or info.get("pid") != self._workers[node].pid
-                    or type(until) is not int or until > self._granted):
-                self._garbage(key, WireError(f"a 'reached' status of {node} ({until!r:.30}, pid "
-                                             f"{info.get('pid')!r:.20}) that is not of its process, of a grant made"))
+            if not self.virtual_time or type(until) is not int:
+                self._garbage(key, WireError(f"a 'reached' status of {node} with until {until!r:.30}"
+                                             f"{'' if self.virtual_time else ' in a run not in virtual time'}"))
                 return
-            self._reached[node] = max(self._reached.get(node, -1), until)
+            if self._workers.get(node) is None or info.get("pid") != self._workers[node].pid:
+                self._garbage(key, WireError(f"a 'reached' status of {node} from pid {info.get('pid')!r:.20}, "
+                                             f"which is not its process"))
+                return
+            # past the grant (one it was told by someone else): it reached this one on the way
+            self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
             return
         counts = info.get("counts", {})
         if type(counts) is not dict or not all(type(k) is str and type(v) is int for k, v in counts.items()):

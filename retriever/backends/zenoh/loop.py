@@ -215,6 +215,9 @@ class NodeLoop:
         self.sending: tuple[int, int] | None = None  # lowest tag of outputs being put right now
         self.t0 = 0
         self.end = 0
+        # run() began: before, the end is not known, and a frontier past (0, 0) no promise it can
+        # keep (with end 0 it said NEVER: "finished", and a consumer ran on without it)
+        self.started = False
         self.stopping = False
         self.abandoned = False  # its process's parent died: it stops without finishing (worker.py)
         # on_error="restart" (see "Restarting" below): after a failed step, ticks wait for the
@@ -348,6 +351,8 @@ class NodeLoop:
         if the outputs being put now were out already (the frontier they carry); the main
         thread, which just stamped them, then skips reading the HLC again."""
         with self.lock:
+            if not self.started:  # its end not known yet: nothing promised past the run's start
+                return (0, 0)
             lower = self.running or self._next_tick_bound()
             if lower >= (self.end, 0) and self.running is None:
                 own = NEVER
@@ -387,6 +392,7 @@ class NodeLoop:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
         self.t0, self.end = t0, end
+        self.started = True
         if resume and not self.virtual:  # (in virtual time no tick came due meanwhile: time waited)
             self._skip_missed_ticks(self.now(), "restart_skipped", "restart_skipped")
         elif self.clock.hz is not None:

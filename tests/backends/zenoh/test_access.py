@@ -57,9 +57,9 @@ def _env() -> dict[str, str]:
 class Run:
     """The run's script as a process, and the lines of its stderr (read on a thread)."""
 
-    def __init__(self, tmp_path: Path, namespace: str, secret: Path | None = None):
+    def __init__(self, tmp_path: Path, namespace: str, secret: Path | None = None, script: str = RUN):
         self.port, self.log = free_port(), tmp_path / "run.mcap"
-        self.proc = subprocess.Popen([sys.executable, "-c", RUN, namespace, str(self.port), str(RUN_S), str(self.log),
+        self.proc = subprocess.Popen([sys.executable, "-c", script, namespace, str(self.port), str(RUN_S), str(self.log),
                                       *([str(secret)] if secret else [])],
                                      cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
@@ -329,3 +329,33 @@ def test_a_watcher_that_stops_reading_neither_stalls_nor_fails_the_run(namespace
                 proc.wait()
     assert run.returncode == 0, err
     assert json.loads(out.splitlines()[-1]) == {"cam": [100, 100], "sink": [100, 100]}
+
+
+def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_the_run(tmp_path, namespace):
+    """A lockstep run (virtual_time=True): a process holding the run's credentials grants far
+    past the coordinator's window. The nodes run on to it; their `reached` past the coordinator's
+    grant counts as reaching its own (it was refused, and the run stalled until it failed). Ticks
+    still wait for complete inputs: the same ticks, a log that replays."""
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.hub import open_peer
+
+    secret = tmp_path / "secret"
+    secret.write_text("a deployment secret of 32 bytes.")
+    secret.chmod(0o600)
+    run = Run(tmp_path, namespace, secret, script=RUN.replace("secret=sys.argv[5] if len(sys.argv) > 5 else None)",
+                                                              "secret=sys.argv[5], virtual_time=True)"))
+    try:
+        run.watch_config()
+        access = RunAccess.create(namespace, read_secret(secret))
+        keys = KeySpace(namespace)
+        with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
+            _, first, sub = _subscribe(insider, keys)
+            assert first.wait(BOUND_S), "the insider saw no data"
+            insider.put(keys.run_control(), WireEncoder().control("grant", {"until": round(2 * 1e9)}))
+            sub.undeclare()
+        result = run.result()
+    finally:
+        run.kill()
+    assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
+    report = retriever.log.replay(retriever.read_log(run.log))
+    assert report.identical, "\n".join(map(str, report.divergences))

@@ -95,7 +95,7 @@ def faulty_loop(session):
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "inline-test"}, "faulty", session)
     assert loop.inline, "faulty is on no cycle"
     loop.declare()
-    loop.t0, loop.end = 0, 1 << 62  # as run() sets them
+    loop.t0, loop.end, loop.started = 0, 1 << 62, True  # as run() sets them
     loop.last_wall = 0  # as after a short step
     return loop
 

@@ -39,7 +39,7 @@ def loop(session):
         src.then(WhereRun().configure(name="where", on_error="restart") @ Trigger("x"), sync=Queue(maxsize=100))
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "afresh-test"}, "where", session)
     loop.declare()
-    loop.t0, loop.end = 0, 1 << 62
+    loop.t0, loop.end, loop.started = 0, 1 << 62, True  # as run() sets them
     yield loop
     loop.undeclare()
 
@@ -199,3 +199,15 @@ def test_a_malformed_fault_record_is_a_log_error(tmp_path, fault):
     log = _log_with_fault(tmp_path / "run.mcap", fault)
     with pytest.raises(LogError, match=r"the fault record retriever\.fault\.1 is malformed"):
         log.faults
+
+
+def test_before_its_run_starts_a_loop_promises_nothing_past_the_start(session):
+    """A restarted flow's process answers progress queries before run() (its end not known yet):
+    with end 0 it answered NEVER, "finished", and a consumer ran on past ticks the flow still had
+    to make (a trace that was not inproc's, events counted late)."""
+    with Pipeline("before_run") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Queue(maxsize=100))
+    for node in ("counter", "where"):
+        loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "before-run-test"}, node, session)
+        assert loop.frontier() == (0, 0), node
