@@ -281,7 +281,7 @@ class Coordinator(Session):
                         and all(self._reports[n] >= self._reports_sent[n] for n in self._reports))
 
             if self.virtual_time:
-                self._granted = min(self._window_ns(), until_ns)
+                self._granted = min(self.LOCKSTEP_WINDOW_NS, until_ns)
                 self._last_grant = (time.monotonic(), time.monotonic())
                 self._control("start", {"t0": self.t0, "end": until_ns, "grant": self._granted})
                 self._await(lambda: self._lockstep() and finished(), float("inf"), "finish")
@@ -337,16 +337,13 @@ class Coordinator(Session):
         """``time``: a run in lockstep virtual time says so (its wall times mean nothing)."""
         return {"time": "virtual"} if self.virtual_time else {}
 
-    def _window_ns(self) -> int:
-        return self.LOCKSTEP_WINDOW_NS
-
     def _lockstep(self) -> bool:
         """Grant the next window once every node not done has reached this one; whether the
         last grant (the run's end) is out. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
         now = time.monotonic()
         behind = sorted(n for n, s in self._state.items() if s != "done" and self._reached.get(n, -1) < self._granted)
         if not behind and self._granted < self.end_ns:
-            self._granted = min(self._granted + self._window_ns(), self.end_ns)
+            self._granted = min(self._granted + self.LOCKSTEP_WINDOW_NS, self.end_ns)
             self._last_grant = (now, now)
             self._control("grant", {"until": self._granted})
             return False

@@ -52,7 +52,7 @@ from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers
 from .runs import DaemonRuns
-from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
+from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
 
 #: the largest control request a worker reads (a prepare carries the run's IR)
 MAX_REQUEST_BYTES = 8 << 20
@@ -397,11 +397,10 @@ def ask(session: zenoh.Session, namespace: str, name: str, op: str, args: dict |
                 if got == op:
                     return answer
             else:
-                try:
-                    _, error = decode_control(reply.err.payload.to_bytes())
-                except WireError:  # Zenoh's own error reply (the query timed out): no answer
+                message = decode_error_reply(reply.err.payload.to_bytes())
+                if message is None:  # Zenoh's own error reply (the query timed out): no answer
                     break
-                raise WorkerError(f"worker '{name}' refused {op}: {error.get('message', '?')}")
+                raise WorkerError(f"worker '{name}' refused {op}: {message}")
         except WireError as e:
             raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None
     raise WorkerError(f"worker '{name}' did not answer {op} within {timeout:g} s")

@@ -166,7 +166,7 @@ class NodeLoop:
         self.granted = 0
         self.reached = -1
         self.on_reached = None
-        self.blocked: tuple[tuple[int, int], int] | None = None  # (tick, since when, wall ns): waiting for inputs
+        self.blocked: tuple[tuple[int, int], int] | None = None  # (tick, since when: wall ns) waiting for inputs
         settings = node.settings
         self.latency_ns = settings.latency_ns
         self.on_error, self.on_overrun, self.on_deadline_miss = (

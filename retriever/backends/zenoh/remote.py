@@ -23,7 +23,7 @@ import zenoh
 
 from ...errors import BackendError
 from .host import Host
-from .wire import KeySpace, WireEncoder, WireError, decode_control
+from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
 REQUEST_TIMEOUT_S = 10.0
@@ -84,7 +84,7 @@ class RemoteHost(Host):
         replies = list(self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S))
         for reply in replies:
             if reply.ok is None:
-                message = _daemon_error(reply.err.payload.to_bytes())
+                message = decode_error_reply(reply.err.payload.to_bytes())
                 if message is None:  # Zenoh's own error reply (its query timed out): no answer
                     break
                 raise BackendError(f"worker '{self.name}' refused {op}: {message}")
@@ -155,14 +155,3 @@ class RemoteHost(Host):
                     output.feed(stream, line)
                 return
         self.garbage += 1
-
-
-def _daemon_error(data: bytes) -> str | None:
-    """What a daemon's error reply says (``[2, "error", {message}]``); None for an error reply
-    that is not a daemon's (Zenoh's own, "Timeout", when the query went unanswered)."""
-    try:
-        _, args = decode_control(data)
-    except WireError:
-        return None
-    message = args.get("message")
-    return message[:4000] if type(message) is str else "(an error without a message)"

@@ -350,6 +350,17 @@ def decode_status(data: bytes) -> tuple[str, str, dict]:
 NODE_STATES = ("ready", "done", "failed", "restart", "handed_over", "reached")
 
 
+def decode_error_reply(data: bytes) -> str | None:
+    """What an error reply of a worker daemon says (``[1, "error", {message}]``); None for one
+    that is not a daemon's: Zenoh's own ("Timeout"), when the query went unanswered."""
+    try:
+        _, args = decode_control(data)
+    except WireError:
+        return None
+    message = args.get("message")
+    return message[:4000] if type(message) is str else "(an error without a message)"
+
+
 def decode_control(data: bytes) -> tuple[str, dict]:
     """``(op, args)`` of a control message."""
     _, op, args = _fields(data, 3, "control")

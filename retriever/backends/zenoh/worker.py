@@ -386,9 +386,7 @@ def _serve(argv: list[str], parent: int) -> int:
                 # and each producer knows this node's subscriptions: its answer to a query comes
                 # on the link after them (an event put before that went to no one: a gap in its
                 # stream's seqs that no frontier crosses, and this node waited for it forever)
-                producers = {e["source"]["node"] for e in spec["ir"]["edges"]
-                             if e["destination"]["node"] == node_id} - {node_id}
-                wait_for_answers(session, keys.all_progress(), {keys.progress(p) for p in producers},
+                wait_for_answers(session, keys.all_progress(), {keys.progress(p) for p in _producers(spec, node_id)},
                                  timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
                 if loop.stopping:
                     loop.undeclare()
@@ -453,9 +451,18 @@ def _links_needed(spec: dict, node_id: str) -> set[str]:
     zids = spec.get("zids")
     if not zids or not spec.get("hub_zid"):
         return set()
-    neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
-                 if node_id in (e["source"]["node"], e["destination"]["node"])} - {node_id}
+    neighbors = _producers(spec, node_id) | _consumers(spec, node_id)
     return {spec["hub_zid"], *(zids[n] for n in neighbors if n in zids)}
+
+
+def _producers(spec: dict, node_id: str) -> set[str]:
+    """The other nodes with an edge into ``node_id``."""
+    return {e["source"]["node"] for e in spec["ir"]["edges"] if e["destination"]["node"] == node_id} - {node_id}
+
+
+def _consumers(spec: dict, node_id: str) -> set[str]:
+    """The other nodes with an edge from ``node_id``."""
+    return {e["destination"]["node"] for e in spec["ir"]["edges"] if e["source"]["node"] == node_id} - {node_id}
 
 
 def _link_to_hub(session, spec: dict, loop: NodeLoop) -> None:
@@ -488,8 +495,7 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
 
     loop.declare_inputs()
     # its own outputs fed back to it start with the seqs it gets below (start_fresh)
-    producers = {e["source"]["node"] for e in spec["ir"]["edges"] if e["destination"]["node"] == node_id} - {node_id}
-    consumers = {e["destination"]["node"] for e in spec["ir"]["edges"] if e["source"]["node"] == node_id} - {node_id}
+    producers, consumers = _producers(spec, node_id), _consumers(spec, node_id)
     answers: dict = {}
     give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
     while not loop.stopping and time.monotonic() < give_up:

@@ -587,36 +587,44 @@ def test_a_worker_still_waiting_for_its_peers_exits_when_its_coordinator_is_sigk
 # ---------------------------------------------------------------------------------------------
 # 3. SIGKILL of one worker
 # ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("victim", ["counter", "total"])
-def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
-    pipe = two_node_pipeline("killworker")
-    pids: dict[str, int] = {}
-    idents: dict[str, Ident] = {}
+def _signal_once_going(pipe, namespace: str, node: str, signum: int, pids: dict[str, int],
+                       idents: dict | None = None) -> BackendError:
+    """Run ``pipe`` on zenoh (60 s: a bound on a run the signal never ends), send ``signum`` to
+    ``node``'s worker by PID once the run is going (step records arrived), from a thread; the
+    BackendError the run ends with. ``pids`` (and ``idents``) get the workers' as they were then."""
     done = threading.Event()
 
-    def killer() -> None:
-        """Once the run is going (step records arrived), SIGKILL the victim's worker by PID."""
+    def send() -> None:
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
             session = pipe._session
             if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 0:
                 pids.update(session.worker_pids())
-                idents.update({node: _ident(pid) for node, pid in pids.items()})
-                os.kill(pids[victim], signal.SIGKILL)
+                if idents is not None:
+                    idents.update({n: _ident(pid) for n, pid in pids.items()})
+                os.kill(pids[node], signum)
                 return
             time.sleep(POLL_S)
 
-    thread = threading.Thread(target=killer, daemon=True)
+    thread = threading.Thread(target=send, daemon=True)
     thread.start()
     try:
-        # the duration only bounds a run whose kill never came; the kill ends it after ~1 s
         with pytest.raises(BackendError) as caught:
             pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True)
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
+    return caught.value
+
+
+@pytest.mark.parametrize("victim", ["counter", "total"])
+def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
+    pipe = two_node_pipeline("killworker")
+    pids: dict[str, int] = {}
+    idents: dict[str, Ident] = {}
+    error = _signal_once_going(pipe, namespace, victim, signal.SIGKILL, pids, idents)
     assert pids, "the killer never saw the run going"
-    message = str(caught.value)
+    message = str(error)
     assert f"'{victim}'" in message and f"pid {pids[victim]}" in message, message
     assert "was killed by SIGKILL before it finished" in message, message
     survivors = {node: ident for node, ident in idents.items() if _alive(ident)}
@@ -1265,28 +1273,9 @@ def test_a_worker_whose_parent_died_ends_without_a_word_though_its_parent_still_
     daemon, maybe while /proc still shows the daemon alive. The worker must not take it for a
     request to stop and finish ("done", a final frontier: its consumer finished, and the node's
     restart elsewhere never reached it): it ends without a word (exit 4), as if killed."""
-    pipe = two_node_pipeline("parentdied")
     pids: dict[str, int] = {}
-    done = threading.Event()
-
-    def told() -> None:
-        deadline = time.monotonic() + BOUND_S
-        while not done.is_set() and time.monotonic() < deadline:
-            session = pipe._session
-            if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 0:
-                pids.update(session.worker_pids())
-                os.kill(pids["counter"], PARENT_DIED)  # this process, its parent, alive and well
-                return
-            time.sleep(POLL_S)
-
-    thread = threading.Thread(target=told, daemon=True)
-    thread.start()
-    try:
-        with pytest.raises(BackendError) as caught:
-            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True)
-    finally:
-        done.set()
-        thread.join(timeout=BOUND_S)
+    # sent by this process, its parent, alive and well
+    error = _signal_once_going(two_node_pipeline("parentdied"), namespace, "counter", PARENT_DIED, pids)
     assert pids, "the run was never seen going"
-    message = str(caught.value)
+    message = str(error)
     assert f"'counter' (pid {pids['counter']})" in message and f"exited with code {EXIT_ABANDONED}" in message, message
