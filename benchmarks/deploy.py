@@ -200,14 +200,14 @@ def chains_pipeline(nodes: int, chain: int, hz: float):
     return pipe
 
 
-def latency_pipeline(size: int, hz: float):
+def latency_pipeline(size: int, hz: float, record: str | None = None):
     from zenoh_flows import LatencySink, PayloadSource
 
     from retriever import Pipeline, Rate, Trigger
 
     with Pipeline(f"latency{size}") as pipe:
         src = PayloadSource(size).named("src") @ Rate(hz=hz)
-        sink = LatencySink().named("sink") @ Trigger("frame")
+        sink = LatencySink(record).named("sink") @ Trigger("frame")
         pipe.connect(src, sink)
     return pipe
 
@@ -222,16 +222,22 @@ def chains_result(trace, session) -> dict:
     placed = session.placed
     crossing = sum(placed[e.src] != placed[e.dst] for e in session.graph.edges)
     return {"first_tick": first, "ok_steps": steps, "nodes": sorted(session.graph.nodes),
-            "edges": len(session.graph.edges), "edges_across": crossing, "placed": placed}
+            "edges": len(session.graph.edges), "edges_across": crossing, "placed": placed,
+            "reported_bytes": session.reported_bytes, "redeclared": session.counts.get("redeclared", 0)}
 
 
-def latency_result(trace, warmup: int, pipe) -> dict:
+def latency_result(trace, warmup: int, pipe, record: str | None = None) -> dict:
     """The sink's [sent, received, size] events, in order, the first ``warmup`` dropped; what each
-    node counted (late, incomplete, overrun, report waits: why a frame was not stepped on)."""
-    events = sorted((ev for ev in trace.events if ev.node == "sink"), key=lambda ev: ev.seq)
+    node counted (late, incomplete, overrun, report waits: why a frame was not stepped on).
+    ``record``: the file the sink wrote them to (a run that kept no values)."""
+    if record is None:
+        values = [ev.value for ev in sorted((ev for ev in trace.events if ev.node == "sink"), key=lambda ev: ev.seq)]
+    else:
+        values = [[int(x) for x in line.split()] for line in Path(record).read_text().splitlines()]
+        Path(record).unlink()
     sent = sum(1 for ev in trace.events if ev.node == "src")
-    return {"lat": [ev.value[1] - ev.value[0] for ev in events[warmup:]], "received": len(events), "sent": sent,
-            "sizes": sorted({ev.value[2] for ev in events}),
+    return {"lat": [v[1] - v[0] for v in values[warmup:]], "received": len(values), "sent": sent,
+            "sizes": sorted({v[2] for v in values}),
             "counts": {node: dict(s.counts) for node, s in pipe.stats().items() if s.counts}}
 
 
@@ -243,20 +249,24 @@ def coordinate(job_path: str) -> int:
     instrument(stamps)
     from retriever.placement import Constraint, Placement
 
+    record = None  # keep="records": the sink's measurements come in a file, not in the trace
     if job["kind"] == "chains":
         pipe = chains_pipeline(job["nodes"], job["chain"], job["hz"])
     else:
-        pipe = latency_pipeline(job["size"], job["hz"])
+        if job.get("keep") == "records":
+            record = f"{tempfile.gettempdir()}/retriever-bench-sink-{os.getpid()}.txt"
+        pipe = latency_pipeline(job["size"], job["hz"], record)
     pins = job.get("pin") or {}
     placement = Placement({node: Constraint(worker=w) for node, w in pins.items()}) if pins else None
     result: dict = {"script_started": SCRIPT_STARTED_NS, "stamps": stamps}
     try:
         trace = pipe.run(duration=job["duration"], backend="zenoh", quiet=True, connect=job["connect"],
                          namespace=job["namespace"], secret=job["secret"], placement=placement,
-                         startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S)
+                         startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
+                         keep=job.get("keep", "trace"))
         session = pipe._session
         result.update(chains_result(trace, session) if job["kind"] == "chains"
-                      else latency_result(trace, job["warmup"], pipe))
+                      else latency_result(trace, job["warmup"], pipe, record))
     except Exception as exc:  # noqa: BLE001 - reported to the benchmark, which goes on
         result["error"] = f"{type(exc).__name__}: {exc}"
     session = pipe._session
@@ -443,7 +453,8 @@ DEPLOY_FIELDS = ("workers", "flows_per_worker", "nodes", "repeat", "ok", "launch
                  "discover_s", "prepare_s", "spawn_s", "ready_wait_s", "margin_s", "to_t0_s", "first_tick_s",
                  "all_ticked_s", "first_tick_after_t0_ms", "all_ticked_after_t0_ms", "first_ready_s", "last_ready_s",
                  "ready_peers_min", "ready_peers_max", "ticked", "edges_across", "coord_cpu_to_t0_s", "coord_cpu_s",
-                 "coord_rss_mb", "daemons_cpu_s", "flows_cpu_s", "load1", "daemons_restarted", "error")
+                 "coord_rss_mb", "daemons_cpu_s", "flows_cpu_s", "load1", "daemons_restarted", "reported_mb",
+                 "redeclared", "error")
 
 
 def span_s(stamps: dict, key: str) -> float:
@@ -481,6 +492,7 @@ def deploy_row(res: dict, workers: int, per_worker: int, repeat: int, cpu: tuple
         "edges_across": f"{res.get('edges_across', '?')}/{res.get('edges', '?')}",
         "coord_cpu_to_t0_s": st.get("cpu_at_start", float("nan")), "coord_cpu_s": res.get("cpu_s", float("nan")),
         "coord_rss_mb": res.get("maxrss_mb", float("nan")), "daemons_cpu_s": cpu[0], "flows_cpu_s": cpu[1],
+        "reported_mb": res.get("reported_bytes", float("nan")) / 1e6, "redeclared": res.get("redeclared"),
         "error": res.get("error", "")[:300],
     }
 
@@ -574,12 +586,12 @@ def raw_round(bench: Bench, pub_host, sub_host, size: int, total: int, warmup: i
 
 
 def retriever_round(bench: Bench, daemons: Daemons, size: int, total: int, warmup: int, hz: float,
-                    host) -> dict:
+                    host, keep: str = "trace") -> dict:
     """A deployment: src pinned on w1 (host 2), sink on w2 (host 3), the coordinator on ``host``.
     One that fails is run again, RETRIES times at most; each failure is kept in ``bench.failures``."""
     job = {"kind": "latency", "size": size, "hz": hz, "duration": total / hz, "warmup": warmup,
            "pin": {"src": daemons.names[0], "sink": daemons.names[1]}, "connect": daemons.endpoints,
-           "namespace": daemons.namespace, "startup_timeout": STARTUP_S}
+           "namespace": daemons.namespace, "startup_timeout": STARTUP_S, "keep": keep}
     for _ in range(1 + RETRIES):
         res = bench.coordinate(job, bound=STARTUP_S + total / hz + 2 * BOUND_S, host=host)
         if "error" not in res:
@@ -596,7 +608,7 @@ def retriever_round(bench: Bench, daemons: Daemons, size: int, total: int, warmu
 
 
 def measure_latency(bench: Bench, sizes: list[int], rounds: int, per_round: int, warmup: int, hz: float,
-                    coordinator_on_source: bool = False) -> tuple[list[dict], list[dict]]:
+                    coordinator_on_source: bool = False, keep: str = "trace") -> tuple[list[dict], list[dict]]:
     """Per size, ``rounds`` rounds of each side, interleaved: one row per kept sample, one per round."""
     samples, per_round_rows, total = [], [], warmup + per_round
     port = RAW_PORT_BASE
@@ -610,7 +622,7 @@ def measure_latency(bench: Bench, sizes: list[int], rounds: int, per_round: int,
                     daemons.ensure_up()
                     port += 1
                     out = (raw_round(bench, pub_host, sub_host, size, total, warmup, hz, port) if side == "raw"
-                           else retriever_round(bench, daemons, size, total, warmup, hz, host))
+                           else retriever_round(bench, daemons, size, total, warmup, hz, host, keep))
                     samples += [{"size": size, "side": side, "round": r, "latency_us": lat / 1e3} for lat in out["lat"]]
                     row = {"size": size, "side": side, "round": r, "sent": out.get("sent", total),
                            "received": out["received"], "median_us": statistics.median(out["lat"] or [math.nan]) / 1e3,
@@ -699,8 +711,8 @@ def replot(out: Path, hz: float) -> None:
     print(f"wrote {out / 'deploy_latency.png'}")
 
 
-def latency_title(hz: float) -> str:
-    return f"one-way latency, host A → host B of the netns lab (TCP), {hz:g} Hz"
+def latency_title(hz: float, keep: str = "trace") -> str:
+    return f"one-way latency, host A → host B of the netns lab (TCP), {hz:g} Hz, keep={keep}"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -731,13 +743,13 @@ def run_parts(bench: Bench, args, out: Path) -> None:
         print(f"\npart 2: latency, {args.rounds} rounds x ({args.warmup} + {args.samples}) messages per side and size "
               f"at {args.hz:g} Hz; load {load()}", flush=True)
         samples, rounds = measure_latency(bench, sizes, args.rounds, args.samples, args.warmup, args.hz,
-                                          args.coordinator_on_source)
+                                          args.coordinator_on_source, args.keep)
         write_csv(out / "deploy_latency_samples.csv", samples)
         write_csv(out / "deploy_latency_rounds.csv", rounds)
         rows = latency_summary(samples, sizes)
         write_csv(out / "deploy_latency.csv", rows)
         print_latency(rows)
-        plot_latency(rows, out / "deploy_latency.png", latency_title(args.hz))
+        plot_latency(rows, out / "deploy_latency.png", latency_title(args.hz, args.keep))
         print(f"wrote {out / 'deploy_latency.png'}")
         for failure in bench.failures:  # each was run again; the samples above are of the runs that worked
             print(f"a Retriever round failed and was run again: {failure}")
@@ -764,6 +776,9 @@ def parse_args(argv: list[str] | None):
     p.add_argument("--rounds", type=int, default=4, help="latency rounds per side and size, interleaved (default 4)")
     p.add_argument("--samples", type=int, default=40, help="messages kept per round (default 40)")
     p.add_argument("--warmup", type=int, default=10, help="messages dropped at the start of each round (default 10)")
+    p.add_argument("--keep", choices=["trace", "records"], default="trace",
+                   help="latency: what the coordinator keeps (pipe.run keep=): 'trace' gets every frame to it, "
+                        "'records' only ids and step records (the sink's samples then come in a file)")
     p.add_argument("--coordinator-on-source", action="store_true",
                    help="diagnostic (latency): the coordinator on the source's host (its reports then go through "
                         "that host's shared memory, not TCP); write to another --out")

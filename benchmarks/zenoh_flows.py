@@ -55,11 +55,20 @@ class PayloadSource(Flow[None, Frame]):
 class LatencySink(Flow[Frame, Lat]):
     """Triggered by ``frame``: outputs ``lat`` = [sent_ns, received_ns, size] with
     ``received_ns`` = ``time.time_ns()`` first thing in ``step``. The events of ``lat`` are the
-    measurement (one per received frame)."""
+    measurement (one per received frame). With ``record`` (a file path), each is also appended to
+    that file as a line ``sent_ns received_ns size``: a run that keeps no values (keep="records")
+    has the measurement there."""
+
+    def __init__(self, record: str | None = None):
+        self.record = record
 
     def step(self, inp: Frame) -> Lat:
         received = time.time_ns()
-        return Lat(lat=[inp.frame["sent_ns"], received, int(inp.frame["data"].size)])
+        lat = [inp.frame["sent_ns"], received, int(inp.frame["data"].size)]
+        if self.record is not None:
+            with open(self.record, "a", encoding="ascii") as f:
+                f.write(f"{lat[0]} {lat[1]} {lat[2]}\n")
+        return Lat(lat=lat)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -22,19 +22,20 @@ from .errors import (
     RetrieverWarning,
     StepError,
     UnregisteredTypeError,
+    ValuesNotKeptError,
 )
 from .flow import EventStream, Flow, io
 from .ir import IR
 from .log import read_log
 from .pipeline import Pipeline
 from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
-from .trace import Event, StepRecord, Trace
+from .trace import NOT_KEPT, Event, StepRecord, Trace
 
 __all__ = sorted([
-    "IR", "MISSING", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
+    "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
     "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "StepError", "StepRecord",
-    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "Window", "available_backends", "init", "io",
+    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "init", "io",
     "read_log",
 ])

@@ -96,6 +96,12 @@ def _load(target: str):
         _fail(exc)
 
 
+_KEEP = typer.Option(
+    metavar="trace|records", help="What the run keeps in memory: 'trace' (the default) every event's value; "
+                                  "'records' the events' ids and tags and the step records, the values only in "
+                                  "--log (on zenoh they then reach this process only to be logged).")
+
+
 @app.command()
 def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
@@ -115,10 +121,11 @@ def run(
     virtual_time: Annotated[bool, typer.Option(
         "--virtual-time", help="zenoh: one process per flow, advanced in lockstep in logical time: the trace is "
                                "inproc's; --duration is then virtual seconds.")] = False,
+    keep: Annotated[Optional[str], _KEEP] = None,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
-    options = {k: v for k, v in (("secret", secret), ("namespace", namespace)) if v is not None}
+    options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep)) if v is not None}
     if virtual_time:
         if (backend or default_backend()) != "zenoh":
             _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
@@ -182,6 +189,7 @@ def deploy(
         "--virtual-time", help="Advance every node in lockstep from the coordinator, in logical time: the trace "
                                "is the in-process backend's, however long the steps take; --duration is then "
                                "virtual seconds.")] = False,
+    keep: Annotated[Optional[str], _KEEP] = None,
     config: Annotated[Optional[Path], typer.Option(
         metavar="deploy.toml", help="Settings from this TOML file (keys as the flags: connect, placement, "
                                     "secret, tls_ca, ...); flags override it.")] = None,
@@ -198,7 +206,7 @@ def deploy(
     flags = {"connect": connect, "listen": listen, "namespace": namespace, "placement": placement,
              "duration": duration, "log": log, "secret": secret, "insecure": insecure or None,
              "on_worker_loss": on_worker_loss, "lease": lease, "tls_ca": tls_ca, "tls_cert": tls_cert,
-             "tls_key": tls_key, "virtual_time": virtual_time or None}
+             "tls_key": tls_key, "virtual_time": virtual_time or None, "keep": keep}
     if secret is not None or insecure:  # a flag's choice of security replaces the file's
         given.pop("secret", None), given.pop("insecure", None)
     settings = {"namespace": "default", "duration": 10.0, "on_worker_loss": "replace", **given,
@@ -208,7 +216,7 @@ def deploy(
                "namespace": get("namespace"), "placement": None if get("placement") is None else str(get("placement")),
                "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
                "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key")),
-               "virtual_time": bool(get("virtual_time"))}
+               "virtual_time": bool(get("virtual_time")), "keep": get("keep", "trace")}
     if get("max_clock_offset") is not None:
         options["max_clock_offset"] = get("max_clock_offset")
     log = None if get("log") is None else Path(get("log"))
@@ -258,8 +266,8 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     unowned.subtract(sum((Counter(s.counts) for s in pipe.stats().values()), Counter()))
     if +unowned:
         _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
-    _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · trace digest {trace.digest()[:16]}",
-               highlight=False)
+    digest = f"trace digest {trace.digest()[:16]}" if trace.values_kept else "values not kept (--keep records)"
+    _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · {digest}", highlight=False)
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)

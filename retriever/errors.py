@@ -160,6 +160,10 @@ class LogWriteError(LogError):
     an I/O error): the run was stopped, and the file is not a record of it."""
 
 
+class ValuesNotKeptError(RetrieverError):
+    """A trace of a run that kept no values (``keep="records"``) was asked for them."""
+
+
 class InternalError(RetrieverError):
     """A bug in Retriever itself, not in your program. Please report it with the traceback."""
 

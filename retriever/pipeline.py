@@ -248,8 +248,10 @@ class Pipeline:
                     session.advance(session.now_ns + seconds_to_ns(duration))
         except BaseException as exc:
             _close_log(session, exc)
+            session.trace.forget_values()
             raise
         _close_log(session)
+        session.trace.forget_values()  # keep="records": the values are in the log, or nowhere
         return session.trace
 
     def step(self, dt: float, **options: Any) -> Trace:
@@ -362,7 +364,7 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     if writer is None:
         return
     session.log = None
-    session.logged_to = writer.path
+    session.logged_to = session.trace.log_path = writer.path
     if exc is None:
         status, error = "finished", ""
     elif isinstance(exc, KeyboardInterrupt):

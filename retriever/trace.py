@@ -12,9 +12,33 @@ import hashlib
 from typing import Any, Iterator, NamedTuple
 
 from .codec import packb
+from .errors import ValuesNotKeptError
 from .time import format_tag
 
 EventId = tuple[str, str, int]
+
+#: What a run may keep in memory (``pipe.run(..., keep=...)``): ``"trace"``, every event with its
+#: value and every step record (the default: what tests and short debugging runs want); or
+#: ``"records"``, every event's id, tag and wall time, and every step record, but no values (they
+#: are in the log, if the run wrote one; on the Zenoh runtime they then never reach the coordinator
+#: at all unless it writes a log).
+KEEP = ("trace", "records")
+
+
+class _NotKept:
+    """The value of an event in a trace that keeps no values (``keep="records"``)."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return "<value not kept>"
+
+    def __reduce__(self) -> str:
+        return "NOT_KEPT"
+
+
+#: stands for every value a ``keep="records"`` trace left out
+NOT_KEPT = _NotKept()
 
 
 class Event(NamedTuple):
@@ -132,12 +156,39 @@ class Trace:
     ``steps`` present them as :class:`Event` and :class:`StepRecord`, converted on first access.
     """
 
-    def __init__(self, events: list | None = None, steps: list | None = None):
+    def __init__(self, events: list | None = None, steps: list | None = None, *, keep: str = "trace"):
         # full-length tuples, so the lazy conversion below can use the fast ``_make``
         self.raw_events: list[tuple] = [tuple(Event(*e)) for e in events or ()]
         self.raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
         self._events: list[Event] = []
         self._steps: list[StepRecord] = []
+        #: whether events hold their values (``keep="trace"``), or :data:`NOT_KEPT` in their place
+        self.values_kept = keep == "trace"
+        self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
+        self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
+
+    def forget_values(self, upto: int | None = None) -> None:
+        """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``
+        (all, by default); a trace that keeps values keeps them."""
+        if self.values_kept:
+            return
+        raw, done = self.raw_events, self._events
+        upto = len(raw) if upto is None else min(upto, len(raw))
+        for i in range(self._forgotten, upto):
+            tag, node, port, seq, value, wall = raw[i]
+            if value is not NOT_KEPT:
+                raw[i] = (tag, node, port, seq, NOT_KEPT, wall)
+                if i < len(done):
+                    done[i] = Event._make(raw[i])
+        self._forgotten = max(self._forgotten, upto)
+
+    def _need_values(self, what: str) -> None:
+        if not self.values_kept:
+            where = (f"read_log('{self.log_path}').trace()" if self.log_path is not None
+                     else "run it again with log='run.mcap' and read_log('run.mcap').trace()")
+            raise ValuesNotKeptError(
+                f"{what} needs the events' values, and this run kept none (keep='records')\n"
+                f"    hint: {where} holds them; or run with keep='trace' (the default) to keep them in memory")
 
     @property
     def events(self) -> list[Event]:
@@ -162,6 +213,7 @@ class Trace:
         return sorted(found, key=_event_key)
 
     def values_of(self, node: str, port: str) -> list[Any]:
+        self._need_values("trace.values_of()")
         return [e.value for e in self.events_of(node, port)]
 
     def steps_of(self, node: str) -> list[StepRecord]:
@@ -183,6 +235,7 @@ class Trace:
 
     def digest(self) -> str:
         """Hex SHA-256 of the canonical trace: equal traces, equal digests, on any machine."""
+        self._need_values("trace.digest()")
         h = hashlib.sha256()
         for chunk in self._encoded():
             h.update(len(chunk).to_bytes(8, "little"))
@@ -192,6 +245,8 @@ class Trace:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Trace):
             return NotImplemented
+        self._need_values("comparing traces")
+        other._need_values("comparing traces")
         if len(self.raw_events) != len(other.raw_events) or len(self.raw_steps) != len(other.raw_steps):
             return False
         return all(a == b for a, b in zip(self._encoded(), other._encoded()))
@@ -200,6 +255,8 @@ class Trace:
 
     def first_difference(self, other: "Trace") -> str | None:
         """Describe the first canonical record where two traces differ, or None if equal."""
+        self._need_values("trace.first_difference()")
+        other._need_values("trace.first_difference()")
         canon_a, canon_b = self.canonical(), other.canonical()
         mine, theirs = list(self._encoded(canon_a)), list(other._encoded(canon_b))
         records_a, records_b = [*canon_a[0], *canon_a[1]], [*canon_b[0], *canon_b[1]]
@@ -214,4 +271,5 @@ class Trace:
         return len(self.raw_events)
 
     def __repr__(self) -> str:
-        return f"<Trace {len(self.raw_events)} events, {len(self.raw_steps)} steps>"
+        values = "" if self.values_kept else ", values not kept"
+        return f"<Trace {len(self.raw_events)} events, {len(self.raw_steps)} steps{values}>"

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from ..graph import Graph
-from ..trace import Trace
+from ..errors import BackendError
+from ..trace import KEEP, Trace
 
 if TYPE_CHECKING:
     from ..log.writer import LogWriter
@@ -35,6 +36,8 @@ COUNTERS = {
     "restarts": "times a flow was restarted (on_error='restart'), after its step raised or its process died",
     "crash_restarts": "of those, restarts after the flow's process died (its state could not be handed over)",
     "moves": "times a flow started afresh on another worker after its worker was lost (retriever deploy)",
+    "redeclared": "times a starting flow declared its subscriptions and queryable again: a neighbour linked "
+                  "to it had not learned of them (worker.REDECLARE_AFTER_S)",
 }
 
 
@@ -89,9 +92,14 @@ class Session(ABC):
     LOG_BATCH = 4096
     LOG_HANDOVER_S = 0.02
 
-    def __init__(self, graph: Graph):
+    def __init__(self, graph: Graph, keep: str = "trace"):
+        if keep not in KEEP:
+            raise BackendError(f"keep={keep!r} is none of {', '.join(map(repr, KEEP))}\n"
+                               "    hint: keep='trace' keeps every value in pipe.trace; keep='records' only the "
+                               "events' ids and tags and the step records (the values are in the log)")
         self.graph = graph
-        self.trace = Trace()
+        self.keep = keep
+        self.trace = Trace(keep=keep)
         self.now_ns = 0
         self.log: LogWriter | None = None
         self.logged_to = None  # the path of this run's finished log, if it had one
@@ -123,6 +131,7 @@ class Session(ABC):
         Between two ticks the trace is whole: a requested stop happens here."""
         assert self.log is not None
         self.log.write(self.trace)
+        self.trace.forget_values(self.log.events_written)  # keep="records": freed once written
         if self.stop_requested:
             raise KeyboardInterrupt
         now, done = time.monotonic(), len(self.trace.raw_steps)
@@ -138,8 +147,6 @@ class Session(ABC):
         """Execute every tick with ``t < until_ns``; afterwards ``now_ns == until_ns``."""
 
     def run_to_end(self) -> None:
-        from ..errors import BackendError
-
         raise BackendError(f"backend '{self.backend_name}' needs a duration: pipe.run(duration=seconds)")
 
     @abstractmethod

@@ -121,8 +121,8 @@ class InprocSession(Session):
     steppable = True
     plain_types = PLAIN_TYPES  # for the compiled ticks (_inproc_ticks), which this module imports
 
-    def __init__(self, graph: Graph, tie_break_seed: int | None = None):
-        super().__init__(graph)
+    def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace"):
+        super().__init__(graph, keep)
         self.max_microsteps = graph.max_microsteps
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
@@ -489,12 +489,13 @@ _AlwaysMissing = _AlwaysMissingPolicy()
 class InprocBackend(Backend):
     name = "inproc"
 
-    def open(self, graph: Graph, tie_break_seed: int | None = None, **options: object) -> InprocSession:
+    def open(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace",
+             **options: object) -> InprocSession:
         if options:
             from ..errors import BackendError
 
             hint = ("\n    hint: inproc always runs in virtual time; virtual_time=True is for backend='zenoh' "
                     "(one process per flow, the same trace)" if "virtual_time" in options else "")
             raise BackendError(f"the inproc backend takes no options {sorted(options)} "
-                               f"(it accepts tie_break_seed=){hint}")
-        return InprocSession(graph, tie_break_seed=tie_break_seed)
+                               f"(it accepts tie_break_seed=, keep=){hint}")
+        return InprocSession(graph, tie_break_seed=tie_break_seed, keep=keep)

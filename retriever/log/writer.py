@@ -156,6 +156,11 @@ class LogWriter:
         self._channels[(node, port)] = channel
         return channel
 
+    @property
+    def events_written(self) -> int:
+        """How many of the trace's events are in the log so far (in recording order)."""
+        return self._events_done
+
     def write(self, trace: "Trace") -> None:
         """Encode the records appended to ``trace`` since the last call; flush if it is time.
         Raises :class:`LogWriteError` when the OS refused a write (the run must stop)."""

@@ -35,7 +35,7 @@ import zenoh
 
 from ...errors import BackendError, CausalityError, RestartLimitError, StepError
 from ...graph import Graph
-from ...trace import STEPPED
+from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, new_zid, open_hub
@@ -86,8 +86,9 @@ class Coordinator(Session):
 
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
                  start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
-                 secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False):
-        super().__init__(graph)
+                 secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False,
+                 keep: str = "trace"):
+        super().__init__(graph, keep)
         #: lockstep virtual time (loop.py): the trace is the in-process backend's, however long it takes
         self.virtual_time = bool(virtual_time)
         self._granted = 0  # virtual time: the ticks below this (ns since T0) may run
@@ -108,6 +109,9 @@ class Coordinator(Session):
         self.startup_timeout = startup_timeout
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
+        self._values = True  # whether the workers report their events' values (set at the start)
+        #: bytes of the workers' reports (step records and events) received, spilled ones included
+        self.reported_bytes = 0
         self.end_ns = 0  # the run's end, ns since T0
         self._init_records(graph)
         self._workers: dict[str, WorkerProcess] = {}  # each node's process
@@ -275,6 +279,8 @@ class Coordinator(Session):
                         time.monotonic() + self.startup_timeout, "start")
             self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             self.end_ns = until_ns
+            # values come to the coordinator only for the trace (keep="trace") or the log
+            self._values = self.keep == "trace" or self.log is not None
 
             def finished() -> bool:
                 return (all(s == "done" for s in self._state.values())
@@ -283,10 +289,11 @@ class Coordinator(Session):
             if self.virtual_time:
                 self._granted = min(self.LOCKSTEP_WINDOW_NS, until_ns)
                 self._last_grant = (time.monotonic(), time.monotonic())
-                self._control("start", {"t0": self.t0, "end": until_ns, "grant": self._granted})
+                self._control("start", {"t0": self.t0, "end": until_ns, "values": self._values,
+                                        "grant": self._granted})
                 self._await(lambda: self._lockstep() and finished(), float("inf"), "finish")
             else:
-                self._control("start", {"t0": self.t0, "end": until_ns})
+                self._control("start", {"t0": self.t0, "end": until_ns, "values": self._values})
                 slack = max(self._deadlines(), 1.0) + 10.0
                 self._await(finished, time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
         except BaseException:
@@ -408,6 +415,7 @@ class Coordinator(Session):
     def _handle(self, item: tuple) -> None:
         key, data = item
         if key.startswith(self.keys.status("report") + "/"):
+            self.reported_bytes += len(data)
             try:
                 report = decode_report(data, expected=key.rsplit("/", 1)[1])
             except WireError as e:
@@ -470,6 +478,13 @@ class Coordinator(Session):
             # past the grant (one it was told by someone else): it reached this one on the way
             self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
             return
+        if state == "unanswered":  # before the start: its neighbours declare themselves again
+            nodes = info.get("nodes")
+            if type(nodes) is not list or not nodes or not all(type(n) is str and n in self._state for n in nodes):
+                self._garbage(key, WireError(f"an 'unanswered' status of {node} that names no nodes of the run"))
+            elif self.t0 is None:
+                self._control("redeclare", {"nodes": sorted(set(nodes))})
+            return
         counts = info.get("counts", {})
         if type(counts) is not dict or not all(type(k) is str and type(v) is int for k, v in counts.items()):
             self._garbage(key, WireError(f"status of {node} with counts that are not names and integers"))
@@ -511,7 +526,7 @@ class Coordinator(Session):
             self._restart_afresh(node)
         elif state == "ready" and node in self._restarted:
             # said again: it has not seen `restarted` yet (worker.START_ASK_S), nor, maybe, its consumers
-            self._control("restarted", {"node": node, "seqs": self._restarted[node]})
+            self._control("restarted", {"node": node, "seqs": self._restarted[node], "values": self._values})
         elif state == "ready" and node in self._retiring:
             if self._state[node] == "done":  # the run ended while it restarted: stopped at close
                 return
@@ -549,7 +564,8 @@ class Coordinator(Session):
         have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
         t0 = self.t0
         if t0 is not None:
-            query.reply(self.keys.start(), WireEncoder().control("start", {"t0": t0, "end": self.end_ns}))
+            query.reply(self.keys.start(), WireEncoder().control("start", {"t0": t0, "end": self.end_ns,
+                                                                           "values": self._values}))
 
     def _control(self, op: str, args: dict) -> None:
         self._hub.put(self.keys.run_control(), self._encoder.control(op, args), congestion_control=RELIABLE)
@@ -592,7 +608,8 @@ class Coordinator(Session):
         while (producer, port, have + 1) in self._event_ids:  # every seq up to it (carried ones may skip)
             have += 1
         self._have[(producer, port)] = have
-        self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, msg.value, wall))
+        self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq,
+                                      msg.value if self._values else NOT_KEPT, wall))
 
     def _tell_have(self) -> None:
         """Tell the consumers which events the coordinator has (the last seq of each stream that
@@ -614,7 +631,9 @@ class Coordinator(Session):
             raise WireError(f"{node} reported an event in {path}, which cannot be opened: {e.strerror}") from None
         try:
             path.unlink()
-            return mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+            mapped = mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+            self.reported_bytes += len(mapped)
+            return mapped
         except (OSError, ValueError) as e:  # ValueError: an empty file
             raise WireError(f"{node} reported an event in {path}, which cannot be mapped: {e}") from None
         finally:
@@ -709,7 +728,7 @@ class Coordinator(Session):
             self._have[(nid, port)] = max(self._have.get((nid, port), -1), first - 1)
         self._record_fault(self._fresh.pop(nid), seqs)
         self._restarted[nid] = seqs
-        self._control("restarted", {"node": nid, "seqs": seqs})
+        self._control("restarted", {"node": nid, "seqs": seqs, "values": self._values})
 
     def _record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
         """Keep a lost process's fault, and log it: the outputs its step records claimed and no

@@ -60,7 +60,8 @@ class Deployment(Coordinator):
                  placement: Placement | str | None = None, secret=None, insecure: bool = False,
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
                  max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
-                 lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False):
+                 lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
+                 keep: str = "trace"):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -91,7 +92,7 @@ class Deployment(Coordinator):
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
-                         quiet=quiet, secret=secret, virtual_time=virtual_time)
+                         quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep)
 
     # -- the coordinator's steps, for workers elsewhere ----------------------------------------
     def _check_deployable(self) -> None:
@@ -391,7 +392,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
 #: what a deploy.toml may hold, with the kind of each value: the flags of retriever deploy
 DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "namespace": "text", "placement": "path",
                  "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool", "virtual_time": "bool",
-                 "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
+                 "keep": "text", "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
                  "tls_ca": "path", "tls_cert": "path", "tls_key": "path"}
 
 

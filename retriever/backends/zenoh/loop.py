@@ -233,6 +233,9 @@ class NodeLoop:
         self.recorded = 0  # step records made in all (the coordinator checks it got every tick)
         self.held_records: list[tuple[int, tuple]] = []  # (held since, record): see HOLD_RECORDS_NS
         self.kept: dict[tuple[str, str, int], tuple[int, bytes]] = {}  # event id -> (arrival wall ns, message)
+        #: whether the coordinator wants the events' values (for the trace or the log; the start
+        #: says): without, reports carry each event without its value, and consumers keep nothing
+        self.values = True
         self.have: dict[tuple[str, str], int] = {}  # per input stream, the last seq the coordinator has
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
@@ -296,6 +299,26 @@ class NodeLoop:
         # BLOCK, not Zenoh's default DROP: a dropped event would leave a gap in its stream's seqs
         # that no frontier can cross (a slow consumer backs its producer up instead)
         return self.session.declare_publisher(key, express=True, congestion_control=RELIABLE)
+
+    def redeclare(self) -> None:
+        """Declare the subscriptions and the progress queryable again, then drop the old ones
+        (before the start only: no event flows yet). Zenoh then tells every linked peer of them
+        anew. Under load, with many peers linking at once, a peer was seen linked to this node
+        and never told of its queryable (nor, maybe, its subscriptions): see worker.py,
+        REDECLARE_AFTER_S."""
+        queryables = [d for d in self._declared if isinstance(d, zenoh.Queryable)]
+        subscribers = [d for d in self._declared if isinstance(d, zenoh.Subscriber)]
+        if not queryables and not subscribers:
+            return
+        kept = [d for d in self._declared if not isinstance(d, (zenoh.Queryable, zenoh.Subscriber))]
+        self._declared = []
+        self.declare_inputs()
+        if queryables:
+            self._declared.append(self.session.declare_queryable(self.keys.progress(self.id), self._answer_progress))
+        for d in [*queryables, *subscribers]:
+            d.undeclare()
+        self._declared += kept
+        self.counts["redeclared"] += 1
 
     def undeclare(self) -> None:
         for d in [*self._declared, *getattr(self, "publishers", {}).values()]:
@@ -641,7 +664,7 @@ class NodeLoop:
                 return
             arrival = time.time_ns()
             self._arrived(key, data, arrival - self.t0)
-            if msg.seq > self.have.get(key, -1):
+            if self.values and msg.seq > self.have.get(key, -1):
                 self.kept[(msg.producer, msg.port, msg.seq)] = (arrival, data)
             self._in_order(key, msg)
         elif kind == _NUDGE:
@@ -934,6 +957,8 @@ class NodeLoop:
             if self.consumed:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, self.id, port, value)
             self.sent[port] = seq
+            if not self.values:  # the coordinator records that it was sent, not what
+                message = data(tag, seq, frontier if i == last else tag, self.id, port, None)
             self.published.append((time.time_ns(), message))
             self.published_bytes += len(message)
         if batch:
@@ -975,7 +1000,7 @@ class NodeLoop:
                         for src, port in streams],
             "pending": self.pending, "k": self.k, "next_rate": self.next_rate, "last_tick": self.last_tick,
             "last_stamp": self.last_stamp, "held": self.held, "seqs": self.seqs, "sent": self.sent,
-            "pending_detail": self.pending_detail,
+            "pending_detail": self.pending_detail, "values": self.values,
         }
 
     def take_over(self, state: dict) -> None:
@@ -998,6 +1023,7 @@ class NodeLoop:
         self.last_tick = tuple(state["last_tick"])
         self.held = [tuple(h) for h in state["held"]]
         heapq.heapify(self.held)
+        self.values = state.get("values") is not False
         self.seqs, self.sent = dict(state["seqs"]), dict(state["sent"])
         self.pending_detail = dict(state["pending_detail"])
 
@@ -1135,7 +1161,9 @@ class NodeLoop:
             self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
 
     def _unlogged(self, record: tuple) -> list[tuple[str, str, int]]:
-        """The events a step record consumed that the coordinator may not have."""
+        """The events a step record consumed that the coordinator may not have (and wants)."""
+        if not self.values:
+            return []
         have, me = self.have, self.id  # its own events go in its own reports, before its records
         return [eid for ids in record[1].values() for eid in ids if eid[0] != me and eid[2] > have.get(eid[:2], -1)]
 

@@ -92,6 +92,14 @@ NEIGHBOR_TIMEOUT_S = 10.0
 #: missed it would wait until the run gave up on it.
 START_ASK_S = 0.5
 
+#: A new worker waits, before it says ready, for an answer from each producer (see _serve). At 80
+#: flows on 8 hosts of a 2-core machine, a worker linked to its producer was, 2 runs in 3, never
+#: told of that producer's queryable: the run never started (benchmarks/README.md, "Scale"; the
+#: other nodes' answers came). So after this long without an answer it says ``unanswered``; the
+#: coordinator tells those producers to ``redeclare`` (on ctl/run, through the hub: the link
+#: between the two may be what lost it), and the worker declares its own subscriptions again too.
+REDECLARE_AFTER_S = 2.0
+
 #: After its last status (done, handed over), a worker keeps its session open until the coordinator
 #: has every report it sent, at most this long. A report over 3 KiB goes through Zenoh's shared
 #: memory, and one whose sender had closed its session by the time the receiver read it was
@@ -360,7 +368,7 @@ def _serve(argv: list[str], parent: int) -> int:
                 # once the old process stops, a message that reached neither would be a gap
                 neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
                              if node_id in (e["source"]["node"], e["destination"]["node"])}
-                wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in neighbors},
+                wait_for_answers(session, {keys.progress(n) for n in neighbors},
                                  timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
                                  gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
                 t0, end = int(join[1]), int(join[2])
@@ -386,8 +394,13 @@ def _serve(argv: list[str], parent: int) -> int:
                 # and each producer knows this node's subscriptions: its answer to a query comes
                 # on the link after them (an event put before that went to no one: a gap in its
                 # stream's seqs that no frontier crosses, and this node waited for it forever)
-                wait_for_answers(session, keys.all_progress(), {keys.progress(p) for p in _producers(spec, node_id)},
-                                 timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
+                def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
+                    status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
+                    loop.redeclare()
+
+                wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
+                                 timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
+                                 nudge=nudge, nudge_every=REDECLARE_AFTER_S)
                 if loop.stopping:
                     loop.undeclare()
                     return 0
@@ -406,6 +419,7 @@ def _serve(argv: list[str], parent: int) -> int:
                     loop.undeclare()
                     return 0
                 t0, end = int(start["t0"]), int(start["end"])
+                loop.values = start.get("values") is not False
                 if loop.virtual:  # lockstep: the ticks below the first grant may run
                     loop.granted = max(0, min(int(start.get("grant", 0)), end))
                 # after T0 when the start came late (a loaded machine): after the end, no tick ran
@@ -513,7 +527,7 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
     if loop.stopping:
         return None
     loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
-    wait_for_answers(session, keys.all_progress(), {keys.progress(n) for n in consumers},
+    wait_for_answers(session, {keys.progress(n) for n in consumers},
                      timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
                      gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))})
     _drop_queued(loop, "restarted", node_id)  # the coordinator's comes after `ready`: one before is not its
@@ -522,6 +536,7 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
     args = _await_control(loop, "restarted", node_id, ask=ready)  # said again: see START_ASK_S
     if args is None:
         return None
+    loop.values = args.get("values") is not False
     seqs = args.get("seqs")
     if type(seqs) is not dict or not all(type(seqs.get(p)) is int and seqs[p] >= RESTART_SEQ_GAP for p in loop.ports):
         raise RuntimeError(f"the 'restarted' for {node_id} carries no seq past {RESTART_SEQ_GAP} for each output "
@@ -634,6 +649,8 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
                 return args
             if op in ("lost", "restarted"):  # of a producer: the loop must know, once it runs
                 early.append(item)
+            elif op == "redeclare" and type(args.get("nodes")) is list and node_id in args["nodes"]:
+                loop.redeclare()  # a consumer never got this node's answer (REDECLARE_AFTER_S)
     finally:
         for item in early:
             loop.inbox.put(item)

@@ -232,9 +232,12 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
                                                     {"n": -999})),
                 (keys.data("counter", "n"), _data_message(forged("os:system", marker), "counter", "n")),
                 (keys.node_status("ghost"), enc.status("ghost", "failed", {"error": "forged", "pid": 1})),
+                (keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["ghost"], "pid": 1})),
             ]
             for key, message in claims:
                 insider.put(key, message)
+            # sense, but not once the run started: no node declares itself again (worker.REDECLARE_AFTER_S)
+            insider.put(keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["counter"]}))
             sub.undeclare()
         result = run.result()
     finally:
@@ -242,7 +245,7 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
     assert not marker.exists(), "a decoded value ran code"
     assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
     assert result["counts"].get("garbage", 0) >= len(claims), result
-    assert "late" not in result["counts"], result
+    assert "late" not in result["counts"] and "redeclared" not in result["counts"], result
     # applied, the frontier past every tag made all 15 of total's ticks incomplete (a loaded
     # machine may make a few so on its own)
     assert result["counts"].get("incomplete", 0) < 5, result

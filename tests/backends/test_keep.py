@@ -1,0 +1,83 @@
+"""What a run keeps in memory: ``keep="trace"`` (every value, the default) or ``keep="records"``
+(ids, tags and step records; the values only in the log). On zenoh, without a log, the values
+of a ``records`` run never reach the coordinator, and consumers hold no copies for it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from retriever import NOT_KEPT, BackendError, Pipeline, Rate, Trigger, ValuesNotKeptError, read_log
+from retriever.log import replay
+
+from .zenoh.payload_flows import Camera, Viewer, frame
+
+SIZE = 256 << 10  # 256 KiB frames: above the spill size, so the trace path of big values is taken
+
+
+def _frames() -> Pipeline:
+    with Pipeline("frames", deadline=1.0) as pipe:
+        camera = Camera(SIZE).configure(name="camera") @ Rate(hz=10)
+        viewer = Viewer().configure(name="viewer") @ Trigger("image")
+        camera.then(viewer)
+    return pipe
+
+
+def _ids(trace) -> list:
+    return sorted((e.tag, e.node, e.port, e.seq) for e in trace.events)
+
+
+def test_on_inproc_records_hold_every_id_and_step_and_no_value(tmp_path):
+    full = _frames().run(duration=1.0)
+    pipe = _frames()
+    kept = pipe.run(duration=1.0, keep="records", log=tmp_path / "run.mcap")
+    assert _ids(kept) == _ids(full) and len(kept.steps) == len(full.steps) == 20
+    assert [s[:4] for s in kept.canonical()[1]] == [s[:4] for s in full.canonical()[1]]
+    assert all(e.value is NOT_KEPT for e in kept.events)
+    assert not kept.values_kept and "values not kept" in repr(kept)
+    for ask in (lambda: kept.values_of("camera", "image"), kept.digest, lambda: kept == full,
+                lambda: kept.first_difference(full)):
+        with pytest.raises(ValuesNotKeptError, match=r"keep='records'.*\n.*read_log\('.*run.mcap'\)"):
+            ask()
+    logged = read_log(tmp_path / "run.mcap").trace()  # the values are in the log, and it replays
+    assert logged == full
+    assert replay(read_log(tmp_path / "run.mcap")).identical
+
+
+def test_a_records_trace_without_a_log_says_how_to_get_the_values():
+    trace = _frames().run(duration=0.3, keep="records")
+    with pytest.raises(ValuesNotKeptError, match=r"run it again with log="):
+        trace.values_of("viewer", "k")
+
+
+def test_keep_takes_only_what_it_names():
+    with pytest.raises(BackendError, match=r"keep='everything' is none of 'trace', 'records'\n    hint:"):
+        _frames().run(duration=0.1, keep="everything")
+
+
+def test_on_zenoh_without_a_log_a_records_run_sends_the_coordinator_no_values():
+    pipe = _frames()
+    trace = pipe.run(duration=1.0, backend="zenoh", quiet=True, keep="records")
+    assert "garbage" not in pipe.counts(), pipe.counts()
+    assert sorted(e.seq for e in trace.events if e.port == "image") == list(range(10))
+    assert all(e.value is NOT_KEPT for e in trace.events)
+    assert len(trace.steps) == 20
+    # 10 frames of 256 KiB were sent; the coordinator got their ids and the step records only
+    assert pipe._session.reported_bytes < SIZE, pipe._session.reported_bytes
+
+    full = _frames()  # the same run keeping the trace: the frames come to the coordinator
+    full.run(duration=1.0, backend="zenoh", quiet=True)
+    assert full._session.reported_bytes > 10 * SIZE
+
+
+def test_on_zenoh_with_a_log_a_records_run_logs_every_value_and_keeps_none(tmp_path):
+    pipe = _frames()
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=1.0, backend="zenoh", quiet=True, keep="records", log=path)
+    assert all(e.value is NOT_KEPT for e in trace.events) and len(trace.events) == 40
+    log = read_log(path)
+    images = sorted((e for e in log.trace().events if e.port == "image"), key=lambda e: e.seq)
+    assert len(images) == 10
+    for k, e in enumerate(images, 1):
+        assert np.array_equal(e.value.reshape(-1), frame(k, SIZE)), k
+    assert replay(log).identical

@@ -1,0 +1,97 @@
+"""A starting worker that never hears its producer (worker.REDECLARE_AFTER_S): it says
+``unanswered``, the coordinator tells that producer to ``redeclare``, and the producer declares
+its subscriptions and queryable anew. At 80 flows on 8 netns hosts, a worker linked to its
+producer was never told of the producer's queryable, and the deployment never started.
+
+The lost declaration itself is Zenoh's race and is not reproduced here; each piece of the
+remedy is, on real Zenoh sessions, with no wait on the clock to make anything happen.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+
+import pytest
+import zenoh
+
+from retriever import Pipeline, Rate, Trigger
+from retriever.backends.zenoh.hub import peer_config, wait_for_answers
+from retriever.backends.zenoh.loop import _CONTROL, _DATA
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_progress
+from retriever.backends.zenoh.worker import _await_control, build_loop
+
+from .payload_flows import Camera, Viewer, frame
+
+
+@pytest.fixture(scope="module")
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+@pytest.fixture(scope="module")
+def spec():
+    with Pipeline("redeclare") as pipe:
+        cam = Camera(size=1024).named("cam") @ Rate(20)
+        cam.then(Viewer().named("viewer") @ Trigger("image"))
+    return {"ir": pipe.compile().to_ir().doc, "namespace": "redeclare-test"}
+
+
+def _answers(session, key: str) -> list:
+    return [decode_progress(r.ok.payload.to_bytes()) for r in session.get(key, timeout=5.0) if r.ok is not None]
+
+
+def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(session, spec):
+    keys = KeySpace(spec["namespace"])
+    viewer = build_loop(spec, "viewer", session)
+    viewer.declare()
+    try:
+        before = len(viewer._declared)
+        viewer.redeclare()
+        assert len(viewer._declared) == before, "the old declarations were dropped, the new ones kept"
+        assert viewer.counts["redeclared"] == 1
+        assert [a.producer for a in _answers(session, keys.progress("viewer"))] == ["viewer"], \
+            "one answer: one queryable"
+        session.put(keys.data("cam", "image"), WireEncoder().data((0, 0), 0, (0, 0), "cam", "image",
+                                                                  frame(1, 1024).reshape(-1, 1024)))
+        session.put(keys.run_control(), WireEncoder().control("stop", {}))  # local delivery keeps the order
+        items = []
+        while not items or items[-1][0] != _CONTROL:
+            items.append(viewer.inbox.get(timeout=30))
+        assert [kind for kind, *_ in items] == [_DATA, _CONTROL], "each message once: one subscriber of each"
+    finally:
+        viewer.undeclare()
+
+
+def test_a_waiting_worker_redeclares_when_the_coordinator_says_so_and_only_then(session, spec):
+    cam = build_loop(spec, "cam", session)
+    cam.declare()
+    try:
+        encode = WireEncoder().control
+        for op, args in (("redeclare", {"nodes": ["viewer"]}), ("redeclare", {"nodes": "cam"}),
+                         ("redeclare", {"nodes": ["cam"]}), ("start", {"t0": 1, "end": 2})):
+            cam.inbox.put((_CONTROL, None, encode(op, args)))
+        assert _await_control(cam, "start", "cam") == {"t0": 1, "end": 2}
+        assert cam.counts["redeclared"] == 1, "only the message that names it, as a list"
+    finally:
+        cam.undeclare()
+
+
+def test_wait_for_answers_nudges_about_the_keys_that_did_not_answer(session):
+    keys = KeySpace("nudge-test")
+    answered = session.declare_queryable(keys.progress("here"), lambda q: q.reply(q.key_expr, b"x"))
+    nudged: queue.SimpleQueue = queue.SimpleQueue()
+    stop = threading.Event()
+
+    def nudge(missing: set[str]) -> None:
+        nudged.put(set(missing))
+        stop.set()
+
+    try:
+        missing = wait_for_answers(session, {keys.progress("here"), keys.progress("gone")}, timeout=60,
+                                   stop=stop.is_set, nudge=nudge, nudge_every=0.0)
+    finally:
+        answered.undeclare()
+    assert missing == {keys.progress("gone")}
+    assert nudged.get_nowait() == {keys.progress("gone")}
