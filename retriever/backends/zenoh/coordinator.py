@@ -219,6 +219,8 @@ class Coordinator(Session):
         # afresh, by what became of the old process; per stream, the highest seq known (events
         # and records); event ids that records produced and no report carried yet
         self._fresh: dict[str, dict] = {}
+        #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
+        self._joining: set[str] = set()
         self._restarted: dict[str, dict[str, int]] = {}  # a node started afresh: its seqs, till its next status
         self._unrecovered: list[dict] = []  # faults of processes not started afresh, logged at the end
         self._max_seq: dict[tuple[str, str], int] = {}
@@ -237,6 +239,8 @@ class Coordinator(Session):
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
         self._workers[nid] = self._hosts[nid].spawn(nid, mode)
+        if join is not None:
+            self._joining.add(nid)
         self._state[nid] = "starting"
 
     def _processes(self) -> list[WorkerProcess]:
@@ -534,6 +538,7 @@ class Coordinator(Session):
         elif state == "handed_over":
             self._retired.append(self._retiring.pop(node))
             self._control("resume", {"node": node})
+            self._joining.discard(node)
             return
         elif state == "done":
             self._done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
@@ -729,6 +734,7 @@ class Coordinator(Session):
         self._record_fault(self._fresh.pop(nid), seqs)
         self._restarted[nid] = seqs
         self._control("restarted", {"node": nid, "seqs": seqs, "values": self._values})
+        self._joining.discard(nid)
 
     def _record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
         """Keep a lost process's fault, and log it: the outputs its step records claimed and no
@@ -787,6 +793,12 @@ class Coordinator(Session):
             self._control("stop", {})
         except Exception:
             pass
+        # a process not in the run yet (a restarted flow's, before it took over or was told its
+        # seqs) has nothing to send, and may be waiting for its neighbours, not reading control
+        for nid in self._joining:
+            p = self._workers.get(nid)
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
         give_up = time.monotonic() + grace
         while time.monotonic() < give_up and any(p.poll() is None for p in self._processes()):
             try:

@@ -169,7 +169,8 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: in
     """Open the run's hub session, one of the run's ``sessions``; returns it and the endpoint it
     listens on. Close it (``with``). ``keys``: the run's key space, whose messages it forwards
     to watchers dropping (forward_dropping)."""
-    port = preferred_port if port_is_free(preferred_port) else free_port()
+    # 0: any free port (Zenoh would listen on one but tell no one which)
+    port = preferred_port if preferred_port and port_is_free(preferred_port) else free_port()
     if keys is not None:
         access = {**(access or {}), **forward_dropping(keys)}
     last: Exception | None = None

@@ -333,8 +333,10 @@ def _checked_timing(spec: dict, nodes: set[str]) -> dict:
     def zid_ok(z) -> bool:
         return type(z) is str and 1 <= len(z) <= 32 and all(c in "0123456789abcdef" for c in z) and z[0] != "0"
 
+    # none (a coordinator that names no ids), or one for every node: a worker that knew some would
+    # wait for links to those only, and say ready with the others unlinked
     if (type(zids) is not dict or not all(type(k) is str and k in nodes and zid_ok(v) for k, v in zids.items())
-            or len(set(zids.values())) != len(zids)):
+            or len(set(zids.values())) != len(zids) or (zids and set(zids) != nodes)):
         raise WireError("the spec's zids are not one distinct Zenoh id (lowercase hex) per node of its IR")
     if hub_zid is not None and not zid_ok(hub_zid):
         raise WireError(f"the spec's hub_zid {hub_zid!r:.40} is not a Zenoh id (lowercase hex)")

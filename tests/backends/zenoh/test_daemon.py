@@ -337,6 +337,7 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                      {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "0bad"}}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "a" * 33}}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"ghost": "abc"}}, "nodes": ["counter"]},
+                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "abc"}}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "zids": ["abc"]}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "hub_zid": "../etc"}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):

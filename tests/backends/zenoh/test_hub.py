@@ -70,6 +70,17 @@ def test_hub_prefers_7447_then_a_free_port():
 
 
 
+def test_hub_port_0_means_any_free_port_and_says_which():
+    """hub_port=0: the hub listened on a port the OS chose and announced port 0, which workers
+    then could not reach (the run failed at its startup timeout)."""
+    hub, at = open_hub(0)
+    with hub:
+        port = int(at.rsplit(":", 1)[1])
+        assert port != 0 and not port_is_free(port)
+        with open_peer(at) as peer:
+            assert wait_for_links(peer, {str(hub.zid())}, timeout=30) == set()
+
+
 def test_a_port_whose_last_connection_is_in_time_wait_is_free():
     """The hub of the run before closed its connections first: their side waits in TIME_WAIT on
     the hub's port for a minute. The next run's hub must still get that port."""

@@ -252,6 +252,20 @@ def test_on_error_restart_stops_past_its_restart_budget():
     assert [s.status for s in pipe.trace.steps_of("faulty")].count("error") == 3
 
 
+def test_a_run_that_ends_while_a_restarted_flow_starts_stops_its_new_process_at_once(capfd):
+    """The run ends while a restarted flow's new process is still starting (importing, waiting
+    for its neighbours): that process has nothing to send, so it is told to stop at once. It
+    was left to the stop's grace, then its stacks were printed and it was SIGKILLed."""
+    with Pipeline("restart_at_end") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        bad = Faulty(fail_at=[9, 10, 11, 12], message="late").configure(name="faulty", on_error="restart") @ Trigger("x")
+        src.then(bad, sync=Latest())
+    run(pipe, 0.5)  # x = 9 at 0.4 s: the new process cannot be ready by 0.5 s
+    assert counts(pipe)["restarts"] == 1
+    err = capfd.readouterr().err
+    assert "did not stop within" not in err and "SIGKILL" not in err, err
+
+
 def test_on_error_restart_of_a_let_flow_publishes_the_outputs_it_held():
     """A LET flow holds each output until tick + latency. When a step raises and the flow's
     process is restarted, the outputs it still held are published first: their seqs are in
