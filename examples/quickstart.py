@@ -60,11 +60,17 @@ class Camera(Flow[None, Frame]):
 
 
 class Policy(Flow[PolicyIn, Chunk]):
-    """A stand-in VLA: aims the joints at the image brightness, starting from the measured state."""
+    """A stand-in VLA: aims the joints at the image brightness, starting from the measured state.
+
+    Its "weights" (a fixed projection) are made in ``setup()``, where a real policy loads its
+    checkpoint: once, in the process that steps it, before its first tick."""
+
+    def setup(self) -> None:
+        self.weights = np.array([1.0, -1.0]) / 255.0
 
     def step(self, inp: PolicyIn) -> Chunk:
         start = np.zeros(2) if inp.state is None else inp.state
-        goal = np.array([inp.frame.mean() / 255.0, -inp.frame.mean() / 255.0])
+        goal = inp.frame.mean() * self.weights
         alphas = np.linspace(0.0, 1.0, CHUNK_STEPS)[:, None]
         return Chunk(chunk=start + alphas * (goal - start))
 

@@ -20,6 +20,7 @@ from .errors import (
     RestartLimitError,
     RetrieverError,
     RetrieverWarning,
+    SetupError,
     StepError,
     UnregisteredTypeError,
     ValuesNotKeptError,
@@ -35,7 +36,7 @@ __all__ = sorted([
     "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
-    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "StepError", "StepRecord",
+    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StepError", "StepRecord",
     "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "init", "io",
     "read_log",
 ])

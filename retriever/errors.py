@@ -110,6 +110,18 @@ class StepError(RetrieverError):
         )
 
 
+class SetupError(RetrieverError):
+    """A flow's ``setup()`` raised, before its first tick: the run did not start. The original
+    exception is chained as ``__cause__`` (on ``zenoh``, its text and the worker's traceback)."""
+
+    def __init__(self, node: str, cause: BaseException | str):
+        self.node = node
+        what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
+        super().__init__(f"{node}.setup() raised {what}, before its first tick: the run did not start\n"
+                         f"    hint: setup() runs once, in the process that steps '{node}'; fix what it needs "
+                         "there (a file, a device, a model's weights)")
+
+
 class RestartLimitError(StepError):
     """A flow with ``on_error="restart"`` needed more restarts than its budget allows."""
 

@@ -26,8 +26,11 @@ to the same trace.
 
 from __future__ import annotations
 
+import atexit
 import gc
 import random
+import warnings
+import weakref
 from heapq import heappop, heappush
 from time import time_ns
 from typing import Any
@@ -35,13 +38,22 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import CausalityError, CodecError, RestartLimitError, StepError
-from ..flow._base import Flow, make_invoker, make_output_reader
+from ..errors import CausalityError, CodecError, RestartLimitError, RetrieverWarning, SetupError, StepError
+from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
 from ..time import format_tag
 from . import _inproc_ticks
 from .base import Backend, NodeStats, RestartBudget, Session
+
+#: sessions whose flows are set up: torn down at the program's exit at the latest
+_OPEN: weakref.WeakSet = weakref.WeakSet()
+
+
+@atexit.register
+def _tear_down_open_sessions() -> None:
+    for session in list(_OPEN):
+        session.close()
 
 
 #: the types of output values the codec always encodes (None: no event). An output of another type
@@ -148,6 +160,7 @@ class InprocSession(Session):
         self._ticks: list | None = None
         self._flushes: list = []  # flush() of each compiled tick: hand its counts to stats and rt.seq
         self._generic_only = False  # set by take_routes(): replay delivers events itself
+        self._set_up = False  # whether the flows' setup() ran and their teardown() has not
 
     # ---------------------------------------------------------------------------------------
     # Wiring
@@ -234,6 +247,37 @@ class InprocSession(Session):
         return ticks
 
     # ---------------------------------------------------------------------------------------
+    # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
+    # (pipe.reset(), another backend, the program's exit): a run in virtual time may go on
+    # ---------------------------------------------------------------------------------------
+    def set_up(self) -> None:
+        """Call each flow's ``setup()`` once, in node order (a failure: SetupError, and the
+        flows already set up are torn down)."""
+        if self._set_up:
+            return
+        self._set_up = True
+        _OPEN.add(self)
+        for rt in self._nodes:
+            try:
+                set_up(rt.flow)
+            except Exception as exc:
+                self.close()
+                raise SetupError(rt.id, exc) from exc
+
+    def close(self) -> None:
+        """Call ``teardown()`` of each flow set up, in reverse node order; a failure is a warning."""
+        if not self._set_up:
+            return
+        self._set_up = False
+        _OPEN.discard(self)
+        for rt in reversed(self._nodes):
+            try:
+                tear_down(rt.flow)
+            except Exception as exc:
+                warnings.warn(f"{rt.id}.teardown() raised {type(exc).__name__}: {exc}", RetrieverWarning,
+                              stacklevel=2)
+
+    # ---------------------------------------------------------------------------------------
     # The loop
     # ---------------------------------------------------------------------------------------
     def advance(self, until_ns: int) -> None:
@@ -241,6 +285,7 @@ class InprocSession(Session):
         # collection re-walks the whole trace: about half the loop's time on long runs (measured,
         # benchmarks/README.md). Hold off full collections while the loop runs; young collections,
         # which reclaim the cyclic garbage flows make, go on as usual.
+        self.set_up()
         thresholds = gc.get_threshold()
         gc.set_threshold(thresholds[0], thresholds[1], 1 << 30)
         try:

@@ -287,6 +287,10 @@ class FlowSettings:
     pipeline: Callable[[], Any] | None = field(default=None, repr=False, compare=False)
     max_restarts: int = MAX_RESTARTS
     restart_window: float = RESTART_WINDOW_S
+    #: set_up(): whether setup() ran and teardown() has not; the attributes setup() bound
+    #: (the default reset() keeps them)
+    is_set_up: bool = field(default=False, compare=False)
+    setup_attrs: tuple = field(default=(), compare=False)
 
 
 def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
@@ -298,8 +302,16 @@ def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
 class Flow(Generic[In, Out]):
     """A stateful module with a synchronous ``step``; the runtime decides when and with what.
 
-    Subclasses implement ``step`` and, optionally, ``reset``. They need not call
-    ``super().__init__()``. Bind a clock with ``flow @ Rate(hz=30)``; wire with ``a.then(b)``.
+    Subclasses implement ``step`` and, optionally, ``setup``, ``teardown`` and ``reset``. They
+    need not call ``super().__init__()``. Bind a clock with ``flow @ Rate(hz=30)``; wire with
+    ``a.then(b)``.
+
+    Lifecycle: ``__init__`` runs wherever the pipeline is built (on ``zenoh``, also in every
+    worker process that imports the script), so keep it cheap: store the arguments. Heavy work
+    (model weights, devices, sockets) goes in ``setup()``, which every backend calls once per
+    run, in the process that steps the flow, before its first tick; ``teardown()`` releases it
+    when the flow's run is over (after its last tick, also after an error). ``reset()`` keeps
+    what ``setup()`` made.
     """
 
     _retriever: FlowSettings
@@ -321,20 +333,31 @@ class Flow(Generic[In, Out]):
         """Call ``step`` directly, with no runtime: ``flow(In(...))``."""
         return self.step(*args, **kwargs)
 
-    def reset(self) -> None:
-        """Restore the initial state. By default, re-run ``__init__`` with the original arguments.
+    def setup(self) -> None:
+        """Acquire what is heavy or belongs to one process (weights, a GPU, a camera, a socket):
+        called once per run in the process that steps this flow, before its first tick. The
+        attributes it sets survive the default ``reset()``."""
 
-        Override it when construction is expensive (a model load) or state lives elsewhere.
-        Backends call it on ``pipe.reset()``, on ``on_error="restart"``, and at the start of a
-        run for classes that define their own ``reset`` (the paper's pattern of initialising
-        state there).
+    def teardown(self) -> None:
+        """Release what ``setup()`` acquired: called once, in the same process, when the flow's
+        run is over (its last tick ran, the run stopped or failed); not after a crash."""
+
+    def reset(self) -> None:
+        """Restore the initial state. By default, re-run ``__init__`` with the original arguments,
+        keeping the attributes ``setup()`` set (a loaded model stays loaded).
+
+        Override it when state lives elsewhere. Backends call it on ``pipe.reset()``, on
+        ``on_error="restart"``, and at the start of a run for classes that define their own
+        ``reset`` (the paper's pattern of initialising state there).
         """
         settings = self._retriever
+        kept = {k: self.__dict__[k] for k in settings.setup_attrs if k in self.__dict__}
         self.__dict__.clear()
         self.__dict__["_retriever"] = settings
         init = type(self).__init__
         if init is not object.__init__:
             init(self, *settings.args, **settings.kwargs)
+        self.__dict__.update(kept)
 
     # -- graph building -------------------------------------------------------------------
     def __matmul__(self, clock: Clock):
@@ -417,6 +440,27 @@ class Flow(Generic[In, Out]):
 # ---------------------------------------------------------------------------------------------
 # Calling a flow from a runtime
 # ---------------------------------------------------------------------------------------------
+def set_up(flow: Flow) -> None:
+    """Call ``flow.setup()`` unless it ran already (and ``teardown()`` did not); remember the
+    attributes it bound, which the default ``reset()`` keeps."""
+    settings = flow._retriever
+    if settings.is_set_up:
+        return
+    before = dict(flow.__dict__)
+    flow.setup()
+    settings.is_set_up = True
+    settings.setup_attrs = tuple(k for k, v in flow.__dict__.items()
+                                 if k != "_retriever" and (k not in before or before[k] is not v))
+
+
+def tear_down(flow: Flow) -> None:
+    """Call ``flow.teardown()`` if ``setup()`` ran and it did not yet."""
+    settings = flow._retriever
+    if settings.is_set_up:
+        settings.is_set_up = False
+        flow.teardown()
+
+
 def make_invoker(flow: Flow, spec: FlowSpec) -> Callable[[dict], Any]:
     """A function ``values -> raw step output`` for one flow instance."""
     step = flow.step

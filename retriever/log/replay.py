@@ -112,10 +112,19 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
 
 def replay(log: RunLog, pipeline: Pipeline | None = None,
            progress: Callable[[int, int], None] | None = None) -> ReplayReport:
-    """Re-execute every non-source step of ``log``; see the module docstring."""
+    """Re-execute every non-source step of ``log``; see the module docstring. The flows are set
+    up before the first step and torn down at the end, as in a run."""
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
     session = InprocSession(graph)
+    session.set_up()
+    try:
+        return _replay(log, graph, session, progress)
+    finally:
+        session.close()
+
+
+def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int, int], None] | None) -> ReplayReport:
     routes = session.take_routes()
     trace = session.trace
     encode = Encoder().pack
@@ -407,6 +416,8 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
         session.advance(horizon)
     except StepError as e:
         return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
+    finally:
+        session.close()
     kept_steps = [s for s in original.steps if s.tag[0] < horizon]
     kept_ids = {i for s in kept_steps for i in s.produced}
     expected = Trace([e for e in original.events if e.id in kept_ids], kept_steps)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import zenoh
 
-from ...errors import BackendError, CausalityError, RestartLimitError, StepError
+from ...errors import BackendError, CausalityError, RestartLimitError, SetupError, StepError
 from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
@@ -768,6 +768,10 @@ class Coordinator(Session):
         cycle = next((c for c in self.graph.instantaneous_cycles if node in c), None)
         if info.get("zeno") is True and cycle is not None and _is_tag(tag):
             raise CausalityError(cycle, tuple(tag), self.graph.max_microsteps)
+        if info.get("setup") is True and settings is not None:
+            failure = SetupError(node, str(error))
+            failure.args = (failure.args[0] + where,)
+            raise failure
         if tag is not None and settings is not None and ".step() raised " in error:
             failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
             failure.args = (failure.args[0] + where,)

@@ -175,6 +175,7 @@ class NodeLoop:
             self.on_overrun = "skip"
             self.on_deadline_miss = "publish_late" if self.on_deadline_miss == "error" else self.on_deadline_miss
         self.clock = node.clock
+        self.flow = node.flow
         self.invoke = make_invoker(node.flow, node.spec)
         self.read = make_output_reader(node.spec)
         self.encoder = WireEncoder()

@@ -301,6 +301,7 @@ def _serve(argv: list[str], parent: int) -> int:
     sys.argv = spec.get("argv", sys.argv)
 
     from ...codec import packb, unpackb
+    from ...flow._base import set_up, tear_down
     from .access import RunAccess, TlsFiles
     from .hub import open_peer, wait_for_answers, wait_for_links
     from .loop import _CONTROL, StopRun
@@ -330,132 +331,144 @@ def _serve(argv: list[str], parent: int) -> int:
             status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",
                    traceback=traceback.format_exc())
             return EXIT_FAILED
-        stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
-
-        def on_sigterm(signum, frame) -> None:
-            # asked to stop; when its parent is dead (a SIGTERM sent by someone else then), it
-            # ends as on PARENT_DIED
-            loop.abandoned = _orphaned(parent)
-            loop.stopping = True
-            loop.inbox.put(stop_item)
-
-        def on_parent_died(signum, frame) -> None:
-            # the run goes on without this process, which ends without a word, as if killed,
-            # promising its consumers nothing (not "done")
-            loop.abandoned = loop.stopping = True
-            loop.inbox.put(stop_item)
-
-        signal.signal(signal.SIGTERM, on_sigterm)
-        signal.signal(PARENT_DIED, on_parent_died)
-        started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
-        loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
-        if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
-            loop.on_reached = lambda until: status("reached", until=until)
         try:
-            if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
-                t0, end = int(fresh[1]), int(fresh[2])
-                seqs = _join_afresh(session, keys, spec, node_id, loop,
-                                    ready=lambda: status("ready", padding=bytes(READY_PADDING)))
-                if seqs is None:
-                    status("done", counts=dict(loop.counts))
+            stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
+
+            def on_sigterm(signum, frame) -> None:
+                # asked to stop; when its parent is dead (a SIGTERM sent by someone else then), it
+                # ends as on PARENT_DIED
+                loop.abandoned = _orphaned(parent)
+                loop.stopping = True
+                loop.inbox.put(stop_item)
+
+            def on_parent_died(signum, frame) -> None:
+                # the run goes on without this process, which ends without a word, as if killed,
+                # promising its consumers nothing (not "done")
+                loop.abandoned = loop.stopping = True
+                loop.inbox.put(stop_item)
+
+            signal.signal(signal.SIGTERM, on_sigterm)
+            signal.signal(PARENT_DIED, on_parent_died)
+            try:  # heavy work (weights, devices) once, here, before this process says ready
+                set_up(loop.flow)
+            except Exception as exc:
+                status("failed", error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
+                return EXIT_FAILED
+            started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
+            loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
+            if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
+                loop.on_reached = lambda until: status("reached", until=until)
+            try:
+                if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
+                    t0, end = int(fresh[1]), int(fresh[2])
+                    seqs = _join_afresh(session, keys, spec, node_id, loop,
+                                        ready=lambda: status("ready", padding=bytes(READY_PADDING)))
+                    if seqs is None:
+                        status("done", counts=dict(loop.counts))
+                        loop.undeclare()
+                        return 0
+                    loop.start_fresh(seqs, t0)
+                    loop.declare_outputs()
+                elif join is not None:  # a restarted flow: listen now, take the old process's place when told
+                    loop.declare_inputs()
+                    # links to its producers and consumers, each knowing the other's subscribers:
+                    # once the old process stops, a message that reached neither would be a gap
+                    neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
+                                 if node_id in (e["source"]["node"], e["destination"]["node"])}
+                    wait_for_answers(session, {keys.progress(n) for n in neighbors},
+                                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
+                                     gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
+                    t0, end = int(join[1]), int(join[2])
+                    _link_to_hub(session, spec, loop)
+
+                    def say_ready() -> None:
+                        status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
+
+                    say_ready()
+                    if _await_control(loop, "resume", node_id, ask=say_ready) is None:
+                        status("done", counts=dict(loop.counts))
+                        loop.undeclare()
+                        return 0
+                    loop.take_over(unpackb(handover_file.read_bytes()))
+                    handover_file.unlink()
+                    loop.declare_outputs()
+                else:
+                    loop.declare()
+                    # a direct link to the hub and each neighbour, before anything is published
+                    # (peers do not route for each other)
+                    unlinked = wait_for_links(session, _links_needed(spec, node_id),
+                                              timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
+                    # and each producer knows this node's subscriptions: its answer to a query comes
+                    # on the link after them (an event put before that went to no one: a gap in its
+                    # stream's seqs that no frontier crosses, and this node waited for it forever)
+                    def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
+                        status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
+                        loop.redeclare()
+
+                    wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
+                                     timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
+                                     nudge=nudge, nudge_every=REDECLARE_AFTER_S)
+                    if loop.stopping:
+                        loop.undeclare()
+                        return 0
+
+                    def ready() -> None:
+                        status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
+                               peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
+
+                    ready()
+                    # said again with each ask: a put made as a link came up may reach the hub before
+                    # its subscriptions did, and be dropped (the coordinator then waited for it forever)
+                    start = _await_control(loop, "start", node_id,
+                                           ask=lambda: (ready(), _ask_start(session, keys, loop)))
+                    if start is None:
+                        status("done", counts=dict(loop.counts))
+                        loop.undeclare()
+                        return 0
+                    t0, end = int(start["t0"]), int(start["end"])
+                    loop.values = start.get("values") is not False
+                    if loop.virtual:  # lockstep: the ticks below the first grant may run
+                        loop.granted = max(0, min(int(start.get("grant", 0)), end))
+                    # after T0 when the start came late (a loaded machine): after the end, no tick ran
+                    started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
+                loop.run(t0, end, resume=join is not None)
+                if loop.abandoned:
                     loop.undeclare()
-                    return 0
-                loop.start_fresh(seqs, t0)
-                loop.declare_outputs()
-            elif join is not None:  # a restarted flow: listen now, take the old process's place when told
-                loop.declare_inputs()
-                # links to its producers and consumers, each knowing the other's subscribers:
-                # once the old process stops, a message that reached neither would be a gap
-                neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
-                             if node_id in (e["source"]["node"], e["destination"]["node"])}
-                wait_for_answers(session, {keys.progress(n) for n in neighbors},
-                                 timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
-                                 gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
-                t0, end = int(join[1]), int(join[2])
-                _link_to_hub(session, spec, loop)
-
-                def say_ready() -> None:
-                    status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
-
-                say_ready()
-                if _await_control(loop, "resume", node_id, ask=say_ready) is None:
-                    status("done", counts=dict(loop.counts))
-                    loop.undeclare()
-                    return 0
-                loop.take_over(unpackb(handover_file.read_bytes()))
-                handover_file.unlink()
-                loop.declare_outputs()
-            else:
-                loop.declare()
-                # a direct link to the hub and each neighbour, before anything is published
-                # (peers do not route for each other)
-                unlinked = wait_for_links(session, _links_needed(spec, node_id),
-                                          timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
-                # and each producer knows this node's subscriptions: its answer to a query comes
-                # on the link after them (an event put before that went to no one: a gap in its
-                # stream's seqs that no frontier crosses, and this node waited for it forever)
-                def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
-                    status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
-                    loop.redeclare()
-
-                wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
-                                 timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
-                                 nudge=nudge, nudge_every=REDECLARE_AFTER_S)
-                if loop.stopping:
-                    loop.undeclare()
-                    return 0
-
-                def ready() -> None:
-                    status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
-                           peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
-
-                ready()
-                # said again with each ask: a put made as a link came up may reach the hub before
-                # its subscriptions did, and be dropped (the coordinator then waited for it forever)
-                start = _await_control(loop, "start", node_id,
-                                       ask=lambda: (ready(), _ask_start(session, keys, loop)))
-                if start is None:
-                    status("done", counts=dict(loop.counts))
-                    loop.undeclare()
-                    return 0
-                t0, end = int(start["t0"]), int(start["end"])
-                loop.values = start.get("values") is not False
-                if loop.virtual:  # lockstep: the ticks below the first grant may run
-                    loop.granted = max(0, min(int(start.get("grant", 0)), end))
-                # after T0 when the start came late (a loaded machine): after the end, no tick ran
-                started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
-            loop.run(t0, end, resume=join is not None)
-            if loop.abandoned:
+                    return EXIT_ABANDONED
+            except StopRun as exc:
+                loop.release_held()
+                loop.finish_reports()
+                cause = exc.__cause__  # the exception a step raised: where in the flow's code
+                status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
+                       traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
+                       zeno=exc.zeno)
                 loop.undeclare()
-                return EXIT_ABANDONED
-        except StopRun as exc:
-            loop.release_held()
-            loop.finish_reports()
-            cause = exc.__cause__  # the exception a step raised: where in the flow's code
-            status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
-                   traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
-                   zeno=exc.zeno)
+                return EXIT_FAILED
+            except BaseException as exc:
+                loop.finish_reports()
+                status("failed", error=f"worker '{node_id}' crashed: {type(exc).__name__}: {exc}",
+                       traceback=traceback.format_exc(), counts=dict(loop.counts))
+                loop.undeclare()
+                return EXIT_FAILED
+            if loop.handing_over:
+                loop.undeclare()  # first: no message may arrive after the state is taken
+                state = packb(loop.handover_state())
+                loop.finish_reports()
+                tmp = handover_file.with_suffix(".tmp")
+                tmp.write_bytes(state)
+                tmp.replace(handover_file)
+                status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
+                _await_reports_taken(session, keys, node_id)
+                return EXIT_HANDED_OVER
+            status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns,
+                   ticks=loop.recorded)
             loop.undeclare()
-            return EXIT_FAILED
-        except BaseException as exc:
-            loop.finish_reports()
-            status("failed", error=f"worker '{node_id}' crashed: {type(exc).__name__}: {exc}",
-                   traceback=traceback.format_exc(), counts=dict(loop.counts))
-            loop.undeclare()
-            return EXIT_FAILED
-        if loop.handing_over:
-            loop.undeclare()  # first: no message may arrive after the state is taken
-            state = packb(loop.handover_state())
-            loop.finish_reports()
-            tmp = handover_file.with_suffix(".tmp")
-            tmp.write_bytes(state)
-            tmp.replace(handover_file)
-            status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
             _await_reports_taken(session, keys, node_id)
-            return EXIT_HANDED_OVER
-        status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns, ticks=loop.recorded)
-        loop.undeclare()
-        _await_reports_taken(session, keys, node_id)
+        finally:
+            try:
+                tear_down(loop.flow)
+            except Exception as exc:  # told, not fatal: the run's outcome stands
+                print(f"{node_id}.teardown() raised {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
     return 0
 
 
