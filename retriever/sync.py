@@ -16,7 +16,7 @@ of ``None`` means nothing to record; committing it is a no-op.
 
 from __future__ import annotations
 
-from bisect import insort
+from bisect import bisect_right
 from fractions import Fraction
 from typing import Any
 
@@ -72,11 +72,20 @@ class PortBuffer:
         self.trim_batch = trim_batch
 
     def insert(self, entry: tuple) -> None:
+        """Put ``entry`` in its place by tag. In real time one may come *late*, after a tick at
+        or past its tag ran: it goes behind entries already visible, or already consumed (a
+        Queue's cursor stays on the first entry not consumed: the late one, behind it by its
+        tag, is never consumed by a Queue; Latest and the others see it as any other event)."""
         entries = self.entries
         if not entries or entries[-1] < entry:
             entries.append(entry)
-        else:
-            insort(entries, entry)
+            return
+        i = bisect_right(entries, entry)
+        entries.insert(i, entry)
+        if i < self.visible:
+            self.visible += 1
+        if i < self.cursor:
+            self.cursor += 1
 
     def advance(self, tau: tuple[int, int]) -> int:
         entries, n = self.entries, self.visible

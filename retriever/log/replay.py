@@ -5,8 +5,9 @@ on inputs rebuilt from the *logged* events with the edge's policy, so one diverg
 hide or cause divergence elsewhere. Per step it checks the consumed event ids against the log,
 then the status, the produced ids and tags, and every output value's msgpack bytes.
 
-What a real-time run did, the replay does: events a consumer dropped as late (its step records
-name them) are withheld from it; a LET step whose deadline miss dropped its outputs has them
+What a real-time run did, the replay does: an event that reached a consumer late (after a tick
+at or past its tag ran) goes in its buffer right before the consumer's record that names it,
+as it did in the run, never earlier; a LET step whose deadline miss dropped its outputs has them
 taken back (their seqs used again); a tick the run stopped before stepping is not stepped; and
 ``incomplete``, ``late`` and ``overrun`` steps compare as ``ok`` (the replay cannot be late).
 A flow whose process died and was started afresh (on_error="restart") starts afresh at its first
@@ -132,8 +133,9 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
     steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
     # Logged events, in arrival order at each consumer (an edge's delay shifts it), but for the
     # late ones: in real time they reached a consumer after a tick at or past their tag had run
-    # without them, and the consumer dropped them.
-    withheld = _late_events(steps)
+    # without them; they go in its buffer right before the record that names them.
+    late = _late_events(steps)
+    late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> (buf, entry)
     gaps = _restart_gaps(steps)
     events = list(log.iter_events())
     logged = {e.id: e for e in events}
@@ -147,10 +149,15 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
         if consumers:
             value = log.value(e)
             for consumer, buf, delay_ns in consumers:
-                if (consumer, e.id) in withheld or _in_gap(gaps.get(consumer), e):
+                if _in_gap(gaps.get(consumer), e):
                     continue
                 arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
-                deliveries.append((arrival, consumer[0], buf, (arrival, e.node, e.port, e.seq, value)))
+                entry = (arrival, e.node, e.port, e.seq, value)
+                seen_at = late.get((consumer, e.id))
+                if seen_at is not None:
+                    late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
+                else:
+                    deliveries.append((arrival, consumer[0], buf, entry))
     deliveries.sort(key=lambda d: d[0])
     # a lost process's outputs that its records claim and no report carried: not comparable (a
     # consumer may still have carried one in: that one is in the log, and compared)
@@ -175,6 +182,8 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
         restarted = (step.detail or {}).get("restarted")
         if restarted is not None:
             _restart_afresh(session, step.node, restarted, floors)
+        for buf, entry in late_at.pop((step.node, step.tag), ()):
+            buf.insert(entry)  # it arrived late: in the buffer from this record on, as in the run
         if step.node in sources or not _stepped(step):
             continue
         while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
@@ -210,11 +219,11 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
     return report
 
 
-def _late_events(steps) -> set[tuple[tuple[str, str], tuple[str, str, int]]]:
-    """``((consumer node, port), event id)`` of every event a real-time consumer dropped as late,
-    from the step records' ``late`` detail (``{port: [event id, ...]}``, told on the record after
-    it arrived)."""
-    return {((s.node, port), (node, out, seq))
+def _late_events(steps) -> dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]]:
+    """``((consumer node, port), event id)`` of every event that reached a real-time consumer
+    late, to the tag of the consumer's record that names it (its ``late`` detail, ``{port:
+    [event id, ...]}``): the first tick whose buffer had it."""
+    return {((s.node, port), (node, out, seq)): s.tag
             for s in steps if s.detail and "late" in s.detail
             for port, ids in s.detail["late"].items() for node, out, seq in ids}
 

@@ -28,12 +28,13 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 import weakref
 from pathlib import Path
 
 import zenoh
 
-from ...errors import BackendError, CausalityError, RestartLimitError, SetupError, StepError
+from ...errors import BackendError, CausalityError, RestartLimitError, RetrieverWarning, SetupError, StepError
 from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
@@ -109,9 +110,6 @@ class Coordinator(Session):
         self.startup_timeout = startup_timeout
         self.start_margin_ns = round(start_margin * 1e9)
         self.t0: int | None = None  # HLC Unix ns of the run's start
-        self._values = True  # whether the workers report their events' values (set at the start)
-        #: bytes of the workers' reports (step records and events) received, spilled ones included
-        self.reported_bytes = 0
         self.end_ns = 0  # the run's end, ns since T0
         self._init_records(graph)
         self._workers: dict[str, WorkerProcess] = {}  # each node's process
@@ -219,6 +217,9 @@ class Coordinator(Session):
         # afresh, by what became of the old process; per stream, the highest seq known (events
         # and records); event ids that records produced and no report carried yet
         self._fresh: dict[str, dict] = {}
+        self._values = True  # whether the workers report their events' values (set at the start)
+        #: bytes of the workers' reports (step records and events) received, spilled ones included
+        self.reported_bytes = 0
         #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
         self._joining: set[str] = set()
         self._restarted: dict[str, dict[str, int]] = {}  # a node started afresh: its seqs, till its next status
@@ -309,6 +310,7 @@ class Coordinator(Session):
         self._record_faults_left()
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
         self._check_every_flow_ticked()
+        self._warn_starved_by_late_events()
 
     def _check_every_flow_ticked(self) -> None:
         """A flow with a rate that had ticks due in the run's window, and ran none, fails the
@@ -332,6 +334,25 @@ class Coordinator(Session):
                                "though their clocks had ticks due:\n" + "\n".join(idle)
                                + "\n    hint: a machine too loaded to start the run's processes in time needs a "
                                f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
+
+    def _warn_starved_by_late_events(self) -> None:
+        """A flow that never stepped though events came on its inputs, late (after the ticks they
+        were for): say which edge, and the fix. The run stands (it did what its policies say)."""
+        for nid, stats in sorted(self._stats.items()):
+            if stats.steps or not stats.counts.get("late"):
+                continue
+            ports = sorted({port for node, _, _, _, _, detail, *_ in self.trace.raw_steps
+                            if node == nid and detail for port in (detail.get("late") or {})})
+            edges = [e for e in self.graph.edges if e.dst == nid and e.dst_port in ports] or \
+                [e for e in self.graph.edges if e.dst == nid]
+            names = ", ".join(f"{e.src}.{e.src_port} → {nid}.{e.dst_port}" for e in edges)
+            e = edges[0] if edges else None
+            warnings.warn(
+                f"flow '{nid}' never stepped in this run: its inputs were late, {stats.counts['late']} event(s) "
+                f"on {names} arrived after the ticks they were for, and its policies took none later\n"
+                "    hint: give the producer a latency= that covers its step (a LET flow: its outputs are due "
+                "at tick + latency)" + (f", or the edge a longer deadline: {e.src}.then({nid}, deadline=seconds)"
+                                       if e is not None else ""), RetrieverWarning, stacklevel=4)
 
     # ---------------------------------------------------------------------------------------
     # Lockstep virtual time (see loop.py's docstring)

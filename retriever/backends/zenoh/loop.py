@@ -781,13 +781,18 @@ class NodeLoop:
 
     def _deliver(self, e: InEdge, msg) -> None:
         arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
-        if arrival <= self.last_tick:  # a tick at or after this tag already ran without it
+        entry = (arrival, msg.producer, msg.port, msg.seq, msg.value)
+        if arrival <= self.last_tick:
+            # A tick at or after this tag already ran without it: never applied to that past tick,
+            # but in the buffer, by its tag, for every tick from the next one on (a slow policy's
+            # chunk still reaches its controller). Its next record names it, by id: a replay puts
+            # it in the buffer at exactly that point (log/replay.py). It triggers no past tick.
             self.counts["late"] += 1
-            # by id: a replay must withhold exactly these from this port (log/replay.py)
             self.pending_detail.setdefault("late", {}).setdefault(e.port, []).append(
                 (msg.producer, msg.port, msg.seq))
+            e.buf.insert(entry)
             return
-        e.buf.insert((arrival, msg.producer, msg.port, msg.seq, msg.value))
+        e.buf.insert(entry)
         if e.triggers and arrival[0] < self.end and arrival not in self.pending_set:
             with self.lock:
                 self.pending_set.add(arrival)

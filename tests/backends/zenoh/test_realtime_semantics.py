@@ -391,12 +391,13 @@ def test_busy_asap_producer_still_completes_its_edges():
         assert [by_id[i].value for i in s.consumed["x"]] == [1], s
 
 
-def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_never_consumed(tmp_path):
+def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_never_consumed_early(tmp_path):
     """A LET producer (latency 50 ms) blocked 0.8 s in its tick at 0.2 s promises nothing past
     0.25 s (its output's tag) until it finishes: the consumer's ticks from 0.25 s wait the edge's
     deadline (30 ms), then run with what they have, marked incomplete. The output (tag 0.25 s)
-    arrives after those ticks ran: it is late, counted and told by id, no tick consumes it, and
-    the log replays (the replay withholds it from the consumer as the run did)."""
+    arrives after those ticks ran: it is late, counted and told by id on the consumer's next
+    record, no tick before that one consumes it, and the log replays (the replay puts it in the
+    consumer's buffer at that record, as the run did)."""
     with Pipeline("blocked_let") as pipe:
         prod = Sleepy(sleep=0.8, at=[2]).configure(name="prod", latency=0.05) @ Rate(hz=10)
         probe = Probe().configure(name="probe") @ Rate(hz=20)
@@ -427,9 +428,11 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
     assert 1 <= len(told) <= counts(pipe)["late"]
     assert late_event.id in told, told
     assert all(set(detail(s).get("late", {})) <= {"x"} for s in recs)
-    # … and never consumed, by any tick
-    assert all(late_event.id not in ids for s in recs for ids in s.consumed.values())
-    # without the late event withheld, the replay's ticks from 0.3 s would consume it
+    # … and consumed by no tick before the record that names it (the first whose buffer had it)
+    named_at = next(s.tag for s in recs if late_event.id in
+                    [tuple(i) for ids in detail(s).get("late", {}).values() for i in ids])
+    assert all(late_event.id not in ids for s in recs if s.tag < named_at for ids in s.consumed.values())
+    # given to the replay's consumer before that record, its ticks from 0.3 s would consume it
     report = retriever.log.replay(retriever.read_log(path))
     assert report.identical, "\n".join(map(str, report.divergences))
     assert report.nodes["probe"].replayed == len(recs)
@@ -439,6 +442,58 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
     assert detail(blocked)["deadline_miss_ns"] >= 700 * MS
     # once it caught up, the edge completes again
     assert any("incomplete" not in detail(s) for s in recs if s.tag > incomplete[-1].tag)
+
+
+def test_a_slow_policys_late_outputs_still_reach_the_ticks_after_they_arrive_and_the_log_replays(tmp_path):
+    """issue 19, §2: a LET policy (latency 0.2 s) whose step takes 0.3 s at two of its ticks and
+    is on time at the others. Its late outputs are never applied to the controller's ticks that
+    ran before they arrived, but every tick after, by their tags, as any other event: the
+    controller goes on with the late output, not the one before it (it used to run on the stale
+    one, or starve, for ever). The record that first had it names it; the log replays."""
+    with Pipeline("slow_policy") as pipe:
+        policy = Sleepy(sleep=0.3, at=[1, 3]).configure(name="policy", latency=0.2) @ Rate(hz=2)
+        controller = Probe().configure(name="controller") @ Rate(hz=50)
+        policy.then(controller, sync=Latest(), deadline=0.02)
+    path = tmp_path / "slow.mcap"
+    trace = run(pipe, 2.5, log=path)
+    by_id = check_trace_basics(pipe, trace)
+    recs = trace.steps_of("controller")
+    named = {tuple(i): s.tag for s in recs for ids in detail(s).get("late", {}).values() for i in ids}
+    late_outputs = {e.id for e in trace.events_of("policy") if e.value in (1, 3)}
+    assert late_outputs <= set(named), (late_outputs, named)  # the slow ticks' outputs came late
+    assert counts(pipe)["late"] >= 2
+    for event_id in late_outputs:
+        tag = by_id[event_id].tag
+        before = [s for s in recs if tag <= s.tag < named[event_id]]
+        after = [s for s in recs if named[event_id] <= s.tag < (tag[0] + 450 * MS, 0)]  # next output: +0.5 s
+        assert before and after, (event_id, named[event_id])
+        assert all(event_id not in s.consumed.get("x", ()) for s in before), before
+        # Latest takes the newest event with tag ≤ τ: the late one, until the policy's next output
+        assert all(s.consumed.get("x") == (event_id,) for s in after), after
+    # the on-time outputs were consumed too, as always
+    for e in trace.events_of("policy"):
+        if e.value in (0, 2, 4) and e.tag[0] < 2500 * MS:
+            assert any(s.consumed.get("x") == (e.id,) for s in recs if s.tag >= e.tag), e
+    report = retriever.log.replay(retriever.read_log(path))
+    assert report.identical, "\n".join(map(str, report.divergences))
+    assert report.nodes["controller"].replayed == len(recs)
+
+
+def test_a_flow_whose_inputs_always_came_too_late_to_use_is_named_with_the_fix():
+    """Every output of a policy overruns its latency by 0.1 s, and its consumer takes only events
+    at most 50 ms old (Latest(staleness=0.05)): each arrives too stale to use, so the consumer
+    never steps. The run stands (its policies said so), with a warning naming the edge and the
+    fix; it used to end silently with exit 0."""
+    with Pipeline("always_late") as pipe:
+        policy = Sleepy(sleep=0.3).configure(name="policy", latency=0.2) @ Rate(hz=2)
+        consumer = Echo().configure(name="consumer") @ Rate(hz=50)
+        policy.then(consumer, sync=Latest(staleness=0.05), deadline=0.02)
+    with pytest.warns(retriever.RetrieverWarning, match=r"flow 'consumer' never stepped in this run: its inputs "
+                      r"were late, \d+ event\(s\) on policy\.value → consumer\.x arrived after the ticks they were "
+                      r"for(.|\n)*hint: give the producer a latency= that covers its step(.|\n)*"
+                      r"policy\.then\(consumer, deadline=seconds\)"):
+        run(pipe, 1.6)
+    assert pipe.stats()["consumer"].steps == 0 and counts(pipe)["late"] >= 2
 
 
 def test_frozen_asap_producer_makes_the_edge_incomplete(tmp_path):
