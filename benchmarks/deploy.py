@@ -109,6 +109,9 @@ CHAIN = 3  # source -> relay -> sink: a chain's end ticks only on data that cros
 SOURCE_HZ = 10.0  # a camera-like rate; deploy time does not depend on it
 DEPLOY_S = 2.0  # ticking time per deployment: every chain's end has ticked well before
 SCALE_S = 3.0  # as benchmarks/scale.py
+FAILOVER_HZ = 50.0  # src's rate: a step of mid every 20 ms, so "stepping again" is resolved to that
+FAILOVER_S = 6.0  # ticking time per deployment: the kill 2 s past T0, then time enough to move
+FAILOVER_KILL_S = 2.0
 
 # part 2: latency
 LATENCY_HZ = 20.0  # as latency.py
@@ -212,6 +215,55 @@ def latency_pipeline(size: int, hz: float, record: str | None = None):
     return pipe
 
 
+def failover_pipeline(hz: float):
+    """``src`` @ Rate(hz) -> ``mid`` @ Trigger() -> ``sink`` @ Trigger(): src and sink pinned to the
+    first worker, mid placed by load on another (the one the benchmark kills)."""
+    from zenoh_flows import Counter, Keep
+
+    from retriever import Latest, Pipeline, Rate, Trigger
+
+    with Pipeline("failover") as pipe:
+        src = Counter().configure(name="src") @ Rate(hz=hz)
+        mid = Keep().configure(name="mid") @ Trigger()
+        sink = Keep().configure(name="sink") @ Trigger()
+        src.then(mid, sync=Latest()).then(sink, sync=Latest())
+    return pipe
+
+
+def kill_mid_worker(pipe, after_s: float, out: dict) -> None:
+    """In the coordinator's process, on a thread: ``after_s`` past T0, SIGKILL the daemon running
+    ``mid`` (the lab's namespaces share one PID space) and note when, and which worker it was."""
+    give_up = time.monotonic() + 300
+    while time.monotonic() < give_up:
+        session = pipe._session
+        t0 = getattr(session, "t0", None)
+        if t0 is not None and time.time_ns() >= t0 + after_s * 1e9:
+            name = session.placed["mid"]
+            out["killed_worker"] = name
+            out["kill_ns"] = time.time_ns()
+            os.kill(session.workers[name]["pid"], signal.SIGKILL)
+            return
+        time.sleep(0.005)
+
+
+def failover_result(trace, session, killed: dict) -> dict:
+    """From the kill to ``mid``'s first step on its new worker, and to the first step of ``sink``
+    on an event of that new process (the pipeline end to end again)."""
+    kill = killed.get("kill_ns")
+    if kill is None:
+        return {"error": "the worker of mid was never killed"}
+    mid_after = [s for s in trace.steps if s.node == "mid" and s.status == "ok" and s.wall_start_ns > kill]
+    first_mid = min(mid_after, key=lambda s: s.wall_start_ns) if mid_after else None
+    new_ids = {i for s in mid_after for i in s.produced}
+    sink_after = [s for s in trace.steps if s.node == "sink" and s.wall_start_ns > kill
+                  and any(i in new_ids for ids in s.consumed.values() for i in ids)]
+    first_sink = min((s.wall_start_ns for s in sink_after), default=None)
+    return {**killed, "moved_to": session.placed.get("mid"),
+            "mid_again_ms": (first_mid.wall_start_ns - kill) / 1e6 if first_mid else None,
+            "sink_again_ms": (first_sink - kill) / 1e6 if first_sink else None,
+            "moves": session.counts.get("moves", 0)}
+
+
 def chains_result(trace, session) -> dict:
     """Each node's first tick (Unix ns) and steps; where each node ran; edges across workers."""
     first: dict[str, int] = {}
@@ -250,8 +302,12 @@ def coordinate(job_path: str) -> int:
     from retriever.placement import Constraint, Placement
 
     record = None  # keep="records": the sink's measurements come in a file, not in the trace
+    killed: dict = {}
     if job["kind"] == "chains":
         pipe = chains_pipeline(job["nodes"], job["chain"], job["hz"])
+    elif job["kind"] == "failover":
+        pipe = failover_pipeline(job["hz"])
+        threading.Thread(target=kill_mid_worker, args=(pipe, job["kill_after"], killed), daemon=True).start()
     else:
         if job.get("keep") == "records":
             record = f"{tempfile.gettempdir()}/retriever-bench-sink-{os.getpid()}.txt"
@@ -265,8 +321,12 @@ def coordinate(job_path: str) -> int:
                          startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
                          keep=job.get("keep", "trace"))
         session = pipe._session
-        result.update(chains_result(trace, session) if job["kind"] == "chains"
-                      else latency_result(trace, job["warmup"], pipe, record))
+        if job["kind"] == "chains":
+            result.update(chains_result(trace, session))
+        elif job["kind"] == "failover":
+            result.update(failover_result(trace, session, killed))
+        else:
+            result.update(latency_result(trace, job["warmup"], pipe, record))
     except Exception as exc:  # noqa: BLE001 - reported to the benchmark, which goes on
         result["error"] = f"{type(exc).__name__}: {exc}"
     session = pipe._session
@@ -526,6 +586,30 @@ def measure_deploys(bench: Bench, workers: int, per_worker: int, repeats: int, d
     return rows
 
 
+def measure_failover(bench: Bench, repeats: int) -> list[dict]:
+    """``repeats`` deployments on 3 workers, each killing the worker of ``mid`` 2 s past T0."""
+    rows = []
+    with bench.daemons(3, "bench-failover") as daemons:
+        for r in range(1, repeats + 1):
+            daemons.wait_idle()
+            daemons.ensure_up()  # the last round's killed daemon, started again
+            load1 = os.getloadavg()[0]
+            job = {"kind": "failover", "hz": FAILOVER_HZ, "duration": FAILOVER_S, "kill_after": FAILOVER_KILL_S,
+                   "pin": {"src": daemons.names[0], "sink": daemons.names[0]}, "connect": daemons.endpoints,
+                   "namespace": daemons.namespace, "startup_timeout": STARTUP_S}
+            res = bench.coordinate(job, bound=STARTUP_S + FAILOVER_S + BOUND_S)
+            row = {"repeat": r, "load1": load1, "killed_worker": res.get("killed_worker"),
+                   "moved_to": res.get("moved_to"), "mid_again_ms": res.get("mid_again_ms"),
+                   "sink_again_ms": res.get("sink_again_ms"), "moves": res.get("moves"),
+                   "error": res.get("error", "")[:300]}
+            rows.append(row)
+            print(f"  failover {r}: killed {row['killed_worker']}, mid on {row['moved_to']} stepping again after "
+                  f"{row['mid_again_ms']} ms, sink on its events after {row['sink_again_ms']} ms"
+                  + (f"\n    ERROR: {res['error']}\n" + res.get("output", "")[-1500:] if "error" in res else ""),
+                  flush=True)
+    return rows
+
+
 def med_spread(values: list[float], fmt: str = "{:.2f}") -> str:
     """median [min–max] of the finite values."""
     values = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
@@ -753,6 +837,12 @@ def run_parts(bench: Bench, args, out: Path) -> None:
         print(f"wrote {out / 'deploy_latency.png'}")
         for failure in bench.failures:  # each was run again; the samples above are of the runs that worked
             print(f"a Retriever round failed and was run again: {failure}")
+    if "failover" in args.parts:
+        print(f"\npart 4: failover, 3 workers, {args.repeats} deployments; load {load()}", flush=True)
+        rows = measure_failover(bench, args.repeats)
+        write_csv(out / "deploy_failover.csv", rows)
+        for name in ("mid_again_ms", "sink_again_ms"):
+            print(f"  {name}: median [min–max] {med_spread([r[name] for r in rows if not r['error']], '{:.0f}')}")
     if "scale" in args.parts:
         rows, repeats = [], args.repeats
         for per_worker in sorted(args.scale_flows):
@@ -769,7 +859,8 @@ def run_parts(bench: Bench, args, out: Path) -> None:
 def parse_args(argv: list[str] | None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog=__doc__.split("\n\n", 1)[1])
-    p.add_argument("--parts", nargs="+", default=["deploy", "latency", "scale"], choices=["deploy", "latency", "scale"])
+    p.add_argument("--parts", nargs="+", default=["deploy", "latency", "failover", "scale"],
+                   choices=["deploy", "latency", "failover", "scale"])
     p.add_argument("--repeats", type=int, default=3, help="deployments per size in parts 1 and 3 (default 3)")
     p.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="payloads, suffixes Ki, Mi (default 64 16Ki 1Mi 16Mi)")
     p.add_argument("--hz", type=float, default=LATENCY_HZ, help="latency: messages per second (default 20)")

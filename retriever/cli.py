@@ -97,9 +97,10 @@ def _load(target: str):
 
 
 _KEEP = typer.Option(
-    metavar="trace|records", help="What the run keeps in memory: 'trace' (the default) every event's value; "
-                                  "'records' the events' ids and tags and the step records, the values only in "
-                                  "--log (on zenoh they then reach this process only to be logged).")
+    metavar="trace|records", help="What the run keeps in memory: 'trace' every event's value (the default of "
+                                  "run); 'records' the events' ids and tags and the step records, the values only "
+                                  "in --log (on zenoh they then reach this process only to be logged; the default "
+                                  "of deploy).")
 
 
 @app.command()
@@ -216,7 +217,7 @@ def deploy(
                "namespace": get("namespace"), "placement": None if get("placement") is None else str(get("placement")),
                "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
                "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key")),
-               "virtual_time": bool(get("virtual_time")), "keep": get("keep", "trace")}
+               "virtual_time": bool(get("virtual_time")), "keep": get("keep", "records")}
     if get("max_clock_offset") is not None:
         options["max_clock_offset"] = get("max_clock_offset")
     log = None if get("log") is None else Path(get("log"))
