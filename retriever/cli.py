@@ -51,8 +51,22 @@ _out = _Console(markup=False)
 _err = _Console(stderr=True, soft_wrap=True, markup=False)
 
 
+def _version(shown: bool) -> None:
+    if shown:
+        from importlib import metadata
+
+        try:
+            version = metadata.version("retriever")
+        except metadata.PackageNotFoundError:  # run from a checkout that was never installed
+            version = "unknown (not installed: pip install -e .)"
+        _out.print(f"retriever {version}", highlight=False)
+        raise typer.Exit()
+
+
 @app.callback()
-def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False) -> None:
+def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+          version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                                help="Show the version and exit.")] = False) -> None:
     _state["debug"] = debug
 
 

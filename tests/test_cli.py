@@ -77,6 +77,22 @@ class Sink(Flow[Num, None]):
 # ---------------------------------------------------------------------------------------------
 # retriever run
 # ---------------------------------------------------------------------------------------------
+def test_version_as_a_flag_and_python_dash_m():
+    from importlib import metadata
+
+    expected = f"retriever {metadata.version('retriever')}\n"
+    assert cli("--version").stdout == expected
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(ROOT), "NO_COLOR": "1"}
+    done = subprocess.run([sys.executable, "-m", "retriever", "--version"], capture_output=True, text=True,
+                          env=env, timeout=60)
+    assert done.returncode == 0 and done.stdout == expected, done.stderr
+
+
+def test_the_package_says_it_is_typed():
+    assert (ROOT / "retriever" / "py.typed").exists()
+    assert '"py.typed"' in (ROOT / "pyproject.toml").read_text()
+
+
 def test_run_prints_a_table_with_every_node():
     result = cli("run", str(QUICKSTART), "--backend", "inproc", "--duration", "1")
     assert result.returncode == 0, result.stderr

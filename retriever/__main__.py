@@ -1,0 +1,5 @@
+"""``python -m retriever``: the ``retriever`` command."""
+
+from .cli import main
+
+main()
