@@ -4,7 +4,6 @@ out of band; test_wire.py checks they are read-only views) and loop.py (SPILL_BY
 
 from __future__ import annotations
 
-import glob
 import os
 
 import numpy as np
@@ -21,7 +20,6 @@ SIZE = 1 << 20  # 1 MiB: well above SPILL_BYTES, so every frame takes the file p
 
 def test_large_frames_arrive_intact_and_are_logged(tmp_path):
     assert SIZE >= 4 * SPILL_BYTES
-    before = set(glob.glob("/dev/shm/retriever-run-*"))
     with Pipeline("frames", deadline=1.0) as pipe:
         camera = Camera(SIZE).configure(name="camera") @ Rate(hz=10)
         viewer = Viewer().configure(name="viewer") @ Trigger("image")
@@ -31,8 +29,9 @@ def test_large_frames_arrive_intact_and_are_logged(tmp_path):
 
     session = pipe._session
     assert "garbage" not in pipe.counts(), pipe.counts()
-    assert not os.path.exists(session._dir), "the run directory outlived the run"
-    assert set(glob.glob("/dev/shm/retriever-run-*")) <= before
+    # its own run directory only: another run on the machine may have one of its own meanwhile
+    assert str(session._dir).startswith("/dev/shm/") and not os.path.exists(session._dir), \
+        "the run directory outlived the run"
 
     def port(events, node, name):  # one event per tick on each port (an @io field), in seq order
         return [e.value for e in sorted(events, key=lambda e: e.seq) if e.node == node and e.port == name]
