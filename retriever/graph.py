@@ -284,7 +284,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     for decl in declared:
         src, dst = nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]]
         if src.flow is decl.src and dst.flow is decl.dst:  # else an endpoint's name is duplicated
-            edges.extend(_resolve_edge(decl, src, dst, problems))
+            edges.extend(_resolve_edge(decl, src, dst, problems, warnings))
 
     # Untyped producers' output ports are the ones their edges name.
     for e in edges:
@@ -335,7 +335,8 @@ def _ports_list(ports: dict[str, PortSpec]) -> str:
     return ", ".join(sorted(ports)) or "(none)"
 
 
-def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Problem]) -> list[Edge]:
+def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Problem],
+                  warnings: list[str]) -> list[Edge]:
     label = f"edge {src.id} → {dst.id}" + (f" ({decl.where})" if decl.where else "")
     sync = decl.sync
     if dst.spec.is_source:
@@ -362,6 +363,17 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
     elif not typed_src:
         if len(dst.inputs) == 1:
             (port,) = dst.inputs
+            returned = src.spec.returned_keys
+            if returned is not None and port not in returned:  # its step never returns that key
+                shown = ", ".join(f"'{k}'" for k in sorted(returned)) or "no port"
+                fix = (f"{src.id}.then({dst.id}, map={{'{sorted(returned)[0]}': '{port}'}})" if len(returned) == 1
+                       else f"map={{'<one of its keys>': '{port}'}}")
+                text = (f"{label}: {src.id} is untyped and its step() returns {shown}, never '{port}', the port "
+                        f"of {dst.id} this edge feeds by name: {dst.id}.{port} would never get an event")
+                if dst.inputs[port].required:
+                    problems.append(Problem(text, f"say which output feeds it: {fix}"))
+                    return []
+                warnings.append(f"{text} (it is optional: {dst.id} steps without it)\n    hint: {fix}")
             pairs.append((port, port))
         else:
             problems.append(Problem(

@@ -135,6 +135,22 @@ class UntypedSource(Flow):
         return {"x": 7}
 
 
+class UntypedAmountSource(Flow):
+    def step(self):
+        return {"amount": 7}
+
+
+class UntypedUnknowable(Flow):  # what it returns cannot be read off its source
+    def step(self):
+        ports = {"x": 7}
+        return ports
+
+
+class OptionalYSink(Flow):
+    def step(self, y=None):
+        return None
+
+
 class UntypedSink(Flow):
     def __init__(self):
         self.got = []
@@ -215,8 +231,28 @@ def test_untyped_producer_into_a_single_port_consumer():
 
 def test_untyped_producer_into_a_single_typed_port_takes_its_name():
     with Pipeline("p") as pipe:
+        (UntypedAmountSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("untyped_amount_source", "amount", "amount_sink", "amount")]
+    with Pipeline("q") as pipe:  # its step's returns say nothing: the port's name is taken on trust
+        (UntypedUnknowable() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    assert _edges(pipe) == [("untyped_unknowable", "amount", "amount_sink", "amount")]
+
+
+def test_an_untyped_producer_that_never_returns_the_port_it_feeds_is_refused_or_warned():
+    """issue 19 §5: A returns {"x": ...}, B's only input is 'amount': a.then(b) fed b.amount by
+    name, nothing ever came, and b skipped every tick, silently. A required port: refused; an
+    optional one: a warning. Both name the ports and show map=."""
+    with Pipeline("p") as pipe:
         (UntypedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
-    assert _edges(pipe) == [("untyped_source", "amount", "amount_sink", "amount")]
+    with pytest.raises(GraphError, match=r"untyped_source is untyped and its step\(\) returns 'x', never 'amount', "
+                                         r"the port of amount_sink this edge feeds by name(.|\n)*hint: say which "
+                                         r"output feeds it: untyped_source.then\(amount_sink, map=\{'x': 'amount'\}\)"):
+        pipe.build_ir()
+    with Pipeline("q") as pipe:
+        (UntypedSource() @ Rate(hz=1)).then(OptionalYSink() @ Rate(hz=1))
+    with pytest.warns(RetrieverWarning, match=r"returns 'x', never 'y'(.|\n)*it is optional(.|\n)*"
+                                              r"map=\{'x': 'y'\}"):
+        pipe.build_ir()
 
 
 def test_typed_producer_into_an_untyped_consumer_matches_by_name():

@@ -14,10 +14,12 @@ A flow is callable directly, ``flow(inp)``, with no runtime involved: that is on
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import inspect
 import re
 import sys
+import textwrap
 import types
 import typing
 from dataclasses import dataclass, field
@@ -195,6 +197,9 @@ class FlowSpec:
     outputs: dict[str, PortSpec] | None = None  # None: untyped, ports named by outgoing edges
     source_takes_arg: bool = False
     problems: list[str] = field(default_factory=list)
+    #: untyped: the output ports its step() can return, when every ``return`` in its source is a
+    #: dict literal with string keys (or None); None when that cannot be told without running it
+    returned_keys: frozenset | None = None
 
     @property
     def is_source(self) -> bool:
@@ -251,6 +256,7 @@ def _derive_spec(cls: type) -> FlowSpec:
             spec.out_mode, spec.outputs = "single", _single_port(out_t)
         return spec
     spec = FlowSpec(cls, has_step, False, "params", "dict")
+    spec.returned_keys = _returned_keys(step) if has_step else None
     try:
         hints = typing.get_type_hints(step) if has_step else {}
     except Exception:
@@ -267,6 +273,33 @@ def _derive_spec(cls: type) -> FlowSpec:
     if not spec.inputs:
         spec.in_mode = "none"
     return spec
+
+
+def _returned_keys(step: Callable) -> frozenset | None:
+    """The keys of the dict literals ``step`` returns, read from its source (never run): None
+    unless every ``return`` is one with constant string keys, or returns None."""
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(step)))
+    except (OSError, TypeError, SyntaxError, ValueError):
+        return None
+    func = tree.body[0] if tree.body and isinstance(tree.body[0], (ast.FunctionDef, ast.AsyncFunctionDef)) else None
+    if func is None:
+        return None
+    keys: set[str] = set()
+    returns = [node for node in ast.walk(func) if isinstance(node, ast.Return)]
+    unclear = [node for node in ast.walk(func) if isinstance(node, (ast.Yield, ast.YieldFrom, ast.Lambda))
+               or (node is not func and isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)))]
+    if unclear or not returns:
+        return None
+    for node in returns:
+        value = node.value
+        if value is None or (isinstance(value, ast.Constant) and value.value is None):
+            continue
+        if not isinstance(value, ast.Dict) or not all(isinstance(k, ast.Constant) and isinstance(k.value, str)
+                                                      for k in value.keys):
+            return None
+        keys.update(k.value for k in value.keys)
+    return frozenset(keys)
 
 
 # ---------------------------------------------------------------------------------------------
