@@ -279,7 +279,9 @@ def _to_dot(ir: IR) -> str:
 def _to_mermaid(ir: IR) -> str:
     lines = ["flowchart LR"]
     for n in ir.nodes:
-        lines.append(f'  {n["id"]}["{n["id"]}<br/>{_clock_label(n["config"]["clock"])}"]')
+        latency = n["config"].get("latency") or 0
+        extra = f"<br/>latency {latency} s" if latency else ""  # as DOT shows it
+        lines.append(f'  {n["id"]}["{n["id"]}<br/>{_clock_label(n["config"]["clock"])}{extra}"]')
     for e in ir.edges:
         label = _edge_label(e).replace("\\n", "<br/>")
         lines.append(f'  {e["source"]["node"]} -->|"{label}"| {e["destination"]["node"]}')

@@ -326,6 +326,8 @@ def test_ir_pictures_contain_every_node_and_edge(fmt, node_text, edge_text):
     for src, dst in (("camera", "policy"), ("policy", "controller"), ("controller", "policy")):
         assert edge_text.format(src=src, dst=dst) in text
     assert text.count("-->" if fmt == "mermaid" else " -> ") == 3
+    # the policy's LET latency, in both pictures (Mermaid's lacked it)
+    assert ("policy<br/>Rate 2 Hz<br/>latency 0.3 s" if fmt == "mermaid" else "latency 0.3 s") in text, text
     if fmt == "mermaid":
         assert text.startswith("flowchart LR\n")
     else:
