@@ -140,6 +140,7 @@ def run(
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
+    _check_keep(keep)
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep)) if v is not None}
     if virtual_time:
         if (backend or default_backend()) != "zenoh":
@@ -214,6 +215,7 @@ def deploy(
     log the whole deployment, stop every node at the end, Ctrl-C or SIGTERM; the workers stay up."""
     from .backends.zenoh.deploy import load_deploy_config
 
+    _check_keep(keep)
     try:
         given = load_deploy_config(config) if config is not None else {}
     except Exception as exc:
@@ -238,6 +240,14 @@ def deploy(
     _execute(_load(target), get("duration"), "zenoh", log, force, allow_errors, options,
              f"{get('duration'):g} s{' of virtual time' if get('virtual_time') else ''} on the workers of namespace "
              f"'{get('namespace')}'", live=get("namespace"))
+
+
+def _check_keep(keep: str | None) -> None:
+    from .trace import KEEP
+
+    if keep is not None and keep not in KEEP:
+        _fail(BackendError(f"--keep {keep!r} is neither 'trace' nor 'records'\n    hint: --keep records keeps the "
+                           "events' ids and the step records (the values only in --log); --keep trace every value"))
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,

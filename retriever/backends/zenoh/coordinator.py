@@ -218,6 +218,7 @@ class Coordinator(Session):
         # and records); event ids that records produced and no report carried yet
         self._fresh: dict[str, dict] = {}
         self._values = True  # whether the workers report their events' values (set at the start)
+        self._stop_sent = False  # whether this coordinator told the workers to stop
         #: bytes of the workers' reports (step records and events) received, spilled ones included
         self.reported_bytes = 0
         #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
@@ -347,12 +348,17 @@ class Coordinator(Session):
                 [e for e in self.graph.edges if e.dst == nid]
             names = ", ".join(f"{e.src}.{e.src_port} → {nid}.{e.dst_port}" for e in edges)
             e = edges[0] if edges else None
+            stale = [x for x in edges if getattr(x.sync, "staleness", None) is not None]
+            hint = ("give the producer a latency= that covers its step (a LET flow: its outputs are due at tick + "
+                    "latency)" + (f", or the edge a longer deadline: {e.src}.then({nid}, deadline=seconds)"
+                                  if e is not None else ""))
+            if stale:  # the late events came, and were too old for the policy by then
+                hint = (f"{stale[0].sync!r} on {stale[0].src} → {nid} takes no event older than its staleness, and "
+                        "late ones are: allow more staleness, or " + hint)
             warnings.warn(
                 f"flow '{nid}' never stepped in this run: its inputs were late, {stats.counts['late']} event(s) "
                 f"on {names} arrived after the ticks they were for, and its policies took none later\n"
-                "    hint: give the producer a latency= that covers its step (a LET flow: its outputs are due "
-                "at tick + latency)" + (f", or the edge a longer deadline: {e.src}.then({nid}, deadline=seconds)"
-                                       if e is not None else ""), RetrieverWarning, stacklevel=4)
+                f"    hint: {hint}", RetrieverWarning, stacklevel=4)
 
     # ---------------------------------------------------------------------------------------
     # Lockstep virtual time (see loop.py's docstring)
@@ -483,10 +489,13 @@ class Coordinator(Session):
         if node not in self._state:
             self._garbage(key, WireError(f"status of an unknown node '{node}'"))
             return
-        # a restart spawns a process: only the node's running process may ask for one, and only
-        # the old one may say it handed over
-        sayer = {"restart": self._workers[node], "handed_over": self._retiring.get(node)}.get(state)
-        if state in ("restart", "handed_over") and (sayer is None or info.get("pid") != sayer.pid):
+        # Only the node's own process speaks for it: its running one (a restart spawns a process,
+        # so only it may ask for one), or, while it restarts, the old one (which alone says it
+        # handed over). A status from any other pid (an insider's forgery: a `failed` stopped the
+        # run, a `done` added its counts) is garbage.
+        current, retiring = self._workers.get(node), self._retiring.get(node)
+        sayers = {"handed_over": (retiring,), "done": (current, retiring), "failed": (current, retiring)}
+        if info.get("pid") not in {p.pid for p in sayers.get(state, (current,)) if p is not None}:
             self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
                                          f"which is not the process of {node} that could say it"))
             return
@@ -496,10 +505,6 @@ class Coordinator(Session):
                 self._garbage(key, WireError(f"a 'reached' status of {node} with until {until!r:.30}"
                                              f"{'' if self.virtual_time else ' in a run not in virtual time'}"))
                 return
-            if self._workers.get(node) is None or info.get("pid") != self._workers[node].pid:
-                self._garbage(key, WireError(f"a 'reached' status of {node} from pid {info.get('pid')!r:.20}, "
-                                             f"which is not its process"))
-                return
             # past the grant (one it was told by someone else): it reached this one on the way
             self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
             return
@@ -507,7 +512,9 @@ class Coordinator(Session):
             nodes = info.get("nodes")
             if type(nodes) is not list or not nodes or not all(type(n) is str and n in self._state for n in nodes):
                 self._garbage(key, WireError(f"an 'unanswered' status of {node} that names no nodes of the run"))
-            elif self.t0 is None:
+            elif self.t0 is not None:  # no worker asks once the run started
+                self._garbage(key, WireError(f"an 'unanswered' status of {node} after the run's start"))
+            else:
                 self._control("redeclare", {"nodes": sorted(set(nodes))})
             return
         counts = info.get("counts", {})
@@ -562,6 +569,12 @@ class Coordinator(Session):
             self._joining.discard(node)
             return
         elif state == "done":
+            if info.get("stopped") is True and not self._stop_sent and self.t0 is not None and self._failure is None:
+                # it ended before the run's end on a stop this coordinator never sent: a run cut
+                # short must not look finished (an insider's `stop` on ctl/run, or a SIGTERM to it)
+                self._failure = (node, {"error": (
+                    f"{node} stopped before the run's end: told to stop, and not by this coordinator (a process "
+                    "holding the run's secret put a stop on its control key, or someone sent its worker SIGTERM)")})
             self._done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
             old = self._retiring.pop(node, None)
             if old is not None:
@@ -814,6 +827,7 @@ class Coordinator(Session):
                     p.send_signal(signal.SIGTERM)
             self._reap()
             return
+        self._stop_sent = True
         try:
             self._control("stop", {})
         except Exception:

@@ -253,8 +253,9 @@ def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
 
 
 def reap_stale_folders() -> list[Path]:
-    """Remove this user's ``retriever-worker-PID-*`` folders (Zenoh's password file of a daemon)
-    whose daemon is gone: a SIGKILLed one could not remove its own. Those removed."""
+    """Remove this user's ``retriever-worker-PID-*`` folders (Zenoh's password file of a daemon,
+    and the run folders it prepared: specs with the runs' passwords) whose daemon is gone: a
+    SIGKILLed one could not remove its own. Those removed."""
     removed = []
     for folder in Path(tempfile.gettempdir()).glob("retriever-worker-*-*"):
         pid = folder.name.split("-")[2]

@@ -29,6 +29,7 @@ import zenoh
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...placement import Placement, WorkerInfo, load_placement, place
+from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session, open_access
 from .hub import peer_config, wait_for_peers
@@ -392,7 +393,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
 #: what a deploy.toml may hold, with the kind of each value: the flags of retriever deploy
 DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "namespace": "text", "placement": "path",
                  "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool", "virtual_time": "bool",
-                 "keep": "text", "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
+                 "keep": "keep", "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
                  "tls_ca": "path", "tls_cert": "path", "tls_key": "path"}
 
 
@@ -418,6 +419,8 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
             ok = type(value) in (int, float) and 0 <= value <= 1e9
         elif kind == "bool":
             ok = isinstance(value, bool)
+        elif kind == "keep":
+            ok = value in KEEP
         else:
             ok = isinstance(value, str)
             if ok and kind == "path":
@@ -431,4 +434,5 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
 
 
 DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",
-                "bool": "true or false", "text": "a string", "path": "a file path (a string)"}
+                "bool": "true or false", "text": "a string", "path": "a file path (a string)",
+                "keep": "\"records\" (values only in the log) or \"trace\" (every value in memory)"}

@@ -225,6 +225,7 @@ class NodeLoop:
         # new process, which takes this loop's state over once the coordinator says so
         self.restarting = False
         self.handing_over = False
+        self.told_to_stop = False  # a `stop` (control, or SIGTERM) ended it, not the run's end
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
         self.lost_producers: set[str] = set()  # producers whose process died, until they restart
@@ -690,7 +691,9 @@ class NodeLoop:
                 self._garbage("ctl/run", e)
                 return
             if op == "stop":
-                self.stopping = True
+                self.stopping = self.told_to_stop = True
+            elif op == "redeclare":  # only for a node not started yet (worker._await_control)
+                self._garbage("ctl/run", WireError("a 'redeclare' control message during the run"))
             elif op == "handover" and args.get("node") == self.id and self.restarting:
                 self.stopping = self.handing_over = True
             elif op == "have":

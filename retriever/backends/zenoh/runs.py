@@ -127,7 +127,9 @@ class DaemonRuns:
         if not self._coordinator_up():
             raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "
                             f"({self.keys.deployment()}) is up: none is (its processes would never be stopped)")
-        folder = Path(tempfile.mkdtemp(prefix="retriever-run-"))  # mode 0700
+        # mode 0700; named by this daemon's pid: the next daemon removes it if this one was SIGKILLed
+        # (it holds the run's passwords), as it does the daemon's own folder (reap_stale_folders)
+        folder = Path(tempfile.mkdtemp(prefix=f"retriever-worker-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
         run.ir = ir.doc
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))

@@ -301,7 +301,7 @@ def _serve(argv: list[str], parent: int) -> int:
     sys.argv = spec.get("argv", sys.argv)
 
     from ...codec import packb, unpackb
-    from ...flow._base import set_up, tear_down
+    from ...flow._base import set_up
     from .access import RunAccess, TlsFiles
     from .hub import open_peer, wait_for_answers, wait_for_links
     from .loop import _CONTROL, StopRun
@@ -458,18 +458,28 @@ def _serve(argv: list[str], parent: int) -> int:
                 tmp.write_bytes(state)
                 tmp.replace(handover_file)
                 status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
+                release(loop, node_id)  # the new process has set up its own: free this one's now
                 _await_reports_taken(session, keys, node_id)
                 return EXIT_HANDED_OVER
             status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns,
-                   ticks=loop.recorded)
+                   ticks=loop.recorded, stopped=loop.told_to_stop)
             loop.undeclare()
+            release(loop, node_id)
             _await_reports_taken(session, keys, node_id)
         finally:
-            try:
-                tear_down(loop.flow)
-            except Exception as exc:  # told, not fatal: the run's outcome stands
-                print(f"{node_id}.teardown() raised {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+            release(loop, node_id)
     return 0
+
+
+def release(loop: NodeLoop, node_id: str) -> None:
+    """The flow's ``teardown()``, once (see Flow.setup): as soon as its process has nothing more
+    to step, not after it waited for its reports to be taken. A failure is told, not fatal."""
+    from ...flow._base import tear_down
+
+    try:
+        tear_down(loop.flow)
+    except Exception as exc:
+        print(f"{node_id}.teardown() raised {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
 
 
 def _links_needed(spec: dict, node_id: str) -> set[str]:

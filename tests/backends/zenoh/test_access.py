@@ -233,6 +233,10 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
                 (keys.data("counter", "n"), _data_message(forged("os:system", marker), "counter", "n")),
                 (keys.node_status("ghost"), enc.status("ghost", "failed", {"error": "forged", "pid": 1})),
                 (keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["ghost"], "pid": 1})),
+                # statuses of a real node from a process that is not its own: a `failed` stopped
+                # the run, a `done` added its counts (the cold review)
+                (keys.node_status("total"), enc.status("total", "failed", {"error": "forged", "pid": 1})),
+                (keys.node_status("total"), enc.status("total", "done", {"counts": {"late": 1000}, "pid": 1})),
             ]
             for key, message in claims:
                 insider.put(key, message)
@@ -252,6 +256,36 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
     report = retriever.log.replay(retriever.read_log(run.log))
     assert report.identical, "\n".join(map(str, report.divergences))
 
+
+
+def test_a_stop_the_coordinator_never_sent_fails_the_run_instead_of_cutting_it_short(tmp_path, namespace):
+    """An insider's `stop` on ctl/run looks like the coordinator's, and every worker obeys it. The
+    run then ended early and said it finished, counts and log alike (the cold review). Each worker
+    now says it was told to stop; one told by nobody the coordinator knows of fails the run."""
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.hub import open_peer
+
+    secret = tmp_path / "secret"
+    secret.write_text("a deployment secret of 32 bytes.")
+    secret.chmod(0o600)
+    run = Run(tmp_path, namespace, secret)
+    try:
+        run.watch_config()
+        access = RunAccess.create(namespace, read_secret(secret))
+        keys = KeySpace(namespace)
+        with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
+            _, first, sub = _subscribe(insider, keys)
+            assert first.wait(BOUND_S), "the insider saw no data"
+            insider.put(keys.run_control(), WireEncoder().control("stop", {}))
+            sub.undeclare()
+        run.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
+        run.reader.join(5)
+    finally:
+        run.kill()
+    assert run.proc.returncode != 0
+    end = retriever.read_log(run.log).end  # (the process's stderr, a traceback, is not parsed)
+    assert end["status"] == "error", end
+    assert "stopped before the run's end: told to stop, and not by this coordinator" in end["error"], end
 
 
 def test_retriever_run_takes_the_secret_and_refuses_one_others_can_read(tmp_path):

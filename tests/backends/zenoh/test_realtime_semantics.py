@@ -490,7 +490,8 @@ def test_a_flow_whose_inputs_always_came_too_late_to_use_is_named_with_the_fix()
         policy.then(consumer, sync=Latest(staleness=0.05), deadline=0.02)
     with pytest.warns(retriever.RetrieverWarning, match=r"flow 'consumer' never stepped in this run: its inputs "
                       r"were late, \d+ event\(s\) on policy\.value → consumer\.x arrived after the ticks they were "
-                      r"for(.|\n)*hint: give the producer a latency= that covers its step(.|\n)*"
+                      r"for(.|\n)*hint: Latest\(staleness=0\.05\) on policy → consumer takes no event older than its "
+                      r"staleness(.|\n)*give the producer a latency= that covers its step(.|\n)*"
                       r"policy\.then\(consumer, deadline=seconds\)"):
         run(pipe, 1.6)
     assert pipe.stats()["consumer"].steps == 0 and counts(pipe)["late"] >= 2
