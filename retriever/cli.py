@@ -19,6 +19,7 @@ from rich.text import Text
 
 from .backends import default_backend
 from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning
+from .ir import IR
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
@@ -375,17 +376,25 @@ def _counters(counts: dict[str, int]) -> str:
 
 @app.command("ir")
 def ir_command(
-    target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
+    target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]|IR.json|LOG.mcap",
+                                          help="Python file (and Pipeline name), an IR .json, or a log")],
     format: Annotated[str, typer.Option("--format", "-f", help="json, dot or mermaid.")] = "json",
     out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Write here instead of stdout.")] = None,
 ) -> None:
-    """Compile a pipeline to its IR (or a DOT / Mermaid picture of it)."""
+    """Compile a pipeline to its IR (or a DOT / Mermaid picture of it). An IR file or a log (the
+    IR it holds) is read and checked, never imported: nothing of the user's code runs."""
     if format not in ("json", "dot", "mermaid"):
         _fail(RetrieverError(f"unknown format {format!r}\n    hint: use --format json, dot or mermaid"))
-    pipe = _load(target)
     try:
-        ir = pipe.build_ir()
+        if target.endswith(".mcap"):
+            ir = _read(Path(target)).ir
+        elif target.endswith(".json"):
+            ir = IR.load(target)
+        else:
+            ir = _load(target).build_ir()
         text = ir.to_json() if format == "json" else ir.visualize(format)
+    except typer.Exit:
+        raise
     except Exception as exc:
         _fail(exc)
     if out is None:

@@ -315,6 +315,29 @@ def test_ir_json_is_the_library_json():
     assert quickstart_ir("json") == expected
 
 
+def test_ir_of_an_ir_file_or_a_log_draws_the_graph_without_importing_anything(tmp_path: Path):
+    """issue 19 §5: an IR file or a log is read and checked, never imported: the modules its
+    nodes name could be anything (here one that would leave a marker file if imported)."""
+    doc = json.loads(quickstart_ir("json"))
+    (tmp_path / "planted.py").write_text("import pathlib\npathlib.Path('imported').write_text('x')\n")
+    for node in doc["nodes"]:
+        node["type"] = node["type"].replace("quickstart:", "planted:")
+    ir_file = tmp_path / "q.ir.json"
+    ir_file.write_text(json.dumps(doc))
+    drawn = cli("ir", str(ir_file), "--format", "dot", cwd=tmp_path, pythonpath=tmp_path)
+    assert drawn.returncode == 0, drawn.stderr
+    assert drawn.stdout == quickstart_ir("dot")
+    assert not (tmp_path / "imported").exists(), "retriever ir imported a module the IR names"
+
+    log = tmp_path / "run.mcap"
+    assert cli("run", str(QUICKSTART), "--duration", "0.5", "--log", str(log)).returncode == 0
+    elsewhere = tmp_path / "elsewhere"  # where quickstart is not importable
+    elsewhere.mkdir()
+    drawn = cli("ir", str(log), "--format", "mermaid", cwd=elsewhere)
+    assert drawn.returncode == 0, drawn.stderr
+    assert drawn.stdout == quickstart_ir("mermaid")
+
+
 @pytest.mark.parametrize("fmt, node_text, edge_text", [
     ("dot", '"{node}" [label=', '"{src}" -> "{dst}"'),
     ("mermaid", '  {node}["{node}<br/>', "  {src} -->|"),
