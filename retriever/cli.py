@@ -124,7 +124,8 @@ def run(
     backend: Annotated[Optional[str], typer.Option(
         help="Backend: inproc (virtual time, one process) or zenoh (real time, a process per flow). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
-    duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh.")] = 10.0,
+    duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
+                                                  "inf: until Ctrl-C (or SIGTERM).")] = 10.0,
     log: Annotated[Optional[Path], typer.Option(help="Record the run in this MCAP event log.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     allow_errors: Annotated[bool, typer.Option(
@@ -142,6 +143,9 @@ def run(
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
     _check_keep(keep)
+    shown = f"{duration:g} s"
+    if duration == float("inf"):  # until stopped: a run as long as times may go, in practice
+        duration, shown = UNTIL_STOPPED_S, "until stopped"
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep)) if v is not None}
     if virtual_time:
         if (backend or default_backend()) != "zenoh":
@@ -149,7 +153,7 @@ def run(
                                "    hint: retriever run FILE --backend zenoh --virtual-time, or drop --virtual-time"))
         options["virtual_time"] = True
     _execute(_load(target), duration, backend, log, force, allow_errors, options,
-             f"{duration:g} s{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
+             f"{shown}{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
 
 
 _TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "
@@ -159,6 +163,10 @@ _TLS_CERT = typer.Option("--tls-cert", metavar="FILE", help="TLS: this machine's
                          "addresses it is reached at.")
 _TLS_KEY = typer.Option("--tls-key", metavar="FILE", help="TLS: this machine's private key (PEM).")
 
+
+#: `retriever run --duration inf`: a century, within the int64 nanoseconds of tags, with room
+#: for every latency and delay past the end
+UNTIL_STOPPED_S = 100 * 365.25 * 86400.0
 
 #: how often the live status table of a deployment is redrawn
 LIVE_EVERY_S = 0.5
@@ -261,7 +269,13 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     try:
         trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)
     except KeyboardInterrupt:
+        if watching is not None:
+            watching[0].set()
+            watching[1].join(timeout=2.0)
+            watching = None
         recorded = _identity(log) not in (None, before)
+        if pipe._session is not None:  # what ran until the interrupt, as at the end of a run
+            _summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
         # during a logged run the pipeline's own handler took the signal (it stops between ticks)
         signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
@@ -276,6 +290,13 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
         if watching is not None:  # the live table goes before the final one is printed
             watching[0].set()
             watching[1].join(timeout=2.0)
+    _summary(pipe, trace, title, log)
+    if not allow_errors:
+        _fail_on_errors(pipe)
+
+
+def _summary(pipe, trace, title: str, log: Path | None) -> None:
+    """The run's table, what it counted, and where its log is."""
     placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step"):
@@ -297,8 +318,6 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)
-    if not allow_errors:
-        _fail_on_errors(pipe)
 
 
 def _show_live(pipe, namespace: str):

@@ -77,6 +77,33 @@ class Sink(Flow[Num, None]):
 # ---------------------------------------------------------------------------------------------
 # retriever run
 # ---------------------------------------------------------------------------------------------
+def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
+    """`--duration inf` runs until Ctrl-C; the interrupted run still shows its table and counters
+    (it used to print only "interrupted")."""
+    import signal
+    import time
+
+    log = tmp_path / "run.mcap"
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([str(RETRIEVER), "run", str(QUICKSTART), "--duration", "inf", "--log", str(log)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env)
+    try:
+        give_up = time.monotonic() + 60  # a bound: the log is created as the run starts
+        while not (log.exists() and log.stat().st_size > 0) and time.monotonic() < give_up:
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "quickstart: until stopped on inproc, interrupted" in out, out
+    assert re.search(r"camera\s+│\s+\d+", out) and "trace digest" in out, out
+    assert f"interrupted; the run so far is in {log}" in err, err
+
+
 def test_version_as_a_flag_and_python_dash_m():
     from importlib import metadata
 
