@@ -213,9 +213,9 @@ def test_any_bytes_decode_or_raise_wire_error(data):
 
 
 def test_the_readmes_plain_msgpack_snippet_decodes_every_kind_of_value():
-    """README.md shows how a plain Zenoh subscriber decodes a data message; run that very code on
-    arrays (plain, structured, nested in containers), numpy scalars and tuples."""
-    readme = (Path(__file__).resolve().parents[3] / "README.md").read_text(encoding="utf-8")
+    """docs/security.md shows how a plain Zenoh subscriber decodes a data message; run that very
+    code on arrays (plain, structured, nested in containers), numpy scalars and tuples."""
+    readme = (Path(__file__).resolve().parents[3] / "docs" / "security.md").read_text(encoding="utf-8")
     snippet = readme.split("Decoding a data message with plain msgpack:", 1)[1].split("```python\n", 1)[1]
     snippet = snippet.split("```", 1)[0]
     structured = np.zeros(2, dtype=[("a", "<f4"), ("b", "<i8", (2,))])
