@@ -624,6 +624,30 @@ def log_recover(
     _out.print(f"recovered {result.events} events and {result.steps} steps into {result.output}\n"
                f"  {path}: {result.damage}\n  next: retriever replay {result.output}", highlight=False)
 
+
+@log_app.command("export")
+def log_export(
+    path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log written by run --log / pipe.run(log=).")],
+    format: Annotated[str, typer.Option("--format", help="foxglove: an MCAP with Foxglove's schemas.")] = "foxglove",
+    out: Annotated[Path, typer.Option("--out", "-o", help="The file to write.")] = ...,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the output file if it exists.")] = False,
+) -> None:
+    """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
+    as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
+    Needs the extra: pip install 'retriever[foxglove]'."""
+    if format != "foxglove":
+        _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
+    from .log.foxglove import export_foxglove
+
+    log = _read(path)
+    try:
+        written = export_foxglove(log, out, overwrite=force)
+    except Exception as exc:
+        _fail(exc)
+    _out.print(f"wrote {out}: {sum(written.values())} messages on {len(written)} topics; open it in the Foxglove app",
+               highlight=False)
+
+
 # ---------------------------------------------------------------------------------------------
 # Workers on many machines (backends/zenoh/daemon.py)
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,133 @@
+"""``retriever log export --format foxglove``: a log as the Foxglove app reads it (issue 19 §3).
+Every channel of the export decodes with its own schema (protobuf for images, JSON Schema for
+the rest), times are wall-clock, and images arrive as the flow made them."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.reader import make_reader
+
+from retriever import Flow, LogError, Pipeline, Rate, Trigger, io, read_log
+from retriever.log.foxglove import export_foxglove
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@io
+@dataclass
+class Camera:
+    rgb: np.ndarray
+    depth: np.ndarray
+    exposure: float
+
+
+class Cam(Flow[None, Camera]):
+    def __init__(self):
+        self.k = 0
+
+    def step(self) -> Camera:
+        self.k += 1
+        rgb = np.full((6, 8, 3), self.k, dtype=np.uint8)
+        rgb[0, 0] = (255, 0, 7)
+        return Camera(rgb=rgb, depth=np.arange(48, dtype=np.uint8).reshape(6, 8), exposure=0.01 * self.k)
+
+
+class Stats(Flow):
+    def step(self, rgb):
+        return {"mean": float(rgb.mean()), "hist": np.bincount(rgb.reshape(-1), minlength=4)[:4],
+                "big": np.zeros(5000, dtype=np.float32), "label": f"frame {int(rgb[1, 1, 0])}"}
+
+
+def _log(tmp_path: Path) -> Path:
+    with Pipeline("fox") as pipe:
+        cam = Cam().configure(name="cam") @ Rate(hz=10)
+        stats = Stats().configure(name="stats") @ Trigger("rgb")
+        cam.then(stats, map={"rgb": "rgb"})
+    path = tmp_path / "run.mcap"
+    pipe.run(duration=0.5, log=path)
+    return path
+
+
+def _protobuf_class(schema):
+    files = descriptor_pb2.FileDescriptorSet.FromString(schema.data)
+    pool = descriptor_pool.DescriptorPool()
+    for proto in files.file:
+        pool.Add(proto)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+
+
+def test_every_channel_of_the_export_decodes_with_its_schema(tmp_path):
+    log_path = _log(tmp_path)
+    out = tmp_path / "view.mcap"
+    written = export_foxglove(read_log(log_path), out)
+    with out.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        kinds = {c.topic: (c.message_encoding, summary.schemas[c.schema_id].name) for c in summary.channels.values()}
+        decoded: dict[str, list] = {}
+        started = read_log(log_path).run["started_unix_ns"]
+        for schema, channel, message in reader.iter_messages():
+            assert message.log_time >= int(started) - 10**9, "times are wall-clock (the run's), not from 1970"
+            if channel.message_encoding == "protobuf":
+                assert schema.encoding == "protobuf"
+                decoded.setdefault(channel.topic, []).append(_protobuf_class(schema).FromString(message.data))
+            else:
+                assert (channel.message_encoding, schema.encoding) == ("json", "jsonschema"), channel.topic
+                body, spec = json.loads(message.data), json.loads(schema.data)
+                assert set(body) <= set(spec["properties"]), (channel.topic, body)
+                decoded.setdefault(channel.topic, []).append(body)
+    assert kinds["/cam/rgb"] == kinds["/cam/depth"] == ("protobuf", "foxglove.RawImage")
+    assert kinds["/stats/mean"] == ("json", "retriever.Value") and kinds["/retriever/steps/cam"][1] == "retriever.Step"
+    assert sum(written.values()) == sum(len(v) for v in decoded.values())
+
+    images = decoded["/cam/rgb"]
+    assert len(images) == 5 and images[0].encoding == "rgb8" and (images[0].width, images[0].height) == (8, 6)
+    first = np.frombuffer(images[0].data, dtype=np.uint8).reshape(6, 8, 3)
+    assert first[0, 0].tolist() == [255, 0, 7] and first[1, 1].tolist() == [1, 1, 1]
+    assert decoded["/cam/depth"][2].encoding == "mono8"
+    assert np.array_equal(np.frombuffer(decoded["/cam/depth"][2].data, np.uint8).reshape(6, 8),
+                          np.arange(48).reshape(6, 8))
+    assert [m["value"] for m in decoded["/cam/exposure"]] == pytest.approx([0.01, 0.02, 0.03, 0.04, 0.05])
+    assert decoded["/stats/hist"][0]["value"] == [1, 141, 0, 0]  # small arrays as lists (the first frame)
+    assert decoded["/stats/big"][0]["value"] == {"dtype": "float32", "shape": [5000], "head": [0.0] * 8}
+    assert decoded["/stats/label"][3]["value"] == "frame 4"
+    assert [s["status"] for s in decoded["/retriever/steps/stats"]] == ["ok"] * 5
+    assert decoded["/retriever/steps/stats"][0]["consumed"] == {"rgb": [["cam", "rgb", 0]]}
+    graph = decoded["/retriever/graph"][0]
+    assert [n["id"] for n in graph["ir"]["nodes"]] == ["cam", "stats"] and graph["mermaid"].startswith("flowchart")
+
+
+def test_the_command_writes_the_export_and_refuses_to_overwrite(tmp_path):
+    log_path = _log(tmp_path)
+    out = tmp_path / "view.mcap"
+
+    def export(*flags):
+        return subprocess.run([str(Path(sys.executable).parent / "retriever"), "log", "export", str(log_path),
+                               "--format", "foxglove", "-o", str(out), *flags], capture_output=True, text=True,
+                              timeout=120, cwd=ROOT)
+
+    done = export()
+    assert done.returncode == 0, done.stderr
+    assert f"wrote {out}: " in done.stdout and out.stat().st_size > 0
+    again = export()
+    assert again.returncode == 1 and "exists" in again.stderr and "--force" in again.stderr
+    assert export("--force").returncode == 0
+    with pytest.raises(LogError, match="is the log being exported"):
+        export_foxglove(read_log(log_path), log_path, overwrite=True)
+
+
+def test_without_the_sdk_the_export_says_how_to_get_it(tmp_path, monkeypatch):
+    log = read_log(_log(tmp_path))
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # what an environment without the extra has
+    with pytest.raises(LogError, match=r"needs Foxglove's SDK \(the foxglove-sdk package\)(.|\n)*"
+                                       r"hint: pip install 'retriever\[foxglove\]'"):
+        export_foxglove(log, tmp_path / "view.mcap")
+    assert not (tmp_path / "view.mcap").exists()
