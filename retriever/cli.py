@@ -111,6 +111,13 @@ def _load(target: str):
         _fail(exc)
 
 
+#: `--foxglove` without a port: the Foxglove app's default for a WebSocket connection
+FOXGLOVE_PORT = 8765
+_FOXGLOVE = typer.Option(
+    "--foxglove", metavar="[PORT]", help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this "
+                                         f"process, on 127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs "
+                                         "pip install 'retriever[foxglove]').")
+
 _KEEP = typer.Option(
     metavar="trace|records", help="What the run keeps in memory: 'trace' every event's value (the default of "
                                   "run); 'records' the events' ids and tags and the step records, the values only "
@@ -139,6 +146,7 @@ def run(
         "--virtual-time", help="zenoh: one process per flow, advanced in lockstep in logical time: the trace is "
                                "inproc's; --duration is then virtual seconds.")] = False,
     keep: Annotated[Optional[str], _KEEP] = None,
+    foxglove: Annotated[Optional[int], _FOXGLOVE] = None,
 ) -> None:
     """Run a pipeline and print per-node ticks, steps, skips and mean step time. Exits 1 when a
     step raised or a flow restarted, even if the run went on (unless --allow-errors)."""
@@ -146,7 +154,11 @@ def run(
     shown = f"{duration:g} s"
     if duration == float("inf"):  # until stopped: a run as long as times may go, in practice
         duration, shown = UNTIL_STOPPED_S, "until stopped"
-    options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep)) if v is not None}
+    options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep),
+                                 ("foxglove", foxglove)) if v is not None}
+    if foxglove is not None and (backend or default_backend()) != "zenoh":
+        _fail(BackendError("--foxglove streams a real-time run: it needs --backend zenoh\n    hint: for an in-process "
+                           "run, write a log and open its export: retriever log export run.mcap -o view.mcap"))
     if virtual_time:
         if (backend or default_backend()) != "zenoh":
             _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
@@ -215,6 +227,7 @@ def deploy(
                                "is the in-process backend's, however long the steps take; --duration is then "
                                "virtual seconds.")] = False,
     keep: Annotated[Optional[str], _KEEP] = None,
+    foxglove: Annotated[Optional[int], _FOXGLOVE] = None,
     config: Annotated[Optional[Path], typer.Option(
         metavar="deploy.toml", help="Settings from this TOML file (keys as the flags: connect, placement, "
                                     "secret, tls_ca, ...); flags override it.")] = None,
@@ -243,6 +256,8 @@ def deploy(
                "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
                "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key")),
                "virtual_time": bool(get("virtual_time")), "keep": get("keep", "records")}
+    if foxglove is not None:
+        options["foxglove"] = foxglove
     if get("max_clock_offset") is not None:
         options["max_clock_offset"] = get("max_clock_offset")
     log = None if get("log") is None else Path(get("log"))
@@ -853,7 +868,17 @@ def secret_new(
 
 
 def main() -> None:
+    _default_foxglove_port(sys.argv)
     app()
+
+
+def _default_foxglove_port(argv: list[str]) -> None:
+    """`--foxglove` may come without its port (it takes FOXGLOVE_PORT then): give it one, as
+    the option parser wants a value."""
+    for i, arg in enumerate(argv):
+        if arg == "--foxglove" and (i + 1 == len(argv) or not argv[i + 1].isdigit()):
+            argv.insert(i + 1, str(FOXGLOVE_PORT))
+            return
 
 
 if __name__ == "__main__":

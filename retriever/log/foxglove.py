@@ -20,13 +20,16 @@ laid out from the moment the run began).
 from __future__ import annotations
 
 import json
+import time
+import warnings
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..errors import LogError
+from ..errors import LogError, RetrieverWarning
+from ..trace import NOT_KEPT
 from .reader import RunLog
 
 #: arrays up to this many elements go into JSON whole; bigger ones as dtype, shape and a head
@@ -98,9 +101,67 @@ def run_start_ns(log: RunLog) -> int:
     return int(log.run.get("started_unix_ns", "0") or 0)
 
 
+class FoxgloveWriter:
+    """Logs a run's events, step records and graph on channels of one Foxglove context (its
+    sinks: an MCAP file for the export, a WebSocket server for the live view)."""
+
+    def __init__(self, context, ir, when_ns: int):
+        foxglove, self._RawImageChannel, self._RawImage, self._Timestamp = _sdk()
+        self._foxglove, self._context = foxglove, context
+        self._value_schema = _schema(foxglove, "retriever.Value", VALUE_SCHEMA)
+        self._step_schema = _schema(foxglove, "retriever.Step", STEP_SCHEMA)
+        self._channels: dict[str, Any] = {}
+        self.written: Counter = Counter()
+        graph = foxglove.Channel("/retriever/graph", schema=_schema(foxglove, "retriever.Graph", GRAPH_SCHEMA),
+                                 message_encoding="json", context=context)
+        graph.log({"ir": ir.doc, "mermaid": ir.visualize("mermaid")}, log_time=when_ns)
+        self._channels["/retriever/graph"] = graph
+        self.written["/retriever/graph"] += 1
+
+    def _json_channel(self, topic: str, schema):
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channels[topic] = self._foxglove.Channel(topic, schema=schema, message_encoding="json",
+                                                                     context=self._context)
+        return channel
+
+    def event(self, node: str, port: str, tag: tuple[int, int], seq: int, value: Any, when: int) -> None:
+        """One event at ``when`` (Unix ns): an image on a RawImage channel, else JSON. A port that
+        began as images and later sends something else goes on as JSON on ``<topic>/other``."""
+        topic = f"/{node}/{port}"
+        encoding = image_encoding(value)
+        channel = self._channels.get(topic)
+        if channel is None and encoding is not None:
+            channel = self._channels[topic] = self._RawImageChannel(topic, context=self._context)
+        if isinstance(channel, self._RawImageChannel):
+            if encoding is not None:
+                image = np.ascontiguousarray(value)
+                channel.log(self._RawImage(timestamp=self._Timestamp(sec=when // 10**9, nsec=when % 10**9),
+                                           frame_id=node, width=image.shape[1], height=image.shape[0],
+                                           encoding=encoding, step=image.strides[0], data=image.tobytes()),
+                            log_time=when)
+                self.written[topic] += 1
+                return
+            topic += "/other"
+        self._json_channel(topic, self._value_schema).log(
+            {"value": to_json(value), "tag_ns": tag[0], "microstep": tag[1], "seq": seq}, log_time=when)
+        self.written[topic] += 1
+
+    def step(self, node: str, tag: tuple[int, int], consumed: dict, produced, status: str, detail, wall_ns: int,
+             when: int) -> None:
+        """One step record at ``when`` (Unix ns), on ``/retriever/steps/<node>``."""
+        topic = f"/retriever/steps/{node}"
+        self._json_channel(topic, self._step_schema).log(
+            {"node": node, "status": status, "tag_ns": tag[0], "microstep": tag[1],
+             "consumed": {p: [list(i) for i in ids] for p, ids in consumed.items()},
+             "produced": [list(i) for i in produced], "detail": json.loads(json.dumps(to_json(detail))),
+             "wall_ns": wall_ns}, log_time=when)
+        self.written[topic] += 1
+
+
 def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
     """Write ``log`` as a Foxglove MCAP to ``out``; the messages written, per topic."""
-    foxglove, RawImageChannel, RawImage, Timestamp = _sdk()
+    foxglove = _sdk()[0]
     out = Path(out)
     if out.exists() and not overwrite:
         raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
@@ -108,59 +169,63 @@ def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) ->
         raise LogError(f"{out} is the log being exported", "write the export to another file")
     zero = run_start_ns(log)
     ir = log.ir
-    written: Counter = Counter()
     context = foxglove.Context()
     try:
         writer = foxglove.open_mcap(str(out), allow_overwrite=overwrite, context=context)
     except Exception as e:  # the SDK's own error for a path it cannot create
         raise LogError(f"cannot write {out}: {e}") from None
     try:
-        value_schema = _schema(foxglove, "retriever.Value", VALUE_SCHEMA)
-        step_schema = _schema(foxglove, "retriever.Step", STEP_SCHEMA)
-        graph = foxglove.Channel("/retriever/graph", schema=_schema(foxglove, "retriever.Graph", GRAPH_SCHEMA),
-                                 message_encoding="json", context=context)
-        graph.log({"ir": ir.doc, "mermaid": ir.visualize("mermaid")}, log_time=zero)
-        written["/retriever/graph"] += 1
-        channels: dict[tuple[str, str], tuple[str, Any]] = {}
+        view = FoxgloveWriter(context, ir, zero)
         for event in log.iter_events():
-            value = log.value(event, keep_unregistered=True)
-            topic = f"/{event.node}/{event.port}"
-            kind, channel = channels.get((event.node, event.port), (None, None))
-            encoding = image_encoding(value)
-            if channel is None:
-                kind = "image" if encoding is not None else "json"
-                channel = (RawImageChannel(topic, context=context) if kind == "image"
-                           else foxglove.Channel(topic, schema=value_schema, message_encoding="json", context=context))
-                channels[(event.node, event.port)] = (kind, channel)
-            when = zero + event.tag[0]
-            if kind == "image" and encoding is not None:
-                image = np.ascontiguousarray(value)
-                channel.log(RawImage(timestamp=Timestamp(sec=when // 10**9, nsec=when % 10**9), frame_id=event.node,
-                                     width=image.shape[1], height=image.shape[0], encoding=encoding,
-                                     step=image.strides[0], data=image.tobytes()), log_time=when)
-            else:  # (a port that began as images and later sent something else: as JSON, on its own topic)
-                if kind == "image":
-                    topic += "/other"
-                    other = channels.get((event.node, event.port + "/other"))
-                    if other is None:
-                        other = channels[(event.node, event.port + "/other")] = (
-                            "json", foxglove.Channel(topic, schema=value_schema, message_encoding="json", context=context))
-                    channel = other[1]
-                channel.log({"value": to_json(value), "tag_ns": event.tag[0], "microstep": event.tag[1],
-                             "seq": event.seq}, log_time=when)
-            written[topic] += 1
-        steps: dict[str, Any] = {}
+            view.event(event.node, event.port, event.tag, event.seq, log.value(event, keep_unregistered=True),
+                       zero + event.tag[0])
         for step in log.iter_steps():
-            channel = steps.get(step.node)
-            if channel is None:
-                channel = steps[step.node] = foxglove.Channel(f"/retriever/steps/{step.node}", schema=step_schema,
-                                                              message_encoding="json", context=context)
-            channel.log({"node": step.node, "status": step.status, "tag_ns": step.tag[0], "microstep": step.tag[1],
-                         "consumed": {p: [list(i) for i in ids] for p, ids in step.consumed.items()},
-                         "produced": [list(i) for i in step.produced],
-                         "detail": json.loads(json.dumps(to_json(step.detail))),
-                         "wall_ns": step.wall_ns}, log_time=zero + step.tag[0])
-            written[f"/retriever/steps/{step.node}"] += 1
+            view.step(step.node, step.tag, step.consumed, step.produced, step.status, step.detail, step.wall_ns,
+                      zero + step.tag[0])
     finally:
         writer.close()
-    return written
+    return view.written
+
+
+class LiveView:
+    """``retriever run --foxglove [PORT]``: Foxglove's WebSocket server in the coordinating
+    process, fed with what the run records as it arrives (the workers' reports: never on the
+    flows' path), so the app shows cameras, numbers and skips as they happen. Times are the
+    events' publish times (wall clock). A failure of the view stops the view, not the run."""
+
+    def __init__(self, port: int, ir, host: str = "127.0.0.1"):
+        foxglove = _sdk()[0]
+        self._context = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(name=f"retriever {ir.name}", host=host, port=port,
+                                                 context=self._context)
+        except Exception as e:
+            raise LogError(f"cannot serve the Foxglove live view on {host}:{port}: {e}",
+                           "give another port: --foxglove PORT") from None
+        self.port = self._server.port
+        self._view: FoxgloveWriter | None = FoxgloveWriter(self._context, ir, time.time_ns())
+        self.error: str | None = None
+
+    def _guard(self, call, *args) -> None:
+        if self._view is None:
+            return
+        try:
+            call(*args)
+        except Exception as e:  # noqa: BLE001 - the view is not the run: it stops, the run goes on
+            self._view, self.error = None, f"{type(e).__name__}: {e}"
+            warnings.warn(f"the Foxglove live view stopped: {self.error}", RetrieverWarning, stacklevel=2)
+
+    def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
+        if value is not NOT_KEPT:
+            self._guard(self._view and self._view.event, node, port, tag, seq, value, wall_ns or time.time_ns())
+
+    def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
+        self._guard(self._view and self._view.step, node, tag, consumed, produced, status, detail, wall_ns,
+                    start_ns or time.time_ns())
+
+    def close(self) -> None:
+        self._view = None
+        try:
+            self._server.stop()
+        except Exception:  # noqa: BLE001 - already stopped
+            pass

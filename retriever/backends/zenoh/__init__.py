@@ -23,7 +23,8 @@ from ..base import Backend
 
 class ZenohBackend(Backend):
     name = "zenoh"
-    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "virtual_time", "keep")
+    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "virtual_time", "keep",
+               "foxglove")
     #: options of a deployment on worker daemons (deploy.py): given any of the first two, the
     #: run's nodes go to the workers reached there instead of processes of this machine
     DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset", "on_worker_loss",

@@ -88,8 +88,12 @@ class Coordinator(Session):
     def __init__(self, graph: Graph, *, namespace: str | None = None, startup_timeout: float = 60.0,
                  start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
                  secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False,
-                 keep: str = "trace"):
+                 keep: str = "trace", foxglove: int | None = None):
         super().__init__(graph, keep)
+        #: the port of a Foxglove live view (its WebSocket server, in this process), if asked for
+        self._foxglove_port = foxglove
+        self._print_endpoint = not quiet
+        self.live = None
         #: lockstep virtual time (loop.py): the trace is the in-process backend's, however long it takes
         self.virtual_time = bool(virtual_time)
         self._granted = 0  # virtual time: the ticks below this (ns since T0) may run
@@ -156,6 +160,14 @@ class Coordinator(Session):
         except BaseException:
             self.close()
             raise
+
+    def _start_live_view(self) -> None:
+        from ...log.foxglove import LiveView
+
+        self.live = LiveView(self._foxglove_port, self.graph.to_ir())
+        if self._print_endpoint:
+            print(f"retriever: Foxglove live view on ws://127.0.0.1:{self.live.port} (in the Foxglove app: Open "
+                  "connection, Foxglove WebSocket)", file=sys.stderr, flush=True)
 
     def _check_deployable(self) -> None:
         """Every flow must be rebuildable from the IR in another process (_check_deployable)."""
@@ -285,8 +297,10 @@ class Coordinator(Session):
                         time.monotonic() + self.startup_timeout, "start")
             self.t0 = self._hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             self.end_ns = until_ns
-            # values come to the coordinator only for the trace (keep="trace") or the log
-            self._values = self.keep == "trace" or self.log is not None
+            if self._foxglove_port is not None:
+                self._start_live_view()
+            # values come to the coordinator only for the trace (keep="trace"), the log, or a live view
+            self._values = self.keep == "trace" or self.log is not None or self.live is not None
 
             def finished() -> bool:
                 return (all(s == "done" for s in self._state.values())
@@ -466,6 +480,8 @@ class Coordinator(Session):
                     continue
                 self._ticks.add((report.node, tag))
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
+                if self.live is not None:
+                    self.live.step(report.node, tag, consumed, produced, status, detail, start, wall)
                 for event_id in produced:  # a LET output is published after its record went
                     if event_id not in self._event_ids:
                         self._unseen.add(event_id)
@@ -649,6 +665,8 @@ class Coordinator(Session):
         self._have[(producer, port)] = have
         self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq,
                                       msg.value if self._values else NOT_KEPT, wall))
+        if self.live is not None:
+            self.live.event(msg.producer, msg.port, msg.tag, msg.seq, msg.value if self._values else NOT_KEPT, wall)
 
     def _tell_have(self) -> None:
         """Tell the consumers which events the coordinator has (the last seq of each stream that
@@ -881,6 +899,8 @@ class Coordinator(Session):
         self._closed = True
         if any(p.poll() is None for p in self._processes()):
             self._stop_workers()
+        if self.live is not None:
+            self.live.close()
         give_up = time.monotonic() + 1.0  # their last lines, before the run returns
         for output in {id(o): o for host in self._hosts.values() for o in host.outputs()}.values():
             output.drain(max(0.0, give_up - time.monotonic()))

@@ -62,7 +62,7 @@ class Deployment(Coordinator):
                  startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
                  max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
                  lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
-                 keep: str = "trace"):
+                 keep: str = "trace", foxglove: int | None = None):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -93,7 +93,7 @@ class Deployment(Coordinator):
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
-                         quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep)
+                         quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep, foxglove=foxglove)
 
     # -- the coordinator's steps, for workers elsewhere ----------------------------------------
     def _check_deployable(self) -> None:
