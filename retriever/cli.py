@@ -114,9 +114,9 @@ def _load(target: str):
 #: `--foxglove` without a port: the Foxglove app's default for a WebSocket connection
 FOXGLOVE_PORT = 8765
 _FOXGLOVE = typer.Option(
-    "--foxglove", metavar="[PORT]", help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this "
-                                         f"process, on 127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs "
-                                         "pip install 'retriever[foxglove]').")
+    "--foxglove", metavar="[PORT]",
+    help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this process, on "
+         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever[foxglove]').")
 
 _KEEP = typer.Option(
     metavar="trace|records", help="What the run keeps in memory: 'trace' every event's value (the default of "
@@ -586,31 +586,60 @@ def log_cat(
     port: Annotated[Optional[str], typer.Option(help="Only this output port.")] = None,
     steps: Annotated[bool, typer.Option("--steps", help="Print step records instead of events.")] = False,
     limit: Annotated[Optional[int], typer.Option(help="Print at most this many.")] = None,
+    brief: Annotated[bool, typer.Option("--brief", help="Arrays as their dtype and shape, not their values.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line (arrays up to 1024 elements "
+                                                         "as lists, bigger ones summarised).")] = False,
+    start: Annotated[Optional[float], typer.Option("--from", metavar="S", help="Only tags at or after S s.")] = None,
+    end: Annotated[Optional[float], typer.Option("--to", metavar="S", help="Only tags before S s.")] = None,
 ) -> None:
     """Print decoded events (or step records), in tag order."""
+    import json
+
     import numpy as np
 
+    from .log.foxglove import to_json
     from .time import format_tag
 
     log = _read(path)
+    lo = None if start is None else round(start * 1e9)
+    hi = None if end is None else round(end * 1e9)
+
+    def in_range(tag) -> bool:
+        return (lo is None or tag[0] >= lo) and (hi is None or tag[0] < hi)
+
+    def say(text: str) -> None:
+        _out.print(text, highlight=False, markup=False, soft_wrap=True)
+
     shown = 0
     np.set_printoptions(threshold=16, edgeitems=2)
     try:
         if steps:
-            records = sorted((s for s in log.iter_steps() if node is None or s.node == node), key=lambda s: (s.tag, s.node))
+            records = sorted((s for s in log.iter_steps() if (node is None or s.node == node) and in_range(s.tag)),
+                             key=lambda s: (s.tag, s.node))
             for s in records[:limit]:
-                consumed = {p: [f"{n}.{q}#{i}" for n, q, i in ids] for p, ids in s.consumed.items()}
-                produced = [f"{n}.{q}#{i}" for n, q, i in s.produced]
-                extra = f" {s.detail}" if s.detail else ""
-                _out.print(f"{format_tag(s.tag)}  {s.node}  {s.status}{extra}  consumed={consumed} produced={produced} "
-                           f"wall={s.wall_ns / 1e3:.1f}µs", highlight=False, markup=False, soft_wrap=True)
+                if as_json:
+                    say(json.dumps({"tag_ns": s.tag[0], "microstep": s.tag[1], "node": s.node, "status": s.status,
+                                    "consumed": {p: [list(i) for i in ids] for p, ids in s.consumed.items()},
+                                    "produced": [list(i) for i in s.produced], "detail": to_json(s.detail),
+                                    "wall_ns": s.wall_ns}))
+                else:
+                    consumed = {p: [f"{n}.{q}#{i}" for n, q, i in ids] for p, ids in s.consumed.items()}
+                    produced = [f"{n}.{q}#{i}" for n, q, i in s.produced]
+                    extra = f" {s.detail}" if s.detail else ""
+                    say(f"{format_tag(s.tag)}  {s.node}  {s.status}{extra}  consumed={consumed} produced={produced} "
+                        f"wall={s.wall_ns / 1e3:.1f}µs")
                 shown += 1
         else:
             events = sorted((e for e in log.iter_events() if (node is None or e.node == node)
-                             and (port is None or e.port == port)), key=lambda e: (e.tag, e.node, e.port, e.seq))
+                             and (port is None or e.port == port) and in_range(e.tag)),
+                            key=lambda e: (e.tag, e.node, e.port, e.seq))
             for e in events[:limit]:
-                _out.print(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {log.value(e, keep_unregistered=True)!r}",
-                           highlight=False, markup=False, soft_wrap=True)
+                value = log.value(e, keep_unregistered=True)
+                if as_json:
+                    say(json.dumps({"tag_ns": e.tag[0], "microstep": e.tag[1], "node": e.node, "port": e.port,
+                                    "seq": e.seq, "value": _brief(value) if brief else to_json(value)}))
+                else:
+                    say(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {_brief(value) if brief else repr(value)}")
                 shown += 1
     except Exception as exc:
         _fail(exc)
@@ -618,6 +647,24 @@ def log_cat(
         known = sorted({f"{c.metadata.get('node')}.{c.metadata.get('port')}" for c in log.channels.values()
                         if c.metadata.get("node")})
         _err.print(f"nothing matched; the log's ports are: {', '.join(known)}", highlight=False)
+
+
+def _brief(value) -> str:
+    """A value with its arrays as ``dtype[shape]``: what a camera frame is, not its pixels."""
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        return f"{value.dtype}[{','.join(map(str, value.shape))}]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k!r}: {_brief(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, (list, tuple)):
+        inner = ", ".join(_brief(v) for v in value[:8]) + (f", … {len(value)} in all" if len(value) > 8 else "")
+        return f"[{inner}]" if isinstance(value, list) else f"({inner})"
+    if hasattr(value, "__dataclass_fields__"):
+        fields = ", ".join(f"{name}={_brief(getattr(value, name))}" for name in value.__dataclass_fields__)
+        return f"{type(value).__name__}({fields})"
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 @log_app.command("recover")

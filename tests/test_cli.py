@@ -622,3 +622,25 @@ def test_a_deployments_status_table_shows_forged_answers_as_plain_text():
     text = console.export_text()
     assert "30.0" in text and "25%" in text and "late 2" in text  # 60 ticks in 2 s; 0.5 s of CPU
     assert "\x1b" not in text and "[bold]x[/]" in text
+
+
+def test_log_cat_briefly_as_json_and_in_a_time_range(tmp_path: Path):
+    """issue 19 §3: `--brief` shows a frame as its dtype and shape, `--json` one object per line,
+    `--from`/`--to` a window of tags (seconds, [from, to))."""
+    from tests.log.test_foxglove import _log
+
+    log = _log(tmp_path)  # a 10 Hz camera for 0.5 s: rgb uint8 6×8×3, depth 6×8, exposure
+    brief = cli("log", "cat", str(log), "--node", "cam", "--brief", "--from", "0.1", "--to", "0.3")
+    assert brief.returncode == 0, brief.stderr
+    lines = brief.stdout.splitlines()
+    assert [line.split("  ")[1] for line in lines] == ["cam.depth #1", "cam.exposure #1", "cam.rgb #1",
+                                                       "cam.depth #2", "cam.exposure #2", "cam.rgb #2"], lines
+    assert lines[2].endswith("uint8[6,8,3]") and lines[0].endswith("uint8[6,8]") and lines[1].endswith("0.02")
+    as_json = cli("log", "cat", str(log), "--node", "stats", "--port", "hist", "--json", "--limit", "2")
+    rows = [json.loads(line) for line in as_json.stdout.splitlines()]
+    assert rows == [{"tag_ns": 0, "microstep": 2, "node": "stats", "port": "hist", "seq": 0, "value": [1, 141, 0, 0]},
+                    {"tag_ns": 100_000_000, "microstep": 2, "node": "stats", "port": "hist", "seq": 1,
+                     "value": [1, 0, 141, 0]}], rows
+    steps = cli("log", "cat", str(log), "--steps", "--json", "--from", "0.4")
+    assert [(r["node"], r["tag_ns"], r["status"]) for r in map(json.loads, steps.stdout.splitlines())] == [
+        ("cam", 400_000_000, "ok"), ("stats", 400_000_000, "ok")]
