@@ -25,7 +25,7 @@ from .errors import (
     UnregisteredTypeError,
     ValuesNotKeptError,
 )
-from .flow import EventStream, Flow, io
+from .flow import EventStream, Flow, flow_io, io
 from .ir import IR
 from .log import read_log
 from .pipeline import Pipeline
@@ -37,6 +37,6 @@ __all__ = sorted([
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
     "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StepError", "StepRecord",
-    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "init", "io",
+    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "flow_io", "init", "io",
     "read_log",
 ])

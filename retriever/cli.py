@@ -17,7 +17,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .backends import default_backend
+from .backends import canonical, default_backend
 from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning
 from .ir import IR
 
@@ -156,11 +156,11 @@ def run(
         duration, shown = UNTIL_STOPPED_S, "until stopped"
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep),
                                  ("foxglove", foxglove)) if v is not None}
-    if foxglove is not None and (backend or default_backend()) != "zenoh":
+    if foxglove is not None and canonical(backend or default_backend()) != "zenoh":
         _fail(BackendError("--foxglove streams a real-time run: it needs --backend zenoh\n    hint: for an in-process "
                            "run, write a log and open its export: retriever log export run.mcap -o view.mcap"))
     if virtual_time:
-        if (backend or default_backend()) != "zenoh":
+        if canonical(backend or default_backend()) != "zenoh":
             _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
                                "    hint: retriever run FILE --backend zenoh --virtual-time, or drop --virtual-time"))
         options["virtual_time"] = True

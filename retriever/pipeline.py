@@ -193,9 +193,9 @@ class Pipeline:
 
     # -- running -----------------------------------------------------------------------------
     def _session_for(self, backend: str | None, options: dict) -> Session:
-        from .backends import default_backend
+        from .backends import canonical, default_backend
 
-        name = backend or default_backend()
+        name = canonical(backend or default_backend())
         if self._session is not None:
             if backend is not None and self._session.backend_name != name:
                 raise BackendError(
@@ -212,14 +212,17 @@ class Pipeline:
         return self._session
 
     def run(self, duration: float | None = None, backend: str | None = None, log: str | Path | None = None,
-            overwrite: bool = False, **options: Any) -> Trace:
+            overwrite: bool = False, blocking: bool = True, **options: Any) -> Trace | RunHandle:
         """Run for ``duration`` seconds (every tick with ``t < now + duration``); returns the trace.
 
         ``log="run.mcap"`` records the run, from T0, in an MCAP event log that is complete when
         ``run`` returns (or raises); ``retriever replay run.mcap`` re-executes it. An existing
         file is refused unless ``overwrite=True``; a path that cannot be written is refused
         before the run starts, and a write that fails during the run stops it (``LogWriteError``).
+        ``blocking=False`` runs it on a thread of its own and returns a :class:`RunHandle` at once.
         """
+        if not blocking:
+            return RunHandle(self, duration=duration, backend=backend, log=log, overwrite=overwrite, **options)
         if duration is not None:
             _check_seconds("run", "duration", duration, self._now_ns())
         log_file = None if log is None else _create_log_file(log, overwrite)  # before any worker starts
@@ -299,6 +302,45 @@ class Pipeline:
 
     def __repr__(self) -> str:
         return f"<Pipeline '{self.name}': {len(self._flows)} flows, {len(self._edges)} edges>"
+
+
+class RunHandle:
+    """A run going on in the background (``pipe.run(..., blocking=False)``): ``wait()`` for its
+    trace (it raises what the run raised), ``done``, and ``stop()``, which ends it between two
+    ticks as Ctrl-C would (``wait()`` then raises ``KeyboardInterrupt``)."""
+
+    def __init__(self, pipe: "Pipeline", **run: Any):
+        self._pipe = pipe
+        self._trace: Trace | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, kwargs=run, name=f"retriever-run-{pipe.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self, **run: Any) -> None:
+        try:
+            self._trace = self._pipe.run(**run)
+        except BaseException as exc:  # handed to wait()
+            self._error = exc
+
+    @property
+    def done(self) -> bool:
+        return not self._thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> Trace:
+        """The run's trace once it is over (at most ``timeout`` s: TimeoutError if it is not)."""
+        self._thread.join(timeout)
+        if self._thread.is_alive():
+            raise TimeoutError(f"the run of pipeline '{self._pipe.name}' is still going after {timeout:g} s")
+        if self._error is not None:
+            raise self._error
+        assert self._trace is not None
+        return self._trace
+
+    def stop(self) -> None:
+        """Ask the run to stop between two ticks (a no-op once it is over)."""
+        session = self._pipe._session
+        if session is not None:
+            session.stop_requested = True
 
 
 def _user_stacklevel() -> int:

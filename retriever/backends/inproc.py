@@ -298,10 +298,17 @@ class InprocSession(Session):
         heap, pending, rate_due, rng = self._heap, self._pending, self._rate_due, self._rng
         ticks = self._tick_functions()
         log, steps = self.log, self.trace.raw_steps
-        log_at = len(steps) + 1 if log is not None else float("inf")
+        # every so many steps: the log's hand-over, or a look at whether a stop was asked for
+        # (a run in the background, pipe.run(..., blocking=False), stopped by its handle)
+        log_at = len(steps) + 1 if log is not None else len(steps) + self.LOG_BATCH
         while heap and heap[0][0] < until_ns:
             if len(steps) >= log_at:
-                log_at = len(steps) + self.write_log()
+                if log is not None:
+                    log_at = len(steps) + self.write_log()
+                else:
+                    if self.stop_requested:
+                        raise KeyboardInterrupt
+                    log_at = len(steps) + self.LOG_BATCH
             tag = heappop(heap)
             due = pending.pop(tag)
             if type(due) is _RateGroup:  # one rate group's tick, nothing else: its nodes in order

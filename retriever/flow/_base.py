@@ -71,6 +71,11 @@ def io(cls: type | None = None, /, **dataclass_kwargs: Any):
     return wrap if cls is None else wrap(cls)
 
 
+def flow_io(cls: type | None = None, /, **dataclass_kwargs: Any):
+    """The seed paper's name of :func:`io` (Appendix F, Listing 4): the same decorator."""
+    return io(cls, **dataclass_kwargs)
+
+
 def _register_with_nested(cls: type) -> None:
     register_value_type(cls)
     try:
@@ -348,6 +353,12 @@ class Flow(Generic[In, Out]):
     """
 
     _retriever: FlowSettings
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # the seed paper's spelling: a flow whose method is ``run`` (Listing 4) steps with it
+        if "run" in cls.__dict__ and callable(cls.__dict__["run"]) and getattr(cls, "step", None) is Flow.step:
+            cls.step = cls.__dict__["run"]
 
     def __new__(cls, *args: Any, **kwargs: Any):
         self = super().__new__(cls)

@@ -1,0 +1,44 @@
+"""Flows written as the seed paper writes them (Appendix F, Listing 4): ``flow_io``, a ``run``
+method instead of ``step``, ``super().__init__()``; importable, so a worker process rebuilds them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from retriever.flow import Flow, Latest, Pipeline, Rate, Trigger, flow_io
+
+
+@flow_io
+@dataclass
+class RandomSequence:
+    data: np.ndarray
+
+
+class SourceFlow(Flow[None, RandomSequence]):
+    def __init__(self):
+        super().__init__()
+        self.i = 0
+
+    def run(self, _):
+        self.i += 1
+        return RandomSequence(data=np.full(4, self.i, dtype=np.uint64))
+
+
+class SinkFlow(Flow[RandomSequence, None]):
+    def __init__(self):
+        super().__init__()
+        self.seen = []
+
+    def run(self, input: RandomSequence):
+        self.seen.append(int(input.data[0]))
+
+
+def build() -> Pipeline:
+    pipe = Pipeline("paper_spellings")
+    with pipe:
+        source = SourceFlow() @ Rate(hz=20)
+        sink = SinkFlow() @ Trigger("data")
+        pipe.connect(source, sink, sync=Latest())
+    return pipe
