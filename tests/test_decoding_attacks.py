@@ -125,13 +125,24 @@ def _forged_ir(tmp_path: Path, marker: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("command", [["ir"], ["run", "--duration", "0.2"]])
-def test_an_ir_parameter_naming_a_callable_is_refused(tmp_path, marker, command):
+def test_an_ir_parameter_naming_a_callable_is_refused(tmp_path, marker):
     ir = _forged_ir(tmp_path, marker)
-    result = cli(command[0], ir, *command[1:], pythonpath=ROOT)
+    result = cli("run", ir, "--duration", "0.2", pythonpath=ROOT)
     assert result.returncode != 0, result.stdout
     assert "error: " in result.stderr and "'os:system'" in result.stderr, result.stderr
     assert "Traceback" not in result.stderr
+    assert not marker.exists()
+
+
+def test_drawing_an_ir_never_decodes_its_parameters(tmp_path, marker):
+    """`retriever ir X.json` reads and checks the IR and draws it: it imports nothing and decodes
+    no parameter, so one naming a callable is shown as the text it is, and nothing runs."""
+    ir = _forged_ir(tmp_path, marker)
+    for fmt in ("json", "dot"):
+        result = cli("ir", ir, "--format", fmt, pythonpath=ROOT)
+        assert result.returncode == 0, result.stderr
+        assert "counter" in result.stdout
+    assert not marker.exists()
 
 
 # ---------------------------------------------------------------------------------------------
