@@ -222,8 +222,8 @@ def test_run_an_ir_whose_flows_cannot_be_found_names_the_folder(tmp_path: Path):
 
 
 def test_run_unknown_backend():
-    result = cli("run", str(QUICKSTART), "--backend", "dora", "--duration", "1")
-    assert_cli_error(result, r"^error: unknown backend 'dora'; available: inproc, zenoh$")
+    result = cli("run", str(QUICKSTART), "--backend", "ros2", "--duration", "1")
+    assert_cli_error(result, r"^error: unknown backend 'ros2'; available: inproc, zenoh$")
 
 
 def test_run_a_step_that_raises(tmp_path: Path):
@@ -504,11 +504,11 @@ def test_debug_shows_the_traceback(tmp_path: Path):
 
 
 def test_debug_shows_the_traceback_of_a_retriever_error():
-    result = cli("--debug", "run", str(QUICKSTART), "--backend", "dora")
+    result = cli("--debug", "run", str(QUICKSTART), "--backend", "ros2")
     assert result.returncode != 0
     assert "Traceback (most recent call last)" in result.stderr
     assert "BackendError" in result.stderr
-    assert "error: unknown backend 'dora'" in result.stderr
+    assert "error: unknown backend 'ros2'" in result.stderr
 
 
 def test_no_arguments_prints_help():

@@ -403,8 +403,8 @@ def test_connect_with_bad_edge_options(kwargs, message):
 
 
 def test_unknown_backend_names_the_available_ones():
-    with pytest.raises(BackendError, match=r"unknown backend 'dora'; available: inproc, zenoh"):
-        retriever.init(backend="dora")
+    with pytest.raises(BackendError, match=r"unknown backend 'ros2'; available: inproc, zenoh"):
+        retriever.init(backend="ros2")
     assert retriever.available_backends() == ["inproc", "zenoh"]
 
 

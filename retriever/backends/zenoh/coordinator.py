@@ -93,7 +93,6 @@ class Coordinator(Session):
         #: the port of a Foxglove live view (its WebSocket server, in this process), if asked for
         self._foxglove_port = foxglove
         self._print_endpoint = not quiet
-        self.live = None
         #: lockstep virtual time (loop.py): the trace is the in-process backend's, however long it takes
         self.virtual_time = bool(virtual_time)
         self._granted = 0  # virtual time: the ticks below this (ns since T0) may run
@@ -231,6 +230,7 @@ class Coordinator(Session):
         self._fresh: dict[str, dict] = {}
         self._values = True  # whether the workers report their events' values (set at the start)
         self._stop_sent = False  # whether this coordinator told the workers to stop
+        self.live = None  # a Foxglove live view, fed with what the reports bring (log/foxglove.py)
         #: bytes of the workers' reports (step records and events) received, spilled ones included
         self.reported_bytes = 0
         #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
