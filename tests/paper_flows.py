@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import sys
+
 import numpy as np
 
 from retriever.flow import Flow, Latest, Pipeline, Rate, Trigger, flow_io
@@ -40,5 +42,30 @@ def build() -> Pipeline:
     with pipe:
         source = SourceFlow() @ Rate(hz=20)
         sink = SinkFlow() @ Trigger("data")
+        pipe.connect(source, sink, sync=Latest())
+    return pipe
+
+
+class EndingSource(Flow[None, RandomSequence]):
+    """Ends the whole run from its step, as the paper's benchmark does: ``sys.exit(code)`` at
+    its ``at``-th step."""
+
+    def __init__(self, at: int, code: int = 0):
+        super().__init__()
+        self.at, self.code, self.i = at, code, 0
+
+    def run(self, _):
+        self.i += 1
+        if self.i == self.at:
+            print("Benchmarking data collection complete!")
+            sys.exit(self.code)
+        return RandomSequence(data=np.full(4, self.i, dtype=np.uint64))
+
+
+def build_ending(at: int, code: int = 0) -> Pipeline:
+    pipe = Pipeline("ending")
+    with pipe:
+        source = EndingSource(at, code).configure(name="source") @ Rate(hz=20)
+        sink = SinkFlow().configure(name="sink") @ Trigger("data")
         pipe.connect(source, sink, sync=Latest())
     return pipe

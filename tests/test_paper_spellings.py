@@ -6,7 +6,9 @@ from __future__ import annotations
 import pytest
 
 from retriever import BackendError
-from tests.paper_flows import build
+from retriever import StepError, read_log
+from retriever.log import replay
+from tests.paper_flows import build, build_ending
 
 
 @pytest.mark.parametrize("backend", ["in-process", "multiprocessing"])
@@ -40,3 +42,25 @@ def test_a_background_run_stops_when_its_handle_says_so():
     with pytest.raises(KeyboardInterrupt):
         handle.wait(timeout=60)
     assert handle.done and 0 < len(pipe.trace.steps) < 1e6 * 40
+
+
+@pytest.mark.parametrize("backend", ["in-process", "multiprocessing"])
+def test_sys_exit_0_in_a_step_ends_the_whole_run_cleanly_and_the_log_replays(backend, tmp_path):
+    """issue 19 §4: the paper's benchmark ends with sys.exit(0) in a step. That ends the run, as
+    a clean stop: the step's record is ok with detail exit 0, nothing ticks after it, and pipe.run
+    returns the trace (it used to be the step's error)."""
+    options = {"quiet": True} if backend == "multiprocessing" else {}
+    log = tmp_path / "run.mcap"
+    pipe = build_ending(at=5)
+    trace = pipe.run(backend=backend, duration=30.0, log=log, **options)  # the exit comes long before
+    source = trace.steps_of("source")
+    assert [s.status for s in source] == ["ok"] * 5 and source[-1].detail == {"exit": 0}, source
+    assert source[-1].tag == (200_000_000, 0) and not source[-1].produced
+    assert all(s.tag < (300_000_000, 0) for s in trace.steps), "nothing ran long after the exit"
+    assert read_log(log).end["status"] == "finished"
+    assert replay(read_log(log)).identical
+
+
+def test_sys_exit_with_another_code_is_that_steps_error():
+    with pytest.raises(StepError, match=r"source\.step\(\) raised SystemExit: 3"):
+        build_ending(at=3, code=3).run(duration=1.0)

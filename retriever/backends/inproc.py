@@ -46,6 +46,14 @@ from ..time import format_tag
 from . import _inproc_ticks
 from .base import Backend, NodeStats, RestartBudget, Session
 
+class RunEnded(Exception):
+    """A step called ``sys.exit()`` (or ``sys.exit(0)``): the run ends at that tick, cleanly."""
+
+    def __init__(self, node: str, tag: tuple[int, int]):
+        super().__init__(f"{node} ended the run at {format_tag(tag)} (sys.exit(0) in its step)")
+        self.node, self.tag = node, tag
+
+
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
@@ -290,6 +298,9 @@ class InprocSession(Session):
         gc.set_threshold(thresholds[0], thresholds[1], 1 << 30)
         try:
             self._advance(until_ns)
+        except RunEnded as ended:  # a step's sys.exit(0): the run is over at its tick
+            self.now_ns = ended.tag[0]
+            self.ended = ended
         finally:
             self._flush()
             gc.set_threshold(*thresholds)
@@ -447,6 +458,12 @@ class InprocSession(Session):
 
     def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
                 start: int, wall: int) -> None:
+        if isinstance(exc, SystemExit) and exc.code in (None, 0):
+            # sys.exit() or sys.exit(0) in a step: the whole run ends here, cleanly (the seed
+            # paper's benchmark ends so); any other code is that step's error, below
+            rt.stats.steps += 1
+            self.trace.raw_steps.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
+            raise RunEnded(rt.id, tau)
         rt.stats.errors += 1
         detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
         self.trace.raw_steps.append((rt.id, tau, consumed, (), "error", detail, start, wall))

@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backends.inproc import InprocSession
+from ..backends.inproc import InprocSession, RunEnded
 from ..codec import Encoder, unpackb
 from ..errors import IRError, LogError, RetrieverWarning, StepError
 from ..pipeline import Pipeline
@@ -194,8 +194,8 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
         del trace.raw_events[:], trace.raw_steps[:]
         try:
             session.tick(step.node, step.tag)
-        except StepError:
-            pass  # on_error="stop": the error step is recorded; compare it like any other
+        except (StepError, RunEnded):
+            pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
         if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
             session.retract(step.node)  # the run dropped what this step returned
         stats.replayed += 1

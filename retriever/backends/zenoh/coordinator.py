@@ -230,6 +230,7 @@ class Coordinator(Session):
         self._fresh: dict[str, dict] = {}
         self._values = True  # whether the workers report their events' values (set at the start)
         self._stop_sent = False  # whether this coordinator told the workers to stop
+        self.ended_by: str | None = None  # the node whose step called sys.exit(0), ending the run
         self.live = None  # a Foxglove live view, fed with what the reports bring (log/foxglove.py)
         #: bytes of the workers' reports (step records and events) received, spilled ones included
         self.reported_bytes = 0
@@ -331,6 +332,8 @@ class Coordinator(Session):
         """A flow with a rate that had ticks due in the run's window, and ran none, fails the
         run (issue 17: a run of 50 flows exited 0 with 47 at 0 ticks): a run that looks fine
         with flows missing is worse than none. Its worker's ``done`` says what it saw."""
+        if self.ended_by is not None:  # a step's sys.exit(0) ended the run before its end
+            return
         idle = []
         for nid, node in self.graph.nodes.items():
             due = _ticks_due(node.clock, self.end_ns)
@@ -523,6 +526,12 @@ class Coordinator(Session):
                 return
             # past the grant (one it was told by someone else): it reached this one on the way
             self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
+            return
+        if state == "exit":  # its step called sys.exit(0): the whole run ends now, cleanly
+            if self.t0 is not None and not self._stop_sent:
+                self._stop_sent = True
+                self.ended_by = node
+                self._control("stop", {})
             return
         if state == "unanswered":  # before the start: its neighbours declare themselves again
             nodes = info.get("nodes")

@@ -226,6 +226,7 @@ class NodeLoop:
         self.restarting = False
         self.handing_over = False
         self.told_to_stop = False  # a `stop` (control, or SIGTERM) ended it, not the run's end
+        self.on_exit = None  # called with the tick whose step called sys.exit(0): the run ends
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs the old process took
         self.lost_producers: set[str] = set()  # producers whose process died, until they restart
@@ -837,8 +838,16 @@ class NodeLoop:
             outputs = list(self.read(self.invoke(values)))
         except KeyboardInterrupt:
             raise
-        except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error, as in-process
+        except BaseException as exc:  # SystemExit too: sys.exit(1) in a step is that step's error, as in-process
             wall = self.last_wall = time.time_ns() - start
+            if isinstance(exc, SystemExit) and exc.code in (None, 0):
+                # sys.exit(0): the whole run ends here, cleanly. The coordinator is told first
+                # (it stops every node), then this loop ends as if told to stop.
+                self._finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
+                if self.on_exit is not None:
+                    self.on_exit(tau)
+                self.stopping = self.told_to_stop = True
+                return
             error = f"{type(exc).__name__}: {exc}"
             self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
                               start, wall)

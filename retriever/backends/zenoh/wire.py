@@ -347,7 +347,7 @@ def decode_status(data: bytes) -> tuple[str, str, dict]:
 
 #: what a worker says on status/node/<node> (worker.py)
 #: "reached": in virtual time, the node has run every tick below the coordinator's grant (loop.py)
-NODE_STATES = ("ready", "done", "failed", "restart", "handed_over", "reached", "unanswered")
+NODE_STATES = ("ready", "done", "failed", "restart", "handed_over", "reached", "unanswered", "exit")
 
 
 def decode_error_reply(data: bytes) -> str | None:

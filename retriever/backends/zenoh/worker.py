@@ -356,6 +356,7 @@ def _serve(argv: list[str], parent: int) -> int:
                 return EXIT_FAILED
             started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
             loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
+            loop.on_exit = lambda tag: status("exit", tag=list(tag))
             if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
                 loop.on_reached = lambda until: status("reached", until=until)
             try:
