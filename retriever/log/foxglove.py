@@ -206,22 +206,21 @@ class LiveView:
         self._view: FoxgloveWriter | None = FoxgloveWriter(self._context, ir, time.time_ns())
         self.error: str | None = None
 
-    def _guard(self, call, *args) -> None:
+    def _guard(self, method: str, *args) -> None:
         if self._view is None:
             return
         try:
-            call(*args)
+            getattr(self._view, method)(*args)
         except Exception as e:  # noqa: BLE001 - the view is not the run: it stops, the run goes on
             self._view, self.error = None, f"{type(e).__name__}: {e}"
             warnings.warn(f"the Foxglove live view stopped: {self.error}", RetrieverWarning, stacklevel=2)
 
     def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
         if value is not NOT_KEPT:
-            self._guard(self._view and self._view.event, node, port, tag, seq, value, wall_ns or time.time_ns())
+            self._guard("event", node, port, tag, seq, value, wall_ns or time.time_ns())
 
     def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
-        self._guard(self._view and self._view.step, node, tag, consumed, produced, status, detail, wall_ns,
-                    start_ns or time.time_ns())
+        self._guard("step", node, tag, consumed, produced, status, detail, wall_ns, start_ns or time.time_ns())
 
     def close(self) -> None:
         self._view = None

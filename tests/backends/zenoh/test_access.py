@@ -12,6 +12,7 @@ replays identically. The watcher's config and the run's secrets are files only t
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -112,6 +113,33 @@ def _subscribe(session: zenoh.Session, keys: KeySpace) -> tuple[list[str], threa
     return seen, first, session.declare_subscriber(keys.all_data(), on_sample)
 
 
+def _secret_file(tmp_path: Path) -> Path:
+    """A deployment secret the run and the insider share (mode 0600, 32 bytes)."""
+    secret = tmp_path / "secret"
+    secret.write_text("a deployment secret of 32 bytes.")
+    secret.chmod(0o600)
+    return secret
+
+
+@contextlib.contextmanager
+def _insider(run: Run, namespace: str, secret: Path, tmp_path: Path):
+    """A session holding the run's credentials, once the run is up and its data flows: the
+    session, and the run's key space."""
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.hub import open_peer
+
+    run.watch_config()
+    access = RunAccess.create(namespace, read_secret(secret))
+    keys = KeySpace(namespace)
+    with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
+        _, first, sub = _subscribe(insider, keys)
+        assert first.wait(BOUND_S), "the insider saw no data"
+        try:
+            yield insider, keys
+        finally:
+            sub.undeclare()
+
+
 def _attack(session: zenoh.Session, keys: KeySpace, until: float) -> int:
     """Everything that once steered a run, again and again until ``until``; how many puts."""
     enc, sent, seq = WireEncoder(), 0, 0
@@ -201,24 +229,15 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
     frontier past any tag or past what its producer can promise, a seq from the future, a value
     naming a callable (``os:system``), a status of a node that is not there: each refused and
     counted as garbage, never applied: the consumer makes every tick with no late event."""
-    from retriever.backends.zenoh.access import RunAccess, read_secret
-    from retriever.backends.zenoh.hub import open_peer
     from tests.test_decoding_attacks import _data_message, forged
 
-    secret = tmp_path / "secret"
-    secret.write_text("a deployment secret of 32 bytes.")
-    secret.chmod(0o600)
+    secret = _secret_file(tmp_path)
     marker = tmp_path / "pwned"
     run = Run(tmp_path, namespace, secret)
     try:
-        hub = endpoint(run.port)
-        run.watch_config()
-        access = RunAccess.create(namespace, read_secret(secret))
-        keys, enc = KeySpace(namespace), WireEncoder()
+        enc = WireEncoder()
         end = round(RUN_S * 1e9)
-        with open_peer(hub, access=access.session_config(access.write_dictionary(tmp_path))) as insider:
-            _, first, sub = _subscribe(insider, keys)
-            assert first.wait(BOUND_S), "the insider saw no data"
+        with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             # what a worker that missed the start asks for: the run's T0 and end
             from retriever.backends.zenoh.wire import decode_control
             answers = [decode_control(r.ok.payload.to_bytes()) for r in insider.get(keys.start(), timeout=BOUND_S)
@@ -242,7 +261,6 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
                 insider.put(key, message)
             # sense, but not once the run started: no node declares itself again (worker.REDECLARE_AFTER_S)
             insider.put(keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["counter"]}))
-            sub.undeclare()
         result = run.result()
     finally:
         run.kill()
@@ -262,22 +280,11 @@ def test_a_stop_the_coordinator_never_sent_fails_the_run_instead_of_cutting_it_s
     """An insider's `stop` on ctl/run looks like the coordinator's, and every worker obeys it. The
     run then ended early and said it finished, counts and log alike (the cold review). Each worker
     now says it was told to stop; one told by nobody the coordinator knows of fails the run."""
-    from retriever.backends.zenoh.access import RunAccess, read_secret
-    from retriever.backends.zenoh.hub import open_peer
-
-    secret = tmp_path / "secret"
-    secret.write_text("a deployment secret of 32 bytes.")
-    secret.chmod(0o600)
+    secret = _secret_file(tmp_path)
     run = Run(tmp_path, namespace, secret)
     try:
-        run.watch_config()
-        access = RunAccess.create(namespace, read_secret(secret))
-        keys = KeySpace(namespace)
-        with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
-            _, first, sub = _subscribe(insider, keys)
-            assert first.wait(BOUND_S), "the insider saw no data"
+        with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             insider.put(keys.run_control(), WireEncoder().control("stop", {}))
-            sub.undeclare()
         run.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
         run.reader.join(5)
     finally:
@@ -373,23 +380,12 @@ def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_th
     past the coordinator's window. The nodes run on to it; their `reached` past the coordinator's
     grant counts as reaching its own (it was refused, and the run stalled until it failed). Ticks
     still wait for complete inputs: the same ticks, a log that replays."""
-    from retriever.backends.zenoh.access import RunAccess, read_secret
-    from retriever.backends.zenoh.hub import open_peer
-
-    secret = tmp_path / "secret"
-    secret.write_text("a deployment secret of 32 bytes.")
-    secret.chmod(0o600)
+    secret = _secret_file(tmp_path)
     run = Run(tmp_path, namespace, secret, script=RUN.replace("secret=sys.argv[5] if len(sys.argv) > 5 else None)",
                                                               "secret=sys.argv[5], virtual_time=True)"))
     try:
-        run.watch_config()
-        access = RunAccess.create(namespace, read_secret(secret))
-        keys = KeySpace(namespace)
-        with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
-            _, first, sub = _subscribe(insider, keys)
-            assert first.wait(BOUND_S), "the insider saw no data"
+        with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             insider.put(keys.run_control(), WireEncoder().control("grant", {"until": round(2 * 1e9)}))
-            sub.undeclare()
         result = run.result()
     finally:
         run.kill()
