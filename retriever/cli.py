@@ -168,6 +168,70 @@ def run(
              f"{shown}{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
 
 
+@app.command()
+def demo(
+    seed: Annotated[int, typer.Option(help="The episode's seed: where the spice is, its mass and place, "
+                                           "the drawers' friction.")] = 0,
+    drawer: Annotated[Optional[str], typer.Option(metavar="TL|TR|BL|BR",
+                                                  help="Hide the spice in this drawer (default: by the seed).")] = None,
+    backend: Annotated[str, typer.Option(help="zenoh: real time, one process per flow; inproc: virtual time, "
+                                              "as fast as it goes.")] = "zenoh",
+    duration: Annotated[float, typer.Option(help="At most this many seconds (world time); the episode ends "
+                                                  "earlier when the task is done.")] = 120.0,
+    planner_latency: Annotated[float, typer.Option(help="Seconds the planner thinks per plan chunk "
+                                                         "(its declared latency).")] = 2.0,
+    planner: Annotated[str, typer.Option(metavar="scripted|openai:URL#MODEL",
+                                         help="The planner: the scripted VLM stand-in (no network), or a model "
+                                              "behind an OpenAI-compatible endpoint (key in $OPENAI_API_KEY).")
+                       ] = "scripted",
+    task: Annotated[str, typer.Option(metavar="drawers|bag", help="The task.")] = "drawers",
+    ablation: Annotated[str, typer.Option(help="full, no-plan-chunking, no-skill-progress, human-in-the-loop "
+                                               "or vla-only (paper Table II).")] = "full",
+    slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
+    teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
+                                                   "{t_start, payload: 'Pick(spice)'}).")] = None,
+    log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
+    out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
+) -> None:
+    """Run Retriever-0 on the drawer task in a MuJoCo world: live skill, belief and progress lines,
+    then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
+    log that `retriever replay` re-executes."""
+    try:
+        from agents.demo import DemoError, check_rendering, report, run_episode
+        from agents.pictures import contact_sheet, timeline
+        from agents.retriever0 import AgentConfig
+    except ImportError as exc:
+        _fail(RetrieverError(f"the Retriever-0 agent is not installed ({exc})\n    hint: install the project "
+                             "itself, which includes it: pip install -e ."))
+    if task != "drawers":
+        _fail(RetrieverError(f"task {task!r}: only 'drawers' is built so far\n    hint: --task drawers"))
+    if canonical(backend) not in ("zenoh", "inproc"):
+        _fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
+    try:
+        config = AgentConfig(seed=seed, drawer=drawer, ablation=ablation, planner=planner,
+                             planner_latency=planner_latency, slip_prob=slip_prob,
+                             teleop=str(teleop) if teleop else None, verbose=True)
+        config.check()
+        if teleop is not None:
+            from agents.flows import load_schedule
+            load_schedule(str(teleop))
+        check_rendering()
+        out.mkdir(parents=True, exist_ok=True)
+        _err.print(f"Retriever-0 on {canonical(backend)}: seed {seed}, spice in "
+                   f"{drawer or 'a drawer the seed chose'}; logging to {log}", highlight=False)
+        trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log))
+    except (DemoError, ValueError) as exc:
+        _fail(RetrieverError(str(exc)))
+    except RetrieverError as exc:
+        _fail(exc)
+    for line in report(episode, wall, canonical(backend)):
+        _out.print(line, highlight=False)
+    sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
+    line = timeline(trace, episode, out / "timeline.png")
+    _out.print(f"pictures: {sheet or '(no camera frames)'}, {line}; replay it: retriever replay {log}",
+               highlight=False)
+
+
 _TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "
                        "certificate of the deployment; with --tls-cert and --tls-key every link is mutual TLS "
                        "(endpoints tls/HOST:PORT).")

@@ -1,0 +1,69 @@
+"""What an episode of Retriever-0 did, read back from its trace or its log: the skill trace, the
+task-progress score and when it was reached, replans, and how each flow kept its clock."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from retriever import NOT_KEPT
+
+
+@dataclass
+class FlowRate:
+    node: str
+    hz: float | None                 # its Rate, None for a triggered flow
+    steps: int
+    achieved_hz: float
+    late_p99_ms: float | None        # real time only: how late its ticks started, 99th percentile
+
+
+@dataclass
+class Episode:
+    skills: list[str]                # the skills handed off, in order, then the one running at the end
+    score: float
+    best_at: float                   # world seconds when the score last rose
+    milestones: dict
+    finished: bool
+    replans: int
+    failures: int
+    duration: float                  # world seconds covered
+    statuses: list = field(default_factory=list)   # (t, MonitorStatus) at every monitor tick
+    rates: list[FlowRate] = field(default_factory=list)
+
+    @property
+    def skill_trace(self) -> str:
+        return " → ".join(self.skills)
+
+
+def summarize(trace, ir=None) -> Episode:
+    """The episode a trace shows (its monitor's statuses must be kept: ``keep="trace"``)."""
+    statuses = [(e.value.t, e.value) for e in trace.events_of("monitor", "status") if e.value is not NOT_KEPT]
+    if not statuses:
+        return Episode([], 0.0, 0.0, {}, False, 0, 0, 0.0, [], _rates(trace, ir, 0.0))
+    last = statuses[-1][1]
+    skills = list(last.executed) + ([last.skill] if last.skill else [])
+    best_at = next((t for t, s in statuses if s.score >= last.score), 0.0) if last.score > 0 else 0.0
+    duration = statuses[-1][0]
+    return Episode(skills, last.score, best_at, dict(last.milestones), last.finished, last.replans, last.failures,
+                   duration, statuses, _rates(trace, ir, duration))
+
+
+def _rates(trace, ir, duration: float) -> list[FlowRate]:
+    clocks = {}
+    if ir is not None:
+        for node in ir.doc["nodes"]:
+            clock = node.get("config", {}).get("clock", {})
+            spec = clock.get("Rate") or clock.get("Hybrid") or {}
+            clocks[node["id"]] = spec.get("hz")
+    by_node: dict[str, list] = {}
+    for step in trace.steps:
+        by_node.setdefault(step.node, []).append(step)
+    rates = []
+    for node, steps in sorted(by_node.items()):
+        ran = [s for s in steps if s.status not in ("skipped",)]
+        late = [(s.wall_start_ns - s.tag[0]) / 1e6 for s in ran if s.wall_start_ns and s.tag[0] > 1e17]
+        rates.append(FlowRate(node, clocks.get(node), len(ran), len(ran) / duration if duration else 0.0,
+                              float(np.percentile(late, 99)) if late else None))
+    return rates

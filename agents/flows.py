@@ -1,0 +1,322 @@
+"""The flows of Retriever-0 (paper Appendix E-a, D-H): world, cameras, belief, planner, monitor,
+skill policy, controller, goal and teleop.
+
+Each keeps ``__init__`` cheap (it stores JSON arguments: on ``zenoh`` every worker imports this
+module and the IR rebuilds each flow from them) and acquires what is heavy in ``setup()``, in the
+process that steps it: a MuJoCo model, a renderer, a planner client. Times in messages are the
+world's simulated seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from retriever import Flow
+
+from .messages import (
+    ActionChunk, Belief, Command, Frame, InspectionDone, MonitorStatus, Observation, PlanChunk, PlanRequest,
+    Progress, SkillCmd, Task, TeleopEvent,
+)
+from .monitor import ExecutionMonitor, MonitorConfig
+
+ARRAY_FACTS = ("qpos", "qvel", "robot")
+
+
+def _sim(seed: int, drawer: str | None):
+    from .world import Layout, Sim  # mujoco loads in the flow's own process only
+    return Sim(Layout.from_seed(seed, drawer))
+
+
+class Goal(Flow):
+    """The language goal: said once, at the first tick."""
+
+    def __init__(self, text: str = "Find the spice in the drawers and season the food.", task: str = "drawers"):
+        self.text, self.task, self.said = text, task, False
+
+    def step(self):
+        if self.said:
+            return {}
+        self.said = True
+        return {"task": Task(text=self.text, task=self.task)}
+
+
+class World(Flow):
+    """The MuJoCo world: applies the controller's newest command and advances physics by one
+    tick (``tick`` seconds); its observation is the state every other flow reads."""
+
+    def __init__(self, seed: int = 0, drawer: str | None = None, tick: float = 0.005, slip_prob: float = 0.0):
+        self.seed, self.drawer, self.tick, self.slip_prob = seed, drawer, tick, slip_prob
+        self.slip_at: float | None = None
+
+    def setup(self):
+        self.sim = _sim(self.seed, self.drawer)
+
+    def teardown(self):
+        self.sim.close()
+        del self.sim
+
+    def reset(self):
+        """A fresh episode: the same layout, physics back to its start."""
+        if hasattr(self, "sim"):
+            self.sim.close()
+            self.sim = _sim(self.seed, self.drawer)
+        self.slip_at = None
+
+    def step(self, command: Command | None = None):
+        sim = self.sim
+        if command is not None:
+            sim.command(command.u)
+        sim.advance(self.tick)
+        facts = sim.observe()
+        self._maybe_slip(facts)
+        arrays = {k: np.asarray(facts.pop(k), dtype=np.float64) for k in ARRAY_FACTS if k in facts}
+        return {"obs": Observation(t=round(float(facts.pop("t")), 9), qpos=arrays["qpos"], robot=arrays["robot"],
+                                   facts=facts)}
+
+    def _maybe_slip(self, facts: dict) -> None:
+        """Failure injection: with probability ``slip_prob`` per episode (decided by the seed), the
+        first grasp slips a moment after the bottle is lifted."""
+        if self.slip_prob <= 0 or self.slip_at == -1.0:
+            return
+        if self.slip_at is None and facts.get("grasped"):
+            rng = np.random.default_rng([self.seed, 7])
+            self.slip_at = facts["t"] + 1.0 if rng.random() < self.slip_prob else -1.0
+        if self.slip_at not in (None, -1.0) and facts["t"] >= self.slip_at:
+            self.sim.slip()
+            self.slip_at = -1.0
+
+
+class Camera(Flow):
+    """A camera: rebuilds the scene from the world's newest positions and renders it on the CPU."""
+
+    def __init__(self, camera: str = "head", height: int = 96, width: int = 128, seed: int = 0,
+                 drawer: str | None = None):
+        self.camera, self.height, self.width, self.seed, self.drawer = camera, height, width, seed, drawer
+
+    def setup(self):
+        self.sim = _sim(self.seed, self.drawer)
+        self.sim.render(self.camera, self.height, self.width)     # the renderer's 0.2 s start-up, before T0
+
+    def teardown(self):
+        self.sim.close()
+        del self.sim
+
+    def step(self, obs: Observation):
+        self.sim.load_qpos(obs.qpos)
+        return {"frame": Frame(camera=self.camera, t=obs.t, rgb=self.sim.render(self.camera, self.height, self.width))}
+
+
+class BeliefUpdater(Flow):
+    """Belief/memory (F2): on each ``inspection_done``, colour segmentation of the head camera's
+    newest frame (real pixels, standing in for the belief VLM) answers ``at(spice, drawer)``; a
+    three-valued merge keeps what is known (unknown never overwrites yes/no)."""
+
+    def __init__(self, seed: int = 0, drawer: str | None = None):
+        self.seed, self.drawer = seed, drawer
+        self.version, self.predicates = 0, {}
+
+    def setup(self):
+        self.sim = _sim(self.seed, self.drawer)          # the camera's geometry, for projecting drawers
+
+    def teardown(self):
+        self.sim.close()
+        del self.sim
+
+    def step(self, inspection: InspectionDone, frame: Frame, obs: Observation):
+        from .perception import inspect
+        verdict = inspect(frame.rgb, inspection.drawer, obs.facts["drawers"], self.sim)
+        new = {f"at(spice, {inspection.drawer})": verdict}
+        merged = merge_three_valued(self.predicates, new)
+        if merged == self.predicates and self.version > 0:
+            return {}
+        self.predicates, self.version = merged, self.version + 1
+        return {"belief": Belief(version=self.version, predicates=dict(merged), t=obs.t,
+                                 evidence=f"{inspection.drawer}: {verdict} (frame t={frame.t:.2f})")}
+
+
+def merge_three_valued(old: dict, new: dict) -> dict:
+    """``unknown`` never overwrites ``yes``/``no``; ``yes``/``no`` overwrite (the world may change)."""
+    merged = dict(old)
+    for key, value in new.items():
+        if value != "unknown" or key not in merged:
+            merged[key] = value
+    return merged
+
+
+class PlannerFlow(Flow):
+    """The planner (F3, a VLM stand-in by default): answers each plan request with a plan chunk.
+    Its declared latency is the seconds it is given to think."""
+
+    def __init__(self, planner: str = "scripted"):
+        self.planner_spec = planner
+
+    def setup(self):
+        from .planner import make_planner
+        self.planner = make_planner(self.planner_spec)
+
+    def step(self, request: PlanRequest, task: Task | None = None):
+        from .planner import PlannerError
+        context = {"executed": request.executed, "current": request.current, "failures": request.failures,
+                   "reason": request.reason}
+        try:
+            program = self.planner.propose(task.text if task else "", request.belief, context)
+        except PlannerError as e:
+            print(f"planner: {e}", file=sys.stderr)
+            program = []
+        return {"plan": PlanChunk(request_id=request.request_id, program=program, planner=self.planner.name)}
+
+
+class Monitor(Flow):
+    """The execution monitor (F4): plan chunking, branches, progress-threshold switching, stale
+    feedback, replanning and teleop (rules in :mod:`agents.monitor`). ``end_after`` seconds after
+    the plan says ``Done()`` it ends the whole run (``sys.exit(0)`` in a step)."""
+
+    def __init__(self, threshold: float = 0.9, sustain: float = 0.5, switching: str = "progress",
+                 timeout: float = 4.0, min_horizon: int = 2, chunking: bool = True,
+                 end_after: float | None = 1.0, verbose: bool = False):
+        self.settings = dict(threshold=threshold, sustain=sustain, switching=switching, timeout=timeout,
+                             min_horizon=min_horizon, chunking=chunking)
+        self.end_after, self.verbose = end_after, verbose
+        self.logic = ExecutionMonitor(MonitorConfig(**self.settings))
+        self.finished_at: float | None = None
+        self.said = ""
+
+    def step(self, obs: Observation, task: Task | None = None, belief: Belief | None = None,
+             progress: list | None = None, plan: list | None = None, teleop: list | None = None):
+        m, now = self.logic, obs.t
+        if task is not None and not m.task:
+            m.on_task(task.text)
+        changed = belief is not None and m.on_belief(belief.version, belief.predicates)
+        for chunk in plan or ():
+            m.on_plan(chunk.request_id, chunk.program)
+        out: dict = {}
+        for event in teleop or ():
+            out["skill"] = self._command(m.on_teleop(event.payload, now))
+        for feedback in progress or ():
+            m.on_progress(feedback.skill_id, feedback.p, feedback.status, now)
+        m.observe_world(obs.facts, now)
+        decision = m.tick(now, changed)
+        if decision.command is not None:
+            out["skill"] = self._command(decision)
+        if decision.request is not None:
+            predicates = dict(m.belief)
+            predicates["holding(spice)"] = "yes" if obs.facts.get("grasped") else "no"
+            out["request"] = PlanRequest(request_id=decision.request_id, reason=decision.request, t=now,
+                                         belief=predicates, executed=[str(s) for s in m.executed],
+                                         current=str(m.current) if m.current else "", failures=list(m.failures))
+        out["status"] = MonitorStatus(t=now, skill=str(m.current) if m.current else "", skill_id=m.current_id,
+                                      p=m.progress, score=m.score, milestones=dict(m.milestones),
+                                      finished=m.finished, replans=m.replans, executed=[str(s) for s in m.executed],
+                                      waiting=m.waiting, failures=m.skill_failures, last_failed=m.last_failed)
+        self._say(out["status"])
+        if m.finished and self.end_after is not None:
+            self.finished_at = now if self.finished_at is None else self.finished_at
+            if now - self.finished_at >= self.end_after:
+                sys.exit(0)
+        return out
+
+    @staticmethod
+    def _command(decision) -> SkillCmd:
+        return SkillCmd(skill_id=decision.command_id, name=decision.command.name, arg=decision.command.arg,
+                        source=decision.command_source)
+
+    def _say(self, status: MonitorStatus) -> None:
+        """With ``verbose``, one line whenever the skill, the score or the wait changes."""
+        if not self.verbose:
+            return
+        line = f"{status.skill or '(' + (status.waiting or 'idle') + ')'} score {status.score:.0%}"
+        if line != self.said:
+            self.said = line
+            known = " ".join(f"{k[10:-1]}:{v}" for k, v in sorted(self.logic.belief.items()) if k.startswith("at("))
+            print(f"t={status.t:6.2f}s  {line:<34} belief {known or '-'}", flush=True)
+
+
+class SkillPolicy(Flow):
+    """The skill policy (F5, a VLA stand-in): runs the monitor's current skill with a scripted,
+    state-feedback controller and emits an action chunk, its progress, and ``inspection_done``
+    when an inspection has looked."""
+
+    def __init__(self, horizon: float = 0.75, control_hz: float = 200.0):
+        self.horizon, self.control_hz = horizon, control_hz
+        self.running_id, self.controller, self.inspected = 0, None, False
+
+    def step(self, skill: SkillCmd, obs: Observation, frame: Frame | None = None):
+        from .skills import make_skill
+        if skill.skill_id != self.running_id:
+            self.running_id, self.controller, self.inspected = skill.skill_id, make_skill(skill.name, skill.arg), False
+        facts = dict(obs.facts, t=obs.t, qpos=obs.qpos, robot=obs.robot)
+        out = self.controller.act(facts, round(self.horizon * self.control_hz), self.control_hz)
+        result = {"chunk": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(out.actions, dtype=np.float64)),
+                  "progress": Progress(skill_id=skill.skill_id, t=obs.t, p=float(out.progress), status=out.status)}
+        if skill.name == "InspectDrawer" and out.status == "done" and not self.inspected:
+            self.inspected = True
+            result["inspection"] = InspectionDone(skill_id=skill.skill_id, t=obs.t, drawer=skill.arg)
+        return result
+
+
+class Controller(Flow):
+    """The 200 Hz controller (F6): plays the current action chunk's row, within the joints'
+    limits and velocity limits."""
+
+    def __init__(self, hz: float = 200.0):
+        self.hz = hz
+        self.last = None
+
+    def step(self, action: np.ndarray):
+        from .world import COMMAND_HIGH, COMMAND_LOW, HOME, MAX_SPEED
+        target = np.clip(np.asarray(action, dtype=np.float64), COMMAND_LOW, COMMAND_HIGH)
+        last = HOME if self.last is None else self.last
+        limit = MAX_SPEED / self.hz
+        self.last = last + np.clip(target - last, -limit, limit)
+        return {"command": Command(u=self.last.copy())}
+
+
+class Teleop(Flow):
+    """Teleoperation (Appendix E-k, E-n): interventions from a schedule file (JSON: a list of
+    ``{"t_start", "t_end", "mode": "skill_override", "payload": "Pick(spice)"}``), sent when the
+    world reaches their start; with ``recover=True``, a scripted operator who takes over after a
+    failed skill by re-running it."""
+
+    def __init__(self, schedule: str | None = None, recover: bool = False):
+        self.schedule_path, self.recover = schedule, recover
+        self.sent, self.failures_seen = 0, 0
+
+    def setup(self):
+        self.schedule = load_schedule(self.schedule_path) if self.schedule_path else []
+
+    def step(self, obs: Observation, status: MonitorStatus | None = None):
+        if self.sent < len(self.schedule) and self.schedule[self.sent]["t_start"] <= obs.t:
+            item = self.schedule[self.sent]
+            self.sent += 1
+            return {"teleop": TeleopEvent(t_start=item["t_start"], t_end=item.get("t_end", item["t_start"]),
+                                          mode="skill_override", payload=item["payload"])}
+        if self.recover and status is not None and status.failures > self.failures_seen and status.last_failed:
+            self.failures_seen = status.failures     # the operator re-runs what failed, by hand
+            return {"teleop": TeleopEvent(t_start=obs.t, t_end=obs.t, mode="skill_override",
+                                          payload=status.last_failed)}
+        return {}
+
+
+def load_schedule(path: str) -> list[dict]:
+    """A teleop schedule, checked: a list of interventions sorted by start time."""
+    from .plan import PlanError, parse_skill
+    try:
+        items = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise ValueError(f"teleop schedule {path}: {e}") from None
+    if not isinstance(items, list):
+        raise ValueError(f"teleop schedule {path}: expected a JSON list of interventions")
+    for i, item in enumerate(items):
+        try:
+            if not isinstance(item, dict) or not isinstance(item.get("t_start"), (int, float)):
+                raise ValueError("needs a number t_start")
+            if item.get("mode", "skill_override") != "skill_override":
+                raise ValueError("mode must be 'skill_override'")
+            parse_skill(item["payload"])
+        except (ValueError, KeyError, PlanError) as e:
+            raise ValueError(f"teleop schedule {path}, item {i}: {e}") from None
+    return sorted(items, key=lambda item: item["t_start"])

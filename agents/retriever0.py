@@ -1,0 +1,115 @@
+"""Retriever-0: the planner–monitor–skill–controller agent of the paper (Sec. V, Listing 1) on
+the drawer task, as one Retriever graph.
+
+    goal ─▶ planner ◀──request── monitor ◀── belief ◀── head camera ◀── world ◀── controller
+              └──plan──▶ monitor ──skill──▶ skill policy ──chunk (ActionChunking)──▶ controller
+                         ▲   ▲                 │  └── inspection_done ──▶ belief
+                         │   └──── progress ───┘
+                         └── teleop
+
+Every flow declares a latency (logical execution time), so a real-time run on ``zenoh`` that
+meets its deadlines produces the same trace as the virtual-time run on ``inproc``. ``build()``
+takes only JSON-able options: they go into the IR, from which every backend rebuilds the flows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from retriever import ActionChunking, Latest, LatestDistinct, Pipeline, Queue, Rate, Trigger
+
+from .flows import BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillPolicy, Teleop, World
+
+ABLATIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
+
+
+@dataclass
+class AgentConfig:
+    """What an episode is: the world's seed and the agent's rates, latencies and ablation."""
+    seed: int = 0
+    drawer: str | None = None        # where the spice is; None: chosen by the seed
+    ablation: str = "full"
+    planner: str = "scripted"        # or "openai:<base_url>#<model>"
+    planner_latency: float = 2.0     # seconds the planner takes (its declared latency)
+    policy_hz: float = 2.0
+    policy_latency: float = 0.2
+    control_hz: float = 200.0
+    camera_hz: float = 10.0
+    monitor_hz: float = 10.0
+    head_size: tuple = (96, 128)
+    wrist_size: tuple = (64, 64)
+    slip_prob: float = 0.0           # failure injection: a slipped grasp, decided per seed
+    teleop: str | None = None        # a teleop schedule file
+    verbose: bool = False            # the monitor prints a line per skill change
+
+    def check(self) -> None:
+        if self.ablation not in ABLATIONS:
+            raise ValueError(f"unknown ablation {self.ablation!r}: choose one of {', '.join(ABLATIONS)}")
+        if self.drawer not in (None, "TL", "TR", "BL", "BR"):
+            raise ValueError(f"unknown drawer {self.drawer!r}: choose TL, TR, BL or BR")
+        for name in ("planner_latency", "policy_latency"):
+            if not 0 < getattr(self, name) <= 60:
+                raise ValueError(f"{name}={getattr(self, name)!r} must be in (0, 60] seconds")
+
+
+def build(config: AgentConfig | None = None, **options) -> Pipeline:
+    """The Retriever-0 graph for one episode (``options`` override ``config``'s fields)."""
+    config = AgentConfig(**{**(asdict(config) if config else {}), **options})
+    config.check()
+    seed, drawer = config.seed, config.drawer
+    control_period = 1.0 / config.control_hz
+    monitor_options = {
+        "full": {},
+        "no-plan-chunking": {"chunking": False},
+        "no-skill-progress": {"switching": "timeout"},
+        "human-in-the-loop": {},
+        "vla-only": {},
+    }[config.ablation]
+    planner, planner_latency = config.planner, config.planner_latency
+    if config.ablation == "no-plan-chunking":
+        planner = "scripted-one-skill"
+    elif config.ablation == "vla-only":       # no planner: one policy, a fixed skill order from the start
+        planner, planner_latency = "fixed-order", 0.01
+
+    with Pipeline(f"retriever0-{config.ablation}") as pipe:
+        goal = Goal().named("goal").configure(latency=0.01) @ Rate(1)
+        world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob) \
+            .named("world").configure(latency=control_period) @ Rate(config.control_hz)
+        head = Camera("head", *config.head_size, seed=seed, drawer=drawer) \
+            .named("head_camera").configure(latency=0.02) @ Rate(config.camera_hz)
+        wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer) \
+            .named("wrist_camera").configure(latency=0.02) @ Rate(config.camera_hz)
+        belief = BeliefUpdater(seed=seed, drawer=drawer).named("belief").configure(latency=0.1) @ Trigger("inspection")
+        monitor = Monitor(verbose=config.verbose, **monitor_options).named("monitor") \
+            .configure(latency=0.01) @ Rate(config.monitor_hz)
+        skill = SkillPolicy(control_hz=config.control_hz).named("skill") \
+            .configure(latency=config.policy_latency) @ Rate(config.policy_hz)
+        ctrl = Controller(hz=config.control_hz).named("controller").configure(latency=control_period) \
+            @ Rate(config.control_hz)
+
+        world.then(head, sync=Latest(), map={"obs": "obs"})
+        world.then(wrist, sync=Latest(), map={"obs": "obs"})
+        world.then(skill, sync=Latest(), map={"obs": "obs"})
+        world.then(monitor, sync=Latest(), map={"obs": "obs"})
+        world.then(belief, sync=Latest(), map={"obs": "obs"})
+        head.then(belief, sync=Latest(), map={"frame": "frame"})
+        head.then(skill, sync=Latest(staleness=0.5), map={"frame": "frame"})
+        skill.then(ctrl, sync=ActionChunking(control_hz=config.control_hz), map={"chunk": "action"})
+        ctrl.then(world, sync=Latest(), map={"command": "command"})
+        skill.then(monitor, sync=Queue(maxsize=64), map={"progress": "progress"})
+        skill.then(belief, sync=LatestDistinct(), map={"inspection": "inspection"})
+        belief.then(monitor, sync=Latest(), map={"belief": "belief"})
+        monitor.then(skill, sync=Latest(), map={"skill": "skill"})
+        goal.then(monitor, sync=Latest(), map={"task": "task"})
+
+        plan = PlannerFlow(planner=planner).named("planner").configure(latency=planner_latency) @ Trigger("request")
+        goal.then(plan, sync=Latest(), map={"task": "task"})
+        monitor.then(plan, sync=LatestDistinct(), map={"request": "request"})
+        plan.then(monitor, sync=Queue(maxsize=16), map={"plan": "plan"})
+        if config.teleop or config.ablation == "human-in-the-loop":
+            teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop") \
+                .named("teleop").configure(latency=0.01) @ Rate(config.monitor_hz)
+            world.then(teleop, sync=Latest(), map={"obs": "obs"})
+            monitor.then(teleop, sync=Latest(), map={"status": "status"})
+            teleop.then(monitor, sync=Queue(maxsize=16), map={"teleop": "teleop"})
+    return pipe

@@ -1,0 +1,105 @@
+"""Each flow of Retriever-0 by direct calls (no runtime): what it emits for what it is given."""
+
+import json
+
+import numpy as np
+import pytest
+
+from agents.flows import Goal, Monitor, PlannerFlow, Teleop, load_schedule, merge_three_valued
+from agents.messages import Belief, Observation, PlanChunk, PlanRequest, Progress, Task, TeleopEvent
+
+
+def obs(t, **facts):
+    return Observation(t=t, qpos=np.zeros(3), robot=np.zeros(5), facts=facts)
+
+
+def test_the_goal_is_said_once():
+    goal = Goal()
+    first = goal.step()
+    assert isinstance(first["task"], Task) and first["task"].task == "drawers"
+    assert goal.step() == {} and goal.step() == {}
+
+
+def test_the_monitor_flow_asks_then_starts_the_plan_and_reports_its_status():
+    monitor = Monitor(end_after=None)
+    out = monitor.step(obs(0.1), task=Task(text="season"))
+    assert out["request"].request_id == 1 and out["request"].reason == "task"
+    assert out["request"].belief == {"holding(spice)": "no"} and "skill" not in out
+    assert out["status"].waiting == "plan" and out["status"].score == 0
+    plan = PlanChunk(request_id=1, program=["OpenDrawer(TL-H) -> InspectDrawer(TL) -> Done()"])
+    out = monitor.step(obs(2.1), plan=[plan])
+    assert (out["skill"].skill_id, str(out["skill"])) == (1, "OpenDrawer(TL-H)") and "request" not in out
+    out = monitor.step(obs(2.6), progress=[Progress(skill_id=1, t=2.5, p=0.95, status="running")])
+    assert "skill" not in out and out["status"].p == 0.95
+    out = monitor.step(obs(3.1), progress=[Progress(skill_id=1, t=3.0, p=1.0, status="done")])
+    assert str(out["skill"]) == "InspectDrawer(TL)" and out["status"].executed == ["OpenDrawer(TL-H)"]
+
+
+def test_the_monitor_ends_the_run_after_done():
+    monitor = Monitor(end_after=0.5)
+    monitor.step(obs(0.1), task=Task(text="season"))
+    monitor.step(obs(0.2), plan=[PlanChunk(request_id=1, program=["Done()"])])
+    assert monitor.step(obs(0.3))["status"].finished
+    with pytest.raises(SystemExit) as ended:
+        monitor.step(obs(0.8))
+    assert ended.value.code == 0
+
+
+def test_the_monitor_takes_a_teleop_override_at_once():
+    monitor = Monitor(end_after=None)
+    monitor.step(obs(0.1), task=Task(text="season"))
+    out = monitor.step(obs(0.2), teleop=[TeleopEvent(t_start=0.2, t_end=1.0, mode="skill_override",
+                                                      payload="Pick(spice)")])
+    assert (str(out["skill"]), out["skill"].source) == ("Pick(spice)", "teleop")
+
+
+def test_the_monitor_takes_only_newer_beliefs():
+    monitor = Monitor(end_after=None)
+    monitor.step(obs(0.1), task=Task(text="season"))
+    out = monitor.step(obs(0.2), belief=Belief(version=1, predicates={"at(spice, TL)": "no"}))
+    assert out["request"].reason == "belief_updated"
+    out = monitor.step(obs(0.3), belief=Belief(version=1, predicates={"at(spice, TL)": "no"}))
+    assert "request" not in out
+
+
+def test_the_planner_flow_answers_each_request_with_a_chunk_and_a_broken_planner_with_an_empty_one(capsys):
+    flow = PlannerFlow()
+    flow.setup()
+    request = PlanRequest(request_id=3, reason="task", t=0.0, belief={}, executed=[])
+    out = flow.step(request, Task(text="season"))
+    assert out["plan"].request_id == 3 and out["plan"].program[0] == "OpenDrawer(TL-H)"
+    broken = PlannerFlow(planner="openai:http://127.0.0.1:9/v1#m")
+    broken.setup()
+    broken.planner.timeout = 2
+    assert broken.step(request)["plan"].program == []
+    assert "gave no usable answer" in capsys.readouterr().err
+
+
+def test_three_valued_merge_never_forgets_to_unknown():
+    old = {"at(spice, TL)": "no", "at(spice, TR)": "yes"}
+    assert merge_three_valued(old, {"at(spice, TL)": "unknown", "at(spice, TR)": "no", "at(spice, BL)": "unknown"}) \
+        == {"at(spice, TL)": "no", "at(spice, TR)": "no", "at(spice, BL)": "unknown"}
+
+
+def test_teleop_sends_its_schedule_when_the_world_reaches_each_start(tmp_path):
+    path = tmp_path / "teleop.json"
+    path.write_text(json.dumps([{"t_start": 5.0, "t_end": 8.0, "payload": "CloseDrawer(TL-H)"},
+                                {"t_start": 1.0, "payload": "Pick(spice)"}]))
+    teleop = Teleop(schedule=str(path))
+    teleop.setup()
+    sent = [teleop.step(obs(t)).get("teleop") for t in (0.5, 1.0, 1.1, 5.0, 9.0)]
+    assert [e.payload if e else None for e in sent] == [None, "Pick(spice)", None, "CloseDrawer(TL-H)", None]
+
+
+@pytest.mark.parametrize("content, message", [
+    ("not json", "teleop schedule"),
+    (json.dumps({"t_start": 1}), "expected a JSON list"),
+    (json.dumps([{"payload": "Pick(spice)"}]), "item 0: needs a number t_start"),
+    (json.dumps([{"t_start": 1, "payload": "os:system"}]), "item 0: .*is not a skill call"),
+    (json.dumps([{"t_start": 1, "mode": "action_chunk", "payload": "Pick(spice)"}]), "mode must be"),
+])
+def test_a_bad_teleop_schedule_is_refused_naming_the_item(tmp_path, content, message):
+    path = tmp_path / "teleop.json"
+    path.write_text(content)
+    with pytest.raises(ValueError, match=message):
+        load_schedule(str(path))
