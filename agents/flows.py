@@ -120,15 +120,16 @@ class BeliefUpdater(Flow):
         self.version, self.predicates = 0, {}
 
     def setup(self):
+        from .perception import inspect
         self.sim = _sim(self.seed, self.drawer)          # the camera's geometry, for projecting drawers
+        self.inspect = inspect
 
     def teardown(self):
         self.sim.close()
         del self.sim
 
     def step(self, inspection: InspectionDone, frame: Frame, obs: Observation):
-        from .perception import inspect
-        verdict = inspect(frame.rgb, inspection.drawer, obs.facts["drawers"], self.sim)
+        verdict = self.inspect(frame.rgb, inspection.drawer, obs.facts["drawers"], self.sim)
         new = {f"at(spice, {inspection.drawer})": verdict}
         merged = merge_three_valued(self.predicates, new)
         if merged == self.predicates and self.version > 0:
@@ -244,10 +245,14 @@ class SkillPolicy(Flow):
         self.horizon, self.control_hz = horizon, control_hz
         self.running_id, self.controller, self.inspected = 0, None, False
 
+    def setup(self):
+        from .skills import make_skill  # its import (MuJoCo's constants) before the first tick, not in it
+        self.make_skill = make_skill
+
     def step(self, skill: SkillCmd, obs: Observation, frame: Frame | None = None):
-        from .skills import make_skill
         if skill.skill_id != self.running_id:
-            self.running_id, self.controller, self.inspected = skill.skill_id, make_skill(skill.name, skill.arg), False
+            self.running_id, self.inspected = skill.skill_id, False
+            self.controller = self.make_skill(skill.name, skill.arg)
         facts = dict(obs.facts, t=obs.t, qpos=obs.qpos, robot=obs.robot)
         out = self.controller.act(facts, round(self.horizon * self.control_hz), self.control_hz)
         result = {"chunk": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(out.actions, dtype=np.float64)),
@@ -266,11 +271,15 @@ class Controller(Flow):
         self.hz = hz
         self.last = None
 
+    def setup(self):
+        from . import world  # the robot's limits (and MuJoCo's import) before the first tick
+        self.low, self.high, self.home = world.COMMAND_LOW, world.COMMAND_HIGH, world.HOME
+        self.limit = world.MAX_SPEED / self.hz
+
     def step(self, action: np.ndarray):
-        from .world import COMMAND_HIGH, COMMAND_LOW, HOME, MAX_SPEED
-        target = np.clip(np.asarray(action, dtype=np.float64), COMMAND_LOW, COMMAND_HIGH)
-        last = HOME if self.last is None else self.last
-        limit = MAX_SPEED / self.hz
+        target = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
+        last = self.home if self.last is None else self.last
+        limit = self.limit
         self.last = last + np.clip(target - last, -limit, limit)
         return {"command": Command(u=self.last.copy())}
 

@@ -71,20 +71,24 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     elif config.ablation == "vla-only":       # no planner: one policy, a fixed skill order from the start
         planner, planner_latency = "fixed-order", 0.01
 
-    with Pipeline(f"retriever0-{config.ablation}") as pipe:
-        goal = Goal().named("goal").configure(latency=0.01) @ Rate(1)
+    # a simulated robot: physics and every rate catch up on missed ticks rather than skip them, and a
+    # tick waits up to half a second for its inputs, so that a real-time run that keeps up is the
+    # virtual-time run, tick for tick (a real robot would rather skip and not wait)
+    catch_up = {"on_overrun": "catch_up"}
+    with Pipeline(f"retriever0-{config.ablation}", deadline=0.5) as pipe:
+        goal = Goal().named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
         world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob) \
-            .named("world").configure(latency=control_period) @ Rate(config.control_hz)
+            .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         head = Camera("head", *config.head_size, seed=seed, drawer=drawer) \
-            .named("head_camera").configure(latency=0.02) @ Rate(config.camera_hz)
+            .named("head_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
         wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer) \
-            .named("wrist_camera").configure(latency=0.02) @ Rate(config.camera_hz)
+            .named("wrist_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
         belief = BeliefUpdater(seed=seed, drawer=drawer).named("belief").configure(latency=0.1) @ Trigger("inspection")
         monitor = Monitor(verbose=config.verbose, **monitor_options).named("monitor") \
-            .configure(latency=0.01) @ Rate(config.monitor_hz)
+            .configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
         skill = SkillPolicy(control_hz=config.control_hz).named("skill") \
-            .configure(latency=config.policy_latency) @ Rate(config.policy_hz)
-        ctrl = Controller(hz=config.control_hz).named("controller").configure(latency=control_period) \
+            .configure(**catch_up, latency=config.policy_latency) @ Rate(config.policy_hz)
+        ctrl = Controller(hz=config.control_hz).named("controller").configure(**catch_up, latency=control_period) \
             @ Rate(config.control_hz)
 
         world.then(head, sync=Latest(), map={"obs": "obs"})
@@ -108,7 +112,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         plan.then(monitor, sync=Queue(maxsize=16), map={"plan": "plan"})
         if config.teleop or config.ablation == "human-in-the-loop":
             teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop") \
-                .named("teleop").configure(latency=0.01) @ Rate(config.monitor_hz)
+                .named("teleop").configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
             world.then(teleop, sync=Latest(), map={"obs": "obs"})
             monitor.then(teleop, sync=Latest(), map={"status": "status"})
             teleop.then(monitor, sync=Queue(maxsize=16), map={"teleop": "teleop"})

@@ -225,11 +225,11 @@ def demo(
     except RetrieverError as exc:
         _fail(exc)
     for line in report(episode, wall, canonical(backend)):
-        _out.print(line, highlight=False)
+        _out.print(line, highlight=False, soft_wrap=True)
     sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
     line = timeline(trace, episode, out / "timeline.png")
     _out.print(f"pictures: {sheet or '(no camera frames)'}, {line}; replay it: retriever replay {log}",
-               highlight=False)
+               highlight=False, soft_wrap=True)
 
 
 _TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "

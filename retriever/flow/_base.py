@@ -35,7 +35,7 @@ In = TypeVar("In")
 Out = TypeVar("Out")
 
 ON_ERROR = ("stop", "skip_tick", "restart")
-ON_OVERRUN = ("skip", "error")
+ON_OVERRUN = ("skip", "error", "catch_up")
 ON_DEADLINE_MISS = ("publish_late", "drop", "error")
 #: on_error="restart": at most this many restarts of a flow within any RESTART_WINDOW_S seconds of
 #: run time; one more stops the run (systemd's StartLimitBurst and StartLimitIntervalSec defaults)
@@ -379,8 +379,9 @@ class Flow(Generic[In, Out]):
 
     def setup(self) -> None:
         """Acquire what is heavy or belongs to one process (weights, a GPU, a camera, a socket):
-        called once per run in the process that steps this flow, before its first tick. The
-        attributes it sets survive the default ``reset()``."""
+        called once per run in the process that steps this flow, before its first tick, on the
+        thread that then runs every ``step()`` (so a thread-bound handle, such as an OpenGL/EGL
+        context, may be made here). The attributes it sets survive the default ``reset()``."""
 
     def teardown(self) -> None:
         """Release what ``setup()`` acquired: called once, in the same process, when the flow's

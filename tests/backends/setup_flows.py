@@ -1,11 +1,12 @@
 """Flows for tests/backends/test_setup_teardown.py (module level: workers rebuild them from the IR).
 
-Each writes what happens to it, one line per event, ``PID EVENT NODE``, to a file named by its
-``journal`` argument: the test reads who called what, in which process."""
+Each writes what happens to it, one line per event, ``PID EVENT NODE THREAD``, to a file named by
+its ``journal`` argument: the test reads who called what, in which process and thread."""
 
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass
 
 from retriever import Flow, io
@@ -13,7 +14,7 @@ from retriever import Flow, io
 
 def note(journal: str, event: str, name: str) -> None:
     with open(journal, "a", encoding="ascii") as f:
-        f.write(f"{os.getpid()} {event} {name}\n")
+        f.write(f"{os.getpid()} {event} {name} {threading.get_ident()}\n")
 
 
 @io

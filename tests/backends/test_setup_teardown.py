@@ -35,12 +35,12 @@ def _run(pipe: Pipeline, backend: str, duration: float = 1.0, **kw):
     return trace
 
 
-def _journal(path) -> dict[str, dict[int, list[str]]]:
-    """node -> pid -> its events in order"""
+def _journal(path, threads: bool = False) -> dict[str, dict[int, list[str]]]:
+    """node -> pid -> its events in order (with ``threads``: (event, thread id) pairs)"""
     events: dict = defaultdict(lambda: defaultdict(list))
     for line in path.read_text().splitlines():
-        pid, event, node = line.split()
-        events[node][int(pid)].append(event)
+        pid, event, node, thread = line.split()
+        events[node][int(pid)].append((event, int(thread)) if threads else event)
     return events
 
 
@@ -63,6 +63,24 @@ def test_setup_runs_once_in_the_stepping_process_before_the_first_tick_and_teard
         others = [events for pid, events in by_pid.items() if pid != stepping[0]]
         assert all(set(events) == {"init"} for events in others), f"{node}: set up where it does not step"
         assert (stepping[0] == os.getpid()) == (backend == "inproc")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_flow_steps_on_the_thread_that_set_it_up(backend, tmp_path):
+    """What setup() makes may belong to its thread (an EGL context: a render from another thread
+    fails with EGL_BAD_ACCESS). On zenoh a short step of a node on no cycle used to run on the
+    Zenoh thread that received its input; a flow with a setup() never does."""
+    journal = tmp_path / "journal"
+    with Pipeline("threads") as pipe:
+        cam = Camera(str(journal)).configure(name="camera") @ Rate(hz=100)
+        pol = Policy(str(journal)).configure(name="policy") @ Trigger()
+        cam.then(pol, sync=Latest())
+    trace = _run(pipe, backend)
+    assert len(trace.steps_of("policy")) >= 90
+    for node, by_pid in _journal(journal, threads=True).items():
+        for pid, events in by_pid.items():
+            threads = {thread for event, thread in events if event != "init"}
+            assert len(threads) <= 1, f"{node} (pid {pid}) set up, stepped and tore down on {len(threads)} threads"
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -107,8 +107,10 @@ WARM_AFTER_IDLE_NS = 4_000_000
 #: with and without). Only steps known to be short run there (the node's last step took under
 #: INLINE_STEP_NS): meanwhile that link receives nothing more. And only on nodes on no cycle of
 #: the graph, so that a put blocked by a congested link can never wait, around a cycle, on a
-#: receiving thread that is itself blocked in a put. Either way the same ticks run with the same
-#: inputs: where a tick runs changes how soon, never what.
+#: receiving thread that is itself blocked in a put. Nor on nodes whose flow has a ``setup()``: what
+#: it acquired may belong to its thread (an EGL context, a CUDA stream), so such a flow steps, sets
+#: up and tears down on the main thread only. Either way the same ticks run with the same inputs:
+#: where a tick runs changes how soon, never what.
 INLINE_STEP_NS = 1_000_000
 
 #: virtual time: how long a loop at its grant, or with no tick known below it, waits before
@@ -172,7 +174,7 @@ class NodeLoop:
         self.on_error, self.on_overrun, self.on_deadline_miss = (
             settings.on_error, settings.on_overrun, settings.on_deadline_miss)
         if realtime == "best_effort":  # misses are counted and logged, never fatal
-            self.on_overrun = "skip"
+            self.on_overrun = "skip" if self.on_overrun == "error" else self.on_overrun
             self.on_deadline_miss = "publish_late" if self.on_deadline_miss == "error" else self.on_deadline_miss
         self.clock = node.clock
         self.flow = node.flow
@@ -629,7 +631,12 @@ class NodeLoop:
 
     def _overran(self, tau: tuple[int, int], wall: int, done: int) -> None:
         """After a Rate tick's step outlasted the period: skip the ticks that came due meanwhile
-        but the newest (on_overrun="skip"), or stop (on_overrun="error", realtime="hard")."""
+        but the newest (on_overrun="skip"), run every one of them, late, in order
+        (on_overrun="catch_up": none is lost, so a LET flow's trace stays the virtual-time one),
+        or stop (on_overrun="error", realtime="hard")."""
+        if self.on_overrun == "catch_up" and self.realtime != "hard":
+            self.counts["overrun"] += 1
+            return
         missed = self._skip_missed_ticks(done, "overrun", "overrun_skipped")
         if missed and (self.realtime == "hard" or self.on_overrun == "error"):
             raise StopRun(f"{self.id} overran its period: the step at t={tau[0] / 1e9:.6f} s took "

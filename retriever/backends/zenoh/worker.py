@@ -209,7 +209,9 @@ def build_loop(spec: dict, node_id: str, session):
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
-                    inline=not on_a_cycle(ir.edges, node_id),
+                    # a flow with a setup() may hold what belongs to one thread (an OpenGL/EGL or
+                    # CUDA context, a device handle): it steps on the thread that set it up
+                    inline=not on_a_cycle(ir.edges, node_id) and type(node.flow).setup is Flow.setup,
                     cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
                     max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")))
 

@@ -615,6 +615,24 @@ def test_overrun_skips_the_ticks_that_came_due_and_says_so():
     assert all(s.status == "overrun" and len(s.produced) == 1 for s in recs)
 
 
+def test_overrun_with_catch_up_runs_every_tick_late_in_order():
+    """on_overrun="catch_up" (a simulator's physics): the ticks that came due meanwhile all run,
+    late, in order; none is skipped, so a LET flow's trace is the virtual-time one."""
+    with Pipeline("overrun_catch_up") as pipe:
+        Sleepy(sleep=0.25).configure(name="slow", on_overrun="catch_up", latency=0.05) @ Rate(hz=10)
+    trace = run(pipe, 1.0)
+    check_trace_basics(pipe, trace)
+    recs = trace.steps_of("slow")
+    assert [tick_index(s.tag, 10) for s in recs] == list(range(10))
+    assert not any("overrun_skipped" in detail(s) for s in recs)
+    assert pipe.stats()["slow"].counts["overrun"] == 10
+    with Pipeline("overrun_catch_up") as virtual:
+        Sleepy(sleep=0.0).configure(name="slow", on_overrun="catch_up", latency=0.05) @ Rate(hz=10)
+    reference = virtual.run(duration=1.0, backend="inproc")
+    assert [e.value for e in trace.events_of("slow")] == [e.value for e in reference.events_of("slow")]
+    assert [e.tag for e in trace.events_of("slow")] == [e.tag for e in reference.events_of("slow")]
+
+
 def test_overrun_with_on_overrun_error_stops_the_run():
     with Pipeline("overrun_error") as pipe:
         Sleepy(sleep=0.25).configure(name="slow", on_overrun="error") @ Rate(hz=10)
