@@ -60,10 +60,15 @@ def _rates(trace, ir, duration: float) -> list[FlowRate]:
     by_node: dict[str, list] = {}
     for step in trace.steps:
         by_node.setdefault(step.node, []).append(step)
+    # real time: a tick never starts before T0 + its tag, so the smallest start − tag is T0 (to
+    # within the quickest tick's reaction): lateness is measured from there
+    offsets = [s.wall_start_ns - s.tag[0] for s in trace.steps if s.wall_start_ns]
+    t0 = min(offsets) if offsets and trace.steps[0].wall_start_ns > 1e17 else None
     rates = []
     for node, steps in sorted(by_node.items()):
         ran = [s for s in steps if s.status not in ("skipped",)]
-        late = [(s.wall_start_ns - s.tag[0]) / 1e6 for s in ran if s.wall_start_ns and s.tag[0] > 1e17]
-        rates.append(FlowRate(node, clocks.get(node), len(ran), len(ran) / duration if duration else 0.0,
+        late = [(s.wall_start_ns - s.tag[0] - t0) / 1e6 for s in ran if t0 is not None and s.wall_start_ns]
+        # ticks (a skipped one ticked too: its inputs had nothing yet) against the clock
+        rates.append(FlowRate(node, clocks.get(node), len(ran), len(steps) / duration if duration else 0.0,
                               float(np.percentile(late, 99)) if late else None))
     return rates

@@ -168,6 +168,8 @@ class ExecutionMonitor:
                 self.active.insert(0, self.interrupted)
                 self.interrupted = None
             decision = self._next(now)
+            if self.finished:
+                return decision
         reason = self._replan_reason(belief_changed)
         if reason is not None:
             self.request_id += 1

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 
 from retriever import ActionChunking, Latest, LatestDistinct, Pipeline, Queue, Rate, Trigger
 
+from .planner import make_planner
 from .flows import BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillPolicy, Teleop, World
 
 ABLATIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
@@ -47,6 +48,7 @@ class AgentConfig:
             raise ValueError(f"unknown ablation {self.ablation!r}: choose one of {', '.join(ABLATIONS)}")
         if self.drawer not in (None, "TL", "TR", "BL", "BR"):
             raise ValueError(f"unknown drawer {self.drawer!r}: choose TL, TR, BL or BR")
+        make_planner(self.planner)  # a planner it cannot make is refused before anything starts
         for name in ("planner_latency", "policy_latency"):
             if not 0 < getattr(self, name) <= 60:
                 raise ValueError(f"{name}={getattr(self, name)!r} must be in (0, 60] seconds")
@@ -117,3 +119,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
             monitor.then(teleop, sync=Latest(), map={"status": "status"})
             teleop.then(monitor, sync=Queue(maxsize=16), map={"teleop": "teleop"})
     return pipe
+
+
+#: the paper's episode (the spice in TR), for ``retriever run|deploy agents/retriever0.py:pipe``
+pipe = build(drawer="TR")

@@ -65,9 +65,34 @@ def _add_import_folders(ir: IR, path: Path) -> None:
             sys.path.append(folder)
 
 
+def _package_module(path: Path) -> tuple[str, str] | None:
+    """``(root folder, dotted name)`` when the file is a module of a package (its folder has an
+    ``__init__.py``): ``agents/retriever0.py`` is ``agents.retriever0``, relative imports and all."""
+    path = path.resolve()
+    parts = [path.stem]
+    folder = path.parent
+    while (folder / "__init__.py").is_file() and folder.parent != folder:
+        parts.insert(0, folder.name)
+        folder = folder.parent
+    if len(parts) == 1 or not all(part.isidentifier() for part in parts):
+        return None
+    return str(folder), ".".join(parts)
+
+
 def _import_file(path: Path):
     """Import a file as a module named after it, with its folder on sys.path, so the IR's
-    ``module:Class`` types stay importable for rebuilding and replay."""
+    ``module:Class`` types stay importable for rebuilding and replay; a module of a package is
+    imported by its dotted name, with the package's parent folder on sys.path."""
+    package = _package_module(path)
+    if package is not None:
+        root, dotted = package
+        if root not in sys.path:
+            sys.path.insert(0, root)
+        module = importlib.import_module(dotted)
+        if Path(getattr(module, "__file__", "") or "").resolve() != path.resolve():
+            raise LoadError(f"{path} is module {dotted}, but importing {dotted} gives {module.__file__}\n"
+                            f"    hint: another {dotted} comes first on sys.path; run from {root}")
+        return module
     folder = str(path.resolve().parent)
     if folder not in sys.path:
         sys.path.insert(0, folder)

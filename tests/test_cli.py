@@ -154,6 +154,25 @@ def test_run_file_colon_attr():
     assert "quickstart: 0.1 s on inproc" in result.stdout
 
 
+def test_run_a_module_of_a_package_by_its_file(tmp_path: Path):
+    """A file in a package (its folder has __init__.py) is imported by its dotted name, so its
+    relative imports work: retriever run app/agent.py runs app.agent."""
+    package = tmp_path / "app"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "flows.py").write_text(
+        "from retriever import Flow\n"
+        "class Count(Flow):\n"
+        "    def __init__(self):\n        self.n = 0\n"
+        "    def step(self):\n        self.n += 1\n        return {'n': self.n}\n")
+    (package / "agent.py").write_text(
+        "from retriever import Pipeline, Rate\nfrom .flows import Count\n"
+        "with Pipeline('packaged') as pipe:\n    Count().named('count') @ Rate(10)\n")
+    result = cli("run", str(package / "agent.py"), "--duration", "1", cwd=tmp_path.parent)
+    assert result.returncode == 0, result.stderr
+    assert "packaged: 1 s on inproc" in result.stdout
+
+
 def test_run_an_ir_file(tmp_path: Path):
     from tests import ir_flows
 

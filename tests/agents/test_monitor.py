@@ -153,8 +153,8 @@ def test_a_depleted_horizon_asks_for_more_once_and_a_plan_that_ends_never_does()
 
 def test_reaching_done_finishes_the_task():
     m = started(["OpenDrawer(TL-H) -> Done()"])
-    finish(m, 1, 3.0)
-    assert m.finished and m.current is None
+    assert finish(m, 1, 3.0).request is None                     # nothing left to ask for
+    assert m.finished and m.current is None and m.request_id == 1
     assert m.tick(5.0).command is None
 
 

@@ -1,0 +1,108 @@
+"""Retriever-0 end to end: whole episodes of the drawer task in the MuJoCo world, in virtual time
+(deterministic per seed, replayed from their logs) and in real time on zenoh (the same trace)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from agents.episode import summarize
+from agents.retriever0 import build
+from retriever import read_log
+from retriever.log import replay
+
+PAPER_TRACE = ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "CloseDrawer(TL-H)", "OpenDrawer(TR-H)", "InspectDrawer(TR)",
+               "Pick(spice)", "Season(food)", "CloseDrawer(TR-H)"]
+EPISODE_BOUND_S = 70.0  # simulated seconds an episode may take
+
+
+def test_an_episode_in_virtual_time_reaches_full_progress_with_the_papers_skill_trace(tmp_path):
+    pipe = build(seed=0, drawer="TR")
+    log = tmp_path / "run.mcap"
+    trace = pipe.run(duration=EPISODE_BOUND_S, backend="inproc", log=str(log))
+    episode = summarize(trace, pipe.build_ir())
+    assert episode.skills == PAPER_TRACE
+    assert episode.finished and episode.score == 1.0 and all(episode.milestones.values())
+    assert episode.duration < EPISODE_BOUND_S - 1  # it ended itself (sys.exit in the monitor), not the bound
+    # the same seed gives the same trace, digest and all
+    again = build(seed=0, drawer="TR").run(duration=EPISODE_BOUND_S, backend="inproc")
+    assert again.digest() == trace.digest()
+    # and its log replays bit for bit (the world's physics and the cameras' renders included)
+    assert replay(read_log(log)).identical
+
+
+@pytest.mark.parametrize("drawer", ["BL", "BR"])
+def test_the_agent_searches_every_drawer_until_it_finds_the_spice(drawer):
+    pipe = build(seed=3, drawer=drawer)
+    episode = summarize(pipe.run(duration=120.0, backend="inproc"), pipe.build_ir())
+    assert episode.finished and episode.score == 1.0, episode.skill_trace
+    inspected = [s for s in episode.skills if s.startswith("InspectDrawer")]
+    order = ["TL", "TR", "BL", "BR"]
+    assert inspected == [f"InspectDrawer({d})" for d in order[:order.index(drawer) + 1]]
+
+
+def test_on_zenoh_in_real_time_the_episode_is_the_virtual_time_one(tmp_path):
+    """Every flow declares its latency, catches up on overruns and waits for its inputs: a
+    real-time run that kept up is, tick for tick, the virtual-time run (up to its last tick)."""
+    log = tmp_path / "run.mcap"
+    pipe = build(seed=1, drawer="TL")
+    trace = pipe.run(duration=EPISODE_BOUND_S, backend="zenoh", log=str(log), quiet=True)
+    episode = summarize(trace, pipe.build_ir())
+    assert episode.finished and episode.score == 1.0, episode.skill_trace
+    assert episode.skills == ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "Pick(spice)", "Season(food)",
+                              "CloseDrawer(TL-H)"]
+    reference = build(seed=1, drawer="TL").run(duration=EPISODE_BOUND_S, backend="inproc")
+    # compared up to a second before either run ended, and before any edge that waited past its
+    # deadline (a very loaded machine: the run may diverge from there, as its log says)
+    end = min(max(s.tag for s in trace.steps_of("monitor")), max(s.tag for s in reference.steps_of("monitor")))
+    bound = (end[0] - 1_000_000_000, 0)
+    bound = min([bound] + [s.tag for s in trace.steps if (s.detail or {}).get("incomplete")])
+    ours = {(s.node, s.tag): s for s in trace.steps if s.tag < bound}
+    theirs = {(s.node, s.tag): s for s in reference.steps if s.tag < bound}
+    assert ours.keys() == theirs.keys()
+    assert [k for k in ours if ours[k] != theirs[k]] == []
+    assert bound[0] > 10e9, f"an edge waited past its deadline at {bound}: nothing much to compare"
+    assert replay(read_log(log)).identical
+
+
+def run_cli(*args, cwd, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "retriever", *args], capture_output=True, text=True, cwd=cwd,
+                          env=env, timeout=timeout)
+
+
+def test_retriever_demo_in_virtual_time_prints_the_episode_saves_pictures_and_a_log_that_replays(tmp_path):
+    done = run_cli("demo", "--backend", "inproc", "--drawer", "TL", "--seed", "2", "--out", "pictures", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "skill trace: OpenDrawer(TL-H) → InspectDrawer(TL) → Pick(spice) → Season(food) → CloseDrawer(TL-H)" \
+        in done.stdout, done.stdout
+    assert "task progress: 100%" in done.stdout and "rates: controller" in done.stdout
+    assert "[monitor]" not in done.stdout and "Pick(spice)" in done.stderr + done.stdout  # the live lines
+    for picture in ("contact_sheet.png", "timeline.png"):
+        assert (tmp_path / "pictures" / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    again = run_cli("replay", "run.mcap", cwd=tmp_path)
+    assert again.returncode == 0 and "identical" in again.stdout, again.stdout + again.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--drawer", "XX"], "unknown drawer 'XX'"),
+    (["--ablation", "no-brain"], "unknown ablation 'no-brain'"),
+    (["--planner", "gpt"], "unknown planner 'gpt'"),
+    (["--planner-latency", "0"], "planner_latency=0.0 must be in (0, 60]"),
+    (["--backend", "ros2"], "backend 'ros2'"),
+])
+def test_a_bad_demo_option_gets_a_clear_error_and_no_traceback(tmp_path, args, message):
+    done = run_cli("demo", *args, cwd=tmp_path)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert message in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "run.mcap").exists()
+
+
+def test_without_offscreen_rendering_the_demo_says_what_to_install(tmp_path):
+    import os
+    env = dict(os.environ, MUJOCO_GL="no-such-gl")
+    done = run_cli("demo", "--backend", "inproc", cwd=tmp_path, env=env)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "MuJoCo cannot render offscreen with MUJOCO_GL=no-such-gl" in done.stderr
+    assert "apt-get install libegl1" in done.stderr
