@@ -53,7 +53,8 @@ def report(episode: Episode, wall: float, backend: str) -> list[str]:
              f"task progress: {episode.score:.0%} ("
              + ", ".join(f"{k.replace('_', ' ')} {'✓' if v else '✗'}" for k, v in episode.milestones.items())
              + f"), best reached at t={episode.best_at:.1f} s",
-             f"{'finished' if episode.finished else 'not finished'} after {episode.duration:.1f} s of world time "
+             f"{'gave up (' + episode.gave_up + ')' if episode.gave_up else 'finished' if episode.finished else 'not finished'}"
+             f" after {episode.duration:.1f} s of world time "
              f"in {wall:.1f} s wall on {backend}; {episode.replans} replans, {episode.failures} failed skills"]
     rated = [r for r in episode.rates if r.hz]
     if rated:

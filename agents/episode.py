@@ -29,6 +29,7 @@ class Episode:
     replans: int
     failures: int
     duration: float                  # world seconds covered
+    gave_up: str = ""                # why the monitor gave the task up, if it did
     statuses: list = field(default_factory=list)   # (t, MonitorStatus) at every monitor tick
     rates: list[FlowRate] = field(default_factory=list)
 
@@ -41,13 +42,13 @@ def summarize(trace, ir=None) -> Episode:
     """The episode a trace shows (its monitor's statuses must be kept: ``keep="trace"``)."""
     statuses = [(e.value.t, e.value) for e in trace.events_of("monitor", "status") if e.value is not NOT_KEPT]
     if not statuses:
-        return Episode([], 0.0, 0.0, {}, False, 0, 0, 0.0, [], _rates(trace, ir, 0.0))
+        return Episode([], 0.0, 0.0, {}, False, 0, 0, 0.0, "", [], _rates(trace, ir, 0.0))
     last = statuses[-1][1]
     skills = list(last.executed) + ([last.skill] if last.skill else [])
     best_at = next((t for t, s in statuses if s.score >= last.score), 0.0) if last.score > 0 else 0.0
     duration = statuses[-1][0]
     return Episode(skills, last.score, best_at, dict(last.milestones), last.finished, last.replans, last.failures,
-                   duration, statuses, _rates(trace, ir, duration))
+                   duration, last.gave_up, statuses, _rates(trace, ir, duration))
 
 
 def _rates(trace, ir, duration: float) -> list[FlowRate]:

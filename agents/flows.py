@@ -212,7 +212,8 @@ class Monitor(Flow):
         out["status"] = MonitorStatus(t=now, skill=str(m.current) if m.current else "", skill_id=m.current_id,
                                       p=m.progress, score=m.score, milestones=dict(m.milestones),
                                       finished=m.finished, replans=m.replans, executed=[str(s) for s in m.executed],
-                                      waiting=m.waiting, failures=m.skill_failures, last_failed=m.last_failed)
+                                      waiting=m.waiting, failures=m.skill_failures, last_failed=m.last_failed,
+                                      gave_up=m.gave_up)
         self._say(out["status"])
         if m.finished and self.end_after is not None:
             self.finished_at = now if self.finished_at is None else self.finished_at

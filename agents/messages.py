@@ -151,3 +151,4 @@ class MonitorStatus:
     waiting: str = ""               # what the monitor waits for when idle ("plan", "belief", "")
     failures: int = 0               # skills that failed so far
     last_failed: str = ""           # the last one, "Pick(spice)"
+    gave_up: str = ""               # why the task was given up (a skill failed too often), if it was

@@ -18,6 +18,7 @@ clocks or transport, so every rule is tested by direct calls:
   plan, and when fewer than ``min_horizon`` skills are left of a plan with no branch ahead (a
   branch waits on an inspection, whose belief update asks anyway) that does not end the task.
 - **teleop**: an override skill preempts the running one, which resumes at the next safe point.
+- **giving up**: a skill that failed ``max_failures`` times ends the task where it is.
 - **task progress**: milestones (Appendix E-o) from belief and world facts; the score only rises.
 """
 
@@ -38,6 +39,7 @@ class MonitorConfig:
     timeout: float = 4.0            # seconds per skill under switching="timeout"
     min_horizon: int = 2            # fewer certain skills left than this: ask for more
     chunking: bool = True           # False (an ablation): ask only when idle, and wait for the answer
+    max_failures: int = 3           # a skill that failed this often: give the task up (no endless retries)
 
 
 @dataclass
@@ -84,6 +86,7 @@ class ExecutionMonitor:
     stale_plans: int = 0
     bad_plans: int = 0
     finished: bool = False
+    gave_up: str = ""                               # why the task was given up, when it was
     milestones: dict = field(default_factory=lambda: dict.fromkeys(DRAWER_MILESTONES, False))
     score: float = 0.0
     best_at: float = 0.0
@@ -222,6 +225,8 @@ class ExecutionMonitor:
     def _fail(self, now: float) -> None:
         self.failures.append(f"{self.current} failed at t={now:.2f}")
         self.skill_failures, self.last_failed = self.skill_failures + 1, str(self.current)
+        if sum(f.startswith(f"{self.current} failed") for f in self.failures) >= self.config.max_failures:
+            self.finished, self.gave_up = True, f"{self.current} failed {self.config.max_failures} times"
         self.current, self.above_since, self.progress = None, None, 0.0
         self.active, self.interrupted = [], None       # the plan assumed it would succeed
         self.must_replan = "failed"

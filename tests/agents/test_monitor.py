@@ -173,6 +173,16 @@ def test_a_failed_skill_drops_the_plan_and_asks_again():
     assert m.active == [] and m.current is None and m.skill_failures == 1 and m.last_failed == "OpenDrawer(TL-H)"
 
 
+def test_a_skill_that_keeps_failing_ends_the_task_where_it_is():
+    m = started(["Pick(spice) -> Season(food) -> Done()"], config=MonitorConfig(max_failures=2))
+    m.on_progress(1, 0.2, "failed", 2.5)
+    assert m.tick(2.5).request == "failed"
+    m.on_plan(2, ["Pick(spice) -> Season(food) -> Done()"])
+    assert str(m.tick(4.5).command) == "Pick(spice)"
+    m.on_progress(m.current_id, 0.1, "failed", 5.0)
+    assert m.tick(5.0).request is None and m.finished and m.gave_up == "Pick(spice) failed 2 times"
+
+
 def test_a_teleop_override_preempts_and_the_plan_resumes_after_it():
     m = started()
     run_table([
