@@ -111,7 +111,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m agents.ablations", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=20, help="episodes per condition (seeds 0..N-1)")
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--conditions", default=",".join(CONDITIONS), help="comma-separated, of: " + ", ".join(CONDITIONS))
+    parser.add_argument("--conditions", default=",".join(CONDITIONS),
+                        help="comma-separated, of: " + ", ".join(CONDITIONS))
     parser.add_argument("--slip-prob", type=float, default=0.3, help="probability that an episode's grasp slips")
     parser.add_argument("--jobs", type=int, default=2, help="episodes run at once (processes)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/ablations"))

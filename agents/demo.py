@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 from .episode import Episode, summarize
 
@@ -47,14 +46,19 @@ def run_episode(config, backend: str = "zenoh", duration: float = 120.0, log: st
     return trace, summarize(trace, pipe.build_ir()), wall
 
 
+def ending(episode: Episode) -> str:
+    if episode.gave_up:
+        return f"gave up ({episode.gave_up})"
+    return "finished" if episode.finished else "not finished"
+
+
 def report(episode: Episode, wall: float, backend: str) -> list[str]:
     """The lines ``retriever demo`` prints after an episode."""
     lines = [f"skill trace: {episode.skill_trace or '(none)'}",
              f"task progress: {episode.score:.0%} ("
              + ", ".join(f"{k.replace('_', ' ')} {'✓' if v else '✗'}" for k, v in episode.milestones.items())
              + f"), best reached at t={episode.best_at:.1f} s",
-             f"{'gave up (' + episode.gave_up + ')' if episode.gave_up else 'finished' if episode.finished else 'not finished'}"
-             f" after {episode.duration:.1f} s of world time "
+             f"{ending(episode)} after {episode.duration:.1f} s of world time "
              f"in {wall:.1f} s wall on {backend}; {episode.replans} replans, {episode.failures} failed skills"]
     rated = [r for r in episode.rates if r.hz]
     if rated:

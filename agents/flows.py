@@ -289,7 +289,7 @@ class Teleop(Flow):
     """Teleoperation (Appendix E-k, E-n): interventions from a schedule file (JSON: a list of
     ``{"t_start", "t_end", "mode": "skill_override", "payload": "Pick(spice)"}``), sent when the
     world reaches their start; with ``recover=True``, a scripted operator who takes over after a
-    failed skill by re-running it."""
+    failed skill: picks the spice up again when it dropped, else re-runs the skill."""
 
     def __init__(self, schedule: str | None = None, recover: bool = False):
         self.schedule_path, self.recover = schedule, recover
@@ -305,9 +305,10 @@ class Teleop(Flow):
             return {"teleop": TeleopEvent(t_start=item["t_start"], t_end=item.get("t_end", item["t_start"]),
                                           mode="skill_override", payload=item["payload"])}
         if self.recover and status is not None and status.failures > self.failures_seen and status.last_failed:
-            self.failures_seen = status.failures     # the operator re-runs what failed, by hand
-            return {"teleop": TeleopEvent(t_start=obs.t, t_end=obs.t, mode="skill_override",
-                                          payload=status.last_failed)}
+            self.failures_seen = status.failures     # the operator takes over at once, by hand:
+            dropped = status.last_failed in ("Pick(spice)", "Season(food)", "PlaceBack(spice)")
+            payload = "Pick(spice)" if dropped else status.last_failed   # picks it up again, or redoes it
+            return {"teleop": TeleopEvent(t_start=obs.t, t_end=obs.t, mode="skill_override", payload=payload)}
         return {}
 
 

@@ -117,7 +117,8 @@ SCENE OBJECTS:
 - food on a plate (surface)
 
 SKILLS (the only ones that exist):
-OpenDrawer(<handle>), InspectDrawer(<drawer>), CloseDrawer(<handle>), Pick(spice), Season(food), PlaceBack(spice), Done()
+OpenDrawer(<handle>), InspectDrawer(<drawer>), CloseDrawer(<handle>),
+Pick(spice), Season(food), PlaceBack(spice), Done()
 
 PREDICATES: at(spice, <drawer>) = yes|no|unknown
 

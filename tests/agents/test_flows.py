@@ -103,3 +103,19 @@ def test_a_bad_teleop_schedule_is_refused_naming_the_item(tmp_path, content, mes
     path.write_text(content)
     with pytest.raises(ValueError, match=message):
         load_schedule(str(path))
+
+
+@pytest.mark.parametrize("failed, override", [("Season(food)", "Pick(spice)"), ("Pick(spice)", "Pick(spice)"),
+                                              ("OpenDrawer(TR-H)", "OpenDrawer(TR-H)")])
+def test_the_scripted_operator_takes_over_after_a_failure(failed, override):
+    from agents.messages import MonitorStatus
+    teleop = Teleop(recover=True)
+    teleop.setup()
+
+    def status(failures):
+        return MonitorStatus(t=1.0, skill="", skill_id=3, p=0.0, score=0.5, milestones={}, finished=False,
+                             replans=1, executed=[], failures=failures, last_failed=failed if failures else "")
+    assert teleop.step(obs(1.0), status(0)) == {}
+    sent = teleop.step(obs(1.1), status(1))["teleop"]
+    assert (sent.payload, sent.mode) == (override, "skill_override")
+    assert teleop.step(obs(1.2), status(1)) == {}               # once per failure

@@ -49,8 +49,8 @@ def test_the_task_asks_for_a_plan_and_the_plan_starts_its_first_skill():
 
 def started(plan=SEARCH_TL, config=None):
     """A monitor running the plan's first skill (id 1) since t=2."""
-    return run_table([(0.0, {"task": "t"}, None, "task"), (2.0, {"plan": (1, plan)}, str(parse_program(plan)[0]), None)],
-                     config)
+    first = str(parse_program(plan)[0])
+    return run_table([(0.0, {"task": "t"}, None, "task"), (2.0, {"plan": (1, plan)}, first, None)], config)
 
 
 def test_progress_threshold_switching_needs_p_sustained_for_half_a_second():
