@@ -228,7 +228,8 @@ class ExecutionMonitor:
         if sum(f.startswith(f"{self.current} failed") for f in self.failures) >= self.config.max_failures:
             self.finished, self.gave_up = True, f"{self.current} failed {self.config.max_failures} times"
         self.current, self.above_since, self.progress = None, None, 0.0
-        self.active, self.interrupted = [], None       # the plan assumed it would succeed
+        # the plan, and a proposal not yet committed, assumed it would succeed: wait for a new one
+        self.active, self.pending, self.interrupted = [], None, None
         self.must_replan = "failed"
 
     def _replan_reason(self, belief_changed: bool) -> str | None:

@@ -173,6 +173,17 @@ def test_a_failed_skill_drops_the_plan_and_asks_again():
     assert m.active == [] and m.current is None and m.skill_failures == 1 and m.last_failed == "OpenDrawer(TL-H)"
 
 
+def test_a_failed_skill_drops_a_proposal_made_before_it_failed_too():
+    m = started()
+    run_table([
+        (2.5, {"belief": (1, {"at(spice, TL)": "no"})}, None, "belief_updated"),
+        (3.0, {"plan": (2, ["OpenDrawer(TL-H) -> Done()"])}, None, None),           # buffered
+        (3.5, {"progress": [(1, 0.3, "failed")]}, None, "failed"),                  # not retried from it
+        (4.0, {}, None, None),
+    ], monitor=m)
+    assert m.pending is None and m.waiting == "plan"
+
+
 def test_a_skill_that_keeps_failing_ends_the_task_where_it_is():
     m = started(["Pick(spice) -> Season(food) -> Done()"], config=MonitorConfig(max_failures=2))
     m.on_progress(1, 0.2, "failed", 2.5)
