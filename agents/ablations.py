@@ -1,6 +1,6 @@
 """The paper's Table II in simulation: Retriever-0 and its ablations over many seeds.
 
-    python -m agents.ablations --seeds 20 --slip-prob 0.3 --out benchmarks/ablations
+    python -m agents.ablations --seeds 20 --slip-prob 0.3 [--task drawers|bag]
 
 Each (condition, seed) is one episode in virtual time (deterministic: the same seed gives the same
 trace digest, recorded in the CSV), with failures injected: with probability ``--slip-prob``
@@ -13,7 +13,7 @@ trace digest, recorded in the CSV), with failures injected: with probability ``-
 - ``vla-only``: no planner and no belief, one fixed skill order.
 
 It writes ``ablations.csv`` (one row per episode), ``ablations.md`` (the table: time to best
-progress and task progress, mean ± std) and ``ablations.png``.
+progress and task progress, mean ± std) and ``ablations.png`` to ``benchmarks/ablations/<task>/``.
 """
 
 from __future__ import annotations
@@ -31,31 +31,32 @@ from .retriever0 import ABLATIONS
 CONDITIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
 assert set(CONDITIONS) == set(ABLATIONS)
 EPISODE_S = 150.0
-FIELDS = ("condition", "seed", "drawer", "score", "best_at", "finished", "gave_up", "failures", "replans",
+FIELDS = ("condition", "seed", "task", "drawer", "score", "best_at", "finished", "gave_up", "failures", "replans",
           "duration", "skills", "digest", "wall_s")
 
 
-def episode(condition: str, seed: int, slip_prob: float, duration: float = EPISODE_S) -> dict:
+def episode(condition: str, seed: int, slip_prob: float, duration: float = EPISODE_S, task: str = "drawers") -> dict:
     """One episode in virtual time; a row of the CSV."""
     from .episode import summarize
     from .retriever0 import build
     from .world import Layout
     started = time.perf_counter()
-    pipe = build(seed=seed, ablation=condition, slip_prob=slip_prob)
+    pipe = build(seed=seed, ablation=condition, slip_prob=slip_prob, task=task)
     trace = pipe.run(duration=duration, backend="inproc")
     ep = summarize(trace, pipe.build_ir())
-    return {"condition": condition, "seed": seed, "drawer": Layout.from_seed(seed).target_drawer,
+    return {"condition": condition, "seed": seed, "task": task,
+            "drawer": Layout.from_seed(seed).target_drawer if task == "drawers" else "",
             "score": ep.score, "best_at": round(ep.best_at, 3) if ep.score > 0 else "", "finished": ep.finished,
             "gave_up": ep.gave_up, "failures": ep.failures, "replans": ep.replans, "duration": round(ep.duration, 3),
             "skills": " > ".join(ep.skills), "digest": trace.digest()[:16],
             "wall_s": round(time.perf_counter() - started, 2)}
 
 
-def run_all(conditions, seeds, slip_prob: float, jobs: int, progress=None) -> list[dict]:
+def run_all(conditions, seeds, slip_prob: float, jobs: int, progress=None, task: str = "drawers") -> list[dict]:
     tasks = [(c, s) for c in conditions for s in seeds]
     rows = []
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(episode, c, s, slip_prob) for c, s in tasks]
+        futures = [pool.submit(episode, c, s, slip_prob, EPISODE_S, task) for c, s in tasks]
         for future in futures:
             rows.append(future.result())
             if progress is not None:
@@ -101,7 +102,8 @@ def plot(rows: list[dict], conditions, path: Path) -> None:
         ax.set_xticks(range(len(conditions)), conditions, rotation=20, fontsize=8)
         ax.set_ylabel(label)
     seeds = len({r["seed"] for r in rows})
-    fig.suptitle(f"Retriever-0 ablations in simulation ({seeds} seeds, mean ± std)", fontsize=10)
+    fig.suptitle(f"Retriever-0 ablations in simulation, {rows[0]['task']} task ({seeds} seeds, mean ± std)",
+                 fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -115,17 +117,19 @@ def main(argv=None) -> int:
                         help="comma-separated, of: " + ", ".join(CONDITIONS))
     parser.add_argument("--slip-prob", type=float, default=0.3, help="probability that an episode's grasp slips")
     parser.add_argument("--jobs", type=int, default=2, help="episodes run at once (processes)")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/ablations"))
+    parser.add_argument("--task", choices=("drawers", "bag"), default="drawers")
+    parser.add_argument("--out", type=Path, help="default: benchmarks/ablations/<task>")
     args = parser.parse_args(argv)
     conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]
     unknown = [c for c in conditions if c not in CONDITIONS]
     if unknown or args.seeds < 1 or not 0 <= args.slip_prob <= 1:
         parser.error(f"unknown condition(s) {unknown}" if unknown else "--seeds >= 1 and --slip-prob in [0, 1]")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
+    args.out = args.out or Path("benchmarks/ablations") / args.task
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    rows = run_all(conditions, seeds, args.slip_prob, args.jobs,
-                   progress=lambda r: print(f"{r['condition']:<18} seed {r['seed']:>3} ({r['drawer']}): "
+    rows = run_all(conditions, seeds, args.slip_prob, args.jobs, task=args.task,
+                   progress=lambda r: print(f"{r['condition']:<18} seed {r['seed']:>3} ({r['drawer'] or r['task']}): "
                                             f"{100 * r['score']:3.0f}% best at {r['best_at'] or '–'} s"
                                             f"{'  gave up: ' + r['gave_up'] if r['gave_up'] else ''}", flush=True))
     with open(args.out / "ablations.csv", "w", newline="") as f:
@@ -134,8 +138,9 @@ def main(argv=None) -> int:
         writer.writerows(rows)
     text = table(rows, conditions)
     (args.out / "ablations.md").write_text(
-        f"{text}\n\n{len(seeds)} seeds ({seeds.start}..{seeds.stop - 1}), slip probability {args.slip_prob}, "
-        f"virtual time; `python -m agents.ablations --seeds {args.seeds} --slip-prob {args.slip_prob}` "
+        f"{text}\n\n{args.task} task, {len(seeds)} seeds ({seeds.start}..{seeds.stop - 1}), slip probability "
+        f"{args.slip_prob}, virtual time; `python -m agents.ablations --task {args.task} --seeds {args.seeds} "
+        f"--slip-prob {args.slip_prob}` "
         f"({time.perf_counter() - started:.0f} s wall, {args.jobs} jobs)\n")
     plot(rows, conditions, args.out / "ablations.png")
     print(text)

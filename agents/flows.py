@@ -26,8 +26,12 @@ from .monitor import ExecutionMonitor, MonitorConfig
 ARRAY_FACTS = ("qpos", "qvel", "robot")
 
 
-def _sim(seed: int, drawer: str | None):
-    from .world import Layout, Sim  # mujoco loads in the flow's own process only
+def _sim(seed: int, drawer: str | None, task: str = "drawers"):
+    """The task's world for ``seed`` (MuJoCo loads in the flow's own process only)."""
+    if task == "bag":
+        from .bag_world import BagLayout, BagSim
+        return BagSim(BagLayout.from_seed(seed))
+    from .world import Layout, Sim
     return Sim(Layout.from_seed(seed, drawer))
 
 
@@ -48,12 +52,13 @@ class World(Flow):
     """The MuJoCo world: applies the controller's newest command and advances physics by one
     tick (``tick`` seconds); its observation is the state every other flow reads."""
 
-    def __init__(self, seed: int = 0, drawer: str | None = None, tick: float = 0.005, slip_prob: float = 0.0):
-        self.seed, self.drawer, self.tick, self.slip_prob = seed, drawer, tick, slip_prob
+    def __init__(self, seed: int = 0, drawer: str | None = None, tick: float = 0.005, slip_prob: float = 0.0,
+                 task: str = "drawers"):
+        self.seed, self.drawer, self.tick, self.slip_prob, self.task = seed, drawer, tick, slip_prob, task
         self.slip_at: float | None = None
 
     def setup(self):
-        self.sim = _sim(self.seed, self.drawer)
+        self.sim = _sim(self.seed, self.drawer, self.task)
 
     def teardown(self):
         self.sim.close()
@@ -63,7 +68,7 @@ class World(Flow):
         """A fresh episode: the same layout, physics back to its start."""
         if hasattr(self, "sim"):
             self.sim.close()
-            self.sim = _sim(self.seed, self.drawer)
+            self.sim = _sim(self.seed, self.drawer, self.task)
         self.slip_at = None
 
     def step(self, command: Command | None = None):
@@ -94,11 +99,12 @@ class Camera(Flow):
     """A camera: rebuilds the scene from the world's newest positions and renders it on the CPU."""
 
     def __init__(self, camera: str = "head", height: int = 96, width: int = 128, seed: int = 0,
-                 drawer: str | None = None):
+                 drawer: str | None = None, task: str = "drawers"):
         self.camera, self.height, self.width, self.seed, self.drawer = camera, height, width, seed, drawer
+        self.task = task
 
     def setup(self):
-        self.sim = _sim(self.seed, self.drawer)
+        self.sim = _sim(self.seed, self.drawer, self.task)
         self.sim.render(self.camera, self.height, self.width)     # the renderer's 0.2 s start-up, before T0
 
     def teardown(self):
@@ -112,25 +118,31 @@ class Camera(Flow):
 
 class BeliefUpdater(Flow):
     """Belief/memory (F2): on each ``inspection_done``, colour segmentation of the head camera's
-    newest frame (real pixels, standing in for the belief VLM) answers ``at(spice, drawer)``; a
-    three-valued merge keeps what is known (unknown never overwrites yes/no)."""
+    newest frame (real pixels, standing in for the belief VLM) answers ``at(spice, drawer)`` (or,
+    in the bag task, ``in(target, bag)``); a three-valued merge keeps what is known (unknown never
+    overwrites yes/no)."""
 
-    def __init__(self, seed: int = 0, drawer: str | None = None):
-        self.seed, self.drawer = seed, drawer
+    def __init__(self, seed: int = 0, drawer: str | None = None, task: str = "drawers"):
+        self.seed, self.drawer, self.task = seed, drawer, task
         self.version, self.predicates = 0, {}
 
     def setup(self):
-        from .perception import inspect
-        self.sim = _sim(self.seed, self.drawer)          # the camera's geometry, for projecting drawers
-        self.inspect = inspect
+        self.sim = _sim(self.seed, self.drawer, self.task)   # the camera's geometry, for projecting drawers
+        if self.task == "bag":
+            from .bag_perception import inspect_bag
+            self.look = lambda rgb, inspection, obs: ("in(target, bag)", inspect_bag(rgb, self.sim))
+        else:
+            from .perception import inspect
+            self.look = lambda rgb, inspection, obs: (
+                f"at(spice, {inspection.drawer})", inspect(rgb, inspection.drawer, obs.facts["drawers"], self.sim))
 
     def teardown(self):
         self.sim.close()
         del self.sim
 
     def step(self, inspection: InspectionDone, frame: Frame, obs: Observation):
-        verdict = self.inspect(frame.rgb, inspection.drawer, obs.facts["drawers"], self.sim)
-        new = {f"at(spice, {inspection.drawer})": verdict}
+        predicate, verdict = self.look(frame.rgb, inspection, obs)
+        new = {predicate: verdict}
         merged = merge_three_valued(self.predicates, new)
         if merged == self.predicates and self.version > 0:
             return {}
@@ -152,12 +164,12 @@ class PlannerFlow(Flow):
     """The planner (F3, a VLM stand-in by default): answers each plan request with a plan chunk.
     Its declared latency is the seconds it is given to think."""
 
-    def __init__(self, planner: str = "scripted"):
-        self.planner_spec = planner
+    def __init__(self, planner: str = "scripted", task: str = "drawers"):
+        self.planner_spec, self.task = planner, task
 
     def setup(self):
         from .planner import make_planner
-        self.planner = make_planner(self.planner_spec)
+        self.planner = make_planner(self.planner_spec, self.task)
 
     def step(self, request: PlanRequest, task: Task | None = None):
         from .planner import PlannerError
@@ -178,11 +190,11 @@ class Monitor(Flow):
 
     def __init__(self, threshold: float = 0.9, sustain: float = 0.5, switching: str = "progress",
                  timeout: float = 4.0, min_horizon: int = 2, chunking: bool = True,
-                 end_after: float | None = 1.0, verbose: bool = False):
+                 end_after: float | None = 1.0, verbose: bool = False, task: str = "drawers"):
         self.settings = dict(threshold=threshold, sustain=sustain, switching=switching, timeout=timeout,
                              min_horizon=min_horizon, chunking=chunking)
-        self.end_after, self.verbose = end_after, verbose
-        self.logic = ExecutionMonitor(MonitorConfig(**self.settings))
+        self.end_after, self.verbose, self.task = end_after, verbose, task
+        self.logic = ExecutionMonitor(MonitorConfig(**self.settings), task)
         self.finished_at: float | None = None
         self.said = ""
 
@@ -205,7 +217,8 @@ class Monitor(Flow):
             out["skill"] = self._command(decision)
         if decision.request is not None:
             predicates = dict(m.belief)
-            predicates["holding(spice)"] = "yes" if obs.facts.get("grasped") else "no"
+            held = "holding(target)" if self.task == "bag" else "holding(spice)"
+            predicates[held] = "yes" if obs.facts.get("grasped") else "no"
             out["request"] = PlanRequest(request_id=decision.request_id, reason=decision.request, t=now,
                                          belief=predicates, executed=[str(s) for s in m.executed],
                                          current=str(m.current) if m.current else "", failures=list(m.failures))
@@ -233,7 +246,8 @@ class Monitor(Flow):
         line = f"{status.skill or '(' + (status.waiting or 'idle') + ')'} score {status.score:.0%}"
         if line != self.said:
             self.said = line
-            known = " ".join(f"{k[10:-1]}:{v}" for k, v in sorted(self.logic.belief.items()) if k.startswith("at("))
+            known = " ".join(f"{k[k.index(',') + 2:-1]}:{v}" for k, v in sorted(self.logic.belief.items())
+                             if k.startswith(("at(", "in(")))
             print(f"t={status.t:6.2f}s  {line:<34} belief {known or '-'}", flush=True)
 
 
@@ -242,12 +256,16 @@ class SkillPolicy(Flow):
     state-feedback controller and emits an action chunk, its progress, and ``inspection_done``
     when an inspection has looked."""
 
-    def __init__(self, horizon: float = 0.75, control_hz: float = 200.0):
-        self.horizon, self.control_hz = horizon, control_hz
+    def __init__(self, horizon: float = 0.75, control_hz: float = 200.0, task: str = "drawers"):
+        self.horizon, self.control_hz, self.task = horizon, control_hz, task
         self.running_id, self.controller, self.inspected = 0, None, False
 
     def setup(self):
-        from .skills import make_skill  # its import (MuJoCo's constants) before the first tick, not in it
+        # the skills' import (MuJoCo's constants) before the first tick, not in it
+        if self.task == "bag":
+            from .bag_skills import make_bag_skill as make_skill
+        else:
+            from .skills import make_skill
         self.make_skill = make_skill
 
     def step(self, skill: SkillCmd, obs: Observation, frame: Frame | None = None):
@@ -258,7 +276,7 @@ class SkillPolicy(Flow):
         out = self.controller.act(facts, round(self.horizon * self.control_hz), self.control_hz)
         result = {"chunk": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(out.actions, dtype=np.float64)),
                   "progress": Progress(skill_id=skill.skill_id, t=obs.t, p=float(out.progress), status=out.status)}
-        if skill.name == "InspectDrawer" and out.status == "done" and not self.inspected:
+        if skill.name in ("InspectDrawer", "InspectBag") and out.status == "done" and not self.inspected:
             self.inspected = True
             result["inspection"] = InspectionDone(skill_id=skill.skill_id, t=obs.t, drawer=skill.arg)
         return result
@@ -291,12 +309,12 @@ class Teleop(Flow):
     world reaches their start; with ``recover=True``, a scripted operator who takes over after a
     failed skill: picks the spice up again when it dropped, else re-runs the skill."""
 
-    def __init__(self, schedule: str | None = None, recover: bool = False):
-        self.schedule_path, self.recover = schedule, recover
+    def __init__(self, schedule: str | None = None, recover: bool = False, task: str = "drawers"):
+        self.schedule_path, self.recover, self.task = schedule, recover, task
         self.sent, self.failures_seen = 0, 0
 
     def setup(self):
-        self.schedule = load_schedule(self.schedule_path) if self.schedule_path else []
+        self.schedule = load_schedule(self.schedule_path, self.task) if self.schedule_path else []
 
     def step(self, obs: Observation, status: MonitorStatus | None = None):
         if self.sent < len(self.schedule) and self.schedule[self.sent]["t_start"] <= obs.t:
@@ -306,13 +324,14 @@ class Teleop(Flow):
                                           mode="skill_override", payload=item["payload"])}
         if self.recover and status is not None and status.failures > self.failures_seen and status.last_failed:
             self.failures_seen = status.failures     # the operator takes over at once, by hand:
-            dropped = status.last_failed in ("Pick(spice)", "Season(food)", "PlaceBack(spice)")
-            payload = "Pick(spice)" if dropped else status.last_failed   # picks it up again, or redoes it
+            pick = "Pick(target)" if self.task == "bag" else "Pick(spice)"
+            dropped = status.last_failed in (pick, "Season(food)", "PlaceBack(spice)", "Extract(target)")
+            payload = pick if dropped else status.last_failed   # picks it up again, or redoes it
             return {"teleop": TeleopEvent(t_start=obs.t, t_end=obs.t, mode="skill_override", payload=payload)}
         return {}
 
 
-def load_schedule(path: str) -> list[dict]:
+def load_schedule(path: str, task: str = "drawers") -> list[dict]:
     """A teleop schedule, checked: a list of interventions sorted by start time."""
     from .plan import PlanError, parse_skill
     try:
@@ -327,7 +346,7 @@ def load_schedule(path: str) -> list[dict]:
                 raise ValueError("needs a number t_start")
             if item.get("mode", "skill_override") != "skill_override":
                 raise ValueError("mode must be 'skill_override'")
-            parse_skill(item["payload"])
+            parse_skill(item["payload"], task)
         except (ValueError, KeyError, PlanError) as e:
             raise ValueError(f"teleop schedule {path}, item {i}: {e}") from None
     return sorted(items, key=lambda item: item["t_start"])

@@ -28,7 +28,11 @@ from dataclasses import dataclass, field
 
 from .plan import Branch, PlanError, Skill, parse_program, parse_skill, remaining_skills, splice
 
-DRAWER_MILESTONES = ("inspected_target", "grasped", "seasoned", "drawers_closed")
+# Appendix E-o: each task's milestones, in the order they count
+MILESTONES = {
+    "drawers": ("inspected_target", "grasped", "seasoned", "drawers_closed"),
+    "bag": ("bag_opened", "target_localized", "grasped", "extracted"),
+}
 
 
 @dataclass
@@ -55,6 +59,7 @@ class Decision:
 @dataclass
 class ExecutionMonitor:
     config: MonitorConfig = field(default_factory=MonitorConfig)
+    task_kind: str = "drawers"                      # which vocabulary and milestones: "drawers" | "bag"
     # the plan
     active: list = field(default_factory=list)      # nodes after the running skill
     pending: list | None = None                     # a committed-at-next-safe-point proposal
@@ -87,10 +92,15 @@ class ExecutionMonitor:
     bad_plans: int = 0
     finished: bool = False
     gave_up: str = ""                               # why the task was given up, when it was
-    milestones: dict = field(default_factory=lambda: dict.fromkeys(DRAWER_MILESTONES, False))
+    milestones: dict = field(default_factory=dict)
     score: float = 0.0
     best_at: float = 0.0
     waiting: str = ""
+
+    def __post_init__(self) -> None:
+        if self.task_kind not in MILESTONES:
+            raise ValueError(f"unknown task {self.task_kind!r}: the tasks are {', '.join(MILESTONES)}")
+        self.milestones = dict.fromkeys(MILESTONES[self.task_kind], False)
 
     # -- inputs ---------------------------------------------------------------------------
     def on_task(self, text: str) -> None:
@@ -111,7 +121,7 @@ class ExecutionMonitor:
             return "stale"
         self.answered_id = request_id
         try:
-            nodes = parse_program(program)
+            nodes = parse_program(program, self.task_kind)
         except PlanError as e:
             self.bad_plans += 1
             self.failures.append(f"plan {request_id}: {e}")
@@ -136,22 +146,32 @@ class ExecutionMonitor:
 
     def on_teleop(self, skill_text: str, now: float) -> Decision:
         """A teleop override: preempt the running skill (resumed at the next safe point)."""
-        skill = parse_skill(skill_text)
+        skill = parse_skill(skill_text, self.task_kind)
         if self.current is not None and self.current_source == "plan":
             self.interrupted = self.current
         return self._start(skill, now, source="teleop")
 
     def observe_world(self, facts: dict, now: float) -> None:
-        """Milestones the world shows (Appendix E-o); each counts once, and in task order."""
+        """Milestones the world and the belief show (Appendix E-o); each counts once, in task order."""
         m = self.milestones
-        if any(v == "yes" for k, v in self.belief.items() if k.startswith("at(")):
-            m["inspected_target"] = True
-        if facts.get("grasped"):
-            m["grasped"] = True
-        if facts.get("seasoned") and m["grasped"]:
-            m["seasoned"] = True
-        if facts.get("drawers_closed") and m["seasoned"]:
-            m["drawers_closed"] = True
+        if self.task_kind == "drawers":
+            if any(v == "yes" for k, v in self.belief.items() if k.startswith("at(")):
+                m["inspected_target"] = True
+            if facts.get("grasped"):
+                m["grasped"] = True
+            if facts.get("seasoned") and m["grasped"]:
+                m["seasoned"] = True
+            if facts.get("drawers_closed") and m["seasoned"]:
+                m["drawers_closed"] = True
+        else:
+            if facts.get("bag_opened"):
+                m["bag_opened"] = True
+            if self.belief.get("in(target, bag)") == "yes" and m["bag_opened"]:
+                m["target_localized"] = True
+            if facts.get("grasped"):
+                m["grasped"] = True
+            if facts.get("extracted") and m["grasped"]:
+                m["extracted"] = True
         score = sum(m.values()) / len(m)
         if score > self.score:
             self.score, self.best_at = score, now

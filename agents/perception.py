@@ -33,8 +33,8 @@ OPEN_TO_SEE = 0.15
 SEEN_HEIGHT = 1.3 * BOTTLE_HALF_HEIGHT      # above the floor: the middle of what the camera sees of a bottle
 
 
-def bottle_mask(rgb: np.ndarray) -> np.ndarray:
-    """Pixels of the bottle's orange (bool H×W) from an RGB uint8 image."""
+def hsv(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hue (degrees), saturation and value (0..1) of each pixel of an RGB uint8 image (float32 H×W each)."""
     x = np.asarray(rgb, dtype=np.float32) / 255.0
     r, g, b = x[..., 0], x[..., 1], x[..., 2]
     top = np.maximum(np.maximum(r, g), b)
@@ -43,8 +43,15 @@ def bottle_mask(rgb: np.ndarray) -> np.ndarray:
     safe = np.maximum(span, 1e-6)
     hue = np.where(top == r, ((g - b) / safe) % 6.0,
                    np.where(top == g, (b - r) / safe + 2.0, (r - g) / safe + 4.0)) * 60.0
+    return hue, sat, top
+
+
+def bottle_mask(rgb: np.ndarray) -> np.ndarray:
+    """Pixels of the bottle's orange (bool H×W) from an RGB uint8 image (greys have no hue:
+    ``SAT_MIN`` keeps them out)."""
+    hue, sat, val = hsv(rgb)
     orange = (hue <= HUE_MAX) | (hue >= HUE_WRAP)
-    return orange & (sat >= SAT_MIN) & (top >= VAL_MIN) & (span > 0)
+    return orange & (sat >= SAT_MIN) & (val >= VAL_MIN)
 
 
 @dataclass(frozen=True)
@@ -67,6 +74,21 @@ class PinholeCamera:
         """The world direction of the ray through image point (column, row)."""
         d = np.array([(column - self.width / 2) / self.focal, -(row - self.height / 2) / self.focal, -1.0])
         return self.axes @ d
+
+    def point_at_height(self, column: float, row: float, z: float) -> np.ndarray | None:
+        """Where the ray through (column, row) comes down to height ``z`` (None if it does not go down)."""
+        d = self.ray(column, row)
+        if d[2] >= 0:
+            return None
+        return self.position + d * (z - self.position[2]) / d[2]
+
+    def box(self, points) -> tuple[int, int, int, int]:
+        """Image rows and columns (r0, r1, c0, c1; half-open, clipped to the image) covering the
+        projections of world ``points``."""
+        uv = self.project(points)
+        c0, r0 = np.floor(uv.min(axis=0)).astype(int)
+        c1, r1 = np.ceil(uv.max(axis=0)).astype(int)
+        return max(r0, 0), min(r1, self.height), max(c0, 0), min(c1, self.width)
 
 
 def head_camera(model_or_sim, height: int, width: int, name: str = "head") -> PinholeCamera:
@@ -106,20 +128,15 @@ def drawer_box(camera: PinholeCamera, drawer: str, opening: float) -> tuple[int,
     o = drawer_origin(drawer) - [0.0, opening, 0.0]
     corners = [o + [x, y, z] for x in (-INTERIOR_HALF_WIDTH, INTERIOR_HALF_WIDTH)
                for y in (INTERIOR_FRONT, INTERIOR_BACK) for z in (FLOOR_Z, FLOOR_Z + 2.4 * BOTTLE_HALF_HEIGHT)]
-    uv = camera.project(corners)
-    c0, r0 = np.floor(uv.min(axis=0)).astype(int)
-    c1, r1 = np.ceil(uv.max(axis=0)).astype(int)
-    return max(r0, 0), min(r1, camera.height), max(c0, 0), min(c1, camera.width)
+    return camera.box(corners)
 
 
 def stands_in(camera: PinholeCamera, drawer: str, opening: float, column: float, row: float) -> bool:
     """Whether the ray through (column, row) meets the drawer's inside at a bottle's mid height."""
     o = drawer_origin(drawer) - [0.0, opening, 0.0]
-    d = camera.ray(column, row)
-    z = o[2] + FLOOR_Z + SEEN_HEIGHT
-    if d[2] >= 0:
+    hit = camera.point_at_height(column, row, o[2] + FLOOR_Z + SEEN_HEIGHT)
+    if hit is None:
         return False
-    hit = camera.position + d * (z - camera.position[2]) / d[2]
     x, y = hit[0] - o[0], hit[1] - o[1]
     margin = 0.02
     return abs(x) < INTERIOR_HALF_WIDTH + margin and INTERIOR_FRONT - margin < y < INTERIOR_BACK + margin

@@ -6,8 +6,10 @@ A program is a list of lines in the paper's format::
     IF at(spice, TL) = yes THEN Pick(spice) -> Season(food) -> CloseDrawer(TL-H) -> Done() ELSE CloseDrawer(TL-H)
 
 A line is a chain of skills joined by ``->``, or one ``IF <predicate> = yes|no THEN <chain> [ELSE
-<chain>]``. Skills come from a closed vocabulary (a planner that names anything else is refused,
-as the paper's prompt rules demand); ``Done()`` ends the task. Parsing never evaluates anything:
+<chain>]``. Skills come from the task's closed vocabulary (a planner that names anything else is
+refused, as the paper's prompt rules demand); ``Done()`` ends the task. The bag task's programs
+read ``OpenBag(bag) -> InspectBag(bag)``, ``IF in(target, bag) = yes THEN Pick(target) ->
+Extract(target) -> Done() ELSE Done()``. Parsing never evaluates anything:
 a plan is text from a model, so it is data until checked.
 """
 
@@ -18,18 +20,32 @@ from dataclasses import dataclass
 
 DRAWERS = ("TL", "TR", "BL", "BR")
 HANDLES = tuple(f"{d}-H" for d in DRAWERS)
+TASKS = ("drawers", "bag")
 
-# the closed skill vocabulary: skill -> the arguments it accepts
-VOCABULARY: dict[str, tuple[str, ...]] = {
-    "OpenDrawer": HANDLES,
-    "InspectDrawer": DRAWERS,
-    "CloseDrawer": HANDLES,
-    "Pick": ("spice",),
-    "Season": ("food",),
-    "PlaceBack": ("spice",),
-    "Done": ("",),
+# each task's closed skill vocabulary (skill -> the arguments it accepts) and predicates
+# (name -> the values of its two arguments)
+VOCABULARIES: dict[str, dict[str, tuple[str, ...]]] = {
+    "drawers": {
+        "OpenDrawer": HANDLES,
+        "InspectDrawer": DRAWERS,
+        "CloseDrawer": HANDLES,
+        "Pick": ("spice",),
+        "Season": ("food",),
+        "PlaceBack": ("spice",),
+        "Done": ("",),
+    },
+    "bag": {
+        "OpenBag": ("bag",),
+        "InspectBag": ("bag",),
+        "Pick": ("target",),
+        "Extract": ("target",),
+        "Done": ("",),
+    },
 }
-PREDICATES = {"at": (("spice",), DRAWERS)}
+PREDICATES: dict[str, dict[str, tuple[tuple[str, ...], tuple[str, ...]]]] = {
+    "drawers": {"at": (("spice",), DRAWERS)},
+    "bag": {"in": (("target",), ("bag",))},
+}
 MAX_LINES = 32
 MAX_LINE = 400
 
@@ -69,55 +85,66 @@ def _chain(skills: tuple) -> str:
     return " -> ".join(str(s) for s in skills)
 
 
-def parse_skill(text: str) -> Skill:
-    """``"Pick(spice)"`` → ``Skill("Pick", "spice")``, from the vocabulary only."""
-    m = _SKILL.match(text)
+def _task(task: str) -> str:
+    if task not in TASKS:
+        raise PlanError(f"unknown task {task!r}: the tasks are {', '.join(TASKS)}")
+    return task
+
+
+def parse_skill(text: str, task: str = "drawers") -> Skill:
+    """``"Pick(spice)"`` → ``Skill("Pick", "spice")``, from the task's vocabulary only."""
+    vocabulary = VOCABULARIES[_task(task)]
+    m = _SKILL.match(text) if isinstance(text, str) else None
     if m is None:
-        raise PlanError(f"{text.strip()!r} is not a skill call such as OpenDrawer(TL-H)")
+        raise PlanError(f"{str(text).strip()!r} is not a skill call such as {next(iter(vocabulary))}("
+                        f"{next(iter(vocabulary.values()))[0]})")
     name, arg = m.groups()
-    if name not in VOCABULARY:
-        raise PlanError(f"unknown skill {name!r}; the vocabulary is {', '.join(VOCABULARY)}")
-    if arg not in VOCABULARY[name]:
-        allowed = ", ".join(repr(a) for a in VOCABULARY[name])
+    if name not in vocabulary:
+        raise PlanError(f"unknown skill {name!r}; the {task} vocabulary is {', '.join(vocabulary)}")
+    if arg not in vocabulary[name]:
+        allowed = ", ".join(repr(a) for a in vocabulary[name])
         raise PlanError(f"{name}({arg}): {name} takes one of {allowed}")
     return Skill(name, arg)
 
 
-def parse_predicate(text: str) -> str:
-    """``"at(spice, TL)"`` in its canonical spelling ``"at(spice, TL)"``."""
+def parse_predicate(text: str, task: str = "drawers") -> str:
+    """``"at(spice,TL)"`` in its canonical spelling ``"at(spice, TL)"``."""
+    predicates = PREDICATES[_task(task)]
     m = _PREDICATE.match(text)
-    if m is None or m.group(1) not in PREDICATES:
-        raise PlanError(f"{text.strip()!r} is not a predicate such as at(spice, TL)")
+    if m is None or m.group(1) not in predicates:
+        example = {"drawers": "at(spice, TL)", "bag": "in(target, bag)"}[task]
+        raise PlanError(f"{text.strip()!r} is not a predicate such as {example}")
     name, a, b = m.groups()
-    first, second = PREDICATES[name]
+    first, second = predicates[name]
     if a not in first or b not in second:
         raise PlanError(f"{name}({a}, {b}): {name} relates one of {first} to one of {second}")
     return f"{name}({a}, {b})"
 
 
-def parse_chain(text: str) -> tuple[Skill, ...]:
-    return tuple(parse_skill(part) for part in text.split("->"))
+def parse_chain(text: str, task: str = "drawers") -> tuple[Skill, ...]:
+    return tuple(parse_skill(part, task) for part in text.split("->"))
 
 
-def parse_line(line: str) -> list[Node]:
+def parse_line(line: str, task: str = "drawers") -> list[Node]:
     if not isinstance(line, str) or len(line) > MAX_LINE:
         raise PlanError(f"a plan line must be a string of at most {MAX_LINE} characters")
     m = _BRANCH.match(line)
     if m is not None:
         predicate, value, then, otherwise = m.groups()
-        return [Branch(parse_predicate(predicate), value, parse_chain(then),
-                       parse_chain(otherwise) if otherwise else ())]
-    return list(parse_chain(line))
+        return [Branch(parse_predicate(predicate, task), value, parse_chain(then, task),
+                       parse_chain(otherwise, task) if otherwise else ())]
+    return list(parse_chain(line, task))
 
 
-def parse_program(lines) -> list[Node]:
-    """The nodes of a plan chunk, or PlanError naming the line that is wrong."""
+def parse_program(lines, task: str = "drawers") -> list[Node]:
+    """The nodes of a plan chunk for ``task``, or PlanError naming the line that is wrong."""
+    _task(task)
     if not isinstance(lines, (list, tuple)) or not lines or len(lines) > MAX_LINES:
         raise PlanError(f"a plan is a list of 1 to {MAX_LINES} lines, got {type(lines).__name__}")
     nodes: list[Node] = []
     for i, line in enumerate(lines, 1):
         try:
-            nodes.extend(parse_line(line))
+            nodes.extend(parse_line(line, task))
         except PlanError as e:
             raise PlanError(f"plan line {i}: {e}") from None
     return nodes

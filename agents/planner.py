@@ -15,7 +15,7 @@ import urllib.error
 import urllib.request
 from typing import Protocol
 
-from .plan import DRAWERS, PlanError, parse_program
+from .plan import DRAWERS, Branch, PlanError, parse_program
 
 SEARCH_ORDER = DRAWERS
 
@@ -50,17 +50,35 @@ class ScriptedPlanner:
 
     name = "scripted"
 
-    def __init__(self, one_skill: bool = False):
-        self.one_skill = one_skill
+    def __init__(self, one_skill: bool = False, task_kind: str = "drawers"):
+        self.one_skill, self.task_kind = one_skill, task_kind
 
     def propose(self, task: str, belief: dict, context: dict) -> list[str]:
         executed = list(context.get("executed", []))
         if context.get("current"):
             executed.append(context["current"])           # it will have run when this plan applies
-        program = self._program(belief, executed)
+        if self.task_kind == "bag":
+            program = self._bag_program(belief, executed)
+        else:
+            program = self._program(belief, executed)
         if self.one_skill:
-            return [self._first(program, belief)]
+            return [self._first(program, belief, self.task_kind)]
         return program
+
+    @staticmethod
+    def _bag_program(belief: dict, executed: list[str]) -> list[str]:
+        """Open the bag, look in, and take the target out if it is there (the bag task)."""
+        seen = belief.get("in(target, bag)", "unknown")
+        if "Extract(target)" in executed:
+            return ["Done()"]
+        if seen == "no":
+            return ["Done()"]                             # not in the bag: nothing to take out
+        if seen == "yes":
+            held = belief.get("holding(target)") == "yes"
+            return [" -> ".join((["Extract(target)"] if held else ["Pick(target)", "Extract(target)"]) + ["Done()"])]
+        program = [] if "OpenBag(bag)" in executed else ["OpenBag(bag)"]
+        return [" -> ".join(program + ["InspectBag(bag)"]),
+                "IF in(target, bag) = yes THEN Pick(target) -> Extract(target) -> Done() ELSE Done()"]
 
     def _program(self, belief: dict, executed: list[str]) -> list[str]:
         found = next((d for d in DRAWERS if belief.get(f"at(spice, {d})") == "yes"), None)
@@ -96,11 +114,10 @@ class ScriptedPlanner:
         return [" -> ".join(program + ["Done()"])]
 
     @staticmethod
-    def _first(program: list[str], belief: dict) -> str:
+    def _first(program: list[str], belief: dict, task_kind: str = "drawers") -> str:
         """The first concrete skill of a program (the branch resolved by the belief, or its
         inspection not yet done)."""
-        from .plan import Branch  # noqa: PLC0415 (kept local: only the ablation needs it)
-        nodes = parse_program(program)
+        nodes = parse_program(program, task_kind)
         node = nodes[0]
         while isinstance(node, Branch):
             value = belief.get(node.predicate, "unknown")
@@ -109,7 +126,7 @@ class ScriptedPlanner:
         return str(node)
 
 
-SYSTEM_PROMPT = """You are a robot task planner.
+DRAWERS_PROMPT = """You are a robot task planner.
 
 SCENE OBJECTS:
 - spice (pickable; hidden in one of the drawers)
@@ -134,6 +151,29 @@ CRITICAL RULES:
 
 OUTPUT JSON: {"action_plan": ["...", "..."], "reasoning": "..."}"""
 
+BAG_PROMPT = """You are a robot task planner.
+
+SCENE OBJECTS:
+- target (pickable; maybe inside the bag), bag (a container whose mouth must be opened), a tray spot (surface)
+
+SKILLS (the only ones that exist):
+OpenBag(bag), InspectBag(bag), Pick(target), Extract(target), Done()
+
+PREDICATES: in(target, bag) = yes|no|unknown
+
+ACTION PLAN FORMAT, one string per line:
+1. Linear: Skill(arg) -> Skill(arg)
+2. Conditional: IF in(target, bag) = yes THEN <linear> ELSE <linear>
+
+CRITICAL RULES:
+1. Open the bag before looking in or picking.
+2. Complete the full task (open -> inspect -> pick -> extract -> Done()).
+3. If inspecting, you MUST handle both found/not-found cases.
+
+OUTPUT JSON: {"action_plan": ["...", "..."], "reasoning": "..."}"""
+
+SYSTEM_PROMPTS = {"drawers": DRAWERS_PROMPT, "bag": BAG_PROMPT}
+
 
 class OpenAICompatiblePlanner:
     """A real VLM/LLM planner over an OpenAI-compatible HTTP endpoint (``base_url`` ending in
@@ -142,16 +182,18 @@ class OpenAICompatiblePlanner:
 
     name = "openai-compatible"
 
-    def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout: float = 60.0):
+    def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout: float = 60.0,
+                 task_kind: str = "drawers"):
         if not base_url.startswith(("http://", "https://")):
             raise ValueError(f"planner base_url {base_url!r} must start with http:// or https://")
         self.base_url, self.model, self.api_key_env, self.timeout = base_url.rstrip("/"), model, api_key_env, timeout
+        self.task_kind = task_kind
 
     def propose(self, task: str, belief: dict, context: dict) -> list[str]:
         user = json.dumps({"task": task, "belief": belief, "executed": context.get("executed", []),
                            "current": context.get("current", ""), "failures": context.get("failures", [])})
         body = json.dumps({"model": self.model, "temperature": 0,
-                           "messages": [{"role": "system", "content": SYSTEM_PROMPT},
+                           "messages": [{"role": "system", "content": SYSTEM_PROMPTS[self.task_kind]},
                                         {"role": "user", "content": user}]}).encode()
         headers = {"Content-Type": "application/json"}
         key = os.environ.get(self.api_key_env)
@@ -164,10 +206,10 @@ class OpenAICompatiblePlanner:
             content = reply["choices"][0]["message"]["content"]
         except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError) as e:
             raise PlannerError(f"planner endpoint {self.base_url} gave no usable answer: {e}") from None
-        return parse_answer(content)
+        return parse_answer(content, self.task_kind)
 
 
-def parse_answer(content: str) -> list[str]:
+def parse_answer(content: str, task_kind: str = "drawers") -> list[str]:
     """The ``action_plan`` of a model's JSON answer (a fenced code block is accepted), checked."""
     if not isinstance(content, str):
         raise PlannerError("the model's answer is not text")
@@ -177,7 +219,7 @@ def parse_answer(content: str) -> list[str]:
         text = text[text.index("\n") + 1:] if "\n" in text else text
     try:
         plan = json.loads(text)["action_plan"]
-        parse_program(plan)
+        parse_program(plan, task_kind)
     except (ValueError, KeyError, TypeError) as e:
         raise PlannerError(f"the model's plan is not a program of the vocabulary: {e}") from None
     return list(plan)
@@ -187,24 +229,30 @@ class FixedOrderPlanner:
     """The VLA-only ablation: no planner, no belief; one fixed skill order, tried once."""
 
     name = "fixed-order"
-    ORDER = ["OpenDrawer(TL-H) -> Pick(spice) -> Season(food) -> CloseDrawer(TL-H) -> Done()"]
+    ORDERS = {"drawers": ["OpenDrawer(TL-H) -> Pick(spice) -> Season(food) -> CloseDrawer(TL-H) -> Done()"],
+              "bag": ["OpenBag(bag) -> Pick(target) -> Extract(target) -> Done()"]}
+
+    def __init__(self, task_kind: str = "drawers"):
+        self.order = self.ORDERS[task_kind]
 
     def propose(self, task: str, belief: dict, context: dict) -> list[str]:
-        return list(self.ORDER) if not context.get("executed") and not context.get("failures") else ["Done()"]
+        return list(self.order) if not context.get("executed") and not context.get("failures") else ["Done()"]
 
 
-def make_planner(spec: str | None) -> Planner:
+def make_planner(spec: str | None, task_kind: str = "drawers") -> Planner:
     """``None``/``"scripted"`` → the stand-in; ``"scripted-one-skill"`` → the ablation;
-    ``"openai:<base_url>#<model>"`` → an OpenAI-compatible endpoint."""
+    ``"openai:<base_url>#<model>"`` → an OpenAI-compatible endpoint; each for ``task_kind``."""
+    if task_kind not in ("drawers", "bag"):
+        raise ValueError(f"unknown task {task_kind!r}: choose drawers or bag")
     if spec in (None, "", "scripted"):
-        return ScriptedPlanner()
+        return ScriptedPlanner(task_kind=task_kind)
     if spec == "scripted-one-skill":
-        return ScriptedPlanner(one_skill=True)
+        return ScriptedPlanner(one_skill=True, task_kind=task_kind)
     if spec == "fixed-order":
-        return FixedOrderPlanner()
+        return FixedOrderPlanner(task_kind)
     if spec.startswith("openai:") and "#" in spec:
         url, model = spec[len("openai:"):].rsplit("#", 1)
-        return OpenAICompatiblePlanner(url, model)
+        return OpenAICompatiblePlanner(url, model, task_kind=task_kind)
     raise ValueError(f"unknown planner {spec!r}: use 'scripted', 'scripted-one-skill' or "
                      "'openai:<base_url>#<model>' (for example openai:http://localhost:8000/v1#qwen2.5-vl)")
 

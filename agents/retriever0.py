@@ -28,6 +28,7 @@ ABLATIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop
 class AgentConfig:
     """What an episode is: the world's seed and the agent's rates, latencies and ablation."""
     seed: int = 0
+    task: str = "drawers"            # "drawers" (seasoning with drawers) | "bag" (retrieving from a bag)
     drawer: str | None = None        # where the spice is; None: chosen by the seed
     ablation: str = "full"
     planner: str = "scripted"        # or "openai:<base_url>#<model>"
@@ -44,11 +45,15 @@ class AgentConfig:
     verbose: bool = False            # the monitor prints a line per skill change
 
     def check(self) -> None:
+        if self.task not in ("drawers", "bag"):
+            raise ValueError(f"unknown task {self.task!r}: choose drawers or bag")
+        if self.task == "bag" and self.drawer is not None:
+            raise ValueError("--drawer is for the drawers task; the bag task has one bag")
         if self.ablation not in ABLATIONS:
             raise ValueError(f"unknown ablation {self.ablation!r}: choose one of {', '.join(ABLATIONS)}")
         if self.drawer not in (None, "TL", "TR", "BL", "BR"):
             raise ValueError(f"unknown drawer {self.drawer!r}: choose TL, TR, BL or BR")
-        make_planner(self.planner)  # a planner it cannot make is refused before anything starts
+        make_planner(self.planner, self.task)  # a planner it cannot make is refused before anything starts
         for name in ("planner_latency", "policy_latency"):
             if not 0 < getattr(self, name) <= 60:
                 raise ValueError(f"{name}={getattr(self, name)!r} must be in (0, 60] seconds")
@@ -58,7 +63,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     """The Retriever-0 graph for one episode (``options`` override ``config``'s fields)."""
     config = AgentConfig(**{**(asdict(config) if config else {}), **options})
     config.check()
-    seed, drawer = config.seed, config.drawer
+    seed, drawer, task = config.seed, config.drawer, config.task
     control_period = 1.0 / config.control_hz
     monitor_options = {
         "full": {},
@@ -77,18 +82,19 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     # tick waits up to half a second for its inputs, so that a real-time run that keeps up is the
     # virtual-time run, tick for tick (a real robot would rather skip and not wait)
     catch_up = {"on_overrun": "catch_up"}
-    with Pipeline(f"retriever0-{config.ablation}", deadline=0.5) as pipe:
+    with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=0.5) as pipe:
         goal = Goal().named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
-        world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob) \
+        world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task) \
             .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
-        head = Camera("head", *config.head_size, seed=seed, drawer=drawer) \
+        head = Camera("head", *config.head_size, seed=seed, drawer=drawer, task=task) \
             .named("head_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
-        wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer) \
+        wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer, task=task) \
             .named("wrist_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
-        belief = BeliefUpdater(seed=seed, drawer=drawer).named("belief").configure(latency=0.1) @ Trigger("inspection")
-        monitor = Monitor(verbose=config.verbose, **monitor_options).named("monitor") \
+        belief = BeliefUpdater(seed=seed, drawer=drawer, task=task).named("belief").configure(latency=0.1) \
+            @ Trigger("inspection")
+        monitor = Monitor(verbose=config.verbose, task=task, **monitor_options).named("monitor") \
             .configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
-        skill = SkillPolicy(control_hz=config.control_hz).named("skill") \
+        skill = SkillPolicy(control_hz=config.control_hz, task=task).named("skill") \
             .configure(**catch_up, latency=config.policy_latency) @ Rate(config.policy_hz)
         ctrl = Controller(hz=config.control_hz).named("controller").configure(**catch_up, latency=control_period) \
             @ Rate(config.control_hz)
@@ -108,12 +114,13 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         monitor.then(skill, sync=Latest(), map={"skill": "skill"})
         goal.then(monitor, sync=Latest(), map={"task": "task"})
 
-        plan = PlannerFlow(planner=planner).named("planner").configure(latency=planner_latency) @ Trigger("request")
+        plan = PlannerFlow(planner=planner, task=task).named("planner").configure(latency=planner_latency) \
+            @ Trigger("request")
         goal.then(plan, sync=Latest(), map={"task": "task"})
         monitor.then(plan, sync=LatestDistinct(), map={"request": "request"})
         plan.then(monitor, sync=Queue(maxsize=16), map={"plan": "plan"})
         if config.teleop or config.ablation == "human-in-the-loop":
-            teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop") \
+            teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop", task=task) \
                 .named("teleop").configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
             world.then(teleop, sync=Latest(), map={"obs": "obs"})
             monitor.then(teleop, sync=Latest(), map={"status": "status"})

@@ -14,8 +14,11 @@ policy's latency is: a chunk computed from the observation at t starts applying 
 and so did the previous one, from its own t. Skills read ground truth from the observation
 (handle and bottle poses, which fingers touch what): they stand in for a learned policy.
 
-``run_skills`` emulates the agent's timing (policy rate, latency, a rate-limited 200 Hz
-controller) around a :class:`~agents.world.Sim`, for tests and benchmarks.
+The phase machine (:class:`Trajectory`, :class:`Phase`, :class:`Recipe`, :class:`SkillController`)
+serves any task: a task's :class:`SkillSet` names its recipes (``SKILL_SET`` here, for the
+drawers; :mod:`agents.bag_skills` for the bag). ``run_skills`` emulates the agent's timing
+(policy rate, latency, a rate-limited 200 Hz controller) around either world's sim, for tests
+and benchmarks.
 """
 
 from __future__ import annotations
@@ -26,16 +29,18 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .mjcf import TABLE_TOP
+from .robot import COMMAND_HIGH, COMMAND_LOW, MAX_SPEED, pivot_for, tcp_of
 from .world import (
-    BOTTLE_HALF_HEIGHT, CLOSED_OPENING, COMMAND_HIGH, COMMAND_LOW, DRAWERS, FLOOR_Z, HANDLE_STANDOFF, HANDLES,
-    INTERIOR_FRONT, MAX_SPEED, PLATE_POS, TABLE_TOP, drawer_above, drawer_origin, pivot_for, tcp_of,
+    BOTTLE_HALF_HEIGHT, CLOSED_OPENING, DRAWERS, FLOOR_Z, HANDLE_STANDOFF, HANDLES, INTERIOR_FRONT, PLATE_POS,
+    drawer_above, drawer_origin,
 )
 
-SKILLS = ("OpenDrawer", "InspectDrawer", "CloseDrawer", "Pick", "Season", "PlaceBack")
 SKILL_ARGS = {
     "OpenDrawer": HANDLES, "InspectDrawer": DRAWERS, "CloseDrawer": HANDLES,
     "Pick": ("spice",), "Season": ("food",), "PlaceBack": ("spice",),
 }
+SKILLS = tuple(SKILL_ARGS)
 
 # -- motion ------------------------------------------------------------------------------------
 # Cruise speeds of planned segments, kept below MAX_SPEED so the controller's rate limit never
@@ -68,6 +73,9 @@ AT_PITCH = 0.05         # rad
 GRIP_OPEN = 0.12        # measured grip below this: the fingers have let go
 SETTLED = 0.01          # m/s: the robot has stopped (for a picture)
 IN_HAND = 0.07          # m: farther than this from the TCP, the bottle is not in the hand (it is 1-3 cm when held)
+# m: a set-down bottle stands on its spot within this of it (under 2 mm off when the hand put it
+# there); farther, it slipped and fell there
+ON_SPOT = 0.02
 PATIENCE = 3.0          # s a phase may take beyond its planned duration before the skill fails
 POSE_SCALE = np.array([1.0, 1.0, 1.0, 0.1, 0.05])      # command-space distance: m, 10 cm/rad, 5 cm per full grip
 
@@ -317,18 +325,31 @@ class SkillOutput:
     reason: str = ""        # why it failed
 
 
+@dataclass(frozen=True)
+class SkillSet:
+    """A task's skills: the arguments each takes (in the order errors list them), its
+    :class:`Recipe`, and what errors call one of them."""
+    args: dict[str, tuple[str, ...]]
+    recipes: dict[str, type[Recipe]]
+    noun: str = "skill"
+
+    def recipe(self, name: str, arg: str) -> Recipe:
+        """Skill ``name``'s recipe for ``arg``; a ValueError lists the valid skills or arguments."""
+        if name not in self.args:
+            raise ValueError(f"unknown {self.noun} {name!r}: expected one of {', '.join(self.args)}")
+        if arg not in self.args[name]:
+            raise ValueError(f"{name}({arg!r}): unknown argument, expected one of {', '.join(self.args[name])}")
+        return self.recipes[name](arg)
+
+
 class SkillController:
     """One skill invocation, e.g. ``SkillController("OpenDrawer", "TR-H")``: call :meth:`act`
     with each new observation; after "done" or "failed" it keeps answering the same and holds
-    the robot still."""
+    the robot still. ``skills``: the task's skill set (the drawer skills' ``SKILL_SET`` unless given)."""
 
-    def __init__(self, name: str, arg: str):
-        if name not in SKILL_ARGS:
-            raise ValueError(f"unknown skill {name!r}: expected one of {', '.join(SKILLS)}")
-        if arg not in SKILL_ARGS[name]:
-            raise ValueError(f"{name}({arg!r}): unknown argument, expected one of {', '.join(SKILL_ARGS[name])}")
+    def __init__(self, name: str, arg: str, skills: SkillSet | None = None):
         self.name, self.arg = name, arg
-        self.recipe = RECIPES[name](arg)
+        self.recipe = (skills or SKILL_SET).recipe(name, arg)
         self.status, self.progress, self.reason = "running", 0.0, ""
         self.phases: list[Phase] | None = None
         self.index = 0
@@ -589,7 +610,9 @@ class _BottleRecipe(Recipe):
 
     def _set_down(self, name: str, weight: float, above_xy, support_z: float, route) -> list[Phase]:
         """Bring the held bottle above ``above_xy`` (``route(traj, obs, goal)``), lower it until it
-        stands on ``support_z``, open the hand and rise clear of it."""
+        stands there on ``support_z``, open the hand and rise clear of it. Standing at that height
+        is not enough: a bottle that slipped on the way may stand on something lower, such as the
+        table below a top drawer."""
         goal = {}
 
         def plan_lower(obs, ref):
@@ -599,7 +622,9 @@ class _BottleRecipe(Recipe):
             return route(Trajectory(ref), obs, high).line(low, FINE)
 
         def standing(obs):
-            return obs["bottle_pos"][2] - BOTTLE_HALF_HEIGHT < support_z + 0.006 and obs["bottle_upright"] > 0.95
+            on_spot = np.hypot(*np.subtract(obs["bottle_pos"][:2], above_xy)) < ON_SPOT
+            return (on_spot and obs["bottle_pos"][2] - BOTTLE_HALF_HEIGHT < support_z + 0.006
+                    and obs["bottle_upright"] > 0.95)
 
         def plan_let_go(obs, ref):
             tcp = tcp_of(ref)
@@ -692,10 +717,10 @@ class PlaceBack(_BottleRecipe):
         return None
 
 
-RECIPES: dict[str, type[Recipe]] = {
+SKILL_SET = SkillSet(SKILL_ARGS, {
     "OpenDrawer": OpenDrawer, "InspectDrawer": InspectDrawer, "CloseDrawer": CloseDrawer,
     "Pick": Pick, "Season": Season, "PlaceBack": PlaceBack,
-}
+})
 
 
 # -- the agent's timing, emulated ---------------------------------------------------------------
@@ -728,7 +753,8 @@ class _Player:
 
 def run_skills(sim, plan, policy_hz: float = 2.0, control_hz: float = 200.0, latency: float = 0.2,
                timeout: float = 20.0, chunk_seconds: float = 0.75, obs_delay: float = 0.0,
-               handoff: str = "done", stop_on_failure: bool = True, on_tick=None) -> list[SkillRun]:
+               handoff: str = "done", stop_on_failure: bool = True, on_tick=None,
+               make: Callable[[str, str], SkillController] = make_skill) -> list[SkillRun]:
     """Run ``plan`` (a list of ``(name, arg)``) on ``sim`` the way Retriever-0 does.
 
     Every 1/policy_hz s the running skill gets the observation taken ``obs_delay`` earlier and
@@ -737,6 +763,7 @@ def run_skills(sim, plan, policy_hz: float = 2.0, control_hz: float = 200.0, lat
     control period per row. A skill ends when it says done or failed (``handoff="progress"``:
     also once p ≥ 0.9 for 0.5 s, like the monitor), or after ``timeout`` s. ``on_tick(sim, i, t)``
     runs after every control tick of skill ``i``, ``t`` being ``sim.time`` (failure injection).
+    ``make(name, arg)`` makes each skill's controller: ``make_bag_skill`` runs the bag's skills.
     """
     period = round(control_hz / policy_hz)
     delay, lag, steps = round(obs_delay * control_hz), round(latency * control_hz), round(chunk_seconds * control_hz)
@@ -744,7 +771,7 @@ def run_skills(sim, plan, policy_hz: float = 2.0, control_hz: float = 200.0, lat
     player = _Player(np.asarray(sim.observe()["command"], dtype=np.float64), control_hz)
     results, tick, captured = [], 0, None
     for i, (name, arg) in enumerate(plan):
-        skill, begin, above_since, status = make_skill(name, arg), tick, None, None
+        skill, begin, above_since, status = make(name, arg), tick, None, None
         out, trace = None, []
         while status is None:
             if delay and (tick + delay) % period == 0:

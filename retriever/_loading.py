@@ -81,18 +81,9 @@ def _package_module(path: Path) -> tuple[str, str] | None:
 
 def _import_file(path: Path):
     """Import a file as a module named after it, with its folder on sys.path, so the IR's
-    ``module:Class`` types stay importable for rebuilding and replay; a module of a package is
-    imported by its dotted name, with the package's parent folder on sys.path."""
-    package = _package_module(path)
-    if package is not None:
-        root, dotted = package
-        if root not in sys.path:
-            sys.path.insert(0, root)
-        module = importlib.import_module(dotted)
-        if Path(getattr(module, "__file__", "") or "").resolve() != path.resolve():
-            raise LoadError(f"{path} is module {dotted}, but importing {dotted} gives {module.__file__}\n"
-                            f"    hint: another {dotted} comes first on sys.path; run from {root}")
-        return module
+    ``module:Class`` types stay importable for rebuilding and replay; a module of a package that
+    uses relative imports (which fail so) is imported by its dotted name instead, with the
+    package's parent folder on sys.path."""
     folder = str(path.resolve().parent)
     if folder not in sys.path:
         sys.path.insert(0, folder)
@@ -108,7 +99,23 @@ def _import_file(path: Path):
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)
+    except ImportError as exc:
+        sys.modules.pop(name, None)
+        package = _package_module(path)
+        if package is None or "relative import" not in str(exc):
+            raise
+        return _import_package_module(path, *package)
     except BaseException:
         sys.modules.pop(name, None)
         raise
+    return module
+
+
+def _import_package_module(path: Path, root: str, dotted: str):
+    if root not in sys.path:
+        sys.path.insert(0, root)
+    module = importlib.import_module(dotted)
+    if Path(getattr(module, "__file__", "") or "").resolve() != path.resolve():
+        raise LoadError(f"{path} is module {dotted}, but importing {dotted} gives {module.__file__}\n"
+                        f"    hint: another {dotted} comes first on sys.path; run from {root}")
     return module

@@ -193,7 +193,7 @@ def demo(
     log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
 ) -> None:
-    """Run Retriever-0 on the drawer task in a MuJoCo world: live skill, belief and progress lines,
+    """Run Retriever-0 on the drawer (or bag) task in a MuJoCo world: live skill, belief and progress lines,
     then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
     log that `retriever replay` re-executes."""
     try:
@@ -203,22 +203,21 @@ def demo(
     except ImportError as exc:
         _fail(RetrieverError(f"the Retriever-0 agent is not installed ({exc})\n    hint: install the project "
                              "itself, which includes it: pip install -e ."))
-    if task != "drawers":
-        _fail(RetrieverError(f"task {task!r}: only 'drawers' is built so far\n    hint: --task drawers"))
     if canonical(backend) not in ("zenoh", "inproc"):
         _fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
     try:
-        config = AgentConfig(seed=seed, drawer=drawer, ablation=ablation, planner=planner,
+        config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True)
         config.check()
         if teleop is not None:
             from agents.flows import load_schedule
-            load_schedule(str(teleop))
+            load_schedule(str(teleop), task)
         check_rendering()
         out.mkdir(parents=True, exist_ok=True)
-        _err.print(f"Retriever-0 on {canonical(backend)}: seed {seed}, spice in "
-                   f"{drawer or 'a drawer the seed chose'}; logging to {log}", highlight=False)
+        where = "the target in the bag" if task == "bag" else f"the spice in {drawer or 'a drawer the seed chose'}"
+        _err.print(f"Retriever-0 on {canonical(backend)}, {task} task: seed {seed}, {where}; logging to {log}",
+                   highlight=False)
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log))
     except (DemoError, ValueError) as exc:
         _fail(RetrieverError(str(exc)))

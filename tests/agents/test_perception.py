@@ -22,7 +22,7 @@ SCENES_PER_DRAWER = 16
 
 
 def _bottle_pixels(sim, seg) -> np.ndarray:
-    return np.isin(seg, sim._bottle_geoms)
+    return np.isin(seg, np.flatnonzero(sim.model.geom_bodyid == sim.model.body("spice").id))
 
 
 def _scene(sim, rng, show_home: bool = False) -> dict:

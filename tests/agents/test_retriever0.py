@@ -43,6 +43,16 @@ def test_the_agent_searches_every_drawer_until_it_finds_the_spice(drawer):
     assert inspected == [f"InspectDrawer({d})" for d in order[:order.index(drawer) + 1]]
 
 
+def test_the_bag_task_opens_the_bag_looks_in_and_takes_the_target_out():
+    pipe = build(task="bag", seed=0)
+    trace = pipe.run(duration=EPISODE_BOUND_S, backend="inproc")
+    episode = summarize(trace, pipe.build_ir())
+    assert episode.skills == ["OpenBag(bag)", "InspectBag(bag)", "Pick(target)", "Extract(target)"]
+    assert episode.finished and episode.score == 1.0 and list(episode.milestones) == [
+        "bag_opened", "target_localized", "grasped", "extracted"]
+    assert build(task="bag", seed=0).run(duration=EPISODE_BOUND_S, backend="inproc").digest() == trace.digest()
+
+
 def test_on_zenoh_in_real_time_the_episode_is_the_virtual_time_one(tmp_path):
     """Every flow declares its latency, catches up on overruns and waits for its inputs: a
     real-time run that kept up is, tick for tick, the virtual-time run (up to its last tick)."""
@@ -91,6 +101,8 @@ def test_retriever_demo_in_virtual_time_prints_the_episode_saves_pictures_and_a_
     (["--planner", "gpt"], "unknown planner 'gpt'"),
     (["--planner-latency", "0"], "planner_latency=0.0 must be in (0, 60]"),
     (["--backend", "ros2"], "backend 'ros2'"),
+    (["--task", "kitchen"], "unknown task 'kitchen'"),
+    (["--task", "bag", "--drawer", "TL"], "--drawer is for the drawers task"),
 ])
 def test_a_bad_demo_option_gets_a_clear_error_and_no_traceback(tmp_path, args, message):
     done = run_cli("demo", *args, cwd=tmp_path)

@@ -6,8 +6,9 @@ from itertools import pairwise
 import numpy as np
 import pytest
 
-from agents.skills import SKILLS, make_skill, paper_trace, run_skills
-from agents.world import DRAWERS, HOME, NU, Layout, Sim
+from agents.mjcf import TABLE_TOP
+from agents.skills import SET_DOWN, SKILLS, Z_SAFE, make_skill, paper_trace, run_skills
+from agents.world import BOTTLE_HALF_HEIGHT, DRAWERS, HOME, NU, Layout, Sim
 
 TR_SEEDS = range(12)
 EPISODE_LIMIT = 60.0        # simulated seconds for the whole trace
@@ -163,3 +164,38 @@ def test_place_back_returns_the_spice_to_its_drawer_from_the_hand_or_the_table()
         assert [r.status for r in runs] == ["done"] * 4
         obs = sim.observe()
         assert obs["bottle_location"] == "BL" and obs["drawers_closed"] and obs["seasoned"]
+
+
+def _spice_beside_the_plate(sim) -> None:
+    """The scene Season leaves: the bottle standing where it sets it down, its drawer open."""
+    sim.set_openings({sim.layout.target_drawer: 0.27})
+    adr = sim.model.jnt_qposadr[sim.model.joint("spice").id]
+    qpos = sim.data.qpos.copy()
+    qpos[adr:adr + 7] = [*SET_DOWN, TABLE_TOP + BOTTLE_HALF_HEIGHT + 0.0005, 1.0, 0.0, 0.0, 0.0]
+    sim.load_qpos(qpos)
+
+
+def test_a_bottle_that_slipped_onto_the_table_is_not_taken_for_set_down():
+    # PlaceBack lowers the bottle onto a drawer's floor, and the table is lower. A bottle that
+    # slips as the hand sets off lands standing on the table before the skill looks again; were
+    # standing low enough all it took, the skill would let go of nothing and reach p = 0.99 (a
+    # hand-off) before its post-condition failed.
+    slipped = {}
+
+    def slip_right_after_the_lift(sim, i, t):
+        # one tick after the policy call (every 100 ticks) that saw the bottle lifted
+        if slipped or round(t / 0.005) % 100 != 1:
+            return
+        obs = sim.observe()
+        if obs["grasped"] and obs["tcp"][2] > Z_SAFE - 0.015:
+            slipped["t"] = t
+            sim.slip()
+
+    with Sim(Layout.from_seed(0, "TR")) as sim:
+        _spice_beside_the_plate(sim)
+        runs = run_skills(sim, [("PlaceBack", "spice")], on_tick=slip_right_after_the_lift)
+        sim.advance(1.0)
+        obs = sim.observe()
+    assert slipped and obs["bottle_location"] == "table" and obs["bottle_upright"] > 0.95
+    assert runs[0].status == "failed" and "slipped" in runs[0].reason and runs[0].progress < 0.9
+    assert "let go" not in {phase for _, _, _, phase in runs[0].trace}
