@@ -342,10 +342,18 @@ def load_schedule(path: str, task: str = "drawers") -> list[dict]:
         raise ValueError(f"teleop schedule {path}: expected a JSON list of interventions")
     for i, item in enumerate(items):
         try:
-            if not isinstance(item, dict) or not isinstance(item.get("t_start"), (int, float)):
+            if not isinstance(item, dict):
+                raise ValueError(f"expected an object with t_start and payload, got {item!r}")
+            for key in ("t_start", "t_end"):
+                t = item.get(key, 0.0)
+                if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
+                    raise ValueError(f"{key} must be a number of seconds >= 0, got {t!r}")
+            if "t_start" not in item:
                 raise ValueError("needs a number t_start")
             if item.get("mode", "skill_override") != "skill_override":
                 raise ValueError("mode must be 'skill_override'")
+            if not isinstance(item.get("payload"), str):
+                raise ValueError(f"payload must be a skill such as \"Pick(spice)\", got {item.get('payload')!r}")
             parse_skill(item["payload"], task)
         except (ValueError, KeyError, PlanError) as e:
             raise ValueError(f"teleop schedule {path}, item {i}: {e}") from None

@@ -114,14 +114,17 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         monitor.then(skill, sync=Latest(), map={"skill": "skill"})
         goal.then(monitor, sync=Latest(), map={"task": "task"})
 
-        plan = PlannerFlow(planner=planner, task=task).named("planner").configure(latency=planner_latency) \
-            @ Trigger("request")
+        # a model behind an endpoint answers differently tomorrow: a replay takes its answers from the log
+        consults_the_world = planner.startswith("openai:")
+        plan = PlannerFlow(planner=planner, task=task).named("planner") \
+            .configure(latency=planner_latency, replay="log" if consults_the_world else "rerun") @ Trigger("request")
         goal.then(plan, sync=Latest(), map={"task": "task"})
         monitor.then(plan, sync=LatestDistinct(), map={"request": "request"})
         plan.then(monitor, sync=Queue(maxsize=16), map={"plan": "plan"})
         if config.teleop or config.ablation == "human-in-the-loop":
             teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop", task=task) \
-                .named("teleop").configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
+                .named("teleop").configure(**catch_up, latency=0.01, replay="log" if config.teleop else "rerun") \
+                @ Rate(config.monitor_hz)
             world.then(teleop, sync=Latest(), map={"obs": "obs"})
             monitor.then(teleop, sync=Latest(), map={"status": "status"})
             teleop.then(monitor, sync=Queue(maxsize=16), map={"teleop": "teleop"})

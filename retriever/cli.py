@@ -553,8 +553,8 @@ def replay(
     for col in ("node", "steps", "replayed", "identical", "divergent"):
         table.add_column(col, justify="left" if col == "node" else "right")
     for node, n in result.nodes.items():
-        if n.replayed == 0 and n.steps:
-            table.add_row(_cell(node), str(n.steps), "source", "", "")
+        if n.from_log:
+            table.add_row(_cell(node), str(n.steps), "from the log", "", "")
         else:
             table.add_row(_cell(node), str(n.steps), str(n.replayed), str(n.identical),
                           Text(str(n.divergent), style="bold red") if n.divergent else "0")

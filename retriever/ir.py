@@ -22,7 +22,7 @@ from .clocks import clock_from_ir
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
 from .time import max_microsteps_problem, seconds_problem
-from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN
+from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
 from .sync import policy_from_ir
 
 if TYPE_CHECKING:
@@ -101,6 +101,7 @@ def graph_to_doc(graph: "Graph") -> dict:
                 # the restart budget, where it applies
                 **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
                    if s.on_error == "restart" else {}),
+                **({"replay": s.replay} if s.replay != "rerun" else {}),
             },
             "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
             "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
@@ -384,7 +385,7 @@ def validate_doc(doc: Any, source: str) -> None:
                 problems.append(f"{where}.config.clock: {e}".split("\n")[0])
             _check_seconds(problems, f"{where}.config.latency", "latency", config.get("latency", 0))
             for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
-                                 ("on_deadline_miss", ON_DEADLINE_MISS)):
+                                 ("on_deadline_miss", ON_DEADLINE_MISS), ("replay", REPLAY)):
                 if key in config and config[key] not in allowed:
                     problems.append(f"{where}.config.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
             restarts = config.get("max_restarts", 0)

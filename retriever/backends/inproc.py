@@ -258,14 +258,17 @@ class InprocSession(Session):
     # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
     # (pipe.reset(), another backend, the program's exit): a run in virtual time may go on
     # ---------------------------------------------------------------------------------------
-    def set_up(self) -> None:
+    def set_up(self, skip: frozenset[str] = frozenset()) -> None:
         """Call each flow's ``setup()`` once, in node order (a failure: SetupError, and the
-        flows already set up are torn down)."""
+        flows already set up are torn down), but for the nodes in ``skip``, which will not step
+        (a replay's sources and flows replayed from the log)."""
         if self._set_up:
             return
         self._set_up = True
         _OPEN.add(self)
         for rt in self._nodes:
+            if rt.id in skip:
+                continue
             try:
                 set_up(rt.flow)
             except Exception as exc:

@@ -37,6 +37,9 @@ Out = TypeVar("Out")
 ON_ERROR = ("stop", "skip_tick", "restart")
 ON_OVERRUN = ("skip", "error", "catch_up")
 ON_DEADLINE_MISS = ("publish_late", "drop", "error")
+#: what ``retriever replay`` does with a flow: run its step again and compare (``"rerun"``), or take
+#: its outputs from the log (``"log"``: a step that consults the world outside the program)
+REPLAY = ("rerun", "log")
 #: on_error="restart": at most this many restarts of a flow within any RESTART_WINDOW_S seconds of
 #: run time; one more stops the run (systemd's StartLimitBurst and StartLimitIntervalSec defaults)
 MAX_RESTARTS = 5
@@ -321,6 +324,7 @@ class FlowSettings:
     on_error: str = "stop"
     on_overrun: str = "skip"
     on_deadline_miss: str = "publish_late"
+    replay: str = "rerun"
     #: the pipeline the flow belongs to (a weak reference: a flow does not keep a pipeline alive)
     pipeline: Callable[[], Any] | None = field(default=None, repr=False, compare=False)
     max_restarts: int = MAX_RESTARTS
@@ -423,10 +427,16 @@ class Flow(Generic[In, Out]):
     def configure(self, *, name: str | None = None, latency: float | None = None,
                   on_error: str | None = None, on_overrun: str | None = None,
                   on_deadline_miss: str | None = None, max_restarts: int | None = None,
-                  restart_window: float | None = None):
+                  restart_window: float | None = None, replay: str | None = None):
         """Set this flow's node id, logical execution time (seconds) and failure policies;
         with ``on_error="restart"``, at most ``max_restarts`` restarts within any
         ``restart_window`` seconds of run time (more stop the run).
+
+        ``replay="log"`` is for a flow whose step consults the world outside the program (a
+        model behind a network endpoint, a human's input, a device): ``retriever replay`` then
+        takes its outputs from the log instead of calling it (nor its ``setup()``), as it does
+        for sources; its consumers are still re-executed and compared. The default, ``"rerun"``,
+        re-executes the step and compares its outputs byte for byte.
 
         Returns the flow, so it chains: ``Policy().configure(latency=0.3) @ Rate(hz=2)``.
         """
@@ -449,6 +459,8 @@ class Flow(Generic[In, Out]):
             s.on_overrun = _choice(owner, "on_overrun", on_overrun, ON_OVERRUN)
         if on_deadline_miss is not None:
             s.on_deadline_miss = _choice(owner, "on_deadline_miss", on_deadline_miss, ON_DEADLINE_MISS)
+        if replay is not None:
+            s.replay = _choice(owner, "replay", replay, REPLAY)
         if max_restarts is not None:
             if type(max_restarts) is not int or max_restarts < 0:
                 raise ValueError(f"{owner}: max_restarts={max_restarts!r} must be an integer >= 0")

@@ -70,6 +70,7 @@ class NodeReplay:
     divergent: int = 0
     cut: int = 0  # re-executed, not compared: a log cut short lost their outputs (recovered, salvaged)
     lost: int = 0  # re-executed, not compared: their outputs died unpublished with their process (a fault)
+    from_log: bool = False  # not re-executed: a source, or a flow configured with replay="log"
 
 
 @dataclass
@@ -118,11 +119,18 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
     session = InprocSession(graph)
-    session.set_up()
+    session.set_up(skip=from_the_log(graph))
     try:
         return _replay(log, graph, session, progress)
     finally:
         session.close()
+
+
+def from_the_log(graph) -> frozenset[str]:
+    """The nodes a replay does not re-execute: their outputs come from the log. Sources, and
+    flows configured with ``replay="log"`` (their step consults the world outside the program)."""
+    return frozenset(nid for nid, node in graph.nodes.items()
+                     if not node.inputs or node.flow._retriever.replay == "log")
 
 
 def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int, int], None] | None) -> ReplayReport:
@@ -164,12 +172,12 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
     lost = {event_id for fault in log.faults for event_id in fault["lost_events"]} - logged.keys()
     floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
 
-    sources = {nid for nid, node in graph.nodes.items() if not node.inputs}
+    sources = from_the_log(graph)
     # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
     # is then checked for causality (after the tick), not recomputed.
     realtime = log.run.get("backend", "inproc") != "inproc"
     stamped = {nid for nid, node in graph.nodes.items() if realtime and not node.settings.latency_ns}
-    report = ReplayReport({nid: NodeReplay() for nid in sorted(graph.nodes)})
+    report = ReplayReport({nid: NodeReplay(from_log=nid in sources) for nid in sorted(graph.nodes)})
     # a log whose writer was killed, recovered or read with salvage=True, may keep a step record
     # (one chunk) and lose the events it consumed or produced (another): such a step cannot be compared
     cut_short = not log.complete or "retriever.recovered" in log.metadata
@@ -417,11 +425,11 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
 
     session = InprocSession(graph)
     values = {e.id: e.value for e in original.events}
-    for nid, node in graph.nodes.items():
-        if not node.inputs:
-            ticks = sorted((s for s in original.steps if s.node == nid), key=lambda s: s.tag)
-            session.replace_step(nid, iter([[(i[1], values[i]) for i in s.produced] for s in ticks]))
+    for nid in from_the_log(graph):
+        ticks = sorted((s for s in original.steps if s.node == nid and s.status != "skipped"), key=lambda s: s.tag)
+        session.replace_step(nid, iter([[(i[1], values[i]) for i in s.produced] for s in ticks]))
     try:
+        session.set_up(skip=from_the_log(graph))
         session.advance(horizon)
     except StepError as e:
         return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")

@@ -97,6 +97,12 @@ def test_teleop_sends_its_schedule_when_the_world_reaches_each_start(tmp_path):
     (json.dumps([{"payload": "Pick(spice)"}]), "item 0: needs a number t_start"),
     (json.dumps([{"t_start": 1, "payload": "os:system"}]), "item 0: .*is not a skill call"),
     (json.dumps([{"t_start": 1, "mode": "action_chunk", "payload": "Pick(spice)"}]), "mode must be"),
+    ('[{"t_start": NaN, "payload": "Pick(spice)"}]', "t_start must be a number of seconds >= 0, got nan"),
+    (json.dumps([{"t_start": -1, "payload": "Pick(spice)"}]), "t_start must be"),
+    (json.dumps([{"t_start": True, "payload": "Pick(spice)"}]), "t_start must be"),
+    (json.dumps([{"t_start": 1, "payload": ["Pick(spice)"]}]), "payload must be a skill"),
+    (json.dumps([{"t_start": 1, "payload": {"os": "system"}}]), "payload must be a skill"),
+    (json.dumps(["Pick(spice)"]), "expected an object"),
 ])
 def test_a_bad_teleop_schedule_is_refused_naming_the_item(tmp_path, content, message):
     path = tmp_path / "teleop.json"

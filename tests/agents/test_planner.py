@@ -153,3 +153,28 @@ def test_an_unreachable_endpoint_and_a_bad_planner_name_say_what_to_do():
         OpenAICompatiblePlanner("file:///etc/passwd", "m")
     with pytest.raises(PlannerError):
         parse_answer(None)
+
+
+def test_a_run_with_a_model_and_a_teleop_file_replays_without_either(model_server, tmp_path):
+    """The planner behind an endpoint and the teleop schedule consult the world outside the
+    program: their flows are replayed from the log (replay="log"), so the replay calls no
+    endpoint and reads no file, and re-executes every other flow against what they said."""
+    from agents.retriever0 import build
+    from retriever import read_log
+    from retriever.log import replay
+
+    model_server.reply = json.dumps({"action_plan": ["OpenDrawer(TL-H) -> InspectDrawer(TL) -> CloseDrawer(TL-H)"]})
+    schedule = tmp_path / "teleop.json"
+    schedule.write_text(json.dumps([{"t_start": 1.0, "payload": "OpenDrawer(TR-H)"}]))
+    pipe = build(seed=0, drawer="TR", planner=f"openai:http://127.0.0.1:{model_server.server_port}/v1#m",
+                 planner_latency=0.5, teleop=str(schedule))
+    log = tmp_path / "run.mcap"
+    trace = pipe.run(duration=8.0, backend="inproc", log=str(log))
+    asked = len(model_server.seen)
+    assert asked >= 1 and any(e.value.payload == "OpenDrawer(TR-H)" for e in trace.events_of("teleop", "teleop"))
+    schedule.unlink()
+    model_server.reply = "the endpoint answers something else today"
+    report = replay(read_log(log))
+    assert report.identical and len(model_server.seen) == asked
+    assert report.nodes["planner"].from_log and report.nodes["teleop"].from_log
+    assert report.nodes["monitor"].replayed > 0 and report.nodes["monitor"].divergent == 0

@@ -80,6 +80,20 @@ class Fragile(Flow[Reading, Reading]):
         return Reading(x=inp.x * 2)
 
 
+#: what Oracle's step reads: the world outside the program, which changes after the run
+OUTSIDE = {"answer": 1.0, "setups": 0}
+
+
+class Oracle(Flow[Reading, Reading]):
+    """Consults the world outside the program (as a model behind an endpoint would)."""
+
+    def setup(self):
+        OUTSIDE["setups"] += 1
+
+    def step(self, inp: Reading) -> Reading:
+        return Reading(x=inp.x * OUTSIDE["answer"])
+
+
 class Batcher(Flow):
     """Untyped, Queue-fed: commit state (what was consumed) must replay exactly."""
 
@@ -192,6 +206,45 @@ def test_nondeterministic_flow_is_caught_and_named(tmp_path, culprit):
     assert first.tag == (50_000_000, 0)
     assert first.logged != first.replayed
     assert f"{node}.x at tick t=0.050000000s" in str(first)
+
+
+@pytest.mark.parametrize("mode", ["rerun", "log"])
+def test_a_flow_replayed_from_the_log_is_not_called_again(tmp_path, mode, monkeypatch):
+    """replay="log": the replay takes the flow's outputs from the log (its step and setup() are
+    not called: the world it consulted has changed) and re-executes and compares its consumers.
+    Re-run (the default), the same flow is caught diverging."""
+    monkeypatch.setitem(OUTSIDE, "answer", 2.0)
+    with Pipeline("chain") as pipe:
+        src = Counter() @ Rate(hz=50)
+        oracle = Oracle().configure(replay=mode) @ Rate(hz=20)
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(oracle, sync=Latest()).then(sink, sync=Latest())
+    log = logged(pipe, tmp_path)
+    assert pipe.build_ir().doc["nodes"][1]["config"].get("replay") == (None if mode == "rerun" else "log")
+    monkeypatch.setitem(OUTSIDE, "answer", 3.0)  # the world answers differently now
+    monkeypatch.setitem(OUTSIDE, "setups", 0)
+    report, again = replay(log), resim(log)
+    if mode == "log":
+        assert report.identical and again.identical, again.difference
+        assert report.nodes["oracle"].from_log and report.nodes["oracle"].replayed == 0
+        assert report.nodes["smoother"].replayed == 20 and report.nodes["smoother"].identical == 20
+        assert OUTSIDE["setups"] == 0
+    else:
+        assert not report.identical and not again.identical
+        assert report.divergences[0].node == "oracle" and OUTSIDE["setups"] == 2
+
+
+def test_replay_setting_is_checked(tmp_path):
+    with pytest.raises(ValueError, match="replay='never' is not one of 'rerun', 'log'"):
+        Oracle().configure(replay="never")
+    from retriever.ir import IR
+    with Pipeline("chain") as pipe:
+        (Counter() @ Rate(hz=50)).then(Oracle().configure(replay="log") @ Rate(hz=20), sync=Latest())
+    doc = pipe.build_ir().doc
+    assert Pipeline.from_ir(IR(doc)).flows[1]._retriever.replay == "log"
+    doc["nodes"][1]["config"]["replay"] = "sometimes"
+    with pytest.raises(Exception, match="node 'oracle'.config.replay: 'sometimes' is not one of rerun, log"):
+        IR(doc)
 
 
 def test_changed_step_is_caught_by_replay_with_another_pipeline(tmp_path):
