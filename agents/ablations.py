@@ -28,11 +28,9 @@ from pathlib import Path
 
 from .retriever0 import ABLATIONS
 
-CONDITIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
-assert set(CONDITIONS) == set(ABLATIONS)
 EPISODE_S = 150.0
 FIELDS = ("condition", "seed", "task", "drawer", "score", "best_at", "finished", "gave_up", "failures", "replans",
-          "duration", "skills", "digest", "wall_s")
+          "duration", "skills", "digest", "wall_s", "error")
 
 
 def episode(condition: str, seed: int, slip_prob: float, duration: float = EPISODE_S, task: str = "drawers") -> dict:
@@ -49,18 +47,25 @@ def episode(condition: str, seed: int, slip_prob: float, duration: float = EPISO
             "score": ep.score, "best_at": round(ep.best_at, 3) if ep.score > 0 else "", "finished": ep.finished,
             "gave_up": ep.gave_up, "failures": ep.failures, "replans": ep.replans, "duration": round(ep.duration, 3),
             "skills": " > ".join(ep.skills), "digest": trace.digest()[:16],
-            "wall_s": round(time.perf_counter() - started, 2)}
+            "wall_s": round(time.perf_counter() - started, 2), "error": ""}
 
 
 def run_all(conditions, seeds, slip_prob: float, jobs: int, progress=None, task: str = "drawers") -> list[dict]:
+    """Every (condition, seed) episode, ``jobs`` at a time, in order; an episode that raised is a
+    row with its ``error`` (and no score), not the end of the others."""
     tasks = [(c, s) for c in conditions for s in seeds]
     rows = []
     with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(episode, c, s, slip_prob, EPISODE_S, task) for c, s in tasks]
-        for future in futures:
-            rows.append(future.result())
+        for (condition, seed), future in zip(tasks, futures):
+            try:
+                row = future.result()
+            except Exception as e:
+                row = {**dict.fromkeys(FIELDS, ""), "condition": condition, "seed": seed, "task": task, "score": 0.0,
+                       "error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
+            rows.append(row)
             if progress is not None:
-                progress(rows[-1])
+                progress(row)
     return rows
 
 
@@ -76,7 +81,7 @@ def table(rows: list[dict], conditions) -> str:
     lines = ["| condition | episodes | time to best progress (s) | task progress (%) | 100% | gave up |",
              "|---|---|---|---|---|---|"]
     for c in conditions:
-        mine = [r for r in rows if r["condition"] == c]
+        mine = [r for r in rows if r["condition"] == c and not r["error"]]
         scores = [100 * r["score"] for r in mine]
         times = [r["best_at"] for r in mine if r["score"] > 0]
         lines.append(f"| {c} | {len(mine)} | {_mean_std(times)} | {_mean_std(scores)} | "
@@ -90,7 +95,7 @@ def plot(rows: list[dict], conditions, path: Path) -> None:
     import matplotlib.pyplot as plt
     fig, (ax_p, ax_t) = plt.subplots(1, 2, figsize=(10, 3.6))
     for i, c in enumerate(conditions):
-        mine = [r for r in rows if r["condition"] == c]
+        mine = [r for r in rows if r["condition"] == c and not r["error"]]
         scores = [100 * r["score"] for r in mine]
         times = [r["best_at"] for r in mine if r["score"] > 0]
         ax_p.bar(i, statistics.mean(scores) if scores else 0,
@@ -113,29 +118,41 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m agents.ablations", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=20, help="episodes per condition (seeds 0..N-1)")
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--conditions", default=",".join(CONDITIONS),
-                        help="comma-separated, of: " + ", ".join(CONDITIONS))
+    parser.add_argument("--conditions", default=",".join(ABLATIONS),
+                        help="comma-separated, of: " + ", ".join(ABLATIONS))
     parser.add_argument("--slip-prob", type=float, default=0.3, help="probability that an episode's grasp slips")
     parser.add_argument("--jobs", type=int, default=2, help="episodes run at once (processes)")
     parser.add_argument("--task", choices=("drawers", "bag"), default="drawers")
     parser.add_argument("--out", type=Path, help="default: benchmarks/ablations/<task>")
     args = parser.parse_args(argv)
     conditions = [c.strip() for c in args.conditions.split(",") if c.strip()]
-    unknown = [c for c in conditions if c not in CONDITIONS]
-    if unknown or args.seeds < 1 or not 0 <= args.slip_prob <= 1:
-        parser.error(f"unknown condition(s) {unknown}" if unknown else "--seeds >= 1 and --slip-prob in [0, 1]")
+    unknown = [c for c in conditions if c not in ABLATIONS]
+    if unknown:
+        parser.error(f"unknown condition(s) {', '.join(unknown)}: choose from {', '.join(ABLATIONS)}")
+    if args.seeds < 1 or args.jobs < 1 or args.first_seed < 0 or not 0 <= args.slip_prob <= 1:
+        parser.error("--seeds and --jobs must be >= 1, --first-seed >= 0 and --slip-prob in [0, 1]")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     args.out = args.out or Path("benchmarks/ablations") / args.task
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    rows = run_all(conditions, seeds, args.slip_prob, args.jobs, task=args.task,
-                   progress=lambda r: print(f"{r['condition']:<18} seed {r['seed']:>3} ({r['drawer'] or r['task']}): "
-                                            f"{100 * r['score']:3.0f}% best at {r['best_at'] or '–'} s"
-                                            f"{'  gave up: ' + r['gave_up'] if r['gave_up'] else ''}", flush=True))
-    with open(args.out / "ablations.csv", "w", newline="") as f:
+    with open(args.out / "ablations.csv", "w", newline="") as f:  # a row per episode as it ends: ^C keeps them
         writer = csv.DictWriter(f, fieldnames=FIELDS)
         writer.writeheader()
-        writer.writerows(rows)
+
+        def done(r: dict) -> None:
+            writer.writerow(r)
+            f.flush()
+            if r["error"]:
+                print(f"{r['condition']:<18} seed {r['seed']:>3}: FAILED {r['error']}", flush=True)
+                return
+            print(f"{r['condition']:<18} seed {r['seed']:>3} ({r['drawer'] or r['task']}): "
+                  f"{100 * r['score']:3.0f}% best at {r['best_at'] or '–'} s"
+                  f"{'  gave up: ' + r['gave_up'] if r['gave_up'] else ''}", flush=True)
+        try:
+            rows = run_all(conditions, seeds, args.slip_prob, args.jobs, task=args.task, progress=done)
+        except KeyboardInterrupt:
+            print(f"interrupted: the episodes that ended are in {args.out / 'ablations.csv'}")
+            return 130
     text = table(rows, conditions)
     (args.out / "ablations.md").write_text(
         f"{text}\n\n{args.task} task, {len(seeds)} seeds ({seeds.start}..{seeds.stop - 1}), slip probability "
@@ -145,7 +162,10 @@ def main(argv=None) -> int:
     plot(rows, conditions, args.out / "ablations.png")
     print(text)
     print(f"wrote {args.out / 'ablations.csv'}, {args.out / 'ablations.md'}, {args.out / 'ablations.png'}")
-    return 0
+    failed = [r for r in rows if r["error"]]
+    if failed:
+        print(f"{len(failed)} episode(s) failed (their rows say why); the table leaves them out")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -4,7 +4,7 @@ import csv
 
 import pytest
 
-from agents.ablations import episode, main
+from agents.ablations import episode, main, run_all, table
 
 
 def test_an_ablation_run_writes_its_csv_table_and_plot(tmp_path, capsys):
@@ -24,8 +24,16 @@ def test_an_episode_is_deterministic_per_seed():
                                                            "wall_s": pytest.approx(0, abs=1e9)}
 
 
-@pytest.mark.parametrize("args", [["--conditions", "everything"], ["--seeds", "0"], ["--slip-prob", "2"]])
+@pytest.mark.parametrize("args", [["--conditions", "everything"], ["--seeds", "0"], ["--slip-prob", "2"],
+                                  ["--jobs", "0"], ["--first-seed", "-1"]])
 def test_bad_arguments_are_refused(args, tmp_path):
     with pytest.raises(SystemExit) as ended:
         main([*args, "--out", str(tmp_path)])
     assert ended.value.code == 2
+
+
+def test_an_episode_that_raises_is_a_row_with_its_error_not_the_end_of_the_run():
+    """The error crosses the process pool and the table leaves it out."""
+    rows = run_all(["full"], [0], 0.0, jobs=1, task="nowhere")
+    assert len(rows) == 1 and rows[0]["error"].startswith("ValueError") and "nowhere" in rows[0]["error"]
+    assert "| full | 0 |" in table(rows, ["full"])
