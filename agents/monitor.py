@@ -8,7 +8,8 @@ clocks or transport, so every rule is tested by direct calls:
   skill's handoff, or at once when idle), with the splice rule of :func:`agents.plan.splice`;
   only the answer to the newest request is taken (older ones are stale).
 - **branches**: ``IF p = v THEN … ELSE …`` is resolved against the newest belief when it is
-  reached; while ``p`` is unknown the monitor waits.
+  reached; while ``p`` is unknown the monitor waits, and when nothing resolves it within
+  ``branch_patience`` seconds (a plan that branches on a drawer nobody inspected) it asks again.
 - **progress-threshold switching**: the running skill hands off once its progress stays at or
   above ``threshold`` for ``sustain`` seconds; ``switching="timeout"`` (an ablation) hands off
   after ``timeout`` seconds whatever the progress says.
@@ -44,6 +45,7 @@ class MonitorConfig:
     min_horizon: int = 2            # fewer certain skills left than this: ask for more
     chunking: bool = True           # False (an ablation): ask only when idle, and wait for the answer
     max_failures: int = 3           # a skill that failed this often: give the task up (no endless retries)
+    branch_patience: float = 3.0    # idle on an unknown branch this long: the plan cannot go on, ask again
 
 
 @dataclass
@@ -63,7 +65,6 @@ class ExecutionMonitor:
     # the plan
     active: list = field(default_factory=list)      # nodes after the running skill
     pending: list | None = None                     # a committed-at-next-safe-point proposal
-    pending_request: int = 0
     # the running skill
     current: Skill | None = None
     current_id: int = 0
@@ -96,6 +97,7 @@ class ExecutionMonitor:
     score: float = 0.0
     best_at: float = 0.0
     waiting: str = ""
+    waiting_since: float = 0.0
 
     def __post_init__(self) -> None:
         if self.task_kind not in MILESTONES:
@@ -127,7 +129,7 @@ class ExecutionMonitor:
             self.failures.append(f"plan {request_id}: {e}")
             self.must_replan = "invalid_plan"
             return "invalid"
-        self.pending, self.pending_request = nodes, request_id
+        self.pending = nodes
         return "taken"
 
     def on_progress(self, skill_id: int, p: float, status: str, now: float) -> None:
@@ -193,7 +195,7 @@ class ExecutionMonitor:
             decision = self._next(now)
             if self.finished:
                 return decision
-        reason = self._replan_reason(belief_changed)
+        reason = self._replan_reason(belief_changed, now)
         if reason is not None:
             self.request_id += 1
             self.replans += self.request_id > 1
@@ -215,7 +217,7 @@ class ExecutionMonitor:
         finished since the plan was asked for (the planner saw it running, or not at all)."""
         done = self.executed[self.executed_at_request:]
         self.active = splice(self.pending, done[-1] if done else None)
-        self.pending = None
+        self.pending, self.waiting = None, ""  # a new plan: any wait on its branches starts now
 
     def _next(self, now: float) -> Decision:
         while self.active:
@@ -223,7 +225,8 @@ class ExecutionMonitor:
             if isinstance(node, Branch):
                 value = self.belief.get(node.predicate, "unknown")
                 if value == "unknown":
-                    self.waiting = "belief"
+                    if self.waiting != "belief":
+                        self.waiting, self.waiting_since = "belief", now
                     return Decision()
                 taken = node.then if value == node.value else node.otherwise
                 self.active[:1] = list(taken)
@@ -252,7 +255,7 @@ class ExecutionMonitor:
         self.active, self.pending, self.interrupted = [], None, None
         self.must_replan = "failed"
 
-    def _replan_reason(self, belief_changed: bool) -> str | None:
+    def _replan_reason(self, belief_changed: bool, now: float) -> str | None:
         if self.request_id == 0:
             return "task"
         if self.must_replan:
@@ -260,7 +263,12 @@ class ExecutionMonitor:
             return reason
         if belief_changed:
             return "belief_updated"
-        if self.request_id > self.answered_id or self.pending is not None or plan_ends(self.active):
+        if self.request_id > self.answered_id or self.pending is not None:
+            return None
+        if self.current is None and self.waiting == "belief" and now - self.waiting_since >= self.config.branch_patience:
+            self.waiting_since = now  # once per patience: the answer may branch on it again
+            return "branch_unresolved"
+        if plan_ends(self.active):
             return None
         if not self.config.chunking and (self.current is not None or self.active):
             return None             # one skill at a time: ask only when it has nothing left

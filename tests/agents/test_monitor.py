@@ -104,6 +104,24 @@ def test_an_unresolved_branch_waits_for_the_belief():
     run_table([(5.0, {"belief": (1, {"at(spice, TL)": "no"})}, "CloseDrawer(TL-H)", "belief_updated")], monitor=m)
 
 
+def test_a_plan_that_branches_on_what_nobody_inspects_is_asked_again_not_waited_on_forever():
+    """A first plan that opens with a branch on an uninspected drawer: no skill runs, so no
+    belief update will come; after branch_patience idle seconds the monitor asks again (once per
+    patience), and a plan that inspects first goes on."""
+    branch_first = ["IF at(spice, TR) = yes THEN OpenDrawer(TR-H) -> Pick(spice) ELSE OpenDrawer(TL-H)"]
+    run_table([
+        (0.0, {"task": "t"}, None, "task"),
+        (2.0, {"plan": (1, branch_first)}, None, None),         # unknown: it waits ...
+        (4.9, {}, None, None),
+        (5.0, {}, None, "branch_unresolved"),                   # ... branch_patience (3 s), then asks
+        (6.0, {}, None, None),                                  # once: the question is out
+        (7.0, {"plan": (2, branch_first)}, None, None),         # the same answer: wait again
+        (9.9, {}, None, None),
+        (10.0, {}, None, "branch_unresolved"),
+        (11.0, {"plan": (3, SEARCH_TL)}, "OpenDrawer(TL-H)", None),
+    ])
+
+
 def test_a_proposal_is_spliced_at_the_running_skills_handoff():
     """Running InspectDrawer(TL), a new chunk that repeats it arrives: the running skill is never
     interrupted, and after it the chunk goes on past it (the paper's A, B, C, D, E example)."""
