@@ -28,6 +28,7 @@ from .skills import (
     Trajectory,
     at_command,
     command_at,
+    let_go,
     robot,
     settled,
 )
@@ -207,7 +208,6 @@ class Extract(_TargetRecipe):
         if not holding_target(obs):
             return "the hand does not hold the target"
         phases = [] if target_bottom(obs) > BAG_RIM + CLEAR_OF_BAG else [self._lift()]
-        goal = {}
 
         def plan_down(obs, ref):
             hand_to_bottom = obs["tcp"][2] - target_bottom(obs)
@@ -219,20 +219,9 @@ class Extract(_TargetRecipe):
             on_spot = np.hypot(*np.subtract(obs["object_pos"][:2], SPOT_POS[:2])) < SPOT_RADIUS
             return on_spot and target_bottom(obs) < TRAY_POS[2] + 0.006 and obs["object_upright"] > 0.95
 
-        def plan_let_go(obs, ref):
-            tcp = tcp_of(ref)
-            goal["up"] = command_at([tcp[0], tcp[1], tcp[2] + 0.10], 0.0, 0.0)
-            return Trajectory(ref).grip(0.0).dwell(0.05).line(goal["up"], PULL)
-
-        def released(obs):
-            return robot(obs)[4] < GRIP_OPEN and obs["held"] == "" and at_command(obs, goal["up"], 0.015)
-
-        def check_let_go(obs):
-            return None if obs["object_upright"] > 0.9 else "the target fell over when let go"
-
         return [*phases,
                 Phase("carry", 0.5, plan_down, standing, self._keep_hold),
-                Phase("let go", 0.15, plan_let_go, released, check_let_go)]
+                let_go("object_upright", "the target")]
 
     def postcondition(self, obs):
         if not obs["extracted"]:

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .mjcf import TABLE_TOP, box, camera, loose_shape, table, vec
-from .sim import GantrySim, world_mjcf
+from .sim import GantrySim, table_or_below, world_mjcf
 
 # -- the bag (metres, in the world frame) --------------------------------------------------------
 BAG_CENTRE = np.array([-0.05, 0.10])            # the bag's axis on the table
@@ -247,11 +247,7 @@ class BagSim(GantrySim):
             return "spot"
         if abs(pos[0] - TRAY_POS[0]) < TRAY_HALF[0] and abs(pos[1] - TRAY_POS[1]) < TRAY_HALF[1] and on_tray:
             return "tray"
-        if abs(pos[0]) < 0.75 and -0.55 < pos[1] < 0.5 and TABLE_TOP < pos[2] < TABLE_TOP + 2 * TARGET_HALF_HEIGHT:
-            return "table"
-        if pos[2] < TABLE_TOP - 0.05:
-            return "floor"
-        return "air"
+        return table_or_below(pos, 2 * TARGET_HALF_HEIGHT)
 
     def observe(self) -> dict:
         """The world's state as plain values (floats, lists, strings, bools; qpos/qvel/robot as arrays).

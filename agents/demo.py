@@ -49,7 +49,9 @@ def run_episode(config, backend: str = "zenoh", duration: float = 120.0, log: st
 def ending(episode: Episode) -> str:
     if episode.gave_up:
         return f"gave up ({episode.gave_up})"
-    return "finished" if episode.finished else "not finished"
+    if episode.finished:
+        return "finished" if episode.score >= 1.0 else "the plan ended with the task not done"
+    return "not finished (out of time)"
 
 
 def report(episode: Episode, wall: float, backend: str) -> list[str]:
@@ -59,12 +61,21 @@ def report(episode: Episode, wall: float, backend: str) -> list[str]:
              + ", ".join(f"{k.replace('_', ' ')} {'✓' if v else '✗'}" for k, v in episode.milestones.items())
              + f"), best reached at t={episode.best_at:.1f} s",
              f"{ending(episode)} after {episode.duration:.1f} s of world time "
-             f"in {wall:.1f} s wall on {backend}; {episode.replans} replans, {episode.failures} failed skills"]
+             f"in {wall:.1f} s wall on {backend}; {episode.replans} replans, {episode.failures} failed skills"
+             + "".join(f", {n} {what}" for what, n in (
+                 ("stale progress reports ignored", episode.ignored.get("stale_feedback", 0)),
+                 ("superseded plans dropped", episode.ignored.get("stale_plans", 0)),
+                 ("bad plans refused", episode.ignored.get("bad_plans", 0))) if n)]
     rated = [r for r in episode.rates if r.hz]
     if rated:
         parts = []
         for r in rated:
             late = f", p99 late {r.late_p99_ms:.1f} ms" if r.late_p99_ms is not None else ""
-            parts.append(f"{r.node} {r.achieved_hz:.1f}/{r.hz:g} Hz{late}")
+            behind = f", {r.behind} ticks over a period late" if r.behind else ""
+            missed = f", {r.missed} steps late/overrun/incomplete" if r.missed else ""
+            parts.append(f"{r.node} {r.achieved_hz:.1f}/{r.hz:g} Hz{late}{behind}{missed}")
         lines.append("rates: " + "; ".join(parts))
+        if backend != "inproc" and any(r.behind or r.achieved_hz < 0.95 * r.hz for r in rated):
+            lines.append("some flows fell behind their clocks: this machine is busy or slow for these rates "
+                         "(--backend inproc runs the same agent in virtual time)")
     return lines

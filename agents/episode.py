@@ -15,8 +15,10 @@ class FlowRate:
     node: str
     hz: float | None                 # its Rate, None for a triggered flow
     steps: int
-    achieved_hz: float
+    achieved_hz: float               # real time: steps per wall second, first to last; virtual: per world second
     late_p99_ms: float | None        # real time only: how late its ticks started, 99th percentile
+    behind: int = 0                  # real time only: ticks that started more than one period late
+    missed: int = 0                  # steps a real-time run marked late (LET deadline), overrun or incomplete
 
 
 @dataclass
@@ -30,6 +32,7 @@ class Episode:
     failures: int
     duration: float                  # world seconds covered
     gave_up: str = ""                # why the monitor gave the task up, if it did
+    ignored: dict = field(default_factory=dict)    # stale_feedback, stale_plans, bad_plans: what the monitor ignored
     statuses: list = field(default_factory=list)   # (t, MonitorStatus) at every monitor tick
     rates: list[FlowRate] = field(default_factory=list)
 
@@ -42,13 +45,14 @@ def summarize(trace, ir=None) -> Episode:
     """The episode a trace shows (its monitor's statuses must be kept: ``keep="trace"``)."""
     statuses = [(e.value.t, e.value) for e in trace.events_of("monitor", "status") if e.value is not NOT_KEPT]
     if not statuses:
-        return Episode([], 0.0, 0.0, {}, False, 0, 0, 0.0, "", [], _rates(trace, ir, 0.0))
+        return Episode([], 0.0, 0.0, {}, False, 0, 0, 0.0, "", {}, [], _rates(trace, ir, 0.0))
     last = statuses[-1][1]
     skills = list(last.executed) + ([last.skill] if last.skill else [])
     best_at = next((t for t, s in statuses if s.score >= last.score), 0.0) if last.score > 0 else 0.0
     duration = statuses[-1][0]
+    ignored = {k: getattr(last, k) for k in ("stale_feedback", "stale_plans", "bad_plans")}
     return Episode(skills, last.score, best_at, dict(last.milestones), last.finished, last.replans, last.failures,
-                   duration, last.gave_up, statuses, _rates(trace, ir, duration))
+                   duration, last.gave_up, ignored, statuses, _rates(trace, ir, duration))
 
 
 def _rates(trace, ir, duration: float) -> list[FlowRate]:
@@ -68,8 +72,16 @@ def _rates(trace, ir, duration: float) -> list[FlowRate]:
     rates = []
     for node, steps in sorted(by_node.items()):
         ran = [s for s in steps if s.status not in ("skipped",)]
+        hz = clocks.get(node)
         late = [(s.wall_start_ns - s.tag[0] - t0) / 1e6 for s in ran if t0 is not None and s.wall_start_ns]
-        # ticks (a skipped one ticked too: its inputs had nothing yet) against the clock
-        rates.append(FlowRate(node, clocks.get(node), len(ran), len(steps) / duration if duration else 0.0,
-                              float(np.percentile(late, 99)) if late else None))
+        starts = sorted(s.wall_start_ns for s in steps if s.wall_start_ns)
+        if t0 is not None and len(starts) > 1 and starts[-1] > starts[0]:
+            # ticks (a skipped one ticked too: its inputs had nothing yet) per wall second: a flow
+            # that fell behind its clock stretched its ticks over more wall time than world time
+            achieved = (len(starts) - 1) / ((starts[-1] - starts[0]) / 1e9)
+        else:
+            achieved = len(steps) / duration if duration else 0.0
+        rates.append(FlowRate(node, hz, len(ran), achieved, float(np.percentile(late, 99)) if late else None,
+                              behind=sum(x > 1e3 / hz for x in late) if hz else 0,
+                              missed=sum(s.status in ("late", "overrun", "incomplete") for s in steps)))
     return rates

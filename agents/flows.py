@@ -196,7 +196,7 @@ class Monitor(Flow):
         self.end_after, self.verbose, self.task = end_after, verbose, task
         self.logic = ExecutionMonitor(MonitorConfig(**self.settings), task)
         self.finished_at: float | None = None
-        self.said = ""
+        self.said, self.failures_said = "", 0
 
     def step(self, obs: Observation, task: Task | None = None, belief: Belief | None = None,
              progress: list | None = None, plan: list | None = None, teleop: list | None = None):
@@ -226,8 +226,9 @@ class Monitor(Flow):
                                       p=m.progress, score=m.score, milestones=dict(m.milestones),
                                       finished=m.finished, replans=m.replans, executed=[str(s) for s in m.executed],
                                       waiting=m.waiting, failures=m.skill_failures, last_failed=m.last_failed,
-                                      gave_up=m.gave_up)
-        self._say(out["status"])
+                                      gave_up=m.gave_up, stale_feedback=m.stale_feedback,
+                                      stale_plans=m.stale_plans, bad_plans=m.bad_plans)
+        self._say(out["status"], out.get("skill"), decision.request)
         if m.finished and self.end_after is not None:
             self.finished_at = now if self.finished_at is None else self.finished_at
             if now - self.finished_at >= self.end_after:
@@ -239,16 +240,29 @@ class Monitor(Flow):
         return SkillCmd(skill_id=decision.command_id, name=decision.command.name, arg=decision.command.arg,
                         source=decision.command_source)
 
-    def _say(self, status: MonitorStatus) -> None:
-        """With ``verbose``, one line whenever the skill, the score or the wait changes."""
+    def _say(self, status: MonitorStatus, started: SkillCmd | None, request: str | None) -> None:
+        """With ``verbose``, one line whenever the skill, the score or the wait changes, and one
+        for each failed skill, teleop takeover, plan request and giving up."""
         if not self.verbose:
+            return
+        t = f"t={status.t:6.2f}s "
+        if status.failures > self.failures_said:
+            self.failures_said = status.failures
+            print(f"{t} ✗ {status.last_failed} failed ({status.failures} so far)", flush=True)
+        if started is not None and started.source == "teleop":
+            print(f"{t} ⇢ teleop takes over: {started.name}({started.arg})", flush=True)
+        if request is not None and request != "task":
+            print(f"{t} ? asks the planner again ({request.replace('_', ' ')})", flush=True)
+        if status.gave_up and not self.said.startswith("gave up"):
+            self.said = "gave up"
+            print(f"{t} gave up: {status.gave_up}", flush=True)
             return
         line = f"{status.skill or '(' + (status.waiting or 'idle') + ')'} score {status.score:.0%}"
         if line != self.said:
             self.said = line
             known = " ".join(f"{k[k.index(',') + 2:-1]}:{v}" for k, v in sorted(self.logic.belief.items())
                              if k.startswith(("at(", "in(")))
-            print(f"t={status.t:6.2f}s  {line:<34} belief {known or '-'}", flush=True)
+            print(f"{t} {line:<34} belief {known or '-'}", flush=True)
 
 
 class SkillPolicy(Flow):
@@ -350,6 +364,8 @@ def load_schedule(path: str, task: str = "drawers") -> list[dict]:
                     raise ValueError(f"{key} must be a number of seconds >= 0, got {t!r}")
             if "t_start" not in item:
                 raise ValueError("needs a number t_start")
+            if item.get("t_end", item["t_start"]) < item["t_start"]:
+                raise ValueError(f"t_end {item['t_end']!r} is before t_start {item['t_start']!r}")
             if item.get("mode", "skill_override") != "skill_override":
                 raise ValueError("mode must be 'skill_override'")
             if not isinstance(item.get("payload"), str):

@@ -127,7 +127,9 @@ class PlanChunk:
 @io
 @dataclass
 class TeleopEvent:
-    """An intervention (Appendix E-n): a skill that overrides the plan from ``t_start``."""
+    """An intervention (Appendix E-n): a skill that overrides the plan from ``t_start``. The
+    override runs until its skill hands off, as a plan's would; ``t_end`` is the operator's
+    intended end, kept for the record (the schedule file's, or ``t_start``)."""
     t_start: float
     t_end: float
     mode: str                       # "skill_override"
@@ -152,3 +154,6 @@ class MonitorStatus:
     failures: int = 0               # skills that failed so far
     last_failed: str = ""           # the last one, "Pick(spice)"
     gave_up: str = ""               # why the task was given up (a skill failed too often), if it was
+    stale_feedback: int = 0         # progress reports for a skill that no longer runs, ignored
+    stale_plans: int = 0            # answers to a request a newer one superseded, dropped
+    bad_plans: int = 0              # answers that were no program of the vocabulary, refused

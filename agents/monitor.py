@@ -265,7 +265,8 @@ class ExecutionMonitor:
             return "belief_updated"
         if self.request_id > self.answered_id or self.pending is not None:
             return None
-        if self.current is None and self.waiting == "belief" and now - self.waiting_since >= self.config.branch_patience:
+        stuck = self.current is None and self.waiting == "belief"
+        if stuck and now - self.waiting_since >= self.config.branch_patience:
             self.waiting_since = now  # once per patience: the answer may branch on it again
             return "branch_unresolved"
         if plan_ends(self.active):

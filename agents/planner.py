@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import json
 import os
+import socket
 import urllib.error
+import urllib.parse
 import urllib.request
 from typing import Protocol
 
@@ -189,6 +191,16 @@ class OpenAICompatiblePlanner:
         self.base_url, self.model, self.api_key_env, self.timeout = base_url.rstrip("/"), model, api_key_env, timeout
         self.task_kind = task_kind
 
+    def check_reachable(self) -> None:
+        """Fail now, not a planner latency into the run, when nothing listens at the endpoint."""
+        parts = urllib.parse.urlsplit(self.base_url)
+        try:
+            port = parts.port or (443 if parts.scheme == "https" else 80)
+            socket.create_connection((parts.hostname, port), timeout=min(self.timeout, 5.0)).close()
+        except (OSError, ValueError) as e:
+            raise PlannerError(f"planner endpoint {self.base_url} is not reachable: {e}\n    hint: start the model "
+                               "server, or check the URL (openai:http://HOST:PORT/v1#MODEL)") from None
+
     def propose(self, task: str, belief: dict, context: dict) -> list[str]:
         user = json.dumps({"task": task, "belief": belief, "executed": context.get("executed", []),
                            "current": context.get("current", ""), "failures": context.get("failures", [])})
@@ -204,8 +216,8 @@ class OpenAICompatiblePlanner:
             with urllib.request.urlopen(request, timeout=self.timeout) as response:
                 reply = json.loads(response.read(1 << 20))
             content = reply["choices"][0]["message"]["content"]
-        except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError) as e:
-            raise PlannerError(f"planner endpoint {self.base_url} gave no usable answer: {e}") from None
+        except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError, RecursionError) as e:
+            raise PlannerError(f"planner endpoint {self.base_url} gave no usable answer: {_brief(e)}") from None
         return parse_answer(content, self.task_kind)
 
 
@@ -220,9 +232,14 @@ def parse_answer(content: str, task_kind: str = "drawers") -> list[str]:
     try:
         plan = json.loads(text)["action_plan"]
         parse_program(plan, task_kind)
-    except (ValueError, KeyError, TypeError) as e:
-        raise PlannerError(f"the model's plan is not a program of the vocabulary: {e}") from None
+    except (ValueError, KeyError, TypeError, RecursionError) as e:  # RecursionError: JSON nested too deep
+        raise PlannerError(f"the model's plan is not a program of the vocabulary: {_brief(e)}") from None
     return list(plan)
+
+
+def _brief(error: BaseException) -> str:
+    text = f"{type(error).__name__}: {error}" if isinstance(error, RecursionError) else str(error)
+    return text if len(text) <= 300 else text[:300] + "…"
 
 
 class FixedOrderPlanner:

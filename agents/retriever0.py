@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 
 from retriever import ActionChunking, Latest, LatestDistinct, Pipeline, Queue, Rate, Trigger
 
+from .plan import DRAWERS
 from .planner import make_planner
 from .flows import BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillPolicy, Teleop, World
 
@@ -51,8 +52,12 @@ class AgentConfig:
             raise ValueError("--drawer is for the drawers task; the bag task has one bag")
         if self.ablation not in ABLATIONS:
             raise ValueError(f"unknown ablation {self.ablation!r}: choose one of {', '.join(ABLATIONS)}")
-        if self.drawer not in (None, "TL", "TR", "BL", "BR"):
-            raise ValueError(f"unknown drawer {self.drawer!r}: choose TL, TR, BL or BR")
+        if self.drawer is not None and self.drawer not in DRAWERS:
+            raise ValueError(f"unknown drawer {self.drawer!r}: choose {', '.join(DRAWERS)}")
+        if type(self.seed) is not int or not 0 <= self.seed < 2**32:
+            raise ValueError(f"seed {self.seed!r} must be an integer in [0, 2**32)")
+        if not 0 <= self.slip_prob <= 1:
+            raise ValueError(f"slip probability {self.slip_prob!r} must be in [0, 1]")
         make_planner(self.planner, self.task)  # a planner it cannot make is refused before anything starts
         for name in ("planner_latency", "policy_latency"):
             if not 0 < getattr(self, name) <= 60:

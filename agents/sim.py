@@ -19,7 +19,7 @@ os.environ.setdefault("LP_NUM_THREADS", "0")    # llvmpipe rasterises in the cal
 import mujoco
 import numpy as np
 
-from .mjcf import JOINTED, LOOSE, SLIPPING, STATIC, default_classes
+from .mjcf import JOINTED, LOOSE, SLIPPING, STATIC, TABLE_TOP, default_classes
 from .robot import COMMAND_HIGH, COMMAND_LOW, FINGER_OPEN, HOME, NU, robot_actuators, robot_body
 
 # The world is ticked at 200 Hz, so the step must divide 5 ms; 2.5 ms is the closest to the 2 ms
@@ -54,6 +54,16 @@ def world_mjcf(model: str, scene: str) -> str:
   {robot_actuators()}
 </mujoco>
 """
+
+
+def table_or_below(pos, height: float) -> str:
+    """Where an item that is in no container is: on the table (its centre at most ``height`` above
+    the top), on the floor, or in the air."""
+    if abs(pos[0]) < 0.75 and -0.55 < pos[1] < 0.5 and TABLE_TOP < pos[2] < TABLE_TOP + height:
+        return "table"
+    if pos[2] < TABLE_TOP - 0.05:
+        return "floor"
+    return "air"
 
 
 class GantrySim:

@@ -613,8 +613,6 @@ class _BottleRecipe(Recipe):
         stands there on ``support_z``, open the hand and rise clear of it. Standing at that height
         is not enough: a bottle that slipped on the way may stand on something lower, such as the
         table below a top drawer."""
-        goal = {}
-
         def plan_lower(obs, ref):
             hand_to_bottom = obs["tcp"][2] - (obs["bottle_pos"][2] - BOTTLE_HALF_HEIGHT)
             low = command_at([above_xy[0], above_xy[1], support_z + hand_to_bottom + 0.002], 0.0, 1.0)
@@ -626,19 +624,26 @@ class _BottleRecipe(Recipe):
             return (on_spot and obs["bottle_pos"][2] - BOTTLE_HALF_HEIGHT < support_z + 0.006
                     and obs["bottle_upright"] > 0.95)
 
-        def plan_let_go(obs, ref):
-            tcp = tcp_of(ref)
-            goal["up"] = command_at([tcp[0], tcp[1], tcp[2] + 0.10], 0.0, 0.0)
-            return Trajectory(ref).grip(0.0).dwell(0.05).line(goal["up"], PULL)
+        return [Phase(name, weight, plan_lower, standing, self._keep_hold), let_go("bottle_upright", "the bottle")]
 
-        def released(obs):
-            return robot(obs)[4] < GRIP_OPEN and obs["held"] == "" and at_command(obs, goal["up"], 0.015)
 
-        def check_let_go(obs):
-            return None if obs["bottle_upright"] > 0.9 else "the bottle fell over when let go"
+def let_go(upright: str, what: str) -> Phase:
+    """Open the hand, then rise 10 cm straight up: done when the fingers are open, nothing is held
+    and the hand is up; failed if ``what`` (its uprightness in ``obs[upright]``) fell over."""
+    goal = {}
 
-        return [Phase(name, weight, plan_lower, standing, self._keep_hold),
-                Phase("let go", 0.15, plan_let_go, released, check_let_go)]
+    def plan(obs, ref):
+        tcp = tcp_of(ref)
+        goal["up"] = command_at([tcp[0], tcp[1], tcp[2] + 0.10], 0.0, 0.0)
+        return Trajectory(ref).grip(0.0).dwell(0.05).line(goal["up"], PULL)
+
+    def released(obs):
+        return robot(obs)[4] < GRIP_OPEN and obs["held"] == "" and at_command(obs, goal["up"], 0.015)
+
+    def check(obs):
+        return None if obs[upright] > 0.9 else f"{what} fell over when let go"
+
+    return Phase("let go", 0.15, plan, released, check)
 
 
 class Pick(_BottleRecipe):

@@ -24,8 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .mjcf import TABLE_TOP, box, camera, loose_shape, table, vec
+from .plan import DRAWERS, HANDLES
 from .robot import ACTUATORS, COMMAND_HIGH, COMMAND_LOW, HOME, MAX_SPEED, NU
-from .sim import TICK, TIMESTEP, GantrySim, world_mjcf
+from .sim import TICK, TIMESTEP, GantrySim, table_or_below, world_mjcf
 
 # What other modules drive the drawer world with (the robot's and the clock's names included).
 __all__ = [
@@ -33,8 +34,6 @@ __all__ = [
     "NU", "Sim", "TICK", "TIMESTEP", "build_mjcf", "check_drawer", "drawer_above", "drawer_origin",
 ]
 
-DRAWERS = ("TL", "TR", "BL", "BR")
-HANDLES = tuple(f"{d}-H" for d in DRAWERS)
 
 # -- geometry (metres) -------------------------------------------------------------------------
 CABINET_FRONT_Y = 0.05                  # the closed drawers' front faces
@@ -272,11 +271,7 @@ class Sim(GantrySim):
                 return d
         if np.hypot(*(pos[:2] - PLATE_POS[:2])) < PLATE_RADIUS and pos[2] < PLATE_POS[2] + 0.1:
             return "plate"
-        if abs(pos[0]) < 0.75 and -0.55 < pos[1] < 0.5 and TABLE_TOP < pos[2] < TABLE_TOP + 0.1:
-            return "table"
-        if pos[2] < TABLE_TOP - 0.05:
-            return "floor"
-        return "air"
+        return table_or_below(pos, 0.1)
 
     def observe(self) -> dict:
         """The world's state as plain values (floats, lists, strings, bools; qpos/qvel/robot as arrays).

@@ -199,6 +199,7 @@ def demo(
     try:
         from agents.demo import DemoError, check_rendering, report, run_episode
         from agents.pictures import contact_sheet, timeline
+        from agents.planner import PlannerError, make_planner
         from agents.retriever0 import AgentConfig
     except ImportError as exc:
         _fail(RetrieverError(f"the Retriever-0 agent is not installed ({exc})\n    hint: install the project "
@@ -206,6 +207,8 @@ def demo(
     if canonical(backend) not in ("zenoh", "inproc"):
         _fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
     try:
+        if not 0 < duration < float("inf"):
+            raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True)
@@ -213,13 +216,23 @@ def demo(
         if teleop is not None:
             from agents.flows import load_schedule
             load_schedule(str(teleop), task)
+        if planner.startswith("openai:"):
+            make_planner(planner, task).check_reachable()
         check_rendering()
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DemoError(f"--out {out}: cannot make a folder for the pictures there ({exc.strerror})") from None
         where = "the target in the bag" if task == "bag" else f"the spice in {drawer or 'a drawer the seed chose'}"
         _err.print(f"Retriever-0 on {canonical(backend)}, {task} task: seed {seed}, {where}; logging to {log}",
                    highlight=False)
+        signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log))
-    except (DemoError, ValueError) as exc:
+    except KeyboardInterrupt:
+        _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
+                   highlight=False)
+        raise typer.Exit(code=128 + (_state.get("signal") or signal.SIGINT)) from None
+    except (DemoError, ValueError, PlannerError) as exc:
         _fail(RetrieverError(str(exc)))
     except RetrieverError as exc:
         _fail(exc)

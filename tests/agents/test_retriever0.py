@@ -103,8 +103,17 @@ def test_retriever_demo_in_virtual_time_prints_the_episode_saves_pictures_and_a_
     (["--backend", "ros2"], "backend 'ros2'"),
     (["--task", "kitchen"], "unknown task 'kitchen'"),
     (["--task", "bag", "--drawer", "TL"], "--drawer is for the drawers task"),
+    (["--duration", "0"], "--duration 0.0: give the seconds"),
+    (["--duration", "inf"], "--duration inf: give the seconds"),
+    (["--slip-prob", "2"], "slip probability 2.0 must be in [0, 1]"),
+    (["--seed", "-1"], "seed -1 must be an integer in [0, 2**32)"),
+    (["--out", "a_file"], "--out a_file: cannot make a folder for the pictures there"),
+    (["--teleop", "teleop.json"], "payload must be a skill"),
+    (["--planner", "openai:http://127.0.0.1:9/v1#m"], "planner endpoint http://127.0.0.1:9/v1 is not reachable"),
 ])
 def test_a_bad_demo_option_gets_a_clear_error_and_no_traceback(tmp_path, args, message):
+    (tmp_path / "a_file").write_text("not a folder")
+    (tmp_path / "teleop.json").write_text('[{"t_start": 1, "payload": 7}]')
     done = run_cli("demo", *args, cwd=tmp_path)
     assert done.returncode == 1, done.stdout + done.stderr
     assert message in done.stderr and "Traceback" not in done.stderr, done.stderr
