@@ -660,7 +660,7 @@ class CoordinatorTarget(Target):
         s = self._session()
         base = self.base
         s.trace.raw_events, s.trace.raw_steps = list(base.trace.raw_events), list(base.trace.raw_steps)
-        s._event_ids, s._ticks = set(base._event_ids), set(base._ticks)
+        s._event_ids, s._ticks = base._event_ids.copy(), base._ticks.copy()
         s.own_counts["garbage"] = GARBAGE_PRINTED  # past the few it prints: it prints none
         return s, (key.decode(), report)
 
@@ -681,7 +681,7 @@ class CoordinatorTarget(Target):
                 or any(a is not b for a, b in zip(events, base.raw_events))
                 or any(a is not b for a, b in zip(steps, base.raw_steps))):
             return 1  # a genuine record was changed or displaced
-        forged, seen_ids, seen_ticks = 0, set(self.base._event_ids), set(self.base._ticks)
+        forged, seen_ids, seen_ticks = 0, self.base._event_ids.copy(), self.base._ticks.copy()
         new_events, new_steps = events[len(base.raw_events):], steps[len(base.raw_steps):]
         for tag, producer, port, seq, value, _ in new_events:
             own = (producer, port) in s._streams or producer in s._open_outputs

@@ -160,3 +160,60 @@ class Keep(Flow[Count, Count]):
 
     def step(self, inp: Count) -> Count:
         return Count(count=inp.count)
+
+
+# ---------------------------------------------------------------------------------------------
+# memory.py: a camera, a policy and a controller, as on a robot
+# ---------------------------------------------------------------------------------------------
+@io
+@dataclass
+class CameraImage:
+    k: int
+    pixels: np.ndarray  # H×W×3 uint8
+
+
+@io
+@dataclass
+class ActionChunk:
+    k: int
+    actions: np.ndarray  # horizon × joints
+
+
+@io
+@dataclass
+class JointCommand:
+    u: np.ndarray
+
+
+class RGBCamera(Flow[None, CameraImage]):
+    """A new 640×480 RGB frame each tick (its bytes change with k)."""
+
+    def __init__(self, height: int = 480, width: int = 640):
+        self.shape, self.k = (height, width, 3), 0
+
+    def step(self) -> CameraImage:
+        self.k += 1
+        pixels = np.empty(self.shape, np.uint8)
+        pixels.fill(self.k % 251)
+        pixels[0, : min(8, self.shape[1])] = np.frombuffer(self.k.to_bytes(8, "little"), np.uint8)[: self.shape[1]]
+        return CameraImage(self.k, pixels)
+
+
+class ChunkPolicy(Flow[CameraImage, ActionChunk]):
+    """Looks at a subsample of the newest frame and proposes a 20-step chunk of 7 joint targets."""
+
+    def step(self, inp: CameraImage) -> ActionChunk:
+        seen = float(inp.pixels[::48, ::64].mean())
+        return ActionChunk(inp.k, np.full((20, 7), seen / 255.0))
+
+
+class JointController(Flow[ActionChunk, JointCommand]):
+    """Follows the newest chunk, one row per tick."""
+
+    def __init__(self):
+        self.row, self.last = 0, -1
+
+    def step(self, inp: ActionChunk) -> JointCommand:
+        self.row = 0 if inp.k != self.last else min(self.row + 1, len(inp.actions) - 1)
+        self.last = inp.k
+        return JointCommand(inp.actions[self.row].copy())

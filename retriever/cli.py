@@ -119,10 +119,12 @@ _FOXGLOVE = typer.Option(
          f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever[foxglove]').")
 
 _KEEP = typer.Option(
-    metavar="trace|records", help="What the run keeps in memory: 'trace' every event's value (the default of "
-                                  "run); 'records' the events' ids and tags and the step records, the values only "
-                                  "in --log (on zenoh they then reach this process only to be logged; the default "
-                                  "of deploy).")
+    metavar="trace|records|counters",
+    help="What the run keeps in memory: 'trace' every event's value (the default of run without --log or on "
+         "inproc); 'records' the events' ids and tags and the step records, the values only in --log (on zenoh "
+         "they then reach this process only to be logged; the default of deploy without --log); 'counters' "
+         "nothing but the counters, each record freed once --log has it: memory stays bounded however long "
+         "the run (the default of a logged run on zenoh and of a logged deploy).")
 
 
 @app.command()
@@ -331,7 +333,8 @@ def deploy(
                "namespace": get("namespace"), "placement": None if get("placement") is None else str(get("placement")),
                "secret": get("secret"), "insecure": bool(get("insecure")), "on_worker_loss": get("on_worker_loss"),
                "lease": get("lease"), "tls": _tls(get("tls_ca"), get("tls_cert"), get("tls_key")),
-               "virtual_time": bool(get("virtual_time")), "keep": get("keep", "records")}
+               "virtual_time": bool(get("virtual_time")),
+               "keep": get("keep") or ("records" if get("log") is None else "counters")}
     if foxglove is not None:
         options["foxglove"] = foxglove
     if get("max_clock_offset") is not None:
@@ -346,8 +349,9 @@ def _check_keep(keep: str | None) -> None:
     from .trace import KEEP
 
     if keep is not None and keep not in KEEP:
-        _fail(BackendError(f"--keep {keep!r} is neither 'trace' nor 'records'\n    hint: --keep records keeps the "
-                           "events' ids and the step records (the values only in --log); --keep trace every value"))
+        _fail(BackendError(f"--keep {keep!r} is none of 'trace', 'records', 'counters'\n    hint: --keep records keeps "
+                           "the events' ids and the step records (the values only in --log); --keep trace every "
+                           "value; --keep counters nothing but the counters (the records only in --log)"))
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,
@@ -404,8 +408,12 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
     unowned.subtract(sum((Counter(s.counts) for s in pipe.stats().values()), Counter()))
     if +unowned:
         _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
-    digest = f"trace digest {trace.digest()[:16]}" if trace.values_kept else "values not kept (--keep records)"
-    _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · {digest}", highlight=False)
+    if pipe._session is not None and pipe._session.keep == "counters":  # reading the log back could take GBs
+        steps = sum(s.steps for s in pipe.stats().values())
+        _out.print(f"{steps} steps · records kept only in the log (--keep counters)", highlight=False)
+    else:
+        digest = f"trace digest {trace.digest()[:16]}" if trace.values_kept else "values not kept (--keep records)"
+        _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · {digest}", highlight=False)
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False)

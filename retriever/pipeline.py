@@ -29,7 +29,7 @@ from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .rebuild import check_node, construct_node
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
-from .trace import Trace
+from .trace import LoggedTrace, Trace
 
 if TYPE_CHECKING:
     from .log.writer import LogFile
@@ -227,6 +227,8 @@ class Pipeline:
             _check_seconds("run", "duration", duration, self._now_ns())
         log_file = None if log is None else _create_log_file(log, overwrite)  # before any worker starts
         fresh = self._session is None
+        if fresh and log is not None and "keep" not in options and _realtime(backend):
+            options["keep"] = "counters"  # a logged real-time run may run for hours: the log holds it
         try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
             session = self._session_for(backend, options)
             try:
@@ -251,10 +253,10 @@ class Pipeline:
                     session.advance(session.now_ns + seconds_to_ns(duration))
         except BaseException as exc:
             _close_log(session, exc)
-            session.trace.forget_values()
+            _forget(session)
             raise
         _close_log(session)
-        session.trace.forget_values()  # keep="records": the values are in the log, or nowhere
+        _forget(session)
         return session.trace
 
     def step(self, dt: float, **options: Any) -> Trace:
@@ -415,8 +417,27 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
         status, error = "error", f"{type(exc).__name__}: {exc}"
     steps = session.trace.raw_steps
     # a stopped run ends at its last tick (real-time backends append records as they arrive)
-    end_ns = max(session.now_ns, max((rec[1][0] for rec in steps), default=0))
+    end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
     writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
+    if session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
+        session.trace = LoggedTrace(writer.path)
+
+
+def _realtime(backend: str | None) -> bool:
+    from .backends import canonical, default_backend
+
+    try:
+        return canonical(backend or default_backend()) != "inproc"
+    except BackendError:
+        return False  # an unknown backend: _session_for says so
+
+
+def _forget(session: Session) -> None:
+    """What the run keeps no more at its end: the values (keep="records"), the records of an
+    unlogged run (keep="counters"); the log has them, or nothing does."""
+    if session.log is None and not isinstance(session.trace, LoggedTrace):
+        session.drop_records()
+        session.trace.forget_values()
 
 
 def _check_seconds(method: str, name: str, value: Any, now_ns: int) -> None:

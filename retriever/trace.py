@@ -18,11 +18,14 @@ from .time import format_tag
 EventId = tuple[str, str, int]
 
 #: What a run may keep in memory (``pipe.run(..., keep=...)``): ``"trace"``, every event with its
-#: value and every step record (the default: what tests and short debugging runs want); or
-#: ``"records"``, every event's id, tag and wall time, and every step record, but no values (they
-#: are in the log, if the run wrote one; on the Zenoh runtime they then never reach the coordinator
-#: at all unless it writes a log).
-KEEP = ("trace", "records")
+#: value and every step record (what tests and short debugging runs want); ``"records"``, every
+#: event's id, tag and wall time, and every step record, but no values (they are in the log, if the
+#: run wrote one; on the Zenoh runtime they then never reach the coordinator at all unless it writes
+#: a log); or ``"counters"``, nothing but the counters (``pipe.stats()``, ``pipe.counts()``): each
+#: record is dropped once the log has it, so a run's memory stays bounded however long it runs, and
+#: after a logged run ``pipe.trace`` reads the trace back from its log. The default is
+#: ``"counters"`` for a logged run on a real-time backend and ``"trace"`` otherwise.
+KEEP = ("trace", "records", "counters")
 
 
 class _NotKept:
@@ -162,7 +165,9 @@ class Trace:
         self.raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
         self._events: list[Event] = []
         self._steps: list[StepRecord] = []
-        #: whether events hold their values (``keep="trace"``), or :data:`NOT_KEPT` in their place
+        #: what the run keeps (KEEP); whether events hold their values (``keep="trace"``), or
+        #: :data:`NOT_KEPT` in their place
+        self.keep = keep
         self.values_kept = keep == "trace"
         self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
@@ -182,7 +187,24 @@ class Trace:
                     done[i] = Event._make(raw[i])
         self._forgotten = max(self._forgotten, upto)
 
+    def discard(self, events: int, steps: int) -> None:
+        """Drop the first ``events`` events and ``steps`` step records (``keep="counters"``: the
+        log has them, or nothing is to keep them)."""
+        del self.raw_events[:events], self.raw_steps[:steps]
+        self._events.clear()
+        self._steps.clear()
+
+    def _need_records(self, what: str) -> None:
+        if self.keep == "counters":
+            where = ("it was logged: read_log('run.mcap').trace() reads it back" if self.log_path is None
+                     else f"read_log('{self.log_path}').trace() reads it back")
+            raise ValuesNotKeptError(
+                f"{what} needs the run's records, and this run kept only counters (keep='counters')\n"
+                f"    hint: pipe.stats() and pipe.counts() hold the counters; if {where}; or run with "
+                "keep='records' or keep='trace' to keep the records in memory")
+
     def _need_values(self, what: str) -> None:
+        self._need_records(what)
         if not self.values_kept:
             where = (f"read_log('{self.log_path}').trace()" if self.log_path is not None
                      else "run it again with log='run.mcap' and read_log('run.mcap').trace()")
@@ -193,6 +215,7 @@ class Trace:
     @property
     def events(self) -> list[Event]:
         """Every event, as :class:`Event`, in recording order."""
+        self._need_records("trace.events")
         done, raw = self._events, self.raw_events
         if len(done) < len(raw):
             done.extend(map(Event._make, raw[len(done):]))
@@ -201,6 +224,7 @@ class Trace:
     @property
     def steps(self) -> list[StepRecord]:
         """Every step record, as :class:`StepRecord`, in recording order."""
+        self._need_records("trace.steps")
         done, raw = self._steps, self.raw_steps
         if len(done) < len(raw):
             done.extend(map(StepRecord._make, raw[len(done):]))
@@ -271,5 +295,32 @@ class Trace:
         return len(self.raw_events)
 
     def __repr__(self) -> str:
+        if self.keep == "counters":
+            return "<Trace: counters only (keep='counters')>"
         values = "" if self.values_kept else ", values not kept"
         return f"<Trace {len(self.raw_events)} events, {len(self.raw_steps)} steps{values}>"
+
+
+class LoggedTrace(Trace):
+    """The trace of a logged run that kept only counters (``keep="counters"``): read back from
+    its log the first time anything asks for it, then held like any trace."""
+
+    def __init__(self, path) -> None:  # noqa: D107 (no Trace.__init__: the records come from the log)
+        self.log_path = path
+        self._read: Trace | None = None
+
+    def _load(self) -> Trace:
+        if self._read is None:
+            from .log import read_log
+
+            self._read = read_log(self.log_path).trace()
+        return self._read
+
+    def __getattr__(self, name: str) -> Any:
+        # everything a Trace holds (raw_events, raw_steps, keep, values_kept, the caches) is the read one's
+        if name.startswith("__") or name in ("log_path", "_read"):
+            raise AttributeError(name)
+        return getattr(self._load(), name)
+
+    def __repr__(self) -> str:
+        return f"<Trace read back from {self.log_path} (keep='counters')>"

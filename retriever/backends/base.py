@@ -96,7 +96,8 @@ class Session(ABC):
         if keep not in KEEP:
             raise BackendError(f"keep={keep!r} is none of {', '.join(map(repr, KEEP))}\n"
                                "    hint: keep='trace' keeps every value in pipe.trace; keep='records' only the "
-                               "events' ids and tags and the step records (the values are in the log)")
+                               "events' ids and tags and the step records (the values are in the log); "
+                               "keep='counters' nothing but the counters (the log has the rest)")
         self.graph = graph
         self.keep = keep
         self.trace = Trace(keep=keep)
@@ -108,6 +109,9 @@ class Session(ABC):
         self.stop_signal: int | None = None  # and which of the two it was
         #: what the run counted that no node owns (COUNTERS; a coordinator's dropped garbage)
         self.own_counts: Counter = Counter()
+        #: the most records (events and steps) the trace held at a hand-over to the log (or, with
+        #: keep="counters" and no log, when it dropped them): bounded under keep="counters"
+        self.retained_peak = 0
 
     @property
     def counts(self) -> Counter:
@@ -131,16 +135,29 @@ class Session(ABC):
         Between two ticks the trace is whole: a requested stop happens here."""
         assert self.log is not None
         self.log.write(self.trace)
-        self.trace.forget_values(self.log.events_written)  # keep="records": freed once written
+        self._note_retained()
+        if self.keep == "counters":
+            self.log.release(self.trace)  # the log has them: memory stays bounded
+        else:
+            self.trace.forget_values(self.log.events_written)  # keep="records": freed once written
         if self.stop_requested:
             raise KeyboardInterrupt
-        now, done = time.monotonic(), len(self.trace.raw_steps)
+        now, done = time.monotonic(), self.log.steps_total
         last_time, last_done = self._log_mark
         self._log_mark = (now, done)
         if now <= last_time or done <= last_done:
             return 1
         rate = (done - last_done) / (now - last_time)
         return max(1, min(self.LOG_BATCH, int(rate * self.LOG_HANDOVER_S)))
+
+    def drop_records(self) -> None:
+        """``keep="counters"`` with no log: nothing is to keep the records, drop them."""
+        if self.keep == "counters" and self.log is None:
+            self._note_retained()
+            self.trace.discard(len(self.trace.raw_events), len(self.trace.raw_steps))
+
+    def _note_retained(self) -> None:
+        self.retained_peak = max(self.retained_peak, len(self.trace.raw_events) + len(self.trace.raw_steps))
 
     @abstractmethod
     def advance(self, until_ns: int) -> None:

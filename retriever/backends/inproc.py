@@ -318,10 +318,12 @@ class InprocSession(Session):
         while heap and heap[0][0] < until_ns:
             if len(steps) >= log_at:
                 if log is not None:
-                    log_at = len(steps) + self.write_log()
+                    batch = self.write_log()  # first: with keep="counters" it empties the trace
+                    log_at = len(steps) + batch
                 else:
                     if self.stop_requested:
                         raise KeyboardInterrupt
+                    self.drop_records()
                     log_at = len(steps) + self.LOG_BATCH
             tag = heappop(heap)
             due = pending.pop(tag)

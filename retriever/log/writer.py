@@ -127,8 +127,12 @@ class LogWriter:
             self._steps_channel = self._mcap.add_channel(fmt.STEPS_TOPIC, fmt.MESSAGE_ENCODING, {})
             self._mcap.flush()
             self._mcap.wait()
-        self._events_done = 0
+        self._events_done = 0  # of the trace's events (in recording order), how many are written
         self._steps_done = 0
+        # records written and then dropped from the trace (keep="counters": release()), before those
+        self._events_released = 0
+        self._steps_released = 0
+        self.last_step_ns = 0  # the latest tick of a step written
         self._faults = 0
         self._encode = Encoder().pack
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
@@ -160,6 +164,18 @@ class LogWriter:
     def events_written(self) -> int:
         """How many of the trace's events are in the log so far (in recording order)."""
         return self._events_done
+
+    @property
+    def steps_total(self) -> int:
+        """How many step records the log has so far."""
+        return self._steps_released + self._steps_done
+
+    def release(self, trace: "Trace") -> None:
+        """Drop from ``trace`` what is written (``keep="counters"``): the log holds it now."""
+        trace.discard(self._events_done, self._steps_done)
+        self._events_released += self._events_done
+        self._steps_released += self._steps_done
+        self._events_done = self._steps_done = 0
 
     def write(self, trace: "Trace") -> None:
         """Encode the records appended to ``trace`` since the last call; flush if it is time.
@@ -196,9 +212,11 @@ class LogWriter:
             records = [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
                             channel, index & u32, tag[0], start) + data
                        for index, (node, tag, consumed, produced, status, detail, start, wall)
-                       in enumerate(new, self._steps_done)]
+                       in enumerate(new, self._steps_released + self._steps_done)]
             tags = list(map(_second, new))
-            self._mcap.add_records(records, min(tags)[0], max(tags)[0], {channel: len(new)})
+            last = max(tags)[0]
+            self.last_step_ns = max(self.last_step_ns, last)
+            self._mcap.add_records(records, min(tags)[0], last, {channel: len(new)})
             self._steps_done = len(steps)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
@@ -247,8 +265,8 @@ class LogWriter:
         try:
             self._write(trace)
         finally:  # a value the codec refused still leaves a finished log that says so
-            end = {"status": status, "end_ns": str(end_ns), "events": str(self._events_done),
-                   "steps": str(self._steps_done), "finished_unix_ns": str(time.time_ns())}
+            end = {"status": status, "end_ns": str(end_ns), "events": str(self._events_released + self._events_done),
+                   "steps": str(self.steps_total), "finished_unix_ns": str(time.time_ns())}
             if error:
                 end["error"] = error
             if stats:

@@ -1,13 +1,14 @@
-"""What a run keeps in memory: ``keep="trace"`` (every value, the default) or ``keep="records"``
-(ids, tags and step records; the values only in the log). On zenoh, without a log, the values
-of a ``records`` run never reach the coordinator, and consumers hold no copies for it."""
+"""What a run keeps in memory: ``keep="trace"`` (every value), ``keep="records"`` (ids, tags and
+step records; the values only in the log) or ``keep="counters"`` (nothing: each record freed once
+logged, the default of a logged real-time run). On zenoh, without a log, the values of a
+``records`` run never reach the coordinator, and consumers hold no copies for it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from retriever import NOT_KEPT, BackendError, Pipeline, Rate, Trigger, ValuesNotKeptError, read_log
+from retriever import NOT_KEPT, BackendError, Flow, Pipeline, Rate, Trigger, ValuesNotKeptError, read_log
 from retriever.log import replay
 
 from .zenoh.payload_flows import Camera, Viewer, frame
@@ -51,7 +52,7 @@ def test_a_records_trace_without_a_log_says_how_to_get_the_values():
 
 
 def test_keep_takes_only_what_it_names():
-    with pytest.raises(BackendError, match=r"keep='everything' is none of 'trace', 'records'\n    hint:"):
+    with pytest.raises(BackendError, match=r"keep='everything' is none of 'trace', 'records', 'counters'\n    hint:"):
         _frames().run(duration=0.1, keep="everything")
 
 
@@ -81,3 +82,62 @@ def test_on_zenoh_with_a_log_a_records_run_logs_every_value_and_keeps_none(tmp_p
     for k, e in enumerate(images, 1):
         assert np.array_equal(e.value.reshape(-1), frame(k, SIZE)), k
     assert replay(log).identical
+
+
+class Tick(Flow):
+    def step(self):
+        return {"k": 1}
+
+
+class Count(Flow):
+    def __init__(self):
+        self.n = 0
+
+    def step(self, k):
+        self.n += k
+        return {"n": self.n}
+
+
+def _fast(hz: float = 1000.0) -> Pipeline:
+    with Pipeline("fast") as pipe:
+        (Tick().configure(name="tick") @ Rate(hz=hz)).then(Count().configure(name="viewer") @ Trigger("k"))
+    return pipe
+
+
+def test_on_inproc_a_counters_run_holds_a_bounded_number_of_records_and_reads_its_trace_from_the_log(tmp_path):
+    """20 000 steps logged: the trace never held more than a hand-over's worth of records (a test
+    that cannot pass while records are retained), and afterwards it reads back from the log as
+    the trace kept in memory would be."""
+    pipe = _fast()
+    trace = pipe.run(duration=10.0, keep="counters", log=tmp_path / "run.mcap")
+    assert sum(s.steps for s in pipe.stats().values()) == 20_000
+    assert 0 < pipe._session.retained_peak <= 2 * pipe._session.LOG_BATCH + 2
+    assert trace == _fast().run(duration=10.0) and len(trace.steps) == 20_000
+    assert "read back from" in repr(trace)
+    log = read_log(tmp_path / "run.mcap")
+    assert log.end["steps"] == "20000" and log.end["events"] == "20000" and replay(log).identical
+
+
+def test_a_counters_run_without_a_log_keeps_counters_and_says_where_the_records_would_be():
+    pipe = _fast()
+    trace = pipe.run(duration=10.0, keep="counters")
+    assert pipe.stats()["viewer"].steps == 10_000 and pipe._session.retained_peak <= 2 * pipe._session.LOG_BATCH + 2
+    assert len(trace.raw_steps) == 0 and "counters only" in repr(trace)
+    for ask in (lambda: trace.events, lambda: trace.steps_of("viewer"), trace.digest):
+        with pytest.raises(ValuesNotKeptError, match=r"kept only counters \(keep='counters'\)\n    hint: pipe.stats"):
+            ask()
+
+
+def test_a_logged_run_on_zenoh_keeps_only_counters_by_default_and_its_trace_reads_back_from_the_log(tmp_path):
+    pipe = _fast(hz=200.0)
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=3.0, backend="zenoh", quiet=True, log=path)
+    session = pipe._session
+    assert session.keep == "counters"
+    steps = sum(s.steps for s in pipe.stats().values())
+    assert steps >= 1000 and session.retained_peak < steps / 5, (session.retained_peak, steps)
+    assert len(trace.steps_of("tick")) == 600 and trace == read_log(path).trace()
+    assert replay(read_log(path)).identical
+    unlogged = _fast(hz=200.0)  # without a log, the default is still the whole trace
+    unlogged.run(duration=0.5, backend="zenoh", quiet=True)
+    assert unlogged._session.keep == "trace" and unlogged.trace.values_kept

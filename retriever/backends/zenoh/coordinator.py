@@ -42,6 +42,7 @@ from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, new_zid, open_hub
 from .loop import RESTART_SEQ_GAP
 from .host import Host, LocalHost, WorkerProcess
+from .seen import EventIds, RecentTicks
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
@@ -209,7 +210,7 @@ class Coordinator(Session):
         self._stats = {nid: NodeStats() for nid in graph.nodes}
         self._restarts = {nid: RestartBudget(node.settings.max_restarts, node.settings.restart_window)
                           for nid, node in graph.nodes.items()}
-        self._event_ids: set[tuple[str, str, int]] = set()
+        self._event_ids = EventIds()  # every event id seen (as runs of seqs: bounded memory)
         # events a consumer's report carried for its producer (loop.HOLD_RECORDS_NS), and per
         # stream the last seq the coordinator has, told to the consumers (control `have`)
         self._carried: set[tuple[str, str, int]] = set()
@@ -220,7 +221,7 @@ class Coordinator(Session):
         # orders messages per key only, so a last report may come after the `done` status
         self._reports = {nid: 0 for nid in graph.nodes}
         self._reports_sent = {nid: 0 for nid in graph.nodes}
-        self._ticks: set[tuple[str, tuple[int, int]]] = set()  # (node, tag) of every step record
+        self._ticks = RecentTicks()  # (node, tag) of the step records seen (the recent ones, then a floor)
         self._failure: tuple[str, dict] | None = None
         self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
         self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
@@ -438,8 +439,11 @@ class Coordinator(Session):
                 self._raise_failure()
             self._check_processes()
             now = time.monotonic()
-            if self.log is not None and now >= next_write:
-                self.write_log()
+            if now >= next_write:
+                if self.log is not None:
+                    self.write_log()
+                else:
+                    self.drop_records()
                 next_write = now + self.LOG_HANDOVER_S
             if now >= next_have:
                 self._tell_have()

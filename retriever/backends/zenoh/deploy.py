@@ -435,4 +435,5 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
 
 DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",
                 "bool": "true or false", "text": "a string", "path": "a file path (a string)",
-                "keep": "\"records\" (values only in the log) or \"trace\" (every value in memory)"}
+                "keep": "\"records\" (values only in the log), \"trace\" (every value in memory) or \"counters\" "
+                        "(nothing but counters)"}

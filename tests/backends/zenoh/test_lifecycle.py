@@ -598,7 +598,7 @@ def _signal_once_going(pipe, namespace: str, node: str, signum: int, pids: dict[
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
             session = pipe._session
-            if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 0:
+            if session is not None and session.t0 is not None and _steps_so_far(session) > 0:
                 pids.update(session.worker_pids())
                 if idents is not None:
                     idents.update({n: _ident(pid) for n, pid in pids.items()})
@@ -663,7 +663,9 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
     thread.start()
     try:
         with pytest.raises(BackendError, match=r"worker process of 'counter' \(pid \d+\) was killed by SIGKILL"):
-            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True, log=path)
+            # keep="trace": the killer watches the records as they arrive (a logged run's default,
+            # keep="counters", drops each once logged)
+            pipe.run(duration=60, backend="zenoh", namespace=namespace, quiet=True, log=path, keep="trace")
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
@@ -687,6 +689,13 @@ def _restartable_chain(name: str, **settings) -> Pipeline:
         total = Total().configure(name="total", on_error="restart", **settings) @ Trigger()
         counter.then(mid, sync=Latest()).then(total, sync=Latest())
     return pipe
+
+
+def _steps_so_far(session) -> int:
+    """Step records the coordinator got so far: those in the trace, and those it logged and let go
+    (a logged run keeps only counters by default)."""
+    log = session.log  # None once the run is over
+    return len(session.trace.raw_steps) + (log.steps_total if log is not None else 0)
 
 
 def _kill_when(pipe: Pipeline, victim: str, ready, kills: list[int], done: threading.Event) -> threading.Thread:
@@ -719,7 +728,7 @@ def test_a_sigkilled_worker_of_a_flow_with_on_error_restart_starts_afresh_and_th
     path = tmp_path / "run.mcap"
     kills: list[int] = []
     done = threading.Event()
-    thread = _kill_when(pipe, victim, lambda session, kills: not kills and len(session.trace.raw_steps) > 60,
+    thread = _kill_when(pipe, victim, lambda session, kills: not kills and _steps_so_far(session) > 60,
                         kills, done)
     try:
         trace = pipe.run(duration=3.0, backend="zenoh", namespace=namespace, quiet=True, log=path)
@@ -772,7 +781,7 @@ def test_two_neighbours_killed_together_both_restart_afresh_at_once(tmp_path, na
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
             session = pipe._session
-            if session is not None and session.t0 is not None and len(session.trace.raw_steps) > 60:
+            if session is not None and session.t0 is not None and _steps_so_far(session) > 60:
                 pids = session.worker_pids()
                 for node in ("mid", "total"):
                     kills.append(pids[node])
@@ -823,7 +832,7 @@ def test_a_killed_let_flow_without_restart_leaves_a_log_that_replays(tmp_path, n
     path = tmp_path / "run.mcap"
     kills: list[int] = []
     done = threading.Event()
-    thread = _kill_when(pipe, "mid", lambda session, kills: not kills and len(session.trace.raw_steps) > 60,
+    thread = _kill_when(pipe, "mid", lambda session, kills: not kills and _steps_so_far(session) > 60,
                         kills, done)
     try:
         with pytest.raises(BackendError, match=r"worker process of 'mid' \(pid \d+\) was killed by SIGKILL"):
@@ -847,7 +856,7 @@ def test_a_flow_fed_back_to_itself_restarts_afresh_after_a_sigkill(tmp_path, nam
         loop.then(loop, sync=Latest(), map={"n": "feedback"})
     kills: list[int] = []
     done = threading.Event()
-    thread = _kill_when(pipe, "loop", lambda session, kills: not kills and len(session.trace.raw_steps) > 40,
+    thread = _kill_when(pipe, "loop", lambda session, kills: not kills and _steps_so_far(session) > 40,
                         kills, done)
     try:
         trace = pipe.run(duration=2.5, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
@@ -890,7 +899,8 @@ def test_a_flow_whose_process_dies_past_its_restart_budget_stops_the_run_naming_
                                                     r"\(max_restarts=1, restart_window=60\): its worker process "
                                                     r"\(pid \d+\) was killed by SIGKILL at t=[\d.]+ s\n"
                                                     r"    hint: fix what makes 'total' fail \(retriever log info"):
-            pipe.run(duration=30, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+            pipe.run(duration=30, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap",
+                     keep="trace")  # ready() reads the records as they come
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
