@@ -73,16 +73,16 @@ def run_zenoh(seconds: float, log: Path) -> dict:
     pipe = build()
     handle = pipe.run(duration=seconds, backend="zenoh", log=log, blocking=False, quiet=True)
     session = None
-    while not handle.done() and (session is None or getattr(session, "t0", None) is None):
+    while not handle.done and (session is None or getattr(session, "t0", None) is None):
         session = pipe._session
         time.sleep(0.01)
-    if handle.done():
+    if handle.done:
         handle.wait()  # raises what stopped it
     pids = {"coordinator (this process)": os.getpid(), **session.worker_pids()}
     samples = []
     t0_wall = session.t0 / 1e9
     due = 0.0
-    while not handle.done():
+    while not handle.done:
         now = time.time() - t0_wall
         if now >= due:
             samples.append({"t": round(now, 2), "rss_mb": {name: rss_mb(pid) for name, pid in pids.items()},
@@ -99,7 +99,7 @@ def run_inproc(seconds: float, log: Path) -> dict:
     handle = pipe.run(duration=seconds, backend="inproc", log=log, keep="counters", blocking=False)
     samples, due, started = [], 0.0, time.monotonic()
     name = "this process (the run, the log)"
-    while not handle.done():
+    while not handle.done:
         session = pipe._session
         writer = getattr(session, "log", None)
         t = writer.last_step_ns / 1e9 if writer is not None else 0.0
