@@ -117,7 +117,7 @@ def run_inproc(seconds: float, log: Path) -> dict:
 def frames_in_log(log: Path) -> dict:
     """Every camera frame in the log, seqs 0..n-1? (reads the message index and headers only)."""
     run = read_log(log)
-    seqs = sorted(e.seq for e in run.iter_events() if e.node == "camera")
+    seqs = sorted(e.seq for e in run.iter_events() if (e.node, e.port) == ("camera", "pixels"))
     missing = (seqs[-1] + 1 - len(seqs)) if seqs else 0
     return {"frames_logged": len(seqs), "first_seq": seqs[0] if seqs else None,
             "last_seq": seqs[-1] if seqs else None, "missing": missing,

@@ -186,16 +186,19 @@ class JointCommand:
 
 
 class RGBCamera(Flow[None, CameraImage]):
-    """A new 640×480 RGB frame each tick (its bytes change with k)."""
+    """A new 640×480 RGB frame each tick: noise (which the log's zstd cannot shrink, unlike a real
+    image: the worst case for the log), one of 16 made in setup(), stamped with k."""
 
     def __init__(self, height: int = 480, width: int = 640):
         self.shape, self.k = (height, width, 3), 0
 
+    def setup(self):
+        self.bank = np.random.default_rng(0).integers(0, 256, (16, *self.shape), dtype=np.uint8)
+
     def step(self) -> CameraImage:
         self.k += 1
-        pixels = np.empty(self.shape, np.uint8)
-        pixels.fill(self.k % 251)
-        pixels[0, : min(8, self.shape[1])] = np.frombuffer(self.k.to_bytes(8, "little"), np.uint8)[: self.shape[1]]
+        pixels = self.bank[self.k % len(self.bank)].copy()
+        pixels.flat[:8] = np.frombuffer(self.k.to_bytes(8, "little"), np.uint8)  # k, in the first bytes
         return CameraImage(self.k, pixels)
 
 
