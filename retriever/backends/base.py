@@ -33,6 +33,8 @@ COUNTERS = {
     "garbage": "messages on the run's key space that were not the run's, dropped",
     "report_waits": "times a node's loop waited for its reporter (recording fell behind)",
     "report_wait_ns": "how long those waits lasted in all, ns",
+    "log_waits": "times the run waited for the log's disk (more than 64 MiB not yet written)",
+    "log_wait_ns": "how long those waits lasted in all, ns",
     "restarts": "times a flow was restarted (on_error='restart'), after its step raised or its process died",
     "crash_restarts": "of those, restarts after the flow's process died (its state could not be handed over)",
     "moves": "times a flow started afresh on another worker after its worker was lost (retriever deploy)",
@@ -91,6 +93,9 @@ class Session(ABC):
     #: aimed for between them (slow steps mean smaller batches, so a kill loses little)
     LOG_BATCH = 4096
     LOG_HANDOVER_S = 0.02
+    #: and the bytes of events aimed for between two hand-overs (big values mean smaller batches:
+    #: a batch is encoded whole before it is written)
+    LOG_BATCH_BYTES = 16 << 20
 
     def __init__(self, graph: Graph, keep: str = "trace"):
         if keep not in KEEP:
@@ -135,6 +140,8 @@ class Session(ABC):
         Between two ticks the trace is whole: a requested stop happens here."""
         assert self.log is not None
         self.log.write(self.trace)
+        if self.log.disk_waits[0]:
+            self.own_counts["log_waits"], self.own_counts["log_wait_ns"] = self.log.disk_waits
         self._note_retained()
         if self.keep == "counters":
             self.log.release(self.trace)  # the log has them: memory stays bounded
@@ -148,7 +155,9 @@ class Session(ABC):
         if now <= last_time or done <= last_done:
             return 1
         rate = (done - last_done) / (now - last_time)
-        return max(1, min(self.LOG_BATCH, int(rate * self.LOG_HANDOVER_S)))
+        per_step = self.log.last_bytes / (done - last_done)
+        by_bytes = int(self.LOG_BATCH_BYTES / per_step) if per_step else self.LOG_BATCH
+        return max(1, min(self.LOG_BATCH, by_bytes, int(rate * self.LOG_HANDOVER_S)))
 
     def drop_records(self) -> None:
         """``keep="counters"`` with no log: nothing is to keep the records, drop them."""

@@ -16,6 +16,8 @@ most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriev
 from __future__ import annotations
 
 import struct
+import threading
+import time
 import zlib
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -41,6 +43,9 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
+#: Uncompressed chunk bytes queued for the I/O thread at most: past it, whoever adds messages
+#: waits for the disk (a run faster than its disk would otherwise grow its memory without bound)
+MAX_BYTES_QUEUED = 64 << 20
 #: The head of a Message record: ``MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data),
 #: channel_id, sequence & 0xFFFFFFFF, log_time, publish_time) + data`` is the whole record.
 MESSAGE_HEAD = struct.Struct("<BQHIQQ")
@@ -74,6 +79,10 @@ class McapWriter:
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix="retriever-log-io")
+        self._queued = 0  # chunk bytes handed to the I/O thread and not yet written
+        self._written = threading.Condition()
+        #: how often adding messages waited for the disk (MAX_BYTES_QUEUED), and for how long in all
+        self.waits, self.waited_ns = 0, 0
         self._failure: BaseException | None = None
         self._submit(self._write, MAGIC)
         self._submit(self._write_record, Header(profile=profile, library=library))
@@ -89,7 +98,9 @@ class McapWriter:
             try:
                 job(*args)
             except BaseException as e:  # reported to the caller at its next call
-                self._failure = e
+                with self._written:  # a caller waiting for the disk stops waiting
+                    self._failure = e
+                    self._written.notify_all()
 
     def _write(self, data: bytes | bytearray) -> None:
         self._stream.write(data)
@@ -185,9 +196,24 @@ class McapWriter:
         self._chunk, self._chunk_times = bytearray(), None
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
+        with self._written:
+            if self._queued > MAX_BYTES_QUEUED and self._failure is None:
+                began = time.monotonic_ns()
+                self.waits += 1
+                self._written.wait_for(lambda: self._queued <= MAX_BYTES_QUEUED or self._failure is not None)
+                self.waited_ns += time.monotonic_ns() - began
+            self._queued += len(data)
         self._submit(self._write_chunk, data, start, end)
 
     def _write_chunk(self, data: bytearray, start: int, end: int) -> None:
+        try:
+            self._compress_and_write(data, start, end)
+        finally:
+            with self._written:
+                self._queued -= len(data)
+                self._written.notify_all()
+
+    def _compress_and_write(self, data: bytearray, start: int, end: int) -> None:
         compressed = self._compressor.compress(data)
         chunk_offset, chunk_length = self._write_record(Chunk(
             message_start_time=start, message_end_time=end, uncompressed_size=len(data),

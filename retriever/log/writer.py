@@ -133,6 +133,7 @@ class LogWriter:
         self._events_released = 0
         self._steps_released = 0
         self.last_step_ns = 0  # the latest tick of a step written
+        self.last_bytes = 0  # the events' bytes of the last write() that had events
         self._faults = 0
         self._encode = Encoder().pack
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
@@ -164,6 +165,11 @@ class LogWriter:
     def events_written(self) -> int:
         """How many of the trace's events are in the log so far (in recording order)."""
         return self._events_done
+
+    @property
+    def disk_waits(self) -> tuple[int, int]:
+        """How often adding records waited for the disk, and how long in all (ns)."""
+        return self._mcap.waits, self._mcap.waited_ns
 
     @property
     def steps_total(self) -> int:
@@ -205,6 +211,7 @@ class LogWriter:
             counts = Counter(map(_node_port, new))
             self._mcap.add_records(records, min(tags)[0], max(tags)[0],
                                    {channels[key]: n for key, n in counts.items()})
+            self.last_bytes = sum(map(len, records))
             self._events_done = len(events)
         if len(steps) > self._steps_done:
             pack, channel = self._pack_step, self._steps_channel

@@ -150,3 +150,33 @@ def test_a_disk_that_fills_during_the_run_stops_it(tmp_path: Path, backend):
     assert salvaged.steps > 0 and read_log(salvaged.output).complete
     if backend == "inproc":  # a real-time log cut mid-run may hold a step whose output event was not written yet
         assert replay(read_log(salvaged.output)).identical
+
+
+def test_a_writer_faster_than_its_disk_waits_for_it_instead_of_queueing_without_bound(tmp_path, monkeypatch):
+    """Chunks go to the I/O thread; past MAX_BYTES_QUEUED of them not yet written, adding messages
+    waits for the disk. A slow disk here: 40 chunks of 1 MiB, 4 MiB allowed in flight."""
+    import io
+    import time
+
+    from mcap.reader import make_reader
+
+    from retriever.log import mcap_writer
+
+    class SlowDisk(io.BytesIO):
+        def write(self, data):
+            time.sleep(0.002)
+            return super().write(data)
+
+    monkeypatch.setattr(mcap_writer, "MAX_BYTES_QUEUED", 4 << 20)
+    stream = SlowDisk()
+    writer = mcap_writer.McapWriter(stream, profile="retriever")
+    channel = writer.add_channel("data/camera/image", "msgpack", {})
+    frame, most = bytes(1 << 20), 0
+    for k in range(40):
+        writer.add_message(channel, k, k, k, frame)
+        writer.flush()
+        most = max(most, writer._queued)
+    writer.finish()
+    assert writer.waits > 0 and most <= (4 << 20) + (1 << 20) + 1024, (writer.waits, most)
+    stream.seek(0)
+    assert sum(1 for _ in make_reader(stream).iter_messages()) == 40
