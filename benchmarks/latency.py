@@ -22,6 +22,8 @@ For each payload size (uint8 numpy arrays), in one run of this script:
   and puts ``array.tobytes()`` with ``[seq, sent_ns]`` as the attachment; the subscriber turns
   the payload back into an array (``np.frombuffer(sample.payload.to_bytes())``) and takes
   ``time.time_ns()``. Same peer mode, same loopback TCP as the Retriever workers.
+- ``raw-iter``: the same, with the plainest subscriber of all: ``for sample in subscriber:``
+  over Zenoh's default FIFO channel instead of a callback (a thread hands each sample over).
 
 Per size, each side runs ``--rounds`` times, interleaved (raw, zenoh, inproc, then the reverse
 order, ...), so that the machine's drift over a minute falls on all sides alike; each run sends
@@ -147,8 +149,10 @@ def _config(listen: str | None = None, connect: str | None = None):
     return c
 
 
-def raw_sub(key: str, listen: str, total: int, timeout: float) -> int:
-    """Subscribe; on each sample: array from the payload, then the receive time. Print JSON."""
+def raw_sub(key: str, listen: str, total: int, timeout: float, iterate: bool = False) -> int:
+    """Subscribe; on each sample: array from the payload, then the receive time. Print JSON.
+    ``iterate``: the plainest subscriber a user writes, ``for sample in subscriber:`` (Zenoh's
+    default FIFO channel), rather than a callback."""
     import zenoh
 
     got: list[tuple[int, int, int, int, int]] = []
@@ -164,7 +168,17 @@ def raw_sub(key: str, listen: str, total: int, timeout: float) -> int:
             done.set()
 
     with zenoh.open(_config(listen=listen)) as session:
-        sub = session.declare_subscriber(key, on_sample)
+        if iterate:
+            sub = session.declare_subscriber(key)
+
+            def drain() -> None:
+                for sample in sub:
+                    on_sample(sample)
+                    if done.is_set():
+                        return
+            threading.Thread(target=drain, daemon=True).start()
+        else:
+            sub = session.declare_subscriber(key, on_sample)
         print("READY", flush=True)
         done.wait(timeout)
         sub.undeclare()
@@ -203,14 +217,15 @@ def raw_pub(key: str, connect: str, size: int, total: int, hz: float, subscriber
     return 0
 
 
-def run_raw(size: int, total: int, hz: float, warmup: int, extra_sub: bool, express: bool = False) -> dict:
+def run_raw(size: int, total: int, hz: float, warmup: int, extra_sub: bool, express: bool = False,
+            iterate: bool = False) -> dict:
     key = f"bench/latency/{os.getpid()}/{size}"
     port = free_port()
     listen = f"tcp/127.0.0.1:{port}"
     timeout = total / hz + 30
     me = [sys.executable, str(Path(__file__).resolve())]
-    subs = [subprocess.Popen(me + ["--raw-sub", key, listen, str(total), str(timeout)],
-                             stdout=subprocess.PIPE, text=True)]
+    subs = [subprocess.Popen(me + ["--raw-sub-iter" if iterate else "--raw-sub", key, listen, str(total),
+                                   str(timeout)], stdout=subprocess.PIPE, text=True)]
     if extra_sub:  # the "hub": a second subscriber, which the publisher also connects to
         port2 = free_port()
         subs.append(subprocess.Popen(me + ["--raw-sub", key, f"tcp/127.0.0.1:{port2}", str(total), str(timeout)],
@@ -443,8 +458,8 @@ def codec_costs(sizes: list[int], hz: float, n: int) -> None:
 # ---------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] == "--raw-sub":
-        return raw_sub(argv[1], argv[2], int(argv[3]), float(argv[4]))
+    if argv and argv[0] in ("--raw-sub", "--raw-sub-iter"):
+        return raw_sub(argv[1], argv[2], int(argv[3]), float(argv[4]), iterate=argv[0] == "--raw-sub-iter")
     if argv and argv[0] == "--raw-pub":
         return raw_pub(argv[1], argv[2], int(argv[3]), int(argv[4]), float(argv[5]), int(argv[6]), argv[7] == "express")
 
@@ -455,7 +470,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hz", type=float, default=20.0, help="publish rate (default 20)")
     p.add_argument("--samples", type=int, default=100, help="samples kept per size and side (default 100)")
     p.add_argument("--warmup", type=int, default=10, help="first messages dropped (default 10)")
-    p.add_argument("--sides", default="raw,zenoh,inproc", help="comma-separated: raw, zenoh, inproc")
+    p.add_argument("--sides", default="raw,raw-iter,zenoh,inproc",
+                   help="comma-separated: raw (a callback subscriber), raw-iter (`for sample in subscriber:`), "
+                        "zenoh, inproc")
     p.add_argument("--control", action="store_true",
                    help="also run raw zenoh a second time per round (side raw2, right after retriever-zenoh) and "
                         "print raw2/raw: the ratio two identical sides reach in this run, i.e. its noise")
@@ -520,7 +537,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
 
     rows = []
-    order = [side for side in ("raw", "zenoh", "raw2", "inproc") if side in sides]
+    order = [side for side in ("raw", "raw-iter", "zenoh", "raw2", "inproc") if side in sides]
     per_round = args.warmup + -(-args.samples // args.rounds)
     total = per_round * args.rounds
     for size in sizes:
@@ -531,8 +548,9 @@ def main(argv: list[str] | None = None) -> int:
         unseen: list[str] = []
         for r in range(args.rounds):  # interleaved, order reversed every other round: drift hits all sides
             for side in order if r % 2 == 0 else order[::-1]:
-                out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express)
-                       if side in ("raw", "raw2")
+                out = (run_raw(size, per_round, args.hz, args.warmup, args.raw_hub, args.raw_express,
+                               iterate=side == "raw-iter")
+                       if side in ("raw", "raw2", "raw-iter")
                        else run_retriever(size, per_round, args.hz, args.warmup, side))
                 lat[side] += out["lat"]
                 received[side] += out["received"]
@@ -541,7 +559,7 @@ def main(argv: list[str] | None = None) -> int:
             row[side] = {**summary(lat[side]), "received": received[side]}
         rows.append(row)
         parts = [f"{k} med {row[k]['med']:.0f} µs ({row[k]['received']}/{total} received)"
-                 for k in ("raw", "zenoh", "raw2", "inproc") if k in row]
+                 for k in ("raw", "raw-iter", "zenoh", "raw2", "inproc") if k in row]
         print(f"  {fmt_size(size):>8}: " + ", ".join(parts) + f"  [{time.perf_counter() - t:.1f} s]", flush=True)
         for line in unseen:  # a frame the sink never stepped on: sent after the run's end, or lost?
             print(f"            {line}", flush=True)
@@ -578,6 +596,19 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{fmt_size(r['size']):>8} │ {raw['med']:>7.0f} {raw2['med']:>7.0f} │ {raw2['med'] / raw['med']:>8.2f} "
                   f"{f'{lo:.2f}–{hi:.2f}':>11} │ {zen['med'] / raw2['med']:>10.2f}")
         print()
+    iter_ok = True
+    if "raw-iter" in sides and "zenoh" in sides:
+        print("against the plainest subscriber a user writes (`for sample in subscriber:`, Zenoh's FIFO channel):")
+        print(f"{'payload':>8} │ {'raw-iter µs':>11} {'raw µs':>7} │ {'zenoh/raw-iter':>14} {'95% CI':>11} │ "
+              f"≤{TARGET_RATIO:g}× (median)")
+        for r in rows:
+            it, raw, zen = r["raw-iter"], r.get("raw", {"med": nan}), r["zenoh"]
+            lo, hi = ratio_interval(zen["lat"], it["lat"])
+            ok = zen["med"] / it["med"] <= TARGET_RATIO
+            iter_ok &= ok
+            print(f"{fmt_size(r['size']):>8} │ {it['med']:>11.0f} {raw['med']:>7.0f} │ {zen['med'] / it['med']:>14.2f} "
+                  f"{f'{lo:.2f}–{hi:.2f}':>11} │ {'PASS' if ok else 'MISS'}")
+        print()
     print("latency = receiver's time.time_ns() with the array in hand − sender's time.time_ns() before the send;")
     print("inproc hand-off = wall time from the source's step returning to the sink's step starting (virtual time,")
     print("one thread, array passed by reference): the in-process scheduler's cost, not a transport latency.")
@@ -589,6 +620,9 @@ def main(argv: list[str] | None = None) -> int:
     if "raw" in sides and "zenoh" in sides:
         print(f"target: retriever-zenoh median <= {TARGET_RATIO:g}x raw zenoh at every size -> "
               f"{'met' if all_ok else 'NOT met'}")
+        if "raw-iter" in sides:
+            print(f"target: retriever-zenoh median <= {TARGET_RATIO:g}x raw-iter zenoh at every size -> "
+                  f"{'met' if iter_ok else 'NOT met'}")
         # not the issue's target, but no less a fault: each is listed above with its cause
         print("every frame stepped on by retriever-zenoh's sink -> "
               + (f"NO ({'; '.join(short)} received)" if short else "yes"))
