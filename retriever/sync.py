@@ -46,7 +46,7 @@ class _Missing:
 MISSING: Any = _Missing()
 
 # Trim consumed history in batches so per-tick cost stays O(1) amortized.
-_TRIM_BATCH = 64
+_TRIM_BATCH = 16
 
 
 class PortBuffer:

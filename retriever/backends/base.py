@@ -95,7 +95,7 @@ class Session(ABC):
     LOG_HANDOVER_S = 0.02
     #: and the bytes of events aimed for between two hand-overs (big values mean smaller batches:
     #: a batch is encoded whole before it is written)
-    LOG_BATCH_BYTES = 16 << 20
+    LOG_BATCH_BYTES = 8 << 20
 
     def __init__(self, graph: Graph, keep: str = "trace"):
         if keep not in KEEP:

@@ -45,7 +45,7 @@ from mcap.records import (
 MAGIC = b"\x89MCAP0\r\n"
 #: Uncompressed chunk bytes queued for the I/O thread at most: past it, whoever adds messages
 #: waits for the disk (a run faster than its disk would otherwise grow its memory without bound)
-MAX_BYTES_QUEUED = 64 << 20
+MAX_BYTES_QUEUED = 32 << 20
 #: The head of a Message record: ``MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data),
 #: channel_id, sequence & 0xFFFFFFFF, log_time, publish_time) + data`` is the whole record.
 MESSAGE_HEAD = struct.Struct("<BQHIQQ")
