@@ -220,3 +220,31 @@ class JointController(Flow[ActionChunk, JointCommand]):
         self.row = 0 if inp.k != self.last else min(self.row + 1, len(inp.actions) - 1)
         self.last = inp.k
         return JointCommand(inp.actions[self.row].copy())
+
+
+# ---------------------------------------------------------------------------------------------
+# throughput.py: small messages, one flow to another, as fast as they go
+# ---------------------------------------------------------------------------------------------
+class SmallSource(Flow):
+    """A 64-byte array each tick, its first 8 bytes the tick's number."""
+
+    def __init__(self, size: int = 64):
+        self.size, self.k = size, 0
+
+    def step(self):
+        data = np.zeros(self.size, np.uint8)
+        data[:8] = np.frombuffer(self.k.to_bytes(8, "little"), np.uint8)
+        self.k += 1
+        return {"data": data}
+
+
+class Tally(Flow):
+    """Counts what it was given (a Queue's list) and the highest number seen."""
+
+    def __init__(self):
+        self.n, self.top = 0, -1
+
+    def step(self, data):
+        self.n += len(data)
+        self.top = max(self.top, int.from_bytes(data[-1][:8].tobytes(), "little"))
+        return {"n": self.n, "top": self.top}
