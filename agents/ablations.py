@@ -20,14 +20,18 @@ from __future__ import annotations
 
 import argparse
 import csv
-import multiprocessing
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from .retriever0 import ABLATIONS
 
+REPO = Path(__file__).resolve().parents[1]
 EPISODE_S = 150.0
 FIELDS = ("condition", "seed", "task", "drawer", "score", "best_at", "finished", "gave_up", "failures", "replans",
           "duration", "skills", "digest", "wall_s", "error")
@@ -51,22 +55,42 @@ def episode(condition: str, seed: int, slip_prob: float, duration: float = EPISO
 
 
 def run_all(conditions, seeds, slip_prob: float, jobs: int, progress=None, task: str = "drawers") -> list[dict]:
-    """Every (condition, seed) episode, ``jobs`` at a time, in order; an episode that raised is a
-    row with its ``error`` (and no score), not the end of the others."""
+    """Every (condition, seed) episode, ``jobs`` at a time, in order, each in a process of its own
+    that hands back its row as JSON (nothing pickled); an episode that raised is a row with its
+    ``error`` (and no score), not the end of the others."""
     tasks = [(c, s) for c in conditions for s in seeds]
     rows = []
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(episode, c, s, slip_prob, EPISODE_S, task) for c, s in tasks]
-        for (condition, seed), future in zip(tasks, futures):
-            try:
-                row = future.result()
-            except Exception as e:
-                row = {**dict.fromkeys(FIELDS, ""), "condition": condition, "seed": seed, "task": task, "score": 0.0,
-                       "error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
-            rows.append(row)
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = [pool.submit(_episode_in_a_process, c, s, slip_prob, task) for c, s in tasks]
+        for future in futures:
+            rows.append(future.result())
             if progress is not None:
-                progress(row)
+                progress(rows[-1])
     return rows
+
+
+def _episode_in_a_process(condition: str, seed: int, slip_prob: float, task: str) -> dict:
+    command = [sys.executable, "-m", "agents.ablations", "--episode", condition, str(seed), repr(slip_prob), task]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    done = subprocess.run(command, capture_output=True, text=True, env=env)
+    lines = done.stdout.strip().splitlines()
+    try:
+        answer = json.loads(lines[-1])
+    except (IndexError, ValueError):
+        last = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
+        answer = {"error": f"the episode's process failed: {last}"}
+    if "error" in answer and "condition" not in answer:
+        return {**dict.fromkeys(FIELDS, ""), "condition": condition, "seed": seed, "task": task, "score": 0.0,
+                "error": answer["error"]}
+    return answer
+
+
+def _episode_answer(condition: str, seed: int, slip_prob: float, task: str) -> dict:
+    """``--episode``: one episode's row, or its error, for the process that asked."""
+    try:
+        return episode(condition, seed, slip_prob, EPISODE_S, task)
+    except Exception as e:
+        return {"error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"}
 
 
 def _mean_std(values: list[float]) -> str:
@@ -115,6 +139,11 @@ def plot(rows: list[dict], conditions, path: Path) -> None:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--episode"]:  # one episode, in a process run_all started
+        condition, seed, slip_prob, task = argv[1:5]
+        print(json.dumps(_episode_answer(condition, int(seed), float(slip_prob), task)))
+        return 0
     parser = argparse.ArgumentParser(prog="python -m agents.ablations", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=20, help="episodes per condition (seeds 0..N-1)")
     parser.add_argument("--first-seed", type=int, default=0)

@@ -29,19 +29,6 @@ from dataclasses import dataclass
 class RetrieverError(Exception):
     """Base class of every error Retriever raises on purpose."""
 
-    def __reduce__(self):
-        # Errors built from parts (a node, a tag, a cause) keep their message in ``args``, which
-        # the default pickling would pass back to ``__init__``: rebuild from the message and the
-        # attributes instead, so an error crosses a multiprocessing pool as it was raised.
-        return (_restore_error, (type(self), self.args, self.__dict__))
-
-
-def _restore_error(cls: type, args: tuple, state: dict) -> "RetrieverError":
-    error = cls.__new__(cls)
-    Exception.__init__(error, *args)
-    error.__dict__.update(state)
-    return error
-
 
 @dataclass(frozen=True)
 class Problem:

@@ -740,21 +740,3 @@ def test_internal_error_says_it_is_a_bug_in_retriever():
     assert str(InternalError("heap out of order")) == (
         "heap out of order (this is a bug in Retriever, not in your program; please report it)")
 
-
-def test_every_error_survives_pickling_across_a_process_pool():
-    """A user's multiprocessing pool pickles what a worker raised: each error comes back with its
-    type, message and attributes (errors built from parts used to fail to unpickle)."""
-    import pickle
-
-    from retriever.errors import (CausalityError, IRError, LogError, PlacementError, Problem, RestartLimitError,
-                                  SetupError, StepError)
-    cause = ValueError("bad input")
-    errors = [StepError("policy", (5, 0), cause), SetupError("policy", cause), SetupError("cam", "no device"),
-              RestartLimitError("policy", (5, 1), cause, 3, 1.0), RestartLimitError("policy", None, "died", 3, 1.0),
-              CausalityError(["a", "b"], (0, 3), 100), IRError("x.json", ["nodes: missing"]),
-              GraphError("p", [Problem("bad edge", "fix it")]), PlacementError("d.toml", [Problem("no host")]),
-              LogError("corrupt", "recover it"), InternalError("oops")]
-    for error in errors:
-        back = pickle.loads(pickle.dumps(error))
-        assert type(back) is type(error) and str(back) == str(error)
-        assert {k: repr(v) for k, v in vars(back).items()} == {k: repr(v) for k, v in vars(error).items()}

@@ -33,7 +33,7 @@ def test_bad_arguments_are_refused(args, tmp_path):
 
 
 def test_an_episode_that_raises_is_a_row_with_its_error_not_the_end_of_the_run():
-    """The error crosses the process pool and the table leaves it out."""
+    """The error comes back from the episode's process as text and the table leaves it out."""
     rows = run_all(["full"], [0], 0.0, jobs=1, task="nowhere")
     assert len(rows) == 1 and rows[0]["error"].startswith("ValueError") and "nowhere" in rows[0]["error"]
     assert "| full | 0 |" in table(rows, ["full"])
