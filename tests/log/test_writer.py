@@ -154,29 +154,43 @@ def test_a_disk_that_fills_during_the_run_stops_it(tmp_path: Path, backend):
 
 def test_a_writer_faster_than_its_disk_waits_for_it_instead_of_queueing_without_bound(tmp_path, monkeypatch):
     """Chunks go to the I/O thread; past MAX_BYTES_QUEUED of them not yet written, adding messages
-    waits for the disk. A slow disk here: 40 chunks of 1 MiB, 4 MiB allowed in flight."""
+    waits for the disk. A disk that takes nothing until the test opens it: 40 chunks of 1 MiB, 4 MiB
+    allowed in flight; the writer must stop and wait, holding no more than that."""
     import io
-    import time
+    import threading
 
     from mcap.reader import make_reader
 
     from retriever.log import mcap_writer
 
-    class SlowDisk(io.BytesIO):
+    class ShutDisk(io.BytesIO):
+        def __init__(self):
+            super().__init__()
+            self.open = threading.Event()
+
         def write(self, data):
-            time.sleep(0.002)
+            self.open.wait()
             return super().write(data)
 
     monkeypatch.setattr(mcap_writer, "MAX_BYTES_QUEUED", 4 << 20)
-    stream = SlowDisk()
+    stream = ShutDisk()
     writer = mcap_writer.McapWriter(stream, profile="retriever")
     channel = writer.add_channel("data/camera/image", "msgpack", {})
-    frame, most = bytes(1 << 20), 0
-    for k in range(40):
-        writer.add_message(channel, k, k, k, frame)
-        writer.flush()
-        most = max(most, writer._queued)
+    frame, most = bytes(1 << 20), [0]
+
+    def produce():
+        for k in range(40):
+            writer.add_message(channel, k, k, k, frame)
+            writer.flush()
+            most[0] = max(most[0], writer._queued)
+    producer = threading.Thread(target=produce)
+    producer.start()
+    while writer.waits == 0 and producer.is_alive():  # it stops at the bound: nothing is written yet
+        producer.join(0.01)
+    assert writer.waits == 1 and producer.is_alive() and writer._queued <= (4 << 20) + (1 << 20) + 1024
+    stream.open.set()
+    producer.join()
     writer.finish()
-    assert writer.waits > 0 and most <= (4 << 20) + (1 << 20) + 1024, (writer.waits, most)
+    assert most[0] <= (4 << 20) + (1 << 20) + 1024, most
     stream.seek(0)
     assert sum(1 for _ in make_reader(stream).iter_messages()) == 40
