@@ -31,21 +31,10 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from latency import free_port  # noqa: E402
+from latency import _config, free_port  # noqa: E402  (the raw sides' zenoh config)
 
 TARGET = 0.5
 SIZE = 64
-
-
-def _config(listen: str | None = None, connect: str | None = None):
-    import zenoh
-
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
-    c.insert_json5("connect/endpoints", json.dumps([connect] if connect else []))
-    return c
 
 
 def raw_sub(key: str, listen: str, timeout: float) -> int:

@@ -435,7 +435,7 @@ def _realtime(backend: str | None) -> bool:
 def _forget(session: Session) -> None:
     """What the run keeps no more at its end: the values (keep="records"), the records of an
     unlogged run (keep="counters"); the log has them, or nothing does."""
-    if session.log is None and not isinstance(session.trace, LoggedTrace):
+    if not isinstance(session.trace, LoggedTrace):
         session.drop_records()
         session.trace.forget_values()
 

@@ -119,9 +119,10 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
     session = InprocSession(graph)
-    session.set_up(skip=from_the_log(graph))
+    logged = from_the_log(graph)
+    session.set_up(skip=logged)
     try:
-        return _replay(log, graph, session, progress)
+        return _replay(log, graph, session, logged, progress)
     finally:
         session.close()
 
@@ -133,7 +134,8 @@ def from_the_log(graph) -> frozenset[str]:
                      if not node.inputs or node.flow._retriever.replay == "log")
 
 
-def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int, int], None] | None) -> ReplayReport:
+def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
+            progress: Callable[[int, int], None] | None) -> ReplayReport:
     routes = session.take_routes()
     trace = session.trace
     encode = Encoder().pack
@@ -172,7 +174,6 @@ def _replay(log: RunLog, graph, session: InprocSession, progress: Callable[[int,
     lost = {event_id for fault in log.faults for event_id in fault["lost_events"]} - logged.keys()
     floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
 
-    sources = from_the_log(graph)
     # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
     # is then checked for causality (after the tick), not recomputed.
     realtime = log.run.get("backend", "inproc") != "inproc"
@@ -425,11 +426,12 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
 
     session = InprocSession(graph)
     values = {e.id: e.value for e in original.events}
-    for nid in from_the_log(graph):
+    logged = from_the_log(graph)
+    for nid in logged:
         ticks = sorted((s for s in original.steps if s.node == nid and s.status != "skipped"), key=lambda s: s.tag)
         session.replace_step(nid, iter([[(i[1], values[i]) for i in s.produced] for s in ticks]))
     try:
-        session.set_up(skip=from_the_log(graph))
+        session.set_up(skip=logged)
         session.advance(horizon)
     except StepError as e:
         return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
