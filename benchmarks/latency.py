@@ -270,7 +270,7 @@ def build(size: int, hz: float):
 
 def run_retriever(size: int, total: int, hz: float, warmup: int, backend: str) -> dict:
     pipe = build(size, hz)
-    options = {"quiet": True} if backend == "zenoh" else {}
+    options = {"quiet": True} if backend != "inproc" else {}
     trace = pipe.run(duration=total / hz, backend=backend, **options)
     events = sorted((ev for ev in trace.events if ev.node == "sink"), key=lambda ev: ev.seq)
     if any(ev.value[2] != size for ev in events):

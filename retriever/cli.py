@@ -131,7 +131,8 @@ _KEEP = typer.Option(
 def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(
-        help="Backend: inproc (virtual time, one process) or zenoh (real time, a process per flow). "
+        help="Backend: inproc (virtual time, one process), zenoh (real time, a process per flow), or dora "
+             "(real time, a dora dataflow: pip install 'retriever[dora]'). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
                                                   "inf: until Ctrl-C (or SIGTERM).")] = 10.0,
@@ -158,9 +159,10 @@ def run(
         duration, shown = UNTIL_STOPPED_S, "until stopped"
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep),
                                  ("foxglove", foxglove)) if v is not None}
-    if foxglove is not None and canonical(backend or default_backend()) != "zenoh":
-        _fail(BackendError("--foxglove streams a real-time run: it needs --backend zenoh\n    hint: for an in-process "
-                           "run, write a log and open its export: retriever log export run.mcap -o view.mcap"))
+    if foxglove is not None and canonical(backend or default_backend()) not in ("zenoh", "dora"):
+        _fail(BackendError("--foxglove streams a real-time run: it needs --backend zenoh or dora\n    hint: for an "
+                           "in-process run, write a log and open its export: "
+                           "retriever log export run.mcap -o view.mcap"))
     if virtual_time:
         if canonical(backend or default_backend()) != "zenoh":
             _fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"

@@ -242,7 +242,7 @@ def test_run_an_ir_whose_flows_cannot_be_found_names_the_folder(tmp_path: Path):
 
 def test_run_unknown_backend():
     result = cli("run", str(QUICKSTART), "--backend", "ros2", "--duration", "1")
-    assert_cli_error(result, r"^error: unknown backend 'ros2'; available: inproc, zenoh$")
+    assert_cli_error(result, r"^error: unknown backend 'ros2'; available: dora, inproc, zenoh$")
 
 
 def test_run_a_step_that_raises(tmp_path: Path):

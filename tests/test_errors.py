@@ -403,15 +403,15 @@ def test_connect_with_bad_edge_options(kwargs, message):
 
 
 def test_unknown_backend_names_the_available_ones():
-    with pytest.raises(BackendError, match=r"unknown backend 'ros2'; available: inproc, zenoh"):
+    with pytest.raises(BackendError, match=r"unknown backend 'ros2'; available: dora, inproc, zenoh"):
         retriever.init(backend="ros2")
-    assert retriever.available_backends() == ["inproc", "zenoh"]
+    assert retriever.available_backends() == ["dora", "inproc", "zenoh"]
 
 
 def test_run_on_an_unknown_backend():
     with Pipeline("p") as pipe:
         NumSource() @ Rate(hz=1)
-    with pytest.raises(BackendError, match=r"unknown backend 'zenoh-x'; available: inproc"):
+    with pytest.raises(BackendError, match=r"unknown backend 'zenoh-x'; available: dora, inproc"):
         pipe.run(duration=1, backend="zenoh-x")
 
 

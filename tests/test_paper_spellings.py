@@ -1,14 +1,21 @@
 """The seed paper's spellings of the API (issue 19 §4): its imports, flows with ``run``, its
-backend names and ``blocking=``. (Its listing runs on "dora", which is not built yet.)"""
+backend names and ``blocking=``; and its Listing 4 as printed (tests/listings/), on each backend it names."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
-from retriever import BackendError
 from retriever import StepError, read_log
 from retriever.log import replay
 from tests.paper_flows import build, build_ending
+
+ROOT = Path(__file__).resolve().parents[1]
+LISTING4 = ROOT / "tests" / "listings" / "listing4_latency.py"
 
 
 @pytest.mark.parametrize("backend", ["in-process", "multiprocessing"])
@@ -21,10 +28,20 @@ def test_a_flow_whose_method_is_run_steps_on_the_papers_backend_names(backend):
     assert pipe._session.backend_name == ("inproc" if backend == "in-process" else "zenoh")
 
 
-def test_the_dora_backend_says_it_is_not_built_yet():
-    with pytest.raises(BackendError, match=r"the dora backend is not built yet(.|\n)*hint: run on "
-                                           r"backend='multiprocessing'"):
-        build().run(backend="dora", duration=0.1)
+@pytest.mark.parametrize("backend", ["dora", "multiprocessing", "in-process"])
+def test_the_papers_latency_benchmark_runs_as_printed_on_each_backend_it_names(backend, tmp_path):
+    """issue 19 §4: Listing 4, as printed (argparse at import, ``run`` methods, blocking=True),
+    started as its authors did: ``python listing4_latency.py --backend B`` in a directory that has
+    its results folder. Its sink writes a CSV row from its second step on, in the worker's working
+    directory: the caller's, on every backend."""
+    results = tmp_path / "experiments" / "benchmarks" / "results"
+    results.mkdir(parents=True)
+    done = subprocess.run([sys.executable, str(LISTING4), "--backend", backend, "--duration", "1"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = (results / f"retriever_{backend}_benchmark_results.csv").read_text().splitlines()
+    assert rows[0] == "name,platform,size,latency_ns" and rows[1].startswith(f"Retriever {backend},COMPUTER_PERF,")
 
 
 def test_a_run_in_the_background_returns_a_handle_with_the_same_trace():

@@ -9,10 +9,11 @@ _default = "inproc"
 
 
 def _registry() -> dict[str, Backend]:
+    from .dora import DoraBackend
     from .inproc import InprocBackend
     from .zenoh import ZenohBackend
 
-    return {"inproc": InprocBackend(), "zenoh": ZenohBackend()}
+    return {"dora": DoraBackend(), "inproc": InprocBackend(), "zenoh": ZenohBackend()}
 
 
 def available_backends() -> list[str]:
@@ -33,10 +34,6 @@ def canonical(name: str) -> str:
 def _lookup(name: str) -> Backend:
     registry = _registry()
     name = canonical(name)
-    if name == "dora":
-        raise BackendError("the dora backend is not built yet (it is on the roadmap: a dora dataflow per pipeline)\n"
-                           "    hint: run on backend='multiprocessing' (the local Zenoh runtime: a process per flow) "
-                           "or 'in-process'")
     if name not in registry:
         raise BackendError(f"unknown backend {name!r}; available: {', '.join(sorted(registry))}\n"
                            f"    hint: use backend=\"inproc\" for deterministic virtual time")

@@ -20,7 +20,7 @@ from .test_conformance import (
     Source, SparseSource, UntypedSparse, WindowQueueRecorder,
 )
 
-REALTIME_BACKENDS = ["inproc", "zenoh"]
+REALTIME_BACKENDS = ["inproc", "zenoh", "dora"]
 DURATION = 1.0
 GENEROUS = 5.0  # seconds a tick may wait for its inputs
 

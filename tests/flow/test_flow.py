@@ -525,5 +525,5 @@ def test_init_sets_the_backend_run_uses(restore_default_backend):
 def test_a_failed_init_keeps_the_previous_backend(restore_default_backend):
     retriever.init(backend="inproc")
     with pytest.raises(retriever.BackendError):
-        retriever.init(backend="dora")
+        retriever.init(backend="ros2")
     assert default_backend() == "inproc"

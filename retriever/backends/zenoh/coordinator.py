@@ -141,9 +141,7 @@ class Coordinator(Session):
             self.watch_config = (access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
                                  if access else None)
             if not quiet:
-                watch = (f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber on "
-                         if access else "anyone on its network may join it (insecure); watch it with a subscriber on ")
-                print(f"retriever: {self._where()} (namespace '{self.namespace}'); {watch}{self.keys.all_data()}",
+                print(f"retriever: {self._where()} (namespace '{self.namespace}'); {self._how_to_watch()}",
                       file=sys.stderr, flush=True)
             self._listen()
             self._spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
@@ -188,6 +186,13 @@ class Coordinator(Session):
     def _where(self) -> str:
         """Where the run's hub is, for the line that says how to watch it."""
         return f"Zenoh hub listening on {self.endpoint}"
+
+    def _how_to_watch(self) -> str:
+        """How a plain Zenoh client sees the run's events, for the line that says where it is."""
+        if self.watch_config is None:
+            return f"anyone on its network may join it (insecure); watch it with a subscriber on {self.keys.all_data()}"
+        return (f"watch it read-only with zenoh.Config.from_file('{self.watch_config}') and a subscriber on "
+                f"{self.keys.all_data()}")
 
     def _listen(self) -> None:
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
@@ -349,7 +354,7 @@ class Coordinator(Session):
                 why = "its worker stopped before the run's start reached it"
             idle.append(f"    {nid} ({node.clock!r}): 0 of {due} ticks; {why}")
         if idle:
-            raise BackendError(f"zenoh run: {len(idle)} flow(s) never ticked in the run's {self.end_ns / 1e9:g} s, "
+            raise BackendError(f"{self.backend_name} run: {len(idle)} flow(s) never ticked in the run's {self.end_ns / 1e9:g} s, "
                                "though their clocks had ticks due:\n" + "\n".join(idle)
                                + "\n    hint: a machine too loaded to start the run's processes in time needs a "
                                f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
@@ -455,7 +460,7 @@ class Coordinator(Session):
                 if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
                     for nid in waiting:
                         self._workers[nid].kill()
-                raise BackendError(f"zenoh run: worker(s) {', '.join(waiting)} did not {what} in time\n"
+                raise BackendError(f"{self.backend_name} run: worker(s) {', '.join(waiting)} did not {what} in time\n"
                                    + "".join(f"    {n} stderr (its stacks last):\n{self._stderr_tail(n, 60)}\n"
                                              for n in waiting)
                                    + ("    hint: a flow that takes longer to load needs pipe.run(..., startup_timeout="
@@ -841,7 +846,7 @@ class Coordinator(Session):
             failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
             failure.args = (failure.args[0] + where,)
             raise failure
-        raise BackendError(f"zenoh run stopped: {error}{where}")
+        raise BackendError(f"{self.backend_name} run stopped: {error}{where}")
 
     # ---------------------------------------------------------------------------------------
     # Stopping

@@ -251,7 +251,7 @@ def _bins(data: bytes) -> list[memoryview]:
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
     """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key.
     Its arrays are read-only views of ``data``."""
-    if not isinstance(data, (bytes, bytearray, mmap.mmap)):
+    if not isinstance(data, (bytes, bytearray, mmap.mmap, memoryview)):  # a view: of a dora input's buffer
         raise WireError(f"a data message must be bytes, got {type(data).__name__}")
     envelope, *buffers = _bins(data)
     try:

@@ -25,6 +25,7 @@ said nothing: as if killed).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import faulthandler
 import importlib.util
@@ -204,7 +205,13 @@ def build_loop(spec: dict, node_id: str, session):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
-    return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
+    loop_class, transport = NodeLoop, {}
+    if spec.get("dora"):  # the dora backend: events and progress over dora (backends/dora/link.py)
+        from ..dora.dataflow import DoraNames
+        from ..dora.link import DoraNodeLoop
+
+        loop_class, transport = DoraNodeLoop, {"names": DoraNames.from_spec(spec["dora"])}
+    return loop_class(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
@@ -213,7 +220,8 @@ def build_loop(spec: dict, node_id: str, session):
                     # CUDA context, a device handle): it steps on the thread that set it up
                     inline=not on_a_cycle(ir.edges, node_id) and type(node.flow).setup is Flow.setup,
                     cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
-                    max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")))
+                    max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")),
+                    **transport)
 
 
 def instant_ports(ir, node_id: str) -> frozenset[str]:
@@ -259,11 +267,34 @@ def main(argv: list[str]) -> int:
     parent = os.getppid()
     run_dir = Path(argv[0]).parent
     threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
+    code = EXIT_FAILED
     try:
-        return _serve(argv, parent)
+        code = _serve(argv, parent)
+        return code
     finally:
+        if _exit_file is not None:  # started by dora: how it ended, for the coordinator (not its parent)
+            with contextlib.suppress(OSError):
+                _exit_file.write_text(str(code))
         if _orphaned(parent):
             _remove_run_dir(run_dir)
+
+
+#: started by dora: the file that tells the coordinator this process's exit code
+_exit_file: Path | None = None
+
+
+def _started_by_dora(spec: dict, dora_id: str, run_dir: Path) -> str:
+    """A worker that dora started (backends/dora): its node id, from its dora id. The coordinator,
+    which is not its parent, learns its pid from ``<node>.pid`` and its exit code from
+    ``<node>.exit`` (host.py there); it works in the coordinator's directory, as a child would."""
+    global _exit_file
+    from ..dora.dataflow import DoraNames
+
+    node_id = DoraNames.from_spec(spec["dora"]).node_of(dora_id)
+    (run_dir / f"{node_id}.pid").write_text(str(os.getpid()))
+    _exit_file = run_dir / f"{node_id}.exit"
+    os.chdir(spec["dora"]["cwd"])
+    return node_id
 
 
 def _orphaned(parent: int) -> bool:
@@ -294,6 +325,8 @@ def _serve(argv: list[str], parent: int) -> int:
     join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
     fresh = argv[2:5] if len(argv) >= 5 and argv[2] == "--fresh" else None
     spec = json.loads(Path(spec_path).read_text())
+    if spec.get("dora"):  # started by dora (backends/dora): its argument is the node's dora id
+        node_id = worker.serving = _started_by_dora(spec, node_id, Path(spec_path).parent)
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
             sys.path.insert(0, path)

@@ -1,0 +1,35 @@
+"""The dora backend (the seed paper's ``pipe.run(backend="dora")``): the pipeline compiled to a
+dora dataflow, run by dora's own runtime (the ``dora-rs`` and ``dora-rs-cli`` packages).
+
+    dataflow.py     the IR as a dora dataflow descriptor (YAML): one node per flow
+    link.py         a worker's loop whose events and progress go over dora
+    host.py         ``dora run`` starting the workers, and what they print
+    coordinator.py  the zenoh backend's coordinator over those workers: T0, reports, the trace, the log
+
+Each flow runs in its own process, rebuilt from the IR, with the same loop as on the zenoh
+backend (clocks, sync policies, deadlines, LET, step records: the same trace and the same log);
+only the events between flows travel over dora. The run's control plane (start, stop, reports,
+frontier queries) stays on its private Zenoh hub.
+"""
+
+from __future__ import annotations
+
+from ...errors import BackendError
+from ...graph import Graph
+from ..base import Backend
+
+
+class DoraBackend(Backend):
+    name = "dora"
+    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "keep", "foxglove")
+
+    def open(self, graph: Graph, **options: object):
+        unknown = sorted(set(options) - set(self.OPTIONS))
+        if unknown:
+            hint = (" (lockstep virtual time is the zenoh backend's: backend='zenoh', virtual_time=True)"
+                    if "virtual_time" in unknown else "")
+            raise BackendError(f"the dora backend takes no options {unknown} (it accepts "
+                               f"{', '.join(self.OPTIONS)}){hint}")
+        from .coordinator import DoraCoordinator
+
+        return DoraCoordinator(graph, **options)

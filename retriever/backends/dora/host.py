@@ -1,0 +1,218 @@
+"""Where a dora run's worker processes run: ``dora run`` starts them all, from the dataflow.
+
+    DoraHost         starts ``dora run dataflow.yml`` (one dora node per flow) in the run's
+                     directory, and reads what it prints (JSON lines): each node's output goes to
+                     the coordinator's stdout prefixed with the node, as on the zenoh backend
+    DoraNodeProcess  one node's worker process, as the coordinator sees it (``pid``, ``poll()``...):
+                     dora's child, not the coordinator's; it says its pid and, at its end, its exit
+                     code in files of the run's directory (worker.py, ``_started_by_dora``)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+
+from ...errors import BackendError
+from ..zenoh.host import Host
+from ..zenoh.output import _WRITING, WorkerOutput
+
+#: a node whose process is gone without saying how it ended (killed, or a crash): its exit code
+LOST = 255
+#: how long ``dora run`` has to end once every node ended, before it is stopped
+DORA_EXIT_S = 5.0
+#: how long after a node's process is seen gone, without its exit file, dora has to say how it
+#: ended (``exited because of signal SIGKILL``), before it counts as LOST
+DORA_SAYS_S = 1.0
+_KILLED_BY = re.compile(r"exited because of signal (SIG[A-Z0-9]+)")
+
+
+def dora_command() -> str:
+    """The ``dora`` command: next to this interpreter (a venv's), else on PATH."""
+    beside = Path(sys.executable).parent / "dora"
+    found = str(beside) if beside.is_file() else shutil.which("dora")
+    if found is None:
+        raise BackendError("the dora backend needs dora's runtime, which is not installed\n"
+                           "    hint: pip install 'retriever[dora]' (the dora-rs and dora-rs-cli packages)")
+    try:
+        import dora  # noqa: F401  (the workers' node API)
+    except ImportError:
+        raise BackendError("the dora backend needs dora's Python node API (the dora-rs package), which is not "
+                           "installed\n    hint: pip install 'retriever[dora]'") from None
+    return found
+
+
+class NodeOutput(WorkerOutput):
+    """A node's lines as dora prints them: stdout and stderr in one stream, so every line is kept
+    for error messages (a traceback) and written to the coordinator's stdout."""
+
+    def feed(self, name: str, line: str) -> None:
+        self._tail.append(line)
+        self.stderr_lines += 1
+        if self.forwarding:
+            super().feed("stdout", line)
+
+    def drain(self, timeout: float = 1.0) -> None:
+        pass  # the host's pump reads every node's lines (DoraHost.drain)
+
+
+class DoraHost(Host):
+    """This machine, through ``dora run``: started once with every node of the run."""
+
+    name = "dora"
+
+    def __init__(self, dataflow: Path, nodes: dict[str, str]):
+        super().__init__()
+        self.dir = dataflow.parent
+        self.by_dora_id = {dora_id: nid for nid, dora_id in nodes.items()}
+        self.tail: deque[str] = deque(maxlen=50)  # dora's own warnings and errors
+        self.signalled: dict[str, int] = {}  # node -> the signal that ended its process, as dora said
+        self.proc = subprocess.Popen([dora_command(), "run", str(dataflow), "--log-format", "json"],
+                                     cwd=self.dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                     stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent)
+        self._pump = threading.Thread(target=self._read, daemon=True, name="retriever-dora-output")
+        self._pump.start()
+
+    def output(self, node: str) -> WorkerOutput:
+        output = self._outputs.get(node)
+        if output is None:
+            output = self._outputs[node] = NodeOutput(node)
+        return output
+
+    def spawn(self, node: str, mode: Sequence[str] = ()) -> "DoraNodeProcess":
+        if mode:  # a restart's new process: dora started the dataflow's processes once
+            raise BackendError(f"the dora backend cannot start another process for '{node}'")
+        return DoraNodeProcess(node, self)
+
+    def _read(self) -> None:
+        with self.proc.stdout as pipe:
+            for raw in iter(pipe.readline, b""):
+                self._line(raw.decode(errors="replace").rstrip("\r\n"))
+
+    def _line(self, line: str) -> None:
+        try:
+            record = json.loads(line)
+            level, message, dora_id = record["level"], str(record["message"]), record.get("node_id")
+        except (ValueError, KeyError, TypeError):  # not one of its JSON lines (its last words are plain text)
+            self.tail.append(line)
+            return
+        node = self.by_dora_id.get(dora_id)
+        if level == "stdout" and node is not None:
+            self.output(node).feed("stdout", message)
+            return
+        text = f"{dora_id or 'dora'}: {message}"
+        if level in ("ERROR", "WARN"):  # kept for the error that names a failed node
+            self.tail.append(text)
+            if node is not None:
+                self.output(node)._tail.append(f"(dora) {message}")
+                killed = _KILLED_BY.search(message)
+                if killed and hasattr(signal, killed.group(1)):
+                    self.signalled[node] = getattr(signal, killed.group(1))
+        if level == "ERROR":  # (dora 1.1 warns of every message on the daemon's route: not shown)
+            with _WRITING, contextlib.suppress(OSError, ValueError, AttributeError):
+                sys.stderr.write(f"[dora] {text}\n")
+                sys.stderr.flush()
+
+    def drain(self, timeout: float = 1.0) -> None:
+        self._pump.join(timeout)
+
+    def stop(self) -> None:
+        """``dora run`` ends by itself once every node ended; else (a node stuck, or never
+        started) it is told to stop as Ctrl-C would, then killed with whatever it started."""
+        try:
+            self.proc.wait(timeout=DORA_EXIT_S)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(timeout=DORA_EXIT_S)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+        self.drain()
+
+
+class DoraNodeProcess:
+    """One node's worker process under dora: what ``subprocess.Popen`` would say of it."""
+
+    def __init__(self, node: str, host: DoraHost):
+        self.node, self.host = node, host
+        self._pid: int | None = None
+        self.returncode: int | None = None
+        self._gone_since: float | None = None
+
+    @property
+    def pid(self) -> int:
+        """Its pid, once it said it (-1 before)."""
+        if self._pid is None:
+            with contextlib.suppress(OSError, ValueError):
+                self._pid = int((self.host.dir / f"{self.node}.pid").read_text())
+        return -1 if self._pid is None else self._pid
+
+    def poll(self) -> int | None:
+        if self.returncode is not None:
+            return self.returncode
+        pid = self.pid
+        if pid < 0:  # not started yet: unless dora is gone, which then never will
+            code = self.host.proc.poll()
+            if code is not None:
+                self.returncode = code or LOST
+            return self.returncode
+        if _alive(pid):
+            return None
+        try:
+            self.returncode = int((self.host.dir / f"{self.node}.exit").read_text())
+        except (OSError, ValueError):  # it did not get to say: dora says which signal ended it
+            signum = self.host.signalled.get(self.node)
+            if signum is not None:
+                self.returncode = -signum
+            elif self._gone_since is None or time.monotonic() - self._gone_since < DORA_SAYS_S:
+                self._gone_since = self._gone_since or time.monotonic()
+                return None
+            else:
+                self.returncode = LOST
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        give_up = None if timeout is None else time.monotonic() + timeout
+        while (code := self.poll()) is None:
+            if give_up is not None and time.monotonic() >= give_up:
+                raise subprocess.TimeoutExpired(f"dora node {self.node}", timeout)
+            time.sleep(0.02)
+        return code
+
+    def send_signal(self, sig: int) -> None:
+        if self.poll() is None and self.pid > 0:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, sig)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, which dora has yet to reap, does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] not in "ZX"
+
+
+def _die_with_parent() -> None:
+    """In ``dora run``, before exec: SIGTERM to it when the coordinator dies (Linux)."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG

@@ -1,0 +1,33 @@
+"""Flows of the dora backend's tests: importable, so that each worker process rebuilds them."""
+
+from __future__ import annotations
+
+from retriever import Flow
+
+from ..zenoh.lifecycle_flows import Count
+
+
+class Extra(Flow):
+    """Untyped: emits ``x`` and ``note``; no edge takes ``note``."""
+
+    def __init__(self):
+        super().__init__()
+        self.i = 0
+
+    def step(self):
+        self.i += 1
+        return {"x": self.i, "note": f"tick {self.i - 1}"}
+
+
+class Raises(Flow[Count, Count]):
+    """Raises ValueError at its ``at``-th step."""
+
+    def __init__(self, at: int):
+        super().__init__()
+        self.at, self.i = at, 0
+
+    def step(self, inp: Count) -> Count:
+        self.i += 1
+        if self.i == self.at:
+            raise ValueError("third time")
+        return inp

@@ -1,0 +1,194 @@
+"""The dora backend with dora's real runtime (`dora run`), real worker processes and real logs.
+
+The conformance suite's real-time part (test_let_conformance.py) and the lifecycle tests
+(test_setup_teardown.py) run on it too; here: the dataflow it compiles, the log and its replay,
+what it refuses, a step that raises, a killed worker, and no process left behind.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
+from retriever.backends.dora import host as dora_host
+from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
+from retriever.log import replay
+
+from ..test_conformance import Echo, EchoOpt, Source
+from ..zenoh.lifecycle_flows import Counter, Total, two_node_pipeline
+from .dora_flows import Extra, Raises
+
+BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def _let_chain(name: str = "chain") -> Pipeline:
+    """src @ 20 Hz ──value──▶ echo @ Trigger ──saw──▶ slow @ 10 Hz: LET everywhere, so its trace is inproc's."""
+    with Pipeline(name, deadline=5.0) as pipe:
+        src = Source().named("src").configure(latency=0.01) @ Rate(20)
+        echo = Echo().named("echo").configure(latency=0.005) @ Trigger("x")
+        slow = EchoOpt().named("slow").configure(latency=0.02) @ Rate(10, offset=0.015)
+        src.then(echo, sync=Latest(), map={"value": "x"})
+        echo.then(slow, sync=Latest(), map={"saw": "x"})
+    return pipe
+
+
+def _alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] not in "ZX"
+
+
+def _nothing_left(session) -> None:
+    """The run's `dora run` and every worker it started are gone."""
+    assert session._dora.proc.poll() is not None, "dora run outlived its run"
+    alive = {nid: pid for nid, pid in session.worker_pids().items() if pid > 0 and _alive(pid)}
+    assert not alive, f"worker(s) {alive} outlived the run"
+
+
+# ---------------------------------------------------------------------------------------------
+# The dataflow
+# ---------------------------------------------------------------------------------------------
+def test_the_dataflow_has_a_node_per_flow_an_output_per_port_and_progress_for_consumed_flows():
+    names = DoraNames.of(_let_chain().compile().to_ir().doc)
+    doc = yaml.safe_load(dataflow_yaml("chain", names, "/venv/bin/python", "/run/spec.json", "/src"))
+    nodes = {n["id"]: n for n in doc["nodes"]}
+    assert sorted(nodes) == ["echo", "slow", "src"]
+    assert nodes["src"]["args"] == "-m retriever.backends.zenoh.worker /run/spec.json src"
+    assert nodes["src"]["path"] == "/venv/bin/python" and nodes["src"]["env"] == {"PYTHONPATH": "/src"}
+    assert nodes["src"]["outputs"] == ["value", PROGRESS]
+    assert nodes["slow"]["outputs"] == ["saw"] and "inputs" not in nodes["src"]  # slow: nobody consumes it
+    queue = {"queue_size": QUEUE_SIZE, "queue_policy": "backpressure"}  # dora's direct route lost events
+    assert nodes["echo"]["inputs"] == {"src__value": {"source": "src/value", **queue},
+                                       "src__progress": {"source": "src/progress", **queue}}
+
+
+def test_ids_dora_would_refuse_are_renamed_and_mapped_back():
+    doc = {"nodes": [{"id": "cam.left", "outputs": {"progress": {}, "img": {}}}, {"id": "dora", "outputs": {}}],
+           "edges": [{"source": {"node": "cam.left", "port": "progress"},
+                      "destination": {"node": "dora", "port": "x"}}]}
+    names = DoraNames.of(doc)
+    assert names.nodes == {"cam.left": "n0", "dora": "n1"}
+    assert names.outputs["cam.left"] == {"img": "img", "progress": "o1"}  # the port named like the progress output
+    assert names.inputs["dora"] == {"n0__o1": ["cam.left", "progress"], "n0__progress": ["cam.left", None]}
+    assert names.node_of("n0") == "cam.left"
+    flow = yaml.safe_load(dataflow_yaml("odd", names, "/py", "/spec.json", "/src"))
+    assert [n["id"] for n in flow["nodes"]] == ["n0", "n1"] and flow["nodes"][0]["outputs"] == ["img", "o1", PROGRESS]
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs
+# ---------------------------------------------------------------------------------------------
+def test_a_logged_run_is_inprocs_trace_and_replays_identically(tmp_path):
+    path = tmp_path / "run.mcap"
+    pipe = _let_chain()
+    trace = pipe.run(duration=1.0, backend="dora", quiet=True, log=path)
+    reference = _let_chain().run(duration=1.0, backend="inproc")
+    assert trace.first_difference(reference) is None and trace.digest() == reference.digest()
+    log = read_log(path)
+    assert log.end["status"] == "finished" and log.run["backend"] == "dora"
+    assert replay(log).identical
+    _nothing_left(pipe._session)
+
+
+def test_an_output_no_edge_takes_is_logged(tmp_path):
+    """An untyped flow's extra key has no dora output (nobody consumes it): still in the trace."""
+    with Pipeline("extra") as pipe:
+        extra = Extra().named("extra").configure(latency=0.01) @ Rate(10)
+        sink = EchoOpt().named("sink").configure(latency=0.01) @ Trigger("x")
+        extra.then(sink, sync=Latest(), map={"x": "x"})
+    trace = pipe.run(duration=0.5, backend="dora", quiet=True, keep="trace")
+    assert trace.values_of("extra", "note") == [f"tick {i}" for i in range(5)]
+    assert len(trace.steps_of("sink")) == 5
+
+
+def test_a_step_that_raises_stops_the_run_with_the_workers_traceback():
+    with Pipeline("raises") as pipe:
+        src = Counter() @ Rate(hz=20)
+        bad = Raises(at=3).named("bad") @ Trigger()
+        src.then(bad, sync=Latest())
+    with pytest.raises(StepError, match=r"bad\.step\(\) raised RemoteError: ValueError: third time(.|\n)*"
+                                        r"worker traceback:(.|\n)*dora_flows\.py"):
+        pipe.run(duration=5.0, backend="dora", quiet=True)
+    _nothing_left(pipe._session)
+
+
+def test_a_sigkilled_worker_stops_the_run_naming_its_node():
+    pipe = two_node_pipeline("killdora")
+    pids: dict[str, int] = {}
+    done = threading.Event()
+
+    def kill_once_going() -> None:
+        give_up = time.monotonic() + BOUND_S
+        while not done.is_set() and time.monotonic() < give_up:
+            session = pipe._session
+            if session is not None and session.t0 is not None and session.trace.raw_steps:
+                pids.update(session.worker_pids())
+                os.kill(pids["total"], signal.SIGKILL)
+                return
+            time.sleep(0.02)
+
+    killer = threading.Thread(target=kill_once_going, daemon=True)
+    killer.start()
+    try:
+        with pytest.raises(BackendError) as caught:
+            pipe.run(duration=60.0, backend="dora", quiet=True, keep="trace")
+    finally:
+        done.set()
+        killer.join(BOUND_S)
+    assert pids, "the killer never saw the run going"
+    message = str(caught.value)
+    assert f"worker process of 'total' (pid {pids['total']}) was killed by SIGKILL" in message, message
+    _nothing_left(pipe._session)
+
+
+# ---------------------------------------------------------------------------------------------
+# What it refuses, before anything starts
+# ---------------------------------------------------------------------------------------------
+def test_a_flow_that_restarts_in_a_new_process_is_refused():
+    with Pipeline("restart") as pipe:
+        src = Counter() @ Rate(hz=20)
+        total = Total().configure(name="total", on_error="restart") @ Trigger()
+        src.then(total, sync=Latest())
+    with pytest.raises(BackendError, match=r"cannot restart a flow in a new process \(on_error='restart' on total\)"
+                                           r"(.|\n)*hint: use on_error='skip_tick' or 'stop', or run on "
+                                           r"backend='zenoh'"):
+        pipe.run(duration=1.0, backend="dora")
+
+
+def test_virtual_time_is_refused_with_where_it_is():
+    with pytest.raises(BackendError, match=r"takes no options \['virtual_time'\](.|\n)*backend='zenoh', "
+                                           r"virtual_time=True"):
+        _let_chain().run(duration=1.0, backend="dora", virtual_time=True)
+
+
+def test_without_dora_installed_the_error_says_what_to_install(monkeypatch, tmp_path):
+    monkeypatch.setattr(dora_host.sys, "executable", str(tmp_path / "python"))  # no dora beside it
+    monkeypatch.setattr(dora_host.shutil, "which", lambda name: None)
+    with pytest.raises(BackendError, match=r"needs dora's runtime, which is not installed\n"
+                                           r"    hint: pip install 'retriever\[dora\]'"):
+        _let_chain().run(duration=1.0, backend="dora")
+
+
+def test_retriever_run_takes_backend_dora(tmp_path):
+    log = tmp_path / "run.mcap"
+    done = subprocess.run([sys.executable, "-m", "retriever", "run", "tests/backends/zenoh/lifecycle_flows.py:pipe",
+                           "--backend", "dora", "--duration", "0.5", "--log", str(log)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=BOUND_S * 2)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "on dora" in done.stdout + done.stderr
+    assert read_log(log).run["backend"] == "dora"
+    replayed = subprocess.run([sys.executable, "-m", "retriever", "replay", str(log)], cwd=ROOT,
+                              capture_output=True, text=True, timeout=BOUND_S)
+    assert replayed.returncode == 0, replayed.stdout + replayed.stderr
