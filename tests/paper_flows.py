@@ -50,22 +50,22 @@ class EndingSource(Flow[None, RandomSequence]):
     """Ends the whole run from its step, as the paper's benchmark does: ``sys.exit(code)`` at
     its ``at``-th step."""
 
-    def __init__(self, at: int, code: int = 0):
+    def __init__(self, at: int, code: int = 0, size: int = 4):
         super().__init__()
-        self.at, self.code, self.i = at, code, 0
+        self.at, self.code, self.size, self.i = at, code, size, 0
 
     def run(self, _):
         self.i += 1
         if self.i == self.at:
             print("Benchmarking data collection complete!")
             sys.exit(self.code)
-        return RandomSequence(data=np.full(4, self.i, dtype=np.uint64))
+        return RandomSequence(data=np.full(self.size, self.i, dtype=np.uint64))
 
 
-def build_ending(at: int, code: int = 0) -> Pipeline:
-    pipe = Pipeline("ending")
+def build_ending(at: int, code: int = 0, size: int = 4, deadline: float | None = None) -> Pipeline:
+    pipe = Pipeline("ending") if deadline is None else Pipeline("ending", deadline=deadline)
     with pipe:
-        source = EndingSource(at, code).configure(name="source") @ Rate(hz=20)
+        source = EndingSource(at, code, size).configure(name="source") @ Rate(hz=20)
         sink = SinkFlow().configure(name="sink") @ Trigger("data")
         pipe.connect(source, sink, sync=Latest())
     return pipe

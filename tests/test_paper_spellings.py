@@ -78,6 +78,21 @@ def test_sys_exit_0_in_a_step_ends_the_whole_run_cleanly_and_the_log_replays(bac
     assert replay(read_log(log)).identical
 
 
+@pytest.mark.parametrize("backend", ["multiprocessing", "dora"])
+def test_what_was_sent_before_a_sys_exit_still_reaches_its_consumer(backend):
+    """sys.exit(0) at the source's 5th tick ends the run then, as if that were its end: its 4
+    big frames (8 MiB each, the last one sent 50 ms before the exit, or less on a slow machine)
+    may still be on their way, and each reaches the sink within its deadline (generous here: on
+    a loaded machine dora's daemon took 0.3 s to deliver them), which still steps on it (the run
+    used to stop every flow at once). No tick runs past the exit: the sink steps on nothing more."""
+    pipe = build_ending(at=5, size=1 << 20, deadline=10.0)
+    trace = pipe.run(backend=backend, duration=30.0, quiet=True)
+    assert [s.status for s in trace.steps_of("source")] == ["ok"] * 5
+    assert [s.consumed["data"][0][2] for s in trace.steps_of("sink")] == [0, 1, 2, 3]
+    exit_tag = trace.steps_of("source")[-1].tag
+    assert all(s.tag < (exit_tag[0] + 1_000_000_000, 0) for s in trace.steps), "a tick long after the exit"
+
+
 def test_sys_exit_with_another_code_is_that_steps_error():
     with pytest.raises(StepError, match=r"source\.step\(\) raised SystemExit: 3"):
         build_ending(at=3, code=3).run(duration=1.0)

@@ -354,8 +354,8 @@ class Coordinator(Session):
                 why = "its worker stopped before the run's start reached it"
             idle.append(f"    {nid} ({node.clock!r}): 0 of {due} ticks; {why}")
         if idle:
-            raise BackendError(f"{self.backend_name} run: {len(idle)} flow(s) never ticked in the run's {self.end_ns / 1e9:g} s, "
-                               "though their clocks had ticks due:\n" + "\n".join(idle)
+            raise BackendError(f"{self.backend_name} run: {len(idle)} flow(s) never ticked in the run's "
+                               f"{self.end_ns / 1e9:g} s, though their clocks had ticks due:\n" + "\n".join(idle)
                                + "\n    hint: a machine too loaded to start the run's processes in time needs a "
                                f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
 
@@ -536,11 +536,15 @@ class Coordinator(Session):
             # past the grant (one it was told by someone else): it reached this one on the way
             self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
             return
-        if state == "exit":  # its step called sys.exit(0): the whole run ends now, cleanly
+        if state == "exit":  # its step called sys.exit(0): the whole run ends there, cleanly
             if self.t0 is not None and not self._stop_sent:
                 self._stop_sent = True
                 self.ended_by = node
-                self._control("stop", {})
+                # as if the run ended now: no tick at or past the exit, but every event sent before
+                # it (each stamped before now, the exit's tag may be earlier on a late node) still
+                # reaches the ticks it triggers, within their deadline, as at any run's end
+                tag = info.get("tag")
+                self._control("end", {"at": max(tag[0] if _is_tag(tag) else 0, self._run_time())})
             return
         if state == "unanswered":  # before the start: its neighbours declare themselves again
             nodes = info.get("nodes")

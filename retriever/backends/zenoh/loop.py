@@ -218,6 +218,7 @@ class NodeLoop:
         self.sending: tuple[int, int] | None = None  # lowest tag of outputs being put right now
         self.t0 = 0
         self.end = 0
+        self.promised_end = 0
         # run() began: before, the end is not known, and a frontier past (0, 0) no promise it can
         # keep (with end 0 it said NEVER: "finished", and a consumer ran on without it)
         self.started = False
@@ -420,6 +421,7 @@ class NodeLoop:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
         self.t0, self.end = t0, end
+        self.promised_end = end  # what producers' frontiers are checked against (an `end` may come sooner)
         self.started = True
         if resume and not self.virtual:  # (in virtual time no tick came due meanwhile: time waited)
             self._skip_missed_ticks(self.now(), "restart_skipped", "restart_skipped")
@@ -700,6 +702,13 @@ class NodeLoop:
                 return
             if op == "stop":
                 self.stopping = self.told_to_stop = True
+            elif op == "end":  # a step's sys.exit(0) ended the run there: the ticks before it still run
+                at = args.get("at")
+                if type(at) is int and at >= 0:
+                    with self.lock:
+                        self.end = min(self.end, at)
+                else:
+                    self._garbage("ctl/run", WireError(f"an 'end' control message with at {at!r:.30}"))
             elif op == "redeclare":  # only for a node not started yet (worker._await_control)
                 self._garbage("ctl/run", WireError("a 'redeclare' control message during the run"))
             elif op == "handover" and args.get("node") == self.id and self.restarting:
@@ -736,12 +745,13 @@ class NodeLoop:
             return
         if frontier > NEVER:
             raise WireError(f"frontier {frontier} of {stream[0]} is past every tag a run has")
-        if self.end and frontier[0] > self.end + self.src_latency_ns[stream] + 1:  # the run started: end known
+        end = self.promised_end
+        if end and frontier[0] > end + self.src_latency_ns[stream] + 1:  # the run started: end known
             # past the run's end plus the producer's latency only an ASAP stamp can be, near the clock
             limit = self.now() + CLOCK_AHEAD_MAX_NS
             if frontier[0] > limit:
                 raise WireError(f"frontier {frontier} of {stream[0]} is past what it can promise now (t <= "
-                                f"{self.end + self.src_latency_ns[stream] + 1} ns, the run's end plus its latency, "
+                                f"{end + self.src_latency_ns[stream] + 1} ns, the run's end plus its latency, "
                                 f"or {limit} ns, its clock)")
 
     def _arrived(self, stream: tuple[str, str], data: bytes, now: int) -> None:
