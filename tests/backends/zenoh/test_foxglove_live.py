@@ -8,6 +8,7 @@ import asyncio
 import json
 import threading
 
+import pytest
 import websockets
 
 from retriever import Pipeline, Rate, Trigger
@@ -19,7 +20,8 @@ BOUND_S = 30.0  # a bound on any wait, never a speed check
 MESSAGE_DATA = 0x01  # the Foxglove WebSocket protocol's binary opcode of a message
 
 
-def test_a_websocket_client_gets_the_channels_and_the_messages_of_a_running_pipeline():
+@pytest.mark.parametrize("backend", ["zenoh", "dora"])  # (dora: the view is the coordinator's, as on zenoh)
+def test_a_websocket_client_gets_the_channels_and_the_messages_of_a_running_pipeline(backend):
     with Pipeline("live") as pipe:
         cam = Cam().configure(name="cam") @ Rate(hz=10)
         stats = Stats().configure(name="stats") @ Trigger("rgb")
@@ -29,7 +31,7 @@ def test_a_websocket_client_gets_the_channels_and_the_messages_of_a_running_pipe
 
     def run() -> None:
         try:  # keep="records": the view still gets the values (it asks for them, as a log does)
-            pipe.run(duration=4.0, backend="zenoh", quiet=True, foxglove=port, keep="records")
+            pipe.run(duration=4.0, backend=backend, quiet=True, foxglove=port, keep="records")
         except BaseException as e:  # noqa: BLE001 - reported by the test below
             failure.append(e)
 
