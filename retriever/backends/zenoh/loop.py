@@ -48,8 +48,10 @@ NEVER = (1 << 62, 0)
 #: how long a blocked tick waits for a data or progress message before asking the producer
 PROBE_AFTER_NS = 500_000
 #: how long step records and published events may wait before they go to the coordinator, and
-#: at most how many records or bytes of events go at once
-FLUSH_AFTER_NS = 20_000_000
+#: at most how many records or bytes of events go at once. Every report wakes the reporter's
+#: thread and the coordinator: at 20 ms, an idle 100 Hz flow reported every other tick (issue 21:
+#: idle cost). Nothing waits on a report for less: a consumer holds records for HOLD_RECORDS_NS.
+FLUSH_AFTER_NS = 100_000_000
 FLUSH_MAX = 512
 FLUSH_MAX_BYTES = 64 << 20
 #: published messages at least this big reach the coordinator as files in the run's shared-memory
@@ -159,6 +161,7 @@ class NodeLoop:
                  max_microsteps: int = 1000, virtual: bool = False):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
         self.edges = edges
+        self.triggered = any(e.triggers for e in edges)  # some input may bring a tick
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
         self.fallbacks = fallbacks
         self.realtime = realtime
@@ -506,8 +509,11 @@ class NodeLoop:
     def _drain(self) -> None:
         """Handle what is queued now, not what arrives meanwhile: a consumer with a backlog
         still gets to tick between batches."""
+        waiting = self.inbox.qsize()
+        if not waiting:  # (most passes: no exception raised to learn it)
+            return
         get = self.inbox.get_nowait
-        for _ in range(max(1, self.inbox.qsize())):
+        for _ in range(waiting):
             try:
                 item = get()
             except queue.Empty:
@@ -545,7 +551,18 @@ class NodeLoop:
                 heapq.heappop(self.pending)
                 self.pending_set.discard(tau)
         self._tick(tau, incomplete)
-        return _TICKED
+        return self._after_tick()
+
+    def _after_tick(self) -> int | str:
+        """Right after a tick: ``_TICKED`` (look again at once) unless the next tick is a Rate
+        tick not due yet and nothing else is waiting, in which case its time, as the next pass of
+        the loop would find it (an idle flow then makes one pass per tick, not two)."""
+        if self.virtual or self.stopping or self.restarting or self.pending or self.held or self.inbox.qsize():
+            return _TICKED
+        tau = self.next_rate
+        if tau is None or tau[0] >= self.end or self.triggered:
+            return _TICKED
+        return tau[0] if tau[0] > self.now() else _TICKED
 
     def _incomplete(self, tau: tuple[int, int], now: int) -> tuple[list[str], int | None]:
         """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
@@ -895,7 +912,7 @@ class NodeLoop:
             if tau[1] + 1 > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
                 self._zeno(tau)
             tag = (tau[0], tau[1] + 1)
-        else:
+        elif events:
             microstep = tau[1] + 1 if self.instant_ports else 0
             if microstep > self.max_microsteps and any(port in self.instant_ports for port, _ in events):
                 self._zeno(tau)
@@ -903,6 +920,8 @@ class NodeLoop:
             # when the node runs late (the tag then passes the next tick's time)
             self.last_stamp = max(self.hlc(), tau[0] + 1, self.last_stamp + 1)
             tag = (self.last_stamp, microstep)
+        else:  # nothing to stamp: no clock read (a later stamp is past this one's all the same)
+            tag = None
         batch = []
         for port, value in events:
             seq = seqs.get(port, 0)
@@ -976,6 +995,8 @@ class NodeLoop:
     def _publish(self, batch: list) -> None:
         """Send events (each but the last carries its own tag as frontier, the last the node's
         frontier), then a progress message if some consumer's port did not get the frontier."""
+        if not batch and not self.consumed:  # (an idle tick of a flow no one consumes: nothing to say)
+            return
         frontier = self.frontier(sent=True)
         data, publishers = self.encoder.data, self.publishers
         last = len(batch) - 1
