@@ -1,14 +1,15 @@
 """Is the target in the bag? Colour segmentation of the head camera's image, standing in for the
 belief VLM in the bag world (as :mod:`agents.perception` does for the drawers).
 
-Two colours nothing else in the world has: the target's magenta, and the teal lining of the
-bag's inner faces. The target is looked for in the bag's projected box; if it is not there,
-the lining tells whether the camera could have seen it: where a target standing anywhere in
-the bag would show its top, an open bag shows the lining behind it, a shut one the flaps.
+Two colours nothing else in the world has: the target's magenta, and the teal of the base
+insert the target stands on. The target is looked for in the bag's projected box; if it is not
+there, the base tells whether the camera could have seen it: the base shows only past a near
+wall drawn out of the way (the mouth held open by OpenBag), and a target standing on it would
+show in front of it. At rest the near rim hides both.
 
     rgb ──HSV──▶ magenta in the bag's box? ──centroid's ray lands inside the bag?──▶ yes
                      │ (too few pixels)
-                     └─▶ lining where the target's top would be? ──▶ no     (flaps there) ──▶ unknown
+                     └─▶ teal base showing where the target would stand? ──▶ no     (walls there) ──▶ unknown
 """
 
 from __future__ import annotations
@@ -18,20 +19,22 @@ from functools import lru_cache
 import numpy as np
 
 from .bag_world import (
-    BAG_CENTRE, BAG_FLOOR, BAG_INNER, BAG_RIM, BAG_WALL, TARGET_HALF_HEIGHT, TARGET_OFFSET, TARGET_RADIUS,
+    BAG_CENTRE, BAG_FLOOR, BAG_INNER, BAG_RIM, BAG_SKIN, TARGET_HALF_HEIGHT,
 )
 from .perception import PinholeCamera, head_camera, hsv
 
 # HSV thresholds (hue in degrees; saturation and value in 0..1). The target is 315-330°, the
-# lining 180°; the nearest other hues are the blue distractor's 226° and the kraft paper's 34°.
+# base 180°; the nearest other hues are the blue distractor's 226° and the kraft paper's 34°.
 TARGET_HUES, LINING_HUES = (295.0, 345.0), (165.0, 195.0)
 SAT_MIN, VAL_MIN = 0.45, 0.10
 MIN_TARGET = 3          # magenta pixels in the bag's box for a "yes"
-# The share of the target's window that must show lining for a "no". At 96x128, over random
-# flap angles: a shut bag shows at most 0.29 (the slit), an opened one without the target at
-# least 0.71.
-MIN_LINING = 0.5
+# The share of the base's window that must show teal for a "no". At 96x128 an empty bag whose
+# mouth OpenBag holds open shows 0.041-0.048 (the base's far strip past the drawn near wall);
+# random mouth shapes 0-0.03, a bag at rest 0.
+MIN_LINING = 0.025
 SEEN_HEIGHT = 1.5 * TARGET_HALF_HEIGHT    # above the floor: the middle of what the camera sees of the target
+# How far the walls' rim may lean out of the bag's box at rest when OpenBag draws the mouth open (m)
+LEAN = (0.06, 0.02)                       # towards the robot (−y), away from it (+y)
 
 
 def colour_mask(rgb: np.ndarray, hues: tuple[float, float]) -> np.ndarray:
@@ -60,19 +63,18 @@ def _default_camera(height: int, width: int) -> PinholeCamera:
 
 
 def bag_box(camera: PinholeCamera) -> tuple[int, int, int, int]:
-    """Image rows and columns (r0, r1, c0, c1; half-open) covering the bag, walls included."""
-    (cx, cy), (ix, iy), w = BAG_CENTRE, BAG_INNER, BAG_WALL
-    corners = [(cx + sx * (ix + w), cy + sy * (iy + w), z) for sx in (-1, 1) for sy in (-1, 1)
-               for z in (BAG_FLOOR, BAG_RIM)]
+    """Image rows and columns (r0, r1, c0, c1; half-open) covering the bag, walls included, as far
+    as they lean when the mouth is drawn open."""
+    (cx, cy), (ix, iy), w = BAG_CENTRE, BAG_INNER, 2 * BAG_SKIN
+    corners = [(cx + sx * (ix + w), y, z) for sx in (-1, 1) for y in (cy - iy - w - LEAN[0], cy + iy + w + LEAN[1])
+               for z in (BAG_FLOOR, BAG_RIM + w)]
     return camera.box(corners)
 
 
-def target_window(camera: PinholeCamera) -> tuple[int, int, int, int]:
-    """Image rows and columns (r0, r1, c0, c1) where the top of a target standing anywhere it
-    may stand in the bag shows."""
-    (cx, cy), z = BAG_CENTRE, BAG_FLOOR + 2 * TARGET_HALF_HEIGHT
-    reach = np.add(TARGET_OFFSET, TARGET_RADIUS)
-    corners = [(cx + sx * reach[0], cy + sy * reach[1], z) for sx in (-1, 1) for sy in (-1, 1)]
+def base_window(camera: PinholeCamera) -> tuple[int, int, int, int]:
+    """Image rows and columns (r0, r1, c0, c1) where the base's top shows (where it is not hidden)."""
+    (cx, cy), (ix, iy) = BAG_CENTRE, BAG_INNER
+    corners = [(cx + sx * ix, cy + sy * iy, BAG_FLOOR) for sx in (-1, 1) for sy in (-1, 1)]
     return camera.box(corners)
 
 
@@ -89,8 +91,8 @@ def in_bag(camera: PinholeCamera, column: float, row: float) -> bool:
 
 def inspect_bag(rgb: np.ndarray, sim=None) -> str:
     """``"yes"`` if the head camera's image shows the target inside the bag, ``"no"`` if it sees
-    into the bag and the target is not there, ``"unknown"`` if the mouth is too narrow to see
-    into (``sim``: a BagSim or MjModel for the camera, else the bag world's default)."""
+    the base where the target would stand and the target is not there, ``"unknown"`` if the
+    walls hide the inside (``sim``: a BagSim or MjModel for the camera, else the bag world's default)."""
     rgb = np.asarray(rgb)
     height, width = rgb.shape[:2]
     camera = head_camera(sim, height, width) if sim is not None else _default_camera(height, width)
@@ -102,6 +104,6 @@ def inspect_bag(rgb: np.ndarray, sim=None) -> str:
 
 
 def lining_share(rgb: np.ndarray, camera: PinholeCamera) -> float:
-    """The share of the target's window showing the bag's lining."""
-    r0, r1, c0, c1 = target_window(camera)
+    """The share of the base's window (its projected box) showing the teal base."""
+    r0, r1, c0, c1 = base_window(camera)
     return float(lining_mask(rgb[r0:r1, c0:c1]).mean())

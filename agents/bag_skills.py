@@ -3,9 +3,12 @@ put it on the tray's spot. They are phase machines built from :mod:`agents.skill
 (trajectories, phases, the controller that runs them), reading the observation of
 :class:`~agents.bag_world.BagSim`:
 
-    OpenBag(bag)      closed fingers push through the slit between the flaps, spread, close, rise
-    InspectBag(bag)   park out of the head camera's view and keep still (the picture is taken then)
-    Pick(target)      reach down into the opened bag, close on the target's top, lift it clear
+    OpenBag(bag)      closed fingers in through the narrow mouth, spread, draw the mouth towards
+                      the robot, and hold it so (the paper springs back shut when let go of)
+    InspectBag(bag)   keep holding the mouth open and keep still (the head camera's picture is
+                      taken then); with no hand in the bag, park out of the camera's view instead
+    Pick(target)      slide the spread fingers over the target, down around it, close, lift it
+                      out (the mouth closes behind the fingers as they rise)
     Extract(target)   carry it over to the spot, stand it there, let go, rise
 
 ``run_skills(sim, plan, make=make_bag_skill)`` runs a plan of them with the agent's timing.
@@ -15,11 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .bag_world import BAG_RIM, OPENED, SPOT_POS, SPOT_RADIUS, TARGET_HALF_HEIGHT, TRAY_POS
+from .bag_world import BAG_INNER, BAG_RIM, OPENED, SPOT_POS, SPOT_RADIUS, TARGET_HALF_HEIGHT, TRAY_POS
 from .robot import FINGER_LENGTH, HOME, PALM_BOTTOM, TCP_OFFSET, tcp_of
 from .skills import (
     FINE,
-    GRIP_OPEN,
     PULL,
     Phase,
     Recipe,
@@ -37,15 +39,23 @@ BAG_SKILL_ARGS = {"OpenBag": ("bag",), "InspectBag": ("bag",), "Pick": ("target"
 BAG_SKILLS = tuple(BAG_SKILL_ARGS)
 
 # -- motion ------------------------------------------------------------------------------------
-# Grip speed while the fingers work on the flaps: fast finger motion pops a flap over a fingertip.
+# Grip speed while the fingers spread the mouth: fast finger motion makes them tunnel through the paper (notes §5).
 SPREAD = np.array([0.2, 0.2, 0.2, 1.5, 1.5])
 Z_CARRY = BAG_RIM + 0.14        # TCP height between places: a held target's bottom clears the rim by 7 cm
-PUSH_DEPTH = 0.03               # fingertips below the rim while spreading: 2 cm above the target's top
+PUSH_DEPTH = 0.03               # fingertips below the rim while spreading: 1.4 cm above the target's top
 TIPS_BELOW_TCP = PALM_BOTTOM + FINGER_LENGTH - TCP_OFFSET
-GRIP_AROUND = 0.4               # fingers' opening while reaching around the target: 8.5 mm inside the flaps
-PARK = tcp_of(HOME)             # InspectBag parks at HOME's TCP, outside the head camera's view of the bag
+# Where the hand spreads the mouth: 4 cm left of the bag's axis, so that the near finger (4 cm
+# wide) is out of the head camera's lines of sight to the target (the camera is to the right),
+# then it draws the mouth 4 cm towards the robot (and the camera): the near rim stops hiding it.
+HOLD_X = -0.04
+DRAW = 0.04
+GRIP_AROUND = 0.4               # fingers' opening while reaching around a target outside the bag
+PARK = tcp_of(HOME)             # InspectBag parks at HOME's TCP when there is no bag to hold open
+HOLD_STILL = 0.3                # s InspectBag holds the mouth open and still (the walls settle) before it is done
 
 # -- tolerances --------------------------------------------------------------------------------
+SPREAD_OPEN = 0.5               # measured grip below this: the fingers are spread (the walls stop them near 0.15)
+STOPPED = 0.05                  # grip/s: the spreading fingers have stopped against the walls
 IN_HAND = 0.07                  # m: the target is in the hand closer than this to the TCP (2-4 cm held)
 CLEAR_OF_BAG = 0.02             # the lifted target's bottom this far above the rim: out of the bag
 
@@ -64,6 +74,18 @@ def target_bottom(obs) -> float:
     return obs["object_pos"][2] - TARGET_HALF_HEIGHT
 
 
+def hand_in_bag(obs) -> bool:
+    """The TCP is in the bag's mouth, below the rim (the fingers are between its walls)."""
+    x, y, z = obs["tcp"]
+    bx, by, rim = obs["bag_pos"]
+    return abs(x - bx) < BAG_INNER[0] and abs(y - by) < BAG_INNER[1] + 0.03 and z < rim + 0.01
+
+
+def holding_bag_open(obs) -> bool:
+    """The spread fingers hold the mouth open (it closes when they let go)."""
+    return hand_in_bag(obs) and obs["bag_opened"] and robot(obs)[4] < SPREAD_OPEN
+
+
 def add_carry(traj: Trajectory, goal, grip: float) -> Trajectory:
     """Append a way from the trajectory's end to ``goal``: set the grip, rise to ``Z_CARRY``,
     cross at that height (nothing on the table reaches it), come straight down onto the goal."""
@@ -79,17 +101,19 @@ def add_carry(traj: Trajectory, goal, grip: float) -> Trajectory:
 
 # -- the skills --------------------------------------------------------------------------------
 class OpenBag(Recipe):
-    """Push the closed fingers through the slit between the flaps, spread them so both flaps
-    swing down along the walls, close them and rise; the flaps stay open (their hinges' friction)."""
+    """Push the closed fingers in through the narrow mouth, spread them so the walls give, and
+    draw the spread mouth towards the robot; then hold it so (done while holding: the paper
+    springs back shut once the fingers let go)."""
 
     def start(self, obs):
         if holding_target(obs):
             return "the hand holds the target: it cannot open the bag"
-        if obs["bag_opened"]:
+        if holding_bag_open(obs):
             return [Phase("open already", 1.0, lambda obs, ref: Trajectory(ref), lambda obs: True)]
-        mouth = np.asarray(obs["bag_pos"])
-        inside = command_at(mouth + [0.0, 0.0, TIPS_BELOW_TCP - PUSH_DEPTH], 0.0, 1.0)
-        up = command_at([mouth[0], mouth[1], Z_CARRY], 0.0, 1.0)
+        hold = np.add(obs["bag_pos"], [HOLD_X, 0.0, TIPS_BELOW_TCP - PUSH_DEPTH])
+        inside = command_at(hold, 0.0, 1.0)
+        up = command_at([hold[0], hold[1], Z_CARRY], 0.0, 1.0)
+        drawn = command_at(hold - [0.0, DRAW, 0.0], 0.0, 0.0)
         start = {}
 
         def plan_push(obs, ref):
@@ -100,23 +124,23 @@ class OpenBag(Recipe):
             return Trajectory(ref).grip(0.0, SPREAD).dwell(0.2)
 
         def spread(obs):
-            return obs["bag_opened"] and robot(obs)[4] < GRIP_OPEN
+            return obs["bag_opened"] and robot(obs)[4] < SPREAD_OPEN and abs(obs["robot_vel"][4]) < STOPPED
 
         def widened(obs):
             return (obs["bag_opening"] - start["opening"]) / max(OPENED - start["opening"], 1e-3)
 
-        def plan_withdraw(obs, ref):
-            return Trajectory(ref).grip(1.0, SPREAD).dwell(0.05).line(up, PULL)
+        def plan_draw(obs, ref):
+            return Trajectory(ref).line(drawn, FINE).dwell(0.1)
 
         def still_open(obs):
-            return None if obs["bag_opened"] else f"the flaps closed again ({obs['bag_opening']:.3f} m apart)"
+            return None if obs["bag_opened"] else f"the mouth closed again ({obs['bag_opening']:.3f} m wide)"
 
         return [
-            Phase("push in", 0.35, plan_push, lambda obs: at_command(obs, inside), patience=1.5,
-                  stalled="the flaps did not give: the fingers could not push in between them"),
-            Phase("spread", 0.45, plan_spread, spread, fraction=widened, patience=1.0,
-                  stalled="the mouth did not widen: the flaps did not swing open"),
-            Phase("withdraw", 0.2, plan_withdraw, lambda obs: at_command(obs, up, 0.015), still_open),
+            Phase("push in", 0.4, plan_push, lambda obs: at_command(obs, inside), patience=1.5,
+                  stalled="the fingers could not push in through the mouth"),
+            Phase("spread", 0.35, plan_spread, spread, fraction=widened, patience=1.0,
+                  stalled="the mouth did not widen: the bag's walls did not give"),
+            Phase("draw", 0.25, plan_draw, lambda obs: at_command(obs, drawn, 0.01) and settled(obs), still_open),
         ]
 
     def postcondition(self, obs):
@@ -124,11 +148,26 @@ class OpenBag(Recipe):
 
 
 class InspectBag(Recipe):
-    """Park out of the head camera's view of the bag and keep still: the belief reads the head
-    camera's next frame. Progress stays below 0.9 until then (the monitor's hand-off)."""
+    """Keep still while the head camera looks: holding the mouth open if the fingers are in it,
+    else parked out of the camera's view of the bag. The belief reads the head camera's next
+    frame; progress stays below 0.9 until then (the monitor's hand-off)."""
     cap = 0.85
 
     def start(self, obs):
+        if holding_bag_open(obs):
+            since = {}
+
+            def plan_hold(obs, ref):
+                since["t"] = obs["t"]
+                return Trajectory(ref).dwell(HOLD_STILL)
+
+            def still(obs):
+                return settled(obs) and obs["t"] >= since["t"] + HOLD_STILL
+
+            def still_open(obs):
+                return None if obs["bag_opened"] else f"the mouth closed ({obs['bag_opening']:.3f} m wide)"
+
+            return [Phase("hold open", 1.0, plan_hold, still, still_open)]
         grip = 1.0 if holding_target(obs) else 0.0
         park = command_at(PARK, 0.0, grip)
 
@@ -162,14 +201,19 @@ class _TargetRecipe(Recipe):
 
         def plan(obs, ref):
             top = np.asarray(obs["object_pos"]) + [0.0, 0.0, TARGET_HALF_HEIGHT]
+            if hand_in_bag(obs):        # spread (again), slide over the target at this height, go down around it
+                tcp = tcp_of(ref)
+                traj = Trajectory(ref).grip(0.0, SPREAD).line(command_at([top[0], top[1], tcp[2]], 0.0, 0.0), FINE)
+                return traj.line(command_at(top, 0.0, 0.0), FINE).dwell(0.1).grip(1.0)
             above = command_at([top[0], top[1], Z_CARRY], 0.0, GRIP_AROUND)
             traj = add_carry(Trajectory(ref), above, GRIP_AROUND)
             return traj.line(command_at(top, 0.0, GRIP_AROUND), FINE).dwell(0.1).grip(1.0)
 
-        def check(obs):
+        def check(obs):     # the mouth closes on the fingers as they close: it need not stay open now
             if obs["object_upright"] < 0.9:
                 return "the target was knocked over"
-            return self._reachable(obs)
+            return None if obs["object_location"] in ("bag", "spot", "tray", "table", "gripper") else \
+                f"the target is not where the hand can take it ({obs['object_location']})"
 
         grasp = Phase("grasp", 0.65, plan, lambda obs: obs["held"] == "target" and robot(obs)[4] > 0.3, check,
                       patience=1.0, retries=2, stalled="the fingers did not close on the target")
@@ -184,7 +228,7 @@ class _TargetRecipe(Recipe):
         where = obs["object_location"]
         if where == "bag":
             if not obs["bag_opened"]:
-                return (f"the bag is shut ({obs['bag_opening']:.3f} m between its flaps): "
+                return (f"the bag is shut ({obs['bag_opening']:.3f} m between its walls): "
                         f"the target cannot be seen or reached")
             return None
         if where in ("spot", "tray", "table", "gripper"):

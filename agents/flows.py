@@ -321,7 +321,8 @@ class Teleop(Flow):
     """Teleoperation (Appendix E-k, E-n): interventions from a schedule file (JSON: a list of
     ``{"t_start", "t_end", "mode": "skill_override", "payload": "Pick(spice)"}``), sent when the
     world reaches their start; with ``recover=True``, a scripted operator who takes over after a
-    failed skill: picks the spice up again when it dropped, else re-runs the skill."""
+    failed skill: picks the spice up again when it dropped (in the bag task, opens the bag first
+    when the target fell back into it), else re-runs the skill."""
 
     def __init__(self, schedule: str | None = None, recover: bool = False, task: str = "drawers"):
         self.schedule_path, self.recover, self.task = schedule, recover, task
@@ -341,6 +342,8 @@ class Teleop(Flow):
             pick = "Pick(target)" if self.task == "bag" else "Pick(spice)"
             dropped = status.last_failed in (pick, "Season(food)", "PlaceBack(spice)", "Extract(target)")
             payload = pick if dropped else status.last_failed   # picks it up again, or redoes it
+            if dropped and obs.facts.get("object_location") == "bag" and not obs.facts.get("bag_opened"):
+                payload = "OpenBag(bag)"    # it fell back into the bag, which springs shut: open it first
             return {"teleop": TeleopEvent(t_start=obs.t, t_end=obs.t, mode="skill_override", payload=payload)}
         return {}
 

@@ -3,7 +3,7 @@ and the parts every scene draws the same way (boxes from two corners, the table,
 the fixed head camera).
 
 Collision bits: ``contype`` is what a geom is, ``conaffinity`` what it collides with. Fixed
-furniture and the parts moving on joints (drawers, a bag's flaps) never touch each other (the
+furniture and the parts moving on joints (drawers, a flex bag's walls) never touch each other (the
 joints keep them apart); everything else does. ``SLIPPING`` is a held object's type during an
 injected slip: then nothing of the gripper touches it.
 """

@@ -76,8 +76,13 @@ class ScriptedPlanner:
         if seen == "no":
             return ["Done()"]                             # not in the bag: nothing to take out
         if seen == "yes":
-            held = belief.get("holding(target)") == "yes"
-            return [" -> ".join((["Extract(target)"] if held else ["Pick(target)", "Extract(target)"]) + ["Done()"])]
+            if belief.get("holding(target)") == "yes":
+                return ["Extract(target) -> Done()"]
+            # the bag springs shut when the hand leaves it: Pick right after the hand opened it
+            # (and looked), else open it again first
+            held_open = bool(executed) and executed[-1] in ("OpenBag(bag)", "InspectBag(bag)")
+            fetch = ["Pick(target)", "Extract(target)", "Done()"]
+            return [" -> ".join(fetch if held_open else ["OpenBag(bag)", *fetch])]
         program = [] if "OpenBag(bag)" in executed else ["OpenBag(bag)"]
         return [" -> ".join(program + ["InspectBag(bag)"]),
                 "IF in(target, bag) = yes THEN Pick(target) -> Extract(target) -> Done() ELSE Done()"]

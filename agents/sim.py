@@ -3,7 +3,7 @@ scene (:func:`world_mjcf`), and :class:`GantrySim`, the base of each task's simu
 
     GantrySim: stepping, commands, the held item's contacts and slips, cameras, close
        ├── world.Sim         the drawers: its scene, observe(), seasoning time, set_openings
-       └── bag_world.BagSim  the bag: its scene, observe(), the flaps
+       └── bag_world.BagSim  the bag: its scene, observe(), the flex bag's mouth
 
 The settings (render quality, contact bits, gains) are the ones measured on this machine in
 ``notes/mujoco-world.md``; where they differ the constant's comment says why.
@@ -29,12 +29,14 @@ TICK = 0.005
 SLIP_CLEARANCE = 0.1    # m: a slipped item collides with the gripper again once this far from the TCP
 
 
-def world_mjcf(model: str, scene: str) -> str:
+def world_mjcf(model: str, scene: str, integrator: str = "implicitfast") -> str:
     """The MJCF document of a world named ``model``: physics and render settings, the contact
-    classes, light and floor, then ``scene`` (the task's cameras and bodies), then the robot."""
+    classes, light and floor, then ``scene`` (the task's cameras and bodies), then the robot.
+    A scene with an elastic flex needs ``integrator="discrete"`` (MuJoCo 4 integrates flex
+    elasticity only there; notes §5)."""
     return f"""<mujoco model="{model}">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{TIMESTEP}" integrator="implicitfast" cone="elliptic" impratio="10"/>
+  <option timestep="{TIMESTEP}" integrator="{integrator}" cone="elliptic" impratio="10"/>
   <visual>
     <quality offsamples="0" numslices="16" numstacks="8" numquads="1"/>
     <global offwidth="640" offheight="480"/>
@@ -103,11 +105,14 @@ class GantrySim:
         self._tcp_site = m.site("tcp").id
         self._finger_geoms = (m.geom("finger_l").id, m.geom("finger_r").id)
         self._is_gripper = np.isin(m.geom_bodyid, [m.body(b).id for b in ("wrist", "finger_l", "finger_r")])
-        # what each geom is, for "which thing do both fingers touch" ("" for nothing of interest)
+        # what each geom is, for "which thing do both fingers touch" ("" for nothing of interest);
+        # a contact with a flex has no geom on the flex's side (-1): it is labelled ``_flex_label``
         self._labels = np.full(m.ngeom, "", dtype=object)
+        self._flex_label = ""
 
     def _index_item(self, name: str) -> None:
         m = self.model
+        self._item_name = name
         self._item = m.body(name).id
         self._item_v = int(m.joint(name).dofadr[0])
         self._item_geoms = np.flatnonzero(m.geom_bodyid == self._item)
@@ -158,6 +163,8 @@ class GantrySim:
         if self._stale:
             mujoco.mj_kinematics(self.model, self.data)
             mujoco.mj_camlight(self.model, self.data)
+            if self.model.nflex:
+                mujoco.mj_flex(self.model, self.data)       # the flex's vertices, for cameras and observe
             self._stale = False
 
     def _after_tick(self, dt: float) -> None:
@@ -170,7 +177,8 @@ class GantrySim:
 
     # -- state --
     def held(self) -> tuple[str, bool]:
-        """What both fingers touch (the item's name, another label from ``_labels`` or ""), and
+        """What both fingers touch (the item's name, another label from ``_labels`` or ""; the item
+        if they touch it and something else, such as a bag's walls pressing on the fingers), and
         whether the item rests on something other than the gripper (see ``support_normal_z``)."""
         d = self.data
         touched = ([], [])
@@ -178,14 +186,17 @@ class GantrySim:
         item = self._item_geom_set
         for (g1, g2), normal_z in zip(d.contact.geom[: d.ncon], d.contact.frame[: d.ncon, 2]):
             for a, b in ((g1, g2), (g2, g1)):
+                label = self._labels[b] if b >= 0 else self._flex_label
                 if a == self._finger_geoms[0]:
-                    touched[0].append(self._labels[b])
+                    touched[0].append(label)
                 elif a == self._finger_geoms[1]:
-                    touched[1].append(self._labels[b])
-                elif (a in item and not self._is_gripper[b] and b not in item
+                    touched[1].append(label)
+                elif (a in item and (b < 0 or not self._is_gripper[b]) and b not in item
                       and (self.support_normal_z is None or abs(normal_z) > self.support_normal_z)):
                     supported = True
         both = set(touched[0]) & set(touched[1]) - {""}
+        if self._item_name in both:
+            return self._item_name, supported
         return (min(both) if both else ""), supported
 
     def _observe_robot(self) -> dict:

@@ -1,10 +1,12 @@
 """The bag world and its skills, run the way Retriever-0 runs skills (a chunk every 0.5 s that
-applies 0.2 s later, played by a rate-limited 200 Hz controller): OpenBag → InspectBag → Pick →
-Extract, the failures the skills must report, determinism, and ``inspect_bag`` checked against
-segmentation renders."""
+applies 0.2 s later, played by a rate-limited 200 Hz controller): the flex bag itself (a
+trilinear flexcomp whose mouth widens only while held and springs back), OpenBag → InspectBag →
+Pick → Extract, the failures the skills must report, determinism, and ``inspect_bag`` checked
+against segmentation renders."""
 
 import hashlib
 import json
+from dataclasses import replace
 from itertools import pairwise
 
 import numpy as np
@@ -12,15 +14,18 @@ import pytest
 
 from agents.bag_perception import MIN_LINING, inspect_bag, lining_share, target_mask
 from agents.bag_skills import BAG_SKILLS, BAG_TRACE, make_bag_skill
-from agents.bag_world import FLAPS, OPENED, SPOT_POS, TARGET_HALF_HEIGHT, BagLayout, BagSim, build_bag_mjcf
+from agents.bag_world import (
+    OPENED, SPOT_POS, TARGET_HALF_HEIGHT, TARGET_RADIUS, TOP_NODES, BagLayout, BagSim, build_bag_mjcf,
+)
 from agents.perception import head_camera
-from agents.robot import COMMAND_HIGH, HOME, NU
+from agents.robot import COMMAND_HIGH, FINGER_OPEN, HOME, NU
 from agents.sim import TIMESTEP
-from agents.skills import run_skills
+from agents.skills import command_at, run_skills, tcp_of
 
 SEEDS = range(12)
-EPISODE_LIMIT = 40.0        # simulated seconds for OpenBag → InspectBag → Pick → Extract (about 19)
+EPISODE_LIMIT = 25.0        # simulated seconds for OpenBag → InspectBag → Pick → Extract (about 13)
 H, W = 96, 128
+FINGER_THICKNESS = 0.008
 
 
 def _table(label: str, runs) -> str:
@@ -50,7 +55,7 @@ def episodes():
 
 def _succeeded(e) -> bool:
     return (len(e["runs"]) == len(BAG_TRACE) and all(r.status == "done" for r in e["runs"])
-            and e["obs"]["extracted"] and e["obs"]["bag_opened"])
+            and e["obs"]["extracted"])
 
 
 # -- the scene ----------------------------------------------------------------------------------
@@ -92,12 +97,84 @@ def test_the_model_uses_radians_and_the_fast_render_settings():
 
 def test_the_bag_starts_shut_with_the_target_hidden_in_it():
     with BagSim(BagLayout.from_seed(1)) as sim:
+        sim.advance(0.5)                                # the paper settles under its own weight
         obs = sim.observe()
-        assert obs["object_location"] == "bag" and obs["bag_opening"] < 0.02
-        assert not (obs["bag_opened"] or obs["grasped"] or obs["extracted"])
-        assert obs["held"] == "" and obs["flaps"] == pytest.approx({f: 0.0 for f in FLAPS}, abs=0.02)
+        assert obs["object_location"] == "bag" and obs["bag_opening"] == pytest.approx(0.054, abs=0.002)
+        assert not (obs["bag_opened"] or obs["grasped"] or obs["extracted"]) and obs["held"] == ""
         seg = sim.render_segmentation("head", H, W)
         assert not np.isin(seg, [sim.model.geom("target").id]).any()
+        assert inspect_bag(sim.render("head", H, W), sim) == "unknown"
+
+
+# -- the flex -------------------------------------------------------------------------------------
+def test_the_bag_is_a_trilinear_flex_pinned_at_the_bottom():
+    xml = build_bag_mjcf(BagLayout.from_seed(0))
+    assert 'dof="trilinear"' in xml and 'elastic2d="stretch"' in xml and '<pin id="0 2 4 6"/>' in xml
+    assert 'integrator="discrete"' in xml
+    with BagSim(BagLayout.from_seed(0)) as sim:
+        m = sim.model
+        assert m.nflex == 1 and m.flex_nodenum[0] == 8 and m.flex_cellnum.tolist() == [[1, 1, 1]]
+        assert m.flex_dim[0] == 2 and m.flex_vertnum[0] > 100       # collisions on the full mesh
+        nodes = [m.body(b).name for b in m.flex_nodebodyid]
+        assert nodes.count("bag") == 4                                # the bottom four, pinned
+        free = sorted(set(nodes) - {"bag"})
+        assert free == sorted(b for side in TOP_NODES.values() for b in side)
+        assert all(m.body_jntnum[m.body(b).id] == 3 for b in free)    # three slides each: 12 dofs
+        assert m.body("bag").jntnum == 0                              # the pinned ones do not move
+
+
+def _hold_open(sim):
+    """OpenBag, then the observation: the fingers hold the mouth spread and drawn open."""
+    runs = run_skills(sim, BAG_TRACE[:1], make=make_bag_skill)
+    assert [r.status for r in runs] == ["done"], runs[0].reason
+    return sim.observe()
+
+
+def _let_go(sim, seconds=1.5):
+    """Close the fingers and take the hand straight up out of the bag, ramped (a jump tunnels)."""
+    start = np.asarray(sim.observe()["command"])
+    tcp = tcp_of(start)
+    closed = np.concatenate([start[:4], [1.0]])
+    up = command_at([tcp[0], tcp[1], tcp[2] + 0.15], 0.0, 1.0)
+    steps = round(seconds / 0.005)
+    for k in range(steps):
+        f = min(1.0, 2.0 * (k + 1) / steps)
+        g = max(0.0, 2.0 * (k + 1) / steps - 1.0)
+        sim.command(start + (closed - start) * f + (up - closed) * g)
+        sim.advance(0.005)
+    sim.advance(0.5)
+    return sim.observe()
+
+
+def test_the_mouth_is_too_narrow_for_the_hand_until_widened_and_widens_only_while_held():
+    """At rest the mouth (5.4 cm) is narrower than the open hand that must go around the target
+    (9.6 cm across its fingers); spread inside, the fingers widen it past OPENED; let go of, the
+    paper springs back (no plasticity: a trilinear flex's plastic strain stops near 0.35)."""
+    with BagSim(BagLayout.from_seed(3)) as sim:
+        rest = sim.observe()["bag_opening"]
+        open_hand = 2 * FINGER_OPEN + 2 * FINGER_THICKNESS
+        assert rest < open_hand - 0.04 and rest > 2 * TARGET_RADIUS
+        held = _hold_open(sim)
+        assert held["bag_opened"] and held["bag_opening"] >= OPENED > rest + 0.025
+        assert held["held"] == "bag"                                  # both fingers on its walls
+        assert held["bag_rim"]["near"] < sim.rim()["far"] - OPENED
+        after = _let_go(sim)
+        assert after["bag_opening"] == pytest.approx(rest, abs=0.003) and not after["bag_opened"]
+        assert after["object_location"] == "bag"
+
+
+def test_the_head_camera_sees_the_target_only_while_the_mouth_is_held_open():
+    with BagSim(BagLayout.from_seed(6)) as sim:
+        target = sim.model.geom("target").id
+
+        def seen():
+            return int((sim.render_segmentation("head", H, W) == target).sum())
+
+        assert seen() == 0 and inspect_bag(sim.render("head", H, W), sim) == "unknown"
+        _hold_open(sim)
+        assert seen() >= 20 and inspect_bag(sim.render("head", H, W), sim) == "yes"
+        _let_go(sim)
+        assert seen() == 0 and inspect_bag(sim.render("head", H, W), sim) == "unknown"
 
 
 def test_the_observation_is_plain_data():
@@ -118,7 +195,7 @@ def test_open_inspect_pick_extract_succeeds_on_most_seeds(episodes):
                  for i, (name, _) in enumerate(BAG_TRACE)}
     print(f"bag: {len(ok)}/{len(SEEDS)} episodes succeeded; mean seconds per skill "
           + ", ".join(f"{k} {v:.1f}" for k, v in per_skill.items()))
-    assert len(ok) >= 10, [_table(f"seed {s}", episodes[s]["runs"]) for s in SEEDS if s not in ok]
+    assert len(ok) >= 11, [_table(f"seed {s}", episodes[s]["runs"]) for s in SEEDS if s not in ok]
 
 
 def test_an_episode_takes_under_forty_simulated_seconds(episodes):
@@ -126,9 +203,12 @@ def test_an_episode_takes_under_forty_simulated_seconds(episodes):
         assert sum(r.seconds for r in e["runs"]) < EPISODE_LIMIT, _table("", e["runs"])
 
 
-def test_the_target_is_seen_only_once_the_bag_is_open(episodes):
+def test_the_target_is_seen_only_while_the_mouth_is_held_open(episodes):
+    """Shut before OpenBag, seen while its fingers hold the mouth open, and shut again once the
+    hand has taken the target out (the paper springs back: the camera cannot see in)."""
     for seed, e in episodes.items():
-        assert e["verdicts"] == {"shut": "unknown", "inspected": "yes", "end": "no"}, seed
+        assert e["verdicts"] == {"shut": "unknown", "inspected": "yes", "end": "unknown"}, seed
+        assert e["obs"]["bag_opening"] < 0.06, seed
 
 
 def test_progress_rises_monotonically_and_ends_done_at_one(episodes):
@@ -150,9 +230,8 @@ def test_pick_before_open_bag_fails_and_leaves_the_bag_shut():
 
 
 def test_open_bag_fails_when_the_mouth_does_not_widen():
-    with BagSim(BagLayout.from_seed(4)) as sim:
-        for flap in FLAPS:                              # a bag whose flaps only give 0.6 rad
-            sim.model.jnt_range[sim.model.joint(flap).id] = [0.0, 0.6]
+    stiff = replace(BagLayout.from_seed(4), bag_young=100 * BagLayout.from_seed(4).bag_young)    # cardboard
+    with BagSim(stiff) as sim:
         runs = run_skills(sim, [("OpenBag", "bag")], make=make_bag_skill)
         assert runs[0].status == "failed" and runs[0].progress < 0.9
         assert "the mouth did not widen" in runs[0].reason
@@ -222,8 +301,19 @@ def test_load_qpos_rebuilds_another_worlds_scene_for_a_camera():
 
 
 # -- perception ---------------------------------------------------------------------------------
+def _shape_mouth(sim, qpos, widen: float, draw: float) -> None:
+    """Put the top nodes where a mouth ``widen`` wider than at rest and drawn ``draw`` towards the
+    robot has them (qpos holds each free node's x, y, z slide)."""
+    m = sim.model
+    for side, bodies in TOP_NODES.items():
+        dy = (-widen / 2 if side == "near" else widen / 2) - draw
+        for b in bodies:
+            y = m.body_jntadr[m.body(b).id] + 1
+            qpos[m.jnt_qposadr[y]] = dy
+
+
 def _scenes(rng, seeds=range(3), per_seed=16) -> list:
-    """(verdict, target in the bag, its pixels, opening, lining share) over random flap angles,
+    """(verdict, target in the bag, its pixels, opening, base share) over random mouth shapes,
     the target in the bag or on the spot."""
     rows = []
     for seed in seeds:
@@ -232,8 +322,7 @@ def _scenes(rng, seeds=range(3), per_seed=16) -> list:
             target = sim.model.geom("target").id
             for k in range(per_seed):
                 qpos = sim.data.qpos.copy()
-                for flap, angle in zip(FLAPS, rng.uniform(0.0, 1.5708, 2)):
-                    qpos[sim.model.jnt_qposadr[sim.model.joint(flap).id]] = angle
+                _shape_mouth(sim, qpos, rng.uniform(0.0, 0.05), rng.uniform(0.0, 0.05))
                 if k % 2:
                     qpos[adr:adr + 3] = SPOT_POS + [0.0, 0.0, TARGET_HALF_HEIGHT]
                 else:
@@ -246,18 +335,30 @@ def _scenes(rng, seeds=range(3), per_seed=16) -> list:
     return rows
 
 
-def test_inspect_bag_is_never_wrong_and_decides_once_the_bag_is_open():
+def test_inspect_bag_is_never_wrong_over_random_mouth_shapes():
     rows = _scenes(np.random.default_rng(2026))
     for verdict, inside, visible, opening, share in rows:
         if verdict == "yes":
             assert inside and visible > 0
         if verdict == "no":
             assert not inside and share >= MIN_LINING
-        if opening >= OPENED:
-            assert verdict == ("yes" if inside else "no"), (opening, inside, visible)
-    decided = [r for r in rows if r[0] != "unknown"]
-    print(f"{len(rows)} scenes: {len(decided)} decided, {sum(r[0] == 'yes' for r in rows)} yes")
-    assert sum(r[0] == "yes" for r in rows) >= 8 and sum(r[0] == "no" for r in rows) >= 8
+        if inside and visible >= 10:
+            assert verdict == "yes", (opening, visible)
+    print(f"{len(rows)} scenes: {sum(r[0] == 'yes' for r in rows)} yes, {sum(r[0] == 'no' for r in rows)} no")
+    assert sum(r[0] == "yes" for r in rows) >= 12 and sum(r[0] == "unknown" for r in rows) >= 12
+
+
+def test_a_mouth_held_open_on_an_empty_bag_shows_the_base_and_says_no():
+    for seed in (0, 5):
+        with BagSim(BagLayout.from_seed(seed)) as sim:
+            adr = sim.model.jnt_qposadr[sim.model.joint("target").id]
+            sim.data.qpos[adr:adr + 3] = SPOT_POS + [0.0, 0.0, TARGET_HALF_HEIGHT]    # not in the bag
+            sim.load_qpos(sim.data.qpos)
+            assert inspect_bag(sim.render("head", H, W), sim) == "unknown"
+            _hold_open(sim)
+            rgb = sim.render("head", H, W)
+            assert lining_share(rgb, head_camera(sim, H, W)) >= MIN_LINING
+            assert inspect_bag(rgb, sim) == "no"
 
 
 def test_inspect_bag_without_a_sim_uses_the_bag_worlds_camera():

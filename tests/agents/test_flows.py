@@ -125,3 +125,15 @@ def test_the_scripted_operator_takes_over_after_a_failure(failed, override):
     sent = teleop.step(obs(1.1), status(1))["teleop"]
     assert (sent.payload, sent.mode) == (override, "skill_override")
     assert teleop.step(obs(1.2), status(1)) == {}               # once per failure
+
+
+def test_the_scripted_operator_opens_the_bag_again_when_the_target_fell_back_into_it():
+    from agents.messages import MonitorStatus
+    teleop = Teleop(recover=True, task="bag")
+    teleop.setup()
+    status = MonitorStatus(t=1.0, skill="", skill_id=3, p=0.0, score=0.5, milestones={}, finished=False,
+                           replans=1, executed=[], failures=1, last_failed="Extract(target)")
+    assert teleop.step(obs(1.0, object_location="bag", bag_opened=False), status)["teleop"].payload == "OpenBag(bag)"
+    teleop = Teleop(recover=True, task="bag")
+    teleop.setup()
+    assert teleop.step(obs(1.0, object_location="table"), status)["teleop"].payload == "Pick(target)"

@@ -43,6 +43,24 @@ def test_the_scripted_planner_closes_what_it_opened_and_fetches_once_it_knows():
     assert ScriptedPlanner().propose("s", searched, {"executed": []}) == ["Done()"]
 
 
+def test_the_scripted_planner_reopens_the_bag_unless_the_hand_holds_it_open():
+    """The bag's paper springs shut when the hand leaves the mouth: Pick follows the OpenBag (and
+    InspectBag) that holds it open, and after anything else the bag is opened again."""
+    bag = ScriptedPlanner(task_kind="bag")
+    assert bag.propose("t", {}, {"executed": []}) == [
+        "OpenBag(bag) -> InspectBag(bag)",
+        "IF in(target, bag) = yes THEN Pick(target) -> Extract(target) -> Done() ELSE Done()"]
+    seen = {"in(target, bag)": "yes", "holding(target)": "no"}
+    assert bag.propose("t", seen, {"executed": ["OpenBag(bag)"], "current": "InspectBag(bag)"}) \
+        == ["Pick(target) -> Extract(target) -> Done()"]
+    after_a_miss = ["OpenBag(bag)", "InspectBag(bag)", "Pick(target)"]
+    assert bag.propose("t", seen, {"executed": after_a_miss}) \
+        == ["OpenBag(bag) -> Pick(target) -> Extract(target) -> Done()"]
+    assert bag.propose("t", dict(seen, **{"holding(target)": "yes"}), {"executed": after_a_miss}) \
+        == ["Extract(target) -> Done()"]
+    assert parse_program(bag.propose("t", seen, {"executed": after_a_miss}), "bag")
+
+
 def test_the_one_skill_planner_proposes_the_next_skill_only():
     belief = dict(UNKNOWN, **{"at(spice, TL)": "no"})
     one = ScriptedPlanner(one_skill=True)
