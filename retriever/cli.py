@@ -116,7 +116,7 @@ FOXGLOVE_PORT = 8765
 _FOXGLOVE = typer.Option(
     "--foxglove", metavar="[PORT]",
     help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this process, on "
-         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever[foxglove]').")
+         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever\\[foxglove]').")
 
 _KEEP = typer.Option(
     metavar="trace|records|counters",
@@ -132,7 +132,7 @@ def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(
         help="Backend: inproc (virtual time, one process), zenoh (real time, a process per flow), or dora "
-             "(real time, a dora dataflow: pip install 'retriever[dora]'). "
+             "(real time, a dora dataflow: pip install 'retriever\\[dora]'). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
                                                   "inf: until Ctrl-C (or SIGTERM).")] = 10.0,

@@ -87,7 +87,8 @@ def test_what_was_sent_before_a_sys_exit_still_reaches_its_consumer(backend):
     used to stop every flow at once). No tick runs past the exit: the sink steps on nothing more."""
     pipe = build_ending(at=5, size=1 << 20, deadline=10.0)
     trace = pipe.run(backend=backend, duration=30.0, quiet=True)
-    assert [s.status for s in trace.steps_of("source")] == ["ok"] * 5
+    source = trace.steps_of("source")  # (a step may overrun its 50 ms on a loaded machine: its ticks skip)
+    assert len(source) == 5 and source[-1].detail == {"exit": 0}
     assert [s.consumed["data"][0][2] for s in trace.steps_of("sink")] == [0, 1, 2, 3]
     exit_tag = trace.steps_of("source")[-1].tag
     assert all(s.tag < (exit_tag[0] + 1_000_000_000, 0) for s in trace.steps), "a tick long after the exit"

@@ -17,15 +17,23 @@ from __future__ import annotations
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 from ...errors import BackendError
 from ...graph import Graph
 from ..zenoh.access import write_private
-from ..zenoh.coordinator import Coordinator
+from ..zenoh.coordinator import Coordinator, _exit_text
 from ..zenoh.host import Host
 from .dataflow import DoraNames, dataflow_yaml
 from .host import DoraHost, dora_command
+
+
+#: T0 this long after the start is put, by default (zenoh's: 0.3 s). Every worker said ready, and a
+#: greeting came through each of its inputs, but for a second or two more dora is slow to deliver:
+#: with 20 flows, a 100 Hz source's first events reached their consumer 0.8-2.4 s late (the
+#: backlog then drained over a second), with 2 s of margin 3 ms late (on zenoh: 3 ms, with 0.3 s).
+START_MARGIN_S = 2.0
 
 
 class DoraCoordinator(Coordinator):
@@ -39,10 +47,11 @@ class DoraCoordinator(Coordinator):
                                "    hint: use on_error='skip_tick' or 'stop', or run on backend='zenoh'")
         dora_command()  # installed? (before any process starts)
         self._dora: DoraHost | None = None
+        options.setdefault("start_margin", START_MARGIN_S)
         super().__init__(graph, **options)
 
     def _where(self) -> str:
-        return f"dora dataflow {self._dir / 'dataflow.yml'}, control on the Zenoh hub at {self.endpoint}"
+        return f"a dora dataflow, control on the Zenoh hub at {self.endpoint}"
 
     def _how_to_watch(self) -> str:
         return ("its events go between the flows over dora, not Zenoh: watch it live with foxglove=PORT, "
@@ -50,13 +59,31 @@ class DoraCoordinator(Coordinator):
 
     def _place(self) -> dict[str, Host]:
         names = DoraNames.of(self._spec["ir"])
-        self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd()}
+        # the workers are dora's children: they watch this process to know when they are orphans
+        self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid()}
         spec_path = write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
-        dataflow = self._dir / "dataflow.yml"
+        # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
+        # the run's directory, which may be in shared memory
+        dataflow = Path(tempfile.mkdtemp(prefix="retriever-dora-")) / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(self.graph.name, names, sys.executable, str(spec_path), package_root))
-        self._dora = DoraHost(dataflow, names.nodes)
+        self._dora = DoraHost(self._dir, dataflow, names.nodes)
         return {nid: self._dora for nid in self.graph.nodes}
+
+    def _check_processes(self) -> None:
+        dora = self._dora
+        if dora is not None and dora.alive and (dora.proc.returncode or dora.proc.poll() or 0) < 0:
+            dora.alive = False  # killed: every worker goes with it (a node's own failure ends it with a code)
+        super()._check_processes()
+
+    def _host_lost(self, host, nodes: list[str]) -> None:
+        super()._host_lost(host, nodes)
+        code = self._dora.proc.returncode
+        last = "\n".join("        " + line for line in list(self._dora.tail)[-10:])
+        self._failure = (nodes[0], {"error": f"dora's runtime (`dora run`, pid {self._dora.proc.pid}) "
+                                             f"{_exit_text(code)} during the run: the dataflow's nodes "
+                                             f"({', '.join(nodes)}) stopped with it\n    hint: was it killed (out of "
+                                             f"memory?), or stopped by someone else? Its last errors:\n{last}"})
 
     def _release_hosts(self) -> None:
         if self._dora is not None:

@@ -1,8 +1,9 @@
 """Where a dora run's worker processes run: ``dora run`` starts them all, from the dataflow.
 
-    DoraHost         starts ``dora run dataflow.yml`` (one dora node per flow) in the run's
-                     directory, and reads what it prints (JSON lines): each node's output goes to
-                     the coordinator's stdout prefixed with the node, as on the zenoh backend
+    DoraHost         starts ``dora run dataflow.yml`` (one dora node per flow) in a directory of
+                     its own (dora writes its logs there), and reads dora's errors; each worker
+                     writes its stdout and stderr to named pipes of the run's directory, which the
+                     coordinator forwards prefixed with the node, as on the zenoh backend
     DoraNodeProcess  one node's worker process, as the coordinator sees it (``pid``, ``poll()``...):
                      dora's child, not the coordinator's; it says its pid and, at its end, its exit
                      code in files of the run's directory (worker.py, ``_started_by_dora``)
@@ -27,7 +28,7 @@ from pathlib import Path
 
 from ...errors import BackendError
 from ..zenoh.host import Host
-from ..zenoh.output import _WRITING, WorkerOutput
+from ..zenoh.output import _WRITING
 
 #: a node whose process is gone without saying how it ended (killed, or a crash): its exit code
 LOST = 255
@@ -37,6 +38,7 @@ DORA_EXIT_S = 5.0
 #: ended (``exited because of signal SIGKILL``), before it counts as LOST
 DORA_SAYS_S = 1.0
 _KILLED_BY = re.compile(r"exited because of signal (SIG[A-Z0-9]+)")
+_EXITED_WITH = re.compile(r"exited with code (\d+)")
 
 
 def dora_command() -> str:
@@ -54,42 +56,34 @@ def dora_command() -> str:
     return found
 
 
-class NodeOutput(WorkerOutput):
-    """A node's lines as dora prints them: stdout and stderr in one stream, so every line is kept
-    for error messages (a traceback) and written to the coordinator's stdout."""
-
-    def feed(self, name: str, line: str) -> None:
-        self._tail.append(line)
-        self.stderr_lines += 1
-        if self.forwarding:
-            super().feed("stdout", line)
-
-    def drain(self, timeout: float = 1.0) -> None:
-        pass  # the host's pump reads every node's lines (DoraHost.drain)
-
-
 class DoraHost(Host):
     """This machine, through ``dora run``: started once with every node of the run."""
 
     name = "dora"
 
-    def __init__(self, dataflow: Path, nodes: dict[str, str]):
+    def __init__(self, run_dir: Path, dataflow: Path, nodes: dict[str, str]):
         super().__init__()
-        self.dir = dataflow.parent
+        self.dir = run_dir  # the workers' pid, exit and output files
+        self.dora_dir = dataflow.parent  # dora's: its logs grow there, on disk
         self.by_dora_id = {dora_id: nid for nid, dora_id in nodes.items()}
-        self.tail: deque[str] = deque(maxlen=50)  # dora's own warnings and errors
-        self.signalled: dict[str, int] = {}  # node -> the signal that ended its process, as dora said
-        self.proc = subprocess.Popen([dora_command(), "run", str(dataflow), "--log-format", "json"],
-                                     cwd=self.dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+        self.tail: deque[str] = deque(maxlen=50)  # dora's own errors
+        self.signalled: dict[str, int] = {}  # node -> how its process ended, as dora said (-signal or code)
+        self.fifos: list[str] = []
+        for nid, dora_id in nodes.items():
+            paths = {name: str(run_dir / f"{dora_id}.{name}") for name in ("stdout", "stderr")}
+            for path in paths.values():
+                os.mkfifo(path, 0o600)
+            self.fifos += paths.values()
+            self.output(nid).attach_fifos(paths)
+        # --log-level error: what a worker prints comes through its named pipes, not dora's log
+        # (which, at its default level, also carries a warning per message on the daemon's route:
+        # read a line at a time, they held dora's daemon back for a second at a run's start)
+        self.proc = subprocess.Popen([dora_command(), "run", str(dataflow), "--log-format", "json",
+                                      "--log-level", "error"],
+                                     cwd=self.dora_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent)
         self._pump = threading.Thread(target=self._read, daemon=True, name="retriever-dora-output")
         self._pump.start()
-
-    def output(self, node: str) -> WorkerOutput:
-        output = self._outputs.get(node)
-        if output is None:
-            output = self._outputs[node] = NodeOutput(node)
-        return output
 
     def spawn(self, node: str, mode: Sequence[str] = ()) -> "DoraNodeProcess":
         if mode:  # a restart's new process: dora started the dataflow's processes once
@@ -109,24 +103,29 @@ class DoraHost(Host):
             self.tail.append(line)
             return
         node = self.by_dora_id.get(dora_id)
-        if level == "stdout" and node is not None:
-            self.output(node).feed("stdout", message)
+        if level not in ("ERROR", "WARN"):
             return
         text = f"{dora_id or 'dora'}: {message}"
-        if level in ("ERROR", "WARN"):  # kept for the error that names a failed node
-            self.tail.append(text)
-            if node is not None:
-                self.output(node)._tail.append(f"(dora) {message}")
-                killed = _KILLED_BY.search(message)
-                if killed and hasattr(signal, killed.group(1)):
-                    self.signalled[node] = getattr(signal, killed.group(1))
-        if level == "ERROR":  # (dora 1.1 warns of every message on the daemon's route: not shown)
-            with _WRITING, contextlib.suppress(OSError, ValueError, AttributeError):
-                sys.stderr.write(f"[dora] {text}\n")
-                sys.stderr.flush()
+        self.tail.append(text)  # kept for the error that names a failed node
+        if node is not None:
+            self.output(node)._tail.append(f"(dora) {message}")
+            killed, code = _KILLED_BY.search(message), _EXITED_WITH.search(message)
+            if killed and hasattr(signal, killed.group(1)):
+                self.signalled[node] = -getattr(signal, killed.group(1))
+            elif code:
+                self.signalled[node] = int(code.group(1))
+        with _WRITING, contextlib.suppress(OSError, ValueError, AttributeError):
+            sys.stderr.write(f"[dora] {text}\n")
+            sys.stderr.flush()
 
     def drain(self, timeout: float = 1.0) -> None:
         self._pump.join(timeout)
+
+    def close_fifos(self) -> None:
+        """Let go of the named pipes no worker opened (it never started): their readers end."""
+        for path in self.fifos:
+            with contextlib.suppress(OSError):
+                os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
 
     def stop(self) -> None:
         """``dora run`` ends by itself once every node ended; else (a node stuck, or never
@@ -143,6 +142,8 @@ class DoraHost(Host):
                     os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
         self.drain()
+        self.close_fifos()
+        shutil.rmtree(self.dora_dir, ignore_errors=True)
 
 
 class DoraNodeProcess:
@@ -176,9 +177,9 @@ class DoraNodeProcess:
         try:
             self.returncode = int((self.host.dir / f"{self.node}.exit").read_text())
         except (OSError, ValueError):  # it did not get to say: dora says which signal ended it
-            signum = self.host.signalled.get(self.node)
-            if signum is not None:
-                self.returncode = -signum
+            said = self.host.signalled.get(self.node)
+            if said is not None:
+                self.returncode = said
             elif self._gone_since is None or time.monotonic() - self._gone_since < DORA_SAYS_S:
                 self._gone_since = self._gone_since or time.monotonic()
                 return None

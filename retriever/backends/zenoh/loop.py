@@ -329,6 +329,10 @@ class NodeLoop:
         self._declared += kept
         self.counts["redeclared"] += 1
 
+    def await_routes(self, timeout: float) -> None:
+        """Before the node says ready: wait until its events' routes carry (Zenoh's do once linked
+        and answered, which the worker waited for; backends/dora/link.py has its own)."""
+
     def undeclare(self) -> None:
         for d in [*self._declared, *getattr(self, "publishers", {}).values()]:
             d.undeclare()

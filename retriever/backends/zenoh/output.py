@@ -40,6 +40,22 @@ class WorkerOutput:
             pump.start()
             self._pumps.append(pump)
 
+    def attach_fifos(self, paths: dict[str, str]) -> None:
+        """Forward what a process that is not this one's child writes to these named pipes
+        (``{"stdout": path, "stderr": path}``), from when it opens them until it closes them."""
+        for name, path in paths.items():
+            pump = threading.Thread(target=self._pump_fifo, args=(path, name), daemon=True,
+                                    name=f"retriever-{name}-{self.node}")
+            pump.start()
+            self._pumps.append(pump)
+
+    def _pump_fifo(self, path: str, name: str) -> None:
+        try:
+            pipe = open(path, "rb")  # blocks until the writer opens it (or close_fifos does)
+        except OSError:
+            return
+        self._pump(pipe, name)
+
     def _pump(self, pipe, name: str) -> None:
         with pipe:
             for raw in iter(pipe.readline, b""):

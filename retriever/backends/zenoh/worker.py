@@ -264,8 +264,12 @@ def on_a_cycle(edges: list[dict], node_id: str) -> bool:
 def main(argv: list[str]) -> int:
     """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
     (the spec and unreported events, in /dev/shm), which no one else would."""
+    global _adopted
     parent = os.getppid()
     run_dir = Path(argv[0]).parent
+    coordinator = _dora_coordinator(argv[0])
+    if coordinator is not None:  # dora's child: the coordinator is its grandparent or further
+        parent, _adopted = coordinator, True
     threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
     code = EXIT_FAILED
     try:
@@ -293,15 +297,33 @@ def _started_by_dora(spec: dict, dora_id: str, run_dir: Path) -> str:
     node_id = DoraNames.from_spec(spec["dora"]).node_of(dora_id)
     (run_dir / f"{node_id}.pid").write_text(str(os.getpid()))
     _exit_file = run_dir / f"{node_id}.exit"
+    for fd, name in ((1, "stdout"), (2, "stderr")):  # to the coordinator, which reads them (dora/host.py)
+        with contextlib.suppress(OSError):
+            pipe = os.open(run_dir / f"{dora_id}.{name}", os.O_WRONLY)
+            os.dup2(pipe, fd)
+            os.close(pipe)
     os.chdir(spec["dora"]["cwd"])
     return node_id
+
+
+#: started by dora: the coordinator it watches is not its parent (dora's daemon is)
+_adopted = False
+
+
+def _dora_coordinator(spec_path: str) -> int | None:
+    """The coordinator's pid, for a worker that dora started (backends/dora)."""
+    try:
+        dora = json.loads(Path(spec_path).read_text()).get("dora")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return dora.get("coordinator") if type(dora) is dict and type(dora.get("coordinator")) is int else None
 
 
 def _orphaned(parent: int) -> bool:
     """Whether the coordinator that started this worker is dead or dying. Its main thread's exit
     sends PR_SET_PDEATHSIG, and may leave its other threads, and our ppid, for a moment longer:
     the main thread's state (that of /proc/<pid>) is then already Z."""
-    if os.getppid() != parent:
+    if not _adopted and os.getppid() != parent:
         return True
     try:
         stat = Path(f"/proc/{parent}/stat").read_text()
@@ -444,6 +466,8 @@ def _serve(argv: list[str], parent: int) -> int:
                     wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
                                      timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
                                      nudge=nudge, nudge_every=REDECLARE_AFTER_S)
+                    # the events' own routes, where they are not Zenoh's (dora): one message through each
+                    loop.await_routes(timeout=spec.get("startup_timeout", 60.0))
                     if loop.stopping:
                         loop.undeclare()
                         return 0
