@@ -59,13 +59,16 @@ class DoraCoordinator(Coordinator):
 
     def _place(self) -> dict[str, Host]:
         names = DoraNames.of(self._spec["ir"])
-        # the workers are dora's children: they watch this process to know when they are orphans
-        self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid()}
-        spec_path = write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
-        package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
-        dataflow = Path(tempfile.mkdtemp(prefix="retriever-dora-")) / "dataflow.yml"
+        dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
+        # the workers are dora's children: they watch this process to know when they are orphans
+        # (and then remove the run's directories, which no one else will)
+        self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
+                              "dir": str(dora_dir)}
+        spec_path = write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
+        package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
+        dataflow = dora_dir / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(self.graph.name, names, sys.executable, str(spec_path), package_root))
         self._dora = DoraHost(self._dir, dataflow, names.nodes)
         return {nid: self._dora for nid in self.graph.nodes}

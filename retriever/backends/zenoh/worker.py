@@ -124,6 +124,10 @@ def _watch_parent(parent: int, run_dir: Path) -> None:
 
 def _remove_run_dir(run_dir: Path) -> None:
     if run_dir.name.startswith("retriever-run-"):
+        if _adopted:  # and dora's directory (backends/dora)
+            dora_dir = Path(_dora_spec(str(run_dir / "spec.json")).get("dir", ""))
+            if dora_dir.name.startswith("retriever-dora-"):
+                shutil.rmtree(dora_dir, ignore_errors=True)
         shutil.rmtree(run_dir, ignore_errors=True)
 
 
@@ -310,13 +314,19 @@ def _started_by_dora(spec: dict, dora_id: str, run_dir: Path) -> str:
 _adopted = False
 
 
-def _dora_coordinator(spec_path: str) -> int | None:
-    """The coordinator's pid, for a worker that dora started (backends/dora)."""
+def _dora_spec(spec_path: str) -> dict:
+    """The spec's dora part (backends/dora), or {}."""
     try:
         dora = json.loads(Path(spec_path).read_text()).get("dora")
     except (OSError, ValueError, AttributeError):
-        return None
-    return dora.get("coordinator") if type(dora) is dict and type(dora.get("coordinator")) is int else None
+        return {}
+    return dora if type(dora) is dict else {}
+
+
+def _dora_coordinator(spec_path: str) -> int | None:
+    """The coordinator's pid, for a worker that dora started."""
+    coordinator = _dora_spec(spec_path).get("coordinator")
+    return coordinator if type(coordinator) is int else None
 
 
 def _orphaned(parent: int) -> bool:

@@ -7,6 +7,7 @@ what it refuses, a step that raises, a killed worker, and no process left behind
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -192,3 +193,65 @@ def test_retriever_run_takes_backend_dora(tmp_path):
     replayed = subprocess.run([sys.executable, "-m", "retriever", "replay", str(log)], cwd=ROOT,
                               capture_output=True, text=True, timeout=BOUND_S)
     assert replayed.returncode == 0, replayed.stdout + replayed.stderr
+
+
+COORDINATOR = """
+import sys
+from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
+two_node_pipeline("orphans").run(duration=600, backend="dora", quiet=True)
+"""
+
+
+def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves():
+    """The workers are dora's children, not the coordinator's: they watch the coordinator's pid,
+    and once it is gone they stop, and remove the run's directory and dora's (which hold the run's
+    credentials, and dora's logs); dora run gets SIGTERM from the kernel (PR_SET_PDEATHSIG)."""
+    proc = subprocess.Popen([sys.executable, "-c", COORDINATOR], cwd=ROOT, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        give_up = time.monotonic() + BOUND_S
+        while not (workers := _children_of(proc.pid, "retriever.backends.zenoh.worker")):
+            assert proc.poll() is None and time.monotonic() < give_up, "the run never started its workers"
+            time.sleep(0.05)
+        dora = _children_of(proc.pid, "dora run")
+        run_dir = Path(_cmdline(workers[0]).split()[-2]).parent
+        dora_dir = Path(json.loads((run_dir / "spec.json").read_text())["dora"]["dir"])
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(BOUND_S)
+        give_up = time.monotonic() + 30.0
+        while any(_alive(pid) for pid in [*workers, *dora]) or run_dir.exists() or dora_dir.exists():
+            assert time.monotonic() < give_up, (f"left: {[p for p in [*workers, *dora] if _alive(p)]}, "
+                                                f"{run_dir.exists()=}, {dora_dir.exists()=}")
+            time.sleep(0.05)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _children_of(root: int, needle: str) -> list[int]:
+    """Processes under ``root`` (any depth) whose command line holds ``needle``."""
+    parents = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(text[text.rindex(")") + 2:].split()[1])
+
+    def under(pid: int) -> bool:
+        seen = 0
+        while pid in parents and seen < 64:
+            if parents[pid] == root:
+                return True
+            pid, seen = parents[pid], seen + 1
+        return False
+
+    return sorted(pid for pid in parents if under(pid) and needle in _cmdline(pid))
