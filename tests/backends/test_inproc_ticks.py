@@ -344,3 +344,62 @@ def test_a_tick_between_runs_keeps_seqs_unique():
             results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))
             assert len(set(ids(pipe))) == len(ids(pipe))
     assert results[0] == results[1]
+
+
+class Ping(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        return Num(inp.x + 1)
+
+
+def test_a_zeno_cycle_stops_both_paths_alike():
+    """Two Trigger flows in an instantaneous cycle, one fed by two edges (fan-in): past
+    max_microsteps the run stops with a CausalityError at the same record on both paths."""
+    def build():
+        with Pipeline("zeno", max_microsteps=20) as pipe:
+            kick = Count().named("kick") @ Rate(10)
+            a, b = Ping().named("a") @ Trigger(), Ping().named("b") @ Trigger()
+            pipe.connect(kick, a, sync=Latest())
+            pipe.connect(a, b, sync=Latest())
+            pipe.connect(b, a, sync=Latest())
+        return pipe
+
+    fast = assert_same(build, min_compiled=3)
+    assert fast[2].startswith("CausalityError")
+
+
+class FailsAt(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        if inp.x == 7:
+            raise ValueError("seven")
+        return Num(inp.x)
+
+
+def test_a_run_goes_on_after_an_error_between_microsteps_alike():
+    """A step that stops the run at microstep 1, after another tick there triggered one at
+    microstep 2: the next run starts with that tick, on both paths."""
+    def build():
+        with Pipeline("cascade") as pipe:
+            src = Count().named("src") @ Rate(100)
+            a, z = Ping().named("a") @ Trigger(), FailsAt().named("z") @ Trigger()
+            pipe.connect(src, a, sync=Latest())
+            pipe.connect(src, z, sync=Latest())
+            pipe.connect(a, Ping().named("b") @ Trigger(), sync=Latest())
+        return pipe
+
+    def continuing():
+        pipe, errors = build(), []
+        for _ in range(2):
+            try:
+                pipe.run(duration=0.1)
+            except StepError as exc:
+                errors.append(str(exc))
+        stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
+        return records(pipe.trace), stats, errors
+
+    with counting() as compiled:
+        fast = continuing()
+    with generic_only():
+        generic = continuing()
+    assert len(set(compiled)) == 4 and fast == generic
+    assert len(fast[2]) == 1 and fast[1]["b"][1] == 10  # at every tick (the run ended at 0.1 s)
+    assert ("b", (60_000_000, 2)) in [s[:2] for s in fast[0][1]]  # triggered before the error at (0.06 s, 1)
