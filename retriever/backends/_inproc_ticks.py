@@ -12,9 +12,10 @@ unexpected type (a dict from a typed flow, an untyped flow's dict of other ports
 a plain type), an error, a skipped tick, leave the compiled path for the session's generic
 helpers (``_emit``, ``_failed``, ``_skipped``).
 
-:func:`make_ticks` turns the code of the nodes of one rate group into one function per node and,
-when their ticks run in node order, one more that runs them all, one after the other, with no
-call in between.
+:func:`make_ticks` turns the code of every node into one function per node; per rate group whose
+ticks run in node order, one more that runs them all, one after the other, with no call in
+between; and per node that triggers one other node at the next microstep (a chain of Trigger
+flows), one that goes on with it as long as it is the only tick due.
 
 A compiled tick that ran records its step in the trace's tape as one compact record, expanded
 into the step record and its events when the trace is read (``Trace.tape``):
@@ -53,6 +54,11 @@ def _indent(text: str, indent: str = "    ") -> str:
     return "".join(indent + line + "\n" for line in text.splitlines())
 
 
+def _nonlocal(names) -> str:
+    names = ", ".join(names)
+    return f"    nonlocal {names}\n" if names else ""
+
+
 @dataclass
 class NodeCode:
     """The generated code of one node's tick, to be put together by :func:`make_ticks`. Every
@@ -65,6 +71,7 @@ class NodeCode:
     body: str  # one tick, at tag ``tau``, outputs at ``out_tag`` (no return: it falls through)
     flush: str  # flush()'s lines: the counts to rt.stats, the seqs to rt.seq, ``visible`` to the buffers
     expand: str  # ``expand{k}(tape, i, add_event, add_step)``, the tape's record format
+    follower: int | None  # the one node its outputs can trigger at the next microstep, if one
 
 
 def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
@@ -129,7 +136,10 @@ class _TickWriter:
                                f"fallback{k}_{i}": port_spec.fallback})
         state = [f"ticks{k}", f"steps{k}", f"wall{k}", *self.seq, *self.visible]
         body = self._body()  # first: it names the objects the code refers to
-        return NodeCode(k, self.names, state, init, body, flush, self._expander())
+        followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
+                     if triggers and not delay_ns and not rt.latency_ns}
+        follower = followers.pop() if len(followers) == 1 else None
+        return NodeCode(k, self.names, state, init, body, flush, self._expander(), follower)
 
     # -- the tick --------------------------------------------------------------------------
     def _body(self) -> str:
@@ -203,8 +213,10 @@ else:
     if {" or ".join(self._generic())}:
         wall{k} += now - start
         steps{k} += 1
-{_indent(consumed + self._to_seqs() + seen, "        ")}        emit(rt{k}, tau, read{k}(raw), consumed, start, now)
-{_indent(from_seqs, "        ")}    else:
+{_indent(consumed + self._to_seqs() + seen, "        ")}        try:  # emit() may raise after it counted events
+            emit(rt{k}, tau, read{k}(raw), consumed, start, now)
+        finally:
+{_indent(from_seqs or "pass", "            ")}    else:
 {_indent(self._record(), "        ")}"""
 
     def _call(self) -> str:
@@ -347,42 +359,85 @@ def expand{k}(tape, i, add_event, add_step):
 """
 
 
-def make_ticks(session: Any, parts: list[NodeCode | Callable], fused: bool) -> tuple[list, Callable | None, Callable]:
-    """``(ticks, fused tick, flush)`` of the nodes in ``parts``, in their tick order: each a node's
-    code, or the node's generic tick. ``ticks[j]`` runs one tick of part ``j``,
-    ``f(tau, (tau[0], tau[1] + 1))``; the fused tick, if asked for, runs one tick of each in
-    turn; ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each
-    input's ``visible`` to its buffer (the session calls it, after expanding the tape, before it
-    reads them)."""
+#: the most ticks one chain function runs before the loop takes over again (bounds its code)
+CHAIN_MAX = 32
+
+
+def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tuple[int, ...]], fuse: bool) -> tuple:
+    """``(ticks, chains, fused, flush)`` of every node: ``parts[i]`` is node ``i``'s code, or its
+    generic tick; ``groups`` are the rate groups' nodes. Each function ``f(tau, out_tag)`` runs at
+    ``tau`` with ``out_tag`` the next microstep, and returns the ``out_tag`` of the last tick it ran:
+
+    - ``ticks[i]`` runs one tick of node ``i``;
+    - ``chains[i]`` too, when it is the only tick due at ``tau``, and if node ``i`` heads a chain
+      of Trigger flows (what a rate group's node triggers; each link the one node its
+      predecessor can trigger), goes on with the next, at the next microstep, as long as it is
+      the only tick due (``after``, the session's list of them, holds just it), and so on;
+    - ``fused[g]`` (with ``fuse``) runs one tick of each node of ``groups[g]``, in turn;
+    - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
+      ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them).
+    """
     names: dict[str, Any] = {
         "time_ns": time_ns, "insort": insort, "tape_extend": session._records.tape.extend, "emit": session._emit,
         "skipped": session._skipped, "failed": session._failed, "schedule": session._schedule,
-        "next_add": session._next.append, "saw_ports": session._saw_ports, "max_microsteps": session.max_microsteps,
-        "plain": type(session).plain_types,
+        "after": session._next, "next_add": session._next.append, "keep_next": session._keep_next,
+        "saw_ports": session._saw_ports, "max_microsteps": session.max_microsteps, "plain": type(session).plain_types,
     }
-    codes = [p for p in parts if isinstance(p, NodeCode)]
-    src = [code.init for code in codes]
+    codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
+    src = [code.init for code in codes.values()]
     bodies = []
-    for j, part in enumerate(parts):
-        if isinstance(part, NodeCode):
+    for i, part in enumerate(parts):
+        if i in codes:
             names.update(part.names)
-            src.append(f"def tick{j}(tau, out_tag):\n    nonlocal {', '.join(part.state)}\n{_indent(part.body)}")
+            src.append(f"def tick{i}(tau, out_tag):\n{_nonlocal(part.state)}{_indent(part.body)}    return out_tag\n")
             bodies.append(part.body)
         else:
-            names[f"tick{j}"] = part
-            bodies.append(f"tick{j}(tau, out_tag)\n")
-    state = ", ".join(s for code in codes for s in code.state)
-    if fused:
-        src.append(f"def fused(tau, out_tag):\n    nonlocal {state}\n{_indent(''.join(bodies))}")
-    src.append(f"def flush():\n    nonlocal {state}\n{_indent(''.join(code.flush for code in codes))}")
-    src += [code.expand for code in codes]
-    ticks = ", ".join(f"tick{j}" for j in range(len(parts)))
-    source = f"def make():\n{_indent(''.join(src))}    return [{ticks}], {'fused' if fused else 'None'}, flush\n"
+            names[f"tick{i}"] = part
+            bodies.append(f"tick{i}(tau, out_tag)\n")
+    grouped = {i for group in groups for i in group}
+    followed = {code.follower for code in codes.values()}
+    heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
+    chains = {}
+    for head in sorted(heads & codes.keys()):
+        chain, j = [head], codes[head].follower
+        while j in codes and j not in chain and len(chain) < CHAIN_MAX:
+            chain.append(j)
+            j = codes[j].follower
+        if len(chain) == 1:
+            continue
+        steps = "".join(f"""\
+if len(after) != 1 or after[0] != {j}:
+    return out_tag
+after.clear()
+tau = out_tag
+out_tag = (tau[0], tau[1] + 1)
+{codes[j].body}""" for j in chain[1:])
+        src.append(f"""\
+def chain{head}(tau, out_tag):
+{_nonlocal(s for i in chain for s in codes[i].state)}{_indent(codes[head].body)}    try:
+{_indent(steps, "        ")}    except BaseException:
+        keep_next(out_tag)
+        raise
+    return out_tag
+""")
+        chains[head] = f"chain{head}"
+    groups = groups if fuse else []
+    for g, group in enumerate(groups):
+        state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
+        src.append(f"def fused{g}(tau, out_tag):\n{state}{_indent(''.join(bodies[i] for i in group))}"
+                   "    return out_tag\n")
+    state = _nonlocal(s for code in codes.values() for s in code.state)
+    src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
+    src += [code.expand for code in codes.values()]
+    chain_of = [chains.get(i, f"tick{i}") for i in range(len(parts))]
+    source = (f"def make():\n{_indent(''.join(src))}"
+              f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
+              f"[{', '.join(chain_of)}], [{', '.join(f'fused{g}' for g in range(len(groups)))}], flush)\n")
     exec(_compiled(source), names)  # noqa: S102
-    ticks, fused_tick, flush = names["make"]()
-    for tick in [t for t, part in zip(ticks, parts) if isinstance(part, NodeCode)] + [fused_tick] * fused:
-        tick.source = source
-    return ticks, fused_tick, flush
+    ticks, chain_ticks, fused, flush = names["make"]()
+    for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused]:
+        f.source = source
+    return ticks, chain_ticks, fused, flush
 
 
 @functools.lru_cache(maxsize=256)

@@ -16,12 +16,18 @@ tick reads only events with tag ≤ τ, so no tick at τ can see another's outpu
 compared in canonical order, so ``tie_break_seed`` (shuffling same-tag ticks) must not change it;
 the property tests check exactly that.
 
-Two things keep the loop near the cost of the trace it must record (benchmarks/step_overhead.py):
-nodes whose clocks share one Rate schedule are one ``_RateGroup`` with one heap entry per tick,
-and nodes whose inputs are all ``Latest()`` run a tick function generated for them
-(``_inproc_ticks``), which does what ``_tick`` does with the node's ports, calling convention and
-consumers inlined. ``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two
-to the same trace.
+What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py):
+
+- nodes whose clocks share one Rate schedule are one ``_RateGroup``, with one heap entry per tick;
+- ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
+  edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
+- nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
+  which does what ``_tick`` does with the node's ports, calling convention and consumers
+  inlined: a rate group's in one function, a chain of Trigger flows' in one function;
+- those ticks record each step as one compact record in the trace's tape, made into the
+  step record and events when the trace is read.
+
+``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same trace.
 """
 
 from __future__ import annotations
@@ -126,7 +132,8 @@ class _RateGroup:
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
         self.order = order  # node indices, sorted: the tick order when nothing else is due at the tag
-        self.ticks: tuple = ()  # their tick functions, in that order (InprocSession._tick_functions)
+        # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
+        self.ticks: tuple = ()
         self.k = 0
         # the clocks' tick_time(k) is offset_ns + k * step_num // step_den (inlined in the loop)
         self.offset_ns, self.step_num, self.step_den = schedule
@@ -171,9 +178,11 @@ class InprocSession(Session):
         for group in self._groups:
             self._schedule_group(group)
         # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
-        # _tick; built on the first advance() (see _tick_functions)
+        # _tick; and the one that runs it when it is the only tick due, which may go on along a
+        # chain; built on the first advance() (see _tick_functions)
         self._ticks: list | None = None
-        self._flushes: list = []  # flush() of each compiled tick: hand its counts to stats and rt.seq
+        self._chains: list = []
+        self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
         self._generic_only = False  # set by take_routes(): replay delivers events itself
         self._recompile = False  # set by _saw_ports(): compile the ticks anew between two instants
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
@@ -248,6 +257,13 @@ class InprocSession(Session):
         for flush in self._flushes:
             flush()
 
+    def _keep_next(self, tag: tuple[int, int]) -> None:
+        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
+        go on the heap, for a later advance()."""
+        for index in set(self._next):
+            self._schedule_later(tag, index)
+        self._next.clear()
+
     def _saw_ports(self, rt: _NodeRuntime, outputs: dict) -> None:
         """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
         if rt.ports_seen is None and all(type(port) is str for port in outputs):
@@ -260,33 +276,28 @@ class InprocSession(Session):
         self._flush()
         self._ticks, self._flushes = None, []
 
-    def _tick_functions(self) -> list:
-        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick: compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; and per rate
-        group, its ticks in order (one fused function, when nothing shuffles them)."""
+    def _tick_functions(self) -> tuple[list, list]:
+        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
+        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; the same, when
+        it is the only tick due, going on along a chain of Trigger flows; and per rate group,
+        its ticks in order (one fused function, when nothing shuffles them). Each returns the
+        next microstep of the last tick it ran."""
         if self._ticks is not None:
-            return self._ticks
-        ticks: list = [None] * len(self._nodes)
-        grouped = {i for group in self._groups for i in group.order}
-        units = [(group, group.order) for group in self._groups]
-        units += [(None, (rt.index,)) for rt in self._nodes if rt.index not in grouped]
-        for group, order in units:
-            parts = []
-            for i in order:
-                rt = self._nodes[i]
-                code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
-                parts.append(code or (lambda tau, _, rt=rt, tick=self._tick: tick(rt, tau)))
-            fused = None
-            if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-                fuse = group is not None and self._rng is None and len(order) > 1
-                parts, fused, flush = _inproc_ticks.make_ticks(self, parts, fuse)
-                self._flushes.append(flush)
-            for i, tick in zip(order, parts):
-                ticks[i] = tick
-            if group is not None:
-                group.ticks = tuple(parts) if fused is None else (fused,)
-        self._ticks = ticks
-        return ticks
+            return self._ticks, self._chains
+        parts = []
+        for rt in self._nodes:
+            code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
+            parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
+        groups = [group.order for group in self._groups]
+        if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
+            ticks, chains, fused, flush = _inproc_ticks.make_ticks(self, parts, groups, fuse=self._rng is None)
+            self._flushes.append(flush)
+        else:
+            ticks, chains, fused = parts, parts, []
+        for g, group in enumerate(self._groups):
+            group.ticks = (fused[g],) if fused else tuple(ticks[i] for i in group.order)
+        self._ticks, self._chains = ticks, chains
+        return ticks, chains
 
     # ---------------------------------------------------------------------------------------
     # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
@@ -338,7 +349,7 @@ class InprocSession(Session):
 
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
-        ticks = self._tick_functions()
+        ticks, chains = self._tick_functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
         # hand-over, or a look at whether a stop was asked for (a run in the background,
@@ -349,7 +360,7 @@ class InprocSession(Session):
             if self._recompile:
                 self._recompile = False
                 self._drop_compiled()
-                ticks = self._tick_functions()
+                ticks, chains = self._tick_functions()
             if ran >= log_at:
                 if log is not None:
                     log_at = ran + self.write_log()  # first: with keep="counters" it empties the trace
@@ -397,9 +408,9 @@ class InprocSession(Session):
                 while after:  # the ticks those triggered, microstep by microstep
                     tag = next_microstep
                     next_microstep = (t, tag[1] + 1)
-                    if len(after) == 1:
-                        ticks[after.pop()](tag, next_microstep)
-                        ran += 1
+                    if len(after) == 1:  # the only one: it may go on along a chain, one tick a microstep
+                        next_microstep = chains[after.pop()](tag, next_microstep)
+                        ran += next_microstep[1] - tag[1]
                         continue
                     indices = sorted(set(after))
                     after.clear()
@@ -408,10 +419,8 @@ class InprocSession(Session):
                     for i in indices:
                         ticks[i](tag, next_microstep)
                     ran += len(indices)
-            except BaseException:  # a later advance() runs the ticks already triggered
-                for i in set(after):
-                    self._schedule_later(next_microstep, i)
-                after.clear()
+            except BaseException:
+                self._keep_next(next_microstep)
                 raise
         self.now_ns = max(self.now_ns, until_ns)
 
