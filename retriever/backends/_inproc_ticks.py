@@ -332,29 +332,34 @@ else:
         k, rt, known = self.k, self.rt, self.known
         fields = ["_", "tau", "start", "end", *(f"c{i}" for i in range(len(self.ports))),
                   *(f"{x}{j}" for j in range(len(known)) for x in ("v", "s"))]
-        out_tag = f"(tau[0] + {rt.latency_ns}, 0)" if rt.latency_ns else "(tau[0], tau[1] + 1)"
+        if rt.latency_ns:
+            out_tag = f"out_tag = (tau[0] + {rt.latency_ns}, 0)\n"
+        else:  # the ticks of a rate group share their tau: their events share one out_tag, as in the run
+            out_tag = ("if tau is not last_tau:\n    last_tau, last_out = tau, (tau[0], tau[1] + 1)\n"
+                       "out_tag = last_out\n")
         if len(known) == 1:  # the common case, without a list
             events = f"""\
 if v0 is None:
     produced = ()
 else:
-    add_event(({out_tag}, node{k}, {known[0]!r}, s0, v0, end))
+    add_event((out_tag, node{k}, {known[0]!r}, s0, v0, end))
     produced = ((node{k}, {known[0]!r}, s0),)
 """
         else:
             events = "produced = []\n" + "".join(f"""\
 if v{j} is not None:
-    add_event(({out_tag}, node{k}, {port!r}, s{j}, v{j}, end))
+    add_event((out_tag, node{k}, {port!r}, s{j}, v{j}, end))
     produced.append((node{k}, {port!r}, s{j}))
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
 def expand{k}(tape, i, add_event, add_step):
-    nonlocal steps{k}, wall{k}
+    nonlocal steps{k}, wall{k}, last_tau, last_out
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
     wall = end - start
     steps{k} += 1
     wall{k} += wall
-{_indent(self._consumed("c") + events)}    add_step((node{k}, tau, consumed, produced, 'ok', None, start, wall))
+{_indent(self._consumed("c") + (out_tag if known else "") + events)}\
+    add_step((node{k}, tau, consumed, produced, 'ok', None, start, wall))
     return i + {len(fields)}
 """
 
@@ -384,7 +389,7 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
         "saw_ports": session._saw_ports, "max_microsteps": session.max_microsteps, "plain": type(session).plain_types,
     }
     codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
-    src = [code.init for code in codes.values()]
+    src = ["last_tau = last_out = None\n", *(code.init for code in codes.values())]
     bodies = []
     for i, part in enumerate(parts):
         if i in codes:
