@@ -261,7 +261,10 @@ else:
         """Count each output's seq, deliver its event, and append the compact record to the tape."""
         k, rt = self.k, self.rt
         out_tag = f"(tau[0] + {rt.latency_ns}, 0)" if rt.latency_ns else "out_tag"
-        record = [f"expand{k}", "tau", "start", "now", *self._slots()]
+        # a rate tick's tau is its group's, shared; a trigger tick's is its own: kept as two ints
+        # (of which the time is its instant's, shared), it goes with the tick's events
+        tau = ["tau"] if rt.clock.hz is not None else ["tau[0]", "tau[1]"]
+        record = [f"expand{k}", *tau, "start", "now", *self._slots()]
         src = []
         for j, port in enumerate(self.known):
             emits = f"s{j} = {self.seq[j]}\n{self.seq[j]} = s{j} + 1\n"
@@ -330,7 +333,8 @@ else:
         """``expand{k}(tape, i, add_event, add_step)``: the events and the step record of the
         compact record at ``tape[i]``, as ``_emit`` records them; counts the step and its time."""
         k, rt, known = self.k, self.rt, self.known
-        fields = ["_", "tau", "start", "end", *(f"c{i}" for i in range(len(self.ports))),
+        tau = ["tau"] if rt.clock.hz is not None else ["t", "m"]
+        fields = ["_", *tau, "start", "end", *(f"c{i}" for i in range(len(self.ports))),
                   *(f"{x}{j}" for j in range(len(known)) for x in ("v", "s"))]
         if rt.latency_ns:
             out_tag = f"out_tag = (tau[0] + {rt.latency_ns}, 0)\n"
@@ -355,7 +359,7 @@ if v{j} is not None:
 def expand{k}(tape, i, add_event, add_step):
     nonlocal steps{k}, wall{k}, last_tau, last_out
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
-    wall = end - start
+{"" if rt.clock.hz is not None else "    tau = (t, m)" + chr(10)}    wall = end - start
     steps{k} += 1
     wall{k} += wall
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
