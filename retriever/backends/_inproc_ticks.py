@@ -71,6 +71,7 @@ class NodeCode:
     body: str  # one tick, at tag ``tau``, outputs at ``out_tag`` (no return: it falls through)
     flush: str  # flush()'s lines: the counts to rt.stats, the seqs to rt.seq, ``visible`` to the buffers
     expand: str  # ``expand{k}(tape, i, add_event, add_step)``, the tape's record format
+    helpers: str  # the functions the tick calls off its fast path: ``error{k}``, ``generic{k}``
     follower: int | None  # the one node its outputs can trigger at the next microstep, if one
 
 
@@ -139,7 +140,7 @@ class _TickWriter:
         followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
                      if triggers and not delay_ns and not rt.latency_ns}
         follower = followers.pop() if len(followers) == 1 else None
-        return NodeCode(k, self.names, state, init, body, flush, self._expander(), follower)
+        return NodeCode(k, self.names, state, init, body, flush, self._expander(), self._helpers(), follower)
 
     # -- the tick --------------------------------------------------------------------------
     def _body(self) -> str:
@@ -189,10 +190,7 @@ if n:
         expected, reads = self._reads()
         read_lines = "".join(f"{v} = {expr}\n" for v, expr in zip(self.values, reads)) or "outputs = None\n"
         no_events = f"{' = '.join(self.values or ['outputs'])} = None\n"
-        seen = (f"if type(raw) is dict and tuple(raw) != known{k}:\n    saw_ports(rt{k}, raw)\n"
-                if self.rt.spec.out_mode == "dict" and self.rt.ports_seen is None else "")
-        from_seqs = "".join(f"{s} = seqs{k}[{port!r}]\n" for port, s in zip(self.known, self.seq))
-        consumed = self._consumed("entry")
+        entries = "".join(f", entry{i}" for i in range(len(self.ports)))
         return f"""\
 start = time_ns()
 try:
@@ -204,20 +202,36 @@ try:
 except KeyboardInterrupt:
     raise
 except BaseException as exc:  # SystemExit too, as in _tick
-    wall = time_ns() - start
-    wall{k} += wall
-    ticks{k} += 1
-{_indent(consumed)}    failed(rt{k}, tau, consumed, exc, start, wall)
+    error{k}(tau, exc, start, time_ns() - start{entries})
 else:
     now = time_ns()
     if {" or ".join(self._generic())}:
-        wall{k} += now - start
-        steps{k} += 1
-{_indent(consumed + self._to_seqs() + seen, "        ")}        try:  # emit() may raise after it counted events
-            emit(rt{k}, tau, read{k}(raw), consumed, start, now)
-        finally:
-{_indent(from_seqs or "pass", "            ")}    else:
+        generic{k}(tau, raw, start, now{entries})
+    else:
 {_indent(self._record(), "        ")}"""
+
+    def _helpers(self) -> str:
+        """``error{k}``, for a step that raised, and ``generic{k}``, for outputs the compiled path
+        does not take: what they need of the tick, its consumed ids, to the session's generic helpers."""
+        k = self.k
+        entries = "".join(f", entry{i}" for i in range(len(self.ports)))
+        seen = (f"if type(raw) is dict and tuple(raw) != known{k}:\n    saw_ports(rt{k}, raw)\n"
+                if self.rt.spec.out_mode == "dict" and self.rt.ports_seen is None else "")
+        from_seqs = "".join(f"{s} = seqs{k}[{port!r}]\n" for port, s in zip(self.known, self.seq))
+        consumed = self._consumed("entry")
+        return f"""\
+def error{k}(tau, exc, start, wall{entries}):
+    nonlocal ticks{k}, wall{k}
+    wall{k} += wall
+    ticks{k} += 1
+{_indent(consumed)}    failed(rt{k}, tau, consumed, exc, start, wall)
+def generic{k}(tau, raw, start, now{entries}):
+{_nonlocal([f"steps{k}", f"wall{k}", *self.seq])}    wall{k} += now - start
+    steps{k} += 1
+{_indent(consumed + self._to_seqs() + seen)}    try:  # emit() may raise after it counted events
+        emit(rt{k}, tau, read{k}(raw), consumed, start, now)
+    finally:
+{_indent(from_seqs or "pass", "        ")}"""
 
     def _call(self) -> str:
         """The step call: make_invoker, spelled out; optional ports nothing feeds get their fallback."""
@@ -437,7 +451,7 @@ def chain{head}(tau, out_tag):
                    "    return out_tag\n")
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
-    src += [code.expand for code in codes.values()]
+    src += [code.expand + code.helpers for code in codes.values()]
     chain_of = [chains.get(i, f"tick{i}") for i in range(len(parts))]
     source = (f"def make():\n{_indent(''.join(src))}"
               f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
