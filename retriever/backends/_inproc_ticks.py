@@ -91,9 +91,7 @@ def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
         if type(policy) is not Latest or policy._staleness_ns is not None:
             return None
     spec = rt.spec
-    if spec.in_mode in ("io", "params") and not all(map(_identifier, [port for port, *_ in rt.inputs])):
-        return None
-    if spec.in_mode in ("io", "params") and not all(map(_identifier, rt.fallbacks)):
+    if spec.in_mode in ("io", "params") and not all(map(_identifier, [*(p for p, *_ in rt.inputs), *rt.fallbacks])):
         return None
     if spec.out_mode == "io":
         known = list(spec.outputs or ())  # output ports read by attribute
@@ -136,11 +134,10 @@ class _TickWriter:
             self.names.update({f"buf{k}_{i}": buf, f"entries{k}_{i}": buf.entries,
                                f"fallback{k}_{i}": port_spec.fallback})
         state = [f"ticks{k}", f"steps{k}", f"wall{k}", *self.seq, *self.visible]
-        body = self._body()  # first: it names the objects the code refers to
         followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
                      if triggers and not delay_ns and not rt.latency_ns}
         follower = followers.pop() if len(followers) == 1 else None
-        return NodeCode(k, self.names, state, init, body, flush, self._expander(), self._helpers(), follower)
+        return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower)
 
     # -- the tick --------------------------------------------------------------------------
     def _body(self) -> str:
