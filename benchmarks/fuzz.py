@@ -659,7 +659,7 @@ class CoordinatorTarget(Target):
         key, _, report = data.partition(b"\n")
         s = self._session()
         base = self.base
-        s.trace.raw_events, s.trace.raw_steps = list(base.trace.raw_events), list(base.trace.raw_steps)
+        s.trace.raw_events[:], s.trace.raw_steps[:] = base.trace.raw_events, base.trace.raw_steps
         s._event_ids, s._ticks = base._event_ids.copy(), base._ticks.copy()
         s.own_counts["garbage"] = GARBAGE_PRINTED  # past the few it prints: it prints none
         return s, (key.decode(), report)

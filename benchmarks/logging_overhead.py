@@ -56,7 +56,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout without installing
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # step_overhead, beside this file
 
-from step_overhead import VARIANTS, build  # the same chain, the same flow classes
+from step_overhead import VARIANTS, Chain, build  # the same chain, the same flow classes
 
 from retriever._loading import load_pipeline
 from retriever.log import format as fmt
@@ -94,7 +94,7 @@ class Workload:
 
 def chain_workload(args) -> Workload:
     return Workload("chain", f"{args.variant} chain, 1 src + {args.stages} stages @ Rate({args.hz:g})",
-                    args.chain_duration, build(args.variant, args.stages, args.hz)[0])
+                    args.chain_duration, build(Chain(args.variant, "rate", args.stages + 1), args.hz)[0])
 
 
 def quickstart_workload(args) -> Workload:

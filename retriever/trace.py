@@ -8,7 +8,10 @@ across processes and machines.
 
 from __future__ import annotations
 
+import gc
 import hashlib
+import threading
+from contextlib import contextmanager
 from typing import Any, Iterator, NamedTuple
 
 from .codec import packb
@@ -26,6 +29,32 @@ EventId = tuple[str, str, int]
 #: after a logged run ``pipe.trace`` reads the trace back from its log. The default is
 #: ``"counters"`` for a logged run on a real-time backend and ``"trace"`` otherwise.
 KEEP = ("trace", "records", "counters")
+
+
+_held = 0  # how many holding_full_collections() are open, in any thread
+_held_lock = threading.Lock()
+_thresholds = gc.get_threshold()
+
+
+@contextmanager
+def holding_full_collections() -> Iterator[None]:
+    """Hold off the cyclic GC's *full* collections (young ones go on) while a run or a read of
+    its trace makes records that live as long as the trace: each full collection would walk
+    them all again, about half the time of a long run (measured, benchmarks/README.md).
+    Nests, across threads (a run in the background, its trace read meanwhile)."""
+    global _held, _thresholds
+    with _held_lock:
+        if not _held:
+            _thresholds = gc.get_threshold()
+            gc.set_threshold(_thresholds[0], _thresholds[1], 1 << 30)
+        _held += 1
+    try:
+        yield
+    finally:
+        with _held_lock:
+            _held -= 1
+            if not _held:
+                gc.set_threshold(*_thresholds)
 
 
 class _NotKept:
@@ -154,15 +183,25 @@ def _step_key(rec: StepRecord):
 class Trace:
     """Events and step records of a run, in the order the backend recorded them.
 
-    Backends append plain tuples of every field to ``raw_events`` and ``raw_steps`` (named tuples
-    cost several times more to build, and most runs never look at most records); ``events`` and
-    ``steps`` present them as :class:`Event` and :class:`StepRecord`, converted on first access.
+    ``raw_events`` and ``raw_steps`` hold plain tuples of every field (named tuples cost several
+    times more to build, and most runs never look at most records); ``events`` and ``steps``
+    present them as :class:`Event` and :class:`StepRecord`, converted on first access.
+
+    A backend appends records to ``raw_events`` and ``raw_steps``, or, in recording order, to the
+    ``tape``, which is expanded into them the first time either is read. The in-process backend
+    does, because a record in the tape costs a fraction of its tuples (benchmarks/README.md,
+    step_overhead.py). An item of the tape is a plain record, an event (6 fields) or a step
+    record (8 fields), or the function that heads a compact record and expands it:
+    ``tape[i](tape, i, add_event, add_step)`` appends the records that the compact one at ``i``
+    stands for, and returns the index of the item after it.
     """
 
     def __init__(self, events: list | None = None, steps: list | None = None, *, keep: str = "trace"):
         # full-length tuples, so the lazy conversion below can use the fast ``_make``
-        self.raw_events: list[tuple] = [tuple(Event(*e)) for e in events or ()]
-        self.raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
+        self._raw_events: list[tuple] = [tuple(Event(*e)) for e in events or ()]
+        self._raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
+        self.tape: list = []
+        self._expanding = threading.Lock()  # a background run appends while another thread reads
         self._events: list[Event] = []
         self._steps: list[StepRecord] = []
         #: what the run keeps (KEEP); whether events hold their values (``keep="trace"``), or
@@ -171,6 +210,36 @@ class Trace:
         self.values_kept = keep == "trace"
         self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
+
+    @property
+    def raw_events(self) -> list[tuple]:
+        """Every event as a plain ``(tag, node, port, seq, value, publish_ns)``, in recording order."""
+        self.expand()
+        return self._raw_events
+
+    @property
+    def raw_steps(self) -> list[tuple]:
+        """Every step record as a plain tuple of the :class:`StepRecord` fields, in recording order."""
+        self.expand()
+        return self._raw_steps
+
+    def expand(self) -> None:
+        """Move the tape's records to ``raw_events`` and ``raw_steps``. The tape only grows while
+        this runs (a backend appends each record at once), so what it held at the start goes."""
+        if not self.tape:
+            return
+        with self._expanding, holding_full_collections():
+            tape = self.tape
+            add_event, add_step = self._raw_events.append, self._raw_steps.append
+            i, end = 0, len(tape)
+            while i < end:
+                item = tape[i]
+                if type(item) is tuple:
+                    (add_event if len(item) == 6 else add_step)(item)
+                    i += 1
+                else:
+                    i = item(tape, i, add_event, add_step)
+            del tape[:end]
 
     def forget_values(self, upto: int | None = None) -> None:
         """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``

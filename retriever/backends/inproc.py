@@ -16,18 +16,23 @@ tick reads only events with tag ≤ τ, so no tick at τ can see another's outpu
 compared in canonical order, so ``tie_break_seed`` (shuffling same-tag ticks) must not change it;
 the property tests check exactly that.
 
-Two things keep the loop near the cost of the trace it must record (benchmarks/step_overhead.py):
-nodes whose clocks share one Rate schedule are one ``_RateGroup`` with one heap entry per tick,
-and nodes whose inputs are all ``Latest()`` run a tick function generated for them
-(``_inproc_ticks``), which does what ``_tick`` does with the node's ports, calling convention and
-consumers inlined. ``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two
-to the same trace.
+What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py):
+
+- nodes whose clocks share one Rate schedule are one ``_RateGroup``, with one heap entry per tick;
+- ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
+  edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
+- nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
+  which does what ``_tick`` does with the node's ports, calling convention and consumers
+  inlined: a rate group's in one function, a chain of Trigger flows' in one function;
+- those ticks record each step as one compact record in the trace's tape, made into the
+  step record and events when the trace is read.
+
+``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same trace.
 """
 
 from __future__ import annotations
 
 import atexit
-import gc
 import random
 import warnings
 import weakref
@@ -43,6 +48,7 @@ from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_do
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
 from ..time import format_tag
+from ..trace import holding_full_collections
 from . import _inproc_ticks
 from .base import Backend, NodeStats, RestartBudget, Session
 
@@ -90,7 +96,7 @@ class _NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots."""
 
     __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
-                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts")
+                 "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts", "ports_seen")
 
     def __init__(self, index: int, node: Node):
         self.index = index
@@ -113,6 +119,9 @@ class _NodeRuntime:
         self.cycle: list[str] = []
         # optional input ports nothing feeds: they take their fallback on every tick
         self.fallbacks: dict[str, Any] = {}
+        # an untyped step's output ports, in order, the first time they were not the wired ones
+        # (a port nothing consumes still makes events): the compiled tick expects them from then on
+        self.ports_seen: tuple[str, ...] | None = None
 
 
 class _RateGroup:
@@ -123,7 +132,8 @@ class _RateGroup:
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
         self.order = order  # node indices, sorted: the tick order when nothing else is due at the tag
-        self.ticks: tuple = ()  # their tick functions, in that order (InprocSession._tick_functions)
+        # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
+        self.ticks: tuple = ()
         self.k = 0
         # the clocks' tick_time(k) is offset_ns + k * step_num // step_den (inlined in the loop)
         self.offset_ns, self.step_num, self.step_den = schedule
@@ -143,6 +153,7 @@ class InprocSession(Session):
 
     def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace"):
         super().__init__(graph, keep)
+        self._records = self.trace  # where the compiled ticks record (pipe.trace may later read a log)
         self.max_microsteps = graph.max_microsteps
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
@@ -151,6 +162,9 @@ class InprocSession(Session):
         # and then the rate groups due at that tag are in _rate_due
         self._pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
         self._rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
+        # the nodes due at the next microstep of the tag running now: only a tick at (t, m) makes
+        # ticks at (t, m + 1) (a zero-latency output on an undelayed edge), so they need no heap
+        self._next: list[int] = []  # (a node triggered twice is in it twice)
         self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
         self._by_id = by_id = {rt.id: rt for rt in self._nodes}
         self._wire(graph, by_id)
@@ -164,10 +178,13 @@ class InprocSession(Session):
         for group in self._groups:
             self._schedule_group(group)
         # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
-        # _tick; built on the first advance() (see _tick_functions)
+        # _tick; and the one that runs it when it is the only tick due, which may go on along a
+        # chain; built on the first advance() (see _tick_functions)
         self._ticks: list | None = None
-        self._flushes: list = []  # flush() of each compiled tick: hand its counts to stats and rt.seq
+        self._chains: list = []
+        self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
         self._generic_only = False  # set by take_routes(): replay delivers events itself
+        self._recompile = False  # set by _saw_ports(): compile the ticks anew between two instants
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
 
     # ---------------------------------------------------------------------------------------
@@ -176,11 +193,11 @@ class InprocSession(Session):
     def _wire(self, graph: Graph, by_id: dict[str, _NodeRuntime]) -> None:
         buffers: dict[tuple[str, str], PortBuffer] = {}
         policies: dict[tuple[str, str], Any] = {}
-        self._feeds: dict[int, int] = {}  # id(buffer) -> how many edges feed it
+        self._sources: dict[int, list[tuple[str, str]]] = {}  # id(buffer) -> the (node, port) of each edge feeding it
         for e in graph.edges:
             key = (e.dst, e.dst_port)
             buf = buffers.setdefault(key, PortBuffer())
-            self._feeds[id(buf)] = self._feeds.get(id(buf), 0) + 1
+            self._sources.setdefault(id(buf), []).append((e.src, e.src_port))
             policies[key] = e.sync
             dst = graph.nodes[e.dst]
             by_id[e.src].downstream.setdefault(e.src_port, []).append(
@@ -201,6 +218,15 @@ class InprocSession(Session):
                     break
 
     def _schedule(self, tag: tuple[int, int], index: int) -> None:
+        """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
+        microstep of the tag running now (a zero-latency output on an undelayed edge), or later,
+        at microstep 0 (latency, delay)."""
+        if tag[1]:
+            self._next.append(index)
+        else:
+            self._schedule_later(tag, index)
+
+    def _schedule_later(self, tag: tuple[int, int], index: int) -> None:
         waiting = self._pending.get(tag)
         if waiting is None:
             self._pending[tag] = {index}
@@ -227,8 +253,22 @@ class InprocSession(Session):
         self._rate_due[tag].append(group)
 
     def _flush(self) -> None:
+        self._records.expand()  # the compiled ticks count their steps as their records are expanded
         for flush in self._flushes:
             flush()
+
+    def _keep_next(self, tag: tuple[int, int]) -> None:
+        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
+        go on the heap, for a later advance()."""
+        for index in set(self._next):
+            self._schedule_later(tag, index)
+        self._next.clear()
+
+    def _saw_ports(self, rt: _NodeRuntime, outputs: dict) -> None:
+        """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
+        if rt.ports_seen is None and all(type(port) is str for port in outputs):
+            rt.ports_seen = tuple(outputs)
+            self._recompile = True
 
     def _drop_compiled(self) -> None:
         """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
@@ -236,23 +276,28 @@ class InprocSession(Session):
         self._flush()
         self._ticks, self._flushes = None, []
 
-    def _tick_functions(self) -> list:
-        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick: compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`."""
+    def _tick_functions(self) -> tuple[list, list]:
+        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
+        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; the same, when
+        it is the only tick due, going on along a chain of Trigger flows; and per rate group,
+        its ticks in order (one fused function, when nothing shuffles them). Each returns the
+        next microstep of the last tick it ran."""
         if self._ticks is not None:
-            return self._ticks
-        ticks = []
+            return self._ticks, self._chains
+        parts = []
         for rt in self._nodes:
-            compiled = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._feeds)
-            if compiled is None:
-                ticks.append(lambda tau, _, rt=rt, tick=self._tick: tick(rt, tau))
-            else:
-                ticks.append(compiled[0])
-                self._flushes.append(compiled[1])
-        for group in self._groups:
-            group.ticks = tuple(ticks[i] for i in group.order)
-        self._ticks = ticks
-        return ticks
+            code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
+            parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
+        groups = [group.order for group in self._groups]
+        if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
+            ticks, chains, fused, flush = _inproc_ticks.make_ticks(self, parts, groups, fuse=self._rng is None)
+            self._flushes.append(flush)
+        else:
+            ticks, chains, fused = parts, parts, []
+        for g, group in enumerate(self._groups):
+            group.ticks = (fused[g],) if fused else tuple(ticks[i] for i in group.order)
+        self._ticks, self._chains = ticks, chains
+        return ticks, chains
 
     # ---------------------------------------------------------------------------------------
     # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
@@ -292,39 +337,38 @@ class InprocSession(Session):
     # The loop
     # ---------------------------------------------------------------------------------------
     def advance(self, until_ns: int) -> None:
-        # Every step appends trace records that live as long as the run, so each automatic *full*
-        # collection re-walks the whole trace: about half the loop's time on long runs (measured,
-        # benchmarks/README.md). Hold off full collections while the loop runs; young collections,
-        # which reclaim the cyclic garbage flows make, go on as usual.
+        # every step appends records that live as long as the trace (young collections, which
+        # reclaim the cyclic garbage flows make, go on as usual)
         self.set_up()
-        thresholds = gc.get_threshold()
-        gc.set_threshold(thresholds[0], thresholds[1], 1 << 30)
         try:
-            self._advance(until_ns)
+            with holding_full_collections():
+                self._advance(until_ns)
         except RunEnded as ended:  # a step's sys.exit(0): the run is over at its tick
             self.now_ns = ended.tag[0]
             self.ended = ended
-        finally:
-            self._flush()
-            gc.set_threshold(*thresholds)
 
     def _advance(self, until_ns: int) -> None:
-        heap, pending, rate_due, rng = self._heap, self._pending, self._rate_due, self._rng
-        ticks = self._tick_functions()
-        log, steps = self.log, self.trace.raw_steps
-        # every so many steps: the log's hand-over, or a look at whether a stop was asked for
-        # (a run in the background, pipe.run(..., blocking=False), stopped by its handle)
-        log_at = len(steps) + 1 if log is not None else len(steps) + self.LOG_BATCH
+        heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
+        ticks, chains = self._tick_functions()
+        log = self.log
+        # every so many steps (ticks: each leaves one step record), between two instants: the log's
+        # hand-over, or a look at whether a stop was asked for (a run in the background,
+        # pipe.run(..., blocking=False), stopped by its handle)
+        ran = 0
+        log_at = 1 if log is not None else self.LOG_BATCH
         while heap and heap[0][0] < until_ns:
-            if len(steps) >= log_at:
+            if self._recompile:
+                self._recompile = False
+                self._drop_compiled()
+                ticks, chains = self._tick_functions()
+            if ran >= log_at:
                 if log is not None:
-                    batch = self.write_log()  # first: with keep="counters" it empties the trace
-                    log_at = len(steps) + batch
+                    log_at = ran + self.write_log()  # first: with keep="counters" it empties the trace
                 else:
                     if self.stop_requested:
                         raise KeyboardInterrupt
                     self.drop_records()
-                    log_at = len(steps) + self.LOG_BATCH
+                    log_at = ran + self.LOG_BATCH
             tag = heappop(heap)
             due = pending.pop(tag)
             if type(due) is _RateGroup:  # one rate group's tick, nothing else: its nodes in order
@@ -335,8 +379,9 @@ class InprocSession(Session):
                 else:  # _schedule_group, inlined for the common case
                     pending[next_tag] = due
                     heappush(heap, next_tag)
+                ran += len(due.order)
                 if rng is None or len(due.order) == 1:
-                    order = due.ticks
+                    order = due.ticks  # one fused tick, or one per node
                 else:
                     indices = list(due.order)
                     rng.shuffle(indices)
@@ -347,6 +392,7 @@ class InprocSession(Session):
                     for group in groups:
                         group.advance()
                         self._schedule_group(group)
+                ran += len(due)
                 if len(due) == 1:
                     order = [ticks[i] for i in due]
                 else:
@@ -355,8 +401,27 @@ class InprocSession(Session):
                         rng.shuffle(indices)
                     order = [ticks[i] for i in indices]
             next_microstep = (tag[0], tag[1] + 1)
-            for tick in order:
-                tick(tag, next_microstep)
+            try:
+                for tick in order:
+                    tick(tag, next_microstep)
+                t = tag[0]
+                while after:  # the ticks those triggered, microstep by microstep
+                    tag = next_microstep
+                    next_microstep = (t, tag[1] + 1)
+                    if len(after) == 1:  # the only one: it may go on along a chain, one tick a microstep
+                        next_microstep = chains[after.pop()](tag, next_microstep)
+                        ran += next_microstep[1] - tag[1]
+                        continue
+                    indices = sorted(set(after))
+                    after.clear()
+                    if rng is not None:
+                        rng.shuffle(indices)
+                    for i in indices:
+                        ticks[i](tag, next_microstep)
+                    ran += len(indices)
+            except BaseException:
+                self._keep_next(next_microstep)
+                raise
         self.now_ns = max(self.now_ns, until_ns)
 
     def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
@@ -414,8 +479,9 @@ class InprocSession(Session):
         """Record and deliver the outputs of a tick that ran, and its step record."""
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
         produced = []
+        tape = self._records.tape
         if outputs:
-            events, seqs, node_id = self.trace.raw_events, rt.seq, rt.id
+            seqs, node_id = rt.seq, rt.id
             for port, value in outputs:
                 if value is None:  # sparse output: no event
                     continue
@@ -423,19 +489,18 @@ class InprocSession(Session):
                     self.check_output(rt, tau, port, value, consumed, start, produced)
                 seq = seqs.get(port, 0)
                 seqs[port] = seq + 1
-                events.append((out_tag, node_id, port, seq, value, end))
-                eid = (node_id, port, seq)
-                produced.append(eid)
-                # buffer entries carry the consumed-ids tuple a Latest() consumer records for them
-                ids = (eid,)
+                event = (out_tag, node_id, port, seq, value, end)
+                tape.append(event)
+                produced.append((node_id, port, seq))
+                # the event is the buffer entry of an undelayed edge
                 for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
-                    arrival = (out_tag[0] + delay_ns, 0) if delay_ns else out_tag
-                    buf.insert((arrival, node_id, port, seq, value, ids))
+                    entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
+                    buf.insert(entry)
                     if triggers:
-                        if arrival[1] > self.max_microsteps:
+                        if entry[0][1] > self.max_microsteps:
                             raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
-                        self._schedule(arrival, consumer)
-        self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+                        self._schedule(entry[0], consumer)
+        tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
 
     def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
                      start: int, produced: list | tuple) -> None:
@@ -453,13 +518,13 @@ class InprocSession(Session):
             rt.stats.errors += 1
             first_line = str(error).split("\n", 1)[0]
             detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
-            self.trace.raw_steps.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
-                                         time_ns() - start))
+            self._records.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
+                                    time_ns() - start))
             raise error from None
 
     def _skipped(self, rt: _NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
         rt.stats.skips += 1
-        self.trace.raw_steps.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
+        self._records.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
 
     def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
                 start: int, wall: int) -> None:
@@ -467,11 +532,11 @@ class InprocSession(Session):
             # sys.exit() or sys.exit(0) in a step: the whole run ends here, cleanly (the seed
             # paper's benchmark ends so); any other code is that step's error, below
             rt.stats.steps += 1
-            self.trace.raw_steps.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
+            self._records.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
             raise RunEnded(rt.id, tau)
         rt.stats.errors += 1
         detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
-        self.trace.raw_steps.append((rt.id, tau, consumed, (), "error", detail, start, wall))
+        self._records.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
         if rt.on_error == "restart":

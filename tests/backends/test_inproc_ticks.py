@@ -344,3 +344,90 @@ def test_a_tick_between_runs_keeps_seqs_unique():
             results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))
             assert len(set(ids(pipe))) == len(ids(pipe))
     assert results[0] == results[1]
+
+
+class Ping(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        return Num(inp.x + 1)
+
+
+def assert_same_going_on(build, runs=(0.1, 0.1)):
+    """Run ``build()``'s pipeline in the increments ``runs``, going on after each error, with the
+    compiled ticks and with the generic ones: the same records, stats and errors."""
+    def going_on():
+        pipe, errors = build(), []
+        for duration in runs:
+            try:
+                pipe.run(duration=duration)
+            except Exception as exc:  # noqa: BLE001 - compared below
+                errors.append(f"{type(exc).__name__}: {exc}")
+        stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
+        return records(pipe.trace), stats, errors
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        with counting() as compiled:
+            fast = going_on()
+        with generic_only():
+            generic = going_on()
+    assert set(compiled) == set(fast[1]) and fast == generic
+    return fast
+
+
+def test_a_zeno_cycle_stops_both_paths_alike():
+    """Two Trigger flows in an instantaneous cycle, one fed by two edges (fan-in): past
+    max_microsteps the run stops with a CausalityError at the same record on both paths, and
+    the next run stops so again."""
+    def build():
+        with Pipeline("zeno", max_microsteps=20) as pipe:
+            kick = Count().named("kick") @ Rate(10)
+            a, b = Ping().named("a") @ Trigger(), Ping().named("b") @ Trigger()
+            pipe.connect(kick, a, sync=Latest())
+            pipe.connect(a, b, sync=Latest())
+            pipe.connect(b, a, sync=Latest())
+        return pipe
+
+    fast = assert_same_going_on(build, runs=(0.1, 0.25))
+    assert [e.split(":")[0] for e in fast[2]] == ["CausalityError", "CausalityError"]
+
+
+class FailsAt(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        if inp.x == 7:
+            raise ValueError("seven")
+        return Num(inp.x)
+
+
+def test_a_run_goes_on_after_an_error_between_microsteps_alike():
+    """A step that stops the run at microstep 1, after another tick there triggered one at
+    microstep 2: the next run starts with that tick, on both paths."""
+    def build():
+        with Pipeline("cascade") as pipe:
+            src = Count().named("src") @ Rate(100)
+            a, z = Ping().named("a") @ Trigger(), FailsAt().named("z") @ Trigger()
+            pipe.connect(src, a, sync=Latest())
+            pipe.connect(src, z, sync=Latest())
+            pipe.connect(a, Ping().named("b") @ Trigger(), sync=Latest())
+        return pipe
+
+    fast = assert_same_going_on(build)
+    assert len(fast[2]) == 1 and fast[1]["b"][1] == 10  # at every tick (the run ended at 0.1 s)
+    assert ("b", (60_000_000, 2)) in [s[:2] for s in fast[0][1]]  # triggered before the error at (0.06 s, 1)
+
+
+def test_a_chain_of_trigger_flows_matches():
+    """A Rate source and Trigger flows, each triggering the next: one function runs the chain
+    while each tick is the only one due; a flow also triggered from elsewhere, an empty output,
+    an error in the middle of the chain and a flow of the chain fed by a delayed edge break it."""
+    def build():
+        with Pipeline("chain") as pipe:
+            prev = Count(none=5).named("src") @ Rate(100)
+            for name in ("c1", "c2", "c3", "c4"):
+                flow = (FailsAt() if name == "c3" else Ping()).named(name).configure(on_error="skip_tick")
+                prev = prev.then(flow @ Trigger(), sync=Latest())
+            side = Count(sparse=3).named("side") @ Rate(50, offset=0.01)
+            pipe.connect(side, pipe.flows[2], sync=Latest(), map={"x": "x"})  # c2, also from side,
+            pipe.connect(side, pipe.flows[4], sync=Latest(), map={"x": "x"}, delay=0.02)  # and c4, later
+        return pipe
+
+    assert_same(build, runs=(0.3, 0.2), min_compiled=6)

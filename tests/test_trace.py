@@ -1,0 +1,48 @@
+"""The trace's tape (records kept compact until read) and the GC hold the records need."""
+
+from __future__ import annotations
+
+import gc
+import threading
+
+from retriever.trace import Trace, holding_full_collections
+
+
+def test_the_tape_expands_in_recording_order_on_first_read():
+    def pair(tape, i, add_event, add_step):
+        """A compact record [pair, tag, node, seq]: one event and the step that made it."""
+        _, tag, node, seq = tape[i:i + 4]
+        add_event(((tag[0], tag[1] + 1), node, "out", seq, seq * 10, 0))
+        add_step((node, tag, {}, ((node, "out", seq),), "ok", None, 0, 0))
+        return i + 4
+
+    trace = Trace()
+    trace.tape += [pair, (0, 0), "a", 0]
+    trace.tape.append(((0, 1), "b", "out", 0, "x", 0))  # plain records, in between
+    trace.tape.append(("b", (0, 0), {}, (("b", "out", 0),), "ok", None, 0, 0))
+    trace.tape += [pair, (1, 0), "a", 1]
+    assert [e[1:4] for e in trace.raw_events] == [("a", "out", 0), ("b", "out", 0), ("a", "out", 1)]
+    assert [(s.node, s.tag) for s in trace.steps] == [("a", (0, 0)), ("b", (0, 0)), ("a", (1, 0))]
+    assert trace.tape == []
+    trace.tape += [pair, (2, 0), "a", 2]  # appended after a read: read on the next one
+    assert len(trace) == 4 and trace.events[-1].value == 20
+
+
+def test_full_collections_are_held_while_any_holder_is_open():
+    before = gc.get_threshold()
+    opened, release = threading.Event(), threading.Event()
+
+    def other():
+        with holding_full_collections():
+            opened.set()
+            release.wait()
+
+    thread = threading.Thread(target=other)
+    with holding_full_collections():
+        thread.start()
+        opened.wait()
+        assert gc.get_threshold()[2] == 1 << 30
+    assert gc.get_threshold()[2] == 1 << 30  # the other thread still holds them
+    release.set()
+    thread.join()
+    assert gc.get_threshold() == before
