@@ -69,6 +69,7 @@ enough to recompute every number of the table.
 from __future__ import annotations
 
 import argparse
+import collections
 import csv
 import datetime
 import hashlib
@@ -90,6 +91,7 @@ sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 sys.path.insert(0, str(HERE))
 
 from retriever import Flow, Latest, Pipeline, Rate, Trigger, io
+from retriever.errors import BackendError
 
 X0, G, X_TARGET = 1.0, 9.81, 1.0
 CONFIGS = {
@@ -143,9 +145,16 @@ class Run:
     info: dict
 
 
+class RunFailed(Exception):
+    """A real-time run that gave no result: its runtime stopped it, or fewer than T states came."""
+
+    def __init__(self, reason: str, **info):
+        super().__init__(reason)
+        self.info = {"reason": reason} | info
+
+
 def finish(states: list[Ball], prm: dict, **info) -> Run:
-    """A run's result from the guard's states at ticks 1..T (the last one is x_T's). A real-time
-    run whose ticks went incomplete may have fewer or more: its trace then differs."""
+    """A run's result from the guard's states at ticks 1..T (the last one is x_T's)."""
     last = states[-1]
     err = last.x - prm["x_target"]
     return Run(last.x, err * err, 2.0 * err * last.dx, tuple((s.x, s.v) for s in states), info)
@@ -242,16 +251,26 @@ def build(prm: dict, hz: float, deadline: float = 1.0) -> tuple[Pipeline, int]:
 
 def run_retriever(prm: dict, backend: str, hz: float, deadline: float = 1.0) -> Run:
     pipe, period = build(prm, hz, deadline)
-    options = {"quiet": True} if backend == "zenoh" else {}
-    trace = pipe.run(duration=(prm["T"] + 2) * period / 1e9, backend=backend, **options)
-    # the guard's states of ticks 1..T are tagged P..T·P (more or fewer only if ticks went incomplete)
-    events = sorted(trace.events_of("guard", "state"), key=lambda e: e.tag)
-    states = [e.value for e in events if e.tag <= (prm["T"] * period, 0)]
+    if backend == "inproc":
+        trace = pipe.run(duration=(prm["T"] + 2) * period / 1e9)
+    else:
+        try:
+            trace = pipe.run(duration=(prm["T"] + 2) * period / 1e9, backend=backend, quiet=True)
+        except BackendError as e:  # e.g. a worker that did not finish in time on an overloaded machine
+            raise RunFailed(str(e).splitlines()[0]) from None
+    # the guard's states of ticks 1..T, tagged P..T·P (in an incomplete tick, from another path)
+    states = [e.value for e in sorted(trace.events_of("guard", "state"), key=lambda e: e.tag)
+              if e.tag <= (prm["T"] * period, 0)]
     if backend == "inproc":
         return finish(states, prm)
+    counts = {k: v for k, v in dict(pipe.counts()).items() if v}
+    if len(states) != prm["T"]:
+        statuses = {node: dict(collections.Counter(rec.status for rec in trace.steps_of(node)))
+                    for node in ("integrator", "guard")}
+        raise RunFailed(f"{len(states)} of T = {prm['T']} states", counts=counts, statuses=statuses)
     ticks = trace.steps_of("integrator")  # how late each tick started, against the first one
     late = max((s.wall_start_ns - ticks[0].wall_start_ns) - (s.tag[0] - ticks[0].tag[0]) for s in ticks)
-    return finish(states, prm, counts={k: v for k, v in dict(pipe.counts()).items() if k in ZENOH_COUNTS and v},
+    return finish(states, prm, counts={k: v for k, v in counts.items() if k in ZENOH_COUNTS},
                   max_tick_lateness_ms=late / 1e6)
 
 
@@ -388,7 +407,7 @@ class PubSubZenoh:
         self.integrator.stdin.flush()
         out = json.loads(self.integrator.stdout.readline())
         if out["missing"]:
-            raise SystemExit(f"pubsub-zenoh run {run}: {out['missing']} states never came back")
+            raise RunFailed(f"{out['missing']} of T = {prm['T']} states never came back (5 s)")
         states = [Ball(*s) for s in out["states"]]
         return finish(states, prm, stale_reads=len(out["stale_ticks"]), stale_ticks=out["stale_ticks"],
                       max_tick_lateness_ms=out["max_tick_lateness_ms"])
@@ -407,18 +426,29 @@ class PubSubZenoh:
 # ---------------------------------------------------------------------------------------------
 # Running an executor K times, and the numbers
 # ---------------------------------------------------------------------------------------------
-def run_executor(name: str, config: str, prm: dict, hz: float, seed: int, deadline: float = 1.0) -> list[Run]:
-    runs, pair = [], PubSubZenoh(prm, hz) if name == "pubsub-zenoh" else None
+def run_executor(name: str, config: str, prm: dict, hz: float, seed: int, deadline: float = 1.0,
+                 failures: list | None = None) -> list[Run]:
+    """K runs. A real-time run that fails (``RunFailed``) is noted in ``failures`` and made again,
+    up to K more times."""
+    runs, pair, attempt = [], PubSubZenoh(prm, hz) if name == "pubsub-zenoh" else None, 0
     try:
-        for i in range(prm["K"]):
-            if name == "retriever-inproc":
-                runs.append(run_retriever(prm, "inproc", hz))
-            elif name == "retriever-zenoh":
-                runs.append(run_retriever(prm, "zenoh", hz, deadline))
-            elif name == "pubsub-mocked":
-                runs.append(run_pubsub_mocked(prm, f"{seed}:{config}:{i}"))
-            else:
-                runs.append(pair.run(prm, i))
+        while len(runs) < prm["K"]:
+            i, attempt = attempt, attempt + 1
+            try:
+                if name == "retriever-inproc":
+                    runs.append(run_retriever(prm, "inproc", hz))
+                elif name == "retriever-zenoh":
+                    runs.append(run_retriever(prm, "zenoh", hz, deadline))
+                elif name == "pubsub-mocked":
+                    runs.append(run_pubsub_mocked(prm, f"{seed}:{config}:{i}"))
+                else:
+                    runs.append(pair.run(prm, i))
+            except RunFailed as f:
+                print(f"    {name} attempt {i} failed: {f}; load average {os.getloadavg()[0]:.1f}", flush=True)
+                if failures is not None:
+                    failures.append({"attempt": i, "load_average": os.getloadavg()[0]} | f.info)
+                if attempt >= 2 * prm["K"]:
+                    raise SystemExit(f"{name}: {attempt - len(runs)} of {attempt} runs failed; giving up") from None
     finally:
         if pair:
             pair.close()
@@ -460,8 +490,8 @@ def print_table(results: dict) -> None:
             stale = f"{s['stale_reads_mean']:.1f}" if "stale_reads_mean" in s else "-"
             late = s.get("max_tick_lateness_ms")
             late = f"{late['median']:.1f}/{late['max']:.1f}" if late else "-"
-            counts = ", ".join(f"{k} {v}" for k, v in s.get("counts", {}).items() if v) or ("none" if "counts" in s
-                                                                                              else "")
+            counts = [f"{k} {v}" for k, v in s.get("counts", {}).items() if v]
+            counts = ", ".join(counts + ([f"failed runs {s['failed_runs']} (made again)"] if s["failed_runs"] else []))
             cells = [config, name, s["runs"], s["unique_traces"], s["unique_gradients"], f"{s['gradient_std']:.3g}",
                      f"{s['trace_mismatch_rate']:.0%}", f"{s['gradient_mean']:.4f}",
                      f"{s['max_abs_error_vs_analytic']:.3g}", s["sign_flips"], stale, late]
@@ -578,15 +608,17 @@ def main(argv: list[str] | None = None) -> int:
                | {"trace_digest": ref["digest"]}, "executors": {}}
         for name in names:
             t0 = time.monotonic()
-            runs = run_executor(name, config, prm, args.hz, args.seed, args.deadline)
-            summary = summarize(runs, ref)
+            failures: list[dict] = []
+            runs = run_executor(name, config, prm, args.hz, args.seed, args.deadline, failures)
+            summary = summarize(runs, ref) | {"failed_runs": len(failures)}
             res["executors"][name] = {
                 "params": prm | ({"hz": args.hz} if "zenoh" in name else {})
                 | ({"deadline": args.deadline} if name == "retriever-zenoh" else {})
                 | ({"seed": args.seed} if name == "pubsub-mocked" else {}),
                 "summary": summary,
                 "runs": [{"x_T": r.x_T, "loss": r.loss, "dL_dtheta": r.grad, "trace_digest": digest(r.trace)} | r.info
-                         for r in runs]}
+                         for r in runs],
+                "failed_runs": failures}
             print(f"  {name}: {len(runs)} runs in {time.monotonic() - t0:.1f} s; {summary['unique_traces']} unique "
                   f"traces, {summary['unique_gradients']} unique gradients", flush=True)
         results[config] = res

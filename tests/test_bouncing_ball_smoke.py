@@ -51,3 +51,20 @@ def test_the_json_holds_every_parameter_and_every_run(tmp_path, capsys):
             assert isinstance(r["dL_dtheta"], float)
     assert "retriever-inproc" in capsys.readouterr().out
     assert len((tmp_path / "ball.csv").read_text().splitlines()) == 1 + 2 * 2
+
+
+def test_a_failed_run_is_noted_and_made_again(monkeypatch):
+    real, seeds = bb.run_pubsub_mocked, []
+
+    def stalls_once(prm, seed):
+        seeds.append(seed)
+        if len(seeds) == 1:
+            raise bb.RunFailed("a worker stalled")
+        return real(prm, seed)
+
+    monkeypatch.setattr(bb, "run_pubsub_mocked", stalls_once)
+    failures: list = []
+    runs = bb.run_executor("pubsub-mocked", "standard", bb.params_of("standard", runs=2), hz=500, seed=0,
+                           failures=failures)
+    assert len(runs) == 2 and len(seeds) == 3
+    assert [f["reason"] for f in failures] == ["a worker stalled"]
