@@ -27,7 +27,8 @@ its state has ``T`` steps. The trace of a run is the guard's ``(x, v)`` at ticks
 Executors (``--executors``):
 
 - ``retriever-inproc``: that graph on the in-process backend (virtual time), a fresh pipeline per run.
-- ``retriever-zenoh``: the same graph on the Zenoh runtime, one OS process per flow, in real time
+- ``retriever-zenoh``: the same graph on the Zenoh runtime, one OS process per flow (and each run
+  started from a process of its own, see ``run_retriever_zenoh``), in real time
   at ``--hz`` (``dt`` is the logical step; ``hz`` only sets the wall period ``P``); the integrator
   catches up on overruns (``on_overrun="catch_up"``); a tick waits for its input up to ``--deadline``
   (1 s): past it, the tick runs *incomplete* (its step record says so, the counters count it) and
@@ -274,6 +275,32 @@ def run_retriever(prm: dict, backend: str, hz: float, deadline: float = 1.0) -> 
                   max_tick_lateness_ms=late / 1e6)
 
 
+def run_retriever_zenoh(prm: dict, hz: float, deadline: float) -> Run:
+    """One zenoh run in a process of its own (this script with ``--retriever-zenoh-run``): a
+    process keeps the shared-memory pools of every run it started mapped until it exits (Zenoh's
+    receiver side never unmaps a segment, eclipse-zenoh/zenoh#2787), ~258 MB of /dev/shm a run here."""
+    me = [sys.executable, str(Path(__file__).resolve()), "--retriever-zenoh-run", json.dumps(prm), str(hz),
+          str(deadline)]
+    done = subprocess.run(me, stdout=subprocess.PIPE, text=True, timeout=120 + 3 * prm["T"] / hz, check=False)
+    lines = done.stdout.strip().splitlines()
+    if done.returncode or not lines:
+        raise RunFailed(f"the run's process exited with {done.returncode}")
+    out = json.loads(lines[-1])
+    if "failed" in out:
+        raise RunFailed(out["failed"], **out["info"])
+    return Run(out["x_T"], out["loss"], out["grad"], tuple(map(tuple, out["trace"])), out["info"])
+
+
+def retriever_zenoh_child(prm_json: str, hz: float, deadline: float) -> int:
+    try:
+        r = run_retriever(json.loads(prm_json), "zenoh", hz, deadline)
+    except RunFailed as f:
+        print(json.dumps({"failed": str(f), "info": {k: v for k, v in f.info.items() if k != "reason"}}), flush=True)
+        return 0
+    print(json.dumps({"x_T": r.x_T, "loss": r.loss, "grad": r.grad, "trace": r.trace, "info": r.info}), flush=True)
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------
 # Arrival-time pub/sub with the mocked jitter, in one process
 # ---------------------------------------------------------------------------------------------
@@ -438,7 +465,7 @@ def run_executor(name: str, config: str, prm: dict, hz: float, seed: int, deadli
                 if name == "retriever-inproc":
                     runs.append(run_retriever(prm, "inproc", hz))
                 elif name == "retriever-zenoh":
-                    runs.append(run_retriever(prm, "zenoh", hz, deadline))
+                    runs.append(run_retriever_zenoh(prm, hz, deadline))
                 elif name == "pubsub-mocked":
                     runs.append(run_pubsub_mocked(prm, f"{seed}:{config}:{i}"))
                 else:
@@ -574,6 +601,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--pubsub-integrator":
         return pubsub_integrator(argv[1], argv[2], argv[3], float(argv[4]))
+    if argv and argv[0] == "--retriever-zenoh-run":
+        return retriever_zenoh_child(argv[1], float(argv[2]), float(argv[3]))
     if argv and argv[0] == "--pubsub-guard":
         return pubsub_guard(argv[1], argv[2], float(argv[3]))
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
