@@ -597,35 +597,7 @@ def machine() -> dict:
             "zenoh": zenoh_version, "commit": commit, "date": datetime.datetime.now().isoformat(timespec="seconds")}
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] == "--pubsub-integrator":
-        return pubsub_integrator(argv[1], argv[2], argv[3], float(argv[4]))
-    if argv and argv[0] == "--retriever-zenoh-run":
-        return retriever_zenoh_child(argv[1], float(argv[2]), float(argv[3]))
-    if argv and argv[0] == "--pubsub-guard":
-        return pubsub_guard(argv[1], argv[2], float(argv[3]))
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--config", choices=[*CONFIGS, "all"], default="all")
-    ap.add_argument("--runs", type=int, default=None, metavar="K", help="runs per executor (default: the config's K)")
-    ap.add_argument("--executors", default=",".join(EXECUTORS), help="comma-separated, of " + ", ".join(EXECUTORS))
-    ap.add_argument("--hz", type=float, default=200.0, help="wall tick rate of the zenoh executors (default 200)")
-    ap.add_argument("--deadline", type=float, default=1.0,
-                    help="retriever-zenoh: how long a tick waits for its input before it runs incomplete (s)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the mocked jitter")
-    ap.add_argument("--json", metavar="FILE")
-    ap.add_argument("--csv", metavar="FILE")
-    ap.add_argument("--plot", metavar="FILE")
-    args = ap.parse_args(argv)
-    names = [n.strip() for n in args.executors.split(",") if n.strip()]
-    if unknown := [n for n in names if n not in EXECUTORS]:
-        ap.error(f"unknown executors {unknown}; choose from {', '.join(EXECUTORS)}")
-    configs = list(CONFIGS) if args.config == "all" else [args.config]
-
-    info = machine()
-    print(f"bouncing ball path gradients; python {info['python']}, {info['platform']}, {info['cpus']} cpus, "
-          f"zenoh {info['zenoh']}, code {info['commit']}; zenoh executors at {args.hz:g} Hz; "
-          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+def run_all(args, names: list[str], configs: list[str]) -> dict:
     results = {}
     for config in configs:
         prm = params_of(config, args.runs)
@@ -641,7 +613,7 @@ def main(argv: list[str] | None = None) -> int:
             runs = run_executor(name, config, prm, args.hz, args.seed, args.deadline, failures)
             summary = summarize(runs, ref) | {"failed_runs": len(failures)}
             res["executors"][name] = {
-                "params": prm | ({"hz": args.hz} if "zenoh" in name else {})
+                "params": prm | ({"hz": args.hz, "burn": args.burn} if "zenoh" in name else {})
                 | ({"deadline": args.deadline} if name == "retriever-zenoh" else {})
                 | ({"seed": args.seed} if name == "pubsub-mocked" else {}),
                 "summary": summary,
@@ -651,6 +623,49 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {name}: {len(runs)} runs in {time.monotonic() - t0:.1f} s; {summary['unique_traces']} unique "
                   f"traces, {summary['unique_gradients']} unique gradients", flush=True)
         results[config] = res
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "--pubsub-integrator":
+        return pubsub_integrator(argv[1], argv[2], argv[3], float(argv[4]))
+    if argv and argv[0] == "--retriever-zenoh-run":
+        return retriever_zenoh_child(argv[1], float(argv[2]), float(argv[3]))
+    if argv and argv[0] == "--pubsub-guard":
+        return pubsub_guard(argv[1], argv[2], float(argv[3]))
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", choices=[*CONFIGS, "all"], default="all")
+    ap.add_argument("--runs", type=int, default=None, metavar="K", help="runs per executor (default: the config's K)")
+    ap.add_argument("--executors", default=",".join(EXECUTORS), help="comma-separated, of " + ", ".join(EXECUTORS))
+    ap.add_argument("--hz", type=float, default=200.0, help="wall tick rate of the zenoh executors (default 200)")
+    ap.add_argument("--deadline", type=float, default=1.0,
+                    help="retriever-zenoh: how long a tick waits for its input before it runs incomplete (s)")
+    ap.add_argument("--burn", type=int, default=0, metavar="N",
+                    help="start N processes that burn a core each for the whole script: contention, real jitter")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the mocked jitter")
+    ap.add_argument("--json", metavar="FILE")
+    ap.add_argument("--csv", metavar="FILE")
+    ap.add_argument("--plot", metavar="FILE")
+    args = ap.parse_args(argv)
+    names = [n.strip() for n in args.executors.split(",") if n.strip()]
+    if unknown := [n for n in names if n not in EXECUTORS]:
+        ap.error(f"unknown executors {unknown}; choose from {', '.join(EXECUTORS)}")
+    configs = list(CONFIGS) if args.config == "all" else [args.config]
+
+    info = machine()
+    print(f"bouncing ball path gradients; python {info['python']}, {info['platform']}, {info['cpus']} cpus, "
+          f"zenoh {info['zenoh']}, code {info['commit']}; zenoh executors at {args.hz:g} Hz; "
+          f"{args.burn} core burners; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    info["load_average_start"] = os.getloadavg()
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.burn)]
+    try:
+        results = run_all(args, names, configs)
+    finally:
+        for proc in burners:
+            proc.kill()
+            proc.wait()
+    info["load_average_end"] = os.getloadavg()
     print(f"\nload average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
     print_table(results)
     if args.json:
