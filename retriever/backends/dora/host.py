@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import json
 import os
 import re
@@ -37,6 +36,8 @@ DORA_EXIT_S = 5.0
 #: how long after a node's process is seen gone, without its exit file, dora has to say how it
 #: ended (``exited because of signal SIGKILL``), before it counts as LOST
 DORA_SAYS_S = 1.0
+#: how often the coordinator looks for new lines in dora's output file
+FOLLOW_S = 0.05
 _KILLED_BY = re.compile(r"exited because of signal (SIG[A-Z0-9]+)")
 _EXITED_WITH = re.compile(r"exited with code (\d+)")
 
@@ -77,11 +78,19 @@ class DoraHost(Host):
             self.output(nid).attach_fifos(paths)
         # --log-level error: what a worker prints comes through its named pipes, not dora's log
         # (which, at its default level, also carries a warning per message on the daemon's route:
-        # read a line at a time, they held dora's daemon back for a second at a run's start)
-        self.proc = subprocess.Popen([dora_command(), "run", str(dataflow), "--log-format", "json",
-                                      "--log-level", "error"],
-                                     cwd=self.dora_dir, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, start_new_session=True, preexec_fn=_die_with_parent)
+        # read a line at a time, they held dora's daemon back for a second at a run's start).
+        # It does not die with the coordinator: dora SIGKILLs its nodes as it exits, before they
+        # could remove the run's directories; the nodes watch the coordinator, remove them and exit,
+        # and dora run ends with its last node (worker.py, _watch_parent).
+        # Its output goes to a file the coordinator follows, not a pipe: a dora run that writes to
+        # a pipe whose reader died (a coordinator SIGKILLed as it started) ends at once, and
+        # SIGKILLs its nodes before they could remove the run's directories.
+        self.output_file = self.dora_dir / "dora.out"
+        with open(self.output_file, "wb") as output:
+            self.proc = subprocess.Popen([dora_command(), "run", str(dataflow), "--log-format", "json",
+                                          "--log-level", "error"],
+                                         cwd=self.dora_dir, stdin=subprocess.DEVNULL, stdout=output,
+                                         stderr=subprocess.STDOUT, start_new_session=True)
         self._pump = threading.Thread(target=self._read, daemon=True, name="retriever-dora-output")
         self._pump.start()
 
@@ -91,9 +100,20 @@ class DoraHost(Host):
         return DoraNodeProcess(node, self)
 
     def _read(self) -> None:
-        with self.proc.stdout as pipe:
-            for raw in iter(pipe.readline, b""):
-                self._line(raw.decode(errors="replace").rstrip("\r\n"))
+        """Follows dora's output file until dora run ended and its last line is read."""
+        with open(self.output_file, "rb") as output:
+            partial = b""
+            while True:
+                ended = self.proc.poll() is not None  # before the read: nothing comes after it
+                partial += output.read()
+                *lines, partial = partial.split(b"\n")
+                for raw in lines:
+                    self._line(raw.decode(errors="replace").rstrip("\r"))
+                if ended:
+                    break
+                time.sleep(FOLLOW_S)
+            if partial:
+                self._line(partial.decode(errors="replace").rstrip("\r"))
 
     def _line(self, line: str) -> None:
         try:
@@ -212,8 +232,3 @@ def _alive(pid: int) -> bool:
         return False
     return stat[stat.rindex(")") + 2] not in "ZX"
 
-
-def _die_with_parent() -> None:
-    """In ``dora run``, before exec: SIGTERM to it when the coordinator dies (Linux)."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG

@@ -115,11 +115,15 @@ ORPHAN_GRACE_S = 3.0
 def _watch_parent(parent: int, run_dir: Path) -> None:
     """From a thread of its own: once the coordinator is gone, exit within ORPHAN_GRACE_S, with
     every thread's stack on stderr, even when the step never returns (faulthandler's timer needs
-    no GIL); and remove the run directory, which no one else will."""
+    no GIL); and remove the run directory, which no one else will. A worker dora started is told
+    by no kernel that its coordinator died (dora is its parent): it tells itself, as the kernel
+    would (PARENT_DIED), once the directories are gone."""
     while not _orphaned(parent):
         time.sleep(0.5)
     faulthandler.dump_traceback_later(ORPHAN_GRACE_S, exit=True)
     _remove_run_dir(run_dir)
+    if _adopted:
+        os.kill(os.getpid(), PARENT_DIED)
 
 
 def _remove_run_dir(run_dir: Path) -> None:

@@ -7,7 +7,6 @@ what it refuses, a step that raises, a killed worker, and no process left behind
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -22,10 +21,12 @@ import yaml
 from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
 from retriever.backends.dora import host as dora_host
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
+from retriever.backends.dora.host import _alive
 from retriever.log import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, Total, two_node_pipeline
+from ..zenoh.test_lifecycle import _cmdline, _poll
 from .dora_flows import Extra, Raises
 
 BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
@@ -41,14 +42,6 @@ def _let_chain(name: str = "chain") -> Pipeline:
         src.then(echo, sync=Latest(), map={"value": "x"})
         echo.then(slow, sync=Latest(), map={"saw": "x"})
     return pipe
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] not in "ZX"
 
 
 def _nothing_left(session) -> None:
@@ -202,49 +195,49 @@ two_node_pipeline("orphans").run(duration=600, backend="dora", quiet=True)
 """
 
 
-def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves():
+@pytest.mark.parametrize("when", ["as dora run starts", "once its workers run"])
+def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves(when):
     """The workers are dora's children, not the coordinator's: they watch the coordinator's pid,
-    and once it is gone they stop, and remove the run's directory and dora's (which hold the run's
-    credentials, and dora's logs); dora run gets SIGTERM from the kernel (PR_SET_PDEATHSIG)."""
+    and once it is gone they remove the run's directory and dora's (which hold the run's
+    credentials, and dora's logs), and stop; dora run ends with its last node. Killed as dora run
+    starts, dora run still starts the nodes (its output goes to a file, not to a dead pipe)."""
     proc = subprocess.Popen([sys.executable, "-c", COORDINATOR], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
-        give_up = time.monotonic() + BOUND_S
-        while not (workers := _children_of(proc.pid, "retriever.backends.zenoh.worker")):
-            assert proc.poll() is None and time.monotonic() < give_up, "the run never started its workers"
-            time.sleep(0.05)
-        dora = _children_of(proc.pid, "dora run")
-        run_dir = Path(_cmdline(workers[0]).split()[-2]).parent
-        dora_dir = Path(json.loads((run_dir / "spec.json").read_text())["dora"]["dir"])
+        dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
+        words = _cmdline(dora[0]).split()
+        dataflow = Path(words[words.index("run") + 1])
+        spec = yaml.safe_load(_poll(lambda: dataflow.read_text(), "dataflow.yml"))["nodes"][0]["args"].split()[2]
+        run_dir = Path(spec).parent
+        if when == "once its workers run":
+            _poll(lambda: _children_of(proc.pid, "retriever.backends.zenoh.worker"), "workers")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(BOUND_S)
-        give_up = time.monotonic() + 30.0
-        while any(_alive(pid) for pid in [*workers, *dora]) or run_dir.exists() or dora_dir.exists():
-            assert time.monotonic() < give_up, (f"left: {[p for p in [*workers, *dora] if _alive(p)]}, "
-                                                f"{run_dir.exists()=}, {dora_dir.exists()=}")
-            time.sleep(0.05)
+
+        def left() -> list:
+            processes = [pid for pid in _pids() if _alive(pid) and (pid == dora[0] or str(run_dir) in _cmdline(pid))]
+            return processes + [d for d in (run_dir, dataflow.parent) if d.exists()]
+
+        _poll(lambda: not left(), "end of dora run, its workers and directories", bound=30.0)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
 
 
-def _cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return ""
+def _pids() -> list[int]:
+    return [int(path.name) for path in Path("/proc").iterdir() if path.name.isdigit()]
 
 
 def _children_of(root: int, needle: str) -> list[int]:
     """Processes under ``root`` (any depth) whose command line holds ``needle``."""
     parents = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
+    for pid in _pids():
         try:
-            text = stat.read_text()
+            text = Path(f"/proc/{pid}/stat").read_text()
         except OSError:
             continue
-        parents[int(stat.parent.name)] = int(text[text.rindex(")") + 2:].split()[1])
+        parents[pid] = int(text[text.rindex(")") + 2:].split()[1])
 
     def under(pid: int) -> bool:
         seen = 0
