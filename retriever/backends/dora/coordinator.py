@@ -23,7 +23,7 @@ from pathlib import Path
 from ...errors import BackendError
 from ...graph import Graph
 from ..zenoh.access import write_private
-from ..zenoh.coordinator import Coordinator, _exit_text
+from ..zenoh.coordinator import STOP_GRACE_S, Coordinator, _exit_text
 from ..zenoh.host import Host
 from .dataflow import DoraNames, dataflow_yaml
 from .host import DoraHost, dora_command
@@ -87,6 +87,11 @@ class DoraCoordinator(Coordinator):
                                              f"{_exit_text(code)} during the run: the dataflow's nodes "
                                              f"({', '.join(nodes)}) stopped with it\n    hint: was it killed (out of "
                                              f"memory?), or stopped by someone else? Its last errors:\n{last}"})
+
+    def _stop_workers(self, grace: float = STOP_GRACE_S) -> None:
+        if self.t0 is None and self._dora is not None and self._dora.proc.poll() is None:
+            self._dora.interrupt()  # before the start: dora, and its nodes with it, end at once
+        super()._stop_workers(grace)
 
     def _release_hosts(self) -> None:
         if self._dora is not None:

@@ -36,6 +36,8 @@ DORA_EXIT_S = 5.0
 #: how long after a node's process is seen gone, without its exit file, dora has to say how it
 #: ended (``exited because of signal SIGKILL``), before it counts as LOST
 DORA_SAYS_S = 1.0
+#: how long ``dora run`` has to end when interrupted before the start, before it is SIGKILLed
+INTERRUPT_S = 0.5
 #: how often the coordinator looks for new lines in dora's output file
 FOLLOW_S = 0.05
 _KILLED_BY = re.compile(r"exited because of signal (SIG[A-Z0-9]+)")
@@ -70,6 +72,7 @@ class DoraHost(Host):
         self.tail: deque[str] = deque(maxlen=50)  # dora's own errors
         self.signalled: dict[str, int] = {}  # node -> how its process ended, as dora said (-signal or code)
         self.fifos: list[str] = []
+        self.interrupted = False  # ended by interrupt(): what dora says of its nodes' ends is ours
         for nid, dora_id in nodes.items():
             paths = {name: str(run_dir / f"{dora_id}.{name}") for name in ("stdout", "stderr")}
             for path in paths.values():
@@ -134,9 +137,15 @@ class DoraHost(Host):
                 self.signalled[node] = -getattr(signal, killed.group(1))
             elif code:
                 self.signalled[node] = int(code.group(1))
+        if self.interrupted:
+            return
         with _WRITING, contextlib.suppress(OSError, ValueError, AttributeError):
             sys.stderr.write(f"[dora] {text}\n")
             sys.stderr.flush()
+
+    def said_all(self) -> bool:
+        """Whether dora run ended and every line it wrote was read: it has no more to say."""
+        return self.proc.poll() is not None and not self._pump.is_alive()
 
     def drain(self, timeout: float = 1.0) -> None:
         self._pump.join(timeout)
@@ -146,6 +155,21 @@ class DoraHost(Host):
         for path in self.fifos:
             with contextlib.suppress(OSError):
                 os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+
+    def interrupt(self) -> None:
+        """Before the run's start (Ctrl-C, a refused start): no worker has anything to send, so
+        ``dora run`` is ended at once, and takes its nodes with it (it SIGKILLs them as it exits);
+        what it says of their ends, caused here, is kept from the user's terminal."""
+        self.interrupted = True
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self.proc.pid, signal.SIGTERM)
+        try:  # it then asks its nodes to stop, and gives those that do not (not yet started) seconds
+            self.proc.wait(timeout=INTERRUPT_S)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        self.drain()
 
     def stop(self) -> None:
         """``dora run`` ends by itself once every node ended; else (a node stuck, or never
@@ -200,7 +224,8 @@ class DoraNodeProcess:
             said = self.host.signalled.get(self.node)
             if said is not None:
                 self.returncode = said
-            elif self._gone_since is None or time.monotonic() - self._gone_since < DORA_SAYS_S:
+            elif not self.host.said_all() and (self._gone_since is None
+                                               or time.monotonic() - self._gone_since < DORA_SAYS_S):
                 self._gone_since = self._gone_since or time.monotonic()
                 return None
             else:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from retriever import Flow
+from retriever import Flow, Pipeline, Rate
 
 from ..zenoh.lifecycle_flows import Count
 
@@ -31,3 +31,20 @@ class Raises(Flow[Count, Count]):
         if self.i == self.at:
             raise ValueError("third time")
         return inp
+
+
+class NeverReady(Flow):
+    """A flow whose ``setup()`` never returns (a model that never loads): its run never starts."""
+
+    def setup(self) -> None:
+        import threading
+
+        threading.Event().wait()
+
+    def step(self):
+        return {"x": 0}
+
+
+with Pipeline("never_ready") as never_ready:
+    Extra().named("ok") @ Rate(hz=20)
+    NeverReady().named("stuck") @ Rate(hz=20)

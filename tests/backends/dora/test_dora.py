@@ -26,7 +26,7 @@ from retriever.log import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, Total, two_node_pipeline
-from ..zenoh.test_lifecycle import _cmdline, _poll
+from ..zenoh.test_lifecycle import RETRIEVER, _cmdline, _env, _poll
 from .dora_flows import Extra, Raises
 
 BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
@@ -205,24 +205,56 @@ def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves(
                             stderr=subprocess.DEVNULL)
     try:
         dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
-        words = _cmdline(dora[0]).split()
-        dataflow = Path(words[words.index("run") + 1])
-        spec = yaml.safe_load(_poll(lambda: dataflow.read_text(), "dataflow.yml"))["nodes"][0]["args"].split()[2]
-        run_dir = Path(spec).parent
+        run_dir, dora_dir = _directories_of(dora[0])
         if when == "once its workers run":
             _poll(lambda: _children_of(proc.pid, "retriever.backends.zenoh.worker"), "workers")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(BOUND_S)
 
-        def left() -> list:
-            processes = [pid for pid in _pids() if _alive(pid) and (pid == dora[0] or str(run_dir) in _cmdline(pid))]
-            return processes + [d for d in (run_dir, dataflow.parent) if d.exists()]
-
-        _poll(lambda: not left(), "end of dora run, its workers and directories", bound=30.0)
+        _poll(lambda: not _left(dora[0], run_dir, dora_dir), "end of dora run, its workers and directories",
+              bound=30.0)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_ctrl_c_before_the_start_ends_dora_and_its_nodes_at_once_without_their_noise(tmp_path):
+    """Interrupted while a flow's setup() still runs, nothing has anything to send: dora run is
+    ended, its nodes go with it, and what dora says of their ends (caused by us) is not printed."""
+    stderr = tmp_path / "stderr.txt"
+    with open(stderr, "wb") as err:
+        proc = subprocess.Popen([str(RETRIEVER), "run", "tests/backends/dora/dora_flows.py:never_ready", "--backend",
+                                 "dora", "--duration", "5"], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
+                                env=_env())
+    try:
+        dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
+        run_dir, dora_dir = _directories_of(dora[0])
+        _poll(lambda: all((run_dir / f"{node}.pid").exists() for node in ("ok", "stuck")), "both workers")
+        os.kill(proc.pid, signal.SIGINT)
+        assert proc.wait(timeout=BOUND_S) == 130, stderr.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    said = stderr.read_text()
+    assert "interrupted" in said and "Traceback" not in said, said
+    assert "[dora]" not in said, said
+    assert not _left(dora[0], run_dir, dora_dir)
+
+
+def _directories_of(dora: int) -> tuple[Path, Path]:
+    """The run's directory and dora's, of the run whose `dora run` is ``dora``."""
+    words = _cmdline(dora).split()
+    dataflow = Path(words[words.index("run") + 1])
+    spec = yaml.safe_load(_poll(lambda: dataflow.read_text(), "dataflow.yml"))["nodes"][0]["args"].split()[2]
+    return Path(spec).parent, dataflow.parent
+
+
+def _left(dora: int, run_dir: Path, dora_dir: Path) -> list:
+    """What is left of a run: `dora run`, its workers (by their spec's path), its directories."""
+    processes = [pid for pid in _pids() if _alive(pid) and (pid == dora or str(run_dir) in _cmdline(pid))]
+    return processes + [d for d in (run_dir, dora_dir) if d.exists()]
 
 
 def _pids() -> list[int]:
