@@ -878,7 +878,7 @@ def parse_args(argv: list[str] | None):
                    help="flows per worker (default 5 8 10 25)")
     p.add_argument("--scale-startup", type=float, default=120.0,
                    help="the coordinator's bound for every flow to be ready, s (default 120: 4x what 100 flows took "
-                        "on one host, benchmarks/README.md 'Scale')")
+                        "on one host, benchmarks/reports/scale.md)")
     p.add_argument("--prefix", default=DEFAULT_PREFIX, help="the lab's RETRIEVER_LAB_PREFIX (default bench)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="where the CSVs and the plot go")
     p.add_argument("--replot", action="store_true", help="only draw the latency plot again, from --out's CSV")

@@ -40,7 +40,7 @@ _thresholds = gc.get_threshold()
 def holding_full_collections() -> Iterator[None]:
     """Hold off the cyclic GC's *full* collections (young ones go on) while a run or a read of
     its trace makes records that live as long as the trace: each full collection would walk
-    them all again, about half the time of a long run (measured, benchmarks/README.md).
+    them all again, about half the time of a long run (measured, benchmarks/reports/step_overhead.md).
     Nests, across threads (a run in the background, its trace read meanwhile)."""
     global _held, _thresholds
     with _held_lock:
@@ -189,8 +189,8 @@ class Trace:
 
     A backend appends records to ``raw_events`` and ``raw_steps``, or, in recording order, to the
     ``tape``, which is expanded into them the first time either is read. The in-process backend
-    does, because a record in the tape costs a fraction of its tuples (benchmarks/README.md,
-    step_overhead.py). An item of the tape is a plain record, an event (6 fields) or a step
+    does, because a record in the tape costs a fraction of its tuples
+    (benchmarks/reports/step_overhead.md). An item of the tape is a plain record, an event (6 fields) or a step
     record (8 fields), or the function that heads a compact record and expands it:
     ``tape[i](tape, i, add_event, add_step)`` appends the records that the compact one at ``i``
     stands for, and returns the index of the item after it.

@@ -1,6 +1,6 @@
 """The bouncing-ball determinism benchmark (benchmarks/bouncing_ball.py) in brief, in-process only:
 event time gives one trace and one gradient, the analytic path gradient; arrival time with the
-mocked jitter gives many. The recorded runs, on Zenoh too, are in benchmarks/README.md."""
+mocked jitter gives many. The recorded runs, on Zenoh too, are in benchmarks/reports/bouncing_ball.md."""
 
 from __future__ import annotations
 

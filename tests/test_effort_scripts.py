@@ -1,6 +1,6 @@
 """The development-effort scripts (benchmarks/effort.py, paper Appendix F-A) do their job: the
 Retriever one writes a CSV row per payload of every size, on inproc and on dora, and the dora
-one does the same with dora's runtime; the counts stay what benchmarks/README.md records."""
+one does the same with dora's runtime; the counts stay what benchmarks/reports/effort.md records."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """The fuzz campaign (benchmarks/fuzz.py) in brief: every target, a few hundred inputs from a
 fixed seed, no crash, no code executed, no forged record accepted. The recorded campaign and
-its table are in benchmarks/README.md ("Fuzzing")."""
+its table are in benchmarks/reports/fuzz.md."""
 
 from __future__ import annotations
 

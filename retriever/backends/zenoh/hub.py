@@ -30,7 +30,7 @@ LOOPBACK = "127.0.0.1"
 #: run's processes share that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each
 #: wrote 6.4 GB of /dev/shm while they started, spent 13-35 s of system time on the page faults
 #: (2 cores), and in one run of two 14 of them never received the run's start; with 16 MiB each,
-#: 6.5 s and all started (benchmarks/README.md, "Scale").
+#: 6.5 s and all started (benchmarks/reports/scale.md).
 SHM_POOL_MAX = 128 << 20
 SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
@@ -115,7 +115,7 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
 
     Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
     it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
-    latency instead of 1.1×, benchmarks/README.md), and its pool is sized by
+    latency instead of 1.1×, benchmarks/reports/latency.md), and its pool is sized by
     :func:`shm_pool_bytes` for one of the run's ``sessions``. Its cost: each session has a
     segment in /dev/shm, which a SIGKILLed process leaves behind.
 
@@ -205,7 +205,7 @@ def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float,
 
     Each key is asked by name, all at once: a query on a wildcard (``progress/**``) went to
     every node of the run, so N starting nodes asked N² questions; at 80 nodes on 2 cores the
-    answers fell so far behind that some node never had its producer's (benchmarks/README.md).
+    answers fell so far behind that some node never had its producer's (benchmarks/reports/deploy.md).
     ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered."""
     missing = set(keys)
     give_up = time.monotonic() + timeout

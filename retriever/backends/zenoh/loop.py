@@ -105,7 +105,7 @@ WARM_AFTER_IDLE_NS = 4_000_000
 #: handled on Zenoh's thread that received it: decoded, delivered, and the ticks it makes ready
 #: run there too, as a plain subscriber callback would. Handing it to the main thread instead
 #: costs a thread wake-up: on this VM (an idle vCPU woken by an IPI) 20–40 µs of a 64 B
-#: message's ~500 µs, and 0.05–0.1× of the ratio to raw Zenoh (benchmarks/README.md, latency.py
+#: message's ~500 µs, and 0.05–0.1× of the ratio to raw Zenoh (benchmarks/reports/latency.md,
 #: with and without). Only steps known to be short run there (the node's last step took under
 #: INLINE_STEP_NS): meanwhile that link receives nothing more. And only on nodes on no cycle of
 #: the graph, so that a put blocked by a congested link can never wait, around a cycle, on a

@@ -5,7 +5,7 @@ and hands each batch to its :class:`Reporter`. The reporter writes the big messa
 the run's spill directory (the coordinator maps them: one copy, none on its side) and puts the
 report on ``status/report/<node>``. Both take time that has nothing to do with the node's
 ticks: writing 16 MiB to fresh shared memory took 60 ms on this VM, longer than a 20 Hz period,
-and a node that did it between ticks fell 0.4 s behind in 3 s (benchmarks/README.md). On their
+and a node that did it between ticks fell 0.4 s behind in 3 s (benchmarks/reports/latency.md). On their
 own thread they overlap the loop (file writes and puts release the GIL).
 
 Reports go out in the order they were handed over. At most MAX_PENDING reports, holding at most
@@ -15,7 +15,7 @@ memory never touched since boot is handed out at ~280 MB/s, so spilling 16 MiB f
 (320 MB/s) fell ~10 ms further behind with each frame until the machine had used that much memory
 once. With room for four reports of one frame each (the old bound), the loop then stalled within
 seconds, and the last frames of a run got tags past its end. 256 MiB (16 such frames) lets a
-longer stretch pass; how much longer depends on the machine (benchmarks/README.md, latency.py).
+longer stretch pass; how much longer depends on the machine (benchmarks/reports/latency.md).
 :meth:`Reporter.close` returns once every report is out, so a worker's last status message comes
 after its last report.
 """

@@ -53,7 +53,7 @@ EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended
 #: the pool on its first such message and writes all of it (128 MiB: ~37k page faults, 130 ms
 #: here, more on memory the VM has not touched). Sent with ``ready``, that happens before T0 (or
 #: before a restarted flow joins); left to the first big frame, it held that put for 130 ms and
-#: the source's next ticks started up to 120 ms late (benchmarks/README.md, latency.py at 16 MiB).
+#: the source's next ticks started up to 120 ms late (benchmarks/reports/latency.md, at 16 MiB).
 #: The coordinator gets ``ready`` only once the pool exists: the message is in it.
 READY_PADDING = 4096
 
@@ -95,7 +95,7 @@ START_ASK_S = 0.5
 
 #: A new worker waits, before it says ready, for an answer from each producer (see _serve). At 80
 #: flows on 8 hosts of a 2-core machine, a worker linked to its producer was, 2 runs in 3, never
-#: told of that producer's queryable: the run never started (benchmarks/README.md, "Scale"; the
+#: told of that producer's queryable: the run never started (benchmarks/reports/deploy.md, "Scale"; the
 #: other nodes' answers came). So after this long without an answer it says ``unanswered``; the
 #: coordinator tells those producers to ``redeclare`` (on ctl/run, through the hub: the link
 #: between the two may be what lost it), and the worker declares its own subscriptions again too.

@@ -1,5 +1,5 @@
 """Runs with many flows, and runs in which a flow that should have ticked did not
-(benchmarks/README.md, "Scale")."""
+(benchmarks/reports/scale.md)."""
 
 from __future__ import annotations
 
