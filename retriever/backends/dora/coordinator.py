@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from ...errors import BackendError
@@ -28,6 +30,8 @@ from ..zenoh.host import Host
 from .dataflow import DoraNames, dataflow_yaml
 from .host import DoraHost, dora_command
 
+#: before the start, how long a stopped worker has to tear down what its setup made
+TEARDOWN_S = 5.0
 
 #: T0 this long after the start is put, by default (zenoh's: 0.3 s). Every worker said ready, and a
 #: greeting came through each of its inputs, but for a second or two more dora is slow to deliver:
@@ -89,8 +93,19 @@ class DoraCoordinator(Coordinator):
                                              f"memory?), or stopped by someone else? Its last errors:\n{last}"})
 
     def _stop_workers(self, grace: float = STOP_GRACE_S) -> None:
-        if self.t0 is None and self._dora is not None and self._dora.proc.poll() is None:
-            self._dora.interrupt()  # before the start: dora, and its nodes with it, end at once
+        """Before the start (Ctrl-C, a flow's setup failed), the workers dora started are told to
+        stop, and given TEARDOWN_S to tear down what their setup made; then dora run is ended, and
+        with it whatever it has not started yet, or is stuck in its setup."""
+        dora = self._dora
+        if self.t0 is None and dora is not None and dora.proc.poll() is None:
+            dora.interrupted = True  # what dora says of the ends we cause is not for the terminal
+            started = [p for p in self._processes() if p.pid > 0 and p.poll() is None]
+            for p in started:
+                p.send_signal(signal.SIGTERM)
+            give_up = time.monotonic() + TEARDOWN_S
+            while any(p.poll() is None for p in started) and time.monotonic() < give_up:
+                time.sleep(0.02)
+            dora.interrupt()
         super()._stop_workers(grace)
 
     def _release_hosts(self) -> None:

@@ -157,9 +157,10 @@ class DoraHost(Host):
                 os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
 
     def interrupt(self) -> None:
-        """Before the run's start (Ctrl-C, a refused start): no worker has anything to send, so
-        ``dora run`` is ended at once, and takes its nodes with it (it SIGKILLs them as it exits);
-        what it says of their ends, caused here, is kept from the user's terminal."""
+        """Before the run's start (Ctrl-C, a failed setup), once the workers it started had their
+        chance to stop: no worker has anything to send, so ``dora run`` is ended, and takes its
+        nodes with it (it SIGKILLs them as it exits); what it says of their ends, caused here, is
+        kept from the user's terminal."""
         self.interrupted = True
         with contextlib.suppress(ProcessLookupError):
             os.kill(self.proc.pid, signal.SIGTERM)
