@@ -1,4 +1,4 @@
-"""Flows used by the Zenoh benchmarks (latency.py, control_jitter.py, idle_cpu.py).
+"""Flows used by the Zenoh benchmarks (latency.py, control_jitter.py, idle_cpu.py, scale*.py, ...).
 
 The zenoh backend rebuilds every flow in its own worker process from the IR (``module:Class`` +
 constructor arguments), so benchmark flows live here, in an importable module, with
@@ -160,6 +160,15 @@ class Keep(Flow[Count, Count]):
 
     def step(self, inp: Count) -> Count:
         return Count(count=inp.count)
+
+
+class Join(Flow):
+    """The end of a fan-in (scale_latency.py, determinism_cost.py): takes every count its
+    producers sent since its last tick (a ``Queue``), outputs nothing (its step records are the
+    measurement: which copies each step consumed, and when it started)."""
+
+    def step(self, count):
+        return None
 
 
 # ---------------------------------------------------------------------------------------------
