@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import inspect
 import json
+import os
+import sys
 import types
 import typing
 from dataclasses import dataclass, field
@@ -169,7 +171,11 @@ def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None, bool]:
     if "<locals>" in cls.__qualname__:
         problem = f"class {cls.__qualname__} is defined inside a function, so it cannot be imported"
     elif cls.__module__ == "__main__" and problem is None:
-        return params, f"class {cls.__qualname__} lives in __main__; move it to an importable module", True
+        script = getattr(sys.modules.get("__main__"), "__file__", None)
+        script = os.path.basename(script) if script and not script.endswith("__main__.py") else "SCRIPT.py"
+        return params, (f"class {cls.__qualname__} lives in __main__; write the IR with "
+                        f"`retriever ir {script} --out FILE.json` (it imports the script as a module), "
+                        "or move the class to an importable module"), True
     return params, problem, False
 
 

@@ -348,6 +348,8 @@ def test_a_flow_class_in_main_is_marked_as_needing_only_the_main_script():
     plain, opaque = ir.node("plain"), ir.node("opaque")
     assert plain["rebuildable"] is False and plain["rebuild_needs_main"] is True
     assert "lives in __main__" in plain["rebuild_problem"]
+    # the way out the README gives, in the error `retriever run IR.json` prints
+    assert re.search(r"write the IR with `retriever ir \S+\.py --out FILE\.json`", plain["rebuild_problem"])
     assert opaque["rebuildable"] is False and "rebuild_needs_main" not in opaque
     assert "'model'" in opaque["rebuild_problem"]
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import os
+import struct
 import sys
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
@@ -196,12 +198,46 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
         size = os.fstat(stream.fileno()).st_size
         tracked = _Tracked(stream)
         reader = StreamReader(tracked, validate_crcs=True)
+        dropped: list[str] = []  # salvaging: damaged attachments left out, and why
+        bad_attachment = None
         try:
             for record in reader.records:
+                if isinstance(record, Attachment):
+                    error = _attachment_crc_error(record, tracked.last_data)
+                    if error is not None:
+                        at = stream.tell()
+                        why = _diagnose(stream, size, tracked.last_read_at, error)
+                        stream.seek(at)
+                        if not salvage:
+                            bad_attachment = why
+                            break
+                        dropped.append(f"{why}; the attachment {record.name!r} was left out")
+                        continue
                 _take(log, record)
         except Exception as e:  # EndOfFile, CRCs, struct.error, zstd errors, bad UTF-8: a tear or a bad byte
             _damaged(log, salvage, _diagnose(stream, size, tracked.last_read_at, e))
+        if dropped:
+            log.damage = "; ".join([*dropped, *([log.damage] if log.damage else [])])
+    if bad_attachment is not None:
+        raise LogError(f"{path} cannot be read: {bad_attachment}",
+                       f"`retriever log recover {path}` writes a readable copy without the damaged attachment "
+                       "(replay that one with --pipeline FILE:ATTR)")
     return log
+
+
+def _attachment_crc_error(record: Attachment, crc_bytes: bytes) -> CRCValidationError | None:
+    """The mcap library reads an attachment's CRC and drops it: check it here (it covers the
+    record's fields before it). ``crc_bytes`` is the last read, the CRC field; 0 means none."""
+    if len(crc_bytes) != 4:
+        return None
+    expected = int.from_bytes(crc_bytes, "little")
+    if expected == 0:
+        return None
+    name, media_type = record.name.encode(), record.media_type.encode()
+    crc = zlib.crc32(struct.pack("<QQI", record.log_time, record.create_time, len(name)) + name
+                     + struct.pack("<I", len(media_type)) + media_type + struct.pack("<Q", len(record.data)))
+    actual = zlib.crc32(record.data, crc)
+    return None if actual == expected else CRCValidationError(expected, actual, record)
 
 
 class _Tracked:
@@ -212,11 +248,13 @@ class _Tracked:
         self._stream = stream
         self._pos = 0
         self.last_read_at = 0
+        self.last_data = b""
 
     def read(self, n: int = -1) -> bytes:
         self.last_read_at = self._pos
         data = self._stream.read(n)
         self._pos += len(data)
+        self.last_data = data if len(data) <= 8 else b""  # only small reads are kept (a CRC field)
         return data
 
 

@@ -705,3 +705,29 @@ def test_a_log_cut_short_replays_the_steps_it_holds(small_log, tmp_path):
     assert result.returncode == 0, result.stdout + result.stderr
     assert "(2 at the end not compared: the log was cut short and lost events they consumed or produced)" in \
         result.stdout.replace("\n", " ")
+
+
+def test_a_flipped_byte_in_the_ir_attachment_is_caught_by_its_crc(one_chunk: Path, tmp_path: Path):
+    """The mcap library drops an attachment's CRC unread: a byte changed in the stored IR was
+    reported at the DataEnd record, and `recover` copied the damaged IR into its "readable" copy
+    (a replay then rebuilt the pipeline from it). Now: corrupt at the Attachment record, and
+    recover leaves that attachment out, keeping every message."""
+    data = one_chunk.read_bytes()
+    offset = next(offset for opcode, offset, _ in records(data) if opcode == 0x09)
+    body = data.index(b"{", offset)  # the IR's JSON text
+    damaged = flip(one_chunk, body + 40, tmp_path / "flipped.mcap")
+    corrupt = rf"cannot be read: it is corrupt at the Attachment record at byte {offset}: a CRC check failed"
+    with pytest.raises(LogError, match=corrupt) as raised:
+        read_log(damaged)
+    assert "without the damaged attachment" in raised.value.hint
+    result = cli("replay", damaged)
+    assert_cli_error(result, r"^error: .*flipped\.mcap " + corrupt)
+    salvaged = read_log(damaged, salvage=True)
+    assert "pipeline.ir.json" not in salvaged.attachments
+    assert len(salvaged.messages) == len(read_log(one_chunk).messages)
+    assert re.search(rf"Attachment record at byte {offset}.*the attachment 'pipeline.ir.json' was left out", salvaged.damage)
+    out = recover(damaged, tmp_path / "fixed.mcap").output
+    fixed = read_log(out)
+    assert "pipeline.ir.json" not in fixed.attachments and len(fixed.messages) == len(salvaged.messages)
+    with pytest.raises(LogError, match="holds no pipeline IR"):
+        fixed.ir
