@@ -35,17 +35,25 @@ def _sim(seed: int, drawer: str | None, task: str = "drawers"):
     return Sim(Layout.from_seed(seed, drawer))
 
 
-class Goal(Flow):
-    """The language goal: said once, at the first tick."""
+#: each task's language goal, and what it is about (the Task's target and food; the bag has no food)
+GOALS = {
+    "drawers": {"text": "Find the spice in the drawers and season the food.", "target": "spice", "food": "food"},
+    "bag": {"text": "Take the target out of the bag and set it on the tray's spot.", "target": "target", "food": ""},
+}
 
-    def __init__(self, text: str = "Find the spice in the drawers and season the food.", task: str = "drawers"):
+
+class Goal(Flow):
+    """The language goal of ``task``: said once, at the first tick (``text``: other words for it)."""
+
+    def __init__(self, text: str | None = None, task: str = "drawers"):
         self.text, self.task, self.said = text, task, False
 
     def step(self):
         if self.said:
             return {}
         self.said = True
-        return {"task": Task(text=self.text, task=self.task)}
+        goal = GOALS[self.task]
+        return {"task": Task(text=self.text or goal["text"], task=self.task, target=goal["target"], food=goal["food"])}
 
 
 class World(Flow):

@@ -20,6 +20,18 @@ def test_the_goal_is_said_once():
     assert goal.step() == {} and goal.step() == {}
 
 
+def test_the_bag_tasks_goal_is_the_bags_in_the_graph_the_planner_reads():
+    """The bag task's goal names the bag task and says to take the target out of the bag (it
+    said "Find the spice in the drawers and season the food." with task "drawers", which a
+    model behind an endpoint read under the bag's system prompt)."""
+    from agents.retriever0 import build
+    goal = next(n for n in build(task="bag").build_ir().doc["nodes"] if n["id"] == "goal")
+    said = Goal(**goal["params"]).step()["task"]        # as every backend rebuilds it from the IR
+    assert said.task == "bag" and said.target == "target" and "bag" in said.text and "spice" not in said.text
+    drawers = Goal().step()["task"]
+    assert drawers.task == "drawers" and drawers.text == "Find the spice in the drawers and season the food."
+
+
 def test_the_monitor_flow_asks_then_starts_the_plan_and_reports_its_status():
     monitor = Monitor(end_after=None)
     out = monitor.step(obs(0.1), task=Task(text="season"))
