@@ -261,9 +261,10 @@ class Monitor(Flow):
             print(f"{t} ⇢ teleop takes over: {started.name}({started.arg})", flush=True)
         if request is not None and request != "task":
             print(f"{t} ? asks the planner again ({request.replace('_', ' ')})", flush=True)
-        if status.gave_up and not self.said.startswith("gave up"):
-            self.said = "gave up"
-            print(f"{t} gave up: {status.gave_up}", flush=True)
+        if status.gave_up:      # said once: the ticks until the run ends have nothing new to say
+            if not self.said.startswith("gave up"):
+                self.said = "gave up"
+                print(f"{t} gave up: {status.gave_up}", flush=True)
             return
         line = f"{status.skill or '(' + (status.waiting or 'idle') + ')'} score {status.score:.0%}"
         if line != self.said:

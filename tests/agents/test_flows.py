@@ -57,6 +57,24 @@ def test_the_monitor_ends_the_run_after_done():
     assert ended.value.code == 0
 
 
+def test_the_monitor_says_once_that_it_gave_up(capsys):
+    """Verbose, the monitor says "gave up" once; the idle ticks after it until the run ends say
+    nothing (it alternated "gave up" and "(idle)" lines at every tick)."""
+    monitor = Monitor(end_after=None, verbose=True, task="bag")
+    monitor.step(obs(0.1), task=Task(text="open the bag", task="bag"))
+    t = 0.2
+    for request_id in (1, 2, 3):
+        monitor.step(obs(t), plan=[PlanChunk(request_id=request_id, program=["OpenBag(bag) -> Done()"])])
+        skill_id = monitor.logic.current_id
+        monitor.step(obs(t + 0.1), progress=[Progress(skill_id=skill_id, t=t + 0.1, p=0.2, status="failed")])
+        t += 0.2
+    assert monitor.logic.gave_up == "OpenBag(bag) failed 3 times"
+    capsys.readouterr()
+    for k in range(5):
+        monitor.step(obs(t + 0.1 * k))
+    assert capsys.readouterr().out == ""
+
+
 def test_the_monitor_takes_a_teleop_override_at_once():
     monitor = Monitor(end_after=None)
     monitor.step(obs(0.1), task=Task(text="season"))
