@@ -35,10 +35,11 @@ def check_rendering() -> None:
 
 
 def run_episode(config, backend: str = "zenoh", duration: float = 120.0, log: str | None = "run.mcap",
-                quiet: bool = True):
-    """Run one episode; returns (trace, episode, wall seconds)."""
+                quiet: bool = True, pipe=None):
+    """Run one episode (``pipe``: the graph ``build(config)`` made, for a caller that keeps it, as
+    ``retriever demo`` does to tell a SIGTERM from a Ctrl-C); returns (trace, episode, wall seconds)."""
     from .retriever0 import build
-    pipe = build(config)
+    pipe = build(config) if pipe is None else pipe
     options = {"quiet": quiet} if backend == "zenoh" else {}
     started = time.perf_counter()
     trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=True, **options)

@@ -35,17 +35,25 @@ def _sim(seed: int, drawer: str | None, task: str = "drawers"):
     return Sim(Layout.from_seed(seed, drawer))
 
 
-class Goal(Flow):
-    """The language goal: said once, at the first tick."""
+#: each task's language goal, and what it is about (the Task's target and food; the bag has no food)
+GOALS = {
+    "drawers": {"text": "Find the spice in the drawers and season the food.", "target": "spice", "food": "food"},
+    "bag": {"text": "Take the target out of the bag and set it on the tray's spot.", "target": "target", "food": ""},
+}
 
-    def __init__(self, text: str = "Find the spice in the drawers and season the food.", task: str = "drawers"):
+
+class Goal(Flow):
+    """The language goal of ``task``: said once, at the first tick (``text``: other words for it)."""
+
+    def __init__(self, text: str | None = None, task: str = "drawers"):
         self.text, self.task, self.said = text, task, False
 
     def step(self):
         if self.said:
             return {}
         self.said = True
-        return {"task": Task(text=self.text, task=self.task)}
+        goal = GOALS[self.task]
+        return {"task": Task(text=self.text or goal["text"], task=self.task, target=goal["target"], food=goal["food"])}
 
 
 class World(Flow):
@@ -253,9 +261,10 @@ class Monitor(Flow):
             print(f"{t} ⇢ teleop takes over: {started.name}({started.arg})", flush=True)
         if request is not None and request != "task":
             print(f"{t} ? asks the planner again ({request.replace('_', ' ')})", flush=True)
-        if status.gave_up and not self.said.startswith("gave up"):
-            self.said = "gave up"
-            print(f"{t} gave up: {status.gave_up}", flush=True)
+        if status.gave_up:      # said once: the ticks until the run ends have nothing new to say
+            if not self.said.startswith("gave up"):
+                self.said = "gave up"
+                print(f"{t} gave up: {status.gave_up}", flush=True)
             return
         line = f"{status.skill or '(' + (status.waiting or 'idle') + ')'} score {status.score:.0%}"
         if line != self.said:

@@ -88,7 +88,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     # virtual-time run, tick for tick (a real robot would rather skip and not wait)
     catch_up = {"on_overrun": "catch_up"}
     with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=0.5) as pipe:
-        goal = Goal().named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
+        goal = Goal(task=task).named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
         world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task) \
             .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         head = Camera("head", *config.head_size, seed=seed, drawer=drawer, task=task) \

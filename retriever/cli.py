@@ -204,12 +204,13 @@ def demo(
         from agents.demo import DemoError, check_rendering, report, run_episode
         from agents.pictures import contact_sheet, timeline
         from agents.planner import PlannerError, make_planner
-        from agents.retriever0 import AgentConfig
+        from agents.retriever0 import AgentConfig, build
     except ImportError as exc:
         _fail(RetrieverError(f"the Retriever-0 agent is not installed ({exc})\n    hint: install the project "
                              "itself, which includes it: pip install -e ."))
     if canonical(backend) not in ("zenoh", "inproc"):
         _fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
+    pipe = None
     try:
         if not 0 < duration < float("inf"):
             raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
@@ -231,11 +232,15 @@ def demo(
         _err.print(f"Retriever-0 on {canonical(backend)}, {task} task: seed {seed}, {where}; logging to {log}",
                    highlight=False)
         signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
-        trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log))
+        pipe = build(config)
+        trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
+                                           pipe=pipe)
     except KeyboardInterrupt:
         _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
-        raise typer.Exit(code=128 + (_state.get("signal") or signal.SIGINT)) from None
+        # during the logged run the pipeline's own handler took the signal (it stops between ticks)
+        signum = _state.get("signal") or getattr(getattr(pipe, "_session", None), "stop_signal", None)
+        raise typer.Exit(code=128 + (signum or signal.SIGINT)) from None
     except (DemoError, ValueError, PlannerError) as exc:
         _fail(RetrieverError(str(exc)))
     except RetrieverError as exc:

@@ -325,6 +325,11 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
                 return records, f"it ends {len(MAGIC) - after} bytes short of its closing magic bytes", True
             break
         pos += _RECORD_HEAD + length
+    else:
+        if not finished and records:  # whole records, then nothing: a writer stopped between two of them
+            offset, name, _ = records[-1]
+            return records, (f"it ends with the {name} record at byte {offset}, whole, without the summary "
+                             "and closing magic bytes a finished log has"), True
     return records, None, False
 
 

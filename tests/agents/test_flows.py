@@ -20,6 +20,18 @@ def test_the_goal_is_said_once():
     assert goal.step() == {} and goal.step() == {}
 
 
+def test_the_bag_tasks_goal_is_the_bags_in_the_graph_the_planner_reads():
+    """The bag task's goal names the bag task and says to take the target out of the bag (it
+    said "Find the spice in the drawers and season the food." with task "drawers", which a
+    model behind an endpoint read under the bag's system prompt)."""
+    from agents.retriever0 import build
+    goal = next(n for n in build(task="bag").build_ir().doc["nodes"] if n["id"] == "goal")
+    said = Goal(**goal["params"]).step()["task"]        # as every backend rebuilds it from the IR
+    assert said.task == "bag" and said.target == "target" and "bag" in said.text and "spice" not in said.text
+    drawers = Goal().step()["task"]
+    assert drawers.task == "drawers" and drawers.text == "Find the spice in the drawers and season the food."
+
+
 def test_the_monitor_flow_asks_then_starts_the_plan_and_reports_its_status():
     monitor = Monitor(end_after=None)
     out = monitor.step(obs(0.1), task=Task(text="season"))
@@ -43,6 +55,24 @@ def test_the_monitor_ends_the_run_after_done():
     with pytest.raises(SystemExit) as ended:
         monitor.step(obs(0.8))
     assert ended.value.code == 0
+
+
+def test_the_monitor_says_once_that_it_gave_up(capsys):
+    """Verbose, the monitor says "gave up" once; the idle ticks after it until the run ends say
+    nothing (it alternated "gave up" and "(idle)" lines at every tick)."""
+    monitor = Monitor(end_after=None, verbose=True, task="bag")
+    monitor.step(obs(0.1), task=Task(text="open the bag", task="bag"))
+    t = 0.2
+    for request_id in (1, 2, 3):
+        monitor.step(obs(t), plan=[PlanChunk(request_id=request_id, program=["OpenBag(bag) -> Done()"])])
+        skill_id = monitor.logic.current_id
+        monitor.step(obs(t + 0.1), progress=[Progress(skill_id=skill_id, t=t + 0.1, p=0.2, status="failed")])
+        t += 0.2
+    assert monitor.logic.gave_up == "OpenBag(bag) failed 3 times"
+    capsys.readouterr()
+    for k in range(5):
+        monitor.step(obs(t + 0.1 * k))
+    assert capsys.readouterr().out == ""
 
 
 def test_the_monitor_takes_a_teleop_override_at_once():

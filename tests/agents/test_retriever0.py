@@ -127,3 +127,29 @@ def test_without_offscreen_rendering_the_demo_says_what_to_install(tmp_path):
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
     assert "MuJoCo cannot render offscreen with MUJOCO_GL=no-such-gl" in done.stderr
     assert "apt-get install libegl1" in done.stderr
+
+
+def test_a_demo_stopped_by_sigterm_exits_143_and_its_log_replays(tmp_path):
+    """SIGTERM stops the demo as Ctrl-C does (the log is finished) and the exit code says which
+    signal it was: 128 + 15, as `retriever run` exits (it said 130, Ctrl-C's, for both)."""
+    import signal
+    proc = subprocess.Popen([sys.executable, "-m", "retriever", "demo", "--task", "bag", "--backend", "inproc",
+                             "--planner-latency", "60"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        for _ in range(50):                     # bounded: the first live line comes after setup
+            line = proc.stdout.readline()
+            if "(plan)" in line or not line:
+                break
+        assert "(plan)" in line, line           # the run is going: the planner thinks for 60 s
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 128 + signal.SIGTERM, out + err
+    assert "interrupted; the episode so far is in run.mcap" in err and "Traceback" not in err, err
+    again = run_cli("replay", "run.mcap", cwd=tmp_path)
+    assert again.returncode == 0 and "identical" in again.stdout, again.stdout + again.stderr

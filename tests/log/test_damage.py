@@ -287,6 +287,19 @@ def test_a_log_cut_inside_a_chunk_header_is_diagnosed_as_torn(one_chunk: Path, t
     assert misdiagnosed == []
 
 
+def test_a_log_cut_between_two_records_is_diagnosed_as_torn(many_chunks: Path, tmp_path: Path):
+    """A writer killed between two records (SIGKILL to a logging `retriever demo`) leaves a file
+    that ends at a record's end, without summary or closing magic: that is a stopped writer, not
+    a file "damaged after it was written" (what it said, naming the record before the cut)."""
+    data = many_chunks.read_bytes()
+    ends = [offset + 9 + length for offset, length in chunks(data)[:3]]
+    for size in ends:
+        torn = cut(many_chunks, size, tmp_path / "torn.mcap")
+        with pytest.raises(LogError, match=r"its writer was stopped before finishing") as raised:
+            read_log(torn)
+        assert "damaged" not in str(raised.value), str(raised.value)
+
+
 @pytest.fixture(scope="module")
 def size_chunks(tmp_path_factory) -> Path:
     """A complete 60 s quickstart log whose chunks close only when they reach the writer's size
