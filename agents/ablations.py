@@ -187,7 +187,7 @@ def main(argv=None) -> int:
         f"{text}\n\n{args.task} task, {len(seeds)} seeds ({seeds.start}..{seeds.stop - 1}), slip probability "
         f"{args.slip_prob}, virtual time; `python -m agents.ablations --task {args.task} --seeds {args.seeds} "
         f"--slip-prob {args.slip_prob}` "
-        f"({time.perf_counter() - started:.0f} s wall, {args.jobs} jobs)\n")
+        f"({time.perf_counter() - started:.0f} s wall, {args.jobs} job{'s' if args.jobs != 1 else ''})\n")
     plot(rows, conditions, args.out / "ablations.png")
     print(text)
     print(f"wrote {args.out / 'ablations.csv'}, {args.out / 'ablations.md'}, {args.out / 'ablations.png'}")

@@ -11,7 +11,7 @@ the same robot and command vector (:mod:`agents.robot`), the same step and tick 
 
 Frames as in the drawer world: z up, the robot and the head camera stand at −y.
 
-The bag is a MuJoCo flexcomp: an open-top box shell (dim=2, 160 vertices, an 8 mm thick skin
+The bag is a MuJoCo flexcomp: an open-top box shell (dim=2, 168 vertices, an 8 mm thick skin
 for contacts) with dof="trilinear", so its shape is the trilinear map of its bounding box's eight
 corner nodes. The bottom four are pinned to the table; the top four are free (12 dofs), held by
 the paper's stretching elasticity (elastic2d="stretch", Young's modulus 2.1-3.9e4 Pa by seed,
@@ -69,7 +69,7 @@ BAG_HEIGHT = 0.12                               # the walls' mid-surface, from t
 BAG_FLOOR = TABLE_TOP + 2 * BAG_SKIN + 0.002    # the top of the base insert the target stands on
 BAG_RIM = TABLE_TOP + BAG_SKIN + BAG_HEIGHT     # the rim's mid-surface, at rest
 BAG_GRID = (9, 4, 7)                            # the flex's vertices along x, y, z (160 on the open box)
-BAG_YOUNG = 3.0e4       # Pa, 1 mm paper: the spread fingers widen the mouth 5.4 → 10 cm against ~3 N
+BAG_YOUNG = 3.0e4       # Pa, 1 mm paper: the spread fingers widen the mouth 5.4 → 9 cm against ~3 N
 BAG_THICKNESS = 0.001
 BAG_MASS = 0.005
 BAG_DAMPING = 0.001     # s, Rayleigh: the walls settle within a few tenths of a second
@@ -265,7 +265,7 @@ class BagSim(GantrySim):
         - ``t``; ``qpos``, ``qvel``; ``robot``/``robot_vel``: the measured ``ACTUATORS`` values and
           their rates; ``command``: the targets being applied; ``tcp``: the point between the fingertips
         - ``bag_opening``: the mouth's free width front to back at the rim (m; 0.054 at rest, about
-          0.1 while OpenBag's fingers hold it spread); ``bag_rim``: the near and far walls' y and the
+          0.09 while OpenBag's fingers hold it spread); ``bag_rim``: the near and far walls' y and the
           rim's height; ``bag_pos``: the middle of the bag's mouth at rest (its axis at the rim's height)
         - ``object_pos`` (the target's centre), ``object_upright`` (cos of its tilt), ``object_speed``, ``spot_pos``;
           ``held``: what both fingers touch ("target", "bag", "")

@@ -1,4 +1,4 @@
-"""``retriever demo``: one episode of Retriever-0 on the drawer task, shown as it goes and
+"""``retriever demo``: one episode of Retriever-0 on the drawer (or bag) task, shown as it goes and
 explained after (skill trace, task progress, rates, pictures, a log that replays)."""
 
 from __future__ import annotations

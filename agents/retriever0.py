@@ -1,5 +1,5 @@
 """Retriever-0: the planner–monitor–skill–controller agent of the paper (Sec. V, Listing 1) on
-the drawer task, as one Retriever graph.
+the drawer task (and the bag task), as one Retriever graph.
 
     goal ─▶ planner ◀──request── monitor ◀── belief ◀── head camera ◀── world ◀── controller
               └──plan──▶ monitor ──skill──▶ skill policy ──chunk (ActionChunking)──▶ controller

@@ -175,7 +175,7 @@ def run(
 @app.command()
 def demo(
     seed: Annotated[int, typer.Option(help="The episode's seed: where the spice is, its mass and place, "
-                                           "the drawers' friction.")] = 0,
+                                           "the drawers' friction (bag task: the target's mass and place).")] = 0,
     drawer: Annotated[Optional[str], typer.Option(metavar="TL|TR|BL|BR",
                                                   help="Hide the spice in this drawer (default: by the seed).")] = None,
     backend: Annotated[str, typer.Option(help="zenoh: real time, one process per flow; inproc: virtual time, "
@@ -193,7 +193,7 @@ def demo(
                                                "or vla-only (paper Table II).")] = "full",
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
-                                                   "{t_start, payload: 'Pick(spice)'}).")] = None,
+                                                   "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
     log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
 ) -> None:
