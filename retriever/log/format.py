@@ -90,6 +90,11 @@ def decode_step(data: bytes) -> tuple:
         raise ValueError("its late events are not {port: [event id, ...]}")
     for ids in late.values():
         event_ids(ids)
+    had_below = (detail or {}).get("had_below", {})
+    if type(had_below) is not dict:
+        raise ValueError("what its incomplete inputs had is not {port: [[node, port, next seq], ...]}")
+    for streams in had_below.values():
+        event_ids(streams)
     _check_restart_detail(detail or {})
     consumed = {port: event_ids(ids) for port, ids in consumed.items()}
     return node, microstep, consumed, event_ids(produced), status, detail, wall_ns

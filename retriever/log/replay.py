@@ -22,6 +22,7 @@ and compares the full trace: it proves the log is one consistent run of this gra
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import warnings
 from dataclasses import dataclass, field
@@ -145,6 +146,7 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
     # late ones: in real time they reached a consumer after a tick at or past their tag had run
     # without them; they go in its buffer right before the record that names them.
     late = _late_events(steps)
+    missed = _incomplete_views(steps)
     late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> (buf, entry)
     gaps = _restart_gaps(steps)
     events = list(log.iter_events())
@@ -166,7 +168,7 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
                 seen_at = late.get((consumer, e.id))
                 if seen_at is not None:
                     late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
-                else:
+                elif not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
                     deliveries.append((arrival, consumer[0], buf, entry))
     deliveries.sort(key=lambda d: d[0])
     # a lost process's outputs that its records claim and no report carried: not comparable (a
@@ -235,6 +237,29 @@ def _late_events(steps) -> dict[tuple[tuple[str, str], tuple[str, str, int]], tu
     return {((s.node, port), (node, out, seq)): s.tag
             for s in steps if s.detail and "late" in s.detail
             for port, ids in s.detail["late"].items() for node, out, seq in ids}
+
+
+def _incomplete_views(steps) -> dict[tuple[tuple[str, str], str, str], tuple[list, list]]:
+    """Per ``((consumer node, port), producer, producer port)``, the tags of the consumer's ticks
+    that ran incomplete on it and, at each, the seq that stream's next event would have had
+    (their ``had_below`` detail): the two lists in tag order."""
+    views: dict[tuple[tuple[str, str], str, str], list] = {}
+    for s in steps:
+        for port, streams in ((s.detail or {}).get("had_below") or {}).items():
+            for node, out, seq in streams:
+                views.setdefault(((s.node, port), node, out), []).append((s.tag, seq))
+    return {key: ([tag for tag, _ in sorted(v)], [seq for _, seq in sorted(v)]) for key, v in views.items()}
+
+
+def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: int) -> bool:
+    """Whether a consumer never had an event that no record of it names late: the first of its
+    ticks at or past the event's tag ran incomplete without it. Had it come afterwards, a later
+    record would name it; it came after the consumer's last record, or never (a real-time run)."""
+    if view is None:
+        return False
+    tags, seqs = view
+    i = bisect.bisect_left(tags, arrival)
+    return i < len(tags) and seq >= seqs[i]
 
 
 def _restart_gaps(steps) -> dict[tuple[str, str], list[tuple[str, str, int, int]]]:

@@ -24,6 +24,7 @@ from retriever import LogError, RetrieverWarning, read_log
 from retriever._loading import load_pipeline
 from retriever.codec import Encoder, packb
 from retriever.log import replay, resim
+from retriever.log.format import decode_step
 from tests.log import log_flows
 from tests.test_codec import assert_same
 from tests.log.helpers import CHUNK, GOLDEN, QUICKSTART, ROOT, cli, records
@@ -396,3 +397,21 @@ def test_log_to_a_missing_folder_is_a_log_error(tmp_path):
     """log= on a folder that does not exist is a LogError at the start, not a traceback at the end."""
     with pytest.raises(LogError, match=r"cannot create the log .*missing.*: No such file or directory \(ENOENT\)\n    hint: pass --log / log= a path"):
         log_flows.build_small().run(duration=0.1, log=tmp_path / "missing" / "x.mcap")
+
+
+@pytest.mark.parametrize("had_below", [
+    [["prod", "value", 7]],
+    {"x": [["prod", "value", -1]]},
+    {"x": [["prod", 7, 7]]},
+    {"x": ["prod", "value", 7]},
+])
+def test_a_malformed_had_below_in_a_step_record_is_refused(had_below):
+    """What an incomplete tick had (replay withholds later events by it): from a hostile log, checked."""
+    record = msgpack.packb(["probe", 0, {}, [], "incomplete", {"incomplete": ["x"], "had_below": had_below}, 0])
+    with pytest.raises(ValueError, match="what its incomplete inputs had|its event ids"):
+        decode_step(record)
+
+
+def test_a_well_formed_had_below_is_read():
+    detail = {"incomplete": ["x"], "had_below": {"x": [["prod", "value", 7]]}}
+    assert decode_step(msgpack.packb(["probe", 0, {}, [], "incomplete", detail, 0]))[5] == detail

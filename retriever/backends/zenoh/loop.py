@@ -588,6 +588,15 @@ class NodeLoop:
                        self._ask(e.src, now, tau[0]))
         return sorted(set(late_ports)), wake
 
+    def _had_below(self, ports: list[str]) -> dict[str, list[list]]:
+        """For a tick run incomplete: per port, each of its producers' streams and the seq it
+        expects next. The tick saw that stream's events below it and none from it on (a stream
+        is taken in order), so a replay can withhold the later ones with an earlier tag that came
+        after this tick: those its next record names late, and those that never came (its
+        process died, or the run ended first), which no record names."""
+        return {port: [[e.src, e.src_port, self.expect[(e.src, e.src_port)]] for e in self.edges if e.port == port]
+                for port in ports}
+
     def _blocked_since(self, tau: tuple[int, int], now: int) -> int:
         """Virtual time: since when (wall, ns since T0) the tick ``tau`` waits for its inputs."""
         if self.blocked is None or self.blocked[0] != tau:
@@ -854,7 +863,7 @@ class NodeLoop:
         self.pending_detail = {}
         if incomplete:
             self.counts["incomplete"] += 1
-            detail = {**(detail or {}), "incomplete": incomplete}
+            detail = {**(detail or {}), "incomplete": incomplete, "had_below": self._had_below(incomplete)}
             if self.realtime == "hard":  # the tick does not step: skipped, and the run stops
                 self._record(tau, {}, (), "skipped", detail, time.time_ns(), 0)
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "

@@ -444,6 +444,31 @@ def test_blocked_let_producer_makes_the_edge_incomplete_and_its_late_event_is_ne
     assert any("incomplete" not in detail(s) for s in recs if s.tag > incomplete[-1].tag)
 
 
+def test_an_output_that_came_after_its_consumers_last_tick_is_withheld_from_the_replay_too(tmp_path):
+    """The LET producer is blocked past the run's end in its tick at 0.7 s: its output (tag 0.75 s)
+    comes after the consumer's last tick, so no record names it late, and the consumer's ticks
+    from 0.75 s ran incomplete without it. Their records say what each stream had (``had_below``):
+    the replay withholds the output from them, as the run did (it gave it to them: DIVERGED). A
+    consumer killed while behind its producers is the same case (a cold review's find)."""
+    with Pipeline("after_the_last_tick") as pipe:
+        prod = Sleepy(sleep=0.6, at=[7]).configure(name="prod", latency=0.05) @ Rate(hz=10)
+        probe = Probe().configure(name="probe") @ Rate(hz=20)
+        prod.then(probe, sync=Latest(), deadline=0.03)
+    path = tmp_path / "after.mcap"
+    trace = run(pipe, 1.0, log=path)
+    recs = trace.steps_of("probe")
+    log = retriever.read_log(path)
+    blocked = next(e for e in log.iter_events() if e.node == "prod" and e.tag == (750 * MS, 0))
+    named = {tuple(i) for s in recs for ids in detail(s).get("late", {}).values() for i in ids}
+    assert blocked.id not in named and all(blocked.id not in ids for s in recs for ids in s.consumed.values())
+    incomplete = [s for s in recs if s.tag >= (750 * MS, 0)]
+    assert incomplete and all(detail(s)["incomplete"] == ["x"] for s in incomplete), incomplete
+    assert all(detail(s)["had_below"] == {"x": [["prod", "value", 7]]} for s in incomplete), incomplete
+    report = retriever.log.replay(log)
+    assert report.identical, "\n".join(map(str, report.divergences))
+    assert report.nodes["probe"].replayed == len(recs)
+
+
 def test_a_slow_policys_late_outputs_still_reach_the_ticks_after_they_arrive_and_the_log_replays(tmp_path):
     """issue 19, §2: a LET policy (latency 0.2 s) whose step takes 0.3 s at two of its ticks and
     is on time at the others. Its late outputs are never applied to the controller's ticks that
