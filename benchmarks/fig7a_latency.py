@@ -20,7 +20,7 @@ run dropping its first ``--warmup`` messages. Written: a CSV of every sample (``
 medians with p10-p90 per side and the ratios Retriever/transport (stdout), and the log-log plot
 (median line, p10-p90 band) as PNG (``--png``).
 
-    .venv/bin/python benchmarks/fig7a_latency.py                       # 10 sizes, 64 B ... 16 MiB, ~12 min
+    .venv/bin/python benchmarks/fig7a_latency.py                       # 10 sizes, 64 B ... 16 MiB, ~7 min
     .venv/bin/python benchmarks/fig7a_latency.py --sizes 64 1Mi --samples 40 --rounds 1   # a smoke run
 """
 
