@@ -57,7 +57,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 sys.path.insert(0, str(HERE))  # zenoh_flows: the workers get this path from the coordinator
 
-from scale_latency import in_fresh_process, loadavg, percentiles_us, run_zenoh  # noqa: E402
+from scale_latency import in_fresh_process, loadavg, med_range, percentiles_us, run_zenoh  # noqa: E402
 
 OUT = HERE / "determinism_cost_results"
 COMBOS = [("on", "off"), ("off", "off"), ("on", "on"), ("off", "on")]  # (waiting, logging)
@@ -100,12 +100,6 @@ def row_of(kind: str, waiting: str, logging: str, rep: int, hz: float, r: dict, 
     return row | {k: v for k, v in r.items() if k in row} | {
         "steps_per_s": r["steps"] / r["duration_s"], "msgs_per_s": msgs, "kept_up": kept_up(r),
         "lat_n": len(lat), "lat_p10_us": p10, "lat_p50_us": p50, "lat_p90_us": p90}
-
-
-def med_range(values: list[float], fmt: str = "{:,.0f}") -> str:
-    if not values:
-        return "-"
-    return f"{fmt.format(statistics.median(values))} [{fmt.format(min(values))}–{fmt.format(max(values))}]"
 
 
 def plot(lat_rows: list[dict], best: dict, path: Path, title: str) -> None:

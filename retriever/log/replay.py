@@ -248,7 +248,7 @@ def _incomplete_views(steps) -> dict[tuple[tuple[str, str], str, str], tuple[lis
         for port, streams in ((s.detail or {}).get("had_below") or {}).items():
             for node, out, seq in streams:
                 views.setdefault(((s.node, port), node, out), []).append((s.tag, seq))
-    return {key: ([tag for tag, _ in sorted(v)], [seq for _, seq in sorted(v)]) for key, v in views.items()}
+    return {key: tuple(map(list, zip(*sorted(v)))) for key, v in views.items()}
 
 
 def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: int) -> bool:

@@ -164,12 +164,8 @@ class DoraHost(Host):
         self.interrupted = True
         with contextlib.suppress(ProcessLookupError):
             os.kill(self.proc.pid, signal.SIGTERM)
-        try:  # it then asks its nodes to stop, and gives those that do not (not yet started) seconds
-            self.proc.wait(timeout=INTERRUPT_S)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.proc.pid, signal.SIGKILL)
-            self.proc.wait()
+        # it then asks its nodes to stop, and gives those that do not (not yet started) seconds
+        self._killed_unless_ended(INTERRUPT_S)
         self.drain()
 
     def stop(self) -> None:
@@ -180,15 +176,19 @@ class DoraHost(Host):
         except subprocess.TimeoutExpired:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self.proc.pid, signal.SIGINT)
-            try:
-                self.proc.wait(timeout=DORA_EXIT_S)
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait()
+            self._killed_unless_ended(DORA_EXIT_S)
         self.drain()
         self.close_fifos()
         shutil.rmtree(self.dora_dir, ignore_errors=True)
+
+    def _killed_unless_ended(self, timeout: float) -> None:
+        """Wait ``timeout`` s for ``dora run`` to end; then SIGKILL it with whatever it started."""
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
 
 
 class DoraNodeProcess:
