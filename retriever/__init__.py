@@ -25,7 +25,7 @@ from .errors import (
     UnregisteredTypeError,
     ValuesNotKeptError,
 )
-from .flow import EventStream, Flow, flow_io, io
+from .flow import Burst, EventStream, Flow, flow_io, io
 from .ir import IR
 from .log import read_log
 from .pipeline import Pipeline
@@ -33,7 +33,7 @@ from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue,
 from .trace import NOT_KEPT, Event, StepRecord, Trace
 
 __all__ = sorted([
-    "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "CausalityError", "Clock", "ClockError",
+    "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "Burst", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
     "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StepError", "StepRecord",

@@ -45,6 +45,7 @@ import numpy as np
 from ..codec import packb
 from ..errors import CausalityError, CodecError, RestartLimitError, RetrieverWarning, SetupError, StepError
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
+from ..flow.burst import Burst
 from ..graph import Graph, Node
 from ..sync import MISSING, PortBuffer
 from ..time import format_tag
@@ -479,28 +480,39 @@ class InprocSession(Session):
         """Record and deliver the outputs of a tick that ran, and its step record."""
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
         produced = []
-        tape = self._records.tape
         if outputs:
-            seqs, node_id = rt.seq, rt.id
+            event = self._event
             for port, value in outputs:
                 if value is None:  # sparse output: no event
                     continue
                 if type(value) not in PLAIN_TYPES:
+                    if type(value) is Burst:  # an event per value, in order
+                        for item in value.values:
+                            if type(item) not in PLAIN_TYPES:
+                                self.check_output(rt, tau, port, item, consumed, start, produced)
+                            event(rt, tau, port, item, out_tag, end, produced)
+                        continue
                     self.check_output(rt, tau, port, value, consumed, start, produced)
-                seq = seqs.get(port, 0)
-                seqs[port] = seq + 1
-                event = (out_tag, node_id, port, seq, value, end)
-                tape.append(event)
-                produced.append((node_id, port, seq))
-                # the event is the buffer entry of an undelayed edge
-                for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
-                    entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
-                    buf.insert(entry)
-                    if triggers:
-                        if entry[0][1] > self.max_microsteps:
-                            raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
-                        self._schedule(entry[0], consumer)
-        tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+                event(rt, tau, port, value, out_tag, end, produced)
+        self._records.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+
+    def _event(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
+               end: int, produced: list) -> None:
+        """Record one event of a tick and deliver it to its consumers."""
+        seqs, node_id = rt.seq, rt.id
+        seq = seqs.get(port, 0)
+        seqs[port] = seq + 1
+        event = (out_tag, node_id, port, seq, value, end)
+        self._records.tape.append(event)
+        produced.append((node_id, port, seq))
+        # the event is the buffer entry of an undelayed edge
+        for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
+            entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
+            buf.insert(entry)
+            if triggers:
+                if entry[0][1] > self.max_microsteps:
+                    raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
+                self._schedule(entry[0], consumer)
 
     def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
                      start: int, produced: list | tuple) -> None:

@@ -4,6 +4,7 @@ flow_io, Rate, Trigger, Pipeline, Latest`` (Listing 4). ``flow_io`` is the paper
 from ..clocks import Clock, Hybrid, Rate, Trigger
 from ..sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
 from ._base import Flow, flow_io, io
+from .burst import Burst
 from .types import EventStream
 
 
@@ -15,6 +16,6 @@ def __getattr__(name: str):
     raise AttributeError(f"module 'retriever.flow' has no attribute {name!r}")
 
 __all__ = sorted([
-    "MISSING", "ActionChunking", "Clock", "EventStream", "Exact", "Flow", "Hybrid", "Latest",
+    "MISSING", "ActionChunking", "Burst", "Clock", "EventStream", "Exact", "Flow", "Hybrid", "Latest",
     "LatestDistinct", "Pipeline", "Queue", "Rate", "SyncPolicy", "Trigger", "Window", "flow_io", "io",
 ])

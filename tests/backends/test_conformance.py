@@ -19,7 +19,7 @@ from typing import Any, Optional
 import pytest
 
 from retriever import (
-    ActionChunking, BackendError, CausalityError, Exact, Flow, Hybrid, Latest, LatestDistinct, Pipeline, Queue,
+    ActionChunking, BackendError, Burst, CausalityError, Exact, Flow, Hybrid, Latest, LatestDistinct, Pipeline, Queue,
     Rate, RetrieverWarning, StepError, Trigger, Window, io,
 )
 from retriever.errors import RestartLimitError
@@ -336,6 +336,34 @@ class Restartable(Flow[None, Count]):
         out = Count(self.n, self.fresh)
         self.fresh = False
         return out
+
+
+class BurstSource(Flow[None, Value]):
+    """At tick k a ``Burst`` of ``sizes[k % len(sizes)]`` values f"{k}.{i}" (an empty one: no event)."""
+
+    def __init__(self, sizes: list = (3, 0, 1, 5)):
+        self.sizes = list(sizes)
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        k = self.k
+        self.k += 1
+        return Value(Burst(f"{k}.{i}" for i in range(self.sizes[k % len(self.sizes)])))
+
+
+@io
+@dataclass
+class BurstIn:
+    q: Any
+    last: Any = None
+    distinct: Any = None
+    win: Any = None
+    exact: Any = None
+
+
+class BurstRecorder(Flow[BurstIn, Saw]):
+    def step(self, inp: BurstIn) -> Saw:
+        return Saw({"q": inp.q, "last": inp.last, "distinct": inp.distinct, "win": inp.win, "exact": inp.exact})
 
 
 # =============================================================================================
@@ -717,6 +745,49 @@ def test_outputs_without_latency_are_one_microstep_later(backend, check_trace):
         for node, port, seq in rec.produced:
             (ev,) = [e for e in trace.events if (e.node, e.port, e.seq) == (node, port, seq)]
             assert ev.tag == (rec.tag[0], rec.tag[1] + 1)
+
+
+def test_a_burst_is_consecutive_events_at_the_output_tag(backend, check_trace):
+    """§2 A step's ``Burst`` on a port: one event per value, all at the step's output tag, seqs
+    consecutive in order; an empty burst is no event. Consumers see them as any events at one
+    tag, ordered by seq: Queue takes them all (beyond maxsize the oldest dropped and counted),
+    Latest and LatestDistinct the last, Window the newest, Exact the earliest at the time, and a
+    Trigger consumer ticks once for the burst."""
+    with Pipeline("burst") as pipe:
+        src = BurstSource().named("src") @ Rate(10)  # 3 values at 0 ms, none at 100, 1 at 200, 5 at 300
+        rec = BurstRecorder().named("rec") @ Trigger("q")
+        src.then(rec, sync=Queue(maxsize=4), map={"value": "q"})
+        src.then(rec, sync=Latest(), map={"value": "last"})
+        src.then(rec, sync=LatestDistinct(), map={"value": "distinct"})
+        src.then(rec, sync=Window(buffer_size=2), map={"value": "win"})
+        src.then(rec, sync=Exact(), map={"value": "exact"})
+    trace = pipe.run(duration=0.4, backend=backend)
+    check_trace(pipe, trace)
+    events = [(e.tag, e.seq, e.value) for e in trace.events_of("src", "value")]
+    assert events == [((0, 1), 0, "0.0"), ((0, 1), 1, "0.1"), ((0, 1), 2, "0.2"), ((200 * MS, 1), 3, "2.0"),
+                      *(((300 * MS, 1), 4 + i, f"3.{i}") for i in range(5))]
+    assert [s.produced for s in trace.steps_of("src")] == [
+        (("src", "value", 0), ("src", "value", 1), ("src", "value", 2)), (), (("src", "value", 3),),
+        tuple(("src", "value", 4 + i) for i in range(5))]
+    assert tags(trace, "rec") == [(0, 1), (200 * MS, 1), (300 * MS, 1)]
+    assert saw_at(trace, "rec", 0, 2) == {"q": ["0.0", "0.1", "0.2"], "last": "0.2", "distinct": "0.2",
+                                          "win": ["0.1", "0.2"], "exact": "0.0"}
+    assert saw_at(trace, "rec", 200 * MS, 2) == {"q": ["2.0"], "last": "2.0", "distinct": "2.0",
+                                                 "win": ["0.2", "2.0"], "exact": "2.0"}
+    assert saw_at(trace, "rec", 300 * MS, 2) == {"q": ["3.1", "3.2", "3.3", "3.4"], "last": "3.4",
+                                                 "distinct": "3.4", "win": ["3.3", "3.4"], "exact": "3.0"}
+    last = step_at(trace, "rec", (300 * MS, 1))
+    assert last.detail == {"q": 1}
+    assert last.consumed["q"] == tuple(("src", "value", 5 + i) for i in range(4))
+
+
+def test_a_burst_holds_values_not_nones_or_bursts():
+    """A burst's values are events: None (no event) and a nested Burst are refused where written."""
+    with pytest.raises(TypeError, match="value 1 is None"):
+        Burst([1, None])
+    with pytest.raises(TypeError, match="a burst holds values, not bursts"):
+        Burst([Burst([1])])
+    assert len(Burst(range(3))) == 3 and list(Burst(range(3))) == [0, 1, 2]
 
 
 # =============================================================================================

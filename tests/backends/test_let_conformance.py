@@ -16,7 +16,7 @@ from retriever import (
 )
 
 from .test_conformance import (
-    ChunkSource, CycleMonitor, CyclePolicy, Echo, EchoOpt, MissingRecorder, PairEcho, PairSource, SkipRecorder,
+    BurstRecorder, BurstSource, ChunkSource, CycleMonitor, CyclePolicy, Echo, EchoOpt, MissingRecorder, PairEcho, PairSource, SkipRecorder,
     Source, SparseSource, UntypedSparse, WindowQueueRecorder,
 )
 
@@ -94,6 +94,27 @@ def test_exact_and_window_duration(rt_backend, check_trace):
         return pipe
 
     run_on(build, rt_backend, check_trace)
+
+
+def test_bursts_and_their_consumers(rt_backend, check_trace):
+    """A Burst is one message on a real-time backend: its events, ids and the policies' picks
+    among events at one tag are those in-process; LET held outputs and a Trigger consumer too."""
+    def build():
+        with let_pipeline("bursts") as pipe:
+            src = BurstSource(sizes=[3, 0, 1, 40]).named("src").configure(latency=0.01) @ Rate(20)
+            rec = BurstRecorder().named("rec").configure(latency=0.005) @ Trigger("q")
+            src.then(rec, sync=Queue(maxsize=30), map={"value": "q"})
+            src.then(rec, sync=Latest(), map={"value": "last"})
+            src.then(rec, sync=LatestDistinct(), map={"value": "distinct"})
+            src.then(rec, sync=Window(buffer_size=2), map={"value": "win"})
+            src.then(rec, sync=Exact(), map={"value": "exact"})
+            late = EchoOpt().named("late").configure(latency=0.005) @ Rate(10, offset=0.003)
+            src.then(late, sync=Queue(), map={"value": "x"})
+        return pipe
+
+    trace = run_on(build, rt_backend, check_trace)
+    assert len(trace.events_of("src", "value")) == 5 * (3 + 1 + 40)
+    assert any((s.detail or {}).get("q") == 10 for s in trace.steps_of("rec"))  # 40 at once, maxsize 30
 
 
 def test_action_chunking(rt_backend, check_trace):

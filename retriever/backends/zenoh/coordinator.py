@@ -43,7 +43,7 @@ from .hub import await_segments_released, mapped_segments, new_zid, open_hub
 from .loop import RESTART_SEQ_GAP
 from .host import Host, LocalHost, WorkerProcess
 from .seen import EventIds, RecentTicks
-from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_data, decode_report, decode_status
+from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_events, decode_report, decode_status
 from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
 
 
@@ -649,10 +649,14 @@ class Coordinator(Session):
 
     def _event(self, key: str, node: str, wall: int, message: bytes | str) -> None:
         try:
-            msg = decode_data(message if type(message) is bytes else self._unspill(node, message))
+            events = decode_events(message if type(message) is bytes else self._unspill(node, message))
         except WireError as e:
             self._garbage(key, e)
             return
+        for msg in events:
+            self._one_event(key, node, wall, msg)
+
+    def _one_event(self, key: str, node: str, wall: int, msg) -> None:
         stream = (msg.producer, msg.port)
         event_id = (msg.producer, msg.port, msg.seq)
         if msg.producer != node:  # carried by a consumer, for a producer whose report may be lost

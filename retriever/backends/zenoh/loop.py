@@ -37,10 +37,11 @@ import zenoh
 
 from ...errors import CausalityError, CodecError, RetrieverError
 from ...flow._base import make_invoker, make_output_reader
+from ...flow.burst import Burst
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
 from .reporter import Reporter
-from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, decode_control, decode_data,
+from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, decode_control, decode_events,
                    decode_progress)
 
 #: a frontier no event reaches: the producer is finished
@@ -488,7 +489,7 @@ class NodeLoop:
                 if self.warm_publisher is not None:
                     self.warm_publisher.put(b"")
             if message is not None:
-                decode_data(message)
+                decode_events(message)
         except Exception:
             self.warm_publish = None
 
@@ -699,16 +700,20 @@ class NodeLoop:
         kind, key, data = item
         if kind == _DATA:
             try:
-                msg = decode_data(data, expected=key)
-                self._check_claims(key, msg.seq, msg.frontier)
+                events = decode_events(data, expected=key)
+                self._check_claims(key, events[0].seq, events[-1].frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
             arrival = time.time_ns()
-            self._arrived(key, data, arrival - self.t0)
-            if self.values and msg.seq > self.have.get(key, -1):
-                self.kept[(msg.producer, msg.port, msg.seq)] = (arrival, data)
-            self._in_order(key, msg)
+            self._arrived(key, data if len(events) == 1 else None, arrival - self.t0)  # (a burst is not warmed)
+            if self.values:
+                have = self.have.get(key, -1)
+                for msg in events:
+                    if msg.seq > have:
+                        self.kept[(msg.producer, msg.port, msg.seq)] = (arrival, data)
+            for msg in events:
+                self._in_order(key, msg)
         elif kind == _NUDGE:
             return
         elif kind == _PROGRESS:
@@ -916,7 +921,8 @@ class NodeLoop:
     def _emit(self, tau, consumed, outputs, detail, start, wall, status) -> None:
         """Publish a step's outputs (or hold them, LET) and record it with ``status``: ``ok``,
         ``incomplete`` or ``overrun``, or ``late`` when it misses its LET deadline."""
-        events = [(port, value) for port, value in outputs if value is not None]
+        events = [(port, value) for port, value in outputs  # None, or an empty burst: no event
+                  if value is not None and not (type(value) is Burst and not value.values)]
         produced = []
         seqs = self.seqs
         if self.latency_ns:
@@ -938,8 +944,12 @@ class NodeLoop:
         batch = []
         for port, value in events:
             seq = seqs.get(port, 0)
-            seqs[port] = seq + 1
-            produced.append((self.id, port, seq))
+            if type(value) is Burst:  # its events go as one message: one batch item
+                seqs[port] = seq + len(value.values)
+                produced.extend((self.id, port, s) for s in range(seq, seq + len(value.values)))
+            else:
+                seqs[port] = seq + 1
+                produced.append((self.id, port, seq))
             batch.append((tag, port, value, seq))
         if self.latency_ns and not self.virtual:  # (in virtual time, LET outputs go at once: the tag says when)
             finished = start + wall - self.t0
@@ -950,8 +960,8 @@ class NodeLoop:
                 detail = {**(detail or {}), "deadline_miss_ns": finished - tag[0],
                           "on_deadline_miss": "error" if stop else self.on_deadline_miss}
                 if stop or self.on_deadline_miss == "drop":
-                    for _, port, _, _ in batch:
-                        seqs[port] -= 1
+                    for _, port, value, seq in batch:
+                        seqs[port] = min(seqs[port], seq)
                     self._finish_tick(tau, consumed, (), "late", detail, start, wall)
                     if stop:
                         hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
@@ -1023,11 +1033,13 @@ class NodeLoop:
                 raise StopRun(f"{self.id}.{port}: the event at t={tag[0] / 1e9:.6f} s cannot be sent to another "
                               f"process: {e}", tag) from None
             publisher.put(message)
-            if self.consumed:  # someone waits for this node's next event: warm its path first
+            burst = type(value) is Burst
+            if self.consumed and not burst:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, self.id, port, value)
-            self.sent[port] = seq
+            self.sent[port] = seq + len(value.values) - 1 if burst else seq
             if not self.values:  # the coordinator records that it was sent, not what
-                message = data(tag, seq, frontier if i == last else tag, self.id, port, None)
+                blank = Burst._of((None,) * len(value.values)) if burst else None
+                message = data(tag, seq, frontier if i == last else tag, self.id, port, blank)
             self.published.append((time.time_ns(), message))
             self.published_bytes += len(message)
         if batch:
@@ -1255,7 +1267,8 @@ class NodeLoop:
         events = self.published
         carried = {eid for record in records for eid in self._unlogged(record)}
         if carried:
-            events = events + [self.kept[eid] for eid in sorted(carried) if eid in self.kept]
+            kept = (self.kept[eid] for eid in sorted(carried) if eid in self.kept)
+            events = events + list({id(k): k for k in kept}.values())  # a burst's events share a message
         if records or events:
             self.reporter.send(records, events)
         self.published, self.published_bytes = [], 0

@@ -20,6 +20,9 @@ dataclasses and numpy scalars as msgpack extension types 2–5, see ``codec.py``
 travel *out of band*: in the value an array is extension type 6, ``[dtype descr, shape, i]``, and
 its raw bytes (C order) are the bin after the envelope numbered ``i`` (from 0). The sender copies
 an array once, into the message, and the receiver's arrays are read-only views of the message.
+A step's ``Burst`` on a port is one message of several events, the envelope
+``[2, [t, m], seq, [ft, fm], producer, port, [value, ...], count]``: ``count`` events at the
+tag, seqs ``seq`` to ``seq + count - 1``, the frontier holding after the last.
 A plain Zenoh subscriber on ``retriever/<ns>/data/**`` can decode it with any msgpack library.
 
 Zenoh keeps messages in order per key, not across keys, so a progress message says which events
@@ -47,6 +50,7 @@ import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
+from ...flow.burst import Burst
 from ...trace import STEP_STATUSES
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
@@ -160,12 +164,18 @@ class WireEncoder:
         return b"".join(self.data_parts(tag, seq, frontier, producer, port, value))  # the one copy of each array
 
     def data_parts(self, tag: Tag, seq: int, frontier: Tag, producer: str, port: str, value: Any) -> list:
-        """The pieces of :meth:`data`'s message, uncopied: its arrays' memory is among them."""
+        """The pieces of :meth:`data`'s message, uncopied: its arrays' memory is among them. A
+        :class:`Burst` ``value`` makes one message of its events (seqs from ``seq``)."""
         head = self._pack([WIRE_VERSION, tag, seq, frontier, producer, port])
-        body, buffers = self._values.pack(value)
+        if type(value) is Burst:  # [..., values, count]: 8 elements
+            body, buffers = self._values.pack(list(value.values))
+            body, fields = body + self._pack(len(value.values)), b"\x98"
+        else:
+            body, buffers = self._values.pack(value)
+            fields = b"\x97"
         count = 1 + len(buffers)
-        # the envelope's array header says 7 elements; the head packed 6: patch the count
-        parts = [_array_header(count), _BIN32.pack(0xC6, len(head) + len(body)), b"\x97", memoryview(head)[1:], body]
+        # the envelope's array header says 7 (8) elements; the head packed 6: patch the count
+        parts = [_array_header(count), _BIN32.pack(0xC6, len(head) + len(body)), fields, memoryview(head)[1:], body]
         for buf in buffers:
             parts.append(_BIN32.pack(0xC6, buf.nbytes))
             parts.append(buf)
@@ -248,9 +258,10 @@ def _bins(data: bytes) -> list[memoryview]:
     return bins
 
 
-def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
+def decode_events(data: bytes, expected: tuple[str, str] | None = None) -> list[DataMessage]:
     """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key.
-    Its arrays are read-only views of ``data``."""
+    Returns its events: one, or a burst's, in seq order (every one but the last with its own
+    tag as frontier, the last with the message's). Its arrays are read-only views of ``data``."""
     if not isinstance(data, (bytes, bytearray, mmap.mmap, memoryview)):  # a view: of a dora input's buffer
         raise WireError(f"a data message must be bytes, got {type(data).__name__}")
     envelope, *buffers = _bins(data)
@@ -260,9 +271,9 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
         raise WireError(f"the value of a data message cannot be decoded: {e}") from None
     except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, ...
         raise WireError(f"a data message is not valid msgpack ({type(e).__name__})") from None
-    if type(fields) is not list or len(fields) != 7:
-        raise WireError("a data message's envelope must be an array of 7")
-    version, tag, seq, frontier, producer, port, value = fields
+    if type(fields) is not list or len(fields) not in (7, 8):
+        raise WireError("a data message's envelope must be an array of 7 (an event) or 8 (a burst)")
+    version, tag, seq, frontier, producer, port, value, *count = fields
     if type(version) is not int or version != WIRE_VERSION:  # an array's != is an array
         raise WireError(f"a data message of wire format {version!r:.20}; this process speaks {WIRE_VERSION}")
     tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
@@ -274,7 +285,23 @@ def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMes
         raise WireError(f"a message for {producer}.{port} arrived on the key of {expected[0]}.{expected[1]}")
     if frontier < tag:
         raise WireError(f"frontier {frontier} is before the event's own tag {tag}")
-    return DataMessage(tag, seq, frontier, producer, port, value)
+    if not count:
+        return [DataMessage(tag, seq, frontier, producer, port, value)]
+    (count,) = count
+    if type(count) is not int or count < 1 or type(value) is not list or len(value) != count:
+        raise WireError(f"a burst must hold a list of as many values as its count (>= 1), got {count!r:.20} "
+                        f"and {type(value).__name__}")
+    last = count - 1
+    return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
+            for i, item in enumerate(value)]
+
+
+def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
+    """:func:`decode_events` of a message of one event (not a burst): that event."""
+    events = decode_events(data, expected)
+    if len(events) != 1:
+        raise WireError(f"a burst of {len(events)} events where one event was expected")
+    return events[0]
 
 
 class Progress(NamedTuple):
@@ -304,7 +331,7 @@ class Report(NamedTuple):
 
 def decode_report(data: bytes, expected: str | None = None) -> Report:
     """Decode a worker's report; ids in records come back as tuples, as in the trace. The data
-    messages are left encoded: decode each with :func:`decode_data`."""
+    messages are left encoded: decode each with :func:`decode_events`."""
     _, node, records, events = _fields(data, 4, "report")
     if type(node) is not str or (expected is not None and node != expected) or type(records) is not list:
         raise WireError(f"a report must carry its node ({expected}) and a list of records")

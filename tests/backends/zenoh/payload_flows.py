@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from retriever import Flow, io
+from retriever import Burst, Flow, io
 
 
 @io
@@ -38,6 +38,26 @@ class Camera(Flow[None, Frame]):
     def step(self, inp: None) -> Frame:
         self.k += 1
         return Frame(image=frame(self.k, self.size).reshape(-1, 1024), k=self.k)
+
+
+class BurstCamera(Flow):
+    """Untyped: at tick k a burst of k frames of ``size`` bytes on ``image`` (frame numbers go on
+    from burst to burst) and one of k small ints on ``k``."""
+
+    def __init__(self, size: int):
+        self.size, self.k, self.n = size, 0, 0
+
+    def step(self):
+        self.k += 1
+        first, self.n = self.n, self.n + self.k
+        return {"image": Burst(frame(i, self.size) for i in range(first, self.n)), "k": Burst(range(first, self.n))}
+
+
+class Sums(Flow):
+    """Checksums of the frames a Queue gave it, in order."""
+
+    def step(self, image):
+        return {"sums": [int(i.sum(dtype=np.uint64)) for i in image]}
 
 
 class Viewer(Flow[Frame, Seen]):

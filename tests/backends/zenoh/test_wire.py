@@ -13,13 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from retriever import io
+from retriever import Burst, io
 from retriever.backends.zenoh.wire import (
     DataMessage,
     KeySpace,
     WireEncoder,
     WireError,
     decode_data,
+    decode_events,
     decode_progress,
     decode_report,
     decode_status,
@@ -104,6 +105,34 @@ def test_a_plain_msgpack_reader_can_decode_data_messages():
 def _message(envelope: list, *buffers: bytes) -> bytes:
     """A data message built by hand, the way another msgpack library would."""
     return msgpack.packb([msgpack.packb(envelope), *buffers])
+
+
+def test_a_burst_is_one_message_of_its_events():
+    """Each event at the tag with its own seq; the frontier after the last only (the others
+    promise no more than their own tag); arrays out of band, read-only views, as for one event."""
+    frames = [np.full((2, 3), i, np.uint8) for i in range(3)]
+    data = WireEncoder().data((5, 1), 10, (9, 0), "cam", "frame", Burst([frames[0], "text", frames[2]]))
+    events = decode_events(data, ("cam", "frame"))
+    assert [e[:5] for e in events] == [((5, 1), 10, (5, 1), "cam", "frame"), ((5, 1), 11, (5, 1), "cam", "frame"),
+                                       ((5, 1), 12, (9, 0), "cam", "frame")]
+    assert np.array_equal(events[0].value, frames[0]) and events[1].value == "text"
+    assert not events[2].value.flags.writeable
+    assert len(msgpack.unpackb(data)) == 3  # the envelope and one bin per array
+    with pytest.raises(WireError, match="a burst of 3 events where one event was expected"):
+        decode_data(data)
+    assert decode_events(WireEncoder().data((5, 1), 0, (5, 1), "a", "b", 7)) == [((5, 1), 0, (5, 1), "a", "b", 7)]
+
+
+@pytest.mark.parametrize("values, count", [([1, 2], 3), ([1, 2], 1), ([], 0), ("ab", 2), ({"a": 1}, 1),
+                                           ([1], True), ([1], 1.0), ([1], -1)])
+def test_a_burst_whose_count_is_not_its_values_is_a_wire_error(values, count):
+    with pytest.raises(WireError, match="a burst must hold a list of as many values as its count"):
+        decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", values, count]), ("a", "b"))
+
+
+def test_an_envelope_of_nine_is_a_wire_error():
+    with pytest.raises(WireError, match="must be an array of 7 \\(an event\\) or 8 \\(a burst\\)"):
+        decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", [1], 1, 0]), ("a", "b"))
 
 
 def test_progress_round_trip():
