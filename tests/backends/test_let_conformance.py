@@ -16,8 +16,8 @@ from retriever import (
 )
 
 from .test_conformance import (
-    BurstRecorder, BurstSource, ChunkSource, CycleMonitor, CyclePolicy, Echo, EchoOpt, MissingRecorder, PairEcho, PairSource, SkipRecorder,
-    Source, SparseSource, UntypedSparse, WindowQueueRecorder,
+    BurstRecorder, BurstSource, ChunkSource, CycleMonitor, CyclePolicy, Echo, EchoOpt, MissingRecorder, PairEcho,
+    PairSource, SkipRecorder, Source, SparseSource, UntypedSparse, WindowQueueRecorder,
 )
 
 REALTIME_BACKENDS = ["inproc", "zenoh", "dora"]
