@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from retriever import Flow, io
+from retriever import Burst, Flow, io
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,6 +245,21 @@ class SmallSource(Flow):
         data[:8] = np.frombuffer(self.k.to_bytes(8, "little"), np.uint8)
         self.k += 1
         return {"data": data}
+
+
+class SmallBurst(Flow):
+    """A ``Burst`` of ``n`` arrays of ``size`` bytes each tick, the first 8 bytes of each its
+    number (counting on from burst to burst): ``n`` events per tick in one message."""
+
+    def __init__(self, size: int = 64, n: int = 100):
+        self.size, self.n, self.k = size, n, 0
+
+    def step(self):
+        first = self.k
+        self.k += self.n
+        data = np.zeros((self.n, self.size), np.uint8)
+        data[:, :8] = np.arange(first, self.k, dtype="<u8").view(np.uint8).reshape(self.n, 8)
+        return {"data": Burst(data)}  # its rows: n arrays of size bytes
 
 
 class Tally(Flow):

@@ -20,27 +20,51 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
+import numpy as np
+
 
 class Burst:
-    """Values that a step emits on one port as consecutive events at its output tag."""
+    """Values that a step emits on one port as consecutive events at its output tag.
 
-    __slots__ = ("values",)
+    ``Burst(array)`` of an array of two or more dimensions: its rows (views of it, as iterating
+    it gives). Rows of one dtype and shape, given so or as a list, travel as one array."""
+
+    __slots__ = ("values", "rows")
 
     def __init__(self, values: Iterable[Any] = ()):
+        rows = values if type(values) is np.ndarray and values.ndim >= 2 else None
         values = tuple(values)
-        for i, value in enumerate(values):
-            if value is None:
-                raise TypeError(f"Burst: value {i} is None; None means 'no event', leave it out of the burst")
-            if type(value) is Burst:
-                raise TypeError(f"Burst: value {i} is a Burst; a burst holds values, not bursts")
+        if rows is None:
+            for i, value in enumerate(values):
+                if value is None:
+                    raise TypeError(f"Burst: value {i} is None; None means 'no event', leave it out of the burst")
+                if type(value) is Burst:
+                    raise TypeError(f"Burst: value {i} is a Burst; a burst holds values, not bursts")
         self.values: tuple = values
+        self.rows: np.ndarray | None = rows  # the array whose rows the values are, if given so
 
     @classmethod
     def _of(cls, values: tuple) -> Burst:
         """A burst of ``values`` as they are (decoded or blank ones: not checked again)."""
         burst = cls.__new__(cls)
-        burst.values = values
+        burst.values, burst.rows = values, None
         return burst
+
+    def stacked(self) -> np.ndarray | None:
+        """The values as the rows of one array, when they are arrays (of one or more dimensions)
+        of one dtype and shape; else None."""
+        if self.rows is not None:
+            return self.rows
+        values = self.values
+        first = values[0] if values else None
+        if type(first) is not np.ndarray or not first.ndim:
+            return None
+        dtype, shape = first.dtype, first.shape
+        for value in values:
+            if type(value) is not np.ndarray or value.dtype != dtype or value.shape != shape:
+                return None
+        stacked = np.stack(values)
+        return stacked if stacked.dtype == dtype else None  # (numpy makes a byte order native, for one)
 
     def __len__(self) -> int:
         return len(self.values)

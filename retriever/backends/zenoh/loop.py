@@ -1038,7 +1038,7 @@ class NodeLoop:
                 self.warm_publish = (tag, seq, frontier, self.id, port, value)
             self.sent[port] = seq + len(value.values) - 1 if burst else seq
             if not self.values:  # the coordinator records that it was sent, not what
-                blank = Burst._of((None,) * len(value.values)) if burst else None
+                blank = Burst._of((None,) * len(value.values)) if burst else None  # sent as nil
                 message = data(tag, seq, frontier if i == last else tag, self.id, port, blank)
             self.published.append((time.time_ns(), message))
             self.published_bytes += len(message)

@@ -21,8 +21,10 @@ travel *out of band*: in the value an array is extension type 6, ``[dtype descr,
 its raw bytes (C order) are the bin after the envelope numbered ``i`` (from 0). The sender copies
 an array once, into the message, and the receiver's arrays are read-only views of the message.
 A step's ``Burst`` on a port is one message of several events, the envelope
-``[2, [t, m], seq, [ft, fm], producer, port, [value, ...], count]``: ``count`` events at the
-tag, seqs ``seq`` to ``seq + count - 1``, the frontier holding after the last.
+``[2, [t, m], seq, [ft, fm], producer, port, values, count]``: ``count`` events at the tag, seqs
+``seq`` to ``seq + count - 1``, the frontier holding after the last. ``values`` is a list of
+``count`` values, or one array of ``count`` rows (each row an event's array: a burst of arrays of
+one dtype and shape), or nil (values left out: the coordinator records that they were sent).
 A plain Zenoh subscriber on ``retriever/<ns>/data/**`` can decode it with any msgpack library.
 
 Zenoh keeps messages in order per key, not across keys, so a progress message says which events
@@ -46,6 +48,7 @@ import struct
 from typing import Any, NamedTuple
 
 import msgpack
+import numpy as np
 import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
@@ -168,7 +171,10 @@ class WireEncoder:
         :class:`Burst` ``value`` makes one message of its events (seqs from ``seq``)."""
         head = self._pack([WIRE_VERSION, tag, seq, frontier, producer, port])
         if type(value) is Burst:  # [..., values, count]: 8 elements
-            body, buffers = self._values.pack(list(value.values))
+            values = value.stacked()
+            if values is None:
+                values = list(value.values) if value.values[0] is not None else None  # None: a blank burst
+            body, buffers = self._values.pack(values)
             body, fields = body + self._pack(len(value.values)), b"\x98"
         else:
             body, buffers = self._values.pack(value)
@@ -288,9 +294,15 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None) -> list[
     if not count:
         return [DataMessage(tag, seq, frontier, producer, port, value)]
     (count,) = count
-    if type(count) is not int or count < 1 or type(value) is not list or len(value) != count:
-        raise WireError(f"a burst must hold a list of as many values as its count (>= 1), got {count!r:.20} "
-                        f"and {type(value).__name__}")
+    if type(count) is not int or count < 1:
+        raise WireError(f"a burst's count must be an integer >= 1, got {count!r:.20}")
+    if value is None:  # its values were left out (the coordinator records that they were sent)
+        value = [None] * count
+    elif type(value) is np.ndarray and value.ndim >= 2 and len(value) == count:
+        value = list(value)  # its rows: read-only views of the message
+    elif type(value) is not list or len(value) != count:
+        raise WireError(f"a burst must hold a list of as many values as its count, or an array of as many rows "
+                        f"(of 1 or more dimensions), got {count!r:.20} and {type(value).__name__}")
     last = count - 1
     return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
             for i, item in enumerate(value)]

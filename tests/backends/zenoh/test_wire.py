@@ -107,6 +107,10 @@ def _message(envelope: list, *buffers: bytes) -> bytes:
     return msgpack.packb([msgpack.packb(envelope), *buffers])
 
 
+def _ext_array(descr, shape, index):
+    return msgpack.ExtType(6, msgpack.packb([descr, shape, index]))
+
+
 def test_a_burst_is_one_message_of_its_events():
     """Each event at the tag with its own seq; the frontier after the last only (the others
     promise no more than their own tag); arrays out of band, read-only views, as for one event."""
@@ -123,11 +127,30 @@ def test_a_burst_is_one_message_of_its_events():
     assert decode_events(WireEncoder().data((5, 1), 0, (5, 1), "a", "b", 7)) == [((5, 1), 0, (5, 1), "a", "b", 7)]
 
 
-@pytest.mark.parametrize("values, count", [([1, 2], 3), ([1, 2], 1), ([], 0), ("ab", 2), ({"a": 1}, 1),
-                                           ([1], True), ([1], 1.0), ([1], -1)])
-def test_a_burst_whose_count_is_not_its_values_is_a_wire_error(values, count):
-    with pytest.raises(WireError, match="a burst must hold a list of as many values as its count"):
-        decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", values, count]), ("a", "b"))
+@pytest.mark.parametrize("values, count, match", [
+    ([1, 2], 3, "as many values as its count"), ([1, 2], 1, "as many values"), ("ab", 2, "as many values"),
+    ({"a": 1}, 1, "as many values"), ([], 0, "count must be an integer >= 1"), ([1], True, "count must be"),
+    ([1], 1.0, "count must be"), ([1], -1, "count must be"),
+    (_ext_array("<f8", [3, 2], 0), 2, "an array of as many rows"),  # 3 rows, count 2
+    (_ext_array("<f8", [6], 0), 6, "an array of as many rows"),  # rows of no dimension: numpy scalars
+])
+def test_a_burst_whose_count_is_not_its_values_is_a_wire_error(values, count, match):
+    with pytest.raises(WireError, match=match):
+        decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", values, count], b"\x00" * 48), ("a", "b"))
+
+
+def test_a_burst_of_arrays_of_one_dtype_and_shape_is_one_array_of_rows():
+    for rows in (np.arange(24, dtype=np.int16).reshape(4, 3, 2), np.arange(24, dtype=">i2").reshape(4, 3, 2)):
+        for burst in (Burst(rows), Burst(list(rows))):
+            data = WireEncoder().data((5, 1), 0, (5, 1), "a", "b", burst)
+            # one bin; but numpy stacks arrays of another byte order into native ones: not those
+            one_array = burst.rows is not None or rows.dtype.isnative
+            assert len(msgpack.unpackb(data)) == (2 if one_array else 5)  # the envelope and the bins
+            got = [e.value for e in decode_events(data)]
+            assert [packb(g) for g in got] == [packb(r) for r in rows] and not got[0].flags.writeable
+    mixed = Burst([np.zeros(2), np.zeros(3), np.zeros(2, np.float32), np.float64(1), np.array(2.0)])
+    got = [e.value for e in decode_events(WireEncoder().data((5, 1), 0, (5, 1), "a", "b", mixed))]
+    assert [packb(g) for g in got] == [packb(v) for v in mixed] and type(got[3]) is np.float64
 
 
 def test_an_envelope_of_nine_is_a_wire_error():
@@ -140,10 +163,6 @@ def test_progress_round_trip():
     assert decode_progress(data, "controller") == ((99, 3), "controller", {"chunk": 4, "state": -1})
     with pytest.raises(WireError, match="progress of controller arrived on the key of camera"):
         decode_progress(data, "camera")
-
-
-def _ext_array(descr, shape, index):
-    return msgpack.ExtType(6, msgpack.packb([descr, shape, index]))
 
 
 @pytest.mark.parametrize("data, match", [
