@@ -322,7 +322,10 @@ class Coordinator(Session):
             else:
                 self._control("start", {"t0": self.t0, "end": until_ns, "values": self._values})
                 slack = max(self._deadlines(), 1.0) + 10.0
-                self._await(finished, time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish")
+                # a coordinator behind on its reports (a logged run of many events) finishes late,
+                # not in error: the wait goes on while they come
+                self._await(finished, time.monotonic() + (self.t0 + until_ns - time.time_ns()) / 1e9 + slack, "finish",
+                            patience=slack)
         except BaseException:
             self._stop_workers()  # their last reports, then: which outputs died with a process
             self._record_faults_left()
@@ -427,9 +430,11 @@ class Coordinator(Session):
         deadlines = [e.deadline for e in self.graph.edges if e.deadline is not None]
         return max([self.graph.deadline, *deadlines])
 
-    def _await(self, condition, give_up: float, what: str) -> None:
-        """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``."""
+    def _await(self, condition, give_up: float, what: str, patience: float | None = None) -> None:
+        """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``
+        (with ``patience``, at the latest that long after the last report came)."""
         next_write = next_have = time.monotonic()
+        reports = sum(self._reports.values())
         while not condition():
             if self.stop_requested:  # asked from afar (retriever stop): as Ctrl-C here would
                 raise KeyboardInterrupt
@@ -453,6 +458,9 @@ class Coordinator(Session):
             if now >= next_have:
                 self._tell_have()
                 next_have = now + HAVE_EVERY_S
+            if patience is not None and sum(self._reports.values()) != reports:
+                reports = sum(self._reports.values())
+                give_up = max(give_up, now + patience)
             if now > give_up:
                 waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done")
                                  or self._reports[n] < self._reports_sent[n])

@@ -30,6 +30,7 @@ import queue
 import sys
 import threading
 import time
+from bisect import bisect_left, insort
 from collections import Counter
 from typing import Any
 
@@ -68,6 +69,13 @@ SPILL_BYTES = 64 << 10
 #: not by EARLY_SEQS_MAX: a message that far ahead would hold its stream's gap open forever.
 CLOCK_AHEAD_MAX_NS = 500_000_000
 EARLY_SEQS_MAX = 4096
+
+#: A progress message may come far ahead of the data messages it comes after (another key; a
+#: consumer that lags behind a producer of bursts may be millions of seqs behind): it waits for
+#: them, whatever its seq. At most WAITING_MAX wait per stream; past that every other one is
+#: forgotten (a frontier is a promise that only makes a tick run sooner: forgetting one delays a
+#: tick to the next promise, it never changes what a tick sees).
+WAITING_MAX = 4096
 
 #: Consumed events reach the log through their producer's report, which may be lost with its
 #: process (kill -9). So a consumer keeps the message of each event it received until the
@@ -708,10 +716,10 @@ class NodeLoop:
             arrival = time.time_ns()
             self._arrived(key, data if len(events) == 1 else None, arrival - self.t0)  # (a burst is not warmed)
             if self.values:
-                have = self.have.get(key, -1)
+                have, kept = self.have.get(key, -1), (arrival, data)  # one for a burst's events: sent once
                 for msg in events:
                     if msg.seq > have:
-                        self.kept[(msg.producer, msg.port, msg.seq)] = (arrival, data)
+                        self.kept[(msg.producer, msg.port, msg.seq)] = kept
             for msg in events:
                 self._in_order(key, msg)
         elif kind == _NUDGE:
@@ -722,8 +730,8 @@ class NodeLoop:
             try:
                 progress = decode_progress(data, expected=key)
                 streams = [s for s in self.frontiers if s[0] == progress.producer]
-                for stream in streams:
-                    self._check_claims(stream, progress.sent.get(stream[1], -1), progress.frontier)
+                for stream in streams:  # (its seqs may be far ahead: see WAITING_MAX)
+                    self._check_claims(stream, None, progress.frontier)
             except WireError as e:
                 self._garbage(key, e)
                 return
@@ -767,13 +775,13 @@ class NodeLoop:
             elif op == "restarted" and args.get("node") in self.sources:
                 self._producer_restarted(args["node"], args.get("seqs"))
 
-    def _check_claims(self, stream: tuple[str, str], seq: int, frontier: tuple[int, int]) -> None:
-        """Refuse a seq from the future or a frontier its producer cannot promise (see
-        CLOCK_AHEAD_MAX_NS): applied, one would hold the stream back, or make every later event
-        of it late, for the rest of the run."""
+    def _check_claims(self, stream: tuple[str, str], seq: int | None, frontier: tuple[int, int]) -> None:
+        """Refuse a data message's seq from the future or a frontier its producer cannot promise
+        (see CLOCK_AHEAD_MAX_NS): applied, one would hold the stream back, or make every later
+        event of it late, for the rest of the run."""
         expect = self.expect[stream]
         ahead = EARLY_SEQS_MAX + (RESTART_SEQ_GAP if stream[0] in self.lost_producers else 0)
-        if seq > expect + ahead:
+        if seq is not None and seq > expect + ahead:
             raise WireError(f"seq {seq} of {stream[0]}.{stream[1]} is {seq - expect} past the next one expected "
                             f"({expect}): a seq from the future")
         if frontier == NEVER:
@@ -818,17 +826,19 @@ class NodeLoop:
             msg = early.pop(expect, None)
         self.expect[stream] = expect
         waiting = self.waiting[stream]
-        if waiting:
-            ready = [f for seq, f in waiting if seq < expect]
-            if ready:
-                self.waiting[stream] = [(seq, f) for seq, f in waiting if seq >= expect]
-                self._advance_frontier(stream, max(ready))
+        if waiting and waiting[0][0] < expect:  # (sorted by seq)
+            ready = bisect_left(waiting, (expect,))
+            self._advance_frontier(stream, max(f for _, f in waiting[:ready]))
+            del waiting[:ready]
 
     def _progress(self, stream: tuple[str, str], after_seq: int, frontier: tuple[int, int]) -> None:
         if after_seq < self.expect[stream]:
             self._advance_frontier(stream, frontier)
-        else:
-            self.waiting[stream].append((after_seq, frontier))
+            return
+        waiting = self.waiting[stream]
+        insort(waiting, (after_seq, frontier))
+        if len(waiting) > WAITING_MAX:  # every other one goes, the last one stays: a later one promises as much
+            del waiting[-2::-2]
 
     def _advance_frontier(self, stream: tuple[str, str], frontier: tuple[int, int]) -> None:
         if frontier > self.frontiers[stream]:
@@ -1094,7 +1104,7 @@ class NodeLoop:
             stream = (src, port)
             self.frontiers[stream], self.expect[stream] = tuple(frontier), expect
             self.early[stream] = {m[1]: DataMessage(*m) for m in early}
-            self.waiting[stream] = [(seq, tuple(f)) for seq, f in waiting]
+            self.waiting[stream] = sorted((seq, tuple(f)) for seq, f in waiting)
             self.taken_over[stream] = max([expect, *(seq + 1 for seq in self.early[stream])])
         self.pending = [tuple(t) for t in state["pending"]]
         heapq.heapify(self.pending)
