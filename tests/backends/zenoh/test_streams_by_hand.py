@@ -7,7 +7,10 @@ from retriever import Burst
 from retriever.backends.zenoh.loop import _DATA, _PROGRESS, EARLY_SEQS_MAX, WAITING_MAX
 from retriever.backends.zenoh.wire import WireEncoder
 
-from .test_restart_afresh import MS, STREAM, consumed, data, loop, session, tick_all  # noqa: F401 (fixtures)
+from . import test_restart_afresh as by_hand
+from .test_restart_afresh import MS, STREAM, consumed, data, tick_all
+
+session, loop = by_hand.session, by_hand.loop  # its fixtures: a NodeLoop of a Queue consumer of counter.value
 
 
 def burst(first: int, n: int, t_ms: int) -> tuple:
