@@ -18,6 +18,7 @@ rate in the same run (raw measured before and after the Retriever runs, the mean
 
     .venv/bin/python benchmarks/throughput.py                       # about 2 min
     .venv/bin/python benchmarks/throughput.py --hz 1000 5000 --burst 100 --burst-hz 100 500 1000
+    .venv/bin/python benchmarks/throughput.py --log --hz 1000 --burst-hz 100 200   # logged runs too
 """
 
 from __future__ import annotations
@@ -107,8 +108,10 @@ def run_raw(seconds: float) -> dict:
     return {"sent": sent, "received": seen["n"], "gaps": seen["gaps"], "rate": seen["n"] / span if span else 0.0}
 
 
-def run_retriever(hz: float, seconds: float, burst: int = 0) -> dict:
-    """One event per tick (``burst=0``), or a Burst of ``burst`` events per tick."""
+def run_retriever(hz: float, seconds: float, burst: int = 0, log: bool = False) -> dict:
+    """One event per tick (``burst=0``), or a Burst of ``burst`` events per tick; with ``log``,
+    logged (to a temporary file), and the seconds the run took past its duration measured."""
+    import tempfile
     from zenoh_flows import SmallBurst, SmallSource, Tally
 
     from retriever import Pipeline, Queue, Rate, Trigger
@@ -118,23 +121,28 @@ def run_retriever(hz: float, seconds: float, burst: int = 0) -> dict:
         source = producer.configure(name="source") @ Rate(hz=hz)
         tally = Tally().configure(name="tally") @ Trigger("data")
         source.then(tally, sync=Queue(maxsize=1 << 22))
-    trace = pipe.run(duration=seconds, backend="zenoh", quiet=True, keep="records")
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.monotonic()
+        trace = pipe.run(duration=seconds, backend="zenoh", quiet=True, keep="records",
+                         log=os.path.join(tmp, "run.mcap") if log else None)
+        late = time.monotonic() - start - seconds
     stats, counts = pipe.stats(), dict(pipe.counts())
     taken = sum(len(ids) for s in trace.steps_of("tally") for ids in s.consumed.values())
     ticks = stats["source"].steps
     per_tick = burst or 1
     return {"hz": hz, "ticks": ticks, "due": round(hz * seconds), "taken": taken, "counts": counts,
-            "rate": taken / seconds, "kept_up": taken == ticks * per_tick and ticks >= round(hz * seconds) - 1
-            and not counts.get("overrun")}
+            "rate": taken / seconds, "late": late,
+            "kept_up": taken == ticks * per_tick and ticks >= round(hz * seconds) - 1 and not counts.get("overrun")}
 
 
-def sweep(label: str, rates: list[float], seconds: float, burst: int = 0) -> dict | None:
+def sweep(label: str, rates: list[float], seconds: float, burst: int = 0, log: bool = False) -> dict | None:
     """Rising tick rates until one does not keep up: the best one that did (None if none)."""
     best = None
     for hz in rates:
-        r = run_retriever(hz, seconds, burst)
+        r = run_retriever(hz, seconds, burst, log)
+        logged = f"; took {r['late']:.1f} s more than its duration (start-up, the log)" if log else ""
         print(f"retriever, {label} @ {hz:>7,.0f} Hz: {r['rate']:>9,.0f} events/s taken, {r['ticks']:,} of "
-              f"{r['due']:,} ticks, {r['taken']:,} taken; counts {r['counts']} -> "
+              f"{r['due']:,} ticks, {r['taken']:,} taken; counts {r['counts']}{logged} -> "
               f"{'kept up' if r['kept_up'] else 'did NOT keep up'}", flush=True)
         if not r["kept_up"]:
             break
@@ -155,14 +163,16 @@ def main() -> int:
     p.add_argument("--burst", type=int, default=1000, help="events per tick of the burst source (0: none)")
     p.add_argument("--burst-hz", type=float, nargs="+", default=[50, 100, 150, 200, 250, 300],
                    help="tick rates of the burst source")
+    p.add_argument("--log", action="store_true", help="log the Retriever runs (not what the target is judged on)")
     args = p.parse_args()
     print(f"throughput of {SIZE} B messages, one flow to another; {args.seconds:g} s per run; "
           f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
     raw = run_raw(args.seconds)
     print(f"raw zenoh-python: {raw['rate']:,.0f} msg/s ({raw['received']:,} of {raw['sent']:,} received, "
           f"{raw['gaps']} gaps)", flush=True)
-    single = sweep("one event per tick", args.hz, args.seconds)
-    bursts = sweep(f"bursts of {args.burst:,}", args.burst_hz, args.seconds, args.burst) if args.burst else None
+    single = sweep("one event per tick", args.hz, args.seconds, log=args.log)
+    bursts = (sweep(f"bursts of {args.burst:,}", args.burst_hz, args.seconds, args.burst, args.log)
+              if args.burst else None)
     again = run_raw(args.seconds)  # the machine's drift over the run, on the raw side
     raw_rate = (raw["rate"] + again["rate"]) / 2
     print(f"raw zenoh-python again: {again['rate']:,.0f} msg/s; mean of the two {raw_rate:,.0f}")
