@@ -16,6 +16,7 @@ from retriever import (
     IR,
     ActionChunking,
     BackendError,
+    Burst,
     CodecError,
     CausalityError,
     ClockError,
@@ -623,7 +624,7 @@ class Unrecordable(Flow):
         self.n += 1
         if self.n != self.bad_at:
             return {"x": self.n, "y": [self.n]}
-        value = {"lock": threading.Lock(), "set": {"a": {1, 2}}}[self.bad]
+        value = {"lock": threading.Lock(), "set": {"a": {1, 2}}, "burst": Burst([7, threading.Lock()])}[self.bad]
         return {"x": self.n, "y": value}
 
 
@@ -644,6 +645,16 @@ def test_a_step_returning_an_unencodable_value_stops_the_run_at_that_step(bad, w
     assert last.detail["error"].startswith("CodecError: u.y: the step at t=0.100000000s m=0")
     assert pipe.stats()["u"].errors == 1
     pipe.trace.digest()  # what was recorded can be digested
+
+
+def test_a_burst_holding_an_unencodable_value_stops_the_run_after_the_events_before_it():
+    with Pipeline("p") as pipe:
+        Unrecordable("burst").named("u") @ Rate(hz=10)
+    with pytest.raises(CodecError, match="u.y: the step at t=0.100000000s m=0 returned a value the run cannot "
+                                         "record: cannot encode a value of type _thread.lock"):
+        pipe.run(duration=1)
+    last = pipe.trace.steps[-1]
+    assert (last.status, last.produced) == ("error", (("u", "x", 1), ("u", "y", 1)))  # the burst's 7 went
 
 
 def test_step_that_raises_with_skip_tick_keeps_running():
