@@ -88,7 +88,7 @@ def test_received_arrays_are_read_only_views_of_the_message():
 
 
 def test_a_plain_msgpack_reader_can_decode_data_messages():
-    """The README's recipe: unpack the array of bins, unpack the envelope, arrays from the bins."""
+    """docs/security.md's recipe: unpack the array of bins, unpack the envelope, arrays from the bins."""
     data = WireEncoder().data((5, 0), 0, (5, 0), "cam", "frame", {"x": 1.0, "image": np.eye(2, dtype="<f4")})
     envelope, *buffers = msgpack.unpackb(data)
 
@@ -100,6 +100,10 @@ def test_a_plain_msgpack_reader_can_decode_data_messages():
     decoded = msgpack.unpackb(envelope, ext_hook=ext_hook)
     assert decoded[:6] == [2, [5, 0], 0, [5, 0], "cam", "frame"]
     assert decoded[6]["x"] == 1.0 and np.array_equal(decoded[6]["image"], np.eye(2))
+    data = WireEncoder().data((5, 0), 0, (5, 0), "cam", "frame", Burst(np.eye(3, dtype="<f4")))  # docs/security.md
+    envelope, *buffers = msgpack.unpackb(data)
+    *_, value, count = msgpack.unpackb(envelope, ext_hook=ext_hook)
+    assert count == 3 and [list(row) for row in value] == np.eye(3).tolist()
 
 
 def _message(envelope: list, *buffers: bytes) -> bytes:
