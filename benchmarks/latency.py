@@ -315,7 +315,7 @@ ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
     ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx, the sink's callback thread gets the GIL"),
     ("to_bytes", "cb_in", "cb_out", "sample.payload.to_bytes() in the callback"),
     ("→handle", "cb_out", "handle", "the callback thread takes the idle loop (else inbox, main wakes)"),
-    ("decode", "handle", "decoded", "wire.decode_data (msgpack + codec; arrays are views)"),
+    ("decode", "handle", "decoded", "wire.decode_events (msgpack + codec; arrays are views)"),
     ("deliver", "decoded", "delivered", "seq check, frontier, PortBuffer.insert, trigger tag queued"),
     ("→step()", "delivered", "received", "loop: drain, _try_tick, _incomplete, select, invoke"),
     ("total", "sent", "received", "= the latency"),

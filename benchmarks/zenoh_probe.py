@@ -9,7 +9,7 @@ only inside the workers of a probed run. Stamps (wall ns, the same clock in ever
     sent      step() takes time.time_ns()            cb_in     zenoh callback entered (network thread)
     publish   NodeLoop._publish entered               cb_out    payload.to_bytes() returned
     encoded   WireEncoder.data returned               handle    NodeLoop._handle entered (callback or main thread)
-    put_in    Publisher.put called                    decoded   wire.decode_data returned
+    put_in    Publisher.put called                    decoded   wire.decode_events returned
     put_out   Publisher.put returned                  delivered NodeLoop._deliver returned (PortBuffer.insert)
                                                       received  sink's step() starts
 
@@ -151,9 +151,9 @@ def _install() -> None:
 
     NodeLoop._handle = _handle
 
-    orig_decode = _loop.decode_data
+    orig_decode = _loop.decode_events
 
-    def decode_data(data, expected=None):
+    def decode_events(data, expected=None):
         out = orig_decode(data, expected=expected)
         rec = _current[0]
         if rec is not None:
@@ -161,7 +161,7 @@ def _install() -> None:
             rec["f_decoded"] = _flt()
         return out
 
-    _loop.decode_data = decode_data
+    _loop.decode_events = decode_events
 
     # --- timed waits (control_jitter.py --breakdown) -------------------------------------------
     orig_wait = NodeLoop._wait
