@@ -1090,7 +1090,10 @@ class NodeLoop:
                          [tuple(m) for m in self.early[(src, port)].values()], self.waiting[(src, port)]]
                         for src, port in streams],
             "pending": self.pending, "k": self.k, "next_rate": self.next_rate, "last_tick": self.last_tick,
-            "last_stamp": self.last_stamp, "held": self.held, "seqs": self.seqs, "sent": self.sent,
+            "last_stamp": self.last_stamp, "seqs": self.seqs, "sent": self.sent,
+            # a held burst goes as its values, marked (the codec encodes values, not bursts)
+            "held": [(tag, port, value.values, seq, "burst") if type(value) is Burst else (tag, port, value, seq)
+                     for tag, port, value, seq in self.held],
             "pending_detail": self.pending_detail, "values": self.values,
         }
 
@@ -1112,7 +1115,7 @@ class NodeLoop:
         self.k, self.last_stamp = state["k"], state["last_stamp"]
         self.next_rate = tuple(state["next_rate"]) if state["next_rate"] is not None else None
         self.last_tick = tuple(state["last_tick"])
-        self.held = [tuple(h) for h in state["held"]]
+        self.held = [(h[0], h[1], Burst._of(tuple(h[2])), h[3]) if len(h) == 5 else tuple(h) for h in state["held"]]
         heapq.heapify(self.held)
         self.values = state.get("values") is not False
         self.seqs, self.sent = dict(state["seqs"]), dict(state["sent"])
