@@ -3,7 +3,7 @@
 Targets, each fed inputs made by the real encoders and writers and then mutated:
 
     codec         retriever.codec.unpackb (plain, keep_unregistered=True) and unpackb_out_of_band
-    wire-data     wire.decode_data                    wire-progress   wire.decode_progress
+    wire-data     wire.decode_events (bursts too)     wire-progress   wire.decode_progress
     wire-report   wire.decode_report                  wire-status     wire.decode_status
     wire-control  wire.decode_control
     coordinator   the zenoh coordinator's report handling (Coordinator._handle), after the
@@ -66,11 +66,11 @@ if str(ROOT) not in sys.path:  # the test flows (tests.log.log_flows, tests.ir_f
 import msgpack  # noqa: E402
 import numpy as np  # noqa: E402
 
-from retriever import IR, IRError, LogError, Pipeline, read_log  # noqa: E402
+from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: E402
 from retriever.backends.base import NodeStats, Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    KeySpace, WireEncoder, WireError, decode_control, decode_data, decode_progress, decode_report, decode_status)
+    KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -593,8 +593,9 @@ class DataTarget(WireTarget):
         return self.m.bytes(packed) if rng.random() < 0.1 else packed
 
     def feed(self, data: bytes) -> int:
-        decode_data(data)
-        decode_data(data, ("counter", "out"))
+        decode_events(data)
+        decode_events(data, ("counter", "out"))
+        decode_events(data, ("counter", "out"), blank_ok=True)  # as the coordinator takes a report's
         return 0
 
 
@@ -967,7 +968,10 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
     if name == "wire-data":
         values = [e[4] for e in trace.raw_events] + _values(genuine)
         seeds = [enc.data((i, 0), i, (i, 1), "counter", "out", v) for i, v in enumerate(values)]
-        return DataTarget(name, decode_data, seeds, *args)
+        bursts = [Burst(values[:5]), Burst(np.arange(12, dtype=np.float32).reshape(4, 3)), Burst(np.arange(9)),
+                  Burst([np.zeros(2), "x", (1, 2)]), Burst._of((None,) * 3)]
+        seeds += [enc.data((7, 0), 7, (7, 1), "counter", "out", b) for b in bursts]
+        return DataTarget(name, decode_events, seeds, *args)
     reports = [data for _, data in genuine_reports(genuine)]
     seeds = {
         "wire-progress": [enc.progress((5, 0), "counter", {"out": 3}), enc.progress((0, 0), "tally", {}),

@@ -486,10 +486,12 @@ class InprocSession(Session):
                 if value is None:  # sparse output: no event
                     continue
                 if type(value) not in PLAIN_TYPES:
-                    if type(value) is Burst:  # an event per value, in order
+                    if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
+                        if value.rows is None or value.rows.dtype.hasobject:
+                            for i, item in enumerate(value.values):
+                                if type(item) not in PLAIN_TYPES:
+                                    self.check_output(rt, tau, port, item, consumed, start, produced, i)
                         for item in value.values:
-                            if type(item) not in PLAIN_TYPES:
-                                self.check_output(rt, tau, port, item, consumed, start, produced)
                             event(rt, tau, port, item, out_tag, end, produced)
                         continue
                     self.check_output(rt, tau, port, value, consumed, start, produced)
@@ -515,7 +517,7 @@ class InprocSession(Session):
                 self._schedule(entry[0], consumer)
 
     def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
-                     start: int, produced: list | tuple) -> None:
+                     start: int, produced: list | tuple, in_burst: int | None = None) -> None:
         """Before an output not of a plain type is recorded: stop the run (CodecError naming the
         node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
         cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
@@ -525,7 +527,8 @@ class InprocSession(Session):
         try:
             packb(value)
         except CodecError as e:
-            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned a value the run cannot "
+            what = "a value" if in_burst is None else f"a Burst whose value {in_burst} is one"
+            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned {what} the run cannot "
                                f"record: {e}")
             rt.stats.errors += 1
             first_line = str(error).split("\n", 1)[0]

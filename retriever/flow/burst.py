@@ -23,17 +23,32 @@ from typing import Any
 import numpy as np
 
 
+#: the most values a burst holds (a step with more makes an array its value, or splits them over
+#: ticks): it bounds what one message may make a receiver build, and the seqs a lost process may
+#: have used unreported (RESTART_SEQ_GAP in backends/zenoh/loop.py)
+MAX_BURST = 1 << 16
+
+_NOT_VALUES = (str, bytes, bytearray, memoryview, dict, set, frozenset)
+
+
 class Burst:
     """Values that a step emits on one port as consecutive events at its output tag.
 
-    ``Burst(array)`` of an array of two or more dimensions: its rows (views of it, as iterating
-    it gives). Rows of one dtype and shape, given so or as a list, travel as one array."""
+    ``Burst(array)``: the array's rows (views of it, as iterating it gives; of a 1-D array, numpy
+    scalars). Rows of one dtype and shape, given so or as a list, travel as one array."""
 
     __slots__ = ("values", "rows")
 
     def __init__(self, values: Iterable[Any] = ()):
-        rows = values if type(values) is np.ndarray and values.ndim >= 2 else None
+        if isinstance(values, _NOT_VALUES) or not isinstance(values, Iterable):
+            what = type(values).__name__
+            raise TypeError(f"Burst takes the values of its events (a list, a tuple, an array, an iterator), got {what}"
+                            + (": wrap it in a list for one event" if isinstance(values, (str, bytes)) else ""))
+        rows = values if type(values) is np.ndarray and _as_rows(values) else None
         values = tuple(values)
+        if len(values) > MAX_BURST:
+            raise ValueError(f"Burst of {len(values)} values: at most {MAX_BURST} in one step; emit an array "
+                             "as one event, or split the values over ticks")
         if rows is None:
             for i, value in enumerate(values):
                 if value is None:
@@ -51,13 +66,13 @@ class Burst:
         return burst
 
     def stacked(self) -> np.ndarray | None:
-        """The values as the rows of one array, when they are arrays (of one or more dimensions)
-        of one dtype and shape; else None."""
+        """The values as the rows of one array, when they are arrays (of one or more dimensions,
+        not empty) of one dtype and shape, or the rows of the array given; else None."""
         if self.rows is not None:
             return self.rows
         values = self.values
         first = values[0] if values else None
-        if type(first) is not np.ndarray or not first.ndim:
+        if type(first) is not np.ndarray or not first.ndim or not first.size:
             return None
         dtype, shape = first.dtype, first.shape
         for value in values:
@@ -74,5 +89,13 @@ class Burst:
 
     def __repr__(self) -> str:
         shown = ", ".join(repr(v) for v in self.values[:3])
-        return f"Burst([{shown}{', ...' if len(self.values) > 3 else ''}])  # {len(self.values)} values"
+        return f"Burst(<{len(self.values)} values: {shown}{', ...' if len(self.values) > 3 else ''}>)"
+
+
+def _as_rows(array: np.ndarray) -> bool:
+    """Whether a burst of ``array``'s rows travels as the array: rows of some size, and of a 1-D
+    array numpy scalars of a plain dtype (the receiver makes them again from the array)."""
+    if not array.size:
+        return False
+    return array.ndim >= 2 or (array.ndim == 1 and array.dtype.fields is None and not array.dtype.hasobject)
 

@@ -657,7 +657,7 @@ class Coordinator(Session):
 
     def _event(self, key: str, node: str, wall: int, message: bytes | str) -> None:
         try:
-            events = decode_events(message if type(message) is bytes else self._unspill(node, message))
+            events = decode_events(message if type(message) is bytes else self._unspill(node, message), blank_ok=True)
         except WireError as e:
             self._garbage(key, e)
             return

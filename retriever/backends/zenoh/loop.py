@@ -56,6 +56,7 @@ PROBE_AFTER_NS = 500_000
 FLUSH_AFTER_NS = 100_000_000
 FLUSH_MAX = 512
 FLUSH_MAX_BYTES = 64 << 20
+FLUSH_MAX_SEQS = 1 << 16  # seqs published: a flush at least this often (bursts), see RESTART_SEQ_GAP
 #: published messages at least this big reach the coordinator as files in the run's shared-memory
 #: directory (one copy, and none on its side) instead of inside the report
 SPILL_BYTES = 64 << 10
@@ -88,10 +89,11 @@ HOLD_RECORDS_NS = 200_000_000
 #: A flow whose process died (kill -9, a segfault) under on_error="restart" starts afresh in a
 #: new process, its state lost (see "Restarting after a lost process" below). Its streams go on
 #: from a seq past every one the dead process may have used: the coordinator knows the seqs it
-#: reported; at most its last unreported batch (FLUSH_MAX records, and the reporter's queue) was
-#: published unknown to the coordinator, far fewer than RESTART_SEQ_GAP. A consumer told that a
+#: reported; at most its unreported seqs were published unknown to the coordinator: fewer than
+#: FLUSH_MAX_SEQS + MAX_BURST in the loop, at most MAX_PENDING_SEQS (or one report) in the
+#: reporter's queue, 655,360 in all, far fewer than RESTART_SEQ_GAP. A consumer told that a
 #: producer was lost takes its seqs up to that far ahead (EARLY_SEQS_MAX is for running streams).
-RESTART_SEQ_GAP = 1 << 16
+RESTART_SEQ_GAP = 1 << 21
 
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
@@ -257,6 +259,7 @@ class NodeLoop:
         self.have: dict[tuple[str, str], int] = {}  # per input stream, the last seq the coordinator has
         self.published: list[tuple[int, bytes]] = []  # (wall ns, data message) not yet reported
         self.published_bytes = 0
+        self.published_seqs = 0  # the seqs of the events in it (a burst's are many)
         self.flush_due: int | None = None  # when the oldest unreported record or event must go
         self.pending_detail: dict[str, Any] = {}  # late events and skipped ticks, told on the next record
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
@@ -1040,7 +1043,8 @@ class NodeLoop:
             try:
                 message = data(tag, seq, frontier if i == last else tag, self.id, port, value)
             except CodecError as e:  # the step returned it; in-process it would have gone by reference
-                raise StopRun(f"{self.id}.{port}: the event at t={tag[0] / 1e9:.6f} s cannot be sent to another "
+                what = "the Burst (value[i]: its value i)" if type(value) is Burst else "the event"
+                raise StopRun(f"{self.id}.{port}: {what} at t={tag[0] / 1e9:.6f} s cannot be sent to another "
                               f"process: {e}", tag) from None
             publisher.put(message)
             burst = type(value) is Burst
@@ -1052,8 +1056,9 @@ class NodeLoop:
                 message = data(tag, seq, frontier if i == last else tag, self.id, port, blank)
             self.published.append((time.time_ns(), message))
             self.published_bytes += len(message)
+            self.published_seqs += len(value.values) if burst else 1
         if batch:
-            if self.published_bytes >= FLUSH_MAX_BYTES:
+            if self.published_bytes >= FLUSH_MAX_BYTES or self.published_seqs >= FLUSH_MAX_SEQS:
                 self.flush()
             elif self.flush_due is None:  # held LET outputs are released after their record went
                 self.flush_due = self.now() + FLUSH_AFTER_NS
@@ -1283,8 +1288,8 @@ class NodeLoop:
             kept = (self.kept[eid] for eid in sorted(carried) if eid in self.kept)
             events = events + list({id(k): k for k in kept}.values())  # a burst's events share a message
         if records or events:
-            self.reporter.send(records, events)
-        self.published, self.published_bytes = [], 0
+            self.reporter.send(records, events, self.published_seqs)
+        self.published, self.published_bytes, self.published_seqs = [], 0, 0
         self.flush_due = self.now() + FLUSH_AFTER_NS if held else None
 
     def finish_reports(self) -> None:

@@ -37,6 +37,9 @@ from .wire import RELIABLE, WireEncoder
 #: (a single report bigger than that still goes, once nothing else waits)
 MAX_PENDING = 64
 MAX_PENDING_BYTES = 256 << 20
+#: and the seqs their events used, at most (a burst is many seqs in a few bytes): this bounds the
+#: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in loop.py)
+MAX_PENDING_SEQS = 1 << 19
 
 
 
@@ -48,15 +51,18 @@ class Reporter:
     """Sends one node's reports, in order, from its own thread (started on the first report)."""
 
     def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int,
-                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES):
+                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES,
+                 max_pending_seqs: int = MAX_PENDING_SEQS):
         self.session, self.key, self.node = session, key, node
         self.spill_dir, self.spill_bytes = spill_dir, spill_bytes
         self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
+        self.max_pending_seqs = max_pending_seqs
         self.encoder = WireEncoder()  # this thread's own
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.room = threading.Condition()  # guards the two counts below
         self.pending = 0  # reports handed over, not yet sent
         self.pending_bytes = 0  # bytes of the messages in them
+        self.pending_seqs = 0  # seqs of the events they were published with
         self.thread: threading.Thread | None = None
         self.error: BaseException | None = None
         self.spilled = 0  # files written to spill_dir
@@ -64,29 +70,32 @@ class Reporter:
         self.waits = 0  # sends that had to wait for room
         self.waited_ns = 0  # and for how long in all (the loop's time, not its ticks')
 
-    def send(self, records: list, events: list[tuple[int, bytes]]) -> None:
-        """Hand over step records and ``(wall ns, data message)`` pairs; waits only while the
-        reports still unsent leave no room for these (MAX_PENDING, MAX_PENDING_BYTES)."""
+    def send(self, records: list, events: list[tuple[int, bytes]], seqs: int = 0) -> None:
+        """Hand over step records and ``(wall ns, data message)`` pairs (of events that used
+        ``seqs`` seqs); waits only while the reports still unsent leave no room for these
+        (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS)."""
         self._raise()
         if self.thread is None:
             self.thread = threading.Thread(target=self._run, name=f"retriever-report-{self.node}", daemon=True)
             self.thread.start()
         size = sum(len(message) for _, message in events)
         with self.room:
-            if not self.has_room(size):
+            if not self.has_room(size, seqs):
                 start = time.monotonic_ns()
-                self.room.wait_for(lambda: self.has_room(size) or self.error is not None)
+                self.room.wait_for(lambda: self.has_room(size, seqs) or self.error is not None)
                 self.waits += 1
                 self.waited_ns += time.monotonic_ns() - start
             self._raise()
             self.pending += 1
             self.pending_bytes += size
-        self.queue.put((records, events, size))
+            self.pending_seqs += seqs
+        self.queue.put((records, events, size, seqs))
 
-    def has_room(self, size: int) -> bool:
-        """Whether a report holding ``size`` bytes of messages would go without waiting."""
+    def has_room(self, size: int, seqs: int = 0) -> bool:
+        """Whether a report holding ``size`` bytes of messages (``seqs`` seqs) would go without waiting."""
         return self.pending == 0 or (self.pending < self.max_pending
-                                     and self.pending_bytes + size <= self.max_pending_bytes)
+                                     and self.pending_bytes + size <= self.max_pending_bytes
+                                     and self.pending_seqs + seqs <= self.max_pending_seqs)
 
     def close(self) -> None:
         """Return once every report handed over is out (then no more may be sent)."""
@@ -103,7 +112,7 @@ class Reporter:
 
     def _run(self) -> None:
         while (item := self.queue.get()) is not None:
-            records, events, size = item
+            records, events, size, seqs = item
             try:
                 if self.error is None:
                     self._put(records, events)
@@ -113,6 +122,7 @@ class Reporter:
                 with self.room:
                     self.pending -= 1
                     self.pending_bytes -= size
+                    self.pending_seqs -= seqs
                     self.room.notify_all()
 
     def _put(self, records: list, events: list[tuple[int, bytes]]) -> None:

@@ -53,7 +53,7 @@ import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
-from ...flow.burst import Burst
+from ...flow.burst import MAX_BURST, Burst
 from ...trace import STEP_STATUSES
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
@@ -61,6 +61,7 @@ from ...trace import STEP_STATUSES
 RELIABLE = zenoh.CongestionControl.BLOCK
 
 WIRE_VERSION = 2
+SEQ_LIMIT = 1 << 63  # seqs are below it
 ROOT = "retriever"
 _CHUNK = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 _BIN32 = struct.Struct(">BI")
@@ -264,10 +265,11 @@ def _bins(data: bytes) -> list[memoryview]:
     return bins
 
 
-def decode_events(data: bytes, expected: tuple[str, str] | None = None) -> list[DataMessage]:
+def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok: bool = False) -> list[DataMessage]:
     """Decode and validate a data message; ``expected`` is the ``(node, port)`` of its key.
     Returns its events: one, or a burst's, in seq order (every one but the last with its own
-    tag as frontier, the last with the message's). Its arrays are read-only views of ``data``."""
+    tag as frontier, the last with the message's). Its arrays are read-only views of ``data``.
+    ``blank_ok``: a burst may come without its values (in a report: the coordinator keeps none)."""
     if not isinstance(data, (bytes, bytearray, mmap.mmap, memoryview)):  # a view: of a dora input's buffer
         raise WireError(f"a data message must be bytes, got {type(data).__name__}")
     envelope, *buffers = _bins(data)
@@ -283,8 +285,8 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None) -> list[
     if type(version) is not int or version != WIRE_VERSION:  # an array's != is an array
         raise WireError(f"a data message of wire format {version!r:.20}; this process speaks {WIRE_VERSION}")
     tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
-    if type(seq) is not int or seq < 0:
-        raise WireError(f"seq must be an integer >= 0, got {seq!r:.40}")
+    if type(seq) is not int or not 0 <= seq < SEQ_LIMIT:
+        raise WireError(f"seq must be an integer from 0 to 2**63 - 1, got {seq!r:.40}")
     if type(producer) is not str or type(port) is not str:
         raise WireError("producer and port must be strings")
     if expected is not None and (producer, port) != expected:
@@ -294,18 +296,26 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None) -> list[
     if not count:
         return [DataMessage(tag, seq, frontier, producer, port, value)]
     (count,) = count
-    if type(count) is not int or count < 1:
-        raise WireError(f"a burst's count must be an integer >= 1, got {count!r:.20}")
-    if value is None:  # its values were left out (the coordinator records that they were sent)
+    if type(count) is not int or not 1 <= count <= MAX_BURST:
+        raise WireError(f"a burst's count must be an integer from 1 to {MAX_BURST}, got {count!r:.20}")
+    if seq + count > SEQ_LIMIT:
+        raise WireError(f"a burst of {count} from seq {seq} runs past the last seq a stream has")
+    if value is None and blank_ok:  # its values were left out (the coordinator records that they were sent)
         value = [None] * count
-    elif type(value) is np.ndarray and value.ndim >= 2 and len(value) == count:
-        value = list(value)  # its rows: read-only views of the message
+    elif type(value) is np.ndarray and _rows_are_values(value) and len(value) == count:
+        value = list(value)  # its rows: read-only views of the message (of a 1-D array, numpy scalars)
     elif type(value) is not list or len(value) != count:
-        raise WireError(f"a burst must hold a list of as many values as its count, or an array of as many rows "
-                        f"(of 1 or more dimensions), got {count!r:.20} and {type(value).__name__}")
+        raise WireError(f"a burst must hold a list of as many values as its count, or an array of as many rows, "
+                        f"got {count!r:.20} and {type(value).__name__}")
     last = count - 1
     return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
             for i, item in enumerate(value)]
+
+
+def _rows_are_values(array: np.ndarray) -> bool:
+    """Whether the rows of ``array`` are events' values as a burst sends them (Burst.stacked):
+    a row holds bytes (no message of a few bytes makes a million empty rows)."""
+    return array.nbytes >= len(array) and (array.ndim >= 2 or (array.ndim == 1 and array.dtype.fields is None))
 
 
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:

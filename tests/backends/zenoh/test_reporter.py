@@ -14,7 +14,9 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh.hub import peer_config
-from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, Reporter, ReportError
+from retriever.backends.zenoh.loop import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
+from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter, ReportError
+from retriever.flow.burst import MAX_BURST
 from retriever.backends.zenoh.wire import KeySpace, decode_report
 
 KEYS = KeySpace("reporter-test")
@@ -108,6 +110,22 @@ def test_at_most_max_pending_reports_wait_then_the_loop_waits_too(session, repor
     reporter.close()
     assert reporter.waits == 0 and reporter.waited_ns == 0
     assert [r.events[0][0] for r in reports.settle()] == list(range(MAX_PENDING)), "nothing lost or reordered"
+
+
+def test_the_seqs_of_waiting_reports_are_bounded_below_the_restart_gap(session, reports):
+    """A burst is many seqs in a few bytes: the seqs a process may have published unknown to the
+    coordinator (the loop's unflushed ones, the reporter's waiting ones) stay below the gap a
+    restarted flow's streams leave (RESTART_SEQ_GAP), or its new seqs could be the old ones."""
+    assert FLUSH_MAX_SEQS + MAX_BURST + max(MAX_PENDING_SEQS, FLUSH_MAX_SEQS + MAX_BURST) < RESTART_SEQ_GAP
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending_seqs=1000)
+    link = CongestedLink(reporter)
+    reporter.send([], [(0, b"a")], seqs=600)
+    assert not reporter.has_room(1, seqs=500), "600 + 500 seqs would pass 1000"
+    assert reporter.has_room(1, seqs=400)
+    link.free()
+    reporter.close()
+    assert reporter.has_room(1, seqs=5000), "with nothing waiting, even a report over the bound goes"
+    assert [r.events[0][0] for r in reports.settle()] == [0]
 
 
 def test_the_bytes_held_by_waiting_reports_are_bounded_too(session, reports):

@@ -133,14 +133,44 @@ def test_a_burst_is_one_message_of_its_events():
 
 @pytest.mark.parametrize("values, count, match", [
     ([1, 2], 3, "as many values as its count"), ([1, 2], 1, "as many values"), ("ab", 2, "as many values"),
-    ({"a": 1}, 1, "as many values"), ([], 0, "count must be an integer >= 1"), ([1], True, "count must be"),
-    ([1], 1.0, "count must be"), ([1], -1, "count must be"),
+    ({"a": 1}, 1, "as many values"), ([], 0, "count must be an integer from 1 to 65536"), ([1], True, "count must be"),
+    ([1], 1.0, "count must be"), ([1], -1, "count must be"), ([1] * 3, (1 << 16) + 1, "count must be"),
+    (None, 2**64 - 1, "count must be"), (["x"], msgpack.ExtType(3, b"9" * 100), "count must be"),  # a big int
+    (None, 2, "as many values"),  # values left out: only in a report (blank_ok), never on a data key
     (_ext_array("<f8", [3, 2], 0), 2, "an array of as many rows"),  # 3 rows, count 2
-    (_ext_array("<f8", [6], 0), 6, "an array of as many rows"),  # rows of no dimension: numpy scalars
+    (_ext_array("|V0", [1 << 16], 0), 1 << 16, "an array of as many rows|cannot be decoded"),
 ])
 def test_a_burst_whose_count_is_not_its_values_is_a_wire_error(values, count, match):
     with pytest.raises(WireError, match=match):
         decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", values, count], b"\x00" * 48), ("a", "b"))
+
+
+def test_a_few_bytes_cannot_make_a_burst_of_empty_rows():
+    empty_rows = _ext_array("<f8", [1 << 16, 0], 0)
+    with pytest.raises(WireError, match="an array of as many rows"):
+        decode_events(_message([2, [0, 0], 0, [0, 0], "a", "b", empty_rows, 1 << 16], b""), ("a", "b"))
+
+
+def test_a_burst_may_not_run_past_the_last_seq():
+    with pytest.raises(WireError, match="runs past the last seq a stream has"):
+        decode_events(_message([2, [0, 0], (1 << 63) - 1, [0, 0], "a", "b", [1, 2], 2]), ("a", "b"))
+    with pytest.raises(WireError, match="seq must be an integer from 0 to 2"):
+        decode_events(_message([2, [0, 0], 1 << 63, [0, 0], "a", "b", 1]), ("a", "b"))
+
+
+def test_a_blank_burst_is_taken_from_a_report_only():
+    blank = _message([2, [0, 0], 0, [0, 0], "a", "b", None, 3])
+    assert [e.value for e in decode_events(blank, ("a", "b"), blank_ok=True)] == [None] * 3
+    with pytest.raises(WireError, match="as many values"):
+        decode_events(blank, ("a", "b"))
+
+
+def test_a_burst_of_a_1d_array_is_its_numpy_scalars_as_one_array():
+    burst = Burst(np.arange(1000, dtype=">f8"))
+    data = WireEncoder().data((5, 1), 0, (5, 1), "a", "b", burst)
+    got = [e.value for e in decode_events(data)]
+    assert len(msgpack.unpackb(data)) == 2 and [packb(g) for g in got] == [packb(v) for v in burst]
+    assert type(got[0]) is np.float64  # (a numpy scalar is native, as the values in-process are)
 
 
 def test_a_burst_of_arrays_of_one_dtype_and_shape_is_one_array_of_rows():
