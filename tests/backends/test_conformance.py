@@ -782,12 +782,18 @@ def test_a_burst_is_consecutive_events_at_the_output_tag(backend, check_trace):
 
 
 def test_a_burst_holds_values_not_nones_or_bursts():
-    """A burst's values are events: None (no event) and a nested Burst are refused where written."""
+    """A burst's values are events: None (no event), a nested Burst, a string or a mapping (whose
+    items a user did not mean), and more than MAX_BURST values are refused where written."""
     with pytest.raises(TypeError, match="value 1 is None"):
         Burst([1, None])
     with pytest.raises(TypeError, match="a burst holds values, not bursts"):
         Burst([Burst([1])])
     assert len(Burst(range(3))) == 3 and list(Burst(range(3))) == [0, 1, 2]
+    for not_values in ("abc", b"ab", {"a": 1}, {"x", "y"}, 5, None):  # a set's order is the hash seed's
+        with pytest.raises(TypeError, match="Burst takes the values of its events"):
+            Burst(not_values)
+    with pytest.raises(ValueError, match="at most 65536 in one step"):
+        Burst(range(65537))
 
 
 # =============================================================================================
