@@ -19,9 +19,11 @@ the two loops never wake at the same instant) and records ``time.time_ns()`` −
 under the same burner. With ``--sequential`` it runs after the pipeline instead, next to a plain
 Python busy-loop process (so neither loop disturbs the other; the machine's other load differs).
 
-The first ``--warmup`` seconds of both are dropped (process and import warm-up). Targets:
-p99 lateness ≤ 2× the bare loop's, zero missed ticks.
+The first ``--warmup`` seconds of both are dropped (process and import warm-up). Targets
+(issue 21): p99 lateness ≤ 1.5× the bare loop's, judged on the median over ``--runs`` runs, and
+zero missed ticks in every run.
 
+    .venv/bin/python benchmarks/control_jitter.py --runs 5        # the judging run, about 5.5 min
     .venv/bin/python benchmarks/control_jitter.py                 # 60 s
     .venv/bin/python benchmarks/control_jitter.py --seconds 20
     .venv/bin/python benchmarks/control_jitter.py --sequential    # bare loop after, with its own burner
@@ -34,6 +36,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import time
@@ -45,7 +48,7 @@ sys.path.insert(0, str(HERE))  # zenoh_flows: the workers get this path from the
 
 from latency import quantile
 
-TARGET_RATIO = 2.0
+TARGET_RATIO = 1.5
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -189,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--busy", type=float, default=0.099,
                    help="seconds the burner spins per step (default 0.099; 0: no burner, a diagnostic)")
     p.add_argument("--warmup", type=float, default=1.0, help="seconds dropped at the start (default 1)")
+    p.add_argument("--runs", type=int, default=1, help="runs, one after the other; judged on the median (default 1)")
     p.add_argument("--sequential", action="store_true",
                    help="run the bare loop after the pipeline, with a plain Python burner process")
     p.add_argument("--breakdown", action="store_true",
@@ -209,6 +213,23 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ctrl @ Rate({args.hz:g}), {burner}; "
           f"{args.seconds:g} s, first {args.warmup:g} s dropped; bare loop "
           f"{'after the pipeline, with a plain burner process' if args.sequential else 'concurrently, offset half a period'}")
+    ratios, missed = [], []
+    for k in range(args.runs):
+        if args.runs > 1:
+            print(f"\n=== run {k + 1} of {args.runs}")
+        ratio, n_missed = one_run(args)
+        ratios.append(ratio)
+        missed.append(n_missed)
+    median = statistics.median(ratios)
+    ok_ratio, ok_missed = median <= TARGET_RATIO, not any(missed)
+    print(f"\ntargets: p99 <= {TARGET_RATIO:g}x bare loop, median of {len(ratios)} run(s): {median:.2f}x "
+          f"(runs: {', '.join(f'{x:.2f}' for x in ratios)}) {'PASS' if ok_ratio else 'MISS'}; "
+          f"zero missed ticks: {sum(missed)} {'PASS' if ok_missed else 'MISS'}")
+    return 0
+
+
+def one_run(args) -> tuple[float, int]:
+    """One run and its table: the p99 ratio to the bare loop's, and ctrl's missed ticks."""
     print(f"load average at start {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print()
     r = run(args)
@@ -242,11 +263,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"max {v[-1] / 1e3:8.0f} µs")
         print("  (the bare loop's lateness is its time.sleep oversleep, plus about a µs)")
     print(f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    ok_ratio = ratio <= TARGET_RATIO
-    ok_missed = r["retriever"]["missed"] == 0
-    print(f"targets: p99 <= {TARGET_RATIO:g}x bare loop: {ratio:.2f}x {'PASS' if ok_ratio else 'MISS'}; "
-          f"zero missed ticks: {r['retriever']['missed']} {'PASS' if ok_missed else 'MISS'}")
-    return 0
+    print(f"p99 {ratio:.2f}x the bare loop's; missed ticks {r['retriever']['missed']}")
+    return ratio, r["retriever"]["missed"]
 
 
 if __name__ == "__main__":
