@@ -35,6 +35,7 @@ from hypothesis import strategies as st
 
 from retriever import (
     ActionChunking,
+    Burst,
     CausalityError,
     Exact,
     Flow,
@@ -95,17 +96,21 @@ class Budget:
 # Flows (module level, so the graphs are ordinary, IR-rebuildable programs)
 # ---------------------------------------------------------------------------------------------
 class Src(Flow):
-    """A source: a counter mixed with a salt; emits nothing on every ``sparse``-th tick."""
+    """A source: a counter mixed with a salt; emits nothing on every ``sparse``-th tick. With
+    ``burst``, a Burst of ``n % burst`` such values a tick (an empty one: no event)."""
 
-    def __init__(self, salt: int = 0, sparse: int = 0):
-        self.salt, self.sparse, self.n = salt, sparse, 0
+    def __init__(self, salt: int = 0, sparse: int = 0, burst: int = 0):
+        self.salt, self.sparse, self.burst, self.n = salt, sparse, burst, 0
 
     def step(self):
         Budget.spend()
         self.n += 1
         if self.sparse and self.n % self.sparse == 0:
             return None
-        return {"out": (self.n * 1_000_003 + self.salt) % P}
+        value = (self.n * 1_000_003 + self.salt) % P
+        if self.burst:
+            return {"out": Burst((value + i) % P for i in range(self.n % self.burst))}
+        return {"out": value}
 
 
 class Chunker(Flow):
@@ -235,7 +240,8 @@ def graphs(draw) -> GraphSpec:
             nodes.append(NodeSpec("Chunker", Rate(draw(rate)), draw(latency), {"salt": draw(salt)}))
         else:
             nodes.append(NodeSpec("Src", Rate(draw(rate), offset=draw(offset)), draw(latency),
-                                  {"salt": draw(salt), "sparse": draw(sparse)}))
+                                  {"salt": draw(salt), "sparse": draw(sparse),
+                                   "burst": draw(st.sampled_from([0, 0, 0, 4]))}))
     n_sources = len(nodes)
     for _ in range(draw(st.integers(2, 5))):
         kind = draw(st.sampled_from(["Mix", "Mix", "Need", "Rally", "Rally", "Rally"]))
