@@ -787,7 +787,7 @@ def log_export(
 ) -> None:
     """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
     as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
-    Needs the extra: pip install 'retriever[foxglove]'."""
+    Needs the extra: pip install 'retriever\\[foxglove]'."""
     if format != "foxglove":
         _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
     from .log.foxglove import export_foxglove
