@@ -9,7 +9,7 @@ stream) returns them as a burst instead::
 
 Each value is an event of its own (its own seq, its own id in step records and in the log) and
 they all carry the step's output tag, in order: a consumer's ``Queue()`` takes them all, oldest
-first; ``Latest()`` sees the last; a ``Trigger`` consumer ticks once for the burst, as for any
+first; ``Latest()`` sees the last, ``Exact()`` the first; a ``Trigger`` consumer ticks once for the burst, as for any
 events at one tag. An empty burst is no event, as ``None`` is. The real-time backends send a
 burst as one message, which is what lets one flow move hundreds of thousands of small values a
 second (``benchmarks/throughput.py``).
