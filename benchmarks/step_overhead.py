@@ -266,9 +266,10 @@ def run_hand(chain: Chain, hz: float, duration: float):
 
 def floor_loop(chain: Chain, src, stages, ticks, period_ns):
     """The hand loop plus only what every step of a run leaves in its trace, in the shapes inproc
-    records them: two ``time_ns()`` reads around the step, the event (the consumer's buffer entry
-    too), and the compact step record in the tape; a skipped tick's step record. No scheduling,
-    no sync policies, no dispatch. Returns (events, step records)."""
+    records them: a ``time_ns()`` read per step (each step of a tick starts when the one before it
+    ended, as in inproc's fused rate groups and Trigger chains, plus one read per tick), the event
+    (the consumer's buffer entry too), and the compact step record in the tape; a skipped tick's
+    step record. No scheduling, no sync policies, no dispatch. Returns (events, step records)."""
     tape = []
     add = tape.extend
     n = len(stages)
@@ -283,7 +284,7 @@ def floor_loop(chain: Chain, src, stages, ticks, period_ns):
         out_tag = (tau[0], 1)
         start = time.time_ns()
         raw = src_step()
-        end = time.time_ns()
+        end = time.time_ns()  # (the next step of the tick starts at it)
         v = raw.x if typed else raw["x"]
         seq = seqs[0]
         seqs[0] = seq + 1
@@ -300,7 +301,7 @@ def floor_loop(chain: Chain, src, stages, ticks, period_ns):
             else:
                 entry = new
                 tau, out_tag = out_tag, (tau[0], out_tag[1] + 1)
-            start = time.time_ns()
+            start = end
             v = fns[i](Num(x=entry[4])).x if typed else fns[i](x=entry[4])["x"]
             end = time.time_ns()
             seq = seqs[i + 1]
@@ -428,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['cold_open'] * 1e3:>4.1f} │ {'met' if ok else 'MISSED'}")
     print()
     print("inproc/hand: median run time over median run time; range: lowest and highest of the repeats' pairs.\n"
-          "floor/hand: the hand loop plus only the records a run keeps (two time_ns() per step, the event, the\n"
+          "floor/hand: the hand loop plus only the records a run keeps (a time_ns() per step, the event, the\n"
           "compact step record), median runs. read: the first read of the trace after the run (expanding it).\n"
           "open: opening the session (compile the graph, wire it, generate and compile the ticks), the first run\n"
           "of a row, in a process that has compiled no ticks of that shape: what a new user's first run adds.")

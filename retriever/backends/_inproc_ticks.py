@@ -199,7 +199,7 @@ try:
 except KeyboardInterrupt:
     raise
 except BaseException as exc:  # SystemExit too, as in _tick
-    error{k}(tau, exc, start, time_ns() - start{entries})
+    error{k}(tau, exc, start, (now := time_ns()) - start{entries})
 else:
     now = time_ns()
     if {" or ".join(self._generic())}:
@@ -413,7 +413,7 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
             bodies.append(part.body)
         else:
             names[f"tick{i}"] = part
-            bodies.append(f"tick{i}(tau, out_tag)\n")
+            bodies.append(f"tick{i}(tau, out_tag)\nnow = time_ns()\n")  # (the next step starts after it)
     grouped = {i for group in groups for i in group}
     followed = {code.follower for code in codes.values()}
     heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
@@ -434,8 +434,9 @@ out_tag = (tau[0], tau[1] + 1)
 {codes[j].body}""" for j in chain[1:])
         src.append(f"""\
 def chain{head}(tau, out_tag):
-{_nonlocal(s for i in chain for s in codes[i].state)}{_indent(codes[head].body)}    try:
-{_indent(steps, "        ")}    except BaseException:
+{_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
+{_indent(_one_reading(codes[head].body))}    try:
+{_indent(_one_reading(steps), "        ")}    except BaseException:
         keep_next(out_tag)
         raise
     return out_tag
@@ -444,8 +445,8 @@ def chain{head}(tau, out_tag):
     groups = groups if fuse else []
     for g, group in enumerate(groups):
         state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
-        src.append(f"def fused{g}(tau, out_tag):\n{state}{_indent(''.join(bodies[i] for i in group))}"
-                   "    return out_tag\n")
+        src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n"
+                   f"{_indent(_one_reading(''.join(bodies[i] for i in group)))}    return out_tag\n")
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
     src += [code.expand + code.helpers for code in codes.values()]
@@ -458,6 +459,13 @@ def chain{head}(tau, out_tag):
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused]:
         f.source = source
     return ticks, chain_ticks, fused, flush
+
+
+def _one_reading(bodies: str) -> str:
+    """Ticks run one after the other (a fused rate group, a chain) with one clock reading per
+    step: each step starts when the one before it ended (``now``, read once at the start), so its
+    wall time includes the framework's work since (its inputs' select, the events before it)."""
+    return bodies.replace("start = time_ns()\n", "start = now\n")
 
 
 @functools.lru_cache(maxsize=256)
