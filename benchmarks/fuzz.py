@@ -67,7 +67,7 @@ import msgpack  # noqa: E402
 import numpy as np  # noqa: E402
 
 from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: E402
-from retriever.backends.base import NodeStats, Session  # noqa: E402
+from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
