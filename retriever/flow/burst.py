@@ -44,7 +44,7 @@ class Burst:
             what = type(values).__name__
             raise TypeError(f"Burst takes the values of its events (a list, a tuple, an array, an iterator), got {what}"
                             + (": wrap it in a list for one event" if isinstance(values, (str, bytes)) else ""))
-        rows = values if type(values) is np.ndarray and _as_rows(values) else None
+        rows = values if type(values) is np.ndarray and travels_as_rows(values) else None
         values = tuple(values)
         if len(values) > MAX_BURST:
             raise ValueError(f"Burst of {len(values)} values: at most {MAX_BURST} in one step; emit an array "
@@ -92,10 +92,10 @@ class Burst:
         return f"Burst(<{len(self.values)} values: {shown}{', ...' if len(self.values) > 3 else ''}>)"
 
 
-def _as_rows(array: np.ndarray) -> bool:
-    """Whether a burst of ``array``'s rows travels as the array: rows of some size, and of a 1-D
-    array numpy scalars of a plain dtype (the receiver makes them again from the array)."""
-    if not array.size:
-        return False
-    return array.ndim >= 2 or (array.ndim == 1 and array.dtype.fields is None and not array.dtype.hasobject)
+def travels_as_rows(array: np.ndarray) -> bool:
+    """Whether a burst of ``array``'s rows travels as the array (the sender asks) or an array
+    received is such a burst (the receiver asks): rows that each hold bytes (no message of a few
+    bytes makes a million empty rows), of a 1-D array numpy scalars of a plain dtype."""
+    return 0 < len(array) <= array.nbytes and (array.ndim >= 2 or (
+        array.ndim == 1 and array.dtype.fields is None and not array.dtype.hasobject))
 

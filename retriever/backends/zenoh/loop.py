@@ -973,7 +973,7 @@ class NodeLoop:
                 detail = {**(detail or {}), "deadline_miss_ns": finished - tag[0],
                           "on_deadline_miss": "error" if stop else self.on_deadline_miss}
                 if stop or self.on_deadline_miss == "drop":
-                    for _, port, value, seq in batch:
+                    for _, port, _, seq in batch:  # (a burst's first seq)
                         seqs[port] = min(seqs[port], seq)
                     self._finish_tick(tau, consumed, (), "late", detail, start, wall)
                     if stop:

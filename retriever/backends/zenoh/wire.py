@@ -53,7 +53,7 @@ import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, RetrieverError
-from ...flow.burst import MAX_BURST, Burst
+from ...flow.burst import MAX_BURST, Burst, travels_as_rows
 from ...trace import STEP_STATUSES
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
@@ -302,7 +302,7 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok
         raise WireError(f"a burst of {count} from seq {seq} runs past the last seq a stream has")
     if value is None and blank_ok:  # its values were left out (the coordinator records that they were sent)
         value = [None] * count
-    elif type(value) is np.ndarray and _rows_are_values(value) and len(value) == count:
+    elif type(value) is np.ndarray and travels_as_rows(value) and len(value) == count:
         value = list(value)  # its rows: read-only views of the message (of a 1-D array, numpy scalars)
     elif type(value) is not list or len(value) != count:
         raise WireError(f"a burst must hold a list of as many values as its count, or an array of as many rows, "
@@ -310,12 +310,6 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok
     last = count - 1
     return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
             for i, item in enumerate(value)]
-
-
-def _rows_are_values(array: np.ndarray) -> bool:
-    """Whether the rows of ``array`` are events' values as a burst sends them (Burst.stacked):
-    a row holds bytes (no message of a few bytes makes a million empty rows)."""
-    return array.nbytes >= len(array) and (array.ndim >= 2 or (array.ndim == 1 and array.dtype.fields is None))
 
 
 def decode_data(data: bytes, expected: tuple[str, str] | None = None) -> DataMessage:
