@@ -66,6 +66,31 @@ class Sink(Flow[MaybeCount, Count]):
         return Count(n=inp.n)
 
 
+class GatedSink(Sink):
+    """A :class:`Sink` that holds its first step until the file ``gate/subscribed`` exists and its
+    third until ``gate/granted`` does: a test's other process says when it is in place, so a run
+    in virtual time (done in a fraction of a second) cannot finish before it (the test's gates)."""
+
+    def __init__(self, gate: str):
+        self.gate = gate
+        self.k = 0
+
+    def step(self, inp: MaybeCount) -> Count:
+        self.k += 1
+        for tick, name in ((1, "subscribed"), (3, "granted")):
+            if self.k == tick:
+                _await_file(os.path.join(self.gate, name))
+        return super().step(inp)
+
+
+def _await_file(path: str, bound_s: float = 60.0) -> None:
+    """Until ``path`` exists (another process makes it), at most ``bound_s``: then the step goes on,
+    and the test that forgot its gate fails on what it sees, not by hanging."""
+    until = time.monotonic() + bound_s
+    while not os.path.exists(path) and time.monotonic() < until:
+        time.sleep(0.01)
+
+
 class Scaled(Flow[None, Count]):
     """A source whose constructor takes any object (a callable scales the count): fine
     in-process, but the IR cannot carry a lambda, a set or a plain object."""

@@ -58,10 +58,11 @@ def _env() -> dict[str, str]:
 class Run:
     """The run's script as a process, and the lines of its stderr (read on a thread)."""
 
-    def __init__(self, tmp_path: Path, namespace: str, secret: Path | None = None, script: str = RUN):
+    def __init__(self, tmp_path: Path, namespace: str, secret: Path | None = None, script: str = RUN,
+                 extra: tuple[str, ...] = ()):
         self.port, self.log = free_port(), tmp_path / "run.mcap"
-        self.proc = subprocess.Popen([sys.executable, "-c", script, namespace, str(self.port), str(RUN_S), str(self.log),
-                                      *([str(secret)] if secret else [])],
+        args = [namespace, str(self.port), str(RUN_S), str(self.log), *([str(secret)] if secret else []), *extra]
+        self.proc = subprocess.Popen([sys.executable, "-c", script, *args],
                                      cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self.watch_path: Path | None = None
@@ -122,9 +123,10 @@ def _secret_file(tmp_path: Path) -> Path:
 
 
 @contextlib.contextmanager
-def _insider(run: Run, namespace: str, secret: Path, tmp_path: Path):
+def _insider(run: Run, namespace: str, secret: Path, tmp_path: Path, subscribed: Path | None = None):
     """A session holding the run's credentials, once the run is up and its data flows: the
-    session, and the run's key space."""
+    session, and the run's key space. ``subscribed``: a file made once it is subscribed (a gate
+    the run waits at)."""
     from retriever.backends.zenoh.access import RunAccess, read_secret
     from retriever.backends.zenoh.hub import open_peer
 
@@ -133,6 +135,8 @@ def _insider(run: Run, namespace: str, secret: Path, tmp_path: Path):
     keys = KeySpace(namespace)
     with open_peer(endpoint(run.port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
         _, first, sub = _subscribe(insider, keys)
+        if subscribed is not None:
+            subscribed.touch()
         assert first.wait(BOUND_S), "the insider saw no data"
         try:
             yield insider, keys
@@ -375,17 +379,37 @@ def test_a_watcher_that_stops_reading_neither_stalls_nor_fails_the_run(namespace
     assert json.loads(out.splitlines()[-1]) == {"cam": [100, 100], "sink": [100, 100]}
 
 
+GATED_RUN = r"""
+import json, sys
+from retriever import Latest, Pipeline, Rate
+from tests.backends.zenoh.lifecycle_flows import Counter, GatedSink
+
+with Pipeline("guarded") as pipe:
+    counter = Counter() @ Rate(hz=10)
+    counter.then(GatedSink(gate=sys.argv[6]).configure(name="total") @ Rate(hz=5), sync=Latest())
+pipe.run(duration=float(sys.argv[3]), backend="zenoh", namespace=sys.argv[1], hub_port=int(sys.argv[2]),
+         log=sys.argv[4], secret=sys.argv[5], virtual_time=True)
+print(json.dumps({"stats": {n: [s.ticks, s.steps, s.errors] for n, s in pipe.stats().items()},
+                  "counts": pipe.counts()}), flush=True)
+"""
+
+
 def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_the_run(tmp_path, namespace):
     """A lockstep run (virtual_time=True): a process holding the run's credentials grants far
     past the coordinator's window. The nodes run on to it; their `reached` past the coordinator's
     grant counts as reaching its own (it was refused, and the run stalled until it failed). Ticks
-    still wait for complete inputs: the same ticks, a log that replays."""
-    secret = _secret_file(tmp_path)
-    run = Run(tmp_path, namespace, secret, script=RUN.replace("secret=sys.argv[5] if len(sys.argv) > 5 else None)",
-                                                              "secret=sys.argv[5], virtual_time=True)"))
+    still wait for complete inputs: the same ticks, a log that replays.
+
+    In virtual time the run is done in well under a second: its sink waits at its first step for
+    the insider to be subscribed and at its third for the grant to be out (GatedSink), or the
+    insider could come too late to see any data (it did on CI) or to grant ahead of the run."""
+    secret, gate = _secret_file(tmp_path), tmp_path / "gate"
+    gate.mkdir()
+    run = Run(tmp_path, namespace, secret, script=GATED_RUN, extra=(str(gate),))
     try:
-        with _insider(run, namespace, secret, tmp_path) as (insider, keys):
+        with _insider(run, namespace, secret, tmp_path, subscribed=gate / "subscribed") as (insider, keys):
             insider.put(keys.run_control(), WireEncoder().control("grant", {"until": round(2 * 1e9)}))
+            (gate / "granted").touch()
         result = run.result()
     finally:
         run.kill()
