@@ -269,6 +269,24 @@ def on_a_cycle(edges: list[dict], node_id: str) -> bool:
     return False
 
 
+PR_SET_TIMERSLACK = 29  # <linux/prctl.h>
+
+
+def _no_timer_slack() -> None:
+    """Let this thread's timed waits end on time: Linux may end each one up to its timer slack
+    late (50 µs unless set) to wake threads together; the loop waits for ticks, so it asks for
+    1 ns (a tick's lateness p50 120 → 65 µs, benchmarks/control_jitter.py). Per thread: call it
+    on the thread that runs the loop. Elsewhere than Linux, or if refused, nothing changes."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
 def main(argv: list[str]) -> int:
     """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
     (the spec and unreported events, in /dev/shm), which no one else would."""
@@ -505,6 +523,8 @@ def _serve(argv: list[str], parent: int) -> int:
                         loop.granted = max(0, min(int(start.get("grant", 0)), end))
                     # after T0 when the start came late (a loaded machine): after the end, no tick ran
                     started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
+                if not loop.virtual:
+                    _no_timer_slack()
                 loop.run(t0, end, resume=join is not None)
                 if loop.abandoned:
                     loop.undeclare()

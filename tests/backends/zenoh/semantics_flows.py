@@ -57,6 +57,19 @@ class Ticker(Flow[None, Value]):
         return Value(self.k - 1)
 
 
+class TimerSlack(Flow[None, Value]):
+    """A source: emits the timer slack (ns) of the thread that runs its step (Linux prctl)."""
+
+    def step(self, inp: None) -> Value:
+        return Value(timer_slack_ns())
+
+
+def timer_slack_ns() -> int:
+    import ctypes
+
+    return ctypes.CDLL(None).prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+
+
 class Unsendable(Flow[None, Value]):
     """A source whose third output is a value no process boundary can carry (an ``object()``)."""
 

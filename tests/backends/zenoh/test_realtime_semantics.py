@@ -22,6 +22,7 @@ tick + latency), ``error``/``on_error``.
 from __future__ import annotations
 
 import re
+import sys
 from collections import Counter
 
 import pytest
@@ -45,7 +46,9 @@ from .semantics_flows import (
     SlowEcho,
     Stall,
     Ticker,
+    TimerSlack,
     Unsendable,
+    timer_slack_ns,
     WindowProbe,
 )
 
@@ -875,3 +878,15 @@ def test_a_zeno_loop_stops_the_run_with_the_error_it_stops_with_in_process():
                       r"    hint: break the cycle in time: give a flow on it latency=")
     assert same.search(str(inproc)) and same.search(str(zenoh)), (str(inproc), str(zenoh))
     assert str(zenoh).replace(f"{zenoh.tag[0] / 1e9:.9f}", "T") == str(inproc).replace("0.000000000", "T")
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is Linux's")
+@pytest.mark.parametrize("virtual_time", [False, True])
+def test_in_real_time_a_workers_loop_waits_with_no_timer_slack(virtual_time):
+    """Linux ends a thread's timed wait up to its timer slack late (50 µs by default): a worker's
+    loop, which waits for ticks, asks for 1 ns in real time. In virtual time it keeps what it had."""
+    with Pipeline(f"slack_{virtual_time}") as pipe:
+        TimerSlack().configure(name="slack") @ Rate(hz=20)
+    run(pipe, 0.2, virtual_time=virtual_time)
+    slacks = {ev.value for ev in pipe.trace.events}
+    assert slacks == ({timer_slack_ns()} if virtual_time else {1}), slacks
