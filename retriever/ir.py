@@ -21,8 +21,8 @@ import numpy as np
 from .clocks import clock_from_ir
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
-from .time import max_microsteps_problem, seconds_problem
-from .flow._base import ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
+from .time import is_finite_number, max_microsteps_problem, seconds_problem
+from .flow._base import MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
 from .sync import policy_from_ir
 
 if TYPE_CHECKING:
@@ -102,6 +102,7 @@ def graph_to_doc(graph: "Graph") -> dict:
                 **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
                    if s.on_error == "restart" else {}),
                 **({"replay": s.replay} if s.replay != "rerun" else {}),
+                **({"spin": s.spin} if s.spin else {}),
             },
             "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
             "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
@@ -391,6 +392,9 @@ def validate_doc(doc: Any, source: str) -> None:
             restarts = config.get("max_restarts", 0)
             if type(restarts) is not int or restarts < 0:
                 problems.append(f"{where}.config.max_restarts: expected an integer >= 0, got {restarts!r}")
+            spin = config.get("spin", 0)
+            if not is_finite_number(spin) or not 0 <= spin <= MAX_SPIN_S:
+                problems.append(f"{where}.config.spin: expected seconds from 0 to {MAX_SPIN_S:g}, got {spin!r:.40}")
             window = config.get("restart_window", 1.0)
             if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
                 problems.append(f"{where}.config.restart_window: expected seconds > 0, got {window!r}")

@@ -603,6 +603,11 @@ def _node(doc: dict, nid: str = "planner") -> dict:
     (lambda d: d["nodes"][0].update(id="../../etc/x"), r"nodes\[0\]\.id: expected a node name of letters, digits"),
     (lambda d: _node(d, "logger")["config"].update(clock={"Trigger": {"ports": True}}), r"node 'logger'\.config\.clock"),
     (lambda d: _node(d, "camera")["config"].update(clock={"Rate": {"hz": 10**400}}), r"node 'camera'\.config\.clock"),
+    (lambda d: _node(d, "camera")["config"].update(spin=1.0),
+     r"node 'camera'\.config\.spin: expected seconds from 0 to 0\.001, got 1\.0"),
+    (lambda d: _node(d, "camera")["config"].update(spin=float("nan")), r"node 'camera'\.config\.spin: .*, got nan"),
+    (lambda d: _node(d, "camera")["config"].update(spin="fast"), r"node 'camera'\.config\.spin: .*, got 'fast'"),
+    (lambda d: _node(d, "camera")["config"].update(spin=True), r"node 'camera'\.config\.spin: .*, got True"),
 ])
 def test_an_ir_value_no_pipeline_can_take_is_an_ir_error(change, problem):
     with pytest.raises(IRError, match=problem):

@@ -38,6 +38,7 @@ COUNTERS = {
     "restarts": "times a flow was restarted (on_error='restart'), after its step raised or its process died",
     "crash_restarts": "of those, restarts after the flow's process died (its state could not be handed over)",
     "moves": "times a flow started afresh on another worker after its worker was lost (retriever deploy)",
+    "spin_ns": "ns flows spent busy-waiting for their ticks (configure(spin=)): CPU paid to start them on time",
     "redeclared": "times a starting flow declared its subscriptions and queryable again: a neighbour linked "
                   "to it had not learned of them (worker.REDECLARE_AFTER_S)",
 }

@@ -337,6 +337,29 @@ def test_configure_and_named_return_the_flow_and_land_in_the_ir():
                               "max_restarts": 5, "restart_window": 10.0}  # the restart budget's defaults
 
 
+def test_spin_lands_in_the_ir_only_when_set_and_comes_back_from_it():
+    with Pipeline("p") as pipe:
+        ObsSource().configure(name="plain") @ Rate(hz=1)
+        ObsSource().configure(name="ctrl", spin=100e-6) @ Rate(hz=200)
+    ir = pipe.build_ir()
+    assert "spin" not in ir.node("plain")["config"]
+    assert ir.node("ctrl")["config"]["spin"] == 100e-6
+    rebuilt = Pipeline.from_ir(ir)
+    assert {f._retriever.name: (f._retriever.spin, f._retriever.spin_ns) for f in rebuilt.flows} == {
+        "plain": (0.0, 0), "ctrl": (100e-6, 100_000)}
+
+
+@pytest.mark.parametrize("spin, says", [
+    (-1e-6, "spin must be a finite number of seconds >= 0, got -1e-06"),
+    (float("nan"), "spin must be a finite number of seconds >= 0, got nan"),
+    ("100us", "spin must be a finite number of seconds >= 0, got '100us'"),
+    (0.002, r"spin must be at most 0\.001 s \(a busy-wait before each tick\), got 0\.002"),
+])
+def test_a_spin_out_of_range_is_refused_naming_it(spin, says):
+    with pytest.raises(ValueError, match=r"ObsSource\.configure\(spin=.*\): " + says + r"\n    hint: spin is how long"):
+        ObsSource().configure(spin=spin)
+
+
 def test_flows_created_inside_a_with_block_join_the_innermost_pipeline():
     with Pipeline("outer") as outer:
         a = Clock() @ Rate(hz=1)
