@@ -210,6 +210,9 @@ class FlowSpec:
     #: untyped: the output ports its step() can return, when every ``return`` in its source is a
     #: dict literal with string keys (or None); None when that cannot be told without running it
     returned_keys: frozenset | None = None
+    #: untyped: the input ports in the order of step()'s parameters when it takes them all
+    #: positionally (no ``*``, no keyword-only, its own signature: not a wrapper's); else None
+    positional: tuple[str, ...] | None = None
 
     @property
     def is_source(self) -> bool:
@@ -282,7 +285,21 @@ def _derive_spec(cls: type) -> FlowSpec:
         spec.inputs[p.name] = PortSpec(p.name, tp, default, optional=_is_optional(tp))
     if not spec.inputs:
         spec.in_mode = "none"
+    elif not spec.problems:
+        spec.positional = _positional(step)
     return spec
+
+
+def _positional(step: Callable) -> tuple[str, ...] | None:
+    """The names of ``step``'s parameters after self, if a call may pass them all by position
+    (each positional-or-keyword, read from the function itself, not from what it wraps)."""
+    try:
+        params = list(inspect.signature(step, follow_wrapped=False).parameters.values())[1:]
+    except (TypeError, ValueError):
+        return None
+    if not params or any(p.kind is not inspect.Parameter.POSITIONAL_OR_KEYWORD for p in params):
+        return None
+    return tuple(p.name for p in params)
 
 
 def _returned_keys(step: Callable) -> frozenset | None:

@@ -9,6 +9,7 @@ readers, the invokers) that the generated code does not follow fails here.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -431,3 +432,53 @@ def test_a_chain_of_trigger_flows_matches():
         return pipe
 
     assert_same(build, runs=(0.3, 0.2), min_compiled=6)
+
+
+class Reordered(Flow):
+    """Its parameters in another order than its edges are declared in: called by position, in its own order."""
+
+    def step(self, b, a):
+        return {"d": (a, b)}
+
+
+class KeywordOnly(Flow):
+    def step(self, *, a, b=0):
+        return {"d": (a, b)}
+
+
+def _wrapped(step):
+    @functools.wraps(step)  # its signature says (self, a, b); the function itself takes only keywords
+    def wrapper(self, **values):
+        return step(self, **values)
+    return wrapper
+
+
+class Wrapped(Flow):
+    @_wrapped
+    def step(self, a, b):
+        return {"d": (a, b)}
+
+
+class Pair(Flow):
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"a": self.k, "b": -self.k}
+
+
+@pytest.mark.parametrize("flow", [Reordered, KeywordOnly, Wrapped])
+def test_an_untyped_step_gets_each_input_by_its_name_on_both_paths(flow):
+    """The compiled tick passes inputs by position only where step() takes them so, in its own order:
+    not to a keyword-only parameter, nor through a wrapper that takes only keywords."""
+    def build():
+        with Pipeline(f"names_{flow.__name__}") as pipe:
+            src = Pair().named("src") @ Rate(100)
+            pipe.connect(src, flow().named("sink") @ Trigger(), map={"a": "a"}, sync=Latest())
+            pipe.connect(src, pipe.flows[1], map={"b": "b"}, sync=Latest())
+        return pipe
+
+    (events, _), _, error = assert_same(build, runs=(0.1,), min_compiled=2)
+    assert error is None
+    assert [e[4] for e in events if e[1] == "sink"] == [(k, -k) for k in range(1, 11)]
