@@ -191,7 +191,8 @@ if n:
         expected, reads = self._reads()
         read_lines = "".join(f"{v} = {expr}\n" for v, expr in zip(self.values, reads)) or "outputs = None\n"
         if self.rt.spec.out_mode == "dict" and len(self.known) == 1:  # a dict of one key: that one, or
-            read_lines = (f"try:\n    {read_lines}except KeyError:  # another: read() says what, the generic path takes it\n"
+            read_lines = (f"try:\n    {read_lines}"
+                          f"except KeyError:  # another: read() says what, the generic path takes it\n"
                           f"    {got} = read{k}(raw)\n")
         no_events = f"{' = '.join(self.values or ['outputs'])} = None\n"
         entries = "".join(f", entry{i}" for i in range(len(self.ports)))
