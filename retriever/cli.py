@@ -490,7 +490,10 @@ def _counters(counts: dict[str, int]) -> str:
     """``3 late events, 2 waits for the log (171 ms)``: a run's counters (base.COUNTERS) in words."""
     parts = []
     for name, n in sorted(counts.items()):
-        if not n or name in ("report_wait_ns", "spin_ns"):  # (spin_ns: CPU spent by choice, not a problem)
+        if not n or name == "report_wait_ns":
+            continue
+        if name == "spin_ns":  # (CPU spent by choice: configure(spin=))
+            parts.append(f"{n / 1e9:.3g} s busy-waiting for ticks (spin)")
             continue
         part = f"{n} {_COUNTER_LABELS.get(name, name)}"
         if name == "report_waits" and counts.get("report_wait_ns"):

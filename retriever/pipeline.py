@@ -297,9 +297,9 @@ class Pipeline:
     def counts(self) -> dict[str, int]:
         """What the current run counted, summed over its nodes (and the coordinator): events that
         arrived late, incomplete edges, overruns, ticks skipped during restarts, LET deadline
-        misses, unrun ticks, dropped
-        garbage messages, waits for the log (``retriever.backends.base.COUNTERS`` says which is
-        which). Only real-time backends count these; what was never counted is absent."""
+        misses, unrun ticks, dropped garbage messages, waits for the log, time spent busy-waiting for
+        ticks (``spin_ns``: ``configure(spin=)``) (``retriever.backends.base.COUNTERS`` says which
+        is which). Only real-time backends count these; what was never counted is absent."""
         return {} if self._session is None else {name: n for name, n in self._session.counts.items() if n}
 
     def __repr__(self) -> str:

@@ -663,3 +663,13 @@ def test_log_cat_briefly_as_json_and_in_a_time_range(tmp_path: Path):
     steps = cli("log", "cat", str(log), "--steps", "--json", "--from", "0.4")
     assert [(r["node"], r["tag_ns"], r["status"]) for r in map(json.loads, steps.stdout.splitlines())] == [
         ("cam", 400_000_000, "ok"), ("stats", 400_000_000, "ok")]
+
+
+def test_counters_are_said_in_words_and_spin_time_in_seconds():
+    """`retriever run`'s "counted" lines and `log info`: a node whose only counter is spin_ns
+    (configure(spin=)) says how long it busy-waited, not an empty list."""
+    from retriever.cli import _counters
+
+    assert _counters({"spin_ns": 561_234_567}) == "0.561 s busy-waiting for ticks (spin)"
+    assert _counters({"late": 2, "report_waits": 1, "report_wait_ns": 171_000_000, "garbage": 0}) == \
+        "2 late events, 1 waits for the log (171 ms)"

@@ -50,6 +50,13 @@ def _identifier(name: object) -> bool:
     return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
 
 
+def _own_step(flow: Any) -> bool:
+    """Whether ``flow.step`` is its class's ``step`` bound to it (not one set on the instance, a
+    mock or a partial, whose parameters the class's signature does not tell)."""
+    bound = flow.step
+    return getattr(bound, "__self__", None) is flow and getattr(bound, "__func__", None) is getattr(type(flow), "step")
+
+
 def _indent(text: str, indent: str = "    ") -> str:
     return "".join(indent + line + "\n" for line in text.splitlines())
 
@@ -247,7 +254,8 @@ def generic{k}(tau, raw, start, now{entries}):
             args.append(f"unfed{k}_{u}()")
         names = [*self.ports, *rt.fallbacks]
         keywords = ", ".join(f"{p}={a}" for p, a in zip(names, args))
-        if mode == "params" and rt.spec.positional is not None and sorted(rt.spec.positional) == sorted(names):
+        if mode == "params" and rt.spec.positional is not None and sorted(rt.spec.positional) == sorted(names) \
+                and _own_step(rt.flow):
             by_name = dict(zip(names, args))  # the same call, by position (a little faster)
             return f"step{k}({', '.join(by_name[p] for p in rt.spec.positional)})"
         if mode == "io":

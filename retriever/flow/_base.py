@@ -291,15 +291,15 @@ def _derive_spec(cls: type) -> FlowSpec:
 
 
 def _positional(step: Callable) -> tuple[str, ...] | None:
-    """The names of ``step``'s parameters after self, if a call may pass them all by position
-    (each positional-or-keyword, read from the function itself, not from what it wraps)."""
-    try:
-        params = list(inspect.signature(step, follow_wrapped=False).parameters.values())[1:]
-    except (TypeError, ValueError):
+    """The names of ``step``'s parameters after self, if a call may pass them all by position:
+    read from the function's code, which is how a call binds (not from a signature a wrapper may
+    claim): each parameter positional-or-keyword, no ``*args``, no ``**kwargs``."""
+    code = getattr(step, "__code__", None)
+    if type(step) is not types.FunctionType or code is None:
         return None
-    if not params or any(p.kind is not inspect.Parameter.POSITIONAL_OR_KEYWORD for p in params):
+    if code.co_posonlyargcount or code.co_kwonlyargcount or code.co_flags & (inspect.CO_VARARGS | inspect.CO_VARKEYWORDS):
         return None
-    return tuple(p.name for p in params)
+    return code.co_varnames[1:code.co_argcount] or None
 
 
 def _returned_keys(step: Callable) -> frozenset | None:
@@ -502,10 +502,10 @@ class Flow(Generic[In, Out]):
             s.restart_window = restart_window
         if spin is not None:
             problem = seconds_problem("spin", spin)
-            if problem is None and spin > MAX_SPIN_S:
-                problem = f"spin must be at most {MAX_SPIN_S:g} s (a busy-wait before each tick), got {spin!r}"
+            if (problem is None or "at most" in problem) and spin > MAX_SPIN_S:
+                problem = f"spin must be at most {MAX_SPIN_S:g} s (a busy-wait before each tick), got {spin!r:.40}"
             if problem is not None:
-                raise ValueError(f"{owner}.configure(spin={spin!r}): {problem}\n    hint: spin is how long before "
+                raise ValueError(f"{owner}.configure(spin={spin!r:.40}): {problem}\n    hint: spin is how long before "
                                  "each tick its worker busy-waits instead of sleeping, e.g. spin=100e-6")
             s.spin, s.spin_ns = spin, seconds_to_ns(spin)
         return self

@@ -10,6 +10,7 @@ readers, the invokers) that the generated code does not follow fails here.
 from __future__ import annotations
 
 import functools
+import inspect
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -459,6 +460,29 @@ class Wrapped(Flow):
         return {"d": (a, b)}
 
 
+def _claims_a_signature(step):
+    def wrapper(self, **values):  # takes only keywords, and says it takes (self, a, b)
+        return step(self, **values)
+    wrapper.__signature__ = inspect.signature(step)
+    return wrapper
+
+
+class ClaimsASignature(Flow):
+    @_claims_a_signature
+    def step(self, a, b):
+        return {"d": (a, b)}
+
+
+class StepOnTheInstance(Flow):
+    """Its class says step(self, a, b); the step it has is another, with its parameters swapped."""
+
+    def __init__(self):
+        self.step = lambda b, a: {"d": (a, b)}
+
+    def step(self, a, b):
+        raise AssertionError("not this one")
+
+
 class Pair(Flow):
     def __init__(self):
         self.k = 0
@@ -468,10 +492,11 @@ class Pair(Flow):
         return {"a": self.k, "b": -self.k}
 
 
-@pytest.mark.parametrize("flow", [Reordered, KeywordOnly, Wrapped])
+@pytest.mark.parametrize("flow", [Reordered, KeywordOnly, Wrapped, ClaimsASignature, StepOnTheInstance])
 def test_an_untyped_step_gets_each_input_by_its_name_on_both_paths(flow):
     """The compiled tick passes inputs by position only where step() takes them so, in its own order:
-    not to a keyword-only parameter, nor through a wrapper that takes only keywords."""
+    not to a keyword-only parameter, nor through a wrapper that takes only keywords (whatever
+    signature it claims), nor to a step set on the instance (its class's signature is not its own)."""
     def build():
         with Pipeline(f"names_{flow.__name__}") as pipe:
             src = Pair().named("src") @ Rate(100)

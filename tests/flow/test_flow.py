@@ -354,6 +354,7 @@ def test_spin_lands_in_the_ir_only_when_set_and_comes_back_from_it():
     (float("nan"), "spin must be a finite number of seconds >= 0, got nan"),
     ("100us", "spin must be a finite number of seconds >= 0, got '100us'"),
     (0.002, r"spin must be at most 0\.001 s \(a busy-wait before each tick\), got 0\.002"),
+    (1e300, r"spin must be at most 0\.001 s \(a busy-wait before each tick\), got 1e\+300"),
 ])
 def test_a_spin_out_of_range_is_refused_naming_it(spin, says):
     with pytest.raises(ValueError, match=r"ObsSource\.configure\(spin=.*\): " + says + r"\n    hint: spin is how long"):

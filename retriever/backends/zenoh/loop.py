@@ -473,7 +473,9 @@ class NodeLoop:
                 wake = min(wake, self.held[0][0][0])
             target, message = self._warm_target(now, wake)
             if target is not None:
-                if not self._wait(target - WARM_AHEAD_NS - now):  # nothing came meanwhile
+                early = target - WARM_AHEAD_NS
+                # nothing came meanwhile, and the wait (at most 100 ms) lasted to the moment
+                if not self._wait(early - now) and self.now() >= early:
                     self._warm(message)
                     self.warmed_for = target
                 continue
@@ -534,8 +536,9 @@ class NodeLoop:
     def _spin_to(self, wake: int) -> None:
         """Wait for the Rate tick at ``wake`` (configure(spin=)): sleep until ``spin_ns`` before
         it, then busy-wait to it, unless a message comes (the loop then looks again)."""
-        if self._wait(wake - self.spin_ns - self.now()):
-            return
+        while (left := wake - self.spin_ns - self.now()) > 0:  # (one _wait sleeps at most 100 ms)
+            if self._wait(left):
+                return
         inbox, now = self.inbox, self.now
         began = now()
         while now() < wake and not inbox.qsize():
