@@ -297,7 +297,8 @@ def _positional(step: Callable) -> tuple[str, ...] | None:
     code = getattr(step, "__code__", None)
     if type(step) is not types.FunctionType or code is None:
         return None
-    if code.co_posonlyargcount or code.co_kwonlyargcount or code.co_flags & (inspect.CO_VARARGS | inspect.CO_VARKEYWORDS):
+    gathers = code.co_flags & (inspect.CO_VARARGS | inspect.CO_VARKEYWORDS)
+    if code.co_posonlyargcount or code.co_kwonlyargcount or gathers:
         return None
     return code.co_varnames[1:code.co_argcount] or None
 
