@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 import keyword
+import re
 from bisect import insort
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -444,18 +445,27 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
             j = codes[j].follower
         if len(chain) == 1:
             continue
+        # each link but the last triggers the next one not through `after` but in `pass_on`; the
+        # chain goes on if that is all it triggered (nothing in `after`: an output that took the
+        # generic path puts its triggers there), else the loop takes over with it in `after`
+        bodies_of = [_passing_on(codes[i].body, j) for i, j in zip(chain, chain[1:])] + [codes[chain[-1]].body]
         steps = "".join(f"""\
-if len(after) != 1 or after[0] != {j}:
+if after or pass_on is None:
+    if pass_on is not None:
+        next_add(pass_on)
     return out_tag
-after.clear()
+pass_on = None
 tau = out_tag
 out_tag = (tau[0], tau[1] + 1)
-{codes[j].body}""" for j in chain[1:])
+{body}""" for body in bodies_of[1:])
         src.append(f"""\
 def chain{head}(tau, out_tag):
 {_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
-{_indent(_one_reading(codes[head].body))}    try:
-{_indent(_one_reading(steps), "        ")}    except BaseException:
+    pass_on = None
+    try:
+{_indent(_one_reading(bodies_of[0] + steps), "        ")}    except BaseException:
+        if pass_on is not None:
+            next_add(pass_on)
         keep_next(out_tag)
         raise
     return out_tag
@@ -478,6 +488,14 @@ def chain{head}(tau, out_tag):
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused]:
         f.source = source
     return ticks, chain_ticks, fused, flush
+
+
+def _passing_on(body: str, follower: int) -> str:
+    """A tick's code in a chain: what it triggers (only ever its follower: NodeCode.follower) goes
+    in ``pass_on`` instead of the session's ``after``."""
+    passed = re.sub(r"next_add\(consumer\d+_\d+_\d+\)", f"pass_on = {follower}", body)
+    assert "next_add(" not in passed
+    return passed
 
 
 def _one_reading(bodies: str) -> str:
