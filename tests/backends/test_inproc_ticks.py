@@ -447,28 +447,27 @@ class KeywordOnly(Flow):
         return {"d": (a, b)}
 
 
-def _wrapped(step):
-    @functools.wraps(step)  # its signature says (self, a, b); the function itself takes only keywords
-    def wrapper(self, **values):
-        return step(self, **values)
-    return wrapper
+def _keywords_only(claim):
+    """A decorator whose wrapper takes only keywords and says it takes what the step takes:
+    through functools.wraps (``__wrapped__``), or with a ``__signature__`` of its own."""
+    def decorate(step):
+        def wrapper(self, **values):
+            return step(self, **values)
+        if claim == "wraps":
+            return functools.wraps(step)(wrapper)
+        wrapper.__signature__ = inspect.signature(step)
+        return wrapper
+    return decorate
 
 
 class Wrapped(Flow):
-    @_wrapped
+    @_keywords_only("wraps")
     def step(self, a, b):
         return {"d": (a, b)}
 
 
-def _claims_a_signature(step):
-    def wrapper(self, **values):  # takes only keywords, and says it takes (self, a, b)
-        return step(self, **values)
-    wrapper.__signature__ = inspect.signature(step)
-    return wrapper
-
-
 class ClaimsASignature(Flow):
-    @_claims_a_signature
+    @_keywords_only("__signature__")
     def step(self, a, b):
         return {"d": (a, b)}
 

@@ -457,7 +457,7 @@ class NodeLoop:
             self._release(now)
             wake = self._try_tick(now)
             if wake is _TICKED:
-                if self.flush_due is not None and self.now() >= self.flush_due:
+                if self.flush_due is not None and now >= self.flush_due:  # (now: before that tick)
                     self.flush()  # also when ticks run back to back: a late node still reports
                 continue  # look again at once
             if wake is _DONE:
