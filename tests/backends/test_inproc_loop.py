@@ -1,0 +1,125 @@
+"""The in-process loop (``InprocSession._advance``): a graph's schedule does not depend on what
+else runs. A graph run as it is (its rate group often alone on the schedule: nothing else due,
+nothing else scheduled) and beside a flow on another schedule (so the group is never alone)
+records the same events and step records for the graph's own nodes, in the same order, with the
+same stats and errors, whatever happens between the group's ticks: a delayed event scheduled at
+the group's next tick (the two share that tick) or between two of them, a Trigger flow's tick at
+the next microstep, a failed step, the end of a run, a log hand-over. (A loop that ran a lone
+group's ticks back to back, and missed a delayed event due with its next tick, failed here.)"""
+
+from __future__ import annotations
+
+import warnings
+from unittest import mock
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from retriever import Latest, Pipeline, Rate, RetrieverWarning, Trigger
+from retriever.backends.inproc import InprocSession
+
+from .test_inproc_ticks import Count, Join, Plain, Untyped, UntypedSource
+from .test_schedule_independence import DURATION, SETTINGS, GraphSpec, NodeSpec, budget, graphs
+
+
+def outcome(build, runs, beside: bool, **options):
+    """The graph's own records (wall-clock fields aside), stats and error; ``beside``: with an
+    unrelated flow on another schedule, whose records are left out."""
+    pipe = build(beside)
+    error = None
+    try:
+        for duration in runs:
+            pipe.run(duration=duration, **options)
+    except Exception as exc:  # noqa: BLE001 - compared below
+        error = f"{type(exc).__name__}: {exc}"
+    trace = pipe.trace
+    events = [e[:5] for e in trace.raw_events if e[1] != "beside"]
+    steps = [s[:6] for s in trace.raw_steps if s[0] != "beside"]
+    stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items() if node != "beside"}
+    return events, steps, stats, error
+
+
+def assert_alone_as_beside(build, runs=(0.5,), **options):
+    alone, beside = outcome(build, runs, False, **options), outcome(build, runs, True, **options)
+    assert alone[3] == beside[3]
+    assert alone[2] == beside[2]
+    assert len(alone[1]) == len(beside[1]) and len(alone[0]) == len(beside[0])
+    assert alone[1] == beside[1]
+    assert alone[0] == beside[0]
+    return alone
+
+
+def graph(*, delay: float = 0.0, trigger: bool = False, fail: int = 0, on_error: str = "stop", untyped: bool = False):
+    def build(beside: bool):
+        with Pipeline("alone") as pipe:
+            if untyped:
+                src = UntypedSource().named("src") @ Rate(100)
+                stage = src.then(Untyped().named("s1") @ Rate(100), map={"x": "x"}, sync=Latest())
+                stage.then(Untyped().named("s2") @ Rate(100), map={"out": "x"}, sync=Latest())
+            else:
+                src = Count(fail=fail).named("src").configure(on_error=on_error) @ Rate(100)
+                src.then(Join().named("s1") @ Rate(100), map={"x": "a"}, sync=Latest())
+            if delay:
+                src.then(Plain().named("late") @ Trigger(), map={"x": "int"}, sync=Latest(), delay=delay)
+            if trigger:
+                src.then(Plain().named("next") @ Trigger(), map={"x": "int"}, sync=Latest())
+            if beside:  # ticks at k/7 s: with the group's only at whole seconds
+                Count().named("beside") @ Rate(7)
+        return pipe
+    return build
+
+
+def test_a_chain_alone_records_what_it_records_beside_another_flow():
+    events, steps, _, _ = assert_alone_as_beside(graph(), runs=(0.3, 0.25))
+    assert len(steps) == 2 * 55  # (s1's first tick is skipped: Latest has nothing yet)
+
+
+def test_an_untyped_chain_alone_records_the_same():
+    assert_alone_as_beside(graph(untyped=True))
+
+
+@pytest.mark.parametrize("delay", [0.01, 0.004])  # at the group's next tick, or between two of them
+def test_a_delayed_event_scheduled_from_a_lone_group_records_the_same(delay):
+    _, steps, _, _ = assert_alone_as_beside(graph(delay=delay))
+    assert sum(1 for s in steps if s[0] == "late") == 50 - (delay == 0.01)  # the last one lands at 0.5 s
+
+
+def test_a_trigger_at_the_next_microstep_records_the_same():
+    _, steps, _, _ = assert_alone_as_beside(graph(trigger=True))
+    assert sum(1 for s in steps if s[0] == "next") == 50
+
+
+@pytest.mark.parametrize("on_error", ["skip_tick", "stop"])
+def test_a_failed_step_in_a_lone_group_records_the_same(on_error):
+    _, _, _, error = assert_alone_as_beside(graph(fail=7, trigger=True, on_error=on_error), runs=(0.3, 0.2))
+    assert (error is None) == (on_error == "skip_tick")
+
+
+def test_log_hand_overs_and_stop_checks_between_ticks_record_the_same():
+    with mock.patch.object(InprocSession, "LOG_BATCH", 5):
+        assert_alone_as_beside(graph(trigger=True, delay=0.01), keep="records")
+
+
+@SETTINGS
+@given(spec=graphs(), salt=st.integers(0, 1000))
+def test_random_graphs_record_the_same_beside_another_flow(spec, salt):
+    """The random multi-rate graphs of the schedule-independence properties, as they are and with
+    one more source on a schedule of its own that nothing consumes."""
+    beside = GraphSpec([*spec.nodes, NodeSpec("Src", Rate(9), 0.0, {"salt": salt})], spec.edges)
+    extra = f"n{len(spec.nodes)}"
+
+    def run(graph):
+        with budget(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RetrieverWarning)
+            pipe = graph.build()
+            error = None
+            try:
+                pipe.run(duration=DURATION)
+            except Exception as exc:  # noqa: BLE001 - compared below
+                error = f"{type(exc).__name__}: {exc}"
+            trace = pipe.trace
+            return ([e[:5] for e in trace.raw_events if e[1] != extra],
+                    [s[:6] for s in trace.raw_steps if s[0] != extra], error)
+
+    assert run(spec) == run(beside)
