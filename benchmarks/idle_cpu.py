@@ -15,8 +15,11 @@ each other):
 - ``zenoh session``: a zenoh-python peer session joined to a listening peer, doing nothing
   (Zenoh's own background threads);
 - ``zenoh session + 100 Hz put``: the sleep loop putting a 20-byte message on a key each tick
-  through a declared publisher (what an idle Retriever node also does: it publishes its
-  progress every tick).
+  through a declared publisher (what an idle Retriever node did until it stopped publishing
+  progress no one subscribes to);
+- ``zenoh session + inbox loop``: the plainest loop that ticks and can also receive, as a node
+  loop must: a subscriber whose callback puts into a ``queue.SimpleQueue``, the main thread
+  waiting on it until each deadline, then a do-nothing step and a record (a tuple in a list).
 
 Target (issue 21): the worker ≤ 1% of a core (ROS 2 rclpy measured 16% for an idle 100 Hz timer).
 
@@ -97,6 +100,8 @@ def baseline(kind: str, hz: float, seconds: float, endpoint: str) -> int:
         if kind in ("listen", "session"):
             time.sleep(seconds)
             return 0
+        if kind == "inbox":
+            return _inbox_loop(session, period, end)
         pub = session.declare_publisher(f"bench/idle/{os.getpid()}")
         payload = b"x" * 20
         deadline = time.time_ns() + period
@@ -107,6 +112,36 @@ def baseline(kind: str, hz: float, seconds: float, endpoint: str) -> int:
             pub.put(payload)
             deadline += period
         pub.undeclare()
+    return 0
+
+
+def _inbox_loop(session, period: int, end: int) -> int:
+    """The plainest loop that ticks and can also receive: a subscriber's callback puts what comes
+    in a ``queue.SimpleQueue``; the main thread waits on it until each deadline (nothing comes),
+    then calls a step that does nothing and keeps a record of it (the floor of a node loop)."""
+    import queue
+
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    subscriber = session.declare_subscriber(f"bench/idle/in/{os.getpid()}", inbox.put)
+
+    def step():
+        return None
+
+    records = []
+    deadline = time.time_ns() + period
+    while deadline < end:
+        wait = deadline - time.time_ns()
+        while wait > 0:
+            try:
+                inbox.get(timeout=wait / 1e9)
+            except queue.Empty:
+                break
+            wait = deadline - time.time_ns()
+        start = time.time_ns()
+        out = step()
+        records.append((deadline, start, time.time_ns(), out))
+        deadline += period
+    subscriber.undeclare()
     return 0
 
 
@@ -159,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     procs["sleep"] = subprocess.Popen(me + ["sleep", str(args.hz), span, listen])
     procs["session"] = subprocess.Popen(me + ["session", str(args.hz), span, listen])
     procs["put"] = subprocess.Popen(me + ["put", str(args.hz), span, listen])
+    procs["inbox"] = subprocess.Popen(me + ["inbox", str(args.hz), span, listen])
     time.sleep(max(0.0, (session.t0 + args.settle * 1e9 - time.time_ns()) / 1e9))
 
     pids = {"worker": worker, "coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()}}
@@ -181,7 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         ("bare sleep loop", "sleep", f"time.sleep to each next {1e3 / args.hz:g} ms deadline"),
         ("zenoh session", "session", "zenoh-python peer session, joined, doing nothing"),
         (f"zenoh session + {args.hz:g} Hz put", "put", "the sleep loop + Publisher.put(20 B) each tick"),
-        ("zenoh listening peer", "listen", "the peer the two above joined"),
+        ("zenoh session + inbox loop", "inbox", "a subscriber into a SimpleQueue, waited on to each deadline; "
+                                                 "a do-nothing step and a record a tick"),
+        ("zenoh listening peer", "listen", "the peer the three above joined"),
     ]
     head = f"{'process':<28} │ {'CPU % of a core':>15} │ what"
     print(head)
@@ -218,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"idle flow ticks in the run: {ticks} (expected {int(duration * args.hz)}); "
           f"load average at end {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     ok = pct["worker"] <= TARGET_PCT
+    ratio = {k: pct["worker"] / max(pct[k], 0.01) for k in ("inbox", "put", "sleep")}
+    print(f"same run: worker / inbox loop {ratio['inbox']:.2f}x, / put loop {ratio['put']:.2f}x, / bare sleep loop "
+          f"{ratio['sleep']:.2f}x (the target where issue 21 measured it: {TARGET_PCT / 0.55:.2f}x its put loop, "
+          f"{TARGET_PCT / 0.25:.2f}x its bare loop)")
     print(f"target: worker <= {TARGET_PCT:g}% of a core: {pct['worker']:.2f}% {'PASS' if ok else 'MISS'}")
     return 0
 
