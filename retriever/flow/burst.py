@@ -87,9 +87,30 @@ class Burst:
     def __iter__(self):
         return iter(self.values)
 
+    def __eq__(self, other: object) -> bool:
+        """Bursts of equal values, in order (arrays equal by dtype, shape and content), are equal:
+        what a test of a step's outputs compares. Not hashable (it may hold arrays)."""
+        if type(other) is not Burst:
+            return NotImplemented
+        return len(self.values) == len(other.values) and all(map(_same, self.values, other.values))
+
+    __hash__ = None  # type: ignore[assignment]
+
     def __repr__(self) -> str:
         shown = ", ".join(repr(v) for v in self.values[:3])
         return f"Burst(<{len(self.values)} values: {shown}{', ...' if len(self.values) > 3 else ''}>)"
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equality of two events' values, arrays by dtype, shape and content (``==`` on arrays is
+    elementwise); a comparison that raises or gives no truth value is inequality."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
+                and np.array_equal(a, b))
+    try:
+        return bool(a == b)
+    except Exception:  # (a value whose == gives an array, or raises)
+        return False
 
 
 def travels_as_rows(array: np.ndarray) -> bool:
