@@ -59,6 +59,14 @@ def dora_command() -> str:
     return found
 
 
+def dora_diagnostic(line: str) -> bool:
+    """Whether a worker's output line is a diagnostic of dora's node API: dora 1.1 logs two
+    warnings, as JSON lines on the node's output, for each of a run's first messages over 4 KiB
+    ("dora-rs/dora#2742 diagnostic"), and reads no setting that turns them off (neither RUST_LOG
+    nor the dataflow's min_log_level did). They say nothing about the run: dropped."""
+    return line.startswith("{") and "(dora-rs/dora#2742 diagnostic)" in line
+
+
 class DoraHost(Host):
     """This machine, through ``dora run``: started once with every node of the run."""
 
@@ -78,7 +86,7 @@ class DoraHost(Host):
             for path in paths.values():
                 os.mkfifo(path, 0o600)
             self.fifos += paths.values()
-            self.output(nid).attach_fifos(paths)
+            self.output(nid).attach_fifos(paths, noise=dora_diagnostic)
         # --log-level error: what a worker prints comes through its named pipes, not dora's log
         # (which, at its default level, also carries a warning per message on the daemon's route:
         # read a line at a time, they held dora's daemon back for a second at a run's start).

@@ -14,6 +14,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 
 #: one line at a time on the coordinator's streams, whichever worker it comes from
 _WRITING = threading.Lock()
@@ -40,26 +41,29 @@ class WorkerOutput:
             pump.start()
             self._pumps.append(pump)
 
-    def attach_fifos(self, paths: dict[str, str]) -> None:
+    def attach_fifos(self, paths: dict[str, str], noise: Callable[[str], bool] | None = None) -> None:
         """Forward what a process that is not this one's child writes to these named pipes
-        (``{"stdout": path, "stderr": path}``), from when it opens them until it closes them."""
+        (``{"stdout": path, "stderr": path}``), from when it opens them until it closes them;
+        lines that ``noise`` says are noise are dropped."""
         for name, path in paths.items():
-            pump = threading.Thread(target=self._pump_fifo, args=(path, name), daemon=True,
+            pump = threading.Thread(target=self._pump_fifo, args=(path, name, noise), daemon=True,
                                     name=f"retriever-{name}-{self.node}")
             pump.start()
             self._pumps.append(pump)
 
-    def _pump_fifo(self, path: str, name: str) -> None:
+    def _pump_fifo(self, path: str, name: str, noise: Callable[[str], bool] | None) -> None:
         try:
             pipe = open(path, "rb")  # blocks until the writer opens it (or close_fifos does)
         except OSError:
             return
-        self._pump(pipe, name)
+        self._pump(pipe, name, noise)
 
-    def _pump(self, pipe, name: str) -> None:
+    def _pump(self, pipe, name: str, noise: Callable[[str], bool] | None = None) -> None:
         with pipe:
             for raw in iter(pipe.readline, b""):
-                self.feed(name, raw.decode(errors="replace").rstrip("\r\n"))
+                line = raw.decode(errors="replace").rstrip("\r\n")
+                if noise is None or not noise(line):
+                    self.feed(name, line)
 
     def feed(self, name: str, line: str) -> None:
         """One line the node's process wrote to ``name`` (``stdout`` or ``stderr``): kept if

@@ -48,3 +48,12 @@ class NeverReady(Flow):
 with Pipeline("never_ready") as never_ready:
     Extra().named("ok") @ Rate(hz=20)
     NeverReady().named("stuck") @ Rate(hz=20)
+
+
+class Frames(Flow):
+    """Untyped: a 64 KiB frame a tick, on ``x`` (dora's daemon route: over its 4 KiB threshold)."""
+
+    def step(self):
+        import numpy as np
+
+        return {"x": np.zeros(64 << 10, np.uint8)}

@@ -27,7 +27,7 @@ from retriever.log import replay
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, Total, two_node_pipeline
 from ..zenoh.test_lifecycle import RETRIEVER, _cmdline, _env, _poll
-from .dora_flows import Extra, Raises
+from .dora_flows import Extra, Frames, Raises
 
 BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
 ROOT = Path(__file__).resolve().parents[3]
@@ -105,6 +105,23 @@ def test_an_output_no_edge_takes_is_logged(tmp_path):
     trace = pipe.run(duration=0.5, backend="dora", quiet=True, keep="trace")
     assert trace.values_of("extra", "note") == [f"tick {i}" for i in range(5)]
     assert len(trace.steps_of("sink")) == 5
+
+
+def test_big_outputs_bring_none_of_doras_diagnostic_warnings(capfd):
+    """dora 1.1's node API logs two warnings for each of a run's first messages over 4 KiB
+    (dora-rs/dora#2742 diagnostic); a worker's other output still comes through."""
+    with Pipeline("frames") as pipe:
+        frames = Frames().named("frames") @ Rate(20)
+        sink = EchoOpt().named("sink") @ Trigger("x")
+        frames.then(sink, sync=Latest(), map={"x": "x"})
+    trace = pipe.run(duration=0.5, backend="dora", quiet=True, keep="records")
+    assert len(trace.steps_of("sink")) == 10
+    out, err = capfd.readouterr()
+    assert "2742" not in out + err
+    assert dora_host.dora_diagnostic('{"timestamp":"2026-11-27T13:11:41Z","level":"WARN","fields":{"message":'
+                                     '"output `x`: 74184 B -> daemon path (dora-rs/dora#2742 diagnostic)"},'
+                                     '"target":"dora_node_api::node"}')
+    assert not dora_host.dora_diagnostic("a flow's print about dora-rs/dora#2742 diagnostic")
 
 
 def test_a_step_that_raises_stops_the_run_with_the_workers_traceback():
