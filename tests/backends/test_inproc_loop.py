@@ -20,24 +20,21 @@ from retriever import Latest, Pipeline, Rate, RetrieverWarning, Trigger
 from retriever.backends.inproc import InprocSession
 
 from .test_inproc_ticks import Count, Join, Plain, Untyped, UntypedSource
+from .test_inproc_ticks import outcome as ticks_outcome
 from .test_schedule_independence import DURATION, SETTINGS, GraphSpec, NodeSpec, budget, graphs
+
+
+def without(result, extra: str):
+    """``test_inproc_ticks.outcome``'s records, stats and error, without node ``extra``'s."""
+    (events, steps), stats, error = result
+    return ([e for e in events if e[1] != extra], [s for s in steps if s[0] != extra],
+            {node: s for node, s in stats.items() if node != extra}, error)
 
 
 def outcome(build, runs, beside: bool, **options):
     """The graph's own records (wall-clock fields aside), stats and error; ``beside``: with an
     unrelated flow on another schedule, whose records are left out."""
-    pipe = build(beside)
-    error = None
-    try:
-        for duration in runs:
-            pipe.run(duration=duration, **options)
-    except Exception as exc:  # noqa: BLE001 - compared below
-        error = f"{type(exc).__name__}: {exc}"
-    trace = pipe.trace
-    events = [e[:5] for e in trace.raw_events if e[1] != "beside"]
-    steps = [s[:6] for s in trace.raw_steps if s[0] != "beside"]
-    stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items() if node != "beside"}
-    return events, steps, stats, error
+    return without(ticks_outcome(lambda: build(beside), runs, **options), "beside")
 
 
 def assert_alone_as_beside(build, runs=(0.5,), **options):
@@ -112,14 +109,6 @@ def test_random_graphs_record_the_same_beside_another_flow(spec, salt):
     def run(graph):
         with budget(), warnings.catch_warnings():
             warnings.simplefilter("ignore", RetrieverWarning)
-            pipe = graph.build()
-            error = None
-            try:
-                pipe.run(duration=DURATION)
-            except Exception as exc:  # noqa: BLE001 - compared below
-                error = f"{type(exc).__name__}: {exc}"
-            trace = pipe.trace
-            return ([e[:5] for e in trace.raw_events if e[1] != extra],
-                    [s[:6] for s in trace.raw_steps if s[0] != extra], error)
+            return without(ticks_outcome(graph.build, (DURATION,)), extra)
 
     assert run(spec) == run(beside)
