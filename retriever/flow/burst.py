@@ -88,8 +88,9 @@ class Burst:
         return iter(self.values)
 
     def __eq__(self, other: object) -> bool:
-        """Bursts of equal values, in order (arrays equal by dtype, shape and content), are equal:
-        what a test of a step's outputs compares. Not hashable (it may hold arrays)."""
+        """Bursts of equal values, in order, are equal (numpy arrays and scalars by dtype, shape
+        and content, NaN equal to NaN; lists, tuples and dicts item by item): what a test of a
+        step's outputs compares. Not hashable (it may hold arrays)."""
         if type(other) is not Burst:
             return NotImplemented
         return len(self.values) == len(other.values) and all(map(_same, self.values, other.values))
@@ -102,14 +103,31 @@ class Burst:
 
 
 def _same(a: Any, b: Any) -> bool:
-    """Equality of two events' values, arrays by dtype, shape and content (``==`` on arrays is
-    elementwise); a comparison that raises or gives no truth value is inequality."""
-    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype
-                and np.array_equal(a, b))
+    """Equality of two events' values: numpy arrays and scalars by dtype, shape and content (NaN
+    equal to NaN), never equal to a value of another kind; lists, tuples and dicts item by item;
+    the rest by ``==``, and a comparison that raises or gives no truth value is inequality."""
+    if a is b:
+        return True
+    if isinstance(a, (np.ndarray, np.generic)) or isinstance(b, (np.ndarray, np.generic)):
+        return _same_numpy(a, b)
+    if type(a) in (list, tuple) or type(b) in (list, tuple):
+        return type(a) is type(b) and len(a) == len(b) and all(map(_same, a, b))
+    if type(a) is dict or type(b) is dict:
+        return type(a) is type(b) and a.keys() == b.keys() and all(_same(v, b[k]) for k, v in a.items())
     try:
         return bool(a == b)
     except Exception:  # (a value whose == gives an array, or raises)
+        return False
+
+
+def _same_numpy(a: Any, b: Any) -> bool:
+    if type(a) is not type(b) or a.dtype != b.dtype or np.shape(a) != np.shape(b):
+        return False
+    if a.dtype.hasobject:
+        return _same(np.asarray(a).tolist(), np.asarray(b).tolist())
+    try:
+        return bool(np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
+    except Exception:  # (a dtype with no ==: structured with odd fields, void)
         return False
 
 

@@ -69,7 +69,7 @@ def graph(*, delay: float = 0.0, trigger: bool = False, fail: int = 0, on_error:
 
 def test_a_chain_alone_records_what_it_records_beside_another_flow():
     events, steps, _, _ = assert_alone_as_beside(graph(), runs=(0.3, 0.25))
-    assert len(steps) == 2 * 55  # (s1's first tick is skipped: Latest has nothing yet)
+    assert len(steps) == 2 * 55  # a record per tick of each (s1's first, Latest having nothing yet, a skipped one)
 
 
 def test_an_untyped_chain_alone_records_the_same():

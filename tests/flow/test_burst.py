@@ -28,6 +28,30 @@ def test_arrays_in_bursts_compare_by_dtype_shape_and_content():
     assert Burst([np.zeros(2)]) != Burst([[0.0, 0.0]])  # an array is not a list
 
 
+def test_numpy_scalars_compare_by_dtype_and_never_equal_another_kind_of_value():
+    assert Burst(np.array([1, 2], np.int16)) != Burst(np.array([1, 2], np.int64))  # as rows of 2-D arrays
+    assert Burst([np.float64(1.0)]) != Burst([[1.0]])
+    assert Burst(np.array([1.0, 2.0])) != Burst([[1.0], [2.0]])
+    assert Burst([np.float64(1.0)]) != Burst([[1.0, 1.0]])  # (numpy would broadcast: no truth value)
+    assert Burst([np.array(3.0)]) != Burst([np.float64(3.0)])
+
+
+def test_arrays_inside_lists_tuples_and_dicts_compare_by_content():
+    assert Burst([[np.zeros(2)]]) == Burst([[np.zeros(2)]])
+    assert Burst([{"p": np.zeros(2), "q": (1, np.ones(1))}]) == Burst([{"p": np.zeros(2), "q": (1, np.ones(1))}])
+    assert Burst([{"p": np.zeros(2)}]) != Burst([{"p": np.ones(2)}])
+    assert Burst([{"p": 1}]) != Burst([{"q": 1}])
+    assert Burst([(1, 2)]) != Burst([[1, 2]])  # a tuple is not a list
+    ragged = lambda: np.array([np.zeros(2), np.zeros(3)], dtype=object)  # noqa: E731
+    assert Burst([ragged()]) == Burst([ragged()])
+
+
+def test_nan_equals_nan_in_arrays_and_a_burst_equals_itself():
+    assert Burst([np.array([np.nan, 1.0])]) == Burst([np.array([np.nan, 1.0])])
+    burst = Burst([float("nan")])
+    assert burst == burst
+
+
 def test_a_burst_equals_nothing_but_a_burst_and_is_not_hashable():
     assert Burst([1]) != [1]
     assert Burst([1]) != (1,)

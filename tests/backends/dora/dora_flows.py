@@ -51,9 +51,20 @@ with Pipeline("never_ready") as never_ready:
 
 
 class Frames(Flow):
-    """Untyped: a 64 KiB frame a tick, on ``x`` (dora's daemon route: over its 4 KiB threshold)."""
+    """Untyped: a 64 KiB frame a tick, on ``x`` (dora's daemon route: over its 4 KiB threshold);
+    says so on stdout and stderr at its first step."""
+
+    def __init__(self):
+        super().__init__()
+        self.said = False
 
     def step(self):
+        import sys
+
         import numpy as np
 
+        if not self.said:
+            self.said = True
+            print("frames: first frame", flush=True)
+            print("frames: first frame, on stderr", file=sys.stderr, flush=True)
         return {"x": np.zeros(64 << 10, np.uint8)}

@@ -118,6 +118,7 @@ def test_big_outputs_bring_none_of_doras_diagnostic_warnings(capfd):
     assert len(trace.steps_of("sink")) == 10
     out, err = capfd.readouterr()
     assert "2742" not in out + err
+    assert "[frames] frames: first frame\n" in out and "[frames] frames: first frame, on stderr\n" in err
     assert dora_host.dora_diagnostic('{"timestamp":"2026-11-27T13:11:41Z","level":"WARN","fields":{"message":'
                                      '"output `x`: 74184 B -> daemon path (dora-rs/dora#2742 diagnostic)"},'
                                      '"target":"dora_node_api::node"}')
