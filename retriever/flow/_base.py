@@ -29,7 +29,7 @@ from .. import _context
 from ..clocks import Clock
 from ..codec import is_value_type, register_value_type
 from ..errors import ClockError
-from ..time import seconds_problem, seconds_to_ns
+from ..time import is_finite_number, seconds_problem, seconds_to_ns
 
 In = TypeVar("In")
 Out = TypeVar("Out")
@@ -502,9 +502,8 @@ class Flow(Generic[In, Out]):
                 raise ValueError(f"{owner}: {problem or 'restart_window must be more than 0 s, got 0'}")
             s.restart_window = restart_window
         if spin is not None:
-            problem = seconds_problem("spin", spin)
-            if (problem is None or "at most" in problem) and spin > MAX_SPIN_S:
-                problem = f"spin must be at most {MAX_SPIN_S:g} s (a busy-wait before each tick), got {spin!r:.40}"
+            problem = (f"spin must be at most {MAX_SPIN_S:g} s (a busy-wait before each tick), got {spin!r:.40}"
+                       if is_finite_number(spin) and spin > MAX_SPIN_S else seconds_problem("spin", spin))
             if problem is not None:
                 raise ValueError(f"{owner}.configure(spin={spin!r:.40}): {problem}\n    hint: spin is how long before "
                                  "each tick its worker busy-waits instead of sleeping, e.g. spin=100e-6")
