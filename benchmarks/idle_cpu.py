@@ -34,6 +34,7 @@ import datetime
 import json
 import os
 import platform
+import statistics
 import subprocess
 import sys
 import time
@@ -156,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=20.0, help="measurement window (default 20)")
     p.add_argument("--hz", type=float, default=100.0, help="the idle flow's rate (default 100)")
+    p.add_argument("--flows", type=int, default=1,
+                   help="idle flows in the pipeline, each in a worker of its own (default 1; the target is for 1: "
+                        "with more, the script also gives each worker's CPU, median and range)")
     p.add_argument("--settle", type=float, default=2.0, help="seconds after T0 before measuring (default 2)")
     p.add_argument("--threads", action="store_true", help="also print CPU per thread of the worker and coordinator")
     p.add_argument("--profile", action="store_true",
@@ -172,7 +176,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from retriever import Pipeline, Rate
 
-    print(f"retriever idle CPU: one Idle() @ Rate({args.hz:g}) flow on the zenoh backend, vs bare baselines")
+    if args.flows < 1:
+        p.error("--flows: at least 1")
+    what = "one Idle() @ Rate({:g}) flow".format(args.hz) if args.flows == 1 else \
+        f"{args.flows} Idle() @ Rate({args.hz:g}) flows"
+    print(f"retriever idle CPU: {what} on the zenoh backend, vs bare baselines")
     from importlib.metadata import version
 
     print(f"python {platform.python_version()}, {platform.machine()}, {platform.system()}, {os.cpu_count()} cpus; "
@@ -183,12 +191,15 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.profile:
         from zenoh_probe import ProbeIdle as Idle
+    names = ["idle"] + [f"idle{i}" for i in range(2, args.flows + 1)]
     with Pipeline("idle_cpu") as pipe:
-        Idle().named("idle") @ Rate(hz=args.hz)
+        for name in names:
+            Idle().named(name) @ Rate(hz=args.hz)
     duration = args.settle + args.seconds + 1.0
     run = BackgroundRun(pipe, duration)
     session = run.session
-    worker = session.worker_pids()["idle"]
+    workers = session.worker_pids()
+    worker = workers["idle"]
     me = [sys.executable, str(Path(__file__).resolve()), "--baseline"]
     listen = f"tcp/127.0.0.1:{free_port()}"
     span = str(args.settle + args.seconds + 2)
@@ -200,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     procs["inbox"] = subprocess.Popen(me + ["inbox", str(args.hz), span, listen])
     time.sleep(max(0.0, (session.t0 + args.settle * 1e9 - time.time_ns()) / 1e9))
 
-    pids = {"worker": worker, "coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()}}
+    pids = {"worker": worker, "coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()},
+            **{f"worker {name}": workers[name] for name in names[1:]}}
     before = {k: cpu_seconds(pid) for k, pid in pids.items()}
     threads0 = {k: thread_cpu(pids[k]) for k in ("worker", "coordinator")}
     w0 = time.monotonic()
@@ -213,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         proc.wait()
     pct = {k: (after[k] - before[k]) / wall * 100 for k in pids}
     ticks = sum(1 for r in pipe.trace.steps if r.node == "idle")
+    each = sorted(pct["worker" if name == "idle" else f"worker {name}"] for name in names)
 
     rows = [
         ("retriever-zenoh worker", "worker", f"Idle() @ Rate({args.hz:g}): node loop + its zenoh session"),
@@ -229,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     print("─" * (len(head) + 50))
     for name, key, what in rows:
         print(f"{name:<28} │ {pct[key]:>15.2f} │ {what}")
+    if args.flows > 1:
+        print(f"{'each of the ' + str(args.flows) + ' workers':<28} │ {statistics.median(each):>15.2f} │ median "
+              f"(range {each[0]:.2f}-{each[-1]:.2f}; all {sum(each):.2f}); the row above is the first one's")
     print()
     if args.threads:
         for k in ("worker", "coordinator"):
