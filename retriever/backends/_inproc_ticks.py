@@ -40,7 +40,7 @@ import keyword
 import re
 from bisect import insort
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from time import time_ns
 from typing import Any
 
@@ -81,6 +81,9 @@ class NodeCode:
     expand: str  # ``expand{k}(tape, i, add_event, add_step)``, the tape's record format
     helpers: str  # the functions the tick calls off its fast path: ``error{k}``, ``generic{k}``
     follower: int | None  # the one node its outputs can trigger at the next microstep, if one
+    #: per input, the node whose events alone fill it, on an undelayed edge, with no latency: in a
+    #: fused rate group that runs this node before that one, every event there is visible
+    fed_by: dict[int, int] = field(default_factory=dict)
 
 
 def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
@@ -109,14 +112,14 @@ def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
         known = list(spec.outputs)
     else:  # untyped: a dict of ports; a dict of exactly the wired ones takes the compiled path, or
         known = list(rt.ports_seen or rt.downstream)  # of the ports of the first that was not
-    return _TickWriter(rt, sources, known).code()
+    return _TickWriter(rt, sources, known, session._by_id).code()
 
 
 class _TickWriter:
     """Writes the code of one node's compiled tick (:func:`compile_tick`), piece by piece."""
 
-    def __init__(self, rt: Any, sources: dict, known: list[str]):
-        self.rt, self.sources, self.known = rt, sources, known
+    def __init__(self, rt: Any, sources: dict, known: list[str], by_id: dict[str, Any]):
+        self.rt, self.sources, self.known, self.by_id = rt, sources, known, by_id
         self.k = k = rt.index
         spec = rt.spec
         self.names: dict[str, Any] = {
@@ -145,7 +148,22 @@ class _TickWriter:
         followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
                      if triggers and not delay_ns and not rt.latency_ns}
         follower = followers.pop() if len(followers) == 1 else None
-        return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower)
+        return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower,
+                        self._fed_by())
+
+    def _fed_by(self) -> dict[int, int]:
+        """NodeCode.fed_by: input ``i`` -> the index of the node that alone feeds it, where that
+        node stamps its events at the next microstep of its tick (no latency, no delay)."""
+        fed = {}
+        for i, (_, buf, _, _) in enumerate(self.rt.inputs):
+            feeds = self.sources.get(id(buf), ())
+            if len(feeds) != 1:
+                continue
+            producer = self.by_id[feeds[0][0]]
+            edges = [delay_ns for _, b, delay_ns, _ in producer.downstream.get(feeds[0][1], ()) if b is buf]
+            if not producer.latency_ns and edges == [0]:
+                fed[i] = producer.index
+        return fed
 
     # -- the tick --------------------------------------------------------------------------
     def _body(self) -> str:
@@ -174,13 +192,7 @@ class _TickWriter:
 entries = entries{k}_{i}
 n = visible{k}_{i}
 end = len(entries)
-if n < end:  # entries came: all of them are visible, or those up to the first past tau
-    if entries[-1][0] <= tau:
-        n = end
-    else:
-        while entries[n][0] <= tau:
-            n += 1
-if n:
+{_visibility(k, i)}if n:
     entry{i} = entries[n - 1]
     arg{i} = entry{i}[4]
     if n > {self.rt.inputs[i][1].trim_batch}:
@@ -475,7 +487,7 @@ def chain{head}(tau, out_tag):
     for g, group in enumerate(groups):
         state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
         src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n"
-                   f"{_indent(_one_reading(''.join(bodies[i] for i in group)))}    return out_tag\n")
+                   f"{_indent(_one_reading(''.join(_consumers_first(codes, group, bodies))))}    return out_tag\n")
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
     src += [code.expand + code.helpers for code in codes.values()]
@@ -488,6 +500,40 @@ def chain{head}(tau, out_tag):
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused]:
         f.source = source
     return ticks, chain_ticks, fused, flush
+
+
+def _visibility(k: int, i: int) -> str:
+    """The part of node ``k``'s select on input ``i`` that finds how many entries are visible at
+    ``tau`` (``n``, of ``end``): its ``visible`` of the tick before, and as many as came since
+    whose tags are not past ``tau``."""
+    return f"""\
+if n < end:  # entries came: all of them are visible, or those up to the first past tau ({k}_{i})
+    if entries[-1][0] <= tau:
+        n = end
+    else:
+        while entries[n][0] <= tau:
+            n += 1
+"""
+
+
+def _consumers_first(codes: dict, group: tuple[int, ...], bodies: list[str]) -> list[str]:
+    """The bodies of a fused rate group's ticks, where a node runs before the node that alone
+    feeds one of its inputs (NodeCode.fed_by) with that input's visibility test left out: the
+    group runs alone at ``tau = (t, 0)``, so that producer's events there came from its ticks
+    before ``t`` (its tick at ``t`` comes later), each stamped at the next microstep of its tick
+    (no latency, no delay), so not past ``tau``: every entry is visible."""
+    place = {node: at for at, node in enumerate(group)}
+    out = []
+    for node in group:
+        body = bodies[node]
+        code = codes.get(node)
+        for i, producer in (code.fed_by.items() if code is not None else ()):
+            if place.get(producer, -1) > place[node]:
+                test = _visibility(node, i)
+                assert test in body
+                body = body.replace(test, "n = end\n")
+        out.append(body)
+    return out
 
 
 def _passing_on(body: str, follower: int) -> str:

@@ -19,6 +19,9 @@ the property tests check exactly that.
 What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py):
 
 - nodes whose clocks share one Rate schedule are one ``_RateGroup``, with one heap entry per tick;
+- a tag's ticks run consumers first (each node before the nodes that feed it, where edges allow):
+  then a rate group's tick finds every event a producer of the group sent it visible (the
+  producer's tick at the same tag, whose outputs are not, comes later), and skips that test;
 - ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
   edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
 - nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
@@ -132,7 +135,7 @@ class _RateGroup:
     __slots__ = ("order", "ticks", "k", "next_tag", "offset_ns", "step_num", "step_den")
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
-        self.order = order  # node indices, sorted: the tick order when nothing else is due at the tag
+        self.order = order  # node indices, consumers first (InprocSession._consumers_first): the tick order
         # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
         self.ticks: tuple = ()
         self.k = 0
@@ -175,7 +178,9 @@ class InprocSession(Session):
                 rt.flow.reset()  # the paper's flows initialise their state in reset()
             if rt.clock.hz is not None:
                 groups.setdefault(rt.clock.schedule, []).append(rt.index)
-        self._groups = [_RateGroup(schedule, tuple(indices)) for schedule, indices in groups.items()]
+        self._rank = rank = self._consumers_first()
+        self._groups = [_RateGroup(schedule, tuple(sorted(indices, key=rank.__getitem__)))
+                        for schedule, indices in groups.items()]
         for group in self._groups:
             self._schedule_group(group)
         # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
@@ -217,6 +222,35 @@ class InprocSession(Session):
                 if node.id in cycle:
                     rt.cycle = cycle
                     break
+
+    def _consumers_first(self) -> list[int]:
+        """Per node index, its place in the order the ticks of one tag run in: each node before
+        the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
+        first changes nothing a run records but their order (tie_break_seed shuffles them), and
+        this one lets a fused rate group's ticks skip the test of what is visible on the edges
+        within it (_inproc_ticks._consumers_first)."""
+        n = len(self._nodes)
+        consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in self._nodes]
+        producers: list[list[int]] = [[] for _ in range(n)]
+        for p, cs in enumerate(consumers):
+            for c in cs:
+                producers[c].append(p)
+        waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
+        ready = [i for i in range(n) if not waiting[i]]
+        order = []
+        while ready:
+            i = heappop(ready)
+            order.append(i)
+            for p in producers[i]:
+                waiting[p] -= 1
+                if not waiting[p]:
+                    heappush(ready, p)
+        placed = set(order)
+        order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
+        rank = [0] * n
+        for at, i in enumerate(order):
+            rank[i] = at
+        return rank
 
     def _schedule(self, tag: tuple[int, int], index: int) -> None:
         """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
@@ -350,6 +384,7 @@ class InprocSession(Session):
 
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
+        rank = self._rank
         ticks, chains = self._tick_functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
@@ -397,7 +432,7 @@ class InprocSession(Session):
                 if len(due) == 1:
                     order = [ticks[i] for i in due]
                 else:
-                    indices = sorted(due)
+                    indices = sorted(due, key=rank.__getitem__)
                     if rng is not None:
                         rng.shuffle(indices)
                     order = [ticks[i] for i in indices]
@@ -413,7 +448,7 @@ class InprocSession(Session):
                         next_microstep = chains[after.pop()](tag, next_microstep)
                         ran += next_microstep[1] - tag[1]
                         continue
-                    indices = sorted(set(after))
+                    indices = sorted(set(after), key=rank.__getitem__)
                     after.clear()
                     if rng is not None:
                         rng.shuffle(indices)

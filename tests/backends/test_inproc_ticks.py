@@ -22,6 +22,7 @@ from hypothesis import given
 
 from retriever import Flow, Hybrid, Latest, Pipeline, Rate, RetrieverWarning, StepError, Trigger, io
 from retriever.backends import _inproc_ticks
+from retriever.backends.inproc import InprocSession
 
 from .test_schedule_independence import DURATION, SETTINGS, budget, graphs
 
@@ -230,6 +231,39 @@ def test_chains_compile_every_node_and_match():
 
 def test_mixed_graph_matches():
     assert_same(mixed, runs=(0.5, 0.25, 0.25), min_compiled=10)
+
+
+def one_group_consumers_first():
+    """One Rate schedule, so every tick is the fused group's: each join runs before the counts
+    that feed it (consumers first), and sees on each edge only what is visible at its tick."""
+    with Pipeline("one_group") as pipe:
+        plain = Join().named("plain") @ Rate(100)  # a: undelayed, no latency: every entry is visible
+        late = Join().named("late") @ Rate(100)  # a: from a producer whose outputs land 1.5 ticks on
+        delayed = Join().named("delayed") @ Rate(100)  # a: an edge delayed by 1.5 ticks
+        fan = Join().named("fan") @ Rate(100)  # a: fed by two producers, one of them late
+        src = Count().named("src") @ Rate(100)
+        let = Count().named("let").configure(latency=0.015) @ Rate(100)
+        pipe.connect(src, plain, map={"x": "a"}, sync=Latest())
+        pipe.connect(let, late, map={"x": "a"}, sync=Latest())
+        pipe.connect(src, delayed, map={"x": "a"}, sync=Latest(), delay=0.015)
+        pipe.connect(src, fan, map={"x": "a"}, sync=Latest())
+        pipe.connect(let, fan, map={"x": "a"}, sync=Latest())
+        # a cycle: no order puts each before its producer, so c2 runs after c1 and must not see
+        # c1's output of the same tick
+        c1, c2 = Join().named("c1") @ Rate(100), Join().named("c2") @ Rate(100)
+        pipe.connect(src, c1, map={"x": "a"}, sync=Latest())
+        pipe.connect(c1, c2, map={"x": "a"}, sync=Latest())
+        pipe.connect(c2, c1, map={"x": "b"}, sync=Latest())
+    return pipe
+
+
+def test_a_fused_group_run_consumers_first_sees_what_the_generic_path_sees():
+    session = InprocSession(one_group_consumers_first().compile())
+    order = [session._nodes[i].id for i in session._groups[0].order]
+    assert order.index("plain") < order.index("src") and order.index("late") < order.index("let")
+    assert order.index("fan") < order.index("src") and order.index("fan") < order.index("let"), order
+    assert order.index("c1") < order.index("c2"), order
+    assert_same(one_group_consumers_first, runs=(0.2, 0.05, 0.1), min_compiled=6)
 
 
 def test_mixed_graph_matches_under_tie_breaking():
