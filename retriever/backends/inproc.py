@@ -226,9 +226,11 @@ class InprocSession(Session):
     def _consumers_first(self) -> list[int]:
         """Per node index, its place in the order the ticks of one tag run in: each node before
         the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
-        first changes nothing a run records but their order (tie_break_seed shuffles them), and
-        this one lets a fused rate group's ticks skip the test of what is visible on the edges
-        within it (_inproc_ticks._consumers_first)."""
+        first changes nothing a run records but their order (tie_break_seed shuffles them),
+        except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
+        ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
+        it are not. This order lets a fused rate group's ticks skip the test of what is visible
+        on the edges within it (_inproc_ticks._consumers_first)."""
         n = len(self._nodes)
         consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in self._nodes]
         producers: list[list[int]] = [[] for _ in range(n)]
