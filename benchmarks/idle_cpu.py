@@ -178,8 +178,8 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.flows < 1:
         p.error("--flows: at least 1")
-    what = "one Idle() @ Rate({:g}) flow".format(args.hz) if args.flows == 1 else \
-        f"{args.flows} Idle() @ Rate({args.hz:g}) flows"
+    what = "one" if args.flows == 1 else str(args.flows)
+    what += f" Idle() @ Rate({args.hz:g}) flow{'s' if args.flows > 1 else ''}"
     print(f"retriever idle CPU: {what} on the zenoh backend, vs bare baselines")
     from importlib.metadata import version
 
@@ -199,7 +199,6 @@ def main(argv: list[str] | None = None) -> int:
     run = BackgroundRun(pipe, duration)
     session = run.session
     workers = session.worker_pids()
-    worker = workers["idle"]
     me = [sys.executable, str(Path(__file__).resolve()), "--baseline"]
     listen = f"tcp/127.0.0.1:{free_port()}"
     span = str(args.settle + args.seconds + 2)
@@ -211,8 +210,9 @@ def main(argv: list[str] | None = None) -> int:
     procs["inbox"] = subprocess.Popen(me + ["inbox", str(args.hz), span, listen])
     time.sleep(max(0.0, (session.t0 + args.settle * 1e9 - time.time_ns()) / 1e9))
 
-    pids = {"worker": worker, "coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()},
-            **{f"worker {name}": workers[name] for name in names[1:]}}
+    each_worker = ["worker", *(f"worker {name}" for name in names[1:])]  # (pids' key of each flow's worker)
+    pids = {"coordinator": os.getpid(), **{k: p.pid for k, p in procs.items()},
+            **{key: workers[name] for key, name in zip(each_worker, names)}}
     before = {k: cpu_seconds(pid) for k, pid in pids.items()}
     threads0 = {k: thread_cpu(pids[k]) for k in ("worker", "coordinator")}
     w0 = time.monotonic()
@@ -225,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         proc.wait()
     pct = {k: (after[k] - before[k]) / wall * 100 for k in pids}
     ticks = sum(1 for r in pipe.trace.steps if r.node == "idle")
-    each = sorted(pct["worker" if name == "idle" else f"worker {name}"] for name in names)
+    each = sorted(pct[key] for key in each_worker)
 
     rows = [
         ("retriever-zenoh worker", "worker", f"Idle() @ Rate({args.hz:g}): node loop + its zenoh session"),

@@ -486,8 +486,8 @@ def chain{head}(tau, out_tag):
     groups = groups if fuse else []
     for g, group in enumerate(groups):
         state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
-        src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n"
-                   f"{_indent(_one_reading(''.join(_consumers_first(codes, group, bodies))))}    return out_tag\n")
+        body = _one_reading("".join(_without_visible_tests(codes, group, bodies)))
+        src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n{_indent(body)}    return out_tag\n")
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
     src += [code.expand + code.helpers for code in codes.values()]
@@ -516,7 +516,7 @@ if n < end:  # entries came: all of them are visible, or those up to the first p
 """
 
 
-def _consumers_first(codes: dict, group: tuple[int, ...], bodies: list[str]) -> list[str]:
+def _without_visible_tests(codes: dict, group: tuple[int, ...], bodies: list[str]) -> list[str]:
     """The bodies of a fused rate group's ticks, where a node runs before the node that alone
     feeds one of its inputs (NodeCode.fed_by) with that input's visibility test left out: the
     group runs alone at ``tau = (t, 0)``, so that producer's events there came from its ticks

@@ -230,7 +230,7 @@ class InprocSession(Session):
         except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
         ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
         it are not. This order lets a fused rate group's ticks skip the test of what is visible
-        on the edges within it (_inproc_ticks._consumers_first)."""
+        on the edges within it (_inproc_ticks._without_visible_tests)."""
         n = len(self._nodes)
         consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in self._nodes]
         producers: list[list[int]] = [[] for _ in range(n)]
