@@ -231,6 +231,13 @@ class Pipeline:
             options["keep"] = "counters"  # a logged real-time run may run for hours: the log holds it
         try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
             session = self._session_for(backend, options)
+        except BaseException:
+            if log_file is not None:
+                log_file.discard()
+            raise
+        # from the moment the log is begun, a signal stops the run between ticks (the log then
+        # ends "interrupted"), even one that arrives while the log's header is being written
+        with _stop_between_ticks(session, logged=log_file is not None):
             try:
                 if duration is None and type(session).run_to_end is Session.run_to_end:
                     session.run_to_end()  # raises: this backend needs a duration
@@ -240,21 +247,18 @@ class Pipeline:
                 if fresh:
                     self._session = None
                     session.close()
+                if log_file is not None:
+                    log_file.discard()
                 raise
-        except BaseException:
-            if log_file is not None:
-                log_file.discard()
-            raise
-        try:
-            with _stop_between_ticks(session):
+            try:
                 if duration is None:
                     session.run_to_end()
                 else:
                     session.advance(session.now_ns + seconds_to_ns(duration))
-        except BaseException as exc:
-            _close_log(session, exc)
-            _forget(session)
-            raise
+            except BaseException as exc:
+                _close_log(session, exc)
+                _forget(session)
+                raise
         _close_log(session)
         _forget(session)
         return session.trace
@@ -355,7 +359,7 @@ def _user_stacklevel() -> int:
 
 
 @contextmanager
-def _stop_between_ticks(session: Session) -> Iterator[None]:
+def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
     """While a logged run goes, Ctrl-C and SIGTERM ask it to stop at the next hand-over to the log
     writer (between two ticks) instead of raising wherever the interpreter happens to be, which
     could leave a tick half recorded. A second signal stops at once. A run that holds processes
@@ -374,7 +378,7 @@ def _stop_between_ticks(session: Session) -> Iterator[None]:
     def terminate(signum, frame) -> None:
         raise SystemExit(128 + signum)  # what a shell reports for a process SIGTERM ended
 
-    if session.log is not None:
+    if logged:
         handlers = {signal.SIGINT: request_stop, signal.SIGTERM: request_stop}
     elif session.holds_processes and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
         handlers = {signal.SIGTERM: terminate}

@@ -42,3 +42,28 @@ def test_signal_finishes_the_log(tmp_path, sig):
     assert int(log.end["end_ns"]) > 0
     assert replay(log).identical
     assert resim(log).identical
+
+
+def test_a_signal_while_the_log_is_begun_finishes_it_interrupted(tmp_path, monkeypatch):
+    """Ctrl-C that lands as the log's header is written (the file already holds bytes) stops the
+    run between ticks like any other: the log is finished and marked, not half begun and then
+    removed (a window `retriever run --duration inf` once showed, printing no table)."""
+    from retriever.log import writer
+    from tests.log.log_flows import build_small
+
+    begin = writer.LogWriter.__init__
+
+    def begin_then_interrupt(self, *args, **kwargs):
+        begin(self, *args, **kwargs)
+        assert self.path.stat().st_size > 0  # what a watcher of the file sees as "the run started"
+        os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(writer.LogWriter, "__init__", begin_then_interrupt)
+    path = tmp_path / "begun.mcap"
+    pipe = build_small()
+    with pytest.raises(KeyboardInterrupt):
+        pipe.run(duration=1e6, log=path)  # stops at its first hand-over to the writer
+    log = read_log(path)
+    assert log.complete and log.end["status"] == "interrupted"
+    assert replay(log).identical
+    assert pipe.now < 1e6
