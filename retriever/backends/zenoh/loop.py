@@ -49,11 +49,16 @@ from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, deco
 NEVER = (1 << 62, 0)
 #: how long a blocked tick waits for a data or progress message before asking the producer
 PROBE_AFTER_NS = 500_000
-#: how long step records and published events may wait before they go to the coordinator, and
-#: at most how many records or bytes of events go at once. Every report wakes the reporter's
-#: thread and the coordinator: at 20 ms, an idle 100 Hz flow reported every other tick (issue 21:
-#: idle cost). Nothing waits on a report for less: a consumer holds records for HOLD_RECORDS_NS.
+#: how long published events may wait before they go to the coordinator (with the step records
+#: before them), and at most how many records or bytes of events go at once. Every report wakes
+#: the reporter's thread, Zenoh's and the coordinator: at 20 ms, an idle 100 Hz flow reported every
+#: other tick (issue 21: idle cost). Nothing waits on a report for less: a consumer holds records
+#: for HOLD_RECORDS_NS, the coordinator logs events and shows them live (--foxglove).
 FLUSH_AFTER_NS = 100_000_000
+#: how long step records may wait when no event waits with them (a flow that outputs nothing, or
+#: not on every tick): nothing but the coordinator's counts and live view waits for those, and ten
+#: reports a second cost an idle 100 Hz flow about a quarter of its CPU (issue 21: idle cost)
+RECORDS_FLUSH_AFTER_NS = 1_000_000_000
 FLUSH_MAX = 512
 FLUSH_MAX_BYTES = 64 << 20
 FLUSH_MAX_SEQS = 1 << 16  # seqs published: a flush at least this often (bursts), see RESTART_SEQ_GAP
@@ -1036,7 +1041,7 @@ class NodeLoop:
         self.records.append((tau, consumed, produced, status, detail, start, wall))
         self.recorded += 1
         if self.flush_due is None:
-            self.flush_due = self.now() + FLUSH_AFTER_NS
+            self.flush_due = self.now() + RECORDS_FLUSH_AFTER_NS
         elif len(self.records) >= FLUSH_MAX:
             self.flush()
 
@@ -1083,8 +1088,10 @@ class NodeLoop:
         if batch:
             if self.published_bytes >= FLUSH_MAX_BYTES or self.published_seqs >= FLUSH_MAX_SEQS:
                 self.flush()
-            elif self.flush_due is None:  # held LET outputs are released after their record went
-                self.flush_due = self.now() + FLUSH_AFTER_NS
+            else:  # (held LET outputs are released after their record went)
+                due = self.now() + FLUSH_AFTER_NS
+                if self.flush_due is None or self.flush_due > due:  # (records alone may wait longer)
+                    self.flush_due = due
         if self.sending is not None:
             with self.lock:
                 self.sending = None  # only now may a progress query promise past these tags
