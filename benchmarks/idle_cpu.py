@@ -12,6 +12,9 @@ Baselines, in separate processes over the same window (they are idle, so they ba
 each other):
 
 - ``sleep loop``: a bare Python loop ``time.sleep``ing to each next 10 ms deadline;
+- ``C sleep loop``: the same loop in C (``clock_nanosleep`` to each absolute deadline), built
+  with the machine's ``cc`` when it has one: what a wake-up costs this machine's kernel and
+  hypervisor, below any Python;
 - ``zenoh session``: a zenoh-python peer session joined to a listening peer, doing nothing
   (Zenoh's own background threads);
 - ``zenoh session + 100 Hz put``: the sleep loop putting a 20-byte message on a key each tick
@@ -34,9 +37,11 @@ import datetime
 import json
 import os
 import platform
+import shutil
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -119,6 +124,36 @@ def baseline(kind: str, hz: float, seconds: float, endpoint: str) -> int:
     return 0
 
 
+C_SLEEP_LOOP = r"""
+#include <stdlib.h>
+#include <time.h>
+int main(int argc, char **argv) {  /* argv: hz seconds */
+    long period = (long)(1e9 / atof(argv[1]));
+    struct timespec t, end;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    end = t;
+    end.tv_sec += (time_t)atof(argv[2]);
+    for (;;) {
+        t.tv_nsec += period;
+        while (t.tv_nsec >= 1000000000L) { t.tv_nsec -= 1000000000L; t.tv_sec++; }
+        if (t.tv_sec > end.tv_sec || (t.tv_sec == end.tv_sec && t.tv_nsec >= end.tv_nsec)) return 0;
+        clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &t, NULL);
+    }
+}
+"""
+
+
+def c_sleep_loop(folder: Path) -> Path | None:
+    """The C sleep loop, built in ``folder`` with ``cc``; None if this machine has no compiler."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        return None
+    source, binary = folder / "sleep_loop.c", folder / "sleep_loop"
+    source.write_text(C_SLEEP_LOOP)
+    built = subprocess.run([cc, "-O2", "-o", str(binary), str(source)], capture_output=True)
+    return binary if built.returncode == 0 else None
+
+
 def _inbox_loop(session, period: int, end: int) -> int:
     """The plainest loop that ticks and can also receive: a subscriber's callback puts what comes
     in a ``queue.SimpleQueue``; the main thread waits on it until each deadline (nothing comes),
@@ -167,8 +202,6 @@ def main(argv: list[str] | None = None) -> int:
                         "per node-loop method (the timing itself adds a little CPU)")
     args = p.parse_args(argv)
     if args.profile:
-        import tempfile
-
         profile_dir = tempfile.mkdtemp(prefix="idle-cpu-profile-")
         os.environ["RETRIEVER_BENCH_CPU_PROFILE"] = profile_dir  # inherited by the worker
 
@@ -208,6 +241,10 @@ def main(argv: list[str] | None = None) -> int:
     procs["session"] = subprocess.Popen(me + ["session", str(args.hz), span, listen])
     procs["put"] = subprocess.Popen(me + ["put", str(args.hz), span, listen])
     procs["inbox"] = subprocess.Popen(me + ["inbox", str(args.hz), span, listen])
+    build_dir = Path(tempfile.mkdtemp(prefix="idle-cpu-"))
+    c_loop = c_sleep_loop(build_dir)
+    if c_loop is not None:
+        procs["c-sleep"] = subprocess.Popen([str(c_loop), str(args.hz), span])
     time.sleep(max(0.0, (session.t0 + args.settle * 1e9 - time.time_ns()) / 1e9))
 
     each_worker = ["worker", *(f"worker {name}" for name in names[1:])]  # (pids' key of each flow's worker)
@@ -223,6 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     run.finish()
     for proc in procs.values():
         proc.wait()
+    shutil.rmtree(build_dir, ignore_errors=True)
     pct = {k: (after[k] - before[k]) / wall * 100 for k in pids}
     ticks = sum(1 for r in pipe.trace.steps if r.node == "idle")
     each = sorted(pct[key] for key in each_worker)
@@ -231,6 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         ("retriever-zenoh worker", "worker", f"Idle() @ Rate({args.hz:g}): node loop + its zenoh session"),
         ("retriever coordinator", "coordinator", "this process: hub session, collects step records"),
         ("bare sleep loop", "sleep", f"time.sleep to each next {1e3 / args.hz:g} ms deadline"),
+        ("C sleep loop", "c-sleep", "clock_nanosleep to each deadline, compiled: a wake-up's cost below Python"),
         ("zenoh session", "session", "zenoh-python peer session, joined, doing nothing"),
         (f"zenoh session + {args.hz:g} Hz put", "put", "the sleep loop + Publisher.put(20 B) each tick"),
         ("zenoh session + inbox loop", "inbox", "a subscriber into a SimpleQueue, waited on to each deadline; "
@@ -241,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     print(head)
     print("─" * (len(head) + 50))
     for name, key, what in rows:
-        print(f"{name:<28} │ {pct[key]:>15.2f} │ {what}")
+        shown = f"{pct[key]:>15.2f}" if key in pct else f"{'n/a':>15}"  # (no C compiler: no C loop)
+        print(f"{name:<28} │ {shown} │ {what}")
     if args.flows > 1:
         print(f"{'each of the ' + str(args.flows) + ' workers':<28} │ {statistics.median(each):>15.2f} │ median "
               f"(range {each[0]:.2f}-{each[-1]:.2f}; all {sum(each):.2f}); the row above is the first one's")
@@ -253,8 +293,6 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{k} threads (% of a core): " + ", ".join(f"{n} {v:.2f}" for v, n in busy))
         print()
     if args.profile:
-        import shutil
-
         files = list(Path(profile_dir).glob("*.json"))
         if files:
             prof = json.loads(files[0].read_text())
