@@ -229,37 +229,44 @@ class Pipeline:
         fresh = self._session is None
         if fresh and log is not None and "keep" not in options and _realtime(backend):
             options["keep"] = "counters"  # a logged real-time run may run for hours: the log holds it
-        try:  # a run refused before it starts leaves the pipeline as it was (a zenoh session has workers)
+        session, begun = None, False
+        try:
             session = self._session_for(backend, options)
-        except BaseException:
-            if log_file is not None:
-                log_file.discard()
-            raise
-        # from the moment the log is begun, a signal stops the run between ticks (the log then
-        # ends "interrupted"), even one that arrives while the log's header is being written
-        with _stop_between_ticks(session, logged=log_file is not None):
-            try:
+            # a signal stops a logged run between ticks (its log then ends "interrupted") from
+            # before the log is begun until after it is closed: one that comes while the header
+            # or the end is being written does not tear the file
+            with _stop_between_ticks(session, logged=log_file is not None):
                 if duration is None and type(session).run_to_end is Session.run_to_end:
                     session.run_to_end()  # raises: this backend needs a duration
                 if log_file is not None:
                     _open_log(session, log_file)
-            except BaseException:
-                if fresh:
-                    self._session = None
-                    session.close()
-                if log_file is not None:
-                    log_file.discard()
+                begun = True
+                try:
+                    if duration is None:
+                        session.run_to_end()
+                    else:
+                        session.advance(session.now_ns + seconds_to_ns(duration))
+                except BaseException as exc:
+                    _close_log(session, exc)
+                    _forget(session)
+                    raise
+                _close_log(session)
+        except BaseException as exc:
+            if begun:
                 raise
-            try:
-                if duration is None:
-                    session.run_to_end()
-                else:
-                    session.advance(session.now_ns + seconds_to_ns(duration))
-            except BaseException as exc:
-                _close_log(session, exc)
-                _forget(session)
-                raise
-        _close_log(session)
+            # refused before it started: the pipeline is left as it was (a zenoh session has
+            # workers), and no file claims to hold the run
+            if session is not None and fresh:
+                self._session = None
+                session.close()
+            if log_file is not None:
+                log_file.discard()
+            if session is not None and session.stop_requested and not isinstance(exc, KeyboardInterrupt):
+                raise KeyboardInterrupt from exc  # Ctrl-C came as it failed: what was asked
+            raise
+        finally:
+            if session is not None:
+                session.stop_requested = False  # asked as a run ended by itself: not the next one's
         _forget(session)
         return session.trace
 

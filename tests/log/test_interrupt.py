@@ -67,3 +67,47 @@ def test_a_signal_while_the_log_is_begun_finishes_it_interrupted(tmp_path, monke
     assert log.complete and log.end["status"] == "interrupted"
     assert replay(log).identical
     assert pipe.now < 1e6
+
+
+def test_a_signal_while_the_log_is_ended_does_not_tear_it(tmp_path, monkeypatch):
+    """Ctrl-C while the log's end is written (a short run writes most of it there): the end is
+    written whole, and the run had finished, so the log says so."""
+    from retriever.log import writer
+    from tests.log.log_flows import build_small
+
+    close = writer.LogWriter.close
+
+    def interrupt_then_close(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return close(self, *args, **kwargs)
+
+    monkeypatch.setattr(writer.LogWriter, "close", interrupt_then_close)
+    path = tmp_path / "ended.mcap"
+    pipe = build_small()
+    pipe.run(duration=0.05, log=path)
+    log = read_log(path)
+    assert log.complete and log.end["status"] == "finished"
+    assert replay(log).identical
+
+
+def test_a_signal_while_a_log_fails_to_begin_interrupts_and_is_not_carried_over(tmp_path, monkeypatch):
+    """Ctrl-C while a log that cannot be begun is being begun: the run is interrupted (what was
+    asked), the file is gone, and the pipeline runs on as before, not stopped by the old request."""
+    from retriever.errors import LogWriteError
+    from retriever.log import writer
+    from tests.log.log_flows import build_small
+
+    def interrupt_then_fail(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        raise LogWriteError("the disk went away")
+
+    monkeypatch.setattr(writer.LogWriter, "__init__", interrupt_then_fail)
+    path = tmp_path / "failed.mcap"
+    pipe = build_small()
+    pipe.run(duration=0)  # a session exists (a log still records from T0)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        pipe.run(duration=1, log=path)
+    assert isinstance(caught.value.__cause__, LogWriteError)
+    assert not path.exists()
+    pipe.run(duration=1)
+    assert pipe.now == 1
