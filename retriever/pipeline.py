@@ -255,14 +255,18 @@ class Pipeline:
             if begun:
                 raise
             # refused before it started: the pipeline is left as it was (a zenoh session has
-            # workers), and no file claims to hold the run
-            if session is not None and fresh:
+            # workers: one interrupted as it started may be set on the pipeline, not yet returned),
+            # and no file claims to hold the run
+            opened = self._session if fresh else None
+            if opened is not None:
                 self._session = None
-                session.close()
+                opened.close()
+            if session is not None:
+                session.log = None  # (a writer begun on the file being discarded)
             if log_file is not None:
                 log_file.discard()
             if session is not None and session.stop_requested and not isinstance(exc, KeyboardInterrupt):
-                raise KeyboardInterrupt from exc  # Ctrl-C came as it failed: what was asked
+                raise KeyboardInterrupt from exc  # a stop (Ctrl-C, RunHandle.stop) came as it failed
             raise
         finally:
             if session is not None:
@@ -352,7 +356,7 @@ class RunHandle:
     def stop(self) -> None:
         """Ask the run to stop between two ticks (a no-op once it is over)."""
         session = self._pipe._session
-        if session is not None:
+        if session is not None and not self.done:  # (a request left on the session would stop the next run)
             session.stop_requested = True
 
 

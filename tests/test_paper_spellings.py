@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from retriever import StepError, read_log
+from retriever import BackendError, StepError, read_log
 from retriever.log import replay
 from tests.paper_flows import build, build_ending
 
@@ -59,6 +59,18 @@ def test_a_background_run_stops_when_its_handle_says_so():
     with pytest.raises(KeyboardInterrupt):
         handle.wait(timeout=60)
     assert handle.done and 0 < len(pipe.trace.steps) < 1e6 * 40
+
+
+def test_a_handle_asked_to_stop_once_its_run_is_over_stops_nothing_after():
+    """stop() once the run is over is a no-op: no request is left for the next run to meet."""
+    pipe = build()
+    handle = pipe.run(duration=1.0, blocking=False)
+    handle.wait(timeout=60)
+    handle.stop()
+    with pytest.raises(BackendError, match="needs a duration"):  # refused as itself, not as a Ctrl-C
+        pipe.run(duration=None)
+    pipe.run(duration=1.0)
+    assert pipe.now == 2.0
 
 
 @pytest.mark.parametrize("backend", ["in-process", "multiprocessing"])
