@@ -11,10 +11,8 @@ depends on timing for its verdict.
 from __future__ import annotations
 
 import pytest
-import zenoh
 
 from retriever import Latest, Pipeline, Rate, Trigger
-from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import _DATA, _NUDGE, INLINE_STEP_NS, StopRun
 from retriever.backends.zenoh.wire import WireEncoder
 from retriever.backends.zenoh.worker import build_loop, on_a_cycle
@@ -81,12 +79,6 @@ def test_cycles_are_found_through_any_number_of_nodes():
 # ---------------------------------------------------------------------------------------------
 # A NodeLoop driven by hand: the test thread plays the receiving thread
 # ---------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
-
-
 def faulty_loop(session):
     with Pipeline("inline_by_hand") as pipe:
         src = Ticker().configure(name="counter") @ Rate(hz=20)

@@ -13,21 +13,14 @@ import queue
 import threading
 
 import pytest
-import zenoh
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.hub import peer_config, wait_for_answers
+from retriever.backends.zenoh.hub import wait_for_answers
 from retriever.backends.zenoh.loop import _CONTROL, _DATA
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_progress
 from retriever.backends.zenoh.worker import _await_control, build_loop
 
 from .payload_flows import Camera, Viewer, frame
-
-
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
 
 
 @pytest.fixture(scope="module")

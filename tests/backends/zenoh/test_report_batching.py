@@ -9,22 +9,14 @@ clock read from a variable: no test here waits on the wall clock.
 from __future__ import annotations
 
 import pytest
-import zenoh
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS
 from retriever.backends.zenoh.worker import build_loop
 
 from .payload_flows import Camera, Viewer, frame
 
 MS = 1_000_000
-
-
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
 
 
 @pytest.fixture

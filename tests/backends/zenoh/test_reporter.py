@@ -11,9 +11,7 @@ from __future__ import annotations
 import threading
 
 import pytest
-import zenoh
 
-from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
 from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter, ReportError
 from retriever.flow.burst import MAX_BURST
@@ -23,12 +21,6 @@ KEYS = KeySpace("reporter-test")
 KEY = KEYS.report("cam")
 SENTINEL = f"{KEYS.prefix}/zz/end"
 RECORD = ((5, 0), {"x": (("src", "value", 1),)}, (("cam", "image", 0),), "ok", None, 100, 7)
-
-
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
 
 
 class Received(list):

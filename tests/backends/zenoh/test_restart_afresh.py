@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import msgpack
 import pytest
-import zenoh
 
 from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
-from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import _CONTROL, _DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
 from retriever.backends.zenoh.wire import Progress, WireEncoder
 from retriever.backends.zenoh.worker import build_loop
@@ -23,12 +21,6 @@ from .semantics_flows import Ticker, WhereRun
 MS = 1_000_000
 STREAM = ("counter", "value")
 FIRST = RESTART_SEQ_GAP + 7  # the seq a restarted counter's stream goes on from, in these tests
-
-
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
 
 
 @pytest.fixture

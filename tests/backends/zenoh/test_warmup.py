@@ -11,10 +11,8 @@ from __future__ import annotations
 import threading
 
 import pytest
-import zenoh
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.loop import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from retriever.backends.zenoh.worker import build_loop
@@ -22,12 +20,6 @@ from retriever.backends.zenoh.worker import build_loop
 from .payload_flows import Camera, Viewer, frame
 
 MS = 1_000_000
-
-
-@pytest.fixture(scope="module")
-def session():
-    with zenoh.open(peer_config()) as s:
-        yield s
 
 
 @pytest.fixture(scope="module")
