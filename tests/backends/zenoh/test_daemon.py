@@ -585,19 +585,10 @@ def test_a_daemon_that_does_not_answer_is_said_to_not_answer_not_to_refuse(worke
 
 def _until_every_thread_stopped(pid: int) -> None:
     """SIGSTOP takes each thread as it next enters the kernel, not when kill() returns (one CI run
-    had the suspended daemon still answer): wait until /proc shows every thread stopped."""
-    give_up = time.monotonic() + BOUND_S  # a bound, not a speed: it takes microseconds
-    while True:
-        states = set()
-        for task in Path(f"/proc/{pid}/task").iterdir():
-            try:
-                states.add((task / "stat").read_text().rpartition(")")[2].split()[0])
-            except FileNotFoundError:  # a thread that ended as the folder was listed
-                pass
-        if states <= {"T", "t"}:
-            return
-        assert time.monotonic() < give_up, f"daemon {pid} never stopped: thread states {states}"
-        time.sleep(0.001)
+    had the suspended daemon still answer): the parent learns of the stop once every thread of
+    its child has stopped (waitpid WUNTRACED), which does not reap it."""
+    _, status = os.waitpid(pid, os.WUNTRACED)
+    assert os.WIFSTOPPED(status), f"daemon {pid} ended instead of stopping: status {status}"
 
 
 def test_the_password_folders_of_dead_daemons_are_reaped_those_of_live_ones_kept(tmp_path, namespace):
