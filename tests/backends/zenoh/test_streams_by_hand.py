@@ -11,7 +11,7 @@ from retriever.backends.zenoh.wire import WireEncoder
 from . import test_restart_afresh as by_hand
 from .test_restart_afresh import MS, STREAM, consumed, data, tick_all
 
-session, loop = by_hand.session, by_hand.loop  # its fixtures: a NodeLoop of a Queue consumer of counter.value
+loop = by_hand.loop  # its fixture: a NodeLoop of a Queue consumer of counter.value (session: conftest.py)
 
 
 def burst(first: int, n: int, t_ms: int) -> tuple:
