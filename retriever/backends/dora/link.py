@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 import time
 
+from ..zenoh.hub import weak_callback
 from ..zenoh.loop import _CONTROL, _DATA, _PROGRESS, NodeLoop
 from .dataflow import PROGRESS, DoraNames
 
@@ -81,7 +82,8 @@ class DoraNodeLoop(NodeLoop):
             self.receiver.start()
 
     def declare_outputs(self) -> None:
-        self._declared.append(self.session.declare_queryable(self.keys.progress(self.id), self._answer_progress))
+        self._declared.append(self.session.declare_queryable(self.keys.progress(self.id),
+                                                          weak_callback(self._answer_progress)))
         node = self._dora()
         outputs = self.names.outputs[self.id]
         self.publishers = {port: DoraOutput(node, outputs[port]) if port in outputs else Nowhere()

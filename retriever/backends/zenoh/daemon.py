@@ -50,7 +50,7 @@ import zenoh
 from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
-from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers
+from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers, weak_callback
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
 
@@ -466,7 +466,7 @@ def _announce_and_answer(settings: WorkerSettings, session: zenoh.Session, stop:
         return taken, {}
     daemon = WorkerDaemon(settings, session)
     # the queryable before the token: whoever sees the worker can ask it at once
-    queryable = session.declare_queryable(keys.ctl(settings.name), daemon.answer)
+    queryable = session.declare_queryable(keys.ctl(settings.name), weak_callback(daemon.answer))
     token = session.liveliness().declare_token(keys.workers(settings.name))
     say(_start_line(settings))
     while not stop.wait(STOP_CHECK_S):

@@ -41,6 +41,7 @@ from ...flow._base import make_invoker, make_output_reader
 from ...flow.burst import Burst
 from ...graph import Node
 from ...sync import PortBuffer, select_inputs
+from .hub import weak_callback
 from .reporter import Reporter
 from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, decode_control, decode_events,
                    decode_progress)
@@ -299,7 +300,7 @@ class NodeLoop:
     def declare_inputs(self) -> None:
         """What this node listens to: its input streams, their producers' progress, the run's control."""
         put = self.inbox.put
-        receive = self._receive if self.inline else put
+        receive = weak_callback(self._receive) if self.inline else put
         s, keys = self.session, self.keys
         for src, src_port in sorted({(e.src, e.src_port) for e in self.edges}):
             self._declared.append(s.declare_subscriber(
@@ -314,7 +315,7 @@ class NodeLoop:
     def declare_outputs(self) -> None:
         """What this node speaks on: its data and progress keys, and the answer to progress queries."""
         s, keys = self.session, self.keys
-        self._declared.append(s.declare_queryable(keys.progress(self.id), self._answer_progress))
+        self._declared.append(s.declare_queryable(keys.progress(self.id), weak_callback(self._answer_progress)))
         self.publishers = {port: self._publisher(keys.data(self.id, port)) for port in self.ports}
         self.progress_publisher = self._publisher(keys.progress(self.id))
         self.warm_publisher = s.declare_publisher(keys.warm(self.id), express=True)
@@ -341,7 +342,8 @@ class NodeLoop:
         self._declared = []
         self.declare_inputs()
         if queryables:
-            self._declared.append(self.session.declare_queryable(self.keys.progress(self.id), self._answer_progress))
+            self._declared.append(self.session.declare_queryable(self.keys.progress(self.id),
+                                                                  weak_callback(self._answer_progress)))
         for d in [*queryables, *subscribers]:
             d.undeclare()
         self._declared += kept

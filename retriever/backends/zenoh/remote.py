@@ -23,6 +23,7 @@ import zenoh
 
 from ...errors import BackendError
 from .host import Host
+from .hub import weak_callback
 from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -75,7 +76,7 @@ class RemoteHost(Host):
         self.session, self.keys, self.name, self.run = session, keys, name, run
         self.processes: dict[int, RemoteProcess] = {}
         self.garbage = 0  # events on its key that were not its daemon's
-        self._events = session.declare_subscriber(keys.worker_events(name), self._event)
+        self._events = session.declare_subscriber(keys.worker_events(name), weak_callback(self._event))
 
     # -- requests ------------------------------------------------------------------------------
     def request(self, op: str, args: dict) -> dict:
