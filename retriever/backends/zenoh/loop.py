@@ -456,13 +456,21 @@ class NodeLoop:
             with self.lock:
                 self.next_rate = (self.clock.tick_time(self.k), 0)
         self._publish_progress()
+        # a source on a Rate clock, in real time, its outputs not delayed: an idle pass of the
+        # loop takes the short way (issue 21: an idle 100 Hz flow's CPU)
+        plain_source = (not self.virtual and not self.edges and not self.inputs and not self.fallbacks
+                        and self.clock.hz is not None and not self.latency_ns and not self.spin_ns)
         while not self.stopping:
-            self._drain()
-            if self.stopping:
-                break
-            now = self.now()
-            self._release(now)
-            wake = self._try_tick(now)
+            if plain_source and not (self.pending or self.held or self.restarting or self.inbox.qsize()):
+                now = self.now()
+                wake = self._source_pass(now)
+            else:
+                self._drain()
+                if self.stopping:
+                    break
+                now = self.now()
+                self._release(now)
+                wake = self._try_tick(now)
             if wake is _TICKED:
                 if self.flush_due is not None and now >= self.flush_due:  # (now: before that tick)
                     self.flush()  # also when ticks run back to back: a late node still reports
@@ -597,6 +605,41 @@ class NodeLoop:
                 heapq.heappop(self.pending)
                 self.pending_set.discard(tau)
         self._tick(tau, incomplete)
+        return self._after_tick()
+
+    def _source_pass(self, now: int) -> int | str:
+        """``_try_tick`` for a plain source (see ``run``) with nothing pending, held, queued or
+        restarting: its next Rate tick, run as ``_tick`` would (no inputs to select or wait for)."""
+        tau = self.next_rate
+        if tau is None or tau[0] >= self.end:
+            return self._done_waiting(now)
+        if tau[0] > now:
+            return tau[0]
+        with self.lock:
+            self.running = tau
+            self.k += 1
+            self.next_rate = (self.clock.tick_time(self.k), 0)
+        self.last_tick = tau
+        detail: dict[str, Any] | None = self.pending_detail or None
+        self.pending_detail = {}
+        start = time.time_ns()
+        try:
+            outputs = list(self.read(self.invoke({})))
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:
+            self._step_failed(tau, {}, detail, exc, start)
+            return self._after_tick()
+        wall = time.time_ns() - start
+        self.last_wall = wall
+        overran = self.period_ns and wall > self.period_ns
+        status = "overrun" if overran else "ok"
+        if outputs:
+            self._emit(tau, {}, outputs, detail, start, wall, status)
+        else:  # as _emit with no event: no stamp, nothing to publish but progress
+            self._finish_tick(tau, {}, (), status, detail, start, wall)
+        if overran:
+            self._overran(tau, wall, start + wall - self.t0)
         return self._after_tick()
 
     def _after_tick(self) -> int | str:
@@ -934,24 +977,7 @@ class NodeLoop:
         except KeyboardInterrupt:
             raise
         except BaseException as exc:  # SystemExit too: sys.exit(1) in a step is that step's error, as in-process
-            wall = self.last_wall = time.time_ns() - start
-            if isinstance(exc, SystemExit) and exc.code in (None, 0):
-                # sys.exit(0): the whole run ends here, cleanly. The coordinator is told first
-                # (it stops every node), then this loop ends as if told to stop.
-                self._finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
-                if self.on_exit is not None:
-                    self.on_exit(tau)
-                self.stopping = self.told_to_stop = True
-                return
-            error = f"{type(exc).__name__}: {exc}"
-            self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
-                              start, wall)
-            if self.on_error == "stop":
-                raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
-            if self.on_error == "restart":
-                self.restarting = True
-                if self.on_restart is not None:
-                    self.on_restart(tau, error)
+            self._step_failed(tau, consumed, detail, exc, start)
             return
         wall = time.time_ns() - start
         self.last_wall = wall
@@ -960,6 +986,28 @@ class NodeLoop:
                    "overrun" if overran else "incomplete" if incomplete else "ok")
         if overran:
             self._overran(tau, wall, start + wall - self.t0)
+
+    def _step_failed(self, tau, consumed, detail, exc: BaseException, start: int) -> None:
+        """The step raised ``exc`` (not KeyboardInterrupt): record it, then stop the run, restart
+        the flow or go on, as ``on_error`` says; ``sys.exit(0)`` ends the whole run cleanly."""
+        wall = self.last_wall = time.time_ns() - start
+        if isinstance(exc, SystemExit) and exc.code in (None, 0):
+            # sys.exit(0): the whole run ends here, cleanly. The coordinator is told first
+            # (it stops every node), then this loop ends as if told to stop.
+            self._finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
+            if self.on_exit is not None:
+                self.on_exit(tau)
+            self.stopping = self.told_to_stop = True
+            return
+        error = f"{type(exc).__name__}: {exc}"
+        self._finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
+                          start, wall)
+        if self.on_error == "stop":
+            raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
+        if self.on_error == "restart":
+            self.restarting = True
+            if self.on_restart is not None:
+                self.on_restart(tau, error)
 
     def _emit(self, tau, consumed, outputs, detail, start, wall, status) -> None:
         """Publish a step's outputs (or hold them, LET) and record it with ``status``: ``ok``,

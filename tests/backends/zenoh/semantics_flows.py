@@ -57,6 +57,21 @@ class Ticker(Flow[None, Value]):
         return Value(self.k - 1)
 
 
+class FailingTicker(Flow[None, Value]):
+    """A source: emits its call index k = 0, 1, 2, …, but raises ``ValueError`` on the calls in
+    ``fail_at``, or outputs nothing on those in ``quiet_at``."""
+
+    def __init__(self, fail_at: list, quiet_at: list = ()):
+        self.fail_at, self.quiet_at = list(fail_at), list(quiet_at)
+        self.k = 0
+
+    def step(self, inp: None) -> Value | None:
+        self.k += 1
+        if self.k - 1 in self.fail_at:
+            raise ValueError(f"source failed at k={self.k - 1}")
+        return None if self.k - 1 in self.quiet_at else Value(self.k - 1)
+
+
 class TimerSlack(Flow[None, Value]):
     """A source: emits the timer slack (ns) of the thread that runs its step (Linux prctl)."""
 

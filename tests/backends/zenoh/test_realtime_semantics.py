@@ -38,6 +38,7 @@ from .semantics_flows import (
     BigStall,
     BigTicker,
     Echo,
+    FailingTicker,
     Faulty,
     PairProbe,
     PairSource,
@@ -190,6 +191,30 @@ def test_on_error_skip_tick_records_the_error_and_goes_on_with_the_same_state():
     assert [r["calls"] for r in reports] == [i + 1 for i in range(len(recs)) if recs[i].status == "ok"]
     assert 3 not in [r["x"] for r in reports]
     assert counts(pipe)["garbage"] == 0
+
+
+@pytest.mark.parametrize("on_error", ["skip_tick", "stop"])
+def test_a_source_that_fails_or_outputs_nothing_is_recorded_as_any_flow(on_error):
+    """A Rate source's ticks take the loop's short pass (NodeLoop._source_pass): its error, a tick
+    that outputs nothing, and its consumer see what a flow with inputs would."""
+    with Pipeline(f"src_{on_error}") as pipe:
+        src = FailingTicker(fail_at=[3], quiet_at=[5]).configure(name="src", on_error=on_error) @ Rate(hz=20)
+        src.then(Faulty(fail_at=[]).configure(name="sink") @ Trigger("x"), sync=Latest())
+    if on_error == "stop":
+        with pytest.raises(StepError, match=r"src.*source failed at k=3"):
+            run(pipe, 1.0)
+        recs = pipe.trace.steps_of("src")
+        assert [s.status for s in recs] == ["ok"] * 3 + ["error"], recs
+        return
+    trace = run(pipe, 1.0)
+    recs = trace.steps_of("src")
+    assert [s.status for s in recs] == ["ok"] * 3 + ["error"] + ["ok"] * (len(recs) - 4), recs
+    assert detail(recs[3]) == {"error": "ValueError: source failed at k=3", "on_error": "skip_tick"}
+    assert recs[3].produced == () and recs[5].produced == ()
+    assert [len(s.produced) for s in recs[:8]] == [1, 1, 1, 0, 1, 0, 1, 1]
+    by_id = check_trace_basics(pipe, trace)
+    seen = [by_id[s.produced[0]].value["x"] for s in trace.steps_of("sink")]
+    assert seen == [k for k in range(len(recs)) if k not in (3, 5)][:len(seen)] and len(seen) >= 10, seen
 
 
 def test_sys_exit_in_a_step_is_that_steps_error_as_in_process():
