@@ -39,7 +39,7 @@ from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
-from .hub import await_segments_released, mapped_segments, new_zid, open_hub
+from .hub import await_segments_released, mapped_segments, new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
 from .host import Host, LocalHost, WorkerProcess
 from .seen import EventIds, RecentTicks
@@ -200,8 +200,8 @@ class Coordinator(Session):
         self._subscribers += [
             self._hub.declare_subscriber(self.keys.status("**"),
                                          lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
-            self._hub.declare_queryable(self.keys.finished(), self._answer_finished),
-            self._hub.declare_queryable(self.keys.start(), self._answer_start)]
+            self._hub.declare_queryable(self.keys.finished(), weak_callback(self._answer_finished)),
+            self._hub.declare_queryable(self.keys.start(), weak_callback(self._answer_start))]
 
     def _place(self) -> dict[str, Host]:
         """Every node on this machine: the spec in the run directory, the workers its children."""

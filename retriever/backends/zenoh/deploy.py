@@ -32,7 +32,7 @@ from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session, open_access
-from .hub import peer_config, wait_for_peers
+from .hub import peer_config, wait_for_peers, weak_callback
 from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, decode_control
 from .coordinator import Coordinator
@@ -141,8 +141,9 @@ class Deployment(Coordinator):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
-        self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), self._answer))
-        self._subscribers.append(self._hub.liveliness().declare_subscriber(self.keys.workers(), self._worker_token))
+        self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), weak_callback(self._answer)))
+        self._subscribers.append(self._hub.liveliness().declare_subscriber(
+            self.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
 
     def _discover(self) -> dict[str, dict]:

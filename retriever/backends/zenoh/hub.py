@@ -256,20 +256,21 @@ def wait_for_links(session: zenoh.Session, zids: set[str], timeout: float, stop=
     return set()
 
 
-def weak_callback(method: Callable[[Any], None]) -> Callable[[Any], None]:
-    """A callback for Zenoh that calls ``method`` while its object lives, without holding it.
+def weak_callback(method: Callable[..., None], *leading: Any) -> Callable[[Any], None]:
+    """A callback for Zenoh that calls ``method(*leading, sample)`` while the method's object
+    lives, without holding it: every bound method handed to Zenoh goes through here.
 
     Zenoh sometimes keeps an undeclared subscriber's or queryable's callback for as long as its
     session lives (under load, 2-3 of 200 node loops declared, undeclared and closed by hand).
-    A callback holding its object (a node loop, a worker daemon, a remote host) then held the
-    object's session in a cycle through Zenoh that no garbage collection sees, and with it the
-    session's shared-memory segment, which outlived the process in /dev/shm (Zenoh's exit()
-    skips a segment still mapped)."""
+    A callback holding its object (a node loop, a worker daemon or its runs, a coordinator) then
+    held the object's session in a cycle through Zenoh that no garbage collection sees, and with
+    it the session's shared-memory segment, which outlived the process in /dev/shm (Zenoh's
+    exit() skips a segment still mapped)."""
     ref = weakref.WeakMethod(method)
 
     def call(arg: Any) -> None:
         bound = ref()
         if bound is not None:
-            bound(arg)
+            bound(*leading, arg)
 
     return call

@@ -38,6 +38,7 @@ from ...ir import IR
 from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
 from .host import WORKER_MODULE
+from .hub import weak_callback
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -83,7 +84,7 @@ class DaemonRuns:
         # from inside a query's callback blocked it past the coordinator's patience)
         self._coordinators = 0
         self._coordinator_watch = session.liveliness().declare_subscriber(
-            self.keys.deployment(), self._coordinator_seen, history=True)
+            self.keys.deployment(), weak_callback(self._coordinator_seen), history=True)
 
     @property
     def ops(self) -> dict[str, Callable[[dict], dict]]:
@@ -134,7 +135,7 @@ class DaemonRuns:
         run.ir = ir.doc
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
         run.watch = self.session.liveliness().declare_subscriber(
-            self.keys.deployment(), lambda sample: self._coordinator_token(run, sample), history=True)
+            self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
         return {"nodes": sorted(nodes)}
 
     def spawn(self, args: dict) -> dict:

@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import threading
+import weakref
 from pathlib import Path
 
 import zenoh
@@ -31,6 +32,7 @@ from retriever.backends.zenoh.hub import (
     port_is_free,
     shm_pool_bytes,
     wait_for_links,
+    weak_callback,
 )
 from retriever.backends.zenoh.wire import KeySpace, WireError, decode_data
 
@@ -210,3 +212,22 @@ def test_a_session_given_a_new_zid_has_it_and_a_peer_waits_for_a_link_to_it_by_t
             assert wait_for_links(joiner, {mine}, timeout=30.0) == set()
             # one that never comes: named, once the bound is out
             assert wait_for_links(joiner, {mine, never}, timeout=0.2) == {never}
+
+
+class Listener:
+    def __init__(self):
+        self.heard = []
+
+    def hear(self, *args):
+        self.heard.append(args)
+
+
+def test_a_weak_callback_calls_its_method_while_its_object_lives_and_does_not_keep_it():
+    listener = Listener()
+    callback = weak_callback(listener.hear, "run-1")
+    callback("sample")
+    assert listener.heard == [("run-1", "sample")]
+    alive = weakref.ref(listener)
+    del listener
+    assert alive() is None, "the callback (which Zenoh may keep) holds its object"
+    callback("late")  # what comes after is dropped
