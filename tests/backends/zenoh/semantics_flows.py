@@ -72,6 +72,24 @@ class FailingTicker(Flow[None, Value]):
         return None if self.k - 1 in self.quiet_at else Value(self.k - 1)
 
 
+class QuietSource(Flow[None, Value]):
+    """A source that outputs nothing but on the calls in ``emit_at`` (its call index k), raises
+    ``ValueError`` on those in ``fail_at`` and sleeps ``sleep_at[k]`` seconds on those in it."""
+
+    def __init__(self, emit_at: list, fail_at: list = (), sleep_at: dict | None = None):
+        self.emit_at, self.fail_at, self.sleep_at = list(emit_at), list(fail_at), dict(sleep_at or {})
+        self.k = 0
+
+    def step(self, inp: None) -> Value | None:
+        k = self.k
+        self.k += 1
+        if k in self.sleep_at:
+            time.sleep(self.sleep_at[k])
+        if k in self.fail_at:
+            raise ValueError(f"quiet source failed at k={k}")
+        return Value(k) if k in self.emit_at else None
+
+
 class TimerSlack(Flow[None, Value]):
     """A source: emits the timer slack (ns) of the thread that runs its step (Linux prctl)."""
 

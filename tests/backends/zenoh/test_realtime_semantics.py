@@ -43,6 +43,7 @@ from .semantics_flows import (
     PairProbe,
     PairSource,
     Probe,
+    QuietSource,
     Sleepy,
     SlowEcho,
     Stall,
@@ -215,6 +216,32 @@ def test_a_source_that_fails_or_outputs_nothing_is_recorded_as_any_flow(on_error
     by_id = check_trace_basics(pipe, trace)
     seen = [by_id[s.produced[0]].value["x"] for s in trace.steps_of("sink")]
     assert seen == [k for k in range(len(recs)) if k not in (3, 5)][:len(seen)] and len(seen) >= 10, seen
+
+
+def test_a_quiet_source_keeps_every_record_and_its_consumer_on_time():
+    """A source whose steps return nothing runs in NodeLoop._quiet_source, a lean loop of its
+    own: each tick still has its record (an error and an overrun too, and the ticks the overrun
+    skipped are counted), the events it does emit arrive where a flow with inputs would put
+    them, and its consumer, on the same Rate, ticks on time throughout."""
+    with Pipeline("quiet_src") as pipe:
+        src = QuietSource(emit_at=[6, 7, 14], fail_at=[3], sleep_at={9: 0.12}).configure(
+            name="src", on_error="skip_tick") @ Rate(hz=20)
+        src.then(Probe().configure(name="sink") @ Rate(hz=20), sync=Latest(), deadline=0.3)
+    trace = run(pipe, 1.0)
+    recs = trace.steps_of("src")
+    statuses = [s.status for s in recs]
+    assert statuses[:10] == ["ok"] * 3 + ["error"] + ["ok"] * 5 + ["overrun"], statuses
+    assert detail(recs[3]) == {"error": "ValueError: quiet source failed at k=3", "on_error": "skip_tick"}
+    skipped = counts(pipe)["overrun"]
+    assert skipped >= 1 and detail(recs[10]) == {"overrun_skipped": skipped}, (skipped, recs[10])
+    assert len(recs) + skipped == 20, (len(recs), skipped)  # every tick with t < 1 s ran or was skipped
+    by_id = check_trace_basics(pipe, trace)
+    emitted = [by_id[s.produced[0]].value for s in recs if s.produced]
+    assert emitted == [6, 7, 14], emitted
+    sink = trace.steps_of("sink")
+    assert len(sink) == 20 and all(s.status == "ok" for s in sink), [s.status for s in sink]
+    seen = [by_id[s.consumed["x"][0]].value if s.consumed.get("x") else None for s in sink]
+    assert seen[:7] == [None] * 7 and seen[7:9] == [6, 7] and 14 in seen, seen  # (the tick before's)
 
 
 def test_sys_exit_in_a_step_is_that_steps_error_as_in_process():
