@@ -462,7 +462,7 @@ class NodeLoop:
                         and self.clock.hz is not None and not self.latency_ns and not self.spin_ns)
         while not self.stopping:
             quiet = plain_source and not (self.pending or self.held or self.restarting or self.inbox.qsize())
-            if quiet and self.warm_publish is None and not self.pending_detail:
+            if quiet and not self.pending_detail:
                 self._quiet_source()  # its ticks for as long as they are quiet
                 if self.stopping:
                     break
@@ -655,12 +655,13 @@ class NodeLoop:
 
     def _quiet_source(self) -> None:
         """Run a plain source's ticks (see ``run``) for as long as they are quiet: nothing
-        pending, held, queued, restarting or warmed up for, and steps that return nothing, on
-        time. Each such tick takes about as few operations as a hand-written loop that waits on
-        an inbox (issue 21: an idle 100 Hz flow's CPU; right after a wake-up the interpreter runs
-        cold, and the general pass cost about 45 µs a tick more than such a loop, measured in
-        the worker). Anything else returns to the general loop: a message (handled first), a
-        step's outputs, error or overrun (its tick finished first), a flush due, the end."""
+        pending, held, queued or restarting, and steps that return no event, on time. Each such
+        tick takes about as few operations as a hand-written loop that waits on an inbox (issue
+        21: an idle 100 Hz flow's CPU; right after a wake-up the interpreter runs cold, and the
+        general pass cost about 45 µs a tick more than such a loop, measured in the worker). A
+        source that has published still warms up before each tick, as in the general loop.
+        Anything else returns to the general loop: a message (handled first), a step's events,
+        error or overrun (its tick finished first), a flush due, the end."""
         lock, turn, get, time_ns, t0, end = self.lock, self.turn, self.inbox.get, time.time_ns, self.t0, self.end
         invoke, tick_time, period, queued = self.invoke, self.clock.tick_time, self.period_ns, self.inbox.qsize
         while not (self.stopping or self.restarting or queued()):  # (what came during a step: handled first)
@@ -671,15 +672,23 @@ class NodeLoop:
             if wait > 0:
                 if self.flush_due is not None and self.flush_due <= tau[0]:
                     return  # the general loop flushes before it waits
+                # after a long enough sleep, warm up just before the tick, as the general loop does
+                # for a node with consumers once it has published (see WARM_AHEAD_NS)
+                warm = self.warm_publish is not None and wait >= WARM_AFTER_IDLE_NS and tau[0] != self.warmed_for
                 turn.release()  # as in _wait
                 try:
-                    item = get(timeout=min(wait, 100_000_000) / 1e9)
+                    item = get(timeout=min(wait - WARM_AHEAD_NS if warm else wait, 100_000_000) / 1e9)
                 except queue.Empty:
-                    continue
+                    item = None
                 finally:
                     turn.acquire()
-                self._handle(item)
-                return
+                if item is not None:
+                    self._handle(item)
+                    return
+                if warm and time_ns() - t0 >= tau[0] - WARM_AHEAD_NS:
+                    self._warm(None)
+                    self.warmed_for = tau[0]
+                continue
             with lock:
                 self.running = tau
                 self.k = k = self.k + 1
@@ -694,7 +703,8 @@ class NodeLoop:
                 self._step_failed(tau, {}, None, exc, start)
                 return
             wall = self.last_wall = time_ns() - start
-            if raw is not None or (period and wall > period):
+            outputs = ()
+            if raw is not None:  # (an empty dict, an output object of Nones: quiet too)
                 try:
                     outputs = list(self.read(raw))
                 except KeyboardInterrupt:
@@ -702,6 +712,7 @@ class NodeLoop:
                 except BaseException as exc:
                     self._step_failed(tau, {}, None, exc, start)
                     return
+            if outputs or (period and wall > period):
                 self._source_stepped(tau, outputs, None, start, wall)
                 return
             with lock:

@@ -9,6 +9,7 @@ suite's business: it runs with warm-ups on.
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -112,3 +113,38 @@ def test_a_warm_up_that_fails_is_skipped_not_raised(session, spec):
     loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", [object()])  # not encodable
     loop._warm(b"not a data message")
     assert loop.warm_publish is None
+
+
+@pytest.mark.parametrize("sent", [True, False])
+def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(session, spec, sent):
+    """NodeLoop._quiet_source, driven by hand for one tick 10 ms ahead: a source that has sent
+    warms up on warm/cam before it steps (and publishes its frame), as the general loop would;
+    one that has not sent goes straight to the step."""
+    keys = KeySpace(spec["namespace"])
+    seen, done = [], threading.Event()
+
+    def on_sample(sample) -> None:
+        seen.append(str(sample.key_expr))
+        if str(sample.key_expr).endswith("/zz/end"):
+            done.set()
+
+    watcher = session.declare_subscriber(f"{keys.prefix}/**", on_sample)
+    loop = build_loop(spec, "cam", session)
+    loop.declare()
+    try:
+        if sent:
+            loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+        loop.t0 = time.time_ns()
+        loop.end = 10 * MS + 1  # one tick, at 10 ms: a wait longer than WARM_AFTER_IDLE_NS
+        loop.next_rate = (10 * MS, 0)
+        loop._quiet_source()
+        session.put(f"{keys.prefix}/zz/end", b"")  # local delivery keeps the session's order
+        assert done.wait(timeout=30), "the session's own sentinel never came back"
+        assert [record[3] for record in loop.records] == ["ok"], loop.records  # its status
+        published = [key for key in seen if key.startswith((keys.warm("cam"), keys.data("cam", "image")))]
+        expected = [keys.warm("cam"), keys.data("cam", "image")] if sent else [keys.data("cam", "image")]
+        assert published == expected, seen
+        assert loop.warmed_for == (10 * MS if sent else None)
+    finally:
+        loop.undeclare()
+        watcher.undeclare()
