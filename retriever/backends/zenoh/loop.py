@@ -662,7 +662,7 @@ class NodeLoop:
         source that has published still warms up before each tick, as in the general loop.
         Anything else returns to the general loop: a message (handled first), a step's events,
         error or overrun (its tick finished first), a flush due, the end."""
-        lock, turn, get, time_ns, t0, end = self.lock, self.turn, self.inbox.get, time.time_ns, self.t0, self.end
+        lock, time_ns, t0, end = self.lock, time.time_ns, self.t0, self.end
         invoke, tick_time, period, queued = self.invoke, self.clock.tick_time, self.period_ns, self.inbox.qsize
         while not (self.stopping or self.restarting or queued()):  # (what came during a step: handled first)
             tau = self.next_rate
@@ -672,20 +672,15 @@ class NodeLoop:
             if wait > 0:
                 if self.flush_due is not None and self.flush_due <= tau[0]:
                     return  # the general loop flushes before it waits
-                # after a long enough sleep, warm up just before the tick, as the general loop does
-                # for a node with consumers once it has published (see WARM_AHEAD_NS)
-                warm = self.warm_publish is not None and wait >= WARM_AFTER_IDLE_NS and tau[0] != self.warmed_for
-                turn.release()  # as in _wait
-                try:
-                    item = get(timeout=min(wait - WARM_AHEAD_NS if warm else wait, 100_000_000) / 1e9)
-                except queue.Empty:
-                    item = None
-                finally:
-                    turn.acquire()
-                if item is not None:
-                    self._handle(item)
-                    return
-                if warm and time_ns() - t0 >= tau[0] - WARM_AHEAD_NS:
+                # a node with consumers that has published warms up just before the tick, by the
+                # general loop's rule (_warm_target; a source has no arrivals to warm for)
+                warm_at = None
+                if self.warm_publish is not None:
+                    target, _ = self._warm_target(tau[0] - wait, tau[0])
+                    warm_at = None if target is None else target - WARM_AHEAD_NS
+                if self._wait(wait if warm_at is None else warm_at - (tau[0] - wait)):
+                    return  # a message came, and was handled
+                if warm_at is not None and time_ns() - t0 >= warm_at:
                     self._warm(None)
                     self.warmed_for = tau[0]
                 continue

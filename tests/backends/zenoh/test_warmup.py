@@ -36,6 +36,24 @@ def message(k: int) -> bytes:
                               frame(k, 4096).reshape(-1, 1024))
 
 
+def watch(session, keys: KeySpace):
+    """Every sample on the run's keys, in order, as (key, payload); and an event set once the
+    sentinel that ``end(session, keys)`` puts comes back (local delivery keeps the session's order)."""
+    seen, done = [], threading.Event()
+
+    def on_sample(sample) -> None:
+        seen.append((str(sample.key_expr), sample.payload.to_bytes()))
+        if str(sample.key_expr).endswith("/zz/end"):
+            done.set()
+
+    return session.declare_subscriber(f"{keys.prefix}/**", on_sample), seen, done
+
+
+def end(session, keys: KeySpace, done: threading.Event) -> None:
+    session.put(f"{keys.prefix}/zz/end", b"")
+    assert done.wait(timeout=30), "the session's own sentinel never came back"
+
+
 def test_a_producer_warms_up_before_its_next_tick_once_it_has_sent(session, spec):
     loop = build_loop(spec, "cam", session)
     tick = 50 * MS
@@ -54,22 +72,14 @@ def test_a_producer_warm_up_puts_only_on_its_warm_key(session, spec):
     """It encodes its last event and reads the HLC, and puts one empty message on warm/cam:
     nothing on data/** or progress/**, so no consumer and no watcher of the data sees it."""
     keys = KeySpace(spec["namespace"])
-    seen, done = [], threading.Event()
-
-    def on_sample(sample) -> None:
-        seen.append((str(sample.key_expr), sample.payload.to_bytes()))
-        if str(sample.key_expr).endswith("/zz/end"):
-            done.set()
-
-    watcher = session.declare_subscriber(f"{keys.prefix}/**", on_sample)
+    watcher, seen, done = watch(session, keys)
     loop = build_loop(spec, "cam", session)
     loop.declare()
     try:
         loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
         loop._warm(None)
         assert loop.warm_publish is not None, "the warm-up failed"
-        session.put(f"{keys.prefix}/zz/end", b"")  # local delivery keeps the session's order
-        assert done.wait(timeout=30), "the session's own sentinel never came back"
+        end(session, keys, done)
         assert seen == [(keys.warm("cam"), b""), (f"{keys.prefix}/zz/end", b"")]
         assert loop.sent == {} and not loop.published, "a warm-up sends no event"
     finally:
@@ -121,14 +131,7 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
     warms up on warm/cam before it steps (and publishes its frame), as the general loop would;
     one that has not sent goes straight to the step."""
     keys = KeySpace(spec["namespace"])
-    seen, done = [], threading.Event()
-
-    def on_sample(sample) -> None:
-        seen.append(str(sample.key_expr))
-        if str(sample.key_expr).endswith("/zz/end"):
-            done.set()
-
-    watcher = session.declare_subscriber(f"{keys.prefix}/**", on_sample)
+    watcher, seen, done = watch(session, keys)
     loop = build_loop(spec, "cam", session)
     loop.declare()
     try:
@@ -138,10 +141,9 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
         loop.end = 10 * MS + 1  # one tick, at 10 ms: a wait longer than WARM_AFTER_IDLE_NS
         loop.next_rate = (10 * MS, 0)
         loop._quiet_source()
-        session.put(f"{keys.prefix}/zz/end", b"")  # local delivery keeps the session's order
-        assert done.wait(timeout=30), "the session's own sentinel never came back"
+        end(session, keys, done)
         assert [record[3] for record in loop.records] == ["ok"], loop.records  # its status
-        published = [key for key in seen if key.startswith((keys.warm("cam"), keys.data("cam", "image")))]
+        published = [key for key, _ in seen if key.startswith((keys.warm("cam"), keys.data("cam", "image")))]
         expected = [keys.warm("cam"), keys.data("cam", "image")] if sent else [keys.data("cam", "image")]
         assert published == expected, seen
         assert loop.warmed_for == (10 * MS if sent else None)
