@@ -14,8 +14,9 @@ helpers (``_emit``, ``_failed``, ``_skipped``).
 
 :func:`make_ticks` turns the code of every node into one function per node; per rate group whose
 ticks run in node order, one more that runs them all, one after the other, with no call in
-between; and per node that triggers one other node at the next microstep (a chain of Trigger
-flows), one that goes on with it as long as it is the only tick due.
+between, and one that runs its ticks in a loop while nothing else is due at their times, with
+the chain they trigger; and per node that triggers one other node at the next microstep (a chain
+of Trigger flows), one that goes on with it as long as it is the only tick due.
 
 A compiled tick that ran records its step in the trace's tape as one compact record, expanded
 into the step record and its events when the trace is read (``Trace.tape``):
@@ -82,7 +83,8 @@ class NodeCode:
     helpers: str  # the functions the tick calls off its fast path: ``error{k}``, ``generic{k}``
     follower: int | None  # the one node its outputs can trigger at the next microstep, if one
     #: per input, the node whose events alone fill it, on an undelayed edge, with no latency: in a
-    #: fused rate group that runs this node before that one, every event there is visible
+    #: fused rate group that runs this node before that one, or where this node's tick is the
+    #: only one at its tag, every event there is visible (_all_visible)
     fed_by: dict[int, int] = field(default_factory=dict)
 
 
@@ -190,8 +192,6 @@ class _TickWriter:
         k = self.k
         return f"""\
 entries = entries{k}_{i}
-n = visible{k}_{i}
-end = len(entries)
 {_visibility(k, i)}if n:
     entry{i} = entries[n - 1]
     arg{i} = entry{i}[4]
@@ -415,10 +415,15 @@ def expand{k}(tape, i, add_event, add_step):
 CHAIN_MAX = 32
 
 
-def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tuple[int, ...]], fuse: bool) -> tuple:
-    """``(ticks, chains, fused, flush)`` of every node: ``parts[i]`` is node ``i``'s code, or its
-    generic tick; ``groups`` are the rate groups' nodes. Each function ``f(tau, out_tag)`` runs at
-    ``tau`` with ``out_tag`` the next microstep, and returns the ``out_tag`` of the last tick it ran:
+Schedule = tuple[int, int, int]  # a rate group's (offset_ns, step_num, step_den)
+
+
+def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tuple[tuple[int, ...], Schedule]],
+               fuse: bool) -> tuple:
+    """``(ticks, chains, fused, alone, flush)`` of every node: ``parts[i]`` is node ``i``'s code, or
+    its generic tick; ``groups`` are the rate groups' nodes and schedules ``(offset_ns, step_num,
+    step_den)``. Each function ``f(tau, out_tag)`` runs at ``tau`` with ``out_tag`` the next
+    microstep, and returns the ``out_tag`` of the last tick it ran:
 
     - ``ticks[i]`` runs one tick of node ``i``;
     - ``chains[i]`` too, when it is the only tick due at ``tau``, and if node ``i`` heads a chain
@@ -426,6 +431,13 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
       predecessor can trigger), goes on with the next, at the next microstep, as long as it is
       the only tick due (``after``, the session's list of them, holds just it), and so on;
     - ``fused[g]`` (with ``fuse``) runs one tick of each node of ``groups[g]``, in turn;
+    - ``alone[g](k, until_ns, ran, log_at)`` (with ``fuse``) runs the group's ticks ``k, k + 1,
+      …`` with the ticks they trigger (the chain the group triggers inline, the rest through
+      ``session._microsteps``), as long as nothing else is due at their time: it stops before a
+      tick when the heap holds a tag at or before its time, the tick is at or past ``until_ns``,
+      ``ran`` (the ticks run, counted on) reaches ``log_at`` or the ticks are to be compiled
+      anew; then, or when a tick raises, it hands the group the index of its next tick
+      (``session._resume_group``). Returns ``ran``;
     - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
       ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them).
     """
@@ -434,8 +446,10 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
         "skipped": session._skipped, "failed": session._failed, "schedule": session._schedule,
         "after": session._next, "next_add": session._next.append, "keep_next": session._keep_next,
         "saw_ports": session._saw_ports, "max_microsteps": session.max_microsteps, "plain": type(session).plain_types,
+        "session": session, "heap": session._heap, "microsteps": session._microsteps, "resume": session._resume_group,
     }
     codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
+    everyone = set(range(len(parts)))
     src = ["last_tau = last_out = None\n", *(code.init for code in codes.values())]
     bodies = []
     for i, part in enumerate(parts):
@@ -446,36 +460,23 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
         else:
             names[f"tick{i}"] = part
             bodies.append(f"tick{i}(tau, out_tag)\nnow = time_ns()\n")  # (the next step starts after it)
-    grouped = {i for group in groups for i in group}
+    grouped = {i for group, _ in groups for i in group}
     followed = {code.follower for code in codes.values()}
     heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
     chains = {}
     for head in sorted(heads & codes.keys()):
-        chain, j = [head], codes[head].follower
-        while j in codes and j not in chain and len(chain) < CHAIN_MAX:
-            chain.append(j)
-            j = codes[j].follower
+        chain = _chain(codes, head)
         if len(chain) == 1:
             continue
-        # each link but the last triggers the next one not through `after` but in `pass_on`; the
-        # chain goes on if that is all it triggered (nothing in `after`: an output that took the
-        # generic path puts its triggers there), else the loop takes over with it in `after`
-        bodies_of = [_passing_on(codes[i].body, j) for i, j in zip(chain, chain[1:])] + [codes[chain[-1]].body]
-        steps = "".join(f"""\
-if after or pass_on is None:
-    if pass_on is not None:
-        next_add(pass_on)
-    return out_tag
-pass_on = None
-tau = out_tag
-out_tag = (tau[0], tau[1] + 1)
-{body}""" for body in bodies_of[1:])
+        # a chain runs only when its head is the only tick due, and each link only when it is (so
+        # every event an input got from a producer that alone feeds it is visible: _all_visible)
+        links = _links(codes, chain, names, everyone)
         src.append(f"""\
 def chain{head}(tau, out_tag):
 {_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
     pass_on = None
     try:
-{_indent(_one_reading(bodies_of[0] + steps), "        ")}    except BaseException:
+{_indent(_one_reading(links[0] + _chain_steps(links[1:], "return out_tag")), "        ")}    except BaseException:
         if pass_on is not None:
             next_add(pass_on)
         keep_next(out_tag)
@@ -484,22 +485,110 @@ def chain{head}(tau, out_tag):
 """)
         chains[head] = f"chain{head}"
     groups = groups if fuse else []
-    for g, group in enumerate(groups):
+    for g, (group, schedule) in enumerate(groups):
         state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
         body = _one_reading("".join(_without_visible_tests(codes, group, bodies)))
         src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n{_indent(body)}    return out_tag\n")
+        src.append(_alone(g, group, schedule, codes, bodies, names, everyone))
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
     src += [code.expand + code.helpers for code in codes.values()]
     chain_of = [chains.get(i, f"tick{i}") for i in range(len(parts))]
     source = (f"def make():\n{_indent(''.join(src))}"
               f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
-              f"[{', '.join(chain_of)}], [{', '.join(f'fused{g}' for g in range(len(groups)))}], flush)\n")
+              f"[{', '.join(chain_of)}], [{', '.join(f'fused{g}' for g in range(len(groups)))}], "
+              f"[{', '.join(f'alone{g}' for g in range(len(groups)))}], flush)\n")
     exec(_compiled(source), names)  # noqa: S102
-    ticks, chain_ticks, fused, flush = names["make"]()
-    for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused]:
+    ticks, chain_ticks, fused, alone, flush = names["make"]()
+    for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused, *alone]:
         f.source = source
-    return ticks, chain_ticks, fused, flush
+    return ticks, chain_ticks, fused, alone, flush
+
+
+def _chain(codes: dict, head: int) -> list[int]:
+    """The chain of Trigger flows ``head`` heads: each link the one node the one before can
+    trigger (NodeCode.follower), compiled, not yet in it; at most CHAIN_MAX."""
+    chain, j = [head], codes[head].follower
+    while j in codes and j not in chain and len(chain) < CHAIN_MAX:
+        chain.append(j)
+        j = codes[j].follower
+    return chain
+
+
+def _links(codes: dict, chain: list[int], names: dict, everyone: set[int]) -> list[str]:
+    """The bodies of a chain's ticks, each run as the only tick due at its tag: what a link
+    triggers (only ever its follower: NodeCode.follower) goes in ``pass_on`` instead of the
+    session's ``after``, and no input that one producer alone feeds is tested for visibility
+    (every producer's ticks were at earlier tags)."""
+    links = [_passing_on(codes[i].body, j, names) for i, j in zip(chain, chain[1:])] + [codes[chain[-1]].body]
+    return [_all_visible(codes[i], body, everyone) for i, body in zip(chain, links)]
+
+
+def _chain_steps(links: list[str], leave: str) -> str:
+    """The ticks of chain links, one a microstep, each run if the tick before passed it on and
+    nothing else is due (else what was passed on goes to ``after``, and ``leave``)."""
+    return "".join(f"""\
+if after or pass_on is None:
+    if pass_on is not None:
+        next_add(pass_on)
+    {leave}
+pass_on = None
+tau = out_tag
+out_tag = (tau[0], tau[1] + 1)
+{body}""" for body in links)
+
+
+def _alone(g: int, group: tuple[int, ...], schedule: Schedule, codes: dict, bodies: list[str],
+           names: dict, everyone: set[int]) -> str:
+    """``alone{g}`` (make_ticks): the group's ticks in a loop, each with nothing else due at its
+    time ``t``, so that at ``(t, 0)`` every event from a producer outside the group, or of the
+    group but placed after the consumer, is visible (_all_visible); the chain the group
+    triggers, if one, inline."""
+    place = {node: at for at, node in enumerate(group)}
+    followers = {codes[i].follower for i in group if i in codes} - {None}
+    head = followers.pop() if len(followers) == 1 else None
+    if head not in codes or head in place:
+        head = None
+    ticks = []
+    for node in group:
+        body = bodies[node]
+        if node in codes:
+            before = {p for p in group if place[p] < place[node]}
+            body = _all_visible(codes[node], body, everyone - before)
+            if head is not None:
+                body = _passing_on(body, head, names, only=True)
+        ticks.append(body)
+    chain = _chain(codes, head) if head is not None else []
+    offset_ns, step_num, step_den = schedule
+    inline = "" if head is None else f"""\
+while True:  # the chain the group triggers: as chain{head} does
+{_indent(_one_reading(_chain_steps(_links(codes, chain, names, everyone), "break")))}    break
+ran += out_tag[1] - 1
+"""
+    return f"""\
+def alone{g}(k, until_ns, ran, log_at):
+{_nonlocal(s for i in {*group, *chain} if i in codes for s in codes[i].state)}    out_tag = pass_on = None
+    try:
+        while True:
+            t = {offset_ns} + k * {step_num} // {step_den}
+            if t >= until_ns or heap and heap[0][0] <= t or ran >= log_at or session._recompile:
+                return ran
+            tau = (t, 0)
+            out_tag = (t, 1)
+            now = time_ns()
+{_indent(_one_reading("".join(ticks)), " " * 12)}            ran += {len(group)}
+{_indent(inline, " " * 12)}            if after:
+                out_tag, ran = microsteps(out_tag, ran)
+            k += 1
+    except BaseException:
+        if pass_on is not None:
+            next_add(pass_on)
+        keep_next(out_tag)
+        k += 1
+        raise
+    finally:
+        resume({g}, k)
+"""
 
 
 def _visibility(k: int, i: int) -> str:
@@ -507,6 +596,8 @@ def _visibility(k: int, i: int) -> str:
     ``tau`` (``n``, of ``end``): its ``visible`` of the tick before, and as many as came since
     whose tags are not past ``tau``."""
     return f"""\
+n = visible{k}_{i}
+end = len(entries)
 if n < end:  # entries came: all of them are visible, or those up to the first past tau ({k}_{i})
     if entries[-1][0] <= tau:
         n = end
@@ -523,24 +614,31 @@ def _without_visible_tests(codes: dict, group: tuple[int, ...], bodies: list[str
     before ``t`` (its tick at ``t`` comes later), each stamped at the next microstep of its tick
     (no latency, no delay), so not past ``tau``: every entry is visible."""
     place = {node: at for at, node in enumerate(group)}
-    out = []
-    for node in group:
-        body = bodies[node]
-        code = codes.get(node)
-        for i, producer in (code.fed_by.items() if code is not None else ()):
-            if place.get(producer, -1) > place[node]:
-                test = _visibility(node, i)
-                assert test in body
-                body = body.replace(test, "n = end\n")
-        out.append(body)
-    return out
+    return [_all_visible(codes[node], bodies[node], {p for p in group if place[p] > place[node]})
+            if node in codes else bodies[node] for node in group]
 
 
-def _passing_on(body: str, follower: int) -> str:
+def _all_visible(code: NodeCode, body: str, producers: set[int]) -> str:
+    """``body``, node ``code.k``'s tick, without the visibility test of each input that one of
+    ``producers`` alone feeds (NodeCode.fed_by): where the tick runs, every event of such a
+    producer in that input is known to be visible (in a fused group, see _without_visible_tests;
+    in a chain, the link before runs at the microstep before, and the link runs only if it
+    sent an event, stamped at the link's tick, after its earlier ones)."""
+    for i, producer in code.fed_by.items():
+        if producer in producers:
+            test = _visibility(code.k, i)
+            assert test in body
+            body = body.replace(test, "n = len(entries)\n")
+    return body
+
+
+def _passing_on(body: str, follower: int, names: dict, only: bool = False) -> str:
     """A tick's code in a chain: what it triggers (only ever its follower: NodeCode.follower) goes
-    in ``pass_on`` instead of the session's ``after``."""
-    passed = re.sub(r"next_add\(consumer\d+_\d+_\d+\)", f"pass_on = {follower}", body)
-    assert "next_add(" not in passed
+    in ``pass_on`` instead of the session's ``after``; with ``only``, its triggers of ``follower``
+    go there, its others to ``after``."""
+    passed = re.sub(r"next_add\((consumer\d+_\d+_\d+)\)",
+                    lambda m: f"pass_on = {follower}" if names[m[1]] == follower else m[0], body)
+    assert only or "next_add(" not in passed
     return passed
 
 

@@ -19,6 +19,9 @@ the property tests check exactly that.
 What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py):
 
 - nodes whose clocks share one Rate schedule are one ``_RateGroup``, with one heap entry per tick;
+  while nothing else is due at its ticks' times (one schedule in the graph, or between the ticks
+  of a slower one), a group's ticks run back to back in one generated loop, off the heap, with
+  the chain of Trigger flows they trigger inline;
 - a tag's ticks run consumers first (each node before the nodes that feed it, where edges allow):
   then a rate group's tick finds every event a producer of the group sent it visible (the
   producer's tick at the same tag, whose outputs are not, comes later), and skips that test;
@@ -26,7 +29,9 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
   edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
 - nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
   which does what ``_tick`` does with the node's ports, calling convention and consumers
-  inlined: a rate group's in one function, a chain of Trigger flows' in one function;
+  inlined: a rate group's in one function, a chain of Trigger flows' in one function; a tick
+  known to be the only one at its tag (a chain's) skips the test of what is visible on inputs
+  that one producer alone feeds;
 - those ticks record each step as one compact record in the trace's tape, made into the
   step record and events when the trace is read.
 
@@ -132,12 +137,14 @@ class _RateGroup:
     """The Rate/Hybrid nodes whose clocks have one schedule: their rate ticks at ``(t_k, 0)``
     always come due together, so they share one heap entry per tick instead of one per node."""
 
-    __slots__ = ("order", "ticks", "k", "next_tag", "offset_ns", "step_num", "step_den")
+    __slots__ = ("order", "ticks", "alone", "k", "next_tag", "offset_ns", "step_num", "step_den")
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
         self.order = order  # node indices, consumers first (InprocSession._consumers_first): the tick order
         # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
         self.ticks: tuple = ()
+        # the function that runs its ticks while nothing else is due, if compiled (_inproc_ticks.make_ticks)
+        self.alone = None
         self.k = 0
         # the clocks' tick_time(k) is offset_ns + k * step_num // step_den (inlined in the loop)
         self.offset_ns, self.step_num, self.step_den = schedule
@@ -289,6 +296,39 @@ class InprocSession(Session):
         waiting.update(group.order)
         self._rate_due[tag].append(group)
 
+    def _microsteps(self, next_microstep: tuple[int, int], ran: int) -> tuple[tuple[int, int], int]:
+        """Run the ticks in ``_next`` (what the ticks at the microstep before ``next_microstep``
+        triggered) and what they trigger, microstep by microstep, until none is left. Returns the
+        microstep after the last and ``ran``, counted on."""
+        after, chains, ticks, rank, rng = self._next, self._chains, self._ticks, self._rank, self._rng
+        t = next_microstep[0]
+        try:
+            while after:
+                tag = next_microstep
+                next_microstep = (t, tag[1] + 1)
+                if len(after) == 1:  # the only one: it may go on along a chain, one tick a microstep
+                    next_microstep = chains[after.pop()](tag, next_microstep)
+                    ran += next_microstep[1] - tag[1]
+                    continue
+                indices = sorted(set(after), key=rank.__getitem__)
+                after.clear()
+                if rng is not None:
+                    rng.shuffle(indices)
+                for i in indices:
+                    ticks[i](tag, next_microstep)
+                ran += len(indices)
+        except BaseException:
+            self._keep_next(next_microstep)
+            raise
+        return next_microstep, ran
+
+    def _resume_group(self, g: int, k: int) -> None:
+        """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
+        group = self._groups[g]
+        group.k = k
+        group.next_tag = (group.offset_ns + k * group.step_num // group.step_den, 0)
+        self._schedule_group(group)
+
     def _flush(self) -> None:
         self._records.expand()  # the compiled ticks count their steps as their records are expanded
         for flush in self._flushes:
@@ -325,14 +365,15 @@ class InprocSession(Session):
         for rt in self._nodes:
             code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
             parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
-        groups = [group.order for group in self._groups]
+        groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
         if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, flush = _inproc_ticks.make_ticks(self, parts, groups, fuse=self._rng is None)
+            ticks, chains, fused, alone, flush = _inproc_ticks.make_ticks(self, parts, groups, fuse=self._rng is None)
             self._flushes.append(flush)
         else:
-            ticks, chains, fused = parts, parts, []
+            ticks, chains, fused, alone = parts, parts, [], []
         for g, group in enumerate(self._groups):
             group.ticks = (fused[g],) if fused else tuple(ticks[i] for i in group.order)
+            group.alone = alone[g] if alone else None
         self._ticks, self._chains = ticks, chains
         return ticks, chains
 
@@ -387,7 +428,7 @@ class InprocSession(Session):
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
         rank = self._rank
-        ticks, chains = self._tick_functions()
+        ticks, _ = self._tick_functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
         # hand-over, or a look at whether a stop was asked for (a run in the background,
@@ -398,7 +439,7 @@ class InprocSession(Session):
             if self._recompile:
                 self._recompile = False
                 self._drop_compiled()
-                ticks, chains = self._tick_functions()
+                ticks, _ = self._tick_functions()
             if ran >= log_at:
                 if log is not None:
                     log_at = ran + self.write_log()  # first: with keep="counters" it empties the trace
@@ -410,6 +451,10 @@ class InprocSession(Session):
             tag = heappop(heap)
             due = pending.pop(tag)
             if type(due) is _RateGroup:  # one rate group's tick, nothing else: its nodes in order
+                if due.alone is not None and (not heap or heap[0][0] > tag[0]):
+                    # nothing else due at its time: its ticks back to back, up to the next that is
+                    ran = due.alone(due.k, until_ns, ran, log_at)
+                    continue
                 due.k = k = due.k + 1  # due.advance(), inlined
                 due.next_tag = next_tag = (due.offset_ns + k * due.step_num // due.step_den, 0)
                 if next_tag in pending:
@@ -442,24 +487,11 @@ class InprocSession(Session):
             try:
                 for tick in order:
                     tick(tag, next_microstep)
-                t = tag[0]
-                while after:  # the ticks those triggered, microstep by microstep
-                    tag = next_microstep
-                    next_microstep = (t, tag[1] + 1)
-                    if len(after) == 1:  # the only one: it may go on along a chain, one tick a microstep
-                        next_microstep = chains[after.pop()](tag, next_microstep)
-                        ran += next_microstep[1] - tag[1]
-                        continue
-                    indices = sorted(set(after), key=rank.__getitem__)
-                    after.clear()
-                    if rng is not None:
-                        rng.shuffle(indices)
-                    for i in indices:
-                        ticks[i](tag, next_microstep)
-                    ran += len(indices)
             except BaseException:
                 self._keep_next(next_microstep)
                 raise
+            if after:
+                _, ran = self._microsteps(next_microstep, ran)
         self.now_ns = max(self.now_ns, until_ns)
 
     def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:

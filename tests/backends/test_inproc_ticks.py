@@ -469,6 +469,66 @@ def test_a_chain_of_trigger_flows_matches():
     assert_same(build, runs=(0.3, 0.2), min_compiled=6)
 
 
+
+@io
+@dataclass
+class Trio:
+    a: Any
+    b: Optional[Any]
+    c: Optional[Any]
+
+
+class Three(Flow[Trio, Num]):
+    def step(self, inp: Trio) -> Num:
+        if inp.a == 8:
+            raise ValueError("eight")
+        return Num((inp.a, inp.b, inp.c))
+
+
+@pytest.mark.parametrize("on_error", ["skip_tick", "stop"])
+def test_a_lone_group_and_the_chain_it_triggers_match(on_error):
+    """A rate group with nothing else due runs its ticks back to back and the chain of Trigger
+    flows it triggers inline; a chain's links skip the visibility test on every input one
+    producer alone feeds (each runs as the only tick at its tag). Here a link also reads a flow
+    of the group (events at the microstep the chain starts at) and a flow on another schedule
+    (the group is alone only between its ticks), events have gaps, the head fails at one tick
+    (under stop, the runs go on after it) and a link after it at another."""
+    def build():
+        with Pipeline("lone") as pipe:
+            src = Count(none=5).named("src") @ Rate(100)
+            mate = Count(sparse=3).named("mate") @ Rate(100)
+            slow = Count().named("slow") @ Rate(30, offset=0.002)
+            head = src.then(FailsAt().named("c1").configure(on_error=on_error) @ Trigger(), sync=Latest())
+            three = head.then(Three().named("c2").configure(on_error=on_error) @ Trigger("a"), map={"x": "a"},
+                              sync=Latest())
+            pipe.connect(mate, three, map={"x": "b"}, sync=Latest())
+            pipe.connect(slow, three, map={"x": "c"}, sync=Latest())
+            three.then(Join().named("c3") @ Trigger(), map={"x": "a"}, sync=Latest())
+        return pipe
+
+    fast = assert_same_going_on(build, runs=(0.05, 0.1, 0.1, 0.1))
+    assert [e.split(":")[0] for e in fast[2]] == (["StepError"] * 2 if on_error == "stop" else [])
+    c2 = [s for s in fast[0][1] if s[0] == "c2" and s[4] == "ok"]
+    assert len(c2) > 8 and {s[1][1] for s in c2} == {2}  # at the microstep after c1's
+    assert {"b", "c"} <= {port for s in c2 for port in s[2]}
+
+
+
+def test_a_lone_group_that_fails_after_triggering_a_chain_goes_on_with_it():
+    """A flow of a lone rate group fails (under stop) after another of the group triggered the
+    chain that follows: the next run starts with that chain's tick, on both paths."""
+    def build():
+        with Pipeline("lone_fails") as pipe:
+            src = Count().named("src") @ Rate(100)
+            Count(fail=4).named("zfails") @ Rate(100)  # after src in the group's order (by name)
+            src.then(Ping().named("c1") @ Trigger(), sync=Latest()).then(Ping().named("c2") @ Trigger(), sync=Latest())
+        return pipe
+
+    fast = assert_same_going_on(build, runs=(0.1, 0.1))
+    assert [e.split(":")[0] for e in fast[2]] == ["StepError"] * 2  # (at its 4th tick and its 8th)
+    assert ("c1", (30_000_000, 1)) in [s[:2] for s in fast[0][1]]  # src's fourth tick triggered it, and zfails failed
+
+
 class Reordered(Flow):
     """Its parameters in another order than its edges are declared in: called by position, in its own order."""
 
