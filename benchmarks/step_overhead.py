@@ -27,7 +27,7 @@ length: each ``--duration`` is one row. Targets (measured, not asserted; judged 
 ≥ 500k steps/s on the typed chains; at most 3× the hand loop on typed chains, 5× on untyped ones.
 
 Two more columns. The *floor*: the hand loop plus only the records a run keeps, in the shapes
-inproc keeps them (two ``time_ns()`` per step, the event, the compact step record in the trace's
+inproc keeps them (a ``time_ns()`` per step, the event, the compact step record in the trace's
 tape), cross-checked to be as many as the framework's; floor/hand says how much of the ratio any
 backend that keeps this trace in pure Python must pay. *read*: what reading the trace afterwards
 costs (the first ``pipe.trace.raw_steps`` expands the compact records into events and step records).
@@ -268,8 +268,9 @@ def floor_loop(chain: Chain, src, stages, ticks, period_ns):
     """The hand loop plus only what every step of a run leaves in its trace, in the shapes inproc
     records them: a ``time_ns()`` read per step (each step of a tick starts when the one before it
     ended, as in inproc's fused rate groups and Trigger chains, plus one read per tick), the event
-    (the consumer's buffer entry too), and the compact step record in the tape; a skipped tick's
-    step record. No scheduling, no sync policies, no dispatch. Returns (events, step records)."""
+    (the consumer's buffer entry too), and the compact step record in the tape (a Trigger chain's
+    link's the short one, without what the record before it says); a skipped tick's step record.
+    No scheduling, no sync policies, no dispatch. Returns (events, step records)."""
     tape = []
     add = tape.extend
     n = len(stages)
@@ -307,7 +308,10 @@ def floor_loop(chain: Chain, src, stages, ticks, period_ns):
             seq = seqs[i + 1]
             seqs[i + 1] = seq + 1
             new = (out_tag, "s", "x", seq, v, end)
-            add((floor_loop, tau, start, end, entry[3], v, seq))
+            if rate:
+                add((floor_loop, tau, start, end, entry[3], v, seq))
+            else:  # a link of a Trigger chain: its tag, start and slot are the record's before
+                add((floor_loop, end, v, seq))
     return ticks * (n + 1) - skips, ticks * (n + 1)  # every tick leaves a step record, a skipped one too
 
 

@@ -86,6 +86,11 @@ class NodeCode:
     #: fused rate group that runs this node before that one, or where this node's tick is the
     #: only one at its tag, every event there is visible (_all_visible)
     fed_by: dict[int, int] = field(default_factory=dict)
+    record: str = ""  # the line of the body that appends its compact record to the tape
+    #: per node whose follower this node can be in a chain (its one edge to this node feeds an
+    #: input it alone feeds): the line that appends this node's short record there in place of
+    #: ``record``, and that record's expander (``link{k}_{i}``, see _TickWriter._expander)
+    links: dict[int, tuple[str, str]] = field(default_factory=dict)
 
 
 def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
@@ -150,8 +155,18 @@ class _TickWriter:
         followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
                      if triggers and not delay_ns and not rt.latency_ns}
         follower = followers.pop() if len(followers) == 1 else None
+        # the output whose event a follower in a chain consumes: its one edge to it
+        to_follower = [j for j, port in enumerate(self.known) for consumer, *_ in rt.downstream.get(port, ())
+                       if consumer == follower]
+        self.passes = to_follower[0] if len(to_follower) == 1 else None
+        fed_by = self._fed_by()
+        links = {}
+        feeds = [node for _, buf, _, _ in rt.inputs for node, _ in self.sources[id(buf)]]
+        for i, producer in fed_by.items():
+            if feeds.count(self.sources[id(rt.inputs[i][1])][0][0]) == 1:  # its one edge to this node
+                links[producer] = (self._record_line(link=i), self._expander(link=i))
         return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower,
-                        self._fed_by())
+                        fed_by, self._record_line(), links)
 
     def _fed_by(self) -> dict[int, int]:
         """NodeCode.fed_by: input ``i`` -> the index of the node that alone feeds it, where that
@@ -306,17 +321,30 @@ def generic{k}(tau, raw, start, now{entries}):
         out_tag = f"(tau[0] + {rt.latency_ns}, 0)" if rt.latency_ns else "out_tag"
         # a rate tick's tau is its group's, shared; a trigger tick's is its own: kept as two ints
         # (of which the time is its instant's, shared), it goes with the tick's events
-        tau = ["tau"] if rt.clock.hz is not None else ["tau[0]", "tau[1]"]
-        record = [f"expand{k}", *tau, "start", "now", *self._slots()]
         src = []
         for j, port in enumerate(self.known):
             emits = f"s{j} = {self.seq[j]}\n{self.seq[j]} = s{j} + 1\n"
             if rt.downstream.get(port):
                 emits += f"ev = ({out_tag}, node{k}, {port!r}, s{j}, v{j}, now)\n" + self._deliver(j, port)
             src.append(f"if v{j} is not None:\n{_indent(emits)}else:\n    s{j} = None\n")
-            record += [f"v{j}", f"s{j}"]
-        src.append(f"tape_extend(({', '.join(record)},))\n")
+        src.append(self._record_line())
         return "".join(src)
+
+    def _record_line(self, link: int | None = None) -> str:
+        """The line that appends the tick's compact record to the tape: ``[expand{k}, tau (one
+        field or two), start, end, a slot per input, value and seq per output]``; or, as a chain's
+        link whose input ``link`` its predecessor in the chain alone feeds, ``[link{k}_{link},
+        end, a slot per other input, value and seq per output]``: its tag, start and that slot
+        are the predecessor's (the record just before it in the tape; see _expander)."""
+        k, rt = self.k, self.rt
+        slots = self._slots()
+        if link is None:
+            tau = ["tau"] if rt.clock.hz is not None else ["tau[0]", "tau[1]"]
+            record = [f"expand{k}", *tau, "start", "now", *slots]
+        else:
+            record = [f"link{k}_{link}", "now", *(slot for i, slot in enumerate(slots) if i != link)]
+        record += [f"{x}{j}" for j in range(len(self.known)) for x in ("v", "s")]
+        return f"tape_extend(({', '.join(record)},))\n"
 
     def _deliver(self, j: int, port: str) -> str:
         """Deliver output ``j``'s event ``ev`` to each consumer (``PortBuffer.insert`` inlined).
@@ -372,13 +400,23 @@ def generic{k}(tau, raw, start, now{entries}):
                           for i, (p, x, r) in enumerate(pairs) if not r))
 
     # -- the record format -----------------------------------------------------------------
-    def _expander(self) -> str:
+    def _expander(self, link: int | None = None) -> str:
         """``expand{k}(tape, i, add_event, add_step)``: the events and the step record of the
-        compact record at ``tape[i]``, as ``_emit`` records them; counts the step and its time."""
+        compact record at ``tape[i]``, as ``_emit`` records them; counts the step and its time.
+        With ``link``, ``link{k}_{link}``, the same for a chain link's short record: its tag is
+        the microstep after the record before it, its start that record's end, the slot of input
+        ``link`` that record's seq of the output to this node (``chain_tau``, ``chain_end``,
+        ``chain_s``: what each expander of a node that has a follower leaves for it)."""
         k, rt, known = self.k, self.rt, self.known
-        tau = ["tau"] if rt.clock.hz is not None else ["t", "m"]
-        fields = ["_", *tau, "start", "end", *(f"c{i}" for i in range(len(self.ports))),
-                  *(f"{x}{j}" for j in range(len(known)) for x in ("v", "s"))]
+        slots = [f"c{i}" for i in range(len(self.ports)) if i != link]
+        outs = [f"{x}{j}" for j in range(len(known)) for x in ("v", "s")]
+        if link is None:
+            fields = ["_", *(["tau"] if rt.clock.hz is not None else ["t", "m"]), "start", "end", *slots, *outs]
+            head = "" if rt.clock.hz is not None else "tau = (t, m)\n"
+        else:
+            fields = ["_", "end", *slots, *outs]
+            head = f"tau = (chain_tau[0], chain_tau[1] + 1)\nstart = chain_end\nc{link} = chain_s\n"
+        leave = "" if self.passes is None else f"chain_tau, chain_end, chain_s = tau, end, s{self.passes}\n"
         if rt.latency_ns:
             out_tag = f"out_tag = (tau[0] + {rt.latency_ns}, 0)\n"
         else:  # the ticks of a rate group share their tau: their events share one out_tag, as in the run
@@ -399,15 +437,15 @@ if v{j} is not None:
     produced.append((node{k}, {port!r}, s{j}))
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
-def expand{k}(tape, i, add_event, add_step):
-    nonlocal steps{k}, wall{k}, last_tau, last_out
+def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step):
+    nonlocal steps{k}, wall{k}, last_tau, last_out, chain_tau, chain_end, chain_s
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
-{"" if rt.clock.hz is not None else "    tau = (t, m)" + chr(10)}    wall = end - start
+{_indent(head)}    wall = end - start
     steps{k} += 1
     wall{k} += wall
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
     add_step((node{k}, tau, consumed, produced, 'ok', None, start, wall))
-    return i + {len(fields)}
+{_indent(leave)}    return i + {len(fields)}
 """
 
 
@@ -450,7 +488,8 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
     }
     codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
     everyone = set(range(len(parts)))
-    src = ["last_tau = last_out = None\n", *(code.init for code in codes.values())]
+    short: set[tuple[int, int]] = set()  # (link, predecessor) pairs whose short records _links wrote
+    src = ["last_tau = last_out = chain_tau = chain_end = chain_s = None\n", *(code.init for code in codes.values())]
     bodies = []
     for i, part in enumerate(parts):
         if i in codes:
@@ -470,7 +509,7 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
             continue
         # a chain runs only when its head is the only tick due, and each link only when it is (so
         # every event an input got from a producer that alone feeds it is visible: _all_visible)
-        links = _links(codes, chain, names, everyone)
+        links = _links(codes, chain, names, everyone, short)
         src.append(f"""\
 def chain{head}(tau, out_tag):
 {_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
@@ -489,10 +528,11 @@ def chain{head}(tau, out_tag):
         state = _nonlocal(s for i in group if i in codes for s in codes[i].state)
         body = _one_reading("".join(_without_visible_tests(codes, group, bodies)))
         src.append(f"def fused{g}(tau, out_tag):\n{state}    now = time_ns()\n{_indent(body)}    return out_tag\n")
-        src.append(_alone(g, group, schedule, codes, bodies, names, everyone))
+        src.append(_alone(g, group, schedule, codes, bodies, names, everyone, short))
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
     src += [code.expand + code.helpers for code in codes.values()]
+    src += [expander for i, j in sorted(short) for expander in [codes[j].links[i][1]]]
     chain_of = [chains.get(i, f"tick{i}") for i in range(len(parts))]
     source = (f"def make():\n{_indent(''.join(src))}"
               f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
@@ -515,13 +555,25 @@ def _chain(codes: dict, head: int) -> list[int]:
     return chain
 
 
-def _links(codes: dict, chain: list[int], names: dict, everyone: set[int]) -> list[str]:
+def _links(codes: dict, chain: list[int], names: dict, everyone: set[int], short: set[tuple[int, int]],
+           first_after: int | None = None) -> list[str]:
     """The bodies of a chain's ticks, each run as the only tick due at its tag: what a link
     triggers (only ever its follower: NodeCode.follower) goes in ``pass_on`` instead of the
-    session's ``after``, and no input that one producer alone feeds is tested for visibility
-    (every producer's ticks were at earlier tags)."""
+    session's ``after``; no input that one producer alone feeds is tested for visibility (every
+    producer's ticks were at earlier tags); and a link after the first (and the first, if
+    ``first_after`` is the node whose compact record is always the one before it) records a
+    short record where it can (NodeCode.links: the record before it in the tape is its
+    predecessor's), noted in ``short``."""
     links = [_passing_on(codes[i].body, j, names) for i, j in zip(chain, chain[1:])] + [codes[chain[-1]].body]
-    return [_all_visible(codes[i], body, everyone) for i, body in zip(chain, links)]
+    links = [_all_visible(codes[i], body, everyone) for i, body in zip(chain, links)]
+    for at, (before, link) in enumerate(zip([first_after, *chain], chain)):
+        code = codes[link]
+        if before in code.links:
+            assert codes[before].follower == link  # (so its expander leaves the state this record reads)
+            assert links[at].count(code.record) == 1
+            links[at] = links[at].replace(code.record, code.links[before][0])
+            short.add((before, link))
+    return links
 
 
 def _chain_steps(links: list[str], leave: str) -> str:
@@ -539,7 +591,7 @@ out_tag = (tau[0], tau[1] + 1)
 
 
 def _alone(g: int, group: tuple[int, ...], schedule: Schedule, codes: dict, bodies: list[str],
-           names: dict, everyone: set[int]) -> str:
+           names: dict, everyone: set[int], short: set[tuple[int, int]]) -> str:
     """``alone{g}`` (make_ticks): the group's ticks in a loop, each with nothing else due at its
     time ``t``, so that at ``(t, 0)`` every event from a producer outside the group, or of the
     group but placed after the consumer, is visible (_all_visible); the chain the group
@@ -559,10 +611,13 @@ def _alone(g: int, group: tuple[int, ...], schedule: Schedule, codes: dict, bodi
                 body = _passing_on(body, head, names, only=True)
         ticks.append(body)
     chain = _chain(codes, head) if head is not None else []
+    # the group's last node, if it alone passes the chain on: its record is the one before the chain's
+    passing = [node for node, body in zip(group, ticks) if "pass_on = " in body]
+    last = group[-1] if passing == [group[-1]] else None
     offset_ns, step_num, step_den = schedule
     inline = "" if head is None else f"""\
 while True:  # the chain the group triggers: as chain{head} does
-{_indent(_one_reading(_chain_steps(_links(codes, chain, names, everyone), "break")))}    break
+{_indent(_one_reading(_chain_steps(_links(codes, chain, names, everyone, short, last), "break")))}    break
 ran += out_tag[1] - 1
 """
     return f"""\

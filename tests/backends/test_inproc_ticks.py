@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import time
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -527,6 +528,28 @@ def test_a_lone_group_that_fails_after_triggering_a_chain_goes_on_with_it():
     fast = assert_same_going_on(build, runs=(0.1, 0.1))
     assert [e.split(":")[0] for e in fast[2]] == ["StepError"] * 2  # (at its 4th tick and its 8th)
     assert ("c1", (30_000_000, 1)) in [s[:2] for s in fast[0][1]]  # src's fourth tick triggered it, and zfails failed
+
+
+
+def test_each_compiled_step_records_when_it_ran():
+    """The wall-clock fields, which traces do not compare: every step of a lone group and its
+    chain (whose links keep short records: their start is the record's before) ran within the
+    run, and each step of a tick and its chain started when the one before it ended."""
+    with Pipeline("when") as pipe:
+        prev = Count().named("src") @ Rate(100)
+        for name in ("c1", "c2", "c3"):
+            prev = prev.then(Ping().named(name) @ Trigger(), sync=Latest())
+    before = time.time_ns()
+    pipe.run(duration=0.2)
+    after = time.time_ns()
+    steps = pipe.trace.steps
+    assert len(steps) == 4 * 20
+    for step in steps:
+        assert before <= step.wall_start_ns and step.wall_ns >= 0 and step.wall_start_ns + step.wall_ns <= after
+    for tick in zip(*[iter(steps)] * 4):
+        assert [s.node for s in tick] == ["src", "c1", "c2", "c3"] and {s.tag[0] for s in tick} == {tick[0].tag[0]}
+        for one, then in zip(tick, tick[1:]):
+            assert then.wall_start_ns == one.wall_start_ns + one.wall_ns
 
 
 class Reordered(Flow):
