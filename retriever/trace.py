@@ -12,7 +12,7 @@ import gc
 import hashlib
 import threading
 from contextlib import contextmanager
-from typing import Any, Iterator, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple
 
 from .codec import packb
 from .errors import ValuesNotKeptError
@@ -223,10 +223,11 @@ class Trace:
         self.expand()
         return self._raw_steps
 
-    def expand(self) -> None:
+    def expand(self, then: Callable[[], None] | None = None) -> None:
         """Move the tape's records to ``raw_events`` and ``raw_steps``. The tape only grows while
-        this runs (a backend appends each record at once), so what it held at the start goes."""
-        if not self.tape:
+        this runs (a backend appends each record at once), so what it held at the start goes.
+        ``then``: called after, under the same lock (what the tape's expanders counted, read)."""
+        if not self.tape and then is None:
             return
         with self._expanding, holding_full_collections():
             tape = self.tape
@@ -240,6 +241,8 @@ class Trace:
                 else:
                     i = item(tape, i, add_event, add_step)
             del tape[:end]
+            if then is not None:
+                then()
 
     def forget_values(self, upto: int | None = None) -> None:
         """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``

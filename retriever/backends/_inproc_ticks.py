@@ -25,9 +25,9 @@ into the step record and its events when the trace is read (``Trace.tape``):
 
 An input's slot is the seq of the event it consumed (its producer is the one the port's only
 edge comes from), the consumed buffer entry when several edges feed the port, None when an
-optional port had nothing; an output's value and seq are None when it made no event. The node's
-steps and step time are counted as its records are expanded (the session expands the tape
-before it reads the counts).
+optional port had nothing; an output's value and seq are None when it made no event. A chain's
+link keeps a shorter record (see _TickWriter._record_line). The node's steps and step time are
+counted as its records are expanded (the session expands the tape before it reads the counts).
 
 Kept in sync with ``_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with the
 compiled ticks and with ``_tick`` only and compares the traces record by record (wall-clock
@@ -99,9 +99,10 @@ def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
     that feeds it.
 
     The tick counts the ticks that ran no step (``ticks{k}``), and keeps the seq of its known
-    output ports and each input buffer's ``visible``, in variables of its own; ``expand{k}``
-    counts the steps and their time (``steps{k}``, ``wall{k}``), and so does the tick for a step
-    that takes the generic path.
+    output ports and each input buffer's ``visible``, in variables of its own; the tick counts
+    a step that takes the generic path and its time (``steps{k}``, ``wall{k}``), ``expand{k}``
+    the others' (``xsteps{k}``, ``xwall{k}``: a trace may be read, and its tape expanded, in
+    another thread than the run's, under the trace's lock, under which flush() reads them too).
     """
     if rt.replaced:
         return None
@@ -142,16 +143,17 @@ class _TickWriter:
 
     def code(self) -> NodeCode:
         k, rt = self.k, self.rt
-        init = f"ticks{k} = steps{k} = wall{k} = 0\n"
+        init = f"ticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\n"
         init += "".join(f"{s} = seqs{k}.get({port!r}, 0)\n" for port, s in zip(self.known, self.seq))
         init += "".join(f"{v} = buf{k}_{i}.visible\n" for i, v in enumerate(self.visible))
-        flush = (f"stats{k}.ticks += ticks{k} + steps{k}\nstats{k}.steps += steps{k}\n"
-                 f"stats{k}.step_ns += wall{k}\nticks{k} = steps{k} = wall{k} = 0\n{self._to_seqs()}")
+        flush = (f"stats{k}.ticks += ticks{k} + steps{k} + xsteps{k}\nstats{k}.steps += steps{k} + xsteps{k}\n"
+                 f"stats{k}.step_ns += wall{k} + xwall{k}\nticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\n"
+                 f"{self._to_seqs()}")
         flush += "".join(f"buf{k}_{i}.visible = {v}\n" for i, v in enumerate(self.visible))
         for i, (_, buf, _, port_spec) in enumerate(rt.inputs):
             self.names.update({f"buf{k}_{i}": buf, f"entries{k}_{i}": buf.entries,
                                f"fallback{k}_{i}": port_spec.fallback})
-        state = [f"ticks{k}", f"steps{k}", f"wall{k}", *self.seq, *self.visible]
+        state = [f"ticks{k}", f"steps{k}", f"wall{k}", f"xsteps{k}", f"xwall{k}", *self.seq, *self.visible]
         followers = {consumer for port in self.known for consumer, _, delay_ns, triggers in rt.downstream.get(port, ())
                      if triggers and not delay_ns and not rt.latency_ns}
         follower = followers.pop() if len(followers) == 1 else None
@@ -240,6 +242,7 @@ try:
 {_indent(no_events, "        ")}    else:
         {got} = read{k}(raw)
 except KeyboardInterrupt:
+    ticks{k} += 1  # (as _tick counts it)
     raise
 except BaseException as exc:  # SystemExit too, as in _tick
     error{k}(tau, exc, start, (now := time_ns()) - start{entries})
@@ -438,11 +441,11 @@ if v{j} is not None:
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
 def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step):
-    nonlocal steps{k}, wall{k}, last_tau, last_out, chain_tau, chain_end, chain_s
+    nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
 {_indent(head)}    wall = end - start
-    steps{k} += 1
-    wall{k} += wall
+    xsteps{k} += 1
+    xwall{k} += wall
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
     add_step((node{k}, tau, consumed, produced, 'ok', None, start, wall))
 {_indent(leave)}    return i + {len(fields)}
@@ -473,9 +476,10 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
       …`` with the ticks they trigger (the chain the group triggers inline, the rest through
       ``session._microsteps``), as long as nothing else is due at their time: it stops before a
       tick when the heap holds a tag at or before its time, the tick is at or past ``until_ns``,
-      ``ran`` (the ticks run, counted on) reaches ``log_at`` or the ticks are to be compiled
-      anew; then, or when a tick raises, it hands the group the index of its next tick
-      (``session._resume_group``). Returns ``ran``;
+      ``ran`` (the ticks run, counted on) reaches ``log_at`` or the session asks to look
+      (``session._look``: ticks to compile anew, a flush asked for); then, or when a tick
+      raises, it hands the group the index of its next tick (``session._resume_group``).
+      Returns ``ran``;
     - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
       ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them).
     """
@@ -618,6 +622,7 @@ def _alone(g: int, group: tuple[int, ...], schedule: Schedule, codes: dict, bodi
     inline = "" if head is None else f"""\
 while True:  # the chain the group triggers: as chain{head} does
 {_indent(_one_reading(_chain_steps(_links(codes, chain, names, everyone, short, last), "break")))}    break
+pass_on = None  # (left set when the chain left what it passed on in after)
 ran += out_tag[1] - 1
 """
     return f"""\
@@ -626,10 +631,11 @@ def alone{g}(k, until_ns, ran, log_at):
     try:
         while True:
             t = {offset_ns} + k * {step_num} // {step_den}
-            if t >= until_ns or heap and heap[0][0] <= t or ran >= log_at or session._recompile:
+            if t >= until_ns or heap and heap[0][0] <= t or ran >= log_at or session._look:
                 return ran
             tau = (t, 0)
             out_tag = (t, 1)
+            pass_on = None
             now = time_ns()
 {_indent(_one_reading("".join(ticks)), " " * 12)}            ran += {len(group)}
 {_indent(inline, " " * 12)}            if after:

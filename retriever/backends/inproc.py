@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import atexit
 import random
+import threading
 import warnings
 import weakref
 from heapq import heappop, heappush
@@ -198,6 +199,12 @@ class InprocSession(Session):
         self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
         self._generic_only = False  # set by take_routes(): replay delivers events itself
         self._recompile = False  # set by _saw_ports(): compile the ticks anew between two instants
+        # the counts and seqs the compiled ticks keep go to the nodes (_flush) in the thread that
+        # runs them: held by advance(); another thread asks for it (stats()), and the loop does it
+        # between two instants
+        self._advancing = threading.RLock()
+        self._flushes_asked: list[threading.Event] = []
+        self._look = False  # set when the loop is to look at _recompile and _flushes_asked
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
 
     # ---------------------------------------------------------------------------------------
@@ -330,9 +337,25 @@ class InprocSession(Session):
         self._schedule_group(group)
 
     def _flush(self) -> None:
-        self._records.expand()  # the compiled ticks count their steps as their records are expanded
+        """Hand what the compiled ticks counted and their seqs to the nodes: in the run's thread
+        (the ticks change them), after expanding the tape (its expanders count steps), under the
+        trace's lock (another thread may be expanding it)."""
+        self._records.expand(then=self._flush_ticks)
+
+    def _flush_ticks(self) -> None:
         for flush in self._flushes:
             flush()
+
+    def _answer_flushes(self) -> None:
+        """Flush for the threads that asked (stats()), between two instants of a run."""
+        self._flush()
+        asked, self._flushes_asked = self._flushes_asked, []
+        for done in asked:
+            done.set()
+
+    #: how long stats() from another thread waits for a run's loop to flush between two instants
+    #: (a step may take long): past that, it reads the counts as of the last flush
+    FLUSH_WAIT_S = 1.0
 
     def _keep_next(self, tag: tuple[int, int]) -> None:
         """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
@@ -345,7 +368,7 @@ class InprocSession(Session):
         """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
         if rt.ports_seen is None and all(type(port) is str for port in outputs):
             rt.ports_seen = tuple(outputs)
-            self._recompile = True
+            self._recompile = self._look = True
 
     def _drop_compiled(self) -> None:
         """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
@@ -419,8 +442,12 @@ class InprocSession(Session):
         # reclaim the cyclic garbage flows make, go on as usual)
         self.set_up()
         try:
-            with holding_full_collections():
-                self._advance(until_ns)
+            with self._advancing, holding_full_collections():
+                try:
+                    self._advance(until_ns)
+                finally:
+                    if self._flushes_asked:
+                        self._answer_flushes()
         except RunEnded as ended:  # a step's sys.exit(0): the run is over at its tick
             self.now_ns = ended.tag[0]
             self.ended = ended
@@ -436,10 +463,14 @@ class InprocSession(Session):
         ran = 0
         log_at = 1 if log is not None else self.LOG_BATCH
         while heap and heap[0][0] < until_ns:
-            if self._recompile:
-                self._recompile = False
-                self._drop_compiled()
-                ticks, _ = self._tick_functions()
+            if self._look:  # (between two instants)
+                self._look = False
+                if self._recompile:
+                    self._recompile = False
+                    self._drop_compiled()
+                    ticks, _ = self._tick_functions()
+                if self._flushes_asked:
+                    self._answer_flushes()
             if ran >= log_at:
                 if log is not None:
                     log_at = ran + self.write_log()  # first: with keep="counters" it empties the trace
@@ -631,7 +662,23 @@ class InprocSession(Session):
             rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:
-        self._flush()
+        """The nodes' counts: with what the compiled ticks counted since they last handed it
+        over, unless a run goes on in another thread and its loop does not come between two
+        instants within FLUSH_WAIT_S (a long step): then as of then."""
+        if self._advancing.acquire(blocking=False):  # no run in another thread (or this one's)
+            try:
+                self._flush()
+            finally:
+                self._advancing.release()
+        else:
+            done = threading.Event()
+            self._flushes_asked.append(done)
+            self._look = True
+            if not done.wait(self.FLUSH_WAIT_S) and self._advancing.acquire(blocking=False):
+                try:  # the run ended meanwhile
+                    self._flush()
+                finally:
+                    self._advancing.release()
         return {rt.id: rt.stats for rt in self._nodes}
 
     def seeds(self) -> dict:

@@ -531,6 +531,97 @@ def test_a_lone_group_that_fails_after_triggering_a_chain_goes_on_with_it():
 
 
 
+@pytest.mark.parametrize("on_error", ["skip_tick", "stop"])
+def test_a_lone_group_runs_its_chain_only_at_the_ticks_that_trigger_it(on_error):
+    """A lone group's node triggers the chain's head at every other tick, another node triggers
+    two more flows at every tick (so the chain's head waits with them, and the loop leaves the
+    chain); one of those fails now and then: the head runs at the ticks that trigger it, no
+    others, and after a failure the run goes on from where it was (found by a fuzz of a review:
+    the loop kept the head to run from one tick to the next)."""
+    def build():
+        with Pipeline("lone_two") as pipe:
+            a = Count(none=2).named("a") @ Rate(100)
+            b = Count().named("b") @ Rate(100)
+            a.then(Ping().named("h") @ Trigger(), sync=Latest()).then(Ping().named("h2") @ Trigger(), sync=Latest())
+            b.then(Ping().named("x") @ Trigger(), sync=Latest())
+            b.then(FailsAt().named("y").configure(on_error=on_error) @ Trigger(), sync=Latest())
+        return pipe
+
+    fast = assert_same_going_on(build, runs=(0.05, 0.1, 0.1))
+    h = [s[1] for s in fast[0][1] if s[0] == "h"]
+    at = [(t * 10_000_000, 1) for t in range(0, 25, 2)]  # a's ticks with an event
+    if on_error == "skip_tick":
+        assert h == at
+    else:  # the second run stopped at y's failure, at 60 ms; the third went on
+        assert set(h) <= set(at) and (60_000_000, 1) in h and (80_000_000, 1) in h
+
+
+class Interrupts(Flow[Num, Num]):
+    """Raises KeyboardInterrupt at its third step (as a Ctrl-C there would)."""
+
+    def __init__(self):
+        self.n = 0
+
+    def step(self, inp: Num) -> Num:
+        self.n += 1
+        if self.n == 3:
+            raise KeyboardInterrupt
+        return Num(inp.x)
+
+
+def test_a_step_interrupted_by_ctrl_c_counts_its_tick_on_both_paths():
+    """A Ctrl-C in a compiled chain link's step: the run stops there, and the interrupted tick
+    is counted, as the generic path counts it (its stats differed)."""
+    def going_on():
+        with Pipeline("interrupted") as pipe:
+            prev = Count().named("src") @ Rate(100)
+            for name in ("c1", "c2", "c3"):
+                prev = prev.then((Interrupts() if name == "c2" else Ping()).named(name) @ Trigger(), sync=Latest())
+        stopped = []
+        for duration in (0.1, 0.1):
+            try:
+                pipe.run(duration=duration)
+            except KeyboardInterrupt:
+                stopped.append(duration)
+        stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
+        return records(pipe.trace), stats, stopped
+
+    fast = going_on()
+    with generic_only():
+        generic = going_on()
+    assert fast == generic and fast[2] == [0.1]
+    ticks, steps, _, _ = fast[1]["c2"]
+    assert ticks == steps + 1  # the interrupted one
+
+
+def test_stats_read_from_another_thread_while_a_run_goes_on_change_nothing_it_records():
+    """pipe.stats() polled from another thread during a background run, whose compiled ticks take
+    the generic path at every step (outputs of a type the codec must look at): every event id is
+    issued once, and the trace and the counts are those of a run nobody watched (a flush from
+    that thread used to write a tick's stale seq over the one emit had just counted on)."""
+    def build():
+        with Pipeline("watched") as pipe:
+            prev = Count().named("src") @ Rate(1000)
+            for i in range(4):
+                prev = prev.then(Join().named(f"c{i}") @ Trigger(), map={"x": "a"}, sync=Latest())
+        return pipe
+
+    watched = build()
+    handle = watched.run(duration=3, blocking=False)
+    polls = 0
+    while not handle.done:
+        watched.stats()
+        polls += 1
+    handle.wait()
+    alone = build()
+    alone.run(duration=3)
+    ids = [e[1:4] for e in watched.trace.raw_events]
+    assert polls > 1 and len(ids) == len(set(ids)) == 15_000
+    assert records(watched.trace) == records(alone.trace)
+    assert ({n: (s.ticks, s.steps) for n, s in watched.stats().items()}
+            == {n: (s.ticks, s.steps) for n, s in alone.stats().items()})
+
+
 def test_each_compiled_step_records_when_it_ran():
     """The wall-clock fields, which traces do not compare: every step of a lone group and its
     chain (whose links keep short records: their start is the record's before) ran within the
