@@ -118,7 +118,11 @@ def _watch_parent(parent: int, run_dir: Path) -> None:
     no GIL); and remove the run directory, which no one else will. A worker dora started is told
     by no kernel that its coordinator died (dora is its parent): it tells itself, as the kernel
     would (PARENT_DIED), once the directories are gone."""
-    while not _orphaned(parent):
+    try:  # read through one descriptor: a pread a look (an idle worker's thread wakes twice a second)
+        stat = os.open(f"/proc/{parent}/stat", os.O_RDONLY)
+    except OSError:
+        stat = None
+    while not _orphaned(parent, stat):
         time.sleep(0.5)
     faulthandler.dump_traceback_later(ORPHAN_GRACE_S, exit=True)
     _remove_run_dir(run_dir)
@@ -351,17 +355,22 @@ def _dora_coordinator(spec_path: str) -> int | None:
     return coordinator if type(coordinator) is int else None
 
 
-def _orphaned(parent: int) -> bool:
+def _orphaned(parent: int, stat: int | None = None) -> bool:
     """Whether the coordinator that started this worker is dead or dying. Its main thread's exit
     sends PR_SET_PDEATHSIG, and may leave its other threads, and our ppid, for a moment longer:
-    the main thread's state (that of /proc/<pid>) is then already Z."""
+    the main thread's state (that of /proc/<pid>) is then already Z. ``stat``: a descriptor of
+    that file, opened while the coordinator lived (it then names that process, whatever process
+    gets its pid later: a read fails once it is gone)."""
     if not _adopted and os.getppid() != parent:
         return True
     try:
-        stat = Path(f"/proc/{parent}/stat").read_text()
+        if stat is None:
+            text = Path(f"/proc/{parent}/stat").read_bytes()
+        else:
+            text = os.pread(stat, 4096, 0)
     except OSError:
         return True
-    return stat[stat.rindex(")") + 2] in "ZX"
+    return chr(text[text.rindex(b")") + 2]) in "ZX"
 
 
 def _serve(argv: list[str], parent: int) -> int:

@@ -42,6 +42,7 @@ import zenoh
 
 from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, RestartLimitError, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
+from retriever.backends.zenoh import worker
 from retriever.backends.zenoh.worker import EXIT_ABANDONED, PARENT_DIED, build_loop
 from retriever.log import replay
 
@@ -445,6 +446,25 @@ from tests.backends.zenoh.lifecycle_flows import two_node_pipeline
 pipe = two_node_pipeline("orphaned")
 pipe.run(duration=60, backend="zenoh", quiet=True, namespace=sys.argv[1], log=sys.argv[2])
 """
+
+
+
+def test_a_worker_sees_its_coordinator_dying_through_the_descriptor_it_opened(monkeypatch):
+    """The parent watch reads the coordinator's /proc stat through a descriptor opened while it
+    lived: alive is not orphaned; a zombie is; once reaped, a read fails (whatever process gets
+    the pid next), and that is orphaned too. (As for a coordinator that is not our parent: dora's.)"""
+    monkeypatch.setattr(worker, "_adopted", True)
+    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    stat = os.open(f"/proc/{child.pid}/stat", os.O_RDONLY)
+    try:
+        assert not worker._orphaned(child.pid, stat) and not worker._orphaned(child.pid)
+        child.stdin.close()  # it exits; not reaped yet, a zombie
+        os.waitid(os.P_PID, child.pid, os.WEXITED | os.WNOWAIT)
+        assert worker._orphaned(child.pid, stat) and worker._orphaned(child.pid)
+        child.wait()
+        assert worker._orphaned(child.pid, stat)
+    finally:
+        os.close(stat)
 
 
 def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespace):
