@@ -358,6 +358,7 @@ class RunHandle:
         session = self._pipe._session
         if session is not None and not self.done:  # (a request left on the session would stop the next run)
             session.stop_requested = True
+            session.look_between_ticks()
 
 
 def _user_stacklevel() -> int:

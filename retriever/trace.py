@@ -202,6 +202,7 @@ class Trace:
         self._raw_steps: list[tuple] = [tuple(StepRecord(*s)) for s in steps or ()]
         self.tape: list = []
         self._expanding = threading.Lock()  # a background run appends while another thread reads
+        self._expander: int | None = None  # the thread expanding the tape, while it does
         self._events: list[Event] = []
         self._steps: list[StepRecord] = []
         #: what the run keeps (KEEP); whether events hold their values (``keep="trace"``), or
@@ -226,23 +227,31 @@ class Trace:
     def expand(self, then: Callable[[], None] | None = None) -> None:
         """Move the tape's records to ``raw_events`` and ``raw_steps``. The tape only grows while
         this runs (a backend appends each record at once), so what it held at the start goes.
-        ``then``: called after, under the same lock (what the tape's expanders counted, read)."""
-        if not self.tape and then is None:
+        ``then``: called after, under the same lock (what the tape's expanders counted, read).
+        Nothing, if this thread is expanding it already (a signal handler that came meanwhile)."""
+        if not self.tape and then is None or self._expander == threading.get_ident():
             return
         with self._expanding, holding_full_collections():
-            tape = self.tape
-            add_event, add_step = self._raw_events.append, self._raw_steps.append
-            i, end = 0, len(tape)
-            while i < end:
-                item = tape[i]
-                if type(item) is tuple:
-                    (add_event if len(item) == 6 else add_step)(item)
-                    i += 1
-                else:
-                    i = item(tape, i, add_event, add_step)
-            del tape[:end]
-            if then is not None:
-                then()
+            self._expander = threading.get_ident()
+            try:
+                self._expand(then)
+            finally:
+                self._expander = None
+
+    def _expand(self, then: Callable[[], None] | None) -> None:
+        tape = self.tape
+        add_event, add_step = self._raw_events.append, self._raw_steps.append
+        i, end = 0, len(tape)
+        while i < end:
+            item = tape[i]
+            if type(item) is tuple:
+                (add_event if len(item) == 6 else add_step)(item)
+                i += 1
+            else:
+                i = item(tape, i, add_event, add_step)
+        del tape[:end]
+        if then is not None:
+            then()
 
     def forget_values(self, upto: int | None = None) -> None:
         """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``

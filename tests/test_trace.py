@@ -46,3 +46,18 @@ def test_full_collections_are_held_while_any_holder_is_open():
     release.set()
     thread.join()
     assert gc.get_threshold() == before
+
+
+def test_a_trace_expanded_from_within_its_own_expansion_returns_at_once():
+    """A signal handler that reads the trace (pipe.stats()) while its thread is expanding the
+    tape: the inner expansion does nothing (no hang on the trace's lock, no record twice)."""
+    trace = Trace()
+    step = ("n", (0, 0), {}, (), "ok", None, 0, 0)
+
+    def compact(tape, i, add_event, add_step):
+        trace.expand()  # as the handler would, in the middle of this expansion
+        add_step(step)
+        return i + 1
+
+    trace.tape.extend([compact, step])
+    assert trace.raw_steps == [step, step] and not trace.tape

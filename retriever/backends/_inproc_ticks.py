@@ -461,7 +461,7 @@ Schedule = tuple[int, int, int]  # a rate group's (offset_ns, step_num, step_den
 
 def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tuple[tuple[int, ...], Schedule]],
                fuse: bool) -> tuple:
-    """``(ticks, chains, fused, alone, flush)`` of every node: ``parts[i]`` is node ``i``'s code, or
+    """``(ticks, chains, fused, alone, flush, peek)`` of every node: ``parts[i]`` is node ``i``'s code, or
     its generic tick; ``groups`` are the rate groups' nodes and schedules ``(offset_ns, step_num,
     step_den)``. Each function ``f(tau, out_tag)`` runs at ``tau`` with ``out_tag`` the next
     microstep, and returns the ``out_tag`` of the last tick it ran:
@@ -481,7 +481,9 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
       raises, it hands the group the index of its next tick (``session._resume_group``).
       Returns ``ran``;
     - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
-      ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them).
+      ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them);
+    - ``peek()``, per compiled node, ``(index, ticks, steps, step ns)`` counted and not handed
+      over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats).
     """
     names: dict[str, Any] = {
         "time_ns": time_ns, "insort": insort, "tape_extend": session._records.tape.extend, "emit": session._emit,
@@ -535,18 +537,20 @@ def chain{head}(tau, out_tag):
         src.append(_alone(g, group, schedule, codes, bodies, names, everyone, short))
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
+    src.append("def peek():\n    return (" + "".join(
+        f"({k}, ticks{k} + steps{k} + xsteps{k}, steps{k} + xsteps{k}, wall{k} + xwall{k}), " for k in codes) + ")\n")
     src += [code.expand + code.helpers for code in codes.values()]
     src += [expander for i, j in sorted(short) for expander in [codes[j].links[i][1]]]
     chain_of = [chains.get(i, f"tick{i}") for i in range(len(parts))]
     source = (f"def make():\n{_indent(''.join(src))}"
               f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
               f"[{', '.join(chain_of)}], [{', '.join(f'fused{g}' for g in range(len(groups)))}], "
-              f"[{', '.join(f'alone{g}' for g in range(len(groups)))}], flush)\n")
+              f"[{', '.join(f'alone{g}' for g in range(len(groups)))}], flush, peek)\n")
     exec(_compiled(source), names)  # noqa: S102
-    ticks, chain_ticks, fused, alone, flush = names["make"]()
+    ticks, chain_ticks, fused, alone, flush, peek = names["make"]()
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused, *alone]:
         f.source = source
-    return ticks, chain_ticks, fused, alone, flush
+    return ticks, chain_ticks, fused, alone, flush, peek
 
 
 def _chain(codes: dict, head: int) -> list[int]:

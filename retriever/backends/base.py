@@ -166,6 +166,10 @@ class Session(ABC):
             self._note_retained()
             self.trace.discard(len(self.trace.raw_events), len(self.trace.raw_steps))
 
+    def look_between_ticks(self) -> None:
+        """Have the run look at ``stop_requested`` at its next chance (a backend whose loop
+        looks only now and then says so here)."""
+
     def _note_retained(self) -> None:
         self.retained_peak = max(self.retained_peak, len(self.trace.raw_events) + len(self.trace.raw_steps))
 

@@ -41,6 +41,7 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import random
 import threading
 import warnings
@@ -52,7 +53,8 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import CausalityError, CodecError, RestartLimitError, RetrieverWarning, SetupError, StepError
+from ..errors import (BackendError, CausalityError, CodecError, RestartLimitError, RetrieverWarning, SetupError,
+                      StepError)
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
@@ -197,12 +199,14 @@ class InprocSession(Session):
         self._ticks: list | None = None
         self._chains: list = []
         self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
+        self._peeks: list = []  # and their peek(): those counts, left where they are
         self._generic_only = False  # set by take_routes(): replay delivers events itself
         self._recompile = False  # set by _saw_ports(): compile the ticks anew between two instants
         # the counts and seqs the compiled ticks keep go to the nodes (_flush) in the thread that
         # runs them: held by advance(); another thread asks for it (stats()), and the loop does it
         # between two instants
         self._advancing = threading.RLock()
+        self._runner: int | None = None  # the thread in advance()
         self._flushes_asked: list[threading.Event] = []
         self._look = False  # set when the loop is to look at _recompile and _flushes_asked
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
@@ -364,6 +368,9 @@ class InprocSession(Session):
             self._schedule_later(tag, index)
         self._next.clear()
 
+    def look_between_ticks(self) -> None:
+        self._look = True
+
     def _saw_ports(self, rt: _NodeRuntime, outputs: dict) -> None:
         """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
         if rt.ports_seen is None and all(type(port) is str for port in outputs):
@@ -374,7 +381,7 @@ class InprocSession(Session):
         """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
         (from rt.seq, which the generic path may change in between)."""
         self._flush()
-        self._ticks, self._flushes = None, []
+        self._ticks, self._flushes, self._peeks = None, [], []
 
     def _tick_functions(self) -> tuple[list, list]:
         """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
@@ -390,8 +397,10 @@ class InprocSession(Session):
             parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
         if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush = _inproc_ticks.make_ticks(self, parts, groups, fuse=self._rng is None)
+            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self, parts, groups,
+                                                                                 fuse=self._rng is None)
             self._flushes.append(flush)
+            self._peeks.append(peek)
         else:
             ticks, chains, fused, alone = parts, parts, [], []
         for g, group in enumerate(self._groups):
@@ -442,10 +451,16 @@ class InprocSession(Session):
         # reclaim the cyclic garbage flows make, go on as usual)
         self.set_up()
         try:
+            if self._runner == threading.get_ident():
+                raise BackendError("pipe.run() or pipe.step() called while this pipeline runs, in this thread "
+                                   "(from a step?)\n    hint: a step cannot run its own pipeline; run another "
+                                   "Pipeline, or call the function the step needs directly")
             with self._advancing, holding_full_collections():
+                runner, self._runner = self._runner, threading.get_ident()
                 try:
                     self._advance(until_ns)
                 finally:
+                    self._runner = runner
                     if self._flushes_asked:
                         self._answer_flushes()
         except RunEnded as ended:  # a step's sys.exit(0): the run is over at its tick
@@ -465,6 +480,10 @@ class InprocSession(Session):
         while heap and heap[0][0] < until_ns:
             if self._look:  # (between two instants)
                 self._look = False
+                if self.stop_requested:  # (RunHandle.stop; a logged run stops at its hand-over, now)
+                    if log is None:
+                        raise KeyboardInterrupt
+                    log_at = ran
                 if self._recompile:
                     self._recompile = False
                     self._drop_compiled()
@@ -662,24 +681,39 @@ class InprocSession(Session):
             rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:
-        """The nodes' counts: with what the compiled ticks counted since they last handed it
-        over, unless a run goes on in another thread and its loop does not come between two
-        instants within FLUSH_WAIT_S (a long step): then as of then."""
-        if self._advancing.acquire(blocking=False):  # no run in another thread (or this one's)
-            try:
-                self._flush()
-            finally:
-                self._advancing.release()
-        else:
-            done = threading.Event()
-            self._flushes_asked.append(done)
-            self._look = True
-            if not done.wait(self.FLUSH_WAIT_S) and self._advancing.acquire(blocking=False):
-                try:  # the run ended meanwhile
+        """The nodes' counts, with what the compiled ticks counted since they last handed it
+        over. Those are handed over (``_flush``) only where that is safe: in a thread when no
+        run goes on, or by a run's loop between two instants, which a thread other than the
+        run's asks for and waits up to FLUSH_WAIT_S; in the run's own thread (a step, a signal
+        handler) or when the loop does not come round in time (a long step), the counts are read
+        where they are, as of now, into copies."""
+        me = threading.get_ident()
+        if self._runner != me:
+            if self._advancing.acquire(blocking=False):  # no run goes on
+                try:
                     self._flush()
                 finally:
                     self._advancing.release()
-        return {rt.id: rt.stats for rt in self._nodes}
+                return {rt.id: rt.stats for rt in self._nodes}
+            done = threading.Event()
+            self._flushes_asked.append(done)
+            self._look = True
+            if done.wait(self.FLUSH_WAIT_S):
+                return {rt.id: rt.stats for rt in self._nodes}
+        return self._counted_so_far()
+
+    def _counted_so_far(self) -> dict[str, NodeStats]:
+        """Copies of the nodes' counts with what the compiled ticks counted and did not hand over
+        yet (the tape expanded first, unless this thread is expanding it: a signal handler)."""
+        self._records.expand()
+        pending = {k: counted for peek in self._peeks for k, *counted in peek()}
+        out = {}
+        for rt in self._nodes:
+            ticks, steps, step_ns = pending.get(rt.index, (0, 0, 0))
+            s = rt.stats
+            out[rt.id] = dataclasses.replace(s, ticks=s.ticks + ticks, steps=s.steps + steps,
+                                             step_ns=s.step_ns + step_ns, counts=dict(s.counts))
+        return out
 
     def seeds(self) -> dict:
         return {} if self._rng is None else {"tie_break_seed": self._tie_break_seed}

@@ -9,6 +9,7 @@ group's ticks back to back, and missed a delayed event due with its next tick, f
 
 from __future__ import annotations
 
+import threading
 import warnings
 from unittest import mock
 
@@ -16,7 +17,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from retriever import Latest, Pipeline, Rate, RetrieverWarning, Trigger
+from retriever import Flow, Latest, Pipeline, Rate, RetrieverWarning, StepError, Trigger
 from retriever.backends.inproc import InprocSession
 
 from .test_inproc_ticks import Count, Join, Plain, Untyped, UntypedSource
@@ -112,3 +113,45 @@ def test_random_graphs_record_the_same_beside_another_flow(spec, salt):
             return without(ticks_outcome(graph.build, (DURATION,)), extra)
 
     assert run(spec) == run(beside)
+
+
+def test_a_step_that_runs_its_own_pipeline_is_refused():
+    """pipe.run() from a step of that pipeline's run (the run's thread, inside it): a clear error,
+    not a second loop over the first one's schedule (the two tick paths disagreed on it)."""
+    holder = {}
+
+    class Recurses(Flow):
+        def step(self):
+            holder["pipe"].run(duration=0.01)
+
+    with Pipeline("nested") as pipe:
+        Recurses().named("r") @ Rate(100)
+    holder["pipe"] = pipe
+    with pytest.raises(StepError, match="called while this pipeline runs"):
+        pipe.run(duration=0.05)
+
+
+def test_a_background_run_stops_at_the_next_instant_after_stop():
+    """RunHandle.stop() from another thread: the run stops before its next tick, not at the next
+    batch of 4096 (with slow steps, many seconds later)."""
+    reached, release = threading.Event(), threading.Event()
+
+    class Waits(Flow):
+        def __init__(self):
+            self.n = 0
+
+        def step(self):
+            self.n += 1
+            if self.n == 10:
+                reached.set()
+                release.wait(60)
+
+    with Pipeline("stopped") as pipe:
+        Waits().named("w") @ Rate(100)
+    handle = pipe.run(duration=100, blocking=False)
+    assert reached.wait(60)
+    handle.stop()
+    release.set()
+    with pytest.raises(KeyboardInterrupt):
+        handle.wait()
+    assert pipe.stats()["w"].steps == 10

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import threading
 import time
 import warnings
 from contextlib import contextmanager
@@ -620,6 +621,46 @@ def test_stats_read_from_another_thread_while_a_run_goes_on_change_nothing_it_re
     assert records(watched.trace) == records(alone.trace)
     assert ({n: (s.ticks, s.steps) for n, s in watched.stats().items()}
             == {n: (s.ticks, s.steps) for n, s in alone.stats().items()})
+
+
+
+def test_stats_read_during_a_long_step_count_what_ran_so_far(monkeypatch):
+    """pipe.stats() from another thread while the run's thread is in a long step (the loop does
+    not come round to flush within FLUSH_WAIT_S): the counts as of now, in copies; and a step
+    that reads pipe.stats() in the run's own thread gets them so too, changing nothing the run
+    records or counts."""
+    monkeypatch.setattr(InprocSession, "FLUSH_WAIT_S", 0.0)
+    reached, release, seen = threading.Event(), threading.Event(), []
+
+    class Blocks(Flow[Num, Num]):
+        def step(self, inp: Num) -> Num:
+            if inp.x == 500:
+                reached.set()
+                release.wait(60)
+            if inp.x % 100 == 0:
+                seen.append(pipe.stats()["src"].steps)  # in the run's thread
+            return Num(inp.x)
+
+    def build():
+        with Pipeline("long_step") as built:
+            (Count().named("src") @ Rate(1000)).then(Blocks().named("b") @ Trigger(), sync=Latest())
+        return built
+
+    pipe = build()
+    handle = pipe.run(duration=1, blocking=False)
+    assert reached.wait(60)
+    during = pipe.stats()
+    release.set()
+    handle.wait()
+    assert (during["src"].steps, during["b"].steps) == (500, 499)
+    assert seen == list(range(100, 1001, 100))
+    alone = build()
+    Blocks.step, plain = (lambda self, inp: Num(inp.x)), Blocks.step
+    alone.run(duration=1)
+    Blocks.step = plain
+    assert records(pipe.trace) == records(alone.trace)
+    assert ({n: (s.ticks, s.steps) for n, s in pipe.stats().items()}
+            == {n: (s.ticks, s.steps) for n, s in alone.stats().items()} == {"src": (1000, 1000), "b": (1000, 1000)})
 
 
 def test_each_compiled_step_records_when_it_ran():
