@@ -224,19 +224,27 @@ class Trace:
         self.expand()
         return self._raw_steps
 
-    def expand(self, then: Callable[[], None] | None = None) -> None:
+    def expand(self, then: Callable[[], None] | None = None, wait: bool = True) -> None:
         """Move the tape's records to ``raw_events`` and ``raw_steps``. The tape only grows while
         this runs (a backend appends each record at once), so what it held at the start goes.
         ``then``: called after, under the same lock (what the tape's expanders counted, read).
-        Nothing, if this thread is expanding it already (a signal handler that came meanwhile)."""
+        Nothing if this thread is expanding it already (a signal handler that came meanwhile),
+        or, without ``wait``, if any thread is (counts read where a wait could hang: a signal
+        handler in the middle of taking the lock)."""
         if not self.tape and then is None or self._expander == threading.get_ident():
             return
-        with self._expanding, holding_full_collections():
+        if not self._expanding.acquire(blocking=wait):
+            return
+        try:
             self._expander = threading.get_ident()
-            try:
+            if wait:
+                with holding_full_collections():
+                    self._expand(then)
+            else:
                 self._expand(then)
-            finally:
-                self._expander = None
+        finally:
+            self._expander = None
+            self._expanding.release()
 
     def _expand(self, then: Callable[[], None] | None) -> None:
         tape = self.tape

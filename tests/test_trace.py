@@ -61,3 +61,16 @@ def test_a_trace_expanded_from_within_its_own_expansion_returns_at_once():
 
     trace.tape.extend([compact, step])
     assert trace.raw_steps == [step, step] and not trace.tape
+
+
+def test_expanding_without_waiting_leaves_a_tape_whose_lock_is_held():
+    """Counts read from a signal handler (pipe.stats() in the run's thread) expand the tape
+    without waiting: if its lock is held (the handler came while this thread was taking it), they
+    leave it as it is, rather than wait for themselves."""
+    trace = Trace()
+    step = ("n", (0, 0), {}, (), "ok", None, 0, 0)
+    trace.tape.append(step)
+    with trace._expanding:  # as the thread the handler interrupted holds it
+        trace.expand(wait=False)
+        assert trace.tape == [step]
+    assert trace.raw_steps == [step] and not trace.tape

@@ -704,8 +704,9 @@ class InprocSession(Session):
 
     def _counted_so_far(self) -> dict[str, NodeStats]:
         """Copies of the nodes' counts with what the compiled ticks counted and did not hand over
-        yet (the tape expanded first, unless this thread is expanding it: a signal handler)."""
-        self._records.expand()
+        yet (the tape expanded first, unless a thread is expanding it: then this may be a signal
+        handler of that thread, and the records still in the tape are not counted yet)."""
+        self._records.expand(wait=False)
         pending = {k: counted for peek in self._peeks for k, *counted in peek()}
         out = {}
         for rt in self._nodes:
