@@ -155,8 +155,12 @@ class _RateGroup:
 
     def advance(self) -> tuple[int, int]:
         """Move to the next tick; return its tag."""
-        self.k += 1
-        self.next_tag = (self.offset_ns + self.k * self.step_num // self.step_den, 0)
+        return self.move_to(self.k + 1)
+
+    def move_to(self, k: int) -> tuple[int, int]:
+        """Make tick ``k`` the next; return its tag."""
+        self.k = k
+        self.next_tag = (self.offset_ns + k * self.step_num // self.step_den, 0)
         return self.next_tag
 
 
@@ -205,10 +209,11 @@ class InprocSession(Session):
         # the counts and seqs the compiled ticks keep go to the nodes (_flush) in the thread that
         # runs them: held by advance(); another thread asks for it (stats()), and the loop does it
         # between two instants
-        self._advancing = threading.RLock()
+        self._advancing = threading.Lock()
         self._runner: int | None = None  # the thread in advance()
         self._flushes_asked: list[threading.Event] = []
-        self._look = False  # set when the loop is to look at _recompile and _flushes_asked
+        # set when the loop is to look at stop_requested, _recompile and _flushes_asked
+        self._look = False
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
 
     # ---------------------------------------------------------------------------------------
@@ -336,8 +341,7 @@ class InprocSession(Session):
     def _resume_group(self, g: int, k: int) -> None:
         """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
         group = self._groups[g]
-        group.k = k
-        group.next_tag = (group.offset_ns + k * group.step_num // group.step_den, 0)
+        group.move_to(k)
         self._schedule_group(group)
 
     def _flush(self) -> None:
@@ -358,7 +362,7 @@ class InprocSession(Session):
             done.set()
 
     #: how long stats() from another thread waits for a run's loop to flush between two instants
-    #: (a step may take long): past that, it reads the counts as of the last flush
+    #: (a step may take long): past that, it reads the counts where they are (_counted_so_far)
     FLUSH_WAIT_S = 1.0
 
     def _keep_next(self, tag: tuple[int, int]) -> None:
@@ -383,14 +387,15 @@ class InprocSession(Session):
         self._flush()
         self._ticks, self._flushes, self._peeks = None, [], []
 
-    def _tick_functions(self) -> tuple[list, list]:
+    def _tick_functions(self) -> list:
         """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; the same, when
-        it is the only tick due, going on along a chain of Trigger flows; and per rate group,
-        its ticks in order (one fused function, when nothing shuffles them). Each returns the
-        next microstep of the last tick it ran."""
+        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; and, set on the
+        session and its groups: the same per node, when it is the only tick due, going on along
+        a chain of Trigger flows (``_chains``), and per rate group its ticks in order (one fused
+        function, when nothing shuffles them) and its loop while nothing else is due (``alone``).
+        Each returns the next microstep of the last tick it ran."""
         if self._ticks is not None:
-            return self._ticks, self._chains
+            return self._ticks
         parts = []
         for rt in self._nodes:
             code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
@@ -407,7 +412,7 @@ class InprocSession(Session):
             group.ticks = (fused[g],) if fused else tuple(ticks[i] for i in group.order)
             group.alone = alone[g] if alone else None
         self._ticks, self._chains = ticks, chains
-        return ticks, chains
+        return ticks
 
     # ---------------------------------------------------------------------------------------
     # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
@@ -470,7 +475,7 @@ class InprocSession(Session):
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
         rank = self._rank
-        ticks, _ = self._tick_functions()
+        ticks = self._tick_functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
         # hand-over, or a look at whether a stop was asked for (a run in the background,
@@ -487,7 +492,7 @@ class InprocSession(Session):
                 if self._recompile:
                     self._recompile = False
                     self._drop_compiled()
-                    ticks, _ = self._tick_functions()
+                    ticks = self._tick_functions()
                 if self._flushes_asked:
                     self._answer_flushes()
             if ran >= log_at:
