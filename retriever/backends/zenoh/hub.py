@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import socket
 import time
@@ -113,14 +114,16 @@ GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
 
 def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
                 access: dict[str, str] | None = None, lease: float | None = None,
-                zid: str | None = None) -> zenoh.Config:
+                zid: str | None = None, shared_memory: bool = True) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
-    Zenoh's shared memory stays on (its default), though Retriever never allocates in it: with
-    it off, big messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's
-    latency instead of 1.1×, benchmarks/reports/latency.md), and its pool is sized by
-    :func:`shm_pool_bytes` for one of the run's ``sessions``. Its cost: each session has a
-    segment in /dev/shm, which a SIGKILLed process leaves behind.
+    Zenoh's shared memory stays on (its default) unless ``shared_memory`` is false (see
+    :func:`needs_shared_memory`), though Retriever never allocates in it: with it off, big
+    messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's latency
+    instead of 1.1×, benchmarks/reports/latency.md), and its pool is sized by
+    :func:`shm_pool_bytes` for one of the run's ``sessions``. Its costs: each session has a
+    segment in /dev/shm, which a SIGKILLed process leaves behind; and a process with a link that
+    uses it wakes 20 times a second for as long as it lives (SHM_WATCHDOG_WAKEUPS).
 
     ``access``: the config entries that make the session one of a run's (``access.py``:
     authentication and access control); without it, the session admits anyone. ``zid``: the
@@ -138,9 +141,43 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
     if lease is not None:  # how long a silent link lives (a partition): Zenoh's default is 10 s
         config.insert_json5("transport/link/tx/lease", str(round(lease * 1000)))
+    if not shared_memory:
+        config.insert_json5("transport/shared_memory/enabled", "false")
     for key, value in (access or {}).items():
         config.insert_json5(key, value)
     return config
+
+
+#: A process whose session has a link that uses Zenoh's shared memory runs its watchdog
+#: "confirmator" every 50 ms (fixed in Zenoh), on a thread of its own: 20 wake-ups a second,
+#: 0.05–0.15 % of a core here, measured per thread (benchmarks/reports/idle_cpu.md). An idle
+#: 100 Hz flow costs about 1 % of a core in all, so a node that never needs the pool opens its
+#: session without shared memory (:func:`needs_shared_memory`).
+SHM_WATCHDOG_WAKEUPS = 20
+
+#: the words of a port type (as the IR writes it, flow/_base.type_name) whose values are a few
+#: bytes whatever they hold: Zenoh's shared memory carries messages over 3 KiB only
+_SMALL_TYPE_WORDS = frozenset({"int", "float", "bool", "complex", "None", "NoneType", "Optional", "Union"})
+
+
+def needs_shared_memory(ir: dict, node_id: str) -> bool:
+    """Whether ``node_id``'s session may carry a value big enough for Zenoh's shared memory:
+    unless every port of the node that an edge connects has a type made of scalars only
+    (``float``, ``int | None``, …). A node with no edge (an idle flow) or only such ports
+    opens its session without it, and is spared the watchdog's wake-ups
+    (SHM_WATCHDOG_WAKEUPS). A value bigger than its port's type said still arrives, over TCP.
+    Anything this cannot read in the IR keeps shared memory on (Zenoh's default)."""
+    try:
+        node = next(n for n in ir["nodes"] if n["id"] == node_id)
+        for edge in ir["edges"]:
+            for end, ports in (("source", "outputs"), ("destination", "inputs")):
+                if edge[end]["node"] == node_id:
+                    words = set(re.split(r"[\s|,\[\]]+", node[ports][edge[end]["port"]])) - {""}
+                    if not words or not words <= _SMALL_TYPE_WORDS:
+                        return True
+    except (KeyError, TypeError, StopIteration):
+        return True
+    return False
 
 
 def forward_dropping(keys: KeySpace) -> dict[str, str]:
@@ -187,7 +224,8 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: in
 
 
 def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None,
-              listen: list[str] | None = None, lease: float | None = None, zid: str | None = None) -> zenoh.Session:
+              listen: list[str] | None = None, lease: float | None = None, zid: str | None = None,
+              shared_memory: bool = True) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
@@ -196,7 +234,7 @@ def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | Non
     two workers exchange messages over the direct link that gossip (learning of each other from
     the hub) opens between them, which is also the fastest path."""
     return zenoh.open(peer_config(listen=listen or [endpoint(0)], connect=[hub_endpoint], sessions=sessions,
-                                  access=access, lease=lease, zid=zid))
+                                  access=access, lease=lease, zid=zid, shared_memory=shared_memory))
 
 
 def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float,

@@ -401,7 +401,7 @@ def _serve(argv: list[str], parent: int) -> int:
     from ...codec import packb, unpackb
     from ...flow._base import set_up
     from .access import RunAccess, TlsFiles
-    from .hub import open_peer, wait_for_answers, wait_for_links
+    from .hub import needs_shared_memory, open_peer, wait_for_answers, wait_for_links
     from .loop import _CONTROL, StopRun
     from .wire import RELIABLE, KeySpace, WireEncoder
 
@@ -414,8 +414,11 @@ def _serve(argv: list[str], parent: int) -> int:
     # the first process of a node has the session id the others expect (a restarted one, whose
     # old process may still be linked, has its own: it finds its neighbours by their answers)
     zid = spec.get("zids", {}).get(node_id) if fresh is None and join is None else None
+    shared_memory = needs_shared_memory(spec["ir"], node_id)
+    padding = bytes(READY_PADDING if shared_memory else 0)  # no pool to make before T0 without it
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
-                   listen=spec.get("listen"), lease=spec.get("lease"), zid=zid) as session:
+                   listen=spec.get("listen"), lease=spec.get("lease"), zid=zid,
+                   shared_memory=shared_memory) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
             session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
@@ -461,7 +464,7 @@ def _serve(argv: list[str], parent: int) -> int:
                 if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
                     t0, end = int(fresh[1]), int(fresh[2])
                     seqs = _join_afresh(session, keys, spec, node_id, loop,
-                                        ready=lambda: status("ready", padding=bytes(READY_PADDING)))
+                                        ready=lambda: status("ready", padding=padding))
                     if seqs is None:
                         status("done", counts=dict(loop.counts))
                         loop.undeclare()
@@ -481,7 +484,7 @@ def _serve(argv: list[str], parent: int) -> int:
                     _link_to_hub(session, spec, loop)
 
                     def say_ready() -> None:
-                        status("ready", padding=bytes(READY_PADDING))  # the pool, before it joins
+                        status("ready", padding=padding)  # the pool, before it joins
 
                     say_ready()
                     if _await_control(loop, "resume", node_id, ask=say_ready) is None:
@@ -515,7 +518,7 @@ def _serve(argv: list[str], parent: int) -> int:
 
                     def ready() -> None:
                         status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
-                               peers=len(session.info.peers_zid()), padding=bytes(READY_PADDING))
+                               peers=len(session.info.peers_zid()), padding=padding)
 
                     ready()
                     # said again with each ask: a put made as a link came up may reach the hub before

@@ -73,19 +73,53 @@ class Mapped:
     zenoh_shm: int
 
 
+def biggest_zenoh_segment() -> int:
+    """The size of the biggest Zenoh shared-memory segment (``/dev/shm/*.zenoh``) mapped into this
+    process: its session's pool, once Zenoh has created it; 0 when there is none."""
+    sizes = [0]
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            fields = line.split()
+            if len(fields) >= 6 and fields[5].startswith("/dev/shm/") and fields[5].endswith(".zenoh"):
+                start, end = (int(x, 16) for x in fields[0].split("-"))
+                sizes.append(end - start)
+    return max(sizes)
+
+
 class ShmWatcher(Flow[None, Mapped]):
-    """The size of the biggest Zenoh shared-memory segment (``/dev/shm/*.zenoh``) mapped into its
-    own process when it steps: the session's pool, once Zenoh has created it."""
+    """The biggest Zenoh segment mapped into its own process when it steps."""
 
     def step(self, inp: None) -> Mapped:
-        sizes = [0]
-        with open("/proc/self/maps") as maps:
-            for line in maps:
-                fields = line.split()
-                if len(fields) >= 6 and fields[5].startswith("/dev/shm/") and fields[5].endswith(".zenoh"):
-                    start, end = (int(x, 16) for x in fields[0].split("-"))
-                    sizes.append(end - start)
-        return Mapped(zenoh_shm=max(sizes))
+        return Mapped(zenoh_shm=biggest_zenoh_segment())
+
+
+@io
+@dataclass
+class ImageMapped:
+    image: np.ndarray
+    zenoh_shm: int
+
+
+class ImageShmWatcher(Flow[None, ImageMapped]):
+    """ShmWatcher beside a small image, on a port of array type (connect it: a node that may send
+    big values)."""
+
+    def step(self, inp: None) -> ImageMapped:
+        return ImageMapped(image=np.zeros((2, 8), dtype=np.uint8), zenoh_shm=biggest_zenoh_segment())
+
+
+class ShmOfImageTaker(Flow):
+    """Untyped: takes an image; the biggest Zenoh segment of its own process."""
+
+    def step(self, image):
+        return {"zenoh_shm": biggest_zenoh_segment()}
+
+
+class ShmOfScalarTaker(Flow[Mapped, Mapped]):
+    """Takes an int only; the biggest Zenoh segment of its own process."""
+
+    def step(self, inp: Mapped) -> Mapped:
+        return Mapped(zenoh_shm=biggest_zenoh_segment())
 
 
 class Holder(Flow[None, dict]):

@@ -25,6 +25,7 @@ from retriever.backends.zenoh.hub import (
     SHM_POOL_SHARE,
     endpoint,
     free_port,
+    needs_shared_memory,
     new_zid,
     open_hub,
     open_peer,
@@ -158,6 +159,42 @@ def test_the_processes_of_a_run_share_one_shared_memory_budget():
     assert shm_pool_bytes(SHM_POOL_SHARE * (480 << 20), sessions=10) == 48 << 20, "the /dev/shm share is split too"
     optimization = json.loads(peer_config(sessions=51).get_json("transport/shared_memory/transport_optimization"))
     assert optimization["pool_size"] == shm_pool_bytes(sessions=51)
+
+
+def _ir(ports: dict[str, str], *, edge: str | None = "x", other: str = "numpy.ndarray") -> dict:
+    """An IR of a node ``n`` whose input ``x`` has the type ``ports["x"]``, fed by ``src`` (whose
+    output has the type ``other``) when ``edge`` names it; and an edge between two other nodes."""
+    nodes = [{"id": "n", "inputs": ports, "outputs": {}}, {"id": "src", "inputs": {}, "outputs": {"x": other}},
+             {"id": "a", "inputs": {}, "outputs": {"y": "Any"}}, {"id": "b", "inputs": {"y": "Any"}, "outputs": {}}]
+    edges = [{"source": {"node": "a", "port": "y"}, "destination": {"node": "b", "port": "y"}}]
+    if edge is not None:
+        edges.append({"source": {"node": "src", "port": "x"}, "destination": {"node": "n", "port": edge}})
+    return {"nodes": nodes, "edges": edges}
+
+
+def test_a_node_has_shared_memory_unless_its_connected_ports_are_all_scalars():
+    """(hub.SHM_WATCHDOG_WAKEUPS: what shared memory costs a process that does not need it)"""
+    for small in ("float", "int", "bool", "None", "int | None", "Optional[float]", "Union[int, float]"):
+        assert not needs_shared_memory(_ir({"x": small}), "n"), small
+    for big in ("numpy.ndarray", "Any", "str", "bytes", "list[float]", "numpy.ndarray | None", "dict", "",
+                "float | numpy.ndarray", "tuple[int, int]"):
+        assert needs_shared_memory(_ir({"x": big}), "n"), big
+    assert not needs_shared_memory(_ir({"x": "numpy.ndarray"}, edge=None), "n"), "no edge: an unconnected port"
+    assert needs_shared_memory(_ir({"x": "float"}), "src"), "the producer's own port type decides for it"
+    assert not needs_shared_memory(_ir({"x": "float"}, other="float"), "src")
+    assert needs_shared_memory(_ir({"x": "float"}), "a"), "an untyped port"
+
+
+def test_an_ir_it_cannot_read_keeps_shared_memory_on():
+    """Zenoh's default, whatever is wrong: the worker refuses a bad IR elsewhere, with its own
+    message; choosing a transport option must not be where it fails."""
+    bad = [None, {}, {"nodes": [], "edges": []}, {"nodes": [{"id": "n"}], "edges": [1]},
+           _ir({"x": 3}), _ir({}), {"nodes": "n", "edges": 1},
+           {**_ir({"x": "float"}), "edges": [{"source": None, "destination": {"node": "n", "port": "x"}}]}]
+    for ir in bad:
+        assert needs_shared_memory(ir, "n"), ir
+    assert json.loads(peer_config(shared_memory=False).get_json("transport/shared_memory/enabled")) is False
+    assert json.loads(peer_config().get_json("transport/shared_memory/enabled")) is True
 
 
 def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():

@@ -4,6 +4,7 @@ out of band; test_wire.py checks they are read-only views) and loop.py (SPILL_BY
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -13,7 +14,8 @@ from retriever import Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import SHM_POOL_MIN
 from retriever.backends.zenoh.loop import SPILL_BYTES
 
-from .payload_flows import BurstCamera, Camera, Holder, ShmWatcher, Sums, Viewer, frame
+from .payload_flows import (BurstCamera, Camera, Holder, ImageShmWatcher, ShmOfImageTaker, ShmOfScalarTaker, ShmWatcher,
+                            Sums, Viewer, frame)
 
 SIZE = 1 << 20  # 1 MiB: well above SPILL_BYTES, so every frame takes the file path
 
@@ -82,10 +84,30 @@ def test_each_worker_has_its_shared_memory_pool_before_t0():
     (130 ms for 128 MiB here): a worker makes that happen with its ``ready`` status, so no tick
     pays for it. The first step of a flow that has sent nothing yet finds the pool mapped."""
     with Pipeline("pool") as pipe:
-        ShmWatcher().configure(name="watcher") @ Rate(hz=10)
+        watcher = ImageShmWatcher().configure(name="watcher") @ Rate(hz=10)
+        watcher.then(ShmOfImageTaker().configure(name="taker") @ Trigger("image"))
     trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
-    first = min(trace.events, key=lambda e: e.seq)
+    first = min(trace.events_of("watcher", "zenoh_shm"), key=lambda e: e.seq)
     assert first.value >= SHM_POOL_MIN, f"no Zenoh pool mapped at the first step: biggest segment {first.value} B"
+
+
+def test_only_a_node_whose_edges_may_carry_big_values_has_shared_memory():
+    """Zenoh's shared memory costs a process 20 wake-ups a second once one of its links uses it
+    (hub.SHM_WATCHDOG_WAKEUPS), and serves messages over 3 KiB only: a node with no edge, or
+    whose connected ports are all of scalar types, opens its session without it. A node with an
+    array or untyped port on an edge keeps it."""
+    with Pipeline("pool_where_needed") as pipe:
+        ShmWatcher().configure(name="alone") @ Rate(hz=10)
+        images = ImageShmWatcher().configure(name="images") @ Rate(hz=10)
+        images.then(ShmOfImageTaker().configure(name="image_taker") @ Trigger("image"))
+        images.then(ShmOfScalarTaker().configure(name="scalar_taker") @ Trigger("zenoh_shm"))
+    ir = {n["id"]: n for n in json.loads(pipe.build_ir().to_json())["nodes"]}
+    assert ir["scalar_taker"]["inputs"] == {"zenoh_shm": "int"}, ir["scalar_taker"]  # what the test stands on
+    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
+    biggest = {node: max(trace.values_of(node, "zenoh_shm"))
+               for node in ("alone", "images", "image_taker", "scalar_taker")}
+    assert biggest["images"] >= SHM_POOL_MIN and biggest["image_taker"] >= SHM_POOL_MIN, biggest
+    assert biggest["alone"] == 0 and biggest["scalar_taker"] == 0, biggest
 
 
 def test_a_worker_rebuilds_its_flow_with_the_arguments_as_given():
