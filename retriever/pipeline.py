@@ -298,7 +298,9 @@ class Pipeline:
 
     @property
     def now(self) -> float:
-        """Current virtual time in seconds since T0."""
+        """Current virtual time in seconds since T0: where the last run ended, or, for one that
+        raised (a step's error, a stop), the time of the instant it got to; the next run goes on
+        from there."""
         return self._now_ns() / NS_PER_S
 
     def _now_ns(self) -> int:

@@ -72,6 +72,16 @@ class RunEnded(Exception):
         self.node, self.tag = node, tag
 
 
+class ReplayedError(Exception):
+    """What a replayed step (``replace_step``) raises at a tick whose logged record is an error:
+    the tick is recorded with the logged text (``"ValueError: bad tick"``), not this class's
+    name, and handled by the node's ``on_error`` as in the run."""
+
+    def __init__(self, error: str):
+        super().__init__(error)
+        self.error = error
+
+
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
@@ -464,6 +474,11 @@ class InprocSession(Session):
                 runner, self._runner = self._runner, threading.get_ident()
                 try:
                     self._advance(until_ns)
+                except RunEnded:
+                    raise
+                except BaseException as exc:  # a step's error, a stop: now is the instant it got to
+                    self.now_ns = max(self.now_ns, min(self._reached_ns(exc), until_ns))
+                    raise
                 finally:
                     self._runner = runner
                     if self._flushes_asked:
@@ -471,6 +486,15 @@ class InprocSession(Session):
         except RunEnded as ended:  # a step's sys.exit(0): the run is over at its tick
             self.now_ns = ended.tag[0]
             self.ended = ended
+
+    def _reached_ns(self, exc: BaseException) -> int:
+        """The time of the instant a run that raised ``exc`` got to: the tick it names (a step's
+        error, a causality error), else the latest rate tick that ran (a stop, Ctrl-C)."""
+        tag = getattr(exc, "tag", None)
+        if type(tag) is tuple and len(tag) == 2 and type(tag[0]) is int:
+            return tag[0]
+        ran = [g.offset_ns + (g.k - 1) * g.step_num // g.step_den for g in self._groups if g.k > 0]
+        return max(ran, default=self.now_ns)
 
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
@@ -674,7 +698,8 @@ class InprocSession(Session):
             self._records.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
             raise RunEnded(rt.id, tau)
         rt.stats.errors += 1
-        detail = {"error": f"{type(exc).__name__}: {exc}", "on_error": rt.on_error}
+        error = exc.error if type(exc) is ReplayedError else f"{type(exc).__name__}: {exc}"
+        detail = {"error": error, "on_error": rt.on_error}
         self._records.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
         if rt.on_error == "stop":
             raise StepError(rt.id, tau, exc) from exc
@@ -683,7 +708,8 @@ class InprocSession(Session):
             if not budget.take(tau[0]):
                 raise RestartLimitError(rt.id, tau, exc, budget.max_restarts, budget.window_s) from exc
             rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
-            rt.flow.reset()
+            if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
+                rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it
@@ -777,12 +803,20 @@ class InprocSession(Session):
         return held
 
     def replace_step(self, node: str, outputs: Any) -> None:
-        """Make ``node``'s ticks emit ``next(outputs)`` (an iterable of ``(port, value)``) instead
-        of calling its ``step()``: replayed sources."""
+        """Make ``node``'s ticks emit ``next(outputs)`` (each a list of ``(port, value)``, or a
+        ``ReplayedError`` to raise: a tick logged as an error) instead of calling its ``step()``:
+        replayed sources."""
         rt = self._by_id[node]
         self._drop_compiled()
         rt.replaced = True
-        rt.invoke = lambda values: next(outputs)
+
+        def invoke(values: dict) -> Any:
+            out = next(outputs)
+            if type(out) is ReplayedError:
+                raise out
+            return out
+
+        rt.invoke = invoke
         rt.read = lambda raw: raw
 
 

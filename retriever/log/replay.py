@@ -30,12 +30,12 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backends.inproc import InprocSession, RunEnded
+from ..backends.inproc import InprocSession, ReplayedError, RunEnded
 from ..codec import Encoder, unpackb
 from ..errors import IRError, LogError, RetrieverWarning, StepError
 from ..pipeline import Pipeline
 from ..time import format_tag
-from ..trace import STEPPED, Trace
+from ..trace import STEPPED, StepRecord, Trace
 from .reader import LoggedEvent, RunLog
 
 MAX_DIVERGENCES_KEPT = 20
@@ -433,6 +433,16 @@ class ResimReport:
         return self.difference is None
 
 
+def _logged_outputs(step: StepRecord, values: dict) -> list | ReplayedError:
+    """What a replayed source's tick gives the re-simulation: its logged events, or its logged
+    error (raised again, so that the tick is an error record, handled by ``on_error``, as in
+    the run)."""
+    if step.status == "error":
+        error = (step.detail or {}).get("error")
+        return ReplayedError(error if type(error) is str else "an error (the log does not say which)")
+    return [(i[1], values[i]) for i in step.produced]
+
+
 def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
     """Re-run the graph in virtual time from the logged source events; compare the trace."""
     if log.faults:  # the run lost state with a process: no re-run from the start can match it
@@ -454,12 +464,13 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
     logged = from_the_log(graph)
     for nid in logged:
         ticks = sorted((s for s in original.steps if s.node == nid and s.status != "skipped"), key=lambda s: s.tag)
-        session.replace_step(nid, iter([[(i[1], values[i]) for i in s.produced] for s in ticks]))
+        session.replace_step(nid, iter([_logged_outputs(s, values) for s in ticks]))
     try:
         session.set_up(skip=logged)
         session.advance(horizon)
     except StepError as e:
-        return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
+        if not isinstance(e.__cause__, ReplayedError):  # (a logged source's error stopped the run too)
+            return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
     finally:
         session.close()
     kept_steps = [s for s in original.steps if s.tag[0] < horizon]

@@ -155,3 +155,28 @@ def test_a_background_run_stops_at_the_next_instant_after_stop():
     with pytest.raises(KeyboardInterrupt):
         handle.wait()
     assert pipe.stats()["w"].steps == 10
+    assert pipe.now == 0.09, "at the last tick that ran"
+
+
+def test_a_run_that_raised_is_at_the_instant_it_got_to():
+    """After a step's error ``pipe.now`` is the time of the tick that raised (it stayed where
+    the run began), and the next run goes on from there for its duration."""
+
+    class FailsOnce(Flow):
+        def __init__(self):
+            self.n = 0
+
+        def step(self):
+            self.n += 1
+            if self.n == 5:
+                raise ValueError("once")
+            return {"n": self.n}
+
+    with Pipeline("raised") as pipe:
+        FailsOnce().named("f") @ Rate(10)
+    with pytest.raises(StepError, match="once"):
+        pipe.run(duration=2.0)
+    assert pipe.now == 0.4
+    pipe.run(duration=1.0)
+    assert pipe.now == 1.4
+    assert [s.tag[0] for s in pipe.trace.steps_of("f")][-1] == 1_300_000_000

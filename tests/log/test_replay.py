@@ -101,6 +101,16 @@ class Batcher(Flow):
         return {"total": float(sum(x)), "count": len(x)}
 
 
+class FailingCounter(Counter):
+    """A source whose 3rd, 6th, ... steps raise (a sensor that drops out)."""
+
+    def step(self) -> Reading:
+        out = super().step()
+        if self.k % 3 == 0:
+            raise OSError(f"no reading at {self.k}")
+        return out
+
+
 def chain(middle: type[Flow], *, on_error: str = "stop") -> Pipeline:
     with Pipeline("chain") as pipe:
         src = Counter() @ Rate(hz=50)
@@ -132,6 +142,27 @@ def test_quickstart_replays_and_resimulates_identically(tmp_path):
     again = resim(log)
     assert again.identical, again.difference
     assert again.steps_compared == 1160
+
+
+@pytest.mark.parametrize("on_error", ["skip_tick", "restart", "stop"])
+def test_a_source_that_raised_resimulates_identically(on_error, tmp_path):
+    """A source's ticks come from the log in a re-simulation: a tick logged as an error is an
+    error again, with the logged text, handled by ``on_error`` as in the run (it was an "ok"
+    tick with no events, and --resim said DIVERGED)."""
+    with Pipeline("failing_source") as pipe:
+        src = FailingCounter().configure(on_error=on_error, max_restarts=100) @ Rate(hz=20)
+        src.then(Smoother() @ Rate(hz=10), sync=Latest())
+    if on_error == "stop":
+        with pytest.raises(StepError, match="no reading at 3"):
+            logged(pipe, tmp_path)
+        log = read_log(tmp_path / "run.mcap")
+    else:
+        log = logged(pipe, tmp_path)
+    errors = [s for s in log.trace().steps if s.status == "error"]
+    assert errors and errors[0].detail["error"] == "OSError: no reading at 3", errors[:1]
+    again = resim(log)
+    assert again.identical, again.difference
+    assert again.steps_compared > (0 if on_error == "stop" else 40)
 
 
 def test_stateful_flows_replay_from_their_own_history(tmp_path):
