@@ -157,6 +157,10 @@ def run(
     shown = f"{duration:g} s"
     if duration == float("inf"):  # until stopped: a run as long as times may go, in practice
         duration, shown = UNTIL_STOPPED_S, "until stopped"
+        if log is None and keep is None:  # no log to read it from: the trace would grow until stopped
+            keep = "counters"
+            _err.print("--duration inf without --log: the run keeps its counters only (--keep counters; give "
+                       "--log to record it, or --keep to choose)", highlight=False)
     options = {k: v for k, v in (("secret", secret), ("namespace", namespace), ("keep", keep),
                                  ("foxglove", foxglove)) if v is not None}
     if foxglove is not None and canonical(backend or default_backend()) not in ("zenoh", "dora"):
@@ -417,7 +421,8 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
         _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
     if pipe._session is not None and pipe._session.keep == "counters":  # reading the log back could take GBs
         steps = sum(s.steps for s in pipe.stats().values())
-        _out.print(f"{steps} steps · records kept only in the log (--keep counters)", highlight=False)
+        kept = "kept only in the log" if log is not None else "not kept"
+        _out.print(f"{steps} steps · records {kept} (--keep counters)", highlight=False)
     else:
         digest = f"trace digest {trace.digest()[:16]}" if trace.values_kept else "values not kept (--keep records)"
         _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · {digest}", highlight=False)

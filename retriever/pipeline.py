@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -376,9 +377,9 @@ def _user_stacklevel() -> int:
 def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
     """While a logged run goes, Ctrl-C and SIGTERM ask it to stop at the next hand-over to the log
     writer (between two ticks) instead of raising wherever the interpreter happens to be, which
-    could leave a tick half recorded. A second signal stops at once. A run that holds processes
-    stops on SIGTERM as on Ctrl-C (KeyboardInterrupt), logged or not, unless the program
-    handles SIGTERM itself."""
+    could leave a tick half recorded. A second signal stops at once. SIGTERM, unless the program
+    handles it itself, then ends the program with SystemExit(143), as it does a run that holds
+    processes, logged or not."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -401,6 +402,13 @@ def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
     previous = {sig: signal.signal(sig, handler) for sig, handler in handlers.items()}
     try:
         yield
+    except KeyboardInterrupt:
+        if logged and session.stop_signal == signal.SIGTERM and previous[signal.SIGTERM] is signal.SIG_DFL:
+            # the log is ended ("interrupted"); the program ends as SIGTERM's default would have
+            # it, through exit(): an uncaught KeyboardInterrupt ends it with SIGINT instead,
+            # past the exit() in which Zenoh removes its shared memory
+            raise SystemExit(128 + signal.SIGTERM) from None
+        raise
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -426,7 +434,8 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     if writer is None:
         return
     session.log = None
-    session.logged_to = session.trace.log_path = writer.path
+    # absolute: pipe.trace reads the log back later, maybe from another working directory
+    session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
     if exc is None:
         status, error = "finished", ""
     elif isinstance(exc, KeyboardInterrupt):
@@ -438,7 +447,7 @@ def _close_log(session: Session, exc: BaseException | None = None) -> None:
     end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
     writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
     if session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
-        session.trace = LoggedTrace(writer.path)
+        session.trace = LoggedTrace(session.logged_to)
 
 
 def _realtime(backend: str | None) -> bool:

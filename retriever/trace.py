@@ -381,6 +381,7 @@ class Trace:
         return None
 
     def __len__(self) -> int:
+        self._need_records("len(trace)")
         return len(self.raw_events)
 
     def __repr__(self) -> str:

@@ -673,3 +673,46 @@ def test_counters_are_said_in_words_and_spin_time_in_seconds():
     assert _counters({"spin_ns": 561_234_567}) == "0.561 s busy-waiting for ticks (spin)"
     assert _counters({"late": 2, "report_waits": 1, "report_wait_ns": 171_000_000, "garbage": 0}) == \
         "2 late events, 1 waits for the log (171 ms)"
+
+
+UNTIL_STOPPED_SCRIPT = """
+from retriever import Flow, Pipeline, Rate
+
+
+class Tick(Flow):
+    def __init__(self):
+        self.n = 0
+
+    def step(self):
+        self.n += 1
+        if self.n == 1:
+            print("stepped", flush=True)
+        return {"n": self.n}
+
+
+with Pipeline("until_stopped") as pipe:
+    Tick() @ Rate(hz=1000)
+"""
+
+
+def test_a_run_until_stopped_without_a_log_keeps_only_counters(tmp_path):
+    """``--duration inf`` with no ``--log``: nothing will read the records, and the trace would
+    grow until Ctrl-C; the run keeps counters only, says so, and its summary says the records
+    were not kept (not that a log has them)."""
+    import signal
+
+    script = tmp_path / "until_stopped.py"
+    script.write_text(UNTIL_STOPPED_SCRIPT, encoding="utf-8")
+    proc = subprocess.Popen([str(RETRIEVER), "run", str(script), "--duration", "inf"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        assert proc.stdout.readline() == "stepped\n", proc.stderr.read()
+        os.kill(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "--duration inf without --log: the run keeps its counters only" in err
+    assert "records not kept (--keep counters)" in out and "only in the log" not in out

@@ -123,9 +123,19 @@ def test_a_counters_run_without_a_log_keeps_counters_and_says_where_the_records_
     trace = pipe.run(duration=10.0, keep="counters")
     assert pipe.stats()["viewer"].steps == 10_000 and pipe._session.retained_peak <= 2 * pipe._session.LOG_BATCH + 2
     assert len(trace.raw_steps) == 0 and "counters only" in repr(trace)
-    for ask in (lambda: trace.events, lambda: trace.steps_of("viewer"), trace.digest):
+    for ask in (lambda: trace.events, lambda: trace.steps_of("viewer"), trace.digest, lambda: len(trace)):
         with pytest.raises(ValuesNotKeptError, match=r"kept only counters \(keep='counters'\)\n    hint: pipe.stats"):
             ask()
+
+
+def test_the_trace_of_a_counters_run_reads_back_from_its_log_from_another_directory(tmp_path, monkeypatch):
+    """The log's path is taken whole when the run ends: a relative ``log=`` and a later chdir
+    still find it."""
+    monkeypatch.chdir(tmp_path)
+    pipe = _fast()
+    trace = pipe.run(duration=1.0, keep="counters", log="run.mcap")
+    monkeypatch.chdir("/")
+    assert len(trace.steps) == 2_000 and trace.log_path == str(tmp_path / "run.mcap")
 
 
 def test_a_logged_run_on_zenoh_keeps_only_counters_by_default_and_its_trace_reads_back_from_the_log(tmp_path):

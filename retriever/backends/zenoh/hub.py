@@ -157,7 +157,9 @@ SHM_WATCHDOG_WAKEUPS = 20
 
 #: the words of a port type (as the IR writes it, flow/_base.type_name) whose values are a few
 #: bytes whatever they hold: Zenoh's shared memory carries messages over 3 KiB only
-_SMALL_TYPE_WORDS = frozenset({"int", "float", "bool", "complex", "None", "NoneType", "Optional", "Union"})
+_SMALL_TYPE_WORDS = frozenset({"int", "float", "bool", "complex", "None", "NoneType"})
+#: ``Optional[...]`` and ``Union[...]`` hold what their brackets say (bare, they hold anything)
+_UNION_OPENING = re.compile(r"\b(?:Optional|Union)\[")
 
 
 def needs_shared_memory(ir: dict, node_id: str) -> bool:
@@ -172,7 +174,8 @@ def needs_shared_memory(ir: dict, node_id: str) -> bool:
         for edge in ir["edges"]:
             for end, ports in (("source", "outputs"), ("destination", "inputs")):
                 if edge[end]["node"] == node_id:
-                    words = set(re.split(r"[\s|,\[\]]+", node[ports][edge[end]["port"]])) - {""}
+                    spelled = _UNION_OPENING.sub("[", node[ports][edge[end]["port"]])
+                    words = set(re.split(r"[\s|,\[\]]+", spelled)) - {""}
                     if not words or not words <= _SMALL_TYPE_WORDS:
                         return True
     except (KeyError, TypeError, StopIteration):

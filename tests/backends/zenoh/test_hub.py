@@ -177,7 +177,8 @@ def test_a_node_has_shared_memory_unless_its_connected_ports_are_all_scalars():
     for small in ("float", "int", "bool", "None", "int | None", "Optional[float]", "Union[int, float]"):
         assert not needs_shared_memory(_ir({"x": small}), "n"), small
     for big in ("numpy.ndarray", "Any", "str", "bytes", "list[float]", "numpy.ndarray | None", "dict", "",
-                "float | numpy.ndarray", "tuple[int, int]"):
+                "float | numpy.ndarray", "tuple[int, int]", "Optional", "Union", "Optional[]", "Union[,]",
+                "Optional[Any]", "list[Optional[int]]"):
         assert needs_shared_memory(_ir({"x": big}), "n"), big
     assert not needs_shared_memory(_ir({"x": "numpy.ndarray"}, edge=None), "n"), "no edge: an unconnected port"
     assert needs_shared_memory(_ir({"x": "float"}), "src"), "the producer's own port type decides for it"

@@ -268,7 +268,8 @@ with Pipeline("plain") as pipe:
 if __name__ == "__main__":
     # no log=, no signal handler of its own; a hub port of its own, so that no stray peer of an
     # earlier test (retrying its connection to 7447) joins it and maps segments into it
-    pipe.run(duration=60, backend="zenoh", quiet=True, hub_port=int(sys.argv[1]))
+    pipe.run(duration=60, backend="zenoh", quiet=True, hub_port=int(sys.argv[1]),
+             log=sys.argv[2] if len(sys.argv) > 2 else None)
 """
 
 
@@ -283,15 +284,19 @@ def _zenoh_segments(pids: list[int]) -> set[str]:
     return found
 
 
-def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp_path):
+@pytest.mark.parametrize("logged", [False, True])
+def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp_path, logged):
     """SIGTERM's default would end the script at once: its workers die with it, but the Zenoh
     segments in /dev/shm stay (Zenoh removes them at exit(), which a signal skips). During a
     run that holds processes, SIGTERM ends the script with SystemExit(143) instead: workers
-    stopped, sessions closed, segments removed, the exit status a shell expects."""
+    stopped, sessions closed, segments removed, the exit status a shell expects. A logged run
+    stops between two ticks first, its log ended "interrupted" (it ended the script with
+    KeyboardInterrupt, which Python turns into SIGINT: the segments stayed)."""
     script = tmp_path / "plain.py"
     script.write_text(PLAIN_SCRIPT, encoding="utf-8")
-    proc = subprocess.Popen([sys.executable, str(script), str(free_port())], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
+    path = tmp_path / "run.mcap"
+    proc = subprocess.Popen([sys.executable, str(script), str(free_port()), *([str(path)] if logged else [])],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=_env())
     try:
         assert _read_line(proc) == "[tick] stepped\n"  # the run has started
         workers = _worker_children(proc.pid)
@@ -308,8 +313,11 @@ def test_sigterm_to_a_plain_script_stops_its_run_and_leaves_no_shared_memory(tmp
     # removed at exit (without the SystemExit every one stays; without the coordinator waiting
     # for Zenoh to let go of its hub's segment, about 1 run in 8 left that one: hub.py)
     in_use = _zenoh_segments(_pids())
-    left = [path for path in segments if os.path.exists(path) and path not in in_use]
+    left = [segment for segment in segments if os.path.exists(segment) and segment not in in_use]
     assert not left, (left, segments)
+    if logged:
+        log = read_log(path)
+        assert log.complete and log.end["status"] == "interrupted", log.end
 
 
 @pytest.mark.parametrize("node", ["counter", "total"])
