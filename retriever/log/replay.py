@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import json
+import os
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -97,8 +99,7 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
         try:
             pipeline = Pipeline.from_ir(log.ir)
         except IRError as e:
-            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}",
-                           "if a class moved or was renamed, pass the pipeline with --pipeline FILE:ATTR") from None
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}", _rebuild_hint(log)) from None
     else:
         pipeline.reset()
     with warnings.catch_warnings():
@@ -111,6 +112,23 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
                        f"'{graph.name}' does not have (it has: {', '.join(sorted(graph.nodes))})",
                        "replay with the pipeline that wrote the log")
     return pipeline
+
+
+def _rebuild_hint(log: RunLog) -> str:
+    """How to give the pipeline a log's IR cannot rebuild: for flows that lived in the script
+    that ran (``python script.py``: no other process can import its ``__main__``), that script,
+    as the log's run metadata names it (a hostile log's text, only shown)."""
+    in_main = any(str(node.get("type", "")).startswith("__main__:") for node in log.ir.nodes)
+    try:
+        argv, cwd = json.loads(log.run.get("command_line", "[]")), log.run.get("cwd", "")
+        first = argv[0] if type(argv) is list and argv else None
+        script = os.path.join(cwd, first) if type(first) is str and first.endswith(".py") else None
+    except (ValueError, TypeError, AttributeError):
+        script = None
+    if in_main and script is not None:
+        return (f"its flows live in the script that ran: retriever replay {log.path} --pipeline {script} "
+                "(FILE:ATTR when the script has more than one pipeline)")
+    return "pass the pipeline that wrote the log with --pipeline FILE[:ATTR] (a class that moved or was renamed too)"
 
 
 def replay(log: RunLog, pipeline: Pipeline | None = None,

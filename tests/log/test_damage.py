@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import re
 import secrets
+import subprocess
 import sys
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from tests.log.helpers import (
     chunk_payload_offset,
     chunks,
     cli,
+    cli_env,
     cut,
     records,
     flip,
@@ -388,7 +390,8 @@ def _rewrite(module: Path, name: str, text: str | None) -> None:
     importlib.invalidate_caches()
 
 
-IR_HINT = r"if a class moved or was renamed, pass the pipeline with --pipeline FILE:ATTR"
+IR_HINT = (r"pass the pipeline that wrote the log with --pipeline FILE\[:ATTR\] \(a class that moved or was renamed "
+           r"too\)")
 
 
 def test_replay_when_the_flow_class_was_renamed(drift):
@@ -407,6 +410,42 @@ def test_replay_when_the_flow_class_was_renamed(drift):
     fixed = cli("replay", log, "--pipeline", f"{module}:pipe")
     assert fixed.returncode == 0, fixed.stdout + fixed.stderr
     assert "identical:" in fixed.stdout
+
+
+SCRIPT_RUN = """
+from retriever import Flow, Pipeline, Rate
+
+
+class Tick(Flow):
+    def __init__(self):
+        self.n = 0
+
+    def step(self):
+        self.n += 1
+        return {"n": self.n}
+
+
+with Pipeline("script") as pipe:
+    Tick() @ Rate(hz=10)
+
+if __name__ == "__main__":
+    pipe.run(duration=0.5, log="run.mcap")
+"""
+
+
+def test_replay_of_a_scripts_log_names_the_script_to_pass(tmp_path):
+    """A log of ``python script.py`` names flows of its ``__main__``, which no other process can
+    import: the error's hint is the command that replays it, with the script the log's run
+    metadata names (its command line and working directory)."""
+    script = tmp_path / "script.py"
+    script.write_text(SCRIPT_RUN, encoding="utf-8")
+    subprocess.run([sys.executable, str(script.name)], check=True, cwd=tmp_path, env=cli_env(), timeout=120)
+    log = tmp_path / "run.mcap"
+    assert_cli_error(cli("replay", log), r"class Tick lives in __main__",
+                     hint=rf"its flows live in the script that ran: retriever replay {re.escape(str(log))} "
+                          rf"--pipeline {re.escape(str(script))} ")
+    fixed = cli("replay", log, "--pipeline", script)
+    assert fixed.returncode == 0 and "identical:" in fixed.stdout, fixed.stdout + fixed.stderr
 
 
 def test_replay_when_the_flow_module_is_gone(drift):
