@@ -170,8 +170,12 @@ class _RateGroup:
     def move_to(self, k: int) -> tuple[int, int]:
         """Make tick ``k`` the next; return its tag."""
         self.k = k
-        self.next_tag = (self.offset_ns + k * self.step_num // self.step_den, 0)
+        self.next_tag = (self.time_of(k), 0)
         return self.next_tag
+
+    def time_of(self, k: int) -> int:
+        """The time of tick ``k`` (the clocks' tick_time(k))."""
+        return self.offset_ns + k * self.step_num // self.step_den
 
 
 class InprocSession(Session):
@@ -493,7 +497,7 @@ class InprocSession(Session):
         tag = getattr(exc, "tag", None)
         if type(tag) is tuple and len(tag) == 2 and type(tag[0]) is int:
             return tag[0]
-        ran = [g.offset_ns + (g.k - 1) * g.step_num // g.step_den for g in self._groups if g.k > 0]
+        ran = [g.time_of(g.k - 1) for g in self._groups if g.k > 0]
         return max(ran, default=self.now_ns)
 
     def _advance(self, until_ns: int) -> None:

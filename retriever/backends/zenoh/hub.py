@@ -123,7 +123,7 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     instead of 1.1×, benchmarks/reports/latency.md), and its pool is sized by
     :func:`shm_pool_bytes` for one of the run's ``sessions``. Its costs: each session has a
     segment in /dev/shm, which a SIGKILLed process leaves behind; and a process with a link that
-    uses it wakes 20 times a second for as long as it lives (SHM_WATCHDOG_WAKEUPS).
+    uses it wakes 20 times a second for as long as it lives (:func:`needs_shared_memory`).
 
     ``access``: the config entries that make the session one of a run's (``access.py``:
     authentication and access control); without it, the session admits anyone. ``zid``: the
@@ -148,13 +148,6 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     return config
 
 
-#: A process whose session has a link that uses Zenoh's shared memory runs its watchdog
-#: "confirmator" every 50 ms (fixed in Zenoh), on a thread of its own: 20 wake-ups a second,
-#: 0.05–0.15 % of a core here, measured per thread (benchmarks/reports/idle_cpu.md). An idle
-#: 100 Hz flow costs about 1 % of a core in all, so a node that never needs the pool opens its
-#: session without shared memory (:func:`needs_shared_memory`).
-SHM_WATCHDOG_WAKEUPS = 20
-
 #: the words of a port type (as the IR writes it, flow/_base.type_name) whose values are a few
 #: bytes whatever they hold: Zenoh's shared memory carries messages over 3 KiB only
 _SMALL_TYPE_WORDS = frozenset({"int", "float", "bool", "complex", "None", "NoneType"})
@@ -166,8 +159,10 @@ def needs_shared_memory(ir: dict, node_id: str) -> bool:
     """Whether ``node_id``'s session may carry a value big enough for Zenoh's shared memory:
     unless every port of the node that an edge connects has a type made of scalars only
     (``float``, ``int | None``, …). A node with no edge (an idle flow) or only such ports
-    opens its session without it, and is spared the watchdog's wake-ups
-    (SHM_WATCHDOG_WAKEUPS). A value bigger than its port's type said still arrives, over TCP.
+    opens its session without it. A process with a link that uses shared memory runs Zenoh's
+    watchdog "confirmator" every 50 ms (fixed in Zenoh): 20 wake-ups a second, 0.05–0.15 % of
+    a core here (benchmarks/reports/idle_cpu.md), where an idle 100 Hz flow costs about 1 % in
+    all. A value bigger than its port's type said still arrives, over TCP.
     Anything this cannot read in the IR keeps shared memory on (Zenoh's default)."""
     try:
         node = next(n for n in ir["nodes"] if n["id"] == node_id)

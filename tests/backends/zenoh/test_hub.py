@@ -173,7 +173,7 @@ def _ir(ports: dict[str, str], *, edge: str | None = "x", other: str = "numpy.nd
 
 
 def test_a_node_has_shared_memory_unless_its_connected_ports_are_all_scalars():
-    """(hub.SHM_WATCHDOG_WAKEUPS: what shared memory costs a process that does not need it)"""
+    """(hub.needs_shared_memory says what shared memory costs a process that does not need it)"""
     for small in ("float", "int", "bool", "None", "int | None", "Optional[float]", "Union[int, float]"):
         assert not needs_shared_memory(_ir({"x": small}), "n"), small
     for big in ("numpy.ndarray", "Any", "str", "bytes", "list[float]", "numpy.ndarray | None", "dict", "",

@@ -93,7 +93,7 @@ def test_each_worker_has_its_shared_memory_pool_before_t0():
 
 def test_only_a_node_whose_edges_may_carry_big_values_has_shared_memory():
     """Zenoh's shared memory costs a process 20 wake-ups a second once one of its links uses it
-    (hub.SHM_WATCHDOG_WAKEUPS), and serves messages over 3 KiB only: a node with no edge, or
+    (hub.needs_shared_memory), and serves messages over 3 KiB only: a node with no edge, or
     whose connected ports are all of scalar types, opens its session without it. A node with an
     array or untyped port on an edge keeps it."""
     with Pipeline("pool_where_needed") as pipe:
