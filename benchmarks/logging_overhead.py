@@ -15,8 +15,8 @@ both sides; the timed logged run includes creating the log (IR, metadata, channe
 it (last chunk, summary, footer). Ratio = best time with logging / best time without.
 
 Log size: the file's bytes per record (events + step records), split into compressed chunks,
-message indexes (if the writer wrote any; it no longer does) and the rest; and a separate estimate
-per event and per step record: each kind's MCAP message records (the 31-byte header + payload,
+message indexes (16 uncompressed bytes per record, which MCAP's indexed readers need) and the
+rest; and a separate estimate per event and per step record: each kind's MCAP message records (the 31-byte header + payload,
 rebuilt exactly from the log) compressed on their own by the writer's zstd compressor, in pieces of
 its chunk size cap. Estimates × counts add up to the file size within a few percent.
 
@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['raw_record_event']:>5.0f} {r['raw_record_step']:>5.0f}")
     print()
     print("B/record = file size / (events + step records), split into the zstd chunks, the message indexes")
-    print("(uncompressed; none since the writer stopped writing them) and the rest (IR, metadata, channels, summary).")
+    print("(uncompressed: 16 B per record, for MCAP's indexed readers) and the rest (IR, metadata, channels, summary).")
     print("est. = one kind's MCAP message records compressed on their own by the writer's zstd compressor,")
     print("per record; payload = mean msgpack bytes per record; record = payload + the 31 B")
     print("MCAP message header (channel, sequence, log time, publish time), before compression.")

@@ -6,6 +6,11 @@ batch of messages is one list comprehension of ``struct.pack`` joined into the o
 chunks, indexes, attachments, metadata, summary, footer) is written with the ``mcap`` package's
 own record classes, and the result is read back by the plain ``mcap`` reader in the tests.
 
+Each chunk is followed by its MessageIndex records (one per channel: log time and offset of every
+message), which MCAP's indexed readers (Foxglove's ``McapIndexedReader``, Rerun's import) need to
+find a chunk's messages. They are built on the I/O thread, vectorised with numpy, from the chunk's
+bytes and the records' lengths: the hot path adds one ``extend`` per batch.
+
 Crash safety comes from the layout: channels, attachments and metadata go straight into the data
 section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
 CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
@@ -23,6 +28,7 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from typing import BinaryIO
 
+import numpy as np
 import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
@@ -50,6 +56,9 @@ MAX_BYTES_QUEUED = 32 << 20
 #: channel_id, sequence & 0xFFFFFFFF, log_time, publish_time) + data`` is the whole record.
 MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 MESSAGE_FIELDS = 2 + 4 + 8 + 8
+_CHANNEL_AT, _LOG_TIME_AT = 9, 15  # where a Message record's channel id and log time begin
+_LOG_TIME_BYTES = np.arange(_LOG_TIME_AT, _LOG_TIME_AT + 8)
+MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")  # opcode, record length, channel id, entries' length
 _U32 = 0xFFFFFFFF
 
 
@@ -67,6 +76,7 @@ class McapWriter:
         self._compressor = zstandard.ZstdCompressor(level=1)
         self._channels: list[Channel] = []
         self._chunk = bytearray()
+        self._lengths: list[int] = []  # of the open chunk's records, in order (for its message indexes)
         self._chunk_times: list[int] | None = None  # [earliest, latest] log time in the open chunk
         self._message_counts: Counter[int] = Counter()
         self._start_time: int | None = None
@@ -161,6 +171,7 @@ class McapWriter:
         if not records:
             return
         self._chunk += b"".join(records)
+        self._lengths.extend(map(len, records))
         if self._chunk_times is None:
             self._chunk_times = [start, end]
         else:
@@ -188,12 +199,10 @@ class McapWriter:
         self._io.shutdown(wait=True)
 
     def _close_chunk(self) -> None:
-        # No message index records: they are optional in MCAP, readers scan a chunk without them,
-        # and they cost 16 uncompressed bytes and a Python-level append per message.
         if not self._chunk:
             return
-        data, (start, end) = self._chunk, self._chunk_times
-        self._chunk, self._chunk_times = bytearray(), None
+        data, lengths, (start, end) = self._chunk, self._lengths, self._chunk_times
+        self._chunk, self._lengths, self._chunk_times = bytearray(), [], None
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
         with self._written:
@@ -203,25 +212,34 @@ class McapWriter:
                 self._written.wait_for(lambda: self._queued <= MAX_BYTES_QUEUED or self._failure is not None)
                 self.waited_ns += time.monotonic_ns() - began
             self._queued += len(data)
-        self._submit(self._write_chunk, data, start, end)
+        self._submit(self._write_chunk, data, lengths, start, end)
 
-    def _write_chunk(self, data: bytearray, start: int, end: int) -> None:
+    def _write_chunk(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         try:
-            self._compress_and_write(data, start, end)
+            self._compress_and_write(data, lengths, start, end)
         finally:
             with self._written:
                 self._queued -= len(data)
                 self._written.notify_all()
 
-    def _compress_and_write(self, data: bytearray, start: int, end: int) -> None:
+    def _compress_and_write(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         compressed = self._compressor.compress(data)
-        chunk_offset, chunk_length = self._write_record(Chunk(
-            message_start_time=start, message_end_time=end, uncompressed_size=len(data),
-            uncompressed_crc=zlib.crc32(data), compression="zstd", data=compressed))
+        builder = RecordBuilder()
+        Chunk(message_start_time=start, message_end_time=end, uncompressed_size=len(data),
+              uncompressed_crc=zlib.crc32(data), compression="zstd", data=compressed).write(builder)
+        chunk = builder.end()
+        chunk_offset = self._offset
+        indexes = message_indexes(data, lengths)
+        offsets, at = {}, chunk_offset + len(chunk)
+        for channel_id, record in indexes:
+            offsets[channel_id] = at
+            at += len(record)
+        # one write: a kill leaves the chunk with its indexes, or a torn record at the end
+        self._write(b"".join([chunk, *(record for _, record in indexes)]))
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
-            chunk_length=chunk_length, message_index_offsets={}, message_index_length=0, compression="zstd",
-            compressed_size=len(compressed), uncompressed_size=len(data)))
+            chunk_length=len(chunk), message_index_offsets=offsets, message_index_length=at - chunk_offset - len(chunk),
+            compression="zstd", compressed_size=len(compressed), uncompressed_size=len(data)))
 
     # -- the end ---------------------------------------------------------------------------
     def finish(self) -> None:
@@ -269,3 +287,25 @@ class McapWriter:
         self._stream.write(footer.end())
         self._stream.write(MAGIC)
         self._stream.flush()
+
+
+def message_indexes(chunk: bytes | bytearray, lengths: list[int]) -> list[tuple[int, bytes]]:
+    """The MessageIndex records of a chunk of Message records whose lengths are ``lengths``:
+    ``(channel_id, record)`` by channel id, each listing ``(log_time, offset in the chunk)`` in
+    log-time order (ties in file order)."""
+    ends = np.cumsum(np.asarray(lengths, dtype=np.int64))
+    offsets = ends - np.asarray(lengths, dtype=np.int64)
+    raw = np.frombuffer(chunk, dtype=np.uint8)
+    channels = raw[offsets + _CHANNEL_AT].astype(np.uint16) | (raw[offsets + _CHANNEL_AT + 1].astype(np.uint16) << 8)
+    times = np.ascontiguousarray(raw[offsets[:, None] + _LOG_TIME_BYTES]).view("<u8").ravel()
+    order = np.lexsort((times, channels))  # by channel, then log time; stable
+    channels, entries = channels[order], np.empty((len(order), 2), dtype="<u8")
+    entries[:, 0], entries[:, 1] = times[order], offsets[order]
+    firsts = np.flatnonzero(np.r_[True, channels[1:] != channels[:-1]])
+    records = []
+    for first, last in zip(firsts, [*firsts[1:], len(order)]):
+        body = entries[first:last].tobytes()
+        channel_id = int(channels[first])
+        records.append((channel_id, MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + len(body), channel_id,
+                                                             len(body)) + body))
+    return records
