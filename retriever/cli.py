@@ -623,9 +623,7 @@ def log_info(path: Annotated[Path, typer.Argument(metavar="LOG.mcap")]) -> None:
 
 def _print_info(path: Path, log, info: dict) -> None:
     run, end = log.run, log.end or {}
-    state = "complete" if log.end else "incomplete (no end record: the run was killed)"
-    if "retriever.recovered" in log.metadata:
-        state += f"; recovered from {log.metadata['retriever.recovered'].get('source')}"
+    state = _file_state(log)
     lines = [("file", f"{path} ({path.stat().st_size / 1e6:.2f} MB, {state})"),
              ("pipeline", run.get("pipeline", "?")), ("backend", run.get("backend", "?")),
              ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
@@ -662,6 +660,19 @@ def _print_info(path: Path, log, info: dict) -> None:
     for node, counts in sorted(info["statuses"].items()):
         statuses.add_row(_cell(node), *(str(counts.get(name, 0)) for name in names))
     _out.print(statuses)
+
+
+def _file_state(log) -> str:
+    """What ``log info`` says of a file that reads to its end: it is a complete MCAP file (what
+    ``log recover`` checks), and whether the run it holds ended."""
+    from .log.format import RECOVERED_METADATA
+
+    if RECOVERED_METADATA in log.metadata:
+        return (f"complete, recovered from {log.metadata[RECOVERED_METADATA].get('source')}: the run was cut short "
+                "(no end record)")
+    if not log.run:
+        return "complete, not written by Retriever (no retriever.run record)"
+    return "complete" if log.end else "complete, but its run has no end record (was the run cut short?)"
 
 
 def _metadata_json(path: Path, key: str, text: str, kind: type):

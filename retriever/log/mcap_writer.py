@@ -11,7 +11,7 @@ message), which MCAP's indexed readers (Foxglove's ``McapIndexedReader``, Rerun'
 find a chunk's messages. They are built on the I/O thread, vectorised with numpy, from the chunk's
 bytes and the records' lengths: the hot path adds one ``extend`` per batch.
 
-Crash safety comes from the layout: channels, attachments and metadata go straight into the data
+Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into the data
 section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
 CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
 I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it. A killed writer leaves complete chunks followed by at
@@ -44,6 +44,7 @@ from mcap.records import (
     McapRecord,
     Metadata,
     MetadataIndex,
+    Schema,
     Statistics,
     SummaryOffset,
 )
@@ -75,6 +76,7 @@ class McapWriter:
         self._chunk_size = chunk_size
         self._compressor = zstandard.ZstdCompressor(level=1)
         self._channels: list[Channel] = []
+        self._schemas: list[Schema] = []
         self._chunk = bytearray()
         self._lengths: list[int] = []  # of the open chunk's records, in order (for its message indexes)
         self._chunk_times: list[int] | None = None  # [earliest, latest] log time in the open chunk
@@ -125,9 +127,16 @@ class McapWriter:
         self._write(data)
         return offset, len(data)
 
-    def add_channel(self, topic: str, message_encoding: str, metadata: dict[str, str]) -> int:
+    def add_schema(self, name: str, encoding: str, data: bytes) -> int:
+        """A schema for channels to name (Retriever's own channels have none: 0)."""
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=bytes(data))
+        self._schemas.append(schema)
+        self._submit(self._write_record, schema)
+        return schema.id
+
+    def add_channel(self, topic: str, message_encoding: str, metadata: dict[str, str], schema_id: int = 0) -> int:
         channel = Channel(id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
-                          metadata=dict(metadata), schema_id=0)
+                          metadata=dict(metadata), schema_id=schema_id)
         self._channels.append(channel)
         self._submit(self._write_record, channel)
         return channel.id
@@ -265,9 +274,10 @@ class McapWriter:
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + begin,
                                          group_length=summary.count - begin))
 
+        group(Opcode.SCHEMA, self._schemas)
         group(Opcode.CHANNEL, self._channels)
         group(Opcode.STATISTICS, [Statistics(
-            message_count=sum(self._message_counts.values()), schema_count=0,
+            message_count=sum(self._message_counts.values()), schema_count=len(self._schemas),
             channel_count=len(self._channels), attachment_count=len(self._attachment_indexes),
             metadata_count=len(self._metadata_indexes), chunk_count=len(self._chunk_indexes),
             message_start_time=self._start_time or 0, message_end_time=self._end_time,

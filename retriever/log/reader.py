@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from mcap.records import Attachment, Channel, Footer, Message, Metadata
+from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
@@ -34,6 +34,7 @@ class LogChannel:
     topic: str
     message_encoding: str
     metadata: dict[str, str]
+    schema_id: int = 0  # 0: none (Retriever's own channels are msgpack without a schema)
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,7 @@ class RunLog:
 
     path: Path
     channels: dict[int, LogChannel] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
     attachments: dict[str, Attachment] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     messages: list[Message] = field(default_factory=list)
@@ -261,8 +263,10 @@ class _Tracked:
 # -- telling a torn file from a corrupt one ---------------------------------------------------
 #: Every MCAP record's fields after its opcode and length: a number is a fixed-size field, "4" /
 #: "8" a field prefixed with its length in 4 / 8 bytes (strings, maps, data). None: a Message,
-#: whose data runs to the record's end. A record whose fields add up to another length than its
-#: own says was damaged: a writer stopped mid-record leaves a consistent record that is cut short.
+#: whose data runs to the record's end. A record whose fields run past its own length was damaged:
+#: a writer stopped mid-record leaves a consistent record that is cut short. Fields may end before
+#: the record does (MCAP lets later versions append fields), and a record of another opcode (a
+#: later version's, or a private one, 0x80 and up) is skipped by its length, as readers must.
 _LAYOUTS: dict[int, tuple[str, list | None]] = {
     0x01: ("Header", ["4", "4"]), 0x02: ("Footer", [20]), 0x03: ("Schema", [2, "4", "4", "4"]),
     0x04: ("Channel", [2, 2, "4", "4", "4"]), 0x05: ("Message", None), 0x06: ("Chunk", [8, 8, 8, 4, "4", "8"]),
@@ -272,6 +276,7 @@ _LAYOUTS: dict[int, tuple[str, list | None]] = {
     0x0D: ("MetadataIndex", [8, 8, "4"]), 0x0E: ("SummaryOffset", [1, 8, 8]), 0x0F: ("DataEnd", [4]),
 }
 _RECORD_HEAD = 9  # opcode (1 byte) and length (8)
+_RESERVED = 0x00  # no record has it: a zeroed or overwritten byte
 
 
 def _fields_length(stream, start: int, length: int, present: int, layout: list) -> int | None:
@@ -296,10 +301,20 @@ def _fields_length(stream, start: int, length: int, present: int, layout: list) 
 def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bool]:
     """The top-level records ``(offset, name, length)`` up to the first that is damaged or cut,
     and what is wrong with that one (None if none is), and whether it is cut short (a tear)
-    rather than damaged. A file that ends with the MCAP magic was finished: nothing in it is a tear."""
+    rather than damaged. A file that ends with the MCAP magic was finished: nothing in it is a tear.
+    Damage after a record longer than its fields is blamed on that record: its length is the
+    likelier change than a later version's fields."""
     stream.seek(size - len(MAGIC))
     finished = size >= 2 * len(MAGIC) and stream.read(len(MAGIC)) == MAGIC
     records: list[tuple[int, str, int]] = []
+    longer = None  # the first record longer than its fields, and what they add up to
+
+    def damaged(problem: str) -> tuple[list[tuple[int, str, int]], str, bool]:
+        if longer is not None:
+            offset, name, length, fields = longer
+            problem = f"the {name} record at byte {offset} says it is {length} bytes long, but its fields add up to {fields}"
+        return records, problem, False
+
     pos = len(MAGIC)
     while pos < size:
         if pos + _RECORD_HEAD > size:
@@ -307,17 +322,19 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
         stream.seek(pos)
         opcode = stream.read(1)[0]
         length = int.from_bytes(stream.read(8), "little")
-        if opcode not in _LAYOUTS:
-            return records, f"the record at byte {pos} is of no MCAP type (opcode 0x{opcode:02x})", False
-        name, layout = _LAYOUTS[opcode]
+        if opcode == _RESERVED:
+            return damaged(f"the record at byte {pos} is of no MCAP type (opcode 0x{opcode:02x})")
+        name, layout = _LAYOUTS.get(opcode, (f"0x{opcode:02x}", None))
         present = min(length, size - pos - _RECORD_HEAD)
         fields = None if layout is None else _fields_length(stream, pos + _RECORD_HEAD, length, present, layout)
-        if fields is not None and fields != length:
-            return records, (f"the {name} record at byte {pos} says it is {length} bytes long, but its fields "
-                             f"add up to {'more' if fields > length else fields}"), False
+        if fields is not None and fields > length:
+            return damaged(f"the {name} record at byte {pos} says it is {length} bytes long, but its fields add up "
+                           "to more")
+        if fields is not None and fields < length and longer is None:
+            longer = (pos, name, length, fields)
         if pos + _RECORD_HEAD + length > size:
-            return records, (f"it ends in the middle of the {name} record at byte {pos} ({present} of its "
-                             f"{length} bytes are there)"), not finished
+            problem = f"it ends in the middle of the {name} record at byte {pos} ({present} of its {length} bytes are there)"
+            return (records, problem, True) if not finished else damaged(problem)
         records.append((pos, name, length))
         if opcode == 0x02:  # the footer: the magic follows, and the file ends
             after = size - (pos + _RECORD_HEAD + length)
@@ -330,6 +347,8 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
             offset, name, _ = records[-1]
             return records, (f"it ends with the {name} record at byte {offset}, whole, without the summary "
                              "and closing magic bytes a finished log has"), True
+        if finished and longer is not None:  # no footer where the records lead: one of them was changed
+            return damaged("")
     return records, None, False
 
 
@@ -354,7 +373,10 @@ def _take(log: RunLog, record: Any) -> None:
             raise ValueError(f"message on unknown channel {record.channel_id}")
         log.messages.append(record)
     elif isinstance(record, Channel):
-        log.channels[record.id] = LogChannel(record.id, record.topic, record.message_encoding, dict(record.metadata))
+        log.channels[record.id] = LogChannel(record.id, record.topic, record.message_encoding, dict(record.metadata),
+                                             record.schema_id)
+    elif isinstance(record, Schema):
+        log.schemas[record.id] = record
     elif isinstance(record, Attachment):
         log.attachments[record.name] = record
     elif isinstance(record, Metadata):

@@ -56,7 +56,9 @@ def recover(source: str | Path, output: str | Path | None = None, *, overwrite: 
 def _copy(log: RunLog, stream: BinaryIO) -> None:
     """Write the records ``log`` holds, and a ``retriever.recovered`` record, as one complete MCAP file."""
     writer = McapWriter(stream, profile=fmt.PROFILE, library="retriever log recover")
-    channel_ids = {c.id: writer.add_channel(c.topic, c.message_encoding, c.metadata) for c in log.channels.values()}
+    schema_ids = {s.id: writer.add_schema(s.name, s.encoding, s.data) for s in log.schemas.values()}
+    channel_ids = {c.id: writer.add_channel(c.topic, c.message_encoding, c.metadata, schema_ids.get(c.schema_id, 0))
+                   for c in log.channels.values()}
     for attachment in log.attachments.values():
         writer.add_attachment(attachment.name, attachment.media_type, bytes(attachment.data),
                               attachment.log_time, attachment.create_time)

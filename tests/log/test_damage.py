@@ -5,13 +5,18 @@ traceback through the CLI; ``retriever log recover`` salvages what can be salvag
 from __future__ import annotations
 
 import importlib
+import io
 import re
 import secrets
+import struct
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from retriever import LogError, read_log
 from retriever._loading import load_pipeline
@@ -19,6 +24,8 @@ from retriever.backends.inproc import InprocSession
 from retriever.log import Divergence, LogWriter, recover, replay, resim
 from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import (
+    CHUNK,
+    MAGIC_LEN,
     QUICKSTART,
     assert_cli_error,
     chunk_payload_offset,
@@ -245,6 +252,52 @@ def test_cli_recover_then_replay(many_chunks: Path, tmp_path: Path):
     assert "recovered from" in info.stdout
 
 
+def _foreign_mcap(path: Path) -> Path:
+    """An MCAP file another tool wrote (the ``mcap`` package's writer): two schemas, three
+    channels (one without a schema), no Retriever records."""
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        writer = Writer(f, chunk_size=512)
+        writer.start(profile="", library="another tool")
+        point = writer.register_schema("demo.Point", "jsonschema", b'{"type": "object"}')
+        image = writer.register_schema("demo.Image", "protobuf", b"not really a descriptor set")
+        channels = [writer.register_channel("/point", "json", point), writer.register_channel("/image", "protobuf", image),
+                    writer.register_channel("/raw", "cbor", 0)]
+        for i in range(300):
+            writer.add_message(channels[i % 3], log_time=i, publish_time=i, data=b'{"x": %d}' % i, sequence=i)
+        writer.finish()
+    return path
+
+
+def test_log_info_and_recover_agree_that_a_foreign_mcap_file_is_complete(tmp_path: Path):
+    path = _foreign_mcap(tmp_path / "foreign.mcap")
+    assert recover(path).output is None
+    assert f"{path} is complete and undamaged" in cli("log", "recover", path).stdout
+    info = cli("log", "info", path)
+    assert info.returncode == 0, info.stderr
+    assert "complete, not written by Retriever (no retriever.run record)" in info.stdout
+    assert "incomplete" not in info.stdout
+
+
+def test_recover_keeps_schema_records(tmp_path: Path):
+    path = _foreign_mcap(tmp_path / "foreign.mcap")
+    torn = cut(path, path.stat().st_size * 2 // 3, tmp_path / "torn.mcap")
+    result = recover(torn)
+    original, recovered = read_log(path), read_log(result.output)
+    assert 0 < len(recovered.messages) < len(original.messages)
+    by_topic = {c.topic: c for c in recovered.channels.values()}
+    schemas = {topic: recovered.schemas[c.schema_id] if c.schema_id else None for topic, c in by_topic.items()}
+    assert {topic: (s.name, s.encoding, bytes(s.data)) if s else None for topic, s in schemas.items()} == {
+        "/point": ("demo.Point", "jsonschema", b'{"type": "object"}'),
+        "/image": ("demo.Image", "protobuf", b"not really a descriptor set"), "/raw": None}
+    with result.output.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.schema_count == 2
+    assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values() if c.schema_id} == {
+        "/point": "demo.Point", "/image": "demo.Image"}
+
+
 def test_recover_a_complete_log_has_nothing_to_do(one_chunk: Path):
     result = recover(one_chunk)
     assert result.output is None and result.damage is None
@@ -300,6 +353,52 @@ def test_a_log_cut_between_two_records_is_diagnosed_as_torn(many_chunks: Path, t
         with pytest.raises(LogError, match=r"its writer was stopped before finishing") as raised:
             read_log(torn)
         assert "damaged" not in str(raised.value), str(raised.value)
+
+
+def _with_private_and_extended_records(path: Path, out: Path) -> Path:
+    """``path``'s data section with what the MCAP specification lets other writers add: a private
+    record (opcode 0x80 and up) before every chunk, and 5 more bytes (a later version's fields) at
+    the end of every channel record; then cut in the middle of the fourth chunk, as a kill leaves it."""
+    data = path.read_bytes()
+    found = records(data)
+    fourth = [offset for opcode, offset, _ in found if opcode == CHUNK][3]
+    pieces = [data[:MAGIC_LEN]]
+    for opcode, offset, length in found:
+        if offset >= fourth:
+            break
+        body = data[offset + 9:offset + 9 + length]
+        if opcode == CHUNK:
+            private = b"vendor data, not MCAP's"
+            pieces.append(bytes([0x80 + offset % 0x7F]) + struct.pack("<Q", len(private)) + private)
+        if opcode == 0x04:  # a channel
+            body += b"later"
+        pieces.append(bytes([opcode]) + struct.pack("<Q", len(body)) + body)
+    pieces.append(data[fourth:fourth + 9 + found[[o for _, o, _ in found].index(fourth)][2] // 2])
+    out.write_bytes(b"".join(pieces))
+    return out
+
+
+def test_a_killed_log_with_private_and_extended_records_is_a_stopped_writer(many_chunks: Path, tmp_path: Path):
+    """Records a reader must skip (private opcodes, fields it does not know at the end of a record)
+    were diagnosed as "damaged after it was written (this is not a stopped writer)"."""
+    torn = _with_private_and_extended_records(many_chunks, tmp_path / "vendor.mcap")
+    with pytest.raises(LogError, match=r"it ends in the middle of the Chunk record at byte \d+ .*: its writer was "
+                                       r"stopped before finishing") as raised:
+        read_log(torn)
+    assert "damaged" not in str(raised.value)
+    result = recover(torn)
+    assert result.damage.startswith("it ends in the middle of the Chunk record")
+    original, recovered = read_log(many_chunks), read_log(result.output)
+    assert len(recovered.messages) == len(_messages_of_chunks(many_chunks, 3)) > 0
+    assert recovered.messages == original.messages[:len(recovered.messages)]
+    assert {c.topic for c in recovered.channels.values()} == {c.topic for c in original.channels.values()}
+
+
+def _messages_of_chunks(path: Path, n: int) -> list[Message]:
+    """The messages of the first ``n`` chunks of a log."""
+    chunks_read = [r for r in StreamReader(io.BytesIO(path.read_bytes()), emit_chunks=True).records
+                   if isinstance(r, Chunk)][:n]
+    return [m for chunk in chunks_read for m in breakup_chunk(chunk) if isinstance(m, Message)]
 
 
 @pytest.fixture(scope="module")
