@@ -5,10 +5,12 @@ with Foxglove's own SDK (``foxglove-sdk``, the extra ``retriever[foxglove]``) so
 channel has a schema the app decodes:
 
 - an image port (uint8 arrays H×W, H×W×3 or H×W×4) is a ``foxglove.RawImage`` channel
-  (``mono8``, ``rgb8``, ``rgba8``) on ``/<node>/<port>``;
+  (``mono8``, ``rgb8``, ``rgba8``) on ``/<node>/<port>``, and so is an image field of a dataclass
+  value (a camera frame with its time) on ``/<node>/<port>/<field>`` (nested: ``.../<a>/<b>``);
 - any other port is a JSON channel on ``/<node>/<port>`` whose messages are ``{"value": ...,
   "tag_ns", "microstep", "seq"}`` (numbers and small arrays as they are; a bigger array as its
-  dtype, shape and first elements), which the app plots;
+  dtype, shape and first elements; a dataclass as its fields, whether this process registered
+  its type or not), which the app plots;
 - each node's step records are JSON on ``/retriever/steps/<node>`` (status, tick, consumed and
   produced ids, detail, wall time of the step), and the graph (the IR) on ``/retriever/graph``.
 
@@ -24,10 +26,11 @@ import time
 import warnings
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
+from ..codec import UnregisteredValue
 from ..errors import LogError, RetrieverWarning
 from ..trace import NOT_KEPT
 from .reader import RunLog
@@ -69,9 +72,30 @@ def image_encoding(value: Any) -> str | None:
     return IMAGE_ENCODINGS.get(value.shape[2]) if min(value.shape[:2]) > 1 else None
 
 
+def dataclass_fields(value: Any) -> dict[str, Any] | None:
+    """A dataclass value's fields by name, the same whether this process registered its type
+    (a dataclass) or read it without (an :class:`UnregisteredValue`); None for anything else."""
+    if isinstance(value, UnregisteredValue):
+        return value.fields
+    if hasattr(value, "__dataclass_fields__") and not isinstance(value, type):
+        return {name: getattr(value, name) for name in value.__dataclass_fields__}
+    return None
+
+
+def image_fields(value: Any, path: str = "") -> Iterator[tuple[str, np.ndarray, str]]:
+    """``(path, image, encoding)`` for each image among a dataclass value's fields, nested
+    dataclasses too, ``path`` as ``/field`` or ``/field/inner``."""
+    for name, field_value in (dataclass_fields(value) or {}).items():
+        encoding = image_encoding(field_value)
+        if encoding is not None:
+            yield f"{path}/{name}", field_value, encoding
+        else:
+            yield from image_fields(field_value, f"{path}/{name}")
+
+
 def to_json(value: Any) -> Any:
     """A value as JSON: numbers, strings, lists and dicts as they are, small arrays as lists,
-    bigger ones summarised, anything else as its text."""
+    bigger ones summarised, a dataclass as its fields, anything else as its text."""
     if value is None or isinstance(value, (bool, int, float, str)):
         return value if not isinstance(value, float) or np.isfinite(value) else str(value)
     if isinstance(value, np.generic):
@@ -81,14 +105,15 @@ def to_json(value: Any) -> Any:
             return to_json(value.tolist())
         return {"dtype": str(value.dtype), "shape": list(value.shape),
                 "head": to_json(value.reshape(-1)[:8].tolist()) if value.dtype.kind in "biuf" else None}
+    fields = dataclass_fields(value)  # before tuples: an UnregisteredValue is one
+    if fields is not None:
+        return {name: to_json(v) for name, v in fields.items()}
     if isinstance(value, dict):
         return {str(k): to_json(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_json(v) for v in value]
     if isinstance(value, bytes):
         return {"bytes": len(value)}
-    if hasattr(value, "__dataclass_fields__"):
-        return {name: to_json(getattr(value, name)) for name in value.__dataclass_fields__}
     return str(value)
 
 
@@ -126,25 +151,37 @@ class FoxgloveWriter:
         return channel
 
     def event(self, node: str, port: str, tag: tuple[int, int], seq: int, value: Any, when: int) -> None:
-        """One event at ``when`` (Unix ns): an image on a RawImage channel, else JSON. A port that
+        """One event at ``when`` (Unix ns): an image on a RawImage channel, else JSON, and the
+        images among a dataclass value's fields each on its own RawImage channel too. A port that
         began as images and later sends something else goes on as JSON on ``<topic>/other``."""
         topic = f"/{node}/{port}"
         encoding = image_encoding(value)
-        channel = self._channels.get(topic)
-        if channel is None and encoding is not None:
-            channel = self._channels[topic] = self._RawImageChannel(topic, context=self._context)
-        if isinstance(channel, self._RawImageChannel):
-            if encoding is not None:
-                image = np.ascontiguousarray(value)
-                channel.log(self._RawImage(timestamp=self._Timestamp(sec=when // 10**9, nsec=when % 10**9),
-                                           frame_id=node, width=image.shape[1], height=image.shape[0],
-                                           encoding=encoding, step=image.strides[0], data=image.tobytes()),
-                            log_time=when)
-                self.written[topic] += 1
-                return
+        if encoding is None:
+            for path, image, image_kind in image_fields(value):
+                channel = self._image_channel(topic + path)
+                if channel is not None:
+                    self._log_image(channel, topic + path, node, image, image_kind, when)
+        elif self._image_channel(topic) is not None:
+            self._log_image(self._channels[topic], topic, node, value, encoding, when)
+            return
+        if isinstance(self._channels.get(topic), self._RawImageChannel):
             topic += "/other"
         self._json_channel(topic, self._value_schema).log(
             {"value": to_json(value), "tag_ns": tag[0], "microstep": tag[1], "seq": seq}, log_time=when)
+        self.written[topic] += 1
+
+    def _image_channel(self, topic: str):
+        """The RawImage channel on ``topic`` (made on first use), or None if ``topic`` is JSON."""
+        channel = self._channels.get(topic)
+        if channel is None:
+            channel = self._channels[topic] = self._RawImageChannel(topic, context=self._context)
+        return channel if isinstance(channel, self._RawImageChannel) else None
+
+    def _log_image(self, channel, topic: str, node: str, image: np.ndarray, encoding: str, when: int) -> None:
+        image = np.ascontiguousarray(image)
+        channel.log(self._RawImage(timestamp=self._Timestamp(sec=when // 10**9, nsec=when % 10**9), frame_id=node,
+                                   width=image.shape[1], height=image.shape[0], encoding=encoding,
+                                   step=image.strides[0], data=image.tobytes()), log_time=when)
         self.written[topic] += 1
 
     def step(self, node: str, tag: tuple[int, int], consumed: dict, produced, status: str, detail, wall_ns: int,

@@ -131,3 +131,74 @@ def test_without_the_sdk_the_export_says_how_to_get_it(tmp_path, monkeypatch):
                                        r"hint: pip install 'retriever\[foxglove\]'"):
         export_foxglove(log, tmp_path / "view.mcap")
     assert not (tmp_path / "view.mcap").exists()
+
+
+@io
+@dataclass
+class Shot:
+    """A camera frame as the demo's camera sends it: one port whose value holds the image."""
+
+    camera: str
+    t: float
+    rgb: np.ndarray
+    mask: np.ndarray
+
+
+@io
+@dataclass
+class Pair:
+    left: Shot
+    exposure: float
+
+
+class Shooter(Flow):
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        shot = Shot(camera="head", t=0.1 * self.k, rgb=np.full((4, 5, 3), self.k, dtype=np.uint8),
+                    mask=np.eye(4, 5, dtype=np.uint8) * self.k)
+        return {"frame": shot, "pair": Pair(left=shot, exposure=0.5)}
+
+
+def _messages(path: Path) -> dict[str, list]:
+    """Every message of an export, per topic: JSON decoded, protobuf as its bytes."""
+    messages: dict[str, list] = {}
+    with path.open("rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            body = json.loads(message.data) if channel.message_encoding == "json" else bytes(message.data)
+            messages.setdefault(channel.topic, []).append((message.log_time, body))
+    return messages
+
+
+def test_images_inside_dataclass_values_are_raw_images_and_the_cli_writes_the_same_json(tmp_path):
+    """The demo's camera frames are fields of a dataclass value: each image field is a RawImage
+    channel, and the command (which reads values without their types) writes the same export
+    as the Python function (whose process registered them)."""
+    with Pipeline("shots") as pipe:
+        Shooter().configure(name="cam") @ Rate(hz=10)
+    log_path = tmp_path / "run.mcap"
+    pipe.run(duration=0.3, log=log_path)
+    python_export, cli_export = tmp_path / "python.mcap", tmp_path / "cli.mcap"
+    export_foxglove(read_log(log_path), python_export)
+    done = subprocess.run([str(Path(sys.executable).parent / "retriever"), "log", "export", str(log_path),
+                           "--format", "foxglove", "-o", str(cli_export)], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    by_python, by_cli = _messages(python_export), _messages(cli_export)
+    assert by_cli == by_python
+    with python_export.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    kinds = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert {topic: kind for topic, kind in kinds.items() if kind == "foxglove.RawImage"} == {
+        topic: "foxglove.RawImage" for topic in
+        ("/cam/frame/rgb", "/cam/frame/mask", "/cam/pair/left/rgb", "/cam/pair/left/mask")}
+    schema = summary.schemas[next(c.schema_id for c in summary.channels.values() if c.topic == "/cam/frame/rgb")]
+    images = [_protobuf_class(schema).FromString(body) for _, body in by_python["/cam/frame/rgb"]]
+    assert [(i.encoding, i.width, i.height, i.data[0]) for i in images] == [("rgb8", 5, 4, k) for k in (1, 2, 3)]
+    masks = [_protobuf_class(schema).FromString(body) for _, body in by_python["/cam/pair/left/mask"]]
+    assert masks[1].encoding == "mono8" and masks[1].data[:6] == bytes([2, 0, 0, 0, 0, 0])
+    frame = by_python["/cam/frame"][0][1]["value"]
+    assert frame == {"camera": "head", "t": 0.1, "rgb": [[[1] * 3] * 5] * 4, "mask": np.eye(4, 5, dtype=int).tolist()}
+    assert by_python["/cam/pair"][0][1]["value"]["left"] == frame
