@@ -697,6 +697,8 @@ def log_cat(
     steps: Annotated[bool, typer.Option("--steps", help="Print step records instead of events.")] = False,
     limit: Annotated[Optional[int], typer.Option(help="Print at most this many.")] = None,
     brief: Annotated[bool, typer.Option("--brief", help="Arrays as their dtype and shape, not their values.")] = False,
+    full: Annotated[bool, typer.Option("--full", help="Arrays whole (by default one of more than 16 elements is "
+                                                      "its dtype, shape and range).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per line (arrays up to 1024 elements "
                                                          "as lists, bigger ones summarised).")] = False,
     start: Annotated[Optional[float], typer.Option("--from", metavar="S", help="Only tags at or after S s.")] = None,
@@ -705,11 +707,13 @@ def log_cat(
     """Print decoded events (or step records), in tag order."""
     import json
 
-    import numpy as np
-
     from .log.foxglove import to_json
+    from .log.show import show_value
     from .time import format_tag
 
+    if brief and full:
+        _fail(RetrieverError("--brief and --full ask for arrays both ways\n    hint: pass one of them"))
+    arrays = "brief" if brief else "full" if full else "summary"
     log = _read(path)
     lo = None if start is None else round(start * 1e9)
     hi = None if end is None else round(end * 1e9)
@@ -721,7 +725,6 @@ def log_cat(
         _out.print(text, highlight=False, markup=False, soft_wrap=True)
 
     shown = 0
-    np.set_printoptions(threshold=16, edgeitems=2)
     try:
         if steps:
             records = sorted((s for s in log.iter_steps() if (node is None or s.node == node) and in_range(s.tag)),
@@ -747,9 +750,9 @@ def log_cat(
                 value = log.value(e, keep_unregistered=True)
                 if as_json:
                     say(json.dumps({"tag_ns": e.tag[0], "microstep": e.tag[1], "node": e.node, "port": e.port,
-                                    "seq": e.seq, "value": _brief(value) if brief else to_json(value)}))
+                                    "seq": e.seq, "value": show_value(value, arrays) if brief else to_json(value)}))
                 else:
-                    say(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {_brief(value) if brief else repr(value)}")
+                    say(f"{format_tag(e.tag)}  {e.node}.{e.port} #{e.seq}  {show_value(value, arrays)}")
                 shown += 1
     except Exception as exc:
         _fail(exc)
@@ -757,24 +760,6 @@ def log_cat(
         known = sorted({f"{c.metadata.get('node')}.{c.metadata.get('port')}" for c in log.channels.values()
                         if c.metadata.get("node")})
         _err.print(f"nothing matched; the log's ports are: {', '.join(known)}", highlight=False)
-
-
-def _brief(value) -> str:
-    """A value with its arrays as ``dtype[shape]``: what a camera frame is, not its pixels."""
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        return f"{value.dtype}[{','.join(map(str, value.shape))}]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k!r}: {_brief(v)}" for k, v in value.items()) + "}"
-    if isinstance(value, (list, tuple)):
-        inner = ", ".join(_brief(v) for v in value[:8]) + (f", … {len(value)} in all" if len(value) > 8 else "")
-        return f"[{inner}]" if isinstance(value, list) else f"({inner})"
-    if hasattr(value, "__dataclass_fields__"):
-        fields = ", ".join(f"{name}={_brief(getattr(value, name))}" for name in value.__dataclass_fields__)
-        return f"{type(value).__name__}({fields})"
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 @log_app.command("recover")

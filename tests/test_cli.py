@@ -665,6 +665,43 @@ def test_log_cat_briefly_as_json_and_in_a_time_range(tmp_path: Path):
         ("cam", 400_000_000, "ok"), ("stats", 400_000_000, "ok")]
 
 
+def test_log_cat_summarises_big_arrays_unless_asked_for_them_whole(tmp_path: Path):
+    """issue 41: every camera frame printed a 25-line numpy dump unless --brief. An array of more
+    than 16 elements is one line (dtype, shape, range) by default, whole with --full."""
+    from tests.log.test_foxglove import _log
+
+    log = _log(tmp_path)  # rgb uint8 6×8×3 (k everywhere, one pixel (255, 0, 7)), depth 6×8 arange, exposure
+    shown = cli("log", "cat", str(log), "--node", "cam", "--limit", "3")
+    assert shown.returncode == 0, shown.stderr
+    assert [line.split("  ", 2)[2] for line in shown.stdout.splitlines()] == [
+        "uint8[6,8] min 0 max 47", "0.01", "uint8[6,8,3] min 0 max 255"], shown.stdout
+    stats = cli("log", "cat", str(log), "--node", "stats", "--limit", "2")
+    assert [line.split("  ", 2)[2] for line in stats.stdout.splitlines()] == [
+        "float32[5000] min 0.0 max 0.0", "array([ 1, 141, 0, 0])"], stats.stdout
+    whole = cli("log", "cat", str(log), "--node", "cam", "--port", "depth", "--limit", "1", "--full")
+    assert whole.returncode == 0 and "40, 41, 42, 43, 44, 45, 46, 47]], dtype=uint8)" in whole.stdout, whole.stdout
+    assert "..." not in whole.stdout and len(whole.stdout.splitlines()) == 6
+    assert cli("log", "cat", str(log), "--brief", "--limit", "1").stdout.endswith("uint8[6,8]\n")
+    assert_cli_error(cli("log", "cat", str(log), "--brief", "--full"),
+                     r"^error: --brief and --full ask for arrays both ways$", hint="pass one of them")
+
+
+def test_log_cat_shows_a_dataclass_value_read_without_its_type_by_its_fields(tmp_path: Path):
+    from retriever import Rate
+    from tests.log.test_foxglove import Shooter
+
+    with Pipeline("shots") as pipe:
+        Shooter().configure(name="cam") @ Rate(hz=10)
+    pipe.run(duration=0.1, log=tmp_path / "run.mcap")
+    shown = cli("log", "cat", str(tmp_path / "run.mcap"), "--port", "frame")
+    assert shown.stdout.splitlines()[0].endswith(
+        "cam.frame #0  <tests.log.test_foxglove:Shot>(camera='head', t=0.1, rgb=uint8[4,5,3] min 1 max 1, "
+        "mask=uint8[4,5] min 0 max 1)"), shown.stdout
+    brief = cli("log", "cat", str(tmp_path / "run.mcap"), "--port", "frame", "--brief")
+    assert brief.stdout.splitlines()[0].endswith(
+        "<tests.log.test_foxglove:Shot>(camera='head', t=0.1, rgb=uint8[4,5,3], mask=uint8[4,5])"), brief.stdout
+
+
 def test_counters_are_said_in_words_and_spin_time_in_seconds():
     """`retriever run`'s "counted" lines and `log info`: a node whose only counter is spin_ns
     (configure(spin=)) says how long it busy-waited, not an empty list."""
