@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
@@ -199,7 +200,7 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
         stream.seek(0)
         size = os.fstat(stream.fileno()).st_size
         tracked = _Tracked(stream)
-        reader = StreamReader(tracked, validate_crcs=True)
+        reader = _StreamReader(tracked, validate_crcs=True)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
         bad_attachment = None
         try:
@@ -240,6 +241,18 @@ def _attachment_crc_error(record: Attachment, crc_bytes: bytes) -> CRCValidation
                      + struct.pack("<I", len(media_type)) + media_type + struct.pack("<Q", len(record.data)))
     actual = zlib.crc32(record.data, crc)
     return None if actual == expected else CRCValidationError(expected, actual, record)
+
+
+class _StreamReader(StreamReader):
+    """``mcap``'s stream reader, passing over MessageIndex records unparsed: a log is read whole,
+    so their entries (one per message, parsed field by field in Python: a third of a read) are
+    of no use here. Their bytes are still read, so the data section's CRC covers them."""
+
+    def _read_record(self, opcode: int, length: int):
+        if opcode == Opcode.MESSAGE_INDEX:
+            self._stream.read(length)
+            return None
+        return super()._read_record(opcode, length)
 
 
 class _Tracked:

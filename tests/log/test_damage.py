@@ -355,6 +355,15 @@ def test_a_log_cut_between_two_records_is_diagnosed_as_torn(many_chunks: Path, t
         assert "damaged" not in str(raised.value), str(raised.value)
 
 
+def test_a_flipped_byte_in_a_message_index_is_corruption(many_chunks: Path, tmp_path: Path):
+    """read_log passes over message indexes unparsed; the data section's CRC still covers them."""
+    data = many_chunks.read_bytes()
+    offset, length = next((offset, length) for opcode, offset, length in records(data) if opcode == 0x07)
+    damaged = flip(many_chunks, offset + 9 + length - 3, tmp_path / "flipped.mcap")
+    with pytest.raises(LogError, match=r"it is corrupt at the DataEnd record at byte \d+: a CRC check failed"):
+        read_log(damaged)
+
+
 def _with_private_and_extended_records(path: Path, out: Path) -> Path:
     """``path``'s data section with what the MCAP specification lets other writers add: a private
     record (opcode 0x80 and up) before every chunk, and 5 more bytes (a later version's fields) at

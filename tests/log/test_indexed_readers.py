@@ -38,8 +38,12 @@ NPM_TIMEOUT = 300.0
 @pytest.fixture(scope="module")
 def quickstart_log(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("indexed") / "quickstart.mcap"
-    pipe = load_pipeline(str(QUICKSTART))
-    pipe.run(duration=3.0, log=path)
+    pipe = load_pipeline(str(QUICKSTART))  # the module's pipeline, which other tests may have run
+    pipe.reset()
+    try:
+        pipe.run(duration=3.0, log=path)
+    finally:
+        pipe.reset()
     return path
 
 
