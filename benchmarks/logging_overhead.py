@@ -16,9 +16,9 @@ it (last chunk, summary, footer). Ratio = best time with logging / best time wit
 
 Log size: the file's bytes per record (events + step records), split into compressed chunks,
 message indexes (16 uncompressed bytes per record, which MCAP's indexed readers need) and the
-rest; and a separate estimate per event and per step record: each kind's MCAP message records (the 31-byte header + payload,
-rebuilt exactly from the log) compressed on their own by the writer's zstd compressor, in pieces of
-its chunk size cap. Estimates × counts add up to the file size within a few percent.
+rest; and a separate estimate per event and per step record: each kind's MCAP message records
+(the 31-byte header + payload, rebuilt exactly from the log) compressed on their own by the
+writer's zstd compressor, in pieces of its chunk size cap. Estimates × counts add up to the file size within a few percent.
 
 Replay: on the recorded quickstart log, ``read_log`` + ``replay`` (re-execute every non-source
 step, compare bytes) and ``read_log`` + ``resim`` (re-run the graph from the logged sources), each

@@ -11,8 +11,8 @@ message), which MCAP's indexed readers (Foxglove's ``McapIndexedReader``, Rerun'
 find a chunk's messages. They are built on the I/O thread, vectorised with numpy, from the chunk's
 bytes and the records' lengths: the hot path adds one ``extend`` per batch.
 
-Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into the data
-section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
+Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into
+the data section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
 CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
 I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it. A killed writer leaves complete chunks followed by at
 most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriever log recover``).
@@ -247,8 +247,8 @@ class McapWriter:
         self._write(b"".join([chunk, *(record for _, record in indexes)]))
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
-            chunk_length=len(chunk), message_index_offsets=offsets, message_index_length=at - chunk_offset - len(chunk),
-            compression="zstd", compressed_size=len(compressed), uncompressed_size=len(data)))
+            chunk_length=len(chunk), message_index_offsets=offsets,
+            message_index_length=at - chunk_offset - len(chunk), compression="zstd", compressed_size=len(compressed), uncompressed_size=len(data)))
 
     # -- the end ---------------------------------------------------------------------------
     def finish(self) -> None:

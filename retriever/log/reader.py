@@ -325,7 +325,8 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
     def damaged(problem: str) -> tuple[list[tuple[int, str, int]], str, bool]:
         if longer is not None:
             offset, name, length, fields = longer
-            problem = f"the {name} record at byte {offset} says it is {length} bytes long, but its fields add up to {fields}"
+            problem = (f"the {name} record at byte {offset} says it is {length} bytes long, but its fields add up "
+                       f"to {fields}")
         return records, problem, False
 
     pos = len(MAGIC)
@@ -337,7 +338,7 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
         length = int.from_bytes(stream.read(8), "little")
         if opcode == _RESERVED:
             return damaged(f"the record at byte {pos} is of no MCAP type (opcode 0x{opcode:02x})")
-        name, layout = _LAYOUTS.get(opcode, (f"0x{opcode:02x}", None))
+        name, layout = _LAYOUTS.get(opcode, (f"opcode 0x{opcode:02x}", None))
         present = min(length, size - pos - _RECORD_HEAD)
         fields = None if layout is None else _fields_length(stream, pos + _RECORD_HEAD, length, present, layout)
         if fields is not None and fields > length:
@@ -346,7 +347,8 @@ def _walk(stream, size: int) -> tuple[list[tuple[int, str, int]], str | None, bo
         if fields is not None and fields < length and longer is None:
             longer = (pos, name, length, fields)
         if pos + _RECORD_HEAD + length > size:
-            problem = f"it ends in the middle of the {name} record at byte {pos} ({present} of its {length} bytes are there)"
+            problem = (f"it ends in the middle of the {name} record at byte {pos} ({present} of its {length} bytes "
+                       "are there)")
             return (records, problem, True) if not finished else damaged(problem)
         records.append((pos, name, length))
         if opcode == 0x02:  # the footer: the magic follows, and the file ends

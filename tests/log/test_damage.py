@@ -262,8 +262,8 @@ def _foreign_mcap(path: Path) -> Path:
         writer.start(profile="", library="another tool")
         point = writer.register_schema("demo.Point", "jsonschema", b'{"type": "object"}')
         image = writer.register_schema("demo.Image", "protobuf", b"not really a descriptor set")
-        channels = [writer.register_channel("/point", "json", point), writer.register_channel("/image", "protobuf", image),
-                    writer.register_channel("/raw", "cbor", 0)]
+        channels = [writer.register_channel("/point", "json", point),
+                    writer.register_channel("/image", "protobuf", image), writer.register_channel("/raw", "cbor", 0)]
         for i in range(300):
             writer.add_message(channels[i % 3], log_time=i, publish_time=i, data=b'{"x": %d}' % i, sequence=i)
         writer.finish()
@@ -401,6 +401,11 @@ def test_a_killed_log_with_private_and_extended_records_is_a_stopped_writer(many
     assert len(recovered.messages) == len(_messages_of_chunks(many_chunks, 3)) > 0
     assert recovered.messages == original.messages[:len(recovered.messages)]
     assert {c.topic for c in recovered.channels.values()} == {c.topic for c in original.channels.values()}
+    private = [offset for opcode, offset, _ in records(torn.read_bytes()) if opcode >= 0x80][-1]
+    in_private = cut(torn, private + 12, tmp_path / "in_private.mcap")
+    with pytest.raises(LogError, match=rf"it ends in the middle of the opcode 0x.. record at byte {private} "
+                                       r"\(3 of its 23 bytes are there\): its writer was stopped before finishing"):
+        read_log(in_private)
 
 
 def _messages_of_chunks(path: Path, n: int) -> list[Message]:
