@@ -303,8 +303,8 @@ def message_indexes(chunk: bytes | bytearray, lengths: list[int]) -> list[tuple[
     """The MessageIndex records of a chunk of Message records whose lengths are ``lengths``:
     ``(channel_id, record)`` by channel id, each listing ``(log_time, offset in the chunk)`` in
     log-time order (ties in file order)."""
-    ends = np.cumsum(np.asarray(lengths, dtype=np.int64))
-    offsets = ends - np.asarray(lengths, dtype=np.int64)
+    sizes = np.array(lengths, dtype=np.int64)
+    offsets = np.cumsum(sizes) - sizes
     raw = np.frombuffer(chunk, dtype=np.uint8)
     channels = raw[offsets + _CHANNEL_AT].astype(np.uint16) | (raw[offsets + _CHANNEL_AT + 1].astype(np.uint16) << 8)
     times = np.ascontiguousarray(raw[offsets[:, None] + _LOG_TIME_BYTES]).view("<u8").ravel()

@@ -131,12 +131,13 @@ def mcap_js() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         try:
             done = subprocess.run([npm, "install", "--prefix", str(cache), "--no-audit", "--no-fund", "--no-save",
-                                   *MCAP_JS], capture_output=True, text=True, timeout=NPM_TIMEOUT)
+                                   "--fetch-retries=1", "--fetch-timeout=30000", *MCAP_JS],
+                                  capture_output=True, text=True, timeout=NPM_TIMEOUT)
         except subprocess.TimeoutExpired:
             pytest.skip(f"npm install {' '.join(MCAP_JS)} took over {NPM_TIMEOUT:g} s (is the npm registry reachable?)")
         if done.returncode != 0:
             pytest.skip(f"npm install {' '.join(MCAP_JS)} failed (is the npm registry reachable?): "
-                        f"{done.stderr.strip()[-300:]}")
+                        f"{(done.stderr.strip().splitlines() or ['no output'])[0]}")
     return modules
 
 
