@@ -18,7 +18,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .backends import canonical, default_backend
-from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning
+from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning, StarvedFlowWarning
 from .ir import IR
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -87,8 +87,14 @@ def _fail(exc: BaseException) -> None:
     raise typer.Exit(code=1)
 
 
+#: warnings about how the run went, held back to be printed under its table
+_after_summary: list[str] = []
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    if issubclass(category, RetrieverWarning):
+    if issubclass(category, StarvedFlowWarning):
+        _after_summary.append(f"warning: {message}")
+    elif issubclass(category, RetrieverWarning):
         _err.print(f"warning: {message}", highlight=False, markup=False)
     else:
         _err.print(f"warning: {category.__name__}: {message} ({filename}:{lineno})", highlight=False, markup=False)
@@ -397,6 +403,9 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
             watching[0].set()
             watching[1].join(timeout=2.0)
     _summary(pipe, trace, title, log)
+    for text in _after_summary:
+        _err.print(text, highlight=False, markup=False)
+    _after_summary.clear()
     if not allow_errors:
         _fail_on_errors(pipe)
 

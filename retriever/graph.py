@@ -359,6 +359,13 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
                     f"{label}: map names output port '{out_port}', but {src.id} has no such output "
                     f"(outputs: {_ports_list(src.outputs)})", "map goes {output_port: input_port}"))
                 ok = False
+            elif not typed_src and src.spec.returned_keys is not None and out_port not in src.spec.returned_keys:
+                returned = ", ".join(f"'{k}'" for k in sorted(src.spec.returned_keys)) or "no port"
+                problems.append(Problem(
+                    f"{label}: map names output port '{out_port}', but {src.id} is untyped and its step() "
+                    f"returns {returned}, never '{out_port}': {dst.id}.{in_port} would never get an event",
+                    "map goes {output_port: input_port}; name a key its step() returns"))
+                ok = False
             if in_port not in dst.inputs:
                 problems.append(Problem(
                     f"{label}: map names input port '{in_port}', but {dst.id} has no such input "
@@ -391,10 +398,15 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
         if common:
             pairs = [(p, p) for p in common]
         else:
+            # never matched by type alone: an image would feed an action port because both are arrays
             candidates = [(o, i) for o, os in src.outputs.items() for i, is_ in dst.inputs.items()
                           if _fits_through(os.type, is_.type, sync)]
             if len(candidates) == 1:
-                pairs = candidates
+                (o, i), = candidates
+                problems.append(Problem(
+                    f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) has the name of an input of "
+                    f"{dst.id} ({_ports_list(dst.inputs)}); ports are matched by name, and {src.id}.{o} → "
+                    f"{dst.id}.{i} fit only by type", f"if that is meant, say so: map={{'{o}': '{i}'}}"))
             elif not candidates:
                 problems.append(Problem(
                     f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "

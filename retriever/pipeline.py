@@ -23,11 +23,12 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
-from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
+from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, StarvedFlowWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .rebuild import check_node, construct_node
+from .starved import starved_flows
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import LoggedTrace, Trace
@@ -273,6 +274,8 @@ class Pipeline:
             if session is not None:
                 session.stop_requested = False  # asked as a run ended by itself: not the next one's
         _forget(session)
+        for line in starved_flows(session.graph, session.stats(), session.produced_counts()):
+            warnings.warn(f"pipeline '{self.name}': {line}", StarvedFlowWarning, stacklevel=_user_stacklevel())
         return session.trace
 
     def step(self, dt: float, **options: Any) -> Trace:
@@ -282,6 +285,7 @@ class Pipeline:
         if not session.steppable:
             raise BackendError(f"pipe.step() needs the in-process backend; this pipeline runs on '{session.backend_name}'")
         session.advance(session.now_ns + seconds_to_ns(dt))
+        _forget(session)
         return session.trace
 
     def reset(self) -> None:

@@ -188,10 +188,38 @@ def test_ports_match_by_name():
     assert _edges(pipe) == [("xy_source", "x", "xyz_sink", "x"), ("xy_source", "y", "xyz_sink", "y")]
 
 
-def test_single_type_compatible_pair_matches_without_names_in_common():
+def test_ports_with_no_name_in_common_are_not_matched_by_type_alone():
+    # an image field and an action field are both arrays: wired by type, the image fed the action port
     with Pipeline("p") as pipe:
         (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"edge mixed_source → amount_sink \(.*\): no output of mixed_source "
+                                         r"\(count, label\) has the name of an input of amount_sink \(amount\); "
+                                         r"ports are matched by name, and mixed_source.count → amount_sink.amount "
+                                         r"fit only by type\n    hint: if that is meant, say so: "
+                                         r"map=\{'count': 'amount'\}"):
+        pipe.build_ir()
+
+
+def test_a_type_compatible_pair_of_other_names_is_wired_by_map():
+    with Pipeline("p") as pipe:
+        (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1), map={"count": "amount"})
     assert _edges(pipe) == [("mixed_source", "count", "amount_sink", "amount")]
+
+
+def test_map_naming_a_key_an_untyped_step_never_returns_is_refused():
+    class Camera(Flow):
+        def step(self):
+            return {"image": 1.0}
+
+    class Policy(Flow):
+        def step(self, image):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=1)).then(Policy() @ Rate(hz=1), map={"imgae": "image"})
+    with pytest.raises(GraphError, match=r"map names output port 'imgae', but camera is untyped and its step\(\) "
+                                         r"returns 'image', never 'imgae': policy.image would never get an event"):
+        pipe.build_ir()
 
 
 def test_map_routes_ports_explicitly():

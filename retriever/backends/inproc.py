@@ -737,6 +737,10 @@ class InprocSession(Session):
                 return {rt.id: rt.stats for rt in self._nodes}
         return self._counted_so_far()
 
+    def produced_counts(self) -> dict[tuple[str, str], int]:
+        self.stats()  # hands the compiled ticks' seqs to the nodes
+        return {(rt.id, port): seq for rt in self._nodes for port, seq in rt.seq.items()}
+
     def _counted_so_far(self) -> dict[str, NodeStats]:
         """Copies of the nodes' counts with what the compiled ticks counted and did not hand over
         yet (the tape expanded first, unless a thread is expanding it: then this may be a signal

@@ -963,6 +963,10 @@ class Coordinator(Session):
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
 
+    def produced_counts(self) -> dict[tuple[str, str], int]:
+        # from the step records' produced ids, which every run reports whatever it keeps
+        return {key: seq + 1 for key, seq in self._max_seq.items()}
+
 
 def _ticks_due(clock, end_ns: int) -> int:
     """How many ticks of a rate clock fall in [0, end_ns): the first at or after the end counts
