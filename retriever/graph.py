@@ -302,6 +302,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     _check_clocks(nodes, edges, problems)
     edges = [_bind_policy(e, nodes[e.dst]) for e in edges]
 
+    warnings.extend(_chunks_seen_a_microstep_late(nodes, edges))
     fed = {(e.dst, e.dst_port) for e in edges}
     for node in nodes.values():
         for port, spec in node.inputs.items():
@@ -471,6 +472,37 @@ def _check_clocks(nodes: dict[str, Node], edges: list[Edge], problems: list[Prob
                 and nodes[e.dst].clock.hz is None:
             problems.append(Problem(f"edge {e}: ActionChunking needs control_hz= because '{e.dst}' has no rate",
                                     "ActionChunking(control_hz=200, chunk_steps=...)"))
+
+
+#: how many of a chunk producer's ticks are looked at for one that falls on a consumer's tick
+CHUNK_PHASE_TICKS = 64
+
+
+def _chunks_seen_a_microstep_late(nodes: dict[str, Node], edges: list[Edge]) -> list[str]:
+    """ActionChunking edges whose chunks start at an instant the consumer ticks, a microstep too
+    early to see them. A zero-latency producer ticking at (t, 0) emits at (t, 1); the consumer's
+    tick at (t, 0) still holds the previous chunk's last row, and its next tick takes row 1 of
+    the new one: row 0 is never executed. It follows from the sampling rule (DESIGN.md §3) and
+    keeps each row at the time it was planned for, so it is warned of, not redefined."""
+    found = []
+    for e in edges:
+        src, dst = nodes[e.src], nodes[e.dst]
+        if not isinstance(e.sync, ActionChunking) or src.settings.latency_ns or e.delay_ns:
+            continue
+        made, taken = src.settings.clock, dst.settings.clock
+        if not hasattr(made, "tick_time") or not hasattr(taken, "tick_time"):
+            continue
+        for k in range(CHUNK_PHASE_TICKS):
+            t = made.tick_time(k)
+            if taken.tick_time(taken.first_tick_at_or_after(t)) == t:
+                found.append(
+                    f"edge {e}: {e.src} has no latency and ticks when {e.dst} ticks (first at {t / 1e9:g} s), so "
+                    f"each chunk is emitted a microstep after the {e.dst} tick at its start: that tick still takes "
+                    f"the previous chunk, the next one row 1; row 0 of a chunk is never executed\n"
+                    f"    hint: give {e.src} a latency of one control period or more ({e.src}.configure("
+                    f"latency=...)): its chunks then start at a tick of {e.dst} that sees them")
+                break
+    return found
 
 
 def _bind_policy(edge: Edge, dst: Node) -> Edge:

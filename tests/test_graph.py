@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any, Optional, Sequence
 
+import warnings
+
 import pytest
 
 from retriever import (
@@ -530,3 +532,48 @@ def test_compile_is_cached_until_the_pipeline_changes():
         src.then(UntypedSink() @ Rate(hz=1))
     assert pipe.compile() is not first
     assert len(pipe.compile().edges) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# ActionChunking: a chunk that starts at a consumer tick, a microstep too late for it
+# ---------------------------------------------------------------------------------------------
+class ChunkPolicy(Flow):
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"chunk": [self.k * 100 + i for i in range(10)]}
+
+
+class ChunkController(Flow):
+    def step(self, chunk):
+        return {"command": chunk}
+
+
+def _chunked(latency: float = 0.0, offset: float = 0.0) -> Pipeline:
+    with Pipeline("p") as pipe:
+        policy = ChunkPolicy().configure(latency=latency) @ Rate(hz=20, offset=offset)
+        policy.then(ChunkController() @ Rate(hz=200), sync=ActionChunking())
+    return pipe
+
+
+def test_a_zero_latency_chunk_producer_on_the_consumers_ticks_is_warned_of_and_its_row_0_is_never_run():
+    pipe = _chunked()
+    with pytest.warns(RetrieverWarning, match=r"edge chunk_policy.chunk → chunk_controller.chunk: chunk_policy has no "
+                                              r"latency and ticks when chunk_controller ticks \(first at 0 s\), .*row 0 "
+                                              r"of a chunk is never executed\n    hint: give chunk_policy a latency of "
+                                              r"one control period or more"):
+        trace = pipe.run(duration=0.1)
+    assert trace.values_of("chunk_controller", "command")[:12] == [101, 102, 103, 104, 105, 106, 107, 108, 109, 109,
+                                                                   201, 202]
+
+
+@pytest.mark.parametrize("latency, offset", [(0.005, 0.0), (0.0, 0.0025)])
+def test_a_chunk_producer_off_the_consumers_ticks_has_every_row_run_once_and_no_warning(latency, offset):
+    pipe = _chunked(latency, offset)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        trace = pipe.run(duration=0.1)
+    assert trace.values_of("chunk_controller", "command")[:12] == [100, 101, 102, 103, 104, 105, 106, 107, 108, 109,
+                                                                   200, 201]
