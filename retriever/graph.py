@@ -7,6 +7,7 @@ cycles, and collects **every** problem before raising one :class:`GraphError`. T
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import os
@@ -92,6 +93,9 @@ class Graph:
     cycles: list[list[str]] = field(default_factory=list)
     instantaneous_cycles: list[list[str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: warnings about how edges were declared (a port matched by type alone): not the IR's, which
+    #: names every port of every edge
+    declaration_warnings: list[str] = field(default_factory=list)
 
     def to_ir(self) -> "IR":
         from .ir import IR, graph_to_doc
@@ -141,6 +145,18 @@ def _event_type(out_t: Any) -> Any:
         arms = [a for a in typing.get_args(out_t) if a is not type(None)]
         return arms[0] if len(arms) == 1 else typing.Union[tuple(arms)]
     return out_t
+
+
+def _distinctive(out_t: Any, in_t: Any) -> bool:
+    """Whether a match of two ports by type alone is as telling as one by name: both are one
+    value type of the program's own (a dataclass, Optional or not), not an array, a number, a
+    container or Any, which ports of any meaning share (the paper's Appendix D-D wires by it)."""
+    def own(tp: Any) -> Any:
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        tp = args[0] if typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1 else tp
+        return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+
+    return own(out_t) is not None and own(out_t) is own(in_t)
 
 
 def _fits_through(out_t: Any, in_t: Any, sync: SyncPolicy) -> bool:
@@ -267,6 +283,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
                   realtime: str = "soft", deadline: float = 0.1) -> Graph:
     problems: list[Problem] = []
     warnings: list[str] = []
+    declaration_warnings: list[str] = []
     ids = _assign_ids(flows, problems)
 
     nodes: dict[str, Node] = {}
@@ -290,7 +307,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     for decl in declared:
         src, dst = nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]]
         if src.flow is decl.src and dst.flow is decl.dst:  # else an endpoint's name is duplicated
-            edges.extend(_resolve_edge(decl, src, dst, problems, warnings))
+            edges.extend(_resolve_edge(decl, src, dst, problems, declaration_warnings))
 
     # Untyped producers' output ports are the ones their edges name.
     for e in edges:
@@ -335,7 +352,8 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
             f"instantaneous cycle {loop}: every link is a zero-latency, undelayed edge into a trigger port, "
             f"so it runs in microsteps within one instant and stops with an error past "
             f"max_microsteps={max_microsteps} (fix: latency=, delay=, or a Rate clock on the cycle)")
-    return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings)
+    return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings,
+                 declaration_warnings)
 
 
 def _ports_list(ports: dict[str, PortSpec]) -> str:
@@ -399,15 +417,18 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
         if common:
             pairs = [(p, p) for p in common]
         else:
-            # never matched by type alone: an image would feed an action port because both are arrays
             candidates = [(o, i) for o, os in src.outputs.items() for i, is_ in dst.inputs.items()
                           if _fits_through(os.type, is_.type, sync)]
             if len(candidates) == 1:
+                pairs = candidates
                 (o, i), = candidates
-                problems.append(Problem(
-                    f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) has the name of an input of "
-                    f"{dst.id} ({_ports_list(dst.inputs)}); ports are matched by name, and {src.id}.{o} → "
-                    f"{dst.id}.{i} fit only by type", f"if that is meant, say so: map={{'{o}': '{i}'}}"))
+                if not _distinctive(src.outputs[o].type, dst.inputs[i].type):
+                    # an image would feed an action port because both are arrays: say so
+                    warnings.append(
+                        f"{label}: no port names in common, so {src.id}.{o} feeds {dst.id}.{i} because they are "
+                        f"the only pair whose types fit ({src.outputs[o].type_name} → {dst.inputs[i].type_name}), "
+                        f"a type that says little about what a port means\n"
+                        f"    hint: if that is meant, say so: map={{'{o}': '{i}'}}; else name the ports alike")
             elif not candidates:
                 problems.append(Problem(
                     f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "

@@ -162,7 +162,7 @@ class Pipeline:
         if self._graph is None:
             self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps,
                                         self.realtime, self.deadline)
-            for w in self._graph.warnings:
+            for w in self._graph.declaration_warnings + self._graph.warnings:
                 warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=_user_stacklevel())
         return self._graph
 

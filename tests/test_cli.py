@@ -126,7 +126,7 @@ def test_run_prints_a_table_with_every_node():
     out = result.stdout
     assert "quickstart: 1 s on inproc" in out
     assert re.search(r"node\s*┃\s*ticks\s*┃\s*steps\s*┃\s*skips\s*┃\s*errors\s*┃\s*mean step", out), out
-    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │\s*[\d.]+ µs │", out))
+    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │\s*[\d.]+ [µm]s │", out))
     assert set(rows) == {"camera", "policy", "controller"}, out
     ticks = {node: [int(n) for n in re.findall(r"\d+", row)] for node, row in rows.items()}
     assert ticks["camera"] == [30, 30, 0, 0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
 import warnings
@@ -190,16 +191,52 @@ def test_ports_match_by_name():
     assert _edges(pipe) == [("xy_source", "x", "xyz_sink", "x"), ("xy_source", "y", "xyz_sink", "y")]
 
 
-def test_ports_with_no_name_in_common_are_not_matched_by_type_alone():
+def test_a_single_pair_of_generic_types_with_other_names_is_wired_and_warned_of():
     # an image field and an action field are both arrays: wired by type, the image fed the action port
     with Pipeline("p") as pipe:
         (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
-    with pytest.raises(GraphError, match=r"edge mixed_source → amount_sink \(.*\): no output of mixed_source "
-                                         r"\(count, label\) has the name of an input of amount_sink \(amount\); "
-                                         r"ports are matched by name, and mixed_source.count → amount_sink.amount "
-                                         r"fit only by type\n    hint: if that is meant, say so: "
-                                         r"map=\{'count': 'amount'\}"):
-        pipe.build_ir()
+    with pytest.warns(RetrieverWarning, match=r"edge mixed_source → amount_sink \(.*\): no port names in common, so "
+                                              r"mixed_source.count feeds amount_sink.amount because they are the only "
+                                              r"pair whose types fit \(int → float\), a type that says little about what "
+                                              r"a port means\n    hint: if that is meant, say so: "
+                                              r"map=\{'count': 'amount'\}; else name the ports alike"):
+        assert _edges(pipe) == [("mixed_source", "count", "amount_sink", "amount")]
+
+
+@io
+@dataclass
+class Grasp:
+    width: float
+
+
+@io
+@dataclass
+class GraspOut:
+    grasp: Grasp
+
+
+@io
+@dataclass
+class GraspIn:
+    command: Optional[Grasp] = None
+
+
+class GraspSource(Flow[None, GraspOut]):
+    def step(self, inp):
+        return GraspOut(Grasp(0.1))
+
+
+class GraspSink(Flow[GraspIn, None]):
+    def step(self, inp):
+        return None
+
+
+def test_a_single_pair_of_one_value_type_of_the_programs_own_is_wired_without_a_warning():
+    with Pipeline("p") as pipe:
+        (GraspSource() @ Rate(hz=1)).then(GraspSink() @ Rate(hz=1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        assert _edges(pipe) == [("grasp_source", "grasp", "grasp_sink", "command")]
 
 
 def test_a_type_compatible_pair_of_other_names_is_wired_by_map():
