@@ -10,6 +10,7 @@ like any other plan (it is text from a model: parsed, never evaluated).
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
 import socket
@@ -212,10 +213,10 @@ class OpenAICompatiblePlanner:
                 raw = response.read(MAX_REPLY_BYTES)
         except urllib.error.HTTPError as e:
             raise self._refusal(e) from None
-        except (urllib.error.URLError, OSError) as e:
+        except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
             raise PlannerError(f"planner endpoint {self.base_url} gave no answer: {_brief(e)}",
-                               "is the model server still up? (a timeout is "
-                               f"{self.timeout:g} s)") from None
+                               f"is the model server still up? (the planner waits {self.timeout:g} s for an "
+                               "answer)") from None
         try:
             return json.loads(raw)["choices"][0]["message"]["content"]
         except (ValueError, KeyError, IndexError, TypeError, RecursionError) as e:

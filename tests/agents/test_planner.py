@@ -5,6 +5,7 @@ model answers is checked like any plan."""
 import base64
 import io
 import json
+import socketserver
 import threading
 from http.server import BaseHTTPRequestHandler, HTTPServer
 
@@ -285,6 +286,26 @@ def test_an_unreachable_endpoint_and_a_bad_planner_name_say_what_to_do():
         OpenAICompatiblePlanner("http://localhost/v1", "m", attempts=0)
     with pytest.raises(AnswerRefused, match="the answer is not text but NoneType"):
         check_answer(None)
+
+
+class _NotHttp(socketserver.BaseRequestHandler):
+    def handle(self):
+        self.request.recv(65536)
+        self.request.sendall(b"SSH-2.0-OpenSSH_9.2\r\n")
+
+
+def test_a_server_that_does_not_speak_http_gives_no_answer_at_once():
+    server = socketserver.TCPServer(("127.0.0.1", 0), _NotHttp)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/v1"
+        with pytest.raises(PlannerError, match=rf"^planner endpoint {url} gave no answer: .*SSH-2.0"):
+            OpenAICompatiblePlanner(url, "m", timeout=10).propose("s", {}, {})
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
 
 
 def test_an_answer_with_words_around_its_json_is_taken():
