@@ -15,9 +15,10 @@ clocks or transport, so every rule is tested by direct calls:
   after ``timeout`` seconds whatever the progress says.
 - **stale feedback**: progress for any skill id but the running one is ignored (and counted);
   progress restarts at 0 with every new skill.
-- **replanning**: on the task's arrival, on every belief change, on a failed skill or a refused
-  plan, and when fewer than ``min_horizon`` skills are left of a plan with no branch ahead (a
-  branch waits on an inspection, whose belief update asks anyway) that does not end the task.
+- **replanning**: on the task's arrival, on every belief change, on a failed skill, a refused
+  plan or a request the planner gave up on, and when fewer than ``min_horizon`` skills are left
+  of a plan with no branch ahead (a branch waits on an inspection, whose belief update asks
+  anyway) that does not end the task.
 - **teleop**: an override skill preempts the running one, which resumes at the next safe point.
 - **giving up**: a skill that failed ``max_failures`` times ends the task where it is, and so do
   ``max_planner_failures`` requests in a row that got no plan (a planner that gave up on them, or
