@@ -3,6 +3,7 @@ trips through a real log, and the logged trace equal to the live one."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -135,6 +136,8 @@ def test_ir_attachment_and_run_metadata(small, small_plain):
     assert [n["type"] for n in ir["nodes"]] == ["tests.log.log_flows:Counter", "tests.log.log_flows:Accumulate",
                                                 "tests.log.log_flows:Tally"]
     assert ir == json.loads(log_flows.build_small().build_ir().to_json())
+    flows_file = Path(log_flows.__file__).read_bytes()
+    assert ir["metadata"]["code_sha256"] == {"tests.log.log_flows": hashlib.sha256(flows_file).hexdigest()}
 
     names = [name for name, _ in small_plain["metadata"]]
     assert names == ["retriever.run", "retriever.end"]
