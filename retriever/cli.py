@@ -838,6 +838,9 @@ def worker(
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    code_mismatch: Annotated[Optional[str], typer.Option(
+        metavar="refuse|warn", help="A node whose module's file here differs from the coordinator's (the sha256 "
+                                    "its IR records): refuse to run it (default), or warn and run it.")] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
     SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
@@ -848,7 +851,7 @@ def worker(
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease, **{k: None if v is None else str(v) for k, v in
+                                 lease=lease, code_mismatch=code_mismatch, **{k: None if v is None else str(v) for k, v in
                                                  (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)
     except Exception as exc:

@@ -139,12 +139,18 @@ class Deployment(Coordinator):
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         for name in sorted(set(self.placed.values())):
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
-            host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
+            self._say_warnings(name, host.prepare(self._remote_spec(),
+                                                  sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
         self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), weak_callback(self._answer)))
         self._subscribers.append(self._hub.liveliness().declare_subscriber(
             self.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
+
+    @staticmethod
+    def _say_warnings(name: str, warnings: list[str]) -> None:
+        for warning in warnings:
+            print(f"retriever: warning: worker '{name}' runs {warning}", file=sys.stderr, flush=True)
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
@@ -308,7 +314,8 @@ class Deployment(Coordinator):
             remote = self._remotes.get(name)
             if remote is None:
                 remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
-            remote.prepare(self._remote_spec(), sorted(n for n, w in targets.items() if w == name))
+            self._say_warnings(name, remote.prepare(self._remote_spec(),
+                                                    sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
                   file=sys.stderr, flush=True)
