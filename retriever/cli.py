@@ -583,7 +583,9 @@ def replay(
         if result.identical:
             _out.print("[bold green]identical[/]: the log is one run of this graph", markup=True)
             return
-        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}", highlight=False, markup=True)
+        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}"
+                   + "".join(f"\n  {escape(_visible(change))}, which may be why" for change in result.code_changes),
+                   highlight=False, markup=True)
         raise typer.Exit(code=1)
     table = Table(title=f"replay of {path} ({source})", title_justify="left")
     for col in ("node", "steps", "replayed", "identical", "divergent"):
@@ -604,9 +606,15 @@ def replay(
         _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte"
                    + "".join(f" ({note})" for note in notes), markup=True)
         return
-    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
+    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ"
+               f"{escape(_visible(_code_changed(result.code_changes)))}. "
                f"First:\n  {escape(_visible(str(result.divergences[0])))}", highlight=False, markup=True)
     raise typer.Exit(code=1)
+
+
+def _code_changed(changes: list[str]) -> str:
+    """The flow modules edited since the run, for a DIVERGED line: the likely cause."""
+    return "".join(f"; {change}" for change in changes)
 
 
 @log_app.command("info")
