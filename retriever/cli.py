@@ -638,7 +638,8 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("pipeline", run.get("pipeline", "?")), ("backend", run.get("backend", "?")),
              ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
              ("virtual end", f"{int(end['end_ns']) / 1e9:g} s" if "end_ns" in end else "?"),
-             ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
+             ("git", run.get("git_revision") or (f"? ({run['git_error']})" if run.get("git_error") else "?")),
+             ("host", run.get("host", "?")),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
