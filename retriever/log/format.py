@@ -144,7 +144,7 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def git_revision(folders: list[str]) -> tuple[str, str]:
+def _git_revision(folders: list[str]) -> tuple[str, str]:
     """``(HEAD, "")`` of the first of ``folders`` inside a git work tree, ``-dirty`` appended when
     tracked files changed; else ``("", why)``: what git said of the first folder it refused
     for another reason than not being a repository (a checkout another user owns: git's
@@ -193,7 +193,7 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
         user = getpass.getuser()
     except (KeyError, OSError):
         user = ""
-    revision, git_refused = git_revision([*roots, os.getcwd()])
+    revision, git_refused = _git_revision([*roots, os.getcwd()])
     return {
         "format": FORMAT_VERSION,
         "pipeline": pipeline,

@@ -146,9 +146,8 @@ class DaemonRuns:
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
                                and all(type(x) is str and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
-        if self.code_mismatch == "refuse":  # the file may have changed since prepare (a restart comes later)
-            importlib.invalidate_caches()
-            mismatch = self._code_mismatch(IR(run.ir, source="the run's IR"), node)
+        if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
+            mismatch = self._code_mismatch(run.ir, node)
             if mismatch is not None:
                 raise WireError(f"worker '{self.name}' will not run {mismatch}")
         live = [pid for pid, (n, proc) in run.processes.items() if n == node and proc.poll() is None]
@@ -239,16 +238,18 @@ class DaemonRuns:
             elif not self.allowed(module):
                 problems.append(f"node '{nid}' ({node['type']}): {self.refusal(module)}")
             elif check_node(node, problems, ir.doc["metadata"].get("module_folders", {})) is not None:
-                mismatch = self._code_mismatch(ir, nid)
+                mismatch = self._code_mismatch(ir.doc, nid)
                 if mismatch is not None:
                     (problems if self.code_mismatch == "refuse" else warnings).append(mismatch)
         return problems, warnings
 
-    def _code_mismatch(self, ir: IR, nid: str) -> str | None:
-        """How this worker's file of node ``nid``'s module differs from the one the IR was built
-        from (its sha256), with what to do; None when it is the same, or the IR has no hash of it."""
-        module = ir.node(nid)["type"].partition(":")[0]
-        recorded = ir.doc["metadata"].get("code_sha256", {}).get(module)
+    def _code_mismatch(self, ir_doc: dict, nid: str) -> str | None:
+        """How this worker's file of node ``nid``'s module differs from the one the IR (a
+        validated one, holding ``nid``) was built from, with what to do; None when it is the same,
+        or the IR has no hash of it."""
+        node_type = next(node["type"] for node in ir_doc["nodes"] if node["id"] == nid)
+        module = node_type.partition(":")[0]
+        recorded = ir_doc["metadata"].get("code_sha256", {}).get(module)
         problem = None if recorded is None else code_mismatch(module, recorded)
         if problem is None:
             return None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -400,6 +401,35 @@ def test_a_worker_refuses_nodes_whose_module_differs_from_the_coordinators_or_wa
                     ) in done.stderr, done.stderr
             assert f"retriever-worker w-warn: warning: node 'counter': {mismatch}" in worker.stderr()
         assert worker.stop() == 0
+
+
+def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prepared(workers, namespace, tmp_path):
+    """The check is made again at each spawn (a restart may come long after prepare)."""
+    module = tmp_path / "drift_flows.py"
+    module.write_text((ROOT / "tests" / "deploy" / "deploy_flows.py").read_text(encoding="utf-8"), encoding="utf-8")
+    doc = _ir_doc()
+    for node in doc["nodes"]:
+        node["type"] = node["type"].replace("deploy_flows:", "drift_flows:")
+    run_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+    doc["metadata"]["code_sha256"] = {"drift_flows": run_sha}
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(tmp_path)).wait_started()
+    with _client(port) as session:
+        token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator
+        args = {"run": "r1", "spec": {"ir": doc, "namespace": namespace, "hub": endpoint(port)}, "nodes": ["counter"]}
+        assert _until_token_seen(lambda: ask(session, namespace, "w", "prepare", args)) == {
+            "nodes": ["counter"], "warnings": []}
+        module.write_text(module.read_text(encoding="utf-8") + "# edited\n", encoding="utf-8")
+        here_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+        with pytest.raises(WorkerError, match=re.escape(
+                f"worker 'w' will not run node 'counter': the code of module drift_flows differs from the run's "
+                f"(run sha256 {run_sha}, here {here_sha} in {module})")):
+            ask(session, namespace, "w", "spawn", {"run": "r1", "node": "counter", "mode": []})
+        assert ask(session, namespace, "w", "info")["nodes"] == []
+        ask(session, namespace, "w", "end", {"run": "r1"})
+        token.undeclare()
+    assert worker.stop() == 0
 
 
 def ask_nodes(port: int, namespace: str, name: str) -> list[str]:
