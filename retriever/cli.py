@@ -639,7 +639,7 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
              ("virtual end", f"{int(end['end_ns']) / 1e9:g} s" if "end_ns" in end else "?"),
              ("git", run.get("git_revision") or (f"? ({run['git_error']})" if run.get("git_error") else "?")),
-             ("host", run.get("host", "?")),
+             ("host", run.get("host", "?")), ("code", _code_line(log)),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
@@ -671,6 +671,17 @@ def _print_info(path: Path, log, info: dict) -> None:
     for node, counts in sorted(info["statuses"].items()):
         statuses.add_row(_cell(node), *(str(counts.get(name, 0)) for name in names))
     _out.print(statuses)
+
+
+def _code_line(log) -> str:
+    """The sha256 of each flow module's file as the run's IR recorded it (its first 16 digits)."""
+    from .errors import LogError
+
+    try:
+        hashes = log.ir.doc["metadata"].get("code_sha256", {})
+    except LogError:  # log info still shows what it can of a log whose IR is damaged
+        return "? (the log's IR is invalid)"
+    return ", ".join(f"{module} sha256 {digest[:16]}…" for module, digest in sorted(hashes.items())) or "?"
 
 
 def _metadata_json(path: Path, key: str, text: str, kind: type):
