@@ -28,6 +28,7 @@ import zenoh
 
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
+from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
@@ -138,6 +139,10 @@ class Deployment(Coordinator):
         # the token first: a worker prepares a run only while its coordinator's token is there
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         for name in sorted(set(self.placed.values())):
+            differences = package_differences(package_versions(), self.workers[name].get("packages"))
+            if differences:
+                print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
+                      f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
             self._say_warnings(name, host.prepare(self._remote_spec(),
                                                   sorted(n for n, w in self.placed.items() if w == name)))
@@ -365,6 +370,15 @@ class Deployment(Coordinator):
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+
+
+def package_differences(ours: dict[str, str], theirs: object) -> list[str]:
+    """``numpy 2.4.6 here, 2.3.0 there`` for each package of ``ours`` that a worker's info
+    (``theirs``, as it answered) has in another version."""
+    if not isinstance(theirs, dict):
+        return []
+    return [f"{name} {version} here, {theirs[name]:.40} there" for name, version in sorted(ours.items())
+            if isinstance(theirs.get(name), str) and theirs[name] != version]
 
 
 def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False,

@@ -42,9 +42,10 @@ BOUND_S = 60.0  # a bound on any wait, never a speed check
 SECRET = "a deployment secret of 32 bytes."
 
 
-def _env() -> dict[str, str]:
+def _env(first_on_path: Path | None = None) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
-    env.update(PYTHONPATH=str(ROOT), NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1", COLUMNS="200")
+    path = os.pathsep.join(str(p) for p in (first_on_path, ROOT) if p is not None)
+    env.update(PYTHONPATH=path, NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1", COLUMNS="200")
     return env
 
 
@@ -56,8 +57,9 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 class Worker:
     """A daemon process, and the lines of its stderr (read on a thread)."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT, env=_env(),
+    def __init__(self, *args: str, first_on_path: Path | None = None):
+        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT,
+                                     env=_env(first_on_path),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self.started = threading.Event()  # its start line came, or its stderr ended without one
@@ -100,8 +102,8 @@ def workers():
     """Start workers (``workers(*args)``); each is killed at the end."""
     started: list[Worker] = []
 
-    def start(*args: str) -> Worker:
-        started.append(Worker(*args))
+    def start(*args: str, first_on_path: Path | None = None) -> Worker:
+        started.append(Worker(*args, first_on_path=first_on_path))
         return started[-1]
 
     yield start
@@ -429,6 +431,25 @@ def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prep
         assert ask(session, namespace, "w", "info")["nodes"] == []
         ask(session, namespace, "w", "end", {"run": "r1"})
         token.undeclare()
+    assert worker.stop() == 0
+
+
+def test_a_deployment_warns_of_a_worker_with_other_versions_of_the_runs_packages(workers, namespace, tmp_path):
+    """A worker whose Python finds msgpack's metadata in another version first: the deploy runs,
+    and says which package differs, in which versions."""
+    from importlib.metadata import version
+
+    (tmp_path / "msgpack-0.0.1.dist-info").mkdir()
+    (tmp_path / "msgpack-0.0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: msgpack\n"
+                                                                     "Version: 0.0.1\n")
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(ROOT / "tests" / "deploy"), first_on_path=tmp_path).wait_started()
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--connect", endpoint(port), "--namespace", namespace,
+                "--insecure", "--duration", "0.5")
+    assert done.returncode == 0, done.stderr
+    assert (f"retriever: warning: worker 'w' has other versions of the run's packages than this machine: "
+            f"msgpack {version('msgpack')} here, 0.0.1 there\n") in done.stderr, done.stderr
     assert worker.stop() == 0
 
 
