@@ -871,8 +871,9 @@ def worker(
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease, code_mismatch=code_mismatch, **{k: None if v is None else str(v) for k, v in
-                                                 (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
+                                 lease=lease, code_mismatch=code_mismatch,
+                                 **{k: None if v is None else str(v) for k, v in
+                                    (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)
     except Exception as exc:
         _fail(exc)

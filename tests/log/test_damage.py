@@ -362,7 +362,8 @@ with Pipeline("drift") as pipe:
 
 
 #: what a DIVERGED line says of a flow module edited since the run (rich may wrap it at a space)
-CODE_CHANGED = r"the code of module {name} differs from the run's \(run sha256 [0-9a-f]{{64}},\s+here\s+[0-9a-f]{{64}} in [^)]*\)"
+CODE_CHANGED = (r"the code of module {name} differs from the run's "
+                r"\(run sha256 [0-9a-f]{{64}},\s+here\s+[0-9a-f]{{64}} in [^)]*\)")
 
 
 @pytest.fixture
@@ -661,7 +662,8 @@ def test_replay_shows_a_difference_of_1e_7(tmp_path: Path, monkeypatch):
     result = cli("replay", log)
     assert result.returncode == 1
     assert re.search(rf"DIVERGED: 1 of 1 replayed steps differ; {CODE_CHANGED.format(name=name)}\. First:\n\s+"
-                     r"scale\.y at tick t=0\.000000000s m=1: value differs\n(.*\n){6,}\s+float64 \(3, 4\): 1 of 12 elements differ\n\s+largest difference at "
+                     r"scale\.y at tick t=0\.000000000s m=1: value differs\n(.*\n){6,}\s+float64 \(3, 4\): "
+                     r"1 of 12 elements differ\n\s+largest difference at "
                      r"\[1, 2\]", result.stdout), result.stdout
 
 

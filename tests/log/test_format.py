@@ -458,7 +458,8 @@ def test_the_run_record_has_the_revision_of_the_checkout_the_flows_came_from_and
         assert read_log(repo / log).run["git_revision"] == head + ("-dirty" if edit else "")
     info = cli("log", "info", "dirty.mcap", cwd=repo).stdout
     assert f"git  {head}-dirty\n" in info
-    aa, app = (hashlib.sha256(path.read_bytes()).hexdigest()[:16] for path in (outside / "aa_flows.py", repo / "app.py"))
+    aa, app = (hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+               for path in (outside / "aa_flows.py", repo / "app.py"))
     assert f"code  aa_flows sha256 {aa}…, app sha256 {app}…\n" in info
 
 

@@ -344,7 +344,8 @@ DRIFTING = ("from retriever import Flow, Pipeline, Rate, Latest\n"
             "class Tick(Flow):\n    def __init__(self):\n        self.k = 0\n"
             "    def step(self):\n        self.k += 1\n        return {'x': float(self.k)}\n"
             "class Scale(Flow):\n    def step(self, x):\n        return {'y': x * 2}\n"
-            "with Pipeline('drifting') as pipe:\n    (Tick() @ Rate(hz=10)).then(Scale() @ Rate(hz=10), sync=Latest())\n")
+            "with Pipeline('drifting') as pipe:\n"
+            "    (Tick() @ Rate(hz=10)).then(Scale() @ Rate(hz=10), sync=Latest())\n")
 
 
 def test_replay_says_which_flow_module_changed_since_the_run_before_it_compares(tmp_path):
