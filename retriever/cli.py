@@ -592,7 +592,9 @@ def replay(
         if result.identical:
             _out.print("[bold green]identical[/]: the log is one run of this graph", markup=True)
             return
-        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}", highlight=False, markup=True)
+        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}"
+                   + "".join(f"\n  {escape(_visible(change))}, which may be why" for change in result.code_changes),
+                   highlight=False, markup=True)
         raise typer.Exit(code=1)
     table = Table(title=f"replay of {path} ({source})", title_justify="left")
     for col in ("node", "steps", "replayed", "identical", "divergent"):
@@ -613,9 +615,15 @@ def replay(
         _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte"
                    + "".join(f" ({note})" for note in notes), markup=True)
         return
-    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
+    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ"
+               f"{escape(_visible(_code_changed(result.code_changes)))}. "
                f"First:\n  {escape(_visible(str(result.divergences[0])))}", highlight=False, markup=True)
     raise typer.Exit(code=1)
+
+
+def _code_changed(changes: list[str]) -> str:
+    """The flow modules edited since the run, for a DIVERGED line: the likely cause."""
+    return "".join(f"; {change}" for change in changes)
 
 
 @log_app.command("info")
@@ -639,7 +647,8 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("pipeline", run.get("pipeline", "?")), ("backend", run.get("backend", "?")),
              ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
              ("virtual end", f"{int(end['end_ns']) / 1e9:g} s" if "end_ns" in end else "?"),
-             ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
+             ("git", run.get("git_revision") or (f"? ({run['git_error']})" if run.get("git_error") else "?")),
+             ("host", run.get("host", "?")), ("code", _code_line(log)),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
@@ -671,6 +680,17 @@ def _print_info(path: Path, log, info: dict) -> None:
     for node, counts in sorted(info["statuses"].items()):
         statuses.add_row(_cell(node), *(str(counts.get(name, 0)) for name in names))
     _out.print(statuses)
+
+
+def _code_line(log) -> str:
+    """The sha256 of each flow module's file as the run's IR recorded it (its first 16 digits)."""
+    from .errors import LogError
+
+    try:
+        hashes = log.ir.doc["metadata"].get("code_sha256", {})
+    except LogError:  # log info still shows what it can of a log whose IR is damaged
+        return "? (the log's IR is invalid)"
+    return ", ".join(f"{module} sha256 {digest[:16]}…" for module, digest in sorted(hashes.items())) or "?"
 
 
 def _metadata_json(path: Path, key: str, text: str, kind: type):
@@ -847,6 +867,9 @@ def worker(
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    code_mismatch: Annotated[Optional[str], typer.Option(
+        metavar="refuse|warn", help="A node whose module's file here differs from the coordinator's (the sha256 "
+                                    "its IR records): refuse to run it (default), or warn and run it.")] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
     SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
@@ -857,8 +880,9 @@ def worker(
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease, **{k: None if v is None else str(v) for k, v in
-                                                 (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
+                                 lease=lease, code_mismatch=code_mismatch,
+                                 **{k: None if v is None else str(v) for k, v in
+                                    (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)
     except Exception as exc:
         _fail(exc)

@@ -347,7 +347,7 @@ def test_ir_json_by_default():
     assert result.returncode == 0, result.stderr
     assert result.stdout == quickstart_ir("json")
     doc = json.loads(result.stdout)
-    assert doc["version"] == "1.2.0"
+    assert doc["version"] == "1.3.0"
     assert doc["metadata"]["name"] == "quickstart"
     assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
     assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]
