@@ -1,4 +1,4 @@
-"""Which code a run ran: the sha256 of each flow module's source file (DESIGN.md §6, §8).
+"""Which code a run ran: the sha256 of each flow module's source file (docs/semantics.md, The IR; docs/log.md).
 
 The IR records, in ``metadata.code_sha256``, the sha256 of the bytes of the file each node's
 module was loaded from (the ``.py`` file, a package's ``__init__.py``; a compiled extension's

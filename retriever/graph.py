@@ -503,7 +503,7 @@ def _chunks_seen_a_microstep_late(nodes: dict[str, Node], edges: list[Edge]) -> 
     """ActionChunking edges whose chunks start at an instant the consumer ticks, a microstep too
     early to see them. A zero-latency producer ticking at (t, 0) emits at (t, 1); the consumer's
     tick at (t, 0) still holds the previous chunk's last row, and its next tick takes row 1 of
-    the new one: row 0 is never executed. It follows from the sampling rule (DESIGN.md §3) and
+    the new one: row 0 is never executed. It follows from the sampling rule (docs/semantics.md) and
     keeps each row at the time it was planned for, so it is warned of, not redefined."""
     found = []
     for e in edges:

@@ -1,4 +1,4 @@
-"""The IR: a graph as explicit, versioned JSON — the deployment artifact (DESIGN.md §6).
+"""The IR: a graph as explicit, versioned JSON — the deployment artifact (docs/semantics.md, The IR).
 
 ``pipe.build_ir()`` returns an :class:`IR`; ``IR.load(path)`` validates a saved one and reports
 every problem at once; ``Pipeline.from_ir(ir)`` rebuilds a runnable pipeline from it alone.

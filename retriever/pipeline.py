@@ -56,7 +56,7 @@ class Pipeline:
 
     def __init__(self, name: str = "pipeline", *, max_microsteps: int = DEFAULT_MAX_MICROSTEPS,
                  realtime: str = "soft", deadline: float = DEFAULT_DEADLINE):
-        """``realtime`` and ``deadline`` matter on real-time backends (DESIGN.md §5): ``deadline``
+        """``realtime`` and ``deadline`` matter on real-time backends (docs/realtime.md): ``deadline``
         is how long a tick waits for an input edge that is not complete up to its tag (edges may
         override it), ``realtime`` how misses escalate: ``"hard"`` stops the run at the first
         overrun, deadline miss or incomplete edge; ``"soft"`` applies each flow's ``on_overrun`` /

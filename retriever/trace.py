@@ -103,7 +103,7 @@ class Event(NamedTuple):
         return f"{self.node}.{self.port}"
 
 
-#: What a step record's status may be (DESIGN.md §8). ``skipped``: the tick did not step (an
+#: What a step record's status may be (docs/log.md). ``skipped``: the tick did not step (an
 #: input's policy had nothing, ``detail["missing"]``; or, realtime="hard", an incomplete edge
 #: stopped the run). ``error``: step() raised. The others stepped and returned, in real time:
 #: ``incomplete``, with an edge not complete up to the tick (``detail["incomplete"]``);

@@ -1,6 +1,6 @@
 """The in-process backend: a discrete-event executor in virtual, superdense time.
 
-This is the reference semantics every other backend is tested against (DESIGN.md §3–§4).
+This is the reference semantics every other backend is tested against (docs/semantics.md).
 
     pending ticks (heap of tags)                   one tick of node v at tag τ
     ┌──────────────────────────┐                   ┌───────────────────────────────────────┐

@@ -1,4 +1,4 @@
-"""The coordinator of a real-time run on Zenoh: the embedded default (DESIGN.md §5, §7).
+"""The coordinator of a real-time run on Zenoh: the embedded default (docs/realtime.md).
 
     pipe.run(duration=10, backend="zenoh")
         │ open the hub (tcp/127.0.0.1:7447, else a free port), write SPEC.json (IR + python path)

@@ -1,4 +1,4 @@
-"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (DESIGN.md §7).
+"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (docs/deploy.md).
 
     retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
         │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
