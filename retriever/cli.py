@@ -54,12 +54,10 @@ _err = _Console(stderr=True, soft_wrap=True, markup=False)
 
 def _version(shown: bool) -> None:
     if shown:
-        from importlib import metadata
+        from .log.format import package_versions
 
-        try:
-            version = metadata.version("retriever")
-        except metadata.PackageNotFoundError:  # run from a checkout that was never installed
-            version = "unknown (not installed: pip install -e .)"
+        # a checkout that was never installed has no version
+        version = package_versions().get("retriever", "unknown (not installed: pip install -e .)")
         _out.print(f"retriever {version}", highlight=False)
         raise typer.Exit()
 
@@ -116,7 +114,7 @@ FOXGLOVE_PORT = 8765
 _FOXGLOVE = typer.Option(
     "--foxglove", metavar="[PORT]",
     help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this process, on "
-         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever\\[foxglove]').")
+         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever-robotics\\[foxglove]').")
 
 _KEEP = typer.Option(
     metavar="trace|records|counters",
@@ -132,7 +130,7 @@ def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(
         help="Backend: inproc (virtual time, one process), zenoh (real time, a process per flow), or dora "
-             "(real time, a dora dataflow: pip install 'retriever\\[dora]'). "
+             "(real time, a dora dataflow: pip install 'retriever-robotics\\[dora]'). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
                                                   "inf: until Ctrl-C (or SIGTERM).")] = 10.0,
@@ -795,7 +793,7 @@ def log_export(
 ) -> None:
     """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
     as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
-    Needs the extra: pip install 'retriever\\[foxglove]'."""
+    Needs the extra: pip install 'retriever-robotics\\[foxglove]'."""
     if format != "foxglove":
         _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
     from .log.foxglove import export_foxglove

@@ -107,7 +107,9 @@ def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
 def test_version_as_a_flag_and_python_dash_m():
     from importlib import metadata
 
-    expected = f"retriever {metadata.version('retriever')}\n"
+    from retriever.log.format import DISTRIBUTION
+
+    expected = f"retriever {metadata.version(DISTRIBUTION)}\n"
     assert cli("--version").stdout == expected
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(ROOT), "NO_COLOR": "1"}
     done = subprocess.run([sys.executable, "-m", "retriever", "--version"], capture_output=True, text=True,

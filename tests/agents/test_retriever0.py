@@ -16,6 +16,11 @@ from retriever.log import replay
 PAPER_TRACE = ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "CloseDrawer(TL-H)", "OpenDrawer(TR-H)", "InspectDrawer(TR)",
                "Pick(spice)", "Season(food)", "CloseDrawer(TR-H)"]
 EPISODE_BOUND_S = 70.0  # simulated seconds an episode may take
+#: how long a tick of the real-time episode waits for its inputs. The agent's 0.5 s is a robot's
+#: choice (run without them rather than stall); on a 2-core machine busy with the rest of the suite
+#: an edge waited past it, and from there a run may diverge by design. The test's claim is about a
+#: run that keeps up, so its ticks wait for their inputs rather than diverge.
+PATIENT_DEADLINE_S = 30.0
 
 
 def test_an_episode_in_virtual_time_reaches_full_progress_with_the_papers_skill_trace(tmp_path):
@@ -57,15 +62,15 @@ def test_on_zenoh_in_real_time_the_episode_is_the_virtual_time_one(tmp_path):
     """Every flow declares its latency, catches up on overruns and waits for its inputs: a
     real-time run that kept up is, tick for tick, the virtual-time run (up to its last tick)."""
     log = tmp_path / "run.mcap"
-    pipe = build(seed=1, drawer="TL")
+    pipe = build(seed=1, drawer="TL", deadline=PATIENT_DEADLINE_S)
     trace = pipe.run(duration=EPISODE_BOUND_S, backend="zenoh", log=str(log), quiet=True)
     episode = summarize(trace, pipe.build_ir())
     assert episode.finished and episode.score == 1.0, episode.skill_trace
     assert episode.skills == ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "Pick(spice)", "Season(food)",
                               "CloseDrawer(TL-H)"]
-    reference = build(seed=1, drawer="TL").run(duration=EPISODE_BOUND_S, backend="inproc")
+    reference = build(seed=1, drawer="TL", deadline=PATIENT_DEADLINE_S).run(duration=EPISODE_BOUND_S, backend="inproc")
     # compared up to a second before either run ended, and before any edge that waited past its
-    # deadline (a very loaded machine: the run may diverge from there, as its log says)
+    # deadline (a machine stalled for PATIENT_DEADLINE_S: the run may diverge from there, as its log says)
     end = min(max(s.tag for s in trace.steps_of("monitor")), max(s.tag for s in reference.steps_of("monitor")))
     bound = (end[0] - 1_000_000_000, 0)
     bound = min([bound] + [s.tag for s in trace.steps if (s.detail or {}).get("incomplete")])
