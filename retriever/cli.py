@@ -63,7 +63,8 @@ def _version(shown: bool) -> None:
 
 
 @app.callback()
-def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors (anywhere on the "
+                                                                "command line).")] = False,
           version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                                 help="Show the version and exit.")] = False) -> None:
     _state["debug"] = debug
@@ -980,6 +981,7 @@ def _workers_table(workers: list, namespace: str) -> Table:
 
 def worker_main() -> None:
     """``retriever-worker``: the same command as ``retriever worker``."""
+    _state["debug"] = _take_debug(sys.argv)
     standalone = typer.Typer(add_completion=False)
     standalone.command()(worker)
     standalone()
@@ -1013,7 +1015,18 @@ def secret_new(
 
 def main() -> None:
     _default_foxglove_port(sys.argv)
+    if _take_debug(sys.argv):
+        sys.argv.insert(1, "--debug")  # where the option parser takes it: before the subcommand
     app()
+
+
+def _take_debug(argv: list[str]) -> bool:
+    """Remove every ``--debug`` from ``argv`` (up to a ``--``); whether there was one. Users add
+    it where the error showed, at the end (``retriever run F --debug``), where no command has it."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    found = "--debug" in argv[1:end]
+    argv[1:end] = [arg for arg in argv[1:end] if arg != "--debug"]
+    return found
 
 
 def _default_foxglove_port(argv: list[str]) -> None:

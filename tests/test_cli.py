@@ -516,12 +516,23 @@ def test_file_that_raises_while_importing(tmp_path: Path):
     assert_cli_error(result, r"^error: ZeroDivisionError: division by zero\n\(run with --debug for the traceback\)")
 
 
-def test_debug_shows_the_traceback(tmp_path: Path):
+@pytest.mark.parametrize("where", ["before the command", "after it"])
+def test_debug_shows_the_traceback(tmp_path: Path, where):
     write(tmp_path / "oops.py", "x = 1 / 0\n")
-    result = cli("--debug", "run", "oops.py", cwd=tmp_path)
+    args = ["run", "oops.py", "--duration", "1"]
+    result = cli(*(["--debug", *args] if where == "before the command" else [*args, "--debug"]), cwd=tmp_path)
     assert result.returncode != 0
     assert "Traceback (most recent call last)" in result.stderr
     assert "error: ZeroDivisionError: division by zero" in result.stderr
+
+
+def test_debug_after_the_worker_command_shows_the_traceback(tmp_path: Path):
+    """retriever-worker has no subcommand: --debug anywhere is its own."""
+    worker = RETRIEVER.parent / "retriever-worker"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(ROOT), "NO_COLOR": "1"}
+    done = subprocess.run([str(worker), "--name", "w", "--config", str(tmp_path / "none.toml"), "--debug"],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 1 and "Traceback (most recent call last)" in done.stderr, done.stderr
 
 
 def test_debug_shows_the_traceback_of_a_retriever_error():
