@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import traceback
@@ -35,12 +36,32 @@ def _visible(text: str) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in text)
 
 
+#: wider than any table's natural width: what a table is measured against
+_UNBOUNDED_COLUMNS = 100_000
+
+
+class _Uncut:
+    """A table at its natural width, past the terminal's edge if it must be: a name cut to fit
+    (``contro…``) names nothing. A terminal wraps the long lines; a pipe or a file keeps them."""
+
+    def __init__(self, table: Table):
+        self.table = table
+
+    def __rich_console__(self, console, options):
+        natural = console.measure(self.table, options=options.update_width(_UNBOUNDED_COLUMNS)).maximum
+        yield from console.render(self.table, options.update_width(max(options.max_width, natural)))
+
+
 class _Console(Console):
     """Rich's console, but a string is never markup unless the call says ``markup=True`` (whose
-    text escapes what it interpolates), and its control characters are shown escaped."""
+    text escapes what it interpolates), its control characters are shown escaped, and a table
+    is never cut to the terminal's width."""
 
     def print(self, *objects, **kwargs) -> None:
-        super().print(*(_visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
+        if any(isinstance(o, Table) for o in objects):
+            kwargs["crop"] = False
+        super().print(*(_visible(o) if isinstance(o, str) else _Uncut(o) if isinstance(o, Table) else o
+                        for o in objects), **kwargs)
 
 
 def _cell(value: object) -> Text:
@@ -197,14 +218,15 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
+    log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
 ) -> None:
     """Run Retriever-0 on the drawer (or bag) task in a MuJoCo world: live skill, belief and progress lines,
     then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
     log that `retriever replay` re-executes."""
     try:
-        from agents.demo import DemoError, check_rendering, report, run_episode
+        from agents.demo import DemoError, check_rendering, rate_notes, rate_table, report, run_episode
         from agents.pictures import contact_sheet, timeline
         from agents.planner import PlannerError, make_planner
         from agents.retriever0 import AgentConfig, build
@@ -217,6 +239,9 @@ def demo(
     try:
         if not 0 < duration < float("inf"):
             raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
+        if os.path.lexists(log) and not force:  # as retriever run: said before the rendering check and the run
+            raise DemoError(f"the log {log} already exists; the demo does not overwrite a file\n"
+                            "    hint: pass --force to replace it, or --log another path")
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True)
@@ -237,7 +262,7 @@ def demo(
         signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
         pipe = build(config)
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
-                                           pipe=pipe)
+                                           overwrite=force, pipe=pipe)
     except KeyboardInterrupt:
         _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
@@ -249,6 +274,15 @@ def demo(
     except RetrieverError as exc:
         _fail(exc)
     for line in report(episode, wall, canonical(backend)):
+        _out.print(line, highlight=False, soft_wrap=True)
+    columns, rows = rate_table(episode)
+    rates = Table(title="rates", title_justify="left")
+    for col in columns:
+        rates.add_column(col, justify="left" if col == "flow" else "right")
+    for row in rows:
+        rates.add_row(*row)
+    _out.print(rates)
+    for line in rate_notes(episode, canonical(backend)):
         _out.print(line, highlight=False, soft_wrap=True)
     sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
     line = timeline(trace, episode, out / "timeline.png")
@@ -897,6 +931,8 @@ def workers_command(
                    highlight=False, soft_wrap=True)
         raise typer.Exit(code=1)  # a script waiting for its workers (`until retriever workers ...`) can tell
     _out.print(_workers_table(listing.workers, namespace))
+    _err.print(f"(the workers linked to {', '.join(endpoints)}: a daemon is linked to those its --connect names and "
+               "those whose --connect names it; list the others with a --connect each)", highlight=False)
 
 
 @app.command("status")
