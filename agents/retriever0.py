@@ -44,6 +44,7 @@ class AgentConfig:
     control_hz: float = 200.0
     camera_hz: float = 10.0
     monitor_hz: float = 10.0
+    deadline: float = 0.5            # seconds a tick waits for its inputs before it runs without them
     head_size: tuple = (96, 128)
     wrist_size: tuple = (64, 64)
     slip_prob: float = 0.0           # failure injection: a slipped grasp, decided per seed
@@ -64,7 +65,7 @@ class AgentConfig:
         if not 0 <= self.slip_prob <= 1:
             raise ValueError(f"slip probability {self.slip_prob!r} must be in [0, 1]")
         make_planner(self.planner, self.task)  # a planner it cannot make is refused before anything starts
-        for name in ("planner_latency", "policy_latency"):
+        for name in ("planner_latency", "policy_latency", "deadline"):
             if not 0 < getattr(self, name) <= 60:
                 raise ValueError(f"{name}={getattr(self, name)!r} must be in (0, 60] seconds")
 
@@ -89,10 +90,10 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         planner, planner_latency = "fixed-order", 0.01
 
     # a simulated robot: physics and every rate catch up on missed ticks rather than skip them, and a
-    # tick waits up to half a second for its inputs, so that a real-time run that keeps up is the
+    # tick waits up to its deadline (half a second) for its inputs, so that a real-time run that keeps up is the
     # virtual-time run, tick for tick (a real robot would rather skip and not wait)
     catch_up = {"on_overrun": "catch_up"}
-    with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=0.5) as pipe:
+    with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=config.deadline) as pipe:
         goal = Goal(task=task).named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
         world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task) \
             .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)

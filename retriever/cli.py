@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import traceback
@@ -35,12 +36,32 @@ def _visible(text: str) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in text)
 
 
+#: wider than any table's natural width: what a table is measured against
+_UNBOUNDED_COLUMNS = 100_000
+
+
+class _Uncut:
+    """A table at its natural width, past the terminal's edge if it must be: a name cut to fit
+    (``contro…``) names nothing. A terminal wraps the long lines; a pipe or a file keeps them."""
+
+    def __init__(self, table: Table):
+        self.table = table
+
+    def __rich_console__(self, console, options):
+        natural = console.measure(self.table, options=options.update_width(_UNBOUNDED_COLUMNS)).maximum
+        yield from console.render(self.table, options.update_width(max(options.max_width, natural)))
+
+
 class _Console(Console):
     """Rich's console, but a string is never markup unless the call says ``markup=True`` (whose
-    text escapes what it interpolates), and its control characters are shown escaped."""
+    text escapes what it interpolates), its control characters are shown escaped, and a table
+    is never cut to the terminal's width."""
 
     def print(self, *objects, **kwargs) -> None:
-        super().print(*(_visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
+        if any(isinstance(o, Table) for o in objects):
+            kwargs["crop"] = False
+        super().print(*(_visible(o) if isinstance(o, str) else _Uncut(o) if isinstance(o, Table) else o
+                        for o in objects), **kwargs)
 
 
 def _cell(value: object) -> Text:
@@ -54,18 +75,17 @@ _err = _Console(stderr=True, soft_wrap=True, markup=False)
 
 def _version(shown: bool) -> None:
     if shown:
-        from importlib import metadata
+        from .log.format import package_versions
 
-        try:
-            version = metadata.version("retriever")
-        except metadata.PackageNotFoundError:  # run from a checkout that was never installed
-            version = "unknown (not installed: pip install -e .)"
+        # a checkout that was never installed has no version
+        version = package_versions().get("retriever", "unknown (not installed: pip install -e .)")
         _out.print(f"retriever {version}", highlight=False)
         raise typer.Exit()
 
 
 @app.callback()
-def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors (anywhere on the "
+                                                                "command line).")] = False,
           version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                                 help="Show the version and exit.")] = False) -> None:
     _state["debug"] = debug
@@ -122,7 +142,7 @@ FOXGLOVE_PORT = 8765
 _FOXGLOVE = typer.Option(
     "--foxglove", metavar="[PORT]",
     help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this process, on "
-         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever\\[foxglove]').")
+         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever-robotics\\[foxglove]').")
 
 _KEEP = typer.Option(
     metavar="trace|records|counters",
@@ -138,7 +158,7 @@ def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(
         help="Backend: inproc (virtual time, one process), zenoh (real time, a process per flow), or dora "
-             "(real time, a dora dataflow: pip install 'retriever\\[dora]'). "
+             "(real time, a dora dataflow: pip install 'retriever-robotics\\[dora]'). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
                                                   "inf: until Ctrl-C (or SIGTERM).")] = 10.0,
@@ -204,14 +224,15 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
+    log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
 ) -> None:
     """Run Retriever-0 on the drawer (or bag) task in a MuJoCo world: live skill, belief and progress lines,
     then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
     log that `retriever replay` re-executes."""
     try:
-        from agents.demo import DemoError, check_rendering, report, run_episode
+        from agents.demo import DemoError, check_rendering, rate_notes, rate_table, report, run_episode
         from agents.pictures import contact_sheet, timeline
         from agents.planner import PlannerError, make_planner
         from agents.retriever0 import AgentConfig, build
@@ -224,6 +245,9 @@ def demo(
     try:
         if not 0 < duration < float("inf"):
             raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
+        if os.path.lexists(log) and not force:  # as retriever run: said before the rendering check and the run
+            raise DemoError(f"the log {log} already exists; the demo does not overwrite a file\n"
+                            "    hint: pass --force to replace it, or --log another path")
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True)
@@ -244,7 +268,7 @@ def demo(
         signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
         pipe = build(config)
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
-                                           pipe=pipe)
+                                           overwrite=force, pipe=pipe)
     except KeyboardInterrupt:
         _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
@@ -256,6 +280,15 @@ def demo(
     except RetrieverError as exc:
         _fail(exc)
     for line in report(episode, wall, canonical(backend)):
+        _out.print(line, highlight=False, soft_wrap=True)
+    columns, rows = rate_table(episode)
+    rates = Table(title="rates", title_justify="left")
+    for col in columns:
+        rates.add_column(col, justify="left" if col == "flow" else "right")
+    for row in rows:
+        rates.add_row(*row)
+    _out.print(rates)
+    for line in rate_notes(episode, canonical(backend)):
         _out.print(line, highlight=False, soft_wrap=True)
     sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
     line = timeline(trace, episode, out / "timeline.png")
@@ -824,7 +857,7 @@ def log_export(
 ) -> None:
     """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
     as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
-    Needs the extra: pip install 'retriever\\[foxglove]'."""
+    Needs the extra: pip install 'retriever-robotics\\[foxglove]'."""
     if format != "foxglove":
         _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
     from .log.foxglove import export_foxglove
@@ -931,6 +964,8 @@ def workers_command(
                    highlight=False, soft_wrap=True)
         raise typer.Exit(code=1)  # a script waiting for its workers (`until retriever workers ...`) can tell
     _out.print(_workers_table(listing.workers, namespace))
+    _err.print(f"(the workers linked to {', '.join(endpoints)}: a daemon is linked to those its --connect names and "
+               "those whose --connect names it; list the others with a --connect each)", highlight=False)
 
 
 @app.command("status")
@@ -1015,6 +1050,7 @@ def _workers_table(workers: list, namespace: str) -> Table:
 
 def worker_main() -> None:
     """``retriever-worker``: the same command as ``retriever worker``."""
+    _state["debug"] = _take_debug(sys.argv)
     standalone = typer.Typer(add_completion=False)
     standalone.command()(worker)
     standalone()
@@ -1048,7 +1084,18 @@ def secret_new(
 
 def main() -> None:
     _default_foxglove_port(sys.argv)
+    if _take_debug(sys.argv):
+        sys.argv.insert(1, "--debug")  # where the option parser takes it: before the subcommand
     app()
+
+
+def _take_debug(argv: list[str]) -> bool:
+    """Remove every ``--debug`` from ``argv`` (up to a ``--``); whether there was one. Users add
+    it where the error showed, at the end (``retriever run F --debug``), where no command has it."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    found = "--debug" in argv[1:end]
+    argv[1:end] = [arg for arg in argv[1:end] if arg != "--debug"]
+    return found
 
 
 def _default_foxglove_port(argv: list[str]) -> None:

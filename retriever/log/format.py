@@ -46,7 +46,12 @@ RUN_METADATA = "retriever.run"
 END_METADATA = "retriever.end"
 RECOVERED_METADATA = "retriever.recovered"
 FAULT_METADATA = "retriever.fault."
-PACKAGES = ("retriever", "eclipse-zenoh", "msgpack", "numpy", "mcap", "mujoco")
+#: what pip installs Retriever as (it imports as ``retriever``; "retriever" on PyPI is another project)
+DISTRIBUTION = "retriever-robotics"
+#: the distributions whose versions a run records, by the name a log's and a worker's versions give
+#: each: Retriever's own by its import name, so that the key does not change with the distribution's
+PACKAGES = {"retriever": DISTRIBUTION, "eclipse-zenoh": "eclipse-zenoh", "msgpack": "msgpack", "numpy": "numpy",
+            "mcap": "mcap", "mujoco": "mujoco"}
 
 
 def data_topic(node: str, port: str) -> str:
@@ -136,9 +141,9 @@ def event_ids(ids: Any) -> tuple:
 def package_versions() -> dict[str, str]:
     """Installed versions of Retriever and the packages a run depends on (read once per process)."""
     versions = {}
-    for name in PACKAGES:
+    for name, distribution in PACKAGES.items():
         try:
-            versions[name] = importlib_metadata.version(name)
+            versions[name] = importlib_metadata.version(distribution)
         except importlib_metadata.PackageNotFoundError:
             pass
     return versions

@@ -182,6 +182,27 @@ def test_retriever_workers_lists_two_daemons_with_their_labels(workers, namespac
     assert "name" in result.stdout and "clock offset" in result.stdout
 
 
+def test_daemons_that_are_not_linked_are_listed_through_a_connect_each_and_the_listing_says_so(workers, namespace):
+    """Daemons find each other only through --connect: through the first of two unlinked ones,
+    `retriever workers` lists it alone and says how the others are found; given both, both."""
+    first, second = free_port(), free_port()
+    for name, port in (("alpha", first), ("beta", second)):
+        workers("--name", name, "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
+
+    def listed(*ports: int) -> tuple[set[str], str]:
+        result = _cli("workers", *(arg for port in ports for arg in ("--connect", endpoint(port))),
+                      "--namespace", namespace, "--insecure")
+        assert result.returncode == 0, result.stderr
+        rows = {line.split("│")[1].strip() for line in result.stdout.splitlines() if line.startswith("│")}
+        return rows, result.stderr
+
+    names, err = listed(first)
+    assert names == {"alpha"}
+    assert f"(the workers linked to {endpoint(first)}: a daemon is linked to those its --connect names and those " \
+           "whose --connect names it; list the others with a --connect each)" in err, err
+    assert listed(first, second)[0] == {"alpha", "beta"}
+
+
 def test_no_workers_says_how_to_start_one(namespace):
     port = free_port()  # nothing listens there
     result = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
