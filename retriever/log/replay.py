@@ -102,11 +102,19 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     """The pipeline to replay: the given one (its flows reset to their initial state), or the
     one rebuilt from the log's IR."""
     if pipeline is None:
+        script = _script_that_ran(log)
+        if script is not None:  # the fix first: an IR's advice (`retriever ir`) is no fix for a replay
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: its flows live in the script "
+                           f"that ran ({script}), whose __main__ no other process can import",
+                           f"retriever replay {log.path} --pipeline {script} "
+                           "(FILE:ATTR when the script has more than one pipeline)")
         log.add_import_paths()
         try:
             pipeline = Pipeline.from_ir(log.ir)
         except IRError as e:
-            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}", _rebuild_hint(log)) from None
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}",
+                           "pass the pipeline that wrote the log with --pipeline FILE[:ATTR] (a class that moved or "
+                           "was renamed too)") from None
     else:
         pipeline.reset()
     with warnings.catch_warnings():
@@ -121,21 +129,18 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     return pipeline
 
 
-def _rebuild_hint(log: RunLog) -> str:
-    """How to give the pipeline a log's IR cannot rebuild: for flows that lived in the script
-    that ran (``python script.py``: no other process can import its ``__main__``), that script,
-    as the log's run metadata names it (a hostile log's text, only shown)."""
-    in_main = any(str(node.get("type", "")).startswith("__main__:") for node in log.ir.nodes)
+def _script_that_ran(log: RunLog) -> str | None:
+    """The script whose ``__main__`` holds the log's flows (``python script.py``: no other
+    process can import it), as the log's run metadata names it (a hostile log's text, only
+    shown); None when no flow lives in ``__main__`` or the metadata names no script."""
+    if not any(str(node.get("type", "")).startswith("__main__:") for node in log.ir.nodes):
+        return None
     try:
         argv, cwd = json.loads(log.run.get("command_line", "[]")), log.run.get("cwd", "")
         first = argv[0] if type(argv) is list and argv else None
-        script = os.path.join(cwd, first) if type(first) is str and first.endswith(".py") else None
+        return os.path.join(cwd, first) if type(first) is str and first.endswith(".py") else None
     except (ValueError, TypeError, AttributeError):
-        script = None
-    if in_main and script is not None:
-        return (f"its flows live in the script that ran: retriever replay {log.path} --pipeline {script} "
-                "(FILE:ATTR when the script has more than one pipeline)")
-    return "pass the pipeline that wrote the log with --pipeline FILE[:ATTR] (a class that moved or was renamed too)"
+        return None
 
 
 def replay(log: RunLog, pipeline: Pipeline | None = None,

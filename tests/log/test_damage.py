@@ -446,9 +446,12 @@ def test_replay_of_a_scripts_log_names_the_script_to_pass(tmp_path):
     script.write_text(SCRIPT_RUN, encoding="utf-8")
     subprocess.run([sys.executable, str(script.name)], check=True, cwd=tmp_path, env=cli_env(), timeout=120)
     log = tmp_path / "run.mcap"
-    assert_cli_error(cli("replay", log), r"class Tick lives in __main__",
-                     hint=rf"its flows live in the script that ran: retriever replay {re.escape(str(log))} "
-                          rf"--pipeline {re.escape(str(script))} ")
+    result = cli("replay", log)
+    assert_cli_error(result, rf"^error: cannot rebuild the pipeline from the IR in {re.escape(str(log))}: its flows live "
+                             rf"in the script that ran \({re.escape(str(script))}\), whose __main__ no other process "
+                             rf"can import\n",
+                     hint=rf"retriever replay {re.escape(str(log))} --pipeline {re.escape(str(script))} ")
+    assert "retriever ir" not in result.stderr  # the advice for an IR, not for a replay
     fixed = cli("replay", log, "--pipeline", script)
     assert fixed.returncode == 0 and "identical:" in fixed.stdout, fixed.stdout + fixed.stderr
 
