@@ -35,14 +35,15 @@ def check_rendering() -> None:
 
 
 def run_episode(config, backend: str = "zenoh", duration: float = 120.0, log: str | None = "run.mcap",
-                quiet: bool = True, pipe=None):
+                quiet: bool = True, pipe=None, overwrite: bool = False):
     """Run one episode (``pipe``: the graph ``build(config)`` made, for a caller that keeps it, as
-    ``retriever demo`` does to tell a SIGTERM from a Ctrl-C); returns (trace, episode, wall seconds)."""
+    ``retriever demo`` does to tell a SIGTERM from a Ctrl-C; ``overwrite``: replace an existing
+    ``log``, which is refused otherwise); returns (trace, episode, wall seconds)."""
     from .retriever0 import build
     pipe = build(config) if pipe is None else pipe
     options = {"quiet": quiet} if backend == "zenoh" else {}
     started = time.perf_counter()
-    trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=True, **options)
+    trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=overwrite, **options)
     wall = time.perf_counter() - started
     return trace, summarize(trace, pipe.build_ir()), wall
 
@@ -56,8 +57,8 @@ def ending(episode: Episode) -> str:
 
 
 def report(episode: Episode, wall: float, backend: str) -> list[str]:
-    """The lines ``retriever demo`` prints after an episode."""
-    lines = [f"skill trace: {episode.skill_trace or '(none)'}",
+    """The lines ``retriever demo`` prints after an episode, before its rates (rate_rows)."""
+    return [f"skill trace: {episode.skill_trace or '(none)'}",
              f"task progress: {episode.score:.0%} ("
              + ", ".join(f"{k.replace('_', ' ')} {'✓' if v else '✗'}" for k, v in episode.milestones.items())
              + f"), best reached at t={episode.best_at:.1f} s",
@@ -67,16 +68,33 @@ def report(episode: Episode, wall: float, backend: str) -> list[str]:
                  ("stale progress reports ignored", episode.ignored.get("stale_feedback", 0)),
                  ("superseded plans dropped", episode.ignored.get("stale_plans", 0)),
                  ("bad plans refused", episode.ignored.get("bad_plans", 0))) if n)]
+
+
+#: the columns of rate_table: how each flow on a Rate kept its clock; in real time also how late its
+#: ticks started and how many of its steps missed (their LET deadline, an overrun, an incomplete input)
+RATE_COLUMNS = ("flow", "clock\nHz", "ran\nHz")
+LATENESS_COLUMNS = ("start late\np99 ms", "ticks >1\nperiod late", "steps missed\n(deadline, overrun,\nincomplete)")
+
+
+def rate_table(episode: Episode) -> tuple[tuple[str, ...], list[tuple[str, ...]]]:
+    """The columns and rows of the rates table: a row per flow on a Rate (the lateness columns
+    only in real time: virtual time is never late)."""
     rated = [r for r in episode.rates if r.hz]
-    if rated:
-        parts = []
-        for r in rated:
-            late = f", p99 late {r.late_p99_ms:.1f} ms" if r.late_p99_ms is not None else ""
-            behind = f", {r.behind} ticks over a period late" if r.behind else ""
-            missed = f", {r.missed} steps late/overrun/incomplete" if r.missed else ""
-            parts.append(f"{r.node} {r.achieved_hz:.1f}/{r.hz:g} Hz{late}{behind}{missed}")
-        lines.append("rates: " + "; ".join(parts))
-        if backend != "inproc" and any(r.behind or r.achieved_hz < 0.95 * r.hz for r in rated):
-            lines.append("some flows fell behind their clocks: this machine is busy or slow for these rates "
-                         "(--backend inproc runs the same agent in virtual time)")
+    real_time = any(r.late_p99_ms is not None for r in rated)
+    rows = [(r.node, f"{r.hz:g}", f"{r.achieved_hz:.1f}")
+            + ((f"{r.late_p99_ms:.1f}", str(r.behind), str(r.missed)) if real_time else ()) for r in rated]
+    return RATE_COLUMNS + (LATENESS_COLUMNS if real_time else ()), rows
+
+
+def rate_notes(episode: Episode, backend: str) -> list[str]:
+    """What the rates table means in real time: what "late" is, and whether the machine kept up."""
+    rated = [r for r in episode.rates if r.hz]
+    if backend == "inproc" or not rated:
+        return []
+    lines = ["late: a tick started after its time (T0 + its tag) on the wall clock; every flow declares its "
+             "latency (LET) and catches up, so a late tick still consumes and emits what it would have on time and "
+             "the trace is the virtual-time one (retriever replay checks the log)"]
+    if any(r.behind or r.achieved_hz < 0.95 * r.hz for r in rated):
+        lines.append("some flows fell behind their clocks: this machine is busy or slow for these rates "
+                     "(--backend inproc runs the same agent in virtual time)")
     return lines

@@ -55,6 +55,29 @@ def summarize(trace, ir=None) -> Episode:
                    duration, last.gave_up, ignored, statuses, _rates(trace, ir, duration))
 
 
+def _wall_t0(trace) -> int | None:
+    """Real time: the wall-clock ns of world time 0 (None for a virtual-time trace). A tick never
+    starts before T0 + its tag, so the smallest start − tag is T0, to within the quickest tick's
+    reaction: lateness is measured from there."""
+    offsets = [s.wall_start_ns - s.tag[0] for s in trace.steps if s.wall_start_ns]
+    return min(offsets) if offsets and trace.steps[0].wall_start_ns > 1e17 else None
+
+
+def lateness(trace) -> dict[str, tuple[list[float], list[float]]]:
+    """Real time: per flow, the world time (s) of each tick that ran and how late it started (ms
+    after T0 + its tag); empty for a virtual-time trace, whose ticks are never late."""
+    t0 = _wall_t0(trace)
+    late: dict[str, tuple[list[float], list[float]]] = {}
+    if t0 is None:
+        return late
+    for s in trace.steps:
+        if s.status != "skipped" and s.wall_start_ns:
+            times, ms = late.setdefault(s.node, ([], []))
+            times.append(s.tag[0] / 1e9)
+            ms.append((s.wall_start_ns - s.tag[0] - t0) / 1e6)
+    return late
+
+
 def _rates(trace, ir, duration: float) -> list[FlowRate]:
     clocks = {}
     if ir is not None:
@@ -65,15 +88,12 @@ def _rates(trace, ir, duration: float) -> list[FlowRate]:
     by_node: dict[str, list] = {}
     for step in trace.steps:
         by_node.setdefault(step.node, []).append(step)
-    # real time: a tick never starts before T0 + its tag, so the smallest start − tag is T0 (to
-    # within the quickest tick's reaction): lateness is measured from there
-    offsets = [s.wall_start_ns - s.tag[0] for s in trace.steps if s.wall_start_ns]
-    t0 = min(offsets) if offsets and trace.steps[0].wall_start_ns > 1e17 else None
+    t0, late_ms = _wall_t0(trace), lateness(trace)
     rates = []
     for node, steps in sorted(by_node.items()):
         ran = [s for s in steps if s.status not in ("skipped",)]
         hz = clocks.get(node)
-        late = [(s.wall_start_ns - s.tag[0] - t0) / 1e6 for s in ran if t0 is not None and s.wall_start_ns]
+        late = late_ms.get(node, ([], []))[1]
         starts = sorted(s.wall_start_ns for s in steps if s.wall_start_ns)
         if t0 is not None and len(starts) > 1 and starts[-1] > starts[0]:
             # ticks (a skipped one ticked too: its inputs had nothing yet) per wall second: a flow

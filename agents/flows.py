@@ -18,8 +18,8 @@ import numpy as np
 from retriever import Flow
 
 from .messages import (
-    ActionChunk, Belief, Command, Frame, InspectionDone, MonitorStatus, Observation, PlanChunk, PlanRequest,
-    Progress, SkillCmd, Task, TeleopEvent,
+    ActionChunk, Belief, Command, Frame, InspectionDone, MonitorStatus, Observation, PlanChunk, PlanFailure,
+    PlanRequest, Progress, SkillCmd, Task, TeleopEvent,
 )
 from .monitor import ExecutionMonitor, MonitorConfig
 
@@ -169,8 +169,9 @@ def merge_three_valued(old: dict, new: dict) -> dict:
 
 
 class PlannerFlow(Flow):
-    """The planner (F3, a VLM stand-in by default): answers each plan request with a plan chunk.
-    Its declared latency is the seconds it is given to think."""
+    """The planner (F3, a VLM stand-in by default): answers each plan request with a plan chunk,
+    or, when the planner gives up on it, with a ``failure`` naming why. A VLM planner also sees
+    the head camera's newest ``frame``. Its declared latency is the seconds it is given to think."""
 
     def __init__(self, planner: str = "scripted", task: str = "drawers"):
         self.planner_spec, self.task = planner, task
@@ -179,15 +180,16 @@ class PlannerFlow(Flow):
         from .planner import make_planner
         self.planner = make_planner(self.planner_spec, self.task)
 
-    def step(self, request: PlanRequest, task: Task | None = None):
+    def step(self, request: PlanRequest, task: Task | None = None, frame: Frame | None = None):
         from .planner import PlannerError
         context = {"executed": request.executed, "current": request.current, "failures": request.failures,
                    "reason": request.reason}
+        image = frame.rgb if frame is not None else None
         try:
-            program = self.planner.propose(task.text if task else "", request.belief, context)
+            program = self.planner.propose(task.text if task else "", request.belief, context, image=image)
         except PlannerError as e:
-            print(f"planner: {e}", file=sys.stderr)
-            program = []
+            print(f"planner: {e}", file=sys.stderr, flush=True)
+            return {"failure": PlanFailure(request_id=request.request_id, error=e.problem, planner=self.planner.name)}
         return {"plan": PlanChunk(request_id=request.request_id, program=program, planner=self.planner.name)}
 
 
@@ -207,13 +209,16 @@ class Monitor(Flow):
         self.said, self.failures_said = "", 0
 
     def step(self, obs: Observation, task: Task | None = None, belief: Belief | None = None,
-             progress: list | None = None, plan: list | None = None, teleop: list | None = None):
+             progress: list | None = None, plan: list | None = None, teleop: list | None = None,
+             plan_failure: list | None = None):
         m, now = self.logic, obs.t
         if task is not None and not m.task:
             m.on_task(task.text)
         changed = belief is not None and m.on_belief(belief.version, belief.predicates)
         for chunk in plan or ():
             m.on_plan(chunk.request_id, chunk.program)
+        for failure in plan_failure or ():
+            m.on_planner_failure(failure.request_id, failure.error)
         out: dict = {}
         for event in teleop or ():
             out["skill"] = self._command(m.on_teleop(event.payload, now))

@@ -126,6 +126,17 @@ class PlanChunk:
 
 @io
 @dataclass
+class PlanFailure:
+    """The planner gave up on a request (a model that answered no plan in all its attempts, an
+    endpoint that refused or is gone): ``error`` says so in one line, naming the endpoint and the
+    last answer. Sent instead of a ``PlanChunk``, by the planners that can fail."""
+    request_id: int
+    error: str
+    planner: str = ""
+
+
+@io
+@dataclass
 class TeleopEvent:
     """An intervention (Appendix E-n): a skill that overrides the plan from ``t_start``. The
     override runs until its skill hands off, as a plan's would; ``t_end`` is the operator's

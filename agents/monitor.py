@@ -15,11 +15,15 @@ clocks or transport, so every rule is tested by direct calls:
   after ``timeout`` seconds whatever the progress says.
 - **stale feedback**: progress for any skill id but the running one is ignored (and counted);
   progress restarts at 0 with every new skill.
-- **replanning**: on the task's arrival, on every belief change, on a failed skill or a refused
-  plan, and when fewer than ``min_horizon`` skills are left of a plan with no branch ahead (a
-  branch waits on an inspection, whose belief update asks anyway) that does not end the task.
+- **replanning**: on the task's arrival, on every belief change, on a failed skill, a refused
+  plan or a request the planner gave up on, and when fewer than ``min_horizon`` skills are left
+  of a plan with no branch ahead (a branch waits on an inspection, whose belief update asks
+  anyway) that does not end the task.
 - **teleop**: an override skill preempts the running one, which resumes at the next safe point.
-- **giving up**: a skill that failed ``max_failures`` times ends the task where it is.
+- **giving up**: a skill that failed ``max_failures`` times ends the task where it is, and so do
+  ``max_planner_failures`` requests in a row that got no plan (a planner that gave up on them, or
+  answered outside the vocabulary), with the planner's last word; a plan already running goes on
+  in between.
 - **task progress**: milestones (Appendix E-o) from belief and world facts; the score only rises.
 """
 
@@ -45,6 +49,8 @@ class MonitorConfig:
     min_horizon: int = 2            # fewer certain skills left than this: ask for more
     chunking: bool = True           # False (an ablation): ask only when idle, and wait for the answer
     max_failures: int = 3           # a skill that failed this often: give the task up (no endless retries)
+    max_planner_failures: int = 2   # requests in a row that got no plan: give the task up (a planner has
+    #                                 already asked its model again itself before it gives up on one)
     branch_patience: float = 3.0    # idle on an unknown branch this long: the plan cannot go on, ask again
 
 
@@ -91,6 +97,7 @@ class ExecutionMonitor:
     stale_feedback: int = 0
     stale_plans: int = 0
     bad_plans: int = 0
+    refused_in_row: int = 0                         # requests in a row answered with no plan
     finished: bool = False
     gave_up: str = ""                               # why the task was given up, when it was
     milestones: dict = field(default_factory=dict)
@@ -125,12 +132,31 @@ class ExecutionMonitor:
         try:
             nodes = parse_program(program, self.task_kind)
         except PlanError as e:
-            self.bad_plans += 1
-            self.failures.append(f"plan {request_id}: {e}")
-            self.must_replan = "invalid_plan"
+            self._no_plan(request_id, str(e), "invalid_plan")
             return "invalid"
-        self.pending = nodes
+        self.pending, self.refused_in_row = nodes, 0
         return "taken"
+
+    def on_planner_failure(self, request_id: int, error: str) -> str:
+        """The planner gave up on a request: "stale" (not the newest request) or "failed"."""
+        if request_id != self.request_id:
+            self.stale_plans += 1
+            return "stale"
+        self.answered_id = request_id
+        self._no_plan(request_id, error, "planner_failed")
+        return "failed"
+
+    def _no_plan(self, request_id: int, why: str, reason: str) -> None:
+        """A request that got no plan: said in the next request's failures and asked again, up to
+        ``max_planner_failures`` in a row; then the task is given up (the plan running goes on till then)."""
+        self.bad_plans += 1
+        self.refused_in_row += 1
+        self.failures.append(f"plan {request_id}: {why}")
+        if self.refused_in_row >= self.config.max_planner_failures:
+            self.finished = True
+            self.gave_up = f"no plan for {self.refused_in_row} requests in a row: {why}"
+        else:
+            self.must_replan = reason
 
     def on_progress(self, skill_id: int, p: float, status: str, now: float) -> None:
         if skill_id != self.current_id or self.current is None:

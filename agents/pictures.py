@@ -1,5 +1,6 @@
 """Pictures of an episode: a contact sheet of the head camera with the running skill written on
-each frame, and a timeline of skills, progress, replans and the task-progress score (PNG)."""
+each frame, and a timeline of skills, progress, replans, the task-progress score and, in real
+time, how late each flow's ticks started (PNG)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from retriever import NOT_KEPT
 
-from .episode import Episode
+from .episode import Episode, lateness
 
 
 def _pyplot():
@@ -52,10 +53,14 @@ def contact_sheet(trace, episode: Episode, path: Path, frames: int = 12, camera:
 
 
 def timeline(trace, episode: Episode, path: Path) -> Path:
-    """Skills as bars, the skill policy's progress, plan requests and answers, and the score."""
+    """Skills as bars, the skill policy's progress, plan requests and answers, the score, and in
+    real time each flow's tick lateness (a virtual-time trace has none)."""
     plt = _pyplot()
-    fig, (ax_skill, ax_p, ax_score) = plt.subplots(3, 1, figsize=(10, 5.5), sharex=True,
-                                                   gridspec_kw={"height_ratios": [2, 1.2, 1]})
+    late = lateness(trace)
+    ratios = [2, 1.2, 1] + ([1.2] if late else [])
+    fig, axes = plt.subplots(len(ratios), 1, figsize=(10, 5.5 + 1.5 * bool(late)), sharex=True,
+                             gridspec_kw={"height_ratios": ratios})
+    ax_skill, ax_p, ax_score = axes[:3]
     spans, start, name = [], None, ""
     for t, status in episode.statuses:
         if status.skill != name:
@@ -71,7 +76,8 @@ def timeline(trace, episode: Episode, path: Path) -> Path:
         ax_skill.barh(row, t1 - t0, left=t0, color=colours(row % 10), height=0.7)
     ax_skill.set_yticks(range(len(labels)), labels, fontsize=7)
     ax_skill.invert_yaxis()
-    ax_skill.set_title("Retriever-0: skills, progress, replans, task progress", fontsize=9)
+    ax_skill.set_title("Retriever-0: skills, progress, replans, task progress"
+                       + (", how late ticks started (wall clock)" if late else ""), fontsize=9)
     progress = [e.value for e in trace.events_of("skill", "progress") if e.value is not NOT_KEPT]
     ax_p.plot([p.t for p in progress], [p.p for p in progress], ".", markersize=3, color="tab:blue")
     ax_p.axhline(0.9, color="grey", linewidth=0.6, linestyle="--")
@@ -86,8 +92,20 @@ def timeline(trace, episode: Episode, path: Path) -> Path:
                   color="tab:green")
     ax_score.set_ylabel("task", fontsize=8)
     ax_score.set_ylim(-0.05, 1.05)
-    ax_score.set_xlabel("world time (s)")
+    if late:
+        _lateness(axes[3], late)
+    axes[-1].set_xlabel("world time (s)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def _lateness(ax, late: dict[str, tuple[list[float], list[float]]]) -> None:
+    """How late each flow's ticks started on the wall clock (ms, on a log scale: under 0.1 ms
+    drawn at 0.1), which catching up absorbs: the trace stays the virtual-time one."""
+    for node, (times, ms) in sorted(late.items()):
+        ax.plot(times, [max(m, 0.1) for m in ms], ".", markersize=1.5, label=node)
+    ax.set_yscale("log")
+    ax.set_ylabel("tick late (ms)", fontsize=8)
+    ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.05), markerscale=4, frameon=False)

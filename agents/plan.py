@@ -140,7 +140,8 @@ def parse_program(lines, task: str = "drawers") -> list[Node]:
     """The nodes of a plan chunk for ``task``, or PlanError naming the line that is wrong."""
     _task(task)
     if not isinstance(lines, (list, tuple)) or not lines or len(lines) > MAX_LINES:
-        raise PlanError(f"a plan is a list of 1 to {MAX_LINES} lines, got {type(lines).__name__}")
+        got = f"{len(lines)} lines" if isinstance(lines, (list, tuple)) else type(lines).__name__
+        raise PlanError(f"a plan is a list of 1 to {MAX_LINES} lines, got {got}")
     nodes: list[Node] = []
     for i, line in enumerate(lines, 1):
         try:

@@ -1,14 +1,16 @@
 """Planners: the VLM that proposes plan chunks, behind one interface (paper Appendix E-d, E-g, I).
 
 ``ScriptedPlanner`` is the default stand-in: it needs no network and always answers the same
-way to the same belief and context, so runs are reproducible. ``OpenAICompatiblePlanner`` asks a
-real model through any OpenAI-compatible ``/chat/completions`` endpoint with the paper's prompt
-rules; its answer is checked against the closed vocabulary like any other plan (it is text from
-a model: parsed, never evaluated).
+way to the same belief and context, so runs are reproducible (it has no use for the image).
+``OpenAICompatiblePlanner`` asks a real vision-language model through any OpenAI-compatible
+``/chat/completions`` endpoint, with the head camera's image, the belief and the paper's prompt
+rules (the contract is :mod:`agents.vlm`); its answer is checked against the closed vocabulary
+like any other plan (it is text from a model: parsed, never evaluated).
 """
 
 from __future__ import annotations
 
+import http.client
 import json
 import os
 import socket
@@ -17,20 +19,29 @@ import urllib.parse
 import urllib.request
 from typing import Protocol
 
+import numpy as np
+
 from .plan import DRAWERS, Branch, PlanError, parse_program
+from .vlm import EXPECTED, AnswerRefused, chat_messages, check_answer, correction, example, shorten
 
 SEARCH_ORDER = DRAWERS
 
 
 class PlannerError(RuntimeError):
-    """The planner could not produce a plan (a model unreachable or answering nonsense)."""
+    """The planner could not produce a plan (a model unreachable or answering nonsense):
+    ``problem`` says what happened in one line, ``hint`` what to do about it."""
+
+    def __init__(self, problem: str, hint: str = ""):
+        self.problem, self.hint = problem, hint
+        super().__init__(problem + (f"\n    hint: {hint}" if hint else ""))
 
 
 class Planner(Protocol):
     name: str
 
-    def propose(self, task: str, belief: dict, context: dict) -> list[str]:
-        """A plan chunk in the text format of :mod:`agents.plan` (3–5 skills, branches at inspections)."""
+    def propose(self, task: str, belief: dict, context: dict, image: np.ndarray | None = None) -> list[str]:
+        """A plan chunk in the text format of :mod:`agents.plan` (3–5 skills, branches at inspections);
+        ``image`` is the head camera's newest frame (RGB), when the graph feeds the planner one."""
 
 
 def drawer_open(executed: list[str], drawer: str) -> bool:
@@ -55,7 +66,7 @@ class ScriptedPlanner:
     def __init__(self, one_skill: bool = False, task_kind: str = "drawers"):
         self.one_skill, self.task_kind = one_skill, task_kind
 
-    def propose(self, task: str, belief: dict, context: dict) -> list[str]:
+    def propose(self, task: str, belief: dict, context: dict, image: np.ndarray | None = None) -> list[str]:
         executed = list(context.get("executed", []))
         if context.get("current"):
             executed.append(context["current"])           # it will have run when this plan applies
@@ -133,68 +144,29 @@ class ScriptedPlanner:
         return str(node)
 
 
-DRAWERS_PROMPT = """You are a robot task planner.
-
-SCENE OBJECTS:
-- spice (pickable; hidden in one of the drawers)
-- drawers TL, TR, BL, BR (containers; top-left, top-right, bottom-left, bottom-right), handles TL-H, TR-H, BL-H, BR-H
-- food on a plate (surface)
-
-SKILLS (the only ones that exist):
-OpenDrawer(<handle>), InspectDrawer(<drawer>), CloseDrawer(<handle>),
-Pick(spice), Season(food), PlaceBack(spice), Done()
-
-PREDICATES: at(spice, <drawer>) = yes|no|unknown
-
-ACTION PLAN FORMAT, one string per line:
-1. Linear: Skill(arg) -> Skill(arg)
-2. Conditional: IF at(spice, <drawer>) = yes THEN <linear> ELSE <linear>
-
-CRITICAL RULES:
-1. Always close drawers after use (cleanup).
-2. Complete the full task (pick -> season -> close -> Done()).
-3. If inspecting, you MUST handle both found/not-found cases.
-4. Propose 3 to 5 skills.
-
-OUTPUT JSON: {"action_plan": ["...", "..."], "reasoning": "..."}"""
-
-BAG_PROMPT = """You are a robot task planner.
-
-SCENE OBJECTS:
-- target (pickable; maybe inside the bag), bag (a container whose mouth must be opened), a tray spot (surface)
-
-SKILLS (the only ones that exist):
-OpenBag(bag), InspectBag(bag), Pick(target), Extract(target), Done()
-
-PREDICATES: in(target, bag) = yes|no|unknown
-
-ACTION PLAN FORMAT, one string per line:
-1. Linear: Skill(arg) -> Skill(arg)
-2. Conditional: IF in(target, bag) = yes THEN <linear> ELSE <linear>
-
-CRITICAL RULES:
-1. Open the bag before looking in or picking.
-2. Complete the full task (open -> inspect -> pick -> extract -> Done()).
-3. If inspecting, you MUST handle both found/not-found cases.
-
-OUTPUT JSON: {"action_plan": ["...", "..."], "reasoning": "..."}"""
-
-SYSTEM_PROMPTS = {"drawers": DRAWERS_PROMPT, "bag": BAG_PROMPT}
-
-
 class OpenAICompatiblePlanner:
-    """A real VLM/LLM planner over an OpenAI-compatible HTTP endpoint (``base_url`` ending in
-    ``/v1``). The API key is read from the environment variable ``api_key_env`` in the planner's
-    own process (never sent through the graph or the log)."""
+    """A real VLM planner over an OpenAI-compatible HTTP endpoint (``base_url`` ending in ``/v1``):
+    each request carries the head camera's image and the belief (:mod:`agents.vlm`). An answer
+    that is no plan is sent back to the model with what was wrong and asked again, and so is a
+    server error (HTTP 5xx, a reply that is no chat completion), up to ``attempts`` requests in
+    all; then PlannerError names the endpoint and the last answer. An endpoint that cannot be
+    reached, refuses the request (HTTP 4xx) or redirects it fails at once: asking again would not
+    help. The API key is read from the environment variable ``api_key_env`` in the planner's own
+    process (never sent through the graph or the log) and goes to ``base_url`` only: a redirect is
+    not followed."""
 
     name = "openai-compatible"
 
     def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout: float = 60.0,
-                 task_kind: str = "drawers"):
-        if not base_url.startswith(("http://", "https://")):
-            raise ValueError(f"planner base_url {base_url!r} must start with http:// or https://")
+                 task_kind: str = "drawers", attempts: int = 3):
+        parts = urllib.parse.urlsplit(base_url)
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError(f"planner base_url {base_url!r} must be an http:// or https:// URL with a host, "
+                             "such as http://localhost:8000/v1")
+        if type(attempts) is not int or attempts < 1:
+            raise ValueError(f"planner attempts={attempts!r} must be an integer >= 1")
         self.base_url, self.model, self.api_key_env, self.timeout = base_url.rstrip("/"), model, api_key_env, timeout
-        self.task_kind = task_kind
+        self.task_kind, self.attempts = task_kind, attempts
 
     def check_reachable(self) -> None:
         """Fail now, not a planner latency into the run, when nothing listens at the endpoint."""
@@ -203,43 +175,86 @@ class OpenAICompatiblePlanner:
             port = parts.port or (443 if parts.scheme == "https" else 80)
             socket.create_connection((parts.hostname, port), timeout=min(self.timeout, 5.0)).close()
         except (OSError, ValueError) as e:
-            raise PlannerError(f"planner endpoint {self.base_url} is not reachable: {e}\n    hint: start the model "
-                               "server, or check the URL (openai:http://HOST:PORT/v1#MODEL)") from None
+            raise PlannerError(f"planner endpoint {self.base_url} is not reachable: {e}",
+                               "start the model server, or check the URL (openai:http://HOST:PORT/v1#MODEL)") from None
 
-    def propose(self, task: str, belief: dict, context: dict) -> list[str]:
-        user = json.dumps({"task": task, "belief": belief, "executed": context.get("executed", []),
-                           "current": context.get("current", ""), "failures": context.get("failures", [])})
-        body = json.dumps({"model": self.model, "temperature": 0,
-                           "messages": [{"role": "system", "content": SYSTEM_PROMPTS[self.task_kind]},
-                                        {"role": "user", "content": user}]}).encode()
+    def propose(self, task: str, belief: dict, context: dict, image: np.ndarray | None = None) -> list[str]:
+        state = {"task": task, "belief": belief, "executed": context.get("executed", []),
+                 "current": context.get("current", ""), "failures": context.get("failures", [])}
+        messages = chat_messages(self.task_kind, state, image)
+        for _ in range(self.attempts):
+            try:
+                content = self._complete(messages)
+            except _ServerError as e:
+                last = str(e)
+                continue
+            try:
+                return check_answer(content, self.task_kind)
+            except AnswerRefused as e:
+                last = str(e)
+                if isinstance(content, str):
+                    messages.append({"role": "assistant", "content": content})
+                messages.append({"role": "user", "content": correction(e, self.task_kind)})
+        raise PlannerError(f"planner {self.base_url} (model {self.model}) gave no plan in {self.attempts} "
+                           f"attempts; the last: {last}",
+                           f"the model must answer with only {EXPECTED}, such as {example(self.task_kind)} "
+                           "(docs/retriever0.md)")
+
+    def _complete(self, messages: list[dict]):
+        """The content of one chat completion; _ServerError for what may go better next time."""
+        body = json.dumps({"model": self.model, "temperature": 0, "messages": messages}).encode()
         headers = {"Content-Type": "application/json"}
         key = os.environ.get(self.api_key_env)
         if key:
             headers["Authorization"] = f"Bearer {key}"
         request = urllib.request.Request(f"{self.base_url}/chat/completions", data=body, headers=headers)
         try:
-            with urllib.request.urlopen(request, timeout=self.timeout) as response:
-                reply = json.loads(response.read(1 << 20))
-            content = reply["choices"][0]["message"]["content"]
-        except (urllib.error.URLError, OSError, ValueError, KeyError, IndexError, TypeError, RecursionError) as e:
-            raise PlannerError(f"planner endpoint {self.base_url} gave no usable answer: {_brief(e)}") from None
-        return parse_answer(content, self.task_kind)
+            with _OPENER.open(request, timeout=self.timeout) as response:
+                raw = response.read(MAX_REPLY_BYTES)
+        except urllib.error.HTTPError as e:
+            raise self._refusal(e) from None
+        except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
+            raise PlannerError(f"planner endpoint {self.base_url} gave no answer: {_brief(e)}",
+                               f"is the model server still up? (the planner waits {self.timeout:g} s for an "
+                               "answer)") from None
+        try:
+            return json.loads(raw)["choices"][0]["message"]["content"]
+        except (ValueError, KeyError, IndexError, TypeError, RecursionError) as e:
+            text = raw.decode("utf-8", "replace")
+            raise _ServerError(f"the endpoint's reply is not a chat completion ({_brief(e)}): {shorten(text)}") \
+                from None
+
+    def _refusal(self, error: urllib.error.HTTPError) -> Exception:
+        """An HTTP error answer: a server error is tried again, a refusal or a redirect is final."""
+        text = error.read(MAX_REPLY_BYTES).decode("utf-8", "replace") if error.fp is not None else ""
+        said = f"HTTP {error.code} {error.reason}: {shorten(text)}"
+        if error.code >= 500:
+            return _ServerError(f"the endpoint answered {said}")
+        if 300 <= error.code < 400:
+            return PlannerError(f"planner endpoint {self.base_url} redirects to {error.headers.get('Location')!r}",
+                                "give the URL it redirects to (the API key is sent to the URL given only)")
+        hint = {401: f"set the endpoint's API key in ${self.api_key_env}", 403: f"check the key in ${self.api_key_env}",
+                404: "the base URL ends where /chat/completions is appended (usually /v1)"}.get(
+            error.code, f"check the model name {self.model!r} and the URL")
+        return PlannerError(f"planner endpoint {self.base_url} refused the request: {said}", hint)
 
 
-def parse_answer(content: str, task_kind: str = "drawers") -> list[str]:
-    """The ``action_plan`` of a model's JSON answer (a fenced code block is accepted), checked."""
-    if not isinstance(content, str):
-        raise PlannerError("the model's answer is not text")
-    text = content.strip()
-    if text.startswith("```"):
-        text = text.strip("`")
-        text = text[text.index("\n") + 1:] if "\n" in text else text
-    try:
-        plan = json.loads(text)["action_plan"]
-        parse_program(plan, task_kind)
-    except (ValueError, KeyError, TypeError, RecursionError) as e:  # RecursionError: JSON nested too deep
-        raise PlannerError(f"the model's plan is not a program of the vocabulary: {_brief(e)}") from None
-    return list(plan)
+#: the most of a reply that is read (a chat completion is a few kilobytes)
+MAX_REPLY_BYTES = 1 << 20
+
+
+class _ServerError(Exception):
+    """The endpoint answered, but not a chat completion (HTTP 5xx, a body of something else)."""
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """Redirects come back as the HTTP error they are: urllib would follow one with the API key."""
+
+    def redirect_request(self, req, fp, code, msg, headers, newurl):
+        return None
+
+
+_OPENER = urllib.request.build_opener(_NoRedirect)
 
 
 def _brief(error: BaseException) -> str:
@@ -257,7 +272,7 @@ class FixedOrderPlanner:
     def __init__(self, task_kind: str = "drawers"):
         self.order = self.ORDERS[task_kind]
 
-    def propose(self, task: str, belief: dict, context: dict) -> list[str]:
+    def propose(self, task: str, belief: dict, context: dict, image: np.ndarray | None = None) -> list[str]:
         return list(self.order) if not context.get("executed") and not context.get("failures") else ["Done()"]
 
 
@@ -279,5 +294,4 @@ def make_planner(spec: str | None, task_kind: str = "drawers") -> Planner:
                      "'openai:<base_url>#<model>' (for example openai:http://localhost:8000/v1#qwen2.5-vl)")
 
 
-__all__ = ["OpenAICompatiblePlanner", "PlanError", "Planner", "PlannerError", "ScriptedPlanner", "make_planner",
-           "parse_answer"]
+__all__ = ["OpenAICompatiblePlanner", "PlanError", "Planner", "PlannerError", "ScriptedPlanner", "make_planner"]

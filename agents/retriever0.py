@@ -2,6 +2,8 @@
 the drawer task (and the bag task), as one Retriever graph.
 
     goal ─▶ planner ◀──request── monitor ◀── belief ◀── head camera ◀── world ◀── controller
+              │   ▲                                      │
+              │   └──────── frame (a VLM planner) ───────┘
               └──plan──▶ monitor ──skill──▶ skill policy ──chunk (ActionChunking)──▶ controller
                          ▲   ▲                 │  └── inspection_done ──▶ belief
                          │   └──── progress ───┘
@@ -22,6 +24,9 @@ from .plan import DRAWERS
 from .planner import make_planner
 from .flows import BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillPolicy, Teleop, World
 
+#: seconds a camera takes to render a frame (its declared latency)
+CAMERA_LATENCY = 0.02
+
 ABLATIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
 
 
@@ -39,6 +44,7 @@ class AgentConfig:
     control_hz: float = 200.0
     camera_hz: float = 10.0
     monitor_hz: float = 10.0
+    deadline: float = 0.5            # seconds a tick waits for its inputs before it runs without them
     head_size: tuple = (96, 128)
     wrist_size: tuple = (64, 64)
     slip_prob: float = 0.0           # failure injection: a slipped grasp, decided per seed
@@ -59,7 +65,7 @@ class AgentConfig:
         if not 0 <= self.slip_prob <= 1:
             raise ValueError(f"slip probability {self.slip_prob!r} must be in [0, 1]")
         make_planner(self.planner, self.task)  # a planner it cannot make is refused before anything starts
-        for name in ("planner_latency", "policy_latency"):
+        for name in ("planner_latency", "policy_latency", "deadline"):
             if not 0 < getattr(self, name) <= 60:
                 raise ValueError(f"{name}={getattr(self, name)!r} must be in (0, 60] seconds")
 
@@ -84,17 +90,17 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         planner, planner_latency = "fixed-order", 0.01
 
     # a simulated robot: physics and every rate catch up on missed ticks rather than skip them, and a
-    # tick waits up to half a second for its inputs, so that a real-time run that keeps up is the
+    # tick waits up to its deadline (half a second) for its inputs, so that a real-time run that keeps up is the
     # virtual-time run, tick for tick (a real robot would rather skip and not wait)
     catch_up = {"on_overrun": "catch_up"}
-    with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=0.5) as pipe:
+    with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=config.deadline) as pipe:
         goal = Goal(task=task).named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
         world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task) \
             .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         head = Camera("head", *config.head_size, seed=seed, drawer=drawer, task=task) \
-            .named("head_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
+            .named("head_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
         wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer, task=task) \
-            .named("wrist_camera").configure(**catch_up, latency=0.02) @ Rate(config.camera_hz)
+            .named("wrist_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
         belief = BeliefUpdater(seed=seed, drawer=drawer, task=task).named("belief").configure(latency=0.1) \
             @ Trigger("inspection")
         monitor = Monitor(verbose=config.verbose, task=task, **monitor_options).named("monitor") \
@@ -123,9 +129,17 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         consults_the_world = planner.startswith("openai:")
         plan = PlannerFlow(planner=planner, task=task).named("planner") \
             .configure(latency=planner_latency, replay="log" if consults_the_world else "rerun") @ Trigger("request")
+        # a vision-language model looks at the head camera's newest frame, one the camera took at
+        # or after the request: the request reaches it a camera period and a render later (the
+        # first request comes before the first frame); and it may give up on a request. The
+        # scripted planners need none of this, and their graph stays as it was.
+        look = 1.0 / config.camera_hz + CAMERA_LATENCY if consults_the_world else 0.0
         goal.then(plan, sync=Latest(), map={"task": "task"})
-        monitor.then(plan, sync=LatestDistinct(), map={"request": "request"})
+        monitor.then(plan, sync=LatestDistinct(), map={"request": "request"}, delay=look)
         plan.then(monitor, sync=Queue(maxsize=16), map={"plan": "plan"})
+        if consults_the_world:
+            head.then(plan, sync=Latest(), map={"frame": "frame"})
+            plan.then(monitor, sync=Queue(maxsize=16), map={"failure": "plan_failure"})
         if config.teleop or config.ablation == "human-in-the-loop":
             teleop = Teleop(schedule=config.teleop, recover=config.ablation == "human-in-the-loop", task=task) \
                 .named("teleop").configure(**catch_up, latency=0.01, replay="log" if config.teleop else "rerun") \

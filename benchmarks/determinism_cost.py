@@ -6,7 +6,7 @@ The graph is ``scale_latency.py``'s fan: ``src = Counter() @ Rate(hz)`` → ``--
 process per flow. Fan-in is where event time makes a consumer wait: the join's tick at the tag of
 one branch's event runs only once every other branch has promised (its frontier) that no event
 with a tag at or below it is still coming, so that the tick sees exactly the events with tag ≤ τ
-(DESIGN.md §5). A single-input Trigger chain does not wait at all: the producer's frontier comes on
+(docs/realtime.md). A single-input Trigger chain does not wait at all: the producer's frontier comes on
 the very message that triggers the tick.
 
 - waiting **on**: the default, ``Pipeline(deadline=0.1)``: a tick waits for its producers'

@@ -8,7 +8,7 @@ Shapes (flows in ``zenoh_flows.py``; every flow passes the source's count on):
   ``Keep() @ Trigger("count")`` over ``Latest()``: N flows, N-1 hops in a row.
 - ``fan``: ``src`` → N-2 branches ``Keep() @ Trigger("count")`` → ``join = Join() @
   Trigger("count")`` over ``Queue()``: out to N-2 flows and back into one. The join's ticks wait
-  for every branch's frontier (DESIGN.md §5): event-time waiting at its widest.
+  for every branch's frontier (docs/realtime.md): event-time waiting at its widest.
 
 Backends:
 

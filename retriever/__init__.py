@@ -21,6 +21,7 @@ from .errors import (
     RetrieverError,
     RetrieverWarning,
     SetupError,
+    StarvedFlowWarning,
     StepError,
     UnregisteredTypeError,
     ValuesNotKeptError,
@@ -36,7 +37,7 @@ __all__ = sorted([
     "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "Burst", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
-    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StepError", "StepRecord",
+    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StarvedFlowWarning", "StepError", "StepRecord",
     "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "flow_io", "init", "io",
     "read_log",
 ])

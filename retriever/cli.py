@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import traceback
@@ -18,7 +19,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .backends import canonical, default_backend
-from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning
+from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning, StarvedFlowWarning
 from .ir import IR
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
@@ -35,12 +36,32 @@ def _visible(text: str) -> str:
     return "".join(c if c.isprintable() or c in "\n\t" else repr(c)[1:-1] for c in text)
 
 
+#: wider than any table's natural width: what a table is measured against
+_UNBOUNDED_COLUMNS = 100_000
+
+
+class _Uncut:
+    """A table at its natural width, past the terminal's edge if it must be: a name cut to fit
+    (``contro…``) names nothing. A terminal wraps the long lines; a pipe or a file keeps them."""
+
+    def __init__(self, table: Table):
+        self.table = table
+
+    def __rich_console__(self, console, options):
+        natural = console.measure(self.table, options=options.update_width(_UNBOUNDED_COLUMNS)).maximum
+        yield from console.render(self.table, options.update_width(max(options.max_width, natural)))
+
+
 class _Console(Console):
     """Rich's console, but a string is never markup unless the call says ``markup=True`` (whose
-    text escapes what it interpolates), and its control characters are shown escaped."""
+    text escapes what it interpolates), its control characters are shown escaped, and a table
+    is never cut to the terminal's width."""
 
     def print(self, *objects, **kwargs) -> None:
-        super().print(*(_visible(o) if isinstance(o, str) else o for o in objects), **kwargs)
+        if any(isinstance(o, Table) for o in objects):
+            kwargs["crop"] = False
+        super().print(*(_visible(o) if isinstance(o, str) else _Uncut(o) if isinstance(o, Table) else o
+                        for o in objects), **kwargs)
 
 
 def _cell(value: object) -> Text:
@@ -54,18 +75,17 @@ _err = _Console(stderr=True, soft_wrap=True, markup=False)
 
 def _version(shown: bool) -> None:
     if shown:
-        from importlib import metadata
+        from .log.format import package_versions
 
-        try:
-            version = metadata.version("retriever")
-        except metadata.PackageNotFoundError:  # run from a checkout that was never installed
-            version = "unknown (not installed: pip install -e .)"
+        # a checkout that was never installed has no version
+        version = package_versions().get("retriever", "unknown (not installed: pip install -e .)")
         _out.print(f"retriever {version}", highlight=False)
         raise typer.Exit()
 
 
 @app.callback()
-def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors.")] = False,
+def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks on errors (anywhere on the "
+                                                                "command line).")] = False,
           version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                                 help="Show the version and exit.")] = False) -> None:
     _state["debug"] = debug
@@ -87,8 +107,14 @@ def _fail(exc: BaseException) -> None:
     raise typer.Exit(code=1)
 
 
+#: warnings about how the run went, held back to be printed under its table
+_after_summary: list[str] = []
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    if issubclass(category, RetrieverWarning):
+    if issubclass(category, StarvedFlowWarning):
+        _after_summary.append(f"warning: {message}")
+    elif issubclass(category, RetrieverWarning):
         _err.print(f"warning: {message}", highlight=False, markup=False)
     else:
         _err.print(f"warning: {category.__name__}: {message} ({filename}:{lineno})", highlight=False, markup=False)
@@ -116,7 +142,7 @@ FOXGLOVE_PORT = 8765
 _FOXGLOVE = typer.Option(
     "--foxglove", metavar="[PORT]",
     help=f"zenoh: stream the run live to the Foxglove app (its WebSocket server in this process, on "
-         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever\\[foxglove]').")
+         f"127.0.0.1:PORT, default {FOXGLOVE_PORT}; needs pip install 'retriever-robotics\\[foxglove]').")
 
 _KEEP = typer.Option(
     metavar="trace|records|counters",
@@ -132,7 +158,7 @@ def run(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     backend: Annotated[Optional[str], typer.Option(
         help="Backend: inproc (virtual time, one process), zenoh (real time, a process per flow), or dora "
-             "(real time, a dora dataflow: pip install 'retriever\\[dora]'). "
+             "(real time, a dora dataflow: pip install 'retriever-robotics\\[dora]'). "
              "Default: inproc, or what the file chose with retriever.init(backend=...).")] = None,
     duration: Annotated[float, typer.Option(help="Seconds to run: virtual time on inproc, wall time on zenoh; "
                                                   "inf: until Ctrl-C (or SIGTERM).")] = 10.0,
@@ -198,14 +224,15 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    log: Annotated[Path, typer.Option(help="The episode's MCAP log (replace it if it exists).")] = Path("run.mcap"),
+    log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
 ) -> None:
     """Run Retriever-0 on the drawer (or bag) task in a MuJoCo world: live skill, belief and progress lines,
     then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
     log that `retriever replay` re-executes."""
     try:
-        from agents.demo import DemoError, check_rendering, report, run_episode
+        from agents.demo import DemoError, check_rendering, rate_notes, rate_table, report, run_episode
         from agents.pictures import contact_sheet, timeline
         from agents.planner import PlannerError, make_planner
         from agents.retriever0 import AgentConfig, build
@@ -218,6 +245,9 @@ def demo(
     try:
         if not 0 < duration < float("inf"):
             raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
+        if os.path.lexists(log) and not force:  # as retriever run: said before the rendering check and the run
+            raise DemoError(f"the log {log} already exists; the demo does not overwrite a file\n"
+                            "    hint: pass --force to replace it, or --log another path")
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True)
@@ -238,7 +268,7 @@ def demo(
         signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
         pipe = build(config)
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
-                                           pipe=pipe)
+                                           overwrite=force, pipe=pipe)
     except KeyboardInterrupt:
         _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
@@ -250,6 +280,15 @@ def demo(
     except RetrieverError as exc:
         _fail(exc)
     for line in report(episode, wall, canonical(backend)):
+        _out.print(line, highlight=False, soft_wrap=True)
+    columns, rows = rate_table(episode)
+    rates = Table(title="rates", title_justify="left")
+    for col in columns:
+        rates.add_column(col, justify="left" if col == "flow" else "right")
+    for row in rows:
+        rates.add_row(*row)
+    _out.print(rates)
+    for line in rate_notes(episode, canonical(backend)):
         _out.print(line, highlight=False, soft_wrap=True)
     sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
     line = timeline(trace, episode, out / "timeline.png")
@@ -397,6 +436,9 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
             watching[0].set()
             watching[1].join(timeout=2.0)
     _summary(pipe, trace, title, log)
+    for text in _after_summary:
+        _err.print(text, highlight=False, markup=False)
+    _after_summary.clear()
     if not allow_errors:
         _fail_on_errors(pipe)
 
@@ -583,7 +625,9 @@ def replay(
         if result.identical:
             _out.print("[bold green]identical[/]: the log is one run of this graph", markup=True)
             return
-        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}", highlight=False, markup=True)
+        _out.print(f"[bold red]DIVERGED[/]: {escape(_visible(str(result.difference)))}"
+                   + "".join(f"\n  {escape(_visible(change))}, which may be why" for change in result.code_changes),
+                   highlight=False, markup=True)
         raise typer.Exit(code=1)
     table = Table(title=f"replay of {path} ({source})", title_justify="left")
     for col in ("node", "steps", "replayed", "identical", "divergent"):
@@ -604,9 +648,15 @@ def replay(
         _out.print(f"[bold green]identical[/]: {result.steps_replayed} steps replayed, every output byte for byte"
                    + "".join(f" ({note})" for note in notes), markup=True)
         return
-    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ. "
+    _out.print(f"[bold red]DIVERGED[/]: {result.divergent_steps} of {result.steps_replayed} replayed steps differ"
+               f"{escape(_visible(_code_changed(result.code_changes)))}. "
                f"First:\n  {escape(_visible(str(result.divergences[0])))}", highlight=False, markup=True)
     raise typer.Exit(code=1)
+
+
+def _code_changed(changes: list[str]) -> str:
+    """The flow modules edited since the run, for a DIVERGED line: the likely cause."""
+    return "".join(f"; {change}" for change in changes)
 
 
 @log_app.command("info")
@@ -628,7 +678,8 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("pipeline", run.get("pipeline", "?")), ("backend", run.get("backend", "?")),
              ("status", end.get("status", "?") + (f": {end['error']}" if end.get("error") else "")),
              ("virtual end", f"{int(end['end_ns']) / 1e9:g} s" if "end_ns" in end else "?"),
-             ("git", run.get("git_revision") or "?"), ("host", run.get("host", "?")),
+             ("git", run.get("git_revision") or (f"? ({run['git_error']})" if run.get("git_error") else "?")),
+             ("host", run.get("host", "?")), ("code", _code_line(log)),
              ("python", run.get("python", "?")), ("seeds", run.get("seeds", "{}")),
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
@@ -673,6 +724,17 @@ def _file_state(log) -> str:
     if not log.run:
         return "complete, not written by Retriever (no retriever.run record)"
     return "complete" if log.end else "complete, but its run has no end record (was the run cut short?)"
+
+
+def _code_line(log) -> str:
+    """The sha256 of each flow module's file as the run's IR recorded it (its first 16 digits)."""
+    from .errors import LogError
+
+    try:
+        hashes = log.ir.doc["metadata"].get("code_sha256", {})
+    except LogError:  # log info still shows what it can of a log whose IR is damaged
+        return "? (the log's IR is invalid)"
+    return ", ".join(f"{module} sha256 {digest[:16]}…" for module, digest in sorted(hashes.items())) or "?"
 
 
 def _metadata_json(path: Path, key: str, text: str, kind: type):
@@ -791,7 +853,7 @@ def log_export(
 ) -> None:
     """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
     as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
-    Needs the extra: pip install 'retriever\\[foxglove]'."""
+    Needs the extra: pip install 'retriever-robotics\\[foxglove]'."""
     if format != "foxglove":
         _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
     from .log.foxglove import export_foxglove
@@ -834,6 +896,9 @@ def worker(
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
+    code_mismatch: Annotated[Optional[str], typer.Option(
+        metavar="refuse|warn", help="A node whose module's file here differs from the coordinator's (the sha256 "
+                                    "its IR records): refuse to run it (default), or warn and run it.")] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
     SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
@@ -844,8 +909,9 @@ def worker(
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease, **{k: None if v is None else str(v) for k, v in
-                                                 (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
+                                 lease=lease, code_mismatch=code_mismatch,
+                                 **{k: None if v is None else str(v) for k, v in
+                                    (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)
     except Exception as exc:
         _fail(exc)
@@ -894,6 +960,8 @@ def workers_command(
                    highlight=False, soft_wrap=True)
         raise typer.Exit(code=1)  # a script waiting for its workers (`until retriever workers ...`) can tell
     _out.print(_workers_table(listing.workers, namespace))
+    _err.print(f"(the workers linked to {', '.join(endpoints)}: a daemon is linked to those its --connect names and "
+               "those whose --connect names it; list the others with a --connect each)", highlight=False)
 
 
 @app.command("status")
@@ -978,6 +1046,7 @@ def _workers_table(workers: list, namespace: str) -> Table:
 
 def worker_main() -> None:
     """``retriever-worker``: the same command as ``retriever worker``."""
+    _state["debug"] = _take_debug(sys.argv)
     standalone = typer.Typer(add_completion=False)
     standalone.command()(worker)
     standalone()
@@ -1011,7 +1080,18 @@ def secret_new(
 
 def main() -> None:
     _default_foxglove_port(sys.argv)
+    if _take_debug(sys.argv):
+        sys.argv.insert(1, "--debug")  # where the option parser takes it: before the subcommand
     app()
+
+
+def _take_debug(argv: list[str]) -> bool:
+    """Remove every ``--debug`` from ``argv`` (up to a ``--``); whether there was one. Users add
+    it where the error showed, at the end (``retriever run F --debug``), where no command has it."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    found = "--debug" in argv[1:end]
+    argv[1:end] = [arg for arg in argv[1:end] if arg != "--debug"]
+    return found
 
 
 def _default_foxglove_port(argv: list[str]) -> None:

@@ -16,6 +16,7 @@
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
+    └── StarvedFlowWarning         after a run: a flow skipped (nearly) every tick, and the input that starved it
 
 Every message names the thing (by its qualified name, ``node.port``), says what was expected
 and what arrived, and where a common misuse is likely, ends with a one-line ``hint:``.
@@ -185,3 +186,8 @@ class InternalError(RetrieverError):
 
 class RetrieverWarning(UserWarning):
     """Something legal but probably unintended, e.g. an instantaneous cycle."""
+
+
+class StarvedFlowWarning(RetrieverWarning):
+    """After a run: a flow skipped every tick, or most of them, for an input that never had an
+    event (a misspelled port wires nothing); names the port and the edge."""

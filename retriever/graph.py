@@ -7,6 +7,7 @@ cycles, and collects **every** problem before raising one :class:`GraphError`. T
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import os
@@ -92,6 +93,9 @@ class Graph:
     cycles: list[list[str]] = field(default_factory=list)
     instantaneous_cycles: list[list[str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    #: warnings about how edges were declared (a port matched by type alone): not the IR's, which
+    #: names every port of every edge
+    declaration_warnings: list[str] = field(default_factory=list)
 
     def to_ir(self) -> "IR":
         from .ir import IR, graph_to_doc
@@ -141,6 +145,18 @@ def _event_type(out_t: Any) -> Any:
         arms = [a for a in typing.get_args(out_t) if a is not type(None)]
         return arms[0] if len(arms) == 1 else typing.Union[tuple(arms)]
     return out_t
+
+
+def _distinctive(out_t: Any, in_t: Any) -> bool:
+    """Whether a match of two ports by type alone is as telling as one by name: both are one
+    value type of the program's own (a dataclass, Optional or not), not an array, a number, a
+    container or Any, which ports of any meaning share (the paper's Appendix D-D wires by it)."""
+    def own(tp: Any) -> Any:
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        tp = args[0] if typing.get_origin(tp) in (typing.Union, types.UnionType) and len(args) == 1 else tp
+        return tp if isinstance(tp, type) and dataclasses.is_dataclass(tp) else None
+
+    return own(out_t) is not None and own(out_t) is own(in_t)
 
 
 def _fits_through(out_t: Any, in_t: Any, sync: SyncPolicy) -> bool:
@@ -267,6 +283,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
                   realtime: str = "soft", deadline: float = 0.1) -> Graph:
     problems: list[Problem] = []
     warnings: list[str] = []
+    declaration_warnings: list[str] = []
     ids = _assign_ids(flows, problems)
 
     nodes: dict[str, Node] = {}
@@ -290,7 +307,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     for decl in declared:
         src, dst = nodes[ids[id(decl.src)]], nodes[ids[id(decl.dst)]]
         if src.flow is decl.src and dst.flow is decl.dst:  # else an endpoint's name is duplicated
-            edges.extend(_resolve_edge(decl, src, dst, problems, warnings))
+            edges.extend(_resolve_edge(decl, src, dst, problems, declaration_warnings))
 
     # Untyped producers' output ports are the ones their edges name.
     for e in edges:
@@ -302,6 +319,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
     _check_clocks(nodes, edges, problems)
     edges = [_bind_policy(e, nodes[e.dst]) for e in edges]
 
+    warnings.extend(_chunks_seen_a_microstep_late(nodes, edges))
     fed = {(e.dst, e.dst_port) for e in edges}
     for node in nodes.values():
         for port, spec in node.inputs.items():
@@ -334,7 +352,8 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
             f"instantaneous cycle {loop}: every link is a zero-latency, undelayed edge into a trigger port, "
             f"so it runs in microsteps within one instant and stops with an error past "
             f"max_microsteps={max_microsteps} (fix: latency=, delay=, or a Rate clock on the cycle)")
-    return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings)
+    return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings,
+                 declaration_warnings)
 
 
 def _ports_list(ports: dict[str, PortSpec]) -> str:
@@ -358,6 +377,13 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
                 problems.append(Problem(
                     f"{label}: map names output port '{out_port}', but {src.id} has no such output "
                     f"(outputs: {_ports_list(src.outputs)})", "map goes {output_port: input_port}"))
+                ok = False
+            elif not typed_src and src.spec.returned_keys is not None and out_port not in src.spec.returned_keys:
+                returned = ", ".join(f"'{k}'" for k in sorted(src.spec.returned_keys)) or "no port"
+                problems.append(Problem(
+                    f"{label}: map names output port '{out_port}', but {src.id} is untyped and its step() "
+                    f"returns {returned}, never '{out_port}': {dst.id}.{in_port} would never get an event",
+                    "map goes {output_port: input_port}; name a key its step() returns"))
                 ok = False
             if in_port not in dst.inputs:
                 problems.append(Problem(
@@ -395,6 +421,14 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
                           if _fits_through(os.type, is_.type, sync)]
             if len(candidates) == 1:
                 pairs = candidates
+                (o, i), = candidates
+                if not _distinctive(src.outputs[o].type, dst.inputs[i].type):
+                    # an image would feed an action port because both are arrays: say so
+                    warnings.append(
+                        f"{label}: no port names in common, so {src.id}.{o} feeds {dst.id}.{i} because they are "
+                        f"the only pair whose types fit ({src.outputs[o].type_name} → {dst.inputs[i].type_name}), "
+                        f"a type that says little about what a port means\n"
+                        f"    hint: if that is meant, say so: map={{'{o}': '{i}'}}; else name the ports alike")
             elif not candidates:
                 problems.append(Problem(
                     f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "
@@ -459,6 +493,37 @@ def _check_clocks(nodes: dict[str, Node], edges: list[Edge], problems: list[Prob
                 and nodes[e.dst].clock.hz is None:
             problems.append(Problem(f"edge {e}: ActionChunking needs control_hz= because '{e.dst}' has no rate",
                                     "ActionChunking(control_hz=200, chunk_steps=...)"))
+
+
+#: how many of a chunk producer's ticks are looked at for one that falls on a consumer's tick
+CHUNK_PHASE_TICKS = 64
+
+
+def _chunks_seen_a_microstep_late(nodes: dict[str, Node], edges: list[Edge]) -> list[str]:
+    """ActionChunking edges whose chunks start at an instant the consumer ticks, a microstep too
+    early to see them. A zero-latency producer ticking at (t, 0) emits at (t, 1); the consumer's
+    tick at (t, 0) still holds the previous chunk's last row, and its next tick takes row 1 of
+    the new one: row 0 is never executed. It follows from the sampling rule (docs/semantics.md) and
+    keeps each row at the time it was planned for, so it is warned of, not redefined."""
+    found = []
+    for e in edges:
+        src, dst = nodes[e.src], nodes[e.dst]
+        if not isinstance(e.sync, ActionChunking) or src.settings.latency_ns or e.delay_ns:
+            continue
+        made, taken = src.settings.clock, dst.settings.clock
+        if not hasattr(made, "tick_time") or not hasattr(taken, "tick_time"):
+            continue
+        for k in range(CHUNK_PHASE_TICKS):
+            t = made.tick_time(k)
+            if taken.tick_time(taken.first_tick_at_or_after(t)) == t:
+                found.append(
+                    f"edge {e}: {e.src} has no latency and ticks when {e.dst} ticks (first at {t / 1e9:g} s), so "
+                    f"each chunk is emitted a microstep after the {e.dst} tick at its start: that tick still takes "
+                    f"the previous chunk, the next one row 1; row 0 of a chunk is never executed\n"
+                    f"    hint: give {e.src} a latency of one control period or more ({e.src}.configure("
+                    f"latency=...)): its chunks then start at a tick of {e.dst} that sees them")
+                break
+    return found
 
 
 def _bind_policy(edge: Edge, dst: Node) -> Edge:

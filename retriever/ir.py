@@ -1,4 +1,4 @@
-"""The IR: a graph as explicit, versioned JSON — the deployment artifact (DESIGN.md §6).
+"""The IR: a graph as explicit, versioned JSON — the deployment artifact (docs/semantics.md, The IR).
 
 ``pipe.build_ir()`` returns an :class:`IR`; ``IR.load(path)`` validates a saved one and reports
 every problem at once; ``Pipeline.from_ir(ir)`` rebuilds a runnable pipeline from it alone.
@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .clocks import clock_from_ir
+from .code import SHA256_HEX, code_hashes
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
 from .time import is_finite_number, max_microsteps_problem, seconds_problem
@@ -29,8 +30,9 @@ if TYPE_CHECKING:
     from .graph import Graph
 
 #: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
-#: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from
-IR_VERSION = "1.2.0"
+#: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from;
+#: 1.3: ``metadata.code_sha256`` (optional): the sha256 of each flow module's file (code.py)
+IR_VERSION = "1.3.0"
 #: set on a module that Retriever imported from a script file (``retriever run FILE.py``): the
 #: folder it put on ``sys.path`` for it, which the IR records so that it can import the module again
 SCRIPT_FOLDER_ATTR = "__retriever_folder__"
@@ -133,9 +135,11 @@ def graph_to_doc(graph: "Graph") -> dict:
         "deadline": graph.deadline,
         "warnings": list(graph.warnings),
     }
-    folders = _script_folders(type(node.flow).__module__ for node in graph.nodes.values())
+    modules = [type(node.flow).__module__ for node in graph.nodes.values()]
+    folders = _script_folders(modules)
     if folders:
         metadata["module_folders"] = folders
+    metadata["code_sha256"] = code_hashes(modules)
     return {
         "version": IR_VERSION,
         "metadata": metadata,
@@ -355,6 +359,11 @@ def validate_doc(doc: Any, source: str) -> None:
     if not (isinstance(folders, dict) and all(_is_dotted(module) and isinstance(folder, str)
                                               for module, folder in folders.items())):
         problems.append(f"metadata.module_folders: expected an object of module name: folder, got {folders!r}")
+    hashes = meta.get("code_sha256", {})
+    if not (isinstance(hashes, dict) and all(_is_dotted(module) and isinstance(digest, str)
+                                             and SHA256_HEX.fullmatch(digest) for module, digest in hashes.items())):
+        problems.append("metadata.code_sha256: expected an object of module name: sha256 (64 lowercase hex digits), "
+                        f"got {hashes!r:.120}")
     problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))
     if problem is not None:
         problems.append(f"metadata.max_microsteps: {problem}")

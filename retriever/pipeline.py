@@ -23,11 +23,12 @@ from typing import TYPE_CHECKING, Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
-from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
+from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, StarvedFlowWarning
 from .flow._base import Flow
 from .graph import Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .rebuild import check_node, construct_node
+from .starved import starved_flows
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import LoggedTrace, Trace
@@ -55,7 +56,7 @@ class Pipeline:
 
     def __init__(self, name: str = "pipeline", *, max_microsteps: int = DEFAULT_MAX_MICROSTEPS,
                  realtime: str = "soft", deadline: float = DEFAULT_DEADLINE):
-        """``realtime`` and ``deadline`` matter on real-time backends (DESIGN.md §5): ``deadline``
+        """``realtime`` and ``deadline`` matter on real-time backends (docs/realtime.md): ``deadline``
         is how long a tick waits for an input edge that is not complete up to its tag (edges may
         override it), ``realtime`` how misses escalate: ``"hard"`` stops the run at the first
         overrun, deadline miss or incomplete edge; ``"soft"`` applies each flow's ``on_overrun`` /
@@ -161,7 +162,7 @@ class Pipeline:
         if self._graph is None:
             self._graph = compile_graph(self.name, self._flows, self._edges, self.max_microsteps,
                                         self.realtime, self.deadline)
-            for w in self._graph.warnings:
+            for w in self._graph.declaration_warnings + self._graph.warnings:
                 warnings.warn(f"pipeline '{self.name}': {w}", RetrieverWarning, stacklevel=_user_stacklevel())
         return self._graph
 
@@ -273,6 +274,8 @@ class Pipeline:
             if session is not None:
                 session.stop_requested = False  # asked as a run ended by itself: not the next one's
         _forget(session)
+        for line in starved_flows(session.graph, session.stats(), session.produced_counts()):
+            warnings.warn(f"pipeline '{self.name}': {line}", StarvedFlowWarning, stacklevel=_user_stacklevel())
         return session.trace
 
     def step(self, dt: float, **options: Any) -> Trace:
@@ -282,6 +285,7 @@ class Pipeline:
         if not session.steppable:
             raise BackendError(f"pipe.step() needs the in-process backend; this pipeline runs on '{session.backend_name}'")
         session.advance(session.now_ns + seconds_to_ns(dt))
+        _forget(session)
         return session.trace
 
     def reset(self) -> None:

@@ -1,4 +1,4 @@
-"""Placement: which worker runs each node of an IR, for ``retriever deploy`` (DESIGN.md §7, issue 18).
+"""Placement: which worker runs each node of an IR, for ``retriever deploy`` (docs/deploy.md).
 
 A placement file pins nodes to workers by name, or asks for workers with labels::
 

@@ -1,4 +1,4 @@
-"""Rebuild flows from the IR (DESIGN.md §6): what ``Pipeline.from_ir`` and a worker process do.
+"""Rebuild flows from the IR (docs/semantics.md, The IR): what ``Pipeline.from_ir`` and a worker process do.
 
 An IR file is code: its node ``type`` names a class that is imported and called. So everything
 that can be checked without running anything is checked first, for every node (``check_node``:

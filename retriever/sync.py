@@ -1,4 +1,4 @@
-"""Sync policies: what a tick consumes from an edge, decided by event time (DESIGN.md §4).
+"""Sync policies: what a tick consumes from an edge, decided by event time (docs/semantics.md, Sync policies).
 
 At a tick with tag ``τ`` the runtime hands each policy the edge's history ``H``: the upstream
 events with tag ``≤ τ``, oldest first (fan-in merged by tag, then producer id, then seq). The
@@ -54,7 +54,7 @@ class PortBuffer:
 
     Entries are ``(arrival_tag, producer, port, seq, value)`` tuples; the first four fields are
     unique (``producer, port, seq`` is the event id), so tuple order is exactly the fan-in order
-    of DESIGN.md §10.8 and values are never compared. A backend may append fields of its own
+    of docs/semantics.md's worked example 8 and values are never compared. A backend may append fields of its own
     (inproc adds the event's ``(id,)`` tuple, which its compiled ticks record as consumed);
     policies read only the first five. ``visible`` counts the entries with
     ``arrival_tag ≤`` the tag of the consumer's current tick.
@@ -331,7 +331,7 @@ class Exact(SyncPolicy):
 
 
 class ActionChunking(SyncPolicy):
-    """Sample a time-indexed action chunk at the consumer's tick (DESIGN.md §4, §10.7).
+    """Sample a time-indexed action chunk at the consumer's tick (docs/semantics.md, worked example 7; docs/wiring.md).
 
     The upstream value is a chunk: a sequence of action rows (list, tuple or array), or an
     object/dict with ``actions`` (the rows) and optionally ``t0`` (its start: int ns, or float

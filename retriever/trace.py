@@ -103,7 +103,7 @@ class Event(NamedTuple):
         return f"{self.node}.{self.port}"
 
 
-#: What a step record's status may be (DESIGN.md §8). ``skipped``: the tick did not step (an
+#: What a step record's status may be (docs/log.md). ``skipped``: the tick did not step (an
 #: input's policy had nothing, ``detail["missing"]``; or, realtime="hard", an incomplete edge
 #: stopped the run). ``error``: step() raised. The others stepped and returned, in real time:
 #: ``incomplete``, with an edge not complete up to the tick (``detail["incomplete"]``);
@@ -210,6 +210,8 @@ class Trace:
         self.keep = keep
         self.values_kept = keep == "trace"
         self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
+        self._newest: dict[tuple[str, str], tuple] = {}  # latest(): each port's newest raw event ...
+        self._newest_upto = 0  # ... among raw_events before this index
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
 
     @property
@@ -280,6 +282,8 @@ class Trace:
         """Drop the first ``events`` events and ``steps`` step records (``keep="counters"``: the
         log has them, or nothing is to keep them)."""
         del self.raw_events[:events], self.raw_steps[:steps]
+        self._newest.clear()
+        self._newest_upto = 0
         self._events.clear()
         self._steps.clear()
 
@@ -324,6 +328,22 @@ class Trace:
         """Events of one node (one port, if given), in tag order."""
         found = [e for e in self.events if e.node == node and (port is None or e.port == port)]
         return sorted(found, key=_event_key)
+
+    def latest(self, node: str, port: str) -> Event | None:
+        """The newest event on ``node.port`` (greatest tag), or None if it had none: cheap enough
+        to call after every ``pipe.step(dt)``, since each call reads only the events recorded
+        since the last one."""
+        self._need_values("trace.latest()")
+        raw, newest = self.raw_events, self._newest
+        for i in range(self._newest_upto, len(raw)):
+            event = raw[i]
+            key = (event[1], event[2])
+            held = newest.get(key)
+            if held is None or (event[0], event[3]) > (held[0], held[3]):
+                newest[key] = event
+        self._newest_upto = len(raw)
+        found = newest.get((node, port))
+        return None if found is None else Event._make(found)
 
     def values_of(self, node: str, port: str) -> list[Any]:
         self._need_values("trace.values_of()")

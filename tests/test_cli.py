@@ -20,9 +20,10 @@ GOLDEN = Path(__file__).parent / "golden"
 RETRIEVER = Path(sys.executable).parent / "retriever"
 
 
-def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None) -> subprocess.CompletedProcess:
+def cli(*args: str, cwd: Path | None = None, pythonpath: Path | None = None,
+        columns: int = 200) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
-    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8")
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS=str(columns), PYTHONIOENCODING="utf-8")
     # this checkout's retriever, not whichever one the venv's editable install points at
     env["PYTHONPATH"] = os.pathsep.join(str(p) for p in (pythonpath, ROOT) if p is not None)
     return subprocess.run([str(RETRIEVER), *args], capture_output=True, text=True, cwd=cwd or ROOT, env=env,
@@ -107,7 +108,9 @@ def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
 def test_version_as_a_flag_and_python_dash_m():
     from importlib import metadata
 
-    expected = f"retriever {metadata.version('retriever')}\n"
+    from retriever.log.format import DISTRIBUTION
+
+    expected = f"retriever {metadata.version(DISTRIBUTION)}\n"
     assert cli("--version").stdout == expected
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(ROOT), "NO_COLOR": "1"}
     done = subprocess.run([sys.executable, "-m", "retriever", "--version"], capture_output=True, text=True,
@@ -126,7 +129,7 @@ def test_run_prints_a_table_with_every_node():
     out = result.stdout
     assert "quickstart: 1 s on inproc" in out
     assert re.search(r"node\s*┃\s*ticks\s*┃\s*steps\s*┃\s*skips\s*┃\s*errors\s*┃\s*mean step", out), out
-    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │\s*[\d.]+ µs │", out))
+    rows = dict(re.findall(r"│ (\w+)\s*│\s*(\d+ │\s*\d+ │\s*\d+ │\s*\d+) │\s*[\d.]+ [µm]s │", out))
     assert set(rows) == {"camera", "policy", "controller"}, out
     ticks = {node: [int(n) for n in re.findall(r"\d+", row)] for node, row in rows.items()}
     assert ticks["camera"] == [30, 30, 0, 0]
@@ -135,6 +138,20 @@ def test_run_prints_a_table_with_every_node():
     assert all(t == s + k + e for t, s, k, e in ticks.values())
     assert re.search(r"\d+ events · \d+ steps · trace digest [0-9a-f]{16}", out)
     assert result.stderr == ""
+
+
+def test_run_on_an_80_column_terminal_shows_long_node_names_whole(tmp_path: Path):
+    """A table is as wide as its content, past the terminal's edge if it must be: a node name cut
+    to fit (`contro…`) names nothing."""
+    long = "a_controller_with_a_rather_long_name_for_its_left_arm"
+    write(tmp_path / "long.py", FLOWS + f"""
+with Pipeline("long") as pipe:
+    (Source().named("{long}_source") @ Rate(hz=10)).then(Sink().named("{long}") @ Trigger())
+""")
+    result = cli("run", "long.py", "--backend", "inproc", "--duration", "1", cwd=tmp_path, columns=80)
+    assert result.returncode == 0, result.stderr
+    assert re.search(rf"│ {long}\s+│\s+10 │\s+10 │\s+0 │\s+0 │", result.stdout), result.stdout
+    assert f"│ {long}_source " in result.stdout and "…" not in result.stdout, result.stdout
 
 
 def test_run_digest_is_the_in_process_digest():
@@ -347,7 +364,7 @@ def test_ir_json_by_default():
     assert result.returncode == 0, result.stderr
     assert result.stdout == quickstart_ir("json")
     doc = json.loads(result.stdout)
-    assert doc["version"] == "1.2.0"
+    assert doc["version"] == "1.3.0"
     assert doc["metadata"]["name"] == "quickstart"
     assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
     assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]
@@ -514,12 +531,23 @@ def test_file_that_raises_while_importing(tmp_path: Path):
     assert_cli_error(result, r"^error: ZeroDivisionError: division by zero\n\(run with --debug for the traceback\)")
 
 
-def test_debug_shows_the_traceback(tmp_path: Path):
+@pytest.mark.parametrize("where", ["before the command", "after it"])
+def test_debug_shows_the_traceback(tmp_path: Path, where):
     write(tmp_path / "oops.py", "x = 1 / 0\n")
-    result = cli("--debug", "run", "oops.py", cwd=tmp_path)
+    args = ["run", "oops.py", "--duration", "1"]
+    result = cli(*(["--debug", *args] if where == "before the command" else [*args, "--debug"]), cwd=tmp_path)
     assert result.returncode != 0
     assert "Traceback (most recent call last)" in result.stderr
     assert "error: ZeroDivisionError: division by zero" in result.stderr
+
+
+def test_debug_after_the_worker_command_shows_the_traceback(tmp_path: Path):
+    """retriever-worker has no subcommand: --debug anywhere is its own."""
+    worker = RETRIEVER.parent / "retriever-worker"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONPATH": str(ROOT), "NO_COLOR": "1"}
+    done = subprocess.run([str(worker), "--name", "w", "--config", str(tmp_path / "none.toml"), "--debug"],
+                          capture_output=True, text=True, env=env, timeout=60)
+    assert done.returncode == 1 and "Traceback (most recent call last)" in done.stderr, done.stderr
 
 
 def test_debug_shows_the_traceback_of_a_retriever_error():

@@ -1,4 +1,4 @@
-"""Clocks: exact Rate tick times (DESIGN.md §3), trigger ports, and the errors for impossible clocks.
+"""Clocks: exact Rate tick times (docs/semantics.md), trigger ports, and the errors for impossible clocks.
 
 The reference tick time is written from §3 alone: ``t_k = T0 + offset_ns + floor(k * 1e9 / hz)``
 with a float ``hz`` taken as the rational number its decimal ``repr`` denotes and the offset

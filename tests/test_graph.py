@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Optional, Sequence
+
+import warnings
 
 import pytest
 
@@ -188,10 +191,74 @@ def test_ports_match_by_name():
     assert _edges(pipe) == [("xy_source", "x", "xyz_sink", "x"), ("xy_source", "y", "xyz_sink", "y")]
 
 
-def test_single_type_compatible_pair_matches_without_names_in_common():
+def test_a_single_pair_of_generic_types_with_other_names_is_wired_and_warned_of():
+    # an image field and an action field are both arrays: wired by type, the image fed the action port
     with Pipeline("p") as pipe:
         (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1))
+    with pytest.warns(RetrieverWarning, match=r"edge mixed_source → amount_sink \(.*\): no port names in common, so "
+                                              r"mixed_source.count feeds amount_sink.amount because they are the only "
+                                              r"pair whose types fit \(int → float\), a type that says little about what "
+                                              r"a port means\n    hint: if that is meant, say so: "
+                                              r"map=\{'count': 'amount'\}; else name the ports alike"):
+        assert _edges(pipe) == [("mixed_source", "count", "amount_sink", "amount")]
+
+
+@io
+@dataclass
+class Grasp:
+    width: float
+
+
+@io
+@dataclass
+class GraspOut:
+    grasp: Grasp
+
+
+@io
+@dataclass
+class GraspIn:
+    command: Optional[Grasp] = None
+
+
+class GraspSource(Flow[None, GraspOut]):
+    def step(self, inp):
+        return GraspOut(Grasp(0.1))
+
+
+class GraspSink(Flow[GraspIn, None]):
+    def step(self, inp):
+        return None
+
+
+def test_a_single_pair_of_one_value_type_of_the_programs_own_is_wired_without_a_warning():
+    with Pipeline("p") as pipe:
+        (GraspSource() @ Rate(hz=1)).then(GraspSink() @ Rate(hz=1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        assert _edges(pipe) == [("grasp_source", "grasp", "grasp_sink", "command")]
+
+
+def test_a_type_compatible_pair_of_other_names_is_wired_by_map():
+    with Pipeline("p") as pipe:
+        (MixedSource() @ Rate(hz=1)).then(AmountSink() @ Rate(hz=1), map={"count": "amount"})
     assert _edges(pipe) == [("mixed_source", "count", "amount_sink", "amount")]
+
+
+def test_map_naming_a_key_an_untyped_step_never_returns_is_refused():
+    class Camera(Flow):
+        def step(self):
+            return {"image": 1.0}
+
+    class Policy(Flow):
+        def step(self, image):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=1)).then(Policy() @ Rate(hz=1), map={"imgae": "image"})
+    with pytest.raises(GraphError, match=r"map names output port 'imgae', but camera is untyped and its step\(\) "
+                                         r"returns 'image', never 'imgae': policy.image would never get an event"):
+        pipe.build_ir()
 
 
 def test_map_routes_ports_explicitly():
@@ -502,3 +569,48 @@ def test_compile_is_cached_until_the_pipeline_changes():
         src.then(UntypedSink() @ Rate(hz=1))
     assert pipe.compile() is not first
     assert len(pipe.compile().edges) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# ActionChunking: a chunk that starts at a consumer tick, a microstep too late for it
+# ---------------------------------------------------------------------------------------------
+class ChunkPolicy(Flow):
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"chunk": [self.k * 100 + i for i in range(10)]}
+
+
+class ChunkController(Flow):
+    def step(self, chunk):
+        return {"command": chunk}
+
+
+def _chunked(latency: float = 0.0, offset: float = 0.0) -> Pipeline:
+    with Pipeline("p") as pipe:
+        policy = ChunkPolicy().configure(latency=latency) @ Rate(hz=20, offset=offset)
+        policy.then(ChunkController() @ Rate(hz=200), sync=ActionChunking())
+    return pipe
+
+
+def test_a_zero_latency_chunk_producer_on_the_consumers_ticks_is_warned_of_and_its_row_0_is_never_run():
+    pipe = _chunked()
+    with pytest.warns(RetrieverWarning, match=r"edge chunk_policy.chunk → chunk_controller.chunk: chunk_policy has no "
+                                              r"latency and ticks when chunk_controller ticks \(first at 0 s\), .*row 0 "
+                                              r"of a chunk is never executed\n    hint: give chunk_policy a latency of "
+                                              r"one control period or more"):
+        trace = pipe.run(duration=0.1)
+    assert trace.values_of("chunk_controller", "command")[:12] == [101, 102, 103, 104, 105, 106, 107, 108, 109, 109,
+                                                                   201, 202]
+
+
+@pytest.mark.parametrize("latency, offset", [(0.005, 0.0), (0.0, 0.0025)])
+def test_a_chunk_producer_off_the_consumers_ticks_has_every_row_run_once_and_no_warning(latency, offset):
+    pipe = _chunked(latency, offset)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        trace = pipe.run(duration=0.1)
+    assert trace.values_of("chunk_controller", "command")[:12] == [100, 101, 102, 103, 104, 105, 106, 107, 108, 109,
+                                                                   200, 201]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -17,6 +18,7 @@ from retriever import IR, IRError, Pipeline, Rate
 from tests import ir_flows
 
 GOLDEN = Path(__file__).parent / "golden" / "small_pipeline.ir.json"
+QUICKSTART = Path(__file__).parent.parent / "examples" / "quickstart.py"
 
 
 @pytest.fixture
@@ -38,12 +40,25 @@ def _load(tmp_path: Path, text: str) -> IR:
 # ---------------------------------------------------------------------------------------------
 # Golden file
 # ---------------------------------------------------------------------------------------------
+def _flows_sha256() -> str:
+    return hashlib.sha256(Path(ir_flows.__file__).read_bytes()).hexdigest()
+
+
+def _golden_of_today() -> dict:
+    """The golden IR with the sha256 of tests/ir_flows.py as that file is now: the golden pins
+    the format, not the bytes of the flows' file (checked against the file itself)."""
+    golden = json.loads(GOLDEN.read_text(encoding="utf-8"))
+    golden["metadata"]["code_sha256"] = {"tests.ir_flows": _flows_sha256()}
+    return golden
+
+
 def test_ir_json_matches_golden_file(ir: IR):
     text = ir.to_json()
     if os.environ.get("RETRIEVER_UPDATE_GOLDEN") == "1":
         GOLDEN.write_text(text, encoding="utf-8")
     assert GOLDEN.exists(), f"{GOLDEN} is missing; run with RETRIEVER_UPDATE_GOLDEN=1 to create it"
-    assert text == GOLDEN.read_text(encoding="utf-8"), (
+    assert ir.doc["metadata"]["code_sha256"] == {"tests.ir_flows": _flows_sha256()}
+    assert text == IR(_golden_of_today()).to_json(), (
         "the IR format changed; if on purpose, regenerate with RETRIEVER_UPDATE_GOLDEN=1 and review the diff")
 
 
@@ -52,7 +67,7 @@ def test_golden_file_loads_and_rebuilds():
     assert loaded.name == "small"
     assert [n["type"] for n in loaded.nodes] == [
         "tests.ir_flows:Camera", "tests.ir_flows:Planner", "tests.ir_flows:Controller", "tests.ir_flows:Logger"]
-    assert Pipeline.from_ir(loaded).build_ir() == loaded
+    assert Pipeline.from_ir(loaded).build_ir() == IR(_golden_of_today())
 
 
 def test_to_json_is_stable_with_sorted_keys(ir: IR):
@@ -73,7 +88,7 @@ def test_to_json_is_stable_with_sorted_keys(ir: IR):
 
 def test_ir_shape_follows_the_design(ir: IR):
     doc = ir.doc
-    assert doc["version"] == "1.2.0"
+    assert doc["version"] == "1.3.0"
     assert doc["metadata"]["name"] == "small"
     assert doc["metadata"]["validated"] is True
     assert doc["metadata"]["optimized"] is False
@@ -229,6 +244,27 @@ def test_load_bad_module_folders(tmp_path: Path, doc: dict, bad):
     with pytest.raises(IRError, match=re.escape(f"metadata.module_folders: expected an object of module name: "
                                                 f"folder, got {bad!r}")):
         _load(tmp_path, json.dumps(doc))
+
+
+@pytest.mark.parametrize("bad", [["tests.ir_flows"], {"a b": "0" * 64}, {"tests.ir_flows": "0" * 63},
+                                 {"tests.ir_flows": "A" * 64}, {"tests.ir_flows": 7}], ids=repr)
+def test_load_bad_code_hashes(tmp_path: Path, doc: dict, bad):
+    doc["metadata"]["code_sha256"] = bad
+    with pytest.raises(IRError, match=re.escape("metadata.code_sha256: expected an object of module name: sha256 "
+                                                f"(64 lowercase hex digits), got {bad!r}")):
+        _load(tmp_path, json.dumps(doc))
+
+
+def test_an_ir_records_the_sha256_of_each_flow_modules_file(tmp_path: Path):
+    from retriever._loading import load_pipeline
+
+    (tmp_path / "hashed_flows.py").write_text(QUICKSTART.read_text(encoding="utf-8") + "# a copy\n", encoding="utf-8")
+    try:
+        doc = load_pipeline(str(tmp_path / "hashed_flows.py")).build_ir().doc
+    finally:
+        sys.modules.pop("hashed_flows", None)
+    digest = hashlib.sha256((tmp_path / "hashed_flows.py").read_bytes()).hexdigest()
+    assert doc["metadata"]["code_sha256"] == {"hashed_flows": digest}
 
 
 def test_an_ir_of_a_script_records_the_folder_of_its_flows(tmp_path: Path):
@@ -405,19 +441,20 @@ def test_load_missing_keys_lists_each_one(tmp_path: Path):
 
 def test_load_missing_version(tmp_path: Path, doc: dict):
     del doc["version"]
-    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.2\.0\"\)"):
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.3\.0\"\)"):
         _load(tmp_path, json.dumps(doc))
 
 
 def test_an_ir_of_version_1_1_still_loads(tmp_path: Path, doc: dict):
-    """1.2.0 only added an optional key (metadata.module_folders)."""
+    """1.2.0 and 1.3.0 only added optional keys (metadata.module_folders, metadata.code_sha256)."""
     doc["version"] = "1.1.0"
-    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.2.0"
+    del doc["metadata"]["code_sha256"]
+    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.3.0"
 
 
 def test_load_wrong_version(tmp_path: Path, doc: dict):
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\)"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.3\.0\)"
                                       r"; rebuild the IR"):
         _load(tmp_path, json.dumps(doc))
 

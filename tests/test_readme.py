@@ -35,7 +35,14 @@ def test_the_readme_pipeline_runs_as_a_script(readme_pipeline):
     done = _run([sys.executable, str(readme_pipeline)], readme_pipeline.parent)
     assert done.returncode == 0, done.stderr
     assert re.fullmatch(r"[0-9a-f]{64}\n", done.stdout), done.stdout
-    assert (readme_pipeline.parent / "agent.ir.json").exists()
+
+
+def test_the_readme_ir_command_writes_an_ir_that_retriever_run_runs(readme_pipeline):
+    wrote = _run([str(RETRIEVER), "ir", str(readme_pipeline), "--out", "agent.ir.json"], readme_pipeline.parent)
+    assert wrote.returncode == 0, wrote.stderr
+    done = _run([str(RETRIEVER), "run", "agent.ir.json", "--duration", "0.5"], readme_pipeline.parent)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert re.search(r"camera\s.*\b15\b", done.stdout), done.stdout
 
 
 @pytest.mark.parametrize("backend", ["inproc", "zenoh"])

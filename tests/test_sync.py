@@ -1,4 +1,4 @@
-"""Sync policies against brute-force references written straight from DESIGN.md §4 and §10.
+"""Sync policies against brute-force references written straight from docs/semantics.md.
 
 Each property test generates a random edge history (several producers, integer-ns tags with equal
 times and microsteps, random values), a random increasing sequence of consumer tick tags, and a
@@ -392,7 +392,7 @@ def test_action_chunking_horizon_matches_reference(data, hz, on_exhausted, horiz
 
 
 # ---------------------------------------------------------------------------------------------
-# DESIGN.md §10.5 and §10.7, exactly
+# docs/semantics.md's worked examples 5 and 7, exactly
 # ---------------------------------------------------------------------------------------------
 def _stream(*tags_ms):
     s = EventStream("up")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import threading
 
+from retriever import Flow, Pipeline, Rate, Trigger
 from retriever.trace import Trace, holding_full_collections
 
 
@@ -74,3 +75,29 @@ def test_expanding_without_waiting_leaves_a_tape_whose_lock_is_held():
         trace.expand(wait=False)
         assert trace.tape == [step]
     assert trace.raw_steps == [step] and not trace.tape
+
+
+def test_latest_is_the_newest_event_of_a_port_after_every_step():
+    class Source(Flow):
+        def __init__(self, base):
+            self.base, self.k = base, 0
+
+        def step(self):
+            self.k += 1
+            return {"v": self.base + self.k}
+
+    class Sink(Flow):
+        def step(self, v):
+            return {"seen": v}
+
+    with Pipeline("p") as pipe:
+        sink = Sink() @ Trigger("v")
+        (Source(100).configure(name="fast") @ Rate(hz=30)).then(sink)
+        (Source(200).configure(name="slow") @ Rate(hz=7, offset=0.01)).then(sink)
+    assert pipe.trace.latest("sink", "seen") is None
+    for _ in range(40):
+        trace = pipe.step(0.05)
+        for node, port in (("fast", "v"), ("slow", "v"), ("sink", "seen")):
+            events = trace.events_of(node, port)
+            assert trace.latest(node, port) == (events[-1] if events else None)
+    assert trace.latest("sink", "nothing") is None and trace.latest("sink", "seen").value == 160  # fast ticked 60 times in 2 s

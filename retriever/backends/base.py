@@ -184,6 +184,10 @@ class Session(ABC):
     def stats(self) -> dict[str, NodeStats]:
         """Per-node counters so far."""
 
+    def produced_counts(self) -> dict[tuple[str, str], int] | None:
+        """How many events each ``(node, port)`` produced so far (None: this backend cannot say)."""
+        return None
+
     def close(self) -> None:
         """Release resources (processes, sessions, files). Idempotent."""
 

@@ -1,6 +1,6 @@
 """The in-process backend: a discrete-event executor in virtual, superdense time.
 
-This is the reference semantics every other backend is tested against (DESIGN.md §3–§4).
+This is the reference semantics every other backend is tested against (docs/semantics.md).
 
     pending ticks (heap of tags)                   one tick of node v at tag τ
     ┌──────────────────────────┐                   ┌───────────────────────────────────────┐
@@ -736,6 +736,10 @@ class InprocSession(Session):
             if done.wait(self.FLUSH_WAIT_S):
                 return {rt.id: rt.stats for rt in self._nodes}
         return self._counted_so_far()
+
+    def produced_counts(self) -> dict[tuple[str, str], int]:
+        self.stats()  # hands the compiled ticks' seqs to the nodes
+        return {(rt.id, port): seq for rt in self._nodes for port, seq in rt.seq.items()}
 
     def _counted_so_far(self) -> dict[str, NodeStats]:
         """Copies of the nodes' counts with what the compiled ticks counted and did not hand over

@@ -46,7 +46,12 @@ RUN_METADATA = "retriever.run"
 END_METADATA = "retriever.end"
 RECOVERED_METADATA = "retriever.recovered"
 FAULT_METADATA = "retriever.fault."
-PACKAGES = ("retriever", "eclipse-zenoh", "msgpack", "numpy", "mcap", "mujoco")
+#: what pip installs Retriever as (it imports as ``retriever``; "retriever" on PyPI is another project)
+DISTRIBUTION = "retriever-robotics"
+#: the distributions whose versions a run records, by the name a log's and a worker's versions give
+#: each: Retriever's own by its import name, so that the key does not change with the distribution's
+PACKAGES = {"retriever": DISTRIBUTION, "eclipse-zenoh": "eclipse-zenoh", "msgpack": "msgpack", "numpy": "numpy",
+            "mcap": "mcap", "mujoco": "mujoco"}
 
 
 def data_topic(node: str, port: str) -> str:
@@ -136,25 +141,37 @@ def event_ids(ids: Any) -> tuple:
 def package_versions() -> dict[str, str]:
     """Installed versions of Retriever and the packages a run depends on (read once per process)."""
     versions = {}
-    for name in PACKAGES:
+    for name, distribution in PACKAGES.items():
         try:
-            versions[name] = importlib_metadata.version(name)
+            versions[name] = importlib_metadata.version(distribution)
         except importlib_metadata.PackageNotFoundError:
             pass
     return versions
 
 
-def _git_revision(folder: str) -> str:
-    """``HEAD`` of the repository holding ``folder`` (``-dirty`` if tracked files changed), or ""."""
-    try:
-        done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=folder)
-        if done.returncode != 0:
-            return ""
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, timeout=5, cwd=folder).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return ""
-    return done.stdout.strip() + ("-dirty" if dirty else "")
+def _git_revision(folders: list[str]) -> tuple[str, str]:
+    """``(HEAD, "")`` of the first of ``folders`` inside a git work tree, ``-dirty`` appended when
+    tracked files changed; else ``("", why)``: what git said of the first folder it refused
+    for another reason than not being a repository (a checkout another user owns: git's
+    ``safe.directory``), or "" when none is in one (or git is not installed).
+
+    Every folder is tried, not only the first: the flows of one run may come from a checkout and
+    from an installed package (``agents``), and the working directory is the last resort."""
+    refused = ""
+    for folder in folders:
+        try:
+            done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=folder)
+            if done.returncode != 0:
+                said = done.stderr.strip().splitlines()[:1]
+                if said and "not a git repository" not in said[0] and not refused:
+                    refused = said[0].removeprefix("fatal: ")
+                continue
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                   text=True, timeout=5, cwd=folder).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            continue
+        return done.stdout.strip() + ("-dirty" if dirty else ""), ""
+    return "", refused
 
 
 def import_roots(modules: list[str]) -> list[str]:
@@ -181,6 +198,7 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
         user = getpass.getuser()
     except (KeyError, OSError):
         user = ""
+    revision, git_refused = _git_revision([*roots, os.getcwd()])
     return {
         "format": FORMAT_VERSION,
         "pipeline": pipeline,
@@ -189,11 +207,12 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
         "started_unix_ns": str(started_unix_ns),
         "packages": json.dumps(package_versions(), sort_keys=True),
         "python": platform.python_version(),
-        "git_revision": _git_revision(roots[0] if roots else os.getcwd()),
+        "git_revision": revision,
         "python_path": json.dumps(roots),
         "host": socket.gethostname(),
         "user": user,
         "pid": str(os.getpid()),
         "cwd": os.getcwd(),
         "command_line": json.dumps(sys.argv),
+        **({"git_error": git_refused} if git_refused else {}),
     }

@@ -1,7 +1,7 @@
 """A log as the Foxglove app reads it: ``retriever log export run.mcap --format foxglove -o view.mcap``.
 
 The native log stays the system of record (msgpack, times from T0); this is a view of it, written
-with Foxglove's own SDK (``foxglove-sdk``, the extra ``retriever[foxglove]``) so that every
+with Foxglove's own SDK (``foxglove-sdk``, the extra ``retriever-robotics[foxglove]``) so that every
 channel has a schema the app decodes:
 
 - an image port (uint8 arrays H×W, H×W×3 or H×W×4) is a ``foxglove.RawImage`` channel
@@ -59,7 +59,7 @@ def _sdk():
         from foxglove.messages import RawImage, Timestamp
     except ImportError:
         raise LogError("the Foxglove export needs Foxglove's SDK (the foxglove-sdk package), which is not installed",
-                       "pip install 'retriever[foxglove]'") from None
+                       "pip install 'retriever-robotics[foxglove]'") from None
     return foxglove, RawImageChannel, RawImage, Timestamp
 
 

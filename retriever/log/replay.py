@@ -16,6 +16,11 @@ took each stream on); its consumers are withheld the dead process's events they 
 (``restart_gap``); and its steps whose outputs died with it (the log's fault records) are
 re-executed but not compared.
 
+Both first compare the sha256 of each flow module's file, as the run's IR recorded it, with the
+file the replay loaded (retriever/code.py): a module edited since the run is warned of before any
+value is compared, and named again in the report (``code_changes``), so that a divergence it
+causes is not taken for nondeterminism.
+
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
 and compares the full trace: it proves the log is one consistent run of this graph.
 """
@@ -33,6 +38,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..backends.inproc import InprocSession, ReplayedError, RunEnded
+from ..code import code_mismatches
 from ..codec import Encoder, unpackb
 from ..errors import IRError, LogError, RetrieverWarning, StepError
 from ..pipeline import Pipeline
@@ -81,6 +87,7 @@ class ReplayReport:
     nodes: dict[str, NodeReplay] = field(default_factory=dict)
     divergences: list[Divergence] = field(default_factory=list)  # the first MAX_DIVERGENCES_KEPT
     divergent_steps: int = 0
+    code_changes: list[str] = field(default_factory=list)  # flow modules whose file differs from the run's
 
     @property
     def identical(self) -> bool:
@@ -95,11 +102,19 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     """The pipeline to replay: the given one (its flows reset to their initial state), or the
     one rebuilt from the log's IR."""
     if pipeline is None:
+        script = _script_that_ran(log)
+        if script is not None:  # the fix first: an IR's advice (`retriever ir`) is no fix for a replay
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: its flows live in the script "
+                           f"that ran ({script}), whose __main__ no other process can import",
+                           f"retriever replay {log.path} --pipeline {script} "
+                           "(FILE:ATTR when the script has more than one pipeline)")
         log.add_import_paths()
         try:
             pipeline = Pipeline.from_ir(log.ir)
         except IRError as e:
-            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}", _rebuild_hint(log)) from None
+            raise LogError(f"cannot rebuild the pipeline from the IR in {log.path}: {e}",
+                           "pass the pipeline that wrote the log with --pipeline FILE[:ATTR] (a class that moved or "
+                           "was renamed too)") from None
     else:
         pipeline.reset()
     with warnings.catch_warnings():
@@ -114,21 +129,18 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     return pipeline
 
 
-def _rebuild_hint(log: RunLog) -> str:
-    """How to give the pipeline a log's IR cannot rebuild: for flows that lived in the script
-    that ran (``python script.py``: no other process can import its ``__main__``), that script,
-    as the log's run metadata names it (a hostile log's text, only shown)."""
-    in_main = any(str(node.get("type", "")).startswith("__main__:") for node in log.ir.nodes)
+def _script_that_ran(log: RunLog) -> str | None:
+    """The script whose ``__main__`` holds the log's flows (``python script.py``: no other
+    process can import it), as the log's run metadata names it (a hostile log's text, only
+    shown); None when no flow lives in ``__main__`` or the metadata names no script."""
+    if not any(str(node.get("type", "")).startswith("__main__:") for node in log.ir.nodes):
+        return None
     try:
         argv, cwd = json.loads(log.run.get("command_line", "[]")), log.run.get("cwd", "")
         first = argv[0] if type(argv) is list and argv else None
-        script = os.path.join(cwd, first) if type(first) is str and first.endswith(".py") else None
+        return os.path.join(cwd, first) if type(first) is str and first.endswith(".py") else None
     except (ValueError, TypeError, AttributeError):
-        script = None
-    if in_main and script is not None:
-        return (f"its flows live in the script that ran: retriever replay {log.path} --pipeline {script} "
-                "(FILE:ATTR when the script has more than one pipeline)")
-    return "pass the pipeline that wrote the log with --pipeline FILE[:ATTR] (a class that moved or was renamed too)"
+        return None
 
 
 def replay(log: RunLog, pipeline: Pipeline | None = None,
@@ -137,13 +149,27 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     up before the first step and torn down at the end, as in a run."""
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
+    changes = code_changes(log, graph)
     session = InprocSession(graph)
     logged = from_the_log(graph)
     session.set_up(skip=logged)
     try:
-        return _replay(log, graph, session, logged, progress)
+        report = _replay(log, graph, session, logged, progress)
     finally:
         session.close()
+    report.code_changes = changes
+    return report
+
+
+def code_changes(log: RunLog, graph) -> list[str]:
+    """How the files of the flow modules replayed differ from those the run's IR recorded, one a
+    line; each is also warned of (RetrieverWarning), before anything is compared."""
+    recorded = log.ir.doc["metadata"].get("code_sha256", {})
+    changes = code_mismatches(recorded, {type(node.flow).__module__ for node in graph.nodes.values()})
+    for change in changes:
+        warnings.warn(f"{change}: what the replay finds different may come from that change", RetrieverWarning,
+                      stacklevel=3)
+    return changes
 
 
 def from_the_log(graph) -> frozenset[str]:
@@ -445,6 +471,7 @@ class ResimReport:
     steps_compared: int
     events_compared: int
     difference: str | None
+    code_changes: list[str] = field(default_factory=list)  # flow modules whose file differs from the run's
 
     @property
     def identical(self) -> bool:
@@ -470,6 +497,7 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
                        "retriever replay LOG (without --resim) follows the run through its restarts")
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
+    changes = code_changes(log, graph)
     original = log.trace()
     end = log.end
     if end is not None and end.get("status") == "finished":
@@ -488,11 +516,11 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
         session.advance(horizon)
     except StepError as e:
         if not isinstance(e.__cause__, ReplayedError):  # (a logged source's error stopped the run too)
-            return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}")
+            return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}", changes)
     finally:
         session.close()
     kept_steps = [s for s in original.steps if s.tag[0] < horizon]
     kept_ids = {i for s in kept_steps for i in s.produced}
     expected = Trace([e for e in original.events if e.id in kept_ids], kept_steps)
     again = session.trace
-    return ResimReport(horizon, len(kept_steps), len(expected.raw_events), expected.first_difference(again))
+    return ResimReport(horizon, len(kept_steps), len(expected.raw_events), expected.first_difference(again), changes)

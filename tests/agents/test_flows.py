@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from agents.flows import Goal, Monitor, PlannerFlow, Teleop, load_schedule, merge_three_valued
-from agents.messages import Belief, Observation, PlanChunk, PlanRequest, Progress, Task, TeleopEvent
+from agents.messages import Belief, Frame, Observation, PlanChunk, PlanFailure, PlanRequest, Progress, Task, TeleopEvent
 
 
 def obs(t, **facts):
@@ -92,17 +92,32 @@ def test_the_monitor_takes_only_newer_beliefs():
     assert "request" not in out
 
 
-def test_the_planner_flow_answers_each_request_with_a_chunk_and_a_broken_planner_with_an_empty_one(capsys):
+def test_the_planner_flow_answers_each_request_with_a_chunk_and_a_broken_planner_with_a_failure(capsys):
     flow = PlannerFlow()
     flow.setup()
     request = PlanRequest(request_id=3, reason="task", t=0.0, belief={}, executed=[])
     out = flow.step(request, Task(text="season"))
     assert out["plan"].request_id == 3 and out["plan"].program[0] == "OpenDrawer(TL-H)"
+    frame = Frame(camera="head", t=0.0, rgb=np.zeros((4, 4, 3), np.uint8))
+    assert flow.step(request, Task(text="season"), frame) == out      # the scripted planner has no use for it
     broken = PlannerFlow(planner="openai:http://127.0.0.1:9/v1#m")
     broken.setup()
     broken.planner.timeout = 2
-    assert broken.step(request)["plan"].program == []
-    assert "gave no usable answer" in capsys.readouterr().err
+    out = broken.step(request, Task(text="season"), frame)
+    assert list(out) == ["failure"] and out["failure"].request_id == 3
+    assert out["failure"].error.startswith("planner endpoint http://127.0.0.1:9/v1 gave no answer: ")
+    assert "hint: is the model server still up?" in capsys.readouterr().err
+
+
+def test_the_monitor_flow_gives_up_after_two_requests_in_a_row_got_no_plan(capsys):
+    monitor = Monitor(end_after=None, verbose=True)
+    monitor.step(obs(0.1), task=Task(text="season"))
+    error = "planner http://127.0.0.1:9/v1 (model m) gave no plan in 3 attempts; the last: the answer is not JSON"
+    out = monitor.step(obs(2.1), plan_failure=[PlanFailure(request_id=1, error=error)])
+    assert out["request"].reason == "planner_failed" and out["request"].failures == [f"plan 1: {error}"]
+    out = monitor.step(obs(4.1), plan_failure=[PlanFailure(request_id=2, error=error)])
+    assert "request" not in out and out["status"].gave_up == f"no plan for 2 requests in a row: {error}"
+    assert f"gave up: no plan for 2 requests in a row: {error}" in capsys.readouterr().out
 
 
 def test_three_valued_merge_never_forgets_to_unknown():

@@ -17,7 +17,8 @@ SEARCH_TL = ["OpenDrawer(TL-H) -> InspectDrawer(TL)",
 
 def run_table(rows, config=None, monitor=None):
     """Apply rows ``(t, inputs, command, request)``; ``inputs`` may hold task, belief=(version,
-    predicates), plan=(request_id, lines), progress=[(skill_id, p, status)], teleop=skill."""
+    predicates), plan=(request_id, lines), failure=(request_id, error), progress=[(skill_id, p,
+    status)], teleop=skill."""
     m = monitor or ExecutionMonitor(config or MonitorConfig())
     for i, (t, inputs, command, request) in enumerate(rows):
         if "task" in inputs:
@@ -25,6 +26,8 @@ def run_table(rows, config=None, monitor=None):
         changed = "belief" in inputs and m.on_belief(*inputs["belief"])
         if "plan" in inputs:
             m.on_plan(*inputs["plan"])
+        if "failure" in inputs:
+            m.on_planner_failure(*inputs["failure"])
         started = None
         if "teleop" in inputs:
             started = m.on_teleop(inputs["teleop"], t).command
@@ -153,6 +156,36 @@ def test_a_plan_outside_the_vocabulary_is_refused_and_asked_again():
         (4.0, {"plan": (2, ["OpenDrawer(TL-H) -> InspectDrawer(TL) -> Done()"])}, "OpenDrawer(TL-H)", None),
     ])
     assert m.bad_plans == 1 and "unknown skill 'Teleport'" in m.failures[0]
+
+
+def test_requests_that_get_no_plan_are_asked_again_then_the_task_is_given_up_with_the_planners_word():
+    """A planner that gives up on a request (its model answered no plan, however often it was
+    asked) is asked once more with what went wrong; a second request in a row that gets no plan
+    gives the task up, saying the planner's last word (it asked again forever, every 2 s)."""
+    gone = "planner http://127.0.0.1:9/v1 (model m) gave no plan in 3 attempts; the last: the answer is not JSON"
+    m = run_table([
+        (0.0, {"task": "t"}, None, "task"),
+        (2.0, {"failure": (1, gone)}, None, "planner_failed"),
+        (4.0, {"failure": (2, gone)}, None, None),
+        (6.0, {}, None, None),
+    ])
+    assert m.finished and m.gave_up == f"no plan for 2 requests in a row: {gone}"
+    assert m.failures == [f"plan 1: {gone}", f"plan 2: {gone}"] and m.bad_plans == 2
+
+
+def test_a_plan_between_two_planner_failures_starts_the_count_again_and_a_running_plan_goes_on():
+    m = run_table([
+        (0.0, {"task": "t"}, None, "task"),
+        (2.0, {"plan": (1, ["Teleport(kitchen)"])}, None, "invalid_plan"),       # refused: the first in a row
+        (4.0, {"plan": (2, ["OpenDrawer(TL-H) -> InspectDrawer(TL)"])}, "OpenDrawer(TL-H)", "horizon"),
+        (6.0, {"failure": (3, "the endpoint answered HTTP 500")}, None, "planner_failed"),
+        (8.0, {"failure": (2, "an old request's")}, None, None),                 # stale: counts nothing
+    ])
+    assert not m.finished and str(m.current) == "OpenDrawer(TL-H)" and [str(s) for s in m.active] == [
+        "InspectDrawer(TL)"]
+    assert m.stale_plans == 1 and m.refused_in_row == 1
+    run_table([(10.0, {"failure": (4, "the endpoint answered HTTP 500")}, None, None)], monitor=m)
+    assert m.finished and m.gave_up == "no plan for 2 requests in a row: the endpoint answered HTTP 500"
 
 
 def test_a_depleted_horizon_asks_for_more_once_and_a_plan_that_ends_never_does():

@@ -29,10 +29,10 @@ def test_a_chunk_in_the_papers_format_parses_and_prints_back():
     (["IF holding(robot, spice) = yes THEN Season(food)"], "is not a predicate"),
     (["IF at(spice, XX) = yes THEN Season(food)"], "at relates one of"),
     (["__import__('os').system('true')"], "is not a skill call"),
-    ([], "a plan is a list of 1 to"),
-    ("OpenDrawer(TL-H)", "a plan is a list"),
+    ([], "a plan is a list of 1 to 32 lines, got 0 lines"),
+    ("OpenDrawer(TL-H)", "a plan is a list of 1 to 32 lines, got str"),
     ([42], "must be a string"),
-    (["Done()"] * 33, "a plan is a list of 1 to 32"),
+    (["Done()"] * 33, "a plan is a list of 1 to 32 lines, got 33 lines"),
     (["Done() -> " * 100 + "Done()"], "at most 400 characters"),
 ])
 def test_a_plan_outside_the_vocabulary_is_refused_naming_the_line(program, message):

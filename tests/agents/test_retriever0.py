@@ -3,12 +3,16 @@
 
 from __future__ import annotations
 
+import os
+import re
 import subprocess
 import sys
 
 import pytest
 
-from agents.episode import summarize
+from agents.demo import rate_notes, rate_table
+from agents.episode import lateness, summarize
+from agents.pictures import timeline
 from agents.retriever0 import build
 from retriever import read_log
 from retriever.log import replay
@@ -16,6 +20,11 @@ from retriever.log import replay
 PAPER_TRACE = ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "CloseDrawer(TL-H)", "OpenDrawer(TR-H)", "InspectDrawer(TR)",
                "Pick(spice)", "Season(food)", "CloseDrawer(TR-H)"]
 EPISODE_BOUND_S = 70.0  # simulated seconds an episode may take
+#: how long a tick of the real-time episode waits for its inputs. The agent's 0.5 s is a robot's
+#: choice (run without them rather than stall); on a 2-core machine busy with the rest of the suite
+#: an edge waited past it, and from there a run may diverge by design. The test's claim is about a
+#: run that keeps up, so its ticks wait for their inputs rather than diverge.
+PATIENT_DEADLINE_S = 30.0
 
 
 def test_an_episode_in_virtual_time_reaches_full_progress_with_the_papers_skill_trace(tmp_path):
@@ -57,15 +66,15 @@ def test_on_zenoh_in_real_time_the_episode_is_the_virtual_time_one(tmp_path):
     """Every flow declares its latency, catches up on overruns and waits for its inputs: a
     real-time run that kept up is, tick for tick, the virtual-time run (up to its last tick)."""
     log = tmp_path / "run.mcap"
-    pipe = build(seed=1, drawer="TL")
+    pipe = build(seed=1, drawer="TL", deadline=PATIENT_DEADLINE_S)
     trace = pipe.run(duration=EPISODE_BOUND_S, backend="zenoh", log=str(log), quiet=True)
     episode = summarize(trace, pipe.build_ir())
     assert episode.finished and episode.score == 1.0, episode.skill_trace
     assert episode.skills == ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "Pick(spice)", "Season(food)",
                               "CloseDrawer(TL-H)"]
-    reference = build(seed=1, drawer="TL").run(duration=EPISODE_BOUND_S, backend="inproc")
+    reference = build(seed=1, drawer="TL", deadline=PATIENT_DEADLINE_S).run(duration=EPISODE_BOUND_S, backend="inproc")
     # compared up to a second before either run ended, and before any edge that waited past its
-    # deadline (a very loaded machine: the run may diverge from there, as its log says)
+    # deadline (a machine stalled for PATIENT_DEADLINE_S: the run may diverge from there, as its log says)
     end = min(max(s.tag for s in trace.steps_of("monitor")), max(s.tag for s in reference.steps_of("monitor")))
     bound = (end[0] - 1_000_000_000, 0)
     bound = min([bound] + [s.tag for s in trace.steps if (s.detail or {}).get("incomplete")])
@@ -75,6 +84,20 @@ def test_on_zenoh_in_real_time_the_episode_is_the_virtual_time_one(tmp_path):
     assert [k for k in ours if ours[k] != theirs[k]] == []
     assert bound[0] > 10e9, f"an edge waited past its deadline at {bound}: nothing much to compare"
     assert replay(read_log(log)).identical
+    # the timeline shows how late each flow's ticks started: a panel more than in virtual time
+    assert {"world", "controller"} <= set(lateness(trace)) and lateness(reference) == {}
+    real = png_height(timeline(trace, episode, tmp_path / "real.png"))
+    virtual = png_height(timeline(reference, summarize(reference, pipe.build_ir()), tmp_path / "virtual.png"))
+    assert real > virtual, (real, virtual)
+    assert rate_notes(episode, "zenoh")[0].startswith("late: a tick started after its time (T0 + its tag)")
+    columns, rows = rate_table(episode)
+    assert len(columns) == 6 and [r[0] for r in rows if r[0] == "world"] == ["world"]
+
+
+def png_height(path) -> int:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    return int.from_bytes(data[20:24], "big")
 
 
 def run_cli(*args, cwd, env=None, timeout=300):
@@ -83,11 +106,16 @@ def run_cli(*args, cwd, env=None, timeout=300):
 
 
 def test_retriever_demo_in_virtual_time_prints_the_episode_saves_pictures_and_a_log_that_replays(tmp_path):
-    done = run_cli("demo", "--backend", "inproc", "--drawer", "TL", "--seed", "2", "--out", "pictures", cwd=tmp_path)
+    (tmp_path / "run.mcap").write_bytes(b"an earlier episode")  # --force replaces it
+    done = run_cli("demo", "--backend", "inproc", "--drawer", "TL", "--seed", "2", "--out", "pictures", "--force",
+                   cwd=tmp_path, env=dict(os.environ, COLUMNS="80"))
     assert done.returncode == 0, done.stdout + done.stderr
     assert "skill trace: OpenDrawer(TL-H) → InspectDrawer(TL) → Pick(spice) → Season(food) → CloseDrawer(TL-H)" \
         in done.stdout, done.stdout
-    assert "task progress: 100%" in done.stdout and "rates: controller" in done.stdout
+    assert "task progress: 100%" in done.stdout and re.search(r"^rates *$", done.stdout, re.MULTILINE)
+    # a row per flow on a Rate, whole on an 80-column terminal; virtual time is never late
+    assert re.search(r"│ controller\s+│\s+200 │\s+200\.\d │\n", done.stdout), done.stdout
+    assert "late: " not in done.stdout
     assert "[monitor]" not in done.stdout and "Pick(spice)" in done.stderr + done.stdout  # the live lines
     for picture in ("contact_sheet.png", "timeline.png"):
         assert (tmp_path / "pictures" / picture).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -120,8 +148,16 @@ def test_a_bad_demo_option_gets_a_clear_error_and_no_traceback(tmp_path, args, m
     assert not (tmp_path / "run.mcap").exists()
 
 
+def test_the_demo_keeps_an_existing_log_unless_forced_as_retriever_run_does(tmp_path):
+    (tmp_path / "run.mcap").write_bytes(b"an earlier episode")
+    done = run_cli("demo", "--backend", "inproc", cwd=tmp_path)
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "error: the log run.mcap already exists; the demo does not overwrite a file\n" \
+           "hint: pass --force to replace it, or --log another path" in done.stderr, done.stderr
+    assert (tmp_path / "run.mcap").read_bytes() == b"an earlier episode"
+
+
 def test_without_offscreen_rendering_the_demo_says_what_to_install(tmp_path):
-    import os
     env = dict(os.environ, MUJOCO_GL="no-such-gl")
     done = run_cli("demo", "--backend", "inproc", cwd=tmp_path, env=env)
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr

@@ -1,7 +1,7 @@
 """The backend conformance suite runs every test once per backend.
 
 Tests take the ``backend`` fixture and pass it on: ``pipe.run(duration=..., backend=backend)``.
-The in-process virtual-time backend is the reference semantics (DESIGN.md §3–§4, worked examples
+The in-process virtual-time backend is the reference semantics (docs/semantics.md, worked examples
 §10); every other backend must produce the same traces. Add a backend here when it lands.
 """
 
@@ -15,7 +15,7 @@ from retriever.time import exact_rational
 from retriever.trace import STEP_STATUSES
 
 # The virtual-time suite. Real-time backends run test_let_conformance.py instead: in real time a
-# flow without latency stamps outputs when it finishes (DESIGN.md §3), so only LET graphs have a
+# flow without latency stamps outputs when it finishes (docs/semantics.md), so only LET graphs have a
 # trace fixed in advance; those must equal inproc's exactly. "zenoh" here is the Zenoh runtime in
 # lockstep virtual time (virtual_time=True: one process per flow, the trace inproc's), each run
 # also compared with an inproc run of the same pipeline.
@@ -56,7 +56,7 @@ def _in_virtual_time(run):
 
 
 def _check_trace(pipe, trace) -> None:
-    """Invariants every trace must satisfy (DESIGN.md §2–§4), whatever the pipeline:
+    """Invariants every trace must satisfy (docs/semantics.md), whatever the pipeline:
 
     - event ids (node, port, seq) are unique; per port, seq runs 0, 1, 2, … in tag order;
     - a step's produced events carry (t, m + 1), or (t + latency, 0) for a flow with latency;

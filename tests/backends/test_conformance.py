@@ -1,4 +1,4 @@
-"""Backend conformance: DESIGN.md §2–§4 and every worked example of §10, on every backend.
+"""Backend conformance: docs/semantics.md and every worked example in it, on every backend.
 
 Each test names the rule it checks. Tests observe a run only through its trace (events: tag,
 node, port, seq, value; step records: node, tag, consumed, produced, status, detail), never

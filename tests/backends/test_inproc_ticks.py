@@ -187,8 +187,9 @@ def chain(variant: str):
                     prev = prev.then(Join().named(f"s{i}") @ Rate(1000), map={"x": "a"}, sync=Latest())
             else:
                 prev = UntypedSource().named("src") @ Rate(1000)
-                for i in range(1, 4):
-                    prev = prev.then(Untyped().named(f"s{i}") @ Rate(1000), map={"out": "x"}, sync=Latest())
+                for i in range(1, 4):  # the source's port is "x", each Untyped's "out"
+                    prev = prev.then(Untyped().named(f"s{i}") @ Rate(1000), map={"x" if i == 1 else "out": "x"},
+                                     sync=Latest())
         return pipe
     return build
 

@@ -128,6 +128,18 @@ def test_a_counters_run_without_a_log_keeps_counters_and_says_where_the_records_
             ask()
 
 
+def test_pipe_step_with_keep_counters_keeps_counters_only():
+    """Driving a run step by step from Python: keep="counters" bounds memory there too (the trace
+    held every value)."""
+    pipe = _fast()
+    for _ in range(10):
+        trace = pipe.step(0.1, keep="counters") if pipe.now == 0 else pipe.step(0.1)
+        assert len(trace.raw_events) == len(trace.raw_steps) == 0
+    assert pipe.stats()["viewer"].steps == 1000
+    with pytest.raises(ValuesNotKeptError, match=r"kept only counters"):
+        trace.latest("tick", "k")
+
+
 def test_the_trace_of_a_counters_run_reads_back_from_its_log_from_another_directory(tmp_path, monkeypatch):
     """The log's path is taken whole when the run ends: a relative ``log=`` and a later chdir
     still find it."""

@@ -1,5 +1,5 @@
 """Conformance in real time: graphs whose flows all declare latency (LET) give, on every backend,
-the trace of the in-process reference (DESIGN.md §5: "with LET flows and no incomplete edges, a
+the trace of the in-process reference (docs/realtime.md: "with LET flows and no incomplete edges, a
 real-time run is as deterministic as a virtual-time run").
 
 Each test builds one LET graph covering a part of §3–§4 — every clock, every policy, the MISSING

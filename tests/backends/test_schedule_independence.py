@@ -1,4 +1,4 @@
-"""Functional determinism of the in-process backend (DESIGN.md §1, §3, §7).
+"""Functional determinism of the in-process backend (docs/semantics.md).
 
 Hypothesis generates random multi-rate graphs with cycles — Rate sources at 7…200 Hz, Trigger,
 Hybrid and Rate flows, random sync policies, LET latencies, delayed feedback edges, and

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 
-from tests.deploy.lab import Lab, reap_orphan_labs, unavailable
+from tests.deploy.lab import Lab, partitions_unavailable, reap_orphan_labs, unavailable
 
 
 @pytest.fixture(scope="session")
@@ -26,6 +24,14 @@ def hosts(lab):
     healed when it ends, passed or failed."""
     yield lab.hosts
     lab.stop_processes()
-    if shutil.which("nft"):
+    if not partitions_unavailable():
         for host in lab.hosts:
             lab.heal(host)
+
+
+@pytest.fixture
+def partitionable(lab):
+    """The lab, for a test that partitions its hosts: skips, saying why, where nftables is missing."""
+    if reason := partitions_unavailable():
+        pytest.skip(reason)
+    return lab

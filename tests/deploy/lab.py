@@ -48,6 +48,14 @@ def unavailable() -> str | None:
     return None
 
 
+def partitions_unavailable(path: str | None = None) -> str | None:
+    """Why a lab's hosts cannot be partitioned here (the script's partition needs nftables), or
+    None when they can; ``path``: the PATH to look in (this process's when None)."""
+    if shutil.which("nft", path=path) is None:
+        return "partitions need nftables ('nft' not on PATH): apt-get install nftables (.ci/run installs it)"
+    return None
+
+
 def unique_prefix() -> str:
     return f"{PREFIX_ROOT}{os.getpid()}-{secrets.token_hex(2)}"
 

@@ -296,7 +296,7 @@ def test_the_nodes_of_a_lost_worker_start_afresh_on_it_once_it_is_back_when_told
 
 
 def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_takes_new_work(
-        lab, hosts, secret):
+        partitionable, hosts, secret):
     """nftables drops everything of gpu-box's host: within the lease (1 s here) the coordinator
     counts it lost and moves its node; gpu-box, cut off from the coordinator as long, stops its
     flows (their safe state). Healed, it takes the next deployment."""
@@ -311,7 +311,7 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
                        str(placement), "--lease", "1", "--allow-errors", "--log", str(log))
     wait_going(run, log)
-    lab.partition(gpu)
+    partitionable.partition(gpu)
     cut = time.monotonic()
     # the lease, the flows' SIGTERM grace, and Zenoh's close of links with unsent data towards
     # the cut-off hosts (it lingers up to 10 s, SO_LINGER): the processes are gone by then. A
@@ -320,7 +320,7 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     assert time.monotonic() - cut < 1.0 + 2.0 + 10.0 + 12.0
     out, err = finish(run)
     assert run.returncode == 0 and "its node 'relay' starts afresh on worker 'spare'" in err, err
-    lab.heal(gpu)
+    partitionable.heal(gpu)
     assert victim.poll() is None, "the partitioned worker went down"
     placement.write_text('[nodes]\nrelay = "gpu-box"\n')
     again = poll(lambda: (d := deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--duration", "1",

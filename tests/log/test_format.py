@@ -3,6 +3,7 @@ trips through a real log, and the logged trace equal to the live one."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -135,6 +136,8 @@ def test_ir_attachment_and_run_metadata(small, small_plain):
     assert [n["type"] for n in ir["nodes"]] == ["tests.log.log_flows:Counter", "tests.log.log_flows:Accumulate",
                                                 "tests.log.log_flows:Tally"]
     assert ir == json.loads(log_flows.build_small().build_ir().to_json())
+    flows_file = Path(log_flows.__file__).read_bytes()
+    assert ir["metadata"]["code_sha256"] == {"tests.log.log_flows": hashlib.sha256(flows_file).hexdigest()}
 
     names = [name for name, _ in small_plain["metadata"]]
     assert names == ["retriever.run", "retriever.end"]
@@ -415,3 +418,60 @@ def test_a_malformed_had_below_in_a_step_record_is_refused(had_below):
 def test_a_well_formed_had_below_is_read():
     detail = {"incomplete": ["x"], "had_below": {"x": [["prod", "value", 7]]}}
     assert decode_step(msgpack.packb(["probe", 0, {}, [], "incomplete", detail, 0]))[5] == detail
+
+
+# ---------------------------------------------------------------------------------------------
+# The run record's git revision
+# ---------------------------------------------------------------------------------------------
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", "-c", "user.email=t@example.com", "-c", "user.name=t", *args], cwd=repo,
+                          check=True, capture_output=True, text=True).stdout.strip()
+
+
+@pytest.fixture
+def checkout(tmp_path: Path) -> tuple[Path, Path]:
+    """A git checkout holding a script whose source flow comes from a module outside any
+    repository (an installed package, say) that sorts before it: ``(outside, checkout)``."""
+    outside, repo = tmp_path / "installed", tmp_path / "checkout"
+    outside.mkdir()
+    repo.mkdir()
+    (outside / "aa_flows.py").write_text("from retriever import Flow\n"
+                                         "class Tick(Flow):\n    def step(self):\n        return {'x': 1.0}\n")
+    (repo / "app.py").write_text("from retriever import Flow, Latest, Pipeline, Rate\nfrom aa_flows import Tick\n"
+                                 "class Sink(Flow):\n    def step(self, x):\n        return None\n"
+                                 "with Pipeline('app') as pipe:\n"
+                                 "    (Tick() @ Rate(hz=10)).then(Sink() @ Rate(hz=10), sync=Latest())\n")
+    _git(repo, "init", "-q")
+    _git(repo, "add", "app.py")
+    _git(repo, "commit", "-qm", "app")
+    return outside, repo
+
+
+def test_the_run_record_has_the_revision_of_the_checkout_the_flows_came_from_and_whether_it_was_dirty(checkout):
+    outside, repo = checkout
+    head = _git(repo, "rev-parse", "HEAD")
+    for log, edit in (("clean.mcap", None), ("dirty.mcap", "# edited\n")):
+        if edit:
+            (repo / "app.py").write_text((repo / "app.py").read_text() + edit)
+        done = cli("run", "app.py", "--duration", "0.3", "--log", log, cwd=repo, pythonpath=outside)
+        assert done.returncode == 0, done.stderr
+        assert read_log(repo / log).run["git_revision"] == head + ("-dirty" if edit else "")
+    info = cli("log", "info", "dirty.mcap", cwd=repo).stdout
+    assert f"git  {head}-dirty\n" in info
+    aa, app = (hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+               for path in (outside / "aa_flows.py", repo / "app.py"))
+    assert f"code  aa_flows sha256 {aa}…, app sha256 {app}…\n" in info
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="needs root to give the checkout away")
+def test_a_checkout_git_refuses_to_read_is_said_so_not_just_unknown(checkout):
+    """A checkout of another user (a container's root running in a mounted checkout): git will
+    not read it (safe.directory), which the run record and log info say."""
+    outside, repo = checkout
+    subprocess.run(["chown", "-R", "65534:65534", str(repo)], check=True)
+    done = cli("run", "app.py", "--duration", "0.3", "--log", outside / "run.mcap", cwd=repo, pythonpath=outside)
+    assert done.returncode == 0, done.stderr
+    run = read_log(outside / "run.mcap").run
+    assert (run["git_revision"], run["git_error"]) == ("", f"detected dubious ownership in repository at '{repo}'")
+    assert (f"git  ? (detected dubious ownership in repository at '{repo}')\n"
+            in cli("log", "info", outside / "run.mcap").stdout)

@@ -128,7 +128,7 @@ def test_without_the_sdk_the_export_says_how_to_get_it(tmp_path, monkeypatch):
     log = read_log(_log(tmp_path))
     monkeypatch.setitem(sys.modules, "foxglove", None)  # what an environment without the extra has
     with pytest.raises(LogError, match=r"needs Foxglove's SDK \(the foxglove-sdk package\)(.|\n)*"
-                                       r"hint: pip install 'retriever\[foxglove\]'"):
+                                       r"hint: pip install 'retriever-robotics\[foxglove\]'"):
         export_foxglove(log, tmp_path / "view.mcap")
     assert not (tmp_path / "view.mcap").exists()
 

@@ -6,6 +6,7 @@ cycles) are logged and replayed; flows that are nondeterministic on purpose must
 
 from __future__ import annotations
 
+import hashlib
 import random
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, StepError, io
 from retriever.log import read_log, replay, resim
 from tests.backends.test_schedule_independence import budget, graphs
+from tests.log.helpers import cli
 
 REPO = Path(__file__).resolve().parents[2]
 QUICKSTART = REPO / "examples" / "quickstart.py"
@@ -336,6 +338,45 @@ def test_cli_replay_exit_status_and_report(tmp_path):
     assert done.returncode == 1
     assert "DIVERGED" in done.stdout and "noisy.y at tick t=0.1" in done.stdout
     assert "Traceback" not in done.stdout + done.stderr
+
+
+DRIFTING = ("from retriever import Flow, Pipeline, Rate, Latest\n"
+            "class Tick(Flow):\n    def __init__(self):\n        self.k = 0\n"
+            "    def step(self):\n        self.k += 1\n        return {'x': float(self.k)}\n"
+            "class Scale(Flow):\n    def step(self, x):\n        return {'y': x * 2}\n"
+            "with Pipeline('drifting') as pipe:\n"
+            "    (Tick() @ Rate(hz=10)).then(Scale() @ Rate(hz=10), sync=Latest())\n")
+
+
+def test_replay_says_which_flow_module_changed_since_the_run_before_it_compares(tmp_path):
+    """A run of a module edited afterwards: replay and --resim warn, before comparing, that its
+    code differs from the run's, with both sha256; a DIVERGED line names it as the likely cause."""
+    module = tmp_path / "drifting.py"
+    module.write_text(DRIFTING, encoding="utf-8")
+    log = tmp_path / "drifting.mcap"
+    assert cli("run", module, "--duration", "1", "--log", log, cwd=tmp_path).returncode == 0
+    done = cli("replay", log, cwd=tmp_path)
+    assert done.returncode == 0 and "warning" not in done.stderr, done.stdout + done.stderr
+    run_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+
+    for edit, diverges in (("# a comment\n", False), ("x * 2", True)):
+        module.write_text(DRIFTING.replace("x * 2", "x * 3") if edit == "x * 2" else DRIFTING + edit, encoding="utf-8")
+        here_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+        change = (f"the code of module drifting differs from the run's (run sha256 {run_sha}, here {here_sha} "
+                  f"in {module})")
+        for resim_flag in ((), ("--resim",)):
+            done = cli("replay", *resim_flag, log, cwd=tmp_path)
+            assert done.returncode == (1 if diverges else 0), done.stdout + done.stderr
+            assert done.stderr.startswith(f"warning: {change}: what the replay finds different may come from that "
+                                          "change\n"), done.stderr
+            printed = " ".join(done.stdout.split())  # rich wraps long lines
+            if diverges and not resim_flag:
+                assert f"DIVERGED: 9 of 10 replayed steps differ; {change}. First: scale.y at tick t=0.1" in printed, \
+                    done.stdout
+            elif diverges:
+                assert "DIVERGED: " in printed and f" {change}, which may be why" in printed, done.stdout
+            else:
+                assert "identical" in done.stdout, done.stdout
 
 
 def test_replay_from_another_directory_finds_the_flow_classes(tmp_path):

@@ -50,12 +50,12 @@ def dora_command() -> str:
     found = str(beside) if beside.is_file() else shutil.which("dora")
     if found is None:
         raise BackendError("the dora backend needs dora's runtime, which is not installed\n"
-                           "    hint: pip install 'retriever[dora]' (the dora-rs and dora-rs-cli packages)")
+                           "    hint: pip install 'retriever-robotics[dora]' (the dora-rs and dora-rs-cli packages)")
     try:
         import dora  # noqa: F401  (the workers' node API)
     except ImportError:
         raise BackendError("the dora backend needs dora's Python node API (the dora-rs package), which is not "
-                           "installed\n    hint: pip install 'retriever[dora]'") from None
+                           "installed\n    hint: pip install 'retriever-robotics[dora]'") from None
     return found
 
 

@@ -1,4 +1,4 @@
-"""The real-time backend over Eclipse Zenoh (DESIGN.md §5, §7): one OS process per flow.
+"""The real-time backend over Eclipse Zenoh (docs/realtime.md): one OS process per flow.
 
     wire.py         key space and msgpack envelopes
     access.py       who may join a run (Zenoh authentication, TLS) and what a watcher may do (access control)

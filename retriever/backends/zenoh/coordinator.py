@@ -1,4 +1,4 @@
-"""The coordinator of a real-time run on Zenoh: the embedded default (DESIGN.md §5, §7).
+"""The coordinator of a real-time run on Zenoh: the embedded default (docs/realtime.md).
 
     pipe.run(duration=10, backend="zenoh")
         │ open the hub (tcp/127.0.0.1:7447, else a free port), write SPEC.json (IR + python path)
@@ -962,6 +962,10 @@ class Coordinator(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         return self._stats
+
+    def produced_counts(self) -> dict[tuple[str, str], int]:
+        # from the step records' produced ids, which every run reports whatever it keeps
+        return {key: seq + 1 for key, seq in self._max_seq.items()}
 
 
 def _ticks_due(clock, end_ns: int) -> int:

@@ -84,7 +84,10 @@ STOP_CHECK_S = 0.5
 #: worker's ctl/<name> may be one of them
 RESERVED_NAMES = ("run", "start")
 CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease",
-               "tls_ca", "tls_cert", "tls_key")
+               "tls_ca", "tls_cert", "tls_key", "code_mismatch")
+#: what a worker does with a node whose module's file here differs from the coordinator's (the
+#: IR's sha256): refuse to run it (the default), or run it and warn
+CODE_MISMATCH = ("refuse", "warn")
 #: where a worker with TLS listens unless told: DEFAULT_LISTEN, over TLS
 DEFAULT_TLS_LISTEN = "tls/0.0.0.0:7447"
 #: the bounds of --lease, seconds: how long a link that went silent (a partition) is kept
@@ -112,6 +115,7 @@ class WorkerSettings:
     insecure: bool = False
     lease: float | None = None  # seconds; None: Zenoh's (10 s)
     tls: TlsFiles | None = None  # mutual TLS on every link (access.TlsFiles)
+    code_mismatch: str = "refuse"  # CODE_MISMATCH
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
@@ -200,11 +204,14 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
     lease = values.get("lease")
     if lease is not None and (type(lease) not in (int, float) or not LEASE_RANGE[0] <= lease <= LEASE_RANGE[1]):
         problems.append(f"'lease' must be seconds from {LEASE_RANGE[0]:g} to {LEASE_RANGE[1]:g}, got {lease!r:.60}")
+    code_mismatch = values.get("code_mismatch", "refuse")
+    if code_mismatch not in CODE_MISMATCH:
+        problems.append(f"'code_mismatch' must be one of {', '.join(CODE_MISMATCH)}, got {code_mismatch!r:.60}")
     if problems:
         return None
     return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
                           None if secret is None else str(secret), insecure,
-                          None if lease is None else float(lease), tls)
+                          None if lease is None else float(lease), tls, code_mismatch)
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
@@ -338,7 +345,7 @@ class WorkerDaemon:
                                access=RunAccess.create(settings.namespace, read_secret(settings.secret))
                                if settings.secret is not None else None,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
-                               tls=settings.tls, lease=settings.lease)
+                               tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch)
         #: op -> handler(args) -> answer
         self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
 
@@ -500,6 +507,8 @@ def _start_line(settings: WorkerSettings) -> str:
         parts.append(f"connecting to {', '.join(settings.connect)}")
     parts.append(f"labels {', '.join(settings.labels) or '(none)'}")
     parts.append(f"flows from {', '.join(allowed)}")
+    if settings.code_mismatch == "warn":
+        parts.append("code that differs from the coordinator's: warned of, run")
     return "; ".join(parts)
 
 

@@ -1,4 +1,4 @@
-"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (DESIGN.md §7).
+"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (docs/deploy.md).
 
     retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
         │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
@@ -28,6 +28,7 @@ import zenoh
 
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
+from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
@@ -138,13 +139,23 @@ class Deployment(Coordinator):
         # the token first: a worker prepares a run only while its coordinator's token is there
         self._token = self._hub.liveliness().declare_token(self.keys.deployment())
         for name in sorted(set(self.placed.values())):
+            differences = package_differences(package_versions(), self.workers[name].get("packages"))
+            if differences:
+                print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
+                      f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
             host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
-            host.prepare(self._remote_spec(), sorted(n for n, w in self.placed.items() if w == name))
+            self._say_warnings(name, host.prepare(self._remote_spec(),
+                                                  sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
         self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), weak_callback(self._answer)))
         self._subscribers.append(self._hub.liveliness().declare_subscriber(
             self.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
+
+    @staticmethod
+    def _say_warnings(name: str, warnings: list[str]) -> None:
+        for warning in warnings:
+            print(f"retriever: warning: worker '{name}' runs {warning}", file=sys.stderr, flush=True)
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
@@ -308,7 +319,8 @@ class Deployment(Coordinator):
             remote = self._remotes.get(name)
             if remote is None:
                 remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
-            remote.prepare(self._remote_spec(), sorted(n for n, w in targets.items() if w == name))
+            self._say_warnings(name, remote.prepare(self._remote_spec(),
+                                                    sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
                   file=sys.stderr, flush=True)
@@ -358,6 +370,15 @@ class Deployment(Coordinator):
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+
+
+def package_differences(ours: dict[str, str], theirs: object) -> list[str]:
+    """``numpy 2.4.6 here, 2.3.0 there`` for each package of ``ours`` that a worker's info
+    (``theirs``, as it answered) has in another version."""
+    if not isinstance(theirs, dict):
+        return []
+    return [f"{name} {version} here, {theirs[name]:.40} there" for name, version in sorted(ours.items())
+            if isinstance(theirs.get(name), str) and theirs[name] != version]
 
 
 def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False,

@@ -1,4 +1,4 @@
-"""One node's real-time loop, inside its worker process (DESIGN.md §3, §5).
+"""One node's real-time loop, inside its worker process (docs/semantics.md, docs/realtime.md).
 
     subscriber threads ──(key, bytes)──▶ inbox ──▶ main thread: decode, insert into PortBuffers,
             │                                     advance producer frontiers, schedule trigger ticks
@@ -271,7 +271,7 @@ class NodeLoop:
         self.counts = Counter()  # garbage, late, incomplete, overrun, deadline_miss, report_waits, ...
         self.ask_after: dict[str, int] = {}  # producer -> when it may be asked for its frontier again
         self.last_stamp = 0  # ASAP: the last tick's output tag; each tick's is later
-        # On an instantaneous cycle (DESIGN.md §3 Causality) an ASAP output of a tick at (t, m) is
+        # On an instantaneous cycle (docs/semantics.md, Causality) an ASAP output of a tick at (t, m) is
         # stamped (HLC, m + 1): time moves on at every hop in real time, so the microstep is what
         # counts the hops of one instant, and past max_microsteps an output that would trigger
         # another tick (on one of instant_ports) stops the run, as in-process (a Zeno loop).

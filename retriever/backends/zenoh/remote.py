@@ -97,13 +97,18 @@ class RemoteHost(Host):
         raise BackendError(f"worker '{self.name}' did not answer {op} within {REQUEST_TIMEOUT_S:g} s"
                            "\n    hint: is it still up? `retriever workers` lists the workers that are")
 
-    def prepare(self, spec: dict, nodes: Sequence[str]) -> None:
-        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run. It takes
-        a run only while the coordinator's liveliness token is up, which it may not have seen yet."""
+    def prepare(self, spec: dict, nodes: Sequence[str]) -> list[str]:
+        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run, and says
+        what it runs with a warning (code that differs from the coordinator's, --code-mismatch warn):
+        those warnings. It takes a run only while the coordinator's liveliness token is up, which
+        it may not have seen yet."""
         for attempt in range(PREPARE_TRIES):
             try:
-                self.request("prepare", {"spec": spec, "nodes": list(nodes)})
-                return
+                warnings = self.request("prepare", {"spec": spec, "nodes": list(nodes)}).get("warnings", [])
+                if type(warnings) is not list or not all(type(w) is str for w in warnings):
+                    raise BackendError(f"worker '{self.name}' answered prepare with warnings that are not a list "
+                                       "of text")
+                return warnings
             except BackendError as e:
                 if "liveliness token" not in str(e) or attempt == PREPARE_TRIES - 1:
                     raise

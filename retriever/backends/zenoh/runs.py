@@ -4,7 +4,9 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
 (daemon.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock:
 
     prepare {run, spec, nodes}   check the IR and each node's class (the allowlist, before anything
-                                 is imported), keep the spec in a private folder, made for this host
+                                 is imported) and its module's file here against the IR's sha256,
+                                 keep the spec in a private folder, made for this host: {nodes,
+                                 warnings} (a code mismatch it runs anyway, with --code-mismatch warn)
     spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
                                  does: {pid}; what it prints goes to the coordinator, and its exit
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
@@ -17,6 +19,7 @@ after COORDINATOR_GRACE_S, SIGKILL. Its worker processes die with it (PR_SET_PDE
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import select
@@ -33,6 +36,7 @@ from pathlib import Path
 
 import zenoh
 
+from ...code import code_mismatch
 from ...errors import IRError
 from ...ir import IR
 from ...rebuild import check_node
@@ -69,10 +73,12 @@ class DaemonRuns:
 
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
-                 paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None):
+                 paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None,
+                 code_mismatch: str = "refuse"):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
         self.lease = lease  # its flows' links go silent as fast as its own (a partition)
+        self.code_mismatch = code_mismatch  # daemon.CODE_MISMATCH
         self._spawner = ThreadPoolExecutor(1, thread_name_prefix="retriever-spawner")
         self.paths = [str(Path(p).resolve()) for p in paths]
         for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
@@ -105,12 +111,9 @@ class DaemonRuns:
         if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
             if spec.get("ir") != self.run.ir:
                 raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
-            problems = self._check(IR(self.run.ir, source="the run's IR"), nodes)
-            if problems:
-                raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
-                                + "\n".join(f"  - {p}" for p in problems))
+            warnings = self._checked(IR(self.run.ir, source="the run's IR"), nodes)
             self.run.nodes.update(nodes)
-            return {"nodes": sorted(self.run.nodes)}
+            return {"nodes": sorted(self.run.nodes), "warnings": warnings}
         if self.run is not None and self.run.id != run_id:
             if any(proc.poll() is None for _, proc in self.run.processes.values()):
                 raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
@@ -121,10 +124,7 @@ class DaemonRuns:
             ir = IR(ir_doc, source=f"the IR a coordinator sent worker '{self.name}'")
         except (IRError, TypeError, ValueError) as e:
             raise WireError(str(e)) from None
-        problems = self._check(ir, nodes)
-        if problems:
-            raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
-                            + "\n".join(f"  - {p}" for p in problems))
+        warnings = self._checked(ir, nodes)
         if not self._coordinator_up():
             raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "
                             f"({self.keys.deployment()}) is up: none is (its processes would never be stopped)")
@@ -136,7 +136,7 @@ class DaemonRuns:
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
-        return {"nodes": sorted(nodes)}
+        return {"nodes": sorted(nodes), "warnings": warnings}
 
     def spawn(self, args: dict) -> dict:
         run = self._run_of(args)
@@ -146,6 +146,10 @@ class DaemonRuns:
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
                                and all(type(x) is str and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
+        if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
+            mismatch = self._code_mismatch(run.ir, node)
+            if mismatch is not None:
+                raise WireError(f"worker '{self.name}' will not run {mismatch}")
         live = [pid for pid, (n, proc) in run.processes.items() if n == node and proc.poll() is None]
         if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
             raise WireError(f"node '{node}' already runs in {len(live)} processes on worker '{self.name}' "
@@ -204,10 +208,23 @@ class DaemonRuns:
     def _coordinator_seen(self, sample: zenoh.Sample) -> None:
         self._coordinators = max(0, self._coordinators + (1 if sample.kind == zenoh.SampleKind.PUT else -1))
 
-    def _check(self, ir: IR, nodes: list[str]) -> list[str]:
-        """Every problem with running ``nodes`` of ``ir`` here, before anything is imported."""
+    def _checked(self, ir: IR, nodes: list[str]) -> list[str]:
+        """The warnings of running ``nodes`` of ``ir`` here (each also on the daemon's stderr), or
+        a WireError with every problem, one a line."""
+        importlib.invalidate_caches()  # a module copied here since the last look is seen
+        problems, warnings = self._check(ir, nodes)
+        if problems:
+            raise WireError(f"worker '{self.name}' will not run {len(problems)} of its node(s):\n"
+                            + "\n".join(f"  - {p}" for p in problems))
+        for warning in warnings:
+            print(f"retriever-worker {self.name}: warning: {warning}", file=sys.stderr, flush=True)
+        return warnings
+
+    def _check(self, ir: IR, nodes: list[str]) -> tuple[list[str], list[str]]:
+        """Every problem with running ``nodes`` of ``ir`` here, before anything is imported, and
+        the warnings of the code mismatches it runs anyway (--code-mismatch warn)."""
         known = {n["id"]: n for n in ir.nodes}
-        problems = []
+        problems, warnings = [], []
         for nid in nodes:
             node = known.get(nid)
             if node is None:
@@ -220,9 +237,26 @@ class DaemonRuns:
                                 "on the worker's --path")
             elif not self.allowed(module):
                 problems.append(f"node '{nid}' ({node['type']}): {self.refusal(module)}")
-            else:
-                check_node(node, problems, ir.doc["metadata"].get("module_folders", {}))
-        return problems
+            elif check_node(node, problems, ir.doc["metadata"].get("module_folders", {})) is not None:
+                mismatch = self._code_mismatch(ir.doc, nid)
+                if mismatch is not None:
+                    (problems if self.code_mismatch == "refuse" else warnings).append(mismatch)
+        return problems, warnings
+
+    def _code_mismatch(self, ir_doc: dict, nid: str) -> str | None:
+        """How this worker's file of node ``nid``'s module differs from the one the IR (a
+        validated one, holding ``nid``) was built from, with what to do; None when it is the same,
+        or the IR has no hash of it."""
+        node_type = next(node["type"] for node in ir_doc["nodes"] if node["id"] == nid)
+        module = node_type.partition(":")[0]
+        recorded = ir_doc["metadata"].get("code_sha256", {}).get(module)
+        problem = None if recorded is None else code_mismatch(module, recorded)
+        if problem is None:
+            return None
+        fix = (f"sync {module} on worker '{self.name}' with the coordinator's copy"
+               + (", or start the worker with --code-mismatch warn to run its own copy anyway"
+                  if self.code_mismatch == "refuse" else " (it runs its own copy: --code-mismatch warn)"))
+        return f"node '{nid}': {problem}\n    hint: {fix}"
 
     def _local_spec(self, spec: dict, folder: Path) -> dict:
         """The coordinator's spec as this host runs it: its Python path, its credentials, its

@@ -1,4 +1,4 @@
-"""The Zenoh runtime's key space and message envelopes (DESIGN.md §7).
+"""The Zenoh runtime's key space and message envelopes (docs/deploy.md).
 
 Key space, under ``retriever/<namespace>/``::
 
@@ -14,7 +14,7 @@ A data message is a msgpack array of bins. The first is the *envelope*, the msgp
 ``[2, [t, m], seq, [ft, fm], producer, port, value]``: format version ``2``, the event's tag
 (``t`` in integer ns since the run's start ``T0``, microstep ``m``), its seq (per node and port,
 from 0), the producer's *frontier* after it (every later event of this producer has a tag ``≥``
-it, so a consumer's edge is complete up to any tag ``<`` it: the watermark of DESIGN.md §5), the
+it, so a consumer's edge is complete up to any tag ``<`` it: the watermark of docs/realtime.md), the
 producer node and port (as in the key), and the value in Retriever's codec (tuples, big ints,
 dataclasses and numpy scalars as msgpack extension types 2–5, see ``codec.py``). Numpy arrays
 travel *out of band*: in the value an array is extension type 6, ``[dtype descr, shape, i]``, and

@@ -189,7 +189,7 @@ def test_without_dora_installed_the_error_says_what_to_install(monkeypatch, tmp_
     monkeypatch.setattr(dora_host.sys, "executable", str(tmp_path / "python"))  # no dora beside it
     monkeypatch.setattr(dora_host.shutil, "which", lambda name: None)
     with pytest.raises(BackendError, match=r"needs dora's runtime, which is not installed\n"
-                                           r"    hint: pip install 'retriever\[dora\]'"):
+                                           r"    hint: pip install 'retriever-robotics\[dora\]'"):
         _let_chain().run(duration=1.0, backend="dora")
 
 

@@ -7,7 +7,9 @@ starts is killed by its PID at the end, and every wait is bounded.
 
 from __future__ import annotations
 
+import hashlib
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -40,9 +42,10 @@ BOUND_S = 60.0  # a bound on any wait, never a speed check
 SECRET = "a deployment secret of 32 bytes."
 
 
-def _env() -> dict[str, str]:
+def _env(first_on_path: Path | None = None) -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
-    env.update(PYTHONPATH=str(ROOT), NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1", COLUMNS="200")
+    path = os.pathsep.join(str(p) for p in (first_on_path, ROOT) if p is not None)
+    env.update(PYTHONPATH=path, NO_COLOR="1", PYTHONDONTWRITEBYTECODE="1", COLUMNS="200")
     return env
 
 
@@ -54,8 +57,9 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 class Worker:
     """A daemon process, and the lines of its stderr (read on a thread)."""
 
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT, env=_env(),
+    def __init__(self, *args: str, first_on_path: Path | None = None):
+        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT,
+                                     env=_env(first_on_path),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self.started = threading.Event()  # its start line came, or its stderr ended without one
@@ -98,8 +102,8 @@ def workers():
     """Start workers (``workers(*args)``); each is killed at the end."""
     started: list[Worker] = []
 
-    def start(*args: str) -> Worker:
-        started.append(Worker(*args))
+    def start(*args: str, first_on_path: Path | None = None) -> Worker:
+        started.append(Worker(*args, first_on_path=first_on_path))
         return started[-1]
 
     yield start
@@ -176,6 +180,27 @@ def test_retriever_workers_lists_two_daemons_with_their_labels(workers, namespac
         assert version == "0.1.0" and nodes == "-"
         assert offset.endswith(" ms") and abs(float(offset[:-3])) < 1000, offset  # one host: a sanity bound
     assert "name" in result.stdout and "clock offset" in result.stdout
+
+
+def test_daemons_that_are_not_linked_are_listed_through_a_connect_each_and_the_listing_says_so(workers, namespace):
+    """Daemons find each other only through --connect: through the first of two unlinked ones,
+    `retriever workers` lists it alone and says how the others are found; given both, both."""
+    first, second = free_port(), free_port()
+    for name, port in (("alpha", first), ("beta", second)):
+        workers("--name", name, "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
+
+    def listed(*ports: int) -> tuple[set[str], str]:
+        result = _cli("workers", *(arg for port in ports for arg in ("--connect", endpoint(port))),
+                      "--namespace", namespace, "--insecure")
+        assert result.returncode == 0, result.stderr
+        rows = {line.split("│")[1].strip() for line in result.stdout.splitlines() if line.startswith("│")}
+        return rows, result.stderr
+
+    names, err = listed(first)
+    assert names == {"alpha"}
+    assert f"(the workers linked to {endpoint(first)}: a daemon is linked to those its --connect names and those " \
+           "whose --connect names it; list the others with a --connect each)" in err, err
+    assert listed(first, second)[0] == {"alpha", "beta"}
 
 
 def test_no_workers_says_how_to_start_one(namespace):
@@ -363,6 +388,98 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
     assert worker.stop() == 0
 
 
+def test_a_worker_refuses_nodes_whose_module_differs_from_the_coordinators_or_warns_when_told(
+        workers, namespace, tmp_path):
+    """The coordinator's copy of a flow module and a worker's (its --path) differ by a line: the
+    deployment is refused before anything starts, naming each node, the module and both sha256;
+    a worker started with --code-mismatch warn runs them, and the user of deploy is warned."""
+    source = (ROOT / "tests" / "deploy" / "deploy_flows.py").read_text(encoding="utf-8")
+    ours, theirs = tmp_path / "coordinator", tmp_path / "worker"
+    for folder, line in ((ours, "# the coordinator's copy\n"), (theirs, "# a stale copy\n")):
+        folder.mkdir()
+        (folder / "drift_flows.py").write_text(source + line, encoding="utf-8")
+    run_sha, here_sha = (hashlib.sha256((f / "drift_flows.py").read_bytes()).hexdigest() for f in (ours, theirs))
+    mismatch = (f"the code of module drift_flows differs from the run's (run sha256 {run_sha}, here {here_sha} "
+                f"in {theirs / 'drift_flows.py'})")
+    for mode in ("refuse", "warn"):
+        port = free_port()
+        worker = workers("--name", f"w-{mode}", "--listen", endpoint(port), "--namespace", f"{namespace}-{mode}",
+                         "--insecure", "--path", str(theirs), *(["--code-mismatch", mode] if mode == "warn" else []))
+        worker.wait_started()
+        done = _cli("deploy", f"{ours / 'drift_flows.py'}:pipe", "--connect", endpoint(port), "--namespace",
+                    f"{namespace}-{mode}", "--insecure", "--duration", "0.5")
+        if mode == "refuse":
+            assert done.returncode == 1, done.stderr
+            assert "\nerror: worker 'w-refuse' refused prepare: worker 'w-refuse' will not run 3 of its node(s):\n" \
+                in done.stderr, done.stderr
+            for node in ("counter", "relay", "sink"):
+                assert f"  - node '{node}': {mismatch}\n" in done.stderr, done.stderr
+            assert ("hint: sync drift_flows on worker 'w-refuse' with the coordinator's copy, or start the worker "
+                    "with --code-mismatch warn to run its own copy anyway") in done.stderr, done.stderr
+            assert ask_nodes(port, f"{namespace}-{mode}", "w-refuse") == []
+        else:
+            assert done.returncode == 0, done.stderr
+            assert (f"retriever: warning: worker 'w-warn' runs node 'counter': {mismatch}\n    hint: sync drift_flows "
+                    "on worker 'w-warn' with the coordinator's copy (it runs its own copy: --code-mismatch warn)"
+                    ) in done.stderr, done.stderr
+            assert f"retriever-worker w-warn: warning: node 'counter': {mismatch}" in worker.stderr()
+        assert worker.stop() == 0
+
+
+def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prepared(workers, namespace, tmp_path):
+    """The check is made again at each spawn (a restart may come long after prepare)."""
+    module = tmp_path / "drift_flows.py"
+    module.write_text((ROOT / "tests" / "deploy" / "deploy_flows.py").read_text(encoding="utf-8"), encoding="utf-8")
+    doc = _ir_doc()
+    for node in doc["nodes"]:
+        node["type"] = node["type"].replace("deploy_flows:", "drift_flows:")
+    run_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+    doc["metadata"]["code_sha256"] = {"drift_flows": run_sha}
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(tmp_path)).wait_started()
+    with _client(port) as session:
+        token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator
+        args = {"run": "r1", "spec": {"ir": doc, "namespace": namespace, "hub": endpoint(port)}, "nodes": ["counter"]}
+        assert _until_token_seen(lambda: ask(session, namespace, "w", "prepare", args)) == {
+            "nodes": ["counter"], "warnings": []}
+        module.write_text(module.read_text(encoding="utf-8") + "# edited\n", encoding="utf-8")
+        here_sha = hashlib.sha256(module.read_bytes()).hexdigest()
+        with pytest.raises(WorkerError, match=re.escape(
+                f"worker 'w' will not run node 'counter': the code of module drift_flows differs from the run's "
+                f"(run sha256 {run_sha}, here {here_sha} in {module})")):
+            ask(session, namespace, "w", "spawn", {"run": "r1", "node": "counter", "mode": []})
+        assert ask(session, namespace, "w", "info")["nodes"] == []
+        ask(session, namespace, "w", "end", {"run": "r1"})
+        token.undeclare()
+    assert worker.stop() == 0
+
+
+def test_a_deployment_warns_of_a_worker_with_other_versions_of_the_runs_packages(workers, namespace, tmp_path):
+    """A worker whose Python finds msgpack's metadata in another version first: the deploy runs,
+    and says which package differs, in which versions."""
+    from importlib.metadata import version
+
+    (tmp_path / "msgpack-0.0.1.dist-info").mkdir()
+    (tmp_path / "msgpack-0.0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: msgpack\n"
+                                                                     "Version: 0.0.1\n")
+    port = free_port()
+    worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(ROOT / "tests" / "deploy"), first_on_path=tmp_path).wait_started()
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--connect", endpoint(port), "--namespace", namespace,
+                "--insecure", "--duration", "0.5")
+    assert done.returncode == 0, done.stderr
+    assert (f"retriever: warning: worker 'w' has other versions of the run's packages than this machine: "
+            f"msgpack {version('msgpack')} here, 0.0.1 there\n") in done.stderr, done.stderr
+    assert worker.stop() == 0
+
+
+def ask_nodes(port: int, namespace: str, name: str) -> list[str]:
+    """The nodes whose processes a worker runs now."""
+    with _client(port) as session:
+        return ask(session, namespace, name, "info")["nodes"]
+
+
 def _segments(pid: int) -> set[str]:
     with open(f"/proc/{pid}/maps", encoding="utf-8", errors="replace") as maps:
         return {line.rsplit(None, 1)[-1] for line in maps if line.rstrip().endswith(".zenoh")}
@@ -394,7 +511,8 @@ def test_flags_override_the_config_file(tmp_path):
            ("arm-1", ("gpu", "arm"), ("tcp/0.0.0.0:7448",), (), "lab")
     # relative paths are the file's folder's, wherever the worker starts
     assert settings.path == (str(tmp_path / "flows"),) and settings.secret == str(tmp_path / "worker.secret")
-    assert (settings.allow, settings.insecure) == (("mylab.*",), False)
+    assert (settings.allow, settings.insecure, settings.code_mismatch) == (("mylab.*",), False, "refuse")
+    assert load_settings(config, code_mismatch="warn").code_mismatch == "warn"
     flagged = load_settings(config, name="arm-2", labels="cpu", connect=["tcp/10.0.0.1:7447"], insecure=True)
     assert (flagged.name, flagged.labels, flagged.connect) == ("arm-2", ("cpu",), ("tcp/10.0.0.1:7447",))
     assert (flagged.secret, flagged.insecure) == (None, True), "a flag's --insecure replaces the file's secret"
@@ -404,7 +522,8 @@ def test_flags_override_the_config_file(tmp_path):
 
 def test_a_config_file_with_unknown_keys_or_wrong_values_is_refused(tmp_path):
     config = tmp_path / "worker.toml"
-    config.write_text('nmae = "arm-1"\nlabels = "gpu,arm"\nlisten = [7447]\ninsecure = "yes"\npath = ["nowhere"]\n')
+    config.write_text('nmae = "arm-1"\nlabels = "gpu,arm"\nlisten = [7447]\ninsecure = "yes"\npath = ["nowhere"]\n'
+                      'code_mismatch = "ignore"\n')
     with pytest.raises(WorkerError) as refused:
         load_settings(config)
     assert str(refused.value) == (
@@ -413,7 +532,8 @@ def test_a_config_file_with_unknown_keys_or_wrong_values_is_refused(tmp_path):
         "  - a worker needs a name: --name NAME (or name = \"...\" in --config)\n"
         "  - 'listen' must be a list of strings, got [7447]\n"
         f"  - --path {tmp_path / 'nowhere'}: no such directory\n"
-        "  - 'insecure' must be true or false, got 'yes'")
+        "  - 'insecure' must be true or false, got 'yes'\n"
+        "  - 'code_mismatch' must be one of refuse, warn, got 'ignore'")
     config.write_text('name = "w"\nlabels = "gpu, arm"\n')
     assert load_settings(config).labels == ("gpu", "arm"), "labels as in --labels"
     with pytest.raises(WorkerError, match=r"a worker may not be named 'start': ctl/start is a run's own key"):

@@ -1,4 +1,4 @@
-"""One process per flow (DESIGN.md §7): a flow burning CPU does not hold up the others' ticks.
+"""One process per flow (docs/deploy.md): a flow burning CPU does not hold up the others' ticks.
 
 In one process, a 90 ms pure-Python step would hold the GIL and every other flow's tick would
 wait for it. On the zenoh backend the steady flow runs in its own process: it makes every tick,

@@ -1,4 +1,4 @@
-"""Real-time semantics of the Zenoh backend (DESIGN.md §3 time, §4 sync, §5 real time).
+"""Real-time semantics of the Zenoh backend (docs/semantics.md: time, sync; docs/realtime.md).
 
 Every test is a real run (0.5–2 s of pipeline time, one worker process per flow) observed only
 through what the runtime reports: the trace (events and step records), ``pipe.counts()`` and
@@ -905,7 +905,7 @@ def test_a_consumer_frozen_for_a_moment_still_gets_every_event():
 
 
 # =============================================================================================
-# 6. Zeno loops (DESIGN.md §3 Causality)
+# 6. Zeno loops (docs/semantics.md, Causality)
 # =============================================================================================
 def test_a_zeno_loop_stops_the_run_with_the_error_it_stops_with_in_process():
     """monitor ⇄ policy, both zero-latency triggers, never stop: in-process the instant runs past

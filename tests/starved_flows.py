@@ -1,0 +1,37 @@
+"""Flows for tests/test_starved.py: a camera whose step returns its frame under a misspelled key
+(from a variable, so nothing can read the key before the run), a policy and a controller. Module
+level, so that the zenoh workers can rebuild them from the IR."""
+
+from __future__ import annotations
+
+from retriever import Flow, Pipeline, Rate
+
+
+class MisspeltCamera(Flow):
+    def step(self):
+        out = {"imgae": 1.0}
+        return out
+
+
+class Camera(Flow):
+    def step(self):
+        return {"image": 1.0}
+
+
+class Policy(Flow):
+    def step(self, image):
+        return {"chunk": image}
+
+
+class Controller(Flow):
+    def step(self, chunk):
+        return None
+
+
+def camera_policy_controller(camera: Flow) -> Pipeline:
+    with Pipeline("agent", deadline=1.0) as pipe:
+        cam = camera.configure(name="cam") @ Rate(hz=10)
+        pol = Policy().configure(name="policy") @ Rate(hz=5)
+        ctrl = Controller().configure(name="controller") @ Rate(hz=20)
+        cam.then(pol).then(ctrl)
+    return pipe
