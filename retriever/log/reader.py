@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
@@ -59,6 +59,7 @@ class RunLog:
     """Everything one log file holds, in file order."""
 
     path: Path
+    profile: str = ""  # the header's: "retriever" for a Retriever log
     channels: dict[int, LogChannel] = field(default_factory=dict)
     schemas: dict[int, Schema] = field(default_factory=dict)
     attachments: dict[str, Attachment] = field(default_factory=dict)
@@ -396,6 +397,8 @@ def _take(log: RunLog, record: Any) -> None:
         log.attachments[record.name] = record
     elif isinstance(record, Metadata):
         log.metadata[record.name] = dict(record.metadata)
+    elif isinstance(record, Header):
+        log.profile = record.profile
     elif isinstance(record, Footer):
         log.complete = True
 

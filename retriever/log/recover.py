@@ -55,7 +55,7 @@ def recover(source: str | Path, output: str | Path | None = None, *, overwrite: 
 
 def _copy(log: RunLog, stream: BinaryIO) -> None:
     """Write the records ``log`` holds, and a ``retriever.recovered`` record, as one complete MCAP file."""
-    writer = McapWriter(stream, profile=fmt.PROFILE, library="retriever log recover")
+    writer = McapWriter(stream, profile=log.profile, library="retriever log recover")
     schema_ids = {s.id: writer.add_schema(s.name, s.encoding, s.data) for s in log.schemas.values()}
     channel_ids = {c.id: writer.add_channel(c.topic, c.message_encoding, c.metadata, schema_ids.get(c.schema_id, 0))
                    for c in log.channels.values()}

@@ -259,7 +259,7 @@ def _foreign_mcap(path: Path) -> Path:
 
     with path.open("wb") as f:
         writer = Writer(f, chunk_size=512)
-        writer.start(profile="", library="another tool")
+        writer.start(profile="robots", library="another tool")
         point = writer.register_schema("demo.Point", "jsonschema", b'{"type": "object"}')
         image = writer.register_schema("demo.Image", "protobuf", b"not really a descriptor set")
         channels = [writer.register_channel("/point", "json", point),
@@ -280,7 +280,7 @@ def test_log_info_and_recover_agree_that_a_foreign_mcap_file_is_complete(tmp_pat
     assert "incomplete" not in info.stdout
 
 
-def test_recover_keeps_schema_records(tmp_path: Path):
+def test_recover_keeps_schema_records_and_the_profile(tmp_path: Path):
     path = _foreign_mcap(tmp_path / "foreign.mcap")
     torn = cut(path, path.stat().st_size * 2 // 3, tmp_path / "torn.mcap")
     result = recover(torn)
@@ -292,7 +292,9 @@ def test_recover_keeps_schema_records(tmp_path: Path):
         "/point": ("demo.Point", "jsonschema", b'{"type": "object"}'),
         "/image": ("demo.Image", "protobuf", b"not really a descriptor set"), "/raw": None}
     with result.output.open("rb") as f:
-        summary = make_reader(f).get_summary()
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert reader.get_header().profile == "robots"
     assert summary.statistics.schema_count == 2
     assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values() if c.schema_id} == {
         "/point": "demo.Point", "/image": "demo.Image"}
