@@ -19,11 +19,10 @@ from .foxglove import dataclass_fields
 ARRAY_SHOWN_WHOLE = 16  # elements: a pose, a small matrix, a short action vector
 BRIEF_TEXT = 80  # characters of a non-array leaf in brief mode
 BRIEF_ITEMS = 8  # items of a list or tuple in brief mode
-ARRAY_MODES = ("summary", "brief", "full")
 
 
 def show_value(value: Any, arrays: str = "summary") -> str:
-    """``value`` on one line, its arrays shown as ``arrays`` says (one of :data:`ARRAY_MODES`)."""
+    """``value`` on one line, its arrays shown as ``arrays`` says: ``summary``, ``brief`` or ``full``."""
     if isinstance(value, np.ndarray):
         return _array(value, arrays)
     fields = dataclass_fields(value)
