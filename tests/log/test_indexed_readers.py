@@ -28,7 +28,7 @@ from mcap.stream_reader import breakup_chunk
 from retriever import read_log
 from retriever._loading import load_pipeline
 from retriever.log.mcap_writer import McapWriter
-from tests.log.helpers import QUICKSTART
+from tests.log.helpers import CHUNK, QUICKSTART, records
 
 HERE = Path(__file__).resolve().parent
 MCAP_JS = ("@mcap/core@2.2.2", "fzstd@0.1.1")  # the reader Foxglove's app uses, and a zstd decoder for it
@@ -166,3 +166,24 @@ def test_foxglove_s_typescript_reader_reads_many_small_chunks(mcap_js, tmp_path)
     assert read["topics"] == {topic: sum(1 for m in messages if m[0] == channel)
                               for channel, topic in ((1, "a"), (2, "b"), (3, "c"))}
     assert read["times"] == sorted(m[1] for m in messages)
+
+
+def test_in_a_killed_log_each_whole_chunk_is_followed_by_its_message_indexes(tmp_path):
+    """What a recovering importer (Rerun's ``mcap convert --recover``) reads of a log whose writer
+    was killed: no summary, so each chunk's own MessageIndex records, right after it."""
+    path = tmp_path / "small_chunks.mcap"
+    _small_chunks_log(path)
+    data = path.read_bytes()[:path.stat().st_size // 2]
+    whole = [(opcode, offset, length) for opcode, offset, length in records(data) if offset + 9 + length <= len(data)]
+    chunks = [i for i, (opcode, _, _) in enumerate(whole) if opcode == CHUNK]
+    assert len(chunks) > 5
+    for i in chunks[:-1]:
+        chunk = Chunk.read(ReadDataStream(io.BytesIO(data[whole[i][1] + 9:])))
+        channels = {m.channel_id for m in breakup_chunk(chunk)}
+        following = []
+        for opcode, offset, _ in whole[i + 1:]:
+            if opcode != 0x07:
+                break
+            following.append(MessageIndex.read(ReadDataStream(io.BytesIO(data[offset + 9:]))))
+        assert {index.channel_id for index in following} == channels
+        assert sum(len(index.records) for index in following) == len(breakup_chunk(chunk))
