@@ -1,4 +1,4 @@
-"""The MCAP event log: the system of record of a run (DESIGN.md §8).
+"""The MCAP event log: the system of record of a run (docs/log.md).
 
     pipe.run(duration=10, log="run.mcap")      # write
     log = read_log("run.mcap")                 # read: log.ir, log.run, log.trace(), ...

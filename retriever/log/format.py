@@ -1,4 +1,4 @@
-"""What a Retriever log holds and how each record is encoded (DESIGN.md §8).
+"""What a Retriever log holds and how each record is encoded (docs/log.md).
 
 One MCAP file per run, ``profile="retriever"``:
 
