@@ -82,8 +82,12 @@ def rate_table(episode: Episode) -> tuple[tuple[str, ...], list[tuple[str, ...]]
     rated = [r for r in episode.rates if r.hz]
     real_time = any(r.late_p99_ms is not None for r in rated)
     rows = [(r.node, f"{r.hz:g}", f"{r.achieved_hz:.1f}")
-            + ((f"{r.late_p99_ms:.1f}", str(r.behind), str(r.missed)) if real_time else ()) for r in rated]
+            + ((_ms(r.late_p99_ms), str(r.behind), str(r.missed)) if real_time else ()) for r in rated]
     return RATE_COLUMNS + (LATENESS_COLUMNS if real_time else ()), rows
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"  # None: no tick of it stepped (an episode that ended early)
 
 
 def rate_notes(episode: Episode, backend: str) -> list[str]:

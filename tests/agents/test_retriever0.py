@@ -189,3 +189,14 @@ def test_a_demo_stopped_by_sigterm_exits_143_and_its_log_replays(tmp_path):
     assert "interrupted; the episode so far is in run.mcap" in err and "Traceback" not in err, err
     again = run_cli("replay", "run.mcap", cwd=tmp_path)
     assert again.returncode == 0 and "identical" in again.stdout, again.stdout + again.stderr
+
+
+def test_the_rates_table_of_a_real_time_episode_that_ended_before_a_flow_stepped():
+    """A real-time episode the monitor gave up early: a flow on a Rate whose ticks all skipped has
+    no lateness (None); the table says '-' (it raised a TypeError, and the demo lost its pictures)."""
+    from agents.episode import Episode, FlowRate
+
+    rates = [FlowRate("world", 200.0, 600, 199.8, 0.4, 0, 0), FlowRate("skill", 2.0, 0, 0.0, None, 0, 0)]
+    episode = Episode([], 0.0, 0.0, {}, False, 0, 0, 3.0, "gave up", {}, [], rates)
+    columns, rows = rate_table(episode)
+    assert len(columns) == 6 and rows[1] == ("skill", "2", "0.0", "-", "0", "0")
