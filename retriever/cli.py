@@ -421,6 +421,8 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
         recorded = _identity(log) not in (None, before)
         if pipe._session is not None:  # what ran until the interrupt, as at the end of a run
             _summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
+            for line in pipe.starved():
+                _err.print(f"warning: pipeline '{pipe.name}': {line}", highlight=False, markup=False)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
         # during a logged run the pipeline's own handler took the signal (it stops between ticks)
         signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT

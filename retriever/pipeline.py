@@ -274,7 +274,7 @@ class Pipeline:
             if session is not None:
                 session.stop_requested = False  # asked as a run ended by itself: not the next one's
         _forget(session)
-        for line in starved_flows(session.graph, session.stats(), session.produced_counts()):
+        for line in self.starved():
             warnings.warn(f"pipeline '{self.name}': {line}", StarvedFlowWarning, stacklevel=_user_stacklevel())
         return session.trace
 
@@ -315,6 +315,14 @@ class Pipeline:
         """Per-node counters of the current run: ticks, steps, skips, errors, mean step time, and
         what a real-time backend counted for the node (``.counts``, see :meth:`counts`)."""
         return {} if self._session is None else self._session.stats()
+
+    def starved(self) -> list[str]:
+        """What the current run's counters say a miswired port starved: each flow that skipped
+        (nearly) every tick, or never ticked, for an input that never had an event, and each edge
+        a typo left empty (see :mod:`retriever.starved`). ``run`` warns with these at its end."""
+        if self._session is None:
+            return []
+        return starved_flows(self._session.graph, self._session.stats(), self._session.produced_counts())
 
     def counts(self) -> dict[str, int]:
         """What the current run counted, summed over its nodes (and the coordinator): events that

@@ -1,10 +1,16 @@
-"""After a run: the flows that skipped every tick, or most of them, and the input that starved them.
+"""After a run: the flows that a miswired port starved, and the edges that carried nothing.
 
 A misspelled port wires nothing: the producer's events go to a port nobody reads and the consumer
-skips every tick for want of its input, yet the run ends with exit 0. ``starved_flows`` reads a
-run's counters (no records needed, so it works for ``keep="counters"`` and on every backend) and
-says, for each such flow, which required input never had an event and which edge should have
-brought it. ``Pipeline.run`` warns with it (:class:`~retriever.errors.StarvedFlowWarning`).
+skips every tick for want of its input (or, clocked by a Trigger, never ticks; or, the port
+being optional, steps without it), yet the run ends with exit 0. ``starved_flows`` reads a run's
+counters (no records needed, so it works for ``keep="counters"`` and on every backend) and names
+each such flow and edge. ``Pipeline.run`` warns with it (:class:`~retriever.errors.StarvedFlowWarning`).
+
+What marks a typo, rather than a sparse output that happened not to fire (an alarm), is that the
+producer made events on a port that no edge reads while an edge from it waited on a port it
+never made. A flow that skipped (nearly) every one of enough ticks for another reason is named
+too, with where to look; a cause upstream is named where it starts, and downstream only as
+"X never stepped" when X itself was named.
 """
 
 from __future__ import annotations
@@ -13,45 +19,113 @@ from typing import TYPE_CHECKING, Mapping
 
 if TYPE_CHECKING:
     from .backends.base import NodeStats
-    from .graph import Graph
+    from .graph import Edge, Graph
+
+#: fewer ticks than this say too little to warn about a flow that skipped them (a short run's
+#: first ticks may come before anything upstream produced)
+MIN_TICKS = 3
 
 
 def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
                   produced: Mapping[tuple[str, str], int] | None) -> list[str]:
-    """One line per flow that skipped more than half of its ticks because a required input never
-    had an event, or that skipped every tick for any reason. ``produced``: how many events each
-    ``(node, port)`` produced in the run (None: the backend cannot say; then only flows that
-    never stepped are named, without a cause)."""
+    """One line per flow a run starved and per edge that carried no event for a typo's reason.
+    ``produced``: how many events each ``(node, port)`` made (None: the backend cannot say; then
+    only flows that never stepped in enough ticks are named, without a cause)."""
+    produced = produced or {}
+    read = {(e.src, e.src_port) for e in graph.edges}
+    unread = {node: sorted(port for (n, port), count in produced.items() if n == node and count and (n, port) not in read)
+              for node in graph.nodes}
+    named: set[str] = set()
+    explained: set[tuple[str, str]] = set()  # (consumer, port) pairs a line already explains
     lines = []
-    for node_id, node in graph.nodes.items():
-        s = stats.get(node_id)
-        if s is None or s.ticks == 0 or s.skips * 2 <= s.ticks:
+    for node_id in _upstream_first(graph):
+        node, s = graph.nodes[node_id], stats.get(node_id)
+        if s is None:
+            continue
+        into = {port: [e for e in graph.edges if e.dst == node_id and e.dst_port == port] for port in node.inputs}
+        if s.ticks == 0:
+            clock = node.settings.clock
+            watched = [p for p in (clock.trigger_ports or tuple(node.inputs))] if clock is not None else []
+            if clock is None or clock.hz is not None or not watched or not any(into[p] for p in watched):
+                continue  # a source, a Rate clock, or nothing feeds it (build_ir warned)
+            causes = [_never_had(port, into[port], stats, unread, named) for port in watched if into[port]]
+            if all(causes):
+                lines.append(f"{node_id} never ticked: its trigger input {', and '.join(causes)}")
+                named.add(node_id)
+                explained.update((node_id, p) for p in watched)
+            continue
+        if s.ticks < MIN_TICKS or s.skips * 2 <= s.ticks:
             continue
         causes = []
         for port, spec in node.inputs.items():
             if not spec.required:
                 continue
-            edges = [e for e in graph.edges if e.dst == node_id and e.dst_port == port]
-            if not edges:
+            if not into[port]:
                 causes.append(f"input '{port}' has no incoming edge")
-            elif produced is not None and not any(produced.get((e.src, e.src_port), 0) for e in edges):
-                why = "; ".join(_why(e, graph, stats, produced) for e in edges)
-                causes.append(f"input '{port}' never had an event ({why})")
+            elif (cause := _never_had(port, into[port], stats, unread, named)) is not None:
+                causes.append(f"input {cause}")
+                explained.add((node_id, port))
         head = f"{node_id} stepped {s.steps} of {s.ticks} ticks"
         if causes:
             lines.append(f"{head}: {', and '.join(causes)}")
-        elif s.steps == 0:
+            named.add(node_id)
+        elif s.steps == 0 and not any(_quiet(edges, produced) for edges in into.values()):
             lines.append(f"{head}: every tick was skipped, each for a missing input\n"
                          f"    hint: its step records name the port (trace.steps_of('{node_id}'), or "
                          "retriever log cat LOG --steps)")
+            named.add(node_id)
+    for e in graph.edges:  # an edge a typo left empty, into a port something else fed or that is optional
+        if (e.dst, e.dst_port) not in explained and not produced.get((e.src, e.src_port)) and unread[e.src]:
+            lines.append(f"edge {e.src} → {e.dst} carried no event: {e.src} never produced '{e.src_port}', "
+                         f"and produced {_listed(unread[e.src])}, which no edge reads")
     return lines
 
 
-def _why(edge, graph: "Graph", stats: Mapping[str, "NodeStats"], produced: Mapping[tuple[str, str], int]) -> str:
-    upstream = stats.get(edge.src)
-    if upstream is not None and upstream.steps == 0:
-        return f"edge {edge.src} → {edge.dst}, {edge.src} never stepped"
-    read = {e.src_port for e in graph.edges if e.src == edge.src}
-    unread = sorted(port for (node, port), n in produced.items() if node == edge.src and n and port not in read)
-    also = f"; {edge.src} produced {', '.join(repr(p) for p in unread)}, which no edge reads" if unread else ""
-    return f"edge {edge.src} → {edge.dst}, output '{edge.src_port}' was never produced{also}"
+def _never_had(port: str, edges: list["Edge"], stats, unread: dict[str, list[str]], named: set[str]) -> str | None:
+    """Why ``port`` never had an event, if every edge into it is explained by a typo upstream or
+    by a producer that was itself named as starved; else None."""
+    whys = []
+    for e in edges:
+        upstream = stats.get(e.src)
+        if upstream is not None and upstream.steps == 0 and e.src in named:
+            whys.append(f"edge {e.src} → {e.dst}, {e.src} never stepped")
+        elif unread[e.src]:
+            whys.append(f"edge {e.src} → {e.dst}, output '{e.src_port}' was never produced; {e.src} produced "
+                        f"{_listed(unread[e.src])}, which no edge reads")
+        else:
+            return None
+    return f"'{port}' never had an event ({'; '.join(whys)})"
+
+
+def _quiet(edges: list["Edge"], produced: Mapping[tuple[str, str], int]) -> bool:
+    """Whether the producers into one port made no event there (a sparse output that did not
+    fire, or one that only a typo explains: either way not a reason to guess)."""
+    return bool(edges) and not any(produced.get((e.src, e.src_port)) for e in edges)
+
+
+def _listed(ports: list[str]) -> str:
+    return ", ".join(repr(p) for p in ports)
+
+
+def _upstream_first(graph: "Graph") -> list[str]:
+    """The nodes, each after the nodes that feed it where a cycle does not forbid it: a starved
+    producer is named before its consumers, which then say it never stepped."""
+    feeds: dict[str, list[str]] = {node: [] for node in graph.nodes}
+    for e in graph.edges:
+        feeds[e.dst].append(e.src)
+    order: list[str] = []
+    placed: set[str] = set()
+    for root in graph.nodes:
+        stack, entered = [(root, iter(feeds[root]))], {root}
+        while stack:
+            node, producers = stack[-1]
+            producer = next(producers, None)
+            if producer is None:
+                stack.pop()
+                if node not in placed:
+                    placed.add(node)
+                    order.append(node)
+            elif producer not in placed and producer not in entered:
+                entered.add(producer)
+                stack.append((producer, iter(feeds[producer])))
+    return order

@@ -13,6 +13,19 @@ class MisspeltCamera(Flow):
         return out
 
 
+class InterruptedCamera(MisspeltCamera):
+    """Ctrl-C, as its 21st step: a run interrupted at a tick a test can name."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        if self.k == 21:
+            raise KeyboardInterrupt
+        return super().step()
+
+
 class Camera(Flow):
     def step(self):
         return {"image": 1.0}

@@ -8,7 +8,9 @@ import warnings
 
 import pytest
 
-from retriever import Flow, Pipeline, Rate, StarvedFlowWarning
+from typing import Optional
+
+from retriever import ActionChunking, Flow, LatestDistinct, Pipeline, Rate, StarvedFlowWarning, Trigger
 
 from .starved_flows import Camera, MisspeltCamera, camera_policy_controller
 from .test_cli import cli, write
@@ -77,3 +79,94 @@ def test_the_cli_prints_the_warning_under_the_run_table(tmp_path):
     assert re.fullmatch("warning: " + POLICY_STARVED, lines[0]), result.stderr
     assert re.fullmatch("warning: " + CONTROLLER_STARVED, lines[1]), result.stderr
     assert "policy " in result.stdout  # the table came first, on stdout
+
+
+class _Misspelt(Flow):
+    def step(self):
+        out = {"imgae": 1.0}
+        return out
+
+
+class _Good(Flow):
+    def step(self):
+        out = {"image": 2.0}
+        return out
+
+
+def test_a_trigger_clocked_consumer_that_never_ticked_for_a_misspelled_port_is_named():
+    class Viewer(Flow):
+        def step(self, image):
+            return None
+
+    with Pipeline("p") as pipe:
+        (_Misspelt().configure(name="cam") @ Rate(hz=10)).then(Viewer() @ Trigger("image"))
+    with pytest.warns(StarvedFlowWarning, match=r"^pipeline 'p': viewer never ticked: its trigger input 'image' never "
+                                                r"had an event \(edge cam → viewer, output 'image' was never produced; "
+                                                r"cam produced 'imgae', which no edge reads\)$"):
+        pipe.run(duration=1.0)
+
+
+def test_an_edge_a_typo_left_empty_is_named_in_a_fan_in_and_into_an_optional_port():
+    class Fuser(Flow):
+        def step(self, image):
+            return None
+
+    class Optional_(Flow):
+        def step(self, image: Optional[float] = None):
+            return None
+
+    with Pipeline("p") as pipe:
+        bad, good = _Misspelt().configure(name="bad") @ Rate(hz=10), _Good().configure(name="good") @ Rate(hz=10)
+        fuser = Fuser() @ Rate(hz=10)
+        bad.then(fuser)
+        good.then(fuser)
+        bad.then(Optional_().configure(name="optional") @ Rate(hz=10))
+    with pytest.warns(StarvedFlowWarning) as record:
+        pipe.run(duration=1.0)
+    assert _starved(record) == [
+        "pipeline 'p': edge bad → fuser carried no event: bad never produced 'image', and produced 'imgae', which no "
+        "edge reads",
+        "pipeline 'p': edge bad → optional carried no event: bad never produced 'image', and produced 'imgae', which "
+        "no edge reads"]
+
+
+def test_no_warning_for_a_short_run_a_sparse_output_or_a_consumer_that_skips_by_design():
+    class Camera(Flow):
+        def step(self):
+            return {"image": 1.0}
+
+    class Alarm(Flow):
+        def step(self, image):
+            return None if image < 2 else {"alarm": True}  # never fires in this run
+
+    class Siren(Flow):
+        def step(self, alarm):
+            return None
+
+    class Policy(Flow):
+        def step(self, image):
+            return {"chunk": [image]}
+
+    class Controller(Flow):
+        def step(self, chunk):
+            return None
+
+    with Pipeline("p") as pipe:
+        cam = Camera() @ Rate(hz=30)
+        cam.then(Alarm() @ Rate(hz=30)).then(Siren() @ Rate(hz=10), sync=LatestDistinct())
+        cam.then(Policy().configure(latency=0.3) @ Rate(hz=2)).then(Controller() @ Rate(hz=200),
+                                                                      sync=ActionChunking())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", StarvedFlowWarning)
+        pipe.run(duration=0.5)  # the policy's one tick came before any frame: nothing to say yet
+        pipe.run(duration=2.0)
+
+
+def test_the_cli_names_a_starved_flow_of_a_run_that_was_interrupted(tmp_path):
+    # the interrupt comes from a step (at the camera's 21st tick), where a test can place it
+    script = write(tmp_path / "agent.py", "from tests.starved_flows import InterruptedCamera, camera_policy_controller\n"
+                                          "pipe = camera_policy_controller(InterruptedCamera())\n")
+    result = cli("run", str(script), "--duration", "inf")
+    assert result.returncode == 130, result.stderr
+    assert "interrupted" in result.stderr
+    assert re.search("^warning: " + POLICY_STARVED.replace("0 of 5", "0 of 11"), result.stderr, re.M), result.stderr
