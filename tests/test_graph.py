@@ -614,3 +614,37 @@ def test_a_chunk_producer_off_the_consumers_ticks_has_every_row_run_once_and_no_
         trace = pipe.run(duration=0.1)
     assert trace.values_of("chunk_controller", "command")[:12] == [100, 101, 102, 103, 104, 105, 106, 107, 108, 109,
                                                                    200, 201]
+
+
+def _adds_extra(step):
+    def wrapper(self):  # a source's step
+        out = dict(step(self))
+        out["extra"] = 1
+        return out
+    return wrapper
+
+
+def test_the_keys_of_a_decorated_step_are_not_guessed_from_its_source():
+    import functools
+
+    def with_extra(step):
+        return functools.wraps(step)(_adds_extra(step))
+
+    class Wrapped(Flow):  # functools.wraps: getsource reads the inner step, which never returns "extra"
+        @with_extra
+        def step(self):
+            return {"image": 1.0}
+
+    class Decorated(Flow):  # a decorator without wraps: the source read is the decorated def
+        @_adds_extra
+        def step(self):
+            return {"image": 1.0}
+
+    class Sink(Flow):
+        def step(self, x):
+            return None
+
+    for source in (Wrapped, Decorated):
+        with Pipeline("p") as pipe:
+            (source() @ Rate(hz=1)).then(Sink() @ Rate(hz=1), map={"extra": "x"})
+        assert [e["source"]["port"] for e in pipe.build_ir().edges] == ["extra"]

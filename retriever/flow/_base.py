@@ -305,13 +305,17 @@ def _positional(step: Callable) -> tuple[str, ...] | None:
 
 def _returned_keys(step: Callable) -> frozenset | None:
     """The keys of the dict literals ``step`` returns, read from its source (never run): None
-    unless every ``return`` is one with constant string keys, or returns None."""
+    unless every ``return`` is one with constant string keys, or returns None, and ``step`` is
+    the function its source says (a decorator's wrapper may return what it likes; getsource
+    would read the wrapped function's source)."""
+    if hasattr(step, "__wrapped__"):
+        return None
     try:
         tree = ast.parse(textwrap.dedent(inspect.getsource(step)))
     except (OSError, TypeError, SyntaxError, ValueError):
         return None
     func = tree.body[0] if tree.body and isinstance(tree.body[0], (ast.FunctionDef, ast.AsyncFunctionDef)) else None
-    if func is None:
+    if func is None or func.decorator_list:
         return None
     keys: set[str] = set()
     returns = [node for node in ast.walk(func) if isinstance(node, ast.Return)]
