@@ -23,7 +23,7 @@ from .errors import CodecError, GraphError, Problem
 from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case
 from .ir import param_to_ir
 from .sync import ActionChunking, SyncPolicy
-from .time import seconds_to_ns
+from .time import NS_PER_S, exact_rational, seconds_to_ns
 
 if TYPE_CHECKING:
     from .ir import IR
@@ -501,25 +501,29 @@ CHUNK_PHASE_TICKS = 64
 
 def _chunks_seen_a_microstep_late(nodes: dict[str, Node], edges: list[Edge]) -> list[str]:
     """ActionChunking edges whose chunks start at an instant the consumer ticks, a microstep too
-    early to see them. A zero-latency producer ticking at (t, 0) emits at (t, 1); the consumer's
-    tick at (t, 0) still holds the previous chunk's last row, and its next tick takes row 1 of
-    the new one: row 0 is never executed. It follows from the sampling rule (docs/semantics.md) and
-    keeps each row at the time it was planned for, so it is warned of, not redefined."""
+    early to see them, and whose row 0 is then never taken. A zero-latency producer ticking at
+    (t, 0) emits at (t, 1); the consumer's tick at (t, 0) still holds the previous chunk, and its
+    next tick, at t', takes row floor((t' − t) · control_hz): 1 or more when control_hz is its
+    own rate. It follows from the sampling rule (docs/semantics.md) and keeps each row at the time
+    it was planned for, so it is warned of, not redefined."""
     found = []
     for e in edges:
         src, dst = nodes[e.src], nodes[e.dst]
-        if not isinstance(e.sync, ActionChunking) or src.settings.latency_ns or e.delay_ns:
+        if not isinstance(e.sync, ActionChunking) or e.sync.control_hz is None or src.settings.latency_ns or e.delay_ns:
             continue
+        hz = exact_rational(e.sync.control_hz)  # bound to the consumer's rate by now, or given
         made, taken = src.settings.clock, dst.settings.clock
         if not hasattr(made, "tick_time") or not hasattr(taken, "tick_time"):
             continue
         for k in range(CHUNK_PHASE_TICKS):
             t = made.tick_time(k)
-            if taken.tick_time(taken.first_tick_at_or_after(t)) == t:
+            j = taken.first_tick_at_or_after(t)
+            if taken.tick_time(j) == t and (taken.tick_time(j + 1) - t) * hz.numerator >= NS_PER_S * hz.denominator:
                 found.append(
-                    f"edge {e}: {e.src} has no latency and ticks when {e.dst} ticks (first at {t / 1e9:g} s), so "
-                    f"each chunk is emitted a microstep after the {e.dst} tick at its start: that tick still takes "
-                    f"the previous chunk, the next one row 1; row 0 of a chunk is never executed\n"
+                    f"edge {e}: {e.src} has no latency and ticks when {e.dst} ticks (first at {t / 1e9:g} s): a "
+                    f"chunk made at such a tick is emitted a microstep after the {e.dst} tick at its start, which "
+                    f"still takes the previous chunk, and the next tick takes row 1; row 0 of those chunks is never "
+                    f"executed\n"
                     f"    hint: give {e.src} a latency of one control period or more ({e.src}.configure("
                     f"latency=...)): its chunks then start at a tick of {e.dst} that sees them")
                 break

@@ -598,8 +598,8 @@ def _chunked(latency: float = 0.0, offset: float = 0.0) -> Pipeline:
 def test_a_zero_latency_chunk_producer_on_the_consumers_ticks_is_warned_of_and_its_row_0_is_never_run():
     pipe = _chunked()
     with pytest.warns(RetrieverWarning, match=r"edge chunk_policy.chunk → chunk_controller.chunk: chunk_policy has no "
-                                              r"latency and ticks when chunk_controller ticks \(first at 0 s\), .*row 0 "
-                                              r"of a chunk is never executed\n    hint: give chunk_policy a latency of "
+                                              r"latency and ticks when chunk_controller ticks \(first at 0 s\): .*row 0 "
+                                              r"of those chunks is never executed\n    hint: give chunk_policy a latency of "
                                               r"one control period or more"):
         trace = pipe.run(duration=0.1)
     assert trace.values_of("chunk_controller", "command")[:12] == [101, 102, 103, 104, 105, 106, 107, 108, 109, 109,
@@ -648,3 +648,13 @@ def test_the_keys_of_a_decorated_step_are_not_guessed_from_its_source():
         with Pipeline("p") as pipe:
             (source() @ Rate(hz=1)).then(Sink() @ Rate(hz=1), map={"extra": "x"})
         assert [e["source"]["port"] for e in pipe.build_ir().edges] == ["extra"]
+
+
+def test_no_chunk_warning_where_the_next_tick_takes_row_0():
+    # control_hz=100 on a 200 Hz consumer: the tick 5 ms after a chunk's start takes its row 0
+    with Pipeline("p") as pipe:
+        (ChunkPolicy() @ Rate(hz=20)).then(ChunkController() @ Rate(hz=200), sync=ActionChunking(control_hz=100))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        trace = pipe.run(duration=0.1)
+    assert trace.values_of("chunk_controller", "command")[:4] == [100, 101, 101, 102]
