@@ -14,6 +14,7 @@ import http.client
 import json
 import os
 import socket
+import time
 import urllib.error
 import urllib.parse
 import urllib.request
@@ -160,6 +161,9 @@ class OpenAICompatiblePlanner:
     def __init__(self, base_url: str, model: str, api_key_env: str = "OPENAI_API_KEY", timeout: float = 60.0,
                  task_kind: str = "drawers", attempts: int = 3):
         parts = urllib.parse.urlsplit(base_url)
+        if parts.username is not None or parts.password is not None:  # shown in every message: say no, quote none
+            raise ValueError(f"planner base_url {parts.scheme}://…@{parts.hostname}…: credentials in the URL are "
+                             "not sent; give the key in $OPENAI_API_KEY (or api_key_env=)")
         if parts.scheme not in ("http", "https") or not parts.hostname:
             raise ValueError(f"planner base_url {base_url!r} must be an http:// or https:// URL with a host, "
                              "such as http://localhost:8000/v1")
@@ -186,19 +190,20 @@ class OpenAICompatiblePlanner:
             try:
                 content = self._complete(messages)
             except _ServerError as e:
-                last = str(e)
+                last, server_failed = str(e), True
                 continue
             try:
                 return check_answer(content, self.task_kind)
             except AnswerRefused as e:
-                last = str(e)
+                last, server_failed = str(e), False
                 if isinstance(content, str):
                     messages.append({"role": "assistant", "content": content})
                 messages.append({"role": "user", "content": correction(e, self.task_kind)})
+        hint = ("the model server failed; its own log says why (a 429: it limits the rate, so a longer planner "
+                "latency asks less often)" if server_failed else
+                f"the model must answer with only {EXPECTED}, such as {example(self.task_kind)} (docs/retriever0.md)")
         raise PlannerError(f"planner {self.base_url} (model {self.model}) gave no plan in {self.attempts} "
-                           f"attempts; the last: {last}",
-                           f"the model must answer with only {EXPECTED}, such as {example(self.task_kind)} "
-                           "(docs/retriever0.md)")
+                           f"attempts; the last: {last}", hint)
 
     def _complete(self, messages: list[dict]):
         """The content of one chat completion; _ServerError for what may go better next time."""
@@ -208,9 +213,10 @@ class OpenAICompatiblePlanner:
         if key:
             headers["Authorization"] = f"Bearer {key}"
         request = urllib.request.Request(f"{self.base_url}/chat/completions", data=body, headers=headers)
+        deadline = time.monotonic() + self.timeout
         try:
             with _OPENER.open(request, timeout=self.timeout) as response:
-                raw = response.read(MAX_REPLY_BYTES)
+                raw = _read_by(response, deadline)
         except urllib.error.HTTPError as e:
             raise self._refusal(e) from None
         except (urllib.error.URLError, OSError, http.client.HTTPException) as e:
@@ -218,7 +224,7 @@ class OpenAICompatiblePlanner:
                                f"is the model server still up? (the planner waits {self.timeout:g} s for an "
                                "answer)") from None
         try:
-            return json.loads(raw)["choices"][0]["message"]["content"]
+            return json.loads(raw.decode("utf-8", "replace"))["choices"][0]["message"]["content"]
         except (ValueError, KeyError, IndexError, TypeError, RecursionError) as e:
             text = raw.decode("utf-8", "replace")
             raise _ServerError(f"the endpoint's reply is not a chat completion ({_brief(e)}): {shorten(text)}") \
@@ -228,7 +234,7 @@ class OpenAICompatiblePlanner:
         """An HTTP error answer: a server error is tried again, a refusal or a redirect is final."""
         text = error.read(MAX_REPLY_BYTES).decode("utf-8", "replace") if error.fp is not None else ""
         said = f"HTTP {error.code} {error.reason}: {shorten(text)}"
-        if error.code >= 500:
+        if error.code >= 500 or error.code == 429:  # overloaded, or limiting the rate: may go better
             return _ServerError(f"the endpoint answered {said}")
         if 300 <= error.code < 400:
             return PlannerError(f"planner endpoint {self.base_url} redirects to {error.headers.get('Location')!r}",
@@ -241,6 +247,21 @@ class OpenAICompatiblePlanner:
 
 #: the most of a reply that is read (a chat completion is a few kilobytes)
 MAX_REPLY_BYTES = 1 << 20
+
+
+def _read_by(response, deadline: float) -> bytes:
+    """The reply's body, at most MAX_REPLY_BYTES, read whole by ``deadline`` (monotonic): the
+    socket's timeout bounds each read only, and a server sending a byte at a time never trips it."""
+    parts, size = [], 0
+    while size < MAX_REPLY_BYTES:
+        if time.monotonic() > deadline:
+            raise TimeoutError("the answer did not come whole within the timeout")
+        part = response.read1(min(65536, MAX_REPLY_BYTES - size))
+        if not part:
+            break
+        parts.append(part)
+        size += len(part)
+    return b"".join(parts)
 
 
 class _ServerError(Exception):

@@ -121,6 +121,8 @@ class _Model(BaseHTTPRequestHandler):
         if isinstance(reply, str):
             reply = (200, json.dumps({"choices": [{"message": {"role": "assistant", "content": reply}}]}))
         status, payload, *location = reply
+        trickle = status == "trickle"  # a byte at a time, until the test lets go (server.let_go)
+        status, payload = (200, "x" * 1000) if trickle else (status, payload)
         payload = payload.encode()
         self.send_response(status)
         self.send_header("Content-Type", "application/json")
@@ -128,7 +130,14 @@ class _Model(BaseHTTPRequestHandler):
         for url in location:
             self.send_header("Location", url)
         self.end_headers()
-        self.wfile.write(payload)
+        if not trickle:
+            self.wfile.write(payload)
+            return
+        for byte in payload:
+            if self.server.let_go.wait(0.05):
+                return
+            self.wfile.write(bytes([byte]))
+            self.wfile.flush()
 
     def log_message(self, *args):
         pass
@@ -136,7 +145,7 @@ class _Model(BaseHTTPRequestHandler):
 
 def _serve():
     server = HTTPServer(("127.0.0.1", 0), _Model)
-    server.seen, server.replies = [], [""]
+    server.seen, server.replies, server.let_go = [], [""], threading.Event()
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     return server, thread
@@ -242,6 +251,33 @@ def test_a_server_error_is_tried_again_within_the_bound(model_server):
                                            r"chat completion \(Expecting value: .*\): '<html>not a completion"):
         OpenAICompatiblePlanner(_url(model_server), "m", timeout=10, attempts=1).propose("season", UNKNOWN, {})
     assert len(model_server.seen) == 1
+
+
+def test_a_rate_limit_is_tried_again_and_a_failing_server_is_not_blamed_on_the_model(model_server):
+    model_server.replies = [(429, "slow down"), json.dumps(PLAN)]
+    assert OpenAICompatiblePlanner(_url(model_server), "m", timeout=10).propose("season", UNKNOWN, {}) \
+        == PLAN["action_plan"]
+    model_server.replies = [(503, "down")]
+    with pytest.raises(PlannerError, match=r"the last: the endpoint answered HTTP 503 .*\n    hint: the model server "
+                                           r"failed; its own log says why"):
+        OpenAICompatiblePlanner(_url(model_server), "m", timeout=10).propose("season", UNKNOWN, {})
+
+
+def test_an_answer_that_trickles_in_is_given_up_at_the_timeout(model_server):
+    model_server.replies = [("trickle", "")]
+    planner = OpenAICompatiblePlanner(_url(model_server), "m", timeout=0.5, attempts=1)
+    try:
+        with pytest.raises(PlannerError, match=r"gave no answer: the answer did not come whole within the timeout"):
+            planner.propose("season", UNKNOWN, {})
+    finally:
+        model_server.let_go.set()
+
+
+def test_credentials_in_the_url_are_refused_and_not_quoted():
+    with pytest.raises(ValueError, match=r"credentials in the URL are not sent; give the key in \$OPENAI_API_KEY") \
+            as refused:
+        OpenAICompatiblePlanner("http://user:s3cret@127.0.0.1:8000/v1", "m")
+    assert "s3cret" not in str(refused.value) and "user" not in str(refused.value)
 
 
 @pytest.mark.parametrize("status, hint", [
