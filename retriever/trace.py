@@ -8,6 +8,7 @@ across processes and machines.
 
 from __future__ import annotations
 
+import difflib
 import gc
 import hashlib
 import threading
@@ -210,6 +211,9 @@ class Trace:
         self.keep = keep
         self.values_kept = keep == "trace"
         self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
+        #: the run's output ports ``(node, port)``, when a backend says (latest() and values_of()
+        #: then refuse a name that is none of them rather than return nothing, as for no event yet)
+        self.ports: set[tuple[str, str]] | None = None
         self._newest: dict[tuple[str, str], tuple] = {}  # latest(): each port's newest raw event ...
         self._newest_upto = 0  # ... among raw_events before this index
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
@@ -343,11 +347,31 @@ class Trace:
                 newest[key] = event
         self._newest_upto = len(raw)
         found = newest.get((node, port))
-        return None if found is None else Event._make(found)
+        if found is None:
+            self._check_port("trace.latest()", node, port)
+            return None
+        return Event._make(found)
+
+    def _check_port(self, what: str, node: str, port: str) -> None:
+        """Refuse a ``node.port`` that is no output of the run (a typo reads as 'no event yet')."""
+        if self.ports is None or (node, port) in self.ports:
+            return
+        nodes = sorted({n for n, _ in self.ports})
+        if node not in nodes:
+            close = difflib.get_close_matches(node, nodes, n=1)
+            raise ValueError(f"{what}: the run has no node '{node}' (nodes: {', '.join(nodes)})"
+                             + (f"\n    hint: did you mean '{close[0]}'?" if close else ""))
+        own = sorted(p for n, p in self.ports if n == node)
+        close = difflib.get_close_matches(port, own, n=1)
+        raise ValueError(f"{what}: '{node}' has no output port '{port}' (outputs: {', '.join(own) or 'none'})"
+                         + (f"\n    hint: did you mean '{close[0]}'?" if close else ""))
 
     def values_of(self, node: str, port: str) -> list[Any]:
         self._need_values("trace.values_of()")
-        return [e.value for e in self.events_of(node, port)]
+        values = [e.value for e in self.events_of(node, port)]
+        if not values:
+            self._check_port("trace.values_of()", node, port)
+        return values
 
     def steps_of(self, node: str) -> list[StepRecord]:
         """Step records of one node, in tick order."""

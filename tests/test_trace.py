@@ -100,4 +100,27 @@ def test_latest_is_the_newest_event_of_a_port_after_every_step():
         for node, port in (("fast", "v"), ("slow", "v"), ("sink", "seen")):
             events = trace.events_of(node, port)
             assert trace.latest(node, port) == (events[-1] if events else None)
-    assert trace.latest("sink", "nothing") is None and trace.latest("sink", "seen").value == 160  # fast ticked 60 times in 2 s
+    assert trace.latest("sink", "seen").value == 160  # fast ticked 60 times in 2 s
+
+
+def test_latest_and_values_of_refuse_a_port_the_run_does_not_have():
+    import pytest
+
+    class Camera(Flow):
+        def step(self):
+            return {"image": 1.0}
+
+    class Viewer(Flow):
+        def step(self, image):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=10, offset=0.05)).then(Viewer() @ Rate(hz=10))
+    trace = pipe.step(0.01)
+    assert trace.latest("camera", "image") is None and trace.values_of("camera", "image") == []  # none yet
+    with pytest.raises(ValueError, match=r"trace.latest\(\): the run has no node 'camra' \(nodes: camera\)\n"
+                                         r"    hint: did you mean 'camera'\?"):
+        trace.latest("camra", "image")
+    with pytest.raises(ValueError, match=r"trace.values_of\(\): 'camera' has no output port 'imgae' \(outputs: image\)"
+                                         r"\n    hint: did you mean 'image'\?"):
+        trace.values_of("camera", "imgae")

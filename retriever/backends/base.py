@@ -107,6 +107,7 @@ class Session(ABC):
         self.graph = graph
         self.keep = keep
         self.trace = Trace(keep=keep)
+        self.trace.ports = {(node.id, port) for node in graph.nodes.values() for port in node.outputs}
         self.now_ns = 0
         self.log: LogWriter | None = None
         self.logged_to = None  # the path of this run's finished log, if it had one
