@@ -37,6 +37,7 @@ from retriever import (
     io,
 )
 from retriever.errors import InternalError
+from retriever.ir import IR_VERSION
 from tests import ir_flows
 
 
@@ -725,7 +726,8 @@ def test_malformed_ir_text():
 def test_wrong_version_ir():
     doc = _ir_doc()
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.2\.0\); "
+    reads = re.escape(IR_VERSION)
+    with pytest.raises(IRError, match=rf"version '2\.0\.0' is not supported by this Retriever \(it reads {reads}\); "
                                       r"rebuild the IR with this version: retriever ir FILE --out PATH"):
         IR.from_json(json.dumps(doc))
 
