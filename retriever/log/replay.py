@@ -166,10 +166,29 @@ def code_changes(log: RunLog, graph) -> list[str]:
     line; each is also warned of (RetrieverWarning), before anything is compared."""
     recorded = log.ir.doc["metadata"].get("code_sha256", {})
     changes = code_mismatches(recorded, {type(node.flow).__module__ for node in graph.nodes.values()})
+    changes += _ran_other_code(log)
     for change in changes:
         warnings.warn(f"{change}: what the replay finds different may come from that change", RetrieverWarning,
                       stacklevel=3)
     return changes
+
+
+#: the most of a worker's word on the code it ran that a replay shows (a hostile log's text)
+MAX_SAID = 400
+
+
+def _ran_other_code(log: RunLog) -> list[str]:
+    """What the workers of a deployment said of the code they ran anyway (``--code-mismatch
+    warn``), as the log's run metadata records it: the run itself ran other code than the IR's.
+    A hostile log's text: only shown, shortened, and anything not of the recorded shape ignored."""
+    try:
+        said = json.loads(log.run.get("deployment", "{}")).get("ran_other_code", {})
+    except (ValueError, AttributeError, RecursionError):
+        return []
+    if type(said) is not dict:
+        return []
+    return [f"in the run, worker '{worker:.60}' ran {text[:MAX_SAID]}" for worker, texts in sorted(said.items())
+            if type(worker) is str and type(texts) is list for text in texts if type(text) is str]
 
 
 def from_the_log(graph) -> frozenset[str]:

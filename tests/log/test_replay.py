@@ -6,6 +6,7 @@ cycles) are logged and replayed; flows that are nondeterministic on purpose must
 
 from __future__ import annotations
 
+import json
 import hashlib
 import random
 import subprocess
@@ -403,3 +404,20 @@ def test_log_only_at_the_start_of_a_run(tmp_path):
     with pytest.raises(Exception, match="reset"):
         pipe.run(duration=1)  # the logged run is finished; continuing it would go unrecorded
     assert np.isfinite(read_log(tmp_path / "ok.mcap").trace().values_of("smoother", "x")[-1])
+
+
+def test_what_workers_said_of_their_code_is_read_from_a_hostile_log_as_text_only():
+    from types import SimpleNamespace
+
+    from retriever.log.replay import MAX_SAID, _ran_other_code
+
+    def said(deployment):
+        return _ran_other_code(SimpleNamespace(run={"deployment": deployment}))
+
+    assert said(json.dumps({"ran_other_code": {"w": ["node 'a': the code of module m differs"]}})) == [
+        "in the run, worker 'w' ran node 'a': the code of module m differs"]
+    for hostile in ("not json", "[1]", json.dumps({"ran_other_code": [1]}), json.dumps({"ran_other_code": {"w": "x"}}),
+                    "[" * 100_000 + "]" * 100_000):
+        assert said(hostile) == []
+    long = said(json.dumps({"ran_other_code": {"w" * 1000: ["x" * 10_000, 7]}}))
+    assert len(long) == 1 and len(long[0]) < 60 + MAX_SAID + 40

@@ -91,6 +91,8 @@ class Deployment(Coordinator):
         self._usage_stop = threading.Event()
         #: where each node runs: worker name by node
         self.placed: dict[str, str] = {}
+        #: what each worker said of the code it runs anyway (--code-mismatch warn): into the log
+        self.ran_other_code: dict[str, list[str]] = {}
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
@@ -152,10 +154,10 @@ class Deployment(Coordinator):
             self.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
 
-    @staticmethod
-    def _say_warnings(name: str, warnings: list[str]) -> None:
+    def _say_warnings(self, name: str, warnings: list[str]) -> None:
         for warning in warnings:
             print(f"retriever: warning: worker '{name}' runs {warning}", file=sys.stderr, flush=True)
+            self.ran_other_code.setdefault(name, []).append(warning.partition("\n")[0])
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
@@ -359,8 +361,8 @@ class Deployment(Coordinator):
         workers = {name: {k: info.get(k) for k in ("host", "pid", "labels", "python", "packages", "offset_ns")}
                    for name, info in self.workers.items()}
         return {**super().log_metadata(),
-                "deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers},
-                                         sort_keys=True)}
+                "deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers,
+                                          "ran_other_code": self.ran_other_code}, sort_keys=True)}
 
     def _release_hosts(self) -> None:
         self._usage_stop.set()

@@ -406,8 +406,9 @@ def test_a_worker_refuses_nodes_whose_module_differs_from_the_coordinators_or_wa
         worker = workers("--name", f"w-{mode}", "--listen", endpoint(port), "--namespace", f"{namespace}-{mode}",
                          "--insecure", "--path", str(theirs), *(["--code-mismatch", mode] if mode == "warn" else []))
         worker.wait_started()
+        log = tmp_path / f"{mode}.mcap"
         done = _cli("deploy", f"{ours / 'drift_flows.py'}:pipe", "--connect", endpoint(port), "--namespace",
-                    f"{namespace}-{mode}", "--insecure", "--duration", "0.5")
+                    f"{namespace}-{mode}", "--insecure", "--duration", "0.5", "--log", str(log))
         if mode == "refuse":
             assert done.returncode == 1, done.stderr
             assert "\nerror: worker 'w-refuse' refused prepare: worker 'w-refuse' will not run 3 of its node(s):\n" \
@@ -423,6 +424,10 @@ def test_a_worker_refuses_nodes_whose_module_differs_from_the_coordinators_or_wa
                     "on worker 'w-warn' with the coordinator's copy (it runs its own copy: --code-mismatch warn)"
                     ) in done.stderr, done.stderr
             assert f"retriever-worker w-warn: warning: node 'counter': {mismatch}" in worker.stderr()
+            # the log keeps it, and a replay names it first: the run ran other code than its IR's
+            replayed = _cli("replay", str(log))
+            assert (f"warning: in the run, worker 'w-warn' ran node 'counter': {mismatch}: what the replay finds "
+                    "different may come from that change") in replayed.stderr, replayed.stderr
         assert worker.stop() == 0
 
 
