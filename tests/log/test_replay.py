@@ -6,8 +6,8 @@ cycles) are logged and replayed; flows that are nondeterministic on purpose must
 
 from __future__ import annotations
 
-import json
 import hashlib
+import json
 import random
 import subprocess
 import sys
