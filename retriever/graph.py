@@ -407,10 +407,16 @@ def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Pro
                     return []
                 warnings.append(f"{text} (it is optional: {dst.id} steps without it)\n    hint: {fix}")
             pairs.append((port, port))
+        elif src.spec.returned_keys is not None and src.spec.returned_keys & set(dst.inputs):
+            # its step's keys are known (dict literals): matched by name, as a typed producer's ports
+            pairs = [(p, p) for p in dst.inputs if p in src.spec.returned_keys]
         else:
+            known = src.spec.returned_keys is not None
             problems.append(Problem(
                 f"{label}: {src.id} is untyped, so its outputs cannot be matched by name to "
-                f"{dst.id}'s inputs ({_ports_list(dst.inputs)}); the match is ambiguous",
+                f"{dst.id}'s inputs ({_ports_list(dst.inputs)}); the match is ambiguous"
+                + (f" (its step() returns {', '.join(repr(k) for k in sorted(src.spec.returned_keys)) or 'nothing'}, "
+                   "none of them an input's name)" if known else ""),
                 f"pass map={{'<output>': '<input>'}} to say which port of {dst.id} it feeds"))
     else:
         common = [p for p in src.outputs if p in dst.inputs]

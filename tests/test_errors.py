@@ -172,10 +172,22 @@ def test_ambiguous_port_matching_from_an_untyped_producer():
     with Pipeline("p") as pipe:
         (Ticker() @ Rate(hz=1)).then(PairSink() @ Rate(hz=1))
     with pytest.raises(GraphError, match=r"ticker is untyped, so its outputs cannot be matched by name to pair_sink's "
-                                         r"inputs \(p, q\); the match is ambiguous\n"
+                                         r"inputs \(p, q\); the match is ambiguous \(its step\(\) returns 'tick', "
+                                         r"none of them an input's name\)\n"
                                          r"    hint: pass map=\{'<output>': '<input>'\} to say which port "
                                          r"of pair_sink"):
         pipe.build_ir()
+
+
+def test_an_untyped_producer_whose_keys_are_known_is_matched_by_name():
+    class Both(Flow):
+        def step(self):
+            return {"p": 1.0, "q": 2.0, "extra": 3.0}
+
+    with Pipeline("p") as pipe:
+        (Both() @ Rate(hz=1)).then(PairSink() @ Rate(hz=1))
+    assert [(e["source"]["port"], e["destination"]["port"]) for e in pipe.build_ir().edges] == [("p", "p"),
+                                                                                                  ("q", "q")]
 
 
 def test_no_matching_port():
