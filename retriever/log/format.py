@@ -149,9 +149,10 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def _git_revision(folders: list[str]) -> tuple[str, str]:
+def _git_revision(folders: list[str], files: list[str] = ()) -> tuple[str, str]:
     """``(HEAD, "")`` of the first of ``folders`` inside a git work tree, ``-dirty`` appended when
-    tracked files changed; else ``("", why)``: what git said of the first folder it refused
+    tracked files changed or one of ``files`` (the flow modules') in it is not tracked (HEAD does
+    not hold the code that ran); else ``("", why)``: what git said of the first folder it refused
     for another reason than not being a repository (a checkout another user owns: git's
     ``safe.directory``), or "" when none is in one (or git is not installed).
 
@@ -160,7 +161,8 @@ def _git_revision(folders: list[str]) -> tuple[str, str]:
     refused = ""
     for folder in folders:
         try:
-            done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=folder)
+            done = subprocess.run(["git", "rev-parse", "--show-toplevel", "HEAD"], capture_output=True, text=True,
+                                  timeout=5, cwd=folder)
             if done.returncode != 0:
                 said = done.stderr.strip().splitlines()[:1]
                 if said and "not a git repository" not in said[0] and not refused:
@@ -168,9 +170,15 @@ def _git_revision(folders: list[str]) -> tuple[str, str]:
                 continue
             dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
                                    text=True, timeout=5, cwd=folder).stdout.strip()
+            top, _, head = done.stdout.strip().partition("\n")
+            inside = [f for f in files if os.path.realpath(f).startswith(os.path.realpath(top) + os.sep)]
+            if inside and not dirty:
+                listed = subprocess.run(["git", "ls-files", "--others", "--exclude-standard", "--", *inside],
+                                        capture_output=True, text=True, timeout=5, cwd=folder)
+                dirty = listed.stdout.strip() if listed.returncode == 0 else ""
         except (OSError, subprocess.SubprocessError):
             continue
-        return done.stdout.strip() + ("-dirty" if dirty else ""), ""
+        return head + ("-dirty" if dirty else ""), ""
     return "", refused
 
 
@@ -198,7 +206,8 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
         user = getpass.getuser()
     except (KeyError, OSError):
         user = ""
-    revision, git_refused = _git_revision([*roots, os.getcwd()])
+    files = [f for name in flow_modules if isinstance(f := getattr(sys.modules.get(name), "__file__", None), str)]
+    revision, git_refused = _git_revision([*roots, os.getcwd()], files)
     return {
         "format": FORMAT_VERSION,
         "pipeline": pipeline,

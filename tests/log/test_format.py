@@ -475,3 +475,22 @@ def test_a_checkout_git_refuses_to_read_is_said_so_not_just_unknown(checkout):
     assert (run["git_revision"], run["git_error"]) == ("", f"detected dubious ownership in repository at '{repo}'")
     assert (f"git  ? (detected dubious ownership in repository at '{repo}')\n"
             in cli("log", "info", outside / "run.mcap").stdout)
+
+
+def test_a_run_whose_flow_module_is_not_tracked_in_the_checkout_is_dirty(checkout):
+    """HEAD does not hold the code that ran when a flow's module is a file git does not track."""
+    outside, repo = checkout
+    (repo / "new_flows.py").write_text("from retriever import Flow\n"
+                                       "class Tock(Flow):\n    def step(self):\n        return {'x': 2.0}\n")
+    (repo / "app2.py").write_text("from retriever import Flow, Latest, Pipeline, Rate\nfrom new_flows import Tock\n"
+                                  "from app import Sink\n"
+                                  "with Pipeline('app2') as pipe:\n"
+                                  "    (Tock() @ Rate(hz=10)).then(Sink() @ Rate(hz=10), sync=Latest())\n")
+    (repo / "scratch.txt").write_text("an untracked file no flow comes from\n")
+    head = _git(repo, "rev-parse", "HEAD")
+    done = cli("run", "app.py", "--duration", "0.3", "--log", "tracked.mcap", cwd=repo, pythonpath=outside)
+    assert done.returncode == 0, done.stderr
+    assert read_log(repo / "tracked.mcap").run["git_revision"] == head  # untracked files elsewhere: clean
+    done = cli("run", "app2.py", "--duration", "0.3", "--log", "untracked.mcap", cwd=repo, pythonpath=outside)
+    assert done.returncode == 0, done.stderr
+    assert read_log(repo / "untracked.mcap").run["git_revision"] == head + "-dirty"
