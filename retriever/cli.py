@@ -472,7 +472,7 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
         _out.print(f"{len(trace.events)} events · {len(trace.steps)} steps · {digest}", highlight=False)
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
-                   highlight=False)
+                   highlight=False, soft_wrap=True)  # a command to copy: never broken across lines
 
 
 def _show_live(pipe, namespace: str):

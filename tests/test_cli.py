@@ -148,10 +148,12 @@ def test_run_on_an_80_column_terminal_shows_long_node_names_whole(tmp_path: Path
 with Pipeline("long") as pipe:
     (Source().named("{long}_source") @ Rate(hz=10)).then(Sink().named("{long}") @ Trigger())
 """)
-    result = cli("run", "long.py", "--backend", "inproc", "--duration", "1", cwd=tmp_path, columns=80)
+    log = f"{long}.mcap"
+    result = cli("run", "long.py", "--backend", "inproc", "--duration", "1", "--log", log, cwd=tmp_path, columns=80)
     assert result.returncode == 0, result.stderr
     assert re.search(rf"│ {long}\s+│\s+10 │\s+10 │\s+0 │\s+0 │", result.stdout), result.stdout
     assert f"│ {long}_source " in result.stdout and "…" not in result.stdout, result.stdout
+    assert f"check it with: retriever replay {log}\n" in result.stdout, result.stdout  # a command, whole
 
 
 def test_run_digest_is_the_in_process_digest():
