@@ -7,7 +7,8 @@ counters (no records needed, so it works for ``keep="counters"`` and on every ba
 each such flow and edge. ``Pipeline.run`` warns with it (:class:`~retriever.errors.StarvedFlowWarning`).
 
 What marks a typo, rather than a sparse output that happened not to fire (an alarm), is that the
-producer made events on a port that no edge reads while an edge from it waited on a port it
+producer, one whose ports nothing could check before the run (an untyped step returning a dict
+it built), made events on a port that no edge reads while an edge from it waited on a port it
 never made. A flow that skipped (nearly) every one of enough ticks for another reason is named
 too, with where to look; a cause upstream is named where it starts, and downstream only as
 "X never stepped" when X itself was named.
@@ -33,8 +34,11 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
     only flows that never stepped in enough ticks are named, without a cause)."""
     produced = produced or {}
     read = {(e.src, e.src_port) for e in graph.edges}
-    unread = {node: sorted(port for (n, port), count in produced.items() if n == node and count and (n, port) not in read)
-              for node in graph.nodes}
+    # only a producer whose ports nothing could check before the run (an untyped step returning a
+    # dict it built) can have misspelt one; a typed one's other ports are a sparse output's neighbours
+    unread = {node_id: sorted(port for (n, port), count in produced.items()
+                              if n == node_id and count and (n, port) not in read) if _unchecked(node) else []
+              for node_id, node in graph.nodes.items()}
     named: set[str] = set()
     explained: set[tuple[str, str]] = set()  # (consumer, port) pairs a line already explains
     lines = []
@@ -95,6 +99,12 @@ def _never_had(port: str, edges: list["Edge"], stats, unread: dict[str, list[str
         else:
             return None
     return f"'{port}' never had an event ({'; '.join(whys)})"
+
+
+def _unchecked(node) -> bool:
+    """Whether a flow's output ports could not be known before the run: an untyped step whose
+    returned keys were not read from its source (a dict built in a variable, a decorator)."""
+    return node.spec.outputs is None and node.spec.returned_keys is None
 
 
 def _quiet(edges: list["Edge"], produced: Mapping[tuple[str, str], int]) -> bool:

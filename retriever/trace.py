@@ -211,9 +211,10 @@ class Trace:
         self.keep = keep
         self.values_kept = keep == "trace"
         self._forgotten = 0  # raw_events before this index hold NOT_KEPT (keep="records")
-        #: the run's output ports ``(node, port)``, when a backend says (latest() and values_of()
-        #: then refuse a name that is none of them rather than return nothing, as for no event yet)
-        self.ports: set[tuple[str, str]] | None = None
+        #: the run's nodes and each one's output ports (None: any name may be one), when a backend
+        #: says: latest() and values_of() then refuse a name that is none of them rather than
+        #: return nothing, as for no event yet
+        self.ports: dict[str, frozenset[str] | None] | None = None
         self._newest: dict[tuple[str, str], tuple] = {}  # latest(): each port's newest raw event ...
         self._newest_upto = 0  # ... among raw_events before this index
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
@@ -354,14 +355,16 @@ class Trace:
 
     def _check_port(self, what: str, node: str, port: str) -> None:
         """Refuse a ``node.port`` that is no output of the run (a typo reads as 'no event yet')."""
-        if self.ports is None or (node, port) in self.ports:
+        if self.ports is None:
             return
-        nodes = sorted({n for n, _ in self.ports})
-        if node not in nodes:
+        if node not in self.ports:
+            nodes = sorted(self.ports)
             close = difflib.get_close_matches(node, nodes, n=1)
             raise ValueError(f"{what}: the run has no node '{node}' (nodes: {', '.join(nodes)})"
                              + (f"\n    hint: did you mean '{close[0]}'?" if close else ""))
-        own = sorted(p for n, p in self.ports if n == node)
+        if self.ports[node] is None or port in self.ports[node]:
+            return
+        own = sorted(self.ports[node])
         close = difflib.get_close_matches(port, own, n=1)
         raise ValueError(f"{what}: '{node}' has no output port '{port}' (outputs: {', '.join(own) or 'none'})"
                          + (f"\n    hint: did you mean '{close[0]}'?" if close else ""))

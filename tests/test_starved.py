@@ -8,9 +8,10 @@ import warnings
 
 import pytest
 
+from dataclasses import dataclass
 from typing import Optional
 
-from retriever import ActionChunking, Flow, LatestDistinct, Pipeline, Rate, StarvedFlowWarning, Trigger
+from retriever import ActionChunking, Flow, LatestDistinct, Pipeline, Rate, StarvedFlowWarning, Trigger, io
 
 from .starved_flows import Camera, MisspeltCamera, camera_policy_controller
 from .test_cli import cli, write
@@ -160,6 +161,39 @@ def test_no_warning_for_a_short_run_a_sparse_output_or_a_consumer_that_skips_by_
         warnings.simplefilter("error", StarvedFlowWarning)
         pipe.run(duration=0.5)  # the policy's one tick came before any frame: nothing to say yet
         pipe.run(duration=2.0)
+
+
+def test_no_warning_for_a_sparse_output_beside_a_port_no_edge_reads():
+    """A typed (or dict-literal) producer's ports are known before the run: one that never fired
+    beside a logged-only port is a sparse output, not a typo."""
+    @io
+    @dataclass
+    class Detection:
+        debug: float
+        alarm: Optional[int] = None
+
+    class Detector(Flow[None, Detection]):
+        def step(self, inp):
+            return Detection(debug=1.0)
+
+    class Literal(Flow):
+        def step(self):
+            if self is None:  # never: its keys are read from its returns, both dict literals
+                return {"alarm": 1}
+            return {"debug": 1.0}
+
+    class OnAlarm(Flow):
+        def step(self, alarm):
+            return None
+
+    for producer in (Detector, Literal):
+        with Pipeline("p") as pipe:
+            source = producer() @ Rate(hz=10)
+            source.then(OnAlarm() @ Rate(hz=10))
+            source.then(OnAlarm().configure(name="on_trigger") @ Trigger("alarm"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", StarvedFlowWarning)
+            pipe.run(duration=2.0)
 
 
 def test_the_cli_names_a_starved_flow_of_a_run_that_was_interrupted(tmp_path):

@@ -118,9 +118,36 @@ def test_latest_and_values_of_refuse_a_port_the_run_does_not_have():
         (Camera() @ Rate(hz=10, offset=0.05)).then(Viewer() @ Rate(hz=10))
     trace = pipe.step(0.01)
     assert trace.latest("camera", "image") is None and trace.values_of("camera", "image") == []  # none yet
-    with pytest.raises(ValueError, match=r"trace.latest\(\): the run has no node 'camra' \(nodes: camera\)\n"
+    with pytest.raises(ValueError, match=r"trace.latest\(\): the run has no node 'camra' \(nodes: camera, viewer\)\n"
                                          r"    hint: did you mean 'camera'\?"):
         trace.latest("camra", "image")
     with pytest.raises(ValueError, match=r"trace.values_of\(\): 'camera' has no output port 'imgae' \(outputs: image\)"
                                          r"\n    hint: did you mean 'image'\?"):
         trace.values_of("camera", "imgae")
+
+
+def test_latest_knows_the_ports_of_an_untyped_flow_that_no_edge_reads():
+    import pytest
+
+    class Camera(Flow):
+        def step(self):
+            return {"image": 1.0}
+
+    class Controller(Flow):  # a sink whose port is only looked at, never wired
+        def step(self, image):
+            return {"command": image}
+
+    class Opaque(Flow):  # keys unknown before the run: any port name may be one of its
+        def step(self, image):
+            out = {"command": image}
+            return out
+
+    with Pipeline("p") as pipe:
+        camera = Camera() @ Rate(hz=10, offset=0.05)
+        camera.then(Controller() @ Rate(hz=10))
+        camera.then(Opaque() @ Rate(hz=10))
+    trace = pipe.step(0.01)
+    assert trace.latest("controller", "command") is None and trace.latest("opaque", "anything") is None
+    with pytest.raises(ValueError, match=r"'controller' has no output port 'comand' \(outputs: command\)\n"
+                                         r"    hint: did you mean 'command'\?"):
+        trace.latest("controller", "comand")

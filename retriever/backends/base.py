@@ -80,6 +80,17 @@ class NodeStats:
         return self.step_ns / self.steps / 1e9 if self.steps else 0.0
 
 
+def output_ports(graph: Graph) -> dict[str, frozenset[str] | None]:
+    """Each node's ports a run of ``graph`` may make events on: a typed flow's fields, an untyped
+    flow's edges and returned keys, or None for an untyped step whose keys cannot be read before
+    the run (any name may be one of its ports)."""
+    ports: dict[str, frozenset[str] | None] = {}
+    for node in graph.nodes.values():
+        known = node.spec.returned_keys if node.spec.outputs is None else frozenset()
+        ports[node.id] = None if known is None else frozenset(node.outputs) | known
+    return ports
+
+
 class Session(ABC):
     """One run of one graph on one backend."""
 
@@ -107,7 +118,7 @@ class Session(ABC):
         self.graph = graph
         self.keep = keep
         self.trace = Trace(keep=keep)
-        self.trace.ports = {(node.id, port) for node in graph.nodes.values() for port in node.outputs}
+        self.trace.ports = output_ports(graph)
         self.now_ns = 0
         self.log: LogWriter | None = None
         self.logged_to = None  # the path of this run's finished log, if it had one
