@@ -778,6 +778,14 @@ def log_cat(
     if brief and full:
         _fail(RetrieverError("--brief and --full ask for arrays both ways\n    hint: pass one of them"))
     arrays = "brief" if brief else "full" if full else "summary"
+    from .time import seconds_problem
+
+    for flag, seconds in (("--from", start), ("--to", end)):
+        problem = None if seconds is None else seconds_problem(flag, seconds)
+        if problem is not None:
+            _fail(RetrieverError(f"{problem}\n    hint: seconds from the run's start, e.g. {flag} 1.5"))
+    if limit is not None and limit < 0:
+        _fail(RetrieverError(f"--limit {limit}: expected a count >= 0"))
     log = _read(path)
     lo = None if start is None else round(start * 1e9)
     hi = None if end is None else round(end * 1e9)
@@ -823,7 +831,10 @@ def log_cat(
     if shown == 0:
         known = sorted({f"{c.metadata.get('node')}.{c.metadata.get('port')}" for c in log.channels.values()
                         if c.metadata.get("node")})
-        _err.print(f"nothing matched; the log's ports are: {', '.join(known)}", highlight=False)
+        what = (f"the log's ports are: {', '.join(known)}" if known and not steps
+                else "the log has no step records" if steps and not any(True for _ in log.iter_steps())
+                else "the log has no Retriever events" if not known else "no step record in that range or of that node")
+        _err.print(f"nothing matched; {what}", highlight=False)
 
 
 @log_app.command("recover")

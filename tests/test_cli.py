@@ -783,3 +783,26 @@ def test_a_run_until_stopped_without_a_log_keeps_only_counters(tmp_path):
     assert proc.returncode == 130, err
     assert "--duration inf without --log: the run keeps its counters only" in err
     assert "records not kept (--keep counters)" in out and "only in the log" not in out
+
+
+def test_log_cat_refuses_times_and_limits_that_are_no_numbers_of_it(tmp_path: Path):
+    from tests.log.test_foxglove import _log
+
+    log = _log(tmp_path)
+    for flag, value, problem in (("--from", "nan", r"--from must be a finite number of seconds >= 0, got nan"),
+                                 ("--to", "-inf", r"--to must be a finite number of seconds >= 0, got -inf"),
+                                 ("--from", "1e300", r"--from must be at most 9.223e\+09 s"),
+                                 ("--limit", "-1", r"--limit -1: expected a count >= 0")):
+        assert_cli_error(cli("log", "cat", str(log), flag, value), "^error: " + problem)
+    nothing = cli("log", "cat", str(log), "--steps", "--node", "nobody")
+    assert nothing.stderr == "nothing matched; no step record in that range or of that node\n", nothing.stderr
+
+
+def test_log_cat_shows_floats_with_the_digits_that_tell_them_apart():
+    import numpy as np
+
+    from retriever.log.show import show_value
+
+    values = np.array([0.4803160625, 1 / 3])
+    assert show_value(values, "summary") == "array([0.4803160625, 0.3333333333333333])"
+    assert "0.4803160625" in show_value(values, "full") and "0.3333333333333333" in show_value(values, "full")

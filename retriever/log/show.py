@@ -45,12 +45,13 @@ def _array(value: np.ndarray, arrays: str) -> str:
     kind = f"{value.dtype}[{','.join(map(str, value.shape))}]"
     if arrays == "brief":
         return kind
-    if arrays == "full":
-        with np.printoptions(threshold=sys.maxsize):
+    if arrays == "full":  # every element, each with the digits that tell it apart (numpy's default keeps 8)
+        with np.printoptions(threshold=sys.maxsize, floatmode="unique"):
             return repr(value)
     if value.size <= ARRAY_SHOWN_WHOLE:
-        text = repr(value)  # numbers on one line (numpy breaks rows over lines); text as it is
-        return " ".join(text.split()) if value.dtype.kind in "biufc" else text
+        with np.printoptions(floatmode="unique"):
+            text = repr(value)  # numbers on one line (numpy breaks rows over lines); text as it is
+        return " ".join(text.split()).replace(" ,", ",") if value.dtype.kind in "biufc" else text
     if value.dtype.kind in "iuf":
         return f"{kind} min {value.min().item()!r} max {value.max().item()!r}"
     if value.dtype.kind == "b":
