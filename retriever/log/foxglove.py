@@ -22,6 +22,7 @@ laid out from the moment the run began).
 from __future__ import annotations
 
 import json
+import os
 import time
 import warnings
 from collections import Counter
@@ -202,25 +203,32 @@ def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) ->
     out = Path(out)
     if out.exists() and not overwrite:
         raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
-    if out.resolve() == Path(log.path).resolve():
+    if out.resolve() == Path(log.path).resolve() or (out.exists() and os.path.samefile(out, log.path)):
         raise LogError(f"{out} is the log being exported", "write the export to another file")
     zero = run_start_ns(log)
     ir = log.ir
     context = foxglove.Context()
+    # written beside it, then renamed: an export that fails leaves no file that looks whole, and
+    # never writes into the file that stands at ``out`` (a hard link to the log, say)
+    partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     try:
-        writer = foxglove.open_mcap(str(out), allow_overwrite=overwrite, context=context)
+        writer = foxglove.open_mcap(str(partial), allow_overwrite=True, context=context)
     except Exception as e:  # the SDK's own error for a path it cannot create
         raise LogError(f"cannot write {out}: {e}") from None
     try:
-        view = FoxgloveWriter(context, ir, zero)
-        for event in log.iter_events():
-            view.event(event.node, event.port, event.tag, event.seq, log.value(event, keep_unregistered=True),
-                       zero + event.tag[0])
-        for step in log.iter_steps():
-            view.step(step.node, step.tag, step.consumed, step.produced, step.status, step.detail, step.wall_ns,
-                      zero + step.tag[0])
+        try:
+            view = FoxgloveWriter(context, ir, zero)
+            for event in log.iter_events():
+                view.event(event.node, event.port, event.tag, event.seq, log.value(event, keep_unregistered=True),
+                           zero + event.tag[0])
+            for step in log.iter_steps():
+                view.step(step.node, step.tag, step.consumed, step.produced, step.status, step.detail, step.wall_ns,
+                          zero + step.tag[0])
+        finally:
+            writer.close()
+        os.replace(partial, out)
     finally:
-        writer.close()
+        partial.unlink(missing_ok=True)
     return view.written
 
 

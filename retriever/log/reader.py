@@ -83,12 +83,13 @@ class RunLog:
         attachment = self.attachments.get(fmt.IR_ATTACHMENT)
         if attachment is None:
             raise LogError(f"{self.path} holds no pipeline IR (attachment {fmt.IR_ATTACHMENT!r})",
-                           "was it written by Retriever? pass the pipeline yourself with --pipeline FILE:ATTR")
+                           "was it written by Retriever? (retriever replay can be given the pipeline: "
+                           "--pipeline FILE:ATTR)")
         try:
             return IR.from_json(bytes(attachment.data).decode())
         except (IRError, UnicodeDecodeError, ValueError) as e:
             raise LogError(f"the IR stored in {self.path} is invalid: {e}",
-                           "pass the pipeline yourself with --pipeline FILE:ATTR") from None
+                           "retriever replay can be given the pipeline: --pipeline FILE:ATTR") from None
 
     @property
     def faults(self) -> list[dict[str, Any]]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -202,3 +203,52 @@ def test_images_inside_dataclass_values_are_raw_images_and_the_cli_writes_the_sa
     frame = by_python["/cam/frame"][0][1]["value"]
     assert frame == {"camera": "head", "t": 0.1, "rgb": [[[1] * 3] * 5] * 4, "mask": np.eye(4, 5, dtype=int).tolist()}
     assert by_python["/cam/pair"][0][1]["value"]["left"] == frame
+
+
+def _with_a_damaged_frame(log_path: Path, out: Path) -> Path:
+    """A copy of a log, written by mcap's own Writer, whose first rgb frame is an array extension
+    that does not decode (as a changed file would hold)."""
+    import msgpack
+    from mcap.writer import CompressionType, Writer
+
+    with log_path.open("rb") as f, out.open("wb") as g:
+        reader = make_reader(f)
+        writer = Writer(g, compression=CompressionType.ZSTD)
+        writer.start(profile=reader.get_header().profile, library="test")
+        summary = reader.get_summary()
+        ids = {cid: writer.register_channel(c.topic, c.message_encoding, 0, c.metadata)
+               for cid, c in summary.channels.items()}
+        damaged = False
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            data = message.data
+            if not damaged and channel.metadata.get("port") == "rgb":
+                microstep, _ = msgpack.unpackb(data, strict_map_key=False, ext_hook=lambda code, raw: None)
+                data, damaged = msgpack.packb([microstep, msgpack.ExtType(1, b"garbage")]), True
+            writer.add_message(ids[channel.id], message.log_time, data, message.publish_time, message.sequence)
+        for attachment in reader.iter_attachments():
+            writer.add_attachment(attachment.create_time, attachment.log_time, attachment.name,
+                                  attachment.media_type, attachment.data)
+        for metadata in reader.iter_metadata():
+            writer.add_metadata(metadata.name, metadata.metadata)
+        writer.finish()
+    return out
+
+
+def test_a_failed_export_leaves_the_file_it_would_replace_as_it_was(tmp_path):
+    log_path = _with_a_damaged_frame(_log(tmp_path), tmp_path / "damaged.mcap")
+    out = tmp_path / "view.mcap"
+    out.write_bytes(b"an earlier export")
+    with pytest.raises(LogError, match=r"event cam.rgb #0 is damaged"):
+        export_foxglove(read_log(log_path), out, overwrite=True)
+    assert out.read_bytes() == b"an earlier export" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "damaged.mcap", "run.mcap", "view.mcap"]  # and no partial file beside it
+
+
+def test_an_export_over_a_hard_link_to_its_log_is_refused(tmp_path):
+    log_path = _log(tmp_path)
+    link = tmp_path / "link.mcap"
+    os.link(log_path, link)
+    before = log_path.read_bytes()
+    with pytest.raises(LogError, match="is the log being exported"):
+        export_foxglove(read_log(log_path), link, overwrite=True)
+    assert log_path.read_bytes() == before
