@@ -76,7 +76,14 @@ class RunLog:
 
     @property
     def end(self) -> dict[str, str] | None:
-        return self.metadata.get(fmt.END_METADATA)
+        """The ``retriever.end`` record, its counts checked (a changed file's text is not a count)."""
+        end = self.metadata.get(fmt.END_METADATA)
+        for field in ("end_ns", "events", "steps", "finished_unix_ns"):
+            value = end.get(field) if end is not None else None
+            if value is not None and not (value.isascii() and value.isdigit() and len(value) <= 20):
+                raise LogError(f"{self.path}: the end record {fmt.END_METADATA} is malformed: its {field} is "
+                               f"{value!r:.40}, not a count", "the file was changed after it was written")
+        return end
 
     @property
     def ir(self) -> IR:

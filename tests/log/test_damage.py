@@ -914,3 +914,17 @@ def test_a_flipped_byte_in_the_ir_attachment_is_caught_by_its_crc(one_chunk: Pat
     assert "pipeline.ir.json" not in fixed.attachments and len(fixed.messages) == len(salvaged.messages)
     with pytest.raises(LogError, match="holds no pipeline IR"):
         fixed.ir
+
+
+@pytest.mark.parametrize("field, value", [("end_ns", "NaN"), ("end_ns", "-1"), ("events", "x" * 200_000),
+                                          ("steps", ""), ("finished_unix_ns", "1e4")])
+def test_an_end_record_whose_counts_are_not_counts_is_named(tmp_path, field, value):
+    """`log info` said `error: ValueError: invalid literal for int() with base 10: 'NaN'`."""
+    def change(messages, metadata):
+        metadata["retriever.end"][field] = value
+
+    log_path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)
+    with pytest.raises(LogError, match=rf"the end record retriever.end is malformed: its {field} is '.*, not a count"):
+        read_log(log_path).end
+    assert_cli_error(cli("log", "info", log_path), rf"the end record retriever.end is malformed: its {field} is",
+                     hint="the file was changed after it was written")
