@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+import zstandard
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Footer, Header, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
@@ -252,16 +253,45 @@ def _attachment_crc_error(record: Attachment, crc_bytes: bytes) -> CRCValidation
     return None if actual == expected else CRCValidationError(expected, actual, record)
 
 
+#: the most bytes one chunk may hold uncompressed: a chunk is decompressed whole, and a small
+#: file whose chunk says it holds many gigabytes (a decompression bomb) would take that much memory
+#: (Retriever's writer closes a chunk past 1 MiB; only one value of this size makes a bigger one)
+MAX_CHUNK_BYTES = 1 << 30
+
+
+class ChunkTooLargeError(ValueError):
+    """A chunk that would decompress past MAX_CHUNK_BYTES."""
+
+
 class _StreamReader(StreamReader):
     """``mcap``'s stream reader, passing over MessageIndex records unparsed: a log is read whole,
     so their entries (one per message, parsed field by field in Python: a third of a read) are
-    of no use here. Their bytes are still read, so the data section's CRC covers them."""
+    of no use here. Their bytes are still read, so the data section's CRC covers them. A chunk
+    that says it holds more than MAX_CHUNK_BYTES is refused before it is decompressed."""
 
     def _read_record(self, opcode: int, length: int):
         if opcode == Opcode.MESSAGE_INDEX:
             self._stream.read(length)
             return None
-        return super()._read_record(opcode, length)
+        record = super()._read_record(opcode, length)
+        if isinstance(record, Chunk):
+            size = _uncompressed_size(record)
+            if size > MAX_CHUNK_BYTES:
+                raise ChunkTooLargeError(f"a chunk holds {size:,} bytes uncompressed, more than a log is read with "
+                                         f"({MAX_CHUNK_BYTES:,})")
+        return record
+
+
+def _uncompressed_size(chunk: Chunk) -> int:
+    """What decompressing ``chunk`` would make, as far as can be told before: a zstd frame's own
+    content size wins over the chunk's (zstandard allocates what the frame says)."""
+    if chunk.compression == "zstd":
+        try:
+            said = zstandard.frame_content_size(chunk.data)
+        except zstandard.ZstdError:
+            return chunk.uncompressed_size  # not a frame: decompressing it fails on its own
+        return said if said >= 0 else chunk.uncompressed_size
+    return chunk.uncompressed_size
 
 
 class _Tracked:

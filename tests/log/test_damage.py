@@ -928,3 +928,30 @@ def test_an_end_record_whose_counts_are_not_counts_is_named(tmp_path, field, val
         read_log(log_path).end
     assert_cli_error(cli("log", "info", log_path), rf"the end record retriever.end is malformed: its {field} is",
                      hint="the file was changed after it was written")
+
+
+def test_a_chunk_that_would_decompress_past_the_limit_is_refused_before_it_is(tmp_path, monkeypatch):
+    """A decompression bomb: a 98 KB file whose one chunk expands to 3 GiB took 16 s and 6.3 GB.
+    Here a real 2 MiB frame of zeros (4 KB on disk) against a limit lowered to 1 MiB."""
+    import numpy as np
+
+    import retriever.log.reader as reader
+    from retriever import Flow, Pipeline, Rate
+
+    class Zeros(Flow):
+        def step(self):
+            return {"frame": np.zeros(2 << 20, np.uint8)}
+
+    class Sink(Flow):
+        def step(self, frame):
+            return None
+
+    with Pipeline("bomb") as pipe:
+        (Zeros() @ Rate(hz=1)).then(Sink() @ Rate(hz=1))
+    path = tmp_path / "zeros.mcap"
+    pipe.run(duration=1.0, log=path)
+    assert path.stat().st_size < 64 << 10 and read_log(path).trace().values_of("zeros", "frame")[0].size == 2 << 20
+    monkeypatch.setattr(reader, "MAX_CHUNK_BYTES", 1 << 20)
+    with pytest.raises(LogError, match=r"a chunk holds 2,09\d,\d{3} bytes uncompressed, more than a log is read with "
+                                       r"\(1,048,576\)"):
+        read_log(path)
