@@ -720,6 +720,8 @@ def _file_state(log) -> str:
     ``log recover`` checks), and whether the run it holds ended."""
     from .log.format import RECOVERED_METADATA
 
+    if log.damage is not None:  # read whole, but its footer or summary is not what indexed readers need
+        return f"damaged: {log.damage}; retriever log recover writes a whole copy"
     if RECOVERED_METADATA in log.metadata:
         return (f"complete, recovered from {log.metadata[RECOVERED_METADATA].get('source')}: the run was cut short "
                 "(no end record)")

@@ -19,7 +19,7 @@ from typing import Any, Iterator
 
 import zstandard
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Chunk, Footer, Header, Message, Metadata, Schema
+from mcap.records import Attachment, Channel, Chunk, ChunkIndex, Footer, Header, Message, Metadata, Schema
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
@@ -213,8 +213,13 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
         reader = _StreamReader(tracked, validate_crcs=True)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
         bad_attachment = None
+        footer, chunk_indexes = None, []
         try:
             for record in reader.records:
+                if isinstance(record, ChunkIndex):
+                    chunk_indexes.append(record)
+                elif isinstance(record, Footer):
+                    footer = record
                 if isinstance(record, Attachment):
                     error = _attachment_crc_error(record, tracked.last_data)
                     if error is not None:
@@ -229,6 +234,12 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
                 _take(log, record)
         except Exception as e:  # EndOfFile, CRCs, struct.error, zstd errors, bad UTF-8: a tear or a bad byte
             _damaged(log, salvage, _diagnose(stream, size, tracked.last_read_at, e))
+        else:
+            closing = None if footer is None else _closing_damage(stream, size, tracked.position, footer,
+                                                                   chunk_indexes)
+            if closing is not None:  # every record read; what indexed readers go by is wrong
+                log.damage = (f"{closing}; its records read whole, but readers that seek by its summary (Foxglove's) "
+                              "refuse it")
         if dropped:
             log.damage = "; ".join([*dropped, *([log.damage] if log.damage else [])])
     if bad_attachment is not None:
@@ -294,6 +305,31 @@ def _uncompressed_size(chunk: Chunk) -> int:
     return chunk.uncompressed_size
 
 
+def _closing_damage(stream, size: int, end: int, footer: Footer, chunk_indexes: list) -> str | None:
+    """What is wrong with the end of a file read whole to its closing magic (at ``end``), for
+    readers that seek by its footer and summary rather than read it through: bytes after the
+    magic, a summary outside the file or whose CRC does not match, a chunk index naming no chunk."""
+    if end != size:
+        return f"{size - end:,} bytes follow its closing magic bytes (at byte {end})"
+    footer_at = end - len(MAGIC) - _RECORD_HEAD - 20  # a footer's fields: two offsets and a CRC
+    start, offsets = footer.summary_start, footer.summary_offset_start
+    if start > footer_at or offsets > footer_at or (offsets and offsets < start):
+        return f"its footer puts the summary at bytes {start:,} (offsets {offsets:,}), not before the footer"
+    if footer.summary_crc:
+        stream.seek(start or footer_at)
+        crc = zlib.crc32(stream.read(footer_at - (start or footer_at)))
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, start, offsets), crc)
+        if crc != footer.summary_crc:
+            return "its summary does not match its CRC"
+    for index in chunk_indexes:
+        stream.seek(index.chunk_start_offset)
+        head = stream.read(_RECORD_HEAD)
+        if len(head) != _RECORD_HEAD or head[0] != Opcode.CHUNK \
+                or int.from_bytes(head[1:], "little") != index.chunk_length - _RECORD_HEAD:
+            return f"its chunk index names a chunk at byte {index.chunk_start_offset:,} where there is none"
+    return None
+
+
 class _Tracked:
     """A file as the MCAP reader reads it, remembering where its last read began: a read that
     fails begins inside the record that is damaged (a damaged length may make it end far past)."""
@@ -303,6 +339,11 @@ class _Tracked:
         self._pos = 0
         self.last_read_at = 0
         self.last_data = b""
+
+    @property
+    def position(self) -> int:
+        """How many bytes were read."""
+        return self._pos
 
     def read(self, n: int = -1) -> bytes:
         self.last_read_at = self._pos

@@ -11,6 +11,7 @@ import secrets
 import struct
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import pytest
@@ -955,3 +956,60 @@ def test_a_chunk_that_would_decompress_past_the_limit_is_refused_before_it_is(tm
     with pytest.raises(LogError, match=r"a chunk holds 2,09\d,\d{3} bytes uncompressed, more than a log is read with "
                                        r"\(1,048,576\)"):
         read_log(path)
+
+
+def _closing_variants(path: Path, tmp_path: Path) -> dict[str, Path]:
+    """Copies of a whole log whose records all read, but whose end is not what indexed readers
+    seek by: bytes after the magic, the file twice, a changed summary byte, a footer pointing
+    past itself, a chunk index naming no chunk."""
+    data = path.read_bytes()
+    footer_at = len(data) - 8 - 29
+    summary_start = int.from_bytes(data[footer_at + 9:footer_at + 17], "little")
+    variants = {"trailing": data + b"JUNKJUNK", "twice": data + data}
+    flipped = bytearray(data)
+    flipped[footer_at - 1] ^= 0xFF  # the summary's last byte: a summary offset's length, a value no one parses
+    variants["summary byte"] = bytes(flipped)
+    past = bytearray(data)
+    past[footer_at + 9:footer_at + 17] = (1 << 62).to_bytes(8, "little")
+    variants["footer"] = bytes(past)
+    with path.open("rb") as f:
+        index = next(iter(make_reader(f).get_summary().chunk_indexes))
+    # the chunk index's chunk_start_offset is its first field: find it in the summary by value
+    at = data.index(index.chunk_start_offset.to_bytes(8, "little") + index.chunk_length.to_bytes(8, "little"),
+                    summary_start)
+    moved = bytearray(data)
+    moved[at:at + 8] = (index.chunk_start_offset + 1).to_bytes(8, "little")
+    offsets = int.from_bytes(data[footer_at + 17:footer_at + 25], "little")
+    crc = zlib.crc32(bytes(moved[summary_start:footer_at]))  # its summary CRC made to match: only the index is wrong
+    moved[footer_at + 25:footer_at + 29] = zlib.crc32(struct.pack("<BQQQ", 0x02, 20, summary_start, offsets),
+                                                      crc).to_bytes(4, "little")
+    variants["chunk index"] = bytes(moved)
+    out = {}
+    for name, content in variants.items():
+        out[name] = tmp_path / f"{name.replace(' ', '_')}.mcap"
+        out[name].write_bytes(content)
+    return out
+
+
+@pytest.mark.parametrize("variant, damage", [
+    ("trailing", r"8 bytes follow its closing magic bytes"),
+    ("twice", r"[\d,]+ bytes follow its closing magic bytes"),
+    ("summary byte", r"its summary does not match its CRC"),
+    ("footer", r"its footer puts the summary at bytes 4,611,686,018,427,387,904"),
+    ("chunk index", r"its chunk index names a chunk at byte [\d,]+ where there is none"),
+])
+def test_a_log_whose_end_indexed_readers_refuse_is_called_damaged_and_recovered(tmp_path, variant, damage):
+    """`log info` called such files complete, and `log recover` had nothing to do, while Foxglove's
+    reader and mcap's refused them."""
+    path = _small_log(tmp_path)
+    changed = _closing_variants(path, tmp_path)[variant]
+    log = read_log(changed)  # its records read whole: it still replays
+    assert re.match(damage, log.damage) and log.trace() == read_log(path).trace()
+    info = cli("log", "info", changed)
+    assert info.returncode == 0 and re.search(r"damaged: " + damage, " ".join(info.stdout.split())), info.stdout
+    result = recover(changed, tmp_path / "whole.mcap")
+    assert result.output is not None and re.match(damage, result.damage)
+    again = read_log(result.output)
+    assert again.damage is None and again.complete and again.trace() == log.trace()
+    with result.output.open("rb") as f:  # what an indexed reader seeks by is whole again
+        assert len(list(make_reader(f).iter_messages())) == len(again.messages)
