@@ -370,8 +370,10 @@ class Coordinator(Session):
                 continue
             ports = sorted({port for node, _, _, _, _, detail, *_ in self.trace.raw_steps
                             if node == nid and detail for port in (detail.get("late") or {})})
-            edges = [e for e in self.graph.edges if e.dst == nid and e.dst_port in ports] or \
-                [e for e in self.graph.edges if e.dst == nid]
+            # the edges into the ports the step records name (none are kept under keep="counters"),
+            # whose producer made any event: another into the same port may have been silent
+            into = [e for e in self.graph.edges if e.dst == nid and (e.src, e.src_port) in self._max_seq]
+            edges = [e for e in into if e.dst_port in ports] or into
             names = ", ".join(f"{e.src}.{e.src_port} → {nid}.{e.dst_port}" for e in edges)
             e = edges[0] if edges else None
             stale = [x for x in edges if getattr(x.sync, "staleness", None) is not None]
