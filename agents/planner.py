@@ -199,8 +199,10 @@ class OpenAICompatiblePlanner:
                 if isinstance(content, str):
                     messages.append({"role": "assistant", "content": content})
                 messages.append({"role": "user", "content": correction(e, self.task_kind)})
-        hint = ("the model server failed; its own log says why (a 429: it limits the rate, so a longer planner "
-                "latency asks less often)" if server_failed else
+        limited = "HTTP 429" in last  # it limits the rate: asking less often helps
+        hint = (("the model server limits the rate: a longer planner latency asks less often" if limited else
+                 "the model server failed, or its reply was no chat completion; its own log says why")
+                if server_failed else
                 f"the model must answer with only {EXPECTED}, such as {example(self.task_kind)} (docs/retriever0.md)")
         raise PlannerError(f"planner {self.base_url} (model {self.model}) gave no plan in {self.attempts} "
                            f"attempts; the last: {last}", hint)

@@ -259,7 +259,11 @@ def test_a_rate_limit_is_tried_again_and_a_failing_server_is_not_blamed_on_the_m
         == PLAN["action_plan"]
     model_server.replies = [(503, "down")]
     with pytest.raises(PlannerError, match=r"the last: the endpoint answered HTTP 503 .*\n    hint: the model server "
-                                           r"failed; its own log says why"):
+                                           r"failed, or its reply was no chat completion; its own log says why$"):
+        OpenAICompatiblePlanner(_url(model_server), "m", timeout=10).propose("season", UNKNOWN, {})
+    model_server.replies = [(429, "slow down")]
+    with pytest.raises(PlannerError, match=r"HTTP 429 .*\n    hint: the model server limits the rate: a longer "
+                                           r"planner latency asks less often$"):
         OpenAICompatiblePlanner(_url(model_server), "m", timeout=10).propose("season", UNKNOWN, {})
 
 
