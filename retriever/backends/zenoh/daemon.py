@@ -282,7 +282,11 @@ def reap_stale_folders() -> list[Path]:
 # The allowlist: which modules a flow class may come from
 # ---------------------------------------------------------------------------------------------
 def path_modules(paths: list[str]) -> list[str]:
-    """The top-level modules and packages in the folders ``paths`` (what importing from them finds)."""
+    """The top-level modules and regular packages in the folders ``paths``: the names whose import
+    finds them there. Not a folder without ``__init__.py`` (a namespace package: any regular
+    package of its name elsewhere, ``venv`` or ``test`` in the standard library, is imported
+    first), nor a name the interpreter imports before looking in any folder (built-in or frozen:
+    ``sys``, ``os``)."""
     suffixes = sorted(importlib.machinery.all_suffixes(), key=len, reverse=True)
     found = set()
     for folder in paths:
@@ -292,12 +296,17 @@ def path_modules(paths: list[str]) -> list[str]:
             continue
         for entry in entries:
             if entry.is_dir():
-                stem = entry.name
+                stem = entry.name if os.path.isfile(os.path.join(entry.path, "__init__.py")) else ""
             else:
                 stem = next((entry.name[:-len(s)] for s in suffixes if entry.name.endswith(s)), "")
-            if stem.isidentifier() and not stem.startswith("__"):  # not __init__, __pycache__
-                found.add(stem)
+            if stem.isidentifier() and not stem.startswith("__") and not _imported_first(stem):
+                found.add(stem)  # (not __init__, __pycache__)
     return sorted(found)
+
+
+def _imported_first(name: str) -> bool:
+    """Whether ``name`` is a built-in or frozen module, which no folder on the path can provide."""
+    return name in sys.builtin_module_names or importlib.machinery.FrozenImporter.find_spec(name) is not None
 
 
 def module_allowed(module: str, allow: list[str], paths: list[str]) -> bool:
@@ -305,8 +314,8 @@ def module_allowed(module: str, allow: list[str], paths: list[str]) -> bool:
     is in ALWAYS_ALLOWED, found in a ``paths`` folder, or matches an ``allow`` pattern (fnmatch,
     case-sensitive: ``mylab.*``)."""
     parts = module.split(".") if isinstance(module, str) else [""]
-    if not all(part.isidentifier() for part in parts):
-        return False
+    if not all(part.isidentifier() and not (part.startswith("__") and part.endswith("__")) for part in parts):
+        return False  # a dunder part (pkg.__main__) is a package's command line, not a module of flows
     patterns = [*ALWAYS_ALLOWED, *path_modules(paths), *allow]
     prefixes = [".".join(parts[:i]) for i in range(1, len(parts) + 1)]
     return any(fnmatchcase(prefix, pattern) for prefix in prefixes for pattern in patterns)

@@ -261,7 +261,9 @@ class DaemonRuns:
     def _local_spec(self, spec: dict, folder: Path) -> dict:
         """The coordinator's spec as this host runs it: its Python path, its credentials, its
         address; no shared folder with the coordinator, no main script."""
-        local = {k: spec[k] for k in ("ir", "namespace", "argv", "startup_timeout") if k in spec}
+        # not the coordinator's argv: a worker's flows see the worker's own (sys.argv is no
+        # channel for a stranger's arguments to a module that parses them when imported)
+        local = {k: spec[k] for k in ("ir", "namespace", "startup_timeout") if k in spec}
         local["namespace"] = self.keys.namespace
         local["python_path"] = [*self.paths, *(p for p in sys.path if p and os.path.isdir(p))]
         local["main_file"] = local["spill_dir"] = None

@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from retriever import read_log
 from retriever.backends.zenoh.daemon import (
     CONFIG_KEYS,
     DEFAULT_LISTEN,
@@ -431,6 +432,44 @@ def test_a_worker_refuses_nodes_whose_module_differs_from_the_coordinators_or_wa
         assert worker.stop() == 0
 
 
+ARGV_FLOWS = """
+import sys
+
+from retriever import Flow, Pipeline, Rate
+
+
+class Argv(Flow):
+    def step(self):
+        return {"argv": " ".join(sys.argv)}
+
+
+class Sink(Flow):
+    def step(self, argv):
+        return None
+
+
+with Pipeline("argv") as pipe:
+    (Argv() @ Rate(hz=10)).then(Sink() @ Rate(hz=10))
+"""
+
+
+def test_a_workers_flows_see_the_workers_argv_not_the_coordinators(workers, namespace, tmp_path):
+    """issue 40: the worker took sys.argv from the spec the network sent, a channel for a stranger's
+    arguments to a module that parses them when imported (regrtest wrote a file an insider named)."""
+    (tmp_path / "argv_flows.py").write_text(ARGV_FLOWS, encoding="utf-8")
+    port = free_port()
+    worker = workers("--name", "w-argv", "--listen", endpoint(port), "--namespace", namespace, "--insecure",
+                     "--path", str(tmp_path))
+    worker.wait_started()
+    log = tmp_path / "argv.mcap"
+    done = _cli("deploy", f"{tmp_path / 'argv_flows.py'}:pipe", "--connect", endpoint(port), "--namespace", namespace,
+                "--insecure", "--duration", "0.5", "--log", str(log), "--keep", "trace")
+    assert done.returncode == 0, done.stderr
+    seen = {e.value for e in read_log(log).trace().events_of("argv", "argv")}
+    assert seen and not any("deploy" in argv or namespace in argv for argv in seen), seen
+    assert worker.stop() == 0
+
+
 def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prepared(workers, namespace, tmp_path):
     """The check is made again at each spawn (a restart may come long after prepare)."""
     module = tmp_path / "drift_flows.py"
@@ -588,6 +627,11 @@ def flows_dir(tmp_path) -> str:
     (tmp_path / "data.txt").write_text("")
     (tmp_path / "__pycache__").mkdir()
     (tmp_path / "not-a-module").mkdir()
+    for shadowing in ("venv", "test"):  # folders without __init__.py: the standard library's package is imported
+        (tmp_path / shadowing).mkdir()
+        (tmp_path / shadowing / "__main__.py").write_text("")
+    (tmp_path / "sys.py").write_text("")  # built in: no folder provides it
+    (tmp_path / "os.py").write_text("")  # frozen: likewise
     return str(tmp_path)
 
 
@@ -614,6 +658,14 @@ def flows_dir(tmp_path) -> str:
     ("", ["*"], False, False),
     ("a..b", ["*"], False, False),
     ("os;rm", ["*"], False, False),
+    ("venv.__main__", [], True, False),  # issue 40: `venv --clear` emptied a folder an insider chose
+    ("test", [], True, False),
+    ("test.__main__", [], True, False),  # regrtest wrote a file where an insider said
+    ("sys", [], True, False),
+    ("os", [], True, False),
+    ("mylab.__main__", [], True, False),  # a package's command line, even of an allowed package
+    ("retriever.__main__", [], False, False),
+    ("mylab.__init__", [], True, False),
 ])
 def test_module_allowed(flows_dir, module, allow, on_path, allowed):
     assert module_allowed(module, allow, [flows_dir] if on_path else []) is allowed
