@@ -914,17 +914,21 @@ def worker(
     code_mismatch: Annotated[Optional[str], typer.Option(
         metavar="refuse|warn", help="A node whose module's file here differs from the coordinator's (the sha256 "
                                     "its IR records): refuse to run it (default), or warn and run it.")] = None,
+    pass_env: Annotated[Optional[list[str]], typer.Option(
+        "--pass-env", metavar="NAME", help="Give flow processes this environment variable too (repeatable; they get "
+                                           "the locale, paths and libraries' settings, no credential, unless told: "
+                                           "--pass-env OPENAI_API_KEY).")] = None,
 ) -> None:
     """Run a long-lived worker daemon that coordinators (retriever deploy) place flows on, until
-    SIGINT or SIGTERM. Flow classes come only from retriever, agents, the --path folders' modules
-    and --allow patterns."""
+    SIGINT or SIGTERM. Flow classes come only from retriever, the --path folders' modules and
+    --allow patterns (--allow agents for Retriever-0)."""
     from .backends.zenoh.daemon import load_settings, serve
 
     try:
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
-                                 lease=lease, code_mismatch=code_mismatch,
+                                 lease=lease, code_mismatch=code_mismatch, pass_env=pass_env,
                                  **{k: None if v is None else str(v) for k, v in
                                     (("tls_ca", tls_ca), ("tls_cert", tls_cert), ("tls_key", tls_key))})
         code = serve(settings)

@@ -20,8 +20,8 @@ PAPER_TRACE = ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "CloseDrawer(TL-H)", "Op
 
 def test_retriever0_runs_across_a_robot_host_and_a_gpu_host_and_its_log_replays(hosts, secret, tmp_path):  # noqa: F811
     coordinator, arm, gpu = hosts
-    start_worker(arm, "arm-pc", secret, "--labels", "robot")
-    start_worker(gpu, "gpu-box", secret, "--labels", "gpu")
+    start_worker(arm, "arm-pc", secret, "--labels", "robot", "--allow", "agents")
+    start_worker(gpu, "gpu-box", secret, "--labels", "gpu", "--allow", "agents")
     log = tmp_path / "run.mcap"
     done = deploy(coordinator, [arm, gpu], secret, f"{REPO / 'agents' / 'retriever0.py'}:pipe",
                   "--placement", str(REPO / "deploy" / "retriever0.toml"), "--duration", "90", "--log", str(log),

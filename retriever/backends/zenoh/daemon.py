@@ -63,9 +63,10 @@ DEFAULT_NAMESPACE = "default"
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 #: where ``retriever workers`` looks when told nowhere: a worker on this machine, at DEFAULT_LISTEN
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
-#: flow classes from these packages (and their modules) are always allowed: Retriever's own flows
-#: and the agents package
-ALWAYS_ALLOWED = ("retriever", "agents")
+#: flow classes from these packages (and their modules) are always allowed: Retriever's own flows.
+#: Not ``agents`` (Retriever-0): its flows act on the world outside the program (a planner that
+#: sends the daemon's API key to a URL its parameters give), so a worker opts in: --allow agents
+ALWAYS_ALLOWED = ("retriever",)
 
 #: how long a starting daemon waits for links to its --connect endpoints before it looks for a
 #: worker of its name: a link takes milliseconds on a LAN; an endpoint down longer is joined later,
@@ -84,7 +85,7 @@ STOP_CHECK_S = 0.5
 #: worker's ctl/<name> may be one of them
 RESERVED_NAMES = ("run", "start")
 CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease",
-               "tls_ca", "tls_cert", "tls_key", "code_mismatch")
+               "tls_ca", "tls_cert", "tls_key", "code_mismatch", "pass_env")
 #: what a worker does with a node whose module's file here differs from the coordinator's (the
 #: IR's sha256): refuse to run it (the default), or run it and warn
 CODE_MISMATCH = ("refuse", "warn")
@@ -116,6 +117,7 @@ class WorkerSettings:
     lease: float | None = None  # seconds; None: Zenoh's (10 s)
     tls: TlsFiles | None = None  # mutual TLS on every link (access.TlsFiles)
     code_mismatch: str = "refuse"  # CODE_MISMATCH
+    pass_env: tuple[str, ...] = ()  # environment variables flow processes get beyond runs.PASSED_ENV
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
@@ -207,11 +209,15 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
     code_mismatch = values.get("code_mismatch", "refuse")
     if code_mismatch not in CODE_MISMATCH:
         problems.append(f"'code_mismatch' must be one of {', '.join(CODE_MISMATCH)}, got {code_mismatch!r:.60}")
+    pass_env = strings("pass_env")
+    for variable in pass_env:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", variable):
+            problems.append(f"'pass_env' names environment variables, got {variable!r:.60}")
     if problems:
         return None
     return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
                           None if secret is None else str(secret), insecure,
-                          None if lease is None else float(lease), tls, code_mismatch)
+                          None if lease is None else float(lease), tls, code_mismatch, pass_env)
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
@@ -354,7 +360,8 @@ class WorkerDaemon:
                                access=RunAccess.create(settings.namespace, read_secret(settings.secret))
                                if settings.secret is not None else None,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
-                               tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch)
+                               tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
+                               pass_env=settings.pass_env)
         #: op -> handler(args) -> answer
         self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
 

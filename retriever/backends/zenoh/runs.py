@@ -58,6 +58,24 @@ MAX_PROCESSES_PER_NODE = 2
 SIGNALS = (signal.SIGUSR1, signal.SIGTERM, signal.SIGKILL)
 
 
+#: what a flow process gets of its daemon's environment unasked: where things are, the locale,
+#: and the runtime settings of the interpreter and of the libraries flows use (rendering, BLAS,
+#: threads, GPUs); never a credential. A daemon passes more by name: --pass-env OPENAI_API_KEY
+PASSED_ENV = ("PATH", "HOME", "USER", "LOGNAME", "SHELL", "TERM", "LANG", "LANGUAGE", "TZ", "TMPDIR",
+              "PYTHONPATH", "PYTHONHOME", "PYTHONHASHSEED", "PYTHONUNBUFFERED", "PYTHONDONTWRITEBYTECODE",
+              "PYTHONWARNINGS", "VIRTUAL_ENV", "LD_LIBRARY_PATH", "DISPLAY", "XDG_RUNTIME_DIR", "MUJOCO_GL",
+              "PYOPENGL_PLATFORM", "LP_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+              "OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "CUDA_VISIBLE_DEVICES", "NVIDIA_VISIBLE_DEVICES",
+              "RUST_LOG", "RUST_BACKTRACE")
+PASSED_ENV_PREFIXES = ("LC_",)
+
+
+def flow_environment(environ: dict[str, str], passed: tuple[str, ...] = ()) -> dict[str, str]:
+    """The environment of a daemon's flow process: PASSED_ENV, the locale, and ``passed``."""
+    return {k: v for k, v in environ.items()
+            if k in PASSED_ENV or k in passed or k.startswith(PASSED_ENV_PREFIXES)}
+
+
 class Run:
     """One prepared run: its folder (0700), its spec for this host, its processes by pid."""
 
@@ -74,11 +92,12 @@ class DaemonRuns:
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
                  paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None,
-                 code_mismatch: str = "refuse"):
+                 code_mismatch: str = "refuse", pass_env: tuple[str, ...] = ()):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
         self.lease = lease  # its flows' links go silent as fast as its own (a partition)
         self.code_mismatch = code_mismatch  # daemon.CODE_MISMATCH
+        self.pass_env = pass_env
         self._spawner = ThreadPoolExecutor(1, thread_name_prefix="retriever-spawner")
         self.paths = [str(Path(p).resolve()) for p in paths]
         for folder in reversed(self.paths):  # where check_node finds the flows' modules (it imports nothing)
@@ -158,7 +177,8 @@ class DaemonRuns:
         # thread that started it ends, which a thread of Zenoh's (this op's) may do at any time
         proc = self._spawner.submit(
             subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True).result()
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+            env=flow_environment(os.environ, self.pass_env)).result()
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
             threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,

@@ -145,7 +145,7 @@ def test_a_daemon_announces_itself_and_answers_info(workers, namespace):
     err = worker.stderr()
     assert "warning: retriever-worker 'w1' runs with --insecure" in err and "trusted network" in err
     assert f"retriever-worker 'w1' in namespace '{namespace}'; listening on {endpoint(port)}; labels gpu, arm; " \
-           "flows from retriever, agents" in err
+           "flows from retriever" in err
 
 
 def test_retriever_workers_lists_two_daemons_with_their_labels(workers, namespace):
@@ -470,6 +470,52 @@ def test_a_workers_flows_see_the_workers_argv_not_the_coordinators(workers, name
     assert worker.stop() == 0
 
 
+ENV_FLOWS = """
+import os
+
+from retriever import Flow, Pipeline, Rate
+
+
+class Env(Flow):
+    def step(self):
+        return {"env": " ".join(sorted(os.environ))}
+
+
+class Sink(Flow):
+    def step(self, env):
+        return None
+
+
+with Pipeline("env") as pipe:
+    (Env() @ Rate(hz=10)).then(Sink() @ Rate(hz=10))
+"""
+
+
+def test_a_workers_flows_get_no_credential_from_its_environment_unless_it_is_named(workers, namespace, tmp_path,
+                                                                                   monkeypatch):
+    """issue 40: the planner of the always-allowed agents package sent the daemon's OPENAI_API_KEY
+    to a URL an insider put in its params. A flow process gets the locale, paths and libraries'
+    settings, and what --pass-env names."""
+    (tmp_path / "env_flows.py").write_text(ENV_FLOWS, encoding="utf-8")
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test-not-for-flows")
+    monkeypatch.setenv("AWS_SECRET_ACCESS_KEY", "also-not")
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    seen = {}
+    for name, extra in (("w-env", ()), ("w-env-pass", ("--pass-env", "OPENAI_API_KEY"))):
+        port = free_port()
+        worker = workers("--name", name, "--listen", endpoint(port), "--namespace", f"{namespace}-{name}",
+                         "--insecure", "--path", str(tmp_path), *extra)
+        worker.wait_started()
+        log = tmp_path / f"{name}.mcap"
+        done = _cli("deploy", f"{tmp_path / 'env_flows.py'}:pipe", "--connect", endpoint(port), "--namespace",
+                    f"{namespace}-{name}", "--insecure", "--duration", "0.5", "--log", str(log), "--keep", "trace")
+        assert done.returncode == 0, done.stderr
+        seen[name] = set(read_log(log).trace().values_of("env", "env")[0].split())
+        assert worker.stop() == 0
+    assert {"PATH", "MUJOCO_GL"} <= seen["w-env"] and not {"OPENAI_API_KEY", "AWS_SECRET_ACCESS_KEY"} & seen["w-env"]
+    assert "OPENAI_API_KEY" in seen["w-env-pass"] and "AWS_SECRET_ACCESS_KEY" not in seen["w-env-pass"]
+
+
 def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prepared(workers, namespace, tmp_path):
     """The check is made again at each spawn (a restart may come long after prepare)."""
     module = tmp_path / "drift_flows.py"
@@ -638,7 +684,8 @@ def flows_dir(tmp_path) -> str:
 @pytest.mark.parametrize("module, allow, on_path, allowed", [
     ("retriever", [], False, True),
     ("retriever.flow.base", [], False, True),
-    ("agents.planner", [], False, True),
+    ("agents.planner", [], False, False),  # issue 40: its planner sends an API key where its params say
+    ("agents.planner", ["agents"], False, True),
     ("retrieverx", [], False, False),  # a package allows its modules, not its name's prefix
     ("Retriever", [], False, False),  # module names are case-sensitive
     ("os", [], False, False),
@@ -674,7 +721,7 @@ def test_module_allowed(flows_dir, module, allow, on_path, allowed):
 def test_a_refusal_names_the_module_and_the_flags_that_allow_it(flows_dir):
     message = refusal("os.path", ["other.*"], [flows_dir], worker="arm-1")
     assert message == (
-        "worker 'arm-1' does not import flow classes from module 'os.path': its allowlist admits retriever, agents "
+        "worker 'arm-1' does not import flow classes from module 'os.path': its allowlist admits retriever "
         f"(always); modules in --path {flows_dir}: fast, mylab, tool; --allow other.*\n"
         "    hint: start the worker with --allow os.path, or with --path DIR for the folder holding os")
 
