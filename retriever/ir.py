@@ -212,12 +212,15 @@ class IR:
     @classmethod
     def from_json(cls, text: str, *, source: str = "<string>") -> "IR":
         try:
-            doc = json.loads(text)
+            doc = json.loads(text, parse_int=_parse_int)
         except json.JSONDecodeError as e:
             raise IRError(source, [f"not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}"]) from None
         except RecursionError:
             raise IRError(source, ["not an IR: its JSON nests arrays or objects deeper than Python's recursion "
                                    "limit"]) from None
+        huge = _huge_ints(doc)
+        if huge:
+            raise IRError(source, huge)
         return cls(doc, source=source)
 
     @classmethod
@@ -349,6 +352,49 @@ def _to_mermaid(ir: IR) -> str:
         lines.append(f"  {ids[e['source']['node']]} -->|{_mermaid_label(_edge_lines(e))}| "
                      f"{ids[e['destination']['node']]}")
     return "\n".join(lines) + "\n"
+
+
+class _HugeInt(str):
+    """The digits of a JSON integer longer than Python converts (sys.get_int_max_str_digits), kept
+    so that from_json can name where it stood instead of failing in the middle of json.loads."""
+
+
+def _parse_int(digits: str) -> int | _HugeInt:
+    try:
+        return int(digits)
+    except ValueError:
+        return _HugeInt(digits)
+
+
+def _huge_ints(doc: Any) -> list[str]:
+    """One problem per oversized integer in ``doc``, named by where it stands: a node's by its id
+    and its param (``node 'camera'.params.gain``), any other by its JSON path."""
+    problems: list[str] = []
+
+    def walk(value: Any, where: str) -> None:
+        if isinstance(value, _HugeInt):
+            sign = 1 if value.startswith("-") else 0
+            problems.append(f"{where}: an integer of {len(value) - sign} digits; at most "
+                            f"{sys.get_int_max_str_digits()} are read\n"
+                            f"    hint: write so large a number as a string and convert it in the flow")
+        elif isinstance(value, dict):
+            for key, item in value.items():
+                walk(item, f"{where}.{key}" if where else str(key))
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                walk(item, f"{where}[{i}]")
+
+    if isinstance(doc, dict):
+        for key, value in doc.items():
+            if key == "nodes" and isinstance(value, list):
+                for i, n in enumerate(value):
+                    nid = n.get("id") if isinstance(n, dict) else None
+                    walk(n, f"node '{nid}'" if isinstance(nid, str) and re.fullmatch(NODE_ID, nid) else f"nodes[{i}]")
+            else:
+                walk(value, key)
+    else:
+        walk(doc, "the document")
+    return problems
 
 
 # ---------------------------------------------------------------------------------------------

@@ -709,3 +709,21 @@ def test_visualize_mermaid_escapes_every_text_from_the_ir(doc: dict):
     # 'end' closes a Mermaid subgraph: that node gets an id of its own, its label still says end
     assert '  node_3["end<br/>Trigger#40;px#34;#59; n ' in mermaid and " end" not in mermaid.replace('"end', "")
     assert "#34;#92; #124;#93;#41; #60;b#62;#35;amp#59;#96;#10;" in mermaid
+
+
+def test_an_integer_too_long_to_read_is_named_by_node_and_param(doc: dict, tmp_path: Path):
+    # issue 40 item 12: json.loads raised 'ValueError: Exceeds the limit (4300 digits) ...'
+    limit = sys.get_int_max_str_digits()
+    doc["nodes"][0]["params"] = {"gain": 7, "table": [1, {"big": 0}]}
+    text = json.dumps(doc).replace('"big": 0', '"big": -' + "9" * (limit + 700))
+    text = text.replace('"gain": 7', '"gain": ' + "1" * 5000)
+    text = text.replace('"qsize": 10', '"qsize": ' + "2" * 5000, 1)
+    problems = (rf"^invalid IR \(.*pipeline\.ir\.json\):\n"
+                rf"  - edges\[0\]\.qsize: an integer of 5000 digits; at most {limit} are read\n"
+                rf"    hint: write so large a number as a string and convert it in the flow\n"
+                rf"  - node 'camera'\.params\.gain: an integer of 5000 digits; at most {limit} are read\n"
+                rf"    hint: .*\n"
+                rf"  - node 'camera'\.params\.table\[1\]\.big: an integer of {limit + 700} digits; at most "
+                rf"{limit} are read\n    hint: .*$")
+    with pytest.raises(IRError, match=problems):
+        _load(tmp_path, text)
