@@ -739,3 +739,17 @@ def test_the_password_folders_of_dead_daemons_are_reaped_those_of_live_ones_kept
         for folder in (dead, alive, odd):
             if folder.exists():
                 folder.rmdir()
+
+
+def test_a_binary_config_is_named_as_no_text(tmp_path):
+    # issue 40 item 12: a binary worker.toml gave a bare UnicodeDecodeError
+    config = tmp_path / "worker.toml"
+    config.write_bytes(b'name = "w"\n\xff\xfe\x00binary')
+    message = (rf"^the worker config .*worker\.toml is not text: TOML is UTF-8, byte 11 is b'\\xff'\n"
+               rf"    hint: --config takes a worker\.toml")
+    with pytest.raises(WorkerError, match=message):
+        load_settings(config)
+    result = _cli("worker", "--config", str(config), "--insecure")
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert re.match(r"^error: the worker config .*worker\.toml is not text: TOML is UTF-8, byte 11 is b'\\xff'\n"
+                    r"hint: --config takes a worker\.toml \(name = ", result.stderr), result.stderr
