@@ -753,3 +753,24 @@ def test_a_binary_config_is_named_as_no_text(tmp_path):
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
     assert re.match(r"^error: the worker config .*worker\.toml is not text: TOML is UTF-8, byte 11 is b'\\xff'\n"
                     r"hint: --config takes a worker\.toml \(name = ", result.stderr), result.stderr
+
+
+def test_a_deploy_config_reports_every_bad_value_at_once(tmp_path):
+    # issue 40 item 12: a bad endpoint, namespace and on_worker_loss came one per invocation
+    from retriever.backends.zenoh.deploy import load_deploy_config
+    from retriever import BackendError
+
+    config = tmp_path / "deploy.toml"
+    config.write_text('connect = ["tcp/arm:7447", "bogus"]\nlisten = "tcp/0.0.0.0:7447"\nnamespace = "lab/a"\n'
+                      'on_worker_loss = "retry"\nlease = "long"\n')
+    problems = (r"^the deploy config .*deploy\.toml has problems:\n"
+                r"  - 'connect': 'bogus' is no Zenoh endpoint: write PROTOCOL/ADDRESS, e\.g\. tcp/10\.0\.0\.2:7447 "
+                r"\(tls/\.\.\. with TLS\)\n"
+                r"  - 'namespace' 'lab/a' cannot be a Zenoh key chunk: use letters, digits, '_', '-' and '\.' .*\n"
+                r"  - 'on_worker_loss' must be one of replace, wait, stop, got 'retry'\n"
+                r"  - 'lease' must be a number of seconds, got 'long'$")
+    with pytest.raises(BackendError, match=problems):
+        load_deploy_config(config)
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert re.match("^error: " + problems[1:-1], done.stderr), done.stderr
