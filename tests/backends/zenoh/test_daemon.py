@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -774,3 +775,23 @@ def test_a_deploy_config_reports_every_bad_value_at_once(tmp_path):
     done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
     assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
     assert re.match("^error: " + problems[1:-1], done.stderr), done.stderr
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="the test makes a certificate with openssl")
+def test_no_workers_over_tls_says_how_to_start_one_over_tls(namespace, tmp_path):
+    # issue 40 item 12: the hint said --listen tcp/0.0.0.0:7447, which a TLS worker refuses
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=lab",
+                    "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", "lab.key", "-out", "lab.pem"],
+                   cwd=tmp_path, check=True, capture_output=True, timeout=BOUND_S)
+    tls = ["--tls-ca", str(tmp_path / "lab.pem"), "--tls-cert", str(tmp_path / "lab.pem"),
+           "--tls-key", str(tmp_path / "lab.key")]
+    at = f"tls/127.0.0.1:{free_port()}"  # nothing listens there
+    result = _cli("workers", "--connect", at, "--namespace", namespace, "--insecure", *tls)
+    assert result.returncode == 1, result.stderr
+    assert result.stdout == (
+        f"no workers in namespace '{namespace}' at {at}\n"
+        f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tls/0.0.0.0:7447 --tls-ca CA "
+        "--tls-cert CERT --tls-key KEY --secret FILE, then: retriever workers --connect tls/HOST:7447 --tls-ca CA "
+        "--tls-cert CERT --tls-key KEY --secret FILE\n"), result.stdout
+    assert f"warning: no session at {at}: nothing listens there, or it wants another --secret or a certificate " \
+           "of another CA" in result.stderr, result.stderr
