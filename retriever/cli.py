@@ -964,18 +964,20 @@ def workers_command(
     from .backends.zenoh.daemon import DEFAULT_CONNECT, list_workers
 
     endpoints = connect or [DEFAULT_CONNECT]
+    tls = _tls(tls_ca, tls_cert, tls_key)
     try:
-        listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure,
-                               _tls(tls_ca, tls_cert, tls_key))
+        listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure, tls)
     except Exception as exc:
         _fail(exc)
     for endpoint in listing.unreachable:
-        _err.print(f"warning: no session at {endpoint}: nothing listens there, or it wants another --secret",
-                   highlight=False)
+        _err.print(f"warning: no session at {endpoint}: nothing listens there, or it wants another --secret"
+                   f"{' or a certificate of another CA' if tls else ''}", highlight=False)
     if not listing.workers:
+        # with TLS every endpoint is tls/ and each side names its CA, certificate and key
+        scheme, files = ("tls", " --tls-ca CA --tls-cert CERT --tls-key KEY") if tls else ("tcp", "")
         _out.print(f"no workers in namespace '{namespace}' at {', '.join(endpoints)}\n"
-                   f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tcp/0.0.0.0:7447 "
-                   "--secret FILE, then: retriever workers --connect tcp/HOST:7447 --secret FILE",
+                   f"  start one: retriever-worker --name NAME --namespace {namespace} --listen {scheme}/0.0.0.0:7447"
+                   f"{files} --secret FILE, then: retriever workers --connect {scheme}/HOST:7447{files} --secret FILE",
                    highlight=False, soft_wrap=True)
         raise typer.Exit(code=1)  # a script waiting for its workers (`until retriever workers ...`) can tell
     _out.print(_workers_table(listing.workers, namespace))

@@ -212,12 +212,15 @@ class IR:
     @classmethod
     def from_json(cls, text: str, *, source: str = "<string>") -> "IR":
         try:
-            doc = json.loads(text)
+            doc = json.loads(text, parse_int=_parse_int)
         except json.JSONDecodeError as e:
             raise IRError(source, [f"not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}"]) from None
         except RecursionError:
             raise IRError(source, ["not an IR: its JSON nests arrays or objects deeper than Python's recursion "
                                    "limit"]) from None
+        huge = _huge_ints(doc)
+        if huge:
+            raise IRError(source, huge)
         return cls(doc, source=source)
 
     @classmethod
@@ -248,13 +251,17 @@ class IR:
         raise ValueError(f"unknown format {format!r}; expected 'dot' or 'mermaid'")
 
 
+# Every text that reaches a picture comes from the IR file, which anyone may have written: the
+# pipeline's name, port names, adapter parameters. So every one is escaped for the format it goes
+# into (a name of `x"; n [image="/etc/passwd"]; "` made Graphviz read a local file), and labels
+# are built as lists of lines that each format joins with its own line break.
 def _clock_label(clock: dict) -> str:
     (kind, p), = clock.items()
     if kind == "Rate":
         return f"Rate {p['hz']} Hz"
     if kind == "Trigger":
-        return "Trigger(" + ", ".join(p.get("ports", [])) + ")"
-    return f"Hybrid {p['hz']} Hz + (" + ", ".join(p.get("trigger", [])) + ")"
+        return "Trigger(" + ", ".join(map(str, p.get("ports", []))) + ")"
+    return f"Hybrid {p['hz']} Hz + (" + ", ".join(map(str, p.get("trigger", []))) + ")"
 
 
 def _adapter_label(adapter: dict) -> str:
@@ -263,35 +270,131 @@ def _adapter_label(adapter: dict) -> str:
     return f"{name}({args})"
 
 
-def _edge_label(e: dict) -> str:
-    label = f"{e['source']['port']} → {e['destination']['port']}\\n{_adapter_label(e['adapter'])}"
-    if e.get("delay"):
-        label += f"\\ndelay {e['delay']} s"
-    return label
+def _node_lines(n: dict) -> list[str]:
+    latency = n["config"].get("latency") or 0
+    return [n["id"], _clock_label(n["config"]["clock"]), *([f"latency {latency} s"] if latency else [])]
+
+
+def _edge_lines(e: dict) -> list[str]:
+    return [f"{e['source']['port']} → {e['destination']['port']}", _adapter_label(e["adapter"]),
+            *([f"delay {e['delay']} s"] if e.get("delay") else [])]
+
+
+def _dot_string(text: object) -> str:
+    """``text`` as one quoted DOT string that shows it as it is: a quote cannot end the string, a
+    backslash is no label escape (``\\N``, ``\\l``), a line break or control character breaks nothing."""
+    out = []
+    for ch in str(text):
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ch == "\n":
+            out.append("\\n")
+        elif ord(ch) < 0x20 or 0x7f <= ord(ch) < 0xa0:
+            out.append(" ")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _dot_label(lines: list[str]) -> str:
+    return '"' + "\\n".join(_dot_string(line)[1:-1] for line in lines) + '"'
 
 
 def _to_dot(ir: IR) -> str:
-    lines = [f'digraph "{ir.name}" {{', "  rankdir=LR;", '  node [shape=box, style=rounded, fontname="Helvetica"];']
+    lines = [f"digraph {_dot_string(ir.name)} {{", "  rankdir=LR;",
+             '  node [shape=box, style=rounded, fontname="Helvetica"];']
     for n in ir.nodes:
-        latency = n["config"].get("latency") or 0
-        extra = f"\\nlatency {latency} s" if latency else ""
-        lines.append(f'  "{n["id"]}" [label="{n["id"]}\\n{_clock_label(n["config"]["clock"])}{extra}"];')
+        lines.append(f"  {_dot_string(n['id'])} [label={_dot_label(_node_lines(n))}];")
     for e in ir.edges:
-        lines.append(f'  "{e["source"]["node"]}" -> "{e["destination"]["node"]}" [label="{_edge_label(e)}"];')
+        lines.append(f"  {_dot_string(e['source']['node'])} -> {_dot_string(e['destination']['node'])} "
+                     f"[label={_dot_label(_edge_lines(e))}];")
     lines.append("}")
     return "\n".join(lines) + "\n"
 
 
+#: what Mermaid shows as it is inside a quoted label; anything else is written as an entity code
+_MERMAID_PLAIN = frozenset("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 _-.,:=+*/@?!'→")
+#: words a Mermaid flowchart reads as statements, not node ids (at the start of a line or alone)
+_MERMAID_WORDS = frozenset({"end", "subgraph", "graph", "flowchart", "style", "classdef", "class", "click",
+                            "linkstyle", "direction", "call", "href", "callback", "default"})
+
+
+def _mermaid_text(text: object) -> str:
+    """``text`` for inside a quoted Mermaid label: every character outside a plain alphabet as a
+    ``#NNN;`` entity code (quotes, brackets, pipes, ``<``, ``>``, ``&``, ``#``, backticks, line breaks)."""
+    return "".join(ch if ch in _MERMAID_PLAIN else f"#{ord(ch)};" for ch in str(text))
+
+
+def _mermaid_label(lines: list[str]) -> str:
+    return '"' + "<br/>".join(_mermaid_text(line) for line in lines) + '"'
+
+
+def _mermaid_ids(ir: IR) -> dict[str, str]:
+    """Each node's Mermaid id: its own when Mermaid reads it as an id, else a made-up one (its
+    label still shows the real one)."""
+    ids: dict[str, str] = {}
+    for i, n in enumerate(ir.nodes):
+        nid = n["id"]
+        if not (re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", nid) and nid.lower() not in _MERMAID_WORDS):
+            nid = f"node_{i}"
+        while nid in ids.values() or any(m["id"] == nid and m is not n for m in ir.nodes):
+            nid += "_"
+        ids[n["id"]] = nid
+    return ids
+
+
 def _to_mermaid(ir: IR) -> str:
+    ids = _mermaid_ids(ir)
     lines = ["flowchart LR"]
     for n in ir.nodes:
-        latency = n["config"].get("latency") or 0
-        extra = f"<br/>latency {latency} s" if latency else ""  # as DOT shows it
-        lines.append(f'  {n["id"]}["{n["id"]}<br/>{_clock_label(n["config"]["clock"])}{extra}"]')
+        lines.append(f"  {ids[n['id']]}[{_mermaid_label(_node_lines(n))}]")
     for e in ir.edges:
-        label = _edge_label(e).replace("\\n", "<br/>")
-        lines.append(f'  {e["source"]["node"]} -->|"{label}"| {e["destination"]["node"]}')
+        lines.append(f"  {ids[e['source']['node']]} -->|{_mermaid_label(_edge_lines(e))}| "
+                     f"{ids[e['destination']['node']]}")
     return "\n".join(lines) + "\n"
+
+
+class _HugeInt(str):
+    """The digits of a JSON integer longer than Python converts (sys.get_int_max_str_digits), kept
+    so that from_json can name where it stood instead of failing in the middle of json.loads."""
+
+
+def _parse_int(digits: str) -> int | _HugeInt:
+    try:
+        return int(digits)
+    except ValueError:
+        return _HugeInt(digits)
+
+
+def _huge_ints(doc: Any) -> list[str]:
+    """One problem per oversized integer in ``doc``, named by where it stands: a node's by its id
+    and its param (``node 'camera'.params.gain``), any other by its JSON path."""
+    problems: list[str] = []
+
+    def walk(value: Any, where: str) -> None:
+        if isinstance(value, _HugeInt):
+            sign = 1 if value.startswith("-") else 0
+            problems.append(f"{where}: an integer of {len(value) - sign} digits; at most "
+                            f"{sys.get_int_max_str_digits()} are read\n"
+                            f"    hint: write so large a number as a string and convert it in the flow")
+        elif isinstance(value, dict):
+            for key, item in value.items():
+                walk(item, f"{where}.{key}" if where else str(key))
+        elif isinstance(value, list):
+            for i, item in enumerate(value):
+                walk(item, f"{where}[{i}]")
+
+    if isinstance(doc, dict):
+        for key, value in doc.items():
+            if key == "nodes" and isinstance(value, list):
+                for i, n in enumerate(value):
+                    nid = n.get("id") if isinstance(n, dict) else None
+                    walk(n, f"node '{nid}'" if isinstance(nid, str) and re.fullmatch(NODE_ID, nid) else f"nodes[{i}]")
+            else:
+                walk(value, key)
+    else:
+        walk(doc, "the document")
+    return problems
 
 
 # ---------------------------------------------------------------------------------------------

@@ -654,3 +654,76 @@ def test_an_ir_value_no_pipeline_can_take_is_an_ir_error(change, problem):
 def test_json_nested_past_the_recursion_limit_is_an_ir_error():
     with pytest.raises(IRError, match="nests arrays or objects deeper than Python's recursion limit"):
         IR.from_json('{"nodes": ' + "[" * 100_000 + "]" * 100_000 + "}")
+
+
+HOSTILE = 'x"; n [shape=none image="/etc/passwd"]; "\\ |]) <b>#amp;`\n'
+
+
+def _hostile(doc: dict) -> IR:
+    """``doc`` with every text a picture shows that an IR file may set made hostile: the pipeline's
+    name, a port's name on both ends of its edge and in a Trigger clock, a node id Mermaid reads
+    as a statement."""
+    doc["metadata"]["name"] = HOSTILE
+    port = "p" + HOSTILE
+    controller, logger = (next(n for n in doc["nodes"] if n["id"] == nid) for nid in ("controller", "logger"))
+    controller["outputs"] = {port: "float"}
+    logger["inputs"] = {port: "Any"}
+    logger["config"]["clock"] = {"Trigger": {"ports": [port]}}
+    for e in doc["edges"]:
+        for end in ("source", "destination"):
+            if e[end]["port"] == "position":
+                e[end]["port"] = port
+            if e[end]["node"] == "logger":
+                e[end]["node"] = "end"
+    logger["id"] = "end"
+    return IR.from_json(json.dumps(doc))
+
+
+DOT_STRING = r'"(?:[^"\\\n]|\\.)*"'
+
+
+def test_visualize_dot_escapes_every_text_from_the_ir(doc: dict):
+    # issue 40 item 10: a name of `x"; n [image="/etc/passwd"]` made Graphviz read a local file
+    dot = _hostile(doc).visualize("dot")
+    lines = dot.splitlines()
+    assert len(lines) == 3 + 4 + 4 + 1, dot  # header, 4 nodes, 4 edges, closing brace: no line more
+    skeleton = [re.sub(DOT_STRING, "S", line) for line in lines]
+    assert skeleton[0] == "digraph S {" and skeleton[-1] == "}"
+    assert skeleton[3:7] == ["  S [label=S];"] * 4, skeleton
+    assert skeleton[7:11] == ["  S -> S [label=S];"] * 4, skeleton
+    assert "image=" not in "".join(skeleton)
+    # the text is all there, shown as it is
+    assert lines[0] == 'digraph "x\\"; n [shape=none image=\\"/etc/passwd\\"]; \\"\\\\ |]) <b>#amp;`\\n" {'
+    assert 'p x\\"; n [shape=none' not in dot and 'px\\"; n [shape=none image=\\"/etc/passwd\\"]' in dot
+
+
+def test_visualize_mermaid_escapes_every_text_from_the_ir(doc: dict):
+    mermaid = _hostile(doc).visualize("mermaid")
+    lines = mermaid.splitlines()
+    assert len(lines) == 1 + 4 + 4, mermaid
+    label = r'"[A-Za-z0-9 _\-.,:=+*/@?!\'→#;]*(?:<br/>[A-Za-z0-9 _\-.,:=+*/@?!\'→#;]*)*"'
+    for line in lines[1:5]:
+        assert re.fullmatch(rf"  [A-Za-z_][A-Za-z0-9_]*\[{label}\]", line), line
+    for line in lines[5:]:
+        assert re.fullmatch(rf"  [A-Za-z_][A-Za-z0-9_]* -->\|{label}\| [A-Za-z_][A-Za-z0-9_]*", line), line
+    # 'end' closes a Mermaid subgraph: that node gets an id of its own, its label still says end
+    assert '  node_3["end<br/>Trigger#40;px#34;#59; n ' in mermaid and " end" not in mermaid.replace('"end', "")
+    assert "#34;#92; #124;#93;#41; #60;b#62;#35;amp#59;#96;#10;" in mermaid
+
+
+def test_an_integer_too_long_to_read_is_named_by_node_and_param(doc: dict, tmp_path: Path):
+    # issue 40 item 12: json.loads raised 'ValueError: Exceeds the limit (4300 digits) ...'
+    limit = sys.get_int_max_str_digits()
+    doc["nodes"][0]["params"] = {"gain": 7, "table": [1, {"big": 0}]}
+    text = json.dumps(doc).replace('"big": 0', '"big": -' + "9" * (limit + 700))
+    text = text.replace('"gain": 7', '"gain": ' + "1" * 5000)
+    text = text.replace('"qsize": 10', '"qsize": ' + "2" * 5000, 1)
+    problems = (rf"^invalid IR \(.*pipeline\.ir\.json\):\n"
+                rf"  - edges\[0\]\.qsize: an integer of 5000 digits; at most {limit} are read\n"
+                rf"    hint: write so large a number as a string and convert it in the flow\n"
+                rf"  - node 'camera'\.params\.gain: an integer of 5000 digits; at most {limit} are read\n"
+                rf"    hint: .*\n"
+                rf"  - node 'camera'\.params\.table\[1\]\.big: an integer of {limit + 700} digits; at most "
+                rf"{limit} are read\n    hint: .*$")
+    with pytest.raises(IRError, match=problems):
+        _load(tmp_path, text)

@@ -30,6 +30,7 @@ import hmac
 import json
 import os
 import secrets
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,6 +53,9 @@ WATCHER_UNSEEN = [f"{ROOT}/*/ctl/**"]
 #: the fewest bytes a deployment secret file must hold
 SECRET_MIN_BYTES = 16
 
+#: the most bytes a deployment secret file may hold (read_secret reads no more than this)
+SECRET_MAX_BYTES = 4096
+
 #: the random bytes of a secret new_secret writes (as hex text: 64 characters and a newline)
 SECRET_NEW_BYTES = 32
 
@@ -61,13 +65,33 @@ class AccessError(RetrieverError, ValueError):
 
 
 def read_secret(path: str | os.PathLike) -> bytes:
-    """A deployment secret from its file, which only its owner may read."""
+    """A deployment secret from its file, which only its owner may read.
+
+    Only a regular file of at most SECRET_MAX_BYTES is read, and no more than that: a device
+    (``/dev/zero``, read until memory ran out) or a FIFO (read forever) is refused by its stat,
+    before anything opens it; a symlink is judged by what it names. The file is opened without
+    blocking and checked again once open, so one swapped in between is refused too."""
     path = Path(path)
     try:
-        mode = path.stat().st_mode
-        data = path.read_bytes().strip()
+        st = path.stat()  # follows a symlink, but opens nothing: a FIFO's stat does not block
+        _check_secret_file(path, st)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+        try:
+            opened = os.fstat(fd)
+            if (opened.st_dev, opened.st_ino) != (st.st_dev, st.st_ino):
+                _check_secret_file(path, opened)
+            with os.fdopen(fd, "rb", closefd=False) as f:
+                raw = f.read(SECRET_MAX_BYTES + 1)
+        finally:
+            os.close(fd)
     except OSError as e:
         raise AccessError(f"cannot read the secret file {path}: {e.strerror}") from None
+    if len(raw) > SECRET_MAX_BYTES:
+        raise AccessError(f"the secret file {path} holds more than {SECRET_MAX_BYTES} bytes; a secret is "
+                          f"{SECRET_MIN_BYTES} to {SECRET_MAX_BYTES}\n"
+                          f"    hint: is it the right file? make a new one with: retriever secret new {path} --force")
+    mode = st.st_mode
+    data = raw.strip()
     if mode & 0o077:
         raise AccessError(f"the secret file {path} can be read by other users (mode {mode & 0o777:o})\n"
                           f"    hint: chmod 600 {path}")
@@ -75,6 +99,25 @@ def read_secret(path: str | os.PathLike) -> bytes:
         raise AccessError(f"the secret file {path} holds {len(data)} bytes; a secret needs at least "
                           f"{SECRET_MIN_BYTES}\n    hint: make a new one with: retriever secret new {path} --force")
     return data
+
+
+def _check_secret_file(path: Path, st: os.stat_result) -> None:
+    """Refuse, by its stat alone, a secret file that is no regular file or is too large to be one."""
+    if not stat.S_ISREG(st.st_mode):
+        raise AccessError(f"the secret file {path} is {_file_kind(st.st_mode)}; a secret is a regular file\n"
+                          f"    hint: make one with: retriever secret new FILE")
+    if st.st_size > SECRET_MAX_BYTES:
+        raise AccessError(f"the secret file {path} holds {st.st_size} bytes; a secret is {SECRET_MIN_BYTES} "
+                          f"to {SECRET_MAX_BYTES}\n"
+                          f"    hint: is it the right file? make a new one with: retriever secret new {path} --force")
+
+
+def _file_kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISDIR, "a folder"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return f"no regular file (mode {mode:o})"
 
 
 def new_secret(path: str | os.PathLike, overwrite: bool = False) -> Path:

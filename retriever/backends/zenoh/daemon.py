@@ -144,6 +144,10 @@ def _read_config(path: Path, problems: list[str]) -> dict:
             values = tomllib.load(f)
     except OSError as e:
         raise WorkerError(f"cannot read the worker config {path}: {e.strerror}") from None
+    except UnicodeDecodeError as e:
+        raise WorkerError(f"the worker config {path} is not text: TOML is UTF-8, byte {e.start} is "
+                          f"{e.object[e.start:e.start + 1]!r}\n"
+                          f"    hint: --config takes a worker.toml (name = \"...\", connect = [...])") from None
     except tomllib.TOMLDecodeError as e:
         raise WorkerError(f"the worker config {path} is not valid TOML: {e}") from None
     for key in sorted(set(values) - set(CONFIG_KEYS)):

@@ -32,10 +32,11 @@ from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
-from .daemon import PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session, open_access
+from .daemon import (_ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session,
+                     open_access)
 from .hub import peer_config, wait_for_peers, weak_callback
 from .remote import RemoteHost
-from .wire import KeySpace, WireEncoder, WireError, decode_control
+from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
 from .coordinator import Coordinator
 
 #: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
@@ -451,10 +452,29 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
                 value = str(path.parent / value) if not os.path.isabs(value) else value
         if not ok:
             problems.append(f"'{key}' must be {DEPLOY_KINDS[kind]}, got {value!r:.60}")
+        else:
+            _check_deploy_value(key, kind, value, problems)
         settings[key] = value
     if problems:
         raise BackendError(f"the deploy config {path} has problems:\n" + "\n".join(f"  - {p}" for p in problems))
     return settings
+
+
+def _check_deploy_value(key: str, kind: str, value, problems: list[str]) -> None:
+    """A value of the right kind that the deployment would still refuse later, one problem per
+    run: said now, with the others. The files it names are read, and judged, by their readers."""
+    if kind == "endpoints":
+        for endpoint in value:
+            if not _ENDPOINT.fullmatch(endpoint):
+                problems.append(f"'{key}': {endpoint!r:.60} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
+                                f"e.g. tcp/10.0.0.2:7447 (tls/... with TLS)")
+    elif key == "namespace":
+        try:
+            check_chunk("'namespace'", value)
+        except ValueError as e:
+            problems.append(str(e))
+    elif key == "on_worker_loss" and value not in WORKER_LOSS:
+        problems.append(f"'on_worker_loss' must be one of {', '.join(WORKER_LOSS)}, got {value!r:.60}")
 
 
 DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -838,3 +839,58 @@ def test_the_password_folders_of_dead_daemons_are_reaped_those_of_live_ones_kept
         for folder in (dead, alive, odd):
             if folder.exists():
                 folder.rmdir()
+
+
+def test_a_binary_config_is_named_as_no_text(tmp_path):
+    # issue 40 item 12: a binary worker.toml gave a bare UnicodeDecodeError
+    config = tmp_path / "worker.toml"
+    config.write_bytes(b'name = "w"\n\xff\xfe\x00binary')
+    message = (rf"^the worker config .*worker\.toml is not text: TOML is UTF-8, byte 11 is b'\\xff'\n"
+               rf"    hint: --config takes a worker\.toml")
+    with pytest.raises(WorkerError, match=message):
+        load_settings(config)
+    result = _cli("worker", "--config", str(config), "--insecure")
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert re.match(r"^error: the worker config .*worker\.toml is not text: TOML is UTF-8, byte 11 is b'\\xff'\n"
+                    r"hint: --config takes a worker\.toml \(name = ", result.stderr), result.stderr
+
+
+def test_a_deploy_config_reports_every_bad_value_at_once(tmp_path):
+    # issue 40 item 12: a bad endpoint, namespace and on_worker_loss came one per invocation
+    from retriever.backends.zenoh.deploy import load_deploy_config
+    from retriever import BackendError
+
+    config = tmp_path / "deploy.toml"
+    config.write_text('connect = ["tcp/arm:7447", "bogus"]\nlisten = "tcp/0.0.0.0:7447"\nnamespace = "lab/a"\n'
+                      'on_worker_loss = "retry"\nlease = "long"\n')
+    problems = (r"^the deploy config .*deploy\.toml has problems:\n"
+                r"  - 'connect': 'bogus' is no Zenoh endpoint: write PROTOCOL/ADDRESS, e\.g\. tcp/10\.0\.0\.2:7447 "
+                r"\(tls/\.\.\. with TLS\)\n"
+                r"  - 'namespace' 'lab/a' cannot be a Zenoh key chunk: use letters, digits, '_', '-' and '\.' .*\n"
+                r"  - 'on_worker_loss' must be one of replace, wait, stop, got 'retry'\n"
+                r"  - 'lease' must be a number of seconds, got 'long'$")
+    with pytest.raises(BackendError, match=problems):
+        load_deploy_config(config)
+    done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert re.match("^error: " + problems[1:-1], done.stderr), done.stderr
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="the test makes a certificate with openssl")
+def test_no_workers_over_tls_says_how_to_start_one_over_tls(namespace, tmp_path):
+    # issue 40 item 12: the hint said --listen tcp/0.0.0.0:7447, which a TLS worker refuses
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=lab",
+                    "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", "lab.key", "-out", "lab.pem"],
+                   cwd=tmp_path, check=True, capture_output=True, timeout=BOUND_S)
+    tls = ["--tls-ca", str(tmp_path / "lab.pem"), "--tls-cert", str(tmp_path / "lab.pem"),
+           "--tls-key", str(tmp_path / "lab.key")]
+    at = f"tls/127.0.0.1:{free_port()}"  # nothing listens there
+    result = _cli("workers", "--connect", at, "--namespace", namespace, "--insecure", *tls)
+    assert result.returncode == 1, result.stderr
+    assert result.stdout == (
+        f"no workers in namespace '{namespace}' at {at}\n"
+        f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tls/0.0.0.0:7447 --tls-ca CA "
+        "--tls-cert CERT --tls-key KEY --secret FILE, then: retriever workers --connect tls/HOST:7447 --tls-ca CA "
+        "--tls-cert CERT --tls-key KEY --secret FILE\n"), result.stdout
+    assert f"warning: no session at {at}: nothing listens there, or it wants another --secret or a certificate " \
+           "of another CA" in result.stderr, result.stderr

@@ -81,3 +81,51 @@ def test_a_dangling_symlink_is_not_followed(tmp_path):
     with pytest.raises(AccessError, match=r"already exists"):
         new_secret(tmp_path / "lab.key")
     assert not target.exists()
+
+
+def private_secret(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    path.chmod(0o600)
+    return path
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="needs /dev/zero")
+def test_a_device_is_refused_before_it_is_read():
+    # /dev/zero was read until the OOM killer came
+    with pytest.raises(AccessError, match=r"^the secret file /dev/zero is a character device; a secret is a "
+                                          r"regular file\n    hint: "):
+        read_secret("/dev/zero")
+
+
+def test_a_fifo_is_refused_without_opening_it(tmp_path):
+    fifo = tmp_path / "lab.key"
+    os.mkfifo(fifo, 0o600)
+    # opening it to read would block until a writer came: the refusal comes from its stat
+    with pytest.raises(AccessError, match=r"^the secret file .*lab\.key is a FIFO; a secret is a regular file\n"
+                                          r"    hint: "):
+        read_secret(fifo)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/zero"), reason="needs /dev/zero")
+def test_a_symlink_to_a_device_is_refused(tmp_path):
+    link = tmp_path / "lab.key"
+    link.symlink_to("/dev/zero")
+    with pytest.raises(AccessError, match=r"^the secret file .*lab\.key is a character device; a secret is a "
+                                          r"regular file\n"):
+        read_secret(link)
+
+
+def test_a_symlink_to_a_private_regular_file_is_read(tmp_path):
+    target = private_secret(tmp_path / "real.key", b"k" * 32 + b"\n")
+    link = tmp_path / "lab.key"
+    link.symlink_to(target)  # how mounted secrets (Kubernetes, Docker) arrive
+    assert read_secret(link) == b"k" * 32
+
+
+def test_a_too_large_file_is_refused(tmp_path):
+    from retriever.backends.zenoh.access import SECRET_MAX_BYTES
+    path = private_secret(tmp_path / "lab.key", b"k" * (SECRET_MAX_BYTES + 1))
+    with pytest.raises(AccessError, match=rf"^the secret file .*lab\.key holds {SECRET_MAX_BYTES + 1} bytes; a "
+                                          rf"secret is {SECRET_MIN_BYTES} to {SECRET_MAX_BYTES}\n    hint: "):
+        read_secret(path)
+    assert read_secret(private_secret(path, b"k" * SECRET_MAX_BYTES)) == b"k" * SECRET_MAX_BYTES
