@@ -10,6 +10,8 @@ world's simulated seconds.
 from __future__ import annotations
 
 import json
+import os
+import stat
 import sys
 from pathlib import Path
 
@@ -362,32 +364,52 @@ class Teleop(Flow):
         return {}
 
 
+#: the largest teleop schedule read (a schedule is a few interventions)
+MAX_SCHEDULE_BYTES = 1 << 20
+
+
 def load_schedule(path: str, task: str = "drawers") -> list[dict]:
-    """A teleop schedule, checked: a list of interventions sorted by start time."""
+    """A teleop schedule, checked: a list of interventions sorted by start time. The path comes
+    from a flow's parameters, which an IR from elsewhere sets: only a regular file is read, and no
+    error quotes what it holds (a worker's error goes back to whoever deployed it)."""
     from .plan import PlanError, parse_skill
     try:
-        items = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise ValueError(f"teleop schedule {path}: {e}") from None
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_SCHEDULE_BYTES:
+            raise ValueError(f"not a regular file of at most {MAX_SCHEDULE_BYTES} bytes")
+        with open(path, "rb") as f:
+            items = json.loads(f.read(MAX_SCHEDULE_BYTES).decode("utf-8"))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"teleop schedule {path}: not JSON (line {e.lineno}, column {e.colno})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"teleop schedule {path}: not UTF-8 text") from None
+    except OSError as e:
+        raise ValueError(f"teleop schedule {path}: {e.strerror}") from None
+    except (ValueError, RecursionError) as e:
+        raise ValueError(f"teleop schedule {path}: {e if isinstance(e, ValueError) else 'nested too deep'}") from None
     if not isinstance(items, list):
         raise ValueError(f"teleop schedule {path}: expected a JSON list of interventions")
     for i, item in enumerate(items):
         try:
             if not isinstance(item, dict):
-                raise ValueError(f"expected an object with t_start and payload, got {item!r}")
+                raise ValueError(f"expected an object with t_start and payload, got a {type(item).__name__}")
             for key in ("t_start", "t_end"):
                 t = item.get(key, 0.0)
                 if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0 <= t < float("inf"):
-                    raise ValueError(f"{key} must be a number of seconds >= 0, got {t!r}")
+                    raise ValueError(f"{key} must be a number of seconds >= 0")
             if "t_start" not in item:
                 raise ValueError("needs a number t_start")
             if item.get("t_end", item["t_start"]) < item["t_start"]:
-                raise ValueError(f"t_end {item['t_end']!r} is before t_start {item['t_start']!r}")
+                raise ValueError("t_end is before t_start")
             if item.get("mode", "skill_override") != "skill_override":
                 raise ValueError("mode must be 'skill_override'")
             if not isinstance(item.get("payload"), str):
-                raise ValueError(f"payload must be a skill such as \"Pick(spice)\", got {item.get('payload')!r}")
-            parse_skill(item["payload"], task)
+                raise ValueError(f"payload must be a skill such as \"Pick(spice)\", got a "
+                                 f"{type(item.get('payload')).__name__}")
+            try:
+                parse_skill(item["payload"], task)
+            except PlanError:
+                raise ValueError("payload is not a skill of the vocabulary, such as \"Pick(spice)\"") from None
         except (ValueError, KeyError, PlanError) as e:
             raise ValueError(f"teleop schedule {path}, item {i}: {e}") from None
     return sorted(items, key=lambda item: item["t_start"])
