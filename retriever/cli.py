@@ -775,13 +775,11 @@ def log_cat(
 
     from .log.foxglove import to_json
     from .log.show import show_value
-    from .time import format_tag
+    from .time import format_tag, seconds_problem
 
     if brief and full:
         _fail(RetrieverError("--brief and --full ask for arrays both ways\n    hint: pass one of them"))
     arrays = "brief" if brief else "full" if full else "summary"
-    from .time import seconds_problem
-
     for flag, seconds in (("--from", start), ("--to", end)):
         problem = None if seconds is None else seconds_problem(flag, seconds)
         if problem is not None:

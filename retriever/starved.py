@@ -34,11 +34,15 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
     only flows that never stepped in enough ticks are named, without a cause)."""
     produced = produced or {}
     read = {(e.src, e.src_port) for e in graph.edges}
+    edges_into: dict[tuple[str, str], list["Edge"]] = {}
+    for e in graph.edges:
+        edges_into.setdefault((e.dst, e.dst_port), []).append(e)
     # only a producer whose ports nothing could check before the run (an untyped step returning a
     # dict it built) can have misspelt one; a typed one's other ports are a sparse output's neighbours
-    unread = {node_id: sorted(port for (n, port), count in produced.items()
-                              if n == node_id and count and (n, port) not in read) if _unchecked(node) else []
-              for node_id, node in graph.nodes.items()}
+    unread: dict[str, list[str]] = {node_id: [] for node_id in graph.nodes}
+    for (node_id, port), count in sorted(produced.items()):
+        if count and (node_id, port) not in read and node_id in unread and _unchecked(graph.nodes[node_id]):
+            unread[node_id].append(port)
     named: set[str] = set()
     explained: set[tuple[str, str]] = set()  # (consumer, port) pairs a line already explains
     lines = []
@@ -46,10 +50,10 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
         node, s = graph.nodes[node_id], stats.get(node_id)
         if s is None:
             continue
-        into = {port: [e for e in graph.edges if e.dst == node_id and e.dst_port == port] for port in node.inputs}
+        into = {port: edges_into.get((node_id, port), []) for port in node.inputs}
         if s.ticks == 0:
             clock = node.settings.clock
-            watched = [p for p in (clock.trigger_ports or tuple(node.inputs))] if clock is not None else []
+            watched = list(clock.trigger_ports or node.inputs) if clock is not None else []
             if clock is None or clock.hz is not None or not watched or not any(into[p] for p in watched):
                 continue  # a source, a Rate clock, or nothing feeds it (build_ir warned)
             causes = [_never_had(port, into[port], stats, unread, named) for port in watched if into[port]]
