@@ -93,7 +93,8 @@ CODE_MISMATCH = ("refuse", "warn")
 DEFAULT_TLS_LISTEN = "tls/0.0.0.0:7447"
 #: the bounds of --lease, seconds: how long a link that went silent (a partition) is kept
 LEASE_RANGE = (0.1, 3600.0)
-_ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
+#: what a Zenoh endpoint looks like (PROTOCOL/ADDRESS): checked in settings before Zenoh sees it
+ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
 
 
 class WorkerError(RetrieverError):
@@ -194,7 +195,7 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
         except AccessError as e:
             problems.append(str(e))
     for endpoint in (*listen, *connect):
-        if not _ENDPOINT.fullmatch(endpoint):
+        if not ENDPOINT.fullmatch(endpoint):
             problems.append(f"endpoint {endpoint!r} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
                             "e.g. tcp/0.0.0.0:7447")
     paths = []

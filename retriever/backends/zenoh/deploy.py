@@ -32,7 +32,7 @@ from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
-from .daemon import (_ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session,
+from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session,
                      open_access)
 from .hub import peer_config, wait_for_peers, weak_callback
 from .remote import RemoteHost
@@ -465,7 +465,7 @@ def _check_deploy_value(key: str, kind: str, value, problems: list[str]) -> None
     run: said now, with the others. The files it names are read, and judged, by their readers."""
     if kind == "endpoints":
         for endpoint in value:
-            if not _ENDPOINT.fullmatch(endpoint):
+            if not ENDPOINT.fullmatch(endpoint):
                 problems.append(f"'{key}': {endpoint!r:.60} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
                                 f"e.g. tcp/10.0.0.2:7447 (tls/... with TLS)")
     elif key == "namespace":
