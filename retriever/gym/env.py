@@ -30,7 +30,7 @@ from ..clocks import Rate
 from ..errors import InternalError
 from ..graph import Graph, Node
 from ..pipeline import Pipeline
-from ..trace import Trace
+from ..trace import KEEP, Trace
 
 #: the most agent ticks in a row ``reset``/``step`` runs through while a required input of the agent
 #: has nothing (those ticks are skipped): past it, the wiring is taken to be wrong and said so
@@ -69,6 +69,8 @@ class PipelineEnv(gymnasium.Env):
                  action_space: spaces.Space | dict[str, spaces.Space] | None = None, keep: str = "trace"):
         if not (isinstance(pipeline, Pipeline) or callable(pipeline)):
             raise TypeError(f"PipelineEnv(pipeline={pipeline!r}): expected a Pipeline or a function seed -> Pipeline")
+        if keep not in KEEP:
+            raise ValueError(f"PipelineEnv(keep={keep!r}): expected one of {', '.join(map(repr, KEEP))}")
         self._source = pipeline
         self.agent = agent
         self.keep = keep
@@ -144,7 +146,10 @@ class PipelineEnv(gymnasium.Env):
 
     def step(self, action: Any):
         """The agent's tick emits ``action``; the pipeline runs to the agent's next tick that has
-        its inputs. Returns ``(observation, reward, terminated, truncated, info)``."""
+        its inputs. Returns ``(observation, reward, terminated, truncated, info)``; ``info`` holds
+        that tick's ``time`` (seconds) and index (``tick``), how many agent ticks before it were
+        ``skipped`` for want of an input, and whether a step ``ended`` the run (``sys.exit(0)``:
+        then ``terminated``, and the observation before holds)."""
         if self._over or self._session is None:
             raise RuntimeError("PipelineEnv.step(): the episode is over (or none began)\n    hint: call env.reset()")
         self._pending = self._outputs(action)
@@ -284,6 +289,10 @@ def _space_of(what: str, agent: str, ports: dict, given: Any) -> spaces.Space:
 def _fit(agent: str, port: str, value: Any, space: spaces.Space) -> Any:
     """The value an agent's input port holds, as an element of ``space``, and a copy of its own
     (a caller may keep it, and the flow that sent it may change it later)."""
+    if value is None and isinstance(space, (spaces.Box, spaces.MultiBinary, spaces.MultiDiscrete, spaces.Discrete)):
+        raise ValueError(f"PipelineEnv: {agent}.{port} holds None at the agent's tick (nothing on it, and None is "
+                         f"its default), which is not in the observation space {space}\n    hint: give the port "
+                         "a default in the space, or make it a required input (the env then waits for it)")
     if isinstance(space, (spaces.Box, spaces.MultiBinary, spaces.MultiDiscrete)):
         try:
             array = np.array(value, dtype=space.dtype)
