@@ -58,6 +58,12 @@ class GymWorld(Flow[EnvAction, EnvStep]):
         if not (isinstance(env, str) or callable(env)):
             raise TypeError(f"GymWorld(env={env!r}): expected a gymnasium id such as 'CartPole-v1' or a function "
                             "of no arguments that returns a gymnasium.Env")
+        if isinstance(env, str) and ":" in env:
+            # gymnasium.make("module:Id") imports the module: an IR, which names the id, must not
+            # make a worker import what its allowlist does not name (docs/security.md)
+            raise ValueError(f"GymWorld(env={env!r}): give the id alone; gymnasium would import the module before "
+                             "the ':'\n    hint: register the env in the module that defines the pipeline (it is "
+                             "imported already), or pass a function that makes the env")
         if seed is not None and (type(seed) is not int or seed < 0):
             raise ValueError(f"GymWorld(seed={seed!r}): expected an integer >= 0, or None for an unseeded env")
         if kwargs is not None and not isinstance(kwargs, dict):

@@ -119,3 +119,6 @@ def test_bad_arguments_are_refused_with_what_was_expected():
         GymWorld(3)
     with pytest.raises(ValueError, match=r"GymWorld\(seed=-1\): expected an integer >= 0, or None"):
         GymWorld("CartPole-v1", seed=-1)
+    with pytest.raises(ValueError, match=r"GymWorld\(env='os:CartPole-v1'\): give the id alone; gymnasium would "
+                                         r"import the module before the ':'"):
+        GymWorld("os:CartPole-v1")
