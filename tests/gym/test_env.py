@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 from retriever import Flow, Pipeline, Rate, Trigger, io  # noqa: E402
 from retriever.gym import GymWorld, PipelineEnv  # noqa: E402
+from retriever.gym import env as env_module  # noqa: E402
 from tests.gym.gym_flows import AGENT_HZ, WORLD_HZ, CartView, Push, cartpole, summing  # noqa: E402
 
 CARTPOLE = gymnasium.make("CartPole-v1")
@@ -170,6 +172,8 @@ def test_the_env_needs_a_rate_agent_that_exists_and_spaces_for_its_ports():
         PipelineEnv(summing(0.0), "pilot")
     with pytest.raises(ValueError, match=r"the agent driver has no input port 'score' \(its inputs: x, gain\)"):
         PipelineEnv(summing(0.0), "driver", reward="score")
+    with pytest.raises(ValueError, match=r"PipelineEnv\(keep='all'\): expected one of 'trace', "):
+        PipelineEnv(summing(0.0), "driver", keep="all")
     with pytest.raises(ValueError, match=r"no observation space for pilot.observation \(numpy.ndarray\).*\n"
                                          r"    hint: give it, e.g. observation_space=\{'observation': "):
         PipelineEnv(lambda seed: cartpole(seed), "pilot", reward="reward", terminated="terminated",
@@ -198,3 +202,37 @@ def test_a_pipeline_given_as_is_runs_afresh_at_each_reset():
         runs.append(env.trace.digest())
     assert runs[0] == runs[2] == [297.0, 597.0]
     assert runs[1] == runs[3]
+
+
+@io
+@dataclass
+class Nothing:
+    x: float
+
+
+class Silent(Flow[None, Nothing]):
+    def step(self) -> None:
+        return None  # no event, ever
+
+
+@io
+@dataclass
+class Needs:
+    x: float
+
+
+class Waiting(Flow[Needs, Push]):
+    def step(self, inp: Needs) -> Push:
+        return Push(0)
+
+
+def test_an_agent_whose_required_input_never_comes_is_reported_not_waited_for_forever(monkeypatch):
+    monkeypatch.setattr(env_module, "MAX_SKIPPED_TICKS", 5)
+    with Pipeline("silent") as pipe:
+        source = Silent().named("source") @ Rate(10)
+        source.then(Waiting().named("waiting") @ Rate(10))
+    env = PipelineEnv(pipe, "waiting", action_space=gymnasium.spaces.Discrete(2))
+    with pytest.raises(RuntimeError, match=r"the agent waiting had nothing on its required input\(s\) x at 5 ticks "
+                                           r"in a row, up to 0.5 s\n    hint: wire those ports, or give them a "
+                                           r"default"):
+        env.reset(seed=0)
