@@ -41,10 +41,10 @@ class PipelineEnv(gymnasium.Env):
     """A pipeline as a gymnasium environment; its node ``agent`` takes the actions.
 
     ``pipeline`` is a :class:`~retriever.Pipeline`, run afresh (``pipe.reset()``) by every
-    ``reset()``, or a function ``seed -> Pipeline`` building the episode of a seed (as
-    ``agents.retriever0.build(seed=...)`` does): ``reset(seed=s)`` runs the pipeline it builds for
-    ``s``, and ``reset()`` one for a seed drawn from the env's ``np_random``. Either way a seeded
-    episode repeats exactly.
+    ``reset()``, or a function ``seed -> Pipeline`` building the episode of a seed (such as
+    ``lambda seed: agents.retriever0.build(seed=seed)``): ``reset(seed=s)`` runs the pipeline it
+    builds for ``s``, and ``reset()`` one for a seed drawn from the env's ``np_random``. Either way
+    a seeded episode repeats exactly.
 
     ``reward``, ``terminated`` and ``truncated`` name input ports of the agent; the other inputs
     are the observation. Each is what the agent's tick selects on that port, by its edge's sync
