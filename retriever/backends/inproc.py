@@ -829,7 +829,6 @@ class InprocSession(Session):
         rt.invoke = invoke
         rt.read = lambda raw: raw
 
-
     def inputs_at(self, node: str, tau: tuple[int, int]) -> tuple[dict[str, Any], dict[str, tuple], list[str] | None]:
         """What ``node``'s tick at ``tau`` is handed if it runs next: its input values (an optional
         port with nothing gets its fallback), the ids of the events each port's policy selects,
