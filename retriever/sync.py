@@ -95,6 +95,13 @@ class PortBuffer:
         self.visible = n
         return n
 
+    def copy(self) -> "PortBuffer":
+        """A buffer holding the same entries at the same positions: a policy may select from it
+        (and trim it) without consuming anything here (InprocSession.inputs_at)."""
+        twin = PortBuffer(self.trim_batch)
+        twin.entries, twin.visible, twin.cursor, twin.last_id = list(self.entries), self.visible, self.cursor, self.last_id
+        return twin
+
     def trim(self, keep_from: int) -> None:
         """Forget entries before index ``keep_from``, which no future tick can select."""
         if keep_from >= self.trim_batch:

@@ -58,7 +58,7 @@ from ..errors import (BackendError, CausalityError, CodecError, RestartLimitErro
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
-from ..sync import MISSING, PortBuffer
+from ..sync import MISSING, PortBuffer, select_inputs
 from ..time import format_tag
 from ..trace import holding_full_collections
 from . import _inproc_ticks
@@ -759,7 +759,8 @@ class InprocSession(Session):
         return {} if self._rng is None else {"tie_break_seed": self._tie_break_seed}
 
     # ---------------------------------------------------------------------------------------
-    # Hooks for replay (retriever.log.replay): drive ticks from a log instead of the clocks
+    # Hooks for replay (retriever.log.replay): drive ticks from a log instead of the clocks;
+    # and for a driver that supplies one node's outputs from outside (retriever.gym)
     # ---------------------------------------------------------------------------------------
     def take_routes(self) -> dict[tuple[str, str], list[tuple[tuple[str, str], PortBuffer, int]]]:
         """Stop delivering outputs; return where each ``(node, port)`` delivered: the consuming
@@ -813,7 +814,8 @@ class InprocSession(Session):
     def replace_step(self, node: str, outputs: Any) -> None:
         """Make ``node``'s ticks emit ``next(outputs)`` (each a list of ``(port, value)``, or a
         ``ReplayedError`` to raise: a tick logged as an error) instead of calling its ``step()``:
-        replayed sources."""
+        replayed sources, and an agent whose actions come from outside (retriever.gym). A tick
+        whose required input has nothing is skipped as before, and takes nothing from ``outputs``."""
         rt = self._by_id[node]
         self._drop_compiled()
         rt.replaced = True
@@ -826,6 +828,21 @@ class InprocSession(Session):
 
         rt.invoke = invoke
         rt.read = lambda raw: raw
+
+    def inputs_at(self, node: str, tau: tuple[int, int]) -> tuple[dict[str, Any], dict[str, tuple], list[str] | None]:
+        """What ``node``'s tick at ``tau`` is handed if it runs next: its input values (an optional
+        port with nothing gets its fallback), the ids of the events each port's policy selects,
+        and the required ports that have nothing (None if none; else the tick will be skipped).
+        Selected by the node's own policies (``sync.select_inputs``) on copies of its buffers, so
+        nothing is consumed. It is what the tick gets once every tick before ``tau`` has run
+        (``advance(tau[0])`` for a tick at microstep 0): no event with a tag ``≤ tau`` can come later."""
+        self._flush()  # the compiled ticks hand back how far they have looked into the buffers
+        rt = self._by_id[node]
+        values, consumed, missing, _, _ = select_inputs(
+            [(port, buf.copy(), policy, spec) for port, buf, policy, spec in rt.inputs], tau)
+        for port, spec in rt.fallbacks.items():
+            values[port] = spec.fallback()
+        return values, consumed, missing
 
 
 class _AlwaysMissingPolicy:
