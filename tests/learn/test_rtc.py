@@ -1,0 +1,116 @@
+"""Real-time chunking from event time (issue 36, section 2): what the timeline says the controller
+plays of the previous chunk is checked against what the controller did play, read from a real
+log's step records, at 30, 50 and 200 Hz."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from retriever import ActionChunking, Latest, Pipeline, Rate, read_log
+from retriever.learn import ChunkTimeline, Leftover
+
+
+def test_worked_example():
+    """Controller at 200 Hz, policy latency 12.5 ms: a chunk from the tick at 0 arrives at
+    12.5 ms; the tick at 100 ms sees the controller play that chunk's rows 18..: 3 of them
+    (at 100, 105, 110 ms) before the new chunk (at 112.5 ms) takes over at 115 ms."""
+    timeline = ChunkTimeline(control_hz=200, latency=0.0125)
+    assert timeline.leftover(0) == Leftover((), 3)  # nothing plays yet; 0, 5, 10 ms pass before the chunk
+    timeline.add(0, 40)
+    left = timeline.leftover(100_000_000)
+    assert left.delay == 3
+    # chunk 0 started at 12.5 ms: the tick at 100 ms plays row floor(87.5 ms * 200 / s) = 17, then 18, 19 ...
+    assert left.rows == tuple((0, r) for r in range(17, 40))
+
+
+def test_held_last_row_and_no_latency():
+    timeline = ChunkTimeline(control_hz=50, latency=0.0)
+    timeline.add(0, 3)   # a chunk at tag (0, 1): the controller tick at (0, 0) does not see it
+    # the tick at 100 ms: the chunk (rows at 20, 40 ms) is over: the controller holds row 2 at
+    # (100, 0); the new chunk at (100, 1) is seen from 120 ms on
+    assert timeline.leftover(100_000_000) == Leftover(((0, 2),), 1)
+
+
+def test_a_chunk_still_on_its_way_at_the_tick_counts():
+    """Latency longer than the policy's period: at the tick, the previous chunk has not started;
+    the controller plays the one before it, then the previous one, then the new one."""
+    timeline = ChunkTimeline(control_hz=10, latency=0.25)
+    timeline.add(0, 10)            # plays from 250 ms
+    timeline.add(200_000_000, 10)  # plays from 450 ms
+    left = timeline.leftover(400_000_000)  # its chunk plays from 650 ms
+    assert left.delay == 3  # ticks at 400, 500, 600 ms
+    assert left.rows[:3] == ((0, 1), (1, 0), (1, 1))
+    assert left.rows[3:] == tuple((1, r) for r in range(2, 10))
+
+
+def test_chunk_rate_other_than_the_controllers():
+    """ActionChunking(control_hz=25) behind a 50 Hz controller plays each row twice."""
+    timeline = ChunkTimeline(control_hz=50, chunk_hz=25, latency=0.04)
+    timeline.add(0, 4)
+    left = timeline.leftover(60_000_000)
+    assert left.delay == 2  # 60, 80 ms; the new chunk arrives at 100 ms
+    assert left.rows == ((0, 0), (0, 1), (0, 1), (0, 2), (0, 2), (0, 3), (0, 3))
+
+
+def test_bad_chunks_are_refused():
+    with pytest.raises(ValueError, match="at least one row"):
+        ChunkTimeline(control_hz=50).add(0, 0)
+    with pytest.raises(ValueError, match="latency=-0.1 must be >= 0"):
+        ChunkTimeline(control_hz=50, latency=-0.1)
+
+
+@pytest.mark.parametrize("control_hz", [30, 50, 200])
+def test_leftover_is_what_the_controller_played(tmp_path, control_hz):
+    """A policy at 3 Hz (ticks off the controller's grid) with 70 ms latency: at each tick, the
+    leftover it computed is, row for row, what the log's step records say the controller played
+    from that tick until the new chunk arrived, and after that what the previous chunk's tag gives
+    by ActionChunking's rule; the new chunk's first row is the one played first."""
+    pytest.importorskip("torch", reason="the policy flow runs a torch module")
+    from tests.learn.policies import Chunker, Counter, Player, rows_checkpoint
+
+    steps = round(0.6 * control_hz)
+    latency = 0.07
+    with Pipeline("rtc") as pipe:
+        source = Counter() @ Rate(hz=10)
+        policy = Chunker(str(rows_checkpoint(tmp_path / "ckpt")), steps=steps, rtc=True, control_hz=control_hz) \
+            .named("policy").configure(latency=latency, on_overrun="catch_up") @ Rate(hz=3)
+        player = Player().named("player") @ Rate(hz=control_hz)
+        source.then(policy, sync=Latest())
+        policy.then(player, sync=ActionChunking(control_hz=control_hz), map={"chunk": "action"})
+    pipe.run(duration=3.0, log=tmp_path / "run.mcap")
+    log = read_log(tmp_path / "run.mcap")
+    events = {e.id: e for e in log.iter_events()}
+    value = {i: log.value(e) for i, e in events.items()}
+    steps_ = sorted(log.iter_steps(), key=lambda s: s.tag)
+    plays = [s for s in steps_ if s.node == "player"]  # skipped too: before the first chunk
+    ticks = [s for s in steps_ if s.node == "policy" and s.produced]
+    assert len(ticks) == 8  # 3 s at 3 Hz; at the first tick the counter has said nothing yet
+
+    def played_at(record):
+        """(chunk seq, row) the controller played at this record: the consumed chunk, the row
+        found by its value (every row of the run is unique)."""
+        (chunk_id,) = record.consumed["action"]
+        (out,) = record.produced
+        rows = value[chunk_id]
+        (row,) = np.flatnonzero((rows == value[out]).all(axis=1))
+        return chunk_id[2], int(row)
+
+    for tick in ticks:
+        produced = {e[1]: e for e in tick.produced}
+        left, delay = value[produced["leftover"]], int(value[produced["delay"]])
+        new_chunk = produced["chunk"]
+        later = [p for p in plays if p.tag >= (tick.tag[0], 0)]
+        first_new = next(i for i, p in enumerate(later) if p.consumed.get("action") == (new_chunk,))
+        assert delay == first_new, tick.tag
+        if tick is ticks[0]:  # no chunk was playing: nothing to join
+            assert len(left) == 0 and all(p.status == "skipped" for p in later[:delay])
+            continue
+        assert [tuple(r) for r in left[:delay]] == [played_at(p) for p in later[:delay]], tick.tag
+        if len(left) > delay:  # what the previous chunk would still play: ActionChunking's rule on its tag
+            seq = left[0][0]
+            old = next(e for e in events.values() if e.node == "policy" and e.port == "chunk" and e.seq == seq)
+            rest = [(seq, (p.tag[0] - old.tag[0]) * control_hz // 10**9) for p in later[delay:len(left)]]
+            assert [tuple(r) for r in left[delay:]] == rest
+            assert rest[-1][1] == len(value[old.id]) - 1
+        assert played_at(later[first_new]) == (new_chunk[2], 0)
