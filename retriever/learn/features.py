@@ -5,8 +5,8 @@ policy trained on an export reads its ports under the names it was trained on:
 
 - a port whose name contains ``image`` → ``observation.images.<port>``; its value is a ``uint8``
   H×W×3 array, handed to the policy as ``float32`` 3×H×W in [0, 1] (as LeRobot's loader does);
-- if exactly one other port is left, it is ``observation.state``; several others are each
-  ``observation.<port>``;
+- if exactly one other port is left (and no port is named ``observation.state`` explicitly), it
+  is ``observation.state``; otherwise each other port is ``observation.<port>``;
 - its value is a number, a numeric array or list (flattened), or a dataclass whose numeric fields
   are concatenated in field order (fields of other types are left out), as ``float32``.
 
@@ -44,7 +44,8 @@ def feature_map(owner: str, ports: Iterable[str], features: Mapping[str, str] | 
     others = [p for p in unnamed if p not in images]
     mapping = {p: given[p] for p in ports if p in given}
     mapping.update({p: IMAGES + p for p in images})
-    mapping.update({p: STATE if len(others) == 1 else f"observation.{p}" for p in others})
+    state_left = len(others) == 1 and STATE not in given.values()
+    mapping.update({p: STATE if state_left else f"observation.{p}" for p in others})
     seen: dict[str, str] = {}
     for port, key in mapping.items():
         if key in seen:
