@@ -122,3 +122,27 @@ class Chunker(TorchPolicy):
         if out is None:
             return None
         return {**out, "delay": self.leftover.delay, "leftover": np.array(self.leftover.rows, dtype=np.int64).reshape(-1, 2)}
+
+
+def noisy_module():
+    import torch
+
+    class Noisy(torch.nn.Module):
+        """Samples, as a diffusion policy's denoising starts from noise."""
+
+        def __init__(self):
+            super().__init__()
+            self.scale = torch.nn.Parameter(torch.ones(1))
+
+        def forward(self, batch):
+            return batch["observation.state"][:, None, :1] + torch.randn(1, 4, 1) * self.scale
+
+    return Noisy()
+
+
+class NoisyPolicy(TorchPolicy):
+    def build(self):
+        return noisy_module()
+
+    def step(self, state: np.ndarray | None = None):
+        return self.act(state=state)

@@ -224,3 +224,23 @@ def test_rtc_hands_the_module_the_rows_it_made(tmp_path):
         # the leftover's first row is a row of the previous chunk, and the rest follow it
         start = int(np.flatnonzero(previous[:, 0] == rows[0, 0].item())[0])
         np.testing.assert_array_equal(rows.numpy(), previous[start:start + len(rows)])
+
+
+def test_sampling_policy_replays_bit_for_bit(tmp_path):
+    """A model that samples (diffusion's noise) draws from torch's generator seeded per call with
+    seed + its count: the replay, in a process whose generator is elsewhere, draws the same."""
+    from safetensors.torch import save_file
+
+    from tests.learn.policies import Counter, NoisyPolicy, noisy_module
+
+    (tmp_path / "noisy").mkdir()
+    save_file(noisy_module().state_dict(), str(tmp_path / "noisy" / "model.safetensors"))
+    with Pipeline("noisy") as pipe:
+        policy = NoisyPolicy(str(tmp_path / "noisy"), seed=7).named("policy") @ Rate(hz=10)
+        (Counter() @ Rate(hz=10)).then(policy, sync=Latest())
+    pipe.run(duration=1.0, log=tmp_path / "run.mcap")
+    chunks = pipe.trace.values_of("policy", "chunk")
+    assert len(chunks) == 9 and len({c.tobytes() for c in chunks}) == 9
+    torch.manual_seed(12345)
+    report = replay(read_log(tmp_path / "run.mcap"))
+    assert report.identical and report.nodes["policy"].identical == 10, report.divergences[:1]
