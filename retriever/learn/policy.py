@@ -123,6 +123,7 @@ class PolicyFlow(Flow):
         if self.device == "cpu":
             torch.set_num_threads(self.threads)
             torch.use_deterministic_algorithms(True)
+        self.shapes: dict[str, tuple[int, ...]] = {}  # feature key -> the shape the model takes, where known
         self.model = self._load(self._directory())
 
     def teardown(self) -> None:
@@ -154,12 +155,21 @@ class PolicyFlow(Flow):
             return None
         import torch
 
+        if "model" not in self.__dict__:
+            raise RuntimeError(f"{self._owner()}: no model loaded: setup() has not run\n    hint: a runtime calls "
+                               "setup() before the first tick; outside one, call policy.setup() first")
         unknown = sorted(set(values) - set(self.ports))
         if unknown:
             raise ValueError(f"{self._owner()}.act() got {', '.join(map(repr, unknown))}, which are not its ports "
                              f"({', '.join(self.ports)})")
-        observation = {key: torch.from_numpy(to_array(self._owner(), port, key, values[port]))
-                       for port, key in self.ports.items()}
+        observation = {}
+        for port, key in self.ports.items():
+            array = to_array(self._owner(), port, key, values[port])
+            shape = self.shapes.get(key)
+            if shape is not None and array.shape != shape:
+                raise ValueError(f"{self._owner()}: port {port!r} gives feature {key!r} the shape {array.shape}; "
+                                 f"the policy was trained on {shape}")
+            observation[key] = torch.from_numpy(array)
         with torch.random.fork_rng(devices=[]), torch.no_grad():
             torch.manual_seed(self.seed + self.calls)
             self.calls += 1
@@ -246,6 +256,7 @@ class LeRobotPolicy(PolicyFlow):
         if getattr(config, "pretrained_backbone_weights", None) is not None:
             config.pretrained_backbone_weights = None  # the checkpoint holds the backbone's trained weights
         self._check_features(config)
+        self.shapes = {key: tuple(feature.shape) for key, feature in config.input_features.items()}
         policy = get_policy_class(config.type).from_pretrained(path, config=config, local_files_only=True, strict=True)
         policy.to(self.device).eval()
         self.preprocess, self.postprocess = self._processors(path)

@@ -156,8 +156,13 @@ def test_ports_must_match_the_checkpoints_features(checkpoint):
     with pytest.raises(ValueError, match="port 'wrist_image' feeds the image feature 'observation.images.image', "
                                          r"which takes a uint8 H×W×3 array; got a float64 array of shape \(24, 32\)"):
         renamed.act(wrist_image=np.zeros((24, 32)), state=np.zeros(3))
+    with pytest.raises(ValueError, match=r"port 'state' gives feature 'observation.state' the shape \(4,\); the "
+                                         r"policy was trained on \(3,\)"):
+        renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(4))
     tear_down(renamed)
     assert "model" not in renamed.__dict__
+    with pytest.raises(RuntimeError, match="no model loaded: setup\\(\\) has not run"):
+        renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(3))
 
 
 def test_checkpoint_without_processors_feeds_raw_features(tmp_path):
