@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from retriever import ActionChunking, Latest, Pipeline, Rate, read_log
+from retriever.log import replay
 from retriever.learn import ChunkTimeline, Leftover
 
 
@@ -60,49 +61,55 @@ def test_bad_chunks_are_refused():
         ChunkTimeline(control_hz=50, latency=-0.1)
 
 
-@pytest.mark.parametrize("control_hz", [30, 50, 200])
-def test_leftover_is_what_the_controller_played(tmp_path, control_hz):
-    """A policy at 7 Hz (ticks off each controller's grid) with 70 ms latency: at each tick, the
-    leftover it computed is, row for row, what the log's step records say the controller played
-    from that tick until the new chunk arrived, and after that what the previous chunk's tag gives
-    by ActionChunking's rule; the new chunk's first row is the one played first."""
-    pytest.importorskip("torch", reason="the policy flow runs a torch module")
+def rtc_pipeline(path, control_hz: float) -> Pipeline:
+    """A counter, a chunking policy at 7 Hz (ticks off each controller's grid) with 70 ms latency,
+    and a controller that plays its rows; every flow on LET and catching up, so that a real-time
+    run is the virtual-time one."""
     from tests.learn.policies import Chunker, Counter, Player, rows_checkpoint
 
-    steps = round(0.6 * control_hz)
-    latency = 0.07
-    with Pipeline("rtc") as pipe:
-        source = Counter() @ Rate(hz=10)
-        policy = Chunker(str(rows_checkpoint(tmp_path / "ckpt")), steps=steps, rtc=True, control_hz=control_hz) \
-            .named("policy").configure(latency=latency, on_overrun="catch_up") @ Rate(hz=7)
-        player = Player().named("player") @ Rate(hz=control_hz)
+    catch_up = {"on_overrun": "catch_up"}
+    with Pipeline("rtc", deadline=5.0) as pipe:
+        source = Counter().named("counter").configure(latency=0.01, **catch_up) @ Rate(hz=10)
+        policy = Chunker(str(rows_checkpoint(path)), steps=round(0.6 * control_hz), rtc=True, control_hz=control_hz) \
+            .named("policy").configure(latency=0.07, **catch_up) @ Rate(hz=7)
+        player = Player().named("player").configure(latency=1 / control_hz, **catch_up) @ Rate(hz=control_hz)
         source.then(policy, sync=Latest())
         policy.then(player, sync=ActionChunking(control_hz=control_hz), map={"chunk": "action"})
-    pipe.run(duration=3.0, log=tmp_path / "run.mcap")
-    log = read_log(tmp_path / "run.mcap")
+    return pipe
+
+
+def check_leftovers(log, control_hz: int) -> int:
+    """At each policy tick, the leftover it computed is, row for row, what the log's step records
+    say the controller played from that tick until the new chunk arrived, and after that what the
+    previous chunk's tag gives by ActionChunking's rule; the new chunk's first row is the one
+    played first. Returns the number of ticks checked."""
     events = {e.id: e for e in log.iter_events()}
     value = {i: log.value(e) for i, e in events.items()}
-    steps_ = sorted(log.iter_steps(), key=lambda s: s.tag)
-    plays = [s for s in steps_ if s.node == "player"]  # skipped too: before the first chunk
-    ticks = [s for s in steps_ if s.node == "policy" and s.produced]
-    assert len(ticks) == 20  # 3 s at 7 Hz; at the first tick the counter has said nothing yet
+    steps = sorted(log.iter_steps(), key=lambda s: s.tag)
+    plays = [s for s in steps if s.node == "player"]  # skipped too: before the first chunk
+    ticks = [s for s in steps if s.node == "policy" and s.produced]
+    last_play = plays[-1].tag
 
     def played_at(record):
         """(chunk seq, row) the controller played at this record: the consumed chunk, the row
         found by its value (every row of the run is unique)."""
         (chunk_id,) = record.consumed["action"]
         (out,) = record.produced
-        rows = value[chunk_id]
-        (row,) = np.flatnonzero((rows == value[out]).all(axis=1))
+        (row,) = np.flatnonzero((value[chunk_id] == value[out]).all(axis=1))
         return chunk_id[2], int(row)
 
+    checked = 0
     for tick in ticks:
         produced = {e[1]: e for e in tick.produced}
         left, delay = value[produced["leftover"]], int(value[produced["delay"]])
         new_chunk = produced["chunk"]
+        if events[new_chunk].tag > last_play:
+            continue  # the run ended before the controller saw it
         later = [p for p in plays if p.tag >= (tick.tag[0], 0)]
         first_new = next(i for i, p in enumerate(later) if p.consumed.get("action") == (new_chunk,))
         assert delay == first_new, tick.tag
+        assert played_at(later[first_new]) == (new_chunk[2], 0)
+        checked += 1
         if tick is ticks[0]:  # no chunk was playing: nothing to join
             assert len(left) == 0 and all(p.status == "skipped" for p in later[:delay])
             continue
@@ -115,4 +122,22 @@ def test_leftover_is_what_the_controller_played(tmp_path, control_hz):
             assert [tuple(r) for r in left[delay:delay + len(rest)]] == rest
             if len(rest) == len(left) - delay:
                 assert rest[-1][1] == len(value[old.id]) - 1  # to its last row
-        assert played_at(later[first_new]) == (new_chunk[2], 0)
+    return checked
+
+
+@pytest.mark.parametrize("control_hz", [30, 50, 200])
+def test_leftover_is_what_the_controller_played(tmp_path, control_hz):
+    pytest.importorskip("torch", reason="the policy flow runs a torch module")
+    rtc_pipeline(tmp_path / "ckpt", control_hz).run(duration=3.0, log=tmp_path / "run.mcap")
+    assert check_leftovers(read_log(tmp_path / "run.mcap"), control_hz) == 20  # 7 Hz; the first tick saw no count
+
+
+def test_in_real_time_on_zenoh_too(tmp_path):
+    """On zenoh, each flow in its own process: the policy's count of ticks is its tick's time
+    there too (catching up, never skipping), so the leftovers match what the controller played;
+    and the run replays bit for bit."""
+    pytest.importorskip("torch", reason="the policy flow runs a torch module")
+    rtc_pipeline(tmp_path / "ckpt", 50).run(duration=3.0, backend="zenoh", quiet=True, log=tmp_path / "run.mcap")
+    log = read_log(tmp_path / "run.mcap")
+    assert check_leftovers(log, 50) >= 15
+    assert replay(log).identical
