@@ -95,8 +95,12 @@ class PolicyFlow(Flow):
             problems.append("rtc=True needs output='chunk': real-time chunking joins chunks")
         if rtc and control_hz is None:
             problems.append("rtc=True needs control_hz, the rate of the controller that plays the chunks")
+        if features is not None and not isinstance(features, dict):
+            problems.append(f"features={features!r} must be a dict of port -> feature key")
         if problems:
             raise ValueError(f"{owner}: " + "\n    ".join(problems))
+        if rtc:
+            ChunkTimeline(control_hz, chunk_hz=chunk_hz, control_offset=control_offset)  # its rates, checked now
         self.path, self.device, self.features, self.output = path, device, features, output
         self.threads, self.seed, self.rtc = threads, seed, rtc
         self.control_hz, self.control_offset, self.chunk_hz = control_hz, control_offset, chunk_hz

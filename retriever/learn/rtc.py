@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..clocks import Rate
-from ..time import NS_PER_S, exact_rational
+from ..time import NS_PER_S
 
 
 @dataclass(frozen=True)
@@ -62,15 +62,16 @@ class ChunkTimeline:
     latency: float = 0.0
     chunk_hz: float | None = None
     control_offset: float = 0.0
-    chunks: list[_Chunk] = field(default_factory=list)
-    emitted: int = 0
+    #: the chunks a controller tick from the last one added on may still play, oldest first
+    chunks: list[_Chunk] = field(default_factory=list, init=False)
+    emitted: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
         self._clock = Rate(self.control_hz, offset=self.control_offset)
         if self.latency < 0:
             raise ValueError(f"ChunkTimeline: latency={self.latency!r} must be >= 0 seconds")
         self._latency_ns = round(self.latency * NS_PER_S)
-        self._chunk_hz = exact_rational(self.control_hz if self.chunk_hz is None else self.chunk_hz)
+        self._chunk_hz = self._clock.hz if self.chunk_hz is None else Rate(self.chunk_hz).hz
 
     def _tag_of_chunk(self, tick_ns: int) -> tuple[int, int]:
         return (tick_ns + self._latency_ns, 0) if self._latency_ns else (tick_ns, 1)

@@ -141,3 +141,12 @@ def test_in_real_time_on_zenoh_too(tmp_path):
     log = read_log(tmp_path / "run.mcap")
     assert check_leftovers(log, 50) >= 15
     assert replay(log).identical
+
+
+def test_rates_are_checked():
+    from retriever import ClockError
+
+    with pytest.raises(ClockError, match="Rate"):
+        ChunkTimeline(control_hz=0)
+    with pytest.raises(ClockError, match="Rate"):
+        ChunkTimeline(control_hz=50, chunk_hz=-1)
