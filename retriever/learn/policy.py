@@ -100,7 +100,7 @@ class PolicyFlow(Flow):
         if problems:
             raise ValueError(f"{owner}: " + "\n    ".join(problems))
         if rtc:
-            ChunkTimeline(control_hz, chunk_hz=chunk_hz, control_offset=control_offset)  # its rates, checked now
+            ChunkTimeline(control_hz, chunk_hz=chunk_hz, control_offset=control_offset)  # checks the rates now
         self.path, self.device, self.features, self.output = path, device, features, output
         self.threads, self.seed, self.rtc = threads, seed, rtc
         self.control_hz, self.control_offset, self.chunk_hz = control_hz, control_offset, chunk_hz

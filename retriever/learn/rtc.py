@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..clocks import Rate
-from ..time import NS_PER_S
+from ..time import NS_PER_S, rate_problem, seconds_problem
 
 
 @dataclass(frozen=True)
@@ -67,9 +67,13 @@ class ChunkTimeline:
     emitted: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
+        problems = [problem for name in ("control_hz", "chunk_hz") if getattr(self, name) is not None
+                    and (problem := rate_problem(name, getattr(self, name))) is not None]
+        problems += [problem for name in ("latency", "control_offset")
+                     if (problem := seconds_problem(name, getattr(self, name))) is not None]
+        if problems:
+            raise ValueError("ChunkTimeline: " + "; ".join(problems))
         self._clock = Rate(self.control_hz, offset=self.control_offset)
-        if self.latency < 0:
-            raise ValueError(f"ChunkTimeline: latency={self.latency!r} must be >= 0 seconds")
         self._latency_ns = round(self.latency * NS_PER_S)
         self._chunk_hz = self._clock.hz if self.chunk_hz is None else Rate(self.chunk_hz).hz
 

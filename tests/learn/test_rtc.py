@@ -57,8 +57,6 @@ def test_chunk_rate_other_than_the_controllers():
 def test_bad_chunks_are_refused():
     with pytest.raises(ValueError, match="at least one row"):
         ChunkTimeline(control_hz=50).add(0, 0)
-    with pytest.raises(ValueError, match="latency=-0.1 must be >= 0"):
-        ChunkTimeline(control_hz=50, latency=-0.1)
 
 
 def rtc_pipeline(path, control_hz: float) -> Pipeline:
@@ -143,10 +141,8 @@ def test_in_real_time_on_zenoh_too(tmp_path):
     assert replay(log).identical
 
 
-def test_rates_are_checked():
-    from retriever import ClockError
-
-    with pytest.raises(ClockError, match="Rate"):
+def test_rates_and_times_are_checked():
+    with pytest.raises(ValueError, match="ChunkTimeline: control_hz must be a finite number > 0, got 0"):
         ChunkTimeline(control_hz=0)
-    with pytest.raises(ClockError, match="Rate"):
-        ChunkTimeline(control_hz=50, chunk_hz=-1)
+    with pytest.raises(ValueError, match="chunk_hz must be a finite number > 0, got -1; latency"):
+        ChunkTimeline(control_hz=50, chunk_hz=-1, latency=-0.1)
