@@ -4,7 +4,8 @@ The convention is the one ``retriever log export --format lerobot`` writes datas
 policy trained on an export reads its ports under the names it was trained on:
 
 - a port whose name contains ``image`` → ``observation.images.<port>``; its value is a ``uint8``
-  H×W×3 array, handed to the policy as ``float32`` 3×H×W in [0, 1] (as LeRobot's loader does);
+  H×W×3 array (or a dataclass with exactly one such field, as a camera frame), handed to the
+  policy as ``float32`` 3×H×W in [0, 1] (as LeRobot's loader does);
 - if exactly one other port is left (and no port is named ``observation.state`` explicitly), it
   is ``observation.state``; otherwise each other port is ``observation.<port>``;
 - its value is a number, a numeric array or list (flattened), or a dataclass whose numeric fields
@@ -35,7 +36,7 @@ def feature_map(owner: str, ports: Iterable[str], features: Mapping[str, str] | 
     in one ValueError."""
     ports = list(ports)
     given = dict(features or {})
-    problems = [f"features names port {port!r}, which {owner} does not have (its ports: {', '.join(ports)})"
+    problems = [f"features names {port!r}, which is none of {owner}'s inputs ({', '.join(ports)})"
                 for port in given if port not in ports]
     problems += [f"features[{port!r}] = {key!r} is not a feature key (a str such as 'observation.state')"
                  for port, key in given.items() if type(key) is not str or not key]
@@ -61,17 +62,24 @@ def to_array(owner: str, port: str, key: str, value: object) -> np.ndarray:
     """The value of ``port`` as the ``float32`` array feature ``key`` holds, or a ValueError
     naming the port, the key and what arrived."""
     if is_image_key(key):
-        if not (isinstance(value, np.ndarray) and value.dtype == np.uint8 and value.ndim == 3 and value.shape[2] == 3):
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            images = [v for f in dataclasses.fields(value) if _is_image(v := getattr(value, f.name))]
+            value = images[0] if len(images) == 1 else value
+        if not _is_image(value):
             what = (f"a {value.dtype} array of shape {value.shape}" if isinstance(value, np.ndarray)
                     else type(value).__qualname__)
             raise ValueError(f"{owner}: port {port!r} feeds the image feature {key!r}, which takes a uint8 H×W×3 "
-                             f"array; got {what}")
+                             f"array, or a dataclass with one; got {what}")
         return np.ascontiguousarray(value.transpose(2, 0, 1), dtype=np.float32) / np.float32(255)
     numbers = _numbers(value)
     if numbers is None:
         raise ValueError(f"{owner}: port {port!r} feeds feature {key!r}, which takes numbers (a number, a numeric "
                          f"array or list, a dataclass of numeric fields); got {type(value).__qualname__}")
     return numbers
+
+
+def _is_image(value: object) -> bool:
+    return isinstance(value, np.ndarray) and value.dtype == np.uint8 and value.ndim == 3 and value.shape[2] == 3
 
 
 def _numbers(value: object) -> np.ndarray | None:

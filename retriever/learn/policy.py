@@ -74,7 +74,13 @@ class PolicyFlow(Flow):
     every tick of its ``Rate`` clock: every port has a default (or is Optional), ``on_overrun=
     "catch_up"``, no ``on_error="restart"``, and ``step`` calls ``act`` once. ``setup()`` checks
     the first three.
+
+    ``act``'s keywords are the step's input ports, unless the class names others in
+    :attr:`observation` (a step that takes a message apart: ``act(image=frame.rgb, state=obs.robot)``).
     """
+
+    #: the names ``act()`` takes, each mapped to a feature key; None: the step's input ports
+    observation: tuple[str, ...] | None = None
 
     def __init__(self, path: str, device: str = "cpu", features: dict[str, str] | None = None,
                  output: str = "chunk", threads: int = 1, seed: int = 0, rtc: bool = False,
@@ -101,6 +107,8 @@ class PolicyFlow(Flow):
             raise ValueError(f"{owner}: " + "\n    ".join(problems))
         if rtc:
             ChunkTimeline(control_hz, chunk_hz=chunk_hz, control_offset=control_offset)  # checks the rates now
+        names = tuple(flow_spec(type(self)).inputs) if self.observation is None else tuple(self.observation)
+        self.ports = feature_map(owner, names, features)  # observation name -> feature key
         self.path, self.device, self.features, self.output = path, device, features, output
         self.threads, self.seed, self.rtc = threads, seed, rtc
         self.control_hz, self.control_offset, self.chunk_hz = control_hz, control_offset, chunk_hz
@@ -123,7 +131,6 @@ class PolicyFlow(Flow):
                                f"(built with CUDA {torch.version.cuda or 'none'})\n    hint: device='cpu'")
         if self.rtc:
             self._check_rtc()
-        self.ports = feature_map(owner, flow_spec(type(self)).inputs, self.features)
         if self.device == "cpu":
             torch.set_num_threads(self.threads)
             torch.use_deterministic_algorithms(True)
@@ -155,6 +162,9 @@ class PolicyFlow(Flow):
                 self.timeline = ChunkTimeline(self.control_hz, latency=self._retriever.latency,
                                               chunk_hz=self.chunk_hz, control_offset=self.control_offset)
             self.leftover = self.timeline.leftover(self._retriever.clock.tick_time(tick))
+        if values.keys() != self.ports.keys():
+            raise ValueError(f"{self._owner()}.act() takes {', '.join(self.ports)}; got {', '.join(values) or 'nothing'}"
+                             "\n    hint: name act()'s keywords in the class's observation = (...)")
         if any(v is None for v in values.values()):
             return None
         import torch
@@ -162,10 +172,6 @@ class PolicyFlow(Flow):
         if "model" not in self.__dict__:
             raise RuntimeError(f"{self._owner()}: no model loaded: setup() has not run\n    hint: a runtime calls "
                                "setup() before the first tick; outside one, call policy.setup() first")
-        unknown = sorted(set(values) - set(self.ports))
-        if unknown:
-            raise ValueError(f"{self._owner()}.act() got {', '.join(map(repr, unknown))}, which are not its ports "
-                             f"({', '.join(self.ports)})")
         observation = {}
         for port, key in self.ports.items():
             array = to_array(self._owner(), port, key, values[port])

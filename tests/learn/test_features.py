@@ -23,7 +23,7 @@ def test_convention():
 def test_explicit_names_win_and_problems_come_at_once():
     assert feature_map("P", ["cam", "qpos"], {"cam": "observation.images.front"}) == {
         "cam": "observation.images.front", "qpos": "observation.state"}
-    with pytest.raises(ValueError, match=r"(?s)P: features names port 'camera', which P does not have \(its ports: "
+    with pytest.raises(ValueError, match=r"(?s)P: features names 'camera', which is none of P's inputs \("
                                          r"cam, qpos\).*features\['qpos'\] = 3 is not a feature key.*hint: features="):
         feature_map("P", ["cam", "qpos"], {"camera": "observation.images.cam", "qpos": 3})
     with pytest.raises(ValueError, match="ports 'a' and 'b' both map to feature 'observation.state'"):
@@ -49,5 +49,16 @@ def test_values():
     assert to_array("P", "j", "observation.state", joint).tolist() == [0.5, 1.0, 2.0, 1.0]  # the name is no number
     with pytest.raises(ValueError, match="port 'q' feeds feature 'observation.state', which takes numbers .*; got str"):
         to_array("P", "q", "observation.state", "up")
-    with pytest.raises(ValueError, match="takes a uint8 H×W×3 array; got list"):
+    with pytest.raises(ValueError, match="takes a uint8 H×W×3 array, or a dataclass with one; got list"):
         to_array("P", "cam", "observation.images.cam", [[0]])
+    frame = Frame("head", 0.5, image)
+    np.testing.assert_array_equal(to_array("P", "frame", "observation.images.head", frame), chw)
+    with pytest.raises(ValueError, match="got Joint"):
+        to_array("P", "frame", "observation.images.head", joint)
+
+
+@dataclass
+class Frame:
+    camera: str
+    t: float
+    rgb: np.ndarray

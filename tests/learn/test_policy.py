@@ -14,6 +14,7 @@ pytest.importorskip("lerobot", reason="LeRobotPolicy loads LeRobot checkpoints (
 
 from retriever import ActionChunking, Latest, Pipeline, Rate, SetupError, read_log  # noqa: E402
 from retriever.flow._base import set_up, tear_down  # noqa: E402
+from retriever.learn import LeRobotPolicy  # noqa: E402
 from retriever.log import replay  # noqa: E402
 from tests.learn.policies import (  # noqa: E402
     ACTION_DIM, CHUNK, ActPick, Camera, Chunker, Player, act_checkpoint, rows_checkpoint,
@@ -154,7 +155,7 @@ def test_ports_must_match_the_checkpoints_features(checkpoint):
     out = renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(3))
     assert out["chunk"].shape == (CHUNK, ACTION_DIM)
     with pytest.raises(ValueError, match="port 'wrist_image' feeds the image feature 'observation.images.image', "
-                                         r"which takes a uint8 H×W×3 array; got a float64 array of shape \(24, 32\)"):
+                                         r"which takes a uint8 H×W×3 array, or a dataclass with one; got a float64 array of shape \(24, 32\)"):
         renamed.act(wrist_image=np.zeros((24, 32)), state=np.zeros(3))
     with pytest.raises(ValueError, match=r"port 'state' gives feature 'observation.state' the shape \(4,\); the "
                                          r"policy was trained on \(3,\)"):
@@ -249,3 +250,25 @@ def test_sampling_policy_replays_bit_for_bit(tmp_path):
     torch.manual_seed(12345)
     report = replay(read_log(tmp_path / "run.mcap"))
     assert report.identical and report.nodes["policy"].identical == 10, report.divergences[:1]
+
+
+def test_a_step_may_take_its_messages_apart(checkpoint):
+    """observation = (...): act() takes other names than the step's ports; here a camera frame
+    (a dataclass holding the image) and a robot message whose field is the state."""
+    from tests.learn.test_features import Frame, Joint
+
+    class FromMessages(LeRobotPolicy):
+        observation = ("image", "state")
+
+        def step(self, frame: Frame | None = None, joint: Joint | None = None):
+            return self.act(image=frame, state=None if joint is None else joint.qd)
+
+    policy = FromMessages(str(checkpoint))
+    assert policy.ports == {"image": "observation.images.image", "state": "observation.state"}
+    set_up(policy)
+    frame = Frame("head", 0.0, np.zeros((24, 32, 3), np.uint8))
+    out = policy.step(frame=frame, joint=Joint("elbow", 0.1, np.zeros(3), False))
+    assert out["chunk"].shape == (CHUNK, ACTION_DIM)
+    assert policy.step(frame=frame) is None
+    with pytest.raises(ValueError, match=r"FromMessages.act\(\) takes image, state; got image\n    hint: name act"):
+        policy.act(image=frame)
