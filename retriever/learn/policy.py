@@ -41,7 +41,7 @@ import numpy as np
 from ..clocks import Rate
 from ..flow import Flow
 from ..flow._base import flow_spec
-from .features import feature_map, to_array
+from .features import ObservationFeatures
 from .rtc import ChunkTimeline, Leftover
 
 OUTPUTS = ("chunk", "action")
@@ -56,8 +56,8 @@ class PolicyFlow(Flow):
 
     - ``path``: the local checkpoint directory.
     - ``device``: ``"cpu"`` or ``"cuda"`` (``"cuda:N"``).
-    - ``features``: port → feature key where the convention of :mod:`retriever.learn.features`
-      does not fit (the export's ``--map``).
+    - ``features``: source (an input, or ``input.field``) → feature key, where the convention of
+      :mod:`retriever.learn.features` does not fit (the export's ``--map``).
     - ``output``: ``"chunk"`` (emit the whole chunk on port ``chunk``) or ``"action"`` (one row on
       port ``action``).
     - ``threads``: torch's CPU threads (process-wide; fixed so that replay repeats the floats).
@@ -108,7 +108,7 @@ class PolicyFlow(Flow):
         if rtc:
             ChunkTimeline(control_hz, chunk_hz=chunk_hz, control_offset=control_offset)  # checks the rates now
         names = tuple(flow_spec(type(self)).inputs) if self.observation is None else tuple(self.observation)
-        self.ports = feature_map(owner, names, features)  # observation name -> feature key
+        self.observed = ObservationFeatures(owner, names, features)
         self.path, self.device, self.features, self.output = path, device, features, output
         self.threads, self.seed, self.rtc = threads, seed, rtc
         self.control_hz, self.control_offset, self.chunk_hz = control_hz, control_offset, chunk_hz
@@ -134,7 +134,8 @@ class PolicyFlow(Flow):
         if self.device == "cpu":
             torch.set_num_threads(self.threads)
             torch.use_deterministic_algorithms(True)
-        self.shapes: dict[str, tuple[int, ...]] = {}  # feature key -> the shape the model takes, where known
+        #: feature key -> the shape the model takes; None where the checkpoint does not say (TorchPolicy)
+        self.shapes: dict[str, tuple[int, ...]] | None = None
         self.model = self._load(self._directory())
 
     def teardown(self) -> None:
@@ -162,8 +163,9 @@ class PolicyFlow(Flow):
                 self.timeline = ChunkTimeline(self.control_hz, latency=self._retriever.latency,
                                               chunk_hz=self.chunk_hz, control_offset=self.control_offset)
             self.leftover = self.timeline.leftover(self._retriever.clock.tick_time(tick))
-        if values.keys() != self.ports.keys():
-            raise ValueError(f"{self._owner()}.act() takes {', '.join(self.ports)}; got {', '.join(values) or 'nothing'}"
+        names = self.observed.names
+        if values.keys() != set(names):
+            raise ValueError(f"{self._owner()}.act() takes {', '.join(names)}; got {', '.join(values) or 'nothing'}"
                              "\n    hint: name act()'s keywords in the class's observation = (...)")
         if any(v is None for v in values.values()):
             return None
@@ -172,14 +174,9 @@ class PolicyFlow(Flow):
         if "model" not in self.__dict__:
             raise RuntimeError(f"{self._owner()}: no model loaded: setup() has not run\n    hint: a runtime calls "
                                "setup() before the first tick; outside one, call policy.setup() first")
-        observation = {}
-        for port, key in self.ports.items():
-            array = to_array(self._owner(), port, key, values[port])
-            shape = self.shapes.get(key)
-            if shape is not None and array.shape != shape:
-                raise ValueError(f"{self._owner()}: port {port!r} gives feature {key!r} the shape {array.shape}; "
-                                 f"the policy was trained on {shape}")
-            observation[key] = torch.from_numpy(array)
+        arrays = self.observed(values)
+        self._check_shapes(arrays)
+        observation = {key: torch.from_numpy(array) for key, array in arrays.items()}
         with torch.random.fork_rng(devices=[]), torch.no_grad():
             torch.manual_seed(self.seed + self.calls)
             self.calls += 1
@@ -225,6 +222,23 @@ class PolicyFlow(Flow):
                                     "the directory that holds its weights")
         return path
 
+    def _check_shapes(self, arrays: dict[str, np.ndarray]) -> None:
+        """The observation's features are the model's, each of the shape it was trained on."""
+        if self.shapes is None:
+            return
+        sources = {key: source for source, key in (self.observed.keys or {}).items()}
+        problems = [f"the policy takes {key!r}, which the observation has no feature for"
+                    for key in sorted(self.shapes.keys() - arrays.keys())]
+        problems += [f"{sources[key]!r} gives feature {key!r}, which the policy does not take"
+                     for key in arrays.keys() - self.shapes.keys()]
+        problems += [f"{sources[key]!r} gives feature {key!r} the shape {array.shape}; the policy was trained on "
+                     f"{self.shapes[key]}" for key, array in arrays.items()
+                     if key in self.shapes and array.shape != self.shapes[key]]
+        if problems:
+            raise ValueError(f"{self._owner()}: its observation does not fit the checkpoint's input features "
+                             f"({', '.join(sorted(self.shapes))}):\n    " + "\n    ".join(problems)
+                             + "\n    hint: features={'source': 'feature key'}, or name the inputs after the features")
+
     def _check_rtc(self) -> None:
         settings, spec = self._retriever, flow_spec(type(self))
         problems = []
@@ -254,7 +268,7 @@ class PolicyFlow(Flow):
 class LeRobotPolicy(PolicyFlow):
     """A LeRobot ``PreTrainedPolicy`` checkpoint directory (``config.json``, ``model.safetensors``,
     and, as ``lerobot-train`` writes them, its pre/post-processors: normalization). Its config's
-    ``input_features`` must be exactly the features the ports map to. See :class:`PolicyFlow`."""
+    ``input_features`` must be exactly the observation's features. See :class:`PolicyFlow`."""
 
     def _load(self, path: Path) -> Any:
         os.environ["HF_HUB_OFFLINE"] = "1"  # before huggingface_hub reads it: nothing goes to a hub
@@ -265,7 +279,6 @@ class LeRobotPolicy(PolicyFlow):
         config.device = self.device
         if getattr(config, "pretrained_backbone_weights", None) is not None:
             config.pretrained_backbone_weights = None  # the checkpoint holds the backbone's trained weights
-        self._check_features(config)
         self.shapes = {key: tuple(feature.shape) for key, feature in config.input_features.items()}
         policy = get_policy_class(config.type).from_pretrained(path, config=config, local_files_only=True, strict=True)
         policy.to(self.device).eval()
@@ -273,17 +286,6 @@ class LeRobotPolicy(PolicyFlow):
         rtc = getattr(config, "rtc_config", None)
         self.takes_leftover = rtc is not None and getattr(rtc, "enabled", False)
         return policy
-
-    def _check_features(self, config: Any) -> None:
-        wanted = set(config.input_features)
-        given = set(self.ports.values())
-        problems = [f"the policy takes {key!r}, which no port maps to" for key in sorted(wanted - given)]
-        problems += [f"port {port!r} maps to {key!r}, which the policy does not take" for port, key in self.ports.items()
-                     if key not in wanted]
-        if problems:
-            raise ValueError(f"{self._owner()}: its ports do not match the checkpoint's input features "
-                             f"({', '.join(sorted(wanted))}):\n    " + "\n    ".join(problems)
-                             + "\n    hint: features={'port': 'feature key'}, or name the ports after the features")
 
     def _processors(self, path: Path) -> tuple[Any, Any]:
         present = [(path / name).is_file() for name in PROCESSORS]

@@ -1,4 +1,4 @@
-"""Ports as LeRobot feature keys, and their values as the arrays a policy reads."""
+"""A policy's inputs as LeRobot features, named as the dataset export names them."""
 
 from __future__ import annotations
 
@@ -7,27 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from retriever.learn.features import feature_map, to_array
+from retriever.learn.features import ObservationFeatures
 
-
-def test_convention():
-    assert feature_map("P", ["image", "wrist_image", "qpos"], None) == {
-        "image": "observation.images.image", "wrist_image": "observation.images.wrist_image",
-        "qpos": "observation.state"}
-    assert feature_map("P", ["qpos", "cube_pose"], None) == {
-        "qpos": "observation.qpos", "cube_pose": "observation.cube_pose"}
-    assert feature_map("P", ["qpos", "cube_pose"], {"qpos": "observation.state"}) == {
-        "qpos": "observation.state", "cube_pose": "observation.cube_pose"}
-
-
-def test_explicit_names_win_and_problems_come_at_once():
-    assert feature_map("P", ["cam", "qpos"], {"cam": "observation.images.front"}) == {
-        "cam": "observation.images.front", "qpos": "observation.state"}
-    with pytest.raises(ValueError, match=r"(?s)P: features names 'camera', which is none of P's inputs \("
-                                         r"cam, qpos\).*features\['qpos'\] = 3 is not a feature key.*hint: features="):
-        feature_map("P", ["cam", "qpos"], {"camera": "observation.images.cam", "qpos": 3})
-    with pytest.raises(ValueError, match="ports 'a' and 'b' both map to feature 'observation.state'"):
-        feature_map("P", ["a", "b"], {"a": "observation.state", "b": "observation.state"})
+IMAGE = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
 
 
 @dataclass
@@ -38,27 +20,54 @@ class Joint:
     locked: bool
 
 
-def test_values():
-    image = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
-    chw = to_array("P", "cam", "observation.images.cam", image)
-    assert chw.shape == (3, 2, 3) and chw.dtype == np.float32
-    assert chw[1, 0, 2] == np.float32(image[0, 2, 1]) / np.float32(255)
-    assert to_array("P", "q", "observation.state", 2).tolist() == [2.0]
-    assert to_array("P", "q", "observation.state", [[1, 2], [3, 4]]).tolist() == [1, 2, 3, 4]
-    joint = Joint("elbow", 0.5, np.array([1.0, 2.0]), True)
-    assert to_array("P", "j", "observation.state", joint).tolist() == [0.5, 1.0, 2.0, 1.0]  # the name is no number
-    with pytest.raises(ValueError, match="port 'q' feeds feature 'observation.state', which takes numbers .*; got str"):
-        to_array("P", "q", "observation.state", "up")
-    with pytest.raises(ValueError, match="takes a uint8 H×W×3 array, or a dataclass with one; got list"):
-        to_array("P", "cam", "observation.images.cam", [[0]])
-    frame = Frame("head", 0.5, image)
-    np.testing.assert_array_equal(to_array("P", "frame", "observation.images.head", frame), chw)
-    with pytest.raises(ValueError, match="got Joint"):
-        to_array("P", "frame", "observation.images.head", joint)
-
-
 @dataclass
 class Frame:
     camera: str
     t: float
     rgb: np.ndarray
+
+
+def test_convention():
+    features = ObservationFeatures("P", ["cam", "qpos"])
+    arrays = features({"cam": IMAGE, "qpos": np.array([1.0, 2.0])})
+    assert features.keys == {"cam": "observation.images.cam", "qpos": "observation.state"}
+    assert arrays["observation.images.cam"].shape == (3, 2, 3) and arrays["observation.images.cam"].dtype == np.float32
+    assert arrays["observation.images.cam"][1, 0, 2] == np.float32(IMAGE[0, 2, 1]) / np.float32(255)
+    assert arrays["observation.state"].dtype == np.float32
+    several = ObservationFeatures("P", ["qpos", "cube"])
+    several({"qpos": [1, 2], "cube": 3.0})
+    assert several.keys == {"qpos": "observation.qpos", "cube": "observation.cube"}
+
+
+def test_messages_are_taken_apart_as_the_export_does():
+    """A dataclass: its images each a feature (``name.field``), its numeric fields one state
+    vector in field order; text is left out. The frame's time is a state of its own."""
+    features = ObservationFeatures("P", ["frame", "joint"])
+    arrays = features({"frame": Frame("head", 0.5, IMAGE), "joint": Joint("elbow", 0.5, np.array([[1.0, 2.0]]), True)})
+    assert features.keys == {"frame.rgb": "observation.images.frame.rgb", "frame": "observation.frame",
+                             "joint": "observation.joint"}
+    assert arrays["observation.joint"].tolist() == [0.5, 1.0, 2.0, 1.0]
+    assert arrays["observation.frame"].tolist() == [0.5]
+    named = ObservationFeatures("P", ["frame", "joint"], {"frame.rgb": "observation.images.head",
+                                                          "joint": "observation.state"})
+    named({"frame": Frame("head", 0.5, IMAGE), "joint": Joint("elbow", 0.5, np.zeros(2), True)})
+    assert named.keys == {"frame.rgb": "observation.images.head", "frame": "observation.frame",
+                          "joint": "observation.state"}
+
+
+def test_problems_are_named():
+    with pytest.raises(ValueError, match=r"(?s)P: features\['qpos'\] = 3 is not a feature key.*features names "
+                                         r"'camera', which is none of P's inputs \(cam, qpos\).*hint: features="):
+        ObservationFeatures("P", ["cam", "qpos"], {"camera": "observation.images.cam", "qpos": 3})
+    twice = ObservationFeatures("P", ["a", "b"], {"a": "observation.state", "b": "observation.state"})
+    with pytest.raises(ValueError, match="two sources would both be feature 'observation.state'"):
+        twice({"a": 1.0, "b": 2.0})
+    with pytest.raises(ValueError, match="input 'q' carries a str, which no feature holds"):
+        ObservationFeatures("P", ["q"])({"q": "up"})
+    with pytest.raises(ValueError, match=r"input 'cam' carries a uint8 array of shape \(2, 3\), which is neither an "
+                                         "image .* nor a state vector"):
+        ObservationFeatures("P", ["cam"])({"cam": np.zeros((2, 3), np.uint8)})
+    changing = ObservationFeatures("P", ["cam"])
+    changing({"cam": Frame("c", 0.0, IMAGE)})
+    with pytest.raises(ValueError, match="this observation gives cam; the first gave cam.rgb, cam: a feature comes"):
+        changing({"cam": 1.0})

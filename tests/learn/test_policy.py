@@ -142,28 +142,28 @@ def test_no_hub_path_and_no_class_named_by_a_checkpoint(tmp_path, checkpoint):
         set_up(ActPick(str(path)))
 
 
-def test_ports_must_match_the_checkpoints_features(checkpoint):
+def test_the_observation_must_match_the_checkpoints_features(checkpoint):
     class Wrong(ActPick):
         def step(self, wrist_image: np.ndarray | None = None, state: np.ndarray | None = None):
             return self.act(wrist_image=wrist_image, state=state)
 
-    with pytest.raises(ValueError, match=r"(?s)the policy takes 'observation.images.image', which no port maps to"
-                                         r".*port 'wrist_image' maps to 'observation.images.wrist_image', which"):
-        set_up(Wrong(str(checkpoint)))
+    image, state = np.zeros((24, 32, 3), np.uint8), np.zeros(3)
+    wrong = Wrong(str(checkpoint))
+    set_up(wrong)
+    with pytest.raises(ValueError, match=r"(?s)does not fit the checkpoint's input features .*the policy takes "
+                                         r"'observation.images.image', which the observation has no feature for.*"
+                                         r"'wrist_image' gives feature 'observation.images.wrist_image', which the"):
+        wrong.act(wrist_image=image, state=state)
     renamed = Wrong(str(checkpoint), features={"wrist_image": "observation.images.image"})
     set_up(renamed)
-    out = renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(3))
-    assert out["chunk"].shape == (CHUNK, ACTION_DIM)
-    with pytest.raises(ValueError, match="port 'wrist_image' feeds the image feature 'observation.images.image', "
-                                         r"which takes a uint8 H×W×3 array, or a dataclass with one; got a float64 array of shape \(24, 32\)"):
-        renamed.act(wrist_image=np.zeros((24, 32)), state=np.zeros(3))
-    with pytest.raises(ValueError, match=r"port 'state' gives feature 'observation.state' the shape \(4,\); the "
+    assert renamed.act(wrist_image=image, state=state)["chunk"].shape == (CHUNK, ACTION_DIM)
+    with pytest.raises(ValueError, match=r"'state' gives feature 'observation.state' the shape \(4,\); the "
                                          r"policy was trained on \(3,\)"):
-        renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(4))
+        renamed.act(wrist_image=image, state=np.zeros(4))
     tear_down(renamed)
     assert "model" not in renamed.__dict__
     with pytest.raises(RuntimeError, match="no model loaded: setup\\(\\) has not run"):
-        renamed.act(wrist_image=np.zeros((24, 32, 3), np.uint8), state=np.zeros(3))
+        renamed.act(wrist_image=image, state=state)
 
 
 def test_checkpoint_without_processors_feeds_raw_features(tmp_path):
@@ -253,22 +253,22 @@ def test_sampling_policy_replays_bit_for_bit(tmp_path):
 
 
 def test_a_step_may_take_its_messages_apart(checkpoint):
-    """observation = (...): act() takes other names than the step's ports; here a camera frame
-    (a dataclass holding the image) and a robot message whose field is the state."""
+    """observation = (...): act() takes other names than the step's ports; here a camera frame's
+    image and a robot message's field."""
     from tests.learn.test_features import Frame, Joint
 
     class FromMessages(LeRobotPolicy):
         observation = ("image", "state")
 
         def step(self, frame: Frame | None = None, joint: Joint | None = None):
-            return self.act(image=frame, state=None if joint is None else joint.qd)
+            return self.act(image=None if frame is None else frame.rgb, state=None if joint is None else joint.qd)
 
     policy = FromMessages(str(checkpoint))
-    assert policy.ports == {"image": "observation.images.image", "state": "observation.state"}
     set_up(policy)
     frame = Frame("head", 0.0, np.zeros((24, 32, 3), np.uint8))
     out = policy.step(frame=frame, joint=Joint("elbow", 0.1, np.zeros(3), False))
     assert out["chunk"].shape == (CHUNK, ACTION_DIM)
+    assert policy.observed.keys == {"image": "observation.images.image", "state": "observation.state"}
     assert policy.step(frame=frame) is None
     with pytest.raises(ValueError, match=r"FromMessages.act\(\) takes image, state; got image\n    hint: name act"):
         policy.act(image=frame)
