@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ..clocks import Rate
-from ..time import NS_PER_S, rate_problem, seconds_problem
+from ..time import NS_PER_S, rate_problem, seconds_problem, seconds_to_ns
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,7 @@ class ChunkTimeline:
         if problems:
             raise ValueError("ChunkTimeline: " + "; ".join(problems))
         self._clock = Rate(self.control_hz, offset=self.control_offset)
-        self._latency_ns = round(self.latency * NS_PER_S)
+        self._latency_ns = seconds_to_ns(self.latency)  # as the flow's configure(latency=) counts it
         self._chunk_hz = self._clock.hz if self.chunk_hz is None else Rate(self.chunk_hz).hz
 
     def _tag_of_chunk(self, tick_ns: int) -> tuple[int, int]:
