@@ -4,6 +4,7 @@ replay bit for bit on the CPU, or from the log with replay="log"."""
 
 from __future__ import annotations
 
+import os
 import shutil
 
 import numpy as np
@@ -130,7 +131,10 @@ def test_cuda_declares_replay_from_the_log_and_says_when_there_is_none(checkpoin
         set_up(policy)
 
 
-def test_no_hub_path_and_no_class_named_by_a_checkpoint(tmp_path, checkpoint):
+def test_no_hub_path_and_no_class_named_by_a_checkpoint(tmp_path, checkpoint, monkeypatch):
+    monkeypatch.delenv("HF_HUB_OFFLINE")
+    set_up(ActPick(str(checkpoint)))  # with every download function failing the test (the fixture)
+    assert os.environ["HF_HUB_OFFLINE"] == "1"
     with pytest.raises(FileNotFoundError, match="'lerobot/act_aloha_sim' is not a local checkpoint directory "
                                                 r"\(nothing is fetched from a hub\)"):
         set_up(ActPick("lerobot/act_aloha_sim"))
