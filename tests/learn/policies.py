@@ -121,7 +121,8 @@ class Chunker(TorchPolicy):
         out = self.act(state=state)
         if out is None:
             return None
-        return {**out, "delay": self.leftover.delay, "leftover": np.array(self.leftover.rows, dtype=np.int64).reshape(-1, 2)}
+        leftover = np.array(self.leftover.rows, dtype=np.int64).reshape(-1, 2)
+        return {**out, "delay": self.leftover.delay, "leftover": leftover}
 
 
 def noisy_module():

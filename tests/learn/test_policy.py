@@ -127,7 +127,8 @@ def test_cuda_declares_replay_from_the_log_and_says_when_there_is_none(checkpoin
     assert policy._retriever.replay == "log"
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
-    with pytest.raises(RuntimeError, match=r"device='cuda', but torch .* finds no CUDA device .*\n    hint: device='cpu'"):
+    with pytest.raises(RuntimeError, match=r"device='cuda', but torch .* finds no CUDA device .*\n"
+                                           r"    hint: device='cpu'"):
         set_up(policy)
 
 
