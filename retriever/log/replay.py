@@ -491,6 +491,8 @@ class ResimReport:
     events_compared: int
     difference: str | None
     code_changes: list[str] = field(default_factory=list)  # flow modules whose file differs from the run's
+    #: the re-simulated run (what an export of the replay reads: retriever/log/frames.py)
+    trace: Trace | None = field(default=None, repr=False)
 
     @property
     def identical(self) -> bool:
@@ -535,11 +537,12 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
         session.advance(horizon)
     except StepError as e:
         if not isinstance(e.__cause__, ReplayedError):  # (a logged source's error stopped the run too)
-            return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}", changes)
+            return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}", changes, session.trace)
     finally:
         session.close()
     kept_steps = [s for s in original.steps if s.tag[0] < horizon]
     kept_ids = {i for s in kept_steps for i in s.produced}
     expected = Trace([e for e in original.events if e.id in kept_ids], kept_steps)
     again = session.trace
-    return ResimReport(horizon, len(kept_steps), len(expected.raw_events), expected.first_difference(again), changes)
+    return ResimReport(horizon, len(kept_steps), len(expected.raw_events), expected.first_difference(again), changes,
+                       again)
