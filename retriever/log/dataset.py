@@ -16,6 +16,7 @@ fails leaves nothing at ``DIR``.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import time
@@ -172,11 +173,14 @@ class _LeRobotWriter:
 
     @staticmethod
     def check_installed() -> None:
+        logging.disable(logging.WARNING)  # its import warns that it decodes video with pyav: no video here
         try:
             import lerobot.datasets.lerobot_dataset  # noqa: F401
         except ImportError as e:
             raise LogError(f"the LeRobot export needs the lerobot package, which cannot be imported ({e})",
                            "pip install 'retriever-robotics[lerobot]', or use --format npz") from None
+        finally:
+            logging.disable(logging.NOTSET)
 
     def __init__(self, root: Path, features: list[Feature], fps, repo_id: str):
         from lerobot.datasets.lerobot_dataset import LeRobotDataset

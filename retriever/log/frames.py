@@ -144,9 +144,9 @@ def flow_rate(ir: IR, flow: str, where: str) -> tuple[Fraction, int]:
     clock = ir.node(flow)["config"].get("clock")
     kind = next(iter(clock)) if isinstance(clock, dict) and len(clock) == 1 else None
     if kind != "Rate":
-        raise LogError(f"flow '{flow}' in {where} runs on a {kind or 'missing'} clock, not a Rate: a dataset has a "
-                       "fixed fps, one frame per tick, and only a Rate flow ticks at one",
-                       "export a flow on a Rate clock (the policy that consumes what this flow feeds it, say)")
+        raise LogError(f"flow '{flow}' in {where} runs on a {kind or 'missing'} clock, not a Rate: a dataset's frames "
+                       "are evenly spaced in time (its fps), and only a Rate flow's ticks are (a Trigger flow ticks "
+                       "when its inputs arrive)", "export a flow on a Rate clock: --flow NODE")
     params = clock["Rate"]
     try:
         hz, offset = exact_rational(params["hz"]), seconds_to_ns(params.get("offset", 0.0))

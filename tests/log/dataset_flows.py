@@ -5,7 +5,8 @@ joint angles and a pose, all pure functions of the tick count.
 - ``build_camera(...)``: ``camera @ Rate(20)`` → ``policy @ Rate(10)`` (Latest on every port);
   with ``note=True`` the camera also sends a text port the policy consumes; with
   ``trigger=True`` the policy ticks on each image instead; ``latency`` gives both flows a LET
-  (a real-time run then re-simulates exactly).
+  (a real-time run then re-simulates exactly); ``pause=(a, b)``: the camera sends nothing on its
+  ticks a to b, and the policy's Latest goes stale after 0.1 s (its ticks skip there).
 """
 
 from __future__ import annotations
@@ -55,12 +56,17 @@ def picture(k: int) -> np.ndarray:
 
 
 class Camera(Flow[None, Shot]):
-    def __init__(self):
+    """Sends nothing on its ticks ``pause_from`` to ``pause_to`` (counted from 1), when given."""
+
+    def __init__(self, pause_from: int = 0, pause_to: int = 0):
+        self.pause_from, self.pause_to = pause_from, pause_to
         self.k = 0
 
-    def step(self, inp: None) -> Shot:
+    def step(self, inp: None) -> Shot | None:
         self.k += 1
         k = self.k
+        if self.pause_from <= k <= self.pause_to:
+            return None
         return Shot(image=picture(k), joints=np.array([k, -k, k / 4], dtype=np.float32),
                     pose=Pose(x=k * 0.5, y=-k * 0.25, q=np.array([k, k + 1], dtype=np.float64), label=f"p{k}"))
 
@@ -106,13 +112,14 @@ class NotedPolicy(Flow[NotedSeen, Command]):
         return _act(inp.image, inp.joints, inp.pose)
 
 
-def build_camera(note: bool = False, trigger: bool = False, latency: float = 0.0,
-                 camera_hz: int = 20, policy_hz: int = 10) -> Pipeline:
+def build_camera(note: bool = False, trigger: bool = False, latency: float = 0.0, camera_hz: int = 20,
+                 policy_hz: int = 10, pause: tuple[int, int] = (0, 0)) -> Pipeline:
     with Pipeline("pick cube") as pipe:
-        camera = (NotedCamera() if note else Camera()) @ Rate(camera_hz)
-        policy = (NotedPolicy() if note else Policy()) @ (Trigger("image") if trigger else Rate(policy_hz))
+        camera = (NotedCamera() if note else Camera(*pause)).named("camera") @ Rate(camera_hz)
+        policy = (NotedPolicy() if note else Policy()).named("policy") @ (Trigger("image") if trigger
+                                                                          else Rate(policy_hz))
         if latency:
             camera.configure(latency=latency)
             policy.configure(latency=latency)
-        camera.then(policy, sync=Latest())
+        camera.then(policy, sync=Latest(staleness=0.1) if pause != (0, 0) else Latest())
     return pipe
