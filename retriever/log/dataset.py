@@ -49,6 +49,7 @@ class ExportSummary:
     features: list[Feature] = field(default_factory=list)
     left_out: Counter = field(default_factory=Counter)  # ticks, by status or reason
     fields_left_out: list[str] = field(default_factory=list)
+    sparse: dict[str, tuple[int, int]] = field(default_factory=dict)  # ports left out: (ticks with a value, ticks)
 
     def __str__(self) -> str:
         lines = [f"wrote {self.out} ({self.format}): {self.frames} frames in {self.episodes} episode(s) at "
@@ -59,6 +60,9 @@ class ExportSummary:
             lines.append(f"  {f.key:<32} {what}{list(f.shape)}  from {f.source}")
         if self.left_out:
             lines.append("  ticks left out: " + ", ".join(f"{n} {why}" for why, n in sorted(self.left_out.items())))
+        if self.sparse:
+            lines.append("  ports with a value at fewer than half of the ticks, left out (--map one to keep it): "
+                         + ", ".join(f"{p} ({n} of {total})" for p, (n, total) in sorted(self.sparse.items())))
         if self.fields_left_out:
             lines.append("  fields no feature holds (text, None): " + ", ".join(self.fields_left_out))
         return "\n".join(lines)
@@ -105,6 +109,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
     left_out: Counter = Counter()
     first: FlowFrames | None = None
     fields_left_out: list[str] = []
+    sparse: dict[str, tuple[int, int]] = {}
     try:
         for n, source in enumerate(logs):
             recording = _recording(source)
@@ -127,6 +132,9 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
                 writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
             left_out.update(frames.left_out)
             fields_left_out += [f for f in frames.fields_left_out if f not in fields_left_out]
+            for port, (n, total) in frames.sparse.items():
+                had, ticks = sparse.get(port, (0, 0))
+                sparse[port] = (had + n, ticks + total)
         if writer is None:
             what = ", ".join(f"{n} {why}" for why, n in sorted(left_out.items())) or "no step record"
             raise LogError(f"no tick of flow '{flow}' makes a frame ({what})",
@@ -141,7 +149,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
         shutil.rmtree(partial, ignore_errors=True)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return ExportSummary(out, format, episodes, count, float(first.fps), size, time.perf_counter() - started,
-                         first.features, left_out, fields_left_out)
+                         first.features, left_out, fields_left_out, sparse)
 
 
 def _put_in_place(partial: Path, out: Path) -> None:

@@ -47,9 +47,9 @@ from .reader import RunLog
 #: the statuses of a tick that becomes a frame
 FRAME_STATUSES = ("ok", "overrun")
 #: what a tick left out is counted as when it has no status of its own
-NO_RECORD = "no record"
-NO_VALUE = "a port without a value"
-LOST = "events not in the log"
+NO_RECORD = "without a step record"
+NO_VALUE = "without a value on {port}"
+LOST = "whose events the log lost"
 #: the key a text port is mapped to, to give each frame its task
 TASK = "task"
 GAPS = ("refuse", "split")
@@ -364,7 +364,7 @@ class _Features:
 class FlowFrames:
     """The frames of ``flow``'s ticks in ``recording``: :meth:`episodes` yields them, episode by
     episode; then ``features`` (fixed by the first frame), ``left_out`` (ticks left out, by
-    status, or NO_RECORD, NO_VALUE, LOST) and ``fields_left_out`` (dataclass fields no feature
+    status, or NO_RECORD, NO_VALUE, LOST), ``sparse`` (ports left out: see below) and ``fields_left_out`` (dataclass fields no feature
     holds) say what was taken. LogError for a flow that is not there or not on a Rate clock, a
     value no feature holds, or a gap between frames (unless ``gaps="split"``)."""
 
@@ -374,8 +374,12 @@ class FlowFrames:
         self.recording, self.flow, self.gaps = recording, flow, gaps
         self.fps, self._offset = flow_rate(recording.ir, flow, recording.name)
         self._inputs = _Inputs(recording.ir, flow, self.fps)
-        self._in_ports = sorted(p for p in self._inputs.policies if not mapping.excluded(p))
-        self._out_ports = sorted(p for p in recording.ir.node(flow).get("outputs", {}) if not mapping.excluded(p))
+        self._steps = sorted((s for s in recording.steps if s.node == flow), key=lambda s: s.tag)
+        ports = [*self._inputs.policies, *recording.ir.node(flow).get("outputs", {})]
+        self.sparse = _sparse_ports(self._steps, ports, mapping)
+        kept = [p for p in ports if not mapping.excluded(p) and p not in self.sparse]
+        self._in_ports = sorted(p for p in kept if p in self._inputs.policies)
+        self._out_ports = sorted(p for p in kept if p not in self._inputs.policies)
         self._features = _Features(mapping, self._in_ports, self._out_ports)
         self.left_out: Counter = Counter()
 
@@ -389,7 +393,7 @@ class FlowFrames:
 
     def episodes(self, progress: Callable[[int, int], None] | None = None) -> Iterator[Episode]:
         where, flow, hz, offset = self.recording.name, self.flow, self.fps, self._offset
-        steps = sorted((s for s in self.recording.steps if s.node == flow), key=lambda s: s.tag)
+        steps = self._steps
         pending: Counter = Counter()  # left out since the last frame: a gap, if a frame follows
         episode = Episode()
         last_k: int | None = None
@@ -413,9 +417,10 @@ class FlowFrames:
             if pending:
                 if episode.frames and self.gaps == "refuse":
                     what = ", ".join(f"{n} {status}" for status, n in sorted(pending.items()))
-                    raise LogError(f"{where}: the ticks of '{flow}' have a gap before {format_tag(step.tag)} ({what} "
-                                   "tick(s) between two frames): a dataset's frames are evenly spaced, its readers "
-                                   "index them so", "pass --gaps split (gaps='split') to end the episode at each gap")
+                    raise LogError(f"{where}: a gap between two frames of '{flow}': the {sum(pending.values())} tick(s) "
+                                   f"before {format_tag(step.tag)} are no frame ({what}); a dataset's frames are "
+                                   "evenly spaced in time, and its readers index them so",
+                                   "pass --gaps split (gaps='split') to end the episode at each gap")
                 self.left_out.update(pending)
                 pending.clear()
                 if episode.frames:
@@ -430,6 +435,15 @@ class FlowFrames:
             yield episode
 
 
+def _sparse_ports(steps: list[StepRecord], ports: list[str], mapping: Mapping) -> dict[str, tuple[int, int]]:
+    """The ports with a value at fewer than half of the flow's frame ticks (an event now and then:
+    a flag, a report, a Queue mostly empty), which a frame leaves out unless ``--map`` names them:
+    ``{port: (ticks with a value, frame ticks)}``."""
+    ticks = [s for s in steps if s.status in FRAME_STATUSES]
+    had = Counter(p for s in ticks for p in {*(p for p, ids in s.consumed.items() if ids), *(i[1] for i in s.produced)})
+    return {p: (had[p], len(ticks)) for p in ports if 2 * had[p] < len(ticks) and p not in mapping.maps}
+
+
 def _tick_values(recording: Recording, inputs: _Inputs, in_ports: list[str], out_ports: list[str],
                  step: StepRecord) -> tuple[dict[str, Any], str | None]:
     """The port values of a tick, or why it is no frame."""
@@ -439,7 +453,7 @@ def _tick_values(recording: Recording, inputs: _Inputs, in_ports: list[str], out
     for port in in_ports:
         ids = step.consumed.get(port)
         if not ids:
-            return {}, NO_VALUE
+            return {}, NO_VALUE.format(port=port)
         events = []
         for event_id in ids:
             got = recording.event(event_id)
@@ -450,7 +464,7 @@ def _tick_values(recording: Recording, inputs: _Inputs, in_ports: list[str], out
     produced = {event_id[1]: event_id for event_id in step.produced}
     for port in out_ports:
         if port not in produced:
-            return {}, NO_VALUE
+            return {}, NO_VALUE.format(port=port)
         got = recording.event(produced[port])
         if got is None:
             return {}, LOST

@@ -47,6 +47,7 @@ class NotedShot:
 @io
 class Command:
     action: np.ndarray
+    flag: float | None = None  # now and then: when the camera's count is a multiple of 8
 
 
 def picture(k: int) -> np.ndarray:
@@ -99,7 +100,8 @@ class NotedSeen:
 
 
 def _act(image: np.ndarray, joints: np.ndarray, pose: Pose) -> Command:
-    return Command(action=np.array([joints[0] * 2 + pose.x, float(image[0, 0, 0])], dtype=np.float32))
+    return Command(action=np.array([joints[0] * 2 + pose.x, float(image[0, 0, 0])], dtype=np.float32),
+                   flag=1.0 if joints[0] % 8 == 0 else None)
 
 
 class Policy(Flow[Seen, Command]):

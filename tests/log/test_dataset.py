@@ -48,7 +48,7 @@ def _logged_ticks(path: Path) -> list[dict]:
         if step.status != "ok":
             continue
         (image,), (joints,), (pose,) = (step.consumed[p] for p in ("image", "joints", "pose"))
-        (action,) = step.produced
+        (action,) = (i for i in step.produced if i[1] == "action")
         value = lambda i: log.value(events[i], keep_unregistered=True)  # noqa: E731
         pose_value = value(pose)
         ticks.append({"t": step.tag[0], "image": value(image), "joints": value(joints),
@@ -164,8 +164,8 @@ def test_a_gap_between_frames_is_refused_or_splits_the_episode(tmp_path):
     log = _run(tmp_path / "run.mcap", pause=(7, 9))
     statuses = [s.status for s in sorted(read_log(log).iter_steps(), key=lambda s: s.tag) if s.node == "policy"]
     assert statuses == ["skipped", "ok", "ok", "ok", "skipped", "ok", "ok", "ok", "ok", "ok"]
-    with pytest.raises(LogError, match=r"a gap before t=0\.500000000s m=0 \(1 skipped tick\(s\) between two "
-                                       r"frames\)(.|\n)*hint: pass --gaps split"):
+    with pytest.raises(LogError, match=r"a gap between two frames of 'policy': the 1 tick\(s\) before "
+                                       r"t=0\.500000000s m=0 are no frame \(1 skipped\)(.|\n)*hint: pass --gaps split"):
         export_dataset([log], tmp_path / "np", flow="policy", format="npz")
     assert not (tmp_path / "np").exists()
     _empty_of_partials(tmp_path)
@@ -173,6 +173,17 @@ def test_a_gap_between_frames_is_refused_or_splits_the_episode(tmp_path):
     assert summary.episodes == 2 and summary.frames == 8 and dict(summary.left_out) == {"skipped": 2}
     second = np.load(tmp_path / "np" / "episode_000001.npz")
     assert list(second["tick_ns"]) == [int(k * 1e8) for k in range(5, 10)]
+
+
+def test_a_port_with_a_value_now_and_then_is_left_out_unless_mapped(tmp_path):
+    log = _run(tmp_path / "run.mcap")
+    summary = export_dataset([log], tmp_path / "np", flow="policy", format="npz")
+    assert summary.sparse == {"flag": (2, 9)}  # the camera's images 8 and 16, of the policy's 9 ok ticks
+    assert "flag (2 of 9)" in str(summary) and "action.flag" not in [f.key for f in summary.features]
+    # mapped, it is in every frame: ticks 4 and 8 have it, the 3 between are a gap
+    with pytest.raises(LogError, match=r"the 3 tick\(s\) before t=0\.800000000s m=0 are no frame \(3 without a value "
+                                       r"on flag\)"):
+        export_dataset([log], tmp_path / "np2", flow="policy", format="npz", maps={"flag": "action.flag"})
 
 
 # -- bad input ---------------------------------------------------------------------------------
