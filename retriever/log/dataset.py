@@ -33,6 +33,8 @@ from .reader import RunLog, read_log
 
 FORMATS = ("lerobot", "npz")
 NPZ_FORMAT = "retriever-npz/1"
+#: threads LeRobot's image writer encodes PNGs in (its own advice: a few per camera)
+IMAGE_WRITER_THREADS = max(2, min(4, os.cpu_count() or 1))
 
 
 @dataclass
@@ -196,7 +198,10 @@ class _LeRobotWriter:
         spec = {f.key: ({"dtype": "image", "shape": f.shape, "names": ["height", "width", "channel"]}
                         if f.kind == "image" else {"dtype": str(f.dtype), "shape": f.shape, "names": list(f.names)})
                 for f in features}
-        self.dataset = LeRobotDataset.create(repo_id, fps=int(fps), features=spec, root=root, use_videos=False)
+        # PNG encoding is most of an export's time: LeRobot's writer threads encode in parallel
+        threads = IMAGE_WRITER_THREADS if any(f.kind == "image" for f in features) else 0
+        self.dataset = LeRobotDataset.create(repo_id, fps=int(fps), features=spec, root=root, use_videos=False,
+                                             image_writer_threads=threads)
         self.episodes = self.frames = 0
 
     def episode(self, episode: Episode, task: str, source: str) -> None:
@@ -210,11 +215,13 @@ class _LeRobotWriter:
         self.frames += len(episode.frames)
 
     def close(self) -> tuple[int, int]:
+        self.dataset.stop_image_writer()
         self.dataset.finalize()
         return self.episodes, self.frames
 
     def abandon(self) -> None:
-        """Close its files (the folder they are in is then removed)."""
+        """Stop its image writers and close its files (the folder they are in is then removed)."""
+        self.dataset.stop_image_writer()
         self.dataset.finalize()
 
 
