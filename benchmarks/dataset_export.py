@@ -5,8 +5,8 @@ building each frame from the step records, writing, renaming), best of ``--repea
 
 - ``camera``: a camera pipeline recorded in virtual time for ``--duration`` s: ``camera @ Rate(hz)``
   sends an RGB image (``--size`` H×W: a gradient with a moving square and a sensor's noise of
-  ±2 levels, which PNG compresses about as it does a real camera's) and 7 joint angles; ``policy @ Rate(hz)`` consumes both (Latest)
-  and sends a 7-element action. One frame per policy tick.
+  ±2 levels, which PNG compresses about as it does a real camera's) and 7 joint angles;
+  ``policy @ Rate(hz)`` consumes both (Latest) and sends a 7-element action. One frame per policy tick.
 - ``retriever0`` (with ``--retriever0 LOG``): a Retriever-0 demo log (``retriever demo --backend
   inproc --log LOG``), the ``skill`` flow (2 Hz; the head camera's 96×128 frame, the observation,
   the skill command; the action chunk and progress). Its sparse ``inspection`` port is left out

@@ -71,11 +71,7 @@ class ExportSummary:
 
 
 def _size(n: int) -> str:
-    for unit in ("B", "kB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return ""
+    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
 
 
 def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | Path, *, flow: str,
@@ -183,14 +179,11 @@ class _LeRobotWriter:
 
     @staticmethod
     def check_installed() -> None:
-        logging.disable(logging.WARNING)  # its import warns that it decodes video with pyav: no video here
         try:
             import lerobot.datasets.lerobot_dataset  # noqa: F401
         except ImportError as e:
             raise LogError(f"the LeRobot export needs the lerobot package, which cannot be imported ({e})",
                            "pip install 'retriever-robotics[lerobot]', or use --format npz") from None
-        finally:
-            logging.disable(logging.NOTSET)
 
     def __init__(self, root: Path, features: list[Feature], fps, repo_id: str):
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -200,8 +193,12 @@ class _LeRobotWriter:
                 for f in features}
         # PNG encoding is most of an export's time: LeRobot's writer threads encode in parallel
         threads = IMAGE_WRITER_THREADS if any(f.kind == "image" for f in features) else 0
-        self.dataset = LeRobotDataset.create(repo_id, fps=int(fps), features=spec, root=root, use_videos=False,
-                                             image_writer_threads=threads)
+        logging.disable(logging.WARNING)  # it warns that it would decode video with pyav: there is no video here
+        try:
+            self.dataset = LeRobotDataset.create(repo_id, fps=int(fps), features=spec, root=root, use_videos=False,
+                                                 image_writer_threads=threads)
+        finally:
+            logging.disable(logging.NOTSET)
         self.episodes = self.frames = 0
 
     def episode(self, episode: Episode, task: str, source: str) -> None:

@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ..errors import ClockError, LogError
+from ..errors import LogError
 from ..ir import IR
 from ..sync import ActionChunking, PortBuffer, policy_from_ir
 from ..time import NS_PER_S, exact_rational, format_tag, seconds_to_ns
@@ -152,7 +152,7 @@ def flow_rate(ir: IR, flow: str, where: str) -> tuple[Fraction, int]:
         hz, offset = exact_rational(params["hz"]), seconds_to_ns(params.get("offset", 0.0))
         if hz <= 0:
             raise ValueError(hz)
-    except (KeyError, TypeError, ValueError, ClockError):
+    except (KeyError, TypeError, ValueError):
         raise LogError(f"the clock of flow '{flow}' in {where} is malformed: {clock!r:.80}",
                        "the file was changed after it was written") from None
     return hz, offset
@@ -286,7 +286,8 @@ class _Features:
             return "observation.state" if len(state_ports["observation"]) == 1 else f"observation.{port}"
         return "action" if len(state_ports["action"]) == 1 else f"action.{port}"
 
-    def frame(self, tick: tuple[int, int], values: dict[str, Any], where: str) -> tuple[dict[str, np.ndarray], str | None]:
+    def frame(self, tick: tuple[int, int], values: dict[str, Any],
+              where: str) -> tuple[dict[str, np.ndarray], str | None]:
         """A tick's port values as feature values (and the task, if a port gives it)."""
         found: dict[str, tuple[str, np.ndarray]] = {}  # source -> (kind, array)
         names: dict[str, list[str]] = {}
@@ -303,7 +304,7 @@ class _Features:
             if port == self.task_port:
                 if parts.text is None:
                     raise UnmappableError(f"{where}: port '{port}' is mapped to the task, but carries a "
-                                          f"{type(value).__name__}, not text", f"map a port whose value is text to {TASK}")
+                                      f"{type(value).__name__}, not text", f"map a port whose value is text to {TASK}")
                 task = parts.text
                 continue
             for source, image in parts.images.items():
@@ -346,7 +347,8 @@ class _Features:
                 had = "nothing" if array is None else f"{kind} {array.dtype}{list(array.shape)}"
                 raise UnmappableError(f"{where}: '{feature.source}' gives {had} at {format_tag(tick)}, but "
                                       f"{feature.kind} {feature.dtype}{list(feature.shape)} at the first frame: "
-                                      "a feature has one shape and dtype", f"leave it out with --exclude {feature.source}")
+                                      "a feature has one shape and dtype",
+                                      f"leave it out with --exclude {feature.source}")
             if array.dtype != feature.dtype:
                 if not np.can_cast(array.dtype, feature.dtype, "safe"):
                     raise UnmappableError(f"{where}: '{feature.source}' is {array.dtype} at {format_tag(tick)}, but "
@@ -364,9 +366,10 @@ class _Features:
 class FlowFrames:
     """The frames of ``flow``'s ticks in ``recording``: :meth:`episodes` yields them, episode by
     episode; then ``features`` (fixed by the first frame), ``left_out`` (ticks left out, by
-    status, or NO_RECORD, NO_VALUE, LOST), ``sparse`` (ports left out: see below) and ``fields_left_out`` (dataclass fields no feature
-    holds) say what was taken. LogError for a flow that is not there or not on a Rate clock, a
-    value no feature holds, or a gap between frames (unless ``gaps="split"``)."""
+    status, or NO_RECORD, NO_VALUE, LOST), ``sparse`` (ports left out: :func:`_sparse_ports`) and
+    ``fields_left_out`` (dataclass fields no feature holds) say what was taken. LogError for a
+    flow that is not there or not on a Rate clock, a value no feature holds, or a gap between
+    frames (unless ``gaps="split"``)."""
 
     def __init__(self, recording: Recording, flow: str, mapping: Mapping = Mapping(), gaps: str = "refuse"):
         if gaps not in GAPS:
@@ -417,9 +420,9 @@ class FlowFrames:
             if pending:
                 if episode.frames and self.gaps == "refuse":
                     what = ", ".join(f"{n} {status}" for status, n in sorted(pending.items()))
-                    raise LogError(f"{where}: a gap between two frames of '{flow}': the {sum(pending.values())} tick(s) "
-                                   f"before {format_tag(step.tag)} are no frame ({what}); a dataset's frames are "
-                                   "evenly spaced in time, and its readers index them so",
+                    raise LogError(f"{where}: a gap between two frames of '{flow}': the {sum(pending.values())} "
+                                   f"tick(s) before {format_tag(step.tag)} are no frame ({what}); a dataset's "
+                                   "frames are evenly spaced in time, and its readers index them so",
                                    "pass --gaps split (gaps='split') to end the episode at each gap")
                 self.left_out.update(pending)
                 pending.clear()
