@@ -28,7 +28,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import LogError
-from .frames import Episode, Feature, FlowFrames, Mapping, Recording, parse_maps
+from .frames import TASK, Episode, Feature, FlowFrames, Mapping, Recording, parse_maps
 from .reader import RunLog, read_log
 
 FORMATS = ("lerobot", "npz")
@@ -93,7 +93,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
         raise LogError("no log to export", "give one or more .mcap files")
     mapping = Mapping(parse_maps(list(maps)) if maps is not None and not isinstance(maps, dict) else dict(maps or {}),
                       tuple(exclude))
-    if task is not None and "task" in mapping.maps.values():
+    if task is not None and TASK in mapping.maps.values():
         raise LogError("the task is given twice: --task and a port mapped to task", "pass one of them")
     out = Path(out)
     if out.exists() and not overwrite:
@@ -130,9 +130,9 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
                 writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
             left_out.update(frames.left_out)
             fields_left_out += [f for f in frames.fields_left_out if f not in fields_left_out]
-            for port, (n, total) in frames.sparse.items():
-                had, ticks = sparse.get(port, (0, 0))
-                sparse[port] = (had + n, ticks + total)
+            for port, (with_value, ticks) in frames.sparse.items():
+                before = sparse.get(port, (0, 0))
+                sparse[port] = (before[0] + with_value, before[1] + ticks)
         if writer is None:
             what = ", ".join(f"{n} {why}" for why, n in sorted(left_out.items())) or "no step record"
             raise LogError(f"no tick of flow '{flow}' makes a frame ({what})",

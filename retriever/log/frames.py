@@ -79,7 +79,7 @@ class Recording:
 
     @classmethod
     def of_trace(cls, trace: Trace, ir: IR, name: str) -> "Recording":
-        """A run held in memory (a pipeline's trace, a re-simulation's)."""
+        """A run held in memory: a pipeline's trace, or a replay's (``replay(log, keep_trace=True).trace``)."""
         events = {e.id: (e.tag, e.value) for e in trace.events}
         return cls(name, ir, list(trace.steps), events.get)
 
