@@ -175,6 +175,22 @@ def test_a_gap_between_frames_is_refused_or_splits_the_episode(tmp_path):
     assert list(second["tick_ns"]) == [int(k * 1e8) for k in range(5, 10)]
 
 
+def test_incomplete_late_and_error_ticks_are_left_out_and_an_overrun_tick_is_a_frame(tmp_path):
+    log = read_log(_run(tmp_path / "run.mcap"))
+    recording = Recording.of_log(log)
+    policy = sorted((s for s in recording.steps if s.node == "policy"), key=lambda s: s.tag)
+    said = {policy[1].tag: "error", policy[3].tag: "overrun", policy[5].tag: "incomplete", policy[6].tag: "late"}
+    steps = [s._replace(status=said[s.tag]) if s.node == "policy" and s.tag in said else s for s in recording.steps]
+    changed = Recording("changed", recording.ir, steps, recording.event)
+    with pytest.raises(LogError, match=r"the 2 tick\(s\) before t=0\.700000000s m=0 are no frame \(1 incomplete, "
+                                       r"1 late\)"):
+        export_dataset([changed], tmp_path / "np", flow="policy", format="npz")
+    summary = export_dataset([changed], tmp_path / "np", flow="policy", format="npz", gaps="split")
+    assert dict(summary.left_out) == {"skipped": 1, "error": 1, "incomplete": 1, "late": 1}
+    ticks = [list(np.load(tmp_path / "np" / f"episode_{n:06d}.npz")["tick_ns"]) for n in range(summary.episodes)]
+    assert ticks == [[int(k * 1e8) for k in (2, 3, 4)], [int(k * 1e8) for k in (7, 8, 9)]]  # 3: the overrun
+
+
 def test_a_port_with_a_value_now_and_then_is_left_out_unless_mapped(tmp_path):
     log = _run(tmp_path / "run.mcap")
     summary = export_dataset([log], tmp_path / "np", flow="policy", format="npz")
