@@ -859,25 +859,82 @@ def log_recover(
 
 @log_app.command("export")
 def log_export(
-    path: Annotated[Path, typer.Argument(metavar="LOG.mcap", help="A log written by run --log / pipe.run(log=).")],
-    format: Annotated[str, typer.Option("--format", help="foxglove: an MCAP with Foxglove's schemas.")] = "foxglove",
-    out: Annotated[Path, typer.Option("--out", "-o", help="The file to write.")] = ...,
-    force: Annotated[bool, typer.Option("--force", help="Overwrite the output file if it exists.")] = False,
+    paths: Annotated[list[Path], typer.Argument(metavar="LOG.mcap...", help="Logs written by run --log / "
+                                                "pipe.run(log=); a dataset takes several (one episode each).")],
+    format: Annotated[str, typer.Option("--format", help="foxglove: an MCAP with Foxglove's schemas; lerobot: a "
+                                        "LeRobot dataset; npz: the same frames as NumPy arrays.")] = "foxglove",
+    out: Annotated[Path, typer.Option("--out", "-o", help="The file (foxglove) or folder (lerobot, npz) to "
+                                      "write.")] = ...,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the output if it exists.")] = False,
+    flow: Annotated[Optional[str], typer.Option("--flow", metavar="NODE", help="lerobot, npz: the Rate flow whose "
+                                                "ticks are the frames.")] = None,
+    maps: Annotated[Optional[list[str]], typer.Option("--map", metavar="PORT=KEY", help="Name a port's feature "
+                                                      "(repeatable): joints=observation.state; a text port =task "
+                                                      "gives each frame's task.")] = None,
+    task: Annotated[Optional[str], typer.Option("--task", metavar="TEXT", help="The task of every frame "
+                                                "(default: the pipeline's name).")] = None,
+    exclude: Annotated[Optional[list[str]], typer.Option("--exclude", metavar="PORT", help="Leave a port (or "
+                                                         "PORT.FIELD) out of the frames (repeatable).")] = None,
+    gaps: Annotated[str, typer.Option("--gaps", help="A gap between two frames (ticks that are no frame): refuse, "
+                                      "or split the episode there.")] = "refuse",
+    repo_id: Annotated[Optional[str], typer.Option("--repo-id", help="lerobot: the dataset's repo id (default: "
+                                                   "retriever/<folder name>).")] = None,
 ) -> None:
-    """Write a view of a log for another tool: --format foxglove opens in the Foxglove app (images
-    as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times).
-    Needs the extra: pip install 'retriever-robotics\\[foxglove]'."""
+    """Write a log for another tool. --format foxglove: a view that opens in the Foxglove app (images
+    as RawImage, numbers as JSON it plots, the step records and the graph; wall-clock times; needs
+    pip install 'retriever-robotics\\[foxglove]'). --format lerobot | npz --flow NODE: a training
+    set, one frame per tick of a Rate flow: what it consumed and produced there (docs/learning.md;
+    lerobot needs pip install 'retriever-robotics\\[lerobot]')."""
+    if format in ("lerobot", "npz"):
+        _export_dataset(paths, format, out, force, flow, maps or [], task, exclude or [], gaps, repo_id)
+        return
     if format != "foxglove":
-        _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove"))
+        _fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove, lerobot or npz"))
+    if len(paths) != 1:
+        _fail(RetrieverError(f"--format foxglove exports one log, got {len(paths)}\n    hint: export each apart"))
     from .log.foxglove import export_foxglove
 
-    log = _read(path)
+    log = _read(paths[0])
     try:
         written = export_foxglove(log, out, overwrite=force)
     except Exception as exc:
         _fail(exc)
     _out.print(f"wrote {out}: {sum(written.values())} messages on {len(written)} topics; open it in the Foxglove app",
                highlight=False)
+
+
+def _export_dataset(paths: list[Path], format: str, out: Path, force: bool, flow: str | None, maps: list[str],
+                    task: str | None, exclude: list[str], gaps: str, repo_id: str | None) -> None:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from .log.dataset import export_dataset
+
+    if flow is None:
+        _fail(RetrieverError(f"--format {format} needs the flow whose ticks are the frames\n"
+                             "    hint: --flow NODE (a flow on a Rate clock: retriever log info LOG lists them)"))
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=_err, transient=True, disable=not _err.is_terminal) as bar:
+        ticks = bar.add_task("reading", total=None)
+
+        def progress(log: int, logs: int, done: int, total: int) -> None:
+            bar.update(ticks, description=f"log {log + 1}/{logs}: ticks", completed=done, total=total)
+
+        try:
+            _quiet_datasets()
+            summary = export_dataset(paths, out, flow=flow, format=format, maps=maps, task=task, exclude=exclude,
+                                     gaps=gaps, repo_id=repo_id, overwrite=force, progress=progress)
+        except Exception as exc:
+            _fail(exc)
+    _out.print(str(summary), highlight=False, soft_wrap=True)
+
+
+def _quiet_datasets() -> None:
+    """Hugging Face datasets' own progress bars (one per episode saved) would drown the export's."""
+    try:
+        import datasets
+    except ImportError:
+        return
+    datasets.disable_progress_bars()
 
 
 # ---------------------------------------------------------------------------------------------

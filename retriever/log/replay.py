@@ -88,6 +88,10 @@ class ReplayReport:
     divergences: list[Divergence] = field(default_factory=list)  # the first MAX_DIVERGENCES_KEPT
     divergent_steps: int = 0
     code_changes: list[str] = field(default_factory=list)  # flow modules whose file differs from the run's
+    #: with ``replay(..., keep_trace=True)``: the run as replayed: every step record as logged (the
+    #: replay checks the ids it names), the outputs of each re-executed step as the replay computed
+    #: them, the others' from the log
+    trace: Trace | None = field(default=None, repr=False)
 
     @property
     def identical(self) -> bool:
@@ -144,9 +148,10 @@ def _script_that_ran(log: RunLog) -> str | None:
 
 
 def replay(log: RunLog, pipeline: Pipeline | None = None,
-           progress: Callable[[int, int], None] | None = None) -> ReplayReport:
+           progress: Callable[[int, int], None] | None = None, keep_trace: bool = False) -> ReplayReport:
     """Re-execute every non-source step of ``log``; see the module docstring. The flows are set
-    up before the first step and torn down at the end, as in a run."""
+    up before the first step and torn down at the end, as in a run. ``keep_trace=True`` keeps
+    the replayed run in ``report.trace`` (what an export of the replay reads: docs/learning.md)."""
     pipeline = pipeline_for(log, pipeline)
     graph = pipeline.compile()
     changes = code_changes(log, graph)
@@ -154,7 +159,7 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     logged = from_the_log(graph)
     session.set_up(skip=logged)
     try:
-        report = _replay(log, graph, session, logged, progress)
+        report = _replay(log, graph, session, logged, progress, keep_trace)
     finally:
         session.close()
     report.code_changes = changes
@@ -199,7 +204,7 @@ def from_the_log(graph) -> frozenset[str]:
 
 
 def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
-            progress: Callable[[int, int], None] | None) -> ReplayReport:
+            progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
     routes = session.take_routes()
     trace = session.trace
     encode = Encoder().pack
@@ -247,6 +252,7 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
     # a log whose writer was killed, recovered or read with salvage=True, may keep a step record
     # (one chunk) and lose the events it consumed or produced (another): such a step cannot be compared
     cut_short = not log.complete or "retriever.recovered" in log.metadata
+    kept = Trace() if keep_trace else None
     delivered = 0
     for i, step in enumerate(steps):
         if progress is not None and i % PROGRESS_EVERY == 0:
@@ -258,7 +264,12 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
             _restart_afresh(session, step.node, restarted, floors)
         for buf, entry in late_at.pop((step.node, step.tag), ()):
             buf.insert(entry)  # it arrived late: in the buffer from this record on, as in the run
+        if kept is not None:
+            kept.raw_steps.append(tuple(step))
         if step.node in sources or not _stepped(step):
+            if kept is not None:  # not re-executed: its outputs as logged
+                kept.raw_events.extend((e.tag, e.node, e.port, e.seq, log.value(e), e.publish_ns)
+                                       for e in map(logged.get, step.produced) if e is not None)
             continue
         while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
             _, consumer, buf, entry = deliveries[delivered]
@@ -272,6 +283,8 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
             pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
         if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
             session.retract(step.node)  # the run dropped what this step returned
+        if kept is not None:
+            kept.raw_events.extend(trace.raw_events)
         stats.replayed += 1
         if lost and not lost.isdisjoint(step.produced):
             stats.lost += 1
@@ -290,6 +303,7 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
             report.divergences.append(found)
     if progress is not None:
         progress(len(steps), len(steps))
+    report.trace = kept
     return report
 
 

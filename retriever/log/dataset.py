@@ -1,0 +1,259 @@
+"""Logs as a training set: ``retriever log export RUN.mcap ... --format lerobot --flow NODE -o DIR``.
+
+One frame per tick of the chosen flow (retriever/log/frames.py says which ticks and which
+features); one log is one episode (several with ``gaps="split"``). Two formats:
+
+- ``lerobot``: written with LeRobot's own ``LeRobotDataset.create / add_frame / save_episode /
+  finalize`` (the extra ``retriever-robotics[lerobot]``), image features as PNG images (exact
+  pixels), loadable offline with ``LeRobotDataset(repo_id, root=DIR)``;
+- ``npz``: the same frames and features as plain NumPy arrays, one ``episode_NNNNNN.npz`` per
+  episode and ``info.json``, for users without lerobot.
+
+The dataset is written into a folder beside ``DIR`` and renamed to it at the end: an export that
+fails leaves nothing at ``DIR``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from ..errors import LogError
+from .frames import TASK, Episode, Feature, FlowFrames, Mapping, Recording, parse_maps
+from .reader import RunLog, read_log
+
+FORMATS = ("lerobot", "npz")
+NPZ_FORMAT = "retriever-npz/1"
+#: threads LeRobot's image writer encodes PNGs in (its own advice: a few per camera)
+IMAGE_WRITER_THREADS = max(2, min(4, os.cpu_count() or 1))
+
+
+@dataclass
+class ExportSummary:
+    """What an export wrote."""
+
+    out: Path
+    format: str
+    episodes: int
+    frames: int
+    fps: float
+    bytes: int
+    seconds: float
+    features: list[Feature] = field(default_factory=list)
+    left_out: Counter = field(default_factory=Counter)  # ticks, by status or reason
+    fields_left_out: list[str] = field(default_factory=list)
+    sparse: dict[str, tuple[int, int]] = field(default_factory=dict)  # ports left out: (ticks with a value, ticks)
+
+    def __str__(self) -> str:
+        lines = [f"wrote {self.out} ({self.format}): {self.frames} frames in {self.episodes} episode(s) at "
+                 f"{self.fps:g} fps, {_size(self.bytes)}, in {self.seconds:.1f} s "
+                 f"({self.frames / max(self.seconds, 1e-9):.0f} frames/s)"]
+        for f in self.features:
+            what = "image" if f.kind == "image" else f"{f.dtype}"
+            lines.append(f"  {f.key:<32} {what}{list(f.shape)}  from {f.source}")
+        if self.left_out:
+            lines.append("  ticks left out: " + ", ".join(f"{n} {why}" for why, n in sorted(self.left_out.items())))
+        if self.sparse:
+            lines.append("  ports with a value at fewer than half of the ticks, left out (--map one to keep it): "
+                         + ", ".join(f"{p} ({n} of {total})" for p, (n, total) in sorted(self.sparse.items())))
+        if self.fields_left_out:
+            lines.append("  fields no feature holds (text, None): " + ", ".join(self.fields_left_out))
+        return "\n".join(lines)
+
+
+def _size(n: int) -> str:
+    return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
+
+
+def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | Path, *, flow: str,
+                   format: str = "lerobot", maps: dict[str, str] | Sequence[str] | None = None,
+                   task: str | None = None, exclude: Sequence[str] = (), gaps: str = "refuse",
+                   repo_id: str | None = None, overwrite: bool = False,
+                   progress: Callable[[int, int, int, int], None] | None = None) -> ExportSummary:
+    """Write the ticks of ``flow`` in ``logs`` as a dataset folder ``out`` (one episode per log).
+
+    ``maps`` renames feature sources to keys (``{"joints": "observation.state"}``, or
+    ``["joints=observation.state"]``; a text port mapped to ``"task"`` gives each frame's task);
+    ``task`` is the task of every frame otherwise (default: the pipeline's name); ``exclude``
+    leaves ports (or ``port.field``) out; ``gaps="split"`` ends an episode at a gap between frames
+    instead of refusing it. ``progress(log, logs, tick, ticks)`` is called as ticks are read.
+    """
+    if format not in FORMATS:
+        raise LogError(f"unknown dataset format {format!r}", f"use one of: {', '.join(FORMATS)}")
+    if not logs:
+        raise LogError("no log to export", "give one or more .mcap files")
+    mapping = Mapping(parse_maps(list(maps)) if maps is not None and not isinstance(maps, dict) else dict(maps or {}),
+                      tuple(exclude))
+    if task is not None and TASK in mapping.maps.values():
+        raise LogError("the task is given twice: --task and a port mapped to task", "pass one of them")
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
+    writer_class = _LeRobotWriter if format == "lerobot" else _NpzWriter
+    writer_class.check_installed()
+    started = time.perf_counter()
+    partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    writer = None
+    left_out: Counter = Counter()
+    first: FlowFrames | None = None
+    fields_left_out: list[str] = []
+    sparse: dict[str, tuple[int, int]] = {}
+    try:
+        for n, source in enumerate(logs):
+            recording = _recording(source)
+            frames = FlowFrames(recording, flow, mapping, gaps)
+            if format == "lerobot" and frames.fps.denominator != 1:
+                raise LogError(f"flow '{flow}' ticks at {float(frames.fps):g} Hz: a LeRobot dataset's fps is a whole "
+                               "number", "use --format npz, or give the flow a whole-number rate")
+            if first is not None and frames.fps != first.fps:
+                raise LogError(f"{recording.name}: flow '{flow}' ticks at {float(frames.fps):g} Hz, in the logs "
+                               f"before at {float(first.fps):g} Hz", "a dataset has one fps: export those logs apart")
+            tick_progress = None if progress is None else (lambda i, total, n=n: progress(n, len(logs), i, total))
+            for episode in frames.episodes(tick_progress):
+                if writer is None:
+                    first = frames
+                    writer = writer_class(partial, frames.features, frames.fps, repo_id or f"retriever/{out.name}")
+                elif frames.features != first.features:
+                    raise LogError(f"{recording.name}: the frames of '{flow}' have other features than those of the "
+                                   f"logs before ({_describe(frames.features)}, against {_describe(first.features)})",
+                                   "a dataset has one set of features: export those logs apart")
+                writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
+            left_out.update(frames.left_out)
+            fields_left_out += [f for f in frames.fields_left_out if f not in fields_left_out]
+            for port, (with_value, ticks) in frames.sparse.items():
+                before = sparse.get(port, (0, 0))
+                sparse[port] = (before[0] + with_value, before[1] + ticks)
+        if writer is None:
+            what = ", ".join(f"{n} {why}" for why, n in sorted(left_out.items())) or "no step record"
+            raise LogError(f"no tick of flow '{flow}' makes a frame ({what})",
+                           "a frame needs an ok tick with a value on every input and output port; "
+                           "--exclude a port that never has one")
+        episodes, count = writer.close()
+        writer = None
+        _put_in_place(partial, out)
+    finally:
+        if writer is not None:
+            writer.abandon()
+        shutil.rmtree(partial, ignore_errors=True)
+    size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    return ExportSummary(out, format, episodes, count, float(first.fps), size, time.perf_counter() - started,
+                         first.features, left_out, fields_left_out, sparse)
+
+
+def _put_in_place(partial: Path, out: Path) -> None:
+    """Rename the finished folder to ``out``, replacing what stood there."""
+    if not out.exists() and not out.is_symlink():
+        os.replace(partial, out)
+        return
+    old = out.with_name(f".{out.name}.{os.getpid()}.old")
+    os.replace(out, old)
+    os.replace(partial, out)
+    if old.is_dir() and not old.is_symlink():
+        shutil.rmtree(old)
+    else:
+        old.unlink()
+
+
+def _recording(source: str | Path | RunLog | Recording) -> Recording:
+    if isinstance(source, Recording):
+        return source
+    return Recording.of_log(source if isinstance(source, RunLog) else read_log(source))
+
+
+def _describe(features: list[Feature]) -> str:
+    return ", ".join(f"{f.key} {f.kind} {f.dtype}{list(f.shape)}" for f in features)
+
+
+class _LeRobotWriter:
+    """Frames into LeRobot's own dataset writer (images as PNG: exact pixels)."""
+
+    @staticmethod
+    def check_installed() -> None:
+        try:
+            import lerobot.datasets.lerobot_dataset  # noqa: F401
+        except ImportError as e:
+            raise LogError(f"the LeRobot export needs the lerobot package, which cannot be imported ({e})",
+                           "pip install 'retriever-robotics[lerobot]', or use --format npz") from None
+
+    def __init__(self, root: Path, features: list[Feature], fps, repo_id: str):
+        from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+        spec = {f.key: ({"dtype": "image", "shape": f.shape, "names": ["height", "width", "channel"]}
+                        if f.kind == "image" else {"dtype": str(f.dtype), "shape": f.shape, "names": list(f.names)})
+                for f in features}
+        # PNG encoding is most of an export's time: LeRobot's writer threads encode in parallel
+        threads = IMAGE_WRITER_THREADS if any(f.kind == "image" for f in features) else 0
+        logging.disable(logging.WARNING)  # it warns that it would decode video with pyav: there is no video here
+        try:
+            self.dataset = LeRobotDataset.create(repo_id, fps=int(fps), features=spec, root=root, use_videos=False,
+                                                 image_writer_threads=threads)
+        finally:
+            logging.disable(logging.NOTSET)
+        self.episodes = self.frames = 0
+
+    def episode(self, episode: Episode, task: str, source: str) -> None:
+        for frame in episode.frames:
+            self.dataset.add_frame({**frame.values, "task": frame.task or task})
+            # the tick's time from the run's start: add_frame would take a frame's "timestamp" (and
+            # else stamps frame_index / fps), but lerobot 0.4.4's frame check refuses the key
+            self.dataset.episode_buffer["timestamp"][-1] = frame.timestamp
+        self.dataset.save_episode()
+        self.episodes += 1
+        self.frames += len(episode.frames)
+
+    def close(self) -> tuple[int, int]:
+        self.dataset.stop_image_writer()
+        self.dataset.finalize()
+        return self.episodes, self.frames
+
+    def abandon(self) -> None:
+        """Stop its image writers and close its files (the folder they are in is then removed)."""
+        self.dataset.stop_image_writer()
+        self.dataset.finalize()
+
+
+class _NpzWriter:
+    """Frames as NumPy arrays: ``episode_NNNNNN.npz`` (one array per feature, stacked over the
+    episode's frames, plus ``timestamp``, ``frame_index``, ``tick_ns`` and ``task``) and ``info.json``."""
+
+    @staticmethod
+    def check_installed() -> None:
+        pass
+
+    def __init__(self, root: Path, features: list[Feature], fps, repo_id: str):
+        root.mkdir(parents=True)
+        self.root, self.fps = root, fps
+        self.features = features
+        self.index: list[dict[str, Any]] = []
+        self.frames = 0
+
+    def episode(self, episode: Episode, task: str, source: str) -> None:
+        n = len(self.index)
+        arrays = {f.key: np.stack([frame.values[f.key] for frame in episode.frames]) for f in self.features}
+        arrays["timestamp"] = np.array([frame.timestamp for frame in episode.frames], dtype=np.float64)
+        arrays["frame_index"] = np.arange(len(episode.frames), dtype=np.int64)
+        arrays["tick_ns"] = np.array([frame.tick[0] for frame in episode.frames], dtype=np.int64)
+        arrays["task"] = np.array([frame.task or task for frame in episode.frames])
+        np.savez(self.root / f"episode_{n:06d}.npz", **arrays)
+        self.index.append({"episode_index": n, "frames": len(episode.frames), "source": source})
+        self.frames += len(episode.frames)
+
+    def close(self) -> tuple[int, int]:
+        info = {"format": NPZ_FORMAT, "fps": float(self.fps), "episodes": self.index,
+                "features": {f.key: {"kind": f.kind, "dtype": str(f.dtype), "shape": list(f.shape)}
+                             for f in self.features}}
+        (self.root / "info.json").write_text(json.dumps(info, indent=1) + "\n")
+        return len(self.index), self.frames
+
+    def abandon(self) -> None:
+        """Nothing is open between two episodes."""
