@@ -69,6 +69,7 @@ import numpy as np  # noqa: E402
 from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: E402
 from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
+from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
@@ -617,8 +618,8 @@ class CoordinatorTarget(Target):
         self.spill = self.workdir / "spill"
         self.spill.mkdir()
         self.base = self._session()
-        for item in self.reports:
-            self.base._handle(item)
+        for key, data in self.reports:
+            self.base._handle((key, data, self.base._workers[key.rsplit("/", 1)[1]]))
         if self.base.trace != self.genuine.trace or self.base.own_counts["garbage"]:
             raise SystemExit("the coordinator harness does not rebuild the genuine run's trace from its reports: "
                              "Coordinator._handle changed; update CoordinatorTarget._session")
@@ -630,6 +631,10 @@ class CoordinatorTarget(Target):
         Session.__init__(s, self.graph)
         s.keys, s._dir = KeySpace(NAMESPACE), self.spill
         s._init_records(self.graph)  # what __init__ keeps of reports, without Zenoh or processes
+        s.t0, s.end_ns, s._stop_sent = None, 0, False
+        # each node's process, as the coordinator knows it: what signed its messages (origin.py)
+        s._workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
+        s._retiring, s._state = {}, {nid: "ready" for nid in self.graph.nodes}
         return s
 
     def seeds(self) -> list[bytes]:
@@ -666,11 +671,13 @@ class CoordinatorTarget(Target):
         return s, (key.decode(), report)
 
     def feed(self, prepared: tuple) -> int:
-        s, item = prepared
-        s._handle(item)
-        forged = self._forged(s, item[0])
-        if not forged and s.own_counts["garbage"] > GARBAGE_PRINTED:
-            raise Dropped(s.own_counts["garbage"] - GARBAGE_PRINTED)
+        """As the node's own process sent it (signed with its key): what any process of the run may send."""
+        s, (key, report) = prepared
+        s._handle((key, report, s._workers.get(key.rsplit("/", 1)[1])))
+        forged = self._forged(s, key)
+        refused = s.own_counts["garbage"] - GARBAGE_PRINTED + s._senders.refused
+        if not forged and refused:
+            raise Dropped(refused)
         return forged
 
     def _forged(self, s: Coordinator, key: str) -> int:
@@ -705,6 +712,123 @@ class Dropped(Exception):
 
 
 CoordinatorTarget.allowed = (Dropped,)
+
+
+class _Process:
+    """A worker process as the coordinator sees one (host.WorkerProcess), never started."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+
+
+class InsiderTarget(CoordinatorTarget):
+    """What an insider (a session holding the run's secret, not a process the coordinator
+    started) puts on a node's status and report keys, through the coordinator's receiving path:
+    the signature check (origin.Senders, on Zenoh's thread), then ``_handle``.
+
+    Forged statuses carry the node's own pid (``exit`` at one of its ticks, ``done`` stopped,
+    ``failed``, ``restart``, ``handed_over``, ``ready``, mutated), forged reports step records
+    between the node's ticks, past the run's end and at its ticks, an ``exit`` record among them.
+    Each comes with no MAC, random bytes, the MAC of the insider's own key, the node's MAC of
+    another message (a replay on another key, or of another payload), or a cut one. A fifth are
+    signed with the node's own key (its process, compromised): then only records at its ticks,
+    and an `exit` backed by its record, may count. Anything else that reaches the trace, the
+    node's state, its counts, a failure or the run's end is a forgery accepted."""
+
+    name = "insider"
+
+    def __init__(self, mutator: Mutator, genuine: Genuine, workdir: Path):
+        self.keys = {nid: new_key() for nid in genuine.pipeline.compile().nodes}
+        self.own_key = new_key()  # the insider's: it may derive the run's passwords, not a process's key
+        self.end_ns = round(RUN_S * 1e9)
+        super().__init__(mutator, genuine, workdir)
+
+    def _session(self) -> Coordinator:
+        s = super()._session()
+        s.t0, s.end_ns, s.virtual_time = 0, round(RUN_S * 1e9), False
+        s._hub = _Hub()  # where a control put goes (an accepted exit puts `end`)
+        s._hosts = {nid: _Host() for nid in s._workers}  # where a signed `restart` starts a process
+        for nid, proc in s._workers.items():
+            s._senders.add(nid, self.keys[nid], proc)
+        return s
+
+    def seeds(self) -> list[bytes]:
+        return []
+
+    def make(self) -> bytes:
+        rng, keys = self.m.rng, KeySpace(NAMESPACE)
+        node = rng.choice(self.nodes)
+        clock = self.graph.nodes[node].clock
+        tick = rng.choice([(clock.tick_time(rng.randrange(8)), 0) if clock.hz else (5, 0),
+                           (rng.randrange(1, 10**8), 0), (self.end_ns + rng.randrange(10**9), 0),
+                           (clock.tick_time(1) if clock.hz else 5, rng.randrange(1, 4))])
+        enc = WireEncoder()
+        if rng.random() < 0.55:
+            state = rng.choice(["exit", "exit", "done", "failed", "restart", "handed_over", "ready", "reached"])
+            info = {"pid": self.base._workers[node].pid, "tag": list(tick), "stopped": True, "reports": 1,
+                    "counts": {"late": 1000}, "error": "forged", "until": 10**12}
+            key, payload = keys.node_status(node), enc.status(node, state, info)
+        else:
+            records = [[list(tick), {}, [], "ok", rng.choice([None, {"exit": 0}]), 0, 0]
+                       for tick in {tick, (tick[0] + 1, 0), (self.end_ns + 10**8, 0)}]
+            key, payload = keys.report(node), enc.report(node, records, [])
+        if rng.random() < 0.3:
+            payload = self.m.msgpack(payload)
+        mac = rng.choice([None, os.urandom(16), sign(self.own_key, key, payload),
+                          sign(self.keys[node], keys.report(node) if "node/" in key else keys.node_status(node),
+                               payload), sign(self.keys[node], key, payload + b"\0"),
+                          sign(self.keys[node], key, payload)[:8], "own"])
+        if mac == "own":  # its own process, compromised: signed
+            mac = sign(self.keys[node], key, payload)
+        return msgpack.packb([key, mac, payload])
+
+    def prepare(self, data: bytes) -> tuple:
+        key, mac, payload = msgpack.unpackb(data)
+        return self._session(), (key, payload, mac)
+
+    def feed(self, prepared: tuple) -> int:
+        s, (key, payload, mac) = prepared
+        node = key.rsplit("/", 1)[1]
+        signed = node in self.keys and mac == sign(self.keys[node], key, payload)  # by its process, in truth
+        sender = s._senders.sender(node, key, payload, mac)
+        if sender is None:  # refused before anything was decoded or held
+            return self._changed(s, signed)
+        s._handle((key, payload, sender))
+        return self._changed(s, signed) + (not signed)
+
+    def _changed(self, s: Coordinator, signed: bool) -> int:
+        """What a forgery changed: records off their node's clock, or anything at all when it
+        was not signed; an end of the run without the node's exit record."""
+        steps = s.trace.raw_steps
+        changed = sum(1 for n, tag, *_ in steps if not signed or not self.graph.nodes[n].clock.may_tick_at(tag, s.end_ns))
+        changed += len(s.trace.raw_events) if not signed else 0
+        if s.ended_by is not None and not any(n == s.ended_by and (d or {}).get("exit") == 0
+                                              for n, _, _, _, _, d, *_ in steps):
+            changed += 1
+        if not signed and (s._failure is not None or s._stop_sent or s._exit_said
+                           or any(state != "ready" for state in s._state.values())
+                           or any(st.counts for st in s._stats.values()) or any(s._reports_sent.values())):
+            changed += 1
+        if not changed and not signed:
+            raise Dropped(s._senders.refused)
+        return changed
+
+
+class _Host:
+    """A host whose processes are never started (what a signed ``restart`` asks for)."""
+
+    def spawn(self, node: str, mode, key) -> _Process:
+        return _Process(50_000)
+
+
+class _Hub:
+    """The hub session's put, for a coordinator with no Zenoh: what it was asked to put."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+
+    def put(self, key: str, payload: bytes, **_) -> None:
+        self.puts.append((key, payload))
 
 
 def _key_and(key: str, data: bytes) -> bytes:
@@ -951,7 +1075,7 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "ir", "log"]
+                "insider", "ir", "log"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -960,6 +1084,8 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return CodecTarget(*args)
     if name == "coordinator":
         return CoordinatorTarget(*args)
+    if name == "insider":
+        return InsiderTarget(*args)
     if name == "ir":
         return IRTarget(*args)
     if name == "log":
@@ -1045,7 +1171,7 @@ def fuzz_target(target: Target, guard: Guard, *, seconds: float | None = None, i
             if kind not in outcome.findings:
                 outcome.findings[kind] = _save(target.name, data, signature, details) if save else ""
     outcome.seconds = time.perf_counter() - start
-    if isinstance(target, CoordinatorTarget):
+    if type(target) is CoordinatorTarget:
         outcome.insider_claims = target.insider_claims
     return outcome
 
