@@ -861,6 +861,79 @@ IR_TYPES = ["tests.ir_flows:Camera", "tests.ir_flows:Planner", "tests.ir_flows:C
 DEEP = "__deep__"  # a string the IR mutator puts where the JSON text gets a deep nest
 
 
+class SpecTarget(Target):
+    """What an insider asks a worker daemon to prepare (runs.DaemonRuns.prepare, then the spec the
+    daemon would write for its processes, runs.DaemonRuns._local_spec): the run's spec, hostile.
+
+    Node types name what a daemon must never import (``venv.__main__``, ``test.__main__``: the
+    standard library's command lines; ``os:system``; dunder parts) beside the genuine flows; the
+    spec carries an ``argv`` (which a worker must never take from the network), zids, timing.
+    The daemon's ``--path`` is a folder holding the test flows and, as a project folder may,
+    ``venv/`` and ``test/`` folders without ``__init__.py``. It sees no coordinator's token, so a
+    prepare that passes every check stops there, before it writes anything: the spec it would
+    write is then made too. Its only error is WireError; nothing may be imported or run."""
+
+    name = "specs"
+    allowed = (WireError,)
+    HOSTILE_TYPES = ["venv.__main__:EnvBuilder", "test.__main__:main", "venv:main", "test.regrtest:main",
+                     "os:system", "builtins:eval", "subprocess:Popen", "tests.__main__:X", "__main__:X",
+                     "tests..log:X", ".tests:X", "tests.log.log_flows.__init__:Counter", "agents.planner:Planner"]
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        from retriever.backends.zenoh import daemon
+        from retriever.backends.zenoh.runs import DaemonRuns
+
+        folder = self.workdir / "project"
+        for name in ("venv", "test", "tests"):
+            (folder / name).mkdir(parents=True)  # namespace packages: never admitted
+        paths = [str(ROOT), str(folder)]
+        runs = self.runs = DaemonRuns.__new__(DaemonRuns)
+        runs.name, runs.keys, runs.run, runs.paths, runs.code_mismatch = "fuzz", KeySpace(NAMESPACE), None, (), "refuse"
+        runs.access, runs.listen, runs.tls, runs._coordinators = None, (), None, 0
+        runs.allowed = lambda module: daemon.module_allowed(module, [], paths)
+        runs.refusal = lambda module: daemon.refusal(module, [], paths)
+        ir = self.genuine.pipeline.build_ir().doc
+        self.base = {"ir": ir, "namespace": NAMESPACE, "hub": "tcp/127.0.0.1:7447", "startup_timeout": 60.0,
+                     "argv": ["retriever-fuzz", "--clear", str(self.workdir)], "python_path": [str(ROOT)],
+                     "zids": {n["id"]: f"{i + 1:x}" * 4 for i, n in enumerate(ir["nodes"])}, "hub_zid": "abc",
+                     "virtual_time": False, "main_file": None}
+        self._seeds = [msgpack.packb({"run": "r1", "spec": self.base, "nodes": [n["id"] for n in ir["nodes"]]})]
+
+    def seeds(self) -> list[bytes]:
+        return self._seeds
+
+    def make(self) -> bytes:
+        rng = self.m.rng
+        args = copy.deepcopy(msgpack.unpackb(self._seeds[0]))
+        nodes = args["spec"]["ir"]["nodes"]
+        for node in rng.sample(nodes, rng.randrange(1, len(nodes) + 1)):
+            node["type"] = rng.choice(self.HOSTILE_TYPES)
+        if rng.random() < 0.3:
+            args["spec"]["argv"] = ["-m", "venv", "--clear", str(self.workdir)]
+        data = msgpack.packb(args)
+        return self.m.msgpack(data, self._seeds) if rng.random() < 0.4 else data
+
+    def prepare(self, data: bytes) -> Any:
+        try:
+            return msgpack.unpackb(data, raw=False, strict_map_key=False)
+        except Exception:  # noqa: BLE001 - bytes a daemon's control decoder refuses before prepare
+            return None
+
+    def feed(self, args: Any) -> int:
+        if type(args) is not dict:
+            raise WireError("not a control message's args")
+        try:
+            self.runs.prepare(args)
+        except WireError as e:
+            if "liveliness token" not in str(e):
+                raise
+        spec = self.runs._local_spec(args["spec"], self.workdir)  # every check passed: what it would write
+        if "argv" in spec:
+            return 1  # the network's argv reached a worker's spec
+        return 0
+
+
 class IRTarget(Target):
     """IR JSON text: IR.from_json, then Pipeline.from_ir."""
 
@@ -1075,7 +1148,7 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "insider", "ir", "log"]
+                "insider", "specs", "ir", "log"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -1086,6 +1159,8 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return CoordinatorTarget(*args)
     if name == "insider":
         return InsiderTarget(*args)
+    if name == "specs":
+        return SpecTarget(*args)
     if name == "ir":
         return IRTarget(*args)
     if name == "log":
