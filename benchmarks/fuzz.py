@@ -35,6 +35,13 @@ For every input three things are checked:
 
     python benchmarks/fuzz.py --seconds 25 --seed 1           # every target, 25 s each
     python benchmarks/fuzz.py --inputs 500 --targets codec,ir  # a fixed number of inputs
+    python benchmarks/fuzz.py --insider-run 1000000            # a real run beside an insider (below)
+
+``--insider-run N`` is no fuzzing: a real zenoh run (two flows, 3 s, a log, started as a user
+starts one) beside a Zenoh session holding its deployment secret, which puts an ``exit`` and a
+``done`` with each node's real pid, then N step records of the source in reports of 100,000
+(between its ticks, past its end, at its ticks). It says what the run took of them and how much
+the coordinator's memory grew while they came.
 """
 
 from __future__ import annotations
@@ -1311,6 +1318,58 @@ def reproduce(path: Path) -> int:
     return 0
 
 
+def insider_run(records: int) -> dict[str, int]:
+    """See the module docstring (``--insider-run``)."""
+    import subprocess
+
+    from tests.backends.zenoh.test_access import Run, _insider, _secret_file
+    from tests.backends.zenoh.test_origin import _rss, _worker_pid
+
+    workdir = Path(tempfile.mkdtemp(prefix="retriever-insider-", dir=_scratch()))
+    namespace = f"insider-{os.getpid()}"
+    per, ticks = 100_000, 100_000_000  # records a report; the source's period (10 Hz)
+    payloads = [msgpack.packb([2, "counter", [[[t, 0], {}, [], "ok", None, 0, 0] for t in
+                                              (range(1 + i, 1 + i + n) if k % 3 == 0 else
+                                               range((40 + i) * ticks, (40 + i + n) * ticks, ticks) if k % 3 == 1 else
+                                               [j % 30 * ticks for j in range(n)])], []])
+                for k, i in enumerate(range(0, records, per)) for n in [min(per, records - i)]]
+    secret, enc = _secret_file(workdir), WireEncoder()
+    run = Run(workdir, namespace, secret)
+    statuses = grown = 0
+    try:
+        with _insider(run, namespace, secret, workdir) as (insider, keys):
+            before = _rss(run.proc.pid)
+            for node, tag in (("counter", [500_000_000, 0]), ("total", [400_000_000, 0])):
+                pid = _worker_pid(run.proc.pid, node)
+                for state in ("exit", "done"):
+                    insider.put(keys.node_status(node), enc.status(node, state, {"tag": tag, "pid": pid,
+                                                                                "stopped": True}))
+                    statuses += 1
+            for payload in payloads:
+                insider.put(keys.report("counter"), payload)
+            while True:
+                try:
+                    grown = max(grown, _rss(run.proc.pid) - before)
+                    run.proc.wait(timeout=0.05)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
+                except OSError:
+                    break
+        result = run.result()
+        steps = list(read_log(run.log).iter_steps())
+    finally:
+        run.kill()
+        shutil.rmtree(workdir, ignore_errors=True)
+    genuine = {"counter": 30, "total": 15}
+    return {"statuses put": statuses, "records put": records, "reports put": len(payloads),
+            "refused as forged": result["counts"].get("forged", 0),
+            "records accepted past the run's own": sum(max(0, result["stats"][n][0] - k) for n, k in genuine.items()),
+            "ticks the run missed (ended early)": sum(max(0, k - result["stats"][n][0]) for n, k in genuine.items()),
+            "step records in the log": len(steps), "coordinator MiB before": before >> 20,
+            "coordinator MiB grown (peak)": grown >> 20}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, help="seconds per target")
@@ -1318,9 +1377,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--targets", default=",".join(TARGET_NAMES), help="comma-separated: " + ", ".join(TARGET_NAMES))
     parser.add_argument("--reproduce", type=Path, help="run a saved input of benchmarks/fuzz_crashes/ again")
+    parser.add_argument("--insider-run", type=int, metavar="RECORDS",
+                        help="a real run beside an insider putting RECORDS forged step records (no fuzzing)")
     args = parser.parse_args(argv)
     if args.reproduce:
         return reproduce(args.reproduce)
+    if args.insider_run is not None:
+        measured = insider_run(args.insider_run)
+        print("| what | count |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in measured.items()))
+        ok = not measured["records accepted past the run's own"] and not measured["ticks the run missed (ended early)"]
+        return 0 if ok else 1
     if args.seconds is None and args.inputs is None:
         args.seconds = 10.0
     names = [n.strip() for n in args.targets.split(",") if n.strip()]

@@ -7,6 +7,7 @@ starts is killed by its PID at the end, and every wait is bounded.
 
 from __future__ import annotations
 
+import copy
 import functools
 import hashlib
 import os
@@ -371,11 +372,11 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                      {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
                 ask(session, namespace, "w", "prepare", args)
-        deep = _ir_doc()  # a param nested past Python's recursion limit (the fuzz campaign's `specs`)
+        deep = copy.deepcopy(_ir_doc())  # a param nested past Python's recursion limit (fuzz.py's `specs`)
         next(n for n in deep["nodes"] if n["id"] == "counter")["params"]["k"] = functools.reduce(
             lambda inner, _: [inner], range(900), [])
         with pytest.raises(WorkerError, match=r"params\.k nests arrays or objects deeper than Python's recursion"):
-            ask(session, namespace, "w", "prepare", {"run": "r1", "spec": {"ir": deep}, "nodes": ["counter"]})
+            ask(session, namespace, "w", "prepare", {"run": "r-deep", "spec": {"ir": deep}, "nodes": ["counter"]})
         ask(session, namespace, "w", "prepare", {"run": "r2", "spec": {"ir": _ir_doc(), "namespace": namespace,
                                                                        "hub": endpoint(port)}, "nodes": ["counter"]})
         for args, expected in (({"node": "relay", "mode": []}, "was not prepared"),
