@@ -78,7 +78,7 @@ from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
+    RELIABLE, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -1343,10 +1343,11 @@ def insider_run(records: int) -> dict[str, int]:
                 pid = _worker_pid(run.proc.pid, node)
                 for state in ("exit", "done"):
                     insider.put(keys.node_status(node), enc.status(node, state, {"tag": tag, "pid": pid,
-                                                                                "stopped": True}))
+                                                                                "stopped": True}),
+                                congestion_control=RELIABLE)
                     statuses += 1
             for payload in payloads:
-                insider.put(keys.report("counter"), payload)
+                insider.put(keys.report("counter"), payload, congestion_control=RELIABLE)  # all of it arrives
             while True:
                 try:
                     grown = max(grown, _rss(run.proc.pid) - before)

@@ -19,7 +19,7 @@ import msgpack
 import pytest
 
 import retriever
-from retriever.backends.zenoh.wire import WireEncoder
+from retriever.backends.zenoh.wire import RELIABLE, WireEncoder
 from tests.backends.zenoh.test_access import Run, _insider, _secret_file
 
 #: forged step records the insider floods the coordinator with (today's code held each: ~470 B)
@@ -109,7 +109,7 @@ def test_forged_source_records_reach_neither_the_log_nor_the_coordinators_memory
         with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             before = _rss(run.proc.pid)
             for payload in forgeries:
-                insider.put(keys.report("counter"), payload)
+                insider.put(keys.report("counter"), payload, congestion_control=RELIABLE)  # all of it arrives
             grown = 0
             while True:  # until the run is over (the forgeries all arrived): its most
                 try:
