@@ -346,6 +346,7 @@ class Coordinator(Session):
                             patience=slack)
         except BaseException:
             self._stop_workers()  # their last reports, then: which outputs died with a process
+            self._tell_forged()
             self._record_faults_left()
             self.close()
             raise
@@ -543,10 +544,11 @@ class Coordinator(Session):
                     self._garbage(key, WireError(f"a second step record of {report.node} at {tag}"))
                     continue
                 if not clock.may_tick_at(tag, end):
-                    self._forged(f"a step record of {report.node} at {tag}, which is no tick of its {clock!r}")
+                    self._senders.refuse(f"a step record of {report.node} at {tag}, which is no tick of its {clock!r}")
                     continue
                 self._ticks.add((report.node, tag))
-                if status == "ok" and detail is not None and detail.get("exit") == 0:  # its step's sys.exit(0)
+                exit_code = detail.get("exit") if detail is not None else None
+                if status == "ok" and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
                     self._exit_recorded[report.node] = (tag, sender)
                     self._end_by_exit(report.node)
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
@@ -692,11 +694,8 @@ class Coordinator(Session):
 
     def _exit_unrecorded(self) -> str | None:
         """A node whose process said its step called sys.exit(0), and never sent the record of that step."""
-        return next((node for node in sorted(self._exit_said) if self.ended_by != node), None)
-
-    def _forged(self, why: str) -> None:
-        """A record the run does not take: counted with the refused messages (origin.Senders)."""
-        self._senders.refuse(why)
+        return next((node for node, said in sorted(self._exit_said.items(), key=lambda item: item[0])
+                     if self._exit_recorded.get(node) != said), None)
 
     def _tell_forged(self) -> None:
         """Count what was refused as forged (``forged``), and say so on stderr when more came."""

@@ -125,3 +125,30 @@ def test_forged_source_records_reach_neither_the_log_nor_the_coordinators_memory
         run.kill()
     _assert_whole(run, result, forged=len(forgeries))
     assert grown < FLOOD_GROWTH_MAX, f"the coordinator grew by {grown >> 20} MiB while refusing the flood"
+
+
+def test_a_mac_holds_for_its_process_key_expression_and_payload_only(monkeypatch):
+    """What the coordinator checks on arrival (origin.Senders): the node's process's key, over the
+    key expression and the payload; another process's key, another key, another payload, a cut or
+    missing MAC are refused and counted, with why."""
+    from retriever.backends.zenoh.origin import KEY_ENV, MAC_BYTES, Senders, key_text, new_key, sign, \
+        take_key_from_environment
+
+    old, new, insider = new_key(), new_key(), new_key()
+    senders = Senders()
+    senders.add("cam", old, "old process")
+    senders.add("cam", new, "new process")
+    status, report = "retriever/ns/status/node/cam", "retriever/ns/status/report/cam"
+    assert senders.sender("cam", status, b"payload", sign(new, status, b"payload")) == "new process"
+    assert senders.sender("cam", report, b"payload", sign(old, report, b"payload")) == "old process"
+    refused = [(status, b"payload", sign(insider, status, b"payload")),
+               (status, b"payload", sign(new, report, b"payload")),  # another key's MAC
+               (status, b"payload!", sign(new, status, b"payload")),
+               (status, b"payload", sign(new, status, b"payload")[:MAC_BYTES // 2]),
+               (status, b"payload", None)]
+    assert [senders.sender("cam", *message) for message in refused] == [None] * len(refused)
+    assert senders.sender("mic", status, b"payload", sign(new, status, b"payload")) is None  # another node's
+    assert senders.refused == len(refused) + 1 and len(senders.reasons) == Senders.KEPT
+    assert "no process of 'cam' signed" in senders.reasons[0]
+    monkeypatch.setenv(KEY_ENV, key_text(new))
+    assert take_key_from_environment() == new and KEY_ENV not in os.environ  # flows do not inherit it
