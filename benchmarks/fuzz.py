@@ -35,6 +35,13 @@ For every input three things are checked:
 
     python benchmarks/fuzz.py --seconds 25 --seed 1           # every target, 25 s each
     python benchmarks/fuzz.py --inputs 500 --targets codec,ir  # a fixed number of inputs
+    python benchmarks/fuzz.py --insider-run 1000000            # a real run beside an insider (below)
+
+``--insider-run N`` is no fuzzing: a real zenoh run (two flows, 3 s, a log, started as a user
+starts one) beside a Zenoh session holding its deployment secret, which puts an ``exit`` and a
+``done`` with each node's real pid, then N step records of the source in reports of 100,000
+(between its ticks, past its end, at its ticks). It says what the run took of them and how much
+the coordinator's memory grew while they came.
 """
 
 from __future__ import annotations
@@ -69,8 +76,9 @@ import numpy as np  # noqa: E402
 from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: E402
 from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
+from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
+    RELIABLE, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -617,8 +625,8 @@ class CoordinatorTarget(Target):
         self.spill = self.workdir / "spill"
         self.spill.mkdir()
         self.base = self._session()
-        for item in self.reports:
-            self.base._handle(item)
+        for key, data in self.reports:
+            self.base._handle((key, data, self.base._workers[key.rsplit("/", 1)[1]]))
         if self.base.trace != self.genuine.trace or self.base.own_counts["garbage"]:
             raise SystemExit("the coordinator harness does not rebuild the genuine run's trace from its reports: "
                              "Coordinator._handle changed; update CoordinatorTarget._session")
@@ -630,6 +638,10 @@ class CoordinatorTarget(Target):
         Session.__init__(s, self.graph)
         s.keys, s._dir = KeySpace(NAMESPACE), self.spill
         s._init_records(self.graph)  # what __init__ keeps of reports, without Zenoh or processes
+        s.t0, s.end_ns, s._stop_sent = None, 0, False
+        # each node's process, as the coordinator knows it: what signed its messages (origin.py)
+        s._workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
+        s._retiring, s._state = {}, {nid: "ready" for nid in self.graph.nodes}
         return s
 
     def seeds(self) -> list[bytes]:
@@ -666,11 +678,13 @@ class CoordinatorTarget(Target):
         return s, (key.decode(), report)
 
     def feed(self, prepared: tuple) -> int:
-        s, item = prepared
-        s._handle(item)
-        forged = self._forged(s, item[0])
-        if not forged and s.own_counts["garbage"] > GARBAGE_PRINTED:
-            raise Dropped(s.own_counts["garbage"] - GARBAGE_PRINTED)
+        """As the node's own process sent it (signed with its key): what any process of the run may send."""
+        s, (key, report) = prepared
+        s._handle((key, report, s._workers.get(key.rsplit("/", 1)[1])))
+        forged = self._forged(s, key)
+        refused = s.own_counts["garbage"] - GARBAGE_PRINTED + s._senders.refused
+        if not forged and refused:
+            raise Dropped(refused)
         return forged
 
     def _forged(self, s: Coordinator, key: str) -> int:
@@ -707,6 +721,123 @@ class Dropped(Exception):
 CoordinatorTarget.allowed = (Dropped,)
 
 
+class _Process:
+    """A worker process as the coordinator sees one (host.WorkerProcess), never started."""
+
+    def __init__(self, pid: int):
+        self.pid = pid
+
+
+class InsiderTarget(CoordinatorTarget):
+    """What an insider (a session holding the run's secret, not a process the coordinator
+    started) puts on a node's status and report keys, through the coordinator's receiving path:
+    the signature check (origin.Senders, on Zenoh's thread), then ``_handle``.
+
+    Forged statuses carry the node's own pid (``exit`` at one of its ticks, ``done`` stopped,
+    ``failed``, ``restart``, ``handed_over``, ``ready``, mutated), forged reports step records
+    between the node's ticks, past the run's end and at its ticks, an ``exit`` record among them.
+    Each comes with no MAC, random bytes, the MAC of the insider's own key, the node's MAC of
+    another message (a replay on another key, or of another payload), or a cut one. A fifth are
+    signed with the node's own key (its process, compromised): then only records at its ticks,
+    and an `exit` backed by its record, may count. Anything else that reaches the trace, the
+    node's state, its counts, a failure or the run's end is a forgery accepted."""
+
+    name = "insider"
+
+    def __init__(self, mutator: Mutator, genuine: Genuine, workdir: Path):
+        self.keys = {nid: new_key() for nid in genuine.pipeline.compile().nodes}
+        self.own_key = new_key()  # the insider's: it may derive the run's passwords, not a process's key
+        self.end_ns = round(RUN_S * 1e9)
+        super().__init__(mutator, genuine, workdir)
+
+    def _session(self) -> Coordinator:
+        s = super()._session()
+        s.t0, s.end_ns, s.virtual_time = 0, round(RUN_S * 1e9), False
+        s._hub = _Hub()  # where a control put goes (an accepted exit puts `end`)
+        s._hosts = {nid: _Host() for nid in s._workers}  # where a signed `restart` starts a process
+        for nid, proc in s._workers.items():
+            s._senders.add(nid, self.keys[nid], proc)
+        return s
+
+    def seeds(self) -> list[bytes]:
+        return []
+
+    def make(self) -> bytes:
+        rng, keys = self.m.rng, KeySpace(NAMESPACE)
+        node = rng.choice(self.nodes)
+        clock = self.graph.nodes[node].clock
+        tick = rng.choice([(clock.tick_time(rng.randrange(8)), 0) if clock.hz else (5, 0),
+                           (rng.randrange(1, 10**8), 0), (self.end_ns + rng.randrange(10**9), 0),
+                           (clock.tick_time(1) if clock.hz else 5, rng.randrange(1, 4))])
+        enc = WireEncoder()
+        if rng.random() < 0.55:
+            state = rng.choice(["exit", "exit", "done", "failed", "restart", "handed_over", "ready", "reached"])
+            info = {"pid": self.base._workers[node].pid, "tag": list(tick), "stopped": True, "reports": 1,
+                    "counts": {"late": 1000}, "error": "forged", "until": 10**12}
+            key, payload = keys.node_status(node), enc.status(node, state, info)
+        else:
+            records = [[list(tick), {}, [], "ok", rng.choice([None, {"exit": 0}]), 0, 0]
+                       for tick in {tick, (tick[0] + 1, 0), (self.end_ns + 10**8, 0)}]
+            key, payload = keys.report(node), enc.report(node, records, [])
+        if rng.random() < 0.3:
+            payload = self.m.msgpack(payload)
+        mac = rng.choice([None, os.urandom(16), sign(self.own_key, key, payload),
+                          sign(self.keys[node], keys.report(node) if "node/" in key else keys.node_status(node),
+                               payload), sign(self.keys[node], key, payload + b"\0"),
+                          sign(self.keys[node], key, payload)[:8], "own"])
+        if mac == "own":  # its own process, compromised: signed
+            mac = sign(self.keys[node], key, payload)
+        return msgpack.packb([key, mac, payload])
+
+    def prepare(self, data: bytes) -> tuple:
+        key, mac, payload = msgpack.unpackb(data)
+        return self._session(), (key, payload, mac)
+
+    def feed(self, prepared: tuple) -> int:
+        s, (key, payload, mac) = prepared
+        node = key.rsplit("/", 1)[1]
+        signed = node in self.keys and mac == sign(self.keys[node], key, payload)  # by its process, in truth
+        sender = s._senders.sender(node, key, payload, mac)
+        if sender is None:  # refused before anything was decoded or held
+            return self._changed(s, signed)
+        s._handle((key, payload, sender))
+        return self._changed(s, signed) + (not signed)
+
+    def _changed(self, s: Coordinator, signed: bool) -> int:
+        """What a forgery changed: records off their node's clock, or anything at all when it
+        was not signed; an end of the run without the node's exit record."""
+        steps = s.trace.raw_steps
+        changed = sum(1 for n, tag, *_ in steps if not signed or not self.graph.nodes[n].clock.may_tick_at(tag, s.end_ns))
+        changed += len(s.trace.raw_events) if not signed else 0
+        if s.ended_by is not None and not any(n == s.ended_by and (d or {}).get("exit") == 0
+                                              for n, _, _, _, _, d, *_ in steps):
+            changed += 1
+        if not signed and (s._failure is not None or s._stop_sent or s._exit_said
+                           or any(state != "ready" for state in s._state.values())
+                           or any(st.counts for st in s._stats.values()) or any(s._reports_sent.values())):
+            changed += 1
+        if not changed and not signed:
+            raise Dropped(s._senders.refused)
+        return changed
+
+
+class _Host:
+    """A host whose processes are never started (what a signed ``restart`` asks for)."""
+
+    def spawn(self, node: str, mode, key) -> _Process:
+        return _Process(50_000)
+
+
+class _Hub:
+    """The hub session's put, for a coordinator with no Zenoh: what it was asked to put."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+
+    def put(self, key: str, payload: bytes, **_) -> None:
+        self.puts.append((key, payload))
+
+
 def _key_and(key: str, data: bytes) -> bytes:
     return key.encode() + b"\n" + data
 
@@ -735,6 +866,79 @@ IR_TYPES = ["tests.ir_flows:Camera", "tests.ir_flows:Planner", "tests.ir_flows:C
             "tests.log.log_flows:Tally", "tests.log.log_flows:Point", "os:system", "builtins:eval", "builtins:exec",
             "subprocess:Popen", "posix:system", "retriever.codec:import_type", "tests.ir_flows:Camera.__init__"]
 DEEP = "__deep__"  # a string the IR mutator puts where the JSON text gets a deep nest
+
+
+class SpecTarget(Target):
+    """What an insider asks a worker daemon to prepare (runs.DaemonRuns.prepare, then the spec the
+    daemon would write for its processes, runs.DaemonRuns._local_spec): the run's spec, hostile.
+
+    Node types name what a daemon must never import (``venv.__main__``, ``test.__main__``: the
+    standard library's command lines; ``os:system``; dunder parts) beside the genuine flows; the
+    spec carries an ``argv`` (which a worker must never take from the network), zids, timing.
+    The daemon's ``--path`` is a folder holding the test flows and, as a project folder may,
+    ``venv/`` and ``test/`` folders without ``__init__.py``. It sees no coordinator's token, so a
+    prepare that passes every check stops there, before it writes anything: the spec it would
+    write is then made too. Its only error is WireError; nothing may be imported or run."""
+
+    name = "specs"
+    allowed = (WireError,)
+    HOSTILE_TYPES = ["venv.__main__:EnvBuilder", "test.__main__:main", "venv:main", "test.regrtest:main",
+                     "os:system", "builtins:eval", "subprocess:Popen", "tests.__main__:X", "__main__:X",
+                     "tests..log:X", ".tests:X", "tests.log.log_flows.__init__:Counter", "agents.planner:Planner"]
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        from retriever.backends.zenoh import daemon
+        from retriever.backends.zenoh.runs import DaemonRuns
+
+        folder = self.workdir / "project"
+        for name in ("venv", "test", "tests"):
+            (folder / name).mkdir(parents=True)  # namespace packages: never admitted
+        paths = [str(ROOT), str(folder)]
+        runs = self.runs = DaemonRuns.__new__(DaemonRuns)
+        runs.name, runs.keys, runs.run, runs.paths, runs.code_mismatch = "fuzz", KeySpace(NAMESPACE), None, (), "refuse"
+        runs.access, runs.listen, runs.tls, runs._coordinators = None, (), None, 0
+        runs.allowed = lambda module: daemon.module_allowed(module, [], paths)
+        runs.refusal = lambda module: daemon.refusal(module, [], paths)
+        ir = self.genuine.pipeline.build_ir().doc
+        self.base = {"ir": ir, "namespace": NAMESPACE, "hub": "tcp/127.0.0.1:7447", "startup_timeout": 60.0,
+                     "argv": ["retriever-fuzz", "--clear", str(self.workdir)], "python_path": [str(ROOT)],
+                     "zids": {n["id"]: f"{i + 1:x}" * 4 for i, n in enumerate(ir["nodes"])}, "hub_zid": "abc",
+                     "virtual_time": False, "main_file": None}
+        self._seeds = [msgpack.packb({"run": "r1", "spec": self.base, "nodes": [n["id"] for n in ir["nodes"]]})]
+
+    def seeds(self) -> list[bytes]:
+        return self._seeds
+
+    def make(self) -> bytes:
+        rng = self.m.rng
+        args = copy.deepcopy(msgpack.unpackb(self._seeds[0]))
+        nodes = args["spec"]["ir"]["nodes"]
+        for node in rng.sample(nodes, rng.randrange(1, len(nodes) + 1)):
+            node["type"] = rng.choice(self.HOSTILE_TYPES)
+        if rng.random() < 0.3:
+            args["spec"]["argv"] = ["-m", "venv", "--clear", str(self.workdir)]
+        data = msgpack.packb(args)
+        return self.m.msgpack(data, self._seeds) if rng.random() < 0.4 else data
+
+    def prepare(self, data: bytes) -> Any:
+        try:
+            return msgpack.unpackb(data, raw=False, strict_map_key=False)
+        except Exception:  # noqa: BLE001 - bytes a daemon's control decoder refuses before prepare
+            return None
+
+    def feed(self, args: Any) -> int:
+        if type(args) is not dict:
+            raise WireError("not a control message's args")
+        try:
+            self.runs.prepare(args)
+        except WireError as e:
+            if "liveliness token" not in str(e):
+                raise
+        spec = self.runs._local_spec(args["spec"], self.workdir)  # every check passed: what it would write
+        if "argv" in spec:
+            return 1  # the network's argv reached a worker's spec
+        return 0
 
 
 class IRTarget(Target):
@@ -951,7 +1155,7 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "ir", "log"]
+                "insider", "specs", "ir", "log"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -960,6 +1164,10 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return CodecTarget(*args)
     if name == "coordinator":
         return CoordinatorTarget(*args)
+    if name == "insider":
+        return InsiderTarget(*args)
+    if name == "specs":
+        return SpecTarget(*args)
     if name == "ir":
         return IRTarget(*args)
     if name == "log":
@@ -1045,7 +1253,7 @@ def fuzz_target(target: Target, guard: Guard, *, seconds: float | None = None, i
             if kind not in outcome.findings:
                 outcome.findings[kind] = _save(target.name, data, signature, details) if save else ""
     outcome.seconds = time.perf_counter() - start
-    if isinstance(target, CoordinatorTarget):
+    if type(target) is CoordinatorTarget:
         outcome.insider_claims = target.insider_claims
     return outcome
 
@@ -1110,6 +1318,59 @@ def reproduce(path: Path) -> int:
     return 0
 
 
+def insider_run(records: int) -> dict[str, int]:
+    """See the module docstring (``--insider-run``)."""
+    import subprocess
+
+    from tests.backends.zenoh.test_access import Run, _insider, _secret_file
+    from tests.backends.zenoh.test_origin import _rss, _worker_pid
+
+    workdir = Path(tempfile.mkdtemp(prefix="retriever-insider-", dir=_scratch()))
+    namespace = f"insider-{os.getpid()}"
+    per, ticks = 100_000, 100_000_000  # records a report; the source's period (10 Hz)
+    payloads = [msgpack.packb([2, "counter", [[[t, 0], {}, [], "ok", None, 0, 0] for t in
+                                              (range(1 + i, 1 + i + n) if k % 3 == 0 else
+                                               range((40 + i) * ticks, (40 + i + n) * ticks, ticks) if k % 3 == 1 else
+                                               [j % 30 * ticks for j in range(n)])], []])
+                for k, i in enumerate(range(0, records, per)) for n in [min(per, records - i)]]
+    secret, enc = _secret_file(workdir), WireEncoder()
+    run = Run(workdir, namespace, secret)
+    statuses = grown = 0
+    try:
+        with _insider(run, namespace, secret, workdir) as (insider, keys):
+            before = _rss(run.proc.pid)
+            for node, tag in (("counter", [500_000_000, 0]), ("total", [400_000_000, 0])):
+                pid = _worker_pid(run.proc.pid, node)
+                for state in ("exit", "done"):
+                    insider.put(keys.node_status(node), enc.status(node, state, {"tag": tag, "pid": pid,
+                                                                                "stopped": True}),
+                                congestion_control=RELIABLE)
+                    statuses += 1
+            for payload in payloads:
+                insider.put(keys.report("counter"), payload, congestion_control=RELIABLE)  # all of it arrives
+            while True:
+                try:
+                    grown = max(grown, _rss(run.proc.pid) - before)
+                    run.proc.wait(timeout=0.05)
+                    break
+                except subprocess.TimeoutExpired:
+                    continue
+                except OSError:
+                    break
+        result = run.result()
+        steps = list(read_log(run.log).iter_steps())
+    finally:
+        run.kill()
+        shutil.rmtree(workdir, ignore_errors=True)
+    genuine = {"counter": 30, "total": 15}
+    return {"statuses put": statuses, "records put": records, "reports put": len(payloads),
+            "refused as forged": result["counts"].get("forged", 0),
+            "records accepted past the run's own": sum(max(0, result["stats"][n][0] - k) for n, k in genuine.items()),
+            "ticks the run missed (ended early)": sum(max(0, k - result["stats"][n][0]) for n, k in genuine.items()),
+            "step records in the log": len(steps), "coordinator MiB before": before >> 20,
+            "coordinator MiB grown (peak)": grown >> 20}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, help="seconds per target")
@@ -1117,9 +1378,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--targets", default=",".join(TARGET_NAMES), help="comma-separated: " + ", ".join(TARGET_NAMES))
     parser.add_argument("--reproduce", type=Path, help="run a saved input of benchmarks/fuzz_crashes/ again")
+    parser.add_argument("--insider-run", type=int, metavar="RECORDS",
+                        help="a real run beside an insider putting RECORDS forged step records (no fuzzing)")
     args = parser.parse_args(argv)
     if args.reproduce:
         return reproduce(args.reproduce)
+    if args.insider_run is not None:
+        measured = insider_run(args.insider_run)
+        print("| what | count |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in measured.items()))
+        ok = not measured["records accepted past the run's own"] and not measured["ticks the run missed (ended early)"]
+        return 0 if ok else 1
     if args.seconds is None and args.inputs is None:
         args.seconds = 10.0
     names = [n.strip() for n in args.targets.split(",") if n.strip()]

@@ -532,7 +532,8 @@ def _identity(path: Path | None) -> tuple[int, int, int, int] | None:
 _COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplete edge", "overrun": "ticks skipped after overruns",
                    "restart_skipped": "ticks skipped during restarts",
                    "deadline_miss": "LET deadline misses", "unrun_ticks": "ticks never run",
-                   "garbage": "garbage messages dropped", "report_waits": "waits for the log"}
+                   "garbage": "garbage messages dropped", "forged": "forged messages or records refused",
+                   "report_waits": "waits for the log"}
 
 
 def _counters(counts: dict[str, int]) -> str:

@@ -47,6 +47,17 @@ class Clock:
         """Whether an event arriving on input ``port`` makes a tick (no ports named: any)."""
         return self.triggered and (not self.trigger_ports or port in self.trigger_ports)
 
+    def may_tick_at(self, tag: tuple[int, int], end_ns: int | None = None) -> bool:
+        """Whether a tick of this clock can have ``tag`` (ns since T0, microstep), in a run that
+        ends at ``end_ns``: a rate's ticks are its tick times, at microstep 0, before the end; a
+        triggered clock ticks at whatever tag an event brings. A step record at another tag
+        was not made by this clock (the coordinator and the replay refuse it)."""
+        if self.triggered or self.hz is None:
+            return True
+        t, microstep = tag
+        return (microstep == 0 and t >= 0 and (end_ns is None or t < end_ns)
+                and self.tick_time(self.first_tick_at_or_after(t)) == t)
+
     def __eq__(self, other: object) -> bool:
         return type(self) is type(other) and self.to_ir() == other.to_ir()
 

@@ -68,6 +68,8 @@ def check_node(node: dict, problems: list[str], folders: dict[str, str] | None =
             params[name] = param_from_ir(value)
         except ValueError as e:
             problems.append(f"node '{nid}': params.{name} is {e}")
+        except RecursionError:  # an IR decoded from msgpack (a spec a daemon got) is not depth-checked as JSON is
+            problems.append(f"node '{nid}': params.{name} nests arrays or objects deeper than Python's recursion limit")
     module = node["type"].partition(":")[0]
     top = module.partition(".")[0]
     if top not in sys.modules and importlib.util.find_spec(top) is None:

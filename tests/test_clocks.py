@@ -326,3 +326,14 @@ def test_clock_error_is_a_value_error():
     """ClockError is a ValueError, so generic validation code catches it."""
     with pytest.raises(ValueError):
         Rate(0)
+
+
+def test_a_rate_may_tick_only_at_its_tick_times_at_microstep_0_before_the_end():
+    """What the coordinator and the replay check a step record's tag against (issue 40 §4)."""
+    rate = Rate(hz=50, offset=0.001)
+    assert [rate.may_tick_at((t, 0)) for t in (1_000_000, 21_000_000, 421_000_000)] == [True] * 3
+    assert not rate.may_tick_at((0, 0)) and not rate.may_tick_at((21_000_001, 0))
+    assert not rate.may_tick_at((21_000_000, 1))  # a rate ticks at microstep 0
+    assert rate.may_tick_at((981_000_000, 0), end_ns=1_000_000_000)
+    assert not rate.may_tick_at((1_001_000_000, 0), end_ns=1_000_000_000)
+    assert Trigger("x").may_tick_at((7, 3)) and Hybrid(10, "x").may_tick_at((7, 0))  # an event's tag: any

@@ -31,6 +31,8 @@ COUNTERS = {
     "deadline_miss": "LET outputs whose step finished after tick + latency (on_deadline_miss)",
     "unrun_ticks": "ticks triggered before the end whose inputs never completed in time",
     "garbage": "messages on the run's key space that were not the run's, dropped",
+    "forged": "statuses and reports no process of their node signed, and step records at no tick of their "
+              "node's clock, refused (a process holding the run's secret put them)",
     "report_waits": "times a node's loop waited for its reporter (recording fell behind)",
     "report_wait_ns": "how long those waits lasted in all, ns",
     "log_waits": "times the run waited for the log's disk (more than 64 MiB not yet written)",

@@ -56,7 +56,7 @@ class Divergence:
 
     node: str
     tag: tuple[int, int]
-    what: str  # "value", "inputs", "status", "outputs", "error"
+    what: str  # "value", "inputs", "status", "outputs", "error", "tick" (a record at no tick of its clock)
     port: str | None
     logged: Any
     replayed: Any
@@ -254,11 +254,21 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
     cut_short = not log.complete or "retriever.recovered" in log.metadata
     kept = Trace() if keep_trace else None
     delivered = 0
+    seen_ticks: set[tuple[str, tuple[int, int]]] = set()
     for i, step in enumerate(steps):
         if progress is not None and i % PROGRESS_EVERY == 0:
             progress(i, len(steps))
         stats = report.nodes[step.node]
         stats.steps += 1
+        # a source is not re-executed: its records are checked against its clock (a forged
+        # record between its ticks, or a second at one, is no step the run made)
+        found = _off_clock(step, graph.nodes[step.node].clock, seen_ticks)
+        if found is not None:
+            stats.divergent += 1
+            report.divergent_steps += 1
+            if len(report.divergences) < MAX_DIVERGENCES_KEPT:
+                report.divergences.append(found)
+            continue
         restarted = (step.detail or {}).get("restarted")
         if restarted is not None:
             _restart_afresh(session, step.node, restarted, floors)
@@ -305,6 +315,18 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
         progress(len(steps), len(steps))
     report.trace = kept
     return report
+
+
+def _off_clock(step, clock, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
+    """The record at a tag where its node's clock has no tick, or at one it already recorded."""
+    key = (step.node, step.tag)
+    if not clock.may_tick_at(step.tag):
+        return Divergence(step.node, step.tag, "tick", None, f"a record at {format_tag(step.tag)}",
+                          f"no tick of {clock!r} there")
+    if key in seen:
+        return Divergence(step.node, step.tag, "tick", None, "a second record of this tick", "one record a tick")
+    seen.add(key)
+    return None
 
 
 def _late_events(steps) -> dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]]:

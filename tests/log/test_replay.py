@@ -421,3 +421,27 @@ def test_what_workers_said_of_their_code_is_read_from_a_hostile_log_as_text_only
         assert said(hostile) == []
     long = said(json.dumps({"ran_other_code": {"w" * 1000: ["x" * 10_000, 7]}}))
     assert len(long) == 1 and len(long[0]) < 60 + MAX_SAID + 40
+
+
+def test_forged_source_records_are_caught_against_the_sources_clock(tmp_path):
+    """A source is not re-executed, so a forged record of it replayed as identical (issue 40 §4:
+    8,000 of them in a log). Replay checks each record against its node's clock: one between the
+    ticks of a 50 Hz source, or a second one at a tick, is a divergence that names the node."""
+    from retriever.log.writer import LogFile, LogWriter
+
+    pipe = chain(Smoother)
+    pipe.run(duration=1.0)
+    graph = pipe.compile()
+    trace = pipe.trace
+    forged = [("counter", (20_000_000 * k + 7_000_000, 0), {}, (), "ok", None, 0, 0) for k in range(5)]
+    forged.append(("counter", (40_000_000, 0), {}, (), "ok", None, 0, 0))  # its third tick, again
+    trace.raw_steps.extend(forged)
+    writer = LogWriter(LogFile(tmp_path / "forged.mcap"), graph, backend="zenoh")
+    writer.write(trace)
+    writer.close(trace, 1_000_000_000)
+    report = replay(read_log(tmp_path / "forged.mcap"))
+    assert not report.identical
+    assert report.nodes["counter"].divergent == len(forged), report.nodes["counter"]
+    assert {(d.node, d.what) for d in report.divergences} == {("counter", "tick")}, report.divergences
+    assert "no tick of Rate(hz=50) there" in str(report.divergences[0])
+    assert report.nodes["smoother"].divergent == 0 and report.nodes["smoother"].identical > 0

@@ -27,6 +27,7 @@ from ...graph import Graph
 from ..zenoh.access import write_private
 from ..zenoh.coordinator import STOP_GRACE_S, Coordinator, _exit_text
 from ..zenoh.host import Host
+from ..zenoh.origin import key_text, new_key
 from .dataflow import DoraNames, dataflow_yaml
 from .host import DoraHost, dora_command
 
@@ -68,8 +69,10 @@ class DoraCoordinator(Coordinator):
         dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
         # the workers are dora's children: they watch this process to know when they are orphans
         # (and then remove the run's directories, which no one else will)
+        # and each node's process finds the key it signs with (origin.py) in the private spec
+        self._first_keys = {nid: new_key() for nid in self.graph.nodes}
         self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
-                              "dir": str(dora_dir)}
+                              "dir": str(dora_dir), "keys": {nid: key_text(k) for nid, k in self._first_keys.items()}}
         spec_path = write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"

@@ -105,7 +105,8 @@ class DoraHost(Host):
         self._pump = threading.Thread(target=self._read, daemon=True, name="retriever-dora-output")
         self._pump.start()
 
-    def spawn(self, node: str, mode: Sequence[str] = ()) -> "DoraNodeProcess":
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> "DoraNodeProcess":
+        """(``key``: the one the node's process finds in the run's spec, DoraCoordinator._place.)"""
         if mode:  # a restart's new process: dora started the dataflow's processes once
             raise BackendError(f"the dora backend cannot start another process for '{node}'")
         return DoraNodeProcess(node, self)

@@ -2,6 +2,7 @@
 
     wire.py         key space and msgpack envelopes
     access.py       who may join a run (Zenoh authentication, TLS) and what a watcher may do (access control)
+    origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
     loop.py         one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
     worker.py       the worker process around a loop

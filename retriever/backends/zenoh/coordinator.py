@@ -41,6 +41,7 @@ from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
 from .hub import await_segments_released, mapped_segments, new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
+from .origin import Senders, new_key
 from .host import Host, LocalHost, WorkerProcess
 from .seen import EventIds, RecentTicks
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_events, decode_report, decode_status
@@ -196,10 +197,16 @@ class Coordinator(Session):
 
     def _listen(self) -> None:
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
-        put = self._inbox.put
+        put, senders = self._inbox.put, self._senders
+
+        def take(sample) -> None:  # on Zenoh's thread: what no process of the node signed is held nowhere
+            key, data, mac = str(sample.key_expr), sample.payload.to_bytes(), sample.attachment
+            sender = senders.sender(key.rsplit("/", 1)[1], key, data, None if mac is None else mac.to_bytes())
+            if sender is not None:
+                put((key, data, sender))
+
         self._subscribers += [
-            self._hub.declare_subscriber(self.keys.status("**"),
-                                         lambda s: put((str(s.key_expr), s.payload.to_bytes()))),
+            self._hub.declare_subscriber(self.keys.status("**"), take),
             self._hub.declare_queryable(self.keys.finished(), weak_callback(self._answer_finished)),
             self._hub.declare_queryable(self.keys.start(), weak_callback(self._answer_start))]
 
@@ -228,6 +235,15 @@ class Coordinator(Session):
         self._reports_sent = {nid: 0 for nid in graph.nodes}
         self._ticks = RecentTicks()  # (node, tag) of the step records seen (the recent ones, then a floor)
         self._failure: tuple[str, dict] | None = None
+        # who sent what (origin.py): the keys of each node's processes, the first ones made
+        # ahead (a dora run's, in its spec), and what was refused as forged
+        self._senders = Senders()
+        self._first_keys: dict[str, bytes] = {}
+        self._forged_told = 0
+        # a step's sys.exit(0): its `exit` status ends the run once its process's record of
+        # that step (status ok, detail {"exit": 0}) is in; per node, the (tag, process) of each
+        self._exit_said: dict[str, tuple[tuple[int, int], object]] = {}
+        self._exit_recorded: dict[str, tuple[tuple[int, int], object]] = {}
         self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
         self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
         # a lost process (see "Restarting after a lost process" in loop.py): the nodes starting
@@ -259,7 +275,9 @@ class Coordinator(Session):
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
-        self._workers[nid] = self._hosts[nid].spawn(nid, mode)
+        key = self._first_keys.pop(nid, None) or new_key()
+        self._workers[nid] = self._hosts[nid].spawn(nid, mode, key)
+        self._senders.add(nid, key, self._workers[nid])
         if join is not None:
             self._joining.add(nid)
         self._state[nid] = "starting"
@@ -328,14 +346,35 @@ class Coordinator(Session):
                             patience=slack)
         except BaseException:
             self._stop_workers()  # their last reports, then: which outputs died with a process
+            self._tell_forged()
             self._record_faults_left()
             self.close()
             raise
         self.now_ns = until_ns
         self._record_faults_left()
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
+        self._warn_forged()
+        self._check_exit_recorded()
         self._check_every_flow_ticked()
         self._warn_starved_by_late_events()
+
+    def _warn_forged(self) -> None:
+        """Messages and records refused as forged (origin.py): the run stands, and says so."""
+        self._tell_forged()
+        if self.own_counts["forged"]:
+            warnings.warn(f"{self.own_counts['forged']} message(s) or record(s) on the run's key space were refused: "
+                          f"no process of the run's node made them ({'; '.join(self._senders.reasons)})\n"
+                          "    hint: a process holding the run's secret or password put them; none reached the "
+                          "trace or the log (pipe.counts()['forged'])", RetrieverWarning, stacklevel=4)
+
+    def _check_exit_recorded(self) -> None:
+        """A node whose process said its step called sys.exit(0) and never sent that step's
+        record did not end the run: the run went on, and fails saying so."""
+        node = self._exit_unrecorded()
+        if node is not None:
+            raise BackendError(f"{self.backend_name} run: the process of '{node}' said its step called sys.exit(0) "
+                               f"at {self._exit_said[node][0]}, and never sent the record of that step: the run "
+                               "went on without it")
 
     def _check_every_flow_ticked(self) -> None:
         """A flow with a rate that had ticks due in the run's window, and ran none, fails the
@@ -447,6 +486,7 @@ class Coordinator(Session):
                     self._handle(self._inbox.get_nowait())
             except queue.Empty:
                 pass
+            self._tell_forged()
             if self._failure is not None:
                 self._raise_failure()
             self._check_processes()
@@ -480,7 +520,8 @@ class Coordinator(Session):
             self.write_log()
 
     def _handle(self, item: tuple) -> None:
-        key, data = item
+        """A status or report, with the process of its node that signed it (origin.py)."""
+        key, data, sender = item
         if key.startswith(self.keys.status("report") + "/"):
             self.reported_bytes += len(data)
             try:
@@ -496,11 +537,20 @@ class Coordinator(Session):
             for wall, message in report.events:
                 self._event(key, report.node, wall, message)
             steps = self.trace.raw_steps
+            clock = self.graph.nodes[report.node].clock
+            end = self.end_ns if self.t0 is not None else None
             for tag, consumed, produced, status, detail, start, wall in report.records:
                 if (report.node, tag) in self._ticks:
                     self._garbage(key, WireError(f"a second step record of {report.node} at {tag}"))
                     continue
+                if not clock.may_tick_at(tag, end):
+                    self._senders.refuse(f"a step record of {report.node} at {tag}, which is no tick of its {clock!r}")
+                    continue
                 self._ticks.add((report.node, tag))
+                exit_code = detail.get("exit") if detail is not None else None
+                if status == "ok" and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
+                    self._exit_recorded[report.node] = (tag, sender)
+                    self._end_by_exit(report.node)
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
                 if self.live is not None:
                     self.live.step(report.node, tag, consumed, produced, status, detail, start, wall)
@@ -529,11 +579,12 @@ class Coordinator(Session):
             return
         # Only the node's own process speaks for it: its running one (a restart spawns a process,
         # so only it may ask for one), or, while it restarts, the old one (which alone says it
-        # handed over). A status from any other pid (an insider's forgery: a `failed` stopped the
-        # run, a `done` added its counts) is garbage.
+        # handed over). A status signed by another of its processes (one that already handed
+        # over or was replaced) is garbage; an insider's (a `failed` stopped the run, a `done`
+        # added its counts, an `exit` ended it) is signed by none and never got here.
         current, retiring = self._workers.get(node), self._retiring.get(node)
         sayers = {"handed_over": (retiring,), "done": (current, retiring), "failed": (current, retiring)}
-        if info.get("pid") not in {p.pid for p in sayers.get(state, (current,)) if p is not None}:
+        if sender is None or not any(sender is p for p in sayers.get(state, (current,))):
             self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
                                          f"which is not the process of {node} that could say it"))
             return
@@ -546,15 +597,13 @@ class Coordinator(Session):
             # past the grant (one it was told by someone else): it reached this one on the way
             self._reached[node] = max(self._reached.get(node, -1), min(until, self._granted))
             return
-        if state == "exit":  # its step called sys.exit(0): the whole run ends there, cleanly
-            if self.t0 is not None and not self._stop_sent:
-                self._stop_sent = True
-                self.ended_by = node
-                # as if the run ended now: no tick at or past the exit, but every event sent before
-                # it (each stamped before now, the exit's tag may be earlier on a late node) still
-                # reaches the ticks it triggers, within their deadline, as at any run's end
-                tag = info.get("tag")
-                self._control("end", {"at": max(tag[0] if _is_tag(tag) else 0, self._run_time())})
+        if state == "exit":  # its step called sys.exit(0): the run ends there, once its record is in
+            tag = info.get("tag")
+            if not _is_tag(tag):
+                self._garbage(key, WireError(f"an 'exit' status of {node} with tag {tag!r:.30}"))
+                return
+            self._exit_said[node] = (tuple(tag), sender)
+            self._end_by_exit(node)
             return
         if state == "unanswered":  # before the start: its neighbours declare themselves again
             nodes = info.get("nodes")
@@ -617,7 +666,8 @@ class Coordinator(Session):
             self._joining.discard(node)
             return
         elif state == "done":
-            if info.get("stopped") is True and not self._stop_sent and self.t0 is not None and self._failure is None:
+            if (info.get("stopped") is True and not self._stop_sent and self.t0 is not None and self._failure is None
+                    and node not in self._exit_said):  # (an exit's record may come after its `done`)
                 # it ended before the run's end on a stop this coordinator never sent: a run cut
                 # short must not look finished (an insider's `stop` on ctl/run, or a SIGTERM to it)
                 self._failure = (node, {"error": (
@@ -628,6 +678,36 @@ class Coordinator(Session):
             if old is not None:
                 self._retired.append(old)
         self._state[node] = state
+
+    def _end_by_exit(self, node: str) -> None:
+        """End the run as a step of ``node`` asked (sys.exit(0)), once its process both said so
+        (status ``exit``) and recorded that step (status ok, detail ``{"exit": 0}``) at that tag."""
+        said = self._exit_said.get(node)
+        if said is None or self._exit_recorded.get(node) != said or self.t0 is None or self._stop_sent:
+            return
+        self._stop_sent = True
+        self.ended_by = node
+        # as if the run ended now: no tick at or past the exit, but every event sent before
+        # it (each stamped before now, the exit's tag may be earlier on a late node) still
+        # reaches the ticks it triggers, within their deadline, as at any run's end
+        self._control("end", {"at": max(said[0][0], self._run_time())})
+
+    def _exit_unrecorded(self) -> str | None:
+        """A node whose process said its step called sys.exit(0), and never sent the record of that step."""
+        return next((node for node, said in sorted(self._exit_said.items(), key=lambda item: item[0])
+                     if self._exit_recorded.get(node) != said), None)
+
+    def _tell_forged(self) -> None:
+        """Count what was refused as forged (``forged``), and say so on stderr when more came."""
+        refused = self._senders.refused
+        if refused == self._forged_told:
+            return
+        self.own_counts["forged"] = refused
+        if self._forged_told == 0:
+            print(f"retriever: refused a message or record that no process of the run's node made: "
+                  f"{self._senders.reasons[0]} (counted as 'forged'; a process holding the run's secret?)",
+                  file=sys.stderr, flush=True)
+        self._forged_told = refused
 
     def _run_time(self) -> int:
         """Now, in ns since T0 (0 before the start)."""

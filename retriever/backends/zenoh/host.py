@@ -11,6 +11,7 @@ runs on (issue 18: the embedded run is a deployment with one local host).
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from abc import ABC, abstractmethod
@@ -18,6 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
+from .origin import KEY_ENV, key_text
 from .output import WorkerOutput
 
 WORKER_MODULE = "retriever.backends.zenoh.worker"
@@ -49,8 +51,9 @@ class Host(ABC):
         self.alive = True
 
     @abstractmethod
-    def spawn(self, node: str, mode: Sequence[str] = ()) -> WorkerProcess:
-        """Start a worker process for ``node``; ``mode``: its extra arguments (``--join T0 END``...)."""
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> WorkerProcess:
+        """Start a worker process for ``node``; ``mode``: its extra arguments (``--join T0 END``...);
+        ``key``: the key it signs its statuses and reports with (origin.py), given to it alone."""
 
     def output(self, node: str) -> WorkerOutput:
         """What ``node``'s worker processes printed (all of them: a restart makes a new one)."""
@@ -72,9 +75,10 @@ class LocalHost(Host):
         super().__init__()
         self.spec_path = spec_path
 
-    def spawn(self, node: str, mode: Sequence[str] = ()) -> subprocess.Popen:
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> subprocess.Popen:
         cmd = [sys.executable, "-m", WORKER_MODULE, str(self.spec_path), node, *mode]
+        env = {**os.environ, KEY_ENV: key_text(key)} if key is not None else None
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                start_new_session=True)
+                                start_new_session=True, env=env)
         self.output(node).attach(proc)
         return proc

@@ -2,7 +2,7 @@
 
     coordinator                                          daemon <name>
       query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec
-      query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid}
+      query ctl/<name>  spawn {run, node, mode, key} ──▶  starts that node's worker process: {pid}
       query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
       subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines}
@@ -24,6 +24,7 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
+from .origin import key_text
 from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -114,8 +115,9 @@ class RemoteHost(Host):
                     raise
                 time.sleep(PREPARE_AGAIN_S)
 
-    def spawn(self, node: str, mode: Sequence[str] = ()) -> RemoteProcess:
-        answer = self.request("spawn", {"node": node, "mode": list(mode)})
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> RemoteProcess:
+        args = {"node": node, "mode": list(mode), **({"key": key_text(key)} if key is not None else {})}
+        answer = self.request("spawn", args)
         pid = answer.get("pid")
         if type(pid) is not int:
             raise BackendError(f"worker '{self.name}' answered spawn of '{node}' without a pid")

@@ -31,6 +31,7 @@ import time
 import zenoh
 
 from ...errors import RetrieverError
+from .origin import sign
 from .wire import RELIABLE, WireEncoder
 
 #: reports handed over and not yet sent, at most; and the bytes of messages they hold, at most
@@ -53,8 +54,10 @@ class Reporter:
     def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int,
                  max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES,
                  max_pending_seqs: int = MAX_PENDING_SEQS):
-        self.session, self.key, self.node = session, key, node
+        self.session, self.key_expr, self.node = session, key, node
         self.spill_dir, self.spill_bytes = spill_dir, spill_bytes
+        #: this process's key, which signs each report (origin.py; set by the worker)
+        self.key: bytes | None = None
         self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
         self.max_pending_seqs = max_pending_seqs
         self.encoder = WireEncoder()  # this thread's own
@@ -129,7 +132,9 @@ class Reporter:
         if self.spill_dir is not None:
             events = [(wall, self._spill(message)) if len(message) >= self.spill_bytes else (wall, message)
                       for wall, message in events]
-        self.session.put(self.key, self.encoder.report(self.node, records, events), congestion_control=RELIABLE)
+        payload = self.encoder.report(self.node, records, events)
+        self.session.put(self.key_expr, payload, congestion_control=RELIABLE,
+                         attachment=sign(self.key, self.key_expr, payload) if self.key is not None else None)
         self.sent += 1
 
     def _spill(self, message: bytes) -> bytes | str:

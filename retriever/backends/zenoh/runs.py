@@ -7,8 +7,9 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
                                  is imported) and its module's file here against the IR's sha256,
                                  keep the spec in a private folder, made for this host: {nodes,
                                  warnings} (a code mismatch it runs anyway, with --code-mismatch warn)
-    spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
-                                 does: {pid}; what it prints goes to the coordinator, and its exit
+    spawn {run, node, mode, key} start that node's worker process (worker.py), as the embedded run
+                                 does, its key (origin.py) in its environment: {pid}; what it
+                                 prints goes to the coordinator, and its exit
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
     end {run}                    stop what is left of the run, remove its folder
 
@@ -43,6 +44,7 @@ from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
 from .host import WORKER_MODULE
 from .hub import weak_callback
+from .origin import KEY_BYTES, KEY_ENV, key_of_text, key_text
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -165,6 +167,9 @@ class DaemonRuns:
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
                                and all(type(x) is str and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
+        key = key_of_text(args["key"]) if "key" in args else None
+        if "key" in args and key is None:
+            raise WireError(f"spawn key {args['key']!r:.20} is not {KEY_BYTES} bytes as hex text")
         if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
             mismatch = self._code_mismatch(run.ir, node)
             if mismatch is not None:
@@ -178,7 +183,7 @@ class DaemonRuns:
         proc = self._spawner.submit(
             subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-            env=flow_environment(os.environ, self.pass_env)).result()
+            env={**flow_environment(os.environ, self.pass_env), **({KEY_ENV: key_text(key)} if key else {})}).result()
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
             threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,

@@ -18,7 +18,8 @@ the flow afresh on fresh inputs once told ``restarted`` (see "Restarting after a
 in loop.py).
 
 A worker exits when its node is done, on ``stop``, on SIGTERM, or when its parent dies; its
-session always closes. Every status it sends carries its pid. Exit codes: 0 done or stopped,
+session always closes. Every status it sends carries its pid, and every status and report the MAC
+of its process's key (origin.py). Exit codes: 0 done or stopped,
 1 failed (the status message says why), 3 handed over to a restarted flow, 4 its parent died (it
 said nothing: as if killed).
 """
@@ -383,13 +384,16 @@ def _serve(argv: list[str], parent: int) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us
     spec_path, node_id = argv[0], argv[1]
     from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
+    from .origin import key_of_text, sign, take_key_from_environment
 
     worker.serving = node_id
+    process_key = take_key_from_environment()  # before any flow code runs (origin.py)
     join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
     fresh = argv[2:5] if len(argv) >= 5 and argv[2] == "--fresh" else None
     spec = json.loads(Path(spec_path).read_text())
     if spec.get("dora"):  # started by dora (backends/dora): its argument is the node's dora id
         node_id = worker.serving = _started_by_dora(spec, node_id, Path(spec_path).parent)
+        process_key = key_of_text(spec["dora"].get("keys", {}).get(node_id))
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
             sys.path.insert(0, path)
@@ -421,13 +425,15 @@ def _serve(argv: list[str], parent: int) -> int:
                    shared_memory=shared_memory) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()
-            session.put(keys.node_status(node_id), WireEncoder().status(node_id, state, info),
-                        congestion_control=RELIABLE)
+            key, payload = keys.node_status(node_id), WireEncoder().status(node_id, state, info)
+            session.put(key, payload, congestion_control=RELIABLE,
+                        attachment=sign(process_key, key, payload) if process_key is not None else None)
 
         try:
             if spec.get("main_file"):
                 _import_main(spec["main_file"])
             loop = build_loop(spec, node_id, session)
+            loop.reporter.key = process_key
         except BaseException as exc:
             status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",
                    traceback=traceback.format_exc())

@@ -270,7 +270,8 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
         run.kill()
     assert not marker.exists(), "a decoded value ran code"
     assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
-    assert result["counts"].get("garbage", 0) >= len(claims), result
+    # (statuses of the coordinator's nodes are refused unsigned, as forged: test_origin.py)
+    assert result["counts"].get("garbage", 0) + result["counts"].get("forged", 0) >= len(claims), result
     assert "late" not in result["counts"] and "redeclared" not in result["counts"], result
     # applied, the frontier past every tag made all 15 of total's ticks incomplete (a loaded
     # machine may make a few so on its own)

@@ -7,6 +7,8 @@ starts is killed by its PID at the end, and every wait is bounded.
 
 from __future__ import annotations
 
+import copy
+import functools
 import hashlib
 import os
 import re
@@ -370,13 +372,21 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                      {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
                 ask(session, namespace, "w", "prepare", args)
+        deep = copy.deepcopy(_ir_doc())  # a param nested past Python's recursion limit (fuzz.py's `specs`)
+        next(n for n in deep["nodes"] if n["id"] == "counter")["params"]["k"] = functools.reduce(
+            lambda inner, _: [inner], range(900), [])
+        with pytest.raises(WorkerError, match=r"params\.k nests arrays or objects deeper than Python's recursion"):
+            ask(session, namespace, "w", "prepare", {"run": "r-deep", "spec": {"ir": deep}, "nodes": ["counter"]})
         ask(session, namespace, "w", "prepare", {"run": "r2", "spec": {"ir": _ir_doc(), "namespace": namespace,
                                                                        "hub": endpoint(port)}, "nodes": ["counter"]})
         for args, expected in (({"node": "relay", "mode": []}, "was not prepared"),
                                ({"node": "counter", "mode": ["--join", "1; rm -rf /", "2"]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--fresh", "-5", "-1"]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--join", "0", "1" + "0" * 26]}, "spawn mode"),
-                               ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode")):
+                               ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode"),
+                               # the key its process signs with (origin.py): 32 bytes as hex text
+                               ({"node": "counter", "mode": [], "key": "ab" * 31}, "spawn key"),
+                               ({"node": "counter", "mode": [], "key": 7}, "spawn key")):
             with pytest.raises(WorkerError, match=expected):
                 ask(session, namespace, "w", "spawn", {"run": "r2", **args})
         with pytest.raises(WorkerError, match="not a process of run r2"):
