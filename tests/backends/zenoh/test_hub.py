@@ -198,14 +198,14 @@ def test_a_process_that_starts_run_after_run_keeps_none_of_their_shared_memory()
     assert proc.returncode == 0, proc.stderr
     reports = [json.loads(line) for line in proc.stdout.splitlines()]
     assert len(reports) == runs, proc.stdout
-    # what the test stands on: the frames went through the camera's pool (a camera late by more
-    # than the run, on a loaded machine, may have sent none)
-    stepped = [r["taker"] for r in reports if r["taker"]]
-    assert len(stepped) >= runs - 3 and all(max(t.values()) >= SHM_POOL_MIN for t in stepped), stepped
     shmem = [r["rss_shmem_kb"] for r in reports]
     assert max(shmem[1:]) - shmem[1] <= 2048, shmem  # never 2 MiB more than after the second run
     mapped = [len(r["mapped"]) for r in reports]
     assert max(mapped[1:]) <= mapped[1], mapped
+    # what that stands on: the frames went through the camera's pool (a camera late by more than
+    # the run, on a loaded machine, may have sent none)
+    stepped = [r["taker"] for r in reports if r["taker"]]
+    assert len(stepped) >= runs - 3 and all(max(t.values()) >= SHM_POOL_MIN for t in stepped), stepped
     left = [path for r in reports for path in [*r["taker"], r["run_dir"]] if os.path.exists(path)]
     assert not left, left
 
