@@ -31,11 +31,12 @@ LOOPBACK = "127.0.0.1"
 #: did (17.5 ms at 20 Hz here; 5.4 ms through a 128 MiB pool). So the pool gets up to
 #: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
 #: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
-#: Every worker of a run has a pool (the hub has none: open_hub), and writes all of it (worker.py
-#: POOL_PADDING), so the run's workers share that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each
-#: wrote 6.4 GB of /dev/shm while they started, spent 13-35 s of system time on the page faults
-#: (2 cores), and in one run of two 14 of them never received the run's start; with 16 MiB each,
-#: 6.5 s and all started (benchmarks/reports/scale.md).
+#: Every worker of a run that sends to a consumer on its host has a pool (the hub has none:
+#: HUB_SHARED_MEMORY), and writes all of it (worker.py POOL_PADDING), so the run's workers share
+#: that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each wrote 6.4 GB of
+#: /dev/shm while they started, spent 13-35 s of system time on the page faults (2 cores), and
+#: in one run of two 14 of them never received the run's start; with 16 MiB each, 6.5 s and all
+#: started (benchmarks/reports/scale.md).
 SHM_POOL_MAX = 128 << 20
 SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
@@ -221,7 +222,8 @@ def remove_orphaned_segments_at_exit() -> None:
     exit(): it does so in a process in which it has set up shared memory, as making a provider
     (dropped at once, mapping nothing after) does. A run's last worker to exit still maps the
     metadata segment of the producer it received from, which so outlives both; a process whose
-    sessions have no shared memory (a hub, HUB_SHARED_MEMORY) would leave it there."""
+    sessions have no shared memory (a hub's, a worker daemon's: HUB_SHARED_MEMORY) would leave it
+    there."""
     try:
         zenoh.shm.ShmProvider.default_backend(4096)
     except (AttributeError, zenoh.ZError):  # a Zenoh without shared memory leaves no segment

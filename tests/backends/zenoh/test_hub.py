@@ -149,7 +149,7 @@ def test_the_shared_memory_pool_grows_with_what_dev_shm_has_free():
 
 
 def test_the_processes_of_a_run_share_one_shared_memory_budget():
-    """Every process of a run writes its whole pool: 50 flows at SHM_POOL_MAX each wrote 6.4 GB
+    """Every worker with a pool writes all of it: 50 flows at SHM_POOL_MAX each wrote 6.4 GB
     while they started, and some never received the run's start. A run's pools together stay
     within SHM_POOL_RUN_MAX (and the share of /dev/shm), each at least Zenoh's default."""
     free = 24 << 30  # this machine's /dev/shm
