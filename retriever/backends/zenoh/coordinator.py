@@ -39,13 +39,13 @@ from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
-from .hub import await_segments_released, mapped_segments, new_zid, open_hub, weak_callback
+from .hub import new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
 from .origin import Senders, new_key
 from .host import Host, LocalHost, WorkerProcess
 from .seen import EventIds, RecentTicks
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError, decode_events, decode_report, decode_status
-from .worker import EXIT_FAILED, EXIT_HANDED_OVER, run_sessions
+from .worker import EXIT_FAILED, EXIT_HANDED_OVER
 
 
 #: after `stop`, how long workers have to send their last reports and exit; one still running is
@@ -131,13 +131,10 @@ class Coordinator(Session):
         self._hub = None
         self._subscribers: list = []
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_sessions)
-        self._hub_segments: set[str] = set()
         try:
             access = self._access
             dictionary = access.write_dictionary(self._dir) if access else None
-            before = mapped_segments()
             self._open_hub(hub_port, access.session_config(dictionary) if access else None)
-            self._hub_segments = mapped_segments() - before  # the hub session's own
             #: a Zenoh config file with which a client joins the run as a read-only watcher
             self.watch_config = (access.write_watcher_config(self._dir / "watch.json5", self.endpoint)
                                  if access else None)
@@ -181,8 +178,7 @@ class Coordinator(Session):
 
     def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
         """Open the run's own session (``self._hub``), which the workers join at ``self.endpoint``."""
-        self._hub, self.endpoint = open_hub(port, sessions=run_sessions(len(self.graph.nodes)), access=access,
-                                            keys=self.keys)
+        self._hub, self.endpoint = open_hub(port, access=access, keys=self.keys)
 
     def _where(self) -> str:
         """Where the run's hub is, for the line that says how to watch it."""
@@ -1035,7 +1031,6 @@ class Coordinator(Session):
                 print(f"retriever: the run's hub did not close in time: a peer connected to it stopped reading "
                       f"(a suspended watcher?) ({e})", file=sys.stderr, flush=True)
             self._hub = None
-            await_segments_released(self._hub_segments)  # so that exit() can remove them
         shutil.rmtree(self._dir, ignore_errors=True)
         _OPEN.discard(self)
 

@@ -50,7 +50,8 @@ import zenoh
 from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
-from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers, weak_callback
+from .hub import (await_segments_released, mapped_segments, peer_config, remove_orphaned_segments_at_exit,
+                  wait_for_peers, weak_callback)
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
 
@@ -454,7 +455,10 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
 def _serve_until(settings: WorkerSettings, stop: threading.Event, access: dict[str, str] | None,
                  say: Callable[[str], None]) -> None:
     """Join, check the name is free, answer until ``stop``, close."""
-    config = peer_config(listen=settings.listen, connect=settings.connect, access=access, lease=settings.lease)
+    # a process that outlives the runs it serves keeps whatever pool it is sent through (hub.HUB_SHARED_MEMORY)
+    config = peer_config(listen=settings.listen, connect=settings.connect, access=access, lease=settings.lease,
+                         shared_memory=False)
+    remove_orphaned_segments_at_exit()  # what its runs' workers leave
     try:
         taken, counts = in_session(config, lambda session: _announce_and_answer(settings, session, stop, say))
     except zenoh.ZError as e:

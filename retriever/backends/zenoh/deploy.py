@@ -34,7 +34,7 @@ from ...trace import KEEP
 from .access import AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session,
                      open_access)
-from .hub import peer_config, wait_for_peers, weak_callback
+from .hub import HUB_SHARED_MEMORY, peer_config, remove_orphaned_segments_at_exit, wait_for_peers, weak_callback
 from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
 from .coordinator import Coordinator
@@ -122,8 +122,9 @@ class Deployment(Coordinator):
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
         listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
         links = self._tls.session_config() if self._tls is not None else {}
+        remove_orphaned_segments_at_exit()
         self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
-                                           lease=self._lease))
+                                           lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
 

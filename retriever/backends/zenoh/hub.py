@@ -7,6 +7,7 @@ any Zenoh client (a plain ``zenoh`` subscriber watching ``retriever/<ns>/data/**
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -30,11 +31,12 @@ LOOPBACK = "127.0.0.1"
 #: did (17.5 ms at 20 Hz here; 5.4 ms through a 128 MiB pool). So the pool gets up to
 #: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
 #: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
-#: Every process of a run has a pool, and writes all of it (worker.py READY_PADDING), so the
-#: run's processes share that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each
-#: wrote 6.4 GB of /dev/shm while they started, spent 13-35 s of system time on the page faults
-#: (2 cores), and in one run of two 14 of them never received the run's start; with 16 MiB each,
-#: 6.5 s and all started (benchmarks/reports/scale.md).
+#: Every worker of a run that sends to a consumer on its host has a pool (the hub has none:
+#: HUB_SHARED_MEMORY), and writes all of it (worker.py POOL_PADDING), so the run's workers share
+#: that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each wrote 6.4 GB of
+#: /dev/shm while they started, spent 13-35 s of system time on the page faults (2 cores), and
+#: in one run of two 14 of them never received the run's start; with 16 MiB each, 6.5 s and all
+#: started (benchmarks/reports/scale.md).
 SHM_POOL_MAX = 128 << 20
 SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
@@ -45,8 +47,9 @@ SHM_POOL_RUN_MAX = 1 << 30
 #: process that maps it lets go, or in a scan of every segment at a process's exit() (and at its
 #: first shared-memory use), which skips the segments still mapped, by anyone, the exiting
 #: process included. A closed session lets go of its segments on a Zenoh thread 1–50 ms later
-#: (measured), so a program that exited right after its run's hub closed sometimes left the hub's
-#: segment behind. Closing a hub waits for that, at most this long.
+#: (measured), so a program that exited right after a session closed sometimes left the session's
+#: segment behind (a run's hub did, when it had shared memory). Closing a session with shared
+#: memory in a process that goes on (daemon.in_session) waits for that, at most this long.
 SEGMENT_RELEASE_S = 0.5
 
 
@@ -202,19 +205,48 @@ def forward_dropping(keys: KeySpace) -> dict[str, str]:
     return {"qos/network": json.dumps([rule])}
 
 
-def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, sessions: int = 1,
-             access: dict[str, str] | None = None, keys: KeySpace | None = None) -> tuple[zenoh.Session, str]:
-    """Open the run's hub session, one of the run's ``sessions``; returns it and the endpoint it
-    listens on. Close it (``with``). ``keys``: the run's key space, whose messages it forwards
-    to watchers dropping (forward_dropping)."""
+#: A process that receives a message through another's shared-memory pool maps that pool, and
+#: the pool's metadata segment (1.25 MiB), until it exits: Zenoh keeps every segment it ever
+#: attached in storage global to the process, closed sessions and exited senders alike, and
+#: zenoh-python has nothing that lets go of one (eclipse-zenoh/zenoh#1700, #2787). With shared
+#: memory, a run's hub attached each worker's pool (its ``ready`` status, then its reports), so a
+#: program kept RAM mapped for every run it had run (/dev/shm, counted in RssShmem): 258 MiB per
+#: run of two flows with 128 MiB pools, 5 GB in the test suite's process. So the hub has no
+#: shared memory, nor a pool of its own; the workers use theirs between each other.
+HUB_SHARED_MEMORY = False
+
+
+@functools.cache
+def remove_orphaned_segments_at_exit() -> None:
+    """Have Zenoh remove the /dev/shm segments that no process maps, now and at this process's
+    exit(): it does so in a process in which it has set up shared memory, as making a provider
+    (dropped at once, mapping nothing after) does. A run's last worker to exit still maps the
+    metadata segment of the producer it received from, which so outlives both; a process whose
+    sessions have no shared memory (a hub's, a worker daemon's: HUB_SHARED_MEMORY) would leave it
+    there."""
+    try:
+        zenoh.shm.ShmProvider.default_backend(4096)
+    except (AttributeError, zenoh.ZError):  # a Zenoh without shared memory leaves no segment
+        pass
+
+
+def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, access: dict[str, str] | None = None,
+             keys: KeySpace | None = None) -> tuple[zenoh.Session, str]:
+    """Open the run's hub session; returns it and the endpoint it listens on. Close it (``with``).
+    ``keys``: the run's key space, whose messages it forwards to watchers dropping
+    (forward_dropping).
+
+    Without shared memory (HUB_SHARED_MEMORY), so what the workers send it comes over TCP."""
     # 0: any free port (Zenoh would listen on one but tell no one which)
     port = preferred_port if preferred_port and port_is_free(preferred_port) else free_port()
+    remove_orphaned_segments_at_exit()
     if keys is not None:
         access = {**(access or {}), **forward_dropping(keys)}
     last: Exception | None = None
     for _ in range(attempts):
         try:
-            return zenoh.open(peer_config(listen=[endpoint(port)], sessions=sessions, access=access)), endpoint(port)
+            return (zenoh.open(peer_config(listen=[endpoint(port)], access=access, shared_memory=HUB_SHARED_MEMORY)),
+                    endpoint(port))
         except zenoh.ZError as e:  # taken between the check and the bind: try another
             last = e
             port = free_port()
@@ -235,8 +267,8 @@ def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | Non
                                   access=access, lease=lease, zid=zid, shared_memory=shared_memory))
 
 
-def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float,
-                     stop=lambda: False, gone=lambda: set(), nudge=None, nudge_every: float = 2.0) -> set[str]:
+def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float, stop=lambda: False, gone=lambda: set(),
+                     nudge=None, nudge_every: float = 2.0, payload: bytes | None = None) -> set[str]:
     """Query each of ``keys`` until a reply has come from each that is not ``gone()``, at most
     ``timeout`` s; the keys that never answered. A reply travels on the link between the two
     sessions, after the declarations each had sent on it: once a peer answers, each knows the
@@ -245,12 +277,13 @@ def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float,
     Each key is asked by name, all at once: a query on a wildcard (``progress/**``) went to
     every node of the run, so N starting nodes asked N² questions; at 80 nodes on 2 cores the
     answers fell so far behind that some node never had its producer's (benchmarks/reports/deploy.md).
-    ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered."""
+    ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered.
+    ``payload``: what each question carries (the answerers ignore it: worker.POOL_PADDING)."""
     missing = set(keys)
     give_up = time.monotonic() + timeout
     next_nudge = time.monotonic() + nudge_every
     while missing and time.monotonic() < give_up and not stop():
-        asked = [session.get(key, timeout=0.25) for key in sorted(missing)]
+        asked = [session.get(key, payload=payload, timeout=0.25) for key in sorted(missing)]
         for replies in asked:
             for reply in replies:
                 if reply.ok is not None:

@@ -49,14 +49,16 @@ EXIT_FAILED = 1
 EXIT_HANDED_OVER = 3
 EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended without a word
 
-#: The ``ready`` status carries this much padding, so that Zenoh sends it through the session's
-#: shared-memory pool (messages over 3 KiB between peers on one host go that way). Zenoh creates
-#: the pool on its first such message and writes all of it (128 MiB: ~37k page faults, 130 ms
-#: here, more on memory the VM has not touched). Sent with ``ready``, that happens before T0 (or
+#: Before it says ``ready``, a worker asks each consumer's progress with this much padding, so
+#: that Zenoh sends the question through the session's shared-memory pool (messages over 3 KiB
+#: between peers on one host go that way; the hub has no shared memory: hub.HUB_SHARED_MEMORY).
+#: Zenoh creates the pool on its first such message and writes all of it (128 MiB: ~37k page
+#: faults, 130 ms here, more on memory the VM has not touched): so that happens before T0 (or
 #: before a restarted flow joins); left to the first big frame, it held that put for 130 ms and
 #: the source's next ticks started up to 120 ms late (benchmarks/reports/latency.md, at 16 MiB).
-#: The coordinator gets ``ready`` only once the pool exists: the message is in it.
-READY_PADDING = 4096
+#: The answer comes once the pool exists: the question is in it. A node with no consumer on its
+#: host never sends through a pool, and has none.
+POOL_PADDING = 4096
 
 #: the node this process serves, once it is a worker: a run started here (a flow's module that
 #: runs a pipeline when imported) is refused, or every worker would start a run of its own
@@ -94,11 +96,12 @@ NEIGHBOR_TIMEOUT_S = 10.0
 #: missed it would wait until the run gave up on it.
 START_ASK_S = 0.5
 
-#: A new worker waits, before it says ready, for an answer from each producer (see _serve). At 80
-#: flows on 8 hosts of a 2-core machine, a worker linked to its producer was, 2 runs in 3, never
-#: told of that producer's queryable: the run never started (benchmarks/reports/deploy.md, "Scale"; the
-#: other nodes' answers came). So after this long without an answer it says ``unanswered``; the
-#: coordinator tells those producers to ``redeclare`` (on ctl/run, through the hub: the link
+#: A new worker waits, before it says ready, for an answer from each producer (see _serve), and
+#: from each consumer if it makes its pool (POOL_PADDING). At 80 flows on 8 hosts of a 2-core
+#: machine, a worker linked to its producer was, 2 runs in 3, never told of that producer's
+#: queryable: the run never started (benchmarks/reports/deploy.md, "Scale"; the other nodes'
+#: answers came). So after this long without an answer it says ``unanswered``; the coordinator
+#: tells those neighbours to ``redeclare`` (on ctl/run, through the hub: the link
 #: between the two may be what lost it), and the worker declares its own subscriptions again too.
 REDECLARE_AFTER_S = 2.0
 
@@ -252,9 +255,9 @@ def instant_ports(ir, node_id: str) -> frozenset[str]:
 
 
 def run_sessions(nodes: int) -> int:
-    """How many Zenoh sessions a run of ``nodes`` nodes has: a worker's each, and the hub (they
-    share the run's shared memory, hub.shm_pool_bytes)."""
-    return nodes + 1
+    """How many Zenoh sessions with a pool a run of ``nodes`` nodes has, which share the run's
+    shared memory (hub.shm_pool_bytes): a worker's each (the hub has none, hub.HUB_SHARED_MEMORY)."""
+    return nodes
 
 
 def on_a_cycle(edges: list[dict], node_id: str) -> bool:
@@ -419,7 +422,7 @@ def _serve(argv: list[str], parent: int) -> int:
     # old process may still be linked, has its own: it finds its neighbours by their answers)
     zid = spec.get("zids", {}).get(node_id) if fresh is None and join is None else None
     shared_memory = needs_shared_memory(spec["ir"], node_id)
-    padding = bytes(READY_PADDING if shared_memory else 0)  # no pool to make before T0 without it
+    padding = bytes(POOL_PADDING) if shared_memory else None  # no pool to make before T0 without it
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
                    listen=spec.get("listen"), lease=spec.get("lease"), zid=zid,
                    shared_memory=shared_memory) as session:
@@ -470,7 +473,7 @@ def _serve(argv: list[str], parent: int) -> int:
                 if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
                     t0, end = int(fresh[1]), int(fresh[2])
                     seqs = _join_afresh(session, keys, spec, node_id, loop,
-                                        ready=lambda: status("ready", padding=padding))
+                                        ready=lambda: status("ready"), padding=padding)
                     if seqs is None:
                         status("done", counts=dict(loop.counts))
                         loop.undeclare()
@@ -486,11 +489,15 @@ def _serve(argv: list[str], parent: int) -> int:
                     wait_for_answers(session, {keys.progress(n) for n in neighbors},
                                      timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
                                      gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
+                    if padding:  # its pool, before it joins (POOL_PADDING)
+                        wait_for_answers(session, {keys.progress(n) for n in _consumers(spec, node_id)},
+                                         timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping, payload=padding,
+                                         gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
                     t0, end = int(join[1]), int(join[2])
                     _link_to_hub(session, spec, loop)
 
                     def say_ready() -> None:
-                        status("ready", padding=padding)  # the pool, before it joins
+                        status("ready")
 
                     say_ready()
                     if _await_control(loop, "resume", node_id, ask=say_ready) is None:
@@ -516,6 +523,10 @@ def _serve(argv: list[str], parent: int) -> int:
                     wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
                                      timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
                                      nudge=nudge, nudge_every=REDECLARE_AFTER_S)
+                    if padding:  # its pool, before T0 (POOL_PADDING)
+                        wait_for_answers(session, {keys.progress(c) for c in _consumers(spec, node_id)},
+                                         timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
+                                         nudge=nudge, nudge_every=REDECLARE_AFTER_S, payload=padding)
                     # the events' own routes, where they are not Zenoh's (dora): one message through each
                     loop.await_routes(timeout=spec.get("startup_timeout", 60.0))
                     if loop.stopping:
@@ -524,7 +535,7 @@ def _serve(argv: list[str], parent: int) -> int:
 
                     def ready() -> None:
                         status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
-                               peers=len(session.info.peers_zid()), padding=padding)
+                               peers=len(session.info.peers_zid()))
 
                     ready()
                     # said again with each ask: a put made as a link came up may reach the hub before
@@ -631,10 +642,12 @@ def _names_of(spec: dict, zids: set[str]) -> list[str]:
     return sorted(names.get(z, z) for z in zids)
 
 
-def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready) -> dict[str, int] | None:
+def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready,
+                 padding: bytes | None) -> dict[str, int] | None:
     """A flow whose process died, in its new process: subscribe to the inputs, take each stream
     on from where its producer stands (its progress answer: the reply comes on the link after
-    our subscriptions, so every later event reaches us), link to the consumers, say ``ready``
+    our subscriptions, so every later event reaches us), link to the consumers (asking them
+    with ``padding``: POOL_PADDING), say ``ready``
     and wait for the coordinator's ``restarted``: the first seq of each output port. None on
     ``stop``. A neighbour that is itself starting afresh is not waited for as a consumer (each
     would wait for the other), only as a producer (it answers once restarted, not waiting for us)."""
@@ -663,7 +676,7 @@ def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready)
         return None
     loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
     wait_for_answers(session, {keys.progress(n) for n in consumers},
-                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
+                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping, payload=padding,
                      gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))})
     _drop_queued(loop, "restarted", node_id)  # the coordinator's comes after `ready`: one before is not its
     _link_to_hub(session, spec, loop)

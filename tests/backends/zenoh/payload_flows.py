@@ -1,4 +1,4 @@
-"""Flows for tests/backends/zenoh/test_payloads.py (module level: workers rebuild them from the IR)."""
+"""Flows for tests/backends/zenoh/test_payloads.py and others (module level: workers rebuild them from the IR)."""
 
 from __future__ import annotations
 
@@ -73,17 +73,23 @@ class Mapped:
     zenoh_shm: int
 
 
-def biggest_zenoh_segment() -> int:
-    """The size of the biggest Zenoh shared-memory segment (``/dev/shm/*.zenoh``) mapped into this
-    process: its session's pool, once Zenoh has created it; 0 when there is none."""
-    sizes = [0]
+def zenoh_segments() -> dict[str, int]:
+    """The Zenoh shared-memory segments (``/dev/shm/*.zenoh``) mapped into this process: the bytes
+    mapped of each, by path."""
+    sizes: dict[str, int] = {}
     with open("/proc/self/maps") as maps:
         for line in maps:
             fields = line.split()
             if len(fields) >= 6 and fields[5].startswith("/dev/shm/") and fields[5].endswith(".zenoh"):
                 start, end = (int(x, 16) for x in fields[0].split("-"))
-                sizes.append(end - start)
-    return max(sizes)
+                sizes[fields[5]] = sizes.get(fields[5], 0) + end - start
+    return sizes
+
+
+def biggest_zenoh_segment() -> int:
+    """The size of the biggest Zenoh shared-memory segment mapped into this process: its
+    session's pool, once Zenoh has created it, or a pool it received from; 0 when there is none."""
+    return max(zenoh_segments().values(), default=0)
 
 
 class ShmWatcher(Flow[None, Mapped]):
@@ -120,6 +126,13 @@ class ShmOfScalarTaker(Flow[Mapped, Mapped]):
 
     def step(self, inp: Mapped) -> Mapped:
         return Mapped(zenoh_shm=biggest_zenoh_segment())
+
+
+class SegmentsTaker(Flow):
+    """Untyped: takes an image; the Zenoh segments its own process maps, as [path, bytes] pairs."""
+
+    def step(self, image):
+        return {"segments": sorted(zenoh_segments().items())}
 
 
 class Holder(Flow[None, dict]):

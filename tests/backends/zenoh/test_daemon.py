@@ -588,15 +588,14 @@ def _segments(pid: int) -> set[str]:
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_stops_the_daemon_cleanly(workers, namespace, signum):
-    """SIGTERM or SIGINT: exit 0, its token gone, its shared-memory segments removed."""
+    """SIGTERM or SIGINT: exit 0. Its session has no shared memory, whose segments a process that
+    outlives its runs would keep (hub.HUB_SHARED_MEMORY): it maps none."""
     port = free_port()
     worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
-    segments = _segments(worker.proc.pid)
-    assert segments, "a Zenoh session maps its shared-memory segment when it opens"
+    assert not _segments(worker.proc.pid), "the daemon maps Zenoh shared memory"
     assert worker.stop(signum) == 0, worker.stderr()
     assert "retriever-worker 'w' stopped" in worker.stderr()
     assert "Traceback" not in worker.stderr()
-    assert not [s for s in segments if os.path.exists(s)], "the daemon left its segment in /dev/shm"
 
 
 # ---------------------------------------------------------------------------------------------
