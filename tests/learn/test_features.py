@@ -60,7 +60,7 @@ def test_problems_are_named():
                                          r"'camera', which is none of P's inputs \(cam, qpos\).*hint: features="):
         ObservationFeatures("P", ["cam", "qpos"], {"camera": "observation.images.cam", "qpos": 3})
     twice = ObservationFeatures("P", ["a", "b"], {"a": "observation.state", "b": "observation.state"})
-    with pytest.raises(ValueError, match="two sources would both be feature 'observation.state'"):
+    with pytest.raises(ValueError, match="'a' and 'b' would both be feature 'observation.state'"):
         twice({"a": 1.0, "b": 2.0})
     with pytest.raises(ValueError, match="input 'q' carries a str, which no feature holds"):
         ObservationFeatures("P", ["q"])({"q": "up"})
