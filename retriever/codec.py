@@ -95,6 +95,16 @@ class UnregisteredValue(NamedTuple):
         return f"<{self.path}>(" + ", ".join(f"{k}={v!r}" for k, v in self.fields.items()) + ")"
 
 
+def dataclass_fields(value: Any) -> dict[str, Any] | None:
+    """A dataclass value's fields by name, the same whether this process registered its type
+    (a dataclass) or decoded it without (an :class:`UnregisteredValue`); None for anything else."""
+    if isinstance(value, UnregisteredValue):
+        return value.fields
+    if hasattr(value, "__dataclass_fields__") and not isinstance(value, type):
+        return {name: getattr(value, name) for name in value.__dataclass_fields__}
+    return None
+
+
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
 
 

@@ -10,7 +10,7 @@ A policy flow is a subclass that names its input ports and hands them to :meth:`
     policy = Pick("runs/act-pick", device="cpu").configure(latency=0.1) @ Rate(hz=5)
     policy.then(controller, sync=ActionChunking(control_hz=200), map={"chunk": "action"})
 
-``act`` builds the observation under the feature keys of :mod:`retriever.learn.features` (those
+``act`` builds the observation under the feature keys of :mod:`retriever.features` (those
 ``retriever log export --format lerobot`` writes), runs the model and returns ``{"chunk": rows}``
 (``predict_action_chunk``, for an ``ActionChunking`` edge) or ``{"action": row}``
 (``select_action``); ``None`` (no event) while an input is still ``None``.
@@ -57,7 +57,7 @@ class PolicyFlow(Flow):
     - ``path``: the local checkpoint directory.
     - ``device``: ``"cpu"`` or ``"cuda"`` (``"cuda:N"``).
     - ``features``: source (an input, or ``input.field``) → feature key, where the convention of
-      :mod:`retriever.learn.features` does not fit (the export's ``--map``).
+      :mod:`retriever.features` does not fit (the export's ``--map``).
     - ``output``: ``"chunk"`` (emit the whole chunk on port ``chunk``) or ``"action"`` (one row on
       port ``action``).
     - ``threads``: torch's CPU threads (process-wide; fixed so that replay repeats the floats).

@@ -1,5 +1,6 @@
 """Real-time chunking from event time: which rows of a policy's earlier chunks the controller
-executes from the policy's tick on, known exactly from the tags (docs/learning-policy.md).
+executes from the policy's tick on, known exactly from the tags (docs/learning.md, "Real-time
+chunking, from event time").
 
 A chunked policy ticking at ``t`` with latency ``L`` emits its new chunk at tag ``(t + L, 0)``
 (``(t, 1)`` without latency); a controller on ``Rate(control_hz)`` behind an

@@ -31,7 +31,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..codec import UnregisteredValue
+from ..codec import dataclass_fields
 from ..errors import LogError, RetrieverWarning
 from ..trace import NOT_KEPT
 from .reader import RunLog
@@ -71,16 +71,6 @@ def image_encoding(value: Any) -> str | None:
     if value.ndim == 2:
         return "mono8" if min(value.shape) > 1 else None
     return IMAGE_ENCODINGS.get(value.shape[2]) if min(value.shape[:2]) > 1 else None
-
-
-def dataclass_fields(value: Any) -> dict[str, Any] | None:
-    """A dataclass value's fields by name, the same whether this process registered its type
-    (a dataclass) or read it without (an :class:`UnregisteredValue`); None for anything else."""
-    if isinstance(value, UnregisteredValue):
-        return value.fields
-    if hasattr(value, "__dataclass_fields__") and not isinstance(value, type):
-        return {name: getattr(value, name) for name in value.__dataclass_fields__}
-    return None
 
 
 def image_fields(value: Any, path: str = "") -> Iterator[tuple[str, np.ndarray, str]]:

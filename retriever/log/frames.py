@@ -6,18 +6,11 @@ selected it, and what it produced there. The events come from the flow's step re
 policy applied to exactly those events (a Window's list, an ActionChunking's row), checked to
 select the ids the record names.
 
-Values become features by their type (docs/learning.md, "From a log to a dataset"):
-
-- a ``uint8`` array H×W×3 is an image feature;
-- numbers, numeric arrays, and lists or tuples of them are a state vector (flattened);
-- a dataclass (or a dict) is its fields: its images each an image feature, its numeric fields
-  one state vector, in field order; its text and ``None`` fields are left out (and listed);
-- anything else, or a value whose shape or dtype changes from frame to frame, is refused.
-
-A feature's *source* is the path into a port's value: ``port`` (the port's state vector, or the
-port itself when it is an image) or ``port.field`` (an image field of a dataclass). The names of
-a state vector's elements are the paths into the value too: ``port``, ``port.3`` (an array
-element), ``port.field``, ``port.field.1``.
+Values become features as :mod:`retriever.features` says (docs/learning.md, "From a log to a
+dataset"): images, one state vector per port (its elements named by their paths, ``pose.q.0``),
+text and ``None`` fields left out; an input's features are ``observation.*``, an output's
+``action*``. A frame's features are its first frame's: a value whose shape or dtype changes from
+frame to frame is refused.
 
 Only ``ok`` and ``overrun`` ticks become frames (an overrun tick stepped on complete inputs and
 produced its outputs; it only outlasted its period). A ``skipped``, ``incomplete``, ``late`` or
@@ -37,11 +30,11 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from ..errors import LogError
+from ..features import ACTION, OBSERVATION, FeatureError, excluded, feature_keys, port_features
 from ..ir import IR
 from ..sync import ActionChunking, PortBuffer, policy_from_ir
 from ..time import NS_PER_S, exact_rational, format_tag, seconds_to_ns
 from ..trace import StepRecord, Trace
-from .foxglove import dataclass_fields
 from .reader import RunLog
 
 #: the statuses of a tick that becomes a frame
@@ -120,7 +113,7 @@ class Mapping:
     exclude: tuple[str, ...] = ()
 
     def excluded(self, source: str) -> bool:
-        return any(source == e or source.startswith(e + ".") for e in self.exclude)
+        return excluded(source, self.exclude)
 
 
 def parse_maps(items: list[str] | tuple[str, ...]) -> dict[str, str]:
@@ -199,145 +192,61 @@ class UnmappableError(LogError):
     """A port's value that no dataset feature can hold."""
 
 
-def is_image(value: Any) -> bool:
-    return (isinstance(value, np.ndarray) and value.dtype == np.uint8 and value.ndim == 3 and value.shape[2] == 3
-            and min(value.shape[:2]) > 1)
-
-
-def _numeric(value: Any) -> np.ndarray | None:
-    """A number, numeric array, or list/tuple of them as an array; None for anything else."""
-    if isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
-        return np.asarray(value)
-    if isinstance(value, np.ndarray):
-        return value if value.dtype.kind in "biuf" else None
-    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
-        parts = [_numeric(v) for v in value]
-        if any(p is None for p in parts) or len({p.shape for p in parts}) > 1:
-            return None
-        return np.stack(parts) if parts else np.zeros(0)
-    return None
-
-
-@dataclass
-class _Parts:
-    """One port's value, taken apart: its images by source, its numeric leaves by name, text."""
-
-    images: dict[str, np.ndarray] = field(default_factory=dict)
-    numbers: list[tuple[str, np.ndarray]] = field(default_factory=list)
-    text: str | None = None
-    left_out: list[str] = field(default_factory=list)
-
-
-def _take_apart(value: Any, path: str, parts: _Parts, mapping: Mapping, top: bool) -> str | None:
-    """Fill ``parts`` from ``value`` at ``path``; the reason it cannot, else None."""
-    if mapping.excluded(path):
-        return None
-    if is_image(value):
-        parts.images[path] = value
-        return None
-    fields = dataclass_fields(value)
-    if fields is None and isinstance(value, dict) and all(isinstance(k, str) for k in value):
-        fields = value
-    if fields is not None:
-        for name, inner in fields.items():
-            if isinstance(inner, (str, bytes)) or inner is None:
-                parts.left_out.append(f"{path}.{name}")
-                continue
-            problem = _take_apart(inner, f"{path}.{name}", parts, mapping, False)
-            if problem is not None:
-                return problem
-        return None
-    if isinstance(value, str) and top:
-        parts.text = value
-        return None
-    if isinstance(value, np.ndarray) and value.dtype == np.uint8 and value.ndim >= 2:
-        return (f"a uint8 array of shape {value.shape}, which is neither an image (uint8 H×W×3) nor a state "
-                "vector; convert it to RGB in the flow, or leave it out")
-    numbers = _numeric(value)
-    if numbers is None:
-        return f"a {type(value).__name__}, which no dataset feature holds (images, numbers and dataclasses do)"
-    parts.numbers.append((path, numbers))
-    return None
-
-
-def _element_names(path: str, array: np.ndarray) -> list[str]:
-    if array.ndim == 0:
-        return [path]
-    return [".".join([path, *map(str, index)]) for index in np.ndindex(array.shape)]
-
-
 class _Features:
     """The features of a flow's frames, fixed by its first frame; every later frame is checked
-    against them."""
+    against them. How a value becomes named features is :mod:`retriever.features`'s."""
 
     def __init__(self, mapping: Mapping, inputs: list[str], outputs: list[str]):
         self.mapping = mapping
-        self.inputs, self.outputs = inputs, outputs
+        self.sides = {**{p: OBSERVATION for p in inputs}, **{p: ACTION for p in outputs}}
         self.features: list[Feature] | None = None
         self.task_port: str | None = next((p for p, k in mapping.maps.items() if k == TASK), None)
         self.fields_left_out: list[str] = []
-
-    def _default_key(self, source: str, kind: str, state_ports: dict[str, list[str]]) -> str:
-        port = source.partition(".")[0]
-        side = "observation" if port in self.inputs else "action"
-        if kind == "image":
-            return f"{side}.images.{source}"
-        if side == "observation":
-            return "observation.state" if len(state_ports["observation"]) == 1 else f"observation.{port}"
-        return "action" if len(state_ports["action"]) == 1 else f"action.{port}"
 
     def frame(self, tick: tuple[int, int], values: dict[str, Any],
               where: str) -> tuple[dict[str, np.ndarray], str | None]:
         """A tick's port values as feature values (and the task, if a port gives it)."""
         found: dict[str, tuple[str, np.ndarray]] = {}  # source -> (kind, array)
-        names: dict[str, list[str]] = {}
+        names: dict[str, tuple[str, ...]] = {}
         task = None
         for port, value in values.items():
-            parts = _Parts()
-            problem = _take_apart(value, port, parts, self.mapping, True)
-            if problem is None and parts.text is not None and port != self.task_port:
-                problem = f"text ({parts.text[:40]!r}), which no feature holds but the task"
-            if problem is not None:
-                raise UnmappableError(f"{where}: port '{port}' of the flow carries {problem} (at {format_tag(tick)})",
-                                      f"leave it out with --exclude {port}"
-                                      + (f", or make it the task: --map {port}={TASK}" if parts.text else ""))
+            try:
+                taken = port_features(port, value, self.mapping.exclude)
+            except FeatureError as e:
+                raise UnmappableError(f"{where}: port '{port}' of the flow carries {e} (at {format_tag(tick)})",
+                                      f"leave it out with --exclude {port}") from None
             if port == self.task_port:
-                if parts.text is None:
+                if taken.text is None:
                     raise UnmappableError(f"{where}: port '{port}' is mapped to the task, but carries a "
-                                      f"{type(value).__name__}, not text", f"map a port whose value is text to {TASK}")
-                task = parts.text
+                                          f"{type(value).__name__}, not text",
+                                          f"map a port whose value is text to {TASK}")
+                task = taken.text
                 continue
-            for source, image in parts.images.items():
-                found[source] = ("image", image)
-            if parts.numbers:
-                vectors = [a.reshape(-1) for _, a in parts.numbers]
-                found[port] = ("state", np.concatenate(vectors) if len(vectors) > 1 else vectors[0])
-                names[port] = [n for path, a in parts.numbers for n in _element_names(path, a)]
+            if taken.text is not None:
+                raise UnmappableError(f"{where}: port '{port}' of the flow carries text ({taken.text[:40]!r}), which "
+                                      f"no feature holds but the task (at {format_tag(tick)})",
+                                      f"leave it out with --exclude {port}, or make it the task: --map {port}={TASK}")
+            found.update(taken.sources())
+            if taken.state is not None:
+                names[port] = taken.state_names
             if self.features is None:
-                self.fields_left_out += parts.left_out
+                self.fields_left_out += taken.left_out
         if self.features is None:
             self.features = self._fix(found, names, where)
         return self._check(tick, found, where), task
 
-    def _fix(self, found: dict[str, tuple[str, np.ndarray]], names: dict[str, list[str]], where: str) -> list[Feature]:
-        state_ports = {"observation": [s for s, (k, _) in found.items() if k == "state" and s in self.inputs],
-                       "action": [s for s, (k, _) in found.items() if k == "state" and s in self.outputs]}
-        features = []
-        for source, (kind, array) in found.items():
-            key = self.mapping.maps.get(source) or self._default_key(source, kind, state_ports)
-            features.append(Feature(key, source, kind, array.dtype, array.shape, tuple(names.get(source, ()))))
-        unknown = sorted(set(self.mapping.maps) - set(found) - {self.task_port})
-        if unknown:
-            raise LogError(f"{where}: --map names {', '.join(unknown)}, which the flow's frames have no feature from "
-                           f"(its sources: {', '.join(sorted(found))})", "map a port, or an image field as port.field")
-        keys = Counter(f.key for f in features)
-        twice = sorted(k for k, n in keys.items() if n > 1)
-        if twice:
-            raise LogError(f"{where}: two features would both be named {', '.join(twice)}",
-                           "give each its own key with --map PORT=KEY")
-        if not features:
+    def _fix(self, found: dict[str, tuple[str, np.ndarray]], names: dict[str, tuple[str, ...]],
+             where: str) -> list[Feature]:
+        maps = {source: key for source, key in self.mapping.maps.items() if source != self.task_port}
+        try:
+            keys = feature_keys({source: kind for source, (kind, _) in found.items()}, self.sides, maps)
+        except FeatureError as e:
+            raise LogError(f"{where}: " + "\n    ".join(e.problems),
+                           "--map SOURCE=KEY gives a port, or an image field as port.field, its own key") from None
+        if not found:
             raise LogError(f"{where}: the flow's frames hold no feature", "export a flow with inputs or outputs")
-        return features
+        return [Feature(keys[source], source, kind, array.dtype, array.shape, names.get(source, ()))
+                for source, (kind, array) in found.items()]
 
     def _check(self, tick, found: dict[str, tuple[str, np.ndarray]], where: str) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {}

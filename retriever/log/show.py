@@ -13,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..codec import UnregisteredValue
-from .foxglove import dataclass_fields
+from ..codec import UnregisteredValue, dataclass_fields
 
 ARRAY_SHOWN_WHOLE = 16  # elements: a pose, a small matrix, a short action vector
 BRIEF_TEXT = 80  # characters of a non-array leaf in brief mode

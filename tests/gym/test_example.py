@@ -1,4 +1,4 @@
-"""examples/gym_cartpole.py runs as its docstring and docs/learning-gym.md say."""
+"""examples/gym_cartpole.py runs as its docstring and docs/learning.md ("Gymnasium") say."""
 
 from __future__ import annotations
 

@@ -11,6 +11,7 @@ import numpy as np
 
 from retriever import Flow
 from retriever.learn import LeRobotPolicy, TorchPolicy
+from tests.log.dataset_flows import Pose
 
 CHUNK = 6
 ACTION_DIM = 2
@@ -147,3 +148,43 @@ class NoisyPolicy(TorchPolicy):
 
     def step(self, state: np.ndarray | None = None):
         return self.act(state=state)
+
+
+def observing_module(seen: list):
+    import torch
+
+    class Observing(torch.nn.Module):
+        """Keeps each observation it is given (in ``seen``); its chunk is made from the state."""
+
+        def __init__(self):
+            super().__init__()
+            self.scale = torch.nn.Parameter(torch.ones(1))
+
+        def forward(self, batch):
+            seen.append({key: value[0].numpy().copy() for key, value in batch.items()})
+            return batch["observation.state"][:, None, :2] * self.scale  # (1, 1, 2): a one-row chunk
+
+    return Observing()
+
+
+def observing_checkpoint(path: Path) -> Path:
+    from safetensors.torch import save_file
+
+    path.mkdir(parents=True, exist_ok=True)
+    save_file(observing_module([]).state_dict(), str(path / "model.safetensors"))
+    return path
+
+
+class Observer(TorchPolicy):
+    """Takes the camera's image, joints and pose (tests/log/dataset_flows.py); ``seen`` holds the
+    observation it built at each tick, as its model got it."""
+
+    def __init__(self, path: str, **options):
+        super().__init__(path, **options)
+        self.seen: list[dict[str, np.ndarray]] = []
+
+    def build(self):
+        return observing_module(self.seen)
+
+    def step(self, image: np.ndarray | None = None, joints: np.ndarray | None = None, pose: Pose | None = None):
+        return self.act(image=image, joints=joints, pose=pose)

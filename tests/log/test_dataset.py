@@ -215,7 +215,7 @@ def test_bad_input_is_a_clear_error_and_writes_nothing(tmp_path):
         (dict(logs=[trigger], flow="policy"), r"flow 'policy' in .*trigger\.mcap runs on a Trigger clock, not a Rate"),
         (dict(logs=[good, torn], flow="policy"), r"torn\.mcap cannot be read: .*its writer was stopped"),
         (dict(logs=[good], flow="policy", maps={"nothing": "observation.state"}),
-         r"--map names nothing, which the flow's frames have no feature from"),
+         r"--map names 'nothing', which no feature comes from"),
         (dict(logs=[good], flow="policy", format="parquet"), r"unknown dataset format 'parquet'"),
     ]
     for options, message in cases:
@@ -232,8 +232,8 @@ def test_an_unmappable_value_is_refused_with_the_port_and_the_fix(tmp_path):
     recording = Recording.of_log(log)
     forged = lambda event_id: ((lambda got: got if event_id[1] != "joints" else (got[0], {1, 2}))  # noqa: E731
                                (recording.event(event_id)))
-    with pytest.raises(UnmappableError, match=r"port 'joints' of the flow carries a set, which no dataset feature "
-                                              r"holds(.|\n)*hint: leave it out with --exclude joints"):
+    with pytest.raises(UnmappableError, match=r"port 'joints' of the flow carries a set, which no feature holds"
+                                              r"(.|\n)*hint: leave it out with --exclude joints"):
         export_dataset([Recording(recording.name, recording.ir, recording.steps, forged)], tmp_path / "np",
                        flow="policy", format="npz")
     assert not (tmp_path / "np").exists()
