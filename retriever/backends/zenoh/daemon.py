@@ -50,7 +50,9 @@ import zenoh
 from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
-from .hub import await_segments_released, mapped_segments, peer_config, wait_for_peers, weak_callback
+from .hub import (await_segments_released, mapped_segments, peer_config, raise_open_file_limit, wait_for_peers,
+                  weak_callback)
+from .reach import why_no_session
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
 
@@ -446,6 +448,7 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
         say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
             f"{', '.join(settings.listen)} may join namespace '{settings.namespace}' and control it; "
             "only for a lab on a trusted network")
+    raise_open_file_limit()  # room for strangers' idle connections beside its flows' pipes (hub.accept_pending)
     with open_access(settings.namespace, settings.secret, settings.tls) as access:
         _serve_until(settings, stop, access, say)
     return 0
@@ -545,7 +548,7 @@ class WorkerInfo(NamedTuple):
 
 class Listing(NamedTuple):
     workers: list[WorkerInfo]
-    unreachable: list[str]  # endpoints that admitted no session
+    unreachable: dict[str, str]  # endpoints that admitted no session, and why (reach.why_no_session)
 
 
 def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret: str | None = None,
@@ -557,7 +560,7 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
     check_security(secret, insecure, "retriever workers")
     keys = KeySpace(namespace)
     found: dict[str, WorkerInfo] = {}
-    unreachable = []
+    unreachable = {}
 
     def look(session: zenoh.Session) -> None:
         for reply in session.liveliness().get(keys.workers(), timeout=QUERY_S):
@@ -571,9 +574,14 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
             config.insert_json5("mode", '"client"')
             try:
                 in_session(config, look)
-            except zenoh.ZError:  # nothing listens there, or it wants credentials we lack
-                unreachable.append(endpoint)
+            except zenoh.ZError:  # nothing listens there, it refuses new links, or it wants credentials we lack
+                unreachable[endpoint] = why_no_session(endpoint, credentials(tls))
     return Listing(sorted(found.values()), unreachable)
+
+
+def credentials(tls: TlsFiles | None) -> str:
+    """What a session that admitted none may want instead of what it was given (reach.why_no_session)."""
+    return "--secret or a certificate of another CA" if tls is not None else "--secret"
 
 
 def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
