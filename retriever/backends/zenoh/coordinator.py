@@ -25,7 +25,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import warnings
@@ -39,6 +38,7 @@ from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
+from .folders import RUN_FOLDER, private_folder
 from .hub import await_segments_released, mapped_segments, new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
 from .host import Host, LocalHost, WorkerProcess
@@ -1019,7 +1019,7 @@ def _run_dir() -> Path:
     coordinator. In shared memory when the host has it (no disk I/O for those events)."""
     shm = Path("/dev/shm")
     base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK | os.X_OK) else None
-    return Path(tempfile.mkdtemp(prefix="retriever-run-", dir=base))
+    return private_folder(RUN_FOLDER, base)  # named by pid: a SIGKILLed run's is reaped by the next
 
 
 def _python_path() -> list[str]:

@@ -33,7 +33,6 @@ import shutil
 import signal
 import socket
 import sys
-import tempfile
 import threading
 import tomllib
 import traceback
@@ -50,6 +49,7 @@ import zenoh
 from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
+from .folders import DAEMON_FOLDER, private_folder, reap_stale
 from .hub import (await_segments_released, mapped_segments, peer_config, raise_open_file_limit, wait_for_peers,
                   weak_callback)
 from .reach import why_no_session
@@ -264,8 +264,7 @@ def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
         access = RunAccess.create(namespace, read_secret(secret))
     except AccessError as e:
         raise WorkerError(str(e)) from None
-    reap_stale_folders()
-    folder = Path(tempfile.mkdtemp(prefix=f"retriever-worker-{os.getpid()}-"))  # mkdtemp: mode 0700
+    folder = private_folder(DAEMON_FOLDER)  # the stale ones of daemons gone reaped first
     try:
         yield {**access.session_config(access.write_dictionary(folder)), **links}
     finally:
@@ -276,19 +275,7 @@ def reap_stale_folders() -> list[Path]:
     """Remove this user's ``retriever-worker-PID-*`` folders (Zenoh's password file of a daemon,
     and the run folders it prepared: specs with the runs' passwords) whose daemon is gone: a
     SIGKILLed one could not remove its own. Those removed."""
-    removed = []
-    for folder in Path(tempfile.gettempdir()).glob("retriever-worker-*-*"):
-        pid = folder.name.split("-")[2]
-        try:
-            if not pid.isdigit() or folder.lstat().st_uid != os.getuid() or not folder.is_dir():
-                continue
-            os.kill(int(pid), 0)  # raises if no such process
-        except ProcessLookupError:
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
-        except OSError:  # another user's process (EPERM), or the folder went meanwhile
-            continue
-    return removed
+    return reap_stale(DAEMON_FOLDER)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ from ...graph import Graph
 from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
-from .access import AccessError, RunAccess, TlsFiles, secret_bytes
+from .access import DICTIONARY, AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, credentials, describe,
                      in_session, open_access)
 from .hub import peer_config, raise_open_file_limit, wait_for_peers, weak_callback
@@ -126,6 +126,10 @@ class Deployment(Coordinator):
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
                                            lease=self._lease))
+        # Zenoh read it as the session opened, and no process of this machine reads it after (the
+        # workers' flows read their daemon's): the deployment's password is not left on disk here,
+        # not even by a SIGKILLed coordinator
+        (self._dir / DICTIONARY).unlink(missing_ok=True)
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
 
