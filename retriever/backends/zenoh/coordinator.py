@@ -298,11 +298,10 @@ class Coordinator(Session):
         said = ""
         missing = self._reports_sent[nid] - self._reports[nid]
         if self._state.get(nid) == "done" and missing > 0:
-            lost = [f"{nid}.{port} {f'seq {first}' if first == last else f'seqs {first}-{last}'}"
-                    for port, last in sorted(self._done_info.get(nid, {}).get("sent", {}).items())
-                    if (first := self._have.get((nid, port), -1) + 1) <= last]
+            lost = [f"{nid}.{port} {seqs}" for port, last in sorted(self._done_info.get(nid, {}).get("sent", {}).items())
+                    if (seqs := self._unseen_seqs(nid, port, last))]
             said = (f"    {nid} said done after {self._reports_sent[nid]} report(s), of which {missing} never reached "
-                    f"the coordinator" + (f", with the event(s) {', '.join(lost)}" if lost else "") + "\n")
+                    f"the coordinator" + (f"; it never got the event(s) {', '.join(lost)}" if lost else "") + "\n")
         proc = self._workers.get(nid)
         code = proc.poll() if proc is not None else None
         tail = self._stderr_tail(nid, 60)
@@ -316,6 +315,24 @@ class Coordinator(Session):
                    + ("it is stopped (SIGSTOP, or a debugger)" if stopped else
                       "stopped, or stuck in code that holds Python's lock"))
         return f"{said}    {nid}: no stacks: {why}" + (f"; its stderr last:\n{tail}\n" if tail.strip() else "\n")
+
+    def _unseen_seqs(self, nid: str, port: str, last: int, most: int = 8) -> str:
+        """The seqs up to ``last`` of stream ``nid.port`` that never reached the coordinator, as
+        ``seqs 3, 5-7`` (the first ``most`` runs of them, of the last 100,000 seqs at most)."""
+        runs: list[list[int]] = []
+        for seq in range(max(self._have.get((nid, port), -1) + 1, last - 99_999), last + 1):
+            if (nid, port, seq) in self._event_ids:
+                continue
+            if runs and runs[-1][1] == seq - 1:
+                runs[-1][1] = seq
+            elif len(runs) < most:
+                runs.append([seq, seq])
+            else:
+                break
+        if not runs:
+            return ""
+        spelled = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+        return f"seq{'s' if len(runs) > 1 or runs[0][0] != runs[0][1] else ''} {spelled}"
 
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
         host = self._hosts.get(nid)
