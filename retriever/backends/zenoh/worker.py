@@ -105,8 +105,8 @@ REDECLARE_AFTER_S = 2.0
 #: has every report it sent. A report over 3 KiB goes through Zenoh's shared memory, and one whose
 #: sender had closed its session by the time the receiver read it was dropped (the sender's buffers
 #: no longer valid): the coordinator waited for it forever; so does one still in the sender's queue
-#: (a report of big frames, across machines). A coordinator writing big frames to its log takes
-#: reports seconds after they came (it waits for its disk): the worker waits as long as the
+#: (a report of big frames, across machines). A coordinator writing big frames to its log answers
+#: late and takes reports long after they came (it waits for its disk): the worker waits as long as the
 #: coordinator answers, and gives up only once it has not answered for REPORTS_TAKEN_S, its
 #: link to it is gone, or after REPORTS_TAKEN_MAX_S in all (the coordinator ends a run that waits
 #: for a report longer than its own patience anyway, and stops this process).
