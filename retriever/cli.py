@@ -1025,9 +1025,8 @@ def workers_command(
         listing = list_workers(endpoints, namespace, None if secret is None else str(secret), insecure, tls)
     except Exception as exc:
         _fail(exc)
-    for endpoint in listing.unreachable:
-        _err.print(f"warning: no session at {endpoint}: nothing listens there, or it wants another --secret"
-                   f"{' or a certificate of another CA' if tls else ''}", highlight=False)
+    for endpoint, why in listing.unreachable.items():
+        _err.print(f"warning: no session at {endpoint}: {why}", highlight=False)
     if not listing.workers:
         # with TLS every endpoint is tls/ and each side names its CA, certificate and key
         scheme, files = ("tls", " --tls-ca CA --tls-cert CERT --tls-key KEY") if tls else ("tcp", "")

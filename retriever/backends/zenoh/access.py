@@ -50,6 +50,9 @@ WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "live
 #: (a `start` the workers got 5 s late). A watcher has no use for it.
 WATCHER_UNSEEN = [f"{ROOT}/*/ctl/**"]
 
+#: the file, in a run's or a daemon's private folder, of the user:password lines Zenoh checks peers against
+DICTIONARY = "zenoh-users.txt"
+
 #: the fewest bytes a deployment secret file must hold
 SECRET_MIN_BYTES = 16
 
@@ -187,7 +190,7 @@ class RunAccess:
     # -----------------------------------------------------------------------------------------
     def write_dictionary(self, directory: Path) -> Path:
         """The user:password lines Zenoh checks a connecting peer against (mode 0600)."""
-        return write_private(directory / "zenoh-users.txt",
+        return write_private(directory / DICTIONARY,
                               f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n")
 
     def write_watcher_config(self, path: Path, hub_endpoint: str) -> Path:

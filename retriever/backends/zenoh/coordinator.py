@@ -25,7 +25,6 @@ import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 import warnings
@@ -39,6 +38,7 @@ from ...graph import Graph
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
+from .folders import RUN_FOLDER, private_folder
 from .hub import new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
 from .origin import Senders, new_key
@@ -241,6 +241,7 @@ class Coordinator(Session):
         self._exit_said: dict[str, tuple[tuple[int, int], object]] = {}
         self._exit_recorded: dict[str, tuple[tuple[int, int], object]] = {}
         self._done_info: dict[str, dict] = {}  # what each node's worker said of its run when done
+        self._stackless: dict[str, float] = {}  # nodes asked for their stacks that printed none, and how long waited
         self._limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
         # a lost process (see "Restarting after a lost process" in loop.py): the nodes starting
         # afresh, by what became of the old process; per stream, the highest seq known (events
@@ -299,7 +300,53 @@ class Coordinator(Session):
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
-            self._hosts[nid].output(nid).settle(lines, max(0.0, give_up - time.monotonic()))
+            output = self._hosts[nid].output(nid)
+            output.settle(lines, max(0.0, give_up - time.monotonic()))
+            if output.stderr_lines == lines:  # asked, and nothing came: the error says so (_unfinished)
+                self._stackless[nid] = wait
+
+    def _unfinished(self, nid: str) -> str:
+        """What the error of a run that did not finish says of node ``nid``: the stacks its process
+        printed (on its stderr, last), or why there are none; and, done but short of reports, the
+        events it sent that never reached the coordinator (lost with those reports)."""
+        said = ""
+        missing = self._reports_sent[nid] - self._reports[nid]
+        if self._state.get(nid) == "done" and missing > 0:
+            lost = [f"{nid}.{port} {seqs}" for port, last in sorted(self._done_info.get(nid, {}).get("sent", {}).items())
+                    if (seqs := self._unseen_seqs(nid, port, last))]
+            said = (f"    {nid} said done after {self._reports_sent[nid]} report(s), of which {missing} never reached "
+                    f"the coordinator" + (f"; it never got the event(s) {', '.join(lost)}" if lost else "") + "\n")
+        proc = self._workers.get(nid)
+        code = proc.poll() if proc is not None else None
+        tail = self._stderr_tail(nid, 60)
+        if code is None and nid not in self._stackless:
+            return f"{said}    {nid} stderr (its stacks last):\n{tail}\n"
+        if code is not None:
+            why = f"its process had ended ({_exit_text(code)})"
+        else:
+            stopped = isinstance(self._hosts[nid], LocalHost) and _is_stopped(proc.pid)
+            why = (f"its process (pid {proc.pid}) printed none within {self._stackless[nid]:g} s of SIGUSR1: "
+                   + ("it is stopped (SIGSTOP, or a debugger)" if stopped else
+                      "stopped, or stuck in code that holds Python's lock"))
+        return f"{said}    {nid}: no stacks: {why}" + (f"; its stderr last:\n{tail}\n" if tail.strip() else "\n")
+
+    def _unseen_seqs(self, nid: str, port: str, last: int, most: int = 8) -> str:
+        """The seqs up to ``last`` of stream ``nid.port`` that never reached the coordinator, as
+        ``seqs 3, 5-7`` (the first ``most`` runs of them, of the last 100,000 seqs at most)."""
+        runs: list[list[int]] = []
+        for seq in range(max(self._have.get((nid, port), -1) + 1, last - 99_999), last + 1):
+            if (nid, port, seq) in self._event_ids:
+                continue
+            if runs and runs[-1][1] == seq - 1:
+                runs[-1][1] = seq
+            elif len(runs) < most:
+                runs.append([seq, seq])
+            else:
+                break
+        if not runs:
+            return ""
+        spelled = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+        return f"seq{'s' if len(runs) > 1 or runs[0][0] != runs[0][1] else ''} {spelled}"
 
     def _stderr_tail(self, nid: str, lines: int = 15) -> str:
         host = self._hosts.get(nid)
@@ -459,7 +506,7 @@ class Coordinator(Session):
                 f"zenoh run (virtual time): worker(s) {', '.join(waiting)} did not "
                 + (f"reach t={self._granted / 1e9:g} s" if behind else "finish")
                 + f" within {self.LOCKSTEP_STALL_S:g} s of wall time\n"
-                + "".join(f"    {n} stderr (its stacks last):\n{self._stderr_tail(n, 60)}\n" for n in waiting)
+                + "".join(self._unfinished(n) for n in waiting)
                 + "    hint: the stacks show where a step that did not return is")
         return self._granted >= self.end_ns
 
@@ -503,12 +550,12 @@ class Coordinator(Session):
                 waiting = sorted(n for n, s in self._state.items() if s != ("ready" if what == "start" else "done")
                                  or self._reports[n] < self._reports_sent[n])
                 self._dump_stacks(waiting, show=False)  # the error below shows them
+                said = "".join(self._unfinished(n) for n in waiting)  # (before the kill: how each was found)
                 if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
                     for nid in waiting:
                         self._workers[nid].kill()
                 raise BackendError(f"{self.backend_name} run: worker(s) {', '.join(waiting)} did not {what} in time\n"
-                                   + "".join(f"    {n} stderr (its stacks last):\n{self._stderr_tail(n, 60)}\n"
-                                             for n in waiting)
+                                   + said
                                    + ("    hint: a flow that takes longer to load needs pipe.run(..., startup_timeout="
                                       f"seconds) (now {self.startup_timeout:g})" if what == "start" else
                                       "    hint: the stacks show where a step that did not return is"))
@@ -670,6 +717,10 @@ class Coordinator(Session):
                     f"{node} stopped before the run's end: told to stop, and not by this coordinator (a process "
                     "holding the run's secret put a stop on its control key, or someone sent its worker SIGTERM)")})
             self._done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
+            sent = info.get("sent")  # {port: last seq put}: which events its reports held (_unfinished)
+            if type(sent) is dict and all(type(p) is str and p in self.graph.nodes[node].outputs and type(q) is int
+                                          for p, q in sent.items()):
+                self._done_info[node]["sent"] = sent
             old = self._retiring.pop(node, None)
             if old is not None:
                 self._retired.append(old)
@@ -1076,6 +1127,15 @@ def _refuse_in_a_worker(graph: Graph) -> None:
                            "    hint: start the run under `if __name__ == \"__main__\":`")
 
 
+def _is_stopped(pid: int) -> bool:
+    """Whether process ``pid`` of this machine is stopped (Linux /proc: state T or t)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2:][:1] in ("T", "t")
+
+
 def _check_deployable(graph: Graph) -> None:
     """Every flow must be rebuildable from the IR; a class in ``__main__`` is, when the main
     script is a file (workers import it as ``__mp_main__``, like multiprocessing)."""
@@ -1094,7 +1154,7 @@ def _run_dir() -> Path:
     coordinator. In shared memory when the host has it (no disk I/O for those events)."""
     shm = Path("/dev/shm")
     base = str(shm) if shm.is_dir() and os.access(shm, os.W_OK | os.X_OK) else None
-    return Path(tempfile.mkdtemp(prefix="retriever-run-", dir=base))
+    return private_folder(RUN_FOLDER, base)  # named by pid: a SIGKILLed run's is reaped by the next
 
 
 def _python_path() -> list[str]:

@@ -33,7 +33,6 @@ import shutil
 import signal
 import socket
 import sys
-import tempfile
 import threading
 import tomllib
 import traceback
@@ -50,8 +49,10 @@ import zenoh
 from ...errors import RetrieverError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
-from .hub import (await_segments_released, mapped_segments, peer_config, remove_orphaned_segments_at_exit,
-                  wait_for_peers, weak_callback)
+from .folders import DAEMON_FOLDER, private_folder, reap_stale
+from .hub import (await_segments_released, mapped_segments, peer_config, raise_open_file_limit,
+                  remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
+from .reach import why_no_session
 from .runs import DaemonRuns
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
 
@@ -263,8 +264,7 @@ def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
         access = RunAccess.create(namespace, read_secret(secret))
     except AccessError as e:
         raise WorkerError(str(e)) from None
-    reap_stale_folders()
-    folder = Path(tempfile.mkdtemp(prefix=f"retriever-worker-{os.getpid()}-"))  # mkdtemp: mode 0700
+    folder = private_folder(DAEMON_FOLDER)  # the stale ones of daemons gone reaped first
     try:
         yield {**access.session_config(access.write_dictionary(folder)), **links}
     finally:
@@ -275,19 +275,7 @@ def reap_stale_folders() -> list[Path]:
     """Remove this user's ``retriever-worker-PID-*`` folders (Zenoh's password file of a daemon,
     and the run folders it prepared: specs with the runs' passwords) whose daemon is gone: a
     SIGKILLed one could not remove its own. Those removed."""
-    removed = []
-    for folder in Path(tempfile.gettempdir()).glob("retriever-worker-*-*"):
-        pid = folder.name.split("-")[2]
-        try:
-            if not pid.isdigit() or folder.lstat().st_uid != os.getuid() or not folder.is_dir():
-                continue
-            os.kill(int(pid), 0)  # raises if no such process
-        except ProcessLookupError:
-            shutil.rmtree(folder, ignore_errors=True)
-            removed.append(folder)
-        except OSError:  # another user's process (EPERM), or the folder went meanwhile
-            continue
-    return removed
+    return reap_stale(DAEMON_FOLDER)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -447,6 +435,7 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
         say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
             f"{', '.join(settings.listen)} may join namespace '{settings.namespace}' and control it; "
             "only for a lab on a trusted network")
+    raise_open_file_limit()  # room for strangers' idle connections beside its flows' pipes (hub.accept_pending)
     with open_access(settings.namespace, settings.secret, settings.tls) as access:
         _serve_until(settings, stop, access, say)
     return 0
@@ -549,7 +538,7 @@ class WorkerInfo(NamedTuple):
 
 class Listing(NamedTuple):
     workers: list[WorkerInfo]
-    unreachable: list[str]  # endpoints that admitted no session
+    unreachable: dict[str, str]  # endpoints that admitted no session, and why (reach.why_no_session)
 
 
 def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret: str | None = None,
@@ -561,7 +550,7 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
     check_security(secret, insecure, "retriever workers")
     keys = KeySpace(namespace)
     found: dict[str, WorkerInfo] = {}
-    unreachable = []
+    unreachable = {}
 
     def look(session: zenoh.Session) -> None:
         for reply in session.liveliness().get(keys.workers(), timeout=QUERY_S):
@@ -575,9 +564,14 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
             config.insert_json5("mode", '"client"')
             try:
                 in_session(config, look)
-            except zenoh.ZError:  # nothing listens there, or it wants credentials we lack
-                unreachable.append(endpoint)
+            except zenoh.ZError:  # nothing listens there, it refuses new links, or it wants credentials we lack
+                unreachable[endpoint] = why_no_session(endpoint, credentials(tls))
     return Listing(sorted(found.values()), unreachable)
+
+
+def credentials(tls: TlsFiles | None) -> str:
+    """What a session that admitted none may want instead of what it was given (reach.why_no_session)."""
+    return "--secret or a certificate of another CA" if tls is not None else "--secret"
 
 
 def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:

@@ -31,10 +31,12 @@ from ...graph import Graph
 from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, place
 from ...trace import KEEP
-from .access import AccessError, RunAccess, TlsFiles, secret_bytes
-from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, describe, in_session,
-                     open_access)
-from .hub import HUB_SHARED_MEMORY, peer_config, remove_orphaned_segments_at_exit, wait_for_peers, weak_callback
+from .access import DICTIONARY, AccessError, RunAccess, TlsFiles, secret_bytes
+from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, credentials, describe,
+                     in_session, open_access)
+from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_orphaned_segments_at_exit,
+                  wait_for_peers, weak_callback)
+from .reach import REFUSES_LINKS, why_no_session
 from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
 from .coordinator import Coordinator
@@ -122,9 +124,14 @@ class Deployment(Coordinator):
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
         listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
         links = self._tls.session_config() if self._tls is not None else {}
+        raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
         self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
                                            lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
+        # Zenoh read it as the session opened, and no process of this machine reads it after (the
+        # workers' flows read their daemon's): the deployment's password is not left on disk here,
+        # not even by a SIGKILLed coordinator
+        (self._dir / DICTIONARY).unlink(missing_ok=True)
         self.endpoint = (self._listen_at or self._connect)[0]
         wait_for_peers(self._hub, len(self._connect), JOIN_S)
 
@@ -172,6 +179,12 @@ class Deployment(Coordinator):
                                f"'{self.namespace}': a node placed on that name could run twice\n    hint: give each "
                                "worker a name of its own (retriever workers --connect ... lists them), then deploy")
         if not names:
+            refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
+            if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
+                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)} "
+                                   f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
+                                   "established on the worker), and keep strangers off the workers' ports: a "
+                                   "firewall, or TLS (docs/security.md)")
             raise BackendError(f"no worker is up in namespace '{self.namespace}' (reached through "
                                f"{', '.join(self._connect or self._listen_at)}), or none holds this --secret"
                                f"{' and TLS certificate' if self._tls else ''}\n    hint: start one on each machine: "
@@ -392,6 +405,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
     check_security(secret, insecure, f"retriever {op}")
     keys = KeySpace(namespace)
     found: list[dict] = []
+    refusing: list[str] = []
 
     def ask(session: zenoh.Session) -> None:
         for reply in session.get(keys.deployment(), payload=WireEncoder().control(op, {}), timeout=QUERY_S):
@@ -409,10 +423,15 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
             config.insert_json5("mode", '"client"')
             try:
                 in_session(config, ask)
-            except zenoh.ZError:  # nothing listens there, or it wants another secret
+            except zenoh.ZError:  # nothing listens there, it refuses new links, or it wants another secret
+                if why_no_session(endpoint, credentials(tls)) == REFUSES_LINKS:
+                    refusing.append(endpoint)
                 continue
             if found:
                 return found[0]
+    if refusing:  # not the secret: a stranger's idle connections (hub.ACCEPT_TIMEOUT_S)
+        raise WorkerError(f"no session at {', '.join(refusing)}: {REFUSES_LINKS}\n    hint: keep strangers off "
+                          "the workers' ports: a firewall, or TLS (docs/security.md)")
     return None
 
 

@@ -11,6 +11,7 @@ import functools
 import json
 import os
 import re
+import resource
 import secrets
 import socket
 import time
@@ -115,6 +116,45 @@ def shm_pool_bytes(free_bytes: int | None = None, sessions: int = 1) -> int:
 GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
 
 
+#: A link a session accepts waits in Zenoh's handshake (its peer proves the run's password) for
+#: at most ACCEPT_TIMEOUT_S, and at most accept_pending() links wait at once; a connection
+#: beyond that is closed at once. A stranger with no credentials who holds idle TCP connections
+#: to an endpoint takes those places: at Zenoh's defaults (100 links, 10 s) 250 connections held
+#: open kept every deploy, `retriever workers` and flow restart off a daemon. A handshake is two
+#: round trips; ACCEPT_TIMEOUT_S leaves a loaded machine and a long route room for them while a
+#: stranger's connection holds its place 3 s instead of 10 s. A place costs a file descriptor
+#: and a small task, so a session takes ACCEPT_PENDING_MAX places, but at most half of the
+#: process's open-file limit (raise_open_file_limit), never fewer than Zenoh's 100. Whoever
+#: holds more connections still keeps new links out: docs/security.md says what to do about it.
+ACCEPT_TIMEOUT_S = 3.0
+ACCEPT_PENDING_MAX = 2000
+ACCEPT_PENDING_MIN = 100
+
+
+def accept_pending(open_files: int | None = None) -> int:
+    """How many links a session lets wait in Zenoh's handshake at once (see ACCEPT_TIMEOUT_S),
+    of a process that may open ``open_files`` files (its limit now, if not given)."""
+    if open_files is None:
+        open_files = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    if open_files == resource.RLIM_INFINITY:
+        return ACCEPT_PENDING_MAX
+    return max(ACCEPT_PENDING_MIN, min(ACCEPT_PENDING_MAX, open_files // 2))
+
+
+def raise_open_file_limit() -> int:
+    """Raise this process's soft limit of open files to its hard limit (what systemd and most
+    shells leave at 1024 is the soft one), so that the links waiting in a handshake
+    (accept_pending) cannot take every descriptor a daemon needs to start its flows. Its
+    processes inherit it. The limit now."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        except (ValueError, OSError):  # a platform that caps it lower (macOS: OPEN_MAX)
+            return soft
+    return hard
+
+
 def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
                 access: dict[str, str] | None = None, lease: float | None = None,
                 zid: str | None = None, shared_memory: bool = True) -> zenoh.Config:
@@ -140,6 +180,9 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
+    # strangers' idle connections must not keep the run's own links out (see ACCEPT_TIMEOUT_S)
+    config.insert_json5("transport/unicast/accept_timeout", str(round(ACCEPT_TIMEOUT_S * 1000)))
+    config.insert_json5("transport/unicast/accept_pending", str(accept_pending()))
     # of two peers that learn of each other, only one opens the link (see GOSSIP_ONE_WAY)
     config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
     if lease is not None:  # how long a silent link lives (a partition): Zenoh's default is 10 s

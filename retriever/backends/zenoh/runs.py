@@ -42,6 +42,7 @@ from ...errors import IRError
 from ...ir import IR
 from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
+from .folders import DAEMON_FOLDER
 from .host import WORKER_MODULE
 from .hub import weak_callback
 from .origin import KEY_BYTES, KEY_ENV, key_of_text, key_text
@@ -151,7 +152,7 @@ class DaemonRuns:
                             f"({self.keys.deployment()}) is up: none is (its processes would never be stopped)")
         # mode 0700; named by this daemon's pid: the next daemon removes it if this one was SIGKILLed
         # (it holds the run's passwords), as it does the daemon's own folder (reap_stale_folders)
-        folder = Path(tempfile.mkdtemp(prefix=f"retriever-worker-{os.getpid()}-run-"))
+        folder = Path(tempfile.mkdtemp(prefix=f"{DAEMON_FOLDER}-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
         run.ir = ir.doc
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))

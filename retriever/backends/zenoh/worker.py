@@ -106,10 +106,16 @@ START_ASK_S = 0.5
 REDECLARE_AFTER_S = 2.0
 
 #: After its last status (done, handed over), a worker keeps its session open until the coordinator
-#: has every report it sent, at most this long. A report over 3 KiB goes through Zenoh's shared
-#: memory, and one whose sender had closed its session by the time the receiver read it was
-#: dropped (the sender's buffers no longer valid): the coordinator waited for it forever.
+#: has every report it sent. A report over 3 KiB goes through Zenoh's shared memory, and one whose
+#: sender had closed its session by the time the receiver read it was dropped (the sender's buffers
+#: no longer valid): the coordinator waited for it forever; so does one still in the sender's queue
+#: (a report of big frames, across machines). A coordinator writing big frames to its log answers
+#: late and takes reports long after they came (it waits for its disk): the worker waits as long as the
+#: coordinator answers, and gives up only once it has not answered for REPORTS_TAKEN_S, its
+#: link to it is gone, or after REPORTS_TAKEN_MAX_S in all (the coordinator ends a run that waits
+#: for a report longer than its own patience anyway, and stops this process).
 REPORTS_TAKEN_S = 5.0
+REPORTS_TAKEN_MAX_S = 120.0
 
 #: after its coordinator died, a worker's loop has this long to stop by itself (SIGTERM asks it
 #: to), then the process exits anyway: a flow stuck in its step never looks at the request
@@ -582,13 +588,13 @@ def _serve(argv: list[str], parent: int) -> int:
                 tmp.replace(handover_file)
                 status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
                 release(loop, node_id)  # the new process has set up its own: free this one's now
-                _await_reports_taken(session, keys, node_id)
+                _await_reports_taken(session, keys, node_id, spec.get("hub_zid"))
                 return EXIT_HANDED_OVER
             status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns,
-                   ticks=loop.recorded, stopped=loop.told_to_stop)
+                   ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
             loop.undeclare()
             release(loop, node_id)
-            _await_reports_taken(session, keys, node_id)
+            _await_reports_taken(session, keys, node_id, spec.get("hub_zid"))
         finally:
             release(loop, node_id)
     return 0
@@ -746,14 +752,18 @@ def _finished(session, keys) -> dict[str, set[str]] | None:
     return said
 
 
-def _await_reports_taken(session, keys, node_id: str) -> None:
-    """After its last status, until the coordinator has every report of this node (its
-    ``finished`` answer says so), at most REPORTS_TAKEN_S, or until it does not answer."""
-    give_up = time.monotonic() + REPORTS_TAKEN_S
-    while time.monotonic() < give_up:
+def _await_reports_taken(session, keys, node_id: str, hub_zid: str | None) -> None:
+    """After its last status, until the coordinator (whose session is ``hub_zid``) has every
+    report of this node (its ``finished`` answer says so); see REPORTS_TAKEN_S for how long."""
+    start = answered = time.monotonic()
+    while (now := time.monotonic()) - answered < REPORTS_TAKEN_S and now - start < REPORTS_TAKEN_MAX_S:
         said = _finished(session, keys)
-        if said is None or node_id in said["complete"]:
+        if said is not None and node_id in said["complete"]:
             return
+        if said is not None:
+            answered = time.monotonic()
+        elif hub_zid is None or hub_zid not in {str(z) for z in session.info.peers_zid()}:
+            return  # the coordinator is gone (or, without its id, may be): nothing more reaches it
         time.sleep(0.02)
 
 

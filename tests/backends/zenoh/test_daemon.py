@@ -901,5 +901,4 @@ def test_no_workers_over_tls_says_how_to_start_one_over_tls(namespace, tmp_path)
         f"  start one: retriever-worker --name NAME --namespace {namespace} --listen tls/0.0.0.0:7447 --tls-ca CA "
         "--tls-cert CERT --tls-key KEY --secret FILE, then: retriever workers --connect tls/HOST:7447 --tls-ca CA "
         "--tls-cert CERT --tls-key KEY --secret FILE\n"), result.stdout
-    assert f"warning: no session at {at}: nothing listens there, or it wants another --secret or a certificate " \
-           "of another CA" in result.stderr, result.stderr
+    assert f"warning: no session at {at}: nothing listens there\n" == result.stderr  # reach.why_no_session
