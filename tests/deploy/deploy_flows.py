@@ -41,3 +41,10 @@ with Pipeline("lab") as pipe:
     relay = Relay().configure(name="relay") @ Trigger()
     sink = Relay().configure(name="sink") @ Trigger()
     counter.then(relay, sync=Latest()).then(sink, sync=Latest())
+
+
+with Pipeline("lab-watch") as watched:
+    # a consumer on a clock of its own: a tick whose input is not complete by its deadline is skipped
+    source = Counter().configure(name="counter") @ Rate(hz=20)
+    watcher = Relay().configure(name="watcher") @ Rate(hz=20)
+    source.then(watcher, sync=Latest())
