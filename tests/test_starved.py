@@ -297,8 +297,9 @@ def test_a_flow_starved_in_a_real_time_run_is_warned_of_during_it_marked_in_the_
     assert "image from 0 s" in row, out
     (episode,) = read_log(log).starved
     assert episode["node"] == "viewer" and episode["port"] == "image" and episode["producers"] == ["cam.image"]
-    assert episode["since_ns"] == 0 and episode["until_ns"] is None and episode["ticks"] >= 100
-    assert episode["produced"] >= 100
+    # to the end of the 6 s run: past the 3 s it takes to be named (a loaded machine may skip a few ticks)
+    assert episode["since_ns"] == 0 and episode["until_ns"] is None and episode["ticks"] >= 80
+    assert episode["produced"] >= 80
     info = cli("log", "info", str(log))
     assert "starved  viewer: input 'image' had no event from t=0 s to the end" in info.stdout, info.stdout
 
