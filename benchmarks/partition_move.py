@@ -32,6 +32,7 @@ import argparse
 import json
 import os
 import secrets
+import shutil
 import statistics
 import subprocess
 import sys
@@ -53,7 +54,7 @@ MISSED_AT_MOST = 0.05
 FINISH_S = 60.0
 
 
-def trial(lab: Lab, folder: Path, lease: float, duration: float) -> dict:
+def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path) -> dict:
     """One deployment with a partition and a move; what its log and its coordinator said."""
     coordinator, arm, gpu = lab.hosts
     secret = folder / "lab.key"
@@ -87,6 +88,11 @@ def trial(lab: Lab, folder: Path, lease: float, duration: float) -> dict:
     except Exception as e:  # no log, or one cut short: the trial counts as not moved
         judged = {"moved": False, "first_event_s": None, "recovered": False, "missed_after": None,
                   "warned": False, "table_marked": False, "logged": [], "error": f"{type(e).__name__}: {e}"}
+    if run.returncode:  # kept for a look: the log and what the coordinator said
+        failures.mkdir(parents=True, exist_ok=True)
+        if log.exists():
+            shutil.copy(log, failures / f"{folder.name}.mcap")
+        (failures / f"{folder.name}.txt").write_text(out + "\n" + err)
     return {"exit": run.returncode, **judged, "stdout": out[-4000:], "stderr": err[-4000:]}
 
 
@@ -111,7 +117,9 @@ def judge(log: Path, out: str, err: str, lease: float) -> dict:
         missed = sum(1 for s in settled if not s.consumed)
         result["missed_after"] = missed
         result["recovered"] = bool(settled) and missed <= MISSED_AT_MOST * len(settled)
-    result["reported"] = result["warned"] and result["table_marked"] and bool(result["logged"])
+    # (a run that ended in error prints no table: the warning and the log then say it)
+    tabled = result["table_marked"] or "│ viewer" not in out
+    result["reported"] = result["warned"] and tabled and bool(result["logged"])
     return result
 
 
@@ -128,12 +136,13 @@ def main(argv: list[str] | None = None) -> int:
             return 1
     reap_orphan_labs()
     trials = []
+    args.out.mkdir(parents=True, exist_ok=True)
     with Lab(3, subnet=SUBNET) as lab, tempfile.TemporaryDirectory(prefix="partition-move-") as tmp:
         for i in range(args.trials):
             folder = Path(tmp) / f"trial{i}"
             folder.mkdir()
             began = time.monotonic()
-            result = trial(lab, folder, args.lease, args.duration)
+            result = trial(lab, folder, args.lease, args.duration, args.out / "failures")
             trials.append(result)
             print(f"trial {i + 1}: exit {result['exit']}, moved {result['moved']}, first event after the move "
                   f"{_s(result['first_event_s'])}, recovered {result['recovered']}, "
@@ -149,7 +158,10 @@ def main(argv: list[str] | None = None) -> int:
                                             "min": min(firsts, default=None), "max": max(firsts, default=None)},
                "starved_nodes": len(starved),
                "starved_nodes_unreported": sum(not t.get("reported") for t in starved),
-               "false_starved_reports": sum(bool(t["warned"] or t["logged"]) for t in trials if t["recovered"])}
+               "false_starved_reports": sum(bool(t["warned"] or t["logged"]) for t in trials if t["recovered"]),
+               "runs_ended_in_error": sum(bool(t["exit"]) for t in trials),
+               "errors": sorted({line for t in trials if t["exit"]
+                                 for line in t["stderr"].splitlines() if line.startswith("error: ")})}
     print(json.dumps(summary, indent=2))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "partition_move.json").write_text(json.dumps({"summary": summary, "trials": trials}, indent=1))
