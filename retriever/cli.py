@@ -707,8 +707,9 @@ def _print_info(path: Path, log, info: dict) -> None:
         lines.insert(5 + i, ("fault", f"{fault['node']}: its process (pid {fault.get('pid', '?')}) "
                                       f"{fault.get('exit', 'died')} at t={int(fault.get('at_ns', '0')) / 1e9:g} s; "
                                       f"{what}{lost}"))
-    for episode in log.starved:  # an input that had no event while its producers made some
-        lines.insert(5 + len(log.faults), ("starved", describe_starved(episode)))
+    faults = len(log.faults)
+    for i, episode in enumerate(log.starved):  # an input that had no event while its producers made some
+        lines.insert(5 + faults + i, ("starved", describe_starved(episode)))
     for key, value in lines:
         _out.print(Text.assemble((f"{key:>12}", "bold"), "  ", _visible(str(value))), highlight=False)
     table = Table(title="channels", title_justify="left")

@@ -27,9 +27,6 @@ HERE = Path(__file__).resolve().parent
 PYTHON = sys.executable
 FLOWS = HERE / "deploy_flows.py"
 BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
-#: how long Zenoh holds a put on a link whose queue is full before it gives the link up (its
-#: transport/link/tx/queue/congestion_control/block/wait_before_close, which Retriever keeps)
-BLOCKED_PUT_S = 5.0
 
 
 @pytest.fixture
@@ -336,10 +333,9 @@ def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_withi
         partitionable, hosts, secret):
     """Issue 40: the viewer (50 Hz, its own clock) runs on gpu-box, the camera's 32 KiB frames
     come from arm-pc. nftables cuts gpu-box off: the camera's link to it fills up and holds
-    its puts (BLOCK) until Zenoh gives that link up (5 s); meanwhile the coordinator moves the
-    viewer to spare. Once it runs there, the viewer gets the camera's frames as soon as the
-    camera's put is let go, and to the end of the run (it once waited for the frame whose put
-    was held as it subscribed, which went only to the cut-off host: every tick skipped)."""
+    its puts (BLOCK); the coordinator moves the viewer to spare. Once it runs there, the
+    viewer gets the camera's frames within about a lease (1 s here) and to the end of the run
+    (it once waited for a frame that went only to the cut-off host, every tick skipped)."""
     coordinator, arm, gpu = hosts
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--lease", "1")
     start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--lease", "1")
@@ -364,10 +360,9 @@ def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_withi
     after = steps[moved:]
     first = next((s for s in after if s.consumed), None)
     assert first is not None, f"the moved viewer got no frame in {len(after)} ticks: {after[-1]}"
-    # by event time: from its first tick on spare to its first frame there, at most as long as
-    # Zenoh holds a put on a link that takes nothing (BLOCKED_PUT_S; the viewer started after
-    # the put was held), a tick and the edge's deadline
-    assert first.tag[0] - after[0].tag[0] <= (BLOCKED_PUT_S + 0.02 + 0.1) * 1e9, (first, after[0])
+    # by event time: from its first tick on spare to its first frame there, at most the lease
+    # (the camera's put held by the cut-off link), a tick and the edge's deadline
+    assert first.tag[0] - after[0].tag[0] <= 1_000_000_000 + 20_000_000 + 100_000_000, (first, after[0])
     assert "is starved" not in err, err  # (it took less than starved.STARVED_AFTER_NS)
     starved = [s for s in after if s.tag > first.tag and not s.consumed]
     assert len(starved) <= 5, starved[:5]  # and from then on, every tick (a few may miss, a loaded machine)
