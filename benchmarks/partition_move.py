@@ -54,7 +54,8 @@ MISSED_AT_MOST = 0.05
 FINISH_S = 60.0
 
 
-def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path) -> dict:
+def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path,
+          deploy_lease: float | None = None) -> dict:
     """One deployment with a partition and a move; what its log and its coordinator said."""
     coordinator, arm, gpu = lab.hosts
     secret = folder / "lab.key"
@@ -70,7 +71,8 @@ def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path)
     connect = [arg for host in (arm, gpu, coordinator) for arg in ("--connect", f"tcp/{host.address}:7447")]
     run = coordinator.popen([PYTHON, "-m", "retriever.cli", "deploy", f"{FLOWS}:watched", *connect, "--secret",
                              str(secret), "--duration", f"{duration:g}", "--placement", str(placement), "--lease",
-                             f"{lease:g}", "--allow-errors", "--log", str(log)],
+                             f"{lease if deploy_lease is None else deploy_lease:g}", "--allow-errors", "--log",
+                             str(log)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=str(ROOT),
                             env={**os.environ, "NO_COLOR": "1", "TERM": "dumb", "COLUMNS": "200"})
     try:
@@ -127,6 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--trials", type=int, default=5)
     parser.add_argument("--lease", type=float, default=1.0, help="seconds, every daemon's and the deployment's")
+    parser.add_argument("--deploy-lease", type=float, default=None,
+                        help="seconds, the deployment's own, if not --lease")
     parser.add_argument("--duration", type=float, default=12.0, help="seconds of each run")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "partition_move_results")
     args = parser.parse_args(argv)
@@ -142,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
             folder = Path(tmp) / f"trial{i}"
             folder.mkdir()
             began = time.monotonic()
-            result = trial(lab, folder, args.lease, args.duration, args.out / "failures")
+            result = trial(lab, folder, args.lease, args.duration, args.out / "failures", args.deploy_lease)
             trials.append(result)
             print(f"trial {i + 1}: exit {result['exit']}, moved {result['moved']}, first event after the move "
                   f"{_s(result['first_event_s'])}, recovered {result['recovered']}, "
@@ -151,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"({time.monotonic() - began:.0f} s)", flush=True)
     firsts = [t["first_event_s"] for t in trials if t["first_event_s"] is not None]
     starved = [t for t in trials if t["moved"] and not t["recovered"]]
-    summary = {"trials": len(trials), "lease_s": args.lease, "duration_s": args.duration,
+    summary = {"trials": len(trials), "lease_s": args.lease, "deploy_lease_s": args.deploy_lease or args.lease,
+               "duration_s": args.duration,
                "moved": sum(t["moved"] for t in trials),
                "moved_nodes_recovered": sum(t["recovered"] for t in trials),
                "first_event_after_move_s": {"median": statistics.median(firsts) if firsts else None,
