@@ -21,6 +21,7 @@ from rich.text import Text
 from .backends import canonical, default_backend
 from .errors import BackendError, LogWriteError, RetrieverError, RetrieverWarning, StarvedFlowWarning
 from .ir import IR
+from .starved import describe_starved
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
@@ -448,13 +449,15 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
     placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
+    starved = _starved_cells(pipe._session.starved if pipe._session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
-    for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step"):
-        table.add_column(col, justify="left" if col in ("node", "worker") else "right")
+    for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
+                *(("starved",) if starved else ())):
+        table.add_column(col, justify="left" if col in ("node", "worker", "starved") else "right")
     for node, s in sorted(pipe.stats().items()):
         mean = f"{s.mean_step_s * 1e6:.1f} µs" if s.mean_step_s < 0.01 else f"{s.mean_step_s * 1e3:.1f} ms"
         table.add_row(node, *((_cell(placed[node]),) if placed else ()), str(s.ticks), str(s.steps), str(s.skips),
-                      str(s.errors), mean)
+                      str(s.errors), mean, *((starved.get(node, ""),) if starved else ()))
     _out.print(table)
     for node, s in sorted(pipe.stats().items()):  # what a real-time run counted, node by node
         if any(s.counts.values()):
@@ -473,6 +476,17 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
     if log is not None:
         _out.print(f"log: {log} ({log.stat().st_size / 1e6:.2f} MB); check it with: retriever replay {log}",
                    highlight=False, soft_wrap=True)  # a command to copy: never broken across lines
+
+
+def _starved_cells(episodes: list[dict]) -> dict[str, Text]:
+    """Per node, the table's mark of the spans its inputs starved (StarvationWatch):
+    ``pixels from 3.9 s`` (to the end), ``pixels 3.9–5.1 s`` (it had events again)."""
+    cells: dict[str, list[str]] = {}
+    for e in episodes:
+        since = f"{e['since_ns'] / 1e9:.3g}"
+        span = f"from {since} s" if e["until_ns"] is None else f"{since}–{e['until_ns'] / 1e9:.3g} s"
+        cells.setdefault(e["node"], []).append(f"{e['port']} {span}")
+    return {node: _cell(", ".join(marks)) for node, marks in cells.items()}
 
 
 def _show_live(pipe, namespace: str):
@@ -694,6 +708,9 @@ def _print_info(path: Path, log, info: dict) -> None:
         lines.insert(5 + i, ("fault", f"{fault['node']}: its process (pid {fault.get('pid', '?')}) "
                                       f"{fault.get('exit', 'died')} at t={int(fault.get('at_ns', '0')) / 1e9:g} s; "
                                       f"{what}{lost}"))
+    faults = len(log.faults)
+    for i, episode in enumerate(log.starved):  # an input that had no event while its producers made some
+        lines.insert(5 + faults + i, ("starved", describe_starved(episode)))
     for key, value in lines:
         _out.print(Text.assemble((f"{key:>12}", "bold"), "  ", _visible(str(value))), highlight=False)
     table = Table(title="channels", title_justify="left")

@@ -28,7 +28,7 @@ from .flow._base import Flow
 from .graph import Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .rebuild import check_node, construct_node
-from .starved import starved_flows
+from .starved import describe_starved, starved_flows
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import LoggedTrace, Trace
@@ -319,10 +319,16 @@ class Pipeline:
     def starved(self) -> list[str]:
         """What the current run's counters say a miswired port starved: each flow that skipped
         (nearly) every tick, or never ticked, for an input that never had an event, and each edge
-        a typo left empty (see :mod:`retriever.starved`). ``run`` warns with these at its end."""
+        a typo left empty; and each input a real-time run saw starve to its end, its producers
+        making events all along (see :mod:`retriever.starved`). ``run`` warns with these at its end."""
         if self._session is None:
             return []
-        return starved_flows(self._session.graph, self._session.stats(), self._session.produced_counts())
+        lines = starved_flows(self._session.graph, self._session.stats(), self._session.produced_counts())
+        # and each input that a real-time run saw starve until its end, if its flow is not named yet
+        # (one that stepped for a while first: its counters alone do not tell)
+        named = {line.split(" ", 1)[0] for line in lines}
+        return lines + [f"{describe_starved(e)} (starved during the run)" for e in self._session.starved
+                        if e["until_ns"] is None and e["node"] not in named]
 
     def counts(self) -> dict[str, int]:
         """What the current run counted, summed over its nodes (and the coordinator): events that

@@ -12,11 +12,20 @@ it built), made events on a port that no edge reads while an edge from it waited
 never made. A flow that skipped (nearly) every one of enough ticks for another reason is named
 too, with where to look; a cause upstream is named where it starts, and downstream only as
 "X never stepped" when X itself was named.
+
+Counters cannot tell a flow that stepped for a while and then lost its inputs for good (a
+consumer moved to another machine that never caught up with its stream, a link lost and back
+with a gap in it): it skipped most ticks, but for no cause a typo explains. During a run,
+:class:`StarvationWatch` reads the step records as they come and names each input that had no
+event, tick after tick, for ``STARVED_AFTER_NS`` of the run's time while a producer into it made
+events there; the coordinator warns at once, marks the flow in the run's table
+(``Session.starved``) and logs each such span (``retriever.starved.N``).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Mapping
+from collections import Counter
+from typing import TYPE_CHECKING, Any, Mapping
 
 if TYPE_CHECKING:
     from .backends.base import NodeStats
@@ -25,6 +34,13 @@ if TYPE_CHECKING:
 #: fewer ticks than this say too little to warn about a flow that skipped them (a short run's
 #: first ticks may come before anything upstream produced)
 MIN_TICKS = 3
+
+#: During a run: an input that had no event for this long of the run's time (its ticks' records
+#: say it was incomplete or missing) while its producers made at least STARVED_MIN_EVENTS events
+#: on its edges is starved. Longer than a node moved off a lost machine takes to catch up (about
+#: a lease: docs/deploy.md), shorter than a run that should have noticed.
+STARVED_AFTER_NS = 3_000_000_000
+STARVED_MIN_EVENTS = 3
 
 
 def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
@@ -143,3 +159,85 @@ def _upstream_first(graph: "Graph") -> list[str]:
                 entered.add(producer)
                 stack.append((producer, iter(feeds[producer])))
     return order
+
+
+class StarvationWatch:
+    """During a run, from its step records as they come (each node's in tick order, the nodes'
+    interleaved as their reports arrive): each input port of a flow that had no event at tick
+    after tick (its records name it ``incomplete`` or ``missing``) for ``STARVED_AFTER_NS`` while
+    its producers made events there. Each such span is an episode, a dict: ``node``,
+    ``port``, ``producers`` ("node.port" each), ``since_ns`` (its first tick without an event),
+    ``until_ns`` (the first tick with one again; None while it lasts), ``ticks`` (without one)
+    and ``produced`` (the events its producers made meanwhile, as reported). ``news`` lists what
+    happened since it was last emptied: ``("starved", episode)`` and ``("fed", episode)``. The
+    time counts from the first tick without an event that saw its producers make some: a sparse
+    output that was quiet for long before it fired is not a starved consumer."""
+
+    def __init__(self, graph: "Graph"):
+        self._into: dict[tuple[str, str], list[tuple[str, str]]] = {}
+        for e in graph.edges:
+            self._into.setdefault((e.dst, e.dst_port), []).append((e.src, e.src_port))
+        self._ports: dict[str, list[str]] = {}
+        for node, port in sorted(self._into):
+            self._ports.setdefault(node, []).append(port)
+        self._fed = {stream for streams in self._into.values() for stream in streams}
+        self._made: Counter = Counter()  # events made per stream into a port (_fed), as reported so far
+        # (node, port) -> [since_ns, ticks, events made by then, the first tick that saw more made]
+        self._without: dict[tuple[str, str], list] = {}
+        self._open: dict[tuple[str, str], dict[str, Any]] = {}
+        self.episodes: list[dict[str, Any]] = []
+        self.news: list[tuple[str, dict[str, Any]]] = []
+
+    def step(self, node: str, tag: tuple[int, int], produced, detail) -> None:
+        """One step record of ``node`` (its fields as reported: ``produced`` event ids, ``detail``)."""
+        for event_id in produced:
+            if (event_id[0], event_id[1]) in self._fed:
+                self._made[event_id[0], event_id[1]] += 1
+        ports = self._ports.get(node)
+        if not ports:
+            return
+        short = _named(detail, "incomplete") | _named(detail, "missing")
+        for port in ports:
+            key = (node, port)
+            if port not in short:
+                if self._without.pop(key, None) is not None and key in self._open:
+                    episode = self._open.pop(key)
+                    episode["until_ns"] = tag[0]
+                    self.news.append(("fed", episode))
+                continue
+            without = self._without.get(key)
+            if without is None:
+                self._without[key] = [tag[0], 1, self._producers_made(key), None]
+                continue
+            without[1] += 1
+            made = self._producers_made(key) - without[2]
+            if made and without[3] is None:  # its producers began to make events it does not get
+                without[3] = tag[0]
+            episode = self._open.get(key)
+            if episode is not None:
+                episode["ticks"], episode["produced"] = without[1], made
+            elif made >= STARVED_MIN_EVENTS and tag[0] - without[3] >= STARVED_AFTER_NS:
+                episode = {"node": node, "port": port, "producers": [f"{s}.{p}" for s, p in self._into[key]],
+                           "since_ns": without[0], "until_ns": None, "ticks": without[1], "produced": made}
+                self._open[key] = episode
+                self.episodes.append(episode)
+                self.news.append(("starved", episode))
+
+    def _producers_made(self, key: tuple[str, str]) -> int:
+        return sum(self._made[stream] for stream in self._into[key])
+
+
+def _named(detail, key: str) -> set[str]:
+    """The ports a record's ``detail`` names under ``key`` (what a worker sent: anything else, none)."""
+    ports = detail.get(key) if type(detail) is dict else None
+    return {p for p in ports if type(p) is str} if type(ports) is list else set()
+
+
+def describe_starved(episode: Mapping[str, Any]) -> str:
+    """``viewer: input 'pixels' had no event from t=3.9 s to the end (805 ticks), while
+    camera.pixels made 805``: one episode of :class:`StarvationWatch`, in words."""
+    until = episode.get("until_ns")
+    span = (f"from t={episode['since_ns'] / 1e9:.3g} s " +
+            ("to the end" if until is None else f"to t={until / 1e9:.3g} s"))
+    return (f"{episode['node']}: input '{episode['port']}' had no event {span} ({episode['ticks']} ticks), while "
+            f"{' and '.join(episode['producers'])} made {episode['produced']}")

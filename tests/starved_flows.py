@@ -4,7 +4,7 @@ level, so that the zenoh workers can rebuild them from the IR."""
 
 from __future__ import annotations
 
-from retriever import Flow, Pipeline, Rate
+from retriever import Flow, Latest, Pipeline, Rate
 
 
 class MisspeltCamera(Flow):
@@ -47,4 +47,20 @@ def camera_policy_controller(camera: Flow) -> Pipeline:
         pol = Policy().configure(name="policy") @ Rate(hz=5)
         ctrl = Controller().configure(name="controller") @ Rate(hz=20)
         cam.then(pol).then(ctrl)
+    return pipe
+
+
+class Viewer(Flow):
+    def step(self, image):
+        return None
+
+
+def stale_viewer(staleness: float) -> Pipeline:
+    """A viewer that takes only frames younger than ``staleness``: at the camera's rate, in real
+    time, the newest frame at each of its ticks is one period old, so with less than that it
+    never gets one, while the camera makes a frame every tick."""
+    with Pipeline("stale") as pipe:
+        cam = Camera().configure(name="cam") @ Rate(hz=20)
+        viewer = Viewer().configure(name="viewer") @ Rate(hz=20)
+        cam.then(viewer, sync=Latest(staleness=staleness))
     return pipe

@@ -13,8 +13,8 @@ from typing import Optional
 
 from retriever import ActionChunking, Flow, LatestDistinct, Pipeline, Rate, StarvedFlowWarning, Trigger, io
 
-from .starved_flows import Camera, MisspeltCamera, camera_policy_controller
-from .test_cli import cli, write
+from .starved_flows import Camera, MisspeltCamera, camera_policy_controller, stale_viewer
+from .test_cli import ROOT, cli, write
 
 POLICY_STARVED = (r"pipeline 'agent': policy stepped 0 of 5 ticks: input 'image' never had an event \(edge cam → "
                   r"policy, output 'image' was never produced; cam produced 'imgae', which no edge reads\)")
@@ -204,3 +204,110 @@ def test_the_cli_names_a_starved_flow_of_a_run_that_was_interrupted(tmp_path):
     assert result.returncode == 130, result.stderr
     assert "interrupted" in result.stderr
     assert re.search("^warning: " + POLICY_STARVED.replace("0 of 5", "0 of 11"), result.stderr, re.M), result.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# During a run: an input that had no event for long while its producer made events (issue 40)
+# ---------------------------------------------------------------------------------------------
+MS = 1_000_000
+
+
+def _watched_pair():
+    from retriever.starved import StarvationWatch
+
+    pipe = stale_viewer(1.0)
+    return StarvationWatch(pipe.compile())
+
+
+def _feed(watch, start_ms: int, end_ms: int, viewer_detail, camera_makes: bool = True, seq0: int = 0) -> int:
+    """20 Hz ticks of both from ``start_ms`` to ``end_ms``, the camera's first; the next seq."""
+    seq = seq0
+    for t in range(start_ms, end_ms, 50):
+        watch.step("cam", (t * MS, 0), (("cam", "image", seq),) if camera_makes else (), None)
+        seq += camera_makes
+        watch.step("viewer", (t * MS, 0), (), viewer_detail)
+    return seq
+
+
+def test_an_input_without_events_while_its_producer_makes_them_is_starved_after_a_while_then_fed():
+    from retriever.starved import STARVED_AFTER_NS
+
+    watch = _watched_pair()
+    seq = _feed(watch, 0, 1000, None)
+    assert watch.news == [] and watch.episodes == []
+    # from 1 s, no event; the first tick after that sees the camera's next one made (1.05 s)
+    seq = _feed(watch, 1000, 1050 + STARVED_AFTER_NS // MS, {"incomplete": ["image"], "missing": ["image"]},
+                seq0=seq)
+    assert watch.news == []  # a tick short of STARVED_AFTER_NS: not yet
+    seq = _feed(watch, 4050, 4100, {"incomplete": ["image"]}, seq0=seq)
+    (what, episode), = watch.news
+    assert what == "starved" and episode == {"node": "viewer", "port": "image", "producers": ["cam.image"],
+                                             "since_ns": 1000 * MS, "until_ns": None, "ticks": 62, "produced": 61}
+    watch.news.clear()
+    seq = _feed(watch, 4100, 6000, {"missing": ["image"]}, seq0=seq)
+    assert watch.news == [] and episode["ticks"] == 100 and episode["produced"] == 99
+    _feed(watch, 6000, 6100, None, seq0=seq)
+    assert watch.news == [("fed", episode)] and episode["until_ns"] == 6000 * MS
+    assert watch.episodes == [episode]
+
+
+def test_no_input_starves_while_its_producer_makes_nothing_or_for_less_than_the_while():
+    watch = _watched_pair()
+    _feed(watch, 0, 10_000, {"missing": ["image"]}, camera_makes=False)  # a quiet producer: a sparse output
+    seq = _feed(watch, 10_000, 12_900, {"incomplete": ["image"]})  # 2.9 s, then an event
+    _feed(watch, 12_900, 13_000, None, seq0=seq)
+    _feed(watch, 13_000, 20_000, {"incomplete": "image", "missing": [7]}, seq0=seq)  # garbage: no port named
+    assert watch.news == [] and watch.episodes == []
+
+
+def test_a_flow_starved_in_a_real_time_run_is_warned_of_during_it_marked_in_the_table_and_logged(tmp_path):
+    """On zenoh: the viewer's frames are always older than its policy takes, the camera makes
+    one every tick. The coordinator says so while the run goes on; the log keeps the span, the
+    CLI's table marks the viewer, and `retriever log info` shows it."""
+    import os
+    import subprocess
+    import sys
+
+    from retriever import read_log
+
+    log = tmp_path / "run.mcap"
+    script = write(tmp_path / "stale.py", "from tests.starved_flows import stale_viewer\npipe = stale_viewer(0.001)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "PYTHONPATH")}
+    env.update(NO_COLOR="1", TERM="dumb", COLUMNS="200", PYTHONIOENCODING="utf-8", PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "run", f"{script}:pipe", "--backend", "zenoh",
+                             "--duration", "6", "--log", str(log)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=str(ROOT), env=env)
+    try:
+        warned = None
+        for line in proc.stderr:
+            if "is starved" in line:
+                warned = line
+                break
+        running_when_warned = proc.poll() is None and not log_finished(log)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert warned is not None and warned.startswith(
+        "retriever: warning: node 'viewer' is starved: its input 'image' has had no event since t=0.000 s"), err
+    assert running_when_warned, "the warning came only once the run was over"
+    assert proc.returncode == 0, err
+    row = next(line for line in out.splitlines() if "│ viewer" in line)
+    assert "image from 0 s" in row, out
+    (episode,) = read_log(log).starved
+    assert episode["node"] == "viewer" and episode["port"] == "image" and episode["producers"] == ["cam.image"]
+    # to the end of the 6 s run: past the 3 s it takes to be named (a loaded machine may skip a few ticks)
+    assert episode["since_ns"] == 0 and episode["until_ns"] is None and episode["ticks"] >= 80
+    assert episode["produced"] >= 80
+    info = cli("log", "info", str(log))
+    assert "starved  viewer: input 'image' had no event from t=0 s to the end" in info.stdout, info.stdout
+
+
+def log_finished(path) -> bool:
+    from retriever import read_log
+
+    try:
+        return read_log(path).end is not None
+    except Exception:  # not written to its end yet
+        return False

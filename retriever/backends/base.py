@@ -134,6 +134,12 @@ class Session(ABC):
         self.retained_peak = 0
 
     @property
+    def starved(self) -> list[dict]:
+        """Each span of the run in which an input had no event while its producers made some
+        (:class:`~retriever.starved.StarvationWatch`; a real-time coordinator watches for them)."""
+        return []
+
+    @property
     def counts(self) -> Counter:
         """The run's counters (COUNTERS): every node's, plus the session's own."""
         total = Counter(self.own_counts)

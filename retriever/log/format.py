@@ -46,6 +46,7 @@ RUN_METADATA = "retriever.run"
 END_METADATA = "retriever.end"
 RECOVERED_METADATA = "retriever.recovered"
 FAULT_METADATA = "retriever.fault."
+STARVED_METADATA = "retriever.starved."
 #: what pip installs Retriever as (it imports as ``retriever``; "retriever" on PyPI is another project)
 DISTRIBUTION = "retriever-robotics"
 #: the distributions whose versions a run records, by the name a log's and a worker's versions give

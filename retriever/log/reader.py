@@ -121,6 +121,31 @@ class RunLog:
             faults.append({**record, "seqs": seqs, "lost_events": lost})
         return faults
 
+    @property
+    def starved(self) -> list[dict[str, Any]]:
+        """The inputs that had no event while their producers made some (``retriever.starved.N``
+        records, starved.StarvationWatch), in order: ``node``, ``port``, ``producers``,
+        ``since_ns``, ``until_ns`` (None: to the run's end), ``ticks``, ``produced``."""
+        found = []
+        for name in sorted((n for n in self.metadata if n.startswith(fmt.STARVED_METADATA)),
+                           key=lambda n: (len(n), n)):
+            record = self.metadata[name]
+            try:
+                fields = {key: json.loads(record.get(key, "null"))
+                          for key in ("producers", "since_ns", "until_ns", "ticks", "produced")}
+            except (ValueError, RecursionError):
+                fields = None
+            counts = (fields or {}).get("since_ns"), (fields or {}).get("ticks"), (fields or {}).get("produced")
+            if (fields is None or type(record.get("node")) is not str or type(record.get("port")) is not str
+                    or not all(type(n) is int and n >= 0 for n in counts)
+                    or not (fields["until_ns"] is None or type(fields["until_ns"]) is int)
+                    or type(fields["producers"]) is not list
+                    or not all(type(p) is str for p in fields["producers"])):
+                raise LogError(f"{self.path}: the starved record {name} is malformed",
+                               "the file was changed after it was written")
+            found.append({"node": record["node"], "port": record["port"], **fields})
+        return found
+
     # -- its records -------------------------------------------------------------------------
     def iter_events(self) -> Iterator[LoggedEvent]:
         """Every event, in file order, value undecoded."""

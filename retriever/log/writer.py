@@ -135,6 +135,7 @@ class LogWriter:
         self.last_step_ns = 0  # the latest tick of a step written
         self.last_bytes = 0  # the events' bytes of the last write() that had events
         self._faults = 0
+        self._starved = 0
         self._encode = Encoder().pack
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
@@ -238,6 +239,15 @@ class LogWriter:
                   for key, value in fault.items()}
         with self._refused_writes(RUN_STOPPED):
             self._mcap.add_metadata(f"{fmt.FAULT_METADATA}{self._faults}", record)
+
+    def add_starved(self, episode: dict) -> None:
+        """Log a span in which an input of a flow had no event while its producers made some
+        (``retriever.starved.N``, starved.StarvationWatch): its text fields as they are, the rest as JSON."""
+        self._starved += 1
+        record = {key: value if type(value) is str else json.dumps(value, sort_keys=True)
+                  for key, value in episode.items()}
+        with self._refused_writes(RUN_STOPPED):
+            self._mcap.add_metadata(f"{fmt.STARVED_METADATA}{self._starved}", record)
 
     def _unencodable(self, events: list[tuple]) -> LogError:
         for tag, node, port, seq, value, _ in events:

@@ -41,3 +41,42 @@ with Pipeline("lab") as pipe:
     relay = Relay().configure(name="relay") @ Trigger()
     sink = Relay().configure(name="sink") @ Trigger()
     counter.then(relay, sync=Latest()).then(sink, sync=Latest())
+
+
+
+#: a frame's bytes: at 50 Hz, enough to fill a link's queue within about a second once its far end is cut off
+FRAME_BYTES = 32 << 10
+
+
+@io
+@dataclass
+class Frame:
+    n: int
+    pixels: bytes
+
+
+class Camera(Flow[None, Frame]):
+    """A source of frames: 1, 2, 3, …, each with FRAME_BYTES of pixels."""
+
+    def __init__(self):
+        self.k = 0
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def step(self, inp: None) -> Frame:
+        self.k += 1
+        return Frame(n=self.k, pixels=bytes(FRAME_BYTES))
+
+
+class Viewer(Flow[Frame, None]):
+    """Looks at each frame, on a clock of its own: a tick whose frame has not come by its deadline is skipped."""
+
+    def step(self, inp: Frame) -> None:
+        return None
+
+
+with Pipeline("lab-watch") as watched:
+    camera = Camera().configure(name="camera") @ Rate(hz=50)
+    viewer = Viewer().configure(name="viewer") @ Rate(hz=50)
+    camera.then(viewer, sync=Latest())

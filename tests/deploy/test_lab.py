@@ -90,7 +90,7 @@ def test_every_test_that_partitions_a_host_takes_the_fixture_that_skips_without_
                     for name, fn in vars(module).items()
                     if name.startswith("test_") and callable(fn)
                     and re.search(r"\w\.partition\(\w", inspect.getsource(fn))}
-    assert len(partitioning) == 2, sorted(partitioning)
+    assert len(partitioning) == 3, sorted(partitioning)
     assert [n for n, fn in partitioning.items() if "partitionable" not in inspect.signature(fn).parameters] == []
 
 

@@ -35,6 +35,7 @@ import zenoh
 
 from ...errors import BackendError, CausalityError, RestartLimitError, RetrieverWarning, SetupError, StepError
 from ...graph import Graph
+from ...starved import StarvationWatch
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
@@ -261,6 +262,8 @@ class Coordinator(Session):
         self._unseen: set[tuple[str, str, int]] = set()
         #: what went wrong with the run's processes, as the log's fault records have it
         self.faults: list[dict] = []
+        #: inputs that had no event for long while their producers made events (starved.py)
+        self.starvation = StarvationWatch(graph)
         self._streams = {(nid, port) for nid, node in graph.nodes.items() for port in node.outputs}
         # untyped flows may emit on ports no edge names (a dict step's extra keys)
         self._open_outputs = {nid for nid, node in graph.nodes.items() if node.spec.out_mode == "dict"}
@@ -391,10 +394,12 @@ class Coordinator(Session):
             self._stop_workers()  # their last reports, then: which outputs died with a process
             self._tell_forged()
             self._record_faults_left()
+            self._record_starved()
             self.close()
             raise
         self.now_ns = until_ns
         self._record_faults_left()
+        self._record_starved()
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
         self._warn_forged()
         self._check_exit_recorded()
@@ -443,6 +448,36 @@ class Coordinator(Session):
                                f"{self.end_ns / 1e9:g} s, though their clocks had ticks due:\n" + "\n".join(idle)
                                + "\n    hint: a machine too loaded to start the run's processes in time needs a "
                                f"later start: pipe.run(..., start_margin=seconds) (now {self.start_margin_ns / 1e9:g})")
+
+    @property
+    def starved(self) -> list[dict]:
+        """Each span in which an input had no event while its producers made some (starved.py)."""
+        return self.starvation.episodes
+
+    def _say_starved(self) -> None:
+        """Say at once which input starves (its node skips tick after tick while its producer makes
+        events), and when one that did has an event again."""
+        news, self.starvation.news = self.starvation.news, []
+        for what, episode in news:
+            node, port = episode["node"], episode["port"]
+            if what == "starved":
+                print(f"retriever: warning: node '{node}' is starved: its input '{port}' has had no event since "
+                      f"t={episode['since_ns'] / 1e9:.3f} s ({episode['ticks']} ticks), while "
+                      f"{' and '.join(episode['producers'])} made {episode['produced']} events there"
+                      "\n    hint: its step records say why each tick went without (retriever log cat LOG "
+                      f"--steps); `retriever status` shows whether it recovers", file=sys.stderr, flush=True)
+            else:
+                print(f"retriever: node '{node}' has events on its input '{port}' again at "
+                      f"t={episode['until_ns'] / 1e9:.3f} s, after {episode['ticks']} ticks without",
+                      file=sys.stderr, flush=True)
+
+    def _record_starved(self) -> None:
+        """Log each starved span (the run ends: one still starved lasted to its end)."""
+        if self.starvation.news:
+            self._say_starved()
+        if self.log is not None:
+            for episode in self.starvation.episodes:
+                self.log.add_starved(episode)
 
     def _warn_starved_by_late_events(self) -> None:
         """A flow that never stepped though events came on its inputs, late (after the ticks they
@@ -532,6 +567,8 @@ class Coordinator(Session):
             self._tell_forged()
             if self._failure is not None:
                 self._raise_failure()
+            if self.starvation.news:
+                self._say_starved()
             self._check_processes()
             now = time.monotonic()
             if now >= next_write:
@@ -597,6 +634,7 @@ class Coordinator(Session):
                 steps.append((report.node, tag, consumed, produced, status, detail, start, wall))
                 if self.live is not None:
                     self.live.step(report.node, tag, consumed, produced, status, detail, start, wall)
+                self.starvation.step(report.node, tag, produced, detail)
                 for event_id in produced:  # a LET output is published after its record went
                     if event_id not in self._event_ids:
                         self._unseen.add(event_id)

@@ -157,7 +157,7 @@ def raise_open_file_limit() -> int:
 
 def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: int = 1,
                 access: dict[str, str] | None = None, lease: float | None = None,
-                zid: str | None = None, shared_memory: bool = True) -> zenoh.Config:
+                zid: str | None = None, shared_memory: bool = True, blocked_put: float | None = None) -> zenoh.Config:
     """Peer mode, multicast scouting off, explicit endpoints, quick reconnects.
 
     Zenoh's shared memory stays on (its default) unless ``shared_memory`` is false (see
@@ -167,6 +167,9 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     :func:`shm_pool_bytes` for one of the run's ``sessions``. Its costs: each session has a
     segment in /dev/shm, which a SIGKILLed process leaves behind; and a process with a link that
     uses it wakes 20 times a second for as long as it lives (:func:`needs_shared_memory`).
+
+    ``blocked_put``: how long (s) a put may wait for room on one link before Zenoh closes that
+    link (its default: 5 s); the put then goes on to the other links.
 
     ``access``: the config entries that make the session one of a run's (``access.py``:
     authentication and access control); without it, the session admits anyone. ``zid``: the
@@ -187,6 +190,9 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
     if lease is not None:  # how long a silent link lives (a partition): Zenoh's default is 10 s
         config.insert_json5("transport/link/tx/lease", str(round(lease * 1000)))
+    if blocked_put is not None:  # a put held this long by one link (BLOCK: its far end took nothing) closes it
+        config.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
+                            str(round(blocked_put * 1e6)))
     if not shared_memory:
         config.insert_json5("transport/shared_memory/enabled", "false")
     for key, value in (access or {}).items():
@@ -298,7 +304,7 @@ def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, access: dict
 
 def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | None = None,
               listen: list[str] | None = None, lease: float | None = None, zid: str | None = None,
-              shared_memory: bool = True) -> zenoh.Session:
+              shared_memory: bool = True, blocked_put: float | None = None) -> zenoh.Session:
     """A worker's or client's session, joined to the hub, one of the run's ``sessions``. Close it
     (``with``).
 
@@ -307,7 +313,8 @@ def open_peer(hub_endpoint: str, sessions: int = 1, access: dict[str, str] | Non
     two workers exchange messages over the direct link that gossip (learning of each other from
     the hub) opens between them, which is also the fastest path."""
     return zenoh.open(peer_config(listen=listen or [endpoint(0)], connect=[hub_endpoint], sessions=sessions,
-                                  access=access, lease=lease, zid=zid, shared_memory=shared_memory))
+                                  access=access, lease=lease, zid=zid, shared_memory=shared_memory,
+                                  blocked_put=blocked_put))
 
 
 def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float, stop=lambda: False, gone=lambda: set(),

@@ -1203,11 +1203,17 @@ class NodeLoop:
                 what = "the Burst (value[i]: its value i)" if type(value) is Burst else "the event"
                 raise StopRun(f"{self.id}.{port}: {what} at t={tag[0] / 1e9:.6f} s cannot be sent to another "
                               f"process: {e}", tag) from None
-            publisher.put(message)
             burst = type(value) is Burst
+            # counted as sent before the put, not after: a consumer that subscribes meanwhile and
+            # asks where the stream stands (a node started afresh: sync_inputs) must not be told
+            # to wait for this seq. Zenoh chose the put's subscribers when it began, and a put held
+            # by a congested link (a consumer's host cut off, BLOCK) began long before it returns:
+            # told 'sent up to seq - 1', the new consumer waited for a seq that never came to it,
+            # every tick incomplete, for the rest of the run (issue 40)
+            self.sent[port] = seq + len(value.values) - 1 if burst else seq
+            publisher.put(message)
             if self.consumed and not burst:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, self.id, port, value)
-            self.sent[port] = seq + len(value.values) - 1 if burst else seq
             if not self.values:  # the coordinator records that it was sent, not what
                 blank = Burst._of((None,) * len(value.values)) if burst else None  # sent as nil
                 message = data(tag, seq, frontier if i == last else tag, self.id, port, blank)

@@ -431,6 +431,7 @@ def _serve(argv: list[str], parent: int) -> int:
     padding = bytes(POOL_PADDING) if shared_memory else None  # no pool to make before T0 without it
     with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
                    listen=spec.get("listen"), lease=spec.get("lease"), zid=zid,
+                   blocked_put=spec.get("blocked_put"),
                    shared_memory=shared_memory) as session:
         def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
             info["pid"] = os.getpid()

@@ -203,3 +203,42 @@ def test_before_its_run_starts_a_loop_promises_nothing_past_the_start(session):
     for node in ("counter", "where"):
         loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "before-run-test"}, node, session)
         assert loop.frontier() == (0, 0), node
+
+
+class _HeldPut:
+    """A data publisher whose put is held while a new consumer asks the producer where its
+    stream stands (Zenoh chose the put's subscribers when it began; a link to a cut-off host
+    holds it for up to a lease): the answer given meanwhile, then the real put."""
+
+    def __init__(self, session, keys, publisher):
+        self.session, self.keys, self.publisher = session, keys, publisher
+        self.answers: list[Progress] = []
+
+    def put(self, message) -> None:
+        from retriever.backends.zenoh.wire import decode_progress
+
+        for reply in self.session.get(self.keys.progress("counter"), timeout=5.0):
+            self.answers.append(decode_progress(reply.ok.payload.to_bytes(), expected="counter"))
+        self.publisher.put(message)
+
+    def undeclare(self) -> None:
+        self.publisher.undeclare()
+
+
+def test_a_seq_being_put_counts_as_sent_for_a_consumer_that_asks_meanwhile(session):
+    """Issue 40: a consumer moved off a cut-off host subscribed while its producer's put was held
+    by the full link to the old consumer, and was told the stream stood before that put's seq:
+    it waited for a seq that had gone only to the cut-off host, every tick skipped to the end."""
+    with Pipeline("held_put") as pipe:
+        (Ticker().configure(name="counter") @ Rate(hz=20)).then(WhereRun().configure(name="where") @ Trigger("x"),
+                                                                map={"value": "x"})
+    producer = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "held-put-test"}, "counter", session)
+    producer.declare()
+    try:
+        producer.t0, producer.end, producer.started = 0, 1 << 62, True
+        held = producer.publishers["value"] = _HeldPut(session, producer.keys, producer.publishers["value"])
+        producer._publish([((50 * MS, 0), "value", {"value": 0}, 0)])
+        producer._publish([((100 * MS, 0), "value", {"value": 1}, 1)])
+        assert [answer.sent.get("value") for answer in held.answers] == [0, 1]
+    finally:
+        producer.undeclare()
