@@ -897,7 +897,7 @@ class SpecTarget(Target):
         paths = [str(ROOT), str(folder)]
         runs = self.runs = DaemonRuns.__new__(DaemonRuns)
         runs.name, runs.keys, runs.run, runs.paths, runs.code_mismatch = "fuzz", KeySpace(NAMESPACE), None, (), "refuse"
-        runs.access, runs.listen, runs.tls, runs._coordinators = None, (), None, 0
+        runs.access, runs.listen, runs.tls, runs.lease, runs._coordinators = None, (), None, None, 0
         runs.allowed = lambda module: daemon.module_allowed(module, [], paths)
         runs.refusal = lambda module: daemon.refusal(module, [], paths)
         ir = self.genuine.pipeline.build_ir().doc
