@@ -15,6 +15,7 @@ flow computes them from the world's observation as it does for every skill.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -71,7 +72,9 @@ class TorchScriptSkill:
         import torch
         torch.set_num_threads(threads)
         self.torch = torch
-        self.module = torch.jit.load(path, map_location="cpu").eval()
+        with warnings.catch_warnings():  # TorchScript is deprecated in favour of torch.export, and still loads
+            warnings.filterwarnings("ignore", category=FutureWarning, message=".*torch.jit")
+            self.module = torch.jit.load(path, map_location="cpu").eval()
 
     def reset(self, skill: str) -> None:
         pass
