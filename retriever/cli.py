@@ -254,7 +254,7 @@ def demo(
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True,
-                             skill_policy=str(skill_policy) if skill_policy else None)
+                             skill_policy=str(skill_policy.absolute()) if skill_policy else None)
         config.check()
         if teleop is not None:
             from agents.flows import load_schedule
