@@ -343,9 +343,9 @@ class SkillActor(Flow):
     ``"scripted"`` or a policy file (:func:`agents.skill_policies.load_skill_policy`)."""
 
     def __init__(self, skill: str = "Pick", policy: str = "scripted", horizon: float = 0.75,
-                 control_hz: float = 200.0, policy_hz: float = 2.0):
+                 control_hz: float = 200.0, policy_hz: float = 2.0, wrist_size: list | None = None):
         self.skill, self.policy_spec, self.horizon, self.control_hz = skill, policy, horizon, control_hz
-        self.policy_hz = policy_hz
+        self.policy_hz, self.wrist_size = policy_hz, tuple(wrist_size or (64, 64))
         self.running_id, self.ticks = 0, 0
 
     def setup(self):
@@ -362,7 +362,7 @@ class SkillActor(Flow):
         if skill.skill_id != self.running_id:
             self.running_id, self.ticks = skill.skill_id, 0
             self.policy.reset(str(skill))
-        image = wrist.rgb if wrist is not None else np.zeros((64, 64, 3), dtype=np.uint8)
+        image = wrist.rgb if wrist is not None else np.zeros((*self.wrist_size, 3), dtype=np.uint8)
         seen = SkillObservation(t=self.ticks / self.policy_hz, skill=str(skill), state=np.asarray(state),
                                 scene=np.asarray(scene), wrist=image)
         self.ticks += 1

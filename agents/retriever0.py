@@ -179,7 +179,7 @@ def _plug_policy(config: AgentConfig, commander, world, wrist, ctrl) -> None:
     if config.skill_policy is None:
         return
     actor = SkillActor(skill=LEARNED_SKILL, policy=config.skill_policy, control_hz=config.control_hz,
-                       policy_hz=config.policy_hz).named(POLICY_NODE) \
+                       policy_hz=config.policy_hz, wrist_size=list(config.wrist_size)).named(POLICY_NODE) \
         .configure(on_overrun="catch_up", latency=config.policy_latency) @ Rate(config.policy_hz)
     commander.then(actor, sync=Latest(), map={"skill": "skill"})
     world.then(actor, sync=Latest(), map={"state": "state", "scene": "scene"})

@@ -82,8 +82,9 @@ class TorchScriptSkill:
     def act(self, obs: SkillObservation, steps: int, control_hz: float) -> np.ndarray:
         torch = self.torch
         with torch.inference_mode():
-            out = self.module(torch.from_numpy(obs.state[None]), torch.from_numpy(obs.scene[None]),
-                              torch.from_numpy(np.ascontiguousarray(obs.wrist)[None]))
+            # copies: a value decoded from the wire is a read-only view, which torch will not wrap
+            out = self.module(torch.tensor(obs.state[None]), torch.tensor(obs.scene[None]),
+                              torch.tensor(obs.wrist[None]))
         chunk = out.detach().to(torch.float64).numpy()
         if chunk.ndim != 3 or chunk.shape[0] != 1 or chunk.shape[2] != NU or chunk.shape[1] < 1:
             raise ValueError(f"the skill policy's module returned shape {tuple(chunk.shape)}: expected (1, steps, {NU})")

@@ -39,7 +39,7 @@ def _module(x_mean, x_std, y_mean, y_std, steps: int, hidden: int):
             super().__init__()
             for name, value in (("x_mean", x_mean), ("x_std", x_std), ("y_mean", y_mean), ("y_std", y_std)):
                 self.register_buffer(name, torch.as_tensor(value, dtype=torch.float32))
-            self.steps = steps
+            self.steps, self.nu, self.command = steps, NU, COMMAND.start
             self.net = nn.Sequential(nn.Linear(len(x_mean), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                                      nn.Linear(hidden, len(y_mean)))
 
@@ -49,8 +49,8 @@ def _module(x_mean, x_std, y_mean, y_std, steps: int, hidden: int):
 
         def forward(self, state: torch.Tensor, scene: torch.Tensor, wrist: torch.Tensor) -> torch.Tensor:
             delta = self.normalised(state, scene) * self.y_std + self.y_mean
-            command = state[:, 10:15].to(torch.float64)
-            return delta.to(torch.float64).view(-1, self.steps, 5) + command[:, None, :]
+            command = state[:, self.command:self.command + self.nu].to(torch.float64)
+            return delta.to(torch.float64).view(-1, self.steps, self.nu) + command[:, None, :]
 
     return ChunkMLP()
 
