@@ -114,7 +114,8 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=config.deadline) as pipe:
         goal = Goal(task=task).named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
         world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task,
-                      sensors=config.skill_policy is not None).named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
+                      sensors=config.skill_policy is not None).named("world") \
+            .configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         head = Camera("head", *config.head_size, seed=seed, drawer=drawer, task=task) \
             .named("head_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
         wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer, task=task) \
@@ -199,8 +200,9 @@ def _pick_episode(config: AgentConfig) -> Pipeline:
     with Pipeline(f"retriever0-{LEARNED_SKILL.lower()}", deadline=config.deadline) as pipe:
         order = SkillOrder(skill=LEARNED_SKILL_CALL).named("order").configure(**catch_up, latency=0.01) \
             @ Rate(config.monitor_hz)
-        world = World(seed=config.seed, drawer=config.drawer, tick=control_period, sensors=config.skill_policy is not None,
-                      start="pick").named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
+        world = World(seed=config.seed, drawer=config.drawer, tick=control_period,
+                      sensors=config.skill_policy is not None, start="pick").named("world") \
+            .configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         wrist = Camera("wrist", *config.wrist_size, seed=config.seed, drawer=config.drawer) \
             .named("wrist_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
         skill = SkillPolicy(control_hz=config.control_hz, actor=_actor(config)).named("skill") \

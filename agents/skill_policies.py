@@ -87,7 +87,8 @@ class TorchScriptSkill:
                               torch.tensor(obs.wrist[None]))
         chunk = out.detach().to(torch.float64).numpy()
         if chunk.ndim != 3 or chunk.shape[0] != 1 or chunk.shape[2] != NU or chunk.shape[1] < 1:
-            raise ValueError(f"the skill policy's module returned shape {tuple(chunk.shape)}: expected (1, steps, {NU})")
+            raise ValueError(f"the skill policy's module returned shape {tuple(chunk.shape)}: "
+                             f"expected (1, steps, {NU})")
         rows = chunk[0, :steps]
         if len(rows) < steps:
             rows = np.concatenate([rows, np.repeat(rows[-1:], steps - len(rows), axis=0)])

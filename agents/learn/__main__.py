@@ -78,7 +78,8 @@ def train_policy(folder: Path, out: Path, minutes: float, max_epochs: int) -> di
     module.save(str(out))
     result = {**asdict(summary), "logs": len(logs), "read_s": round(read_s, 2), "policy": str(out)}
     _out.print(f"trained on {summary.samples} ticks of {summary.episodes} successful episodes (of {len(logs)} logs, "
-               f"read in {read_s:.1f} s): {summary.epochs} epochs in {summary.seconds:.1f} s, loss {summary.train_loss:.4f}, "
+               f"read in {read_s:.1f} s): {summary.epochs} epochs in {summary.seconds:.1f} s, "
+               f"loss {summary.train_loss:.4f}, "
                f"held-out {summary.held_out_loss:.4f}; {summary.parameters} parameters → {out}", highlight=False)
     return result
 

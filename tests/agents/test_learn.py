@@ -49,7 +49,8 @@ def test_the_policy_flows_step_records_hold_exactly_its_inputs_and_the_action(co
     states, scenes, actions = read_samples(folder / "data" / "pick-seed00005.mcap")
     assert len(actions) == len(steps) == len(chunks)
     assert all(np.array_equal(a, log.value(e).actions) for a, e in zip(actions, chunks))
-    assert all(s.shape == (18,) and c.shape == (10,) and a.shape == (150, 5) for s, c, a in zip(states, scenes, actions))
+    assert all(s.shape == (18,) and c.shape == (10,) and a.shape == (150, 5)
+               for s, c, a in zip(states, scenes, actions))
     samples = load_dataset(sorted((folder / "data").glob("*.mcap")))
     assert len(samples.state) == len(steps) + len(read_samples(folder / "data" / "pick-seed00006.mcap")[0])
     assert set(samples.episode) == {0, 1}

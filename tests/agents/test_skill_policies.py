@@ -104,7 +104,7 @@ def test_retriever_demo_runs_the_task_with_a_policy_module_in_the_pick_slot(tmp_
                            "2", "--skill-policy", "replay.pt", "--out", "pictures"], capture_output=True, text=True,
                           cwd=tmp_path, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert "skill trace: OpenDrawer(TL-H) → InspectDrawer(TL) → Pick(spice) → Season(food) → CloseDrawer(TL-H)" \
-        in done.stdout and "task progress: 100%" in done.stdout, done.stdout
+    trace = "skill trace: OpenDrawer(TL-H) → InspectDrawer(TL) → Pick(spice) → Season(food) → CloseDrawer(TL-H)"
+    assert trace in done.stdout and "task progress: 100%" in done.stdout, done.stdout
     _, _, replayed = read_samples(tmp_path / "run.mcap")
     assert len(replayed) == len(logged) and all(np.array_equal(a, b) for a, b in zip(replayed, logged))
