@@ -60,15 +60,31 @@ class Goal(Flow):
 
 class World(Flow):
     """The MuJoCo world: applies the controller's newest command and advances physics by one
-    tick (``tick`` seconds); its observation is the state every other flow reads."""
+    tick (``tick`` seconds); its observation is the state every other flow reads. With
+    ``sensors``, it also publishes what a learned skill policy sees (``state`` and ``scene``,
+    :mod:`agents.skill_features`); ``start="pick"`` begins where a Pick begins in the task
+    (:func:`agents.skills.pick_start`)."""
 
     def __init__(self, seed: int = 0, drawer: str | None = None, tick: float = 0.005, slip_prob: float = 0.0,
-                 task: str = "drawers"):
+                 task: str = "drawers", sensors: bool = False, start: str = ""):
         self.seed, self.drawer, self.tick, self.slip_prob, self.task = seed, drawer, tick, slip_prob, task
+        self.sensors, self.start = sensors, start
         self.slip_at: float | None = None
 
     def setup(self):
-        self.sim = _sim(self.seed, self.drawer, self.task)
+        from .skill_features import sensors
+        self.sim, self.read_sensors = self._start(), sensors
+
+    def _start(self):
+        sim = _sim(self.seed, self.drawer, self.task)
+        if self.start == "pick":
+            from .skills import pick_start
+            openings, command = pick_start(sim.layout)
+            sim.set_openings(openings)
+            sim.set_robot(command)
+        elif self.start:
+            raise ValueError(f"World(start={self.start!r}): expected '' (the task's start) or 'pick'")
+        return sim
 
     def teardown(self):
         self.sim.close()
@@ -78,7 +94,7 @@ class World(Flow):
         """A fresh episode: the same layout, physics back to its start."""
         if hasattr(self, "sim"):
             self.sim.close()
-            self.sim = _sim(self.seed, self.drawer, self.task)
+            self.sim = self._start()
         self.slip_at = None
 
     def step(self, command: Command | None = None):
@@ -88,9 +104,12 @@ class World(Flow):
         sim.advance(self.tick)
         facts = sim.observe()
         self._maybe_slip(facts)
+        seen = {}
+        if self.sensors:
+            seen["state"], seen["scene"] = self.read_sensors(facts)
         arrays = {k: np.asarray(facts.pop(k), dtype=np.float64) for k in ARRAY_FACTS if k in facts}
         return {"obs": Observation(t=round(float(facts.pop("t")), 9), qpos=arrays["qpos"], robot=arrays["robot"],
-                                   facts=facts)}
+                                   facts=facts), **seen}
 
     def _maybe_slip(self, facts: dict) -> None:
         """Failure injection: with probability ``slip_prob`` per episode (decided by the seed), the
@@ -284,10 +303,12 @@ class Monitor(Flow):
 class SkillPolicy(Flow):
     """The skill policy (F5, a VLA stand-in): runs the monitor's current skill with a scripted,
     state-feedback controller and emits an action chunk, its progress, and ``inspection_done``
-    when an inspection has looked."""
+    when an inspection has looked. For the skill named ``actor`` another flow's policy sends the
+    chunks (:class:`SkillActor`): this one still runs the scripted skill on the world's
+    observation, for its progress, success and failure only."""
 
-    def __init__(self, horizon: float = 0.75, control_hz: float = 200.0, task: str = "drawers"):
-        self.horizon, self.control_hz, self.task = horizon, control_hz, task
+    def __init__(self, horizon: float = 0.75, control_hz: float = 200.0, task: str = "drawers", actor: str = ""):
+        self.horizon, self.control_hz, self.task, self.actor = horizon, control_hz, task, actor
         self.running_id, self.controller, self.inspected = 0, None, False
 
     def setup(self):
@@ -304,25 +325,81 @@ class SkillPolicy(Flow):
             self.controller = self.make_skill(skill.name, skill.arg)
         facts = dict(obs.facts, t=obs.t, qpos=obs.qpos, robot=obs.robot)
         out = self.controller.act(facts, round(self.horizon * self.control_hz), self.control_hz)
-        result = {"chunk": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(out.actions, dtype=np.float64)),
-                  "progress": Progress(skill_id=skill.skill_id, t=obs.t, p=float(out.progress), status=out.status)}
+        result = {"progress": Progress(skill_id=skill.skill_id, t=obs.t, p=float(out.progress), status=out.status)}
+        if skill.name != self.actor:
+            result["chunk"] = ActionChunk(skill_id=skill.skill_id, actions=np.asarray(out.actions, dtype=np.float64))
         if skill.name in ("InspectDrawer", "InspectBag") and out.status == "done" and not self.inspected:
             self.inspected = True
             result["inspection"] = InspectionDone(skill_id=skill.skill_id, t=obs.t, drawer=skill.arg)
         return result
 
 
+class SkillActor(Flow):
+    """The policy of one skill (``skill``, "Pick"), in its own flow: while the monitor's command
+    is that skill, it turns what the robot senses (``state``, ``scene``, the ``wrist`` frame:
+    :mod:`agents.skill_features`) into the action chunk for the controller; otherwise it emits
+    nothing (:class:`SkillPolicy` sends the other skills' chunks). Its step records hold exactly
+    a policy's inputs and its action: what a dataset of the skill is made of. ``policy``:
+    ``"scripted"`` or a policy file (:func:`agents.skill_policies.load_skill_policy`)."""
+
+    def __init__(self, skill: str = "Pick", policy: str = "scripted", horizon: float = 0.75,
+                 control_hz: float = 200.0, policy_hz: float = 2.0, wrist_size: list | None = None):
+        self.skill, self.policy_spec, self.horizon, self.control_hz = skill, policy, horizon, control_hz
+        self.policy_hz, self.wrist_size = policy_hz, tuple(wrist_size or (64, 64))
+        self.running_id, self.ticks = 0, 0
+
+    def setup(self):
+        from .skill_policies import load_skill_policy
+        self.policy = load_skill_policy(self.policy_spec)
+
+    def teardown(self):
+        del self.policy
+
+    def step(self, skill: SkillCmd, state: np.ndarray, scene: np.ndarray, wrist: Frame | None = None):
+        from .skill_policies import SkillObservation
+        if skill.name != self.skill:
+            return {}
+        if skill.skill_id != self.running_id:
+            self.running_id, self.ticks = skill.skill_id, 0
+            self.policy.reset(str(skill))
+        image = wrist.rgb if wrist is not None else np.zeros((*self.wrist_size, 3), dtype=np.uint8)
+        seen = SkillObservation(t=self.ticks / self.policy_hz, skill=str(skill), state=np.asarray(state),
+                                scene=np.asarray(scene), wrist=image)
+        self.ticks += 1
+        actions = self.policy.act(seen, round(self.horizon * self.control_hz), self.control_hz)
+        return {"action": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(actions, dtype=np.float64))}
+
+
+class SkillOrder(Flow):
+    """Runs one skill and ends the run (``sys.exit(0)``) when the skill says done or failed:
+    an episode of that skill alone, for collecting and evaluating it."""
+
+    def __init__(self, skill: str = "Pick(spice)"):
+        self.skill, self.said = skill, False
+
+    def step(self, progress: list | None = None):
+        if any(p.status != "running" for p in progress or ()):
+            sys.exit(0)
+        if self.said:
+            return {}
+        from .plan import parse_skill
+        self.said = True
+        parsed = parse_skill(self.skill, "drawers")
+        return {"skill": SkillCmd(skill_id=1, name=parsed.name, arg=parsed.arg, source="plan")}
+
+
 class Controller(Flow):
     """The 200 Hz controller (F6): plays the current action chunk's row, within the joints'
-    limits and velocity limits."""
+    limits and velocity limits, starting from ``home`` (the robot's parking command unless given)."""
 
-    def __init__(self, hz: float = 200.0):
-        self.hz = hz
+    def __init__(self, hz: float = 200.0, home: list | None = None):
+        self.hz, self.start = hz, home
         self.last = None
 
     def setup(self):
         from . import world  # the robot's limits (and MuJoCo's import) before the first tick
-        self.low, self.high, self.home = world.COMMAND_LOW, world.COMMAND_HIGH, world.HOME
+        self.low, self.high = world.COMMAND_LOW, world.COMMAND_HIGH
+        self.home = world.HOME if self.start is None else np.asarray(self.start, dtype=np.float64)
         self.limit = world.MAX_SPEED / self.hz
 
     def step(self, action: np.ndarray):

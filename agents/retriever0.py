@@ -22,12 +22,17 @@ from retriever import ActionChunking, Latest, LatestDistinct, Pipeline, Queue, R
 
 from .plan import DRAWERS
 from .planner import make_planner
-from .flows import BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillPolicy, Teleop, World
+from .flows import (
+    BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillActor, SkillOrder, SkillPolicy, Teleop, World,
+)
 
 #: seconds a camera takes to render a frame (its declared latency)
 CAMERA_LATENCY = 0.02
 
 ABLATIONS = ("full", "no-plan-chunking", "no-skill-progress", "human-in-the-loop", "vla-only")
+
+#: the skill whose policy is pluggable (``skill_policy``), and the node that runs it
+LEARNED_SKILL, LEARNED_SKILL_CALL, POLICY_NODE = "Pick", "Pick(spice)", "pick_policy"
 
 
 @dataclass
@@ -50,6 +55,10 @@ class AgentConfig:
     slip_prob: float = 0.0           # failure injection: a slipped grasp, decided per seed
     teleop: str | None = None        # a teleop schedule file
     verbose: bool = False            # the monitor prints a line per skill change
+    # the Pick skill's policy in its own flow (POLICY_NODE): "scripted" or a policy file
+    # (agents.skill_policies); None: the skill flow runs Pick like every other skill
+    skill_policy: str | None = None
+    episode: str = "task"            # "task": the whole task; "pick": the Pick skill alone, from where it begins
 
     def check(self) -> None:
         if self.task not in ("drawers", "bag"):
@@ -62,6 +71,13 @@ class AgentConfig:
             raise ValueError(f"unknown drawer {self.drawer!r}: choose {', '.join(DRAWERS)}")
         if type(self.seed) is not int or not 0 <= self.seed < 2**32:
             raise ValueError(f"seed {self.seed!r} must be an integer in [0, 2**32)")
+        if self.episode not in ("task", "pick"):
+            raise ValueError(f"unknown episode {self.episode!r}: choose task or pick")
+        if self.task == "bag" and (self.skill_policy is not None or self.episode != "task"):
+            raise ValueError("a skill policy (and a Pick-only episode) is for the drawers task")
+        if self.skill_policy is not None:
+            from .skill_policies import check_skill_policy
+            check_skill_policy(self.skill_policy)
         if not 0 <= self.slip_prob <= 1:
             raise ValueError(f"slip probability {self.slip_prob!r} must be in [0, 1]")
         make_planner(self.planner, self.task)  # a planner it cannot make is refused before anything starts
@@ -74,6 +90,8 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     """The Retriever-0 graph for one episode (``options`` override ``config``'s fields)."""
     config = AgentConfig(**{**(asdict(config) if config else {}), **options})
     config.check()
+    if config.episode == "pick":
+        return _pick_episode(config)
     seed, drawer, task = config.seed, config.drawer, config.task
     control_period = 1.0 / config.control_hz
     monitor_options = {
@@ -95,8 +113,9 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
     catch_up = {"on_overrun": "catch_up"}
     with Pipeline(f"retriever0-{task}-{config.ablation}", deadline=config.deadline) as pipe:
         goal = Goal(task=task).named("goal").configure(**catch_up, latency=0.01) @ Rate(1)
-        world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task) \
-            .named("world").configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
+        world = World(seed=seed, drawer=drawer, tick=control_period, slip_prob=config.slip_prob, task=task,
+                      sensors=config.skill_policy is not None).named("world") \
+            .configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
         head = Camera("head", *config.head_size, seed=seed, drawer=drawer, task=task) \
             .named("head_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
         wrist = Camera("wrist", *config.wrist_size, seed=seed, drawer=drawer, task=task) \
@@ -105,7 +124,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
             @ Trigger("inspection")
         monitor = Monitor(verbose=config.verbose, task=task, **monitor_options).named("monitor") \
             .configure(**catch_up, latency=0.01) @ Rate(config.monitor_hz)
-        skill = SkillPolicy(control_hz=config.control_hz, task=task).named("skill") \
+        skill = SkillPolicy(control_hz=config.control_hz, task=task, actor=_actor(config)).named("skill") \
             .configure(**catch_up, latency=config.policy_latency) @ Rate(config.policy_hz)
         ctrl = Controller(hz=config.control_hz).named("controller").configure(**catch_up, latency=control_period) \
             @ Rate(config.control_hz)
@@ -124,6 +143,7 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
         belief.then(monitor, sync=Latest(), map={"belief": "belief"})
         monitor.then(skill, sync=Latest(), map={"skill": "skill"})
         goal.then(monitor, sync=Latest(), map={"task": "task"})
+        _plug_policy(config, monitor, world, wrist, ctrl)
 
         # a model behind an endpoint answers differently tomorrow: a replay takes its answers from the log
         consults_the_world = planner.startswith("openai:")
@@ -147,6 +167,55 @@ def build(config: AgentConfig | None = None, **options) -> Pipeline:
             world.then(teleop, sync=Latest(), map={"obs": "obs"})
             monitor.then(teleop, sync=Latest(), map={"status": "status"})
             teleop.then(monitor, sync=Queue(maxsize=16), map={"teleop": "teleop"})
+    return pipe
+
+
+def _actor(config: AgentConfig) -> str:
+    return LEARNED_SKILL if config.skill_policy is not None else ""
+
+
+def _plug_policy(config: AgentConfig, commander, world, wrist, ctrl) -> None:
+    """With a skill policy, its flow: the commanded skill, the world's ``state`` and ``scene``
+    and the wrist frame in; while Pick runs, the chunk out to the controller."""
+    if config.skill_policy is None:
+        return
+    actor = SkillActor(skill=LEARNED_SKILL, policy=config.skill_policy, control_hz=config.control_hz,
+                       policy_hz=config.policy_hz, wrist_size=list(config.wrist_size)).named(POLICY_NODE) \
+        .configure(on_overrun="catch_up", latency=config.policy_latency) @ Rate(config.policy_hz)
+    commander.then(actor, sync=Latest(), map={"skill": "skill"})
+    world.then(actor, sync=Latest(), map={"state": "state", "scene": "scene"})
+    wrist.then(actor, sync=Latest(staleness=0.5), map={"frame": "wrist"})
+    actor.then(ctrl, sync=ActionChunking(control_hz=config.control_hz), map={"action": "action"})
+
+
+def _pick_episode(config: AgentConfig) -> Pipeline:
+    """The Pick skill alone, from where it begins in the task (the spice's drawer open, the hand
+    parked beside it): the world, the wrist camera, the skill flow, the skill's policy flow
+    (with ``skill_policy``) and the controller; it ends when the skill says done or failed."""
+    from .skills import pick_start
+    from .world import Layout
+    _, start = pick_start(Layout.from_seed(config.seed, config.drawer))
+    control_period = 1.0 / config.control_hz
+    catch_up = {"on_overrun": "catch_up"}
+    with Pipeline(f"retriever0-{LEARNED_SKILL.lower()}", deadline=config.deadline) as pipe:
+        order = SkillOrder(skill=LEARNED_SKILL_CALL).named("order").configure(**catch_up, latency=0.01) \
+            @ Rate(config.monitor_hz)
+        world = World(seed=config.seed, drawer=config.drawer, tick=control_period,
+                      sensors=config.skill_policy is not None, start="pick").named("world") \
+            .configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
+        wrist = Camera("wrist", *config.wrist_size, seed=config.seed, drawer=config.drawer) \
+            .named("wrist_camera").configure(**catch_up, latency=CAMERA_LATENCY) @ Rate(config.camera_hz)
+        skill = SkillPolicy(control_hz=config.control_hz, actor=_actor(config)).named("skill") \
+            .configure(**catch_up, latency=config.policy_latency) @ Rate(config.policy_hz)
+        ctrl = Controller(hz=config.control_hz, home=start.tolist()).named("controller") \
+            .configure(**catch_up, latency=control_period) @ Rate(config.control_hz)
+        world.then(wrist, sync=Latest(), map={"obs": "obs"})
+        world.then(skill, sync=Latest(), map={"obs": "obs"})
+        order.then(skill, sync=Latest(), map={"skill": "skill"})
+        skill.then(order, sync=Queue(maxsize=64), map={"progress": "progress"})
+        skill.then(ctrl, sync=ActionChunking(control_hz=config.control_hz), map={"chunk": "action"})
+        ctrl.then(world, sync=Latest(), map={"command": "command"})
+        _plug_policy(config, order, world, wrist, ctrl)
     return pipe
 
 

@@ -820,3 +820,14 @@ def paper_trace(target: str, first: str | None = None) -> list[tuple[str, str]]:
     then fetch from ``target``, season, and close it."""
     first = first or ("TR" if target == "TL" else "TL")
     return [(name, arg.format(first=first, target=target)) for name, arg in PAPER_TRACE]
+
+
+def pick_start(layout) -> tuple[dict, np.ndarray]:
+    """Where Pick begins in the task (a drawer world's ``Layout``): the drawers' openings (the
+    spice's drawer as OpenDrawer leaves it, open 0.258-0.27 m by the seed, the others shut) and
+    the command of the hand parked as InspectDrawer leaves it, empty and open, beside the
+    cabinet on that drawer's side."""
+    drawer = layout.target_drawer
+    opening = float(np.random.default_rng([layout.seed, 36]).uniform(OPEN_TARGET - 0.012, OPEN_TARGET))
+    side = -1.0 if drawer[1] == "L" else 1.0
+    return {drawer: opening}, command_at([side * PARK_X, PARK_Y, Z_CLEAR], 0.0, 0.0)

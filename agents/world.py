@@ -31,7 +31,8 @@ from .sim import TICK, TIMESTEP, GantrySim, table_or_below, world_mjcf
 # What other modules drive the drawer world with (the robot's and the clock's names included).
 __all__ = [
     "ACTUATORS", "COMMAND_HIGH", "COMMAND_LOW", "DRAWERS", "Distractor", "HANDLES", "HOME", "Layout", "MAX_SPEED",
-    "NU", "Sim", "TICK", "TIMESTEP", "build_mjcf", "check_drawer", "drawer_above", "drawer_origin",
+    "NU", "Sim", "TICK", "TIMESTEP", "bottle_location", "build_mjcf", "check_drawer", "drawer_above", "drawer_origin",
+    "handle_position",
 ]
 
 
@@ -83,6 +84,27 @@ def check_drawer(drawer: str) -> str:
     if drawer not in DRAWERS:
         raise ValueError(f"unknown drawer {drawer!r}: expected one of {', '.join(DRAWERS)}")
     return drawer
+
+
+def handle_position(drawer: str, opening: float) -> np.ndarray:
+    """The centre of ``drawer``'s handle bar when the drawer is open ``opening`` metres."""
+    return drawer_origin(drawer) + [0.0, -opening - HANDLE_STANDOFF, HANDLE_Z]
+
+
+def bottle_location(pos, grasped: bool, openings: dict) -> str:
+    """Where a bottle at ``pos`` is: a drawer's name, "gripper" (``grasped``: held up by the
+    fingers alone), "plate", "table", "floor" or "air" (``openings``: metres per drawer)."""
+    pos = np.asarray(pos, dtype=np.float64)
+    if grasped:
+        return "gripper"
+    for d in DRAWERS:
+        o = drawer_origin(d) - [0, openings[d], 0]
+        x, y, z = pos - o
+        if abs(x) < INTERIOR_HALF_WIDTH and INTERIOR_FRONT < y < INTERIOR_BACK and FLOOR_Z < z < FLOOR_Z + 0.13:
+            return d
+    if np.hypot(*(pos[:2] - PLATE_POS[:2])) < PLATE_RADIUS and pos[2] < PLATE_POS[2] + 0.1:
+        return "plate"
+    return table_or_below(pos, 0.1)
 
 
 # -- what is random about an episode -----------------------------------------------------------
@@ -260,18 +282,7 @@ class Sim(GantrySim):
 
     def bottle_location(self, held: str, supported: bool, openings: dict) -> str:
         """Where the bottle is: a drawer's name, "gripper", "plate", "table", "floor" or "air"."""
-        pos = self.data.xpos[self._item]
-        if held == "spice" and not supported:
-            return "gripper"
-        for d in DRAWERS:
-            o = drawer_origin(d) - [0, openings[d], 0]
-            x, y, z = pos - o
-            if (abs(x) < INTERIOR_HALF_WIDTH and INTERIOR_FRONT < y < INTERIOR_BACK
-                    and FLOOR_Z < z < FLOOR_Z + 0.13):
-                return d
-        if np.hypot(*(pos[:2] - PLATE_POS[:2])) < PLATE_RADIUS and pos[2] < PLATE_POS[2] + 0.1:
-            return "plate"
-        return table_or_below(pos, 0.1)
+        return bottle_location(self.data.xpos[self._item], held == "spice" and not supported, openings)
 
     def observe(self) -> dict:
         """The world's state as plain values (floats, lists, strings, bools; qpos/qvel/robot as arrays).

@@ -225,6 +225,9 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
+    skill_policy: Annotated[Optional[Path], typer.Option(metavar="PATH", help="Run the Pick skill with this "
+                                                         "policy (a TorchScript module, docs/learning-loop.md) "
+                                                         "instead of the scripted one.")] = None,
     log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
@@ -251,7 +254,8 @@ def demo(
                             "    hint: pass --force to replace it, or --log another path")
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
-                             teleop=str(teleop) if teleop else None, verbose=True)
+                             teleop=str(teleop) if teleop else None, verbose=True,
+                             skill_policy=str(skill_policy.absolute()) if skill_policy else None)
         config.check()
         if teleop is not None:
             from agents.flows import load_schedule
