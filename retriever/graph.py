@@ -15,21 +15,32 @@ import sys
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from .clocks import Clock
+from .code import code_hashes
 from .codec import type_path
 from .errors import CodecError, GraphError, Problem
 from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case
-from .ir import param_to_ir
+from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns
 
-if TYPE_CHECKING:
-    from .ir import IR
-    from .pipeline import DeclaredEdge
-
 MAX_CYCLES_LISTED = 64
+
+
+@dataclass
+class DeclaredEdge:
+    """An edge as the user wrote it; ports are resolved by ``compile_graph``."""
+
+    src: Flow
+    dst: Flow
+    sync: SyncPolicy
+    map: dict[str, str] | None
+    delay: float
+    qsize: int
+    where: str | None
+    deadline: float | None = None
 
 
 @dataclass
@@ -97,9 +108,7 @@ class Graph:
     #: names every port of every edge
     declaration_warnings: list[str] = field(default_factory=list)
 
-    def to_ir(self) -> "IR":
-        from .ir import IR, graph_to_doc
-
+    def to_ir(self) -> IR:
         return IR(graph_to_doc(self))
 
 
@@ -541,3 +550,87 @@ def _bind_policy(edge: Edge, dst: Node) -> Edge:
         hz = getattr(dst.clock, "hz_value", None)
         edge.sync = edge.sync.bound_to_rate(hz)
     return edge
+
+
+# ---------------------------------------------------------------------------------------------
+# The graph as an IR document
+# ---------------------------------------------------------------------------------------------
+def graph_to_doc(graph: Graph) -> dict:
+    """The IR document of a compiled graph (``Graph.to_ir``; ``retriever.ir`` validates and reads it)."""
+    nodes = []
+    for node in graph.nodes.values():
+        s = node.settings
+        doc = {
+            "id": node.id,
+            "type": f"{type(node.flow).__module__}:{type(node.flow).__qualname__}",
+            "params": node.params,
+            "config": {
+                "clock": s.clock.to_ir(),
+                "latency": s.latency,
+                "on_error": s.on_error,
+                "on_overrun": s.on_overrun,
+                "on_deadline_miss": s.on_deadline_miss,
+                # the restart budget, where it applies
+                **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
+                   if s.on_error == "restart" else {}),
+                **({"replay": s.replay} if s.replay != "rerun" else {}),
+                **({"spin": s.spin} if s.spin else {}),
+            },
+            "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
+            "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
+            "rebuildable": node.rebuild_problem is None,
+        }
+        if node.rebuild_problem is not None:
+            doc["rebuild_problem"] = node.rebuild_problem
+        if node.rebuild_needs_main:
+            doc["rebuild_needs_main"] = True
+        nodes.append(doc)
+    edges = [
+        {
+            "source": {"node": e.src, "port": e.src_port},
+            "destination": {"node": e.dst, "port": e.dst_port},
+            "adapter": e.sync.to_ir(),
+            "qsize": e.qsize,
+            "delay": e.delay,
+            "deadline": e.deadline,
+        }
+        for e in graph.edges
+    ]
+    metadata = {
+        "name": graph.name,
+        "validated": True,
+        "optimized": False,
+        "max_microsteps": graph.max_microsteps,
+        "realtime": graph.realtime,
+        "deadline": graph.deadline,
+        "warnings": list(graph.warnings),
+    }
+    modules = [type(node.flow).__module__ for node in graph.nodes.values()]
+    folders = _script_folders(modules)
+    if folders:
+        metadata["module_folders"] = folders
+    metadata["code_sha256"] = code_hashes(modules)
+    return {
+        "version": IR_VERSION,
+        "metadata": metadata,
+        "nodes": nodes,
+        "edges": edges,
+        "topology": {
+            "node_count": len(graph.nodes),
+            "edge_count": len(graph.edges),
+            "has_cycle": bool(graph.cycles),
+            "cycles": graph.cycles,
+            "instantaneous_cycles": graph.instantaneous_cycles,
+        },
+    }
+
+
+def _script_folders(modules) -> dict[str, str]:
+    """``{module: folder}`` for the modules Retriever imported from script files: a module that the
+    import path does not hold by itself (``retriever run q.json`` adds the folder back)."""
+    folders = {}
+    for name in modules:
+        folder = getattr(sys.modules.get(name), SCRIPT_FOLDER_ATTR, None)
+        if isinstance(folder, str):
+            folders[name] = folder
+    return dict(sorted(folders.items()))

@@ -14,20 +14,17 @@ import math
 import re
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from .clocks import clock_from_ir
-from .code import SHA256_HEX, code_hashes
+from .code import SHA256_HEX
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
 from .time import is_finite_number, max_microsteps_problem, seconds_problem
 from .flow._base import MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
 from .sync import policy_from_ir
-
-if TYPE_CHECKING:
-    from .graph import Graph
 
 #: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
 #: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from;
@@ -84,86 +81,6 @@ def param_from_ir(value: Any) -> Any:
         raise ValueError(f"an object with reserved key(s) {sorted(k for k in value if k.startswith('$'))} "
                          "(IR tags are {\"$tuple\": [...]} and {\"$msgpack\": base64})")
     return {k: param_from_ir(v) for k, v in value.items()}
-
-
-def graph_to_doc(graph: "Graph") -> dict:
-    nodes = []
-    for node in graph.nodes.values():
-        s = node.settings
-        doc = {
-            "id": node.id,
-            "type": f"{type(node.flow).__module__}:{type(node.flow).__qualname__}",
-            "params": node.params,
-            "config": {
-                "clock": s.clock.to_ir(),
-                "latency": s.latency,
-                "on_error": s.on_error,
-                "on_overrun": s.on_overrun,
-                "on_deadline_miss": s.on_deadline_miss,
-                # the restart budget, where it applies
-                **({"max_restarts": s.max_restarts, "restart_window": s.restart_window}
-                   if s.on_error == "restart" else {}),
-                **({"replay": s.replay} if s.replay != "rerun" else {}),
-                **({"spin": s.spin} if s.spin else {}),
-            },
-            "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
-            "outputs": {p: spec.type_name for p, spec in node.outputs.items()},
-            "rebuildable": node.rebuild_problem is None,
-        }
-        if node.rebuild_problem is not None:
-            doc["rebuild_problem"] = node.rebuild_problem
-        if node.rebuild_needs_main:
-            doc["rebuild_needs_main"] = True
-        nodes.append(doc)
-    edges = [
-        {
-            "source": {"node": e.src, "port": e.src_port},
-            "destination": {"node": e.dst, "port": e.dst_port},
-            "adapter": e.sync.to_ir(),
-            "qsize": e.qsize,
-            "delay": e.delay,
-            "deadline": e.deadline,
-        }
-        for e in graph.edges
-    ]
-    metadata = {
-        "name": graph.name,
-        "validated": True,
-        "optimized": False,
-        "max_microsteps": graph.max_microsteps,
-        "realtime": graph.realtime,
-        "deadline": graph.deadline,
-        "warnings": list(graph.warnings),
-    }
-    modules = [type(node.flow).__module__ for node in graph.nodes.values()]
-    folders = _script_folders(modules)
-    if folders:
-        metadata["module_folders"] = folders
-    metadata["code_sha256"] = code_hashes(modules)
-    return {
-        "version": IR_VERSION,
-        "metadata": metadata,
-        "nodes": nodes,
-        "edges": edges,
-        "topology": {
-            "node_count": len(graph.nodes),
-            "edge_count": len(graph.edges),
-            "has_cycle": bool(graph.cycles),
-            "cycles": graph.cycles,
-            "instantaneous_cycles": graph.instantaneous_cycles,
-        },
-    }
-
-
-def _script_folders(modules) -> dict[str, str]:
-    """``{module: folder}`` for the modules Retriever imported from script files: a module that the
-    import path does not hold by itself (``retriever run q.json`` adds the folder back)."""
-    folders = {}
-    for name in modules:
-        folder = getattr(sys.modules.get(name), SCRIPT_FOLDER_ATTR, None)
-        if isinstance(folder, str):
-            folders[name] = folder
-    return dict(sorted(folders.items()))
 
 
 class IR:
