@@ -2,23 +2,29 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from .pipeline import Pipeline
-
-_active: list["Pipeline"] = []
+from typing import Any, Protocol
 
 
-def current_pipeline() -> "Pipeline | None":
+class OpenPipeline(Protocol):
+    """What a flow asks of the pipeline it is declared in (``Pipeline`` is one; it sits layers above)."""
+
+    def add(self, flow: Any) -> Any: ...
+
+    def connect(self, src: Any, dst: Any, **options: Any) -> Any: ...
+
+
+_active: list[OpenPipeline] = []
+
+
+def current_pipeline() -> OpenPipeline | None:
     return _active[-1] if _active else None
 
 
-def push(pipe: "Pipeline") -> None:
+def push(pipe: OpenPipeline) -> None:
     _active.append(pipe)
 
 
-def pop(pipe: "Pipeline") -> None:
+def pop(pipe: OpenPipeline) -> None:
     if _active and _active[-1] is pipe:
         _active.pop()
     elif pipe in _active:

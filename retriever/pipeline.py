@@ -17,7 +17,6 @@ import threading
 import warnings
 import weakref
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
@@ -25,30 +24,17 @@ from . import _context
 from .backends import Session, open_backend
 from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, StarvedFlowWarning
 from .flow._base import Flow
-from .graph import Graph, compile_graph
+from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
+from .log.reader import LoggedTrace
 from .rebuild import check_node, construct_node
 from .starved import describe_starved, starved_flows
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
-from .trace import LoggedTrace, Trace
+from .trace import Trace
 
 if TYPE_CHECKING:
     from .log.writer import LogFile
-
-
-@dataclass
-class DeclaredEdge:
-    """An edge as the user wrote it; ports are resolved by ``compile_graph``."""
-
-    src: Flow
-    dst: Flow
-    sync: SyncPolicy
-    map: dict[str, str] | None
-    delay: float
-    qsize: int
-    where: str | None
-    deadline: float | None = None
 
 
 class Pipeline:

@@ -436,28 +436,3 @@ class Trace:
             return "<Trace: counters only (keep='counters')>"
         values = "" if self.values_kept else ", values not kept"
         return f"<Trace {len(self.raw_events)} events, {len(self.raw_steps)} steps{values}>"
-
-
-class LoggedTrace(Trace):
-    """The trace of a logged run that kept only counters (``keep="counters"``): read back from
-    its log the first time anything asks for it, then held like any trace."""
-
-    def __init__(self, path) -> None:  # noqa: D107 (no Trace.__init__: the records come from the log)
-        self.log_path = path
-        self._read: Trace | None = None
-
-    def _load(self) -> Trace:
-        if self._read is None:
-            from .log import read_log
-
-            self._read = read_log(self.log_path).trace()
-        return self._read
-
-    def __getattr__(self, name: str) -> Any:
-        # everything a Trace holds (raw_events, raw_steps, keep, values_kept, the caches) is the read one's
-        if name.startswith("__") or name in ("log_path", "_read"):
-            raise AttributeError(name)
-        return getattr(self._load(), name)
-
-    def __repr__(self) -> str:
-        return f"<Trace read back from {self.log_path} (keep='counters')>"

@@ -539,3 +539,26 @@ def run_info(log: RunLog) -> dict[str, Any]:
         raise LogError(f"{log.path}: the run record's packages are not a JSON object of versions",
                        "the file is damaged: retriever log recover")
     return {"counts": counts, "span": span, "statuses": statuses, "packages": packages}
+
+
+class LoggedTrace(Trace):
+    """The trace of a logged run that kept only counters (``keep="counters"``): read back from
+    its log the first time anything asks for it, then held like any trace."""
+
+    def __init__(self, path) -> None:  # noqa: D107 (no Trace.__init__: the records come from the log)
+        self.log_path = path
+        self._read: Trace | None = None
+
+    def _load(self) -> Trace:
+        if self._read is None:
+            self._read = read_log(self.log_path).trace()
+        return self._read
+
+    def __getattr__(self, name: str) -> Any:
+        # everything a Trace holds (raw_events, raw_steps, keep, values_kept, the caches) is the read one's
+        if name.startswith("__") or name in ("log_path", "_read"):
+            raise AttributeError(name)
+        return getattr(self._load(), name)
+
+    def __repr__(self) -> str:
+        return f"<Trace read back from {self.log_path} (keep='counters')>"
