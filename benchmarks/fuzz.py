@@ -84,7 +84,7 @@ from retriever.codec import (  # noqa: E402
     packb, unpackb, unpackb_out_of_band)
 from retriever.log.reader import run_info  # noqa: E402
 from retriever.log.recover import recover  # noqa: E402
-from retriever.log.replay import replay  # noqa: E402
+from retriever.replay import replay  # noqa: E402
 from retriever.log.mcap_writer import McapWriter  # noqa: E402
 from retriever.trace import STEP_STATUSES, Trace  # noqa: E402
 

@@ -626,7 +626,7 @@ def replay(
     """Re-execute a logged run and compare every output byte for byte (exit 0 only if identical)."""
     from rich.progress import Progress
 
-    from .log import replay as replay_log, resim as resim_log
+    from .replay import replay as replay_log, resim as resim_log
 
     log = _read(path)
     pipe = None if pipeline is None else _load(pipeline)

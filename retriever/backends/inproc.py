@@ -759,7 +759,7 @@ class InprocSession(Session):
         return {} if self._rng is None else {"tie_break_seed": self._tie_break_seed}
 
     # ---------------------------------------------------------------------------------------
-    # Hooks for replay (retriever.log.replay): drive ticks from a log instead of the clocks;
+    # Hooks for replay (retriever.replay): drive ticks from a log instead of the clocks;
     # and for a driver that supplies one node's outputs from outside (retriever.gym)
     # ---------------------------------------------------------------------------------------
     def take_routes(self) -> dict[tuple[str, str], list[tuple[tuple[str, str], PortBuffer, int]]]:

@@ -16,7 +16,7 @@ from retriever import read_log
 from retriever.errors import LogError
 from retriever.log.dataset import export_dataset
 from retriever.log.frames import Recording
-from retriever.log.replay import replay
+from retriever.replay import replay
 from tests.log.dataset_flows import SIZE, build_camera, picture
 from tests.log.helpers import assert_cli_error, cli
 

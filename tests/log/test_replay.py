@@ -409,7 +409,7 @@ def test_log_only_at_the_start_of_a_run(tmp_path):
 def test_what_workers_said_of_their_code_is_read_from_a_hostile_log_as_text_only():
     from types import SimpleNamespace
 
-    from retriever.log.replay import MAX_SAID, _ran_other_code
+    from retriever.replay import MAX_SAID, _ran_other_code
 
     def said(deployment):
         return _ran_other_code(SimpleNamespace(run={"deployment": deployment}))

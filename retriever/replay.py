@@ -23,6 +23,9 @@ causes is not taken for nondeterminism.
 
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
 and compares the full trace: it proves the log is one consistent run of this graph.
+
+Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``;
+``retriever.log.replay`` and ``retriever.log.resim`` (the spellings docs/log.md uses) resolve here.
 """
 
 from __future__ import annotations
@@ -37,14 +40,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backends.inproc import InprocSession, ReplayedError, RunEnded
-from ..code import code_mismatches
-from ..codec import Encoder, unpackb
-from ..errors import IRError, LogError, RetrieverWarning, StepError
-from ..pipeline import Pipeline
-from ..time import format_tag
-from ..trace import STEPPED, StepRecord, Trace
-from .reader import LoggedEvent, RunLog
+from .backends.inproc import InprocSession, ReplayedError, RunEnded
+from .code import code_mismatches
+from .codec import Encoder, unpackb
+from .errors import IRError, LogError, RetrieverWarning, StepError
+from .log.reader import LoggedEvent, RunLog
+from .pipeline import Pipeline
+from .time import format_tag
+from .trace import STEPPED, StepRecord, Trace
 
 MAX_DIVERGENCES_KEPT = 20
 PROGRESS_EVERY = 2000
