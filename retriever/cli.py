@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import traceback
 import warnings
 from collections import Counter
+from importlib.metadata import entry_points
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NoReturn, Optional
 
 import typer
 from rich.console import Console
@@ -203,102 +203,58 @@ def run(
              f"{shown}{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
 
 
-@app.command()
-def demo(
-    seed: Annotated[int, typer.Option(help="The episode's seed: where the spice is, its mass and place, "
-                                           "the drawers' friction (bag task: the target's mass and place).")] = 0,
-    drawer: Annotated[Optional[str], typer.Option(metavar="TL|TR|BL|BR",
-                                                  help="Hide the spice in this drawer (default: by the seed).")] = None,
-    backend: Annotated[str, typer.Option(help="zenoh: real time, one process per flow; inproc: virtual time, "
-                                              "as fast as it goes.")] = "zenoh",
-    duration: Annotated[float, typer.Option(help="At most this many seconds (world time); the episode ends "
-                                                  "earlier when the task is done.")] = 120.0,
-    planner_latency: Annotated[float, typer.Option(help="Seconds the planner thinks per plan chunk "
-                                                         "(its declared latency).")] = 2.0,
-    planner: Annotated[str, typer.Option(metavar="scripted|openai:URL#MODEL",
-                                         help="The planner: the scripted VLM stand-in (no network), or a model "
-                                              "behind an OpenAI-compatible endpoint (key in $OPENAI_API_KEY).")
-                       ] = "scripted",
-    task: Annotated[str, typer.Option(metavar="drawers|bag", help="The task.")] = "drawers",
-    ablation: Annotated[str, typer.Option(help="full, no-plan-chunking, no-skill-progress, human-in-the-loop "
-                                               "or vla-only (paper Table II).")] = "full",
-    slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
-    teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
-                                                   "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    skill_policy: Annotated[Optional[Path], typer.Option(metavar="PATH", help="Run the Pick skill with this "
-                                                         "policy (a TorchScript module, docs/learning-loop.md) "
-                                                         "instead of the scripted one.")] = None,
-    log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
-    force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
-    out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
-) -> None:
-    """Run Retriever-0 on the drawer (or bag) task in a MuJoCo world: live skill, belief and progress lines,
-    then the skill trace, task progress, rates per flow, a contact sheet and a timeline (PNG), and a
-    log that `retriever replay` re-executes."""
-    try:
-        from agents.demo import DemoError, check_rendering, rate_notes, rate_table, report, run_episode
-        from agents.pictures import contact_sheet, timeline
-        from agents.planner import PlannerError, make_planner
-        from agents.retriever0 import AgentConfig, build
-    except ImportError as exc:
-        _fail(RetrieverError(f"the Retriever-0 agent is not installed ({exc})\n    hint: install the project "
-                             "itself, which includes it: pip install -e ."))
-    if canonical(backend) not in ("zenoh", "inproc"):
-        _fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
-    pipe = None
-    try:
-        if not 0 < duration < float("inf"):
-            raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
-        if os.path.lexists(log) and not force:  # as retriever run: said before the rendering check and the run
-            raise DemoError(f"the log {log} already exists; the demo does not overwrite a file\n"
-                            "    hint: pass --force to replace it, or --log another path")
-        config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
-                             planner_latency=planner_latency, slip_prob=slip_prob,
-                             teleop=str(teleop) if teleop else None, verbose=True,
-                             skill_policy=str(skill_policy.absolute()) if skill_policy else None)
-        config.check()
-        if teleop is not None:
-            from agents.flows import load_schedule
-            load_schedule(str(teleop), task)
-        if planner.startswith("openai:"):
-            make_planner(planner, task).check_reachable()
-        check_rendering()
+# ---------------------------------------------------------------------------------------------
+# Commands that other packages add (the `retriever.commands` entry point group)
+# ---------------------------------------------------------------------------------------------
+#: the entry point group whose entries ("name = module:function") become commands of `retriever`;
+#: the project registers `demo` there (agents/command.py): the agents sit above the library,
+#: which never imports them
+COMMANDS_GROUP = "retriever.commands"
+
+
+def fail(exc: BaseException) -> NoReturn:
+    """Report ``exc`` as every command does (``error:``, its ``hint:``; the traceback with
+    --debug) and exit 1."""
+    _fail(exc)
+    raise AssertionError("unreachable")  # _fail exits
+
+
+#: where a command prints its results (stdout) and its progress and errors (stderr): strings are
+#: never markup and their control characters are shown escaped
+out, err = _out, _err
+
+
+def stop_on_sigterm() -> None:
+    """From now on SIGTERM stops the command as Ctrl-C does (a KeyboardInterrupt), and
+    :func:`stop_signal` says which signal it was."""
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
+def stop_signal() -> int | None:
+    """The signal that stopped the command through :func:`stop_on_sigterm` or a run, if any."""
+    return _state.get("signal")
+
+
+def _add_registered_commands() -> None:
+    """Each entry of COMMANDS_GROUP as a command; one that cannot be imported is still listed,
+    and says why when it is run, instead of breaking every other command."""
+    for entry in entry_points(group=COMMANDS_GROUP):
+        if any(c.name == entry.name for c in app.registered_commands):
+            continue
         try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise DemoError(f"--out {out}: cannot make a folder for the pictures there ({exc.strerror})") from None
-        where = "the target in the bag" if task == "bag" else f"the spice in {drawer or 'a drawer the seed chose'}"
-        _err.print(f"Retriever-0 on {canonical(backend)}, {task} task: seed {seed}, {where}; logging to {log}",
-                   highlight=False)
-        signal.signal(signal.SIGTERM, _interrupt)  # stop like Ctrl-C: the log is finished, not torn
-        pipe = build(config)
-        trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
-                                           overwrite=force, pipe=pipe)
-    except KeyboardInterrupt:
-        _err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
-                   highlight=False)
-        # during the logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = _state.get("signal") or getattr(getattr(pipe, "_session", None), "stop_signal", None)
-        raise typer.Exit(code=128 + (signum or signal.SIGINT)) from None
-    except (DemoError, ValueError, PlannerError) as exc:
-        _fail(RetrieverError(str(exc)))
-    except RetrieverError as exc:
-        _fail(exc)
-    for line in report(episode, wall, canonical(backend)):
-        _out.print(line, highlight=False, soft_wrap=True)
-    columns, rows = rate_table(episode)
-    rates = Table(title="rates", title_justify="left")
-    for col in columns:
-        rates.add_column(col, justify="left" if col == "flow" else "right")
-    for row in rows:
-        rates.add_row(*row)
-    _out.print(rates)
-    for line in rate_notes(episode, canonical(backend)):
-        _out.print(line, highlight=False, soft_wrap=True)
-    sheet = contact_sheet(trace, episode, out / "contact_sheet.png")
-    line = timeline(trace, episode, out / "timeline.png")
-    _out.print(f"pictures: {sheet or '(no camera frames)'}, {line}; replay it: retriever replay {log}",
-               highlight=False, soft_wrap=True)
+            app.command(name=entry.name)(entry.load())
+        except Exception as exc:  # noqa: BLE001 (whatever stops a plugin's import, the command says it)
+            app.command(name=entry.name, help=f"(cannot be loaded: {type(exc).__name__})",
+                        context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+                        )(_unloadable(entry.name, entry.value, exc))
+
+
+def _unloadable(name: str, value: str, exc: Exception):
+    def command() -> None:
+        fail(RetrieverError(f"the command '{name}' ({value}) cannot be loaded: {type(exc).__name__}: {exc}\n"
+                            "    hint: install the project itself, which includes it: pip install -e ."))
+
+    return command
 
 
 _TLS_CA = typer.Option("--tls-ca", metavar="FILE", help="TLS: the CA certificate (PEM) that signs every "
@@ -1176,6 +1132,7 @@ def secret_new(
 
 
 def main() -> None:
+    _add_registered_commands()
     _default_foxglove_port(sys.argv)
     if _take_debug(sys.argv):
         sys.argv.insert(1, "--debug")  # where the option parser takes it: before the subcommand
