@@ -7,13 +7,9 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import RetrieverError
+from .errors import LoadError
 from .ir import IR, SCRIPT_FOLDER_ATTR
 from .pipeline import Pipeline
-
-
-class LoadError(RetrieverError):
-    """The file or attribute named on the command line does not give a Pipeline."""
 
 
 def load_pipeline(target: str) -> Pipeline:

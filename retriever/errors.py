@@ -5,19 +5,35 @@
     ├── ClockError (ValueError)    a clock was declared with an impossible value
     ├── IRError                    an IR document is malformed, of another version, or names unknown things
     ├── PlacementError             a placement file is malformed, or the nodes cannot go on the workers up
+    ├── LoadError                  retriever run FILE[:ATTR]: the file or the attribute gives no Pipeline
     ├── CodecError (TypeError)     a value cannot be encoded for the wire, the log or a trace digest
     │   └── UnregisteredTypeError  ... or decoded: it names a class this process registered no value type for
+    ├── OutputError (TypeError)    a step returned what its declared output cannot be read from (a StepError's cause)
     ├── BackendError               an unknown backend, or a backend that cannot run this graph
+    ├── SetupError                 a flow's setup() raised, before its first tick: the run did not start
     ├── StepError                  a flow's step() raised; names the node and the tick, chains the cause
     │   └── RestartLimitError      ... once more than max_restarts within restart_window (on_error="restart")
+    ├── RemoteError                a worker process's exception, carried back as text (a StepError's cause)
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
+    ├── ValuesNotKeptError         a trace of a run with keep="records" was asked for its values
     ├── LogError                   an event log cannot be written, read or replayed as asked
-    │   └── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
+    │   ├── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
+    │   ├── ChunkTooLargeError (ValueError)  a log's chunk would decompress past what a log is read with
+    │   └── UnmappableError        export_dataset: a port's value that no dataset feature can hold
+    ├── AccessError (ValueError)   zenoh: a deployment secret that cannot be read, used or written
+    ├── WireError                  zenoh: a message on the key space is no Retriever message of this version
+    ├── ReportError                zenoh: a report could not be sent; the coordinator will not get its records
+    ├── WorkerError                zenoh: a worker that cannot start as asked, or a worker query with no answer
+    ├── RunEnded                   a step called sys.exit(0): the run ends at that tick, cleanly (caught inside)
+    ├── StopRun                    a node loop must stop the run (zenoh; caught inside, the coordinator reports why)
+    ├── ReplayedError              replay: a logged step's error raised again at its tick (caught inside)
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
     └── StarvedFlowWarning         after a run: a flow skipped (nearly) every tick, and the input that starved it
 
+Every exception class of ``retriever/`` is defined here and drawn above (tests/test_errors.py
+checks it); the modules that raise them re-export the ones their users import from there.
 Every message names the thing (by its qualified name, ``node.port``), says what was expected
 and what arrived, and where a common misuse is likely, ends with a one-line ``hint:``.
 """
@@ -83,6 +99,10 @@ class PlacementError(RetrieverError):
         super().__init__("\n".join(lines))
 
 
+class LoadError(RetrieverError):
+    """The file or attribute named on the command line does not give a Pipeline."""
+
+
 class CodecError(RetrieverError, TypeError):
     """A value cannot be encoded (or decoded) by Retriever's msgpack codec."""
 
@@ -90,6 +110,10 @@ class CodecError(RetrieverError, TypeError):
 class UnregisteredTypeError(CodecError):
     """A value names a dataclass that is no value type registered in this process (``@io``);
     decoding imports and calls nothing to find one."""
+
+
+class OutputError(RetrieverError, TypeError):
+    """A step returned something its declared output type cannot be read from."""
 
 
 class BackendError(RetrieverError):
@@ -143,6 +167,10 @@ class RestartLimitError(StepError):
             "or raise its budget: flow.configure(max_restarts=..., restart_window=...)")
 
 
+class RemoteError(RetrieverError):
+    """An exception raised in a worker process, carried back as text."""
+
+
 class CausalityError(RetrieverError):
     """An instant ran more than ``max_microsteps`` microsteps: an instantaneous (Zeno) loop."""
 
@@ -171,6 +199,60 @@ class LogError(RetrieverError):
 class LogWriteError(LogError):
     """The OS refused a write to a run's log (its disk is full, it is a device that takes no data,
     an I/O error): the run was stopped, and the file is not a record of it."""
+
+
+class ChunkTooLargeError(LogError, ValueError):
+    """A chunk that would decompress past the reader's MAX_CHUNK_BYTES."""
+
+
+class UnmappableError(LogError):
+    """A port's value that no dataset feature can hold."""
+
+
+class AccessError(RetrieverError, ValueError):
+    """A deployment secret that cannot be read, used or written."""
+
+
+class WireError(RetrieverError):
+    """A message on the key space is not a Retriever message of this version."""
+
+
+class ReportError(RetrieverError):
+    """A report could not be sent: the coordinator will not get this worker's records."""
+
+
+class WorkerError(RetrieverError):
+    """A worker that cannot start as asked, or a worker query that got no answer."""
+
+
+class RunEnded(RetrieverError):
+    """A step called ``sys.exit()`` (or ``sys.exit(0)``): the run ends at that tick, cleanly."""
+
+    def __init__(self, node: str, tag: tuple[int, int]):
+        from .time import format_tag
+
+        super().__init__(f"{node} ended the run at {format_tag(tag)} (sys.exit(0) in its step)")
+        self.node, self.tag = node, tag
+
+
+class StopRun(RetrieverError):
+    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
+    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
+
+    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
+        super().__init__(message)
+        self.tag = tag
+        self.zeno = zeno
+
+
+class ReplayedError(RetrieverError):
+    """What a replayed step (``replace_step``) raises at a tick whose logged record is an error:
+    the tick is recorded with the logged text (``"ValueError: bad tick"``), not this class's
+    name, and handled by the node's ``on_error`` as in the run."""
+
+    def __init__(self, error: str):
+        super().__init__(error)
+        self.error = error
 
 
 class ValuesNotKeptError(RetrieverError):

@@ -40,10 +40,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .backends.inproc import InprocSession, ReplayedError, RunEnded
+from .backends.inproc import InprocSession
 from .code import code_mismatches
 from .codec import Encoder, unpackb
-from .errors import IRError, LogError, RetrieverWarning, StepError
+from .errors import IRError, LogError, ReplayedError, RetrieverWarning, RunEnded, StepError
 from .log.reader import LoggedEvent, RunLog
 from .pipeline import Pipeline
 from .time import format_tag

@@ -766,3 +766,43 @@ def test_internal_error_says_it_is_a_bug_in_retriever():
     assert str(InternalError("heap out of order")) == (
         "heap out of order (this is a bug in Retriever, not in your program; please report it)")
 
+
+
+def _exception_classes_defined_outside_errors() -> list[str]:
+    """Every class in ``retriever/`` outside errors.py that derives from an exception, read from
+    the source (importing every module would need every optional extra)."""
+    import ast
+    import builtins
+    from pathlib import Path
+
+    import retriever.errors
+
+    package = Path(retriever.__file__).parent
+    exceptions = {name for name, obj in vars(retriever.errors).items()
+                  if isinstance(obj, type) and issubclass(obj, BaseException)}
+    exceptions |= {name for name, obj in vars(builtins).items() if isinstance(obj, type) and issubclass(obj, BaseException)}
+    found = []
+    for path in sorted(package.rglob("*.py")):
+        if path == package / "errors.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                bases = {b.id if isinstance(b, ast.Name) else b.attr for b in node.bases
+                         if isinstance(b, (ast.Name, ast.Attribute))}
+                if bases & exceptions or any(b.endswith(("Error", "Exception", "Warning")) for b in bases):
+                    found.append(f"{path.relative_to(package)}: {node.name}")
+    return found
+
+
+def test_every_exception_of_the_package_is_defined_in_errors_py():
+    assert _exception_classes_defined_outside_errors() == [], "define them in retriever/errors.py, in its tree"
+
+
+def test_errors_py_draws_every_exception_it_defines():
+    import retriever.errors
+
+    classes = [name for name, obj in vars(retriever.errors).items()
+               if isinstance(obj, type) and issubclass(obj, (BaseException, Warning))
+               and obj.__module__ == "retriever.errors"]
+    drawn = set(re.findall(r"[─ ]([A-Z][A-Za-z]+)\b", retriever.errors.__doc__.split("Every message")[0]))
+    assert sorted(set(classes) - drawn) == []

@@ -53,8 +53,8 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import (BackendError, CausalityError, CodecError, RestartLimitError, RetrieverWarning, SetupError,
-                      StepError)
+from ..errors import (BackendError, CausalityError, CodecError, ReplayedError, RestartLimitError, RetrieverWarning,
+                      RunEnded, SetupError, StepError)
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
@@ -63,24 +63,6 @@ from ..time import format_tag
 from ..trace import holding_full_collections
 from . import _inproc_ticks
 from .base import Backend, NodeStats, RestartBudget, Session
-
-class RunEnded(Exception):
-    """A step called ``sys.exit()`` (or ``sys.exit(0)``): the run ends at that tick, cleanly."""
-
-    def __init__(self, node: str, tag: tuple[int, int]):
-        super().__init__(f"{node} ended the run at {format_tag(tag)} (sys.exit(0) in its step)")
-        self.node, self.tag = node, tag
-
-
-class ReplayedError(Exception):
-    """What a replayed step (``replace_step``) raises at a tick whose logged record is an error:
-    the tick is recorded with the logged text (``"ValueError: bad tick"``), not this class's
-    name, and handled by the node's ``on_error`` as in the run."""
-
-    def __init__(self, error: str):
-        super().__init__(error)
-        self.error = error
-
 
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()

@@ -28,7 +28,7 @@ from typing import Any, Callable, Generic, TypeVar
 from .. import _context
 from ..clocks import Clock
 from ..codec import is_value_type, register_value_type
-from ..errors import ClockError
+from ..errors import ClockError, OutputError
 from ..time import is_finite_number, seconds_problem, seconds_to_ns
 
 In = TypeVar("In")
@@ -574,10 +574,6 @@ def make_invoker(flow: Flow, spec: FlowSpec) -> Callable[[dict], Any]:
     if spec.source_takes_arg:
         return lambda values: step(None)
     return lambda values: step()
-
-
-class OutputError(TypeError):
-    """A step returned something its declared output type cannot be read from."""
 
 
 def make_output_reader(spec: FlowSpec) -> Callable[[Any], Any]:

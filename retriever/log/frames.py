@@ -29,7 +29,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from ..errors import LogError
+from ..errors import LogError, UnmappableError
 from ..features import ACTION, OBSERVATION, FeatureError, excluded, feature_keys, port_features
 from ..ir import IR
 from ..sync import ActionChunking, PortBuffer, policy_from_ir
@@ -188,10 +188,6 @@ class _Inputs:
 
 
 # -- values to features -----------------------------------------------------------------------
-class UnmappableError(LogError):
-    """A port's value that no dataset feature can hold."""
-
-
 class _Features:
     """The features of a flow's frames, fixed by its first frame; every later frame is checked
     against them. How a value becomes named features is :mod:`retriever.features`'s."""

@@ -23,7 +23,7 @@ from mcap.records import Attachment, Channel, Chunk, ChunkIndex, Footer, Header,
 from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import unpackb
-from ..errors import CodecError, IRError, LogError, UnregisteredTypeError
+from ..errors import ChunkTooLargeError, CodecError, IRError, LogError, UnregisteredTypeError
 from ..ir import IR
 from ..trace import Event, StepRecord, Trace
 from . import format as fmt
@@ -293,10 +293,6 @@ def _attachment_crc_error(record: Attachment, crc_bytes: bytes) -> CRCValidation
 #: file whose chunk says it holds many gigabytes (a decompression bomb) would take that much memory
 #: (Retriever's writer closes a chunk past 1 MiB; only one value of this size makes a bigger one)
 MAX_CHUNK_BYTES = 1 << 30
-
-
-class ChunkTooLargeError(ValueError):
-    """A chunk that would decompress past MAX_CHUNK_BYTES."""
 
 
 class _StreamReader(StreamReader):

@@ -34,7 +34,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from ...errors import RetrieverError
+from ...errors import AccessError
 from .wire import ROOT
 
 RUN_USER = "retriever-run"
@@ -61,10 +61,6 @@ SECRET_MAX_BYTES = 4096
 
 #: the random bytes of a secret new_secret writes (as hex text: 64 characters and a newline)
 SECRET_NEW_BYTES = 32
-
-
-class AccessError(RetrieverError, ValueError):
-    """A deployment secret that cannot be read, used or written."""
 
 
 def read_secret(path: str | os.PathLike) -> bytes:

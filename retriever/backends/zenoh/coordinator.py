@@ -33,7 +33,8 @@ from pathlib import Path
 
 import zenoh
 
-from ...errors import BackendError, CausalityError, RestartLimitError, RetrieverWarning, SetupError, StepError
+from ...errors import (BackendError, CausalityError, RemoteError, RestartLimitError, RetrieverWarning, SetupError,
+                       StepError)
 from ...graph import Graph
 from ...starved import StarvationWatch
 from ...trace import NOT_KEPT, STEPPED
@@ -78,10 +79,6 @@ try:  # threading's own exit hooks run before that join (concurrent.futures uses
     threading._register_atexit(_close_open_sessions)
 except (AttributeError, RuntimeError):  # another Python: atexit, which may come too late
     atexit.register(_close_open_sessions)
-
-
-class RemoteError(Exception):
-    """An exception raised in a worker process, carried back as text."""
 
 
 class Coordinator(Session):

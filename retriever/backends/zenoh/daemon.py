@@ -46,7 +46,7 @@ from typing import NamedTuple
 
 import zenoh
 
-from ...errors import RetrieverError
+from ...errors import WorkerError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .folders import DAEMON_FOLDER, private_folder, reap_stale
@@ -97,10 +97,6 @@ DEFAULT_TLS_LISTEN = "tls/0.0.0.0:7447"
 LEASE_RANGE = (0.1, 3600.0)
 #: what a Zenoh endpoint looks like (PROTOCOL/ADDRESS): checked in settings before Zenoh sees it
 ENDPOINT = re.compile(r"[a-z0-9]+/\S+")
-
-
-class WorkerError(RetrieverError):
-    """A worker that cannot start as asked, or a worker query that got no answer."""
 
 
 # ---------------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ from typing import Any
 
 import zenoh
 
-from ...errors import CausalityError, CodecError, RetrieverError
+from ...errors import CausalityError, CodecError, StopRun
 from ...flow._base import make_invoker, make_output_reader
 from ...flow.burst import Burst
 from ...graph import Node
@@ -144,16 +144,6 @@ _DATA, _PROGRESS, _CONTROL, _NUDGE = 0, 1, 2, 3
 #: put in the inbox after work done on a receiving thread: the main thread looks again
 _NUDGED = (_NUDGE, None, None)
 _TICKED, _DONE = "ticked", "done"
-
-
-class StopRun(RetrieverError):
-    """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
-    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
-
-    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
-        super().__init__(message)
-        self.tag = tag
-        self.zeno = zeno
 
 
 class InEdge:

@@ -30,7 +30,7 @@ import time
 
 import zenoh
 
-from ...errors import RetrieverError
+from ...errors import ReportError
 from .origin import sign
 from .wire import RELIABLE, WireEncoder
 
@@ -41,11 +41,6 @@ MAX_PENDING_BYTES = 256 << 20
 #: and the seqs their events used, at most (a burst is many seqs in a few bytes): this bounds the
 #: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in loop.py)
 MAX_PENDING_SEQS = 1 << 19
-
-
-
-class ReportError(RetrieverError):
-    """A report could not be sent: the coordinator will not get this worker's records."""
 
 
 class Reporter:

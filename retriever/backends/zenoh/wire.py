@@ -54,7 +54,7 @@ import numpy as np
 import zenoh
 
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
-from ...errors import CodecError, RetrieverError
+from ...errors import CodecError, WireError
 from ...flow.burst import MAX_BURST, Burst, travels_as_rows
 from ...trace import STEP_STATUSES
 
@@ -70,10 +70,6 @@ _BIN32 = struct.Struct(">BI")
 _BIN_SIZE = {0xC4: struct.Struct(">B"), 0xC5: struct.Struct(">H"), 0xC6: struct.Struct(">I")}
 
 Tag = tuple[int, int]
-
-
-class WireError(RetrieverError):
-    """A message on the key space is not a Retriever message of this version."""
 
 
 def check_chunk(kind: str, name: str) -> str:
