@@ -2,6 +2,25 @@
 
 Flows (``step``) on clocks (``Rate``, ``Trigger``, ``Hybrid``), edges with sync policies
 (``Latest``, ``Window``, ``ActionChunking``, …), compiled to an IR and run by a backend.
+
+Layers, lowest first: a module imports from its own layer and those below, never from one above
+(not lazily inside a function, not under ``if TYPE_CHECKING:``); ``<`` separates layers, spaces
+the modules of one layer, and a package stands for its modules (tests/test_layers.py checks it).
+
+    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild
+    plan       placement
+    log        log
+    backends   backends.base < backends._inproc_ticks backends.inproc < backends.zenoh < backends.dora < backends
+    pipeline   starved pipeline
+    run        _loading
+    replay     replay
+    libraries  gym learn
+    cli        cli __main__
+
+This package's own names (below) re-export the curated API from every layer. ``agents/`` sits
+above everything and nothing in ``retriever/`` imports it. Two aliases are kept for the
+spellings the paper and the docs use, resolved on first use: ``retriever.flow.Pipeline`` and
+``retriever.log.replay``/``resim``.
 """
 
 from .backends import available_backends, init

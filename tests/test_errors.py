@@ -804,5 +804,6 @@ def test_errors_py_draws_every_exception_it_defines():
     classes = [name for name, obj in vars(retriever.errors).items()
                if isinstance(obj, type) and issubclass(obj, (BaseException, Warning))
                and obj.__module__ == "retriever.errors"]
-    drawn = set(re.findall(r"[─ ]([A-Z][A-Za-z]+)\b", retriever.errors.__doc__.split("Every message")[0]))
+    tree = retriever.errors.__doc__.split("Every exception class")[0]
+    drawn = set(re.findall(r"^ {4}[│ ]*(?:[├└]── )?([A-Z][A-Za-z]+)", tree, re.MULTILINE))
     assert sorted(set(classes) - drawn) == []
