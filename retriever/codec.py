@@ -45,9 +45,9 @@ EXT_NDARRAY_OOB = 6  # [descr, shape, buffer index]: the bytes travel beside the
 _INT64_MIN, _UINT64_MAX = -(1 << 63), (1 << 64) - 1
 
 #: extension values (tuples, dataclasses) nested deeper than this do not decode. Each level is a
-#: nested msgpack decode, which takes ~45 KiB of C stack (msgpack's unpack context lives there):
-#: unbounded, a message of a few hundred bytes nesting tuples overflowed the stack and killed the
-#: process (a 2 MiB thread, such as Zenoh's, at ~45 levels). Found by benchmarks/fuzz.py.
+#: nested msgpack decode, which takes tens of KiB of C stack (msgpack's unpack context lives
+#: there): unbounded, a message of a few hundred bytes nesting tuples would overflow a thread's
+#: stack (Zenoh's threads have 2 MiB) and kill the process. benchmarks/fuzz.py sends such messages.
 MAX_EXT_DEPTH = 16
 
 

@@ -41,7 +41,7 @@ _thresholds = gc.get_threshold()
 def holding_full_collections() -> Iterator[None]:
     """Hold off the cyclic GC's *full* collections (young ones go on) while a run or a read of
     its trace makes records that live as long as the trace: each full collection would walk
-    them all again, about half the time of a long run (measured, benchmarks/reports/step_overhead.md).
+    them all again, which would take a long run about half its time (benchmarks/reports/step_overhead.md).
     Nests, across threads (a run in the background, its trace read meanwhile)."""
     global _held, _thresholds
     with _held_lock:

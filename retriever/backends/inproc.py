@@ -562,8 +562,8 @@ class InprocSession(Session):
     def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
         stats = rt.stats
         stats.ticks += 1
-        # sync.select_inputs, inlined: the call alone cost 10% of the steps/s of this loop (measured
-        # with benchmarks/step_overhead.py); keep the two identical
+        # sync.select_inputs, inlined: a call per tick is a share of this loop's steps/s worth keeping
+        # (benchmarks/step_overhead.py); keep the two identical
         values: dict[str, Any] = {}
         consumed: dict[str, tuple] = {}
         missing: list[str] | None = None

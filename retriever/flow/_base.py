@@ -468,9 +468,9 @@ class Flow(Generic[In, Out]):
 
         ``spin`` (seconds, at most 0.001; default 0) is for a control loop whose tick must start on
         time: in real time, its worker stops sleeping ``spin`` before each Rate tick and busy-waits
-        to it, so the tick starts when due rather than when the OS wakes the process (at 200 Hz next
-        to a busy core, lateness p50 ≈ 80 → 25 µs, p99 ≈ 320 → 240 µs: benchmarks/control_jitter.py).
-        The cost is CPU: up to ``spin`` per tick (``spin=100e-6`` at 200 Hz: about 1% of a core).
+        to it, so the tick starts when due rather than when the OS wakes the process
+        (benchmarks/control_jitter.py measures the lateness with and without it). The cost is CPU:
+        up to ``spin`` per tick (``spin=100e-6`` at 200 Hz: at most 2% of a core).
         In virtual time it changes nothing.
 
         Returns the flow, so it chains: ``Policy().configure(latency=0.3) @ Rate(hz=2)``.

@@ -1,7 +1,8 @@
 """A chunked MCAP writer for many small messages, laid out to survive ``kill -9``.
 
-Why not ``mcap.writer.Writer``: it builds a dataclass and updates statistics per message, about
-2.8 µs each (measured), which alone would triple the cost of a logged in-process step. Here a
+Why not ``mcap.writer.Writer``: it builds a dataclass and updates statistics per message, a cost
+of the order of a whole in-process step, so a logged run would be several times slower
+(benchmarks/logging_overhead.py measures what logging costs). Here a
 batch of messages is one list comprehension of ``struct.pack`` joined into the open chunk; every other record (header, channels,
 chunks, indexes, attachments, metadata, summary, footer) is written with the ``mcap`` package's
 own record classes, and the result is read back by the plain ``mcap`` reader in the tests.

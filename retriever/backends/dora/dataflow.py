@@ -14,12 +14,11 @@
 Each node is a Retriever worker process (the flow rebuilt from the IR), as on the zenoh backend;
 its events and its progress messages go to its consumers over dora. A dropped event would leave
 a gap in its stream that no frontier crosses, so every input is ``queue_policy: backpressure``
-with a long queue. Dora's default route (straight between the nodes, drop-oldest) lost messages
-here: 2-4 of 3000 small ones sent ~1 ms apart, in 4 runs of 7, with no warning, and once the
-last progress message of a producer, so that its consumer waited out its deadline (a
-conformance test failed 1 run in ~30). A backpressure input goes through dora's daemon: no loss
-in 14 runs of 3000, with blocking or timed-out ``next()`` alike. Dora still drops at ten times
-the queue (a million events here), with an error in its log.
+with a long queue. Dora's default route (straight between the nodes, drop-oldest) can lose
+messages of a fast stream with no warning, the last progress message of a producer among them,
+so that its consumer would wait out its deadline. A backpressure input goes through dora's
+daemon and loses none, with blocking or timed-out ``next()`` alike. Dora still drops at ten
+times the queue (a million events here), with an error in its log.
 
 :class:`DoraNames` is the mapping both sides use: the descriptor's ids, and, in the worker,
 which dora output carries which port and which input brings which stream.

@@ -24,8 +24,8 @@ RECEIVE_TIMEOUT_S = 0.1
 
 #: An empty message: a producer's greeting, sent once on each of its dora outputs when it declares
 #: them. A consumer says ready only once a greeting came through each of its inputs: dora's routes
-#: are set up lazily, and without this the first events of a run of 5-20 flows took 0.3-1.5 s to
-#: arrive (a LET run then differed from in-process: its first ticks ran without them).
+#: are set up lazily, and without this the first events of a run can take a good part of a second
+#: to arrive (a LET run would then differ from in-process: its first ticks would run without them).
 GREETING = b""
 
 

@@ -28,16 +28,15 @@ LOOPBACK = "127.0.0.1"
 
 #: Zenoh copies a message bigger than 3 KiB between peers on one host into a shared-memory pool
 #: of the sender's and sends a reference (its "transport optimization", on by default). A message
-#: that does not fit goes over TCP instead: with Zenoh's default 16 MiB pool, every 16 MiB frame
-#: did (17.5 ms at 20 Hz here; 5.4 ms through a 128 MiB pool). So the pool gets up to
+#: that does not fit goes over TCP instead, several times slower: with Zenoh's default 16 MiB pool,
+#: every 16 MiB frame would (benchmarks/reports/latency.md). So the pool gets up to
 #: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
 #: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
 #: Every worker of a run that sends to a consumer on its host has a pool (the hub has none:
 #: HUB_SHARED_MEMORY), and writes all of it (worker.py POOL_PADDING), so the run's workers share
-#: that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each wrote 6.4 GB of
-#: /dev/shm while they started, spent 13-35 s of system time on the page faults (2 cores), and
-#: in one run of two 14 of them never received the run's start; with 16 MiB each, 6.5 s and all
-#: started (benchmarks/reports/scale.md).
+#: that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each would write 6.4 GB of
+#: /dev/shm while they start, and the page faults take so long that some of them miss the run's
+#: start (benchmarks/reports/scale.md).
 SHM_POOL_MAX = 128 << 20
 SHM_POOL_MIN = 16 << 20
 SHM_POOL_SHARE = 8
@@ -47,9 +46,9 @@ SHM_POOL_RUN_MAX = 1 << 30
 #: Zenoh removes a /dev/shm/*.zenoh segment only when it can lock it exclusively: when the last
 #: process that maps it lets go, or in a scan of every segment at a process's exit() (and at its
 #: first shared-memory use), which skips the segments still mapped, by anyone, the exiting
-#: process included. A closed session lets go of its segments on a Zenoh thread 1–50 ms later
-#: (measured), so a program that exited right after a session closed sometimes left the session's
-#: segment behind (a run's hub did, when it had shared memory). Closing a session with shared
+#: process included. A closed session lets go of its segments on a Zenoh thread some
+#: milliseconds later, so a program that exits right after a session closed can leave the
+#: session's segment behind. Closing a session with shared
 #: memory in a process that goes on (daemon.in_session) waits for that, at most this long.
 SEGMENT_RELEASE_S = 0.5
 
@@ -110,9 +109,9 @@ def shm_pool_bytes(free_bytes: int | None = None, sessions: int = 1) -> int:
 
 #: Gossip makes two workers that learn of each other (from the hub) link up directly; by default
 #: both open a link at once, and Zenoh keeps one. With authentication, whose handshake is longer,
-#: that race lost both now and then: 1 run in 10 had a worker pair with no link (a consumer that
-#: never got an event; it waited 20 s for the link first). So only the peer of greater Zenoh id
-#: opens it: 0 in 48 runs (tests/backends/zenoh/test_access.py's runs).
+#: that race can lose both links, leaving a worker pair with no link (a consumer that never gets
+#: an event). So only the peer of greater Zenoh id opens it (tests/backends/zenoh/test_access.py's
+#: runs depend on every pair linking).
 GOSSIP_ONE_WAY = '{peer: {to_peer: "greater-zid", to_router: "always"}}'
 
 
@@ -162,8 +161,8 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
 
     Zenoh's shared memory stays on (its default) unless ``shared_memory`` is false (see
     :func:`needs_shared_memory`), though Retriever never allocates in it: with it off, big
-    messages between peers on one host got much slower (1 MiB: 1.8–2.0× raw Zenoh's latency
-    instead of 1.1×, benchmarks/reports/latency.md), and its pool is sized by
+    messages between peers on one host are much slower (benchmarks/reports/latency.md compares
+    Retriever's latency with raw Zenoh's), and its pool is sized by
     :func:`shm_pool_bytes` for one of the run's ``sessions``. Its costs: each session has a
     segment in /dev/shm, which a SIGKILLed process leaves behind; and a process with a link that
     uses it wakes 20 times a second for as long as it lives (:func:`needs_shared_memory`).
@@ -212,9 +211,8 @@ def needs_shared_memory(ir: dict, node_id: str) -> bool:
     unless every port of the node that an edge connects has a type made of scalars only
     (``float``, ``int | None``, …). A node with no edge (an idle flow) or only such ports
     opens its session without it. A process with a link that uses shared memory runs Zenoh's
-    watchdog "confirmator" every 50 ms (fixed in Zenoh): 20 wake-ups a second, 0.05–0.15 % of
-    a core here (benchmarks/reports/idle_cpu.md), where an idle 100 Hz flow costs about 1 % in
-    all. A value bigger than its port's type said still arrives, over TCP.
+    watchdog "confirmator" every 50 ms (fixed in Zenoh): 20 wake-ups a second, a small share of
+    what an idle flow costs in all (benchmarks/reports/idle_cpu.md). A value bigger than its port's type said still arrives, over TCP.
     Anything this cannot read in the IR keeps shared memory on (Zenoh's default)."""
     try:
         node = next(n for n in ir["nodes"] if n["id"] == node_id)
@@ -324,9 +322,9 @@ def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float, sto
     sessions, after the declarations each had sent on it: once a peer answers, each knows the
     other's subscribers (peers do not route for each other: there is no other path).
 
-    Each key is asked by name, all at once: a query on a wildcard (``progress/**``) went to
-    every node of the run, so N starting nodes asked N² questions; at 80 nodes on 2 cores the
-    answers fell so far behind that some node never had its producer's (benchmarks/reports/deploy.md).
+    Each key is asked by name, all at once: a query on a wildcard (``progress/**``) would go to
+    every node of the run, so N starting nodes would ask N² questions, and at scale the answers
+    fall so far behind that some node never has its producer's (benchmarks/reports/deploy.md).
     ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered.
     ``payload``: what each question carries (the answerers ignore it: worker.POOL_PADDING)."""
     missing = set(keys)

@@ -4,18 +4,19 @@ A node loop batches its step records and the data messages it published (loop.FL
 and hands each batch to its :class:`Reporter`. The reporter writes the big messages to files of
 the run's spill directory (the coordinator maps them: one copy, none on its side) and puts the
 report on ``status/report/<node>``. Both take time that has nothing to do with the node's
-ticks: writing 16 MiB to fresh shared memory took 60 ms on this VM, longer than a 20 Hz period,
-and a node that did it between ticks fell 0.4 s behind in 3 s (benchmarks/reports/latency.md). On their
-own thread they overlap the loop (file writes and puts release the GIL).
+ticks: writing a camera frame of megabytes to fresh shared memory can take longer than a 20 Hz
+period, and a node that did it between ticks would fall further behind with each frame
+(benchmarks/reports/latency.md). On their own thread they overlap the loop (file writes and puts
+release the GIL).
 
 Reports go out in the order they were handed over. At most MAX_PENDING reports, holding at most
 MAX_PENDING_BYTES of messages, wait; a loop further ahead waits for the reporter, as it would for
-a congested link. The bound is in bytes because big messages are what falls behind: on this VM,
-memory never touched since boot is handed out at ~280 MB/s, so spilling 16 MiB frames at 20 Hz
-(320 MB/s) fell ~10 ms further behind with each frame until the machine had used that much memory
-once. With room for four reports of one frame each (the old bound), the loop then stalled within
-seconds, and the last frames of a run got tags past its end. 256 MiB (16 such frames) lets a
-longer stretch pass; how much longer depends on the machine (benchmarks/reports/latency.md).
+a congested link. The bound is in bytes because big messages are what falls behind: memory a
+machine never touched before is handed out slower than a stream of 16 MiB frames at 20 Hz
+(320 MB/s) may need, so the reporter can fall behind for a while, and a bound of a few frames
+would stall the loop within seconds (the last frames of a run would get tags past its end).
+256 MiB (16 such frames) lets such a stretch pass; how long a stretch depends on the machine
+(benchmarks/reports/latency.md).
 :meth:`Reporter.close` returns once every report is out, so a worker's last status message comes
 after its last report.
 """
