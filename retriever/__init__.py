@@ -7,11 +7,11 @@ Layers, lowest first: a module imports from its own layer and those below, never
 (not lazily inside a function, not under ``if TYPE_CHECKING:``); ``<`` separates layers, spaces
 the modules of one layer, and a package stands for its modules (tests/test_layers.py checks it).
 
-    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild
+    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild features
     plan       placement
     log        log
-    backends   backends.base < backends._inproc_ticks backends.inproc < backends.zenoh < backends.dora < backends
-    pipeline   starved pipeline
+    backends   backends.base < starved < backends._inproc_ticks backends.inproc < backends.zenoh < backends.dora < backends
+    pipeline   pipeline
     run        _loading
     replay     replay
     libraries  gym learn

@@ -16,6 +16,7 @@
     ├── RemoteError                a worker process's exception, carried back as text (a StepError's cause)
     ├── CausalityError             an instant ran past max_microsteps (a Zeno loop); names the cycle
     ├── ValuesNotKeptError         a trace of a run with keep="records" was asked for its values
+    ├── FeatureError (ValueError)  a port's value no dataset feature holds, or keys that name no feature
     ├── LogError                   an event log cannot be written, read or replayed as asked
     │   ├── LogWriteError          the OS refused a write to the log: the run stopped, the file is no record of it
     │   ├── ChunkTooLargeError (ValueError)  a log's chunk would decompress past what a log is read with
@@ -199,6 +200,15 @@ class LogError(RetrieverError):
 class LogWriteError(LogError):
     """The OS refused a write to a run's log (its disk is full, it is a device that takes no data,
     an I/O error): the run was stopped, and the file is not a record of it."""
+
+
+class FeatureError(RetrieverError, ValueError):
+    """A value no feature holds, or keys that do not name features; one problem per line, each
+    naming the source but not where it came from (the export and the policy flow add that)."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
 
 
 class ChunkTooLargeError(LogError, ValueError):

@@ -36,20 +36,12 @@ from typing import Any
 import numpy as np
 
 from .codec import dataclass_fields
+from .errors import FeatureError
 
 IMAGE, STATE = "image", "state"
 OBSERVATION, ACTION = "observation", "action"
 #: LeRobot's keys for an observation's images: ``observation.image``, or ``observation.images.<name>``
 OBSERVATION_IMAGE = "observation.image"
-
-
-class FeatureError(ValueError):
-    """A value no feature holds, or keys that do not name features; one problem per line, each
-    naming the source but not where it came from (the export and the policy flow add that)."""
-
-    def __init__(self, problems: list[str]):
-        self.problems = list(problems)
-        super().__init__("\n".join(self.problems))
 
 
 def is_image(value: Any) -> bool:
