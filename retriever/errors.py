@@ -121,6 +121,15 @@ class BackendError(RetrieverError):
     """An unknown backend was asked for, or a backend cannot run this graph."""
 
 
+def _wrapped(head: str, cause: BaseException | str, context: str, hint: str) -> str:
+    """``head``, the cause's first line and ``context`` on the first line, then the cause's other
+    lines; ``hint`` last, unless the cause ends with a hint of its own (it knows the fix better)."""
+    what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
+    first, *rest = what.split("\n")
+    own_hint = bool(rest) and rest[-1].lstrip().startswith("hint:")
+    return "\n".join([f"{head}{first}{context}", *rest, *([] if own_hint else [f"    hint: {hint}"])])
+
+
 class StepError(RetrieverError):
     """A flow's ``step()`` raised. The original exception is chained as ``__cause__``."""
 
@@ -129,11 +138,9 @@ class StepError(RetrieverError):
         self.tag = tag
         from .time import format_tag
 
-        super().__init__(
-            f"{node}.step() raised {type(cause).__name__}: {cause} (tick at {format_tag(tag)})\n"
-            f"    hint: set on_error='skip_tick' or 'restart' on '{node}' "
-            f"(flow.configure(on_error=...)) to keep the pipeline running"
-        )
+        super().__init__(_wrapped(f"{node}.step() raised ", cause, f" (tick at {format_tag(tag)})",
+                                  f"set on_error='skip_tick' or 'restart' on '{node}' "
+                                  "(flow.configure(on_error=...)) to keep the pipeline running"))
 
 
 class SetupError(RetrieverError):
@@ -142,10 +149,9 @@ class SetupError(RetrieverError):
 
     def __init__(self, node: str, cause: BaseException | str):
         self.node = node
-        what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
-        super().__init__(f"{node}.setup() raised {what}, before its first tick: the run did not start\n"
-                         f"    hint: setup() runs once, in the process that steps '{node}'; fix what it needs "
-                         "there (a file, a device, a model's weights)")
+        super().__init__(_wrapped(f"{node}.setup() raised ", cause, ", before its first tick: the run did not start",
+                                  f"setup() runs once, in the process that steps '{node}'; fix what it needs "
+                                  "there (a file, a device, a model's weights)"))
 
 
 class RestartLimitError(StepError):
@@ -157,15 +163,13 @@ class RestartLimitError(StepError):
         self.node, self.tag = node, tag
         from .time import format_tag
 
-        what = cause if isinstance(cause, str) else f"{type(cause).__name__}: {cause}"
         where = (f" (tick at {format_tag(tag)})", "each failure is an error record of the trace and the log") \
             if tag is not None else ("", "retriever log info shows each process that died")
         RetrieverError.__init__(
-            self,
-            f"flow '{node}' failed again after {max_restarts} restart(s) within {window:g} s "
-            f"(max_restarts={max_restarts}, restart_window={window:g}): {what}{where[0]}\n"
-            f"    hint: fix what makes '{node}' fail ({where[1]}), "
-            "or raise its budget: flow.configure(max_restarts=..., restart_window=...)")
+            self, _wrapped(f"flow '{node}' failed again after {max_restarts} restart(s) within {window:g} s "
+                           f"(max_restarts={max_restarts}, restart_window={window:g}): ", cause, where[0],
+                           f"fix what makes '{node}' fail ({where[1]}), "
+                           "or raise its budget: flow.configure(max_restarts=..., restart_window=...)"))
 
 
 class RemoteError(RetrieverError):

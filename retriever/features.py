@@ -61,9 +61,14 @@ class PortFeatures:
     port: str
     images: dict[str, np.ndarray] = field(default_factory=dict)
     state: np.ndarray | None = None  # flattened, in field order, in the dtype its parts promote to
-    state_names: tuple[str, ...] = ()  # the path of each element of ``state``
+    state_parts: list[tuple[str, tuple[int, ...]]] = field(default_factory=list)  # path and shape of each part
     text: str | None = None  # the port's value, when it is text
     left_out: list[str] = field(default_factory=list)  # the paths of text and None fields
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """The path of each element of ``state`` (computed on asking: a large vector has many)."""
+        return tuple(name for path, shape in self.state_parts for name in _element_names(path, shape))
 
     def sources(self) -> dict[str, tuple[str, np.ndarray]]:
         """``{source: (IMAGE or STATE, array)}``."""
@@ -85,7 +90,7 @@ def port_features(port: str, value: Any, exclude: Collection[str] = ()) -> PortF
     if numbers:
         vectors = [array.reshape(-1) for _, array in numbers]
         taken.state = np.concatenate(vectors) if len(vectors) > 1 else vectors[0]
-        taken.state_names = tuple(name for path, array in numbers for name in _element_names(path, array))
+        taken.state_parts = [(path, array.shape) for path, array in numbers]
     return taken
 
 
@@ -110,33 +115,54 @@ def _take_apart(value: Any, path: str, taken: PortFeatures, numbers: list[tuple[
         raise FeatureError([f"a uint8 array of shape {value.shape}, which is neither an image (uint8 H×W×3) nor a "
                             "state vector; convert it to RGB in the flow, or leave it out"])
     array = _numeric(value)
+    where = "" if path == taken.port else f" at {path}"
     if array is None:
-        what = (f"a {value.dtype} array of shape {value.shape}" if isinstance(value, np.ndarray)
-                else f"a {type(value).__name__}")
-        where = "" if path == taken.port else f" at {path}"
-        raise FeatureError([f"{what}{where}, which no feature holds (images uint8 H×W×3, numbers, and dataclasses "
-                            "of them do)"])
+        raise FeatureError([f"{_describe(value)}{where}, which no feature holds (images uint8 H×W×3, numbers, and "
+                            "dataclasses of them do)"])
+    if array.size == 0:
+        raise FeatureError([f"{_describe(value)}{where} with no element, which no feature holds (a feature has at "
+                            "least one)"])
     numbers.append((path, array))
 
 
 def _numeric(value: Any) -> np.ndarray | None:
-    """A number, numeric array, or list/tuple of them as an array; None for anything else."""
+    """A number, numeric array, or list/tuple of them as an array (bool, integer or float, never
+    an object array: an int beyond int64 is none); None for anything else."""
     if isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
-        return np.asarray(value)
-    if isinstance(value, np.ndarray):
-        return value if value.dtype.kind in "biuf" else None
-    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
+        array = np.asarray(value)
+    elif isinstance(value, np.ndarray):
+        array = value
+    elif isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
         parts = [_numeric(v) for v in value]
         if any(p is None for p in parts) or len({p.shape for p in parts}) > 1:
             return None
-        return np.stack(parts) if parts else np.zeros(0)
-    return None
+        array = np.stack(parts) if parts else np.zeros(0)
+    else:
+        return None
+    return array if array.dtype.kind in "biuf" else None
 
 
-def _element_names(path: str, array: np.ndarray) -> list[str]:
-    if array.ndim == 0:
+def _describe(value: Any) -> str:
+    """What a value is, for a message: an array's dtype and shape, a list's first part no feature holds."""
+    if isinstance(value, np.ndarray):
+        return f"a {'structured ' if value.dtype.names else ''}{value.dtype} array of shape {value.shape}"
+    if isinstance(value, int) and not isinstance(value, bool) and _numeric(value) is None:
+        return f"an int beyond int64 ({str(value)[:24]})"
+    if isinstance(value, np.generic):
+        return f"a {value.dtype} number"
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
+        if not value:
+            return f"a {type(value).__name__}"
+        bad = next((v for v in value if _numeric(v) is None), None)
+        inner = f"holding {_describe(bad)}" if bad is not None else "of parts of different shapes"
+        return f"a {type(value).__name__} {inner}"
+    return f"a {type(value).__name__}"
+
+
+def _element_names(path: str, shape: tuple[int, ...]) -> list[str]:
+    if not shape:
         return [path]
-    return [".".join([path, *map(str, index)]) for index in np.ndindex(array.shape)]
+    return [".".join([path, *map(str, index)]) for index in np.ndindex(shape)]
 
 
 def feature_keys(sources: Mapping[str, str], sides: Mapping[str, str], maps: Mapping[str, str] | None = None,

@@ -223,10 +223,25 @@ def _params(flow: Flow) -> tuple[dict[str, Any], str | None]:
             shown[name] = param_to_ir(value)
         except CodecError:
             shown[name] = {"$unserializable": f"{type(value).__module__}.{type(value).__qualname__}"}
+            path, bad = _uncarried(value, name)
+            what = f"is a {type(bad).__qualname__}" if path == name else f"holds a {type(bad).__qualname__} at {path}"
             problem = problem or (
-                f"argument '{name}' is a {type(value).__qualname__}, which the IR cannot carry (only msgpack "
+                f"argument '{name}' {what}, which the IR cannot carry (only msgpack "
                 "values: numbers, str, bytes, lists, tuples, dicts, numpy arrays, @io dataclasses)")
     return json.loads(json.dumps(shown)), problem
+
+
+def _uncarried(value: Any, path: str) -> tuple[str, Any]:
+    """The path into ``value`` (``kwargs['render_mode']``, ``args[2]``) of the first part the IR
+    cannot carry, and that part: a list's, tuple's or dict's innermost, or the value itself."""
+    parts = (value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, (list, tuple))
+             else ())
+    for key, inner in parts:
+        try:
+            param_to_ir(inner)
+        except CodecError:
+            return _uncarried(inner, f"{path}[{key!r}]")
+    return path, value
 
 
 # ---------------------------------------------------------------------------------------------

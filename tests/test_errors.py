@@ -807,3 +807,21 @@ def test_errors_py_draws_every_exception_it_defines():
     tree = retriever.errors.__doc__.split("Every exception class")[0]
     drawn = set(re.findall(r"^ {4}[│ ]*(?:[├└]── )?([A-Z][A-Za-z]+)", tree, re.MULTILINE))
     assert sorted(set(classes) - drawn) == []
+
+
+def test_a_wrapped_errors_context_is_on_its_first_line_and_its_own_hint_stays_last():
+    from retriever.errors import SetupError
+
+    cause = RuntimeError("device='cuda', but torch finds no CUDA device\n    hint: device='cpu'")
+    setup = str(SetupError("policy", cause)).split("\n")
+    assert setup == ["policy.setup() raised RuntimeError: device='cuda', but torch finds no CUDA device, before its "
+                     "first tick: the run did not start", "    hint: device='cpu'"]
+    mismatch = ValueError("its observation does not fit the checkpoint\n    'state' has the shape (4,)\n"
+                          "    hint: features={'source': 'feature key'}")
+    step = str(StepError("policy", (200_000_000, 0), mismatch)).split("\n")
+    assert step == ["policy.step() raised ValueError: its observation does not fit the checkpoint "
+                    "(tick at t=0.200000000s m=0)", "    'state' has the shape (4,)",
+                    "    hint: features={'source': 'feature key'}"]
+    plain = str(StepError("policy", (0, 0), KeyError("x"))).split("\n")
+    assert plain[0] == "policy.step() raised KeyError: 'x' (tick at t=0.000000000s m=0)"
+    assert plain[1].startswith("    hint: set on_error='skip_tick' or 'restart' on 'policy'") and len(plain) == 2

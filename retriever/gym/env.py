@@ -152,7 +152,12 @@ class PipelineEnv(gymnasium.Env):
         then ``terminated``, and the observation before holds)."""
         if self._over or self._session is None:
             raise RuntimeError("PipelineEnv.step(): the episode is over (or none began)\n    hint: call env.reset()")
-        self._pending = self._outputs(action)
+        if not _contains(self.action_space, action):
+            raise ValueError(f"PipelineEnv.step(): the action {action!r:.200} is not in the action space "
+                             f"{self.action_space} (the episode goes on as before it)\n    hint: pass an action "
+                             "that env.action_space.contains()")
+        outputs = self._outputs(action)
+        self._pending = outputs
         self._k += 1
         observation, values, info = self._observe()
         if self._pending is not None:
@@ -210,14 +215,12 @@ class PipelineEnv(gymnasium.Env):
         return {port: _fit(self.agent, port, values.get(port), space[port]) for port in self._observed}
 
     def _outputs(self, action: Any) -> list[tuple[str, Any]]:
-        """``action`` as the agent's outputs: ``(port, value)`` per port, each value of its port's type."""
+        """``action`` (in the action space: a dict by port for several) as the agent's outputs:
+        ``(port, value)`` per port, each value of its port's type."""
         ports = self._ports[1]
         if len(self._acting) == 1:
             (port,) = self._acting
             return [(port, _as_port_value(action, ports[port]))]
-        if not isinstance(action, dict) or set(action) != set(self._acting):
-            raise ValueError(f"PipelineEnv.step(): the agent {self.agent} has the output ports "
-                             f"{', '.join(self._acting)}: the action must be a dict of them, got {action!r:.200}")
         return [(port, _as_port_value(action[port], ports[port])) for port in self._acting]
 
     @property
@@ -251,6 +254,20 @@ class _Actions:
         if outputs is None:
             raise InternalError(f"PipelineEnv: the agent {env.agent} ticked with no action given")
         return outputs
+
+
+def _contains(space: spaces.Space, action: Any) -> bool:
+    """``space.contains(action)``, a Box's value given as a number or list cast to its dtype first
+    (as gymnasium's own check does, without its warning for each step)."""
+    if isinstance(space, spaces.Dict):
+        return (isinstance(action, dict) and action.keys() == space.spaces.keys()
+                and all(_contains(space[key], action[key]) for key in space.spaces))
+    if isinstance(space, spaces.Box) and not isinstance(action, np.ndarray):
+        try:
+            action = np.asarray(action, dtype=space.dtype)
+        except (TypeError, ValueError, OverflowError):
+            return False
+    return space.contains(action)
 
 
 def _space_of(what: str, agent: str, ports: dict, given: Any) -> spaces.Space:

@@ -22,7 +22,8 @@ run time, and the machine that replays may have no GPU; the replay then takes it
 log and checks everything downstream of it.
 
 Nothing is fetched from a hub: the path must be a local directory, loading is
-``local_files_only``, ``HF_HUB_OFFLINE=1`` is set before LeRobot is imported, and a backbone the
+``local_files_only``, the Hugging Face hub's offline mode is on (``HF_HUB_OFFLINE=1``, and
+``huggingface_hub``'s own switch, which it reads at import, even if it was imported first), and a backbone the
 config would download (``pretrained_backbone_weights``) is not: the checkpoint holds its weights.
 Nothing in a checkpoint is unpickled or imported: weights are safetensors, configs JSON, and a
 processor file whose steps name a class to import (rather than LeRobot's registry) is refused.
@@ -265,17 +266,36 @@ class PolicyFlow(Flow):
         raise NotImplementedError
 
 
+def hub_offline() -> None:
+    """Turn the Hugging Face hub's offline mode on: nothing goes to a hub. ``huggingface_hub``
+    reads ``HF_HUB_OFFLINE`` once, at its import, and keeps an HTTP session per thread made by
+    it: the environment alone is too late if it was imported before, so its switch is set and its
+    sessions remade (each then refuses any request with OfflineModeIsEnabled)."""
+    os.environ["HF_HUB_OFFLINE"] = "1"
+    from huggingface_hub import constants
+    from huggingface_hub.utils import reset_sessions
+
+    if not constants.HF_HUB_OFFLINE:
+        constants.HF_HUB_OFFLINE = True
+        reset_sessions()
+
+
 class LeRobotPolicy(PolicyFlow):
     """A LeRobot ``PreTrainedPolicy`` checkpoint directory (``config.json``, ``model.safetensors``,
     and, as ``lerobot-train`` writes them, its pre/post-processors: normalization). Its config's
     ``input_features`` must be exactly the observation's features. See :class:`PolicyFlow`."""
 
     def _load(self, path: Path) -> Any:
-        os.environ["HF_HUB_OFFLINE"] = "1"  # before huggingface_hub reads it: nothing goes to a hub
+        hub_offline()
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class
 
-        config = PreTrainedConfig.from_pretrained(path, local_files_only=True)
+        try:
+            config = PreTrainedConfig.from_pretrained(path, local_files_only=True)
+        except Exception as e:
+            raise ValueError(f"{self._owner()}: {path / 'config.json'} is no LeRobot policy config that this lerobot "
+                             f"reads ({type(e).__name__}: {str(e)[:300]})\n    hint: give the directory "
+                             "lerobot-train or save_pretrained wrote") from None
         config.device = self.device
         if getattr(config, "pretrained_backbone_weights", None) is not None:
             config.pretrained_backbone_weights = None  # the checkpoint holds the backbone's trained weights

@@ -28,11 +28,15 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import LogError
+from ..time import format_tag
 from .frames import TASK, Episode, Feature, FlowFrames, Mapping, Recording, parse_maps
 from .reader import RunLog, read_log
 
 FORMATS = ("lerobot", "npz")
 NPZ_FORMAT = "retriever-npz/1"
+#: the keys each format writes of its own, which no feature can take
+RESERVED_KEYS = {"npz": ("timestamp", "frame_index", "tick_ns", TASK),
+                 "lerobot": ("timestamp", "frame_index", "episode_index", "index", "task_index", TASK)}
 #: threads LeRobot's image writer encodes PNGs in (its own advice: a few per camera)
 IMAGE_WRITER_THREADS = max(2, min(4, os.cpu_count() or 1))
 
@@ -52,6 +56,7 @@ class ExportSummary:
     left_out: Counter = field(default_factory=Counter)  # ticks, by status or reason
     fields_left_out: list[str] = field(default_factory=list)
     sparse: dict[str, tuple[int, int]] = field(default_factory=dict)  # ports left out: (ticks with a value, ticks)
+    non_finite: dict[str, tuple[int, str]] = field(default_factory=dict)  # sources: (frames with NaN/inf, first where)
 
     def __str__(self) -> str:
         lines = [f"wrote {self.out} ({self.format}): {self.frames} frames in {self.episodes} episode(s) at "
@@ -65,6 +70,10 @@ class ExportSummary:
         if self.sparse:
             lines.append("  ports with a value at fewer than half of the ticks, left out (--map one to keep it): "
                          + ", ".join(f"{p} ({n} of {total})" for p, (n, total) in sorted(self.sparse.items())))
+        if self.non_finite:
+            lines.append("  NaN or infinite values (a dataset's statistics take them in): "
+                         + ", ".join(f"{s} in {n} frame(s), first at {first}"
+                                     for s, (n, first) in sorted(self.non_finite.items())))
         if self.fields_left_out:
             lines.append("  fields no feature holds (text, None): " + ", ".join(self.fields_left_out))
         return "\n".join(lines)
@@ -95,7 +104,9 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
                       tuple(exclude))
     if task is not None and TASK in mapping.maps.values():
         raise LogError("the task is given twice: --task and a port mapped to task", "pass one of them")
+    _check_keys(mapping, format)
     out = Path(out)
+    _check_out(out, logs)
     if out.exists() and not overwrite:
         raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
     writer_class = _LeRobotWriter if format == "lerobot" else _NpzWriter
@@ -108,6 +119,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
     first: FlowFrames | None = None
     fields_left_out: list[str] = []
     sparse: dict[str, tuple[int, int]] = {}
+    non_finite: dict[str, tuple[int, str]] = {}
     try:
         for n, source in enumerate(logs):
             recording = _recording(source)
@@ -129,6 +141,9 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
                                    "a dataset has one set of features: export those logs apart")
                 writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
             left_out.update(frames.left_out)
+            for source, (count, tick) in frames.non_finite.items():
+                before = non_finite.get(source, (0, f"{format_tag(tick)} in {recording.name}"))
+                non_finite[source] = (before[0] + count, before[1])
             fields_left_out += [f for f in frames.fields_left_out if f not in fields_left_out]
             for port, (with_value, ticks) in frames.sparse.items():
                 before = sparse.get(port, (0, 0))
@@ -147,7 +162,43 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
         shutil.rmtree(partial, ignore_errors=True)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return ExportSummary(out, format, episodes, count, float(first.fps), size, time.perf_counter() - started,
-                         first.features, left_out, fields_left_out, sparse)
+                         first.features, left_out, fields_left_out, sparse, non_finite)
+
+
+def _check_keys(mapping: Mapping, format: str) -> None:
+    """Refuse a --map to a key the format writes of its own, or with a '/' (LeRobot's keys are no paths)."""
+    for source, key in mapping.maps.items():
+        if key == TASK:
+            continue
+        if key in RESERVED_KEYS[format]:
+            raise LogError(f"--map {source}={key}: {key!r} is a key the {format} format writes of its own "
+                           f"({', '.join(RESERVED_KEYS[format])})",
+                           f"map {source!r} to another key: --map {source}=observation.{source}")
+        if "/" in key:
+            raise LogError(f"--map {source}={key}: a feature key has no '/' (LeRobot's keys are dotted: "
+                           "observation.images.front)", f"--map {source}={key.replace('/', '.')}")
+
+
+def _check_out(out: Path, logs: Sequence[str | Path | RunLog | Recording]) -> None:
+    """Refuse an output that is, holds or lies inside an input log (--force would replace the log),
+    or whose folder is a file."""
+    target = out.resolve()
+    for source in logs:
+        path = source.path if isinstance(source, RunLog) else None if isinstance(source, Recording) else Path(source)
+        if path is None:
+            continue
+        log = path.resolve()
+        where = ("the log" if target == log else "a folder that holds the log" if target in log.parents
+                 else "inside the log" if log in target.parents else None)
+        if where is not None:
+            raise LogError(f"the output {out} is {where} {path}: writing it would replace the log",
+                           "-o a folder apart from the logs")
+    for parent in target.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise LogError(f"the output {out} lies inside {parent}, which is a file, not a folder",
+                               "-o a path whose parent folders are folders")
+            break
 
 
 def _put_in_place(partial: Path, out: Path) -> None:
@@ -189,7 +240,7 @@ class _LeRobotWriter:
         from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
         spec = {f.key: ({"dtype": "image", "shape": f.shape, "names": ["height", "width", "channel"]}
-                        if f.kind == "image" else {"dtype": str(f.dtype), "shape": f.shape, "names": list(f.names)})
+                        if f.kind == "image" else {"dtype": str(f.dtype), "shape": f.shape, "names": list(f.names) or None})
                 for f in features}
         # PNG encoding is most of an export's time: LeRobot's writer threads encode in parallel
         threads = IMAGE_WRITER_THREADS if any(f.kind == "image" for f in features) else 0
@@ -244,7 +295,7 @@ class _NpzWriter:
         arrays["frame_index"] = np.arange(len(episode.frames), dtype=np.int64)
         arrays["tick_ns"] = np.array([frame.tick[0] for frame in episode.frames], dtype=np.int64)
         arrays["task"] = np.array([frame.task or task for frame in episode.frames])
-        np.savez(self.root / f"episode_{n:06d}.npz", **arrays)
+        np.savez(self.root / f"episode_{n:06d}.npz", allow_pickle=False, **arrays)
         self.index.append({"episode_index": n, "frames": len(episode.frames), "source": source})
         self.frames += len(episode.frames)
 

@@ -47,6 +47,9 @@ LOST = "whose events the log lost"
 TASK = "task"
 GAPS = ("refuse", "split")
 
+#: a state vector with more elements than this has no name per element (a dataset's names are then None)
+NAMED_ELEMENTS_LIMIT = 1024
+
 EventId = tuple[str, str, int]
 
 
@@ -198,6 +201,8 @@ class _Features:
         self.features: list[Feature] | None = None
         self.task_port: str | None = next((p for p, k in mapping.maps.items() if k == TASK), None)
         self.fields_left_out: list[str] = []
+        #: the sources with NaN or infinite values: {source: (frames with one, the first's tick)}
+        self.non_finite: dict[str, tuple[int, tuple[int, int]]] = {}
 
     def frame(self, tick: tuple[int, int], values: dict[str, Any],
               where: str) -> tuple[dict[str, np.ndarray], str | None]:
@@ -223,9 +228,9 @@ class _Features:
                                       f"no feature holds but the task (at {format_tag(tick)})",
                                       f"leave it out with --exclude {port}, or make it the task: --map {port}={TASK}")
             found.update(taken.sources())
-            if taken.state is not None:
-                names[port] = taken.state_names
             if self.features is None:
+                if taken.state is not None and taken.state.size <= NAMED_ELEMENTS_LIMIT:
+                    names[port] = taken.state_names
                 self.fields_left_out += taken.left_out
         if self.features is None:
             self.features = self._fix(found, names, where)
@@ -259,6 +264,9 @@ class _Features:
                     raise UnmappableError(f"{where}: '{feature.source}' is {array.dtype} at {format_tag(tick)}, but "
                                           f"{feature.dtype} at the first frame", "give the port one dtype in the flow")
                 array = array.astype(feature.dtype)
+            if array.dtype.kind == "f" and not np.isfinite(array).all():
+                count, first = self.non_finite.get(feature.source, (0, tick))
+                self.non_finite[feature.source] = (count + 1, first)
             out[feature.key] = array
         extra = sorted(set(found) - {f.source for f in self.features})
         if extra:
@@ -271,7 +279,7 @@ class _Features:
 class FlowFrames:
     """The frames of ``flow``'s ticks in ``recording``: :meth:`episodes` yields them, episode by
     episode; then ``features`` (fixed by the first frame), ``left_out`` (ticks left out, by
-    status, or NO_RECORD, NO_VALUE, LOST), ``sparse`` (ports left out: :func:`_sparse_ports`) and
+    status, or NO_RECORD, NO_VALUE, LOST), ``non_finite`` (sources with NaN or inf), ``sparse`` (ports left out: :func:`_sparse_ports`) and
     ``fields_left_out`` (dataclass fields no feature holds) say what was taken. LogError for a
     flow that is not there or not on a Rate clock, a value no feature holds, or a gap between
     frames (unless ``gaps="split"``)."""
@@ -283,7 +291,7 @@ class FlowFrames:
         self.fps, self._offset = flow_rate(recording.ir, flow, recording.name)
         self._inputs = _Inputs(recording.ir, flow, self.fps)
         self._steps = sorted((s for s in recording.steps if s.node == flow), key=lambda s: s.tag)
-        ports = [*self._inputs.policies, *recording.ir.node(flow).get("outputs", {})]
+        ports = [*self._inputs.policies, *_outputs(recording.ir, flow, self._steps)]
         self.sparse = _sparse_ports(self._steps, ports, mapping)
         kept = [p for p in ports if not mapping.excluded(p) and p not in self.sparse]
         self._in_ports = sorted(p for p in kept if p in self._inputs.policies)
@@ -298,6 +306,10 @@ class FlowFrames:
     @property
     def fields_left_out(self) -> list[str]:
         return self._features.fields_left_out
+
+    @property
+    def non_finite(self) -> dict[str, tuple[int, tuple[int, int]]]:
+        return self._features.non_finite
 
     def episodes(self, progress: Callable[[int, int], None] | None = None) -> Iterator[Episode]:
         where, flow, hz, offset = self.recording.name, self.flow, self.fps, self._offset
@@ -341,6 +353,15 @@ class FlowFrames:
             progress(len(steps), len(steps))
         if episode.frames:
             yield episode
+
+
+def _outputs(ir: IR, flow: str, steps: list[StepRecord]) -> list[str]:
+    """The flow's output ports: its typed outputs in the IR, and every port its step records say it
+    produced on (an untyped flow's output that no edge reads is in no IR)."""
+    ports = dict.fromkeys(ir.node(flow).get("outputs", {}))
+    for step in steps:
+        ports.update(dict.fromkeys(event_id[1] for event_id in step.produced))
+    return list(ports)
 
 
 def _sparse_ports(steps: list[StepRecord], ports: list[str], mapping: Mapping) -> dict[str, tuple[int, int]]:

@@ -236,3 +236,16 @@ def test_an_agent_whose_required_input_never_comes_is_reported_not_waited_for_fo
                                            r"in a row, up to 0.5 s\n    hint: wire those ports, or give them a "
                                            r"default"):
         env.reset(seed=0)
+
+
+def test_an_action_outside_the_action_space_is_refused_before_the_step_and_the_episode_goes_on():
+    env = cartpole_env()
+    env.reset(seed=3)
+    before = (env.now, env.trace.digest())
+    for bad in (5, -1, 0.5, "left"):
+        with pytest.raises(ValueError, match=rf"PipelineEnv\.step\(\): the action {bad!r} is not in the action space "
+                                             r"Discrete\(2\) \(the episode goes on as before it\)"):
+            env.step(bad)
+        assert (env.now, env.trace.digest()) == before
+    went_on = [env.step(action)[0] for action in (1, 0, np.int64(1))]
+    assert [o.tobytes() for o in went_on] == [o.tobytes() for o in episode(cartpole_env(), 3, [1, 0, 1])[1:]]

@@ -122,3 +122,11 @@ def test_bad_arguments_are_refused_with_what_was_expected():
     with pytest.raises(ValueError, match=r"GymWorld\(env='os:CartPole-v1'\): give the id alone; gymnasium would "
                                          r"import the module before the ':'"):
         GymWorld("os:CartPole-v1")
+
+
+def test_a_kwargs_value_the_ir_cannot_carry_is_named_by_its_path_and_type():
+    with Pipeline("render") as pipe:
+        GymWorld("CartPole-v1", kwargs={"render_mode": object(), "max_episode_steps": 10}).named("world") @ Rate(50)
+    (node,) = pipe.build_ir().nodes
+    assert node["rebuild_problem"].startswith("argument 'kwargs' holds a object at kwargs['render_mode'], which the "
+                                              "IR cannot carry")

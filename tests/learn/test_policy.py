@@ -277,3 +277,30 @@ def test_a_step_may_take_its_messages_apart(checkpoint):
     assert policy.step(frame=frame) is None
     with pytest.raises(ValueError, match=r"FromMessages.act\(\) takes image, state; got image\n    hint: name act"):
         policy.act(image=frame)
+
+
+def test_offline_is_real_when_huggingface_hub_was_imported_first(checkpoint, monkeypatch):
+    """huggingface_hub reads HF_HUB_OFFLINE at its import: setting the environment after it is
+    imported changes nothing, so the load turns its own switch on and remakes its sessions."""
+    import huggingface_hub
+    from huggingface_hub.errors import OfflineModeIsEnabled
+    from huggingface_hub.utils import get_session, reset_sessions
+
+    monkeypatch.delenv("HF_HUB_OFFLINE")
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", False)  # as if imported online
+    reset_sessions()
+    set_up(ActPick(str(checkpoint)))
+    assert huggingface_hub.constants.HF_HUB_OFFLINE is True
+    with pytest.raises(OfflineModeIsEnabled):  # refused before any connection is tried
+        get_session().get("https://huggingface.co/api/models/lerobot/act_aloha_sim")
+
+
+def test_a_config_lerobot_cannot_read_names_the_flow_and_the_path(tmp_path, checkpoint):
+    import json
+
+    path = shutil.copytree(checkpoint, tmp_path / "ckpt")
+    config = json.loads((path / "config.json").read_text())
+    (path / "config.json").write_text(json.dumps({**config, "type": "evil"}))
+    with pytest.raises(ValueError, match=rf"ActPick: {path / 'config.json'} is no LeRobot policy config that this "
+                                         r"lerobot reads \(DecodingError(.|\n)*hint: give the directory"):
+        set_up(ActPick(str(path)))

@@ -125,3 +125,38 @@ def build_camera(note: bool = False, trigger: bool = False, latency: float = 0.0
             policy.configure(latency=latency)
         camera.then(policy, sync=Latest(staleness=0.1) if pause != (0, 0) else Latest())
     return pipe
+
+
+# -- untyped flows: a value of any kind, and an output no edge reads -----------------------------
+#: the values a ``Sender`` sends, by name (each a function of its tick count k, from 1)
+VALUES = {
+    "float": lambda k: np.array([k, k / 2], dtype=np.float64),
+    "nan_at_3": lambda k: np.array([np.nan if k == 3 else k, 1.0]),
+    "big_int": lambda k: 2**70 + k,
+    "empty": lambda k: np.zeros((0,)),
+    "complex": lambda k: np.array([k + 1j]),
+    "wide": lambda k: np.full(5000, k, dtype=np.float32),
+}
+
+
+class Sender(Flow):
+    def __init__(self, kind: str = "float"):
+        self.kind, self.k = kind, 0
+
+    def step(self):
+        self.k += 1
+        return {"v": VALUES[self.kind](self.k)}
+
+
+class Pol(Flow):
+    """Its output ``a`` goes to no flow: the IR names no output port of it."""
+
+    def step(self, v):
+        return {"a": np.array([2.0])}
+
+
+def build_untyped(kind: str = "float") -> Pipeline:
+    with Pipeline("untyped") as pipe:
+        sender = Sender(kind).named("sender") @ Rate(10)
+        sender.then(Pol().named("pol") @ Rate(10), sync=Latest())
+    return pipe

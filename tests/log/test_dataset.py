@@ -14,10 +14,10 @@ import pytest
 
 from retriever import read_log
 from retriever.errors import LogError
-from retriever.log.dataset import export_dataset
+from retriever.log.dataset import FORMATS, export_dataset
 from retriever.log.frames import Recording
 from retriever.replay import replay
-from tests.log.dataset_flows import SIZE, build_camera, picture
+from tests.log.dataset_flows import SIZE, build_camera, build_untyped, picture
 from tests.log.helpers import assert_cli_error, cli
 
 FPS = 10
@@ -283,3 +283,106 @@ def test_the_command_prints_frames_fps_and_size_and_refuses_clearly(tmp_path):
     assert_cli_error(refused, r"run\.mcap has no flow 'nope' \(its flows: camera, policy\)", "pass the node id")
     assert not (tmp_path / "other").exists()
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]
+
+
+# -- the output, the keys and the values it refuses ---------------------------------------------
+def test_an_output_that_is_holds_or_lies_inside_a_log_is_refused_even_forced(tmp_path):
+    (tmp_path / "logs").mkdir()
+    log = _run(tmp_path / "logs" / "run.mcap")
+    data = log.read_bytes()
+    cases = [(log, "is the log"), (tmp_path / "logs", "is a folder that holds the log"),
+             (tmp_path, "is a folder that holds the log"), (log / "ds", "is inside the log")]
+    for out, what in cases:
+        with pytest.raises(LogError, match=rf"the output .* {what} .*run\.mcap: writing it would replace the log"):
+            export_dataset([log], out, flow="policy", format="npz", overwrite=True)
+        assert log.read_bytes() == data
+    # the same path spelled otherwise, through the command
+    done = cli("log", "export", str(log), "--format", "npz", "--flow", "policy", "--force",
+               "-o", str(tmp_path / "logs" / ".." / "logs" / "run.mcap"))
+    assert_cli_error(done, r"is the log .*run\.mcap: writing it would replace the log", "-o a folder apart")
+    assert log.read_bytes() == data
+
+
+def test_an_output_inside_a_file_is_a_clear_error(tmp_path):
+    log = _run(tmp_path / "run.mcap")
+    (tmp_path / "afile").write_text("mine")
+    with pytest.raises(LogError, match=r"the output .*afile/sub lies inside .*afile, which is a file, not a folder"):
+        export_dataset([log], tmp_path / "afile" / "sub", flow="policy", format="npz")
+    assert (tmp_path / "afile").read_text() == "mine"
+    _empty_of_partials(tmp_path)
+
+
+@pytest.mark.parametrize("format,key", [("npz", "timestamp"), ("npz", "tick_ns"), ("lerobot", "index"),
+                                        ("lerobot", "episode_index"), ("lerobot", "task_index"),
+                                        ("lerobot", "frame_index"), ("lerobot", "timestamp")])
+def test_a_map_to_a_key_the_format_writes_itself_is_refused(tmp_path, format, key):
+    log = _run(tmp_path / "run.mcap")
+    with pytest.raises(LogError, match=rf"--map joints={key}: '{key}' is a key the {format} format writes of its own"
+                                       r"(.|\n)*hint: map 'joints' to another key"):
+        export_dataset([log], tmp_path / "ds", flow="policy", format=format, maps={"joints": key})
+    assert not (tmp_path / "ds").exists()
+
+
+def test_a_map_to_a_key_with_a_slash_is_refused(tmp_path):
+    log = _run(tmp_path / "run.mcap")
+    with pytest.raises(LogError, match=r"--map joints=observation/state: a feature key has no '/'"
+                                       r"(.|\n)*hint: --map joints=observation\.state"):
+        export_dataset([log], tmp_path / "ds", flow="policy", format="lerobot", maps={"joints": "observation/state"})
+
+
+def _run_untyped(path: Path, kind: str = "float") -> Path:
+    build_untyped(kind).run(duration=0.5, log=str(path))
+    return path
+
+
+def test_an_untyped_flows_output_that_no_edge_reads_is_its_action(tmp_path):
+    log = _run_untyped(tmp_path / "run.mcap")
+    summary = export_dataset([log], tmp_path / "np", flow="pol", format="npz")
+    assert [(f.key, f.source) for f in summary.features] == [("observation.state", "v"), ("action", "a")]
+    arrays = np.load(tmp_path / "np" / "episode_000000.npz")
+    assert arrays["action"].tolist() == [[2.0]] * summary.frames and summary.frames == 4
+
+
+@pytest.mark.parametrize("kind,what", [("big_int", r"an int beyond int64 \(1180591620717411303425"),
+                                       ("empty", r"a float64 array of shape \(0,\) with no element"),
+                                       ("complex", r"a complex128 array of shape \(1,\)")])
+@pytest.mark.parametrize("format", FORMATS)
+def test_a_value_no_feature_holds_is_refused_in_both_formats(tmp_path, kind, what, format):
+    if format == "lerobot":
+        _lerobot()
+    log = _run_untyped(tmp_path / "run.mcap", kind)
+    with pytest.raises(LogError, match=rf"port 'v' of the flow carries {what}(.|\n)*hint: leave it out with "
+                                       r"--exclude v"):
+        export_dataset([log], tmp_path / "ds", flow="pol", format=format)
+    assert not (tmp_path / "ds").exists()
+    _empty_of_partials(tmp_path)
+
+
+def test_nan_and_inf_values_are_named_in_the_summary(tmp_path):
+    log = _run_untyped(tmp_path / "run.mcap", "nan_at_3")
+    summary = export_dataset([log], tmp_path / "np", flow="pol", format="npz")
+    assert summary.non_finite == {"v": (1, f"t=0.300000000s m=0 in {log}")}  # the sender's 3rd value
+    assert f"NaN or infinite values (a dataset's statistics take them in): v in 1 frame(s), first at t=0.300000000s " \
+           f"m=0 in {log}" in str(summary)
+    clean = export_dataset([_run_untyped(tmp_path / "clean.mcap")], tmp_path / "np2", flow="pol", format="npz")
+    assert clean.non_finite == {} and "NaN" not in str(clean)
+
+
+def test_a_wide_state_vector_names_its_elements_once_and_not_beyond_the_limit(tmp_path, monkeypatch):
+    from retriever import features
+    from retriever.log.frames import NAMED_ELEMENTS_LIMIT
+
+    lerobot = _lerobot()
+    log = _run(tmp_path / "run.mcap")
+    calls = []
+    named = features._element_names
+    monkeypatch.setattr(features, "_element_names", lambda *a: calls.append(a) or named(*a))
+    export_dataset([log], tmp_path / "np", flow="policy", format="npz")
+    assert len(calls) == 5  # joints, pose.x, pose.y, pose.q, action: at the first frame only, of 9
+    monkeypatch.undo()
+    wide = _run_untyped(tmp_path / "wide.mcap", "wide")
+    summary = export_dataset([wide], tmp_path / "ds", flow="pol", format="lerobot")
+    assert summary.features[0].shape == (5000,) > (NAMED_ELEMENTS_LIMIT,) and summary.features[0].names == ()
+    dataset = lerobot.LeRobotDataset("retriever/ds", root=tmp_path / "ds")
+    assert dataset.meta.features["observation.state"]["names"] is None
+    assert dataset.meta.features["action"]["names"] == ["a.0"]
