@@ -12,6 +12,7 @@ The settings (render quality, contact bits, gains) are the ones measured on this
 from __future__ import annotations
 
 import os
+import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")       # CPU rendering without a display
 os.environ.setdefault("LP_NUM_THREADS", "0")    # llvmpipe rasterises in the calling thread
@@ -21,6 +22,18 @@ import numpy as np
 
 from .mjcf import JOINTED, LOOSE, SLIPPING, STATIC, TABLE_TOP, default_classes
 from .robot import COMMAND_HIGH, COMMAND_LOW, FINGER_OPEN, HOME, NU, robot_actuators, robot_body
+
+def load_triton_before_gl() -> None:
+    """Load triton, if it is installed, before the process's first GL context. Mesa's software
+    renderer (llvmpipe: MUJOCO_GL=egl on a machine without a GPU) links LLVM, and triton, which torch
+    imports on first use of many of its parts (a learned policy's flow in the same process, lerobot's
+    models), bundles an LLVM of its own: loaded after a GL context, triton's library crashes the
+    process (SIGSEGV in its import); loaded before, both work (tests/agents/test_sim.py)."""
+    import importlib.util
+
+    if "triton" not in sys.modules and importlib.util.find_spec("triton") is not None:
+        import triton  # noqa: F401
+
 
 # The world is ticked at 200 Hz, so the step must divide 5 ms; 2.5 ms is the closest to the 2 ms
 # the notes verified (5 ms let the handle slip), and grasping was re-verified with it (tests).
@@ -272,6 +285,7 @@ class GantrySim:
     def _renderer(self, height: int, width: int, segmentation: bool):
         key = (height, width, segmentation)
         if key not in self._renderers:
+            load_triton_before_gl()
             r = mujoco.Renderer(self.model, height, width)
             if segmentation:
                 r.enable_segmentation_rendering()
