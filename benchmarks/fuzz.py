@@ -8,6 +8,11 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
     wire-control  wire.decode_control
     coordinator   the zenoh coordinator's report handling (Coordinator._handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
+    insider       the coordinator's receiving path (signature check, then _handle) fed statuses and
+                  reports an insider holding the secret forges (InsiderTarget)
+    specs         a worker daemon's prepare (runs.DaemonRuns) fed hostile run specs (SpecTarget)
+    spawn-signal  a worker daemon's spawn and signal (runs.DaemonRuns, a run prepared, real
+                  worker processes, a sentinel process in no run) fed hostile requests (DaemonOpsTarget)
     ir            IR.from_json, then Pipeline.from_ir (flow types only from a fixed set, plus
                   names of callables that must be refused as no Flow: an IR is code by design)
     log           read_log (strict and salvage), RunLog.trace(), run_info (log info), every
@@ -19,7 +24,7 @@ lengths, and forged extension types 1–6 whose contents are hostile (dataclass 
 ``os:system``, ``builtins:eval``, ``subprocess:Popen``..., with arguments that would create a
 marker file; dtypes ``O``; shapes and buffer indexes out of range).
 
-For every input three things are checked:
+For every input these things are checked:
 
 - no crash: the entry point returns or raises its documented error (CodecError, WireError,
   IRError, LogError); anything else, or an input that takes longer than HANG_S, is a crash,
@@ -31,7 +36,11 @@ For every input three things are checked:
 - no forged record accepted (coordinator): nothing the genuine run recorded is changed or
   displaced, and every record a fuzzed report adds is one that the node of the report's key may
   make about itself (its own output ports, an event id and a tick not recorded yet, a value of
-  the codec's types): what a run's own process could send anyway. Those are counted apart.
+  the codec's types): what a run's own process could send anyway. Those are counted apart;
+- no process started or signalled unasked (spawn-signal): the guard permits a legitimate
+  request's own worker start or signal only; a sentinel process and the run's processes no
+  legitimate signal went to must outlive every input (else a crash: Breach). The guard stops
+  (Blocked) every signal and process start it does not permit.
 
     python benchmarks/fuzz.py --seconds 25 --seed 1           # every target, 25 s each
     python benchmarks/fuzz.py --inputs 500 --targets codec,ir  # a fixed number of inputs
@@ -123,6 +132,11 @@ class Hang(BaseException):
     """An input ran past HANG_S (a BaseException, so no `except Exception` under test eats it)."""
 
 
+class Blocked(BaseException):
+    """The guard stopped a signal or a process start an input was not permitted (a spawn-signal
+    input that signalled pid -1 would otherwise reach every process of the user)."""
+
+
 #: audit events that mean code ran or the outside world changed, whatever their arguments
 _FORBIDDEN = {"exec", "compile", "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.fork", "os.forkpty",
               "os.kill", "os.killpg", "subprocess.Popen", "pty.spawn", "os.remove", "os.rename", "os.rmdir",
@@ -131,6 +145,8 @@ _FORBIDDEN = {"exec", "compile", "os.system", "os.exec", "os.posix_spawn", "os.s
               "pickle.find_class", "marshal.loads", "marshal.load", "code.__new__", "function.__new__",
               "builtins.input", "webbrowser.open", "urllib.Request", "socket.connect", "socket.bind",
               "socket.__new__", "socket.getaddrinfo", "import"}
+#: of those, the ones the guard also stops (it raises Blocked in the call that would make them)
+_BLOCKED = {"os.kill", "os.killpg", "os.system", "subprocess.Popen"}
 _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
 
 
@@ -164,6 +180,8 @@ class Guard:
         self.armed = False  # nothing below may re-enter the hook
         self.flagged.append(f"{event} {args!r:.200}")
         self.armed = True
+        if event in _BLOCKED:
+            raise Blocked(f"{event} {args!r:.200}")
 
     @staticmethod
     def _alarm(signum, frame) -> None:
@@ -989,13 +1007,14 @@ class DaemonOpsTarget(Target):
     The daemon has prepared run ``r1`` (a coordinator's liveliness token is up on the same
     session) with one node of the genuine pipeline, and runs one real worker process of it
     (spawned once, unarmed, as a coordinator does). Beside it runs a sentinel process the target
-    started (``sleep``), in no run. Requests are made from the genuine ones with one to three
+    started (Python, sleeping until this process ends), in no run. Requests are made from the genuine ones with one to three
     fields hostile: other runs' ids, nodes not prepared or not strings, modes with non-ASCII
     digits or flags of Python's own, signing keys of the wrong length (whitespace that
     ``bytes.fromhex`` skips), pids of the daemon itself, of pid 1, 0, -1 (every process), of the
     sentinel and of process groups, huge and negative numbers, signals outside SIGUSR1, SIGTERM
     and SIGKILL (0, SIGSTOP, floats, names), extra ``env``, ``path`` and ``argv`` entries, then
-    often mutated further (deep nests, forged extension values, bytes).
+    often mutated further (deep nests, forged extension values, bytes). Among them go
+    LEGITIMATE_REQUESTS legitimate ones with such extra entries (each may start a real worker).
 
     Allowed: WireError. The guard permits, for a request that is legitimate by the protocol (the
     run's id; a prepared node with fewer than two live processes; ``[]`` or ``--join``/``--fresh``
