@@ -87,7 +87,8 @@ from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
+    RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
+    decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -1004,17 +1005,17 @@ class DaemonOpsTarget(Target):
     ``signal`` (runs.DaemonRuns, made by its constructor on a real Zenoh session): the control
     message's bytes through the daemon's decoder (wire.decode_control), then the op.
 
-    The daemon has prepared run ``r1`` (a coordinator's liveliness token is up on the same
-    session) with one node of the genuine pipeline, and runs one real worker process of it
-    (spawned once, unarmed, as a coordinator does). Beside it runs a sentinel process the target
-    started (Python, sleeping until this process ends), in no run. Requests are made from the genuine ones with one to three
-    fields hostile: other runs' ids, nodes not prepared or not strings, modes with non-ASCII
-    digits or flags of Python's own, signing keys of the wrong length (whitespace that
+    The daemon has prepared run ``r1`` (a coordinator's liveliness token is up on the same session)
+    with one node of the genuine pipeline, and runs one real worker process of it (spawned once,
+    unarmed, as a coordinator does). Beside it runs a sentinel process the target started (Python,
+    sleeping until this process ends), in no run. Requests are made from the genuine ones with one
+    to three fields hostile: other runs' ids, nodes not prepared or not strings, modes with
+    non-ASCII digits or flags of Python's own, signing keys of the wrong length (whitespace that
     ``bytes.fromhex`` skips), pids of the daemon itself, of pid 1, 0, -1 (every process), of the
-    sentinel and of process groups, huge and negative numbers, signals outside SIGUSR1, SIGTERM
-    and SIGKILL (0, SIGSTOP, floats, names), extra ``env``, ``path`` and ``argv`` entries, then
-    often mutated further (deep nests, forged extension values, bytes). Among them go
-    LEGITIMATE_REQUESTS legitimate ones with such extra entries (each may start a real worker).
+    sentinel and of process groups, huge and negative numbers, signals outside SIGUSR1, SIGTERM and
+    SIGKILL (0, SIGSTOP, floats, names), extra ``env``, ``path`` and ``argv`` entries, then often
+    mutated further (deep nests, forged extension values, bytes). Among them go LEGITIMATE_REQUESTS
+    legitimate ones with such extra entries (each may start a real worker).
 
     Allowed: WireError. The guard permits, for a request that is legitimate by the protocol (the
     run's id; a prepared node with fewer than two live processes; ``[]`` or ``--join``/``--fresh``
@@ -1043,9 +1044,9 @@ class DaemonOpsTarget(Target):
         hub = f"tcp/127.0.0.1:{_free_port()}"  # the run's workers link to this session, and wait there
         self.session = _daemon_session((hub,))
         # in no run and no session of the daemon's; it ends when this process does, even SIGKILLed
-        self.sentinel = subprocess.Popen(
-            [sys.executable, "-I", "-S", "-c", f"import os, time\nwhile os.getppid() == {os.getpid()}: time.sleep(0.2)"],
-            start_new_session=True, stdin=subprocess.DEVNULL)
+        sleep = f"import os, time\nwhile os.getppid() == {os.getpid()}: time.sleep(0.2)"
+        self.sentinel = subprocess.Popen([sys.executable, "-I", "-S", "-c", sleep], start_new_session=True,
+                                         stdin=subprocess.DEVNULL)
         paths = [str(ROOT)]
         self.runs = runs.DaemonRuns(self.session, "fuzz", namespace, listen=(), access=None,
                                     allowed=lambda module: daemon.module_allowed(module, [], paths),
@@ -1156,7 +1157,7 @@ class DaemonOpsTarget(Target):
     def _legitimate_spawn(self, args: dict) -> list[str] | None:
         """The argv of the worker a legitimate spawn starts; None for any other request."""
         run, node, mode, key = self.runs.run, args.get("node"), args.get("mode"), args.get("key", "")
-        if run is None or args.get("run") != self.RUN or type(args.get("run")) is not str \
+        if run is None or args.get("run") != self.RUN \
                 or type(node) is not str or node not in run.nodes:
             return None
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
@@ -1172,7 +1173,7 @@ class DaemonOpsTarget(Target):
 
     def _legitimate_signal(self, args: dict) -> tuple[int, int] | None:
         run, pid, sig = self.runs.run, args.get("pid"), args.get("signal")
-        if run is None or args.get("run") != self.RUN or type(args.get("run")) is not str:
+        if run is None or args.get("run") != self.RUN:
             return None
         if type(pid) is int and pid in run.processes and type(sig) is int and sig in self.signals:
             return pid, sig
@@ -1214,7 +1215,8 @@ class DaemonOpsTarget(Target):
     def _breaches(self, op: str, args: dict, legitimate: bool, live: dict, before: set) -> list[str]:
         problems = []
         if self.sentinel.poll() is not None:
-            problems.append(f"the sentinel process (pid {self.sentinel.pid}, in no run) ended: {self.sentinel.returncode}")
+            problems.append(f"the sentinel process (pid {self.sentinel.pid}, in no run) ended "
+                            f"({self.sentinel.returncode})")
         if op == "signal" and legitimate:
             self.signalled.add(args["pid"])  # it may end now, or later (its signal is on its way)
         for pid, proc in live.items():

@@ -166,7 +166,8 @@ class DaemonRuns:
         if type(node) is not str or node not in run.nodes:
             raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
-                               and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
+                               and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
+                                       for x in mode[1:]))):  # ASCII: "²" is a digit to isdigit, not to int
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
         key = key_of_text(args["key"]) if "key" in args else None
         if "key" in args and key is None:
