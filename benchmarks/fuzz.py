@@ -8,6 +8,11 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
     wire-control  wire.decode_control
     coordinator   the zenoh coordinator's report handling (Coordinator._handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
+    insider       the coordinator's receiving path (signature check, then _handle) fed statuses and
+                  reports an insider holding the secret forges (InsiderTarget)
+    specs         a worker daemon's prepare (runs.DaemonRuns) fed hostile run specs (SpecTarget)
+    spawn-signal  a worker daemon's spawn and signal (runs.DaemonRuns, a run prepared, real
+                  worker processes, a sentinel process in no run) fed hostile requests (DaemonOpsTarget)
     ir            IR.from_json, then Pipeline.from_ir (flow types only from a fixed set, plus
                   names of callables that must be refused as no Flow: an IR is code by design)
     log           read_log (strict and salvage), RunLog.trace(), run_info (log info), every
@@ -19,7 +24,7 @@ lengths, and forged extension types 1–6 whose contents are hostile (dataclass 
 ``os:system``, ``builtins:eval``, ``subprocess:Popen``..., with arguments that would create a
 marker file; dtypes ``O``; shapes and buffer indexes out of range).
 
-For every input three things are checked:
+For every input these things are checked:
 
 - no crash: the entry point returns or raises its documented error (CodecError, WireError,
   IRError, LogError); anything else, or an input that takes longer than HANG_S, is a crash,
@@ -31,7 +36,11 @@ For every input three things are checked:
 - no forged record accepted (coordinator): nothing the genuine run recorded is changed or
   displaced, and every record a fuzzed report adds is one that the node of the report's key may
   make about itself (its own output ports, an event id and a tick not recorded yet, a value of
-  the codec's types): what a run's own process could send anyway. Those are counted apart.
+  the codec's types): what a run's own process could send anyway. Those are counted apart;
+- no process started or signalled unasked (spawn-signal): the guard permits a legitimate
+  request's own worker start or signal only; a sentinel process and the run's processes no
+  legitimate signal went to must outlive every input (else a crash: Breach). The guard stops
+  (Blocked) every signal and process start it does not permit.
 
     python benchmarks/fuzz.py --seconds 25 --seed 1           # every target, 25 s each
     python benchmarks/fuzz.py --inputs 500 --targets codec,ir  # a fixed number of inputs
@@ -78,7 +87,8 @@ from retriever.backends.base import Session  # noqa: E402
 from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    RELIABLE, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress, decode_report, decode_status)
+    RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
+    decode_report, decode_status)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -123,6 +133,11 @@ class Hang(BaseException):
     """An input ran past HANG_S (a BaseException, so no `except Exception` under test eats it)."""
 
 
+class Blocked(BaseException):
+    """The guard stopped a signal or a process start an input was not permitted (a spawn-signal
+    input that signalled pid -1 would otherwise reach every process of the user)."""
+
+
 #: audit events that mean code ran or the outside world changed, whatever their arguments
 _FORBIDDEN = {"exec", "compile", "os.system", "os.exec", "os.posix_spawn", "os.spawn", "os.fork", "os.forkpty",
               "os.kill", "os.killpg", "subprocess.Popen", "pty.spawn", "os.remove", "os.rename", "os.rmdir",
@@ -131,6 +146,8 @@ _FORBIDDEN = {"exec", "compile", "os.system", "os.exec", "os.posix_spawn", "os.s
               "pickle.find_class", "marshal.loads", "marshal.load", "code.__new__", "function.__new__",
               "builtins.input", "webbrowser.open", "urllib.Request", "socket.connect", "socket.bind",
               "socket.__new__", "socket.getaddrinfo", "import"}
+#: of those, the ones the guard also stops (it raises Blocked in the call that would make them)
+_BLOCKED = {"os.kill", "os.killpg", "os.system", "subprocess.Popen"}
 _WRITE_FLAGS = os.O_WRONLY | os.O_RDWR | os.O_CREAT | os.O_TRUNC | os.O_APPEND
 
 
@@ -141,12 +158,13 @@ class Guard:
         self.marker = marker
         self.armed = False
         self.may_write: set[str] = set()
+        self.may: Callable[[str, tuple], bool] | None = None  # audit events the input may cause
         self.flagged: list[str] = []
         sys.addaudithook(self._hook)
         signal.signal(signal.SIGALRM, self._alarm)
 
     def _hook(self, event: str, args: tuple) -> None:
-        if not self.armed:
+        if not self.armed or (self.may is not None and self.may(event, args)):
             return
         if event == "import":
             if args[0] in sys.modules:
@@ -163,14 +181,18 @@ class Guard:
         self.armed = False  # nothing below may re-enter the hook
         self.flagged.append(f"{event} {args!r:.200}")
         self.armed = True
+        if event in _BLOCKED:
+            raise Blocked(f"{event} {args!r:.200}")
 
     @staticmethod
     def _alarm(signum, frame) -> None:
         raise Hang(f"no answer within {HANG_S} s")
 
-    def call(self, fn: Callable[[], Any], may_write: tuple[str, ...] = ()) -> tuple[Any, BaseException | None, list[str]]:
-        """``fn()`` armed and timed: its result, what it raised, and the audit events it caused."""
-        self.flagged, self.may_write = [], set(may_write)
+    def call(self, fn: Callable[[], Any], may_write: tuple[str, ...] = (),
+             may: Callable[[str, tuple], bool] | None = None) -> tuple[Any, BaseException | None, list[str]]:
+        """``fn()`` armed and timed: its result, what it raised, and the audit events it caused
+        (but those ``may(event, args)`` permits)."""
+        self.flagged, self.may_write, self.may = [], set(may_write), may
         result = error = None
         signal.setitimer(signal.ITIMER_REAL, HANG_S)
         self.armed = True
@@ -508,6 +530,13 @@ class Target:
 
     def tolerated(self, error: BaseException) -> bool:
         return isinstance(error, self.allowed)
+
+    def permits(self, prepared: Any) -> Callable[[str, tuple], bool] | None:
+        """Which audit events (name, arguments) feeding ``prepared`` may cause: None, none."""
+        return None
+
+    def close(self) -> None:
+        """Give back what the target holds (a Zenoh session, processes)."""
 
 
 def _values(genuine: Genuine) -> list[Any]:
@@ -895,17 +924,20 @@ class SpecTarget(Target):
         for name in ("venv", "test", "tests"):
             (folder / name).mkdir(parents=True)  # namespace packages: never admitted
         paths = [str(ROOT), str(folder)]
-        runs = self.runs = DaemonRuns.__new__(DaemonRuns)
-        runs.name, runs.keys, runs.run, runs.paths, runs.code_mismatch = "fuzz", KeySpace(NAMESPACE), None, (), "refuse"
-        runs.access, runs.listen, runs.tls, runs.lease, runs._coordinators = None, (), None, None, 0
-        runs.allowed = lambda module: daemon.module_allowed(module, [], paths)
-        runs.refusal = lambda module: daemon.refusal(module, [], paths)
+        self.session = _daemon_session()  # no coordinator's liveliness token on it
+        self.runs = DaemonRuns(self.session, "fuzz", NAMESPACE, listen=(), access=None,
+                               allowed=lambda module: daemon.module_allowed(module, [], paths),
+                               refusal=lambda module: daemon.refusal(module, [], paths), paths=())
         ir = self.genuine.pipeline.build_ir().doc
         self.base = {"ir": ir, "namespace": NAMESPACE, "hub": "tcp/127.0.0.1:7447", "startup_timeout": 60.0,
                      "argv": ["retriever-fuzz", "--clear", str(self.workdir)], "python_path": [str(ROOT)],
                      "zids": {n["id"]: f"{i + 1:x}" * 4 for i, n in enumerate(ir["nodes"])}, "hub_zid": "abc",
                      "virtual_time": False, "main_file": None}
         self._seeds = [msgpack.packb({"run": "r1", "spec": self.base, "nodes": [n["id"] for n in ir["nodes"]]})]
+
+    def close(self) -> None:
+        self.runs.close()
+        self.session.close()
 
     def seeds(self) -> list[bytes]:
         return self._seeds
@@ -939,6 +971,261 @@ class SpecTarget(Target):
         if "argv" in spec:
             return 1  # the network's argv reached a worker's spec
         return 0
+
+
+class Breach(Exception):
+    """What a daemon op did to the world that it must not: a process outside the run signalled,
+    one of the run's processes gone without a legitimate signal, a process not asked for."""
+
+
+def _daemon_session(listen: tuple[str, ...] = ()):
+    """A real Zenoh session, local only (no scouting, no shared memory: nothing left in /dev/shm)."""
+    import zenoh
+
+    from retriever.backends.zenoh.hub import peer_config
+
+    return zenoh.open(peer_config(listen=list(listen), shared_memory=False))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+#: legitimate spawns and signals the spawn-signal target sends among its hostile ones (each may
+#: start a real worker process)
+LEGITIMATE_REQUESTS = 12
+
+
+class DaemonOpsTarget(Target):
+    """What an insider (a session holding the secret) asks a worker daemon to ``spawn`` and
+    ``signal`` (runs.DaemonRuns, made by its constructor on a real Zenoh session): the control
+    message's bytes through the daemon's decoder (wire.decode_control), then the op.
+
+    The daemon has prepared run ``r1`` (a coordinator's liveliness token is up on the same session)
+    with one node of the genuine pipeline, and runs one real worker process of it (spawned once,
+    unarmed, as a coordinator does). Beside it runs a sentinel process the target started (Python,
+    sleeping until this process ends), in no run. Requests are made from the genuine ones with one
+    to three fields hostile: other runs' ids, nodes not prepared or not strings, modes with
+    non-ASCII digits or flags of Python's own, signing keys of the wrong length (whitespace that
+    ``bytes.fromhex`` skips), pids of the daemon itself, of pid 1, 0, -1 (every process), of the
+    sentinel and of process groups, huge and negative numbers, signals outside SIGUSR1, SIGTERM and
+    SIGKILL (0, SIGSTOP, floats, names), extra ``env``, ``path`` and ``argv`` entries, then often
+    mutated further (deep nests, forged extension values, bytes). Among them go LEGITIMATE_REQUESTS
+    legitimate ones with such extra entries (each may start a real worker).
+
+    Allowed: WireError. The guard permits, for a request that is legitimate by the protocol (the
+    run's id; a prepared node with fewer than two live processes; ``[]`` or ``--join``/``--fresh``
+    with ASCII digits; a key of 32 bytes as 64 hex digits), only the start of that node's worker
+    with exactly that argv and an environment of no more than the flow environment and that key;
+    for a legitimate signal only ``os.kill`` of that pid with that signal. Anything else the
+    guard flags (a process started, a process signalled, code run). After every input the
+    sentinel must live, and so must every process of the run no legitimate signal was sent to."""
+
+    name = "spawn-signal"
+    allowed = (WireError,)
+    RUN = "r1"
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        import subprocess
+
+        from retriever.backends.zenoh import daemon, runs
+        from retriever.backends.zenoh.host import WORKER_MODULE
+        from retriever.backends.zenoh.origin import KEY_BYTES, KEY_ENV
+
+        self.worker_module, self.key_env, self.key_bytes = WORKER_MODULE, KEY_ENV, KEY_BYTES
+        self.signals, self.flow_env = runs.SIGNALS, runs.flow_environment
+        self.max_per_node = runs.MAX_PROCESSES_PER_NODE
+        namespace = f"{NAMESPACE}-runs-{os.getpid()}"
+        hub = f"tcp/127.0.0.1:{_free_port()}"  # the run's workers link to this session, and wait there
+        self.session = _daemon_session((hub,))
+        # in no run and no session of the daemon's; it ends when this process does, even SIGKILLed
+        sleep = f"import os, time\nwhile os.getppid() == {os.getpid()}: time.sleep(0.2)"
+        self.sentinel = subprocess.Popen([sys.executable, "-I", "-S", "-c", sleep], start_new_session=True,
+                                         stdin=subprocess.DEVNULL)
+        paths = [str(ROOT)]
+        self.runs = runs.DaemonRuns(self.session, "fuzz", namespace, listen=(), access=None,
+                                    allowed=lambda module: daemon.module_allowed(module, [], paths),
+                                    refusal=lambda module: daemon.refusal(module, [], paths), paths=(), lease=None)
+        # the coordinator's liveliness token, without which the daemon prepares nothing
+        self.token = self.session.liveliness().declare_token(KeySpace(namespace).deployment())
+        ir = self.genuine.pipeline.build_ir().doc
+        self.ir_nodes = [n["id"] for n in ir["nodes"]]
+        self.node = self.ir_nodes[0]
+        spec = {"ir": ir, "namespace": namespace, "hub": hub, "startup_timeout": 86400.0}
+        for _ in range(100):  # the token's own subscriber sees it on a Zenoh thread
+            try:
+                self.runs.prepare({"run": self.RUN, "spec": spec, "nodes": [self.node]})
+                break
+            except WireError as e:
+                if "liveliness token" not in str(e):
+                    raise
+                time.sleep(0.05)
+        else:
+            raise SystemExit("the daemon never saw the coordinator's liveliness token")
+        self.key = new_key().hex()
+        self.spawn_seed = {"run": self.RUN, "node": self.node, "mode": [], "key": self.key}
+        self._seeds = [WireEncoder().control("spawn", self.spawn_seed)]
+        self.signalled: set[int] = set()  # the run's processes a legitimate request signalled
+        self.legitimate_left = LEGITIMATE_REQUESTS
+
+    def close(self) -> None:
+        self.runs.close()  # ends the run: its processes get SIGTERM, then SIGKILL
+        self.token.undeclare()
+        self.session.close()
+        self.sentinel.kill()
+        self.sentinel.wait()
+
+    def seeds(self) -> list[bytes]:
+        return self._seeds
+
+    # -- inputs ---------------------------------------------------------------------------------
+    def _pids(self) -> list[int]:
+        run = self.runs.run
+        return sorted(run.processes) if run else []
+
+    def _hostile(self, field: str) -> Any:
+        rng, pids = self.m.rng, self._pids() or [2**22]
+        pid = rng.choice(pids)
+        marker = str(self.m.marker)
+        hostile = {
+            "run": ["r0", "r2", "", None, 1, ["r1"], {"run": "r1"}, "r1\x00", "R1", "r1 ", b"r1", "*", "r1/../r0"],
+            "node": [*(n for n in self.ir_nodes if n != self.node), "", None, 7, [self.node], {self.node: 1},
+                     f"{self.node}\x00", "../../../bin/sh", "os:system", "-c", "--help", self.node.upper(),
+                     "x" * 100_000, b"counter"],
+            "mode": [["--join"], ["--fresh", "-1", "5"], ["--fresh", "1e9", "2"], ["--join", "²", "3"],
+                     ["--join", "١٢٣", "4"], ["--fresh", "𝟙", "1"], ["--fresh", "9" * 20, "1"], ["--join", 1, 2],
+                     ["--inspect", "1", "2"], ["-c", f"open({marker!r}, 'w')", "x"], "--join 1 2", None,
+                     {"0": "--join"}, ["--join", "1", "2", "--extra"], ["--join", " 1", "2"],
+                     ["--fresh", "0x10", "1"], ["-m", "venv", "--clear"], ["--join", "1\n", "2"], [[]]],
+            "key": ["ab" * (self.key_bytes - 1), "ab" * (self.key_bytes + 1), "zz" * self.key_bytes,
+                    "ab" * (self.key_bytes - 1) + "  ", " " + "ab" * (self.key_bytes - 1) + " ",
+                    "ab " * (2 * self.key_bytes // 3) + "ab"[: 2 * self.key_bytes % 3],
+                    bytes(self.key_bytes), bytes(2 * self.key_bytes), None, 0, 2**256 % 2**64, "", "é" * 64,
+                    self.key[:-1] + "\n", ["ab"] * self.key_bytes, {"hex": self.key}],
+            "pid": [os.getpid(), 1, 0, -1, self.sentinel.pid, -self.sentinel.pid, -pid, os.getppid(), 2**31,
+                    2**31 - 1, 2**63 - 1, 2**64 - 1, -2**63, float(pid), True, str(pid), [pid], {"pid": pid},
+                    pid + 1, None],
+            "signal": [0, 2, 19, 17, 18, 64, 65, -9, 9.0, 15.0, "SIGKILL", "9", True, None, 2**63, [9], 10**30 % 2**64],
+        }
+        return rng.choice(hostile[field])
+
+    def make(self) -> bytes:
+        rng = self.m.rng
+        if rng.random() < 0.5:
+            op = "spawn"
+            args: dict = {"run": self.RUN, "node": self.node,
+                          "mode": rng.choice(([], ["--join", "12", "34"], ["--fresh", "0", "9" * 19])),
+                          "key": rng.choice((self.key, self.key.upper()))}
+            fields = ["run", "node", "mode", "key"]
+        else:
+            op = "signal"
+            args = {"run": self.RUN, "pid": rng.choice(self._pids() or [0]), "signal": int(rng.choice(self.signals))}
+            fields = ["run", "pid", "signal"]
+        legitimate = self.legitimate_left > 0 and rng.random() < 0.05
+        if legitimate:  # a request the daemon grants, with entries it must ignore (a real process each: few)
+            self.legitimate_left -= 1
+        else:
+            for field in rng.sample(fields, rng.choice((1, 1, 1, 2, 3))):
+                args[field] = self._hostile(field)
+        if legitimate or rng.random() < 0.2:  # what a daemon must ignore, not use
+            extra = rng.choice((("env", {"LD_PRELOAD": str(self.m.marker), "PYTHONSTARTUP": str(self.m.marker)}),
+                                ("path", str(self.m.marker)), ("argv", ["-c", "import os"]), ("executable", "/bin/sh"),
+                                ("cwd", "/"), ("python_path", [str(self.workdir)]), ("spec", "/etc/passwd")))
+            args[extra[0]] = extra[1]
+        if legitimate:
+            return pack_tree([WIRE_VERSION, op, args])
+        if op == "spawn" and rng.random() < 0.1:
+            del args[rng.choice(fields)]
+        if rng.random() < 0.3:
+            args = self.m.tree(args)
+        data = pack_tree([WIRE_VERSION, op, args])
+        return self.m.bytes(data) if rng.random() < 0.1 else data
+
+    def prepare(self, data: bytes) -> Any:
+        try:
+            op, args = decode_control(data)
+        except WireError:
+            return data, None, None
+        return data, op, args
+
+    # -- what a request may do ----------------------------------------------------------------------
+    def _legitimate_spawn(self, args: dict) -> list[str] | None:
+        """The argv of the worker a legitimate spawn starts; None for any other request."""
+        run, node, mode, key = self.runs.run, args.get("node"), args.get("mode"), args.get("key", "")
+        if run is None or args.get("run") != self.RUN \
+                or type(node) is not str or node not in run.nodes:
+            return None
+        if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
+                               and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
+                                       for x in mode[1:]))):
+            return None
+        if "key" in args and not (type(key) is str and len(key) == 2 * self.key_bytes
+                                  and all(c in "0123456789abcdefABCDEF" for c in key)):
+            return None
+        if sum(1 for n, p in run.processes.values() if n == node and p.poll() is None) >= self.max_per_node:
+            return None
+        return [sys.executable, "-m", self.worker_module, str(run.folder / "spec.json"), node, *mode]
+
+    def _legitimate_signal(self, args: dict) -> tuple[int, int] | None:
+        run, pid, sig = self.runs.run, args.get("pid"), args.get("signal")
+        if run is None or args.get("run") != self.RUN:
+            return None
+        if type(pid) is int and pid in run.processes and type(sig) is int and sig in self.signals:
+            return pid, sig
+        return None
+
+    def permits(self, prepared: Any) -> Callable[[str, tuple], bool] | None:
+        _, op, args = prepared
+        if op == "spawn":
+            argv = self._legitimate_spawn(args)
+            if argv is None:
+                return None
+            key = args["key"].lower() if "key" in args else None
+            env = {**self.flow_env(os.environ), **({self.key_env: key} if key else {})}
+            return lambda event, a: ((event == "subprocess.Popen" and a[1] == argv and a[3] == env)
+                                     or (event == "open" and a[0] == os.devnull))  # its stdin
+        if op == "signal":
+            legitimate = self._legitimate_signal(args)
+            return None if legitimate is None else lambda event, a: event == "os.kill" and tuple(a) == legitimate
+        return None
+
+    def feed(self, prepared: Any) -> int:
+        data, op, args = prepared
+        if op is None:
+            decode_control(data)  # raises what the daemon's decoder raises
+        live = {pid: proc for pid, (_, proc) in self.runs.run.processes.items() if proc.poll() is None}
+        before = set(self.runs.run.processes)
+        legitimate = self.permits(prepared) is not None
+        try:
+            handler = self.runs.ops.get(op) if op in ("spawn", "signal") else None
+            if handler is None:
+                raise WireError(f"the fuzzed op {op!r:.20} is not spawn or signal")
+            handler(args)
+        finally:
+            problems = self._breaches(op, args, legitimate, live, before)
+            if problems:
+                raise Breach("; ".join(problems))
+        return 0
+
+    def _breaches(self, op: str, args: dict, legitimate: bool, live: dict, before: set) -> list[str]:
+        problems = []
+        if self.sentinel.poll() is not None:
+            problems.append(f"the sentinel process (pid {self.sentinel.pid}, in no run) ended "
+                            f"({self.sentinel.returncode})")
+        if op == "signal" and legitimate:
+            self.signalled.add(args["pid"])  # it may end now, or later (its signal is on its way)
+        for pid, proc in live.items():
+            if pid not in self.signalled and proc.poll() is not None:
+                problems.append(f"the run's process {pid} ended without a legitimate signal to it")
+        started = set(self.runs.run.processes) - before
+        if started and not (op == "spawn" and legitimate and len(started) == 1):
+            problems.append(f"processes started by a request that was not a legitimate spawn: {sorted(started)}")
+        return problems
 
 
 class IRTarget(Target):
@@ -1155,7 +1442,7 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "insider", "specs", "ir", "log"]
+                "insider", "specs", "spawn-signal", "ir", "log"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -1168,6 +1455,8 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return InsiderTarget(*args)
     if name == "specs":
         return SpecTarget(*args)
+    if name == "spawn-signal":
+        return DaemonOpsTarget(*args)
     if name == "ir":
         return IRTarget(*args)
     if name == "log":
@@ -1229,7 +1518,7 @@ def fuzz_target(target: Target, guard: Guard, *, seconds: float | None = None, i
         data = target.make()
         prepared = target.prepare(data)
         began = time.perf_counter()
-        forged, error, flagged = guard.call(lambda: target.feed(prepared), target.may_write)
+        forged, error, flagged = guard.call(lambda: target.feed(prepared), target.may_write, target.permits(prepared))
         took = time.perf_counter() - began
         outcome.inputs += 1
         outcome.slowest_s = max(outcome.slowest_s, took)
@@ -1286,14 +1575,18 @@ class Campaign:
         self.marker = self.workdir / "pwned"
         self.genuine = genuine_run(self.workdir)
         self.guard = Guard(self.marker)
+        self.targets: list[Target] = []
 
     def target(self, name: str) -> Target:
         mutator = Mutator(random.Random(f"{self.seed}:{name}"), self.marker)
         workdir = self.workdir / name
         workdir.mkdir(exist_ok=True)
-        return build_target(name, mutator, self.genuine, workdir)
+        self.targets.append(build_target(name, mutator, self.genuine, workdir))
+        return self.targets[-1]
 
     def close(self) -> None:
+        for target in self.targets:
+            target.close()
         shutil.rmtree(self.workdir, ignore_errors=True)
 
 

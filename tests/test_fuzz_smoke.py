@@ -37,3 +37,17 @@ def test_the_guard_sees_code_run_and_the_marker_file(campaign):
     assert error is None
     assert any(f.startswith("exec ") for f in flagged) and "marker file" in flagged[-1]
     assert not os.path.exists(campaign.marker)
+
+
+def test_the_guard_stops_a_signal_and_a_process_start_it_does_not_permit(campaign):
+    import os
+    import subprocess
+
+    target = campaign.target("spawn-signal")
+    sentinel = target.sentinel.pid
+    for call in (lambda: os.kill(sentinel, 9), lambda: subprocess.Popen(["true"])):
+        _, error, flagged = campaign.guard.call(call)
+        assert isinstance(error, fuzz.Blocked) and flagged
+    _, error, flagged = campaign.guard.call(lambda: os.kill(sentinel, 0), may=lambda event, args: args == (sentinel, 0))
+    assert error is None and not flagged
+    assert target.sentinel.poll() is None

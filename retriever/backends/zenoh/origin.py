@@ -46,9 +46,10 @@ def key_of_text(text: object) -> bytes | None:
     if type(text) is not str or len(text) != 2 * KEY_BYTES:
         return None
     try:
-        return bytes.fromhex(text)
+        key = bytes.fromhex(text)
     except ValueError:
         return None
+    return key if len(key) == KEY_BYTES else None  # fromhex skips whitespace: fewer bytes
 
 
 def take_key_from_environment() -> bytes | None:

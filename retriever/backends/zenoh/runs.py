@@ -163,10 +163,11 @@ class DaemonRuns:
     def spawn(self, args: dict) -> dict:
         run = self._run_of(args)
         node, mode = args.get("node"), args.get("mode")
-        if node not in run.nodes:
+        if type(node) is not str or node not in run.nodes:
             raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
         if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
-                               and all(type(x) is str and x.isdigit() and len(x) <= 19 for x in mode[1:]))):
+                               and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
+                                       for x in mode[1:]))):  # ASCII: "²" is a digit to isdigit, not to int
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
         key = key_of_text(args["key"]) if "key" in args else None
         if "key" in args and key is None:
@@ -196,7 +197,7 @@ class DaemonRuns:
     def signal(self, args: dict) -> dict:
         run = self._run_of(args)
         pid, sig = args.get("pid"), args.get("signal")
-        if pid not in run.processes or sig not in SIGNALS:
+        if type(pid) is not int or pid not in run.processes or type(sig) is not int or sig not in SIGNALS:
             raise WireError(f"signal {sig!r:.20} to pid {pid!r:.20}: not a process of run {run.id} or not a "
                             "signal a coordinator may send")
         proc = run.processes[pid][1]

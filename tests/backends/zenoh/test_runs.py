@@ -1,15 +1,29 @@
 """What a worker daemon does for a run's processes (runs.py) that the deploy tests cannot show
-at will: how a process's output reaches the coordinator. A real child process prints; the
-daemon's forwarder reads its pipe; what it would send is collected in place of the Zenoh put."""
+at will: how a process's output reaches the coordinator (a real child process prints; the
+daemon's forwarder reads its pipe; what it would send is collected in place of the Zenoh put),
+and what its spawn and signal ops refuse (a real DaemonRuns on a real Zenoh session, with a run
+prepared and a real worker process of it)."""
 
 from __future__ import annotations
 
+import signal
+import socket
 import subprocess
 import sys
 import threading
+import time
+from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+import zenoh
+
+from retriever.backends.zenoh import daemon
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns
+from retriever.backends.zenoh.wire import KeySpace, WireError
+from tests.log.log_flows import build_small
 
 BOUND_S = 30.0
 
@@ -71,3 +85,67 @@ def test_a_process_that_prints_nothing_sends_nothing():
     proc.wait(BOUND_S)
     thread.join(BOUND_S)
     assert sent == [] and not thread.is_alive()
+
+
+# -- spawn and signal ----------------------------------------------------------------------------
+ROOT = str(Path(__file__).resolve().parents[3])
+
+
+@pytest.fixture
+def prepared():
+    """A daemon's runs with run ``r1`` prepared for the first node of the log tests' pipeline:
+    ``(runs, node)``. Its workers link to the session's own endpoint (and wait there)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        hub = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    namespace = f"runs-test-{id(object())}"
+    with zenoh.open(peer_config(listen=[hub], shared_memory=False)) as session:
+        runs = DaemonRuns(session, "w", namespace, listen=(), access=None,
+                          allowed=lambda module: daemon.module_allowed(module, [], [ROOT]),
+                          refusal=lambda module: daemon.refusal(module, [], [ROOT]), paths=())
+        token = session.liveliness().declare_token(KeySpace(namespace).deployment())
+        ir = build_small().build_ir().doc
+        node = ir["nodes"][0]["id"]
+        spec = {"ir": ir, "namespace": namespace, "hub": hub, "startup_timeout": 600.0}
+        try:
+            give_up = time.monotonic() + 10.0
+            while True:  # the daemon's subscriber sees the token on a Zenoh thread
+                try:
+                    runs.prepare({"run": "r1", "spec": spec, "nodes": [node]})
+                    break
+                except WireError as e:
+                    if "liveliness token" not in str(e) or time.monotonic() > give_up:
+                        raise
+                    time.sleep(0.05)
+            yield runs, node
+        finally:
+            runs.close()
+            token.undeclare()
+
+
+@pytest.mark.parametrize("field, value", [
+    ("node", lambda node: [node]), ("node", lambda node: {node: 1}),
+    ("mode", lambda node: ["--join", "\u00b2", "3"]),  # isdigit, but no int: the worker would fail on it
+    ("mode", lambda node: ["--fresh", "\u0661\u0662", "3"]),
+    # 64 characters; bytes.fromhex skips the spaces: 31 bytes
+    ("key", lambda node: "ab" * (KEY_BYTES - 1) + "  "), ("key", lambda node: " " + "ab" * (KEY_BYTES - 1) + " "),
+])
+def test_a_spawn_refuses_what_is_no_prepared_node_mode_or_key_and_starts_nothing(prepared, field, value):
+    runs, node = prepared
+    args = {"run": "r1", "node": node, "mode": [], "key": "ab" * KEY_BYTES, field: value(node)}
+    with pytest.raises(WireError, match=field):
+        runs.spawn(args)
+    assert runs.run.processes == {}
+
+
+def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal(prepared):
+    runs, node = prepared
+    pid = runs.spawn({"run": "r1", "node": node, "mode": []})["pid"]
+    proc = runs.run.processes[pid][1]
+    for target, sig in ((float(pid), signal.SIGKILL), ([pid], signal.SIGKILL), ({pid: 1}, signal.SIGKILL),
+                        (pid, float(signal.SIGKILL)), (pid, [9]), (True, signal.SIGKILL), (pid, 0), (pid, 19)):
+        with pytest.raises(WireError, match="not a process of run r1 or not a signal"):
+            runs.signal({"run": "r1", "pid": target, "signal": int(sig) if type(sig) is signal.Signals else sig})
+    assert proc.poll() is None, "a refused signal reached the run's process"
+    runs.signal({"run": "r1", "pid": pid, "signal": int(signal.SIGKILL)})
+    assert proc.wait(timeout=10) == -signal.SIGKILL
