@@ -92,6 +92,14 @@ def _main(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks o
     _state["debug"] = debug
 
 
+def _skill_policy(path: Path | None) -> str | None:
+    """The demo's --skill-policy: 'scripted', or a checkpoint directory made absolute (the flow
+    may run in another process and directory)."""
+    if path is None or str(path) == "scripted":
+        return None if path is None else "scripted"
+    return str(path.absolute())
+
+
 def _fail(exc: BaseException) -> None:
     if _state["debug"]:
         traceback.print_exception(exc)
@@ -225,9 +233,10 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    skill_policy: Annotated[Optional[Path], typer.Option(metavar="PATH", help="Run the Pick skill with this "
-                                                         "policy (a TorchScript module, docs/learning-loop.md) "
-                                                         "instead of the scripted one.")] = None,
+    skill_policy: Annotated[Optional[Path], typer.Option(metavar="DIR", help="Run the Pick skill with this "
+                                                         "trained policy (a checkpoint directory of python -m "
+                                                         "agents.learn train, docs/learning.md) in its own flow, "
+                                                         "or 'scripted'.")] = None,
     log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
@@ -255,7 +264,7 @@ def demo(
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True,
-                             skill_policy=str(skill_policy.absolute()) if skill_policy else None)
+                             skill_policy=_skill_policy(skill_policy))
         config.check()
         if teleop is not None:
             from agents.flows import load_schedule
