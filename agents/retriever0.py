@@ -184,7 +184,7 @@ def _plug_policy(config: AgentConfig, commander, world, wrist, ctrl) -> None:
         actor = SkillActor(skill=LEARNED_SKILL, control_hz=config.control_hz, policy_hz=config.policy_hz,
                            wrist_size=list(config.wrist_size))
     else:
-        actor = LearnedSkill(config.skill_policy, skill=LEARNED_SKILL, control_hz=config.control_hz,
+        actor = LearnedSkill(path=config.skill_policy, skill=LEARNED_SKILL, control_hz=config.control_hz,
                              wrist_size=list(config.wrist_size))
     actor = actor.named(POLICY_NODE).configure(on_overrun="catch_up", latency=config.policy_latency) \
         @ Rate(config.policy_hz)

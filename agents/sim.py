@@ -11,6 +11,8 @@ The settings (render quality, contact bits, gains) are the ones measured on this
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")       # CPU rendering without a display
@@ -272,6 +274,7 @@ class GantrySim:
     def _renderer(self, height: int, width: int, segmentation: bool):
         key = (height, width, segmentation)
         if key not in self._renderers:
+            _load_triton_first()
             r = mujoco.Renderer(self.model, height, width)
             if segmentation:
                 r.enable_segmentation_rendering()
@@ -288,3 +291,13 @@ class GantrySim:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@functools.cache
+def _load_triton_first() -> None:
+    """Load triton's library (torch's kernel compiler, where installed) before the first
+    renderer: EGL's Mesa brings its own LLVM, and libtriton loaded after it crashes the process,
+    as a torch policy flow's ``setup()`` in the same process would (``torch.use_deterministic_
+    algorithms`` imports it)."""
+    if importlib.util.find_spec("triton") is not None:
+        import triton._C.libtriton  # noqa: F401

@@ -148,9 +148,6 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     if held_out & set(parse_seeds(train_seeds)):
         raise ValueError(f"--eval-seeds {eval_seeds} overlaps --train-seeds {train_seeds}: evaluate on held-out seeds")
     results = results or out
-    import torch  # noqa: F401  (before MuJoCo's renderer: torch's triton, imported after it, crashes the process)
-    if format == "lerobot":
-        from lerobot.datasets.lerobot_dataset import LeRobotDataset  # noqa: F401  (the same)
     started = time.perf_counter()
     collected = collect(episodes, train_seeds, out / "logs", force)
     collect_s = time.perf_counter() - started
