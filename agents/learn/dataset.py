@@ -66,8 +66,8 @@ def load_dataset(folder: str | Path, steps_nu: tuple[int, int] = (150, 5)) -> Sa
 
 
 def _lerobot_columns(folder: Path) -> dict[str, np.ndarray]:
-    """The numeric columns, as LeRobot loads them (its timestamp check included); the images
-    are not decoded (the MLP does not use them)."""
+    """The numeric columns, as LeRobot loads them (the images are not decoded: the MLP does not
+    use them)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     info = json.loads((folder / "meta" / "info.json").read_text())
     keys = [k for k in (STATE, SCENE, ACTION, "episode_index") if k in info.get("features", {})]

@@ -79,6 +79,18 @@ def test_the_dataset_is_the_export_of_the_policy_flows_ticks_and_loads_with_lero
         assert frame["task"] == "Pick(spice)"
 
 
+def test_the_npz_export_gives_the_training_the_same_samples(loop, tmp_path):
+    from agents.learn.dataset import export, load_dataset
+    folder, _ = loop
+    logs = sorted((folder / "run" / "logs").glob("*.mcap"))
+    export(logs, tmp_path / "npz", format="npz")
+    npz, lerobot = load_dataset(tmp_path / "npz"), load_dataset(folder / "run" / "dataset")
+    assert npz.action.shape == lerobot.action.shape and npz.action.shape[1:] == (150, 5)
+    for name in ("state", "scene", "action"):
+        np.testing.assert_array_equal(getattr(npz, name).astype(np.float32), getattr(lerobot, name), err_msg=name)
+    assert list(npz.episode) == list(lerobot.episode)
+
+
 def test_the_checkpoint_is_safetensors_and_json_and_runs_as_a_torch_policy(loop):
     from agents.flows import LearnedSkill
     from agents.messages import SkillCmd
