@@ -27,8 +27,8 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from rich.console import Console
 from retriever.errors import RetrieverError
+from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 _err = Console(stderr=True)
@@ -82,9 +82,12 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
         raise ValueError(f"{out} already exists; pass --force to replace it")
     with _bar() as bar:
         task = bar.add_task(f"exporting ({format})", total=len(logs), note="")
-        summary = export_logs(logs, out, format=format, overwrite=force,
-                              progress=lambda n, _, tick, ticks: bar.update(task, completed=n + tick / max(ticks, 1)))
+
+        def progress(log, _, tick, ticks):
+            bar.update(task, completed=log + tick / max(ticks, 1))
+        summary = export_logs(logs, out, format=format, overwrite=force, progress=progress)
     _out.print(str(summary), highlight=False)
+    # "of": the episodes collected, of which "logs" succeeded and were exported
     return {"logs": len(logs), "of": len(rows), "format": format, "frames": summary.frames, "bytes": summary.bytes,
             "seconds": round(summary.seconds, 2), "dataset": str(out)}
 
@@ -140,8 +143,9 @@ def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool
 
 
 def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: Path, results: Path | None = None,
-         format: str = "lerobot", max_epochs: int = 3000, force: bool = False) -> dict:
-    """The whole loop into ``out`` (logs/, dataset/, policy/), the results into ``results``."""
+         format: str = "lerobot", max_epochs: int = 3000, force: bool = False, command: str | None = None) -> dict:
+    """The whole loop into ``out`` (logs/, dataset/, policy/), the results into ``results``
+    (``command``: how it was run, for the record)."""
     from .episodes import parse_seeds
     from .plot import plot_loop
     held_out = set(parse_seeds(eval_seeds))
@@ -157,7 +161,7 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     learned = evaluate(eval_seeds, str(out / "policy"))
     scripted = evaluate(eval_seeds, None)
     summary = {
-        "command": "python -m agents.learn " + " ".join(sys.argv[1:]) if sys.argv[1:2] == ["all"] else None,
+        "command": command,
         "collected": {"episodes": len(collected), "succeeded": sum(r["success"] for r in collected),
                       "seeds": train_seeds, "seconds": round(collect_s, 1),
                       "wall_per_episode": round(statistics.mean(r["wall"] for r in collected), 3)},
@@ -218,8 +222,9 @@ def main(argv=None) -> int:
             if args.json:
                 args.json.write_text(json.dumps(result, indent=1) + "\n")
         elif args.command == "all":
+            command = "python -m agents.learn " + " ".join(sys.argv[1:] if argv is None else argv)
             loop(args.episodes, args.train_seeds, args.eval_seeds, args.minutes, args.out, args.results, args.format,
-                 args.max_epochs, args.force)
+                 args.max_epochs, args.force, command)
         else:
             if args.skill_policy is not None:
                 from ..skill_policies import check_skill_policy

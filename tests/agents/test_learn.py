@@ -115,6 +115,7 @@ def test_the_loop_evaluates_the_learned_and_the_scripted_pick_and_writes_results
     folder, done = loop
     results = json.loads((folder / "results" / "results.json").read_text())
     assert (folder / "results" / "learning_loop.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert results["command"].startswith("python -m agents.learn all --episodes 2 --train-seeds 5:9")
     assert results["collected"]["episodes"] == 2 and results["dataset"]["logs"] == 2
     assert results["dataset"]["frames"] > 0 and results["dataset"]["bytes"] > 0
     assert results["training"]["epochs"] == 3 and len(results["training"]["loss_per_epoch"]) == 3
