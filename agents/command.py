@@ -22,6 +22,14 @@ from retriever.backends import canonical
 from retriever.errors import BackendError, RetrieverError
 
 
+def _skill_policy(path: Path | None) -> str | None:
+    """The demo's --skill-policy: 'scripted', or a checkpoint directory made absolute (the flow
+    may run in another process and directory)."""
+    if path is None or str(path) == "scripted":
+        return None if path is None else "scripted"
+    return str(path.absolute())
+
+
 def demo(
     seed: Annotated[int, typer.Option(help="The episode's seed: where the spice is, its mass and place, "
                                            "the drawers' friction (bag task: the target's mass and place).")] = 0,
@@ -43,9 +51,10 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    skill_policy: Annotated[Optional[Path], typer.Option(metavar="PATH", help="Run the Pick skill with this "
-                                                         "policy (a TorchScript module, docs/learning-loop.md) "
-                                                         "instead of the scripted one.")] = None,
+    skill_policy: Annotated[Optional[Path], typer.Option(metavar="DIR", help="Run the Pick skill with this "
+                                                         "trained policy (a checkpoint directory of python -m "
+                                                         "agents.learn train, docs/learning.md) in its own flow, "
+                                                         "or 'scripted'.")] = None,
     log: Annotated[Path, typer.Option(help="The episode's MCAP log.")] = Path("run.mcap"),
     force: Annotated[bool, typer.Option("--force", help="Overwrite the --log file if it exists.")] = False,
     out: Annotated[Path, typer.Option(help="Where to save the pictures (PNG).")] = Path("retriever0"),
@@ -73,7 +82,7 @@ def demo(
         config = AgentConfig(seed=seed, task=task, drawer=drawer, ablation=ablation, planner=planner,
                              planner_latency=planner_latency, slip_prob=slip_prob,
                              teleop=str(teleop) if teleop else None, verbose=True,
-                             skill_policy=str(skill_policy.absolute()) if skill_policy else None)
+                             skill_policy=_skill_policy(skill_policy))
         config.check()
         if teleop is not None:
             from .flows import load_schedule

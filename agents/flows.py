@@ -18,12 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from retriever import Flow
+from retriever.learn import TorchPolicy
 
 from .messages import (
     ActionChunk, Belief, Command, Frame, InspectionDone, MonitorStatus, Observation, PlanChunk, PlanFailure,
     PlanRequest, Progress, SkillCmd, Task, TeleopEvent,
 )
 from .monitor import ExecutionMonitor, MonitorConfig
+from .robot import NU
 
 ARRAY_FACTS = ("qpos", "qvel", "robot")
 
@@ -335,22 +337,23 @@ class SkillPolicy(Flow):
 
 
 class SkillActor(Flow):
-    """The policy of one skill (``skill``, "Pick"), in its own flow: while the monitor's command
-    is that skill, it turns what the robot senses (``state``, ``scene``, the ``wrist`` frame:
-    :mod:`agents.skill_features`) into the action chunk for the controller; otherwise it emits
-    nothing (:class:`SkillPolicy` sends the other skills' chunks). Its step records hold exactly
-    a policy's inputs and its action: what a dataset of the skill is made of. ``policy``:
-    ``"scripted"`` or a policy file (:func:`agents.skill_policies.load_skill_policy`)."""
+    """The scripted policy of one skill (``skill``, "Pick"), in its own flow: while the monitor's
+    command is that skill, it turns what the robot senses (``state``, ``scene``, the ``wrist``
+    frame: :mod:`agents.skill_features`) into the action chunk for the controller, with the
+    scripted skill fed only those inputs (:class:`agents.skill_policies.ScriptedSkill`); otherwise
+    it emits nothing (:class:`SkillPolicy` sends the other skills' chunks). Its step records hold
+    exactly a policy's inputs and its action: what a dataset of the skill is made of
+    (:class:`LearnedSkill` is the learned policy in the same slot)."""
 
-    def __init__(self, skill: str = "Pick", policy: str = "scripted", horizon: float = 0.75,
-                 control_hz: float = 200.0, policy_hz: float = 2.0, wrist_size: list | None = None):
-        self.skill, self.policy_spec, self.horizon, self.control_hz = skill, policy, horizon, control_hz
+    def __init__(self, skill: str = "Pick", horizon: float = 0.75, control_hz: float = 200.0,
+                 policy_hz: float = 2.0, wrist_size: list | None = None):
+        self.skill, self.horizon, self.control_hz = skill, horizon, control_hz
         self.policy_hz, self.wrist_size = policy_hz, tuple(wrist_size or (64, 64))
         self.running_id, self.ticks = 0, 0
 
     def setup(self):
-        from .skill_policies import load_skill_policy
-        self.policy = load_skill_policy(self.policy_spec)
+        from .skill_policies import ScriptedSkill
+        self.policy = ScriptedSkill()
 
     def teardown(self):
         del self.policy
@@ -368,6 +371,44 @@ class SkillActor(Flow):
         self.ticks += 1
         actions = self.policy.act(seen, round(self.horizon * self.control_hz), self.control_hz)
         return {"action": ActionChunk(skill_id=skill.skill_id, actions=np.asarray(actions, dtype=np.float64))}
+
+
+class LearnedSkill(TorchPolicy):
+    """A learned policy of one skill (``skill``, "Pick") in the slot of :class:`SkillActor`, the
+    same ports: a :class:`retriever.learn.TorchPolicy` that runs the checkpoint directory ``path``
+    (``python -m agents.learn train``: :class:`agents.learn.bc.PickMLP`'s ``policy.json`` and
+    ``model.safetensors``) on the features the dataset export named (``state`` →
+    ``observation.state``, ``scene`` → ``observation.environment_state``, the wrist frame →
+    ``observation.images.wrist``); on the CPU its replay is exact. Its chunk's rows are absolute
+    command targets; a chunk shorter than the controller needs holds its last row."""
+
+    observation = ("state", "scene", "wrist")
+
+    def __init__(self, path: str, skill: str = "Pick", horizon: float = 0.75, control_hz: float = 200.0,
+                 wrist_size: list | None = None):
+        super().__init__(path, features={"state": "observation.state", "scene": "observation.environment_state",
+                                         "wrist": "observation.images.wrist"})
+        self.skill, self.horizon, self.control_hz = skill, horizon, control_hz
+        self.wrist_size = tuple(wrist_size or (64, 64))
+
+    def build(self):
+        from .learn.bc import make_module
+        from .skill_policies import read_config
+        return make_module(read_config(self.path))
+
+    def step(self, skill: SkillCmd, state: np.ndarray, scene: np.ndarray, wrist: Frame | None = None):
+        if skill.name != self.skill:
+            return {}
+        image = wrist.rgb if wrist is not None else np.zeros((*self.wrist_size, 3), dtype=np.uint8)
+        rows = self.act(state=np.asarray(state), scene=np.asarray(scene), wrist=image)["chunk"]
+        steps = round(self.horizon * self.control_hz)
+        if rows.ndim != 2 or rows.shape[1] != NU or not len(rows):
+            raise ValueError(f"{self._owner()}: its model returned a chunk of shape {rows.shape}: expected "
+                             f"(steps, {NU})")
+        rows = rows[:steps]
+        if len(rows) < steps:
+            rows = np.concatenate([rows, np.repeat(rows[-1:], steps - len(rows), axis=0)])
+        return {"action": ActionChunk(skill_id=skill.skill_id, actions=rows.astype(np.float64))}
 
 
 class SkillOrder(Flow):

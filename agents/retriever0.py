@@ -23,7 +23,8 @@ from retriever import ActionChunking, Latest, LatestDistinct, Pipeline, Queue, R
 from .plan import DRAWERS
 from .planner import make_planner
 from .flows import (
-    BeliefUpdater, Camera, Controller, Goal, Monitor, PlannerFlow, SkillActor, SkillOrder, SkillPolicy, Teleop, World,
+    BeliefUpdater, Camera, Controller, Goal, LearnedSkill, Monitor, PlannerFlow, SkillActor, SkillOrder, SkillPolicy,
+    Teleop, World,
 )
 
 #: seconds a camera takes to render a frame (its declared latency)
@@ -55,7 +56,7 @@ class AgentConfig:
     slip_prob: float = 0.0           # failure injection: a slipped grasp, decided per seed
     teleop: str | None = None        # a teleop schedule file
     verbose: bool = False            # the monitor prints a line per skill change
-    # the Pick skill's policy in its own flow (POLICY_NODE): "scripted" or a policy file
+    # the Pick skill's policy in its own flow (POLICY_NODE): "scripted" or a checkpoint directory
     # (agents.skill_policies); None: the skill flow runs Pick like every other skill
     skill_policy: str | None = None
     episode: str = "task"            # "task": the whole task; "pick": the Pick skill alone, from where it begins
@@ -179,9 +180,14 @@ def _plug_policy(config: AgentConfig, commander, world, wrist, ctrl) -> None:
     and the wrist frame in; while Pick runs, the chunk out to the controller."""
     if config.skill_policy is None:
         return
-    actor = SkillActor(skill=LEARNED_SKILL, policy=config.skill_policy, control_hz=config.control_hz,
-                       policy_hz=config.policy_hz, wrist_size=list(config.wrist_size)).named(POLICY_NODE) \
-        .configure(on_overrun="catch_up", latency=config.policy_latency) @ Rate(config.policy_hz)
+    if config.skill_policy == "scripted":
+        actor = SkillActor(skill=LEARNED_SKILL, control_hz=config.control_hz, policy_hz=config.policy_hz,
+                           wrist_size=list(config.wrist_size))
+    else:
+        actor = LearnedSkill(path=config.skill_policy, skill=LEARNED_SKILL, control_hz=config.control_hz,
+                             wrist_size=list(config.wrist_size))
+    actor = actor.named(POLICY_NODE).configure(on_overrun="catch_up", latency=config.policy_latency) \
+        @ Rate(config.policy_hz)
     commander.then(actor, sync=Latest(), map={"skill": "skill"})
     world.then(actor, sync=Latest(), map={"state": "state", "scene": "scene"})
     wrist.then(actor, sync=Latest(staleness=0.5), map={"frame": "wrist"})

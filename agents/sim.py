@@ -11,6 +11,7 @@ The settings (render quality, contact bits, gains) are the ones measured on this
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 
@@ -29,8 +30,6 @@ def load_triton_before_gl() -> None:
     imports on first use of many of its parts (a learned policy's flow in the same process, lerobot's
     models), bundles an LLVM of its own: loaded after a GL context, triton's library crashes the
     process (SIGSEGV in its import); loaded before, both work (tests/agents/test_sim.py)."""
-    import importlib.util
-
     if "triton" not in sys.modules and importlib.util.find_spec("triton") is not None:
         import triton  # noqa: F401
 

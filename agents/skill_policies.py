@@ -1,47 +1,46 @@
-"""The policies behind a learned-skill slot of Retriever-0: the scripted skill, or a model.
+"""The policies behind the learned-skill slot of Retriever-0 (the ``pick_policy`` flow): the
+scripted skill, or a trained checkpoint.
 
-A skill policy turns what the robot senses (:class:`SkillObservation`: the ``state`` and
-``scene`` vectors and the wrist camera's frame, :mod:`agents.skill_features`) into an action
-chunk: ``steps`` rows of absolute command targets (``ACTUATORS`` order: x, y, z, pitch, grip),
-one per control tick from the observation on, the same chunks the scripted skills send the
-controller. The skill's progress, success and failure are not the policy's business: the skill
-flow computes them from the world's observation as it does for every skill.
+A skill policy turns what the robot senses (the ``state`` and ``scene`` vectors and the wrist
+camera's frame, :mod:`agents.skill_features`) into an action chunk: ``steps`` rows of absolute
+command targets (``ACTUATORS`` order: x, y, z, pitch, grip), one per control tick from the
+observation on, the same chunks the scripted skills send the controller. The skill's progress,
+success and failure are not the policy's business: the skill flow computes them from the
+world's observation as it does for every skill.
 
-    load_skill_policy("scripted")      the scripted skill, fed only what a learned one gets
-    load_skill_policy("policy.pt")     a TorchScript module (see TorchScriptSkill)
-
-``load_skill_policy`` is the one hook a new kind of policy (a LeRobot checkpoint) plugs into.
+    "scripted"      the scripted skill, fed only what a learned one gets (ScriptedSkill, run by
+                    agents.flows.SkillActor)
+    DIR             a checkpoint of python -m agents.learn train, run by agents.flows.LearnedSkill
+                    (a retriever.learn.TorchPolicy): policy.json (read_config) and model.safetensors
 """
 
 from __future__ import annotations
 
-import warnings
+import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
 from .robot import NU
 
+CONFIG_FILE, WEIGHTS_FILE = "policy.json", "model.safetensors"
+#: the class a checkpoint's module is, named in code (policy.json says it, and nothing else is built)
+KIND = "agents.learn.bc.PickMLP"
+#: policy.json's sizes of the module, each a positive integer
+CONFIG = ("state_dim", "scene_dim", "steps", "nu", "hidden")
+COMMAND = slice(2 * NU, 3 * NU)     # the commanded targets in the state vector
+
 
 @dataclass(frozen=True)
 class SkillObservation:
-    """One tick's input of a skill policy. ``t`` counts seconds since the skill began (the
-    policy's own ticks: no clock of the world's); ``skill`` is the command, "Pick(spice)"."""
+    """One tick's input of the scripted skill policy. ``t`` counts seconds since the skill began
+    (the policy's own ticks: no clock of the world's); ``skill`` is the command, "Pick(spice)"."""
     t: float
     skill: str
     state: np.ndarray           # float64 (18,), skill_features.STATE_NAMES
     scene: np.ndarray           # float64 (10,), skill_features.SCENE_NAMES
     wrist: np.ndarray           # uint8 (H, W, 3); zeros before the camera's first frame
-
-
-class SkillPolicyModel(Protocol):
-    def reset(self, skill: str) -> None:
-        """A new invocation of the skill begins (forget the last one)."""
-
-    def act(self, obs: SkillObservation, steps: int, control_hz: float) -> np.ndarray:
-        """The action chunk: float64 (steps, NU) absolute command targets at ``control_hz``."""
 
 
 class ScriptedSkill:
@@ -62,59 +61,37 @@ class ScriptedSkill:
         return self.controller.act(facts_of(obs.t, obs.state, obs.scene), steps, control_hz).actions
 
 
-class TorchScriptSkill:
-    """A TorchScript module (``torch.jit.save``) as a skill policy, on the CPU: ``forward(state,
-    scene, wrist)`` gets float64 (1, 18) and (1, 10) tensors and the wrist frame as uint8
-    (1, H, W, 3), and returns the chunk (1, k, NU) of absolute targets, in any float dtype; a
-    chunk shorter than the controller needs holds its last row."""
-
-    def __init__(self, path: str, threads: int = 1):
-        import torch
-        torch.set_num_threads(threads)
-        self.torch = torch
-        with warnings.catch_warnings():  # TorchScript is deprecated in favour of torch.export, and still loads
-            warnings.filterwarnings("ignore", category=FutureWarning, message=".*torch.jit")
-            self.module = torch.jit.load(path, map_location="cpu").eval()
-
-    def reset(self, skill: str) -> None:
-        pass
-
-    def act(self, obs: SkillObservation, steps: int, control_hz: float) -> np.ndarray:
-        torch = self.torch
-        with torch.inference_mode():
-            # copies: a value decoded from the wire is a read-only view, which torch will not wrap
-            out = self.module(torch.tensor(obs.state[None]), torch.tensor(obs.scene[None]),
-                              torch.tensor(obs.wrist[None]))
-        chunk = out.detach().to(torch.float64).numpy()
-        if chunk.ndim != 3 or chunk.shape[0] != 1 or chunk.shape[2] != NU or chunk.shape[1] < 1:
-            raise ValueError(f"the skill policy's module returned shape {tuple(chunk.shape)}: "
-                             f"expected (1, steps, {NU})")
-        rows = chunk[0, :steps]
-        if len(rows) < steps:
-            rows = np.concatenate([rows, np.repeat(rows[-1:], steps - len(rows), axis=0)])
-        return rows
+def read_config(folder: str | Path) -> dict:
+    """A checkpoint's ``policy.json``, checked (the sizes its module is built with); a
+    ValueError says what is wrong."""
+    path = Path(folder) / CONFIG_FILE
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE} is not readable JSON ({type(e).__name__}); a "
+                         f"checkpoint holds {CONFIG_FILE} and {WEIGHTS_FILE} (python -m agents.learn train)") from None
+    if type(config) is not dict or config.get("kind") != KIND:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE} is no Pick policy's config (its kind must be "
+                         f"{KIND!r})")
+    bad = [key for key in CONFIG if type(config.get(key)) is not int or not 0 < config[key] <= 1 << 16]
+    if bad:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE}'s {', '.join(bad)} must be positive integers")
+    if config["nu"] != NU or config["state_dim"] < COMMAND.stop:
+        raise ValueError(f"skill policy {str(folder)!r}: nu={config['nu']}, state_dim={config['state_dim']}: the "
+                         f"robot has {NU} actuators, and the state holds their commands at {COMMAND.start}:"
+                         f"{COMMAND.stop}")
+    return config
 
 
 def check_skill_policy(spec: str) -> None:
-    """``spec`` can name a policy (``"scripted"`` or a file), or a ValueError says why not
-    (cheap: it loads nothing)."""
-    if not isinstance(spec, str) or (spec != "scripted" and not Path(spec).is_file()):
-        raise ValueError(f"skill policy {spec!r}: no such file (give 'scripted' or a TorchScript module, *.pt)")
-
-
-def load_skill_policy(spec: str) -> SkillPolicyModel:
-    """The policy ``spec`` names: ``"scripted"``, or the path of a policy file (a TorchScript
-    module, ``*.pt``). A ValueError says what is wrong with it."""
-    check_skill_policy(spec)
+    """``spec`` names a policy (``"scripted"`` or a checkpoint directory), or a ValueError says
+    why not (cheap: it loads no weights)."""
     if spec == "scripted":
-        return ScriptedSkill()
-    path = Path(spec)
-    try:
-        import torch  # noqa: F401
-    except ImportError:
-        raise ValueError(f"skill policy {spec}: loading a TorchScript module needs torch (pip install torch)") from None
-    try:
-        return TorchScriptSkill(str(path))
-    except RuntimeError as e:
-        raise ValueError(f"skill policy {spec}: not a TorchScript module torch.jit.load can read "
-                         f"({str(e).strip().splitlines()[0][:200]})") from None
+        return
+    if not isinstance(spec, str) or not Path(spec).is_dir():
+        raise ValueError(f"skill policy {spec!r}: no such directory (give 'scripted' or a checkpoint directory "
+                         "of python -m agents.learn train)")
+    if not (Path(spec) / WEIGHTS_FILE).is_file():
+        raise ValueError(f"skill policy {spec!r}: the directory holds no {WEIGHTS_FILE} (python -m agents.learn "
+                         "train writes it)")
+    read_config(spec)

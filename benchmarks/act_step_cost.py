@@ -1,4 +1,4 @@
-"""What LeRobot's ACT costs on the CPU for Retriever-0's Pick policy inputs (docs/learning-loop.md):
+"""What LeRobot's ACT costs on the CPU for Retriever-0's Pick policy inputs (docs/learning.md):
 the seconds of one training step (batch of 8) and of one chunk inference, with the pick_policy
 flow's features: state (18), environment state (10), the wrist image (3×64×64), action (5),
 chunks of 100, no pretrained backbone (nothing is fetched).

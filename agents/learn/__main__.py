@@ -1,14 +1,20 @@
-"""``python -m agents.learn collect|train|evaluate``: the learning loop on Retriever-0's Pick.
+"""``python -m agents.learn collect|export|train|evaluate|all``: the learning loop on Retriever-0's Pick.
 
     collect  --episodes N --seeds A:B -o DIR [--force]
              N Pick-only episodes of the scripted skill (seeds A, A+1, …: where the spice is,
              which drawer), in virtual time on inproc; one log per episode (DIR/pick-seedS.mcap)
              and DIR/episodes.json
-    train    DIR -o policy.pt [--minutes M] [--max-epochs E]
-             a small MLP by behaviour cloning on the successful episodes' pick_policy ticks
-    evaluate --seeds A:B [--skill-policy PATH] [--out results.json]
+    export   DIR -o DATASET [--format lerobot|npz] [--force]
+             the successful episodes' logs as a dataset (retriever log export --flow pick_policy)
+    train    DATASET -o CHECKPOINT [--minutes M] [--max-epochs E]
+             a small MLP by behaviour cloning on the dataset, saved as a checkpoint directory
+             (policy.json, model.safetensors) that retriever.learn.TorchPolicy runs
+    evaluate --seeds A:B [--skill-policy CHECKPOINT] [--out results.json]
              success of the Pick skill alone and of the whole task, per seed, mean ± std;
-             the scripted Pick without PATH
+             the scripted Pick without CHECKPOINT
+    all      --episodes N --train-seeds A:B --eval-seeds C:D --minutes M -o DIR [--results RDIR]
+             collect → export → train → evaluate the learned Pick and the scripted one;
+             RDIR (default DIR) gets results.json and learning_loop.png
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from retriever.errors import RetrieverError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -62,24 +69,47 @@ def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) ->
     return rows
 
 
-def train_policy(folder: Path, out: Path, minutes: float, max_epochs: int) -> dict:
-    from .bc import train
-    from .dataset import load_dataset
-    logs = sorted(folder.glob("*.mcap"))
+def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False) -> dict:
+    from .dataset import export as export_logs
+    episodes = folder / "episodes.json"
+    if not episodes.is_file():
+        raise ValueError(f"{folder}: no episodes.json; collect the logs with python -m agents.learn collect")
+    rows = json.loads(episodes.read_text())
+    logs = [folder / r["log"] for r in rows if r["success"]]
     if not logs:
-        raise ValueError(f"{folder}: no logs (*.mcap) to train on; collect them with python -m agents.learn collect")
+        raise ValueError(f"{folder}: none of its {len(rows)} episodes succeeded: nothing to learn from")
+    if out.exists() and not force:
+        raise ValueError(f"{out} already exists; pass --force to replace it")
+    with _bar() as bar:
+        task = bar.add_task(f"exporting ({format})", total=len(logs), note="")
+
+        def progress(log, _, tick, ticks):
+            bar.update(task, completed=log + tick / max(ticks, 1))
+        summary = export_logs(logs, out, format=format, overwrite=force, progress=progress)
+    _out.print(str(summary), highlight=False)
+    # "of": the episodes collected, of which "logs" succeeded and were exported
+    return {"logs": len(logs), "of": len(rows), "format": format, "frames": summary.frames, "bytes": summary.bytes,
+            "seconds": round(summary.seconds, 2), "dataset": str(out)}
+
+
+def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None) -> dict:
+    from .bc import save, train
+    from .dataset import load_dataset
     started = time.perf_counter()
-    samples = load_dataset(logs)
+    samples = load_dataset(dataset)
     read_s = time.perf_counter() - started
     with _bar() as bar:
         task = bar.add_task("training", total=max_epochs, note="")
-        module, summary = train(samples, budget_s=minutes * 60, max_epochs=max_epochs,
-                                log=lambda epoch, loss: bar.update(task, completed=epoch, note=f"loss {loss:.4f}"))
-    module.save(str(out))
-    result = {**asdict(summary), "logs": len(logs), "read_s": round(read_s, 2), "policy": str(out)}
-    _out.print(f"trained on {summary.samples} ticks of {summary.episodes} successful episodes (of {len(logs)} logs, "
-               f"read in {read_s:.1f} s): {summary.epochs} epochs in {summary.seconds:.1f} s, "
-               f"loss {summary.train_loss:.4f}, "
+
+        def log(epoch, loss):
+            bar.update(task, completed=epoch, note=f"loss {loss:.4f}")
+            if losses is not None:
+                losses.append(loss)
+        module, config, summary = train(samples, budget_s=minutes * 60, max_epochs=max_epochs, log=log)
+    save(module, config, out, summary)
+    result = {**asdict(summary), "read_s": round(read_s, 2), "policy": str(out)}
+    _out.print(f"trained on {summary.samples} frames of {summary.episodes} episodes (read in {read_s:.1f} s): "
+               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {summary.train_loss:.4f}, "
                f"held-out {summary.held_out_loss:.4f}; {summary.parameters} parameters → {out}", highlight=False)
     return result
 
@@ -112,6 +142,40 @@ def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool
     return summary
 
 
+def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: Path, results: Path | None = None,
+         format: str = "lerobot", max_epochs: int = 3000, force: bool = False, command: str | None = None) -> dict:
+    """The whole loop into ``out`` (logs/, dataset/, policy/), the results into ``results``
+    (``command``: how it was run, for the record)."""
+    from .episodes import parse_seeds
+    from .plot import plot_loop
+    held_out = set(parse_seeds(eval_seeds))
+    if held_out & set(parse_seeds(train_seeds)):
+        raise ValueError(f"--eval-seeds {eval_seeds} overlaps --train-seeds {train_seeds}: evaluate on held-out seeds")
+    results = results or out
+    started = time.perf_counter()
+    collected = collect(episodes, train_seeds, out / "logs", force)
+    collect_s = time.perf_counter() - started
+    exported = export(out / "logs", out / "dataset", format, force)
+    losses: list[float] = []
+    training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses)
+    learned = evaluate(eval_seeds, str(out / "policy"))
+    scripted = evaluate(eval_seeds, None)
+    summary = {
+        "command": command,
+        "collected": {"episodes": len(collected), "succeeded": sum(r["success"] for r in collected),
+                      "seeds": train_seeds, "seconds": round(collect_s, 1),
+                      "wall_per_episode": round(statistics.mean(r["wall"] for r in collected), 3)},
+        "dataset": exported, "training": {**training, "loss_per_epoch": [round(x, 6) for x in losses]},
+        "evaluation": {"seeds": eval_seeds, "learned": learned, "scripted": scripted},
+    }
+    results.mkdir(parents=True, exist_ok=True)
+    (results / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
+    plot_loop(summary, results / "learning_loop.png")
+    _out.print(f"results: {results / 'results.json'}, {results / 'learning_loop.png'}; the whole loop took "
+               f"{time.perf_counter() - started:.0f} s", highlight=False)
+    return summary
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m agents.learn", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -121,31 +185,52 @@ def main(argv=None) -> int:
     c.add_argument("--seeds", required=True, help="A:B, seeds A to B-1")
     c.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs")
     c.add_argument("--force", action="store_true", help="replace logs that exist")
-    t = sub.add_parser("train", help="behaviour cloning of a small MLP on collected logs")
-    t.add_argument("folder", type=Path, help="the folder collect wrote")
-    t.add_argument("-o", "--out", type=Path, required=True, help="the TorchScript module to write (*.pt)")
+    x = sub.add_parser("export", help="the successful episodes' logs as a dataset (LeRobot or npz)")
+    x.add_argument("folder", type=Path, help="the folder collect wrote")
+    x.add_argument("-o", "--out", type=Path, required=True, help="the dataset folder to write")
+    x.add_argument("--format", choices=["lerobot", "npz"], default="lerobot")
+    x.add_argument("--force", action="store_true", help="replace the dataset if it exists")
+    t = sub.add_parser("train", help="behaviour cloning of a small MLP on an exported dataset")
+    t.add_argument("dataset", type=Path, help="the folder export wrote")
+    t.add_argument("-o", "--out", type=Path, required=True, help="the checkpoint directory to write")
     t.add_argument("--minutes", type=float, default=2.0, help="wall-time budget of the training")
     t.add_argument("--max-epochs", type=int, default=3000)
     t.add_argument("--json", type=Path, help="write the training summary here")
     e = sub.add_parser("evaluate", help="success of the skill and of the whole task over seeds")
     e.add_argument("--seeds", required=True, help="A:B, seeds A to B-1 (held out from collection)")
-    e.add_argument("--skill-policy", help="a policy file (TorchScript); the scripted Pick without it")
+    e.add_argument("--skill-policy", help="a checkpoint directory (train's); the scripted Pick without it")
     e.add_argument("--skill-only", action="store_true", help="only the Pick-only episodes, not the whole task")
     e.add_argument("--out", type=Path, help="write the results (JSON) here")
+    a = sub.add_parser("all", help="collect, export, train, and evaluate the learned Pick against the scripted one")
+    a.add_argument("--episodes", type=int, help="episodes to collect (default: one per seed of --train-seeds)")
+    a.add_argument("--train-seeds", required=True, help="A:B, the seeds to collect from")
+    a.add_argument("--eval-seeds", required=True, help="C:D, the held-out seeds to evaluate on")
+    a.add_argument("--minutes", type=float, default=5.0, help="wall-time budget of the training")
+    a.add_argument("--max-epochs", type=int, default=3000)
+    a.add_argument("--format", choices=["lerobot", "npz"], default="lerobot", help="the dataset's format")
+    a.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs, dataset and checkpoint")
+    a.add_argument("--results", type=Path, help="where results.json and learning_loop.png go (default: -o)")
+    a.add_argument("--force", action="store_true", help="replace logs and dataset that exist")
     args = parser.parse_args(argv)
     try:
         if args.command == "collect":
             collect(args.episodes, args.seeds, args.out, args.force)
+        elif args.command == "export":
+            export(args.folder, args.out, args.format, args.force)
         elif args.command == "train":
-            result = train_policy(args.folder, args.out, args.minutes, args.max_epochs)
+            result = train_policy(args.dataset, args.out, args.minutes, args.max_epochs)
             if args.json:
                 args.json.write_text(json.dumps(result, indent=1) + "\n")
+        elif args.command == "all":
+            command = "python -m agents.learn " + " ".join(sys.argv[1:] if argv is None else argv)
+            loop(args.episodes, args.train_seeds, args.eval_seeds, args.minutes, args.out, args.results, args.format,
+                 args.max_epochs, args.force, command)
         else:
             if args.skill_policy is not None:
                 from ..skill_policies import check_skill_policy
                 check_skill_policy(args.skill_policy)
             evaluate(args.seeds, args.skill_policy, args.out, task=not args.skill_only)
-    except ValueError as exc:
+    except (ValueError, RetrieverError) as exc:
         _err.print(f"error: {exc}", highlight=False)
         return 2
     return 0

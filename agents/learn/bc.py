@@ -1,22 +1,31 @@
-"""Behaviour cloning of the Pick policy: a small MLP from ``state`` and ``scene`` to the action
-chunk, trained on the CPU within a time budget, saved as a TorchScript module that
-:class:`agents.skill_policies.TorchScriptSkill` runs (it ignores the wrist frame).
+"""Behaviour cloning of the Pick policy: a small MLP (:class:`PickMLP`) from the exported
+dataset's ``observation.state`` and ``observation.environment_state`` to the action chunk,
+trained on the CPU within a time budget and saved as a checkpoint directory that
+:class:`agents.flows.LearnedSkill` (a :class:`retriever.learn.TorchPolicy`) runs:
+
+- ``model.safetensors``: the MLP's weights and its normalisation (the buffers ``x_mean``,
+  ``x_std``, ``y_mean``, ``y_std``), as ``safetensors.torch.save_file`` writes a state dict;
+- ``policy.json``: the MLP's sizes, which :func:`agents.skill_policies.read_config` checks
+  before the class named here builds it; nothing in the directory is imported or unpickled.
 
 The chunk is predicted relative to the commanded targets (``state``'s ``*_cmd``: where the hand
-is being sent now), every value normalised by the dataset's mean and spread.
+is being sent now), every value normalised by the training set's mean and spread. The wrist
+image is given to the module (it is in the dataset) and not used.
 """
 
 from __future__ import annotations
 
+import json
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
+import torch
+from torch import nn
 
-from ..robot import NU
+from ..skill_policies import COMMAND, CONFIG, CONFIG_FILE, KIND, WEIGHTS_FILE
 from .dataset import Samples
-
-COMMAND = slice(2 * NU, 3 * NU)     # the commanded targets in the state vector
 
 
 @dataclass
@@ -30,56 +39,74 @@ class Training:
     parameters: int
 
 
-def _module(x_mean, x_std, y_mean, y_std, steps: int, hidden: int):
-    import torch
-    from torch import nn
+class PickMLP(nn.Module):
+    """``forward(batch)``: the feature dict of a :class:`retriever.learn.TorchPolicy` (batch of
+    n) → the chunk (n, steps, nu) of absolute command targets."""
 
-    class ChunkMLP(nn.Module):
-        def __init__(self):
-            super().__init__()
-            for name, value in (("x_mean", x_mean), ("x_std", x_std), ("y_mean", y_mean), ("y_std", y_std)):
-                self.register_buffer(name, torch.as_tensor(value, dtype=torch.float32))
-            self.steps, self.nu, self.command = steps, NU, COMMAND.start
-            self.net = nn.Sequential(nn.Linear(len(x_mean), hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                                     nn.Linear(hidden, len(y_mean)))
+    def __init__(self, state_dim: int, scene_dim: int, steps: int, nu: int, hidden: int):
+        super().__init__()
+        x_dim, y_dim = state_dim + scene_dim, steps * nu
+        for name, size in (("x_mean", x_dim), ("x_std", x_dim), ("y_mean", y_dim), ("y_std", y_dim)):
+            self.register_buffer(name, torch.zeros(size) if name.endswith("mean") else torch.ones(size))
+        self.steps, self.nu = steps, nu
+        self.net = nn.Sequential(nn.Linear(x_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, y_dim))
 
-        def normalised(self, state: torch.Tensor, scene: torch.Tensor) -> torch.Tensor:
-            x = torch.cat([state, scene], dim=1).to(torch.float32)
-            return self.net((x - self.x_mean) / self.x_std)
+    def normalised(self, state: torch.Tensor, scene: torch.Tensor) -> torch.Tensor:
+        return self.net((torch.cat([state, scene], dim=1) - self.x_mean) / self.x_std)
 
-        def forward(self, state: torch.Tensor, scene: torch.Tensor, wrist: torch.Tensor) -> torch.Tensor:
-            delta = self.normalised(state, scene) * self.y_std + self.y_mean
-            command = state[:, self.command:self.command + self.nu].to(torch.float64)
-            return delta.to(torch.float64).view(-1, self.steps, self.nu) + command[:, None, :]
+    def forward(self, batch: dict) -> torch.Tensor:
+        state = batch["observation.state"].to(torch.float32)
+        scene = batch["observation.environment_state"].to(torch.float32)
+        delta = self.normalised(state, scene) * self.y_std + self.y_mean
+        return delta.view(-1, self.steps, self.nu) + state[:, None, COMMAND]
 
-    return ChunkMLP()
+
+def make_module(config: dict):
+    """A :class:`PickMLP` of ``config``'s sizes, freshly initialised."""
+    return PickMLP(**{key: config[key] for key in CONFIG})
+
+
+def save(module, config: dict, folder: str | Path, training: Training | None = None) -> Path:
+    """Write ``module``'s checkpoint into ``folder`` (created)."""
+    from safetensors.torch import save_file
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in module.state_dict().items()}, str(folder / WEIGHTS_FILE))
+    doc = {"kind": KIND, **{key: config[key] for key in CONFIG}}
+    if training is not None:
+        doc["training"] = asdict(training)
+    (folder / CONFIG_FILE).write_text(json.dumps(doc, indent=1) + "\n")
+    return folder
 
 
 def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hidden: int = 256,
           held_out: float = 0.1, seed: int = 0, threads: int = 2, log=None):
     """Train on ``samples`` for at most ``budget_s`` seconds of wall time or ``max_epochs``;
     the last ``held_out`` of the episodes measure the loss on data it never saw. Returns the
-    scripted module and a :class:`Training` summary. ``log(epoch, loss)`` is told each epoch."""
-    import torch
+    module, its config (:data:`CONFIG`) and a :class:`Training` summary. ``log(epoch, loss)``
+    is told each epoch."""
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
-    x = np.concatenate([samples.state, samples.scene], axis=1)
-    n, steps = len(x), samples.action.shape[1]
-    y = (samples.action - samples.state[:, None, COMMAND]).reshape(n, -1)
+    n, steps, nu = samples.action.shape
+    x = np.concatenate([samples.state, samples.scene], axis=1).astype(np.float32)
+    y = (samples.action - samples.state[:, None, COMMAND]).reshape(n, -1).astype(np.float32)
     episodes = np.unique(samples.episode)
     test_eps = episodes[len(episodes) - int(round(held_out * len(episodes))):] if held_out > 0 else episodes[:0]
     test = np.isin(samples.episode, test_eps)
     train_x, train_y = x[~test], y[~test]
-    x_mean, x_std = train_x.mean(0), np.maximum(train_x.std(0), 1e-3)
+    config = {"state_dim": samples.state.shape[1], "scene_dim": samples.scene.shape[1], "steps": steps, "nu": nu,
+              "hidden": hidden}
+    model = make_module(config)
     y_mean, y_std = train_y.mean(0), np.maximum(train_y.std(0), 1e-3)
-    model = _module(x_mean, x_std, y_mean, y_std, steps, hidden)
-    X = torch.as_tensor(train_x, dtype=torch.float64)
-    Y = torch.as_tensor((train_y - y_mean) / y_std, dtype=torch.float32)
-    TX = torch.as_tensor(x[test], dtype=torch.float64)
-    TY = torch.as_tensor((y[test] - y_mean) / y_std, dtype=torch.float32)
+    for name, value in (("x_mean", train_x.mean(0)), ("x_std", np.maximum(train_x.std(0), 1e-3)),
+                        ("y_mean", y_mean), ("y_std", y_std)):
+        getattr(model, name).copy_(torch.as_tensor(value))
+    state_dim = config["state_dim"]
+    X, Y = torch.as_tensor(train_x), torch.as_tensor((train_y - y_mean) / y_std)
+    TX, TY = torch.as_tensor(x[test]), torch.as_tensor((y[test] - y_mean) / y_std)
     optimiser = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max_epochs)
-    state_dim = samples.state.shape[1]
     started, epoch, loss_value = time.perf_counter(), 0, float("nan")
     while epoch < max_epochs and time.perf_counter() - started < budget_s:
         order = torch.randperm(len(X))
@@ -102,4 +129,4 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
         held = (float(torch.nn.functional.mse_loss(model.normalised(TX[:, :state_dim], TX[:, state_dim:]), TY))
                 if len(TX) else float("nan"))
     parameters = sum(p.numel() for p in model.parameters())
-    return torch.jit.script(model), Training(n, len(episodes), epoch, seconds, loss_value, held, parameters)
+    return model, config, Training(n, len(episodes), epoch, seconds, loss_value, held, parameters)

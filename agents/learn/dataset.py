@@ -1,19 +1,30 @@
-"""A dataset of the Pick policy read straight from collected logs: at each tick of the policy
-flow that sent a chunk, what it consumed on ``state`` and ``scene`` and the chunk it produced
-(the step record names the events; nothing is re-derived from arrival order). ``retriever log
-export`` (issue 36, section 1) does this for any flow and format; this reader is the learning
-loop's own, for its first small policy."""
+"""The Pick policy's dataset: the collected logs exported by ``retriever log export`` (one frame
+per tick of the ``pick_policy`` flow: what it consumed on ``state``, ``scene`` and ``wrist`` as
+its sync policies selected them, and the chunk it sent), and read back for training with the
+format's own loader (``LeRobotDataset(repo_id, root=DIR)``, or the npz files).
+
+The export's features (:data:`MAPS`): ``state`` → ``observation.state``, ``scene`` →
+``observation.environment_state``, the wrist frame's pixels → ``observation.images.wrist``, the
+chunk's rows (150×5, flattened) → ``action``; the command (a ``SkillCmd``, not text) is left out
+and every frame's task is the skill's call, ``Pick(spice)``.
+"""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from retriever import read_log
+from retriever.log import export_dataset
+from retriever.log.dataset import NPZ_FORMAT
 
-from ..retriever0 import POLICY_NODE
+from ..retriever0 import LEARNED_SKILL_CALL, POLICY_NODE
+
+STATE, SCENE, WRIST, ACTION = "observation.state", "observation.environment_state", "observation.images.wrist", "action"
+MAPS = {"state": STATE, "scene": SCENE, "wrist.rgb": WRIST}
+EXCLUDE = ("skill", "wrist.t", "action.skill_id")
 
 
 @dataclass
@@ -21,51 +32,55 @@ class Samples:
     state: np.ndarray       # (n, 18)
     scene: np.ndarray       # (n, 10)
     action: np.ndarray      # (n, steps, NU)
-    episode: np.ndarray     # (n,) index of the log each came from
+    episode: np.ndarray     # (n,) the episode each came from
 
 
-def read_samples(path: str | Path, node: str = POLICY_NODE) -> tuple[list, list, list]:
-    """(state, scene, action) of each tick of ``node`` in the log that sent an action."""
-    from .. import messages  # noqa: F401  (the value types the log's events decode to)
-    log = read_log(path)
-    steps = [s for s in log.iter_steps() if s.node == node and s.status == "ok" and s.produced]
-    wanted = {i for s in steps for port in ("state", "scene") for i in s.consumed.get(port, ())}
-    wanted |= {i for s in steps for i in s.produced}
-    events = {e.id: e for e in log.iter_events() if e.id in wanted}
-    states, scenes, actions = [], [], []
-    for s in steps:
-        if not {"state", "scene"} <= s.consumed.keys():
-            continue
-        (action_id,) = [i for i in s.produced if i[1] == "action"]
-        states.append(log.value(events[s.consumed["state"][0]]))
-        scenes.append(log.value(events[s.consumed["scene"][0]]))
-        actions.append(log.value(events[action_id]).actions)
-    return states, scenes, actions
+def export(logs, out: str | Path, format: str = "lerobot", overwrite: bool = False, progress=None):
+    """Export ``logs`` (one episode each) as the Pick policy's dataset ``out``; returns the
+    export's summary (:class:`retriever.log.ExportSummary`)."""
+    from .. import messages  # noqa: F401  (the value types the logs' events decode to)
+    return export_dataset(list(logs), out, flow=POLICY_NODE, format=format, maps=MAPS, exclude=EXCLUDE,
+                          task=LEARNED_SKILL_CALL, overwrite=overwrite, progress=progress)
 
 
-def skill_succeeded(path: str | Path) -> bool:
-    """Whether the log's skill flow said done (a Pick-only episode's success)."""
-    from .. import messages  # noqa: F401
-    log = read_log(path)
-    last = None
-    for e in log.iter_events():
-        if e.node == "skill" and e.port == "progress":
-            last = e
-    return last is not None and log.value(last).status == "done"
+def load_dataset(folder: str | Path, steps_nu: tuple[int, int] = (150, 5)) -> Samples:
+    """The training samples of an exported dataset folder (LeRobot or npz)."""
+    folder = Path(folder)
+    info = folder / "info.json"
+    if info.is_file() and json.loads(info.read_text()).get("format") == NPZ_FORMAT:
+        columns = _npz_columns(folder)
+    elif (folder / "meta" / "info.json").is_file():
+        columns = _lerobot_columns(folder)
+    else:
+        raise ValueError(f"{folder}: no exported dataset (LeRobot's meta/info.json or the npz format's info.json); "
+                         "export the logs first (python -m agents.learn export)")
+    missing = [key for key in (STATE, SCENE, ACTION) if key not in columns]
+    if missing:
+        raise ValueError(f"{folder}: the dataset has no {', '.join(missing)}: it is not the Pick policy's export")
+    action = columns[ACTION]
+    if action.shape[1] != steps_nu[0] * steps_nu[1]:
+        raise ValueError(f"{folder}: its action has {action.shape[1]} values, a chunk of {steps_nu[0]}×{steps_nu[1]}"
+                         f" has {steps_nu[0] * steps_nu[1]}")
+    return Samples(columns[STATE].astype(np.float64), columns[SCENE].astype(np.float64),
+                   action.astype(np.float64).reshape(len(action), *steps_nu), columns["episode_index"])
 
 
-def load_dataset(paths, successful_only: bool = True) -> Samples:
-    """The samples of every log (of the successful episodes only, by default)."""
-    states, scenes, actions, episodes = [], [], [], []
-    for k, path in enumerate(paths):
-        if successful_only and not skill_succeeded(path):
-            continue
-        st, sc, ac = read_samples(path)
-        states += st
-        scenes += sc
-        actions += ac
-        episodes += [k] * len(st)
-    if not states:
-        raise ValueError("no samples: the logs hold no successful episode with ticks of the policy flow "
-                         f"'{POLICY_NODE}' (collect them with python -m agents.learn collect)")
-    return Samples(np.stack(states), np.stack(scenes), np.stack(actions), np.asarray(episodes))
+def _lerobot_columns(folder: Path) -> dict[str, np.ndarray]:
+    """The numeric columns, as LeRobot loads them (the images are not decoded: the MLP does not
+    use them)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    info = json.loads((folder / "meta" / "info.json").read_text())
+    keys = [k for k in (STATE, SCENE, ACTION, "episode_index") if k in info.get("features", {})]
+    dataset = LeRobotDataset(f"retriever/{folder.name}", root=folder)
+    table = dataset.hf_dataset.select_columns(keys).with_format("numpy")[:]
+    return {key: np.asarray(table[key]) for key in keys}
+
+
+def _npz_columns(folder: Path) -> dict[str, np.ndarray]:
+    columns: dict[str, list] = {}
+    for k, path in enumerate(sorted(folder.glob("episode_*.npz"))):
+        with np.load(path, allow_pickle=False) as episode:
+            for key in episode.files:
+                columns.setdefault(key, []).append(episode[key])
+            columns.setdefault("episode_index", []).append(np.full(len(episode[ACTION]), k))
+    return {key: np.concatenate(parts) for key, parts in columns.items()}

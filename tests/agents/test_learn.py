@@ -1,5 +1,7 @@
-"""python -m agents.learn: collecting Pick episodes into logs, a dataset read from the policy
-flow's step records, training a small policy, and evaluating one."""
+"""python -m agents.learn: the loop on Retriever-0's Pick: collecting episodes into logs, exporting
+them as a dataset (retriever log export, LeRobot's own writer and loader), training a small policy
+into a safetensors checkpoint, running it as a TorchPolicy flow in the Pick slot (inproc, the demo,
+real time on zenoh with an identical replay), and evaluating it against the scripted Pick."""
 
 from __future__ import annotations
 
@@ -10,93 +12,156 @@ import sys
 import numpy as np
 import pytest
 
-from agents.learn.dataset import load_dataset, read_samples
 from agents.learn.episodes import parse_seeds
-from agents.retriever0 import POLICY_NODE
+from agents.retriever0 import POLICY_NODE, build
 from retriever import read_log
+from retriever.log import replay
+
+pytest.importorskip("torch")
+pytest.importorskip("lerobot")
 
 
-def learn(*args, cwd, timeout=300):
+def learn(*args, cwd, timeout=600):
     return subprocess.run([sys.executable, "-m", "agents.learn", *args], capture_output=True, text=True, cwd=cwd,
                           timeout=timeout)
 
 
 @pytest.fixture(scope="module")
-def collected(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("collected")
-    done = learn("collect", "--skill", "pick", "--episodes", "2", "--seeds", "5:9", "-o", "data", cwd=folder)
+def loop(tmp_path_factory):
+    """The whole loop, small: 2 episodes collected, a few epochs trained, 1 held-out seed."""
+    folder = tmp_path_factory.mktemp("loop")
+    done = learn("all", "--episodes", "2", "--train-seeds", "5:9", "--eval-seeds", "4:5", "--minutes", "1",
+                 "--max-epochs", "3", "-o", "run", "--results", "results", cwd=folder)
     assert done.returncode == 0, done.stdout + done.stderr
     return folder, done
 
 
-def test_collect_logs_one_episode_per_seed_and_says_how_long_each_took(collected):
-    folder, done = collected
-    assert sorted(p.name for p in (folder / "data").glob("*.mcap")) == ["pick-seed00005.mcap", "pick-seed00006.mcap"]
-    assert "2 episodes in data: 2 succeeded;" in done.stdout and "s wall per episode" in done.stdout, done.stdout
-    rows = json.loads((folder / "data" / "episodes.json").read_text())
+def test_the_loop_collects_one_log_per_seed_and_says_how_long_each_took(loop):
+    folder, done = loop
+    logs = folder / "run" / "logs"
+    assert sorted(p.name for p in logs.glob("*.mcap")) == ["pick-seed00005.mcap", "pick-seed00006.mcap"]
+    assert "2 episodes in run/logs: 2 succeeded;" in done.stdout and "s wall per episode" in done.stdout, done.stdout
+    rows = json.loads((logs / "episodes.json").read_text())
     assert [(r["seed"], r["success"], r["detail"]) for r in rows] == [(5, True, "done"), (6, True, "done")]
     assert {r["drawer"] for r in rows} <= {"TL", "TR", "BL", "BR"} and all(r["wall"] > 0 for r in rows)
 
 
-def test_the_policy_flows_step_records_hold_exactly_its_inputs_and_the_action(collected):
-    folder, _ = collected
-    log = read_log(folder / "data" / "pick-seed00005.mcap")
-    steps = [s for s in log.iter_steps() if s.node == POLICY_NODE and s.status == "ok"]
-    assert steps and all(set(s.consumed) <= {"skill", "state", "scene", "wrist"} for s in steps)
-    assert all({"skill", "state", "scene"} <= set(s.consumed) for s in steps)
-    assert all([i[1] for i in s.produced] == ["action"] for s in steps)
-    chunks = [e for e in log.iter_events() if e.node == POLICY_NODE]
-    states, scenes, actions = read_samples(folder / "data" / "pick-seed00005.mcap")
-    assert len(actions) == len(steps) == len(chunks)
-    assert all(np.array_equal(a, log.value(e).actions) for a, e in zip(actions, chunks))
-    assert all(s.shape == (18,) and c.shape == (10,) and a.shape == (150, 5)
-               for s, c, a in zip(states, scenes, actions))
-    samples = load_dataset(sorted((folder / "data").glob("*.mcap")))
-    assert len(samples.state) == len(steps) + len(read_samples(folder / "data" / "pick-seed00006.mcap")[0])
-    assert set(samples.episode) == {0, 1}
-
-
-def test_collect_keeps_existing_logs_unless_forced(collected):
-    folder, _ = collected
-    before = (folder / "data" / "pick-seed00005.mcap").read_bytes()
-    done = learn("collect", "--episodes", "1", "--seeds", "5:6", "-o", "data", cwd=folder)
+def test_collect_keeps_existing_logs_unless_forced(loop):
+    folder, _ = loop
+    before = (folder / "run" / "logs" / "pick-seed00005.mcap").read_bytes()
+    done = learn("collect", "--episodes", "1", "--seeds", "5:6", "-o", "run/logs", cwd=folder)
     assert done.returncode == 2 and "pick-seed00005.mcap already exists" in done.stderr and "--force" in done.stderr
-    assert (folder / "data" / "pick-seed00005.mcap").read_bytes() == before
+    assert (folder / "run" / "logs" / "pick-seed00005.mcap").read_bytes() == before
 
 
-def test_train_then_evaluate_a_small_policy_on_a_held_out_seed(collected):
-    pytest.importorskip("torch")
-    folder, _ = collected
-    done = learn("train", "data", "-o", "policy.pt", "--max-epochs", "3", "--json", "training.json", cwd=folder)
+def test_the_dataset_is_the_export_of_the_policy_flows_ticks_and_loads_with_lerobot(loop):
+    """Frame k of episode e holds what pick_policy consumed on state and scene at its k-th
+    tick with a chunk, and the chunk it sent (the step records name the events)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    import agents.messages  # noqa: F401
+    folder, _ = loop
+    dataset = LeRobotDataset("retriever/dataset", root=folder / "run" / "dataset")
+    assert {"observation.state", "observation.environment_state", "observation.images.wrist",
+            "action"} <= set(dataset.features) and dataset.meta.total_episodes == 2
+    log = read_log(folder / "run" / "logs" / "pick-seed00005.mcap")
+    steps = [s for s in log.iter_steps() if s.node == POLICY_NODE and s.status == "ok" and s.produced]
+    assert steps and all({"skill", "state", "scene", "wrist"} == set(s.consumed) for s in steps)
+    events = {e.id: e for e in log.iter_events()}
+    frames = [dataset[i] for i in range(len(dataset)) if int(dataset[i]["episode_index"]) == 0]
+    assert len(frames) == len(steps)
+    for frame, step in zip(frames, steps):
+        (chunk,) = step.produced
+        np.testing.assert_array_equal(frame["action"].numpy(),
+                                      log.value(events[chunk]).actions.reshape(-1).astype(np.float32))
+        np.testing.assert_array_equal(frame["observation.state"].numpy(),
+                                      log.value(events[step.consumed["state"][0]]).astype(np.float32))
+        assert frame["task"] == "Pick(spice)"
+
+
+def test_the_npz_export_gives_the_training_the_same_samples(loop, tmp_path):
+    from agents.learn.dataset import export, load_dataset
+    folder, _ = loop
+    logs = sorted((folder / "run" / "logs").glob("*.mcap"))
+    export(logs, tmp_path / "npz", format="npz")
+    npz, lerobot = load_dataset(tmp_path / "npz"), load_dataset(folder / "run" / "dataset")
+    assert npz.action.shape == lerobot.action.shape and npz.action.shape[1:] == (150, 5)
+    for name in ("state", "scene", "action"):
+        np.testing.assert_array_equal(getattr(npz, name).astype(np.float32), getattr(lerobot, name), err_msg=name)
+    assert list(npz.episode) == list(lerobot.episode)
+
+
+def test_the_checkpoint_is_safetensors_and_json_and_runs_as_a_torch_policy(loop):
+    from agents.flows import LearnedSkill
+    from agents.messages import SkillCmd
+    from retriever.learn import TorchPolicy
+    folder, _ = loop
+    checkpoint = folder / "run" / "policy"
+    assert sorted(p.name for p in checkpoint.iterdir()) == ["model.safetensors", "policy.json"]
+    config = json.loads((checkpoint / "policy.json").read_text())
+    assert config["kind"] == "agents.learn.bc.PickMLP" and config["training"]["epochs"] == 3
+    policy = LearnedSkill(str(checkpoint))
+    assert isinstance(policy, TorchPolicy)
+    policy.setup()
+    out = policy.step(SkillCmd(1, "Pick", "spice"), np.zeros(18), np.zeros(10))
+    again = policy.step(SkillCmd(1, "Pick", "spice"), np.zeros(18), np.zeros(10))
+    assert out["action"].actions.shape == (150, 5) and out["action"].actions.dtype == np.float64
+    assert np.array_equal(out["action"].actions, again["action"].actions)
+    assert policy.step(SkillCmd(2, "Season", "food"), np.zeros(18), np.zeros(10)) == {}
+    policy.teardown()
+
+
+def test_the_loop_evaluates_the_learned_and_the_scripted_pick_and_writes_results_and_a_plot(loop):
+    folder, done = loop
+    results = json.loads((folder / "results" / "results.json").read_text())
+    assert (folder / "results" / "learning_loop.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert results["command"].startswith("python -m agents.learn all --episodes 2 --train-seeds 5:9")
+    assert results["collected"]["episodes"] == 2 and results["dataset"]["logs"] == 2
+    assert results["dataset"]["frames"] > 0 and results["dataset"]["bytes"] > 0
+    assert results["training"]["epochs"] == 3 and len(results["training"]["loss_per_epoch"]) == 3
+    evaluation = results["evaluation"]
+    assert evaluation["seeds"] == "4:5" and evaluation["learned"]["policy"].endswith("policy")
+    scripted = evaluation["scripted"]
+    assert scripted["skill"]["success_mean"] == 1.0 and scripted["task"]["success_mean"] == 1.0, scripted
+    for what in ("skill", "task"):
+        (episode,) = evaluation["learned"][what]["episodes"]
+        assert episode["seed"] == 4 and evaluation["learned"][what]["success_mean"] == float(episode["success"])
+    assert "task: success 1.00 ± 0.00 over 1 seeds (1/1)" in done.stdout, done.stdout
+
+
+def test_retriever_demo_runs_the_learned_policy_in_the_pick_slot(loop):
+    folder, _ = loop
+    done = subprocess.run([sys.executable, "-m", "retriever", "demo", "--backend", "inproc", "--drawer", "TL", "--seed",
+                           "2", "--duration", "40", "--skill-policy", "run/policy", "--out", "pictures"],
+                          capture_output=True, text=True, cwd=folder, timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
-    training = json.loads((folder / "training.json").read_text())
-    assert training["epochs"] == 3 and training["episodes"] == 2 and training["logs"] == 2
-    done = learn("evaluate", "--seeds", "9:10", "--skill-policy", "policy.pt", "--skill-only", "--out", "eval.json",
-                 cwd=folder)
-    assert done.returncode == 0, done.stdout + done.stderr
-    result = json.loads((folder / "eval.json").read_text())
-    assert result["policy"] == "policy.pt" and result["seeds"] == "9:10" and "task" not in result
-    (episode,) = result["skill"]["episodes"]
-    assert episode["seed"] == 9 and result["skill"]["success_mean"] == float(episode["success"])
-    assert f"skill: success {float(episode['success']):.2f} ± 0.00 over 1 seeds" in done.stdout, done.stdout
+    assert "Pick(spice)" in done.stdout, done.stdout
+    log = read_log(folder / "run.mcap")
+    node = log.ir.node(POLICY_NODE)
+    assert node["type"] == "agents.flows:LearnedSkill" and node["params"]["path"] == str(folder / "run" / "policy")
+    chunks = [e for e in log.iter_events() if e.node == POLICY_NODE and e.port == "action"]
+    assert chunks and all(log.value(e).actions.shape == (150, 5) for e in chunks)
 
 
-def test_evaluate_scripted_reports_the_skill_and_the_whole_task(tmp_path):
-    done = learn("evaluate", "--seeds", "4:5", "--out", "eval.json", cwd=tmp_path)  # the spice in TL: found first
-    assert done.returncode == 0, done.stdout + done.stderr
-    result = json.loads((tmp_path / "eval.json").read_text())
-    assert result["policy"] == "scripted"
-    assert result["skill"]["success_mean"] == 1.0 and result["task"]["success_mean"] == 1.0, result
-    assert "skill: success 1.00 ± 0.00 over 1 seeds (1/1)" in done.stdout
-    assert "task: success 1.00 ± 0.00 over 1 seeds (1/1)" in done.stdout
+def test_on_zenoh_in_real_time_the_learned_pick_replays_identically(loop, tmp_path):
+    folder, _ = loop
+    log = tmp_path / "pick.mcap"
+    pipe = build(seed=9, episode="pick", skill_policy=str(folder / "run" / "policy"), deadline=30.0)
+    trace = pipe.run(duration=30.0, backend="zenoh", log=str(log), quiet=True)
+    assert trace.events_of(POLICY_NODE, "action"), "the learned policy sent no chunk"
+    assert [e.value for e in trace.events_of("skill", "progress")][-1].status != "running"
+    assert replay(read_log(log)).identical
 
 
 @pytest.mark.parametrize("args, message", [
     (["evaluate", "--seeds", "3:1"], "--seeds '3:1': expected A:B with 0 <= A < B"),
     (["evaluate", "--seeds", "x"], "--seeds 'x': expected A:B"),
-    (["evaluate", "--seeds", "0:1", "--skill-policy", "absent.pt"], "skill policy 'absent.pt': no such file"),
+    (["evaluate", "--seeds", "0:1", "--skill-policy", "absent"], "skill policy 'absent': no such directory"),
+    (["evaluate", "--seeds", "0:1", "--skill-policy", "empty"], "the directory holds no model.safetensors"),
     (["collect", "--episodes", "5", "--seeds", "0:2", "-o", "d"], "--episodes 5: give 1 to 2"),
-    (["train", "empty", "-o", "p.pt"], "empty: no logs (*.mcap) to train on"),
+    (["export", "empty", "-o", "ds"], "empty: no episodes.json"),
+    (["train", "empty", "-o", "p"], "empty: no exported dataset"),
+    (["all", "--train-seeds", "0:5", "--eval-seeds", "4:6", "-o", "d"], "--eval-seeds 4:6 overlaps --train-seeds"),
 ])
 def test_bad_arguments_get_a_clear_error(tmp_path, args, message):
     (tmp_path / "empty").mkdir()

@@ -137,7 +137,7 @@ def test_retriever_demo_in_virtual_time_prints_the_episode_saves_pictures_and_a_
     (["--seed", "-1"], "seed -1 must be an integer in [0, 2**32)"),
     (["--out", "a_file"], "--out a_file: cannot make a folder for the pictures there"),
     (["--teleop", "teleop.json"], "payload must be a skill"),
-    (["--skill-policy", "absent.pt"], "absent.pt': no such file"),
+    (["--skill-policy", "absent"], "absent': no such directory"),
     (["--planner", "openai:http://127.0.0.1:9/v1#m"], "planner endpoint http://127.0.0.1:9/v1 is not reachable"),
 ])
 def test_a_bad_demo_option_gets_a_clear_error_and_no_traceback(tmp_path, args, message):

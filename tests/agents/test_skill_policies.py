@@ -1,21 +1,23 @@
 """The pluggable Pick policy: what it sees, the scripted Pick behind those inputs, and a
-TorchScript module in the loop."""
+checkpoint run by a TorchPolicy flow (agents.flows.LearnedSkill) in the loop."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
+import json
 
 import numpy as np
 import pytest
 
-from agents.learn.dataset import read_samples
+from agents import retriever0
+from agents.flows import LearnedSkill
 from agents.learn.episodes import pick_episode
+from agents.messages import SkillCmd
 from agents.retriever0 import POLICY_NODE, build
 from agents.skill_features import SCENE_NAMES, STATE_NAMES, facts_of, sensors
-from agents.skill_policies import load_skill_policy
+from agents.skill_policies import CONFIG_FILE, KIND, WEIGHTS_FILE, check_skill_policy
 from agents.skills import pick_start
 from agents.world import Layout, Sim
+from retriever import read_log
 
 PICK_FACTS = ("robot", "robot_vel", "command", "tcp", "bottle_pos", "bottle_upright", "held", "grasped", "drawers",
               "handles", "bottle_location")
@@ -64,47 +66,100 @@ def test_the_scripted_pick_behind_a_policys_inputs_sends_the_commands_the_skill_
     assert all(np.array_equal(a, b) for a, b in zip(commands[None], commands["scripted"]))
 
 
-def test_a_torchscript_module_in_the_pick_slot_drives_the_robot(tmp_path):
-    pytest.importorskip("torch")
-    from tests.agents.replay_policy import save_replay
+def _logged_ticks(path):
+    """(state, scene, chunk) of each tick of the log's pick_policy flow that sent a chunk."""
+    import agents.messages  # noqa: F401
+    log = read_log(path)
+    steps = [s for s in log.iter_steps() if s.node == POLICY_NODE and s.status == "ok" and s.produced]
+    events = {e.id: e for e in log.iter_events()}
+    return [(log.value(events[s.consumed["state"][0]]), log.value(events[s.consumed["scene"][0]]),
+             log.value(events[s.produced[0]]).actions) for s in steps]
+
+
+def _checkpoint(folder, tensors: dict) -> str:
+    """A checkpoint directory: ``tensors`` as model.safetensors, and a Pick MLP's policy.json."""
+    from safetensors.torch import save_file
+    folder.mkdir()
+    save_file(tensors, str(folder / WEIGHTS_FILE))
+    (folder / CONFIG_FILE).write_text(json.dumps({"kind": KIND, "state_dim": 18, "scene_dim": 10, "steps": 150,
+                                                  "nu": 5, "hidden": 8}))
+    return str(folder)
+
+
+class ReplayPick(LearnedSkill):
+    """The learned-policy flow with a module that answers each tick with the logged chunk whose
+    state and scene are nearest (its tensors the checkpoint's, loaded by TorchPolicy)."""
+
+    def build(self):
+        import torch
+        from safetensors import safe_open
+
+        class Replay(torch.nn.Module):
+            def __init__(self, ticks: int):
+                super().__init__()
+                self.register_buffer("keys", torch.zeros(ticks, 28))
+                self.register_buffer("chunks", torch.zeros(ticks, 150, 5))
+
+            def forward(self, batch: dict) -> torch.Tensor:
+                x = torch.cat([batch["observation.state"], batch["observation.environment_state"]], dim=1)
+                return self.chunks[torch.argmin(((self.keys - x) ** 2).sum(dim=1))][None]
+
+        with safe_open(f"{self.path}/{WEIGHTS_FILE}", "pt") as f:
+            return Replay(f.get_slice("keys").get_shape()[0])
+
+
+def test_a_torch_policy_checkpoint_in_the_pick_slot_drives_the_robot(tmp_path, monkeypatch):
+    """A TorchPolicy flow in the Pick slot, its module replaying the scripted Pick's logged
+    chunks: the same episode, the chunks sent those logged (as float32, the policy's floats)."""
+    torch = pytest.importorskip("torch")
     scripted = pick_episode(3, "scripted", log=str(tmp_path / "scripted.mcap"))
-    logged = save_replay(tmp_path / "scripted.mcap", tmp_path / "replay.pt")
-    outcome = pick_episode(3, str(tmp_path / "replay.pt"), log=str(tmp_path / "replayed.mcap"))
+    logged = _logged_ticks(tmp_path / "scripted.mcap")
+    keys = np.stack([np.concatenate([state, scene]) for state, scene, _ in logged]).astype(np.float32)
+    chunks = np.stack([chunk for _, _, chunk in logged]).astype(np.float32)
+    path = _checkpoint(tmp_path / "replay", {"keys": torch.from_numpy(keys), "chunks": torch.from_numpy(chunks)})
+    monkeypatch.setattr(retriever0, "LearnedSkill", ReplayPick)
+    outcome = pick_episode(3, path, log=str(tmp_path / "replayed.mcap"))
     assert scripted.success and outcome.success and outcome.seconds == scripted.seconds
-    _, _, replayed = read_samples(tmp_path / "replayed.mcap")
-    assert len(replayed) == len(logged) and all(np.array_equal(a, b) for a, b in zip(replayed, logged))
+    replayed = [chunk for _, _, chunk in _logged_ticks(tmp_path / "replayed.mcap")]
+    assert len(replayed) == len(chunks) and all(np.array_equal(a, b) for a, b in zip(replayed, chunks))
 
 
-def test_a_policy_module_of_the_wrong_shape_or_kind_is_refused_with_the_reason(tmp_path):
+def test_a_checkpoint_that_is_not_a_pick_policy_is_refused_with_the_reason(tmp_path):
+    torch = pytest.importorskip("torch")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no such directory"):
+        check_skill_policy(str(tmp_path / "absent"))
+    with pytest.raises(ValueError, match="the directory holds no model.safetensors"):
+        check_skill_policy(str(tmp_path / "empty"))
+    path = _checkpoint(tmp_path / "wrong", {"keys": torch.zeros(1, 28)})
+    for doc, message in [("not json", "policy.json is not readable JSON"),
+                         ('{"kind": "os.system", "nu": 5}', "is no Pick policy's config"),
+                         (json.dumps({"kind": KIND, "state_dim": 18, "scene_dim": 10, "steps": 150, "nu": 4,
+                                      "hidden": 8}), "the robot has 5 actuators"),
+                         (json.dumps({"kind": KIND, "state_dim": 18, "scene_dim": "10", "steps": 150, "nu": 5,
+                                      "hidden": 8}), "scene_dim must be positive integers")]:
+        (tmp_path / "wrong" / CONFIG_FILE).write_text(doc)
+        with pytest.raises(ValueError, match=message):
+            check_skill_policy(path)
+
+
+def test_a_policy_module_of_the_wrong_shape_is_refused_with_the_reason(tmp_path):
     torch = pytest.importorskip("torch")
 
-    class Wrong(torch.nn.Module):
-        def forward(self, state: torch.Tensor, scene: torch.Tensor, wrist: torch.Tensor) -> torch.Tensor:
-            return torch.zeros(1, 4)
+    class Rows(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.layer = torch.nn.Linear(18, 4)
 
-    torch.jit.script(Wrong()).save(str(tmp_path / "wrong.pt"))
-    (tmp_path / "notes.pt").write_text("not a module")
-    from agents.skill_policies import SkillObservation
-    seen = SkillObservation(0.0, "Pick(spice)", np.zeros(18), np.zeros(10), np.zeros((64, 64, 3), np.uint8))
-    with pytest.raises(ValueError, match=r"returned shape \(1, 4\): expected \(1, steps, 5\)"):
-        load_skill_policy(str(tmp_path / "wrong.pt")).act(seen, 150, 200.0)
-    with pytest.raises(ValueError, match="not a TorchScript module torch.jit.load can read"):
-        load_skill_policy(str(tmp_path / "notes.pt"))
-    with pytest.raises(ValueError, match="no such file"):
-        load_skill_policy(str(tmp_path / "absent.pt"))
+        def forward(self, batch: dict) -> torch.Tensor:
+            return self.layer(batch["observation.state"])
 
+    class Wrong(LearnedSkill):
+        def build(self):
+            return Rows()
 
-def test_retriever_demo_runs_the_task_with_a_policy_module_in_the_pick_slot(tmp_path):
-    pytest.importorskip("torch")
-    from tests.agents.replay_policy import save_replay
-    build(seed=2, drawer="TL", skill_policy="scripted").run(duration=70.0, backend="inproc",
-                                                            log=str(tmp_path / "scripted.mcap"))
-    logged = save_replay(tmp_path / "scripted.mcap", tmp_path / "replay.pt")
-    done = subprocess.run([sys.executable, "-m", "retriever", "demo", "--backend", "inproc", "--drawer", "TL", "--seed",
-                           "2", "--skill-policy", "replay.pt", "--out", "pictures"], capture_output=True, text=True,
-                          cwd=tmp_path, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-    trace = "skill trace: OpenDrawer(TL-H) → InspectDrawer(TL) → Pick(spice) → Season(food) → CloseDrawer(TL-H)"
-    assert trace in done.stdout and "task progress: 100%" in done.stdout, done.stdout
-    _, _, replayed = read_samples(tmp_path / "run.mcap")
-    assert len(replayed) == len(logged) and all(np.array_equal(a, b) for a, b in zip(replayed, logged))
+    path = _checkpoint(tmp_path / "wrong", {"layer.weight": torch.zeros(4, 18), "layer.bias": torch.zeros(4)})
+    policy = Wrong(path=path)
+    policy.setup()
+    with pytest.raises(ValueError, match=r"its model returned a chunk of shape \(1, 4\): expected \(steps, 5\)"):
+        policy.step(SkillCmd(1, "Pick", "spice"), np.zeros(18), np.zeros(10))
