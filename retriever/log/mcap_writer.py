@@ -60,6 +60,12 @@ MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 MESSAGE_FIELDS = 2 + 4 + 8 + 8
 _CHANNEL_AT, _LOG_TIME_AT = 9, 15  # where a Message record's channel id and log time begin
 _LOG_TIME_BYTES = np.arange(_LOG_TIME_AT, _LOG_TIME_AT + 8)
+#: The head of a Chunk record, up to its compression's name: opcode, record length, message start
+#: and end time, uncompressed size and CRC, the name's length; then the name, and the records'
+#: length (8 bytes) before them; CHUNK_FIELDS counts the fields' bytes but the name and records
+CHUNK_HEAD = struct.Struct("<BQQQQII")
+CHUNK_FIELDS = 8 + 8 + 8 + 4 + 4 + 8
+_ZSTD = b"zstd"
 MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")  # opcode, record length, channel id, entries' length
 _U32 = 0xFFFFFFFF
 
@@ -191,6 +197,17 @@ class McapWriter:
         if len(self._chunk) >= self._chunk_size:
             self._close_chunk()
 
+    def add_large_record(self, head: bytes, body: np.ndarray, log_time: int, channel_id: int) -> None:
+        """Append one Message record whose bytes are ``head`` then ``body`` (a big value's raw
+        bytes, which nobody changes afterwards) in a chunk of its own: neither part is copied
+        on this thread, and the I/O thread compresses and writes them as they are."""
+        self._close_chunk()
+        self._start_time = log_time if self._start_time is None else min(self._start_time, log_time)
+        self._end_time = max(self._end_time, log_time)
+        self._message_counts[channel_id] += 1
+        self._reserve(len(head) + body.nbytes)
+        self._submit(self._write_large_chunk, head, body, log_time)
+
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS (as soon as the I/O thread gets
         there): it then survives a kill."""
@@ -215,22 +232,55 @@ class McapWriter:
         self._chunk, self._lengths, self._chunk_times = bytearray(), [], None
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
+        self._reserve(len(data))
+        self._submit(self._write_chunk, data, lengths, start, end)
+
+    def _reserve(self, size: int) -> None:
+        """Count ``size`` chunk bytes as queued, once the queue is short enough (MAX_BYTES_QUEUED)."""
         with self._written:
             if self._queued > MAX_BYTES_QUEUED and self._failure is None:
                 began = time.monotonic_ns()
                 self.waits += 1
                 self._written.wait_for(lambda: self._queued <= MAX_BYTES_QUEUED or self._failure is not None)
                 self.waited_ns += time.monotonic_ns() - began
-            self._queued += len(data)
-        self._submit(self._write_chunk, data, lengths, start, end)
+            self._queued += size
+
+    def _written_out(self, size: int) -> None:
+        with self._written:
+            self._queued -= size
+            self._written.notify_all()
 
     def _write_chunk(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         try:
             self._compress_and_write(data, lengths, start, end)
         finally:
-            with self._written:
-                self._queued -= len(data)
-                self._written.notify_all()
+            self._written_out(len(data))
+
+    def _write_large_chunk(self, head: bytes, body: np.ndarray, log_time: int) -> None:
+        """The chunk of one big record: compressed, checked and written part by part (zstd,
+        crc32 and file writes of big buffers let the run's threads go on meanwhile)."""
+        size = len(head) + body.nbytes
+        try:
+            stream = self._compressor.compressobj(size=size)
+            compressed = [stream.compress(head), stream.compress(body), stream.flush()]
+            compressed_size = sum(map(len, compressed))
+            crc = zlib.crc32(body, zlib.crc32(head))
+            fields = CHUNK_FIELDS + len(_ZSTD) + compressed_size
+            chunk_head = (CHUNK_HEAD.pack(Opcode.CHUNK, fields, log_time, log_time, size, crc, len(_ZSTD)) + _ZSTD
+                          + compressed_size.to_bytes(8, "little"))
+            chunk_offset = self._offset
+            indexes = message_indexes(head, [size])  # the indexes read the records' heads only
+            index_bytes = b"".join(record for _, record in indexes)
+            at = chunk_offset + 1 + 8 + fields
+            for part in (chunk_head, *compressed, index_bytes):
+                self._write(part)
+            self._chunk_indexes.append(ChunkIndex(
+                message_start_time=log_time, message_end_time=log_time, chunk_start_offset=chunk_offset,
+                chunk_length=1 + 8 + fields, message_index_offsets={indexes[0][0]: at},
+                message_index_length=len(index_bytes), compression="zstd", compressed_size=compressed_size,
+                uncompressed_size=size))
+        finally:
+            self._written_out(size)
 
     def _compress_and_write(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         compressed = self._compressor.compress(data)
