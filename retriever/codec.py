@@ -177,15 +177,13 @@ def _bin_head(n: int) -> bytes:
     return b"\xc6" + n.to_bytes(4, "big")
 
 
-def array_parts(arr: np.ndarray) -> tuple[bytes, np.ndarray]:
-    """``Encoder.pack(arr)`` in two parts, head and raw bytes (``head + bytes(raw)`` is it), the
-    raw bytes copied by numpy, which lets other threads run meanwhile (``tobytes`` and joining
-    bytes hold the GIL for the whole copy: long for big arrays)."""
-    head = _array_head(arr)
-    n, size = arr.nbytes, _bin_head(arr.nbytes)
-    raw = np.empty(n, dtype=np.uint8)
-    np.copyto(raw.view(arr.dtype).reshape(arr.shape), arr)
-    return _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size, raw
+def array_encoding_head(arr: np.ndarray) -> bytes:
+    """What ``Encoder.pack(arr)`` puts before the array's raw bytes (in C order): a big array's
+    encoding can then be assembled in a buffer numpy copies the array into, which lets other
+    threads run meanwhile (``tobytes`` and joining bytes hold the GIL for the whole copy)."""
+    head, n = _array_head(arr), arr.nbytes
+    size = _bin_head(n)
+    return _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
 
 
 def _default(obj: Any) -> Any:

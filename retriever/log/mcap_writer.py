@@ -197,16 +197,16 @@ class McapWriter:
         if len(self._chunk) >= self._chunk_size:
             self._close_chunk()
 
-    def add_large_record(self, head: bytes, body: np.ndarray, log_time: int, channel_id: int) -> None:
-        """Append one Message record whose bytes are ``head`` then ``body`` (a big value's raw
-        bytes, which nobody changes afterwards) in a chunk of its own: neither part is copied
-        on this thread, and the I/O thread compresses and writes them as they are."""
+    def add_large_record(self, record: np.ndarray, log_time: int, channel_id: int) -> None:
+        """Append one big Message record (its bytes, in a buffer nobody changes afterwards) in a
+        chunk of its own: it is not copied on this thread, and the I/O thread compresses and
+        writes it as it is."""
         self._close_chunk()
         self._start_time = log_time if self._start_time is None else min(self._start_time, log_time)
         self._end_time = max(self._end_time, log_time)
         self._message_counts[channel_id] += 1
-        self._reserve(len(head) + body.nbytes)
-        self._submit(self._write_large_chunk, head, body, log_time)
+        self._reserve(len(record))
+        self._submit(self._write_large_chunk, record, log_time)
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS (as soon as the I/O thread gets
@@ -256,31 +256,26 @@ class McapWriter:
         finally:
             self._written_out(len(data))
 
-    def _write_large_chunk(self, head: bytes, body: np.ndarray, log_time: int) -> None:
-        """The chunk of one big record: compressed, checked and written part by part (zstd,
-        crc32 and file writes of big buffers let the run's threads go on meanwhile)."""
-        size = len(head) + body.nbytes
+    def _write_large_chunk(self, record: np.ndarray, log_time: int) -> None:
+        """The chunk of one big record, written without joining its parts (zstd, crc32 and file
+        writes of big buffers let the run's other threads go on meanwhile)."""
         try:
-            stream = self._compressor.compressobj(size=size)
-            compressed = [stream.compress(head), stream.compress(body), stream.flush()]
-            compressed_size = sum(map(len, compressed))
-            crc = zlib.crc32(body, zlib.crc32(head))
-            fields = CHUNK_FIELDS + len(_ZSTD) + compressed_size
-            chunk_head = (CHUNK_HEAD.pack(Opcode.CHUNK, fields, log_time, log_time, size, crc, len(_ZSTD)) + _ZSTD
-                          + compressed_size.to_bytes(8, "little"))
+            compressed = self._compressor.compress(record)
+            fields = CHUNK_FIELDS + len(_ZSTD) + len(compressed)
+            chunk_head = (CHUNK_HEAD.pack(Opcode.CHUNK, fields, log_time, log_time, len(record), zlib.crc32(record),
+                                          len(_ZSTD)) + _ZSTD + len(compressed).to_bytes(8, "little"))
             chunk_offset = self._offset
-            indexes = message_indexes(head, [size])  # the indexes read the records' heads only
-            index_bytes = b"".join(record for _, record in indexes)
-            at = chunk_offset + 1 + 8 + fields
-            for part in (chunk_head, *compressed, index_bytes):
-                self._write(part)
+            [(channel_id, index)] = message_indexes(record, [len(record)])
+            self._write(chunk_head)
+            self._write(compressed)
+            self._write(index)
             self._chunk_indexes.append(ChunkIndex(
                 message_start_time=log_time, message_end_time=log_time, chunk_start_offset=chunk_offset,
-                chunk_length=1 + 8 + fields, message_index_offsets={indexes[0][0]: at},
-                message_index_length=len(index_bytes), compression="zstd", compressed_size=compressed_size,
-                uncompressed_size=size))
+                chunk_length=1 + 8 + fields, message_index_offsets={channel_id: chunk_offset + 1 + 8 + fields},
+                message_index_length=len(index), compression="zstd", compressed_size=len(compressed),
+                uncompressed_size=len(record)))
         finally:
-            self._written_out(size)
+            self._written_out(len(record))
 
     def _compress_and_write(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         compressed = self._compressor.compress(data)

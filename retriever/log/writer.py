@@ -22,7 +22,7 @@ import msgpack
 import numpy as np
 from mcap.opcode import Opcode
 
-from ..codec import Encoder, array_parts
+from ..codec import Encoder, array_encoding_head
 from ..errors import CodecError, LogError, LogWriteError
 from . import format as fmt
 from .mcap_writer import MESSAGE_FIELDS, MESSAGE_HEAD, McapWriter
@@ -249,20 +249,23 @@ class LogWriter:
         self.last_bytes += sum(map(len, records))
 
     def _add_large_event(self, event: tuple) -> None:
-        """An event whose value is a big array: its record goes to the file in two parts, the
-        array's bytes copied once, by numpy (joining bytes would hold the GIL for as long as the
-        copy takes, and the run's other threads, a coordinator's answers among them, would wait)."""
+        """An event whose value is a big array: its record is assembled in one buffer into which
+        numpy copies the array once (joining bytes would hold the GIL for as long as the copy
+        takes, and the run's other threads, a coordinator's answers among them, would wait)."""
         (log_time, microstep), node, port, seq, value, published = event
         try:
-            value_head, raw = array_parts(value)
+            value_head = array_encoding_head(value)
         except CodecError:
             raise self._unencodable([event]) from None
         data_head = (_HEADS[microstep] if microstep < 128 else b"\x92" + self._encode(microstep)) + value_head
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
-        record_head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + raw.nbytes, channel,
-                                        seq & 0xFFFFFFFF, log_time, published) + data_head
-        self._mcap.add_large_record(record_head, raw, log_time, channel)
-        self.last_bytes += len(record_head) + raw.nbytes
+        head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + value.nbytes, channel,
+                                 seq & 0xFFFFFFFF, log_time, published) + data_head
+        record = np.empty(len(head) + value.nbytes, dtype=np.uint8)
+        record[:len(head)] = np.frombuffer(head, dtype=np.uint8)
+        np.copyto(record[len(head):].view(value.dtype).reshape(value.shape), value)
+        self._mcap.add_large_record(record, log_time, channel)
+        self.last_bytes += len(record)
 
     def add_fault(self, fault: dict) -> None:
         """Log what went wrong with one of the run's processes (``retriever.fault.N``): its text
