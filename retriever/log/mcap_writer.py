@@ -15,7 +15,9 @@ bytes and the records' lengths: the hot path adds one ``extend`` per batch.
 Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into
 the data section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
 CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
-I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it. A killed writer leaves complete chunks followed by at
+I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it.
+A big record (:meth:`McapWriter.add_large_record`, a big array's) is a chunk of its own, never
+joined with others: joining bytes holds the GIL for as long as the copy takes. A killed writer leaves complete chunks followed by at
 most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriever log recover``).
 """
 
