@@ -165,14 +165,25 @@ def _array_payload(arr: np.ndarray) -> bytes:
     """msgpack ``[descr, shape, raw bytes]``."""
     head = _array_head(arr)
     raw = arr.tobytes()
-    n = len(raw)
+    return head + _bin_head(len(raw)) + raw
+
+
+def _bin_head(n: int) -> bytes:
+    """What precedes ``n`` bytes in msgpack (bin 8/16/32)."""
     if n < 0x100:
-        size = bytes((0xC4, n))
-    elif n < 0x10000:
-        size = b"\xc5" + n.to_bytes(2, "big")
-    else:
-        size = b"\xc6" + n.to_bytes(4, "big")
-    return head + size + raw
+        return bytes((0xC4, n))
+    if n < 0x10000:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")
+
+
+def array_encoding_head(arr: np.ndarray) -> bytes:
+    """What ``Encoder.pack(arr)`` puts before the array's raw bytes (in C order): a big array's
+    encoding can then be assembled in a buffer numpy copies the array into, which lets other
+    threads run meanwhile (``tobytes`` and joining bytes hold the GIL for the whole copy)."""
+    head, n = _array_head(arr), arr.nbytes
+    size = _bin_head(n)
+    return _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
 
 
 def _default(obj: Any) -> Any:
@@ -340,17 +351,19 @@ _FIXEXT = {1: 0xD4, 2: 0xD5, 4: 0xD6, 8: 0xD7, 16: 0xD8}
 
 def _ext_bytes(code: int, payload: bytes) -> bytes:
     """Exactly msgpack's encoding of ``ExtType(code, payload)``: fixext 1/2/4/8/16, else ext 8/16/32."""
-    n = len(payload)
+    return _ext_head(code, len(payload)) + payload
+
+
+def _ext_head(code: int, n: int) -> bytes:
+    """What precedes an ``ExtType(code, payload)``'s payload of ``n`` bytes in msgpack."""
     fixed = _FIXEXT.get(n)
     if fixed is not None:
-        head = bytes((fixed, code))
-    elif n < 0x100:
-        head = bytes((0xC7, n, code))
-    elif n < 0x10000:
-        head = b"\xc8" + n.to_bytes(2, "big") + bytes((code,))
-    else:
-        head = b"\xc9" + n.to_bytes(4, "big") + bytes((code,))
-    return head + payload
+        return bytes((fixed, code))
+    if n < 0x100:
+        return bytes((0xC7, n, code))
+    if n < 0x10000:
+        return b"\xc8" + n.to_bytes(2, "big") + bytes((code,))
+    return b"\xc9" + n.to_bytes(4, "big") + bytes((code,))
 
 
 class Encoder:

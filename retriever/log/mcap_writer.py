@@ -15,7 +15,9 @@ bytes and the records' lengths: the hot path adds one ``extend`` per batch.
 Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into
 the data section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
 CRC of its contents) and flushes the file. Compression and file writes run, in call order, on one
-I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it. A killed writer leaves complete chunks followed by at
+I/O thread (zstd and file writes release the GIL), so they overlap the run instead of pausing it.
+A big record (:meth:`McapWriter.add_large_record`, a big array's) is a chunk of its own, never
+joined with others: joining bytes holds the GIL for as long as the copy takes. A killed writer leaves complete chunks followed by at
 most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriever log recover``).
 """
 
@@ -60,6 +62,12 @@ MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 MESSAGE_FIELDS = 2 + 4 + 8 + 8
 _CHANNEL_AT, _LOG_TIME_AT = 9, 15  # where a Message record's channel id and log time begin
 _LOG_TIME_BYTES = np.arange(_LOG_TIME_AT, _LOG_TIME_AT + 8)
+#: The head of a Chunk record, up to its compression's name: opcode, record length, message start
+#: and end time, uncompressed size and CRC, the name's length; then the name, and the records'
+#: length (8 bytes) before them; CHUNK_FIELDS counts the fields' bytes but the name and records
+CHUNK_HEAD = struct.Struct("<BQQQQII")
+CHUNK_FIELDS = 8 + 8 + 8 + 4 + 4 + 8
+_ZSTD = b"zstd"
 MESSAGE_INDEX_HEAD = struct.Struct("<BQHI")  # opcode, record length, channel id, entries' length
 _U32 = 0xFFFFFFFF
 
@@ -191,6 +199,17 @@ class McapWriter:
         if len(self._chunk) >= self._chunk_size:
             self._close_chunk()
 
+    def add_large_record(self, record: np.ndarray, log_time: int, channel_id: int) -> None:
+        """Append one big Message record (its bytes, in a buffer nobody changes afterwards) in a
+        chunk of its own: it is not copied on this thread, and the I/O thread compresses and
+        writes it as it is."""
+        self._close_chunk()
+        self._start_time = log_time if self._start_time is None else min(self._start_time, log_time)
+        self._end_time = max(self._end_time, log_time)
+        self._message_counts[channel_id] += 1
+        self._reserve(len(record))
+        self._submit(self._write_large_chunk, record, log_time)
+
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS (as soon as the I/O thread gets
         there): it then survives a kill."""
@@ -215,22 +234,50 @@ class McapWriter:
         self._chunk, self._lengths, self._chunk_times = bytearray(), [], None
         self._start_time = start if self._start_time is None else min(self._start_time, start)
         self._end_time = max(self._end_time, end)
+        self._reserve(len(data))
+        self._submit(self._write_chunk, data, lengths, start, end)
+
+    def _reserve(self, size: int) -> None:
+        """Count ``size`` chunk bytes as queued, once the queue is short enough (MAX_BYTES_QUEUED)."""
         with self._written:
             if self._queued > MAX_BYTES_QUEUED and self._failure is None:
                 began = time.monotonic_ns()
                 self.waits += 1
                 self._written.wait_for(lambda: self._queued <= MAX_BYTES_QUEUED or self._failure is not None)
                 self.waited_ns += time.monotonic_ns() - began
-            self._queued += len(data)
-        self._submit(self._write_chunk, data, lengths, start, end)
+            self._queued += size
+
+    def _written_out(self, size: int) -> None:
+        with self._written:
+            self._queued -= size
+            self._written.notify_all()
 
     def _write_chunk(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         try:
             self._compress_and_write(data, lengths, start, end)
         finally:
-            with self._written:
-                self._queued -= len(data)
-                self._written.notify_all()
+            self._written_out(len(data))
+
+    def _write_large_chunk(self, record: np.ndarray, log_time: int) -> None:
+        """The chunk of one big record, written without joining its parts (zstd, crc32 and file
+        writes of big buffers let the run's other threads go on meanwhile)."""
+        try:
+            compressed = self._compressor.compress(record)
+            fields = CHUNK_FIELDS + len(_ZSTD) + len(compressed)
+            chunk_head = (CHUNK_HEAD.pack(Opcode.CHUNK, fields, log_time, log_time, len(record), zlib.crc32(record),
+                                          len(_ZSTD)) + _ZSTD + len(compressed).to_bytes(8, "little"))
+            chunk_offset = self._offset
+            [(channel_id, index)] = message_indexes(record, [len(record)])
+            self._write(chunk_head)
+            self._write(compressed)
+            self._write(index)
+            self._chunk_indexes.append(ChunkIndex(
+                message_start_time=log_time, message_end_time=log_time, chunk_start_offset=chunk_offset,
+                chunk_length=1 + 8 + fields, message_index_offsets={channel_id: chunk_offset + 1 + 8 + fields},
+                message_index_length=len(index), compression="zstd", compressed_size=len(compressed),
+                uncompressed_size=len(record)))
+        finally:
+            self._written_out(len(record))
 
     def _compress_and_write(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
         compressed = self._compressor.compress(data)

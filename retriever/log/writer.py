@@ -19,9 +19,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
 import msgpack
+import numpy as np
 from mcap.opcode import Opcode
 
-from ..codec import Encoder
+from ..codec import Encoder, array_encoding_head
 from ..errors import CodecError, LogError, LogWriteError
 from . import format as fmt
 from .mcap_writer import MESSAGE_FIELDS, MESSAGE_HEAD, McapWriter
@@ -31,12 +32,14 @@ if TYPE_CHECKING:
     from ..trace import Trace
 
 
-_first, _second, _node_port = itemgetter(0), itemgetter(1), itemgetter(1, 2)
+_first, _second, _node_port, _value = itemgetter(0), itemgetter(1), itemgetter(1, 2), itemgetter(4)
 _HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
 RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
+#: an array value at least this big is logged without joining its bytes (LogWriter._add_large_event)
+LARGE_VALUE_BYTES = 1 << 20
 
 
 def describe_os_error(e: OSError) -> str:
@@ -198,21 +201,15 @@ class LogWriter:
         head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
         if len(events) > self._events_done:
             new = events[self._events_done:]
-            channels, encode = self._channels, self._encode
-            try:
-                # data = [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
-                records = [head(op, fields + len(data := _HEADS[tag[1]] + encode(value) if tag[1] < 128
-                                                 else encode([tag[1], value])),
-                                channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
-                                published) + data
-                           for tag, node, port, seq, value, published in new]
-            except CodecError:
-                raise self._unencodable(new) from None
-            tags = list(map(_first, new))
-            counts = Counter(map(_node_port, new))
-            self._mcap.add_records(records, min(tags)[0], max(tags)[0],
-                                   {channels[key]: n for key, n in counts.items()})
-            self.last_bytes = sum(map(len, records))
+            large = ([i for i, value in enumerate(map(_value, new)) if type(value) is np.ndarray
+                      and value.nbytes >= LARGE_VALUE_BYTES] if np.ndarray in set(map(type, map(_value, new))) else [])
+            self.last_bytes = 0
+            begin = 0
+            for i in large:  # in recording order: the small events before it, then it
+                self._add_events(new[begin:i])
+                self._add_large_event(new[i])
+                begin = i + 1
+            self._add_events(new[begin:])
             self._events_done = len(events)
         if len(steps) > self._steps_done:
             pack, channel = self._pack_step, self._steps_channel
@@ -230,6 +227,45 @@ class LogWriter:
         if now - self._last_flush >= self._flush_interval:
             self._mcap.flush()
             self._last_flush = now
+
+    def _add_events(self, new: list[tuple]) -> None:
+        if not new:
+            return
+        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
+        channels, encode = self._channels, self._encode
+        try:
+            # data = [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
+            records = [head(op, fields + len(data := _HEADS[tag[1]] + encode(value) if tag[1] < 128
+                                             else encode([tag[1], value])),
+                            channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
+                            published) + data
+                       for tag, node, port, seq, value, published in new]
+        except CodecError:
+            raise self._unencodable(new) from None
+        tags = list(map(_first, new))
+        counts = Counter(map(_node_port, new))
+        self._mcap.add_records(records, min(tags)[0], max(tags)[0],
+                               {channels[key]: n for key, n in counts.items()})
+        self.last_bytes += sum(map(len, records))
+
+    def _add_large_event(self, event: tuple) -> None:
+        """An event whose value is a big array: its record is assembled in one buffer into which
+        numpy copies the array once (joining bytes would hold the GIL for as long as the copy
+        takes, and the run's other threads, a coordinator's answers among them, would wait)."""
+        (log_time, microstep), node, port, seq, value, published = event
+        try:
+            value_head = array_encoding_head(value)
+        except CodecError:
+            raise self._unencodable([event]) from None
+        data_head = (_HEADS[microstep] if microstep < 128 else b"\x92" + self._encode(microstep)) + value_head
+        channel = self._channels.get((node, port)) or self._add_channel(node, port)
+        head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + value.nbytes, channel,
+                                 seq & 0xFFFFFFFF, log_time, published) + data_head
+        record = np.empty(len(head) + value.nbytes, dtype=np.uint8)
+        record[:len(head)] = np.frombuffer(head, dtype=np.uint8)
+        np.copyto(record[len(head):].view(value.dtype).reshape(value.shape), value)
+        self._mcap.add_large_record(record, log_time, channel)
+        self.last_bytes += len(record)
 
     def add_fault(self, fault: dict) -> None:
         """Log what went wrong with one of the run's processes (``retriever.fault.N``): its text
