@@ -272,8 +272,7 @@ class Coordinator(Session):
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
-        key = self._first_keys.pop(nid, None) or new_key()
-        self._workers[nid] = self._hosts[nid].spawn(nid, mode, key)
+        self._workers[nid], key = self._hosts[nid].spawn(nid, mode, self._first_keys.pop(nid, None) or new_key())
         self._senders.add(nid, key, self._workers[nid])
         if join is not None:
             self._joining.add(nid)

@@ -98,6 +98,7 @@ class Deployment(Coordinator):
         self.ran_other_code: dict[str, list[str]] = {}
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
+        self._zids: dict[str, str | None] = {}  # each worker daemon's session (RemoteHost takes only its answers)
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
                          quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep, foxglove=foxglove)
 
@@ -154,7 +155,7 @@ class Deployment(Coordinator):
             if differences:
                 print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                       f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, host.prepare(self._remote_spec(),
                                                   sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
@@ -208,6 +209,7 @@ class Deployment(Coordinator):
                     print(f"retriever: warning: worker '{name}' has a clock {worker.offset_ns / 1e6:+.3f} ms off "
                           "this machine's", file=sys.stderr, flush=True)
                 found[name] = {**info, "offset_ns": worker.offset_ns}
+                self._zids[name] = worker.zid
         if problems:
             raise BackendError("the deployment cannot start:\n" + "\n".join(f"  - {p}" for p in problems))
         self.workers = found
@@ -327,6 +329,7 @@ class Deployment(Coordinator):
             return  # not (yet) a worker that answers as one: wait on
         del self._waiting[name]
         self.workers[name] = {**worker.info, "offset_ns": worker.offset_ns}
+        self._zids[name] = worker.zid  # a new daemon of that name: a session of its own
         self._remotes.pop(name).close()
         self._move(name, {nid: name for nid in nodes}, waiting["at"])
 
@@ -335,7 +338,7 @@ class Deployment(Coordinator):
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
-                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, remote.prepare(self._remote_spec(),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):

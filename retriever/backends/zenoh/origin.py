@@ -6,8 +6,9 @@ them from another, and nothing a message says of itself (its node, the ``pid`` i
 ``source_info``) is more than a claim. So the coordinator gives each worker process it starts a
 key of its own (KEY_BYTES random bytes), never put on the key space: in the environment of a
 child of this machine (KEY_ENV, which the worker takes out of its environment before any flow
-code runs), in the spawn request to a worker daemon (which passes it on the same way), in the
-private spec of a dora run. The worker puts every status and report with a MAC of its key
+code runs); a worker daemon makes the key of each process it starts, passes it on the same way,
+and answers it in its reply to the spawn request (remote.py: never in a query, which every
+queryable on its key receives, an insider's too); in the private spec of a dora run. The worker puts every status and report with a MAC of its key
 expression and payload as the Zenoh attachment (:func:`sign`); the coordinator takes a message
 on ``status/node/<node>`` or ``status/report/<node>`` only if a key it gave a process of that
 node verifies it (:class:`Senders`), and then knows which process sent it. What it proves: the
@@ -15,8 +16,8 @@ message was made by a holder of that process's key, i.e. that process (or code i
 process of the same user on its host, which can read its memory anyway). What it does not: that
 the process's flow is honest, nor that a message is not a replay of one that process sent
 (the coordinator refuses a second record of a tick and a second event of a seq for that).
-A worker daemon receives the keys of the processes it starts in its spawn requests: an insider
-that answers as that daemon learns them, as it would run those processes.
+An insider that answers as a worker daemon (before it is up, or once it is gone) gives the
+coordinator keys of its own, as it would run those processes.
 """
 
 from __future__ import annotations

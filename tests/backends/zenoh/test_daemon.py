@@ -138,7 +138,7 @@ def test_a_daemon_announces_itself_and_answers_info(workers, namespace):
         before = time.time_ns()
         info = ask(session, namespace, "w1", "info")
         after = time.time_ns()
-    assert info["protocol"] == PROTOCOL_VERSION == 1
+    assert info["protocol"] == PROTOCOL_VERSION == 2
     assert (info["name"], info["labels"], info["nodes"]) == ("w1", ["gpu", "arm"], [])
     assert (info["host"], info["pid"]) == (socket.gethostname(), worker.proc.pid)
     assert info["python"] == ".".join(map(str, sys.version_info[:3]))
@@ -384,9 +384,9 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                                ({"node": "counter", "mode": ["--fresh", "-5", "-1"]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--join", "0", "1" + "0" * 26]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode"),
-                               # the key its process signs with (origin.py): 32 bytes as hex text
-                               ({"node": "counter", "mode": [], "key": "ab" * 31}, "spawn key"),
-                               ({"node": "counter", "mode": [], "key": 7}, "spawn key")):
+                               # the key its process signs with (origin.py) is the worker's to make
+                               ({"node": "counter", "mode": [], "key": "ab" * 32}, "carries no key"),
+                               ({"node": "counter", "mode": [], "key": 7}, "carries no key")):
             with pytest.raises(WorkerError, match=expected):
                 ask(session, namespace, "w", "spawn", {"run": "r2", **args})
         with pytest.raises(WorkerError, match="not a process of run r2"):
@@ -788,7 +788,7 @@ def test_a_deployment_refuses_a_worker_of_another_protocol_and_one_whose_clock_i
                     session.liveliness().declare_token(keys.workers("skewed"))]
         try:
             with pytest.raises(BackendError, match=r"the deployment cannot start:\n"
-                                                   r"  - worker 'future' speaks protocol 2, this coordinator 1\n"
+                                                   r"  - worker 'future' speaks protocol 3, this coordinator 2\n"
                                                    r"    hint: install the same Retriever version .*'9.9'\)\n"
                                                    r"  - worker 'skewed' \(host elsewhere\) has a clock \+[45]\d\.\d+ ms"
                                                    r" off this machine's, past 10 ms\n    hint: sync both clocks"):
