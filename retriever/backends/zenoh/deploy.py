@@ -134,11 +134,13 @@ class Deployment(Coordinator):
         # not even by a SIGKILLed coordinator
         (self._dir / DICTIONARY).unlink(missing_ok=True)
         self.endpoint = (self._listen_at or self._connect)[0]
-        wait_for_peers(self._hub, len(self._connect), JOIN_S)
+        self._linked = wait_for_peers(self._hub, len(self._connect), JOIN_S)
 
     def _where(self) -> str:
-        return (f"deployment joined through {', '.join(self._connect)}" if self._connect else
-                f"deployment listening on {', '.join(self._listen_at)}")
+        if not self._connect:
+            return f"deployment listening on {', '.join(self._listen_at)}"
+        # a peer's session opens without a link: "joined" only once it has one to each endpoint
+        return f"deployment {'joined through' if self._linked else 'connecting to'} {', '.join(self._connect)}"
 
     def _place(self) -> dict:
         found = self._discover()
@@ -182,7 +184,7 @@ class Deployment(Coordinator):
         if not names:
             refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
             if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
-                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)} "
+                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)}: "
                                    f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
                                    "established on the worker), and keep strangers off the workers' ports: a "
                                    "firewall, or TLS (docs/security.md)")
@@ -464,7 +466,7 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
             value = [value] if isinstance(value, str) else value
             ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
         elif kind == "seconds":
-            ok = type(value) in (int, float) and 0 <= value <= 1e9
+            ok = type(value) in (int, float) and 0 < value <= 1e9
         elif kind == "bool":
             ok = isinstance(value, bool)
         elif kind == "keep":
@@ -500,7 +502,7 @@ def _check_deploy_value(key: str, kind: str, value, problems: list[str]) -> None
         problems.append(f"'on_worker_loss' must be one of {', '.join(WORKER_LOSS)}, got {value!r:.60}")
 
 
-DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",
+DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a positive number of seconds (at most 1e9)",
                 "bool": "true or false", "text": "a string", "path": "a file path (a string)",
                 "keep": "\"records\" (values only in the log), \"trace\" (every value in memory) or \"counters\" "
                         "(nothing but counters)"}

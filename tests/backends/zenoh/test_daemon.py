@@ -750,7 +750,7 @@ def test_retriever_deploy_takes_its_settings_from_a_config_file(workers, namespa
     done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
     assert done.returncode == 1
     for problem in ("'port' is no setting of retriever deploy", "'connect' must be an endpoint",
-                    "'lease' must be a number of seconds"):
+                    "'lease' must be a positive number of seconds"):
         assert problem in done.stderr, done.stderr
 
 
@@ -871,13 +871,14 @@ def test_a_deploy_config_reports_every_bad_value_at_once(tmp_path):
 
     config = tmp_path / "deploy.toml"
     config.write_text('connect = ["tcp/arm:7447", "bogus"]\nlisten = "tcp/0.0.0.0:7447"\nnamespace = "lab/a"\n'
-                      'on_worker_loss = "retry"\nlease = "long"\n')
+                      'on_worker_loss = "retry"\nlease = "long"\nmax_clock_offset = -3\n')
     problems = (r"^the deploy config .*deploy\.toml has problems:\n"
                 r"  - 'connect': 'bogus' is no Zenoh endpoint: write PROTOCOL/ADDRESS, e\.g\. tcp/10\.0\.0\.2:7447 "
                 r"\(tls/\.\.\. with TLS\)\n"
                 r"  - 'namespace' 'lab/a' cannot be a Zenoh key chunk: use letters, digits, '_', '-' and '\.' .*\n"
                 r"  - 'on_worker_loss' must be one of replace, wait, stop, got 'retry'\n"
-                r"  - 'lease' must be a number of seconds, got 'long'$")
+                r"  - 'lease' must be a positive number of seconds \(at most 1e9\), got 'long'\n"
+                r"  - 'max_clock_offset' must be a positive number of seconds \(at most 1e9\), got -3$")
     with pytest.raises(BackendError, match=problems):
         load_deploy_config(config)
     done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
