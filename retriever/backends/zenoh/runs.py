@@ -8,7 +8,7 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
                                  keep the spec in a private folder, made for this host: {nodes,
                                  warnings} (a code mismatch it runs anyway, with --code-mismatch warn)
     spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
-                                 does, with a key made for it (origin.py) in its environment:
+                                 does, with a key made for it (origin.py) in a pipe it inherits:
                                  {pid, key}, in the reply, which reaches the querier alone; what
                                  it prints goes to the coordinator, and its exit
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
@@ -46,7 +46,7 @@ from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
 from .host import WORKER_MODULE
 from .hub import weak_callback
-from .origin import KEY_ENV, key_text, new_key
+from .origin import KEY_FD_ENV, key_pipe, key_text, new_key
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -184,10 +184,14 @@ class DaemonRuns:
         key = new_key()  # answered in the reply, which Zenoh routes to the querier alone (origin.py)
         # from a thread that lives as long as the daemon: a worker gets PR_SET_PDEATHSIG when the
         # thread that started it ends, which a thread of Zenoh's (this op's) may do at any time
-        proc = self._spawner.submit(
-            subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-            env={**flow_environment(os.environ, self.pass_env), KEY_ENV: key_text(key)}).result()
+        pipe = key_pipe(key)
+        try:
+            proc = self._spawner.submit(
+                subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                pass_fds=(pipe,), env={**flow_environment(os.environ, self.pass_env), KEY_FD_ENV: str(pipe)}).result()
+        finally:
+            os.close(pipe)
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
             threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,

@@ -173,8 +173,7 @@ def test_a_mac_holds_for_its_process_key_expression_and_payload_only(monkeypatch
     """What the coordinator checks on arrival (origin.Senders): the node's process's key, over the
     key expression and the payload; another process's key, another key, another payload, a cut or
     missing MAC are refused and counted, with why."""
-    from retriever.backends.zenoh.origin import KEY_ENV, MAC_BYTES, Senders, key_text, new_key, sign, \
-        take_key_from_environment
+    from retriever.backends.zenoh.origin import KEY_FD_ENV, MAC_BYTES, Senders, key_pipe, new_key, sign, take_key
 
     old, new, insider = new_key(), new_key(), new_key()
     senders = Senders()
@@ -192,5 +191,25 @@ def test_a_mac_holds_for_its_process_key_expression_and_payload_only(monkeypatch
     assert senders.sender("mic", status, b"payload", sign(new, status, b"payload")) is None  # another node's
     assert senders.refused == len(refused) + 1 and len(senders.reasons) == Senders.KEPT
     assert "no process of 'cam' signed" in senders.reasons[0]
-    monkeypatch.setenv(KEY_ENV, key_text(new))
-    assert take_key_from_environment() == new and KEY_ENV not in os.environ  # flows do not inherit it
+    pipe = key_pipe(new)
+    monkeypatch.setenv(KEY_FD_ENV, str(pipe))
+    assert take_key() == new and KEY_FD_ENV not in os.environ  # flows inherit neither the number
+    with pytest.raises(OSError):  # nor the pipe
+        os.fstat(pipe)
+
+
+def test_no_worker_process_has_its_key_in_its_environment(tmp_path, namespace):
+    """/proc/PID/environ shows a process's environment as it started, for its life, whatever it
+    later removes from os.environ (to its user and root): the key comes through a pipe instead."""
+    secret = _secret_file(tmp_path)
+    run = Run(tmp_path, namespace, secret)
+    try:
+        with _insider(run, namespace, secret, tmp_path):
+            environments = [Path(f"/proc/{_worker_pid(run.proc.pid, node)}/environ").read_bytes()
+                            for node in ("counter", "total")]
+        run.result()
+    finally:
+        run.kill()
+    for environment in environments:
+        assert b"RETRIEVER_PROCESS_KEY_FD=" in environment
+        assert not any(entry.startswith(b"RETRIEVER_PROCESS_KEY=") for entry in environment.split(b"\0"))
