@@ -671,6 +671,7 @@ class CoordinatorTarget(Target):
         # each node's process, as the coordinator knows it: what signed its messages (origin.py)
         s._workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
         s._retiring, s._state = {}, {nid: "ready" for nid in self.graph.nodes}
+        s._said = {}  # each process's last state (coordinator.PROCESS_STAGES)
         return s
 
     def seeds(self) -> list[bytes]:
@@ -853,8 +854,8 @@ class InsiderTarget(CoordinatorTarget):
 class _Host:
     """A host whose processes are never started (what a signed ``restart`` asks for)."""
 
-    def spawn(self, node: str, mode, key) -> _Process:
-        return _Process(50_000)
+    def spawn(self, node: str, mode, key) -> tuple[_Process, bytes]:
+        return _Process(50_000), key
 
 
 class _Hub:
@@ -1035,9 +1036,9 @@ class DaemonOpsTarget(Target):
 
         from retriever.backends.zenoh import daemon, runs
         from retriever.backends.zenoh.host import WORKER_MODULE
-        from retriever.backends.zenoh.origin import KEY_BYTES, KEY_ENV
+        from retriever.backends.zenoh.origin import KEY_BYTES, KEY_FD_ENV
 
-        self.worker_module, self.key_env, self.key_bytes = WORKER_MODULE, KEY_ENV, KEY_BYTES
+        self.worker_module, self.key_fd_env, self.key_bytes = WORKER_MODULE, KEY_FD_ENV, KEY_BYTES
         self.signals, self.flow_env = runs.SIGNALS, runs.flow_environment
         self.max_per_node = runs.MAX_PROCESSES_PER_NODE
         namespace = f"{NAMESPACE}-runs-{os.getpid()}"
@@ -1068,7 +1069,7 @@ class DaemonOpsTarget(Target):
         else:
             raise SystemExit("the daemon never saw the coordinator's liveliness token")
         self.key = new_key().hex()
-        self.spawn_seed = {"run": self.RUN, "node": self.node, "mode": [], "key": self.key}
+        self.spawn_seed = {"run": self.RUN, "node": self.node, "mode": []}
         self._seeds = [WireEncoder().control("spawn", self.spawn_seed)]
         self.signalled: set[int] = set()  # the run's processes a legitimate request signalled
         self.legitimate_left = LEGITIMATE_REQUESTS
@@ -1102,7 +1103,7 @@ class DaemonOpsTarget(Target):
                      ["--inspect", "1", "2"], ["-c", f"open({marker!r}, 'w')", "x"], "--join 1 2", None,
                      {"0": "--join"}, ["--join", "1", "2", "--extra"], ["--join", " 1", "2"],
                      ["--fresh", "0x10", "1"], ["-m", "venv", "--clear"], ["--join", "1\n", "2"], [[]]],
-            "key": ["ab" * (self.key_bytes - 1), "ab" * (self.key_bytes + 1), "zz" * self.key_bytes,
+            "key": [self.key, self.key.upper(), "ab" * (self.key_bytes - 1), "ab" * (self.key_bytes + 1), "zz" * self.key_bytes,
                     "ab" * (self.key_bytes - 1) + "  ", " " + "ab" * (self.key_bytes - 1) + " ",
                     "ab " * (2 * self.key_bytes // 3) + "ab"[: 2 * self.key_bytes % 3],
                     bytes(self.key_bytes), bytes(2 * self.key_bytes), None, 0, 2**256 % 2**64, "", "é" * 64,
@@ -1119,8 +1120,7 @@ class DaemonOpsTarget(Target):
         if rng.random() < 0.5:
             op = "spawn"
             args: dict = {"run": self.RUN, "node": self.node,
-                          "mode": rng.choice(([], ["--join", "12", "34"], ["--fresh", "0", "9" * 19])),
-                          "key": rng.choice((self.key, self.key.upper()))}
+                          "mode": rng.choice(([], ["--join", "12", "34"], ["--fresh", "0", "9" * 19]))}
             fields = ["run", "node", "mode", "key"]
         else:
             op = "signal"
@@ -1140,7 +1140,7 @@ class DaemonOpsTarget(Target):
         if legitimate:
             return pack_tree([WIRE_VERSION, op, args])
         if op == "spawn" and rng.random() < 0.1:
-            del args[rng.choice(fields)]
+            args.pop(rng.choice(fields), None)
         if rng.random() < 0.3:
             args = self.m.tree(args)
         data = pack_tree([WIRE_VERSION, op, args])
@@ -1156,7 +1156,7 @@ class DaemonOpsTarget(Target):
     # -- what a request may do ----------------------------------------------------------------------
     def _legitimate_spawn(self, args: dict) -> list[str] | None:
         """The argv of the worker a legitimate spawn starts; None for any other request."""
-        run, node, mode, key = self.runs.run, args.get("node"), args.get("mode"), args.get("key", "")
+        run, node, mode = self.runs.run, args.get("node"), args.get("mode")
         if run is None or args.get("run") != self.RUN \
                 or type(node) is not str or node not in run.nodes:
             return None
@@ -1164,8 +1164,7 @@ class DaemonOpsTarget(Target):
                                and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
                                        for x in mode[1:]))):
             return None
-        if "key" in args and not (type(key) is str and len(key) == 2 * self.key_bytes
-                                  and all(c in "0123456789abcdefABCDEF" for c in key)):
+        if "key" in args:  # the daemon makes its process's key: a request's is refused
             return None
         if sum(1 for n, p in run.processes.values() if n == node and p.poll() is None) >= self.max_per_node:
             return None
@@ -1185,9 +1184,12 @@ class DaemonOpsTarget(Target):
             argv = self._legitimate_spawn(args)
             if argv is None:
                 return None
-            key = args["key"].lower() if "key" in args else None
-            env = {**self.flow_env(os.environ), **({self.key_env: key} if key else {})}
-            return lambda event, a: ((event == "subprocess.Popen" and a[1] == argv and a[3] == env)
+            env = self.flow_env(os.environ)
+
+            def with_key_pipe(given: dict) -> bool:  # the flows' environment, and the number of the key's pipe
+                fd = given.get(self.key_fd_env, "")
+                return fd.isascii() and fd.isdigit() and {k: v for k, v in given.items() if k != self.key_fd_env} == env
+            return lambda event, a: ((event == "subprocess.Popen" and a[1] == argv and with_key_pipe(a[3]))
                                      or (event == "open" and a[0] == os.devnull))  # its stdin
         if op == "signal":
             legitimate = self._legitimate_signal(args)

@@ -24,7 +24,7 @@ events there; the coordinator warns at once, marks the flow in the run's table
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from typing import TYPE_CHECKING, Any, Mapping
 
 if TYPE_CHECKING:
@@ -41,6 +41,10 @@ MIN_TICKS = 3
 #: a lease: docs/deploy.md), shorter than a run that should have noticed.
 STARVED_AFTER_NS = 3_000_000_000
 STARVED_MIN_EVENTS = 3
+#: how far back in the run's time StarvationWatch keeps when each producer made its events: a
+#: consumer's record may arrive after its producers' later ones (reports come in batches up to a
+#: second old), and the events made from its first tick without one are counted by their tags
+MADE_HISTORY_NS = 10_000_000_000
 
 
 def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
@@ -72,7 +76,7 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
             watched = list(clock.trigger_ports or node.inputs) if clock is not None else []
             if clock is None or clock.hz is not None or not watched or not any(into[p] for p in watched):
                 continue  # a source, a Rate clock, or nothing feeds it (build_ir warned)
-            causes = [_never_had(port, into[port], stats, unread, named) for port in watched if into[port]]
+            causes = [_never_had(port, into[port], stats, produced, unread, named) for port in watched if into[port]]
             if all(causes):
                 lines.append(f"{node_id} never ticked: its trigger input {', and '.join(causes)}")
                 named.add(node_id)
@@ -86,7 +90,7 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
                 continue
             if not into[port]:
                 causes.append(f"input '{port}' has no incoming edge")
-            elif (cause := _never_had(port, into[port], stats, unread, named)) is not None:
+            elif (cause := _never_had(port, into[port], stats, produced, unread, named)) is not None:
                 causes.append(f"input {cause}")
                 explained.add((node_id, port))
         head = f"{node_id} stepped {s.steps} of {s.ticks} ticks"
@@ -105,7 +109,8 @@ def starved_flows(graph: "Graph", stats: Mapping[str, "NodeStats"],
     return lines
 
 
-def _never_had(port: str, edges: list["Edge"], stats, unread: dict[str, list[str]], named: set[str]) -> str | None:
+def _never_had(port: str, edges: list["Edge"], stats, produced: Mapping[tuple[str, str], int],
+               unread: dict[str, list[str]], named: set[str]) -> str | None:
     """Why ``port`` never had an event, if every edge into it is explained by a typo upstream or
     by a producer that was itself named as starved; else None."""
     whys = []
@@ -113,7 +118,7 @@ def _never_had(port: str, edges: list["Edge"], stats, unread: dict[str, list[str
         upstream = stats.get(e.src)
         if upstream is not None and upstream.steps == 0 and e.src in named:
             whys.append(f"edge {e.src} → {e.dst}, {e.src} never stepped")
-        elif unread[e.src]:
+        elif unread[e.src] and not produced.get((e.src, e.src_port)):  # made it: no typo explains the edge
             whys.append(f"edge {e.src} → {e.dst}, output '{e.src_port}' was never produced; {e.src} produced "
                         f"{_listed(unread[e.src])}, which no edge reads")
         else:
@@ -168,7 +173,8 @@ class StarvationWatch:
     its producers made events there. Each such span is an episode, a dict: ``node``,
     ``port``, ``producers`` ("node.port" each), ``since_ns`` (its first tick without an event),
     ``until_ns`` (the first tick with one again; None while it lasts), ``ticks`` (without one)
-    and ``produced`` (the events its producers made meanwhile, as reported). ``news`` lists what
+    and ``produced`` (the events its producers made at its ticks' tags from ``since_ns`` on, as
+    reported by its last tick: a producer's records may come up to a second after it). ``news`` lists what
     happened since it was last emptied: ``("starved", episode)`` and ``("fed", episode)``. The
     time counts from the first tick without an event that saw its producers make some: a sparse
     output that was quiet for long before it fired is not a starved consumer."""
@@ -182,6 +188,10 @@ class StarvationWatch:
             self._ports.setdefault(node, []).append(port)
         self._fed = {stream for streams in self._into.values() for stream in streams}
         self._made: Counter = Counter()  # events made per stream into a port (_fed), as reported so far
+        # per stream: (tag_ns, events made up to and with that step) of its last MADE_HISTORY_NS, and
+        # how many it made before the oldest of them
+        self._history: dict[tuple[str, str], deque] = {}
+        self._older: Counter = Counter()
         # (node, port) -> [since_ns, ticks, events made by then, the first tick that saw more made]
         self._without: dict[tuple[str, str], list] = {}
         self._open: dict[tuple[str, str], dict[str, Any]] = {}
@@ -190,9 +200,13 @@ class StarvationWatch:
 
     def step(self, node: str, tag: tuple[int, int], produced, detail) -> None:
         """One step record of ``node`` (its fields as reported: ``produced`` event ids, ``detail``)."""
-        for event_id in produced:
-            if (event_id[0], event_id[1]) in self._fed:
-                self._made[event_id[0], event_id[1]] += 1
+        made = Counter((event_id[0], event_id[1]) for event_id in produced if (event_id[0], event_id[1]) in self._fed)
+        for stream, n in made.items():
+            self._made[stream] += n
+            history = self._history.setdefault(stream, deque())
+            history.append((tag[0], self._made[stream]))
+            while history[0][0] < tag[0] - MADE_HISTORY_NS:
+                self._older[stream] = history.popleft()[1]
         ports = self._ports.get(node)
         if not ports:
             return
@@ -207,7 +221,7 @@ class StarvationWatch:
                 continue
             without = self._without.get(key)
             if without is None:
-                self._without[key] = [tag[0], 1, self._producers_made(key), None]
+                self._without[key] = [tag[0], 1, self._producers_made_before(key, tag[0]), None]
                 continue
             without[1] += 1
             made = self._producers_made(key) - without[2]
@@ -225,6 +239,19 @@ class StarvationWatch:
 
     def _producers_made(self, key: tuple[str, str]) -> int:
         return sum(self._made[stream] for stream in self._into[key])
+
+    def _producers_made_before(self, key: tuple[str, str], tag_ns: int) -> int:
+        """How many events the producers into ``key`` made at tags before ``tag_ns`` (as far back
+        as MADE_HISTORY_NS; before that, as reported)."""
+        total = 0
+        for stream in self._into[key]:
+            before = self._older[stream]
+            for at, made in reversed(self._history.get(stream, ())):
+                if at < tag_ns:
+                    before = made
+                    break
+            total += before
+        return total
 
 
 def _named(detail, key: str) -> set[str]:

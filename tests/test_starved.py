@@ -242,10 +242,10 @@ def test_an_input_without_events_while_its_producer_makes_them_is_starved_after_
     seq = _feed(watch, 4050, 4100, {"incomplete": ["image"]}, seq0=seq)
     (what, episode), = watch.news
     assert what == "starved" and episode == {"node": "viewer", "port": "image", "producers": ["cam.image"],
-                                             "since_ns": 1000 * MS, "until_ns": None, "ticks": 62, "produced": 61}
+                                             "since_ns": 1000 * MS, "until_ns": None, "ticks": 62, "produced": 62}
     watch.news.clear()
     seq = _feed(watch, 4100, 6000, {"missing": ["image"]}, seq0=seq)
-    assert watch.news == [] and episode["ticks"] == 100 and episode["produced"] == 99
+    assert watch.news == [] and episode["ticks"] == 100 and episode["produced"] == 100
     _feed(watch, 6000, 6100, None, seq0=seq)
     assert watch.news == [("fed", episode)] and episode["until_ns"] == 6000 * MS
     assert watch.episodes == [episode]
@@ -311,3 +311,54 @@ def log_finished(path) -> bool:
         return read_log(path).end is not None
     except Exception:  # not written to its end yet
         return False
+
+
+class SwitchingSource(Flow):
+    """Untyped: ``x`` for its first 20 ticks, then ``y`` (a dict built in a variable: no port is
+    known before the run)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        out = {}
+        out["x" if self.k <= 20 else "y"] = self.k
+        return out
+
+
+class ExactSink(Flow):
+    def step(self, x):
+        return None
+
+
+def test_an_output_that_was_produced_is_not_said_never_produced():
+    """src made 'x' 20 times (then 'y'); sink, half a period off src's ticks with Exact(), never had
+    one. The warning said "output 'x' was never produced; src produced 'y'": false."""
+    from retriever import Exact
+
+    with Pipeline("switching") as pipe:
+        src = SwitchingSource() @ Rate(hz=10)
+        sink = ExactSink() @ Rate(hz=10, offset=0.05)
+        src.then(sink, sync=Exact(), map={"x": "x"})
+    with pytest.warns(StarvedFlowWarning) as record:
+        pipe.run(duration=10.0, keep="counters")
+    (message,) = _starved(record)
+    assert "never produced" not in message and "exact_sink stepped 0 of 100 ticks: every tick was skipped" in message, \
+        message
+
+
+def test_a_starved_inputs_producers_events_are_counted_by_their_tags_not_as_they_arrived():
+    """The producer's first second of records (its events from t=0) arrives before the consumer's
+    first record: its events still count as made while the input had none (it said 10 of 20)."""
+    from retriever.starved import STARVED_AFTER_NS
+
+    watch = _watched_pair()
+    for t in range(0, 1000, 50):
+        watch.step("cam", (t * MS, 0), (("cam", "image", t // 50),), None)
+    for t in range(0, 1000 + STARVED_AFTER_NS // MS + 100, 50):
+        if t >= 1000:
+            watch.step("cam", (t * MS, 0), (("cam", "image", t // 50),), None)
+        watch.step("viewer", (t * MS, 0), (), {"missing": ["image"]})
+    (what, episode), = watch.news
+    assert what == "starved" and episode["since_ns"] == 0 and episode["produced"] == episode["ticks"] == 82, episode

@@ -105,11 +105,11 @@ class DoraHost(Host):
         self._pump = threading.Thread(target=self._read, daemon=True, name="retriever-dora-output")
         self._pump.start()
 
-    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> "DoraNodeProcess":
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple["DoraNodeProcess", bytes]:
         """(``key``: the one the node's process finds in the run's spec, DoraCoordinator._place.)"""
         if mode:  # a restart's new process: dora started the dataflow's processes once
             raise BackendError(f"the dora backend cannot start another process for '{node}'")
-        return DoraNodeProcess(node, self)
+        return DoraNodeProcess(node, self), key
 
     def _read(self) -> None:
         """Follows dora's output file until dora run ended and its last line is read."""

@@ -63,6 +63,19 @@ EXIT_GRACE_S = 2.0
 #: how often, at most, the coordinator tells the consumers which events it has (control `have`)
 HAVE_EVERY_S = 0.02
 
+#: where in its life each state a worker process says of itself puts it: a process says a state
+#: only after those below it (`ready` again and again while it waits for the start), and says a
+#: last one (done, failed, handed_over) once. Anything else is an insider's replay of a status of
+#: the process (its signature holds): a second `done` added its counts and reports again, a `ready`
+#: after its `done` moved the node back; refused (may_say)
+PROCESS_STAGES = {"ready": 0, "restart": 1, "done": 2, "failed": 2, "handed_over": 2}
+
+
+def may_say(last: str | None, state: str) -> bool:
+    """Whether a process whose last state was ``last`` (None: none yet) may now say ``state``."""
+    return last is None or PROCESS_STAGES[state] > PROCESS_STAGES[last] or state == last == "ready"
+
+
 #: sessions not closed yet
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 
@@ -118,6 +131,7 @@ class Coordinator(Session):
         self._workers: dict[str, WorkerProcess] = {}  # each node's process
         self._retiring: dict[str, WorkerProcess] = {}  # a restarting node's old process, until it hands over
         self._retired: list[WorkerProcess] = []  # old processes that handed over, to reap
+        self._said: dict[WorkerProcess, str] = {}  # each process's last state (PROCESS_STAGES)
         self._state: dict[str, str] = {}
         self._exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         self._ran = False
@@ -272,8 +286,7 @@ class Coordinator(Session):
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
         mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
-        key = self._first_keys.pop(nid, None) or new_key()
-        self._workers[nid] = self._hosts[nid].spawn(nid, mode, key)
+        self._workers[nid], key = self._hosts[nid].spawn(nid, mode, self._first_keys.pop(nid, None) or new_key())
         self._senders.add(nid, key, self._workers[nid])
         if join is not None:
             self._joining.add(nid)
@@ -669,6 +682,12 @@ class Coordinator(Session):
             self._garbage(key, WireError(f"a '{state}' status of {node} from pid {info.get('pid')!r:.20}, "
                                          f"which is not the process of {node} that could say it"))
             return
+        if state in PROCESS_STAGES:
+            if not may_say(self._said.get(sender), state):
+                self._garbage(key, WireError(f"a '{state}' status of {node} after its process said "
+                                             f"'{self._said[sender]}' (a replay)"))
+                return
+            self._said[sender] = state
         if state == "reached":  # virtual time: from the node's own process
             until = info.get("until")
             if not self.virtual_time or type(until) is not int:

@@ -59,7 +59,7 @@ from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control,
 #: the largest control request a worker reads (a prepare carries the run's IR)
 MAX_REQUEST_BYTES = 8 << 20
 #: the version of the control protocol on ctl/<name>: a coordinator tells what a worker understands
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: a spawn's key is made by the worker and comes in its answer (remote.py)
 DEFAULT_NAMESPACE = "default"
 #: Zenoh's own port, on every interface: where a coordinator on another machine finds the worker
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
@@ -403,13 +403,19 @@ def hlc_now_ns(session: zenoh.Session) -> int:
 def ask(session: zenoh.Session, namespace: str, name: str, op: str, args: dict | None = None,
         timeout: float = QUERY_S) -> dict:
     """Send ``op`` to worker ``name`` and return its answer; WorkerError if it refused or said nothing."""
+    return ask_whom(session, namespace, name, op, args, timeout)[0]
+
+
+def ask_whom(session: zenoh.Session, namespace: str, name: str, op: str, args: dict | None = None,
+             timeout: float = QUERY_S) -> tuple[dict, str | None]:
+    """:func:`ask`, and the Zenoh id of the session that answered."""
     selector = KeySpace(namespace).ctl(name)
     for reply in session.get(selector, payload=WireEncoder().control(op, args or {}), timeout=timeout):
         try:
             if reply.ok is not None:
                 got, answer = decode_control(reply.ok.payload.to_bytes())
                 if got == op:
-                    return answer
+                    return answer, None if reply.replier_id is None else str(reply.replier_id)
             else:
                 message = decode_error_reply(reply.err.payload.to_bytes())
                 if message is None:  # Zenoh's own error reply (the query timed out): no answer
@@ -530,6 +536,7 @@ class WorkerInfo(NamedTuple):
     info: dict | None  # its info answer, or None
     offset_ns: int | None  # its clock minus ours (NTP-style: theirs minus the midpoint of the query)
     error: str | None  # why there is no info
+    zid: str | None = None  # the Zenoh id of the session that answered as it (remote.RemoteHost takes only its answers)
 
 
 class Listing(NamedTuple):
@@ -578,12 +585,12 @@ def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
     for _ in range(CLOCK_SAMPLES):
         before = hlc_now_ns(session)
         try:
-            info = ask(session, namespace, name, "info")
+            info, zid = ask_whom(session, namespace, name, "info")
         except WorkerError as e:
             return WorkerInfo(name, None, None, str(e))
         after = hlc_now_ns(session)
-        samples.append((after - before, before, after, info))
-    _, before, after, info = min(samples, key=lambda sample: sample[0])
+        samples.append((after - before, before, after, info, zid))
+    _, before, after, info, zid = min(samples, key=lambda sample: sample[0])
     theirs = info.get("clock_ns")
     offset = theirs - (before + after) // 2 if type(theirs) is int else None
-    return WorkerInfo(name, info, offset, None)
+    return WorkerInfo(name, info, offset, None, zid)

@@ -98,6 +98,7 @@ class Deployment(Coordinator):
         self.ran_other_code: dict[str, list[str]] = {}
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
+        self._zids: dict[str, str | None] = {}  # each worker daemon's session (RemoteHost takes only its answers)
         super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
                          quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep, foxglove=foxglove)
 
@@ -133,11 +134,13 @@ class Deployment(Coordinator):
         # not even by a SIGKILLed coordinator
         (self._dir / DICTIONARY).unlink(missing_ok=True)
         self.endpoint = (self._listen_at or self._connect)[0]
-        wait_for_peers(self._hub, len(self._connect), JOIN_S)
+        self._linked = wait_for_peers(self._hub, len(self._connect), JOIN_S)
 
     def _where(self) -> str:
-        return (f"deployment joined through {', '.join(self._connect)}" if self._connect else
-                f"deployment listening on {', '.join(self._listen_at)}")
+        if not self._connect:
+            return f"deployment listening on {', '.join(self._listen_at)}"
+        # a peer's session opens without a link: "joined" only once it has one to each endpoint
+        return f"deployment {'joined through' if self._linked else 'connecting to'} {', '.join(self._connect)}"
 
     def _place(self) -> dict:
         found = self._discover()
@@ -154,7 +157,7 @@ class Deployment(Coordinator):
             if differences:
                 print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                       f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, host.prepare(self._remote_spec(),
                                                   sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
@@ -181,7 +184,7 @@ class Deployment(Coordinator):
         if not names:
             refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
             if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
-                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)} "
+                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)}: "
                                    f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
                                    "established on the worker), and keep strangers off the workers' ports: a "
                                    "firewall, or TLS (docs/security.md)")
@@ -208,6 +211,7 @@ class Deployment(Coordinator):
                     print(f"retriever: warning: worker '{name}' has a clock {worker.offset_ns / 1e6:+.3f} ms off "
                           "this machine's", file=sys.stderr, flush=True)
                 found[name] = {**info, "offset_ns": worker.offset_ns}
+                self._zids[name] = worker.zid
         if problems:
             raise BackendError("the deployment cannot start:\n" + "\n".join(f"  - {p}" for p in problems))
         self.workers = found
@@ -327,6 +331,7 @@ class Deployment(Coordinator):
             return  # not (yet) a worker that answers as one: wait on
         del self._waiting[name]
         self.workers[name] = {**worker.info, "offset_ns": worker.offset_ns}
+        self._zids[name] = worker.zid  # a new daemon of that name: a session of its own
         self._remotes.pop(name).close()
         self._move(name, {nid: name for nid in nodes}, waiting["at"])
 
@@ -335,7 +340,7 @@ class Deployment(Coordinator):
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
-                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id)
+                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, remote.prepare(self._remote_spec(),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
@@ -461,7 +466,7 @@ def load_deploy_config(path: str | os.PathLike) -> dict:
             value = [value] if isinstance(value, str) else value
             ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
         elif kind == "seconds":
-            ok = type(value) in (int, float) and 0 <= value <= 1e9
+            ok = type(value) in (int, float) and 0 < value <= 1e9
         elif kind == "bool":
             ok = isinstance(value, bool)
         elif kind == "keep":
@@ -497,7 +502,7 @@ def _check_deploy_value(key: str, kind: str, value, problems: list[str]) -> None
         problems.append(f"'on_worker_loss' must be one of {', '.join(WORKER_LOSS)}, got {value!r:.60}")
 
 
-DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a number of seconds",
+DEPLOY_KINDS = {"endpoints": "an endpoint or a list of them (\"tcp/HOST:PORT\")", "seconds": "a positive number of seconds (at most 1e9)",
                 "bool": "true or false", "text": "a string", "path": "a file path (a string)",
                 "keep": "\"records\" (values only in the log), \"trace\" (every value in memory) or \"counters\" "
                         "(nothing but counters)"}

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
-from .origin import KEY_ENV, key_text
+from .origin import KEY_FD_ENV, key_pipe
 from .output import WorkerOutput
 
 WORKER_MODULE = "retriever.backends.zenoh.worker"
@@ -51,9 +51,10 @@ class Host(ABC):
         self.alive = True
 
     @abstractmethod
-    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> WorkerProcess:
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[WorkerProcess, bytes]:
         """Start a worker process for ``node``; ``mode``: its extra arguments (``--join T0 END``...);
-        ``key``: the key it signs its statuses and reports with (origin.py), given to it alone."""
+        ``key``: the key it signs its statuses and reports with (origin.py), given to it alone.
+        The process, and the key it signs with: ``key``, or one the host made (a worker daemon)."""
 
     def output(self, node: str) -> WorkerOutput:
         """What ``node``'s worker processes printed (all of them: a restart makes a new one)."""
@@ -75,10 +76,15 @@ class LocalHost(Host):
         super().__init__()
         self.spec_path = spec_path
 
-    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> subprocess.Popen:
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[subprocess.Popen, bytes]:
         cmd = [sys.executable, "-m", WORKER_MODULE, str(self.spec_path), node, *mode]
-        env = {**os.environ, KEY_ENV: key_text(key)} if key is not None else None
-        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                start_new_session=True, env=env)
+        pipe = key_pipe(key) if key is not None else None
+        try:
+            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                    start_new_session=True, pass_fds=() if pipe is None else (pipe,),
+                                    env=None if pipe is None else {**os.environ, KEY_FD_ENV: str(pipe)})
+        finally:
+            if pipe is not None:
+                os.close(pipe)
         self.output(node).attach(proc)
-        return proc
+        return proc, key

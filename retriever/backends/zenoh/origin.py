@@ -4,10 +4,11 @@ Every process of a run holds the run's password, and so may an insider (a proces
 deployment secret): Zenoh's authentication tells the run's processes from strangers, not one of
 them from another, and nothing a message says of itself (its node, the ``pid`` in a status, a
 ``source_info``) is more than a claim. So the coordinator gives each worker process it starts a
-key of its own (KEY_BYTES random bytes), never put on the key space: in the environment of a
-child of this machine (KEY_ENV, which the worker takes out of its environment before any flow
-code runs), in the spawn request to a worker daemon (which passes it on the same way), in the
-private spec of a dora run. The worker puts every status and report with a MAC of its key
+key of its own (KEY_BYTES random bytes), never put on the key space: through a pipe the worker
+inherits (its number in KEY_FD_ENV; the worker reads it and closes it before any flow code runs,
+so the key is in no process's environment, which /proc/PID/environ keeps for the process's life); a worker daemon makes the key of each process it starts, passes it on the same way,
+and answers it in its reply to the spawn request (remote.py: never in a query, which every
+queryable on its key receives, an insider's too); in the private spec of a dora run. The worker puts every status and report with a MAC of its key
 expression and payload as the Zenoh attachment (:func:`sign`); the coordinator takes a message
 on ``status/node/<node>`` or ``status/report/<node>`` only if a key it gave a process of that
 node verifies it (:class:`Senders`), and then knows which process sent it. What it proves: the
@@ -15,8 +16,8 @@ message was made by a holder of that process's key, i.e. that process (or code i
 process of the same user on its host, which can read its memory anyway). What it does not: that
 the process's flow is honest, nor that a message is not a replay of one that process sent
 (the coordinator refuses a second record of a tick and a second event of a seq for that).
-A worker daemon receives the keys of the processes it starts in its spawn requests: an insider
-that answers as that daemon learns them, as it would run those processes.
+An insider that answers as a worker daemon (before it is up, or once it is gone) gives the
+coordinator keys of its own, as it would run those processes.
 """
 
 from __future__ import annotations
@@ -27,10 +28,10 @@ import os
 import secrets
 import threading
 
-#: a process's key: random bytes, as hex text in KEY_ENV
+#: a process's key: random bytes, as hex text in a pipe whose descriptor's number is in KEY_FD_ENV
 KEY_BYTES = 32
 MAC_BYTES = 16
-KEY_ENV = "RETRIEVER_PROCESS_KEY"
+KEY_FD_ENV = "RETRIEVER_PROCESS_KEY_FD"
 
 
 def new_key() -> bytes:
@@ -52,10 +53,34 @@ def key_of_text(text: object) -> bytes | None:
     return key if len(key) == KEY_BYTES else None  # fromhex skips whitespace: fewer bytes
 
 
-def take_key_from_environment() -> bytes | None:
-    """This worker process's key, removed from its environment (its flows' subprocesses do not
-    inherit it); None when it was started without one."""
-    return key_of_text(os.environ.pop(KEY_ENV, None))
+def key_pipe(key: bytes) -> int:
+    """The read end of a pipe holding ``key`` (as hex text), for a child to inherit (``pass_fds``,
+    its number in KEY_FD_ENV); the parent closes it once the child started."""
+    read, write = os.pipe()
+    try:
+        os.write(write, key_text(key).encode())  # 64 bytes: within any pipe's buffer
+    finally:
+        os.close(write)
+    return read
+
+
+def take_key() -> bytes | None:
+    """This worker process's key, read from the pipe it inherited, which it closes (its flows'
+    subprocesses inherit neither); None when it was started without one."""
+    fd_text = os.environ.pop(KEY_FD_ENV, None)
+    if fd_text is None or not (fd_text.isascii() and fd_text.isdigit() and len(fd_text) <= 9):
+        return None
+    fd = int(fd_text)
+    try:
+        text = os.read(fd, 2 * KEY_BYTES + 1)
+    except OSError:
+        return None
+    finally:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    return key_of_text(text.decode("ascii", errors="replace"))
 
 
 def sign(key: bytes, key_expr: str, payload: bytes) -> bytes:

@@ -2,7 +2,7 @@
 
     coordinator                                          daemon <name>
       query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec
-      query ctl/<name>  spawn {run, node, mode, key} ──▶  starts that node's worker process: {pid}
+      query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid, key}
       query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
       subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines}
@@ -10,6 +10,12 @@
 A remote worker process answers the coordinator as a local one does (host.WorkerProcess): its
 exit code arrives as an ``exit`` event, or, when the daemon itself is lost (its liveliness token
 went), every process of it counts as killed (:meth:`RemoteHost.lost`).
+
+A query reaches every queryable on its key, an insider's too (one holding the namespace's
+secret), so nothing secret goes in one: the key a process signs with (origin.py) is made by the
+daemon and comes back in its reply, which Zenoh routes to the querier alone. And since an insider
+may answer too, the coordinator takes answers only from the session it learned the daemon by
+(``zid``: the replier of its ``info`` at discovery, daemon.describe).
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
-from .origin import key_text
+from .origin import key_of_text
 from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -40,8 +46,8 @@ LOST_CODE = -signal.SIGKILL
 class RemoteProcess:
     """A node's worker process, a child of a daemon: what the coordinator knows of it."""
 
-    def __init__(self, host: RemoteHost, node: str, pid: int):
-        self.host, self.node, self.pid = host, node, pid
+    def __init__(self, host: RemoteHost, node: str, pid: int, key: bytes):
+        self.host, self.node, self.pid, self.key = host, node, pid, key
         self.returncode: int | None = None
         self._exited = threading.Event()
 
@@ -70,11 +76,12 @@ class RemoteProcess:
 
 
 class RemoteHost(Host):
-    """The worker daemon ``name``, for one run of the coordinator's session."""
+    """The worker daemon ``name``, for one run of the coordinator's session; ``zid``: its
+    session's Zenoh id, the only replier whose answers are taken."""
 
-    def __init__(self, session: zenoh.Session, keys: KeySpace, name: str, run: str):
+    def __init__(self, session: zenoh.Session, keys: KeySpace, name: str, run: str, zid: str):
         super().__init__()
-        self.session, self.keys, self.name, self.run = session, keys, name, run
+        self.session, self.keys, self.name, self.run, self.zid = session, keys, name, run, zid
         self.processes: dict[int, RemoteProcess] = {}
         self.garbage = 0  # events on its key that were not its daemon's
         self._events = session.declare_subscriber(keys.worker_events(name), weak_callback(self._event))
@@ -83,11 +90,14 @@ class RemoteHost(Host):
     def request(self, op: str, args: dict) -> dict:
         """Ask the daemon; its answer's arguments, or a BackendError saying what it answered."""
         payload = WireEncoder().control(op, {"run": self.run, **args})
-        replies = list(self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S))
-        for reply in replies:
+        replies = self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S,
+                                   consolidation=zenoh.ConsolidationMode.NONE)  # one answer may not hide another
+        for reply in replies:  # the first of the daemon's: a silent queryable of an insider's does not delay it
+            if reply.replier_id is None or str(reply.replier_id) != self.zid:
+                continue  # an insider's answer (or Zenoh's own, when the query timed out)
             if reply.ok is None:
                 message = decode_error_reply(reply.err.payload.to_bytes())
-                if message is None:  # Zenoh's own error reply (its query timed out): no answer
+                if message is None:  # an error reply that says nothing: no answer
                     break
                 raise BackendError(f"worker '{self.name}' refused {op}: {message}")
             try:
@@ -115,14 +125,14 @@ class RemoteHost(Host):
                     raise
                 time.sleep(PREPARE_AGAIN_S)
 
-    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> RemoteProcess:
-        args = {"node": node, "mode": list(mode), **({"key": key_text(key)} if key is not None else {})}
-        answer = self.request("spawn", args)
-        pid = answer.get("pid")
-        if type(pid) is not int:
-            raise BackendError(f"worker '{self.name}' answered spawn of '{node}' without a pid")
-        proc = self.processes[pid] = RemoteProcess(self, node, pid)
-        return proc
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[RemoteProcess, bytes]:
+        """(``key``: unused; the daemon makes its process's key, and answers it.)"""
+        answer = self.request("spawn", {"node": node, "mode": list(mode)})
+        pid, made = answer.get("pid"), key_of_text(answer.get("key"))
+        if type(pid) is not int or made is None:
+            raise BackendError(f"worker '{self.name}' answered spawn of '{node}' without a pid and a key")
+        proc = self.processes[pid] = RemoteProcess(self, node, pid, made)
+        return proc, made
 
     def end(self) -> None:
         """Ask the daemon to stop what is left of the run and forget it (best effort)."""

@@ -7,9 +7,10 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
                                  is imported) and its module's file here against the IR's sha256,
                                  keep the spec in a private folder, made for this host: {nodes,
                                  warnings} (a code mismatch it runs anyway, with --code-mismatch warn)
-    spawn {run, node, mode, key} start that node's worker process (worker.py), as the embedded run
-                                 does, its key (origin.py) in its environment: {pid}; what it
-                                 prints goes to the coordinator, and its exit
+    spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
+                                 does, with a key made for it (origin.py) in a pipe it inherits:
+                                 {pid, key}, in the reply, which reaches the querier alone; what
+                                 it prints goes to the coordinator, and its exit
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
     end {run}                    stop what is left of the run, remove its folder
 
@@ -45,7 +46,7 @@ from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
 from .host import WORKER_MODULE
 from .hub import weak_callback
-from .origin import KEY_BYTES, KEY_ENV, key_of_text, key_text
+from .origin import KEY_FD_ENV, key_pipe, key_text, new_key
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -169,9 +170,9 @@ class DaemonRuns:
                                and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
                                        for x in mode[1:]))):  # ASCII: "²" is a digit to isdigit, not to int
             raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
-        key = key_of_text(args["key"]) if "key" in args else None
-        if "key" in args and key is None:
-            raise WireError(f"spawn key {args['key']!r:.20} is not {KEY_BYTES} bytes as hex text")
+        if "key" in args:  # a key in a query reaches every queryable on ctl/<name>, an insider's too
+            raise WireError("a spawn request carries no key: the worker makes its process's key and answers it "
+                            "to the coordinator alone (a coordinator of an older Retriever sends one)")
         if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
             mismatch = self._code_mismatch(run.ir, node)
             if mismatch is not None:
@@ -180,19 +181,24 @@ class DaemonRuns:
         if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
             raise WireError(f"node '{node}' already runs in {len(live)} processes on worker '{self.name}' "
                             f"(pids {', '.join(map(str, live))})")
+        key = new_key()  # answered in the reply, which Zenoh routes to the querier alone (origin.py)
         # from a thread that lives as long as the daemon: a worker gets PR_SET_PDEATHSIG when the
         # thread that started it ends, which a thread of Zenoh's (this op's) may do at any time
-        proc = self._spawner.submit(
-            subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-            env={**flow_environment(os.environ, self.pass_env), **({KEY_ENV: key_text(key)} if key else {})}).result()
+        pipe = key_pipe(key)
+        try:
+            proc = self._spawner.submit(
+                subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                pass_fds=(pipe,), env={**flow_environment(os.environ, self.pass_env), KEY_FD_ENV: str(pipe)}).result()
+        finally:
+            os.close(pipe)
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
             threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,
                              name=f"retriever-{stream}-{node}").start()
         threading.Thread(target=self._await_exit, args=(run.id, node, proc), daemon=True,
                          name=f"retriever-exit-{node}").start()
-        return {"pid": proc.pid}
+        return {"pid": proc.pid, "key": key_text(key)}
 
     def signal(self, args: dict) -> dict:
         run = self._run_of(args)

@@ -393,10 +393,10 @@ def _serve(argv: list[str], parent: int) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us
     spec_path, node_id = argv[0], argv[1]
     from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
-    from .origin import key_of_text, sign, take_key_from_environment
+    from .origin import key_of_text, sign, take_key
 
     worker.serving = node_id
-    process_key = take_key_from_environment()  # before any flow code runs (origin.py)
+    process_key = take_key()  # before any flow code runs (origin.py)
     join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
     fresh = argv[2:5] if len(argv) >= 5 and argv[2] == "--fresh" else None
     spec = json.loads(Path(spec_path).read_text())

@@ -138,7 +138,7 @@ def test_a_daemon_announces_itself_and_answers_info(workers, namespace):
         before = time.time_ns()
         info = ask(session, namespace, "w1", "info")
         after = time.time_ns()
-    assert info["protocol"] == PROTOCOL_VERSION == 1
+    assert info["protocol"] == PROTOCOL_VERSION == 2
     assert (info["name"], info["labels"], info["nodes"]) == ("w1", ["gpu", "arm"], [])
     assert (info["host"], info["pid"]) == (socket.gethostname(), worker.proc.pid)
     assert info["python"] == ".".join(map(str, sys.version_info[:3]))
@@ -384,9 +384,9 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                                ({"node": "counter", "mode": ["--fresh", "-5", "-1"]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--join", "0", "1" + "0" * 26]}, "spawn mode"),
                                ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode"),
-                               # the key its process signs with (origin.py): 32 bytes as hex text
-                               ({"node": "counter", "mode": [], "key": "ab" * 31}, "spawn key"),
-                               ({"node": "counter", "mode": [], "key": 7}, "spawn key")):
+                               # the key its process signs with (origin.py) is the worker's to make
+                               ({"node": "counter", "mode": [], "key": "ab" * 32}, "carries no key"),
+                               ({"node": "counter", "mode": [], "key": 7}, "carries no key")):
             with pytest.raises(WorkerError, match=expected):
                 ask(session, namespace, "w", "spawn", {"run": "r2", **args})
         with pytest.raises(WorkerError, match="not a process of run r2"):
@@ -750,7 +750,7 @@ def test_retriever_deploy_takes_its_settings_from_a_config_file(workers, namespa
     done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))
     assert done.returncode == 1
     for problem in ("'port' is no setting of retriever deploy", "'connect' must be an endpoint",
-                    "'lease' must be a number of seconds"):
+                    "'lease' must be a positive number of seconds"):
         assert problem in done.stderr, done.stderr
 
 
@@ -788,7 +788,7 @@ def test_a_deployment_refuses_a_worker_of_another_protocol_and_one_whose_clock_i
                     session.liveliness().declare_token(keys.workers("skewed"))]
         try:
             with pytest.raises(BackendError, match=r"the deployment cannot start:\n"
-                                                   r"  - worker 'future' speaks protocol 2, this coordinator 1\n"
+                                                   r"  - worker 'future' speaks protocol 3, this coordinator 2\n"
                                                    r"    hint: install the same Retriever version .*'9.9'\)\n"
                                                    r"  - worker 'skewed' \(host elsewhere\) has a clock \+[45]\d\.\d+ ms"
                                                    r" off this machine's, past 10 ms\n    hint: sync both clocks"):
@@ -871,13 +871,14 @@ def test_a_deploy_config_reports_every_bad_value_at_once(tmp_path):
 
     config = tmp_path / "deploy.toml"
     config.write_text('connect = ["tcp/arm:7447", "bogus"]\nlisten = "tcp/0.0.0.0:7447"\nnamespace = "lab/a"\n'
-                      'on_worker_loss = "retry"\nlease = "long"\n')
+                      'on_worker_loss = "retry"\nlease = "long"\nmax_clock_offset = -3\n')
     problems = (r"^the deploy config .*deploy\.toml has problems:\n"
                 r"  - 'connect': 'bogus' is no Zenoh endpoint: write PROTOCOL/ADDRESS, e\.g\. tcp/10\.0\.0\.2:7447 "
                 r"\(tls/\.\.\. with TLS\)\n"
                 r"  - 'namespace' 'lab/a' cannot be a Zenoh key chunk: use letters, digits, '_', '-' and '\.' .*\n"
                 r"  - 'on_worker_loss' must be one of replace, wait, stop, got 'retry'\n"
-                r"  - 'lease' must be a number of seconds, got 'long'$")
+                r"  - 'lease' must be a positive number of seconds \(at most 1e9\), got 'long'\n"
+                r"  - 'max_clock_offset' must be a positive number of seconds \(at most 1e9\), got -3$")
     with pytest.raises(BackendError, match=problems):
         load_deploy_config(config)
     done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--config", str(config))

@@ -12,6 +12,7 @@ none of the forgeries.
 from __future__ import annotations
 
 import os
+import queue
 import subprocess
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import pytest
 
 import retriever
 from retriever.backends.zenoh.wire import RELIABLE, WireEncoder
-from tests.backends.zenoh.test_access import Run, _insider, _secret_file
+from tests.backends.zenoh.test_access import BOUND_S, Run, _insider, _secret_file
 
 #: forged step records the insider floods the coordinator with (today's code held each: ~470 B)
 FLOOD_RECORDS = 300_000
@@ -93,6 +94,47 @@ def test_a_forged_exit_with_the_nodes_pid_does_not_end_the_run(tmp_path, namespa
     _assert_whole(run, result, forged=3)
 
 
+def test_a_replayed_done_of_a_process_is_refused(tmp_path, namespace):
+    """An insider puts again, signature and all, the first `done` it sees, three times: a second
+    `done` of a process is not taken (it added the process's counts and reports again: the
+    coordinator then waited for reports that never came, and the run failed)."""
+    secret = _secret_file(tmp_path)
+    run = Run(tmp_path, namespace, secret)
+    seen: queue.Queue = queue.Queue()
+    try:
+        with _insider(run, namespace, secret, tmp_path) as (insider, keys):
+            sub = insider.declare_subscriber(keys.status("node") + "/**", lambda sample: seen.put(
+                (str(sample.key_expr), sample.payload.to_bytes(),
+                 None if sample.attachment is None else sample.attachment.to_bytes())))
+            while True:
+                key, payload, mac = seen.get(timeout=BOUND_S)
+                if msgpack.unpackb(payload, strict_map_key=False)[2] == "done":
+                    for _ in range(3):
+                        insider.put(key, payload, attachment=mac, congestion_control=RELIABLE)
+                    break
+            sub.undeclare()
+        result = run.result()
+    finally:
+        run.kill()
+    assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
+    assert result["counts"].get("garbage", 0) >= 3, result
+    assert retriever.read_log(run.log).end["status"] == "finished"
+    assert any("(a replay)" in line for line in run.lines), "".join(run.lines)
+
+
+@pytest.mark.parametrize("last, state, taken", [
+    (None, "ready", True), ("ready", "ready", True), ("ready", "done", True), ("ready", "restart", True),
+    ("restart", "handed_over", True), ("restart", "done", True), ("restart", "failed", True),
+    ("done", "done", False), ("done", "ready", False), ("failed", "ready", False), ("done", "failed", False),
+    ("handed_over", "ready", False), ("restart", "ready", False), ("restart", "restart", False),
+])
+def test_a_process_says_its_states_forward_only_and_a_last_one_once(last, state, taken):
+    """A replayed `ready` after the process's `done` moved the node back (the run then failed
+    waiting for it); a replayed `done` counted it twice."""
+    from retriever.backends.zenoh.coordinator import may_say
+    assert may_say(last, state) is taken
+
+
 def test_forged_source_records_reach_neither_the_log_nor_the_coordinators_memory(tmp_path, namespace):
     """FLOOD_RECORDS step records of the source (10 Hz) put on its report key: between its ticks,
     at its ticks past the end, and at ticks it makes. None is taken: the table and the log have
@@ -131,8 +173,7 @@ def test_a_mac_holds_for_its_process_key_expression_and_payload_only(monkeypatch
     """What the coordinator checks on arrival (origin.Senders): the node's process's key, over the
     key expression and the payload; another process's key, another key, another payload, a cut or
     missing MAC are refused and counted, with why."""
-    from retriever.backends.zenoh.origin import KEY_ENV, MAC_BYTES, Senders, key_text, new_key, sign, \
-        take_key_from_environment
+    from retriever.backends.zenoh.origin import KEY_FD_ENV, MAC_BYTES, Senders, key_pipe, new_key, sign, take_key
 
     old, new, insider = new_key(), new_key(), new_key()
     senders = Senders()
@@ -150,5 +191,25 @@ def test_a_mac_holds_for_its_process_key_expression_and_payload_only(monkeypatch
     assert senders.sender("mic", status, b"payload", sign(new, status, b"payload")) is None  # another node's
     assert senders.refused == len(refused) + 1 and len(senders.reasons) == Senders.KEPT
     assert "no process of 'cam' signed" in senders.reasons[0]
-    monkeypatch.setenv(KEY_ENV, key_text(new))
-    assert take_key_from_environment() == new and KEY_ENV not in os.environ  # flows do not inherit it
+    pipe = key_pipe(new)
+    monkeypatch.setenv(KEY_FD_ENV, str(pipe))
+    assert take_key() == new and KEY_FD_ENV not in os.environ  # flows inherit neither the number
+    with pytest.raises(OSError):  # nor the pipe
+        os.fstat(pipe)
+
+
+def test_no_worker_process_has_its_key_in_its_environment(tmp_path, namespace):
+    """/proc/PID/environ shows a process's environment as it started, for its life, whatever it
+    later removes from os.environ (to its user and root): the key comes through a pipe instead."""
+    secret = _secret_file(tmp_path)
+    run = Run(tmp_path, namespace, secret)
+    try:
+        with _insider(run, namespace, secret, tmp_path):
+            environments = [Path(f"/proc/{_worker_pid(run.proc.pid, node)}/environ").read_bytes()
+                            for node in ("counter", "total")]
+        run.result()
+    finally:
+        run.kill()
+    for environment in environments:
+        assert b"RETRIEVER_PROCESS_KEY_FD=" in environment
+        assert not any(entry.startswith(b"RETRIEVER_PROCESS_KEY=") for entry in environment.split(b"\0"))

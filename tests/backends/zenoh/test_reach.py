@@ -116,8 +116,9 @@ def test_a_deployment_that_reaches_only_an_endpoint_refusing_links_says_so_not_t
                 namespace, "--secret", str(secret), "--duration", "1")
     assert done.returncode == 1
     flat = " ".join(done.stderr.split())
-    assert f"error: no worker found in namespace '{namespace}': {refusing_endpoint} {REFUSES_LINKS}" in flat, \
+    assert f"error: no worker found in namespace '{namespace}': {refusing_endpoint}: {REFUSES_LINKS}" in flat, \
         done.stderr
+    assert f"deployment connecting to {refusing_endpoint}" in flat and "joined" not in flat, done.stderr
     assert "hint: see who holds connections to it" in flat and "TLS (docs/security.md)" in flat
     assert "holds this --secret" not in flat
     stopped = _cli("status", "--connect", refusing_endpoint, "--namespace", namespace, "--secret", str(secret))

@@ -1,0 +1,102 @@
+"""A process's key never travels where an insider can read it (issue 40 review; remote.py, origin.py).
+
+A real worker daemon and a real ``retriever deploy`` beside an insider (a session holding the
+namespace's secret) with a queryable on ``ctl/**``, which answers spawns as the daemon would,
+with a key of its own: Zenoh hands it every query
+to the daemon, and the coordinator's spawn requests once carried each process's key, with which
+the insider signed an ``exit`` that ended a 30 s deployment at 4 s, recorded as finished. Now
+the daemon makes the key and answers it to the coordinator alone, which takes answers from the
+daemon's session only: the insider reads no key, and has none of its own taken; its exit is
+refused as forged, and the run makes all its ticks.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+
+from retriever import read_log
+from retriever.backends.zenoh.access import RunAccess, read_secret
+from retriever.backends.zenoh.hub import endpoint, free_port, open_peer
+from retriever.backends.zenoh.origin import KEY_BYTES, key_of_text, key_text, sign
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder, WireError, decode_control
+from tests.backends.zenoh.test_daemon import BOUND_S, ROOT, SECRET, _env, namespace, workers  # noqa: F401
+
+DURATION_S = 8
+#: total's sink rate in lifecycle_flows (10 Hz): its ticks
+SINK_PERIOD_NS = 100_000_000
+
+
+def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers, namespace, tmp_path):
+    secret = tmp_path / "secret"
+    secret.write_text(SECRET)
+    secret.chmod(0o600)
+    port = free_port()
+    workers("--name", "w1", "--listen", endpoint(port), "--namespace", namespace,
+            "--path", str(ROOT / "tests" / "backends" / "zenoh"), "--secret", str(secret)).wait_started()
+    keys = KeySpace(namespace)
+    spawns: list[dict] = []
+    pids: dict[str, int] = {}
+    ready = threading.Event()
+
+    own_key = os.urandom(KEY_BYTES)
+
+    def on_query(query) -> None:  # reads every request; answers a spawn as if it were the daemon
+        try:
+            op, args = decode_control(query.payload.to_bytes() if query.payload is not None else b"")
+        except WireError:
+            return
+        if op == "spawn":
+            spawns.append(args)
+            query.reply(query.key_expr, WireEncoder().control("spawn", {"pid": os.getpid(), "key": key_text(own_key)}))
+
+    def on_status(sample) -> None:
+        _, node, state, info = msgpack.unpackb(sample.payload.to_bytes(), strict_map_key=False)
+        if state == "ready" and type(info.get("pid")) is int:
+            pids[node] = info["pid"]
+            ready.set()
+
+    access = RunAccess.create(namespace, read_secret(str(secret)))
+    log = tmp_path / "run.mcap"
+    with open_peer(endpoint(port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
+        queryable = insider.declare_queryable(f"retriever/{namespace}/ctl/**", on_query)
+        status = insider.declare_subscriber(keys.status("node") + "/**", on_status)
+        deploy = subprocess.Popen(
+            [sys.executable, "-m", "retriever.cli", "deploy", "tests/backends/zenoh/lifecycle_flows.py:pipe",
+             "--connect", endpoint(port), "--namespace", namespace, "--secret", str(secret),
+             "--duration", str(DURATION_S), "--log", str(log)],
+            cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + BOUND_S
+            while "total" not in pids and time.monotonic() < deadline and deploy.poll() is None:
+                ready.wait(0.1)
+            assert "total" in pids, "total never said ready"
+            time.sleep(2.0)  # the run is under way
+            seen = [key_of_text(args.get("key")) for args in spawns if args.get("node") == "total"]
+            key = next((k for k in seen if k is not None), None) or own_key
+            tag = [30 * SINK_PERIOD_NS, 0]  # one of total's ticks (3 s), long before the end
+            enc = WireEncoder()
+            report = enc.report("total", [(tag, {}, [], "ok", {"exit": 0}, 0, 0)], [])
+            insider.put(keys.report("total"), report, attachment=sign(key, keys.report("total"), report))
+            exit_status = enc.status("total", "exit", {"tag": tag, "pid": pids["total"]})
+            insider.put(keys.node_status("total"), exit_status,
+                        attachment=sign(key, keys.node_status("total"), exit_status))
+            out, err = deploy.communicate(timeout=BOUND_S + DURATION_S)
+        finally:
+            if deploy.poll() is None:
+                deploy.kill()
+                deploy.wait()
+            status.undeclare()
+            queryable.undeclare()
+    assert deploy.returncode == 0, out + err
+    end = read_log(log).end
+    assert end["status"] == "finished" and end["end_ns"] == str(DURATION_S * 10**9), end
+    assert '"forged"' in end.get("counts", ""), end
+    steps = [s for s in read_log(log).iter_steps() if s.node == "total"]
+    assert len(steps) == DURATION_S * 10, len(steps)
+    assert spawns and all("key" not in args for args in spawns), f"a spawn request carried a key: {spawns}"
