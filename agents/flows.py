@@ -393,8 +393,10 @@ class LearnedSkill(TorchPolicy):
 
     def build(self):
         from .learn.bc import make_module
-        from .skill_policies import read_config
-        return make_module(read_config(self.path))
+        from .skill_policies import check_weights, read_config
+        config = read_config(self.path)
+        check_weights(self.path, config)
+        return make_module(config)
 
     def step(self, skill: SkillCmd, state: np.ndarray, scene: np.ndarray, wrist: Frame | None = None):
         if skill.name != self.skill:
