@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -40,17 +41,30 @@ def _bar() -> Progress:
                     TimeRemainingColumn(), TextColumn("{task.fields[note]}"), console=_err)
 
 
+def _write_json(path: Path, value) -> None:
+    """``value`` as ``path``'s JSON, replaced at once (a reader never sees half a file)."""
+    part = path.with_name(path.name + ".part")
+    part.write_text(json.dumps(value, indent=1) + "\n")
+    os.replace(part, path)
+
+
 def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) -> list[dict]:
     from .episodes import parse_seeds, pick_episode
     pool = parse_seeds(seeds)
     count = len(pool) if episodes is None else episodes
     if not 0 < count <= len(pool):
         raise ValueError(f"--episodes {count}: give 1 to {len(pool)} (one seed each, from --seeds {seeds})")
-    out.mkdir(parents=True, exist_ok=True)
     logs = [out / f"pick-seed{seed:05d}.mcap" for seed in pool[:count]]
     existing = [p for p in logs if p.exists()]
     if existing and not force:
         raise ValueError(f"{existing[0]} already exists ({len(existing)} of the logs do); pass --force to replace them")
+    listing = out / "episodes.json"
+    if listing.exists() and not force:
+        raise ValueError(f"{listing} lists episodes collected before; collect into another folder, or pass --force "
+                         "to replace the list with this collection's episodes")
+    out.mkdir(parents=True, exist_ok=True)
+    # the list says only what this collection finished: an interrupted one leaves no stale rows
+    listing.unlink(missing_ok=True)
     rows = []
     with _bar() as bar:
         task = bar.add_task("collecting Pick", total=count, note="")
@@ -59,9 +73,9 @@ def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) ->
                 log.unlink()
             outcome = pick_episode(seed, "scripted", log=str(log))
             rows.append({**asdict(outcome), "log": log.name})
+            _write_json(listing, rows)
             done = sum(r["success"] for r in rows)
             bar.update(task, advance=1, note=f"{done}/{len(rows)} done, {outcome.wall:.2f} s wall each")
-    (out / "episodes.json").write_text(json.dumps(rows, indent=1) + "\n")
     walls = [r["wall"] for r in rows]
     _out.print(f"{count} episodes in {out}: {sum(r['success'] for r in rows)} succeeded; "
                f"{statistics.mean(walls):.2f} s wall per episode (min {min(walls):.2f}, max {max(walls):.2f}), "
@@ -80,6 +94,11 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
         raise ValueError(f"{folder}: none of its {len(rows)} episodes succeeded: nothing to learn from")
     if out.exists() and not force:
         raise ValueError(f"{out} already exists; pass --force to replace it")
+    for log in logs:
+        ending = _ending(log)
+        if ending != "finished":
+            raise ValueError(f"{log}: its run did not end normally ({ending}); collect that seed again "
+                             f"(python -m agents.learn collect --force)")
     with _bar() as bar:
         task = bar.add_task(f"exporting ({format})", total=len(logs), note="")
 
@@ -90,6 +109,15 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
     # "of": the episodes collected, of which "logs" succeeded and were exported
     return {"logs": len(logs), "of": len(rows), "format": format, "frames": summary.frames, "bytes": summary.bytes,
             "seconds": round(summary.seconds, 2), "dataset": str(out)}
+
+
+def _ending(log: Path) -> str:
+    """How the run of ``log`` ended: its end record's status ("finished" when it ran to its end)."""
+    from retriever import read_log
+    run = read_log(log, salvage=True)
+    if not run.complete or run.end is None:
+        return "the log is incomplete"
+    return run.end.get("status", "no status")
 
 
 def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None) -> dict:

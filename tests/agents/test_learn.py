@@ -171,3 +171,48 @@ def test_bad_arguments_get_a_clear_error(tmp_path, args, message):
 
 def test_seeds_are_a_half_open_range():
     assert parse_seeds("3:6") == range(3, 6) and parse_seeds("4") == range(4, 5)
+
+
+def test_an_interrupted_collection_lists_no_stale_episode_and_export_refuses_its_log(tmp_path, monkeypatch):
+    """collect --force rewrites episodes.json after each episode, so an interrupted one is not
+    left listed as the success it was before; export refuses a log whose run did not finish."""
+    from agents.flows import Controller
+    from agents.learn.__main__ import collect, export
+    out = tmp_path / "logs"
+    collect(1, "5:6", out)
+    listed = json.loads((out / "episodes.json").read_text())
+    assert [(r["seed"], r["success"]) for r in listed] == [(5, True)]
+    ticks = []
+
+    def interrupted(self, action):
+        ticks.append(1)
+        if len(ticks) == 50:
+            raise KeyboardInterrupt
+        return step(self, action)
+    step = Controller.step
+    monkeypatch.setattr(Controller, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        collect(1, "5:6", out, force=True)
+    assert not (out / "episodes.json").exists()
+    assert read_log(out / "pick-seed00005.mcap").end["status"] == "interrupted"
+    (out / "episodes.json").write_text(json.dumps(listed))      # the list as it was before the fix
+    with pytest.raises(ValueError, match=r"pick-seed00005.mcap: its run did not end normally \(interrupted\)"):
+        export(out, tmp_path / "dataset", "npz")
+    assert not (tmp_path / "dataset").exists()
+
+
+def test_collect_into_a_folder_of_other_episodes_is_refused_unless_forced(tmp_path):
+    from agents.learn.__main__ import collect
+    out = tmp_path / "logs"
+    out.mkdir()
+    (out / "episodes.json").write_text(json.dumps([{"seed": 9, "success": True, "log": "pick-seed00009.mcap"}]))
+    with pytest.raises(ValueError, match="episodes.json lists episodes collected before.*--force"):
+        collect(1, "5:6", out)
+    assert len(json.loads((out / "episodes.json").read_text())) == 1
+
+
+def test_seeds_a_world_cannot_take_are_refused_before_the_folder_is_made(tmp_path):
+    from agents.learn.__main__ import collect
+    with pytest.raises(ValueError, match=r"B <= 2\*\*32"):
+        collect(None, "5000000000:5000000001", tmp_path / "logs")
+    assert not (tmp_path / "logs").exists()
