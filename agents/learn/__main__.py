@@ -6,7 +6,7 @@
              and DIR/episodes.json
     export   DIR -o DATASET [--format lerobot|npz] [--force]
              the successful episodes' logs as a dataset (retriever log export --flow pick_policy)
-    train    DATASET -o CHECKPOINT [--minutes M] [--max-epochs E]
+    train    DATASET -o CHECKPOINT [--minutes M] [--max-epochs E] [--force]
              a small MLP by behaviour cloning on the dataset, saved as a checkpoint directory
              (policy.json, model.safetensors) that retriever.learn.TorchPolicy runs
     evaluate --seeds A:B [--skill-policy CHECKPOINT] [--out results.json]
@@ -120,9 +120,30 @@ def _ending(log: Path) -> str:
     return run.end.get("status", "no status")
 
 
-def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None) -> dict:
+def _check_budget(minutes: float, max_epochs: int) -> None:
+    if not minutes > 0:
+        raise ValueError(f"--minutes {minutes}: give a positive number of minutes to train")
+    if max_epochs <= 0:
+        raise ValueError(f"--max-epochs {max_epochs}: give a positive number of epochs")
+
+
+def _check_checkpoint_out(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"-o {out}: a file is there; the checkpoint is a directory (give a new path)")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ValueError(f"-o {out} already exists; pass --force to replace the checkpoint in it")
+
+
+def _loss(value: float | None) -> str:
+    return "none" if value is None else f"{value:.4f}"
+
+
+def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None,
+                 force: bool = False) -> dict:
     from .bc import save, train
     from .dataset import load_dataset
+    _check_budget(minutes, max_epochs)
+    _check_checkpoint_out(out, force)
     started = time.perf_counter()
     samples = load_dataset(dataset)
     read_s = time.perf_counter() - started
@@ -136,9 +157,11 @@ def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, loss
         module, config, summary = train(samples, budget_s=minutes * 60, max_epochs=max_epochs, log=log)
     save(module, config, out, summary)
     result = {**asdict(summary), "read_s": round(read_s, 2), "policy": str(out)}
+    held = ("no episode held out" if summary.held_out_loss is None
+            else f"held-out loss {summary.held_out_loss:.4f} on {summary.held_out_episodes} episodes")
     _out.print(f"trained on {summary.samples} frames of {summary.episodes} episodes (read in {read_s:.1f} s): "
-               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {summary.train_loss:.4f}, "
-               f"held-out {summary.held_out_loss:.4f}; {summary.parameters} parameters → {out}", highlight=False)
+               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {_loss(summary.train_loss)}, {held}; "
+               f"{summary.parameters} parameters → {out}", highlight=False)
     return result
 
 
@@ -176,8 +199,9 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     (``command``: how it was run, for the record)."""
     from .episodes import parse_seeds
     from .plot import plot_loop
-    held_out = set(parse_seeds(eval_seeds))
-    if held_out & set(parse_seeds(train_seeds)):
+    held_out, collected_from = parse_seeds(eval_seeds), parse_seeds(train_seeds)
+    _check_budget(minutes, max_epochs)
+    if held_out.start < collected_from.stop and collected_from.start < held_out.stop:
         raise ValueError(f"--eval-seeds {eval_seeds} overlaps --train-seeds {train_seeds}: evaluate on held-out seeds")
     results = results or out
     started = time.perf_counter()
@@ -185,7 +209,7 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     collect_s = time.perf_counter() - started
     exported = export(out / "logs", out / "dataset", format, force)
     losses: list[float] = []
-    training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses)
+    training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses, force)
     learned = evaluate(eval_seeds, str(out / "policy"))
     scripted = evaluate(eval_seeds, None)
     summary = {
@@ -224,6 +248,7 @@ def main(argv=None) -> int:
     t.add_argument("--minutes", type=float, default=2.0, help="wall-time budget of the training")
     t.add_argument("--max-epochs", type=int, default=3000)
     t.add_argument("--json", type=Path, help="write the training summary here")
+    t.add_argument("--force", action="store_true", help="replace the checkpoint if it exists")
     e = sub.add_parser("evaluate", help="success of the skill and of the whole task over seeds")
     e.add_argument("--seeds", required=True, help="A:B, seeds A to B-1 (held out from collection)")
     e.add_argument("--skill-policy", help="a checkpoint directory (train's); the scripted Pick without it")
@@ -238,7 +263,7 @@ def main(argv=None) -> int:
     a.add_argument("--format", choices=["lerobot", "npz"], default="lerobot", help="the dataset's format")
     a.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs, dataset and checkpoint")
     a.add_argument("--results", type=Path, help="where results.json and learning_loop.png go (default: -o)")
-    a.add_argument("--force", action="store_true", help="replace logs and dataset that exist")
+    a.add_argument("--force", action="store_true", help="replace logs, dataset and checkpoint that exist")
     args = parser.parse_args(argv)
     try:
         if args.command == "collect":
@@ -246,7 +271,7 @@ def main(argv=None) -> int:
         elif args.command == "export":
             export(args.folder, args.out, args.format, args.force)
         elif args.command == "train":
-            result = train_policy(args.dataset, args.out, args.minutes, args.max_epochs)
+            result = train_policy(args.dataset, args.out, args.minutes, args.max_epochs, force=args.force)
             if args.json:
                 args.json.write_text(json.dumps(result, indent=1) + "\n")
         elif args.command == "all":

@@ -216,3 +216,46 @@ def test_seeds_a_world_cannot_take_are_refused_before_the_folder_is_made(tmp_pat
     with pytest.raises(ValueError, match=r"B <= 2\*\*32"):
         collect(None, "5000000000:5000000001", tmp_path / "logs")
     assert not (tmp_path / "logs").exists()
+
+
+def _strict_json(text: str):
+    def refuse(name):
+        raise ValueError(f"bare {name} in JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_a_loss_there_is_none_of_is_null_and_the_output_says_no_episode_was_held_out(loop):
+    folder, done = loop
+    results = _strict_json((folder / "results" / "results.json").read_text())
+    assert results["training"]["held_out_loss"] is None and results["training"]["held_out_episodes"] == 0
+    assert "no episode held out" in done.stdout, done.stdout
+    assert _strict_json((folder / "run" / "policy" / "policy.json").read_text())["training"]["held_out_loss"] is None
+
+
+def test_train_refuses_to_replace_a_checkpoint_unless_forced_and_a_file_as_its_folder(loop, tmp_path):
+    from agents.learn.__main__ import train_policy
+    folder, _ = loop
+    before = (folder / "run" / "policy" / "model.safetensors").read_bytes()
+    with pytest.raises(ValueError, match="already exists; pass --force"):
+        train_policy(folder / "run" / "dataset", folder / "run" / "policy", 1.0, 1)
+    assert (folder / "run" / "policy" / "model.safetensors").read_bytes() == before
+    (tmp_path / "afile").write_text("")
+    done = learn("train", str(folder / "run" / "dataset"), "-o", str(tmp_path / "afile"), cwd=tmp_path)
+    assert done.returncode == 2 and "a file is there; the checkpoint is a directory" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (("train", "ds", "-o", "p", "--max-epochs", "0"), "--max-epochs 0: give a positive number"),
+    (("train", "ds", "-o", "p", "--minutes", "-1"), "--minutes -1.0: give a positive number"),
+    (("all", "--train-seeds", "0:2", "--eval-seeds", "2:3", "--minutes", "0", "-o", "run"),
+     "--minutes 0.0: give a positive number"),
+    (("all", "--train-seeds", "0:2000000000", "--eval-seeds", "5:6", "-o", "run"), "overlaps --train-seeds"),
+])
+def test_budgets_that_train_nothing_and_overlapping_seeds_are_refused_up_front(tmp_path, monkeypatch, capsys, args,
+                                                                               message):
+    from agents.learn.__main__ import main
+    monkeypatch.chdir(tmp_path)
+    assert main(list(args)) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "p").exists()
