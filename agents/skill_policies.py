@@ -67,6 +67,10 @@ def read_config(folder: str | Path) -> dict:
     """A checkpoint's ``policy.json``, checked (the sizes its module is built with); a
     ValueError says what is wrong."""
     path = Path(folder) / CONFIG_FILE
+    if not path.exists() and (Path(folder) / "config.json").is_file():
+        raise ValueError(f"skill policy {str(folder)!r}: a LeRobot checkpoint (config.json, no {CONFIG_FILE}); this "
+                         "takes a checkpoint of python -m agents.learn train; run a LeRobot policy as a "
+                         "retriever.learn.LeRobotPolicy flow (docs/learning.md)")
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:

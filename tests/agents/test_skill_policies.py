@@ -214,3 +214,23 @@ def test_the_controller_refuses_a_target_that_is_not_finite():
     with pytest.raises(ValueError, match="not finite"):
         controller.step(np.array([0.1, np.nan, 0.1, 0.1, 0.1]))
     assert np.array_equal(controller.last, first)
+
+
+def test_only_the_bare_word_scripted_is_the_scripted_policy(tmp_path, monkeypatch):
+    from agents.command import _skill_policy
+    monkeypatch.chdir(tmp_path)
+    assert _skill_policy("scripted") == "scripted" and _skill_policy(None) is None
+    assert _skill_policy("./scripted") == str(tmp_path / "scripted")
+    with pytest.raises(ValueError, match="no such directory"):
+        check_skill_policy(_skill_policy("./scripted"))
+
+
+def test_a_lerobot_checkpoint_is_pointed_at_lerobot_policy(tmp_path):
+    torch = pytest.importorskip("torch")
+    from safetensors.torch import save_file
+    (tmp_path / "act").mkdir()
+    (tmp_path / "act" / "config.json").write_text('{"type": "act"}')
+    save_file({"w": torch.zeros(1)}, str(tmp_path / "act" / WEIGHTS_FILE))
+    with pytest.raises(ValueError, match="a LeRobot checkpoint .* agents.learn train; run a LeRobot policy as a "
+                                         "retriever.learn.LeRobotPolicy flow"):
+        check_skill_policy(str(tmp_path / "act"))
