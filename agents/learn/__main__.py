@@ -165,7 +165,8 @@ def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, loss
     return result
 
 
-def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool = True) -> dict:
+def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool = True, label: str = "") -> dict:
+    """Success over ``seeds`` (``label``, such as "learned", begins each line printed)."""
     from .episodes import parse_seeds, pick_episode, task_episode
     pool = parse_seeds(seeds)
     name = policy or "scripted"
@@ -185,7 +186,7 @@ def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool
             wins = [float(r["success"]) for r in outcomes]
             summary[what] = {"success_mean": statistics.mean(wins), "success_std": statistics.pstdev(wins),
                              "episodes": outcomes}
-            _out.print(f"{what}: success {statistics.mean(wins):.2f} ± {statistics.pstdev(wins):.2f} over "
+            _out.print(f"{label + ' ' if label else ''}{what}: success {statistics.mean(wins):.2f} ± {statistics.pstdev(wins):.2f} over "
                        f"{len(wins)} seeds ({int(sum(wins))}/{len(wins)}); "
                        f"{statistics.mean(r['wall'] for r in outcomes):.2f} s wall per episode", highlight=False)
     if out is not None:
@@ -210,8 +211,8 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     exported = export(out / "logs", out / "dataset", format, force)
     losses: list[float] = []
     training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses, force)
-    learned = evaluate(eval_seeds, str(out / "policy"))
-    scripted = evaluate(eval_seeds, None)
+    learned = evaluate(eval_seeds, str(out / "policy"), label="learned")
+    scripted = evaluate(eval_seeds, None, label="scripted")
     summary = {
         "command": command,
         "collected": {"episodes": len(collected), "succeeded": sum(r["success"] for r in collected),

@@ -259,3 +259,21 @@ def test_budgets_that_train_nothing_and_overlapping_seeds_are_refused_up_front(t
     assert main(list(args)) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "p").exists()
+
+
+def test_the_loops_output_labels_each_result_and_the_legend_covers_no_bar(loop):
+    import matplotlib.pyplot as plt
+    from agents.learn.plot import loop_figure
+    folder, done = loop
+    for name in ("learned", "scripted"):
+        assert f"{name} skill: success" in done.stdout and f"{name} task: success" in done.stdout, done.stdout
+    fig = loop_figure(json.loads((folder / "results" / "results.json").read_text()))
+    try:
+        bars = fig.axes[0]
+        renderer = fig.canvas.get_renderer()
+        legend = bars.get_legend().get_window_extent(renderer)
+        marks = [p.get_window_extent(renderer) for p in bars.patches] + \
+                [t.get_window_extent(renderer) for t in bars.texts]
+        assert marks and not any(legend.overlaps(mark) for mark in marks)
+    finally:
+        plt.close(fig)
