@@ -277,3 +277,10 @@ def test_the_loops_output_labels_each_result_and_the_legend_covers_no_bar(loop):
         assert marks and not any(legend.overlaps(mark) for mark in marks)
     finally:
         plt.close(fig)
+
+
+def test_the_readme_says_the_learned_policys_scene_is_simulator_ground_truth():
+    from pathlib import Path
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    loop_paragraph = readme[readme.index("## From runs to a trained policy"):readme.index("## Layout")]
+    assert "`scene` vector that is **simulator ground truth**" in loop_paragraph
