@@ -287,6 +287,9 @@ def main(argv=None) -> int:
     except (ValueError, RetrieverError) as exc:
         _err.print(f"error: {exc}", highlight=False)
         return 2
+    except KeyboardInterrupt:
+        _err.print(f"interrupted: {args.command} stopped by Ctrl-C", highlight=False)
+        return 130
     return 0
 
 

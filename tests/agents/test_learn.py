@@ -284,3 +284,20 @@ def test_the_readme_says_the_learned_policys_scene_is_simulator_ground_truth():
     readme = (Path(__file__).parents[2] / "README.md").read_text()
     loop_paragraph = readme[readme.index("## From runs to a trained policy"):readme.index("## Layout")]
     assert "`scene` vector that is **simulator ground truth**" in loop_paragraph
+
+
+def test_ctrl_c_in_collect_ends_with_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during an episode (the KeyboardInterrupt a tick raises, as the signal would)."""
+    from agents.flows import Controller
+    from agents.learn.__main__ import main
+    step = Controller.step
+
+    def interrupted(self, action):
+        if self.last is not None:
+            raise KeyboardInterrupt
+        return step(self, action)
+    monkeypatch.setattr(Controller, "step", interrupted)
+    assert main(["collect", "--seeds", "5:6", "-o", str(tmp_path / "logs")]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted: collect stopped by Ctrl-C" in err and "Traceback" not in err
+    assert not (tmp_path / "logs" / "episodes.json").exists()
