@@ -22,12 +22,12 @@ from retriever.backends import canonical
 from retriever.errors import BackendError, RetrieverError
 
 
-def _skill_policy(path: Path | None) -> str | None:
-    """The demo's --skill-policy: 'scripted', or a checkpoint directory made absolute (the flow
-    may run in another process and directory)."""
-    if path is None or str(path) == "scripted":
-        return None if path is None else "scripted"
-    return str(path.absolute())
+def _skill_policy(spec: str | None) -> str | None:
+    """The demo's --skill-policy: the bare word 'scripted', or a checkpoint directory made
+    absolute (the flow may run in another process and directory; ./scripted is a directory)."""
+    if spec is None or spec == "scripted":
+        return spec
+    return str(Path(spec).absolute())
 
 
 def demo(
@@ -51,7 +51,7 @@ def demo(
     slip_prob: Annotated[float, typer.Option(help="Probability that the grasp slips (failure injection).")] = 0.0,
     teleop: Annotated[Optional[Path], typer.Option(metavar="FILE", help="A teleop schedule (JSON list of "
                                                    "{t_start, payload: 'Pick(spice)'}; bag task: 'Pick(target)').")] = None,
-    skill_policy: Annotated[Optional[Path], typer.Option(metavar="DIR", help="Run the Pick skill with this "
+    skill_policy: Annotated[Optional[str], typer.Option(metavar="DIR", help="Run the Pick skill with this "
                                                          "trained policy (a checkpoint directory of python -m "
                                                          "agents.learn train, docs/learning.md) in its own flow, "
                                                          "or 'scripted'.")] = None,

@@ -393,8 +393,10 @@ class LearnedSkill(TorchPolicy):
 
     def build(self):
         from .learn.bc import make_module
-        from .skill_policies import read_config
-        return make_module(read_config(self.path))
+        from .skill_policies import check_weights, read_config
+        config = read_config(self.path)
+        check_weights(self.path, config)
+        return make_module(config)
 
     def step(self, skill: SkillCmd, state: np.ndarray, scene: np.ndarray, wrist: Frame | None = None):
         if skill.name != self.skill:
@@ -431,7 +433,8 @@ class SkillOrder(Flow):
 
 class Controller(Flow):
     """The 200 Hz controller (F6): plays the current action chunk's row, within the joints'
-    limits and velocity limits, starting from ``home`` (the robot's parking command unless given)."""
+    limits and velocity limits, starting from ``home`` (the robot's parking command unless given).
+    A row that is not finite is refused (a ValueError: the run stops rather than drive blind)."""
 
     def __init__(self, hz: float = 200.0, home: list | None = None):
         self.hz, self.start = hz, home
@@ -444,7 +447,11 @@ class Controller(Flow):
         self.limit = world.MAX_SPEED / self.hz
 
     def step(self, action: np.ndarray):
-        target = np.clip(np.asarray(action, dtype=np.float64), self.low, self.high)
+        target = np.asarray(action, dtype=np.float64)
+        if not np.isfinite(target).all():
+            raise ValueError(f"controller: the action row {target.tolist()} is not finite; a policy upstream sent "
+                             "NaN or infinity, and no command is sent")
+        target = np.clip(target, self.low, self.high)
         last = self.home if self.last is None else self.last
         limit = self.limit
         self.last = last + np.clip(target - last, -limit, limit)

@@ -29,6 +29,8 @@ CONFIG_FILE, WEIGHTS_FILE = "policy.json", "model.safetensors"
 KIND = "agents.learn.bc.PickMLP"
 #: policy.json's sizes of the module, each a positive integer
 CONFIG = ("state_dim", "scene_dim", "steps", "nu", "hidden")
+#: the most parameters a checkpoint's module may have (a Pick MLP of hidden=256 has about 270 000)
+MAX_PARAMETERS = 1 << 24
 COMMAND = slice(2 * NU, 3 * NU)     # the commanded targets in the state vector
 
 
@@ -65,6 +67,10 @@ def read_config(folder: str | Path) -> dict:
     """A checkpoint's ``policy.json``, checked (the sizes its module is built with); a
     ValueError says what is wrong."""
     path = Path(folder) / CONFIG_FILE
+    if not path.exists() and (Path(folder) / "config.json").is_file():
+        raise ValueError(f"skill policy {str(folder)!r}: a LeRobot checkpoint (config.json, no {CONFIG_FILE}); this "
+                         "takes a checkpoint of python -m agents.learn train; run a LeRobot policy as a "
+                         "retriever.learn.LeRobotPolicy flow (docs/learning.md)")
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
@@ -83,9 +89,43 @@ def read_config(folder: str | Path) -> dict:
     return config
 
 
+def weight_shapes(config: dict) -> dict[str, tuple[int, ...]]:
+    """The tensors of ``model.safetensors`` a :class:`agents.learn.bc.PickMLP` of ``config``'s
+    sizes holds, and their shapes."""
+    x_dim, y_dim, hidden = config["state_dim"] + config["scene_dim"], config["steps"] * config["nu"], config["hidden"]
+    return {"x_mean": (x_dim,), "x_std": (x_dim,), "y_mean": (y_dim,), "y_std": (y_dim,),
+            "net.0.weight": (hidden, x_dim), "net.0.bias": (hidden,), "net.2.weight": (hidden, hidden),
+            "net.2.bias": (hidden,), "net.4.weight": (y_dim, hidden), "net.4.bias": (y_dim,)}
+
+
+def check_weights(folder: str | Path, config: dict) -> None:
+    """``model.safetensors`` in ``folder`` holds the tensors ``config``'s sizes imply, of their
+    shapes, and the module is not too large to build; else a ValueError says what differs. Reads
+    the file's header only."""
+    from safetensors import safe_open
+    want = weight_shapes(config)
+    size = sum(int(np.prod(shape)) for shape in want.values())
+    if size > MAX_PARAMETERS:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE}'s sizes make a module of {size} values, more "
+                         f"than the {MAX_PARAMETERS} a Pick policy may have")
+    try:
+        with safe_open(str(Path(folder) / WEIGHTS_FILE), "np") as f:
+            got = {name: tuple(f.get_slice(name).get_shape()) for name in f.keys()}
+    except Exception as e:      # safetensors raises its own error types on a damaged header
+        raise ValueError(f"skill policy {str(folder)!r}: {WEIGHTS_FILE} is not a readable safetensors file "
+                         f"({type(e).__name__})") from None
+    problems = ([f"{name} is missing" for name in want if name not in got]
+                + [f"{name} is not the module's" for name in got if name not in want]
+                + [f"{name} has shape {got[name]}, not {want[name]}" for name in want
+                   if name in got and got[name] != want[name]])
+    if problems:
+        raise ValueError(f"skill policy {str(folder)!r}: {WEIGHTS_FILE} does not fit the sizes of {CONFIG_FILE}: "
+                         + "; ".join(problems[:4]) + (f" (and {len(problems) - 4} more)" if len(problems) > 4 else ""))
+
+
 def check_skill_policy(spec: str) -> None:
     """``spec`` names a policy (``"scripted"`` or a checkpoint directory), or a ValueError says
-    why not (cheap: it loads no weights)."""
+    why not (cheap: it reads the weights' header, not the weights)."""
     if spec == "scripted":
         return
     if not isinstance(spec, str) or not Path(spec).is_dir():
@@ -94,4 +134,4 @@ def check_skill_policy(spec: str) -> None:
     if not (Path(spec) / WEIGHTS_FILE).is_file():
         raise ValueError(f"skill policy {spec!r}: the directory holds no {WEIGHTS_FILE} (python -m agents.learn "
                          "train writes it)")
-    read_config(spec)
+    check_weights(spec, read_config(spec))

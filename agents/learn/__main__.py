@@ -6,7 +6,7 @@
              and DIR/episodes.json
     export   DIR -o DATASET [--format lerobot|npz] [--force]
              the successful episodes' logs as a dataset (retriever log export --flow pick_policy)
-    train    DATASET -o CHECKPOINT [--minutes M] [--max-epochs E]
+    train    DATASET -o CHECKPOINT [--minutes M] [--max-epochs E] [--force]
              a small MLP by behaviour cloning on the dataset, saved as a checkpoint directory
              (policy.json, model.safetensors) that retriever.learn.TorchPolicy runs
     evaluate --seeds A:B [--skill-policy CHECKPOINT] [--out results.json]
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -40,17 +41,30 @@ def _bar() -> Progress:
                     TimeRemainingColumn(), TextColumn("{task.fields[note]}"), console=_err)
 
 
+def _write_json(path: Path, value) -> None:
+    """``value`` as ``path``'s JSON, replaced at once (a reader never sees half a file)."""
+    part = path.with_name(path.name + ".part")
+    part.write_text(json.dumps(value, indent=1) + "\n")
+    os.replace(part, path)
+
+
 def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) -> list[dict]:
     from .episodes import parse_seeds, pick_episode
     pool = parse_seeds(seeds)
     count = len(pool) if episodes is None else episodes
     if not 0 < count <= len(pool):
         raise ValueError(f"--episodes {count}: give 1 to {len(pool)} (one seed each, from --seeds {seeds})")
-    out.mkdir(parents=True, exist_ok=True)
     logs = [out / f"pick-seed{seed:05d}.mcap" for seed in pool[:count]]
     existing = [p for p in logs if p.exists()]
     if existing and not force:
         raise ValueError(f"{existing[0]} already exists ({len(existing)} of the logs do); pass --force to replace them")
+    listing = out / "episodes.json"
+    if listing.exists() and not force:
+        raise ValueError(f"{listing} lists episodes collected before; collect into another folder, or pass --force "
+                         "to replace the list with this collection's episodes")
+    out.mkdir(parents=True, exist_ok=True)
+    # the list says only what this collection finished: an interrupted one leaves no stale rows
+    listing.unlink(missing_ok=True)
     rows = []
     with _bar() as bar:
         task = bar.add_task("collecting Pick", total=count, note="")
@@ -59,9 +73,9 @@ def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) ->
                 log.unlink()
             outcome = pick_episode(seed, "scripted", log=str(log))
             rows.append({**asdict(outcome), "log": log.name})
+            _write_json(listing, rows)
             done = sum(r["success"] for r in rows)
             bar.update(task, advance=1, note=f"{done}/{len(rows)} done, {outcome.wall:.2f} s wall each")
-    (out / "episodes.json").write_text(json.dumps(rows, indent=1) + "\n")
     walls = [r["wall"] for r in rows]
     _out.print(f"{count} episodes in {out}: {sum(r['success'] for r in rows)} succeeded; "
                f"{statistics.mean(walls):.2f} s wall per episode (min {min(walls):.2f}, max {max(walls):.2f}), "
@@ -80,6 +94,11 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
         raise ValueError(f"{folder}: none of its {len(rows)} episodes succeeded: nothing to learn from")
     if out.exists() and not force:
         raise ValueError(f"{out} already exists; pass --force to replace it")
+    for log in logs:
+        ending = _ending(log)
+        if ending != "finished":
+            raise ValueError(f"{log}: its run did not end normally ({ending}); collect that seed again "
+                             f"(python -m agents.learn collect --force)")
     with _bar() as bar:
         task = bar.add_task(f"exporting ({format})", total=len(logs), note="")
 
@@ -92,9 +111,39 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
             "seconds": round(summary.seconds, 2), "dataset": str(out)}
 
 
-def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None) -> dict:
+def _ending(log: Path) -> str:
+    """How the run of ``log`` ended: its end record's status ("finished" when it ran to its end)."""
+    from retriever import read_log
+    run = read_log(log, salvage=True)
+    if not run.complete or run.end is None:
+        return "the log is incomplete"
+    return run.end.get("status", "no status")
+
+
+def _check_budget(minutes: float, max_epochs: int) -> None:
+    if not minutes > 0:
+        raise ValueError(f"--minutes {minutes}: give a positive number of minutes to train")
+    if max_epochs <= 0:
+        raise ValueError(f"--max-epochs {max_epochs}: give a positive number of epochs")
+
+
+def _check_checkpoint_out(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"-o {out}: a file is there; the checkpoint is a directory (give a new path)")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ValueError(f"-o {out} already exists; pass --force to replace the checkpoint in it")
+
+
+def _loss(value: float | None) -> str:
+    return "none" if value is None else f"{value:.4f}"
+
+
+def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, losses: list | None = None,
+                 force: bool = False) -> dict:
     from .bc import save, train
     from .dataset import load_dataset
+    _check_budget(minutes, max_epochs)
+    _check_checkpoint_out(out, force)
     started = time.perf_counter()
     samples = load_dataset(dataset)
     read_s = time.perf_counter() - started
@@ -108,13 +157,16 @@ def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, loss
         module, config, summary = train(samples, budget_s=minutes * 60, max_epochs=max_epochs, log=log)
     save(module, config, out, summary)
     result = {**asdict(summary), "read_s": round(read_s, 2), "policy": str(out)}
+    held = ("no episode held out" if summary.held_out_loss is None
+            else f"held-out loss {summary.held_out_loss:.4f} on {summary.held_out_episodes} episodes")
     _out.print(f"trained on {summary.samples} frames of {summary.episodes} episodes (read in {read_s:.1f} s): "
-               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {summary.train_loss:.4f}, "
-               f"held-out {summary.held_out_loss:.4f}; {summary.parameters} parameters → {out}", highlight=False)
+               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {_loss(summary.train_loss)}, {held}; "
+               f"{summary.parameters} parameters → {out}", highlight=False)
     return result
 
 
-def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool = True) -> dict:
+def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool = True, label: str = "") -> dict:
+    """Success over ``seeds`` (``label``, such as "learned", begins each line printed)."""
     from .episodes import parse_seeds, pick_episode, task_episode
     pool = parse_seeds(seeds)
     name = policy or "scripted"
@@ -134,7 +186,7 @@ def evaluate(seeds: str, policy: str | None, out: Path | None = None, task: bool
             wins = [float(r["success"]) for r in outcomes]
             summary[what] = {"success_mean": statistics.mean(wins), "success_std": statistics.pstdev(wins),
                              "episodes": outcomes}
-            _out.print(f"{what}: success {statistics.mean(wins):.2f} ± {statistics.pstdev(wins):.2f} over "
+            _out.print(f"{label + ' ' if label else ''}{what}: success {statistics.mean(wins):.2f} ± {statistics.pstdev(wins):.2f} over "
                        f"{len(wins)} seeds ({int(sum(wins))}/{len(wins)}); "
                        f"{statistics.mean(r['wall'] for r in outcomes):.2f} s wall per episode", highlight=False)
     if out is not None:
@@ -148,8 +200,9 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     (``command``: how it was run, for the record)."""
     from .episodes import parse_seeds
     from .plot import plot_loop
-    held_out = set(parse_seeds(eval_seeds))
-    if held_out & set(parse_seeds(train_seeds)):
+    held_out, collected_from = parse_seeds(eval_seeds), parse_seeds(train_seeds)
+    _check_budget(minutes, max_epochs)
+    if held_out.start < collected_from.stop and collected_from.start < held_out.stop:
         raise ValueError(f"--eval-seeds {eval_seeds} overlaps --train-seeds {train_seeds}: evaluate on held-out seeds")
     results = results or out
     started = time.perf_counter()
@@ -157,9 +210,9 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
     collect_s = time.perf_counter() - started
     exported = export(out / "logs", out / "dataset", format, force)
     losses: list[float] = []
-    training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses)
-    learned = evaluate(eval_seeds, str(out / "policy"))
-    scripted = evaluate(eval_seeds, None)
+    training = train_policy(out / "dataset", out / "policy", minutes, max_epochs, losses, force)
+    learned = evaluate(eval_seeds, str(out / "policy"), label="learned")
+    scripted = evaluate(eval_seeds, None, label="scripted")
     summary = {
         "command": command,
         "collected": {"episodes": len(collected), "succeeded": sum(r["success"] for r in collected),
@@ -196,6 +249,7 @@ def main(argv=None) -> int:
     t.add_argument("--minutes", type=float, default=2.0, help="wall-time budget of the training")
     t.add_argument("--max-epochs", type=int, default=3000)
     t.add_argument("--json", type=Path, help="write the training summary here")
+    t.add_argument("--force", action="store_true", help="replace the checkpoint if it exists")
     e = sub.add_parser("evaluate", help="success of the skill and of the whole task over seeds")
     e.add_argument("--seeds", required=True, help="A:B, seeds A to B-1 (held out from collection)")
     e.add_argument("--skill-policy", help="a checkpoint directory (train's); the scripted Pick without it")
@@ -210,7 +264,7 @@ def main(argv=None) -> int:
     a.add_argument("--format", choices=["lerobot", "npz"], default="lerobot", help="the dataset's format")
     a.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs, dataset and checkpoint")
     a.add_argument("--results", type=Path, help="where results.json and learning_loop.png go (default: -o)")
-    a.add_argument("--force", action="store_true", help="replace logs and dataset that exist")
+    a.add_argument("--force", action="store_true", help="replace logs, dataset and checkpoint that exist")
     args = parser.parse_args(argv)
     try:
         if args.command == "collect":
@@ -218,7 +272,7 @@ def main(argv=None) -> int:
         elif args.command == "export":
             export(args.folder, args.out, args.format, args.force)
         elif args.command == "train":
-            result = train_policy(args.dataset, args.out, args.minutes, args.max_epochs)
+            result = train_policy(args.dataset, args.out, args.minutes, args.max_epochs, force=args.force)
             if args.json:
                 args.json.write_text(json.dumps(result, indent=1) + "\n")
         elif args.command == "all":
@@ -233,6 +287,9 @@ def main(argv=None) -> int:
     except (ValueError, RetrieverError) as exc:
         _err.print(f"error: {exc}", highlight=False)
         return 2
+    except KeyboardInterrupt:
+        _err.print(f"interrupted: {args.command} stopped by Ctrl-C", highlight=False)
+        return 130
     return 0
 
 

@@ -34,8 +34,9 @@ class Training:
     episodes: int
     epochs: int
     seconds: float
-    train_loss: float
-    held_out_loss: float            # on the episodes kept out of training (nan without any)
+    train_loss: float | None        # the last epoch's (None before any)
+    held_out_loss: float | None     # on the episodes kept out of training (None without any)
+    held_out_episodes: int
     parameters: int
 
 
@@ -107,7 +108,7 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
     TX, TY = torch.as_tensor(x[test]), torch.as_tensor((y[test] - y_mean) / y_std)
     optimiser = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max_epochs)
-    started, epoch, loss_value = time.perf_counter(), 0, float("nan")
+    started, epoch, loss_value = time.perf_counter(), 0, None
     while epoch < max_epochs and time.perf_counter() - started < budget_s:
         order = torch.randperm(len(X))
         total = 0.0
@@ -127,6 +128,6 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
     model.eval()
     with torch.no_grad():
         held = (float(torch.nn.functional.mse_loss(model.normalised(TX[:, :state_dim], TX[:, state_dim:]), TY))
-                if len(TX) else float("nan"))
+                if len(TX) else None)
     parameters = sum(p.numel() for p in model.parameters())
-    return model, config, Training(n, len(episodes), epoch, seconds, loss_value, held, parameters)
+    return model, config, Training(n, len(episodes), epoch, seconds, loss_value, held, len(test_eps), parameters)

@@ -29,8 +29,8 @@ def parse_seeds(text: str) -> range:
         seeds = range(int(first), int(last) if last else int(first) + 1)
     except ValueError:
         raise ValueError(f"--seeds {text!r}: expected A:B (seeds A to B-1), such as 0:20") from None
-    if not seeds or seeds.start < 0:
-        raise ValueError(f"--seeds {text!r}: expected A:B with 0 <= A < B")
+    if not seeds or seeds.start < 0 or seeds.stop > 1 << 32:
+        raise ValueError(f"--seeds {text!r}: expected A:B with 0 <= A < B <= 2**32 (a world's seed is below 2**32)")
     return seeds
 
 

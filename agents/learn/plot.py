@@ -7,6 +7,14 @@ from pathlib import Path
 
 
 def plot_loop(summary: dict, path: Path) -> None:
+    import matplotlib.pyplot as plt
+    fig = loop_figure(summary)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def loop_figure(summary: dict):
+    """The picture of :func:`plot_loop`, a matplotlib figure (the caller closes it)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -25,7 +33,7 @@ def plot_loop(summary: dict, path: Path) -> None:
     bars.set_xticks([0, 1], ["Pick alone", "whole task"])
     bars.set_ylim(0, 1.25)
     bars.set_ylabel(f"success rate (seeds {evaluation['seeds']}, mean ± std)")
-    bars.legend(loc="lower right")
+    bars.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=2, frameon=False)   # above the bars
     training = summary["training"]
     curve.semilogy(range(1, len(training["loss_per_epoch"]) + 1), training["loss_per_epoch"])
     curve.set_xlabel("epoch")
@@ -34,5 +42,4 @@ def plot_loop(summary: dict, path: Path) -> None:
                     fontsize=10)
     fig.suptitle(f"Pick by behaviour cloning ({summary['collected']['episodes']} episodes collected) vs scripted")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig

@@ -182,6 +182,10 @@ class PolicyFlow(Flow):
             torch.manual_seed(self.seed + self.calls)
             self.calls += 1
             raw, out = self._run(observation)
+        if not np.isfinite(out).all():
+            raise ValueError(f"{self._owner()}: its model's output is not finite (NaN or infinity in "
+                             f"{int((~np.isfinite(out)).sum())} of {out.size} values): nothing is sent to the "
+                             "actuators\n    hint: check the checkpoint's weights")
         if self.output == "action":
             return {"action": out.reshape(-1)}
         if self.timeline is None:

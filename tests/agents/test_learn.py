@@ -171,3 +171,133 @@ def test_bad_arguments_get_a_clear_error(tmp_path, args, message):
 
 def test_seeds_are_a_half_open_range():
     assert parse_seeds("3:6") == range(3, 6) and parse_seeds("4") == range(4, 5)
+
+
+def test_an_interrupted_collection_lists_no_stale_episode_and_export_refuses_its_log(tmp_path, monkeypatch):
+    """collect --force rewrites episodes.json after each episode, so an interrupted one is not
+    left listed as the success it was before; export refuses a log whose run did not finish."""
+    from agents.flows import Controller
+    from agents.learn.__main__ import collect, export
+    out = tmp_path / "logs"
+    collect(1, "5:6", out)
+    listed = json.loads((out / "episodes.json").read_text())
+    assert [(r["seed"], r["success"]) for r in listed] == [(5, True)]
+    ticks = []
+
+    def interrupted(self, action):
+        ticks.append(1)
+        if len(ticks) == 50:
+            raise KeyboardInterrupt
+        return step(self, action)
+    step = Controller.step
+    monkeypatch.setattr(Controller, "step", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        collect(1, "5:6", out, force=True)
+    assert not (out / "episodes.json").exists()
+    assert read_log(out / "pick-seed00005.mcap").end["status"] == "interrupted"
+    (out / "episodes.json").write_text(json.dumps(listed))      # the list as it was before the fix
+    with pytest.raises(ValueError, match=r"pick-seed00005.mcap: its run did not end normally \(interrupted\)"):
+        export(out, tmp_path / "dataset", "npz")
+    assert not (tmp_path / "dataset").exists()
+
+
+def test_collect_into_a_folder_of_other_episodes_is_refused_unless_forced(tmp_path):
+    from agents.learn.__main__ import collect
+    out = tmp_path / "logs"
+    out.mkdir()
+    (out / "episodes.json").write_text(json.dumps([{"seed": 9, "success": True, "log": "pick-seed00009.mcap"}]))
+    with pytest.raises(ValueError, match="episodes.json lists episodes collected before.*--force"):
+        collect(1, "5:6", out)
+    assert len(json.loads((out / "episodes.json").read_text())) == 1
+
+
+def test_seeds_a_world_cannot_take_are_refused_before_the_folder_is_made(tmp_path):
+    from agents.learn.__main__ import collect
+    with pytest.raises(ValueError, match=r"B <= 2\*\*32"):
+        collect(None, "5000000000:5000000001", tmp_path / "logs")
+    assert not (tmp_path / "logs").exists()
+
+
+def _strict_json(text: str):
+    def refuse(name):
+        raise ValueError(f"bare {name} in JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_a_loss_there_is_none_of_is_null_and_the_output_says_no_episode_was_held_out(loop):
+    folder, done = loop
+    results = _strict_json((folder / "results" / "results.json").read_text())
+    assert results["training"]["held_out_loss"] is None and results["training"]["held_out_episodes"] == 0
+    assert "no episode held out" in done.stdout, done.stdout
+    assert _strict_json((folder / "run" / "policy" / "policy.json").read_text())["training"]["held_out_loss"] is None
+
+
+def test_train_refuses_to_replace_a_checkpoint_unless_forced_and_a_file_as_its_folder(loop, tmp_path):
+    from agents.learn.__main__ import train_policy
+    folder, _ = loop
+    before = (folder / "run" / "policy" / "model.safetensors").read_bytes()
+    with pytest.raises(ValueError, match="already exists; pass --force"):
+        train_policy(folder / "run" / "dataset", folder / "run" / "policy", 1.0, 1)
+    assert (folder / "run" / "policy" / "model.safetensors").read_bytes() == before
+    (tmp_path / "afile").write_text("")
+    done = learn("train", str(folder / "run" / "dataset"), "-o", str(tmp_path / "afile"), cwd=tmp_path)
+    assert done.returncode == 2 and "a file is there; the checkpoint is a directory" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (("train", "ds", "-o", "p", "--max-epochs", "0"), "--max-epochs 0: give a positive number"),
+    (("train", "ds", "-o", "p", "--minutes", "-1"), "--minutes -1.0: give a positive number"),
+    (("all", "--train-seeds", "0:2", "--eval-seeds", "2:3", "--minutes", "0", "-o", "run"),
+     "--minutes 0.0: give a positive number"),
+    (("all", "--train-seeds", "0:2000000000", "--eval-seeds", "5:6", "-o", "run"), "overlaps --train-seeds"),
+])
+def test_budgets_that_train_nothing_and_overlapping_seeds_are_refused_up_front(tmp_path, monkeypatch, capsys, args,
+                                                                               message):
+    from agents.learn.__main__ import main
+    monkeypatch.chdir(tmp_path)
+    assert main(list(args)) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "p").exists()
+
+
+def test_the_loops_output_labels_each_result_and_the_legend_covers_no_bar(loop):
+    import matplotlib.pyplot as plt
+    from agents.learn.plot import loop_figure
+    folder, done = loop
+    for name in ("learned", "scripted"):
+        assert f"{name} skill: success" in done.stdout and f"{name} task: success" in done.stdout, done.stdout
+    fig = loop_figure(json.loads((folder / "results" / "results.json").read_text()))
+    try:
+        bars = fig.axes[0]
+        renderer = fig.canvas.get_renderer()
+        legend = bars.get_legend().get_window_extent(renderer)
+        marks = [p.get_window_extent(renderer) for p in bars.patches] + \
+                [t.get_window_extent(renderer) for t in bars.texts]
+        assert marks and not any(legend.overlaps(mark) for mark in marks)
+    finally:
+        plt.close(fig)
+
+
+def test_the_readme_says_the_learned_policys_scene_is_simulator_ground_truth():
+    from pathlib import Path
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    loop_paragraph = readme[readme.index("## From runs to a trained policy"):readme.index("## Layout")]
+    assert "`scene` vector that is **simulator ground truth**" in loop_paragraph
+
+
+def test_ctrl_c_in_collect_ends_with_one_line_and_exit_130(tmp_path, monkeypatch, capsys):
+    """Ctrl-C during an episode (the KeyboardInterrupt a tick raises, as the signal would)."""
+    from agents.flows import Controller
+    from agents.learn.__main__ import main
+    step = Controller.step
+
+    def interrupted(self, action):
+        if self.last is not None:
+            raise KeyboardInterrupt
+        return step(self, action)
+    monkeypatch.setattr(Controller, "step", interrupted)
+    assert main(["collect", "--seeds", "5:6", "-o", str(tmp_path / "logs")]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted: collect stopped by Ctrl-C" in err and "Traceback" not in err
+    assert not (tmp_path / "logs" / "episodes.json").exists()

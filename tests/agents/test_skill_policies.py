@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from agents import retriever0
+from agents import retriever0, skill_policies
 from agents.flows import LearnedSkill
 from agents.learn.episodes import pick_episode
 from agents.messages import SkillCmd
@@ -118,6 +118,7 @@ def test_a_torch_policy_checkpoint_in_the_pick_slot_drives_the_robot(tmp_path, m
     chunks = np.stack([chunk for _, _, chunk in logged]).astype(np.float32)
     path = _checkpoint(tmp_path / "replay", {"keys": torch.from_numpy(keys), "chunks": torch.from_numpy(chunks)})
     monkeypatch.setattr(retriever0, "LearnedSkill", ReplayPick)
+    monkeypatch.setattr(skill_policies, "check_weights", lambda folder, config: None)     # not a Pick MLP's tensors
     outcome = pick_episode(3, path, log=str(tmp_path / "replayed.mcap"))
     assert scripted.success and outcome.success and outcome.seconds == scripted.seconds
     replayed = [chunk for _, _, chunk in _logged_ticks(tmp_path / "replayed.mcap")]
@@ -163,3 +164,73 @@ def test_a_policy_module_of_the_wrong_shape_is_refused_with_the_reason(tmp_path)
     policy.setup()
     with pytest.raises(ValueError, match=r"its model returned a chunk of shape \(1, 4\): expected \(steps, 5\)"):
         policy.step(SkillCmd(1, "Pick", "spice"), np.zeros(18), np.zeros(10))
+
+
+def _mlp_checkpoint(folder, hidden: int = 8, **changes) -> str:
+    """A Pick MLP's checkpoint of ``hidden`` units (its policy.json's other sizes the robot's),
+    with ``changes`` to its tensors (None drops one)."""
+    torch = pytest.importorskip("torch")
+    from agents.learn.bc import make_module, save
+    config = {"state_dim": 18, "scene_dim": 10, "steps": 150, "nu": 5, "hidden": hidden}
+    save(make_module(config), config, folder)
+    if changes:
+        from safetensors.torch import load_file, save_file
+        tensors = {**load_file(str(folder / WEIGHTS_FILE)), **changes}
+        save_file({k: v for k, v in tensors.items() if v is not None}, str(folder / WEIGHTS_FILE))
+    return str(folder)
+
+
+def test_weights_that_do_not_fit_the_config_are_refused_before_anything_is_built(tmp_path):
+    torch = pytest.importorskip("torch")
+    check_skill_policy(_mlp_checkpoint(tmp_path / "good"))
+    huge = _mlp_checkpoint(tmp_path / "huge")
+    doc = json.loads((tmp_path / "huge" / CONFIG_FILE).read_text())
+    (tmp_path / "huge" / CONFIG_FILE).write_text(json.dumps({**doc, "hidden": 65536}))
+    for path, message in [(huge, "more than the 16777216 a Pick policy may have"),
+                          (_mlp_checkpoint(tmp_path / "shape", **{"net.0.bias": torch.zeros(9)}),
+                           r"net.0.bias has shape \(9,\), not \(8,\)"),
+                          (_mlp_checkpoint(tmp_path / "extra", extra=torch.zeros(1)), "extra is not the module's"),
+                          (_mlp_checkpoint(tmp_path / "missing", x_std=None), "x_std is missing")]:
+        with pytest.raises(ValueError, match=message):
+            check_skill_policy(path)
+        with pytest.raises(ValueError, match=message):
+            LearnedSkill(path=path).setup()
+
+
+def test_a_policy_that_answers_nan_is_stopped_before_the_actuators(tmp_path):
+    torch = pytest.importorskip("torch")
+    path = _mlp_checkpoint(tmp_path / "nan", y_mean=torch.full((750,), float("nan")))
+    policy = LearnedSkill(path=path)
+    policy.setup()
+    with pytest.raises(ValueError, match="not finite"):
+        policy.step(SkillCmd(1, "Pick", "spice"), np.zeros(18), np.zeros(10))
+
+
+def test_the_controller_refuses_a_target_that_is_not_finite():
+    from agents.flows import Controller
+    controller = Controller()
+    controller.setup()
+    first = controller.step(np.full(5, 0.1))["command"].u
+    with pytest.raises(ValueError, match="not finite"):
+        controller.step(np.array([0.1, np.nan, 0.1, 0.1, 0.1]))
+    assert np.array_equal(controller.last, first)
+
+
+def test_only_the_bare_word_scripted_is_the_scripted_policy(tmp_path, monkeypatch):
+    from agents.command import _skill_policy
+    monkeypatch.chdir(tmp_path)
+    assert _skill_policy("scripted") == "scripted" and _skill_policy(None) is None
+    assert _skill_policy("./scripted") == str(tmp_path / "scripted")
+    with pytest.raises(ValueError, match="no such directory"):
+        check_skill_policy(_skill_policy("./scripted"))
+
+
+def test_a_lerobot_checkpoint_is_pointed_at_lerobot_policy(tmp_path):
+    torch = pytest.importorskip("torch")
+    from safetensors.torch import save_file
+    (tmp_path / "act").mkdir()
+    (tmp_path / "act" / "config.json").write_text('{"type": "act"}')
+    save_file({"w": torch.zeros(1)}, str(tmp_path / "act" / WEIGHTS_FILE))
+    with pytest.raises(ValueError, match="a LeRobot checkpoint .* agents.learn train; run a LeRobot policy as a "
+                                         "retriever.learn.LeRobotPolicy flow"):
+        check_skill_policy(str(tmp_path / "act"))
