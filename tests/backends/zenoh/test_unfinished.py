@@ -99,6 +99,15 @@ def coordinator_and_worker():
             zenoh.open(peer_config(connect=[endpoint(port)])) as worker_session:
         queryable = coordinator.declare_queryable(keys.finished(), answer)
         assert wait_for_links(worker_session, {str(coordinator.zid())}, BOUND_S) == set()
+        # a link comes before the worker's session knows of the queryable: until one question is
+        # answered, a worker's question may find no one to ask
+        answers.append([])
+        deadline = time.monotonic() + BOUND_S
+        while not asked and time.monotonic() < deadline:
+            list(worker_session.get(keys.finished(), timeout=0.25))
+        assert asked, "the worker's session never reached the coordinator's queryable"
+        asked.clear()
+        answers.clear()
         yield SimpleNamespace(keys=keys, answers=answers, asked=asked, zid=str(coordinator.zid()),
                               worker=worker_session, coordinator=coordinator)
         queryable.undeclare()
@@ -118,10 +127,6 @@ def test_a_done_worker_does_not_wait_for_a_coordinator_it_has_no_link_to(coordin
     c = coordinator_and_worker
     c.answers[:] = [None]
     worker._await_reports_taken(c.worker, c.keys, "src", new_zid())  # a session it is not linked to
-    # its one question may reach the queryable after the worker stopped waiting for an answer
-    deadline = time.monotonic() + BOUND_S
-    while not c.asked and time.monotonic() < deadline:
-        time.sleep(0.01)
     assert len(c.asked) == 1
 
 
