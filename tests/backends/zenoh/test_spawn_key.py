@@ -66,6 +66,8 @@ def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers,
     with open_peer(endpoint(port), access=access.session_config(access.write_dictionary(tmp_path))) as insider:
         queryable = insider.declare_queryable(f"retriever/{namespace}/ctl/**", on_query)
         status = insider.declare_subscriber(keys.status("node") + "/**", on_status)
+        reporting = threading.Event()  # total's first report: the run is under way
+        reports = insider.declare_subscriber(keys.report("total"), lambda sample: reporting.set())
         deploy = subprocess.Popen(
             [sys.executable, "-m", "retriever.cli", "deploy", "tests/backends/zenoh/lifecycle_flows.py:pipe",
              "--connect", endpoint(port), "--namespace", namespace, "--secret", str(secret),
@@ -76,7 +78,7 @@ def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers,
             while "total" not in pids and time.monotonic() < deadline and deploy.poll() is None:
                 ready.wait(0.1)
             assert "total" in pids, "total never said ready"
-            time.sleep(2.0)  # the run is under way
+            assert reporting.wait(BOUND_S), "total never reported a step"
             seen = [key_of_text(args.get("key")) for args in spawns if args.get("node") == "total"]
             key = next((k for k in seen if k is not None), None) or own_key
             tag = [30 * SINK_PERIOD_NS, 0]  # one of total's ticks (3 s), long before the end
@@ -92,6 +94,7 @@ def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers,
                 deploy.kill()
                 deploy.wait()
             status.undeclare()
+            reports.undeclare()
             queryable.undeclare()
     assert deploy.returncode == 0, out + err
     end = read_log(log).end
