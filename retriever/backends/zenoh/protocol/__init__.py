@@ -97,7 +97,7 @@ receiver checks today beyond the fields' types.
 
 from __future__ import annotations
 
-from .daemon import (DAEMON_EVENT, ERROR, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REQUEST, DaemonEvent, DaemonOp,
+from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST, DaemonEvent, DaemonOp,
                      EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, PrepareReply, PrepareRequest,
                      ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnMode, SpawnReply, SpawnRequest, Stream,
                      UsageReply, UsageRequest, decode_reply, error_message)
@@ -111,8 +111,8 @@ from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Hando
                         Restarted, Resume, Start, Stop)
 
 __all__ = sorted([
-    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "FINISHED_REPLY", "MAX_REQUEST_BYTES",
-    "PROTOCOL_VERSION", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener", "ControlSigner", "DaemonEvent",
+    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "FINISHED_REPLY",
+    "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener", "ControlSigner", "DaemonEvent",
     "DaemonOp", "DeploymentOp", "Done", "End", "EndReply", "EndRequest", "ErrorReply", "Exit", "Failed", "Finished",
     "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest", "Lost", "NodeStatus", "Op", "PrepareReply",
     "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached", "Ready", "Record", "Redeclare", "Report",

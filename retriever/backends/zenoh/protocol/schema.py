@@ -31,6 +31,8 @@ MAX_NAME_CHARS = 1024
 MAX_TEXT_CHARS = 1 << 20
 #: a list or map of a message holds at most this many items
 MAX_ITEMS = 1 << 16
+#: a message of the control envelope, at most (its longest fields: an error, a traceback)
+MAX_MESSAGE_BYTES = 16 << 20
 #: a process id, as Linux numbers them (pid_t)
 PID_MAX = (1 << 31) - 1
 
@@ -393,7 +395,7 @@ class Channel:
     """Where a family of records travels as ``[2, name, {fields}]`` (the control envelope):
     one of ``records`` per message, told apart by its op."""
 
-    def __init__(self, what: str, records: tuple[type[Record], ...], max_bytes: int = 1 << 20):
+    def __init__(self, what: str, records: tuple[type[Record], ...], max_bytes: int = MAX_MESSAGE_BYTES):
         self.what, self.max_bytes = what, max_bytes
         self.records = {record.NAME: record for record in records}
         for record in records:

@@ -17,7 +17,7 @@ from typing import Any, NamedTuple
 from ....errors import WireError
 from ....trace import STEP_STATUSES
 from ..wire import WIRE_VERSION
-from .schema import (MAX_ITEMS, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf, MapOf, Name, Nullable, Plain, Record,
+from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf, MapOf, Name, Nullable, Plain, Record,
                      Row, Text, field, pack, unpack)
 
 
@@ -138,8 +138,6 @@ class Exit(Status):
 
 
 STATUSES = {record.NAME: record for record in (Ready, Done, Failed, Restart, HandedOver, Reached, Unanswered, Exit)}
-#: a status is small: its longest fields are an error and a traceback (MAX_TEXT_CHARS each)
-MAX_STATUS_BYTES = 16 << 20
 #: a report may carry big frames inline (a spill directory on another host is no use): no bound
 #: but the one its transport has
 MAX_REPORT_BYTES = 1 << 62
@@ -157,7 +155,7 @@ class StatusChannel:
 
     def decode(self, data: Any, node: str | None = None) -> Status:
         """A status; ``node``: the one its key names (a status must be of that node)."""
-        _, said, state, info = unpack(data, 4, "a status message", MAX_STATUS_BYTES)
+        _, said, state, info = unpack(data, 4, "a status message", MAX_MESSAGE_BYTES)
         said = Name().read(said, "a status message: its node")
         if node is not None and said != node:
             raise WireError(f"a status of {said} arrived on the key of {node}")
