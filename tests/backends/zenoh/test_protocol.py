@@ -454,3 +454,173 @@ def test_any_bytes_decode_to_a_record_or_raise_wire_error(data):
             decode(data)
         except WireError:
             pass
+
+
+# ---------------------------------------------------------------------------------------------
+# Signed control (seal.py): forged, altered, replayed, another run's, a wrong key
+# ---------------------------------------------------------------------------------------------
+class Process:
+    """A worker process as the coordinator holds it (only its identity matters to the signer)."""
+
+
+def run_of(n: int = 3) -> tuple[p.ControlSigner, list[bytes]]:
+    """A coordinator's signer with ``n`` processes started, and their keys."""
+    signer, keys = p.ControlSigner(), [new_key() for _ in range(n)]
+    for key in keys:
+        signer.add(Process(), key)
+    return signer, keys
+
+
+def test_every_live_process_opens_what_the_coordinator_sealed_once():
+    signer, keys = run_of(3)
+    key_expr, payload = KEYS.run_control(), p.Lost(node="src").encode()
+    seal = signer.seal(key_expr, payload)
+    assert len(seal) == COUNTER_BYTES + 3 * MAC_BYTES
+    for key in keys:
+        assert p.ControlOpener(key).control(key_expr, payload, seal) == p.Lost(node="src")
+
+
+@pytest.mark.parametrize("attachment, error", [
+    (None, "without the coordinator's seal"),
+    (b"", "without the coordinator's seal"),
+    (b"\x00" * COUNTER_BYTES, "without the coordinator's seal"),
+    (b"\x00" * (COUNTER_BYTES + MAC_BYTES + 1), "without the coordinator's seal"),
+    (b"\x00" * COUNTER_BYTES + b"\x01" * MAC_BYTES, "did not seal for this process"),
+])
+def test_an_unsealed_or_forged_control_message_is_refused(attachment, error):
+    """An insider's `lost` (issue 40): it holds the run's password, not a process's key."""
+    _, keys = run_of(1)
+    with pytest.raises(WireError, match=error):
+        p.ControlOpener(keys[0]).control(KEYS.run_control(), p.Lost(node="src").encode(), attachment)
+
+
+def test_a_seal_made_with_another_key_is_refused():
+    """An insider that seals with a key of its own (or a process's key of another run)."""
+    signer, _ = run_of(2)  # another run's coordinator, with its processes
+    _, ours = run_of(1)
+    key_expr, payload = KEYS.run_control(), p.Stop().encode()
+    with pytest.raises(WireError, match="did not seal for this process .forged, altered, or another run's"):
+        p.ControlOpener(ours[0]).control(key_expr, payload, signer.seal(key_expr, payload))
+
+
+def test_a_message_replayed_from_another_run_is_refused():
+    """A `stop` recorded from one run, put on another's key (or the same namespace's next run)."""
+    first, _ = run_of(2)
+    payload = p.Stop().encode()
+    sealed = first.seal(KEYS.run_control(), payload)
+    _, keys = run_of(2)
+    for key in keys:
+        with pytest.raises(WireError, match="did not seal for this process"):
+            p.ControlOpener(key).control(KEYS.run_control(), payload, sealed)
+    # a run's own process, its message moved to another namespace's key: the key expression is signed
+    signer, keys = run_of(1)
+    sealed = signer.seal(KeySpace("other").run_control(), payload)
+    with pytest.raises(WireError, match="did not seal for this process"):
+        p.ControlOpener(keys[0]).control(KEYS.run_control(), payload, sealed)
+
+
+def test_an_altered_payload_or_counter_is_refused():
+    signer, keys = run_of(1)
+    key_expr, payload = KEYS.run_control(), p.End(at=5_000).encode()
+    seal = signer.seal(key_expr, payload)
+    opener = p.ControlOpener(keys[0])
+    with pytest.raises(WireError, match="did not seal"):
+        opener.control(key_expr, p.End(at=1).encode(), seal)
+    with pytest.raises(WireError, match="did not seal"):
+        opener.control(key_expr, payload, (2).to_bytes(COUNTER_BYTES, "big") + seal[COUNTER_BYTES:])
+    assert opener.control(key_expr, payload, seal) == p.End(at=5_000)
+
+
+def test_a_replay_within_the_run_is_refused_and_a_reordering_is_forgiven():
+    """A process takes each sealed put once: an insider that puts again a `lost` or a `handover`
+    it saw earlier in the run (sealed for this very process) gets nowhere."""
+    signer, keys = run_of(1)
+    key_expr = KEYS.run_control()
+    sealed = [(payload, signer.seal(key_expr, payload))
+              for payload in (p.Handover(node="ctl").encode(), p.Grant(until=1).encode(), p.Grant(until=2).encode())]
+    opener = p.ControlOpener(keys[0])
+    opener.control(key_expr, *sealed[0])
+    opener.control(key_expr, *sealed[2])
+    assert opener.control(key_expr, *sealed[1]) == p.Grant(until=1)  # late, not seen before: taken
+    for payload, seal in sealed:
+        with pytest.raises(WireError, match=r"taken before \(counter \d\): a replay"):
+            opener.control(key_expr, payload, seal)
+
+
+def test_a_message_older_than_the_window_is_refused():
+    signer, keys = run_of(1)
+    key_expr, payload = KEYS.run_control(), p.Stop().encode()
+    old = signer.seal(key_expr, payload)
+    opener = p.ControlOpener(keys[0])
+    for _ in range(REPLAY_WINDOW):
+        opener.control(key_expr, payload, signer.seal(key_expr, payload))
+    with pytest.raises(WireError, match="a replay"):
+        opener.control(key_expr, payload, old)
+
+
+def test_a_process_opens_nothing_sealed_before_it_started_nor_after_it_ended():
+    """A `lost` sealed for a node's old process does not reach the new one (a replay of it
+    would stop the very process that replaced it); a process the coordinator dropped gets none."""
+    signer, keys = run_of(1)
+    key_expr, payload = KEYS.run_control(), p.Lost(node="src").encode()
+    before = signer.seal(key_expr, payload)
+    newer, key = Process(), new_key()
+    signer.add(newer, key)
+    with pytest.raises(WireError, match="did not seal"):
+        p.ControlOpener(key).control(key_expr, payload, before)
+    p.ControlOpener(key).control(key_expr, payload, signer.seal(key_expr, payload))
+    signer.drop(newer)
+    with pytest.raises(WireError, match="did not seal"):
+        p.ControlOpener(key).control(key_expr, payload, signer.seal(key_expr, payload))
+
+
+def test_a_process_without_a_key_takes_no_control():
+    signer, _ = run_of(1)
+    signer.add(Process(), None)  # as origin.Senders: a process started without a key is never trusted
+    key_expr, payload = KEYS.run_control(), p.Stop().encode()
+    with pytest.raises(WireError, match="this process has no key"):
+        p.ControlOpener(None).control(key_expr, payload, signer.seal(key_expr, payload))
+
+
+def test_a_reply_opens_only_for_the_question_it_answers():
+    """ctl/start and status/finished: a reply covers the nonce of its question, so an old answer
+    (a `finished` saying this node's reports are all in) replayed to a new question is refused."""
+    signer, keys = run_of(2)
+    key_expr, payload = KEYS.start(), p.Start(t0=T0, end=END, values=True).encode()
+    opener, nonce = p.ControlOpener(keys[1]), p.new_nonce()
+    seal = signer.seal_reply(key_expr, payload, nonce)
+    assert opener.reply(p.Start, key_expr, payload, seal, nonce) == p.Start(t0=T0, end=END, values=True)
+    assert opener.reply(p.Start, key_expr, payload, seal, nonce) == p.Start(t0=T0, end=END, values=True)
+    with pytest.raises(WireError, match="did not seal"):
+        opener.reply(p.Start, key_expr, payload, seal, p.new_nonce())
+    with pytest.raises(WireError, match="without the coordinator's seal"):
+        opener.reply(p.Start, key_expr, payload, signer.seal_reply(key_expr, payload, None), nonce)
+    finished = p.Finished(nodes=("cam",), complete=("cam",), restarting=()).encode()
+    with pytest.raises(WireError, match="did not seal"):  # a reply on one key is no reply on another
+        opener.reply(p.Finished, KEYS.finished(), finished, signer.seal_reply(key_expr, finished, nonce), nonce)
+    with pytest.raises(WireError, match="status/finished knows no op 'start'"):
+        opener.reply(p.Finished, key_expr, payload, seal, nonce)
+
+
+def test_seals_travel_as_zenoh_attachments_of_puts_queries_and_replies(session):
+    """The wiring's Zenoh side: a sealed put's attachment reaches the subscriber, a question's
+    nonce reaches the queryable, and the sealed reply's attachment reaches the querier."""
+    keys = KeySpace(f"seal-{id(session)}")
+    signer, (key,) = run_of(1)
+    opener, got = p.ControlOpener(key), queue.SimpleQueue()
+    subscriber = session.declare_subscriber(keys.run_control(), lambda sample: got.put(
+        opener.control(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment)))
+    start = p.Start(t0=T0, end=END, values=True).encode()
+    queryable = session.declare_queryable(keys.start(), lambda query: query.reply(
+        keys.start(), start, attachment=signer.seal_reply(keys.start(), start, query.attachment.to_bytes())))
+    try:
+        payload = p.Grant(until=7).encode()
+        session.put(keys.run_control(), payload, attachment=signer.seal(keys.run_control(), payload))
+        assert got.get(timeout=10) == p.Grant(until=7)
+        nonce = p.new_nonce()
+        replies = [r.ok for r in session.get(keys.start(), attachment=nonce, timeout=10) if r.ok is not None]
+        assert [opener.reply(p.Start, str(r.key_expr), r.payload.to_bytes(), r.attachment, nonce) for r in replies] \
+            == [p.Start(t0=T0, end=END, values=True)]
+    finally:
+        subscriber.undeclare()
+        queryable.undeclare()
