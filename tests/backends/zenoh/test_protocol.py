@@ -313,7 +313,7 @@ MALFORMED = [
     ("a row too short", p.RUN_CONTROL, control("have", {"streams": [["a", "b"]]}),
      r"field 'streams'\[0\] must be \[producer, port, last seq\]"),
     ("a map key of the wrong kind", p.RUN_CONTROL, control("restarted", {"node": "a", "seqs": {7: 1}, "values": True}),
-     "field 'seqs' key 7 must be a name"),
+     "field 'seqs' key 7 must be a string of 1 to 1024"),
     ("a key twice", p.RUN_CONTROL, b"\x93\x02\xa5grant\x82\xa5until\x01\xa5until\x02", "names a key twice"),
     ("an empty list where one is needed", p.RUN_CONTROL, control("redeclare", {"nodes": []}),
      "field 'nodes' must be a list of 1 to"),

@@ -134,6 +134,12 @@ class Name(Kind):
         return value
 
 
+def port() -> Text:
+    """A port's name: the IR checks node ids (Name) but not every port's, so a port is any
+    non-empty text of at most MAX_NAME_CHARS."""
+    return Text(MAX_NAME_CHARS, min_chars=1)
+
+
 class OneOf(Kind):
     """A name of a closed set: one of ``enum``'s values, read as its member."""
 

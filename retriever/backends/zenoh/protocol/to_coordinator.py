@@ -18,7 +18,7 @@ from ....errors import WireError
 from ....trace import STEP_STATUSES
 from ..wire import WIRE_VERSION
 from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf, MapOf, Name, Nullable, Plain, Record,
-                     Row, Text, field, pack, unpack)
+                     Row, Text, field, pack, port, unpack)
 
 
 class State(StrEnum):
@@ -79,7 +79,7 @@ class Done(Status):
     started_ns: int | None = field(Nullable(Int(-NS_MAX, NS_MAX)), optional=True)
     ticks: int = field(Int(0, NS_MAX), optional=True)
     stopped: bool = field(Bool(), optional=True)
-    sent: dict[str, int] = field(MapOf(Name(), Int(-1, SEQ_MAX)), optional=True)
+    sent: dict[str, int] = field(MapOf(port(), Int(-1, SEQ_MAX)), optional=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -191,6 +191,7 @@ class ReportedEvent(NamedTuple):
 
 
 CHUNK = Name()
+PORT = port()
 WALL = Int(-NS_MAX - 1, NS_MAX)  # Unix ns, as the worker's clock says (it may step back)
 DETAIL = Nullable(Plain())
 #: a file name a report may give for a message: the node's own, in the run directory
@@ -235,8 +236,8 @@ def _step(raw: Any, where: str) -> ReportedStep:
     if detail is not None and type(detail) is not dict:
         raise WireError(f"{where}: field 'detail' must be nil or a map, got {type(detail).__name__}")
     return ReportedStep(TAG.read(tag, f"{where}: field 'tag'"),
-                        {CHUNK.read(port, f"{where}: field 'consumed' key"): _ids(ids, f"{where}: field 'consumed'")
-                         for port, ids in consumed.items()},
+                        {PORT.read(name, f"{where}: field 'consumed' key"): _ids(ids, f"{where}: field 'consumed'")
+                         for name, ids in consumed.items()},
                         _ids(produced, f"{where}: field 'produced'"), status, DETAIL.read(detail, f"{where}: field 'detail'"),
                         WALL.read(start, f"{where}: field 'wall_start_ns'"), WALL.read(wall, f"{where}: field 'wall_ns'"))
 

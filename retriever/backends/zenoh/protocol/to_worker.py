@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
-from .schema import NS_MAX, SEQ_MAX, Bool, Channel, Int, ListOf, MapOf, Name, Record, Row, field
+from .schema import NS_MAX, SEQ_MAX, Bool, Channel, Int, ListOf, MapOf, Name, Record, Row, field, port
 
 
 class Op(StrEnum):
@@ -71,7 +71,7 @@ class Restarted(Record):
 
     NAME = Op.RESTARTED
     node: str = field(Name())
-    seqs: dict[str, int] = field(MapOf(Name(), Int(0, SEQ_MAX)))
+    seqs: dict[str, int] = field(MapOf(port(), Int(0, SEQ_MAX)))
     values: bool = field(Bool())
 
 
@@ -106,7 +106,7 @@ class Have(Record):
 
     NAME = Op.HAVE
     streams: tuple[tuple[str, str, int], ...] = field(ListOf(Row(
-        Name(), Name(), Int(-1, SEQ_MAX), expects="[producer, port, last seq] (a seq from -1)")))
+        Name(), port(), Int(-1, SEQ_MAX), expects="[producer, port, last seq] (a seq from -1)")))
 
 
 @dataclass(frozen=True, kw_only=True)
