@@ -270,7 +270,8 @@ def test_every_record_round_trips(cls, data):
 IDS = st.lists(st.tuples(NAMES, NAMES, st.integers(0, 2**63 - 1)), max_size=3).map(tuple)
 STEPS = st.builds(p.ReportedStep, st.tuples(st.integers(0, 2**63 - 1), st.integers(0, 2**63 - 1)),
                   st.dictionaries(NAMES, IDS, max_size=3), IDS, st.sampled_from(["ok", "skipped", "error", "late"]),
-                  st.none() | st.dictionaries(st.text(max_size=5), st.integers() | st.text(max_size=5), max_size=3),
+                  st.none() | st.dictionaries(st.text(max_size=5), st.integers(-2**63, 2**64 - 1) | st.text(max_size=5),
+                                              max_size=3),
                   st.integers(-2**63, 2**63 - 1), st.integers(-2**63, 2**63 - 1))
 
 

@@ -380,14 +380,16 @@ def pack(fields: list) -> bytes:
     return msgpack.packb(fields, use_bin_type=True)
 
 
-def unpack(data: Any, count: int, what: str, max_bytes: int) -> list:
-    """The fields of a message: a msgpack array of ``count`` whose first is WIRE_VERSION."""
+def unpack(data: Any, count: int, what: str, max_bytes: int, exact_maps: bool = True) -> list:
+    """The fields of a message: a msgpack array of ``count`` whose first is WIRE_VERSION.
+    ``exact_maps``: refuse a map that names a key twice (which costs a call per map)."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise WireError(f"{what} must be bytes, got {type(data).__name__}")
     if len(data) > max_bytes:
         raise WireError(f"{what} of {len(data)} bytes, past {max_bytes}: refused")
     try:
-        fields = msgpack.unpackb(data, raw=False, strict_map_key=False, object_pairs_hook=_exact_map)
+        fields = msgpack.unpackb(data, raw=False, strict_map_key=False, object_pairs_hook=_exact_map if exact_maps
+                                 else None)
     except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, UnicodeDecodeError, ...
         raise WireError(f"{what} is not valid msgpack ({type(e).__name__}: {e})"[:300]) from None
     if type(fields) is not list or len(fields) != count:
