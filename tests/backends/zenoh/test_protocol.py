@@ -3,7 +3,6 @@ today's, its decoder exact; and signed control (issue 40: an insider's forged ``
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import queue
 import sys
@@ -81,7 +80,8 @@ TODAY = [
                    zeno=True),
      p.Failed(node="cam", pid=PID, error="cam.step() raised X", tag=(3, 1), counts={"late": 2}, traceback="T",
               zeno=True)),
-    (worker_status("cam", "handed_over", counts={}, reports=12), p.HandedOver(node="cam", pid=PID, counts={}, reports=12)),
+    (worker_status("cam", "handed_over", counts={}, reports=12),
+     p.HandedOver(node="cam", pid=PID, counts={}, reports=12)),
     (worker_status("cam", "done", counts={"late": 3}, reports=7, started_ns=-250_000_000, ticks=1500, stopped=False,
                    sent={"rgb": 1499}),
      p.Done(node="cam", pid=PID, counts={"late": 3}, reports=7, started_ns=-250_000_000, ticks=1500, stopped=False,
@@ -93,10 +93,12 @@ TODAY = [
     (WireEncoder().control("prepare", {"run": "5f3a9c0d1e2b", "spec": {"ir": {"nodes": []}, "namespace": "proto"},
                                        "nodes": ["cam"]}),
      p.PrepareRequest(run="5f3a9c0d1e2b", spec={"ir": {"nodes": []}, "namespace": "proto"}, nodes=("cam",))),
-    (WireEncoder().control("spawn", {"run": "r", "node": "cam", "mode": []}), p.SpawnRequest(run="r", node="cam", mode=())),
+    (WireEncoder().control("spawn", {"run": "r", "node": "cam", "mode": []}),
+     p.SpawnRequest(run="r", node="cam", mode=())),
     (WireEncoder().control("spawn", {"run": "r", "node": "cam", "mode": ["--fresh", str(T0), str(END)]}),
      p.SpawnRequest(run="r", node="cam", mode=(p.SpawnMode.FRESH, str(T0), str(END)))),
-    (WireEncoder().control("signal", {"run": "r", "pid": PID, "signal": 10}), p.SignalRequest(run="r", pid=PID, signal=10)),
+    (WireEncoder().control("signal", {"run": "r", "pid": PID, "signal": 10}),
+     p.SignalRequest(run="r", pid=PID, signal=10)),
     (WireEncoder().control("usage", {"run": "r"}), p.UsageRequest(run="r")),
     (WireEncoder().control("end", {"run": "r"}), p.EndRequest(run="r")),
     # daemon.WorkerDaemon.info, runs.DaemonRuns.prepare/spawn/signal/usage/end, daemon.answer's errors
@@ -197,7 +199,8 @@ def test_a_report_encodes_to_the_reporters_bytes_and_decodes_as_wire_did():
 def test_the_enums_name_every_state_and_op_today_spells():
     assert [str(s) for s in p.State] == list(NODE_STATES)
     assert set(p.REQUEST.records) == {"info", "prepare", "spawn", "signal", "end", "usage"}
-    assert list(p.DaemonOp) == ["info", "prepare", "spawn", "signal", "end", "usage"]  # the daemon's error lists them so
+    # in the order a daemon's unknown-op error lists them
+    assert list(p.DaemonOp) == ["info", "prepare", "spawn", "signal", "end", "usage"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -330,7 +333,8 @@ MALFORMED = [
      "field 'message' must be a string of 0 to 1048576"),
     ("a spawn mode", p.REQUEST, control("spawn", {"run": "r", "node": "c", "mode": ["--join", "1; rm -rf /", "2"]}),
      "spawn mode"),
-    ("a spawn mode of unicode digits", p.REQUEST, control("spawn", {"run": "r", "node": "c", "mode": ["--fresh", "²", "1"]}),
+    ("a spawn mode of unicode digits", p.REQUEST,
+     control("spawn", {"run": "r", "node": "c", "mode": ["--fresh", "²", "1"]}),
      "spawn mode"),
     ("a key in a spawn request", p.REQUEST, control("spawn", {"run": "r", "node": "c", "mode": [], "key": HEX}),
      "carries no key"),
@@ -341,7 +345,8 @@ MALFORMED = [
      "field 'stream' must be one of 'stdout', 'stderr'"),
     ("a nested record's field", p.DEPLOYMENT_REPLY, control("status", {
         "pipeline": "d", "run": "r", "t_ns": 0, "end_ns": 0, "started": False,
-        "nodes": {"a": {"worker": None, "state": None, "ticks": -1, "steps": 0, "skips": 0, "errors": 0, "counts": {}}}}),
+        "nodes": {"a": {"worker": None, "state": None, "ticks": -1, "steps": 0, "skips": 0, "errors": 0,
+                        "counts": {}}}}),
      r"field 'nodes'\['a'\]: field 'ticks' must be an integer from 0"),
 ]
 

@@ -17,8 +17,8 @@ from typing import Any, NamedTuple
 from ....errors import WireError
 from ....trace import STEP_STATUSES
 from ..wire import WIRE_VERSION
-from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf, MapOf, Name, Nullable, Plain, Record,
-                     Row, Text, field, pack, port, unpack)
+from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf,
+                     MapOf, Name, Nullable, Plain, Record, Row, Text, field, pack, port, unpack)
 
 
 class State(StrEnum):
