@@ -380,13 +380,13 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
             watching[1].join(timeout=2.0)
             watching = None
         recorded = _identity(log) not in (None, before)
-        if pipe._session is not None:  # what ran until the interrupt, as at the end of a run
+        if pipe.session is not None:  # what ran until the interrupt, as at the end of a run
             _summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
             for line in pipe.starved():
                 _err.print(f"warning: pipeline '{pipe.name}': {line}", highlight=False, markup=False)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
         # during a logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
+        signum = _state.get("signal") or getattr(pipe.session, "stop_signal", None) or signal.SIGINT
         raise typer.Exit(code=128 + signum) from None
     except Exception as exc:
         # only a log this run wrote holds it (a refused run leaves the file as it was; a log that
@@ -408,8 +408,9 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
-    placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
-    starved = _starved_cells(pipe._session.starved if pipe._session is not None else [])
+    session = pipe.session
+    placed = getattr(session, "placed", None)  # a deployment: where each node ran
+    starved = _starved_cells(session.starved if session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
                 *(("starved",) if starved else ())):
@@ -426,7 +427,7 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
     unowned.subtract(sum((Counter(s.counts) for s in pipe.stats().values()), Counter()))
     if +unowned:
         _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
-    if pipe._session is not None and pipe._session.keep == "counters":  # reading the log back could take GBs
+    if session is not None and session.keep == "counters":  # reading the log back could take GBs
         steps = sum(s.steps for s in pipe.stats().values())
         kept = "kept only in the log" if log is not None else "not kept"
         _out.print(f"{steps} steps · records {kept} (--keep counters)", highlight=False)
@@ -461,7 +462,7 @@ def _show_live(pipe, namespace: str):
     def show() -> None:
         with Live(console=_err, refresh_per_second=2, transient=True) as live:
             while not done.wait(LIVE_EVERY_S):
-                session = pipe._session
+                session = pipe.session
                 if session is not None and hasattr(session, "status"):
                     try:
                         live.update(_status_table(session.status(), namespace))

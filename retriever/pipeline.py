@@ -6,6 +6,8 @@
     trace = pipe.run(duration=10)   # default backend: retriever.init(backend=...) or "inproc"
 
 ``run`` and ``step`` continue from where the last call stopped; ``reset`` returns to T0.
+``pipe.session`` is the run going on (its backend's ``Session``), for watching it; ``pipe.open()``
+opens it before the first run.
 """
 
 from __future__ import annotations
@@ -180,6 +182,28 @@ class Pipeline:
         return pipe
 
     # -- running -----------------------------------------------------------------------------
+    @property
+    def session(self) -> Session | None:
+        """The current run: the backend's :class:`~retriever.backends.Session` that the last
+        ``run``/``step`` (or :meth:`open`) opened and the next one goes on with; None before the
+        first and after :meth:`reset` or a change to the pipeline.
+
+        It is for watching a run, from the thread that runs it or another one: its ``trace``,
+        ``stats()``, ``counts``, ``starved``, ``produced_counts()``, ``keep``, ``log_metadata()``,
+        ``stop_signal``, ``retained_peak`` (:class:`~retriever.backends.base.Session` says what
+        each is); a real-time backend's adds its own (``t0``, the run's start in HLC Unix ns once it
+        is set, and ``worker_pids()``; a deployment's ``placed``, ``workers`` and ``status()``).
+        The pipeline's own methods (``stats()``, ``counts()``, ``trace``) read the same run."""
+        return self._session
+
+    def open(self, backend: str | None = None, **options: Any) -> Session:
+        """Open the run's session now, without running it, and return it (:attr:`session`): a
+        real-time backend starts its processes here, which the first ``run`` would otherwise do.
+        The next ``run``/``step`` goes on with it; ``reset()`` closes it. With a session already
+        open, that one is returned (``backend`` must then name its backend, and ``options`` be
+        empty: they are given once, to the run they open)."""
+        return self._session_for(backend, options)
+
     def _session_for(self, backend: str | None, options: dict) -> Session:
         from .backends import canonical, default_backend
 
@@ -362,7 +386,7 @@ class RunHandle:
 
     def stop(self) -> None:
         """Ask the run to stop between two ticks (a no-op once it is over)."""
-        session = self._pipe._session
+        session = self._pipe.session
         if session is not None and not self.done:  # (a request left on the session would stop the next run)
             session.stop_requested = True
             session.look_between_ticks()
