@@ -105,7 +105,7 @@ def demo(
         cli.err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
         # during the logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = cli.stop_signal() or getattr(getattr(pipe, "_session", None), "stop_signal", None)
+        signum = cli.stop_signal() or getattr(getattr(pipe, "session", None), "stop_signal", None)
         raise typer.Exit(code=128 + (signum or signal.SIGINT)) from None
     except (DemoError, ValueError, PlannerError) as exc:
         cli.fail(RetrieverError(str(exc)))
