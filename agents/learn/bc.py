@@ -118,7 +118,7 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
-            total += float(loss) * len(batch)
+            total += loss.item() * len(batch)
         schedule.step()
         epoch += 1
         loss_value = total / len(X)
