@@ -32,9 +32,10 @@ from retriever.errors import RetrieverError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-#: plain text, never markup: a message or a path may hold brackets ("retriever-robotics[lerobot]")
-_err = Console(stderr=True, markup=False)
-_out = Console(markup=False)
+#: plain text, never markup (a message or a path may hold brackets: "retriever-robotics[lerobot]"),
+#: and no line breaks of rich's own: a message piped to a file or a test stays whole
+_err = Console(stderr=True, markup=False, soft_wrap=True)
+_out = Console(markup=False, soft_wrap=True)
 #: the packages of the lerobot extra that training and a learned policy import
 EXTRA_MODULES = ("torch", "safetensors", "lerobot")
 

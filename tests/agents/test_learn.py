@@ -363,3 +363,15 @@ def test_the_results_say_what_they_were_measured_with(loop):
     assert environment["torch"] == torch.__version__.split("+")[0] and environment["lerobot"]
     assert environment["python"] == ".".join(map(str, sys.version_info[:3])) and "commit" in environment
     assert summary["seconds"] > summary["training"]["seconds"]
+
+
+def test_a_message_is_one_line_whatever_the_paths_length(tmp_path):
+    """Not broken at the 80 columns rich assumes off a terminal (where it fell depended on the
+    temporary folder's name)."""
+    deep = tmp_path / ("a_rather_long_folder_name_" * 4)
+    deep.mkdir()
+    (deep / "afile").write_text("")
+    done = learn("train", "ds", "-o", str(deep / "afile"), "--minutes", "1", cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert f"error: -o {deep / 'afile'}: a file is there; the checkpoint is a directory (give a new path)\n" \
+        == done.stderr, done.stderr
