@@ -291,3 +291,21 @@ def test_a_demo_whose_policy_setup_fails_leaves_no_log_and_says_so(tmp_path, mon
     assert "pick_policy.setup() raised RuntimeError: the checkpoint changed under it" in err, err
     assert "no log is left: the run did not start" in err, err
     assert not (tmp_path / "run.mcap").exists() and not (tmp_path / "pictures").exists()
+
+
+def test_a_save_that_fails_leaves_the_checkpoint_that_was_there(tmp_path, monkeypatch):
+    """train --force over a checkpoint, its save failing after the weights are written: the old
+    weights and config stay together (new weights with the old config would pass the check)."""
+    pytest.importorskip("torch")
+    from agents.learn import bc
+    path = _mlp_checkpoint(tmp_path / "policy")
+    before = {name: (tmp_path / "policy" / name).read_bytes() for name in (WEIGHTS_FILE, CONFIG_FILE)}
+    config = {"state_dim": 18, "scene_dim": 10, "steps": 150, "nu": 5, "hidden": 8}
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(bc.json, "dumps", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        bc.save(bc.make_module(config), config, path)
+    after = {p.name: p.read_bytes() for p in (tmp_path / "policy").iterdir()}
+    assert after == before
