@@ -29,6 +29,8 @@ CONFIG_FILE, WEIGHTS_FILE = "policy.json", "model.safetensors"
 KIND = "agents.learn.bc.PickMLP"
 #: policy.json's sizes of the module, each a positive integer
 CONFIG = ("state_dim", "scene_dim", "steps", "nu", "hidden")
+#: the largest policy.json read (python -m agents.learn train writes about 400 bytes)
+MAX_CONFIG_BYTES = 1 << 16
 #: the most parameters a checkpoint's module may have (a Pick MLP of hidden=256 has about 270 000)
 MAX_PARAMETERS = 1 << 24
 COMMAND = slice(2 * NU, 3 * NU)     # the commanded targets in the state vector
@@ -73,6 +75,9 @@ def read_config(folder: str | Path) -> dict:
         raise ValueError(f"skill policy {str(folder)!r}: a LeRobot checkpoint (config.json, no {CONFIG_FILE}); this "
                          "takes a checkpoint of python -m agents.learn train; run a LeRobot policy as a "
                          "retriever.learn.LeRobotPolicy flow (docs/learning.md)")
+    if path.is_file() and path.stat().st_size > MAX_CONFIG_BYTES:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE} is {path.stat().st_size} bytes; a Pick "
+                         f"policy's config is a few hundred (at most {MAX_CONFIG_BYTES} are read)")
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:

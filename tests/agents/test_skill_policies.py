@@ -309,3 +309,11 @@ def test_a_save_that_fails_leaves_the_checkpoint_that_was_there(tmp_path, monkey
         bc.save(bc.make_module(config), config, path)
     after = {p.name: p.read_bytes() for p in (tmp_path / "policy").iterdir()}
     assert after == before
+
+
+def test_a_config_too_large_to_be_a_pick_policys_is_not_read(tmp_path):
+    path = _mlp_checkpoint(tmp_path / "big")
+    doc = json.loads((tmp_path / "big" / CONFIG_FILE).read_text())
+    (tmp_path / "big" / CONFIG_FILE).write_text(json.dumps({**doc, "padding": "x" * (1 << 20)}))
+    with pytest.raises(ValueError, match=r"policy.json is 10\d{5} bytes; a Pick policy's config is a few hundred"):
+        check_skill_policy(path)
