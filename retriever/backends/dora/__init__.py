@@ -3,6 +3,7 @@ dora dataflow, run by dora's own runtime (the ``dora-rs`` and ``dora-rs-cli`` pa
 
     dataflow.py     the IR as a dora dataflow descriptor (YAML): one node per flow
     link.py         a worker's loop whose events and progress go over dora
+    node.py         a dora node's process: the zenoh worker's phases, with that loop
     host.py         ``dora run`` starting the workers, and what they print
     coordinator.py  the zenoh backend's coordinator over those workers: T0, reports, the trace, the log
 

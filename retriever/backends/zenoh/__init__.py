@@ -5,7 +5,8 @@
     origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
     loop.py         one node's real-time loop (frontiers, deadlines, LET, overruns, restarts)
-    worker.py       the worker process around a loop
+    worker.py       the worker process around a loop, in phases
+    command.py      a worker's command line, built and read in one place
     output.py       what workers print, on the coordinator's streams, prefixed with the node
     host.py         where worker processes run (this machine: LocalHost), and how they are started
     coordinator.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log

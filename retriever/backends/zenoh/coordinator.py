@@ -40,6 +40,7 @@ from ...starved import StarvationWatch
 from ...trace import NOT_KEPT, STEPPED
 from ..base import NodeStats, RestartBudget, Session
 from .access import AccessError, RunAccess, secret_bytes, write_private
+from .command import mode_args
 from .folders import RUN_FOLDER, private_folder
 from .hub import new_zid, open_hub, weak_callback
 from .loop import RESTART_SEQ_GAP
@@ -285,7 +286,7 @@ class Coordinator(Session):
     def _spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
-        mode = [] if join is None else ["--fresh" if fresh else "--join", str(join[0]), str(join[1])]
+        mode = mode_args(join, fresh)
         self._workers[nid], key = self._hosts[nid].spawn(nid, mode, self._first_keys.pop(nid, None) or new_key())
         self._senders.add(nid, key, self._workers[nid])
         if join is not None:

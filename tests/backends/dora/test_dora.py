@@ -59,7 +59,7 @@ def test_the_dataflow_has_a_node_per_flow_an_output_per_port_and_progress_for_co
     doc = yaml.safe_load(dataflow_yaml("chain", names, "/venv/bin/python", "/run/spec.json", "/src"))
     nodes = {n["id"]: n for n in doc["nodes"]}
     assert sorted(nodes) == ["echo", "slow", "src"]
-    assert nodes["src"]["args"] == "-m retriever.backends.zenoh.worker /run/spec.json src"
+    assert nodes["src"]["args"] == "-m retriever.backends.dora.node /run/spec.json src"
     assert nodes["src"]["path"] == "/venv/bin/python" and nodes["src"]["env"] == {"PYTHONPATH": "/src"}
     assert nodes["src"]["outputs"] == ["value", PROGRESS]
     assert nodes["slow"]["outputs"] == ["saw"] and "inputs" not in nodes["src"]  # slow: nobody consumes it
@@ -225,7 +225,7 @@ def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves(
         dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
         run_dir, dora_dir = _directories_of(dora[0])
         if when == "once its workers run":
-            _poll(lambda: _children_of(proc.pid, "retriever.backends.zenoh.worker"), "workers")
+            _poll(lambda: _children_of(proc.pid, "retriever.backends.dora.node"), "workers")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(BOUND_S)
 

@@ -462,20 +462,20 @@ pipe.run(duration=60, backend="zenoh", quiet=True, namespace=sys.argv[1], log=sy
 
 
 
-def test_a_worker_sees_its_coordinator_dying_through_the_descriptor_it_opened(monkeypatch):
+def test_a_worker_sees_its_coordinator_dying_through_the_descriptor_it_opened():
     """The parent watch reads the coordinator's /proc stat through a descriptor opened while it
     lived: alive is not orphaned; a zombie is; once reaped, a read fails (whatever process gets
     the pid next), and that is orphaned too. (As for a coordinator that is not our parent: dora's.)"""
-    monkeypatch.setattr(worker, "_adopted", True)
     child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    coordinator = worker.Parent(child.pid, adopted=True)
     stat = os.open(f"/proc/{child.pid}/stat", os.O_RDONLY)
     try:
-        assert not worker._orphaned(child.pid, stat) and not worker._orphaned(child.pid)
+        assert not coordinator.gone(stat) and not coordinator.gone()
         child.stdin.close()  # it exits; not reaped yet, a zombie
         os.waitid(os.P_PID, child.pid, os.WEXITED | os.WNOWAIT)
-        assert worker._orphaned(child.pid, stat) and worker._orphaned(child.pid)
+        assert coordinator.gone(stat) and coordinator.gone()
         child.wait()
-        assert worker._orphaned(child.pid, stat)
+        assert coordinator.gone(stat)
     finally:
         os.close(stat)
 
@@ -565,6 +565,20 @@ def test_a_run_whose_step_does_not_return_fails_with_that_steps_stack(namespace,
     assert len(re.findall(r'File ".*lifecycle_flows\.py", line \d+ in step', message)) == 1, message
     assert "hint: the stacks show where a step that did not return is" in message, message
     assert "lifecycle_flows.py" not in capsys.readouterr().err
+
+
+def test_a_worker_holding_what_is_slow_to_collect_exits_within_the_stop_grace(capfd, namespace):
+    """A flow that holds a big model (a torch policy) to the end: once its worker released the
+    flow, said done and closed its session, the process ends at once, not after Python's
+    teardown collected the model object by object (seconds), past the coordinator's grace:
+    it was SIGKILLed, with its stacks printed, after every run."""
+    from tests.backends.zenoh.lifecycle_flows import Heavy
+
+    pipe = two_node_pipeline("heavy", sink=Heavy)
+    pipe.run(duration=0.5, backend="zenoh", namespace=namespace, quiet=True)
+    err = capfd.readouterr().err
+    assert "did not stop within" not in err and "SIGKILL" not in err, err
+    assert pipe.stats()["total"].ticks > 0
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
