@@ -22,6 +22,7 @@ import secrets
 import sys
 import threading
 import tomllib
+from collections import Counter
 from pathlib import Path
 
 import zenoh
@@ -29,7 +30,7 @@ import zenoh
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...log.format import package_versions
-from ...placement import Placement, WorkerInfo, load_placement, place
+from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
 from .access import DICTIONARY, AccessError, RunAccess, TlsFiles, secret_bytes
 from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, credentials, describe,
@@ -302,13 +303,8 @@ class Deployment(Coordinator):
             return self._await_return(host, nodes)
         self._remotes.pop(host.name, None)
         self.workers.pop(host.name, None)
-        targets, problems = {}, []
-        for nid in nodes:
-            target = self._replacement(nid, targets)
-            if target is None:
-                problems.append(nid)
-            targets[nid] = target
-        if problems:
+        targets = move(nodes, self._placement, self._workers_up())
+        if targets is None:
             return super()._host_lost(host, nodes)
         self._move(host.name, targets, self._run_time())
 
@@ -352,17 +348,11 @@ class Deployment(Coordinator):
             self._start_afresh(nid, {"node": nid, "at_ns": at, "pid": self._workers[nid].pid,
                                      "exit": f"was lost with its worker '{lost}'", "moved_to": name})
 
-    def _replacement(self, nid: str, chosen: dict[str, str]) -> str | None:
-        """The least loaded worker still up that ``nid``'s placement allows (ties by name), or None."""
-        rule = self._placement.nodes.get(nid) if self._placement is not None else None
-        load = {name: 0 for name in self.workers}
-        for worker in [*self.placed.values(), *chosen.values()]:
-            if worker in load:
-                load[worker] += 1
-        eligible = [name for name, info in self.workers.items()
-                    if rule is None or ((rule.worker is None or rule.worker == name)
-                                        and rule.labels <= set(info.get("labels") or ()))]
-        return min(eligible, key=lambda name: (load[name], name), default=None)
+    def _workers_up(self) -> list[WorkerInfo]:
+        """The workers still up, each with the nodes placed on it as its load (a move's candidates)."""
+        load = Counter(self.placed.values())
+        return [WorkerInfo(name, frozenset(info.get("labels") or ()), load[name], info.get("host"))
+                for name, info in sorted(self.workers.items())]
 
     def _record_faults_left(self) -> None:
         for waiting in self._waiting.values():  # lost, and never back in the run's time
