@@ -57,7 +57,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     from zenoh_flows import Counter, Keep
 
     from retriever import Latest, Pipeline, Rate
-    from retriever.backends.zenoh.coordinator import _ticks_due
+    from retriever.backends.zenoh.coordinator import ticks_due
 
     with Pipeline(f"scale{flows}") as pipe:
         camera = Counter() @ Rate(hz=source_hz)
@@ -88,7 +88,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
             "coord_rss_mb": me.ru_maxrss / PAGE_KB, "workers_anon_mb": seen["workers_rss_kb"] / PAGE_KB,
             "worker_anon_max_mb": seen["worker_rss_max_kb"] / PAGE_KB,
             "ticks": sum(s.ticks for s in pipe.stats().values()),
-            "due": sum(_ticks_due(node.clock, end_ns) for node in session.graph.nodes.values())}
+            "due": sum(ticks_due(node.clock, end_ns) for node in session.graph.nodes.values())}
 
 
 def main() -> None:

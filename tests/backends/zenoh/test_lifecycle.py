@@ -727,7 +727,7 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
             session = pipe._session
             if session is not None and session.t0 is not None:
                 steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
-                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session._event_ids]
+                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session.book.event_ids]
                 if unknown or len(steps) >= 40:
                     killed["race"] = bool(unknown)
                     os.kill(session.worker_pids()["counter"], signal.SIGKILL)
@@ -979,7 +979,7 @@ def test_a_flow_whose_process_dies_past_its_restart_budget_stops_the_run_naming_
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
-    assert len(kills) == 2 and f"pid {kills[1]}" in str(pipe._session._limit)
+    assert len(kills) == 2 and f"pid {kills[1]}" in str(pipe._session.book.limit)
     faults = read_log(tmp_path / "run.mcap", salvage=True).faults  # each death, the last one too
     assert [(f["pid"], f["restarted"]) for f in faults] == [(str(kills[0]), "true"), (str(kills[1]), "false")]
 
