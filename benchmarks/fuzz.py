@@ -105,7 +105,7 @@ HANG_S = 10.0
 #: the run of the genuine pipeline whose messages, reports and log seed the campaign
 RUN_S = 0.5
 NAMESPACE = "fuzz"
-#: garbage messages a coordinator prints before it only counts them (coordinator.py)
+#: garbage messages a coordinator prints before it only counts them (coordinator/book.py, GARBAGE_SAID)
 GARBAGE_PRINTED = 3
 
 #: callables a forged dataclass value names: decoding must never import or call them
