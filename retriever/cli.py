@@ -408,7 +408,7 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
-    placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
+    placed = getattr(getattr(pipe._session, "hosting", None), "placed", None)  # a deployment: where each node ran
     starved = _starved_cells(pipe._session.starved if pipe._session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
@@ -461,10 +461,10 @@ def _show_live(pipe, namespace: str):
     def show() -> None:
         with Live(console=_err, refresh_per_second=2, transient=True) as live:
             while not done.wait(LIVE_EVERY_S):
-                session = pipe._session
-                if session is not None and hasattr(session, "status"):
+                hosting = getattr(pipe._session, "hosting", None)  # a deployment's says what runs where
+                if hasattr(hosting, "status"):
                     try:
-                        live.update(_status_table(session.status(), namespace))
+                        live.update(_status_table(hosting.status(), namespace))
                     except RuntimeError:  # read while the run updates it: next time
                         continue
 
