@@ -147,16 +147,16 @@ def instrument(stamps: dict) -> None:
     ``ready`` (when it came, and the peers its worker had linked then), the moment every flow was
     ready (the ``start`` control, put right after T0 is chosen) with the CPU used by then; and
     print the error that makes a session close early (a hang in the close would hide it)."""
-    from retriever.backends.zenoh import coordinator as session_module
+    from retriever.backends.zenoh.coordinator import Coordinator, RunControl
+    from retriever.backends.zenoh.coordinator import statuses as statuses_module
     from retriever.backends.zenoh.deploy import Deployment
     from retriever.backends.zenoh.remote import RemoteHost
 
-    for cls, method, key in ((Deployment, "__init__", "session"), (Deployment, "_open_hub", "join"),
+    for cls, method, key in ((Coordinator, "__init__", "session"), (Deployment, "open_hub", "join"),
                              (Deployment, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
                              (RemoteHost, "spawn", "spawn")):
         _time_calls(cls, method, key, stamps)
-    control, close, decode_status = (session_module.Coordinator._control, session_module.Coordinator.close,
-                                     session_module.decode_status)
+    control, close, decode_status = RunControl.put, Coordinator.close, statuses_module.decode_status
     ready_at, ready_peers = stamps.setdefault("ready_at", {}), stamps.setdefault("ready_peers", {})
 
     def timed_control(self, op: str, args: dict) -> None:
@@ -181,8 +181,8 @@ def instrument(stamps: dict) -> None:
                   f"started): {spans}", file=sys.stderr, flush=True)
         close(self)
 
-    session_module.Coordinator._control, session_module.Coordinator.close = timed_control, told_close
-    session_module.decode_status = noted_status
+    RunControl.put, Coordinator.close = timed_control, told_close
+    statuses_module.decode_status = noted_status
 
 
 def chains_pipeline(nodes: int, chain: int, hz: float):

@@ -408,9 +408,8 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
-    session = pipe.session
-    placed = getattr(session, "placed", None)  # a deployment: where each node ran
-    starved = _starved_cells(session.starved if session is not None else [])
+    placed = getattr(getattr(pipe.session, "hosting", None), "placed", None)  # a deployment: where each node ran
+    starved = _starved_cells(pipe.session.starved if pipe.session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
                 *(("starved",) if starved else ())):
@@ -462,10 +461,10 @@ def _show_live(pipe, namespace: str):
     def show() -> None:
         with Live(console=_err, refresh_per_second=2, transient=True) as live:
             while not done.wait(LIVE_EVERY_S):
-                session = pipe.session
-                if session is not None and hasattr(session, "status"):
+                hosting = getattr(pipe.session, "hosting", None)  # a deployment's says what runs where
+                if hasattr(hosting, "status"):
                     try:
-                        live.update(status_table(session.status(), namespace))
+                        live.update(status_table(hosting.status(), namespace))
                     except RuntimeError:  # read while the run updates it: next time
                         continue
 

@@ -46,7 +46,7 @@ def _let_chain(name: str = "chain") -> Pipeline:
 
 def _nothing_left(session) -> None:
     """The run's `dora run` and every worker it started are gone."""
-    assert session._dora.proc.poll() is not None, "dora run outlived its run"
+    assert session.hosting.dora.proc.poll() is not None, "dora run outlived its run"
     alive = {nid: pid for nid, pid in session.worker_pids().items() if pid > 0 and _alive(pid)}
     assert not alive, f"worker(s) {alive} outlived the run"
 
