@@ -46,19 +46,6 @@ KNOWN = {
     ("retriever.backends._inproc_ticks", "_schedule"): "issue 37: remove",
     ("retriever.backends._inproc_ticks", "_skipped"): "issue 37: remove",
     ("retriever.backends._inproc_ticks", "_staleness_ns"): "issue 37: remove",
-    # dora customises the zenoh coordinator by overriding its private hooks (it should hand it a host)
-    ("retriever.backends.dora.coordinator", "_check_processes"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_dir"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_exit_text"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_host_lost"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_how_to_watch"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_place"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_processes"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_release_hosts"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_spec"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_stderr_tail"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_stop_workers"): "issue 37: remove",
-    ("retriever.backends.dora.coordinator", "_where"): "issue 37: remove",
     # dora's host reads the zenoh output capture's privates; output.py should name them publicly
     ("retriever.backends.dora.host", "_WRITING"): "issue 37: remove",
     ("retriever.backends.dora.host", "_tail"): "issue 37: remove",
@@ -69,26 +56,6 @@ KNOWN = {
     ("retriever.backends.dora.link", "_answer_progress"): "issue 37: remove",
     ("retriever.backends.dora.link", "_publisher"): "issue 37: remove",
     ("retriever.backends.dora.link", "_receive"): "issue 37: remove",
-    # Deployment subclasses Coordinator through its private state and hooks
-    ("retriever.backends.zenoh.deploy", "_check_deployable"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_closed"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_control"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_dir"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_host_lost"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_hosts"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_open_hub"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_place"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_record_faults_left"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_release_hosts"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_run_access"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_run_time"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_spec"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_start_afresh"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_state"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_stats"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_subscribers"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_where"): "issue 37: remove",
-    ("retriever.backends.zenoh.deploy", "_workers"): "issue 37: remove",
     # the loop builds bursts through Burst's private constructor
     ("retriever.backends.zenoh.loop", "_of"): "issue 37: remove",
     # the worker reads the loop's control key and an in-process private
@@ -215,11 +182,20 @@ def _bases_elsewhere(module: str, cls: ast.ClassDef) -> list[tuple[str, ast.Clas
     return found
 
 
+def _foreign_modules(tree: ast.Module) -> set[str]:
+    """The names a module binds with ``import X`` to a module outside this package (``os`` in
+    ``os._exit``): their private names are that library's business, not this check's."""
+    return {alias.asname or alias.name.partition(".")[0]
+            for node in ast.walk(tree) if isinstance(node, ast.Import)
+            for alias in node.names if alias.name.partition(".")[0] != PACKAGE}
+
+
 def _private_reads(module: str) -> dict[tuple[str, str], list[str]]:
     """``(module, private name) -> where and how`` for each private name of another module that
     ``module`` uses."""
     _path, is_package, tree = MODULES[module]
     own = DEFINED[module]
+    foreign = _foreign_modules(tree)
     found: dict[tuple[str, str], list[str]] = defaultdict(list)
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
@@ -227,7 +203,8 @@ def _private_reads(module: str) -> dict[tuple[str, str], list[str]]:
             for alias in node.names:
                 if _is_private(alias.name) and f"{source}.{alias.name}" not in MODULES and source != module:
                     found[(module, alias.name)].append(f"line {node.lineno}: from {source} import {alias.name}")
-        elif isinstance(node, ast.Attribute) and _is_private(node.attr) and node.attr not in own:
+        elif (isinstance(node, ast.Attribute) and _is_private(node.attr) and node.attr not in own
+              and not (isinstance(node.value, ast.Name) and node.value.id in foreign)):
             owners = sorted(DEFINED_BY[node.attr] - {module})
             if owners:
                 found[(module, node.attr)].append(f"line {node.lineno}: {ast.unparse(node)} (of {' or '.join(owners)})")
