@@ -20,7 +20,7 @@ one worker per node. A worker process goes through these phases, each a function
       run              the loop until its end, ``stop``, or a failure
       finish           say ``failed`` / ``handed_over`` / ``done``, release (teardown), wait
                        until the coordinator took every report; the session closes
-    exit_process     end the process at once, Python's own teardown skipped (why: there)
+    exit_process     end the process with the node's exit code
 
 A start by dora (backends/dora/node.py) is the same phases with a :class:`Launch` of its own:
 its parent to watch, its key, its loop (events over dora) and its directory.
@@ -43,7 +43,6 @@ said nothing: as if killed).
 
 from __future__ import annotations
 
-import atexit
 import ctypes
 import faulthandler
 import gc
@@ -83,7 +82,7 @@ EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended
 POOL_PADDING = 4096
 
 #: the flows this process served, held until it ends: what a flow holds (a model, a device) is
-#: never finalized one object at a time (exit_process); the session its loop held is let go of
+#: finalized once, as the interpreter ends; the session its loop held is let go of
 _kept_to_the_end: list = []
 
 #: the node this process serves, once it is a worker: a run started here (a flow's module that
@@ -438,25 +437,11 @@ def read_spec(launch: Launch) -> dict:
 
 
 def exit_process(code: int) -> NoReturn:
-    """End this process with ``code`` as exit() does, without Python's own teardown. The worker
-    is done by then: its flow torn down (release), its reports taken, its session closed. What
-    Python would do next, collect every object and module and call each one's finalizer, takes
-    a process holding a big model (torch) seconds, past the coordinator's STOP_GRACE_S, which
-    then SIGKILLed it. Kept: the functions registered with ``atexit`` (a flow's own, logging's
-    flush), buffered output, and the C library's exit handlers, in which Zenoh removes the
-    shared-memory segments this process was the last to map (``os._exit`` would skip those too,
-    and leave a producer's pool in /dev/shm)."""
-    atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError, AttributeError):
-            pass
-    try:
-        ctypes.PyDLL(None).exit(code)  # holds the GIL: no Python thread runs while the handlers do
-    except (OSError, AttributeError):
-        pass
-    os._exit(code)
+    """End this process with ``code``, as Python ends: ``atexit`` functions, then the C library's
+    exit handlers, in which Zenoh removes the shared-memory segments this process was the last to
+    map. Collecting what a flow held (a torch model, object by object) may take seconds: a worker
+    that said ``done`` has the coordinator's REAP_GRACE_S for it, not the stop grace of a stuck one."""
+    sys.exit(code)
 
 
 def _let_go_of(pool: set[str]) -> None:

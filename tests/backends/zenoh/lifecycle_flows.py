@@ -7,6 +7,7 @@ script too (``lifecycle_flows.py:pipe`` and ``lifecycle_flows.py:napping``).
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import os
 import time
@@ -115,23 +116,26 @@ class Nap(Flow[None, Count]):
         return Count(n=1)
 
 
-#: how long a SlowToCollect's finalizer takes: longer than the coordinator's STOP_GRACE_S
-SLOW_FINALIZER_S = 5.0
+#: how long a SlowToExit's process takes to end once its worker is done: longer than the
+#: coordinator's STOP_GRACE_S, within the REAP_GRACE_S it gives a worker that said done
+SLOW_EXIT_S = 3.0
+#: the environment variable naming a file a SlowToExit's process writes as it ends
+EXITED_FILE_ENV = "RETRIEVER_TEST_EXITED_FILE"
 
 
-class SlowToCollect:
-    """What a big model is to a process's exit: its finalizer takes SLOW_FINALIZER_S (Python's
-    teardown collected a torch policy's tensors for seconds)."""
+def _end_slowly(path: str | None) -> None:
+    time.sleep(SLOW_EXIT_S)
+    if path:
+        with open(path, "w") as f:
+            f.write("ended")
 
-    def __del__(self) -> None:
-        time.sleep(SLOW_FINALIZER_S)
 
-
-class Heavy(Flow[Count, None]):
-    """A sink that holds, from its setup() to the end, something slow to collect."""
+class SlowToExit(Flow[Count, None]):
+    """A sink whose process takes SLOW_EXIT_S to end after its worker is done, as one holding a
+    big model does (Python's exit releasing a torch policy's memory, its threads, its caches)."""
 
     def setup(self) -> None:
-        self.model = SlowToCollect()
+        atexit.register(_end_slowly, os.environ.get(EXITED_FILE_ENV))
 
     def step(self, inp: Count) -> None:
         pass

@@ -206,15 +206,18 @@ class Supervisor:
         while time.monotonic() < give_up and any(p.poll() is None for p in book.processes()):
             self.inbox.take_one(STOP_POLL_S)
         self.inbox.drain()
-        stuck = sorted(nid for nid, p in [*book.workers.items(), *book.retiring.items()] if p.poll() is None)
+        # one that said done is past its flow's teardown and only ending (Python collecting a big
+        # model object by object takes seconds): reap gives it REAP_GRACE_S; the others are stuck
+        running = [(nid, p) for nid, p in [*book.workers.items(), *book.retiring.items()] if p.poll() is None]
+        stuck = sorted(nid for nid, p in running if book.state.get(nid) != "done" or p in book.retiring.values())
         if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
             print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
                   "then SIGKILL:", file=sys.stderr, flush=True)
             self.diagnostics.dump_stacks(stuck)
-            for p in book.processes():
-                if p.poll() is None:
+            for nid, p in running:
+                if nid in stuck:
                     p.kill()
-        self.reap(grace=KILLED_GRACE_S)
+        self.reap(grace=REAP_GRACE_S if len(stuck) < len(running) else KILLED_GRACE_S)
 
     def reap(self, grace: float = REAP_GRACE_S) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
