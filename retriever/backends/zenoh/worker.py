@@ -621,7 +621,12 @@ def run(w: Serving) -> int:
             return 0
         if not loop.virtual:
             _no_timer_slack()
-        loop.run(begin.t0, begin.end, resume=begin.resume)
+        hub_link = _watch_hub_link(w.session, w.spec.get("hub_zid"), w.node)
+        try:
+            loop.run(begin.t0, begin.end, resume=begin.resume)
+        finally:
+            if hub_link is not None:
+                hub_link.undeclare()
         if loop.abandoned:
             loop.undeclare()
             return EXIT_ABANDONED
@@ -962,8 +967,37 @@ def _await_reports_taken(session, keys, node_id: str, hub_zid: str | None) -> No
         if said is not None:
             answered = time.monotonic()
         elif hub_zid is None or hub_zid not in {str(z) for z in session.info.peers_zid()}:
+            if hub_zid is not None:  # the coordinator waits for reports that cannot come: say why
+                print(f"retriever: worker '{node_id}' has no link to the coordinator at its end: the coordinator may "
+                      "lack its last reports and status", file=sys.stderr, flush=True)
             return  # the coordinator is gone (or, without its id, may be): nothing more reaches it
         time.sleep(0.02)
+
+
+def _watch_hub_link(session, hub_zid: str | None, node_id: str):
+    """Say on stderr when this process's link to the coordinator's session (``hub_zid``) closes
+    while the node runs; the listener (undeclare it), or None without a hub id.
+
+    Nothing else would tell: a put with no route is dropped without an error, and Zenoh re-opens
+    only the links to a session's configured endpoints. A flow on a worker daemon found the hub by
+    gossip, so from then on its reports and its last status go nowhere and the run ends with
+    "exited with code 0 before it finished". Zenoh closes a healthy link when its peer's lease
+    passes with nothing read from it, and reading stops while Zenoh closes another link whose
+    queue a put holds (a consumer's host cut off, congestion control BLOCK): it takes that queue's
+    lock, on a thread that also reads links, and waits for each put that holds it, up to its
+    wait_before_close, before the link leaves the routes (benchmarks/reports/partition_move.md)."""
+    import zenoh
+
+    if not hub_zid:
+        return None
+
+    def closed(event) -> None:  # on a thread of zenoh-python's
+        if event.kind == zenoh.SampleKind.DELETE and str(event.transport.zid) == hub_zid:
+            print(f"retriever: worker '{node_id}' lost its link to the coordinator at {time.strftime('%H:%M:%S')} "
+                  "(Zenoh closed it, and does not open it again): what it reports from now on does not reach the "
+                  "coordinator", file=sys.stderr, flush=True)
+
+    return session.info.declare_transport_events_listener(closed)
 
 
 def _ask_start(session, keys, loop: NodeLoop) -> None:
