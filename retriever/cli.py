@@ -307,7 +307,8 @@ def deploy(
              "placement allows; 'wait' on it once it is back; 'stop' stops the run.")] = None,
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept before its worker counts "
-                                "as lost: Zenoh's lease (default 10).")] = None,
+                                "as lost: Zenoh's lease (default 10; under about 3 s, a congested link's close can drop "
+                                "healthy links, docs/deploy.md).")] = None,
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
@@ -940,7 +941,8 @@ def worker(
         metavar="worker.toml", help="Settings from this TOML file (the same keys); flags override it.")] = None,
     lease: Annotated[Optional[float], typer.Option(
         metavar="SECONDS", help="How long a link that went silent (a partition) is kept: Zenoh's lease "
-                                "(default 10). A coordinator cut off for this long has its flows stopped.")] = None,
+                                "(default 10; under about 3 s, a congested link's close can drop healthy links, "
+                                "docs/deploy.md). A coordinator cut off for this long has its flows stopped.")] = None,
     tls_ca: Annotated[Optional[Path], _TLS_CA] = None,
     tls_cert: Annotated[Optional[Path], _TLS_CERT] = None,
     tls_key: Annotated[Optional[Path], _TLS_KEY] = None,
