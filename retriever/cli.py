@@ -409,8 +409,9 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
-    placed = getattr(getattr(pipe.session, "hosting", None), "placed", None)  # a deployment: where each node ran
-    starved = _starved_cells(pipe.session.starved if pipe.session is not None else [])
+    session = pipe.session
+    placed = getattr(getattr(session, "hosting", None), "placed", None)  # a deployment: where each node ran
+    starved = _starved_cells(session.starved if session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
                 *(("starved",) if starved else ())):
