@@ -227,13 +227,13 @@ def build_loop(spec: dict, node_id: str, session):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
-    loop_class, transport = NodeLoop, {}
+    transport = None  # the run's Zenoh session
     if spec.get("dora"):  # the dora backend: events and progress over dora (backends/dora/link.py)
         from ..dora.dataflow import DoraNames
-        from ..dora.link import DoraNodeLoop
+        from ..dora.link import DoraTransport
 
-        loop_class, transport = DoraNodeLoop, {"names": DoraNames.from_spec(spec["dora"])}
-    return loop_class(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
+        transport = DoraTransport(DoraNames.from_spec(spec["dora"]), node_id)
+    return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
@@ -243,7 +243,7 @@ def build_loop(spec: dict, node_id: str, session):
                     inline=not on_a_cycle(ir.edges, node_id) and type(node.flow).setup is Flow.setup,
                     cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
                     max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")),
-                    **transport)
+                    transport=transport)
 
 
 def instant_ports(ir, node_id: str) -> frozenset[str]:
