@@ -25,7 +25,7 @@ import numpy as np
 
 #: the most values a burst holds (a step with more makes an array its value, or splits them over
 #: ticks): it bounds what one message may make a receiver build, and the seqs a lost process may
-#: have used unreported (RESTART_SEQ_GAP in backends/zenoh/loop.py)
+#: have used unreported (RESTART_SEQ_GAP in backends/zenoh/node/frontiers.py)
 MAX_BURST = 1 << 16
 
 _NOT_VALUES = (str, bytes, bytearray, memoryview, dict, set, frozenset)

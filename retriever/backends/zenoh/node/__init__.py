@@ -1,15 +1,15 @@
 """One node's real-time loop, inside its worker process (docs/semantics.md, docs/realtime.md).
 
-    transport thread ──(DATA: key, bytes)──▶ inbox ──┐      (or, the main thread waiting and the
-    run's control, progress ──(CONTROL, PROGRESS)──▶ │       node's steps short: handled right
-                                                     │       there, NodeLoop.receive)
+    transport thread ──(DATA: key, bytes)──▶ inbox ──┐   (or, the main thread waiting and the
+    control, progress ──(CONTROL, PROGRESS)────────▶ │    node's steps short: handled right
+                                                     │    there, NodeLoop.receive)
     NodeLoop.run ◀───────────────────────────────────┘
       ┌─▶ drain the inbox ── handle ─┬─ DATA ─────▶ frontiers.Streams: in seq order, frontiers,
       │                              │               deliver to buffers, schedule trigger ticks
       │                              ├─ PROGRESS ─▶ frontiers.Streams: frontiers
       │                              └─ CONTROL ──▶ control.obey: stop, end, grant, have, lost, …
       │   outputs.release: held LET outputs whose time came
-      │   try_tick: τ = schedule.next_due()  (the next Rate tick or trigger tag)
+      │   try_tick: τ = the schedule's next Rate tick or pending trigger tag
       │     waiting: inputs complete up to τ (producers' frontiers > τ), or past deadline? else
       │              ask producers, wake later           (virtual time: the coordinator's grant)
       │     steps.tick: select inputs, step(), outcome ─▶ outputs: stamp, publish or hold (LET)

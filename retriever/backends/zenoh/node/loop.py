@@ -22,7 +22,7 @@ from .inbox import CONTROL, DATA, NUDGE, NUDGED, PROGRESS
 from .notes import Notes
 from .outputs import Outputs
 from .reports import SPILL_BYTES, Reports
-from .schedule import Schedule
+from .schedule import DONE, TICKED, Schedule
 from .source import is_plain_source, quiet_source, source_pass
 from .steps import Steps
 from .timing import WARM_AHEAD_NS, Warmup
@@ -45,9 +45,6 @@ INLINE_STEP_NS = 1_000_000
 #: while its flow is being restarted, how often a loop with a tick due looks again (it also
 #: wakes for every message, the coordinator's handover among them)
 RESTART_POLL_NS = 50_000_000
-
-#: what a pass returns instead of a time to wake: look again at once, or the loop is done
-TICKED, DONE = "ticked", "done"
 
 
 class NodeLoop:
@@ -376,15 +373,18 @@ class NodeLoop:
         """Run the next tick if it is due and its inputs are complete (or past deadline):
         ``TICKED``. Else the wall time (ns since T0) to look again, or ``DONE``."""
         schedule, end = self.schedule, self.run_clock.end
-        tau = schedule.next_due()
+        with self.lock:  # the next Rate tick or the lowest pending trigger tag
+            tau = schedule.next_rate
+            if schedule.pending and (tau is None or schedule.pending[0] < tau):
+                tau = schedule.pending[0]
         if self.virtual:
             bound = self.streams.tick_bound()
             if bound >= (end, 0) or bound >= (self.granted, 0):
-                return self.done_waiting(now) if bound >= (end, 0) else self.waiting.at_grant(now)
+                return self.waiting.done_waiting(now) if bound >= (end, 0) else self.waiting.at_grant(now)
             if tau is None or tau >= (self.granted, 0):  # a tick below the grant may still be triggered
                 return self.waiting.ask_triggers(now)
         elif tau is None or tau[0] >= end:
-            return self.done_waiting(now)
+            return self.waiting.done_waiting(now)
         elif tau[0] > now:
             return tau[0]
         if self.restarting:  # due, but the flow is being restarted: the new process will run it
@@ -408,11 +408,6 @@ class NodeLoop:
         if tau is None or tau[0] >= self.run_clock.end or self.streams.triggering:
             return TICKED
         return tau[0] if tau[0] > self.run_clock.now() else TICKED
-
-    def done_waiting(self, now: int) -> int | str:
-        """No tick below the end is known: ``DONE`` once no edge can still trigger one."""
-        wake = self.waiting.done_waiting(now)
-        return DONE if wake is None else wake
 
     # ---------------------------------------------------------------------------------------
     # The end, and a restart's hand-over (handover.py)

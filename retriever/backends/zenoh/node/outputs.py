@@ -21,7 +21,7 @@ from ....flow.burst import Burst
 from ..wire import WireEncoder
 from .clock import RunClock
 from .frontiers import NEVER, Streams
-from .reports import FLUSH_AFTER_NS, FLUSH_MAX_BYTES, FLUSH_MAX_SEQS, Reports
+from .reports import Reports
 from .schedule import Schedule
 from .transport import Transport
 

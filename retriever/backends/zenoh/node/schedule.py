@@ -7,6 +7,10 @@ import threading
 
 from ....clocks import Clock
 
+#: what a pass of the node loop returns instead of a wall time to wake at: look again at once,
+#: or the loop is done (no tick below the end can come any more)
+TICKED, DONE = "ticked", "done"
+
 
 class Schedule:
     """The next Rate tick (the ``k``-th of the clock), the pending trigger tags (a heap,
@@ -27,14 +31,6 @@ class Schedule:
         if self.clock.hz is not None:
             with self.lock:
                 self.next_rate = (self.clock.tick_time(self.k), 0)
-
-    def next_due(self) -> tuple[int, int] | None:
-        """The next tick's tag: the next Rate tick or the lowest pending trigger tag."""
-        with self.lock:
-            tau = self.next_rate
-            if self.pending and (tau is None or self.pending[0] < tau):
-                tau = self.pending[0]
-        return tau
 
     def take(self, tau: tuple[int, int]) -> None:
         """The tick ``tau`` runs now: it is in progress, and no longer next."""

@@ -25,7 +25,7 @@ def source_pass(loop, now: int) -> int | str | None:
     schedule, steps = loop.schedule, loop.steps
     tau = schedule.next_rate
     if tau is None or tau[0] >= loop.run_clock.end:
-        return loop.done_waiting(now)
+        return loop.waiting.done_waiting(now)
     if tau[0] > now:
         return tau[0]
     schedule.take(tau)

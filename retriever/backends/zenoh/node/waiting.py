@@ -14,6 +14,7 @@ from __future__ import annotations
 import zenoh
 
 from .inbox import PROGRESS
+from .schedule import DONE
 
 #: how long a blocked tick waits for a data or progress message before asking the producer
 PROBE_AFTER_NS = 500_000
@@ -77,9 +78,9 @@ class Waiting:
         self.loop.session.get(self.loop.keys.progress(src), handler=on_reply, timeout=1.0)
         return now + ASK_EVERY_NS
 
-    def done_waiting(self, now: int) -> int | None:
-        """No tick below ``end`` is known: finished (None) once no edge can still trigger one,
-        else when to look again."""
+    def done_waiting(self, now: int) -> int | str:
+        """No tick below ``end`` is known: ``DONE`` once no edge can still trigger one, else when
+        to look again."""
         if self.outputs.held:
             return self.outputs.held[0][0][0]
         wake: int | None = None
@@ -91,7 +92,7 @@ class Waiting:
                 continue
             again = min(end + e.deadline_ns, self.ask(e.src, now, end))
             wake = again if wake is None else min(wake, again)
-        return wake
+        return DONE if wake is None else wake
 
     # -- virtual time -------------------------------------------------------------------------
     def blocked_since(self, tau: tuple[int, int], now: int) -> int:
