@@ -147,16 +147,16 @@ def instrument(stamps: dict) -> None:
     ``ready`` (when it came, and the peers its worker had linked then), the moment every flow was
     ready (the ``start`` control, put right after T0 is chosen) with the CPU used by then; and
     print the error that makes a session close early (a hang in the close would hide it)."""
-    from retriever.backends.zenoh import coordinator as session_module
+    from retriever.backends.zenoh.coordinator import Coordinator, RunControl
+    from retriever.backends.zenoh.coordinator import statuses as statuses_module
     from retriever.backends.zenoh.deploy import Deployment
     from retriever.backends.zenoh.remote import RemoteHost
 
-    for cls, method, key in ((Deployment, "__init__", "session"), (Deployment, "_open_hub", "join"),
+    for cls, method, key in ((Coordinator, "__init__", "session"), (Deployment, "open_hub", "join"),
                              (Deployment, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
                              (RemoteHost, "spawn", "spawn")):
         _time_calls(cls, method, key, stamps)
-    control, close, decode_status = (session_module.Coordinator._control, session_module.Coordinator.close,
-                                     session_module.decode_status)
+    control, close, decode_status = RunControl.put, Coordinator.close, statuses_module.decode_status
     ready_at, ready_peers = stamps.setdefault("ready_at", {}), stamps.setdefault("ready_peers", {})
 
     def timed_control(self, op: str, args: dict) -> None:
@@ -181,8 +181,8 @@ def instrument(stamps: dict) -> None:
                   f"started): {spans}", file=sys.stderr, flush=True)
         close(self)
 
-    session_module.Coordinator._control, session_module.Coordinator.close = timed_control, told_close
-    session_module.decode_status = noted_status
+    RunControl.put, Coordinator.close = timed_control, told_close
+    statuses_module.decode_status = noted_status
 
 
 def chains_pipeline(nodes: int, chain: int, hz: float):
@@ -235,7 +235,7 @@ def kill_mid_worker(pipe, after_s: float, out: dict) -> None:
     ``mid`` (the lab's namespaces share one PID space) and note when, and which worker it was."""
     give_up = time.monotonic() + 300
     while time.monotonic() < give_up:
-        session = pipe._session
+        session = pipe.session
         t0 = getattr(session, "t0", None)
         if t0 is not None and time.time_ns() >= t0 + after_s * 1e9:
             name = session.placed["mid"]
@@ -320,7 +320,7 @@ def coordinate(job_path: str) -> int:
                          namespace=job["namespace"], secret=job["secret"], placement=placement,
                          startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
                          keep=job.get("keep", "trace"))
-        session = pipe._session
+        session = pipe.session
         if job["kind"] == "chains":
             result.update(chains_result(trace, session))
         elif job["kind"] == "failover":
@@ -329,7 +329,7 @@ def coordinate(job_path: str) -> int:
             result.update(latency_result(trace, job["warmup"], pipe, record))
     except Exception as exc:  # noqa: BLE001 - reported to the benchmark, which goes on
         result["error"] = f"{type(exc).__name__}: {exc}"
-    session = pipe._session
+    session = pipe.session
     result["t0"] = getattr(session, "t0", None)
     result["cpu_s"] = cpu_seconds()
     result["maxrss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

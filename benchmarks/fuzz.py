@@ -6,7 +6,7 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
     wire-data     wire.decode_events (bursts too)     wire-progress   wire.decode_progress
     wire-report   wire.decode_report                  wire-status     wire.decode_status
     wire-control  wire.decode_control
-    coordinator   the zenoh coordinator's report handling (Coordinator._handle), after the
+    coordinator   the zenoh coordinator's report handling (its Inbox.handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
     insider       the coordinator's receiving path (signature check, then _handle) fed statuses and
                   reports an insider holding the secret forges (InsiderTarget)
@@ -70,6 +70,7 @@ import sys
 import tempfile
 import time
 import traceback
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,8 +84,8 @@ import msgpack  # noqa: E402
 import numpy as np  # noqa: E402
 
 from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: E402
-from retriever.backends.base import Session  # noqa: E402
-from retriever.backends.zenoh.coordinator import Coordinator  # noqa: E402
+from retriever.backends.base import output_ports  # noqa: E402
+from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
@@ -104,7 +105,7 @@ HANG_S = 10.0
 #: the run of the genuine pipeline whose messages, reports and log seed the campaign
 RUN_S = 0.5
 NAMESPACE = "fuzz"
-#: garbage messages a coordinator prints before it only counts them (coordinator.py)
+#: garbage messages a coordinator prints before it only counts them (coordinator/book.py, GARBAGE_SAID)
 GARBAGE_PRINTED = 3
 
 #: callables a forged dataclass value names: decoding must never import or call them
@@ -639,9 +640,9 @@ class DataTarget(WireTarget):
 class CoordinatorTarget(Target):
     """Fuzzed reports fed to the coordinator's message handler after the genuine run's reports.
 
-    The handler is ``Coordinator._handle`` itself, on a session object that holds what
-    ``Coordinator.__init__`` sets for it (the trace, the key space, the streams, the seen ids and
-    ticks) and no Zenoh session or process. Before fuzzing, the genuine reports go through it and
+    The handler is the coordinator's own (``Inbox.handle``), assembled over a record of the run
+    (``RunBook``: the streams, the seen ids and ticks) and a trace, with no Zenoh session or
+    process (:class:`_Offline`). Before fuzzing, the genuine reports go through it and
     the trace it builds must equal the in-process run's."""
 
     name = "coordinator"
@@ -655,23 +656,18 @@ class CoordinatorTarget(Target):
         self.spill.mkdir()
         self.base = self._session()
         for key, data in self.reports:
-            self.base._handle((key, data, self.base._workers[key.rsplit("/", 1)[1]]))
-        if self.base.trace != self.genuine.trace or self.base.own_counts["garbage"]:
+            self.base.inbox.handle((key, data, self.base.book.workers[key.rsplit("/", 1)[1]]))
+        if self.base.trace != self.genuine.trace or self.base.counts["garbage"]:
             raise SystemExit("the coordinator harness does not rebuild the genuine run's trace from its reports: "
-                             "Coordinator._handle changed; update CoordinatorTarget._session")
+                             "the coordinator's handlers changed; update CoordinatorTarget._session")
         self.nodes = sorted(self.graph.nodes)
         self.insider_claims = 0
 
-    def _session(self) -> Coordinator:
-        s = Coordinator.__new__(Coordinator)
-        Session.__init__(s, self.graph)
-        s.keys, s._dir = KeySpace(NAMESPACE), self.spill
-        s._init_records(self.graph)  # what __init__ keeps of reports, without Zenoh or processes
-        s.t0, s.end_ns, s._stop_sent = None, 0, False
+    def _session(self) -> _Offline:
+        s = _Offline(self.graph, self.spill)
         # each node's process, as the coordinator knows it: what signed its messages (origin.py)
-        s._workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
-        s._retiring, s._state = {}, {nid: "ready" for nid in self.graph.nodes}
-        s._said = {}  # each process's last state (coordinator.PROCESS_STAGES)
+        s.book.workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
+        s.book.state = {nid: "ready" for nid in self.graph.nodes}
         return s
 
     def seeds(self) -> list[bytes]:
@@ -703,21 +699,21 @@ class CoordinatorTarget(Target):
         s = self._session()
         base = self.base
         s.trace.raw_events[:], s.trace.raw_steps[:] = base.trace.raw_events, base.trace.raw_steps
-        s._event_ids, s._ticks = base._event_ids.copy(), base._ticks.copy()
-        s.own_counts["garbage"] = GARBAGE_PRINTED  # past the few it prints: it prints none
+        s.book.event_ids, s.book.ticks = base.book.event_ids.copy(), base.book.ticks.copy()
+        s.counts["garbage"] = GARBAGE_PRINTED  # past the few it prints: it prints none
         return s, (key.decode(), report)
 
     def feed(self, prepared: tuple) -> int:
         """As the node's own process sent it (signed with its key): what any process of the run may send."""
         s, (key, report) = prepared
-        s._handle((key, report, s._workers.get(key.rsplit("/", 1)[1])))
+        s.inbox.handle((key, report, s.book.workers.get(key.rsplit("/", 1)[1])))
         forged = self._forged(s, key)
-        refused = s.own_counts["garbage"] - GARBAGE_PRINTED + s._senders.refused
+        refused = s.counts["garbage"] - GARBAGE_PRINTED + s.book.senders.refused
         if not forged and refused:
             raise Dropped(refused)
         return forged
 
-    def _forged(self, s: Coordinator, key: str) -> int:
+    def _forged(self, s: _Offline, key: str) -> int:
         """How many records that the report's node could not make reached the trace; counts the
         ones it could (an insider's claims about its own outputs) in ``insider_claims``."""
         base, node = self.base.trace, key.rsplit("/", 1)[1]
@@ -726,10 +722,10 @@ class CoordinatorTarget(Target):
                 or any(a is not b for a, b in zip(events, base.raw_events))
                 or any(a is not b for a, b in zip(steps, base.raw_steps))):
             return 1  # a genuine record was changed or displaced
-        forged, seen_ids, seen_ticks = 0, self.base._event_ids.copy(), self.base._ticks.copy()
+        forged, seen_ids, seen_ticks = 0, self.base.book.event_ids.copy(), self.base.book.ticks.copy()
         new_events, new_steps = events[len(base.raw_events):], steps[len(base.raw_steps):]
         for tag, producer, port, seq, value, _ in new_events:
-            own = (producer, port) in s._streams or producer in s._open_outputs
+            own = (producer, port) in s.book.streams or producer in s.book.open_outputs
             if producer != node or not own or (producer, port, seq) in seen_ids or not _inert(value) \
                     or not _is_tag(tag):
                 forged += 1
@@ -780,13 +776,12 @@ class InsiderTarget(CoordinatorTarget):
         self.end_ns = round(RUN_S * 1e9)
         super().__init__(mutator, genuine, workdir)
 
-    def _session(self) -> Coordinator:
+    def _session(self) -> _Offline:
         s = super()._session()
-        s.t0, s.end_ns, s.virtual_time = 0, round(RUN_S * 1e9), False
-        s._hub = _Hub()  # where a control put goes (an accepted exit puts `end`)
-        s._hosts = {nid: _Host() for nid in s._workers}  # where a signed `restart` starts a process
-        for nid, proc in s._workers.items():
-            s._senders.add(nid, self.keys[nid], proc)
+        s.book.t0, s.book.end_ns = 0, round(RUN_S * 1e9)
+        s.book.hosts = {nid: _Host() for nid in s.book.workers}  # where a signed `restart` starts a process
+        for nid, proc in s.book.workers.items():
+            s.book.senders.add(nid, self.keys[nid], proc)
         return s
 
     def seeds(self) -> list[bytes]:
@@ -802,7 +797,7 @@ class InsiderTarget(CoordinatorTarget):
         enc = WireEncoder()
         if rng.random() < 0.55:
             state = rng.choice(["exit", "exit", "done", "failed", "restart", "handed_over", "ready", "reached"])
-            info = {"pid": self.base._workers[node].pid, "tag": list(tick), "stopped": True, "reports": 1,
+            info = {"pid": self.base.book.workers[node].pid, "tag": list(tick), "stopped": True, "reports": 1,
                     "counts": {"late": 1000}, "error": "forged", "until": 10**12}
             key, payload = keys.node_status(node), enc.status(node, state, info)
         else:
@@ -827,28 +822,43 @@ class InsiderTarget(CoordinatorTarget):
         s, (key, payload, mac) = prepared
         node = key.rsplit("/", 1)[1]
         signed = node in self.keys and mac == sign(self.keys[node], key, payload)  # by its process, in truth
-        sender = s._senders.sender(node, key, payload, mac)
+        sender = s.book.senders.sender(node, key, payload, mac)
         if sender is None:  # refused before anything was decoded or held
             return self._changed(s, signed)
-        s._handle((key, payload, sender))
+        s.inbox.handle((key, payload, sender))
         return self._changed(s, signed) + (not signed)
 
-    def _changed(self, s: Coordinator, signed: bool) -> int:
+    def _changed(self, s: _Offline, signed: bool) -> int:
         """What a forgery changed: records off their node's clock, or anything at all when it
         was not signed; an end of the run without the node's exit record."""
         steps = s.trace.raw_steps
-        changed = sum(1 for n, tag, *_ in steps if not signed or not self.graph.nodes[n].clock.may_tick_at(tag, s.end_ns))
+        book = s.book
+        changed = sum(1 for n, tag, *_ in steps
+                      if not signed or not self.graph.nodes[n].clock.may_tick_at(tag, book.end_ns))
         changed += len(s.trace.raw_events) if not signed else 0
-        if s.ended_by is not None and not any(n == s.ended_by and (d or {}).get("exit") == 0
+        if book.ended_by is not None and not any(n == book.ended_by and (d or {}).get("exit") == 0
                                               for n, _, _, _, _, d, *_ in steps):
             changed += 1
-        if not signed and (s._failure is not None or s._stop_sent or s._exit_said
-                           or any(state != "ready" for state in s._state.values())
-                           or any(st.counts for st in s._stats.values()) or any(s._reports_sent.values())):
+        if not signed and (book.failure is not None or book.stop_sent or book.exit_said
+                           or any(state != "ready" for state in book.state.values())
+                           or any(st.counts for st in book.stats.values()) or any(book.reports_sent.values())):
             changed += 1
         if not changed and not signed:
-            raise Dropped(s._senders.refused)
+            raise Dropped(book.senders.refused)
         return changed
+
+
+class _Offline:
+    """The coordinator's message handling with no Zenoh and no process: its record of the run
+    (``book``), a trace, and the inbox that hands a signed message to its handler; its control
+    puts go to a stand-in hub (an accepted exit puts `end`)."""
+
+    def __init__(self, graph, spill: Path):
+        self.trace, self.counts = Trace(keep="trace"), Counter()
+        self.trace.ports = output_ports(graph)  # as a session's trace has them
+        self.book = RunBook(graph, self.counts)
+        self.hub = _Hub()
+        self.inbox = assemble(self.book, self.trace, spill, RunControl(self.hub, KeySpace(NAMESPACE)), Hosting()).inbox
 
 
 class _Host:

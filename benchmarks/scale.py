@@ -13,7 +13,7 @@ a fresh process (``--one N``), so its figures are its own:
 - memory: the coordinator's peak RSS, and the workers' summed and largest private RSS
   (``RssAnon`` in ``/proc/<pid>/status``) when the start is put. Their VmRSS also counts the
   pages of the shared-memory pool each wrote (``RssShmem``, hub.shm_pool_bytes): /dev/shm use;
-- ticks: recorded by the coordinator vs due in the run's window (``session._ticks_due``).
+- ticks: recorded by the coordinator vs due in the run's window (``coordinator.ticks_due``).
 
     .venv/bin/python benchmarks/scale.py                    # 10 25 50 100 flows, 3 repeats each
     .venv/bin/python benchmarks/scale.py --flows 10 50 --repeats 5 --csv scale.csv
@@ -57,17 +57,17 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     from zenoh_flows import Counter, Keep
 
     from retriever import Latest, Pipeline, Rate
-    from retriever.backends.zenoh.coordinator import _ticks_due
+    from retriever.backends.zenoh.coordinator import ticks_due
 
     with Pipeline(f"scale{flows}") as pipe:
         camera = Counter() @ Rate(hz=source_hz)
         for i in range(flows - 1):
             camera.then(Keep().configure(name=f"keep{i}") @ Rate(hz=hz), sync=Latest())
     begin = time.monotonic()
-    session = pipe._session_for("zenoh", {"quiet": True})
+    session = pipe.open("zenoh", quiet=True)
     spawned = time.monotonic()
     seen: dict = {}
-    put = session._control
+    put = session.control.put
 
     def control(op: str, args: dict) -> None:
         if op == "start" and "ready" not in seen:
@@ -77,7 +77,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
             seen["workers_rss_kb"], seen["worker_rss_max_kb"] = sum(rss), max(rss)
         put(op, args)
 
-    session._control = control
+    session.control.put = control
     pipe.run(duration=duration, backend="zenoh")
     ended = time.monotonic()
     me, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -88,7 +88,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
             "coord_rss_mb": me.ru_maxrss / PAGE_KB, "workers_anon_mb": seen["workers_rss_kb"] / PAGE_KB,
             "worker_anon_max_mb": seen["worker_rss_max_kb"] / PAGE_KB,
             "ticks": sum(s.ticks for s in pipe.stats().values()),
-            "due": sum(_ticks_due(node.clock, end_ns) for node in session.graph.nodes.values())}
+            "due": sum(ticks_due(node.clock, end_ns) for node in session.graph.nodes.values())}
 
 
 def main() -> None:

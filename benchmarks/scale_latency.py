@@ -141,12 +141,12 @@ def run_zenoh(shape: str, flows: int, hz: float, duration: float, warmup: int, s
               log: str | None = None, **pipeline) -> dict:
     """In this process: one run on the zenoh backend. Prints the run's directory to stderr first
     (so that whoever started this process can remove it if it has to kill it)."""
-    from retriever.backends.zenoh.coordinator import _ticks_due
+    from retriever.backends.zenoh.coordinator import ticks_due
 
     pipe, last, copies = build(shape, flows, hz, **pipeline)
     begin = time.monotonic()
-    session = pipe._session_for("zenoh", {"quiet": True, "startup_timeout": startup_timeout})
-    print(f"RUNDIR {session._dir}", file=sys.stderr, flush=True)
+    session = pipe.open("zenoh", quiet=True, startup_timeout=startup_timeout)
+    print(f"RUNDIR {session.run_dir}", file=sys.stderr, flush=True)
     trace = pipe.run(duration=duration, backend="zenoh", log=log, overwrite=True)
     run_s = time.monotonic() - begin
     counts = dict(pipe.counts())
@@ -155,7 +155,7 @@ def run_zenoh(shape: str, flows: int, hz: float, duration: float, warmup: int, s
     # last flow (the last ones' hops may be due past the end, and never run)
     early, early_n = e2e_latency_ns(trace, "src", last, copies, 0, before_ns=round(duration * 1e9) - EARLY_NS)
     src_ticks = len(trace.steps_of("src"))
-    due = _ticks_due(session.graph.nodes["src"].clock, round(duration * 1e9))
+    due = ticks_due(session.graph.nodes["src"].clock, round(duration * 1e9))
     pipe.reset()  # closes the session: its processes, zenoh sessions and run directory
     return {"duration_s": duration, "wall_s": duration, "run_s": run_s, "steps": len(trace.steps),
             "ticks_per_s": len(trace.steps) / duration, "src_ticks": src_ticks, "src_due": due,

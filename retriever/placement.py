@@ -9,7 +9,8 @@ A placement file pins nodes to workers by name, or asks for workers with labels:
     # nodes not listed go to any worker, spread by load
 
 :func:`load_placement` reads and validates a file; :func:`place` maps an IR's nodes onto the
-workers that are up. Each reports every problem at once, in one :class:`PlacementError`, before
+workers that are up, :func:`move` the nodes of a lost worker onto those still up: both by one rule
+(:func:`assign`), whose result one check validates (:func:`check_assignment`). Each reports every problem at once, in one :class:`PlacementError`, before
 anything starts. Pure: the only I/O is :func:`load_placement` reading its file.
 """
 
@@ -55,6 +56,10 @@ class Placement:
 
     nodes: Mapping[str, Constraint]
     source: str = "<memory>"
+
+
+#: the constraint of a node a placement does not list: any worker up
+ANYWHERE = Constraint()
 
 
 @dataclass(frozen=True)
@@ -159,15 +164,11 @@ def _labels(where: str, labels: object, problems: list[Problem]) -> frozenset[st
 # Placing nodes on workers
 # ---------------------------------------------------------------------------------------------
 def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[WorkerInfo]) -> dict[str, str]:
-    """Each node's worker: node id -> worker name, in the order of ``node_ids``.
+    """Each node's worker, for a deployment's start: node id -> worker name, in the order of ``node_ids``.
 
-    A pinned node goes to its worker; a node with labels to the least-loaded worker that has them
-    all; any other node to the least-loaded worker. A worker's load is the nodes it already runs
-    plus those placed so far; ties go to the first name. Pins are placed first, then the other
-    nodes, fewest eligible workers first (so a node with labels goes before one any worker may run),
-    ties by node id. Pure and deterministic: which worker a node gets depends on neither the order
-    of ``node_ids`` nor that of ``workers``. A placement that cannot be met raises one
-    PlacementError listing every problem, and nothing is placed.
+    The placement and the workers up are checked first: a placement that cannot be met raises one
+    PlacementError listing every problem, and nothing is placed. Then :func:`assign` decides, and
+    :func:`check_assignment` checks what it decided (as for a move: :func:`move`).
     """
     nodes = list(dict.fromkeys(node_ids))
     rules = dict(placement.nodes) if placement is not None else {}
@@ -175,13 +176,54 @@ def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequenc
     problems = _unknown_nodes(rules, nodes) + _worker_problems(rules, workers, source, bool(nodes))
     if problems:
         raise PlacementError(source, problems)
-    eligible = {node: _eligible(rules.get(node, Constraint()), workers) for node in nodes}
+    chosen = assign(nodes, rules, workers)
+    check_assignment(chosen, rules, workers, source)
+    return chosen
+
+
+def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[WorkerInfo]) -> dict[str, str] | None:
+    """Where the nodes of a lost worker start afresh: node id -> worker name among ``workers`` (those
+    still up, each with the nodes it runs as its load), by the rule of the first placement
+    (:func:`assign`); None when some node has nowhere to go."""
+    nodes = list(dict.fromkeys(node_ids))
+    rules = dict(placement.nodes) if placement is not None else {}
+    chosen = assign(nodes, rules, workers)
+    if any(name is None for name in chosen.values()):
+        return None
+    check_assignment(chosen, rules, workers, placement.source if placement is not None else None)
+    return chosen
+
+
+def assign(nodes: Sequence[str], rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo]) -> dict[str, str | None]:
+    """The one placement rule, for a start and for a move: node id -> worker name, or None where no
+    worker up meets the node's constraint.
+
+    A pinned node goes to its worker; a node with labels to the least-loaded worker that has them
+    all; any other node to the least-loaded worker. A worker's load is the nodes it already runs
+    plus those assigned so far; ties go to the first name. Pins go first, then the other nodes,
+    fewest eligible workers first (so a node with labels goes before one any worker may run), ties
+    by node id. Pure and deterministic: which worker a node gets depends on neither the order of
+    ``nodes`` nor that of ``workers``.
+    """
+    eligible = {node: _eligible(rules.get(node, ANYWHERE), workers) for node in nodes}
     load = {w.name: w.nodes for w in workers}
-    chosen = {}
-    for node in sorted(nodes, key=lambda n: (rules.get(n, Constraint()).worker is None, len(eligible[n]), n)):
-        chosen[node] = min(eligible[node], key=lambda name: (load[name], name))
-        load[chosen[node]] += 1
+    chosen: dict[str, str | None] = {}
+    for node in sorted(nodes, key=lambda n: (rules.get(n, ANYWHERE).worker is None, len(eligible[n]), n)):
+        name = chosen[node] = min(eligible[node], key=lambda w: (load[w], w), default=None)
+        if name is not None:
+            load[name] += 1
     return {node: chosen[node] for node in nodes}
+
+
+def check_assignment(chosen: Mapping[str, str], rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo],
+                     source: str | None = None) -> None:
+    """The one check of what :func:`assign` decided: every node on a worker that is up and meets its
+    constraint. A failure is a bug of the rule, raised as one PlacementError naming each node."""
+    problems = [Problem(f"node {_show(node)} was assigned to worker {_show(name)}, which is not up or does not "
+                        "meet its constraint", "this is a bug in Retriever's placement: please report it")
+                for node, name in chosen.items() if name not in _eligible(rules.get(node, ANYWHERE), workers)]
+    if problems:
+        raise PlacementError(source, problems)
 
 
 def _eligible(constraint: Constraint, workers: Sequence[WorkerInfo]) -> list[str]:

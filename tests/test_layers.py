@@ -25,11 +25,7 @@ DOCUMENTED_ALIASES = {
 }
 
 #: Imports that climb and can only be undone inside the distributed runtime's files.
-KNOWN_CLIMBS = {
-    # issue 37: remove (the worker's dora start mode; dora should hand the worker a transport and a host)
-    ("retriever.backends.zenoh.worker", "retriever.backends.dora.dataflow"): "issue 37: remove",
-    ("retriever.backends.zenoh.worker", "retriever.backends.dora.link"): "issue 37: remove",
-}
+KNOWN_CLIMBS: dict[tuple[str, str], str] = {}
 
 
 def _modules() -> dict[str, tuple[Path, bool]]:

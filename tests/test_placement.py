@@ -460,3 +460,36 @@ def test_a_placement_is_refused_exactly_when_a_constraint_cannot_be_met_with_one
     with pytest.raises(PlacementError) as excinfo:
         place(nodes, Placement(entries), workers)
     assert len(excinfo.value.problems) == len(unmet)
+
+
+# ---------------------------------------------------------------------------------------------
+# Moves after a worker loss: the rule of the first placement
+# ---------------------------------------------------------------------------------------------
+def test_a_move_goes_to_the_least_loaded_worker_still_up_that_the_placement_allows():
+    from retriever.placement import move
+
+    rules = Placement({"policy": Constraint(labels=frozenset({"gpu"})), "camera": Constraint(worker="arm")})
+    up = [WorkerInfo("a", frozenset({"gpu"}), nodes=3), WorkerInfo("b", frozenset({"gpu"}), nodes=1),
+          WorkerInfo("c", nodes=0)]
+    assert move(["policy", "other", "more"], rules, up) == {"policy": "b", "other": "c", "more": "c"}
+    assert move(["camera"], rules, up) is None  # pinned to a worker that is gone: nowhere to go
+    assert move(["policy"], rules, [WorkerInfo("c")]) is None  # no worker up with its labels
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.sampled_from("abcde"), min_size=1, max_size=5, unique=True), st.integers(0, 3))
+def test_a_move_and_a_first_placement_decide_alike(names, load):
+    from retriever.placement import move
+
+    workers = [WorkerInfo(name, frozenset({"gpu"}) if i % 2 else frozenset(), nodes=load * i)
+               for i, name in enumerate(names)]
+    rules = Placement({"n1": Constraint(labels=frozenset({"gpu"}))}) if len(names) > 1 else None
+    nodes = ["n0", "n1", "n2", "n3"]
+    assert move(nodes, rules, workers) == place(nodes, rules, workers)
+
+
+def test_the_shared_check_refuses_an_assignment_its_rule_could_not_make():
+    from retriever.placement import check_assignment
+
+    with pytest.raises(PlacementError, match="node 'n' was assigned to worker 'gone', which is not up"):
+        check_assignment({"n": "gone"}, {}, [WorkerInfo("up")])

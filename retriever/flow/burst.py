@@ -59,8 +59,9 @@ class Burst:
         self.rows: np.ndarray | None = rows  # the array whose rows the values are, if given so
 
     @classmethod
-    def _of(cls, values: tuple) -> Burst:
-        """A burst of ``values`` as they are (decoded or blank ones: not checked again)."""
+    def unchecked(cls, values: tuple) -> Burst:
+        """A burst of ``values`` as they are, not checked again: decoded ones, or blanks (the
+        node loop's, for a burst it hands over or reports without its values)."""
         burst = cls.__new__(cls)
         burst.values, burst.rows = values, None
         return burst

@@ -3,8 +3,10 @@ dora dataflow, run by dora's own runtime (the ``dora-rs`` and ``dora-rs-cli`` pa
 
     dataflow.py     the IR as a dora dataflow descriptor (YAML): one node per flow
     link.py         a worker's loop whose events and progress go over dora
+    node.py         a dora node's process: the zenoh worker's phases, with that loop
     host.py         ``dora run`` starting the workers, and what they print
-    coordinator.py  the zenoh backend's coordinator over those workers: T0, reports, the trace, the log
+    coordinator.py  the zenoh backend's coordinator, handed a hosting (DoraHosting) whose workers
+                    ``dora run`` starts: T0, reports, the trace, the log as on zenoh
 
 Each flow runs in its own process, rebuilt from the IR, with the same loop as on the zenoh
 backend (clocks, sync policies, deadlines, LET, step records: the same trace and the same log);
@@ -30,6 +32,6 @@ class DoraBackend(Backend):
                     if "virtual_time" in unknown else "")
             raise BackendError(f"the dora backend takes no options {unknown} (it accepts "
                                f"{', '.join(self.OPTIONS)}){hint}")
-        from .coordinator import DoraCoordinator
+        from .coordinator import open_coordinator
 
-        return DoraCoordinator(graph, **options)
+        return open_coordinator(graph, **options)

@@ -1,4 +1,4 @@
-"""The coordinator of a run on dora: the zenoh backend's, whose workers dora starts and connects.
+"""The coordinator of a run on dora: the zenoh backend's, handed a hosting whose workers dora starts.
 
     pipe.run(duration=10, backend="dora")
         │ open the run's private Zenoh hub (the control plane), write spec.json and dataflow.yml
@@ -25,7 +25,8 @@ from pathlib import Path
 from ...errors import BackendError
 from ...graph import Graph
 from ..zenoh.access import write_private
-from ..zenoh.coordinator import STOP_GRACE_S, Coordinator, _exit_text
+from ..zenoh.coordinator import Coordinator, Hosting
+from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.host import Host
 from ..zenoh.origin import key_text, new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -33,6 +34,8 @@ from .host import DoraHost, dora_command
 
 #: before the start, how long a stopped worker has to tear down what its setup made
 TEARDOWN_S = 5.0
+#: how often the coordinator looks whether those workers are gone
+TEARDOWN_POLL_S = 0.02
 
 #: T0 this long after the start is put, by default (zenoh's: 0.3 s). Every worker said ready, and a
 #: greeting came through each of its inputs, but for a second or two more dora is slow to deliver:
@@ -40,84 +43,97 @@ TEARDOWN_S = 5.0
 #: backlog then drained over a second), with 2 s of margin 3 ms late (on zenoh: 3 ms, with 0.3 s).
 START_MARGIN_S = 2.0
 
+#: the lines of dora's own output an error shows
+DORA_TAIL_LINES = 10
 
-class DoraCoordinator(Coordinator):
+
+def open_coordinator(graph: Graph, **options) -> Coordinator:
+    """A run of ``graph`` on dora: the zenoh coordinator, hosted by ``dora run``."""
+    options.setdefault("start_margin", START_MARGIN_S)
+    return Coordinator(graph, hosting=DoraHosting(), **options)
+
+
+class DoraHosting(Hosting):
+    """Every node a dora node of one dataflow, which ``dora run`` starts (host.DoraHost)."""
+
     backend_name = "dora"
 
-    def __init__(self, graph: Graph, **options):
+    def __init__(self) -> None:
+        #: ``dora run`` and what it prints, once the nodes are placed
+        self.dora: DoraHost | None = None
+
+    def check_deployable(self, graph: Graph) -> None:
         restarting = sorted(nid for nid, node in graph.nodes.items() if node.settings.on_error == "restart")
         if restarting:
             raise BackendError(f"the dora backend cannot restart a flow in a new process (on_error='restart' on "
                                f"{', '.join(restarting)}): dora starts the dataflow's processes once\n"
                                "    hint: use on_error='skip_tick' or 'stop', or run on backend='zenoh'")
         dora_command()  # installed? (before any process starts)
-        self._dora: DoraHost | None = None
-        options.setdefault("start_margin", START_MARGIN_S)
-        super().__init__(graph, **options)
+        super().check_deployable(graph)
 
-    def _where(self) -> str:
-        return f"a dora dataflow, control on the Zenoh hub at {self.endpoint}"
+    def where(self) -> str:
+        return f"a dora dataflow, control on the Zenoh hub at {self.coordinator.endpoint}"
 
-    def _how_to_watch(self) -> str:
+    def how_to_watch(self) -> str:
         return ("its events go between the flows over dora, not Zenoh: watch it live with foxglove=PORT, "
                 "or read its log")
 
-    def _place(self) -> dict[str, Host]:
-        names = DoraNames.of(self._spec["ir"])
+    def place(self) -> dict[str, Host]:
+        coordinator = self.coordinator
+        graph, spec = coordinator.graph, coordinator.spec
+        names = DoraNames.of(spec["ir"])
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
         dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
         # the workers are dora's children: they watch this process to know when they are orphans
         # (and then remove the run's directories, which no one else will)
         # and each node's process finds the key it signs with (origin.py) in the private spec
-        self._first_keys = {nid: new_key() for nid in self.graph.nodes}
-        self._spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
-                              "dir": str(dora_dir), "keys": {nid: key_text(k) for nid, k in self._first_keys.items()}}
-        spec_path = write_private(self._dir / "spec.json", json.dumps(self._spec))  # it holds the run's password
+        keys = coordinator.book.first_keys
+        keys.update((nid, new_key()) for nid in graph.nodes)
+        spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
+                        "dir": str(dora_dir), "keys": {nid: key_text(k) for nid, k in keys.items()}}
+        spec_path = write_private(coordinator.run_dir / "spec.json", json.dumps(spec))  # it holds the run's password
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"
-        dataflow.write_text(dataflow_yaml(self.graph.name, names, sys.executable, str(spec_path), package_root))
-        self._dora = DoraHost(self._dir, dataflow, names.nodes)
-        return {nid: self._dora for nid in self.graph.nodes}
+        dataflow.write_text(dataflow_yaml(graph.name, names, sys.executable, str(spec_path), package_root))
+        self.dora = DoraHost(coordinator.run_dir, dataflow, names.nodes)
+        return {nid: self.dora for nid in graph.nodes}
 
-    def _check_processes(self) -> None:
-        dora = self._dora
+    def check(self) -> None:
+        dora = self.dora
         if dora is not None and dora.alive and (dora.proc.returncode or dora.proc.poll() or 0) < 0:
             dora.alive = False  # killed: every worker goes with it (a node's own failure ends it with a code)
-        super()._check_processes()
 
-    def _host_lost(self, host, nodes: list[str]) -> None:
-        super()._host_lost(host, nodes)
-        code = self._dora.proc.returncode
-        last = "\n".join("        " + line for line in list(self._dora.tail)[-10:])
-        self._failure = (nodes[0], {"error": f"dora's runtime (`dora run`, pid {self._dora.proc.pid}) "
-                                             f"{_exit_text(code)} during the run: the dataflow's nodes "
-                                             f"({', '.join(nodes)}) stopped with it\n    hint: was it killed (out of "
-                                             f"memory?), or stopped by someone else? Its last errors:\n{last}"})
+    def host_lost(self, host: Host, nodes: list[str]) -> None:
+        super().host_lost(host, nodes)
+        dora = self.dora
+        last = "\n".join("        " + line for line in list(dora.tail)[-DORA_TAIL_LINES:])
+        self.coordinator.book.failure = (nodes[0], {"error": (
+            f"dora's runtime (`dora run`, pid {dora.proc.pid}) {exit_text(dora.proc.returncode)} during the run: "
+            f"the dataflow's nodes ({', '.join(nodes)}) stopped with it\n    hint: was it killed (out of "
+            f"memory?), or stopped by someone else? Its last errors:\n{last}")})
 
-    def _stop_workers(self, grace: float = STOP_GRACE_S) -> None:
+    def before_stop(self) -> None:
         """Before the start (Ctrl-C, a flow's setup failed), the workers dora started are told to
         stop, and given TEARDOWN_S to tear down what their setup made; then dora run is ended, and
         with it whatever it has not started yet, or is stuck in its setup."""
-        dora = self._dora
-        if self.t0 is None and dora is not None and dora.proc.poll() is None:
+        dora, book = self.dora, self.coordinator.book
+        if book.t0 is None and dora is not None and dora.proc.poll() is None:
             dora.interrupted = True  # what dora says of the ends we cause is not for the terminal
-            started = [p for p in self._processes() if p.pid > 0 and p.poll() is None]
+            started = [p for p in book.processes() if p.pid > 0 and p.poll() is None]
             for p in started:
                 p.send_signal(signal.SIGTERM)
             give_up = time.monotonic() + TEARDOWN_S
             while any(p.poll() is None for p in started) and time.monotonic() < give_up:
-                time.sleep(0.02)
+                time.sleep(TEARDOWN_POLL_S)
             dora.interrupt()
-        super()._stop_workers(grace)
 
-    def _release_hosts(self) -> None:
-        if self._dora is not None:
-            self._dora.stop()
+    def release(self) -> None:
+        if self.dora is not None:
+            self.dora.stop()
 
-    def _stderr_tail(self, nid: str, lines: int = 15) -> str:
-        tail = super()._stderr_tail(nid, lines)
-        if not tail.strip() and self._dora is not None and self._dora.tail:  # it never started: dora says why
-            tail = "\n".join("        " + line for line in list(self._dora.tail)[-lines:])
+    def stderr_tail(self, nid: str, lines: int) -> str:
+        tail = super().stderr_tail(nid, lines)
+        if not tail.strip() and self.dora is not None and self.dora.tail:  # it never started: dora says why
+            tail = "\n".join("        " + line for line in list(self.dora.tail)[-lines:])
         return tail
-

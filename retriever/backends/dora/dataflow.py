@@ -3,7 +3,7 @@
     nodes:
       - id: camera                       # the flow's node id (ids dora refuses are renamed n0, n1, ...)
         path: /…/python                  # the coordinator's interpreter
-        args: -m retriever.backends.zenoh.worker /dev/shm/retriever-run-…/spec.json camera
+        args: -m retriever.backends.dora.node /dev/shm/retriever-run-…/spec.json camera
         outputs: [image, progress]       # one output per output port, and its progress (frontiers)
       - id: policy
         …
@@ -11,7 +11,8 @@
           camera__image: {source: camera/image, queue_size: 100000, queue_policy: backpressure}
           camera__progress: {source: camera/progress, queue_size: 100000, queue_policy: backpressure}
 
-Each node is a Retriever worker process (the flow rebuilt from the IR), as on the zenoh backend;
+Each node is a Retriever worker process (the flow rebuilt from the IR), as on the zenoh backend,
+started through node.py;
 its events and its progress messages go to its consumers over dora. A dropped event would leave
 a gap in its stream that no frontier crosses, so every input is ``queue_policy: backpressure``
 with a long queue. Dora's default route (straight between the nodes, drop-oldest) can lose
@@ -30,6 +31,10 @@ import json
 import re
 from dataclasses import dataclass
 
+from ..zenoh.command import worker_command
+
+#: the module each dora node runs (node.py)
+NODE_MODULE = "retriever.backends.dora.node"
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
 #: an input's queue (dora drops past ten times that with backpressure: see the module docstring)
@@ -85,9 +90,10 @@ def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pyth
         consumed = any(src == nid for node_inputs in names.inputs.values() for src, _ in node_inputs.values())
         if consumed:
             outputs.append(PROGRESS)
+        path, *args = worker_command(spec_path, dora_id, module=NODE_MODULE, python=python)
         lines += [f"  - id: {q(dora_id)}",
-                  f"    path: {q(python)}",
-                  f"    args: {q(f'-m retriever.backends.zenoh.worker {spec_path} {dora_id}')}",
+                  f"    path: {q(path)}",
+                  f"    args: {q(' '.join(args))}",
                   "    env:",
                   f"      PYTHONPATH: {q(pythonpath)}",
                   f"    outputs: [{', '.join(q(o) for o in outputs)}]"]

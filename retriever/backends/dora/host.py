@@ -6,7 +6,7 @@
                      coordinator forwards prefixed with the node, as on the zenoh backend
     DoraNodeProcess  one node's worker process, as the coordinator sees it (``pid``, ``poll()``...):
                      dora's child, not the coordinator's; it says its pid and, at its end, its exit
-                     code in files of the run's directory (worker.py, ``_started_by_dora``)
+                     code in files of the run's directory (node.py)
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ class DoraHost(Host):
         # read a line at a time, they held dora's daemon back for a second at a run's start).
         # It does not die with the coordinator: dora SIGKILLs its nodes as it exits, before they
         # could remove the run's directories; the nodes watch the coordinator, remove them and exit,
-        # and dora run ends with its last node (worker.py, _watch_parent).
+        # and dora run ends with its last node (zenoh/worker.py, _watch_parent).
         # Its output goes to a file the coordinator follows, not a pipe: a dora run that writes to
         # a pipe whose reader died (a coordinator SIGKILLed as it started) ends at once, and
         # SIGKILLs its nodes before they could remove the run's directories.

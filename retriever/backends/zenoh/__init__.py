@@ -5,12 +5,14 @@
     origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
     node/           one node's real-time loop, split by concern (its docstring draws it); loop.py re-exports it
-    worker.py       the worker process around a loop
+    worker.py       the worker process around a loop, in phases
+    command.py      a worker's command line, built and read in one place
     output.py       what workers print, on the coordinator's streams, prefixed with the node
     host.py         where worker processes run (this machine: LocalHost), and how they are started
-    coordinator.py  the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log
+    coordinator/    the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log;
+                    where the hosts are is a Hosting handed to it (this machine, a deployment, dora)
     remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
-    deploy.py       a deployment: the coordinator with its nodes placed on worker daemons
+    deploy.py       a deployment: the coordinator hosted on worker daemons, its nodes placed there
     daemon.py       a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
     runs.py         what a worker daemon runs for a coordinator: a run's spec and its processes
 """
@@ -42,9 +44,9 @@ class ZenohBackend(Backend):
                                f"{'in a deployment (connect= or listen= given) ' if deploy else ''}"
                                f"(it accepts {', '.join(accepted)})")
         if deploy:
-            from .deploy import Deployment
+            from .deploy import open_deployment
 
-            return Deployment(graph, **options)
+            return open_deployment(graph, **options)
         from .coordinator import Coordinator
 
         options.pop("connect", None), options.pop("listen", None)

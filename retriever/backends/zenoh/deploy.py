@@ -1,4 +1,4 @@
-"""A deployment: the coordinator of coordinator.py, with its nodes on worker daemons (docs/deploy.md).
+"""A deployment: the coordinator (coordinator/), hosted on worker daemons (docs/deploy.md).
 
     retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
         │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
@@ -22,6 +22,7 @@ import secrets
 import sys
 import threading
 import tomllib
+from collections import Counter
 from pathlib import Path
 
 import zenoh
@@ -29,9 +30,9 @@ import zenoh
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...log.format import package_versions
-from ...placement import Placement, WorkerInfo, load_placement, place
+from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
-from .access import DICTIONARY, AccessError, RunAccess, TlsFiles, secret_bytes
+from .access import DICTIONARY, AccessError, RunAccess, TlsFiles
 from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, credentials, describe,
                      in_session, open_access)
 from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_orphaned_segments_at_exit,
@@ -39,7 +40,7 @@ from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_
 from .reach import REFUSES_LINKS, why_no_session
 from .remote import RemoteHost
 from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
-from .coordinator import Coordinator
+from .coordinator import Coordinator, Hosting
 
 #: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
 USAGE_EVERY_S = 1.0
@@ -58,15 +59,27 @@ CLOCK_WARN_NS = 1_000_000
 CLOCK_REFUSE_NS = 10_000_000
 
 
-class Deployment(Coordinator):
-    """A run of a graph on the worker daemons of a namespace."""
+def open_deployment(graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
+                    placement: Placement | str | None = None, secret=None, insecure: bool = False,
+                    startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
+                    max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
+                    lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
+                    keep: str = "trace", foxglove: int | None = None) -> Coordinator:
+    """A run of ``graph`` on the worker daemons of a namespace: the coordinator, hosted by a
+    :class:`Deployment`."""
+    hosting = Deployment(connect=connect, listen=listen, placement=placement, secret=secret, insecure=insecure,
+                         max_clock_offset=max_clock_offset, on_worker_loss=on_worker_loss, lease=lease, tls=tls)
+    return Coordinator(graph, hosting=hosting, namespace=namespace, startup_timeout=startup_timeout,
+                       start_margin=start_margin, quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep,
+                       foxglove=foxglove)
 
-    def __init__(self, graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
-                 placement: Placement | str | None = None, secret=None, insecure: bool = False,
-                 startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
-                 max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
-                 lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
-                 keep: str = "trace", foxglove: int | None = None):
+
+class Deployment(Hosting):
+    """Where a deployment's nodes run: on the worker daemons of a namespace, as placed."""
+
+    def __init__(self, *, connect: list[str] = (), listen: list[str] = (), placement: Placement | str | None = None,
+                 secret=None, insecure: bool = False, max_clock_offset: float = CLOCK_REFUSE_NS / 1e9,
+                 on_worker_loss: str = "replace", lease: float | None = None, tls: TlsFiles | None = None):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
@@ -88,6 +101,7 @@ class Deployment(Coordinator):
         self._max_offset_ns = round(max_clock_offset * 1e9)
         self._remotes: dict[str, RemoteHost] = {}
         self._token = None
+        self._linked = False  # whether the hub has a link to each --connect endpoint
         self._cpu: dict[str, float] = {}  # node -> CPU seconds of its process, last read (_watch_usage)
         self._waiting: dict[str, dict] = {}  # lost workers waited for (on_worker_loss="wait"): nodes, when
         self._returned: set[str] = set()  # of those, the ones whose token came back
@@ -99,27 +113,20 @@ class Deployment(Coordinator):
         #: what each worker said of itself when the deployment started (its info, its clock offset)
         self.workers: dict[str, dict] = {}
         self._zids: dict[str, str | None] = {}  # each worker daemon's session (RemoteHost takes only its answers)
-        super().__init__(graph, namespace=namespace, startup_timeout=startup_timeout, start_margin=start_margin,
-                         quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep, foxglove=foxglove)
 
     # -- the coordinator's steps, for workers elsewhere ----------------------------------------
-    def _check_deployable(self) -> None:
-        super()._check_deployable()
-        in_main = sorted(nid for nid, node in self.graph.nodes.items() if type(node.flow).__module__ == "__main__")
+    def check_deployable(self, graph: Graph) -> None:
+        super().check_deployable(graph)
+        in_main = sorted(nid for nid, node in graph.nodes.items() if type(node.flow).__module__ == "__main__")
         if in_main:
             raise BackendError(f"flow(s) {', '.join(in_main)} are classes of the script being run (__main__), which "
                                "a worker cannot import\n    hint: move them to a module on the workers' --path, "
                                "or deploy the script as FILE:ATTR so that it is imported as a module")
 
-    def _run_access(self, secret) -> RunAccess | None:
-        if self._insecure:
-            return None
-        try:
-            return RunAccess.create(self.namespace, secret_bytes(secret))
-        except AccessError as e:
-            raise BackendError(str(e)) from None
+    def run_access(self, namespace: str, secret) -> RunAccess | None:
+        return None if self._insecure else super().run_access(namespace, secret)
 
-    def _open_hub(self, port: int, access: dict[str, str] | None) -> None:
+    def open_hub(self, port: int, access: dict[str, str] | None):
         # it listens even when told only where to connect: peers do not route for each other, so
         # each worker process opens a link of its own to it (gossip tells them where), or the
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
@@ -127,43 +134,47 @@ class Deployment(Coordinator):
         links = self._tls.session_config() if self._tls is not None else {}
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
-        self._hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
-                                           lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
-        # Zenoh read it as the session opened, and no process of this machine reads it after (the
-        # workers' flows read their daemon's): the deployment's password is not left on disk here,
-        # not even by a SIGKILLed coordinator
-        (self._dir / DICTIONARY).unlink(missing_ok=True)
-        self.endpoint = (self._listen_at or self._connect)[0]
-        self._linked = wait_for_peers(self._hub, len(self._connect), JOIN_S)
+        hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
+                                     lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
+        try:
+            # Zenoh read it as the session opened, and no process of this machine reads it after (the
+            # workers' flows read their daemon's): the deployment's password is not left on disk here,
+            # not even by a SIGKILLed coordinator
+            (self.coordinator.run_dir / DICTIONARY).unlink(missing_ok=True)
+            self._linked = wait_for_peers(hub, len(self._connect), JOIN_S)
+        except BaseException:
+            hub.close()
+            raise
+        return hub, (self._listen_at or self._connect)[0]
 
-    def _where(self) -> str:
+    def where(self) -> str:
         if not self._connect:
             return f"deployment listening on {', '.join(self._listen_at)}"
         # a peer's session opens without a link: "joined" only once it has one to each endpoint
         return f"deployment {'joined through' if self._linked else 'connecting to'} {', '.join(self._connect)}"
 
-    def _place(self) -> dict:
+    def place(self) -> dict:
+        c = self.coordinator
         found = self._discover()
         candidates = [WorkerInfo(name, frozenset(info.get("labels") or ()), len(info.get("nodes") or ()),
                                  info.get("host")) for name, info in sorted(found.items())]
         try:
-            self.placed = place(sorted(self.graph.nodes), self._placement, candidates)
+            self.placed = place(sorted(c.graph.nodes), self._placement, candidates)
         except PlacementError as e:
             raise BackendError(str(e)) from None
         # the token first: a worker prepares a run only while its coordinator's token is there
-        self._token = self._hub.liveliness().declare_token(self.keys.deployment())
+        self._token = c.hub.liveliness().declare_token(c.keys.deployment())
         for name in sorted(set(self.placed.values())):
             differences = package_differences(package_versions(), self.workers[name].get("packages"))
             if differences:
                 print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                       f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-            host = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
+            host = self._remotes[name] = RemoteHost(c.hub, c.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, host.prepare(self._remote_spec(),
                                                   sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
-        self._subscribers.append(self._hub.declare_queryable(self.keys.deployment(), weak_callback(self._answer)))
-        self._subscribers.append(self._hub.liveliness().declare_subscriber(
-            self.keys.workers(), weak_callback(self._worker_token)))
+        c.subscribers.append(c.hub.declare_queryable(c.keys.deployment(), weak_callback(self._answer)))
+        c.subscribers.append(c.hub.liveliness().declare_subscriber(c.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
 
     def _say_warnings(self, name: str, warnings: list[str]) -> None:
@@ -173,28 +184,20 @@ class Deployment(Coordinator):
 
     def _discover(self) -> dict[str, dict]:
         """The namespace's live workers and their info; every problem with them at once."""
+        hub, keys, namespace = self.coordinator.hub, self.coordinator.keys, self.coordinator.namespace
         names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
-                        for r in self._hub.liveliness().get(self.keys.workers(), timeout=DISCOVER_S) if r.ok})
+                        for r in hub.liveliness().get(keys.workers(), timeout=DISCOVER_S) if r.ok})
         # tokens of one key are one to Zenoh: ask each name who answers, every reply kept
         twice = [name for name in names if self._answering(name) > 1]
         if twice:  # workers that never linked to each other, so neither refused to start
             raise BackendError(f"several workers are named {', '.join(map(repr, twice))} in namespace "
-                               f"'{self.namespace}': a node placed on that name could run twice\n    hint: give each "
+                               f"'{namespace}': a node placed on that name could run twice\n    hint: give each "
                                "worker a name of its own (retriever workers --connect ... lists them), then deploy")
         if not names:
-            refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
-            if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
-                raise BackendError(f"no worker found in namespace '{self.namespace}': {', '.join(refusing)}: "
-                                   f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
-                                   "established on the worker), and keep strangers off the workers' ports: a "
-                                   "firewall, or TLS (docs/security.md)")
-            raise BackendError(f"no worker is up in namespace '{self.namespace}' (reached through "
-                               f"{', '.join(self._connect or self._listen_at)}), or none holds this --secret"
-                               f"{' and TLS certificate' if self._tls else ''}\n    hint: start one on each machine: "
-                               f"retriever-worker --name NAME --namespace {self.namespace} --secret FILE")
+            self._none_found()
         problems, found = [], {}
         for name in names:
-            worker = describe(self._hub, self.namespace, name)
+            worker = describe(hub, namespace, name)
             info = worker.info
             if info is None:
                 problems.append(f"worker '{name}' did not say what it is: {worker.error}")
@@ -217,11 +220,26 @@ class Deployment(Coordinator):
         self.workers = found
         return found
 
+    def _none_found(self) -> None:
+        """No worker answered: say why that may be."""
+        namespace = self.coordinator.namespace
+        refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
+        if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
+            raise BackendError(f"no worker found in namespace '{namespace}': {', '.join(refusing)}: "
+                               f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
+                               "established on the worker), and keep strangers off the workers' ports: a "
+                               "firewall, or TLS (docs/security.md)")
+        raise BackendError(f"no worker is up in namespace '{namespace}' (reached through "
+                           f"{', '.join(self._connect or self._listen_at)}), or none holds this --secret"
+                           f"{' and TLS certificate' if self._tls else ''}\n    hint: start one on each machine: "
+                           f"retriever-worker --name NAME --namespace {namespace} --secret FILE")
+
     def _answering(self, name: str) -> int:
         """How many daemons answer as worker ``name`` (distinct pids and hosts)."""
         who = set()
-        for reply in self._hub.get(self.keys.ctl(name), payload=WireEncoder().control("info", {}), timeout=QUERY_S,
-                                   consolidation=zenoh.ConsolidationMode.NONE):
+        hub, keys = self.coordinator.hub, self.coordinator.keys
+        for reply in hub.get(keys.ctl(name), payload=WireEncoder().control("info", {}), timeout=QUERY_S,
+                             consolidation=zenoh.ConsolidationMode.NONE):
             try:
                 _, info = decode_control(reply.ok.payload.to_bytes())
             except (AttributeError, WireError):  # an error reply, or garbage
@@ -242,15 +260,15 @@ class Deployment(Coordinator):
     # -- retriever status / stop -------------------------------------------------------------------
     def _answer(self, query: zenoh.Query) -> None:
         """``status``: the deployment, node by node; ``stop``: end it now, as Ctrl-C here would."""
-        encoder = WireEncoder()
+        encoder, c = WireEncoder(), self.coordinator
         try:
             op, _ = decode_control(query.payload.to_bytes() if query.payload is not None else b"")
         except WireError as e:
             query.reply_err(encoder.control("error", {"message": str(e)}))
             return
         if op == "stop":
-            self.stop_requested = True
-            query.reply(self.keys.deployment(), encoder.control("stop", {"pipeline": self.graph.name}))
+            c.stop_requested = True
+            query.reply(c.keys.deployment(), encoder.control("stop", {"pipeline": c.graph.name}))
         elif op == "status":
             for _ in range(3):  # read on Zenoh's thread while the run updates it: a copy may collide
                 try:
@@ -261,7 +279,7 @@ class Deployment(Coordinator):
             else:
                 query.reply_err(encoder.control("error", {"message": "busy: ask again"}))
                 return
-            query.reply(self.keys.deployment(), encoder.control("status", status))
+            query.reply(c.keys.deployment(), encoder.control("status", status))
         else:
             query.reply_err(encoder.control("error", {"message": f"the deployment knows no op {op!r:.40} "
                                                                   "(it knows status, stop)"}))
@@ -269,7 +287,7 @@ class Deployment(Coordinator):
     def _watch_usage(self) -> None:
         """From a thread of its own, while the deployment runs: each node's CPU seconds so far, as
         its worker reads them, every USAGE_EVERY_S (a worker that does not answer is skipped)."""
-        while not self._closed and not self._usage_stop.wait(USAGE_EVERY_S):
+        while not self.coordinator.closed and not self._usage_stop.wait(USAGE_EVERY_S):
             for remote in list(self._remotes.values()):
                 try:
                     answer = remote.request("usage", {}).get("cpu_s")
@@ -281,52 +299,49 @@ class Deployment(Coordinator):
     def status(self) -> dict:
         """What ``retriever status`` shows: the run's time, and per node its worker, counters and
         the CPU seconds its process used so far (as last read)."""
+        c, book = self.coordinator, self.coordinator.book
         used = dict(self._cpu)
-        nodes = {nid: {"worker": self.placed.get(nid), "state": self._state.get(nid), "ticks": s.ticks,
+        nodes = {nid: {"worker": self.placed.get(nid), "state": book.state.get(nid), "ticks": s.ticks,
                        "steps": s.steps, "skips": s.skips, "errors": s.errors, "counts": dict(s.counts),
                        **({"cpu_s": used[nid]} if nid in used else {})}
-                 for nid, s in sorted(self._stats.items())}
-        return {"pipeline": self.graph.name, "run": self._run_id, "t_ns": min(self._run_time(), self.end_ns),
-                "end_ns": self.end_ns,
-                "started": self.t0 is not None, "nodes": nodes}
+                 for nid, s in sorted(book.stats.items())}
+        return {"pipeline": c.graph.name, "run": self._run_id, "t_ns": min(book.run_time(), book.end_ns),
+                "end_ns": book.end_ns, "started": book.t0 is not None, "nodes": nodes}
 
     # -- a worker lost -------------------------------------------------------------------------
-    def _host_lost(self, host, nodes: list[str]) -> None:
-        """on_worker_loss="replace": each of its nodes starts afresh on the least loaded worker
-        still up that its placement allows (as a flow whose process died: loop.py); the log's
-        fault record says where it went. Any node that has nowhere to go stops the run.
-        "wait": they start afresh on it once a worker of its name is up again (see _await_return)."""
-        if self._on_worker_loss == "stop" or self.t0 is None:
-            return super()._host_lost(host, nodes)
+    def host_lost(self, host, nodes: list[str]) -> None:
+        """on_worker_loss="replace": each of its nodes starts afresh on a worker still up that its
+        placement allows, by the rule of the first placement (placement.move; as a flow whose
+        process died: loop.py); the log's fault record says where it went. Any node that has
+        nowhere to go stops the run. "wait": they start afresh on it once a worker of its name is
+        up again (see _await_return)."""
+        book = self.coordinator.book
+        if self._on_worker_loss == "stop" or book.t0 is None:
+            return super().host_lost(host, nodes)
         if self._on_worker_loss == "wait":
             return self._await_return(host, nodes)
         self._remotes.pop(host.name, None)
         self.workers.pop(host.name, None)
-        targets, problems = {}, []
-        for nid in nodes:
-            target = self._replacement(nid, targets)
-            if target is None:
-                problems.append(nid)
-            targets[nid] = target
-        if problems:
-            return super()._host_lost(host, nodes)
-        self._move(host.name, targets, self._run_time())
+        targets = move(nodes, self._placement, self._workers_up())
+        if targets is None:
+            return super().host_lost(host, nodes)
+        self._move(host.name, targets, book.run_time())
 
     def _await_return(self, host, nodes: list[str]) -> None:
         """on_worker_loss="wait": the run goes on without the nodes (their consumers see a gap);
         once a worker of the lost one's name is up again (its token back), they start afresh there."""
-        name = host.name
+        c, name = self.coordinator, host.name
         waiting = self._waiting.get(name)
         if waiting is None:
-            waiting = self._waiting[name] = {"nodes": nodes, "at": self._run_time()}
+            waiting = self._waiting[name] = {"nodes": nodes, "at": c.book.run_time()}
             for nid in nodes:  # their processes, if a hung worker still has them, stop; consumers know
-                self._control("lost", {"node": nid})
+                c.control.put("lost", {"node": nid})
             print(f"retriever: worker '{name}' was lost with node(s) {', '.join(nodes)}; waiting for it to come "
                   "back (on_worker_loss='wait')", file=sys.stderr, flush=True)
         if name not in self._returned:
             return
         self._returned.discard(name)
-        worker = describe(self._hub, self.namespace, name)
+        worker = describe(c.hub, c.namespace, name)
         if worker.info is None or worker.info.get("protocol") != PROTOCOL_VERSION:
             return  # not (yet) a worker that answers as one: wait on
         del self._waiting[name]
@@ -337,54 +352,51 @@ class Deployment(Coordinator):
 
     def _move(self, lost: str, targets: dict[str, str], at: int) -> None:
         """Start each node of ``targets`` afresh on its worker there (the lost worker's nodes)."""
+        c, book = self.coordinator, self.coordinator.book
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
-                remote = self._remotes[name] = RemoteHost(self._hub, self.keys, name, self._run_id, self._zids[name])
+                remote = self._remotes[name] = RemoteHost(c.hub, c.keys, name, self._run_id, self._zids[name])
             self._say_warnings(name, remote.prepare(self._remote_spec(),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
                   file=sys.stderr, flush=True)
-            self._hosts[nid], self.placed[nid] = self._remotes[name], name
-            counts = self._stats[nid].counts
+            book.hosts[nid], self.placed[nid] = self._remotes[name], name
+            counts = book.stats[nid].counts
             counts["moves"] = counts.get("moves", 0) + 1
-            self._start_afresh(nid, {"node": nid, "at_ns": at, "pid": self._workers[nid].pid,
-                                     "exit": f"was lost with its worker '{lost}'", "moved_to": name})
+            c.supervisor.start_afresh(nid, {"node": nid, "at_ns": at, "pid": book.workers[nid].pid,
+                                            "exit": f"was lost with its worker '{lost}'", "moved_to": name})
 
-    def _replacement(self, nid: str, chosen: dict[str, str]) -> str | None:
-        """The least loaded worker still up that ``nid``'s placement allows (ties by name), or None."""
-        rule = self._placement.nodes.get(nid) if self._placement is not None else None
-        load = {name: 0 for name in self.workers}
-        for worker in [*self.placed.values(), *chosen.values()]:
-            if worker in load:
-                load[worker] += 1
-        eligible = [name for name, info in self.workers.items()
-                    if rule is None or ((rule.worker is None or rule.worker == name)
-                                        and rule.labels <= set(info.get("labels") or ()))]
-        return min(eligible, key=lambda name: (load[name], name), default=None)
+    def _workers_up(self) -> list[WorkerInfo]:
+        """The workers still up, each with the nodes placed on it as its load (a move's candidates)."""
+        load = Counter(self.placed.values())
+        return [WorkerInfo(name, frozenset(info.get("labels") or ()), load[name], info.get("host"))
+                for name, info in sorted(self.workers.items())]
 
-    def _record_faults_left(self) -> None:
+    def faults_left(self) -> list[dict]:
+        workers, faults = self.coordinator.book.workers, []
         for waiting in self._waiting.values():  # lost, and never back in the run's time
-            self._unrecovered += [{"node": nid, "at_ns": waiting["at"], "pid": self._workers[nid].pid,
-                                   "exit": "was lost with its worker"} for nid in waiting["nodes"]]
+            faults += [{"node": nid, "at_ns": waiting["at"], "pid": workers[nid].pid,
+                        "exit": "was lost with its worker"} for nid in waiting["nodes"]]
         self._waiting.clear()
-        super()._record_faults_left()
+        return faults
 
     def _remote_spec(self) -> dict:
         """The run's spec as workers get it: what depends on this machine left out (each worker
         fills in its own Python path, credentials and address: runs.py)."""
-        return {k: v for k, v in self._spec.items() if k not in ("access", "python_path", "spill_dir", "main_file")}
+        return {k: v for k, v in self.coordinator.spec.items()
+                if k not in ("access", "python_path", "spill_dir", "main_file")}
 
     def log_metadata(self) -> dict[str, str]:
         """``deployment``: which worker ran each node, and what each worker said of itself."""
         workers = {name: {k: info.get(k) for k in ("host", "pid", "labels", "python", "packages", "offset_ns")}
                    for name, info in self.workers.items()}
-        return {**super().log_metadata(),
-                "deployment": json.dumps({"namespace": self.namespace, "placed": self.placed, "workers": workers,
-                                          "ran_other_code": self.ran_other_code}, sort_keys=True)}
+        return {"deployment": json.dumps({"namespace": self.coordinator.namespace, "placed": self.placed,
+                                          "workers": workers, "ran_other_code": self.ran_other_code},
+                                         sort_keys=True)}
 
-    def _release_hosts(self) -> None:
+    def release(self) -> None:
         self._usage_stop.set()
         for host in self._remotes.values():
             host.end()

@@ -13,16 +13,14 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
+from .command import worker_command
 from .origin import KEY_FD_ENV, key_pipe
 from .output import WorkerOutput
-
-WORKER_MODULE = "retriever.backends.zenoh.worker"
 
 
 class WorkerProcess(Protocol):
@@ -77,7 +75,7 @@ class LocalHost(Host):
         self.spec_path = spec_path
 
     def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[subprocess.Popen, bytes]:
-        cmd = [sys.executable, "-m", WORKER_MODULE, str(self.spec_path), node, *mode]
+        cmd = worker_command(str(self.spec_path), node, mode)
         pipe = key_pipe(key) if key is not None else None
         try:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -44,7 +44,7 @@ from ...ir import IR
 from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
-from .host import WORKER_MODULE
+from .command import parse_mode, worker_command
 from .hub import weak_callback
 from .origin import KEY_FD_ENV, key_pipe, key_text, new_key
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
@@ -166,10 +166,10 @@ class DaemonRuns:
         node, mode = args.get("node"), args.get("mode")
         if type(node) is not str or node not in run.nodes:
             raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
-        if not (mode == [] or (type(mode) is list and len(mode) == 3 and mode[0] in ("--join", "--fresh")
-                               and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19
-                                       for x in mode[1:]))):  # ASCII: "²" is a digit to isdigit, not to int
-            raise WireError(f"spawn mode {mode!r:.60} is not [] nor [--join|--fresh, T0, END] (ns, non-negative)")
+        try:
+            mode = parse_mode(mode).args()
+        except ValueError as e:
+            raise WireError(f"spawn {e}") from None
         if "key" in args:  # a key in a query reaches every queryable on ctl/<name>, an insider's too
             raise WireError("a spawn request carries no key: the worker makes its process's key and answers it "
                             "to the coordinator alone (a coordinator of an older Retriever sends one)")
@@ -187,7 +187,7 @@ class DaemonRuns:
         pipe = key_pipe(key)
         try:
             proc = self._spawner.submit(
-                subprocess.Popen, [sys.executable, "-m", WORKER_MODULE, str(run.folder / "spec.json"), node, *mode],
+                subprocess.Popen, worker_command(str(run.folder / "spec.json"), node, mode),
                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
                 pass_fds=(pipe,), env={**flow_environment(os.environ, self.pass_env), KEY_FD_ENV: str(pipe)}).result()
         finally:

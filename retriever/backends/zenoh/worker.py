@@ -2,11 +2,28 @@
 
     python -m retriever.backends.zenoh.worker SPEC.json NODE [--join T0 END | --fresh T0 END]
 
-The coordinator (``retriever.backends.zenoh.coordinator``) writes ``SPEC.json`` — the IR, the hub's
-endpoint, the namespace, the Python path the flows were imported from and the coordinator's
-``sys.argv``, which the worker takes as its own — and starts one worker per node. A worker joins
-the hub, declares its subscriptions, says ``ready`` on ``status/node/<node>``, and waits for
-``start`` (T0 and the end) on ``ctl/run``.
+(command.py builds and reads that line.) The coordinator (``retriever.backends.zenoh.coordinator``)
+writes ``SPEC.json`` — the IR, the hub's endpoint, the namespace, the Python path the flows were
+imported from and the coordinator's ``sys.argv``, which the worker takes as its own — and starts
+one worker per node. A worker process goes through these phases, each a function below:
+
+    main             the command line and the process's key → a :class:`Launch`; a thread
+                     watches the parent from then on (watch_parent)
+    serve            prepare_process (die with the parent, keep freed memory, signals for stacks)
+      read_spec        the spec, its Python path and argv
+      open_session     the Zenoh peer, the statuses it signs (Status)
+      build            the flow rebuilt and wired (build_loop, or the loop a Launch hands in),
+                       SIGTERM and PARENT_DIED handled, the flow's setup()
+      start            first process: declare, link, say ``ready``, wait for ``start`` {T0, end}
+      | join           --join: take over a restarted flow's state when told ``resume``
+      | start_afresh   --fresh: a fresh flow on fresh inputs once told ``restarted``
+      run              the loop until its end, ``stop``, or a failure
+      finish           say ``failed`` / ``handed_over`` / ``done``, release (teardown), wait
+                       until the coordinator took every report; the session closes
+    exit_process     end the process at once, Python's own teardown skipped (why: there)
+
+A start by dora (backends/dora/node.py) is the same phases with a :class:`Launch` of its own:
+its parent to watch, its key, its loop (events over dora) and its directory.
 
 on_error="restart": the failed worker says ``restart`` and goes on listening (see "Restarting" in
 loop.py); the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
@@ -26,9 +43,10 @@ said nothing: as if killed).
 
 from __future__ import annotations
 
-import contextlib
+import atexit
 import ctypes
 import faulthandler
+import gc
 import importlib.util
 import json
 import os
@@ -39,8 +57,12 @@ import threading
 import time
 import traceback
 import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
+
+from .command import FIRST, FRESH, JOIN, Mode, parse_mode
 
 if TYPE_CHECKING:
     from .loop import NodeLoop
@@ -59,6 +81,10 @@ EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended
 #: The answer comes once the pool exists: the question is in it. A node with no consumer on its
 #: host never sends through a pool, and has none.
 POOL_PADDING = 4096
+
+#: the flows this process served, held until it ends: what a flow holds (a model, a device) is
+#: never finalized one object at a time (exit_process); the session its loop held is let go of
+_kept_to_the_end: list = []
 
 #: the node this process serves, once it is a worker: a run started here (a flow's module that
 #: runs a pipeline when imported) is refused, or every worker would start a run of its own
@@ -122,31 +148,82 @@ REPORTS_TAKEN_MAX_S = 120.0
 ORPHAN_GRACE_S = 3.0
 
 
-def _watch_parent(parent: int, run_dir: Path) -> None:
-    """From a thread of its own: once the coordinator is gone, exit within ORPHAN_GRACE_S, with
-    every thread's stack on stderr, even when the step never returns (faulthandler's timer needs
-    no GIL); and remove the run directory, which no one else will. A worker dora started is told
-    by no kernel that its coordinator died (dora is its parent): it tells itself, as the kernel
-    would (PARENT_DIED), once the directories are gone."""
+@dataclass(frozen=True)
+class Parent:
+    """The process whose end is this worker's end: the one that started it (a coordinator, a
+    worker daemon), or, ``adopted``, a coordinator that is not its parent (dora's nodes are
+    dora's children): no kernel tells an adopted worker that its coordinator died, so it tells
+    itself, as the kernel would (PARENT_DIED)."""
+
+    pid: int
+    adopted: bool = False
+
+    def gone(self, stat: int | None = None) -> bool:
+        """Whether it is dead or dying. Its main thread's exit sends PR_SET_PDEATHSIG, and may
+        leave its other threads, and our ppid, for a moment longer: the main thread's state (that
+        of /proc/<pid>) is then already Z. ``stat``: a descriptor of that file, opened while the
+        parent lived (it then names that process, whatever process gets its pid later: a read
+        fails once it is gone)."""
+        if not self.adopted and os.getppid() != self.pid:
+            return True
+        try:
+            if stat is None:
+                text = Path(f"/proc/{self.pid}/stat").read_bytes()
+            else:
+                text = os.pread(stat, 4096, 0)
+        except OSError:
+            return True
+        return chr(text[text.rindex(b")") + 2]) in "ZX"
+
+
+@dataclass
+class Launch:
+    """How this worker process was started, and what its starter hands it: the command line
+    (:func:`main`), or dora's node module (backends/dora/node.py)."""
+
+    spec_path: Path
+    node: str
+    parent: Parent
+    #: the key it signs its statuses and reports with (origin.py); None: it signs nothing
+    key: bytes | None
+    mode: Mode = FIRST
+    #: ``(spec, node, session) -> NodeLoop``: the node's loop, wired; None: :func:`build_loop`'s
+    make_loop: Callable | None = None
+    #: folders of the run besides its run directory, removed with it once the parent is gone
+    folders: tuple[Path, ...] = ()
+
+    @property
+    def run_dir(self) -> Path:
+        return self.spec_path.parent
+
+    def remove_folders(self) -> None:
+        """Remove the run's folders, which no one else will once its coordinator is gone."""
+        if self.run_dir.name.startswith("retriever-run-"):
+            for folder in self.folders:
+                shutil.rmtree(folder, ignore_errors=True)
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+
+
+def watch_parent(launch: Launch) -> None:
+    """Watch the parent from a thread of its own, from now on (:func:`_watch_parent`)."""
+    threading.Thread(target=_watch_parent, args=(launch,), name="retriever-watch-parent", daemon=True).start()
+
+
+def _watch_parent(launch: Launch) -> None:
+    """Once the parent is gone, exit within ORPHAN_GRACE_S, with every thread's stack on
+    stderr, even when the step never returns (faulthandler's timer needs no GIL); and remove the
+    run's folders, which no one else will."""
+    parent = launch.parent
     try:  # read through one descriptor: a pread a look (an idle worker's thread wakes twice a second)
-        stat = os.open(f"/proc/{parent}/stat", os.O_RDONLY)
+        stat = os.open(f"/proc/{parent.pid}/stat", os.O_RDONLY)
     except OSError:
         stat = None
-    while not _orphaned(parent, stat):
+    while not parent.gone(stat):
         time.sleep(0.5)
     faulthandler.dump_traceback_later(ORPHAN_GRACE_S, exit=True)
-    _remove_run_dir(run_dir)
-    if _adopted:
+    launch.remove_folders()
+    if parent.adopted:
         os.kill(os.getpid(), PARENT_DIED)
-
-
-def _remove_run_dir(run_dir: Path) -> None:
-    if run_dir.name.startswith("retriever-run-"):
-        if _adopted:  # and dora's directory (backends/dora)
-            dora_dir = Path(_dora_spec(str(run_dir / "spec.json")).get("dir", ""))
-            if dora_dir.name.startswith("retriever-dora-"):
-                shutil.rmtree(dora_dir, ignore_errors=True)
-        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _keep_freed_memory() -> None:
@@ -174,8 +251,9 @@ def _import_main(path: str) -> None:
     sys.modules["__main__"] = module
 
 
-def build_loop(spec: dict, node_id: str, session):
-    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop."""
+def build_loop(spec: dict, node_id: str, session, transport=None):
+    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop, its
+    events through ``transport`` (a dora node's), or on ``session`` when None."""
     from ...flow._base import Flow
     from ...graph import compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
@@ -227,12 +305,6 @@ def build_loop(spec: dict, node_id: str, session):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
-    transport = None  # the run's Zenoh session
-    if spec.get("dora"):  # the dora backend: events and progress over dora (backends/dora/link.py)
-        from ..dora.dataflow import DoraNames
-        from ..dora.link import DoraTransport
-
-        transport = DoraTransport(DoraNames.from_spec(spec["dora"]), node_id)
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
@@ -301,304 +373,496 @@ def _no_timer_slack() -> None:
         pass
 
 
-def main(argv: list[str]) -> int:
-    """Serve one node; a worker whose coordinator died meanwhile also removes the run directory
-    (the spec and unreported events, in /dev/shm), which no one else would."""
-    global _adopted
-    parent = os.getppid()
-    run_dir = Path(argv[0]).parent
-    coordinator = _dora_coordinator(argv[0])
-    if coordinator is not None:  # dora's child: the coordinator is its grandparent or further
-        parent, _adopted = coordinator, True
-    threading.Thread(target=_watch_parent, args=(parent, run_dir), name="retriever-watch-parent", daemon=True).start()
+# ---------------------------------------------------------------------------------------------
+# The process: main, serve, exit_process
+# ---------------------------------------------------------------------------------------------
+def main(argv: list[str]) -> NoReturn:
+    """``SPEC.json NODE [MODE]`` (command.py): serve the node, then end the process."""
+    from .origin import take_key
+
+    key = take_key()  # before any flow code runs (origin.py)
+    try:
+        spec_path, node, mode = Path(argv[0]), argv[1], parse_mode(argv[2:])
+    except (IndexError, ValueError) as e:
+        print(f"usage: python -m {__spec__.name if __spec__ else __name__} SPEC.json NODE "
+              f"[{JOIN}|{FRESH} T0 END]: {e}", file=sys.stderr, flush=True)
+        exit_process(EXIT_FAILED)
+    launch = Launch(spec_path, node, Parent(os.getppid()), key, mode)
+    watch_parent(launch)
+    exit_process(serve(launch))
+
+
+def serve(launch: Launch) -> int:
+    """Serve one node, from this process's settings to its session's close: its exit code.
+    A worker whose parent died meanwhile also removes the run's folders (the spec and unreported
+    events, in /dev/shm), which no one else would."""
     code = EXIT_FAILED
     try:
-        code = _serve(argv, parent)
-        return code
+        if prepare_process():
+            pool: set[str] = set()
+            code = _serve_node(launch, read_spec(launch), pool)
+            _let_go_of(pool)
+    except Exception:
+        traceback.print_exc()
     finally:
-        if _exit_file is not None:  # started by dora: how it ended, for the coordinator (not its parent)
-            with contextlib.suppress(OSError):
-                _exit_file.write_text(str(code))
-        if _orphaned(parent):
-            _remove_run_dir(run_dir)
+        if launch.parent.gone():
+            launch.remove_folders()
+    return code
 
 
-#: started by dora: the file that tells the coordinator this process's exit code
-_exit_file: Path | None = None
-
-
-def _started_by_dora(spec: dict, dora_id: str, run_dir: Path) -> str:
-    """A worker that dora started (backends/dora): its node id, from its dora id. The coordinator,
-    which is not its parent, learns its pid from ``<node>.pid`` and its exit code from
-    ``<node>.exit`` (host.py there); it works in the coordinator's directory, as a child would."""
-    global _exit_file
-    from ..dora.dataflow import DoraNames
-
-    node_id = DoraNames.from_spec(spec["dora"]).node_of(dora_id)
-    (run_dir / f"{node_id}.pid").write_text(str(os.getpid()))
-    _exit_file = run_dir / f"{node_id}.exit"
-    for fd, name in ((1, "stdout"), (2, "stderr")):  # to the coordinator, which reads them (dora/host.py)
-        with contextlib.suppress(OSError):
-            pipe = os.open(run_dir / f"{dora_id}.{name}", os.O_WRONLY)
-            os.dup2(pipe, fd)
-            os.close(pipe)
-    os.chdir(spec["dora"]["cwd"])
-    return node_id
-
-
-#: started by dora: the coordinator it watches is not its parent (dora's daemon is)
-_adopted = False
-
-
-def _dora_spec(spec_path: str) -> dict:
-    """The spec's dora part (backends/dora), or {}."""
-    try:
-        dora = json.loads(Path(spec_path).read_text()).get("dora")
-    except (OSError, ValueError, AttributeError):
-        return {}
-    return dora if type(dora) is dict else {}
-
-
-def _dora_coordinator(spec_path: str) -> int | None:
-    """The coordinator's pid, for a worker that dora started."""
-    coordinator = _dora_spec(spec_path).get("coordinator")
-    return coordinator if type(coordinator) is int else None
-
-
-def _orphaned(parent: int, stat: int | None = None) -> bool:
-    """Whether the coordinator that started this worker is dead or dying. Its main thread's exit
-    sends PR_SET_PDEATHSIG, and may leave its other threads, and our ppid, for a moment longer:
-    the main thread's state (that of /proc/<pid>) is then already Z. ``stat``: a descriptor of
-    that file, opened while the coordinator lived (it then names that process, whatever process
-    gets its pid later: a read fails once it is gone)."""
-    if not _adopted and os.getppid() != parent:
-        return True
-    try:
-        if stat is None:
-            text = Path(f"/proc/{parent}/stat").read_bytes()
-        else:
-            text = os.pread(stat, 4096, 0)
-    except OSError:
-        return True
-    return chr(text[text.rindex(b")") + 2]) in "ZX"
-
-
-def _serve(argv: list[str], parent: int) -> int:
+def prepare_process() -> bool:
+    """This process's settings, before anything else; False when its parent is already gone."""
     _die_with_parent()
     _keep_freed_memory()
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # `kill -USR1 PID`: where is a stuck worker?
     sys.stdout.reconfigure(line_buffering=True)  # a pipe to the coordinator: a flow's print shows at once
     if os.getppid() == 1:
-        return EXIT_FAILED  # the coordinator is already gone
+        return False
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C goes to the coordinator, which stops us
-    spec_path, node_id = argv[0], argv[1]
-    from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
-    from .origin import key_of_text, sign, take_key
+    return True
 
-    worker.serving = node_id
-    process_key = take_key()  # before any flow code runs (origin.py)
-    join = argv[2:5] if len(argv) >= 5 and argv[2] == "--join" else None
-    fresh = argv[2:5] if len(argv) >= 5 and argv[2] == "--fresh" else None
-    spec = json.loads(Path(spec_path).read_text())
-    if spec.get("dora"):  # started by dora (backends/dora): its argument is the node's dora id
-        node_id = worker.serving = _started_by_dora(spec, node_id, Path(spec_path).parent)
-        process_key = key_of_text(spec["dora"].get("keys", {}).get(node_id))
+
+def read_spec(launch: Launch) -> dict:
+    """The run's spec; its Python path joins this process's, and its argv becomes ours: the
+    coordinator's ``sys.argv``, as multiprocessing gives its children the parent's (a script or
+    a flow's module that parses sys.argv when imported must see its own arguments, not this
+    worker's, or it parses the wrong ones and exits)."""
+    from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
+
+    worker.serving = launch.node
+    spec = json.loads(launch.spec_path.read_text())
     for path in reversed(spec.get("python_path", [])):
         if path not in sys.path:
             sys.path.insert(0, path)
-    # the coordinator's sys.argv, as multiprocessing gives its children the parent's: a script or
-    # a flow's module that parses sys.argv when imported (argparse at module level) must see its
-    # own arguments, not this worker's (SPEC.json NODE), or it parses the wrong ones and exits
     sys.argv = spec.get("argv", sys.argv)
+    return spec
 
-    from ...codec import packb, unpackb
-    from ...flow._base import set_up
-    from .access import RunAccess, TlsFiles
-    from .hub import needs_shared_memory, open_peer, wait_for_answers, wait_for_links
-    from .loop import _CONTROL, StopRun
-    from .wire import RELIABLE, KeySpace, WireEncoder
+
+def exit_process(code: int) -> NoReturn:
+    """End this process with ``code`` as exit() does, without Python's own teardown. The worker
+    is done by then: its flow torn down (release), its reports taken, its session closed. What
+    Python would do next, collect every object and module and call each one's finalizer, takes
+    a process holding a big model (torch) seconds, past the coordinator's STOP_GRACE_S, which
+    then SIGKILLed it. Kept: the functions registered with ``atexit`` (a flow's own, logging's
+    flush), buffered output, and the C library's exit handlers, in which Zenoh removes the
+    shared-memory segments this process was the last to map (``os._exit`` would skip those too,
+    and leave a producer's pool in /dev/shm)."""
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError, AttributeError):
+            pass
+    try:
+        ctypes.PyDLL(None).exit(code)  # holds the GIL: no Python thread runs while the handlers do
+    except (OSError, AttributeError):
+        pass
+    os._exit(code)
+
+
+def _let_go_of(pool: set[str]) -> None:
+    """Once the session closed, until Zenoh let go of the shared-memory pool it made (``pool``:
+    its /dev/shm segments), at most hub.SEGMENT_RELEASE_S: Zenoh unlinks a segment when the last
+    process that maps it lets go, and the exit handlers skip a segment this process still maps.
+    The loop, which holds the session, goes first: the signal handlers held it (a stop has
+    nothing left to stop: the process ends)."""
+    from .hub import await_segments_released
+
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(PARENT_DIED, signal.SIG_IGN)
+    if pool:
+        gc.collect()  # the loop's cycles (its threads, callbacks) hold the session too
+        await_segments_released(pool)
+
+
+# ---------------------------------------------------------------------------------------------
+# The node: open the session, build, wait for the start, run, finish
+# ---------------------------------------------------------------------------------------------
+class Status:
+    """Puts this node's statuses on ``status/node/<node>``: each with this process's pid, and
+    signed with its key. Called on the main thread, or a receiving one (on_restart)."""
+
+    def __init__(self, session, keys, node: str, key: bytes | None):
+        self.session, self.keys, self.node, self.key = session, keys, node, key
+
+    def __call__(self, state: str, **info) -> None:
+        from .origin import sign
+        from .wire import RELIABLE, WireEncoder
+
+        info["pid"] = os.getpid()
+        key, payload = self.keys.node_status(self.node), WireEncoder().status(self.node, state, info)
+        self.session.put(key, payload, congestion_control=RELIABLE,
+                         attachment=sign(self.key, key, payload) if self.key is not None else None)
+
+
+@dataclass
+class Serving:
+    """What the phases of serving one node share."""
+
+    launch: Launch
+    spec: dict
+    session: object
+    keys: object  # wire.KeySpace
+    status: Status
+    #: the questions that make this session's shared-memory pool before T0 (POOL_PADDING); None:
+    #: the node has no pool to make
+    padding: bytes | None
+    #: the /dev/shm segments of that pool, once made (_let_go_of)
+    pool: set[str]
+    loop: NodeLoop | None = None
+
+    @property
+    def node(self) -> str:
+        return self.launch.node
+
+    def waiting(self) -> Callable[[], bool]:
+        return lambda: self.loop.stopping
+
+
+@dataclass(frozen=True)
+class Start:
+    """When the loop runs: from ``t0`` to ``end`` (ns); ``resume``: on a restarted flow's state;
+    ``started_ns``: when the start came, ns since T0 (a restarted flow's process: None)."""
+
+    t0: int
+    end: int
+    resume: bool = False
+    started_ns: int | None = None
+
+
+def _serve_node(launch: Launch, spec: dict, pool: set[str]) -> int:
+    from .hub import needs_shared_memory
+    from .wire import KeySpace
 
     keys = KeySpace(spec["namespace"])
-    handover_file = Path(spec_path).parent / f"{node_id}.handover"
-    # a deployment started --insecure has no access entry: anyone on its network may join
-    config = RunAccess.from_spec(spec["access"]) if spec.get("access") else None
-    access = {**(config[0].session_config(config[1]) if config else {}),
-              **(TlsFiles(**spec["tls"]).session_config() if spec.get("tls") else {})}  # a TLS deployment's links
-    # the first process of a node has the session id the others expect (a restarted one, whose
-    # old process may still be linked, has its own: it finds its neighbours by their answers)
-    zid = spec.get("zids", {}).get(node_id) if fresh is None and join is None else None
-    shared_memory = needs_shared_memory(spec["ir"], node_id)
-    padding = bytes(POOL_PADDING) if shared_memory else None  # no pool to make before T0 without it
-    with open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
-                   listen=spec.get("listen"), lease=spec.get("lease"), zid=zid,
-                   blocked_put=spec.get("blocked_put"),
-                   shared_memory=shared_memory) as session:
-        def status(state: str, **info) -> None:  # on the main thread, or a receiving one (on_restart)
-            info["pid"] = os.getpid()
-            key, payload = keys.node_status(node_id), WireEncoder().status(node_id, state, info)
-            session.put(key, payload, congestion_control=RELIABLE,
-                        attachment=sign(process_key, key, payload) if process_key is not None else None)
-
-        try:
-            if spec.get("main_file"):
-                _import_main(spec["main_file"])
-            loop = build_loop(spec, node_id, session)
-            loop.reporter.key = process_key
-        except BaseException as exc:
-            status("failed", error=f"cannot build node '{node_id}': {type(exc).__name__}: {exc}",
-                   traceback=traceback.format_exc())
+    shared_memory = needs_shared_memory(spec["ir"], launch.node)
+    with open_session(spec, launch.node, launch.mode, shared_memory) as session:
+        w = Serving(launch, spec, session, keys, Status(session, keys, launch.node, launch.key),
+                    padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool)
+        if not build(w):
             return EXIT_FAILED
         try:
-            stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
-
-            def on_sigterm(signum, frame) -> None:
-                # asked to stop; when its parent is dead (a SIGTERM sent by someone else then), it
-                # ends as on PARENT_DIED
-                loop.abandoned = _orphaned(parent)
-                loop.stopping = True
-                loop.inbox.put(stop_item)
-
-            def on_parent_died(signum, frame) -> None:
-                # the run goes on without this process, which ends without a word, as if killed,
-                # promising its consumers nothing (not "done")
-                loop.abandoned = loop.stopping = True
-                loop.inbox.put(stop_item)
-
-            signal.signal(signal.SIGTERM, on_sigterm)
-            signal.signal(PARENT_DIED, on_parent_died)
-            try:  # heavy work (weights, devices) once, here, before this process says ready
-                set_up(loop.flow)
-            except Exception as exc:
-                status("failed", error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
+            handle_signals(w)
+            if not set_up_flow(w):
                 return EXIT_FAILED
-            started_ns = None  # when the start came, ns since T0 (a restarted flow's process: None)
-            loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
-            loop.on_exit = lambda tag: status("exit", tag=list(tag))
-            if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
-                loop.on_reached = lambda until: status("reached", until=until)
-            try:
-                if fresh is not None:  # its old process died: a fresh flow, on fresh inputs
-                    t0, end = int(fresh[1]), int(fresh[2])
-                    seqs = _join_afresh(session, keys, spec, node_id, loop,
-                                        ready=lambda: status("ready"), padding=padding)
-                    if seqs is None:
-                        status("done", counts=dict(loop.counts))
-                        loop.undeclare()
-                        return 0
-                    loop.start_fresh(seqs, t0)
-                    loop.declare_outputs()
-                elif join is not None:  # a restarted flow: listen now, take the old process's place when told
-                    loop.declare_inputs()
-                    # links to its producers and consumers, each knowing the other's subscribers:
-                    # once the old process stops, a message that reached neither would be a gap
-                    neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
-                                 if node_id in (e["source"]["node"], e["destination"]["node"])}
-                    wait_for_answers(session, {keys.progress(n) for n in neighbors},
-                                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping,
-                                     gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
-                    if padding:  # its pool, before it joins (POOL_PADDING)
-                        wait_for_answers(session, {keys.progress(n) for n in _consumers(spec, node_id)},
-                                         timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping, payload=padding,
-                                         gone=lambda: {keys.progress(n) for n in _coordinator_says(session, keys)[0]})
-                    t0, end = int(join[1]), int(join[2])
-                    _link_to_hub(session, spec, loop)
-
-                    def say_ready() -> None:
-                        status("ready")
-
-                    say_ready()
-                    if _await_control(loop, "resume", node_id, ask=say_ready) is None:
-                        status("done", counts=dict(loop.counts))
-                        loop.undeclare()
-                        return 0
-                    loop.take_over(unpackb(handover_file.read_bytes()))
-                    handover_file.unlink()
-                    loop.declare_outputs()
-                else:
-                    loop.declare()
-                    # a direct link to the hub and each neighbour, before anything is published
-                    # (peers do not route for each other)
-                    unlinked = wait_for_links(session, _links_needed(spec, node_id),
-                                              timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping)
-                    # and each producer knows this node's subscriptions: its answer to a query comes
-                    # on the link after them (an event put before that went to no one: a gap in its
-                    # stream's seqs that no frontier crosses, and this node waited for it forever)
-                    def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
-                        status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
-                        loop.redeclare()
-
-                    wait_for_answers(session, {keys.progress(p) for p in _producers(spec, node_id)},
-                                     timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
-                                     nudge=nudge, nudge_every=REDECLARE_AFTER_S)
-                    if padding:  # its pool, before T0 (POOL_PADDING)
-                        wait_for_answers(session, {keys.progress(c) for c in _consumers(spec, node_id)},
-                                         timeout=spec.get("startup_timeout", 60.0), stop=lambda: loop.stopping,
-                                         nudge=nudge, nudge_every=REDECLARE_AFTER_S, payload=padding)
-                    # the events' own routes, where they are not Zenoh's (dora): one message through each
-                    loop.await_routes(timeout=spec.get("startup_timeout", 60.0))
-                    if loop.stopping:
-                        loop.undeclare()
-                        return 0
-
-                    def ready() -> None:
-                        status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
-                               peers=len(session.info.peers_zid()))
-
-                    ready()
-                    # said again with each ask: a put made as a link came up may reach the hub before
-                    # its subscriptions did, and be dropped (the coordinator then waited for it forever)
-                    start = _await_control(loop, "start", node_id,
-                                           ask=lambda: (ready(), _ask_start(session, keys, loop)))
-                    if start is None:
-                        status("done", counts=dict(loop.counts))
-                        loop.undeclare()
-                        return 0
-                    t0, end = int(start["t0"]), int(start["end"])
-                    loop.values = start.get("values") is not False
-                    if loop.virtual:  # lockstep: the ticks below the first grant may run
-                        loop.granted = max(0, min(int(start.get("grant", 0)), end))
-                    # after T0 when the start came late (a loaded machine): after the end, no tick ran
-                    started_ns = session.new_timestamp().get_time_as_ntp64().as_nanos() - t0
-                if not loop.virtual:
-                    _no_timer_slack()
-                loop.run(t0, end, resume=join is not None)
-                if loop.abandoned:
-                    loop.undeclare()
-                    return EXIT_ABANDONED
-            except StopRun as exc:
-                loop.release_held()
-                loop.finish_reports()
-                cause = exc.__cause__  # the exception a step raised: where in the flow's code
-                status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
-                       traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
-                       zeno=exc.zeno)
-                loop.undeclare()
-                return EXIT_FAILED
-            except BaseException as exc:
-                loop.finish_reports()
-                status("failed", error=f"worker '{node_id}' crashed: {type(exc).__name__}: {exc}",
-                       traceback=traceback.format_exc(), counts=dict(loop.counts))
-                loop.undeclare()
-                return EXIT_FAILED
-            if loop.handing_over:
-                loop.undeclare()  # first: no message may arrive after the state is taken
-                state = packb(loop.handover_state())
-                loop.finish_reports()
-                tmp = handover_file.with_suffix(".tmp")
-                tmp.write_bytes(state)
-                tmp.replace(handover_file)
-                status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
-                release(loop, node_id)  # the new process has set up its own: free this one's now
-                _await_reports_taken(session, keys, node_id, spec.get("hub_zid"))
-                return EXIT_HANDED_OVER
-            status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=started_ns,
-                   ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
-            loop.undeclare()
-            release(loop, node_id)
-            _await_reports_taken(session, keys, node_id, spec.get("hub_zid"))
+            return run(w)
         finally:
-            release(loop, node_id)
+            release(w.loop, w.node)
+
+
+def open_session(spec: dict, node: str, mode: Mode, shared_memory: bool):
+    """This process's Zenoh peer, joined to the run's hub (close it: ``with``). A deployment
+    started --insecure has no access entry: anyone on its network may join; a TLS one's links
+    use its files. The first process of a node has the session id the others expect (a
+    restarted one, whose old process may still be linked, has its own: it finds its neighbours
+    by their answers)."""
+    from .access import RunAccess, TlsFiles
+    from .hub import open_peer
+
+    config = RunAccess.from_spec(spec["access"]) if spec.get("access") else None
+    access = {**(config[0].session_config(config[1]) if config else {}),
+              **(TlsFiles(**spec["tls"]).session_config() if spec.get("tls") else {})}
+    zid = spec.get("zids", {}).get(node) if mode.kind is None else None
+    return open_peer(spec["hub"], sessions=run_sessions(len(spec["ir"]["nodes"])), access=access or None,
+                     listen=spec.get("listen"), lease=spec.get("lease"), zid=zid,
+                     blocked_put=spec.get("blocked_put"), shared_memory=shared_memory)
+
+
+def build(w: Serving) -> bool:
+    """The node's flow, rebuilt from the IR, in its loop (``w.loop``); False when it cannot be
+    built (the status ``failed`` said why)."""
+    try:
+        if w.spec.get("main_file"):
+            _import_main(w.spec["main_file"])
+        w.loop = (w.launch.make_loop or build_loop)(w.spec, w.node, w.session)
+        w.loop.reporter.key = w.launch.key
+        _kept_to_the_end.append(w.loop.flow)
+    except BaseException as exc:
+        w.status("failed", error=f"cannot build node '{w.node}': {type(exc).__name__}: {exc}",
+                 traceback=traceback.format_exc())
+        return False
+    return True
+
+
+def handle_signals(w: Serving) -> None:
+    """SIGTERM asks the loop to stop; when the parent is dead (a SIGTERM sent by someone else
+    then), or on PARENT_DIED, the process ends without a word, as if killed, promising its
+    consumers nothing (not "done"): the run goes on without it."""
+    from .loop import _CONTROL
+    from .wire import WireEncoder
+
+    loop, parent = w.loop, w.launch.parent
+    stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
+
+    def on_sigterm(signum, frame) -> None:
+        loop.abandoned = parent.gone()
+        loop.stopping = True
+        loop.inbox.put(stop_item)
+
+    def on_parent_died(signum, frame) -> None:
+        loop.abandoned = loop.stopping = True
+        loop.inbox.put(stop_item)
+
+    signal.signal(signal.SIGTERM, on_sigterm)
+    signal.signal(PARENT_DIED, on_parent_died)
+
+
+def set_up_flow(w: Serving) -> bool:
+    """The flow's heavy work (weights, devices), once, here, before this process says ready;
+    then the loop's statuses hooked up. False when setup() raised (said)."""
+    from ...flow._base import set_up
+
+    loop, status = w.loop, w.status
+    try:
+        set_up(loop.flow)
+    except Exception as exc:
+        status("failed", error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
+        return False
+    loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
+    loop.on_exit = lambda tag: status("exit", tag=list(tag))
+    if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
+        loop.on_reached = lambda until: status("reached", until=until)
+    return True
+
+
+def run(w: Serving) -> int:
+    """Wait for the start as the mode says, run the loop, and finish: the exit code."""
+    from .loop import StopRun
+
+    loop = w.loop
+    wait = {None: start, JOIN: join, FRESH: start_afresh}[w.launch.mode.kind]
+    try:
+        begin = wait(w)
+        if begin is None:  # stopped first
+            return 0
+        if not loop.virtual:
+            _no_timer_slack()
+        loop.run(begin.t0, begin.end, resume=begin.resume)
+        if loop.abandoned:
+            loop.undeclare()
+            return EXIT_ABANDONED
+    except StopRun as exc:
+        loop.release_held()
+        loop.finish_reports()
+        cause = exc.__cause__  # the exception a step raised: where in the flow's code
+        w.status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
+                 traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
+                 zeno=exc.zeno)
+        loop.undeclare()
+        return EXIT_FAILED
+    except BaseException as exc:
+        loop.finish_reports()
+        w.status("failed", error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
+                 traceback=traceback.format_exc(), counts=dict(loop.counts))
+        loop.undeclare()
+        return EXIT_FAILED
+    return finish(w, begin)
+
+
+def finish(w: Serving, begin: Start) -> int:
+    """After the loop's run: hand the state over to the flow's new process (a restart), or say
+    ``done``; release the flow; keep the session until the coordinator has every report."""
+    from ...codec import packb
+
+    loop, status = w.loop, w.status
+    if loop.handing_over:
+        loop.undeclare()  # first: no message may arrive after the state is taken
+        state = packb(loop.handover_state())
+        loop.finish_reports()
+        handover_file = w.launch.run_dir / f"{w.node}.handover"
+        tmp = handover_file.with_suffix(".tmp")
+        tmp.write_bytes(state)
+        tmp.replace(handover_file)
+        status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
+        release(loop, w.node)  # the new process has set up its own: free this one's now
+        _await_reports_taken(w.session, w.keys, w.node, w.spec.get("hub_zid"))
+        return EXIT_HANDED_OVER
+    status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
+           ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
+    loop.undeclare()
+    release(loop, w.node)
+    _await_reports_taken(w.session, w.keys, w.node, w.spec.get("hub_zid"))
     return 0
+
+
+def _stopped_before_start(w: Serving) -> None:
+    w.status("done", counts=dict(w.loop.counts))
+    w.loop.undeclare()
+
+
+# ---------------------------------------------------------------------------------------------
+# The three ways to the start
+# ---------------------------------------------------------------------------------------------
+def start(w: Serving) -> Start | None:
+    """The node's first process: declare everything; a direct link to the hub and each
+    neighbour before anything is published (peers do not route for each other); each producer
+    knowing this node's subscriptions (its answer to a query comes on the link after them: an
+    event put before that went to no one, a gap in its stream's seqs that no frontier crosses,
+    and this node waited for it forever); its pool; the events' own routes where they are not
+    Zenoh's (dora). Then ``ready``, and wait for ``start``. None: stopped first."""
+    from .hub import wait_for_answers, wait_for_links
+
+    loop, session, spec, keys, status = w.loop, w.session, w.spec, w.keys, w.status
+    timeout = spec.get("startup_timeout", 60.0)
+    loop.declare()
+    unlinked = wait_for_links(session, _links_needed(spec, w.node), timeout=timeout, stop=w.waiting())
+
+    def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
+        status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
+        loop.redeclare()
+
+    wait_for_answers(session, {keys.progress(p) for p in _producers(spec, w.node)}, timeout=timeout,
+                     stop=w.waiting(), nudge=nudge, nudge_every=REDECLARE_AFTER_S)
+    if w.padding is not None:  # its pool, before T0
+        _make_pool(w, lambda: wait_for_answers(session, {keys.progress(c) for c in _consumers(spec, w.node)},
+                                               timeout=timeout, stop=w.waiting(), nudge=nudge,
+                                               nudge_every=REDECLARE_AFTER_S, payload=w.padding))
+    loop.await_routes(timeout=timeout)
+    if loop.stopping:
+        loop.undeclare()
+        return None
+
+    def ready() -> None:
+        status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
+               peers=len(session.info.peers_zid()))
+
+    ready()
+    # said again with each ask: a put made as a link came up may reach the hub before
+    # its subscriptions did, and be dropped (the coordinator then waited for it forever)
+    said = _await_control(loop, "start", w.node, ask=lambda: (ready(), _ask_start(session, keys, loop)))
+    if said is None:
+        _stopped_before_start(w)
+        return None
+    t0, end = int(said["t0"]), int(said["end"])
+    loop.values = said.get("values") is not False
+    if loop.virtual:  # lockstep: the ticks below the first grant may run
+        loop.granted = max(0, min(int(said.get("grant", 0)), end))
+    # after T0 when the start came late (a loaded machine): after the end, no tick ran
+    return Start(t0, end, started_ns=session.new_timestamp().get_time_as_ntp64().as_nanos() - t0)
+
+
+def join(w: Serving) -> Start | None:
+    """A restarted flow's new process: listen now, with links to its producers and consumers,
+    each knowing the other's subscribers (once the old process stops, a message that reached
+    neither would be a gap); its pool; say ``ready``; take the old process's place, and state,
+    when told ``resume``. None: stopped first."""
+    from ...codec import unpackb
+    from .hub import wait_for_answers
+
+    loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
+    loop.declare_inputs()
+    neighbors = {e[end]["node"] for e in spec["ir"]["edges"] for end in ("source", "destination")
+                 if w.node in (e["source"]["node"], e["destination"]["node"])}
+
+    def gone() -> set[str]:
+        return {keys.progress(n) for n in _coordinator_says(session, keys)[0]}
+
+    wait_for_answers(session, {keys.progress(n) for n in neighbors}, timeout=NEIGHBOR_TIMEOUT_S,
+                     stop=w.waiting(), gone=gone)
+    if w.padding is not None:  # its pool, before it joins
+        _make_pool(w, lambda: wait_for_answers(session, {keys.progress(n) for n in _consumers(spec, w.node)},
+                                               timeout=NEIGHBOR_TIMEOUT_S, stop=w.waiting(), payload=w.padding,
+                                               gone=gone))
+    _link_to_hub(session, spec, loop)
+
+    def say_ready() -> None:
+        w.status("ready")
+
+    say_ready()
+    if _await_control(loop, "resume", w.node, ask=say_ready) is None:
+        _stopped_before_start(w)
+        return None
+    handover_file = w.launch.run_dir / f"{w.node}.handover"
+    loop.take_over(unpackb(handover_file.read_bytes()))
+    handover_file.unlink()
+    loop.declare_outputs()
+    return Start(w.launch.mode.t0, w.launch.mode.end, resume=True)
+
+
+def start_afresh(w: Serving) -> Start | None:
+    """A flow whose process died, in its new process: a fresh flow on fresh inputs, its output
+    seqs from the coordinator's ``restarted`` (:func:`_join_afresh`). None: stopped first."""
+    seqs = _join_afresh(w)
+    if seqs is None:
+        _stopped_before_start(w)
+        return None
+    w.loop.start_fresh(seqs, w.launch.mode.t0)
+    w.loop.declare_outputs()
+    return Start(w.launch.mode.t0, w.launch.mode.end)
+
+
+def _make_pool(w: Serving, ask: Callable[[], object]) -> None:
+    """``ask()`` the consumers, with POOL_PADDING if the node has a pool to make, which Zenoh
+    then makes: its /dev/shm segments are kept (_let_go_of)."""
+    from .hub import mapped_segments
+
+    before = mapped_segments() if w.padding is not None else set()
+    ask()
+    if w.padding is not None:
+        w.pool |= mapped_segments() - before
+
+
+def _join_afresh(w: Serving) -> dict[str, int] | None:
+    """A flow whose process died, in its new process: subscribe to the inputs, take each stream
+    on from where its producer stands (its progress answer: the reply comes on the link after
+    our subscriptions, so every later event reaches us), link to the consumers (asking them
+    with POOL_PADDING), say ``ready`` and wait for the coordinator's ``restarted``: the first
+    seq of each output port. None on ``stop``. A neighbour that is itself starting afresh is not
+    waited for as a consumer (each would wait for the other), only as a producer (it answers
+    once restarted, not waiting for us)."""
+    from .hub import wait_for_answers
+    from .loop import RESTART_SEQ_GAP
+
+    loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
+    loop.declare_inputs()
+    # its own outputs fed back to it start with the seqs it gets below (start_fresh)
+    answers = _producers_progress(w)
+    if loop.stopping:
+        return None
+    loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
+    _make_pool(w, lambda: wait_for_answers(
+        session, {keys.progress(n) for n in _consumers(spec, w.node)}, timeout=NEIGHBOR_TIMEOUT_S,
+        stop=w.waiting(), payload=w.padding,
+        gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))}))
+    _drop_queued(loop, "restarted", w.node)  # the coordinator's comes after `ready`: one before is not its
+    _link_to_hub(session, spec, loop)
+
+    def ready() -> None:
+        w.status("ready")
+
+    ready()
+    args = _await_control(loop, "restarted", w.node, ask=ready)  # said again: see START_ASK_S
+    if args is None:
+        return None
+    loop.values = args.get("values") is not False
+    seqs = args.get("seqs")
+    if type(seqs) is not dict or not all(type(seqs.get(p)) is int and seqs[p] >= RESTART_SEQ_GAP for p in loop.ports):
+        raise RuntimeError(f"the 'restarted' for {w.node} carries no seq past {RESTART_SEQ_GAP} for each output "
+                           f"port: {seqs!r:.200}")
+    return {p: s for p, s in seqs.items() if type(p) is str and type(s) is int and s >= 0}
+
+
+def _producers_progress(w: Serving) -> dict:
+    """Each producer's progress, as it answers (None for one the coordinator says is done), for
+    NEIGHBOR_TIMEOUT_S at most; a producer that never answered is left out."""
+    from .wire import WireError, decode_progress
+
+    producers = _producers(w.spec, w.node)
+    answers: dict = {}
+    give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
+    while not w.loop.stopping and time.monotonic() < give_up:
+        for src in sorted(producers - set(answers)):
+            for reply in w.session.get(w.keys.progress(src), timeout=0.25):
+                try:
+                    answers[src] = decode_progress(reply.ok.payload.to_bytes(), expected=src)
+                except (AttributeError, WireError):  # no answer (reply.err), or not a progress message
+                    continue
+        done, _ = _coordinator_says(w.session, w.keys)
+        answers.update((n, None) for n in (producers - set(answers)) & done)
+        if producers <= set(answers):
+            break
+        time.sleep(0.02)
+    return answers
 
 
 def release(loop: NodeLoop, node_id: str) -> None:
@@ -647,56 +911,6 @@ def _names_of(spec: dict, zids: set[str]) -> list[str]:
     names = {z: n for n, z in spec.get("zids", {}).items()}
     names[spec.get("hub_zid")] = "the coordinator"
     return sorted(names.get(z, z) for z in zids)
-
-
-def _join_afresh(session, keys, spec: dict, node_id: str, loop: NodeLoop, ready,
-                 padding: bytes | None) -> dict[str, int] | None:
-    """A flow whose process died, in its new process: subscribe to the inputs, take each stream
-    on from where its producer stands (its progress answer: the reply comes on the link after
-    our subscriptions, so every later event reaches us), link to the consumers (asking them
-    with ``padding``: POOL_PADDING), say ``ready``
-    and wait for the coordinator's ``restarted``: the first seq of each output port. None on
-    ``stop``. A neighbour that is itself starting afresh is not waited for as a consumer (each
-    would wait for the other), only as a producer (it answers once restarted, not waiting for us)."""
-    from .hub import wait_for_answers
-    from .loop import RESTART_SEQ_GAP
-    from .wire import WireError, decode_progress
-
-    loop.declare_inputs()
-    # its own outputs fed back to it start with the seqs it gets below (start_fresh)
-    producers, consumers = _producers(spec, node_id), _consumers(spec, node_id)
-    answers: dict = {}
-    give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
-    while not loop.stopping and time.monotonic() < give_up:
-        for src in sorted(producers - set(answers)):
-            for reply in session.get(keys.progress(src), timeout=0.25):
-                try:
-                    answers[src] = decode_progress(reply.ok.payload.to_bytes(), expected=src)
-                except (AttributeError, WireError):  # no answer (reply.err), or not a progress message
-                    continue
-        done, _ = _coordinator_says(session, keys)
-        answers.update((n, None) for n in (producers - set(answers)) & done)
-        if producers <= set(answers):
-            break
-        time.sleep(0.02)
-    if loop.stopping:
-        return None
-    loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
-    wait_for_answers(session, {keys.progress(n) for n in consumers},
-                     timeout=NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping, payload=padding,
-                     gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))})
-    _drop_queued(loop, "restarted", node_id)  # the coordinator's comes after `ready`: one before is not its
-    _link_to_hub(session, spec, loop)
-    ready()
-    args = _await_control(loop, "restarted", node_id, ask=ready)  # said again: see START_ASK_S
-    if args is None:
-        return None
-    loop.values = args.get("values") is not False
-    seqs = args.get("seqs")
-    if type(seqs) is not dict or not all(type(seqs.get(p)) is int and seqs[p] >= RESTART_SEQ_GAP for p in loop.ports):
-        raise RuntimeError(f"the 'restarted' for {node_id} carries no seq past {RESTART_SEQ_GAP} for each output "
-                           f"port: {seqs!r:.200}")
-    return {p: s for p, s in seqs.items() if type(p) is str and type(s) is int and s >= 0}
 
 
 def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
@@ -816,4 +1030,4 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    main(sys.argv[1:])

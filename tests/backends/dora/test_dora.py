@@ -46,7 +46,7 @@ def _let_chain(name: str = "chain") -> Pipeline:
 
 def _nothing_left(session) -> None:
     """The run's `dora run` and every worker it started are gone."""
-    assert session._dora.proc.poll() is not None, "dora run outlived its run"
+    assert session.hosting.dora.proc.poll() is not None, "dora run outlived its run"
     alive = {nid: pid for nid, pid in session.worker_pids().items() if pid > 0 and _alive(pid)}
     assert not alive, f"worker(s) {alive} outlived the run"
 
@@ -59,7 +59,7 @@ def test_the_dataflow_has_a_node_per_flow_an_output_per_port_and_progress_for_co
     doc = yaml.safe_load(dataflow_yaml("chain", names, "/venv/bin/python", "/run/spec.json", "/src"))
     nodes = {n["id"]: n for n in doc["nodes"]}
     assert sorted(nodes) == ["echo", "slow", "src"]
-    assert nodes["src"]["args"] == "-m retriever.backends.zenoh.worker /run/spec.json src"
+    assert nodes["src"]["args"] == "-m retriever.backends.dora.node /run/spec.json src"
     assert nodes["src"]["path"] == "/venv/bin/python" and nodes["src"]["env"] == {"PYTHONPATH": "/src"}
     assert nodes["src"]["outputs"] == ["value", PROGRESS]
     assert nodes["slow"]["outputs"] == ["saw"] and "inputs" not in nodes["src"]  # slow: nobody consumes it
@@ -93,7 +93,7 @@ def test_a_logged_run_is_inprocs_trace_and_replays_identically(tmp_path):
     log = read_log(path)
     assert log.end["status"] == "finished" and log.run["backend"] == "dora"
     assert replay(log).identical
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 def test_an_output_no_edge_takes_is_logged(tmp_path):
@@ -133,7 +133,7 @@ def test_a_step_that_raises_stops_the_run_with_the_workers_traceback():
     with pytest.raises(StepError, match=r"bad\.step\(\) raised RemoteError: ValueError: third time(.|\n)*"
                                         r"worker traceback:(.|\n)*dora_flows\.py"):
         pipe.run(duration=5.0, backend="dora", quiet=True)
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 def test_a_sigkilled_worker_stops_the_run_naming_its_node():
@@ -144,7 +144,7 @@ def test_a_sigkilled_worker_stops_the_run_naming_its_node():
     def kill_once_going() -> None:
         give_up = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < give_up:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None and session.trace.raw_steps:
                 pids.update(session.worker_pids())
                 os.kill(pids["total"], signal.SIGKILL)
@@ -162,7 +162,7 @@ def test_a_sigkilled_worker_stops_the_run_naming_its_node():
     assert pids, "the killer never saw the run going"
     message = str(caught.value)
     assert f"worker process of 'total' (pid {pids['total']}) was killed by SIGKILL" in message, message
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -225,7 +225,7 @@ def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves(
         dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
         run_dir, dora_dir = _directories_of(dora[0])
         if when == "once its workers run":
-            _poll(lambda: _children_of(proc.pid, "retriever.backends.zenoh.worker"), "workers")
+            _poll(lambda: _children_of(proc.pid, "retriever.backends.dora.node"), "workers")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(BOUND_S)
 

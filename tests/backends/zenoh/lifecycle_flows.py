@@ -115,6 +115,28 @@ class Nap(Flow[None, Count]):
         return Count(n=1)
 
 
+#: how long a SlowToCollect's finalizer takes: longer than the coordinator's STOP_GRACE_S
+SLOW_FINALIZER_S = 5.0
+
+
+class SlowToCollect:
+    """What a big model is to a process's exit: its finalizer takes SLOW_FINALIZER_S (Python's
+    teardown collected a torch policy's tensors for seconds)."""
+
+    def __del__(self) -> None:
+        time.sleep(SLOW_FINALIZER_S)
+
+
+class Heavy(Flow[Count, None]):
+    """A sink that holds, from its setup() to the end, something slow to collect."""
+
+    def setup(self) -> None:
+        self.model = SlowToCollect()
+
+    def step(self, inp: Count) -> None:
+        pass
+
+
 class Looped(Flow):
     """Counts its ticks on ``n``, which is fed back to it (``feedback``, optional: untyped with a default)."""
 

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh.access import DICTIONARY
-from retriever.backends.zenoh.coordinator import _run_dir
+from retriever.backends.zenoh.coordinator import run_dir
 from retriever.backends.zenoh.daemon import ask, open_access
 from retriever.backends.zenoh.folders import RUN_FOLDER, private_folder, reap_stale
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
@@ -51,7 +51,7 @@ def test_the_folders_of_gone_processes_are_reaped_those_of_live_ones_and_other_u
 
 
 def test_a_runs_folder_is_named_by_its_process():
-    folder = _run_dir()
+    folder = run_dir()
     try:
         assert folder.name.startswith(f"{RUN_FOLDER}-{os.getpid()}-"), folder
     finally:

@@ -29,10 +29,10 @@ def test_large_frames_arrive_intact_and_are_logged(tmp_path):
     path = tmp_path / "run.mcap"
     trace = pipe.run(duration=1.5, backend="zenoh", quiet=True, log=path)
 
-    session = pipe._session
+    session = pipe.session
     assert "garbage" not in pipe.counts(), pipe.counts()
     # its own run directory only: another run on the machine may have one of its own meanwhile
-    assert str(session._dir).startswith("/dev/shm/") and not os.path.exists(session._dir), \
+    assert str(session.run_dir).startswith("/dev/shm/") and not os.path.exists(session.run_dir), \
         "the run directory outlived the run"
 
     def port(events, node, name):  # one event per tick on each port (an @io field), in seq order

@@ -8,7 +8,7 @@ import signal
 import pytest
 
 from retriever import BackendError, Latest, Pipeline, Rate
-from retriever.backends.zenoh.coordinator import _ticks_due
+from retriever.backends.zenoh.coordinator import ticks_due
 from tests.backends.zenoh.lifecycle_flows import SINK_HZ, SOURCE_HZ, Counter, Total
 
 RUN_S = 1.0
@@ -19,8 +19,8 @@ MANY_FLOWS = 50
 def _stop_before_the_start(session, node: str) -> None:
     """Have ``node``'s worker stop (SIGTERM) and exit just before the coordinator puts the run's
     start: it says ``done`` having run nothing, and exits 0."""
-    proc = session._workers[node]
-    put = session._control
+    proc = session.book.workers[node]
+    put = session.control.put
 
     def control(op: str, args: dict) -> None:
         if op == "start":
@@ -28,14 +28,14 @@ def _stop_before_the_start(session, node: str) -> None:
             proc.wait()
         put(op, args)
 
-    session._control = control
+    session.control.put = control
 
 
 def test_a_flow_whose_worker_stopped_before_the_start_fails_the_run_and_is_named():
     with Pipeline("stopped_early") as pipe:
         Counter() @ Rate(hz=SOURCE_HZ)
         Counter().configure(name="early") @ Rate(hz=SOURCE_HZ)
-    _stop_before_the_start(pipe._session_for("zenoh", {"quiet": True}), "early")
+    _stop_before_the_start(pipe.open("zenoh", quiet=True), "early")
     with pytest.raises(BackendError, match=r"1 flow\(s\) never ticked in the run's 1 s, though their clocks had "
                                            r"ticks due:\n    early \(Rate\(hz=20\)\): 0 of 20 ticks; its worker "
                                            r"stopped before the run's start reached it\n    hint: .*start_margin="):
@@ -52,5 +52,5 @@ def test_fifty_flows_start_and_every_one_ticks():
         for i in range(MANY_FLOWS - 1):
             source.then(Total().configure(name=f"total{i}") @ Rate(hz=SINK_HZ), sync=Latest())
     pipe.run(duration=RUN_S, backend="zenoh", quiet=True)
-    due = {nid: _ticks_due(node.clock, round(RUN_S * 1e9)) for nid, node in pipe._session.graph.nodes.items()}
+    due = {nid: ticks_due(node.clock, round(RUN_S * 1e9)) for nid, node in pipe.session.graph.nodes.items()}
     assert {nid: s.ticks for nid, s in pipe.stats().items()} == due

@@ -30,7 +30,7 @@ BOUND_S = 60.0  # a bound on any wait, never a speed check
 def _worker_pid(pipe: Pipeline, node: str) -> int:
     give_up = time.monotonic() + BOUND_S
     while time.monotonic() < give_up:
-        session = pipe._session
+        session = pipe.session
         pids = session.worker_pids() if session is not None and hasattr(session, "worker_pids") else {}
         if node in pids and session.t0 is not None:
             return pids[node]
@@ -138,16 +138,16 @@ def test_a_done_node_short_of_reports_is_said_so_naming_the_events_they_held(nam
     netns lab lost two of a 200 MiB source's, issue 40's reproduction)."""
     pipe = two_node_pipeline("short", source_hz=20, sink_hz=10)
     pipe.run(duration=0.5, backend="zenoh", namespace=namespace, quiet=True)
-    session = pipe._session
-    last = session._done_info["counter"]["sent"]["n"]  # what its worker said it sent, in its done status
-    assert last == session._have[("counter", "n")] >= 9
-    session._reports_sent["counter"] += 1
-    session._have[("counter", "n")] = last - 5
-    session._event_ids = EventIds()  # of the last five events, the coordinator got the third only
+    book = pipe.session.book
+    last = book.done_info["counter"]["sent"]["n"]  # what its worker said it sent, in its done status
+    assert last == book.have[("counter", "n")] >= 9
+    book.reports_sent["counter"] += 1
+    book.have[("counter", "n")] = last - 5
+    book.event_ids = EventIds()  # of the last five events, the coordinator got the third only
     for seq in [*range(last - 4), last - 2]:
-        session._event_ids.add(("counter", "n", seq))
-    said = session._unfinished("counter")
-    assert said.startswith(f"    counter said done after {session._reports_sent['counter']} report(s), of which 1 "
+        book.event_ids.add(("counter", "n", seq))
+    said = pipe.session.diagnostics.unfinished("counter")
+    assert said.startswith(f"    counter said done after {book.reports_sent['counter']} report(s), of which 1 "
                            f"never reached the coordinator; it never got the event(s) counter.n seqs {last - 4}-{last - 3}, "
                            f"{last - 1}-{last}\n"), said
     assert "    counter: no stacks: its process had ended (exited with code 0)" in said, said

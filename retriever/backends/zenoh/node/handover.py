@@ -68,7 +68,7 @@ def take_over(loop, state: dict) -> None:
     loop.schedule.restore(state["k"], state["next_rate"], state["pending"], state["last_tick"])
     outputs = loop.outputs
     outputs.last_stamp = state["last_stamp"]
-    outputs.held = [(h[0], h[1], Burst._of(tuple(h[2])), h[3]) if len(h) == 5 else tuple(h) for h in state["held"]]
+    outputs.held = [(h[0], h[1], Burst.unchecked(tuple(h[2])), h[3]) if len(h) == 5 else tuple(h) for h in state["held"]]
     heapq.heapify(outputs.held)
     loop.reports.values = state.get("values") is not False
     _replace(outputs.seqs, state["seqs"])

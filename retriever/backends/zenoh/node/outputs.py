@@ -178,7 +178,7 @@ class Outputs:
             if self.consumed and not burst:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, me, port, value)
             if not reports.values:  # the coordinator records that it was sent, not what
-                blank = Burst._of((None,) * len(value.values)) if burst else None  # sent as nil
+                blank = Burst.unchecked((None,) * len(value.values)) if burst else None  # sent as nil
                 message = data(tag, seq, frontier if i == last else tag, me, port, blank)
             reports.published.append((time.time_ns(), message))
             reports.published_bytes += len(message)

@@ -1,0 +1,77 @@
+"""A dora node's process: one flow of a dora run, served as the zenoh backend's worker serves one.
+
+    python -m retriever.backends.dora.node SPEC.json DORA_ID       (dataflow.py writes this line)
+
+dora starts it; the zenoh worker's phases (backends/zenoh/worker.py) serve it, from a
+:class:`~retriever.backends.zenoh.worker.Launch` made here:
+
+    node      the node whose dora id is DORA_ID (the spec's ``dora`` part: DoraNames)
+    parent    the coordinator, which is not this process's parent (dora's daemon is): ``adopted``
+    key       the one the coordinator wrote for the node in the private spec (origin.py)
+    loop      the zenoh backend's, its events and progress over dora (:func:`loop_maker`)
+    folders   dora's directory, removed with the run's once the coordinator is gone
+
+Before that, the process says what a child of the coordinator would say by being one: its pid in
+``<node>.pid`` of the run's directory, its output in the named pipes ``<dora id>.stdout`` and
+``.stderr`` there (the coordinator reads them: host.py), and, at its end, its exit code in
+``<node>.exit``. It works in the coordinator's directory, as a child would.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from ..zenoh import worker
+from ..zenoh.origin import key_of_text
+from .dataflow import DoraNames
+
+#: dora's own directory (its logs) is named so; only such a directory is removed
+DORA_DIR_PREFIX = "retriever-dora-"
+
+
+def main(argv: list[str]) -> None:
+    spec_path, dora_id = Path(argv[0]), argv[1]
+    dora = json.loads(spec_path.read_text())["dora"]
+    names = DoraNames.from_spec(dora)
+    node = names.node_of(dora_id)
+    coordinator = dora.get("coordinator")
+    adopted = type(coordinator) is int
+    dora_dir = Path(dora.get("dir", ""))
+    launch = worker.Launch(spec_path, node, worker.Parent(coordinator if adopted else os.getppid(), adopted),
+                           key_of_text(dora.get("keys", {}).get(node)), make_loop=loop_maker(names),
+                           folders=(dora_dir,) if dora_dir.name.startswith(DORA_DIR_PREFIX) else ())
+    worker.watch_parent(launch)  # first: a named pipe's open waits for its reader, which may be dead
+    run_dir = spec_path.parent
+    (run_dir / f"{node}.pid").write_text(str(os.getpid()))
+    _output_to_pipes(run_dir, dora_id)
+    os.chdir(dora["cwd"])
+    code = worker.serve(launch)
+    with contextlib.suppress(OSError):  # gone with the run's directory when the coordinator is
+        (run_dir / f"{node}.exit").write_text(str(code))
+    worker.exit_process(code)
+
+
+def loop_maker(names: DoraNames) -> Callable:
+    """``(spec, node, session) -> loop``: the node's loop, its events and progress over dora.
+    The one place a dora node's loop is made."""
+    from .link import DoraTransport
+
+    return lambda spec, node, session: worker.build_loop(spec, node, session, transport=DoraTransport(names, node))
+
+
+def _output_to_pipes(run_dir: Path, dora_id: str) -> None:
+    """This process's stdout and stderr to the coordinator, which reads them (host.py)."""
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        with contextlib.suppress(OSError):
+            pipe = os.open(run_dir / f"{dora_id}.{name}", os.O_WRONLY)
+            os.dup2(pipe, fd)
+            os.close(pipe)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,233 @@
+"""Process supervision: a node's worker processes started, watched, restarted afresh and stopped.
+
+    spawn ──▶ (ready ... done)                     one process per node, on its host (hosting.py)
+      │  died after the start, on_error="restart" ──▶ lost ──▶ start afresh ──▶ ready ──▶ restarted
+      │  died otherwise, or its host went          ──▶ the run fails (a deployment may move it)
+      ▼  stop: `stop`, their last reports, then SIGTERM / SIGKILL what is left; reap
+
+Workers are started and stopped by PID; none outlives the run (each also asks the kernel for
+SIGTERM when its parent dies).
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+from ....errors import RestartLimitError
+from ..loop import RESTART_SEQ_GAP
+from ..command import mode_args
+from ..origin import new_key
+from ..worker import EXIT_FAILED, EXIT_HANDED_OVER
+from .book import RunBook
+from .control import RunControl
+from .diagnostics import FAILED_TAIL_LINES, Diagnostics, exit_text, failure_error
+from .inbox import Inbox
+
+#: after `stop`, how long workers have to send their last reports and exit; one still running is
+#: stuck in a step (a loop looks at `stop` between steps only): its stacks are printed, it is killed
+STOP_GRACE_S = 1.5
+#: how long after a worker process ended by itself (exit code 0, 1 or 3) the coordinator waits for
+#: the status that says why (Zenoh may deliver it after the exit is seen): none by then, it died
+EXIT_GRACE_S = 2.0
+#: when the run closes, how long its workers have to exit of themselves, then after SIGTERM; after
+#: a stop, how long the ones killed have to be reaped
+REAP_GRACE_S = 5.0
+TERM_GRACE_S = 2.0
+KILLED_GRACE_S = 0.5
+#: how long the coordinator waits for one message at a time while its workers stop
+STOP_POLL_S = 0.02
+
+
+class Supervisor:
+    """Starts, watches and stops the run's worker processes; ``hosting``: where they run, and what
+    a host lost means (hosting.py); ``backend_name``: for the run's errors; ``on_fault``: a lost
+    process's fault record, for the run's log; ``inbox``: what comes while the workers stop."""
+
+    def __init__(self, book: RunBook, control: RunControl, hosting, diagnostics: Diagnostics, *, backend_name: str,
+                 on_fault: Callable[[dict], None], inbox: Inbox | None = None):
+        self.book, self.control, self.hosting = book, control, hosting
+        self.diagnostics, self.backend_name = diagnostics, backend_name
+        self.on_fault, self.inbox = on_fault, inbox
+
+    def spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
+        """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
+        over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
+        book = self.book
+        mode = mode_args(join, fresh)
+        book.workers[nid], key = book.hosts[nid].spawn(nid, mode, book.first_keys.pop(nid, None) or new_key())
+        book.senders.add(nid, key, book.workers[nid])
+        if join is not None:
+            book.joining.add(nid)
+        book.state[nid] = "starting"
+
+    def raise_failure(self) -> None:
+        raise failure_error(self.book, self.backend_name)
+
+    # ---------------------------------------------------------------------------------------
+    # Watching
+    # ---------------------------------------------------------------------------------------
+    def check(self) -> None:
+        """Look at the hosts and the processes: a lost host or a dead process fails the run, or
+        (on_error="restart", a deployment's on_worker_loss) starts its flows afresh."""
+        book = self.book
+        self.hosting.check()
+        for host in {id(h): h for h in book.hosts.values()}.values():
+            if not host.alive and book.failure is None:  # its flows stopped with it, whatever they said
+                self.hosting.host_lost(host, book.nodes_of(host))
+                if book.failure is not None:
+                    self.raise_failure()
+        for nid, proc in [*book.workers.items(), *book.retiring.items()]:
+            code = proc.poll()
+            if code is None or book.state[nid] == "done" or not book.hosts[nid].alive:
+                continue  # running, finished, or gone with its host (above)
+            if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
+                # a worker's own exit: its last status may still be on the way (it says why it ended)
+                exited = book.exited.setdefault(proc.pid, time.monotonic())
+                if time.monotonic() - exited < EXIT_GRACE_S:
+                    continue
+            # it died, or ended without a word (os._exit in a step): its state is lost
+            if book.failure is not None:
+                self.raise_failure()
+            if book.t0 is not None and book.graph.nodes[nid].settings.on_error == "restart":
+                self._lost(nid, proc, code)
+                return  # the processes of the node changed: look again next time
+            book.hosts[nid].output(nid).drain()
+            if book.t0 is not None:  # the log says what died, and which of its outputs with it
+                book.unrecovered.append({"node": nid, "at_ns": book.run_time(), "pid": proc.pid,
+                                         "exit": exit_text(code)})
+            book.failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
+                                           f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}"})
+            self.raise_failure()
+
+    # ---------------------------------------------------------------------------------------
+    # A lost process (on_error="restart"; see "Restarting after a lost process" in loop.py)
+    # ---------------------------------------------------------------------------------------
+    def _lost(self, nid: str, proc, code: int) -> None:
+        """A worker process of ``nid`` died after the start: within the restart budget, start the
+        flow afresh in a new process (a hand-over in progress dies with it); else fail the run."""
+        book = self.book
+        at = book.run_time()
+        why = f"its worker process (pid {proc.pid}) {exit_text(code)} at t={at / 1e9:.3f} s"
+        if nid in book.fresh:  # the last one died before it was ready: that fault stands on its own
+            self.record_fault(book.fresh.pop(nid), None)
+        budget = book.restarts[nid]
+        if not budget.take(at):
+            book.limit = RestartLimitError(nid, None, why, budget.max_restarts, budget.window_s)
+            book.unrecovered.append({"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
+            book.failure = (nid, {"error": str(book.limit)})
+            return
+        counts = book.stats[nid].counts
+        for name in ("restarts", "crash_restarts"):
+            counts[name] = counts.get(name, 0) + 1
+        print(f"retriever: flow '{nid}': {why}; starting it afresh (on_error='restart')",
+              file=sys.stderr, flush=True)
+        self.start_afresh(nid, {"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
+
+    def start_afresh(self, nid: str, fault: dict) -> None:
+        """Start ``nid`` afresh in a new process on its host (see "Restarting after a lost process"
+        in loop.py); ``fault``: what became of the old one, logged once the new one is ready."""
+        book = self.book
+        for other in (book.workers.get(nid), book.retiring.pop(nid, None)):
+            if other is not None:
+                if other.poll() is None:
+                    other.kill()
+                book.retired.append(other)
+        self.control.put("lost", {"node": nid})
+        book.restarted.pop(nid, None)
+        book.fresh[nid] = fault
+        self.spawn(nid, join=(book.t0, book.end_ns), fresh=True)
+
+    def restart_afresh(self, nid: str) -> None:
+        """The new process of ``nid`` is ready: its streams go on past every seq the dead one may
+        have used; the consumers and it are told (control ``restarted``), the log gets the fault."""
+        book = self.book
+        ports = {port for node, port in book.max_seq if node == nid} | set(book.graph.nodes[nid].outputs)
+        seqs = {port: book.max_seq.get((nid, port), -1) + 1 + RESTART_SEQ_GAP for port in sorted(ports)}
+        for port, first in seqs.items():  # the consumers give up the seqs below: nothing to wait for
+            book.have[(nid, port)] = max(book.have.get((nid, port), -1), first - 1)
+        self.record_fault(book.fresh.pop(nid), seqs)
+        book.restarted[nid] = seqs
+        self.control.put("restarted", {"node": nid, "seqs": seqs, "values": book.values})
+        book.joining.discard(nid)
+
+    def record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
+        """Keep a lost process's fault, and log it: the outputs its step records claimed and no
+        report carried (LET outputs it still held) are lost, which a replay must know."""
+        book = self.book
+        nid = fault["node"]
+        lost = sorted(event_id for event_id in book.unseen if event_id[0] == nid)
+        book.unseen.difference_update(lost)
+        fault = {"kind": "process_lost", **fault, "restarted": seqs is not None, "seqs": seqs or {},
+                 "lost_events": [list(event_id) for event_id in lost]}
+        book.faults.append(fault)
+        self.on_fault(fault)
+
+    def record_faults_left(self) -> None:
+        """Log the faults of processes that died and were not started afresh (not allowed, out
+        of budget, the run ended first, or their host never came back), once their last reports are in."""
+        book = self.book
+        book.unrecovered += self.hosting.faults_left()
+        for fault in [*book.fresh.values(), *book.unrecovered]:
+            self.record_fault(fault, None)
+        book.fresh.clear()
+        book.unrecovered.clear()
+
+    # ---------------------------------------------------------------------------------------
+    # Stopping
+    # ---------------------------------------------------------------------------------------
+    def stop(self, grace: float = STOP_GRACE_S) -> None:
+        """Ask every live worker to stop, collect what they send, then make sure they are gone:
+        one still running after ``grace`` is stuck in a step, so its stacks are printed and it is
+        killed. Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
+        book = self.book
+        self.hosting.before_stop()
+        if book.t0 is None:
+            for p in book.processes():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+            self.reap()
+            return
+        book.stop_sent = True
+        try:
+            self.control.put("stop", {})
+        except Exception:
+            pass
+        # a process not in the run yet (a restarted flow's, before it took over or was told its
+        # seqs) has nothing to send, and may be waiting for its neighbours, not reading control
+        for nid in book.joining:
+            p = book.workers.get(nid)
+            if p is not None and p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        give_up = time.monotonic() + grace
+        while time.monotonic() < give_up and any(p.poll() is None for p in book.processes()):
+            self.inbox.take_one(STOP_POLL_S)
+        self.inbox.drain()
+        stuck = sorted(nid for nid, p in [*book.workers.items(), *book.retiring.items()] if p.poll() is None)
+        if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
+            print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
+                  "then SIGKILL:", file=sys.stderr, flush=True)
+            self.diagnostics.dump_stacks(stuck)
+            for p in book.processes():
+                if p.poll() is None:
+                    p.kill()
+        self.reap(grace=KILLED_GRACE_S)
+
+    def reap(self, grace: float = REAP_GRACE_S) -> None:
+        """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
+        procs = self.book.processes()
+        deadline = time.monotonic() + grace
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=TERM_GRACE_S)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()

@@ -1,0 +1,164 @@
+"""Report ingest: the step records and events a worker's report brings, into the trace and the log.
+
+A report (status/report/<node>) holds a node's step records and the events it published (or a
+consumer carried for its producer, whose own report may be lost). Each is checked against what
+the node may claim (its clock's ticks, its own output ports, seqs not seen before); what fails is
+counted as garbage, or as forged, and dropped. The coordinator is not on the events' path: the
+workers send these reports after the fact, for the record.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from ....trace import NOT_KEPT, STEPPED, Trace
+from ..wire import WireError, decode_events, decode_report
+from .book import RunBook
+from .control import RunControl
+
+
+class ReportIngest:
+    """Takes reports into ``trace``; ``spill_dir``: where workers write the events too big for a
+    message; ``on_exit_recorded(node)``: a step's record says it called sys.exit(0)."""
+
+    def __init__(self, book: RunBook, trace: Trace, spill_dir: Path, on_exit_recorded: Callable[[str], None]):
+        self.book, self.trace, self.spill_dir = book, trace, spill_dir
+        self.on_exit_recorded = on_exit_recorded
+
+    def take(self, key: str, data: bytes, sender: object) -> None:
+        """A report on ``key``, signed by ``sender`` (a process of its node: origin.py)."""
+        book = self.book
+        book.reported_bytes += len(data)
+        try:
+            report = decode_report(data, expected=key.rsplit("/", 1)[1])
+        except WireError as e:
+            book.garbage(key, e)
+            return
+        if report.node not in book.stats:
+            book.garbage(key, WireError(f"a report of an unknown node '{report.node}'"))
+            return
+        book.reports[report.node] += 1
+        for wall, message in report.events:
+            self._events(key, report.node, wall, message)
+        for record in report.records:
+            self._record(key, report.node, sender, record)
+
+    def _record(self, key: str, node: str, sender: object, record: tuple) -> None:
+        """One step record of ``node``: into the trace, the node's counters and the starvation watch."""
+        book = self.book
+        tag, consumed, produced, status, detail, start, wall = record
+        if (node, tag) in book.ticks:
+            book.garbage(key, WireError(f"a second step record of {node} at {tag}"))
+            return
+        clock = book.graph.nodes[node].clock
+        if not clock.may_tick_at(tag, book.end_ns if book.t0 is not None else None):
+            book.senders.refuse(f"a step record of {node} at {tag}, which is no tick of its {clock!r}")
+            return
+        book.ticks.add((node, tag))
+        exit_code = detail.get("exit") if detail is not None else None
+        if status == "ok" and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
+            book.exit_recorded[node] = (tag, sender)
+            self.on_exit_recorded(node)
+        self.trace.raw_steps.append((node, tag, consumed, produced, status, detail, start, wall))
+        if book.live is not None:
+            book.live.step(node, tag, consumed, produced, status, detail, start, wall)
+        book.starvation.step(node, tag, produced, detail)
+        for event_id in produced:  # a LET output is published after its record went
+            if event_id not in book.event_ids:
+                book.unseen.add(event_id)
+            if event_id[2] > book.max_seq.get(event_id[:2], -1):
+                book.max_seq[event_id[:2]] = event_id[2]
+        stats = book.stats[node]
+        stats.ticks += 1
+        if status in STEPPED:
+            stats.steps += 1
+            stats.step_ns += wall
+        elif status == "skipped":
+            stats.skips += 1
+        else:
+            stats.errors += 1
+            stats.step_ns += wall
+
+    # ---------------------------------------------------------------------------------------
+    # Events
+    # ---------------------------------------------------------------------------------------
+    def _events(self, key: str, node: str, wall: int, message: bytes | str) -> None:
+        try:
+            events = decode_events(message if type(message) is bytes else self._unspill(node, message), blank_ok=True)
+        except WireError as e:
+            self.book.garbage(key, e)
+            return
+        for msg in events:
+            self._event(key, node, wall, msg)
+
+    def _event(self, key: str, node: str, wall: int, msg) -> None:
+        book = self.book
+        stream = (msg.producer, msg.port)
+        event_id = (msg.producer, msg.port, msg.seq)
+        if msg.producer != node:  # carried by a consumer, for a producer whose report may be lost
+            if (msg.producer, msg.port, node) not in book.feeds:
+                book.garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
+                                            "which is no output port of it nor one it consumes"))
+            elif event_id not in book.event_ids:
+                book.carried.add(event_id)
+                self._keep(event_id, msg, wall)
+            return
+        if stream not in book.streams and node not in book.open_outputs:
+            book.garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
+                                        "which is no output port of it"))
+            return
+        if event_id in book.carried:  # its producer's report came after all
+            book.carried.discard(event_id)
+            return
+        if event_id in book.event_ids:
+            book.garbage(key, WireError(f"event {event_id} arrived twice"))
+            return
+        self._keep(event_id, msg, wall)
+
+    def _keep(self, event_id: tuple[str, str, int], msg, wall: int) -> None:
+        book = self.book
+        book.event_ids.add(event_id)
+        book.unseen.discard(event_id)
+        producer, port, seq = event_id
+        if seq > book.max_seq.get((producer, port), -1):
+            book.max_seq[(producer, port)] = seq
+        have = book.have.get((producer, port), -1)
+        while (producer, port, have + 1) in book.event_ids:  # every seq up to it (carried ones may skip)
+            have += 1
+        book.have[(producer, port)] = have
+        value = msg.value if book.values else NOT_KEPT
+        self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, value, wall))
+        if book.live is not None:
+            book.live.event(msg.producer, msg.port, msg.tag, msg.seq, value, wall)
+
+    def _unspill(self, node: str, name: str) -> mmap.mmap:
+        """A message a worker wrote to a file of the run directory: mapped (its arrays are views
+        of the mapping), and the file removed (the mapping keeps its pages)."""
+        if not name.startswith(f"{node}.") or not name.endswith(".msg") or "/" in name:
+            raise WireError(f"{node} reported an event in the file {name!r:.80}, which is not one of its files")
+        path = self.spill_dir / name
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError as e:
+            raise WireError(f"{node} reported an event in {path}, which cannot be opened: {e.strerror}") from None
+        try:
+            path.unlink()
+            mapped = mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+            self.book.reported_bytes += len(mapped)
+            return mapped
+        except (OSError, ValueError) as e:  # ValueError: an empty file
+            raise WireError(f"{node} reported an event in {path}, which cannot be mapped: {e}") from None
+        finally:
+            os.close(fd)
+
+
+def tell_have(book: RunBook, control: RunControl) -> None:
+    """Tell the consumers which events the coordinator has (the last seq of each stream that
+    moved on since last told): they forget those messages and report the records that wait."""
+    moved = [[src, port, seq] for (src, port), seq in book.have.items() if book.have_told.get((src, port)) != seq]
+    if moved:
+        control.put("have", {"streams": moved})
+        book.have_told.update(((src, port), seq) for src, port, seq in moved)

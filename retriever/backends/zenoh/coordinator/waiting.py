@@ -1,0 +1,151 @@
+"""The coordinator's waits: for every worker to be ready, then for the run to finish.
+
+    wait(condition, give_up)
+      ┌──▶ a stop asked from afar? ──▶ KeyboardInterrupt
+      │    take what came (Inbox) ─ a failure? raise it ─ say who starves ─ look at the processes
+      │    hand the records to the log ─ tell the consumers what the coordinator has (`have`)
+      └─── until condition(); past give_up: name each node waited for, with its stacks
+
+In lockstep virtual time (loop.py) the wait for the finish also grants the next window of
+virtual time once every node reached the last one.
+"""
+
+from __future__ import annotations
+
+import time
+
+from ....errors import BackendError
+from .book import RunBook
+from .control import RunControl
+from .diagnostics import Diagnostics
+from .endchecks import say_starved
+from .inbox import Inbox
+from .processes import Supervisor
+from .reports import tell_have
+
+#: how often, at most, the coordinator tells the consumers which events it has (control `have`)
+HAVE_EVERY_S = 0.02
+#: how long the coordinator waits for a message before it looks at the processes again
+POLL_S = 0.02
+#: a real-time run may finish this long past its end and its longest deadline (at least a second)
+#: before it is said stuck: workers send their last reports after the end
+FINISH_SLACK_S = 10.0
+
+#: how far each grant reaches past the last, in virtual ns: the nodes run that much of the
+#: run between two barriers (a source never runs further ahead of its slowest consumer)
+LOCKSTEP_WINDOW_NS = 50_000_000
+#: how long (wall) without a grant reached before it is put again (a put may be missed), and
+#: before the run fails naming the nodes that did not reach it
+REGRANT_S = 0.5
+LOCKSTEP_STALL_S = 120.0
+
+
+class Waits:
+    """The waits of one run; ``session``: the coordinator, whose log is written as the run goes."""
+
+    def __init__(self, session, book: RunBook, inbox: Inbox, control: RunControl, supervisor: Supervisor,
+                 diagnostics: Diagnostics):
+        self.session, self.book, self.inbox, self.control = session, book, inbox, control
+        self.supervisor, self.diagnostics = supervisor, diagnostics
+
+    def until_ready(self, timeout: float) -> None:
+        self.wait(lambda: all(s == "ready" for s in self.book.state.values()), time.monotonic() + timeout, "start")
+
+    def until_finished(self, start: dict, virtual_time: bool) -> None:
+        """Put the run's ``start`` and wait for every node to be done with every report in."""
+        book, end_ns = self.book, start["end"]
+        if virtual_time:
+            book.granted = min(LOCKSTEP_WINDOW_NS, end_ns)
+            book.last_grant = (time.monotonic(), time.monotonic())
+            self.control.put("start", {**start, "grant": book.granted})
+            self.wait(lambda: self.lockstep() and book.finished(), float("inf"), "finish")
+            return
+        self.control.put("start", start)
+        slack = max(self._deadlines(), 1.0) + FINISH_SLACK_S
+        # a coordinator behind on its reports (a logged run of many events) finishes late,
+        # not in error: the wait goes on while they come
+        self.wait(book.finished, time.monotonic() + (book.t0 + end_ns - time.time_ns()) / 1e9 + slack, "finish",
+                  patience=slack)
+
+    def _deadlines(self) -> float:
+        graph = self.book.graph
+        deadlines = [e.deadline for e in graph.edges if e.deadline is not None]
+        return max([graph.deadline, *deadlines])
+
+    def lockstep(self) -> bool:
+        """Grant the next window once every node not done has reached this one; whether the
+        last grant (the run's end) is out. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
+        book, now = self.book, time.monotonic()
+        behind = sorted(n for n, s in book.state.items() if s != "done" and book.reached.get(n, -1) < book.granted)
+        if not behind and book.granted < book.end_ns:
+            book.granted = min(book.granted + LOCKSTEP_WINDOW_NS, book.end_ns)
+            book.last_grant = (now, now)
+            self.control.put("grant", {"until": book.granted})
+            return False
+        if behind and now - book.last_grant[1] > REGRANT_S:  # a put may be missed: again
+            book.last_grant = (book.last_grant[0], now)
+            self.control.put("grant", {"until": book.granted})
+        if now - book.last_grant[0] > LOCKSTEP_STALL_S:
+            waiting = behind or sorted(n for n, s in book.state.items()
+                                       if s != "done" or book.reports[n] < book.reports_sent[n])
+            self.diagnostics.dump_stacks(waiting, show=False)
+            raise BackendError(
+                f"zenoh run (virtual time): worker(s) {', '.join(waiting)} did not "
+                + (f"reach t={book.granted / 1e9:g} s" if behind else "finish")
+                + f" within {LOCKSTEP_STALL_S:g} s of wall time\n"
+                + "".join(self.diagnostics.unfinished(n) for n in waiting)
+                + "    hint: the stacks show where a step that did not return is")
+        return book.granted >= book.end_ns
+
+    def wait(self, condition, give_up: float, what: str, patience: float | None = None) -> None:
+        """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``
+        (with ``patience``, at the latest that long after the last report came)."""
+        session, book = self.session, self.book
+        next_write = next_have = time.monotonic()
+        reports = sum(book.reports.values())
+        while not condition():
+            if session.stop_requested:  # asked from afar (retriever stop): as Ctrl-C here would
+                raise KeyboardInterrupt
+            self.inbox.take(POLL_S)
+            book.tell_forged()
+            if book.failure is not None:
+                self.supervisor.raise_failure()
+            if book.starvation.news:
+                say_starved(book)
+            self.supervisor.check()
+            now = time.monotonic()
+            if now >= next_write:
+                if session.log is not None:
+                    session.write_log()
+                    # while this thread waited for the log's disk no report was taken: that time
+                    # is the coordinator's, not a late worker's
+                    give_up += time.monotonic() - now
+                else:
+                    session.drop_records()
+                next_write = now + session.LOG_HANDOVER_S
+            if now >= next_have:
+                tell_have(book, self.control)
+                next_have = now + HAVE_EVERY_S
+            if patience is not None and sum(book.reports.values()) != reports:
+                reports = sum(book.reports.values())
+                give_up = max(give_up, now + patience)
+            if now > give_up:
+                self._timed_out(what)
+        if session.log is not None:
+            session.write_log()
+
+    def _timed_out(self, what: str) -> None:
+        """The run did not ``start`` or ``finish`` in time: name each node waited for."""
+        book, session = self.book, self.session
+        waiting = sorted(n for n, s in book.state.items() if s != ("ready" if what == "start" else "done")
+                         or book.reports[n] < book.reports_sent[n])
+        self.diagnostics.dump_stacks(waiting, show=False)  # the error below shows them
+        said = "".join(self.diagnostics.unfinished(n) for n in waiting)  # (before the kill: how each was found)
+        if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
+            for nid in waiting:
+                book.workers[nid].kill()
+        raise BackendError(f"{session.backend_name} run: worker(s) {', '.join(waiting)} did not {what} in time\n"
+                           + said
+                           + ("    hint: a flow that takes longer to load needs pipe.run(..., startup_timeout="
+                              f"seconds) (now {session.startup_timeout:g})" if what == "start" else
+                              "    hint: the stacks show where a step that did not return is"))

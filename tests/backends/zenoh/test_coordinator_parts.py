@@ -1,0 +1,99 @@
+"""The coordinator's parts with no hub and no process (coordinator/: assemble over a RunBook):
+the status machine's table, its stages, and a hosting handed in."""
+
+from __future__ import annotations
+
+from collections import Counter
+from types import SimpleNamespace
+
+import pytest
+
+from retriever import BackendError, Pipeline, Rate
+from retriever.backends.base import output_ports
+from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble
+from retriever.backends.zenoh.wire import NODE_STATES, KeySpace, WireEncoder
+from retriever.trace import Trace
+from tests.backends.zenoh.lifecycle_flows import SOURCE_HZ, Counter as CounterFlow
+
+NAMESPACE = "parts"
+
+
+class _Hub:
+    """The hub's put, for a coordinator with no Zenoh: what it was asked to put."""
+
+    def __init__(self) -> None:
+        self.puts: list[str] = []
+
+    def put(self, key: str, payload: bytes, **_) -> None:
+        self.puts.append(key)
+
+
+class _Process:
+    def __init__(self, pid: int):
+        self.pid = pid
+
+
+class _LostHosting(Hosting):
+    """A hosting that says where it is, and records what a host lost meant."""
+
+    def __init__(self) -> None:
+        self.lost: list[list[str]] = []
+
+    def host_lost(self, host, nodes: list[str]) -> None:
+        self.lost.append(nodes)
+        super().host_lost(host, nodes)
+
+
+@pytest.fixture
+def offline(tmp_path):
+    with Pipeline("parts") as pipe:
+        CounterFlow() @ Rate(hz=SOURCE_HZ)
+    graph = pipe.compile()
+    trace, counts = Trace(keep="trace"), Counter()
+    trace.ports = output_ports(graph)
+    book = RunBook(graph, counts)
+    book.workers = {"counter": _Process(40_000)}
+    book.state = {"counter": "starting"}
+    hosting = _LostHosting()
+    parts = assemble(book, trace, tmp_path, RunControl(_Hub(), KeySpace(NAMESPACE)), hosting)
+    hosting.attach(SimpleNamespace(book=book))  # what a hosting reads of its coordinator here
+    return book, parts, hosting
+
+
+def _status(state: str, **info) -> tuple[str, bytes]:
+    return KeySpace(NAMESPACE).node_status("counter"), WireEncoder().status("counter", state, {"pid": 40_000, **info})
+
+
+def test_every_state_a_worker_may_say_has_one_handler(offline):
+    _, parts, _ = offline
+    assert sorted(parts.statuses.handlers) == sorted(NODE_STATES)
+
+
+def test_a_process_goes_from_ready_to_done_once_and_a_replay_is_garbage(offline):
+    book, parts, _ = offline
+    sender = book.workers["counter"]
+    parts.inbox.handle((*_status("ready"), sender))
+    assert book.state["counter"] == "ready"
+    parts.inbox.handle((*_status("done", reports=2, counts={"late": 1}), sender))
+    assert (book.state["counter"], book.reports_sent["counter"], book.stats["counter"].counts) == ("done", 2, {"late": 1})
+    parts.inbox.handle((*_status("done", reports=2, counts={"late": 1}), sender))  # replayed: refused, not counted
+    parts.inbox.handle((*_status("ready"), sender))
+    assert (book.state["counter"], book.reports_sent["counter"], book.counts["garbage"]) == ("done", 2, 2)
+
+
+def test_a_status_no_process_of_the_node_signed_changes_nothing(offline):
+    book, parts, _ = offline
+    parts.inbox.handle((*_status("failed", error="forged"), _Process(40_000)))  # same pid, another process
+    assert (book.failure, book.state["counter"], book.counts["garbage"]) == (None, "starting", 1)
+
+
+def test_a_host_lost_goes_to_the_hosting_handed_in(offline):
+    book, parts, hosting = offline
+
+    class Gone:
+        name, alive = "gone-box", False
+
+    book.hosts = {"counter": Gone()}
+    with pytest.raises(BackendError, match="zenoh run stopped: worker 'gone-box' was lost"):
+        parts.supervisor.check()
+    assert hosting.lost == [["counter"]]
