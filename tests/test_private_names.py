@@ -49,15 +49,6 @@ KNOWN = {
     # dora's host reads the zenoh output capture's privates; output.py should name them publicly
     ("retriever.backends.dora.host", "_WRITING"): "issue 37: remove",
     ("retriever.backends.dora.host", "_tail"): "issue 37: remove",
-    # dora's node loop overrides and calls the zenoh loop's privates (it should be a transport handed in)
-    ("retriever.backends.dora.link", "_CONTROL"): "issue 37: remove",
-    ("retriever.backends.dora.link", "_DATA"): "issue 37: remove",
-    ("retriever.backends.dora.link", "_PROGRESS"): "issue 37: remove",
-    ("retriever.backends.dora.link", "_answer_progress"): "issue 37: remove",
-    ("retriever.backends.dora.link", "_publisher"): "issue 37: remove",
-    ("retriever.backends.dora.link", "_receive"): "issue 37: remove",
-    # the loop builds bursts through Burst's private constructor
-    ("retriever.backends.zenoh.loop", "_of"): "issue 37: remove",
     # the worker reads the loop's control key and an in-process private
     ("retriever.backends.zenoh.worker", "_AlwaysMissing"): "issue 37: remove",
     ("retriever.backends.zenoh.worker", "_CONTROL"): "issue 37: remove",

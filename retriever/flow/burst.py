@@ -25,7 +25,7 @@ import numpy as np
 
 #: the most values a burst holds (a step with more makes an array its value, or splits them over
 #: ticks): it bounds what one message may make a receiver build, and the seqs a lost process may
-#: have used unreported (RESTART_SEQ_GAP in backends/zenoh/loop.py)
+#: have used unreported (RESTART_SEQ_GAP in backends/zenoh/node/frontiers.py)
 MAX_BURST = 1 << 16
 
 _NOT_VALUES = (str, bytes, bytearray, memoryview, dict, set, frozenset)
@@ -59,8 +59,9 @@ class Burst:
         self.rows: np.ndarray | None = rows  # the array whose rows the values are, if given so
 
     @classmethod
-    def _of(cls, values: tuple) -> Burst:
-        """A burst of ``values`` as they are (decoded or blank ones: not checked again)."""
+    def unchecked(cls, values: tuple) -> Burst:
+        """A burst of ``values`` as they are, not checked again: decoded ones, or blanks (the
+        node loop's, for a burst it hands over or reports without its values)."""
         burst = cls.__new__(cls)
         burst.values, burst.rows = values, None
         return burst

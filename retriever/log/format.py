@@ -107,7 +107,7 @@ def decode_step(data: bytes) -> tuple:
 
 
 def _check_restart_detail(detail: dict) -> None:
-    """What replay reads of a restart (zenoh/loop.py, "Restarting after a lost process"), or ValueError:
+    """What replay reads of a restart (zenoh/node/handover.py), or ValueError:
     ``restart_gap`` {port: [[node, port, first seq given up, first seq taken], ...]} on a consumer's
     record, ``restarted`` {seqs: {port: seq}, inputs: {port: [[node, port, first seq], ...]}} on the
     first record of a flow started afresh."""

@@ -1,23 +1,24 @@
-"""A node's loop whose events and progress go over dora (the zenoh backend's loop otherwise).
+"""A node's events and progress over dora: the transport a node loop is handed in a dora run.
 
     dora inputs ──receiving thread: node.next()──▶ the loop's inbox (or handled right there, as a
                                                    Zenoh subscriber's callback would: INLINE_STEP_NS)
     loop ──send_output(port | "progress")──▶ dora ──▶ the consumers' inputs
 
-Everything else is :class:`~retriever.backends.zenoh.loop.NodeLoop`'s: clocks, frontiers,
-deadlines, LET, step records. The run's control plane stays on the run's private Zenoh hub:
-``start`` and ``stop``, the reports that become the trace and the log, and the answers to a
-consumer that asks a producer for its frontier (dora has no queries).
+Everything else is the node loop's (backends/zenoh/node/): clocks, frontiers, deadlines, LET,
+step records. The run's control plane stays on the run's private Zenoh hub: ``start`` and
+``stop``, the reports that become the trace and the log, and the answers to a consumer that asks
+a producer for its frontier (dora has no queries).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from typing import Callable
 
-from ..zenoh.hub import weak_callback
-from ..zenoh.loop import _CONTROL, _DATA, _PROGRESS, NodeLoop
-from .dataflow import PROGRESS, DoraNames
+from ..zenoh.node import DATA, PROGRESS, Transport
+from .dataflow import PROGRESS as PROGRESS_OUTPUT
+from .dataflow import DoraNames
 
 #: how long the receiving thread waits in ``node.next()`` before it looks whether to stop
 RECEIVE_TIMEOUT_S = 0.1
@@ -49,13 +50,12 @@ class Nowhere:
         pass
 
 
-class DoraNodeLoop(NodeLoop):
-    """A :class:`NodeLoop` that publishes and receives events and progress with a dora node."""
+class DoraTransport(Transport):
+    """Events and progress of the node ``node_id`` with this process's dora node."""
 
-    def __init__(self, *args, names: DoraNames, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.names = names
-        self.routes = {input_id: (src, port) for input_id, (src, port) in names.inputs[self.id].items()}
+    def __init__(self, names: DoraNames, node_id: str):
+        self.names, self.id = names, node_id
+        self.routes = {input_id: (src, port) for input_id, (src, port) in names.inputs[node_id].items()}
         self.dora_node = None
         self.receiver: threading.Thread | None = None
         self.receiving = False
@@ -70,53 +70,42 @@ class DoraNodeLoop(NodeLoop):
             self.dora_node = Node()
         return self.dora_node
 
-    def declare_inputs(self) -> None:
-        put = self.inbox.put
-        self._declared.append(self.session.declare_subscriber(
-            self.keys.run_control(), lambda sample: put((_CONTROL, None, sample.payload.to_bytes()))))
+    def declare_inputs(self, streams, sources, inline, put) -> None:
         node = self._dora()
         if self.receiver is None and self.routes:
             self.receiving = True
-            self.receiver = threading.Thread(target=self._receive_dora, args=(node,), daemon=True,
+            self.receiver = threading.Thread(target=self._receive, args=(node, inline or put, put), daemon=True,
                                              name=f"retriever-dora-{self.id}")
             self.receiver.start()
 
-    def declare_outputs(self) -> None:
-        self._declared.append(self.session.declare_queryable(self.keys.progress(self.id),
-                                                          weak_callback(self._answer_progress)))
+    def declare_outputs(self, ports, consumed):
         node = self._dora()
         outputs = self.names.outputs[self.id]
-        self.publishers = {port: DoraOutput(node, outputs[port]) if port in outputs else Nowhere()
-                           for port in self.ports}
-        self.progress_publisher = DoraOutput(node, PROGRESS) if self.consumed else Nowhere()
-        self.warm_publisher = None
-        for output in {*outputs.values(), *([PROGRESS] if self.consumed else [])}:
+        publishers = {port: DoraOutput(node, outputs[port]) if port in outputs else Nowhere() for port in ports}
+        progress = DoraOutput(node, PROGRESS_OUTPUT) if consumed else Nowhere()
+        for output in {*outputs.values(), *([PROGRESS_OUTPUT] if consumed else [])}:
             node.send_output(output, GREETING)
+        return publishers, progress, None
 
-    def await_routes(self, timeout: float) -> None:
+    def publisher(self, port: str) -> Nowhere:
+        return Nowhere()
+
+    def await_routes(self, timeout: float, stopping: Callable[[], bool]) -> None:
         give_up, wanted = time.monotonic() + timeout, set(self.routes)
         with self.greetings:  # (in short waits: a stop, from a signal handler, notifies no one)
-            while not (self.stopping or self.greeted >= wanted) and time.monotonic() < give_up:
+            while not (stopping() or self.greeted >= wanted) and time.monotonic() < give_up:
                 self.greetings.wait(0.1)
-
-    def _publisher(self, key: str) -> Nowhere:
-        return Nowhere()
 
     def undeclare(self) -> None:
         self.receiving = False
         if self.receiver is not None and self.receiver is not threading.current_thread():
             self.receiver.join()
         self.receiver = None
-        for d in self._declared:
-            d.undeclare()
-        self._declared = []
-        self.publishers = {}
 
-    def _receive_dora(self, node) -> None:
+    def _receive(self, node, receive, put) -> None:
         """The receiving thread: every input event, in dora's order, to the loop (until dora says
-        every sender is gone, or the loop is undeclared)."""
-        receive = self._receive if self.inline else self.inbox.put
-        put, routes = self.inbox.put, self.routes
+        every sender is gone, or the transport is undeclared)."""
+        routes = self.routes
         while self.receiving:
             event = node.next(timeout=RECEIVE_TIMEOUT_S)
             if event is None:
@@ -134,6 +123,6 @@ class DoraNodeLoop(NodeLoop):
                 continue
             src, port = route
             if port is None:
-                put((_PROGRESS, src, data))
+                put((PROGRESS, src, data))
             else:
-                receive((_DATA, (src, port), data))
+                receive((DATA, (src, port), data))

@@ -20,7 +20,6 @@ Before that, the process says what a child of the coordinator would say by being
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import os
 import sys
@@ -60,10 +59,9 @@ def main(argv: list[str]) -> None:
 def loop_maker(names: DoraNames) -> Callable:
     """``(spec, node, session) -> loop``: the node's loop, its events and progress over dora.
     The one place a dora node's loop is made."""
-    from .link import DoraNodeLoop
+    from .link import DoraTransport
 
-    return lambda spec, node, session: worker.build_loop(spec, node, session,
-                                                         loop_class=functools.partial(DoraNodeLoop, names=names))
+    return lambda spec, node, session: worker.build_loop(spec, node, session, transport=DoraTransport(names, node))
 
 
 def _output_to_pipes(run_dir: Path, dora_id: str) -> None:

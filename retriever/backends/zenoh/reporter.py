@@ -1,6 +1,6 @@
 """A worker's reports to the coordinator, sent from a thread of their own.
 
-A node loop batches its step records and the data messages it published (loop.FLUSH_AFTER_NS)
+A node loop batches its step records and the data messages it published (node/reports.py)
 and hands each batch to its :class:`Reporter`. The reporter writes the big messages to files of
 the run's spill directory (the coordinator maps them: one copy, none on its side) and puts the
 report on ``status/report/<node>``. Both take time that has nothing to do with the node's
@@ -40,7 +40,7 @@ from .wire import RELIABLE, WireEncoder
 MAX_PENDING = 64
 MAX_PENDING_BYTES = 256 << 20
 #: and the seqs their events used, at most (a burst is many seqs in a few bytes): this bounds the
-#: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in loop.py)
+#: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in node/frontiers.py)
 MAX_PENDING_SEQS = 1 << 19
 
 

@@ -250,9 +250,9 @@ def _import_main(path: str) -> None:
     sys.modules["__main__"] = module
 
 
-def build_loop(spec: dict, node_id: str, session, loop_class=None):
-    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop
-    (``loop_class``'s, called as NodeLoop is, if given: a dora node's)."""
+def build_loop(spec: dict, node_id: str, session, transport=None):
+    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop, its
+    events through ``transport`` (a dora node's), or on ``session`` when None."""
     from ...flow._base import Flow
     from ...graph import compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
@@ -304,7 +304,7 @@ def build_loop(spec: dict, node_id: str, session, loop_class=None):
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
     cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
-    return (loop_class or NodeLoop)(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
+    return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
                     consumed=any(e["source"]["node"] == node_id for e in ir.edges),
@@ -313,7 +313,8 @@ def build_loop(spec: dict, node_id: str, session, loop_class=None):
                     # CUDA context, a device handle): it steps on the thread that set it up
                     inline=not on_a_cycle(ir.edges, node_id) and type(node.flow).setup is Flow.setup,
                     cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
-                    max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")))
+                    max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")),
+                    transport=transport)
 
 
 def instant_ports(ir, node_id: str) -> frozenset[str]:

@@ -254,7 +254,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     import queue
     from collections import Counter
 
-    from retriever.backends.zenoh.loop import _DATA
+    from retriever.backends.zenoh.node import DATA
     from retriever.backends.zenoh.worker import _ask_start, _await_control
     from retriever.backends.zenoh.wire import WireEncoder
 
@@ -272,7 +272,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
         counts: Counter = Counter()
 
     loop = Inbox()
-    data = (_DATA, ("a", "b"), b"early")
+    data = (DATA, ("a", "b"), b"early")
     loop.inbox.put(data)
     with hub:
         queryable = hub.declare_queryable(keys.start(), answer)

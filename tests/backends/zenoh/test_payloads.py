@@ -1,6 +1,6 @@
 """Large arrays on the zenoh backend: they arrive intact, reach the coordinator's trace and log
 through the run directory (files it maps and removes), and the log replays. See wire.py (arrays
-out of band; test_wire.py checks they are read-only views) and loop.py (SPILL_BYTES)."""
+out of band; test_wire.py checks they are read-only views) and node/reports.py (SPILL_BYTES)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import retriever.log
 from retriever import Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import SHM_POOL_MIN
-from retriever.backends.zenoh.loop import SPILL_BYTES
+from retriever.backends.zenoh.node import SPILL_BYTES
 
 from .payload_flows import (BurstCamera, Camera, Holder, ImageShmWatcher, ShmOfImageTaker, ShmOfScalarTaker, ShmWatcher,
                             Sums, Viewer, frame)

@@ -1,4 +1,4 @@
-"""Steps on the receiving thread (loop.INLINE_STEP_NS): where a tick runs, and what may not.
+"""Steps on the receiving thread (node/loop.py, INLINE_STEP_NS): where a tick runs, and what may not.
 
 A data message that arrives while a node's main thread waits is handled on the Zenoh thread that
 received it, and the ticks it makes ready run there too, when the node's last step was short
@@ -13,7 +13,8 @@ from __future__ import annotations
 import pytest
 
 from retriever import Latest, Pipeline, Rate, Trigger
-from retriever.backends.zenoh.loop import _DATA, _NUDGE, INLINE_STEP_NS, StopRun
+from retriever.backends.zenoh.node import DATA, INLINE_STEP_NS, NUDGE
+from retriever.errors import StopRun
 from retriever.backends.zenoh.wire import WireEncoder
 from retriever.backends.zenoh.worker import build_loop, on_a_cycle
 
@@ -87,24 +88,24 @@ def faulty_loop(session):
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "inline-test"}, "faulty", session)
     assert loop.inline, "faulty is on no cycle"
     loop.declare()
-    loop.t0, loop.end, loop.started = 0, 1 << 62, True  # as run() sets them
+    loop.run_clock.t0, loop.run_clock.end, loop.run_clock.started = 0, 1 << 62, True  # as run() sets them
     loop.last_wall = 0  # as after a short step
     return loop
 
 
 def data(k: int) -> tuple:
     message = WireEncoder().data((k * 50 * MS, 0), k, (k * 50 * MS + 1, 0), "counter", "value", k)
-    return (_DATA, ("counter", "value"), message)
+    return (DATA, ("counter", "value"), message)
 
 
 def test_a_message_that_comes_while_the_main_thread_waits_is_stepped_on_arrival(session):
     loop = faulty_loop(session)
     try:
         loop.turn.release()  # the main thread waits in _wait
-        loop._receive(data(0))
-        assert [r[3] for r in loop.records] == ["ok"], "the tick ran on the receiving thread"
+        loop.receive(data(0))
+        assert [r[3] for r in loop.reports.records] == ["ok"], "the tick ran on the receiving thread"
         assert loop.sent == {"report": 0}, "and published"
-        assert loop.inbox.get_nowait()[0] == _NUDGE, "the main thread is told to look again"
+        assert loop.inbox.get_nowait()[0] == NUDGE, "the main thread is told to look again"
         assert loop.turn.acquire(blocking=False), "the receiving thread gave the loop back"
     finally:
         loop.undeclare()
@@ -114,8 +115,8 @@ def test_a_message_that_comes_while_the_main_thread_works_is_queued_for_it(sessi
     loop = faulty_loop(session)
     try:
         # the main thread holds the loop (it is not waiting)
-        loop._receive(data(0))
-        assert not loop.records and not loop.pending and not loop.sent
+        loop.receive(data(0))
+        assert not loop.reports.records and not loop.schedule.pending and not loop.sent
         assert loop.inbox.get_nowait() == data(0)
     finally:
         loop.undeclare()
@@ -125,16 +126,16 @@ def test_a_step_that_raises_on_the_receiving_thread_stops_the_run_from_the_main_
     loop = faulty_loop(session)
     try:
         loop.turn.release()
-        loop._receive(data(0))
-        loop._receive(data(1))  # Faulty raises at x=1; on_error="stop"
+        loop.receive(data(0))
+        loop.receive(data(1))  # Faulty raises at x=1; on_error="stop"
         assert isinstance(loop.failure, StopRun) and "inline-boom at x=1" in str(loop.failure)
-        assert [r[3] for r in loop.records] == ["ok", "error"], "the failed tick is recorded"
-        loop._receive(data(2))  # after a failure, messages only queue: nothing more runs
-        assert len(loop.records) == 2
+        assert [r[3] for r in loop.reports.records] == ["ok", "error"], "the failed tick is recorded"
+        loop.receive(data(2))  # after a failure, messages only queue: nothing more runs
+        assert len(loop.reports.records) == 2
         # the main thread, back from its wait, raises it (the worker then reports the failure)
         assert loop.turn.acquire(blocking=False), "the receiving thread gave the loop back"
         with pytest.raises(StopRun, match="inline-boom at x=1") as info:
-            loop._wait(10 * MS)
+            loop.wait(10 * MS)
         assert isinstance(info.value.__cause__, ValueError)
     finally:
         loop.undeclare()

@@ -16,7 +16,7 @@ import pytest
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.hub import wait_for_answers
-from retriever.backends.zenoh.loop import _CONTROL, _DATA
+from retriever.backends.zenoh.node import CONTROL, DATA
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_progress
 from retriever.backends.zenoh.worker import _await_control, build_loop
 
@@ -31,6 +31,11 @@ def spec():
     return {"ir": pipe.compile().to_ir().doc, "namespace": "redeclare-test"}
 
 
+def declarations(loop) -> list:
+    """Everything the loop holds declared on its session: its control plane's and its transport's."""
+    return [*loop.declared, *loop.transport.subscribers, *loop.transport.publishers]
+
+
 def _answers(session, key: str) -> list:
     return [decode_progress(r.ok.payload.to_bytes()) for r in session.get(key, timeout=5.0) if r.ok is not None]
 
@@ -40,9 +45,9 @@ def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(
     viewer = build_loop(spec, "viewer", session)
     viewer.declare()
     try:
-        before = len(viewer._declared)
+        before = len(declarations(viewer))
         viewer.redeclare()
-        assert len(viewer._declared) == before, "the old declarations were dropped, the new ones kept"
+        assert len(declarations(viewer)) == before, "the old declarations were dropped, the new ones kept"
         assert viewer.counts["redeclared"] == 1
         assert [a.producer for a in _answers(session, keys.progress("viewer"))] == ["viewer"], \
             "one answer: one queryable"
@@ -53,9 +58,9 @@ def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(
         # subscriber's copy would still come before the control
         items = [viewer.inbox.get(timeout=30)]
         session.put(keys.run_control(), WireEncoder().control("stop", {}))
-        while items[-1][0] != _CONTROL:
+        while items[-1][0] != CONTROL:
             items.append(viewer.inbox.get(timeout=30))
-        assert [kind for kind, *_ in items] == [_DATA, _CONTROL], "each message once: one subscriber of each"
+        assert [kind for kind, *_ in items] == [DATA, CONTROL], "each message once: one subscriber of each"
     finally:
         viewer.undeclare()
 
@@ -67,7 +72,7 @@ def test_a_waiting_worker_redeclares_when_the_coordinator_says_so_and_only_then(
         encode = WireEncoder().control
         for op, args in (("redeclare", {"nodes": ["viewer"]}), ("redeclare", {"nodes": "cam"}),
                          ("redeclare", {"nodes": ["cam"]}), ("start", {"t0": 1, "end": 2})):
-            cam.inbox.put((_CONTROL, None, encode(op, args)))
+            cam.inbox.put((CONTROL, None, encode(op, args)))
         assert _await_control(cam, "start", "cam") == {"t0": 1, "end": 2}
         assert cam.counts["redeclared"] == 1, "only the message that names it, as a list"
     finally:

@@ -1,5 +1,5 @@
-"""When a node loop's step records and published events go to the coordinator (loop.FLUSH_AFTER_NS,
-loop.RECORDS_FLUSH_AFTER_NS): events within 100 ms, records alone within a second (an idle flow's
+"""When a node loop's step records and published events go to the coordinator (node/reports.py,
+FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS): events within 100 ms, records alone within a second (an idle flow's
 ten reports a second were a quarter of its CPU, issue 21).
 
 A real NodeLoop, rebuilt from the IR as a worker does, on a real (unconnected) Zenoh session, its
@@ -11,7 +11,7 @@ from __future__ import annotations
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.loop import FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS
+from retriever.backends.zenoh.node import FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS
 from retriever.backends.zenoh.worker import build_loop
 
 from .payload_flows import Camera, Viewer, frame
@@ -27,7 +27,7 @@ def cam(session):
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "batching-test"}, "cam", session)
     loop.declare()
     clock = {"now": 0}
-    loop.now = lambda: clock["now"]
+    loop.run_clock.now = lambda: clock["now"]
     try:
         yield loop, clock
     finally:
@@ -35,11 +35,11 @@ def cam(session):
 
 
 def record(loop, t: int) -> None:
-    loop._record((t, 0), {}, [], "ok", None, t, 0)
+    loop.reports.record((t, 0), {}, [], "ok", None, t, 0)
 
 
 def publish(loop, t: int, seq: int) -> None:
-    loop._publish([((t, 1), "image", frame(seq, 4096).reshape(-1, 1024), seq)])
+    loop.outputs.publish([((t, 1), "image", frame(seq, 4096).reshape(-1, 1024), seq)])
 
 
 def test_step_records_alone_wait_up_to_a_second(cam):
@@ -47,10 +47,10 @@ def test_step_records_alone_wait_up_to_a_second(cam):
     assert RECORDS_FLUSH_AFTER_NS > FLUSH_AFTER_NS
     clock["now"] = 7 * MS
     record(loop, 7 * MS)
-    assert loop.flush_due == 7 * MS + RECORDS_FLUSH_AFTER_NS
+    assert loop.reports.flush_due == 7 * MS + RECORDS_FLUSH_AFTER_NS
     clock["now"] = 57 * MS
     record(loop, 57 * MS)
-    assert loop.flush_due == 7 * MS + RECORDS_FLUSH_AFTER_NS, "the oldest record sets it"
+    assert loop.reports.flush_due == 7 * MS + RECORDS_FLUSH_AFTER_NS, "the oldest record sets it"
 
 
 def test_a_published_event_brings_the_report_forward_to_100_ms(cam):
@@ -58,11 +58,11 @@ def test_a_published_event_brings_the_report_forward_to_100_ms(cam):
     record(loop, 0)
     clock["now"] = 300 * MS
     publish(loop, 300 * MS, 0)  # records waiting since 0: now with an event, they go within 100 ms of it
-    assert loop.flush_due == 300 * MS + FLUSH_AFTER_NS
+    assert loop.reports.flush_due == 300 * MS + FLUSH_AFTER_NS
     clock["now"] = 350 * MS
     publish(loop, 350 * MS, 1)
     record(loop, 350 * MS)
-    assert loop.flush_due == 300 * MS + FLUSH_AFTER_NS, "the oldest event sets it"
+    assert loop.reports.flush_due == 300 * MS + FLUSH_AFTER_NS, "the oldest event sets it"
 
 
 def test_an_event_first_then_its_record_goes_within_100_ms(cam):
@@ -70,4 +70,4 @@ def test_an_event_first_then_its_record_goes_within_100_ms(cam):
     clock["now"] = 20 * MS
     publish(loop, 20 * MS, 0)
     record(loop, 20 * MS)
-    assert loop.flush_due == 20 * MS + FLUSH_AFTER_NS
+    assert loop.reports.flush_due == 20 * MS + FLUSH_AFTER_NS

@@ -12,7 +12,7 @@ import threading
 
 import pytest
 
-from retriever.backends.zenoh.loop import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
+from retriever.backends.zenoh.node import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
 from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter, ReportError
 from retriever.flow.burst import MAX_BURST
 from retriever.backends.zenoh.wire import KeySpace, decode_report

@@ -1,6 +1,6 @@
-"""A flow started afresh after its process died (on_error="restart"; loop.py, "Restarting after a
-lost process"), piece by piece: a real NodeLoop driven by hand (the test thread plays Zenoh's
-receiving thread and the coordinator), and the log records a replay reads, attacked. The whole
+"""A flow started afresh after its process died (on_error="restart"; node/handover.py), piece by
+piece: a real NodeLoop driven by hand (the test thread plays Zenoh's receiving thread and the
+coordinator), and the log records a replay reads, attacked. The whole
 story with real processes killed by SIGKILL is in test_lifecycle.py. No test here waits on time.
 """
 
@@ -10,7 +10,7 @@ import msgpack
 import pytest
 
 from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
-from retriever.backends.zenoh.loop import _CONTROL, _DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
+from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
 from retriever.backends.zenoh.wire import Progress, WireEncoder
 from retriever.backends.zenoh.worker import build_loop
 from retriever.log import format as fmt
@@ -31,23 +31,23 @@ def loop(session):
         src.then(WhereRun().configure(name="where", on_error="restart") @ Trigger("x"), sync=Queue(maxsize=100))
     loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "afresh-test"}, "where", session)
     loop.declare()
-    loop.t0, loop.end, loop.started = 0, 1 << 62, True  # as run() sets them
+    loop.run_clock.t0, loop.run_clock.end, loop.run_clock.started = 0, 1 << 62, True  # as run() sets them
     yield loop
     loop.undeclare()
 
 
 def data(seq: int, t_ms: int) -> tuple:
     message = WireEncoder().data((t_ms * MS, 0), seq, (t_ms * MS + 1, 0), "counter", "value", seq)
-    return (_DATA, STREAM, message)
+    return (DATA, STREAM, message)
 
 
 def control(op: str, args: dict) -> tuple:
-    return (_CONTROL, None, WireEncoder().control(op, args))
+    return (CONTROL, None, WireEncoder().control(op, args))
 
 
 def tick_all(loop) -> None:
     """Run every tick that is ready (the inputs here are complete up to their tags)."""
-    while loop._try_tick(1 << 61) == "ticked":
+    while loop.try_tick(1 << 61) == "ticked":
         pass
 
 
@@ -60,60 +60,60 @@ def consumed(record) -> list[int]:
 # ---------------------------------------------------------------------------------------------
 def test_a_consumer_gives_up_the_dead_producers_missing_seqs_and_takes_the_new_stream_on(loop):
     for seq, t in ((0, 50), (1, 100)):
-        loop._handle(data(seq, t))
-    loop._handle(control("lost", {"node": "counter"}))
-    loop._handle(data(FIRST + 1, 300))  # the new process's second event overtook the coordinator's word
-    loop._handle(data(3, 150))  # the dead process's: seq 2 never came
-    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
-    loop._handle(data(FIRST, 250))
-    loop._handle(data(2, 120))  # the dead process's missing one, too late: ignored, not garbage
+        loop.handle(data(seq, t))
+    loop.handle(control("lost", {"node": "counter"}))
+    loop.handle(data(FIRST + 1, 300))  # the new process's second event overtook the coordinator's word
+    loop.handle(data(3, 150))  # the dead process's: seq 2 never came
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop.handle(data(FIRST, 250))
+    loop.handle(data(2, 120))  # the dead process's missing one, too late: ignored, not garbage
     tick_all(loop)
-    assert [consumed(r) for r in loop.records] == [[0], [1], [FIRST], [FIRST + 1]]
-    assert [r[0][0] // MS for r in loop.records] == [50, 100, 250, 300]
+    assert [consumed(r) for r in loop.reports.records] == [[0], [1], [FIRST], [FIRST + 1]]
+    assert [r[0][0] // MS for r in loop.reports.records] == [50, 100, 250, 300]
     # the next record says which seqs it gave up, so that a replay withholds those
-    assert loop.records[0][4] == {"restart_gap": {"x": [["counter", "value", 2, FIRST]]}}
-    assert loop.counts["garbage"] == 0 and loop.expect[STREAM] == FIRST + 2
+    assert loop.reports.records[0][4] == {"restart_gap": {"x": [["counter", "value", 2, FIRST]]}}
+    assert loop.counts["garbage"] == 0 and loop.streams.expect[STREAM] == FIRST + 2
 
 
 def test_without_word_of_a_lost_producer_a_seq_that_far_ahead_is_garbage(loop):
-    loop._handle(data(0, 50))
-    loop._handle(data(EARLY_SEQS_MAX + 5, 300))  # a seq from the future: an insider's nonsense
-    assert loop.counts["garbage"] == 1 and not loop.early[STREAM]
+    loop.handle(data(0, 50))
+    loop.handle(data(EARLY_SEQS_MAX + 5, 300))  # a seq from the future: an insider's nonsense
+    assert loop.counts["garbage"] == 1 and not loop.streams.early[STREAM]
 
 
 @pytest.mark.parametrize("seqs", [{"value": 1}, {"value": 2 + RESTART_SEQ_GAP + EARLY_SEQS_MAX + 1}, ["value", 9]])
 def test_a_restart_where_the_coordinator_would_not_put_it_is_refused(loop, seqs):
     """Below seqs taken, or further ahead than a dead process's unreported events reach."""
     for seq, t in ((0, 50), (1, 100)):
-        loop._handle(data(seq, t))
-    loop._handle(control("lost", {"node": "counter"}))
-    loop._handle(control("restarted", {"node": "counter", "seqs": seqs}))
-    assert loop.counts["garbage"] == 1 and loop.expect[STREAM] == 2 and "restart_gap" not in loop.pending_detail
-    loop._handle(data(2, 150))  # the stream goes on
-    assert loop.expect[STREAM] == 3
+        loop.handle(data(seq, t))
+    loop.handle(control("lost", {"node": "counter"}))
+    loop.handle(control("restarted", {"node": "counter", "seqs": seqs}))
+    assert loop.counts["garbage"] == 1 and loop.streams.expect[STREAM] == 2 and "restart_gap" not in loop.notes.detail
+    loop.handle(data(2, 150))  # the stream goes on
+    assert loop.streams.expect[STREAM] == 3
 
 
 def test_a_restart_of_a_producer_not_said_lost_is_refused(loop):
     """A forged one would cut this consumer off a live producer for the rest of the run."""
-    loop._handle(data(0, 50))
-    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
-    loop._handle(data(1, 100))
-    assert loop.counts["garbage"] == 1 and loop.expect[STREAM] == 2
+    loop.handle(data(0, 50))
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop.handle(data(1, 100))
+    assert loop.counts["garbage"] == 1 and loop.streams.expect[STREAM] == 2
 
 
 def test_a_restart_a_fresh_process_caught_up_with_is_ignored(loop):
     """Its inputs were taken on from the producer's own answer (it restarted too): nothing to do."""
     loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": FIRST - 1})})
-    loop._handle(data(FIRST, 450))
-    loop._handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
-    assert loop.counts["garbage"] == 0 and loop.expect[STREAM] == FIRST + 1 and not loop.pending_detail
+    loop.handle(data(FIRST, 450))
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    assert loop.counts["garbage"] == 0 and loop.streams.expect[STREAM] == FIRST + 1 and not loop.notes.detail
 
 
 def test_word_of_another_nodes_restart_changes_nothing(loop):
-    loop._handle(data(0, 50))
-    loop._handle(control("lost", {"node": "where"}))
-    loop._handle(control("restarted", {"node": "somebody", "seqs": {"value": FIRST}}))
-    assert loop.expect[STREAM] == 1 and not loop.lost_producers and loop.counts["garbage"] == 0
+    loop.handle(data(0, 50))
+    loop.handle(control("lost", {"node": "where"}))
+    loop.handle(control("restarted", {"node": "somebody", "seqs": {"value": FIRST}}))
+    assert loop.streams.expect[STREAM] == 1 and not loop.streams.lost_producers and loop.counts["garbage"] == 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -121,12 +121,12 @@ def test_word_of_another_nodes_restart_changes_nothing(loop):
 # ---------------------------------------------------------------------------------------------
 def test_a_fresh_process_takes_each_stream_on_from_where_its_producer_stands(loop):
     loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": 9})})
-    assert loop.frontiers[STREAM] == (400 * MS, 0)
-    loop._handle(data(8, 380))  # published before the producer answered: not this process's
-    loop._handle(data(10, 450))
+    assert loop.streams.frontiers[STREAM] == (400 * MS, 0)
+    loop.handle(data(8, 380))  # published before the producer answered: not this process's
+    loop.handle(data(10, 450))
     loop.start_fresh({"report": FIRST}, 0)
     tick_all(loop)
-    (record,) = loop.records
+    (record,) = loop.reports.records
     assert consumed(record) == [10] and record[2] == (("where", "report", FIRST),)
     assert record[4] == {"restarted": {"seqs": {"report": FIRST}, "inputs": {"x": [["counter", "value", 10]]}}}
     assert loop.counts["garbage"] == 0
@@ -134,7 +134,7 @@ def test_a_fresh_process_takes_each_stream_on_from_where_its_producer_stands(loo
 
 def test_a_fresh_process_waits_for_nothing_from_a_finished_producer(loop):
     loop.sync_inputs({"counter": None})
-    assert loop.frontiers[STREAM] == NEVER and loop.fresh_inputs == {}
+    assert loop.streams.frontiers[STREAM] == NEVER and loop.streams.fresh_inputs == {}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -202,7 +202,7 @@ def test_before_its_run_starts_a_loop_promises_nothing_past_the_start(session):
         src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Queue(maxsize=100))
     for node in ("counter", "where"):
         loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "before-run-test"}, node, session)
-        assert loop.frontier() == (0, 0), node
+        assert loop.outputs.frontier() == (0, 0), node
 
 
 class _HeldPut:
@@ -235,10 +235,10 @@ def test_a_seq_being_put_counts_as_sent_for_a_consumer_that_asks_meanwhile(sessi
     producer = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "held-put-test"}, "counter", session)
     producer.declare()
     try:
-        producer.t0, producer.end, producer.started = 0, 1 << 62, True
-        held = producer.publishers["value"] = _HeldPut(session, producer.keys, producer.publishers["value"])
-        producer._publish([((50 * MS, 0), "value", {"value": 0}, 0)])
-        producer._publish([((100 * MS, 0), "value", {"value": 1}, 1)])
+        producer.run_clock.t0, producer.run_clock.end, producer.run_clock.started = 0, 1 << 62, True
+        held = producer.outputs.publishers["value"] = _HeldPut(session, producer.keys, producer.outputs.publishers["value"])
+        producer.outputs.publish([((50 * MS, 0), "value", {"value": 0}, 0)])
+        producer.outputs.publish([((100 * MS, 0), "value", {"value": 1}, 1)])
         assert [answer.sent.get("value") for answer in held.answers] == [0, 1]
     finally:
         producer.undeclare()

@@ -1,4 +1,4 @@
-"""The node loop's warm-up (loop.WARM_AHEAD_NS): when it plans one, and that it runs.
+"""The node loop's warm-up (node/timing.py, WARM_AHEAD_NS): when it plans one, and that it runs.
 
 A real NodeLoop, rebuilt from the IR as a worker does, on a real (unconnected) Zenoh session.
 The plan is a function of logical values (now, the next wake, what was sent and received), so
@@ -14,7 +14,7 @@ import time
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.loop import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
+from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, quiet_source
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from retriever.backends.zenoh.worker import build_loop
 
@@ -57,14 +57,14 @@ def end(session, keys: KeySpace, done: threading.Event) -> None:
 def test_a_producer_warms_up_before_its_next_tick_once_it_has_sent(session, spec):
     loop = build_loop(spec, "cam", session)
     tick = 50 * MS
-    loop.next_rate = (tick, 0)
-    assert loop._warm_target(0, tick) == (None, None), "nothing sent yet: nothing to warm"
+    loop.schedule.next_rate = (tick, 0)
+    assert loop.warmup.target(0, tick) == (None, None), "nothing sent yet: nothing to warm"
 
-    loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
-    assert loop._warm_target(0, tick) == (tick, None)
-    loop.warmed_for = tick
-    assert loop._warm_target(0, tick) == (None, None), "once per tick"
-    assert loop._warm_target(tick - WARM_AFTER_IDLE_NS + 1, tick) == (None, None), \
+    loop.outputs.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+    assert loop.warmup.target(0, tick) == (tick, None)
+    loop.warmup.warmed_for = tick
+    assert loop.warmup.target(0, tick) == (None, None), "once per tick"
+    assert loop.warmup.target(tick - WARM_AFTER_IDLE_NS + 1, tick) == (None, None), \
         "a sleep shorter than WARM_AFTER_IDLE_NS leaves the caches warm"
 
 
@@ -76,12 +76,12 @@ def test_a_producer_warm_up_puts_only_on_its_warm_key(session, spec):
     loop = build_loop(spec, "cam", session)
     loop.declare()
     try:
-        loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
-        loop._warm(None)
-        assert loop.warm_publish is not None, "the warm-up failed"
+        loop.outputs.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+        loop.warmup.warm(None)
+        assert loop.outputs.warm_publish is not None, "the warm-up failed"
         end(session, keys, done)
         assert seen == [(keys.warm("cam"), b""), (f"{keys.prefix}/zz/end", b"")]
-        assert loop.sent == {} and not loop.published, "a warm-up sends no event"
+        assert loop.sent == {} and not loop.reports.published, "a warm-up sends no event"
     finally:
         loop.undeclare()
         watcher.undeclare()
@@ -91,43 +91,43 @@ def test_a_consumer_foresees_a_periodic_stream_and_decodes_its_last_message(sess
     loop = build_loop(spec, "viewer", session)
     far = 10_000 * MS  # a Trigger node with nothing pending waits long
     stream = ("cam", "image")
-    loop._arrived(stream, message(1), 50 * MS)
-    assert loop._warm_target(51 * MS, far) == (None, None), "one arrival: no period yet"
+    loop.warmup.arrived(stream, message(1), 50 * MS)
+    assert loop.warmup.target(51 * MS, far) == (None, None), "one arrival: no period yet"
 
-    loop._arrived(stream, message(2), 100 * MS)
-    target, data = loop._warm_target(101 * MS, far)
+    loop.warmup.arrived(stream, message(2), 100 * MS)
+    target, data = loop.warmup.target(101 * MS, far)
     assert target == 150 * MS and data == message(2)
-    loop._warm(data)  # decodes it; delivers nothing
-    assert not loop.pending
-    assert all(not e.buf.entries for e in loop.edges), "a warm-up must not deliver"
+    loop.warmup.warm(data)  # decodes it; delivers nothing
+    assert not loop.schedule.pending
+    assert all(not e.buf.entries for e in loop.streams.edges), "a warm-up must not deliver"
 
     # the foreseen arrival must lie ahead and before the wake it would delay
-    assert loop._warm_target(151 * MS, far) == (None, None)
-    assert loop._warm_target(101 * MS, 120 * MS) == (None, None)
-    assert loop._warm_target(150 * MS - WARM_AHEAD_NS, far) == (None, None)
+    assert loop.warmup.target(151 * MS, far) == (None, None)
+    assert loop.warmup.target(101 * MS, 120 * MS) == (None, None)
+    assert loop.warmup.target(150 * MS - WARM_AHEAD_NS, far) == (None, None)
 
 
 def test_the_nearest_stream_is_warmed_for(session, spec):
     loop = build_loop(spec, "viewer", session)
     slow, fast = ("cam", "image"), ("other", "out")
     for k, t in enumerate((0, 100 * MS, 200 * MS)):
-        loop._arrived(slow, message(k), t)
-    loop._arrived(fast, b"fast-1", 190 * MS)
-    loop._arrived(fast, b"fast-2", 210 * MS)
-    assert loop._warm_target(211 * MS, 10_000 * MS) == (230 * MS, b"fast-2")
+        loop.warmup.arrived(slow, message(k), t)
+    loop.warmup.arrived(fast, b"fast-1", 190 * MS)
+    loop.warmup.arrived(fast, b"fast-2", 210 * MS)
+    assert loop.warmup.target(211 * MS, 10_000 * MS) == (230 * MS, b"fast-2")
 
 
 def test_a_warm_up_that_fails_is_skipped_not_raised(session, spec):
     """A flow may change a value after emitting it; warming up on it must not stop the run."""
     loop = build_loop(spec, "cam", session)
-    loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", [object()])  # not encodable
-    loop._warm(b"not a data message")
-    assert loop.warm_publish is None
+    loop.outputs.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", [object()])  # not encodable
+    loop.warmup.warm(b"not a data message")
+    assert loop.outputs.warm_publish is None
 
 
 @pytest.mark.parametrize("sent", [True, False])
 def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(session, spec, sent):
-    """NodeLoop._quiet_source, driven by hand for one tick 10 ms ahead: a source that has sent
+    """node/source.py's quiet_source, driven by hand for one tick 10 ms ahead: a source that has sent
     warms up on warm/cam before it steps (and publishes its frame), as the general loop would;
     one that has not sent goes straight to the step."""
     keys = KeySpace(spec["namespace"])
@@ -136,17 +136,17 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
     loop.declare()
     try:
         if sent:
-            loop.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
-        loop.t0 = time.time_ns()
-        loop.end = 10 * MS + 1  # one tick, at 10 ms: a wait longer than WARM_AFTER_IDLE_NS
-        loop.next_rate = (10 * MS, 0)
-        loop._quiet_source()
+            loop.outputs.warm_publish = ((0, 0), 0, (1, 0), "cam", "image", frame(0, 4096).reshape(-1, 1024))
+        loop.run_clock.t0 = time.time_ns()
+        loop.run_clock.end = 10 * MS + 1  # one tick, at 10 ms: a wait longer than WARM_AFTER_IDLE_NS
+        loop.schedule.next_rate = (10 * MS, 0)
+        quiet_source(loop)
         end(session, keys, done)
-        assert [record[3] for record in loop.records] == ["ok"], loop.records  # its status
+        assert [record[3] for record in loop.reports.records] == ["ok"], loop.reports.records  # its status
         published = [key for key, _ in seen if key.startswith((keys.warm("cam"), keys.data("cam", "image")))]
         expected = [keys.warm("cam"), keys.data("cam", "image")] if sent else [keys.data("cam", "image")]
         assert published == expected, seen
-        assert loop.warmed_for == (10 * MS if sent else None)
+        assert loop.warmup.warmed_for == (10 * MS if sent else None)
     finally:
         loop.undeclare()
         watcher.undeclare()

@@ -1,0 +1,12 @@
+"""What a node loop's inbox holds: ``(kind, key, bytes)``, one item per message received.
+
+The kinds say which handler takes an item (``NodeLoop.handle``): a data message of the input
+stream ``key`` (producer, port), a progress message of the producer ``key`` (or ``None``: a
+progress query timed out), a control message of the run, or a nudge (after work a receiving
+thread did in the main thread's stead: look again at the time to wake).
+"""
+
+DATA, PROGRESS, CONTROL, NUDGE = 0, 1, 2, 3
+
+#: put in the inbox after work done on a receiving thread: the main thread looks again
+NUDGED = (NUDGE, None, None)

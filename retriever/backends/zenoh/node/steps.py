@@ -1,0 +1,180 @@
+"""A tick: select the inputs, call ``step()``, and decide what its outcome means (publish, hold,
+record; an overrun, a LET deadline missed, an error: skip, stop, restart, or end the run)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from ....errors import StopRun
+from ....flow.burst import Burst
+from ....sync import select_inputs
+
+
+class Steps:
+    """The ticks of ``loop`` (a NodeLoop): its flow, called as the in-process backend calls it,
+    and its settings (``on_error``, ``on_overrun``, ``on_deadline_miss``; ``realtime``)."""
+
+    def __init__(self, loop, inputs: list[tuple], fallbacks: dict, invoke, read, *, realtime: str):
+        self.loop = loop
+        self.id, self.virtual = loop.id, loop.virtual
+        self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
+        self.fallbacks = fallbacks
+        self.invoke, self.read = invoke, read
+        self.notes, self.schedule, self.outputs, self.reports = loop.notes, loop.schedule, loop.outputs, loop.reports
+        self.streams, self.clock, self.lock = loop.streams, loop.run_clock, loop.lock
+        settings = loop.node.settings
+        self.realtime = realtime
+        self.on_error, self.on_overrun, self.on_deadline_miss = (
+            settings.on_error, settings.on_overrun, settings.on_deadline_miss)
+        if realtime == "best_effort":  # misses are counted and logged, never fatal
+            self.on_overrun = "skip" if self.on_overrun == "error" else self.on_overrun
+            self.on_deadline_miss = "publish_late" if self.on_deadline_miss == "error" else self.on_deadline_miss
+        clock = loop.node.clock
+        self.period_ns = round(1e9 / float(clock.hz)) if clock.hz is not None else 0
+
+    def tick(self, tau: tuple[int, int], incomplete: list[str]) -> None:
+        """Run the tick ``tau`` (taken from the schedule); ``incomplete``: its edges past deadline."""
+        self.schedule.last_tick = tau
+        notes = self.notes
+        detail: dict[str, Any] | None = notes.detail or None
+        if detail:
+            notes.detail = {}
+        if incomplete:
+            notes.counts["incomplete"] += 1
+            detail = {**(detail or {}), "incomplete": incomplete, "had_below": self.streams.had_below(incomplete)}
+            if self.realtime == "hard":  # the tick does not step: skipped, and the run stops
+                self.reports.record(tau, {}, (), "skipped", detail, time.time_ns(), 0)
+                raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
+                              f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
+                              "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
+        values, consumed, missing, commits, dropped = select_inputs(self.inputs, tau)
+        if dropped:
+            detail = {**(detail or {}), **dropped}
+        if missing is not None:
+            self.finish_tick(tau, {}, (), "skipped", {**(detail or {}), "missing": missing}, time.time_ns(), 0)
+            return
+        for policy, buf, commit in commits or ():
+            policy.commit_to(buf, commit)
+        for port, spec in self.fallbacks.items():
+            values[port] = spec.fallback()
+
+        start = time.time_ns()
+        try:
+            outputs = list(self.read(self.invoke(values)))
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # SystemExit too: sys.exit(1) in a step is that step's error, as in-process
+            self.step_failed(tau, consumed, detail, exc, start)
+            return
+        wall = time.time_ns() - start
+        self.loop.last_wall = wall
+        overran = self.period_ns and wall > self.period_ns and not self.virtual
+        self.emit(tau, consumed, outputs, detail, start, wall,
+                  "overrun" if overran else "incomplete" if incomplete else "ok")
+        if overran:
+            self.overran(tau, wall, start + wall - self.clock.t0)
+
+    def step_failed(self, tau, consumed, detail, exc: BaseException, start: int) -> None:
+        """The step raised ``exc`` (not KeyboardInterrupt): record it, then stop the run, restart
+        the flow or go on, as ``on_error`` says; ``sys.exit(0)`` ends the whole run cleanly."""
+        loop = self.loop
+        wall = loop.last_wall = time.time_ns() - start
+        if isinstance(exc, SystemExit) and exc.code in (None, 0):
+            # sys.exit(0): the whole run ends here, cleanly. The coordinator is told first
+            # (it stops every node), then this loop ends as if told to stop.
+            self.finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
+            if loop.on_exit is not None:
+                loop.on_exit(tau)
+            loop.stopping = loop.told_to_stop = True
+            return
+        error = f"{type(exc).__name__}: {exc}"
+        self.finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
+                         start, wall)
+        if self.on_error == "stop":
+            raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
+        if self.on_error == "restart":
+            loop.restarting = True
+            if loop.on_restart is not None:
+                loop.on_restart(tau, error)
+
+    def emit(self, tau, consumed, outputs, detail, start, wall, status) -> None:
+        """Publish a step's outputs (or hold them, LET) and record it with ``status``: ``ok``,
+        ``incomplete`` or ``overrun``, or ``late`` when it misses its LET deadline."""
+        events = [(port, value) for port, value in outputs  # None, or an empty burst: no event
+                  if value is not None and not (type(value) is Burst and not value.values)]
+        tag, batch, produced = self.outputs.stamp(tau, events)
+        if self.outputs.latency_ns and not self.virtual:  # (in virtual time, LET outputs go at once: the tag says when)
+            finished = start + wall - self.clock.t0
+            if finished > tag[0]:  # the step outlasted its logical execution time
+                self.missed_deadline(tau, consumed, batch, produced, detail, start, wall, finished - tag[0])
+                return
+            self.outputs.hold(batch)
+            self.finish_tick(tau, consumed, produced, status, detail, start, wall)
+            return
+        self.finish_tick(tau, consumed, produced, status, detail, start, wall, publish=batch)
+
+    def missed_deadline(self, tau, consumed, batch, produced, detail, start, wall, late_ns: int) -> None:
+        """A LET step finished ``late_ns`` past t+latency: its outputs published late, or dropped
+        (and the run stopped), as ``on_deadline_miss`` says (``error`` under realtime='hard')."""
+        self.notes.counts["deadline_miss"] += 1
+        stop = self.realtime == "hard" or self.on_deadline_miss == "error"
+        # what was done with the outputs: published late, or dropped (and the run stopped)
+        detail = {**(detail or {}), "deadline_miss_ns": late_ns,
+                  "on_deadline_miss": "error" if stop else self.on_deadline_miss}
+        if stop or self.on_deadline_miss == "drop":
+            self.outputs.unnumber(batch)
+            self.finish_tick(tau, consumed, (), "late", detail, start, wall)
+            if stop:
+                hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
+                        f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
+                        "raise latency=, or set on_deadline_miss='publish_late' or 'drop'")
+                raise StopRun(f"{self.id} missed its LET deadline: the step at t={tau[0] / 1e9:.6f} s "
+                              f"finished {late_ns / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
+            return
+        self.outputs.release(start + wall - self.clock.t0)  # earlier ticks' held outputs go first
+        self.finish_tick(tau, consumed, produced, "late", detail, start, wall, publish=batch)
+
+    def finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
+        outputs = self.outputs
+        with self.lock:
+            self.schedule.running = None
+            if publish:
+                outputs.sending = publish[0][0]
+        outputs.publish(publish)  # first: the record is for the coordinator, and can wait
+        self.reports.record(tau, consumed, produced, status, detail, start, wall)
+
+    def source_stepped(self, tau, outputs: list, detail, start: int, wall: int) -> None:
+        """A plain source's step returned ``outputs``: publish them and keep the record, as
+        ``tick`` would, then handle an overrun."""
+        overran = self.period_ns and wall > self.period_ns
+        status = "overrun" if overran else "ok"
+        if outputs:
+            self.emit(tau, {}, outputs, detail, start, wall, status)
+        else:  # as emit with no event: no stamp, nothing to publish but progress
+            self.finish_tick(tau, {}, (), status, detail, start, wall)
+        if overran:
+            self.overran(tau, wall, start + wall - self.clock.t0)
+
+    def overran(self, tau: tuple[int, int], wall: int, done: int) -> None:
+        """After a Rate tick's step outlasted the period: skip the ticks that came due meanwhile
+        but the newest (on_overrun="skip"), run every one of them, late, in order
+        (on_overrun="catch_up": none is lost, so a LET flow's trace stays the virtual-time one),
+        or stop (on_overrun="error", realtime="hard")."""
+        if self.on_overrun == "catch_up" and self.realtime != "hard":
+            self.notes.counts["overrun"] += 1
+            return
+        missed = self.skip_missed_ticks(done, "overrun", "overrun_skipped")
+        if missed and (self.realtime == "hard" or self.on_overrun == "error"):
+            raise StopRun(f"{self.id} overran its period: the step at t={tau[0] / 1e9:.6f} s took "
+                          f"{wall / 1e6:.3f} ms, {missed} tick(s) missed\n    hint: make step() faster, lower the "
+                          f"rate, or set on_overrun='skip' (realtime='{self.realtime}')", tau)
+
+    def skip_missed_ticks(self, now: int, counter: str, detail_key: str) -> int:
+        """Skip the Rate ticks that came due before ``now`` but the newest, which runs next;
+        count them under ``counter`` and tell the next record under ``detail_key``."""
+        missed = self.schedule.skip_missed(now, self.clock.end)
+        if missed:
+            self.notes.counts[counter] += missed
+            self.notes.detail[detail_key] = self.notes.detail.get(detail_key, 0) + missed
+        return missed

@@ -1,0 +1,67 @@
+"""Being on time: warming up the send and receive paths before a predictable moment.
+
+After a sleep of ~10 ms or more, the code and data of the send and receive paths are out of the
+CPU's caches, and that cold run is most of a small message's latency (benchmarks/reports/
+latency.md). So before a moment that is predictable (the next Rate tick of a node with
+consumers, the next arrival on a periodic input stream) that follows such a sleep, the loop
+wakes WARM_AHEAD_NS early and runs its encoder on the last event it sent, its decoder on the
+last message it got (arrays are not copied for that), reads the HLC, and, if it publishes, puts
+an empty message on its ``warm/<node>`` key, which no one subscribes to (Zenoh's put path, up to
+the routing). It changes only how fast a tick starts, never what it reads or emits. Sleeps
+shorter than WARM_AFTER_IDLE_NS leave the caches warm.
+"""
+
+from __future__ import annotations
+
+from ..wire import decode_events
+from .clock import RunClock
+
+WARM_AHEAD_NS = 1_000_000
+WARM_AFTER_IDLE_NS = 4_000_000
+
+
+class Warmup:
+    """Per input stream, its last arrival (ns since T0), the gap before it, and its last message;
+    ``warmed_for``: the moment last warmed up for (once per moment). What it warms on the send
+    side is the ``outputs``' last event and warm publisher."""
+
+    def __init__(self, outputs, schedule, clock: RunClock):
+        self.outputs, self.schedule, self.clock = outputs, schedule, clock
+        self.arrivals: dict[tuple[str, str], tuple[int, int, bytes]] = {}
+        self.warmed_for: int | None = None
+
+    def arrived(self, stream: tuple[str, str], data: bytes | None, now: int) -> None:
+        """Note when a stream's message came, to foresee its next one."""
+        last = self.arrivals.get(stream)
+        gap = now - last[0] if last is not None else 0
+        self.arrivals[stream] = (now, gap, data)
+
+    def target(self, now: int, wake: int) -> tuple[int | None, bytes | None]:
+        """The predictable moment before ``wake`` to warm up for, after a long enough sleep, and
+        the received message to decode then; ``(None, None)`` if there is none."""
+        target, message = None, None
+        if self.outputs.warm_publish is not None and self.schedule.next_rate is not None:
+            target = self.schedule.next_rate[0]
+        for last, gap, data in self.arrivals.values():
+            expected = last + gap
+            if now < expected and (target is None or expected < target):
+                target, message = expected, data
+        if target is None or target > wake or target - now < WARM_AFTER_IDLE_NS or target == self.warmed_for:
+            return None, None
+        return target, message
+
+    def warm(self, message: bytes | None) -> None:
+        """Run the encoder and the decoder once, results unused. Both did this work before;
+        should it fail now (a flow changed a value it had emitted), the warm-up is simply
+        skipped: it never stops a run."""
+        outputs = self.outputs
+        try:
+            if outputs.warm_publish is not None:
+                outputs.encoder.data_parts(*outputs.warm_publish)
+                self.clock.hlc()
+                if outputs.warm_publisher is not None:
+                    outputs.warm_publisher.put(b"")
+            if message is not None:
+                decode_events(message)
+        except Exception:
+            outputs.warm_publish = None

@@ -1,0 +1,104 @@
+"""How a node's events and progress messages travel: the seam a transport fills.
+
+A node loop speaks to its consumers through publishers (``put(bytes)``) and hears its producers
+through two callbacks: ``receive`` for data messages, ``put`` for progress messages (both take
+an inbox item, see inbox.py). The run's control plane is not a transport's: the loop subscribes
+to the run's control and answers progress queries on the run's Zenoh session whatever carries
+its events. :class:`ZenohTransport` carries them on that session; the dora backend's transport
+(backends/dora/link.py) carries them over dora.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import zenoh
+
+from ..hub import weak_callback
+from ..wire import RELIABLE, KeySpace
+from .inbox import DATA, PROGRESS
+
+
+class Transport:
+    """The base: what a node loop asks of the way its events travel."""
+
+    def declare_inputs(self, streams: list[tuple[str, str]], sources: list[str],
+                       inline: Callable[[tuple], None] | None, put: Callable[[tuple], None]) -> None:
+        """Start hearing the input ``streams`` (producer, port) and the ``sources``' progress:
+        each data message to ``inline`` (to run on the receiving thread), or to ``put`` when
+        ``inline`` is None; each progress message to ``put``."""
+        raise NotImplementedError
+
+    def declare_outputs(self, ports: list[str], consumed: bool) -> tuple[dict, object, object | None]:
+        """Start speaking: a publisher per output port, one for progress, and one to warm the put
+        path with (see timing.WARM_AHEAD_NS), or None if the transport has none."""
+        raise NotImplementedError
+
+    def publisher(self, port: str):
+        """A publisher for an output port no edge uses (an untyped flow's extra key)."""
+        raise NotImplementedError
+
+    def redeclare_inputs(self) -> None:
+        """Declare the input subscriptions again, then drop the old ones (see NodeLoop.redeclare)."""
+
+    def await_routes(self, timeout: float, stopping: Callable[[], bool]) -> None:
+        """Before the node says ready: wait until its events' routes carry."""
+
+    def undeclare(self) -> None:
+        """Stop hearing and speaking: everything declared goes."""
+        raise NotImplementedError
+
+
+class ZenohTransport(Transport):
+    """Events and progress on the run's Zenoh session, under ``keys``."""
+
+    def __init__(self, session: zenoh.Session, keys: KeySpace, node_id: str):
+        self.session, self.keys, self.id = session, keys, node_id
+        self.subscribers: list = []
+        self.publishers: list = []  # every one undeclared at the end (see undeclare)
+        self.inputs: tuple | None = None  # declare_inputs' arguments, for redeclare_inputs
+
+    def declare_inputs(self, streams, sources, inline, put) -> None:
+        self.inputs = (streams, sources, inline, put)
+        receive = weak_callback(inline) if inline is not None else put
+        s, keys = self.session, self.keys
+        for src, src_port in streams:
+            self.subscribers.append(s.declare_subscriber(
+                keys.data(src, src_port),
+                lambda sample, k=(src, src_port): receive((DATA, k, sample.payload.to_bytes()))))
+        for src in sources:
+            self.subscribers.append(s.declare_subscriber(
+                keys.progress(src), lambda sample, k=src: put((PROGRESS, k, sample.payload.to_bytes()))))
+
+    def declare_outputs(self, ports, consumed):
+        keys = self.keys
+        publishers = {port: self._declare(keys.data(self.id, port)) for port in ports}
+        progress = self._declare(keys.progress(self.id))
+        warm = self.session.declare_publisher(keys.warm(self.id), express=True)
+        self.publishers.append(warm)
+        return publishers, progress, warm
+
+    def publisher(self, port: str):
+        return self._declare(self.keys.data(self.id, port))
+
+    def _declare(self, key: str) -> zenoh.Publisher:
+        # BLOCK, not Zenoh's default DROP: a dropped event would leave a gap in its stream's seqs
+        # that no frontier can cross (a slow consumer backs its producer up instead)
+        publisher = self.session.declare_publisher(key, express=True, congestion_control=RELIABLE)
+        self.publishers.append(publisher)
+        return publisher
+
+    def redeclare_inputs(self) -> None:
+        if self.inputs is None:
+            return
+        old, self.subscribers = self.subscribers, []
+        self.declare_inputs(*self.inputs)
+        for d in old:
+            d.undeclare()
+
+    def undeclare(self) -> None:
+        # every declaration undeclared: one left holds the session, and with it its shared
+        # memory, which then outlives the process in /dev/shm (Zenoh's exit() skips it)
+        for d in [*self.subscribers, *self.publishers]:
+            d.undeclare()
+        self.subscribers, self.publishers = [], []

@@ -1,0 +1,136 @@
+"""Whether a due tick may run: its input edges complete up to it (their producers' frontiers
+past it), or past their deadline; whom to ask for a frontier meanwhile; and, in virtual time,
+the lockstep with the coordinator's grants.
+
+Virtual time (``retriever deploy --virtual-time``): a tick runs once its inputs are complete,
+however long that takes (no deadline). The coordinator advances all nodes in lockstep: a node
+runs the ticks below its *grant* (control ``grant`` {until}), then says ``reached`` {until} (a
+status) and waits; once every node not done has reached it, the coordinator grants the next
+window (coordinator.py).
+"""
+
+from __future__ import annotations
+
+import zenoh
+
+from .inbox import PROGRESS
+from .schedule import DONE
+
+#: how long a blocked tick waits for a data or progress message before asking the producer
+PROBE_AFTER_NS = 500_000
+#: after asking a producer for its frontier, how long before asking again
+ASK_EVERY_NS = 2_000_000
+#: virtual time: how long a loop at its grant, or with no tick known below it, waits before
+#: looking again (any message wakes it sooner: the next grant, a frontier)
+VIRTUAL_IDLE_NS = 100_000_000
+
+
+class Waiting:
+    """The waits of ``loop`` (a NodeLoop): ``ask_after``, per producer, when it may be asked
+    again; ``blocked``, in virtual time, the tick waiting for its inputs and since when (wall);
+    ``reached``, the last grant this node said it reached."""
+
+    def __init__(self, loop):
+        self.loop = loop
+        self.streams, self.clock, self.outputs, self.reports = loop.streams, loop.run_clock, loop.outputs, loop.reports
+        self.ask_after: dict[str, int] = {}
+        self.blocked: tuple[tuple[int, int], int] | None = None
+        self.reached = -1
+
+    def incomplete(self, tau: tuple[int, int], now: int) -> tuple[list[str], int | None]:
+        """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
+        look again if some edge may still complete in time."""
+        late_ports, wake = [], None
+        edge_frontier, virtual = self.streams.edge_frontier, self.loop.virtual
+        for e in self.streams.edges:
+            if edge_frontier(e) > tau:
+                continue
+            if virtual:  # no deadline: wait for it, asking its producer now and then
+                since = self.blocked_since(tau, now)
+                again = self.ask(e.src, now, since)
+                wake = again if wake is None else min(wake, again)
+                continue
+            if now >= tau[0] + e.deadline_ns:
+                late_ports.append(e.port)
+                continue
+            wake = min(tau[0] + e.deadline_ns, wake if wake is not None else tau[0] + e.deadline_ns,
+                       self.ask(e.src, now, tau[0]))
+        return sorted(set(late_ports)), wake
+
+    def ask(self, src: str, now: int, since: int) -> int:
+        """Ask a producer for its frontier once a wait has lasted ``PROBE_AFTER_NS`` past
+        ``since``, then at most every ``ASK_EVERY_NS``; returns when to look again. (Over the
+        run's Zenoh session whatever the transport: it is the producer's queryable that answers.)"""
+        if now < since + PROBE_AFTER_NS:
+            return since + PROBE_AFTER_NS
+        after = self.ask_after.get(src, 0)
+        if now < after:
+            return after
+        self.ask_after[src] = now + ASK_EVERY_NS
+        put = self.loop.inbox.put
+
+        def on_reply(reply: zenoh.Reply, src: str = src) -> None:
+            if reply.ok is not None:
+                put((PROGRESS, src, reply.ok.payload.to_bytes()))
+            else:
+                put((PROGRESS, src, None))
+
+        self.loop.session.get(self.loop.keys.progress(src), handler=on_reply, timeout=1.0)
+        return now + ASK_EVERY_NS
+
+    def done_waiting(self, now: int) -> int | str:
+        """No tick below ``end`` is known: ``DONE`` once no edge can still trigger one, else when
+        to look again."""
+        if self.outputs.held:
+            return self.outputs.held[0][0][0]
+        wake: int | None = None
+        end = self.clock.end
+        end_tag = (end, 0)
+        for e in self.streams.triggering:
+            f = self.streams.edge_frontier(e)
+            if f >= end_tag or (now >= end + e.deadline_ns and not self.loop.virtual):
+                continue
+            again = min(end + e.deadline_ns, self.ask(e.src, now, end))
+            wake = again if wake is None else min(wake, again)
+        return DONE if wake is None else wake
+
+    # -- virtual time -------------------------------------------------------------------------
+    def blocked_since(self, tau: tuple[int, int], now: int) -> int:
+        """Since when (wall, ns since T0) the tick ``tau`` waits for its inputs."""
+        if self.blocked is None or self.blocked[0] != tau:
+            self.blocked = (tau, now)
+        return self.blocked[1]
+
+    def ask_triggers(self, now: int) -> int:
+        """No tick below the grant is known, but a trigger edge may still bring one: ask its
+        producer for its frontier now and then; when to look again."""
+        granted = self.loop.granted
+        wake = now + VIRTUAL_IDLE_NS
+        since = self.blocked_since((granted, -1), now)
+        for e in self.streams.triggering:
+            if self.streams.edge_frontier(e) < (granted, 0):
+                wake = min(wake, self.ask(e.src, now, since))
+        return wake
+
+    def at_grant(self, now: int) -> int:
+        """Every tick below the grant has run; say so once (with this node's frontier to its
+        consumers first), then wait for the next grant."""
+        loop = self.loop
+        if self.reached < loop.granted and not loop.restarting:  # (the new process will say it)
+            self.reached = loop.granted
+            if self.outputs.consumed:
+                self.outputs.publish_progress()
+            self.reports.flush()
+            if loop.on_reached is not None:
+                loop.on_reached(loop.granted)
+        return now + VIRTUAL_IDLE_NS
+
+    def granted(self, until) -> None:
+        """Control ``grant`` {until}: ticks below ``until`` may run (and our word, if it was
+        missed, is said again)."""
+        loop = self.loop
+        loop.granted = max(loop.granted, min(until, self.clock.end))
+        if until <= self.reached and loop.on_reached is not None:
+            loop.on_reached(self.reached)
+
+
