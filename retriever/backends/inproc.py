@@ -1,6 +1,8 @@
 """The in-process backend: a discrete-event executor in virtual, superdense time.
 
-This is the reference semantics every other backend is tested against (docs/semantics.md).
+This is the reference semantics every other backend is tested against (docs/semantics.md). Its
+nodes are wired by the graph's plan (retriever.plan) and tick by the reference tick
+(retriever.tick.run_tick), but where a generated tick is faster (below).
 
     pending ticks (heap of tags)                   one tick of node v at tag τ
     ┌──────────────────────────┐                   ┌───────────────────────────────────────┐
@@ -28,14 +30,15 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
 - ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
   edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
 - nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
-  which does what ``_tick`` does with the node's ports, calling convention and consumers
+  which does what ``tick.run_tick`` does with the node's ports, calling convention and consumers
   inlined: a rate group's in one function, a chain of Trigger flows' in one function; a tick
   known to be the only one at its tag (a chain's) skips the test of what is visible on inputs
   that one producer alone feeds;
 - those ticks record each step as one compact record in the trace's tape, made into the
   step record and events when the trace is read.
 
-``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same trace.
+``tick.run_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same
+trace. The generated ticks read this session through one public surface, ``_inproc_ticks.Host``.
 """
 
 from __future__ import annotations
@@ -53,16 +56,17 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import (BackendError, CausalityError, CodecError, ReplayedError, RestartLimitError, RetrieverWarning,
-                      RunEnded, SetupError, StepError)
+from ..errors import BackendError, CausalityError, CodecError, RetrieverWarning, RunEnded, SetupError
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
-from ..sync import MISSING, PortBuffer, select_inputs
+from ..plan import NodePlan, bind_inputs, plan_graph
+from ..sync import PortBuffer
+from ..tick import Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs
 from ..time import format_tag
 from ..trace import holding_full_collections
 from . import _inproc_ticks
-from .base import Backend, NodeStats, RestartBudget, Session
+from .base import Backend, NodeStats, Session
 
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()
@@ -96,15 +100,17 @@ def _encodes_surely(value: Any) -> bool:
     return False
 
 
-class _NodeRuntime:
-    """Everything the hot loop needs about one node, flattened into slots."""
+class NodeRuntime:
+    """Everything the hot loop needs about one node, flattened into slots: what the generic tick
+    (tick.run_tick) and the generated ones (_inproc_ticks) read of a node."""
 
-    __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
+    __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs", "plan",
                  "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts", "ports_seen")
 
-    def __init__(self, index: int, node: Node):
+    def __init__(self, index: int, node: Node, plan: NodePlan):
         self.index = index
         self.id = node.id
+        self.plan = plan  # its wiring
         self.flow: Flow = node.flow
         self.spec = node.spec
         self.replaced = False  # replace_step() swapped step() for logged outputs
@@ -113,19 +119,27 @@ class _NodeRuntime:
         self.latency_ns = node.settings.latency_ns
         self.on_error = node.settings.on_error
         self.restarts = RestartBudget(node.settings.max_restarts, node.settings.restart_window)
-        # (port, buffer, policy, port spec) per input port
-        self.inputs: list[tuple[str, PortBuffer, Any, Any]] = []
+        # (port, buffer, policy, port spec) per input port, and the optional input ports nothing
+        # feeds, which take their fallback on every tick
+        self.inputs, self.fallbacks = bind_inputs(plan, node.inputs)
         # output port -> [(consumer index, consumer buffer, delay ns, whether it triggers the consumer)]
         self.downstream: dict[str, list[tuple[int, PortBuffer, int, bool]]] = {}
         self.seq: dict[str, int] = {}
         self.clock = node.clock
         self.stats = NodeStats()
-        self.cycle: list[str] = []
-        # optional input ports nothing feeds: they take their fallback on every tick
-        self.fallbacks: dict[str, Any] = {}
+        self.cycle: list[str] = plan.cycle or []
         # an untyped step's output ports, in order, the first time they were not the wired ones
         # (a port nothing consumes still makes events): the compiled tick expects them from then on
         self.ports_seen: tuple[str, ...] | None = None
+
+
+def _wire(nodes: list[NodeRuntime], by_id: dict[str, NodeRuntime]) -> None:
+    """Point each node's outputs at its consumers' input buffers, as its plan says."""
+    buffers = {(rt.id, port): buf for rt in nodes for port, buf, _, _ in rt.inputs}
+    for rt in nodes:
+        for port, consumers in rt.plan.consumers.items():
+            rt.downstream[port] = [(by_id[c.dst].index, buffers[(c.dst, c.dst_port)], c.delay_ns, c.triggers)
+                                   for c in consumers]
 
 
 class _RateGroup:
@@ -163,11 +177,10 @@ class _RateGroup:
 class InprocSession(Session):
     backend_name = "inproc"
     steppable = True
-    plain_types = PLAIN_TYPES  # for the compiled ticks (_inproc_ticks), which this module imports
 
     def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace"):
         super().__init__(graph, keep)
-        self._records = self.trace  # where the compiled ticks record (pipe.trace may later read a log)
+        self._records = self.trace  # where the ticks record (pipe.trace may later read a log)
         self.max_microsteps = graph.max_microsteps
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
@@ -179,9 +192,11 @@ class InprocSession(Session):
         # the nodes due at the next microstep of the tag running now: only a tick at (t, m) makes
         # ticks at (t, m + 1) (a zero-latency output on an undelayed edge), so they need no heap
         self._next: list[int] = []  # (a node triggered twice is in it twice)
-        self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
-        self._by_id = by_id = {rt.id: rt for rt in self._nodes}
-        self._wire(graph, by_id)
+        plan = plan_graph(graph)
+        self._nodes = [NodeRuntime(i, node, plan.nodes[node.id])
+                       for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
+        self._by_id = {rt.id: rt for rt in self._nodes}
+        _wire(self._nodes, self._by_id)
         groups: dict[tuple[int, int, int], list[int]] = {}
         for rt in self._nodes:
             if type(rt.flow).reset is not Flow.reset:
@@ -193,8 +208,8 @@ class InprocSession(Session):
                         for schedule, indices in groups.items()]
         for group in self._groups:
             self._schedule_group(group)
-        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
-        # _tick; and the one that runs it when it is the only tick due, which may go on along a
+        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the reference
+        # (tick.run_tick); and the one that runs it when it is the only tick due, which may go on along a
         # chain; built on the first advance() (see _tick_functions)
         self._ticks: list | None = None
         self._chains: list = []
@@ -208,39 +223,14 @@ class InprocSession(Session):
         self._advancing = threading.Lock()
         self._runner: int | None = None  # the thread in advance()
         self._flushes_asked: list[threading.Event] = []
-        # set when the loop is to look at stop_requested, _recompile and _flushes_asked
-        self._look = False
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
-
-    # ---------------------------------------------------------------------------------------
-    # Wiring
-    # ---------------------------------------------------------------------------------------
-    def _wire(self, graph: Graph, by_id: dict[str, _NodeRuntime]) -> None:
-        buffers: dict[tuple[str, str], PortBuffer] = {}
-        policies: dict[tuple[str, str], Any] = {}
-        self._sources: dict[int, list[tuple[str, str]]] = {}  # id(buffer) -> the (node, port) of each edge feeding it
-        for e in graph.edges:
-            key = (e.dst, e.dst_port)
-            buf = buffers.setdefault(key, PortBuffer())
-            self._sources.setdefault(id(buf), []).append((e.src, e.src_port))
-            policies[key] = e.sync
-            dst = graph.nodes[e.dst]
-            by_id[e.src].downstream.setdefault(e.src_port, []).append(
-                (by_id[e.dst].index, buf, e.delay_ns, dst.triggers_on(e.dst_port)))
-        for node in graph.nodes.values():
-            rt = by_id[node.id]
-            for port, spec in node.inputs.items():
-                key = (node.id, port)
-                if key in buffers:
-                    rt.inputs.append((port, buffers[key], policies[key], spec))
-                elif spec.required:
-                    rt.inputs.append((port, PortBuffer(), _AlwaysMissing, spec))
-                else:
-                    rt.fallbacks[port] = spec
-            for cycle in graph.instantaneous_cycles:
-                if node.id in cycle:
-                    rt.cycle = cycle
-                    break
+        # what the generated ticks call and read here; its ``look`` is set when the loop is to
+        # look at stop_requested, _recompile and _flushes_asked
+        self._host = _inproc_ticks.Host(
+            nodes=self._by_id, tape=self._records.tape, after=self._next, heap=self._heap,
+            max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES, emit=self._emit, skipped=self._skipped,
+            failed=self._failed, schedule=self._schedule, keep_next=self._keep_next, saw_ports=self._saw_ports,
+            microsteps=self._microsteps, resume_group=self._resume_group)
 
     def _consumers_first(self) -> list[int]:
         """Per node index, its place in the order the ticks of one tag run in: each node before
@@ -369,13 +359,13 @@ class InprocSession(Session):
         self._next.clear()
 
     def look_between_ticks(self) -> None:
-        self._look = True
+        self._host.look = True
 
-    def _saw_ports(self, rt: _NodeRuntime, outputs: dict) -> None:
+    def _saw_ports(self, rt: NodeRuntime, outputs: dict) -> None:
         """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
         if rt.ports_seen is None and all(type(port) is str for port in outputs):
             rt.ports_seen = tuple(outputs)
-            self._recompile = self._look = True
+            self._recompile = self._host.look = True
 
     def _drop_compiled(self) -> None:
         """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
@@ -385,7 +375,7 @@ class InprocSession(Session):
 
     def _tick_functions(self) -> list:
         """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; and, set on the
+        :func:`._inproc_ticks.compile_tick` can, else the reference ``tick.run_tick``; and, set on the
         session and its groups: the same per node, when it is the only tick due, going on along
         a chain of Trigger flows (``_chains``), and per rate group its ticks in order (one fused
         function, when nothing shuffles them) and its loop while nothing else is due (``alone``).
@@ -394,11 +384,12 @@ class InprocSession(Session):
             return self._ticks
         parts = []
         for rt in self._nodes:
-            code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
-            parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
+            code = None if self._generic_only else _inproc_ticks.compile_tick(self._host, rt)
+            parts.append(code or (lambda tau, out_tag, rt=rt, skipped=self._skipped, failed=self._failed,
+                                  emit=self._emit: run_tick(rt, tau, skipped, failed, emit) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
         if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self, parts, groups,
+            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self._host, parts, groups,
                                                                                  fuse=self._rng is None)
             self._flushes.append(flush)
             self._peeks.append(peek)
@@ -484,6 +475,7 @@ class InprocSession(Session):
 
     def _advance(self, until_ns: int) -> None:
         heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
+        host = self._host
         rank = self._rank
         ticks = self._tick_functions()
         log = self.log
@@ -493,8 +485,8 @@ class InprocSession(Session):
         ran = 0
         log_at = 1 if log is not None else self.LOG_BATCH
         while heap and heap[0][0] < until_ns:
-            if self._look:  # (between two instants)
-                self._look = False
+            if host.look:  # (between two instants)
+                host.look = False
                 if self.stop_requested:  # (RunHandle.stop; a logged run stops at its hand-over, now)
                     if log is None:
                         raise KeyboardInterrupt
@@ -559,57 +551,7 @@ class InprocSession(Session):
                 _, ran = self._microsteps(next_microstep, ran)
         self.now_ns = max(self.now_ns, until_ns)
 
-    def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
-        stats = rt.stats
-        stats.ticks += 1
-        # sync.select_inputs, inlined: a call per tick is a share of this loop's steps/s worth keeping
-        # (benchmarks/step_overhead.py); keep the two identical
-        values: dict[str, Any] = {}
-        consumed: dict[str, tuple] = {}
-        missing: list[str] | None = None
-        commits: list | None = None
-        dropped: dict[str, int] | None = None
-        for port, buf, policy, spec in rt.inputs:
-            value, ids, n_dropped, commit = policy.select(buf, tau)
-            if value is MISSING:
-                if spec.required:
-                    (missing := missing or []).append(port)
-                else:
-                    values[port] = spec.fallback()
-                continue
-            values[port] = value
-            consumed[port] = ids
-            if commit is not None:
-                (commits := commits or []).append((policy, buf, commit))
-            if n_dropped:
-                (dropped := dropped or {})[port] = n_dropped
-        if missing is not None:
-            self._skipped(rt, tau, missing)
-            return
-        if commits is not None:
-            for policy, buf, commit in commits:
-                policy.commit_to(buf, commit)
-        fallbacks = rt.fallbacks
-        if fallbacks:
-            for port, spec in fallbacks.items():
-                values[port] = spec.fallback()
-
-        start = time_ns()
-        try:
-            outputs = rt.read(rt.invoke(values))
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error
-            wall = time_ns() - start
-            stats.step_ns += wall
-            self._failed(rt, tau, consumed, exc, start, wall)
-            return
-        end = time_ns()
-        stats.step_ns += end - start
-        stats.steps += 1
-        self._emit(rt, tau, outputs, consumed, start, end, dropped)
-
-    def _emit(self, rt: _NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
+    def _emit(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
               dropped: dict | None = None) -> None:
         """Record and deliver the outputs of a tick that ran, and its step record."""
         out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
@@ -632,7 +574,7 @@ class InprocSession(Session):
                 event(rt, tau, port, value, out_tag, end, produced)
         self._records.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
 
-    def _event(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
+    def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
                end: int, produced: list) -> None:
         """Record one event of a tick and deliver it to its consumers."""
         seqs, node_id = rt.seq, rt.id
@@ -650,7 +592,7 @@ class InprocSession(Session):
                     raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
                 self._schedule(entry[0], consumer)
 
-    def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
+    def check_output(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
                      start: int, produced: list | tuple, in_burst: int | None = None) -> None:
         """Before an output not of a plain type is recorded: stop the run (CodecError naming the
         node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
@@ -671,31 +613,27 @@ class InprocSession(Session):
                                     time_ns() - start))
             raise error from None
 
-    def _skipped(self, rt: _NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
+    def _skipped(self, rt: NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
         rt.stats.skips += 1
         self._records.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
 
-    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
+    def _failed(self, rt: NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
                 start: int, wall: int) -> None:
-        if isinstance(exc, SystemExit) and exc.code in (None, 0):
-            # sys.exit() or sys.exit(0) in a step: the whole run ends here, cleanly (the seed
-            # paper's benchmark ends so); any other code is that step's error, below
+        """Record a step that raised ``exc``, then act on ``on_error`` (tick.decide)."""
+        decision = decide(rt.on_error, exc, rt.restarts, tau[0])
+        if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
             rt.stats.steps += 1
             self._records.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
             raise RunEnded(rt.id, tau)
         rt.stats.errors += 1
-        error = exc.error if type(exc) is ReplayedError else f"{type(exc).__name__}: {exc}"
-        detail = {"error": error, "on_error": rt.on_error}
+        detail = {"error": error_text(exc), "on_error": rt.on_error}
         self._records.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
-        if rt.on_error == "stop":
-            raise StepError(rt.id, tau, exc) from exc
-        if rt.on_error == "restart":
-            budget = rt.restarts
-            if not budget.take(tau[0]):
-                raise RestartLimitError(rt.id, tau, exc, budget.max_restarts, budget.window_s) from exc
+        if decision is Decision.RESTART:
             rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
             if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
                 rt.flow.reset()
+        elif decision is not Decision.SKIP:
+            raise ending(decision, rt.id, tau, exc, rt.restarts) from exc
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it
@@ -714,7 +652,7 @@ class InprocSession(Session):
                 return {rt.id: rt.stats for rt in self._nodes}
             done = threading.Event()
             self._flushes_asked.append(done)
-            self._look = True
+            self._host.look = True
             if done.wait(self.FLUSH_WAIT_S):
                 return {rt.id: rt.stats for rt in self._nodes}
         return self._counted_so_far()
@@ -761,7 +699,7 @@ class InprocSession(Session):
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
         self._drop_compiled()  # compiled ticks keep their own seq counters
-        self._tick(self._by_id[node], tau)
+        run_tick(self._by_id[node], tau, self._skipped, self._failed, self._emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that
@@ -815,7 +753,7 @@ class InprocSession(Session):
         """What ``node``'s tick at ``tau`` is handed if it runs next: its input values (an optional
         port with nothing gets its fallback), the ids of the events each port's policy selects,
         and the required ports that have nothing (None if none; else the tick will be skipped).
-        Selected by the node's own policies (``sync.select_inputs``) on copies of its buffers, so
+        Selected by the node's own policies (``tick.select_inputs``) on copies of its buffers, so
         nothing is consumed. It is what the tick gets once every tick before ``tau`` has run
         (``advance(tau[0])`` for a tick at microstep 0): no event with a tag ``≤ tau`` can come later."""
         self._flush()  # the compiled ticks hand back how far they have looked into the buffers
@@ -825,16 +763,6 @@ class InprocSession(Session):
         for port, spec in rt.fallbacks.items():
             values[port] = spec.fallback()
         return values, consumed, missing
-
-
-class _AlwaysMissingPolicy:
-    """Stands in for the policy of a required port nothing feeds: every tick is skipped."""
-
-    def select(self, buf, tau):
-        return MISSING, None, 0, None
-
-
-_AlwaysMissing = _AlwaysMissingPolicy()
 
 
 class InprocBackend(Backend):

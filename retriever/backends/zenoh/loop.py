@@ -40,7 +40,8 @@ from ...errors import CausalityError, CodecError, StopRun
 from ...flow._base import make_invoker, make_output_reader
 from ...flow.burst import Burst
 from ...graph import Node
-from ...sync import PortBuffer, select_inputs
+from ...sync import PortBuffer
+from ...tick import select_inputs
 from .hub import weak_callback
 from .reporter import Reporter
 from .wire import (RELIABLE, DataMessage, KeySpace, WireEncoder, WireError, decode_control, decode_events,
