@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import BackendError, CausalityError, CodecError, RetrieverWarning, RunEnded, SetupError
+from ..errors import BackendError, CausalityError, CodecError, ReplayedError, RetrieverWarning, RunEnded, SetupError
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
