@@ -530,29 +530,9 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
         else:
             names[f"tick{i}"] = part
             bodies.append(f"tick{i}(tau, out_tag)\nnow = time_ns()\n")  # (the next step starts after it)
-    grouped = {i for group, _ in groups for i in group}
-    followed = {code.follower for code in codes.values()}
-    heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
     chains = {}
-    for head in sorted(heads & codes.keys()):
-        chain = _chain(codes, head)
-        if len(chain) == 1:
-            continue
-        # a chain runs only when its head is the only tick due, and each link only when it is (so
-        # every event an input got from a producer that alone feeds it is visible: _all_visible)
-        links = _links(codes, chain, names, everyone, short)
-        src.append(f"""\
-def chain{head}(tau, out_tag):
-{_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
-    pass_on = None
-    try:
-{_indent(_one_reading(links[0] + _chain_steps(links[1:], "return out_tag")), "        ")}    except BaseException:
-        if pass_on is not None:
-            next_add(pass_on)
-        keep_next(out_tag)
-        raise
-    return out_tag
-""")
+    for head, chain in _chains(codes, groups):
+        src.append(_chain_function(head, chain, codes, names, everyone, short))
         chains[head] = f"chain{head}"
     groups = groups if fuse else []
     for g, (group, schedule) in enumerate(groups):
@@ -576,6 +556,35 @@ def chain{head}(tau, out_tag):
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused, *alone]:
         f.source = source
     return ticks, chain_ticks, fused, alone, flush, peek
+
+
+def _chains(codes: dict, groups: list[tuple[tuple[int, ...], Schedule]]) -> list[tuple[int, list[int]]]:
+    """``(head, chain)`` of each chain of two or more compiled Trigger flows: headed by what a
+    rate group's node triggers, or by a node nothing compiled triggers alone."""
+    grouped = {i for group, _ in groups for i in group}
+    followed = {code.follower for code in codes.values()}
+    heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
+    return [(head, chain) for head in sorted(heads & codes.keys()) if len(chain := _chain(codes, head)) > 1]
+
+
+def _chain_function(head: int, chain: list[int], codes: dict, names: dict, everyone: set[int],
+                    short: set[tuple[int, int]]) -> str:
+    """``chain{head}`` (make_ticks). A chain runs only when its head is the only tick due, and
+    each link only when it is (so every event an input got from a producer that alone feeds it is
+    visible: _all_visible)."""
+    links = _links(codes, chain, names, everyone, short)
+    return f"""\
+def chain{head}(tau, out_tag):
+{_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
+    pass_on = None
+    try:
+{_indent(_one_reading(links[0] + _chain_steps(links[1:], "return out_tag")), "        ")}    except BaseException:
+        if pass_on is not None:
+            next_add(pass_on)
+        keep_next(out_tag)
+        raise
+    return out_tag
+"""
 
 
 def _chain(codes: dict, head: int) -> list[int]:
