@@ -38,7 +38,9 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
   step record and events when the trace is read.
 
 ``tick.run_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same
-trace. The generated ticks read this session through one public surface, ``_inproc_ticks.Host``.
+trace. The session's parts: ``_Agenda``, the ticks due; ``_Recorder``, what became of each tick
+(records, delivered events, the on_error decision acted on); the loop (``_advance``); and the
+generated ticks, which read the session through one public surface, ``_inproc_ticks.Host``.
 """
 
 from __future__ import annotations
@@ -149,7 +151,7 @@ class _RateGroup:
     __slots__ = ("order", "ticks", "alone", "k", "next_tag", "offset_ns", "step_num", "step_den")
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
-        self.order = order  # node indices, consumers first (InprocSession._consumers_first): the tick order
+        self.order = order  # node indices, consumers first (_consumers_first): the tick order
         # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
         self.ticks: tuple = ()
         # the function that runs its ticks while nothing else is due, if compiled (_inproc_ticks.make_ticks)
@@ -174,6 +176,196 @@ class _RateGroup:
         return self.offset_ns + k * self.step_num // self.step_den
 
 
+def _consumers_first(nodes: list[NodeRuntime]) -> list[int]:
+    """Per node index, its place in the order the ticks of one tag run in: each node before
+    the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
+    first changes nothing a run records but their order (tie_break_seed shuffles them),
+    except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
+    ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
+    it are not. This order lets a fused rate group's ticks skip the test of what is visible
+    on the edges within it (_inproc_ticks._without_visible_tests)."""
+    n = len(nodes)
+    consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in nodes]
+    producers: list[list[int]] = [[] for _ in range(n)]
+    for p, cs in enumerate(consumers):
+        for c in cs:
+            producers[c].append(p)
+    waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
+    ready = [i for i in range(n) if not waiting[i]]
+    order = []
+    while ready:
+        i = heappop(ready)
+        order.append(i)
+        for p in producers[i]:
+            waiting[p] -= 1
+            if not waiting[p]:
+                heappush(ready, p)
+    placed = set(order)
+    order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
+    rank = [0] * n
+    for at, i in enumerate(order):
+        rank[i] = at
+    return rank
+
+
+class _Agenda:
+    """The ticks due: a heap of the tags due later, and per tag the nodes due there; and the nodes
+    due at the next microstep of the tag running now (``after``). Only a tick at ``(t, m)`` makes
+    ticks at ``(t, m + 1)`` (a zero-latency output on an undelayed edge), so those need no heap."""
+
+    def __init__(self, groups: list[_RateGroup]):
+        self.heap: list[tuple[int, int]] = []
+        # tag -> the nodes due: a rate group alone (the common case), or a set of node indices,
+        # and then the rate groups due at that tag are in rate_due
+        self.pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
+        self.rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
+        self.after: list[int] = []  # (a node triggered twice is in it twice)
+        self.groups = groups
+        for group in groups:
+            self.schedule_group(group)
+
+    def schedule(self, tag: tuple[int, int], index: int) -> None:
+        """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
+        microstep of the tag running now (a zero-latency output on an undelayed edge), or later,
+        at microstep 0 (latency, delay)."""
+        if tag[1]:
+            self.after.append(index)
+        else:
+            self.schedule_later(tag, index)
+
+    def schedule_later(self, tag: tuple[int, int], index: int) -> None:
+        waiting = self.pending.get(tag)
+        if waiting is None:
+            self.pending[tag] = {index}
+            heappush(self.heap, tag)
+        elif type(waiting) is set:
+            waiting.add(index)
+        else:  # a rate group is due there: share the tag
+            self.rate_due[tag] = [waiting]
+            self.pending[tag] = {*waiting.order, index}
+
+    def schedule_group(self, group: _RateGroup) -> None:
+        tag = group.next_tag
+        waiting = self.pending.get(tag)
+        if waiting is None:
+            self.pending[tag] = group
+            heappush(self.heap, tag)
+            return
+        if type(waiting) is not set:
+            self.rate_due[tag] = [waiting]
+            self.pending[tag] = waiting = set(waiting.order)
+        else:
+            self.rate_due.setdefault(tag, [])
+        waiting.update(group.order)
+        self.rate_due[tag].append(group)
+
+    def resume_group(self, g: int, k: int) -> None:
+        """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
+        group = self.groups[g]
+        group.move_to(k)
+        self.schedule_group(group)
+
+    def keep_next(self, tag: tuple[int, int]) -> None:
+        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
+        go on the heap, for a later advance()."""
+        for index in set(self.after):
+            self.schedule_later(tag, index)
+        self.after.clear()
+
+
+class _Recorder:
+    """What became of each tick, in the trace's tape: a step's events, delivered to its consumers'
+    buffers (the ticks they trigger scheduled), and its step record; a skipped tick's record; a
+    failed step's, then what ``on_error`` decides (tick.decide). The reference tick and the
+    generated ones hand their outcomes here."""
+
+    def __init__(self, tape: list, nodes: list[NodeRuntime], max_microsteps: int, schedule):
+        self.tape, self.nodes, self.max_microsteps, self.schedule = tape, nodes, max_microsteps, schedule
+
+    def emit(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
+             dropped: dict | None = None) -> None:
+        """Record and deliver the outputs of a tick that ran, and its step record."""
+        out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
+        produced = []
+        if outputs:
+            event = self._event
+            for port, value in outputs:
+                if value is None:  # sparse output: no event
+                    continue
+                if type(value) not in PLAIN_TYPES:
+                    if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
+                        if value.rows is None or value.rows.dtype.hasobject:
+                            for i, item in enumerate(value.values):
+                                if type(item) not in PLAIN_TYPES:
+                                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
+                        for item in value.values:
+                            event(rt, tau, port, item, out_tag, end, produced)
+                        continue
+                    self._check_output(rt, tau, port, value, consumed, start, produced)
+                event(rt, tau, port, value, out_tag, end, produced)
+        self.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+
+    def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
+               end: int, produced: list) -> None:
+        """Record one event of a tick and deliver it to its consumers."""
+        seqs, node_id = rt.seq, rt.id
+        seq = seqs.get(port, 0)
+        seqs[port] = seq + 1
+        event = (out_tag, node_id, port, seq, value, end)
+        self.tape.append(event)
+        produced.append((node_id, port, seq))
+        # the event is the buffer entry of an undelayed edge
+        for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
+            entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
+            buf.insert(entry)
+            if triggers:
+                if entry[0][1] > self.max_microsteps:
+                    raise CausalityError(rt.cycle or self.nodes[consumer].cycle, tau, self.max_microsteps)
+                self.schedule(entry[0], consumer)
+
+    def _check_output(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
+                      start: int, produced: list | tuple, in_burst: int | None = None) -> None:
+        """Before an output not of a plain type is recorded: stop the run (CodecError naming the
+        node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
+        cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
+        failure of one tick. The error record lists the events of the tick already ``produced``."""
+        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
+            return
+        try:
+            packb(value)
+        except CodecError as e:
+            what = "a value" if in_burst is None else f"a Burst whose value {in_burst} is one"
+            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned {what} the run cannot "
+                               f"record: {e}")
+            rt.stats.errors += 1
+            first_line = str(error).split("\n", 1)[0]
+            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
+            self.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start, time_ns() - start))
+            raise error from None
+
+    def skipped(self, rt: NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
+        rt.stats.skips += 1
+        self.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
+
+    def failed(self, rt: NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
+               start: int, wall: int) -> None:
+        """Record a step that raised ``exc``, then act on ``on_error`` (tick.decide)."""
+        decision = decide(rt.on_error, exc, rt.restarts, tau[0])
+        if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
+            rt.stats.steps += 1
+            self.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
+            raise RunEnded(rt.id, tau)
+        rt.stats.errors += 1
+        detail = {"error": error_text(exc), "on_error": rt.on_error}
+        self.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
+        if decision is Decision.RESTART:
+            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
+            if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
+                rt.flow.reset()
+        elif decision is not Decision.SKIP:
+            raise ending(decision, rt.id, tau, exc, rt.restarts) from exc
+
+
 class InprocSession(Session):
     backend_name = "inproc"
     steppable = True
@@ -184,14 +376,6 @@ class InprocSession(Session):
         self.max_microsteps = graph.max_microsteps
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
-        self._heap: list[tuple[int, int]] = []
-        # tag -> the nodes due: a rate group alone (the common case), or a set of node indices,
-        # and then the rate groups due at that tag are in _rate_due
-        self._pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
-        self._rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
-        # the nodes due at the next microstep of the tag running now: only a tick at (t, m) makes
-        # ticks at (t, m + 1) (a zero-latency output on an undelayed edge), so they need no heap
-        self._next: list[int] = []  # (a node triggered twice is in it twice)
         plan = plan_graph(graph)
         self._nodes = [NodeRuntime(i, node, plan.nodes[node.id])
                        for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
@@ -203,14 +387,14 @@ class InprocSession(Session):
                 rt.flow.reset()  # the paper's flows initialise their state in reset()
             if rt.clock.hz is not None:
                 groups.setdefault(rt.clock.schedule, []).append(rt.index)
-        self._rank = rank = self._consumers_first()
+        self._rank = rank = _consumers_first(self._nodes)
         self._groups = [_RateGroup(schedule, tuple(sorted(indices, key=rank.__getitem__)))
                         for schedule, indices in groups.items()]
-        for group in self._groups:
-            self._schedule_group(group)
-        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the reference
-        # (tick.run_tick); and the one that runs it when it is the only tick due, which may go on along a
-        # chain; built on the first advance() (see _tick_functions)
+        self._agenda = agenda = _Agenda(self._groups)
+        self._recorder = recorder = _Recorder(self._records.tape, self._nodes, self.max_microsteps, agenda.schedule)
+        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the
+        # reference (tick.run_tick); and the one that runs it when it is the only tick due, which
+        # may go on along a chain; built on the first advance() (see _tick_functions)
         self._ticks: list | None = None
         self._chains: list = []
         self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
@@ -227,82 +411,16 @@ class InprocSession(Session):
         # what the generated ticks call and read here; its ``look`` is set when the loop is to
         # look at stop_requested, _recompile and _flushes_asked
         self._host = _inproc_ticks.Host(
-            nodes=self._by_id, tape=self._records.tape, after=self._next, heap=self._heap,
-            max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES, emit=self._emit, skipped=self._skipped,
-            failed=self._failed, schedule=self._schedule, keep_next=self._keep_next, saw_ports=self._saw_ports,
-            microsteps=self._microsteps, resume_group=self._resume_group)
-
-    def _consumers_first(self) -> list[int]:
-        """Per node index, its place in the order the ticks of one tag run in: each node before
-        the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
-        first changes nothing a run records but their order (tie_break_seed shuffles them),
-        except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
-        ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
-        it are not. This order lets a fused rate group's ticks skip the test of what is visible
-        on the edges within it (_inproc_ticks._without_visible_tests)."""
-        n = len(self._nodes)
-        consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in self._nodes]
-        producers: list[list[int]] = [[] for _ in range(n)]
-        for p, cs in enumerate(consumers):
-            for c in cs:
-                producers[c].append(p)
-        waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
-        ready = [i for i in range(n) if not waiting[i]]
-        order = []
-        while ready:
-            i = heappop(ready)
-            order.append(i)
-            for p in producers[i]:
-                waiting[p] -= 1
-                if not waiting[p]:
-                    heappush(ready, p)
-        placed = set(order)
-        order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
-        rank = [0] * n
-        for at, i in enumerate(order):
-            rank[i] = at
-        return rank
-
-    def _schedule(self, tag: tuple[int, int], index: int) -> None:
-        """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
-        microstep of the tag running now (a zero-latency output on an undelayed edge), or later,
-        at microstep 0 (latency, delay)."""
-        if tag[1]:
-            self._next.append(index)
-        else:
-            self._schedule_later(tag, index)
-
-    def _schedule_later(self, tag: tuple[int, int], index: int) -> None:
-        waiting = self._pending.get(tag)
-        if waiting is None:
-            self._pending[tag] = {index}
-            heappush(self._heap, tag)
-        elif type(waiting) is set:
-            waiting.add(index)
-        else:  # a rate group is due there: share the tag
-            self._rate_due[tag] = [waiting]
-            self._pending[tag] = {*waiting.order, index}
-
-    def _schedule_group(self, group: _RateGroup) -> None:
-        tag = group.next_tag
-        waiting = self._pending.get(tag)
-        if waiting is None:
-            self._pending[tag] = group
-            heappush(self._heap, tag)
-            return
-        if type(waiting) is not set:
-            self._rate_due[tag] = [waiting]
-            self._pending[tag] = waiting = set(waiting.order)
-        else:
-            self._rate_due.setdefault(tag, [])
-        waiting.update(group.order)
-        self._rate_due[tag].append(group)
+            nodes=self._by_id, tape=self._records.tape, after=agenda.after, heap=agenda.heap,
+            max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES, emit=recorder.emit, skipped=recorder.skipped,
+            failed=recorder.failed, schedule=agenda.schedule, keep_next=agenda.keep_next, saw_ports=self._saw_ports,
+            microsteps=self._microsteps, resume_group=agenda.resume_group)
 
     def _microsteps(self, next_microstep: tuple[int, int], ran: int) -> tuple[tuple[int, int], int]:
-        """Run the ticks in ``_next`` (what the ticks at the microstep before ``next_microstep``
-        triggered) and what they trigger, microstep by microstep, until none is left. Returns the
-        microstep after the last and ``ran``, counted on."""
-        after, chains, ticks, rank, rng = self._next, self._chains, self._ticks, self._rank, self._rng
+        """Run the ticks in the agenda's ``after`` (what the ticks at the microstep before
+        ``next_microstep`` triggered) and what they trigger, microstep by microstep, until none is
+        left. Returns the microstep after the last and ``ran``, counted on."""
+        after, chains, ticks, rank, rng = self._agenda.after, self._chains, self._ticks, self._rank, self._rng
         t = next_microstep[0]
         try:
             while after:
@@ -320,15 +438,9 @@ class InprocSession(Session):
                     ticks[i](tag, next_microstep)
                 ran += len(indices)
         except BaseException:
-            self._keep_next(next_microstep)
+            self._agenda.keep_next(next_microstep)
             raise
         return next_microstep, ran
-
-    def _resume_group(self, g: int, k: int) -> None:
-        """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
-        group = self._groups[g]
-        group.move_to(k)
-        self._schedule_group(group)
 
     def _flush(self) -> None:
         """Hand what the compiled ticks counted and their seqs to the nodes: in the run's thread
@@ -350,13 +462,6 @@ class InprocSession(Session):
     #: how long stats() from another thread waits for a run's loop to flush between two instants
     #: (a step may take long): past that, it reads the counts where they are (_counted_so_far)
     FLUSH_WAIT_S = 1.0
-
-    def _keep_next(self, tag: tuple[int, int]) -> None:
-        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
-        go on the heap, for a later advance()."""
-        for index in set(self._next):
-            self._schedule_later(tag, index)
-        self._next.clear()
 
     def look_between_ticks(self) -> None:
         self._host.look = True
@@ -385,8 +490,8 @@ class InprocSession(Session):
         parts = []
         for rt in self._nodes:
             code = None if self._generic_only else _inproc_ticks.compile_tick(self._host, rt)
-            parts.append(code or (lambda tau, out_tag, rt=rt, skipped=self._skipped, failed=self._failed,
-                                  emit=self._emit: run_tick(rt, tau, skipped, failed, emit) or out_tag))
+            parts.append(code or (lambda tau, out_tag, rt=rt, r=self._recorder: run_tick(rt, tau, r.skipped, r.failed,
+                                                                                        r.emit) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
         if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
             ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self._host, parts, groups,
@@ -474,8 +579,9 @@ class InprocSession(Session):
         return max(ran, default=self.now_ns)
 
     def _advance(self, until_ns: int) -> None:
-        heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
-        host = self._host
+        agenda, host, rng = self._agenda, self._host, self._rng
+        heap, pending, rate_due, after, schedule_group = (agenda.heap, agenda.pending, agenda.rate_due, agenda.after,
+                                                          agenda.schedule_group)
         rank = self._rank
         ticks = self._tick_functions()
         log = self.log
@@ -515,8 +621,8 @@ class InprocSession(Session):
                 due.k = k = due.k + 1  # due.advance(), inlined
                 due.next_tag = next_tag = (due.offset_ns + k * due.step_num // due.step_den, 0)
                 if next_tag in pending:
-                    self._schedule_group(due)
-                else:  # _schedule_group, inlined for the common case
+                    schedule_group(due)
+                else:  # schedule_group, inlined for the common case
                     pending[next_tag] = due
                     heappush(heap, next_tag)
                 ran += len(due.order)
@@ -531,7 +637,7 @@ class InprocSession(Session):
                 if groups is not None:  # rate ticks: schedule each group's next one
                     for group in groups:
                         group.advance()
-                        self._schedule_group(group)
+                        schedule_group(group)
                 ran += len(due)
                 if len(due) == 1:
                     order = [ticks[i] for i in due]
@@ -545,95 +651,11 @@ class InprocSession(Session):
                 for tick in order:
                     tick(tag, next_microstep)
             except BaseException:
-                self._keep_next(next_microstep)
+                agenda.keep_next(next_microstep)
                 raise
             if after:
                 _, ran = self._microsteps(next_microstep, ran)
         self.now_ns = max(self.now_ns, until_ns)
-
-    def _emit(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
-              dropped: dict | None = None) -> None:
-        """Record and deliver the outputs of a tick that ran, and its step record."""
-        out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
-        produced = []
-        if outputs:
-            event = self._event
-            for port, value in outputs:
-                if value is None:  # sparse output: no event
-                    continue
-                if type(value) not in PLAIN_TYPES:
-                    if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
-                        if value.rows is None or value.rows.dtype.hasobject:
-                            for i, item in enumerate(value.values):
-                                if type(item) not in PLAIN_TYPES:
-                                    self.check_output(rt, tau, port, item, consumed, start, produced, i)
-                        for item in value.values:
-                            event(rt, tau, port, item, out_tag, end, produced)
-                        continue
-                    self.check_output(rt, tau, port, value, consumed, start, produced)
-                event(rt, tau, port, value, out_tag, end, produced)
-        self._records.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
-
-    def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
-               end: int, produced: list) -> None:
-        """Record one event of a tick and deliver it to its consumers."""
-        seqs, node_id = rt.seq, rt.id
-        seq = seqs.get(port, 0)
-        seqs[port] = seq + 1
-        event = (out_tag, node_id, port, seq, value, end)
-        self._records.tape.append(event)
-        produced.append((node_id, port, seq))
-        # the event is the buffer entry of an undelayed edge
-        for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
-            entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
-            buf.insert(entry)
-            if triggers:
-                if entry[0][1] > self.max_microsteps:
-                    raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
-                self._schedule(entry[0], consumer)
-
-    def check_output(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
-                     start: int, produced: list | tuple, in_burst: int | None = None) -> None:
-        """Before an output not of a plain type is recorded: stop the run (CodecError naming the
-        node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
-        cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
-        failure of one tick. The error record lists the events of the tick already ``produced``."""
-        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
-            return
-        try:
-            packb(value)
-        except CodecError as e:
-            what = "a value" if in_burst is None else f"a Burst whose value {in_burst} is one"
-            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned {what} the run cannot "
-                               f"record: {e}")
-            rt.stats.errors += 1
-            first_line = str(error).split("\n", 1)[0]
-            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
-            self._records.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
-                                    time_ns() - start))
-            raise error from None
-
-    def _skipped(self, rt: NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
-        rt.stats.skips += 1
-        self._records.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
-
-    def _failed(self, rt: NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
-                start: int, wall: int) -> None:
-        """Record a step that raised ``exc``, then act on ``on_error`` (tick.decide)."""
-        decision = decide(rt.on_error, exc, rt.restarts, tau[0])
-        if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
-            rt.stats.steps += 1
-            self._records.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
-            raise RunEnded(rt.id, tau)
-        rt.stats.errors += 1
-        detail = {"error": error_text(exc), "on_error": rt.on_error}
-        self._records.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
-        if decision is Decision.RESTART:
-            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
-            if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
-                rt.flow.reset()
-        elif decision is not Decision.SKIP:
-            raise ending(decision, rt.id, tau, exc, rt.restarts) from exc
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it
@@ -699,7 +721,7 @@ class InprocSession(Session):
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
         self._drop_compiled()  # compiled ticks keep their own seq counters
-        run_tick(self._by_id[node], tau, self._skipped, self._failed, self._emit)
+        run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that
