@@ -19,7 +19,7 @@ from rich.table import Table
 
 from retriever import cli
 from retriever.backends import canonical
-from retriever.errors import BackendError, RetrieverError
+from retriever.errors import BackendError, RetrieverError, SetupError
 
 
 def _skill_policy(spec: str | None) -> str | None:
@@ -28,6 +28,25 @@ def _skill_policy(spec: str | None) -> str | None:
     if spec is None or spec == "scripted":
         return spec
     return str(Path(spec).absolute())
+
+
+def _discard_unstarted(log: Path, out: Path, made_out: bool) -> str:
+    """After a run that a flow's ``setup()`` stopped before its first tick: remove its log when
+    it holds no step (nothing to replay), and the pictures folder the demo made for it when
+    still empty. Returns the sentence that tells the user what is left."""
+    from retriever import read_log
+    if made_out and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+    if not os.path.lexists(log):
+        return "no log was written"
+    try:
+        empty = next(iter(read_log(log, salvage=True).iter_steps()), None) is None
+    except RetrieverError:
+        empty = False
+    if not empty:
+        return f"the log {log} is kept: it holds the steps that ran"
+    Path(log).unlink()
+    return f"no log is left: the run did not start, so {log} was removed"
 
 
 def demo(
@@ -72,7 +91,7 @@ def demo(
                              "itself, which includes it: pip install -e ."))
     if canonical(backend) not in ("zenoh", "inproc"):
         cli.fail(BackendError(f"backend {backend!r}: the demo runs on zenoh or inproc"))
-    pipe = None
+    pipe, made_out = None, False
     try:
         if not 0 < duration < float("inf"):
             raise DemoError(f"--duration {duration!r}: give the seconds of world time the episode may take (> 0)")
@@ -91,6 +110,7 @@ def demo(
             make_planner(planner, task).check_reachable()
         check_rendering()
         try:
+            made_out = not out.exists()
             out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise DemoError(f"--out {out}: cannot make a folder for the pictures there ({exc.strerror})") from None
@@ -105,10 +125,13 @@ def demo(
         cli.err.print(f"interrupted; the episode so far is in {log} (retriever replay {log} re-executes it)",
                    highlight=False)
         # during the logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = cli.stop_signal() or getattr(getattr(pipe, "_session", None), "stop_signal", None)
+        signum = cli.stop_signal() or getattr(getattr(pipe, "session", None), "stop_signal", None)
         raise typer.Exit(code=128 + (signum or signal.SIGINT)) from None
     except (DemoError, ValueError, PlannerError) as exc:
         cli.fail(RetrieverError(str(exc)))
+    except SetupError as exc:
+        cli.err.print(_discard_unstarted(log, out, made_out), highlight=False)
+        cli.fail(exc)
     except RetrieverError as exc:
         cli.fail(exc)
     for line in report(episode, wall, canonical(backend)):

@@ -29,9 +29,13 @@ CONFIG_FILE, WEIGHTS_FILE = "policy.json", "model.safetensors"
 KIND = "agents.learn.bc.PickMLP"
 #: policy.json's sizes of the module, each a positive integer
 CONFIG = ("state_dim", "scene_dim", "steps", "nu", "hidden")
+#: the largest policy.json read (python -m agents.learn train writes about 400 bytes)
+MAX_CONFIG_BYTES = 1 << 16
 #: the most parameters a checkpoint's module may have (a Pick MLP of hidden=256 has about 270 000)
 MAX_PARAMETERS = 1 << 24
 COMMAND = slice(2 * NU, 3 * NU)     # the commanded targets in the state vector
+#: the dtypes a checkpoint's tensors may have (safetensors' names; agents.learn.bc saves F32)
+FLOAT_DTYPES = ("F16", "F32", "F64")
 
 
 @dataclass(frozen=True)
@@ -71,6 +75,9 @@ def read_config(folder: str | Path) -> dict:
         raise ValueError(f"skill policy {str(folder)!r}: a LeRobot checkpoint (config.json, no {CONFIG_FILE}); this "
                          "takes a checkpoint of python -m agents.learn train; run a LeRobot policy as a "
                          "retriever.learn.LeRobotPolicy flow (docs/learning.md)")
+    if path.is_file() and path.stat().st_size > MAX_CONFIG_BYTES:
+        raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE} is {path.stat().st_size} bytes; a Pick "
+                         f"policy's config is a few hundred (at most {MAX_CONFIG_BYTES} are read)")
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
@@ -82,10 +89,12 @@ def read_config(folder: str | Path) -> dict:
     bad = [key for key in CONFIG if type(config.get(key)) is not int or not 0 < config[key] <= 1 << 16]
     if bad:
         raise ValueError(f"skill policy {str(folder)!r}: {CONFIG_FILE}'s {', '.join(bad)} must be positive integers")
-    if config["nu"] != NU or config["state_dim"] < COMMAND.stop:
-        raise ValueError(f"skill policy {str(folder)!r}: nu={config['nu']}, state_dim={config['state_dim']}: the "
-                         f"robot has {NU} actuators, and the state holds their commands at {COMMAND.start}:"
-                         f"{COMMAND.stop}")
+    from .skill_features import SCENE_NAMES, STATE_NAMES
+    if (config["nu"], config["state_dim"], config["scene_dim"]) != (NU, len(STATE_NAMES), len(SCENE_NAMES)):
+        raise ValueError(f"skill policy {str(folder)!r}: nu={config['nu']}, state_dim={config['state_dim']}, "
+                         f"scene_dim={config['scene_dim']}: the robot has {NU} actuators, its state "
+                         f"{len(STATE_NAMES)} values and its scene {len(SCENE_NAMES)} (agents/skill_features.py): "
+                         "a policy trained on other features cannot run in this slot")
     return config
 
 
@@ -123,9 +132,39 @@ def check_weights(folder: str | Path, config: dict) -> None:
                          + "; ".join(problems[:4]) + (f" (and {len(problems) - 4} more)" if len(problems) > 4 else ""))
 
 
+def check_values(folder: str | Path) -> None:
+    """Every tensor of ``model.safetensors`` in ``folder`` is of a float dtype and finite, or a
+    ValueError names the first that is not (a NaN weight would stop the run at Pick's first
+    tick; an integer one would be cast silently)."""
+    from safetensors import safe_open
+    with safe_open(str(Path(folder) / WEIGHTS_FILE), "np") as f:
+        for name in f.keys():
+            dtype = f.get_slice(name).get_dtype()
+            if dtype not in FLOAT_DTYPES:
+                raise ValueError(f"skill policy {str(folder)!r}: {WEIGHTS_FILE}'s {name} is {dtype}, not a float "
+                                 f"tensor ({', '.join(FLOAT_DTYPES)})")
+            bad = int(np.count_nonzero(~np.isfinite(f.get_tensor(name))))
+            if bad:
+                raise ValueError(f"skill policy {str(folder)!r}: {WEIGHTS_FILE}'s {name} holds {bad} value(s) that "
+                                 "are not finite (NaN or infinity): the checkpoint is damaged, or its training "
+                                 "diverged")
+
+
+def check_installed() -> None:
+    """torch and safetensors, which a checkpoint policy needs, can be imported here, or a
+    ValueError says what to install."""
+    from importlib.util import find_spec
+    missing = [name for name in ("torch", "safetensors") if find_spec(name) is None]
+    if missing:
+        raise ValueError(f"a trained skill policy needs {' and '.join(missing)}, which cannot be imported here\n"
+                         "    hint: pip install 'retriever-robotics[lerobot]' (or run the scripted Pick: "
+                         "--skill-policy scripted)")
+
+
 def check_skill_policy(spec: str) -> None:
     """``spec`` names a policy (``"scripted"`` or a checkpoint directory), or a ValueError says
-    why not (cheap: it reads the weights' header, not the weights)."""
+    why not: before anything starts, the packages it needs, its config, the weights' names and
+    shapes (from the header) and then their dtypes and values (a Pick module's are a few MB)."""
     if spec == "scripted":
         return
     if not isinstance(spec, str) or not Path(spec).is_dir():
@@ -134,4 +173,6 @@ def check_skill_policy(spec: str) -> None:
     if not (Path(spec) / WEIGHTS_FILE).is_file():
         raise ValueError(f"skill policy {spec!r}: the directory holds no {WEIGHTS_FILE} (python -m agents.learn "
                          "train writes it)")
+    check_installed()
     check_weights(spec, read_config(spec))
+    check_values(spec)

@@ -9,7 +9,7 @@ One run of ``pipe.run(duration, backend="zenoh")`` of a pipeline of two unconnec
 
 Lateness of a tick = the wall time its ``step()`` started (the step record's ``wall_start_ns``)
 minus the tick's scheduled time ``T0 + tag`` (``T0``: the run's start in HLC Unix ns,
-``pipe._session.t0``; tags are ns since T0). Missed ticks = Rate ticks in the run with no step
+``pipe.session.t0``; tags are ns since T0). Missed ticks = Rate ticks in the run with no step
 record (skipped, e.g. after an overrun); "≥ 1 period late" counts ticks that ran but a whole
 period or more after their time.
 

@@ -235,7 +235,7 @@ def kill_mid_worker(pipe, after_s: float, out: dict) -> None:
     ``mid`` (the lab's namespaces share one PID space) and note when, and which worker it was."""
     give_up = time.monotonic() + 300
     while time.monotonic() < give_up:
-        session = pipe._session
+        session = pipe.session
         t0 = getattr(session, "t0", None)
         if t0 is not None and time.time_ns() >= t0 + after_s * 1e9:
             name = session.placed["mid"]
@@ -320,7 +320,7 @@ def coordinate(job_path: str) -> int:
                          namespace=job["namespace"], secret=job["secret"], placement=placement,
                          startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
                          keep=job.get("keep", "trace"))
-        session = pipe._session
+        session = pipe.session
         if job["kind"] == "chains":
             result.update(chains_result(trace, session))
         elif job["kind"] == "failover":
@@ -329,7 +329,7 @@ def coordinate(job_path: str) -> int:
             result.update(latency_result(trace, job["warmup"], pipe, record))
     except Exception as exc:  # noqa: BLE001 - reported to the benchmark, which goes on
         result["error"] = f"{type(exc).__name__}: {exc}"
-    session = pipe._session
+    session = pipe.session
     result["t0"] = getattr(session, "t0", None)
     result["cpu_s"] = cpu_seconds()
     result["maxrss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -4,7 +4,7 @@
 nothing and returns nothing; ``benchmarks/zenoh_flows.py``), run in a background thread. Once
 the run has started (``T0``) and ``--settle`` seconds have passed, the script reads
 ``utime + stime`` from ``/proc/<pid>/stat`` (all threads) of the flow's worker process
-(``pipe._session.worker_pids()``) and of this process (the coordinator: hub session, trace
+(``pipe.session.worker_pids()``) and of this process (the coordinator: hub session, trace
 collection), waits ``--seconds``, reads again: CPU % = CPU seconds / wall seconds × 100
 (100% = one core). Per-thread figures (``--threads``) come from ``/proc/<pid>/task/*/schedstat``.
 

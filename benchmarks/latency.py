@@ -286,7 +286,7 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
     against the run's end and how late its source tick started (ms); then how often and how long
     the loops waited for their reporters, if they did."""
     seen = {ev.value[0] for ev in sink_events}
-    session = pipe._session
+    session = pipe.session
     starts = {st.tag: st.wall_start_ns for st in trace.steps if st.node == "src"}
     produced = {ids[2]: st.tag for st in trace.steps if st.node == "src" for ids in st.produced}
     why = []

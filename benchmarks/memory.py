@@ -74,7 +74,7 @@ def run_zenoh(seconds: float, log: Path) -> dict:
     handle = pipe.run(duration=seconds, backend="zenoh", log=log, blocking=False, quiet=True)
     session = None
     while not handle.done and (session is None or getattr(session, "t0", None) is None):
-        session = pipe._session
+        session = pipe.session
         time.sleep(0.01)
     if handle.done:
         handle.wait()  # raises what stopped it
@@ -100,7 +100,7 @@ def run_inproc(seconds: float, log: Path) -> dict:
     samples, due, started = [], 0.0, time.monotonic()
     name = "this process (the run, the log)"
     while not handle.done:
-        session = pipe._session
+        session = pipe.session
         writer = getattr(session, "log", None)
         t = writer.last_step_ns / 1e9 if writer is not None else 0.0
         if t >= due:
@@ -111,7 +111,7 @@ def run_inproc(seconds: float, log: Path) -> dict:
     handle.wait()
     samples.append({"t": seconds, "rss_mb": {name: rss_mb(os.getpid())}, "log_bytes": log.stat().st_size})
     return {"samples": samples, "stats": {n: vars(s) for n, s in pipe.stats().items()}, "counts": {},
-            "keep": pipe._session.keep, "run_s": seconds, "wall_s": round(time.monotonic() - started, 1)}
+            "keep": pipe.session.keep, "run_s": seconds, "wall_s": round(time.monotonic() - started, 1)}
 
 
 def frames_in_log(log: Path) -> dict:

@@ -64,7 +64,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
         for i in range(flows - 1):
             camera.then(Keep().configure(name=f"keep{i}") @ Rate(hz=hz), sync=Latest())
     begin = time.monotonic()
-    session = pipe._session_for("zenoh", {"quiet": True})
+    session = pipe.open("zenoh", quiet=True)
     spawned = time.monotonic()
     seen: dict = {}
     put = session._control

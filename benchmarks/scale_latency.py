@@ -145,7 +145,7 @@ def run_zenoh(shape: str, flows: int, hz: float, duration: float, warmup: int, s
 
     pipe, last, copies = build(shape, flows, hz, **pipeline)
     begin = time.monotonic()
-    session = pipe._session_for("zenoh", {"quiet": True, "startup_timeout": startup_timeout})
+    session = pipe.open("zenoh", quiet=True, startup_timeout=startup_timeout)
     print(f"RUNDIR {session._dir}", file=sys.stderr, flush=True)
     trace = pipe.run(duration=duration, backend="zenoh", log=log, overwrite=True)
     run_s = time.monotonic() - begin

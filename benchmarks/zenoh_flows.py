@@ -138,7 +138,7 @@ class BackgroundRun:
         self._runner.start()
         session = None
         while self._runner.is_alive() and (session is None or session.t0 is None):
-            session = pipe._session
+            session = pipe.session
             time.sleep(0.005)
         if "error" in self._result or session is None or session.t0 is None:
             self._runner.join()

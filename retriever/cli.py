@@ -380,13 +380,13 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
             watching[1].join(timeout=2.0)
             watching = None
         recorded = _identity(log) not in (None, before)
-        if pipe._session is not None:  # what ran until the interrupt, as at the end of a run
+        if pipe.session is not None:  # what ran until the interrupt, as at the end of a run
             _summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
             for line in pipe.starved():
                 _err.print(f"warning: pipeline '{pipe.name}': {line}", highlight=False, markup=False)
         _err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
         # during a logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = _state.get("signal") or getattr(pipe._session, "stop_signal", None) or signal.SIGINT
+        signum = _state.get("signal") or getattr(pipe.session, "stop_signal", None) or signal.SIGINT
         raise typer.Exit(code=128 + signum) from None
     except Exception as exc:
         # only a log this run wrote holds it (a refused run leaves the file as it was; a log that
@@ -408,8 +408,9 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _summary(pipe, trace, title: str, log: Path | None) -> None:
     """The run's table, what it counted, and where its log is."""
-    placed = getattr(pipe._session, "placed", None)  # a deployment: where each node ran
-    starved = _starved_cells(pipe._session.starved if pipe._session is not None else [])
+    session = pipe.session
+    placed = getattr(session, "placed", None)  # a deployment: where each node ran
+    starved = _starved_cells(session.starved if session is not None else [])
     table = Table(title=f"{pipe.name}: {title}", title_justify="left")
     for col in ("node", *(("worker",) if placed else ()), "ticks", "steps", "skips", "errors", "mean step",
                 *(("starved",) if starved else ())):
@@ -421,12 +422,12 @@ def _summary(pipe, trace, title: str, log: Path | None) -> None:
     _out.print(table)
     for node, s in sorted(pipe.stats().items()):  # what a real-time run counted, node by node
         if any(s.counts.values()):
-            _out.print(f"{node} counted: {_counters(s.counts)}", highlight=False)
+            _out.print(f"{node} counted: {counters_in_words(s.counts)}", highlight=False)
     unowned = Counter(pipe.counts())
     unowned.subtract(sum((Counter(s.counts) for s in pipe.stats().values()), Counter()))
     if +unowned:
-        _out.print(f"the coordinator counted: {_counters(+unowned)}", highlight=False)
-    if pipe._session is not None and pipe._session.keep == "counters":  # reading the log back could take GBs
+        _out.print(f"the coordinator counted: {counters_in_words(+unowned)}", highlight=False)
+    if session is not None and session.keep == "counters":  # reading the log back could take GBs
         steps = sum(s.steps for s in pipe.stats().values())
         kept = "kept only in the log" if log is not None else "not kept"
         _out.print(f"{steps} steps · records {kept} (--keep counters)", highlight=False)
@@ -461,10 +462,10 @@ def _show_live(pipe, namespace: str):
     def show() -> None:
         with Live(console=_err, refresh_per_second=2, transient=True) as live:
             while not done.wait(LIVE_EVERY_S):
-                session = pipe._session
+                session = pipe.session
                 if session is not None and hasattr(session, "status"):
                     try:
-                        live.update(_status_table(session.status(), namespace))
+                        live.update(status_table(session.status(), namespace))
                     except RuntimeError:  # read while the run updates it: next time
                         continue
 
@@ -510,7 +511,7 @@ _COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplet
                    "report_waits": "waits for the log"}
 
 
-def _counters(counts: dict[str, int]) -> str:
+def counters_in_words(counts: dict[str, int]) -> str:
     """``3 late events, 2 waits for the log (171 ms)``: a run's counters (base.COUNTERS) in words."""
     parts = []
     for name, n in sorted(counts.items()):
@@ -661,7 +662,7 @@ def _print_info(path: Path, log, info: dict) -> None:
              ("packages", ", ".join(f"{k} {v}" for k, v in sorted(info["packages"].items()))),
              ("command", " ".join(map(str, _metadata_json(path, "command_line", run.get("command_line", "[]"), list))))]
     if end.get("counts"):
-        lines.insert(4, ("counted", _counters(_metadata_json(path, "counts", end["counts"], dict))))
+        lines.insert(4, ("counted", counters_in_words(_metadata_json(path, "counts", end["counts"], dict))))
     for i, fault in enumerate(log.faults):  # a process that died: what became of its flow
         what = "restarted afresh" if fault.get("restarted") == "true" else "not restarted"
         lost = f", {len(fault['lost_events'])} unpublished output(s) lost" if fault["lost_events"] else ""
@@ -1025,10 +1026,10 @@ def status_command(
     """Show the running deployment of a namespace, from any machine: per node its worker, state,
     ticks, steps, skips, errors and counters."""
     answer = _ask_deployment(connect, namespace, secret, insecure, "status", _tls(tls_ca, tls_cert, tls_key))
-    _out.print(_status_table(answer, namespace))
+    _out.print(status_table(answer, namespace))
 
 
-def _status_table(answer: dict, namespace: str) -> Table:
+def status_table(answer: dict, namespace: str) -> Table:
     """A deployment's status (Deployment.status, maybe from the network: every cell plain
     text): per node its worker, state, rate achieved, steps, skips, errors, CPU and counters."""
     t_s = answer.get("t_ns", 0) / 1e9 if type(answer.get("t_ns")) is int else 0.0

@@ -6,6 +6,8 @@
     trace = pipe.run(duration=10)   # default backend: retriever.init(backend=...) or "inproc"
 
 ``run`` and ``step`` continue from where the last call stopped; ``reset`` returns to T0.
+``pipe.session`` is the run going on (its backend's ``Session``), for watching it; ``pipe.open()``
+opens it before the first run.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import warnings
 import weakref
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
@@ -32,9 +34,6 @@ from .starved import describe_starved, starved_flows
 from .sync import Latest, SyncPolicy, policy_from_ir
 from .time import MAX_SECONDS, MAX_TIME_NS, NS_PER_S, max_microsteps_problem, seconds_problem, seconds_to_ns
 from .trace import Trace
-
-if TYPE_CHECKING:
-    from .log.writer import LogFile
 
 
 class Pipeline:
@@ -180,6 +179,28 @@ class Pipeline:
         return pipe
 
     # -- running -----------------------------------------------------------------------------
+    @property
+    def session(self) -> Session | None:
+        """The current run: the backend's :class:`~retriever.backends.Session` that the last
+        ``run``/``step`` (or :meth:`open`) opened and the next one goes on with; None before the
+        first and after :meth:`reset` or a change to the pipeline.
+
+        It is for watching a run, from the thread that runs it or another one: its ``trace``,
+        ``stats()``, ``counts``, ``starved``, ``produced_counts()``, ``keep``, ``log_metadata()``,
+        ``stop_signal``, ``retained_peak`` (:class:`~retriever.backends.base.Session` says what
+        each is); a real-time backend's adds its own (``t0``, the run's start in HLC Unix ns once it
+        is set, and ``worker_pids()``; a deployment's ``placed``, ``workers`` and ``status()``).
+        The pipeline's own methods (``stats()``, ``counts()``, ``trace``) read the same run."""
+        return self._session
+
+    def open(self, backend: str | None = None, **options: Any) -> Session:
+        """Open the run's session now, without running it, and return it (:attr:`session`): a
+        real-time backend starts its processes here, which the first ``run`` would otherwise do.
+        The next ``run``/``step`` goes on with it; ``reset()`` closes it. With a session already
+        open, that one is returned (``backend`` must then name its backend, and ``options`` be
+        empty: they are given once, to the run they open)."""
+        return self._session_for(backend, options)
+
     def _session_for(self, backend: str | None, options: dict) -> Session:
         from .backends import canonical, default_backend
 
@@ -213,7 +234,7 @@ class Pipeline:
             return RunHandle(self, duration=duration, backend=backend, log=log, overwrite=overwrite, **options)
         if duration is not None:
             _check_seconds("run", "duration", duration, self._now_ns())
-        log_file = None if log is None else _create_log_file(log, overwrite)  # before any worker starts
+        run_log = None if log is None else RunLog(log, overwrite)  # before any worker starts
         fresh = self._session is None
         if fresh and log is not None and "keep" not in options and _realtime(backend):
             options["keep"] = "counters"  # a logged real-time run may run for hours: the log holds it
@@ -223,11 +244,11 @@ class Pipeline:
             # a signal stops a logged run between ticks (its log then ends "interrupted") from
             # before the log is begun until after it is closed: one that comes while the header
             # or the end is being written does not tear the file
-            with _stop_between_ticks(session, logged=log_file is not None):
+            with _stop_between_ticks(session, logged=run_log is not None):
                 if duration is None and type(session).run_to_end is Session.run_to_end:
                     session.run_to_end()  # raises: this backend needs a duration
-                if log_file is not None:
-                    _open_log(session, log_file)
+                if run_log is not None:
+                    run_log.begin(session)
                 begun = True
                 try:
                     if duration is None:
@@ -235,10 +256,12 @@ class Pipeline:
                     else:
                         session.advance(session.now_ns + seconds_to_ns(duration))
                 except BaseException as exc:
-                    _close_log(session, exc)
+                    if run_log is not None:
+                        run_log.end(session, exc)
                     _forget(session)
                     raise
-                _close_log(session)
+                if run_log is not None:
+                    run_log.end(session)
         except BaseException as exc:
             if begun:
                 raise
@@ -251,8 +274,8 @@ class Pipeline:
                 opened.close()
             if session is not None:
                 session.log = None  # (a writer begun on the file being discarded)
-            if log_file is not None:
-                log_file.discard()
+            if run_log is not None:
+                run_log.discard()
             if session is not None and session.stop_requested and not isinstance(exc, KeyboardInterrupt):
                 raise KeyboardInterrupt from exc  # a stop (Ctrl-C, RunHandle.stop) came as it failed
             raise
@@ -362,7 +385,7 @@ class RunHandle:
 
     def stop(self) -> None:
         """Ask the run to stop between two ticks (a no-op once it is over)."""
-        session = self._pipe._session
+        session = self._pipe.session
         if session is not None and not self.done:  # (a request left on the session would stop the next run)
             session.stop_requested = True
             session.look_between_ticks()
@@ -418,40 +441,50 @@ def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
             signal.signal(sig, handler)
 
 
-def _create_log_file(path: str | Path, overwrite: bool) -> LogFile:
-    from .log.writer import LogFile
+class RunLog:
+    """The log that ``pipe.run(log=...)`` records: its file is created before any worker starts
+    (a path that cannot be written refuses the run), begun on the session at T0, and ended with
+    the run's status; or discarded, for a run refused before it began."""
 
-    return LogFile(path, overwrite=overwrite)
+    def __init__(self, path: str | Path, overwrite: bool):
+        from .log.writer import LogFile
 
+        self.file = LogFile(path, overwrite=overwrite)
 
-def _open_log(session: Session, file: LogFile) -> None:
-    from .log.writer import LogWriter
+    def begin(self, session: Session) -> None:
+        """Set the writer of this log on the session: from here on, the run hands it its records."""
+        from .log.writer import LogWriter
 
-    if session.now_ns != 0 or session.trace.raw_steps:
-        raise BackendError("log= records a run from T0: give it on the first run after construction or pipe.reset()")
-    session.log = LogWriter(file, session.graph, backend=session.backend_name, seeds=session.seeds(),
-                            extra=session.log_metadata())
+        if session.now_ns != 0 or session.trace.raw_steps:
+            raise BackendError("log= records a run from T0: give it on the first run after construction or "
+                               "pipe.reset()")
+        session.log = LogWriter(self.file, session.graph, backend=session.backend_name, seeds=session.seeds(),
+                                extra=session.log_metadata())
 
+    def discard(self) -> None:
+        """Remove the file of a run that never began."""
+        self.file.discard()
 
-def _close_log(session: Session, exc: BaseException | None = None) -> None:
-    writer = session.log
-    if writer is None:
-        return
-    session.log = None
-    # absolute: pipe.trace reads the log back later, maybe from another working directory
-    session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
-    if exc is None:
-        status, error = "finished", ""
-    elif isinstance(exc, KeyboardInterrupt):
-        status, error = "interrupted", "stopped by Ctrl-C or SIGTERM"
-    else:
-        status, error = "error", f"{type(exc).__name__}: {exc}"
-    steps = session.trace.raw_steps
-    # a stopped run ends at its last tick (real-time backends append records as they arrive)
-    end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
-    writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
-    if session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
-        session.trace = LoggedTrace(session.logged_to)
+    def end(self, session: Session, exc: BaseException | None = None) -> None:
+        """Finish the log, once begun, with how the run ended (``exc``: what stopped it)."""
+        writer = session.log
+        if writer is None:
+            return
+        session.log = None
+        # absolute: pipe.trace reads the log back later, maybe from another working directory
+        session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
+        if exc is None:
+            status, error = "finished", ""
+        elif isinstance(exc, KeyboardInterrupt):
+            status, error = "interrupted", "stopped by Ctrl-C or SIGTERM"
+        else:
+            status, error = "error", f"{type(exc).__name__}: {exc}"
+        steps = session.trace.raw_steps
+        # a stopped run ends at its last tick (real-time backends append records as they arrive)
+        end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
+        writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
+        if session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
+            session.trace = LoggedTrace(session.logged_to)
 
 
 def _realtime(backend: str | None) -> bool:

@@ -660,14 +660,14 @@ def test_a_deployments_status_table_shows_forged_answers_as_plain_text():
     codes and wrong types stay inert text, and nothing raises."""
     from rich.console import Console
 
-    from retriever.cli import _status_table
+    from retriever.cli import status_table
 
     answer = {"pipeline": "[bold]x[/]\x1b]0;pwned\x07", "started": True, "t_ns": 2_000_000_000, "end_ns": 10**10,
               "nodes": {"cam": {"worker": "arm\x1b[31m", "state": "running", "ticks": 60, "steps": 60, "skips": 0,
                                 "errors": 0, "cpu_s": 0.5, "counts": {"late": 2}},
                         "[/]": "not a dict", "odd": {"ticks": "many", "cpu_s": "lots", "counts": [1]}}}
     console = Console(record=True, width=200, color_system=None)
-    console.print(_status_table(answer, "lab"))
+    console.print(status_table(answer, "lab"))
     text = console.export_text()
     assert "30.0" in text and "25%" in text and "late 2" in text  # 60 ticks in 2 s; 0.5 s of CPU
     assert "\x1b" not in text and "[bold]x[/]" in text
@@ -735,10 +735,10 @@ def test_log_cat_shows_a_dataclass_value_read_without_its_type_by_its_fields(tmp
 def test_counters_are_said_in_words_and_spin_time_in_seconds():
     """`retriever run`'s "counted" lines and `log info`: a node whose only counter is spin_ns
     (configure(spin=)) says how long it busy-waited, not an empty list."""
-    from retriever.cli import _counters
+    from retriever.cli import counters_in_words
 
-    assert _counters({"spin_ns": 561_234_567}) == "0.561 s busy-waiting for ticks (spin)"
-    assert _counters({"late": 2, "report_waits": 1, "report_wait_ns": 171_000_000, "garbage": 0}) == \
+    assert counters_in_words({"spin_ns": 561_234_567}) == "0.561 s busy-waiting for ticks (spin)"
+    assert counters_in_words({"late": 2, "report_waits": 1, "report_wait_ns": 171_000_000, "garbage": 0}) == \
         "2 late events, 1 waits for the log (171 ms)"
 
 

@@ -25,7 +25,7 @@ def test_a_flow_whose_method_is_run_steps_on_the_papers_backend_names(backend):
     trace = pipe.run(backend=backend, duration=0.5, blocking=True, **options)
     assert [e.value.tolist() for e in trace.events_of("source")][:2] == [[1, 1, 1, 1], [2, 2, 2, 2]]
     assert len(trace.steps_of("sink")) == 10 and all(s.status == "ok" for s in trace.steps_of("sink"))
-    assert pipe._session.backend_name == ("inproc" if backend == "in-process" else "zenoh")
+    assert pipe.session.backend_name == ("inproc" if backend == "in-process" else "zenoh")
 
 
 @pytest.mark.parametrize("backend", ["dora", "multiprocessing", "in-process"])
@@ -53,7 +53,7 @@ def test_a_run_in_the_background_returns_a_handle_with_the_same_trace():
 def test_a_background_run_stops_when_its_handle_says_so():
     pipe = build()
     handle = pipe.run(duration=1e6, blocking=False)  # 11 days of virtual time: it would take minutes
-    while pipe._session is None or not pipe._session.trace.raw_steps:  # bounded by the run's start
+    while pipe.session is None or not pipe.session.trace.raw_steps:  # bounded by the run's start
         pass
     handle.stop()
     with pytest.raises(KeyboardInterrupt):

@@ -32,8 +32,12 @@ from retriever.errors import RetrieverError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-_err = Console(stderr=True)
-_out = Console()
+#: plain text, never markup (a message or a path may hold brackets: "retriever-robotics[lerobot]"),
+#: and no line breaks of rich's own: a message piped to a file or a test stays whole
+_err = Console(stderr=True, markup=False, soft_wrap=True)
+_out = Console(markup=False, soft_wrap=True)
+#: the packages of the lerobot extra that training and a learned policy import
+EXTRA_MODULES = ("torch", "safetensors", "lerobot")
 
 
 def _bar() -> Progress:
@@ -85,10 +89,7 @@ def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) ->
 
 def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False) -> dict:
     from .dataset import export as export_logs
-    episodes = folder / "episodes.json"
-    if not episodes.is_file():
-        raise ValueError(f"{folder}: no episodes.json; collect the logs with python -m agents.learn collect")
-    rows = json.loads(episodes.read_text())
+    rows = _listing(folder)
     logs = [folder / r["log"] for r in rows if r["success"]]
     if not logs:
         raise ValueError(f"{folder}: none of its {len(rows)} episodes succeeded: nothing to learn from")
@@ -109,6 +110,27 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
     # "of": the episodes collected, of which "logs" succeeded and were exported
     return {"logs": len(logs), "of": len(rows), "format": format, "frames": summary.frames, "bytes": summary.bytes,
             "seconds": round(summary.seconds, 2), "dataset": str(out)}
+
+
+def _listing(folder: Path) -> list[dict]:
+    """The episodes ``collect`` listed in ``folder/episodes.json``, each with its log's file name
+    (in ``folder``) and whether it succeeded; a ValueError says what is wrong with the file."""
+    episodes = folder / "episodes.json"
+    if not episodes.is_file():
+        raise ValueError(f"{folder}: no episodes.json; collect the logs with python -m agents.learn collect")
+    try:
+        rows = json.loads(episodes.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{episodes} is not readable JSON ({type(e).__name__}); collect the logs again "
+                         "(python -m agents.learn collect --force)") from None
+    good = type(rows) is list and all(
+        type(r) is dict and type(r.get("success")) is bool and type(r.get("log")) is str
+        and r["log"] == Path(r["log"]).name and r["log"] not in ("", ".", "..") for r in rows)
+    if not good:
+        raise ValueError(f"{episodes} is not the list collect writes (an entry per episode with its 'log', a file "
+                         "name in that folder, and 'success'); collect the logs again (python -m agents.learn "
+                         "collect --force)")
+    return rows
 
 
 def _ending(log: Path) -> str:
@@ -220,13 +242,40 @@ def loop(episodes: int, train_seeds: str, eval_seeds: str, minutes: float, out: 
                       "wall_per_episode": round(statistics.mean(r["wall"] for r in collected), 3)},
         "dataset": exported, "training": {**training, "loss_per_epoch": [round(x, 6) for x in losses]},
         "evaluation": {"seeds": eval_seeds, "learned": learned, "scripted": scripted},
+        "seconds": round(time.perf_counter() - started, 1), "environment": _environment(),
     }
     results.mkdir(parents=True, exist_ok=True)
     (results / "results.json").write_text(json.dumps(summary, indent=1) + "\n")
     plot_loop(summary, results / "learning_loop.png")
     _out.print(f"results: {results / 'results.json'}, {results / 'learning_loop.png'}; the whole loop took "
-               f"{time.perf_counter() - started:.0f} s", highlight=False)
+               f"{summary['seconds']:.0f} s", highlight=False)
     return summary
+
+
+def _environment() -> dict:
+    """What the results were measured with: the packages' versions and the code's git commit
+    (None outside a git checkout; ``dirty`` when files differ from it)."""
+    import platform
+    import subprocess
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str | None:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "-C", str(here), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10).stdout.strip() or None
+        dirty = bool(subprocess.run(["git", "-C", str(here), "status", "--porcelain", "--untracked-files=no"],
+                                    capture_output=True, text=True, timeout=10).stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, False
+    return {"python": platform.python_version(), "commit": commit, "dirty": dirty,
+            **{name: installed(name) for name in ("torch", "lerobot", "numpy", "mujoco", "retriever-robotics")},
+            "cpus": os.cpu_count()}
 
 
 def main(argv=None) -> int:
@@ -247,7 +296,8 @@ def main(argv=None) -> int:
     t.add_argument("dataset", type=Path, help="the folder export wrote")
     t.add_argument("-o", "--out", type=Path, required=True, help="the checkpoint directory to write")
     t.add_argument("--minutes", type=float, default=2.0, help="wall-time budget of the training")
-    t.add_argument("--max-epochs", type=int, default=3000)
+    t.add_argument("--max-epochs", type=int, default=3000,
+                   help="at most this many epochs (the cosine schedule's length)")
     t.add_argument("--json", type=Path, help="write the training summary here")
     t.add_argument("--force", action="store_true", help="replace the checkpoint if it exists")
     e = sub.add_parser("evaluate", help="success of the skill and of the whole task over seeds")
@@ -260,7 +310,8 @@ def main(argv=None) -> int:
     a.add_argument("--train-seeds", required=True, help="A:B, the seeds to collect from")
     a.add_argument("--eval-seeds", required=True, help="C:D, the held-out seeds to evaluate on")
     a.add_argument("--minutes", type=float, default=5.0, help="wall-time budget of the training")
-    a.add_argument("--max-epochs", type=int, default=3000)
+    a.add_argument("--max-epochs", type=int, default=3000,
+                   help="at most this many epochs (the cosine schedule's length)")
     a.add_argument("--format", choices=["lerobot", "npz"], default="lerobot", help="the dataset's format")
     a.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs, dataset and checkpoint")
     a.add_argument("--results", type=Path, help="where results.json and learning_loop.png go (default: -o)")
@@ -286,6 +337,12 @@ def main(argv=None) -> int:
             evaluate(args.seeds, args.skill_policy, args.out, task=not args.skill_only)
     except (ValueError, RetrieverError) as exc:
         _err.print(f"error: {exc}", highlight=False)
+        return 2
+    except ModuleNotFoundError as exc:
+        if exc.name not in EXTRA_MODULES:
+            raise
+        _err.print(f"error: {args.command} needs {exc.name}, which cannot be imported here\n    hint: pip install "
+                   "'retriever-robotics[lerobot]' (torch, safetensors and lerobot)", highlight=False)
         return 2
     except KeyboardInterrupt:
         _err.print(f"interrupted: {args.command} stopped by Ctrl-C", highlight=False)

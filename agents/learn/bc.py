@@ -69,15 +69,24 @@ def make_module(config: dict):
 
 
 def save(module, config: dict, folder: str | Path, training: Training | None = None) -> Path:
-    """Write ``module``'s checkpoint into ``folder`` (created)."""
+    """Write ``module``'s checkpoint into ``folder`` (created). Both files are written aside and
+    renamed into place only once both are whole: a save that fails or is killed while writing
+    leaves the checkpoint that was there (weights and config of one training)."""
     from safetensors.torch import save_file
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    save_file({k: v.contiguous() for k, v in module.state_dict().items()}, str(folder / WEIGHTS_FILE))
-    doc = {"kind": KIND, **{key: config[key] for key in CONFIG}}
-    if training is not None:
-        doc["training"] = asdict(training)
-    (folder / CONFIG_FILE).write_text(json.dumps(doc, indent=1) + "\n")
+    parts = {name: folder / f".{name}.part" for name in (WEIGHTS_FILE, CONFIG_FILE)}
+    try:
+        save_file({k: v.contiguous() for k, v in module.state_dict().items()}, str(parts[WEIGHTS_FILE]))
+        doc = {"kind": KIND, **{key: config[key] for key in CONFIG}}
+        if training is not None:
+            doc["training"] = asdict(training)
+        parts[CONFIG_FILE].write_text(json.dumps(doc, indent=1) + "\n")
+        for name, part in parts.items():
+            part.replace(folder / name)
+    finally:
+        for part in parts.values():
+            part.unlink(missing_ok=True)
     return folder
 
 
@@ -118,7 +127,7 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
-            total += float(loss) * len(batch)
+            total += loss.item() * len(batch)
         schedule.step()
         epoch += 1
         loss_value = total / len(X)

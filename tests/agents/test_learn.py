@@ -301,3 +301,77 @@ def test_ctrl_c_in_collect_ends_with_one_line_and_exit_130(tmp_path, monkeypatch
     err = capsys.readouterr().err
     assert "interrupted: collect stopped by Ctrl-C" in err and "Traceback" not in err
     assert not (tmp_path / "logs" / "episodes.json").exists()
+
+
+@pytest.mark.parametrize("listing", ["{not json", '[{"success": true}]', '{"seed": 1}', '["pick-seed00001.mcap"]',
+                                     '[{"success": true, "log": "../elsewhere.mcap"}]'])
+def test_export_refuses_an_episode_list_it_cannot_read_in_one_line(tmp_path, capsys, listing):
+    """A folder whose episodes.json is not what collect writes; its name has brackets, which the
+    message keeps (the output is text, not markup)."""
+    from agents.learn.__main__ import main
+    folder = tmp_path / "logs[v2]"
+    folder.mkdir()
+    (folder / "episodes.json").write_text(listing)
+    assert main(["export", str(folder), "-o", str(tmp_path / "ds")]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {folder / 'episodes.json'} is not" in err.replace("\n", "") and "Traceback" not in err, err
+    assert not (tmp_path / "ds").exists()
+
+
+def test_a_missing_extra_is_named_with_the_extra_to_install(tmp_path):
+    """train without torch (a package that cannot be imported stands in for it): one line and
+    the extra, brackets and all, not a traceback."""
+    fake = tmp_path / "site" / "torch"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n")
+    from pathlib import Path
+    root = Path(__file__).parents[2]
+    env = {**__import__("os").environ, "PYTHONPATH": f"{tmp_path / 'site'}:{root}"}
+    done = subprocess.run([sys.executable, "-m", "agents.learn", "train", "ds", "-o", "policy"], capture_output=True,
+                          text=True, cwd=tmp_path, env=env, timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "error: train needs torch, which cannot be imported here" in done.stderr, done.stderr
+    assert "pip install 'retriever-robotics[lerobot]'" in done.stderr, done.stderr
+
+
+def test_training_says_nothing_but_its_progress(recwarn):
+    """No warning from the training loop (a loss read as a float while it required grad)."""
+    from agents.learn.bc import train
+    from agents.learn.dataset import Samples
+    rng = np.random.default_rng(0)
+    samples = Samples(state=rng.normal(size=(12, 18)), scene=rng.normal(size=(12, 10)),
+                      action=rng.normal(size=(12, 150, 5)), episode=np.repeat(np.arange(6), 2))
+    _, _, summary = train(samples, budget_s=30.0, max_epochs=2, hidden=8)
+    assert summary.epochs == 2 and summary.held_out_episodes == 1
+    assert [str(w.message) for w in recwarn] == []
+
+
+def test_the_learning_docs_link_only_to_files_that_exist():
+    import re
+    from pathlib import Path
+    doc = Path(__file__).parents[2] / "docs" / "learning.md"
+    targets = re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", doc.read_text())
+    missing = [t for t in targets if "://" not in t and not (doc.parent / t).exists()]
+    assert targets and missing == []
+
+
+def test_the_results_say_what_they_were_measured_with(loop):
+    import torch
+    folder, _ = loop
+    summary = json.loads((folder / "results" / "results.json").read_text())
+    environment = summary["environment"]
+    assert environment["torch"] == torch.__version__.split("+")[0] and environment["lerobot"]
+    assert environment["python"] == ".".join(map(str, sys.version_info[:3])) and "commit" in environment
+    assert summary["seconds"] > summary["training"]["seconds"]
+
+
+def test_a_message_is_one_line_whatever_the_paths_length(tmp_path):
+    """Not broken at the 80 columns rich assumes off a terminal (where it fell depended on the
+    temporary folder's name)."""
+    deep = tmp_path / ("a_rather_long_folder_name_" * 4)
+    deep.mkdir()
+    (deep / "afile").write_text("")
+    done = learn("train", "ds", "-o", str(deep / "afile"), "--minutes", "1", cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert f"error: -o {deep / 'afile'}: a file is there; the checkpoint is a directory (give a new path)\n" \
+        == done.stderr, done.stderr

@@ -234,3 +234,86 @@ def test_a_lerobot_checkpoint_is_pointed_at_lerobot_policy(tmp_path):
     with pytest.raises(ValueError, match="a LeRobot checkpoint .* agents.learn train; run a LeRobot policy as a "
                                          "retriever.learn.LeRobotPolicy flow"):
         check_skill_policy(str(tmp_path / "act"))
+
+
+def test_a_policy_trained_on_other_features_is_refused_before_anything_starts(tmp_path):
+    """Sizes that fit its own weights but not the robot's vectors: refused by the check, not by
+    a tensor-size error at Pick's first tick."""
+    pytest.importorskip("torch")
+    from agents.learn.bc import make_module, save
+    for name, sizes in [("state20", {"state_dim": 20, "scene_dim": 10}), ("scene8", {"state_dim": 18, "scene_dim": 8})]:
+        config = {**sizes, "steps": 150, "nu": 5, "hidden": 8}
+        save(make_module(config), config, tmp_path / name)
+        with pytest.raises(ValueError, match="its state 18 values and its scene 10 .* trained on other features"):
+            check_skill_policy(str(tmp_path / name))
+
+
+def test_weights_that_are_not_finite_or_not_floats_are_refused_before_anything_starts(tmp_path):
+    torch = pytest.importorskip("torch")
+    nan = _mlp_checkpoint(tmp_path / "nan", y_mean=torch.full((750,), float("nan")))
+    with pytest.raises(ValueError, match=r"y_mean holds 750 value\(s\) that are not finite"):
+        check_skill_policy(nan)
+    inf = _mlp_checkpoint(tmp_path / "inf", **{"net.0.bias": torch.tensor([float("inf")] + [0.0] * 7)})
+    with pytest.raises(ValueError, match=r"net.0.bias holds 1 value\(s\) that are not finite"):
+        check_skill_policy(inf)
+    ints = _mlp_checkpoint(tmp_path / "ints", x_std=torch.ones(28, dtype=torch.int8))
+    with pytest.raises(ValueError, match="x_std is I8, not a float tensor"):
+        check_skill_policy(ints)
+    check_skill_policy(_mlp_checkpoint(tmp_path / "f64", x_std=torch.ones(28, dtype=torch.float64)))
+
+
+def test_without_torch_a_checkpoint_is_refused_with_the_extra_to_install(tmp_path, monkeypatch):
+    import importlib.util
+    path = _mlp_checkpoint(tmp_path / "good")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
+    with pytest.raises(ValueError, match=r"needs torch, which cannot be imported here\n.*retriever-robotics\[lerobot\]"):
+        check_skill_policy(path)
+
+
+def test_a_demo_whose_policy_setup_fails_leaves_no_log_and_says_so(tmp_path, monkeypatch, capsys):
+    """The checkpoint passed the check, then its setup() failed (it changed, a library broke):
+    the run did not start, so neither its log nor an empty pictures folder is left."""
+    import typer
+
+    from agents import command
+
+    def broken(self):
+        raise RuntimeError("the checkpoint changed under it")
+
+    path = _mlp_checkpoint(tmp_path / "policy")
+    monkeypatch.setattr(LearnedSkill, "setup", broken)
+    monkeypatch.setattr(command.cli, "stop_on_sigterm", lambda: None)    # the test process keeps its handlers
+    with pytest.raises(typer.Exit):
+        command.demo(backend="inproc", seed=2, drawer="TL", duration=20.0, skill_policy=path,
+                     log=tmp_path / "run.mcap", out=tmp_path / "pictures")
+    err = capsys.readouterr().err
+    assert "pick_policy.setup() raised RuntimeError: the checkpoint changed under it" in err, err
+    assert "no log is left: the run did not start" in err, err
+    assert not (tmp_path / "run.mcap").exists() and not (tmp_path / "pictures").exists()
+
+
+def test_a_save_that_fails_leaves_the_checkpoint_that_was_there(tmp_path, monkeypatch):
+    """train --force over a checkpoint, its save failing after the weights are written: the old
+    weights and config stay together (new weights with the old config would pass the check)."""
+    pytest.importorskip("torch")
+    from agents.learn import bc
+    path = _mlp_checkpoint(tmp_path / "policy")
+    before = {name: (tmp_path / "policy" / name).read_bytes() for name in (WEIGHTS_FILE, CONFIG_FILE)}
+    config = {"state_dim": 18, "scene_dim": 10, "steps": 150, "nu": 5, "hidden": 8}
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(bc.json, "dumps", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        bc.save(bc.make_module(config), config, path)
+    after = {p.name: p.read_bytes() for p in (tmp_path / "policy").iterdir()}
+    assert after == before
+
+
+def test_a_config_too_large_to_be_a_pick_policys_is_not_read(tmp_path):
+    path = _mlp_checkpoint(tmp_path / "big")
+    doc = json.loads((tmp_path / "big" / CONFIG_FILE).read_text())
+    (tmp_path / "big" / CONFIG_FILE).write_text(json.dumps({**doc, "padding": "x" * (1 << 20)}))
+    with pytest.raises(ValueError, match=r"policy.json is 10\d{5} bytes; a Pick policy's config is a few hundred"):
+        check_skill_policy(path)

@@ -377,7 +377,7 @@ def test_a_tick_between_runs_keeps_seqs_unique():
         with patch():
             pipe = chain("typed")()
             pipe.run(duration=0.01)
-            session = pipe._session
+            session = pipe.session
             session.tick("src", (pipe.trace.raw_steps[-1][1][0], 5))
             pipe.run(duration=0.01)
             results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))

@@ -64,11 +64,11 @@ def test_on_zenoh_without_a_log_a_records_run_sends_the_coordinator_no_values():
     assert all(e.value is NOT_KEPT for e in trace.events)
     assert len(trace.steps) == 20
     # 10 frames of 256 KiB were sent; the coordinator got their ids and the step records only
-    assert pipe._session.reported_bytes < SIZE, pipe._session.reported_bytes
+    assert pipe.session.reported_bytes < SIZE, pipe.session.reported_bytes
 
     full = _frames()  # the same run keeping the trace: the frames come to the coordinator
     full.run(duration=1.0, backend="zenoh", quiet=True)
-    assert full._session.reported_bytes > 10 * SIZE
+    assert full.session.reported_bytes > 10 * SIZE
 
 
 def test_on_zenoh_with_a_log_a_records_run_logs_every_value_and_keeps_none(tmp_path):
@@ -111,7 +111,7 @@ def test_on_inproc_a_counters_run_holds_a_bounded_number_of_records_and_reads_it
     pipe = _fast()
     trace = pipe.run(duration=10.0, keep="counters", log=tmp_path / "run.mcap")
     assert sum(s.steps for s in pipe.stats().values()) == 20_000
-    assert 0 < pipe._session.retained_peak <= 2 * pipe._session.LOG_BATCH + 2
+    assert 0 < pipe.session.retained_peak <= 2 * pipe.session.LOG_BATCH + 2
     assert trace == _fast().run(duration=10.0) and len(trace.steps) == 20_000
     assert "read back from" in repr(trace)
     log = read_log(tmp_path / "run.mcap")
@@ -121,7 +121,7 @@ def test_on_inproc_a_counters_run_holds_a_bounded_number_of_records_and_reads_it
 def test_a_counters_run_without_a_log_keeps_counters_and_says_where_the_records_would_be():
     pipe = _fast()
     trace = pipe.run(duration=10.0, keep="counters")
-    assert pipe.stats()["viewer"].steps == 10_000 and pipe._session.retained_peak <= 2 * pipe._session.LOG_BATCH + 2
+    assert pipe.stats()["viewer"].steps == 10_000 and pipe.session.retained_peak <= 2 * pipe.session.LOG_BATCH + 2
     assert len(trace.raw_steps) == 0 and "counters only" in repr(trace)
     for ask in (lambda: trace.events, lambda: trace.steps_of("viewer"), trace.digest, lambda: len(trace)):
         with pytest.raises(ValuesNotKeptError, match=r"kept only counters \(keep='counters'\)\n    hint: pipe.stats"):
@@ -154,7 +154,7 @@ def test_a_logged_run_on_zenoh_keeps_only_counters_by_default_and_its_trace_read
     pipe = _fast(hz=200.0)
     path = tmp_path / "run.mcap"
     trace = pipe.run(duration=3.0, backend="zenoh", quiet=True, log=path)
-    session = pipe._session
+    session = pipe.session
     assert session.keep == "counters"
     steps = sum(s.steps for s in pipe.stats().values())
     assert steps >= 1000 and session.retained_peak < steps / 5, (session.retained_peak, steps)
@@ -162,4 +162,4 @@ def test_a_logged_run_on_zenoh_keeps_only_counters_by_default_and_its_trace_read
     assert replay(read_log(path)).identical
     unlogged = _fast(hz=200.0)  # without a log, the default is still the whole trace
     unlogged.run(duration=0.5, backend="zenoh", quiet=True)
-    assert unlogged._session.keep == "trace" and unlogged.trace.values_kept
+    assert unlogged.session.keep == "trace" and unlogged.trace.values_kept

@@ -116,16 +116,16 @@ def test_a_signal_while_a_log_fails_to_begin_interrupts_and_is_not_carried_over(
 def test_a_second_signal_as_the_log_is_begun_leaves_no_writer_behind(tmp_path, monkeypatch):
     """A second Ctrl-C lands just as the writer is set on the session (the run not begun): the file
     is removed, and the pipeline's next run does not write to that closed file."""
-    import retriever.pipeline as pipeline
+    from retriever.pipeline import RunLog
     from tests.log.log_flows import build_small
 
-    begin = pipeline._open_log
+    begin = RunLog.begin
 
-    def begun_then_interrupted(session, file):
-        begin(session, file)
+    def begun_then_interrupted(self, session):
+        begin(self, session)
         raise KeyboardInterrupt  # as the second signal would, before the run begins
 
-    monkeypatch.setattr(pipeline, "_open_log", begun_then_interrupted)
+    monkeypatch.setattr(RunLog, "begin", begun_then_interrupted)
     path = tmp_path / "twice.mcap"
     pipe = build_small()
     pipe.run(duration=0)  # a session exists: it outlives the refused run

@@ -93,7 +93,7 @@ def test_a_logged_run_is_inprocs_trace_and_replays_identically(tmp_path):
     log = read_log(path)
     assert log.end["status"] == "finished" and log.run["backend"] == "dora"
     assert replay(log).identical
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 def test_an_output_no_edge_takes_is_logged(tmp_path):
@@ -133,7 +133,7 @@ def test_a_step_that_raises_stops_the_run_with_the_workers_traceback():
     with pytest.raises(StepError, match=r"bad\.step\(\) raised RemoteError: ValueError: third time(.|\n)*"
                                         r"worker traceback:(.|\n)*dora_flows\.py"):
         pipe.run(duration=5.0, backend="dora", quiet=True)
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 def test_a_sigkilled_worker_stops_the_run_naming_its_node():
@@ -144,7 +144,7 @@ def test_a_sigkilled_worker_stops_the_run_naming_its_node():
     def kill_once_going() -> None:
         give_up = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < give_up:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None and session.trace.raw_steps:
                 pids.update(session.worker_pids())
                 os.kill(pids["total"], signal.SIGKILL)
@@ -162,7 +162,7 @@ def test_a_sigkilled_worker_stops_the_run_naming_its_node():
     assert pids, "the killer never saw the run going"
     message = str(caught.value)
     assert f"worker process of 'total' (pid {pids['total']}) was killed by SIGKILL" in message, message
-    _nothing_left(pipe._session)
+    _nothing_left(pipe.session)
 
 
 # ---------------------------------------------------------------------------------------------

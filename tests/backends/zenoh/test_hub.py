@@ -177,7 +177,7 @@ with Pipeline("run_after_run") as pipe:
     camera.then(SegmentsTaker().configure(name="taker") @ Trigger("image"))
 for _ in range(int(sys.argv[1])):
     trace = pipe.run(duration=0.1, backend="zenoh", quiet=True)
-    run_dir = str(pipe._session._dir)
+    run_dir = str(pipe.session._dir)
     pipe.reset()
     taker = {path: size for segments in trace.values_of("taker", "segments") for path, size in segments}
     print(json.dumps({"rss_shmem_kb": rss_shmem_kb(), "mapped": sorted(mapped_segments()), "taker": taker,

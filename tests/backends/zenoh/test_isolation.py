@@ -49,7 +49,7 @@ class Steady(Flow[None, Beat]):
 
 
 def lateness_ms(pipe, trace, node: str) -> list[float]:
-    t0 = pipe._session.t0
+    t0 = pipe.session.t0
     return [(s.wall_start_ns - (t0 + s.tag[0])) / 1e6 for s in trace.steps_of(node)]
 
 

@@ -672,7 +672,7 @@ def _signal_once_going(pipe, namespace: str, node: str, signum: int, pids: dict[
     def send() -> None:
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None and _steps_so_far(session) > 0:
                 pids.update(session.worker_pids())
                 if idents is not None:
@@ -704,7 +704,7 @@ def test_sigkill_of_a_worker_stops_the_run_naming_its_node(namespace, victim):
     assert "was killed by SIGKILL before it finished" in message, message
     survivors = {node: ident for node, ident in idents.items() if _alive(ident)}
     assert not survivors, f"worker(s) {survivors} survived the failed run"
-    assert pipe._session.worker_pids() == pids
+    assert pipe.session.worker_pids() == pids
 
 
 def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its_producer(tmp_path, namespace):
@@ -724,7 +724,7 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
     def killer() -> None:
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None:
                 steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
                 unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session._event_ids]
@@ -779,7 +779,7 @@ def _kill_when(pipe: Pipeline, victim: str, ready, kills: list[int], done: threa
     def killer() -> None:
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None and ready(session, kills):
                 pid = session.worker_pids()[victim]
                 kills.append(pid)
@@ -855,7 +855,7 @@ def test_two_neighbours_killed_together_both_restart_afresh_at_once(tmp_path, na
     def killer() -> None:
         deadline = time.monotonic() + BOUND_S
         while not done.is_set() and time.monotonic() < deadline:
-            session = pipe._session
+            session = pipe.session
             if session is not None and session.t0 is not None and _steps_so_far(session) > 60:
                 pids = session.worker_pids()
                 for node in ("mid", "total"):
@@ -973,13 +973,13 @@ def test_a_flow_whose_process_dies_past_its_restart_budget_stops_the_run_naming_
         with pytest.raises(RestartLimitError, match=r"^flow 'total' failed again after 1 restart\(s\) within 60 s "
                                                     r"\(max_restarts=1, restart_window=60\): its worker process "
                                                     r"\(pid \d+\) was killed by SIGKILL at t=[\d.]+ s\n"
-                                                    r"    hint: fix what makes 'total' fail \(retriever log info"):
+                                                    r"    hint: fix what makes 'total' fail \(retriever log info") as caught:
             pipe.run(duration=30, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap",
                      keep="trace")  # ready() reads the records as they come
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
-    assert len(kills) == 2 and f"pid {kills[1]}" in str(pipe._session._limit)
+    assert len(kills) == 2 and f"pid {kills[1]}" in str(caught.value)
     faults = read_log(tmp_path / "run.mcap", salvage=True).faults  # each death, the last one too
     assert [(f["pid"], f["restarted"]) for f in faults] == [(str(kills[0]), "true"), (str(kills[1]), "false")]
 
@@ -1050,7 +1050,7 @@ def test_garbage_from_an_insider_is_counted_and_the_run_completes(namespace, tmp
         out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
-    session = pipe._session
+    session = pipe.session
     assert session.endpoint == endpoint(port), "the hub did not get the port the client connects to"
     assert client.returncode == 0, err
     assert out.splitlines()[-1] == "sent", out
@@ -1115,7 +1115,7 @@ def test_well_formed_messages_that_are_not_the_runs_stay_out_of_the_trace(tmp_pa
         out, err = client.communicate(input="run ended\n", timeout=BOUND_S)
     finally:
         _kill(client)
-    assert pipe._session.endpoint == endpoint(port)
+    assert pipe.session.endpoint == endpoint(port)
     assert client.returncode == 0 and out.splitlines()[-1] == "sent", err
     stats = pipe.stats()
     assert (stats["counter"].steps, stats["total"].steps) == (20, 10)
@@ -1157,8 +1157,8 @@ pipe.run(0.5, backend="zenoh", quiet=True, log=sys.argv[1] + "/run.mcap")  # the
 print(sorted((n, s.ticks) for n, s in pipe.stats().items()), flush=True)
 if sys.argv[2] == "leave-open":  # the script ends with a session open: its workers must not hang the exit
     other = two_node_pipeline("left_open")
-    other._session_for("zenoh", {"quiet": True})  # started workers, never run nor closed
-    print(len(other._session.worker_pids()), flush=True)
+    other.open("zenoh", quiet=True)  # started workers, never run nor closed
+    print(len(other.session.worker_pids()), flush=True)
 """
 
 
@@ -1211,7 +1211,7 @@ def test_a_flow_that_cannot_be_rebuilt_is_refused_before_any_process_starts(tmp_
     assert re.search(why, message), message  # ...and why
     assert "sink" not in message.split("cannot be rebuilt that way:", 1)[1].split("hint:")[0], message
     assert 'backend="inproc"' in message, message
-    assert pipe._session is None
+    assert pipe.session is None
     assert set(_worker_children(os.getpid())) == before, "a worker process was started"
     if case != "local-class":
         pipe.reset()

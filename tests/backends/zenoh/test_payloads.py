@@ -29,7 +29,7 @@ def test_large_frames_arrive_intact_and_are_logged(tmp_path):
     path = tmp_path / "run.mcap"
     trace = pipe.run(duration=1.5, backend="zenoh", quiet=True, log=path)
 
-    session = pipe._session
+    session = pipe.session
     assert "garbage" not in pipe.counts(), pipe.counts()
     # its own run directory only: another run on the machine may have one of its own meanwhile
     assert str(session._dir).startswith("/dev/shm/") and not os.path.exists(session._dir), \

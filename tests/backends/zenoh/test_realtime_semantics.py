@@ -281,7 +281,7 @@ def test_on_error_restart_runs_a_fresh_flow_in_a_new_process():
     old_pid = {r["pid"] for r in before}
     new_pid = {r["pid"] for r in after}
     assert len(old_pid) == 1 and len(new_pid) == 1 and old_pid != new_pid, (old_pid, new_pid)
-    assert pipe._session.worker_pids()["faulty"] == new_pid.pop()
+    assert pipe.session.worker_pids()["faulty"] == new_pid.pop()
     # fresh state (reset()): the new process counts its calls from 1 again
     assert [r["calls"] for r in after] == list(range(1, len(after) + 1))
     # the failed tick is not re-run, and later ticks consume later events

@@ -35,7 +35,7 @@ def test_a_flow_whose_worker_stopped_before_the_start_fails_the_run_and_is_named
     with Pipeline("stopped_early") as pipe:
         Counter() @ Rate(hz=SOURCE_HZ)
         Counter().configure(name="early") @ Rate(hz=SOURCE_HZ)
-    _stop_before_the_start(pipe._session_for("zenoh", {"quiet": True}), "early")
+    _stop_before_the_start(pipe.open("zenoh", quiet=True), "early")
     with pytest.raises(BackendError, match=r"1 flow\(s\) never ticked in the run's 1 s, though their clocks had "
                                            r"ticks due:\n    early \(Rate\(hz=20\)\): 0 of 20 ticks; its worker "
                                            r"stopped before the run's start reached it\n    hint: .*start_margin="):
@@ -52,5 +52,5 @@ def test_fifty_flows_start_and_every_one_ticks():
         for i in range(MANY_FLOWS - 1):
             source.then(Total().configure(name=f"total{i}") @ Rate(hz=SINK_HZ), sync=Latest())
     pipe.run(duration=RUN_S, backend="zenoh", quiet=True)
-    due = {nid: _ticks_due(node.clock, round(RUN_S * 1e9)) for nid, node in pipe._session.graph.nodes.items()}
+    due = {nid: _ticks_due(node.clock, round(RUN_S * 1e9)) for nid, node in pipe.session.graph.nodes.items()}
     assert {nid: s.ticks for nid, s in pipe.stats().items()} == due

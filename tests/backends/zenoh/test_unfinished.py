@@ -30,7 +30,7 @@ BOUND_S = 60.0  # a bound on any wait, never a speed check
 def _worker_pid(pipe: Pipeline, node: str) -> int:
     give_up = time.monotonic() + BOUND_S
     while time.monotonic() < give_up:
-        session = pipe._session
+        session = pipe.session
         pids = session.worker_pids() if session is not None and hasattr(session, "worker_pids") else {}
         if node in pids and session.t0 is not None:
             return pids[node]
@@ -138,7 +138,7 @@ def test_a_done_node_short_of_reports_is_said_so_naming_the_events_they_held(nam
     netns lab lost two of a 200 MiB source's, issue 40's reproduction)."""
     pipe = two_node_pipeline("short", source_hz=20, sink_hz=10)
     pipe.run(duration=0.5, backend="zenoh", namespace=namespace, quiet=True)
-    session = pipe._session
+    session = pipe.session
     last = session._done_info["counter"]["sent"]["n"]  # what its worker said it sent, in its done status
     assert last == session._have[("counter", "n")] >= 9
     session._reports_sent["counter"] += 1

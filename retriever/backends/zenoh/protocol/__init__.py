@@ -1,0 +1,154 @@
+"""The Zenoh runtime's protocol: every control and status message, as a typed record (issue 37).
+
+Each message is a frozen dataclass with ``encode()`` (the bytes today's senders put, byte for
+byte) and an exact ``decode`` (schema.py: every field's type, range and size, none missing,
+none more, no extension type; a :class:`WireError` names the field). Op and state names are the
+enums below; no other module spells one. The events and progress of the data plane keep their
+own exact decoders in wire.py.
+
+    schema.py          field kinds, the record base, the envelopes
+    to_coordinator.py  worker → coordinator: statuses (State), reports
+    to_worker.py       coordinator → workers: ctl/run (Op), and answers to a worker's questions
+    daemon.py          coordinator ↔ worker daemon: requests, replies, errors, the daemon's events
+    deployment.py      `retriever status` / `retriever stop` ↔ a deployment's coordinator
+    seal.py            signed control: the coordinator seals, each worker process opens
+
+Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
+MAC of the sending worker process's own key (origin.py); *sealed*, by the coordinator for each
+live process (seal.py: ctl/run and its answers, once the call sites use it; until then none);
+*none*, the session's credentials alone (anyone holding the run's or the namespace's password
+may send it). The last column: what the receiver checks today beyond the fields (which the
+decoders check).
+
+    key / message          from → to       fields (in order; [optional])    signed  the receiver checks too
+    ---------------------- --------------- -------------------------------- ------- ---------------------------------
+    data/<node>/<port>     worker → its    wire.py: [2, tag, seq, frontier, none    key names producer.port; seq not
+                           consumers, put  producer, port, value(, count)]          from the future (EARLY_SEQS_MAX);
+                                                                                    frontier not past what it can
+                                                                                    promise; each seq once
+    progress/<node>        worker → its    wire.py: [2, frontier, producer, none    producer = key; frontier as above
+                           consumers, put  {port: last seq}]
+                           and reply
+    warm/<node>            worker, put     empty: no one subscribes         none    -
+    ---------------------- --------------- -------------------------------- ------- ---------------------------------
+    status/node/<node>     worker →        [2, node, state, {fields, pid}]  process node of the run; signed by its
+                           coordinator,                                             current process (done, failed: or
+                           put                                                      its retiring one; handed_over:
+                                                                                    the retiring one only); a
+                                                                                    process's states in order
+                                                                                    (may_say)
+      ready                                [linked, unlinked, peers]                linked false: the run fails; else
+                                                                                    restarted, handover or afresh, by
+                                                                                    what the coordinator waits for
+      done                                 counts, [reports, started_ns,            stopped true with no stop sent:
+                                           ticks, stopped, sent]                    the run fails; sent: output ports
+                                                                                    of the node
+      failed                               error, [setup], [tag], [counts],         the run fails: SetupError
+                                           traceback, [zeno]                        (setup), CausalityError (zeno),
+                                                                                    StepError (tag)
+      restart                              tag, error                               the node's restart budget
+      handed_over                          counts, reports                          -
+      reached                              until                                    virtual time only; min(until,
+                                                                                    grant)
+      unanswered                           nodes                                    nodes of the run; before the
+                                                                                    start only
+      exit                                 tag                                      ends the run only beside the
+                                                                                    node's own ok record at that tag,
+                                                                                    detail {exit: 0}
+    status/report/<node>   worker →        [2, node, [[tag, consumed,       process node of the run; one record per
+                           coordinator,    produced, status, detail,                tick, on the node's clock; an
+                           put             wall_start_ns, wall_ns], …],             event of its outputs or of an
+                                           [[wall_ns, message or file               edge into it, once; a file name
+                                           name], …]]                               is the node's own, in the run
+                                                                                    directory
+    ---------------------- --------------- -------------------------------- ------- ---------------------------------
+    ctl/run                coordinator →   [2, op, {fields}]                sealed  (by op)
+                           workers, put
+      start                                t0, end, values, [grant]                 waited for by a node's first
+                                                                                    process
+      grant                                until                                    virtual time only; the grant only
+                                                                                    grows
+      redeclare                            nodes                                    before the start: its node named;
+                                                                                    during the run: garbage
+      restarted                            node, seqs, values                       the node's fresh process: a seq
+                                                                                    >= RESTART_SEQ_GAP per port; a
+                                                                                    consumer: node said lost, seqs
+                                                                                    near its streams'
+      handover                             node                                     the node's process, restarting
+      resume                               node                                     the node's new process, waiting
+      end                                  at                                       end = min(end, at)
+      have                                 streams: [[producer, port, seq],         streams it consumes; have only
+                                           …]                                       grows
+      lost                                 node                                     its own node: stop, promise
+                                                                                    nothing; a producer: its seqs may
+                                                                                    jump
+      stop                                 -                                        -
+    ctl/start              worker query →  start {t0, end, values}          sealed  joins the worker's inbox as
+                           coordinator                                              ctl/run's start
+                           reply
+    status/finished        worker query →  finished {nodes, complete,       sealed  names only
+                           coordinator     restarting}
+                           reply
+    ---------------------- --------------- -------------------------------- ------- ---------------------------------
+    ctl/<name>             coordinator     [2, op, {fields}] → [2, op,      none    the daemon: size
+                           query → daemon  {fields}], or reply_err [2,              (MAX_REQUEST_BYTES), op; the
+                           reply           "error", {message}]                      coordinator: replies only from
+                                                                                    the session it learned the daemon
+                                                                                    by
+      info                                 - → protocol, name, labels,              protocol = PROTOCOL_VERSION; the
+                                           host, pid, python, packages,             clock's offset; one daemon per
+                                           clock_ns, nodes, counts                  name
+      prepare                              run, spec, nodes → nodes,                the IR (ir.IR); each class on the
+                                           warnings                                 allowlist, its code's hash; a
+                                                                                    coordinator's token up; one run
+                                                                                    at a time; the spec's zids,
+                                                                                    hub_zid, virtual_time
+      spawn                                run, node, mode → pid, key               run and node prepared; no key in
+                                                                                    the request; the code's hash
+                                                                                    again; at most 2 processes per
+                                                                                    node
+      signal                               run, pid, signal → -                     a process of the run; USR1, TERM
+                                                                                    or KILL
+      usage                                run → cpu_s                              the run prepared
+      end                                  run → -                                  the run prepared
+    workers/<name>/events  daemon →        [2, op, {fields}]                none    its run (a daemon serves one at a
+                           coordinator,                                             time)
+                           put
+      output                               run, node, stream, lines                 -
+      exit                                 run, node, pid, code                     a process the coordinator started
+                                                                                    there
+    workers/<name>         daemon          liveliness token                 none    -
+    ---------------------- --------------- -------------------------------- ------- ---------------------------------
+    deployment             CLI query →     status {} → pipeline, run, t_ns, none    op (anyone holding the
+                           coordinator     end_ns, started, nodes; stop {}          namespace's secret may ask, and
+                           reply           → pipeline; or reply_err error           stop it: by design)
+                                           {message}
+    deployment             coordinator     liveliness token                 none    daemons end its run when it goes
+"""
+
+from __future__ import annotations
+
+from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST,
+                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, PrepareReply,
+                     PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnMode, SpawnReply,
+                     SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
+from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeStatus, StatusQuery, StatusReply,
+                         StopQuery, StopReply)
+from .schema import ABSENT, Record
+from .seal import ControlOpener, ControlSigner, new_nonce
+from .to_coordinator import (STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
+                             ReportedStep, Restart, State, Status, Unanswered)
+from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Handover, Have, Lost, Op, Redeclare,
+                        Restarted, Resume, Start, Stop)
+
+__all__ = sorted([
+    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "FINISHED_REPLY",
+    "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
+    "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "End", "EndReply", "EndRequest", "ErrorReply",
+    "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest", "Lost",
+    "NodeStatus", "Op", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached", "Ready",
+    "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume", "SignalReply",
+    "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status", "StatusQuery",
+    "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply", "UsageRequest",
+    "decode_reply", "error_message", "new_nonce",
+])
