@@ -32,20 +32,6 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 #: Private names still read across modules today: each is to go (the check fails on any other,
 #: and on one of these that no longer occurs). Keyed by the reading module and the name.
 KNOWN = {
-    # the generated ticks bind the in-process session's members (a public tick interface would do)
-    ("retriever.backends._inproc_ticks", "_by_id"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_emit"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_failed"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_heap"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_keep_next"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_microsteps"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_next"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_records"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_resume_group"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_saw_ports"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_schedule"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_skipped"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_staleness_ns"): "issue 37: remove",
     # dora customises the zenoh coordinator by overriding its private hooks (it should hand it a host)
     ("retriever.backends.dora.coordinator", "_check_processes"): "issue 37: remove",
     ("retriever.backends.dora.coordinator", "_dir"): "issue 37: remove",
@@ -92,7 +78,6 @@ KNOWN = {
     # the loop builds bursts through Burst's private constructor
     ("retriever.backends.zenoh.loop", "_of"): "issue 37: remove",
     # the worker reads the loop's control key and an in-process private
-    ("retriever.backends.zenoh.worker", "_AlwaysMissing"): "issue 37: remove",
     ("retriever.backends.zenoh.worker", "_CONTROL"): "issue 37: remove",
     # a flow's settings are read through its private `_retriever` (a flow.settings_of(flow) would do)
     ("retriever.graph", "_retriever"): "issue 37: remove",
