@@ -7,7 +7,7 @@ Layers, lowest first: a module imports from its own layer and those below, never
 (not lazily inside a function, not under ``if TYPE_CHECKING:``); ``<`` separates layers, spaces
 the modules of one layer, and a package stands for its modules (tests/test_layers.py checks it).
 
-    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild features
+    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild features < plan tick
     plan       placement
     log        log
     backends   backends.base < starved < backends._inproc_ticks backends.inproc < backends.zenoh < backends.dora < backends
@@ -16,6 +16,10 @@ the modules of one layer, and a package stands for its modules (tests/test_layer
     replay     replay
     libraries  gym learn
     cli        cli __main__
+
+The kernel ends in what every backend shares: ``plan``, a graph's wiring node by node, computed
+once (plain data, which a worker gets or makes from the IR); ``tick``, the reference tick (input
+selection, the step call, the one ``on_error`` decision), which every backend runs or is held to.
 
 This package's own names (below) re-export the curated API from every layer. ``agents/`` sits
 above everything and nothing in ``retriever/`` imports it. Two aliases are kept for the

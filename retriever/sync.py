@@ -110,36 +110,6 @@ class PortBuffer:
             self.cursor = max(0, self.cursor - keep_from)
 
 
-def select_inputs(inputs: list[tuple], tau: tuple[int, int]) -> tuple[dict, dict, list | None, list | None, dict | None]:
-    """One tick's input snapshot at ``tau``: each ``(port, buffer, policy, port spec)`` selects.
-
-    Returns ``(values, consumed, missing, commits, dropped)``: the step's arguments (a MISSING
-    optional port gets its fallback), the consumed event ids per port, the required ports that
-    were MISSING (None if none: then the tick runs), the ``(policy, buffer, commit)`` to apply
-    if it does, and the Queue drop counts per port (None if none). Shared by every backend.
-    """
-    values: dict[str, Any] = {}
-    consumed: dict[str, tuple] = {}
-    missing: list[str] | None = None
-    commits: list | None = None
-    dropped: dict[str, int] | None = None
-    for port, buf, policy, spec in inputs:
-        value, ids, n_dropped, commit = policy.select(buf, tau)
-        if value is MISSING:
-            if spec.required:
-                (missing := missing or []).append(port)
-            else:
-                values[port] = spec.fallback()
-            continue
-        values[port] = value
-        consumed[port] = ids
-        if commit is not None:
-            (commits := commits or []).append((policy, buf, commit))
-        if n_dropped:
-            (dropped := dropped or {})[port] = n_dropped
-    return values, consumed, missing, commits, dropped
-
-
 class SyncPolicy:
     """Base of sync policies. Subclasses are small immutable values."""
 

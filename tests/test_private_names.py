@@ -32,25 +32,10 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 #: Private names still read across modules today: each is to go (the check fails on any other,
 #: and on one of these that no longer occurs). Keyed by the reading module and the name.
 KNOWN = {
-    # the generated ticks bind the in-process session's members (a public tick interface would do)
-    ("retriever.backends._inproc_ticks", "_by_id"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_emit"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_failed"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_heap"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_keep_next"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_microsteps"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_next"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_records"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_resume_group"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_saw_ports"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_schedule"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_skipped"): "issue 37: remove",
-    ("retriever.backends._inproc_ticks", "_staleness_ns"): "issue 37: remove",
     # dora's host reads the zenoh output capture's privates; output.py should name them publicly
     ("retriever.backends.dora.host", "_WRITING"): "issue 37: remove",
     ("retriever.backends.dora.host", "_tail"): "issue 37: remove",
     # the worker reads the loop's control key and an in-process private
-    ("retriever.backends.zenoh.worker", "_AlwaysMissing"): "issue 37: remove",
     ("retriever.backends.zenoh.worker", "_CONTROL"): "issue 37: remove",
     # a flow's settings are read through its private `_retriever` (a flow.settings_of(flow) would do)
     ("retriever.graph", "_retriever"): "issue 37: remove",

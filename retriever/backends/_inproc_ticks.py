@@ -1,16 +1,20 @@
 """Tick functions for the in-process backend, generated once per session.
 
-``InprocSession._tick`` is the reference: one generic function that asks every input's policy to
-select, calls the flow through its invoker and reader, and emits. Most nodes are simpler than
-that — every input a ``Latest()`` port, a known calling convention, known output ports — and for
-those :func:`compile_tick` writes the code of a tick that does exactly what ``_tick`` would do for
-that node with everything known at wiring time inlined: ``Latest.select`` unrolled per port, the
-step call spelled out (``step(Num(x=v0))``), the outputs read by attribute, each output delivered
-to its consumers without looking them up. Anything else (another policy, a staleness bound, a
-port name that is not an identifier, a replaced step) is not compiled; a step output of an
-unexpected type (a dict from a typed flow, an untyped flow's dict of other ports, a value not of
-a plain type), an error, a skipped tick, leave the compiled path for the session's generic
-helpers (``_emit``, ``_failed``, ``_skipped``).
+``tick.run_tick`` is the reference: one generic function that asks every input's policy to
+select, calls the flow through its invoker and reader, and hands the outputs to the session.
+Most nodes are simpler than that — every input a ``Latest()`` port, a known calling convention,
+known output ports — and for those :func:`compile_tick` writes the code of a tick that does
+exactly what ``run_tick`` would do for that node with everything its plan (retriever.plan) says
+inlined: ``Latest.select`` unrolled per port, the step call spelled out (``step(Num(x=v0))``),
+the outputs read by attribute, each output delivered to its consumers without looking them up.
+Anything else (another policy, a staleness bound, a port name that is not an identifier, a
+replaced step) is not compiled; a step output of an unexpected type (a dict from a typed flow, an
+untyped flow's dict of other ports, a value not of a plain type), an error, a skipped tick, leave
+the compiled path for the session's generic helpers (``Host.emit``, ``failed``, ``skipped``).
+
+The generated code reads the session through :class:`Host`, the session's surface for it, and
+each node through its ``NodeRuntime`` (``rt``: its flow, buffers, consumers, counters) and that
+node's plan (``rt.plan``: who feeds each input); nothing else of the session.
 
 :func:`make_ticks` turns the code of every node into one function per node; per rate group whose
 ticks run in node order, one more that runs them all, one after the other, with no call in
@@ -29,8 +33,8 @@ optional port had nothing; an output's value and seq are None when it made no ev
 link keeps a shorter record (see _TickWriter._record_line). The node's steps and step time are
 counted as its records are expanded (the session expands the tape before it reads the counts).
 
-Kept in sync with ``_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with the
-compiled ticks and with ``_tick`` only and compares the traces record by record (wall-clock
+Kept in sync with ``tick.run_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with
+the compiled ticks and with ``run_tick`` only and compares the traces record by record (wall-clock
 fields aside).
 """
 
@@ -46,6 +50,29 @@ from time import time_ns
 from typing import Any
 
 from ..sync import Latest
+
+
+@dataclass(eq=False)
+class Host:
+    """What generated ticks read and call in the session that runs them (InprocSession)."""
+
+    nodes: dict[str, Any]  # node id -> its NodeRuntime
+    tape: list  # the trace's tape, where ticks append their records (Trace.tape)
+    after: list[int]  # the node indices due at the next microstep of the tag running now
+    heap: list[tuple[int, int]]  # the tags due later: a lone group stops before one at its tick's time
+    max_microsteps: int
+    plain_types: frozenset[type]  # output types the codec always encodes: no check before recording
+    emit: Callable  # emit(rt, tau, outputs, consumed, start, end): outputs a generated tick does not take
+    skipped: Callable  # skipped(rt, tau, missing)
+    failed: Callable  # failed(rt, tau, consumed, exc, start, wall): a step that raised, on_error acted on
+    schedule: Callable  # schedule(tag, index): a tick of node ``index`` at ``tag`` (a delayed trigger)
+    keep_next: Callable  # keep_next(tag): a tick raised; what ``after`` holds goes on the heap at ``tag``
+    saw_ports: Callable  # saw_ports(rt, outputs): an untyped step returned other ports than expected
+    microsteps: Callable  # microsteps(tag, ran) -> (tag, ran): run ``after`` and what it triggers
+    resume_group: Callable  # resume_group(g, k): rate group ``g`` goes on from its tick ``k``
+    #: set by the session when the loop is to look at it (a stop, a flush asked for, ticks to
+    #: generate anew): a lone group's loop stops at its next tick
+    look: bool = False
 
 
 def _identifier(name: object) -> bool:
@@ -93,10 +120,9 @@ class NodeCode:
     links: dict[int, tuple[str, str]] = field(default_factory=dict)
 
 
-def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
-    """The code of a tick that does what ``session._tick(rt, tau)`` does, or None if this node
-    needs the generic path. ``sources`` maps ``id(buffer)`` to the ``(node, port)`` of each edge
-    that feeds it.
+def compile_tick(host: Host, rt: Any) -> NodeCode | None:
+    """The code of a tick that does what ``tick.run_tick`` does for ``rt`` (a NodeRuntime of the
+    session ``host`` is the surface of), or None if this node needs the generic path.
 
     The tick counts the ticks that ran no step (``ticks{k}``), and keeps the seq of its known
     output ports and each input buffer's ``visible``, in variables of its own; the tick counts
@@ -107,7 +133,7 @@ def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
     if rt.replaced:
         return None
     for port, buf, policy, spec in rt.inputs:
-        if type(policy) is not Latest or policy._staleness_ns is not None:
+        if type(policy) is not Latest or policy.staleness is not None:
             return None
     spec = rt.spec
     if spec.in_mode in ("io", "params") and not all(map(_identifier, [*(p for p, *_ in rt.inputs), *rt.fallbacks])):
@@ -120,14 +146,16 @@ def compile_tick(session: Any, rt: Any, sources: dict) -> NodeCode | None:
         known = list(spec.outputs)
     else:  # untyped: a dict of ports; a dict of exactly the wired ones takes the compiled path, or
         known = list(rt.ports_seen or rt.downstream)  # of the ports of the first that was not
-    return _TickWriter(rt, sources, known, session._by_id).code()
+    return _TickWriter(rt, known, host.nodes).code()
 
 
 class _TickWriter:
     """Writes the code of one node's compiled tick (:func:`compile_tick`), piece by piece."""
 
-    def __init__(self, rt: Any, sources: dict, known: list[str], by_id: dict[str, Any]):
-        self.rt, self.sources, self.known, self.by_id = rt, sources, known, by_id
+    def __init__(self, rt: Any, known: list[str], nodes: dict[str, Any]):
+        self.rt, self.known, self.nodes = rt, known, nodes
+        #: per input, the ``(node, port)`` of each edge that feeds it (its plan's)
+        self.sources = [rt.plan.sources(port) for port, *_ in rt.inputs]
         self.k = k = rt.index
         spec = rt.spec
         self.names: dict[str, Any] = {
@@ -163,9 +191,9 @@ class _TickWriter:
         self.passes = to_follower[0] if len(to_follower) == 1 else None
         fed_by = self._fed_by()
         links = {}
-        feeds = [node for _, buf, _, _ in rt.inputs for node, _ in self.sources[id(buf)]]
+        feeds = [node for sources in self.sources for node, _ in sources]
         for i, producer in fed_by.items():
-            if feeds.count(self.sources[id(rt.inputs[i][1])][0][0]) == 1:  # its one edge to this node
+            if feeds.count(self.sources[i][0][0]) == 1:  # its one edge to this node
                 links[producer] = (self._record_line(link=i), self._expander(link=i))
         return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower,
                         fed_by, self._record_line(), links)
@@ -174,14 +202,10 @@ class _TickWriter:
         """NodeCode.fed_by: input ``i`` -> the index of the node that alone feeds it, where that
         node stamps its events at the next microstep of its tick (no latency, no delay)."""
         fed = {}
-        for i, (_, buf, _, _) in enumerate(self.rt.inputs):
-            feeds = self.sources.get(id(buf), ())
-            if len(feeds) != 1:
-                continue
-            producer = self.by_id[feeds[0][0]]
-            edges = [delay_ns for _, b, delay_ns, _ in producer.downstream.get(feeds[0][1], ()) if b is buf]
-            if not producer.latency_ns and edges == [0]:
-                fed[i] = producer.index
+        for i, (port, *_) in enumerate(self.rt.inputs):
+            feeds = [feed for feed in self.rt.plan.feeds if feed.port == port]
+            if len(feeds) == 1 and not feeds[0].src_latency_ns and not feeds[0].delay_ns:
+                fed[i] = self.nodes[feeds[0].src].index
         return fed
 
     # -- the tick --------------------------------------------------------------------------
@@ -242,9 +266,9 @@ try:
 {_indent(no_events, "        ")}    else:
         {got} = read{k}(raw)
 except KeyboardInterrupt:
-    ticks{k} += 1  # (as _tick counts it)
+    ticks{k} += 1  # (as run_tick counts it)
     raise
-except BaseException as exc:  # SystemExit too, as in _tick
+except BaseException as exc:  # SystemExit too, as in run_tick
     error{k}(tau, exc, start, (now := time_ns()) - start{entries})
 else:
     now = time_ns()
@@ -357,13 +381,14 @@ def generic{k}(tau, raw, start, now{entries}):
         event itself is the entry of every undelayed edge; a delayed one gets an entry at its
         arrival tag."""
         k, rt, out = self.k, self.rt, []
-        for c, (consumer, buf, delay_ns, triggers) in enumerate(rt.downstream.get(port, ())):
+        edges = zip(rt.downstream.get(port, ()), rt.plan.consumers.get(port, ()), strict=True)
+        for c, ((consumer, buf, delay_ns, triggers), edge) in enumerate(edges):
             dbuf = f"dbuf{k}_{j}_{c}"
             self.names[dbuf], self.names[f"consumer{k}_{j}_{c}"] = buf.entries, consumer
             if delay_ns:
                 out.append(f"entry = ((ev[0][0] + {delay_ns}, 0), *ev[1:])\n")
             entry = "entry" if delay_ns else "ev"
-            if len(self.sources[id(buf)]) == 1:
+            if len(self.nodes[edge.dst].plan.sources(edge.dst_port)) == 1:
                 out.append(f"{dbuf}.append({entry})\n")
             else:
                 out.append(f"if not {dbuf} or {dbuf}[-1] < {entry}:\n    {dbuf}.append({entry})\n"
@@ -379,7 +404,7 @@ def generic{k}(tau, raw, start, now{entries}):
     # -- what an input consumed: in the tick, from its entry; in expand, from its slot ----------
     def _single_source(self, i: int) -> bool:
         """Whether one edge feeds input ``i`` (then its slot is the consumed event's seq)."""
-        feeds = self.sources[id(self.rt.inputs[i][1])]
+        feeds = self.sources[i]
         if len(feeds) == 1:
             self.names[f"src{self.k}_{i}"], self.names[f"srcport{self.k}_{i}"] = feeds[0]
         return len(feeds) == 1
@@ -459,7 +484,7 @@ CHAIN_MAX = 32
 Schedule = tuple[int, int, int]  # a rate group's (offset_ns, step_num, step_den)
 
 
-def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tuple[tuple[int, ...], Schedule]],
+def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[tuple[int, ...], Schedule]],
                fuse: bool) -> tuple:
     """``(ticks, chains, fused, alone, flush, peek)`` of every node: ``parts[i]`` is node ``i``'s code, or
     its generic tick; ``groups`` are the rate groups' nodes and schedules ``(offset_ns, step_num,
@@ -474,11 +499,11 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
     - ``fused[g]`` (with ``fuse``) runs one tick of each node of ``groups[g]``, in turn;
     - ``alone[g](k, until_ns, ran, log_at)`` (with ``fuse``) runs the group's ticks ``k, k + 1,
       …`` with the ticks they trigger (the chain the group triggers inline, the rest through
-      ``session._microsteps``), as long as nothing else is due at their time: it stops before a
+      ``host.microsteps``), as long as nothing else is due at their time: it stops before a
       tick when the heap holds a tag at or before its time, the tick is at or past ``until_ns``,
       ``ran`` (the ticks run, counted on) reaches ``log_at`` or the session asks to look
-      (``session._look``: ticks to compile anew, a flush asked for); then, or when a tick
-      raises, it hands the group the index of its next tick (``session._resume_group``).
+      (``host.look``: ticks to compile anew, a flush asked for); then, or when a tick
+      raises, it hands the group the index of its next tick (``host.resume_group``).
       Returns ``ran``;
     - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
       ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them);
@@ -486,11 +511,11 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
       over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats).
     """
     names: dict[str, Any] = {
-        "time_ns": time_ns, "insort": insort, "tape_extend": session._records.tape.extend, "emit": session._emit,
-        "skipped": session._skipped, "failed": session._failed, "schedule": session._schedule,
-        "after": session._next, "next_add": session._next.append, "keep_next": session._keep_next,
-        "saw_ports": session._saw_ports, "max_microsteps": session.max_microsteps, "plain": type(session).plain_types,
-        "session": session, "heap": session._heap, "microsteps": session._microsteps, "resume": session._resume_group,
+        "time_ns": time_ns, "insort": insort, "tape_extend": host.tape.extend, "emit": host.emit,
+        "skipped": host.skipped, "failed": host.failed, "schedule": host.schedule,
+        "after": host.after, "next_add": host.after.append, "keep_next": host.keep_next,
+        "saw_ports": host.saw_ports, "max_microsteps": host.max_microsteps, "plain": host.plain_types,
+        "host": host, "heap": host.heap, "microsteps": host.microsteps, "resume": host.resume_group,
     }
     codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
     everyone = set(range(len(parts)))
@@ -505,29 +530,9 @@ def make_ticks(session: Any, parts: list[NodeCode | Callable], groups: list[tupl
         else:
             names[f"tick{i}"] = part
             bodies.append(f"tick{i}(tau, out_tag)\nnow = time_ns()\n")  # (the next step starts after it)
-    grouped = {i for group, _ in groups for i in group}
-    followed = {code.follower for code in codes.values()}
-    heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
     chains = {}
-    for head in sorted(heads & codes.keys()):
-        chain = _chain(codes, head)
-        if len(chain) == 1:
-            continue
-        # a chain runs only when its head is the only tick due, and each link only when it is (so
-        # every event an input got from a producer that alone feeds it is visible: _all_visible)
-        links = _links(codes, chain, names, everyone, short)
-        src.append(f"""\
-def chain{head}(tau, out_tag):
-{_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
-    pass_on = None
-    try:
-{_indent(_one_reading(links[0] + _chain_steps(links[1:], "return out_tag")), "        ")}    except BaseException:
-        if pass_on is not None:
-            next_add(pass_on)
-        keep_next(out_tag)
-        raise
-    return out_tag
-""")
+    for head, chain in _chains(codes, groups):
+        src.append(_chain_function(head, chain, codes, names, everyone, short))
         chains[head] = f"chain{head}"
     groups = groups if fuse else []
     for g, (group, schedule) in enumerate(groups):
@@ -551,6 +556,35 @@ def chain{head}(tau, out_tag):
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused, *alone]:
         f.source = source
     return ticks, chain_ticks, fused, alone, flush, peek
+
+
+def _chains(codes: dict, groups: list[tuple[tuple[int, ...], Schedule]]) -> list[tuple[int, list[int]]]:
+    """``(head, chain)`` of each chain of two or more compiled Trigger flows: headed by what a
+    rate group's node triggers, or by a node nothing compiled triggers alone."""
+    grouped = {i for group, _ in groups for i in group}
+    followed = {code.follower for code in codes.values()}
+    heads = {codes[i].follower for i in grouped if i in codes} | {i for i in codes if i not in followed | grouped}
+    return [(head, chain) for head in sorted(heads & codes.keys()) if len(chain := _chain(codes, head)) > 1]
+
+
+def _chain_function(head: int, chain: list[int], codes: dict, names: dict, everyone: set[int],
+                    short: set[tuple[int, int]]) -> str:
+    """``chain{head}`` (make_ticks). A chain runs only when its head is the only tick due, and
+    each link only when it is (so every event an input got from a producer that alone feeds it is
+    visible: _all_visible)."""
+    links = _links(codes, chain, names, everyone, short)
+    return f"""\
+def chain{head}(tau, out_tag):
+{_nonlocal(s for i in chain for s in codes[i].state)}    now = time_ns()
+    pass_on = None
+    try:
+{_indent(_one_reading(links[0] + _chain_steps(links[1:], "return out_tag")), "        ")}    except BaseException:
+        if pass_on is not None:
+            next_add(pass_on)
+        keep_next(out_tag)
+        raise
+    return out_tag
+"""
 
 
 def _chain(codes: dict, head: int) -> list[int]:
@@ -635,7 +669,7 @@ def alone{g}(k, until_ns, ran, log_at):
     try:
         while True:
             t = {offset_ns} + k * {step_num} // {step_den}
-            if t >= until_ns or heap and heap[0][0] <= t or ran >= log_at or session._look:
+            if t >= until_ns or heap and heap[0][0] <= t or ran >= log_at or host.look:
                 return ran
             tau = (t, 0)
             out_tag = (t, 1)

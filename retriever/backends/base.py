@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-from ..graph import Graph
 from ..errors import BackendError
+from ..graph import Graph
+from ..tick import RestartBudget  # noqa: F401 - the backends' name for it (coordinator.py)
 from ..trace import KEEP, Trace
 
 if TYPE_CHECKING:
@@ -44,25 +45,6 @@ COUNTERS = {
     "redeclared": "times a starting flow declared its subscriptions and queryable again: a neighbour linked "
                   "to it had not learned of them (worker.REDECLARE_AFTER_S)",
 }
-
-
-class RestartBudget:
-    """The restarts of one flow with on_error="restart", by run time: at most ``max_restarts``
-    within any ``restart_window`` seconds (FlowSettings); the same rule on every backend."""
-
-    def __init__(self, max_restarts: int, window_s: float):
-        self.max_restarts, self.window_s = max_restarts, window_s
-        self.window_ns = round(window_s * 1e9)
-        self.times: deque[int] = deque()
-
-    def take(self, t_ns: int) -> bool:
-        """Count a restart at run time ``t_ns``; False, counting nothing, if the budget is spent."""
-        while self.times and self.times[0] <= t_ns - self.window_ns:
-            self.times.popleft()
-        if len(self.times) >= self.max_restarts:
-            return False
-        self.times.append(t_ns)
-        return True
 
 
 @dataclass

@@ -1,6 +1,8 @@
 """The in-process backend: a discrete-event executor in virtual, superdense time.
 
-This is the reference semantics every other backend is tested against (docs/semantics.md).
+This is the reference semantics every other backend is tested against (docs/semantics.md). Its
+nodes are wired by the graph's plan (retriever.plan) and tick by the reference tick
+(retriever.tick.run_tick), but where a generated tick is faster (below).
 
     pending ticks (heap of tags)                   one tick of node v at tag τ
     ┌──────────────────────────┐                   ┌───────────────────────────────────────┐
@@ -28,14 +30,17 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
 - ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
   edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
 - nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
-  which does what ``_tick`` does with the node's ports, calling convention and consumers
+  which does what ``tick.run_tick`` does with the node's ports, calling convention and consumers
   inlined: a rate group's in one function, a chain of Trigger flows' in one function; a tick
   known to be the only one at its tag (a chain's) skips the test of what is visible on inputs
   that one producer alone feeds;
 - those ticks record each step as one compact record in the trace's tape, made into the
   step record and events when the trace is read.
 
-``_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same trace.
+``tick.run_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same
+trace. The session's parts: ``_Agenda``, the ticks due; ``_Recorder``, what became of each tick
+(records, delivered events, the on_error decision acted on); the loop (``_advance``); and the
+generated ticks, which read the session through one public surface, ``_inproc_ticks.Host``.
 """
 
 from __future__ import annotations
@@ -53,16 +58,17 @@ from typing import Any
 import numpy as np
 
 from ..codec import packb
-from ..errors import (BackendError, CausalityError, CodecError, ReplayedError, RestartLimitError, RetrieverWarning,
-                      RunEnded, SetupError, StepError)
+from ..errors import BackendError, CausalityError, CodecError, ReplayedError, RetrieverWarning, RunEnded, SetupError
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
-from ..sync import MISSING, PortBuffer, select_inputs
+from ..plan import NodePlan, bind_inputs, plan_graph
+from ..sync import PortBuffer
+from ..tick import Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs
 from ..time import format_tag
 from ..trace import holding_full_collections
 from . import _inproc_ticks
-from .base import Backend, NodeStats, RestartBudget, Session
+from .base import Backend, NodeStats, Session
 
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()
@@ -96,15 +102,17 @@ def _encodes_surely(value: Any) -> bool:
     return False
 
 
-class _NodeRuntime:
-    """Everything the hot loop needs about one node, flattened into slots."""
+class NodeRuntime:
+    """Everything the hot loop needs about one node, flattened into slots: what the generic tick
+    (tick.run_tick) and the generated ones (_inproc_ticks) read of a node."""
 
-    __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs",
+    __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs", "plan",
                  "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts", "ports_seen")
 
-    def __init__(self, index: int, node: Node):
+    def __init__(self, index: int, node: Node, plan: NodePlan):
         self.index = index
         self.id = node.id
+        self.plan = plan  # its wiring
         self.flow: Flow = node.flow
         self.spec = node.spec
         self.replaced = False  # replace_step() swapped step() for logged outputs
@@ -113,19 +121,27 @@ class _NodeRuntime:
         self.latency_ns = node.settings.latency_ns
         self.on_error = node.settings.on_error
         self.restarts = RestartBudget(node.settings.max_restarts, node.settings.restart_window)
-        # (port, buffer, policy, port spec) per input port
-        self.inputs: list[tuple[str, PortBuffer, Any, Any]] = []
+        # (port, buffer, policy, port spec) per input port, and the optional input ports nothing
+        # feeds, which take their fallback on every tick
+        self.inputs, self.fallbacks = bind_inputs(plan, node.inputs)
         # output port -> [(consumer index, consumer buffer, delay ns, whether it triggers the consumer)]
         self.downstream: dict[str, list[tuple[int, PortBuffer, int, bool]]] = {}
         self.seq: dict[str, int] = {}
         self.clock = node.clock
         self.stats = NodeStats()
-        self.cycle: list[str] = []
-        # optional input ports nothing feeds: they take their fallback on every tick
-        self.fallbacks: dict[str, Any] = {}
+        self.cycle: list[str] = plan.cycle or []
         # an untyped step's output ports, in order, the first time they were not the wired ones
         # (a port nothing consumes still makes events): the compiled tick expects them from then on
         self.ports_seen: tuple[str, ...] | None = None
+
+
+def _wire(nodes: list[NodeRuntime], by_id: dict[str, NodeRuntime]) -> None:
+    """Point each node's outputs at its consumers' input buffers, as its plan says."""
+    buffers = {(rt.id, port): buf for rt in nodes for port, buf, _, _ in rt.inputs}
+    for rt in nodes:
+        for port, consumers in rt.plan.consumers.items():
+            rt.downstream[port] = [(by_id[c.dst].index, buffers[(c.dst, c.dst_port)], c.delay_ns, c.triggers)
+                                   for c in consumers]
 
 
 class _RateGroup:
@@ -135,7 +151,7 @@ class _RateGroup:
     __slots__ = ("order", "ticks", "alone", "k", "next_tag", "offset_ns", "step_num", "step_den")
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
-        self.order = order  # node indices, consumers first (InprocSession._consumers_first): the tick order
+        self.order = order  # node indices, consumers first (_consumers_first): the tick order
         # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
         self.ticks: tuple = ()
         # the function that runs its ticks while nothing else is due, if compiled (_inproc_ticks.make_ticks)
@@ -160,42 +176,225 @@ class _RateGroup:
         return self.offset_ns + k * self.step_num // self.step_den
 
 
+def _consumers_first(nodes: list[NodeRuntime]) -> list[int]:
+    """Per node index, its place in the order the ticks of one tag run in: each node before
+    the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
+    first changes nothing a run records but their order (tie_break_seed shuffles them),
+    except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
+    ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
+    it are not. This order lets a fused rate group's ticks skip the test of what is visible
+    on the edges within it (_inproc_ticks._without_visible_tests)."""
+    n = len(nodes)
+    consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in nodes]
+    producers: list[list[int]] = [[] for _ in range(n)]
+    for p, cs in enumerate(consumers):
+        for c in cs:
+            producers[c].append(p)
+    waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
+    ready = [i for i in range(n) if not waiting[i]]
+    order = []
+    while ready:
+        i = heappop(ready)
+        order.append(i)
+        for p in producers[i]:
+            waiting[p] -= 1
+            if not waiting[p]:
+                heappush(ready, p)
+    placed = set(order)
+    order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
+    rank = [0] * n
+    for at, i in enumerate(order):
+        rank[i] = at
+    return rank
+
+
+class _Agenda:
+    """The ticks due: a heap of the tags due later, and per tag the nodes due there; and the nodes
+    due at the next microstep of the tag running now (``after``). Only a tick at ``(t, m)`` makes
+    ticks at ``(t, m + 1)`` (a zero-latency output on an undelayed edge), so those need no heap."""
+
+    def __init__(self, groups: list[_RateGroup]):
+        self.heap: list[tuple[int, int]] = []
+        # tag -> the nodes due: a rate group alone (the common case), or a set of node indices,
+        # and then the rate groups due at that tag are in rate_due
+        self.pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
+        self.rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
+        self.after: list[int] = []  # (a node triggered twice is in it twice)
+        self.groups = groups
+        for group in groups:
+            self.schedule_group(group)
+
+    def schedule(self, tag: tuple[int, int], index: int) -> None:
+        """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
+        microstep of the tag running now (a zero-latency output on an undelayed edge), or later,
+        at microstep 0 (latency, delay)."""
+        if tag[1]:
+            self.after.append(index)
+        else:
+            self.schedule_later(tag, index)
+
+    def schedule_later(self, tag: tuple[int, int], index: int) -> None:
+        waiting = self.pending.get(tag)
+        if waiting is None:
+            self.pending[tag] = {index}
+            heappush(self.heap, tag)
+        elif type(waiting) is set:
+            waiting.add(index)
+        else:  # a rate group is due there: share the tag
+            self.rate_due[tag] = [waiting]
+            self.pending[tag] = {*waiting.order, index}
+
+    def schedule_group(self, group: _RateGroup) -> None:
+        tag = group.next_tag
+        waiting = self.pending.get(tag)
+        if waiting is None:
+            self.pending[tag] = group
+            heappush(self.heap, tag)
+            return
+        if type(waiting) is not set:
+            self.rate_due[tag] = [waiting]
+            self.pending[tag] = waiting = set(waiting.order)
+        else:
+            self.rate_due.setdefault(tag, [])
+        waiting.update(group.order)
+        self.rate_due[tag].append(group)
+
+    def resume_group(self, g: int, k: int) -> None:
+        """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
+        group = self.groups[g]
+        group.move_to(k)
+        self.schedule_group(group)
+
+    def keep_next(self, tag: tuple[int, int]) -> None:
+        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
+        go on the heap, for a later advance()."""
+        for index in set(self.after):
+            self.schedule_later(tag, index)
+        self.after.clear()
+
+
+class _Recorder:
+    """What became of each tick, in the trace's tape: a step's events, delivered to its consumers'
+    buffers (the ticks they trigger scheduled), and its step record; a skipped tick's record; a
+    failed step's, then what ``on_error`` decides (tick.decide). The reference tick and the
+    generated ones hand their outcomes here."""
+
+    def __init__(self, tape: list, nodes: list[NodeRuntime], max_microsteps: int, schedule):
+        self.tape, self.nodes, self.max_microsteps, self.schedule = tape, nodes, max_microsteps, schedule
+
+    def emit(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
+             dropped: dict | None = None) -> None:
+        """Record and deliver the outputs of a tick that ran, and its step record."""
+        out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
+        produced = []
+        if outputs:
+            event = self._event
+            for port, value in outputs:
+                if value is None:  # sparse output: no event
+                    continue
+                if type(value) not in PLAIN_TYPES:
+                    if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
+                        if value.rows is None or value.rows.dtype.hasobject:
+                            for i, item in enumerate(value.values):
+                                if type(item) not in PLAIN_TYPES:
+                                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
+                        for item in value.values:
+                            event(rt, tau, port, item, out_tag, end, produced)
+                        continue
+                    self._check_output(rt, tau, port, value, consumed, start, produced)
+                event(rt, tau, port, value, out_tag, end, produced)
+        self.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+
+    def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
+               end: int, produced: list) -> None:
+        """Record one event of a tick and deliver it to its consumers."""
+        seqs, node_id = rt.seq, rt.id
+        seq = seqs.get(port, 0)
+        seqs[port] = seq + 1
+        event = (out_tag, node_id, port, seq, value, end)
+        self.tape.append(event)
+        produced.append((node_id, port, seq))
+        # the event is the buffer entry of an undelayed edge
+        for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
+            entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
+            buf.insert(entry)
+            if triggers:
+                if entry[0][1] > self.max_microsteps:
+                    raise CausalityError(rt.cycle or self.nodes[consumer].cycle, tau, self.max_microsteps)
+                self.schedule(entry[0], consumer)
+
+    def _check_output(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
+                      start: int, produced: list | tuple, in_burst: int | None = None) -> None:
+        """Before an output not of a plain type is recorded: stop the run (CodecError naming the
+        node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
+        cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
+        failure of one tick. The error record lists the events of the tick already ``produced``."""
+        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
+            return
+        try:
+            packb(value)
+        except CodecError as e:
+            what = "a value" if in_burst is None else f"a Burst whose value {in_burst} is one"
+            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned {what} the run cannot "
+                               f"record: {e}")
+            rt.stats.errors += 1
+            first_line = str(error).split("\n", 1)[0]
+            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
+            self.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start, time_ns() - start))
+            raise error from None
+
+    def skipped(self, rt: NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
+        rt.stats.skips += 1
+        self.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
+
+    def failed(self, rt: NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
+               start: int, wall: int) -> None:
+        """Record a step that raised ``exc``, then act on ``on_error`` (tick.decide)."""
+        decision = decide(rt.on_error, exc, rt.restarts, tau[0])
+        if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
+            rt.stats.steps += 1
+            self.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
+            raise RunEnded(rt.id, tau)
+        rt.stats.errors += 1
+        detail = {"error": error_text(exc), "on_error": rt.on_error}
+        self.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
+        if decision is Decision.RESTART:
+            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
+            if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
+                rt.flow.reset()
+        elif decision is not Decision.SKIP:
+            raise ending(decision, rt.id, tau, exc, rt.restarts) from exc
+
+
 class InprocSession(Session):
     backend_name = "inproc"
     steppable = True
-    plain_types = PLAIN_TYPES  # for the compiled ticks (_inproc_ticks), which this module imports
 
     def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace"):
         super().__init__(graph, keep)
-        self._records = self.trace  # where the compiled ticks record (pipe.trace may later read a log)
+        self._records = self.trace  # where the ticks record (pipe.trace may later read a log)
         self.max_microsteps = graph.max_microsteps
         self._tie_break_seed = tie_break_seed
         self._rng = random.Random(tie_break_seed) if tie_break_seed is not None else None
-        self._heap: list[tuple[int, int]] = []
-        # tag -> the nodes due: a rate group alone (the common case), or a set of node indices,
-        # and then the rate groups due at that tag are in _rate_due
-        self._pending: dict[tuple[int, int], _RateGroup | set[int]] = {}
-        self._rate_due: dict[tuple[int, int], list[_RateGroup]] = {}
-        # the nodes due at the next microstep of the tag running now: only a tick at (t, m) makes
-        # ticks at (t, m + 1) (a zero-latency output on an undelayed edge), so they need no heap
-        self._next: list[int] = []  # (a node triggered twice is in it twice)
-        self._nodes = [_NodeRuntime(i, node) for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
-        self._by_id = by_id = {rt.id: rt for rt in self._nodes}
-        self._wire(graph, by_id)
+        plan = plan_graph(graph)
+        self._nodes = [NodeRuntime(i, node, plan.nodes[node.id])
+                       for i, node in enumerate(sorted(graph.nodes.values(), key=lambda n: n.id))]
+        self._by_id = {rt.id: rt for rt in self._nodes}
+        _wire(self._nodes, self._by_id)
         groups: dict[tuple[int, int, int], list[int]] = {}
         for rt in self._nodes:
             if type(rt.flow).reset is not Flow.reset:
                 rt.flow.reset()  # the paper's flows initialise their state in reset()
             if rt.clock.hz is not None:
                 groups.setdefault(rt.clock.schedule, []).append(rt.index)
-        self._rank = rank = self._consumers_first()
+        self._rank = rank = _consumers_first(self._nodes)
         self._groups = [_RateGroup(schedule, tuple(sorted(indices, key=rank.__getitem__)))
                         for schedule, indices in groups.items()]
-        for group in self._groups:
-            self._schedule_group(group)
-        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the generic
-        # _tick; and the one that runs it when it is the only tick due, which may go on along a
-        # chain; built on the first advance() (see _tick_functions)
+        self._agenda = agenda = _Agenda(self._groups)
+        self._recorder = recorder = _Recorder(self._records.tape, self._nodes, self.max_microsteps, agenda.schedule)
+        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the
+        # reference (tick.run_tick); and the one that runs it when it is the only tick due, which
+        # may go on along a chain; built on the first advance() (see _tick_functions)
         self._ticks: list | None = None
         self._chains: list = []
         self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
@@ -208,111 +407,20 @@ class InprocSession(Session):
         self._advancing = threading.Lock()
         self._runner: int | None = None  # the thread in advance()
         self._flushes_asked: list[threading.Event] = []
-        # set when the loop is to look at stop_requested, _recompile and _flushes_asked
-        self._look = False
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
-
-    # ---------------------------------------------------------------------------------------
-    # Wiring
-    # ---------------------------------------------------------------------------------------
-    def _wire(self, graph: Graph, by_id: dict[str, _NodeRuntime]) -> None:
-        buffers: dict[tuple[str, str], PortBuffer] = {}
-        policies: dict[tuple[str, str], Any] = {}
-        self._sources: dict[int, list[tuple[str, str]]] = {}  # id(buffer) -> the (node, port) of each edge feeding it
-        for e in graph.edges:
-            key = (e.dst, e.dst_port)
-            buf = buffers.setdefault(key, PortBuffer())
-            self._sources.setdefault(id(buf), []).append((e.src, e.src_port))
-            policies[key] = e.sync
-            dst = graph.nodes[e.dst]
-            by_id[e.src].downstream.setdefault(e.src_port, []).append(
-                (by_id[e.dst].index, buf, e.delay_ns, dst.triggers_on(e.dst_port)))
-        for node in graph.nodes.values():
-            rt = by_id[node.id]
-            for port, spec in node.inputs.items():
-                key = (node.id, port)
-                if key in buffers:
-                    rt.inputs.append((port, buffers[key], policies[key], spec))
-                elif spec.required:
-                    rt.inputs.append((port, PortBuffer(), _AlwaysMissing, spec))
-                else:
-                    rt.fallbacks[port] = spec
-            for cycle in graph.instantaneous_cycles:
-                if node.id in cycle:
-                    rt.cycle = cycle
-                    break
-
-    def _consumers_first(self) -> list[int]:
-        """Per node index, its place in the order the ticks of one tag run in: each node before
-        the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
-        first changes nothing a run records but their order (tie_break_seed shuffles them),
-        except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
-        ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
-        it are not. This order lets a fused rate group's ticks skip the test of what is visible
-        on the edges within it (_inproc_ticks._without_visible_tests)."""
-        n = len(self._nodes)
-        consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in self._nodes]
-        producers: list[list[int]] = [[] for _ in range(n)]
-        for p, cs in enumerate(consumers):
-            for c in cs:
-                producers[c].append(p)
-        waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
-        ready = [i for i in range(n) if not waiting[i]]
-        order = []
-        while ready:
-            i = heappop(ready)
-            order.append(i)
-            for p in producers[i]:
-                waiting[p] -= 1
-                if not waiting[p]:
-                    heappush(ready, p)
-        placed = set(order)
-        order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
-        rank = [0] * n
-        for at, i in enumerate(order):
-            rank[i] = at
-        return rank
-
-    def _schedule(self, tag: tuple[int, int], index: int) -> None:
-        """A tick of node ``index`` at ``tag``, the arrival of an event that triggers it: at the next
-        microstep of the tag running now (a zero-latency output on an undelayed edge), or later,
-        at microstep 0 (latency, delay)."""
-        if tag[1]:
-            self._next.append(index)
-        else:
-            self._schedule_later(tag, index)
-
-    def _schedule_later(self, tag: tuple[int, int], index: int) -> None:
-        waiting = self._pending.get(tag)
-        if waiting is None:
-            self._pending[tag] = {index}
-            heappush(self._heap, tag)
-        elif type(waiting) is set:
-            waiting.add(index)
-        else:  # a rate group is due there: share the tag
-            self._rate_due[tag] = [waiting]
-            self._pending[tag] = {*waiting.order, index}
-
-    def _schedule_group(self, group: _RateGroup) -> None:
-        tag = group.next_tag
-        waiting = self._pending.get(tag)
-        if waiting is None:
-            self._pending[tag] = group
-            heappush(self._heap, tag)
-            return
-        if type(waiting) is not set:
-            self._rate_due[tag] = [waiting]
-            self._pending[tag] = waiting = set(waiting.order)
-        else:
-            self._rate_due.setdefault(tag, [])
-        waiting.update(group.order)
-        self._rate_due[tag].append(group)
+        # what the generated ticks call and read here; its ``look`` is set when the loop is to
+        # look at stop_requested, _recompile and _flushes_asked
+        self._host = _inproc_ticks.Host(
+            nodes=self._by_id, tape=self._records.tape, after=agenda.after, heap=agenda.heap,
+            max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES, emit=recorder.emit, skipped=recorder.skipped,
+            failed=recorder.failed, schedule=agenda.schedule, keep_next=agenda.keep_next, saw_ports=self._saw_ports,
+            microsteps=self._microsteps, resume_group=agenda.resume_group)
 
     def _microsteps(self, next_microstep: tuple[int, int], ran: int) -> tuple[tuple[int, int], int]:
-        """Run the ticks in ``_next`` (what the ticks at the microstep before ``next_microstep``
-        triggered) and what they trigger, microstep by microstep, until none is left. Returns the
-        microstep after the last and ``ran``, counted on."""
-        after, chains, ticks, rank, rng = self._next, self._chains, self._ticks, self._rank, self._rng
+        """Run the ticks in the agenda's ``after`` (what the ticks at the microstep before
+        ``next_microstep`` triggered) and what they trigger, microstep by microstep, until none is
+        left. Returns the microstep after the last and ``ran``, counted on."""
+        after, chains, ticks, rank, rng = self._agenda.after, self._chains, self._ticks, self._rank, self._rng
         t = next_microstep[0]
         try:
             while after:
@@ -330,15 +438,9 @@ class InprocSession(Session):
                     ticks[i](tag, next_microstep)
                 ran += len(indices)
         except BaseException:
-            self._keep_next(next_microstep)
+            self._agenda.keep_next(next_microstep)
             raise
         return next_microstep, ran
-
-    def _resume_group(self, g: int, k: int) -> None:
-        """Rate group ``g`` ran alone up to its tick ``k`` (exclusive): schedule that one."""
-        group = self._groups[g]
-        group.move_to(k)
-        self._schedule_group(group)
 
     def _flush(self) -> None:
         """Hand what the compiled ticks counted and their seqs to the nodes: in the run's thread
@@ -361,21 +463,14 @@ class InprocSession(Session):
     #: (a step may take long): past that, it reads the counts where they are (_counted_so_far)
     FLUSH_WAIT_S = 1.0
 
-    def _keep_next(self, tag: tuple[int, int]) -> None:
-        """A tick at the microstep before ``tag`` raised: the ticks already triggered for ``tag``
-        go on the heap, for a later advance()."""
-        for index in set(self._next):
-            self._schedule_later(tag, index)
-        self._next.clear()
-
     def look_between_ticks(self) -> None:
-        self._look = True
+        self._host.look = True
 
-    def _saw_ports(self, rt: _NodeRuntime, outputs: dict) -> None:
+    def _saw_ports(self, rt: NodeRuntime, outputs: dict) -> None:
         """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
         if rt.ports_seen is None and all(type(port) is str for port in outputs):
             rt.ports_seen = tuple(outputs)
-            self._recompile = self._look = True
+            self._recompile = self._host.look = True
 
     def _drop_compiled(self) -> None:
         """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
@@ -385,7 +480,7 @@ class InprocSession(Session):
 
     def _tick_functions(self) -> list:
         """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the generic :meth:`_tick`; and, set on the
+        :func:`._inproc_ticks.compile_tick` can, else the reference ``tick.run_tick``; and, set on the
         session and its groups: the same per node, when it is the only tick due, going on along
         a chain of Trigger flows (``_chains``), and per rate group its ticks in order (one fused
         function, when nothing shuffles them) and its loop while nothing else is due (``alone``).
@@ -394,11 +489,12 @@ class InprocSession(Session):
             return self._ticks
         parts = []
         for rt in self._nodes:
-            code = None if self._generic_only else _inproc_ticks.compile_tick(self, rt, self._sources)
-            parts.append(code or (lambda tau, out_tag, rt=rt, tick=self._tick: tick(rt, tau) or out_tag))
+            code = None if self._generic_only else _inproc_ticks.compile_tick(self._host, rt)
+            parts.append(code or (lambda tau, out_tag, rt=rt, r=self._recorder: run_tick(rt, tau, r.skipped, r.failed,
+                                                                                        r.emit) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
         if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self, parts, groups,
+            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self._host, parts, groups,
                                                                                  fuse=self._rng is None)
             self._flushes.append(flush)
             self._peeks.append(peek)
@@ -483,7 +579,9 @@ class InprocSession(Session):
         return max(ran, default=self.now_ns)
 
     def _advance(self, until_ns: int) -> None:
-        heap, pending, rate_due, rng, after = self._heap, self._pending, self._rate_due, self._rng, self._next
+        agenda, host, rng = self._agenda, self._host, self._rng
+        heap, pending, rate_due, after, schedule_group = (agenda.heap, agenda.pending, agenda.rate_due, agenda.after,
+                                                          agenda.schedule_group)
         rank = self._rank
         ticks = self._tick_functions()
         log = self.log
@@ -493,8 +591,8 @@ class InprocSession(Session):
         ran = 0
         log_at = 1 if log is not None else self.LOG_BATCH
         while heap and heap[0][0] < until_ns:
-            if self._look:  # (between two instants)
-                self._look = False
+            if host.look:  # (between two instants)
+                host.look = False
                 if self.stop_requested:  # (RunHandle.stop; a logged run stops at its hand-over, now)
                     if log is None:
                         raise KeyboardInterrupt
@@ -523,8 +621,8 @@ class InprocSession(Session):
                 due.k = k = due.k + 1  # due.advance(), inlined
                 due.next_tag = next_tag = (due.offset_ns + k * due.step_num // due.step_den, 0)
                 if next_tag in pending:
-                    self._schedule_group(due)
-                else:  # _schedule_group, inlined for the common case
+                    schedule_group(due)
+                else:  # schedule_group, inlined for the common case
                     pending[next_tag] = due
                     heappush(heap, next_tag)
                 ran += len(due.order)
@@ -539,7 +637,7 @@ class InprocSession(Session):
                 if groups is not None:  # rate ticks: schedule each group's next one
                     for group in groups:
                         group.advance()
-                        self._schedule_group(group)
+                        schedule_group(group)
                 ran += len(due)
                 if len(due) == 1:
                     order = [ticks[i] for i in due]
@@ -553,149 +651,11 @@ class InprocSession(Session):
                 for tick in order:
                     tick(tag, next_microstep)
             except BaseException:
-                self._keep_next(next_microstep)
+                agenda.keep_next(next_microstep)
                 raise
             if after:
                 _, ran = self._microsteps(next_microstep, ran)
         self.now_ns = max(self.now_ns, until_ns)
-
-    def _tick(self, rt: _NodeRuntime, tau: tuple[int, int]) -> None:
-        stats = rt.stats
-        stats.ticks += 1
-        # sync.select_inputs, inlined: a call per tick is a share of this loop's steps/s worth keeping
-        # (benchmarks/step_overhead.py); keep the two identical
-        values: dict[str, Any] = {}
-        consumed: dict[str, tuple] = {}
-        missing: list[str] | None = None
-        commits: list | None = None
-        dropped: dict[str, int] | None = None
-        for port, buf, policy, spec in rt.inputs:
-            value, ids, n_dropped, commit = policy.select(buf, tau)
-            if value is MISSING:
-                if spec.required:
-                    (missing := missing or []).append(port)
-                else:
-                    values[port] = spec.fallback()
-                continue
-            values[port] = value
-            consumed[port] = ids
-            if commit is not None:
-                (commits := commits or []).append((policy, buf, commit))
-            if n_dropped:
-                (dropped := dropped or {})[port] = n_dropped
-        if missing is not None:
-            self._skipped(rt, tau, missing)
-            return
-        if commits is not None:
-            for policy, buf, commit in commits:
-                policy.commit_to(buf, commit)
-        fallbacks = rt.fallbacks
-        if fallbacks:
-            for port, spec in fallbacks.items():
-                values[port] = spec.fallback()
-
-        start = time_ns()
-        try:
-            outputs = rt.read(rt.invoke(values))
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error
-            wall = time_ns() - start
-            stats.step_ns += wall
-            self._failed(rt, tau, consumed, exc, start, wall)
-            return
-        end = time_ns()
-        stats.step_ns += end - start
-        stats.steps += 1
-        self._emit(rt, tau, outputs, consumed, start, end, dropped)
-
-    def _emit(self, rt: _NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
-              dropped: dict | None = None) -> None:
-        """Record and deliver the outputs of a tick that ran, and its step record."""
-        out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
-        produced = []
-        if outputs:
-            event = self._event
-            for port, value in outputs:
-                if value is None:  # sparse output: no event
-                    continue
-                if type(value) not in PLAIN_TYPES:
-                    if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
-                        if value.rows is None or value.rows.dtype.hasobject:
-                            for i, item in enumerate(value.values):
-                                if type(item) not in PLAIN_TYPES:
-                                    self.check_output(rt, tau, port, item, consumed, start, produced, i)
-                        for item in value.values:
-                            event(rt, tau, port, item, out_tag, end, produced)
-                        continue
-                    self.check_output(rt, tau, port, value, consumed, start, produced)
-                event(rt, tau, port, value, out_tag, end, produced)
-        self._records.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
-
-    def _event(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
-               end: int, produced: list) -> None:
-        """Record one event of a tick and deliver it to its consumers."""
-        seqs, node_id = rt.seq, rt.id
-        seq = seqs.get(port, 0)
-        seqs[port] = seq + 1
-        event = (out_tag, node_id, port, seq, value, end)
-        self._records.tape.append(event)
-        produced.append((node_id, port, seq))
-        # the event is the buffer entry of an undelayed edge
-        for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
-            entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
-            buf.insert(entry)
-            if triggers:
-                if entry[0][1] > self.max_microsteps:
-                    raise CausalityError(rt.cycle or self._nodes[consumer].cycle, tau, self.max_microsteps)
-                self._schedule(entry[0], consumer)
-
-    def check_output(self, rt: _NodeRuntime, tau: tuple[int, int], port: str, value: Any, consumed: dict,
-                     start: int, produced: list | tuple, in_burst: int | None = None) -> None:
-        """Before an output not of a plain type is recorded: stop the run (CodecError naming the
-        node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
-        cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
-        failure of one tick. The error record lists the events of the tick already ``produced``."""
-        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
-            return
-        try:
-            packb(value)
-        except CodecError as e:
-            what = "a value" if in_burst is None else f"a Burst whose value {in_burst} is one"
-            error = CodecError(f"{rt.id}.{port}: the step at {format_tag(tau)} returned {what} the run cannot "
-                               f"record: {e}")
-            rt.stats.errors += 1
-            first_line = str(error).split("\n", 1)[0]
-            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
-            self._records.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start,
-                                    time_ns() - start))
-            raise error from None
-
-    def _skipped(self, rt: _NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
-        rt.stats.skips += 1
-        self._records.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
-
-    def _failed(self, rt: _NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
-                start: int, wall: int) -> None:
-        if isinstance(exc, SystemExit) and exc.code in (None, 0):
-            # sys.exit() or sys.exit(0) in a step: the whole run ends here, cleanly (the seed
-            # paper's benchmark ends so); any other code is that step's error, below
-            rt.stats.steps += 1
-            self._records.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
-            raise RunEnded(rt.id, tau)
-        rt.stats.errors += 1
-        error = exc.error if type(exc) is ReplayedError else f"{type(exc).__name__}: {exc}"
-        detail = {"error": error, "on_error": rt.on_error}
-        self._records.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
-        if rt.on_error == "stop":
-            raise StepError(rt.id, tau, exc) from exc
-        if rt.on_error == "restart":
-            budget = rt.restarts
-            if not budget.take(tau[0]):
-                raise RestartLimitError(rt.id, tau, exc, budget.max_restarts, budget.window_s) from exc
-            rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
-            if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
-                rt.flow.reset()
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it
@@ -714,7 +674,7 @@ class InprocSession(Session):
                 return {rt.id: rt.stats for rt in self._nodes}
             done = threading.Event()
             self._flushes_asked.append(done)
-            self._look = True
+            self._host.look = True
             if done.wait(self.FLUSH_WAIT_S):
                 return {rt.id: rt.stats for rt in self._nodes}
         return self._counted_so_far()
@@ -761,7 +721,7 @@ class InprocSession(Session):
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
         self._drop_compiled()  # compiled ticks keep their own seq counters
-        self._tick(self._by_id[node], tau)
+        run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that
@@ -815,7 +775,7 @@ class InprocSession(Session):
         """What ``node``'s tick at ``tau`` is handed if it runs next: its input values (an optional
         port with nothing gets its fallback), the ids of the events each port's policy selects,
         and the required ports that have nothing (None if none; else the tick will be skipped).
-        Selected by the node's own policies (``sync.select_inputs``) on copies of its buffers, so
+        Selected by the node's own policies (``tick.select_inputs``) on copies of its buffers, so
         nothing is consumed. It is what the tick gets once every tick before ``tau`` has run
         (``advance(tau[0])`` for a tick at microstep 0): no event with a tag ``≤ tau`` can come later."""
         self._flush()  # the compiled ticks hand back how far they have looked into the buffers
@@ -825,16 +785,6 @@ class InprocSession(Session):
         for port, spec in rt.fallbacks.items():
             values[port] = spec.fallback()
         return values, consumed, missing
-
-
-class _AlwaysMissingPolicy:
-    """Stands in for the policy of a required port nothing feeds: every tick is skipped."""
-
-    def select(self, buf, tau):
-        return MISSING, None, 0, None
-
-
-_AlwaysMissing = _AlwaysMissingPolicy()
 
 
 class InprocBackend(Backend):

@@ -1,9 +1,9 @@
 """The compiled per-node ticks of the inproc backend (backends/_inproc_ticks.py) against the
-generic ``InprocSession._tick``: the same graph, run once with every node it can compile
+reference tick, ``retriever.tick.run_tick``: the same graph, run once with every node it can compile
 compiled and once with none, must record the same events and step records in the same order
 (wall-clock fields aside), the same stats, and fail the same way.
 
-This is what keeps the two paths in sync: a change to ``_tick`` (or to ``Latest``, the output
+This is what keeps the two paths in sync: a change to ``run_tick`` (or to ``Latest``, the output
 readers, the invokers) that the generated code does not follow fails here.
 """
 
@@ -41,8 +41,8 @@ def counting():
     compiled = []
     real = _inproc_ticks.compile_tick
 
-    def spy(session, rt, feeds):
-        result = real(session, rt, feeds)
+    def spy(host, rt):
+        result = real(host, rt)
         if result is not None:
             compiled.append(rt.id)
         return result

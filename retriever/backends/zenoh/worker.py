@@ -251,15 +251,15 @@ def _import_main(path: str) -> None:
 
 
 def build_loop(spec: dict, node_id: str, session, transport=None):
-    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs: a ready NodeLoop, its
-    events through ``transport`` (a dora node's), or on ``session`` when None."""
+    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs as the run's plan says (the
+    spec's ``plan``, if it carries one, else made here from the IR): a ready NodeLoop, its events
+    through ``transport`` (a dora node's), or on ``session`` when None."""
     from ...flow._base import Flow
     from ...graph import compile_graph
     from ...ir import DEFAULT_DEADLINE, IR
+    from ...plan import Plan, bind_inputs, plan_ir
     from ...rebuild import rebuild_node
-    from ...sync import PortBuffer, policy_from_ir
-    from ...time import seconds_to_ns
-    from ..inproc import _AlwaysMissing
+    from ...sync import PortBuffer
     from .loop import InEdge, NodeLoop
     from .wire import KeySpace
 
@@ -278,80 +278,30 @@ def build_loop(spec: dict, node_id: str, session, transport=None):
         graph = compile_graph(ir.name, [flows[node_id]], [], meta.get("max_microsteps", 1000),
                               meta.get("realtime", "soft"), meta.get("deadline", DEFAULT_DEADLINE))
     node = graph.nodes[node_id]
-    default_deadline = meta.get("deadline", DEFAULT_DEADLINE)
-    buffers: dict[str, PortBuffer] = {}
-    policies: dict = {}
-    edges = []
-    for e in ir.edges:
-        if e["destination"]["node"] != node_id:
-            continue
-        port = e["destination"]["port"]
-        buf = buffers.setdefault(port, PortBuffer(trim_batch=1))
-        policies[port] = policy_from_ir(e["adapter"])
-        deadline = e.get("deadline")
-        edges.append(InEdge(e["source"]["node"], e["source"]["port"], port, buf, seconds_to_ns(e.get("delay", 0.0)),
-                            node.triggers_on(port),
-                            seconds_to_ns(default_deadline if deadline is None else deadline),
-                            seconds_to_ns(ir.node(e["source"]["node"])["config"].get("latency") or 0.0)))
-    inputs, fallbacks = [], {}
-    for port, port_spec in node.inputs.items():
-        if port in buffers:
-            inputs.append((port, buffers[port], policies[port], port_spec))
-        elif port_spec.required:
-            inputs.append((port, PortBuffer(), _AlwaysMissing, port_spec))
-        else:
-            fallbacks[port] = port_spec
+    plan = (Plan.from_data(spec["plan"]) if "plan" in spec else plan_ir(ir)).nodes[node_id]
+    inputs, fallbacks = bind_inputs(plan, node.inputs, lambda: PortBuffer(trim_batch=1))
+    buffers = {port: buf for port, buf, _, _ in inputs}
+    edges = [InEdge(f.src, f.src_port, f.port, buffers[f.port], f.delay_ns, f.triggers, f.deadline_ns,
+                    f.src_latency_ns) for f in plan.feeds]
     if type(node.flow).reset is not Flow.reset:
         node.flow.reset()  # the paper's flows initialise their state in reset()
-    cycle = next((c for c in ir.topology.get("instantaneous_cycles", []) if node_id in c), None)
     return NodeLoop(session, KeySpace(spec["namespace"]), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
-                    consumed=any(e["source"]["node"] == node_id for e in ir.edges),
+                    consumed=bool(plan.consumers),
                     spill_dir=spec.get("spill_dir") if os.path.isdir(spec.get("spill_dir") or "") else None,
                     # a flow with a setup() may hold what belongs to one thread (an OpenGL/EGL or
                     # CUDA context, a device handle): it steps on the thread that set it up
-                    inline=not on_a_cycle(ir.edges, node_id) and type(node.flow).setup is Flow.setup,
-                    cycle=cycle, instant_ports=instant_ports(ir, node_id) if cycle else frozenset(),
+                    inline=not plan.on_a_cycle and type(node.flow).setup is Flow.setup,
+                    cycle=plan.cycle, instant_ports=plan.instant_ports,
                     max_microsteps=meta.get("max_microsteps", 1000), virtual=bool(spec.get("virtual_time")),
                     transport=transport)
-
-
-def instant_ports(ir, node_id: str) -> frozenset[str]:
-    """The output ports of ``node_id`` whose events trigger a tick at their own tag: those of its
-    undelayed edges into a trigger port (the node has no latency: it is on an instantaneous cycle)."""
-    from ...clocks import clock_from_ir
-
-    clocks = {n["id"]: clock_from_ir(n["config"]["clock"]) for n in ir.nodes}
-    ports = set()
-    for e in ir.edges:
-        src, dst = e["source"], e["destination"]
-        if src["node"] == node_id and not e.get("delay") and clocks[dst["node"]].triggers_on(dst["port"]):
-            ports.add(src["port"])
-    return frozenset(ports)
 
 
 def run_sessions(nodes: int) -> int:
     """How many Zenoh sessions with a pool a run of ``nodes`` nodes has, which share the run's
     shared memory (hub.shm_pool_bytes): a worker's each (the hub has none, hub.HUB_SHARED_MEMORY)."""
     return nodes
-
-
-def on_a_cycle(edges: list[dict], node_id: str) -> bool:
-    """Whether a path of IR edges leads from ``node_id`` back to it (delays and clocks aside)."""
-    after: dict[str, set[str]] = {}
-    for e in edges:
-        after.setdefault(e["source"]["node"], set()).add(e["destination"]["node"])
-    seen: set[str] = set()
-    todo = list(after.get(node_id, ()))
-    while todo:
-        n = todo.pop()
-        if n == node_id:
-            return True
-        if n not in seen:
-            seen.add(n)
-            todo.extend(after.get(n, ()))
-    return False
 
 
 PR_SET_TIMERSLACK = 29  # <linux/prctl.h>

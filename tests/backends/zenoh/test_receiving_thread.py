@@ -16,7 +16,7 @@ from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import DATA, INLINE_STEP_NS, NUDGE
 from retriever.errors import StopRun
 from retriever.backends.zenoh.wire import WireEncoder
-from retriever.backends.zenoh.worker import build_loop, on_a_cycle
+from retriever.backends.zenoh.worker import build_loop
 
 from .semantics_flows import Counter, Faulty, Ticker, WhereRun
 
@@ -67,14 +67,6 @@ def test_a_node_whose_last_step_took_long_runs_the_next_on_its_main_thread():
     trace = run(pipe, 1.0)
     ran = where(trace, "where")
     assert len(ran) >= 15 and all(ran), ran
-
-
-def test_cycles_are_found_through_any_number_of_nodes():
-    def edge(a: str, b: str) -> dict:
-        return {"source": {"node": a, "port": "o"}, "destination": {"node": b, "port": "i"}}
-
-    edges = [edge("a", "b"), edge("b", "c"), edge("c", "a"), edge("c", "d"), edge("e", "e")]
-    assert [n for n in "abcde" if on_a_cycle(edges, n)] == ["a", "b", "c", "e"]
 
 
 # ---------------------------------------------------------------------------------------------

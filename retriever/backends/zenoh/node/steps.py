@@ -8,7 +8,7 @@ from typing import Any
 
 from ....errors import StopRun
 from ....flow.burst import Burst
-from ....sync import select_inputs
+from ....tick import select_inputs
 
 
 class Steps:

@@ -1,0 +1,160 @@
+"""The reference tick: what one tick of one node at tag ``τ`` does, on every backend
+(docs/semantics.md, Sync policies and Errors).
+
+    select_inputs(τ) ──▶ a required port MISSING? ──yes──▶ skipped (nothing consumed)
+          │ no
+          ▼
+    commit what the policies took; fallbacks for the optional ports nothing feeds
+          ▼
+    step (timed) ──returned──▶ ok: the outputs, to record and deliver
+          │ raised
+          ▼
+    decide(on_error) ──▶ SKIP · STOP · RESTART · OUT_OF_RESTARTS · END_RUN
+
+:func:`run_tick` is that tick, which the in-process backend runs for every node whose tick it
+does not generate; its generated ticks (``backends/_inproc_ticks.py``) are the fast path, held
+to the same trace on random graphs (tests/backends/test_inproc_ticks.py). :func:`select_inputs`
+is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read.
+Recording and delivering a tick's outputs is each backend's own: it knows where they go.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from collections.abc import Callable
+from time import time_ns
+from typing import Any
+
+from .errors import ReplayedError, RestartLimitError, RetrieverError, RunEnded, StepError
+from .sync import MISSING
+
+
+def select_inputs(inputs: list[tuple], tau: tuple[int, int]) -> tuple[dict, dict, list | None, list | None, dict | None]:
+    """One tick's input snapshot at ``tau``: each ``(port, buffer, policy, port spec)`` selects.
+
+    Returns ``(values, consumed, missing, commits, dropped)``: the step's arguments (a MISSING
+    optional port gets its fallback), the consumed event ids per port, the required ports that
+    were MISSING (None if none: then the tick runs), the ``(policy, buffer, commit)`` to apply
+    if it does, and the Queue drop counts per port (None if none).
+    """
+    values: dict[str, Any] = {}
+    consumed: dict[str, tuple] = {}
+    missing: list[str] | None = None
+    commits: list | None = None
+    dropped: dict[str, int] | None = None
+    for port, buf, policy, spec in inputs:
+        value, ids, n_dropped, commit = policy.select(buf, tau)
+        if value is MISSING:
+            if spec.required:
+                (missing := missing or []).append(port)
+            else:
+                values[port] = spec.fallback()
+            continue
+        values[port] = value
+        consumed[port] = ids
+        if commit is not None:
+            (commits := commits or []).append((policy, buf, commit))
+        if n_dropped:
+            (dropped := dropped or {})[port] = n_dropped
+    return values, consumed, missing, commits, dropped
+
+
+def run_tick(node: Any, tau: tuple[int, int], skipped: Callable, failed: Callable, emit: Callable) -> None:
+    """One tick of ``node`` at ``tau``, the reference (module docstring). ``node`` has ``stats``
+    (NodeStats), ``inputs`` (plan.bind_inputs), ``fallbacks``, ``invoke`` and ``read``
+    (flow._base.make_invoker, make_output_reader); what became of the tick goes to one of:
+    ``skipped(node, tau, missing)``, ``failed(node, tau, consumed, exc, start, wall)`` (the
+    backend records it, then acts on :func:`decide`), ``emit(node, tau, outputs, consumed,
+    start, end, dropped)``. A KeyboardInterrupt in the step is not the step's: it propagates."""
+    stats = node.stats
+    stats.ticks += 1
+    values, consumed, missing, commits, dropped = select_inputs(node.inputs, tau)
+    if missing is not None:
+        skipped(node, tau, missing)
+        return
+    if commits is not None:
+        for policy, buf, commit in commits:
+            policy.commit_to(buf, commit)
+    fallbacks = node.fallbacks
+    if fallbacks:
+        for port, spec in fallbacks.items():
+            values[port] = spec.fallback()
+    start = time_ns()
+    try:
+        outputs = node.read(node.invoke(values))
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error
+        wall = time_ns() - start
+        stats.step_ns += wall
+        failed(node, tau, consumed, exc, start, wall)
+        return
+    end = time_ns()
+    stats.step_ns += end - start
+    stats.steps += 1
+    emit(node, tau, outputs, consumed, start, end, dropped)
+
+
+# ---------------------------------------------------------------------------------------------
+# A step that raised: the one on_error decision
+# ---------------------------------------------------------------------------------------------
+class Decision(enum.Enum):
+    """What a run does after a step raised (docs/semantics.md, Errors)."""
+
+    SKIP = "skip_tick"  # the tick made no outputs; the run goes on
+    STOP = "stop"  # the run stops: StepError
+    RESTART = "restart"  # the flow starts afresh (reset, or a new process) and the run goes on
+    OUT_OF_RESTARTS = "out_of_restarts"  # a restart past the budget: the run stops, RestartLimitError
+    END_RUN = "end_run"  # sys.exit() or sys.exit(0) in the step: the whole run ends here, cleanly
+
+
+class RestartBudget:
+    """The restarts of one flow with on_error="restart", by run time: at most ``max_restarts``
+    within any ``restart_window`` seconds (FlowSettings); the same rule on every backend."""
+
+    def __init__(self, max_restarts: int, window_s: float):
+        self.max_restarts, self.window_s = max_restarts, window_s
+        self.window_ns = round(window_s * 1e9)
+        self.times: deque[int] = deque()
+
+    def take(self, t_ns: int) -> bool:
+        """Count a restart at run time ``t_ns``; False, counting nothing, if the budget is spent."""
+        while self.times and self.times[0] <= t_ns - self.window_ns:
+            self.times.popleft()
+        if len(self.times) >= self.max_restarts:
+            return False
+        self.times.append(t_ns)
+        return True
+
+
+def decide(on_error: str, exc: BaseException | str, budget: RestartBudget | None, t_ns: int) -> Decision:
+    """What to do after a step raised ``exc`` at run time ``t_ns`` (a process that died: a text
+    saying how), for a flow whose ``on_error`` is ``stop``, ``skip_tick`` or ``restart``. A restart
+    is taken from ``budget``; with None, whoever holds the budget decides on it later (a real-time
+    node asks its coordinator, which calls this with the budget)."""
+    if isinstance(exc, SystemExit) and exc.code in (None, 0):
+        return Decision.END_RUN
+    if on_error == "stop":
+        return Decision.STOP
+    if on_error == "restart":
+        return Decision.RESTART if budget is None or budget.take(t_ns) else Decision.OUT_OF_RESTARTS
+    return Decision.SKIP
+
+
+def error_text(exc: BaseException) -> str:
+    """How a step record names the error a step raised (a replayed one: as it was logged)."""
+    return exc.error if type(exc) is ReplayedError else f"{type(exc).__name__}: {exc}"
+
+
+def ending(decision: Decision, node: str, tau: tuple[int, int] | None, exc: BaseException | str,
+           budget: RestartBudget | None = None) -> RetrieverError | None:
+    """The exception that ends the run after ``decision`` (None: the run goes on): StepError,
+    RestartLimitError (``budget``: the spent one) or RunEnded."""
+    if decision is Decision.STOP:
+        return StepError(node, tau, exc)
+    if decision is Decision.OUT_OF_RESTARTS:
+        return RestartLimitError(node, tau, exc, budget.max_restarts, budget.window_s)
+    if decision is Decision.END_RUN:
+        return RunEnded(node, tau)
+    return None

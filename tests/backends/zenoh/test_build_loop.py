@@ -1,0 +1,42 @@
+"""worker.build_loop: a node loop wired as the run's plan says, whether the spec carries the plan
+(retriever.plan, as JSON) or the worker makes it from the IR."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+from retriever import Latest, Pipeline, Queue, Rate, RetrieverWarning, Trigger
+from retriever.backends.zenoh.worker import build_loop
+from retriever.plan import plan_graph
+
+from .semantics_flows import Counter, WhereRun
+
+
+def wiring(loop) -> tuple:
+    """What build_loop wired: each input's port, policy and buffer's trim batch; the unfed optional
+    ports; each edge in; and what the loop knows of cycles and consumers."""
+    inputs = [(port, policy, buf.trim_batch) for port, buf, policy, _ in loop.inputs]
+    edges = [(e.src, e.src_port, e.port, e.delay_ns, e.triggers, e.deadline_ns, e.src_latency_ns,
+              next(i for i, (_, buf, _, _) in enumerate(loop.inputs) if buf is e.buf)) for e in loop.edges]
+    return inputs, sorted(loop.fallbacks), edges, loop.cycle, loop.instant_ports, loop.inline, loop.consumed
+
+
+def test_a_loop_is_wired_alike_from_the_plan_in_its_spec_and_from_the_ir(session):
+    with Pipeline("wired") as pipe:
+        count = Counter().configure(name="count") @ Rate(hz=20)
+        echo = WhereRun().configure(name="where") @ Trigger("x")
+        count.then(echo, sync=Queue(3), map={"value": "x"}, delay=0.01)
+        echo.then(count, sync=Latest(), map={"report": "x"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RetrieverWarning)
+        graph = pipe.compile()
+    ir = graph.to_ir().doc
+    shipped = json.loads(json.dumps(plan_graph(graph).to_data()))
+    for node in ("count", "where"):
+        made_here = build_loop({"ir": ir, "namespace": "wired-test"}, node, session)
+        from_spec = build_loop({"ir": ir, "namespace": "wired-test", "plan": shipped}, node, session)
+        assert wiring(made_here) == wiring(from_spec)
+    where = wiring(made_here)
+    assert where[0] == [("x", Queue(3), 1)] and where[2] == [("count", "value", "x", 10_000_000, True, 100_000_000, 0, 0)]
+    assert where[3] is None and where[5] is False, "on a cycle (not an instantaneous one): it steps on its main thread"
