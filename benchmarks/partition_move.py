@@ -16,7 +16,9 @@ record) to its first tick that consumed a frame; *recovered* = it consumed one a
 after that on, consumed at every tick but at most 5 %. A moved viewer that did not recover
 stayed starved; it is *unreported* unless the coordinator warned of it while the run went on
 ("is starved" on stderr), the run's table marked it (the ``starved`` column) and the log holds its
-span (``retriever.starved.N``).
+span (``retriever.starved.N``). A move *too late to tell*: the viewer's ticks after its first frame
+(after its restart, if none came) span less than a lease before the run ended, so the run says
+nothing of recovery or starvation; such a trial counts as neither.
 
     PYTHONPATH=. .venv/bin/python benchmarks/partition_move.py --trials 5
     PYTHONPATH=. .venv/bin/python benchmarks/partition_move.py --trials 3 --lease 2 --duration 15
@@ -88,7 +90,7 @@ def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path,
     try:
         judged = judge(log, out, err, lease)
     except Exception as e:  # no log, or one cut short: the trial counts as not moved
-        judged = {"moved": False, "first_event_s": None, "recovered": False, "missed_after": None,
+        judged = {"moved": False, "first_event_s": None, "recovered": False, "too_late": False, "missed_after": None,
                   "warned": False, "table_marked": False, "logged": [], "error": f"{type(e).__name__}: {e}"}
     if run.returncode:  # kept for a look: the log and what the coordinator said
         failures.mkdir(parents=True, exist_ok=True)
@@ -101,24 +103,39 @@ def trial(lab: Lab, folder: Path, lease: float, duration: float, failures: Path,
 def judge(log: Path, out: str, err: str, lease: float) -> dict:
     """What the trial's log and output say of the viewer after its move (see the module's docstring)."""
     recorded = read_log(log, salvage=True)
-    moved = [f for f in recorded.faults if f.get("moved_to")]
-    steps = recorded.trace().steps_of("viewer")
+    return verdict(recorded.faults, recorded.trace().steps_of("viewer"),
+                   [e for e in recorded.starved if e["node"] == "viewer"], out, err, lease)
+
+
+def verdict(faults: list[dict], steps: list, logged: list[dict], out: str, err: str, lease: float) -> dict:
+    """The viewer's verdict from the log's fault records, its step records in tick order (each with
+    ``tag``, ``consumed``, ``detail``), its starved spans, and the coordinator's stdout and stderr.
+
+    A move is *too late to tell* when the viewer's ticks after it span less than a lease: past its
+    first frame (or, with none, past its restart) no tick came a lease later, so neither recovery
+    nor starvation could show before the run ended. Such a trial is neither recovered nor starved."""
+    moved = [f for f in faults if f.get("moved_to")]
     restarts = [i for i, s in enumerate(steps) if s.detail and "restarted" in s.detail]
     result = {"moved": bool(moved and restarts), "first_event_s": None, "recovered": False,
-              "missed_after": None, "warned": "node 'viewer' is starved" in err,
+              "too_late": False, "missed_after": None, "warned": "node 'viewer' is starved" in err,
               # the table's row of the viewer, its starved column saying "PORT from T s" (to the end)
               "table_marked": any(line.startswith("│ viewer") and " from " in line for line in out.splitlines()),
-              "logged": [e for e in recorded.starved if e["node"] == "viewer"]}
+              "logged": logged}
     if not result["moved"]:
         return result
     after = steps[restarts[0]:]
     first = next((s for s in after if s.consumed), None)
     if first is not None:
         result["first_event_s"] = (first.tag[0] - after[0].tag[0]) / 1e9
-        settled = [s for s in after if s.tag[0] >= first.tag[0] + lease * 1e9]
+    since = (first or after[0]).tag[0]
+    settled = [s for s in after if s.tag[0] >= since + lease * 1e9]
+    if not settled:
+        result["too_late"] = True
+        return result
+    if first is not None:
         missed = sum(1 for s in settled if not s.consumed)
         result["missed_after"] = missed
-        result["recovered"] = bool(settled) and missed <= MISSED_AT_MOST * len(settled)
+        result["recovered"] = missed <= MISSED_AT_MOST * len(settled)
     # (a run that ended in error prints no table: the warning and the log then say it)
     tabled = result["table_marked"] or "│ viewer" not in out
     result["reported"] = result["warned"] and tabled and bool(result["logged"])
@@ -150,15 +167,17 @@ def main(argv: list[str] | None = None) -> int:
             trials.append(result)
             print(f"trial {i + 1}: exit {result['exit']}, moved {result['moved']}, first event after the move "
                   f"{_s(result['first_event_s'])}, recovered {result['recovered']}, "
+                  f"too late to tell {result['too_late']}, "
                   f"ticks without a frame after that {result['missed_after']}, starved reported: warned "
                   f"{result['warned']}, table {result['table_marked']}, log {len(result['logged'])} "
                   f"({time.monotonic() - began:.0f} s)", flush=True)
     firsts = [t["first_event_s"] for t in trials if t["first_event_s"] is not None]
-    starved = [t for t in trials if t["moved"] and not t["recovered"]]
+    starved = [t for t in trials if t["moved"] and not t["recovered"] and not t["too_late"]]
     summary = {"trials": len(trials), "lease_s": args.lease, "deploy_lease_s": args.deploy_lease or args.lease,
                "duration_s": args.duration,
                "moved": sum(t["moved"] for t in trials),
                "moved_nodes_recovered": sum(t["recovered"] for t in trials),
+               "moved_too_late_to_tell": sum(t["too_late"] for t in trials),
                "first_event_after_move_s": {"median": statistics.median(firsts) if firsts else None,
                                             "min": min(firsts, default=None), "max": max(firsts, default=None)},
                "starved_nodes": len(starved),
