@@ -8,7 +8,7 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
     wire-control  wire.decode_control
     coordinator   the zenoh coordinator's report handling (its Inbox.handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
-    insider       the coordinator's receiving path (signature check, then _handle) fed statuses and
+    insider       the coordinator's receiving path (signature check, then Inbox.handle) fed statuses and
                   reports an insider holding the secret forges (InsiderTarget)
     specs         a worker daemon's prepare (runs.DaemonRuns) fed hostile run specs (SpecTarget)
     spawn-signal  a worker daemon's spawn and signal (runs.DaemonRuns, a run prepared, real
@@ -757,7 +757,7 @@ class _Process:
 class InsiderTarget(CoordinatorTarget):
     """What an insider (a session holding the run's secret, not a process the coordinator
     started) puts on a node's status and report keys, through the coordinator's receiving path:
-    the signature check (origin.Senders, on Zenoh's thread), then ``_handle``.
+    the signature check (origin.Senders, on Zenoh's thread), then ``Inbox.handle``.
 
     Forged statuses carry the node's own pid (``exit`` at one of its ticks, ``done`` stopped,
     ``failed``, ``restart``, ``handed_over``, ``ready``, mutated), forged reports step records

@@ -307,13 +307,17 @@ def main(argv: list[str] | None = None) -> int:
             total = cpu.get("run (main thread, total)", 0)
             print(f"worker main thread, whole run ({n} ticks, {cpu.get('run (wall)', 0) / 1e9:.1f} s wall): "
                   f"{total / 1e3 / n:.1f} µs CPU per tick = {total / max(1, cpu.get('run (wall)', 1)) * 100:.2f}% of a core")
-            for name in ("_try_tick", "flush", "_wait", "_drain", "_release"):
+            from zenoh_probe import PROFILED
+
+            names = [label for label, _, _ in PROFILED]
+            for name in names:
                 if name in cpu:
                     print(f"  {name:<10} {cpu[name] / 1e3 / n:7.1f} µs CPU per tick   ({calls[name] / n:.2f} calls per tick)")
-            rest = total - sum(cpu.get(k, 0) for k in ("_try_tick", "flush", "_wait", "_drain", "_release"))
+            rest = total - sum(cpu.get(k, 0) for k in names)
             print(f"  {'loop rest':<10} {rest / 1e3 / n:7.1f} µs CPU per tick")
-            print("  (_try_tick: the tick: select, step, step record, publish progress; _wait: the timed wait and "
-                  "handling a message that ends it)")
+            print("  (try_tick: the general loop's tick: select, step, step record, publish progress; a quiet plain "
+                  "source ticks in the loop rest (node/source.py); wait: the timed wait and handling a message "
+                  "that ends it)")
             print()
         shutil.rmtree(profile_dir, ignore_errors=True)
     print(f"idle flow ticks in the run: {ticks} (expected {int(duration * args.hz)}); "

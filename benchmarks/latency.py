@@ -309,7 +309,7 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
 # --breakdown: the probed pipeline (benchmarks/zenoh_probe.py)
 # ---------------------------------------------------------------------------------------------
 ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
-    ("step→_publish", "sent", "publish", "step returns; outputs read; HLC stamp, seq, step record"),
+    ("step→publish", "sent", "publish", "step returns; outputs read; HLC stamp, seq, step record"),
     ("frontier+encode", "publish", "encoded", "frontier() (lock, HLC) and WireEncoder.data (codec)"),
     ("put", "put_in", "put_out", "Publisher.put (express) returns, in the source's main thread"),
     ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx, the sink's callback thread gets the GIL"),
@@ -317,7 +317,7 @@ ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
     ("→handle", "cb_out", "handle", "the callback thread takes the idle loop (else inbox, main wakes)"),
     ("decode", "handle", "decoded", "wire.decode_events (msgpack + codec; arrays are views)"),
     ("deliver", "decoded", "delivered", "seq check, frontier, PortBuffer.insert, trigger tag queued"),
-    ("→step()", "delivered", "received", "loop: drain, _try_tick, _incomplete, select, invoke"),
+    ("→step()", "delivered", "received", "loop: drain, try_tick, waiting, select, invoke"),
     ("total", "sent", "received", "= the latency"),
 ]
 
