@@ -24,8 +24,9 @@ SOURCES = [
     "retriever/backends/zenoh/node/__init__.py",
 ]
 #: the one owner of each concept, as the page names them (module, name)
-OWNERS = [("retriever.tick", "select_inputs"), ("retriever.tick", "decide"), ("retriever.placement", "assign"),
-          ("retriever.placement", "check_assignment"), ("retriever.placement", "place"), ("retriever.placement", "move"),
+OWNERS = [("retriever.tick", "select_inputs"), ("retriever.tick", "decide"),
+          ("retriever.placement", "assign"), ("retriever.placement", "check_assignment"),
+          ("retriever.placement", "place"), ("retriever.placement", "move"),
           ("retriever.backends.zenoh.command", "worker_command"), ("retriever.pipeline", "Pipeline")]
 
 
