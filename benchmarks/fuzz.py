@@ -1045,7 +1045,7 @@ class DaemonOpsTarget(Target):
         import subprocess
 
         from retriever.backends.zenoh import daemon, runs
-        from retriever.backends.zenoh.host import WORKER_MODULE
+        from retriever.backends.zenoh.command import WORKER_MODULE
         from retriever.backends.zenoh.origin import KEY_BYTES, KEY_FD_ENV
 
         self.worker_module, self.key_fd_env, self.key_bytes = WORKER_MODULE, KEY_FD_ENV, KEY_BYTES
