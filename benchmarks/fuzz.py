@@ -1478,7 +1478,7 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         values = [e[4] for e in trace.raw_events] + _values(genuine)
         seeds = [enc.data((i, 0), i, (i, 1), "counter", "out", v) for i, v in enumerate(values)]
         bursts = [Burst(values[:5]), Burst(np.arange(12, dtype=np.float32).reshape(4, 3)), Burst(np.arange(9)),
-                  Burst([np.zeros(2), "x", (1, 2)]), Burst._of((None,) * 3)]
+                  Burst([np.zeros(2), "x", (1, 2)]), Burst.unchecked((None,) * 3)]
         seeds += [enc.data((7, 0), 7, (7, 1), "counter", "out", b) for b in bursts]
         return DataTarget(name, decode_events, seeds, *args)
     reports = [data for _, data in genuine_reports(genuine)]
