@@ -899,21 +899,11 @@ def _export_dataset(paths: list[Path], format: str, out: Path, force: bool, flow
             bar.update(ticks, description=f"log {log + 1}/{logs}: ticks", completed=done, total=total)
 
         try:
-            _quiet_datasets()
             summary = export_dataset(paths, out, flow=flow, format=format, maps=maps, task=task, exclude=exclude,
                                      gaps=gaps, repo_id=repo_id, overwrite=force, progress=progress)
         except Exception as exc:
             _fail(exc)
     _out.print(str(summary), highlight=False, soft_wrap=True)
-
-
-def _quiet_datasets() -> None:
-    """Hugging Face datasets' own progress bars (one per episode saved) would drown the export's."""
-    try:
-        import datasets
-    except ImportError:
-        return
-    datasets.disable_progress_bars()
 
 
 # ---------------------------------------------------------------------------------------------
