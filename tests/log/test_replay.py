@@ -294,7 +294,8 @@ def test_a_replay_whose_flow_cannot_be_set_up_says_the_replay_could_not_start_an
     for again in (replay, resim):
         with pytest.raises(SetupError, match=said) as raised:
             again(log)
-        assert isinstance(raised.value.__cause__, FileNotFoundError) and "the run did not start" not in str(raised.value)
+        assert isinstance(raised.value.__cause__, FileNotFoundError)
+        assert "the run did not start" not in str(raised.value)
     done = cli("replay", str(log.path))
     assert done.returncode == 1 and "the replay could not start" in done.stderr and "run did not" not in done.stderr
 
