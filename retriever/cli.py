@@ -103,6 +103,8 @@ def _fail(exc: BaseException) -> None:
         if not listed and line.startswith("    hint:"):
             line = line.lstrip()
         _err.print(line, highlight=False, markup=False)
+    for note in getattr(exc, "__notes__", ()):  # what became of the run's files (RunLog.end)
+        _err.print(note, highlight=False, markup=False)
     if not _state["debug"] and not isinstance(exc, RetrieverError):
         _err.print("(run with --debug for the traceback)", highlight=False)
     raise typer.Exit(code=1)
