@@ -30,23 +30,11 @@ def _skill_policy(spec: str | None) -> str | None:
     return str(Path(spec).absolute())
 
 
-def _discard_unstarted(log: Path, out: Path, made_out: bool) -> str:
-    """After a run that a flow's ``setup()`` stopped before its first tick: remove its log when
-    it holds no step (nothing to replay), and the pictures folder the demo made for it when
-    still empty. Returns the sentence that tells the user what is left."""
-    from retriever import read_log
+def _remove_if_empty(out: Path, made_out: bool) -> None:
+    """After a run that a flow's ``setup()`` stopped before its first tick: remove the pictures
+    folder the demo made for it, if still empty (the run removed its log itself)."""
     if made_out and out.is_dir() and not any(out.iterdir()):
         out.rmdir()
-    if not os.path.lexists(log):
-        return "no log was written"
-    try:
-        empty = next(iter(read_log(log, salvage=True).iter_steps()), None) is None
-    except RetrieverError:
-        empty = False
-    if not empty:
-        return f"the log {log} is kept: it holds the steps that ran"
-    Path(log).unlink()
-    return f"no log is left: the run did not start, so {log} was removed"
 
 
 def demo(
@@ -130,7 +118,7 @@ def demo(
     except (DemoError, ValueError, PlannerError) as exc:
         cli.fail(RetrieverError(str(exc)))
     except SetupError as exc:
-        cli.err.print(_discard_unstarted(log, out, made_out), highlight=False)
+        _remove_if_empty(out, made_out)
         cli.fail(exc)
     except RetrieverError as exc:
         cli.fail(exc)

@@ -103,6 +103,8 @@ def _fail(exc: BaseException) -> None:
         if not listed and line.startswith("    hint:"):
             line = line.lstrip()
         _err.print(line, highlight=False, markup=False)
+    for note in getattr(exc, "__notes__", ()):  # what became of the run's files (RunLog.end)
+        _err.print(note, highlight=False, markup=False)
     if not _state["debug"] and not isinstance(exc, RetrieverError):
         _err.print("(run with --debug for the traceback)", highlight=False)
     raise typer.Exit(code=1)
@@ -900,21 +902,11 @@ def _export_dataset(paths: list[Path], format: str, out: Path, force: bool, flow
             bar.update(ticks, description=f"log {log + 1}/{logs}: ticks", completed=done, total=total)
 
         try:
-            _quiet_datasets()
             summary = export_dataset(paths, out, flow=flow, format=format, maps=maps, task=task, exclude=exclude,
                                      gaps=gaps, repo_id=repo_id, overwrite=force, progress=progress)
         except Exception as exc:
             _fail(exc)
     _out.print(str(summary), highlight=False, soft_wrap=True)
-
-
-def _quiet_datasets() -> None:
-    """Hugging Face datasets' own progress bars (one per episode saved) would drown the export's."""
-    try:
-        import datasets
-    except ImportError:
-        return
-    datasets.disable_progress_bars()
 
 
 # ---------------------------------------------------------------------------------------------

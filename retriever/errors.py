@@ -144,14 +144,21 @@ class StepError(RetrieverError):
 
 
 class SetupError(RetrieverError):
-    """A flow's ``setup()`` raised, before its first tick: the run did not start. The original
-    exception is chained as ``__cause__`` (on ``zenoh``, its text and the worker's traceback)."""
+    """A flow's ``setup()`` raised, before its first tick: the run (or the replay, ``replay=True``)
+    did not start. The original exception is chained as ``__cause__`` (on ``zenoh``, its text and
+    the worker's traceback)."""
 
-    def __init__(self, node: str, cause: BaseException | str):
+    def __init__(self, node: str, cause: BaseException | str, *, replay: bool = False):
         self.node = node
-        super().__init__(_wrapped(f"{node}.setup() raised ", cause, ", before its first tick: the run did not start",
-                                  f"setup() runs once, in the process that steps '{node}'; fix what it needs "
-                                  "there (a file, a device, a model's weights)"))
+        if replay:
+            context = ", before its first tick: the replay could not start"
+            hint = (f"a replay sets '{node}' up again, in this process: it needs here what it needed in the run "
+                    "(a file, a device, a model's weights)")
+        else:
+            context = ", before its first tick: the run did not start"
+            hint = (f"setup() runs once, in the process that steps '{node}'; fix what it needs there (a file, a "
+                    "device, a model's weights)")
+        super().__init__(_wrapped(f"{node}.setup() raised ", cause, context, hint))
 
 
 class RestartLimitError(StepError):

@@ -24,7 +24,7 @@ from typing import Any, Iterator
 
 from . import _context
 from .backends import Session, open_backend
-from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, StarvedFlowWarning
+from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, SetupError, StarvedFlowWarning
 from .flow._base import Flow
 from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
@@ -444,7 +444,8 @@ def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
 class RunLog:
     """The log that ``pipe.run(log=...)`` records: its file is created before any worker starts
     (a path that cannot be written refuses the run), begun on the session at T0, and ended with
-    the run's status; or discarded, for a run refused before it began."""
+    the run's status; or discarded, for a run refused before it began, or stopped by a flow's
+    ``setup()`` before its first tick (a log of no step would only claim to hold a run)."""
 
     def __init__(self, path: str | Path, overwrite: bool):
         from .log.writer import LogFile
@@ -466,24 +467,35 @@ class RunLog:
         self.file.discard()
 
     def end(self, session: Session, exc: BaseException | None = None) -> None:
-        """Finish the log, once begun, with how the run ended (``exc``: what stopped it)."""
+        """Finish the log, once begun, with how the run ended (``exc``: what stopped it). A
+        SetupError before any step removes the file instead, and adds a note that says so to
+        ``exc`` (what ``retriever run`` prints under the error)."""
         writer = session.log
         if writer is None:
             return
         session.log = None
-        # absolute: pipe.trace reads the log back later, maybe from another working directory
-        session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
+        steps = session.trace.raw_steps
+        unstarted = isinstance(exc, SetupError) and writer.steps_total == 0 and not steps
+        if not unstarted:
+            # absolute: pipe.trace reads the log back later, maybe from another working directory
+            session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
         if exc is None:
             status, error = "finished", ""
         elif isinstance(exc, KeyboardInterrupt):
             status, error = "interrupted", "stopped by Ctrl-C or SIGTERM"
         else:
             status, error = "error", f"{type(exc).__name__}: {exc}"
-        steps = session.trace.raw_steps
         # a stopped run ends at its last tick (real-time backends append records as they arrive)
         end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
-        writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(), counts=session.counts)
-        if session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
+        try:
+            writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(),
+                         counts=session.counts)
+        finally:
+            if unstarted:
+                self.file.discard()
+        if unstarted:
+            exc.add_note(f"no log is left: the run did not start, so {writer.path} was removed")
+        elif session.keep == "counters":  # the log has the records: pipe.trace reads them back from it
             session.trace = LoggedTrace(session.logged_to)
 
 

@@ -43,7 +43,7 @@ import numpy as np
 from .backends.inproc import InprocSession
 from .code import code_mismatches
 from .codec import Encoder, unpackb
-from .errors import IRError, LogError, ReplayedError, RetrieverWarning, RunEnded, StepError
+from .errors import IRError, LogError, ReplayedError, RetrieverWarning, RunEnded, SetupError, StepError
 from .log.reader import LoggedEvent, RunLog
 from .pipeline import Pipeline
 from .time import format_tag
@@ -160,13 +160,22 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     changes = code_changes(log, graph)
     session = InprocSession(graph)
     logged = from_the_log(graph)
-    session.set_up(skip=logged)
+    _set_up(session, logged)
     try:
         report = _replay(log, graph, session, logged, progress, keep_trace)
     finally:
         session.close()
     report.code_changes = changes
     return report
+
+
+def _set_up(session: InprocSession, logged: frozenset[str]) -> None:
+    """Set up the flows the replay steps; a setup() that raises says the replay could not start
+    (what the run needed is missing here: a checkpoint moved, a device)."""
+    try:
+        session.set_up(skip=logged)
+    except SetupError as exc:
+        raise SetupError(exc.node, exc.__cause__, replay=True) from exc.__cause__
 
 
 def code_changes(log: RunLog, graph) -> list[str]:
@@ -570,7 +579,7 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
         ticks = sorted((s for s in original.steps if s.node == nid and s.status != "skipped"), key=lambda s: s.tag)
         session.replace_step(nid, iter([_logged_outputs(s, values) for s in ticks]))
     try:
-        session.set_up(skip=logged)
+        _set_up(session, logged)
         session.advance(horizon)
     except StepError as e:
         if not isinstance(e.__cause__, ReplayedError):  # (a logged source's error stopped the run too)

@@ -36,6 +36,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 #: and no line breaks of rich's own: a message piped to a file or a test stays whole
 _err = Console(stderr=True, markup=False, soft_wrap=True)
 _out = Console(markup=False, soft_wrap=True)
+MINUTES_HELP = ("wall-time budget of the training (inf: none; a seed then trains the same weights every time, "
+                "which a budget that ends the training does not)")
+MAX_EPOCHS_HELP = ("at most this many epochs; the learning rate anneals (cosine) over whichever of the two limits "
+                   "comes first")
 #: the packages of the lerobot extra that training and a learned policy import
 EXTRA_MODULES = ("torch", "safetensors", "lerobot")
 
@@ -79,7 +83,7 @@ def collect(episodes: int | None, seeds: str, out: Path, force: bool = False) ->
             rows.append({**asdict(outcome), "log": log.name})
             _write_json(listing, rows)
             done = sum(r["success"] for r in rows)
-            bar.update(task, advance=1, note=f"{done}/{len(rows)} done, {outcome.wall:.2f} s wall each")
+            bar.update(task, advance=1, note=f"{done}/{len(rows)} succeeded, the last in {outcome.wall:.2f} s wall")
     walls = [r["wall"] for r in rows]
     _out.print(f"{count} episodes in {out}: {sum(r['success'] for r in rows)} succeeded; "
                f"{statistics.mean(walls):.2f} s wall per episode (min {min(walls):.2f}, max {max(walls):.2f}), "
@@ -156,6 +160,11 @@ def _check_checkpoint_out(out: Path, force: bool) -> None:
         raise ValueError(f"-o {out} already exists; pass --force to replace the checkpoint in it")
 
 
+def _ended(ended_by: str, minutes: float) -> str:
+    from .bc import MAX_EPOCHS
+    return "--max-epochs ended it" if ended_by == MAX_EPOCHS else f"the {minutes:g}-minute budget ended it"
+
+
 def _loss(value: float | None) -> str:
     return "none" if value is None else f"{value:.4f}"
 
@@ -172,8 +181,8 @@ def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, loss
     with _bar() as bar:
         task = bar.add_task("training", total=max_epochs, note="")
 
-        def log(epoch, loss):
-            bar.update(task, completed=epoch, note=f"loss {loss:.4f}")
+        def log(epoch, loss, epochs):  # epochs: max_epochs, or fewer once the time budget is seen to end first
+            bar.update(task, completed=epoch, total=epochs, note=f"loss {loss:.4f}")
             if losses is not None:
                 losses.append(loss)
         module, config, summary = train(samples, budget_s=minutes * 60, max_epochs=max_epochs, log=log)
@@ -182,7 +191,8 @@ def train_policy(dataset: Path, out: Path, minutes: float, max_epochs: int, loss
     held = ("no episode held out" if summary.held_out_loss is None
             else f"held-out loss {summary.held_out_loss:.4f} on {summary.held_out_episodes} episodes")
     _out.print(f"trained on {summary.samples} frames of {summary.episodes} episodes (read in {read_s:.1f} s): "
-               f"{summary.epochs} epochs in {summary.seconds:.1f} s, loss {_loss(summary.train_loss)}, {held}; "
+               f"{summary.epochs} epochs in {summary.seconds:.1f} s ({_ended(summary.ended_by, minutes)}), "
+               f"loss {_loss(summary.train_loss)}, {held}; "
                f"{summary.parameters} parameters → {out}", highlight=False)
     return result
 
@@ -295,9 +305,8 @@ def main(argv=None) -> int:
     t = sub.add_parser("train", help="behaviour cloning of a small MLP on an exported dataset")
     t.add_argument("dataset", type=Path, help="the folder export wrote")
     t.add_argument("-o", "--out", type=Path, required=True, help="the checkpoint directory to write")
-    t.add_argument("--minutes", type=float, default=2.0, help="wall-time budget of the training")
-    t.add_argument("--max-epochs", type=int, default=3000,
-                   help="at most this many epochs (the cosine schedule's length)")
+    t.add_argument("--minutes", type=float, default=2.0, help=MINUTES_HELP)
+    t.add_argument("--max-epochs", type=int, default=3000, help=MAX_EPOCHS_HELP)
     t.add_argument("--json", type=Path, help="write the training summary here")
     t.add_argument("--force", action="store_true", help="replace the checkpoint if it exists")
     e = sub.add_parser("evaluate", help="success of the skill and of the whole task over seeds")
@@ -309,9 +318,8 @@ def main(argv=None) -> int:
     a.add_argument("--episodes", type=int, help="episodes to collect (default: one per seed of --train-seeds)")
     a.add_argument("--train-seeds", required=True, help="A:B, the seeds to collect from")
     a.add_argument("--eval-seeds", required=True, help="C:D, the held-out seeds to evaluate on")
-    a.add_argument("--minutes", type=float, default=5.0, help="wall-time budget of the training")
-    a.add_argument("--max-epochs", type=int, default=3000,
-                   help="at most this many epochs (the cosine schedule's length)")
+    a.add_argument("--minutes", type=float, default=5.0, help=MINUTES_HELP)
+    a.add_argument("--max-epochs", type=int, default=3000, help=MAX_EPOCHS_HELP)
     a.add_argument("--format", choices=["lerobot", "npz"], default="lerobot", help="the dataset's format")
     a.add_argument("-o", "--out", type=Path, required=True, help="the folder of the logs, dataset and checkpoint")
     a.add_argument("--results", type=Path, help="where results.json and learning_loop.png go (default: -o)")

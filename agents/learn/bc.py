@@ -16,9 +16,11 @@ image is given to the module (it is in the dataset) and not used.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -26,6 +28,11 @@ from torch import nn
 
 from ..skill_policies import COMMAND, CONFIG, CONFIG_FILE, KIND, WEIGHTS_FILE
 from .dataset import Samples
+
+#: the learning rate at the start of the training (AdamW's), annealed to 0 along a cosine
+LEARNING_RATE = 1e-3
+#: how a training ended (:attr:`Training.ended_by`)
+MAX_EPOCHS, TIME_BUDGET = "max_epochs", "time_budget"
 
 
 @dataclass
@@ -38,6 +45,7 @@ class Training:
     held_out_loss: float | None     # on the episodes kept out of training (None without any)
     held_out_episodes: int
     parameters: int
+    ended_by: str                   # MAX_EPOCHS or TIME_BUDGET: the limit it reached first
 
 
 class PickMLP(nn.Module):
@@ -90,12 +98,20 @@ def save(module, config: dict, folder: str | Path, training: Training | None = N
     return folder
 
 
-def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hidden: int = 256,
-          held_out: float = 0.1, seed: int = 0, threads: int = 2, log=None):
-    """Train on ``samples`` for at most ``budget_s`` seconds of wall time or ``max_epochs``;
-    the last ``held_out`` of the episodes measure the loss on data it never saw. Returns the
-    module, its config (:data:`CONFIG`) and a :class:`Training` summary. ``log(epoch, loss)``
-    is told each epoch."""
+def train(samples: Samples, budget_s: float | None = 120.0, max_epochs: int = 3000, hidden: int = 256,
+          held_out: float = 0.1, seed: int = 0, threads: int = 2, log=None,
+          clock: Callable[[], float] = time.perf_counter):
+    """Train on ``samples`` for at most ``budget_s`` seconds of wall time (``clock``'s) or
+    ``max_epochs``, whichever ends it first; the last ``held_out`` of the episodes measure the
+    loss on data it never saw. Returns the module, its config (:data:`CONFIG`) and a
+    :class:`Training` summary.
+
+    The learning rate follows a cosine from :data:`LEARNING_RATE` to 0 over the training's
+    progress (:func:`progress`): so it is annealed at the end whichever limit ends it. Without a
+    time budget (``budget_s`` None or infinite) that progress counts epochs only, and a seed
+    trains the same weights every time; with one, how far it got depends on the machine.
+    ``log(epoch, loss, epochs)`` is told each epoch, with the epochs the training is expected to
+    take by then (``max_epochs``, or fewer once the time budget is seen to end it first)."""
     torch.manual_seed(seed)
     torch.set_num_threads(threads)
     n, steps, nu = samples.action.shape
@@ -115,10 +131,11 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
     state_dim = config["state_dim"]
     X, Y = torch.as_tensor(train_x), torch.as_tensor((train_y - y_mean) / y_std)
     TX, TY = torch.as_tensor(x[test]), torch.as_tensor((y[test] - y_mean) / y_std)
-    optimiser = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=max_epochs)
-    started, epoch, loss_value = time.perf_counter(), 0, None
-    while epoch < max_epochs and time.perf_counter() - started < budget_s:
+    optimiser = torch.optim.AdamW(model.parameters(), lr=LEARNING_RATE, weight_decay=1e-4)
+    started, epoch, loss_value, done = clock(), 0, None, 0.0
+    while done < 1.0:
+        for group in optimiser.param_groups:
+            group["lr"] = LEARNING_RATE * 0.5 * (1.0 + math.cos(math.pi * done))
         order = torch.randperm(len(X))
         total = 0.0
         for batch in order.split(256):
@@ -128,15 +145,24 @@ def train(samples: Samples, budget_s: float = 120.0, max_epochs: int = 3000, hid
             loss.backward()
             optimiser.step()
             total += loss.item() * len(batch)
-        schedule.step()
         epoch += 1
         loss_value = total / len(X)
+        done = progress(epoch, max_epochs, clock() - started, budget_s)
         if log is not None:
-            log(epoch, loss_value)
-    seconds = time.perf_counter() - started
+            log(epoch, loss_value, epoch if done >= 1.0 else min(max_epochs, math.ceil(epoch / done)))
+    seconds = clock() - started
     model.eval()
     with torch.no_grad():
         held = (float(torch.nn.functional.mse_loss(model.normalised(TX[:, :state_dim], TX[:, state_dim:]), TY))
                 if len(TX) else None)
     parameters = sum(p.numel() for p in model.parameters())
-    return model, config, Training(n, len(episodes), epoch, seconds, loss_value, held, len(test_eps), parameters)
+    ended_by = MAX_EPOCHS if epoch >= max_epochs else TIME_BUDGET
+    return model, config, Training(n, len(episodes), epoch, seconds, loss_value, held, len(test_eps), parameters,
+                                   ended_by)
+
+
+def progress(epoch: int, max_epochs: int, elapsed_s: float, budget_s: float | None) -> float:
+    """How far a training is, from 0 to 1 (done): the larger of the share of ``max_epochs`` done
+    and the share of the time budget spent (the epochs' alone without a budget)."""
+    by_time = 0.0 if budget_s is None or math.isinf(budget_s) else elapsed_s / budget_s
+    return min(1.0, max(epoch / max_epochs, by_time))

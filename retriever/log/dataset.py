@@ -9,8 +9,10 @@ features); one log is one episode (several with ``gaps="split"``). Two formats:
 - ``npz``: the same frames and features as plain NumPy arrays, one ``episode_NNNNNN.npz`` per
   episode and ``info.json``, for users without lerobot.
 
-The dataset is written into a folder beside ``DIR`` and renamed to it at the end: an export that
-fails leaves nothing at ``DIR``.
+The dataset is written into a folder beside ``DIR`` (``.DIR.PID.partial``) and renamed to it at
+the end: an export that fails leaves nothing at ``DIR``. One that was killed (SIGKILL, a power
+cut) cannot remove its folder: the next export into the same parent folder does, once no process
+of that PID runs.
 """
 
 from __future__ import annotations
@@ -18,12 +20,14 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -39,6 +43,8 @@ RESERVED_KEYS = {"npz": ("timestamp", "frame_index", "tick_ns", TASK),
                  "lerobot": ("timestamp", "frame_index", "episode_index", "index", "task_index", TASK)}
 #: threads LeRobot's image writer encodes PNGs in (its own advice: a few per camera)
 IMAGE_WRITER_THREADS = max(2, min(4, os.cpu_count() or 1))
+#: the folder an export writes before renaming it to its output: ``.NAME.PID.partial``
+PARTIAL_FOLDER = re.compile(r"\.(?P<name>.+)\.(?P<pid>[1-9][0-9]*)\.partial")
 
 
 @dataclass
@@ -57,6 +63,7 @@ class ExportSummary:
     fields_left_out: list[str] = field(default_factory=list)
     sparse: dict[str, tuple[int, int]] = field(default_factory=dict)  # ports left out: (ticks with a value, ticks)
     non_finite: dict[str, tuple[int, str]] = field(default_factory=dict)  # sources: (frames with NaN/inf, first where)
+    reaped: list[str] = field(default_factory=list)  # folders killed exports had left beside out, removed
 
     def __str__(self) -> str:
         lines = [f"wrote {self.out} ({self.format}): {self.frames} frames in {self.episodes} episode(s) at "
@@ -76,6 +83,9 @@ class ExportSummary:
                                      for s, (n, first) in sorted(self.non_finite.items())))
         if self.fields_left_out:
             lines.append("  fields no feature holds (text, None): " + ", ".join(self.fields_left_out))
+        if self.reaped:
+            lines.append(f"  removed {len(self.reaped)} unfinished folder(s) that killed exports had left in "
+                         f"{self.out.parent}: " + ", ".join(self.reaped))
         return "\n".join(lines)
 
 
@@ -112,6 +122,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
     writer_class = _LeRobotWriter if format == "lerobot" else _NpzWriter
     writer_class.check_installed()
     started = time.perf_counter()
+    reaped = reap_partials(out.parent)
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     shutil.rmtree(partial, ignore_errors=True)
     writer = None
@@ -162,7 +173,47 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
         shutil.rmtree(partial, ignore_errors=True)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     return ExportSummary(out, format, episodes, count, float(first.fps), size, time.perf_counter() - started,
-                         first.features, left_out, fields_left_out, sparse, non_finite)
+                         first.features, left_out, fields_left_out, sparse, non_finite, reaped)
+
+
+def reap_partials(folder: Path) -> list[str]:
+    """Remove from ``folder`` the unfinished folders of exports that were killed (SIGKILL gives
+    an export no chance to remove its own) and return their names: each named as an export names
+    it (:data:`PARTIAL_FOLDER`), a folder (not a link), this user's, and of a PID that no process
+    runs. Anything else is left alone: a live export's folder, another user's, other names."""
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return []
+    reaped = []
+    for entry in entries:
+        match = PARTIAL_FOLDER.fullmatch(entry.name)
+        if match is None or not entry.is_dir(follow_symlinks=False):
+            continue
+        try:
+            owner = entry.stat(follow_symlinks=False).st_uid
+        except OSError:
+            continue
+        if owner != os.getuid() or _may_run(int(match["pid"])):
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        if not os.path.lexists(entry.path):
+            reaped.append(entry.name)
+    return sorted(reaped)
+
+
+def _may_run(pid: int) -> bool:
+    """Whether a process ``pid`` may be running: this one, or any that signal 0 finds (another
+    user's included); False only when no process has that PID."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # (another user's process; a number no PID can be: not an export's of ours)
+    return True
 
 
 def _check_keys(mapping: Mapping, format: str) -> None:
@@ -258,19 +309,41 @@ class _LeRobotWriter:
             # the tick's time from the run's start: add_frame would take a frame's "timestamp" (and
             # else stamps frame_index / fps), but lerobot 0.4.4's frame check refuses the key
             self.dataset.episode_buffer["timestamp"][-1] = frame.timestamp
-        self.dataset.save_episode()
+        with _datasets_progress_bars_off():
+            self.dataset.save_episode()
         self.episodes += 1
         self.frames += len(episode.frames)
 
     def close(self) -> tuple[int, int]:
-        self.dataset.stop_image_writer()
-        self.dataset.finalize()
+        self._finish()
         return self.episodes, self.frames
 
     def abandon(self) -> None:
         """Stop its image writers and close its files (the folder they are in is then removed)."""
+        self._finish()
+
+    def _finish(self) -> None:
         self.dataset.stop_image_writer()
-        self.dataset.finalize()
+        with _datasets_progress_bars_off():
+            self.dataset.finalize()
+
+
+@contextmanager
+def _datasets_progress_bars_off() -> Iterator[None]:
+    """Hugging Face datasets' own progress bars off while LeRobot saves (a "Map: 100%|…" line
+    per episode, beside the export's own progress), through datasets' switch, and set back as
+    they were after: the program's other uses of datasets keep their bars. A user who set
+    HF_DATASETS_DISABLE_PROGRESS_BARS=0 keeps them (datasets gives that variable the last word)."""
+    import datasets
+
+    if datasets.are_progress_bars_disabled() or datasets.config.HF_DATASETS_DISABLE_PROGRESS_BARS is False:
+        yield
+        return
+    datasets.disable_progress_bars()
+    try:
+        yield
+    finally:
+        datasets.enable_progress_bars()
 
 
 class _NpzWriter:

@@ -375,3 +375,68 @@ def test_a_message_is_one_line_whatever_the_paths_length(tmp_path):
     assert done.returncode == 2, done.stderr
     assert f"error: -o {deep / 'afile'}: a file is there; the checkpoint is a directory (give a new path)\n" \
         == done.stderr, done.stderr
+
+
+def _tiny_samples():
+    from agents.learn.dataset import Samples
+    rng = np.random.default_rng(0)
+    return Samples(state=rng.normal(size=(12, 18)), scene=rng.normal(size=(12, 10)),
+                   action=rng.normal(size=(12, 150, 5)), episode=np.repeat(np.arange(6), 2))
+
+
+def _recording_learning_rates(monkeypatch) -> list[float]:
+    """The learning rate of each optimiser step of the trainings that follow."""
+    import torch
+    rates = []
+
+    class Recorded(torch.optim.AdamW):
+        def step(self, *args, **kwargs):
+            rates.append(self.param_groups[0]["lr"])
+            return super().step(*args, **kwargs)
+    monkeypatch.setattr(torch.optim, "AdamW", Recorded)
+    return rates
+
+
+def test_a_time_budget_that_ends_the_training_anneals_it_and_the_bar_counts_to_its_end(monkeypatch):
+    """A clock on which each epoch takes 1 s and a 10 s budget: the budget ends the training
+    after 10 of the 3000 epochs; the learning rate went down to near 0 on the way, and from its
+    first epoch on the training expected 10 epochs, not 3000."""
+    from agents.learn.bc import LEARNING_RATE, TIME_BUDGET, train
+    rates = _recording_learning_rates(monkeypatch)
+    ticks = iter(range(100))
+    told = []
+    _, _, summary = train(_tiny_samples(), budget_s=10.0, max_epochs=3000, hidden=8, clock=lambda: float(next(ticks)),
+                          log=lambda epoch, loss, epochs: told.append((epoch, epochs)))
+    assert summary.epochs == 10 and summary.ended_by == TIME_BUDGET
+    assert told == [(k, 10) for k in range(1, 11)]
+    assert rates[0] == LEARNING_RATE and rates[-1] < 0.03 * LEARNING_RATE
+    assert rates == sorted(rates, reverse=True)
+
+
+def test_without_a_time_budget_a_seed_trains_the_same_weights_along_a_schedule_over_the_epochs(monkeypatch):
+    import torch
+
+    from agents.learn.bc import LEARNING_RATE, MAX_EPOCHS, train
+    rates = _recording_learning_rates(monkeypatch)
+    first, _, summary = train(_tiny_samples(), budget_s=None, max_epochs=4, hidden=8)
+    again, _, _ = train(_tiny_samples(), budget_s=float("inf"), max_epochs=4, hidden=8)
+    assert summary.epochs == 4 and summary.ended_by == MAX_EPOCHS
+    assert all(torch.equal(a, b) for a, b in zip(first.state_dict().values(), again.state_dict().values()))
+    per_epoch = [LEARNING_RATE * 0.5 * (1 + np.cos(np.pi * k / 4)) for k in range(4)]
+    assert rates == pytest.approx(per_epoch * 2, rel=1e-12)  # one batch an epoch, two trainings
+
+
+def test_collects_progress_says_the_last_episodes_time_as_the_last(tmp_path, monkeypatch):
+    import io
+
+    from rich.console import Console
+
+    from agents.learn import __main__ as command
+    from agents.learn import episodes
+    screen = io.StringIO()
+    monkeypatch.setattr(command, "_err", Console(file=screen, width=300, markup=False))
+    walls = iter([0.5, 2.25])
+    monkeypatch.setattr(episodes, "pick_episode", lambda seed, policy, log: episodes.Outcome(
+        seed, "TL", True, 5.0, next(walls), "done"))
+    command.collect(2, "5:7", tmp_path / "logs")
+    assert "2/2 succeeded, the last in 2.25 s wall" in screen.getvalue() and " each" not in screen.getvalue()

@@ -106,6 +106,23 @@ def test_a_multi_log_export_has_one_episode_per_log(tmp_path):
     assert abs(second_start["timestamp"].item() - _logged_ticks(second)[0]["t"] / 1e9) <= 1e-6
 
 
+def test_the_lerobot_export_prints_no_progress_bar_of_datasets_and_leaves_its_switch_as_it_was(tmp_path, capfd,
+                                                                                               monkeypatch):
+    """Hugging Face datasets prints a "Map: 100%|…" bar per episode LeRobot saves: off during the
+    export (the caller has its own progress), on again after for the program's own uses."""
+    _lerobot()
+    import datasets
+
+    monkeypatch.setattr(datasets.config, "HF_DATASETS_DISABLE_PROGRESS_BARS", None)  # the user did not choose
+    datasets.enable_progress_bars()
+    log = _run(tmp_path / "run.mcap")
+    export_dataset([log, log], tmp_path / "ds", flow="policy", format="lerobot")
+    assert "Map" not in capfd.readouterr().err
+    assert not datasets.are_progress_bars_disabled()
+    done = cli("log", "export", str(log), "--format", "lerobot", "--flow", "policy", "-o", str(tmp_path / "cli"))
+    assert done.returncode == 0 and "Map" not in done.stderr, done.stderr
+
+
 def test_npz_holds_the_same_frames_and_features_as_the_lerobot_export(tmp_path):
     lerobot = _lerobot()
     log = _run(tmp_path / "run.mcap")
@@ -249,6 +266,76 @@ def test_an_existing_output_is_kept_unless_forced(tmp_path):
     export_dataset([log], tmp_path / "np", flow="policy", format="npz", overwrite=True)
     assert sorted(p.name for p in (tmp_path / "np").iterdir()) == ["episode_000000.npz", "info.json"]
     _empty_of_partials(tmp_path)
+
+
+#: an export into OUT that stops, once its partial folder is there, until its stdin has a line
+#: (the test kills it there): argv = OUT LOG LOG
+_EXPORT_THAT_WAITS = """
+import sys
+import tests.log.dataset_flows  # the logs' value types
+from retriever.log.dataset import export_dataset
+
+def progress(log, logs, tick, ticks):
+    if log == 1:  # the first log's episode is written: the partial folder exists
+        print("writing", flush=True)
+        sys.stdin.readline()
+
+export_dataset(sys.argv[2:], sys.argv[1], flow="policy", format="npz", progress=progress)
+"""
+
+
+def test_a_killed_exports_folder_is_removed_by_the_next_export_beside_it_and_said(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    from tests.log.helpers import cli_env
+
+    log = _run(tmp_path / "run.mcap")
+    out = tmp_path / "datasets"
+    out.mkdir()
+    killed = subprocess.Popen([sys.executable, "-c", _EXPORT_THAT_WAITS, str(out / "first"), str(log), str(log)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=cli_env())
+    try:
+        assert killed.stdout.readline() == "writing\n"
+        left = out / f".first.{killed.pid}.partial"
+        assert (left / "episode_000000.npz").is_file()
+    finally:
+        killed.send_signal(signal.SIGKILL)
+        killed.wait(timeout=60)
+        killed.stdout.close()
+        killed.stdin.close()
+    assert killed.returncode == -signal.SIGKILL and left.is_dir() and not (out / "first").exists()
+    live = out / f".other.{os.getpid()}.partial"  # this test's process runs: a live export's folder
+    others = [out / f".first.{killed.pid}.partial.keep", out / ".first.x1.partial", out / "first.1.partial"]
+    for folder in (live, *others):
+        folder.mkdir()
+    (out / ".file.1.partial").write_text("not a folder")
+
+    done = cli("log", "export", str(log), "--format", "npz", "--flow", "policy", "-o", str(out / "second"))
+    assert done.returncode == 0, done.stderr
+    assert not left.exists() and (out / "second" / "info.json").is_file()
+    assert f"  removed 1 unfinished folder(s) that killed exports had left in {out}: {left.name}\n" in done.stdout
+    assert all(p.exists() for p in (live, *others, out / ".file.1.partial"))
+
+
+def test_a_partial_folder_of_another_user_or_a_live_process_is_left_alone(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+
+    from retriever.log.dataset import reap_partials
+
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended.wait(timeout=60)
+    stale, running = tmp_path / f".a.{ended.pid}.partial", tmp_path / f".b.{os.getppid()}.partial"
+    stale.mkdir()
+    running.mkdir()
+    uid = os.getuid()
+    monkeypatch.setattr(os, "getuid", lambda: uid + 1)  # as another user sees them
+    assert reap_partials(tmp_path) == [] and stale.is_dir()
+    monkeypatch.setattr(os, "getuid", lambda: uid)
+    assert reap_partials(tmp_path) == [stale.name]
+    assert not stale.exists() and running.is_dir()
 
 
 # -- a real-time run and its replay -------------------------------------------------------------

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, StepError, io
+from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, SetupError, StepError, io
 from retriever.log import read_log, replay, resim
 from tests.backends.test_schedule_independence import budget, graphs
 from tests.log.helpers import cli
@@ -95,6 +95,19 @@ class Oracle(Flow[Reading, Reading]):
 
     def step(self, inp: Reading) -> Reading:
         return Reading(x=inp.x * OUTSIDE["answer"])
+
+
+class Weighted(Flow[Reading, Reading]):
+    """Reads its weight from a file in setup(), as a policy loads its checkpoint."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+    def setup(self):
+        self.weight = float(Path(self.path).read_text())
+
+    def step(self, inp: Reading) -> Reading:
+        return Reading(x=inp.x * self.weight)
 
 
 class Batcher(Flow):
@@ -266,6 +279,25 @@ def test_a_flow_replayed_from_the_log_is_not_called_again(tmp_path, mode, monkey
     else:
         assert not report.identical and not again.identical
         assert report.divergences[0].node == "oracle" and OUTSIDE["setups"] == 2
+
+
+def test_a_replay_whose_flow_cannot_be_set_up_says_the_replay_could_not_start_and_why(tmp_path):
+    weights = tmp_path / "weights.txt"
+    weights.write_text("2.0")
+    with Pipeline("chain") as pipe:
+        (Counter() @ Rate(hz=50)).then(Weighted(str(weights)) @ Rate(hz=20), sync=Latest())
+    log = logged(pipe, tmp_path)
+    weights.unlink()  # the checkpoint moved since the run
+    said = (r"^weighted\.setup\(\) raised FileNotFoundError: .*weights\.txt'?, before its first tick: the replay "
+            r"could not start\n    hint: a replay sets 'weighted' up again, in this process: it needs here what it "
+            r"needed in the run")
+    for again in (replay, resim):
+        with pytest.raises(SetupError, match=said) as raised:
+            again(log)
+        assert isinstance(raised.value.__cause__, FileNotFoundError)
+        assert "the run did not start" not in str(raised.value)
+    done = cli("replay", str(log.path))
+    assert done.returncode == 1 and "the replay could not start" in done.stderr and "run did not" not in done.stderr
 
 
 def test_replay_setting_is_checked(tmp_path):

@@ -4,13 +4,14 @@ the OS error; no message claims a run is in a file that does not hold it."""
 
 from __future__ import annotations
 
+import re
 import resource
 import subprocess
 from pathlib import Path
 
 import pytest
 
-from retriever import LogError, read_log
+from retriever import Latest, LogError, Pipeline, Rate, Trigger, read_log
 from retriever.errors import LogWriteError
 from retriever.log import recover, replay
 from tests.log import log_flows
@@ -69,6 +70,44 @@ def test_a_run_refused_after_the_file_was_created_removes_it(tmp_path: Path):
     with pytest.raises(Exception, match="log= records a run from T0"):
         pipe.run(duration=0.5, log=tmp_path / "late.mcap")
     assert not (tmp_path / "late.mcap").exists()
+
+
+#: a pipeline whose policy's setup() raises (its weights are missing), for ``retriever run``
+UNSTARTABLE = """
+from retriever import Latest, Pipeline, Rate, Trigger
+from tests.backends.setup_flows import Camera, Policy
+
+with Pipeline("unstartable") as pipe:
+    (Camera("{journal}") @ Rate(hz=10)).then(Policy("{journal}", fail_setup=True) @ Trigger(), sync=Latest())
+"""
+UNSTARTED = r"policy\.setup\(\) raised FileNotFoundError: weights\.pt, before its first tick: the run did not start"
+
+
+@pytest.mark.parametrize("backend", ["inproc", "zenoh"])
+def test_a_run_whose_setup_fails_leaves_no_log_and_says_so(tmp_path: Path, backend):
+    """A flow's setup() raised before the first tick: a log would hold no step of the run (only
+    its metadata), so the run removes it, an overwritten file too (it was emptied), and its
+    error says so on a line of its own."""
+    from retriever import SetupError
+    from tests.backends.setup_flows import Camera, Policy
+
+    journal, log = tmp_path / "journal", tmp_path / "run.mcap"
+    with Pipeline("unstartable") as pipe:
+        (Camera(str(journal)) @ Rate(hz=10)).then(Policy(str(journal), fail_setup=True) @ Trigger(), sync=Latest())
+    options = {"quiet": True} if backend == "zenoh" else {}
+    with pytest.raises(SetupError, match=UNSTARTED) as raised:
+        pipe.run(duration=1.0, backend=backend, log=log, **options)
+    assert not log.exists()
+    assert raised.value.__notes__ == [f"no log is left: the run did not start, so {log} was removed"]
+    pipe.reset()
+
+    script = tmp_path / "unstartable.py"
+    script.write_text(UNSTARTABLE.format(journal=journal))
+    log.write_text("an older run's log")
+    result = cli("run", script, "--backend", backend, "--duration", "1", "--log", log, "--force")
+    assert result.returncode == 1 and re.search("^error: " + UNSTARTED, result.stderr, re.MULTILINE), result.stderr
+    assert f"\nno log is left: the run did not start, so {log} was removed\n" in result.stderr, result.stderr
+    assert "the run up to the error is in" not in result.stderr and not log.exists()
 
 
 def test_recover_does_not_overwrite_an_existing_file(notes: Path, tmp_path: Path):
