@@ -387,88 +387,121 @@ def _ports_list(ports: dict[str, PortSpec]) -> str:
 def _resolve_edge(decl: "DeclaredEdge", src: Node, dst: Node, problems: list[Problem],
                   warnings: list[str]) -> list[Edge]:
     label = f"edge {src.id} → {dst.id}" + (f" ({decl.where})" if decl.where else "")
-    sync = decl.sync
     if dst.spec.is_source:
         problems.append(Problem(f"{label}: '{dst.id}' is a source (it has no input ports)",
                                 "connect into a flow whose step() takes inputs"))
         return []
+    if decl.map is not None:
+        pairs = _mapped_pairs(decl.map, src, dst, label, problems)
+    elif src.spec.outputs is None:
+        pairs = _untyped_pairs(src, dst, label, problems, warnings)
+    else:
+        pairs = _typed_pairs(src, dst, decl.sync, label, problems, warnings)
+    return _checked_edges(decl, src, dst, pairs, label, problems)
+
+
+def _mapped_pairs(port_map: dict[str, str], src: Node, dst: Node, label: str,
+                  problems: list[Problem]) -> list[tuple[str, str]]:
+    """The (output, input) pairs an edge's ``map=`` names, those that name ports that exist (for
+    an untyped producer: a key its step() returns, where those are known)."""
     typed_src = src.spec.outputs is not None
     pairs: list[tuple[str, str]] = []
-    if decl.map is not None:
-        for out_port, in_port in decl.map.items():
-            ok = True
-            if typed_src and out_port not in src.outputs:
-                problems.append(Problem(
-                    f"{label}: map names output port '{out_port}', but {src.id} has no such output "
-                    f"(outputs: {_ports_list(src.outputs)})", "map goes {output_port: input_port}"))
-                ok = False
-            elif not typed_src and src.spec.returned_keys is not None and out_port not in src.spec.returned_keys:
-                returned = ", ".join(f"'{k}'" for k in sorted(src.spec.returned_keys)) or "no port"
-                problems.append(Problem(
-                    f"{label}: map names output port '{out_port}', but {src.id} is untyped and its step() "
-                    f"returns {returned}, never '{out_port}': {dst.id}.{in_port} would never get an event",
-                    "map goes {output_port: input_port}; name a key its step() returns"))
-                ok = False
-            if in_port not in dst.inputs:
-                problems.append(Problem(
-                    f"{label}: map names input port '{in_port}', but {dst.id} has no such input "
-                    f"(inputs: {_ports_list(dst.inputs)})", "map goes {output_port: input_port}"))
-                ok = False
-            if ok:
-                pairs.append((out_port, in_port))
-    elif not typed_src:
-        if len(dst.inputs) == 1:
-            (port,) = dst.inputs
-            returned = src.spec.returned_keys
-            if returned is not None and port not in returned:  # its step never returns that key
-                shown = ", ".join(f"'{k}'" for k in sorted(returned)) or "no port"
-                fix = (f"{src.id}.then({dst.id}, map={{'{sorted(returned)[0]}': '{port}'}})" if len(returned) == 1
-                       else f"map={{'<one of its keys>': '{port}'}}")
-                text = (f"{label}: {src.id} is untyped and its step() returns {shown}, never '{port}', the port "
-                        f"of {dst.id} this edge feeds by name: {dst.id}.{port} would never get an event")
-                if dst.inputs[port].required:
-                    problems.append(Problem(text, f"say which output feeds it: {fix}"))
-                    return []
-                warnings.append(f"{text} (it is optional: {dst.id} steps without it)\n    hint: {fix}")
-            pairs.append((port, port))
-        elif src.spec.returned_keys is not None and src.spec.returned_keys & set(dst.inputs):
-            # its step's keys are known (dict literals): matched by name, as a typed producer's ports
-            pairs = [(p, p) for p in dst.inputs if p in src.spec.returned_keys]
-        else:
-            known = src.spec.returned_keys is not None
+    for out_port, in_port in port_map.items():
+        ok = True
+        if typed_src and out_port not in src.outputs:
             problems.append(Problem(
-                f"{label}: {src.id} is untyped, so its outputs cannot be matched by name to "
-                f"{dst.id}'s inputs ({_ports_list(dst.inputs)}); the match is ambiguous"
-                + (f" (its step() returns {', '.join(repr(k) for k in sorted(src.spec.returned_keys)) or 'nothing'}, "
-                   "none of them an input's name)" if known else ""),
-                f"pass map={{'<output>': '<input>'}} to say which port of {dst.id} it feeds"))
+                f"{label}: map names output port '{out_port}', but {src.id} has no such output "
+                f"(outputs: {_ports_list(src.outputs)})", "map goes {output_port: input_port}"))
+            ok = False
+        elif not typed_src and src.spec.returned_keys is not None and out_port not in src.spec.returned_keys:
+            returned = ", ".join(f"'{k}'" for k in sorted(src.spec.returned_keys)) or "no port"
+            problems.append(Problem(
+                f"{label}: map names output port '{out_port}', but {src.id} is untyped and its step() "
+                f"returns {returned}, never '{out_port}': {dst.id}.{in_port} would never get an event",
+                "map goes {output_port: input_port}; name a key its step() returns"))
+            ok = False
+        if in_port not in dst.inputs:
+            problems.append(Problem(
+                f"{label}: map names input port '{in_port}', but {dst.id} has no such input "
+                f"(inputs: {_ports_list(dst.inputs)})", "map goes {output_port: input_port}"))
+            ok = False
+        if ok:
+            pairs.append((out_port, in_port))
+    return pairs
+
+
+def _untyped_pairs(src: Node, dst: Node, label: str, problems: list[Problem],
+                   warnings: list[str]) -> list[tuple[str, str]]:
+    """The pairs an edge from an untyped producer without ``map=`` feeds: the consumer's one
+    input, or the inputs named as keys its step() returns; none where that is ambiguous or a
+    required input would never get an event."""
+    pairs: list[tuple[str, str]] = []
+    if len(dst.inputs) == 1:
+        (port,) = dst.inputs
+        returned = src.spec.returned_keys
+        if returned is not None and port not in returned:  # its step never returns that key
+            shown = ", ".join(f"'{k}'" for k in sorted(returned)) or "no port"
+            fix = (f"{src.id}.then({dst.id}, map={{'{sorted(returned)[0]}': '{port}'}})" if len(returned) == 1
+                   else f"map={{'<one of its keys>': '{port}'}}")
+            text = (f"{label}: {src.id} is untyped and its step() returns {shown}, never '{port}', the port "
+                    f"of {dst.id} this edge feeds by name: {dst.id}.{port} would never get an event")
+            if dst.inputs[port].required:
+                problems.append(Problem(text, f"say which output feeds it: {fix}"))
+                return []
+            warnings.append(f"{text} (it is optional: {dst.id} steps without it)\n    hint: {fix}")
+        pairs.append((port, port))
+    elif src.spec.returned_keys is not None and src.spec.returned_keys & set(dst.inputs):
+        # its step's keys are known (dict literals): matched by name, as a typed producer's ports
+        pairs = [(p, p) for p in dst.inputs if p in src.spec.returned_keys]
     else:
-        common = [p for p in src.outputs if p in dst.inputs]
-        if common:
-            pairs = [(p, p) for p in common]
+        known = src.spec.returned_keys is not None
+        problems.append(Problem(
+            f"{label}: {src.id} is untyped, so its outputs cannot be matched by name to "
+            f"{dst.id}'s inputs ({_ports_list(dst.inputs)}); the match is ambiguous"
+            + (f" (its step() returns {', '.join(repr(k) for k in sorted(src.spec.returned_keys)) or 'nothing'}, "
+               "none of them an input's name)" if known else ""),
+            f"pass map={{'<output>': '<input>'}} to say which port of {dst.id} it feeds"))
+    return pairs
+
+
+def _typed_pairs(src: Node, dst: Node, sync: SyncPolicy, label: str, problems: list[Problem],
+                 warnings: list[str]) -> list[tuple[str, str]]:
+    """The pairs an edge between typed ports without ``map=`` feeds: the ports named alike, else
+    the one pair whose types fit (with a warning where the type says little)."""
+    pairs: list[tuple[str, str]] = []
+    common = [p for p in src.outputs if p in dst.inputs]
+    if common:
+        pairs = [(p, p) for p in common]
+    else:
+        candidates = [(o, i) for o, os in src.outputs.items() for i, is_ in dst.inputs.items()
+                      if _fits_through(os.type, is_.type, sync)]
+        if len(candidates) == 1:
+            pairs = candidates
+            (o, i), = candidates
+            if not _distinctive(src.outputs[o].type, dst.inputs[i].type):
+                # an image would feed an action port because both are arrays: say so
+                warnings.append(
+                    f"{label}: no port names in common, so {src.id}.{o} feeds {dst.id}.{i} because they are "
+                    f"the only pair whose types fit ({src.outputs[o].type_name} → {dst.inputs[i].type_name}), "
+                    f"a type that says little about what a port means\n"
+                    f"    hint: if that is meant, say so: map={{'{o}': '{i}'}}; else name the ports alike")
+        elif not candidates:
+            problems.append(Problem(
+                f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "
+                f"{dst.id} ({_ports_list(dst.inputs)}) by name or type",
+                "pass map={'<output>': '<input>'}"))
         else:
-            candidates = [(o, i) for o, os in src.outputs.items() for i, is_ in dst.inputs.items()
-                          if _fits_through(os.type, is_.type, sync)]
-            if len(candidates) == 1:
-                pairs = candidates
-                (o, i), = candidates
-                if not _distinctive(src.outputs[o].type, dst.inputs[i].type):
-                    # an image would feed an action port because both are arrays: say so
-                    warnings.append(
-                        f"{label}: no port names in common, so {src.id}.{o} feeds {dst.id}.{i} because they are "
-                        f"the only pair whose types fit ({src.outputs[o].type_name} → {dst.inputs[i].type_name}), "
-                        f"a type that says little about what a port means\n"
-                        f"    hint: if that is meant, say so: map={{'{o}': '{i}'}}; else name the ports alike")
-            elif not candidates:
-                problems.append(Problem(
-                    f"{label}: no output of {src.id} ({_ports_list(src.outputs)}) matches an input of "
-                    f"{dst.id} ({_ports_list(dst.inputs)}) by name or type",
-                    "pass map={'<output>': '<input>'}"))
-            else:
-                shown = ", ".join(f"{o}→{i}" for o, i in candidates)
-                problems.append(Problem(
-                    f"{label}: ambiguous port matching: no names in common and several type-compatible "
-                    f"pairs ({shown})", "pass map={'<output>': '<input>'} to choose"))
+            shown = ", ".join(f"{o}→{i}" for o, i in candidates)
+            problems.append(Problem(
+                f"{label}: ambiguous port matching: no names in common and several type-compatible "
+                f"pairs ({shown})", "pass map={'<output>': '<input>'} to choose"))
+    return pairs
+
+
+def _checked_edges(decl: "DeclaredEdge", src: Node, dst: Node, pairs: list[tuple[str, str]], label: str,
+                   problems: list[Problem]) -> list[Edge]:
+    """An edge per pair whose output type fits its input through the edge's sync policy."""
+    sync = decl.sync
     edges = []
     for out_port, in_port in pairs:
         out_spec = src.outputs.get(out_port)

@@ -582,7 +582,6 @@ class InprocSession(Session):
         agenda, host, rng = self._agenda, self._host, self._rng
         heap, pending, rate_due, after, schedule_group = (agenda.heap, agenda.pending, agenda.rate_due, agenda.after,
                                                           agenda.schedule_group)
-        rank = self._rank
         ticks = self._tick_functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
@@ -593,24 +592,9 @@ class InprocSession(Session):
         while heap and heap[0][0] < until_ns:
             if host.look:  # (between two instants)
                 host.look = False
-                if self.stop_requested:  # (RunHandle.stop; a logged run stops at its hand-over, now)
-                    if log is None:
-                        raise KeyboardInterrupt
-                    log_at = ran
-                if self._recompile:
-                    self._recompile = False
-                    self._drop_compiled()
-                    ticks = self._tick_functions()
-                if self._flushes_asked:
-                    self._answer_flushes()
+                log_at, ticks = self._look(ran, log_at, ticks)
             if ran >= log_at:
-                if log is not None:
-                    log_at = ran + self.write_log()  # first: with keep="counters" it empties the trace
-                else:
-                    if self.stop_requested:
-                        raise KeyboardInterrupt
-                    self.drop_records()
-                    log_at = ran + self.LOG_BATCH
+                log_at = ran + self._hand_over()
             tag = heappop(heap)
             due = pending.pop(tag)
             if type(due) is _RateGroup:  # one rate group's tick, nothing else: its nodes in order
@@ -639,13 +623,7 @@ class InprocSession(Session):
                         group.advance()
                         schedule_group(group)
                 ran += len(due)
-                if len(due) == 1:
-                    order = [ticks[i] for i in due]
-                else:
-                    indices = sorted(due, key=rank.__getitem__)
-                    if rng is not None:
-                        rng.shuffle(indices)
-                    order = [ticks[i] for i in indices]
+                order = [ticks[i] for i in due] if len(due) == 1 else self._ordered(due, ticks)
             next_microstep = (tag[0], tag[1] + 1)
             try:
                 for tick in order:
@@ -656,6 +634,40 @@ class InprocSession(Session):
             if after:
                 _, ran = self._microsteps(next_microstep, ran)
         self.now_ns = max(self.now_ns, until_ns)
+
+    def _look(self, ran: int, log_at: int, ticks: list) -> tuple[int, list]:
+        """What the loop does between two instants when asked to look (``host.look``): a stop
+        (RunHandle.stop; a logged run stops at its hand-over, now), a recompile, the flushes of
+        counts other threads wait for. The hand-over's new step count and the tick functions."""
+        if self.stop_requested:
+            if self.log is None:
+                raise KeyboardInterrupt
+            log_at = ran
+        if self._recompile:
+            self._recompile = False
+            self._drop_compiled()
+            ticks = self._tick_functions()
+        if self._flushes_asked:
+            self._answer_flushes()
+        return log_at, ticks
+
+    def _hand_over(self) -> int:
+        """Between two instants, every so many steps: the log's hand-over (first: with
+        keep="counters" it empties the trace), or without a log a look at whether a stop was asked
+        for and the records dropped. How many steps until the next one."""
+        if self.log is not None:
+            return self.write_log()
+        if self.stop_requested:
+            raise KeyboardInterrupt
+        self.drop_records()
+        return self.LOG_BATCH
+
+    def _ordered(self, due: set[int], ticks: list) -> list:
+        """The ticks of the nodes ``due`` at one tag, by rank, or shuffled (tie_break_seed)."""
+        indices = sorted(due, key=self._rank.__getitem__)
+        if self._rng is not None:
+            self._rng.shuffle(indices)
+        return [ticks[i] for i in indices]
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it

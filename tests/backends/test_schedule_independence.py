@@ -104,6 +104,9 @@ class Src(Flow):
 
     def step(self):
         Budget.spend()
+        return self.count()
+
+    def count(self):
         self.n += 1
         if self.sparse and self.n % self.sparse == 0:
             return None
@@ -111,6 +114,14 @@ class Src(Flow):
         if self.burst:
             return {"out": Burst((value + i) % P for i in range(self.n % self.burst))}
         return {"out": value}
+
+
+class Beside(Src):
+    """A Src that spends none of the work budget: a flow run beside a generated graph, which
+    leaves where the graph's run spends its budget, and stops, as it is alone."""
+
+    def step(self):
+        return self.count()
 
 
 class Chunker(Flow):
@@ -182,7 +193,7 @@ CHUNK_POLICIES = [ActionChunking(control_hz=200, chunk_steps=4), ActionChunking(
 
 @dataclass
 class NodeSpec:
-    kind: str  # Src | Chunker | Mix | Need | Rally
+    kind: str  # Src | Beside | Chunker | Mix | Need | Rally
     clock: object
     latency: float = 0.0
     params: dict = field(default_factory=dict)
@@ -205,7 +216,7 @@ class GraphSpec:
 
     def build(self) -> Pipeline:
         """A fresh pipeline with fresh flows for this description."""
-        classes = {"Src": Src, "Chunker": Chunker, "Mix": Mix, "Need": Need, "Rally": Rally}
+        classes = {"Src": Src, "Beside": Beside, "Chunker": Chunker, "Mix": Mix, "Need": Need, "Rally": Rally}
         with Pipeline("random") as pipe:
             flows = [classes[n.kind](**n.params).configure(name=f"n{i}", latency=n.latency) @ n.clock
                      for i, n in enumerate(self.nodes)]
