@@ -16,10 +16,12 @@ from .semantics_flows import Counter, WhereRun
 def wiring(loop) -> tuple:
     """What build_loop wired: each input's port, policy and buffer's trim batch; the unfed optional
     ports; each edge in; and what the loop knows of cycles and consumers."""
-    inputs = [(port, policy, buf.trim_batch) for port, buf, policy, _ in loop.inputs]
+    steps, streams, outputs = loop.steps, loop.streams, loop.outputs
+    inputs = [(port, policy, buf.trim_batch) for port, buf, policy, _ in steps.inputs]
     edges = [(e.src, e.src_port, e.port, e.delay_ns, e.triggers, e.deadline_ns, e.src_latency_ns,
-              next(i for i, (_, buf, _, _) in enumerate(loop.inputs) if buf is e.buf)) for e in loop.edges]
-    return inputs, sorted(loop.fallbacks), edges, loop.cycle, loop.instant_ports, loop.inline, loop.consumed
+              next(i for i, (_, buf, _, _) in enumerate(steps.inputs) if buf is e.buf)) for e in streams.edges]
+    return (inputs, sorted(steps.fallbacks), edges, outputs.cycle, outputs.instant_ports, loop.inline,
+            outputs.consumed)
 
 
 def test_a_loop_is_wired_alike_from_the_plan_in_its_spec_and_from_the_ir(session):
