@@ -10,6 +10,8 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
                   genuine run's reports: what reaches the trace is checked against the genuine run
     insider       the coordinator's receiving path (signature check, then Inbox.handle) fed statuses and
                   reports an insider holding the secret forges (InsiderTarget)
+    seal          a worker process's ControlOpener (protocol/seal.py) fed ctl/run puts an insider
+                  makes of the coordinator's sealed ones (SealTarget)
     specs         a worker daemon's prepare (runs.DaemonRuns) fed hostile run specs (SpecTarget)
     spawn-signal  a worker daemon's spawn and signal (runs.DaemonRuns, a run prepared, real
                   worker processes, a sentinel process in no run) fed hostile requests (DaemonOpsTarget)
@@ -87,6 +89,8 @@ from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: 
 from retriever.backends.base import output_ports  # noqa: E402
 from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
+from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, End, Grant, Lost, Stop  # noqa: E402
+from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
     decode_report, decode_status)
@@ -604,6 +608,56 @@ class WireTarget(Target):
     def feed(self, data: bytes) -> int:
         self.decode(data)
         return 0
+
+
+class SealTarget(Target):
+    """A worker process's side of signed control: ControlOpener.control fed what an insider (a
+    session with the run's secret, not a process's key) makes of the coordinator's sealed
+    ``ctl/run`` puts: altered payloads or seals, seals of its own key, replays. An input is
+    msgpack ``[payload, seal]``. Anything that opens but a genuine put's payload and counter,
+    the first time, is a forged message accepted (the MACs for other processes may be altered:
+    they are not this process's to check)."""
+
+    name = "seal"
+    allowed = (WireError,)
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.key, self.key_expr = new_key(), KeySpace("fuzz").run_control()
+        signer, self.forger = ControlSigner(), ControlSigner()
+        signer.add(self, self.key)
+        signer.add(signer, new_key())  # another process of the run: its MAC rides along
+        self.forger.add(self.forger, new_key())
+        payloads = [Stop().encode(), Lost(node="acc").encode(), End(at=10**9).encode(), Grant(until=5).encode()]
+        self.genuine_puts = [(payload, signer.seal(self.key_expr, payload)) for payload in payloads]
+        self.sealed = {(payload, seal[:COUNTER_BYTES]) for payload, seal in self.genuine_puts}
+        self._seeds = [msgpack.packb(list(put), use_bin_type=True) for put in self.genuine_puts]
+
+    def seeds(self) -> list[bytes]:
+        return self._seeds
+
+    def make(self) -> bytes:
+        rng = self.m.rng
+        payload, seal = rng.choice(self.genuine_puts)
+        roll = rng.random()
+        if roll < 0.4:
+            payload = self.m.msgpack(payload, [p for p, _ in self.genuine_puts])
+        elif roll < 0.75:
+            seal = self.m.bytes(seal, [s for _, s in self.genuine_puts])
+        elif roll < 0.9:
+            payload = self.m.msgpack(payload, [p for p, _ in self.genuine_puts])
+            seal = self.forger.seal(self.key_expr, payload)
+        return msgpack.packb([payload, seal], use_bin_type=True)
+
+    def feed(self, data: bytes) -> int:
+        payload, seal = msgpack.unpackb(data, raw=False)
+        opener = ControlOpener(self.key)
+        opener.control(self.key_expr, payload, seal)  # WireError: refused
+        try:
+            opener.open(self.key_expr, payload, seal)
+        except WireError:  # a replay: refused
+            return 0 if (payload, seal[:COUNTER_BYTES]) in self.sealed else 1
+        return 1
 
 
 class DataTarget(WireTarget):
@@ -1454,7 +1508,7 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "insider", "specs", "spawn-signal", "ir", "log"]
+                "insider", "seal", "specs", "spawn-signal", "ir", "log"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -1465,6 +1519,8 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return CoordinatorTarget(*args)
     if name == "insider":
         return InsiderTarget(*args)
+    if name == "seal":
+        return SealTarget(*args)
     if name == "specs":
         return SpecTarget(*args)
     if name == "spawn-signal":

@@ -5,7 +5,8 @@
       query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid, key}
       query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
-      subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines}
+      subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines},
+                                                 signed with the run's key (the prepare reply's)
 
 A remote worker process answers the coordinator as a local one does (host.WorkerProcess): its
 exit code arrives as an ``exit`` event, or, when the daemon itself is lost (its liveliness token
@@ -15,11 +16,15 @@ A query reaches every queryable on its key, an insider's too (one holding the na
 secret), so nothing secret goes in one: the key a process signs with (origin.py) is made by the
 daemon and comes back in its reply, which Zenoh routes to the querier alone. And since an insider
 may answer too, the coordinator takes answers only from the session it learned the daemon by
-(``zid``: the replier of its ``info`` at discovery, daemon.describe).
+(``zid``: the replier of its ``info`` at discovery, daemon.describe). An insider may put on the
+daemon's events key too: the daemon signs each event with a key it made for the run and answered
+in its prepare reply, and the coordinator takes no other (a forged ``exit`` would count a live
+process dead).
 """
 
 from __future__ import annotations
 
+import hmac
 import signal
 import subprocess
 import threading
@@ -30,7 +35,7 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
-from .origin import key_of_text
+from .origin import key_of_text, sign
 from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -84,6 +89,7 @@ class RemoteHost(Host):
         self.session, self.keys, self.name, self.run, self.zid = session, keys, name, run, zid
         self.processes: dict[int, RemoteProcess] = {}
         self.garbage = 0  # events on its key that were not its daemon's
+        self.events_key: bytes | None = None  # the run's, from the prepare reply: its events' signer
         self._events = session.declare_subscriber(keys.worker_events(name), weak_callback(self._event))
 
     # -- requests ------------------------------------------------------------------------------
@@ -115,10 +121,14 @@ class RemoteHost(Host):
         it may not have seen yet."""
         for attempt in range(PREPARE_TRIES):
             try:
-                warnings = self.request("prepare", {"spec": spec, "nodes": list(nodes)}).get("warnings", [])
+                answer = self.request("prepare", {"spec": spec, "nodes": list(nodes)})
+                warnings, key = answer.get("warnings", []), key_of_text(answer.get("key"))
                 if type(warnings) is not list or not all(type(w) is str for w in warnings):
                     raise BackendError(f"worker '{self.name}' answered prepare with warnings that are not a list "
                                        "of text")
+                if key is None:
+                    raise BackendError(f"worker '{self.name}' answered prepare without the key of the run's events")
+                self.events_key = key
                 return warnings
             except BackendError as e:
                 if "liveliness token" not in str(e) or attempt == PREPARE_TRIES - 1:
@@ -152,8 +162,14 @@ class RemoteHost(Host):
             proc.exited(LOST_CODE)
 
     def _event(self, sample: zenoh.Sample) -> None:
+        payload, mac = sample.payload.to_bytes(), sample.attachment
+        key = self.events_key
+        if key is None or mac is None or not hmac.compare_digest(
+                sign(key, str(sample.key_expr), payload), mac.to_bytes()):
+            self.garbage += 1  # not the daemon's for this run: an insider's, or another run's
+            return
         try:
-            op, args = decode_control(sample.payload.to_bytes())
+            op, args = decode_control(payload)
         except WireError:
             self.garbage += 1
             return

@@ -6,7 +6,8 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
     prepare {run, spec, nodes}   check the IR and each node's class (the allowlist, before anything
                                  is imported) and its module's file here against the IR's sha256,
                                  keep the spec in a private folder, made for this host: {nodes,
-                                 warnings} (a code mismatch it runs anyway, with --code-mismatch warn)
+                                 warnings, key} (a code mismatch it runs anyway, with --code-mismatch
+                                 warn; key: the run's events are signed with it, origin.sign)
     spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
                                  does, with a key made for it (origin.py) in a pipe it inherits:
                                  {pid, key}, in the reply, which reaches the querier alone; what
@@ -46,7 +47,7 @@ from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
 from .command import parse_mode, worker_command
 from .hub import weak_callback
-from .origin import KEY_FD_ENV, key_pipe, key_text, new_key
+from .origin import KEY_FD_ENV, key_pipe, key_text, new_key, sign
 from .wire import RELIABLE, KeySpace, WireEncoder, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -81,10 +82,13 @@ def flow_environment(environ: dict[str, str], passed: tuple[str, ...] = ()) -> d
 
 
 class Run:
-    """One prepared run: its folder (0700), its spec for this host, its processes by pid."""
+    """One prepared run: its folder (0700), its spec for this host, its processes by pid, and
+    the key its events (``exit``, ``output``) are signed with: answered in the prepare reply, which
+    reaches the coordinator alone, so an insider cannot tell it a process exited."""
 
     def __init__(self, run_id: str, folder: Path, nodes: list[str]):
         self.id, self.folder, self.nodes = run_id, folder, set(nodes)
+        self.key = new_key()
         self.processes: dict[int, tuple[str, subprocess.Popen]] = {}
         self.watch = None  # the liveliness subscriber on the coordinator's token
         self.ir: dict = {}
@@ -136,7 +140,7 @@ class DaemonRuns:
                 raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
             warnings = self._checked(IR(self.run.ir, source="the run's IR"), nodes)
             self.run.nodes.update(nodes)
-            return {"nodes": sorted(self.run.nodes), "warnings": warnings}
+            return {"nodes": sorted(self.run.nodes), "warnings": warnings, "key": key_text(self.run.key)}
         if self.run is not None and self.run.id != run_id:
             if any(proc.poll() is None for _, proc in self.run.processes.values()):
                 raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
@@ -159,7 +163,7 @@ class DaemonRuns:
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
-        return {"nodes": sorted(nodes), "warnings": warnings}
+        return {"nodes": sorted(nodes), "warnings": warnings, "key": key_text(run.key)}
 
     def spawn(self, args: dict) -> dict:
         run = self._run_of(args)
@@ -194,9 +198,9 @@ class DaemonRuns:
             os.close(pipe)
         run.processes[proc.pid] = (node, proc)
         for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
-            threading.Thread(target=self._forward, args=(run.id, node, stream, pipe), daemon=True,
+            threading.Thread(target=self._forward, args=(run, node, stream, pipe), daemon=True,
                              name=f"retriever-{stream}-{node}").start()
-        threading.Thread(target=self._await_exit, args=(run.id, node, proc), daemon=True,
+        threading.Thread(target=self._await_exit, args=(run, node, proc), daemon=True,
                          name=f"retriever-exit-{node}").start()
         return {"pid": proc.pid, "key": key_text(key)}
 
@@ -316,7 +320,7 @@ class DaemonRuns:
         local.update(_checked_timing(spec, set(known_nodes(local))))
         return local
 
-    def _forward(self, run_id: str, node: str, stream: str, pipe) -> None:
+    def _forward(self, run: Run, node: str, stream: str, pipe) -> None:
         """Send what a process prints to the coordinator, in batches of lines: a batch goes when
         it is full or its first line has waited OUTPUT_FLUSH_S, whether or not more output comes
         (a stack dump's last lines are its most telling, and nothing may follow them)."""
@@ -327,7 +331,7 @@ class DaemonRuns:
 
         def send() -> None:
             nonlocal lines
-            self._tell("output", {"run": run_id, "node": node, "stream": stream, "lines": lines})
+            self._tell(run, "output", {"run": run.id, "node": node, "stream": stream, "lines": lines})
             lines = []
 
         with pipe:
@@ -354,13 +358,15 @@ class DaemonRuns:
         if lines:
             send()
 
-    def _await_exit(self, run_id: str, node: str, proc: subprocess.Popen) -> None:
+    def _await_exit(self, run: Run, node: str, proc: subprocess.Popen) -> None:
         code = proc.wait()
-        self._tell("exit", {"run": run_id, "node": node, "pid": proc.pid, "code": code})
+        self._tell(run, "exit", {"run": run.id, "node": node, "pid": proc.pid, "code": code})
 
-    def _tell(self, op: str, args: dict) -> None:
+    def _tell(self, run: Run, op: str, args: dict) -> None:
+        """An event of ``run`` to its coordinator, signed with the run's key."""
+        payload = WireEncoder().control(op, args)
         try:
-            self._events.put(WireEncoder().control(op, args))
+            self._events.put(payload, attachment=sign(run.key, self.keys.worker_events(self.name), payload))
         except zenoh.ZError:  # the daemon is closing
             pass
 

@@ -34,7 +34,9 @@ every seq of ``port`` up to the one named (seqs are dense, so gaps show what is 
 Workers do not make the coordinator subscribe to their data: they report the data messages they
 published, with their step records, in batches (``status/report``), off the path of the events.
 Each status and report is put with the MAC of its worker process's own key as Zenoh attachment
-(origin.py): the coordinator takes none that no process of the node signed.
+(origin.py): the coordinator takes none that no process of the node signed. The other way, the
+coordinator seals its control (``ctl/run`` and its answers) for each process it started
+(protocol/seal.py): a worker takes none that does not open with its own key.
 
 Anything on the key space that does not decode exactly so raises :class:`WireError`, which the
 runtime counts, logs and drops: a foreign or garbage message never reaches a flow. Values never

@@ -506,11 +506,14 @@ def open_session(spec: dict, node: str, mode: Mode, shared_memory: bool):
 def build(w: Serving) -> bool:
     """The node's flow, rebuilt from the IR, in its loop (``w.loop``); False when it cannot be
     built (the status ``failed`` said why)."""
+    from .protocol import ControlOpener
+
     try:
         if w.spec.get("main_file"):
             _import_main(w.spec["main_file"])
         w.loop = (w.launch.make_loop or build_loop)(w.spec, w.node, w.session)
         w.loop.reporter.key = w.launch.key
+        w.loop.opener = ControlOpener(w.launch.key)
         _kept_to_the_end.append(w.loop.flow)
     except BaseException as exc:
         w.status("failed", error=f"cannot build node '{w.node}': {type(exc).__name__}: {exc}",
@@ -615,13 +618,13 @@ def finish(w: Serving, begin: Start) -> int:
         tmp.replace(handover_file)
         status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
         release(loop, w.node)  # the new process has set up its own: free this one's now
-        _await_reports_taken(w.session, w.keys, w.node, w.spec.get("hub_zid"))
+        _await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.get("hub_zid"))
         return EXIT_HANDED_OVER
     status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
            ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
     loop.undeclare()
     release(loop, w.node)
-    _await_reports_taken(w.session, w.keys, w.node, w.spec.get("hub_zid"))
+    _await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.get("hub_zid"))
     return 0
 
 
@@ -695,7 +698,7 @@ def join(w: Serving) -> Start | None:
                  if w.node in (e["source"]["node"], e["destination"]["node"])}
 
     def gone() -> set[str]:
-        return {keys.progress(n) for n in _coordinator_says(session, keys)[0]}
+        return {keys.progress(n) for n in _coordinator_says(session, keys, loop.opener)[0]}
 
     wait_for_answers(session, {keys.progress(n) for n in neighbors}, timeout=NEIGHBOR_TIMEOUT_S,
                      stop=w.waiting(), gone=gone)
@@ -763,7 +766,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     _make_pool(w, lambda: wait_for_answers(
         session, {keys.progress(n) for n in _consumers(spec, w.node)}, timeout=NEIGHBOR_TIMEOUT_S,
         stop=w.waiting(), payload=w.padding,
-        gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys))}))
+        gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys, loop.opener))}))
     _drop_queued(loop, "restarted", w.node)  # the coordinator's comes after `ready`: one before is not its
     _link_to_hub(session, spec, loop)
 
@@ -797,7 +800,7 @@ def _producers_progress(w: Serving) -> dict:
                     answers[src] = decode_progress(reply.ok.payload.to_bytes(), expected=src)
                 except (AttributeError, WireError):  # no answer (reply.err), or not a progress message
                     continue
-        done, _ = _coordinator_says(w.session, w.keys)
+        done, _ = _coordinator_says(w.session, w.keys, w.loop.opener)
         answers.update((n, None) for n in (producers - set(answers)) & done)
         if producers <= set(answers):
             break
@@ -858,7 +861,8 @@ def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
     import queue
 
     from .loop import _CONTROL
-    from .wire import WireError, decode_control
+    from .node.control import opened
+    from .wire import WireError
 
     kept = []
     while True:
@@ -868,7 +872,7 @@ def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
             break
         if item[0] == _CONTROL:
             try:
-                got, args = decode_control(item[2])
+                got, args = opened(item[2])
                 if got == op and args.get("node") == node_id:
                     loop.counts["garbage"] += 1
                     continue
@@ -879,24 +883,29 @@ def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
         loop.inbox.put(item)
 
 
-def _coordinator_says(session, keys) -> tuple[set[str], set[str]]:
+def _coordinator_says(session, keys, opener) -> tuple[set[str], set[str]]:
     """The nodes the coordinator knows are done (they will not answer, nor send, again), and
-    those starting afresh after their process died."""
-    said = _finished(session, keys) or {}
+    those starting afresh after their process died (``opener``: this process's, for the answer)."""
+    said = _finished(session, keys, opener) or {}
     return said.get("nodes", set()), said.get("restarting", set())
 
 
-def _finished(session, keys) -> dict[str, set[str]] | None:
+def _finished(session, keys, opener) -> dict[str, set[str]] | None:
     """The coordinator's ``finished`` answer: ``nodes`` (done), ``complete`` (done, every report
-    in), ``restarting``; None when it did not answer."""
+    in), ``restarting``; None when it did not answer. An answer the coordinator did not seal for
+    this process (``opener``: its ControlOpener) is none."""
+    from .protocol import new_nonce
     from .wire import WireError, decode_control
 
     said: dict[str, set[str]] | None = None
-    for reply in session.get(keys.finished(), timeout=0.25):
+    nonce = new_nonce()
+    for reply in session.get(keys.finished(), attachment=nonce, timeout=0.25):
         if reply.ok is None:
             continue
         try:
-            _, args = decode_control(reply.ok.payload.to_bytes())
+            payload = reply.ok.payload.to_bytes()
+            opener.open_reply(str(reply.ok.key_expr), payload, reply.ok.attachment, nonce)
+            _, args = decode_control(payload)
         except WireError:
             continue
         said = said or {"nodes": set(), "complete": set(), "restarting": set()}
@@ -907,12 +916,13 @@ def _finished(session, keys) -> dict[str, set[str]] | None:
     return said
 
 
-def _await_reports_taken(session, keys, node_id: str, hub_zid: str | None) -> None:
+def _await_reports_taken(session, keys, opener, node_id: str, hub_zid: str | None) -> None:
     """After its last status, until the coordinator (whose session is ``hub_zid``) has every
-    report of this node (its ``finished`` answer says so); see REPORTS_TAKEN_S for how long."""
+    report of this node (its ``finished`` answer, opened by ``opener``, says so); see
+    REPORTS_TAKEN_S for how long."""
     start = answered = time.monotonic()
     while (now := time.monotonic()) - answered < REPORTS_TAKEN_S and now - start < REPORTS_TAKEN_MAX_S:
-        said = _finished(session, keys)
+        said = _finished(session, keys, opener)
         if said is not None and node_id in said["complete"]:
             return
         if said is not None:
@@ -952,12 +962,22 @@ def _watch_hub_link(session, hub_zid: str | None, node_id: str):
 
 
 def _ask_start(session, keys, loop: NodeLoop) -> None:
-    """Ask the coordinator for the run's start; its answer joins the loop's inbox as control."""
+    """Ask the coordinator for the run's start; its answer joins the loop's inbox as control (one
+    the coordinator did not seal for this process, as the WireError saying so: garbage)."""
     from .loop import _CONTROL
+    from .protocol import new_nonce
+    from .wire import WireError
 
-    for reply in session.get(keys.start(), timeout=START_ASK_S):
+    nonce = new_nonce()
+    for reply in session.get(keys.start(), attachment=nonce, timeout=START_ASK_S):
         if reply.ok is not None:
-            loop.inbox.put((_CONTROL, None, reply.ok.payload.to_bytes()))
+            payload = reply.ok.payload.to_bytes()
+            try:
+                loop.opener.open_reply(str(reply.ok.key_expr), payload, reply.ok.attachment, nonce)
+            except WireError as e:
+                loop.inbox.put((_CONTROL, None, e))
+                continue
+            loop.inbox.put((_CONTROL, None, payload))
 
 
 def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict | None:
@@ -967,7 +987,8 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
     import queue
 
     from .loop import _CONTROL
-    from .wire import WireError, decode_control
+    from .node.control import opened
+    from .wire import WireError
 
     early = []
     try:
@@ -981,7 +1002,7 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
                 early.append(item)
                 continue
             try:
-                op, args = decode_control(item[2])
+                op, args = opened(item[2])
             except WireError:
                 loop.counts["garbage"] += 1
                 continue

@@ -281,23 +281,36 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
 
 
 
-def test_a_stop_the_coordinator_never_sent_fails_the_run_instead_of_cutting_it_short(tmp_path, namespace):
-    """An insider's `stop` on ctl/run looks like the coordinator's, and every worker obeys it. The
-    run then ended early and said it finished, counts and log alike (the cold review). Each worker
-    now says it was told to stop; one told by nobody the coordinator knows of fails the run."""
+def test_control_the_coordinator_did_not_seal_is_refused_and_the_run_completes(tmp_path, namespace):
+    """An insider's `stop`, `lost` or `end` on ctl/run looked like the coordinator's, and every
+    worker obeyed it: a `stop` cut the run short (then failed it: told to stop, and not by this
+    coordinator), a `lost` ended a node's process, an `end` moved the run's end. The coordinator
+    now seals its control for each process it started (protocol/seal.py): unsealed, or sealed
+    with a key no process of the run holds, each is garbage at every worker and the run makes
+    every tick."""
+    from retriever.backends.zenoh.origin import new_key
+    from retriever.backends.zenoh.protocol import ControlSigner
+
+    forger = ControlSigner()
+    forger.add(forger, new_key())
+    forged = [("stop", {}), ("lost", {"node": "counter"}), ("lost", {"node": "total"}), ("end", {"at": 0})]
     secret = _secret_file(tmp_path)
     run = Run(tmp_path, namespace, secret)
     try:
         with _insider(run, namespace, secret, tmp_path) as (insider, keys):
-            insider.put(keys.run_control(), WireEncoder().control("stop", {}))
-        run.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
-        run.reader.join(5)
+            for op, args in forged:
+                payload = WireEncoder().control(op, args)
+                insider.put(keys.run_control(), payload)
+                insider.put(keys.run_control(), payload, attachment=forger.seal(keys.run_control(), payload))
+        result = run.result()
     finally:
         run.kill()
-    assert run.proc.returncode != 0
-    end = retriever.read_log(run.log).end  # (the process's stderr, a traceback, is not parsed)
-    assert end["status"] == "error", end
-    assert "stopped before the run's end: told to stop, and not by this coordinator" in end["error"], end
+    assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
+    assert result["counts"].get("garbage", 0) >= 2 * len(forged), result
+    log = retriever.read_log(run.log)
+    assert log.end["status"] == "finished", log.end
+    report = retriever.log.replay(log)
+    assert report.identical, "\n".join(map(str, report.divergences))
 
 
 def test_retriever_run_takes_the_secret_and_refuses_one_others_can_read(tmp_path):
@@ -397,8 +410,8 @@ print(json.dumps({"stats": {n: [s.ticks, s.steps, s.errors] for n, s in pipe.sta
 
 def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_the_run(tmp_path, namespace):
     """A lockstep run (virtual_time=True): a process holding the run's credentials grants far
-    past the coordinator's window. The nodes run on to it; their `reached` past the coordinator's
-    grant counts as reaching its own (it was refused, and the run stalled until it failed). Ticks
+    past the coordinator's window. The grant is unsealed: the workers refuse it (protocol/seal.py);
+    were one taken, a `reached` past the coordinator's grant counts as reaching its own. Ticks
     still wait for complete inputs: the same ticks, a log that replays.
 
     In virtual time the run is done in well under a second: its sink waits at its first step for

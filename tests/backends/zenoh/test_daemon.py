@@ -39,6 +39,7 @@ from retriever.backends.zenoh.daemon import (
     refusal,
 )
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
+from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_control
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -542,8 +543,9 @@ def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prep
     with _client(port) as session:
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator
         args = {"run": "r1", "spec": {"ir": doc, "namespace": namespace, "hub": endpoint(port)}, "nodes": ["counter"]}
-        assert _until_token_seen(lambda: ask(session, namespace, "w", "prepare", args)) == {
-            "nodes": ["counter"], "warnings": []}
+        prepared = _until_token_seen(lambda: ask(session, namespace, "w", "prepare", args))
+        assert len(bytes.fromhex(prepared.pop("key"))) == KEY_BYTES  # its events' signing key (runs.Run)
+        assert prepared == {"nodes": ["counter"], "warnings": []}
         module.write_text(module.read_text(encoding="utf-8") + "# edited\n", encoding="utf-8")
         here_sha = hashlib.sha256(module.read_bytes()).hexdigest()
         with pytest.raises(WorkerError, match=re.escape(

@@ -250,26 +250,36 @@ def test_an_ir_it_cannot_read_keeps_shared_memory_on():
 def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     """A ``start`` put can be missed (seen at 50 flows): a worker that said ready asks the
     coordinator's ``ctl/start`` queryable every START_ASK_S until it has the start, which joins
-    its inbox like the put would have; other messages that came meanwhile stay for the loop."""
+    its inbox like the put would have; other messages that came meanwhile stay for the loop. An
+    answer the coordinator did not seal for the worker's process (an insider's) is garbage."""
     import queue
     from collections import Counter
 
     from retriever.backends.zenoh.node import DATA
+    from retriever.backends.zenoh.origin import new_key
+    from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
     from retriever.backends.zenoh.worker import _ask_start, _await_control
     from retriever.backends.zenoh.wire import WireEncoder
 
     keys = KeySpace("missed-start")
     hub, at = open_hub(free_port())
     asked = []
+    key, signer = new_key(), ControlSigner()
+    signer.add(key, key)
 
     def answer(query) -> None:
         asked.append(1)
-        if len(asked) >= 2:  # the coordinator has no start before the run's: no reply the first time
-            query.reply(keys.start(), WireEncoder().control("start", {"t0": 123, "end": 456}))
+        start = WireEncoder().control("start", {"t0": 123, "end": 456})
+        if len(asked) == 2:  # an insider's answer, unsealed
+            query.reply(keys.start(), WireEncoder().control("start", {"t0": 1, "end": 2}))
+        elif len(asked) >= 3:  # the coordinator has no start before the run's: no reply the first time
+            nonce = None if query.attachment is None else query.attachment.to_bytes()
+            query.reply(keys.start(), start, attachment=signer.seal_reply(keys.start(), start, nonce))
 
     class Inbox:  # the part of a NodeLoop that _await_control uses
         inbox: queue.SimpleQueue = queue.SimpleQueue()
         counts: Counter = Counter()
+        opener = ControlOpener(key)
 
     loop = Inbox()
     data = (DATA, ("a", "b"), b"early")
@@ -280,7 +290,8 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
             start = _await_control(loop, "start", "n", ask=lambda: _ask_start(worker, keys, loop))
         queryable.undeclare()
     assert start == {"t0": 123, "end": 456}
-    assert len(asked) >= 2
+    assert len(asked) >= 3
+    assert loop.counts["garbage"] == 1, "the unsealed answer was refused"
     left = []
     while not loop.inbox.empty():
         left.append(loop.inbox.get_nowait())

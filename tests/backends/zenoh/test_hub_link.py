@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 
 from retriever.backends.zenoh.hub import new_zid, open_hub, open_peer, wait_for_links
+from retriever.backends.zenoh.protocol import ControlOpener
 from retriever.backends.zenoh.wire import KeySpace
 from retriever.backends.zenoh.worker import _await_reports_taken, _watch_hub_link
 
@@ -44,5 +45,5 @@ def test_a_worker_without_a_hub_id_watches_nothing():
 def test_a_worker_that_ends_with_no_link_to_the_coordinator_says_so(capfd):
     hub, endpoint = open_hub(0)
     with hub, open_peer(endpoint, shared_memory=False) as session:
-        _await_reports_taken(session, KeySpace("lost"), "camera", new_zid())  # a coordinator it is not linked to
+        _await_reports_taken(session, KeySpace("lost"), ControlOpener(None), "camera", new_zid())  # a coordinator it is not linked to
     assert "worker 'camera' has no link to the coordinator at its end" in capfd.readouterr().err

@@ -17,6 +17,8 @@ import pytest
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.hub import wait_for_answers
 from retriever.backends.zenoh.node import CONTROL, DATA
+from retriever.backends.zenoh.origin import new_key
+from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_progress
 from retriever.backends.zenoh.worker import _await_control, build_loop
 
@@ -43,6 +45,9 @@ def _answers(session, key: str) -> list:
 def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(session, spec):
     keys = KeySpace(spec["namespace"])
     viewer = build_loop(spec, "viewer", session)
+    key, signer = new_key(), ControlSigner()
+    viewer.opener = ControlOpener(key)
+    signer.add(viewer, key)
     viewer.declare()
     try:
         before = len(declarations(viewer))
@@ -57,7 +62,8 @@ def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(
         # after a later small message (2 of 4 CI runs saw the control first); a second data
         # subscriber's copy would still come before the control
         items = [viewer.inbox.get(timeout=30)]
-        session.put(keys.run_control(), WireEncoder().control("stop", {}))
+        stop = WireEncoder().control("stop", {})
+        session.put(keys.run_control(), stop, attachment=signer.seal(keys.run_control(), stop))
         while items[-1][0] != CONTROL:
             items.append(viewer.inbox.get(timeout=30))
         assert [kind for kind, *_ in items] == [DATA, CONTROL], "each message once: one subscriber of each"

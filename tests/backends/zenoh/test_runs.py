@@ -33,13 +33,13 @@ def forwarding(code: str):
     sent: list[dict] = []
     arrived = threading.Condition()
 
-    def tell(op: str, args: dict) -> None:
+    def tell(run, op: str, args: dict) -> None:
         with arrived:
             sent.append(args)
             arrived.notify_all()
 
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL)
-    thread = threading.Thread(target=DaemonRuns._forward, args=(SimpleNamespace(_tell=tell), "r1", "cam", "stdout",
+    thread = threading.Thread(target=DaemonRuns._forward, args=(SimpleNamespace(_tell=tell), SimpleNamespace(id="r1"), "cam", "stdout",
                                                                 proc.stdout), daemon=True)
     thread.start()
     return proc, thread, sent, arrived

@@ -19,6 +19,8 @@ import zenoh
 from retriever import BackendError, Pipeline
 from retriever.backends.zenoh import worker
 from retriever.backends.zenoh.hub import endpoint, free_port, new_zid, peer_config, wait_for_links
+from retriever.backends.zenoh.origin import new_key
+from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
 from retriever.backends.zenoh.seen import EventIds
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
@@ -82,8 +84,11 @@ def namespace() -> str:
 @pytest.fixture
 def coordinator_and_worker():
     """Two real sessions linked on loopback: one answering the run's ``finished`` queries as told
-    (``answers``: None leaves a query unanswered, else the nodes said complete), one a worker's."""
+    (``answers``: None leaves a query unanswered, else the nodes said complete), sealed for the
+    worker's key (``opener`` opens them), one a worker's."""
     port = free_port()
+    key, signer = new_key(), ControlSigner()
+    signer.add(key, key)
     keys = KeySpace(f"taken-{os.getpid()}-{time.monotonic_ns() % 10**9}")
     answers: list[list[str] | None] = []
     asked: list[int] = []
@@ -92,8 +97,9 @@ def coordinator_and_worker():
         asked.append(len(asked))
         said = answers[min(len(asked), len(answers)) - 1]
         if said is not None:
-            query.reply(keys.finished(), WireEncoder().control("finished", {"nodes": said, "complete": said,
-                                                                            "restarting": []}))
+            payload = WireEncoder().control("finished", {"nodes": said, "complete": said, "restarting": []})
+            nonce = None if query.attachment is None else query.attachment.to_bytes()
+            query.reply(keys.finished(), payload, attachment=signer.seal_reply(keys.finished(), payload, nonce))
 
     with zenoh.open(peer_config(listen=[endpoint(port)])) as coordinator, \
             zenoh.open(peer_config(connect=[endpoint(port)])) as worker_session:
@@ -109,7 +115,7 @@ def coordinator_and_worker():
         asked.clear()
         answers.clear()
         yield SimpleNamespace(keys=keys, answers=answers, asked=asked, zid=str(coordinator.zid()),
-                              worker=worker_session, coordinator=coordinator)
+                              worker=worker_session, coordinator=coordinator, opener=ControlOpener(key))
         queryable.undeclare()
 
 
@@ -119,14 +125,14 @@ def test_a_done_worker_waits_for_a_coordinator_that_answers_late(coordinator_and
     link to the coordinator is up, and returns once the coordinator has its reports."""
     c = coordinator_and_worker
     c.answers[:] = [None, [], ["src"]]  # no answer, then "not yet", then "every report in"
-    worker._await_reports_taken(c.worker, c.keys, "src", c.zid)
+    worker._await_reports_taken(c.worker, c.keys, c.opener, "src", c.zid)
     assert len(c.asked) == 3
 
 
 def test_a_done_worker_does_not_wait_for_a_coordinator_it_has_no_link_to(coordinator_and_worker):
     c = coordinator_and_worker
     c.answers[:] = [None]
-    worker._await_reports_taken(c.worker, c.keys, "src", new_zid())  # a session it is not linked to
+    worker._await_reports_taken(c.worker, c.keys, c.opener, "src", new_zid())  # a session it is not linked to
     assert len(c.asked) == 1
 
 

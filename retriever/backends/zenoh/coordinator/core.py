@@ -162,16 +162,16 @@ class Coordinator(Session):
         # REPORTS_TAKEN_S)
         complete = sorted(node for node, state in states if state in ("done", "handed_over")
                           and book.reports.get(node, 0) >= book.reports_sent.get(node, 0))
-        query.reply(self.keys.finished(), WireEncoder().control("finished", {"nodes": done, "complete": complete,
-                                                                             "restarting": sorted(book.fresh)}))
+        self.control.reply(query, self.keys.finished(), WireEncoder().control(
+            "finished", {"nodes": done, "complete": complete, "restarting": sorted(book.fresh)}))
 
     def _answer_start(self, query) -> None:
         """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
         have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
         t0 = self.book.t0
         if t0 is not None:
-            query.reply(self.keys.start(), WireEncoder().control("start", {"t0": t0, "end": self.book.end_ns,
-                                                                           "values": self.book.values}))
+            self.control.reply(query, self.keys.start(), WireEncoder().control(
+                "start", {"t0": t0, "end": self.book.end_ns, "values": self.book.values}))
 
     def _log_fault(self, fault: dict) -> None:
         if self.log is not None:

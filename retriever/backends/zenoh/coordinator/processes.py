@@ -60,6 +60,7 @@ class Supervisor:
         mode = mode_args(join, fresh)
         book.workers[nid], key = book.hosts[nid].spawn(nid, mode, book.first_keys.pop(nid, None) or new_key())
         book.senders.add(nid, key, book.workers[nid])
+        self.control.signer.add(book.workers[nid], key)
         if join is not None:
             book.joining.add(nid)
         book.state[nid] = "starting"

@@ -198,10 +198,10 @@ class StatusMachine:
         if (info.get("stopped") is True and not book.stop_sent and book.t0 is not None and book.failure is None
                 and node not in book.exit_said):  # (an exit's record may come after its `done`)
             # it ended before the run's end on a stop this coordinator never sent: a run cut
-            # short must not look finished (an insider's `stop` on ctl/run, or a SIGTERM to it)
+            # short must not look finished (a SIGTERM to it: a `stop` on ctl/run it takes only sealed)
             book.failure = (node, {"error": (
-                f"{node} stopped before the run's end: told to stop, and not by this coordinator (a process "
-                "holding the run's secret put a stop on its control key, or someone sent its worker SIGTERM)")})
+                f"{node} stopped before the run's end: told to stop, and not by this coordinator (someone sent "
+                "its worker SIGTERM)")})
         book.done_info[node] = {k: info[k] for k in ("started_ns", "ticks") if type(info.get(k)) is int}
         sent = info.get("sent")  # {port: last seq put}: which events its reports held (diagnostics.unfinished)
         if type(sent) is dict and all(type(p) is str and p in book.graph.nodes[node].outputs and type(q) is int

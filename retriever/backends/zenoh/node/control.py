@@ -6,10 +6,18 @@ from ..wire import WireError, decode_control
 from .handover import producer_restarted
 
 
-def obey(loop, data: bytes) -> None:
-    """One control message to ``loop`` (a NodeLoop); a malformed one is garbage, never applied."""
+def opened(data: bytes | WireError) -> tuple[str, dict]:
+    """A queued control message, decoded; one refused as it came (its seal did not open with the
+    process's key: NodeLoop._control_in) raises the WireError that says why."""
+    if isinstance(data, WireError):
+        raise data
+    return decode_control(data)
+
+
+def obey(loop, data: bytes | WireError) -> None:
+    """One control message to ``loop`` (a NodeLoop); a malformed or unsealed one is garbage, never applied."""
     try:
-        op, args = decode_control(data)
+        op, args = opened(data)
     except WireError as e:
         loop.notes.garbage("ctl/run", e)
         return

@@ -12,6 +12,7 @@ import zenoh
 from ....flow._base import make_invoker, make_output_reader
 from ....graph import Node
 from ..hub import weak_callback
+from ..protocol import ControlOpener
 from ..reporter import Reporter
 from ..wire import KeySpace, WireEncoder, WireError, decode_events, decode_progress
 from . import handover
@@ -95,6 +96,9 @@ class NodeLoop:
         # the loop's lifecycle, set by its parts, its control, and the worker
         self.granted = 0  # virtual time: ticks below this (ns since T0) may run (waiting.py)
         self.on_reached = None  # virtual time: on_reached(until) says the node reached a grant
+        # opens the run's control with this process's key (protocol/seal.py); the worker gives
+        # it the key: without one, no control message is taken
+        self.opener = ControlOpener(None)
         self.stopping = False
         self.abandoned = False  # its process's parent died: it stops without finishing (worker.py)
         # on_error="restart" (handover.py): after a failed step, ticks wait for the new process,
@@ -134,8 +138,21 @@ class NodeLoop:
         put = self.inbox.put
         self.transport.declare_inputs(sorted(self.streams.frontiers), self.streams.sources,
                                       self.receive if self.inline else None, put)
-        self.declared.append(self.session.declare_subscriber(
-            self.keys.run_control(), lambda sample: put((CONTROL, None, sample.payload.to_bytes()))))
+        self.declared.append(self._declare_control())
+
+    def _declare_control(self) -> zenoh.Subscriber:
+        return self.session.declare_subscriber(self.keys.run_control(), weak_callback(self._control_in))
+
+    def _control_in(self, sample) -> None:
+        """A put on ctl/run (on Zenoh's thread): queued opened, or, when it does not open with this
+        process's key (forged, replayed, another run's), as the WireError saying so (garbage)."""
+        payload = sample.payload.to_bytes()
+        try:
+            self.opener.open(str(sample.key_expr), payload, sample.attachment)
+        except WireError as e:
+            self.inbox.put((CONTROL, None, e))
+            return
+        self.inbox.put((CONTROL, None, payload))
 
     def declare_outputs(self) -> None:
         """What this node speaks on: its data and progress keys, and the answer to progress queries."""
@@ -158,13 +175,11 @@ class NodeLoop:
         old = self.declared
         self.declared = []
         self.transport.redeclare_inputs()
-        put = self.inbox.put
         for d in old:
             if isinstance(d, zenoh.Queryable):
                 self.declared.append(self._declare_queryable())
             else:
-                self.declared.append(self.session.declare_subscriber(
-                    self.keys.run_control(), lambda sample: put((CONTROL, None, sample.payload.to_bytes()))))
+                self.declared.append(self._declare_control())
         for d in old:
             d.undeclare()
         self.counts["redeclared"] += 1

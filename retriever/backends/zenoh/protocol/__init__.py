@@ -15,7 +15,8 @@ own exact decoders in wire.py.
 
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
 MAC of the sending worker process's own key (origin.py); *sealed*, by the coordinator for each
-live process (seal.py: ctl/run and its answers, once the call sites use it; until then none);
+live process (seal.py: ctl/run and its answers); *run*, by a worker daemon with the key it made
+for the run and answered in its prepare reply (runs.py);
 *none*, the session's credentials alone (anyone holding the run's or the namespace's password
 may send it). The last column: what the receiver checks today beyond the fields (which the
 decoders check).
@@ -99,7 +100,7 @@ decoders check).
                                            host, pid, python, packages,             clock's offset; one daemon per
                                            clock_ns, nodes, counts                  name
       prepare                              run, spec, nodes → nodes,                the IR (ir.IR); each class on the
-                                           warnings                                 allowlist, its code's hash; a
+                                           warnings, key                            allowlist, its code's hash; a
                                                                                     coordinator's token up; one run
                                                                                     at a time; the spec's zids,
                                                                                     hub_zid, virtual_time
@@ -111,8 +112,9 @@ decoders check).
                                                                                     or KILL
       usage                                run → cpu_s                              the run prepared
       end                                  run → -                                  the run prepared
-    workers/<name>/events  daemon →        [2, op, {fields}]                none    its run (a daemon serves one at a
-                           coordinator,                                             time)
+    workers/<name>/events  daemon →        [2, op, {fields}]                run     its run (a daemon serves one at a
+                           coordinator,                                             time); signed with the key its
+                                                                                    prepare reply gave
                            put
       output                               run, node, stream, lines                 -
       exit                                 run, node, pid, code                     a process the coordinator started

@@ -154,11 +154,13 @@ class InfoReply(Record):
 
 @dataclass(frozen=True, kw_only=True)
 class PrepareReply(Record):
-    """The nodes the daemon runs of the run, and what it warns of (code mismatches it runs anyway)."""
+    """The nodes the daemon runs of the run, what it warns of (code mismatches it runs anyway),
+    and the key the run's events are signed with (origin.sign), to the querier alone."""
 
     NAME = DaemonOp.PREPARE
     nodes: tuple[str, ...] = field(ListOf(Name()))
     warnings: tuple[str, ...] = field(ListOf(Text()))
+    key: bytes = field(HexKey(KEY_BYTES))
 
 
 @dataclass(frozen=True, kw_only=True)
