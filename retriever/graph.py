@@ -21,7 +21,7 @@ from .clocks import Clock
 from .code import code_hashes
 from .codec import type_path
 from .errors import CodecError, GraphError, Problem
-from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, snake_case
+from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
 from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns
@@ -60,7 +60,7 @@ class Node:
 
     @property
     def settings(self) -> FlowSettings:
-        return self.flow._retriever
+        return settings_of(self.flow)
 
     @property
     def clock(self) -> Clock:
@@ -206,7 +206,7 @@ def constructor_params(flow: Flow) -> tuple[dict[str, Any], str | None, bool]:
 
 def _params(flow: Flow) -> tuple[dict[str, Any], str | None]:
     cls = type(flow)
-    settings = flow._retriever
+    settings = settings_of(flow)
     problem = None
     if cls.__init__ is object.__init__:
         if settings.args or settings.kwargs:
@@ -278,7 +278,7 @@ def _assign_ids(flows: list[Flow], problems: list[Problem]) -> dict[int, str]:
     ids: dict[int, str] = {}
     taken: dict[str, Flow] = {}
     for f in flows:
-        name = f._retriever.name
+        name = settings_of(f).name
         if name is None:
             continue
         if name in taken:

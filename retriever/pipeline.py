@@ -25,7 +25,7 @@ from typing import Any, Iterator
 from . import _context
 from .backends import Session, open_backend
 from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, SetupError, StarvedFlowWarning
-from .flow._base import Flow
+from .flow._base import Flow, settings_of
 from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .log.reader import LoggedTrace
@@ -77,7 +77,7 @@ class Pipeline:
         """Add a flow (flows join automatically when created inside ``with`` or wired)."""
         if not isinstance(flow, Flow):
             raise TypeError(f"Pipeline.add expects a Flow, got {type(flow).__qualname__}")
-        settings = flow._retriever
+        settings = settings_of(flow)
         owner = settings.pipeline() if settings.pipeline is not None else None
         if owner is not None and owner is not self:
             raise GraphError(self.name, [Problem(

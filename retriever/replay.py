@@ -44,6 +44,7 @@ from .backends.inproc import InprocSession
 from .code import code_mismatches
 from .codec import Encoder, unpackb
 from .errors import IRError, LogError, ReplayedError, RetrieverWarning, RunEnded, SetupError, StepError
+from .flow._base import settings_of
 from .log.reader import LoggedEvent, RunLog
 from .pipeline import Pipeline
 from .time import format_tag
@@ -212,7 +213,7 @@ def from_the_log(graph) -> frozenset[str]:
     """The nodes a replay does not re-execute: their outputs come from the log. Sources, and
     flows configured with ``replay="log"`` (their step consults the world outside the program)."""
     return frozenset(nid for nid, node in graph.nodes.items()
-                     if not node.inputs or node.flow._retriever.replay == "log")
+                     if not node.inputs or settings_of(node.flow).replay == "log")
 
 
 def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],

@@ -38,10 +38,6 @@ KNOWN = {
     # the worker reads the loop's control key and an in-process private
     ("retriever.backends.zenoh.worker", "_CONTROL"): "issue 37: remove",
     # a flow's settings are read through its private `_retriever` (a flow.settings_of(flow) would do)
-    ("retriever.graph", "_retriever"): "issue 37: remove",
-    ("retriever.learn.policy", "_retriever"): "issue 37: remove",
-    ("retriever.pipeline", "_retriever"): "issue 37: remove",
-    ("retriever.replay", "_retriever"): "issue 37: remove",
 }
 
 

@@ -536,6 +536,13 @@ class Flow(Generic[In, Out]):
         return f"<{type(self).__qualname__}{name}{clock}>"
 
 
+def settings_of(flow: Flow) -> FlowSettings:
+    """The settings ``configure()`` and ``@`` gave ``flow`` (its name, clock, latency, policies):
+    how the graph, the pipeline and a flow's own code read them. They live under a name of their
+    own so that they never collide with the attributes a user gives a flow."""
+    return flow.__dict__["_retriever"]
+
+
 # ---------------------------------------------------------------------------------------------
 # Calling a flow from a runtime
 # ---------------------------------------------------------------------------------------------

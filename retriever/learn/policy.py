@@ -41,7 +41,7 @@ import numpy as np
 
 from ..clocks import Rate
 from ..flow import Flow
-from ..flow._base import flow_spec
+from ..flow._base import flow_spec, settings_of
 from .features import ObservationFeatures
 from .rtc import ChunkTimeline, Leftover
 
@@ -161,9 +161,9 @@ class PolicyFlow(Flow):
         self.ticks += 1
         if self.rtc:
             if self.timeline is None:
-                self.timeline = ChunkTimeline(self.control_hz, latency=self._retriever.latency,
+                self.timeline = ChunkTimeline(self.control_hz, latency=settings_of(self).latency,
                                               chunk_hz=self.chunk_hz, control_offset=self.control_offset)
-            self.leftover = self.timeline.leftover(self._retriever.clock.tick_time(tick))
+            self.leftover = self.timeline.leftover(settings_of(self).clock.tick_time(tick))
         names = self.observed.names
         if values.keys() != set(names):
             raise ValueError(f"{self._owner()}.act() takes {', '.join(names)}; got {', '.join(values) or 'nothing'}"
@@ -199,7 +199,7 @@ class PolicyFlow(Flow):
             raise ValueError(f"{self._owner()}: its chunk of {len(rows)} rows is over before it plays: the controller "
                              f"plays {delay} rows of the previous chunk until the new one arrives\n    hint: a longer "
                              "chunk, a lower latency, or rtc=False")
-        index = self.timeline.add(self._retriever.clock.tick_time(tick), len(rows) - delay)
+        index = self.timeline.add(settings_of(self).clock.tick_time(tick), len(rows) - delay)
         self.raw_chunks[index] = raw[delay:]
         kept = {chunk.index for chunk in self.timeline.chunks}
         self.raw_chunks = {i: r for i, r in self.raw_chunks.items() if i in kept}
@@ -216,7 +216,7 @@ class PolicyFlow(Flow):
 
     # -- helpers --------------------------------------------------------------------------
     def _owner(self) -> str:
-        name = self._retriever.name
+        name = settings_of(self).name
         return f"{type(self).__qualname__} {name!r}" if name else type(self).__qualname__
 
     def _directory(self) -> Path:
@@ -245,7 +245,7 @@ class PolicyFlow(Flow):
                              + "\n    hint: features={'source': 'feature key'}, or name the inputs after the features")
 
     def _check_rtc(self) -> None:
-        settings, spec = self._retriever, flow_spec(type(self))
+        settings, spec = settings_of(self), flow_spec(type(self))
         problems = []
         if not isinstance(settings.clock, Rate):
             problems.append(f"its clock is {settings.clock!r}; rtc counts the ticks of a Rate clock")
