@@ -218,40 +218,11 @@ def from_the_log(graph) -> frozenset[str]:
 
 def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
             progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
-    routes = session.take_routes()
     trace = session.trace
     encode = Encoder().pack
-
     steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
-    # Logged events, in arrival order at each consumer (an edge's delay shifts it), but for the
-    # late ones: in real time they reached a consumer after a tick at or past their tag had run
-    # without them; they go in its buffer right before the record that names them.
-    late = _late_events(steps)
-    missed = _incomplete_views(steps)
-    late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> (buf, entry)
-    gaps = _restart_gaps(steps)
-    events = list(log.iter_events())
-    logged = {e.id: e for e in events}
-    if len(logged) < len(events):
-        twice = next(e for i, e in enumerate(events) if any(e.id == f.id for f in events[:i]))
-        raise LogError(f"{log.path}: event {twice.node}.{twice.port} #{twice.seq} is logged twice",
-                       "the file is damaged or was edited: retriever replay reads logs as a run wrote them")
-    deliveries = []
-    for e in events:
-        consumers = routes.get((e.node, e.port))
-        if consumers:
-            value = log.value(e)
-            for consumer, buf, delay_ns in consumers:
-                if _in_gap(gaps.get(consumer), e):
-                    continue
-                arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
-                entry = (arrival, e.node, e.port, e.seq, value)
-                seen_at = late.get((consumer, e.id))
-                if seen_at is not None:
-                    late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
-                elif not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
-                    deliveries.append((arrival, consumer[0], buf, entry))
-    deliveries.sort(key=lambda d: d[0])
+    events, logged = _logged_events(log)
+    deliveries, late_at = _deliveries(log, events, session.take_routes(), steps)
     # a lost process's outputs that its records claim and no report carried: not comparable (a
     # consumer may still have carried one in: that one is in the log, and compared)
     lost = {event_id for fault in log.faults for event_id in fault["lost_events"]} - logged.keys()
@@ -277,10 +248,7 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
         # record between its ticks, or a second at one, is no step the run made)
         found = _off_clock(step, graph.nodes[step.node].clock, seen_ticks)
         if found is not None:
-            stats.divergent += 1
-            report.divergent_steps += 1
-            if len(report.divergences) < MAX_DIVERGENCES_KEPT:
-                report.divergences.append(found)
+            _diverged(report, stats, found)
             continue
         restarted = (step.detail or {}).get("restarted")
         if restarted is not None:
@@ -299,35 +267,85 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
                 buf.insert(entry)
             delivered += 1
-        del trace.raw_events[:], trace.raw_steps[:]
-        try:
-            session.tick(step.node, step.tag)
-        except (StepError, RunEnded):
-            pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
-        if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
-            session.retract(step.node)  # the run dropped what this step returned
+        _execute(session, step)
         if kept is not None:
             kept.raw_events.extend(trace.raw_events)
         stats.replayed += 1
         if lost and not lost.isdisjoint(step.produced):
             stats.lost += 1
-            continue
-        if cut_short and any(event_id not in logged for event_id in
-                             (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
+        elif cut_short and any(event_id not in logged for event_id in
+                               (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
             stats.cut += 1
-            continue
-        found = _compare(step, trace, logged, encode, step.node in stamped)
-        if found is None:
-            stats.identical += 1
-            continue
-        stats.divergent += 1
-        report.divergent_steps += 1
-        if len(report.divergences) < MAX_DIVERGENCES_KEPT:
-            report.divergences.append(found)
+        else:
+            found = _compare(step, trace, logged, encode, step.node in stamped)
+            if found is None:
+                stats.identical += 1
+            else:
+                _diverged(report, stats, found)
     if progress is not None:
         progress(len(steps), len(steps))
     report.trace = kept
     return report
+
+
+def _logged_events(log: RunLog) -> tuple[list[LoggedEvent], dict]:
+    """The log's events in the order it holds them, and by id; an id logged twice is refused."""
+    events = list(log.iter_events())
+    logged = {e.id: e for e in events}
+    if len(logged) < len(events):
+        twice = next(e for i, e in enumerate(events) if any(e.id == f.id for f in events[:i]))
+        raise LogError(f"{log.path}: event {twice.node}.{twice.port} #{twice.seq} is logged twice",
+                       "the file is damaged or was edited: retriever replay reads logs as a run wrote them")
+    return events, logged
+
+
+def _deliveries(log: RunLog, events: list[LoggedEvent], routes: dict, steps: list) -> tuple[list, dict]:
+    """Where each logged event goes: ``(arrival, consumer node, buffer, entry)`` in arrival order
+    at each consumer (an edge's delay shifts it), but for the late ones: in real time they reached
+    a consumer after a tick at or past their tag had run without them, so they go in its buffer
+    right before the record that names them (the second result, by (consumer node, record tag)).
+    An event a consumer never had (a restart's gap, an incomplete view) goes nowhere."""
+    late = _late_events(steps)
+    missed = _incomplete_views(steps)
+    gaps = _restart_gaps(steps)
+    late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> (buf, entry)
+    deliveries = []
+    for e in events:
+        consumers = routes.get((e.node, e.port))
+        if not consumers:
+            continue
+        value = log.value(e)
+        for consumer, buf, delay_ns in consumers:
+            if _in_gap(gaps.get(consumer), e):
+                continue
+            arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
+            entry = (arrival, e.node, e.port, e.seq, value)
+            seen_at = late.get((consumer, e.id))
+            if seen_at is not None:
+                late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
+            elif not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
+                deliveries.append((arrival, consumer[0], buf, entry))
+    deliveries.sort(key=lambda d: d[0])
+    return deliveries, late_at
+
+
+def _execute(session: InprocSession, step) -> None:
+    """Run the recorded tick again, its trace (only) in ``session.trace``."""
+    trace = session.trace
+    del trace.raw_events[:], trace.raw_steps[:]
+    try:
+        session.tick(step.node, step.tag)
+    except (StepError, RunEnded):
+        pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
+    if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
+        session.retract(step.node)  # the run dropped what this step returned
+
+
+def _diverged(report: ReplayReport, stats: NodeReplay, found: Divergence) -> None:
+    stats.divergent += 1
+    report.divergent_steps += 1
+    if len(report.divergences) < MAX_DIVERGENCES_KEPT:
+        report.divergences.append(found)
 
 
 def _off_clock(step, clock, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
