@@ -353,7 +353,7 @@ def _shown(value: Any) -> str:
     try:
         return f"{type(value).__name__} {reprlib.repr(value)}"
     except ValueError:  # an int past sys.get_int_max_str_digits somewhere in it
-        return f"a {type(value).__name__} holding a huge integer"
+        return f"{type(value).__name__} (holding an integer too long to show)"
 
 
 def _fields(data: Any, where: str, names: tuple[str, ...]) -> dict:
