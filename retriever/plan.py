@@ -31,13 +31,14 @@ vocabulary, for each fed port and no other; ``on_a_cycle`` and ``instant_ports``
 and consumers imply; a cycle of distinct nodes, the node among them. Nothing in it is imported
 or called: a policy is one of the IR's adapters, built as the IR's are (sync.policy_from_ir).
 
-What a checked plan still chooses is which edges there are, and their policies, delays,
-deadlines and instantaneous cycles: exactly what the IR's ``edges`` and ``topology`` say, and
-the IR comes from the same sender. A checked plan is the plan of an IR its sender could have
-sent instead, so it can do no harm that IR could not, and the worker takes it as the run's
-wiring without making its own: the coordinator is the authority of its run. (Refusing a plan
-unequal to ``plan_ir(ir)`` would leave the worker making the plan anyway, and shipping it would
-save nothing.) A spec without a plan (a dora node's) is wired from ``plan_ir(ir)``.
+What a checked plan still chooses is which edges join the IR's ports, and their policies,
+delays, deadlines and instantaneous cycles: what the IR's ``edges`` and ``topology`` say (the
+IR does not check its cycles), and the IR comes from the same sender. So whatever a checked plan
+makes a worker do, an IR its sender could have sent instead would make it do too: the worker
+takes the plan as its node's wiring without making its own, the coordinator being the authority
+of its run. (Refusing a plan unequal to ``plan_ir(ir)`` would leave every worker making the
+plan anyway, and shipping it would save nothing.) A spec without a plan (a dora node's) is
+wired from ``plan_ir(ir)``.
 """
 
 from __future__ import annotations
