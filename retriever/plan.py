@@ -37,8 +37,8 @@ IR does not check its cycles), and the IR comes from the same sender. So whateve
 makes a worker do, an IR its sender could have sent instead would make it do too: the worker
 takes the plan as its node's wiring without making its own, the coordinator being the authority
 of its run. (Refusing a plan unequal to ``plan_ir(ir)`` would leave every worker making the
-plan anyway, and shipping it would save nothing.) A spec without a plan (a dora node's) is
-wired from ``plan_ir(ir)``.
+plan anyway, and shipping it would save nothing.) A spec without a plan (an older
+coordinator's, or one written by hand) is wired from ``plan_ir(ir)``.
 """
 
 from __future__ import annotations
