@@ -19,6 +19,7 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
                   names of callables that must be refused as no Flow: an IR is code by design)
     log           read_log (strict and salvage), RunLog.trace(), run_info (log info), every
                   value as log cat shows it, replay(log, pipeline), recover
+    plan          Plan.from_data, a worker's spec's plan read against its IR (PlanTarget)
 
 Mutations are structure-aware: bit flips, truncations, splices and length headers on the bytes;
 in the decoded msgpack (or JSON) tree, type swaps, huge ints, NaN/inf, deep nesting, huge
@@ -1504,11 +1505,67 @@ def _write_mcap(channels: dict, attachments: dict, metadata: dict, messages: lis
     return buffer.getvalue()
 
 
+class PlanTarget(Target):
+    """The plan a coordinator ships in a worker's spec (retriever.plan): decoded from msgpack as a
+    daemon's control message is, then Plan.from_data against the IR it came with. An input is one
+    byte choosing the IR, then the plan. Beside the tree's mutations, names, numbers and booleans
+    are swapped for others of the same plan: pieces of the right type in the wrong places, which
+    get past the type checks to the checks against the IR and between nodes."""
+
+    name = "plan"
+    allowed = (IRError,)
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        import warnings
+
+        from retriever.plan import Plan, plan_ir
+        from tests import ir_flows
+        from tests.backends.test_conformance import _cycle_pipeline
+
+        self.read = Plan.from_data
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.irs = [pipe.build_ir() for pipe in (ir_flows.build(), self.genuine.pipeline, _cycle_pipeline(5))]
+        self.plans = [plan_ir(ir).to_data() for ir in self.irs]
+        self._seeds = [bytes([i]) + msgpack.packb(plan) for i, plan in enumerate(self.plans)]
+
+    def seeds(self) -> list[bytes]:
+        return self._seeds
+
+    def make(self) -> bytes:
+        rng = self.m.rng
+        i = rng.randrange(len(self.plans))
+        if rng.random() < 0.5:
+            return bytes([i]) + self.m.msgpack(self._seeds[i][1:], [s[1:] for s in self._seeds])
+        plan = copy.deepcopy(self.plans[i])
+        slots: list = []
+        _collect(plan, slots)
+        pieces = [parent[key] for parent, key in slots if isinstance(parent[key], (str, int))]
+        for _ in range(rng.choice((1, 1, 2, 3))):
+            parent, key = rng.choice(slots)
+            if isinstance(parent[key], (str, int)):
+                parent[key] = rng.choice([p for p in pieces if type(p) is type(parent[key])])
+        return bytes([i]) + msgpack.packb(plan)
+
+    def prepare(self, data: bytes) -> Any:
+        try:
+            plan = msgpack.unpackb(data[1:], raw=False, strict_map_key=False)
+        except Exception:  # noqa: BLE001 - bytes a daemon's control decoder refuses before any plan
+            plan = None
+        return self.irs[data[0] % len(self.irs) if data else 0], plan
+
+    def feed(self, prepared: Any) -> int:
+        ir, plan = prepared
+        self.read(plan, ir)
+        return 0
+
+
 # ---------------------------------------------------------------------------------------------
 # The campaign
 # ---------------------------------------------------------------------------------------------
 TARGET_NAMES = ["codec", "wire-data", "wire-progress", "wire-report", "wire-status", "wire-control", "coordinator",
-                "insider", "seal", "specs", "spawn-signal", "ir", "log"]
+                "insider", "seal", "specs", "spawn-signal", "ir", "log", "plan"]
 
 
 def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -> Target:
@@ -1529,6 +1586,8 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         return IRTarget(*args)
     if name == "log":
         return LogTarget(*args)
+    if name == "plan":
+        return PlanTarget(*args)
     enc, trace = WireEncoder(), genuine.trace
     if name == "wire-data":
         values = [e[4] for e in trace.raw_events] + _values(genuine)

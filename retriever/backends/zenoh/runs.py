@@ -300,7 +300,7 @@ class DaemonRuns:
         address; no shared folder with the coordinator, no main script."""
         # not the coordinator's argv: a worker's flows see the worker's own (sys.argv is no
         # channel for a stranger's arguments to a module that parses them when imported)
-        local = {k: spec[k] for k in ("ir", "namespace", "startup_timeout") if k in spec}
+        local = {k: spec[k] for k in ("ir", "plan", "namespace", "startup_timeout") if k in spec}
         local["namespace"] = self.keys.namespace
         local["python_path"] = [*self.paths, *(p for p in sys.path if p and os.path.isdir(p))]
         local["main_file"] = local["spill_dir"] = None

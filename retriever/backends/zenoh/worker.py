@@ -278,7 +278,7 @@ def build_loop(spec: dict, node_id: str, session, transport=None):
         graph = compile_graph(ir.name, [flows[node_id]], [], meta.get("max_microsteps", 1000),
                               meta.get("realtime", "soft"), meta.get("deadline", DEFAULT_DEADLINE))
     node = graph.nodes[node_id]
-    plan = (Plan.from_data(spec["plan"]) if "plan" in spec else plan_ir(ir)).nodes[node_id]
+    plan = (Plan.from_data(spec["plan"], ir) if "plan" in spec else plan_ir(ir)).nodes[node_id]
     inputs, fallbacks = bind_inputs(plan, node.inputs, lambda: PortBuffer(trim_batch=1))
     buffers = {port: buf for port, buf, _, _ in inputs}
     edges = [InEdge(f.src, f.src_port, f.port, buffers[f.port], f.delay_ns, f.triggers, f.deadline_ns,

@@ -6,8 +6,11 @@ from __future__ import annotations
 import json
 import warnings
 
+import pytest
+
 from retriever import Latest, Pipeline, Queue, Rate, RetrieverWarning, Trigger
 from retriever.backends.zenoh.worker import build_loop
+from retriever.errors import IRError
 from retriever.plan import plan_graph
 
 from .semantics_flows import Counter, WhereRun
@@ -42,3 +45,15 @@ def test_a_loop_is_wired_alike_from_the_plan_in_its_spec_and_from_the_ir(session
     where = wiring(made_here)
     assert where[0] == [("x", Queue(3), 1)] and where[2] == [("count", "value", "x", 10_000_000, True, 100_000_000, 0, 0)]
     assert where[3] is None and where[5] is False, "on a cycle (not an instantaneous one): it steps on its main thread"
+
+
+def test_a_loop_is_not_built_from_a_plan_its_ir_refutes(session):
+    with Pipeline("refuted") as pipe:
+        count = Counter().configure(name="count") @ Rate(hz=20)
+        echo = WhereRun().configure(name="where") @ Trigger("x")
+        count.then(echo, sync=Latest(), map={"value": "x"})
+    graph = pipe.compile()
+    shipped = json.loads(json.dumps(plan_graph(graph).to_data()))
+    shipped["nodes"][1]["feeds"][0][0] = "elsewhere"  # a producer the run has not
+    with pytest.raises(IRError, match=r"node 'where'.feeds\[0\].src: expected a node id of the IR, got str 'elsewhere'"):
+        build_loop({"ir": graph.to_ir().doc, "namespace": "refuted-test", "plan": shipped}, "where", session)

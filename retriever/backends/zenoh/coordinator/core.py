@@ -32,7 +32,7 @@ from .hosting import Hosting, LocalHosting
 from .inbox import Inbox
 from .processes import STOP_GRACE_S, Supervisor
 from .reports import ReportIngest
-from .spec import main_file, python_path, run_dir
+from .spec import main_file, python_path, run_dir, shipped_plan
 from .statuses import StatusMachine
 from .waiting import Waits
 
@@ -116,6 +116,7 @@ class Coordinator(Session):
         self._assemble(RunControl(self.hub, self.keys))
         self._listen()
         self.spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
+                     "plan": shipped_plan(graph),  # the run's wiring, made once: retriever.plan
                      "python_path": python_path(), "main_file": main_file(graph), "argv": list(sys.argv),
                      "spill_dir": str(self.run_dir), "access": access.to_spec(dictionary) if access else None,
                      "startup_timeout": self.startup_timeout,

@@ -1,4 +1,4 @@
-"""What a run's workers are told of it: the run's directory, and the import path of its flows."""
+"""What a run's workers are told of it: the run's directory, the import path of its flows, and its wiring."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ....errors import BackendError
 from ....graph import Graph
+from ....plan import plan_graph
 from ..folders import RUN_FOLDER, private_folder
 
 
@@ -38,3 +39,9 @@ def main_file(graph: Graph) -> str | None:
         raise BackendError("a flow class is defined in an interactive __main__, which worker processes cannot "
                            "import\n    hint: move the flow classes to a module or a script file")
     return os.path.abspath(path)
+
+
+def shipped_plan(graph: Graph) -> dict:
+    """The run's wiring, node by node (retriever.plan), as JSON-safe data: made once here, the
+    authority of the run, and wired by every worker as it says (each checks it against the IR)."""
+    return plan_graph(graph).to_data()
