@@ -352,9 +352,24 @@ def _check_seconds(problems: list[str], where: str, name: str, value: Any) -> No
 
 
 def validate_doc(doc: Any, source: str) -> None:
-    problems: list[str] = []
+    """Check an IR document's shape, all of it, and raise one IRError that lists every problem."""
     if not isinstance(doc, dict):
         raise IRError(source, [f"the document must be a JSON object, got {type(doc).__name__}"])
+    problems = _top_level_problems(doc)
+    if problems:
+        raise IRError(source, problems)
+    _check_metadata(problems, doc["metadata"])
+    ids: dict[str, dict] = {}
+    for i, n in enumerate(doc["nodes"]):
+        _check_node(problems, i, n, ids)
+    for i, e in enumerate(doc["edges"]):
+        _check_edge(problems, i, e, ids)
+    if problems:
+        raise IRError(source, problems)
+
+
+def _top_level_problems(doc: dict) -> list[str]:
+    problems: list[str] = []
     version = doc.get("version")
     if not isinstance(version, str):
         problems.append(f"'version' is missing (expected \"{IR_VERSION}\")")
@@ -367,9 +382,10 @@ def validate_doc(doc: Any, source: str) -> None:
             problems.append(f"'{key}' is missing (expected {what})")
         else:
             _expect(problems, f"'{key}'", doc[key], kind, what)
-    if problems:
-        raise IRError(source, problems)
-    meta = doc["metadata"]
+    return problems
+
+
+def _check_metadata(problems: list[str], meta: dict) -> None:
     if not isinstance(meta.get("name"), str) or not meta["name"]:
         problems.append("metadata.name: expected the pipeline name (a non-empty string)")
     if meta.get("realtime", "soft") not in REALTIME_MODES:
@@ -387,69 +403,75 @@ def validate_doc(doc: Any, source: str) -> None:
     problem = max_microsteps_problem(meta.get("max_microsteps", DEFAULT_MAX_MICROSTEPS))
     if problem is not None:
         problems.append(f"metadata.max_microsteps: {problem}")
-    ids: dict[str, dict] = {}
-    for i, n in enumerate(doc["nodes"]):
-        where = f"nodes[{i}]"
-        if not _expect(problems, where, n, dict, "an object"):
+
+
+def _check_node(problems: list[str], i: int, n: Any, ids: dict[str, dict]) -> None:
+    """Check ``nodes[i]``; a node with a valid id goes in ``ids``, which the edges are checked against."""
+    where = f"nodes[{i}]"
+    if not _expect(problems, where, n, dict, "an object"):
+        return
+    nid = n.get("id")
+    if not isinstance(nid, str) or not re.fullmatch(NODE_ID, nid):
+        problems.append(f"{where}.id: expected a node name of letters, digits, _ and - (it becomes a key-space "
+                        f"segment), got {nid!r:.60}")
+        return
+    where = f"node '{nid}'"
+    if nid in ids:
+        problems.append(f"{where}: duplicate node id")
+    ids[nid] = n
+    if not is_type_path(n.get("type")) and (n.get("rebuildable", True) or not isinstance(n.get("type"), str)):
+        problems.append(f"{where}.type: expected 'module:Class' (dotted identifiers, e.g. "
+                        f"'my_robot.flows:Camera'), got {n.get('type')!r}")
+    _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
+    for key in ("inputs", "outputs"):
+        _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")
+    config = n.get("config")
+    if _expect(problems, f"{where}.config", config, dict, "an object"):
+        _check_config(problems, f"{where}.config", config)
+
+
+def _check_config(problems: list[str], where: str, config: dict) -> None:
+    try:
+        clock_from_ir(config.get("clock"))
+    except (ValueError, TypeError, OverflowError) as e:
+        problems.append(f"{where}.clock: {e}".split("\n")[0])
+    _check_seconds(problems, f"{where}.latency", "latency", config.get("latency", 0))
+    for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
+                         ("on_deadline_miss", ON_DEADLINE_MISS), ("replay", REPLAY)):
+        if key in config and config[key] not in allowed:
+            problems.append(f"{where}.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
+    restarts = config.get("max_restarts", 0)
+    if type(restarts) is not int or restarts < 0:
+        problems.append(f"{where}.max_restarts: expected an integer >= 0, got {restarts!r}")
+    spin = config.get("spin", 0)
+    if not is_finite_number(spin) or not 0 <= spin <= MAX_SPIN_S:
+        problems.append(f"{where}.spin: expected seconds from 0 to {MAX_SPIN_S:g}, got {spin!r:.40}")
+    window = config.get("restart_window", 1.0)
+    if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
+        problems.append(f"{where}.restart_window: expected seconds > 0, got {window!r}")
+
+
+def _check_edge(problems: list[str], i: int, e: Any, ids: dict[str, dict]) -> None:
+    where = f"edges[{i}]"
+    if not _expect(problems, where, e, dict, "an object"):
+        return
+    for end, ports_key in (("source", "outputs"), ("destination", "inputs")):
+        ref = e.get(end)
+        if not isinstance(ref, dict) or not isinstance(ref.get("node"), str) or not isinstance(ref.get("port"), str):
+            problems.append(f"{where}.{end}: expected {{\"node\": ..., \"port\": ...}}, got {ref!r}")
             continue
-        nid = n.get("id")
-        if not isinstance(nid, str) or not re.fullmatch(NODE_ID, nid):
-            problems.append(f"{where}.id: expected a node name of letters, digits, _ and - (it becomes a key-space "
-                            f"segment), got {nid!r:.60}")
-            continue
-        where = f"node '{nid}'"
-        if nid in ids:
-            problems.append(f"{where}: duplicate node id")
-        ids[nid] = n
-        if not is_type_path(n.get("type")) and (n.get("rebuildable", True) or not isinstance(n.get("type"), str)):
-            problems.append(f"{where}.type: expected 'module:Class' (dotted identifiers, e.g. "
-                            f"'my_robot.flows:Camera'), got {n.get('type')!r}")
-        _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
-        for key in ("inputs", "outputs"):
-            _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")
-        config = n.get("config")
-        if _expect(problems, f"{where}.config", config, dict, "an object"):
-            try:
-                clock_from_ir(config.get("clock"))
-            except (ValueError, TypeError, OverflowError) as e:
-                problems.append(f"{where}.config.clock: {e}".split("\n")[0])
-            _check_seconds(problems, f"{where}.config.latency", "latency", config.get("latency", 0))
-            for key, allowed in (("on_error", ON_ERROR), ("on_overrun", ON_OVERRUN),
-                                 ("on_deadline_miss", ON_DEADLINE_MISS), ("replay", REPLAY)):
-                if key in config and config[key] not in allowed:
-                    problems.append(f"{where}.config.{key}: {config[key]!r} is not one of {', '.join(allowed)}")
-            restarts = config.get("max_restarts", 0)
-            if type(restarts) is not int or restarts < 0:
-                problems.append(f"{where}.config.max_restarts: expected an integer >= 0, got {restarts!r}")
-            spin = config.get("spin", 0)
-            if not is_finite_number(spin) or not 0 <= spin <= MAX_SPIN_S:
-                problems.append(f"{where}.config.spin: expected seconds from 0 to {MAX_SPIN_S:g}, got {spin!r:.40}")
-            window = config.get("restart_window", 1.0)
-            if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
-                problems.append(f"{where}.config.restart_window: expected seconds > 0, got {window!r}")
-    for i, e in enumerate(doc["edges"]):
-        where = f"edges[{i}]"
-        if not _expect(problems, where, e, dict, "an object"):
-            continue
-        for end, ports_key in (("source", "outputs"), ("destination", "inputs")):
-            ref = e.get(end)
-            if not isinstance(ref, dict) or not isinstance(ref.get("node"), str) or not isinstance(ref.get("port"), str):
-                problems.append(f"{where}.{end}: expected {{\"node\": ..., \"port\": ...}}, got {ref!r}")
-                continue
-            node = ids.get(ref["node"])
-            if node is None:
-                problems.append(f"{where}.{end}: unknown node '{ref['node']}'")
-            elif isinstance(node.get(ports_key), dict) and ref["port"] not in node[ports_key]:
-                problems.append(f"{where}.{end}: node '{ref['node']}' has no {ports_key[:-1]} port '{ref['port']}'")
-        try:
-            policy_from_ir(e.get("adapter"))
-        except (ValueError, TypeError, OverflowError) as err:
-            problems.append(f"{where}.adapter: {err}")
-        _check_seconds(problems, f"{where}.delay", "delay", e.get("delay", 0))
-        qsize = e.get("qsize", 10)
-        if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
-            problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
-        if e.get("deadline") is not None:
-            _check_seconds(problems, f"{where}.deadline", "deadline", e["deadline"])
-    if problems:
-        raise IRError(source, problems)
+        node = ids.get(ref["node"])
+        if node is None:
+            problems.append(f"{where}.{end}: unknown node '{ref['node']}'")
+        elif isinstance(node.get(ports_key), dict) and ref["port"] not in node[ports_key]:
+            problems.append(f"{where}.{end}: node '{ref['node']}' has no {ports_key[:-1]} port '{ref['port']}'")
+    try:
+        policy_from_ir(e.get("adapter"))
+    except (ValueError, TypeError, OverflowError) as err:
+        problems.append(f"{where}.adapter: {err}")
+    _check_seconds(problems, f"{where}.delay", "delay", e.get("delay", 0))
+    qsize = e.get("qsize", 10)
+    if not isinstance(qsize, int) or isinstance(qsize, bool) or qsize < 1:
+        problems.append(f"{where}.qsize: expected an integer >= 1, got {qsize!r}")
+    if e.get("deadline") is not None:
+        _check_seconds(problems, f"{where}.deadline", "deadline", e["deadline"])
