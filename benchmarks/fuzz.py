@@ -90,7 +90,8 @@ from retriever import IR, Burst, IRError, LogError, Pipeline, read_log  # noqa: 
 from retriever.backends.base import output_ports  # noqa: E402
 from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
-from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, End, Grant, Lost, Stop  # noqa: E402
+from retriever.backends.zenoh.protocol import (  # noqa: E402
+    REQUEST, ControlOpener, ControlSigner, DaemonOp, End, Grant, Lost, PrepareRequest, SpawnRequest, Stop)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
@@ -1026,14 +1027,13 @@ class SpecTarget(Target):
             return None
 
     def feed(self, args: Any) -> int:
-        if type(args) is not dict:
-            raise WireError("not a control message's args")
+        request = PrepareRequest.from_fields(args, "a prepare request")  # the daemon's decoder (protocol.REQUEST)
         try:
-            self.runs.prepare(args)
+            self.runs.prepare(request)
         except WireError as e:
             if "liveliness token" not in str(e):
                 raise
-        spec = self.runs._local_spec(args["spec"], self.workdir)  # every check passed: what it would write
+        spec = self.runs._local_spec(request.spec, self.workdir)  # every check passed: what it would write
         if "argv" in spec:
             return 1  # the network's argv reached a worker's spec
         return 0
@@ -1069,7 +1069,7 @@ LEGITIMATE_REQUESTS = 12
 class DaemonOpsTarget(Target):
     """What an insider (a session holding the secret) asks a worker daemon to ``spawn`` and
     ``signal`` (runs.DaemonRuns, made by its constructor on a real Zenoh session): the control
-    message's bytes through the daemon's decoder (wire.decode_control), then the op.
+    message's bytes through the daemon's decoder (protocol.REQUEST), then the op.
 
     The daemon has prepared run ``r1`` (a coordinator's liveliness token is up on the same session)
     with one node of the genuine pipeline, and runs one real worker process of it (spawned once,
@@ -1125,7 +1125,7 @@ class DaemonOpsTarget(Target):
         spec = {"ir": ir, "namespace": namespace, "hub": hub, "startup_timeout": 86400.0}
         for _ in range(100):  # the token's own subscriber sees it on a Zenoh thread
             try:
-                self.runs.prepare({"run": self.RUN, "spec": spec, "nodes": [self.node]})
+                self.runs.prepare(PrepareRequest(run=self.RUN, spec=spec, nodes=(self.node,)))
                 break
             except WireError as e:
                 if "liveliness token" not in str(e):
@@ -1134,8 +1134,7 @@ class DaemonOpsTarget(Target):
         else:
             raise SystemExit("the daemon never saw the coordinator's liveliness token")
         self.key = new_key().hex()
-        self.spawn_seed = {"run": self.RUN, "node": self.node, "mode": []}
-        self._seeds = [WireEncoder().control("spawn", self.spawn_seed)]
+        self._seeds = [SpawnRequest(run=self.RUN, node=self.node, mode=()).encode()]
         self.signalled: set[int] = set()  # the run's processes a legitimate request signalled
         self.legitimate_left = LEGITIMATE_REQUESTS
 
@@ -1213,10 +1212,10 @@ class DaemonOpsTarget(Target):
 
     def prepare(self, data: bytes) -> Any:
         try:
-            op, args = decode_control(data)
+            request = REQUEST.decode(data)
         except WireError:
             return data, None, None
-        return data, op, args
+        return data, request, request.to_fields()
 
     # -- what a request may do ----------------------------------------------------------------------
     def _legitimate_spawn(self, args: dict) -> list[str] | None:
@@ -1244,8 +1243,9 @@ class DaemonOpsTarget(Target):
         return None
 
     def permits(self, prepared: Any) -> Callable[[str, tuple], bool] | None:
-        _, op, args = prepared
-        if op == "spawn":
+        _, request, args = prepared
+        op = request.NAME if request is not None else None
+        if op == DaemonOp.SPAWN:
             argv = self._legitimate_spawn(args)
             if argv is None:
                 return None
@@ -1256,23 +1256,24 @@ class DaemonOpsTarget(Target):
                 return fd.isascii() and fd.isdigit() and {k: v for k, v in given.items() if k != self.key_fd_env} == env
             return lambda event, a: ((event == "subprocess.Popen" and a[1] == argv and with_key_pipe(a[3]))
                                      or (event == "open" and a[0] == os.devnull))  # its stdin
-        if op == "signal":
+        if op == DaemonOp.SIGNAL:
             legitimate = self._legitimate_signal(args)
             return None if legitimate is None else lambda event, a: event == "os.kill" and tuple(a) == legitimate
         return None
 
     def feed(self, prepared: Any) -> int:
-        data, op, args = prepared
-        if op is None:
-            decode_control(data)  # raises what the daemon's decoder raises
+        data, request, args = prepared
+        if request is None:
+            REQUEST.decode(data)  # raises what the daemon's decoder raises
+        op = request.NAME
         live = {pid: proc for pid, (_, proc) in self.runs.run.processes.items() if proc.poll() is None}
         before = set(self.runs.run.processes)
         legitimate = self.permits(prepared) is not None
         try:
-            handler = self.runs.ops.get(op) if op in ("spawn", "signal") else None
+            handler = self.runs.ops.get(op) if op in (DaemonOp.SPAWN, DaemonOp.SIGNAL) else None
             if handler is None:
                 raise WireError(f"the fuzzed op {op!r:.20} is not spawn or signal")
-            handler(args)
+            handler(request)
         finally:
             problems = self._breaches(op, args, legitimate, live, before)
             if problems:
@@ -1284,13 +1285,13 @@ class DaemonOpsTarget(Target):
         if self.sentinel.poll() is not None:
             problems.append(f"the sentinel process (pid {self.sentinel.pid}, in no run) ended "
                             f"({self.sentinel.returncode})")
-        if op == "signal" and legitimate:
+        if op == DaemonOp.SIGNAL and legitimate:
             self.signalled.add(args["pid"])  # it may end now, or later (its signal is on its way)
         for pid, proc in live.items():
             if pid not in self.signalled and proc.poll() is not None:
                 problems.append(f"the run's process {pid} ended without a legitimate signal to it")
         started = set(self.runs.run.processes) - before
-        if started and not (op == "spawn" and legitimate and len(started) == 1):
+        if started and not (op == DaemonOp.SPAWN and legitimate and len(started) == 1):
             problems.append(f"processes started by a request that was not a legitimate spawn: {sorted(started)}")
         return problems
 

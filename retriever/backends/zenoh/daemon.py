@@ -6,15 +6,14 @@ connect endpoints) and stays until SIGINT or SIGTERM. Under ``retriever/<namespa
     workers/<name>   its liveliness token: there while it runs (a killed daemon's goes in ms)
     ctl/<name>       its control queryable
 
-A control query carries ``WireEncoder().control(op, args)`` (``[2, op, args]``) and gets one
-reply of the same shape, ``[2, op, answer]``; an op it does not know, or a payload that is no
-control message, gets ``reply_err`` with ``[2, "error", {"message": ...}]`` and is counted,
-never fatal. Its ops (``WorkerDaemon.ops``):
+A control query carries a request (protocol.REQUEST: ``[2, op, {fields}]``) and gets one reply,
+that op's reply record; an op it does not know, or a payload that is no request, gets
+``reply_err`` with an ErrorReply and is counted, never fatal. Its ops (``WorkerDaemon.ops``):
 
-    info    {} -> {protocol, name, labels, host, pid, python, packages, clock_ns, nodes, counts}
+    info    InfoRequest -> InfoReply {protocol, name, labels, host, pid, python, packages, clock_ns, nodes, counts}
 
-and, for ``retriever deploy`` (the coordinator, remote.py), ``prepare``, ``spawn``, ``signal``
-and ``end`` (runs.py): a worker imports flow classes only from the modules its allowlist admits
+and, for ``retriever deploy`` (the coordinator, remote.py), ``prepare``, ``spawn``, ``signal``,
+``usage`` and ``end`` (runs.py): a worker imports flow classes only from the modules its allowlist admits
 (:func:`module_allowed`; ``--path`` and ``--allow``), and refuses others with :func:`refusal`'s
 message, before anything is imported.
 
@@ -52,14 +51,12 @@ from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .folders import DAEMON_FOLDER, private_folder, reap_stale
 from .hub import (await_segments_released, mapped_segments, peer_config, raise_open_file_limit,
                   remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
+from .protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
+                       Record, decode_reply, error_message)
 from .reach import why_no_session
 from .runs import DaemonRuns
-from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control, decode_error_reply
+from .wire import KeySpace, WireError, check_chunk
 
-#: the largest control request a worker reads (a prepare carries the run's IR)
-MAX_REQUEST_BYTES = 8 << 20
-#: the version of the control protocol on ctl/<name>: a coordinator tells what a worker understands
-PROTOCOL_VERSION = 2  # 2: a spawn's key is made by the worker and comes in its answer (remote.py)
 DEFAULT_NAMESPACE = "default"
 #: Zenoh's own port, on every interface: where a coordinator on another machine finds the worker
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
@@ -352,14 +349,14 @@ class WorkerDaemon:
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
                                tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
                                pass_env=settings.pass_env)
-        #: op -> handler(args) -> answer
-        self.ops: dict[str, Callable[[dict], dict]] = {"info": self.info, **self.runs.ops}
+        #: op -> handler(request) -> its reply
+        self.ops: dict[DaemonOp, Callable[[Record], Record]] = {DaemonOp.INFO: self.info, **self.runs.ops}
 
-    def info(self, args: dict) -> dict:
-        return {"protocol": PROTOCOL_VERSION, "name": self.settings.name, "labels": list(self.settings.labels),
-                "host": socket.gethostname(), "pid": os.getpid(), "python": platform.python_version(),
-                "packages": self._packages, "clock_ns": hlc_now_ns(self.session),
-                "nodes": self.runs.nodes(), "counts": dict(self.counts)}
+    def info(self, request: InfoRequest) -> InfoReply:
+        return InfoReply(protocol=PROTOCOL_VERSION, name=self.settings.name, labels=self.settings.labels,
+                         host=socket.gethostname(), pid=os.getpid(), python=platform.python_version(),
+                         packages=self._packages, clock_ns=hlc_now_ns(self.session),
+                         nodes=tuple(self.runs.nodes()), counts=dict(self.counts))
 
     def module_allowed(self, module: str) -> bool:
         return module_allowed(module, list(self.settings.allow), list(self.settings.path))
@@ -368,31 +365,26 @@ class WorkerDaemon:
         return refusal(module, list(self.settings.allow), list(self.settings.path), self.settings.name)
 
     def answer(self, query: zenoh.Query) -> None:
-        """The queryable's callback: one reply per query, never an exception into Zenoh."""
-        encoder = WireEncoder()  # one per call: callbacks may run on several threads at once
+        """The queryable's callback: one reply per query, never an exception into Zenoh. A
+        request past protocol.MAX_REQUEST_BYTES is refused unread (an IR of hundreds of flows is
+        well below it)."""
         try:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            if len(payload) > MAX_REQUEST_BYTES:  # an IR of hundreds of flows is well below it
-                raise WireError(f"a request of {len(payload)} bytes, past {MAX_REQUEST_BYTES}: refused")
-            op, args = decode_control(payload)
-            handler = self.ops.get(op)
-            if handler is None:
-                raise WireError(f"worker '{self.settings.name}' knows no op {op!r:.40} "
-                                f"(it knows {', '.join(self.ops)})")
+            request = REQUEST.decode(query.payload.to_bytes() if query.payload is not None else b"",
+                                     who=f"worker '{self.settings.name}'")
             with self._lock:
-                answer = handler(args)
+                reply = self.ops[request.NAME](request)
         except WireError as e:
             with self._lock:
                 self.counts["refused"] += 1
-            query.reply_err(encoder.control("error", {"message": str(e)}))
+            query.reply_err(ErrorReply(message=str(e)).encode())
             return
         except Exception as e:  # a bug in an op: the daemon stays up and says so
             with self._lock:
                 self.counts["failed"] += 1
             traceback.print_exc()
-            query.reply_err(encoder.control("error", {"message": f"{type(e).__name__}: {e}"}))
+            query.reply_err(ErrorReply(message=f"{type(e).__name__}: {e}").encode())
             return
-        query.reply(self.keys.ctl(self.settings.name), encoder.control(op, answer))
+        query.reply(self.keys.ctl(self.settings.name), reply.encode())
 
 
 def hlc_now_ns(session: zenoh.Session) -> int:
@@ -400,27 +392,35 @@ def hlc_now_ns(session: zenoh.Session) -> int:
     return session.new_timestamp().get_time_as_ntp64().as_nanos()
 
 
-def ask(session: zenoh.Session, namespace: str, name: str, op: str, args: dict | None = None,
-        timeout: float = QUERY_S) -> dict:
-    """Send ``op`` to worker ``name`` and return its answer; WorkerError if it refused or said nothing."""
-    return ask_whom(session, namespace, name, op, args, timeout)[0]
+class OtherProtocolError(WorkerError):
+    """A worker that speaks another protocol version than this process (protocol.OtherProtocol):
+    which one, and the version of Retriever it runs, as far as it said."""
+
+    def __init__(self, name: str, other: OtherProtocol):
+        super().__init__(f"worker '{name}' speaks protocol {other.protocol}, this process {PROTOCOL_VERSION}")
+        self.protocol, self.retriever = other.protocol, other.retriever
 
 
-def ask_whom(session: zenoh.Session, namespace: str, name: str, op: str, args: dict | None = None,
-             timeout: float = QUERY_S) -> tuple[dict, str | None]:
+def ask(session: zenoh.Session, namespace: str, name: str, request: Record, timeout: float = QUERY_S) -> Record:
+    """Send ``request`` to worker ``name`` and return its reply; WorkerError if it refused or said nothing."""
+    return ask_whom(session, namespace, name, request, timeout)[0]
+
+
+def ask_whom(session: zenoh.Session, namespace: str, name: str, request: Record,
+             timeout: float = QUERY_S) -> tuple[Record, str | None]:
     """:func:`ask`, and the Zenoh id of the session that answered."""
-    selector = KeySpace(namespace).ctl(name)
-    for reply in session.get(selector, payload=WireEncoder().control(op, args or {}), timeout=timeout):
+    selector, op = KeySpace(namespace).ctl(name), request.NAME
+    for reply in session.get(selector, payload=request.encode(), timeout=timeout):
         try:
             if reply.ok is not None:
-                got, answer = decode_control(reply.ok.payload.to_bytes())
-                if got == op:
-                    return answer, None if reply.replier_id is None else str(reply.replier_id)
-            else:
-                message = decode_error_reply(reply.err.payload.to_bytes())
-                if message is None:  # Zenoh's own error reply (the query timed out): no answer
-                    break
-                raise WorkerError(f"worker '{name}' refused {op}: {message}")
+                return (decode_reply(reply.ok.payload.to_bytes(), op),
+                        None if reply.replier_id is None else str(reply.replier_id))
+            message = error_message(reply.err.payload.to_bytes())
+            if message is None:  # Zenoh's own error reply (the query timed out): no answer
+                break
+            raise WorkerError(f"worker '{name}' refused {op}: {message}")
+        except OtherProtocol as e:
+            raise OtherProtocolError(name, e) from None
         except WireError as e:
             raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None
     raise WorkerError(f"worker '{name}' did not answer {op} within {timeout:g} s")
@@ -507,8 +507,8 @@ def name_taken(session: zenoh.Session, namespace: str, name: str) -> str | None:
     if not any(r.ok is not None for r in session.liveliness().get(keys.workers(name), timeout=QUERY_S)):
         return None
     try:
-        info = ask(session, namespace, name, "info")
-        other = f"on host {info.get('host', '?')}, pid {info.get('pid', '?')}"
+        info = ask(session, namespace, name, InfoRequest())
+        other = f"on host {info.host}, pid {info.pid}"
     except WorkerError as e:
         other = f"({e})"
     return (f"a worker named '{name}' already runs in namespace '{namespace}' {other}\n"
@@ -533,10 +533,12 @@ def _start_line(settings: WorkerSettings) -> str:
 # ---------------------------------------------------------------------------------------------
 class WorkerInfo(NamedTuple):
     name: str
-    info: dict | None  # its info answer, or None
+    info: dict | None  # the fields of its info reply (protocol.InfoReply, exact), or None
     offset_ns: int | None  # its clock minus ours (NTP-style: theirs minus the midpoint of the query)
     error: str | None  # why there is no info
     zid: str | None = None  # the Zenoh id of the session that answered as it (remote.RemoteHost takes only its answers)
+    #: a worker of another protocol version (no info then): that version, and the Retriever it runs
+    other_protocol: tuple[int, str | None] | None = None
 
 
 class Listing(NamedTuple):
@@ -585,12 +587,12 @@ def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
     for _ in range(CLOCK_SAMPLES):
         before = hlc_now_ns(session)
         try:
-            info, zid = ask_whom(session, namespace, name, "info")
+            info, zid = ask_whom(session, namespace, name, InfoRequest())
+        except OtherProtocolError as e:
+            return WorkerInfo(name, None, None, str(e), other_protocol=(e.protocol, e.retriever))
         except WorkerError as e:
             return WorkerInfo(name, None, None, str(e))
         after = hlc_now_ns(session)
         samples.append((after - before, before, after, info, zid))
     _, before, after, info, zid = min(samples, key=lambda sample: sample[0])
-    theirs = info.get("clock_ns")
-    offset = theirs - (before + after) // 2 if type(theirs) is int else None
-    return WorkerInfo(name, info, offset, None, zid)
+    return WorkerInfo(name, info.to_fields(), info.clock_ns - (before + after) // 2, None, zid)

@@ -33,13 +33,16 @@ from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
 from .access import DICTIONARY, AccessError, RunAccess, TlsFiles
-from .daemon import (ENDPOINT, PROTOCOL_VERSION, QUERY_S, WorkerError, check_security, credentials, describe,
-                     in_session, open_access)
+from .daemon import (ENDPOINT, QUERY_S, WorkerError, check_security, credentials, describe, in_session,
+                     open_access)
 from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_orphaned_segments_at_exit,
                   wait_for_peers, weak_callback)
+from .protocol import (ABSENT, DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, PROTOCOL_VERSION, DaemonOp, DeploymentOp,
+                       ErrorReply, InfoRequest, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
+                       decode_reply, error_message)
 from .reach import REFUSES_LINKS, why_no_session
 from .remote import RemoteHost
-from .wire import KeySpace, WireEncoder, WireError, check_chunk, decode_control
+from .wire import KeySpace, WireError, check_chunk
 from .coordinator import Coordinator, Hosting
 
 #: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
@@ -199,12 +202,13 @@ class Deployment(Hosting):
         for name in names:
             worker = describe(hub, namespace, name)
             info = worker.info
-            if info is None:
+            if worker.other_protocol is not None:
+                protocol, retriever = worker.other_protocol
+                problems.append(f"worker '{name}' speaks protocol {protocol}, this coordinator {PROTOCOL_VERSION}"
+                                "\n    hint: install the same Retriever version on both machines "
+                                f"(the worker has {retriever or '?'!r:.30})")
+            elif info is None:
                 problems.append(f"worker '{name}' did not say what it is: {worker.error}")
-            elif info.get("protocol") != PROTOCOL_VERSION:
-                problems.append(f"worker '{name}' speaks protocol {info.get('protocol')!r:.20}, this coordinator "
-                                f"{PROTOCOL_VERSION}\n    hint: install the same Retriever version on both machines "
-                                f"(the worker has {info.get('packages', {}).get('retriever', '?')!r:.30})")
             elif worker.offset_ns is not None and abs(worker.offset_ns) > self._max_offset_ns:
                 problems.append(f"worker '{name}' (host {info.get('host')}) has a clock {worker.offset_ns / 1e6:+.3f} ms "
                                 f"off this machine's, past {self._max_offset_ns / 1e6:g} ms\n    hint: sync both "
@@ -238,13 +242,13 @@ class Deployment(Hosting):
         """How many daemons answer as worker ``name`` (distinct pids and hosts)."""
         who = set()
         hub, keys = self.coordinator.hub, self.coordinator.keys
-        for reply in hub.get(keys.ctl(name), payload=WireEncoder().control("info", {}), timeout=QUERY_S,
+        for reply in hub.get(keys.ctl(name), payload=InfoRequest().encode(), timeout=QUERY_S,
                              consolidation=zenoh.ConsolidationMode.NONE):
             try:
-                _, info = decode_control(reply.ok.payload.to_bytes())
-            except (AttributeError, WireError):  # an error reply, or garbage
+                info = decode_reply(reply.ok.payload.to_bytes(), DaemonOp.INFO)
+            except (AttributeError, WireError):  # an error reply, garbage, or a daemon of another protocol
                 continue
-            who.add((str(info.get("host")), str(info.get("pid"))))
+            who.add((info.host, info.pid))
         return len(who)
 
     def _worker_token(self, sample: zenoh.Sample) -> None:
@@ -260,29 +264,27 @@ class Deployment(Hosting):
     # -- retriever status / stop -------------------------------------------------------------------
     def _answer(self, query: zenoh.Query) -> None:
         """``status``: the deployment, node by node; ``stop``: end it now, as Ctrl-C here would."""
-        encoder, c = WireEncoder(), self.coordinator
+        c = self.coordinator
         try:
-            op, _ = decode_control(query.payload.to_bytes() if query.payload is not None else b"")
+            asked = DEPLOYMENT_QUERY.decode(query.payload.to_bytes() if query.payload is not None else b"",
+                                            who="the deployment")
         except WireError as e:
-            query.reply_err(encoder.control("error", {"message": str(e)}))
+            query.reply_err(ErrorReply(message=str(e)).encode())
             return
-        if op == "stop":
+        if isinstance(asked, StopQuery):
             c.stop_requested = True
-            query.reply(c.keys.deployment(), encoder.control("stop", {"pipeline": c.graph.name}))
-        elif op == "status":
-            for _ in range(3):  # read on Zenoh's thread while the run updates it: a copy may collide
-                try:
-                    status = self.status()
-                    break
-                except RuntimeError:
-                    continue
-            else:
-                query.reply_err(encoder.control("error", {"message": "busy: ask again"}))
-                return
-            query.reply(c.keys.deployment(), encoder.control("status", status))
+            query.reply(c.keys.deployment(), StopReply(pipeline=c.graph.name).encode())
+            return
+        for _ in range(3):  # read on Zenoh's thread while the run updates it: a copy may collide
+            try:
+                status = self.status_reply()
+                break
+            except RuntimeError:
+                continue
         else:
-            query.reply_err(encoder.control("error", {"message": f"the deployment knows no op {op!r:.40} "
-                                                                  "(it knows status, stop)"}))
+            query.reply_err(ErrorReply(message="busy: ask again").encode())
+            return
+        query.reply(c.keys.deployment(), status.encode())
 
     def _watch_usage(self) -> None:
         """From a thread of its own, while the deployment runs: each node's CPU seconds so far, as
@@ -290,23 +292,26 @@ class Deployment(Hosting):
         while not self.coordinator.closed and not self._usage_stop.wait(USAGE_EVERY_S):
             for remote in list(self._remotes.values()):
                 try:
-                    answer = remote.request("usage", {}).get("cpu_s")
+                    self._cpu.update(remote.usage())
                 except BackendError:
                     continue
-                if type(answer) is dict:
-                    self._cpu.update((n, v) for n, v in answer.items() if type(v) in (int, float))
 
-    def status(self) -> dict:
+    def status_reply(self) -> StatusReply:
         """What ``retriever status`` shows: the run's time, and per node its worker, counters and
         the CPU seconds its process used so far (as last read)."""
         c, book = self.coordinator, self.coordinator.book
         used = dict(self._cpu)
-        nodes = {nid: {"worker": self.placed.get(nid), "state": book.state.get(nid), "ticks": s.ticks,
-                       "steps": s.steps, "skips": s.skips, "errors": s.errors, "counts": dict(s.counts),
-                       **({"cpu_s": used[nid]} if nid in used else {})}
+        nodes = {nid: NodeStatus(worker=self.placed.get(nid), state=book.state.get(nid), ticks=s.ticks,
+                                 steps=s.steps, skips=s.skips, errors=s.errors, counts=dict(s.counts),
+                                 cpu_s=used.get(nid, ABSENT))
                  for nid, s in sorted(book.stats.items())}
-        return {"pipeline": c.graph.name, "run": self._run_id, "t_ns": min(book.run_time(), book.end_ns),
-                "end_ns": book.end_ns, "started": book.t0 is not None, "nodes": nodes}
+        return StatusReply(pipeline=c.graph.name, run=self._run_id, t_ns=min(book.run_time(), book.end_ns),
+                           end_ns=book.end_ns, started=book.t0 is not None, nodes=nodes)
+
+    def status(self) -> dict:
+        """:meth:`status_reply`'s fields, as the live table of ``retriever deploy`` shows them
+        (cli.status_table, which shows ``retriever status``'s answer too)."""
+        return self.status_reply().to_fields()
 
     # -- a worker lost -------------------------------------------------------------------------
     def host_lost(self, host, nodes: list[str]) -> None:
@@ -342,8 +347,8 @@ class Deployment(Hosting):
             return
         self._returned.discard(name)
         worker = describe(c.hub, c.namespace, name)
-        if worker.info is None or worker.info.get("protocol") != PROTOCOL_VERSION:
-            return  # not (yet) a worker that answers as one: wait on
+        if worker.info is None:
+            return  # not (yet) a worker that answers as one (of this protocol): wait on
         del self._waiting[name]
         self.workers[name] = {**worker.info, "offset_ns": worker.offset_ns}
         self._zids[name] = worker.zid  # a new daemon of that name: a session of its own
@@ -417,21 +422,28 @@ def package_differences(ours: dict[str, str], theirs: object) -> list[str]:
 
 def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False,
                    tls: TlsFiles | None = None) -> dict | None:
-    """Ask the namespace's running deployment (``status`` or ``stop``) through the peers at
-    ``connect`` (its workers): its answer, or None when no deployment runs there."""
+    """Ask the namespace's running deployment (``op``: a DeploymentOp, status or stop) through the
+    peers at ``connect`` (its workers): the fields of its reply (StatusReply or StopReply, exact),
+    or None when no deployment runs there."""
     check_security(secret, insecure, f"retriever {op}")
     keys = KeySpace(namespace)
+    request = {DeploymentOp.STATUS: StatusQuery, DeploymentOp.STOP: StopQuery}[DeploymentOp(op)]()
     found: list[dict] = []
     refusing: list[str] = []
 
     def ask(session: zenoh.Session) -> None:
-        for reply in session.get(keys.deployment(), payload=WireEncoder().control(op, {}), timeout=QUERY_S):
+        for reply in session.get(keys.deployment(), payload=request.encode(), timeout=QUERY_S):
             if reply.ok is None:
-                raise WorkerError(f"the deployment refused {op}: {reply.err.payload.to_bytes()[:200]!r}")
+                data = reply.err.payload.to_bytes()
+                message = error_message(data)
+                raise WorkerError(f"the deployment refused {op}: {repr(data[:200]) if message is None else message}")
             try:
-                found.append(decode_control(reply.ok.payload.to_bytes())[1])
+                answer = DEPLOYMENT_REPLY.decode(reply.ok.payload.to_bytes())
             except WireError as e:
                 raise WorkerError(f"the deployment answered {op} with garbage: {e}") from None
+            if answer.NAME != request.NAME:
+                raise WorkerError(f"the deployment answered {op} with its '{answer.NAME}' reply")
+            found.append(answer.to_fields())
             return
 
     with open_access(namespace, None if secret is None else str(secret), tls) as access:

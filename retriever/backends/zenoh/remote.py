@@ -4,6 +4,7 @@
       query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec
       query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid, key}
       query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
+      query ctl/<name>  usage {run}                 ──▶   the CPU seconds of its live processes: {cpu_s}
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
       subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines},
                                                  signed with the run's key (the prepare reply's)
@@ -35,8 +36,10 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
-from .origin import key_of_text, sign
-from .wire import KeySpace, WireEncoder, WireError, decode_control, decode_error_reply
+from .origin import sign
+from .protocol import (DAEMON_EVENT, EndRequest, PrepareRequest, ProcessExit, Record, SignalRequest, SpawnRequest,
+                       UsageRequest, decode_reply, error_message)
+from .wire import KeySpace, WireError
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
 REQUEST_TIMEOUT_S = 10.0
@@ -67,7 +70,7 @@ class RemoteProcess:
     def send_signal(self, sig: int) -> None:
         if self.returncode is None:
             try:
-                self.host.request("signal", {"pid": self.pid, "signal": int(sig)})
+                self.host.request(SignalRequest(run=self.host.run, pid=self.pid, signal=int(sig)))
             except BackendError:  # it exited meanwhile, or its daemon is gone: its exit event says so
                 pass
 
@@ -93,24 +96,23 @@ class RemoteHost(Host):
         self._events = session.declare_subscriber(keys.worker_events(name), weak_callback(self._event))
 
     # -- requests ------------------------------------------------------------------------------
-    def request(self, op: str, args: dict) -> dict:
-        """Ask the daemon; its answer's arguments, or a BackendError saying what it answered."""
-        payload = WireEncoder().control(op, {"run": self.run, **args})
-        replies = self.session.get(self.keys.ctl(self.name), payload=payload, timeout=REQUEST_TIMEOUT_S,
+    def request(self, request: Record) -> Record:
+        """Ask the daemon; its reply (exact), or a BackendError saying what it answered."""
+        op = request.NAME
+        replies = self.session.get(self.keys.ctl(self.name), payload=request.encode(), timeout=REQUEST_TIMEOUT_S,
                                    consolidation=zenoh.ConsolidationMode.NONE)  # one answer may not hide another
         for reply in replies:  # the first of the daemon's: a silent queryable of an insider's does not delay it
             if reply.replier_id is None or str(reply.replier_id) != self.zid:
                 continue  # an insider's answer (or Zenoh's own, when the query timed out)
             if reply.ok is None:
-                message = decode_error_reply(reply.err.payload.to_bytes())
+                message = error_message(reply.err.payload.to_bytes())
                 if message is None:  # an error reply that says nothing: no answer
                     break
                 raise BackendError(f"worker '{self.name}' refused {op}: {message}")
             try:
-                _, answer = decode_control(reply.ok.payload.to_bytes())
+                return decode_reply(reply.ok.payload.to_bytes(), op)
             except WireError as e:
                 raise BackendError(f"worker '{self.name}' answered {op} with garbage: {e}") from None
-            return answer
         raise BackendError(f"worker '{self.name}' did not answer {op} within {REQUEST_TIMEOUT_S:g} s"
                            "\n    hint: is it still up? `retriever workers` lists the workers that are")
 
@@ -121,15 +123,9 @@ class RemoteHost(Host):
         it may not have seen yet."""
         for attempt in range(PREPARE_TRIES):
             try:
-                answer = self.request("prepare", {"spec": spec, "nodes": list(nodes)})
-                warnings, key = answer.get("warnings", []), key_of_text(answer.get("key"))
-                if type(warnings) is not list or not all(type(w) is str for w in warnings):
-                    raise BackendError(f"worker '{self.name}' answered prepare with warnings that are not a list "
-                                       "of text")
-                if key is None:
-                    raise BackendError(f"worker '{self.name}' answered prepare without the key of the run's events")
-                self.events_key = key
-                return warnings
+                reply = self.request(PrepareRequest(run=self.run, spec=spec, nodes=tuple(nodes)))
+                self.events_key = reply.key
+                return list(reply.warnings)
             except BackendError as e:
                 if "liveliness token" not in str(e) or attempt == PREPARE_TRIES - 1:
                     raise
@@ -137,17 +133,19 @@ class RemoteHost(Host):
 
     def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[RemoteProcess, bytes]:
         """(``key``: unused; the daemon makes its process's key, and answers it.)"""
-        answer = self.request("spawn", {"node": node, "mode": list(mode)})
-        pid, made = answer.get("pid"), key_of_text(answer.get("key"))
-        if type(pid) is not int or made is None:
-            raise BackendError(f"worker '{self.name}' answered spawn of '{node}' without a pid and a key")
-        proc = self.processes[pid] = RemoteProcess(self, node, pid, made)
-        return proc, made
+        reply = self.request(SpawnRequest(run=self.run, node=node, mode=tuple(mode)))
+        proc = self.processes[reply.pid] = RemoteProcess(self, node, reply.pid, reply.key)
+        return proc, reply.key
+
+    def usage(self) -> dict[str, float]:
+        """The CPU seconds each live process of the run used so far, by node (BackendError if
+        the daemon did not say)."""
+        return self.request(UsageRequest(run=self.run)).cpu_s
 
     def end(self) -> None:
         """Ask the daemon to stop what is left of the run and forget it (best effort)."""
         try:
-            self.request("end", {})
+            self.request(EndRequest(run=self.run))
         except BackendError:
             pass
 
@@ -169,23 +167,19 @@ class RemoteHost(Host):
             self.garbage += 1  # not the daemon's for this run: an insider's, or another run's
             return
         try:
-            op, args = decode_control(payload)
+            event = DAEMON_EVENT.decode(payload)
         except WireError:
             self.garbage += 1
             return
-        if args.get("run") != self.run:
+        if event.run != self.run:
             return  # another run's (the daemon serves one at a time; a late event of the last one)
-        if op == "exit":
-            proc = self.processes.get(args.get("pid"))
-            if proc is not None and type(args.get("code")) is int:
-                proc.exited(args["code"])
+        if isinstance(event, ProcessExit):
+            proc = self.processes.get(event.pid)
+            if proc is None:  # no process the coordinator started there
+                self.garbage += 1
                 return
-        elif op == "output":
-            node, stream, lines = args.get("node"), args.get("stream"), args.get("lines")
-            if (type(node) is str and stream in ("stdout", "stderr") and type(lines) is list
-                    and all(type(line) is str for line in lines)):
-                output = self.output(node)
-                for line in lines:
-                    output.feed(stream, line)
-                return
-        self.garbage += 1
+            proc.exited(event.code)
+            return
+        output = self.output(event.node)
+        for line in event.lines:
+            output.feed(event.stream.value, line)

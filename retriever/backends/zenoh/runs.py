@@ -1,7 +1,9 @@
 """What a worker daemon runs for a coordinator: one run's spec and its worker processes.
 
 The coordinator side is remote.py; the ops here join the daemon's control queryable
-(daemon.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock:
+(daemon.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock. Each takes its
+request record, as protocol.REQUEST decoded it (every field's type and range checked), and
+returns its reply record (protocol/daemon.py):
 
     prepare {run, spec, nodes}   check the IR and each node's class (the allowlist, before anything
                                  is imported) and its module's file here against the IR's sha256,
@@ -13,7 +15,11 @@ The coordinator side is remote.py; the ops here join the daemon's control querya
                                  {pid, key}, in the reply, which reaches the querier alone; what
                                  it prints goes to the coordinator, and its exit
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
+    usage {run}                  the CPU seconds of each live process of the run: {cpu_s}
     end {run}                    stop what is left of the run, remove its folder
+
+and it tells the coordinator what the run's processes print and how they exit (ProcessOutput,
+ProcessExit on workers/<name>/events), signed with the run's key.
 
 A daemon serves one run at a time, and ends it by itself when its coordinator's liveliness token
 goes (the coordinator died, or lost the network): its processes get SIGTERM, then, still there
@@ -45,10 +51,12 @@ from ...ir import IR
 from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
-from .command import parse_mode, worker_command
+from .command import worker_command
 from .hub import weak_callback
-from .origin import KEY_FD_ENV, key_pipe, key_text, new_key, sign
-from .wire import RELIABLE, KeySpace, WireEncoder, WireError
+from .origin import KEY_FD_ENV, key_pipe, new_key, sign
+from .protocol import (DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, Record,
+                       SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest)
+from .wire import RELIABLE, KeySpace, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
 #: issue's bound is 3 s from the coordinator's death to the flows' stop)
@@ -120,9 +128,9 @@ class DaemonRuns:
             self.keys.deployment(), weak_callback(self._coordinator_seen), history=True)
 
     @property
-    def ops(self) -> dict[str, Callable[[dict], dict]]:
-        return {"prepare": self.prepare, "spawn": self.spawn, "signal": self.signal, "end": self.end,
-                "usage": self.usage}
+    def ops(self) -> dict[DaemonOp, Callable[[Record], Record]]:
+        return {DaemonOp.PREPARE: self.prepare, DaemonOp.SPAWN: self.spawn, DaemonOp.SIGNAL: self.signal,
+                DaemonOp.END: self.end, DaemonOp.USAGE: self.usage}
 
     def nodes(self) -> list[str]:
         """The nodes whose processes run now."""
@@ -130,17 +138,14 @@ class DaemonRuns:
         return sorted({node for node, proc in run.processes.values() if proc.poll() is None}) if run else []
 
     # -- ops -----------------------------------------------------------------------------------
-    def prepare(self, args: dict) -> dict:
-        run_id, spec, nodes = args.get("run"), args.get("spec"), args.get("nodes")
-        if type(run_id) is not str or type(spec) is not dict or type(nodes) is not list \
-                or not all(type(n) is str for n in nodes):
-            raise WireError("prepare needs {run, spec, nodes}")
+    def prepare(self, request: PrepareRequest) -> PrepareReply:
+        run_id, spec, nodes = request.run, request.spec, list(request.nodes)
         if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
             if spec.get("ir") != self.run.ir:
                 raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
             warnings = self._checked(IR(self.run.ir, source="the run's IR"), nodes)
             self.run.nodes.update(nodes)
-            return {"nodes": sorted(self.run.nodes), "warnings": warnings, "key": key_text(self.run.key)}
+            return PrepareReply(nodes=tuple(sorted(self.run.nodes)), warnings=tuple(warnings), key=self.run.key)
         if self.run is not None and self.run.id != run_id:
             if any(proc.poll() is None for _, proc in self.run.processes.values()):
                 raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
@@ -163,20 +168,15 @@ class DaemonRuns:
         write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
-        return {"nodes": sorted(nodes), "warnings": warnings, "key": key_text(run.key)}
+        return PrepareReply(nodes=tuple(sorted(nodes)), warnings=tuple(warnings), key=run.key)
 
-    def spawn(self, args: dict) -> dict:
-        run = self._run_of(args)
-        node, mode = args.get("node"), args.get("mode")
-        if type(node) is not str or node not in run.nodes:
+    def spawn(self, request: SpawnRequest) -> SpawnReply:
+        """(A key in the request is refused by its decoder: a query reaches every queryable on
+        ctl/<name>, an insider's too.)"""
+        run, node = self._run_of(request.run), request.node
+        if node not in run.nodes:
             raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
-        try:
-            mode = parse_mode(mode).args()
-        except ValueError as e:
-            raise WireError(f"spawn {e}") from None
-        if "key" in args:  # a key in a query reaches every queryable on ctl/<name>, an insider's too
-            raise WireError("a spawn request carries no key: the worker makes its process's key and answers it "
-                            "to the coordinator alone (a coordinator of an older Retriever sends one)")
+        mode = [str(part) for part in request.mode]
         if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
             mismatch = self._code_mismatch(run.ir, node)
             if mismatch is not None:
@@ -197,44 +197,42 @@ class DaemonRuns:
         finally:
             os.close(pipe)
         run.processes[proc.pid] = (node, proc)
-        for stream, pipe in (("stdout", proc.stdout), ("stderr", proc.stderr)):
+        for stream, pipe in ((Stream.STDOUT, proc.stdout), (Stream.STDERR, proc.stderr)):
             threading.Thread(target=self._forward, args=(run, node, stream, pipe), daemon=True,
                              name=f"retriever-{stream}-{node}").start()
         threading.Thread(target=self._await_exit, args=(run, node, proc), daemon=True,
                          name=f"retriever-exit-{node}").start()
-        return {"pid": proc.pid, "key": key_text(key)}
+        return SpawnReply(pid=proc.pid, key=key)
 
-    def signal(self, args: dict) -> dict:
-        run = self._run_of(args)
-        pid, sig = args.get("pid"), args.get("signal")
-        if type(pid) is not int or pid not in run.processes or type(sig) is not int or sig not in SIGNALS:
+    def signal(self, request: SignalRequest) -> SignalReply:
+        run, pid, sig = self._run_of(request.run), request.pid, request.signal
+        if pid not in run.processes or sig not in SIGNALS:
             raise WireError(f"signal {sig!r:.20} to pid {pid!r:.20}: not a process of run {run.id} or not a "
                             "signal a coordinator may send")
         proc = run.processes[pid][1]
         if proc.poll() is None:
             proc.send_signal(sig)
-        return {}
+        return SignalReply()
 
-    def usage(self, args: dict) -> dict:
-        """``{cpu_s: {node: seconds}}``: the CPU time of each live process of the run, by node."""
-        run = self._run_of(args)
+    def usage(self, request: UsageRequest) -> UsageReply:
+        """The CPU time of each live process of the run, by node."""
+        run = self._run_of(request.run)
         cpu = {}
         for pid, (node, proc) in list(run.processes.items()):
             seconds = cpu_seconds(pid) if proc.poll() is None else None
             if seconds is not None:
                 cpu[node] = seconds
-        return {"cpu_s": cpu}
+        return UsageReply(cpu_s=cpu)
 
-    def end(self, args: dict) -> dict:
-        run = self._run_of(args)
-        self._end(run)
-        return {}
+    def end(self, request: EndRequest) -> EndReply:
+        self._end(self._run_of(request.run))
+        return EndReply()
 
     # -- inside ----------------------------------------------------------------------------------
-    def _run_of(self, args: dict) -> Run:
+    def _run_of(self, run_id: str) -> Run:
         run = self.run
-        if run is None or args.get("run") != run.id:
-            raise WireError(f"worker '{self.name}' has no run {args.get('run')!r:.40}")
+        if run is None or run_id != run.id:
+            raise WireError(f"worker '{self.name}' has no run {run_id!r:.40}")
         return run
 
     def _coordinator_up(self) -> bool:
@@ -320,7 +318,7 @@ class DaemonRuns:
         local.update(_checked_timing(spec, set(known_nodes(local))))
         return local
 
-    def _forward(self, run: Run, node: str, stream: str, pipe) -> None:
+    def _forward(self, run: Run, node: str, stream: Stream, pipe) -> None:
         """Send what a process prints to the coordinator, in batches of lines: a batch goes when
         it is full or its first line has waited OUTPUT_FLUSH_S, whether or not more output comes
         (a stack dump's last lines are its most telling, and nothing may follow them)."""
@@ -331,7 +329,7 @@ class DaemonRuns:
 
         def send() -> None:
             nonlocal lines
-            self._tell(run, "output", {"run": run.id, "node": node, "stream": stream, "lines": lines})
+            self._tell(run, ProcessOutput(run=run.id, node=node, stream=stream, lines=tuple(lines)))
             lines = []
 
         with pipe:
@@ -360,11 +358,11 @@ class DaemonRuns:
 
     def _await_exit(self, run: Run, node: str, proc: subprocess.Popen) -> None:
         code = proc.wait()
-        self._tell(run, "exit", {"run": run.id, "node": node, "pid": proc.pid, "code": code})
+        self._tell(run, ProcessExit(run=run.id, node=node, pid=proc.pid, code=code))
 
-    def _tell(self, run: Run, op: str, args: dict) -> None:
+    def _tell(self, run: Run, event: ProcessOutput | ProcessExit) -> None:
         """An event of ``run`` to its coordinator, signed with the run's key."""
-        payload = WireEncoder().control(op, args)
+        payload = event.encode()
         try:
             self._events.put(payload, attachment=sign(run.key, self.keys.worker_events(self.name), payload))
         except zenoh.ZError:  # the daemon is closing

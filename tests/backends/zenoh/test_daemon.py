@@ -29,7 +29,6 @@ from retriever import read_log
 from retriever.backends.zenoh.daemon import (
     CONFIG_KEYS,
     DEFAULT_LISTEN,
-    PROTOCOL_VERSION,
     WorkerError,
     ask,
     load_settings,
@@ -40,7 +39,10 @@ from retriever.backends.zenoh.daemon import (
 )
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
-from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_control
+from retriever.backends.zenoh.protocol import (PROTOCOL_VERSION, EndRequest, ErrorReply, InfoReply, InfoRequest,
+                                               PrepareRequest, SignalRequest, SpawnRequest, error_message)
+from retriever.backends.zenoh.protocol.schema import pack
+from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace
 
 ROOT = Path(__file__).resolve().parents[3]
 BOUND_S = 60.0  # a bound on any wait, never a speed check
@@ -122,6 +124,15 @@ def _client(port: int, access: dict[str, str] | None = None) -> zenoh.Session:
     return zenoh.open(config)
 
 
+def _refused(session: zenoh.Session, namespace: str, name: str, op: str, fields: object) -> str:
+    """What worker ``name``'s error reply says to a request no record makes (an op it does not
+    know, a field a coordinator never sends): hand-made, as an insider may send it."""
+    replies = list(session.get(KeySpace(namespace).ctl(name), payload=pack([WIRE_VERSION, op, fields]),
+                               timeout=BOUND_S))
+    assert len(replies) == 1 and replies[0].ok is None, f"worker '{name}' took {op} {fields!r:.200}"
+    return error_message(replies[0].err.payload.to_bytes())
+
+
 def _live(session: zenoh.Session, keys: KeySpace) -> list[str]:
     return sorted(str(r.ok.key_expr) for r in session.liveliness().get(keys.workers(), timeout=2.0) if r.ok is not None)
 
@@ -137,14 +148,14 @@ def test_a_daemon_announces_itself_and_answers_info(workers, namespace):
     with _client(port) as session:
         assert _live(session, keys) == [keys.workers("w1")]
         before = time.time_ns()
-        info = ask(session, namespace, "w1", "info")
+        info = ask(session, namespace, "w1", InfoRequest())
         after = time.time_ns()
-    assert info["protocol"] == PROTOCOL_VERSION == 2
-    assert (info["name"], info["labels"], info["nodes"]) == ("w1", ["gpu", "arm"], [])
-    assert (info["host"], info["pid"]) == (socket.gethostname(), worker.proc.pid)
-    assert info["python"] == ".".join(map(str, sys.version_info[:3]))
-    assert info["packages"]["retriever"] and info["packages"]["eclipse-zenoh"]
-    assert before - 10**9 < info["clock_ns"] < after + 10**9, "one host, one clock (a sanity bound, not a speed check)"
+    assert info.protocol == PROTOCOL_VERSION == 2
+    assert (info.name, info.labels, info.nodes) == ("w1", ("gpu", "arm"), ())
+    assert (info.host, info.pid) == (socket.gethostname(), worker.proc.pid)
+    assert info.python == ".".join(map(str, sys.version_info[:3]))
+    assert info.packages["retriever"] and info.packages["eclipse-zenoh"]
+    assert before - 10**9 < info.clock_ns < after + 10**9, "one host, one clock (a sanity bound, not a speed check)"
     assert worker.stop() == 0
     err = worker.stderr()
     assert "warning: retriever-worker 'w1' runs with --insecure" in err and "trusted network" in err
@@ -228,7 +239,7 @@ def test_a_second_worker_of_one_name_refuses_to_start(workers, namespace):
            f"pid {a.proc.pid}\nhint: pick another --name, or stop that worker first" in err, err
     assert "Traceback" not in err
     with _client(first) as session:  # the first goes on
-        assert ask(session, namespace, "twin", "info")["pid"] == a.proc.pid
+        assert ask(session, namespace, "twin", InfoRequest()).pid == a.proc.pid
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,7 +276,7 @@ def test_without_the_secret_a_peer_sees_nothing(workers, namespace, tmp_path):
     keys = KeySpace(namespace)
     with zenoh.open(peer_config(connect=[endpoint(port)])) as stranger:  # a peer's open does not fail
         assert _live(stranger, keys) == []
-        assert [r for r in stranger.get(keys.ctl("guarded"), payload=WireEncoder().control("info", {}),
+        assert [r for r in stranger.get(keys.ctl("guarded"), payload=InfoRequest().encode(),
                                         timeout=2.0)] == []
         assert list(stranger.info.peers_zid()) == [], "a stranger got a session with the worker"
     with pytest.raises(zenoh.ZError):  # a client's does
@@ -274,7 +285,7 @@ def test_without_the_secret_a_peer_sees_nothing(workers, namespace, tmp_path):
         _client(port, wrong)
     with open_access(namespace, str(secret)) as access, _client(port, access) as insider:
         assert _live(insider, keys) == [keys.workers("guarded")]
-        assert ask(insider, namespace, "guarded", "info")["name"] == "guarded"
+        assert ask(insider, namespace, "guarded", InfoRequest()).name == "guarded"
     listed = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--secret", str(secret))
     assert listed.returncode == 0 and "guarded" in listed.stdout, listed.stdout + listed.stderr
     unlisted = _cli("workers", "--connect", endpoint(port), "--namespace", namespace, "--insecure")
@@ -286,21 +297,21 @@ def test_garbage_and_unknown_ops_get_error_replies_and_the_daemon_goes_on(worker
     port = free_port()
     worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
     keys = KeySpace(namespace)
-    bad = [b"\xc1 garbage", None, WireEncoder().control("frobnicate", {}), b"\x93\x01\xa4info\x80",  # wire version 1
+    unknown = pack([WIRE_VERSION, "frobnicate", {}])
+    bad = [b"\xc1 garbage", None, unknown, b"\x93\x01\xa4info\x80",  # wire version 1
            b"\x93\x02\xa4info\x90"]  # args a list
     with _client(port) as session:
         for payload in bad:
             replies = list(session.get(keys.ctl("w"), payload=payload, timeout=BOUND_S))
             assert len(replies) == 1 and replies[0].ok is None, payload
-            op, args = decode_control(replies[0].err.payload.to_bytes())
-            assert op == "error" and args["message"], payload
-            if payload == WireEncoder().control("frobnicate", {}):
-                assert args["message"] == ("worker 'w' knows no op 'frobnicate' "
-                                           "(it knows info, prepare, spawn, signal, end, usage)")
-        with pytest.raises(WorkerError, match="worker 'w' refused frobnicate: worker 'w' knows no op"):
-            ask(session, namespace, "w", "frobnicate")
-        info = ask(session, namespace, "w", "info")
-    assert info["counts"] == {"refused": len(bad) + 1}
+            message = ErrorReply.decode(replies[0].err.payload.to_bytes()).message  # an error reply, exactly
+            assert message, payload
+            if payload == unknown:
+                assert message == ("worker 'w' knows no op 'frobnicate' "
+                                   "(it knows info, prepare, spawn, signal, end, usage)")
+        assert _refused(session, namespace, "w", "frobnicate", {}).startswith("worker 'w' knows no op")
+        info = ask(session, namespace, "w", InfoRequest())
+    assert info.counts == {"refused": len(bad) + 1}
     assert worker.stop() == 0
     assert f"retriever-worker 'w' stopped; it refused {len(bad) + 1} control message(s)" in worker.stderr()
 
@@ -348,18 +359,19 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
     }
     with _client(port) as session:
         with pytest.raises(WorkerError, match=r"prepares runs only for a coordinator whose liveliness token"):
-            ask(session, namespace, "w", "prepare", {"run": "r0", "spec": {"ir": _ir_doc()}, "nodes": ["counter"]})
+            ask(session, namespace, "w", PrepareRequest(run="r0", spec={"ir": _ir_doc()}, nodes=("counter",)))
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator now
         for (op, node_type), expected in refused.items():
-            if op == "prepare":
-                args = {"run": "r1", "spec": {"ir": _ir_doc(node_type), "namespace": namespace}, "nodes": ["counter"]}
-            else:
-                args = {"run": "never-prepared", "node": "counter", "mode": [], "pid": 1, "signal": 9}
+            request = {"prepare": lambda: PrepareRequest(run="r1", nodes=("counter",),
+                                                         spec={"ir": _ir_doc(node_type), "namespace": namespace}),
+                       "spawn": lambda: SpawnRequest(run="never-prepared", node="counter", mode=()),
+                       "signal": lambda: SignalRequest(run="never-prepared", pid=1, signal=9),
+                       "end": lambda: EndRequest(run="never-prepared")}[op]()
             if expected is None:  # the flow process would find it is no Flow, and say so
-                _until_token_seen(lambda: ask(session, namespace, "w", op, args))
+                _until_token_seen(lambda: ask(session, namespace, "w", request))
                 continue
             with pytest.raises(WorkerError, match=expected):
-                ask(session, namespace, "w", op, args)
+                ask(session, namespace, "w", request)
         for args in ({"run": "r1", "spec": {"ir": {"nodes": "x"}}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc()}, "nodes": ["nobody"]},
                      {"run": 7, "spec": {}, "nodes": []},
@@ -372,30 +384,31 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                      {"run": "r1", "spec": {"ir": _ir_doc(), "hub_zid": "../etc"}, "nodes": ["counter"]},
                      {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
-                ask(session, namespace, "w", "prepare", args)
+                ask(session, namespace, "w", PrepareRequest(run=args["run"], spec=args["spec"],
+                                                            nodes=tuple(args["nodes"])))
         deep = copy.deepcopy(_ir_doc())  # a param nested past Python's recursion limit (fuzz.py's `specs`)
         next(n for n in deep["nodes"] if n["id"] == "counter")["params"]["k"] = functools.reduce(
             lambda inner, _: [inner], range(900), [])
         with pytest.raises(WorkerError, match=r"params\.k nests arrays or objects deeper than Python's recursion"):
-            ask(session, namespace, "w", "prepare", {"run": "r-deep", "spec": {"ir": deep}, "nodes": ["counter"]})
-        ask(session, namespace, "w", "prepare", {"run": "r2", "spec": {"ir": _ir_doc(), "namespace": namespace,
-                                                                       "hub": endpoint(port)}, "nodes": ["counter"]})
-        for args, expected in (({"node": "relay", "mode": []}, "was not prepared"),
-                               ({"node": "counter", "mode": ["--join", "1; rm -rf /", "2"]}, "spawn mode"),
-                               ({"node": "counter", "mode": ["--fresh", "-5", "-1"]}, "spawn mode"),
-                               ({"node": "counter", "mode": ["--join", "0", "1" + "0" * 26]}, "spawn mode"),
-                               ({"node": "counter", "mode": ["--evil", "1", "2"]}, "spawn mode"),
-                               # the key its process signs with (origin.py) is the worker's to make
-                               ({"node": "counter", "mode": [], "key": "ab" * 32}, "carries no key"),
-                               ({"node": "counter", "mode": [], "key": 7}, "carries no key")):
+            ask(session, namespace, "w", PrepareRequest(run="r-deep", spec={"ir": deep}, nodes=("counter",)))
+        ask(session, namespace, "w", PrepareRequest(run="r2", spec={"ir": _ir_doc(), "namespace": namespace,
+                                                                    "hub": endpoint(port)}, nodes=("counter",)))
+        for args, expected in (({"node": "relay", "mode": ()}, "was not prepared"),
+                               ({"node": "counter", "mode": ("--join", "1; rm -rf /", "2")}, "spawn mode"),
+                               ({"node": "counter", "mode": ("--fresh", "-5", "-1")}, "spawn mode"),
+                               ({"node": "counter", "mode": ("--join", "0", "1" + "0" * 26)}, "spawn mode"),
+                               ({"node": "counter", "mode": ("--evil", "1", "2")}, "spawn mode")):
             with pytest.raises(WorkerError, match=expected):
-                ask(session, namespace, "w", "spawn", {"run": "r2", **args})
+                ask(session, namespace, "w", SpawnRequest(run="r2", **args))
+        for key in ("ab" * 32, 7):  # the key its process signs with (origin.py) is the worker's to make
+            assert "carries no key" in _refused(session, namespace, "w", "spawn",
+                                                {"run": "r2", "node": "counter", "mode": [], "key": key})
         with pytest.raises(WorkerError, match="not a process of run r2"):
-            ask(session, namespace, "w", "signal", {"run": "r2", "pid": os.getpid(), "signal": 9})
-        assert ask(session, namespace, "w", "info")["nodes"] == []
-        with pytest.raises(WorkerError, match=r"a request of \d+ bytes, past \d+: refused"):
-            ask(session, namespace, "w", "prepare", {"run": "r3", "spec": {"pad": "x" * (9 << 20)}, "nodes": []})
-        ask(session, namespace, "w", "end", {"run": "r2"})
+            ask(session, namespace, "w", SignalRequest(run="r2", pid=os.getpid(), signal=9))
+        assert ask(session, namespace, "w", InfoRequest()).nodes == ()
+        with pytest.raises(WorkerError, match=r"a message on ctl/<name> of \d+ bytes, past \d+: refused"):
+            ask(session, namespace, "w", PrepareRequest(run="r3", spec={"pad": "x" * (9 << 20)}, nodes=()))
+        ask(session, namespace, "w", EndRequest(run="r2"))
         token.undeclare()
     assert not marker.exists(), "a module named in a request was imported"
     assert worker.stop() == 0
@@ -542,18 +555,19 @@ def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prep
                      "--path", str(tmp_path)).wait_started()
     with _client(port) as session:
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator
-        args = {"run": "r1", "spec": {"ir": doc, "namespace": namespace, "hub": endpoint(port)}, "nodes": ["counter"]}
-        prepared = _until_token_seen(lambda: ask(session, namespace, "w", "prepare", args))
-        assert len(bytes.fromhex(prepared.pop("key"))) == KEY_BYTES  # its events' signing key (runs.Run)
-        assert prepared == {"nodes": ["counter"], "warnings": []}
+        request = PrepareRequest(run="r1", spec={"ir": doc, "namespace": namespace, "hub": endpoint(port)},
+                                 nodes=("counter",))
+        prepared = _until_token_seen(lambda: ask(session, namespace, "w", request))
+        assert len(prepared.key) == KEY_BYTES  # its events' signing key (runs.Run)
+        assert (prepared.nodes, prepared.warnings) == (("counter",), ())
         module.write_text(module.read_text(encoding="utf-8") + "# edited\n", encoding="utf-8")
         here_sha = hashlib.sha256(module.read_bytes()).hexdigest()
         with pytest.raises(WorkerError, match=re.escape(
                 f"worker 'w' will not run node 'counter': the code of module drift_flows differs from the run's "
                 f"(run sha256 {run_sha}, here {here_sha} in {module})")):
-            ask(session, namespace, "w", "spawn", {"run": "r1", "node": "counter", "mode": []})
-        assert ask(session, namespace, "w", "info")["nodes"] == []
-        ask(session, namespace, "w", "end", {"run": "r1"})
+            ask(session, namespace, "w", SpawnRequest(run="r1", node="counter", mode=()))
+        assert ask(session, namespace, "w", InfoRequest()).nodes == ()
+        ask(session, namespace, "w", EndRequest(run="r1"))
         token.undeclare()
     assert worker.stop() == 0
 
@@ -580,7 +594,7 @@ def test_a_deployment_warns_of_a_worker_with_other_versions_of_the_runs_packages
 def ask_nodes(port: int, namespace: str, name: str) -> list[str]:
     """The nodes whose processes a worker runs now."""
     with _client(port) as session:
-        return ask(session, namespace, name, "info")["nodes"]
+        return list(ask(session, namespace, name, InfoRequest()).nodes)
 
 
 def _segments(pid: int) -> set[str]:
@@ -777,10 +791,11 @@ def test_a_deployment_refuses_a_worker_of_another_protocol_and_one_whose_clock_i
     def answer(protocol: int, ahead_ns: int):
         def reply(query: zenoh.Query) -> None:
             name = str(query.key_expr).rsplit("/", 1)[-1]
-            info = {"protocol": protocol, "name": name, "labels": [], "host": "elsewhere", "pid": 1, "nodes": [],
-                    "packages": {"retriever": "9.9"},
-                    "clock_ns": session.new_timestamp().get_time_as_ntp64().as_nanos() + ahead_ns}
-            query.reply(keys.ctl(name), WireEncoder().control("info", info))
+            info = InfoReply(protocol=protocol, name=name, labels=(), host="elsewhere", pid=1, python="3.12.0",
+                             packages={"retriever": "9.9"},
+                             clock_ns=session.new_timestamp().get_time_as_ntp64().as_nanos() + ahead_ns, nodes=(),
+                             counts={})
+            query.reply(keys.ctl(name), info.encode())
         return reply
 
     with zenoh.open(peer_config(listen=[endpoint(port)])) as session:
@@ -808,12 +823,12 @@ def test_a_daemon_that_does_not_answer_is_said_to_not_answer_not_to_refuse(worke
     port = free_port()
     worker = workers("--name", "w", "--listen", endpoint(port), "--namespace", namespace, "--insecure").wait_started()
     with _client(port) as session:
-        assert ask(session, namespace, "w", "info")["name"] == "w"
+        assert ask(session, namespace, "w", InfoRequest()).name == "w"
         os.kill(worker.proc.pid, signal.SIGSTOP)
         try:
             _until_every_thread_stopped(worker.proc.pid)
             with pytest.raises(WorkerError, match=r"^worker 'w' did not answer info within 1 s$"):
-                ask(session, namespace, "w", "info", timeout=1.0)
+                ask(session, namespace, "w", InfoRequest(), timeout=1.0)
         finally:
             os.kill(worker.proc.pid, signal.SIGCONT)
     assert worker.stop() == 0

@@ -25,6 +25,7 @@ from retriever.backends.zenoh.coordinator import run_dir
 from retriever.backends.zenoh.daemon import ask, open_access
 from retriever.backends.zenoh.folders import RUN_FOLDER, private_folder, reap_stale
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
+from retriever.backends.zenoh.protocol import InfoRequest
 from tests.backends.zenoh.test_daemon import BOUND_S, ROOT, SECRET, _cli, _env, namespace, workers  # noqa: F401
 
 
@@ -86,13 +87,13 @@ def test_a_sigkilled_deploy_leaves_no_password_and_the_next_run_reaps_its_folder
             config = peer_config(connect=[endpoint(port)], access=access)
             config.insert_json5("mode", '"client"')
             with zenoh.open(config) as session:
-                _until(lambda: ask(session, namespace, "w", "info")["nodes"], "the deployment's flows run")
+                _until(lambda: ask(session, namespace, "w", InfoRequest()).nodes, "the deployment's flows run")
                 [stale] = _shm_folders(deploy.pid)
                 assert not (stale / DICTIONARY).exists(), "the deployment's password file is still on disk"
                 deploy.send_signal(signal.SIGKILL)
                 deploy.wait(BOUND_S)
                 assert stale.exists()  # no one removed it: its process could not
-                _until(lambda: not ask(session, namespace, "w", "info")["nodes"],
+                _until(lambda: not ask(session, namespace, "w", InfoRequest()).nodes,
                        "the worker stopped the flows of its coordinator gone")
         done = _cli("deploy", "tests/deploy/deploy_flows.py:pipe", "--connect", endpoint(port), "--namespace",
                     namespace, "--secret", str(secret), "--duration", "1")

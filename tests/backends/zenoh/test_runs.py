@@ -21,8 +21,11 @@ import zenoh
 from retriever.backends.zenoh import daemon
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
+from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, SignalRequest, SpawnRequest,
+                                               Stream)
+from retriever.backends.zenoh.protocol.schema import pack
 from retriever.backends.zenoh.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns
-from retriever.backends.zenoh.wire import KeySpace, WireError
+from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
 from tests.log.log_flows import build_small
 
 BOUND_S = 30.0
@@ -30,23 +33,23 @@ BOUND_S = 30.0
 
 def forwarding(code: str):
     """A child running ``code``, and the batches of output lines the daemon would send of it."""
-    sent: list[dict] = []
+    sent: list[ProcessOutput] = []
     arrived = threading.Condition()
 
-    def tell(run, op: str, args: dict) -> None:
+    def tell(run, event: ProcessOutput) -> None:
         with arrived:
-            sent.append(args)
+            sent.append(event)
             arrived.notify_all()
 
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL)
-    thread = threading.Thread(target=DaemonRuns._forward, args=(SimpleNamespace(_tell=tell), SimpleNamespace(id="r1"), "cam", "stdout",
-                                                                proc.stdout), daemon=True)
+    thread = threading.Thread(target=DaemonRuns._forward, args=(SimpleNamespace(_tell=tell), SimpleNamespace(id="r1"),
+                                                                "cam", Stream.STDOUT, proc.stdout), daemon=True)
     thread.start()
     return proc, thread, sent, arrived
 
 
-def lines_of(sent: list[dict]) -> list[str]:
-    return [line for batch in sent for line in batch["lines"]]
+def lines_of(sent: list[ProcessOutput]) -> list[str]:
+    return [line for batch in sent for line in batch.lines]
 
 
 def test_held_lines_go_though_nothing_follows_them():
@@ -59,7 +62,7 @@ def test_held_lines_go_though_nothing_follows_them():
             assert arrived.wait_for(lambda: len(lines_of(sent)) == 3, timeout=BOUND_S), sent
         assert lines_of(sent) == ["Thread 1", "  File a", "  File b"]
         assert proc.poll() is None  # still running, still silent: the batch went by itself
-        assert {(b["run"], b["node"], b["stream"]) for b in sent} == {("r1", "cam", "stdout")}
+        assert {(b.run, b.node, b.stream) for b in sent} == {("r1", "cam", "stdout")}
     finally:
         proc.kill()
         proc.wait()
@@ -75,7 +78,7 @@ def test_output_goes_in_batches_and_a_line_without_end_in_pieces():
     assert not thread.is_alive()
     lines = lines_of(sent)
     assert lines[:many] == [str(i) for i in range(many)]
-    assert all(len(batch["lines"]) <= OUTPUT_BATCH for batch in sent)
+    assert all(len(batch.lines) <= OUTPUT_BATCH for batch in sent)
     rest = lines[many:]
     assert "".join(rest) == "x" * (MAX_LINE_BYTES * 2 + 10) and all(len(piece) <= MAX_LINE_BYTES * 2 for piece in rest)
 
@@ -111,7 +114,7 @@ def prepared():
             give_up = time.monotonic() + 10.0
             while True:  # the daemon's subscriber sees the token on a Zenoh thread
                 try:
-                    runs.prepare({"run": "r1", "spec": spec, "nodes": [node]})
+                    runs.prepare(PrepareRequest(run="r1", spec=spec, nodes=(node,)))
                     break
                 except WireError as e:
                     if "liveliness token" not in str(e) or time.monotonic() > give_up:
@@ -134,18 +137,28 @@ def test_a_spawn_refuses_what_is_no_prepared_node_mode_or_key_and_starts_nothing
     runs, node = prepared
     args = {"run": "r1", "node": node, "mode": [], field: value(node)}
     with pytest.raises(WireError, match=field):
-        runs.spawn(args)
+        runs.spawn(request("spawn", args))
     assert runs.run.processes == {}
+
+
+def request(op: str, fields: dict):
+    """A request as the daemon reads it (daemon.WorkerDaemon.answer: protocol.REQUEST, then the
+    op), hand-made as an insider may send it."""
+    return REQUEST.decode(pack([WIRE_VERSION, op, fields]))
 
 
 def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal(prepared):
     runs, node = prepared
-    pid = runs.spawn({"run": "r1", "node": node, "mode": []})["pid"]
+    pid = runs.spawn(SpawnRequest(run="r1", node=node, mode=())).pid
     proc = runs.run.processes[pid][1]
     for target, sig in ((float(pid), signal.SIGKILL), ([pid], signal.SIGKILL), ({pid: 1}, signal.SIGKILL),
-                        (pid, float(signal.SIGKILL)), (pid, [9]), (True, signal.SIGKILL), (pid, 0), (pid, 19)):
+                        (pid, float(signal.SIGKILL)), (pid, [9]), (True, signal.SIGKILL), (pid, 0)):
+        with pytest.raises(WireError, match="field '(pid|signal)' must be an integer"):
+            runs.signal(request("signal", {"run": "r1", "pid": target,
+                                           "signal": int(sig) if type(sig) is signal.Signals else sig}))
+    for target, sig in ((pid, 19), (pid + 1, signal.SIGKILL)):
         with pytest.raises(WireError, match="not a process of run r1 or not a signal"):
-            runs.signal({"run": "r1", "pid": target, "signal": int(sig) if type(sig) is signal.Signals else sig})
+            runs.signal(SignalRequest(run="r1", pid=target, signal=int(sig)))
     assert proc.poll() is None, "a refused signal reached the run's process"
-    runs.signal({"run": "r1", "pid": pid, "signal": int(signal.SIGKILL)})
+    runs.signal(SignalRequest(run="r1", pid=pid, signal=int(signal.SIGKILL)))
     assert proc.wait(timeout=10) == -signal.SIGKILL

@@ -23,8 +23,9 @@ import msgpack
 from retriever import read_log
 from retriever.backends.zenoh.access import RunAccess, read_secret
 from retriever.backends.zenoh.hub import endpoint, free_port, open_peer
-from retriever.backends.zenoh.origin import KEY_BYTES, key_of_text, key_text, sign
-from retriever.backends.zenoh.wire import KeySpace, WireEncoder, WireError, decode_control
+from retriever.backends.zenoh.origin import KEY_BYTES, key_of_text, sign
+from retriever.backends.zenoh.protocol import DaemonOp, SpawnReply
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from tests.backends.zenoh.test_daemon import BOUND_S, ROOT, SECRET, _env, namespace, workers  # noqa: F401
 
 DURATION_S = 8
@@ -46,14 +47,11 @@ def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers,
 
     own_key = os.urandom(KEY_BYTES)
 
-    def on_query(query) -> None:  # reads every request; answers a spawn as if it were the daemon
-        try:
-            op, args = decode_control(query.payload.to_bytes() if query.payload is not None else b"")
-        except WireError:
-            return
-        if op == "spawn":
+    def on_query(query) -> None:  # reads every request, as it came; answers a spawn as if it were the daemon
+        _, op, args = msgpack.unpackb(query.payload.to_bytes(), strict_map_key=False)
+        if op == DaemonOp.SPAWN:
             spawns.append(args)
-            query.reply(query.key_expr, WireEncoder().control("spawn", {"pid": os.getpid(), "key": key_text(own_key)}))
+            query.reply(query.key_expr, SpawnReply(pid=os.getpid(), key=own_key).encode())
 
     def on_status(sample) -> None:
         _, node, state, info = msgpack.unpackb(sample.payload.to_bytes(), strict_map_key=False)

@@ -131,9 +131,9 @@ decoders check).
 from __future__ import annotations
 
 from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST,
-                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, PrepareReply,
-                     PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnMode, SpawnReply,
-                     SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
+                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
+                     PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnMode,
+                     SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
 from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeStatus, StatusQuery, StatusReply,
                          StopQuery, StopReply)
 from .schema import ABSENT, Record
@@ -148,9 +148,9 @@ __all__ = sorted([
     "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
     "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "End", "EndReply", "EndRequest", "ErrorReply",
     "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest", "Lost",
-    "NodeStatus", "Op", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached", "Ready",
-    "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume", "SignalReply",
-    "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status", "StatusQuery",
-    "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply", "UsageRequest",
-    "decode_reply", "error_message", "new_nonce",
+    "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached",
+    "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
+    "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
+    "StatusQuery", "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply",
+    "UsageRequest", "decode_reply", "error_message", "new_nonce",
 ])

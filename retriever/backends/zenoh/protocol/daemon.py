@@ -148,8 +148,20 @@ class InfoReply(Record):
     def from_fields(cls, fields: Any, where: str, **envelope: Any) -> Record:
         protocol = fields.get("protocol") if type(fields) is dict else None
         if type(protocol) is int and protocol != PROTOCOL_VERSION:
-            raise WireError(f"{where}: the worker speaks protocol {protocol}, this process {PROTOCOL_VERSION}")
+            packages = fields.get("packages")
+            retriever = packages.get("retriever") if type(packages) is dict else None
+            raise OtherProtocol(f"{where}: the worker speaks protocol {protocol}, this process {PROTOCOL_VERSION}",
+                                protocol, retriever if type(retriever) is str else None)
         return super().from_fields(fields, where, **envelope)
+
+
+class OtherProtocol(WireError):
+    """The info of a daemon that speaks another protocol version: which one, and the version of
+    Retriever it says it runs (what to install alike on both machines), as far as it says."""
+
+    def __init__(self, message: str, protocol: int, retriever: str | None):
+        super().__init__(message)
+        self.protocol, self.retriever = protocol, retriever
 
 
 @dataclass(frozen=True, kw_only=True)
