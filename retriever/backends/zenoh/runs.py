@@ -48,6 +48,7 @@ import zenoh
 from ...code import code_mismatch
 from ...errors import IRError
 from ...ir import IR
+from ...plan import Plan
 from ...rebuild import check_node
 from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
@@ -156,6 +157,11 @@ class DaemonRuns:
             ir = IR(ir_doc, source=f"the IR a coordinator sent worker '{self.name}'")
         except (IRError, TypeError, ValueError) as e:
             raise WireError(str(e)) from None
+        if "plan" in spec:  # checked here too, so that a bad one is refused before a folder is made
+            try:
+                Plan.from_data(spec["plan"], ir)
+            except IRError as e:
+                raise WireError(str(e)) from None
         warnings = self._checked(ir, nodes)
         if not self._coordinator_up():
             raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "

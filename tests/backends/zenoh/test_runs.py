@@ -6,10 +6,12 @@ prepared and a real worker process of it)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -19,6 +21,7 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh import daemon
+from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, SignalRequest, SpawnRequest,
@@ -162,3 +165,16 @@ def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal
     assert proc.poll() is None, "a refused signal reached the run's process"
     runs.signal(SignalRequest(run="r1", pid=pid, signal=int(signal.SIGKILL)))
     assert proc.wait(timeout=10) == -signal.SIGKILL
+
+
+@pytest.mark.parametrize("plan", [b"\x00" * 8, {"nodes": b"x"}, {"nodes": [], "extra": 1}, [1, 2, 3]])
+def test_a_prepare_with_a_plan_its_ir_contradicts_is_refused_and_makes_no_folder(prepared, plan):
+    """The plan in a spec came from the network: the daemon checks it against the IR before it
+    makes the run's folder (an unchecked one failed later, in json.dumps, leaving a folder)."""
+    runs, node = prepared
+    ir = build_small().build_ir().doc
+    spec = {"ir": ir, "namespace": "runs-test-plan", "hub": "tcp/127.0.0.1:1", "plan": plan}
+    folders = set(Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{os.getpid()}-run-*"))
+    with pytest.raises(WireError, match="plan"):
+        runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(node,)))
+    assert set(Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{os.getpid()}-run-*")) <= folders
