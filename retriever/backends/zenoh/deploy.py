@@ -10,7 +10,7 @@
 
 A worker that is lost mid-run (its token went) takes its nodes' processes with it; with
 ``on_worker_loss="replace"`` (the default) each of them starts afresh on another worker that its
-placement allows, as a flow whose process died does (loop.py); with "stop", or nowhere to go,
+placement allows, as a flow whose process died does (node/handover.py); with "stop", or nowhere to go,
 the run stops naming the worker.
 """
 
@@ -317,7 +317,7 @@ class Deployment(Hosting):
     def host_lost(self, host, nodes: list[str]) -> None:
         """on_worker_loss="replace": each of its nodes starts afresh on a worker still up that its
         placement allows, by the rule of the first placement (placement.move; as a flow whose
-        process died: loop.py); the log's fault record says where it went. Any node that has
+        process died: node/handover.py); the log's fault record says where it went. Any node that has
         nowhere to go stops the run. "wait": they start afresh on it once a worker of its name is
         up again (see _await_return)."""
         book = self.coordinator.book

@@ -29,7 +29,7 @@ class State(StrEnum):
     FAILED = "failed"
     RESTART = "restart"
     HANDED_OVER = "handed_over"
-    REACHED = "reached"  # virtual time: every tick below the coordinator's grant has run (loop.py)
+    REACHED = "reached"  # virtual time: every tick below the coordinator's grant has run (node/waiting.py)
     UNANSWERED = "unanswered"
     EXIT = "exit"
 

@@ -39,7 +39,7 @@ NS = Int(0, NS_MAX)
 class Start(Record):
     """The run starts at ``t0`` (ns since the epoch, the hub's HLC) and ends ``end`` ns after it;
     ``values``: whether reports carry the events' values; ``grant``: in virtual time, the ticks
-    below it may run (loop.py)."""
+    below it may run (node/waiting.py)."""
 
     NAME = Op.START
     t0: int = field(NS)
