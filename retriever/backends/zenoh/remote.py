@@ -7,7 +7,7 @@
       query ctl/<name>  usage {run}                 ──▶   the CPU seconds of its live processes: {cpu_s}
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
       subscriber workers/<name>/events  ◀── put  exit {run, node, pid, code} · output {run, node, stream, lines},
-                                                 signed with the run's key (the prepare reply's)
+                                                 sealed with the run's key (the prepare reply's) and a counter (seal.py)
 
 A remote worker process answers the coordinator as a local one does (host.WorkerProcess): its
 exit code arrives as an ``exit`` event, or, when the daemon itself is lost (its liveliness token
@@ -25,7 +25,6 @@ process dead).
 
 from __future__ import annotations
 
-import hmac
 import signal
 import subprocess
 import threading
@@ -36,9 +35,8 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
-from .origin import sign
-from .protocol import (DAEMON_EVENT, EndRequest, PrepareRequest, ProcessExit, Record, SignalRequest, SpawnRequest,
-                       UsageRequest, decode_reply, error_message)
+from .protocol import (DAEMON_EVENT, ControlOpener, EndRequest, PrepareRequest, ProcessExit, Record, SignalRequest,
+                       SpawnRequest, UsageRequest, decode_reply, error_message)
 from .wire import KeySpace, WireError
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -92,7 +90,8 @@ class RemoteHost(Host):
         self.session, self.keys, self.name, self.run, self.zid = session, keys, name, run, zid
         self.processes: dict[int, RemoteProcess] = {}
         self.garbage = 0  # events on its key that were not its daemon's
-        self.events_key: bytes | None = None  # the run's, from the prepare reply: its events' signer
+        # opens its events with the run's key from the prepare reply, each once (seal.py)
+        self.events: ControlOpener | None = None
         self._events = session.declare_subscriber(keys.worker_events(name), weak_callback(self._event))
 
     # -- requests ------------------------------------------------------------------------------
@@ -124,7 +123,7 @@ class RemoteHost(Host):
         for attempt in range(PREPARE_TRIES):
             try:
                 reply = self.request(PrepareRequest(run=self.run, spec=spec, nodes=tuple(nodes)))
-                self.events_key = reply.key
+                self.events = ControlOpener(reply.key)
                 return list(reply.warnings)
             except BackendError as e:
                 if "liveliness token" not in str(e) or attempt == PREPARE_TRIES - 1:
@@ -160,11 +159,13 @@ class RemoteHost(Host):
             proc.exited(LOST_CODE)
 
     def _event(self, sample: zenoh.Sample) -> None:
-        payload, mac = sample.payload.to_bytes(), sample.attachment
-        key = self.events_key
-        if key is None or mac is None or not hmac.compare_digest(
-                sign(key, str(sample.key_expr), payload), mac.to_bytes()):
-            self.garbage += 1  # not the daemon's for this run: an insider's, or another run's
+        payload = sample.payload.to_bytes()
+        try:
+            if self.events is None:
+                raise WireError("an event before the daemon answered the run's key")
+            self.events.open(str(sample.key_expr), payload, sample.attachment)
+        except WireError:
+            self.garbage += 1  # not the daemon's for this run (an insider's, or another run's), or a replay
             return
         try:
             event = DAEMON_EVENT.decode(payload)

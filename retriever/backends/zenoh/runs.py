@@ -54,8 +54,8 @@ from .access import RunAccess, TlsFiles, write_private
 from .folders import DAEMON_FOLDER
 from .command import worker_command
 from .hub import weak_callback
-from .origin import KEY_FD_ENV, key_pipe, new_key, sign
-from .protocol import (DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, Record,
+from .origin import KEY_FD_ENV, key_pipe, new_key
+from .protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, Record,
                        SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest)
 from .wire import RELIABLE, KeySpace, WireError
 
@@ -98,6 +98,8 @@ class Run:
     def __init__(self, run_id: str, folder: Path, nodes: list[str]):
         self.id, self.folder, self.nodes = run_id, folder, set(nodes)
         self.key = new_key()
+        self.events = ControlSigner()  # seals its events with the key, each with a counter (seal.py)
+        self.events.add(self, self.key)
         self.processes: dict[int, tuple[str, subprocess.Popen]] = {}
         self.watch = None  # the liveliness subscriber on the coordinator's token
         self.ir: dict = {}
@@ -370,7 +372,7 @@ class DaemonRuns:
         """An event of ``run`` to its coordinator, signed with the run's key."""
         payload = event.encode()
         try:
-            self._events.put(payload, attachment=sign(run.key, self.keys.worker_events(self.name), payload))
+            self._events.put(payload, attachment=run.events.seal(self.keys.worker_events(self.name), payload))
         except zenoh.ZError:  # the daemon is closing
             pass
 

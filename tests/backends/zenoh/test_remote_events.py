@@ -1,37 +1,71 @@
-"""A worker daemon's events reach the coordinator signed with the run's key (issue 40; remote.py).
+"""A worker daemon's events reach the coordinator sealed with the run's key (issue 40; remote.py).
 
 Anyone holding the namespace's secret may put on ``workers/<name>/events``: an ``exit`` there
 made the coordinator count a live remote process dead (and restart its flow, or fail the run).
-The daemon now signs each event with a key it made for the run and answered in its prepare
-reply, which reaches the coordinator alone; the coordinator's RemoteHost takes no other.
+The daemon now seals each event with a key it made for the run and answered in its prepare
+reply, which reaches the coordinator alone, and a counter (seal.py); the coordinator's RemoteHost
+takes no other event, and none twice.
 """
 
 from __future__ import annotations
 
 from retriever.backends.zenoh.origin import new_key, sign
-from retriever.backends.zenoh.protocol import ProcessExit
+from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, ProcessExit, ProcessOutput, Stream
 from retriever.backends.zenoh.remote import RemoteHost, RemoteProcess
 from retriever.backends.zenoh.wire import KeySpace
 
 BOUND_S = 30.0  # a bound on any wait, never a speed check
 
 
-def test_an_exit_event_the_daemon_did_not_sign_leaves_the_process_alive(session):
+def daemon_seal(key: bytes) -> ControlSigner:
+    """What the daemon's run seals its events with (runs.Run)."""
+    signer = ControlSigner()
+    signer.add(signer, key)
+    return signer
+
+
+def test_an_exit_event_the_daemon_did_not_seal_leaves_the_process_alive(session):
     keys = KeySpace("remote-events")
     host = RemoteHost(session, keys, "w1", "r1", zid="0")
     try:
-        host.events_key = new_key()
+        run_key = new_key()
+        host.events = ControlOpener(run_key)
         proc = host.processes[4242] = RemoteProcess(host, "cam", 4242, new_key())
         events = keys.worker_events("w1")
         forged = ProcessExit(run="r1", node="cam", pid=4242, code=-9).encode()
-        session.put(events, forged)  # unsigned
-        session.put(events, forged, attachment=sign(new_key(), events, forged))  # an insider's own key
-        session.put(events, forged, attachment=sign(host.events_key, keys.worker_events("w2"), forged))  # another key
+        session.put(events, forged)  # unsealed
+        session.put(events, forged, attachment=daemon_seal(new_key()).seal(events, forged))  # an insider's own key
+        session.put(events, forged, attachment=daemon_seal(run_key).seal(keys.worker_events("w2"), forged))  # elsewhere
+        session.put(events, forged, attachment=sign(run_key, events, forged))  # signed as before, with no counter
         genuine = ProcessExit(run="r1", node="cam", pid=4242, code=0).encode()
-        session.put(events, genuine, attachment=sign(host.events_key, events, genuine))
+        session.put(events, genuine, attachment=daemon_seal(run_key).seal(events, genuine))
         # one publisher's puts on one key arrive in order: the forged ones came first
         assert proc.wait(BOUND_S) == 0, "the daemon's own exit event is taken, and only it"
-        assert host.garbage == 3
+        assert host.garbage == 4
     finally:
         host.close()
 
+
+def test_a_replayed_output_event_is_refused_and_prints_nothing_twice(session):
+    """An insider who captured a sealed event and puts it again (the same bytes, the same seal):
+    the counter was taken once; the replay is counted as garbage, its lines are not fed again."""
+    keys = KeySpace("remote-replays")
+    host = RemoteHost(session, keys, "w1", "r1", zid="0")
+    try:
+        run_key = new_key()
+        host.events = ControlOpener(run_key)
+        proc = host.processes[4242] = RemoteProcess(host, "cam", 4242, new_key())
+        events = keys.worker_events("w1")
+        seal = daemon_seal(run_key)
+        host.output("cam").forwarding = False  # (kept in its tail only)
+        output = ProcessOutput(run="r1", node="cam", stream=Stream.STDERR, lines=("hello",)).encode()
+        sealed = seal.seal(events, output)
+        session.put(events, output, attachment=sealed)
+        session.put(events, output, attachment=sealed)  # the replay
+        last = ProcessExit(run="r1", node="cam", pid=4242, code=0).encode()
+        session.put(events, last, attachment=seal.seal(events, last))
+        assert proc.wait(BOUND_S) == 0  # in order: the output and its replay came before
+        assert host.garbage == 1
+        assert host.output("cam").stderr_lines == 1 and host.output("cam").tail().strip() == "hello"
+    finally:
+        host.close()

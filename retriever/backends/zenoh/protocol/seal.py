@@ -17,7 +17,11 @@ A MAC is origin.sign's (HMAC-SHA256 of the key expression and the signed bytes, 
 MAC_BYTES). The counter makes a replay refusable: a process takes each counter once, and none
 older than REPLAY_WINDOW behind the newest it took (Zenoh keeps one publisher's puts on one key
 in order; the window forgives a reordering all the same). A reply covers the nonce of the
-question it answers: an old answer, replayed, answers no new question. What it does not prove:
+question it answers: an old answer, replayed, answers no new question.
+
+A worker daemon's events (``exit``, ``output`` on workers/<name>/events) go the same way with one
+key, the run's (runs.py seals them with a ControlSigner holding it; the coordinator's RemoteHost
+opens them with a ControlOpener): forged, altered, another run's or replayed, they are refused. What it does not prove:
 that a message arrived at all (an insider with the run's password can still flood the links it
 shares, as it could before).
 """
