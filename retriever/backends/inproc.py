@@ -354,7 +354,7 @@ class _Recorder:
         if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
             rt.stats.steps += 1
             self.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
-            raise RunEnded(rt.id, tau)
+            raise ending(decision, rt.id, tau, exc)
         rt.stats.errors += 1
         detail = {"error": error_text(exc), "on_error": rt.on_error}
         self.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))

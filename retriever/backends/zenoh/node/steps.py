@@ -8,7 +8,7 @@ from typing import Any
 
 from ....errors import StopRun
 from ....flow.burst import Burst
-from ....tick import select_inputs
+from ....tick import Decision, decide, error_text, select_inputs
 
 
 class Steps:
@@ -76,24 +76,25 @@ class Steps:
             self.overran(tau, wall, start + wall - self.clock.t0)
 
     def step_failed(self, tau, consumed, detail, exc: BaseException, start: int) -> None:
-        """The step raised ``exc`` (not KeyboardInterrupt): record it, then stop the run, restart
-        the flow or go on, as ``on_error`` says; ``sys.exit(0)`` ends the whole run cleanly."""
+        """The step raised ``exc`` (not KeyboardInterrupt): record it, then act on what
+        tick.decide makes of ``on_error``: stop the run, go on, ask the coordinator (which holds
+        the restart budget) for a restart, or end the whole run cleanly (``sys.exit(0)``)."""
         loop = self.loop
         wall = loop.last_wall = time.time_ns() - start
-        if isinstance(exc, SystemExit) and exc.code in (None, 0):
-            # sys.exit(0): the whole run ends here, cleanly. The coordinator is told first
-            # (it stops every node), then this loop ends as if told to stop.
+        decision = decide(self.on_error, exc, None, tau[0])
+        if decision is Decision.END_RUN:
+            # the coordinator is told first (it stops every node), then this loop ends as if told to stop
             self.finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
             if loop.on_exit is not None:
                 loop.on_exit(tau)
             loop.stopping = loop.told_to_stop = True
             return
-        error = f"{type(exc).__name__}: {exc}"
+        error = error_text(exc)
         self.finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
                          start, wall)
-        if self.on_error == "stop":
+        if decision is Decision.STOP:
             raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
-        if self.on_error == "restart":
+        if decision is Decision.RESTART:
             loop.restarting = True
             if loop.on_restart is not None:
                 loop.on_restart(tau, error)
