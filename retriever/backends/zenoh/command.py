@@ -16,10 +16,12 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from .protocol import SpawnMode
+
 #: the module a worker process runs
 WORKER_MODULE = "retriever.backends.zenoh.worker"
 #: the start modes after the node's first process: a restarted flow's, and a lost process's
-JOIN, FRESH = "--join", "--fresh"
+JOIN, FRESH = SpawnMode.JOIN, SpawnMode.FRESH
 #: the most digits of T0 or END (an int64 of nanoseconds)
 MAX_DIGITS = 19
 

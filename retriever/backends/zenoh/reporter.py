@@ -33,7 +33,8 @@ import zenoh
 
 from ...errors import ReportError
 from .origin import sign
-from .wire import RELIABLE, WireEncoder
+from .protocol import Report
+from .wire import RELIABLE
 
 #: reports handed over and not yet sent, at most; and the bytes of messages they hold, at most
 #: (a single report bigger than that still goes, once nothing else waits)
@@ -56,7 +57,6 @@ class Reporter:
         self.key: bytes | None = None
         self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
         self.max_pending_seqs = max_pending_seqs
-        self.encoder = WireEncoder()  # this thread's own
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.room = threading.Condition()  # guards the two counts below
         self.pending = 0  # reports handed over, not yet sent
@@ -128,7 +128,7 @@ class Reporter:
         if self.spill_dir is not None:
             events = [(wall, self._spill(message)) if len(message) >= self.spill_bytes else (wall, message)
                       for wall, message in events]
-        payload = self.encoder.report(self.node, records, events)
+        payload = Report(node=self.node, records=tuple(records), events=tuple(events)).encode()
         self.session.put(self.key_expr, payload, congestion_control=RELIABLE,
                          attachment=sign(self.key, self.key_expr, payload) if self.key is not None else None)
         self.sent += 1

@@ -10,6 +10,10 @@ Key space, under ``retriever/<namespace>/``::
     status/node/<node>     worker state    [2, node, state, info]
     ctl/run                control         [2, op, args]
 
+The reports, statuses and control are the records of protocol/ (its table has every message of
+the key space, and their exact decoders); this module keeps the events and progress of the data
+plane.
+
 A data message is a msgpack array of bins. The first is the *envelope*, the msgpack array
 ``[2, [t, m], seq, [ft, fm], producer, port, value]``: format version ``2``, the event's tag
 (``t`` in integer ns since the run's start ``T0``, microstep ``m``), its seq (per node and port,
@@ -58,7 +62,6 @@ import zenoh
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, WireError
 from ...flow.burst import MAX_BURST, Burst, travels_as_rows
-from ...trace import STEP_STATUSES
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
 #: event would leave a gap in its stream's seqs that no frontier can cross)
@@ -190,15 +193,6 @@ class WireEncoder:
 
     def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
         return self._pack([WIRE_VERSION, frontier, producer, sent])
-
-    def report(self, node: str, records: list, events: list[tuple[int, bytes | str]]) -> bytes:
-        """Step records ``(tag, consumed, produced, status, detail, wall_start_ns, wall_ns)`` and
-        the data messages published, as ``(wall_ns, message)``; a message may instead be the name
-        of a file holding it, in the coordinator's directory on the worker's host."""
-        return self._pack([WIRE_VERSION, node, records, events])
-
-    def status(self, node: str, state: str, info: dict) -> bytes:
-        return self._pack([WIRE_VERSION, node, state, info])
 
     def control(self, op: str, args: dict) -> bytes:
         return self._pack([WIRE_VERSION, op, args])
@@ -337,60 +331,6 @@ def decode_progress(data: bytes, expected: str | None = None) -> Progress:
     if type(sent) is not dict or not all(type(k) is str and type(v) is int and v >= -1 for k, v in sent.items()):
         raise WireError("the seqs of a progress message must map port names to integers >= -1")
     return Progress(frontier, producer, sent)
-
-
-class Report(NamedTuple):
-    node: str
-    records: list  # (tag, consumed, produced, status, detail, wall_start_ns, wall_ns)
-    events: list  # (wall_ns, data message bytes, or the name of a file holding them)
-
-
-def decode_report(data: bytes, expected: str | None = None) -> Report:
-    """Decode a worker's report; ids in records come back as tuples, as in the trace. The data
-    messages are left encoded: decode each with :func:`decode_events`."""
-    _, node, records, events = _fields(data, 4, "report")
-    if type(node) is not str or (expected is not None and node != expected) or type(records) is not list:
-        raise WireError(f"a report must carry its node ({expected}) and a list of records")
-    if type(events) is not list or not all(type(e) is list and len(e) == 2 and type(e[0]) is int
-                                           and type(e[1]) in (bytes, str) for e in events):
-        raise WireError(f"the events of a report of {node} must be [wall_ns, data message or file name] pairs")
-    out = []
-    try:
-        for tag, consumed, produced, status, detail, start, wall in records:
-            if (type(consumed) is not dict or not all(type(p) is str for p in consumed)
-                    or status not in STEP_STATUSES or (detail is not None and type(detail) is not dict)
-                    or type(start) is not int or type(wall) is not int):
-                raise WireError(f"a report of {node} has a malformed record")
-            out.append((_tag("tag", tag), {port: _event_ids(ids) for port, ids in consumed.items()},
-                        _event_ids(produced), status, detail, start, wall))
-    except WireError:
-        raise
-    except Exception as e:
-        raise WireError(f"a report of {node} has a malformed record ({type(e).__name__}: {e})") from None
-    return Report(node, out, events)
-
-
-def _event_ids(ids: Any) -> tuple:
-    """``[[node, port, seq], …]`` → a tuple of event ids, or WireError."""
-    if type(ids) is not list or not all(type(i) is list and len(i) == 3 and type(i[0]) is str and type(i[1]) is str
-                                        and type(i[2]) is int and i[2] >= 0 for i in ids):
-        raise WireError("event ids in a step record must be [node, port, seq] triples")
-    return tuple(map(tuple, ids))
-
-
-def decode_status(data: bytes) -> tuple[str, str, dict]:
-    """``(node, state, info)`` of a worker's status message."""
-    _, node, state, info = _fields(data, 4, "status")
-    if type(node) is not str or type(state) is not str or type(info) is not dict:
-        raise WireError("a status message is [2, node, state, info]")
-    if state not in NODE_STATES:
-        raise WireError(f"a status message of state {state!r:.20}; a worker's states are {', '.join(NODE_STATES)}")
-    return node, state, info
-
-
-#: what a worker says on status/node/<node> (worker.py)
-#: "reached": in virtual time, the node has run every tick below the coordinator's grant (loop.py)
-NODE_STATES = ("ready", "done", "failed", "restart", "handed_over", "reached", "unanswered", "exit")
 
 
 def decode_error_reply(data: bytes) -> str | None:

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
+from . import protocol
 from .command import FIRST, FRESH, JOIN, Mode, parse_mode
 
 if TYPE_CHECKING:
@@ -420,12 +421,12 @@ class Status:
     def __init__(self, session, keys, node: str, key: bytes | None):
         self.session, self.keys, self.node, self.key = session, keys, node, key
 
-    def __call__(self, state: str, **info) -> None:
+    def __call__(self, kind: type[protocol.Status], **fields) -> None:
+        """Say a status of ``kind`` (a record of protocol.STATUS) with ``fields``, this node's and pid."""
         from .origin import sign
-        from .wire import RELIABLE, WireEncoder
+        from .wire import RELIABLE
 
-        info["pid"] = os.getpid()
-        key, payload = self.keys.node_status(self.node), WireEncoder().status(self.node, state, info)
+        key, payload = self.keys.node_status(self.node), kind(node=self.node, pid=os.getpid(), **fields).encode()
         self.session.put(key, payload, congestion_control=RELIABLE,
                          attachment=sign(self.key, key, payload) if self.key is not None else None)
 
@@ -506,17 +507,15 @@ def open_session(spec: dict, node: str, mode: Mode, shared_memory: bool):
 def build(w: Serving) -> bool:
     """The node's flow, rebuilt from the IR, in its loop (``w.loop``); False when it cannot be
     built (the status ``failed`` said why)."""
-    from .protocol import ControlOpener
-
     try:
         if w.spec.get("main_file"):
             _import_main(w.spec["main_file"])
         w.loop = (w.launch.make_loop or build_loop)(w.spec, w.node, w.session)
         w.loop.reporter.key = w.launch.key
-        w.loop.opener = ControlOpener(w.launch.key)
+        w.loop.opener = protocol.ControlOpener(w.launch.key)
         _kept_to_the_end.append(w.loop.flow)
     except BaseException as exc:
-        w.status("failed", error=f"cannot build node '{w.node}': {type(exc).__name__}: {exc}",
+        w.status(protocol.Failed, error=f"cannot build node '{w.node}': {type(exc).__name__}: {exc}",
                  traceback=traceback.format_exc())
         return False
     return True
@@ -526,11 +525,10 @@ def handle_signals(w: Serving) -> None:
     """SIGTERM asks the loop to stop; when the parent is dead (a SIGTERM sent by someone else
     then), or on PARENT_DIED, the process ends without a word, as if killed, promising its
     consumers nothing (not "done"): the run goes on without it."""
-    from .loop import _CONTROL
-    from .wire import WireEncoder
+    from .loop import CONTROL
 
     loop, parent = w.loop, w.launch.parent
-    stop_item = (_CONTROL, None, WireEncoder().control("stop", {}))
+    stop_item = (CONTROL, None, protocol.Stop())  # this process's own: no seal to open
 
     def on_sigterm(signum, frame) -> None:
         loop.abandoned = parent.gone()
@@ -554,12 +552,12 @@ def set_up_flow(w: Serving) -> bool:
     try:
         set_up(loop.flow)
     except Exception as exc:
-        status("failed", error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
+        status(protocol.Failed, error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
         return False
-    loop.on_restart = lambda tag, error: status("restart", tag=list(tag), error=error)
-    loop.on_exit = lambda tag: status("exit", tag=list(tag))
+    loop.on_restart = lambda tag, error: status(protocol.Restart, tag=tuple(tag), error=error)
+    loop.on_exit = lambda tag: status(protocol.Exit, tag=tuple(tag))
     if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
-        loop.on_reached = lambda until: status("reached", until=until)
+        loop.on_reached = lambda until: status(protocol.Reached, until=until)
     return True
 
 
@@ -588,14 +586,14 @@ def run(w: Serving) -> int:
         loop.release_held()
         loop.finish_reports()
         cause = exc.__cause__  # the exception a step raised: where in the flow's code
-        w.status("failed", error=str(exc), tag=list(exc.tag) if exc.tag else None, counts=dict(loop.counts),
+        w.status(protocol.Failed, error=str(exc), tag=tuple(exc.tag) if exc.tag else None, counts=dict(loop.counts),
                  traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
                  zeno=exc.zeno)
         loop.undeclare()
         return EXIT_FAILED
     except BaseException as exc:
         loop.finish_reports()
-        w.status("failed", error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
+        w.status(protocol.Failed, error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
                  traceback=traceback.format_exc(), counts=dict(loop.counts))
         loop.undeclare()
         return EXIT_FAILED
@@ -616,11 +614,11 @@ def finish(w: Serving, begin: Start) -> int:
         tmp = handover_file.with_suffix(".tmp")
         tmp.write_bytes(state)
         tmp.replace(handover_file)
-        status("handed_over", counts=dict(loop.counts), reports=loop.reporter.sent)
+        status(protocol.HandedOver, counts=dict(loop.counts), reports=loop.reporter.sent)
         release(loop, w.node)  # the new process has set up its own: free this one's now
         _await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.get("hub_zid"))
         return EXIT_HANDED_OVER
-    status("done", counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
+    status(protocol.Done, counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
            ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
     loop.undeclare()
     release(loop, w.node)
@@ -629,7 +627,7 @@ def finish(w: Serving, begin: Start) -> int:
 
 
 def _stopped_before_start(w: Serving) -> None:
-    w.status("done", counts=dict(w.loop.counts))
+    w.status(protocol.Done, counts=dict(w.loop.counts))
     w.loop.undeclare()
 
 
@@ -651,7 +649,7 @@ def start(w: Serving) -> Start | None:
     unlinked = wait_for_links(session, _links_needed(spec, w.node), timeout=timeout, stop=w.waiting())
 
     def nudge(unanswered: set[str]) -> None:  # see REDECLARE_AFTER_S
-        status("unanswered", nodes=sorted(key.rsplit("/", 1)[1] for key in unanswered))
+        status(protocol.Unanswered, nodes=tuple(sorted(key.rsplit("/", 1)[1] for key in unanswered)))
         loop.redeclare()
 
     wait_for_answers(session, {keys.progress(p) for p in _producers(spec, w.node)}, timeout=timeout,
@@ -666,20 +664,20 @@ def start(w: Serving) -> Start | None:
         return None
 
     def ready() -> None:
-        status("ready", linked=not unlinked, unlinked=_names_of(spec, unlinked),
+        status(protocol.Ready, linked=not unlinked, unlinked=tuple(_names_of(spec, unlinked)),
                peers=len(session.info.peers_zid()))
 
     ready()
     # said again with each ask: a put made as a link came up may reach the hub before
     # its subscriptions did, and be dropped (the coordinator then waited for it forever)
-    said = _await_control(loop, "start", w.node, ask=lambda: (ready(), _ask_start(session, keys, loop)))
+    said = _await_control(loop, protocol.Start, w.node, ask=lambda: (ready(), _ask_start(session, keys, loop)))
     if said is None:
         _stopped_before_start(w)
         return None
-    t0, end = int(said["t0"]), int(said["end"])
-    loop.values = said.get("values") is not False
+    t0, end = said.t0, said.end
+    loop.values = said.values
     if loop.virtual:  # lockstep: the ticks below the first grant may run
-        loop.granted = max(0, min(int(said.get("grant", 0)), end))
+        loop.granted = min(0 if said.grant is protocol.ABSENT else said.grant, end)
     # after T0 when the start came late (a loaded machine): after the end, no tick ran
     return Start(t0, end, started_ns=session.new_timestamp().get_time_as_ntp64().as_nanos() - t0)
 
@@ -709,10 +707,10 @@ def join(w: Serving) -> Start | None:
     _link_to_hub(session, spec, loop)
 
     def say_ready() -> None:
-        w.status("ready")
+        w.status(protocol.Ready)
 
     say_ready()
-    if _await_control(loop, "resume", w.node, ask=say_ready) is None:
+    if _await_control(loop, protocol.Resume, w.node, ask=say_ready) is None:
         _stopped_before_start(w)
         return None
     handover_file = w.launch.run_dir / f"{w.node}.handover"
@@ -767,22 +765,23 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
         session, {keys.progress(n) for n in _consumers(spec, w.node)}, timeout=NEIGHBOR_TIMEOUT_S,
         stop=w.waiting(), payload=w.padding,
         gone=lambda: {keys.progress(n) for n in set().union(*_coordinator_says(session, keys, loop.opener))}))
-    _drop_queued(loop, "restarted", w.node)  # the coordinator's comes after `ready`: one before is not its
+    # the coordinator's comes after `ready`: one before is not its
+    _drop_queued(loop, protocol.Restarted, w.node)
     _link_to_hub(session, spec, loop)
 
     def ready() -> None:
-        w.status("ready")
+        w.status(protocol.Ready)
 
     ready()
-    args = _await_control(loop, "restarted", w.node, ask=ready)  # said again: see START_ASK_S
-    if args is None:
+    restarted = _await_control(loop, protocol.Restarted, w.node, ask=ready)  # said again: see START_ASK_S
+    if restarted is None:
         return None
-    loop.values = args.get("values") is not False
-    seqs = args.get("seqs")
-    if type(seqs) is not dict or not all(type(seqs.get(p)) is int and seqs[p] >= RESTART_SEQ_GAP for p in loop.ports):
+    loop.values = restarted.values
+    seqs = restarted.seqs
+    if not all(seqs.get(p, -1) >= RESTART_SEQ_GAP for p in loop.ports):
         raise RuntimeError(f"the 'restarted' for {w.node} carries no seq past {RESTART_SEQ_GAP} for each output "
                            f"port: {seqs!r:.200}")
-    return {p: s for p, s in seqs.items() if type(p) is str and type(s) is int and s >= 0}
+    return dict(seqs)
 
 
 def _producers_progress(w: Serving) -> dict:
@@ -856,13 +855,11 @@ def _names_of(spec: dict, zids: set[str]) -> list[str]:
     return sorted(names.get(z, z) for z in zids)
 
 
-def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
-    """Forget the control messages ``op`` to ``node_id`` queued in the loop's inbox; keep the rest."""
+def _drop_queued(loop: NodeLoop, kind: type[protocol.Record], node_id: str) -> None:
+    """Forget the control messages of ``kind`` to ``node_id`` queued in the loop's inbox; keep the rest."""
     import queue
 
-    from .loop import _CONTROL
-    from .node.control import opened
-    from .wire import WireError
+    from .loop import CONTROL
 
     kept = []
     while True:
@@ -870,14 +867,9 @@ def _drop_queued(loop: NodeLoop, op: str, node_id: str) -> None:
             item = loop.inbox.get_nowait()
         except queue.Empty:
             break
-        if item[0] == _CONTROL:
-            try:
-                got, args = opened(item[2])
-                if got == op and args.get("node") == node_id:
-                    loop.counts["garbage"] += 1
-                    continue
-            except WireError:
-                pass
+        if item[0] == CONTROL and type(item[2]) is kind and item[2].node == node_id:
+            loop.counts["garbage"] += 1
+            continue
         kept.append(item)
     for item in kept:
         loop.inbox.put(item)
@@ -894,25 +886,21 @@ def _finished(session, keys, opener) -> dict[str, set[str]] | None:
     """The coordinator's ``finished`` answer: ``nodes`` (done), ``complete`` (done, every report
     in), ``restarting``; None when it did not answer. An answer the coordinator did not seal for
     this process (``opener``: its ControlOpener) is none."""
-    from .protocol import new_nonce
-    from .wire import WireError, decode_control
+    from .wire import WireError
 
     said: dict[str, set[str]] | None = None
-    nonce = new_nonce()
+    nonce = protocol.new_nonce()
     for reply in session.get(keys.finished(), attachment=nonce, timeout=0.25):
         if reply.ok is None:
             continue
         try:
-            payload = reply.ok.payload.to_bytes()
-            opener.open_reply(str(reply.ok.key_expr), payload, reply.ok.attachment, nonce)
-            _, args = decode_control(payload)
+            finished = opener.reply(protocol.Finished, str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                                    reply.ok.attachment, nonce)
         except WireError:
             continue
         said = said or {"nodes": set(), "complete": set(), "restarting": set()}
-        for key, found in said.items():
-            names = args.get(key)
-            if type(names) is list:
-                found.update(n for n in names if type(n) is str)
+        for field, found in said.items():
+            found.update(getattr(finished, field))
     return said
 
 
@@ -964,30 +952,28 @@ def _watch_hub_link(session, hub_zid: str | None, node_id: str):
 def _ask_start(session, keys, loop: NodeLoop) -> None:
     """Ask the coordinator for the run's start; its answer joins the loop's inbox as control (one
     the coordinator did not seal for this process, as the WireError saying so: garbage)."""
-    from .loop import _CONTROL
-    from .protocol import new_nonce
+    from .loop import CONTROL
     from .wire import WireError
 
-    nonce = new_nonce()
+    nonce = protocol.new_nonce()
     for reply in session.get(keys.start(), attachment=nonce, timeout=START_ASK_S):
         if reply.ok is not None:
-            payload = reply.ok.payload.to_bytes()
             try:
-                loop.opener.open_reply(str(reply.ok.key_expr), payload, reply.ok.attachment, nonce)
+                start = loop.opener.reply(protocol.Start, str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                                          reply.ok.attachment, nonce)
             except WireError as e:
-                loop.inbox.put((_CONTROL, None, e))
+                loop.inbox.put((CONTROL, None, e))
                 continue
-            loop.inbox.put((_CONTROL, None, payload))
+            loop.inbox.put((CONTROL, None, start))
 
 
-def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict | None:
-    """Wait for the run's control to say ``wanted`` (to this node, if it names one): its
-    arguments; None on ``stop``. ``ask()``, if given, is called after every START_ASK_S without
-    it. What else arrives meanwhile is put back in the loop's inbox."""
+def _await_control(loop: NodeLoop, wanted: type[protocol.Record], node_id: str, ask=None) -> protocol.Record | None:
+    """Wait for the run's control to say ``wanted`` (a record of protocol.RUN_CONTROL: to this
+    node, if it names one): that record; None on ``stop``. ``ask()``, if given, is called after
+    every START_ASK_S without it. What else arrives meanwhile is put back in the loop's inbox."""
     import queue
 
-    from .loop import _CONTROL
-    from .node.control import opened
+    from .loop import CONTROL
     from .wire import WireError
 
     early = []
@@ -998,21 +984,20 @@ def _await_control(loop: NodeLoop, wanted: str, node_id: str, ask=None) -> dict 
             except queue.Empty:
                 ask()
                 continue
-            if item[0] != _CONTROL:
+            if item[0] != CONTROL:
                 early.append(item)
                 continue
-            try:
-                op, args = opened(item[2])
-            except WireError:
+            record = item[2]
+            kind = type(record)
+            if isinstance(record, WireError):
                 loop.counts["garbage"] += 1
-                continue
-            if op == "stop":
+            elif kind is protocol.Stop:
                 return None
-            if op == wanted and args.get("node", node_id) == node_id:
-                return args
-            if op in ("lost", "restarted"):  # of a producer: the loop must know, once it runs
+            elif kind is wanted and getattr(record, "node", node_id) == node_id:
+                return record
+            elif kind in (protocol.Lost, protocol.Restarted):  # of a producer: the loop must know, once it runs
                 early.append(item)
-            elif op == "redeclare" and type(args.get("nodes")) is list and node_id in args["nodes"]:
+            elif kind is protocol.Redeclare and node_id in record.nodes:
                 loop.redeclare()  # a consumer never got this node's answer (REDECLARE_AFTER_S)
     finally:
         for item in early:

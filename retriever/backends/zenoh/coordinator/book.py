@@ -17,11 +17,14 @@ from ....starved import StarvationWatch
 from ...base import NodeStats, RestartBudget
 from ..host import Host, WorkerProcess
 from ..origin import Senders
+from ..protocol import State
 from ..seen import EventIds, RecentTicks
 from ..wire import WireError
 
 #: how many dropped messages are said on stderr (all are counted, as ``garbage``)
 GARBAGE_SAID = 3
+#: a node's state from its process's spawn until that process says its first state (protocol.State)
+STARTING = "starting"
 
 
 class RunBook:
@@ -46,8 +49,8 @@ class RunBook:
         self.workers: dict[str, WorkerProcess] = {}  # each node's process
         self.retiring: dict[str, WorkerProcess] = {}  # a restarting node's old process, until it hands over
         self.retired: list[WorkerProcess] = []  # old processes that handed over, to reap
-        self.said: dict[WorkerProcess, str] = {}  # each process's last state (statuses.PROCESS_STAGES)
-        self.state: dict[str, str] = {}  # each node's state: starting, then what its process said
+        self.said: dict[WorkerProcess, State] = {}  # each process's last state (statuses.PROCESS_STAGES)
+        self.state: dict[str, State | str] = {}  # each node's state: STARTING, then what its process said
         self.exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
         self.joining: set[str] = set()
@@ -120,7 +123,7 @@ class RunBook:
 
     def finished(self) -> bool:
         """Every node done, and every report it sent in."""
-        return (all(s == "done" for s in self.state.values())
+        return (all(s == State.DONE for s in self.state.values())
                 and all(self.reports[n] >= self.reports_sent[n] for n in self.reports))
 
     def garbage(self, key: str, error: WireError) -> None:

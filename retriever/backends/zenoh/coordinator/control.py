@@ -9,8 +9,8 @@ each answer to a worker's question (``start``, ``finished``), is sealed for the 
 
 from __future__ import annotations
 
-from ..protocol import ControlSigner
-from ..wire import RELIABLE, KeySpace, WireEncoder
+from ..protocol import ControlSigner, Record
+from ..wire import RELIABLE, KeySpace
 
 
 class RunControl:
@@ -19,14 +19,15 @@ class RunControl:
 
     def __init__(self, hub, keys: KeySpace):
         self.hub, self.keys = hub, keys
-        self.encoder = WireEncoder()
         self.signer = ControlSigner()
 
-    def put(self, op: str, args: dict) -> None:
-        key_expr, payload = self.keys.run_control(), self.encoder.control(op, args)
+    def put(self, record: Record) -> None:
+        """Put ``record`` (one of protocol.RUN_CONTROL's) on ctl/run, sealed."""
+        key_expr, payload = self.keys.run_control(), record.encode()
         self.hub.put(key_expr, payload, congestion_control=RELIABLE, attachment=self.signer.seal(key_expr, payload))
 
-    def reply(self, query, key_expr: str, payload: bytes) -> None:
-        """Answer a worker's ``query`` on ``key_expr``, sealed over the nonce it asked with."""
+    def reply(self, query, key_expr: str, record: Record) -> None:
+        """Answer a worker's ``query`` on ``key_expr`` with ``record``, sealed over the nonce it asked with."""
+        payload = record.encode()
         nonce = None if query.attachment is None else query.attachment.to_bytes()
         query.reply(key_expr, payload, attachment=self.signer.seal_reply(key_expr, payload, nonce))

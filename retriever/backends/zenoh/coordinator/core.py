@@ -22,7 +22,8 @@ from ....graph import Graph
 from ....trace import Trace
 from ...base import NodeStats, Session
 from ..hub import new_zid, weak_callback
-from ..wire import KeySpace, WireEncoder
+from ..protocol import Finished, Start, State
+from ..wire import KeySpace
 from .book import RunBook
 from .control import RunControl
 from .diagnostics import Diagnostics
@@ -158,21 +159,20 @@ class Coordinator(Session):
         but from these)."""
         book = self.book
         states = list(book.state.items())
-        done = sorted(node for node, state in states if state == "done")
+        done = tuple(sorted(node for node, state in states if state == State.DONE))
         # and whose every report is in: their processes may now close their sessions (worker.py,
         # REPORTS_TAKEN_S)
-        complete = sorted(node for node, state in states if state in ("done", "handed_over")
-                          and book.reports.get(node, 0) >= book.reports_sent.get(node, 0))
-        self.control.reply(query, self.keys.finished(), WireEncoder().control(
-            "finished", {"nodes": done, "complete": complete, "restarting": sorted(book.fresh)}))
+        complete = tuple(sorted(node for node, state in states if state in (State.DONE, State.HANDED_OVER)
+                                and book.reports.get(node, 0) >= book.reports_sent.get(node, 0)))
+        self.control.reply(query, self.keys.finished(), Finished(nodes=done, complete=complete,
+                                                                 restarting=tuple(sorted(book.fresh))))
 
     def _answer_start(self, query) -> None:
         """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
         have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
         t0 = self.book.t0
         if t0 is not None:
-            self.control.reply(query, self.keys.start(), WireEncoder().control(
-                "start", {"t0": t0, "end": self.book.end_ns, "values": self.book.values}))
+            self.control.reply(query, self.keys.start(), Start(t0=t0, end=self.book.end_ns, values=self.book.values))
 
     def _log_fault(self, fault: dict) -> None:
         if self.log is not None:
@@ -195,7 +195,7 @@ class Coordinator(Session):
                 self._start_live_view()
             # values come to the coordinator only for the trace (keep="trace"), the log, or a live view
             book.values = self.keep == "trace" or self.log is not None or book.live is not None
-            self.waits.until_finished({"t0": book.t0, "end": until_ns, "values": book.values}, self.virtual_time)
+            self.waits.until_finished(Start(t0=book.t0, end=until_ns, values=book.values), self.virtual_time)
         except BaseException:
             self.stop_workers()  # their last reports, then: which outputs died with a process
             book.tell_forged()

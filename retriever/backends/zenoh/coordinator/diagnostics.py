@@ -14,8 +14,8 @@ from pathlib import Path
 
 from ....errors import BackendError, CausalityError, RemoteError, SetupError, StepError
 from ..host import LocalHost
+from ..protocol import State
 from .book import RunBook
-from .statuses import is_tag
 
 #: how long, at most, a worker's stack dump (SIGUSR1, written at once by a C handler) takes to read
 STACKS_WAIT_S = 0.5
@@ -57,7 +57,7 @@ class Diagnostics:
         events it sent that never reached the coordinator (lost with those reports)."""
         book, said = self.book, ""
         missing = book.reports_sent[nid] - book.reports[nid]
-        if book.state.get(nid) == "done" and missing > 0:
+        if book.state.get(nid) == State.DONE and missing > 0:
             lost = [f"{nid}.{port} {seqs}" for port, last in sorted(book.done_info.get(nid, {}).get("sent", {}).items())
                     if (seqs := self.unseen_seqs(nid, port, last))]
             said = (f"    {nid} said done after {book.reports_sent[nid]} report(s), of which {missing} never reached "
@@ -93,6 +93,11 @@ class Diagnostics:
             return ""
         spelled = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
         return f"seq{'s' if len(runs) > 1 or runs[0][0] != runs[0][1] else ''} {spelled}"
+
+
+def is_tag(value: object) -> bool:
+    """Whether a failure's tag is one: ``[time ns, microstep]``."""
+    return type(value) is list and len(value) == 2 and all(type(x) is int for x in value)
 
 
 def failure_error(book: RunBook, backend_name: str) -> Exception:

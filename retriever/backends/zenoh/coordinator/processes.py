@@ -22,7 +22,8 @@ from ..loop import RESTART_SEQ_GAP
 from ..command import mode_args
 from ..origin import new_key
 from ..worker import EXIT_FAILED, EXIT_HANDED_OVER
-from .book import RunBook
+from ..protocol import Lost, Restarted, State, Stop
+from .book import STARTING, RunBook
 from .control import RunControl
 from .diagnostics import FAILED_TAIL_LINES, Diagnostics, exit_text, failure_error
 from .inbox import Inbox
@@ -63,7 +64,7 @@ class Supervisor:
         self.control.signer.add(book.workers[nid], key)
         if join is not None:
             book.joining.add(nid)
-        book.state[nid] = "starting"
+        book.state[nid] = STARTING
 
     def raise_failure(self) -> None:
         raise failure_error(self.book, self.backend_name)
@@ -83,7 +84,7 @@ class Supervisor:
                     self.raise_failure()
         for nid, proc in [*book.workers.items(), *book.retiring.items()]:
             code = proc.poll()
-            if code is None or book.state[nid] == "done" or not book.hosts[nid].alive:
+            if code is None or book.state[nid] == State.DONE or not book.hosts[nid].alive:
                 continue  # running, finished, or gone with its host (above)
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
                 # a worker's own exit: its last status may still be on the way (it says why it ended)
@@ -137,7 +138,7 @@ class Supervisor:
                 if other.poll() is None:
                     other.kill()
                 book.retired.append(other)
-        self.control.put("lost", {"node": nid})
+        self.control.put(Lost(node=nid))
         book.restarted.pop(nid, None)
         book.fresh[nid] = fault
         self.spawn(nid, join=(book.t0, book.end_ns), fresh=True)
@@ -152,7 +153,7 @@ class Supervisor:
             book.have[(nid, port)] = max(book.have.get((nid, port), -1), first - 1)
         self.record_fault(book.fresh.pop(nid), seqs)
         book.restarted[nid] = seqs
-        self.control.put("restarted", {"node": nid, "seqs": seqs, "values": book.values})
+        self.control.put(Restarted(node=nid, seqs=seqs, values=book.values))
         book.joining.discard(nid)
 
     def record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
@@ -194,7 +195,7 @@ class Supervisor:
             return
         book.stop_sent = True
         try:
-            self.control.put("stop", {})
+            self.control.put(Stop())
         except Exception:
             pass
         # a process not in the run yet (a restarted flow's, before it took over or was told its
@@ -210,7 +211,7 @@ class Supervisor:
         # one that said done is past its flow's teardown and only ending (Python collecting a big
         # model object by object takes seconds): reap gives it REAP_GRACE_S; the others are stuck
         running = [(nid, p) for nid, p in [*book.workers.items(), *book.retiring.items()] if p.poll() is None]
-        stuck = sorted(nid for nid, p in running if book.state.get(nid) != "done" or p in book.retiring.values())
+        stuck = sorted(nid for nid, p in running if book.state.get(nid) != State.DONE or p in book.retiring.values())
         if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
             print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
                   "then SIGKILL:", file=sys.stderr, flush=True)

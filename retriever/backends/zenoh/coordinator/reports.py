@@ -15,7 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ....trace import NOT_KEPT, STEPPED, Trace
-from ..wire import WireError, decode_events, decode_report
+from ..protocol import Have, Report, ReportedStep
+from ..wire import WireError, decode_events
 from .book import RunBook
 from .control import RunControl
 
@@ -33,7 +34,7 @@ class ReportIngest:
         book = self.book
         book.reported_bytes += len(data)
         try:
-            report = decode_report(data, expected=key.rsplit("/", 1)[1])
+            report = Report.decode(data, node=key.rsplit("/", 1)[1])
         except WireError as e:
             book.garbage(key, e)
             return
@@ -46,7 +47,7 @@ class ReportIngest:
         for record in report.records:
             self._record(key, report.node, sender, record)
 
-    def _record(self, key: str, node: str, sender: object, record: tuple) -> None:
+    def _record(self, key: str, node: str, sender: object, record: ReportedStep) -> None:
         """One step record of ``node``: into the trace, the node's counters and the starvation watch."""
         book = self.book
         tag, consumed, produced, status, detail, start, wall = record
@@ -158,7 +159,7 @@ class ReportIngest:
 def tell_have(book: RunBook, control: RunControl) -> None:
     """Tell the consumers which events the coordinator has (the last seq of each stream that
     moved on since last told): they forget those messages and report the records that wait."""
-    moved = [[src, port, seq] for (src, port), seq in book.have.items() if book.have_told.get((src, port)) != seq]
+    moved = tuple((src, port, seq) for (src, port), seq in book.have.items() if book.have_told.get((src, port)) != seq)
     if moved:
-        control.put("have", {"streams": moved})
+        control.put(Have(streams=moved))
         book.have_told.update(((src, port), seq) for src, port, seq in moved)

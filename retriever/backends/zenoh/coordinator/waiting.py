@@ -12,9 +12,11 @@ virtual time once every node reached the last one.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 from ....errors import BackendError
+from ..protocol import Grant, Start, State
 from .book import RunBook
 from .control import RunControl
 from .diagnostics import Diagnostics
@@ -49,18 +51,18 @@ class Waits:
         self.supervisor, self.diagnostics = supervisor, diagnostics
 
     def until_ready(self, timeout: float) -> None:
-        self.wait(lambda: all(s == "ready" for s in self.book.state.values()), time.monotonic() + timeout, "start")
+        self.wait(lambda: all(s == State.READY for s in self.book.state.values()), time.monotonic() + timeout, "start")
 
-    def until_finished(self, start: dict, virtual_time: bool) -> None:
+    def until_finished(self, start: Start, virtual_time: bool) -> None:
         """Put the run's ``start`` and wait for every node to be done with every report in."""
-        book, end_ns = self.book, start["end"]
+        book, end_ns = self.book, start.end
         if virtual_time:
             book.granted = min(LOCKSTEP_WINDOW_NS, end_ns)
             book.last_grant = (time.monotonic(), time.monotonic())
-            self.control.put("start", {**start, "grant": book.granted})
+            self.control.put(dataclasses.replace(start, grant=book.granted))
             self.wait(lambda: self.lockstep() and book.finished(), float("inf"), "finish")
             return
-        self.control.put("start", start)
+        self.control.put(start)
         slack = max(self._deadlines(), 1.0) + FINISH_SLACK_S
         # a coordinator behind on its reports (a logged run of many events) finishes late,
         # not in error: the wait goes on while they come
@@ -76,18 +78,18 @@ class Waits:
         """Grant the next window once every node not done has reached this one; whether the
         last grant (the run's end) is out. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
         book, now = self.book, time.monotonic()
-        behind = sorted(n for n, s in book.state.items() if s != "done" and book.reached.get(n, -1) < book.granted)
+        behind = sorted(n for n, s in book.state.items() if s != State.DONE and book.reached.get(n, -1) < book.granted)
         if not behind and book.granted < book.end_ns:
             book.granted = min(book.granted + LOCKSTEP_WINDOW_NS, book.end_ns)
             book.last_grant = (now, now)
-            self.control.put("grant", {"until": book.granted})
+            self.control.put(Grant(until=book.granted))
             return False
         if behind and now - book.last_grant[1] > REGRANT_S:  # a put may be missed: again
             book.last_grant = (book.last_grant[0], now)
-            self.control.put("grant", {"until": book.granted})
+            self.control.put(Grant(until=book.granted))
         if now - book.last_grant[0] > LOCKSTEP_STALL_S:
             waiting = behind or sorted(n for n, s in book.state.items()
-                                       if s != "done" or book.reports[n] < book.reports_sent[n])
+                                       if s != State.DONE or book.reports[n] < book.reports_sent[n])
             self.diagnostics.dump_stacks(waiting, show=False)
             raise BackendError(
                 f"zenoh run (virtual time): worker(s) {', '.join(waiting)} did not "
@@ -137,7 +139,7 @@ class Waits:
     def _timed_out(self, what: str) -> None:
         """The run did not ``start`` or ``finish`` in time: name each node waited for."""
         book, session = self.book, self.session
-        waiting = sorted(n for n, s in book.state.items() if s != ("ready" if what == "start" else "done")
+        waiting = sorted(n for n, s in book.state.items() if s != (State.READY if what == "start" else State.DONE)
                          or book.reports[n] < book.reports_sent[n])
         self.diagnostics.dump_stacks(waiting, show=False)  # the error below shows them
         said = "".join(self.diagnostics.unfinished(n) for n in waiting)  # (before the kill: how each was found)

@@ -144,15 +144,15 @@ class NodeLoop:
         return self.session.declare_subscriber(self.keys.run_control(), weak_callback(self._control_in))
 
     def _control_in(self, sample) -> None:
-        """A put on ctl/run (on Zenoh's thread): queued opened, or, when it does not open with this
-        process's key (forged, replayed, another run's), as the WireError saying so (garbage)."""
-        payload = sample.payload.to_bytes()
+        """A put on ctl/run (on Zenoh's thread): queued opened and decoded (a record of
+        protocol.RUN_CONTROL), or, when it does not open with this process's key (forged, replayed,
+        another run's) or does not decode, as the WireError saying so (garbage)."""
         try:
-            self.opener.open(str(sample.key_expr), payload, sample.attachment)
+            record = self.opener.control(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment)
         except WireError as e:
             self.inbox.put((CONTROL, None, e))
             return
-        self.inbox.put((CONTROL, None, payload))
+        self.inbox.put((CONTROL, None, record))
 
     def declare_outputs(self) -> None:
         """What this node speaks on: its data and progress keys, and the answer to progress queries."""

@@ -14,7 +14,6 @@ from __future__ import annotations
 import time
 
 from ..reporter import Reporter
-from ..wire import WireError
 from .clock import RunClock
 from .notes import Notes
 
@@ -76,17 +75,12 @@ class Reports:
             if self.flush_due is None or self.flush_due > due:  # (records alone may wait longer)
                 self.flush_due = due
 
-    def coordinator_has(self, args: dict) -> None:
-        """Control ``have`` {streams: [[producer, port, last seq], …]}: forget those messages."""
-        streams = args.get("streams")
-        if type(streams) is not list:
-            self.notes.garbage("ctl/run", WireError("a 'have' control message without a list of streams"))
-            return
-        for item in streams:
-            if (type(item) is list and len(item) == 3 and type(item[0]) is str and type(item[1]) is str
-                    and type(item[2]) is int and (item[0], item[1]) in self.streams):
-                stream = (item[0], item[1])
-                self.have[stream] = max(self.have.get(stream, -1), item[2])
+    def coordinator_has(self, streams: tuple[tuple[str, str, int], ...]) -> None:
+        """Control ``have`` (protocol.Have): per stream, the last seq the coordinator has; forget those messages."""
+        for producer, port, seq in streams:
+            stream = (producer, port)
+            if stream in self.streams:
+                self.have[stream] = max(self.have.get(stream, -1), seq)
         if self.kept:
             self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
 
