@@ -150,25 +150,30 @@ def instrument(stamps: dict) -> None:
     from retriever.backends.zenoh.coordinator import Coordinator, RunControl
     from retriever.backends.zenoh.coordinator import statuses as statuses_module
     from retriever.backends.zenoh.deploy import Deployment
+    from retriever.backends.zenoh.protocol import ABSENT, Ready, Start
     from retriever.backends.zenoh.remote import RemoteHost
 
     for cls, method, key in ((Coordinator, "__init__", "session"), (Deployment, "open_hub", "join"),
                              (Deployment, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
                              (RemoteHost, "spawn", "spawn")):
         _time_calls(cls, method, key, stamps)
-    control, close, decode_status = RunControl.put, Coordinator.close, statuses_module.decode_status
+    control, close, statuses = RunControl.put, Coordinator.close, statuses_module.STATUS
     ready_at, ready_peers = stamps.setdefault("ready_at", {}), stamps.setdefault("ready_peers", {})
 
-    def timed_control(self, op: str, args: dict) -> None:
-        if op == "start" and "ready" not in stamps:
+    def timed_control(self, record) -> None:
+        if type(record) is Start and "ready" not in stamps:
             stamps["ready"], stamps["cpu_at_start"] = time.time_ns(), cpu_seconds()
-        control(self, op, args)
+        control(self, record)
 
-    def noted_status(data):
-        node, state, info = decoded = decode_status(data)
-        if state == "ready" and node not in ready_at:
-            ready_at[node], ready_peers[node] = time.time_ns(), info.get("peers")
-        return decoded
+    class NotedStatuses:
+        """The status machine's decoder, noting when each node first said ready."""
+
+        def decode(self, data, node=None):
+            status = statuses.decode(data, node=node)
+            if type(status) is Ready and status.node not in ready_at:
+                ready_at[status.node] = time.time_ns()
+                ready_peers[status.node] = None if status.peers is ABSENT else status.peers
+            return status
 
     def told_close(self) -> None:
         if sys.exc_info()[0] is not None and "closing_on" not in stamps:
@@ -182,7 +187,7 @@ def instrument(stamps: dict) -> None:
         close(self)
 
     RunControl.put, Coordinator.close = timed_control, told_close
-    statuses_module.decode_status = noted_status
+    statuses_module.STATUS = NotedStatuses()
 
 
 def chains_pipeline(nodes: int, chain: int, hz: float):

@@ -58,6 +58,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
 
     from retriever import Latest, Pipeline, Rate
     from retriever.backends.zenoh.coordinator import ticks_due
+    from retriever.backends.zenoh.protocol import Start
 
     with Pipeline(f"scale{flows}") as pipe:
         camera = Counter() @ Rate(hz=source_hz)
@@ -69,13 +70,13 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     seen: dict = {}
     put = session.control.put
 
-    def control(op: str, args: dict) -> None:
-        if op == "start" and "ready" not in seen:
+    def control(record) -> None:
+        if type(record) is Start and "ready" not in seen:
             seen["ready"] = time.monotonic()
-            seen["t0_wall_ns"] = args["t0"] - time.time_ns()  # the start margin, from now
+            seen["t0_wall_ns"] = record.t0 - time.time_ns()  # the start margin, from now
             rss = [_rss_kb(pid) for pid in session.worker_pids().values()]
             seen["workers_rss_kb"], seen["worker_rss_max_kb"] = sum(rss), max(rss)
-        put(op, args)
+        put(record)
 
     session.control.put = control
     pipe.run(duration=duration, backend="zenoh")

@@ -20,7 +20,8 @@ import msgpack
 import pytest
 
 from retriever import CodecError, LogError, read_log
-from retriever.backends.zenoh.wire import WIRE_VERSION, WireEncoder, WireError, decode_data, decode_report
+from retriever.backends.zenoh.protocol import Report
+from retriever.backends.zenoh.wire import WIRE_VERSION, WireError, decode_data
 from retriever.codec import EXT_DATACLASS, UnregisteredValue, packb, unpackb, unpackb_out_of_band
 from tests.log.helpers import ROOT, cli, cli_env
 from tests.log.log_flows import build_small
@@ -107,8 +108,8 @@ def test_a_data_message_carrying_a_forged_value_is_garbage(target, marker):
 
 
 def test_a_report_carrying_a_forged_event_is_garbage_when_its_events_are_decoded(marker):
-    report = WireEncoder().report("camera", [], [[1, _data_message(forged("os:system", marker))]])
-    decoded = decode_report(report, expected="camera")
+    report = Report(node="camera", records=(), events=((1, _data_message(forged("os:system", marker))),)).encode()
+    decoded = Report.decode(report, node="camera")
     with pytest.raises(WireError, match="'os:system'"):
         decode_data(decoded.events[0][1])
 

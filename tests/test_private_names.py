@@ -35,8 +35,6 @@ KNOWN = {
     # dora's host reads the zenoh output capture's privates; output.py should name them publicly
     ("retriever.backends.dora.host", "_WRITING"): "issue 37: remove",
     ("retriever.backends.dora.host", "_tail"): "issue 37: remove",
-    # the worker reads the loop's control key and an in-process private
-    ("retriever.backends.zenoh.worker", "_CONTROL"): "issue 37: remove",
     # a flow's settings are read through its private `_retriever` (a flow.settings_of(flow) would do)
 }
 

@@ -4,7 +4,4 @@ draws it). The worker and the coordinator import these names from here."""
 from ...errors import StopRun
 from .node import CONTROL, RESTART_SEQ_GAP, InEdge, NodeLoop
 
-#: worker.py's spelling of inbox.CONTROL (its import lines are the worker's to change)
-_CONTROL = CONTROL
-
 __all__ = ["CONTROL", "RESTART_SEQ_GAP", "InEdge", "NodeLoop", "StopRun"]

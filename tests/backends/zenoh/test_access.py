@@ -29,6 +29,7 @@ import zenoh
 import retriever
 from retriever.backends.zenoh.access import RUN_USER
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
+from retriever.backends.zenoh import protocol as p
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -152,10 +153,11 @@ def _attack(session: zenoh.Session, keys: KeySpace, until: float) -> int:
             session.put(keys.data("counter", "n"), enc.data((k * 100_000_000, 1), k, (k * 100_000_000, 1),
                                                             "counter", "n", {"n": -999}))
         seq += 5
-        session.put(keys.run_control(), enc.control("stop", {}))
-        session.put(keys.node_status("total"), enc.status("total", "failed", {"error": "forged", "pid": 1}))
+        session.put(keys.run_control(), p.Stop().encode())
+        session.put(keys.node_status("total"), p.Failed(node="total", pid=1, error="forged", traceback=None).encode())
         session.put(keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0}))
-        session.put(keys.report("counter"), enc.report("counter", [((7, 0), {}, (), "ok", None, 0, 0)], []))
+        session.put(keys.report("counter"), p.Report(node="counter", records=(((7, 0), {}, (), "ok", None, 0, 0),),
+                                                     events=()).encode())
         sent += 9
         time.sleep(0.05)  # pacing over the run's wall time (it runs in real time), not a wait: a
         # flood with no pause would take the 2 cores from the run it attacks
@@ -243,10 +245,9 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
         end = round(RUN_S * 1e9)
         with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             # what a worker that missed the start asks for: the run's T0 and end
-            from retriever.backends.zenoh.wire import decode_control
-            answers = [decode_control(r.ok.payload.to_bytes()) for r in insider.get(keys.start(), timeout=BOUND_S)
+            answers = [p.Start.decode(r.ok.payload.to_bytes()) for r in insider.get(keys.start(), timeout=BOUND_S)
                        if r.ok is not None]
-            assert [(op, args["end"]) for op, args in answers] == [("start", end)], answers
+            assert [(type(start), start.end) for start in answers] == [(p.Start, end)], answers
             claims = [
                 (keys.progress("counter"), enc.progress(((1 << 64) - 1, 0), "counter", {"n": 0})),
                 (keys.progress("counter"), enc.progress((end + 10**10, 0), "counter", {"n": 0})),
@@ -254,17 +255,17 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
                 (keys.data("counter", "n"), enc.data((end + 10**10, 1), 10**6, (end + 10**10, 1), "counter", "n",
                                                     {"n": -999})),
                 (keys.data("counter", "n"), _data_message(forged("os:system", marker), "counter", "n")),
-                (keys.node_status("ghost"), enc.status("ghost", "failed", {"error": "forged", "pid": 1})),
-                (keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["ghost"], "pid": 1})),
+                (keys.node_status("ghost"), p.Failed(node="ghost", pid=1, error="forged", traceback=None).encode()),
+                (keys.node_status("total"), p.Unanswered(node="total", pid=1, nodes=("ghost",)).encode()),
                 # statuses of a real node from a process that is not its own: a `failed` stopped
                 # the run, a `done` added its counts (the cold review)
-                (keys.node_status("total"), enc.status("total", "failed", {"error": "forged", "pid": 1})),
-                (keys.node_status("total"), enc.status("total", "done", {"counts": {"late": 1000}, "pid": 1})),
+                (keys.node_status("total"), p.Failed(node="total", pid=1, error="forged", traceback=None).encode()),
+                (keys.node_status("total"), p.Done(node="total", pid=1, counts={"late": 1000}).encode()),
             ]
             for key, message in claims:
                 insider.put(key, message)
             # sense, but not once the run started: no node declares itself again (worker.REDECLARE_AFTER_S)
-            insider.put(keys.node_status("total"), enc.status("total", "unanswered", {"nodes": ["counter"]}))
+            insider.put(keys.node_status("total"), p.Unanswered(node="total", pid=1, nodes=("counter",)).encode())
         result = run.result()
     finally:
         run.kill()
@@ -293,13 +294,13 @@ def test_control_the_coordinator_did_not_seal_is_refused_and_the_run_completes(t
 
     forger = ControlSigner()
     forger.add(forger, new_key())
-    forged = [("stop", {}), ("lost", {"node": "counter"}), ("lost", {"node": "total"}), ("end", {"at": 0})]
+    forged = [p.Stop(), p.Lost(node="counter"), p.Lost(node="total"), p.End(at=0)]
     secret = _secret_file(tmp_path)
     run = Run(tmp_path, namespace, secret)
     try:
         with _insider(run, namespace, secret, tmp_path) as (insider, keys):
-            for op, args in forged:
-                payload = WireEncoder().control(op, args)
+            for record in forged:
+                payload = record.encode()
                 insider.put(keys.run_control(), payload)
                 insider.put(keys.run_control(), payload, attachment=forger.seal(keys.run_control(), payload))
         result = run.result()
@@ -422,7 +423,7 @@ def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_th
     run = Run(tmp_path, namespace, secret, script=GATED_RUN, extra=(str(gate),))
     try:
         with _insider(run, namespace, secret, tmp_path, subscribed=gate / "subscribed") as (insider, keys):
-            insider.put(keys.run_control(), WireEncoder().control("grant", {"until": round(2 * 1e9)}))
+            insider.put(keys.run_control(), p.Grant(until=round(2 * 1e9)).encode())
             (gate / "granted").touch()
         result = run.result()
     finally:

@@ -11,7 +11,8 @@ import pytest
 from retriever import BackendError, Pipeline, Rate
 from retriever.backends.base import output_ports
 from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble
-from retriever.backends.zenoh.wire import NODE_STATES, KeySpace, WireEncoder
+from retriever.backends.zenoh.protocol import Done, Failed, Ready, State, Status
+from retriever.backends.zenoh.wire import KeySpace
 from retriever.trace import Trace
 from tests.backends.zenoh.lifecycle_flows import SOURCE_HZ, Counter as CounterFlow
 
@@ -60,30 +61,30 @@ def offline(tmp_path):
     return book, parts, hosting
 
 
-def _status(state: str, **info) -> tuple[str, bytes]:
-    return KeySpace(NAMESPACE).node_status("counter"), WireEncoder().status("counter", state, {"pid": 40_000, **info})
+def _status(kind: type[Status], **fields) -> tuple[str, bytes]:
+    return KeySpace(NAMESPACE).node_status("counter"), kind(node="counter", pid=40_000, **fields).encode()
 
 
 def test_every_state_a_worker_may_say_has_one_handler(offline):
     _, parts, _ = offline
-    assert sorted(parts.statuses.handlers) == sorted(NODE_STATES)
+    assert sorted(parts.statuses.handlers) == sorted(State)
 
 
 def test_a_process_goes_from_ready_to_done_once_and_a_replay_is_garbage(offline):
     book, parts, _ = offline
     sender = book.workers["counter"]
-    parts.inbox.handle((*_status("ready"), sender))
+    parts.inbox.handle((*_status(Ready), sender))
     assert book.state["counter"] == "ready"
-    parts.inbox.handle((*_status("done", reports=2, counts={"late": 1}), sender))
+    parts.inbox.handle((*_status(Done, reports=2, counts={"late": 1}), sender))
     assert (book.state["counter"], book.reports_sent["counter"], book.stats["counter"].counts) == ("done", 2, {"late": 1})
-    parts.inbox.handle((*_status("done", reports=2, counts={"late": 1}), sender))  # replayed: refused, not counted
-    parts.inbox.handle((*_status("ready"), sender))
+    parts.inbox.handle((*_status(Done, reports=2, counts={"late": 1}), sender))  # replayed: refused, not counted
+    parts.inbox.handle((*_status(Ready), sender))
     assert (book.state["counter"], book.reports_sent["counter"], book.counts["garbage"]) == ("done", 2, 2)
 
 
 def test_a_status_no_process_of_the_node_signed_changes_nothing(offline):
     book, parts, _ = offline
-    parts.inbox.handle((*_status("failed", error="forged"), _Process(40_000)))  # same pid, another process
+    parts.inbox.handle((*_status(Failed, error="forged", traceback=None), _Process(40_000)))  # same pid, another process
     assert (book.failure, book.state["counter"], book.counts["garbage"]) == (None, "starting", 1)
 
 

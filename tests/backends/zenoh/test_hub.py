@@ -257,9 +257,8 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
 
     from retriever.backends.zenoh.node import DATA
     from retriever.backends.zenoh.origin import new_key
-    from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
+    from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Start
     from retriever.backends.zenoh.worker import _ask_start, _await_control
-    from retriever.backends.zenoh.wire import WireEncoder
 
     keys = KeySpace("missed-start")
     hub, at = open_hub(free_port())
@@ -269,9 +268,9 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
 
     def answer(query) -> None:
         asked.append(1)
-        start = WireEncoder().control("start", {"t0": 123, "end": 456})
+        start = Start(t0=123, end=456, values=True).encode()
         if len(asked) == 2:  # an insider's answer, unsealed
-            query.reply(keys.start(), WireEncoder().control("start", {"t0": 1, "end": 2}))
+            query.reply(keys.start(), Start(t0=1, end=2, values=True).encode())
         elif len(asked) >= 3:  # the coordinator has no start before the run's: no reply the first time
             nonce = None if query.attachment is None else query.attachment.to_bytes()
             query.reply(keys.start(), start, attachment=signer.seal_reply(keys.start(), start, nonce))
@@ -287,9 +286,9 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     with hub:
         queryable = hub.declare_queryable(keys.start(), answer)
         with open_peer(at) as worker:
-            start = _await_control(loop, "start", "n", ask=lambda: _ask_start(worker, keys, loop))
+            start = _await_control(loop, Start, "n", ask=lambda: _ask_start(worker, keys, loop))
         queryable.undeclare()
-    assert start == {"t0": 123, "end": 456}
+    assert start == Start(t0=123, end=456, values=True)
     assert len(asked) >= 3
     assert loop.counts["garbage"] == 1, "the unsealed answer was refused"
     left = []

@@ -1082,9 +1082,16 @@ def test_garbage_from_an_insider_is_counted_and_the_run_completes(namespace, tmp
 
 SPOOF = INSIDER + r"""
 import threading
+from retriever.backends.zenoh.protocol import HandedOver, Report, Restart
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 
 keys, enc = KeySpace(sys.argv[1]), WireEncoder()
+
+
+def report(node, records, events):
+    return Report(node=node, records=tuple(records), events=tuple(events)).encode()
+
+
 seen, reported = threading.Event(), threading.Event()
 with join(*sys.argv[1:5]) as s:
     sub = s.declare_subscriber(keys.all_data(), lambda sample: seen.set())
@@ -1099,18 +1106,18 @@ with join(*sys.argv[1:5]) as s:
     s.put(keys.data("counter", "n"), enc.data((5, 0), 0, (5, 0), "counter", "n", 42))
     # and reports to the coordinator: of a node the run does not have, of an event of another
     # node, and of an event id the run already used
-    s.put(keys.report("ghost"), enc.report("ghost", [], [(1, enc.data((5, 0), 0, (5, 0), "ghost", "x", 42))]))
-    s.put(keys.report("counter"), enc.report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "total", "sum", 42))]))
-    s.put(keys.report("counter"), enc.report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "counter", "n", 42))]))
+    s.put(keys.report("ghost"), report("ghost", [], [(1, enc.data((5, 0), 0, (5, 0), "ghost", "x", 42))]))
+    s.put(keys.report("counter"), report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "total", "sum", 42))]))
+    s.put(keys.report("counter"), report("counter", [], [(1, enc.data((5, 0), 0, (5, 0), "counter", "n", 42))]))
     # and events in files of the run directory that are not there, or not the node's
-    s.put(keys.report("counter"), enc.report("counter", [], [(1, "counter.1.999999.msg")]))
-    s.put(keys.report("counter"), enc.report("counter", [], [(1, "../../etc/passwd")]))
+    s.put(keys.report("counter"), report("counter", [], [(1, "counter.1.999999.msg")]))
+    s.put(keys.report("counter"), report("counter", [], [(1, "../../etc/passwd")]))
     # and step records: a second one for counter's tick at T0, and one whose event ids are not ids
-    s.put(keys.report("counter"), enc.report("counter", [((0, 0), {}, (), "ok", None, 0, 0)], []))
-    s.put(keys.report("counter"), enc.report("counter", [((50, 0), {"n": [["a"]]}, (), "ok", None, 0, 0)], []))
+    s.put(keys.report("counter"), report("counter", [((0, 0), {}, (), "ok", None, 0, 0)], []))
+    s.put(keys.report("counter"), report("counter", [((50, 0), {"n": [["a"]]}, (), "ok", None, 0, 0)], []))
     # and statuses asking to restart a node, or saying one handed over, from a process not its
-    s.put(keys.node_status("counter"), enc.status("counter", "restart", {"pid": 1, "tag": [0, 0], "error": "no"}))
-    s.put(keys.node_status("total"), enc.status("total", "handed_over", {"pid": 1}))
+    s.put(keys.node_status("counter"), Restart(node="counter", pid=1, tag=(0, 0), error="no").encode())
+    s.put(keys.node_status("total"), HandedOver(node="total", pid=1, counts={}, reports=0).encode())
     sys.stdin.readline()  # the session stays open (its puts delivered) until the run has ended
     sub.undeclare()
     reports.undeclare()

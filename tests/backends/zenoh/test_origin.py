@@ -20,7 +20,8 @@ import msgpack
 import pytest
 
 import retriever
-from retriever.backends.zenoh.wire import RELIABLE, WireEncoder
+from retriever.backends.zenoh.protocol import Done, Exit, Report
+from retriever.backends.zenoh.wire import RELIABLE
 from tests.backends.zenoh.test_access import BOUND_S, Run, _insider, _secret_file
 
 #: forged step records the insider floods the coordinator with (today's code held each: ~470 B)
@@ -79,15 +80,14 @@ def test_a_forged_exit_with_the_nodes_pid_does_not_end_the_run(tmp_path, namespa
     within a second, exit 0, status finished, and replay said identical)."""
     secret = _secret_file(tmp_path)
     run = Run(tmp_path, namespace, secret)
-    enc = WireEncoder()
     try:
         with _insider(run, namespace, secret, tmp_path) as (insider, keys):
             pid = _worker_pid(run.proc.pid, "total")
-            tag = [400_000_000, 0]  # one of total's ticks (5 Hz)
-            insider.put(keys.report("total"), enc.report("total", [(tag, {}, [], "ok", {"exit": 0}, 0, 0)], []))
-            for state in ("exit", "done"):
-                insider.put(keys.node_status("total"), enc.status("total", state, {"tag": tag, "pid": pid,
-                                                                                    "stopped": True}))
+            tag = (400_000_000, 0)  # one of total's ticks (5 Hz)
+            insider.put(keys.report("total"), Report(node="total", records=((tag, {}, (), "ok", {"exit": 0}, 0, 0),),
+                                                     events=()).encode())
+            for status in (Exit(node="total", pid=pid, tag=tag), Done(node="total", pid=pid, counts={}, stopped=True)):
+                insider.put(keys.node_status("total"), status.encode())
         result = run.result()
     finally:
         run.kill()

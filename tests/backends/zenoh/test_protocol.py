@@ -8,6 +8,7 @@ import queue
 import sys
 
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -18,7 +19,7 @@ from retriever.backends.zenoh.protocol.schema import (ABSENT, Bool, Document, Fl
                                                       Nested, Nullable, OneOf, Plain, Row, Text)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES, REPLAY_WINDOW
 from retriever.backends.zenoh.protocol.to_coordinator import STATUSES
-from retriever.backends.zenoh.wire import NODE_STATES, KeySpace, WireEncoder, WireError
+from retriever.backends.zenoh.wire import KeySpace, WireEncoder, WireError
 
 KEYS = KeySpace("proto")
 PID = 4242
@@ -30,9 +31,9 @@ def today(*fields) -> bytes:
 
 
 def worker_status(node: str, state: str, **info) -> bytes:
-    """What worker._serve's ``status(state, **info)`` puts: its pid appended last."""
+    """A status as the worker put it before its records (``status(state, **info)``): its pid appended last."""
     info["pid"] = PID
-    return WireEncoder().status(node, state, info)
+    return today(2, node, state, info)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,25 +181,26 @@ def test_the_one_status_whose_map_order_differs_from_todays_decodes_the_same():
 
 
 def test_a_report_encodes_to_the_reporters_bytes_and_decodes_as_wire_did():
-    """reporter._put: WireEncoder().report(node, records, events), the loop's records of tuples."""
+    """reporter._put: ``[2, node, records, events]`` as it packed them before Report, the loop's records of tuples."""
     message = WireEncoder().data((20_000_000, 0), 3, (40_000_000, 0), "cam", "rgb", [1, 2])
     raw_records = [((20_000_000, 0), {"img": (("src", "out", 4), ("src", "out", 5))}, (("cam", "rgb", 3),), "ok",
                     None, T0, 1500),
                    ((40_000_000, 0), {}, (), "error", {"error": "ValueError: x", "on_error": "skip",
                                                        "late": {"img": [("src", "out", 6)]}}, T0 + 5, -3)]
-    data = WireEncoder().report("cam", raw_records, [(T0, message), (T0 + 1, "cam.77.1.msg")])
+    data = today(2, "cam", raw_records, [(T0, message), (T0 + 1, "cam.77.1.msg")])
     report = p.Report.decode(data, node="cam")
     assert report.records[0] == ((20_000_000, 0), {"img": (("src", "out", 4), ("src", "out", 5))},
                                  (("cam", "rgb", 3),), "ok", None, T0, 1500)
     assert report.records[1].detail["late"] == {"img": [["src", "out", 6]]}
     assert report.events == (p.ReportedEvent(T0, message), p.ReportedEvent(T0 + 1, "cam.77.1.msg"))
     assert report.encode() == data
-    from retriever.backends.zenoh.wire import decode_report
-    assert list(report.records) == decode_report(data, "cam").records
+    assert p.Report(node="cam", records=tuple(raw_records), events=((T0, message), (T0 + 1, "cam.77.1.msg"))).encode() \
+        == data
 
 
 def test_the_enums_name_every_state_and_op_today_spells():
-    assert [str(s) for s in p.State] == list(NODE_STATES)
+    assert [str(s) for s in p.State] == ["ready", "done", "failed", "restart", "handed_over", "reached", "unanswered",
+                                         "exit"]
     assert set(p.REQUEST.records) == {"info", "prepare", "spawn", "signal", "end", "usage"}
     # in the order a daemon's unknown-op error lists them
     assert list(p.DaemonOp) == ["info", "prepare", "spawn", "signal", "end", "usage"]
@@ -374,9 +376,9 @@ def test_nothing_decoded_is_imported_or_called():
     (worker_status("cam", "bogus"), "state 'bogus'; a worker's states are ready, done"),
     (worker_status("cam", "ready", linked="yes"), "'ready' status of cam: field 'linked' must be true or false"),
     (worker_status("other", "ready"), "a status of other arrived on the key of cam"),
-    (WireEncoder().status("cam", "ready", {}), "lacks its field 'pid'"),
+    (today(2, "cam", "ready", {}), "lacks its field 'pid'"),
     (worker_status("cam", "exit", tag=[1]), r"field 'tag' must be \[t_ns, microstep\]"),
-    (WireEncoder().status("cam", "exit", {"tag": [1, 0], "pid": PID, "node": "x"}), "field it does not take: 'node'"),
+    (today(2, "cam", "exit", {"tag": [1, 0], "pid": PID, "node": "x"}), "field it does not take: 'node'"),
     (worker_status("cam", "done", counts={"late": -1}), r"field 'counts'\['late'\] must be an integer from 0"),
     (worker_status("cam", "unanswered", nodes=[]), "field 'nodes' must be a list of 1 to"),
     (worker_status("cam", "reached"), "lacks its field 'until'"),
@@ -644,3 +646,41 @@ def test_the_info_of_a_daemon_of_another_protocol_says_which_and_the_retriever_i
         with pytest.raises(p.OtherProtocol) as refused:
             p.decode_reply(control("info", {"protocol": 1, "packages": packages}), p.DaemonOp.INFO)
         assert (refused.value.protocol, refused.value.retriever) == (1, None)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reports and statuses as the coordinator reads them (from test_wire.py, where their decoders were)
+# ---------------------------------------------------------------------------------------------
+def test_report_round_trip():
+    enc = WireEncoder()
+    event = enc.data((7, 0), 3, (8, 0), "cam", "frame", np.arange(4))
+    record = ((7, 0), {"x": [["src", "out", 1]]}, [["cam", "frame", 3]], "ok", None, 11, 12)
+    report = p.Report.decode(p.Report(node="cam", records=(record,), events=((123, event),)).encode(), node="cam")
+    assert report.node == "cam"
+    assert list(report.records) == [((7, 0), {"x": (("src", "out", 1),)}, (("cam", "frame", 3),), "ok", None, 11, 12)]
+    assert list(report.events) == [(123, event)]
+    with pytest.raises(WireError, match="a report of cam arrived on the key of other"):
+        p.Report.decode(p.Report(node="cam", records=(record,), events=()).encode(), node="other")
+    with pytest.raises(WireError, match="wall_ns, data message"):
+        p.Report.decode(msgpack.packb([2, "cam", [], [[1, 2.5]]]), node="cam")
+
+
+@pytest.mark.parametrize("record", [
+    [[7, 0], {"x": [["a"]]}, [], "ok", None, 1, 2],  # an event id that is not [node, port, seq]
+    [[7, 0], {"x": [["src", "out", -1]]}, [], "ok", None, 1, 2],
+    [[7, 0], {}, [["cam", "frame", "3"]], "ok", None, 1, 2],
+    [[7, 0], {}, [], "finished", None, 1, 2],  # not a status a loop writes
+    [[7, 0], {}, [], "ok", [1], 1, 2],  # detail: a map or nil
+    [[7, 0], {}, [], "ok", None, "notanint", 2],
+    [[7, 0], {1: []}, [], "ok", None, 1, 2],  # ports are names
+    [[7, 0], {}, [], "ok", None, 1],
+], ids=["short-id", "negative-seq", "seq-as-text", "status", "detail", "start", "port", "six-fields"])
+def test_a_malformed_step_record_is_a_wire_error(record):
+    with pytest.raises(WireError, match="a report of cam: record 0"):
+        p.Report.decode(msgpack.packb([2, "cam", [record], []]), node="cam")
+
+
+def test_a_status_of_an_unknown_state_is_a_wire_error():
+    assert p.STATUS.decode(p.Done(node="cam", pid=PID, counts={}).encode()).NAME == "done"
+    with pytest.raises(WireError, match="state"):
+        p.STATUS.decode(today(2, "cam", "bogus-state", {}))

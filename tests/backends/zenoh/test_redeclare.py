@@ -12,14 +12,15 @@ from __future__ import annotations
 import queue
 import threading
 
+import msgpack
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.hub import wait_for_answers
 from retriever.backends.zenoh.node import CONTROL, DATA
 from retriever.backends.zenoh.origin import new_key
-from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
-from retriever.backends.zenoh.wire import KeySpace, WireEncoder, decode_progress
+from retriever.backends.zenoh.protocol import RUN_CONTROL, ControlOpener, ControlSigner, Start, Stop
+from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_progress
 from retriever.backends.zenoh.worker import _await_control, build_loop
 
 from .payload_flows import Camera, Viewer, frame
@@ -62,7 +63,7 @@ def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(
         # after a later small message (2 of 4 CI runs saw the control first); a second data
         # subscriber's copy would still come before the control
         items = [viewer.inbox.get(timeout=30)]
-        stop = WireEncoder().control("stop", {})
+        stop = Stop().encode()
         session.put(keys.run_control(), stop, attachment=signer.seal(keys.run_control(), stop))
         while items[-1][0] != CONTROL:
             items.append(viewer.inbox.get(timeout=30))
@@ -75,11 +76,13 @@ def test_a_waiting_worker_redeclares_when_the_coordinator_says_so_and_only_then(
     cam = build_loop(spec, "cam", session)
     cam.declare()
     try:
-        encode = WireEncoder().control
         for op, args in (("redeclare", {"nodes": ["viewer"]}), ("redeclare", {"nodes": "cam"}),
-                         ("redeclare", {"nodes": ["cam"]}), ("start", {"t0": 1, "end": 2})):
-            cam.inbox.put((CONTROL, None, encode(op, args)))
-        assert _await_control(cam, "start", "cam") == {"t0": 1, "end": 2}
+                         ("redeclare", {"nodes": ["cam"]}), ("start", {"t0": 1, "end": 2, "values": True})):
+            try:  # as the loop's subscriber queues it: decoded, or the WireError refusing it
+                cam.inbox.put((CONTROL, None, RUN_CONTROL.decode(msgpack.packb([WIRE_VERSION, op, args]))))
+            except WireError as e:
+                cam.inbox.put((CONTROL, None, e))
+        assert _await_control(cam, Start, "cam") == Start(t0=1, end=2, values=True)
         assert cam.counts["redeclared"] == 1, "only the message that names it, as a list"
     finally:
         cam.undeclare()

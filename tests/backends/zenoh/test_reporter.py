@@ -15,7 +15,8 @@ import pytest
 from retriever.backends.zenoh.node import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
 from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter, ReportError
 from retriever.flow.burst import MAX_BURST
-from retriever.backends.zenoh.wire import KeySpace, decode_report
+from retriever.backends.zenoh.protocol import Report
+from retriever.backends.zenoh.wire import KeySpace
 
 KEYS = KeySpace("reporter-test")
 KEY = KEYS.report("cam")
@@ -36,7 +37,7 @@ class Received(list):
         if str(sample.key_expr) == SENTINEL:
             self.done.set()
         else:
-            self.append(decode_report(sample.payload.to_bytes()))
+            self.append(Report.decode(sample.payload.to_bytes(), node="cam"))
 
     def settle(self) -> "Received":
         self.session.put(SENTINEL, b"")
@@ -61,7 +62,7 @@ def test_reports_go_out_in_order_and_close_returns_once_they_are_out(session, re
     reports.settle()
     assert [[wall for wall, _ in r.events] for r in reports] == [[k, k] for k in range(6)]
     for k, report in enumerate(reports):
-        assert report.node == "cam" and report.records == [RECORD]
+        assert report.node == "cam" and report.records == (RECORD,)
         small, spilled = report.events[0][1], report.events[1][1]
         assert small == b"small", "messages under spill_bytes travel inside the report"
         assert isinstance(spilled, str) and (tmp_path / spilled).read_bytes() == big, "big ones as files"
@@ -72,7 +73,7 @@ def test_without_a_spill_directory_big_messages_travel_in_the_report(session, re
     reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=10)
     reporter.send([], [(1, b"x" * 100)])
     reporter.close()
-    assert [r.events for r in reports.settle()] == [[[1, b"x" * 100]]]
+    assert [r.events for r in reports.settle()] == [((1, b"x" * 100),)]
 
 
 class CongestedLink:

@@ -11,7 +11,8 @@ import pytest
 
 from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
-from retriever.backends.zenoh.wire import Progress, WireEncoder
+from retriever.backends.zenoh.protocol import RUN_CONTROL
+from retriever.backends.zenoh.wire import WIRE_VERSION, Progress, WireEncoder, WireError
 from retriever.backends.zenoh.worker import build_loop
 from retriever.log import format as fmt
 from retriever.log.writer import LogFile, LogWriter
@@ -42,7 +43,11 @@ def data(seq: int, t_ms: int) -> tuple:
 
 
 def control(op: str, args: dict) -> tuple:
-    return (CONTROL, None, WireEncoder().control(op, args))
+    """A control message as the loop's subscriber queues it: decoded, or the WireError refusing it."""
+    try:
+        return (CONTROL, None, RUN_CONTROL.decode(msgpack.packb([WIRE_VERSION, op, args])))
+    except WireError as e:
+        return (CONTROL, None, e)
 
 
 def tick_all(loop) -> None:
@@ -64,7 +69,7 @@ def test_a_consumer_gives_up_the_dead_producers_missing_seqs_and_takes_the_new_s
     loop.handle(control("lost", {"node": "counter"}))
     loop.handle(data(FIRST + 1, 300))  # the new process's second event overtook the coordinator's word
     loop.handle(data(3, 150))  # the dead process's: seq 2 never came
-    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}, "values": True}))
     loop.handle(data(FIRST, 250))
     loop.handle(data(2, 120))  # the dead process's missing one, too late: ignored, not garbage
     tick_all(loop)
@@ -87,7 +92,7 @@ def test_a_restart_where_the_coordinator_would_not_put_it_is_refused(loop, seqs)
     for seq, t in ((0, 50), (1, 100)):
         loop.handle(data(seq, t))
     loop.handle(control("lost", {"node": "counter"}))
-    loop.handle(control("restarted", {"node": "counter", "seqs": seqs}))
+    loop.handle(control("restarted", {"node": "counter", "seqs": seqs, "values": True}))
     assert loop.counts["garbage"] == 1 and loop.streams.expect[STREAM] == 2 and "restart_gap" not in loop.notes.detail
     loop.handle(data(2, 150))  # the stream goes on
     assert loop.streams.expect[STREAM] == 3
@@ -96,7 +101,7 @@ def test_a_restart_where_the_coordinator_would_not_put_it_is_refused(loop, seqs)
 def test_a_restart_of_a_producer_not_said_lost_is_refused(loop):
     """A forged one would cut this consumer off a live producer for the rest of the run."""
     loop.handle(data(0, 50))
-    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}, "values": True}))
     loop.handle(data(1, 100))
     assert loop.counts["garbage"] == 1 and loop.streams.expect[STREAM] == 2
 
@@ -105,14 +110,14 @@ def test_a_restart_a_fresh_process_caught_up_with_is_ignored(loop):
     """Its inputs were taken on from the producer's own answer (it restarted too): nothing to do."""
     loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": FIRST - 1})})
     loop.handle(data(FIRST, 450))
-    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}}))
+    loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}, "values": True}))
     assert loop.counts["garbage"] == 0 and loop.streams.expect[STREAM] == FIRST + 1 and not loop.notes.detail
 
 
 def test_word_of_another_nodes_restart_changes_nothing(loop):
     loop.handle(data(0, 50))
     loop.handle(control("lost", {"node": "where"}))
-    loop.handle(control("restarted", {"node": "somebody", "seqs": {"value": FIRST}}))
+    loop.handle(control("restarted", {"node": "somebody", "seqs": {"value": FIRST}, "values": True}))
     assert loop.streams.expect[STREAM] == 1 and not loop.streams.lost_producers and loop.counts["garbage"] == 0
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from retriever import BackendError, Latest, Pipeline, Rate
 from retriever.backends.zenoh.coordinator import ticks_due
+from retriever.backends.zenoh.protocol import Start
 from tests.backends.zenoh.lifecycle_flows import SINK_HZ, SOURCE_HZ, Counter, Total
 
 RUN_S = 1.0
@@ -22,11 +23,11 @@ def _stop_before_the_start(session, node: str) -> None:
     proc = session.book.workers[node]
     put = session.control.put
 
-    def control(op: str, args: dict) -> None:
-        if op == "start":
+    def control(record) -> None:
+        if type(record) is Start:
             proc.send_signal(signal.SIGTERM)
             proc.wait()
-        put(op, args)
+        put(record)
 
     session.control.put = control
 

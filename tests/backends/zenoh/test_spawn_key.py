@@ -24,8 +24,8 @@ from retriever import read_log
 from retriever.backends.zenoh.access import RunAccess, read_secret
 from retriever.backends.zenoh.hub import endpoint, free_port, open_peer
 from retriever.backends.zenoh.origin import KEY_BYTES, key_of_text, sign
-from retriever.backends.zenoh.protocol import DaemonOp, SpawnReply
-from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+from retriever.backends.zenoh.protocol import DaemonOp, Exit, Report, SpawnReply
+from retriever.backends.zenoh.wire import KeySpace
 from tests.backends.zenoh.test_daemon import BOUND_S, ROOT, SECRET, _env, namespace, workers  # noqa: F401
 
 DURATION_S = 8
@@ -79,11 +79,10 @@ def test_an_insider_on_ctl_reads_no_process_key_and_its_exit_is_refused(workers,
             assert reporting.wait(BOUND_S), "total never reported a step"
             seen = [key_of_text(args.get("key")) for args in spawns if args.get("node") == "total"]
             key = next((k for k in seen if k is not None), None) or own_key
-            tag = [30 * SINK_PERIOD_NS, 0]  # one of total's ticks (3 s), long before the end
-            enc = WireEncoder()
-            report = enc.report("total", [(tag, {}, [], "ok", {"exit": 0}, 0, 0)], [])
+            tag = (30 * SINK_PERIOD_NS, 0)  # one of total's ticks (3 s), long before the end
+            report = Report(node="total", records=((tag, {}, (), "ok", {"exit": 0}, 0, 0),), events=()).encode()
             insider.put(keys.report("total"), report, attachment=sign(key, keys.report("total"), report))
-            exit_status = enc.status("total", "exit", {"tag": tag, "pid": pids["total"]})
+            exit_status = Exit(node="total", pid=pids["total"], tag=tag).encode()
             insider.put(keys.node_status("total"), exit_status,
                         attachment=sign(key, keys.node_status("total"), exit_status))
             out, err = deploy.communicate(timeout=BOUND_S + DURATION_S)

@@ -20,9 +20,9 @@ from retriever import BackendError, Pipeline
 from retriever.backends.zenoh import worker
 from retriever.backends.zenoh.hub import endpoint, free_port, new_zid, peer_config, wait_for_links
 from retriever.backends.zenoh.origin import new_key
-from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner
+from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Finished
 from retriever.backends.zenoh.seen import EventIds
-from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+from retriever.backends.zenoh.wire import KeySpace
 
 from .lifecycle_flows import two_node_pipeline
 
@@ -97,7 +97,7 @@ def coordinator_and_worker():
         asked.append(len(asked))
         said = answers[min(len(asked), len(answers)) - 1]
         if said is not None:
-            payload = WireEncoder().control("finished", {"nodes": said, "complete": said, "restarting": []})
+            payload = Finished(nodes=tuple(said), complete=tuple(said), restarting=()).encode()
             nonce = None if query.attachment is None else query.attachment.to_bytes()
             query.reply(keys.finished(), payload, attachment=signer.seal_reply(keys.finished(), payload, nonce))
 

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from retriever import Burst, io
+from retriever.backends.zenoh.protocol import Report
 from retriever.backends.zenoh.wire import (
     DataMessage,
     KeySpace,
@@ -22,8 +23,6 @@ from retriever.backends.zenoh.wire import (
     decode_data,
     decode_events,
     decode_progress,
-    decode_report,
-    decode_status,
 )
 from retriever.codec import packb
 
@@ -241,41 +240,6 @@ def test_a_message_cannot_make_the_receiver_import_a_module():
     assert module not in sys.modules
 
 
-def test_report_round_trip():
-    enc = WireEncoder()
-    event = enc.data((7, 0), 3, (8, 0), "cam", "frame", np.arange(4))
-    record = ((7, 0), {"x": [["src", "out", 1]]}, [["cam", "frame", 3]], "ok", None, 11, 12)
-    report = decode_report(enc.report("cam", [record], [(123, event)]), "cam")
-    assert report.node == "cam"
-    assert report.records == [((7, 0), {"x": (("src", "out", 1),)}, (("cam", "frame", 3),), "ok", None, 11, 12)]
-    assert report.events == [[123, event]]
-    with pytest.raises(WireError, match="must carry its node"):
-        decode_report(enc.report("cam", [record], []), "other")
-    with pytest.raises(WireError, match="wall_ns, data message"):
-        decode_report(msgpack.packb([2, "cam", [], [[1, 2.5]]]), "cam")
-
-
-@pytest.mark.parametrize("record", [
-    [[7, 0], {"x": [["a"]]}, [], "ok", None, 1, 2],  # an event id that is not [node, port, seq]
-    [[7, 0], {"x": [["src", "out", -1]]}, [], "ok", None, 1, 2],
-    [[7, 0], {}, [["cam", "frame", "3"]], "ok", None, 1, 2],
-    [[7, 0], {}, [], "finished", None, 1, 2],  # not a status a loop writes
-    [[7, 0], {}, [], "ok", [1], 1, 2],  # detail: a map or nil
-    [[7, 0], {}, [], "ok", None, "notanint", 2],
-    [[7, 0], {1: []}, [], "ok", None, 1, 2],  # ports are names
-    [[7, 0], {}, [], "ok", None, 1],
-], ids=["short-id", "negative-seq", "seq-as-text", "status", "detail", "start", "port", "six-fields"])
-def test_a_malformed_step_record_is_a_wire_error(record):
-    with pytest.raises(WireError, match="malformed record|event ids"):
-        decode_report(msgpack.packb([2, "cam", [record], []]), "cam")
-
-
-def test_a_status_of_an_unknown_state_is_a_wire_error():
-    assert decode_status(WireEncoder().status("cam", "done", {"counts": {}}))[1] == "done"
-    with pytest.raises(WireError, match="state"):
-        decode_status(WireEncoder().status("cam", "bogus-state", {}))
-
-
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=64) | st.builds(lambda parts: msgpack.packb(parts), st.lists(
     st.one_of(st.integers(-5, 2**64 - 1), st.text(max_size=5), st.lists(st.integers(-2, 5), max_size=3),
@@ -286,8 +250,8 @@ def test_a_status_of_an_unknown_state_is_a_wire_error():
                                                                                            max_size=2),
                                st.integers(-1, 2))), max_size=8)))
 def test_any_bytes_decode_or_raise_wire_error(data):
-    """Fuzz: nothing but a DataMessage or a WireError ever comes out of the decoders."""
-    for decode in (decode_data, decode_progress, decode_report):
+    """Fuzz: nothing but a decoded message or a WireError ever comes out of the decoders."""
+    for decode in (decode_data, decode_progress, Report.decode):
         try:
             decode(data)
         except WireError:
