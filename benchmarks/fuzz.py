@@ -4,8 +4,8 @@ Targets, each fed inputs made by the real encoders and writers and then mutated:
 
     codec         retriever.codec.unpackb (plain, keep_unregistered=True) and unpackb_out_of_band
     wire-data     wire.decode_events (bursts too)     wire-progress   wire.decode_progress
-    wire-report   wire.decode_report                  wire-status     wire.decode_status
-    wire-control  wire.decode_control
+    wire-report   protocol.Report.decode              wire-status     protocol.STATUS.decode
+    wire-control  protocol.RUN_CONTROL.decode
     coordinator   the zenoh coordinator's report handling (its Inbox.handle), after the
                   genuine run's reports: what reaches the trace is checked against the genuine run
     insider       the coordinator's receiving path (signature check, then Inbox.handle) fed statuses and
@@ -91,11 +91,11 @@ from retriever.backends.base import output_ports  # noqa: E402
 from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble  # noqa: E402
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.protocol import (  # noqa: E402
-    REQUEST, ControlOpener, ControlSigner, DaemonOp, End, Grant, Lost, PrepareRequest, SpawnRequest, Stop)
+    REQUEST, RUN_CONTROL, STATUS, ControlOpener, ControlSigner, DaemonOp, Done, End, Exit, Failed, Grant, HandedOver,
+    Handover, Lost, PrepareRequest, Reached, Ready, Report, Restart, SpawnRequest, Start, Stop)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
-    RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_control, decode_events, decode_progress,
-    decode_report, decode_status)
+    RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_events, decode_progress)
 from retriever.codec import (  # noqa: E402
     EXT_BIGINT, EXT_DATACLASS, EXT_NDARRAY, EXT_NDARRAY_OOB, EXT_NPSCALAR, EXT_TUPLE, CodecError, is_value_type,
     packb, unpackb, unpackb_out_of_band)
@@ -487,7 +487,7 @@ def _ids(ids) -> list:
 
 def genuine_reports(genuine: Genuine, batches: int = 2) -> list[tuple[str, bytes]]:
     """The run's records as a zenoh worker reports them: ``(key, report)`` per node and batch,
-    made by the real WireEncoder (data messages with their frontier at their own tag)."""
+    made by the real encoders (data messages with their frontier at their own tag)."""
     encoder, keys = WireEncoder(), KeySpace(NAMESPACE)
     reports = []
     nodes = sorted({s[0] for s in genuine.trace.raw_steps})
@@ -500,7 +500,8 @@ def genuine_reports(genuine: Genuine, batches: int = 2) -> list[tuple[str, bytes
         for b in range(batches):
             part = slice(b * len(records) // batches, (b + 1) * len(records) // batches)
             epart = slice(b * len(events) // batches, (b + 1) * len(events) // batches)
-            reports.append((keys.report(node), encoder.report(node, records[part], events[epart])))
+            reports.append((keys.report(node), Report(node=node, records=tuple(records[part]),
+                                                      events=tuple(events[epart])).encode()))
     return reports
 
 
@@ -850,16 +851,18 @@ class InsiderTarget(CoordinatorTarget):
         tick = rng.choice([(clock.tick_time(rng.randrange(8)), 0) if clock.hz else (5, 0),
                            (rng.randrange(1, 10**8), 0), (self.end_ns + rng.randrange(10**9), 0),
                            (clock.tick_time(1) if clock.hz else 5, rng.randrange(1, 4))])
-        enc = WireEncoder()
         if rng.random() < 0.55:
-            state = rng.choice(["exit", "exit", "done", "failed", "restart", "handed_over", "ready", "reached"])
-            info = {"pid": self.base.book.workers[node].pid, "tag": list(tick), "stopped": True, "reports": 1,
-                    "counts": {"late": 1000}, "error": "forged", "until": 10**12}
-            key, payload = keys.node_status(node), enc.status(node, state, info)
+            said = {"node": node, "pid": self.base.book.workers[node].pid}
+            status = rng.choice([
+                Exit(**said, tag=tick), Exit(**said, tag=tick), Done(**said, counts={"late": 1000}, reports=1,
+                                                                     stopped=True),
+                Failed(**said, error="forged", tag=tick, traceback=None), Restart(**said, tag=tick, error="forged"),
+                HandedOver(**said, counts={"late": 1000}, reports=1), Ready(**said), Reached(**said, until=10**12)])
+            key, payload = keys.node_status(node), status.encode()
         else:
-            records = [[list(tick), {}, [], "ok", rng.choice([None, {"exit": 0}]), 0, 0]
-                       for tick in {tick, (tick[0] + 1, 0), (self.end_ns + 10**8, 0)}]
-            key, payload = keys.report(node), enc.report(node, records, [])
+            records = tuple((tick, {}, (), "ok", rng.choice([None, {"exit": 0}]), 0, 0)
+                            for tick in {tick, (tick[0] + 1, 0), (self.end_ns + 10**8, 0)})
+            key, payload = keys.report(node), Report(node=node, records=records, events=()).encode()
         if rng.random() < 0.3:
             payload = self.m.msgpack(payload)
         mac = rng.choice([None, os.urandom(16), sign(self.own_key, key, payload),
@@ -1602,13 +1605,17 @@ def build_target(name: str, mutator: Mutator, genuine: Genuine, workdir: Path) -
         "wire-progress": [enc.progress((5, 0), "counter", {"out": 3}), enc.progress((0, 0), "tally", {}),
                           enc.progress((2**63, 7), "acc", {"out": -1, "x": 2**40})],
         "wire-report": reports,
-        "wire-status": [enc.status("counter", s, {"pid": 7, "counts": {"late": 1}, "error": "e", "tag": [1, 0]})
-                        for s in ("ready", "done", "failed", "restart", "handed_over")],
-        "wire-control": [enc.control("start", {"t0": 2**62, "end": 10**9}), enc.control("stop", {}),
-                         enc.control("handover", {"node": "acc"}), enc.control("finished", {"nodes": ["a", "b"]})],
+        "wire-status": [status.encode() for status in (
+            Ready(node="counter", pid=7, linked=True, unlinked=(), peers=2),
+            Done(node="counter", pid=7, counts={"late": 1}),
+            Failed(node="counter", pid=7, error="e", tag=(1, 0), counts={"late": 1}, traceback=None),
+            Restart(node="counter", pid=7, tag=(1, 0), error="e"),
+            HandedOver(node="counter", pid=7, counts={"late": 1}, reports=3))],
+        "wire-control": [record.encode() for record in (
+            Start(t0=2**62, end=10**9, values=True), Stop(), Handover(node="acc"), Grant(until=10**9))],
     }[name]
-    decode = {"wire-progress": decode_progress, "wire-report": decode_report, "wire-status": decode_status,
-              "wire-control": decode_control}[name]
+    decode = {"wire-progress": decode_progress, "wire-report": Report.decode, "wire-status": STATUS.decode,
+              "wire-control": RUN_CONTROL.decode}[name]
     return WireTarget(name, decode, seeds, *args)
 
 
@@ -1754,18 +1761,16 @@ def insider_run(records: int) -> dict[str, int]:
                                                range((40 + i) * ticks, (40 + i + n) * ticks, ticks) if k % 3 == 1 else
                                                [j % 30 * ticks for j in range(n)])], []])
                 for k, i in enumerate(range(0, records, per)) for n in [min(per, records - i)]]
-    secret, enc = _secret_file(workdir), WireEncoder()
+    secret = _secret_file(workdir)
     run = Run(workdir, namespace, secret)
     statuses = grown = 0
     try:
         with _insider(run, namespace, secret, workdir) as (insider, keys):
             before = _rss(run.proc.pid)
-            for node, tag in (("counter", [500_000_000, 0]), ("total", [400_000_000, 0])):
+            for node, tag in (("counter", (500_000_000, 0)), ("total", (400_000_000, 0))):
                 pid = _worker_pid(run.proc.pid, node)
-                for state in ("exit", "done"):
-                    insider.put(keys.node_status(node), enc.status(node, state, {"tag": tag, "pid": pid,
-                                                                                "stopped": True}),
-                                congestion_control=RELIABLE)
+                for status in (Exit(node=node, pid=pid, tag=tag), Done(node=node, pid=pid, counts={}, stopped=True)):
+                    insider.put(keys.node_status(node), status.encode(), congestion_control=RELIABLE)
                     statuses += 1
             for payload in payloads:
                 insider.put(keys.report("counter"), payload, congestion_control=RELIABLE)  # all of it arrives

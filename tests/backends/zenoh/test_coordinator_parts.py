@@ -84,7 +84,8 @@ def test_a_process_goes_from_ready_to_done_once_and_a_replay_is_garbage(offline)
 
 def test_a_status_no_process_of_the_node_signed_changes_nothing(offline):
     book, parts, _ = offline
-    parts.inbox.handle((*_status(Failed, error="forged", traceback=None), _Process(40_000)))  # same pid, another process
+    forged = _status(Failed, error="forged", traceback=None)
+    parts.inbox.handle((*forged, _Process(40_000)))  # same pid, another process
     assert (book.failure, book.state["counter"], book.counts["garbage"]) == (None, "starting", 1)
 
 

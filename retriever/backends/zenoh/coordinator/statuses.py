@@ -11,8 +11,8 @@ from __future__ import annotations
 
 
 from ....errors import RestartLimitError
-from ..protocol import (ABSENT, STATUS, Done, End, Exit, Failed, HandedOver, Handover, Reached, Ready, Redeclare, Restart,
-                        Restarted, Resume, State, Status, Unanswered)
+from ..protocol import (ABSENT, STATUS, Done, End, Exit, Failed, HandedOver, Handover, Reached, Ready, Redeclare,
+                        Restart, Restarted, Resume, State, Status, Unanswered)
 from ..wire import WireError
 from .book import RunBook
 from .control import RunControl

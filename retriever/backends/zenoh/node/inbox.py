@@ -1,9 +1,10 @@
-"""What a node loop's inbox holds: ``(kind, key, bytes)``, one item per message received.
+"""What a node loop's inbox holds: ``(kind, key, message)``, one item per message received.
 
 The kinds say which handler takes an item (``NodeLoop.handle``): a data message of the input
 stream ``key`` (producer, port), a progress message of the producer ``key`` (or ``None``: a
-progress query timed out), a control message of the run, or a nudge (after work a receiving
-thread did in the main thread's stead: look again at the time to wake).
+progress query timed out), both as their bytes; a control message of the run, opened and
+decoded (a protocol record, or the WireError that refused it); or a nudge (after work a
+receiving thread did in the main thread's stead: look again at the time to wake).
 """
 
 DATA, PROGRESS, CONTROL, NUDGE = 0, 1, 2, 3
