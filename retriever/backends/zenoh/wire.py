@@ -194,9 +194,6 @@ class WireEncoder:
     def progress(self, frontier: Tag, producer: str, sent: dict[str, int]) -> bytes:
         return self._pack([WIRE_VERSION, frontier, producer, sent])
 
-    def control(self, op: str, args: dict) -> bytes:
-        return self._pack([WIRE_VERSION, op, args])
-
 
 def _array_header(count: int) -> bytes:
     if count < 16:
@@ -331,22 +328,3 @@ def decode_progress(data: bytes, expected: str | None = None) -> Progress:
     if type(sent) is not dict or not all(type(k) is str and type(v) is int and v >= -1 for k, v in sent.items()):
         raise WireError("the seqs of a progress message must map port names to integers >= -1")
     return Progress(frontier, producer, sent)
-
-
-def decode_error_reply(data: bytes) -> str | None:
-    """What an error reply of a worker daemon says (``[1, "error", {message}]``); None for one
-    that is not a daemon's: Zenoh's own ("Timeout"), when the query went unanswered."""
-    try:
-        _, args = decode_control(data)
-    except WireError:
-        return None
-    message = args.get("message")
-    return message[:4000] if type(message) is str else "(an error without a message)"
-
-
-def decode_control(data: bytes) -> tuple[str, dict]:
-    """``(op, args)`` of a control message."""
-    _, op, args = _fields(data, 3, "control")
-    if type(op) is not str or type(args) is not dict:
-        raise WireError("a control message is [1, op, args]")
-    return op, args

@@ -26,8 +26,13 @@ PID = 4242
 
 
 def today(*fields) -> bytes:
-    """A message as wire.WireEncoder packs it (control, status and report all are this)."""
+    """A message as its senders packed it before the records (control, status and report all are this)."""
     return msgpack.packb(list(fields), use_bin_type=True)
+
+
+def control(op, args) -> bytes:
+    """A control message (``[2, op, args]``) as its senders packed it before the records."""
+    return today(2, op, args)
 
 
 def worker_status(node: str, state: str, **info) -> bytes:
@@ -43,23 +48,23 @@ T0, END = 1_780_000_000_123_456_789, 30_000_000_000
 HEX = "ab" * KEY_BYTES
 TODAY = [
     # coordinator.advance, _lockstep, _handle, _end_by_exit, _tell_have, _start_afresh, _stop_workers
-    (WireEncoder().control("start", {"t0": T0, "end": END, "values": True}), p.Start(t0=T0, end=END, values=True)),
-    (WireEncoder().control("start", {"t0": T0, "end": END, "values": False, "grant": 50_000_000}),
+    (control("start", {"t0": T0, "end": END, "values": True}), p.Start(t0=T0, end=END, values=True)),
+    (control("start", {"t0": T0, "end": END, "values": False, "grant": 50_000_000}),
      p.Start(t0=T0, end=END, values=False, grant=50_000_000)),
-    (WireEncoder().control("grant", {"until": 100_000_000}), p.Grant(until=100_000_000)),
-    (WireEncoder().control("redeclare", {"nodes": ["cam", "src"]}), p.Redeclare(nodes=("cam", "src"))),
-    (WireEncoder().control("restarted", {"node": "src", "seqs": {"out": 1 << 20, "aux": (1 << 20) + 7},
+    (control("grant", {"until": 100_000_000}), p.Grant(until=100_000_000)),
+    (control("redeclare", {"nodes": ["cam", "src"]}), p.Redeclare(nodes=("cam", "src"))),
+    (control("restarted", {"node": "src", "seqs": {"out": 1 << 20, "aux": (1 << 20) + 7},
                                           "values": True}),
      p.Restarted(node="src", seqs={"out": 1 << 20, "aux": (1 << 20) + 7}, values=True)),
-    (WireEncoder().control("handover", {"node": "ctl"}), p.Handover(node="ctl")),
-    (WireEncoder().control("resume", {"node": "ctl"}), p.Resume(node="ctl")),
-    (WireEncoder().control("end", {"at": 5_800_000_000}), p.End(at=5_800_000_000)),
-    (WireEncoder().control("have", {"streams": [["src", "out", 41], ["cam", "rgb", -1]]}),
+    (control("handover", {"node": "ctl"}), p.Handover(node="ctl")),
+    (control("resume", {"node": "ctl"}), p.Resume(node="ctl")),
+    (control("end", {"at": 5_800_000_000}), p.End(at=5_800_000_000)),
+    (control("have", {"streams": [["src", "out", 41], ["cam", "rgb", -1]]}),
      p.Have(streams=(("src", "out", 41), ("cam", "rgb", -1)))),
-    (WireEncoder().control("lost", {"node": "src"}), p.Lost(node="src")),
-    (WireEncoder().control("stop", {}), p.Stop()),
+    (control("lost", {"node": "src"}), p.Lost(node="src")),
+    (control("stop", {}), p.Stop()),
     # coordinator._answer_finished, _answer_start
-    (WireEncoder().control("finished", {"nodes": ["a", "b"], "complete": ["a"], "restarting": []}),
+    (control("finished", {"nodes": ["a", "b"], "complete": ["a"], "restarting": []}),
      p.Finished(nodes=("a", "b"), complete=("a",), restarting=())),
     # worker._serve's status(...) calls, in its order
     (worker_status("cam", "failed", error="cannot build node 'cam': ImportError: x", traceback="Traceback..."),
@@ -90,42 +95,42 @@ TODAY = [
     (worker_status("cam", "done", counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={}),
      p.Done(node="cam", pid=PID, counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={})),
     # remote.RemoteHost.request ({"run": run, **args}), deploy._answering, daemon.ask
-    (WireEncoder().control("info", {}), p.InfoRequest()),
-    (WireEncoder().control("prepare", {"run": "5f3a9c0d1e2b", "spec": {"ir": {"nodes": []}, "namespace": "proto"},
+    (control("info", {}), p.InfoRequest()),
+    (control("prepare", {"run": "5f3a9c0d1e2b", "spec": {"ir": {"nodes": []}, "namespace": "proto"},
                                        "nodes": ["cam"]}),
      p.PrepareRequest(run="5f3a9c0d1e2b", spec={"ir": {"nodes": []}, "namespace": "proto"}, nodes=("cam",))),
-    (WireEncoder().control("spawn", {"run": "r", "node": "cam", "mode": []}),
+    (control("spawn", {"run": "r", "node": "cam", "mode": []}),
      p.SpawnRequest(run="r", node="cam", mode=())),
-    (WireEncoder().control("spawn", {"run": "r", "node": "cam", "mode": ["--fresh", str(T0), str(END)]}),
+    (control("spawn", {"run": "r", "node": "cam", "mode": ["--fresh", str(T0), str(END)]}),
      p.SpawnRequest(run="r", node="cam", mode=(p.SpawnMode.FRESH, str(T0), str(END)))),
-    (WireEncoder().control("signal", {"run": "r", "pid": PID, "signal": 10}),
+    (control("signal", {"run": "r", "pid": PID, "signal": 10}),
      p.SignalRequest(run="r", pid=PID, signal=10)),
-    (WireEncoder().control("usage", {"run": "r"}), p.UsageRequest(run="r")),
-    (WireEncoder().control("end", {"run": "r"}), p.EndRequest(run="r")),
+    (control("usage", {"run": "r"}), p.UsageRequest(run="r")),
+    (control("end", {"run": "r"}), p.EndRequest(run="r")),
     # daemon.WorkerDaemon.info, runs.DaemonRuns.prepare/spawn/signal/usage/end, daemon.answer's errors
-    (WireEncoder().control("info", {"protocol": 2, "name": "w1", "labels": ["gpu"], "host": "robot", "pid": PID,
+    (control("info", {"protocol": 2, "name": "w1", "labels": ["gpu"], "host": "robot", "pid": PID,
                                     "python": "3.11.7", "packages": {"retriever": "0.1.0"}, "clock_ns": T0,
                                     "nodes": [], "counts": {"refused": 1}}),
      p.InfoReply(protocol=2, name="w1", labels=("gpu",), host="robot", pid=PID, python="3.11.7",
                  packages={"retriever": "0.1.0"}, clock_ns=T0, nodes=(), counts={"refused": 1})),
-    (WireEncoder().control("prepare", {"nodes": ["cam"], "warnings": [], "key": HEX}),
+    (control("prepare", {"nodes": ["cam"], "warnings": [], "key": HEX}),
      p.PrepareReply(nodes=("cam",), warnings=(), key=bytes.fromhex(HEX))),
-    (WireEncoder().control("spawn", {"pid": PID, "key": HEX}), p.SpawnReply(pid=PID, key=bytes.fromhex(HEX))),
-    (WireEncoder().control("signal", {}), p.SignalReply()),
-    (WireEncoder().control("usage", {"cpu_s": {"cam": 1.25}}), p.UsageReply(cpu_s={"cam": 1.25})),
-    (WireEncoder().control("end", {}), p.EndReply()),
-    (WireEncoder().control("error", {"message": "worker 'w' knows no op 'x'"}),
+    (control("spawn", {"pid": PID, "key": HEX}), p.SpawnReply(pid=PID, key=bytes.fromhex(HEX))),
+    (control("signal", {}), p.SignalReply()),
+    (control("usage", {"cpu_s": {"cam": 1.25}}), p.UsageReply(cpu_s={"cam": 1.25})),
+    (control("end", {}), p.EndReply()),
+    (control("error", {"message": "worker 'w' knows no op 'x'"}),
      p.ErrorReply(message="worker 'w' knows no op 'x'")),
     # runs.DaemonRuns._forward, _await_exit
-    (WireEncoder().control("output", {"run": "r", "node": "cam", "stream": "stderr", "lines": ["a", "b"]}),
+    (control("output", {"run": "r", "node": "cam", "stream": "stderr", "lines": ["a", "b"]}),
      p.ProcessOutput(run="r", node="cam", stream=p.Stream.STDERR, lines=("a", "b"))),
-    (WireEncoder().control("exit", {"run": "r", "node": "cam", "pid": PID, "code": -9}),
+    (control("exit", {"run": "r", "node": "cam", "pid": PID, "code": -9}),
      p.ProcessExit(run="r", node="cam", pid=PID, code=-9)),
     # deploy.ask_deployment, Deployment._answer, Deployment.status
-    (WireEncoder().control("status", {}), p.StatusQuery()),
-    (WireEncoder().control("stop", {}), p.StopQuery()),
-    (WireEncoder().control("stop", {"pipeline": "demo"}), p.StopReply(pipeline="demo")),
-    (WireEncoder().control("status", {"pipeline": "demo", "run": "5f3a9c0d1e2b", "t_ns": 1000, "end_ns": 30_000,
+    (control("status", {}), p.StatusQuery()),
+    (control("stop", {}), p.StopQuery()),
+    (control("stop", {"pipeline": "demo"}), p.StopReply(pipeline="demo")),
+    (control("status", {"pipeline": "demo", "run": "5f3a9c0d1e2b", "t_ns": 1000, "end_ns": 30_000,
                                       "started": True, "nodes": {
                                           "cam": {"worker": "w1", "state": "ready", "ticks": 3, "steps": 3, "skips": 0,
                                                   "errors": 0, "counts": {}, "cpu_s": 0.5},
@@ -292,10 +297,6 @@ def test_reports_round_trip(node, steps, events):
 # ---------------------------------------------------------------------------------------------
 # Exact: every kind of malformed input refused, with a WireError that names what is wrong
 # ---------------------------------------------------------------------------------------------
-def control(op, args) -> bytes:
-    return today(2, op, args)
-
-
 MALFORMED = [
     ("not bytes", p.RUN_CONTROL, "grant", "must be bytes"),
     ("garbage", p.RUN_CONTROL, b"\xc1 garbage", "not valid msgpack"),
