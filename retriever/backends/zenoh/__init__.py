@@ -4,7 +4,7 @@
     access.py       who may join a run (Zenoh authentication, TLS) and what a watcher may do (access control)
     origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
-    node/           one node's real-time loop, split by concern (its docstring draws it); loop.py re-exports it
+    node/           one node's real-time loop, split by concern (its docstring draws it)
     worker.py       the worker process around a loop, in phases
     command.py      a worker's command line, built and read in one place
     output.py       what workers print, on the coordinator's streams, prefixed with the node

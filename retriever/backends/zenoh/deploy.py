@@ -38,7 +38,7 @@ from .daemon import (ENDPOINT, QUERY_S, WorkerError, check_security, credentials
 from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_orphaned_segments_at_exit,
                   wait_for_peers, weak_callback)
 from .protocol import (ABSENT, DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, PROTOCOL_VERSION, DaemonOp, DeploymentOp,
-                       ErrorReply, InfoRequest, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
+                       ErrorReply, InfoRequest, Lost, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
                        decode_reply, error_message)
 from .reach import REFUSES_LINKS, why_no_session
 from .remote import RemoteHost
@@ -340,7 +340,7 @@ class Deployment(Hosting):
         if waiting is None:
             waiting = self._waiting[name] = {"nodes": nodes, "at": c.book.run_time()}
             for nid in nodes:  # their processes, if a hung worker still has them, stop; consumers know
-                c.control.put("lost", {"node": nid})
+                c.control.put(Lost(node=nid))
             print(f"retriever: worker '{name}' was lost with node(s) {', '.join(nodes)}; waiting for it to come "
                   "back (on_worker_loss='wait')", file=sys.stderr, flush=True)
         if name not in self._returned:

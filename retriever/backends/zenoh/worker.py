@@ -25,14 +25,13 @@ one worker per node. A worker process goes through these phases, each a function
 A start by dora (backends/dora/node.py) is the same phases with a :class:`Launch` of its own:
 its parent to watch, its key, its loop (events over dora) and its directory.
 
-on_error="restart": the failed worker says ``restart`` and goes on listening (see "Restarting" in
-loop.py); the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
+on_error="restart": the failed worker says ``restart`` and goes on listening (node/handover.py);
+the coordinator starts a new worker with ``--join``, which subscribes, says ``ready``
 and waits. The coordinator then puts ``handover`` {node}: the old worker writes its loop's state
 to ``<run dir>/<node>.handover``, says ``handed_over`` and exits; then ``resume`` {node}: the new
 one reads the state and goes on with a fresh flow. A worker process that died (kill -9, a
 segfault) has no state to hand over: the coordinator starts one with ``--fresh``, which starts
-the flow afresh on fresh inputs once told ``restarted`` (see "Restarting after a lost process"
-in loop.py).
+the flow afresh on fresh inputs once told ``restarted`` (node/handover.py).
 
 A worker exits when its node is done, on ``stop``, on SIGTERM, or when its parent dies; its
 session always closes. Every status it sends carries its pid, and every status and report the MAC
@@ -65,7 +64,7 @@ from . import protocol
 from .command import FIRST, FRESH, JOIN, Mode, parse_mode
 
 if TYPE_CHECKING:
-    from .loop import NodeLoop
+    from .node import NodeLoop
 
 EXIT_FAILED = 1
 EXIT_HANDED_OVER = 3
@@ -261,7 +260,7 @@ def build_loop(spec: dict, node_id: str, session, transport=None):
     from ...plan import Plan, bind_inputs, plan_ir
     from ...rebuild import rebuild_node
     from ...sync import PortBuffer
-    from .loop import InEdge, NodeLoop
+    from .node import InEdge, NodeLoop
     from .wire import KeySpace
 
     ir = IR(spec["ir"], source="the run's IR")
@@ -525,7 +524,7 @@ def handle_signals(w: Serving) -> None:
     """SIGTERM asks the loop to stop; when the parent is dead (a SIGTERM sent by someone else
     then), or on PARENT_DIED, the process ends without a word, as if killed, promising its
     consumers nothing (not "done"): the run goes on without it."""
-    from .loop import CONTROL
+    from .node import CONTROL
 
     loop, parent = w.loop, w.launch.parent
     stop_item = (CONTROL, None, protocol.Stop())  # this process's own: no seal to open
@@ -563,7 +562,7 @@ def set_up_flow(w: Serving) -> bool:
 
 def run(w: Serving) -> int:
     """Wait for the start as the mode says, run the loop, and finish: the exit code."""
-    from .loop import StopRun
+    from ...errors import StopRun
 
     loop = w.loop
     wait = {None: start, JOIN: join, FRESH: start_afresh}[w.launch.mode.kind]
@@ -752,7 +751,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     waited for as a consumer (each would wait for the other), only as a producer (it answers
     once restarted, not waiting for us)."""
     from .hub import wait_for_answers
-    from .loop import RESTART_SEQ_GAP
+    from .node import RESTART_SEQ_GAP
 
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
@@ -859,7 +858,7 @@ def _drop_queued(loop: NodeLoop, kind: type[protocol.Record], node_id: str) -> N
     """Forget the control messages of ``kind`` to ``node_id`` queued in the loop's inbox; keep the rest."""
     import queue
 
-    from .loop import CONTROL
+    from .node import CONTROL
 
     kept = []
     while True:
@@ -952,7 +951,7 @@ def _watch_hub_link(session, hub_zid: str | None, node_id: str):
 def _ask_start(session, keys, loop: NodeLoop) -> None:
     """Ask the coordinator for the run's start; its answer joins the loop's inbox as control (one
     the coordinator did not seal for this process, as the WireError saying so: garbage)."""
-    from .loop import CONTROL
+    from .node import CONTROL
     from .wire import WireError
 
     nonce = protocol.new_nonce()
@@ -973,7 +972,7 @@ def _await_control(loop: NodeLoop, wanted: type[protocol.Record], node_id: str, 
     every START_ASK_S without it. What else arrives meanwhile is put back in the loop's inbox."""
     import queue
 
-    from .loop import CONTROL
+    from .node import CONTROL
     from .wire import WireError
 
     early = []

@@ -101,7 +101,7 @@ class RunBook:
         self.stop_sent = False  # whether this coordinator told the workers to stop
         self.ended_by: str | None = None  # the node whose step called sys.exit(0), ending the run
         self.stackless: dict[str, float] = {}  # nodes asked for their stacks that printed none, and how long waited
-        # a lost process (see "Restarting after a lost process" in loop.py): the nodes starting
+        # a lost process (node/handover.py): the nodes starting
         # afresh, by what became of the old process; faults of processes not started afresh
         self.fresh: dict[str, dict] = {}
         self.unrecovered: list[dict] = []

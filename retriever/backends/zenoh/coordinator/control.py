@@ -9,7 +9,7 @@ each answer to a worker's question (``start``, ``finished``), is sealed for the 
 
 from __future__ import annotations
 
-from ..protocol import RUN_CONTROL, ControlSigner, Record
+from ..protocol import ControlSigner, Record
 from ..wire import RELIABLE, KeySpace
 
 
@@ -21,12 +21,8 @@ class RunControl:
         self.hub, self.keys = hub, keys
         self.signer = ControlSigner()
 
-    def put(self, record: Record | str, args: dict | None = None) -> None:
-        """Put ``record`` (one of protocol.RUN_CONTROL's) on ctl/run, sealed. An op and its
-        ``args`` (deploy.py's ``put("lost", {"node": ...})``, until it puts a Lost) are read as
-        that op's record."""
-        if isinstance(record, str):
-            record = RUN_CONTROL.records[record](**args)
+    def put(self, record: Record) -> None:
+        """Put ``record`` (one of protocol.RUN_CONTROL's) on ctl/run, sealed."""
         key_expr, payload = self.keys.run_control(), record.encode()
         self.hub.put(key_expr, payload, congestion_control=RELIABLE, attachment=self.signer.seal(key_expr, payload))
 

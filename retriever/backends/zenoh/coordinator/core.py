@@ -75,7 +75,7 @@ class Coordinator(Session):
         #: the port of a Foxglove live view (its WebSocket server, in this process), if asked for
         self.foxglove_port = foxglove
         self.quiet = quiet
-        #: lockstep virtual time (loop.py): the trace is the in-process backend's, however long it takes
+        #: lockstep virtual time (node/waiting.py): the trace is the in-process backend's, however long it takes
         self.virtual_time = bool(virtual_time)
         if self.virtual_time and graph.instantaneous_cycles:
             cycle = graph.instantaneous_cycles[0]

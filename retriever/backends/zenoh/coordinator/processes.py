@@ -17,9 +17,9 @@ import sys
 import time
 from collections.abc import Callable
 
-from ....errors import RestartLimitError
-from ..loop import RESTART_SEQ_GAP
+from ....tick import Decision, decide, ending
 from ..command import mode_args
+from ..node import RESTART_SEQ_GAP
 from ..origin import new_key
 from ..worker import EXIT_FAILED, EXIT_HANDED_OVER
 from ..protocol import Lost, Restarted, State, Stop
@@ -106,7 +106,7 @@ class Supervisor:
             self.raise_failure()
 
     # ---------------------------------------------------------------------------------------
-    # A lost process (on_error="restart"; see "Restarting after a lost process" in loop.py)
+    # A lost process (on_error="restart"; node/handover.py)
     # ---------------------------------------------------------------------------------------
     def _lost(self, nid: str, proc, code: int) -> None:
         """A worker process of ``nid`` died after the start: within the restart budget, start the
@@ -117,8 +117,9 @@ class Supervisor:
         if nid in book.fresh:  # the last one died before it was ready: that fault stands on its own
             self.record_fault(book.fresh.pop(nid), None)
         budget = book.restarts[nid]
-        if not budget.take(at):
-            book.limit = RestartLimitError(nid, None, why, budget.max_restarts, budget.window_s)
+        decision = decide("restart", why, budget, at)
+        if decision is not Decision.RESTART:
+            book.limit = ending(decision, nid, None, why, budget)
             book.unrecovered.append({"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
             book.failure = (nid, {"error": str(book.limit)})
             return
@@ -130,8 +131,8 @@ class Supervisor:
         self.start_afresh(nid, {"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
 
     def start_afresh(self, nid: str, fault: dict) -> None:
-        """Start ``nid`` afresh in a new process on its host (see "Restarting after a lost process"
-        in loop.py); ``fault``: what became of the old one, logged once the new one is ready."""
+        """Start ``nid`` afresh in a new process on its host (node/handover.py);
+        ``fault``: what became of the old one, logged once the new one is ready."""
         book = self.book
         for other in (book.workers.get(nid), book.retiring.pop(nid, None)):
             if other is not None:

@@ -10,7 +10,7 @@ machine only dispatches, as dora's daemon loop does.
 from __future__ import annotations
 
 
-from ....errors import RestartLimitError
+from ....tick import Decision, decide, ending
 from ..protocol import (ABSENT, STATUS, Done, End, Exit, Failed, HandedOver, Handover, Reached, Ready, Redeclare,
                         Restart, Restarted, Resume, State, Status, Unanswered)
 from ..wire import WireError
@@ -162,8 +162,9 @@ class StatusMachine:
         new one takes over."""
         book, node, tag = self.book, status.node, status.tag
         budget = book.restarts[node]
-        if not budget.take(tag[0]):
-            book.limit = RestartLimitError(node, tag, status.error, budget.max_restarts, budget.window_s)
+        decision = decide("restart", status.error, budget, tag[0])  # the node decided on a restart; the budget here
+        if decision is not Decision.RESTART:
+            book.limit = ending(decision, node, tag, status.error, budget)
             book.failure = (node, {"error": str(book.limit)})
             return
         node_counts = book.stats[node].counts

@@ -6,7 +6,7 @@
       │    hand the records to the log ─ tell the consumers what the coordinator has (`have`)
       └─── until condition(); past give_up: name each node waited for, with its stacks
 
-In lockstep virtual time (loop.py) the wait for the finish also grants the next window of
+In lockstep virtual time (node/waiting.py) the wait for the finish also grants the next window of
 virtual time once every node reached the last one.
 """
 

@@ -6,7 +6,7 @@ Virtual time (``retriever deploy --virtual-time``): a tick runs once its inputs 
 however long that takes (no deadline). The coordinator advances all nodes in lockstep: a node
 runs the ticks below its *grant* (control ``grant`` {until}), then says ``reached`` {until} (a
 status) and waits; once every node not done has reached it, the coordinator grants the next
-window (coordinator.py).
+window (coordinator/waiting.py).
 """
 
 from __future__ import annotations
