@@ -582,8 +582,8 @@ def run(w: Serving) -> int:
             loop.undeclare()
             return EXIT_ABANDONED
     except StopRun as exc:
-        loop.release_held()
-        loop.finish_reports()
+        loop.outputs.release_held()
+        loop.reports.finish()
         cause = exc.__cause__  # the exception a step raised: where in the flow's code
         w.status(protocol.Failed, error=str(exc), tag=tuple(exc.tag) if exc.tag else None, counts=dict(loop.counts),
                  traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
@@ -591,7 +591,7 @@ def run(w: Serving) -> int:
         loop.undeclare()
         return EXIT_FAILED
     except BaseException as exc:
-        loop.finish_reports()
+        loop.reports.finish()
         w.status(protocol.Failed, error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
                  traceback=traceback.format_exc(), counts=dict(loop.counts))
         loop.undeclare()
@@ -608,7 +608,7 @@ def finish(w: Serving, begin: Start) -> int:
     if loop.handing_over:
         loop.undeclare()  # first: no message may arrive after the state is taken
         state = packb(loop.handover_state())
-        loop.finish_reports()
+        loop.reports.finish()
         handover_file = w.launch.run_dir / f"{w.node}.handover"
         tmp = handover_file.with_suffix(".tmp")
         tmp.write_bytes(state)
@@ -618,7 +618,7 @@ def finish(w: Serving, begin: Start) -> int:
         _await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.get("hub_zid"))
         return EXIT_HANDED_OVER
     status(protocol.Done, counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
-           ticks=loop.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
+           ticks=loop.reports.recorded, stopped=loop.told_to_stop, sent=dict(loop.sent))
     loop.undeclare()
     release(loop, w.node)
     _await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.get("hub_zid"))
@@ -674,7 +674,7 @@ def start(w: Serving) -> Start | None:
         _stopped_before_start(w)
         return None
     t0, end = said.t0, said.end
-    loop.values = said.values
+    loop.reports.values = said.values  # whether the coordinator wants the events' values
     if loop.virtual:  # lockstep: the ticks below the first grant may run
         loop.granted = min(0 if said.grant is protocol.ABSENT else said.grant, end)
     # after T0 when the start came late (a loaded machine): after the end, no tick ran
@@ -688,6 +688,7 @@ def join(w: Serving) -> Start | None:
     when told ``resume``. None: stopped first."""
     from ...codec import unpackb
     from .hub import wait_for_answers
+    from .node import handover
 
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
@@ -713,7 +714,7 @@ def join(w: Serving) -> Start | None:
         _stopped_before_start(w)
         return None
     handover_file = w.launch.run_dir / f"{w.node}.handover"
-    loop.take_over(unpackb(handover_file.read_bytes()))
+    handover.take_over(loop, unpackb(handover_file.read_bytes()))
     handover_file.unlink()
     loop.declare_outputs()
     return Start(w.launch.mode.t0, w.launch.mode.end, resume=True)
@@ -722,11 +723,12 @@ def join(w: Serving) -> Start | None:
 def start_afresh(w: Serving) -> Start | None:
     """A flow whose process died, in its new process: a fresh flow on fresh inputs, its output
     seqs from the coordinator's ``restarted`` (:func:`_join_afresh`). None: stopped first."""
+    from .node import handover
     seqs = _join_afresh(w)
     if seqs is None:
         _stopped_before_start(w)
         return None
-    w.loop.start_fresh(seqs, w.launch.mode.t0)
+    handover.start_fresh(w.loop, seqs, w.launch.mode.t0)
     w.loop.declare_outputs()
     return Start(w.launch.mode.t0, w.launch.mode.end)
 
@@ -751,7 +753,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     waited for as a consumer (each would wait for the other), only as a producer (it answers
     once restarted, not waiting for us)."""
     from .hub import wait_for_answers
-    from .node import RESTART_SEQ_GAP
+    from .node import RESTART_SEQ_GAP, handover
 
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
@@ -759,7 +761,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     answers = _producers_progress(w)
     if loop.stopping:
         return None
-    loop.sync_inputs(answers)  # a producer that never answered: its events are taken from seq 0
+    handover.sync_inputs(loop.streams, answers)  # a producer that never answered: its events are taken from seq 0
     _make_pool(w, lambda: wait_for_answers(
         session, {keys.progress(n) for n in _consumers(spec, w.node)}, timeout=NEIGHBOR_TIMEOUT_S,
         stop=w.waiting(), payload=w.padding,
@@ -775,7 +777,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     restarted = _await_control(loop, protocol.Restarted, w.node, ask=ready)  # said again: see START_ASK_S
     if restarted is None:
         return None
-    loop.values = restarted.values
+    loop.reports.values = restarted.values
     seqs = restarted.seqs
     if not all(seqs.get(p, -1) >= RESTART_SEQ_GAP for p in loop.ports):
         raise RuntimeError(f"the 'restarted' for {w.node} carries no seq past {RESTART_SEQ_GAP} for each output "

@@ -11,6 +11,7 @@ import pytest
 
 from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
+from retriever.backends.zenoh.node import handover
 from retriever.backends.zenoh.protocol import RUN_CONTROL
 from retriever.backends.zenoh.wire import WIRE_VERSION, Progress, WireEncoder, WireError
 from retriever.backends.zenoh.worker import build_loop
@@ -108,7 +109,7 @@ def test_a_restart_of_a_producer_not_said_lost_is_refused(loop):
 
 def test_a_restart_a_fresh_process_caught_up_with_is_ignored(loop):
     """Its inputs were taken on from the producer's own answer (it restarted too): nothing to do."""
-    loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": FIRST - 1})})
+    handover.sync_inputs(loop.streams, {"counter": Progress((400 * MS, 0), "counter", {"value": FIRST - 1})})
     loop.handle(data(FIRST, 450))
     loop.handle(control("restarted", {"node": "counter", "seqs": {"value": FIRST}, "values": True}))
     assert loop.counts["garbage"] == 0 and loop.streams.expect[STREAM] == FIRST + 1 and not loop.notes.detail
@@ -125,11 +126,11 @@ def test_word_of_another_nodes_restart_changes_nothing(loop):
 # The new process of a flow whose process died
 # ---------------------------------------------------------------------------------------------
 def test_a_fresh_process_takes_each_stream_on_from_where_its_producer_stands(loop):
-    loop.sync_inputs({"counter": Progress((400 * MS, 0), "counter", {"value": 9})})
+    handover.sync_inputs(loop.streams, {"counter": Progress((400 * MS, 0), "counter", {"value": 9})})
     assert loop.streams.frontiers[STREAM] == (400 * MS, 0)
     loop.handle(data(8, 380))  # published before the producer answered: not this process's
     loop.handle(data(10, 450))
-    loop.start_fresh({"report": FIRST}, 0)
+    handover.start_fresh(loop, {"report": FIRST}, 0)
     tick_all(loop)
     (record,) = loop.reports.records
     assert consumed(record) == [10] and record[2] == (("where", "report", FIRST),)
@@ -138,7 +139,7 @@ def test_a_fresh_process_takes_each_stream_on_from_where_its_producer_stands(loo
 
 
 def test_a_fresh_process_waits_for_nothing_from_a_finished_producer(loop):
-    loop.sync_inputs({"counter": None})
+    handover.sync_inputs(loop.streams, {"counter": None})
     assert loop.streams.frontiers[STREAM] == NEVER and loop.streams.fresh_inputs == {}
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from retriever import Burst
 from retriever.codec import packb, unpackb
 from retriever.backends.zenoh.node import DATA, EARLY_SEQS_MAX, PROGRESS, WAITING_MAX
+from retriever.backends.zenoh.node import handover
 from retriever.backends.zenoh.wire import WireEncoder
 
 from . import test_restart_afresh as by_hand
@@ -69,7 +70,7 @@ def test_held_let_outputs_with_a_burst_are_handed_over(loop):
     loop.outputs.held = [((5 * MS, 0), "saw", Burst(["a", "b"]), 3), ((6 * MS, 0), "saw", "c", 5)]
     state = unpackb(packb(loop.handover_state()))
     loop.outputs.held = []
-    loop.take_over(state)
+    handover.take_over(loop, state)
     burst, single = loop.outputs.held
     assert burst[:2] == ((5 * MS, 0), "saw") and type(burst[2]) is Burst and burst[2].values == ("a", "b")
     assert burst[3] == 3 and single == ((6 * MS, 0), "saw", "c", 5)

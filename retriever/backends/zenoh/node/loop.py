@@ -110,20 +110,6 @@ class NodeLoop:
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
         self.declared: list = []  # the control plane's subscriber and queryable on `session`
 
-    @property
-    def values(self) -> bool:
-        """Whether the coordinator wants the events' values (Reports.values); the start says."""
-        return self.reports.values
-
-    @values.setter
-    def values(self, wanted: bool) -> None:
-        self.reports.values = wanted
-
-    @property
-    def recorded(self) -> int:
-        """Step records made in all (the coordinator checks it got every tick)."""
-        return self.reports.recorded
-
     # ---------------------------------------------------------------------------------------
     # Wiring: the transport for events, the run's session for control
     # ---------------------------------------------------------------------------------------
@@ -308,7 +294,7 @@ class NodeLoop:
     def run(self, t0: int, end: int, resume: bool = False) -> None:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
-        clock, outputs, reports, warmup = self.run_clock, self.outputs, self.reports, self.warmup
+        clock, outputs, reports = self.run_clock, self.outputs, self.reports
         with self.lock:
             clock.start(t0, end)
         if resume and not self.virtual:  # (in virtual time no tick came due meanwhile: time waited)
@@ -425,7 +411,7 @@ class NodeLoop:
         return tau[0] if tau[0] > self.run_clock.now() else TICKED
 
     # ---------------------------------------------------------------------------------------
-    # The end, and a restart's hand-over (handover.py)
+    # The end, and a restart's hand-over (handover.py: take_over, sync_inputs, start_fresh)
     # ---------------------------------------------------------------------------------------
     def _finish(self) -> None:
         """Release what is held (tags past the end still belong to the run), promise nothing more."""
@@ -437,28 +423,8 @@ class NodeLoop:
         self.outputs.publish_progress(NEVER)
         self.reports.finish()
 
-    def release_held(self) -> None:
-        """Publish every held LET output now (Outputs.release_held): the loop ends early."""
-        self.outputs.release_held()
-
-    def finish_reports(self) -> None:
-        """Report what is left, and return once every report is out (Reports.finish)."""
-        self.reports.finish()
-
     def handover_state(self) -> dict:
         """This loop's state, for the process that takes over (call after ``undeclare``: the
         messages already queued are taken in first, and no more come)."""
         self.drain()
         return handover.handover_state(self)
-
-    def take_over(self, state: dict) -> None:
-        """Go on from the state of the process this one replaces (see :meth:`handover_state`)."""
-        handover.take_over(self, state)
-
-    def sync_inputs(self, answers: dict) -> None:
-        """A fresh process: take each input stream on from where its producer stands now."""
-        handover.sync_inputs(self.streams, answers)
-
-    def start_fresh(self, seqs: dict[str, int], t0: int) -> None:
-        """Go on from the coordinator's ``restarted``: each output port's first seq, Rate ticks from now."""
-        handover.start_fresh(self, seqs, t0)
