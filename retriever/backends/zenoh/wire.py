@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import mmap
 import re
+import reprlib
 import struct
 from typing import Any, NamedTuple
 
@@ -62,6 +63,17 @@ import zenoh
 from ...codec import OutOfBandEncoder, unpackb_out_of_band
 from ...errors import CodecError, WireError
 from ...flow.burst import MAX_BURST, Burst, travels_as_rows
+
+_SHORT = reprlib.Repr()  # (Python 3.11's takes no settings as arguments)
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict = 2, 4, 4
+_SHORT.maxstring = _SHORT.maxother = _SHORT.maxlong = 40
+
+
+def shown(value: Any, limit: int = 60) -> str:
+    """``value`` (decoded from the network) as an error message shows it: at most ``limit``
+    characters, and bounded work whatever it holds (a repr of a list nested a thousand deep
+    raised RecursionError; of a big one, built it all before cutting it)."""
+    return _SHORT.repr(value)[:limit]
 
 #: every message of a run is needed: block rather than drop when a link is congested (a dropped
 #: event would leave a gap in its stream's seqs that no frontier can cross)
@@ -204,7 +216,7 @@ def _array_header(count: int) -> bytes:
 def _tag(what: str, raw: Any) -> Tag:
     if (type(raw) is not list or len(raw) != 2 or type(raw[0]) is not int or type(raw[1]) is not int
             or raw[0] < 0 or raw[1] < 0):
-        raise WireError(f"{what} must be [t_ns, microstep] of two integers >= 0, got {raw!r:.80}")
+        raise WireError(f"{what} must be [t_ns, microstep] of two integers >= 0, got {shown(raw, 80)}")
     return (raw[0], raw[1])
 
 
@@ -220,7 +232,7 @@ def _fields(data: bytes, count: int, kind: str) -> list:
     if len(fields) != count:
         raise WireError(f"a {kind} message must be an array of {count}, got {len(fields)} elements")
     if fields[0] != WIRE_VERSION:
-        raise WireError(f"a {kind} message of wire format {fields[0]!r:.20}; this process speaks {WIRE_VERSION}")
+        raise WireError(f"a {kind} message of wire format {shown(fields[0], 20)}; this process speaks {WIRE_VERSION}")
     return fields
 
 
@@ -274,10 +286,10 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok
         raise WireError("a data message's envelope must be an array of 7 (an event) or 8 (a burst)")
     version, tag, seq, frontier, producer, port, value, *count = fields
     if type(version) is not int or version != WIRE_VERSION:  # an array's != is an array
-        raise WireError(f"a data message of wire format {version!r:.20}; this process speaks {WIRE_VERSION}")
+        raise WireError(f"a data message of wire format {shown(version, 20)}; this process speaks {WIRE_VERSION}")
     tag, frontier = _tag("tag", tag), _tag("frontier", frontier)
     if type(seq) is not int or not 0 <= seq < SEQ_LIMIT:
-        raise WireError(f"seq must be an integer from 0 to 2**63 - 1, got {seq!r:.40}")
+        raise WireError(f"seq must be an integer from 0 to 2**63 - 1, got {shown(seq, 40)}")
     if type(producer) is not str or type(port) is not str:
         raise WireError("producer and port must be strings")
     if expected is not None and (producer, port) != expected:
@@ -288,7 +300,7 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok
         return [DataMessage(tag, seq, frontier, producer, port, value)]
     (count,) = count
     if type(count) is not int or not 1 <= count <= MAX_BURST:
-        raise WireError(f"a burst's count must be an integer from 1 to {MAX_BURST}, got {count!r:.20}")
+        raise WireError(f"a burst's count must be an integer from 1 to {MAX_BURST}, got {shown(count, 20)}")
     if seq + count > SEQ_LIMIT:
         raise WireError(f"a burst of {count} from seq {seq} runs past the last seq a stream has")
     if value is None and blank_ok:  # its values were left out (the coordinator records that they were sent)
@@ -297,7 +309,7 @@ def decode_events(data: bytes, expected: tuple[str, str] | None = None, blank_ok
         value = list(value)  # its rows: read-only views of the message (of a 1-D array, numpy scalars)
     elif type(value) is not list or len(value) != count:
         raise WireError(f"a burst must hold a list of as many values as its count, or an array of as many rows, "
-                        f"got {count!r:.20} and {type(value).__name__}")
+                        f"got {shown(count, 20)} and {type(value).__name__}")
     last = count - 1
     return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
             for i, item in enumerate(value)]

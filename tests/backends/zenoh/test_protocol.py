@@ -466,6 +466,29 @@ def test_any_bytes_decode_to_a_record_or_raise_wire_error(data):
             pass
 
 
+
+def nested(depth: int) -> bytes:
+    """A list nested ``depth`` deep, packed by hand (msgpack's packer refuses past 511 levels;
+    its unpacker takes up to about 1,024)."""
+    return b"\x91" * depth + b"\x90"
+
+
+@pytest.mark.parametrize("place", ["version", "op", "fields"])
+def test_a_field_nested_deeper_than_repr_goes_is_refused_with_a_short_error(place):
+    """The fuzz campaign found it: a message whose first field was a list nested ~1000 deep made
+    the error's repr raise RecursionError (a crash, not a refusal). Errors show decoded values
+    through wire.shown: bounded, whatever they hold."""
+    deep = nested(1000)
+    data = {"version": b"\x93" + deep + msgpack.packb("stop") + b"\x80",
+            "op": b"\x93\x02" + deep + b"\x80",
+            "fields": b"\x93\x02" + msgpack.packb("grant") + b"\x81" + msgpack.packb("until") + deep}[place]
+    decoders = [channel.decode for channel in CHANNELS] + [p.STATUS.decode, p.Report.decode]
+    for decode in decoders:
+        with pytest.raises(WireError) as refused:
+            decode(data)
+        assert len(str(refused.value)) < 400
+
+
 # ---------------------------------------------------------------------------------------------
 # Signed control (seal.py): forged, altered, replayed, another run's, a wrong key
 # ---------------------------------------------------------------------------------------------

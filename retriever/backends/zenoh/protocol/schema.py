@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import msgpack
 
 from ....errors import WireError
-from ..wire import WIRE_VERSION
+from ..wire import WIRE_VERSION, shown
 
 #: the largest ns count (a tag's time, a T0 in ns since the epoch, an end) and seq a field holds
 NS_MAX = (1 << 63) - 1
@@ -60,7 +60,7 @@ ABSENT: Any = _Absent()
 
 
 def _got(value: Any) -> str:
-    return f"{type(value).__name__} {value!r:.60}"
+    return f"{type(value).__name__} {shown(value, 60)}"
 
 
 class Kind:
@@ -215,7 +215,8 @@ class MapOf(Kind):
         if type(value) is not dict or len(value) > self.max_items:
             raise self.refuse(value, where)
         read_key, read_value = self.key.read, self.value.read
-        return {read_key(k, f"{where} key {k!r:.40}"): read_value(v, f"{where}[{k!r:.40}]") for k, v in value.items()}
+        return {read_key(k, f"{where} key {shown(k, 40)}"): read_value(v, f"{where}[{shown(k, 40)}]")
+                for k, v in value.items()}
 
     def write(self, value: dict) -> dict:
         write_key, write_value = self.key.write, self.value.write
@@ -267,7 +268,7 @@ class Plain(Kind):
         for k, item in value.items():
             if type(k) is not str:
                 raise self.refuse(value, where)
-            self._check(item, f"{where}[{k!r:.40}]", depth - 1)
+            self._check(item, f"{where}[{shown(k, 40)}]", depth - 1)
 
 
 class HexKey(Kind):
@@ -361,7 +362,7 @@ class Record:
         if extra:
             reason = next((cls.REFUSED[k] for k in extra if k in cls.REFUSED), None)
             raise WireError(f"{where}: {reason}" if reason else
-                            f"{where} has a field it does not take: {extra[0]!r:.40} "
+                            f"{where} has a field it does not take: {shown(extra[0], 40)} "
                             f"(it takes {', '.join(n for n, _, _ in cls.schema()) or 'none'})")
         return cls(**values)
 
@@ -395,7 +396,7 @@ def unpack(data: Any, count: int, what: str, max_bytes: int, exact_maps: bool = 
     if type(fields) is not list or len(fields) != count:
         raise WireError(f"{what} must be a msgpack array of {count}, got {_got(fields)}")
     if type(fields[0]) is not int or fields[0] != WIRE_VERSION:
-        raise WireError(f"{what} of wire format {fields[0]!r:.20}; this process speaks {WIRE_VERSION}")
+        raise WireError(f"{what} of wire format {shown(fields[0], 20)}; this process speaks {WIRE_VERSION}")
     return fields
 
 
@@ -420,5 +421,5 @@ class Channel:
         _, name, fields = unpack(data, 3, f"a message on {self.what}", self.max_bytes)
         record = self.records.get(name) if type(name) is str else None
         if record is None:
-            raise WireError(f"{who or self.what} knows no op {name!r:.40} (it knows {', '.join(self.records)})")
+            raise WireError(f"{who or self.what} knows no op {shown(name, 40)} (it knows {', '.join(self.records)})")
         return record.from_fields(fields, f"a '{name}' message on {self.what}")

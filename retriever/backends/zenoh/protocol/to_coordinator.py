@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 
 from ....errors import WireError
 from ....trace import STEP_STATUSES
-from ..wire import WIRE_VERSION
+from ..wire import WIRE_VERSION, shown
 from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf,
                      MapOf, Name, Nullable, Plain, Record, Row, Text, field, pack, port, unpack)
 
@@ -161,7 +161,8 @@ class StatusChannel:
             raise WireError(f"a status of {said} arrived on the key of {node}")
         record = STATUSES.get(state) if type(state) is str else None
         if record is None:
-            raise WireError(f"a status message of state {state!r:.20}; a worker's states are {', '.join(STATUSES)}")
+            raise WireError(f"a status message of state {shown(state, 20)}; a worker's states are "
+                            f"{', '.join(STATUSES)}")
         return record.from_fields(info, f"a '{state}' status of {said}", node=said)
 
 
@@ -247,7 +248,7 @@ def _step(raw: Any, report: str, i: int) -> ReportedStep:
         ids[name] = _ids(events, report, i, "consumed")
     if status not in STEP_STATUSES:
         raise WireError(f"{report}: record {i}: field 'status' must be one of {', '.join(STEP_STATUSES)}, "
-                        f"got {status!r:.30}")
+                        f"got {shown(status, 30)}")
     if detail is not None:
         if type(detail) is not dict:
             raise WireError(f"{report}: record {i}: field 'detail' must be nil or a map, got {type(detail).__name__}")
@@ -266,12 +267,12 @@ def _ids(raw: Any, report: str, i: int, name: str) -> tuple[tuple[str, str, int]
     if type(raw) is not list or not all(type(e) is list and len(e) == 3 and type(e[0]) is str and type(e[1]) is str
                                         and type(e[2]) is int and 0 <= e[2] <= SEQ_MAX for e in raw):
         raise WireError(f"{report}: record {i}: field '{name}' must hold event ids: [node, port, seq] triples (seq "
-                        f"from 0), got {raw!r:.60}")
+                        f"from 0), got {shown(raw, 60)}")
     return tuple(map(tuple, raw))
 
 
 def _event(raw: Any, report: str, i: int) -> ReportedEvent:
     if (type(raw) is not list or len(raw) != 2 or type(raw[0]) is not int or not -NS_MAX - 1 <= raw[0] <= NS_MAX
             or not (type(raw[1]) is bytes or (type(raw[1]) is str and 0 < len(raw[1]) <= MAX_FILE_NAME))):
-        raise WireError(f"{report}: event {i} must be [wall_ns, data message or file name], got {raw!r:.60}")
+        raise WireError(f"{report}: event {i} must be [wall_ns, data message or file name], got {shown(raw, 60)}")
     return tuple.__new__(ReportedEvent, raw)
