@@ -13,9 +13,8 @@ every module, in the three forms that can be told apart without knowing types:
 - ``def _x`` in a class that overrides a private member of a base class in another module (a
   private hook customised from outside).
 
-Dunder names are public protocol. What is left today is named in KNOWN, each marked
-"issue 37: remove": the check fails on any new case, and on a KNOWN case that no longer occurs,
-so the list stays true and only shrinks.
+Dunder names are public protocol. KNOWN lists the exceptions (none today): the check fails on any
+other case, and on a KNOWN case that no longer occurs, so the list stays true.
 """
 
 from __future__ import annotations
@@ -29,14 +28,10 @@ PACKAGE = "retriever"
 PACKAGE_DIR = Path(__file__).resolve().parents[1] / PACKAGE
 
 
-#: Private names still read across modules today: each is to go (the check fails on any other,
-#: and on one of these that no longer occurs). Keyed by the reading module and the name.
-KNOWN = {
-    # dora's host reads the zenoh output capture's privates; output.py should name them publicly
-    ("retriever.backends.dora.host", "_WRITING"): "issue 37: remove",
-    ("retriever.backends.dora.host", "_tail"): "issue 37: remove",
-    # a flow's settings are read through its private `_retriever` (a flow.settings_of(flow) would do)
-}
+#: Private names still read across modules: none. An exception, if one must be made, goes here
+#: with its reason (the check fails on any other, and on one of these that no longer occurs),
+#: keyed by the reading module and the name.
+KNOWN: dict[tuple[str, str], str] = {}
 
 
 def _is_private(name: str) -> bool:
@@ -206,8 +201,3 @@ def test_each_known_case_still_occurs():
     """A case fixed is deleted from KNOWN, so the check tightens as code moves."""
     stale = sorted(f"{module}: {name}" for module, name in KNOWN if (module, name) not in ALL_READS)
     assert stale == [], "no longer read; remove from KNOWN in tests/test_private_names.py: " + ", ".join(stale)
-
-
-def test_each_known_case_says_it_is_to_go():
-    assert {why for why in KNOWN.values()} <= {"issue 37: remove"}
-

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from ...errors import BackendError
 from ..zenoh.host import Host
-from ..zenoh.output import _WRITING
+from ..zenoh.output import write_line
 
 #: a node whose process is gone without saying how it ended (killed, or a crash): its exit code
 LOST = 255
@@ -140,7 +140,7 @@ class DoraHost(Host):
         text = f"{dora_id or 'dora'}: {message}"
         self.tail.append(text)  # kept for the error that names a failed node
         if node is not None:
-            self.output(node)._tail.append(f"(dora) {message}")
+            self.output(node).keep(f"(dora) {message}")
             killed, code = _KILLED_BY.search(message), _EXITED_WITH.search(message)
             if killed and hasattr(signal, killed.group(1)):
                 self.signalled[node] = -getattr(signal, killed.group(1))
@@ -148,9 +148,7 @@ class DoraHost(Host):
                 self.signalled[node] = int(code.group(1))
         if self.interrupted:
             return
-        with _WRITING, contextlib.suppress(OSError, ValueError, AttributeError):
-            sys.stderr.write(f"[dora] {text}\n")
-            sys.stderr.flush()
+        write_line(sys.stderr, f"[dora] {text}")
 
     def said_all(self) -> bool:
         """Whether dora run ended and every line it wrote was read: it has no more to say."""

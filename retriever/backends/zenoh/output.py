@@ -20,6 +20,17 @@ from collections.abc import Callable
 _WRITING = threading.Lock()
 
 
+def write_line(stream, line: str) -> None:
+    """Write ``line`` to ``stream`` whole: no other line the workers' output writes comes between
+    its parts. Nothing if the stream is closed or gone."""
+    with _WRITING:
+        try:
+            stream.write(f"{line}\n")
+            stream.flush()
+        except (OSError, ValueError, AttributeError):
+            pass
+
+
 class WorkerOutput:
     """The output of one node's worker processes (a restarted flow gets a new process)."""
 
@@ -73,13 +84,12 @@ class WorkerOutput:
             self.stderr_lines += 1
             if not self.forwarding:
                 return
-        stream = getattr(sys, name)  # looked up per line: pytest and rich replace it
-        with _WRITING:
-            try:
-                stream.write(f"[{self.node}] {line}\n")
-                stream.flush()
-            except (OSError, ValueError, AttributeError):  # closed or gone: the line is in the tail
-                pass
+        write_line(getattr(sys, name), f"[{self.node}] {line}")  # looked up per line: pytest and rich replace it
+
+    def keep(self, line: str) -> None:
+        """Keep ``line`` in the tail that an error about this node shows, beside its stderr (what
+        another program, such as dora, said of the node's process)."""
+        self._tail.append(line)
 
     def drain(self, timeout: float = 1.0) -> None:
         """Wait (at most ``timeout``) until an exited process's last lines are read."""
