@@ -426,17 +426,12 @@ def test_without_a_time_budget_a_seed_trains_the_same_weights_along_a_schedule_o
     assert rates == pytest.approx(per_epoch * 2, rel=1e-12)  # one batch an epoch, two trainings
 
 
-def test_collects_progress_says_the_last_episodes_time_as_the_last(tmp_path, monkeypatch):
-    import io
-
-    from rich.console import Console
-
+def test_collects_progress_says_the_last_episodes_time_as_the_last(tmp_path, monkeypatch, capsys):
     from agents.learn import __main__ as command
     from agents.learn import episodes
-    screen = io.StringIO()
-    monkeypatch.setattr(command, "_err", Console(file=screen, width=300, markup=False))
     walls = iter([0.5, 2.25])
     monkeypatch.setattr(episodes, "pick_episode", lambda seed, policy, log: episodes.Outcome(
         seed, "TL", True, 5.0, next(walls), "done"))
     command.collect(2, "5:7", tmp_path / "logs")
-    assert "2/2 succeeded, the last in 2.25 s wall" in screen.getvalue() and " each" not in screen.getvalue()
+    said = capsys.readouterr().err  # the command's console writes to stderr, whatever it is then
+    assert "2/2 succeeded, the last in 2.25 s wall" in said and " each" not in said
