@@ -39,8 +39,7 @@ TEARDOWN_POLL_S = 0.02
 
 #: T0 this long after the start is put, by default (zenoh's: 0.3 s). Every worker said ready, and a
 #: greeting came through each of its inputs, but for a second or two more dora is slow to deliver:
-#: with 20 flows, a 100 Hz source's first events reached their consumer 0.8-2.4 s late (the
-#: backlog then drained over a second), with 2 s of margin 3 ms late (on zenoh: 3 ms, with 0.3 s).
+#: with less margin, a source's first events reach their consumers late, then drain as a backlog.
 START_MARGIN_S = 2.0
 
 #: the lines of dora's own output an error shows

@@ -45,7 +45,7 @@ from typing import NamedTuple
 
 import zenoh
 
-from ...errors import WorkerError
+from ...errors import OtherProtocolError, WorkerError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .folders import DAEMON_FOLDER, private_folder, reap_stale
@@ -73,8 +73,8 @@ ALWAYS_ALLOWED = ("retriever",)
 JOIN_S = 3.0
 #: a bound on an answer to a liveliness get or a control query (0.4 ms on loopback, ms on a LAN)
 QUERY_S = 2.0
-#: info queries per worker that measure its clock's offset: the first crossed a new route and took
-#: 10-20 ms one way (an offset of -9 ms between two processes of one host), later ones 0.5 ms
+#: info queries per worker that measure its clock's offset: the first crosses a new route and is
+#: much slower one way than the later ones, so one sample would misjudge the offset
 CLOCK_SAMPLES = 5
 #: how often the main thread wakes while it waits for SIGINT/SIGTERM: a signal the kernel gives
 #: one of Zenoh's threads runs our (main-thread) handler only when the main thread wakes
@@ -392,15 +392,6 @@ def hlc_now_ns(session: zenoh.Session) -> int:
     return session.new_timestamp().get_time_as_ntp64().as_nanos()
 
 
-class OtherProtocolError(WorkerError):
-    """A worker that speaks another protocol version than this process (protocol.OtherProtocol):
-    which one, and the version of Retriever it runs, as far as it said."""
-
-    def __init__(self, name: str, other: OtherProtocol):
-        super().__init__(f"worker '{name}' speaks protocol {other.protocol}, this process {PROTOCOL_VERSION}")
-        self.protocol, self.retriever = other.protocol, other.retriever
-
-
 def ask(session: zenoh.Session, namespace: str, name: str, request: Record, timeout: float = QUERY_S) -> Record:
     """Send ``request`` to worker ``name`` and return its reply; WorkerError if it refused or said nothing."""
     return ask_whom(session, namespace, name, request, timeout)[0]
@@ -420,7 +411,7 @@ def ask_whom(session: zenoh.Session, namespace: str, name: str, request: Record,
                 break
             raise WorkerError(f"worker '{name}' refused {op}: {message}")
         except OtherProtocol as e:
-            raise OtherProtocolError(name, e) from None
+            raise OtherProtocolError(name, e, PROTOCOL_VERSION) from None
         except WireError as e:
             raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None
     raise WorkerError(f"worker '{name}' did not answer {op} within {timeout:g} s")

@@ -73,10 +73,9 @@ EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended
 #: Before it says ``ready``, a worker asks each consumer's progress with this much padding, so
 #: that Zenoh sends the question through the session's shared-memory pool (messages over 3 KiB
 #: between peers on one host go that way; the hub has no shared memory: hub.HUB_SHARED_MEMORY).
-#: Zenoh creates the pool on its first such message and writes all of it (128 MiB: ~37k page
-#: faults, 130 ms here, more on memory the VM has not touched): so that happens before T0 (or
-#: before a restarted flow joins); left to the first big frame, it held that put for 130 ms and
-#: the source's next ticks started up to 120 ms late (benchmarks/reports/latency.md, at 16 MiB).
+#: Zenoh creates the pool on its first such message and writes all of it (128 MiB of page
+#: faults): so that happens before T0 (or before a restarted flow joins); left to the first big
+#: frame, it held that put and made the source's next ticks late (benchmarks/reports/latency.md).
 #: The answer comes once the pool exists: the question is in it. A node with no consumer on its
 #: host never sends through a pool, and has none.
 POOL_PADDING = 4096
@@ -121,11 +120,11 @@ NEIGHBOR_TIMEOUT_S = 10.0
 #: missed it would wait until the run gave up on it.
 START_ASK_S = 0.5
 
-#: A new worker waits, before it says ready, for an answer from each producer (see _serve), and
-#: from each consumer if it makes its pool (POOL_PADDING). At 80 flows on 8 hosts of a 2-core
-#: machine, a worker linked to its producer was, 2 runs in 3, never told of that producer's
-#: queryable: the run never started (benchmarks/reports/deploy.md, "Scale"; the other nodes'
-#: answers came). So after this long without an answer it says ``unanswered``; the coordinator
+#: A new worker waits, before it says ready, for an answer from each producer (see start), and
+#: from each consumer if it makes its pool (POOL_PADDING). With many flows starting at once, a
+#: worker linked to its producer may never be told of that producer's queryable, and the run
+#: would never start (benchmarks/reports/deploy.md, "Scale"). So after this long without an
+#: answer it says ``unanswered``; the coordinator
 #: tells those neighbours to ``redeclare`` (on ctl/run, through the hub: the link
 #: between the two may be what lost it), and the worker declares its own subscriptions again too.
 REDECLARE_AFTER_S = 2.0
@@ -229,7 +228,7 @@ def _keep_freed_memory() -> None:
     """glibc: serve blocks up to 32 MiB from the heap and keep freed memory mapped. A worker
     allocates and frees a message-sized buffer per event; by default glibc returns big blocks to
     the kernel at once, so every event paid a page fault per 4 KiB again (a 16 MiB frame: 4096
-    faults, about 6 ms on the benchmark machine, against 1 ms for the copy itself)."""
+    faults, which cost more than the copy itself)."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD (the most glibc allows)
@@ -310,7 +309,7 @@ PR_SET_TIMERSLACK = 29  # <linux/prctl.h>
 def _no_timer_slack() -> None:
     """Let this thread's timed waits end on time: Linux may end each one up to its timer slack
     late (50 µs unless set) to wake threads together; the loop waits for ticks, so it asks for
-    1 ns (a tick's lateness p50 120 → 65 µs, benchmarks/control_jitter.py). Per thread: call it
+    1 ns (benchmarks/control_jitter.py measures a tick's lateness). Per thread: call it
     on the thread that runs the loop. Elsewhere than Linux, or if refused, nothing changes."""
     if not sys.platform.startswith("linux"):
         return

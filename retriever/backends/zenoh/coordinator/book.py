@@ -69,7 +69,7 @@ class RunBook:
     def _init_reports(self, graph: Graph) -> None:
         self.stats = {nid: NodeStats() for nid in graph.nodes}
         self.event_ids = EventIds()  # every event id seen (as runs of seqs: bounded memory)
-        # events a consumer's report carried for its producer (loop.HOLD_RECORDS_NS), and per
+        # events a consumer's report carried for its producer (node/reports.py, HOLD_RECORDS_NS), and per
         # stream the last seq the coordinator has, told to the consumers (control `have`)
         self.carried: set[tuple[str, str, int]] = set()
         self.have: dict[tuple[str, str], int] = {}

@@ -194,7 +194,7 @@ class NodeLoop:
         if self.failure is None and self.turn.acquire(blocking=False):
             try:
                 self._serve(item)
-            except BaseException as exc:  # StopRun, RestartFlow, or a bug: the main thread raises it
+            except BaseException as exc:  # StopRun, or a bug: the main thread raises it
                 self.failure = exc
             finally:
                 self.turn.release()

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
-from ....errors import WireError
+from ....errors import OtherProtocol, WireError
 from ..origin import KEY_BYTES
 from .schema import (MAX_NAME_CHARS, NS_MAX, PID_MAX, Channel, Document, Float, HexKey, Int, Kind, ListOf, MapOf,
                      Name, OneOf, Record, Text, field)
@@ -153,15 +153,6 @@ class InfoReply(Record):
             raise OtherProtocol(f"{where}: the worker speaks protocol {protocol}, this process {PROTOCOL_VERSION}",
                                 protocol, retriever if type(retriever) is str else None)
         return super().from_fields(fields, where, **envelope)
-
-
-class OtherProtocol(WireError):
-    """The info of a daemon that speaks another protocol version: which one, and the version of
-    Retriever it says it runs (what to install alike on both machines), as far as it says."""
-
-    def __init__(self, message: str, protocol: int, retriever: str | None):
-        super().__init__(message)
-        self.protocol, self.retriever = protocol, retriever
 
 
 @dataclass(frozen=True, kw_only=True)
