@@ -9,9 +9,10 @@ processes on different hosts talk over real TCP between network stacks, and each
 
 The coordinator is this script on host 1, ``--coordinate JOB.json``: it runs the pipeline the way
 ``retriever deploy`` does, from Python (``pipe.run(backend="zenoh", connect=[...], secret=...,
-placement=...)``: the same ``Deployment``), and stamps its steps with ``time.time_ns()`` by
-wrapping a few of its methods (``instrument``). Every namespace reads this machine's one clock,
-so wall-clock stamps taken in different hosts compare directly.
+placement=...)``: the same ``Deployment``), and stamps its steps with ``time.time_ns()`` from
+outside (``Watch``): the deployment's own steps (join, discover, prepare) as its ``on_phase``
+hook reports them, the rest by watching the session. Every namespace reads this machine's one
+clock, so wall-clock stamps taken in different hosts compare directly.
 
 1. ``deploy``: 3 workers x 10 flows (10 chains ``Counter @ Rate(10) -> Keep @ Trigger() -> Keep
    @ Trigger()``, 30 nodes, placed by load: consecutive nodes of a chain land on different
@@ -54,7 +55,6 @@ from __future__ import annotations
 import argparse
 import csv
 import faulthandler
-import functools
 import json
 import math
 import os
@@ -127,67 +127,78 @@ def cpu_seconds() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def _time_calls(cls, method: str, key: str, stamps: dict) -> None:
-    """Wrap ``cls.method`` so that ``stamps[key]`` = [first call's start, last call's end] (Unix ns)."""
-    original = getattr(cls, method)
+class Watch:
+    """Stamps the coordinator's steps from outside it, in its process: the deployment's own steps
+    (join, discover, prepare) as its ``on_phase`` reports each one's end; from a thread of its own,
+    polling every ``POLL_S``: the session built (``pipe.session`` set, once each flow's process is
+    spawned), each node's first ``ready`` (the session's ``book.state``), and, once T0 is chosen
+    (``book.t0`` set: every flow ready; ``start`` is put right after), when that was (T0 less the
+    start margin) and the CPU this process used by then, the watcher's own left out; and it
+    prints the failure that makes the session close early as soon as the book holds it (a hang
+    in the close would hide it)."""
 
-    @functools.wraps(original)
-    def timed(*args, **kw):
-        begin = time.time_ns()
-        try:
-            return original(*args, **kw)
-        finally:
-            stamps.setdefault(key, [begin, 0])[1] = time.time_ns()
+    #: how often the watcher looks until T0 (the stamps' resolution), and after
+    POLL_S, POLL_AFTER_S = 0.005, 0.05
 
-    setattr(cls, method, timed)
+    def __init__(self, pipe, stamps: dict):
+        self.pipe, self.stamps = pipe, stamps
+        self.phases: dict[str, float] = stamps.setdefault("phases", {})  # name -> s
+        self.ready_at: dict[str, int] = stamps.setdefault("ready_at", {})
+        self.done = threading.Event()
+        self.own_cpu_ns = 0
+        self.thread = threading.Thread(target=self._watch, name="bench-watch", daemon=True)
 
+    def on_phase(self, name: str, seconds: float) -> None:
+        """The deployment's hook: ``name`` ended now, ``seconds`` after it began."""
+        self.phases[name] = seconds
+        if name == "prepare":  # the coordinator spawns each flow's process next
+            self.stamps["spawn"] = [time.time_ns(), 0]
 
-def instrument(stamps: dict) -> None:
-    """Stamp the coordinator's steps: the session (join, discover, prepare, spawn), each node's
-    ``ready`` (when it came, and the peers its worker had linked then), the moment every flow was
-    ready (the ``start`` control, put right after T0 is chosen) with the CPU used by then; and
-    print the error that makes a session close early (a hang in the close would hide it)."""
-    from retriever.backends.zenoh.coordinator import Coordinator, RunControl
-    from retriever.backends.zenoh.coordinator import statuses as statuses_module
-    from retriever.backends.zenoh.deploy import Deployment
-    from retriever.backends.zenoh.protocol import ABSENT, Ready, Start
-    from retriever.backends.zenoh.remote import RemoteHost
+    def __enter__(self) -> Self:
+        self.stamps["session"] = [time.time_ns(), 0]
+        self.thread.start()
+        return self
 
-    for cls, method, key in ((Coordinator, "__init__", "session"), (Deployment, "open_hub", "join"),
-                             (Deployment, "_discover", "discover"), (RemoteHost, "prepare", "prepare"),
-                             (RemoteHost, "spawn", "spawn")):
-        _time_calls(cls, method, key, stamps)
-    control, close, statuses = RunControl.put, Coordinator.close, statuses_module.STATUS
-    ready_at, ready_peers = stamps.setdefault("ready_at", {}), stamps.setdefault("ready_peers", {})
+    def __exit__(self, *exc) -> None:
+        self.done.set()
+        self.thread.join()
 
-    def timed_control(self, record) -> None:
-        if type(record) is Start and "ready" not in stamps:
-            stamps["ready"], stamps["cpu_at_start"] = time.time_ns(), cpu_seconds()
-        control(self, record)
+    def cpu_seconds(self) -> float:
+        """This process's CPU s so far, without the watcher's."""
+        return cpu_seconds() - self.own_cpu_ns / 1e9
 
-    class NotedStatuses:
-        """The status machine's decoder, noting when each node first said ready."""
+    def _watch(self) -> None:
+        from retriever.backends.zenoh.protocol import State
 
-        def decode(self, data, node=None):
-            status = statuses.decode(data, node=node)
-            if type(status) is Ready and status.node not in ready_at:
-                ready_at[status.node] = time.time_ns()
-                ready_peers[status.node] = None if status.peers is ABSENT else status.peers
-            return status
+        stamps, session, told = self.stamps, None, False
+        while not self.done.wait(self.POLL_S if "ready" not in stamps else self.POLL_AFTER_S):
+            begin = time.thread_time_ns()
+            now = time.time_ns()
+            if session is None and (session := self.pipe.session) is not None:
+                stamps["session"][1] = now
+                if "spawn" in stamps:
+                    stamps["spawn"][1] = now
+            book = getattr(session, "book", None)
+            if book is not None:
+                for node, state in list(book.state.items()):
+                    if state == State.READY and node not in self.ready_at:
+                        self.ready_at[node] = now
+                if book.t0 is not None and "ready" not in stamps:
+                    stamps["ready"] = book.t0 - session.start_margin_ns  # T0 is chosen that far ahead
+                    stamps["cpu_at_start"] = self.cpu_seconds() - (time.thread_time_ns() - begin) / 1e9
+                if book.failure is not None and not told:
+                    told = True
+                    self._tell(now, book.failure)
+            self.own_cpu_ns += time.thread_time_ns() - begin
 
-    def told_close(self) -> None:
-        if sys.exc_info()[0] is not None and "closing_on" not in stamps:
-            stamps["closing_on"] = time.time_ns()
-            traceback.print_exc()
-            spans = {k: [round((t - SCRIPT_STARTED_NS) / 1e9, 3) for t in v] for k, v in stamps.items()
-                     if isinstance(v, list)}
-            print(f"coordinator: closing the session on that error, {(time.time_ns() - SCRIPT_STARTED_NS) / 1e9:.3f} s "
-                  f"after the script started; {len(ready_at)} nodes had said ready; spans (s since the script "
-                  f"started): {spans}", file=sys.stderr, flush=True)
-        close(self)
-
-    RunControl.put, Coordinator.close = timed_control, told_close
-    statuses_module.STATUS = NotedStatuses()
+    def _tell(self, now: int, failure) -> None:
+        node, error = failure.node, failure.error
+        spans = {k: [round((t - SCRIPT_STARTED_NS) / 1e9, 3) for t in v] for k, v in self.stamps.items()
+                 if isinstance(v, list)}
+        print(f"coordinator: the session closes on a failure of '{node}', {(now - SCRIPT_STARTED_NS) / 1e9:.3f} s "
+              f"after the script started: {error}\n{len(self.ready_at)} nodes had said ready; spans (s "
+              f"since the script started): {spans}; the deployment's phases (s): {self.phases}", file=sys.stderr,
+              flush=True)
 
 
 def chains_pipeline(nodes: int, chain: int, hz: float):
@@ -243,10 +254,10 @@ def kill_mid_worker(pipe, after_s: float, out: dict) -> None:
         session = pipe.session
         t0 = getattr(session, "t0", None)
         if t0 is not None and time.time_ns() >= t0 + after_s * 1e9:
-            name = session.placed["mid"]
+            name = session.hosting.placed["mid"]
             out["killed_worker"] = name
             out["kill_ns"] = time.time_ns()
-            os.kill(session.workers[name]["pid"], signal.SIGKILL)
+            os.kill(session.hosting.daemons[name].info.pid, signal.SIGKILL)
             return
         time.sleep(0.005)
 
@@ -263,7 +274,7 @@ def failover_result(trace, session, killed: dict) -> dict:
     sink_after = [s for s in trace.steps if s.node == "sink" and s.wall_start_ns > kill
                   and any(i in new_ids for ids in s.consumed.values() for i in ids)]
     first_sink = min((s.wall_start_ns for s in sink_after), default=None)
-    return {**killed, "moved_to": session.placed.get("mid"),
+    return {**killed, "moved_to": session.hosting.placed.get("mid"),
             "mid_again_ms": (first_mid.wall_start_ns - kill) / 1e6 if first_mid else None,
             "sink_again_ms": (first_sink - kill) / 1e6 if first_sink else None,
             "moves": session.counts.get("moves", 0)}
@@ -276,7 +287,7 @@ def chains_result(trace, session) -> dict:
     for st in trace.steps:
         first[st.node] = min(first.get(st.node, st.wall_start_ns), st.wall_start_ns)
         steps[st.node] = steps.get(st.node, 0) + (st.status == "ok")
-    placed = session.placed
+    placed = session.hosting.placed
     crossing = sum(placed[e.src] != placed[e.dst] for e in session.graph.edges)
     return {"first_tick": first, "ok_steps": steps, "nodes": sorted(session.graph.nodes),
             "edges": len(session.graph.edges), "edges_across": crossing, "placed": placed,
@@ -303,7 +314,6 @@ def coordinate(job_path: str) -> int:
     job = json.loads(Path(job_path).read_text())
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # the benchmark's bound ran out: where is it stuck?
     stamps: dict = {}
-    instrument(stamps)
     from retriever.placement import Constraint, Placement
 
     record = None  # keep="records": the sink's measurements come in a file, not in the trace
@@ -320,11 +330,13 @@ def coordinate(job_path: str) -> int:
     pins = job.get("pin") or {}
     placement = Placement({node: Constraint(worker=w) for node, w in pins.items()}) if pins else None
     result: dict = {"script_started": SCRIPT_STARTED_NS, "stamps": stamps}
+    watch = Watch(pipe, stamps)
     try:
-        trace = pipe.run(duration=job["duration"], backend="zenoh", quiet=True, connect=job["connect"],
-                         namespace=job["namespace"], secret=job["secret"], placement=placement,
-                         startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
-                         keep=job.get("keep", "trace"))
+        with watch:
+            trace = pipe.run(duration=job["duration"], backend="zenoh", quiet=True, connect=job["connect"],
+                             namespace=job["namespace"], secret=job["secret"], placement=placement,
+                             startup_timeout=job["startup_timeout"], start_margin=START_MARGIN_S,
+                             keep=job.get("keep", "trace"), on_phase=watch.on_phase)
         session = pipe.session
         if job["kind"] == "chains":
             result.update(chains_result(trace, session))
@@ -333,10 +345,11 @@ def coordinate(job_path: str) -> int:
         else:
             result.update(latency_result(trace, job["warmup"], pipe, record))
     except Exception as exc:  # noqa: BLE001 - reported to the benchmark, which goes on
+        traceback.print_exc()
         result["error"] = f"{type(exc).__name__}: {exc}"
     session = pipe.session
     result["t0"] = getattr(session, "t0", None)
-    result["cpu_s"] = cpu_seconds()
+    result["cpu_s"] = watch.cpu_seconds()
     result["maxrss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     Path(job["out"]).write_text(json.dumps(result))
     return 0 if "error" not in result else 1
@@ -517,7 +530,7 @@ class Bench:
 DEPLOY_FIELDS = ("workers", "flows_per_worker", "nodes", "repeat", "ok", "launch_s", "imports_s", "join_s",
                  "discover_s", "prepare_s", "spawn_s", "ready_wait_s", "margin_s", "to_t0_s", "first_tick_s",
                  "all_ticked_s", "first_tick_after_t0_ms", "all_ticked_after_t0_ms", "first_ready_s", "last_ready_s",
-                 "ready_peers_min", "ready_peers_max", "ticked", "edges_across", "coord_cpu_to_t0_s", "coord_cpu_s",
+                 "ticked", "edges_across", "coord_cpu_to_t0_s", "coord_cpu_s",
                  "coord_rss_mb", "daemons_cpu_s", "flows_cpu_s", "load1", "daemons_restarted", "reported_mb",
                  "redeclared", "error")
 
@@ -525,6 +538,11 @@ DEPLOY_FIELDS = ("workers", "flows_per_worker", "nodes", "repeat", "ok", "launch
 def span_s(stamps: dict, key: str) -> float:
     begin, end = stamps.get(key, (0, 0))
     return (end - begin) / 1e9 if begin and end else float("nan")
+
+
+def phase_s(stamps: dict, name: str) -> float:
+    """How long the deployment's step ``name`` took (its ``on_phase``), in s."""
+    return stamps.get("phases", {}).get(name, float("nan"))
 
 
 def deploy_row(res: dict, workers: int, per_worker: int, repeat: int, cpu: tuple) -> dict:
@@ -541,7 +559,7 @@ def deploy_row(res: dict, workers: int, per_worker: int, repeat: int, cpu: tuple
         "ok": "error" not in res and ticked == nodes,
         "launch_s": since(res.get("script_started")),
         "imports_s": (st["session"][0] - res["script_started"]) / 1e9 if "session" in st else float("nan"),
-        "join_s": span_s(st, "join"), "discover_s": span_s(st, "discover"), "prepare_s": span_s(st, "prepare"),
+        "join_s": phase_s(st, "join"), "discover_s": phase_s(st, "discover"), "prepare_s": phase_s(st, "prepare"),
         "spawn_s": span_s(st, "spawn"),
         "ready_wait_s": (st["ready"] - st["session"][1]) / 1e9 if "ready" in st and "session" in st else float("nan"),
         "margin_s": (t0 - st["ready"]) / 1e9 if t0 and "ready" in st else float("nan"),
@@ -551,8 +569,6 @@ def deploy_row(res: dict, workers: int, per_worker: int, repeat: int, cpu: tuple
         "all_ticked_after_t0_ms": (max(first.values()) - t0) / 1e6 if first and t0 else float("nan"),
         "first_ready_s": since(min(st.get("ready_at", {}).values(), default=0)),
         "last_ready_s": since(max(st.get("ready_at", {}).values(), default=0)),
-        "ready_peers_min": min(filter(None, st.get("ready_peers", {}).values()), default=None),
-        "ready_peers_max": max(filter(None, st.get("ready_peers", {}).values()), default=None),
         "ticked": ticked,
         "edges_across": f"{res.get('edges_across', '?')}/{res.get('edges', '?')}",
         "coord_cpu_to_t0_s": st.get("cpu_at_start", float("nan")), "coord_cpu_s": res.get("cpu_s", float("nan")),
@@ -686,8 +702,8 @@ def retriever_round(bench: Bench, daemons: Daemons, size: int, total: int, warmu
         if "error" not in res:
             break
         st = res.get("stamps", {})
-        bench.failures.append(f"latency {size} B: {res['error']} (join {span_s(st, 'join'):.3f} s, discover "
-                              f"{span_s(st, 'discover'):.3f} s)")
+        bench.failures.append(f"latency {size} B: {res['error']} (join {phase_s(st, 'join'):.3f} s, discover "
+                              f"{phase_s(st, 'discover'):.3f} s)")
         print(f"    FAILED: {bench.failures[-1]}\n{res.get('output', '')[-1500:]}", flush=True)
     else:
         raise RuntimeError(f"the Retriever round of {size} B failed {1 + RETRIES} times (above)")

@@ -92,7 +92,7 @@ from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, a
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.protocol import (  # noqa: E402
     REQUEST, RUN_CONTROL, STATUS, ControlOpener, ControlSigner, DaemonOp, Done, End, Exit, Failed, Grant, HandedOver,
-    Handover, Lost, PrepareRequest, Reached, Ready, Report, Restart, SpawnRequest, Start, Stop)
+    Handover, Lost, PrepareRequest, Reached, Ready, Report, Restart, RunSpec, SpawnRequest, Start, Stop)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_events, decode_progress)
@@ -969,7 +969,7 @@ DEEP = "__deep__"  # a string the IR mutator puts where the JSON text gets a dee
 
 class SpecTarget(Target):
     """What an insider asks a worker daemon to prepare (runs.DaemonRuns.prepare, then the spec the
-    daemon would write for its processes, runs.DaemonRuns._local_spec): the run's spec, hostile.
+    daemon would write for its processes, runs.DaemonRuns.local_spec): the run's spec, hostile.
 
     Node types name what a daemon must never import (``venv.__main__``, ``test.__main__``: the
     standard library's command lines; ``os:system``; dunder parts) beside the genuine flows; the
@@ -999,7 +999,8 @@ class SpecTarget(Target):
                                allowed=lambda module: daemon.module_allowed(module, [], paths),
                                refusal=lambda module: daemon.refusal(module, [], paths), paths=())
         ir = self.genuine.pipeline.build_ir().doc
-        self.base = {"ir": ir, "namespace": NAMESPACE, "hub": "tcp/127.0.0.1:7447", "startup_timeout": 60.0,
+        self.base = {"ir": ir, "namespace": NAMESPACE, "hub": "tcp/127.0.0.1:7447", "plan": _plan_of(ir),
+                     "startup_timeout": 60.0,
                      "argv": ["retriever-fuzz", "--clear", str(self.workdir)], "python_path": [str(ROOT)],
                      "zids": {n["id"]: f"{i + 1:x}" * 4 for i, n in enumerate(ir["nodes"])}, "hub_zid": "abc",
                      "virtual_time": False, "main_file": None}
@@ -1036,8 +1037,8 @@ class SpecTarget(Target):
         except WireError as e:
             if "liveliness token" not in str(e):
                 raise
-        spec = self.runs._local_spec(request.spec, self.workdir)  # every check passed: what it would write
-        if "argv" in spec:
+        spec = self.runs.local_spec(request.spec, self.workdir)  # every check passed: what it would write
+        if spec.argv is not None:
             return 1  # the network's argv reached a worker's spec
         return 0
 
@@ -1045,6 +1046,13 @@ class SpecTarget(Target):
 class Breach(Exception):
     """What a daemon op did to the world that it must not: a process outside the run signalled,
     one of the run's processes gone without a legitimate signal, a process not asked for."""
+
+
+def _plan_of(ir_doc: dict) -> dict:
+    """The plan a coordinator ships with ``ir_doc`` (its IR's own: retriever.plan)."""
+    from retriever.plan import plan_ir
+
+    return plan_ir(IR(ir_doc)).to_data()
 
 
 def _daemon_session(listen: tuple[str, ...] = ()):
@@ -1125,7 +1133,8 @@ class DaemonOpsTarget(Target):
         ir = self.genuine.pipeline.build_ir().doc
         self.ir_nodes = [n["id"] for n in ir["nodes"]]
         self.node = self.ir_nodes[0]
-        spec = {"ir": ir, "namespace": namespace, "hub": hub, "startup_timeout": 86400.0}
+        spec = RunSpec(ir=ir, namespace=namespace, hub=hub, plan=_plan_of(ir), startup_timeout=86400.0, zids={},
+                       hub_zid=None, virtual_time=False)
         for _ in range(100):  # the token's own subscriber sees it on a Zenoh thread
             try:
                 self.runs.prepare(PrepareRequest(run=self.RUN, spec=spec, nodes=(self.node,)))

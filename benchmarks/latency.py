@@ -22,6 +22,9 @@ For each payload size (uint8 numpy arrays), in one run of this script:
   and puts ``array.tobytes()`` with ``[seq, sent_ns]`` as the attachment; the subscriber turns
   the payload back into an array (``np.frombuffer(sample.payload.to_bytes())``) and takes
   ``time.time_ns()``. Same peer mode, same loopback TCP as the Retriever workers.
+- ``grouped`` (``--sides ...,grouped``): the retriever-zenoh pipeline with both flows in one
+  worker process (``configure(process="both")``): the source's array handed to the sink by
+  reference on one thread (node/group.py), no Zenoh between them; the same two clock reads.
 - ``raw-iter``: the same, with the plainest subscriber of all: ``for sample in subscriber:``
   over Zenoh's default FIFO channel instead of a callback (a thread hands each sample over).
 
@@ -256,20 +259,22 @@ def run_raw(size: int, total: int, hz: float, warmup: int, extra_sub: bool, expr
 # ---------------------------------------------------------------------------------------------
 # Retriever
 # ---------------------------------------------------------------------------------------------
-def build(size: int, hz: float):
+def build(size: int, hz: float, process: str | None = None):
     from zenoh_flows import LatencySink, PayloadSource
 
     from retriever import Pipeline, Rate, Trigger
 
     with Pipeline(f"latency_{size}") as pipe:
-        PayloadSource(size).named("src") @ Rate(hz=hz)
-        LatencySink().named("sink") @ Trigger("frame")
+        PayloadSource(size).configure(name="src", process=process) @ Rate(hz=hz)
+        LatencySink().configure(name="sink", process=process) @ Trigger("frame")
         pipe.connect(pipe.flows[0], pipe.flows[1])
     return pipe
 
 
 def run_retriever(size: int, total: int, hz: float, warmup: int, backend: str) -> dict:
-    pipe = build(size, hz)
+    """``backend``: zenoh, inproc, or grouped (zenoh, both flows in one process)."""
+    pipe = build(size, hz, process="both" if backend == "grouped" else None)
+    backend = "zenoh" if backend == "grouped" else backend
     options = {"quiet": True} if backend != "inproc" else {}
     trace = pipe.run(duration=total / hz, backend=backend, **options)
     events = sorted((ev for ev in trace.events if ev.node == "sink"), key=lambda ev: ev.seq)
@@ -472,7 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=10, help="first messages dropped (default 10)")
     p.add_argument("--sides", default="raw,raw-iter,zenoh,inproc",
                    help="comma-separated: raw (a callback subscriber), raw-iter (`for sample in subscriber:`), "
-                        "zenoh, inproc")
+                        "zenoh, inproc, grouped (zenoh, both flows in one process)")
     p.add_argument("--control", action="store_true",
                    help="also run raw zenoh a second time per round (side raw2, right after retriever-zenoh) and "
                         "print raw2/raw: the ratio two identical sides reach in this run, i.e. its noise")
@@ -537,7 +542,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
 
     rows = []
-    order = [side for side in ("raw", "raw-iter", "zenoh", "raw2", "inproc") if side in sides]
+    order = [side for side in ("raw", "raw-iter", "zenoh", "raw2", "inproc", "grouped") if side in sides]
     per_round = args.warmup + -(-args.samples // args.rounds)
     total = per_round * args.rounds
     for size in sizes:
@@ -559,7 +564,7 @@ def main(argv: list[str] | None = None) -> int:
             row[side] = {**summary(lat[side]), "received": received[side]}
         rows.append(row)
         parts = [f"{k} med {row[k]['med']:.0f} µs ({row[k]['received']}/{total} received)"
-                 for k in ("raw", "raw-iter", "zenoh", "raw2", "inproc") if k in row]
+                 for k in ("raw", "raw-iter", "zenoh", "raw2", "inproc", "grouped") if k in row]
         print(f"  {fmt_size(size):>8}: " + ", ".join(parts) + f"  [{time.perf_counter() - t:.1f} s]", flush=True)
         for line in unseen:  # a frame the sink never stepped on: sent after the run's end, or lost?
             print(f"            {line}", flush=True)
@@ -586,6 +591,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{ratio_med:>5.2f} {f'{lo:.2f}–{hi:.2f}':>11} {ratio_p99:>5.2f} │ {inp['med']:>8.1f} {inp['p99']:>9.1f} │ "
               f"{raw['received']:>4} {zen['received']:>4} │ {('PASS' if ok else 'MISS') if both else '-'}")
     print()
+    if "grouped" in sides:  # (one process: a hand-off on one thread, beside the two processes' latency)
+        print("grouped: both flows in one worker process (configure(process=)), the array handed over by reference")
+        for r in rows:
+            g, zen = r["grouped"], r.get("zenoh", {"med": float("nan")})
+            print(f"{fmt_size(r['size']):>8}: median {g['med']:.1f} µs, p99 {g['p99']:.1f} µs "
+                  f"({g['received']} received); retriever-zenoh across two processes: median {zen['med']:.0f} µs")
+        print()
     if args.control and "raw" in sides:
         print("control: raw zenoh run twice per round (raw2 right after retriever-zenoh); the ratio of two identical")
         print("sides shows how far one run's medians move by themselves:")

@@ -16,9 +16,9 @@ it (last chunk, summary, footer). Ratio = best time with logging / best time wit
 
 Log size: the file's bytes per record (events + step records), split into compressed chunks,
 message indexes (16 uncompressed bytes per record, which MCAP's indexed readers need) and the
-rest; and a separate estimate per event and per step record: each kind's MCAP message records
-(the 31-byte header + payload, rebuilt exactly from the log) compressed on their own by the
-writer's zstd compressor, in pieces of its chunk size cap. Estimates × counts add up to the file size within a few percent.
+rest; and a separate estimate per event and per step record: each kind's MCAP messages (as the
+log holds them) written on their own by the log's writer, with its zstd compressor and chunk size
+cap: the bytes of the compressed chunks. Estimates × counts add up to the file size within a few percent.
 
 Replay: on the recorded quickstart log, ``read_log`` + ``replay`` (re-execute every non-source
 step, compare bytes) and ``read_log`` + ``resim`` (re-run the graph from the logged sources), each
@@ -41,14 +41,12 @@ import gc
 import io
 import os
 import platform
-import struct
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from mcap.opcode import Opcode
 from mcap.records import Chunk, MessageIndex
 from mcap.stream_reader import StreamReader
 
@@ -60,14 +58,14 @@ from step_overhead import VARIANTS, Chain, build  # the same chain, the same flo
 
 from retriever._loading import load_pipeline
 from retriever.log import format as fmt
-from retriever.log import read_log, replay, resim
+from retriever.log import read_log
+from retriever.replay import replay, resim
 from retriever.log.mcap_writer import McapWriter
 
 TARGET_LOG_RATIO = 1.5
 TARGET_REPLAY_X = 50.0
 QUICKSTART = ROOT / "examples" / "quickstart.py"
 
-MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
 
 
 # ---------------------------------------------------------------------------------------------
@@ -136,27 +134,41 @@ def log_size(path: Path, events: int, steps: int) -> dict:
                 chunks += len(record.data)
             elif isinstance(record, MessageIndex):
                 indexes += 1 + 8 + 2 + 4 + 16 * len(record.records)  # opcode, length, channel, array length
-    # Each kind on its own: its MCAP message records, exactly as in the chunks, compressed alone.
+    # Each kind on its own: its MCAP message records, exactly as in the chunks, written alone.
     step_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
-    kinds = {"event": bytearray(), "step": bytearray()}
+    kinds = {"event": [], "step": []}
     payload = {"event": 0, "step": 0}
     for m in log.messages:
         kind = "step" if m.channel_id in step_channels else "event"
-        kinds[kind] += MESSAGE_HEADER.pack(Opcode.MESSAGE, MESSAGE_HEADER.size - 9 + len(m.data), m.channel_id,
-                                           m.sequence, m.log_time, m.publish_time) + m.data
+        kinds[kind].append(m)
         payload[kind] += len(m.data)
-    probe = McapWriter(io.BytesIO())  # the writer's own compressor and chunk size cap, whatever they are now
-    comp, piece = probe._compressor, probe._chunk_size
-    probe.finish()
     out = {"size": size, "per_record": size / (events + steps), "chunks": chunks, "indexes": indexes,
            "other": size - chunks - indexes}
-    for kind, data in kinds.items():
+    for kind, messages in kinds.items():
         n = events if kind == "event" else steps
-        compressed = sum(len(comp.compress(bytes(data[i:i + piece]))) for i in range(0, len(data), piece))
+        compressed, record_bytes = written_alone(messages, log.channels)
         out["est_" + kind] = compressed / n if n else 0.0
         out["raw_" + kind] = payload[kind] / n if n else 0.0
-        out["raw_record_" + kind] = len(data) / n if n else 0.0
+        out["raw_record_" + kind] = record_bytes / n if n else 0.0
     return out
+
+
+def written_alone(messages: list, channels: dict) -> tuple[int, int]:
+    """``messages`` (a log's, of one kind) written on their own by the log's writer, with its
+    compressor and chunk size cap, on the channels they had: the bytes of its compressed chunks,
+    and of the MCAP message records in them before compression (header and payload)."""
+    buffer = io.BytesIO()
+    writer = McapWriter(buffer)
+    ids = {c.id: writer.add_channel(c.topic, c.message_encoding, c.metadata) for c in channels.values()}
+    for m in messages:
+        writer.add_message(ids[m.channel_id], m.log_time, m.publish_time, m.sequence, m.data)
+    writer.finish()
+    compressed = records = 0
+    for record in StreamReader(io.BytesIO(buffer.getvalue()), emit_chunks=True).records:
+        if isinstance(record, Chunk):
+            compressed += len(record.data)
+            records += record.uncompressed_size
+    return compressed, records
 
 
 def measure_replay(path: Path, virtual_s: float, repeats: int) -> list[dict]:
@@ -286,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print("B/record = file size / (events + step records), split into the zstd chunks, the message indexes")
     print("(uncompressed: 16 B per record, for MCAP's indexed readers) and the rest (IR, metadata, channels, summary).")
-    print("est. = one kind's MCAP message records compressed on their own by the writer's zstd compressor,")
+    print("est. = one kind's MCAP message records written on their own by the log's writer (its zstd chunks),")
     print("per record; payload = mean msgpack bytes per record; record = payload + the 31 B")
     print("MCAP message header (channel, sequence, log time, publish time), before compression.")
     print()

@@ -17,6 +17,10 @@ a fresh process (``--one N``), so its figures are its own:
 
     .venv/bin/python benchmarks/scale.py                    # 10 25 50 100 flows, 3 repeats each
     .venv/bin/python benchmarks/scale.py --flows 10 50 --repeats 5 --csv scale.csv
+    .venv/bin/python benchmarks/scale.py --flows 100 500 --per-process 50   # configure(process=): 50 flows a process
+
+``--per-process K`` puts the flows K to a worker process (``configure(process=...)``, in order:
+the camera with the first K-1 consumers); 0, the default, one process per flow.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
 sys.path.insert(0, str(HERE))  # zenoh_flows: the workers get this path from the coordinator
 
 PAGE_KB = 1024
-FIELDS = ("flows", "spawn_s", "ready_s", "t0_s", "run_s", "coord_cpu_s", "workers_cpu_s", "coord_rss_mb",
+FIELDS = ("flows", "per_process", "processes", "spawn_s", "ready_s", "t0_s", "run_s", "coord_cpu_s", "workers_cpu_s", "coord_rss_mb",
           "workers_anon_mb", "worker_anon_max_mb", "ticks", "due")
 
 
@@ -52,7 +56,7 @@ def _rss_kb(pid: int) -> int:
     return 0
 
 
-def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
+def one(flows: int, duration: float, source_hz: float, hz: float, per_process: int = 0) -> dict:
     """One run of ``flows`` flows in this process; its figures."""
     from zenoh_flows import Counter, Keep
 
@@ -60,10 +64,13 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     from retriever.backends.zenoh.coordinator import ticks_due
     from retriever.backends.zenoh.protocol import Start
 
+    def process(i: int) -> dict:  # the i-th flow's process, K to a process
+        return {"process": f"p{i // per_process}"} if per_process else {}
+
     with Pipeline(f"scale{flows}") as pipe:
-        camera = Counter() @ Rate(hz=source_hz)
+        camera = Counter().configure(**process(0)) @ Rate(hz=source_hz)
         for i in range(flows - 1):
-            camera.then(Keep().configure(name=f"keep{i}") @ Rate(hz=hz), sync=Latest())
+            camera.then(Keep().configure(name=f"keep{i}", **process(i + 1)) @ Rate(hz=hz), sync=Latest())
     begin = time.monotonic()
     session = pipe.open("zenoh", quiet=True)
     spawned = time.monotonic()
@@ -74,7 +81,7 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
         if type(record) is Start and "ready" not in seen:
             seen["ready"] = time.monotonic()
             seen["t0_wall_ns"] = record.t0 - time.time_ns()  # the start margin, from now
-            rss = [_rss_kb(pid) for pid in session.worker_pids().values()]
+            rss = [_rss_kb(pid) for pid in set(session.worker_pids().values())]  # (a group's process once)
             seen["workers_rss_kb"], seen["worker_rss_max_kb"] = sum(rss), max(rss)
         put(record)
 
@@ -83,7 +90,8 @@ def one(flows: int, duration: float, source_hz: float, hz: float) -> dict:
     ended = time.monotonic()
     me, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     end_ns = round(duration * 1e9)
-    return {"flows": flows, "spawn_s": spawned - begin, "ready_s": seen["ready"] - spawned,
+    return {"flows": flows, "per_process": per_process, "processes": len(set(session.worker_pids().values())),
+            "spawn_s": spawned - begin, "ready_s": seen["ready"] - spawned,
             "t0_s": seen["ready"] - spawned + seen["t0_wall_ns"] / 1e9, "run_s": ended - begin,
             "coord_cpu_s": me.ru_utime + me.ru_stime, "workers_cpu_s": children.ru_utime + children.ru_stime,
             "coord_rss_mb": me.ru_maxrss / PAGE_KB, "workers_anon_mb": seen["workers_rss_kb"] / PAGE_KB,
@@ -100,16 +108,17 @@ def main() -> None:
     ap.add_argument("--source-hz", type=float, default=30.0)
     ap.add_argument("--hz", type=float, default=5.0, help="rate of each consumer")
     ap.add_argument("--csv", default="scale.csv", help="every run's row")
+    ap.add_argument("--per-process", type=int, default=0, help="flows per worker process (0: one each)")
     ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.one is not None:
-        print(json.dumps(one(args.one, args.duration, args.source_hz, args.hz)))
+        print(json.dumps(one(args.one, args.duration, args.source_hz, args.hz, args.per_process)))
         return
     rows, failures = [], []
     for flows in args.flows:
         for r in range(args.repeats):
             cmd = [sys.executable, __file__, "--one", str(flows), "--duration", str(args.duration),
-                   "--source-hz", str(args.source_hz), "--hz", str(args.hz)]
+                   "--source-hz", str(args.source_hz), "--hz", str(args.hz), "--per-process", str(args.per_process)]
             proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if proc.returncode != 0:
                 failures.append(f"{flows} flows, repeat {r + 1}: exit {proc.returncode}\n{proc.stderr[-2000:]}")
@@ -123,7 +132,8 @@ def main() -> None:
         writer.writeheader()
         writer.writerows(rows)
     print(f"\nfan of N flows: 1 source @ {args.source_hz:g} Hz, N-1 consumers @ {args.hz:g} Hz, "
-          f"{args.duration:g} s runs; median [min-max] of {args.repeats} runs; rows in {args.csv}")
+          f"{args.duration:g} s runs, {args.per_process or 1} flow(s) per process; median [min-max] of "
+          f"{args.repeats} runs; rows in {args.csv}")
     cols = ("spawn_s", "ready_s", "t0_s", "run_s", "coord_cpu_s", "workers_cpu_s", "coord_rss_mb", "workers_anon_mb",
             "worker_anon_max_mb")
     print(f"{'flows':>5} │ " + " │ ".join(f"{c:>17}" for c in cols) + f" │ {'ticks/due':>11}")

@@ -148,7 +148,7 @@ def run_framework(chain: Chain, hz: float, duration: float, cold: bool = False):
     the graph, wire it, generate the ticks: ``cold``, with no code of an earlier session at hand)."""
     pipe, names = build(chain, hz)
     if cold:
-        _inproc_ticks._compiled.cache_clear()
+        _inproc_ticks.clear_compiled_ticks()
     t0 = time.perf_counter()
     pipe.step(0.0)  # open the session outside the timed region
     opened = time.perf_counter() - t0

@@ -1,10 +1,14 @@
 """Diagnostic probes for latency.py --breakdown: where a message's time goes in the zenoh worker path.
 
-Importing this module in a worker process (the workers import it to rebuild ``ProbeSource`` and
-``ProbeSink``) wraps a few public methods of the node loop's parts (``retriever.backends.zenoh.node``)
-with ``time.time_ns()`` stamps. It does not change what they do, and the coordinator never runs a
-node loop, so the wrappers matter only inside the workers of a probed run. Stamps (wall ns, the
-same clock in every process):
+A probe flow built in a worker process (``ProbeSource``, ``ProbeSink``, ``ProbeTicker``) stamps,
+with ``time.time_ns()``, the stages of that process's node loop (``retriever.backends.zenoh.node``)
+from outside it: the puts and the data callbacks through the transport's public tap
+(``tap_transports``), the rest by a profile function (``sys.setprofile``) on the loop's threads
+that looks for the entry or the return of a few of the loop's methods (by their code objects)
+and changes nothing they do. It runs on every Python call of those threads, so each stage is a
+little longer than unprobed (about a microsecond per call it makes). Nothing is probed in the
+coordinator's process: only a worker runs a node loop. Stamps (wall ns, the same clock in every
+process):
 
     source worker                                    sink worker
     sent      step() takes time.time_ns()            cb_in     zenoh callback entered (network thread)
@@ -15,11 +19,9 @@ same clock in every process):
                                                       received  sink's step() starts
 
 ``decoded`` is taken as ``Streams.check_claims`` is entered, which the loop calls on the decoded
-events first. The publishers and subscriptions are the node's transport's (``ZenohTransport.declare_outputs``
-and ``declare_inputs``): the probe times what those return and the callbacks they install.
-Page faults (``ru_minflt`` of the process) are counted around encode, to_bytes and decode: a first
-touch of fresh memory costs a few µs per 4 KiB page, so fresh buffers dominate the cost of large
-copies.
+events first. Page faults (``ru_minflt`` of the process) are counted around encode, to_bytes and
+decode: a first touch of fresh memory costs a few µs per 4 KiB page, so fresh buffers dominate
+the cost of large copies.
 
 The source has its stamps of message k only after sending it, so message k+1 carries them
 (``frame["probe_prev"]``); the sink outputs its own stamps with each measurement.
@@ -28,6 +30,8 @@ The source has its stamps of message k only after sending it, so message k+1 car
 from __future__ import annotations
 
 import resource
+import sys
+import threading
 import time
 from collections import deque
 
@@ -38,6 +42,7 @@ from retriever.backends.zenoh import node, wire
 from retriever.backends.zenoh.node.frontiers import Streams
 from retriever.backends.zenoh.node.outputs import Outputs
 from retriever.backends.zenoh.node.reports import Reports
+from retriever.backends.zenoh.node.transport import Tap, tap_transports
 
 STAMPS: dict[str, int] = {}
 FAULTS: dict[str, int] = {}  # minor page faults of the process (ru_minflt) at some of the stamps
@@ -47,12 +52,32 @@ ARRIVED: deque = deque()  # callback done, not handled yet
 HANDLED: deque = deque()  # handled (callback or main thread), its step not yet run
 _current: list = [None]
 _now = time.time_ns
-#: whether this process's node loop classes are wrapped already (install once per process)
+#: what this process probes already (each is installed once per process)
 _installed: dict[str, bool] = {}
+#: what the profile function does as a watched function is entered, or returns: by code object
+ON_CALL: dict = {}
+ON_RETURN: dict = {}
 
 
 def _flt() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def _in_worker() -> bool:
+    spec = getattr(sys.modules["__main__"], "__spec__", None)
+    return spec is not None and spec.name == "retriever.backends.zenoh.worker"
+
+
+def _profile(frame, event, arg) -> None:
+    """The profile function: on the entry or return of a watched function, what is watched for it."""
+    if event == "call":
+        then = ON_CALL.get(frame.f_code)
+    elif event == "return":
+        then = ON_RETURN.get(frame.f_code)
+    else:
+        return
+    if then is not None:
+        then(frame)
 
 
 class TimedPublisher:
@@ -89,134 +114,96 @@ class SampleProxy:
         self.payload = PayloadProxy(sample.payload, rec)
 
 
-class SessionProxy:
-    """The transport's session while it declares its inputs: data subscribers' callbacks stamped
-    on entry (cb_in); everything else the session's own."""
+class StampingTap(Tap):
+    """Data publishers' puts stamped; data callbacks stamped on entry (cb_in), their payload's
+    ``to_bytes`` (cb_out), and the loop's stages they run (handle, decoded, delivered) profiled."""
 
-    def __init__(self, session, data_prefix: str):
-        self.session, self.prefix = session, data_prefix
+    def publisher(self, key, publisher):
+        return TimedPublisher(publisher) if "/data/" in key else publisher
 
-    def __getattr__(self, name):
-        return getattr(self.session, name)
-
-    def declare_subscriber(self, key, cb, **kw):
-        if not str(key).startswith(self.prefix):
-            return self.session.declare_subscriber(key, cb, **kw)
-
-        def timed(sample, cb=cb):
+    def callback(self, key, callback):
+        def timed(sample):
             rec = {"f_cb_in": _flt(), "cb_in": _now()}
-            cb(SampleProxy(sample, rec))
+            sys.setprofile(_profile)
+            try:
+                callback(SampleProxy(sample, rec))
+            finally:
+                sys.setprofile(None)
 
-        return self.session.declare_subscriber(key, timed, **kw)
+        return timed
 
 
-def _install() -> None:
-    if _installed.get("stamps"):
-        return
-    _installed["stamps"] = True
-    Transport, NodeLoop = node.ZenohTransport, node.NodeLoop
+def _published(frame) -> None:
+    if frame.f_locals["batch"]:
+        FAULTS["publish"] = _flt()
+        STAMPS["publish"] = _now()
 
-    # --- source side -----------------------------------------------------------------------
-    publish = Outputs.publish
 
-    def timed_publish(self, batch):
-        if batch:
-            FAULTS["publish"] = _flt()
-            STAMPS["publish"] = _now()
-        return publish(self, batch)
+def _encoded(frame) -> None:
+    STAMPS["encoded"] = _now()
+    FAULTS["encoded"] = _flt()
 
-    Outputs.publish = timed_publish
 
-    encode = wire.WireEncoder.data
-
-    def timed_data(self, *args):
-        out = encode(self, *args)
-        STAMPS["encoded"] = _now()
-        FAULTS["encoded"] = _flt()
-        return out
-
-    wire.WireEncoder.data = timed_data
-
-    declare_outputs = Transport.declare_outputs
-
-    def timed_outputs(self, ports, consumed):
-        publishers, progress, warm = declare_outputs(self, ports, consumed)
-        return {port: TimedPublisher(p) for port, p in publishers.items()}, progress, warm
-
-    Transport.declare_outputs = timed_outputs
-
-    # --- sink side -------------------------------------------------------------------------
-    declare_inputs = Transport.declare_inputs
-
-    def timed_inputs(self, streams, sources, inline, put):
-        real = self.session
-        self.session = SessionProxy(real, self.keys.prefix + "/data/")
-        try:
-            declare_inputs(self, streams, sources, inline, put)
-        finally:
-            self.session = real
-
-    Transport.declare_inputs = timed_inputs
-
-    handle = NodeLoop.handle
-
-    def timed_handle(self, item):
-        if item[0] != node.DATA:
-            return handle(self, item)
+def _handling(frame) -> None:
+    if frame.f_locals["item"][0] == node.DATA:
         rec = ARRIVED.popleft() if ARRIVED else {}
         rec["f_handle"] = _flt()
         rec["handle"] = _now()
         _current[0] = rec
-        try:
-            return handle(self, item)
-        finally:
-            _current[0] = None
-            HANDLED.append(rec)
-
-    NodeLoop.handle = timed_handle
-
-    check_claims = Streams.check_claims
-
-    def timed_check_claims(self, stream, seq, frontier):
-        rec = _current[0]
-        if rec is not None and "decoded" not in rec:  # (a data message's: the first after decode_events)
-            rec["decoded"] = _now()
-            rec["f_decoded"] = _flt()
-        return check_claims(self, stream, seq, frontier)
-
-    Streams.check_claims = timed_check_claims
-
-    deliver = Streams.deliver
-
-    def timed_deliver(self, e, msg):
-        deliver(self, e, msg)
-        rec = _current[0]
-        if rec is not None:
-            rec["delivered"] = _now()
-
-    Streams.deliver = timed_deliver
-
-    # --- timed waits (control_jitter.py --breakdown) -------------------------------------------
-    wait = NodeLoop.wait
-
-    def timed_wait(self, ns):
-        STAMPS["wait_for"] = ns
-        STAMPS["wait_until"] = _now() + ns if ns > 0 else 0
-        try:
-            return wait(self, ns)
-        finally:
-            STAMPS["woke"] = _now()
-
-    NodeLoop.wait = timed_wait
 
 
-_install()
+def _handled(frame) -> None:
+    if frame.f_locals["item"][0] == node.DATA and _current[0] is not None:
+        HANDLED.append(_current[0])
+        _current[0] = None
+
+
+def _checking_claims(frame) -> None:
+    rec = _current[0]
+    if rec is not None and "decoded" not in rec:  # (a data message's: the first after decode_events)
+        rec["decoded"] = _now()
+        rec["f_decoded"] = _flt()
+
+
+def _delivered(frame) -> None:
+    rec = _current[0]
+    if rec is not None:
+        rec["delivered"] = _now()
+
+
+def _waiting(frame) -> None:  # a timed wait (control_jitter.py --breakdown)
+    ns = frame.f_locals["ns"]
+    STAMPS["wait_for"] = ns
+    STAMPS["wait_until"] = _now() + ns if ns > 0 else 0
+
+
+def _woke(frame) -> None:
+    STAMPS["woke"] = _now()
+
+
+def install_stamps() -> None:
+    """Stamp this worker's node loop: the transport's tap, the profile function on this thread."""
+    if _installed.get("stamps") or not _in_worker():
+        return
+    _installed["stamps"] = True
+    tap_transports(StampingTap())
+    loop = node.NodeLoop
+    ON_CALL.update({Outputs.publish.__code__: _published, loop.handle.__code__: _handling,
+                    Streams.check_claims.__code__: _checking_claims, loop.wait.__code__: _waiting})
+    ON_RETURN.update({wire.WireEncoder.data.__code__: _encoded, loop.handle.__code__: _handled,
+                      Streams.deliver.__code__: _delivered, loop.wait.__code__: _woke})
+    sys.setprofile(_profile)
+
 
 SOURCE_KEYS = ("publish", "encoded", "put_in", "put_out")
 SINK_KEYS = ("cb_in", "cb_out", "handle", "decoded", "delivered")
 
 
 class ProbeSource(PayloadSource):
+    def __init__(self, size: int):
+        super().__init__(size)
+        install_stamps()
+
     def step(self) -> Frame:
         self.k += 1
         self.data[: min(8, self.size)] = self.k % 256
@@ -227,6 +214,9 @@ class ProbeSource(PayloadSource):
 class ProbeSink(Flow[Frame, Lat]):
     """Outputs [sent, received, size, k, source stamps (+ encode faults) of message k-1,
     sink stamps (+ to_bytes and decode faults) of message k]."""
+
+    def __init__(self):
+        install_stamps()
 
     def step(self, inp: Frame) -> Lat:
         received = time.time_ns()
@@ -251,46 +241,45 @@ PROFILED = (("drain", "NodeLoop", "drain"), ("release", "Outputs", "release"), (
 
 def install_cpu_profile(path: str) -> None:
     """Accumulate the main thread's CPU time (time.thread_time_ns) inside the methods PROFILED
-    names (outermost call only) and write it as JSON to ``path`` when the worker exits."""
+    names (outermost call only), through the profile function, and write it as JSON to ``path``
+    when the worker exits. The figures include the profile function's own cost on each call of
+    the main thread (about a microsecond): they are higher than unprobed, and compare with each
+    other."""
     import atexit
     import json
-    import threading
 
     classes = {"NodeLoop": node.NodeLoop, "Outputs": Outputs, "Reports": Reports}
     main = threading.main_thread()
-    depth = [0]
+    outer: list = []  # the outermost profiled call going on: its label and CPU at its start
 
-    def wrap(label, cls, name):
-        orig = getattr(cls, name)
+    def entered(label):
+        def then(frame):
+            if not outer and threading.current_thread() is main:
+                outer.append((frame, label, time.thread_time_ns()))
+        return then
 
-        def timed(self, *a, **kw):
-            if threading.current_thread() is not main or depth[0]:
-                return orig(self, *a, **kw)
-            depth[0] += 1
-            t = time.thread_time_ns()
-            try:
-                return orig(self, *a, **kw)
-            finally:
-                CPU_NS[label] = CPU_NS.get(label, 0) + time.thread_time_ns() - t
-                CALLS[label] = CALLS.get(label, 0) + 1
-                depth[0] -= 1
-
-        setattr(cls, name, timed)
+    def returned(frame):
+        if outer and outer[0][0] is frame:
+            _, label, t = outer.pop()
+            CPU_NS[label] = CPU_NS.get(label, 0) + time.thread_time_ns() - t
+            CALLS[label] = CALLS.get(label, 0) + 1
 
     for label, cls, name in PROFILED:
-        wrap(label, classes[cls], name)
-    run = node.NodeLoop.run
+        code = getattr(classes[cls], name).__code__
+        ON_CALL[code], ON_RETURN[code] = entered(label), returned
+    run, began = node.NodeLoop.run.__code__, {}
 
-    def timed_run(self, *a, **kw):
-        t, w = time.thread_time_ns(), time.monotonic_ns()
-        try:
-            return run(self, *a, **kw)
-        finally:
-            CPU_NS["run (main thread, total)"] = time.thread_time_ns() - t
-            CPU_NS["run (wall)"] = time.monotonic_ns() - w
-            CALLS["ticks"] = self.schedule.k
+    def run_entered(frame):
+        began[frame] = (time.thread_time_ns(), time.monotonic_ns())
 
-    node.NodeLoop.run = timed_run
+    def run_returned(frame):
+        t, w = began.pop(frame)
+        CPU_NS["run (main thread, total)"] = time.thread_time_ns() - t
+        CPU_NS["run (wall)"] = time.monotonic_ns() - w
+        CALLS["ticks"] = frame.f_locals["self"].schedule.k
+
+    ON_CALL[run], ON_RETURN[run] = run_entered, run_returned
+    sys.setprofile(_profile)
 
     def dump():
         with open(path, "w") as f:
@@ -305,12 +294,9 @@ class ProbeIdle(Flow):
 
     def __init__(self):
         import os
-        import sys
 
         out = os.environ.get("RETRIEVER_BENCH_CPU_PROFILE")
-        spec = getattr(sys.modules["__main__"], "__spec__", None)
-        in_worker = spec is not None and spec.name == "retriever.backends.zenoh.worker"
-        if out and in_worker and not _installed.get("profile"):
+        if out and _in_worker() and not _installed.get("profile"):
             _installed["profile"] = True
             install_cpu_profile(os.path.join(out, f"{os.getpid()}.json"))
 
@@ -321,6 +307,9 @@ class ProbeIdle(Flow):
 class ProbeTicker(Flow[None, Lat]):
     """For control_jitter.py --breakdown: outputs, each tick, [wait_until, woke, step_start] of the
     node loop's last timed wait before this step (wall ns; wait_until 0 if it did not wait)."""
+
+    def __init__(self):
+        install_stamps()
 
     def step(self) -> Lat:
         start = time.time_ns()

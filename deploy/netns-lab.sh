@@ -9,6 +9,11 @@
 #   netns-lab.sh exec H PROG …  runs PROG on host H (its number, or PREFIX-hI), as the process PROG
 #   netns-lab.sh partition H    host H drops everything in or out of its eth0 (nftables)
 #   netns-lab.sh heal H         undoes partition; a host not partitioned is fine
+#   netns-lab.sh nat H          puts host H behind a NAT gateway (namespace PREFIX-nI, which takes
+#                               H's address SUBNET.I on the bridge): H is 192.168.I.2 behind it, its
+#                               connections out masqueraded, no connection in (a robot on a home
+#                               network). nftables
+#   netns-lab.sh unnat H        undoes nat; a host not behind NAT is fine
 #
 # Run programs with exec rather than a bare `ip netns exec`, which shares this machine's /dev/shm
 # between hosts: Zenoh then finds its peer's shared memory and passes every message over 3 KiB
@@ -31,20 +36,21 @@ table=retriever_lab  # the nftables table of a partition, in the host's own name
 die() { echo "$prog: error: $*" >&2; exit 1; }
 
 usage() {
-    echo "usage: $prog up N | down | exec HOST PROGRAM [ARG …] | partition HOST | heal HOST" >&2
+    echo "usage: $prog up N | down | exec HOST PROGRAM [ARG …] | partition HOST | heal HOST | nat HOST | unnat HOST" >&2
     echo "    (RETRIEVER_LAB_PREFIX=$prefix, RETRIEVER_LAB_SUBNET=$subnet; see the top of $0)" >&2
     exit 2
 }
 
-# A lab's namespaces are PREFIX-br and PREFIX-h<i>: a suffix with no '-' after PREFIX-, so no
-# other prefix's namespaces ever match (lab "a" never claims lab "a-h1"'s "a-h1-br").
-lab_namespaces() { ip netns list | awk -v re="^${prefix}-(br|h[0-9]+)\$" '$1 ~ re {print $1}' | sort -V; }
+# A lab's namespaces are PREFIX-br, PREFIX-h<i> and the NAT gateways PREFIX-n<i>: a suffix with
+# no '-' after PREFIX-, so no other prefix's namespaces ever match (lab "a" never claims lab
+# "a-h1"'s "a-h1-br").
+lab_namespaces() { ip netns list | awk -v re="^${prefix}-(br|h[0-9]+|n[0-9]+)\$" '$1 ~ re {print $1}' | sort -V; }
 
 host_namespace() {  # HOST as a number or a name → the namespace, which must be one of this lab's hosts
     local ns=$1
     [[ $ns =~ ^[0-9]+$ ]] && ns=$prefix-h$ns
     [[ $ns =~ ^${prefix}-h[0-9]+$ ]] && grep -qx -- "$ns" <<<"$(lab_namespaces)" \
-        || die "no host '$1' in lab '$prefix' (it has: $(lab_namespaces | grep -v -- '-br$' | xargs))"
+        || die "no host '$1' in lab '$prefix' (it has: $(lab_namespaces | grep -- '-h[0-9]*$' | xargs))"
     echo "$ns"
 }
 
@@ -132,6 +138,59 @@ heal() {
     fi
 }
 
+# nat: the gateway takes the host's eth0 (its end of the bridge) and address; a veth joins it to
+# the host, which routes everything through it. The gateway forwards the host's connections out,
+# masqueraded as its own address, and only their replies in: nothing opens a connection to the host.
+nat() {
+    local ns i gw
+    ns=$(host_namespace "$1")
+    i=${ns##*-h}
+    gw=$prefix-n$i
+    need_nft
+    if ip netns list | awk '{print $1}' | grep -qx -- "$gw"; then
+        echo "$ns is already behind NAT ($gw)"
+        return
+    fi
+    ip netns add "$gw"
+    ip -n "$ns" link set eth0 netns "$gw"
+    ip -n "$gw" addr add "$net.$i/24" dev eth0
+    ip -n "$gw" link set eth0 up
+    ip -n "$gw" link set lo up
+    ip -n "$gw" link add eth1 type veth peer name eth0 netns "$ns"
+    ip -n "$gw" addr add "192.168.$i.1/24" dev eth1
+    ip -n "$gw" link set eth1 up
+    ip -n "$ns" addr add "192.168.$i.2/24" dev eth0
+    ip -n "$ns" link set eth0 up
+    ip -n "$ns" route add default via "192.168.$i.1"
+    ip netns exec "$gw" sysctl -qw net.ipv4.ip_forward=1
+    ip netns exec "$gw" nft -f - <<EOF
+table inet $table {
+    chain forward { type filter hook forward priority 0; policy drop;
+        iifname "eth1" oifname "eth0" accept;
+        iifname "eth0" oifname "eth1" ct state established,related accept; }
+    chain postrouting { type nat hook postrouting priority 100; oifname "eth0" masquerade; }
+}
+EOF
+    echo "$ns is behind NAT: 192.168.$i.2, seen as $net.$i (gateway $gw)"
+}
+
+unnat() {
+    local ns i gw
+    ns=$(host_namespace "$1")
+    i=${ns##*-h}
+    gw=$prefix-n$i
+    if ! ip netns list | awk '{print $1}' | grep -qx -- "$gw"; then
+        echo "$ns was not behind NAT"
+        return
+    fi
+    ip -n "$ns" link del eth0  # the veth to the gateway, both ends
+    ip -n "$gw" link set eth0 netns "$ns"
+    ip -n "$ns" addr add "$net.$i/24" dev eth0
+    ip -n "$ns" link set eth0 up
+    ip netns del "$gw"
+    echo "$ns is on the lab's bridge again at $net.$i"
+}
+
 [[ $# -ge 1 ]] || usage
 [[ $prefix =~ ^[A-Za-z0-9_-]{1,32}$ ]] || die "RETRIEVER_LAB_PREFIX='$prefix': use 1 to 32 letters, digits, '_' or '-'"
 [[ $subnet =~ ^([0-9]{1,3}\.[0-9]{1,3}\.[0-9]{1,3})\.0/24$ ]] \
@@ -146,5 +205,7 @@ case "$1" in
     exec) [[ $# -ge 3 ]] || usage; shift; run_on "$@" ;;
     partition) [[ $# -eq 2 ]] || usage; partition "$2" ;;
     heal) [[ $# -eq 2 ]] || usage; heal "$2" ;;
+    nat) [[ $# -eq 2 ]] || usage; nat "$2" ;;
+    unnat) [[ $# -eq 2 ]] || usage; unnat "$2" ;;
     *) usage ;;
 esac

@@ -10,11 +10,11 @@ the modules of one layer, and a package stands for its modules (tests/test_layer
     kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild features < plan tick
     plan       placement
     log        log
-    backends   backends.base < starved < backends._inproc_ticks backends.inproc < backends.zenoh < backends.dora < backends
+    backends   backends.base < starved < backends._inproc_ticks backends.inproc_compiled backends.inproc < backends.zenoh < backends.dora < backends
     pipeline   pipeline
     run        _loading
     replay     replay
-    libraries  gym learn
+    libraries  gym learn ros2
     cli        cli __main__
 
 The kernel ends in what every backend shares: ``plan``, a graph's wiring node by node, computed
@@ -22,9 +22,8 @@ once (plain data, which a worker gets or makes from the IR); ``tick``, the refer
 selection, the step call, the one ``on_error`` decision), which every backend runs or is held to.
 
 This package's own names (below) re-export the curated API from every layer. ``agents/`` sits
-above everything and nothing in ``retriever/`` imports it. Two aliases are kept for the
-spellings the paper and the docs use, resolved on first use: ``retriever.flow.Pipeline`` and
-``retriever.log.replay``/``resim``.
+above everything and nothing in ``retriever/`` imports it. One alias is kept for the spelling
+the paper uses, resolved on first use: ``retriever.flow.Pipeline``.
 """
 
 from .backends import available_backends, init

@@ -27,6 +27,7 @@
     ├── ReportError                zenoh: a report could not be sent; the coordinator will not get its records
     ├── WorkerError                zenoh: a worker that cannot start as asked, or a worker query with no answer
     │   └── OtherProtocolError     ... a worker that speaks another protocol version than this process
+    ├── RouterError                zenoh: a router (retriever router) that cannot start as asked
     ├── RunEnded                   a step called sys.exit(0): the run ends at that tick, cleanly (caught inside)
     ├── StopRun                    a node loop must stop the run (zenoh; caught inside, the coordinator reports why)
     ├── ReplayedError              replay: a logged step's error raised again at its tick (caught inside)
@@ -266,6 +267,10 @@ class OtherProtocolError(WorkerError):
         self.protocol, self.retriever = other.protocol, other.retriever
 
 
+class RouterError(RetrieverError):
+    """A router (``retriever router``) that cannot start as asked."""
+
+
 class RunEnded(RetrieverError):
     """A step called ``sys.exit()`` (or ``sys.exit(0)``): the run ends at that tick, cleanly."""
 
@@ -278,12 +283,15 @@ class RunEnded(RetrieverError):
 
 class StopRun(RetrieverError):
     """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
-    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError)."""
+    ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError);
+    ``raised``: what the step raised, when it did (the coordinator raises StepError)."""
 
-    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False):
+    def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False,
+                 raised: str | None = None):
         super().__init__(message)
         self.tag = tag
         self.zeno = zeno
+        self.raised = raised
 
 
 class ReplayedError(RetrieverError):

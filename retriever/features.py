@@ -68,7 +68,7 @@ class PortFeatures:
     @property
     def state_names(self) -> tuple[str, ...]:
         """The path of each element of ``state`` (computed on asking: a large vector has many)."""
-        return tuple(name for path, shape in self.state_parts for name in _element_names(path, shape))
+        return tuple(name for path, shape in self.state_parts for name in element_names(path, shape))
 
     def sources(self) -> dict[str, tuple[str, np.ndarray]]:
         """``{source: (IMAGE or STATE, array)}``."""
@@ -159,7 +159,10 @@ def _describe(value: Any) -> str:
     return f"a {type(value).__name__}"
 
 
-def _element_names(path: str, shape: tuple[int, ...]) -> list[str]:
+def element_names(path: str, shape: tuple[int, ...]) -> list[str]:
+    """The names of the elements of a state vector's part at ``path`` of ``shape``, in C order:
+    ``pose.q.0.1`` (a scalar's is ``path`` itself). One string per element, so a wide vector has
+    many: the export names its vectors at the first frame only."""
     if not shape:
         return [path]
     return [".".join([path, *map(str, index)]) for index in np.ndindex(shape)]

@@ -623,6 +623,7 @@ def graph_to_doc(graph: Graph) -> dict:
                    if s.on_error == "restart" else {}),
                 **({"replay": s.replay} if s.replay != "rerun" else {}),
                 **({"spin": s.spin} if s.spin else {}),
+                **({"process": s.process} if s.process else {}),
             },
             "inputs": {p: spec.type_name for p, spec in node.inputs.items()},
             "outputs": {p: spec.type_name for p, spec in node.outputs.items()},

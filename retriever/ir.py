@@ -29,7 +29,7 @@ from .sync import policy_from_ir
 #: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
 #: 1.2: ``metadata.module_folders`` (optional): where the flows of script files came from;
 #: 1.3: ``metadata.code_sha256`` (optional): the sha256 of each flow module's file (code.py)
-IR_VERSION = "1.3.0"
+IR_VERSION = "1.4.0"
 #: set on a module that Retriever imported from a script file (``retriever run FILE.py``): the
 #: folder it put on ``sys.path`` for it, which the IR records so that it can import the module again
 SCRIPT_FOLDER_ATTR = "__retriever_folder__"
@@ -446,6 +446,9 @@ def _check_config(problems: list[str], where: str, config: dict) -> None:
     spin = config.get("spin", 0)
     if not is_finite_number(spin) or not 0 <= spin <= MAX_SPIN_S:
         problems.append(f"{where}.spin: expected seconds from 0 to {MAX_SPIN_S:g}, got {spin!r:.40}")
+    process = config.get("process")
+    if process is not None and not (isinstance(process, str) and re.fullmatch(NODE_ID, process)):
+        problems.append(f"{where}.process: expected a name (letters, digits, _ and -), got {process!r:.40}")
     window = config.get("restart_window", 1.0)
     if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
         problems.append(f"{where}.restart_window: expected seconds > 0, got {window!r}")

@@ -189,7 +189,8 @@ class Pipeline:
         ``stats()``, ``counts``, ``starved``, ``produced_counts()``, ``keep``, ``log_metadata()``,
         ``stop_signal``, ``retained_peak`` (:class:`~retriever.backends.base.Session` says what
         each is); a real-time backend's adds its own (``t0``, the run's start in HLC Unix ns once it
-        is set, and ``worker_pids()``; a deployment's ``placed``, ``workers`` and ``status()``).
+        is set, ``worker_pids()``, and ``hosting``: where its processes run, of a deployment its
+        ``placed``, ``workers`` and ``status()``).
         The pipeline's own methods (``stats()``, ``counts()``, ``trace``) read the same run."""
         return self._session
 

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import reprlib
 from collections import Counter
+from heapq import heappop, heappush
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -221,6 +222,35 @@ def nodes_on_a_cycle(edges: Iterable[tuple[str, str]]) -> set[str]:
                 seen.add(n)
                 todo.extend(after.get(n, ()))
     return found
+
+
+def tie_order(plan: Plan) -> dict[str, int]:
+    """Per node, its place in the order the ticks of one tag run in: each node before the nodes
+    that feed it, where edges allow, else by id (a cycle, and what feeds it). Which of a tag's
+    ticks runs first changes nothing a run records but their order (every output comes at least
+    a microstep later), except in a run that stops during a tag (``sys.exit(0)`` in a step, an
+    error under ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those
+    after it are not. The in-process backend runs a tag's ticks in this order; a zenoh run in
+    virtual time, whose nodes run a tag's ticks each in its own process, cuts its record by it."""
+    ids = sorted(plan.nodes)
+    consumers = {n: {c.dst for out in plan.nodes[n].consumers.values() for c in out if c.dst != n} for n in ids}
+    producers: dict[str, list[str]] = {n: [] for n in ids}
+    for p in ids:
+        for c in consumers[p]:
+            producers[c].append(p)
+    waiting = {n: len(cs) for n, cs in consumers.items()}  # per node, its consumers not yet placed
+    ready = [n for n in ids if not waiting[n]]  # (sorted: a heap)
+    order = []
+    while ready:
+        n = heappop(ready)
+        order.append(n)
+        for p in producers[n]:
+            waiting[p] -= 1
+            if not waiting[p]:
+                heappush(ready, p)
+    placed = set(order)
+    order += [n for n in ids if n not in placed]
+    return {n: at for at, n in enumerate(order)}
 
 
 # ---------------------------------------------------------------------------------------------

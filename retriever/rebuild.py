@@ -111,5 +111,5 @@ def construct_node(node: dict, params: dict, flows: dict[str, Flow], problems: l
     flow.configure(name=nid, latency=config.get("latency", 0.0), on_error=config.get("on_error"),
                    on_overrun=config.get("on_overrun"), on_deadline_miss=config.get("on_deadline_miss"),
                    max_restarts=config.get("max_restarts"), restart_window=config.get("restart_window"),
-                   replay=config.get("replay"), spin=config.get("spin"))
+                   replay=config.get("replay"), spin=config.get("spin"), process=config.get("process"))
     flows[nid] = flow @ clock_from_ir(config["clock"])

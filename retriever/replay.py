@@ -24,8 +24,7 @@ causes is not taken for nondeterminism.
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
 and compares the full trace: it proves the log is one consistent run of this graph.
 
-Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``;
-``retriever.log.replay`` and ``retriever.log.resim`` (the spellings docs/log.md uses) resolve here.
+Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``.
 """
 
 from __future__ import annotations
@@ -184,7 +183,7 @@ def code_changes(log: RunLog, graph) -> list[str]:
     line; each is also warned of (RetrieverWarning), before anything is compared."""
     recorded = log.ir.doc["metadata"].get("code_sha256", {})
     changes = code_mismatches(recorded, {type(node.flow).__module__ for node in graph.nodes.values()})
-    changes += _ran_other_code(log)
+    changes += ran_other_code(log)
     for change in changes:
         warnings.warn(f"{change}: what the replay finds different may come from that change", RetrieverWarning,
                       stacklevel=3)
@@ -195,7 +194,7 @@ def code_changes(log: RunLog, graph) -> list[str]:
 MAX_SAID = 400
 
 
-def _ran_other_code(log: RunLog) -> list[str]:
+def ran_other_code(log: RunLog) -> list[str]:
     """What the workers of a deployment said of the code they ran anyway (``--code-mismatch
     warn``), as the log's run metadata records it: the run itself ran other code than the IR's.
     A hostile log's text: only shown, shortened, and anything not of the recorded shape ignored."""

@@ -13,9 +13,13 @@
 
 :func:`run_tick` is that tick, which the in-process backend runs for every node whose tick it
 does not generate; its generated ticks (``backends/_inproc_ticks.py``) are the fast path, held
-to the same trace on random graphs (tests/backends/test_inproc_ticks.py). :func:`select_inputs`
-is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read.
-Recording and delivering a tick's outputs is each backend's own: it knows where they go.
+to the same trace on random graphs (tests/backends/test_inproc_ticks.py). The zenoh node loop
+runs the same tick from the same two parts, :func:`take_inputs` (select, commit, fallbacks) and
+:func:`timed_step`, with the accounts of a real-time node around them. :func:`select_inputs`
+is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read; and
+:func:`skipped_outcome`, :func:`exit_outcome` and :func:`error_outcome` the one place the step
+record of a tick that did not end ``ok`` with outputs is made. Recording and delivering a tick's
+outputs is each backend's own: it knows where they go.
 """
 
 from __future__ import annotations
@@ -60,38 +64,59 @@ def select_inputs(inputs: list[tuple], tau: tuple[int, int]) -> tuple[dict, dict
     return values, consumed, missing, commits, dropped
 
 
+def take_inputs(inputs: list[tuple], fallbacks: dict,
+                tau: tuple[int, int]) -> tuple[dict, dict, list | None, dict | None]:
+    """The inputs of the tick at ``tau`` (:func:`select_inputs` on ``inputs``), taken: unless a
+    required port is MISSING, what the policies selected is committed (consumed) and every port
+    in ``fallbacks`` (optional, fed by nothing) gets its fallback. Returns ``(values, consumed,
+    missing, dropped)``: with ``missing`` not None the tick is skipped, and nothing was consumed."""
+    values, consumed, missing, commits, dropped = select_inputs(inputs, tau)
+    if missing is not None:
+        return values, consumed, missing, dropped
+    if commits is not None:
+        for policy, buf, commit in commits:
+            policy.commit_to(buf, commit)
+    if fallbacks:
+        for port, spec in fallbacks.items():
+            values[port] = spec.fallback()
+    return values, consumed, None, dropped
+
+
+def timed_step(invoke: Callable, read: Callable, values: dict) -> tuple[Any, BaseException | None, int, int]:
+    """Call the step (``read(invoke(values))``) between two clock readings: ``(outputs, None,
+    start, end)``, or ``(None, exc, start, end)`` if it raised ``exc``. Anything a step raises is
+    its error, SystemExit included (``sys.exit()`` in a step is that step's: :func:`decide`), but a
+    KeyboardInterrupt, which is the user's: it propagates."""
+    start = time_ns()
+    try:
+        outputs = read(invoke(values))
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:
+        return None, exc, start, time_ns()
+    return outputs, None, start, time_ns()
+
+
 def run_tick(node: Any, tau: tuple[int, int], skipped: Callable, failed: Callable, emit: Callable) -> None:
     """One tick of ``node`` at ``tau``, the reference (module docstring). ``node`` has ``stats``
     (NodeStats), ``inputs`` (plan.bind_inputs), ``fallbacks``, ``invoke`` and ``read``
     (flow._base.make_invoker, make_output_reader); what became of the tick goes to one of:
     ``skipped(node, tau, missing)``, ``failed(node, tau, consumed, exc, start, wall)`` (the
     backend records it, then acts on :func:`decide`), ``emit(node, tau, outputs, consumed,
-    start, end, dropped)``. A KeyboardInterrupt in the step is not the step's: it propagates."""
+    start, end, dropped)``. A KeyboardInterrupt in the step is not the step's: it propagates.
+    A backend that keeps other accounts of a tick (the zenoh node loop: backends/zenoh/node/steps.py)
+    runs the same tick from :func:`take_inputs` and :func:`timed_step`."""
     stats = node.stats
     stats.ticks += 1
-    values, consumed, missing, commits, dropped = select_inputs(node.inputs, tau)
+    values, consumed, missing, dropped = take_inputs(node.inputs, node.fallbacks, tau)
     if missing is not None:
         skipped(node, tau, missing)
         return
-    if commits is not None:
-        for policy, buf, commit in commits:
-            policy.commit_to(buf, commit)
-    fallbacks = node.fallbacks
-    if fallbacks:
-        for port, spec in fallbacks.items():
-            values[port] = spec.fallback()
-    start = time_ns()
-    try:
-        outputs = node.read(node.invoke(values))
-    except KeyboardInterrupt:
-        raise
-    except BaseException as exc:  # SystemExit too: sys.exit() in a step is that step's error
-        wall = time_ns() - start
-        stats.step_ns += wall
-        failed(node, tau, consumed, exc, start, wall)
-        return
-    end = time_ns()
+    outputs, exc, start, end = timed_step(node.invoke, node.read, values)
     stats.step_ns += end - start
+    if exc is not None:
+        failed(node, tau, consumed, exc, start, end - start)
+        return
     stats.steps += 1
     emit(node, tau, outputs, consumed, start, end, dropped)
 
@@ -158,3 +183,27 @@ def ending(decision: Decision, node: str, tau: tuple[int, int] | None, exc: Base
     if decision is Decision.END_RUN:
         return RunEnded(node, tau)
     return None
+
+
+# ---------------------------------------------------------------------------------------------
+# What became of a tick that made no outputs: its step record's status and detail
+# ---------------------------------------------------------------------------------------------
+# Each takes ``detail``, what a backend noted of the tick besides (a real-time node: incomplete
+# edges, Queue drops), and returns ``(status, detail)`` for the step record. The keys are read
+# back by the coordinator (an ``exit`` status is believed only beside its ``{"exit": 0}`` record)
+# and by replay (a skipped tick re-runs only with its ``missing`` ports): one spelling for both.
+def skipped_outcome(missing: list[str], detail: dict | None = None) -> tuple[str, dict]:
+    """A tick skipped because the required ports ``missing`` had nothing (nothing consumed)."""
+    return "skipped", {**detail, "missing": missing} if detail else {"missing": missing}
+
+
+def exit_outcome(detail: dict | None = None) -> tuple[str, dict]:
+    """A step that called ``sys.exit()`` or ``sys.exit(0)`` (Decision.END_RUN): the run ends
+    cleanly at it, and it counts as a step that ran."""
+    return "ok", {**detail, "exit": 0} if detail else {"exit": 0}
+
+
+def error_outcome(error: str, on_error: str, detail: dict | None = None) -> tuple[str, dict]:
+    """A step that raised (``error``: :func:`error_text`), and the ``on_error`` acted on."""
+    outcome = {"error": error, "on_error": on_error}
+    return "error", {**detail, **outcome} if detail else outcome

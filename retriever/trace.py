@@ -99,10 +99,6 @@ class Event(NamedTuple):
     def __hash__(self) -> int:
         return hash(self[:5])
 
-    @property
-    def qualified_port(self) -> str:
-        return f"{self.node}.{self.port}"
-
 
 #: What a step record's status may be (docs/log.md). ``skipped``: the tick did not step (an
 #: input's policy had nothing, ``detail["missing"]``; or, realtime="hard", an incomplete edge

@@ -366,7 +366,7 @@ def test_ir_json_by_default():
     assert result.returncode == 0, result.stderr
     assert result.stdout == quickstart_ir("json")
     doc = json.loads(result.stdout)
-    assert doc["version"] == "1.3.0"
+    assert doc["version"] == "1.4.0"
     assert doc["metadata"]["name"] == "quickstart"
     assert [n["id"] for n in doc["nodes"]] == ["camera", "policy", "controller"]
     assert [n["type"] for n in doc["nodes"]] == ["quickstart:Camera", "quickstart:Policy", "quickstart:Controller"]
@@ -604,6 +604,37 @@ def test_a_run_whose_errors_were_absorbed_exits_1_unless_allowed(tmp_path: Path)
     assert re.search(r"^│ flaky +│ +10 │ +9 │ +0 │ +1 │", result.stdout, re.MULTILINE), result.stdout
     allowed = cli("run", str(script), "--duration", "1", "--allow-errors", pythonpath=ROOT)
     assert allowed.returncode == 0 and allowed.stderr == "", allowed.stderr
+
+
+def test_a_node_moved_after_its_worker_was_lost_fails_the_run_as_a_restart_saying_it_moved():
+    """A move (on_worker_loss) counts as a restart, by the same rule (exit 1 unless
+    --allow-errors); the error says the node moved because its worker was lost, not a step
+    error, and the hint names on_worker_loss beside --allow-errors (issue 38)."""
+    from retriever.backends.base import NodeStats
+    from retriever.cli import run_errors
+
+    error = run_errors({"relay": NodeStats(counts={"moves": 1}), "sink": NodeStats()})
+    message, hint = str(error).split("\n")
+    assert message == ("the run went on, but had errors (relay: 1 restart(s) (moved because its worker was lost, "
+                       "not a step error))")
+    assert hint == ("    hint: 1 move(s) followed a lost worker: retriever log info LOG shows which worker ran each "
+                    "node; pass --allow-errors when on_worker_loss='replace' or 'wait' is meant to absorb them")
+
+
+def test_a_run_with_step_errors_crashes_and_a_move_names_each_and_both_policies():
+    from retriever.backends.base import NodeStats
+    from retriever.cli import run_errors
+
+    error = run_errors({"flaky": NodeStats(errors=2, counts={"restarts": 2}),
+                        "relay": NodeStats(counts={"restarts": 1, "crash_restarts": 1, "moves": 1})})
+    message, hint = str(error).split("\n")
+    assert message == ("the run went on, but had errors (flaky: 2 step error(s), 2 restart(s); relay: 2 restart(s) "
+                       "(1 of them moved because its worker was lost, not a step error))")
+    assert hint == ("    hint: the error records say what raised (retriever log cat LOG --steps); 1 restart(s) "
+                    "followed a process that died: retriever log info LOG shows each fault; 1 move(s) followed a "
+                    "lost worker: retriever log info LOG shows which worker ran each node; pass --allow-errors when "
+                    "on_error='skip_tick' or 'restart' or on_worker_loss='replace' or 'wait' is meant to absorb them")
+    assert run_errors({"calm": NodeStats(counts={"late": 3})}) is None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import dataclasses
 import hashlib
 import json
 import os
@@ -88,7 +87,7 @@ def test_to_json_is_stable_with_sorted_keys(ir: IR):
 
 def test_ir_shape_follows_the_design(ir: IR):
     doc = ir.doc
-    assert doc["version"] == "1.3.0"
+    assert doc["version"] == "1.4.0"
     assert doc["metadata"]["name"] == "small"
     assert doc["metadata"]["validated"] is True
     assert doc["metadata"]["optimized"] is False
@@ -441,20 +440,21 @@ def test_load_missing_keys_lists_each_one(tmp_path: Path):
 
 def test_load_missing_version(tmp_path: Path, doc: dict):
     del doc["version"]
-    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.3\.0\"\)"):
+    with pytest.raises(IRError, match=r"'version' is missing \(expected \"1\.4\.0\"\)"):
         _load(tmp_path, json.dumps(doc))
 
 
 def test_an_ir_of_version_1_1_still_loads(tmp_path: Path, doc: dict):
-    """1.2.0 and 1.3.0 only added optional keys (metadata.module_folders, metadata.code_sha256)."""
+    """1.2.0, 1.3.0 and 1.4.0 only added optional keys (metadata.module_folders, metadata.code_sha256,
+    a node's config.process)."""
     doc["version"] = "1.1.0"
     del doc["metadata"]["code_sha256"]
-    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.3.0"
+    assert Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).build_ir().doc["version"] == "1.4.0"
 
 
 def test_load_wrong_version(tmp_path: Path, doc: dict):
     doc["version"] = "2.0.0"
-    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.3\.0\)"
+    with pytest.raises(IRError, match=r"version '2\.0\.0' is not supported by this Retriever \(it reads 1\.4\.0\)"
                                       r"; rebuild the IR"):
         _load(tmp_path, json.dumps(doc))
 
@@ -645,6 +645,9 @@ def _node(doc: dict, nid: str = "planner") -> dict:
     (lambda d: _node(d, "camera")["config"].update(spin=float("nan")), r"node 'camera'\.config\.spin: .*, got nan"),
     (lambda d: _node(d, "camera")["config"].update(spin="fast"), r"node 'camera'\.config\.spin: .*, got 'fast'"),
     (lambda d: _node(d, "camera")["config"].update(spin=True), r"node 'camera'\.config\.spin: .*, got True"),
+    (lambda d: _node(d, "camera")["config"].update(process="a b"),
+     r"node 'camera'\.config\.process: expected a name \(letters, digits, _ and -\), got 'a b'"),
+    (lambda d: _node(d, "camera")["config"].update(process=7), r"node 'camera'\.config\.process: .*, got 7"),
 ])
 def test_an_ir_value_no_pipeline_can_take_is_an_ir_error(change, problem):
     with pytest.raises(IRError, match=problem):
@@ -727,3 +730,16 @@ def test_an_integer_too_long_to_read_is_named_by_node_and_param(doc: dict, tmp_p
                 rf"{limit} are read\n    hint: .*$")
     with pytest.raises(IRError, match=problems):
         _load(tmp_path, text)
+
+
+def test_a_flows_process_name_goes_through_the_ir(tmp_path: Path):
+    """configure(process=): in the node's config, and back on the flow rebuilt from it."""
+    pipe = ir_flows.build()
+    node = next(iter(pipe.compile().nodes.values()))
+    node.flow.configure(process="perception")
+    doc = json.loads(pipe.build_ir().to_json())
+    assert [n["id"] for n in doc["nodes"] if n["config"].get("process") == "perception"] == [node.id]
+    rebuilt = Pipeline.from_ir(_load(tmp_path, json.dumps(doc))).compile()
+    assert {nid: n.settings.process for nid, n in rebuilt.nodes.items() if n.settings.process} == {node.id: "perception"}
+    with pytest.raises(ValueError, match=r"configure\(process='a b'\): a process name must be"):
+        node.flow.configure(process="a b")

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from retriever import BackendError, StepError, read_log
-from retriever.log import replay
+from retriever.replay import replay
 from tests.paper_flows import build, build_ending
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,7 +10,8 @@ from typing import Any, Optional
 from hypothesis import given
 
 from retriever import IR, MISSING, Flow, Latest, Pipeline, Queue, Rate, RetrieverWarning, Trigger, Window, io
-from retriever.plan import UNFED, Consumer, Feed, Plan, bind_inputs, nodes_on_a_cycle, plan_graph, plan_ir
+from retriever.plan import (UNFED, Consumer, Feed, Plan, bind_inputs, nodes_on_a_cycle, plan_graph, plan_ir,
+                            tie_order)
 
 from .backends.test_schedule_independence import SETTINGS, graphs
 
@@ -82,6 +83,16 @@ def test_a_node_plan_says_what_feeds_it_where_its_outputs_go_and_its_cycles():
 def test_cycles_are_found_through_any_number_of_nodes():
     edges = [("a", "b"), ("b", "c"), ("c", "a"), ("c", "d"), ("e", "e")]
     assert [n for n in "abcde" if n in nodes_on_a_cycle(edges)] == ["a", "b", "c", "e"]
+
+
+def test_the_tie_order_puts_each_node_before_those_that_feed_it_then_goes_by_id():
+    with Pipeline("fan") as pipe:
+        src = Source().configure(name="src") @ Rate(10)
+        for name in ("b", "a"):
+            pipe.connect(src, Echo().configure(name=name) @ Trigger(), sync=Latest())
+    assert tie_order(plan_graph(compiled(pipe))) == {"a": 0, "b": 1, "src": 2}
+    # c feeds nothing; the cycle a ⇄ b and src, which feeds it, cannot be ordered so: by id
+    assert tie_order(plan_graph(compiled(cycle_pipeline()))) == {"c": 0, "a": 1, "b": 2, "src": 3}
 
 
 def test_a_plan_goes_through_json_unchanged():

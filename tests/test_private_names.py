@@ -15,6 +15,12 @@ every module, in the three forms that can be told apart without knowing types:
 
 Dunder names are public protocol. KNOWN lists the exceptions (none today): the check fails on any
 other case, and on a KNOWN case that no longer occurs, so the list stays true.
+
+Code that uses the package from outside (tests, benchmarks, agents, examples) asks through public
+names too: it imports no private name, patches none, reads no private attribute the package
+defines, replaces none of the package's attributes by assignment, and patches nothing on a
+private module; a seam a test or benchmark needs is a public property, option or hook
+(KNOWN_OUTSIDE lists the files still waiting for theirs).
 """
 
 from __future__ import annotations
@@ -201,3 +207,117 @@ def test_each_known_case_still_occurs():
     """A case fixed is deleted from KNOWN, so the check tightens as code moves."""
     stale = sorted(f"{module}: {name}" for module, name in KNOWN if (module, name) not in ALL_READS)
     assert stale == [], "no longer read; remove from KNOWN in tests/test_private_names.py: " + ", ".join(stale)
+
+
+#: the folders of code that uses the package from outside: what they may use is its public names
+OUTSIDE = ("tests", "benchmarks", "agents", "examples")
+
+
+def _outside_uses(path: Path) -> list[str]:
+    """In a test, benchmark, agent or example: each private name imported from a module of the
+    package (a private *module* may be: tests mirror the package, its own included), and each
+    private name patched (``monkeypatch.setattr(x, "_y", ...)``, ``mock.patch.object(x, "_y", ...)``,
+    ``setattr(x, "_y", ...)``): a seam a test or benchmark needs is a public one."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == PACKAGE:
+            found += [f"line {node.lineno}: from {node.module} import {a.name}" for a in node.names
+                      if _is_private(a.name) and f"{node.module}.{a.name}" not in MODULES]
+        elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
+              and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "object")
+              and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
+              and isinstance(node.args[1].value, str) and _is_private(node.args[1].value)):
+            found.append(f"line {node.lineno}: {ast.unparse(node)[:80]}")
+    return found
+
+
+def test_tests_and_benchmarks_use_public_seams():
+    root = PACKAGE_DIR.parent
+    found = [f"{path.relative_to(root)} {use}" for folder in OUTSIDE for path in sorted((root / folder).rglob("*.py"))
+             for use in _outside_uses(path)]
+    assert found == [], ("private names of the package used from outside it (give the module a public seam):\n"
+                         + "\n".join(found))
+
+
+#: every private name the package defines: at a module's top level, or as a class's member
+#: (``def _x``, a class attribute, ``self._x = ...``): ``obj._x`` outside the package reads one of these
+PRIVATE_DEFINED = frozenset(name for names in DEFINED.values() for name in names if _is_private(name))
+#: named tuples' public methods, underscored so as not to clash with field names
+NAMEDTUPLE_API = frozenset({"_make", "_replace", "_asdict", "_fields", "_field_defaults"})
+
+
+def _package_bindings(tree: ast.Module) -> dict[str, str]:
+    """Local name -> the dotted name it stands for, for each name a file binds by importing from
+    the package (``from retriever.x import Y``, ``import retriever.x as y``, ``import retriever``)."""
+    bound = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == PACKAGE:
+            bound.update({a.asname or a.name: f"{node.module}.{a.name}" for a in node.names})
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] == PACKAGE:
+                    bound[a.asname or PACKAGE] = a.name if a.asname else PACKAGE
+    return bound
+
+
+def _root(node: ast.expr) -> str | None:
+    """The name an attribute chain starts from (``node`` in ``node.NodeLoop.run``)."""
+    while isinstance(node, ast.Attribute):
+        node = node.value
+    return node.id if isinstance(node, ast.Name) else None
+
+
+def _is_private_module(dotted: str) -> bool:
+    return dotted in MODULES and any(_is_private(part) for part in dotted.split("."))
+
+
+def _outside_reads_and_replacements(path: Path) -> list[str]:
+    """In a test, benchmark, agent or example: each ``obj._x`` (``self``/``cls``, another library's
+    module and a named tuple's methods aside) where the package defines ``_x`` and this file does
+    not (a class of its own may have a ``_x``); each
+    attribute of the package's set by plain assignment (``Outputs.publish = timed``: a method or
+    a setting replaced for good); and each attribute patched on a private module of the package
+    (``mock.patch.object(_inproc_ticks, "compile_tick", ...)``): a private module's names are
+    its own business, however they are spelled."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    own, bound = _defined(tree) | NAMEDTUPLE_API, _package_bindings(tree)
+    foreign = {name for name in _foreign_modules(tree) if name not in bound}
+    found = []
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr in PRIVATE_DEFINED and node.attr not in own
+                and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls", *foreign))):
+            found.append(f"line {node.lineno}: reads {ast.unparse(node)}")
+        elif isinstance(node, (ast.Assign, ast.AugAssign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for target in targets:
+                for leaf in (target.elts if isinstance(target, ast.Tuple) else [target]):
+                    if isinstance(leaf, ast.Attribute) and _root(leaf) in bound:
+                        found.append(f"line {node.lineno}: sets {ast.unparse(leaf)}")
+        elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
+              and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "object")
+              and node.args and isinstance(node.args[0], ast.Name)
+              and _is_private_module(bound.get(node.args[0].id, ""))):
+            found.append(f"line {node.lineno}: patches {ast.unparse(node)[:80]}")
+    return found
+
+
+#: files outside the package that still replace its attributes, with why (the check fails on any
+#: other, and on one of these that no longer does)
+KNOWN_OUTSIDE: dict[str, str] = {}
+
+
+def _outside_replacements() -> dict[str, list[str]]:
+    root = PACKAGE_DIR.parent
+    found = {str(path.relative_to(root)): _outside_reads_and_replacements(path)
+             for folder in OUTSIDE for path in sorted((root / folder).rglob("*.py"))}
+    return {path: uses for path, uses in found.items() if uses}
+
+
+def test_tests_and_benchmarks_read_and_replace_nothing_private():
+    found = [f"{path} {use}" for path, uses in _outside_replacements().items() if path not in KNOWN_OUTSIDE
+             for use in uses]
+    stale = sorted(set(KNOWN_OUTSIDE) - set(_outside_replacements()))
+    assert stale == [], "replaces nothing of the package now; remove from KNOWN_OUTSIDE: " + ", ".join(stale)
+    assert found == [], ("private attributes of the package read, or its attributes replaced, from outside it "
+                         "(give the object a public property, option or hook):\n" + "\n".join(found))

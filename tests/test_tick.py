@@ -11,7 +11,8 @@ from retriever.backends.base import NodeStats
 from retriever.errors import ReplayedError, RunEnded
 from retriever.flow._base import PortSpec
 from retriever.sync import PortBuffer
-from retriever.tick import Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs
+from retriever.tick import (Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs, take_inputs,
+                            timed_step)
 
 
 def buffer(*values) -> PortBuffer:
@@ -87,3 +88,31 @@ def test_the_decisions_that_end_a_run_say_why():
 def test_a_replayed_error_is_named_as_it_was_logged():
     assert error_text(ReplayedError("KeyError: 'k'")) == "KeyError: 'k'"
     assert error_text(ValueError("bad")) == "ValueError: bad"
+
+
+def test_the_timed_step_returns_what_the_step_raised_but_a_keyboard_interrupt():
+    def raising(exc):
+        def invoke(values):
+            raise exc
+        return invoke
+
+    outputs, exc, start, end = timed_step(lambda values: values["x"] * 2, lambda raw: [("y", raw)], {"x": 4})
+    assert outputs == [("y", 8)] and exc is None and start <= end
+    for error in (ValueError("bad"), SystemExit(0), SystemExit(3)):
+        outputs, exc, start, end = timed_step(raising(error), lambda raw: raw, {})
+        assert outputs is None and exc is error and start <= end
+    with pytest.raises(KeyboardInterrupt):
+        timed_step(raising(KeyboardInterrupt()), lambda raw: raw, {})
+
+
+def test_taking_the_inputs_of_a_skipped_tick_consumes_nothing_and_adds_no_fallback():
+    queue = buffer("a", "b", "c")
+    inputs = [("q", queue, Queue(maxsize=1), PortSpec("q")), ("need", PortBuffer(), Latest(), PortSpec("need"))]
+    fallbacks = {"spare": PortSpec("spare", default=3)}
+    values, consumed, missing, dropped = take_inputs(inputs, fallbacks, (100, 0))
+    assert missing == ["need"] and "spare" not in values and queue.cursor == 0
+
+    inputs[1] = ("need", buffer("n"), Latest(), PortSpec("need"))
+    values, consumed, missing, dropped = take_inputs(inputs, fallbacks, (100, 0))
+    assert values == {"q": ["c"], "need": "n", "spare": 3} and missing is None
+    assert dropped == {"q": 2} and queue.cursor == 3 and consumed["need"] == (("src", "x", 0),)

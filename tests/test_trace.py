@@ -70,10 +70,20 @@ def test_expanding_without_waiting_leaves_a_tape_whose_lock_is_held():
     leave it as it is, rather than wait for themselves."""
     trace = Trace()
     step = ("n", (0, 0), {}, (), "ok", None, 0, 0)
+    holding, done = threading.Event(), threading.Event()
+
+    def hold() -> None:  # as the thread the handler interrupted: expanding, the lock held
+        holding.set()
+        done.wait(10)
+
+    holder = threading.Thread(target=trace.expand, kwargs={"then": hold})
+    holder.start()
+    holding.wait(10)
     trace.tape.append(step)
-    with trace._expanding:  # as the thread the handler interrupted holds it
-        trace.expand(wait=False)
-        assert trace.tape == [step]
+    trace.expand(wait=False)
+    assert trace.tape == [step]
+    done.set()
+    holder.join()
     assert trace.raw_steps == [step] and not trace.tape
 
 

@@ -753,3 +753,10 @@ def _compiled(source: str):
     """The code of one source: graphs of one shape share it (compiling is most of a session's
     start). The source is ours, built from identifiers checked in compile_tick and repr() of port names."""
     return compile(source, "<inproc ticks>", "exec")
+
+
+def clear_compiled_ticks() -> None:
+    """Forget the code compiled for the graphs of earlier sessions, so that the next session
+    compiles its ticks from their source as the first one in a process does (a cold start is
+    what benchmarks/step_overhead.py times as a session's open)."""
+    _compiled.cache_clear()

@@ -40,7 +40,8 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
 ``tick.run_tick`` is the reference; tests/backends/test_inproc_ticks.py holds the two to the same
 trace. The session's parts: ``_Agenda``, the ticks due; ``_Recorder``, what became of each tick
 (records, delivered events, the on_error decision acted on); the loop (``_advance``); and the
-generated ticks, which read the session through one public surface, ``_inproc_ticks.Host``.
+tick functions (``CompiledTicks``, backends/inproc_compiled.py): the generated ticks, which read
+the session through one public surface, ``_inproc_ticks.Host``, and the reference elsewhere.
 """
 
 from __future__ import annotations
@@ -62,13 +63,14 @@ from ..errors import BackendError, CausalityError, CodecError, ReplayedError, Re
 from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
 from ..flow.burst import Burst
 from ..graph import Graph, Node
-from ..plan import NodePlan, bind_inputs, plan_graph
+from ..plan import NodePlan, bind_inputs, plan_graph, tie_order
 from ..sync import PortBuffer
-from ..tick import Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs
+from ..tick import (Decision, RestartBudget, decide, ending, error_outcome, error_text, exit_outcome, run_tick,
+                    select_inputs, skipped_outcome)
 from ..time import format_tag
 from ..trace import holding_full_collections
-from . import _inproc_ticks
 from .base import Backend, NodeStats, Session
+from .inproc_compiled import CompiledTicks
 
 #: sessions whose flows are set up: torn down at the program's exit at the latest
 _OPEN: weakref.WeakSet = weakref.WeakSet()
@@ -151,8 +153,8 @@ class _RateGroup:
     __slots__ = ("order", "ticks", "alone", "k", "next_tag", "offset_ns", "step_num", "step_den")
 
     def __init__(self, schedule: tuple[int, int, int], order: tuple[int, ...]):
-        self.order = order  # node indices, consumers first (_consumers_first): the tick order
-        # their tick functions, in that order, or the one that runs them all (InprocSession._tick_functions)
+        self.order = order  # node indices, consumers first (plan.tie_order): the tick order
+        # their tick functions, in that order, or the one that runs them all (CompiledTicks.functions)
         self.ticks: tuple = ()
         # the function that runs its ticks while nothing else is due, if compiled (_inproc_ticks.make_ticks)
         self.alone = None
@@ -174,38 +176,6 @@ class _RateGroup:
     def time_of(self, k: int) -> int:
         """The time of tick ``k`` (the clocks' tick_time(k))."""
         return self.offset_ns + k * self.step_num // self.step_den
-
-
-def _consumers_first(nodes: list[NodeRuntime]) -> list[int]:
-    """Per node index, its place in the order the ticks of one tag run in: each node before
-    the nodes that feed it, where edges allow (else by index). Which of a tag's ticks runs
-    first changes nothing a run records but their order (tie_break_seed shuffles them),
-    except in a run that stops during a tag (``sys.exit(0)`` in a step, an error under
-    ``on_error="stop"``): the tag's ticks that ran before the stop are recorded, those after
-    it are not. This order lets a fused rate group's ticks skip the test of what is visible
-    on the edges within it (_inproc_ticks._without_visible_tests)."""
-    n = len(nodes)
-    consumers = [{c for outs in rt.downstream.values() for c, *_ in outs if c != rt.index} for rt in nodes]
-    producers: list[list[int]] = [[] for _ in range(n)]
-    for p, cs in enumerate(consumers):
-        for c in cs:
-            producers[c].append(p)
-    waiting = [len(cs) for cs in consumers]  # per node, its consumers not yet placed
-    ready = [i for i in range(n) if not waiting[i]]
-    order = []
-    while ready:
-        i = heappop(ready)
-        order.append(i)
-        for p in producers[i]:
-            waiting[p] -= 1
-            if not waiting[p]:
-                heappush(ready, p)
-    placed = set(order)
-    order += [i for i in range(n) if i not in placed]  # (a cycle, and what feeds it: by index)
-    rank = [0] * n
-    for at, i in enumerate(order):
-        rank[i] = at
-    return rank
 
 
 class _Agenda:
@@ -339,13 +309,13 @@ class _Recorder:
                                f"record: {e}")
             rt.stats.errors += 1
             first_line = str(error).split("\n", 1)[0]
-            detail = {"error": f"CodecError: {first_line}", "on_error": "stop"}
-            self.tape.append((rt.id, tau, consumed, tuple(produced), "error", detail, start, time_ns() - start))
+            status, detail = error_outcome(f"CodecError: {first_line}", "stop")
+            self.tape.append((rt.id, tau, consumed, tuple(produced), status, detail, start, time_ns() - start))
             raise error from None
 
     def skipped(self, rt: NodeRuntime, tau: tuple[int, int], missing: list[str]) -> None:
         rt.stats.skips += 1
-        self.tape.append((rt.id, tau, {}, (), "skipped", {"missing": missing}, 0, 0))
+        self.tape.append((rt.id, tau, {}, (), *skipped_outcome(missing), 0, 0))
 
     def failed(self, rt: NodeRuntime, tau: tuple[int, int], consumed: dict, exc: BaseException,
                start: int, wall: int) -> None:
@@ -353,11 +323,10 @@ class _Recorder:
         decision = decide(rt.on_error, exc, rt.restarts, tau[0])
         if decision is Decision.END_RUN:  # (the seed paper's benchmark ends so)
             rt.stats.steps += 1
-            self.tape.append((rt.id, tau, consumed, (), "ok", {"exit": 0}, start, wall))
+            self.tape.append((rt.id, tau, consumed, (), *exit_outcome(), start, wall))
             raise ending(decision, rt.id, tau, exc)
         rt.stats.errors += 1
-        detail = {"error": error_text(exc), "on_error": rt.on_error}
-        self.tape.append((rt.id, tau, consumed, (), "error", detail, start, wall))
+        self.tape.append((rt.id, tau, consumed, (), *error_outcome(error_text(exc), rt.on_error), start, wall))
         if decision is Decision.RESTART:
             rt.stats.counts["restarts"] = rt.stats.counts.get("restarts", 0) + 1
             if not rt.replaced:  # (a replayed step was never set up: its flow is not run)
@@ -370,7 +339,10 @@ class InprocSession(Session):
     backend_name = "inproc"
     steppable = True
 
-    def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace"):
+    def __init__(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace",
+                 generate_ticks: bool = True):
+        """``generate_ticks=False``: every node ticks through the reference ``tick.run_tick``, none
+        through generated code (to debug a flow's step, or to compare the two paths)."""
         super().__init__(graph, keep)
         self._records = self.trace  # where the ticks record (pipe.trace may later read a log)
         self.max_microsteps = graph.max_microsteps
@@ -387,40 +359,33 @@ class InprocSession(Session):
                 rt.flow.reset()  # the paper's flows initialise their state in reset()
             if rt.clock.hz is not None:
                 groups.setdefault(rt.clock.schedule, []).append(rt.index)
-        self._rank = rank = _consumers_first(self._nodes)
+        # consumers first: a fused rate group's ticks then skip the test of what is visible on the
+        # edges within it (_inproc_ticks._without_visible_tests)
+        tie = tie_order(plan)
+        self._rank = rank = [tie[rt.id] for rt in self._nodes]
         self._groups = [_RateGroup(schedule, tuple(sorted(indices, key=rank.__getitem__)))
                         for schedule, indices in groups.items()]
         self._agenda = agenda = _Agenda(self._groups)
         self._recorder = recorder = _Recorder(self._records.tape, self._nodes, self.max_microsteps, agenda.schedule)
-        # per node index, the function that runs one tick: compiled (_inproc_ticks) or the
-        # reference (tick.run_tick); and the one that runs it when it is the only tick due, which
-        # may go on along a chain; built on the first advance() (see _tick_functions)
-        self._ticks: list | None = None
-        self._chains: list = []
-        self._flushes: list = []  # flush() of the compiled ticks: hand their counts to stats and rt.seq
-        self._peeks: list = []  # and their peek(): those counts, left where they are
-        self._generic_only = False  # set by take_routes(): replay delivers events itself
-        self._recompile = False  # set by _saw_ports(): compile the ticks anew between two instants
-        # the counts and seqs the compiled ticks keep go to the nodes (_flush) in the thread that
-        # runs them: held by advance(); another thread asks for it (stats()), and the loop does it
-        # between two instants
+        # the tick functions, generated or the reference, built on the first advance()
+        self._compiled = CompiledTicks(self._records, self._nodes, self._groups, agenda, recorder,
+                                       max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES,
+                                       microsteps=self._microsteps, fuse=self._rng is None,
+                                       generate=generate_ticks)
+        # the counts and seqs the generated ticks keep go to the nodes (CompiledTicks.flush) in the
+        # thread that runs them: held by advance(); another thread asks for it (stats()), and the
+        # loop does it between two instants
         self._advancing = threading.Lock()
         self._runner: int | None = None  # the thread in advance()
         self._flushes_asked: list[threading.Event] = []
         self._set_up = False  # whether the flows' setup() ran and their teardown() has not
-        # what the generated ticks call and read here; its ``look`` is set when the loop is to
-        # look at stop_requested, _recompile and _flushes_asked
-        self._host = _inproc_ticks.Host(
-            nodes=self._by_id, tape=self._records.tape, after=agenda.after, heap=agenda.heap,
-            max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES, emit=recorder.emit, skipped=recorder.skipped,
-            failed=recorder.failed, schedule=agenda.schedule, keep_next=agenda.keep_next, saw_ports=self._saw_ports,
-            microsteps=self._microsteps, resume_group=agenda.resume_group)
 
     def _microsteps(self, next_microstep: tuple[int, int], ran: int) -> tuple[tuple[int, int], int]:
         """Run the ticks in the agenda's ``after`` (what the ticks at the microstep before
         ``next_microstep`` triggered) and what they trigger, microstep by microstep, until none is
         left. Returns the microstep after the last and ``ran``, counted on."""
-        after, chains, ticks, rank, rng = self._agenda.after, self._chains, self._ticks, self._rank, self._rng
+        compiled = self._compiled
+        after, chains, ticks, rank, rng = self._agenda.after, compiled.chains, compiled.ticks, self._rank, self._rng
         t = next_microstep[0]
         try:
             while after:
@@ -442,19 +407,9 @@ class InprocSession(Session):
             raise
         return next_microstep, ran
 
-    def _flush(self) -> None:
-        """Hand what the compiled ticks counted and their seqs to the nodes: in the run's thread
-        (the ticks change them), after expanding the tape (its expanders count steps), under the
-        trace's lock (another thread may be expanding it)."""
-        self._records.expand(then=self._flush_ticks)
-
-    def _flush_ticks(self) -> None:
-        for flush in self._flushes:
-            flush()
-
     def _answer_flushes(self) -> None:
         """Flush for the threads that asked (stats()), between two instants of a run."""
-        self._flush()
+        self._compiled.flush()
         asked, self._flushes_asked = self._flushes_asked, []
         for done in asked:
             done.set()
@@ -463,48 +418,16 @@ class InprocSession(Session):
     #: (a step may take long): past that, it reads the counts where they are (_counted_so_far)
     FLUSH_WAIT_S = 1.0
 
+    def tick_order(self) -> list[tuple[str, ...]]:
+        """Per rate group (the nodes of one Rate schedule), its nodes' ids in the order they tick at an instant."""
+        return [tuple(self._nodes[i].id for i in group.order) for group in self._groups]
+
+    def generated_ticks(self) -> frozenset[str]:
+        """The nodes whose ticks were generated code in this session's runs so far (others run ``tick.run_tick``)."""
+        return frozenset(self._compiled.generated)
+
     def look_between_ticks(self) -> None:
-        self._host.look = True
-
-    def _saw_ports(self, rt: NodeRuntime, outputs: dict) -> None:
-        """An untyped step returned ports its compiled tick did not expect: the first time, expect them."""
-        if rt.ports_seen is None and all(type(port) is str for port in outputs):
-            rt.ports_seen = tuple(outputs)
-            self._recompile = self._host.look = True
-
-    def _drop_compiled(self) -> None:
-        """Hand the compiled ticks' counts back and forget them; the next advance() compiles anew
-        (from rt.seq, which the generic path may change in between)."""
-        self._flush()
-        self._ticks, self._flushes, self._peeks = None, [], []
-
-    def _tick_functions(self) -> list:
-        """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, compiled where
-        :func:`._inproc_ticks.compile_tick` can, else the reference ``tick.run_tick``; and, set on the
-        session and its groups: the same per node, when it is the only tick due, going on along
-        a chain of Trigger flows (``_chains``), and per rate group its ticks in order (one fused
-        function, when nothing shuffles them) and its loop while nothing else is due (``alone``).
-        Each returns the next microstep of the last tick it ran."""
-        if self._ticks is not None:
-            return self._ticks
-        parts = []
-        for rt in self._nodes:
-            code = None if self._generic_only else _inproc_ticks.compile_tick(self._host, rt)
-            parts.append(code or (lambda tau, out_tag, rt=rt, r=self._recorder: run_tick(rt, tau, r.skipped, r.failed,
-                                                                                        r.emit) or out_tag))
-        groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self._groups]
-        if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self._host, parts, groups,
-                                                                                 fuse=self._rng is None)
-            self._flushes.append(flush)
-            self._peeks.append(peek)
-        else:
-            ticks, chains, fused, alone = parts, parts, [], []
-        for g, group in enumerate(self._groups):
-            group.ticks = (fused[g],) if fused else tuple(ticks[i] for i in group.order)
-            group.alone = alone[g] if alone else None
-        self._ticks, self._chains = ticks, chains
-        return ticks
+        self._compiled.host.look = True
 
     # ---------------------------------------------------------------------------------------
     # Lifecycle: every flow's setup() before the first tick, teardown() when the session closes
@@ -579,10 +502,10 @@ class InprocSession(Session):
         return max(ran, default=self.now_ns)
 
     def _advance(self, until_ns: int) -> None:
-        agenda, host, rng = self._agenda, self._host, self._rng
+        agenda, host, rng = self._agenda, self._compiled.host, self._rng
         heap, pending, rate_due, after, schedule_group = (agenda.heap, agenda.pending, agenda.rate_due, agenda.after,
                                                           agenda.schedule_group)
-        ticks = self._tick_functions()
+        ticks = self._compiled.functions()
         log = self.log
         # every so many steps (ticks: each leaves one step record), between two instants: the log's
         # hand-over, or a look at whether a stop was asked for (a run in the background,
@@ -643,10 +566,11 @@ class InprocSession(Session):
             if self.log is None:
                 raise KeyboardInterrupt
             log_at = ran
-        if self._recompile:
-            self._recompile = False
-            self._drop_compiled()
-            ticks = self._tick_functions()
+        compiled = self._compiled
+        if compiled.recompile:
+            compiled.recompile = False
+            compiled.drop()
+            ticks = compiled.functions()
         if self._flushes_asked:
             self._answer_flushes()
         return log_at, ticks
@@ -671,7 +595,7 @@ class InprocSession(Session):
 
     def stats(self) -> dict[str, NodeStats]:
         """The nodes' counts, with what the compiled ticks counted since they last handed it
-        over. Those are handed over (``_flush``) only where that is safe: in a thread when no
+        over. Those are handed over (CompiledTicks.flush) only where that is safe: in a thread when no
         run goes on, or by a run's loop between two instants, which a thread other than the
         run's asks for and waits up to FLUSH_WAIT_S; in the run's own thread (a step, a signal
         handler) or when the loop does not come round in time (a long step), the counts are read
@@ -680,13 +604,13 @@ class InprocSession(Session):
         if self._runner != me:
             if self._advancing.acquire(blocking=False):  # no run goes on
                 try:
-                    self._flush()
+                    self._compiled.flush()
                 finally:
                     self._advancing.release()
                 return {rt.id: rt.stats for rt in self._nodes}
             done = threading.Event()
             self._flushes_asked.append(done)
-            self._host.look = True
+            self._compiled.host.look = True
             if done.wait(self.FLUSH_WAIT_S):
                 return {rt.id: rt.stats for rt in self._nodes}
         return self._counted_so_far()
@@ -700,7 +624,7 @@ class InprocSession(Session):
         yet (the tape expanded first, unless a thread is expanding it: then this may be a signal
         handler of that thread, and the records still in the tape are not counted yet)."""
         self._records.expand(wait=False)
-        pending = {k: counted for peek in self._peeks for k, *counted in peek()}
+        pending = self._compiled.not_handed_over()
         out = {}
         for rt in self._nodes:
             ticks, steps, step_ns = pending.get(rt.index, (0, 0, 0))
@@ -726,20 +650,20 @@ class InprocSession(Session):
             for port, consumers in rt.downstream.items():
                 routes[(rt.id, port)] = [(owners[id(buf)], buf, delay_ns) for _, buf, delay_ns, _ in consumers]
             rt.downstream = {}
-        self._drop_compiled()
-        self._generic_only = True  # compiled ticks deliver, and expect inproc entries
+        self._compiled.drop()
+        self._compiled.generic_only = True  # generated ticks deliver, and expect inproc entries
         return routes
 
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
-        self._drop_compiled()  # compiled ticks keep their own seq counters
+        self._compiled.drop()  # generated ticks keep their own seq counters
         run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that
         missed its deadline drops them: out of the trace, its record's ``produced`` emptied,
         their seqs used again. Only after :meth:`take_routes` (nothing was delivered): replay."""
-        if not self._generic_only:
+        if not self._compiled.generic_only:
             raise RuntimeError("retract() needs take_routes() first: outputs were delivered")
         steps, events = self.trace.raw_steps, self.trace.raw_events
         i = max(i for i, s in enumerate(steps) if s[0] == node)
@@ -754,7 +678,7 @@ class InprocSession(Session):
         """Start ``node`` afresh, as a real-time run did after its process died: the flow reset,
         its input buffers emptied, its ports' next seqs from ``seqs``. Returns each buffer with
         the entries it held. Only after :meth:`take_routes`: replay."""
-        if not self._generic_only:
+        if not self._compiled.generic_only:
             raise RuntimeError("restart_afresh() needs take_routes() first: outputs were delivered")
         rt = self._by_id[node]
         rt.flow.reset()
@@ -771,7 +695,7 @@ class InprocSession(Session):
         replayed sources, and an agent whose actions come from outside (retriever.gym). A tick
         whose required input has nothing is skipped as before, and takes nothing from ``outputs``."""
         rt = self._by_id[node]
-        self._drop_compiled()
+        self._compiled.drop()
         rt.replaced = True
 
         def invoke(values: dict) -> Any:
@@ -790,7 +714,7 @@ class InprocSession(Session):
         Selected by the node's own policies (``tick.select_inputs``) on copies of its buffers, so
         nothing is consumed. It is what the tick gets once every tick before ``tau`` has run
         (``advance(tau[0])`` for a tick at microstep 0): no event with a tag ``≤ tau`` can come later."""
-        self._flush()  # the compiled ticks hand back how far they have looked into the buffers
+        self._compiled.flush()  # the generated ticks hand back how far they have looked into the buffers
         rt = self._by_id[node]
         values, consumed, missing, _, _ = select_inputs(
             [(port, buf.copy(), policy, spec) for port, buf, policy, spec in rt.inputs], tau)
@@ -803,12 +727,12 @@ class InprocBackend(Backend):
     name = "inproc"
 
     def open(self, graph: Graph, tie_break_seed: int | None = None, keep: str = "trace",
-             **options: object) -> InprocSession:
+             generate_ticks: bool = True, **options: object) -> InprocSession:
         if options:
             from ..errors import BackendError
 
             hint = ("\n    hint: inproc always runs in virtual time; virtual_time=True is for backend='zenoh' "
                     "(one process per flow, the same trace)" if "virtual_time" in options else "")
             raise BackendError(f"the inproc backend takes no options {sorted(options)} "
-                               f"(it accepts tie_break_seed=, keep=){hint}")
-        return InprocSession(graph, tie_break_seed=tie_break_seed, keep=keep)
+                               f"(it accepts tie_break_seed=, keep=, generate_ticks=){hint}")
+        return InprocSession(graph, tie_break_seed=tie_break_seed, keep=keep, generate_ticks=generate_ticks)

@@ -352,6 +352,8 @@ class FlowSettings:
     #: real time: seconds before each Rate tick to stop sleeping and busy-wait to it (configure(spin=))
     spin: float = 0.0
     spin_ns: int = 0
+    #: real time: the worker process it shares with the other flows of that name (configure(process=))
+    process: str | None = None
     #: the pipeline the flow belongs to (a weak reference: a flow does not keep a pipeline alive)
     pipeline: Callable[[], Any] | None = field(default=None, repr=False, compare=False)
     max_restarts: int = MAX_RESTARTS
@@ -455,7 +457,7 @@ class Flow(Generic[In, Out]):
                   on_error: str | None = None, on_overrun: str | None = None,
                   on_deadline_miss: str | None = None, max_restarts: int | None = None,
                   restart_window: float | None = None, replay: str | None = None,
-                  spin: float | None = None):
+                  spin: float | None = None, process: str | None = None):
         """Set this flow's node id, logical execution time (seconds) and failure policies;
         with ``on_error="restart"``, at most ``max_restarts`` restarts within any
         ``restart_window`` seconds of run time (more stop the run).
@@ -472,6 +474,15 @@ class Flow(Generic[In, Out]):
         (benchmarks/control_jitter.py measures the lateness with and without it). The cost is CPU:
         up to ``spin`` per tick (``spin=100e-6`` at 200 Hz: at most 2% of a core).
         In virtual time it changes nothing.
+
+        ``process`` (a name like a node id) puts the flow in one worker process with every other
+        flow of that name, on the real-time backends: one interpreter, one Zenoh session, one
+        thread stepping them in turn, and events between them handed over by reference (no
+        encode, copy or network). What each tick reads and emits is the same as apart; when it
+        runs may differ, since a long step of one holds up the others. Keep a flow that must be
+        on time, that may crash, or that holds the GIL for long in a process of its own (the
+        default). A flow that restarts (``on_error="restart"``) or whose process died starts
+        again in a process of its own. In-process (``inproc``) it changes nothing.
 
         Returns the flow, so it chains: ``Policy().configure(latency=0.3) @ Rate(hz=2)``.
         """
@@ -512,6 +523,11 @@ class Flow(Generic[In, Out]):
                 raise ValueError(f"{owner}.configure(spin={spin!r:.40}): {problem}\n    hint: spin is how long before "
                                  "each tick its worker busy-waits instead of sleeping, e.g. spin=100e-6")
             s.spin, s.spin_ns = spin, seconds_to_ns(spin)
+        if process is not None:
+            if not isinstance(process, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", process):  # ir.NODE_ID
+                raise ValueError(f"{owner}.configure(process={process!r:.40}): a process name must be an "
+                                 "identifier-like str (letters, digits, _ and -), e.g. process='perception'")
+            s.process = process
         return self
 
     def named(self, name: str):

@@ -106,15 +106,7 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
     leaves ports (or ``port.field``) out; ``gaps="split"`` ends an episode at a gap between frames
     instead of refusing it. ``progress(log, logs, tick, ticks)`` is called as ticks are read.
     """
-    if format not in FORMATS:
-        raise LogError(f"unknown dataset format {format!r}", f"use one of: {', '.join(FORMATS)}")
-    if not logs:
-        raise LogError("no log to export", "give one or more .mcap files")
-    mapping = Mapping(parse_maps(list(maps)) if maps is not None and not isinstance(maps, dict) else dict(maps or {}),
-                      tuple(exclude))
-    if task is not None and TASK in mapping.maps.values():
-        raise LogError("the task is given twice: --task and a port mapped to task", "pass one of them")
-    _check_keys(mapping, format)
+    mapping = _checked_mapping(logs, format, maps, task, exclude)
     out = Path(out)
     _check_out(out, logs)
     if out.exists() and not overwrite:
@@ -125,55 +117,105 @@ def export_dataset(logs: Sequence[str | Path | RunLog | Recording], out: str | P
     reaped = reap_partials(out.parent)
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     shutil.rmtree(partial, ignore_errors=True)
-    writer = None
-    left_out: Counter = Counter()
-    first: FlowFrames | None = None
-    fields_left_out: list[str] = []
-    sparse: dict[str, tuple[int, int]] = {}
-    non_finite: dict[str, tuple[int, str]] = {}
+    written = _Episodes(partial, writer_class, repo_id or f"retriever/{out.name}", flow, format)
     try:
         for n, source in enumerate(logs):
-            recording = _recording(source)
-            frames = FlowFrames(recording, flow, mapping, gaps)
-            if format == "lerobot" and frames.fps.denominator != 1:
-                raise LogError(f"flow '{flow}' ticks at {float(frames.fps):g} Hz: a LeRobot dataset's fps is a whole "
-                               "number", "use --format npz, or give the flow a whole-number rate")
-            if first is not None and frames.fps != first.fps:
-                raise LogError(f"{recording.name}: flow '{flow}' ticks at {float(frames.fps):g} Hz, in the logs "
-                               f"before at {float(first.fps):g} Hz", "a dataset has one fps: export those logs apart")
             tick_progress = None if progress is None else (lambda i, total, n=n: progress(n, len(logs), i, total))
-            for episode in frames.episodes(tick_progress):
-                if writer is None:
-                    first = frames
-                    writer = writer_class(partial, frames.features, frames.fps, repo_id or f"retriever/{out.name}")
-                elif frames.features != first.features:
-                    raise LogError(f"{recording.name}: the frames of '{flow}' have other features than those of the "
-                                   f"logs before ({_describe(frames.features)}, against {_describe(first.features)})",
-                                   "a dataset has one set of features: export those logs apart")
-                writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
-            left_out.update(frames.left_out)
-            for source, (count, tick) in frames.non_finite.items():
-                before = non_finite.get(source, (0, f"{format_tag(tick)} in {recording.name}"))
-                non_finite[source] = (before[0] + count, before[1])
-            fields_left_out += [f for f in frames.fields_left_out if f not in fields_left_out]
-            for port, (with_value, ticks) in frames.sparse.items():
-                before = sparse.get(port, (0, 0))
-                sparse[port] = (before[0] + with_value, before[1] + ticks)
-        if writer is None:
-            what = ", ".join(f"{n} {why}" for why, n in sorted(left_out.items())) or "no step record"
-            raise LogError(f"no tick of flow '{flow}' makes a frame ({what})",
-                           "a frame needs an ok tick with a value on every input and output port; "
-                           "--exclude a port that never has one")
-        episodes, count = writer.close()
-        writer = None
+            written.add(_recording(source), mapping, gaps, task, tick_progress)
+        episodes, count = written.close()
         _put_in_place(partial, out)
     finally:
-        if writer is not None:
-            writer.abandon()
+        written.abandon()
         shutil.rmtree(partial, ignore_errors=True)
     size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
+    first = written.first
     return ExportSummary(out, format, episodes, count, float(first.fps), size, time.perf_counter() - started,
-                         first.features, left_out, fields_left_out, sparse, non_finite, reaped)
+                         first.features, written.left_out, written.fields_left_out, written.sparse,
+                         written.non_finite, reaped)
+
+
+def _checked_mapping(logs: Sequence[str | Path | RunLog | Recording], format: str,
+                     maps: dict[str, str] | Sequence[str] | None, task: str | None,
+                     exclude: Sequence[str]) -> Mapping:
+    """The export's features mapping (``maps`` and ``exclude``), once the request is one an export
+    can meet: a known format, a log at least, one task, keys the format leaves to features."""
+    if format not in FORMATS:
+        raise LogError(f"unknown dataset format {format!r}", f"use one of: {', '.join(FORMATS)}")
+    if not logs:
+        raise LogError("no log to export", "give one or more .mcap files")
+    mapping = Mapping(parse_maps(list(maps)) if maps is not None and not isinstance(maps, dict) else dict(maps or {}),
+                      tuple(exclude))
+    if task is not None and TASK in mapping.maps.values():
+        raise LogError("the task is given twice: --task and a port mapped to task", "pass one of them")
+    _check_keys(mapping, format)
+    return mapping
+
+
+class _Episodes:
+    """The episodes of an export's logs, into one writer: made at the first episode (of the first
+    log's features and fps, which every later log must have), and what each log left out, totalled."""
+
+    def __init__(self, partial: Path, writer_class: type, repo_id: str, flow: str, format: str):
+        self.partial, self.writer_class, self.repo_id, self.flow, self.format = (partial, writer_class, repo_id,
+                                                                                 flow, format)
+        self.writer = None
+        self.first: FlowFrames | None = None  # the frames of the log the writer was made for
+        self.left_out: Counter = Counter()
+        self.fields_left_out: list[str] = []
+        self.sparse: dict[str, tuple[int, int]] = {}
+        self.non_finite: dict[str, tuple[int, str]] = {}
+
+    def add(self, recording: Recording, mapping: Mapping, gaps: str, task: str | None,
+            progress: Callable[[int, int], None] | None) -> None:
+        """Write the episodes of the flow's frames in ``recording``."""
+        frames = FlowFrames(recording, self.flow, mapping, gaps)
+        self._check_fps(frames, recording)
+        for episode in frames.episodes(progress):
+            if self.writer is None:
+                self.first = frames
+                self.writer = self.writer_class(self.partial, frames.features, frames.fps, self.repo_id)
+            elif frames.features != self.first.features:
+                raise LogError(f"{recording.name}: the frames of '{self.flow}' have other features than those of the "
+                               f"logs before ({_describe(frames.features)}, against {_describe(self.first.features)})",
+                               "a dataset has one set of features: export those logs apart")
+            self.writer.episode(episode, task if task is not None else recording.ir.name, recording.name)
+        self._total(frames, recording)
+
+    def _check_fps(self, frames: FlowFrames, recording: Recording) -> None:
+        """Refuse a rate LeRobot cannot hold, or one other than the logs' before."""
+        if self.format == "lerobot" and frames.fps.denominator != 1:
+            raise LogError(f"flow '{self.flow}' ticks at {float(frames.fps):g} Hz: a LeRobot dataset's fps is a whole "
+                           "number", "use --format npz, or give the flow a whole-number rate")
+        if self.first is not None and frames.fps != self.first.fps:
+            raise LogError(f"{recording.name}: flow '{self.flow}' ticks at {float(frames.fps):g} Hz, in the logs "
+                           f"before at {float(self.first.fps):g} Hz", "a dataset has one fps: export those logs apart")
+
+    def _total(self, frames: FlowFrames, recording: Recording) -> None:
+        """Add what ``frames`` left out (ticks, fields, sparse ports) and its NaN or infinite values."""
+        self.left_out.update(frames.left_out)
+        for source, (count, tick) in frames.non_finite.items():
+            before = self.non_finite.get(source, (0, f"{format_tag(tick)} in {recording.name}"))
+            self.non_finite[source] = (before[0] + count, before[1])
+        self.fields_left_out += [f for f in frames.fields_left_out if f not in self.fields_left_out]
+        for port, (with_value, ticks) in frames.sparse.items():
+            before = self.sparse.get(port, (0, 0))
+            self.sparse[port] = (before[0] + with_value, before[1] + ticks)
+
+    def close(self) -> tuple[int, int]:
+        """Finish the dataset: its episodes and frames. LogError when no log made a frame."""
+        if self.writer is None:
+            what = ", ".join(f"{n} {why}" for why, n in sorted(self.left_out.items())) or "no step record"
+            raise LogError(f"no tick of flow '{self.flow}' makes a frame ({what})",
+                           "a frame needs an ok tick with a value on every input and output port; "
+                           "--exclude a port that never has one")
+        episodes, count = self.writer.close()
+        self.writer = None
+        return episodes, count
+
+    def abandon(self) -> None:
+        """Drop an unfinished writer (an export that failed): a closed one is gone already."""
+        if self.writer is not None:
+            self.writer.abandon()
 
 
 def reap_partials(folder: Path) -> list[str]:

@@ -34,11 +34,12 @@ import numpy as np
 from ..codec import dataclass_fields
 from ..errors import LogError, RetrieverWarning
 from ..trace import NOT_KEPT
+from .outputs import export_path
 from .reader import RunLog
 
 #: arrays up to this many elements go into JSON whole; bigger ones as dtype, shape and a head
 JSON_ARRAY_MAX = 1024
-IMAGE_ENCODINGS = {2: "mono8", 3: "rgb8", 4: "rgba8"}  # by channels (H×W is 2 dims: mono8)
+IMAGE_ENCODINGS = {3: "rgb8", 4: "rgba8"}  # H×W×channels (an H×W array is mono8; H×W×2 is no image)
 
 VALUE_SCHEMA = {"type": "object", "properties": {
     "value": {}, "tag_ns": {"type": "integer"}, "microstep": {"type": "integer"}, "seq": {"type": "integer"}}}
@@ -84,7 +85,12 @@ def image_fields(value: Any, path: str = "") -> Iterator[tuple[str, np.ndarray, 
             yield from image_fields(field_value, f"{path}/{name}")
 
 
-def to_json(value: Any) -> Any:
+#: how deep to_json opens nested lists, dicts and dataclasses; deeper is said, not opened (a
+#: value from a log is hostile: a thousand nested lists must not exhaust the stack)
+JSON_DEPTH_MAX = 32
+
+
+def to_json(value: Any, depth: int = 0) -> Any:
     """A value as JSON: numbers, strings, lists and dicts as they are, small arrays as lists,
     bigger ones summarised, a dataclass as its fields, anything else as its text."""
     if value is None or isinstance(value, (bool, int, float, str)):
@@ -92,17 +98,21 @@ def to_json(value: Any) -> Any:
     if isinstance(value, np.generic):
         return to_json(value.item())
     if isinstance(value, np.ndarray):
-        if value.size <= JSON_ARRAY_MAX and value.dtype.kind in "biuf":
-            return to_json(value.tolist())
+        # by its size and by each dimension: a (10**8, 0) array holds nothing, yet as lists it is 10**8 of them
+        small = value.size <= JSON_ARRAY_MAX and max(value.shape, default=0) <= JSON_ARRAY_MAX
+        if small and value.dtype.kind in "biuf":
+            return to_json(value.tolist(), depth)
         return {"dtype": str(value.dtype), "shape": list(value.shape),
                 "head": to_json(value.reshape(-1)[:8].tolist()) if value.dtype.kind in "biuf" else None}
+    if depth >= JSON_DEPTH_MAX:
+        return f"<{type(value).__name__} nested deeper than {JSON_DEPTH_MAX}>"
     fields = dataclass_fields(value)  # before tuples: an UnregisteredValue is one
     if fields is not None:
-        return {name: to_json(v) for name, v in fields.items()}
+        return {name: to_json(v, depth + 1) for name, v in fields.items()}
     if isinstance(value, dict):
-        return {str(k): to_json(v) for k, v in value.items()}
+        return {str(k): to_json(v, depth + 1) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [to_json(v) for v in value]
+        return [to_json(v, depth + 1) for v in value]
     if isinstance(value, bytes):
         return {"bytes": len(value)}
     return str(value)
@@ -190,11 +200,7 @@ class FoxgloveWriter:
 def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
     """Write ``log`` as a Foxglove MCAP to ``out``; the messages written, per topic."""
     foxglove = _sdk()[0]
-    out = Path(out)
-    if out.exists() and not overwrite:
-        raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
-    if out.resolve() == Path(log.path).resolve() or (out.exists() and os.path.samefile(out, log.path)):
-        raise LogError(f"{out} is the log being exported", "write the export to another file")
+    out = export_path(log.path, out, overwrite)
     zero = run_start_ns(log)
     ir = log.ir
     context = foxglove.Context()
@@ -227,6 +233,8 @@ class LiveView:
     process, fed with what the run records as it arrives (the workers' reports: never on the
     flows' path), so the app shows cameras, numbers and skips as they happen. Times are the
     events' publish times (wall clock). A failure of the view stops the view, not the run."""
+
+    title = "the Foxglove live view"
 
     def __init__(self, port: int, ir, host: str = "127.0.0.1"):
         foxglove = _sdk()[0]

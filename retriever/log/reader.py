@@ -27,7 +27,8 @@ from ..errors import ChunkTooLargeError, CodecError, IRError, LogError, Unregist
 from ..ir import IR
 from ..trace import Event, StepRecord, Trace
 from . import format as fmt
-from .mcap_writer import MAGIC
+from .deployment import LoggedDeployment, read_deployment
+from .mcap_records import MAGIC
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,12 @@ class RunLog:
                                "the file was changed after it was written")
             faults.append({**record, "seqs": seqs, "lost_events": lost})
         return faults
+
+    @property
+    def deployment(self) -> LoggedDeployment | None:
+        """Where the nodes of a deployment's run ran, and their moves after a worker was lost
+        (None: the run was not a deployment)."""
+        return read_deployment(self.path, self.run.get("deployment"), self.faults)
 
     @property
     def starved(self) -> list[dict[str, Any]]:

@@ -25,7 +25,8 @@ from mcap.opcode import Opcode
 from ..codec import Encoder, array_encoding_head
 from ..errors import CodecError, LogError, LogWriteError
 from . import format as fmt
-from .mcap_writer import MESSAGE_FIELDS, MESSAGE_HEAD, McapWriter
+from .mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
+from .mcap_writer import McapWriter
 
 if TYPE_CHECKING:
     from ..graph import Graph

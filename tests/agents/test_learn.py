@@ -15,7 +15,7 @@ import pytest
 from agents.learn.episodes import parse_seeds
 from agents.retriever0 import POLICY_NODE, build
 from retriever import read_log
-from retriever.log import replay
+from retriever.replay import replay
 
 pytest.importorskip("torch")
 pytest.importorskip("lerobot")

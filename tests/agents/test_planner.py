@@ -379,7 +379,7 @@ def test_a_run_with_a_model_and_a_teleop_file_replays_without_either(model_serve
     endpoint and reads no file, and re-executes every other flow against what they said."""
     from agents.retriever0 import build
     from retriever import read_log
-    from retriever.log import replay
+    from retriever.replay import replay
 
     model_server.replies = [json.dumps({"action_plan": ["OpenDrawer(TL-H) -> InspectDrawer(TL) -> CloseDrawer(TL-H)"]})]
     schedule = tmp_path / "teleop.json"

@@ -15,7 +15,7 @@ from agents.episode import lateness, summarize
 from agents.pictures import timeline
 from agents.retriever0 import build
 from retriever import read_log
-from retriever.log import replay
+from retriever.replay import replay
 
 PAPER_TRACE = ["OpenDrawer(TL-H)", "InspectDrawer(TL)", "CloseDrawer(TL-H)", "OpenDrawer(TR-H)", "InspectDrawer(TR)",
                "Pick(spice)", "Season(food)", "CloseDrawer(TR-H)"]

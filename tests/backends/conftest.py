@@ -19,28 +19,39 @@ from retriever.trace import STEP_STATUSES
 # trace fixed in advance; those must equal inproc's exactly. "zenoh" here is the Zenoh runtime in
 # lockstep virtual time (virtual_time=True: one process per flow, the trace inproc's), each run
 # also compared with an inproc run of the same pipeline.
-BACKENDS = ["inproc", "zenoh"]
+# "zenoh-grouped": the same, every flow in one worker process (configure(process=): one thread
+# steps them all, events by reference), but those with on_error="restart", which run alone.
+BACKENDS = ["inproc", "zenoh", "zenoh-grouped"]
 
 
 @pytest.fixture(params=BACKENDS)
 def backend(request, monkeypatch) -> str:
-    if request.param == "zenoh":
-        monkeypatch.setattr(Pipeline, "run", _in_virtual_time(Pipeline.run))
+    if request.param.startswith("zenoh"):
+        monkeypatch.setattr(Pipeline, "run", _in_virtual_time(Pipeline.run, grouped=request.param == "zenoh-grouped"))
+        return "zenoh"
     return request.param
 
 
-def _in_virtual_time(run):
-    """``Pipeline.run`` that runs ``backend="zenoh"`` in virtual time, then the same pipeline on
-    inproc (reset, its flows fresh: the zenoh run stepped copies in other processes), and requires
-    the identical trace."""
+def _in_virtual_time(run, grouped: bool = False):
+    """``Pipeline.run`` that runs ``backend="zenoh"`` in virtual time (``grouped``: its flows in
+    one process), then the same pipeline on inproc (reset, its flows fresh: the zenoh run
+    stepped copies in other processes), and requires the identical trace."""
 
     def run_virtual(pipe, duration=None, backend=None, **options):
         if backend != "zenoh":
             return run(pipe, duration, backend, **options)
         if pipe.now > 0:  # a run of its own processes, once; what goes on runs on the inproc reference
             pytest.skip("a zenoh run cannot be continued (pipe.run twice): its processes are gone")
+        if grouped:
+            nodes = pipe.compile().nodes.values()
+            for node in nodes:
+                node.flow.configure(process="all")
+            alone = sum(node.settings.on_error == "restart" for node in nodes)
         try:
             trace = run(pipe, duration, "zenoh", virtual_time=True, quiet=True, **options)
+            if grouped:
+                processes = len(set(pipe.session.worker_pids().values()))
+                assert processes == min(len(nodes), alone + 1), (processes, alone)
         except BackendError as e:  # a capability it says it lacks, before anything started
             if "cannot run the instantaneous cycle" in str(e):
                 pytest.skip("zenoh in virtual time does not run instantaneous cycles")

@@ -310,6 +310,22 @@ class Flaky(Flow[None, Value]):
         return Value(k)
 
 
+class EndsAtTick(Flow[OptXIn, Value]):
+    """Emits its tick index k (what comes on ``x`` only orders it after its producer in a tag);
+    at tick ``at`` its step calls sys.exit(0), which ends the whole run."""
+
+    def __init__(self, at: int):
+        self.at = at
+        self.k = 0
+
+    def step(self, inp: OptXIn) -> Value:
+        k = self.k
+        self.k += 1
+        if k == self.at:
+            sys.exit(0)
+        return Value(k)
+
+
 @io
 @dataclass
 class Count:
@@ -1112,6 +1128,32 @@ def test_on_error_stop_raises_step_error(backend):
         assert "ValueError: boom at 3" in str(err)
     assert step_at(pipe.trace, "flaky", (300 * MS, 0)).status == "error"
     assert [v for _, v in saw(pipe.trace, "sink")] == [0, 1, 2]
+
+
+def test_sys_exit_in_a_step_ends_the_run_at_its_tick(backend):
+    """§5 sys.exit(0) in a step ends the whole run cleanly at its tick: that step is recorded (ok,
+    ``{"exit": 0}``, nothing produced), every tick at an earlier tag ran, and of the ticks at its
+    tag those of the nodes before it in tie order (each node before those that feed it) ran,
+    the others did not, nor any later one: the events those made at the next microstep are
+    recorded, the ticks they trigger there are not. In virtual time a zenoh run's nodes run
+    ahead of each other; its trace is the same."""
+    with Pipeline("ends") as pipe:
+        feeder = Source().named("feeder") @ Rate(10)  # feeds the ender: after it in a tag
+        ender = EndsAtTick(at=7).named("ender") @ Rate(10)
+        watcher = EchoOpt().named("watcher") @ Rate(10)  # fed by the ender: before it in a tag
+        sink = Echo().named("sink") @ Trigger("x")  # a microstep after the watcher
+        feeder.then(ender, map={"value": "x"})
+        ender.then(watcher, map={"value": "x"})
+        watcher.then(sink, map={"saw": "x"})
+    trace = pipe.run(duration=3.0, backend=backend)
+    assert pipe.now == 0.7
+    assert tags(trace, "ender") == tags(trace, "watcher") == [(k * 100 * MS, 0) for k in range(8)]
+    assert tags(trace, "feeder") == [(k * 100 * MS, 0) for k in range(7)]
+    assert tags(trace, "sink") == [(k * 100 * MS, 1) for k in range(7)]
+    last = step_at(trace, "ender", (700 * MS, 0))
+    assert (last.status, last.detail, last.produced) == ("ok", {"exit": 0}, ())
+    assert trace.values_of("ender", "value") == list(range(7))
+    assert saw(trace, "watcher")[-1] == ((700 * MS, 1), 6)  # the ender's tick at 0.6 s, seen at 0.7 s
 
 
 # =============================================================================================

@@ -14,41 +14,16 @@ import inspect
 import threading
 import time
 import warnings
-from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Optional
-from unittest import mock
 
 import pytest
 from hypothesis import given
 
 from retriever import Flow, Hybrid, Latest, Pipeline, Rate, RetrieverWarning, StepError, Trigger, io
-from retriever.backends import _inproc_ticks
 from retriever.backends.inproc import InprocSession
 
 from .test_schedule_independence import DURATION, SETTINGS, budget, graphs
-
-
-@contextmanager
-def generic_only():
-    with mock.patch.object(_inproc_ticks, "compile_tick", return_value=None):
-        yield
-
-
-@contextmanager
-def counting():
-    """Count the nodes compile_tick compiles."""
-    compiled = []
-    real = _inproc_ticks.compile_tick
-
-    def spy(host, rt):
-        result = real(host, rt)
-        if result is not None:
-            compiled.append(rt.id)
-        return result
-
-    with mock.patch.object(_inproc_ticks, "compile_tick", spy):
-        yield compiled
 
 
 def records(trace) -> tuple[list, list]:
@@ -56,27 +31,40 @@ def records(trace) -> tuple[list, list]:
     return [e[:5] for e in trace.raw_events], [s[:6] for s in trace.raw_steps]
 
 
-def outcome(build, runs, **options):
-    """Run ``build()``'s pipeline in the increments ``runs``; the records, stats, and error if any."""
+def ran(build, runs, **options):
+    """``build()``'s pipeline, opened with the backend ``options`` and run in the increments
+    ``runs``, and the error that stopped it if any."""
     pipe = build()
+    pipe.open(**options)
     error = None
     try:
         for duration in runs:
-            pipe.run(duration=duration, **options)
+            pipe.run(duration=duration)
     except Exception as exc:  # noqa: BLE001 - compared below
         error = f"{type(exc).__name__}: {exc}"
+    return pipe, error
+
+
+def summary(pipe, error):
     stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
     return records(pipe.trace), stats, error
+
+
+def outcome(build, runs, **options):
+    """Run ``build()``'s pipeline in the increments ``runs``; the records, stats, and error if any."""
+    return summary(*ran(build, runs, **options))
 
 
 def assert_same(build, runs=(1.0,), min_compiled=1, **options):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
-        with counting() as compiled:
-            fast = outcome(build, runs, **options)
-        with generic_only():
-            generic = outcome(build, runs, **options)
-    assert len(set(compiled)) >= min_compiled, f"only {sorted(set(compiled))} compiled"
+        pipe, error = ran(build, runs, **options)
+        compiled = pipe.session.generated_ticks()
+        fast = summary(pipe, error)
+        pipe, error = ran(build, runs, generate_ticks=False, **options)
+        assert pipe.session.generated_ticks() == frozenset()
+        generic = summary(pipe, error)
+    assert len(compiled) >= min_compiled, f"only {sorted(compiled)} compiled"
     assert fast[2] == generic[2]
     assert fast[1] == generic[1]
     (fast_events, fast_steps), (events, steps) = fast[0], generic[0]
@@ -262,7 +250,7 @@ def one_group_consumers_first():
 
 def test_a_fused_group_run_consumers_first_sees_what_the_generic_path_sees():
     session = InprocSession(one_group_consumers_first().compile())
-    order = [session._nodes[i].id for i in session._groups[0].order]
+    order = list(session.tick_order()[0])
     assert order.index("plain") < order.index("src") and order.index("late") < order.index("let")
     assert order.index("fan") < order.index("src") and order.index("fan") < order.index("let"), order
     assert order.index("c1") < order.index("c2"), order
@@ -362,8 +350,7 @@ def test_random_graphs_match(spec):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
         fast = run_in_budget()
-        with generic_only():
-            generic = run_in_budget()
+        generic = run_in_budget(generate_ticks=False)
     assert fast == generic
 
 
@@ -373,15 +360,14 @@ def test_a_tick_between_runs_keeps_seqs_unique():
         return [e[1:4] for e in pipe.trace.raw_events]
 
     results = []
-    for patch in (counting, generic_only):
-        with patch():
-            pipe = chain("typed")()
-            pipe.run(duration=0.01)
-            session = pipe.session
-            session.tick("src", (pipe.trace.raw_steps[-1][1][0], 5))
-            pipe.run(duration=0.01)
-            results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))
-            assert len(set(ids(pipe))) == len(ids(pipe))
+    for options in ({}, {"generate_ticks": False}):
+        pipe = chain("typed")()
+        pipe.run(duration=0.01, **options)
+        session = pipe.session
+        session.tick("src", (pipe.trace.raw_steps[-1][1][0], 5))
+        pipe.run(duration=0.01)
+        results.append((records(pipe.trace), {n: vars(s) | {"step_ns": 0} for n, s in pipe.stats().items()}))
+        assert len(set(ids(pipe))) == len(ids(pipe))
     assert results[0] == results[1]
 
 
@@ -393,22 +379,21 @@ class Ping(Flow[Num, Num]):
 def assert_same_going_on(build, runs=(0.1, 0.1)):
     """Run ``build()``'s pipeline in the increments ``runs``, going on after each error, with the
     compiled ticks and with the generic ones: the same records, stats and errors."""
-    def going_on():
+    def going_on(**options):
         pipe, errors = build(), []
+        pipe.open(**options)
         for duration in runs:
             try:
                 pipe.run(duration=duration)
             except Exception as exc:  # noqa: BLE001 - compared below
                 errors.append(f"{type(exc).__name__}: {exc}")
         stats = {node: (s.ticks, s.steps, s.skips, s.errors) for node, s in pipe.stats().items()}
-        return records(pipe.trace), stats, errors
+        return (records(pipe.trace), stats, errors), pipe.session.generated_ticks()
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
-        with counting() as compiled:
-            fast = going_on()
-        with generic_only():
-            generic = going_on()
+        fast, compiled = going_on()
+        generic, _ = going_on(generate_ticks=False)
     assert set(compiled) == set(fast[1]) and fast == generic
     return fast
 
@@ -575,11 +560,12 @@ class Interrupts(Flow[Num, Num]):
 def test_a_step_interrupted_by_ctrl_c_counts_its_tick_on_both_paths():
     """A Ctrl-C in a compiled chain link's step: the run stops there, and the interrupted tick
     is counted, as the generic path counts it (its stats differed)."""
-    def going_on():
+    def going_on(**options):
         with Pipeline("interrupted") as pipe:
             prev = Count().named("src") @ Rate(100)
             for name in ("c1", "c2", "c3"):
                 prev = prev.then((Interrupts() if name == "c2" else Ping()).named(name) @ Trigger(), sync=Latest())
+        pipe.open(**options)
         stopped = []
         for duration in (0.1, 0.1):
             try:
@@ -590,8 +576,7 @@ def test_a_step_interrupted_by_ctrl_c_counts_its_tick_on_both_paths():
         return records(pipe.trace), stats, stopped
 
     fast = going_on()
-    with generic_only():
-        generic = going_on()
+    generic = going_on(generate_ticks=False)
     assert fast == generic and fast[2] == [0.1]
     ticks, steps, _, _ = fast[1]["c2"]
     assert ticks == steps + 1  # the interrupted one

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from retriever import NOT_KEPT, BackendError, Flow, Pipeline, Rate, Trigger, ValuesNotKeptError, read_log
-from retriever.log import replay
+from retriever.replay import replay
 
 from .zenoh.payload_flows import Camera, Viewer, frame
 

@@ -11,7 +11,7 @@ from collections import defaultdict
 import pytest
 
 from retriever import Latest, Pipeline, Rate, SetupError, Trigger, read_log
-from retriever.log import replay
+from retriever.replay import replay
 
 from .setup_flows import Camera, Policy
 

@@ -24,7 +24,7 @@ SCRIPT = ROOT / "deploy" / "netns-lab.sh"
 #: sessions never share a lab, and one left by a killed session is found and removed
 #: (reap_orphan_labs) by the next.
 PREFIX_ROOT = "rtlab"
-ORPHAN = re.compile(rf"^({PREFIX_ROOT}(\d+)-[0-9a-f]{{4}})-(br|h\d+)$")
+ORPHAN = re.compile(rf"^({PREFIX_ROOT}(\d+)-[0-9a-f]{{4}})-(br|h\d+|n\d+)$")
 
 SCRIPT_TIMEOUT_S = 60.0  # a bound on one call of the script, which takes milliseconds
 STOP_S = 5.0  # how long a process gets to exit after SIGTERM, before SIGKILL
@@ -136,7 +136,7 @@ class Lab:
         return done
 
     def namespaces(self) -> list[str]:
-        return [n for n in namespaces() if re.fullmatch(rf"{re.escape(self.prefix)}-(br|h\d+)", n)]
+        return [n for n in namespaces() if re.fullmatch(rf"{re.escape(self.prefix)}-(br|h\d+|n\d+)", n)]
 
     def up(self) -> list[Host]:
         self.script("up", str(self.size))
@@ -147,6 +147,15 @@ class Lab:
 
     def heal(self, host: Host) -> None:
         self.script("heal", host.name)
+
+    def nat(self, host: Host) -> str:
+        """Put ``host`` behind a NAT gateway (the script's nat): it reaches the lab, nothing
+        reaches it. Its address behind the gateway."""
+        self.script("nat", host.name)
+        return f"192.168.{host.index}.2"
+
+    def unnat(self, host: Host) -> None:
+        self.script("unnat", host.name)
 
     def stop_processes(self) -> None:
         """Stop every process started on the lab's hosts that still runs: SIGTERM, then SIGKILL."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import agents.messages  # noqa: F401 (the log's value types)
 from agents.episode import summarize
 from retriever import read_log
-from retriever.log import replay
+from retriever.replay import replay
 from tests.deploy.test_deploy import deploy, secret, start_worker  # noqa: F401 (secret: a fixture)
 
 REPO = Path(__file__).resolve().parents[2]
@@ -24,13 +24,16 @@ def test_retriever0_runs_across_a_robot_host_and_a_gpu_host_and_its_log_replays(
     start_worker(gpu, "gpu-box", secret, "--labels", "gpu", "--allow", "agents")
     log = tmp_path / "run.mcap"
     done = deploy(coordinator, [arm, gpu], secret, f"{REPO / 'agents' / 'retriever0.py'}:pipe",
-                  "--placement", str(REPO / "deploy" / "retriever0.toml"), "--duration", "90", "--log", str(log),
-                  timeout=240)
+                  "--placement", str(REPO / "deploy" / "retriever0.toml"), "--duration", "150", "--log", str(log),
+                  timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     recorded = read_log(log)
     placed = json.loads(recorded.run["deployment"])["placed"]
     assert {placed[n] for n in ("planner", "skill")} == {"gpu-box"}, placed
     assert {placed[n] for n in ("world", "head_camera", "wrist_camera", "controller")} == {"arm-pc"}, placed
     episode = summarize(recorded.trace(), recorded.ir)
-    assert episode.skills == PAPER_TRACE and episode.finished and episode.score == 1.0, episode.skill_trace
+    # (the run ends when the episode does: about 45 s of world time here; a loaded machine's world falls behind)
+    assert episode.skills == PAPER_TRACE and episode.finished and episode.score == 1.0, (
+        f"{episode.skill_trace}: {episode.duration} s, {episode.failures} failures, {episode.replans} replans, "
+        f"rates {[r for r in episode.rates if r.node in ('world', 'controller', 'skill')]}")
     assert replay(recorded).identical

@@ -12,6 +12,7 @@ import pytest
 import retriever
 import retriever.flow
 import retriever.flow.adapter
+from retriever.flow._base import settings_of
 from retriever import MISSING, ClockError, Flow, GraphError, Pipeline, Rate, StepError, io
 from retriever.backends import default_backend
 from retriever.flow import EventStream, Hybrid, Latest, Trigger, Window
@@ -282,7 +283,7 @@ def test_a_second_clock_is_refused_with_a_hint_at_hybrid():
             "<Clock @ Rate(hz=30)> @ Trigger('k'): the flow already has the clock Rate(hz=30), and a flow has one "
             "clock\n    hint: to tick on a rate and on events, bind one Hybrid(hz=..., trigger=[...])")):
         flow @ Trigger("k")
-    assert flow._retriever.clock == Rate(hz=30)
+    assert settings_of(flow).clock == Rate(hz=30)
 
 
 def test_binding_a_flow_of_another_pipeline_is_refused():
@@ -297,7 +298,7 @@ def test_binding_a_flow_of_another_pipeline_is_refused():
             flow @ Rate(hz=5)
         with pytest.raises(GraphError, match="belongs to pipeline 'first'"):
             second.connect(flow, Clock() @ Trigger())
-    assert flow._retriever.clock is None
+    assert settings_of(flow).clock is None
     assert len(second.flows) == 1  # the fresh Clock() only
     assert first.flows == [flow]
 
@@ -345,7 +346,7 @@ def test_spin_lands_in_the_ir_only_when_set_and_comes_back_from_it():
     assert "spin" not in ir.node("plain")["config"]
     assert ir.node("ctrl")["config"]["spin"] == 100e-6
     rebuilt = Pipeline.from_ir(ir)
-    assert {f._retriever.name: (f._retriever.spin, f._retriever.spin_ns) for f in rebuilt.flows} == {
+    assert {settings_of(f).name: (settings_of(f).spin, settings_of(f).spin_ns) for f in rebuilt.flows} == {
         "plain": (0.0, 0), "ctrl": (100e-6, 100_000)}
 
 

@@ -11,7 +11,8 @@ gymnasium = pytest.importorskip("gymnasium")
 
 from retriever import Flow, Latest, LatestDistinct, Pipeline, Rate, io  # noqa: E402
 from retriever.gym import EnvAction, EnvStep, GymWorld  # noqa: E402
-from retriever.log import read_log, replay  # noqa: E402
+from retriever.log import read_log  # noqa: E402
+from retriever.replay import replay  # noqa: E402
 from tests.gym.gym_flows import Balance, cartpole  # noqa: E402
 
 

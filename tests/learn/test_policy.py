@@ -13,10 +13,11 @@ import pytest
 torch = pytest.importorskip("torch", reason="policy flows run torch models (the retriever[lerobot] extra)")
 pytest.importorskip("lerobot", reason="LeRobotPolicy loads LeRobot checkpoints (the retriever[lerobot] extra)")
 
+from retriever.flow._base import settings_of
 from retriever import ActionChunking, Latest, Pipeline, Rate, SetupError, read_log  # noqa: E402
 from retriever.flow._base import set_up, tear_down  # noqa: E402
 from retriever.learn import LeRobotPolicy  # noqa: E402
-from retriever.log import replay  # noqa: E402
+from retriever.replay import replay  # noqa: E402
 from tests.learn.policies import (  # noqa: E402
     ACTION_DIM, CHUNK, ActPick, Camera, Chunker, Player, act_checkpoint, rows_checkpoint,
 )
@@ -124,7 +125,7 @@ def test_replay_from_the_log_needs_no_checkpoint(tmp_path, checkpoint, mode):
 
 def test_cuda_declares_replay_from_the_log_and_says_when_there_is_none(checkpoint):
     policy = ActPick(str(checkpoint), device="cuda")
-    assert policy._retriever.replay == "log"
+    assert settings_of(policy).replay == "log"
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     with pytest.raises(RuntimeError, match=r"device='cuda', but torch .* finds no CUDA device .*\n"

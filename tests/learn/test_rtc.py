@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from retriever import ActionChunking, Latest, Pipeline, Rate, read_log
-from retriever.log import replay
+from retriever.replay import replay
 from retriever.learn import ChunkTimeline, Leftover
 
 

@@ -1,6 +1,7 @@
 // Read an MCAP file with Foxglove's TypeScript reader (@mcap/core's McapIndexedReader, what the
 // Foxglove app uses): summary, chunk indexes, message indexes. Prints JSON: the statistics' count,
-// the messages read per topic, and their log times in the order the reader gave them.
+// the messages read per topic, and their log times in the order the reader gave them; the file's
+// profile and the encodings of its schemas and channels.
 // Usage: node mcap_indexed_read.mjs FILE (with @mcap/core and fzstd installed beside NODE_PATH).
 import { open } from "node:fs/promises";
 import { createRequire } from "node:module";
@@ -30,4 +31,9 @@ for await (const message of reader.readMessages()) {
   times.push(Number(message.logTime));
 }
 await handle.close();
-console.log(JSON.stringify({ statistics: Number(reader.statistics?.messageCount ?? -1), topics, times }));
+const encodings = (items, key) => [...new Set([...items.values()].map((item) => item[key]))].sort();
+console.log(JSON.stringify({
+  statistics: Number(reader.statistics?.messageCount ?? -1), topics, times, profile: reader.header.profile,
+  schemaEncodings: encodings(reader.schemasById, "encoding"),
+  messageEncodings: encodings(reader.channelsById, "messageEncoding"),
+}));

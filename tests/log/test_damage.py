@@ -22,7 +22,8 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from retriever import LogError, RetrieverWarning, read_log
 from retriever._loading import load_pipeline
 from retriever.backends.inproc import InprocSession
-from retriever.log import Divergence, LogWriter, recover, replay, resim
+from retriever.log import LogWriter, recover
+from retriever.replay import Divergence, replay, resim
 from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import (
     CHUNK,

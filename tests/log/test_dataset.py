@@ -462,8 +462,8 @@ def test_a_wide_state_vector_names_its_elements_once_and_not_beyond_the_limit(tm
     lerobot = _lerobot()
     log = _run(tmp_path / "run.mcap")
     calls = []
-    named = features._element_names
-    monkeypatch.setattr(features, "_element_names", lambda *a: calls.append(a) or named(*a))
+    named = features.element_names
+    monkeypatch.setattr(features, "element_names", lambda *a: calls.append(a) or named(*a))
     export_dataset([log], tmp_path / "np", flow="policy", format="npz")
     assert len(calls) == 5  # joints, pose.x, pose.y, pose.q, action: at the first frame only, of 9
     monkeypatch.undo()

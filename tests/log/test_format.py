@@ -24,7 +24,7 @@ from hypothesis.extra import numpy as hnp
 from retriever import LogError, RetrieverWarning, read_log
 from retriever._loading import load_pipeline
 from retriever.codec import Encoder, packb
-from retriever.log import replay, resim
+from retriever.replay import replay, resim
 from retriever.log.format import decode_step
 from tests.log import log_flows
 from tests.test_codec import assert_same

@@ -8,6 +8,7 @@ import json
 import subprocess
 import os
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from retriever import Flow, LogError, Pipeline, Rate, Trigger, io, read_log
-from retriever.log.foxglove import export_foxglove
+from retriever.log.foxglove import JSON_DEPTH_MAX, export_foxglove, to_json
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -252,3 +253,19 @@ def test_an_export_over_a_hard_link_to_its_log_is_refused(tmp_path):
     with pytest.raises(LogError, match="is the log being exported"):
         export_foxglove(read_log(log_path), link, overwrite=True)
     assert log_path.read_bytes() == before
+
+
+def test_to_json_summarises_what_a_hostile_log_could_blow_up():
+    """An array that holds nothing yet has 10**7 rows is summarised, not made 10**7 lists; lists
+    nested 500 deep are said past JSON_DEPTH_MAX, not a RecursionError (the three exports use it)."""
+    started = time.perf_counter()
+    assert to_json(np.zeros((10**7, 0))) == {"dtype": "float64", "shape": [10**7, 0], "head": []}
+    assert time.perf_counter() - started < 1.0
+    deep: list = []
+    for _ in range(500):
+        deep = [deep]
+    shown = to_json(deep)
+    for _ in range(JSON_DEPTH_MAX):
+        (shown,) = shown
+    assert shown == f"<list nested deeper than {JSON_DEPTH_MAX}>"
+    assert to_json({"a": [np.arange(3)]}) == {"a": [[0, 1, 2]]}

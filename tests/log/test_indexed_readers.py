@@ -28,6 +28,8 @@ from mcap.stream_reader import breakup_chunk
 from retriever import read_log
 from retriever._loading import load_pipeline
 from retriever.log.mcap_writer import McapWriter
+from retriever.log.ros2 import export_ros2
+from tests.log.export_flows import camera_log
 from tests.log.helpers import CHUNK, QUICKSTART, records
 
 HERE = Path(__file__).resolve().parent
@@ -187,3 +189,16 @@ def test_in_a_killed_log_each_whole_chunk_is_followed_by_its_message_indexes(tmp
             following.append(MessageIndex.read(ReadDataStream(io.BytesIO(data[offset + 9:]))))
         assert {index.channel_id for index in following} == channels
         assert sum(len(index.records) for index in following) == len(breakup_chunk(chunk))
+
+
+def test_foxglove_s_typescript_reader_reads_the_ros2_export(mcap_js, tmp_path):
+    """The ROS 2 export (log/ros2.py), read by a reader nobody here wrote: the ROS 2 profile,
+    ros2msg schemas, CDR channels, and every message at the time the export gave it."""
+    out = tmp_path / "run_ros2.mcap"
+    done = export_ros2(read_log(camera_log(tmp_path)), out)
+    read = _read_with_mcap_js(mcap_js, out)
+    assert read["profile"] == "ros2" and read["schemaEncodings"] == ["ros2msg"] and read["messageEncodings"] == ["cdr"]
+    assert read["topics"] == dict(done.written) and read["statistics"] == sum(done.written.values())
+    with open(out, "rb") as f:
+        times = sorted(message.log_time for _, _, message in make_reader(f).iter_messages())
+    assert read["times"] == times

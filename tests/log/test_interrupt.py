@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from retriever.log import read_log, replay, resim
+from retriever.log import read_log
+from retriever.replay import replay, resim
 
 REPO = Path(__file__).resolve().parents[2]
 RETRIEVER = Path(sys.executable).parent / "retriever"

@@ -14,7 +14,8 @@ import pytest
 from retriever import LogError, read_log
 from retriever._loading import load_pipeline
 from retriever.codec import packb
-from retriever.log import recover, replay, resim
+from retriever.log import recover
+from retriever.replay import replay, resim
 from tests.log.helpers import CHUNK, QUICKSTART, RETRIEVER, ROOT, assert_cli_error, cli, cli_env, records
 
 TIMEOUT_S = 60.0  # generous: this is a 2-core machine that may be busy

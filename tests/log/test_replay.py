@@ -20,8 +20,10 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
+from retriever.flow._base import settings_of
 from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, SetupError, StepError, io
-from retriever.log import read_log, replay, resim
+from retriever.log import read_log
+from retriever.replay import replay, resim
 from tests.backends.test_schedule_independence import budget, graphs
 from tests.log.helpers import cli
 
@@ -307,7 +309,7 @@ def test_replay_setting_is_checked(tmp_path):
     with Pipeline("chain") as pipe:
         (Counter() @ Rate(hz=50)).then(Oracle().configure(replay="log") @ Rate(hz=20), sync=Latest())
     doc = pipe.build_ir().doc
-    assert Pipeline.from_ir(IR(doc)).flows[1]._retriever.replay == "log"
+    assert settings_of(Pipeline.from_ir(IR(doc)).flows[1]).replay == "log"
     doc["nodes"][1]["config"]["replay"] = "sometimes"
     with pytest.raises(Exception, match="node 'oracle'.config.replay: 'sometimes' is not one of rerun, log"):
         IR(doc)
@@ -420,7 +422,7 @@ def test_replay_from_another_directory_finds_the_flow_classes(tmp_path):
     pipe = load_pipeline(str(QUICKSTART))
     pipe.reset()  # the module's pipeline is shared by every test that loads it
     pipe.run(duration=1, log=path)
-    code = ("import sys; from retriever.log import read_log, replay; "
+    code = ("import sys; from retriever.log import read_log; from retriever.replay import replay; "
             f"r = replay(read_log({str(path)!r})); sys.exit(0 if r.identical else 1)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120)
     assert done.returncode == 0, done.stderr
@@ -441,10 +443,10 @@ def test_log_only_at_the_start_of_a_run(tmp_path):
 def test_what_workers_said_of_their_code_is_read_from_a_hostile_log_as_text_only():
     from types import SimpleNamespace
 
-    from retriever.replay import MAX_SAID, _ran_other_code
+    from retriever.replay import MAX_SAID, ran_other_code
 
     def said(deployment):
-        return _ran_other_code(SimpleNamespace(run={"deployment": deployment}))
+        return ran_other_code(SimpleNamespace(run={"deployment": deployment}))
 
     assert said(json.dumps({"ran_other_code": {"w": ["node 'a': the code of module m differs"]}})) == [
         "in the run, worker 'w' ran node 'a': the code of module m differs"]

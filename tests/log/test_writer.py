@@ -13,7 +13,8 @@ import pytest
 
 from retriever import Latest, LogError, Pipeline, Rate, Trigger, read_log
 from retriever.errors import LogWriteError
-from retriever.log import recover, replay
+from retriever.log import recover
+from retriever.replay import replay
 from tests.log import log_flows
 from tests.log.helpers import QUICKSTART, RETRIEVER, assert_cli_error, cli, cli_env
 
@@ -221,12 +222,12 @@ def test_a_writer_faster_than_its_disk_waits_for_it_instead_of_queueing_without_
         for k in range(40):
             writer.add_message(channel, k, k, k, frame)
             writer.flush()
-            most[0] = max(most[0], writer._queued)
+            most[0] = max(most[0], writer.queued_bytes)
     producer = threading.Thread(target=produce)
     producer.start()
     while writer.waits == 0 and producer.is_alive():  # it stops at the bound: nothing is written yet
         producer.join(0.01)
-    assert writer.waits == 1 and producer.is_alive() and writer._queued <= (4 << 20) + (1 << 20) + 1024
+    assert writer.waits == 1 and producer.is_alive() and writer.queued_bytes <= (4 << 20) + (1 << 20) + 1024
     stream.open.set()
     producer.join()
     writer.finish()

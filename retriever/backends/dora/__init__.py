@@ -23,7 +23,8 @@ from ..base import Backend
 
 class DoraBackend(Backend):
     name = "dora"
-    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "keep", "foxglove")
+    OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "keep", "foxglove",
+               "rerun")
 
     def open(self, graph: Graph, **options: object):
         unknown = sorted(set(options) - set(self.OPTIONS))

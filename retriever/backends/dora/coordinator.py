@@ -27,6 +27,7 @@ from ...graph import Graph
 from ..zenoh.access import write_private
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
+from ..zenoh.coordinator.hosting import FailRun
 from ..zenoh.host import Host
 from ..zenoh.origin import key_text, new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -71,15 +72,15 @@ class DoraHosting(Hosting):
         super().check_deployable(graph)
 
     def where(self) -> str:
-        return f"a dora dataflow, control on the Zenoh hub at {self.coordinator.endpoint}"
+        return f"a dora dataflow, control on the Zenoh hub at {self.run.endpoint}"
 
     def how_to_watch(self) -> str:
-        return ("its events go between the flows over dora, not Zenoh: watch it live with foxglove=PORT, "
-                "or read its log")
+        return ("its events go between the flows over dora, not Zenoh: watch it live with foxglove=PORT or "
+                "rerun=TARGET, or read its log")
 
     def place(self) -> dict[str, Host]:
-        coordinator = self.coordinator
-        graph, spec = coordinator.graph, coordinator.spec
+        run = self.run
+        graph, spec = run.graph, run.spec
         names = DoraNames.of(spec["ir"])
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
@@ -87,15 +88,15 @@ class DoraHosting(Hosting):
         # the workers are dora's children: they watch this process to know when they are orphans
         # (and then remove the run's directories, which no one else will)
         # and each node's process finds the key it signs with (origin.py) in the private spec
-        keys = coordinator.book.first_keys
+        keys = run.book.first_keys
         keys.update((nid, new_key()) for nid in graph.nodes)
         spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
                         "dir": str(dora_dir), "keys": {nid: key_text(k) for nid, k in keys.items()}}
-        spec_path = write_private(coordinator.run_dir / "spec.json", json.dumps(spec))  # it holds the run's password
+        spec_path = write_private(run.run_dir / "spec.json", json.dumps(spec))  # it holds the run's password
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(graph.name, names, sys.executable, str(spec_path), package_root))
-        self.dora = DoraHost(coordinator.run_dir, dataflow, names.nodes)
+        self.dora = DoraHost(run.run_dir, dataflow, names.nodes)
         return {nid: self.dora for nid in graph.nodes}
 
     def check(self) -> None:
@@ -103,20 +104,19 @@ class DoraHosting(Hosting):
         if dora is not None and dora.alive and (dora.proc.returncode or dora.proc.poll() or 0) < 0:
             dora.alive = False  # killed: every worker goes with it (a node's own failure ends it with a code)
 
-    def host_lost(self, host: Host, nodes: list[str]) -> None:
-        super().host_lost(host, nodes)
+    def host_lost(self, host: Host, nodes: list[str]) -> FailRun:
         dora = self.dora
         last = "\n".join("        " + line for line in list(dora.tail)[-DORA_TAIL_LINES:])
-        self.coordinator.book.failure = (nodes[0], {"error": (
+        return FailRun(
             f"dora's runtime (`dora run`, pid {dora.proc.pid}) {exit_text(dora.proc.returncode)} during the run: "
             f"the dataflow's nodes ({', '.join(nodes)}) stopped with it\n    hint: was it killed (out of "
-            f"memory?), or stopped by someone else? Its last errors:\n{last}")})
+            f"memory?), or stopped by someone else? Its last errors:\n{last}", super().host_lost(host, nodes).exit)
 
     def before_stop(self) -> None:
         """Before the start (Ctrl-C, a flow's setup failed), the workers dora started are told to
         stop, and given TEARDOWN_S to tear down what their setup made; then dora run is ended, and
         with it whatever it has not started yet, or is stuck in its setup."""
-        dora, book = self.dora, self.coordinator.book
+        dora, book = self.dora, self.run.book
         if book.t0 is None and dora is not None and dora.proc.poll() is None:
             dora.interrupted = True  # what dora says of the ends we cause is not for the terminal
             started = [p for p in book.processes() if p.pid > 0 and p.poll() is None]

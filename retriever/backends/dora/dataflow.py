@@ -31,10 +31,8 @@ import json
 import re
 from dataclasses import dataclass
 
-from ..zenoh.command import worker_command
+from ..zenoh.command import DORA_NODE_MODULE, worker_command
 
-#: the module each dora node runs (node.py)
-NODE_MODULE = "retriever.backends.dora.node"
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
 #: an input's queue (dora drops past ten times that with backpressure: see the module docstring)
@@ -90,7 +88,7 @@ def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pyth
         consumed = any(src == nid for node_inputs in names.inputs.values() for src, _ in node_inputs.values())
         if consumed:
             outputs.append(PROGRESS)
-        path, *args = worker_command(spec_path, dora_id, module=NODE_MODULE, python=python)
+        path, *args = worker_command(spec_path, dora_id, module=DORA_NODE_MODULE, python=python)
         lines += [f"  - id: {q(dora_id)}",
                   f"    path: {q(path)}",
                   f"    args: {q(' '.join(args))}",

@@ -106,7 +106,7 @@ class DoraHost(Host):
         self._pump.start()
 
     def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple["DoraNodeProcess", bytes]:
-        """(``key``: the one the node's process finds in the run's spec, DoraCoordinator._place.)"""
+        """(``key``: the one the node's process finds in the run's spec, DoraCoordinator.place.)"""
         if mode:  # a restart's new process: dora started the dataflow's processes once
             raise BackendError(f"the dora backend cannot start another process for '{node}'")
         return DoraNodeProcess(node, self), key
@@ -224,7 +224,7 @@ class DoraNodeProcess:
             if code is not None:
                 self.returncode = code or LOST
             return self.returncode
-        if _alive(pid):
+        if pid_alive(pid):
             return None
         try:
             self.returncode = int((self.host.dir / f"{self.node}.exit").read_text())
@@ -257,7 +257,7 @@ class DoraNodeProcess:
         self.send_signal(signal.SIGKILL)
 
 
-def _alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether ``pid`` runs (a zombie, which dora has yet to reap, does not)."""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text()

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..zenoh import worker
+from ..zenoh.command import DORA_NODE_MODULE, parse_command
 from ..zenoh.origin import key_of_text
 from .dataflow import DoraNames
 
@@ -35,7 +36,13 @@ DORA_DIR_PREFIX = "retriever-dora-"
 
 
 def main(argv: list[str]) -> None:
-    spec_path, dora_id = Path(argv[0]), argv[1]
+    """``SPEC.json DORA_ID`` (zenoh/command.py): serve that node, then end the process."""
+    try:
+        command = parse_command(argv, DORA_NODE_MODULE)
+    except ValueError as e:
+        print(e, file=sys.stderr, flush=True)
+        worker.exit_process(worker.EXIT_FAILED)
+    spec_path, dora_id = command.spec_path, command.name
     dora = json.loads(spec_path.read_text())["dora"]
     names = DoraNames.from_spec(dora)
     node = names.node_of(dora_id)
@@ -57,11 +64,15 @@ def main(argv: list[str]) -> None:
 
 
 def loop_maker(names: DoraNames) -> Callable:
-    """``(spec, node, session) -> loop``: the node's loop, its events and progress over dora.
-    The one place a dora node's loop is made."""
+    """``(spec, node, session, plan) -> loop``: the node's loop, its events and progress over
+    dora. The one place a dora node's loop is made."""
+    from ..zenoh.worker_build import build_loop
     from .link import DoraTransport
 
-    return lambda spec, node, session: worker.build_loop(spec, node, session, transport=DoraTransport(names, node))
+    def make(spec: dict, node: str, session, plan):
+        return build_loop(spec, node, session, transport=DoraTransport(names, node), plan=plan)
+
+    return make
 
 
 def _output_to_pipes(run_dir: Path, dora_id: str) -> None:

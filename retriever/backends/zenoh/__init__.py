@@ -1,16 +1,26 @@
 """The real-time backend over Eclipse Zenoh (docs/realtime.md): one OS process per flow.
 
-    wire.py         key space and msgpack envelopes
+    protocol/       every control and status message as a typed record with an exact decoder, one file
+                    per direction (its __init__ maps it); protocol/seal.py: the coordinator's control,
+                    sealed for each process
+    wire.py         the key space; the data plane's events and progress; bounded reprs for errors
     access.py       who may join a run (Zenoh authentication, TLS) and what a watcher may do (access control)
     origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
-    node/           one node's real-time loop, split by concern (its docstring draws it)
-    worker.py       the worker process around a loop, in phases
+    router.py       retriever router: a Zenoh router that deployments join as clients (hub.client_config)
+    reach.py        why an endpoint admitted no session (nothing listens, refused, wrong credentials)
+    folders.py      private folders named by their process's PID, and the reaping of a dead one's
+    node/           one node's real-time loop, split by concern (its docstring draws it); its
+                    reporter sends step records and events to the coordinator
+    worker.py       the worker process around a loop, in phases (its docstring maps the worker_*.py
+                    modules each phase's work is in)
+    worker_group.py  the worker process around a group's loops (configure(process=)): the same phases
     command.py      a worker's command line, built and read in one place
     output.py       what workers print, on the coordinator's streams, prefixed with the node
     host.py         where worker processes run (this machine: LocalHost), and how they are started
     coordinator/    the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log;
                     where the hosts are is a Hosting handed to it (this machine, a deployment, dora)
+    seen.py         what the coordinator has seen of a run (event ids, recent ticks), in bounded memory
     remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
     deploy.py       a deployment: the coordinator hosted on worker daemons, its nodes placed there
     daemon.py       a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
@@ -27,15 +37,15 @@ from ..base import Backend
 class ZenohBackend(Backend):
     name = "zenoh"
     OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "virtual_time", "keep",
-               "foxglove")
-    #: options of a deployment on worker daemons (deploy.py): given any of the first two, the
+               "foxglove", "rerun")
+    #: options of a deployment on worker daemons (deploy.py): given any of the first three, the
     #: run's nodes go to the workers reached there instead of processes of this machine
-    DEPLOY_OPTIONS = ("connect", "listen", "placement", "insecure", "max_clock_offset", "on_worker_loss",
-                      "lease", "tls")
+    DEPLOY_OPTIONS = ("connect", "listen", "router", "placement", "insecure", "max_clock_offset", "on_worker_loss",
+                      "lease", "tls", "on_phase")
 
     def open(self, graph: Graph, **options: object):
-        deploy = options.get("connect") is not None or options.get("listen") is not None
-        accepted = [*self.OPTIONS, *self.DEPLOY_OPTIONS] if deploy else [*self.OPTIONS, "connect", "listen"]
+        deploy = any(options.get(key) is not None for key in ("connect", "listen", "router"))
+        accepted = [*self.OPTIONS, *self.DEPLOY_OPTIONS] if deploy else [*self.OPTIONS, "connect", "listen", "router"]
         if deploy:
             accepted.remove("hub_port")
         unknown = sorted(set(options) - set(accepted))
@@ -49,5 +59,5 @@ class ZenohBackend(Backend):
             return open_deployment(graph, **options)
         from .coordinator import Coordinator
 
-        options.pop("connect", None), options.pop("listen", None)
+        options.pop("connect", None), options.pop("listen", None), options.pop("router", None)
         return Coordinator(graph, **options)

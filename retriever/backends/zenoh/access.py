@@ -35,10 +35,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ...errors import AccessError
-from .wire import ROOT
+from .wire import KeySpace
 
 RUN_USER = "retriever-run"
 WATCH_USER = "retriever-watch"
+#: the user a router links to another router as (router.py)
+ROUTER_USER = "retriever-router"
 
 #: what a watcher may not send: everything that writes, asks a queryable to run, or announces
 WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "liveliness_token", "liveliness_query"]
@@ -48,7 +50,7 @@ WATCHER_MAY_NOT = ["put", "delete", "query", "reply", "declare_queryable", "live
 #: (its link's queue full of the data it gets, dropped when congested: hub.forward_dropping),
 #: such a put would wait up to Zenoh's `wait_before_close` (5 s), and the coordinator with it
 #: (a `start` the workers got 5 s late). A watcher has no use for it.
-WATCHER_UNSEEN = [f"{ROOT}/*/ctl/**"]
+WATCHER_UNSEEN = [KeySpace.every_control()]
 
 #: the file, in a run's or a daemon's private folder, of the user:password lines Zenoh checks peers against
 DICTIONARY = "zenoh-users.txt"
@@ -189,14 +191,15 @@ class RunAccess:
         return write_private(directory / DICTIONARY,
                               f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n")
 
-    def write_watcher_config(self, path: Path, hub_endpoint: str) -> Path:
+    def write_watcher_config(self, path: Path, hub_endpoint: str, user: str = WATCH_USER) -> Path:
         """A Zenoh config (JSON5, mode 0600) with which ``zenoh.Config.from_file`` joins the
-        hub as a read-only watcher."""
+        hub as a read-only watcher; ``user``: the name it proves (a router's are per namespace:
+        :func:`watch_user`)."""
         config = {
             "mode": "client",
             "connect": {"endpoints": [hub_endpoint]},
             "scouting": {"multicast": {"enabled": False}},
-            "transport": {"auth": {"usrpwd": {"user": WATCH_USER, "password": self.watch_password}}},
+            "transport": {"auth": {"usrpwd": {"user": user, "password": self.watch_password}}},
         }
         text = ("// Watch a Retriever run, read-only: zenoh.Config.from_file(this file).\n"
                 "// It holds the run's watcher password: keep it private.\n" + json.dumps(config, indent=2) + "\n")
@@ -222,6 +225,17 @@ class RunAccess:
         }
         return {"transport/auth/usrpwd": json.dumps(usrpwd), "access_control": json.dumps(acl)}
 
+    def client_config(self, namespace: str) -> dict[str, str]:
+        """The entries (key → JSON5 value) with which a client session of ``namespace`` proves
+        the run's password to a router (router.py): under :func:`run_user`'s name, since one
+        router's dictionary holds the users of several namespaces."""
+        return {"transport/auth/usrpwd": json.dumps({"user": run_user(namespace), "password": self.run_password})}
+
+    def router_users(self, namespace: str) -> str:
+        """The user:password lines a router's dictionary holds for ``namespace``: its run user
+        and its watcher (:func:`run_user`, :func:`watch_user`)."""
+        return f"{run_user(namespace)}:{self.run_password}\n{watch_user(namespace)}:{self.watch_password}\n"
+
     def to_spec(self, dictionary_file: Path) -> dict:
         return {"run_password": self.run_password, "watch_password": self.watch_password,
                 "dictionary_file": str(dictionary_file)}
@@ -229,6 +243,24 @@ class RunAccess:
     @classmethod
     def from_spec(cls, spec: dict) -> tuple[RunAccess, Path]:
         return cls(spec["run_password"], spec["watch_password"]), Path(spec["dictionary_file"])
+
+
+def run_user(namespace: str) -> str:
+    """The user name of ``namespace``'s own processes at a router. A router admits several
+    namespaces with one dictionary, which maps a user name to one password: so the name says
+    the namespace. Peers check each other with a dictionary of their run's alone (RUN_USER)."""
+    return f"{RUN_USER}.{namespace}"
+
+
+def watch_user(namespace: str) -> str:
+    """The user name of ``namespace``'s watchers at a router (see :func:`run_user`)."""
+    return f"{WATCH_USER}.{namespace}"
+
+
+def router_password(secret: bytes) -> str:
+    """The password a router proves to another router it links to (ROUTER_USER): every holder
+    of the secret derives the same, whatever namespaces it serves."""
+    return hmac.new(secret, b"retriever/router", hashlib.sha256).hexdigest()
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """A long-lived worker daemon (``retriever-worker``), on each machine flows may run on.
 
 A daemon joins a namespace with a Zenoh peer session (multicast scouting off, its own listen and
-connect endpoints) and stays until SIGINT or SIGTERM. Under ``retriever/<namespace>/``::
+connect endpoints), or, with ``--router``, as a client of Zenoh routers, listening nowhere (its
+flows too: runs.py), and stays until SIGINT or SIGTERM. Under ``retriever/<namespace>/``::
 
     workers/<name>   its liveliness token: there while it runs (a killed daemon's goes in ms)
     ctl/<name>       its control queryable
@@ -49,7 +50,7 @@ from ...errors import OtherProtocolError, WorkerError
 from ...log.format import package_versions
 from .access import AccessError, RunAccess, TlsFiles, read_secret
 from .folders import DAEMON_FOLDER, private_folder, reap_stale
-from .hub import (await_segments_released, mapped_segments, peer_config, raise_open_file_limit,
+from .hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
                   remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
 from .protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
                        Record, decode_reply, error_message)
@@ -71,7 +72,8 @@ ALWAYS_ALLOWED = ("retriever",)
 #: worker of its name: a link takes milliseconds on a LAN; an endpoint down longer is joined later,
 #: in the background (Zenoh retries), unchecked
 JOIN_S = 3.0
-#: a bound on an answer to a liveliness get or a control query (0.4 ms on loopback, ms on a LAN)
+#: a bound on an answer to a liveliness get or a control query: an answer is one round trip, far
+#: shorter on any network a deployment spans, so only a worker that does not answer meets it
 QUERY_S = 2.0
 #: info queries per worker that measure its clock's offset: the first crosses a new route and is
 #: much slower one way than the later ones, so one sample would misjudge the offset
@@ -80,11 +82,8 @@ CLOCK_SAMPLES = 5
 #: one of Zenoh's threads runs our (main-thread) handler only when the main thread wakes
 STOP_CHECK_S = 0.5
 
-#: a run's coordinator answers on ctl/run and ctl/start of its namespace (wire.KeySpace): no
-#: worker's ctl/<name> may be one of them
-RESERVED_NAMES = ("run", "start")
 CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease",
-               "tls_ca", "tls_cert", "tls_key", "code_mismatch", "pass_env")
+               "tls_ca", "tls_cert", "tls_key", "code_mismatch", "pass_env", "router")
 #: what a worker does with a node whose module's file here differs from the coordinator's (the
 #: IR's sha256): refuse to run it (the default), or run it and warn
 CODE_MISMATCH = ("refuse", "warn")
@@ -114,6 +113,9 @@ class WorkerSettings:
     tls: TlsFiles | None = None  # mutual TLS on every link (access.TlsFiles)
     code_mismatch: str = "refuse"  # CODE_MISMATCH
     pass_env: tuple[str, ...] = ()  # environment variables flow processes get beyond runs.PASSED_ENV
+    #: the Zenoh routers it joins through, as a client listening nowhere (router.py), its flows
+    #: too; none: a peer on ``listen`` and ``connect``
+    router: tuple[str, ...] = ()
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> WorkerSettings:
@@ -169,7 +171,7 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
     name, namespace = values.get("name"), values.get("namespace", DEFAULT_NAMESPACE)
     if name is None:
         problems.append('a worker needs a name: --name NAME (or name = "..." in --config)')
-    elif name in RESERVED_NAMES:
+    elif name in KeySpace.COORDINATOR_CONTROL:
         problems.append(f"a worker may not be named '{name}': ctl/{name} is a run's own key; pick another --name")
     else:
         _check_chunk("worker name", name, problems)
@@ -182,14 +184,18 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
     except AccessError as e:
         problems.append(str(e))
         tls = None
-    listen = strings("listen") or ((DEFAULT_TLS_LISTEN if tls else DEFAULT_LISTEN),)
-    connect = strings("connect")
+    router = strings("router")
+    if router and (values.get("listen") or values.get("connect")):
+        problems.append("a worker joined through a router (--router) listens nowhere and connects to the router "
+                        "alone: leave out --listen and --connect")
+    listen = () if router else strings("listen") or ((DEFAULT_TLS_LISTEN if tls else DEFAULT_LISTEN),)
+    connect = () if router else strings("connect")
     if tls is not None:
         try:
-            tls.check_endpoints([*listen, *connect])
+            tls.check_endpoints([*listen, *connect, *router])
         except AccessError as e:
             problems.append(str(e))
-    for endpoint in (*listen, *connect):
+    for endpoint in (*listen, *connect, *router):
         if not ENDPOINT.fullmatch(endpoint):
             problems.append(f"endpoint {endpoint!r} is no Zenoh endpoint: write PROTOCOL/ADDRESS, "
                             "e.g. tcp/0.0.0.0:7447")
@@ -217,7 +223,7 @@ def _validate(values: dict, problems: list[str]) -> WorkerSettings | None:
         return None
     return WorkerSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
                           None if secret is None else str(secret), insecure,
-                          None if lease is None else float(lease), tls, code_mismatch, pass_env)
+                          None if lease is None else float(lease), tls, code_mismatch, pass_env, router)
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
@@ -243,12 +249,13 @@ def check_security(secret: object, insecure: bool, command: str) -> None:
 
 
 @contextmanager
-def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
+def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None, client: bool = False
                 ) -> Iterator[dict[str, str] | None]:
     """The Zenoh config entries that make a session one of the namespace's deployment, derived
     from the secret (access.py), with ``tls`` mutual TLS on its links, or None without either.
     The dictionary file Zenoh checks peers against lives in a private (0700) folder, removed
-    when this ends."""
+    when this ends. ``client``: those of a client of a router, which proves the namespace's
+    password and checks no one (RunAccess.client_config): no file."""
     links = tls.session_config() if tls is not None else {}
     if secret is None:
         yield links or None
@@ -257,6 +264,9 @@ def open_access(namespace: str, secret: str | None, tls: TlsFiles | None = None
         access = RunAccess.create(namespace, read_secret(secret))
     except AccessError as e:
         raise WorkerError(str(e)) from None
+    if client:
+        yield {**access.client_config(namespace), **links}
+        return
     folder = private_folder(DAEMON_FOLDER)  # the stale ones of daemons gone reaped first
     try:
         yield {**access.session_config(access.write_dictionary(folder)), **links}
@@ -348,7 +358,7 @@ class WorkerDaemon:
                                if settings.secret is not None else None,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
                                tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
-                               pass_env=settings.pass_env)
+                               pass_env=settings.pass_env, router=settings.router)
         #: op -> handler(request) -> its reply
         self.ops: dict[DaemonOp, Callable[[Record], Record]] = {DaemonOp.INFO: self.info, **self.runs.ops}
 
@@ -426,10 +436,10 @@ def serve(settings: WorkerSettings, say: Callable[[str], None] | None = None) ->
         signal.signal(signum, lambda *_: stop.set())
     if settings.insecure:
         say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
-            f"{', '.join(settings.listen)} may join namespace '{settings.namespace}' and control it; "
+            f"{', '.join(settings.listen or settings.router)} may join namespace '{settings.namespace}' and control it; "
             "only for a lab on a trusted network")
     raise_open_file_limit()  # room for strangers' idle connections beside its flows' pipes (hub.accept_pending)
-    with open_access(settings.namespace, settings.secret, settings.tls) as access:
+    with open_access(settings.namespace, settings.secret, settings.tls, client=bool(settings.router)) as access:
         _serve_until(settings, stop, access, say)
     return 0
 
@@ -438,12 +448,19 @@ def _serve_until(settings: WorkerSettings, stop: threading.Event, access: dict[s
                  say: Callable[[str], None]) -> None:
     """Join, check the name is free, answer until ``stop``, close."""
     # a process that outlives the runs it serves keeps whatever pool it is sent through (hub.HUB_SHARED_MEMORY)
-    config = peer_config(listen=settings.listen, connect=settings.connect, access=access, lease=settings.lease,
-                         shared_memory=False)
+    if settings.router:
+        config = client_config(connect=list(settings.router), access=access, lease=settings.lease,
+                               shared_memory=False)
+    else:
+        config = peer_config(listen=settings.listen, connect=settings.connect, access=access, lease=settings.lease,
+                             shared_memory=False)
     remove_orphaned_segments_at_exit()  # what its runs' workers leave
     try:
         taken, counts = in_session(config, lambda session: _announce_and_answer(settings, session, stop, say))
     except zenoh.ZError as e:
+        if settings.router:
+            raise WorkerError(no_router(f"retriever-worker '{settings.name}'", settings.router, settings.tls,
+                                        settings.namespace)) from None
         raise WorkerError(f"retriever-worker '{settings.name}' cannot open its Zenoh session on "
                           f"{', '.join(settings.listen)}: {e}\n    hint: is the port taken? "
                           "choose another with --listen tcp/0.0.0.0:PORT") from None
@@ -509,6 +526,7 @@ def name_taken(session: zenoh.Session, namespace: str, name: str) -> str | None:
 def _start_line(settings: WorkerSettings) -> str:
     allowed = [*ALWAYS_ALLOWED, *path_modules(list(settings.path)), *settings.allow]
     parts = [f"retriever-worker '{settings.name}' in namespace '{settings.namespace}'",
+             f"joined through router {', '.join(settings.router)}" if settings.router else
              f"listening on {', '.join(settings.listen)}"]
     if settings.connect:
         parts.append(f"connecting to {', '.join(settings.connect)}")
@@ -522,9 +540,11 @@ def _start_line(settings: WorkerSettings) -> str:
 # ---------------------------------------------------------------------------------------------
 # Listing: retriever workers
 # ---------------------------------------------------------------------------------------------
-class WorkerInfo(NamedTuple):
+class DaemonInfo(NamedTuple):
+    """A worker daemon as :func:`describe` found it: what it said of itself, or why it said nothing."""
+
     name: str
-    info: dict | None  # the fields of its info reply (protocol.InfoReply, exact), or None
+    info: InfoReply | None  # its info reply, or None
     offset_ns: int | None  # its clock minus ours (NTP-style: theirs minus the midpoint of the query)
     error: str | None  # why there is no info
     zid: str | None = None  # the Zenoh id of the session that answered as it (remote.RemoteHost takes only its answers)
@@ -533,19 +553,20 @@ class WorkerInfo(NamedTuple):
 
 
 class Listing(NamedTuple):
-    workers: list[WorkerInfo]
+    workers: list[DaemonInfo]
     unreachable: dict[str, str]  # endpoints that admitted no session, and why (reach.why_no_session)
 
 
 def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret: str | None = None,
-                 insecure: bool = False, tls: TlsFiles | None = None) -> Listing:
+                 insecure: bool = False, tls: TlsFiles | None = None, router: bool = False) -> Listing:
     """The live workers of ``namespace`` that the peers at ``connect`` know, each with its info.
 
     A client session per endpoint: the peer it joins routes for it, so it sees every worker
-    that peer is linked to, not only itself."""
+    that peer is linked to, not only itself. ``router``: the endpoints are Zenoh routers the
+    workers joined (``retriever worker --router``), which know the namespace's users by name."""
     check_security(secret, insecure, "retriever workers")
     keys = KeySpace(namespace)
-    found: dict[str, WorkerInfo] = {}
+    found: dict[str, DaemonInfo] = {}
     unreachable = {}
 
     def look(session: zenoh.Session) -> None:
@@ -554,7 +575,7 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
                 name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
                 found.setdefault(name, describe(session, namespace, name))
 
-    with open_access(namespace, secret, tls) as access:
+    with open_access(namespace, secret, tls, client=router) as access:
         for endpoint in connect:
             config = peer_config(connect=[endpoint], access=access)
             config.insert_json5("mode", '"client"')
@@ -565,12 +586,21 @@ def list_workers(connect: list[str], namespace: str = DEFAULT_NAMESPACE, secret:
     return Listing(sorted(found.values()), unreachable)
 
 
+def no_router(who: str, routers, tls: TlsFiles | None, namespace: str) -> str:
+    """Why no router at ``routers`` admitted ``who`` (a client of ``namespace``), and what to do."""
+    why = (why_no_session(routers[0], credentials(tls)) if len(routers) == 1 else
+           "; ".join(f"{r}: {why_no_session(r, credentials(tls))}" for r in routers))
+    return (f"{who} found no router that admits it at {', '.join(routers)}: {why}\n    hint: start one there "
+            f"(retriever router --listen {routers[0]} --secret FILE --namespace {namespace}) with the same secret "
+            "file, serving this namespace")
+
+
 def credentials(tls: TlsFiles | None) -> str:
     """What a session that admitted none may want instead of what it was given (reach.why_no_session)."""
     return "--secret or a certificate of another CA" if tls is not None else "--secret"
 
 
-def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
+def describe(session: zenoh.Session, namespace: str, name: str) -> DaemonInfo:
     """Worker ``name``'s info, and its clock's offset from ours, measured as NTP does: our HLC
     before and after a query brackets the worker's reading, so offset = theirs - midpoint, off by
     at most half the round trip; of CLOCK_SAMPLES queries, the one of shortest round trip counts."""
@@ -580,10 +610,10 @@ def describe(session: zenoh.Session, namespace: str, name: str) -> WorkerInfo:
         try:
             info, zid = ask_whom(session, namespace, name, InfoRequest())
         except OtherProtocolError as e:
-            return WorkerInfo(name, None, None, str(e), other_protocol=(e.protocol, e.retriever))
+            return DaemonInfo(name, None, None, str(e), other_protocol=(e.protocol, e.retriever))
         except WorkerError as e:
-            return WorkerInfo(name, None, None, str(e))
+            return DaemonInfo(name, None, None, str(e))
         after = hlc_now_ns(session)
         samples.append((after - before, before, after, info, zid))
     _, before, after, info, zid = min(samples, key=lambda sample: sample[0])
-    return WorkerInfo(name, info.to_fields(), info.clock_ns - (before + after) // 2, None, zid)
+    return DaemonInfo(name, info, info.clock_ns - (before + after) // 2, None, zid)

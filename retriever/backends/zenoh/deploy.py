@@ -8,6 +8,9 @@
         │ declare the deployment's liveliness token: a worker stops its flows once it goes
         ▼ from here on as the embedded run: spawn, ready, T0, reports, the log, faults, stop
 
+With ``--router ENDPOINT`` every session (the coordinator's, each daemon's, each flow's) is
+instead a client of that Zenoh router (router.py), which routes between them: none listens.
+
 A worker that is lost mid-run (its token went) takes its nodes' processes with it; with
 ``on_worker_loss="replace"`` (the default) each of them starts afresh on another worker that its
 placement allows, as a flow whose process died does (node/handover.py); with "stop", or nowhere to go,
@@ -21,8 +24,11 @@ import os
 import secrets
 import sys
 import threading
+import time
 import tomllib
 from collections import Counter
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import zenoh
@@ -32,18 +38,20 @@ from ...graph import Graph
 from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
-from .access import DICTIONARY, AccessError, RunAccess, TlsFiles
-from .daemon import (ENDPOINT, QUERY_S, WorkerError, check_security, credentials, describe, in_session,
-                     open_access)
-from .hub import (HUB_SHARED_MEMORY, peer_config, raise_open_file_limit, remove_orphaned_segments_at_exit,
-                  wait_for_peers, weak_callback)
+from .access import DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles, watch_user
+from .daemon import (ENDPOINT, QUERY_S, DaemonInfo, WorkerError, check_security, credentials, describe, in_session,
+                     no_router, open_access)
+from .hub import (HUB_SHARED_MEMORY, client_config, peer_config, raise_open_file_limit,
+                  remove_orphaned_segments_at_exit, router_linked, wait_for_peers, weak_callback)
 from .protocol import (ABSENT, DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, PROTOCOL_VERSION, DaemonOp, DeploymentOp,
-                       ErrorReply, InfoRequest, Lost, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
+                       ErrorReply, InfoReply, InfoRequest, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
                        decode_reply, error_message)
 from .reach import REFUSES_LINKS, why_no_session
 from .remote import RemoteHost
 from .wire import KeySpace, WireError, check_chunk
 from .coordinator import Coordinator, Hosting
+from .coordinator.faults import Fault
+from .coordinator.hosting import AwaitHost, FailRun, HostLoss, Relocate
 
 #: how often the coordinator asks its workers for their flows' CPU time (retriever status, the live table)
 USAGE_EVERY_S = 1.0
@@ -60,45 +68,67 @@ DISCOVER_S = 2.0
 #: (by default) the deployment is refused: Rate ticks and T0 come from each worker's clock
 CLOCK_WARN_NS = 1_000_000
 CLOCK_REFUSE_NS = 10_000_000
+#: the steps of a deployment's start that ``on_phase`` times, in their order: open the hub and link
+#: to the --connect endpoints; find the workers and ask each for its info; prepare each chosen worker
+PHASES = ("join", "discover", "prepare")
 
 
-def open_deployment(graph: Graph, *, connect: list[str] = (), listen: list[str] = (), namespace: str = "default",
+def open_deployment(graph: Graph, *, connect: list[str] = (), listen: list[str] = (), router: list[str] = (),
+                    namespace: str = "default",
                     placement: Placement | str | None = None, secret=None, insecure: bool = False,
                     startup_timeout: float = 60.0, start_margin: float = 0.5, quiet: bool = False,
                     max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
                     lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
-                    keep: str = "trace", foxglove: int | None = None) -> Coordinator:
+                    keep: str = "trace", foxglove: int | None = None, rerun: str | os.PathLike | None = None,
+                    on_phase: Callable[[str, float], None] | None = None) -> Coordinator:
     """A run of ``graph`` on the worker daemons of a namespace: the coordinator, hosted by a
-    :class:`Deployment`."""
-    hosting = Deployment(connect=connect, listen=listen, placement=placement, secret=secret, insecure=insecure,
-                         max_clock_offset=max_clock_offset, on_worker_loss=on_worker_loss, lease=lease, tls=tls)
+    :class:`Deployment` (``on_phase``: its timing hook)."""
+    hosting = Deployment(connect=connect, listen=listen, router=router, placement=placement, secret=secret,
+                         insecure=insecure, max_clock_offset=max_clock_offset, on_worker_loss=on_worker_loss,
+                         lease=lease, tls=tls, on_phase=on_phase)
     return Coordinator(graph, hosting=hosting, namespace=namespace, startup_timeout=startup_timeout,
                        start_margin=start_margin, quiet=quiet, secret=secret, virtual_time=virtual_time, keep=keep,
-                       foxglove=foxglove)
+                       foxglove=foxglove, rerun=rerun)
 
 
 class Deployment(Hosting):
-    """Where a deployment's nodes run: on the worker daemons of a namespace, as placed."""
+    """Where a deployment's nodes run: on the worker daemons of a namespace, as placed.
 
-    def __init__(self, *, connect: list[str] = (), listen: list[str] = (), placement: Placement | str | None = None,
+    ``on_phase(name, seconds)``, if given, is called on the coordinator's thread as each step of
+    the start (:data:`PHASES`) ends, with how long it took, also when it fails: where a deployment's
+    start time goes (benchmarks/deploy.py), without reaching into how each step is done.
+
+    ``router``: Zenoh routers (``retriever router``, or any) that every session of the
+    deployment joins as a client, the coordinator's, each worker daemon's and each flow's
+    (hub.client_config): no session listens, so a machine behind NAT takes part; without them,
+    every session is a peer of the others, linked directly."""
+
+    def __init__(self, *, connect: list[str] = (), listen: list[str] = (), router: list[str] = (),
+                 placement: Placement | str | None = None,
                  secret=None, insecure: bool = False, max_clock_offset: float = CLOCK_REFUSE_NS / 1e9,
-                 on_worker_loss: str = "replace", lease: float | None = None, tls: TlsFiles | None = None):
+                 on_worker_loss: str = "replace", lease: float | None = None, tls: TlsFiles | None = None,
+                 on_phase: Callable[[str, float], None] | None = None):
         try:
             check_security(secret, insecure, "retriever deploy")
         except WorkerError as e:
             raise BackendError(str(e)) from None
-        if not connect and not listen:
-            raise BackendError("a deployment needs --connect ENDPOINT (a worker's) or --listen ENDPOINT, where its "
-                               "workers are reached\n    hint: retriever deploy app.py --connect tcp/HOST:7447")
+        if router and (connect or listen):
+            raise BackendError("a deployment joined through a router (--router) listens nowhere and connects to the "
+                               "router alone: leave out --connect and --listen")
+        if not connect and not listen and not router:
+            raise BackendError("a deployment needs --connect ENDPOINT (a worker's), --listen ENDPOINT, where its "
+                               "workers are reached, or --router ENDPOINT, the router they joined through\n"
+                               "    hint: retriever deploy app.py --connect tcp/HOST:7447")
         if on_worker_loss not in WORKER_LOSS:
             raise BackendError(f"on_worker_loss={on_worker_loss!r} is none of {', '.join(WORKER_LOSS)}")
-        self._on_worker_loss, self._lease, self._tls = on_worker_loss, lease, tls
+        self._on_worker_loss, self._lease, self._tls, self._on_phase = on_worker_loss, lease, tls, on_phase
         if tls is not None:
             try:
-                tls.check_endpoints([*connect, *listen])
+                tls.check_endpoints([*connect, *listen, *router])
             except AccessError as e:
                 raise BackendError(str(e)) from None
         self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
+        self._router = list(router)
         self._placement = load_placement(placement) if isinstance(placement, str) else placement
         self._run_id = secrets.token_hex(6)
         self._max_offset_ns = round(max_clock_offset * 1e9)
@@ -113,9 +143,9 @@ class Deployment(Hosting):
         self.placed: dict[str, str] = {}
         #: what each worker said of the code it runs anyway (--code-mismatch warn): into the log
         self.ran_other_code: dict[str, list[str]] = {}
-        #: what each worker said of itself when the deployment started (its info, its clock offset)
-        self.workers: dict[str, dict] = {}
-        self._zids: dict[str, str | None] = {}  # each worker daemon's session (RemoteHost takes only its answers)
+        #: each worker daemon as the deployment found it: its info reply, its clock offset, its
+        #: session (RemoteHost takes only that session's answers)
+        self.daemons: dict[str, DaemonInfo] = {}
 
     # -- the coordinator's steps, for workers elsewhere ----------------------------------------
     def check_deployable(self, graph: Graph) -> None:
@@ -130,6 +160,8 @@ class Deployment(Hosting):
         return None if self._insecure else super().run_access(namespace, secret)
 
     def open_hub(self, port: int, access: dict[str, str] | None):
+        if self._router:
+            return self._open_client()
         # it listens even when told only where to connect: peers do not route for each other, so
         # each worker process opens a link of its own to it (gossip tells them where), or the
         # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
@@ -137,57 +169,93 @@ class Deployment(Hosting):
         links = self._tls.session_config() if self._tls is not None else {}
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
-        hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
-                                     lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
-        try:
-            # Zenoh read it as the session opened, and no process of this machine reads it after (the
-            # workers' flows read their daemon's): the deployment's password is not left on disk here,
-            # not even by a SIGKILLed coordinator
-            (self.coordinator.run_dir / DICTIONARY).unlink(missing_ok=True)
-            self._linked = wait_for_peers(hub, len(self._connect), JOIN_S)
-        except BaseException:
-            hub.close()
-            raise
+        with self._phase("join"):
+            hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
+                                         lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
+            try:
+                # Zenoh read it as the session opened, and no process of this machine reads it after (the
+                # workers' flows read their daemon's): the deployment's password is not left on disk here,
+                # not even by a SIGKILLed coordinator
+                (self.run.run_dir / DICTIONARY).unlink(missing_ok=True)
+                self._linked = wait_for_peers(hub, len(self._connect), JOIN_S)
+            except BaseException:
+                hub.close()
+                raise
         return hub, (self._listen_at or self._connect)[0]
 
+    def _open_client(self):
+        """open_hub through the routers: a client of theirs, with the namespace's password for
+        them (RunAccess.client_config). It opens only once a router admitted it: joined."""
+        run = self.run
+        access = {**(run.access.client_config(run.namespace) if run.access is not None else {}),
+                  **(self._tls.session_config() if self._tls is not None else {})}
+        remove_orphaned_segments_at_exit()
+        with self._phase("join"):
+            (run.run_dir / DICTIONARY).unlink(missing_ok=True)  # a client has none (see open_hub)
+            try:
+                hub = zenoh.open(client_config(connect=self._router, access=access or None, lease=self._lease,
+                                               shared_memory=HUB_SHARED_MEMORY))
+            except zenoh.ZError:
+                raise BackendError(no_router("the deployment", self._router, self._tls, run.namespace)) from None
+        self._linked = True
+        return hub, self._router[0]
+
+    def watcher_user(self) -> str:
+        # a router admits the watchers of several namespaces, each under a name of its own
+        return watch_user(self.run.namespace) if self._router else WATCH_USER
+
     def where(self) -> str:
+        if self._router:
+            return f"deployment joined through router {', '.join(self._router)}"
         if not self._connect:
             return f"deployment listening on {', '.join(self._listen_at)}"
         # a peer's session opens without a link: "joined" only once it has one to each endpoint
         return f"deployment {'joined through' if self._linked else 'connecting to'} {', '.join(self._connect)}"
 
     def place(self) -> dict:
-        c = self.coordinator
-        found = self._discover()
-        candidates = [WorkerInfo(name, frozenset(info.get("labels") or ()), len(info.get("nodes") or ()),
-                                 info.get("host")) for name, info in sorted(found.items())]
+        run = self.run
+        with self._phase("discover"):
+            found = self._discover()
+        candidates = [placement_target(name, daemon.info, len(daemon.info.nodes))
+                      for name, daemon in sorted(found.items())]
         try:
-            self.placed = place(sorted(c.graph.nodes), self._placement, candidates)
+            self.placed = place(sorted(run.graph.nodes), self._placement, candidates)
         except PlacementError as e:
             raise BackendError(str(e)) from None
         # the token first: a worker prepares a run only while its coordinator's token is there
-        self._token = c.hub.liveliness().declare_token(c.keys.deployment())
-        for name in sorted(set(self.placed.values())):
-            differences = package_differences(package_versions(), self.workers[name].get("packages"))
-            if differences:
-                print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
-                      f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-            host = self._remotes[name] = RemoteHost(c.hub, c.keys, name, self._run_id, self._zids[name])
-            self._say_warnings(name, host.prepare(self._remote_spec(),
-                                                  sorted(n for n, w in self.placed.items() if w == name)))
+        self._token = run.hub.liveliness().declare_token(run.keys.deployment())
+        with self._phase("prepare"):
+            for name in sorted(set(self.placed.values())):
+                differences = package_differences(package_versions(), self.daemons[name].info.packages)
+                if differences:
+                    print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
+                          f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
+                host = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id, self.daemons[name].zid)
+                self._say_warnings(name, host.prepare(self._remote_spec(),
+                                                      sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
-        c.subscribers.append(c.hub.declare_queryable(c.keys.deployment(), weak_callback(self._answer)))
-        c.subscribers.append(c.hub.liveliness().declare_subscriber(c.keys.workers(), weak_callback(self._worker_token)))
+        run.keep(run.hub.declare_queryable(run.keys.deployment(), weak_callback(self._answer)))
+        run.keep(run.hub.liveliness().declare_subscriber(run.keys.workers(), weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
+
+    @contextmanager
+    def _phase(self, name: str) -> Iterator[None]:
+        """Time step ``name`` of the start for ``on_phase``, whether it ends or raises."""
+        begin = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self._on_phase is not None:
+                self._on_phase(name, time.perf_counter() - begin)
 
     def _say_warnings(self, name: str, warnings: list[str]) -> None:
         for warning in warnings:
             print(f"retriever: warning: worker '{name}' runs {warning}", file=sys.stderr, flush=True)
             self.ran_other_code.setdefault(name, []).append(warning.partition("\n")[0])
 
-    def _discover(self) -> dict[str, dict]:
+    def _discover(self) -> dict[str, DaemonInfo]:
         """The namespace's live workers and their info; every problem with them at once."""
-        hub, keys, namespace = self.coordinator.hub, self.coordinator.keys, self.coordinator.namespace
+        hub, keys, namespace = self.run.hub, self.run.keys, self.run.namespace
         names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
                         for r in hub.liveliness().get(keys.workers(), timeout=DISCOVER_S) if r.ok})
         # tokens of one key are one to Zenoh: ask each name who answers, every reply kept
@@ -200,48 +268,49 @@ class Deployment(Hosting):
             self._none_found()
         problems, found = [], {}
         for name in names:
-            worker = describe(hub, namespace, name)
-            info = worker.info
-            if worker.other_protocol is not None:
-                protocol, retriever = worker.other_protocol
+            daemon = describe(hub, namespace, name)
+            info = daemon.info
+            if daemon.other_protocol is not None:
+                protocol, retriever = daemon.other_protocol
                 problems.append(f"worker '{name}' speaks protocol {protocol}, this coordinator {PROTOCOL_VERSION}"
                                 "\n    hint: install the same Retriever version on both machines "
                                 f"(the worker has {retriever or '?'!r:.30})")
             elif info is None:
-                problems.append(f"worker '{name}' did not say what it is: {worker.error}")
-            elif worker.offset_ns is not None and abs(worker.offset_ns) > self._max_offset_ns:
-                problems.append(f"worker '{name}' (host {info.get('host')}) has a clock {worker.offset_ns / 1e6:+.3f} ms "
+                problems.append(f"worker '{name}' did not say what it is: {daemon.error}")
+            elif daemon.offset_ns is not None and abs(daemon.offset_ns) > self._max_offset_ns:
+                problems.append(f"worker '{name}' (host {info.host}) has a clock {daemon.offset_ns / 1e6:+.3f} ms "
                                 f"off this machine's, past {self._max_offset_ns / 1e6:g} ms\n    hint: sync both "
                                 "clocks (chrony or ntpd, or PTP on a robot's LAN), then deploy again")
             else:
-                if worker.offset_ns is not None and abs(worker.offset_ns) > CLOCK_WARN_NS:
-                    print(f"retriever: warning: worker '{name}' has a clock {worker.offset_ns / 1e6:+.3f} ms off "
+                if daemon.offset_ns is not None and abs(daemon.offset_ns) > CLOCK_WARN_NS:
+                    print(f"retriever: warning: worker '{name}' has a clock {daemon.offset_ns / 1e6:+.3f} ms off "
                           "this machine's", file=sys.stderr, flush=True)
-                found[name] = {**info, "offset_ns": worker.offset_ns}
-                self._zids[name] = worker.zid
+                found[name] = daemon
         if problems:
             raise BackendError("the deployment cannot start:\n" + "\n".join(f"  - {p}" for p in problems))
-        self.workers = found
+        self.daemons = found
         return found
 
     def _none_found(self) -> None:
         """No worker answered: say why that may be."""
-        namespace = self.coordinator.namespace
+        namespace = self.run.namespace
         refusing = [e for e in self._connect if why_no_session(e, credentials(self._tls)) == REFUSES_LINKS]
         if refusing:  # a stranger's idle connections, not the secret (hub.ACCEPT_TIMEOUT_S)
             raise BackendError(f"no worker found in namespace '{namespace}': {', '.join(refusing)}: "
                                f"{REFUSES_LINKS}\n    hint: see who holds connections to it (ss -tn state "
                                "established on the worker), and keep strangers off the workers' ports: a "
                                "firewall, or TLS (docs/security.md)")
+        reached = self._router or self._connect or self._listen_at
         raise BackendError(f"no worker is up in namespace '{namespace}' (reached through "
-                           f"{', '.join(self._connect or self._listen_at)}), or none holds this --secret"
+                           f"{', '.join(reached)}), or none holds this --secret"
                            f"{' and TLS certificate' if self._tls else ''}\n    hint: start one on each machine: "
-                           f"retriever-worker --name NAME --namespace {namespace} --secret FILE")
+                           f"retriever-worker --name NAME --namespace {namespace} --secret FILE"
+                           + (f" --router {self._router[0]}" if self._router else ""))
 
     def _answering(self, name: str) -> int:
         """How many daemons answer as worker ``name`` (distinct pids and hosts)."""
         who = set()
-        hub, keys = self.coordinator.hub, self.coordinator.keys
+        hub, keys = self.run.hub, self.run.keys
         for reply in hub.get(keys.ctl(name), payload=InfoRequest().encode(), timeout=QUERY_S,
                              consolidation=zenoh.ConsolidationMode.NONE):
             try:
@@ -264,7 +333,7 @@ class Deployment(Hosting):
     # -- retriever status / stop -------------------------------------------------------------------
     def _answer(self, query: zenoh.Query) -> None:
         """``status``: the deployment, node by node; ``stop``: end it now, as Ctrl-C here would."""
-        c = self.coordinator
+        run = self.run
         try:
             asked = DEPLOYMENT_QUERY.decode(query.payload.to_bytes() if query.payload is not None else b"",
                                             who="the deployment")
@@ -272,8 +341,8 @@ class Deployment(Hosting):
             query.reply_err(ErrorReply(message=str(e)).encode())
             return
         if isinstance(asked, StopQuery):
-            c.stop_requested = True
-            query.reply(c.keys.deployment(), StopReply(pipeline=c.graph.name).encode())
+            run.stop()
+            query.reply(run.keys.deployment(), StopReply(pipeline=run.graph.name).encode())
             return
         for _ in range(3):  # read on Zenoh's thread while the run updates it: a copy may collide
             try:
@@ -284,12 +353,12 @@ class Deployment(Hosting):
         else:
             query.reply_err(ErrorReply(message="busy: ask again").encode())
             return
-        query.reply(c.keys.deployment(), status.encode())
+        query.reply(run.keys.deployment(), status.encode())
 
     def _watch_usage(self) -> None:
         """From a thread of its own, while the deployment runs: each node's CPU seconds so far, as
         its worker reads them, every USAGE_EVERY_S (a worker that does not answer is skipped)."""
-        while not self.coordinator.closed and not self._usage_stop.wait(USAGE_EVERY_S):
+        while not self.run.closed() and not self._usage_stop.wait(USAGE_EVERY_S):
             for remote in list(self._remotes.values()):
                 try:
                     self._cpu.update(remote.usage())
@@ -299,13 +368,13 @@ class Deployment(Hosting):
     def status_reply(self) -> StatusReply:
         """What ``retriever status`` shows: the run's time, and per node its worker, counters and
         the CPU seconds its process used so far (as last read)."""
-        c, book = self.coordinator, self.coordinator.book
+        run, book = self.run, self.run.book
         used = dict(self._cpu)
         nodes = {nid: NodeStatus(worker=self.placed.get(nid), state=book.state.get(nid), ticks=s.ticks,
                                  steps=s.steps, skips=s.skips, errors=s.errors, counts=dict(s.counts),
                                  cpu_s=used.get(nid, ABSENT))
                  for nid, s in sorted(book.stats.items())}
-        return StatusReply(pipeline=c.graph.name, run=self._run_id, t_ns=min(book.run_time(), book.end_ns),
+        return StatusReply(pipeline=run.graph.name, run=self._run_id, t_ns=min(book.run_time(), book.end_ns),
                            end_ns=book.end_ns, started=book.t0 is not None, nodes=nodes)
 
     def status(self) -> dict:
@@ -314,90 +383,109 @@ class Deployment(Hosting):
         return self.status_reply().to_fields()
 
     # -- a worker lost -------------------------------------------------------------------------
-    def host_lost(self, host, nodes: list[str]) -> None:
+    def check(self) -> None:
+        """Through a router: once the hub's link to it is gone, every worker is (_router_lost).
+        Their tokens' ends are not told to a subscriber that came after the tokens, as the
+        coordinator's did (Zenoh tells only those that asked for their history)."""
+        if self._router and self._remotes and not router_linked(self.run.hub):
+            for host in list(self._remotes.values()):
+                host.lost()
+
+    def host_lost(self, host, nodes: list[str]) -> HostLoss:
         """on_worker_loss="replace": each of its nodes starts afresh on a worker still up that its
         placement allows, by the rule of the first placement (placement.move; as a flow whose
         process died: node/handover.py); the log's fault record says where it went. Any node that has
         nowhere to go stops the run. "wait": they start afresh on it once a worker of its name is
         up again (see _await_return)."""
-        book = self.coordinator.book
-        if self._on_worker_loss == "stop" or book.t0 is None:
+        run = self.run
+        if self._router and not router_linked(run.hub):
+            return self._router_lost(host, nodes)
+        if self._on_worker_loss == "stop" or run.book.t0 is None:
             return super().host_lost(host, nodes)
         if self._on_worker_loss == "wait":
             return self._await_return(host, nodes)
         self._remotes.pop(host.name, None)
-        self.workers.pop(host.name, None)
+        self.daemons.pop(host.name, None)
         targets = move(nodes, self._placement, self._workers_up())
         if targets is None:
             return super().host_lost(host, nodes)
-        self._move(host.name, targets, book.run_time())
+        return self._move(host.name, targets, run.book.run_time())
 
-    def _await_return(self, host, nodes: list[str]) -> None:
+    def _router_lost(self, host, nodes: list[str]) -> FailRun:
+        """The coordinator's link to its router went, and with it every worker's token: the run
+        stops, saying so (the workers' daemons lost the coordinator's token the same way, and
+        stop its flows). Zenoh joins the router again by itself once it is back, but nothing
+        of the run went through it meanwhile."""
+        routers = ", ".join(self._router)
+        return FailRun(f"the deployment lost its router {routers}: no worker is reached through it (worker "
+                       f"'{host.name}' with node(s) {', '.join(nodes)} among them), and its workers stop the run's "
+                       "flows\n    hint: is the router up? start it again (retriever router), then deploy again",
+                       f"was cut off with the router {routers}")
+
+    def _await_return(self, host, nodes: list[str]) -> HostLoss:
         """on_worker_loss="wait": the run goes on without the nodes (their consumers see a gap);
         once a worker of the lost one's name is up again (its token back), they start afresh there."""
-        c, name = self.coordinator, host.name
+        run, name = self.run, host.name
         waiting = self._waiting.get(name)
         if waiting is None:
-            waiting = self._waiting[name] = {"nodes": nodes, "at": c.book.run_time()}
-            for nid in nodes:  # their processes, if a hung worker still has them, stop; consumers know
-                c.control.put(Lost(node=nid))
+            waiting = self._waiting[name] = {"nodes": nodes, "at": run.book.run_time()}
             print(f"retriever: worker '{name}' was lost with node(s) {', '.join(nodes)}; waiting for it to come "
                   "back (on_worker_loss='wait')", file=sys.stderr, flush=True)
+            return AwaitHost(lost=tuple(nodes))
         if name not in self._returned:
-            return
+            return AwaitHost()
         self._returned.discard(name)
-        worker = describe(c.hub, c.namespace, name)
-        if worker.info is None:
-            return  # not (yet) a worker that answers as one (of this protocol): wait on
+        daemon = describe(run.hub, run.namespace, name)
+        if daemon.info is None:
+            return AwaitHost()  # not (yet) a worker that answers as one (of this protocol): wait on
         del self._waiting[name]
-        self.workers[name] = {**worker.info, "offset_ns": worker.offset_ns}
-        self._zids[name] = worker.zid  # a new daemon of that name: a session of its own
+        self.daemons[name] = daemon  # a new daemon of that name: a session of its own
         self._remotes.pop(name).close()
-        self._move(name, {nid: name for nid in nodes}, waiting["at"])
+        return self._move(name, {nid: name for nid in nodes}, waiting["at"])
 
-    def _move(self, lost: str, targets: dict[str, str], at: int) -> None:
-        """Start each node of ``targets`` afresh on its worker there (the lost worker's nodes)."""
-        c, book = self.coordinator, self.coordinator.book
+    def _move(self, lost: str, targets: dict[str, str], at: int) -> Relocate:
+        """Each node of ``targets`` (the lost worker's) to start afresh on its worker there,
+        prepared for it."""
+        run = self.run
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
-                remote = self._remotes[name] = RemoteHost(c.hub, c.keys, name, self._run_id, self._zids[name])
+                remote = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id,
+                                                          self.daemons[name].zid)
             self._say_warnings(name, remote.prepare(self._remote_spec(),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
                   file=sys.stderr, flush=True)
-            book.hosts[nid], self.placed[nid] = self._remotes[name], name
-            counts = book.stats[nid].counts
-            counts["moves"] = counts.get("moves", 0) + 1
-            c.supervisor.start_afresh(nid, {"node": nid, "at_ns": at, "pid": book.workers[nid].pid,
-                                            "exit": f"was lost with its worker '{lost}'", "moved_to": name})
+        self.placed.update(targets)
+        return Relocate({nid: self._remotes[name] for nid, name in targets.items()}, dict(targets), at,
+                        f"was lost with its worker '{lost}'")
 
     def _workers_up(self) -> list[WorkerInfo]:
         """The workers still up, each with the nodes placed on it as its load (a move's candidates)."""
         load = Counter(self.placed.values())
-        return [WorkerInfo(name, frozenset(info.get("labels") or ()), load[name], info.get("host"))
-                for name, info in sorted(self.workers.items())]
+        return [placement_target(name, daemon.info, load[name]) for name, daemon in sorted(self.daemons.items())]
 
-    def faults_left(self) -> list[dict]:
-        workers, faults = self.coordinator.book.workers, []
+    def faults_left(self) -> list[Fault]:
+        workers, faults = self.run.book.workers, []
         for waiting in self._waiting.values():  # lost, and never back in the run's time
-            faults += [{"node": nid, "at_ns": waiting["at"], "pid": workers[nid].pid,
-                        "exit": "was lost with its worker"} for nid in waiting["nodes"]]
+            faults += [Fault(nid, waiting["at"], workers[nid].pid, "was lost with its worker")
+                       for nid in waiting["nodes"]]
         self._waiting.clear()
         return faults
 
     def _remote_spec(self) -> dict:
         """The run's spec as workers get it: what depends on this machine left out (each worker
         fills in its own Python path, credentials and address: runs.py)."""
-        return {k: v for k, v in self.coordinator.spec.items()
+        return {k: v for k, v in self.run.spec.items()
                 if k not in ("access", "python_path", "spill_dir", "main_file")}
 
     def log_metadata(self) -> dict[str, str]:
         """``deployment``: which worker ran each node, and what each worker said of itself."""
-        workers = {name: {k: info.get(k) for k in ("host", "pid", "labels", "python", "packages", "offset_ns")}
-                   for name, info in self.workers.items()}
-        return {"deployment": json.dumps({"namespace": self.coordinator.namespace, "placed": self.placed,
+        workers = {name: {"host": daemon.info.host, "pid": daemon.info.pid, "labels": list(daemon.info.labels),
+                          "python": daemon.info.python, "packages": daemon.info.packages, "offset_ns": daemon.offset_ns}
+                   for name, daemon in self.daemons.items()}
+        return {"deployment": json.dumps({"namespace": self.run.namespace, "placed": self.placed,
                                           "workers": workers, "ran_other_code": self.ran_other_code},
                                          sort_keys=True)}
 
@@ -411,20 +499,24 @@ class Deployment(Hosting):
             self._token = None
 
 
-def package_differences(ours: dict[str, str], theirs: object) -> list[str]:
+def placement_target(name: str, info: InfoReply, load: int) -> WorkerInfo:
+    """Worker ``name`` as placement weighs it: the labels and host of its info reply, and ``load``
+    nodes on it (at the start, those its info lists; when a lost worker's nodes move, those placed there)."""
+    return WorkerInfo(name, frozenset(info.labels), load, info.host)
+
+
+def package_differences(ours: dict[str, str], theirs: dict[str, str]) -> list[str]:
     """``numpy 2.4.6 here, 2.3.0 there`` for each package of ``ours`` that a worker's info
     (``theirs``, as it answered) has in another version."""
-    if not isinstance(theirs, dict):
-        return []
     return [f"{name} {version} here, {theirs[name]:.40} there" for name, version in sorted(ours.items())
             if isinstance(theirs.get(name), str) and theirs[name] != version]
 
 
 def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, insecure: bool = False,
-                   tls: TlsFiles | None = None) -> dict | None:
+                   tls: TlsFiles | None = None, router: bool = False) -> dict | None:
     """Ask the namespace's running deployment (``op``: a DeploymentOp, status or stop) through the
-    peers at ``connect`` (its workers): the fields of its reply (StatusReply or StopReply, exact),
-    or None when no deployment runs there."""
+    peers at ``connect`` (its workers; ``router``: the routers it joined through): the fields of
+    its reply (StatusReply or StopReply, exact), or None when no deployment runs there."""
     check_security(secret, insecure, f"retriever {op}")
     keys = KeySpace(namespace)
     request = {DeploymentOp.STATUS: StatusQuery, DeploymentOp.STOP: StopQuery}[DeploymentOp(op)]()
@@ -446,7 +538,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
             found.append(answer.to_fields())
             return
 
-    with open_access(namespace, None if secret is None else str(secret), tls) as access:
+    with open_access(namespace, None if secret is None else str(secret), tls, client=router) as access:
         for endpoint in connect:
             config = peer_config(connect=[endpoint], access=access)
             config.insert_json5("mode", '"client"')
@@ -465,7 +557,7 @@ def ask_deployment(connect: list[str], namespace: str, op: str, secret=None, ins
 
 
 #: what a deploy.toml may hold, with the kind of each value: the flags of retriever deploy
-DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "namespace": "text", "placement": "path",
+DEPLOY_CONFIG = {"connect": "endpoints", "listen": "endpoints", "router": "endpoints", "namespace": "text", "placement": "path",
                  "duration": "seconds", "log": "path", "secret": "path", "insecure": "bool", "virtual_time": "bool",
                  "keep": "keep", "on_worker_loss": "text", "lease": "seconds", "max_clock_offset": "seconds",
                  "tls_ca": "path", "tls_cert": "path", "tls_key": "path"}

@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
-from .command import worker_command
+from .command import GROUP_MODULE, WORKER_MODULE, worker_command
 from .origin import KEY_FD_ENV, key_pipe
 from .output import WorkerOutput
 
@@ -61,8 +61,18 @@ class Host(ABC):
             output = self._outputs[node] = WorkerOutput(node)
         return output
 
+    def share_output(self, name: str, nodes: list[str]) -> None:
+        """What the process ``name`` prints is what each of its ``nodes``' first process printed
+        (a group's process: configure(process=))."""
+        for node in nodes:
+            self._outputs[node] = self.output(name)
+
+    def spawn_group(self, name: str, nodes: list[str], key: bytes) -> tuple[WorkerProcess, bytes]:
+        """Start the process of the group ``name`` of ``nodes`` (Hosting.shares_processes)."""
+        raise NotImplementedError(f"{self.name} starts no process of a group of flows")
+
     def outputs(self) -> list[WorkerOutput]:
-        return list(self._outputs.values())
+        return list({id(o): o for o in self._outputs.values()}.values())  # (a group's, once)
 
 
 class LocalHost(Host):
@@ -74,8 +84,9 @@ class LocalHost(Host):
         super().__init__()
         self.spec_path = spec_path
 
-    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None) -> tuple[subprocess.Popen, bytes]:
-        cmd = worker_command(str(self.spec_path), node, mode)
+    def spawn(self, node: str, mode: Sequence[str] = (), key: bytes | None = None,
+              module: str = WORKER_MODULE) -> tuple[subprocess.Popen, bytes]:
+        cmd = worker_command(str(self.spec_path), node, mode, module=module)
         pipe = key_pipe(key) if key is not None else None
         try:
             proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -85,4 +96,9 @@ class LocalHost(Host):
             if pipe is not None:
                 os.close(pipe)
         self.output(node).attach(proc)
+        return proc, key
+
+    def spawn_group(self, name: str, nodes: list[str], key: bytes) -> tuple[subprocess.Popen, bytes]:
+        proc, key = self.spawn(name, (), key, module=GROUP_MODULE)
+        self.share_output(name, nodes)
         return proc, key

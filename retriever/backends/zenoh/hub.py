@@ -1,4 +1,5 @@
-"""Zenoh sessions the way the embedded runtime opens them: peer mode, loopback, no multicast.
+"""Zenoh sessions the way the embedded runtime opens them: peer mode, loopback, no multicast; and
+the client sessions of a run joined through a router (client_config).
 
 The run's *hub* is the session of the process that starts the run. It listens on
 ``tcp/127.0.0.1:7447`` when that port is free, else on a free port, so that worker processes and
@@ -173,20 +174,54 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
     ``access``: the config entries that make the session one of a run's (``access.py``:
     authentication and access control); without it, the session admits anyone. ``zid``: the
     session's Zenoh id (:func:`new_zid`), for one the others must know before it exists."""
-    config = zenoh.Config()
-    if zid is not None:
-        config.insert_json5("id", json.dumps(zid))
-    config.insert_json5("mode", '"peer"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes(sessions=sessions)))
+    config = _session_config("peer", connect, sessions=sessions, lease=lease, zid=zid, shared_memory=shared_memory,
+                             blocked_put=blocked_put)
     config.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 200, period_increase_factor: 1.5}")
     # strangers' idle connections must not keep the run's own links out (see ACCEPT_TIMEOUT_S)
     config.insert_json5("transport/unicast/accept_timeout", str(round(ACCEPT_TIMEOUT_S * 1000)))
     config.insert_json5("transport/unicast/accept_pending", str(accept_pending()))
     # of two peers that learn of each other, only one opens the link (see GOSSIP_ONE_WAY)
     config.insert_json5("scouting/gossip/autoconnect_strategy", GOSSIP_ONE_WAY)
+    for key, value in (access or {}).items():
+        config.insert_json5(key, value)
+    return config
+
+
+def client_config(*, connect: list[str], sessions: int = 1, access: dict[str, str] | None = None,
+                  lease: float | None = None, zid: str | None = None, shared_memory: bool = True,
+                  blocked_put: float | None = None) -> zenoh.Config:
+    """Client mode: a session that joins a run through the Zenoh routers at ``connect``
+    (``retriever router``, router.py, or any Zenoh router), listens nowhere and scouts for
+    nothing. A router forwards between its clients, where peers would need a direct link
+    between every pair: the run's processes need no address the others reach, only a way out
+    to a router (a robot behind NAT), and a run of N sessions has N links, not N²/2.
+
+    ``zenoh.open`` raises ZError at once when no router at ``connect`` admits the session (none
+    listens, or it refused the credentials); one that admitted it and was lost is joined again
+    by Zenoh, in the background. ``access``: the entries with which it proves its namespace's
+    password to the router (``RunAccess.client_config``); the router checks it and enforces
+    what each namespace may do, so a client has no dictionary or access control of its own.
+    The other arguments are :func:`peer_config`'s."""
+    config = _session_config("client", connect, sessions=sessions, lease=lease, zid=zid, shared_memory=shared_memory,
+                             blocked_put=blocked_put)
+    config.insert_json5("listen/endpoints", "[]")
+    for key, value in (access or {}).items():
+        config.insert_json5(key, value)
+    return config
+
+
+def _session_config(mode: str, connect: list[str], *, sessions: int, lease: float | None, zid: str | None,
+                    shared_memory: bool, blocked_put: float | None) -> zenoh.Config:
+    """What a peer's and a client's configs share: ``mode``, where it connects, no multicast
+    scouting, and the settings of its links and shared memory (peer_config's arguments)."""
+    config = zenoh.Config()
+    if zid is not None:
+        config.insert_json5("id", json.dumps(zid))
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(shm_pool_bytes(sessions=sessions)))
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     if lease is not None:  # how long a silent link lives (a partition): Zenoh's default is 10 s
         config.insert_json5("transport/link/tx/lease", str(round(lease * 1000)))
     if blocked_put is not None:  # a put held this long by one link (BLOCK: its far end took nothing) closes it
@@ -194,8 +229,6 @@ def peer_config(*, listen: list[str] = (), connect: list[str] = (), sessions: in
                             str(round(blocked_put * 1e6)))
     if not shared_memory:
         config.insert_json5("transport/shared_memory/enabled", "false")
-    for key, value in (access or {}).items():
-        config.insert_json5(key, value)
     return config
 
 
@@ -256,10 +289,10 @@ def forward_dropping(keys: KeySpace) -> dict[str, str]:
 #: the pool's metadata segment (1.25 MiB), until it exits: Zenoh keeps every segment it ever
 #: attached in storage global to the process, closed sessions and exited senders alike, and
 #: zenoh-python has nothing that lets go of one (eclipse-zenoh/zenoh#1700, #2787). With shared
-#: memory, a run's hub attached each worker's pool (its ``ready`` status, then its reports), so a
-#: program kept RAM mapped for every run it had run (/dev/shm, counted in RssShmem): 258 MiB per
-#: run of two flows with 128 MiB pools, 5 GB in the test suite's process. So the hub has no
-#: shared memory, nor a pool of its own; the workers use theirs between each other.
+#: memory, a run's hub would attach each worker's pool (its ``ready`` status, then its reports),
+#: so a program would keep RAM mapped for every run it had run (/dev/shm, counted in RssShmem),
+#: growing with each. So the hub has no shared memory, nor a pool of its own; the workers use
+#: theirs between each other.
 HUB_SHARED_MEMORY = False
 
 
@@ -326,7 +359,7 @@ def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float, sto
     every node of the run, so N starting nodes would ask N² questions, and at scale the answers
     fall so far behind that some node never has its producer's (benchmarks/reports/deploy.md).
     ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered.
-    ``payload``: what each question carries (the answerers ignore it: worker.POOL_PADDING)."""
+    ``payload``: what each question carries (the answerers ignore it: worker_starts.POOL_PADDING)."""
     missing = set(keys)
     give_up = time.monotonic() + timeout
     next_nudge = time.monotonic() + nudge_every
@@ -371,6 +404,24 @@ def wait_for_links(session: zenoh.Session, zids: set[str], timeout: float, stop=
             return missing
         time.sleep(0.005)
     return set()
+
+
+def wait_for_router(session: zenoh.Session, timeout: float, stop=lambda: False) -> bool:
+    """Wait until ``session`` (a client: client_config) has a link to a router; False on
+    timeout or ``stop()``. A client's only links are to routers, which route for it: what a
+    peer's direct links to its neighbours (wait_for_links) prove, one router link does."""
+    give_up = time.monotonic() + timeout
+    while not router_linked(session):
+        if time.monotonic() > give_up or stop():
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def router_linked(session: zenoh.Session) -> bool:
+    """Whether ``session`` has a link to a router now (a client loses it with the router, and
+    Zenoh opens it again by itself once the router is back)."""
+    return bool(list(session.info.routers_zid()))
 
 
 def weak_callback(method: Callable[..., None], *leading: Any) -> Callable[[Any], None]:

@@ -35,8 +35,8 @@ import zenoh
 from ...errors import BackendError
 from .host import Host
 from .hub import weak_callback
-from .protocol import (DAEMON_EVENT, ControlOpener, EndRequest, PrepareRequest, ProcessExit, Record, SignalRequest,
-                       SpawnRequest, UsageRequest, decode_reply, error_message)
+from .protocol import (DAEMON_EVENT, ControlOpener, EndRequest, PrepareRequest, ProcessExit, Record, RunSpec,
+                       SignalRequest, SpawnRequest, UsageRequest, decode_reply, error_message)
 from .wire import KeySpace, WireError
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -56,6 +56,17 @@ class RemoteProcess:
         self.host, self.node, self.pid, self.key = host, node, pid, key
         self.returncode: int | None = None
         self._exited = threading.Event()
+        self._confirmed = threading.Event()
+
+    @property
+    def exit_confirmed(self) -> bool:
+        """Its daemon said it exited; one whose daemon was lost has a returncode (as if killed),
+        yet may still run: the coordinator seals control for it until this (coordinator/processes.py)."""
+        return self._confirmed.is_set()
+
+    def wait_confirmed(self, timeout: float | None = None) -> bool:
+        """Wait until its daemon says it exited (``exit_confirmed``); whether it did in time."""
+        return self._confirmed.wait(timeout)
 
     def poll(self) -> int | None:
         return self.returncode
@@ -75,7 +86,10 @@ class RemoteProcess:
     def kill(self) -> None:
         self.send_signal(signal.SIGKILL)
 
-    def exited(self, code: int) -> None:
+    def exited(self, code: int, confirmed: bool = True) -> None:
+        """It ended with ``code``: its daemon said so (``confirmed``), or its daemon was lost."""
+        if confirmed:
+            self._confirmed.set()
         if self.returncode is None:
             self.returncode = code
             self._exited.set()
@@ -122,7 +136,8 @@ class RemoteHost(Host):
         it may not have seen yet."""
         for attempt in range(PREPARE_TRIES):
             try:
-                reply = self.request(PrepareRequest(run=self.run, spec=spec, nodes=tuple(nodes)))
+                reply = self.request(PrepareRequest(run=self.run, spec=RunSpec.from_fields(spec, "the run's spec"),
+                                                    nodes=tuple(nodes)))
                 self.events = ControlOpener(reply.key)
                 return list(reply.warnings)
             except BackendError as e:
@@ -156,7 +171,7 @@ class RemoteHost(Host):
         """The daemon is gone (its liveliness token went): its processes are as good as killed."""
         self.alive = False
         for proc in list(self.processes.values()):
-            proc.exited(LOST_CODE)
+            proc.exited(LOST_CODE, confirmed=False)
 
     def _event(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()

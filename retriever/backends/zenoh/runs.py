@@ -28,8 +28,9 @@ after COORDINATOR_GRACE_S, SIGKILL. Its worker processes die with it (PR_SET_PDE
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import importlib
-import json
 import os
 import select
 import shutil
@@ -55,8 +56,9 @@ from .folders import DAEMON_FOLDER
 from .command import worker_command
 from .hub import weak_callback
 from .origin import KEY_FD_ENV, key_pipe, new_key
-from .protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, Record,
-                       SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest)
+from .protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit,
+                       ProcessOutput, Record, RunSpec, SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream,
+                       UsageReply, UsageRequest)
 from .wire import RELIABLE, KeySpace, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -111,10 +113,11 @@ class DaemonRuns:
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
                  paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None,
-                 code_mismatch: str = "refuse", pass_env: tuple[str, ...] = ()):
+                 code_mismatch: str = "refuse", pass_env: tuple[str, ...] = (), router: tuple[str, ...] = ()):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
+        self.router = router  # the routers the daemon joined through: its flows join through them too
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
-        self.lease = lease  # how long its links live silent, and its flows' puts wait on one (_local_spec)
+        self.lease = lease  # how long its links live silent, and its flows' puts wait on one (local_spec)
         self.code_mismatch = code_mismatch  # daemon.CODE_MISMATCH
         self.pass_env = pass_env
         self._spawner = ThreadPoolExecutor(1, thread_name_prefix="retriever-spawner")
@@ -143,8 +146,11 @@ class DaemonRuns:
     # -- ops -----------------------------------------------------------------------------------
     def prepare(self, request: PrepareRequest) -> PrepareReply:
         run_id, spec, nodes = request.run, request.spec, list(request.nodes)
+        if spec.groups:  # (whose members share a Zenoh id: RunSpec takes that of a group's alone)
+            raise WireError(f"worker '{self.name}' runs each node in a process of its own: a spec with groups "
+                            f"({', '.join(sorted(spec.groups))[:200]}) is refused")
         if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
-            if spec.get("ir") != self.run.ir:
+            if spec.ir != self.run.ir:
                 raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
             warnings = self._checked(IR(self.run.ir, source="the run's IR"), nodes)
             self.run.nodes.update(nodes)
@@ -154,16 +160,11 @@ class DaemonRuns:
                 raise WireError(f"worker '{self.name}' runs another deployment's nodes ({', '.join(self.nodes())})"
                                 "\n    hint: `retriever stop` it first, or deploy to other workers")
             self._end(self.run)
-        ir_doc = spec.get("ir")
         try:
-            ir = IR(ir_doc, source=f"the IR a coordinator sent worker '{self.name}'")
+            ir = IR(spec.ir, source=f"the IR a coordinator sent worker '{self.name}'")
+            Plan.from_data(spec.plan, ir)  # checked here too, so that a bad one is refused before a folder is made
         except (IRError, TypeError, ValueError) as e:
             raise WireError(str(e)) from None
-        if "plan" in spec:  # checked here too, so that a bad one is refused before a folder is made
-            try:
-                Plan.from_data(spec["plan"], ir)
-            except IRError as e:
-                raise WireError(str(e)) from None
         warnings = self._checked(ir, nodes)
         if not self._coordinator_up():
             raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "
@@ -173,7 +174,7 @@ class DaemonRuns:
         folder = Path(tempfile.mkdtemp(prefix=f"{DAEMON_FOLDER}-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
         run.ir = ir.doc
-        write_private(folder / "spec.json", json.dumps(self._local_spec(spec, folder)))
+        write_private(folder / "spec.json", self.local_spec(spec, folder).to_json())
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
         return PrepareReply(nodes=tuple(sorted(nodes)), warnings=tuple(warnings), key=run.key)
@@ -205,8 +206,9 @@ class DaemonRuns:
         finally:
             os.close(pipe)
         run.processes[proc.pid] = (node, proc)
+        tell = functools.partial(self._tell, run)
         for stream, pipe in ((Stream.STDOUT, proc.stdout), (Stream.STDERR, proc.stderr)):
-            threading.Thread(target=self._forward, args=(run, node, stream, pipe), daemon=True,
+            threading.Thread(target=forward_output, args=(pipe, tell, run.id, node, stream), daemon=True,
                              name=f"retriever-{stream}-{node}").start()
         threading.Thread(target=self._await_exit, args=(run, node, proc), daemon=True,
                          name=f"retriever-exit-{node}").start()
@@ -301,68 +303,31 @@ class DaemonRuns:
                   if self.code_mismatch == "refuse" else " (it runs its own copy: --code-mismatch warn)"))
         return f"node '{nid}': {problem}\n    hint: {fix}"
 
-    def _local_spec(self, spec: dict, folder: Path) -> dict:
-        """The coordinator's spec as this host runs it: its Python path, its credentials, its
-        address; no shared folder with the coordinator, no main script."""
-        # not the coordinator's argv: a worker's flows see the worker's own (sys.argv is no
-        # channel for a stranger's arguments to a module that parses them when imported)
-        local = {k: spec[k] for k in ("ir", "plan", "namespace", "startup_timeout") if k in spec}
-        local["namespace"] = self.keys.namespace
-        local["python_path"] = [*self.paths, *(p for p in sys.path if p and os.path.isdir(p))]
-        local["main_file"] = local["spill_dir"] = None
-        local["access"] = (self.access.to_spec(self.access.write_dictionary(folder)) if self.access else None)
-        proto, host, port = _split(self.listen[0]) if self.listen else ("tcp", "127.0.0.1", None)
-        local["hub"] = f"{proto}/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec["hub"]
-        local["listen"] = [f"{proto}/{host}:0"]
-        local["tls"] = vars(self.tls) if self.tls is not None else None
-        # The flows keep Zenoh's lease: with the daemon's (1 s in the partition tests), a producer
-        # feeding a cut-off host stalled twice, 5 s then 9 s, and the run did not finish (2 trials
-        # of 2). But a put held by a link that took nothing for the daemon's lease (its far end cut
-        # off: the link's queue is full, BLOCK) gives up that link then, not after Zenoh's 5 s: the
+    def local_spec(self, spec: RunSpec, folder: Path) -> RunSpec:
+        """The coordinator's ``spec`` as this host runs it, which prepare writes to the run's
+        ``folder`` for its processes: its Python path, its credentials (their files in
+        ``folder``), its address (or, for a daemon joined through routers, those routers, whose
+        clients its flows are too: ``router``); no shared folder with the coordinator, no main
+        script, no argv (a worker's flows see the worker's own: sys.argv is no channel for a
+        stranger's arguments to a module that parses them when imported), no groups."""
+        if self.router:
+            hub, router, listen = None, tuple(self.router), ()
+        else:
+            proto, host, port = _split(self.listen[0]) if self.listen else ("tcp", "127.0.0.1", None)
+            hub = f"{proto}/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec.hub
+            router, listen = (), (f"{proto}/{host}:0",)
+        # The flows keep Zenoh's lease: the daemon's short one, taken by every link of a flow,
+        # closes links that are merely slow and stalls the producers behind them. But a put held
+        # by a link that took nothing for the daemon's lease (its far end cut off: the link's
+        # queue is full, BLOCK) gives up that link then, not after Zenoh's wait_before_close: the
         # producer's other consumers, the node moved off the cut-off host among them, wait no
-        # longer than that for its events (issue 40; benchmarks/reports/partition_move.md)
-        local["lease"] = None
-        local["blocked_put"] = self.lease
-        local.update(_checked_timing(spec, set(known_nodes(local))))
-        return local
-
-    def _forward(self, run: Run, node: str, stream: Stream, pipe) -> None:
-        """Send what a process prints to the coordinator, in batches of lines: a batch goes when
-        it is full or its first line has waited OUTPUT_FLUSH_S, whether or not more output comes
-        (a stack dump's last lines are its most telling, and nothing may follow them)."""
-        fd = pipe.fileno()
-        lines: list[str] = []
-        partial = b""
-        first = 0.0  # when the oldest held line came
-
-        def send() -> None:
-            nonlocal lines
-            self._tell(run, ProcessOutput(run=run.id, node=node, stream=stream, lines=tuple(lines)))
-            lines = []
-
-        with pipe:
-            while True:
-                wait = max(0.0, first + OUTPUT_FLUSH_S - time.monotonic()) if lines else None
-                if not select.select([fd], [], [], wait)[0]:
-                    send()  # the batch waited long enough
-                    continue
-                chunk = os.read(fd, 1 << 16)
-                if not chunk:
-                    break
-                *complete, partial = (partial + chunk).split(b"\n")
-                if len(partial) > MAX_LINE_BYTES:  # a line without end: sent in pieces, not held forever
-                    complete.append(partial)
-                    partial = b""
-                for raw in complete:
-                    if not lines:
-                        first = time.monotonic()
-                    lines.append(raw.decode(errors="replace").rstrip("\r"))
-                    if len(lines) >= OUTPUT_BATCH:
-                        send()
-        if partial:
-            lines.append(partial.decode(errors="replace").rstrip("\r"))
-        if lines:
-            send()
+        # longer than that for its events (benchmarks/reports/partition_move.md measures it)
+        return dataclasses.replace(
+            spec, namespace=self.keys.namespace, hub=hub, router=router, listen=listen,
+            python_path=(*self.paths, *(p for p in sys.path if p and os.path.isdir(p))),
+            main_file=None, spill_dir=None, argv=None, groups={}, dora=None,
+            access=self.access.to_spec(self.access.write_dictionary(folder)) if self.access else None,
+            tls=vars(self.tls) if self.tls is not None else None, lease=None, blocked_put=self.lease)
 
     def _await_exit(self, run: Run, node: str, proc: subprocess.Popen) -> None:
         code = proc.wait()
@@ -411,29 +376,44 @@ class DaemonRuns:
         self._spawner.shutdown(wait=False)
 
 
-def known_nodes(spec: dict) -> list[str]:
-    return [n.get("id") for n in spec.get("ir", {}).get("nodes", []) if isinstance(n, dict)]
+def forward_output(pipe, tell: Callable[[ProcessOutput], None], run_id: str, node: str, stream: Stream) -> None:
+    """Read what a process of run ``run_id`` prints on ``pipe`` (its ``stream``) until it closes,
+    and ``tell`` it (to the coordinator: DaemonRuns signs and puts each) in batches of lines: a
+    batch goes when it is full or its first line has waited OUTPUT_FLUSH_S, whether or not more
+    output comes (a stack dump's last lines are its most telling, and nothing may follow them)."""
+    fd = pipe.fileno()
+    lines: list[str] = []
+    partial = b""
+    first = 0.0  # when the oldest held line came
 
+    def send() -> None:
+        nonlocal lines
+        tell(ProcessOutput(run=run_id, node=node, stream=stream, lines=tuple(lines)))
+        lines = []
 
-def _checked_timing(spec: dict, nodes: set[str]) -> dict:
-    """What a coordinator's spec says of the processes' start and time, checked: the Zenoh ids
-    of each node's first process and of its own session (worker.py waits for links to them), and
-    whether the run is in virtual time. A malformed one is refused (WireError), not guessed at."""
-    zids, hub_zid, virtual = spec.get("zids", {}), spec.get("hub_zid"), spec.get("virtual_time", False)
-
-    def zid_ok(z) -> bool:
-        return type(z) is str and 1 <= len(z) <= 32 and all(c in "0123456789abcdef" for c in z) and z[0] != "0"
-
-    # none (a coordinator that names no ids), or one for every node: a worker that knew some would
-    # wait for links to those only, and say ready with the others unlinked
-    if (type(zids) is not dict or not all(type(k) is str and k in nodes and zid_ok(v) for k, v in zids.items())
-            or len(set(zids.values())) != len(zids) or (zids and set(zids) != nodes)):
-        raise WireError("the spec's zids are not one distinct Zenoh id (lowercase hex) per node of its IR")
-    if hub_zid is not None and not zid_ok(hub_zid):
-        raise WireError(f"the spec's hub_zid {hub_zid!r:.40} is not a Zenoh id (lowercase hex)")
-    if type(virtual) is not bool:
-        raise WireError(f"the spec's virtual_time {virtual!r:.20} is not true or false")
-    return {"zids": zids, "hub_zid": hub_zid, "virtual_time": virtual}
+    with pipe:
+        while True:
+            wait = max(0.0, first + OUTPUT_FLUSH_S - time.monotonic()) if lines else None
+            if not select.select([fd], [], [], wait)[0]:
+                send()  # the batch waited long enough
+                continue
+            chunk = os.read(fd, 1 << 16)
+            if not chunk:
+                break
+            *complete, partial = (partial + chunk).split(b"\n")
+            if len(partial) > MAX_LINE_BYTES:  # a line without end: sent in pieces, not held forever
+                complete.append(partial)
+                partial = b""
+            for raw in complete:
+                if not lines:
+                    first = time.monotonic()
+                lines.append(raw.decode(errors="replace").rstrip("\r"))
+                if len(lines) >= OUTPUT_BATCH:
+                    send()
+    if partial:
+        lines.append(partial.decode(errors="replace").rstrip("\r"))
+    if lines:
+        send()
 
 
 def cpu_seconds(pid: int) -> float | None:

@@ -97,6 +97,10 @@ class RecentTicks:
             floor = self._floor.get(node)
             self._floor[node] = old if floor is None or old > floor else floor
 
+    def remembered(self) -> int:
+        """How many ticks it holds one by one (its memory): at most ``window`` per node."""
+        return sum(len(tags) for tags in self._recent.values())
+
     def copy(self) -> "RecentTicks":
         other = RecentTicks(self.window)
         other._recent = {n: set(s) for n, s in self._recent.items()}

@@ -100,9 +100,17 @@ def check_chunk(kind: str, name: str) -> str:
 class KeySpace:
     """Key expressions of one namespace."""
 
+    #: the names under ``ctl/`` that a run's coordinator answers on (:meth:`run_control`,
+    #: :meth:`start`): no worker daemon's ``ctl/<name>`` may be one of them
+    COORDINATOR_CONTROL = ("run", "start")
+
     def __init__(self, namespace: str):
         self.namespace = check_chunk("namespace", namespace)
         self.prefix = f"{ROOT}/{namespace}"
+
+    def everything(self) -> str:
+        """Every key of this namespace (a router's access rules grant it to the run's users)."""
+        return f"{self.prefix}/**"
 
     def data(self, node: str, port: str) -> str:
         return f"{self.prefix}/data/{node}/{port}"
@@ -112,9 +120,6 @@ class KeySpace:
 
     def progress(self, node: str) -> str:
         return f"{self.prefix}/progress/{node}"
-
-    def all_progress(self) -> str:
-        return f"{self.prefix}/progress/*"
 
     def warm(self, node: str) -> str:
         """Where a node puts empty messages to warm its send path; no one subscribes."""
@@ -134,17 +139,22 @@ class KeySpace:
         return f"{self.prefix}/status/finished"
 
     def run_control(self) -> str:
-        return f"{self.prefix}/ctl/run"
+        return self.ctl("run")
 
     def start(self) -> str:
         """The coordinator's queryable: the run's ``start`` (T0 and the end), once there is one."""
-        return f"{self.prefix}/ctl/start"
+        return self.ctl("start")
 
     def workers(self, name: str = "*") -> str:
         return f"{self.prefix}/workers/{name}"
 
     def ctl(self, name: str) -> str:
         return f"{self.prefix}/ctl/{name}"
+
+    @staticmethod
+    def every_control() -> str:
+        """The control (``ctl/**``) of every namespace: what a watcher is never sent (access.py)."""
+        return f"{ROOT}/*/ctl/**"
 
     def worker_events(self, name: str) -> str:
         """Where the worker daemon ``name`` tells what became of its processes (remote.py)."""
@@ -153,14 +163,6 @@ class KeySpace:
     def deployment(self) -> str:
         """The running deployment's coordinator: its liveliness token and its queryable (status, stop)."""
         return f"{self.prefix}/deployment"
-
-    def parse_data(self, key: str) -> tuple[str, str] | None:
-        """``(node, port)`` of a data key of this namespace, else None."""
-        head = self.prefix + "/data/"
-        if not key.startswith(head):
-            return None
-        parts = key[len(head):].split("/")
-        return (parts[0], parts[1]) if len(parts) == 2 else None
 
 
 class DataMessage(NamedTuple):

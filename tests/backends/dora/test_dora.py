@@ -21,8 +21,8 @@ import yaml
 from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
 from retriever.backends.dora import host as dora_host
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
-from retriever.backends.dora.host import _alive
-from retriever.log import replay
+from retriever.backends.dora.host import pid_alive
+from retriever.replay import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, Total, two_node_pipeline
@@ -47,7 +47,7 @@ def _let_chain(name: str = "chain") -> Pipeline:
 def _nothing_left(session) -> None:
     """The run's `dora run` and every worker it started are gone."""
     assert session.hosting.dora.proc.poll() is not None, "dora run outlived its run"
-    alive = {nid: pid for nid, pid in session.worker_pids().items() if pid > 0 and _alive(pid)}
+    alive = {nid: pid for nid, pid in session.worker_pids().items() if pid > 0 and pid_alive(pid)}
     assert not alive, f"worker(s) {alive} outlived the run"
 
 
@@ -271,7 +271,7 @@ def _directories_of(dora: int) -> tuple[Path, Path]:
 
 def _left(dora: int, run_dir: Path, dora_dir: Path) -> list:
     """What is left of a run: `dora run`, its workers (by their spec's path), its directories."""
-    processes = [pid for pid in _pids() if _alive(pid) and (pid == dora or str(run_dir) in _cmdline(pid))]
+    processes = [pid for pid in _pids() if pid_alive(pid) and (pid == dora or str(run_dir) in _cmdline(pid))]
     return processes + [d for d in (run_dir, dora_dir) if d.exists()]
 
 

@@ -280,3 +280,16 @@ class Counter(Flow[OptXIn, Value]):
     def step(self, inp: OptXIn) -> Value:
         self.k += 1
         return Value(self.k - 1)
+
+
+class EndsAt(Flow[None, Value]):
+    """A source that ends the run (sys.exit(0)) at its ``at``-th step; before, it emits k."""
+
+    def __init__(self, at: int):
+        self.at, self.k = at, 0
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        if self.k == self.at:
+            sys.exit(0)
+        return Value(self.k)

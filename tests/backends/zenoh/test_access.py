@@ -31,6 +31,7 @@ from retriever.backends.zenoh.access import RUN_USER
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
 from retriever.backends.zenoh import protocol as p
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
+from retriever.replay import replay
 
 ROOT = Path(__file__).resolve().parents[3]
 BOUND_S = 60.0  # a bound on any wait, never a speed check
@@ -87,7 +88,10 @@ class Run:
         return self.watch_path
 
     def result(self) -> dict:
-        out, _ = self.proc.communicate(timeout=BOUND_S + 2 * RUN_S)
+        # stdout only, after the exit (it prints one line): stderr is the reader thread's, and
+        # communicate() would take the lines it had not read yet from it
+        self.proc.wait(timeout=BOUND_S + 2 * RUN_S)
+        out = self.proc.stdout.read()
         self.reader.join(5)
         assert self.proc.returncode == 0, "".join(self.lines)
         return json.loads(out.splitlines()[-1])
@@ -171,7 +175,7 @@ def _assert_untouched(run: Run) -> None:
     log = retriever.read_log(run.log)
     assert log.end["status"] == "finished", log.end
     assert {e.node for e in log.iter_events()} == {"counter", "total"}
-    report = retriever.log.replay(log)
+    report = replay(log)
     assert report.identical, "\n".join(map(str, report.divergences))
 
 
@@ -264,7 +268,7 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
             ]
             for key, message in claims:
                 insider.put(key, message)
-            # sense, but not once the run started: no node declares itself again (worker.REDECLARE_AFTER_S)
+            # sense, but not once the run started: no node declares itself again (worker_starts.REDECLARE_AFTER_S)
             insider.put(keys.node_status("total"), p.Unanswered(node="total", pid=1, nodes=("counter",)).encode())
         result = run.result()
     finally:
@@ -277,7 +281,7 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
     # applied, the frontier past every tag made all 15 of total's ticks incomplete (a loaded
     # machine may make a few so on its own)
     assert result["counts"].get("incomplete", 0) < 5, result
-    report = retriever.log.replay(retriever.read_log(run.log))
+    report = replay(retriever.read_log(run.log))
     assert report.identical, "\n".join(map(str, report.divergences))
 
 
@@ -310,7 +314,7 @@ def test_control_the_coordinator_did_not_seal_is_refused_and_the_run_completes(t
     assert result["counts"].get("garbage", 0) >= 2 * len(forged), result
     log = retriever.read_log(run.log)
     assert log.end["status"] == "finished", log.end
-    report = retriever.log.replay(log)
+    report = replay(log)
     assert report.identical, "\n".join(map(str, report.divergences))
 
 
@@ -429,5 +433,5 @@ def test_in_virtual_time_a_grant_put_by_an_insider_neither_wedges_nor_changes_th
     finally:
         run.kill()
     assert result["stats"] == {"counter": [30, 30, 0], "total": [15, 15, 0]}, result
-    report = retriever.log.replay(retriever.read_log(run.log))
+    report = replay(retriever.read_log(run.log))
     assert report.identical, "\n".join(map(str, report.divergences))

@@ -1,5 +1,5 @@
-"""worker.build_loop: a node loop wired as the run's plan says, whether the spec carries the plan
-(retriever.plan, as JSON) or the worker makes it from the IR."""
+"""worker_build.build_loop: a node loop wired as the run's plan says (retriever.plan, as JSON), the
+coordinator's alike the IR's own."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import warnings
 import pytest
 
 from retriever import Latest, Pipeline, Queue, Rate, RetrieverWarning, Trigger
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker_build import build_loop
 from retriever.errors import IRError
 from retriever.plan import plan_graph
 
 from .semantics_flows import Counter, WhereRun
+from .specs import run_spec
 
 
 def wiring(loop) -> tuple:
@@ -39,8 +40,8 @@ def test_a_loop_is_wired_alike_from_the_plan_in_its_spec_and_from_the_ir(session
     ir = graph.to_ir().doc
     shipped = json.loads(json.dumps(plan_graph(graph).to_data()))
     for node in ("count", "where"):
-        made_here = build_loop({"ir": ir, "namespace": "wired-test"}, node, session)
-        from_spec = build_loop({"ir": ir, "namespace": "wired-test", "plan": shipped}, node, session)
+        made_here = build_loop(run_spec(ir, "wired-test"), node, session)
+        from_spec = build_loop(run_spec(ir, "wired-test", plan=shipped), node, session)
         assert wiring(made_here) == wiring(from_spec)
     where = wiring(made_here)
     assert where[0] == [("x", Queue(3), 1)] and where[2] == [("count", "value", "x", 10_000_000, True, 100_000_000, 0, 0)]
@@ -56,4 +57,4 @@ def test_a_loop_is_not_built_from_a_plan_its_ir_refutes(session):
     shipped = json.loads(json.dumps(plan_graph(graph).to_data()))
     shipped["nodes"][1]["feeds"][0][0] = "elsewhere"  # a producer the run has not
     with pytest.raises(IRError, match=r"node 'where'.feeds\[0\].src: expected a node id of the IR, got str 'elsewhere'"):
-        build_loop({"ir": graph.to_ir().doc, "namespace": "refuted-test", "plan": shipped}, "where", session)
+        build_loop(run_spec(graph.to_ir().doc, "refuted-test", plan=shipped), "where", session)

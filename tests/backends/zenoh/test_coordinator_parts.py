@@ -40,9 +40,9 @@ class _LostHosting(Hosting):
     def __init__(self) -> None:
         self.lost: list[list[str]] = []
 
-    def host_lost(self, host, nodes: list[str]) -> None:
+    def host_lost(self, host, nodes: list[str]):
         self.lost.append(nodes)
-        super().host_lost(host, nodes)
+        return super().host_lost(host, nodes)
 
 
 @pytest.fixture
@@ -57,7 +57,7 @@ def offline(tmp_path):
     book.state = {"counter": "starting"}
     hosting = _LostHosting()
     parts = assemble(book, trace, tmp_path, RunControl(_Hub(), KeySpace(NAMESPACE)), hosting)
-    hosting.attach(SimpleNamespace(book=book))  # what a hosting reads of its coordinator here
+    hosting.attach(SimpleNamespace(book=book))  # what a hosting reads of its run here (HostedRun)
     return book, parts, hosting
 
 

@@ -40,9 +40,11 @@ from retriever.backends.zenoh.daemon import (
 from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (PROTOCOL_VERSION, EndRequest, ErrorReply, InfoReply, InfoRequest,
-                                               PrepareRequest, SignalRequest, SpawnRequest, error_message)
+                                               PrepareRequest, RunSpec, SignalRequest, SpawnRequest, error_message)
 from retriever.backends.zenoh.protocol.schema import pack
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace
+
+from .specs import run_spec
 
 ROOT = Path(__file__).resolve().parents[3]
 BOUND_S = 60.0  # a bound on any wait, never a speed check
@@ -62,10 +64,13 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 
 class Worker:
-    """A daemon process, and the lines of its stderr (read on a thread)."""
+    """A daemon process, and the lines of its stderr (read on a thread). A subclass runs another
+    long-running command: its ``COMMAND``, the line it ``says_started`` with, its ``START_S``."""
+
+    COMMAND, WHAT, START_S = "worker", "worker", BOUND_S
 
     def __init__(self, *args: str, first_on_path: Path | None = None):
-        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", "worker", *args], cwd=ROOT,
+        self.proc = subprocess.Popen([sys.executable, "-m", "retriever.cli", self.COMMAND, *args], cwd=ROOT,
                                      env=_env(first_on_path),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         self.lines: list[str] = []
@@ -76,12 +81,17 @@ class Worker:
     def _read(self) -> None:
         for line in self.proc.stderr:
             self.lines.append(line)
-            if line.startswith("retriever-worker '") and " in namespace '" in line:
+            if self.says_started(line):
                 self.started.set()
         self.started.set()
 
+    @staticmethod
+    def says_started(line: str) -> bool:
+        return line.startswith("retriever-worker '") and " in namespace '" in line
+
     def wait_started(self) -> Worker:
-        assert self.started.wait(BOUND_S) and self.proc.poll() is None, "the worker did not start:\n" + self.stderr()
+        assert self.started.wait(self.START_S) and self.proc.poll() is None, \
+            f"the {self.WHAT} did not start:\n" + self.stderr()
         return self
 
     def stop(self, signum: int = signal.SIGTERM) -> int:
@@ -359,11 +369,11 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
     }
     with _client(port) as session:
         with pytest.raises(WorkerError, match=r"prepares runs only for a coordinator whose liveliness token"):
-            ask(session, namespace, "w", PrepareRequest(run="r0", spec={"ir": _ir_doc()}, nodes=("counter",)))
+            ask(session, namespace, "w", PrepareRequest(run="r0", spec=run_spec(_ir_doc(), namespace), nodes=("counter",)))
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator now
         for (op, node_type), expected in refused.items():
             request = {"prepare": lambda: PrepareRequest(run="r1", nodes=("counter",),
-                                                         spec={"ir": _ir_doc(node_type), "namespace": namespace}),
+                                                         spec=run_spec(_ir_doc(node_type), namespace)),
                        "spawn": lambda: SpawnRequest(run="never-prepared", node="counter", mode=()),
                        "signal": lambda: SignalRequest(run="never-prepared", pid=1, signal=9),
                        "end": lambda: EndRequest(run="never-prepared")}[op]()
@@ -372,27 +382,33 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                 continue
             with pytest.raises(WorkerError, match=expected):
                 ask(session, namespace, "w", request)
-        for args in ({"run": "r1", "spec": {"ir": {"nodes": "x"}}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc()}, "nodes": ["nobody"]},
-                     {"run": 7, "spec": {}, "nodes": []},
+        def spec(**fields) -> RunSpec:
+            return run_spec(_ir_doc(), namespace, **fields)
+
+        for args in ({"run": "r1", "spec": run_spec({"nodes": "x"}, namespace, plan={"nodes": []}),
+                      "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(), "nodes": ["nobody"]},
+                     {"run": 7, "spec": spec(), "nodes": []},
                      # what the processes' start and time rest on: ids of Zenoh sessions, the clock's kind
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "0bad"}}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "a" * 33}}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"ghost": "abc"}}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": {"counter": "abc"}}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "zids": ["abc"]}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "hub_zid": "../etc"}, "nodes": ["counter"]},
-                     {"run": "r1", "spec": {"ir": _ir_doc(), "virtual_time": "yes"}, "nodes": ["counter"]}):
+                     {"run": "r1", "spec": spec(zids={"counter": "0bad"}), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(zids={"counter": "a" * 33}), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(zids={"ghost": "abc"}), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(zids={"counter": "abc"}), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(hub_zid="../etc"), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(virtual_time="yes"), "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
                 ask(session, namespace, "w", PrepareRequest(run=args["run"], spec=args["spec"],
                                                             nodes=tuple(args["nodes"])))
+        assert "field 'zids' must be a map" in _refused(session, namespace, "w", "prepare", {
+            "run": "r1", "spec": {**spec().to_fields(), "zids": ["abc"]}, "nodes": ["counter"]})
         deep = copy.deepcopy(_ir_doc())  # a param nested past Python's recursion limit (fuzz.py's `specs`)
         next(n for n in deep["nodes"] if n["id"] == "counter")["params"]["k"] = functools.reduce(
             lambda inner, _: [inner], range(900), [])
         with pytest.raises(WorkerError, match=r"params\.k nests arrays or objects deeper than Python's recursion"):
-            ask(session, namespace, "w", PrepareRequest(run="r-deep", spec={"ir": deep}, nodes=("counter",)))
-        ask(session, namespace, "w", PrepareRequest(run="r2", spec={"ir": _ir_doc(), "namespace": namespace,
-                                                                    "hub": endpoint(port)}, nodes=("counter",)))
+            ask(session, namespace, "w", PrepareRequest(run="r-deep", spec=run_spec(deep, namespace, plan=spec().plan),
+                                                        nodes=("counter",)))
+        ask(session, namespace, "w", PrepareRequest(run="r2", spec=run_spec(_ir_doc(), namespace, hub=endpoint(port)),
+                                                    nodes=("counter",)))
         for args, expected in (({"node": "relay", "mode": ()}, "was not prepared"),
                                ({"node": "counter", "mode": ("--join", "1; rm -rf /", "2")}, "spawn mode"),
                                ({"node": "counter", "mode": ("--fresh", "-5", "-1")}, "spawn mode"),
@@ -407,7 +423,7 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
             ask(session, namespace, "w", SignalRequest(run="r2", pid=os.getpid(), signal=9))
         assert ask(session, namespace, "w", InfoRequest()).nodes == ()
         with pytest.raises(WorkerError, match=r"a message on ctl/<name> of \d+ bytes, past \d+: refused"):
-            ask(session, namespace, "w", PrepareRequest(run="r3", spec={"pad": "x" * (9 << 20)}, nodes=()))
+            ask(session, namespace, "w", PrepareRequest(run="r3", spec=spec(argv=("x" * (9 << 20),)), nodes=()))
         ask(session, namespace, "w", EndRequest(run="r2"))
         token.undeclare()
     assert not marker.exists(), "a module named in a request was imported"
@@ -555,8 +571,7 @@ def test_a_worker_refuses_to_start_a_node_whose_module_changed_after_it_was_prep
                      "--path", str(tmp_path)).wait_started()
     with _client(port) as session:
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator
-        request = PrepareRequest(run="r1", spec={"ir": doc, "namespace": namespace, "hub": endpoint(port)},
-                                 nodes=("counter",))
+        request = PrepareRequest(run="r1", spec=run_spec(doc, namespace, hub=endpoint(port)), nodes=("counter",))
         prepared = _until_token_seen(lambda: ask(session, namespace, "w", request))
         assert len(prepared.key) == KEY_BYTES  # its events' signing key (runs.Run)
         assert (prepared.nodes, prepared.warnings) == (("counter",), ())
@@ -920,3 +935,30 @@ def test_no_workers_over_tls_says_how_to_start_one_over_tls(namespace, tmp_path)
         "--tls-cert CERT --tls-key KEY --secret FILE, then: retriever workers --connect tls/HOST:7447 --tls-ca CA "
         "--tls-cert CERT --tls-key KEY --secret FILE\n"), result.stdout
     assert f"warning: no session at {at}: nothing listens there\n" == result.stderr  # reach.why_no_session
+
+
+def test_a_worker_joined_through_a_router_listens_nowhere(tmp_path):
+    settings = load_settings(name="robot", router=["tcp/10.0.0.1:7447"])
+    assert (settings.router, settings.listen, settings.connect) == (("tcp/10.0.0.1:7447",), (), ())
+    config = tmp_path / "worker.toml"
+    config.write_text('name = "robot"\nrouter = "tcp/10.0.0.1:7447"\n')
+    assert load_settings(config).router == ("tcp/10.0.0.1:7447",)
+    with pytest.raises(WorkerError, match=r"a worker joined through a router \(--router\) listens nowhere and connects "
+                                          r"to the router alone: leave out --listen and --connect"):
+        load_settings(name="robot", router=["tcp/10.0.0.1:7447"], listen=["tcp/0.0.0.0:7447"])
+    with pytest.raises(WorkerError, match=r"endpoint 'router-box' is no Zenoh endpoint"):
+        load_settings(name="robot", router=["router-box"])
+    assert load_settings(name="bare").router == ()
+
+
+def test_a_deployment_through_a_router_takes_no_connect_or_listen(tmp_path):
+    from retriever import BackendError
+    from retriever.backends.zenoh.deploy import Deployment, load_deploy_config
+
+    with pytest.raises(BackendError, match=r"joined through a router \(--router\) listens nowhere"):
+        Deployment(router=["tcp/10.0.0.1:7447"], connect=["tcp/10.0.0.2:7447"], insecure=True)
+    assert "deployment joined through router tcp/10.0.0.1:7447" == \
+        Deployment(router=["tcp/10.0.0.1:7447"], insecure=True).where()
+    config = tmp_path / "deploy.toml"
+    config.write_text('router = "tcp/10.0.0.1:7447"\n')
+    assert load_deploy_config(config) == {"router": ["tcp/10.0.0.1:7447"]}

@@ -107,9 +107,9 @@ def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_p
     good, bad, done = [], [], threading.Event()
     hub, where = open_hub()
     with hub:
-        def on_data(sample):
+        def on_data(stream, sample):  # as a node takes its inputs: one subscriber per (producer, port)
             try:
-                msg = decode_data(sample.payload.to_bytes(), keys.parse_data(str(sample.key_expr)))
+                msg = decode_data(sample.payload.to_bytes(), stream)
             except WireError as e:
                 bad.append(str(e))
                 return
@@ -119,7 +119,8 @@ def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_p
             if msg.port == "x":
                 done.set()
 
-        sub = hub.declare_subscriber(keys.all_data(), on_data)
+        subs = [hub.declare_subscriber(keys.data(*stream), lambda sample, k=stream: on_data(k, sample))
+                for stream in (("client", "hello"), ("client", "x"))]
         client = subprocess.Popen([sys.executable, "-c", CLIENT, where], cwd=Path(__file__).resolve().parents[3],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -129,7 +130,8 @@ def test_garbage_from_another_process_is_refused_and_valid_messages_arrive(tmp_p
             if client.poll() is None:
                 client.kill()
                 client.wait()
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
     assert client.returncode == 0, err
     assert len(bad) == 3, bad
     assert any("msgpack array of bins" in b for b in bad) and any("truncated" in b for b in bad)
@@ -258,7 +260,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     from retriever.backends.zenoh.node import DATA
     from retriever.backends.zenoh.origin import new_key
     from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Start
-    from retriever.backends.zenoh.worker import _ask_start, _await_control
+    from retriever.backends.zenoh.worker_waits import ask_start, await_control
 
     keys = KeySpace("missed-start")
     hub, at = open_hub(free_port())
@@ -275,7 +277,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
             nonce = None if query.attachment is None else query.attachment.to_bytes()
             query.reply(keys.start(), start, attachment=signer.seal_reply(keys.start(), start, nonce))
 
-    class Inbox:  # the part of a NodeLoop that _await_control uses
+    class Inbox:  # the part of a NodeLoop that await_control uses
         inbox: queue.SimpleQueue = queue.SimpleQueue()
         counts: Counter = Counter()
         opener = ControlOpener(key)
@@ -286,7 +288,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     with hub:
         queryable = hub.declare_queryable(keys.start(), answer)
         with open_peer(at) as worker:
-            start = _await_control(loop, Start, "n", ask=lambda: _ask_start(worker, keys, loop))
+            start = await_control(loop, Start, "n", ask=lambda: ask_start(worker, keys, loop))
         queryable.undeclare()
     assert start == Start(t0=123, end=456, values=True)
     assert len(asked) >= 3

@@ -1,5 +1,5 @@
 """A worker says on stderr when its link to the coordinator is gone: while its node runs
-(worker._watch_hub_link) and when it ends (worker._await_reports_taken). Zenoh drops a put that no
+(worker_links.watch_hub_link) and when it ends (worker_waits.await_reports_taken). Zenoh drops a put that no
 link carries without an error and does not open a link found by gossip again, so without these
 lines a flow that lost that link ended with only "exited with code 0 before it finished" on the
 coordinator's side (benchmarks/reports/partition_move.md; benchmarks/link_stall.py makes Zenoh
@@ -12,7 +12,8 @@ import time
 from retriever.backends.zenoh.hub import new_zid, open_hub, open_peer, wait_for_links
 from retriever.backends.zenoh.protocol import ControlOpener
 from retriever.backends.zenoh.wire import KeySpace
-from retriever.backends.zenoh.worker import _await_reports_taken, _watch_hub_link
+from retriever.backends.zenoh.worker_links import watch_hub_link
+from retriever.backends.zenoh.worker_waits import await_reports_taken
 
 BOUND_S = 20.0  # a bound only: the close is seen within ms
 
@@ -22,7 +23,7 @@ def test_a_worker_says_when_its_link_to_the_coordinator_closes(capfd):
     with open_peer(endpoint, shared_memory=False) as session:
         hub_zid = str(hub.zid())
         assert not wait_for_links(session, {hub_zid}, BOUND_S)
-        listener = _watch_hub_link(session, hub_zid, "camera")
+        listener = watch_hub_link(session, hub_zid, "camera")
         try:
             assert "lost its link" not in capfd.readouterr().err  # linked: nothing said
             hub.close()
@@ -39,11 +40,11 @@ def test_a_worker_says_when_its_link_to_the_coordinator_closes(capfd):
 def test_a_worker_without_a_hub_id_watches_nothing():
     hub, endpoint = open_hub(0)
     with hub, open_peer(endpoint, shared_memory=False) as session:
-        assert _watch_hub_link(session, None, "camera") is None
+        assert watch_hub_link(session, None, "camera") is None
 
 
 def test_a_worker_that_ends_with_no_link_to_the_coordinator_says_so(capfd):
     hub, endpoint = open_hub(0)
     with hub, open_peer(endpoint, shared_memory=False) as session:
-        _await_reports_taken(session, KeySpace("lost"), ControlOpener(None), "camera", new_zid())  # a coordinator it is not linked to
+        await_reports_taken(session, KeySpace("lost"), ControlOpener(None), "camera", new_zid())  # a coordinator it is not linked to
     assert "worker 'camera' has no link to the coordinator at its end" in capfd.readouterr().err

@@ -42,12 +42,13 @@ import zenoh
 
 from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, RestartLimitError, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
-from retriever.backends.zenoh import worker
-from retriever.backends.zenoh.worker import EXIT_ABANDONED, PARENT_DIED, build_loop
-from retriever.log import replay
+from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker_process import EXIT_ABANDONED, PARENT_DIED, Parent
+from retriever.replay import replay
 
 from .lifecycle_flows import (Count, Counter, ExitOnce, Looped, Nap, Scaled, SegfaultOnce, Sink, Total,
                               two_node_pipeline)
+from .specs import run_spec
 
 ROOT = Path(__file__).resolve().parents[3]
 FLOWS_FILE = Path(__file__).resolve().parent / "lifecycle_flows.py"
@@ -331,7 +332,7 @@ def test_a_node_loop_undeclares_everything_it_declared_so_its_session_lets_go_of
     session = zenoh.open(peer_config())
     own = mapped_segments() - before
     assert own, "the session maps a segment of its own"
-    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": f"undeclare-{secrets.token_hex(3)}"},
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, f"undeclare-{secrets.token_hex(3)}"),
                       node, session)
     loop.declare()
     loop.undeclare()
@@ -368,7 +369,7 @@ def test_the_callbacks_a_node_loop_hands_zenoh_do_not_keep_it_alive(session, nod
     garbage collection sees, and the session's shared memory with it (the test above failed so)."""
     pipe = two_node_pipeline("kept")
     keeper = KeepsCallbacks(session)
-    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": f"kept-{secrets.token_hex(3)}"},
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, f"kept-{secrets.token_hex(3)}"),
                       node, keeper)
     loop.declare()
     loop.redeclare()
@@ -467,7 +468,7 @@ def test_a_worker_sees_its_coordinator_dying_through_the_descriptor_it_opened():
     lived: alive is not orphaned; a zombie is; once reaped, a read fails (whatever process gets
     the pid next), and that is orphaned too. (As for a coordinator that is not our parent: dora's.)"""
     child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
-    coordinator = worker.Parent(child.pid, adopted=True)
+    coordinator = Parent(child.pid, adopted=True)
     stat = os.open(f"/proc/{child.pid}/stat", os.O_RDONLY)
     try:
         assert not coordinator.gone(stat) and not coordinator.gone()
@@ -823,7 +824,8 @@ def test_a_sigkilled_worker_of_a_flow_with_on_error_restart_starts_afresh_and_th
     thread = _kill_when(pipe, victim, lambda session, kills: not kills and _steps_so_far(session) > 60,
                         kills, done)
     try:
-        trace = pipe.run(duration=3.0, backend="zenoh", namespace=namespace, quiet=True, log=path)
+        # (a new process took up to 2.5 s to be ready at a load of 8: time for it to step after)
+        trace = pipe.run(duration=6.0, backend="zenoh", namespace=namespace, quiet=True, log=path)
     finally:
         done.set()
         thread.join(timeout=BOUND_S)
@@ -907,10 +909,15 @@ def test_a_step_that_ends_its_process_without_a_word_restarts_afresh(tmp_path, n
         counter = Counter() @ Rate(hz=50)
         quit_ = ExitOnce(str(tmp_path / "exited")).configure(name="quit", on_error="restart") @ Trigger()
         counter.then(quit_, sync=Latest())
-    trace = pipe.run(duration=4.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+    # its silent exit is known 2 s after it (processes.EXIT_GRACE_S: a last status may be on the way),
+    # and at a load of 8 a new process took another 2.5 s to be ready: 8 s leave it time to step
+    trace = pipe.run(duration=8.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
     (fault,) = read_log(tmp_path / "run.mcap").faults
     assert fault["node"] == "quit" and fault["exit"] == "exited with code 0" and fault["restarted"] == "true"
-    assert [s for s in trace.steps_of("quit") if s.detail and "restarted" in s.detail]
+    steps = trace.steps_of("quit")
+    assert [s for s in steps if s.detail and "restarted" in s.detail], (
+        f"no step of quit after its restart; the fault: {fault}; quit's steps: "
+        f"{[(s.tag, s.status, s.detail) for s in steps[-5:]]} (the last of {len(steps)})")
     assert replay(read_log(tmp_path / "run.mcap")).identical
 
 
@@ -967,7 +974,8 @@ def test_a_flow_that_segfaults_under_on_error_restart_starts_afresh(tmp_path, na
         counter = Counter() @ Rate(hz=50)
         crash = SegfaultOnce(str(tmp_path / "crashed")).configure(name="crash", on_error="restart") @ Trigger()
         counter.then(crash, sync=Latest())
-    trace = pipe.run(duration=2.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
+    # (a new process took up to 2.5 s to be ready at a load of 8: time for it to step after)
+    trace = pipe.run(duration=5.0, backend="zenoh", namespace=namespace, quiet=True, log=tmp_path / "run.mcap")
     assert pipe.stats()["crash"].counts.get("crash_restarts") == 1
     (fault,) = read_log(tmp_path / "run.mcap").faults
     assert fault["node"] == "crash" and fault["exit"] == "was killed by SIGSEGV"

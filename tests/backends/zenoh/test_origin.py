@@ -22,6 +22,7 @@ import pytest
 import retriever
 from retriever.backends.zenoh.protocol import Done, Exit, Report
 from retriever.backends.zenoh.wire import RELIABLE
+from retriever.replay import replay
 from tests.backends.zenoh.test_access import BOUND_S, Run, _insider, _secret_file
 
 #: forged step records the insider floods the coordinator with (today's code held each: ~470 B)
@@ -69,7 +70,7 @@ def _assert_whole(run: Run, result: dict, forged: int) -> None:
         [("counter", (k * 100_000_000, 0)) for k in range(30)]
     assert len(steps) == 45, len(steps)
     assert '"forged"' in log.end.get("counts", ""), log.end
-    report = retriever.log.replay(log)
+    report = replay(log)
     assert report.identical, "\n".join(map(str, report.divergences))
     assert any("refused" in line and "forged" in line for line in run.lines), "".join(run.lines)
 

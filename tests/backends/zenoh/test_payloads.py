@@ -9,10 +9,10 @@ import os
 
 import numpy as np
 
-import retriever.log
 from retriever import Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import SHM_POOL_MIN
 from retriever.backends.zenoh.node import SPILL_BYTES
+from retriever.replay import replay
 
 from .payload_flows import (BurstCamera, Camera, Holder, ImageShmWatcher, ShmOfImageTaker, ShmOfScalarTaker, ShmWatcher,
                             Sums, Viewer, frame)
@@ -49,7 +49,7 @@ def test_large_frames_arrive_intact_and_are_logged(tmp_path):
     logged = [log.value(e) for e in sorted(log.iter_events(), key=lambda e: e.seq)
               if e.node == "camera" and e.port == "image"]
     assert len(logged) == 15 and all(np.array_equal(a, b) for a, b in zip(logged, images))
-    report = retriever.log.replay(log)
+    report = replay(log)
     assert report.identical, report.divergences[:3]
 
 
@@ -75,14 +75,14 @@ def test_bursts_of_frames_arrive_in_order_are_logged_and_replay(tmp_path):
     log = read_log(path)
     logged = sorted((e for e in log.iter_events() if e.node == "camera" and e.port == "image"), key=lambda e: e.seq)
     assert [e.seq for e in logged] == list(range(n)) and len({e.tag for e in logged[1:3]}) == 1  # one burst, one tag
-    report = retriever.log.replay(log)
+    report = replay(log)
     assert report.identical, report.divergences[:3]
 
 
 def test_each_worker_has_its_shared_memory_pool_before_t0():
     """Zenoh creates a session's shared-memory pool on its first big message, writing all of it
     (130 ms for 128 MiB here): a worker makes that happen before it says ``ready``, with a padded
-    question to each consumer (worker.POOL_PADDING), so no tick pays for it. The first step of a
+    question to each consumer (worker_starts.POOL_PADDING), so no tick pays for it. The first step of a
     flow that has sent nothing yet finds the pool mapped."""
     with Pipeline("pool") as pipe:
         watcher = ImageShmWatcher().configure(name="watcher") @ Rate(hz=10)

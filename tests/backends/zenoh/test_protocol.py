@@ -3,6 +3,7 @@ today's, its decoder exact; and signed control (issue 40: an insider's forged ``
 
 from __future__ import annotations
 
+import json
 import math
 import queue
 import sys
@@ -15,6 +16,7 @@ from hypothesis import strategies as st
 
 from retriever.backends.zenoh import protocol as p
 from retriever.backends.zenoh.origin import KEY_BYTES, MAC_BYTES, new_key
+from retriever.backends.zenoh.protocol.run_spec import MAX_SPEC_BYTES, Seconds, ZenohId
 from retriever.backends.zenoh.protocol.schema import (ABSENT, Bool, Document, Float, HexKey, Int, ListOf, MapOf, Name,
                                                       Nested, Nullable, OneOf, Plain, Row, Text)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES, REPLAY_WINDOW
@@ -46,6 +48,13 @@ def worker_status(node: str, state: str, **info) -> bytes:
 # ---------------------------------------------------------------------------------------------
 T0, END = 1_780_000_000_123_456_789, 30_000_000_000
 HEX = "ab" * KEY_BYTES
+#: a run's spec as deploy.py's coordinator sends it (its fields at their default left out)
+SPEC_FIELDS = {"ir": {"nodes": [{"id": "cam"}, {"id": "sink"}]}, "namespace": "proto", "hub": "tcp/10.0.0.2:7447",
+               "plan": {"nodes": []}, "argv": ["deploy.py", "--fast"], "startup_timeout": 60.0,
+               "zids": {"cam": "1a2b", "sink": "3c4d"}, "hub_zid": "ef01", "virtual_time": False}
+SPEC = p.RunSpec(ir=SPEC_FIELDS["ir"], namespace="proto", hub="tcp/10.0.0.2:7447", plan={"nodes": []},
+                 argv=("deploy.py", "--fast"), startup_timeout=60.0, zids={"cam": "1a2b", "sink": "3c4d"},
+                 hub_zid="ef01", virtual_time=False)
 TODAY = [
     # coordinator.advance, _lockstep, _handle, _end_by_exit, _tell_have, _start_afresh, _stop_workers
     (control("start", {"t0": T0, "end": END, "values": True}), p.Start(t0=T0, end=END, values=True)),
@@ -64,9 +73,9 @@ TODAY = [
     (control("lost", {"node": "src"}), p.Lost(node="src")),
     (control("stop", {}), p.Stop()),
     # coordinator._answer_finished, _answer_start
-    (control("finished", {"nodes": ["a", "b"], "complete": ["a"], "restarting": []}),
-     p.Finished(nodes=("a", "b"), complete=("a",), restarting=())),
-    # worker._serve's status(...) calls, in its order
+    (control("finished", {"nodes": ["a", "b"], "complete": ["a"], "restarting": [], "handed_over": []}),
+     p.Finished(nodes=("a", "b"), complete=("a",), restarting=(), handed_over=())),
+    # the worker's status(...) calls (worker.py's phases), in their order
     (worker_status("cam", "failed", error="cannot build node 'cam': ImportError: x", traceback="Traceback..."),
      p.Failed(node="cam", pid=PID, error="cannot build node 'cam': ImportError: x", traceback="Traceback...")),
     (worker_status("cam", "failed", error="RuntimeError: no GPU", setup=True, traceback="Traceback..."),
@@ -94,11 +103,10 @@ TODAY = [
             sent={"rgb": 1499})),
     (worker_status("cam", "done", counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={}),
      p.Done(node="cam", pid=PID, counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={})),
-    # remote.RemoteHost.request ({"run": run, **args}), deploy._answering, daemon.ask
+    # remote.RemoteHost.request ({"run": run, **args}), the deployment's discovery (deploy.py), daemon.ask
     (control("info", {}), p.InfoRequest()),
-    (control("prepare", {"run": "5f3a9c0d1e2b", "spec": {"ir": {"nodes": []}, "namespace": "proto"},
-                                       "nodes": ["cam"]}),
-     p.PrepareRequest(run="5f3a9c0d1e2b", spec={"ir": {"nodes": []}, "namespace": "proto"}, nodes=("cam",))),
+    (control("prepare", {"run": "5f3a9c0d1e2b", "spec": SPEC_FIELDS, "nodes": ["cam"]}),
+     p.PrepareRequest(run="5f3a9c0d1e2b", spec=SPEC, nodes=("cam",))),
     (control("spawn", {"run": "r", "node": "cam", "mode": []}),
      p.SpawnRequest(run="r", node="cam", mode=())),
     (control("spawn", {"run": "r", "node": "cam", "mode": ["--fresh", str(T0), str(END)]}),
@@ -121,7 +129,7 @@ TODAY = [
     (control("end", {}), p.EndReply()),
     (control("error", {"message": "worker 'w' knows no op 'x'"}),
      p.ErrorReply(message="worker 'w' knows no op 'x'")),
-    # runs.DaemonRuns._forward, _await_exit
+    # runs.forward_output, DaemonRuns._await_exit
     (control("output", {"run": "r", "node": "cam", "stream": "stderr", "lines": ["a", "b"]}),
      p.ProcessOutput(run="r", node="cam", stream=p.Stream.STDERR, lines=("a", "b"))),
     (control("exit", {"run": "r", "node": "cam", "pid": PID, "code": -9}),
@@ -176,7 +184,7 @@ def test_every_message_kind_is_covered_by_todays_bytes():
 
 
 def test_the_one_status_whose_map_order_differs_from_todays_decodes_the_same():
-    """worker._serve's crash `failed` puts counts after the traceback; every other failed puts
+    """The worker's crash `failed` (worker.run, worker_ending.say_failed) puts counts after the traceback; every other failed puts
     tag and counts before it, which is the record's order: same keys, same values."""
     data = worker_status("cam", "failed", error="worker 'cam' crashed: OSError: x", traceback="T", counts={"late": 1})
     record = p.STATUS.decode(data, node="cam")
@@ -186,7 +194,7 @@ def test_the_one_status_whose_map_order_differs_from_todays_decodes_the_same():
 
 
 def test_a_report_encodes_to_the_reporters_bytes_and_decodes_as_wire_did():
-    """reporter._put: ``[2, node, records, events]`` as it packed them before Report, the loop's records of tuples."""
+    """node/reporter.py: ``[2, node, records, events]`` as packed before Report, the loop's records of tuples."""
     message = WireEncoder().data((20_000_000, 0), 3, (40_000_000, 0), "cam", "rgb", [1, 2])
     raw_records = [((20_000_000, 0), {"img": (("src", "out", 4), ("src", "out", 5))}, (("cam", "rgb", 3),), "ok",
                     None, T0, 1500),
@@ -250,6 +258,10 @@ def values(kind) -> st.SearchStrategy:
         return st.binary(min_size=kind.size, max_size=kind.size)
     if isinstance(kind, Nested):
         return records(kind.record)
+    if isinstance(kind, ZenohId):
+        return st.from_regex(r"[1-9a-f][0-9a-f]{0,31}", fullmatch=True)
+    if isinstance(kind, Seconds):
+        return st.floats(kind.low, kind.high, allow_nan=False, allow_infinity=False)
     if type(kind).__name__ == "Mode":
         digits = st.integers(0, 10**19 - 1).map(str)
         return st.just(()) | st.tuples(st.sampled_from(list(p.SpawnMode)), digits, digits)
@@ -257,15 +269,30 @@ def values(kind) -> st.SearchStrategy:
 
 
 def records(cls) -> st.SearchStrategy:
-    fields = {}
+    fields, defaults = {}, cls.defaults()
     for name, kind, optional in cls.schema():
-        fields[name] = st.just(ABSENT) | values(kind) if optional else values(kind)
+        left_out = st.just(defaults.get(name, ABSENT))
+        fields[name] = left_out | values(kind) if optional else values(kind)
     if issubclass(cls, p.Status):
         fields["node"] = NAMES
+    if cls is p.RunSpec:  # one Zenoh id per node of its IR, or none; no groups (spec_ids checks those)
+        fields["groups"] = st.just({})
+        fields["zids"] = st.dictionaries(NAMES, values(ZenohId()), max_size=4).filter(
+            lambda zids: len(set(zids.values())) == len(zids))
+        return st.fixed_dictionaries(fields).map(lambda kwargs: cls(**{
+            **kwargs, "ir": {**kwargs["ir"], "nodes": [{"id": node} for node in kwargs["zids"]]}}))
     return st.fixed_dictionaries(fields).map(lambda kwargs: cls(**kwargs))
 
 
 ALL_RECORDS = sorted({type(record) for _, record in TODAY}, key=lambda cls: cls.__name__)
+
+
+@settings(max_examples=40, deadline=None)
+@given(records(p.RunSpec))
+def test_a_run_spec_round_trips_through_its_file_and_a_prepare_request(spec):
+    assert p.RunSpec.from_fields(json.loads(spec.to_json()), "the spec") == spec
+    request = p.PrepareRequest(run="r", spec=spec, nodes=())
+    assert p.PrepareRequest.decode(request.encode()) == request
 
 
 @settings(max_examples=40, deadline=None)
@@ -352,6 +379,11 @@ MALFORMED = [
         "nodes": {"a": {"worker": None, "state": None, "ticks": -1, "steps": 0, "skips": 0, "errors": 0,
                         "counts": {}}}}),
      r"field 'nodes'\['a'\]: field 'ticks' must be an integer from 0"),
+    ("a node state that is none", p.DEPLOYMENT_REPLY, control("status", {
+        "pipeline": "d", "run": "r", "t_ns": 0, "end_ns": 0, "started": False,
+        "nodes": {"a": {"worker": None, "state": "running", "ticks": 0, "steps": 0, "skips": 0, "errors": 0,
+                        "counts": {}}}}),
+     r"field 'nodes'\['a'\]: field 'state' must be one of 'starting', 'ready', 'failed', 'done', got str 'running'"),
 ]
 
 
@@ -359,6 +391,82 @@ MALFORMED = [
 def test_malformed_messages_are_refused_with_an_error_naming_what(what, channel, data, error):
     with pytest.raises(WireError, match=error):
         channel.decode(data)
+
+
+DROP = object()
+
+
+def spec_with(**changes) -> dict:
+    """SPEC_FIELDS with ``changes`` (DROP: the field left out)."""
+    return {k: v for k, v in {**SPEC_FIELDS, **changes}.items() if v is not DROP}
+
+
+SPEC_ATTACKS = [
+    ("a field missing", spec_with(plan=DROP), "lacks its field 'plan'"),
+    ("another field missing", spec_with(zids=DROP), "lacks its field 'zids'"),
+    ("a field it does not take", spec_with(shell="touch /tmp/x"), "has a field it does not take: 'shell'"),
+    ("the IR not a map", spec_with(ir=["x"]), "field 'ir' must be a map with string keys"),
+    ("the plan with a key that is no string", spec_with(plan={1: 2}), "field 'plan' must be a map with string keys"),
+    ("a namespace that is no key chunk", spec_with(namespace="a/**"), "field 'namespace' must be a name"),
+    ("a hub that is a number", spec_with(hub=7447), "field 'hub' must be a string"),
+    ("a timeout that is text", spec_with(startup_timeout="60"), "field 'startup_timeout' must be seconds"),
+    ("a timeout that is infinite", spec_with(startup_timeout=math.inf), "field 'startup_timeout' must be seconds"),
+    ("a timeout that is true", spec_with(startup_timeout=True), "field 'startup_timeout' must be seconds"),
+    ("a lease below zero", spec_with(lease=-1), "field 'lease' must be seconds"),
+    ("virtual time that is text", spec_with(virtual_time="yes"), "field 'virtual_time' must be true or false"),
+    ("argv of numbers", spec_with(argv=[1]), r"field 'argv'\[0\] must be a string"),
+    ("a python path that is one string", spec_with(python_path="/tmp"), "field 'python_path' must be a list"),
+    ("a zid with a leading zero", spec_with(zids={"cam": "0bad", "sink": "3c4d"}),
+     r"field 'zids'\['cam'\] must be a Zenoh id"),
+    ("a zid too long", spec_with(zids={"cam": "a" * 33, "sink": "3c4d"}), r"field 'zids'\['cam'\] must be a Zenoh id"),
+    ("a zid in capitals", spec_with(zids={"cam": "ABC", "sink": "3c4d"}), r"field 'zids'\['cam'\] must be a Zenoh id"),
+    ("zids as a list", spec_with(zids=["1a2b"]), "field 'zids' must be a map"),
+    ("a zid of a node not in the IR", spec_with(zids={"cam": "1a2b", "sink": "3c4d", "ghost": "5e"}),
+     "field 'zids' must name one Zenoh id for each node of its IR, or none"),
+    ("zids of some nodes only", spec_with(zids={"cam": "1a2b"}),
+     r"field 'zids' must name one Zenoh id for each node of its IR, or none \(amiss: 'sink'\)"),
+    ("an IR whose node ids are no names", spec_with(ir={"nodes": [{"id": ["cam"]}, {"id": {}}, "sink"]}),
+     "field 'zids' must name one Zenoh id for each node of its IR, or none"),
+    ("two nodes of no group with one zid", spec_with(zids={"cam": "1a2b", "sink": "1a2b"}),
+     "field 'zids' gives nodes 'cam' and 'sink' one Zenoh id, and they are no group's"),
+    ("a hub zid that is a path", spec_with(hub_zid="../etc"), "field 'hub_zid' must be a Zenoh id"),
+    ("a group of no node", spec_with(groups={"g": []}), r"field 'groups'\['g'\] must be a list of 1"),
+    ("access that is a string", spec_with(access="secret"), "field 'access' must be a map"),
+    ("an extension type", spec_with(main_file=msgpack.ExtType(4, b"os:system")), "field 'main_file' must be a string.*ExtType"),
+]
+
+
+@pytest.mark.parametrize("what, fields, error", SPEC_ATTACKS, ids=[a[0] for a in SPEC_ATTACKS])
+def test_a_malformed_run_spec_is_refused_naming_the_field_in_a_prepare_request_and_in_a_file(
+        what, fields, error, tmp_path):
+    with pytest.raises(WireError, match=r"a 'prepare' message on ctl/<name>: field 'spec'.*" + error):
+        p.REQUEST.decode(control("prepare", {"run": "r", "spec": fields, "nodes": []}))
+    try:
+        text = json.dumps(fields)
+    except TypeError:
+        return  # (no JSON file holds an extension type)
+    if json.loads(text) != fields:
+        return  # (nor a key that is no string)
+    path = tmp_path / "spec.json"
+    path.write_text(text)
+    with pytest.raises(WireError, match=r"the run's spec .*spec.json.*" + error):
+        p.RunSpec.read_file(path)
+
+
+def test_a_run_spec_takes_one_zid_for_a_groups_members_and_its_defaults_when_left_out(tmp_path):
+    grouped = p.RunSpec.from_fields(spec_with(zids={"cam": "1a2b", "sink": "1a2b"}, groups={"g": ["cam", "sink"]}),
+                                    "the spec")
+    assert grouped.groups == {"g": ("cam", "sink")} and grouped.zids == {"cam": "1a2b", "sink": "1a2b"}
+    assert (SPEC.python_path, SPEC.main_file, SPEC.spill_dir, SPEC.router, SPEC.listen, SPEC.lease) == (
+        (), None, None, (), (), None)
+    assert p.RunSpec.from_fields(spec_with(startup_timeout=60), "the spec").startup_timeout == 60.0
+    path = tmp_path / "spec.json"
+    path.write_text("{not json")
+    with pytest.raises(WireError, match="is not JSON"):
+        p.RunSpec.read_file(path)
+    path.write_bytes(b" " * (MAX_SPEC_BYTES + 1))
+    with pytest.raises(WireError, match=rf"of {MAX_SPEC_BYTES + 1} bytes, past {MAX_SPEC_BYTES}: refused"):
+        p.RunSpec.read_file(path)
 
 
 def test_nothing_decoded_is_imported_or_called():
@@ -628,7 +736,7 @@ def test_a_reply_opens_only_for_the_question_it_answers():
         opener.reply(p.Start, key_expr, payload, seal, p.new_nonce())
     with pytest.raises(WireError, match="without the coordinator's seal"):
         opener.reply(p.Start, key_expr, payload, signer.seal_reply(key_expr, payload, None), nonce)
-    finished = p.Finished(nodes=("cam",), complete=("cam",), restarting=()).encode()
+    finished = p.Finished(nodes=("cam",), complete=("cam",), restarting=(), handed_over=()).encode()
     with pytest.raises(WireError, match="did not seal"):  # a reply on one key is no reply on another
         opener.reply(p.Finished, KEYS.finished(), finished, signer.seal_reply(key_expr, finished, nonce), nonce)
     with pytest.raises(WireError, match="status/finished knows no op 'start'"):

@@ -16,9 +16,10 @@ from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import DATA, INLINE_STEP_NS, NUDGE
 from retriever.errors import StopRun
 from retriever.backends.zenoh.wire import WireEncoder
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker_build import build_loop
 
 from .semantics_flows import Counter, Faulty, Ticker, WhereRun
+from .specs import run_spec
 
 MS = 1_000_000
 
@@ -77,7 +78,7 @@ def faulty_loop(session):
         src = Ticker().configure(name="counter") @ Rate(hz=20)
         src.then(Faulty(fail_at=[1], message="inline-boom").configure(name="faulty") @ Trigger("x"),
                  sync=Latest())
-    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "inline-test"}, "faulty", session)
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, "inline-test"), "faulty", session)
     assert loop.inline, "faulty is on no cycle"
     loop.declare()
     loop.run_clock.t0, loop.run_clock.end, loop.run_clock.started = 0, 1 << 62, True  # as run() sets them

@@ -1,4 +1,4 @@
-"""A starting worker that never hears its producer (worker.REDECLARE_AFTER_S): it says
+"""A starting worker that never hears its producer (worker_starts.REDECLARE_AFTER_S): it says
 ``unanswered``, the coordinator tells that producer to ``redeclare``, and the producer declares
 its subscriptions and queryable anew. At 80 flows on 8 netns hosts, a worker linked to its
 producer was never told of the producer's queryable, and the deployment never started.
@@ -21,9 +21,11 @@ from retriever.backends.zenoh.node import CONTROL, DATA
 from retriever.backends.zenoh.origin import new_key
 from retriever.backends.zenoh.protocol import RUN_CONTROL, ControlOpener, ControlSigner, Start, Stop
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_progress
-from retriever.backends.zenoh.worker import _await_control, build_loop
+from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker_waits import await_control
 
 from .payload_flows import Camera, Viewer, frame
+from .specs import run_spec
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,7 @@ def spec():
     with Pipeline("redeclare") as pipe:
         cam = Camera(size=1024).named("cam") @ Rate(20)
         cam.then(Viewer().named("viewer") @ Trigger("image"))
-    return {"ir": pipe.compile().to_ir().doc, "namespace": "redeclare-test"}
+    return run_spec(pipe.compile().to_ir().doc, "redeclare-test")
 
 
 def declarations(loop) -> list:
@@ -44,7 +46,7 @@ def _answers(session, key: str) -> list:
 
 
 def test_a_redeclared_node_answers_and_receives_as_before_and_holds_one_of_each(session, spec):
-    keys = KeySpace(spec["namespace"])
+    keys = KeySpace(spec.namespace)
     viewer = build_loop(spec, "viewer", session)
     key, signer = new_key(), ControlSigner()
     viewer.opener = ControlOpener(key)
@@ -82,7 +84,7 @@ def test_a_waiting_worker_redeclares_when_the_coordinator_says_so_and_only_then(
                 cam.inbox.put((CONTROL, None, RUN_CONTROL.decode(msgpack.packb([WIRE_VERSION, op, args]))))
             except WireError as e:
                 cam.inbox.put((CONTROL, None, e))
-        assert _await_control(cam, Start, "cam") == Start(t0=1, end=2, values=True)
+        assert await_control(cam, Start, "cam") == Start(t0=1, end=2, values=True)
         assert cam.counts["redeclared"] == 1, "only the message that names it, as a list"
     finally:
         cam.undeclare()

@@ -12,9 +12,10 @@ import pytest
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker_build import build_loop
 
 from .payload_flows import Camera, Viewer, frame
+from .specs import run_spec
 
 MS = 1_000_000
 
@@ -24,7 +25,7 @@ def cam(session):
     with Pipeline("batching") as pipe:
         camera = Camera(size=4096).named("cam") @ Rate(20)
         camera.then(Viewer().named("viewer") @ Trigger("image"))
-    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "batching-test"}, "cam", session)
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, "batching-test"), "cam", session)
     loop.declare()
     clock = {"now": 0}
     loop.run_clock.now = lambda: clock["now"]

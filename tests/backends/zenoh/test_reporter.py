@@ -1,9 +1,10 @@
-"""The reporter (reporter.py): a worker's reports leave from their own thread, in order, big
+"""The reporter (node/reporter.py): a worker's reports leave from their own thread, in order, big
 messages through the spill directory; at most MAX_PENDING reports and MAX_PENDING_BYTES of messages
 wait; a failure is told, not lost.
 
-Real Zenoh session and subscriber; each test waits on events its own messages set, never on time
-alone (the timeouts only bound a broken run).
+Real Zenoh session and subscriber (a congested or broken link: a put the test gives the reporter);
+each test waits on events its own messages set, never on time alone (the timeouts only bound a
+broken run).
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ import threading
 import pytest
 
 from retriever.backends.zenoh.node import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
-from retriever.backends.zenoh.reporter import MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter, ReportError
-from retriever.flow.burst import MAX_BURST
+from retriever.backends.zenoh.node.reporter import (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter,
+                                                    session_put)
 from retriever.backends.zenoh.protocol import Report
 from retriever.backends.zenoh.wire import KeySpace
+from retriever.errors import ReportError
+from retriever.flow.burst import MAX_BURST
 
 KEYS = KeySpace("reporter-test")
 KEY = KEYS.report("cam")
@@ -77,24 +80,23 @@ def test_without_a_spill_directory_big_messages_travel_in_the_report(session, re
 
 
 class CongestedLink:
-    """Makes a reporter's puts block until ``free()``: its reports pile up unsent."""
+    """A put on KEY that blocks until ``free()``: a reporter given it piles its reports up unsent."""
 
-    def __init__(self, reporter: Reporter):
+    def __init__(self, session):
         self.free_now = threading.Event()
-        self.put = reporter._put
-        reporter._put = self._put
+        self.session_put = session_put(session, KEY)
 
-    def _put(self, records, events):
+    def put(self, payload, attachment):
         assert self.free_now.wait(timeout=30), "the test never freed the link"
-        self.put(records, events)
+        self.session_put(payload, attachment)
 
     def free(self) -> None:
         self.free_now.set()
 
 
 def test_at_most_max_pending_reports_wait_then_the_loop_waits_too(session, reports):
-    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20)
-    link = CongestedLink(reporter)
+    link = CongestedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put)
     for k in range(MAX_PENDING):
         assert reporter.has_room(1)
         reporter.send([], [(k, b"m")])  # none of these waits
@@ -110,8 +112,8 @@ def test_the_seqs_of_waiting_reports_are_bounded_below_the_restart_gap(session, 
     coordinator (the loop's unflushed ones, the reporter's waiting ones) stay below the gap a
     restarted flow's streams leave (RESTART_SEQ_GAP), or its new seqs could be the old ones."""
     assert FLUSH_MAX_SEQS + MAX_BURST + max(MAX_PENDING_SEQS, FLUSH_MAX_SEQS + MAX_BURST) < RESTART_SEQ_GAP
-    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending_seqs=1000)
-    link = CongestedLink(reporter)
+    link = CongestedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put, max_pending_seqs=1000)
     reporter.send([], [(0, b"a")], seqs=600)
     assert not reporter.has_room(1, seqs=500), "600 + 500 seqs would pass 1000"
     assert reporter.has_room(1, seqs=400)
@@ -123,8 +125,8 @@ def test_the_seqs_of_waiting_reports_are_bounded_below_the_restart_gap(session, 
 
 def test_the_bytes_held_by_waiting_reports_are_bounded_too(session, reports):
     assert MAX_PENDING_BYTES >= 16 * (16 << 20), "room for 16 frames of 16 MiB (see the reporter's docstring)"
-    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending_bytes=250)
-    link = CongestedLink(reporter)
+    link = CongestedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put, max_pending_bytes=250)
     reporter.send([], [(0, b"a" * 100)])
     reporter.send([], [(1, b"b" * 100)])
     assert not reporter.has_room(100), "a third message of 100 bytes would pass 250"
@@ -148,9 +150,9 @@ class WatchedRoom(threading.Condition):
 
 
 def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports):
-    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, max_pending=1)
+    link = CongestedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put, max_pending=1)
     reporter.room = room = WatchedRoom()
-    link = CongestedLink(reporter)
     reporter.send([], [(0, b"m")])
     sent = threading.Event()
 
@@ -171,12 +173,10 @@ def test_a_report_that_waits_for_room_goes_once_the_link_frees(session, reports)
 
 
 def test_a_failed_report_is_raised_naming_the_node(session):
-    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20)
-
-    def broken(records, events):
+    def broken(payload, attachment):
         raise RuntimeError("link down")
 
-    reporter._put = broken
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=broken)
     reporter.send([], [(1, b"m")])
     with pytest.raises(ReportError, match="worker 'cam' could not report to the coordinator: RuntimeError: link down"):
         reporter.close()

@@ -14,11 +14,12 @@ from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, 
 from retriever.backends.zenoh.node import handover
 from retriever.backends.zenoh.protocol import RUN_CONTROL
 from retriever.backends.zenoh.wire import WIRE_VERSION, Progress, WireEncoder, WireError
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker_build import build_loop
 from retriever.log import format as fmt
 from retriever.log.writer import LogFile, LogWriter
 
 from .semantics_flows import Ticker, WhereRun
+from .specs import run_spec
 
 MS = 1_000_000
 STREAM = ("counter", "value")
@@ -31,7 +32,7 @@ def loop(session):
     with Pipeline("afresh_by_hand") as pipe:
         src = Ticker().configure(name="counter") @ Rate(hz=20)
         src.then(WhereRun().configure(name="where", on_error="restart") @ Trigger("x"), sync=Queue(maxsize=100))
-    loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "afresh-test"}, "where", session)
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, "afresh-test"), "where", session)
     loop.declare()
     loop.run_clock.t0, loop.run_clock.end, loop.run_clock.started = 0, 1 << 62, True  # as run() sets them
     yield loop
@@ -207,7 +208,7 @@ def test_before_its_run_starts_a_loop_promises_nothing_past_the_start(session):
         src = Ticker().configure(name="counter") @ Rate(20)
         src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Queue(maxsize=100))
     for node in ("counter", "where"):
-        loop = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "before-run-test"}, node, session)
+        loop = build_loop(run_spec(pipe.compile().to_ir().doc, "before-run-test"), node, session)
         assert loop.outputs.frontier() == (0, 0), node
 
 
@@ -238,7 +239,7 @@ def test_a_seq_being_put_counts_as_sent_for_a_consumer_that_asks_meanwhile(sessi
     with Pipeline("held_put") as pipe:
         (Ticker().configure(name="counter") @ Rate(hz=20)).then(WhereRun().configure(name="where") @ Trigger("x"),
                                                                 map={"value": "x"})
-    producer = build_loop({"ir": pipe.compile().to_ir().doc, "namespace": "held-put-test"}, "counter", session)
+    producer = build_loop(run_spec(pipe.compile().to_ir().doc, "held-put-test"), "counter", session)
     producer.declare()
     try:
         producer.run_clock.t0, producer.run_clock.end, producer.run_clock.started = 0, 1 << 62, True

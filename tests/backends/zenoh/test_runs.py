@@ -1,8 +1,8 @@
 """What a worker daemon does for a run's processes (runs.py) that the deploy tests cannot show
 at will: how a process's output reaches the coordinator (a real child process prints; the
-daemon's forwarder reads its pipe; what it would send is collected in place of the Zenoh put),
-and what its spawn and signal ops refuse (a real DaemonRuns on a real Zenoh session, with a run
-prepared and a real worker process of it)."""
+daemon's forwarder, runs.forward_output, reads its pipe; what it would tell is collected in place
+of the signed Zenoh put), and what its spawn and signal ops refuse (a real DaemonRuns on a real
+Zenoh session, with a run prepared and a real worker process of it)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 import zenoh
@@ -27,9 +26,11 @@ from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, SignalRequest, SpawnRequest,
                                                Stream)
 from retriever.backends.zenoh.protocol.schema import pack
-from retriever.backends.zenoh.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns
+from retriever.backends.zenoh.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
 from tests.log.log_flows import build_small
+
+from .specs import run_spec
 
 BOUND_S = 30.0
 
@@ -39,14 +40,13 @@ def forwarding(code: str):
     sent: list[ProcessOutput] = []
     arrived = threading.Condition()
 
-    def tell(run, event: ProcessOutput) -> None:
+    def tell(event: ProcessOutput) -> None:
         with arrived:
             sent.append(event)
             arrived.notify_all()
 
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL)
-    thread = threading.Thread(target=DaemonRuns._forward, args=(SimpleNamespace(_tell=tell), SimpleNamespace(id="r1"),
-                                                                "cam", Stream.STDOUT, proc.stdout), daemon=True)
+    thread = threading.Thread(target=forward_output, args=(proc.stdout, tell, "r1", "cam", Stream.STDOUT), daemon=True)
     thread.start()
     return proc, thread, sent, arrived
 
@@ -112,7 +112,7 @@ def prepared():
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())
         ir = build_small().build_ir().doc
         node = ir["nodes"][0]["id"]
-        spec = {"ir": ir, "namespace": namespace, "hub": hub, "startup_timeout": 600.0}
+        spec = run_spec(ir, namespace, hub=hub, startup_timeout=600.0)
         try:
             give_up = time.monotonic() + 10.0
             while True:  # the daemon's subscriber sees the token on a Zenoh thread
@@ -167,14 +167,26 @@ def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal
     assert proc.wait(timeout=10) == -signal.SIGKILL
 
 
+def test_a_prepare_with_groups_is_refused_before_anything_changes(prepared):
+    """A daemon runs each node in a process of its own: a spec's groups, whose members share a
+    Zenoh id, would give two of its processes one id."""
+    runs, node = prepared
+    ir = build_small().build_ir().doc
+    ids = [n["id"] for n in ir["nodes"]]
+    spec = run_spec(ir, "runs-test-groups", zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+    with pytest.raises(WireError, match=r"runs each node in a process of its own: a spec with groups \(g\)"):
+        runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(node,)))
+    assert runs.run.id == "r1"
+
+
 @pytest.mark.parametrize("plan", [b"\x00" * 8, {"nodes": b"x"}, {"nodes": [], "extra": 1}, [1, 2, 3]])
 def test_a_prepare_with_a_plan_its_ir_contradicts_is_refused_and_makes_no_folder(prepared, plan):
     """The plan in a spec came from the network: the daemon checks it against the IR before it
     makes the run's folder (an unchecked one failed later, in json.dumps, leaving a folder)."""
     runs, node = prepared
     ir = build_small().build_ir().doc
-    spec = {"ir": ir, "namespace": "runs-test-plan", "hub": "tcp/127.0.0.1:1", "plan": plan}
+    spec = {**run_spec(ir, "runs-test-plan", hub="tcp/127.0.0.1:1").to_fields(), "plan": plan}
     folders = set(Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{os.getpid()}-run-*"))
-    with pytest.raises(WireError, match="plan"):
-        runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(node,)))
+    with pytest.raises(WireError, match="plan"):  # by the request's decoder, or by prepare
+        runs.prepare(request("prepare", {"run": "r2", "spec": spec, "nodes": [node]}))
     assert set(Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{os.getpid()}-run-*")) <= folders

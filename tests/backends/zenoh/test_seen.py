@@ -38,7 +38,7 @@ def test_recent_ticks_hold_a_window_per_node_and_count_older_ones_as_seen():
     assert ("ctl", (9, 0)) in ticks and ("ctl", (10, 0)) not in ticks
     assert ("ctl", (2, 0)) in ticks  # below the floor: refused as a second record
     assert ("cam", (2, 0)) not in ticks
-    assert sum(len(s) for s in ticks._recent.values()) == 4
+    assert ticks.remembered() == 4
     copy = ticks.copy()
     copy.add(("cam", (1, 0)))
     assert ("cam", (1, 0)) in copy and ("cam", (1, 0)) not in ticks

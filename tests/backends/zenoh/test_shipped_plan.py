@@ -16,6 +16,7 @@ from retriever.backends.zenoh.runs import DaemonRuns
 from retriever.plan import plan_graph
 
 from ..test_conformance import CycleMonitor, CyclePolicy, Echo, Source, Value
+from .specs import run_spec
 
 
 class ShippedPlan(Flow[None, Value]):
@@ -77,13 +78,12 @@ def test_a_worker_daemon_forwards_the_plan_to_its_workers(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)
         graph = pipe.compile()
-    spec = {"ir": graph.to_ir().doc, "plan": plan_graph(graph).to_data(), "namespace": "shipped",
-            "hub": "tcp/127.0.0.1:7447", "startup_timeout": 60.0}
+    spec = run_spec(graph.to_ir().doc, "shipped", plan=plan_graph(graph).to_data(), hub="tcp/127.0.0.1:7447")
     with zenoh.open(peer_config(shared_memory=False)) as session:
         runs = DaemonRuns(session, "w", "shipped", listen=(), access=None, allowed=lambda module: True,
                           refusal=lambda module: "", paths=())
         try:
-            local = runs._local_spec(spec, tmp_path)
+            local = runs.local_spec(spec, tmp_path)
         finally:
             runs.close()
-    assert local["plan"] == spec["plan"]
+    assert local.plan == spec.plan

@@ -1,4 +1,5 @@
-"""node/steps.py: a node loop's failed step does what tick.decide says, as the in-process backend does.
+"""node/steps.py: a node loop's failed step does what tick.decide says, as the in-process backend does;
+and its tick takes its inputs and calls its step as the reference tick (tick.run_tick) does.
 
 The Steps of a stand-in loop (only what a failed step touches: its records, its hooks to the
 worker, its flags) take each kind of failure under each ``on_error``; what they do is checked
@@ -12,10 +13,17 @@ import threading
 from types import SimpleNamespace
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from retriever import Latest, Queue
+from retriever.backends.base import NodeStats
+from retriever.backends.zenoh.node import Ending
 from retriever.backends.zenoh.node.steps import Steps
 from retriever.errors import StopRun
-from retriever.tick import Decision, decide
+from retriever.flow._base import PortSpec
+from retriever.sync import PortBuffer
+from retriever.tick import Decision, decide, run_tick
 
 TAU = (150_000_000, 0)
 
@@ -27,7 +35,8 @@ def stand_in_loop(on_error: str) -> SimpleNamespace:
         notes=SimpleNamespace(detail={}), schedule=SimpleNamespace(running=TAU),
         outputs=SimpleNamespace(publish=lambda batch: None), reports=SimpleNamespace(records=[]),
         streams=None, run_clock=None, lock=threading.Lock(), last_wall=0,
-        stopping=False, told_to_stop=False, restarting=False, exits=[], restarts=[])
+        endings=[], restarting=False, exits=[], restarts=[])
+    loop.stop = loop.endings.append
     loop.reports.record = lambda *record: loop.reports.records.append(record)
     loop.on_exit = loop.exits.append
     loop.on_restart = lambda tau, error: loop.restarts.append((tau, error))
@@ -52,9 +61,75 @@ def test_a_failed_step_does_what_decide_says(on_error, exc):
     error = f"{type(exc).__name__}: {exc}"
     if decision is Decision.END_RUN:
         assert (status, detail) == ("ok", {"exit": 0})
-        assert loop.exits == [TAU] and loop.stopping and loop.told_to_stop
+        assert loop.exits == [TAU] and loop.endings == [Ending.TOLD_TO_STOP]
     else:
         assert (status, detail) == ("error", {"error": error, "on_error": on_error})
-        assert not loop.exits and not loop.stopping
+        assert not loop.exits and not loop.endings
     assert loop.restarting is (decision is Decision.RESTART)
     assert loop.restarts == ([(TAU, error)] if decision is Decision.RESTART else [])
+
+
+# ---------------------------------------------------------------------------------------------
+# A node loop's tick against the reference tick (tick.run_tick), on random inputs
+# ---------------------------------------------------------------------------------------------
+POLICIES = {"latest": Latest, "queue": Queue, "queue-1": lambda: Queue(maxsize=1)}
+
+# per input port: its policy, whether it is required, and the tags (ns) of the events it holds
+ports = st.lists(st.tuples(st.sampled_from(sorted(POLICIES)), st.booleans(),
+                           st.lists(st.integers(0, 300), max_size=4)), min_size=1, max_size=3)
+
+
+def bound_inputs(spec: list) -> list[tuple]:
+    """``(port, buffer, policy, port spec)`` per input, as plan.bind_inputs makes them."""
+    inputs = []
+    for i, (policy, required, times) in enumerate(spec):
+        buf = PortBuffer()
+        for seq, t in enumerate(sorted(times)):
+            buf.insert(((t, 1), "src", f"x{i}", seq, f"v{i}.{seq}"))
+        port_spec = PortSpec(f"x{i}") if required else PortSpec(f"x{i}", default="none")
+        inputs.append((f"x{i}", buf, POLICIES[policy](), port_spec))
+    return inputs
+
+
+def buffers(inputs: list[tuple]) -> list[tuple]:
+    return [(buf.entries, buf.visible, buf.cursor, buf.last_id) for _, buf, _, _ in inputs]
+
+
+@settings(max_examples=80, deadline=None)
+@given(ports, st.booleans())
+def test_a_node_loops_tick_takes_its_inputs_and_steps_as_the_reference_tick_does(spec, raises):
+    """The same inputs, fallbacks and step: the same outcome, the same values stepped on, the
+    same events consumed (and the same left in the buffers), the same drops counted."""
+    fallbacks = {"spare": PortSpec("spare", default=7)}
+
+    def step(seen):
+        def invoke(values):
+            seen.append(dict(values))
+            if raises:
+                raise ValueError("bad")
+            return {"y": len(values)}
+        return invoke
+
+    reference, seen_by_reference = [], []
+    inputs = bound_inputs(spec)
+    rt = SimpleNamespace(stats=NodeStats(), inputs=inputs, fallbacks=fallbacks, invoke=step(seen_by_reference),
+                         read=lambda raw: raw.items())
+    run_tick(rt, TAU, lambda rt, tau, missing: reference.append(("skipped", {}, {"missing": missing})),
+             lambda rt, tau, consumed, exc, start, wall: reference.append(("error", consumed, None)),
+             lambda rt, tau, outputs, consumed, start, end, dropped: reference.append(("ok", consumed, dropped)))
+
+    loop = stand_in_loop("skip_tick")
+    loop.outputs.latency_ns = 0
+    loop.outputs.stamp = lambda tau, events: ((tau[0], tau[1] + 1), events, tuple(port for port, _ in events))
+    seen_by_loop = []
+    loop_inputs = bound_inputs(spec)
+    Steps(loop, loop_inputs, fallbacks, step(seen_by_loop), lambda raw: raw.items(), realtime="soft").tick(TAU, [])
+
+    (tau, consumed, produced, status, detail, *_), = loop.reports.records
+    (ref_status, ref_consumed, ref_detail), = reference
+    assert (status, consumed, seen_by_loop) == (ref_status, ref_consumed, seen_by_reference)
+    assert buffers(loop_inputs) == buffers(inputs)
+    if status == "ok":
+        assert detail == ref_detail and produced == ("y",)
+    elif status == "skipped":  # (the loop's record also counts what the policies would have dropped)
+        assert detail["missing"] == ref_detail["missing"]

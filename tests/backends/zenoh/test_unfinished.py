@@ -1,4 +1,5 @@
-"""What a run that did not finish says of each node it waited for (issue 40, item 9; coordinator._unfinished).
+"""What a run that did not finish says of each node it waited for
+(issue 40, item 9; coordinator.Diagnostics.unfinished).
 
 A 200 MiB-frame run failed with ``worker(s) big_src did not finish in time`` and an empty stacks
 section: whatever keeps a node from finishing, the error shows its stacks or says why there are
@@ -17,7 +18,7 @@ import pytest
 import zenoh
 
 from retriever import BackendError, Pipeline
-from retriever.backends.zenoh import worker
+from retriever.backends.zenoh import worker_waits
 from retriever.backends.zenoh.hub import endpoint, free_port, new_zid, peer_config, wait_for_links
 from retriever.backends.zenoh.origin import new_key
 from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Finished
@@ -97,7 +98,7 @@ def coordinator_and_worker():
         asked.append(len(asked))
         said = answers[min(len(asked), len(answers)) - 1]
         if said is not None:
-            payload = Finished(nodes=tuple(said), complete=tuple(said), restarting=()).encode()
+            payload = Finished(nodes=tuple(said), complete=tuple(said), restarting=(), handed_over=()).encode()
             nonce = None if query.attachment is None else query.attachment.to_bytes()
             query.reply(keys.finished(), payload, attachment=signer.seal_reply(keys.finished(), payload, nonce))
 
@@ -125,14 +126,14 @@ def test_a_done_worker_waits_for_a_coordinator_that_answers_late(coordinator_and
     link to the coordinator is up, and returns once the coordinator has its reports."""
     c = coordinator_and_worker
     c.answers[:] = [None, [], ["src"]]  # no answer, then "not yet", then "every report in"
-    worker._await_reports_taken(c.worker, c.keys, c.opener, "src", c.zid)
+    worker_waits.await_reports_taken(c.worker, c.keys, c.opener, "src", c.zid)
     assert len(c.asked) == 3
 
 
 def test_a_done_worker_does_not_wait_for_a_coordinator_it_has_no_link_to(coordinator_and_worker):
     c = coordinator_and_worker
     c.answers[:] = [None]
-    worker._await_reports_taken(c.worker, c.keys, c.opener, "src", new_zid())  # a session it is not linked to
+    worker_waits.await_reports_taken(c.worker, c.keys, c.opener, "src", new_zid())  # a session it is not linked to
     assert len(c.asked) == 1
 
 

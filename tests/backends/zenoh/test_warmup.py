@@ -16,9 +16,10 @@ import pytest
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, quiet_source
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
-from retriever.backends.zenoh.worker import build_loop
+from retriever.backends.zenoh.worker_build import build_loop
 
 from .payload_flows import Camera, Viewer, frame
+from .specs import run_spec
 
 MS = 1_000_000
 
@@ -28,7 +29,7 @@ def spec():
     with Pipeline("warmup") as pipe:
         cam = Camera(size=4096).named("cam") @ Rate(20)
         cam.then(Viewer().named("viewer") @ Trigger("image"))
-    return {"ir": pipe.compile().to_ir().doc, "namespace": "warmup-test"}
+    return run_spec(pipe.compile().to_ir().doc, "warmup-test")
 
 
 def message(k: int) -> bytes:
@@ -71,7 +72,7 @@ def test_a_producer_warms_up_before_its_next_tick_once_it_has_sent(session, spec
 def test_a_producer_warm_up_puts_only_on_its_warm_key(session, spec):
     """It encodes its last event and reads the HLC, and puts one empty message on warm/cam:
     nothing on data/** or progress/**, so no consumer and no watcher of the data sees it."""
-    keys = KeySpace(spec["namespace"])
+    keys = KeySpace(spec.namespace)
     watcher, seen, done = watch(session, keys)
     loop = build_loop(spec, "cam", session)
     loop.declare()
@@ -130,7 +131,7 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
     """node/source.py's quiet_source, driven by hand for one tick 10 ms ahead: a source that has sent
     warms up on warm/cam before it steps (and publishes its frame), as the general loop would;
     one that has not sent goes straight to the step."""
-    keys = KeySpace(spec["namespace"])
+    keys = KeySpace(spec.namespace)
     watcher, seen, done = watch(session, keys)
     loop = build_loop(spec, "cam", session)
     loop.declare()

@@ -39,9 +39,9 @@ def test_key_space():
     assert keys.data("camera", "frame") == "retriever/lab-1/data/camera/frame"
     assert keys.all_data() == "retriever/lab-1/data/**"
     assert keys.progress("camera") == "retriever/lab-1/progress/camera"
-    assert keys.parse_data("retriever/lab-1/data/camera/frame") == ("camera", "frame")
-    assert keys.parse_data("retriever/other/data/camera/frame") is None
-    assert keys.parse_data("retriever/lab-1/data/camera/frame/extra") is None
+    assert keys.run_control() == "retriever/lab-1/ctl/run" and keys.start() == "retriever/lab-1/ctl/start"
+    assert {keys.run_control(), keys.start()} == {keys.ctl(name) for name in KeySpace.COORDINATOR_CONTROL}
+    assert KeySpace.every_control() == "retriever/*/ctl/**"
     for bad in ["", "a/b", "a*", "$x", "a?b", "#"]:
         with pytest.raises(ValueError, match="cannot be a Zenoh key chunk"):
             KeySpace(bad)

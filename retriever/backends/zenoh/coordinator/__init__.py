@@ -13,13 +13,14 @@ What it listens to, and what it decides::
     status/node/<node> ─┐                   ┌─▶ StatusMachine: one handler per status
     status/report/<node>┴─▶ signed? ─▶ Inbox┤     (ready, restart, done, failed, handed_over,
        (Zenoh's thread: origin.Senders)     │      reached, exit, unanswered)
-                                            └─▶ ReportIngest: step records, events ─▶ trace, log
+                                            └─▶ ReportIngest: step records, events ─▶ trace
     Waits (the coordinator's thread)             │ both write one RunBook
       ├─ until every node is ready, then `start` ▼
+      ├─ every LOG_HANDOVER_S: session.write_log() ─▶ LogWriter: what is new in the trace ─▶ the log
       ├─ Supervisor.check: a dead process ─▶ restart afresh, or fail the run
       ├─ a failure ─▶ the run's error (diagnostics) ─▶ stop, reap
       └─ every node done, every report in ─▶ end checks (forged, exit recorded, every flow ticked)
-    ctl/run ◀─ RunControl: start, grant, have, lost, restarted, handover, resume, end, stop
+    ctl/run ◀─ RunControl: redeclare, start, grant, have, lost, restarted, handover, resume, end, stop
 
     core.py         Coordinator: opens the hub, wires the parts below, runs, closes
     hosting.py      where the processes run (Hosting; LocalHosting: this machine)
@@ -29,7 +30,9 @@ What it listens to, and what it decides::
     reports.py      report and event ingest
     processes.py    spawn, check, lost, restart afresh, stop, reap
     waiting.py      the waits for the start and the finish, lockstep virtual time
+    exits.py        virtual time: records held until no step's sys.exit(0) cuts them off
     diagnostics.py  stacks, what a node left unfinished, the run's error
+    faults.py       Fault, RunFailure: what went wrong, as typed records
     endchecks.py    what is checked and said once the run is over
     control.py      RunControl: the puts on ctl/run
     spec.py         the run's directory, the flows' import path

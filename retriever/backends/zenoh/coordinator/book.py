@@ -17,14 +17,13 @@ from ....starved import StarvationWatch
 from ...base import NodeStats, RestartBudget
 from ..host import Host, WorkerProcess
 from ..origin import Senders
-from ..protocol import State
+from ..protocol import NodeState, State
 from ..seen import EventIds, RecentTicks
 from ..wire import WireError
+from .faults import Fault, RunFailure
 
 #: how many dropped messages are said on stderr (all are counted, as ``garbage``)
 GARBAGE_SAID = 3
-#: a node's state from its process's spawn until that process says its first state (protocol.State)
-STARTING = "starting"
 
 
 class RunBook:
@@ -37,7 +36,7 @@ class RunBook:
         self.t0: int | None = None  # HLC Unix ns of the run's start
         self.end_ns = 0  # the run's end, ns since T0
         self.values = True  # whether the workers report their events' values (set at the start)
-        self.live = None  # a Foxglove live view, fed with what the reports bring (log/foxglove.py)
+        self.live = None  # the live views (log/live.py), fed with what the reports bring
         #: bytes of the workers' reports (step records and events) received, spilled ones included
         self.reported_bytes = 0
         self._init_processes(graph)
@@ -49,8 +48,13 @@ class RunBook:
         self.workers: dict[str, WorkerProcess] = {}  # each node's process
         self.retiring: dict[str, WorkerProcess] = {}  # a restarting node's old process, until it hands over
         self.retired: list[WorkerProcess] = []  # old processes that handed over, to reap
-        self.said: dict[WorkerProcess, State] = {}  # each process's last state (statuses.PROCESS_STAGES)
-        self.state: dict[str, State | str] = {}  # each node's state: STARTING, then what its process said
+        #: nodes whose last restart's old process handed over: it waits for its reports to be in
+        #: (the `finished` answer's handed_over), then exits; a new restart of the node clears it
+        self.handed_over: set[str] = set()
+        #: each process's last state (statuses.PROCESS_STAGES) for each node it serves (a group's serves several)
+        self.said: dict[tuple[WorkerProcess, str], State] = {}
+        #: each node's state (as `retriever status` shows it): NodeState.STARTING, then what its process said
+        self.state: dict[str, NodeState | State] = {}
         self.exited: dict[int, float] = {}  # pid -> when that worker process was first seen gone
         #: nodes whose process is a restarted flow's, not yet in the run (before resume or restarted)
         self.joining: set[str] = set()
@@ -92,7 +96,7 @@ class RunBook:
     def _init_faults(self, graph: Graph) -> None:
         self.restarts = {nid: RestartBudget(node.settings.max_restarts, node.settings.restart_window)
                          for nid, node in graph.nodes.items()}
-        self.failure: tuple[str, dict] | None = None  # the node that failed the run, and what it said
+        self.failure: RunFailure | None = None  # the node that failed the run, and why
         self.limit: RestartLimitError | None = None  # a flow ran out of restarts (on_error="restart")
         # a step's sys.exit(0): its `exit` status ends the run once its process's record of
         # that step (status ok, detail {"exit": 0}) is in; per node, the (tag, process) of each
@@ -103,10 +107,10 @@ class RunBook:
         self.stackless: dict[str, float] = {}  # nodes asked for their stacks that printed none, and how long waited
         # a lost process (node/handover.py): the nodes starting
         # afresh, by what became of the old process; faults of processes not started afresh
-        self.fresh: dict[str, dict] = {}
-        self.unrecovered: list[dict] = []
-        #: what went wrong with the run's processes, as the log's fault records have it
-        self.faults: list[dict] = []
+        self.fresh: dict[str, Fault] = {}
+        self.unrecovered: list[Fault] = []
+        #: what went wrong with the run's processes (each a fault record of the log)
+        self.faults: list[Fault] = []
 
     # ---------------------------------------------------------------------------------------
     def run_time(self) -> int:
@@ -114,8 +118,8 @@ class RunBook:
         return max(0, time.time_ns() - self.t0) if self.t0 is not None else 0
 
     def processes(self) -> list[WorkerProcess]:
-        """Every worker process this run started."""
-        return [*self.workers.values(), *self.retiring.values(), *self.retired]
+        """Every worker process this run started (a group's once)."""
+        return list({id(p): p for p in [*self.workers.values(), *self.retiring.values(), *self.retired]}.values())
 
     def nodes_of(self, host: Host) -> list[str]:
         """The nodes whose processes run on ``host``."""

@@ -10,6 +10,7 @@ import shutil
 import sys
 import threading
 import time
+import warnings
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -17,8 +18,9 @@ from pathlib import Path
 
 import zenoh
 
-from ....errors import BackendError
+from ....errors import BackendError, RetrieverWarning
 from ....graph import Graph
+from ....plan import plan_graph, tie_order
 from ....trace import Trace
 from ...base import NodeStats, Session
 from ..hub import new_zid, weak_callback
@@ -29,11 +31,13 @@ from .control import RunControl
 from .diagnostics import Diagnostics
 from .endchecks import (check_every_flow_ticked, check_exit_recorded, record_starved, warn_forged,
                         warn_starved_by_late_events)
-from .hosting import Hosting, LocalHosting
+from .exits import ExitCut
+from .faults import Fault
+from .hosting import HostedRun, Hosting, LocalHosting
 from .inbox import Inbox
 from .processes import STOP_GRACE_S, Supervisor
 from .reports import ReportIngest
-from .spec import main_file, python_path, run_dir, shipped_plan
+from .spec import main_file, process_groups, python_path, restarting_alone, run_dir, shipped_plan
 from .statuses import StatusMachine
 from .waiting import Waits
 
@@ -67,13 +71,14 @@ class Coordinator(Session):
     def __init__(self, graph: Graph, *, hosting: Hosting | None = None, namespace: str | None = None,
                  startup_timeout: float = 60.0, start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
                  secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False, keep: str = "trace",
-                 foxglove: int | None = None):
+                 foxglove: int | None = None, rerun: str | os.PathLike | None = None):
         super().__init__(graph, keep)
         self.hosting = hosting if hosting is not None else LocalHosting()
-        self.hosting.attach(self)
         self.backend_name = self.hosting.backend_name
         #: the port of a Foxglove live view (its WebSocket server, in this process), if asked for
         self.foxglove_port = foxglove
+        #: where a Rerun live view streams (a viewer's gRPC URL or an .rrd path), if asked for
+        self.rerun_target = rerun
         self.quiet = quiet
         #: lockstep virtual time (node/waiting.py): the trace is the in-process backend's, however long it takes
         self.virtual_time = bool(virtual_time)
@@ -96,6 +101,9 @@ class Coordinator(Session):
         self.run_dir = run_dir()
         self.hub = None
         self.subscribers: list = []
+        self.hosted = HostedRun(graph, self.namespace, self.keys, self.access, self.run_dir, self.book,
+                                keep=self.subscribers.append, stop=self._stop_asked, closed=lambda: self.closed)
+        self.hosting.attach(self.hosted)
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_coordinators)
         try:
             self._open(hub_port)
@@ -109,13 +117,18 @@ class Coordinator(Session):
         dictionary = access.write_dictionary(self.run_dir) if access else None
         self.hub, self.endpoint = self.hosting.open_hub(hub_port, access.session_config(dictionary) if access else None)
         #: a Zenoh config file with which a client joins the run as a read-only watcher
-        self.watch_config = (access.write_watcher_config(self.run_dir / "watch.json5", self.endpoint)
-                             if access else None)
+        self.watch_config = (access.write_watcher_config(self.run_dir / "watch.json5", self.endpoint,
+                                                         self.hosting.watcher_user()) if access else None)
+        self.hosted.hub, self.hosted.endpoint, self.hosted.watch_config = self.hub, self.endpoint, self.watch_config
         if not self.quiet:
             print(f"retriever: {self.hosting.where()} (namespace '{self.namespace}'); {self.hosting.how_to_watch()}",
                   file=sys.stderr, flush=True)
         self._assemble(RunControl(self.hub, self.keys))
         self._listen()
+        groups = self._groups()
+        zids = {nid: new_zid() for nid in graph.nodes}
+        for members in groups.values():  # one session for a group: its members' id
+            zids.update(dict.fromkeys(members, zids[members[0]]))
         self.spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
                      "plan": shipped_plan(graph),  # the run's wiring, made once: retriever.plan
                      "python_path": python_path(), "main_file": main_file(graph), "argv": list(sys.argv),
@@ -123,11 +136,29 @@ class Coordinator(Session):
                      "startup_timeout": self.startup_timeout,
                      # each first process's session id, and the hub's: a worker says ready once
                      # linked to its neighbours and the hub, whatever other peers it has
-                     "zids": {nid: new_zid() for nid in graph.nodes}, "hub_zid": str(self.hub.zid()),
-                     "virtual_time": self.virtual_time}
+                     "zids": zids, "hub_zid": str(self.hub.zid()),
+                     "virtual_time": self.virtual_time, "groups": groups}
+        self.hosted.spec = self.spec
         self.book.hosts = self.hosting.place()
+        grouped = {nid for members in groups.values() for nid in members}
+        for name, members in groups.items():
+            self.supervisor.spawn_group(name, members)
         for nid in graph.nodes:
-            self.supervisor.spawn(nid)
+            if nid not in grouped:
+                self.supervisor.spawn(nid)
+
+    def _groups(self) -> dict[str, list[str]]:
+        """The groups of flows that share a process, where the hosting starts them so."""
+        groups, alone = process_groups(self.graph), restarting_alone(self.graph)
+        if alone and self.hosting.shares_processes:
+            warnings.warn(f"{', '.join(alone)}: a flow with on_error='restart' runs in a process of its own, whatever "
+                          "its configure(process=): its restart is a new process", RetrieverWarning, stacklevel=4)
+        if groups and not self.hosting.shares_processes:
+            warnings.warn(f"the {self.backend_name} backend {self.hosting.where()} starts each flow in a process of "
+                          f"its own: configure(process=) ({', '.join(sorted(groups))}) is not taken here (yet)",
+                          RetrieverWarning, stacklevel=4)
+            return {}
+        return groups
 
     def _assemble(self, control: RunControl) -> None:
         """The coordinator's parts, each with one job, over one record of the run (``book``)."""
@@ -136,7 +167,7 @@ class Coordinator(Session):
                          startup_timeout=self.startup_timeout)
         self.control, self.diagnostics, self.supervisor = parts.control, parts.diagnostics, parts.supervisor
         self.statuses, self.inbox = parts.statuses, parts.inbox
-        self.waits = Waits(self, self.book, self.inbox, control, self.supervisor, self.diagnostics)
+        self.waits = Waits(self, self.book, self.inbox, control, self.supervisor, self.diagnostics, parts.exits)
 
     def _listen(self) -> None:
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
@@ -154,18 +185,23 @@ class Coordinator(Session):
             self.hub.declare_queryable(self.keys.start(), weak_callback(self._answer_start))]
 
     def _answer_finished(self, query) -> None:
-        """Which nodes are done, which of them have every report in, and which start afresh
-        after their process died (a restarted flow's process waits for answers from the others,
-        but from these)."""
+        """Which nodes are done, which of them have every report in, which start afresh after
+        their process died (a restarted flow's process waits for answers from the others, but
+        from these), and whose old process that handed over has every report in (it may exit)."""
         book = self.book
         states = list(book.state.items())
         done = tuple(sorted(node for node, state in states if state == State.DONE))
         # and whose every report is in: their processes may now close their sessions (worker.py,
         # REPORTS_TAKEN_S)
+        def all_in(node: str) -> bool:
+            return book.reports.get(node, 0) >= book.reports_sent.get(node, 0)
+
         complete = tuple(sorted(node for node, state in states if state in (State.DONE, State.HANDED_OVER)
-                                and book.reports.get(node, 0) >= book.reports_sent.get(node, 0)))
+                                and all_in(node)))
+        handed_over = tuple(sorted(node for node in book.handed_over if all_in(node)))
         self.control.reply(query, self.keys.finished(), Finished(nodes=done, complete=complete,
-                                                                 restarting=tuple(sorted(book.fresh))))
+                                                                 restarting=tuple(sorted(book.fresh)),
+                                                                 handed_over=handed_over))
 
     def _answer_start(self, query) -> None:
         """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
@@ -174,9 +210,13 @@ class Coordinator(Session):
         if t0 is not None:
             self.control.reply(query, self.keys.start(), Start(t0=t0, end=self.book.end_ns, values=self.book.values))
 
-    def _log_fault(self, fault: dict) -> None:
+    def _stop_asked(self) -> None:
+        """End the run at the next look, as Ctrl-C here would (a hosting told ``retriever stop``)."""
+        self.stop_requested = True
+
+    def _log_fault(self, fault: Fault) -> None:
         if self.log is not None:
-            self.log.add_fault(fault)
+            self.log.add_fault(fault.log_fields())
 
     # ---------------------------------------------------------------------------------------
     # The run
@@ -189,10 +229,9 @@ class Coordinator(Session):
         book = self.book
         try:
             self.waits.until_ready(self.startup_timeout)
+            self._start_live_views()  # before T0: reaching a viewer may take seconds
             book.t0 = self.hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             book.end_ns = until_ns
-            if self.foxglove_port is not None:
-                self._start_live_view()
             # values come to the coordinator only for the trace (keep="trace"), the log, or a live view
             book.values = self.keep == "trace" or self.log is not None or book.live is not None
             self.waits.until_finished(Start(t0=book.t0, end=until_ns, values=book.values), self.virtual_time)
@@ -203,7 +242,8 @@ class Coordinator(Session):
             record_starved(book, self.log)
             self.close()
             raise
-        self.now_ns = until_ns
+        # in virtual time, a step's sys.exit(0) ended the run at its tick, as in-process
+        self.now_ns = book.exit_said[book.ended_by][0][0] if self.virtual_time and book.ended_by else until_ns
         self.supervisor.record_faults_left()
         record_starved(book, self.log)
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
@@ -212,13 +252,15 @@ class Coordinator(Session):
         check_every_flow_ticked(book, self.backend_name, self.start_margin_ns)
         warn_starved_by_late_events(book, self.trace)
 
-    def _start_live_view(self) -> None:
-        from ....log.foxglove import LiveView
+    def _start_live_views(self) -> None:
+        from ....log.live import open_live_views
 
-        self.book.live = LiveView(self.foxglove_port, self.graph.to_ir())
-        if not self.quiet:
-            print(f"retriever: Foxglove live view on ws://127.0.0.1:{self.book.live.port} (in the Foxglove app: Open "
-                  "connection, Foxglove WebSocket)", file=sys.stderr, flush=True)
+        def say(text: str) -> None:
+            if not self.quiet:
+                print(f"retriever: {text}", file=sys.stderr, flush=True)
+
+        self.book.live = open_live_views(self.graph.to_ir(), foxglove=self.foxglove_port, rerun=self.rerun_target,
+                                         say=say)
 
     def stop_workers(self, grace: float = STOP_GRACE_S) -> None:
         """Stop every worker (processes.Supervisor.stop); nothing before the hub is open."""
@@ -296,7 +338,7 @@ class Coordinator(Session):
     @property
     def faults(self) -> list[dict]:
         """What went wrong with the run's processes, as the log's fault records have it."""
-        return self.book.faults
+        return [fault.log_fields() for fault in self.book.faults]
 
     @property
     def reported_bytes(self) -> int:
@@ -305,7 +347,7 @@ class Coordinator(Session):
 
     @property
     def live(self):
-        """The Foxglove live view fed with what the reports bring (log/foxglove.py), if any."""
+        """The live views fed with what the reports bring (log/live.py), if any were asked for."""
         return self.book.live
 
 
@@ -318,19 +360,22 @@ class Parts:
     supervisor: Supervisor
     statuses: StatusMachine
     inbox: Inbox
+    #: virtual time: the records held until no step's sys.exit(0) can cut them off
+    exits: ExitCut | None = None
 
 
 def assemble(book: RunBook, trace: Trace, spill_dir: Path, control: RunControl, hosting: Hosting, *,
-             backend_name: str = "zenoh", on_fault: Callable[[dict], None] = lambda fault: None,
+             backend_name: str = "zenoh", on_fault: Callable[[Fault], None] = lambda fault: None,
              virtual_time: bool = False, startup_timeout: float = 60.0) -> Parts:
     """The coordinator's parts over ``book``: what a Coordinator runs on, and what a test or
     benchmarks/fuzz.py feeds messages to with no hub and no process (``control`` over a stand-in)."""
     diagnostics = Diagnostics(book, hosting)
     supervisor = Supervisor(book, control, hosting, diagnostics, backend_name=backend_name, on_fault=on_fault)
-    statuses = StatusMachine(book, control, supervisor, virtual_time=virtual_time, startup_timeout=startup_timeout)
-    reports = ReportIngest(book, trace, spill_dir, statuses.end_by_exit)
+    exits = ExitCut(tie_order(plan_graph(book.graph))) if virtual_time else None
+    statuses = StatusMachine(book, control, supervisor, exits=exits, startup_timeout=startup_timeout)
+    reports = ReportIngest(book, trace, spill_dir, statuses.end_by_exit, exits)
     inbox = supervisor.inbox = Inbox(control.keys, reports, statuses)
-    return Parts(control, diagnostics, supervisor, statuses, inbox)
+    return Parts(control, diagnostics, supervisor, statuses, inbox, exits)
 
 
 def refuse_in_a_worker(graph: Graph) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from ....errors import BackendError, CausalityError, RemoteError, SetupError, StepError
 from ..host import LocalHost
-from ..protocol import State
+from ..protocol import ABSENT, State
 from .book import RunBook
 
 #: how long, at most, a worker's stack dump (SIGUSR1, written at once by a C handler) takes to read
@@ -95,31 +95,26 @@ class Diagnostics:
         return f"seq{'s' if len(runs) > 1 or runs[0][0] != runs[0][1] else ''} {spelled}"
 
 
-def is_tag(value: object) -> bool:
-    """Whether a failure's tag is one: ``[time ns, microstep]``."""
-    return type(value) is list and len(value) == 2 and all(type(x) is int for x in value)
-
-
 def failure_error(book: RunBook, backend_name: str) -> Exception:
     """The error a failed run raises, from what its failing node's process said (``book.failure``)."""
-    node, info = book.failure
+    node, error, said = book.failure.node, book.failure.error, book.failure.failed
     graph = book.graph
-    error = info.get("error", "failed")
-    tb = info.get("traceback")
+    tb = said.traceback if said is not None else None
     where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
-    tag = info.get("tag")
+    tag = said.tag if said is not None and said.tag is not ABSENT else None
     settings = graph.nodes[node].settings if node in graph.nodes else None
     if book.limit is not None:
         return book.limit
     cycle = next((c for c in graph.instantaneous_cycles if node in c), None)
-    if info.get("zeno") is True and cycle is not None and is_tag(tag):
-        return CausalityError(cycle, tuple(tag), graph.max_microsteps)
-    if info.get("setup") is True and settings is not None:
+    if said is not None and said.zeno is True and cycle is not None and tag is not None:
+        return CausalityError(cycle, tag, graph.max_microsteps)
+    if said is not None and said.setup is True and settings is not None:
         failure = SetupError(node, str(error))
         failure.args = (failure.args[0] + where,)
         return failure
-    if tag is not None and settings is not None and ".step() raised " in error:
-        failure = StepError(node, tuple(tag), RemoteError(error.split(".step() raised ", 1)[1]))
+    raised = said.raised if said is not None and said.raised is not ABSENT else None
+    if tag is not None and settings is not None and raised is not None:
+        failure = StepError(node, tag, RemoteError(raised))
         failure.args = (failure.args[0] + where,)
         return failure
     return BackendError(f"{backend_name} run stopped: {error}{where}")

@@ -54,8 +54,8 @@ def check_exit_recorded(book: RunBook, backend_name: str) -> None:
 
 def check_every_flow_ticked(book: RunBook, backend_name: str, start_margin_ns: int) -> None:
     """A flow with a rate that had ticks due in the run's window, and ran none, fails the
-    run (issue 17: a run of 50 flows exited 0 with 47 at 0 ticks): a run that looks fine
-    with flows missing is worse than none. Its worker's ``done`` says what it saw."""
+    run: a run that exits 0 with flows that never ran looks fine and is not, which is worse
+    than one that fails. Its worker's ``done`` says what it saw."""
     if book.ended_by is not None:  # a step's sys.exit(0) ended the run before its end
         return
     idle = []

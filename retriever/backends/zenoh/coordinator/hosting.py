@@ -8,19 +8,87 @@
 The coordinator's logic (readiness, T0, reports, the log, restarts, lost processes) is the same
 on each; a hosting answers what differs: how the hub opens and who may join it, where the nodes
 go (:meth:`place`), what a host lost means, how the processes stop, what a run's log says of it.
-A hosting serves one coordinator, which :meth:`attach` hands it before anything else.
+A hosting serves one run, which :meth:`attach` hands it before the hub opens: a :class:`HostedRun`,
+what it may read of the run and the two things it may do to it (keep a subscription, stop it).
+What a host lost means is a decision it returns (:class:`FailRun`, :class:`Relocate`,
+:class:`AwaitHost`), which the coordinator's Supervisor carries out (processes.py).
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 from ....errors import BackendError
 from ....graph import Graph
-from ..access import AccessError, RunAccess, secret_bytes, write_private
+from ..access import WATCH_USER, AccessError, RunAccess, secret_bytes, write_private
 from ..host import Host, LocalHost
 from ..hub import open_hub
+from ..wire import KeySpace
+from .book import RunBook
+from .faults import Fault
+
+
+@dataclass
+class HostedRun:
+    """The run a hosting serves: what it reads of it, filled in as the coordinator opens it
+    (``hub``, ``endpoint``, ``watch_config`` once the hub is open; ``spec`` before :meth:`Hosting.place`,
+    which may add to it). ``book`` is the coordinator's record, to read (states, counters, pids, run
+    time; :meth:`Hosting.place` may give nodes their first keys): what a host lost changes in it goes
+    through the decision :meth:`Hosting.host_lost` returns."""
+
+    graph: Graph
+    namespace: str
+    keys: KeySpace
+    access: RunAccess | None
+    run_dir: Path
+    book: RunBook
+    #: keep a subscription or queryable of the hub until the run closes
+    keep: Callable[[Any], None]
+    #: end the run now, as Ctrl-C here would (``retriever stop``)
+    stop: Callable[[], None]
+    #: whether the run has closed
+    closed: Callable[[], bool]
+    hub: Any = None
+    endpoint: str | None = None
+    watch_config: Path | None = None
+    spec: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FailRun:
+    """A host lost stops the run: why (``reason``), and how each of its processes ended, as
+    their faults say (``exit``)."""
+
+    reason: str
+    exit: str
+
+
+@dataclass(frozen=True)
+class Relocate:
+    """A host lost: each of its nodes starts afresh on another host (``hosts``), named
+    ``moved_to`` in its fault, which says its old process went at ``at_ns`` as ``exit`` says."""
+
+    hosts: dict[str, Host]
+    moved_to: dict[str, str]
+    at_ns: int
+    exit: str
+
+
+@dataclass(frozen=True)
+class AwaitHost:
+    """A host lost: the run goes on without its nodes until it is back; ``lost``: the nodes
+    lost just now, whose consumers are told (none when the loss was seen before)."""
+
+    lost: tuple[str, ...] = ()
+
+
+#: what a host lost means (Hosting.host_lost), for the Supervisor to carry out
+HostLoss = FailRun | Relocate | AwaitHost
 
 
 class Hosting:
@@ -28,10 +96,13 @@ class Hosting:
 
     #: the backend's name, in the run's errors and its log
     backend_name = "zenoh"
+    #: whether it starts a group of flows in one process (configure(process=)); else each flow
+    #: runs alone, and the run says so
+    shares_processes = False
 
-    def attach(self, coordinator) -> None:
-        """The coordinator this hosting serves (its ``book``, ``supervisor``, ``control``, ``spec``...)."""
-        self.coordinator = coordinator
+    def attach(self, run: HostedRun) -> None:
+        """The run this hosting serves."""
+        self.run = run
 
     # -- before anything starts ----------------------------------------------------------------
     def check_deployable(self, graph: Graph) -> None:
@@ -48,50 +119,49 @@ class Hosting:
 
     def open_hub(self, port: int, access: dict[str, str] | None):
         """Open the run's own session, which the workers join: ``(session, endpoint)``."""
-        return open_hub(port, access=access, keys=self.coordinator.keys)
+        return open_hub(port, access=access, keys=self.run.keys)
+
+    def watcher_user(self) -> str:
+        """The user name a watcher of the run proves where it joins (the run's own hub: WATCH_USER)."""
+        return WATCH_USER
 
     def where(self) -> str:
         """Where the run's hub is, for the line that says how to watch it."""
-        return f"Zenoh hub listening on {self.coordinator.endpoint}"
+        return f"Zenoh hub listening on {self.run.endpoint}"
 
     def how_to_watch(self) -> str:
         """How a plain Zenoh client sees the run's events, for the line that says where it is."""
-        coordinator = self.coordinator
-        if coordinator.watch_config is None:
-            return ("anyone on its network may join it (insecure); watch it with a subscriber on "
-                    f"{coordinator.keys.all_data()}")
-        return (f"watch it read-only with zenoh.Config.from_file('{coordinator.watch_config}') and a subscriber on "
-                f"{coordinator.keys.all_data()}")
+        run = self.run
+        if run.watch_config is None:
+            return f"anyone on its network may join it (insecure); watch it with a subscriber on {run.keys.all_data()}"
+        return (f"watch it read-only with zenoh.Config.from_file('{run.watch_config}') and a subscriber on "
+                f"{run.keys.all_data()}")
 
     def place(self) -> dict[str, Host]:
-        """Each node's host, where its processes start (the coordinator's ``spec`` is written)."""
+        """Each node's host, where its processes start (the run's ``spec`` is written)."""
         raise NotImplementedError
 
     # -- while the run goes --------------------------------------------------------------------
     def check(self) -> None:
         """Before the coordinator looks at its hosts and processes: mark a host known lost."""
 
-    def host_lost(self, host: Host, nodes: list[str]) -> None:
-        """A host went with the nodes on it: the run stops (a deployment may move them instead),
-        and the log says which processes went with it (their faults, once their last reports are in)."""
-        book = self.coordinator.book
-        if book.t0 is not None:
-            book.unrecovered += [{"node": nid, "at_ns": book.run_time(), "pid": book.workers[nid].pid,
-                                  "exit": f"was lost with its worker '{host.name}'"} for nid in nodes]
-        book.failure = (nodes[0], {"error": f"worker '{host.name}' was lost (its liveliness token went): its node(s) "
-                                            f"{', '.join(nodes)} stopped\n    hint: is the machine up, and on the "
-                                            "network? `retriever workers` lists the workers up"})
+    def host_lost(self, host: Host, nodes: list[str]) -> HostLoss:
+        """A host went with the nodes on it: what that means (the default: the run stops; a
+        deployment may move them instead). Asked again at each check while the host is gone."""
+        return FailRun(f"worker '{host.name}' was lost (its liveliness token went): its node(s) {', '.join(nodes)} "
+                       "stopped\n    hint: is the machine up, and on the network? `retriever workers` lists the "
+                       "workers up", f"was lost with its worker '{host.name}'")
 
     def stderr_tail(self, nid: str, lines: int) -> str:
         """The last ``lines`` lines ``nid``'s processes printed on stderr."""
-        host = self.coordinator.book.hosts.get(nid)
+        host = self.run.book.hosts.get(nid)
         return host.output(nid).tail(lines) if host is not None else ""
 
     # -- the run's end -------------------------------------------------------------------------
     def before_stop(self) -> None:
         """Before the coordinator stops the workers (at the run's end, or on an error)."""
 
-    def faults_left(self) -> list[dict]:
+    def faults_left(self) -> list[Fault]:
         """Faults of processes the hosting still expected back when the run ended, for the log."""
         return []
 
@@ -106,12 +176,14 @@ class Hosting:
 class LocalHosting(Hosting):
     """Every node on this machine: the spec in the run directory, the workers its children."""
 
+    shares_processes = True
+
     def place(self) -> dict[str, Host]:
-        coordinator = self.coordinator
-        path = coordinator.run_dir / "spec.json"
-        write_private(path, json.dumps(coordinator.spec))  # it holds the run's password
+        run = self.run
+        path = run.run_dir / "spec.json"
+        write_private(path, json.dumps(run.spec))  # it holds the run's password
         host = LocalHost(path)
-        return {nid: host for nid in coordinator.graph.nodes}
+        return {nid: host for nid in run.graph.nodes}
 
 
 def check_rebuildable(graph: Graph) -> None:

@@ -6,7 +6,9 @@
       ▼  stop: `stop`, their last reports, then SIGTERM / SIGKILL what is left; reap
 
 Workers are started and stopped by PID; none outlives the run (each also asks the kernel for
-SIGTERM when its parent dies).
+SIGTERM when its parent dies). Control is sealed for each process started (protocol/seal.py)
+until its exit is confirmed (:func:`exit_confirmed`): a run that restarts a flow again and again
+seals its control for the processes alive, not for every one it ever started.
 """
 
 from __future__ import annotations
@@ -19,13 +21,16 @@ from collections.abc import Callable
 
 from ....tick import Decision, decide, ending
 from ..command import mode_args
+from ..host import Host, WorkerProcess
 from ..node import RESTART_SEQ_GAP
 from ..origin import new_key
-from ..worker import EXIT_FAILED, EXIT_HANDED_OVER
-from ..protocol import Lost, Restarted, State, Stop
-from .book import STARTING, RunBook
+from ..protocol import Lost, NodeState, Restarted, State, Stop
+from ..worker_process import EXIT_FAILED, EXIT_HANDED_OVER
+from .book import RunBook
 from .control import RunControl
 from .diagnostics import FAILED_TAIL_LINES, Diagnostics, exit_text, failure_error
+from .faults import Fault, RunFailure
+from .hosting import FailRun, Relocate
 from .inbox import Inbox
 
 #: after `stop`, how long workers have to send their last reports and exit; one still running is
@@ -49,7 +54,7 @@ class Supervisor:
     process's fault record, for the run's log; ``inbox``: what comes while the workers stop."""
 
     def __init__(self, book: RunBook, control: RunControl, hosting, diagnostics: Diagnostics, *, backend_name: str,
-                 on_fault: Callable[[dict], None], inbox: Inbox | None = None):
+                 on_fault: Callable[[Fault], None], inbox: Inbox | None = None):
         self.book, self.control, self.hosting = book, control, hosting
         self.diagnostics, self.backend_name = diagnostics, backend_name
         self.on_fault, self.inbox = on_fault, inbox
@@ -64,10 +69,29 @@ class Supervisor:
         self.control.signer.add(book.workers[nid], key)
         if join is not None:
             book.joining.add(nid)
-        book.state[nid] = STARTING
+        book.state[nid] = NodeState.STARTING
+
+    def spawn_group(self, name: str, nodes: list[str]) -> None:
+        """Start the one process of the group ``name`` (its first: its members' restarts are
+        processes of their own, spawn): every member's process, with one key."""
+        book = self.book
+        proc, key = book.hosts[nodes[0]].spawn_group(name, nodes, new_key())
+        for nid in nodes:
+            book.workers[nid] = proc
+            book.senders.add(nid, key, proc)
+            book.state[nid] = NodeState.STARTING
+        self.control.signer.add(proc, key)
 
     def raise_failure(self) -> None:
         raise failure_error(self.book, self.backend_name)
+
+    def forget_ended(self) -> None:
+        """Seal no more control for the processes whose exit is confirmed (a process that may
+        still run keeps getting it: a ``stop``, its answers); each of them is reaped on the way."""
+        signer = self.control.signer
+        for proc in signer.holders():
+            if exit_confirmed(proc):
+                signer.drop(proc)
 
     # ---------------------------------------------------------------------------------------
     # Watching
@@ -77,9 +101,10 @@ class Supervisor:
         (on_error="restart", a deployment's on_worker_loss) starts its flows afresh."""
         book = self.book
         self.hosting.check()
+        self.forget_ended()
         for host in {id(h): h for h in book.hosts.values()}.values():
             if not host.alive and book.failure is None:  # its flows stopped with it, whatever they said
-                self.hosting.host_lost(host, book.nodes_of(host))
+                self.host_lost(host)
                 if book.failure is not None:
                     self.raise_failure()
         for nid, proc in [*book.workers.items(), *book.retiring.items()]:
@@ -99,11 +124,33 @@ class Supervisor:
                 return  # the processes of the node changed: look again next time
             book.hosts[nid].output(nid).drain()
             if book.t0 is not None:  # the log says what died, and which of its outputs with it
-                book.unrecovered.append({"node": nid, "at_ns": book.run_time(), "pid": proc.pid,
-                                         "exit": exit_text(code)})
-            book.failure = (nid, {"error": f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
-                                           f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}"})
+                book.unrecovered.append(Fault(nid, book.run_time(), proc.pid, exit_text(code)))
+            book.failure = RunFailure(nid, f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
+                                           f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}")
             self.raise_failure()
+
+    def host_lost(self, host: Host) -> None:
+        """A host went with its nodes' processes: do what the hosting decides it means (hosting.py):
+        fail the run (the log says which processes went with it, once their last reports are
+        in), start the nodes afresh elsewhere, or go on without them until it is back."""
+        book = self.book
+        nodes = book.nodes_of(host)
+        decision = self.hosting.host_lost(host, nodes)
+        if isinstance(decision, FailRun):
+            if book.t0 is not None:
+                book.unrecovered += [Fault(nid, book.run_time(), book.workers[nid].pid, decision.exit)
+                                     for nid in nodes]
+            book.failure = RunFailure(nodes[0], decision.reason)
+        elif isinstance(decision, Relocate):
+            for nid, new_host in sorted(decision.hosts.items()):
+                book.hosts[nid] = new_host
+                counts = book.stats[nid].counts
+                counts["moves"] = counts.get("moves", 0) + 1
+                self.start_afresh(nid, Fault(nid, decision.at_ns, book.workers[nid].pid, decision.exit,
+                                             moved_to=decision.moved_to[nid]))
+        else:  # AwaitHost: their processes, if a hung host still has them, stop; their consumers know
+            for nid in decision.lost:
+                self.control.put(Lost(node=nid))
 
     # ---------------------------------------------------------------------------------------
     # A lost process (on_error="restart"; node/handover.py)
@@ -120,17 +167,17 @@ class Supervisor:
         decision = decide("restart", why, budget, at)
         if decision is not Decision.RESTART:
             book.limit = ending(decision, nid, None, why, budget)
-            book.unrecovered.append({"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
-            book.failure = (nid, {"error": str(book.limit)})
+            book.unrecovered.append(Fault(nid, at, proc.pid, exit_text(code)))
+            book.failure = RunFailure(nid, str(book.limit))
             return
         counts = book.stats[nid].counts
         for name in ("restarts", "crash_restarts"):
             counts[name] = counts.get(name, 0) + 1
         print(f"retriever: flow '{nid}': {why}; starting it afresh (on_error='restart')",
               file=sys.stderr, flush=True)
-        self.start_afresh(nid, {"node": nid, "at_ns": at, "pid": proc.pid, "exit": exit_text(code)})
+        self.start_afresh(nid, Fault(nid, at, proc.pid, exit_text(code)))
 
-    def start_afresh(self, nid: str, fault: dict) -> None:
+    def start_afresh(self, nid: str, fault: Fault) -> None:
         """Start ``nid`` afresh in a new process on its host (node/handover.py);
         ``fault``: what became of the old one, logged once the new one is ready."""
         book = self.book
@@ -157,15 +204,13 @@ class Supervisor:
         self.control.put(Restarted(node=nid, seqs=seqs, values=book.values))
         book.joining.discard(nid)
 
-    def record_fault(self, fault: dict, seqs: dict[str, int] | None) -> None:
+    def record_fault(self, fault: Fault, seqs: dict[str, int] | None) -> None:
         """Keep a lost process's fault, and log it: the outputs its step records claimed and no
         report carried (LET outputs it still held) are lost, which a replay must know."""
         book = self.book
-        nid = fault["node"]
-        lost = sorted(event_id for event_id in book.unseen if event_id[0] == nid)
+        lost = sorted(event_id for event_id in book.unseen if event_id[0] == fault.node)
         book.unseen.difference_update(lost)
-        fault = {"kind": "process_lost", **fault, "restarted": seqs is not None, "seqs": seqs or {},
-                 "lost_events": [list(event_id) for event_id in lost]}
+        fault = fault.settled(seqs, [list(event_id) for event_id in lost])
         book.faults.append(fault)
         self.on_fault(fault)
 
@@ -237,3 +282,12 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+        self.forget_ended()
+
+
+def exit_confirmed(proc: WorkerProcess) -> bool:
+    """Whether ``proc`` is known to have ended: a child of this process, or dora's, once
+    ``poll()`` says how; a worker daemon's once its daemon said it exited (remote.RemoteProcess:
+    one whose daemon was lost counts as killed, yet may still run and read control)."""
+    confirmed = getattr(proc, "exit_confirmed", None)
+    return proc.poll() is not None if confirmed is None else confirmed

@@ -1,4 +1,7 @@
-"""Report ingest: the step records and events a worker's report brings, into the trace and the log.
+"""Report ingest: the step records and events a worker's report brings, into the trace.
+
+(The log is written from the trace: the coordinator's wait loop (waiting.py) hands what is new
+to ``session.write_log()``, that is ``LogWriter.write``, every ``LOG_HANDOVER_S``.)
 
 A report (status/report/<node>) holds a node's step records and the events it published (or a
 consumer carried for its producer, whose own report may be lost). Each is checked against what
@@ -19,15 +22,23 @@ from ..protocol import Have, Report, ReportedStep
 from ..wire import WireError, decode_events
 from .book import RunBook
 from .control import RunControl
+from .exits import ExitCut
 
 
 class ReportIngest:
     """Takes reports into ``trace``; ``spill_dir``: where workers write the events too big for a
-    message; ``on_exit_recorded(node)``: a step's record says it called sys.exit(0)."""
+    message; ``on_exit_recorded(node)``: a step's record says it called sys.exit(0). A record or
+    event checked goes on to :meth:`take_step` or :meth:`take_event`, or, in virtual time, to the
+    run's ``exits`` (exits.ExitCut), which hands it on there once no exit can cut it off."""
 
-    def __init__(self, book: RunBook, trace: Trace, spill_dir: Path, on_exit_recorded: Callable[[str], None]):
+    def __init__(self, book: RunBook, trace: Trace, spill_dir: Path, on_exit_recorded: Callable[[str], None],
+                 exits: ExitCut | None = None):
         self.book, self.trace, self.spill_dir = book, trace, spill_dir
         self.on_exit_recorded = on_exit_recorded
+        self.step, self.event = self.take_step, self.take_event
+        if exits is not None:
+            exits.hand_to(self.take_step, self.take_event)
+            self.step, self.event = exits.step, exits.event
 
     def take(self, key: str, data: bytes, sender: object) -> None:
         """A report on ``key``, signed by ``sender`` (a process of its node: origin.py)."""
@@ -48,7 +59,7 @@ class ReportIngest:
             self._record(key, report.node, sender, record)
 
     def _record(self, key: str, node: str, sender: object, record: ReportedStep) -> None:
-        """One step record of ``node``: into the trace, the node's counters and the starvation watch."""
+        """One step record of ``node``, checked: on to :meth:`take_step` (in virtual time, once final)."""
         book = self.book
         tag, consumed, produced, status, detail, start, wall = record
         if (node, tag) in book.ticks:
@@ -63,7 +74,13 @@ class ReportIngest:
         if status == "ok" and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
             book.exit_recorded[node] = (tag, sender)
             self.on_exit_recorded(node)
-        self.trace.raw_steps.append((node, tag, consumed, produced, status, detail, start, wall))
+        self.step((node, tag, consumed, produced, status, detail, start, wall))
+
+    def take_step(self, record: tuple) -> None:
+        """A step record final: into the trace, the node's counters and the starvation watch."""
+        book = self.book
+        node, tag, consumed, produced, status, detail, start, wall = record
+        self.trace.raw_steps.append(record)
         if book.live is not None:
             book.live.step(node, tag, consumed, produced, status, detail, start, wall)
         book.starvation.step(node, tag, produced, detail)
@@ -124,16 +141,21 @@ class ReportIngest:
         book.event_ids.add(event_id)
         book.unseen.discard(event_id)
         producer, port, seq = event_id
-        if seq > book.max_seq.get((producer, port), -1):
-            book.max_seq[(producer, port)] = seq
         have = book.have.get((producer, port), -1)
         while (producer, port, have + 1) in book.event_ids:  # every seq up to it (carried ones may skip)
             have += 1
         book.have[(producer, port)] = have
-        value = msg.value if book.values else NOT_KEPT
-        self.trace.raw_events.append((msg.tag, msg.producer, msg.port, msg.seq, value, wall))
+        self.event((msg.tag, producer, port, seq, msg.value if book.values else NOT_KEPT, wall))
+
+    def take_event(self, event: tuple) -> None:
+        """An event final: into the trace."""
+        book = self.book
+        tag, producer, port, seq, value, wall = event
+        if seq > book.max_seq.get((producer, port), -1):
+            book.max_seq[(producer, port)] = seq
+        self.trace.raw_events.append(event)
         if book.live is not None:
-            book.live.event(msg.producer, msg.port, msg.tag, msg.seq, value, wall)
+            book.live.event(producer, port, tag, seq, value, wall)
 
     def _unspill(self, node: str, name: str) -> mmap.mmap:
         """A message a worker wrote to a file of the run directory: mapped (its arrays are views

@@ -41,6 +41,25 @@ def main_file(graph: Graph) -> str | None:
     return os.path.abspath(path)
 
 
+def process_groups(graph: Graph) -> dict[str, list[str]]:
+    """The groups of flows that share a worker process (``configure(process=NAME)``): name -> its
+    nodes, in the graph's order. A name only one flow has is no group (that flow runs alone), nor
+    is a flow with ``on_error="restart"`` in one: its restart is a new process (see
+    :func:`restarting_alone`)."""
+    groups: dict[str, list[str]] = {}
+    for nid, node in graph.nodes.items():
+        if node.settings.process is not None and node.settings.on_error != "restart":
+            groups.setdefault(node.settings.process, []).append(nid)
+    return {name: nodes for name, nodes in groups.items() if len(nodes) > 1}
+
+
+def restarting_alone(graph: Graph) -> list[str]:
+    """The flows given a process name that run alone all the same: their ``on_error="restart"``
+    starts a new process of their own (a restart within a group's process is not built yet)."""
+    return [nid for nid, node in graph.nodes.items()
+            if node.settings.process is not None and node.settings.on_error == "restart"]
+
+
 def shipped_plan(graph: Graph) -> dict:
     """The run's wiring, node by node (retriever.plan), as JSON-safe data: made once here, the
     authority of the run, and wired by every worker as it says (each checks it against the IR)."""

@@ -16,6 +16,8 @@ from ..protocol import (ABSENT, STATUS, Done, End, Exit, Failed, HandedOver, Han
 from ..wire import WireError
 from .book import RunBook
 from .control import RunControl
+from .exits import ExitCut
+from .faults import RunFailure
 
 #: where in its life each state a worker process says of itself puts it: a process says a state
 #: only after those below it (`ready` again and again while it waits for the start), and says a
@@ -32,13 +34,14 @@ def may_say(last: State | None, state: State) -> bool:
 
 class StatusMachine:
     """Takes the statuses of the run's processes. ``supervisor``: starts a node's processes
-    (processes.Supervisor); ``virtual_time``: the run is in lockstep; ``startup_timeout``: for
-    the error of a worker that never linked to its neighbours."""
+    (processes.Supervisor); ``exits``: in a run in lockstep virtual time, where its steps'
+    sys.exit(0) cut it (exits.ExitCut; None in real time); ``startup_timeout``: for the error of
+    a worker that never linked to its neighbours."""
 
-    def __init__(self, book: RunBook, control: RunControl, supervisor, *, virtual_time: bool = False,
+    def __init__(self, book: RunBook, control: RunControl, supervisor, *, exits: ExitCut | None = None,
                  startup_timeout: float = 60.0):
         self.book, self.control, self.supervisor = book, control, supervisor
-        self.virtual_time, self.startup_timeout = virtual_time, startup_timeout
+        self.exits, self.virtual_time, self.startup_timeout = exits, exits is not None, startup_timeout
         self.handlers = {State.REACHED: self._reached, State.EXIT: self._exit, State.UNANSWERED: self._unanswered,
                          State.READY: self._ready, State.RESTART: self._restart, State.FAILED: self._failed,
                          State.HANDED_OVER: self._handed_over, State.DONE: self._done}
@@ -67,11 +70,11 @@ class StatusMachine:
                                         f"which is not the process of {node} that could say it"))
             return
         if state in PROCESS_STAGES:
-            if not may_say(book.said.get(sender), state):
+            if not may_say(book.said.get((sender, node)), state):
                 book.garbage(key, WireError(f"a '{state}' status of {node} after its process said "
-                                            f"'{book.said[sender]}' (a replay)"))
+                                            f"'{book.said[sender, node]}' (a replay)"))
                 return
-            book.said[sender] = state
+            book.said[sender, node] = state
             self._count(status)
         self.handlers[state](key, status, sender)
 
@@ -112,7 +115,12 @@ class StatusMachine:
         (status ``exit``) and recorded that step (status ok, detail ``{"exit": 0}``) at that tag."""
         book = self.book
         said = book.exit_said.get(node)
-        if said is None or book.exit_recorded.get(node) != said or book.t0 is None or book.stop_sent:
+        if said is None or book.exit_recorded.get(node) != said or book.t0 is None:
+            return
+        if self.exits is not None:
+            self._end_in_virtual_time(node)
+            return
+        if book.stop_sent:
             return
         book.stop_sent = True
         book.ended_by = node
@@ -120,6 +128,16 @@ class StatusMachine:
         # it (each stamped before now, the exit's tag may be earlier on a late node) still
         # reaches the ticks it triggers, within their deadline, as at any run's end
         self.control.put(End(at=max(said[0][0], book.run_time())))
+
+    def _end_in_virtual_time(self, node: str) -> None:
+        """In virtual time the run ends at the earliest exit (exits.ExitCut): at this one, unless
+        another node's, said, is earlier. Every tick at its time still runs (the nodes before it
+        in the tie order are recorded, the others dropped with what runs past it: exits.py)."""
+        book = self.book
+        tag, first = self.exits.earliest(book.exit_said)
+        if first == node and book.ended_by != node:
+            book.stop_sent, book.ended_by = True, node
+            self.control.put(End(at=tag[0] + 1))
 
     def _unanswered(self, key: str, status: Unanswered, sender: object) -> None:
         """Before the start: its neighbours declare themselves again."""
@@ -141,15 +159,15 @@ class StatusMachine:
             # get that one's events, nor it this one's
             unlinked = (", ".join(f"'{n:.60}'" for n in status.unlinked[:8])
                         if status.unlinked is not ABSENT else "some of its neighbours")
-            book.failure = (node, {"error": (
+            book.failure = RunFailure(node, (
                 f"the worker of '{node}' has no direct link to {unlinked} after {self.startup_timeout:g} s\n"
                 f"    hint: on a loaded machine, give it longer: pipe.run(..., startup_timeout=seconds); across "
-                f"machines, each must reach the others at the address it listens on (retriever-worker --listen)")})
+                f"machines, each must reach the others at the address it listens on (retriever-worker --listen)"))
             return
         if node in book.fresh:
             self.supervisor.restart_afresh(node)
         elif node in book.restarted:
-            # said again: it has not seen `restarted` yet (worker.START_ASK_S), nor, maybe, its consumers
+            # said again: it has not seen `restarted` yet (worker_waits.START_ASK_S), nor, maybe, its consumers
             self.control.put(Restarted(node=node, seqs=book.restarted[node], values=book.values))
         elif node in book.retiring:
             if book.state[node] == State.DONE:  # the run ended while it restarted: stopped at close
@@ -165,21 +183,23 @@ class StatusMachine:
         decision = decide("restart", status.error, budget, tag[0])  # the node decided on a restart; the budget here
         if decision is not Decision.RESTART:
             book.limit = ending(decision, node, tag, status.error, budget)
-            book.failure = (node, {"error": str(book.limit)})
+            book.failure = RunFailure(node, str(book.limit))
             return
         node_counts = book.stats[node].counts
         node_counts["restarts"] = node_counts.get("restarts", 0) + 1
         book.retiring[node] = book.workers[node]
+        book.handed_over.discard(node)  # (the old process it replaces has not handed over yet)
         self.supervisor.spawn(node, join=(book.t0, book.end_ns))
 
     def _failed(self, key: str, status: Failed, sender: object) -> None:
-        self.book.failure = (status.node, status.to_fields())
+        self.book.failure = RunFailure.said(status)
         self.book.state[status.node] = State.FAILED
 
     def _handed_over(self, key: str, status: HandedOver, sender: object) -> None:
         """The old process of a restarting node gave its state to the new one, which resumes."""
         book = self.book
         book.retired.append(book.retiring.pop(status.node))
+        book.handed_over.add(status.node)
         self.control.put(Resume(node=status.node))
         book.joining.discard(status.node)
 
@@ -189,9 +209,9 @@ class StatusMachine:
                 and node not in book.exit_said):  # (an exit's record may come after its `done`)
             # it ended before the run's end on a stop this coordinator never sent: a run cut
             # short must not look finished (a SIGTERM to it: a `stop` on ctl/run it takes only sealed)
-            book.failure = (node, {"error": (
+            book.failure = RunFailure(node, (
                 f"{node} stopped before the run's end: told to stop, and not by this coordinator (someone sent "
-                "its worker SIGTERM)")})
+                "its worker SIGTERM)"))
         book.done_info[node] = {k: v for k in ("started_ns", "ticks") if type(v := getattr(status, k)) is int}
         # {port: last seq put}: which events its reports held (diagnostics.unfinished)
         if status.sent is not ABSENT and all(p in book.graph.nodes[node].outputs for p in status.sent):

@@ -7,7 +7,8 @@
       └─── until condition(); past give_up: name each node waited for, with its stacks
 
 In lockstep virtual time (node/waiting.py) the wait for the finish also grants the next window of
-virtual time once every node reached the last one.
+virtual time once every node reached the last one, none past a step's sys.exit(0); what the
+nodes reported below that barrier is final (exits.ExitCut), the rest once the run is over.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from .book import RunBook
 from .control import RunControl
 from .diagnostics import Diagnostics
 from .endchecks import say_starved
+from .exits import ExitCut
 from .inbox import Inbox
 from .processes import Supervisor
 from .reports import tell_have
@@ -46,9 +48,9 @@ class Waits:
     """The waits of one run; ``session``: the coordinator, whose log is written as the run goes."""
 
     def __init__(self, session, book: RunBook, inbox: Inbox, control: RunControl, supervisor: Supervisor,
-                 diagnostics: Diagnostics):
+                 diagnostics: Diagnostics, exits: ExitCut | None = None):
         self.session, self.book, self.inbox, self.control = session, book, inbox, control
-        self.supervisor, self.diagnostics = supervisor, diagnostics
+        self.supervisor, self.diagnostics, self.exits = supervisor, diagnostics, exits
 
     def until_ready(self, timeout: float) -> None:
         self.wait(lambda: all(s == State.READY for s in self.book.state.values()), time.monotonic() + timeout, "start")
@@ -60,7 +62,10 @@ class Waits:
             book.granted = min(LOCKSTEP_WINDOW_NS, end_ns)
             book.last_grant = (time.monotonic(), time.monotonic())
             self.control.put(dataclasses.replace(start, grant=book.granted))
-            self.wait(lambda: self.lockstep() and book.finished(), float("inf"), "finish")
+            try:
+                self.wait(lambda: self.lockstep() and book.finished(), float("inf"), "finish")
+            finally:  # what is held goes to the trace and the log (a failed run's too: what it ran)
+                self.settle()
             return
         self.control.put(start)
         slack = max(self._deadlines(), 1.0) + FINISH_SLACK_S
@@ -76,10 +81,15 @@ class Waits:
 
     def lockstep(self) -> bool:
         """Grant the next window once every node not done has reached this one; whether the
-        last grant (the run's end) is out. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
+        last grant is out: the run's end, or the one in which a step called sys.exit(0), past
+        which no node is to run. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
         book, now = self.book, time.monotonic()
         behind = sorted(n for n, s in book.state.items() if s != State.DONE and book.reached.get(n, -1) < book.granted)
-        if not behind and book.granted < book.end_ns:
+        first_exit = self.exits.earliest(book.exit_said)
+        last = book.end_ns if first_exit is None else min(book.end_ns, first_exit[0][0] + 1)
+        if not behind:  # every exit below the grant is said (exits.py)
+            self.exits.final_below(book.granted if first_exit is None else min(book.granted, first_exit[0][0]))
+        if not behind and book.granted < last:
             book.granted = min(book.granted + LOCKSTEP_WINDOW_NS, book.end_ns)
             book.last_grant = (now, now)
             self.control.put(Grant(until=book.granted))
@@ -97,7 +107,16 @@ class Waits:
                 + f" within {LOCKSTEP_STALL_S:g} s of wall time\n"
                 + "".join(self.diagnostics.unfinished(n) for n in waiting)
                 + "    hint: the stacks show where a step that did not return is")
-        return book.granted >= book.end_ns
+        return book.granted >= last
+
+    def settle(self) -> None:
+        """Virtual time, the run over: what is held is final but what its earliest exit cuts off
+        (exits.ExitCut), and the run ended there."""
+        book = self.book
+        cut = self.exits.earliest(book.exit_said)
+        self.exits.settle(cut)
+        if cut is not None:
+            book.ended_by = cut[1]
 
     def wait(self, condition, give_up: float, what: str, patience: float | None = None) -> None:
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``
@@ -131,7 +150,7 @@ class Waits:
             if patience is not None and sum(book.reports.values()) != reports:
                 reports = sum(book.reports.values())
                 give_up = max(give_up, now + patience)
-            if now > give_up:
+            if now > give_up and not condition():  # (what was just taken may have met it)
                 self._timed_out(what)
         if session.log is not None:
             session.write_log()

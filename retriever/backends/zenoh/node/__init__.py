@@ -14,7 +14,7 @@
       │              ask producers, wake later           (virtual time: the coordinator's grant)
       │     steps.tick: select inputs, step(), outcome ─▶ outputs: stamp, publish or hold (LET)
       │                                                 └▶ reports.record (flushed in batches)
-      └── sleep until the next wake (timing: warm up before it) or the next message
+      └── sleep until the next wake (timing.Pacer: warm up before it) or the next message
 
 Tags are ``(ns since T0, microstep)``. A *frontier* is a producer's promise: every later event of
 it has a tag ``≥`` the frontier (frontiers.py). ASAP outputs are stamped at completion, LET ones
@@ -30,7 +30,7 @@ The modules, one job each:
 
     loop.py       NodeLoop: wiring, the inbox, the run loop (dispatch only)
     inbox.py      what the inbox holds
-    transport.py  how events and progress travel (the seam; Zenoh's; dora's is backends/dora/link.py)
+    transport.py  how events and progress travel (the seam; Zenoh's; dora's: retriever/backends/dora/link.py)
     clock.py      T0, the end, the wall and HLC clocks read from T0
     schedule.py   Rate ticks and pending trigger ticks
     frontiers.py  input streams: seq order, frontiers, claims refused, delivery to the edges
@@ -39,12 +39,18 @@ The modules, one job each:
     source.py     the short way for a plain Rate source
     outputs.py    stamping, LET holding, publishing, the node's own frontier
     reports.py    step records and published events to the coordinator
+    reporter.py   sending those reports, from a thread of its own
     notes.py      counts, and what the next step record must tell
-    timing.py     warming up before a predictable moment
-    handover.py   restarts: the hand-over to a new process, a fresh start after a lost one
+    timing.py     warming up before a predictable moment; the loop's sleep to its next wake
+    handover.py   restarts: the hand-over to a new process (its state file, read exactly), a fresh start
+                  after a lost one
     control.py    the run's control messages
+    ending.py     how a loop ends before the run's end, and which of two endings wins
+    plane.py      the control plane on the run's session: control heard, progress queries answered
+    group.py      several nodes in one process: their passes on one thread, events by reference
 """
 
+from .ending import Ending
 from .frontiers import CLOCK_AHEAD_MAX_NS, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, WAITING_MAX, InEdge
 from .inbox import CONTROL, DATA, NUDGE, PROGRESS
 from .loop import INLINE_STEP_NS, RESTART_POLL_NS, NodeLoop
@@ -56,7 +62,7 @@ from .transport import Transport, ZenohTransport
 from .waiting import ASK_EVERY_NS, PROBE_AFTER_NS, VIRTUAL_IDLE_NS
 
 __all__ = [
-    "ASK_EVERY_NS", "CLOCK_AHEAD_MAX_NS", "CONTROL", "DATA", "EARLY_SEQS_MAX", "FLUSH_AFTER_NS", "FLUSH_MAX",
+    "ASK_EVERY_NS", "CLOCK_AHEAD_MAX_NS", "CONTROL", "DATA", "EARLY_SEQS_MAX", "Ending", "FLUSH_AFTER_NS", "FLUSH_MAX",
     "FLUSH_MAX_BYTES", "FLUSH_MAX_SEQS", "HOLD_RECORDS_NS", "INLINE_STEP_NS", "NEVER", "NUDGE", "PROBE_AFTER_NS",
     "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "RESTART_SEQ_GAP", "SPILL_BYTES", "VIRTUAL_IDLE_NS",
     "WAITING_MAX", "WARM_AFTER_IDLE_NS", "WARM_AHEAD_NS", "InEdge", "NodeLoop", "Transport", "ZenohTransport",

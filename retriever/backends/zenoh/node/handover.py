@@ -27,10 +27,14 @@ from __future__ import annotations
 
 import heapq
 import time
+from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any
 
+from ....codec import unpackb
+from ....errors import WorkerError
 from ....flow.burst import Burst
-from ..wire import DataMessage, WireError
+from ..wire import DataMessage, WireError, shown
 from .frontiers import EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, Streams
 
 
@@ -52,28 +56,211 @@ def handover_state(loop) -> dict:
     }
 
 
-def take_over(loop, state: dict) -> None:
-    """Go on from the state of the process ``loop`` replaces (see :func:`handover_state`)."""
+def take_over(loop, state: HandoverState) -> None:
+    """Go on from the state of the process ``loop`` replaces (:func:`read_state` of what
+    :func:`handover_state` wrote)."""
     buffers = {port: buf for port, buf, *_ in loop.steps.inputs}
-    for port, entries, visible, cursor, last_id in state["buffers"]:
+    for port, entries, visible, cursor, last_id in state.buffers:
         buf = buffers[port]
-        buf.entries, buf.visible, buf.cursor, buf.last_id = [tuple(e) for e in entries], visible, cursor, last_id
+        buf.entries, buf.visible, buf.cursor, buf.last_id = list(entries), visible, cursor, last_id
     streams = loop.streams
-    for src, port, frontier, expect, early, waiting in state["streams"]:
+    for src, port, frontier, expect, early, waiting in state.streams:
         stream = (src, port)
-        streams.frontiers[stream], streams.expect[stream] = tuple(frontier), expect
+        streams.frontiers[stream], streams.expect[stream] = frontier, expect
         streams.early[stream] = {m[1]: DataMessage(*m) for m in early}
-        streams.waiting[stream] = sorted((seq, tuple(f)) for seq, f in waiting)
+        streams.waiting[stream] = sorted(waiting)
         streams.taken_over[stream] = max([expect, *(seq + 1 for seq in streams.early[stream])])
-    loop.schedule.restore(state["k"], state["next_rate"], state["pending"], state["last_tick"])
+    loop.schedule.restore(state.k, state.next_rate, state.pending, state.last_tick)
     outputs = loop.outputs
-    outputs.last_stamp = state["last_stamp"]
-    outputs.held = [(h[0], h[1], Burst.unchecked(tuple(h[2])), h[3]) if len(h) == 5 else tuple(h) for h in state["held"]]
+    outputs.last_stamp = state.last_stamp
+    outputs.held = [(h[0], h[1], Burst.unchecked(h[2]), h[3]) if len(h) == 5 else h for h in state.held]
     heapq.heapify(outputs.held)
-    loop.reports.values = state.get("values") is not False
-    _replace(outputs.seqs, state["seqs"])
-    _replace(outputs.sent, state["sent"])
-    loop.notes.detail = dict(state["pending_detail"])
+    loop.reports.values = state.values
+    _replace(outputs.seqs, state.seqs)
+    _replace(outputs.sent, state.sent)
+    loop.notes.detail = dict(state.pending_detail)
+
+
+# ---------------------------------------------------------------------------------------------
+# The state file, read exactly
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class HandoverState:
+    """A restarting loop's state as its new process reads it (:func:`read_state`): the map
+    :func:`handover_state` makes, every field checked. Tags are ``(t, m)`` tuples, events and
+    held outputs tuples, values what the codec decodes (registered value types only)."""
+
+    buffers: tuple  # (port, entries, visible, cursor, last_id) per input port
+    streams: tuple  # (src, port, frontier, expect, early messages, waiting (seq, frontier)) per stream
+    pending: tuple
+    k: int
+    next_rate: tuple | None
+    last_tick: tuple
+    last_stamp: int
+    seqs: dict
+    sent: dict
+    held: tuple  # (tag, port, value, seq), or (tag, port, burst values, seq, "burst")
+    pending_detail: dict
+    values: bool
+
+
+#: how the new process learns what went wrong, and what to do
+_HINT = ("    hint: the flow's old process writes it in the run's private folder just before the new one "
+         "reads it: both must run the same Retriever, and nothing else may write there; run again")
+
+
+def read_state(path: Path, loop) -> HandoverState:
+    """The state file ``path`` that ``loop``'s (a NodeLoop's) old process wrote, decoded
+    exactly (:func:`decode_state`); WorkerError naming the file for anything else: a new
+    process that cannot take over says so rather than going on from a state it misread."""
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise WorkerError(f"cannot read the hand-over state file {path}: {e.strerror}\n{_HINT}") from None
+    try:
+        return decode_state(data, loop)
+    except WireError as e:
+        raise WorkerError(f"the hand-over state file {path} is no state of node '{loop.id}': {e}\n{_HINT}") from None
+
+
+def decode_state(data: bytes, loop) -> HandoverState:
+    """:func:`handover_state`'s map, encoded by the codec, as a :class:`HandoverState` of
+    ``loop``'s inputs (the same ports and streams); WireError naming the field otherwise."""
+    try:
+        given = unpackb(data)
+    except Exception as e:  # msgpack's own errors on garbage, or the codec's (CodecError)
+        raise WireError(f"not Retriever codec data ({type(e).__name__}: {e})"[:300]) from None
+    if type(given) is not dict:
+        raise WireError(f"the state is a map of its fields, got {_got(given)}")
+    missing, extra = sorted(_FIELDS.difference(given)), [k for k in given if k not in _FIELDS]
+    if missing or extra:
+        raise WireError(f"fields missing: {', '.join(missing)}" if missing else
+                        f"a field the state has none of: {shown(extra[0], 40)}")
+    ports = sorted(port for port, *_ in loop.steps.inputs)
+    buffers = _items(given["buffers"], "buffers", _buffer)
+    if sorted(b[0] for b in buffers) != ports:
+        raise WireError(f"'buffers' holds the ports {sorted(b[0] for b in buffers)}; the node's are {ports}")
+    streams = _items(given["streams"], "streams", _stream)
+    if sorted(s[:2] for s in streams) != sorted(loop.streams.frontiers):
+        raise WireError(f"'streams' holds {sorted(s[:2] for s in streams)}; the node's are "
+                        f"{sorted(loop.streams.frontiers)}")
+    next_rate = given["next_rate"]
+    return HandoverState(
+        buffers=buffers, streams=streams,
+        pending=_items(given["pending"], "pending", _tag),
+        k=_int(given["k"], "k"),
+        next_rate=None if next_rate is None else _tag(next_rate, "next_rate"),
+        last_tick=_tag(given["last_tick"], "last_tick", low=-1),
+        last_stamp=_int(given["last_stamp"], "last_stamp"),
+        seqs=_seqs(given["seqs"], "seqs", low=0), sent=_seqs(given["sent"], "sent", low=-1),
+        held=_items(given["held"], "held", _held),
+        pending_detail=_detail(given["pending_detail"]),
+        values=_bool(given["values"], "values"))
+
+
+_FIELDS = frozenset(f.name for f in fields(HandoverState))
+
+
+def _got(value: Any) -> str:
+    return f"{type(value).__name__} {shown(value, 60)}"
+
+
+def _int(value: Any, where: str, low: int = 0) -> int:
+    if type(value) is not int or value < low:
+        raise WireError(f"'{where}' must be an integer >= {low}, got {_got(value)}")
+    return value
+
+
+def _bool(value: Any, where: str) -> bool:
+    if type(value) is not bool:
+        raise WireError(f"'{where}' must be true or false, got {_got(value)}")
+    return value
+
+
+def _name(value: Any, where: str) -> str:
+    if type(value) is not str or not value:
+        raise WireError(f"'{where}' must be a name, got {_got(value)}")
+    return value
+
+
+def _tag(value: Any, where: str, low: int = 0) -> tuple:
+    if (type(value) is not tuple or len(value) != 2 or type(value[0]) is not int or type(value[1]) is not int
+            or value[0] < low or value[1] < 0):
+        raise WireError(f"'{where}' must be a tag (t_ns, microstep), got {_got(value)}")
+    return value
+
+
+def _row(value: Any, where: str, size: int, kind: type = tuple) -> Any:
+    if type(value) is not kind or len(value) != size:
+        raise WireError(f"'{where}' must be a {kind.__name__} of {size}, got {_got(value)}")
+    return value
+
+
+def _items(value: Any, where: str, read) -> tuple:
+    if type(value) is not list:
+        raise WireError(f"'{where}' must be a list, got {_got(value)}")
+    return tuple(read(item, f"{where}[{i}]") for i, item in enumerate(value))
+
+
+def _seqs(value: Any, where: str, low: int) -> dict:
+    if type(value) is not dict:
+        raise WireError(f"'{where}' must be a map of ports to seqs, got {_got(value)}")
+    return {_name(port, f"{where} key"): _int(seq, f"{where}[{port}]", low) for port, seq in value.items()}
+
+
+def _detail(value: Any) -> dict:
+    if type(value) is not dict or not all(type(k) is str for k in value):
+        raise WireError(f"'pending_detail' must be a map with string keys, got {_got(value)}")
+    return value
+
+
+def _event(value: Any, where: str) -> tuple:
+    """A buffer's entry: (arrival tag, producer, port, seq, value)."""
+    tag, producer, port, seq, _ = _row(value, where, 5)
+    return (_tag(tag, f"{where}[0]"), _name(producer, f"{where}[1]"), _name(port, f"{where}[2]"),
+            _int(seq, f"{where}[3]"), value[4])
+
+
+def _buffer(value: Any, where: str) -> tuple:
+    port, entries, visible, cursor, last_id = _row(value, where, 5, list)
+    entries = _items(entries, f"{where}[1]", _event)
+    for i, (index, what) in enumerate(((visible, "visible"), (cursor, "cursor")), 2):
+        if _int(index, f"{where}[{i}]") > len(entries):
+            raise WireError(f"'{where}[{i}]' ({what}) is {index}, past the buffer's {len(entries)} entries")
+    if last_id is not None:
+        producer, src_port, seq = _row(last_id, f"{where}[4]", 3)
+        last_id = (_name(producer, f"{where}[4][0]"), _name(src_port, f"{where}[4][1]"), _int(seq, f"{where}[4][2]"))
+    return (_name(port, f"{where}[0]"), entries, visible, cursor, last_id)
+
+
+def _message(value: Any, where: str) -> tuple:
+    """An early data message: (tag, seq, frontier, producer, port, value)."""
+    tag, seq, frontier, producer, port, _ = _row(value, where, 6)
+    return (_tag(tag, f"{where}[0]"), _int(seq, f"{where}[1]"), _tag(frontier, f"{where}[2]"),
+            _name(producer, f"{where}[3]"), _name(port, f"{where}[4]"), value[5])
+
+
+def _promise(value: Any, where: str) -> tuple:
+    seq, frontier = _row(value, where, 2)
+    return (_int(seq, f"{where}[0]"), _tag(frontier, f"{where}[1]"))
+
+
+def _stream(value: Any, where: str) -> tuple:
+    src, port, frontier, expect, early, waiting = _row(value, where, 6, list)
+    return (_name(src, f"{where}[0]"), _name(port, f"{where}[1]"), _tag(frontier, f"{where}[2]"),
+            _int(expect, f"{where}[3]"), _items(early, f"{where}[4]", _message),
+            _items(waiting, f"{where}[5]", _promise))
+
+
+def _held(value: Any, where: str) -> tuple:
+    """A held LET output: (tag, port, value, seq), or a burst's (tag, port, values, seq, "burst")."""
+    if type(value) is tuple and len(value) == 5:
+        tag, port, values, seq, mark = value
+        if mark != "burst" or type(values) is not tuple or not values:
+            raise WireError(f"'{where}' must be a held burst (tag, port, values, seq, 'burst'), got {_got(value)}")
+        return (_tag(tag, f"{where}[0]"), _name(port, f"{where}[1]"), values, _int(seq, f"{where}[3]"), mark)
+    tag, port, single, seq = _row(value, where, 4)
+    return (_tag(tag, f"{where}[0]"), _name(port, f"{where}[1]"), single, _int(seq, f"{where}[3]"))
 
 
 def _replace(mapping: dict, items: dict) -> None:
@@ -118,7 +305,7 @@ def start_fresh(loop, seqs: dict[str, int], t0: int) -> None:
         loop.schedule.k = clock.first_tick_at_or_after(time.time_ns() - t0)
 
 
-def producer_restarted(loop, producer: str, seqs: Any) -> None:
+def producer_restarted(loop, producer: str, seqs: dict[str, int]) -> None:
     """Control ``restarted`` {node: producer, seqs: {port: first seq}}: see above. Checked for
     sense first (a forged one would cut this consumer off a live producer): the producer was
     said ``lost``, and each first seq lies where the coordinator puts it, past every seq taken
@@ -129,7 +316,7 @@ def producer_restarted(loop, producer: str, seqs: Any) -> None:
     refusal = _refusal(streams, producer, seqs, mine)
     if refusal is not None:
         if refusal:
-            notes.garbage("ctl/run", WireError(refusal))
+            notes.garbage(loop.keys.run_control(), WireError(refusal))
         return
     streams.lost_producers.discard(producer)
     # records that consumed an event of the dead process the coordinator lacks go now, with
@@ -156,11 +343,10 @@ def producer_restarted(loop, producer: str, seqs: Any) -> None:
             streams.in_order(stream, later[seq])
 
 
-def _refusal(streams: Streams, producer: str, seqs: Any, mine: list) -> str | None:
+def _refusal(streams: Streams, producer: str, seqs: dict[str, int], mine: list) -> str | None:
     """Why a ``restarted`` of ``producer`` is refused (garbage), "" if it is ignored (no word
-    of it was needed), None if it is taken."""
-    if type(seqs) is not dict or not all(type(k) is str and type(v) is int and v >= 0 for k, v in seqs.items()):
-        return f"a 'restarted' control message of {producer} without its seqs"
+    of it was needed), None if it is taken. ``seqs`` has its shape already (protocol.Restarted's
+    decoder); what is checked here is whether it makes sense for this consumer's streams."""
     if producer not in streams.lost_producers:
         if any(seqs.get(s[1], -1) > streams.expect[s] for s in mine):
             return f"a 'restarted' control message of {producer}, which was not said lost: refused"

@@ -4,10 +4,12 @@ The kinds say which handler takes an item (``NodeLoop.handle``): a data message 
 stream ``key`` (producer, port), a progress message of the producer ``key`` (or ``None``: a
 progress query timed out), both as their bytes; a control message of the run, opened and
 decoded (a protocol record, or the WireError that refused it); or a nudge (after work a
-receiving thread did in the main thread's stead: look again at the time to wake).
+receiving thread did in the main thread's stead: look again at the time to wake). A producer in
+the same process (group.py) hands its events over as they are (``EVENTS``: a list of
+wire.DataMessage, values by reference), with nothing to decode or check.
 """
 
-DATA, PROGRESS, CONTROL, NUDGE = 0, 1, 2, 3
+DATA, PROGRESS, CONTROL, NUDGE, EVENTS = 0, 1, 2, 3, 4
 
 #: put in the inbox after work done on a receiving thread: the main thread looks again
 NUDGED = (NUDGE, None, None)

@@ -11,22 +11,23 @@ import zenoh
 
 from ....flow._base import make_invoker, make_output_reader
 from ....graph import Node
-from ..hub import weak_callback
 from ..protocol import ControlOpener
-from ..reporter import Reporter
-from ..wire import KeySpace, WireEncoder, WireError, decode_events, decode_progress
+from ..wire import KeySpace, WireError, decode_events, decode_progress
 from . import handover
 from .clock import RunClock
 from .control import obey
+from .ending import Ending
 from .frontiers import NEVER, InEdge, Streams
-from .inbox import CONTROL, DATA, NUDGE, NUDGED, PROGRESS
+from .inbox import DATA, EVENTS, NUDGE, NUDGED, PROGRESS
 from .notes import Notes
 from .outputs import Outputs
+from .plane import ControlPlane
+from .reporter import Reporter
 from .reports import SPILL_BYTES, Reports
 from .schedule import DONE, TICKED, Schedule
 from .source import is_plain_source, quiet_source, source_pass
 from .steps import Steps
-from .timing import WARM_AHEAD_NS, Warmup
+from .timing import Pacer, Warmup
 from .transport import Transport, ZenohTransport
 from .waiting import Waiting
 
@@ -86,10 +87,15 @@ class NodeLoop:
                                schedule=self.schedule, streams=self.streams, reports=self.reports,
                                transport=self.transport)
         self.warmup = Warmup(self.outputs, self.schedule, self.run_clock)
+        self.pacer = Pacer(self)
         self.steps = Steps(self, inputs, fallbacks, make_invoker(node.flow, node.spec), make_output_reader(node.spec),
                            realtime=realtime)
         self.waiting = Waiting(self)
         self.spin_ns = 0 if virtual else node.settings.spin_ns  # (virtual time: nothing to be on time for)
+        self.plain_source = False  # whether it takes the short way of a plain source (source.py), from begin()
+        # whether a GroupLoop runs its passes among others' (group.py): none may wait, and the
+        # group hears the run's control for all of them (GroupLoop.hear_control)
+        self.grouped = False
         # what the worker reads and sets: the same objects as the parts'
         self.counts, self.sent, self.reporter = self.notes.counts, self.outputs.sent, reporter
 
@@ -99,16 +105,39 @@ class NodeLoop:
         # opens the run's control with this process's key (protocol/seal.py); the worker gives
         # it the key: without one, no control message is taken
         self.opener = ControlOpener(None)
-        self.stopping = False
-        self.abandoned = False  # its process's parent died: it stops without finishing (worker.py)
+        self.endings: set[Ending] = set()  # every way it was told to end (stop): read as `ending`
+        self.stopping = False  # whether it has an `ending` (set by stop only): what its waits look at, cheaply
         # on_error="restart" (handover.py): after a failed step, ticks wait for the new process,
-        # which takes this loop's state over once the coordinator says so
+        # which takes this loop's state over once the coordinator says so (Ending.HANDING_OVER);
+        # not an ending itself: until then the loop runs on
         self.restarting = False
-        self.handing_over = False
-        self.told_to_stop = False  # a `stop` (control, or SIGTERM) ended it, not the run's end
         self.on_exit = None  # called with the tick whose step called sys.exit(0): the run ends
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
-        self.declared: list = []  # the control plane's subscriber and queryable on `session`
+        self.plane = ControlPlane(self)  # the run's control, progress queries: on `session`
+        self.declared = self.plane.declared  # its subscriber and queryable
+
+    # ---------------------------------------------------------------------------------------
+    # How the loop ends early (ending.py)
+    # ---------------------------------------------------------------------------------------
+    def stop(self, ending: Ending) -> None:
+        """End the loop ``ending``'s way: it leaves its run at its next pass (before the start,
+        the wait it is in), and its process then acts on :attr:`ending`. Called by the run's
+        control, a failed step and the worker's signal handlers, maybe from a signal handler
+        while the main thread is in here: adding to a set cannot be torn, so an ending never
+        overwrites another that came meanwhile, and the graver wins whatever the order."""
+        self.endings.add(ending)
+        self.stopping = True
+
+    @property
+    def ending(self) -> Ending | None:
+        """How the loop ends: None while nothing told it to end before the run's end. When two
+        endings came, the graver wins, whichever came first: ABANDONED over HANDING_OVER over
+        TOLD_TO_STOP. Abandoned: another process now runs the node, or the parent that would
+        hear this one is gone; anything it still said or promised (``done``, a hand-over, its
+        frontier past the end) would contradict that. Handing over rather than told to stop:
+        the flow's new process waits for this one's state, and the stop reaches it too;
+        finishing here would promise the consumers nothing more while the new process goes on."""
+        return max(self.endings, default=None)
 
     # ---------------------------------------------------------------------------------------
     # Wiring: the transport for events, the run's session for control
@@ -124,50 +153,26 @@ class NodeLoop:
         put = self.inbox.put
         self.transport.declare_inputs(sorted(self.streams.frontiers), self.streams.sources,
                                       self.receive if self.inline else None, put)
-        self.declared.append(self._declare_control())
-
-    def _declare_control(self) -> zenoh.Subscriber:
-        return self.session.declare_subscriber(self.keys.run_control(), weak_callback(self._control_in))
-
-    def _control_in(self, sample) -> None:
-        """A put on ctl/run (on Zenoh's thread): queued opened and decoded (a record of
-        protocol.RUN_CONTROL), or, when it does not open with this process's key (forged, replayed,
-        another run's) or does not decode, as the WireError saying so (garbage)."""
-        try:
-            record = self.opener.control(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment)
-        except WireError as e:
-            self.inbox.put((CONTROL, None, e))
-            return
-        self.inbox.put((CONTROL, None, record))
+        if not self.grouped:  # (a group hears the run's control once for all: GroupLoop.hear_control)
+            self.plane.listen()
 
     def declare_outputs(self) -> None:
         """What this node speaks on: its data and progress keys, and the answer to progress queries."""
-        self.declared.append(self._declare_queryable())
+        self.plane.answer()
         outputs = self.outputs
         outputs.publishers, outputs.progress_publisher, outputs.warm_publisher = self.transport.declare_outputs(
             self.ports, outputs.consumed)
-
-    def _declare_queryable(self) -> zenoh.Queryable:
-        return self.session.declare_queryable(self.keys.progress(self.id), weak_callback(self._answer_progress))
 
     def redeclare(self) -> None:
         """Declare the subscriptions and the progress queryable again, then drop the old ones
         (before the start only: no event flows yet). Zenoh then tells every linked peer of them
         anew. Under load, with many peers linking at once, a peer was seen linked to this node
-        and never told of its queryable (nor, maybe, its subscriptions): see worker.py,
+        and never told of its queryable (nor, maybe, its subscriptions): see worker_starts.py,
         REDECLARE_AFTER_S."""
         if not self.declared:
             return
-        old = self.declared
-        self.declared = []
         self.transport.redeclare_inputs()
-        for d in old:
-            if isinstance(d, zenoh.Queryable):
-                self.declared.append(self._declare_queryable())
-            else:
-                self.declared.append(self._declare_control())
-        for d in old:
-            d.undeclare()
+        self.plane.redeclare()
         self.counts["redeclared"] += 1
 
     def await_routes(self, timeout: float) -> None:
@@ -176,14 +181,8 @@ class NodeLoop:
 
     def undeclare(self) -> None:
         self.transport.undeclare()
-        for d in self.declared:
-            d.undeclare()
-        self.declared = []
+        self.plane.undeclare()
         self.outputs.publishers = {}
-
-    def _answer_progress(self, query: zenoh.Query) -> None:
-        frontier = self.outputs.frontier()  # first: the seqs read after it can only be later ones
-        query.reply(self.keys.progress(self.id), WireEncoder().progress(frontier, self.id, dict(self.sent)))
 
     # ---------------------------------------------------------------------------------------
     # Messages
@@ -237,6 +236,9 @@ class NodeLoop:
                     if msg.seq > have:
                         reports.kept[(msg.producer, msg.port, msg.seq)] = kept
             for msg in events:
+                streams.in_order(key, msg)
+        elif kind == EVENTS:  # from a producer of this process (group.py): trusted, by reference
+            for msg in data:
                 streams.in_order(key, msg)
         elif kind == NUDGE:
             return
@@ -294,81 +296,73 @@ class NodeLoop:
     def run(self, t0: int, end: int, resume: bool = False) -> None:
         """Tick from T0 (HLC Unix ns) while ``t < end`` (ns since T0), then finish. ``resume``:
         join a run in progress (a restarted flow) at its next Rate tick."""
-        clock, outputs, reports = self.run_clock, self.outputs, self.reports
+        self.begin(t0, end, resume)
+        while not self.stopping:
+            now, wake = self.one_pass()
+            if wake is TICKED:
+                continue  # look again at once
+            if wake is DONE:
+                break
+            self.pacer.sleep(now, wake)
+        self.end()
+
+    def begin(self, t0: int, end: int, resume: bool = False) -> None:
+        """The run's clock starts: the first tick is scheduled (``resume``: the next Rate tick
+        of a run in progress) and the consumers told where this node stands."""
+        clock = self.run_clock
         with self.lock:
             clock.start(t0, end)
         if resume and not self.virtual:  # (in virtual time no tick came due meanwhile: time waited)
             self.steps.skip_missed_ticks(clock.now(), "restart_skipped", "restart_skipped")
         else:
             self.schedule.start()
-        outputs.publish_progress()
-        plain_source = is_plain_source(self)
-        while not self.stopping:
-            quiet = plain_source and not (self.schedule.pending or outputs.held or self.restarting
-                                          or self.inbox.qsize())
-            if quiet and not self.notes.detail:
-                quiet_source(self)  # its ticks for as long as they are quiet
-                if self.stopping:
-                    break
-                quiet = not (self.schedule.pending or outputs.held or self.restarting or self.inbox.qsize())
-            if quiet:
-                now = clock.now()
-                wake = source_pass(self, now)
-            else:
-                self.drain()
-                if self.stopping:
-                    break
-                now = clock.now()
-                outputs.release(now)
-                wake = self.try_tick(now)
-            if wake is TICKED:
-                if reports.flush_due is not None and now >= reports.flush_due:  # (now: before that tick)
-                    reports.flush()  # also when ticks run back to back: a late node still reports
-                continue  # look again at once
-            if wake is DONE:
-                break
-            if reports.flush_due is not None and reports.flush_due <= wake:
-                # before waiting, not after: a tick that came due is not held up by it, and the
-                # reporter thread does its work while this one waits (a 200 Hz tick's p99
-                # lateness grew when the report went out just as the tick was due)
-                reports.flush()
-                if reports.flush_due is not None:
-                    wake = min(wake, reports.flush_due)
-            if outputs.held:
-                wake = min(wake, outputs.held[0][0][0])
-            self._sleep(now, wake)
-        if not self.handing_over and not self.abandoned:
-            self._finish()
+        self.outputs.publish_progress()
+        self.plain_source = is_plain_source(self) and not self.grouped
 
-    def _sleep(self, now: int, wake: int) -> None:
-        """Until ``wake`` (ns since T0), or a message: warmed up for the moment it foresees
-        (timing.py), or spinning to a Rate tick (configure(spin=))."""
-        target, message = self.warmup.target(now, wake)
-        if target is not None:
-            early = target - WARM_AHEAD_NS
-            # nothing came meanwhile, and the wait (at most 100 ms) lasted to the moment
-            if not self.wait(early - now) and self.run_clock.now() >= early:
-                self.warmup.warm(message)
-                self.warmup.warmed_for = target
-            return
-        next_rate = self.schedule.next_rate
-        if self.spin_ns and next_rate is not None and wake == next_rate[0]:
-            self._spin_to(wake)
+    def one_pass(self) -> tuple[int, int | str]:
+        """One pass of the loop: what came is handled, held outputs now due released, the next
+        tick run if it is due and ready. ``(now, TICKED)`` to look again at once, ``(now,
+        DONE)``, or ``(now, wake)``: nothing to do before ``wake`` (ns since T0) unless a
+        message comes."""
+        clock, outputs, reports = self.run_clock, self.outputs, self.reports
+        quiet = self.plain_source and not (self.schedule.pending or outputs.held or self.restarting
+                                           or self.inbox.qsize())
+        if quiet and not self.notes.detail:
+            quiet_source(self)  # its ticks for as long as they are quiet
+            if self.stopping:
+                return clock.now(), DONE
+            quiet = not (self.schedule.pending or outputs.held or self.restarting or self.inbox.qsize())
+        if quiet:
+            now = clock.now()
+            wake = source_pass(self, now)
         else:
-            self.wait(wake - self.run_clock.now())
+            self.drain()
+            now = clock.now()
+            if self.stopping:
+                return now, DONE
+            outputs.release(now)
+            wake = self.try_tick(now)
+        if wake is TICKED:
+            if reports.flush_due is not None and now >= reports.flush_due:  # (now: before that tick)
+                reports.flush()  # also when ticks run back to back: a late node still reports
+            return now, wake
+        if wake is DONE:
+            return now, wake
+        if reports.flush_due is not None and reports.flush_due <= wake:
+            # before waiting, not after: a tick that came due is not held up by it, and the
+            # reporter thread does its work while this one waits (a report that went out just
+            # as a tick came due made that tick late: control_jitter.py shows it)
+            reports.flush()
+            if reports.flush_due is not None:
+                wake = min(wake, reports.flush_due)
+        if outputs.held:
+            wake = min(wake, outputs.held[0][0][0])
+        return now, wake
 
-    def _spin_to(self, wake: int) -> None:
-        """Wait for the Rate tick at ``wake`` (configure(spin=)): sleep until ``spin_ns`` before
-        it, then busy-wait to it, unless a message comes (the loop then looks again)."""
-        now = self.run_clock.now
-        while (left := wake - self.spin_ns - now()) > 0:  # (one wait sleeps at most 100 ms)
-            if self.wait(left):
-                return
-        inbox = self.inbox
-        began = now()
-        while now() < wake and not inbox.qsize():
-            pass
-        self.counts["spin_ns"] += now() - began
+    def end(self) -> None:
+        """After the last pass: finish, unless the loop hands over to a new process or was abandoned."""
+        if self.ending not in (Ending.HANDING_OVER, Ending.ABANDONED):
+            self._finish()
 
     def try_tick(self, now: int) -> int | str:
         """Run the next tick if it is due and its inputs are complete (or past deadline):
@@ -428,3 +422,4 @@ class NodeLoop:
         messages already queued are taken in first, and no more come)."""
         self.drain()
         return handover.handover_state(self)
+

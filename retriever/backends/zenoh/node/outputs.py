@@ -18,12 +18,13 @@ import time
 
 from ....errors import CausalityError, CodecError, StopRun
 from ....flow.burst import Burst
-from ..wire import WireEncoder
+from ..wire import DataMessage, WireEncoder
 from .clock import RunClock
 from .frontiers import NEVER, Streams
 from .reports import Reports
 from .schedule import Schedule
 from .transport import Transport
+from .group import LocalPublisher
 
 
 class Outputs:
@@ -160,13 +161,9 @@ class Outputs:
             publisher = publishers.get(port)
             if publisher is None:  # an output port no edge uses (an untyped flow's extra key)
                 publisher = publishers[port] = self.transport.publisher(port)
-            try:
-                message = data(tag, seq, frontier if i == last else tag, me, port, value)
-            except CodecError as e:  # the step returned it; in-process it would have gone by reference
-                what = "the Burst (value[i]: its value i)" if type(value) is Burst else "the event"
-                raise StopRun(f"{me}.{port}: {what} at t={tag[0] / 1e9:.6f} s cannot be sent to another "
-                              f"process: {e}", tag) from None
-            burst = type(value) is Burst
+            burst, carries = type(value) is Burst, frontier if i == last else tag
+            local = type(publisher) is LocalPublisher  # (consumers in this process: handed over as they are)
+            message = None if local and publisher.remote is None else self._encode(tag, seq, carries, port, value)
             # counted as sent before the put, not after: a consumer that subscribes meanwhile and
             # asks where the stream stands (a node started afresh: sync_inputs) must not be told
             # to wait for this seq. Zenoh chose the put's subscribers when it began, and a put held
@@ -174,12 +171,17 @@ class Outputs:
             # told 'sent up to seq - 1', the new consumer waited for a seq that never came to it,
             # every tick incomplete, for the rest of the run (issue 40)
             self.sent[port] = seq + len(value.values) - 1 if burst else seq
-            publisher.put(message)
+            if local:
+                publisher.hand(_as_messages(tag, seq, carries, me, port, value, burst))
+            if message is not None:
+                publisher.put(message)
             if self.consumed and not burst:  # someone waits for this node's next event: warm its path first
                 self.warm_publish = (tag, seq, frontier, me, port, value)
             if not reports.values:  # the coordinator records that it was sent, not what
                 blank = Burst.unchecked((None,) * len(value.values)) if burst else None  # sent as nil
-                message = data(tag, seq, frontier if i == last else tag, me, port, blank)
+                message = data(tag, seq, carries, me, port, blank)
+            elif message is None:  # (handed over in this process only: the coordinator still wants it)
+                message = self._encode(tag, seq, carries, port, value)
             reports.published.append((time.time_ns(), message))
             reports.published_bytes += len(message)
             reports.published_seqs += len(value.values) if burst else 1
@@ -191,5 +193,23 @@ class Outputs:
         if self.consumed and not (batch and self.single_port):
             self.publish_progress(frontier)
 
+    def _encode(self, tag: tuple[int, int], seq: int, frontier: tuple[int, int], port: str, value) -> bytes:
+        try:
+            return self.encoder.data(tag, seq, frontier, self.id, port, value)
+        except CodecError as e:  # the step returned it; in-process it would have gone by reference
+            what = "the Burst (value[i]: its value i)" if type(value) is Burst else "the event"
+            raise StopRun(f"{self.id}.{port}: {what} at t={tag[0] / 1e9:.6f} s cannot be sent to another "
+                          f"process: {e}", tag) from None
+
     def publish_progress(self, frontier: tuple[int, int] | None = None) -> None:
         self.progress_publisher.put(self.encoder.progress(frontier or self.frontier(), self.id, self.sent))
+
+
+def _as_messages(tag, seq: int, frontier, producer: str, port: str, value, burst: bool) -> list[DataMessage]:
+    """An event as a consumer's decoder would give it (wire.decode_events), values by reference:
+    a Burst's events each with its own seq, all but the last with their own tag as frontier."""
+    if not burst:
+        return [DataMessage(tag, seq, frontier, producer, port, value)]
+    last = len(value.values) - 1
+    return [DataMessage(tag, seq + i, frontier if i == last else tag, producer, port, item)
+            for i, item in enumerate(value.values)]

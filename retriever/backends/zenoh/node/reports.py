@@ -13,19 +13,21 @@ from __future__ import annotations
 
 import time
 
-from ..reporter import Reporter
 from .clock import RunClock
 from .notes import Notes
+from .reporter import Reporter
 
 #: how long published events may wait before they go to the coordinator (with the step records
 #: before them), and at most how many records or bytes of events go at once. Every report wakes
-#: the reporter's thread, Zenoh's and the coordinator: at 20 ms, an idle 100 Hz flow reported every
-#: other tick (issue 21: idle cost). Nothing waits on a report for less: a consumer holds records
-#: for HOLD_RECORDS_NS, the coordinator logs events and shows them live (--foxglove).
+#: the reporter's thread, Zenoh's and the coordinator, so a report gathers many ticks of a fast
+#: flow rather than one or two; and it is due well within HOLD_RECORDS_NS, so a consumer's held
+#: records find their events reported. Nothing else waits on a report: the coordinator logs the
+#: events and shows them live (--foxglove), where a tenth of a second is no delay a user sees.
 FLUSH_AFTER_NS = 100_000_000
 #: how long step records may wait when no event waits with them (a flow that outputs nothing, or
-#: not on every tick): nothing but the coordinator's counts and live view waits for those, and ten
-#: reports a second cost an idle 100 Hz flow about a quarter of its CPU (issue 21: idle cost)
+#: not on every tick): nothing but the coordinator's counts and live view waits for those, so they
+#: go once a second, and an idle flow's cost is its ticks, not its reports
+#: (benchmarks/reports/idle_cpu.md has what each costs)
 RECORDS_FLUSH_AFTER_NS = 1_000_000_000
 FLUSH_MAX = 512
 FLUSH_MAX_BYTES = 64 << 20
@@ -75,12 +77,14 @@ class Reports:
             if self.flush_due is None or self.flush_due > due:  # (records alone may wait longer)
                 self.flush_due = due
 
-    def coordinator_has(self, streams: tuple[tuple[str, str, int], ...]) -> None:
-        """Control ``have`` (protocol.Have): per stream, the last seq the coordinator has; forget those messages."""
-        for producer, port, seq in streams:
-            stream = (producer, port)
-            if stream in self.streams:
-                self.have[stream] = max(self.have.get(stream, -1), seq)
+    def coordinator_has(self, last_seqs: dict[tuple[str, str], int]) -> None:
+        """Control ``have`` (protocol.Have.last_seqs): per stream, the last seq the coordinator
+        has; forget those messages. Looks up this node's input streams, not every stream named."""
+        have = self.have
+        for stream in self.streams:
+            seq = last_seqs.get(stream)
+            if seq is not None and seq > have.get(stream, -1):
+                have[stream] = seq
         if self.kept:
             self.kept = {eid: kept for eid, kept in self.kept.items() if eid[2] > self.have.get(eid[:2], -1)}
 

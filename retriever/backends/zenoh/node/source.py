@@ -1,14 +1,14 @@
 """The short way for a plain source: a node on a Rate clock, in real time, with no inputs and
 outputs not delayed (issue 21: an idle 100 Hz flow's CPU). Its idle passes of the loop skip what
 only nodes with inputs or held outputs need; the ticks it runs are those ``Steps.tick`` would
-run, with the same records."""
+run, with the same step call (tick.timed_step) and the same records."""
 
 from __future__ import annotations
 
 import time
 from typing import Any
 
-from .reports import FLUSH_MAX, RECORDS_FLUSH_AFTER_NS
+from ....tick import timed_step
 from .timing import WARM_AHEAD_NS
 
 
@@ -32,16 +32,11 @@ def source_pass(loop, now: int) -> int | str | None:
     schedule.last_tick = tau
     detail: dict[str, Any] | None = loop.notes.detail or None
     loop.notes.detail = {}
-    start = time.time_ns()
-    try:
-        outputs = list(steps.read(steps.invoke({})))
-    except KeyboardInterrupt:
-        raise
-    except BaseException as exc:
+    outputs, exc, start, end = timed_step(steps.invoke, steps.read, {})
+    if exc is not None:
         steps.step_failed(tau, {}, detail, exc, start)
         return loop.after_tick()
-    wall = time.time_ns() - start
-    loop.last_wall = wall
+    wall = loop.last_wall = end - start
     steps.source_stepped(tau, outputs, detail, start, wall)
     return loop.after_tick()
 
@@ -56,7 +51,8 @@ def quiet_source(loop) -> None:
     error or overrun (its tick finished first), a flush due, the end."""
     schedule, steps, reports, warmup = loop.schedule, loop.steps, loop.reports, loop.warmup
     lock, time_ns, t0, end = loop.lock, time.time_ns, loop.run_clock.t0, loop.run_clock.end
-    invoke, tick_time, period, queued = steps.invoke, schedule.clock.tick_time, steps.period_ns, loop.inbox.qsize
+    invoke, read, tick_time, period, queued = (steps.invoke, steps.read, schedule.clock.tick_time, steps.period_ns,
+                                               loop.inbox.qsize)
     while not (loop.stopping or loop.restarting or queued()):  # (what came during a step: handled first)
         tau = schedule.next_rate
         if tau is None or tau[0] >= end:
@@ -82,34 +78,16 @@ def quiet_source(loop) -> None:
             schedule.k = k = schedule.k + 1
             schedule.next_rate = (tick_time(k), 0)
         schedule.last_tick = tau
-        start = time_ns()
-        try:
-            raw = invoke({})
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:
+        outputs, exc, start, finished = timed_step(invoke, read, {})
+        if exc is not None:
             steps.step_failed(tau, {}, None, exc, start)
             return
-        wall = loop.last_wall = time_ns() - start
-        outputs = ()
-        if raw is not None:  # (an empty dict, an output object of Nones: quiet too)
-            try:
-                outputs = list(steps.read(raw))
-            except KeyboardInterrupt:
-                raise
-            except BaseException as exc:
-                steps.step_failed(tau, {}, None, exc, start)
-                return
-        if outputs or (period and wall > period):
+        wall = loop.last_wall = finished - start
+        if outputs or (period and wall > period):  # (None, {}, an output object of Nones: quiet)
             steps.source_stepped(tau, outputs, None, start, wall)
             return
         with lock:
             schedule.running = None
         if loop.outputs.consumed:
             loop.outputs.publish(())  # the frontier, for its consumers
-        reports.records.append((tau, {}, (), "ok", None, start, wall))  # as Reports.record, inline
-        reports.recorded += 1
-        if reports.flush_due is None:
-            reports.flush_due = time_ns() - t0 + RECORDS_FLUSH_AFTER_NS
-        elif len(reports.records) >= FLUSH_MAX:
-            reports.flush()
+        reports.record(tau, {}, (), "ok", None, start, wall)

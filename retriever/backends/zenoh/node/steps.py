@@ -1,5 +1,9 @@
 """A tick: select the inputs, call ``step()``, and decide what its outcome means (publish, hold,
-record; an overrun, a LET deadline missed, an error: skip, stop, restart, or end the run)."""
+record; an overrun, a LET deadline missed, an error: skip, stop, restart, or end the run).
+
+Taking the inputs, the timed step call and the step records of a skipped or failed tick are the
+reference tick's own (tick.take_inputs, tick.timed_step, tick.skipped_outcome and the others, as
+the in-process backend uses them); what is here is a real-time node's accounts of the outcome."""
 
 from __future__ import annotations
 
@@ -8,7 +12,9 @@ from typing import Any
 
 from ....errors import StopRun
 from ....flow.burst import Burst
-from ....tick import Decision, decide, error_text, select_inputs
+from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
+                      timed_step)
+from .ending import Ending
 
 
 class Steps:
@@ -48,26 +54,17 @@ class Steps:
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
                               f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
                               "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
-        values, consumed, missing, commits, dropped = select_inputs(self.inputs, tau)
+        values, consumed, missing, dropped = take_inputs(self.inputs, self.fallbacks, tau)
         if dropped:
             detail = {**(detail or {}), **dropped}
         if missing is not None:
-            self.finish_tick(tau, {}, (), "skipped", {**(detail or {}), "missing": missing}, time.time_ns(), 0)
+            self.finish_tick(tau, {}, (), *skipped_outcome(missing, detail), time.time_ns(), 0)
             return
-        for policy, buf, commit in commits or ():
-            policy.commit_to(buf, commit)
-        for port, spec in self.fallbacks.items():
-            values[port] = spec.fallback()
-
-        start = time.time_ns()
-        try:
-            outputs = list(self.read(self.invoke(values)))
-        except KeyboardInterrupt:
-            raise
-        except BaseException as exc:  # SystemExit too: sys.exit(1) in a step is that step's error, as in-process
+        outputs, exc, start, end = timed_step(self.invoke, self.read, values)
+        if exc is not None:
             self.step_failed(tau, consumed, detail, exc, start)
             return
-        wall = time.time_ns() - start
+        wall = end - start
         self.loop.last_wall = wall
         overran = self.period_ns and wall > self.period_ns and not self.virtual
         self.emit(tau, consumed, outputs, detail, start, wall,
@@ -84,16 +81,15 @@ class Steps:
         decision = decide(self.on_error, exc, None, tau[0])
         if decision is Decision.END_RUN:
             # the coordinator is told first (it stops every node), then this loop ends as if told to stop
-            self.finish_tick(tau, consumed, (), "ok", {**(detail or {}), "exit": 0}, start, wall)
+            self.finish_tick(tau, consumed, (), *exit_outcome(detail), start, wall)
             if loop.on_exit is not None:
                 loop.on_exit(tau)
-            loop.stopping = loop.told_to_stop = True
+            loop.stop(Ending.TOLD_TO_STOP)
             return
         error = error_text(exc)
-        self.finish_tick(tau, consumed, (), "error", {**(detail or {}), "error": error, "on_error": self.on_error},
-                         start, wall)
+        self.finish_tick(tau, consumed, (), *error_outcome(error, self.on_error, detail), start, wall)
         if decision is Decision.STOP:
-            raise StopRun(f"{self.id}.step() raised {error}", tau) from exc
+            raise StopRun(f"{self.id}.step() raised {error}", tau, raised=error) from exc
         if decision is Decision.RESTART:
             loop.restarting = True
             if loop.on_restart is not None:

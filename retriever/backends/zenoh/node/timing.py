@@ -1,4 +1,5 @@
-"""Being on time: warming up the send and receive paths before a predictable moment.
+"""Being on time: warming up the send and receive paths before a predictable moment, and the
+loop's sleep to its next wake (Pacer).
 
 After a sleep of ~10 ms or more, the code and data of the send and receive paths are out of the
 CPU's caches, and that cold run is most of a small message's latency (benchmarks/reports/
@@ -65,3 +66,44 @@ class Warmup:
                 decode_events(message)
         except Exception:
             outputs.warm_publish = None
+
+
+class Pacer:
+    """How a node loop (``loop``) sleeps until its next wake: warmed up for the moment it
+    foresees (Warmup), spinning the last ``spin_ns`` to a Rate tick (configure(spin=)), or
+    plainly. A message ends any of them: the loop's ``wait`` handles it, and the loop looks again."""
+
+    def __init__(self, loop):
+        self.loop = loop
+
+    def sleep(self, now: int, wake: int) -> None:
+        """Until ``wake`` (ns since T0), or a message."""
+        loop = self.loop
+        warmup = loop.warmup
+        target, message = warmup.target(now, wake)
+        if target is not None:
+            early = target - WARM_AHEAD_NS
+            # nothing came meanwhile, and the wait (at most 100 ms) lasted to the moment
+            if not loop.wait(early - now) and loop.run_clock.now() >= early:
+                warmup.warm(message)
+                warmup.warmed_for = target
+            return
+        next_rate = loop.schedule.next_rate
+        if loop.spin_ns and next_rate is not None and wake == next_rate[0]:
+            self._spin_to(wake)
+        else:
+            loop.wait(wake - loop.run_clock.now())
+
+    def _spin_to(self, wake: int) -> None:
+        """Wait for the Rate tick at ``wake``: sleep until ``spin_ns`` before it, then busy-wait
+        to it, unless a message comes (the loop then looks again)."""
+        loop = self.loop
+        now = loop.run_clock.now
+        while (left := wake - loop.spin_ns - now()) > 0:  # (one wait sleeps at most 100 ms)
+            if loop.wait(left):
+                return
+        inbox = loop.inbox  # (read now: a GroupLoop gives its loops inboxes of its own)
+        began = now()
+        while now() < wake and not inbox.qsize():
+            pass
+        loop.counts["spin_ns"] += now() - began

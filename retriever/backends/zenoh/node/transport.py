@@ -49,11 +49,34 @@ class Transport:
         raise NotImplementedError
 
 
+class Tap:
+    """What a diagnostic sees of the Zenoh transports of its process (:func:`tap_transports`): each
+    publisher a loop puts to, and each callback a data subscriber calls, handed back as they are
+    or wrapped (benchmarks/zenoh_probe.py stamps the puts and the callbacks)."""
+
+    def publisher(self, key: str, publisher):
+        return publisher
+
+    def callback(self, key: str, callback: Callable):
+        return callback
+
+
+_tap: Tap | None = None
+
+
+def tap_transports(tap: Tap | None) -> None:
+    """Hand what each :class:`ZenohTransport` built from now on in this process declares through
+    ``tap`` (None: no tap)."""
+    global _tap
+    _tap = tap
+
+
 class ZenohTransport(Transport):
     """Events and progress on the run's Zenoh session, under ``keys``."""
 
     def __init__(self, session: zenoh.Session, keys: KeySpace, node_id: str):
         self.session, self.keys, self.id = session, keys, node_id
+        self.tap = _tap
         self.subscribers: list = []
         self.publishers: list = []  # every one undeclared at the end (see undeclare)
         self.inputs: tuple | None = None  # declare_inputs' arguments, for redeclare_inputs
@@ -63,9 +86,13 @@ class ZenohTransport(Transport):
         receive = weak_callback(inline) if inline is not None else put
         s, keys = self.session, self.keys
         for src, src_port in streams:
+            key = keys.data(src, src_port)
+
+            def callback(sample, k=(src, src_port)):
+                receive((DATA, k, sample.payload.to_bytes()))
+
             self.subscribers.append(s.declare_subscriber(
-                keys.data(src, src_port),
-                lambda sample, k=(src, src_port): receive((DATA, k, sample.payload.to_bytes()))))
+                key, callback if self.tap is None else self.tap.callback(key, callback)))
         for src in sources:
             self.subscribers.append(s.declare_subscriber(
                 keys.progress(src), lambda sample, k=src: put((PROGRESS, k, sample.payload.to_bytes()))))
@@ -86,7 +113,7 @@ class ZenohTransport(Transport):
         # that no frontier can cross (a slow consumer backs its producer up instead)
         publisher = self.session.declare_publisher(key, express=True, congestion_control=RELIABLE)
         self.publishers.append(publisher)
-        return publisher
+        return publisher if self.tap is None else self.tap.publisher(key, publisher)
 
     def redeclare_inputs(self) -> None:
         if self.inputs is None:

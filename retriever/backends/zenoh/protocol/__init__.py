@@ -1,16 +1,17 @@
-"""The Zenoh runtime's protocol: every control and status message, as a typed record (issue 37).
+"""The Zenoh runtime's protocol: every control and status message, as a typed record.
 
-Each message is a frozen dataclass with ``encode()`` (the bytes today's senders put, byte for
-byte) and an exact ``decode`` (schema.py: every field's type, range and size, none missing,
+Each message is a frozen dataclass with ``encode()`` (the bytes its sender puts) and an exact ``decode`` (schema.py: every field's type, range and size, none missing,
 none more, no extension type; a :class:`WireError` names the field). Op and state names are the
-enums below; no other module spells one. The events and progress of the data plane keep their
-own exact decoders in wire.py.
+enums below; no other module spells one, but for a spawn's mode, which is the worker's command
+line's (``SpawnMode``: command.py reads both). The events and progress of the data plane keep
+their own exact decoders in wire.py.
 
     schema.py          field kinds, the record base, the envelopes
     to_coordinator.py  worker → coordinator: statuses (State), reports
     to_worker.py       coordinator → workers: ctl/run (Op), and answers to a worker's questions
     daemon.py          coordinator ↔ worker daemon: requests, replies, errors, the daemon's events
     deployment.py      `retriever status` / `retriever stop` ↔ a deployment's coordinator
+    run_spec.py        the run's spec: coordinator or daemon → each worker process
     seal.py            signed control: the coordinator seals, each worker process opens
 
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
@@ -130,12 +131,14 @@ decoders check).
 
 from __future__ import annotations
 
+from ..command import SpawnMode
 from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST,
                      DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
-                     PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnMode,
-                     SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
-from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeStatus, StatusQuery, StatusReply,
-                         StopQuery, StopReply)
+                     PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnReply,
+                     SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
+from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeState, NodeStatus, StatusQuery,
+                         StatusReply, StopQuery, StopReply)
+from .run_spec import RunSpec
 from .schema import ABSENT, Record
 from .seal import ControlOpener, ControlSigner, new_nonce
 from .to_coordinator import (STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
@@ -148,9 +151,9 @@ __all__ = sorted([
     "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
     "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "End", "EndReply", "EndRequest", "ErrorReply",
     "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest", "Lost",
-    "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached",
+    "NodeState", "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached",
     "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
-    "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
+    "RunSpec", "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
     "StatusQuery", "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply",
     "UsageRequest", "decode_reply", "error_message", "new_nonce",
 ])

@@ -17,9 +17,11 @@ from enum import StrEnum
 from typing import Any
 
 from ....errors import OtherProtocol, WireError
+from ..command import parse_mode
 from ..origin import KEY_BYTES
-from .schema import (MAX_NAME_CHARS, NS_MAX, PID_MAX, Channel, Document, Float, HexKey, Int, Kind, ListOf, MapOf,
-                     Name, OneOf, Record, Text, field)
+from .run_spec import RunSpec
+from .schema import (MAX_NAME_CHARS, NS_MAX, PID_MAX, Channel, Float, HexKey, Int, Kind, ListOf, MapOf, Name, Nested,
+                     OneOf, Record, Text, field)
 
 
 class DaemonOp(StrEnum):
@@ -43,17 +45,12 @@ class Stream(StrEnum):
     STDERR = "stderr"
 
 
-class SpawnMode(StrEnum):
-    """How a worker process joins its run (worker.py's command line: ``--join T0 END``...)."""
-
-    JOIN = "--join"  # a restarted flow's process, taking over from the old one
-    FRESH = "--fresh"  # a flow whose process died, started afresh
-
-
 #: the op of every error reply (of a daemon, and of a deployment)
 ERROR = "error"
-#: the protocol version a daemon's info says (a coordinator tells what a worker understands)
-PROTOCOL_VERSION = 2  # 2: a spawn's key is made by the worker and comes in its answer (remote.py)
+#: the protocol version a daemon's info says, first: raised whenever a message changes its fields
+#: or their meaning, so that a coordinator and a worker of different versions refuse each other
+#: with a word on the versions (OtherProtocol) instead of misreading each other's records
+PROTOCOL_VERSION = 2
 #: the largest control request a daemon reads (a prepare carries the run's IR)
 MAX_REQUEST_BYTES = 8 << 20
 #: an output line as a daemon sends it: runs.MAX_LINE_BYTES of bytes, decoded with replacement
@@ -64,17 +61,17 @@ PID = Int(1, PID_MAX)
 
 
 class Mode(Kind):
-    """A spawn's mode: ``[]``, or ``[--join|--fresh, T0, END]`` with ns as ASCII digits."""
+    """A spawn's mode: ``[]``, or ``[--join|--fresh, T0, END]`` with ns as ASCII digits: the
+    worker's command line takes it as it comes (command.parse_mode, which checks both)."""
 
     expects = "a spawn mode: [] or [--join|--fresh, T0, END] (ns, non-negative, in ASCII digits)"
 
     def read(self, value: Any, where: str) -> tuple[str, ...]:
-        if value == [] and type(value) is list:
-            return ()
-        if not (type(value) is list and len(value) == 3 and value[0] in tuple(SpawnMode)
-                and all(type(x) is str and x.isascii() and x.isdigit() and len(x) <= 19 for x in value[1:])):
-            raise self.refuse(value, where)  # ASCII: "²" is a digit to isdigit, not to int
-        return (SpawnMode(value[0]), value[1], value[2])
+        try:
+            mode = parse_mode(value)
+        except ValueError:
+            raise self.refuse(value, where) from None
+        return () if mode.kind is None else (mode.kind, value[1], value[2])
 
     def write(self, value: tuple[str, ...]) -> list:
         return [str(part) for part in value]
@@ -87,11 +84,12 @@ class InfoRequest(Record):
 
 @dataclass(frozen=True, kw_only=True)
 class PrepareRequest(Record):
-    """Check ``nodes`` of the run's ``spec`` (its IR: ir.IR; the rest: runs.py) and keep it."""
+    """Check ``nodes`` of the run's ``spec`` (its fields: run_spec.py; its IR: ir.IR; its plan
+    and modules: runs.py) and keep it."""
 
     NAME = DaemonOp.PREPARE
     run: str = field(RUN)
-    spec: dict = field(Document())
+    spec: RunSpec = field(Nested(RunSpec))
     nodes: tuple[str, ...] = field(ListOf(Name()))
 
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
-from .schema import (MAX_NAME_CHARS, NS_MAX, Bool, Channel, Float, Int, MapOf, Name, Nested, Nullable, Record, Text,
-                     field)
+from .schema import (MAX_NAME_CHARS, NS_MAX, Bool, Channel, Float, Int, MapOf, Name, Nested, Nullable, OneOf, Record,
+                     Text, field)
+from .to_coordinator import State
 
 
 class DeploymentOp(StrEnum):
@@ -19,6 +20,17 @@ class DeploymentOp(StrEnum):
 
     STATUS = "status"
     STOP = "stop"
+
+
+class NodeState(StrEnum):
+    """A node's state in a deployment's status (NodeStatus.state), as the coordinator keeps it:
+    from its process's spawn until that process says its first state, ``starting``; then the
+    last of these states (State) its process said."""
+
+    STARTING = "starting"
+    READY = State.READY.value
+    FAILED = State.FAILED.value
+    DONE = State.DONE.value
 
 
 COUNT = Int(0, NS_MAX)
@@ -40,7 +52,7 @@ class NodeStatus(Record):
     its process used so far (as last read; absent before the first reading)."""
 
     worker: str | None = field(Nullable(Name()))
-    state: str | None = field(Nullable(Text(MAX_NAME_CHARS)))
+    state: NodeState | None = field(Nullable(OneOf(NodeState)))
     ticks: int = field(COUNT)
     steps: int = field(COUNT)
     skips: int = field(COUNT)

@@ -6,7 +6,8 @@ reads the decoded value (str, int, float, bool, None, list, dict) into what the 
 (tuples for lists, enum members for names of a closed set) or raises :class:`WireError` naming
 the field, what it expects and what arrived. A record's fields are its message's map, in the
 order the record declares them; a field marked optional may be absent from the map (the record
-then holds :data:`ABSENT`), every other one must be there, and no other key may.
+then holds :data:`ABSENT`, or the field's default), every other one must be there, and no other
+key may.
 """
 
 from __future__ import annotations
@@ -153,8 +154,10 @@ class OneOf(Kind):
         except (ValueError, TypeError):
             raise self.refuse(value, where) from None
 
-    def write(self, value: Enum) -> Any:
-        return value.value
+    def write(self, value: Enum | str) -> Any:
+        """The member's value; a text is taken only if it is one (ValueError: no message says a
+        name outside the set)."""
+        return self.enum(value).value
 
 
 class Nullable(Kind):
@@ -224,8 +227,8 @@ class MapOf(Kind):
 
 
 class Document(Kind):
-    """A map with string keys whose values its receiver validates as a whole (a run's spec:
-    runs.py, and its IR: ir.IR); read as it came, never called."""
+    """A map with string keys whose values its receiver validates as a whole (a run's IR:
+    ir.IR, and its plan: plan.Plan.from_data); read as it came, never called."""
 
     expects = "a map with string keys"
 
@@ -301,9 +304,14 @@ class Nested(Kind):
         return value.to_fields()
 
 
-def field(kind: Kind, *, optional: bool = False) -> Any:
+def field(kind: Kind, *, optional: bool = False, default: Any = dataclasses.MISSING,
+          default_factory: Any = dataclasses.MISSING) -> Any:
     """A record's field that travels as ``kind``; ``optional``: its message may leave it out
-    (:data:`ABSENT` then)."""
+    (:data:`ABSENT` then); ``default`` (or ``default_factory``): it may, and the record then
+    holds that."""
+    if default is not dataclasses.MISSING or default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default=default, default_factory=default_factory,
+                                 metadata={"kind": kind, "optional": True})
     return dataclasses.field(default=ABSENT if optional else dataclasses.MISSING,
                              metadata={"kind": kind, "optional": optional})
 
@@ -319,6 +327,7 @@ class Record:
     #: fields an older sender put in this message that must now be refused with their own reason
     REFUSED: ClassVar[dict[str, str]] = {}
     _schema: ClassVar[tuple[tuple[str, Kind, bool], ...]]
+    _defaults: ClassVar[dict[str, Any]]
 
     @classmethod
     def schema(cls) -> tuple[tuple[str, Kind, bool], ...]:
@@ -341,10 +350,24 @@ class Record:
             raise WireError(f"a '{record.NAME}' message where '{cls.NAME}' was expected")
         return record
 
+    @classmethod
+    def defaults(cls) -> dict[str, Any]:
+        """The default of each field that has one (ABSENT is none): its message leaves it out."""
+        if "_defaults" not in cls.__dict__:
+            found = {}
+            for f in dataclasses.fields(cls):
+                if f.default_factory is not dataclasses.MISSING:
+                    found[f.name] = f.default_factory()
+                elif f.default is not dataclasses.MISSING and f.default is not ABSENT:
+                    found[f.name] = f.default
+            cls._defaults = found
+        return cls._defaults
+
     def to_fields(self) -> dict:
-        """The message's map: each field present, in the record's order."""
+        """The message's map: each field present and not at its default, in the record's order."""
+        defaults = self.defaults()
         return {name: kind.write(value) for name, kind, _ in self.schema()
-                if (value := getattr(self, name)) is not ABSENT}
+                if (value := getattr(self, name)) is not ABSENT and not (name in defaults and value == defaults[name])}
 
     @classmethod
     def from_fields(cls, fields: Any, where: str, **envelope: Any) -> Record:

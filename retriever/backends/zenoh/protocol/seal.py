@@ -7,7 +7,9 @@ the other way with the same keys. The coordinator holds the key of every process
 (it gave it, or the process's daemon answered it to the coordinator alone: remote.py), and no
 one else does; so it *seals* each control message with one MAC per live process, and each
 process opens it with its own key. No key travels anywhere new: a process's key is its
-control key, and a process started after a message was sealed cannot open it.
+control key, and a process started after a message was sealed cannot open it. A process whose
+exit is confirmed is dropped (coordinator/processes.py): however often a run restarts its flows,
+a control message carries a MAC for the processes that may still read it, and no more.
 
     put on ctl/run     attachment = counter (COUNTER_BYTES, big-endian) + MAC(k, key_expr, counter + payload) for each k
     reply (ctl/start,  query attachment = a nonce (NONCE_BYTES, fresh per question)
@@ -42,7 +44,7 @@ COUNTER_BYTES = 8
 NONCE_BYTES = 16
 #: how far behind the newest counter a process took a control message may be and still be taken
 REPLAY_WINDOW = 1024
-#: a run's processes, at most, that one control message is sealed for: its attachment stays small
+#: a run's live processes, at most, that one control message is sealed for: its attachment stays small
 MAX_SEALED = 4096
 
 
@@ -66,6 +68,11 @@ class ControlSigner:
         """``process`` ended: no more control is sealed for it."""
         with self._lock:
             self._keys.pop(id(process), None)
+
+    def holders(self) -> list[object]:
+        """The processes control is sealed for (each added, and not dropped)."""
+        with self._lock:
+            return [process for process, _ in self._keys.values()]
 
     def seal(self, key_expr: str, payload: bytes) -> bytes:
         """The attachment of the next control message put on ``key_expr``."""

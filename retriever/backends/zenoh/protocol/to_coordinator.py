@@ -84,7 +84,8 @@ class Done(Status):
 
 @dataclass(frozen=True, kw_only=True)
 class Failed(Status):
-    """The process failed: why, where (the tick, if a step raised), and its traceback."""
+    """The process failed: why, where (the tick, if a step raised), and its traceback;
+    ``raised``: what its step raised, when that failed it."""
 
     NAME = State.FAILED
     error: str = field(Text())
@@ -93,6 +94,7 @@ class Failed(Status):
     counts: dict[str, int] = field(COUNTS, optional=True)
     traceback: str | None = field(Nullable(Text()))
     zeno: bool = field(Bool(), optional=True)
+    raised: str | None = field(Nullable(Text()), optional=True)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -201,7 +203,7 @@ MAX_FILE_NAME = 255
 
 @dataclass(frozen=True, kw_only=True)
 class Report(Record):
-    """A batch of a node's step records and the data messages it published (reporter.py)."""
+    """A batch of a node's step records and the data messages it published (node/reporter.py)."""
 
     NAME = "report"
     node: str

@@ -11,6 +11,7 @@ table for who sends which, and what its receivers check beyond these fields).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from enum import StrEnum
 
 from .schema import NS_MAX, SEQ_MAX, Bool, Channel, Int, ListOf, MapOf, Name, Record, Row, field, port
@@ -59,7 +60,7 @@ class Grant(Record):
 @dataclass(frozen=True, kw_only=True)
 class Redeclare(Record):
     """Before the start: ``nodes`` declare their subscriptions and queryables again (a consumer
-    never got their answer: worker.REDECLARE_AFTER_S)."""
+    never got their answer: worker_starts.REDECLARE_AFTER_S)."""
 
     NAME = Op.REDECLARE
     nodes: tuple[str, ...] = field(ListOf(Name(), min_items=1))
@@ -108,6 +109,16 @@ class Have(Record):
     streams: tuple[tuple[str, str, int], ...] = field(ListOf(Row(
         Name(), port(), Int(-1, SEQ_MAX), expects="[producer, port, last seq] (a seq from -1)")))
 
+    @cached_property
+    def last_seqs(self) -> dict[tuple[str, str], int]:
+        """``streams`` by stream: ``(producer, port)`` -> its last seq (the greatest, if named
+        twice). Made once per message: each node of a group looks up its few inputs in it."""
+        seqs: dict[tuple[str, str], int] = {}
+        for producer, out, seq in self.streams:
+            if seq > seqs.get((producer, out), -1):
+                seqs[(producer, out)] = seq
+        return seqs
+
 
 @dataclass(frozen=True, kw_only=True)
 class Lost(Record):
@@ -127,13 +138,15 @@ class Stop(Record):
 
 @dataclass(frozen=True, kw_only=True)
 class Finished(Record):
-    """The answer on ``status/finished``: the nodes done, those done with every report in, and
-    those starting afresh after their process died."""
+    """The answer on ``status/finished``: the nodes done, those done with every report in, those
+    starting afresh after their process died, and those whose old process handed over to a
+    restarted flow's and has every report in (that process may exit)."""
 
     NAME = Op.FINISHED
     nodes: tuple[str, ...] = field(ListOf(Name()))
     complete: tuple[str, ...] = field(ListOf(Name()))
     restarting: tuple[str, ...] = field(ListOf(Name()))
+    handed_over: tuple[str, ...] = field(ListOf(Name()))
 
 
 RUN_CONTROL = Channel("ctl/run", (Start, Grant, Redeclare, Restarted, Handover, Resume, End, Have, Lost, Stop))

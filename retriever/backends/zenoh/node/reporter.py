@@ -1,7 +1,7 @@
 """A worker's reports to the coordinator, sent from a thread of their own.
 
-A node loop batches its step records and the data messages it published (node/reports.py)
-and hands each batch to its :class:`Reporter`. The reporter writes the big messages to files of
+A node loop batches its step records and the data messages it published (reports.py) and
+hands each batch to its :class:`Reporter`. The reporter writes the big messages to files of
 the run's spill directory (the coordinator maps them: one copy, none on its side) and puts the
 report on ``status/report/<node>``. Both take time that has nothing to do with the node's
 ticks: writing a camera frame of megabytes to fresh shared memory can take longer than a 20 Hz
@@ -19,6 +19,9 @@ would stall the loop within seconds (the last frames of a run would get tags pas
 (benchmarks/reports/latency.md).
 :meth:`Reporter.close` returns once every report is out, so a worker's last status message comes
 after its last report.
+
+How a report leaves is the reporter's ``put``: a reliable put on the node's report key
+(:func:`session_put`) unless its maker passes another (a test, a congested or broken link).
 """
 
 from __future__ import annotations
@@ -28,30 +31,46 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 
 import zenoh
 
-from ...errors import ReportError
-from .origin import sign
-from .protocol import Report
-from .wire import RELIABLE
+from ....errors import ReportError
+from ..origin import sign
+from ..protocol import Report
+from ..wire import RELIABLE
 
 #: reports handed over and not yet sent, at most; and the bytes of messages they hold, at most
 #: (a single report bigger than that still goes, once nothing else waits)
 MAX_PENDING = 64
 MAX_PENDING_BYTES = 256 << 20
 #: and the seqs their events used, at most (a burst is many seqs in a few bytes): this bounds the
-#: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in node/frontiers.py)
+#: seqs a process may have published unknown to the coordinator (RESTART_SEQ_GAP in frontiers.py)
 MAX_PENDING_SEQS = 1 << 19
+
+#: ``put(payload, attachment)``: sends one encoded report, signed (``attachment``) or not (None)
+Put = Callable[[bytes, bytes | None], None]
+
+
+def session_put(session: zenoh.Session, key: str) -> Put:
+    """How reports leave unless told otherwise: a reliable put on ``key`` of ``session`` (a
+    congested link holds it, rather than drop a report)."""
+
+    def put(payload: bytes, attachment: bytes | None) -> None:
+        session.put(key, payload, congestion_control=RELIABLE, attachment=attachment)
+
+    return put
 
 
 class Reporter:
-    """Sends one node's reports, in order, from its own thread (started on the first report)."""
+    """Sends one node's reports, in order, from its own thread (started on the first report),
+    each through ``put`` (default: :func:`session_put` on ``key`` of ``session``)."""
 
     def __init__(self, session: zenoh.Session, key: str, node: str, *, spill_dir: str | None, spill_bytes: int,
-                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES,
+                 put: Put | None = None, max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES,
                  max_pending_seqs: int = MAX_PENDING_SEQS):
-        self.session, self.key_expr, self.node = session, key, node
+        self.key_expr, self.node = key, node
+        self.put = put if put is not None else session_put(session, key)
         self.spill_dir, self.spill_bytes = spill_dir, spill_bytes
         #: this process's key, which signs each report (origin.py; set by the worker)
         self.key: bytes | None = None
@@ -114,7 +133,7 @@ class Reporter:
             records, events, size, seqs = item
             try:
                 if self.error is None:
-                    self._put(records, events)
+                    self._deliver(records, events)
             except BaseException as exc:  # told to the loop at its next report
                 self.error = exc
             finally:
@@ -124,13 +143,13 @@ class Reporter:
                     self.pending_seqs -= seqs
                     self.room.notify_all()
 
-    def _put(self, records: list, events: list[tuple[int, bytes]]) -> None:
+    def _deliver(self, records: list, events: list[tuple[int, bytes]]) -> None:
+        """One report: its big messages spilled, encoded, signed, put."""
         if self.spill_dir is not None:
             events = [(wall, self._spill(message)) if len(message) >= self.spill_bytes else (wall, message)
                       for wall, message in events]
         payload = Report(node=self.node, records=tuple(records), events=tuple(events)).encode()
-        self.session.put(self.key_expr, payload, congestion_control=RELIABLE,
-                         attachment=sign(self.key, self.key_expr, payload) if self.key is not None else None)
+        self.put(payload, sign(self.key, self.key_expr, payload) if self.key is not None else None)
         self.sent += 1
 
     def _spill(self, message: bytes) -> bytes | str:

@@ -1,0 +1,142 @@
+"""The run's spec: what a worker process needs of its run, as one record.
+
+    coordinator   writes it for the processes it starts (``spec.json`` in the run directory)
+    coordinator → worker daemon   in a prepare request (daemon.PrepareRequest.spec), as msgpack
+    worker daemon   writes it, made for its host (runs.DaemonRuns.local_spec), for its processes
+    worker process  reads it (worker.read_spec: RunSpec.read_file) and holds it, typed, from then on
+
+Its decoder is as exact as every other record's: a field of the wrong type, one missing, or one
+the record does not take is refused with a WireError naming it. Beyond the fields it checks what
+the processes' start rests on: the Zenoh ids of each node's first process (none, or one for
+every node of the IR; two nodes share one only as members of one group) and of the hub.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ....errors import WireError
+from ..wire import shown
+from .schema import Bool, Document, Kind, ListOf, MapOf, Name, Nullable, Record, Text, field
+
+#: the largest spec read (it carries the run's IR and plan)
+MAX_SPEC_BYTES = 64 << 20
+#: a path, an endpoint or an argument of the spec, at most this long
+MAX_PATH_CHARS = 4096
+
+
+class ZenohId(Kind):
+    """A Zenoh session's id: 1 to 32 lowercase hex digits, the first not 0 (as Zenoh prints it)."""
+
+    expects = "a Zenoh id (1 to 32 lowercase hex digits, not starting with 0)"
+
+    def read(self, value: Any, where: str) -> str:
+        if (type(value) is not str or not 1 <= len(value) <= 32 or value[0] == "0"
+                or not all(c in "0123456789abcdef" for c in value)):
+            raise self.refuse(value, where)
+        return value
+
+
+class Seconds(Kind):
+    """A duration in seconds: an integer or a finite float from ``low`` to ``high``, held as a float."""
+
+    def __init__(self, low: float, high: float):
+        self.low, self.high = low, high
+        self.expects = f"seconds, a finite number from {low:g} to {high:g}"
+
+    def read(self, value: Any, where: str) -> float:
+        if type(value) not in (int, float) or not math.isfinite(value) or not self.low <= value <= self.high:
+            raise self.refuse(value, where)
+        return float(value)
+
+
+PATH = Text(MAX_PATH_CHARS)
+SECONDS = Seconds(0.0, 1e9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RunSpec(Record):
+    """A run as its worker processes see it: the fields without a default every spec carries;
+    the others only the specs of some hosts (left out: the default), in the order the
+    coordinator writes them."""
+
+    #: the run's IR (ir.IR checks it)
+    ir: dict = field(Document())
+    namespace: str = field(Name())
+    #: the hub's endpoint (None for a client of routers)
+    hub: str | None = field(Nullable(PATH))
+    #: the run's wiring (plan.Plan.from_data checks it against the IR)
+    plan: dict = field(Document())
+    #: where the flows' modules are imported from, joined to the process's own path
+    python_path: tuple[str, ...] = field(ListOf(PATH), default=())
+    #: the coordinator's main script, imported as ``__mp_main__`` when it defines flows
+    main_file: str | None = field(Nullable(PATH), default=None)
+    #: the coordinator's sys.argv, which the flows see as theirs (None: the process's own)
+    argv: tuple[str, ...] | None = field(Nullable(ListOf(Text(MAX_PATH_CHARS))), default=None)
+    #: where a worker writes the events too big for a report (None: it has no such folder)
+    spill_dir: str | None = field(Nullable(PATH), default=None)
+    #: the run's credentials (access.RunAccess.to_spec), if any
+    access: dict | None = field(Nullable(Document()), default=None)
+    #: how long a first process waits for its links and answers before it says ready
+    startup_timeout: float = field(SECONDS)
+    #: each node's first process's session id (empty: a coordinator that names none), and the hub's
+    zids: dict[str, str] = field(MapOf(Name(), ZenohId()))
+    hub_zid: str | None = field(Nullable(ZenohId()))
+    virtual_time: bool = field(Bool())
+    #: the processes that share one (``configure(process=NAME)``): their nodes, by name
+    groups: dict[str, tuple[str, ...]] = field(MapOf(Name(), ListOf(Name(), min_items=1)), default_factory=dict)
+    #: a daemon's flows joined through routers: those routers (the hub is then None)
+    router: tuple[str, ...] = field(ListOf(PATH), default=())
+    #: where a process listens for its neighbours (empty: Zenoh's choice)
+    listen: tuple[str, ...] = field(ListOf(PATH), default=())
+    #: the TLS files of the process's links (access.TlsFiles), if any
+    tls: dict | None = field(Nullable(Document()), default=None)
+    #: Zenoh's lease of the process's links, and how long a put waits on a blocked one (None: Zenoh's)
+    lease: float | None = field(Nullable(SECONDS), default=None)
+    blocked_put: float | None = field(Nullable(SECONDS), default=None)
+    #: a dora run's own part (backends/dora: DoraNames and its nodes' keys), read by dora's node module
+    dora: dict | None = field(Nullable(Document()), default=None)
+
+    @classmethod
+    def from_fields(cls, fields: Any, where: str, **envelope: Any) -> RunSpec:
+        spec = super().from_fields(fields, where, **envelope)
+        spec._check_ids(where)
+        return spec
+
+    def _check_ids(self, where: str) -> None:
+        """None, or one id for every node of the IR: a process that knew some would wait for links
+        to those only, and say ready with the others unlinked. Nodes share one only in one group."""
+        nodes = self.ir.get("nodes")  # (ir.IR checks the IR later: here, only the ids that are names count)
+        known = ({n["id"] for n in nodes if isinstance(n, dict) and type(n.get("id")) is str}
+                 if isinstance(nodes, list) else set())
+        if self.zids and set(self.zids) != known:
+            amiss = sorted(set(self.zids) ^ known)
+            raise WireError(f"{where}: field 'zids' must name one Zenoh id for each node of its IR, or none "
+                            f"(amiss: {', '.join(shown(node, 40) for node in amiss[:5])})")
+        group_of = {node: name for name, members in self.groups.items() for node in members}
+        first: dict[str, str] = {}
+        for node, zid in self.zids.items():
+            other = first.setdefault(zid, node)
+            if other != node and (node not in group_of or group_of.get(other) != group_of[node]):
+                raise WireError(f"{where}: field 'zids' gives nodes '{other}' and '{node}' one Zenoh id, and they "
+                                "are no group's")
+
+    @classmethod
+    def read_file(cls, path: Path) -> RunSpec:
+        """The spec a coordinator or daemon wrote to ``path`` (as JSON); WireError if it is none."""
+        data = path.read_bytes()
+        if len(data) > MAX_SPEC_BYTES:
+            raise WireError(f"the run's spec {path} of {len(data)} bytes, past {MAX_SPEC_BYTES}: refused")
+        try:
+            doc = json.loads(data)
+        except ValueError as e:
+            raise WireError(f"the run's spec {path} is not JSON ({e})"[:300]) from None
+        return cls.from_fields(doc, f"the run's spec {path}")
+
+    def to_json(self) -> str:
+        """The spec as the file a process reads back (:meth:`read_file`): JSON, as the coordinator writes it."""
+        return json.dumps(self.to_fields())

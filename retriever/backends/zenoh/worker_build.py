@@ -1,0 +1,224 @@
+"""A worker's node rebuilt from the run's spec: the flow, its loop wired as the run's plan says,
+the process's session, and the statuses it signs.
+
+    open_session    the Zenoh peer (or a client of the deployment's routers)
+    build           the flow rebuilt from the IR (build_loop, or the loop a Launch hands in)
+    set_up_flow     the flow's setup(), once, before the process says ready
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import traceback
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from . import protocol
+from .command import StartMode
+from .protocol import RunSpec
+from .worker_process import Launch
+
+if TYPE_CHECKING:
+    from ...ir import IR
+    from ...plan import NodePlan
+    from .node import NodeLoop
+
+#: the flows this process served, held until it ends: what a flow holds (a model, a device) is
+#: finalized once, as the interpreter ends; the session its loop held is let go of
+_kept_to_the_end: list = []
+
+
+def _import_main(path: str) -> None:
+    """Flows defined in the coordinator's ``__main__`` script: import it the way multiprocessing
+    does (as ``__mp_main__``, so its ``if __name__ == "__main__":`` block does not run)."""
+    spec = importlib.util.spec_from_file_location("__mp_main__", path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot import the main script {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["__mp_main__"] = module
+    spec.loader.exec_module(module)
+    sys.modules["__main__"] = module
+
+
+def node_plan(spec: RunSpec, node_id: str, ir: IR | None = None) -> NodePlan:
+    """``node_id``'s wiring as the run's plan says (:func:`run_plan`)."""
+    return run_plan(spec, ir)[node_id]
+
+
+def run_plan(spec: RunSpec, ir: IR | None = None) -> dict[str, NodePlan]:
+    """Every node's wiring as the run's plan says (``ir``: the spec's IR, if the caller has read
+    it already)."""
+    from ...ir import IR
+    from ...plan import Plan
+
+    if ir is None:
+        ir = IR(spec.ir, source="the run's IR")
+    return Plan.from_data(spec.plan, ir).nodes
+
+
+def build_loop(spec: RunSpec, node_id: str, session, transport=None, plan: NodePlan | None = None,
+               ir: IR | None = None):
+    """Rebuild ``node_id`` from the IR in ``spec`` and wire its inputs as ``plan`` says (default:
+    :func:`node_plan`'s): a ready NodeLoop, its events through ``transport`` (a dora node's), or
+    on ``session`` when None. ``ir``: the spec's IR, if the caller has read it already (a group
+    reads it once for all its members: checking it is linear in the run's size)."""
+    from ...flow._base import Flow
+    from ...graph import compile_graph
+    from ...ir import DEFAULT_DEADLINE, IR
+    from ...plan import bind_inputs
+    from ...rebuild import rebuild_node
+    from ...sync import PortBuffer
+    from .node import InEdge, NodeLoop
+    from .wire import KeySpace
+
+    if ir is None:
+        ir = IR(spec.ir, source="the run's IR")
+    meta = ir.doc["metadata"]
+    flows: dict = {}
+    problems: list[str] = []
+    node_doc = dict(ir.node(node_id))
+    if spec.main_file and node_doc.get("rebuild_needs_main"):
+        node_doc["rebuildable"] = True  # _import_main made __main__ importable here
+    rebuild_node(node_doc, flows, problems)
+    if problems:
+        raise RuntimeError("; ".join(problems))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        graph = compile_graph(ir.name, [flows[node_id]], [], meta.get("max_microsteps", 1000),
+                              meta.get("realtime", "soft"), meta.get("deadline", DEFAULT_DEADLINE))
+    node = graph.nodes[node_id]
+    if plan is None:
+        plan = node_plan(spec, node_id, ir)
+    inputs, fallbacks = bind_inputs(plan, node.inputs, lambda: PortBuffer(trim_batch=1))
+    buffers = {port: buf for port, buf, _, _ in inputs}
+    edges = [InEdge(f.src, f.src_port, f.port, buffers[f.port], f.delay_ns, f.triggers, f.deadline_ns,
+                    f.src_latency_ns) for f in plan.feeds]
+    if type(node.flow).reset is not Flow.reset:
+        node.flow.reset()  # the paper's flows initialise their state in reset()
+    return NodeLoop(session, KeySpace(spec.namespace), node, edges, inputs, fallbacks,
+                    realtime=meta.get("realtime", "soft"),
+                    ports=sorted(ir.node(node_id)["outputs"]),
+                    consumed=bool(plan.consumers),
+                    spill_dir=spec.spill_dir if os.path.isdir(spec.spill_dir or "") else None,
+                    # a flow with a setup() may hold what belongs to one thread (an OpenGL/EGL or
+                    # CUDA context, a device handle): it steps on the thread that set it up
+                    inline=not plan.on_a_cycle and type(node.flow).setup is Flow.setup,
+                    cycle=plan.cycle, instant_ports=plan.instant_ports,
+                    max_microsteps=meta.get("max_microsteps", 1000), virtual=spec.virtual_time,
+                    transport=transport)
+
+
+class StatusSender:
+    """Puts this node's statuses on ``status/node/<node>``: each with this process's pid, and
+    signed with its key. Called on the main thread, or a receiving one (on_restart)."""
+
+    def __init__(self, session, keys, node: str, key: bytes | None):
+        self.session, self.keys, self.node, self.key = session, keys, node, key
+
+    def __call__(self, kind: type[protocol.Status], **fields) -> None:
+        """Say a status of ``kind`` (a record of protocol.STATUS) with ``fields``, this node's and pid."""
+        from .origin import sign
+        from .wire import RELIABLE
+
+        key, payload = self.keys.node_status(self.node), kind(node=self.node, pid=os.getpid(), **fields).encode()
+        self.session.put(key, payload, congestion_control=RELIABLE,
+                         attachment=sign(self.key, key, payload) if self.key is not None else None)
+
+
+@dataclass
+class Serving:
+    """What the phases of serving one node share."""
+
+    launch: Launch
+    spec: RunSpec
+    session: object
+    keys: object  # wire.KeySpace
+    status: StatusSender
+    #: the questions that make this session's shared-memory pool before T0 (POOL_PADDING); None:
+    #: the node has no pool to make
+    padding: bytes | None
+    #: the /dev/shm segments of that pool, once made (let_go_of)
+    pool: set[str]
+    #: the node's wiring (node_plan): its loop's, and whose answers and links it waits for
+    plan: NodePlan | None = None
+    loop: NodeLoop | None = None
+
+    @property
+    def node(self) -> str:
+        return self.launch.node
+
+    def waiting(self) -> Callable[[], bool]:
+        return lambda: self.loop.stopping
+
+
+def open_session(spec: RunSpec, node: str, mode: StartMode, shared_memory: bool):
+    """This process's Zenoh session (close it: ``with``): a peer joined to the run's hub, or,
+    where the spec names routers (a deployment joined through them: ``router``), a client of
+    those. A deployment started --insecure has no access entry: anyone on its network may
+    join; a TLS one's links use its files. The first process of a node has the session id the
+    others expect (a restarted one, whose old process may still be linked, has its own: it
+    finds its neighbours by their answers)."""
+    import zenoh
+
+    from .access import RunAccess, TlsFiles
+    from .hub import client_config, open_peer
+
+    config = RunAccess.from_spec(spec.access) if spec.access else None
+    tls = TlsFiles(**spec.tls).session_config() if spec.tls else {}
+    zid = spec.zids.get(node) if mode.kind is None else None
+    # the run's sessions with a pool, which share its shared memory (hub.shm_pool_bytes): one per
+    # worker (the hub has none, hub.HUB_SHARED_MEMORY)
+    sessions = len(spec.ir["nodes"])
+    if spec.router:
+        access = {**(config[0].client_config(spec.namespace) if config else {}), **tls}
+        return zenoh.open(client_config(connect=list(spec.router), sessions=sessions, access=access or None,
+                                        lease=spec.lease, zid=zid, blocked_put=spec.blocked_put,
+                                        shared_memory=shared_memory))
+    access = {**(config[0].session_config(config[1]) if config else {}), **tls}
+    return open_peer(spec.hub, sessions=sessions, access=access or None,
+                     listen=list(spec.listen) or None, lease=spec.lease, zid=zid,
+                     blocked_put=spec.blocked_put, shared_memory=shared_memory)
+
+
+def build(w: Serving) -> bool:
+    """The node's flow, rebuilt from the IR, in its loop (``w.loop``); False when it cannot be
+    built (the status ``failed`` said why)."""
+    try:
+        if w.spec.main_file:
+            _import_main(w.spec.main_file)
+        if w.plan is None:  # (a group's members come with theirs: the run's plan decoded once)
+            w.plan = node_plan(w.spec, w.node)
+        if w.launch.make_loop is not None:
+            w.loop = w.launch.make_loop(w.spec, w.node, w.session, w.plan)
+        else:
+            w.loop = build_loop(w.spec, w.node, w.session, plan=w.plan)
+        w.loop.reporter.key = w.launch.key
+        w.loop.opener = protocol.ControlOpener(w.launch.key)
+        _kept_to_the_end.append(w.loop.flow)
+    except BaseException as exc:
+        w.status(protocol.Failed, error=f"cannot build node '{w.node}': {type(exc).__name__}: {exc}",
+                 traceback=traceback.format_exc())
+        return False
+    return True
+
+
+def set_up_flow(w: Serving) -> bool:
+    """The flow's heavy work (weights, devices), once, here, before this process says ready;
+    then the loop's statuses hooked up. False when setup() raised (said)."""
+    from ...flow._base import set_up
+
+    loop, status = w.loop, w.status
+    try:
+        set_up(loop.flow)
+    except Exception as exc:
+        status(protocol.Failed, error=f"{type(exc).__name__}: {exc}", setup=True, traceback=traceback.format_exc())
+        return False
+    loop.on_restart = lambda tag, error: status(protocol.Restart, tag=tuple(tag), error=error)
+    loop.on_exit = lambda tag: status(protocol.Exit, tag=tuple(tag))
+    if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
+        loop.on_reached = lambda until: status(protocol.Reached, until=until)
+    return True

@@ -1,0 +1,157 @@
+"""A log as the Rerun viewer shows it: ``retriever log export run.mcap --format rerun -o run.rrd``.
+
+Written with Rerun's own SDK (``rerun-sdk``, the extra ``retriever-robotics[rerun]``): a
+recording stream saved to an ``.rrd`` file, no viewer started, named after the pipeline. Each
+output port is an entity ``/<node>/<port>``, and a dataclass value's fields each an entity of
+their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
+
+- an image (uint8 H×W, H×W×3, H×W×4): ``rr.Image`` (L, RGB, RGBA);
+- a number, or a flat array or list of at most SCALARS_MAX numbers: ``rr.Scalars``, which the
+  viewer plots (an array as one series per element);
+- any other array of numbers: ``rr.Tensor``;
+- text: ``rr.TextLog``; anything else: ``rr.TextLog`` of its JSON (foxglove.to_json).
+
+Step records are ``rr.TextLog`` on ``/retriever/steps/<node>`` (views.step_json), at level INFO
+when the step ran, WARN when it was skipped, incomplete, late or overran, ERROR when it failed.
+
+Two timelines: ``event_time``, the tag (a duration from the run's T0: a replayed run and the live
+one line up on it), which the recording's blueprint selects, and ``wall_time``, when the event
+was published (a step: when it began), where the log has it. Rerun adds ``log_time`` and
+``log_tick`` of its own: when this export wrote each row.
+
+:class:`RerunRecording` is the one writer of this mapping: the export feeds it from a log, the
+live view (rerun_live.py) from a running pipeline's reports.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import LogError
+from ..trace import StepRecord
+from .foxglove import image_encoding, to_json
+from .outputs import export_path
+from .reader import RunLog
+from .views import numeric_array, step_json, value_leaves
+
+#: the URL of the Rerun viewer that ``rerun`` starts on this machine (rerun-sdk's own default)
+RERUN_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
+#: a flat array of up to this many numbers is plotted, one series per element; a bigger one is a tensor
+SCALARS_MAX = 16
+EVENT_TIME, WALL_TIME = "event_time", "wall_time"
+STEP_LEVELS = {"ok": "INFO", "error": "ERROR"}  # any other status: WARN
+MAX_NS = 2**63 - 1  # Rerun's times are signed 64-bit nanoseconds
+
+
+def rerun_sdk(what: str = "the Rerun export"):
+    """Rerun's SDK, imported when first needed (it is an extra), or a LogError saying how to get it."""
+    try:
+        import rerun
+        import rerun.blueprint
+    except ImportError:
+        raise LogError(f"{what} needs Rerun's SDK (the rerun-sdk package), which is not installed",
+                       "pip install 'retriever-robotics[rerun]'") from None
+    return rerun
+
+
+def new_stream(rr):
+    """A recording stream of a run, no sink yet (no viewer spawned, no properties sent)."""
+    return rr.RecordingStream("retriever", send_properties=False)
+
+
+def event_time_blueprint(rr):
+    """The blueprint that opens the recording on the event timeline (tags, from the run's T0)."""
+    return rr.blueprint.Blueprint(rr.blueprint.TimePanel(timeline=EVENT_TIME))
+
+
+def entity_path(*parts: str) -> list[str]:
+    """An entity path as its parts (the SDK escapes each); an empty part is shown as ``_``."""
+    return [part or "_" for part in parts]
+
+
+def archetype(rr, value: Any):
+    """The Rerun archetype that shows one leaf of a value."""
+    if image_encoding(value) is not None:
+        return rr.Image(np.ascontiguousarray(value))
+    if isinstance(value, str):
+        return rr.TextLog(value)
+    array = numeric_array(value)
+    if array is None:
+        return rr.TextLog(json.dumps(to_json(value)))
+    if array.ndim == 0 or (array.ndim == 1 and 0 < array.size <= SCALARS_MAX):
+        return rr.Scalars(array.astype(np.float64).reshape(-1))
+    return rr.Tensor(array.astype(np.uint8) if array.dtype.kind == "b" else array)
+
+
+class RerunRecording:
+    """A run's events and step records logged on one recording stream, on both timelines."""
+
+    def __init__(self, rr, stream):
+        self._rr, self._stream = rr, stream
+        self.written: Counter = Counter()
+
+    def at(self, tag_ns: int, wall_ns: int) -> None:
+        """Log what follows at ``tag_ns`` on the event timeline and, when known, ``wall_ns`` on the wall one."""
+        if tag_ns > MAX_NS or wall_ns > MAX_NS:
+            raise LogError(f"a time in the log ({max(tag_ns, wall_ns)} ns) is past what Rerun's times hold "
+                           "(signed 64-bit nanoseconds)", "the log's times are damaged")
+        self._stream.set_time(EVENT_TIME, duration=np.timedelta64(tag_ns, "ns"))
+        if wall_ns:
+            self._stream.set_time(WALL_TIME, timestamp=np.datetime64(wall_ns, "ns"))
+        else:
+            self._stream.disable_timeline(WALL_TIME)
+
+    def event(self, node: str, port: str, value: Any) -> None:
+        for path, leaf in value_leaves(value):
+            parts = entity_path(node, port, *path.split("/")[1:])
+            self._stream.log(parts, archetype(self._rr, leaf))
+            self.written["/" + "/".join(parts)] += 1
+
+    def step(self, node: str, text: str, status: str) -> None:
+        parts = entity_path("retriever", "steps", node)
+        self._stream.log(parts, self._rr.TextLog(text, level=STEP_LEVELS.get(status, "WARN")))
+        self.written["/" + "/".join(parts)] += 1
+
+    def log_event(self, node: str, port: str, tag_ns: int, publish_ns: int, value: Any) -> None:
+        """One event at its tag, and at its publish time on the wall timeline (0: unknown)."""
+        self.at(tag_ns, publish_ns)
+        self.event(node, port, value)
+
+    def log_step(self, step: StepRecord) -> None:
+        """One step record at its tick's tag, and at when its step began on the wall timeline."""
+        self.at(step.tag[0], step.wall_start_ns)
+        self.step(step.node, step_json(step), step.status)
+
+
+def export_rerun(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
+    """Write ``log`` as a Rerun recording (``.rrd``) to ``out``; the rows written, per entity."""
+    rr = rerun_sdk()
+    out = export_path(log.path, out, overwrite)
+    # written beside it, then renamed: an export that fails leaves no file that looks whole
+    partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    stream = new_stream(rr)
+    try:
+        try:
+            stream.save(partial, default_blueprint=event_time_blueprint(rr))
+        except Exception as e:  # the SDK's own error for a path it cannot create
+            raise LogError(f"cannot write {out}: {e}") from None
+        stream.send_recording_name(log.run.get("pipeline") or Path(log.path).stem)
+        recording = RerunRecording(rr, stream)
+        for event in log.iter_events():
+            recording.log_event(event.node, event.port, event.tag[0], event.publish_ns,
+                                log.value(event, keep_unregistered=True))
+        for step in log.iter_steps():
+            recording.log_step(step)
+        stream.flush()
+        stream.disconnect()
+        os.replace(partial, out)
+    finally:
+        stream.disconnect()
+        partial.unlink(missing_ok=True)
+    return recording.written

@@ -1,0 +1,76 @@
+"""``pipe.run(..., rerun=TARGET)``, ``retriever run|deploy --rerun [TARGET]``: a running
+pipeline shown live in the Rerun viewer, from the coordinating process, as the log's Rerun export
+shows it afterwards (log/rerun.py's writer: the same entities, archetypes and timelines).
+
+TARGET is the gRPC URL of a running viewer (``rerun+http://HOST:PORT/proxy``; by default the
+local viewer that ``rerun`` starts) or a path ending in ``.rrd``, where the stream is saved as it
+goes (a file that ``rerun FILE.rrd`` opens, during the run or after it).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from ..errors import LogError
+from ..trace import NOT_KEPT, StepRecord
+from .rerun import RERUN_VIEWER_URL, RerunRecording, event_time_blueprint, new_stream, rerun_sdk
+
+TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path ending in .rrd"
+
+
+def is_rrd_path(target: str | os.PathLike) -> bool:
+    """Whether ``target`` names a file to save the stream to rather than a viewer's URL."""
+    return isinstance(target, os.PathLike) or str(target).lower().endswith(".rrd")
+
+
+class RerunLiveView:
+    """One recording stream, to a viewer or an ``.rrd`` file, fed with the run's events (at their
+    tags on ``event_time`` and their publish times on ``wall_time``) and step records."""
+
+    title = "the Rerun live view"
+
+    def __init__(self, target: str | os.PathLike, pipeline: str):
+        rr = rerun_sdk(self.title)
+        self.target = str(target)
+        self._stream = new_stream(rr)
+        try:
+            self._open(target, rr)
+        except Exception as e:  # the SDK's own error: a path it cannot create, a URL it cannot reach
+            self._stream.disconnect()
+            raise LogError(f"cannot stream the run to Rerun at {self.target}: {e}", self._hint()) from None
+        self._stream.send_recording_name(pipeline)
+        self._recording = RerunRecording(rr, self._stream)
+
+    def _open(self, target: str | os.PathLike, rr) -> None:
+        if is_rrd_path(target):
+            if os.path.lexists(target):  # never over a file: it may be this run's log, or another's
+                raise FileExistsError("the file exists; a live view never replaces a file")
+            self._stream.save(Path(target), default_blueprint=event_time_blueprint(rr))
+            return
+        self._stream.connect_grpc(str(target), default_blueprint=event_time_blueprint(rr))
+        self._stream.flush()  # raises when no viewer answers there: said now, not once the run is over
+
+    def _hint(self) -> str:
+        if is_rrd_path(self.target):
+            return "give a new path (none that exists: remove it first) in a folder you may write to"
+        return f"start the viewer (rerun), or {TARGET_HINT}"
+
+    @property
+    def written(self):
+        """The rows sent so far, per entity."""
+        return self._recording.written
+
+    def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
+        if value is not NOT_KEPT:
+            self._recording.log_event(node, port, tag[0], wall_ns, value)
+
+    def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
+        self._recording.log_step(StepRecord(node, tag, consumed, produced, status, detail, start_ns, wall_ns))
+
+    def close(self) -> None:
+        try:
+            self._stream.flush()
+        finally:
+            self._stream.disconnect()

@@ -1,0 +1,234 @@
+"""A log as ROS 2 tools read it: ``retriever log export run.mcap --format ros2 -o run_ros2.mcap``.
+
+The ROS 2 profile of MCAP (the file of a ROS 2 bag's MCAP storage, which ``ros2 bag``, ``rosbags``,
+Foxglove and PlotJuggler read): ``ros2msg`` schemas and CDR payloads, both made by ``rosbags``'
+type store of ROS 2 Jazzy (the extra ``retriever-robotics[ros2]``; the standard messages written
+here are the same in every ROS 2 release since Humble), the file by ``mcap``'s writer, which,
+unlike ``rosbags``' own bag writer, keeps each message's publish time and sequence number.
+Each output port is a topic ``/<node>/<port>``, and a dataclass value's fields each a topic of
+their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
+
+- an image (uint8 H×W, H×W×3, H×W×4): ``sensor_msgs/msg/Image`` (``mono8``, ``rgb8``, ``rgba8``),
+  its ``header.stamp`` the event's tag and its ``frame_id`` the node;
+- a number (bool, int, float, NumPy's of each width): ``std_msgs/msg/Bool``, ``Int64``,
+  ``Float64``, ``Float32``, ``UInt8``...; an array of numbers, or a flat list of them,
+  ``std_msgs/msg/<Type>MultiArray`` with its shape as the layout's dimensions (row-major);
+- text: ``std_msgs/msg/String``;
+- anything else (a dict, bytes, a nested list, a number too big for 64 bits...): ``std_msgs/msg/String``
+  holding the value as JSON (bigger arrays summarised: foxglove.to_json), counted as ``as_json``.
+
+A topic's type is its first value's. A later value that fits it without loss is written in it
+(an int on a Float64 topic); one that does not goes, as JSON, on ``<topic>/json``.
+
+Step records are JSON in ``std_msgs/msg/String`` on ``/retriever/steps/<node>`` (views.step_json):
+every ROS tool reads and replays a standard type as it is, where a message type of our own would
+need its interface package built before ``ros2 bag play`` or ``ros2 topic echo`` could show it.
+
+Times: a message's log time (and an image's ``header.stamp``) is the event's tag, ns from the
+run's T0, so that the bag replays in event time; its publish time is the wall clock of its
+publication when the log has it, else the tag. A step's log time is its tick, its publish time
+the wall clock when the step began. Each event's ``seq`` is its message's sequence number; a
+tag's microstep is in the step records only (events of one instant share their stamp).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.writer import Writer
+
+from ..errors import LogError
+from .foxglove import image_encoding, to_json
+from .outputs import export_path
+from .reader import RunLog
+from .views import numeric_array, step_json, value_leaves
+
+IMAGE = "sensor_msgs/msg/Image"
+STRING = "std_msgs/msg/String"
+JSON = "json"  # a leaf no standard message fits: its JSON text in a String
+#: a number's message, by its NumPy type (float16 and bool arrays travel widened: no such message)
+SCALARS = {"bool": "Bool", "int8": "Int8", "int16": "Int16", "int32": "Int32", "int64": "Int64",
+           "uint8": "UInt8", "uint16": "UInt16", "uint32": "UInt32", "uint64": "UInt64",
+           "float16": "Float32", "float32": "Float32", "float64": "Float64"}
+ARRAYS = {**{name: f"{kind}MultiArray" for name, kind in SCALARS.items()}, "bool": "UInt8MultiArray"}
+#: the NumPy type each std_msgs number message holds
+MESSAGE_DTYPES = {"Bool": "bool", "Float32": "float32", "Float64": "float64",
+                  **{kind: name for name, kind in SCALARS.items() if kind[0] in "IU"}}
+#: ``ros2 bag`` reads the QoS a topic was recorded with from this channel metadata; none: its defaults
+CHANNEL_METADATA = {"offered_qos_profiles": ""}
+MAX_STAMP_NS = (2**31) * 10**9  # builtin_interfaces/Time holds int32 seconds
+STEPS_PREFIX = "/retriever/steps/"
+
+
+def _typestore():
+    try:
+        from rosbags.typesys import Stores, get_typestore
+    except ImportError:
+        raise LogError("the ROS 2 export needs the rosbags package, which is not installed",
+                       "pip install 'retriever-robotics[ros2]'") from None
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass
+class Ros2Export:
+    """What :func:`export_ros2` wrote: the messages per topic, each topic's ROS type, and how
+    many leaves of values no standard message fits (written as JSON text)."""
+
+    written: Counter = field(default_factory=Counter)
+    types: dict[str, str] = field(default_factory=dict)
+    as_json: int = 0
+
+
+def ros_name(text: str) -> str:
+    """``text`` as one token of a ROS name: letters, digits and underscores, not starting with a
+    digit (a Retriever name already is one; a log's names are checked, not trusted)."""
+    token = "".join(c if c.isascii() and (c.isalnum() or c == "_") else "_" for c in text) or "_"
+    return "_" + token if token[0].isdigit() else token
+
+
+def message_kind(value: Any) -> tuple[str, Any]:
+    """``(ROS type, value made ready for it)`` for one leaf: an image as a contiguous array,
+    a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``."""
+    if image_encoding(value) is not None:
+        return IMAGE, np.ascontiguousarray(value)
+    if isinstance(value, str):
+        return STRING, value
+    array = numeric_array(value)
+    if array is None:
+        return JSON, json_text(value)
+    kinds = SCALARS if array.ndim == 0 else ARRAYS
+    return f"std_msgs/msg/{kinds[array.dtype.name]}", array
+
+
+def json_text(value: Any) -> str:
+    return json.dumps(to_json(value))
+
+
+def fit(value: Any, ros_type: str) -> Any | None:
+    """``value`` as a number of the std_msgs type ``ros_type`` (a scalar's or an array's) if
+    it converts without loss, else None (and None for any other type)."""
+    kind = ros_type.removeprefix("std_msgs/msg/")
+    scalar = kind.removesuffix("MultiArray")
+    dtype = MESSAGE_DTYPES.get(scalar)
+    array = numeric_array(value)
+    if dtype is None or array is None or (array.ndim == 0) != (scalar == kind):
+        return None
+    with np.errstate(all="ignore"):  # a cast that overflows is caught by the way back
+        cast = array.astype(dtype)
+        back = cast.astype(array.dtype)
+    same = back == array
+    if array.dtype.kind == "f":
+        same |= np.isnan(back) & np.isnan(array)
+    return cast if bool(np.all(same)) else None
+
+
+class Ros2Bag:
+    """Messages written into an MCAP of the ROS 2 profile: a schema per type, a channel per topic,
+    each message serialised to CDR by ``rosbags``' type store."""
+
+    def __init__(self, writer: Writer, typestore):
+        self._writer, self._store, self._types = writer, typestore, typestore.types
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._kinds: dict[str, str] = {}  # topic -> its ROS type, or JSON
+        self.summary = Ros2Export()
+
+    def write(self, topic: str, ros_type: str, message, log_time: int, publish_time: int, sequence: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema = self._schemas.get(ros_type)
+            if schema is None:
+                text = self._store.generate_msgdef(ros_type, ros_version=2)[0]
+                schema = self._schemas[ros_type] = self._writer.register_schema(ros_type, "ros2msg", text.encode())
+            channel = self._channels[topic] = self._writer.register_channel(topic, "cdr", schema, CHANNEL_METADATA)
+            self.summary.types[topic] = ros_type
+        self._writer.add_message(channel, log_time=log_time, publish_time=publish_time, sequence=sequence,
+                                 data=bytes(self._store.serialize_cdr(message, ros_type)))
+        self.summary.written[topic] += 1
+
+    def topic_for(self, topic: str, kind: str, value: Any) -> tuple[str, str, Any]:
+        """Where a leaf of ``kind`` (a ROS type, or JSON) goes, and as what: its own topic if that
+        is new or of its kind (or of a number type it fits without loss), else as JSON: on its
+        topic if that is a JSON topic, else on ``<topic>/json``."""
+        while True:
+            known = self._kinds.setdefault(topic, kind)
+            if known == kind:
+                return topic, STRING if kind == JSON else kind, value
+            cast = fit(value, known) if kind != JSON else None
+            if cast is not None:
+                return topic, known, cast
+            if kind != JSON:
+                value, kind = json_text(value), JSON
+                self.summary.as_json += 1
+                continue
+            topic += "/json"
+
+    def message(self, ros_type: str, value: Any, stamp_ns: int, frame_id: str):
+        """The ``rosbags`` message of ``ros_type`` holding ``value``."""
+        types = self._types
+        if ros_type == IMAGE:
+            if stamp_ns >= MAX_STAMP_NS:
+                raise LogError(f"an image's tag ({stamp_ns} ns) is past what a ROS Time holds (int32 seconds)",
+                               "the log's times are damaged")
+            height, width = value.shape[:2]
+            stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+            return types[IMAGE](header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
+                                height=height, width=width, encoding=image_encoding(value), is_bigendian=0,
+                                step=value.strides[0], data=value.reshape(-1))
+        if ros_type == STRING:
+            return types[STRING](data=value)
+        if not ros_type.endswith("MultiArray"):
+            return types[ros_type](data=value.item())
+        dtype = MESSAGE_DTYPES[ros_type.rsplit("/", 1)[1].removesuffix("MultiArray")]
+        dims, stride = [], int(value.size)
+        for size in value.shape:
+            dims.append(types["std_msgs/msg/MultiArrayDimension"](label="", size=size, stride=stride))
+            stride //= max(size, 1)
+        layout = types["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+        return types[ros_type](layout=layout, data=np.ascontiguousarray(value, dtype=dtype).reshape(-1))
+
+    def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
+        """One event: each of its leaves as a message on its topic."""
+        base = f"/{ros_name(node)}/{ros_name(port)}"
+        for path, leaf in value_leaves(value):
+            kind, ready = message_kind(leaf)
+            self.summary.as_json += kind == JSON
+            topic = base + "".join("/" + ros_name(part) for part in path.split("/")[1:])
+            topic, ros_type, ready = self.topic_for(topic, kind, ready)
+            self.write(topic, ros_type, self.message(ros_type, ready, tag_ns, node), tag_ns, publish_ns or tag_ns,
+                       seq)
+
+
+def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros2Export:
+    """Write ``log`` as a ROS 2 MCAP to ``out``; what was written, per topic."""
+    store = _typestore()
+    out = export_path(log.path, out, overwrite)
+    # written beside it, then renamed: an export that fails leaves no file that looks whole
+    partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    try:
+        stream = open(partial, "wb")
+    except OSError as e:
+        raise LogError(f"cannot write {out}: {e.strerror}") from None
+    try:
+        with stream:
+            writer = Writer(stream)
+            writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
+            bag = Ros2Bag(writer, store)
+            for event in log.iter_events():
+                bag.event(event.node, event.port, log.value(event, keep_unregistered=True), event.tag[0],
+                          event.publish_ns, event.seq)
+            for index, step in enumerate(log.iter_steps()):
+                topic, _, text = bag.topic_for(STEPS_PREFIX + ros_name(step.node), JSON, step_json(step))
+                bag.write(topic, STRING, bag.message(STRING, text, 0, ""), step.tag[0],
+                          step.wall_start_ns or step.tag[0], index)
+            writer.finish()
+        os.replace(partial, out)
+    finally:
+        partial.unlink(missing_ok=True)
+    return bag.summary

@@ -1,0 +1,150 @@
+"""``Ros2Subscriber`` and ``Ros2Publisher``: a ROS 2 topic as a source or a sink of a pipeline,
+over rmw_zenoh, with no ROS installed.
+
+::
+
+    with Pipeline("teleop") as pipe:
+        joints = Ros2Subscriber("/joint_states", "sensor_msgs/msg/JointState") @ Rate(hz=100)
+        ctrl = Controller() @ Rate(hz=100)                      # step(self, msg) -> {"msg": ...}
+        cmd = Ros2Publisher("/cmd_vel", "geometry_msgs/msg/Twist") @ Trigger("msg")
+        joints.then(ctrl, sync=Latest())
+        ctrl.then(cmd)
+
+**Event time is arrival.** Each ROS message becomes one event of the subscriber's ``msg`` port
+at the subscriber's first tick after it arrived (several in one tick are a Burst, in arrival
+order), so its tag is a time of this run's clock, like every other event's. The message's own
+``header.stamp`` rides in the value (``value["stamp"]``, ns) for a flow that wants it. Not the
+tag by default, because a stamp is another clock's reading: a robot's, whose offset from this
+run's HLC nobody measured, or simulated time (``use_sim_time``), or zero from a node that never
+sets it; a tag from it could lie in the run's past or far in its future, and a tag that jumps
+would reorder what every consumer sees. Arrival is what the pipeline could know when it ticked,
+which is what replay needs: the subscriber is a source, so ``retriever replay`` takes its events
+from the log and re-runs its consumers on exactly those.
+
+The publisher announces itself as rmw_zenoh does (a node token and an ``MP`` token, keys.py), so
+``ros2 topic list`` and ``ros2 topic info -v`` see it, and puts each value's CDR on the topic's
+key with the attachment rmw_zenoh's subscriptions require (attachment.py). Its step reaches
+outside the program, so ``retriever replay`` takes its (empty) outputs from the log rather than
+publishing again (``replay="log"``).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from collections.abc import Sequence
+
+import zenoh
+
+from ..flow import Flow
+from ..flow.burst import MAX_BURST, Burst
+from . import types
+from .attachment import Attachment, encode
+from .keys import PUBLISHER, SUBSCRIPTION, QoS, fully_qualified, topic_key
+from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
+
+#: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
+MAX_PENDING = 1024
+
+
+class _Ros2Endpoint(Flow):
+    """What both ends share: the topic (relative names resolve in ``namespace``), its type (a
+    standard one, or one given by its ``.msg`` text as ``msgdef``), and the ROS node they are:
+    ``node`` in ``namespace``, in ROS domain ``domain_id`` (``ROS_DOMAIN_ID`` by default), whose
+    Zenoh session connects to ``connect`` (rmw_zenohd on this machine by default) and listens
+    on ``listen``."""
+
+    def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
+                 domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
+                 listen: Sequence[str] = ("tcp/127.0.0.1:0",), msgdef: str | None = None):
+        if msgdef is not None:
+            types.register_msg(msgtype, msgdef)
+        types.check_type(msgtype)
+        self.topic, self.msgtype = fully_qualified(topic, namespace), msgtype
+        self.node_name, self.namespace = node, namespace
+        self.domain_id = domain_id_from_env() if domain_id is None else domain_id
+        self.connect, self.listen = list(connect), list(listen)
+        self.type_hash = types.type_hash(msgtype)
+        self.key = topic_key(self.domain_id, self.topic, msgtype, self.type_hash)
+        self._begin()
+
+    def _begin(self) -> None:
+        """What an end starts with besides its topic: its counts (reset() starts them again)."""
+
+    def _open_node(self) -> Ros2Node:
+        return Ros2Node(self.node_name, namespace=self.namespace, domain_id=self.domain_id,
+                        connect=self.connect, listen=self.listen)
+
+
+class Ros2Subscriber(_Ros2Endpoint):
+    """A source flow: the messages of a ROS 2 topic, each an event of port ``msg`` (types.py says
+    which value a message becomes). ``received``, ``dropped`` (past ``MAX_PENDING`` between two
+    ticks) and ``undecodable`` (not CDR of the type) count what came."""
+
+    def _begin(self) -> None:
+        self.received = self.dropped = self.undecodable = 0
+
+    def setup(self) -> None:
+        self._pending: collections.deque = collections.deque()
+        self._lock = threading.Lock()
+        self._ros = self._open_node()
+        self._ros.declare(SUBSCRIPTION, self.topic, self.msgtype, self.type_hash, QoS())
+        # called on Zenoh's own thread (indirect=False), not on a Python thread Zenoh starts for
+        # it: an in-process run tears its flows down at the interpreter's exit, which waits for
+        # every Python thread first, so such a thread would hold the process forever
+        self._subscriber = self._ros.session.declare_subscriber(
+            self.key, zenoh.handlers.Callback(self._arrived, indirect=False))
+
+    def _arrived(self, sample) -> None:
+        """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step)."""
+        with self._lock:
+            if len(self._pending) >= MAX_PENDING:
+                self._pending.popleft()
+                self.dropped += 1
+            self._pending.append(sample.payload.to_bytes())
+
+    def step(self):
+        with self._lock:
+            taken = [self._pending.popleft() for _ in range(min(len(self._pending), MAX_BURST))]
+        values = []
+        for payload in taken:
+            try:
+                values.append(types.to_value(types.deserialize(payload, self.msgtype), self.msgtype))
+            except Exception:  # a stranger's bytes on the key: counted, never handed on
+                self.undecodable += 1
+        self.received += len(values)
+        return {"msg": Burst(values)} if values else None
+
+    def teardown(self) -> None:
+        self._subscriber.undeclare()
+        self._ros.close()
+
+
+class Ros2Publisher(_Ros2Endpoint):
+    """A sink flow: the value on its input port ``msg`` published on a ROS 2 topic at each tick
+    (types.py says which message a value becomes), as an rmw_zenoh publisher does; behind
+    ``Trigger("msg")`` and ``Latest()``, one message per event. ``published`` counts them."""
+
+    def _begin(self) -> None:
+        self.published = 0
+        self.configure(replay="log")
+
+    def setup(self) -> None:
+        self._ros = self._open_node()
+        token = self._ros.declare(PUBLISHER, self.topic, self.msgtype, self.type_hash, QoS())
+        self._gid = gid(token)
+        self._publisher = self._ros.session.declare_publisher(self.key)
+        self._sequence = 0
+
+    def step(self, msg):
+        payload = types.serialize(types.from_value(msg, self.msgtype), self.msgtype)
+        self._sequence += 1
+        attachment = Attachment(self._sequence, time.time_ns(), self._gid)
+        self._publisher.put(payload, attachment=encode(attachment))
+        self.published += 1
+
+    def teardown(self) -> None:
+        self._publisher.undeclare()
+        self._ros.close()
+

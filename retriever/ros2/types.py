@@ -1,0 +1,257 @@
+"""ROS 2 messages as Retriever values, and back; CDR and type hashes from ``rosbags``.
+
+One rule for every message type, so a type a user adds from its ``.msg`` text maps like the
+standard ones:
+
+- a message is a ``dict`` of its fields; a ``std_msgs/msg/Header`` field becomes two keys,
+  ``stamp`` (int ns since the epoch) and ``frame_id``; every other ``builtin_interfaces`` Time or
+  Duration is an int of ns;
+- numeric arrays and sequences are numpy arrays (``uint8[]`` too), strings ``str``;
+- ``geometry_msgs`` Vector3, Point and Point32 are float arrays ``[x, y, z]``, Quaternion
+  ``[x, y, z, w]``.
+
+and three refinements where the dict would be clumsy:
+
+- ``std_msgs/msg/<X>`` whose one field is ``data`` (String, Bool, Float64, Int32, …) is that value;
+  ``std_msgs/msg/*MultiArray`` is a numpy array shaped by its layout's dims;
+- ``sensor_msgs/msg/Image``'s ``data``/``step``/``is_bigendian`` become ``image``: an (H, W) or
+  (H, W, C) array of the encoding's dtype (``rgb8`` → uint8 × 3, ``mono16`` → uint16, ``32FC1``
+  → float32, bayer and YUV 4:2:2 as their raw channels, …); an image of an encoding not read
+  here keeps its raw fields. Published, an array alone is an image too (uint8 with 3 channels
+  is ``rgb8``).
+
+So ``JointState`` is ``{"stamp", "frame_id", "name": [...], "position": array, …}``, ``Twist``
+``{"linear": array(3), "angular": array(3)}``, ``PoseStamped`` ``{"stamp", "frame_id",
+"pose": {"position": array(3), "orientation": array(4)}}``. Going back, a missing field is its
+zero value, so ``{"linear": [0.2, 0, 0]}`` is a Twist.
+
+Type hashes (``RIHS01_…``, REP-2011) are rosbags', over the ROS 2 Jazzy definitions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.base import Nodetype
+
+#: the definitions of ROS 2 Jazzy, the LTS release rmw_zenoh ships for
+_store = get_typestore(Stores.ROS2_JAZZY)
+
+_TIME_TYPES = frozenset({"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"})
+_VECTORS = {"geometry_msgs/msg/Vector3": "xyz", "geometry_msgs/msg/Point": "xyz",
+            "geometry_msgs/msg/Point32": "xyz", "geometry_msgs/msg/Quaternion": "xyzw"}
+_HEADER = "std_msgs/msg/Header"
+_IMAGE = "sensor_msgs/msg/Image"
+
+#: image encodings (sensor_msgs/image_encodings.hpp) → (dtype, channels)
+_ENCODINGS = {"rgb8": ("u1", 3), "bgr8": ("u1", 3), "rgba8": ("u1", 4), "bgra8": ("u1", 4), "mono8": ("u1", 1),
+              "rgb16": ("u2", 3), "bgr16": ("u2", 3), "rgba16": ("u2", 4), "bgra16": ("u2", 4), "mono16": ("u2", 1)}
+_DEPTH_DTYPES = {"8U": "u1", "8S": "i1", "16U": "u2", "16S": "i2", "32S": "i4", "32F": "f4", "64F": "f8"}
+_DEFAULT_ENCODINGS = {("u1", 1): "mono8", ("u1", 3): "rgb8", ("u1", 4): "rgba8", ("u2", 1): "mono16",
+                      ("u2", 3): "rgb16", ("f4", 1): "32FC1", ("f8", 1): "64FC1"}
+
+
+def register_msg(type_name: str, definition: str) -> None:
+    """Add a message type from its ``.msg`` text (the types it names must be known already)."""
+    _store.register(get_types_from_msg(definition, type_name))
+
+
+def check_type(type_name: str) -> None:
+    if type_name not in _store.fielddefs:
+        raise ValueError(f"ROS message type {type_name!r} is not known\n    hint: standard types are written "
+                         "like sensor_msgs/msg/Image; add your own with its .msg text (msgdef=...)")
+
+
+def type_hash(type_name: str) -> str:
+    """The type's RIHS01 hash (REP-2011), as rmw_zenoh puts it in key expressions."""
+    return _store.hash_rihs01(type_name)
+
+
+def serialize(message: Any, type_name: str) -> bytes:
+    """A rosbags message as CDR bytes (little endian, with its encapsulation header)."""
+    return bytes(_store.serialize_cdr(message, type_name))
+
+
+def deserialize(data: bytes, type_name: str) -> Any:
+    return _store.deserialize_cdr(data, type_name)
+
+
+# ---------------------------------------------------------------------------------------------
+# message → value
+# ---------------------------------------------------------------------------------------------
+def to_value(message: Any, type_name: str) -> Any:
+    """The Retriever value of a rosbags message of ``type_name`` (the rules above)."""
+    if type_name in _TIME_TYPES:
+        return message.sec * 1_000_000_000 + message.nanosec
+    if type_name in _VECTORS:
+        return np.array([getattr(message, axis) for axis in _VECTORS[type_name]], dtype=np.float64)
+    fields = _fields(type_name)
+    if type_name.startswith("std_msgs/msg/"):
+        if [name for name, _ in fields] == ["data"]:
+            return _field_to_value(message.data, fields[0][1])
+        if type_name.endswith("MultiArray"):
+            shape = [dim.size for dim in message.layout.dim]
+            data = np.array(message.data)
+            return data.reshape(shape) if shape and int(np.prod(shape)) == data.size else data
+    value: dict[str, Any] = {}
+    for name, desc in fields:
+        field = getattr(message, name)
+        if desc == (Nodetype.NAME, _HEADER):
+            value["stamp"] = to_value(field.stamp, "builtin_interfaces/msg/Time")
+            value["frame_id"] = field.frame_id
+        else:
+            value[name] = _field_to_value(field, desc)
+    if type_name == _IMAGE and _known_encoding(message.encoding):
+        value["image"] = _image_array(value.pop("data"), message)
+        del value["step"], value["is_bigendian"]
+    return value
+
+
+def _fields(type_name: str) -> list:
+    return _store.fielddefs[type_name][1]
+
+
+def _field_to_value(field: Any, desc: tuple) -> Any:
+    kind, detail = desc
+    if kind == Nodetype.NAME:
+        return to_value(field, detail)
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        element = detail[0]
+        if isinstance(field, np.ndarray):
+            return field.copy()  # rosbags' arrays may view the sample's buffer
+        return [_field_to_value(item, element) for item in field]
+    return field
+
+
+def _image_array(data: np.ndarray, message: Any) -> np.ndarray:
+    dtype, channels = _encoding(message.encoding)
+    dtype = np.dtype(dtype).newbyteorder(">" if message.is_bigendian else "<")
+    row_bytes = message.width * channels * dtype.itemsize
+    rows = np.asarray(data, dtype=np.uint8).reshape(message.height, message.step)[:, :row_bytes]
+    image = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
+    return image.reshape((message.height, message.width) + ((channels,) if channels > 1 else ()))
+
+
+def _known_encoding(encoding: str) -> bool:
+    try:
+        _encoding(encoding)
+    except ValueError:
+        return False
+    return True
+
+
+def _encoding(encoding: str) -> tuple[str, int]:
+    if encoding in _ENCODINGS:
+        return _ENCODINGS[encoding]
+    if encoding.startswith("bayer_") and encoding[-1] in "86":  # one channel: the sensor's mosaic
+        return ("u1" if encoding.endswith("8") else "u2"), 1
+    if encoding in ("yuv422", "uyvy", "yuyv", "yuv422_yuy2"):
+        return "u1", 2
+    depth, _, channels = encoding.partition("C")
+    if depth in _DEPTH_DTYPES and channels.isdigit():
+        return _DEPTH_DTYPES[depth], int(channels)
+    raise ValueError(f"image encoding {encoding!r} is not one Retriever reads (rgb8, bgr8, mono8, mono16, "
+                     "8UC3, 32FC1, …); subscribe to sensor_msgs/msg/CompressedImage for compressed ones")
+
+
+# ---------------------------------------------------------------------------------------------
+# value → message
+# ---------------------------------------------------------------------------------------------
+def from_value(value: Any, type_name: str) -> Any:
+    """The rosbags message of ``type_name`` for a Retriever value (the inverse of :func:`to_value`;
+    missing fields are zero)."""
+    cls = _store.types[type_name]
+    if type_name in _TIME_TYPES:
+        ns = int(value or 0)
+        return cls(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    if type_name in _VECTORS:
+        return cls(**dict(zip(_VECTORS[type_name], (float(v) for v in value))))
+    fields = _fields(type_name)
+    if type_name.startswith("std_msgs/msg/") and not isinstance(value, dict):
+        return _wrapped_value(value, type_name, fields)
+    if type_name == _IMAGE and (isinstance(value, np.ndarray) or isinstance(value, dict) and "image" in value):
+        value = _image_fields(value)
+    if not isinstance(value, dict):
+        raise TypeError(f"a {type_name} is published from a dict of its fields, got {type(value).__name__}")
+    unknown = set(value) - {name for name, _ in fields} - {"stamp", "frame_id"}
+    if unknown:
+        raise ValueError(f"{type_name} has no field(s) {', '.join(sorted(unknown))}")
+    kwargs = {}
+    for name, desc in fields:
+        if desc == (Nodetype.NAME, _HEADER):
+            kwargs[name] = from_value({"stamp": value.get("stamp"), "frame_id": value.get("frame_id", "")}, _HEADER)
+        else:
+            kwargs[name] = _field_from_value(value.get(name), desc)
+    return cls(**kwargs)
+
+
+def _wrapped_value(value: Any, type_name: str, fields: list) -> Any:
+    if [name for name, _ in fields] == ["data"]:
+        return _store.types[type_name](data=_field_from_value(value, fields[0][1]))
+    if type_name.endswith("MultiArray"):
+        array = np.asarray(value)
+        dims = [{"label": f"dim{i}", "size": size, "stride": int(np.prod(array.shape[i:]))}
+                for i, size in enumerate(array.shape)]
+        return from_value({"layout": {"dim": dims}, "data": array.reshape(-1)}, type_name)
+    raise TypeError(f"a {type_name} is published from a dict of its fields, got {type(value).__name__}")
+
+
+def _field_from_value(value: Any, desc: tuple) -> Any:
+    kind, detail = desc
+    if kind == Nodetype.NAME:
+        return from_value(_zero_value(detail) if value is None else value, detail)
+    if kind == Nodetype.BASE:
+        return _base_value(value, detail[0])
+    element, length = detail
+    if element[0] == Nodetype.BASE and element[1][0] != "string":
+        array = np.asarray([] if value is None else value, dtype=_BASE_DTYPES[element[1][0]])
+        return np.zeros(length, array.dtype) if value is None and kind == Nodetype.ARRAY else array
+    items = list(value) if value is not None else [None] * (length if kind == Nodetype.ARRAY else 0)
+    return [_field_from_value(item, element) for item in items]
+
+
+def _zero_value(type_name: str) -> Any:
+    """The value of a message field left out: zero ns, a zero vector, or a message of zeros."""
+    if type_name in _TIME_TYPES:
+        return 0
+    return [0.0] * len(_VECTORS[type_name]) if type_name in _VECTORS else {}
+
+
+_BASE_DTYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
+                "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
+                "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
+
+
+def _base_value(value: Any, base: str) -> Any:
+    if base in ("string", "wstring"):
+        return "" if value is None else str(value)
+    if base == "bool":
+        return bool(value)
+    if base.startswith("float"):
+        return float(value or 0.0)
+    return int(value or 0)
+
+
+def _image_fields(value: Any) -> dict:
+    """An Image's dict with ``image`` (or an array alone) turned into its wire fields."""
+    if isinstance(value, np.ndarray):
+        value = {"image": value}
+    fields = dict(value)
+    image = np.asarray(fields.pop("image"))
+    image = image.astype(image.dtype.newbyteorder("="), copy=False)
+    channels = image.shape[2] if image.ndim == 3 else 1
+    encoding = fields.get("encoding") or _DEFAULT_ENCODINGS.get((image.dtype.str[1:], channels))
+    if encoding is None:
+        raise ValueError(f"an image of dtype {image.dtype} with {channels} channel(s) needs an encoding "
+                         "(pass {'image': array, 'encoding': ...})")
+    dtype, expected = _encoding(encoding)
+    if np.dtype(dtype) != image.dtype or expected != channels:
+        raise ValueError(f"image encoding {encoding!r} is {expected} channel(s) of {np.dtype(dtype)}, "
+                         f"the array is {channels} of {image.dtype}")
+    little = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
+    fields.update(height=image.shape[0], width=image.shape[1], encoding=encoding, is_bigendian=0,
+                  step=image.shape[1] * channels * image.dtype.itemsize,
+                  data=little.reshape(-1).view(np.uint8))
+    return fields

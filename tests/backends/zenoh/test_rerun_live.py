@@ -1,0 +1,173 @@
+"""``rerun=TARGET``: a running pipeline streamed live to Rerun from the coordinating process
+(issue 39 §3), here to an ``.rrd`` file, read back with Rerun's own loader: every event and step
+record of the run is there, at its tag on the event timeline, with the run's values; a target
+that cannot be reached is said before the run starts."""
+
+from __future__ import annotations
+
+import json
+import socket
+import warnings
+from collections import defaultdict
+
+import numpy as np
+import pyarrow as pa
+import pytest
+import rerun as rr
+
+from retriever import LogError, Pipeline, Rate, RetrieverWarning, Trigger
+from retriever.backends.zenoh.hub import free_port
+from retriever.log.rerun_live import RerunLiveView
+
+from ...log.test_foxglove import Cam, Stats
+
+#: each port's entity and the archetype it is shown as (log/rerun.py's mapping)
+ENTITIES = {
+    "/cam/rgb": "Image", "/cam/depth": "Image", "/cam/exposure": "Scalars", "/stats/mean": "Scalars",
+    "/stats/hist": "Scalars", "/stats/big": "Tensor", "/stats/label": "TextLog",
+    "/retriever/steps/cam": "TextLog", "/retriever/steps/stats": "TextLog",
+}
+
+
+def live_pipeline() -> Pipeline:
+    with Pipeline("live") as pipe:
+        cam = Cam().configure(name="cam") @ Rate(hz=10)
+        stats = Stats().configure(name="stats") @ Trigger("rgb")
+        cam.then(stats, map={"rgb": "rgb"})
+    return pipe
+
+
+def rows_by_tag(recording, entity: str) -> list[dict]:
+    """An entity's rows, each as its columns (short names), in event-time order."""
+    table = recording.view(index="log_tick", contents=entity).select().read_all()
+    columns = {name.rpartition(":")[2]: table.column(name) for name in table.column_names}
+    for timeline in {"event_time", "wall_time"} & set(columns):
+        columns[timeline] = columns[timeline].cast(pa.int64())
+    rows = [dict(zip(columns, values)) for values in zip(*(c.to_pylist() for c in columns.values()))]
+    return sorted(rows, key=lambda row: row["event_time"])
+
+
+@pytest.mark.parametrize("backend", ["zenoh", "dora"])  # (dora: the view is the coordinator's, as on zenoh)
+def test_a_run_streamed_to_an_rrd_holds_its_steps_and_values_on_the_event_timeline(tmp_path, backend):
+    pipe = live_pipeline()
+    out = tmp_path / "live.rrd"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)  # neither view stops
+        pipe.run(duration=1.0, backend=backend, quiet=True, rerun=out, foxglove=free_port())  # side by side
+    trace = pipe.trace
+
+    recording = rr.dataframe.load_recording(out)
+    archetypes = {c.entity_path: c.archetype.rpartition(".")[2] for c in recording.schema().component_columns()}
+    archetypes.pop("/__properties")
+    assert archetypes == ENTITIES
+    events = defaultdict(list)
+    for event in trace.events:
+        events[f"/{event.node}/{event.port}"].append(event)
+    for entity, logged in events.items():
+        logged.sort(key=lambda e: e.tag)
+        rows = rows_by_tag(recording, entity)
+        assert [row["event_time"] for row in rows] == [e.tag[0] for e in logged], entity
+        assert [row["wall_time"] for row in rows] == [e.publish_ns for e in logged], entity
+        for row, event in zip(rows, logged):
+            if ENTITIES[entity] == "Scalars":
+                assert row["scalars"] == np.asarray(event.value, dtype=np.float64).reshape(-1).tolist(), entity
+            elif ENTITIES[entity] == "Image":
+                assert bytes(row["buffer"][0]) == event.value.tobytes(), entity
+            elif ENTITIES[entity] == "TextLog":
+                assert row["text"] == [event.value], entity
+    assert len(events["/cam/rgb"]) == 10
+    for node in ("cam", "stats"):
+        steps = sorted((s for s in trace.steps if s.node == node), key=lambda s: s.tag)
+        rows = rows_by_tag(recording, f"/retriever/steps/{node}")
+        assert len(rows) == len(steps) == pipe.stats()[node].ticks
+        for row, step in zip(rows, steps):
+            record = json.loads(row["text"][0])
+            assert (row["event_time"], record["node"], record["status"], record["tag_ns"], record["microstep"]) == (
+                step.tag[0], node, step.status, *step.tag)
+            assert record["produced"] == [list(i) for i in step.produced]
+
+
+def test_a_file_that_cannot_be_written_is_said_before_the_run_starts_and_closes_the_other_view(tmp_path):
+    pipe = live_pipeline()
+    port = free_port()
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at .*missing/live\.rrd(.|\n)*"
+                                       r"hint: give a new path"):
+        pipe.run(duration=1.0, backend="zenoh", quiet=True, rerun=tmp_path / "missing" / "live.rrd", foxglove=port)
+    with socket.socket() as s:  # the Foxglove view, started first, is closed: its port is free again
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind(("127.0.0.1", port))
+
+
+def test_a_file_that_exists_is_never_replaced_not_even_the_runs_log(tmp_path):
+    """--log run.rrd --rerun run.rrd (or any file there): the view refuses it, and the file is kept."""
+    there = tmp_path / "run.RRD"  # an .rrd path in any case
+    there.write_bytes(b"what was there")
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at .*run\.RRD: the file exists(.|\n)*"
+                                       r"hint: give a new path"):
+        RerunLiveView(there, "live")
+    assert there.read_bytes() == b"what was there"
+    log = tmp_path / "run.rrd"
+    with pytest.raises(LogError, match="the file exists"):
+        live_pipeline().run(duration=1.0, backend="zenoh", quiet=True, log=log, rerun=log)
+    assert not log.exists() or log.read_bytes().startswith(b"\x89MCAP"), "the log is not a Rerun recording"
+
+
+def test_a_viewer_url_nothing_listens_on_is_said_with_how_to_start_one():
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at rerun\+http://127\.0\.0\.1:\d+/proxy"
+                                       r"(.|\n)*hint: start the viewer"):
+        RerunLiveView(f"rerun+http://127.0.0.1:{free_port()}/proxy", "live")
+
+
+def test_a_viewer_that_listens_takes_the_stream():
+    server = rr.RecordingStream("viewer", send_properties=False)  # the SDK's own gRPC server, as a viewer's
+    url = server.serve_grpc(grpc_port=free_port())
+    try:
+        view = RerunLiveView(url, "live")
+        view.event("cam", "exposure", (10, 0), 0, 0.25, 0)
+        view.close()
+    finally:
+        server.disconnect()
+    assert view.written == {"/cam/exposure": 1}
+
+
+def test_a_target_that_is_neither_a_url_nor_an_rrd_path_says_what_to_give():
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at view\.mcap(.|\n)*\.rrd"):
+        RerunLiveView("view.mcap", "live")
+
+
+
+def test_a_view_that_fails_mid_run_stops_with_a_warning_and_is_told_nothing_more(tmp_path):
+    from retriever.log.live import LiveViews
+
+    view = RerunLiveView(tmp_path / "live.rrd", "live")
+    views = LiveViews([view])
+    views.event("cam", "exposure", (10, 0), 0, 0.25, 0)
+    with pytest.warns(RetrieverWarning, match=r"the Rerun live view stopped: LogError: a time in the log"):
+        views.event("cam", "exposure", (2**63, 0), 1, 0.5, 0)  # past what Rerun's times hold
+    views.event("cam", "exposure", (30, 0), 2, 0.75, 0)
+    views.close()
+    assert views.views == [] and list(views.errors) == ["the Rerun live view"]
+    assert view.written == {"/cam/exposure": 1}
+    rows = rows_by_tag(rr.dataframe.load_recording(tmp_path / "live.rrd"), "/cam/exposure")
+    assert [(row["event_time"], row["scalars"]) for row in rows] == [(10, [0.25])]
+
+
+def test_the_cli_streams_a_run_to_the_rrd_given_to_rerun(tmp_path):
+    from tests.test_cli import QUICKSTART, cli, quickstart_ir
+
+    out = tmp_path / "live.rrd"
+    result = cli("run", str(QUICKSTART), "--duration", "0.5", "--backend", "zenoh", "--rerun", str(out))
+    assert result.returncode == 0, result.stderr
+    assert f"Rerun live view streaming to {out}" in result.stderr
+    entities = {c.entity_path for c in rr.dataframe.load_recording(out).schema().component_columns()}
+    nodes = json.loads(quickstart_ir("json"))["nodes"]
+    assert {f"/retriever/steps/{node['id']}" for node in nodes} <= entities, entities
+
+
+def test_the_cli_takes_rerun_without_a_target_and_refuses_it_in_process():
+    from tests.test_cli import QUICKSTART, assert_cli_error, cli
+
+    result = cli("run", str(QUICKSTART), "--rerun", "--duration", "0.5", "--backend", "inproc")
+    assert_cli_error(result, "--rerun streams a real-time run: it needs --backend zenoh or dora",
+                     "for an in-process run, write a log and open its export: "
+                     "retriever log export run.mcap --format rerun -o run.rrd")

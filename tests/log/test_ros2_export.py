@@ -1,0 +1,216 @@
+"""A log as ROS 2 tools read it (issue 39 §2): the ROS 2 profile of MCAP, checked with readers
+nobody here wrote. ``rosbags``' reader (through AnyReader, which builds its types from the
+schemas in the file, not from a type store of ours) and ``mcap-ros2-support``'s decoder each
+decode every message, and find the log's counts, stamps, sequence numbers, values and image
+bytes."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections import Counter
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+from retriever import LogError, read_log
+from retriever.log.ros2 import export_ros2
+from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log
+from tests.log.helpers import cli_env
+from tests.log.log_flows import build_emit
+
+
+#: each leaf of the log's values: its topic in the export, and the ROS type it is written as
+EXPECTED_TYPES = {
+    "/cam/frame/rgb": "sensor_msgs/msg/Image", "/cam/frame/mask": "sensor_msgs/msg/Image",
+    "/cam/frame/exposure": "std_msgs/msg/Float64", "/cam/rgba": "sensor_msgs/msg/Image",
+    "/stats/mean": "std_msgs/msg/Float64", "/stats/hist": "std_msgs/msg/Int64MultiArray",
+    "/stats/pixels": "std_msgs/msg/Float32MultiArray", "/stats/count": "std_msgs/msg/Int64",
+    "/stats/bright": "std_msgs/msg/Bool", "/stats/label": "std_msgs/msg/String", "/stats/extra": "std_msgs/msg/String",
+    "/retriever/steps/cam": "std_msgs/msg/String", "/retriever/steps/stats": "std_msgs/msg/String",
+}
+
+
+def _leaf(value, topic: str):
+    """The value a topic's message must hold, taken from the log's value by hand."""
+    field = topic.split("/")[3:]
+    return getattr(value, field[0]) if field else value
+
+
+def _expected(log) -> dict[str, list[tuple[int, int, int, object]]]:
+    """Per topic: ``(log time, publish time, sequence, value)`` of each message, from the log."""
+    expected: dict[str, list] = {}
+    for event in log.iter_events():
+        value = log.value(event)
+        for topic in EXPECTED_TYPES:
+            if topic.startswith(f"/{event.node}/{event.port}"):
+                expected.setdefault(topic, []).append((event.tag[0], event.publish_ns, event.seq, _leaf(value, topic)))
+    for index, step in enumerate(log.iter_steps()):
+        expected.setdefault(f"/retriever/steps/{step.node}", []).append(
+            (step.tag[0], step.wall_start_ns, index, step))
+    return expected
+
+
+def _check(topic: str, message, value) -> None:
+    """One decoded message (either reader's) holds ``value``, as its type says it should."""
+    kind = EXPECTED_TYPES[topic]
+    if kind == "sensor_msgs/msg/Image":
+        channels = 1 if value.ndim == 2 else value.shape[2]
+        height, width = value.shape[:2]
+        assert (message.height, message.width, message.step) == (height, width, width * channels)
+        assert message.encoding == {1: "mono8", 3: "rgb8", 4: "rgba8"}[channels]
+        assert bytes(message.data) == value.tobytes()
+    elif kind.endswith("MultiArray"):
+        assert [(d.size, d.stride) for d in message.layout.dim] == [
+            (n, int(np.prod(value.shape[i:]))) for i, n in enumerate(value.shape)]
+        assert np.asarray(message.data).tolist() == value.reshape(-1).tolist()
+    elif topic.startswith("/retriever/steps/"):
+        record = json.loads(message.data)
+        assert (record["node"], record["status"], record["tag_ns"], record["microstep"]) == (
+            value.node, value.status, *value.tag)
+        assert record["consumed"] == {p: [list(i) for i in ids] for p, ids in value.consumed.items()}
+        assert record["produced"] == [list(i) for i in value.produced]
+    elif topic == "/stats/extra":
+        assert json.loads(message.data) == value
+    else:
+        assert message.data == value
+
+
+def test_rosbags_and_mcap_ros2_read_the_logs_counts_stamps_values_and_images(tmp_path):
+    log_path = camera_log(tmp_path)
+    out = tmp_path / "run_ros2.mcap"
+    summary = export_ros2(read_log(log_path), out)
+    assert summary.types == EXPECTED_TYPES and summary.as_json == 5  # the dicts of /stats/extra
+    log = read_log(log_path)
+    expected = _expected(log)
+    assert summary.written == Counter({topic: len(messages) for topic, messages in expected.items()})
+    assert len(expected["/cam/frame/rgb"]) == 5 and len(expected["/retriever/steps/stats"]) == 5
+
+    with out.open("rb") as f:  # mcap-ros2-support: the file's own schemas, every message decoded
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        by_mcap: dict[str, list] = {}
+        for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            assert (schema.encoding, channel.message_encoding) == ("ros2msg", "cdr")
+            assert schema.name == EXPECTED_TYPES[channel.topic]
+            by_mcap.setdefault(channel.topic, []).append(
+                (message.log_time, message.publish_time, message.sequence, decoded))
+    assert {topic: len(m) for topic, m in by_mcap.items()} == {topic: len(m) for topic, m in expected.items()}
+    for topic, messages in by_mcap.items():
+        for (log_time, publish, seq, decoded), (tag, wall, logged_seq, value) in zip(messages, expected[topic]):
+            assert (log_time, publish, seq) == (tag, wall, logged_seq), topic
+            if EXPECTED_TYPES[topic] == "sensor_msgs/msg/Image":
+                assert decoded.header.stamp.sec * 10**9 + decoded.header.stamp.nanosec == tag
+                assert decoded.header.frame_id == topic.split("/")[1]
+            _check(topic, decoded, value)
+
+    # rosbags: no type store given, so the types are the ones the file's schemas define
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        by_rosbags: dict[str, list] = {}
+        for connection, timestamp, raw in reader.messages():
+            assert connection.msgtype == EXPECTED_TYPES[connection.topic]
+            by_rosbags.setdefault(connection.topic, []).append((timestamp, reader.deserialize(raw, connection.msgtype)))
+    assert {topic: len(m) for topic, m in by_rosbags.items()} == {topic: len(m) for topic, m in expected.items()}
+    for topic, messages in by_rosbags.items():
+        in_time_order = sorted(expected[topic], key=lambda m: m[0])  # sorted as rosbags reads: by log time
+        assert [timestamp for timestamp, _ in messages] == [m[0] for m in in_time_order]
+        for (_, decoded), (_, _, _, value) in zip(messages, in_time_order):
+            _check(topic, decoded, value)
+
+
+def test_a_port_whose_values_change_kind_keeps_its_type_and_sends_the_rest_as_json(tmp_path):
+    """The topic's type is its first value's; an int fits a Float64 topic; text, a number too
+    big for 64 bits or for a float64 without loss, and a value no message holds go on
+    ``<topic>/json``, counted."""
+    path = tmp_path / "emit.mcap"
+    values = [1.5, 2, "two", 2**70, np.uint64(2**64 - 1), None, [1, [2]], np.float32(0.25), b"\x00\x01"]
+    build_emit(values).run(duration=1, log=path)
+    out = tmp_path / "emit_ros2.mcap"
+    summary = export_ros2(read_log(path), out)
+    assert summary.types["/emit/value"] == "std_msgs/msg/Float64"
+    assert summary.types["/emit/value/json"] == "std_msgs/msg/String"
+    with out.open("rb") as f:
+        decoded = {}
+        for _, channel, _, message in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            decoded.setdefault(channel.topic, []).append(message.data)
+    assert decoded["/emit/value"] == [1.5, 2.0, 0.25]
+    as_json = [json.loads(text) for text in decoded["/emit/value/json"]]
+    assert as_json == ["two", 2**70, 2**64 - 1, [1, [2]], {"bytes": 2}]
+    assert summary.as_json == 5  # JSON keeps 2**70 whole; uint64 max is no float64; None is no event
+
+
+def test_each_kind_of_number_keeps_its_width_and_what_no_message_holds_is_json(tmp_path):
+    out = tmp_path / "kinds_ros2.mcap"
+    summary = export_ros2(read_log(kinds_log(tmp_path)), out)
+    assert summary.types == {
+        "/kinds/u64": "std_msgs/msg/UInt64", "/kinds/f16": "std_msgs/msg/Float32",
+        "/kinds/flags": "std_msgs/msg/UInt8MultiArray", "/kinds/big_endian": "std_msgs/msg/Int32MultiArray",
+        "/kinds/two_channels": "std_msgs/msg/UInt8MultiArray",  # H×W×2 is no image
+        "/kinds/records": "std_msgs/msg/String", "/kinds/empty": "std_msgs/msg/Float64MultiArray",
+        "/kinds/pair": "std_msgs/msg/Float64MultiArray", "/kinds/blob": "std_msgs/msg/String",
+        "/retriever/steps/kinds": "std_msgs/msg/String"}
+    assert summary.as_json == 4 and set(summary.written.values()) == {2}
+    with out.open("rb") as f:
+        decoded = {channel.topic: message for _, channel, _, message in
+                   make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()}
+    assert decoded["/kinds/u64"].data == 2**64 - 1 and decoded["/kinds/f16"].data == 1.5
+    assert list(decoded["/kinds/flags"].data) == [1, 0] and list(decoded["/kinds/big_endian"].data) == [1, 2]
+    two_channels = decoded["/kinds/two_channels"]
+    assert [(d.size, d.stride) for d in two_channels.layout.dim] == [(2, 12), (3, 6), (2, 2)]
+    assert list(two_channels.data) == list(range(12))
+    assert [d.size for d in decoded["/kinds/empty"].layout.dim] == [0, 3] and list(decoded["/kinds/empty"].data) == []
+    assert list(decoded["/kinds/pair"].data) == [1.0, 2.5]
+    assert json.loads(decoded["/kinds/records"].data) == {"dtype": "[('a', '<f4')]", "shape": [2], "head": None}
+    assert json.loads(decoded["/kinds/blob"].data) == {"bytes": 2}
+
+
+def test_a_process_that_never_imported_the_value_types_writes_the_same_file(tmp_path):
+    """What ``retriever log export`` does: values decoded without their types (a dataclass as
+    its fields, kept inert) give the same topics, types and bytes."""
+    log_path = camera_log(tmp_path)
+    here, there = tmp_path / "here.mcap", tmp_path / "there.mcap"
+    export_ros2(read_log(log_path), here)
+    code = ("import sys; from retriever import read_log; from retriever.log.ros2 import export_ros2; "
+            "export_ros2(read_log(sys.argv[1]), sys.argv[2]); "
+            "assert not any(m.startswith('tests') for m in sys.modules), 'the flows were imported'")
+    done = subprocess.run([sys.executable, "-c", code, str(log_path), str(there)], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path, env=cli_env())
+    assert done.returncode == 0, done.stderr
+    assert there.read_bytes() == here.read_bytes()
+
+
+def test_without_rosbags_the_export_says_how_to_get_it(tmp_path, monkeypatch):
+    log = read_log(camera_log(tmp_path))
+    monkeypatch.setitem(sys.modules, "rosbags.typesys", None)  # what an environment without the extra has
+    with pytest.raises(LogError, match=r"needs the rosbags package(.|\n)*"
+                                       r"hint: pip install 'retriever-robotics\[ros2\]'"):
+        export_ros2(log, tmp_path / "out.mcap")
+    assert not (tmp_path / "out.mcap").exists()
+
+
+
+# ---------------------------------------------------------------------------------------------
+# A log is input: one written by hand, with what no run writes, gives a LogError and no file
+# ---------------------------------------------------------------------------------------------
+def test_names_no_ros_name_allows_are_made_ros_names(tmp_path):
+    log = read_log(hand_written_log(tmp_path / "odd.mcap", [("data/nöde/1-port", 5, event_data(3.0))]))
+    out = tmp_path / "out.mcap"
+    assert export_ros2(log, out).types == {"/n_de/_1_port": "std_msgs/msg/Float64"}
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        assert [(c.topic, t) for c, t, _ in reader.messages()] == [("/n_de/_1_port", 5)]
+
+
+@pytest.mark.parametrize("events, message", [
+    ([("data/cam/rgb", 0, b"\x92\x00\xc1")], r"event cam\.rgb #0 is not valid msgpack"),
+    ([("data/cam/rgb", 2**63, event_data(np.zeros((2, 2), np.uint8)))], r"past what a ROS Time holds"),
+])
+def test_a_damaged_log_is_a_log_error_and_leaves_no_file(tmp_path, events, message):
+    log = read_log(hand_written_log(tmp_path / "odd.mcap", events))
+    with pytest.raises(LogError, match=message):
+        export_ros2(log, tmp_path / "out.mcap")
+    assert [p.name for p in tmp_path.iterdir()] == ["odd.mcap"]

@@ -1,0 +1,235 @@
+"""Ros2Subscriber and Ros2Publisher against a Zenoh session built by hand on the key expressions
+rmw_zenoh documents (written out literally below, not computed by retriever.ros2), with CDR
+encoded and decoded by rosbags alone.
+
+The test's own session is a Zenoh router, as rmw_zenoh's rmw_zenohd is: it listens on a free loopback port and
+the flows connect to it, in a ROS domain and under a topic no other test uses. Waiting is polling
+with a bound: the pipeline steps until what is expected arrives, or the bound fails the test.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+import zenoh.ext as zext
+from rosbags.typesys import Stores, get_typestore
+
+from retriever import Flow, Pipeline, Queue, Rate, Trigger
+from retriever.ros2 import Ros2Publisher, Ros2Subscriber
+
+DOMAIN = 117
+NAMESPACE = f"/retriever_test_{os.getpid()}"
+JOINT_STATE = ("sensor_msgs::msg::dds_::JointState_/"
+               "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e")
+TWIST = "geometry_msgs::msg::dds_::Twist_/RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+#: how long a test waits for Zenoh to link the sessions and deliver, at most
+BOUND_S = 20.0
+ROOT = Path(__file__).resolve().parents[2]
+
+_jazzy = get_typestore(Stores.ROS2_JAZZY)
+
+
+class Collect(Flow):
+    def __init__(self):
+        self.got = []
+
+    def step(self, msg):
+        self.got.extend(msg)
+
+
+def _joint_state_cdr(i: int) -> bytes:
+    JointState, Header = _jazzy.types["sensor_msgs/msg/JointState"], _jazzy.types["std_msgs/msg/Header"]
+    Time = _jazzy.types["builtin_interfaces/msg/Time"]
+    message = JointState(header=Header(stamp=Time(sec=100 + i, nanosec=7), frame_id="base"), name=["j0", "j1"],
+                         position=np.array([i, -i], dtype=np.float64), velocity=np.zeros(0), effort=np.zeros(0))
+    return bytes(_jazzy.serialize_cdr(message, "sensor_msgs/msg/JointState"))
+
+
+#: the messages sent once the subscription reached the publisher
+LINKED = range(1000, 1005)
+
+
+def test_a_subscriber_takes_what_a_plain_zenoh_publisher_puts_on_the_documented_key(router):
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/joints/{JOINT_STATE}"
+    gid = bytes(range(16))
+    with Pipeline("ros_in") as pipe:
+        subscriber = Ros2Subscriber(f"{NAMESPACE}/joints", "sensor_msgs/msg/JointState", domain_id=DOMAIN,
+                                    connect=[at], listen=[]) @ Rate(hz=100)
+        sink = Collect() @ Trigger("msg")
+        subscriber.then(sink, sync=Queue(maxsize=1000))
+    try:
+        pipe.step(0.01)  # the subscriber's setup(): its session, tokens and subscription
+        publisher = session.declare_publisher(key)
+        deadline, sent = time.monotonic() + BOUND_S, 0
+        while not sink.got and time.monotonic() < deadline:  # until the subscription reached us
+            sent += 1
+            publisher.put(_joint_state_cdr(sent), attachment=zext.z_serialize(
+                (zext.Int64(sent), zext.Int64(time.time_ns()), gid)).to_bytes())
+            pipe.step(0.01)
+        assert sink.got, f"nothing arrived in {BOUND_S} s"
+        for i in LINKED:  # now linked: every message arrives, in order
+            publisher.put(_joint_state_cdr(i), attachment=zext.z_serialize(
+                (zext.Int64(i), zext.Int64(time.time_ns()), gid)).to_bytes())
+        while sink.got[-1]["position"][0] != LINKED[-1] and time.monotonic() < deadline:
+            pipe.step(0.01)
+        publisher.undeclare()
+        got, undecodable = sink.got, subscriber.undecodable
+    finally:
+        pipe.reset()  # (which resets the flows: what they hold is read before)
+    assert [value["position"][0] for value in got if value["position"][0] in LINKED] == list(LINKED)
+    value = got[-1]
+    assert value["name"] == ["j0", "j1"] and value["frame_id"] == "base"
+    assert value["stamp"] == (100 + int(value["position"][0])) * 1_000_000_000 + 7
+    assert undecodable == 0
+
+
+def test_garbage_on_the_key_is_counted_and_never_handed_on(router):
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/noise/{JOINT_STATE}"
+    with Pipeline("ros_noise") as pipe:
+        subscriber = Ros2Subscriber(f"{NAMESPACE}/noise", "sensor_msgs/msg/JointState", domain_id=DOMAIN,
+                                    connect=[at], listen=[]) @ Rate(hz=100)
+        sink = Collect() @ Trigger("msg")
+        subscriber.then(sink, sync=Queue(maxsize=1000))
+    try:
+        pipe.step(0.01)
+        deadline = time.monotonic() + BOUND_S
+        while not sink.got and time.monotonic() < deadline:
+            session.put(key, b"\x00\x01\x00\x00garbage")
+            session.put(key, _joint_state_cdr(1))
+            pipe.step(0.01)
+        got, undecodable = sink.got, subscriber.undecodable
+    finally:
+        pipe.reset()
+    assert got and all(value["name"] == ["j0", "j1"] for value in got)
+    assert undecodable >= 1
+
+
+class Speed(Flow):
+    """A source of Twist values: forward at 0.1 m/s more each tick."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"msg": {"linear": [0.1 * self.k, 0, 0]}}
+
+
+def test_a_publisher_puts_cdr_with_rmw_zenohs_attachment_and_announces_itself(router):
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/cmd_vel/{TWIST}"
+    received, arrived = [], threading.Event()
+
+    def on_sample(sample):
+        received.append((sample.payload.to_bytes(), sample.attachment.to_bytes()))
+        arrived.set()
+
+    subscriber = session.declare_subscriber(key, on_sample)
+    with Pipeline("ros_out") as pipe:
+        speed = Speed() @ Rate(hz=10)
+        publisher = Ros2Publisher(f"{NAMESPACE}/cmd_vel", "geometry_msgs/msg/Twist", node="driver",
+                                  domain_id=DOMAIN, connect=[at], listen=[]) @ Trigger("msg")
+        speed.then(publisher)
+    try:
+        deadline = time.monotonic() + BOUND_S
+        while not arrived.wait(0.05) and time.monotonic() < deadline:
+            pipe.step(0.1)
+        tokens = [str(reply.ok.key_expr) for reply in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")]
+        published = publisher.published
+    finally:
+        pipe.reset()
+        subscriber.undeclare()
+    assert received, f"nothing arrived in {BOUND_S} s"
+    samples = list(received)
+    sequences, gids = [], set()
+    for payload, attachment in samples:  # the k-th tick's speed is 0.1 k, published as the k-th message
+        twist = _jazzy.deserialize_cdr(payload, "geometry_msgs/msg/Twist")
+        sequence, stamp, gid = zext.z_deserialize(tuple[zext.Int64, zext.Int64, bytes], zenoh.ZBytes(attachment))
+        assert twist.linear.x == pytest.approx(0.1 * sequence) and twist.angular.z == 0.0
+        assert abs(stamp - time.time_ns()) < 60 * 1_000_000_000
+        sequences.append(sequence)
+        gids.add(gid)
+    assert sequences == list(range(sequences[0], sequences[0] + len(sequences))) and sequences[-1] <= published
+    assert len(gids) == 1 and len(gids.pop()) == 16
+    nodes = [t for t in tokens if "/NN/" in t]
+    publishers = [t for t in tokens if "/MP/" in t]
+    assert len(nodes) == 1 and nodes[0].endswith("/NN/%/%/driver")
+    assert len(publishers) == 1 and publishers[0].endswith(
+        f"/MP/%/%/driver/{NAMESPACE.replace('/', '%')}%cmd_vel/{TWIST}/:2:,10:,:,:,,")
+
+
+def test_on_the_realtime_backend_a_subscriber_in_its_worker_process_takes_the_topic(router):
+    """The flows as they are deployed: rebuilt from the IR in a worker process of their own,
+    whose setup() opens the ROS session there; the run's trace holds what arrived."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/rt_joints/{JOINT_STATE}"
+    with Pipeline("ros_realtime") as pipe:
+        Ros2Subscriber(f"{NAMESPACE}/rt_joints", "sensor_msgs/msg/JointState", domain_id=DOMAIN,
+                       connect=[at], listen=[]) @ Rate(hz=50)
+    publisher, run_over = session.declare_publisher(key), threading.Event()
+
+    def publish_until_the_run_is_over():
+        i = 0
+        while not run_over.wait(0.02):  # a ROS node's 50 Hz, for as long as the run lasts
+            i += 1
+            publisher.put(_joint_state_cdr(i), attachment=zext.z_serialize(
+                (zext.Int64(i), zext.Int64(time.time_ns()), bytes(16))).to_bytes())
+
+    talker = threading.Thread(target=publish_until_the_run_is_over)
+    talker.start()
+    try:
+        trace = pipe.run(duration=5.0, backend="zenoh")
+    finally:
+        run_over.set()
+        talker.join()
+        publisher.undeclare()
+        pipe.reset()
+    values = trace.values_of("ros2_subscriber", "msg")
+    assert values, "the subscriber's worker took nothing in a 5 s run"
+    positions = [value["position"][0] for value in values]
+    assert positions == sorted(positions) and len(set(positions)) == len(positions)
+    assert all(value["stamp"] == (100 + int(value["position"][0])) * 1_000_000_000 + 7 for value in values)
+
+
+def test_a_relative_topic_resolves_in_the_nodes_namespace_on_the_key_and_in_the_token():
+    publisher = Ros2Publisher("image", "sensor_msgs/msg/Image", namespace="/robot1", domain_id=3)
+    assert publisher.topic == "/robot1/image"
+    assert publisher.key.startswith("3/robot1/image/sensor_msgs::msg::dds_::Image_/RIHS01_")
+
+
+#: an in-process run of a subscriber, in a program of its own: it must end when the run has
+ENDS = """
+import sys
+from retriever import Flow, Pipeline, Queue, Rate
+from retriever.ros2 import Ros2Subscriber
+
+class Take(Flow):
+    def step(self, msg):
+        return None
+
+with Pipeline("ends") as pipe:
+    subscriber = Ros2Subscriber("/ends", "std_msgs/msg/String", domain_id=117, connect=[sys.argv[1]], listen=[])
+    (subscriber @ Rate(hz=10)).then(Take() @ Rate(hz=10), sync=Queue())
+pipe.run(duration=0.5)
+print("ran")
+"""
+
+
+def test_a_program_that_ran_a_subscriber_in_process_ends(router, tmp_path):
+    """The subscription's callback runs on Zenoh's thread, not on a Python thread Zenoh starts:
+    an in-process run tears its flows down at the interpreter's exit, which first waits for every
+    Python thread, so the program hung there for good."""
+    _, at = router
+    done = subprocess.run([sys.executable, "-c", ENDS, at], capture_output=True, text=True, timeout=60,
+                          cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 0 and done.stdout.strip() == "ran", done.stdout + done.stderr
