@@ -345,8 +345,12 @@ def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_withi
     placement.write_text('[nodes]\ncamera = "arm-pc"\n')  # viewer: gpu-box by load
     log = Path(f"/tmp/{coordinator.name}-move.mcap")
     log.unlink(missing_ok=True)
+    # the deployment keeps Zenoh's lease (10 s): the workers' 1 s lease is what moves the viewer and
+    # gives up the camera's held put. A coordinator's lease under ~3 s lets Zenoh close healthy links
+    # while it closes the congested one (docs/deploy.md): the camera's link to the coordinator,
+    # and with it its reports ("exited with code 0 before it finished", 1 in 5 runs under load)
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "12", "--placement",
-                       str(placement), "--lease", "1", "--allow-errors", "--log", str(log), pipeline="watched")
+                       str(placement), "--allow-errors", "--log", str(log), pipeline="watched")
     wait_going(run, log)
     partitionable.partition(gpu)
     out, err = finish(run)
