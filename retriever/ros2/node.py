@@ -12,14 +12,19 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import time
+import warnings
 from collections.abc import Sequence
 
 import zenoh
 
+from ..errors import RetrieverWarning
 from .keys import Node, QoS
 
 #: where rmw_zenoh's router listens, and where a ROS node's session connects, by default
 ROS_ROUTER = "tcp/localhost:7447"
+#: how long a new node waits for its first link (to the router, or a peer) before it warns
+LINK_WAIT_S = 1.0
 
 
 def domain_id_from_env() -> int:
@@ -58,6 +63,28 @@ class Ros2Node:
         self.node = Node(domain_id, str(self.session.info.zid()), 0, name, namespace)
         self._tokens = [self.session.liveliness().declare_token(self.node.token())]
         self._next_id = 1
+        if not self.wait_linked(LINK_WAIT_S):
+            warnings.warn(
+                f"ROS 2 node '{name}' is linked to nothing {LINK_WAIT_S:g} s after it connected to "
+                f"{', '.join(connect)}: no Zenoh router answers there, so it sees no topic and none sees its own "
+                "(a peer session goes on trying to connect)\n"
+                "    hint: start rmw_zenoh's router on this machine (ros2 run rmw_zenoh_cpp rmw_zenohd), or pass "
+                "connect=[...] with where one listens", RetrieverWarning, stacklevel=3)
+
+    def linked(self) -> bool:
+        """Whether the session has a link: to a router (rmw_zenohd) or to a peer."""
+        info = self.session.info
+        return bool(list(info.routers_zid()) or list(info.peers_zid()))
+
+    def wait_linked(self, timeout: float) -> bool:
+        """Whether the session is linked within ``timeout`` s (Zenoh opens a peer's configured
+        links as it opens the session: one that answers is up at once)."""
+        give_up = time.monotonic() + timeout
+        while not self.linked():
+            if time.monotonic() >= give_up:
+                return False
+            time.sleep(0.01)
+        return True
 
     def declare(self, kind: str, topic: str, type_name: str, type_hash: str, qos: QoS = QoS()) -> str:
         """Announce a publisher (``MP``) or subscription (``MS``); returns its token's key."""

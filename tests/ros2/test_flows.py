@@ -10,10 +10,12 @@ with a bound: the pipeline steps until what is expected arrives, or the bound fa
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +25,10 @@ import zenoh.ext as zext
 from rosbags.typesys import Stores, get_typestore
 
 from retriever import Flow, Pipeline, Queue, Rate, Trigger
+from retriever.backends.zenoh.hub import endpoint, free_port
+from retriever.errors import RetrieverWarning
 from retriever.ros2 import Ros2Publisher, Ros2Subscriber
+from retriever.ros2.node import Ros2Node
 
 DOMAIN = 117
 NAMESPACE = f"/retriever_test_{os.getpid()}"
@@ -233,3 +238,15 @@ def test_a_program_that_ran_a_subscriber_in_process_ends(router, tmp_path):
     done = subprocess.run([sys.executable, "-c", ENDS, at], capture_output=True, text=True, timeout=60,
                           cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert done.returncode == 0 and done.stdout.strip() == "ran", done.stdout + done.stderr
+
+
+def test_a_node_with_no_router_where_it_connects_warns_naming_the_endpoint_and_rmw_zenohd(router):
+    """A node whose router is not running (rmw_zenohd not started) saw no topic and said nothing:
+    a subscriber's flow just never emitted."""
+    nowhere = endpoint(free_port())
+    with pytest.warns(RetrieverWarning, match=r"(?s)linked to nothing.*" + re.escape(nowhere) + ".*rmw_zenohd"):
+        node = Ros2Node("lonely", connect=[nowhere])
+    node.close()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RetrieverWarning)
+        Ros2Node("linked", connect=[router[1]]).close()

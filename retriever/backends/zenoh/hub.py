@@ -1,9 +1,12 @@
 """Zenoh sessions the way the embedded runtime opens them: peer mode, loopback, no multicast; and
 the client sessions of a run joined through a router (client_config).
 
-The run's *hub* is the session of the process that starts the run. It listens on
-``tcp/127.0.0.1:7447`` when that port is free, else on a free port, so that worker processes and
-any Zenoh client (a plain ``zenoh`` subscriber watching ``retriever/<ns>/data/**``) can join it.
+The run's *hub* is the session of the process that starts the run. It listens on a free loopback
+port (the run says which, and writes it in its watcher file), so that worker processes and any
+Zenoh client (a plain ``zenoh`` subscriber watching ``retriever/<ns>/data/**``) can join it. Not
+on Zenoh's 7447 unless asked (``hub_port=7447``): that port belongs to the machine's Zenoh router
+(rmw_zenoh's ``rmw_zenohd``, which a ROS 2 flow joins there) or its Retriever worker daemon, and a
+local run that took it would keep them from starting, or take their clients' links itself.
 """
 
 from __future__ import annotations
@@ -24,7 +27,6 @@ import zenoh
 
 from .wire import KeySpace
 
-DEFAULT_PORT = 7447
 LOOPBACK = "127.0.0.1"
 
 #: Zenoh copies a message bigger than 3 KiB between peers on one host into a shared-memory pool
@@ -310,9 +312,10 @@ def remove_orphaned_segments_at_exit() -> None:
         pass
 
 
-def open_hub(preferred_port: int = DEFAULT_PORT, attempts: int = 5, access: dict[str, str] | None = None,
+def open_hub(preferred_port: int = 0, attempts: int = 5, access: dict[str, str] | None = None,
              keys: KeySpace | None = None) -> tuple[zenoh.Session, str]:
     """Open the run's hub session; returns it and the endpoint it listens on. Close it (``with``).
+    ``preferred_port``: where to listen if that port is free (0, the default: a free port).
     ``keys``: the run's key space, whose messages it forwards to watchers dropping
     (forward_dropping).
 

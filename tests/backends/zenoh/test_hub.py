@@ -19,7 +19,6 @@ from pathlib import Path
 import zenoh
 
 from retriever.backends.zenoh.hub import (
-    DEFAULT_PORT,
     SHM_POOL_MAX,
     SHM_POOL_MIN,
     SHM_POOL_RUN_MAX,
@@ -62,16 +61,20 @@ with open_peer(sys.argv[1]) as s:
 """
 
 
-def test_hub_prefers_7447_then_a_free_port():
-    was_free = port_is_free(DEFAULT_PORT)
-    first, first_at = open_hub()
-    with first:
-        if was_free:
-            assert first_at == f"tcp/127.0.0.1:{DEFAULT_PORT}"
-        second, second_at = open_hub()  # 7447 is taken now (by us, or by whoever had it)
-        with second:
-            assert second_at != first_at and second_at.startswith("tcp/127.0.0.1:")
-
+def test_hub_leaves_zenohs_port_to_the_machines_router_and_takes_a_port_it_is_asked_for():
+    """7447 is Zenoh's port: rmw_zenoh's router (which a ROS 2 flow joins there) and a worker
+    daemon listen on it. A local run's hub took it whenever it was free (and then a ROS flow of
+    that run linked to its own hub, and rmw_zenohd could not start)."""
+    hub, at = open_hub()
+    with hub:
+        assert at != "tcp/127.0.0.1:7447" and at.startswith("tcp/127.0.0.1:")
+        wanted = free_port()
+        asked, asked_at = open_hub(wanted)
+        with asked:
+            assert asked_at == f"tcp/127.0.0.1:{wanted}"
+            again, again_at = open_hub(wanted)  # taken now: another free one
+            with again:
+                assert again_at not in (asked_at, at) and again_at.startswith("tcp/127.0.0.1:")
 
 
 def test_hub_port_0_means_any_free_port_and_says_which():

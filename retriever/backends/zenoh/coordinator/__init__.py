@@ -1,7 +1,7 @@
 """The coordinator of a real-time run on Zenoh: the embedded default (docs/realtime.md).
 
     pipe.run(duration=10, backend="zenoh")
-        │ open the hub (tcp/127.0.0.1:7447, else a free port), write SPEC.json (IR + python path)
+        │ open the hub (tcp/127.0.0.1:PORT, a free port), write SPEC.json (IR + python path)
         │ start one worker process per node ──▶ each says `ready` on status/node/<node>
         │ put `start` {T0 = HLC now + margin, end} on ctl/run
         │ collect status/report/* (the events each worker published, its step records) into the

@@ -69,7 +69,7 @@ class Coordinator(Session):
     holds_processes = True
 
     def __init__(self, graph: Graph, *, hosting: Hosting | None = None, namespace: str | None = None,
-                 startup_timeout: float = 60.0, start_margin: float = 0.3, hub_port: int = 7447, quiet: bool = False,
+                 startup_timeout: float = 60.0, start_margin: float = 0.3, hub_port: int = 0, quiet: bool = False,
                  secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False, keep: str = "trace",
                  foxglove: int | None = None, rerun: str | os.PathLike | None = None):
         super().__init__(graph, keep)
