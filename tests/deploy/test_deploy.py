@@ -503,3 +503,30 @@ def _pin_all(host, worker: str) -> Path:
     path = Path(f"/tmp/{host.name}-pin.toml")
     path.write_text(f'[nodes]\ncounter = "{worker}"\n')
     return path
+
+
+def test_a_deployment_streamed_live_to_rerun_holds_what_its_log_holds(hosts, secret, tmp_path):
+    """``retriever deploy --rerun run.rrd`` (issue 39 §3): the view is the coordinator's, fed by
+    what the daemons' flows report from other hosts; every step record and every event of the
+    log is in the recording, at its tag on the event timeline, with its value."""
+    rr = pytest.importorskip("rerun", reason="rerun-sdk is in the test extra: pip install -e '.[test]'")
+    from tests.backends.zenoh.test_rerun_live import rows_by_tag
+
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    log, live = tmp_path / "run.mcap", tmp_path / "live.rrd"
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--duration", "2", "--log", str(log),
+                  "--rerun", str(live))
+    assert done.returncode == 0, done.stdout + done.stderr
+    trace = read_log(log).trace()
+    placed = set(json.loads(read_log(log).run["deployment"])["placed"].values())
+    assert placed == {"arm-pc", "gpu-box"}, placed  # spread by load: values came from both hosts
+    recording = rr.dataframe.load_recording(live)
+    for node in ("counter", "relay", "sink"):
+        steps = sorted(s.tag[0] for s in trace.steps_of(node))
+        assert len(steps) >= 20 and [r["event_time"] for r in rows_by_tag(recording, f"/retriever/steps/{node}")] == steps
+        events = sorted((e for e in trace.events if e.node == node), key=lambda e: e.tag)
+        (port,) = {e.port for e in events}
+        rows = rows_by_tag(recording, f"/{node}/{port}")  # (Count's field n is the port)
+        assert [(r["event_time"], r["scalars"]) for r in rows] == [(e.tag[0], [float(e.value)]) for e in events], node
