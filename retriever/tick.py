@@ -16,7 +16,8 @@ does not generate; its generated ticks (``backends/_inproc_ticks.py``) are the f
 to the same trace on random graphs (tests/backends/test_inproc_ticks.py). The zenoh node loop
 runs the same tick from the same two parts, :func:`take_inputs` (select, commit, fallbacks) and
 :func:`timed_step`, with the accounts of a real-time node around them. :func:`select_inputs`
-is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read; and
+is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read (its
+restart, :func:`take_restart`, is also the coordinator's, which holds a real-time flow's budget); and
 :func:`skipped_outcome`, :func:`exit_outcome` and :func:`error_outcome` the one place the step
 record of a tick that did not end ``ok`` with outputs is made. Recording and delivering a tick's
 outputs is each backend's own: it knows where they go.
@@ -163,8 +164,16 @@ def decide(on_error: str, exc: BaseException | str, budget: RestartBudget | None
     if on_error == "stop":
         return Decision.STOP
     if on_error == "restart":
-        return Decision.RESTART if budget is None or budget.take(t_ns) else Decision.OUT_OF_RESTARTS
+        return Decision.RESTART if budget is None else take_restart(budget, t_ns)
     return Decision.SKIP
+
+
+def take_restart(budget: RestartBudget, t_ns: int) -> Decision:
+    """:func:`decide` for a flow with ``on_error="restart"``, by the holder of its ``budget``, at
+    run time ``t_ns``: RESTART, taken from the budget, or OUT_OF_RESTARTS. The zenoh coordinator
+    decides so on a restart its node asked for (the node decided RESTART, with no budget) and on a
+    dead process of a restarting flow: neither is a step's SystemExit, which ends the run instead."""
+    return Decision.RESTART if budget.take(t_ns) else Decision.OUT_OF_RESTARTS
 
 
 def error_text(exc: BaseException) -> str:

@@ -12,7 +12,7 @@ from retriever.errors import ReplayedError, RunEnded
 from retriever.flow._base import PortSpec
 from retriever.sync import PortBuffer
 from retriever.tick import (Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs, take_inputs,
-                            timed_step)
+                            take_restart, timed_step)
 
 
 def buffer(*values) -> PortBuffer:
@@ -74,6 +74,18 @@ def test_restarts_past_the_budget_within_its_window_stop_the_run():
     decisions = [decide("restart", "its process died", budget, t) for t in (0, 400_000_000, 900_000_000)]
     assert decisions == [Decision.RESTART, Decision.RESTART, Decision.OUT_OF_RESTARTS]
     assert decide("restart", ValueError(), budget, 1_000_000_000) is Decision.RESTART  # the first left the window
+
+
+def test_the_coordinators_restart_decides_as_decide_does_on_the_same_budget():
+    """take_restart (a restart the node asked for, a restarting flow's dead process) decides as
+    decide("restart", ...) with the budget, and takes from the same budget."""
+    times = (0, 400_000_000, 900_000_000, 1_000_000_000)
+    by_decide, by_take = RestartBudget(2, 1.0), RestartBudget(2, 1.0)
+    assert [take_restart(by_take, t) for t in times] == [decide("restart", "died", by_decide, t) for t in times] == [
+        Decision.RESTART, Decision.RESTART, Decision.OUT_OF_RESTARTS, Decision.RESTART]
+    shared = RestartBudget(1, 1.0)
+    assert take_restart(shared, 0) is Decision.RESTART
+    assert decide("restart", ValueError(), shared, 1) is Decision.OUT_OF_RESTARTS
 
 
 def test_the_decisions_that_end_a_run_say_why():

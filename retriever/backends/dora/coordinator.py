@@ -14,7 +14,7 @@ time (use inproc or zenoh's ``virtual_time=True``).
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import os
 import signal
 import sys
@@ -24,12 +24,11 @@ from pathlib import Path
 
 from ...errors import BackendError
 from ...graph import Graph
-from ..zenoh.access import write_private
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.coordinator.hosting import FailRun
 from ..zenoh.host import Host
-from ..zenoh.origin import key_text, new_key
+from ..zenoh.origin import new_key
 from .dataflow import DoraNames, dataflow_yaml
 from .host import DoraHost, dora_command
 
@@ -80,8 +79,8 @@ class DoraHosting(Hosting):
 
     def place(self) -> dict[str, Host]:
         run = self.run
-        graph, spec = run.graph, run.spec
-        names = DoraNames.of(spec["ir"])
+        graph = run.graph
+        names = DoraNames.of(run.spec.ir)
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
         dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
@@ -90,9 +89,9 @@ class DoraHosting(Hosting):
         # and each node's process finds the key it signs with (origin.py) in the private spec
         keys = run.book.first_keys
         keys.update((nid, new_key()) for nid in graph.nodes)
-        spec["dora"] = {**names.to_spec(), "cwd": os.getcwd(), "coordinator": os.getpid(),
-                        "dir": str(dora_dir), "keys": {nid: key_text(k) for nid, k in keys.items()}}
-        spec_path = write_private(run.run_dir / "spec.json", json.dumps(spec))  # it holds the run's password
+        run.spec = dataclasses.replace(run.spec, dora=names.part(cwd=os.getcwd(), coordinator=os.getpid(),
+                                                                 dir=str(dora_dir), keys=keys))
+        spec_path = run.spec.write_file(run.run_dir / "spec.json")
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(graph.name, names, sys.executable, str(spec_path), package_root))

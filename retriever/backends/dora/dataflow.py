@@ -32,6 +32,7 @@ import re
 from dataclasses import dataclass
 
 from ..zenoh.command import DORA_NODE_MODULE, worker_command
+from ..zenoh.protocol import DoraPart
 
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
@@ -70,12 +71,20 @@ class DoraNames:
         """The node id whose dora node is ``dora_id`` (a worker's argument)."""
         return next(nid for nid, did in self.nodes.items() if did == dora_id)
 
-    def to_spec(self) -> dict:
-        return {"nodes": self.nodes, "outputs": self.outputs, "inputs": self.inputs}
+    def part(self, *, cwd: str, coordinator: int, dir: str, keys: dict[str, bytes]) -> DoraPart:
+        """The run's spec's dora part (protocol.DoraPart): these ids, and what a node's process
+        is told of the coordinator (its working directory, its pid, dora's directory, the keys)."""
+        return DoraPart(nodes=dict(self.nodes), outputs={nid: dict(ports) for nid, ports in self.outputs.items()},
+                        inputs={nid: {input_id: tuple(stream) for input_id, stream in inputs.items()}
+                                for nid, inputs in self.inputs.items()},
+                        cwd=cwd, coordinator=coordinator, dir=dir, keys=dict(keys))
 
     @classmethod
-    def from_spec(cls, doc: dict) -> "DoraNames":
-        return cls(doc["nodes"], doc["outputs"], doc["inputs"])
+    def of_part(cls, part: DoraPart) -> "DoraNames":
+        """The ids a run's spec's dora part holds (:meth:`part`)."""
+        return cls(dict(part.nodes), {nid: dict(ports) for nid, ports in part.outputs.items()},
+                   {nid: {input_id: list(stream) for input_id, stream in inputs.items()}
+                    for nid, inputs in part.inputs.items()})
 
 
 def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pythonpath: str) -> str:

@@ -5,7 +5,7 @@
 dora starts it; the zenoh worker's phases (backends/zenoh/worker.py) serve it, from a
 :class:`~retriever.backends.zenoh.worker.Launch` made here:
 
-    node      the node whose dora id is DORA_ID (the spec's ``dora`` part: DoraNames)
+    node      the node whose dora id is DORA_ID (the spec's ``dora`` part: protocol.DoraPart)
     parent    the coordinator, which is not this process's parent (dora's daemon is): ``adopted``
     key       the one the coordinator wrote for the node in the private spec (origin.py)
     loop      the zenoh backend's, its events and progress over dora (:func:`loop_maker`)
@@ -20,15 +20,15 @@ Before that, the process says what a child of the coordinator would say by being
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from ...errors import WireError
 from ..zenoh import worker
 from ..zenoh.command import DORA_NODE_MODULE, parse_command
-from ..zenoh.origin import key_of_text
+from ..zenoh.protocol import RunSpec
 from .dataflow import DoraNames
 
 #: dora's own directory (its logs) is named so; only such a directory is removed
@@ -43,20 +43,20 @@ def main(argv: list[str]) -> None:
         print(e, file=sys.stderr, flush=True)
         worker.exit_process(worker.EXIT_FAILED)
     spec_path, dora_id = command.spec_path, command.name
-    dora = json.loads(spec_path.read_text())["dora"]
-    names = DoraNames.from_spec(dora)
+    dora = RunSpec.read_file(spec_path).dora
+    if dora is None:
+        raise WireError(f"the run's spec {spec_path} has no dora part: no dora run's coordinator wrote it")
+    names = DoraNames.of_part(dora)
     node = names.node_of(dora_id)
-    coordinator = dora.get("coordinator")
-    adopted = type(coordinator) is int
-    dora_dir = Path(dora.get("dir", ""))
-    launch = worker.Launch(spec_path, node, worker.Parent(coordinator if adopted else os.getppid(), adopted),
-                           key_of_text(dora.get("keys", {}).get(node)), make_loop=loop_maker(names),
+    dora_dir = Path(dora.dir)
+    launch = worker.Launch(spec_path, node, worker.Parent(dora.coordinator, adopted=True), dora.keys.get(node),
+                           make_loop=loop_maker(names),
                            folders=(dora_dir,) if dora_dir.name.startswith(DORA_DIR_PREFIX) else ())
     worker.watch_parent(launch)  # first: a named pipe's open waits for its reader, which may be dead
     run_dir = spec_path.parent
     (run_dir / f"{node}.pid").write_text(str(os.getpid()))
     _output_to_pipes(run_dir, dora_id)
-    os.chdir(dora["cwd"])
+    os.chdir(dora.cwd)
     code = worker.serve(launch)
     with contextlib.suppress(OSError):  # gone with the run's directory when the coordinator is
         (run_dir / f"{node}.exit").write_text(str(code))
@@ -69,7 +69,7 @@ def loop_maker(names: DoraNames) -> Callable:
     from ..zenoh.worker_build import build_loop
     from .link import DoraTransport
 
-    def make(spec: dict, node: str, session, plan):
+    def make(spec: RunSpec, node: str, session, plan):
         return build_loop(spec, node, session, transport=DoraTransport(names, node), plan=plan)
 
     return make

@@ -231,7 +231,7 @@ class Deployment(Hosting):
                     print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                           f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
                 host = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id, self.daemons[name].zid)
-                self._say_warnings(name, host.prepare(self._remote_spec(),
+                self._say_warnings(name, host.prepare(run.spec.for_remote(),
                                                       sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
         run.keep(run.hub.declare_queryable(run.keys.deployment(), weak_callback(self._answer)))
@@ -452,7 +452,7 @@ class Deployment(Hosting):
             if remote is None:
                 remote = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id,
                                                           self.daemons[name].zid)
-            self._say_warnings(name, remote.prepare(self._remote_spec(),
+            self._say_warnings(name, remote.prepare(run.spec.for_remote(),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
@@ -473,12 +473,6 @@ class Deployment(Hosting):
                        for nid in waiting["nodes"]]
         self._waiting.clear()
         return faults
-
-    def _remote_spec(self) -> dict:
-        """The run's spec as workers get it: what depends on this machine left out (each worker
-        fills in its own Python path, credentials and address: runs.py)."""
-        return {k: v for k, v in self.run.spec.items()
-                if k not in ("access", "python_path", "spill_dir", "main_file")}
 
     def log_metadata(self) -> dict[str, str]:
         """``deployment``: which worker ran each node, and what each worker said of itself."""

@@ -129,15 +129,17 @@ class RemoteHost(Host):
         raise BackendError(f"worker '{self.name}' did not answer {op} within {REQUEST_TIMEOUT_S:g} s"
                            "\n    hint: is it still up? `retriever workers` lists the workers that are")
 
-    def prepare(self, spec: dict, nodes: Sequence[str]) -> list[str]:
-        """Hand the daemon the run's spec for ``nodes``; it refuses what it will not run, and says
-        what it runs with a warning (code that differs from the coordinator's, --code-mismatch warn):
-        those warnings. It takes a run only while the coordinator's liveliness token is up, which
-        it may not have seen yet."""
+    def prepare(self, spec: RunSpec, nodes: Sequence[str]) -> list[str]:
+        """Hand the daemon the run's spec for ``nodes`` (RunSpec.for_remote); it refuses what it
+        will not run, and says what it runs with a warning (code that differs from the
+        coordinator's, --code-mismatch warn): those warnings. It takes a run only while the
+        coordinator's liveliness token is up, which it may not have seen yet. The spec is read
+        here as the daemon will read it: what its decoder refuses (an argument past
+        MAX_PATH_CHARS) is a WireError here, before any request."""
+        spec = RunSpec.from_fields(spec.to_fields(), "the run's spec")
         for attempt in range(PREPARE_TRIES):
             try:
-                reply = self.request(PrepareRequest(run=self.run, spec=RunSpec.from_fields(spec, "the run's spec"),
-                                                    nodes=tuple(nodes)))
+                reply = self.request(PrepareRequest(run=self.run, spec=spec, nodes=tuple(nodes)))
                 self.events = ControlOpener(reply.key)
                 return list(reply.warnings)
             except BackendError as e:

@@ -22,6 +22,8 @@ from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, 
 from retriever.backends.dora import host as dora_host
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
 from retriever.backends.dora.host import pid_alive
+from retriever.backends.zenoh.origin import KEY_BYTES
+from retriever.backends.zenoh.protocol import RunSpec
 from retriever.replay import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
@@ -79,6 +81,20 @@ def test_ids_dora_would_refuse_are_renamed_and_mapped_back():
     assert names.node_of("n0") == "cam.left"
     flow = yaml.safe_load(dataflow_yaml("odd", names, "/py", "/spec.json", "/src"))
     assert [n["id"] for n in flow["nodes"]] == ["n0", "n1"] and flow["nodes"][0]["outputs"] == ["img", "o1", PROGRESS]
+
+
+def test_the_specs_dora_part_is_the_dict_it_was_and_a_node_reads_its_names_back(tmp_path):
+    doc = _let_chain().compile().to_ir().doc
+    names, keys = DoraNames.of(doc), {"src": b"\x01" * KEY_BYTES, "echo": b"\x02" * KEY_BYTES}
+    part = names.part(cwd="/home/me", coordinator=4242, dir="/tmp/retriever-dora-x", keys=keys)
+    # as DoraHosting.place wrote it when the spec was a dict: the same keys, in the same order
+    assert part.to_fields() == {"nodes": names.nodes, "outputs": names.outputs, "inputs": names.inputs,
+                                "cwd": "/home/me", "coordinator": 4242, "dir": "/tmp/retriever-dora-x",
+                                "keys": {"src": "01" * KEY_BYTES, "echo": "02" * KEY_BYTES}}
+    spec = RunSpec(ir=doc, namespace="dora-part", hub="tcp/127.0.0.1:7447", plan={"nodes": []}, startup_timeout=60.0,
+                   zids={}, hub_zid=None, virtual_time=False, dora=part)
+    read = RunSpec.read_file(spec.write_file(tmp_path / "spec.json")).dora
+    assert read == part and DoraNames.of_part(read) == names and read.keys["echo"] == keys["echo"]
 
 
 # ---------------------------------------------------------------------------------------------

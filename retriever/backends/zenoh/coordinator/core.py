@@ -24,7 +24,7 @@ from ....plan import plan_graph, tie_order
 from ....trace import Trace
 from ...base import NodeStats, Session
 from ..hub import new_zid, weak_callback
-from ..protocol import Finished, Start, State
+from ..protocol import Finished, RunSpec, Start, State
 from ..wire import KeySpace
 from .book import RunBook
 from .control import RunControl
@@ -129,16 +129,18 @@ class Coordinator(Session):
         zids = {nid: new_zid() for nid in graph.nodes}
         for members in groups.values():  # one session for a group: its members' id
             zids.update(dict.fromkeys(members, zids[members[0]]))
-        self.spec = {"ir": graph.to_ir().doc, "namespace": self.namespace, "hub": self.endpoint,
-                     "plan": shipped_plan(graph),  # the run's wiring, made once: retriever.plan
-                     "python_path": python_path(), "main_file": main_file(graph), "argv": list(sys.argv),
-                     "spill_dir": str(self.run_dir), "access": access.to_spec(dictionary) if access else None,
-                     "startup_timeout": self.startup_timeout,
-                     # each first process's session id, and the hub's: a worker says ready once
-                     # linked to its neighbours and the hub, whatever other peers it has
-                     "zids": zids, "hub_zid": str(self.hub.zid()),
-                     "virtual_time": self.virtual_time, "groups": groups}
-        self.hosted.spec = self.spec
+        # (each field held as its decoder reads it, tuples and floats: a field at its default is
+        # left out of the file and of the prepare request alike)
+        self.hosted.spec = RunSpec(
+            ir=graph.to_ir().doc, namespace=self.namespace, hub=self.endpoint,
+            plan=shipped_plan(graph),  # the run's wiring, made once: retriever.plan
+            python_path=tuple(python_path()), main_file=main_file(graph), argv=tuple(sys.argv),
+            spill_dir=str(self.run_dir), access=access.to_spec(dictionary) if access else None,
+            startup_timeout=float(self.startup_timeout),
+            # each first process's session id, and the hub's: a worker says ready once
+            # linked to its neighbours and the hub, whatever other peers it has
+            zids=zids, hub_zid=str(self.hub.zid()),
+            virtual_time=self.virtual_time, groups={name: tuple(members) for name, members in groups.items()})
         self.book.hosts = self.hosting.place()
         grouped = {nid for members in groups.values() for nid in members}
         for name, members in groups.items():

@@ -16,18 +16,18 @@ What a host lost means is a decision it returns (:class:`FailRun`, :class:`Reloc
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ....errors import BackendError
 from ....graph import Graph
-from ..access import WATCH_USER, AccessError, RunAccess, secret_bytes, write_private
+from ..access import WATCH_USER, AccessError, RunAccess, secret_bytes
 from ..host import Host, LocalHost
 from ..hub import open_hub
+from ..protocol import RunSpec
 from ..wire import KeySpace
 from .book import RunBook
 from .faults import Fault
@@ -37,9 +37,10 @@ from .faults import Fault
 class HostedRun:
     """The run a hosting serves: what it reads of it, filled in as the coordinator opens it
     (``hub``, ``endpoint``, ``watch_config`` once the hub is open; ``spec`` before :meth:`Hosting.place`,
-    which may add to it). ``book`` is the coordinator's record, to read (states, counters, pids, run
-    time; :meth:`Hosting.place` may give nodes their first keys): what a host lost changes in it goes
-    through the decision :meth:`Hosting.host_lost` returns."""
+    which may replace it with one that has a part of its own: dora's). ``book`` is the
+    coordinator's record, to read (states, counters, pids, run time; :meth:`Hosting.place` may
+    give nodes their first keys): what a host lost changes in it goes through the decision
+    :meth:`Hosting.host_lost` returns."""
 
     graph: Graph
     namespace: str
@@ -56,7 +57,7 @@ class HostedRun:
     hub: Any = None
     endpoint: str | None = None
     watch_config: Path | None = None
-    spec: dict = field(default_factory=dict)
+    spec: RunSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -180,9 +181,7 @@ class LocalHosting(Hosting):
 
     def place(self) -> dict[str, Host]:
         run = self.run
-        path = run.run_dir / "spec.json"
-        write_private(path, json.dumps(run.spec))  # it holds the run's password
-        host = LocalHost(path)
+        host = LocalHost(run.spec.write_file(run.run_dir / "spec.json"))
         return {nid: host for nid in run.graph.nodes}
 
 

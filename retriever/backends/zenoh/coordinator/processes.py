@@ -19,7 +19,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from ....tick import Decision, decide, ending
+from ....tick import Decision, ending, take_restart
 from ..command import mode_args
 from ..host import Host, WorkerProcess
 from ..node import RESTART_SEQ_GAP
@@ -164,7 +164,7 @@ class Supervisor:
         if nid in book.fresh:  # the last one died before it was ready: that fault stands on its own
             self.record_fault(book.fresh.pop(nid), None)
         budget = book.restarts[nid]
-        decision = decide("restart", why, budget, at)
+        decision = take_restart(budget, at)
         if decision is not Decision.RESTART:
             book.limit = ending(decision, nid, None, why, budget)
             book.unrecovered.append(Fault(nid, at, proc.pid, exit_text(code)))

@@ -10,7 +10,7 @@ machine only dispatches, as dora's daemon loop does.
 from __future__ import annotations
 
 
-from ....tick import Decision, decide, ending
+from ....tick import Decision, ending, take_restart
 from ..protocol import (ABSENT, STATUS, Done, End, Exit, Failed, HandedOver, Handover, Reached, Ready, Redeclare,
                         Restart, Restarted, Resume, State, Status, Unanswered)
 from ..wire import WireError
@@ -180,7 +180,7 @@ class StatusMachine:
         new one takes over."""
         book, node, tag = self.book, status.node, status.tag
         budget = book.restarts[node]
-        decision = decide("restart", status.error, budget, tag[0])  # the node decided on a restart; the budget here
+        decision = take_restart(budget, tag[0])  # the node decided on a restart; the budget here
         if decision is not Decision.RESTART:
             book.limit = ending(decision, node, tag, status.error, budget)
             book.failure = RunFailure(node, str(book.limit))

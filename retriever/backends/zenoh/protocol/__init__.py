@@ -11,7 +11,8 @@ their own exact decoders in wire.py.
     to_worker.py       coordinator → workers: ctl/run (Op), and answers to a worker's questions
     daemon.py          coordinator ↔ worker daemon: requests, replies, errors, the daemon's events
     deployment.py      `retriever status` / `retriever stop` ↔ a deployment's coordinator
-    run_spec.py        the run's spec: coordinator or daemon → each worker process
+    run_spec.py        the run's spec: coordinator or daemon → each worker process (a dora
+                       run's with a part of its own: DoraPart)
     seal.py            signed control: the coordinator seals, each worker process opens
 
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
@@ -138,7 +139,7 @@ from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOC
                      SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
 from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeState, NodeStatus, StatusQuery,
                          StatusReply, StopQuery, StopReply)
-from .run_spec import RunSpec
+from .run_spec import DoraPart, RunSpec
 from .schema import ABSENT, Record
 from .seal import ControlOpener, ControlSigner, new_nonce
 from .to_coordinator import (STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
@@ -149,9 +150,10 @@ from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Hando
 __all__ = sorted([
     "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "FINISHED_REPLY",
     "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
-    "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "End", "EndReply", "EndRequest", "ErrorReply",
-    "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest", "Lost",
-    "NodeState", "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "Reached",
+    "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "DoraPart", "End", "EndReply", "EndRequest",
+    "ErrorReply", "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest",
+    "Lost", "NodeState", "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit",
+    "ProcessOutput", "Reached",
     "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
     "RunSpec", "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
     "StatusQuery", "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply",

@@ -1,7 +1,10 @@
 """The run's spec: what a worker process needs of its run, as one record.
 
-    coordinator   writes it for the processes it starts (``spec.json`` in the run directory)
-    coordinator → worker daemon   in a prepare request (daemon.PrepareRequest.spec), as msgpack
+    coordinator   builds it (coordinator/core.py), and writes it for the processes it starts
+                  (``spec.json`` in the run directory: RunSpec.write_file); dora's hosting adds
+                  its own part first (DoraPart)
+    coordinator → worker daemon   in a prepare request (daemon.PrepareRequest.spec), as msgpack,
+                  what holds only on the coordinator's machine left out (RunSpec.for_remote)
     worker daemon   writes it, made for its host (runs.DaemonRuns.local_spec), for its processes
     worker process  reads it (worker.read_spec: RunSpec.read_file) and holds it, typed, from then on
 
@@ -13,6 +16,7 @@ every node of the IR; two nodes share one only as members of one group) and of t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -20,8 +24,11 @@ from pathlib import Path
 from typing import Any
 
 from ....errors import WireError
+from ..access import write_private
+from ..origin import KEY_BYTES
 from ..wire import shown
-from .schema import Bool, Document, Kind, ListOf, MapOf, Name, Nullable, Record, Text, field
+from .schema import (PID_MAX, Bool, Document, HexKey, Int, Kind, ListOf, MapOf, Name, Nested, Nullable, Record, Row,
+                     Text, field, port)
 
 #: the largest spec read (it carries the run's IR and plan)
 MAX_SPEC_BYTES = 64 << 20
@@ -56,6 +63,30 @@ class Seconds(Kind):
 
 PATH = Text(MAX_PATH_CHARS)
 SECONDS = Seconds(0.0, 1e9)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DoraPart(Record):
+    """A dora run's own part of its spec (backends/dora): the dataflow's ids (dataflow.DoraNames),
+    and what a dora node's process is not told by being the coordinator's child (dora's daemon
+    starts it). Written by dora's hosting (DoraHosting.place), read by dora's node module."""
+
+    #: each node's dora node id
+    nodes: dict[str, str] = field(MapOf(Name(), Name()))
+    #: each node's dora output id, by output port
+    outputs: dict[str, dict[str, str]] = field(MapOf(Name(), MapOf(port(), Name())))
+    #: each node's dora inputs: the producer and port each brings (the port None: its progress)
+    inputs: dict[str, dict[str, tuple[str, str | None]]] = field(MapOf(Name(), MapOf(Name(), Row(
+        Name(), Nullable(port()), expects="[a producer node, its port or nil]"))))
+    #: the coordinator's working directory, which a node's process works in, as its child would
+    cwd: str = field(PATH)
+    #: the coordinator's pid, which a node's process watches in place of its parent (dora's daemon)
+    coordinator: int = field(Int(1, PID_MAX))
+    #: dora's own directory (its logs), which a node's process removes with the run's once the
+    #: coordinator is gone
+    dir: str = field(PATH)
+    #: the key each node's first process signs its statuses and reports with (origin.py)
+    keys: dict[str, bytes] = field(MapOf(Name(), HexKey(KEY_BYTES)))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -98,8 +129,8 @@ class RunSpec(Record):
     #: Zenoh's lease of the process's links, and how long a put waits on a blocked one (None: Zenoh's)
     lease: float | None = field(Nullable(SECONDS), default=None)
     blocked_put: float | None = field(Nullable(SECONDS), default=None)
-    #: a dora run's own part (backends/dora: DoraNames and its nodes' keys), read by dora's node module
-    dora: dict | None = field(Nullable(Document()), default=None)
+    #: a dora run's own part (backends/dora), read by dora's node module
+    dora: DoraPart | None = field(Nullable(Nested(DoraPart)), default=None)
 
     @classmethod
     def from_fields(cls, fields: Any, where: str, **envelope: Any) -> RunSpec:
@@ -138,5 +169,27 @@ class RunSpec(Record):
         return cls.from_fields(doc, f"the run's spec {path}")
 
     def to_json(self) -> str:
-        """The spec as the file a process reads back (:meth:`read_file`): JSON, as the coordinator writes it."""
+        """The spec as the file a process reads back (:meth:`read_file`): JSON, each field at its
+        default left out, as :meth:`write_file` writes it."""
         return json.dumps(self.to_fields())
+
+    def write_file(self, path: Path) -> Path:
+        """Write the spec to ``path`` for the processes that read it (:meth:`read_file`), only
+        its owner may read: it holds the run's password (``access``). Returns ``path``."""
+        return write_private(path, self.to_json())
+
+    def for_remote(self) -> RunSpec:
+        """The spec as a coordinator sends it to a worker daemon (a prepare request): what
+        holds only on the coordinator's machine left out, each for the daemon to fill in with its
+        own (runs.DaemonRuns.local_spec) or to go without:
+
+            access        the coordinator's credentials for its processes, whose dictionary is a
+                          file in its run directory: a daemon's processes join with the
+                          daemon's own
+            python_path   this machine's directories: a daemon's processes import from its own
+            spill_dir     the run directory, on this machine: a daemon's processes share no
+                          folder with the coordinator, and put every event in their reports
+            main_file     a script on this machine, which a daemon's processes cannot import
+                          (a daemon refuses a class defined in it: runs.py)
+        """
+        return dataclasses.replace(self, access=None, python_path=(), spill_dir=None, main_file=None)
