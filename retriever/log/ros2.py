@@ -20,6 +20,12 @@ their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
 A topic's type is its first value's. A later value that fits it without loss is written in it
 (an int on a Float64 topic); one that does not goes, as JSON, on ``<topic>/json``.
 
+A ROS 2 message holds sizes as uint32 (an Image's ``height``, ``width`` and ``step``, a
+MultiArray dimension's ``size`` and ``stride``, and the length of every sequence): a value whose
+sizes do not fit (an image with rows of more than 4 GiB, an array of more than 2**32 - 1
+elements) stops the export with a LogError naming its event, port and shape (``sizes_too_big``),
+before anything the size of the value is made.
+
 Step records are JSON in ``std_msgs/msg/String`` on ``/retriever/steps/<node>`` (views.step_json):
 every ROS tool reads and replays a standard type as it is, where a message type of our own would
 need its interface package built before ``ros2 bag play`` or ``ros2 topic echo`` could show it.
@@ -63,6 +69,12 @@ MESSAGE_DTYPES = {"Bool": "bool", "Float32": "float32", "Float64": "float64",
 #: ``ros2 bag`` reads the QoS a topic was recorded with from this channel metadata; none: its defaults
 CHANNEL_METADATA = {"offered_qos_profiles": ""}
 MAX_STAMP_NS = (2**31) * 10**9  # builtin_interfaces/Time holds int32 seconds
+#: what a ROS 2 message's sizes are held in (an Image's height, width, step; a MultiArray
+#: dimension's size, stride; every sequence's length in CDR): uint32
+UINT32_MAX = 2**32 - 1
+#: what to do with a value too big for a ROS 2 message
+TOO_BIG_HINT = ("ROS 2 messages hold sizes, row strides and lengths as uint32: have the flow send such a "
+                "value in parts (tiles of the image, chunks of the array)")
 STEPS_PREFIX = "/retriever/steps/"
 
 
@@ -94,16 +106,63 @@ def ros_name(text: str) -> str:
 
 def message_kind(value: Any) -> tuple[str, Any]:
     """``(ROS type, value made ready for it)`` for one leaf: an image as a contiguous array,
-    a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``."""
+    a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``.
+    A ValueError (:func:`sizes_too_big`) for an array whose sizes no such message holds, said
+    before the array is copied."""
     if image_encoding(value) is not None:
+        _refuse_sizes(IMAGE, value)
         return IMAGE, np.ascontiguousarray(value)
     if isinstance(value, str):
         return STRING, value
+    if isinstance(value, np.ndarray) and value.ndim and value.dtype.name in ARRAYS:  # before any copy
+        _refuse_sizes(f"std_msgs/msg/{ARRAYS[value.dtype.name]}", value)
     array = numeric_array(value)
     if array is None:
         return JSON, json_text(value)
     kinds = SCALARS if array.ndim == 0 else ARRAYS
     return f"std_msgs/msg/{kinds[array.dtype.name]}", array
+
+
+def multiarray_dims(shape: tuple[int, ...]) -> list[tuple[int, int]]:
+    """``(size, stride)`` of each dimension of a row-major MultiArray layout of ``shape``: the
+    stride of a dimension is the number of elements one step along it spans."""
+    dims, stride = [], int(np.prod(shape, dtype=object))
+    for size in shape:
+        dims.append((int(size), stride))
+        stride //= max(int(size), 1)
+    return dims
+
+
+def sizes_too_big(ros_type: str, value: np.ndarray) -> str | None:
+    """The first size of ``value`` written as ``ros_type`` that is past a uint32 (``"height
+    4294967296"``, ``"dimension 0 stride 4294967296"``...); None when all fit. From the shape
+    alone: nothing is copied."""
+    if ros_type == IMAGE:
+        height, width = value.shape[:2]
+        step = int(np.prod(value.shape[1:], dtype=object)) * value.dtype.itemsize  # a contiguous row's bytes
+        sizes = [("height", height), ("width", width), ("step", step), ("data length", height * step)]
+    elif ros_type.endswith("MultiArray"):
+        sizes = [(f"dimension {i} {name}", number) for i, dim in enumerate(multiarray_dims(value.shape))
+                 for name, number in zip(("size", "stride"), dim)]
+        sizes.append(("data length", int(value.size)))
+    else:
+        return None
+    return next((f"{name} {int(number)}" for name, number in sizes if number > UINT32_MAX), None)
+
+
+class _SizesTooBig(ValueError):
+    """A leaf whose sizes no ROS message of its type holds: ``sizes_too_big``'s words."""
+
+    def __init__(self, ros_type: str, value: np.ndarray, said: str):
+        shape = ", ".join(map(str, value.shape))
+        super().__init__(f"its value, {value.dtype.name}[{shape}], does not fit a {ros_type}: its {said} is more than "
+                         f"the uint32 a ROS 2 message holds it in ({UINT32_MAX})")
+
+
+def _refuse_sizes(ros_type: str, value: np.ndarray) -> None:
+    said = sizes_too_big(ros_type, value)
+    if said is not None:
+        raise _SizesTooBig(ros_type, value, said)
 
 
 def json_text(value: Any) -> str:
@@ -186,10 +245,8 @@ class Ros2Bag:
         if not ros_type.endswith("MultiArray"):
             return types[ros_type](data=value.item())
         dtype = MESSAGE_DTYPES[ros_type.rsplit("/", 1)[1].removesuffix("MultiArray")]
-        dims, stride = [], int(value.size)
-        for size in value.shape:
-            dims.append(types["std_msgs/msg/MultiArrayDimension"](label="", size=size, stride=stride))
-            stride //= max(size, 1)
+        dims = [types["std_msgs/msg/MultiArrayDimension"](label="", size=size, stride=stride)
+                for size, stride in multiarray_dims(value.shape)]
         layout = types["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
         return types[ros_type](layout=layout, data=np.ascontiguousarray(value, dtype=dtype).reshape(-1))
 
@@ -197,7 +254,11 @@ class Ros2Bag:
         """One event: each of its leaves as a message on its topic."""
         base = f"/{ros_name(node)}/{ros_name(port)}"
         for path, leaf in value_leaves(value):
-            kind, ready = message_kind(leaf)
+            try:
+                kind, ready = message_kind(leaf)
+            except _SizesTooBig as e:
+                field = f", field {path[1:].replace('/', '.')}" if path else ""
+                raise LogError(f"event {node}.{port} #{seq}{field}: {e}", TOO_BIG_HINT) from None
             self.summary.as_json += kind == JSON
             topic = base + "".join("/" + ros_name(part) for part in path.split("/")[1:])
             topic, ros_type, ready = self.topic_for(topic, kind, ready)

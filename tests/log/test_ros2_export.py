@@ -6,7 +6,10 @@ bytes."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import resource
 import subprocess
 import sys
 from collections import Counter
@@ -14,13 +17,14 @@ from collections import Counter
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from retriever import LogError, read_log
-from retriever.log.ros2 import export_ros2
-from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log
+from retriever.log.ros2 import Ros2Bag, export_ros2
+from tests.log.export_flows import Frame, camera_log, event_data, hand_written_log, kinds_log
 from tests.log.helpers import cli_env
 from tests.log.log_flows import build_emit
 
@@ -214,3 +218,66 @@ def test_a_damaged_log_is_a_log_error_and_leaves_no_file(tmp_path, events, messa
     with pytest.raises(LogError, match=message):
         export_ros2(log, tmp_path / "out.mcap")
     assert [p.name for p in tmp_path.iterdir()] == ["odd.mcap"]
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS 2 messages hold sizes as uint32: a value past that is said, naming its port and shape
+# ---------------------------------------------------------------------------------------------
+def _bag() -> Ros2Bag:
+    """A bag writing into memory, with the type store the export uses."""
+    writer = Writer(io.BytesIO())
+    writer.start(profile="ros2", library="test")
+    return Ros2Bag(writer, get_typestore(Stores.ROS2_JAZZY))
+
+
+@contextlib.contextmanager
+def _no_gigabytes():
+    """While the block runs, the process may map at most 1 GiB more than it has: code that copies
+    one of these views fails with a MemoryError instead of taking the machine's memory."""
+    try:
+        with open("/proc/self/status") as status:
+            mapped = next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmSize:"))
+    except OSError:  # no /proc: no guard
+        yield
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (mapped + 2**30, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+def _view(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An array of ``shape`` that holds one element: a broadcast view, so that no test allocates
+    the gigabytes such a value would take."""
+    return np.broadcast_to(np.zeros((1,) * len(shape), dtype), shape)
+
+
+@pytest.mark.parametrize("value, said", [
+    (_view((2**32, 2), np.uint8), r"height 4294967296"),  # a mono8 image too tall
+    (_view((2, 2**31, 3), np.uint8), r"step 6442450944"),  # its width fits, its row stride does not
+    (_view((2**32,), np.float64), r"dimension 0 size 4294967296"),
+    (_view((2, 2**31), np.float32), r"dimension 0 stride 4294967296"),  # each size fits, the first stride not
+    (_view((2**32,), ">i4"), r"dimension 0 size 4294967296"),  # said before it is made native-endian
+])
+def test_a_size_past_what_a_ros_message_holds_is_a_log_error_naming_the_port_and_the_shape(value, said):
+    """sensor_msgs/Image's height, width and step and a MultiArray dimension's size and stride
+    are uint32: a value whose sizes do not fit is refused before it is converted (nothing the
+    size of the value is made), with its node.port, shape and what to do, not rosbags' error."""
+    bag = _bag()
+    shape = ", ".join(map(str, value.shape))
+    said = (rf"event cam\.big #3: its value, {value.dtype.name}\[{shape}\], does not fit a (std_msgs|sensor_msgs)/msg/"
+            rf"\w+: its {said} is more than the uint32 a ROS 2 message holds it in \(4294967295\)\n    hint: ")
+    with _no_gigabytes(), pytest.raises(LogError, match=said):
+        bag.event("cam", "big", value, 10, 10, 3)
+    assert bag.summary.written == {}
+
+
+def test_a_field_too_big_for_a_ros_message_is_named_with_its_port():
+    bag = _bag()
+    frame = Frame(rgb=_view((2, 2**31, 3), np.uint8), mask=np.zeros((2, 2), np.uint8), exposure=0.5)
+    said = (r"event cam\.frame #0, field rgb: its value, uint8\[2, 2147483648, 3\], does not fit a "
+            r"sensor_msgs/msg/Image: its step 6442450944 is more than")
+    with _no_gigabytes(), pytest.raises(LogError, match=said):
+        bag.event("cam", "frame", frame, 10, 10, 0)
