@@ -241,7 +241,11 @@ def _ros2(log, out: Path, force: bool) -> str:
 
     done = export_ros2(log, out, overwrite=force)
     said = f"{sum(done.written.values())} messages on {len(done.written)} topics (ROS 2 MCAP)"
-    return said + (f"; {done.as_json} values with no standard message as JSON text" if done.as_json else "")
+    said += f"; {done.as_json} values with no standard message as JSON text" if done.as_json else ""
+    if done.renamed:  # names that met once made ROS names: each kept apart
+        moved = ", ".join(f"{what} on {topic}" for what, topic in sorted(done.renamed.items()))
+        said += f"; names that make one ROS name kept apart: {moved}"
+    return said
 
 
 def _rerun(log, out: Path, force: bool) -> str:

@@ -20,6 +20,16 @@ their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
 A topic's type is its first value's. A later value that fits it without loss is written in it
 (an int on a Float64 topic); one that does not goes, as JSON, on ``<topic>/json``.
 
+Names: each node, port and field name is made a ROS name token (``ros_name``: a character no
+token holds becomes ``_``, a run of ``_`` one, since ROS 2 names hold no ``__``; a leading digit
+gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam_left``): two
+things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
+are named first, before any value is read, those whose names needed no change before the others,
+each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. So the same log always
+gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
+moved, and where.
+
 A ROS 2 message holds sizes as uint32 (an Image's ``height``, ``width`` and ``step``, a
 MultiArray dimension's ``size`` and ``stride``, and the length of every sequence): a value whose
 sizes do not fit (an image with rows of more than 4 GiB, an array of more than 2**32 - 1
@@ -41,6 +51,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +62,7 @@ from mcap.writer import Writer
 
 from ..errors import LogError
 from .foxglove import image_encoding, to_json
+from .format import parse_data_topic
 from .outputs import export_path
 from .reader import RunLog
 from .views import numeric_array, step_json, value_leaves
@@ -95,13 +107,41 @@ class Ros2Export:
     written: Counter = field(default_factory=Counter)
     types: dict[str, str] = field(default_factory=dict)
     as_json: int = 0
+    #: what had to move to a topic of its own (``node.port[.field]``, ``the step records of
+    #: NODE``, ``... as JSON``) because another took the one its names make: the topic it got
+    renamed: dict[str, str] = field(default_factory=dict)
 
 
 def ros_name(text: str) -> str:
-    """``text`` as one token of a ROS name: letters, digits and underscores, not starting with a
-    digit (a Retriever name already is one; a log's names are checked, not trusted)."""
-    token = "".join(c if c.isascii() and (c.isalnum() or c == "_") else "_" for c in text) or "_"
+    """``text`` as one token of a ROS name: ASCII letters, digits and single underscores (ROS 2
+    names hold no ``__``), not starting with a digit; every other character becomes ``_``, a run
+    of ``_`` one (a log's names are checked, not trusted; a Retriever node name may hold ``-``)."""
+    token = re.sub(r"_{2,}", "_", re.sub(r"[^A-Za-z0-9_]", "_", text)) or "_"
     return "_" + token if token[0].isdigit() else token
+
+
+#: what a topic stands for: ``("steps", node)``, the step records of a node; ``("port", node,
+#: port, path)``, a port's values (``path`` ``""``) or a field of them (``"/field/inner"``);
+#: ``("json", origin)``, what did not fit the message of another origin's topic
+Origin = tuple
+
+
+def origin_text(origin: Origin) -> str:
+    """What ``origin`` is, as ``Ros2Export.renamed`` says it."""
+    if origin[0] == "steps":
+        return f"the step records of {origin[1]}"
+    if origin[0] == "port":
+        return f"{origin[1]}.{origin[2]}{origin[3].replace('/', '.')}"
+    return f"{origin_text(origin[1])} as JSON"
+
+
+def plain_topic(origin: Origin) -> str:
+    """The topic ``origin``'s names would make if each were a ROS name token as it is."""
+    if origin[0] == "steps":
+        return STEPS_PREFIX + origin[1]
+    if origin[0] == "port":
+        return f"/{origin[1]}/{origin[2]}{origin[3]}"
+    return plain_topic(origin[1]) + "/json"
 
 
 def message_kind(value: Any) -> tuple[str, Any]:
@@ -196,7 +236,41 @@ class Ros2Bag:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._kinds: dict[str, str] = {}  # topic -> its ROS type, or JSON
+        self._taken: dict[str, Origin] = {}  # topic -> what it stands for
+        self._named: dict[Origin, str] = {}  # and back
         self.summary = Ros2Export()
+
+    def reserve(self, origins) -> None:
+        """Name the topics of ``origins`` (those known before any value is read: step records,
+        ports): first those whose names need no change, then the others, each in its names'
+        order, so that the same log gives the same topics whatever the order of its records."""
+        for origin in sorted(set(origins), key=lambda o: (o[0] != "steps", self.wanted(o) != plain_topic(o), o)):
+            self.topic_of(origin)
+
+    def wanted(self, origin: Origin) -> str:
+        """The topic ``origin``'s names make, as ROS name tokens (taken or not)."""
+        if origin[0] == "steps":
+            return STEPS_PREFIX + ros_name(origin[1])
+        if origin[0] == "port":
+            _, node, port, path = origin
+            return f"/{ros_name(node)}/{ros_name(port)}" + "".join("/" + ros_name(part) for part in path.split("/")[1:])
+        return self.topic_of(origin[1]) + "/json"
+
+    def topic_of(self, origin: Origin) -> str:
+        """``origin``'s topic: the one it was given, else the one its names make if free, else the
+        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``)."""
+        topic = self._named.get(origin)
+        if topic is None:
+            topic = wanted = self.wanted(origin)
+            sep = "" if wanted.endswith("_") else "_"  # never a '__'
+            n = 1
+            while topic in self._taken:
+                n += 1
+                topic = f"{wanted}{sep}{n}"
+            self._taken[topic], self._named[origin] = origin, topic
+            if topic != wanted:
+                self.summary.renamed[origin_text(origin)] = topic
+        return topic
 
     def write(self, topic: str, ros_type: str, message, log_time: int, publish_time: int, sequence: int) -> None:
         channel = self._channels.get(topic)
@@ -211,11 +285,12 @@ class Ros2Bag:
                                  data=bytes(self._store.serialize_cdr(message, ros_type)))
         self.summary.written[topic] += 1
 
-    def topic_for(self, topic: str, kind: str, value: Any) -> tuple[str, str, Any]:
-        """Where a leaf of ``kind`` (a ROS type, or JSON) goes, and as what: its own topic if that
-        is new or of its kind (or of a number type it fits without loss), else as JSON: on its
-        topic if that is a JSON topic, else on ``<topic>/json``."""
+    def topic_for(self, origin: Origin, kind: str, value: Any) -> tuple[str, str, Any]:
+        """Where a leaf of ``origin`` of ``kind`` (a ROS type, or JSON) goes, and as what: its own
+        topic if that is new or of its kind (or of a number type it fits without loss), else as
+        JSON: on its topic if that is a JSON topic, else on ``<topic>/json``."""
         while True:
+            topic = self.topic_of(origin)
             known = self._kinds.setdefault(topic, kind)
             if known == kind:
                 return topic, STRING if kind == JSON else kind, value
@@ -226,7 +301,7 @@ class Ros2Bag:
                 value, kind = json_text(value), JSON
                 self.summary.as_json += 1
                 continue
-            topic += "/json"
+            origin = ("json", origin)
 
     def message(self, ros_type: str, value: Any, stamp_ns: int, frame_id: str):
         """The ``rosbags`` message of ``ros_type`` holding ``value``."""
@@ -252,7 +327,6 @@ class Ros2Bag:
 
     def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
         """One event: each of its leaves as a message on its topic."""
-        base = f"/{ros_name(node)}/{ros_name(port)}"
         for path, leaf in value_leaves(value):
             try:
                 kind, ready = message_kind(leaf)
@@ -260,8 +334,7 @@ class Ros2Bag:
                 field = f", field {path[1:].replace('/', '.')}" if path else ""
                 raise LogError(f"event {node}.{port} #{seq}{field}: {e}", TOO_BIG_HINT) from None
             self.summary.as_json += kind == JSON
-            topic = base + "".join("/" + ros_name(part) for part in path.split("/")[1:])
-            topic, ros_type, ready = self.topic_for(topic, kind, ready)
+            topic, ros_type, ready = self.topic_for(("port", node, port, path), kind, ready)
             self.write(topic, ros_type, self.message(ros_type, ready, tag_ns, node), tag_ns, publish_ns or tag_ns,
                        seq)
 
@@ -281,11 +354,13 @@ def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros
             writer = Writer(stream)
             writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
             bag = Ros2Bag(writer, store)
+            bag.reserve([("steps", step.node) for step in log.iter_steps()] +
+                        [("port", *port, "") for c in log.channels.values() if (port := parse_data_topic(c.topic))])
             for event in log.iter_events():
                 bag.event(event.node, event.port, log.value(event, keep_unregistered=True), event.tag[0],
                           event.publish_ns, event.seq)
             for index, step in enumerate(log.iter_steps()):
-                topic, _, text = bag.topic_for(STEPS_PREFIX + ros_name(step.node), JSON, step_json(step))
+                topic, _, text = bag.topic_for(("steps", step.node), JSON, step_json(step))
                 bag.write(topic, STRING, bag.message(STRING, text, 0, ""), step.tag[0],
                           step.wall_start_ns or step.tag[0], index)
             writer.finish()

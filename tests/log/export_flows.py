@@ -90,3 +90,33 @@ def kinds_log(tmp_path: Path) -> Path:
     path = tmp_path / "kinds.mcap"
     pipe.run(duration=0.2, log=path)
     return path
+
+
+@io
+@dataclass
+class Shadow:
+    """A value whose field's topic is the one a node's step records take: ``/retriever/steps/cam``
+    from node ``retriever``, port ``steps``, field ``cam``."""
+
+    cam: float
+
+
+class Impostor(Flow):
+    def step(self):
+        return {"steps": Shadow(cam=0.5)}
+
+
+class Exposure(Flow):
+    def step(self):
+        return {"exposure": 0.01}
+
+
+def shadowed_steps_log(tmp_path: Path) -> Path:
+    """A log where a node ``retriever`` sends, on port ``steps``, a value with a field ``cam``,
+    beside a node ``cam``."""
+    with Pipeline("shadow") as pipe:
+        Impostor().configure(name="retriever") @ Rate(hz=10)
+        Exposure().configure(name="cam") @ Rate(hz=10)
+    path = tmp_path / "shadow.mcap"
+    pipe.run(duration=0.3, log=path)
+    return path

@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from retriever import LogError, read_log
 from retriever.log.ros2 import Ros2Bag, export_ros2
-from tests.log.export_flows import Frame, camera_log, event_data, hand_written_log, kinds_log
+from tests.log.export_flows import Frame, camera_log, event_data, hand_written_log, kinds_log, shadowed_steps_log
 from tests.log.helpers import cli_env
 from tests.log.log_flows import build_emit
 
@@ -202,11 +202,45 @@ def test_without_rosbags_the_export_says_how_to_get_it(tmp_path, monkeypatch):
 # A log is input: one written by hand, with what no run writes, gives a LogError and no file
 # ---------------------------------------------------------------------------------------------
 def test_names_no_ros_name_allows_are_made_ros_names(tmp_path):
-    log = read_log(hand_written_log(tmp_path / "odd.mcap", [("data/nöde/1-port", 5, event_data(3.0))]))
+    """Each character no ROS name token holds becomes '_', a run of '_' one (ROS 2 names hold no
+    '__'), a token starting with a digit gets a '_' before it; a token may end with '_'."""
+    log = read_log(hand_written_log(tmp_path / "odd.mcap", [
+        ("data/nöde/1-port", 5, event_data(3.0)), ("data/a-_b/x_", 6, event_data(4.0)),
+        ("data/__init__/p--q", 7, event_data(5.0))]))
     out = tmp_path / "out.mcap"
-    assert export_ros2(log, out).types == {"/n_de/_1_port": "std_msgs/msg/Float64"}
+    topics = ["/n_de/_1_port", "/a_b/x_", "/_init_/p_q"]
+    assert export_ros2(log, out).types == dict.fromkeys(topics, "std_msgs/msg/Float64")
     with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
-        assert [(c.topic, t) for c, t, _ in reader.messages()] == [("/n_de/_1_port", 5)]
+        assert [(c.topic, t) for c, t, _ in reader.messages()] == list(zip(topics, [5, 6, 7]))
+
+
+def test_names_that_map_to_one_topic_are_kept_apart_the_same_way_every_time(tmp_path):
+    """``cam-left``, ``cam_left`` and ``cam__left`` are one ROS name: the name that needed no
+    change keeps its topic (as does ``x_2``, which already is one), the others take the next free
+    ``_N`` in the order of their names, whatever the order of the file; said in ``renamed``."""
+    events = [("data/cam-left/x", 5, event_data(1.0)), ("data/cam__left/x", 6, event_data(2.0)),
+              ("data/cam_left/x", 7, event_data(3.0)), ("data/cam_left/x_2", 8, event_data(4.0))]
+    topics = {"/cam_left/x": 3.0, "/cam_left/x_2": 4.0, "/cam_left/x_3": 1.0, "/cam_left/x_4": 2.0}
+    for order in (events, events[::-1]):
+        out = tmp_path / "out.mcap"
+        summary = export_ros2(read_log(hand_written_log(tmp_path / "apart.mcap", order)), out, overwrite=True)
+        assert summary.types == dict.fromkeys(topics, "std_msgs/msg/Float64")
+        assert summary.renamed == {"cam-left.x": "/cam_left/x_3", "cam__left.x": "/cam_left/x_4"}
+        with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+            assert {c.topic: reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages()} == topics
+
+
+def test_a_field_never_takes_the_topic_of_a_nodes_step_records(tmp_path):
+    """``/retriever/steps/<node>`` is the step records' (the convention the export documents):
+    node ``retriever``'s port ``steps`` with a field ``cam`` goes beside it, not onto it."""
+    summary = export_ros2(read_log(shadowed_steps_log(tmp_path)), tmp_path / "out.mcap")
+    assert summary.types["/retriever/steps/cam"] == "std_msgs/msg/String"
+    assert summary.types["/retriever/steps/cam_2"] == "std_msgs/msg/Float64"
+    assert summary.renamed == {"retriever.steps.cam": "/retriever/steps/cam_2"}
+    with AnyReader([tmp_path / "out.mcap"], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        records = [json.loads(reader.deserialize(raw, c.msgtype).data) for c, _, raw in reader.messages()
+                   if c.topic == "/retriever/steps/cam"]
+    assert records and {r["node"] for r in records} == {"cam"}
 
 
 @pytest.mark.parametrize("events, message", [
