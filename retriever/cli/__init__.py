@@ -19,6 +19,7 @@ Commands are registered here, in the order ``retriever --help`` lists them.
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Annotated
 
@@ -116,8 +117,14 @@ def _default_foxglove_port(argv: list[str]) -> None:
 
 def _default_rerun_target(argv: list[str]) -> None:
     """`--rerun` may come without its target (it takes RERUN_URL then): give it one, as the
-    option parser wants a value. What follows is its target when it is a URL or an .rrd path."""
+    option parser wants a value. What follows is its target when it is a URL or an .rrd path, or a
+    folder (no pipeline is one: the run refuses it as a target, saying which targets it takes)."""
     for i, arg in enumerate(argv):
-        if arg == "--rerun" and (i + 1 == len(argv) or not (argv[i + 1].lower().endswith(".rrd") or "://" in argv[i + 1])):
+        if arg == "--rerun" and (i + 1 == len(argv) or not _is_rerun_target(argv[i + 1])):
             argv.insert(i + 1, RERUN_URL)
             return
+
+
+def _is_rerun_target(arg: str) -> bool:
+    return (arg.lower().endswith(".rrd") or "://" in arg or arg.endswith(("/", os.sep))
+            or os.path.isdir(arg))

@@ -3,6 +3,7 @@ recover`` and ``log export`` (``log info`` is log_info.py's)."""
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -13,7 +14,7 @@ from rich.text import Text
 
 from ..errors import RetrieverError
 from . import console
-from .console import cell, fail, visible
+from .console import cell, fail, stop_on_sigterm, stop_signal, visible
 from .inputs import load, read
 
 
@@ -212,7 +213,21 @@ def log_export(
     plotted scalars, step records; event-time and wall-time timelines; pip install
     'retriever-robotics\\[rerun]'). --format lerobot | npz --flow NODE: a training
     set, one frame per tick of a Rate flow: what it consumed and produced there (docs/learning.md;
-    lerobot needs pip install 'retriever-robotics\\[lerobot]')."""
+    lerobot needs pip install 'retriever-robotics\\[lerobot]'). Stopped by Ctrl-C or SIGTERM, it leaves
+    nothing behind (the export is written beside OUT, then renamed) and exits 128 + the signal."""
+    stop_on_sigterm()  # SIGTERM stops it as Ctrl-C does: the half-written file is removed, not left
+    before = _identity(out)
+    try:
+        _export(paths, format, out, force, flow, maps, task, exclude, gaps, repo_id)
+    except KeyboardInterrupt:
+        signum = stop_signal() or signal.SIGINT
+        done = "was written before it stopped" if _identity(out) not in (None, before) else "was not written"
+        console.err.print(f"interrupted by {signal.Signals(signum).name}: {out} {done}", highlight=False)
+        raise typer.Exit(code=128 + signum) from None
+
+
+def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | None, maps: list[str] | None,
+            task: str | None, exclude: list[str] | None, gaps: str, repo_id: str | None) -> None:
     if format in ("lerobot", "npz"):
         _export_dataset(paths, format, out, force, flow, maps or [], task, exclude or [], gaps, repo_id)
         return
@@ -241,7 +256,11 @@ def _ros2(log, out: Path, force: bool) -> str:
 
     done = export_ros2(log, out, overwrite=force)
     said = f"{sum(done.written.values())} messages on {len(done.written)} topics (ROS 2 MCAP)"
-    return said + (f"; {done.as_json} values with no standard message as JSON text" if done.as_json else "")
+    said += f"; {done.as_json} values with no standard message as JSON text" if done.as_json else ""
+    if done.renamed:  # names that met once made ROS names: each kept apart
+        moved = ", ".join(f"{what} on {topic}" for what, topic in sorted(done.renamed.items()))
+        said += f"; names that make one ROS name kept apart: {moved}"
+    return said
 
 
 def _rerun(log, out: Path, force: bool) -> str:
@@ -277,3 +296,12 @@ def _export_dataset(paths: list[Path], format: str, out: Path, force: bool, flow
         except Exception as exc:
             fail(exc)
     console.out.print(str(summary), highlight=False, soft_wrap=True)
+
+
+def _identity(path: Path) -> tuple[int, int, int, int] | None:
+    """What tells the file or folder at ``path`` from another or from its earlier self (None: none)."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size

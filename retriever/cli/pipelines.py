@@ -71,6 +71,7 @@ def run(
             fail(BackendError(f"{flag} streams a real-time run: it needs --backend zenoh or dora\n    hint: for an "
                               "in-process run, write a log and open its export: "
                               f"retriever log export run.mcap {export}"))
+    _check_rerun_target(rerun)
     if virtual_time:
         if canonical(backend or default_backend()) != "zenoh":
             fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
@@ -130,6 +131,7 @@ def deploy(
     from ..backends.zenoh.deploy import load_deploy_config
 
     check_keep(keep)
+    _check_rerun_target(rerun)
     try:
         given = load_deploy_config(config) if config is not None else {}
     except Exception as exc:
@@ -160,6 +162,19 @@ def deploy(
     _execute(load(target), get("duration"), "zenoh", log, force, allow_errors, options,
              f"{get('duration'):g} s{' of virtual time' if get('virtual_time') else ''} on the workers of namespace "
              f"'{get('namespace')}'", live=get("namespace"))
+
+
+def _check_rerun_target(target: str | None) -> None:
+    """--rerun's TARGET, checked before the pipeline's file is loaded: a folder, a file in a folder
+    that does not exist, or what is neither a URL nor an .rrd path, fails here."""
+    if target is None:
+        return
+    from ..log.rerun_live import check_target
+
+    try:
+        check_target(target)
+    except RetrieverError as exc:
+        fail(exc)
 
 
 def _execute(pipe, duration: float, backend: str | None, log: Path | None, force: bool, allow_errors: bool,

@@ -4,7 +4,10 @@ shows it afterwards (log/rerun.py's writer: the same entities, archetypes and ti
 
 TARGET is the gRPC URL of a running viewer (``rerun+http://HOST:PORT/proxy``; by default the
 local viewer that ``rerun`` starts) or a path ending in ``.rrd``, where the stream is saved as it
-goes (a file that ``rerun FILE.rrd`` opens, during the run or after it).
+goes (a file that ``rerun FILE.rrd`` opens, during the run or after it). Nothing else: a folder
+is no target (the view writes no file of its own naming into one), nor a path whose folder does
+not exist, nor a file that exists; :func:`check_target` says so before the run starts (the
+backends and the command call it before any worker starts or the pipeline is loaded).
 """
 
 from __future__ import annotations
@@ -18,11 +21,38 @@ from ..trace import NOT_KEPT, StepRecord
 from .rerun import RERUN_VIEWER_URL, RerunRecording, event_time_blueprint, new_stream, rerun_sdk
 
 TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path ending in .rrd"
+#: the schemes of the URLs Rerun's SDK connects to
+URL_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")
 
 
 def is_rrd_path(target: str | os.PathLike) -> bool:
     """Whether ``target`` names a file to save the stream to rather than a viewer's URL."""
     return isinstance(target, os.PathLike) or str(target).lower().endswith(".rrd")
+
+
+def check_target(target: str | os.PathLike) -> None:
+    """A LogError unless ``target`` is a viewer's URL or a new file's path in a folder that exists
+    (what can be told without the SDK, and without reaching the viewer): said before a run
+    starts, with the forms a target takes."""
+    text = str(target)
+    if not is_rrd_path(target) and text.lower().startswith(URL_SCHEMES):
+        return
+    path = Path(target)
+    folder = path.parent if str(path.parent) != "" else Path(".")
+    either = f"or a running viewer's URL ({RERUN_VIEWER_URL})"
+    if path.is_dir():
+        raise LogError(f"cannot stream the run to Rerun at {text}: it is a folder",
+                       f"give a path ending in .rrd, the file to save the stream to ({path / 'live.rrd'}), {either}")
+    if not is_rrd_path(target):
+        raise LogError(f"cannot stream the run to Rerun at {text}: it is neither a Rerun viewer's URL "
+                       f"({', '.join(s + '…' for s in URL_SCHEMES)}) nor a path ending in .rrd", TARGET_HINT)
+    if os.path.lexists(path):  # never over a file: it may be this run's log, or another's
+        raise LogError(f"cannot stream the run to Rerun at {text}: the file exists; a live view never replaces a file",
+                       "give a new path (none that exists: remove it first) in a folder you may write to")
+    if not folder.is_dir():
+        why = "is not a folder" if folder.exists() else "does not exist"
+        raise LogError(f"cannot stream the run to Rerun at {text}: its folder {folder} {why}",
+                       f"give a path ending in .rrd in a folder that exists (or create {folder} first), {either}")
 
 
 class RerunLiveView:
@@ -32,6 +62,7 @@ class RerunLiveView:
     title = "the Rerun live view"
 
     def __init__(self, target: str | os.PathLike, pipeline: str):
+        check_target(target)
         rr = rerun_sdk(self.title)
         self.target = str(target)
         self._stream = new_stream(rr)
@@ -45,7 +76,7 @@ class RerunLiveView:
 
     def _open(self, target: str | os.PathLike, rr) -> None:
         if is_rrd_path(target):
-            if os.path.lexists(target):  # never over a file: it may be this run's log, or another's
+            if os.path.lexists(target):  # made since check_target: still never over a file
                 raise FileExistsError("the file exists; a live view never replaces a file")
             self._stream.save(Path(target), default_blueprint=event_time_blueprint(rr))
             return

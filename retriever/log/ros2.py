@@ -20,6 +20,22 @@ their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
 A topic's type is its first value's. A later value that fits it without loss is written in it
 (an int on a Float64 topic); one that does not goes, as JSON, on ``<topic>/json``.
 
+Names: each node, port and field name is made a ROS name token (``ros_name``: a character no
+token holds becomes ``_``, a run of ``_`` one, since ROS 2 names hold no ``__``; a leading digit
+gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam_left``): two
+things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
+are named first, before any value is read, those whose names needed no change before the others,
+each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. So the same log always
+gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
+moved, and where.
+
+A ROS 2 message holds sizes as uint32 (an Image's ``height``, ``width`` and ``step``, a
+MultiArray dimension's ``size`` and ``stride``, and the length of every sequence): a value whose
+sizes do not fit (an image with rows of more than 4 GiB, an array of more than 2**32 - 1
+elements) stops the export with a LogError naming its event, port and shape (``sizes_too_big``),
+before anything the size of the value is made.
+
 Step records are JSON in ``std_msgs/msg/String`` on ``/retriever/steps/<node>`` (views.step_json):
 every ROS tool reads and replays a standard type as it is, where a message type of our own would
 need its interface package built before ``ros2 bag play`` or ``ros2 topic echo`` could show it.
@@ -35,6 +51,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +62,7 @@ from mcap.writer import Writer
 
 from ..errors import LogError
 from .foxglove import image_encoding, to_json
+from .format import parse_data_topic
 from .outputs import export_path
 from .reader import RunLog
 from .views import numeric_array, step_json, value_leaves
@@ -63,6 +81,12 @@ MESSAGE_DTYPES = {"Bool": "bool", "Float32": "float32", "Float64": "float64",
 #: ``ros2 bag`` reads the QoS a topic was recorded with from this channel metadata; none: its defaults
 CHANNEL_METADATA = {"offered_qos_profiles": ""}
 MAX_STAMP_NS = (2**31) * 10**9  # builtin_interfaces/Time holds int32 seconds
+#: what a ROS 2 message's sizes are held in (an Image's height, width, step; a MultiArray
+#: dimension's size, stride; every sequence's length in CDR): uint32
+UINT32_MAX = 2**32 - 1
+#: what to do with a value too big for a ROS 2 message
+TOO_BIG_HINT = ("ROS 2 messages hold sizes, row strides and lengths as uint32: have the flow send such a "
+                "value in parts (tiles of the image, chunks of the array)")
 STEPS_PREFIX = "/retriever/steps/"
 
 
@@ -83,27 +107,102 @@ class Ros2Export:
     written: Counter = field(default_factory=Counter)
     types: dict[str, str] = field(default_factory=dict)
     as_json: int = 0
+    #: what had to move to a topic of its own (``node.port[.field]``, ``the step records of
+    #: NODE``, ``... as JSON``) because another took the one its names make: the topic it got
+    renamed: dict[str, str] = field(default_factory=dict)
 
 
 def ros_name(text: str) -> str:
-    """``text`` as one token of a ROS name: letters, digits and underscores, not starting with a
-    digit (a Retriever name already is one; a log's names are checked, not trusted)."""
-    token = "".join(c if c.isascii() and (c.isalnum() or c == "_") else "_" for c in text) or "_"
+    """``text`` as one token of a ROS name: ASCII letters, digits and single underscores (ROS 2
+    names hold no ``__``), not starting with a digit; every other character becomes ``_``, a run
+    of ``_`` one (a log's names are checked, not trusted; a Retriever node name may hold ``-``)."""
+    token = re.sub(r"_{2,}", "_", re.sub(r"[^A-Za-z0-9_]", "_", text)) or "_"
     return "_" + token if token[0].isdigit() else token
+
+
+#: what a topic stands for: ``("steps", node)``, the step records of a node; ``("port", node,
+#: port, path)``, a port's values (``path`` ``""``) or a field of them (``"/field/inner"``);
+#: ``("json", origin)``, what did not fit the message of another origin's topic
+Origin = tuple
+
+
+def origin_text(origin: Origin) -> str:
+    """What ``origin`` is, as ``Ros2Export.renamed`` says it."""
+    if origin[0] == "steps":
+        return f"the step records of {origin[1]}"
+    if origin[0] == "port":
+        return f"{origin[1]}.{origin[2]}{origin[3].replace('/', '.')}"
+    return f"{origin_text(origin[1])} as JSON"
+
+
+def plain_topic(origin: Origin) -> str:
+    """The topic ``origin``'s names would make if each were a ROS name token as it is."""
+    if origin[0] == "steps":
+        return STEPS_PREFIX + origin[1]
+    if origin[0] == "port":
+        return f"/{origin[1]}/{origin[2]}{origin[3]}"
+    return plain_topic(origin[1]) + "/json"
 
 
 def message_kind(value: Any) -> tuple[str, Any]:
     """``(ROS type, value made ready for it)`` for one leaf: an image as a contiguous array,
-    a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``."""
+    a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``.
+    A ValueError (:func:`sizes_too_big`) for an array whose sizes no such message holds, said
+    before the array is copied."""
     if image_encoding(value) is not None:
+        _refuse_sizes(IMAGE, value)
         return IMAGE, np.ascontiguousarray(value)
     if isinstance(value, str):
         return STRING, value
+    if isinstance(value, np.ndarray) and value.ndim and value.dtype.name in ARRAYS:  # before any copy
+        _refuse_sizes(f"std_msgs/msg/{ARRAYS[value.dtype.name]}", value)
     array = numeric_array(value)
     if array is None:
         return JSON, json_text(value)
     kinds = SCALARS if array.ndim == 0 else ARRAYS
     return f"std_msgs/msg/{kinds[array.dtype.name]}", array
+
+
+def multiarray_dims(shape: tuple[int, ...]) -> list[tuple[int, int]]:
+    """``(size, stride)`` of each dimension of a row-major MultiArray layout of ``shape``: the
+    stride of a dimension is the number of elements one step along it spans."""
+    dims, stride = [], int(np.prod(shape, dtype=object))
+    for size in shape:
+        dims.append((int(size), stride))
+        stride //= max(int(size), 1)
+    return dims
+
+
+def sizes_too_big(ros_type: str, value: np.ndarray) -> str | None:
+    """The first size of ``value`` written as ``ros_type`` that is past a uint32 (``"height
+    4294967296"``, ``"dimension 0 stride 4294967296"``...); None when all fit. From the shape
+    alone: nothing is copied."""
+    if ros_type == IMAGE:
+        height, width = value.shape[:2]
+        step = int(np.prod(value.shape[1:], dtype=object)) * value.dtype.itemsize  # a contiguous row's bytes
+        sizes = [("height", height), ("width", width), ("step", step), ("data length", height * step)]
+    elif ros_type.endswith("MultiArray"):
+        sizes = [(f"dimension {i} {name}", number) for i, dim in enumerate(multiarray_dims(value.shape))
+                 for name, number in zip(("size", "stride"), dim)]
+        sizes.append(("data length", int(value.size)))
+    else:
+        return None
+    return next((f"{name} {int(number)}" for name, number in sizes if number > UINT32_MAX), None)
+
+
+class _SizesTooBig(ValueError):
+    """A leaf whose sizes no ROS message of its type holds: ``sizes_too_big``'s words."""
+
+    def __init__(self, ros_type: str, value: np.ndarray, said: str):
+        shape = ", ".join(map(str, value.shape))
+        super().__init__(f"its value, {value.dtype.name}[{shape}], does not fit a {ros_type}: its {said} is more than "
+                         f"the uint32 a ROS 2 message holds it in ({UINT32_MAX})")
+
+
+def _refuse_sizes(ros_type: str, value: np.ndarray) -> None:
+    said = sizes_too_big(ros_type, value)
+    if said is not None:
+        raise _SizesTooBig(ros_type, value, said)
 
 
 def json_text(value: Any) -> str:
@@ -137,7 +236,41 @@ class Ros2Bag:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._kinds: dict[str, str] = {}  # topic -> its ROS type, or JSON
+        self._taken: dict[str, Origin] = {}  # topic -> what it stands for
+        self._named: dict[Origin, str] = {}  # and back
         self.summary = Ros2Export()
+
+    def reserve(self, origins) -> None:
+        """Name the topics of ``origins`` (those known before any value is read: step records,
+        ports): first those whose names need no change, then the others, each in its names'
+        order, so that the same log gives the same topics whatever the order of its records."""
+        for origin in sorted(set(origins), key=lambda o: (o[0] != "steps", self.wanted(o) != plain_topic(o), o)):
+            self.topic_of(origin)
+
+    def wanted(self, origin: Origin) -> str:
+        """The topic ``origin``'s names make, as ROS name tokens (taken or not)."""
+        if origin[0] == "steps":
+            return STEPS_PREFIX + ros_name(origin[1])
+        if origin[0] == "port":
+            _, node, port, path = origin
+            return f"/{ros_name(node)}/{ros_name(port)}" + "".join("/" + ros_name(part) for part in path.split("/")[1:])
+        return self.topic_of(origin[1]) + "/json"
+
+    def topic_of(self, origin: Origin) -> str:
+        """``origin``'s topic: the one it was given, else the one its names make if free, else the
+        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``)."""
+        topic = self._named.get(origin)
+        if topic is None:
+            topic = wanted = self.wanted(origin)
+            sep = "" if wanted.endswith("_") else "_"  # never a '__'
+            n = 1
+            while topic in self._taken:
+                n += 1
+                topic = f"{wanted}{sep}{n}"
+            self._taken[topic], self._named[origin] = origin, topic
+            if topic != wanted:
+                self.summary.renamed[origin_text(origin)] = topic
+        return topic
 
     def write(self, topic: str, ros_type: str, message, log_time: int, publish_time: int, sequence: int) -> None:
         channel = self._channels.get(topic)
@@ -152,11 +285,12 @@ class Ros2Bag:
                                  data=bytes(self._store.serialize_cdr(message, ros_type)))
         self.summary.written[topic] += 1
 
-    def topic_for(self, topic: str, kind: str, value: Any) -> tuple[str, str, Any]:
-        """Where a leaf of ``kind`` (a ROS type, or JSON) goes, and as what: its own topic if that
-        is new or of its kind (or of a number type it fits without loss), else as JSON: on its
-        topic if that is a JSON topic, else on ``<topic>/json``."""
+    def topic_for(self, origin: Origin, kind: str, value: Any) -> tuple[str, str, Any]:
+        """Where a leaf of ``origin`` of ``kind`` (a ROS type, or JSON) goes, and as what: its own
+        topic if that is new or of its kind (or of a number type it fits without loss), else as
+        JSON: on its topic if that is a JSON topic, else on ``<topic>/json``."""
         while True:
+            topic = self.topic_of(origin)
             known = self._kinds.setdefault(topic, kind)
             if known == kind:
                 return topic, STRING if kind == JSON else kind, value
@@ -167,7 +301,7 @@ class Ros2Bag:
                 value, kind = json_text(value), JSON
                 self.summary.as_json += 1
                 continue
-            topic += "/json"
+            origin = ("json", origin)
 
     def message(self, ros_type: str, value: Any, stamp_ns: int, frame_id: str):
         """The ``rosbags`` message of ``ros_type`` holding ``value``."""
@@ -186,21 +320,21 @@ class Ros2Bag:
         if not ros_type.endswith("MultiArray"):
             return types[ros_type](data=value.item())
         dtype = MESSAGE_DTYPES[ros_type.rsplit("/", 1)[1].removesuffix("MultiArray")]
-        dims, stride = [], int(value.size)
-        for size in value.shape:
-            dims.append(types["std_msgs/msg/MultiArrayDimension"](label="", size=size, stride=stride))
-            stride //= max(size, 1)
+        dims = [types["std_msgs/msg/MultiArrayDimension"](label="", size=size, stride=stride)
+                for size, stride in multiarray_dims(value.shape)]
         layout = types["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
         return types[ros_type](layout=layout, data=np.ascontiguousarray(value, dtype=dtype).reshape(-1))
 
     def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
         """One event: each of its leaves as a message on its topic."""
-        base = f"/{ros_name(node)}/{ros_name(port)}"
         for path, leaf in value_leaves(value):
-            kind, ready = message_kind(leaf)
+            try:
+                kind, ready = message_kind(leaf)
+            except _SizesTooBig as e:
+                field = f", field {path[1:].replace('/', '.')}" if path else ""
+                raise LogError(f"event {node}.{port} #{seq}{field}: {e}", TOO_BIG_HINT) from None
             self.summary.as_json += kind == JSON
-            topic = base + "".join("/" + ros_name(part) for part in path.split("/")[1:])
-            topic, ros_type, ready = self.topic_for(topic, kind, ready)
+            topic, ros_type, ready = self.topic_for(("port", node, port, path), kind, ready)
             self.write(topic, ros_type, self.message(ros_type, ready, tag_ns, node), tag_ns, publish_ns or tag_ns,
                        seq)
 
@@ -220,11 +354,13 @@ def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros
             writer = Writer(stream)
             writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
             bag = Ros2Bag(writer, store)
+            bag.reserve([("steps", step.node) for step in log.iter_steps()] +
+                        [("port", *port, "") for c in log.channels.values() if (port := parse_data_topic(c.topic))])
             for event in log.iter_events():
                 bag.event(event.node, event.port, log.value(event, keep_unregistered=True), event.tag[0],
                           event.publish_ns, event.seq)
             for index, step in enumerate(log.iter_steps()):
-                topic, _, text = bag.topic_for(STEPS_PREFIX + ros_name(step.node), JSON, step_json(step))
+                topic, _, text = bag.topic_for(("steps", step.node), JSON, step_json(step))
                 bag.write(topic, STRING, bag.message(STRING, text, 0, ""), step.tag[0],
                           step.wall_start_ns or step.tag[0], index)
             writer.finish()

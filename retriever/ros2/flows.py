@@ -41,7 +41,7 @@ from ..flow import Flow
 from ..flow.burst import MAX_BURST, Burst
 from . import types
 from .attachment import Attachment, encode
-from .keys import PUBLISHER, SUBSCRIPTION, QoS, fully_qualified, topic_key
+from .keys import PUBLISHER, SUBSCRIPTION, QoS, check_namespace, check_node_name, fully_qualified, topic_key
 from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
 
 #: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
@@ -49,11 +49,14 @@ MAX_PENDING = 1024
 
 
 class _Ros2Endpoint(Flow):
-    """What both ends share: the topic (relative names resolve in ``namespace``), its type (a
-    standard one, or one given by its ``.msg`` text as ``msgdef``), and the ROS node they are:
-    ``node`` in ``namespace``, in ROS domain ``domain_id`` (``ROS_DOMAIN_ID`` by default), whose
-    Zenoh session connects to ``connect`` (rmw_zenohd on this machine by default) and listens
-    on ``listen``."""
+    """What both ends share: the topic (relative names resolve in ``namespace``, ``~/name`` in the
+    node's private namespace), its type (a standard one, or one given by its ``.msg`` text as
+    ``msgdef``), and the ROS node they are: ``node`` in ``namespace``, in ROS domain
+    ``domain_id`` (``ROS_DOMAIN_ID`` by default), whose Zenoh session connects to ``connect``
+    (rmw_zenohd on this machine by default) and listens on ``listen``. A topic, node name or
+    namespace that breaks a rule of ROS 2's for names (no ``__``, no ``/`` at the end, no token
+    starting with a digit, ASCII letters, digits and ``_`` only: keys.NAME_RULES) is a
+    ValueError that names the rule."""
 
     def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
                  domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
@@ -61,8 +64,9 @@ class _Ros2Endpoint(Flow):
         if msgdef is not None:
             types.register_msg(msgtype, msgdef)
         types.check_type(msgtype)
-        self.topic, self.msgtype = fully_qualified(topic, namespace), msgtype
-        self.node_name, self.namespace = node, namespace
+        # names as ROS 2's rules allow them (keys.py; a name that breaks one is refused, naming it)
+        self.node_name, self.namespace = check_node_name(node), check_namespace(namespace)
+        self.topic, self.msgtype = fully_qualified(topic, self.namespace, self.node_name), msgtype
         self.domain_id = domain_id_from_env() if domain_id is None else domain_id
         self.connect, self.listen = list(connect), list(listen)
         self.type_hash = types.type_hash(msgtype)

@@ -75,10 +75,82 @@ def _split_type_name(type_name: str) -> tuple[str, str, str]:
     return parts[0], parts[1], parts[2]
 
 
-def fully_qualified(topic: str, namespace: str = "/") -> str:
-    """A topic's fully qualified name: relative names resolve in ``namespace``."""
-    if not topic or topic.endswith("/") and topic != "/" or "//" in topic or "~" in topic:
-        raise ValueError(f"ROS topic name {topic!r}: expected a name like /chatter or chatter")
+#: where ROS 2's rules for names are written; a name that breaks one is refused, naming it
+NAME_RULES = "https://design.ros2.org/articles/topic_and_service_names.html"
+
+
+def _name_error(what: str, name: str, rule: str) -> ValueError:
+    return ValueError(f"{what} {name!r}: {rule}\n    hint: ROS 2's rules for names are in {NAME_RULES}")
+
+
+def _path_problem(name: str, extra: str = "") -> str | None:
+    """What is wrong with ``name`` as ``/``-separated tokens (ROS 2's rules; ``extra``: other
+    characters allowed, already checked by the caller), or None: only ASCII letters, digits,
+    ``_`` and ``/``; no ``__``, no ``//``, no ``/`` at the end, no token that starts with a digit.
+    A token may start or end with ``_`` (a leading one hides it from ROS tools)."""
+    if not name:
+        return "must not be empty"
+    bad = next((c for c in name if not (c.isascii() and (c.isalnum() or c in "_/" + extra))), None)
+    if bad is not None:
+        return f"may hold only ASCII letters, digits, '_' and '/', not {bad!r}"
+    if "__" in name:
+        return "must not contain '__' (a repeated underscore)"
+    if name.endswith("/"):
+        return "must not end with '/'"
+    if "//" in name:
+        return "must not contain '//' (an empty token)"
+    token = next((t for t in name.split("/") if t[:1].isdigit()), None)
+    if token is not None:
+        return f"a token must not start with a digit ({token!r})"
+    return None
+
+
+def check_node_name(name: str) -> str:
+    """``name`` if ROS 2 allows it as a node's name (ASCII letters, digits and ``_``, not
+    starting with a digit, no ``__``), else a ValueError naming the rule it breaks."""
+    if not isinstance(name, str) or not name:
+        raise _name_error("ROS node name", name, "must not be empty")
+    bad = next((c for c in name if not (c.isascii() and (c.isalnum() or c == "_"))), None)
+    if bad is not None:
+        raise _name_error("ROS node name", name, f"may hold only ASCII letters, digits and '_', not {bad!r}")
+    if "__" in name:
+        raise _name_error("ROS node name", name, "must not contain '__' (a repeated underscore)")
+    if name[0].isdigit():
+        raise _name_error("ROS node name", name, "must not start with a digit")
+    return name
+
+
+def check_namespace(namespace: str) -> str:
+    """``namespace`` as the absolute namespace ROS makes of it (a relative one is in the root
+    namespace, as rclcpp and rclpy have it: ``robot1`` is ``/robot1``; ``""`` is ``/``), or a
+    ValueError naming the rule it breaks."""
+    absolute = namespace if namespace.startswith("/") else "/" + namespace
+    problem = None if absolute == "/" else _path_problem(absolute)
+    if problem is not None:
+        raise _name_error("ROS namespace", namespace, problem)
+    return absolute
+
+
+def fully_qualified(topic: str, namespace: str = "/", node: str | None = None) -> str:
+    """A topic's fully qualified name: a relative name resolves in ``namespace``, and ``~`` (the
+    private namespace, first and alone: ``~`` or ``~/name``) is ``namespace/node``. A ValueError
+    names the rule of ROS 2 a name breaks; substitutions (``{...}``) are refused, not expanded."""
+    what = "ROS topic name"
+    if "{" in topic or "}" in topic:
+        start = topic.find("{")
+        shown = topic[start:topic.find("}", start) + 1] if start >= 0 and "}" in topic[start:] else topic
+        raise _name_error(what, topic, f"substitutions ({shown!r}) are not expanded here: write the name out")
+    problem = _path_problem(topic, extra="~")
+    if problem is None and "~" in topic and not (topic == "~" or topic.startswith("~/") and "~" not in topic[1:]):
+        problem = "'~' stands alone, first: '~' or '~/name' (the node's private namespace)"
+    if problem is not None:
+        raise _name_error(what, topic, problem)
+    namespace = check_namespace(namespace)
+    if topic.startswith("~"):
+        if node is None:
+            raise _name_error(what, topic, "'~' is the node's private namespace: it needs the node's name")
+        private = namespace.rstrip("/") + "/" + check_node_name(node)
+        return private + topic[1:]
     if topic.startswith("/"):
         return topic
     return namespace.rstrip("/") + "/" + topic

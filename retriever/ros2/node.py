@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import zenoh
 
 from ..errors import RetrieverWarning
-from .keys import Node, QoS
+from .keys import Node, QoS, check_namespace, check_node_name
 
 #: where rmw_zenoh's router listens, and where a ROS node's session connects, by default
 ROS_ROUTER = "tcp/localhost:7447"
@@ -59,6 +59,7 @@ class Ros2Node:
 
     def __init__(self, name: str, *, namespace: str = "/", domain_id: int = 0,
                  connect: Sequence[str] = (ROS_ROUTER,), listen: Sequence[str] = ("tcp/127.0.0.1:0",)):
+        name, namespace = check_node_name(name), check_namespace(namespace)  # before the session opens
         self.session = zenoh.open(session_config(list(connect), list(listen)))
         self.node = Node(domain_id, str(self.session.info.zid()), 0, name, namespace)
         self._tokens = [self.session.liveliness().declare_token(self.node.token())]

@@ -90,3 +90,54 @@ def kinds_log(tmp_path: Path) -> Path:
     path = tmp_path / "kinds.mcap"
     pipe.run(duration=0.2, log=path)
     return path
+
+
+@io
+@dataclass
+class Shadow:
+    """A value whose field's topic is the one a node's step records take: ``/retriever/steps/cam``
+    from node ``retriever``, port ``steps``, field ``cam``."""
+
+    cam: float
+
+
+class Impostor(Flow):
+    def step(self):
+        return {"steps": Shadow(cam=0.5)}
+
+
+class Exposure(Flow):
+    def step(self):
+        return {"exposure": 0.01}
+
+
+def shadowed_steps_log(tmp_path: Path) -> Path:
+    """A log where a node ``retriever`` sends, on port ``steps``, a value with a field ``cam``,
+    beside a node ``cam``."""
+    with Pipeline("shadow") as pipe:
+        Impostor().configure(name="retriever") @ Rate(hz=10)
+        Exposure().configure(name="cam") @ Rate(hz=10)
+    path = tmp_path / "shadow.mcap"
+    pipe.run(duration=0.3, log=path)
+    return path
+
+
+class Counter(Flow):
+    """A number and a small array at every tick: many small events, each quick to log."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"x": float(self.k), "v": np.arange(3) + self.k}
+
+
+def long_log(path: Path, seconds: float = 60.0) -> Path:
+    """A log of ``seconds`` of a :class:`Counter` at 1 kHz, in virtual time (60 s: 120,000 events
+    and 60,000 step records, 4.7 MB, written in about a second; its ros2 or foxglove export takes
+    several seconds, its rerun one longer): an export still running when a test signals it."""
+    with Pipeline("long") as pipe:
+        Counter().configure(name="count") @ Rate(hz=1000)
+    pipe.run(duration=seconds, log=path, keep="counters")
+    return path

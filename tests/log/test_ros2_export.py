@@ -6,7 +6,10 @@ bytes."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import resource
 import subprocess
 import sys
 from collections import Counter
@@ -14,13 +17,14 @@ from collections import Counter
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import Writer
 from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 
 from retriever import LogError, read_log
-from retriever.log.ros2 import export_ros2
-from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log
+from retriever.log.ros2 import Ros2Bag, export_ros2
+from tests.log.export_flows import Frame, camera_log, event_data, hand_written_log, kinds_log, shadowed_steps_log
 from tests.log.helpers import cli_env
 from tests.log.log_flows import build_emit
 
@@ -198,11 +202,45 @@ def test_without_rosbags_the_export_says_how_to_get_it(tmp_path, monkeypatch):
 # A log is input: one written by hand, with what no run writes, gives a LogError and no file
 # ---------------------------------------------------------------------------------------------
 def test_names_no_ros_name_allows_are_made_ros_names(tmp_path):
-    log = read_log(hand_written_log(tmp_path / "odd.mcap", [("data/nöde/1-port", 5, event_data(3.0))]))
+    """Each character no ROS name token holds becomes '_', a run of '_' one (ROS 2 names hold no
+    '__'), a token starting with a digit gets a '_' before it; a token may end with '_'."""
+    log = read_log(hand_written_log(tmp_path / "odd.mcap", [
+        ("data/nöde/1-port", 5, event_data(3.0)), ("data/a-_b/x_", 6, event_data(4.0)),
+        ("data/__init__/p--q", 7, event_data(5.0))]))
     out = tmp_path / "out.mcap"
-    assert export_ros2(log, out).types == {"/n_de/_1_port": "std_msgs/msg/Float64"}
+    topics = ["/n_de/_1_port", "/a_b/x_", "/_init_/p_q"]
+    assert export_ros2(log, out).types == dict.fromkeys(topics, "std_msgs/msg/Float64")
     with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
-        assert [(c.topic, t) for c, t, _ in reader.messages()] == [("/n_de/_1_port", 5)]
+        assert [(c.topic, t) for c, t, _ in reader.messages()] == list(zip(topics, [5, 6, 7]))
+
+
+def test_names_that_map_to_one_topic_are_kept_apart_the_same_way_every_time(tmp_path):
+    """``cam-left``, ``cam_left`` and ``cam__left`` are one ROS name: the name that needed no
+    change keeps its topic (as does ``x_2``, which already is one), the others take the next free
+    ``_N`` in the order of their names, whatever the order of the file; said in ``renamed``."""
+    events = [("data/cam-left/x", 5, event_data(1.0)), ("data/cam__left/x", 6, event_data(2.0)),
+              ("data/cam_left/x", 7, event_data(3.0)), ("data/cam_left/x_2", 8, event_data(4.0))]
+    topics = {"/cam_left/x": 3.0, "/cam_left/x_2": 4.0, "/cam_left/x_3": 1.0, "/cam_left/x_4": 2.0}
+    for order in (events, events[::-1]):
+        out = tmp_path / "out.mcap"
+        summary = export_ros2(read_log(hand_written_log(tmp_path / "apart.mcap", order)), out, overwrite=True)
+        assert summary.types == dict.fromkeys(topics, "std_msgs/msg/Float64")
+        assert summary.renamed == {"cam-left.x": "/cam_left/x_3", "cam__left.x": "/cam_left/x_4"}
+        with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+            assert {c.topic: reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages()} == topics
+
+
+def test_a_field_never_takes_the_topic_of_a_nodes_step_records(tmp_path):
+    """``/retriever/steps/<node>`` is the step records' (the convention the export documents):
+    node ``retriever``'s port ``steps`` with a field ``cam`` goes beside it, not onto it."""
+    summary = export_ros2(read_log(shadowed_steps_log(tmp_path)), tmp_path / "out.mcap")
+    assert summary.types["/retriever/steps/cam"] == "std_msgs/msg/String"
+    assert summary.types["/retriever/steps/cam_2"] == "std_msgs/msg/Float64"
+    assert summary.renamed == {"retriever.steps.cam": "/retriever/steps/cam_2"}
+    with AnyReader([tmp_path / "out.mcap"], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        records = [json.loads(reader.deserialize(raw, c.msgtype).data) for c, _, raw in reader.messages()
+                   if c.topic == "/retriever/steps/cam"]
+    assert records and {r["node"] for r in records} == {"cam"}
 
 
 @pytest.mark.parametrize("events, message", [
@@ -214,3 +252,66 @@ def test_a_damaged_log_is_a_log_error_and_leaves_no_file(tmp_path, events, messa
     with pytest.raises(LogError, match=message):
         export_ros2(log, tmp_path / "out.mcap")
     assert [p.name for p in tmp_path.iterdir()] == ["odd.mcap"]
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS 2 messages hold sizes as uint32: a value past that is said, naming its port and shape
+# ---------------------------------------------------------------------------------------------
+def _bag() -> Ros2Bag:
+    """A bag writing into memory, with the type store the export uses."""
+    writer = Writer(io.BytesIO())
+    writer.start(profile="ros2", library="test")
+    return Ros2Bag(writer, get_typestore(Stores.ROS2_JAZZY))
+
+
+@contextlib.contextmanager
+def _no_gigabytes():
+    """While the block runs, the process may map at most 1 GiB more than it has: code that copies
+    one of these views fails with a MemoryError instead of taking the machine's memory."""
+    try:
+        with open("/proc/self/status") as status:
+            mapped = next(int(line.split()[1]) * 1024 for line in status if line.startswith("VmSize:"))
+    except OSError:  # no /proc: no guard
+        yield
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (mapped + 2**30, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+def _view(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An array of ``shape`` that holds one element: a broadcast view, so that no test allocates
+    the gigabytes such a value would take."""
+    return np.broadcast_to(np.zeros((1,) * len(shape), dtype), shape)
+
+
+@pytest.mark.parametrize("value, said", [
+    (_view((2**32, 2), np.uint8), r"height 4294967296"),  # a mono8 image too tall
+    (_view((2, 2**31, 3), np.uint8), r"step 6442450944"),  # its width fits, its row stride does not
+    (_view((2**32,), np.float64), r"dimension 0 size 4294967296"),
+    (_view((2, 2**31), np.float32), r"dimension 0 stride 4294967296"),  # each size fits, the first stride not
+    (_view((2**32,), ">i4"), r"dimension 0 size 4294967296"),  # said before it is made native-endian
+])
+def test_a_size_past_what_a_ros_message_holds_is_a_log_error_naming_the_port_and_the_shape(value, said):
+    """sensor_msgs/Image's height, width and step and a MultiArray dimension's size and stride
+    are uint32: a value whose sizes do not fit is refused before it is converted (nothing the
+    size of the value is made), with its node.port, shape and what to do, not rosbags' error."""
+    bag = _bag()
+    shape = ", ".join(map(str, value.shape))
+    said = (rf"event cam\.big #3: its value, {value.dtype.name}\[{shape}\], does not fit a (std_msgs|sensor_msgs)/msg/"
+            rf"\w+: its {said} is more than the uint32 a ROS 2 message holds it in \(4294967295\)\n    hint: ")
+    with _no_gigabytes(), pytest.raises(LogError, match=said):
+        bag.event("cam", "big", value, 10, 10, 3)
+    assert bag.summary.written == {}
+
+
+def test_a_field_too_big_for_a_ros_message_is_named_with_its_port():
+    bag = _bag()
+    frame = Frame(rgb=_view((2, 2**31, 3), np.uint8), mask=np.zeros((2, 2), np.uint8), exposure=0.5)
+    said = (r"event cam\.frame #0, field rgb: its value, uint8\[2, 2147483648, 3\], does not fit a "
+            r"sensor_msgs/msg/Image: its step 6442450944 is more than")
+    with _no_gigabytes(), pytest.raises(LogError, match=said):
+        bag.event("cam", "frame", frame, 10, 10, 0)

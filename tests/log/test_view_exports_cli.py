@@ -4,15 +4,17 @@ only."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
 from retriever import LogError, read_log
 from retriever.log.rerun import export_rerun
 from retriever.log.ros2 import export_ros2
-from tests.log.export_flows import camera_log
+from tests.log.export_flows import camera_log, long_log
 from tests.log.helpers import cli_env
 
 
@@ -65,3 +67,47 @@ def test_it_refuses_to_overwrite_and_to_write_over_the_log(tmp_path, export, nam
     export(read_log(log_path), out, overwrite=True)
     with pytest.raises(LogError, match="is the log being exported"):
         export(read_log(log_path), log_path, overwrite=True)
+
+
+@pytest.fixture(scope="module")
+def long_log_path(tmp_path_factory):
+    return long_log(tmp_path_factory.mktemp("long") / "long.mcap")
+
+
+#: how long the export may take to start writing (its interpreter, imports, reading the log), at most
+START_BOUND_S = 120.0
+
+
+@pytest.mark.parametrize("fmt, extra, signum", [
+    ("ros2", (), signal.SIGTERM), ("rerun", (), signal.SIGTERM), ("foxglove", (), signal.SIGTERM),
+    ("npz", ("--flow", "count"), signal.SIGTERM),  # a dataset's partial folder too
+    ("ros2", (), signal.SIGINT),  # Ctrl-C: the same path
+])
+def test_an_export_stopped_by_a_signal_leaves_no_file_and_says_so_in_one_line(tmp_path, long_log_path, fmt, extra,
+                                                                                signum):
+    """SIGTERM (what a supervisor or `timeout` sends) or Ctrl-C's SIGINT while the export writes
+    its ``.partial``: the partial file is removed, nothing is at ``-o``, the command says so in one
+    line and exits 128 + the signal, as an interrupted `retriever run` does. (SIGTERM used to kill
+    it where it stood, the partial file left behind.)"""
+    views = tmp_path / "views"
+    views.mkdir()
+    out = views / ("out" if fmt == "npz" else "out.mcap")
+    export = subprocess.Popen([sys.executable, "-m", "retriever.cli", "log", "export", str(long_log_path),
+                               "--format", fmt, "-o", str(out), *extra], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, cwd=tmp_path, env=cli_env())
+    try:
+        deadline = time.monotonic() + START_BOUND_S
+        while not list(views.glob(".out*.partial")) and export.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)  # polling a real process's file, bounded: what the test waits for is its work
+        assert export.poll() is None, f"the export ended before it was signalled: {export.communicate()}"
+        assert list(views.glob(".out*.partial")), f"no .partial in {START_BOUND_S} s"
+        export.send_signal(signum)
+        stdout, stderr = export.communicate(timeout=120)
+    finally:
+        if export.poll() is None:
+            export.kill()
+            export.communicate()
+    name = signal.Signals(signum).name
+    assert export.returncode == 128 + signum, (export.returncode, stdout, stderr)
+    assert stderr.splitlines() == [f"interrupted by {name}: {out} was not written"], stderr
+    assert list(views.iterdir()) == [], "a file was left behind"

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
+from retriever.ros2 import Ros2Publisher, Ros2Subscriber
 from retriever.ros2.keys import (BEST_EFFORT, KEEP_ALL, PUBLISHER, SUBSCRIPTION, TRANSIENT_LOCAL, Node, QoS,
-                                 dds_type_name, parse_endpoint_token, qos_chunk, ros_type_name, topic_key)
+                                 dds_type_name, fully_qualified, parse_endpoint_token, qos_chunk, ros_type_name,
+                                 topic_key)
 
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 
@@ -52,3 +56,61 @@ def test_a_namespaced_node_mangles_its_namespace_and_resolves_relative_topics_in
     assert (endpoint.kind, endpoint.namespace, endpoint.topic, endpoint.type_name) == \
         (PUBLISHER, "/robot1/front", "/robot1/front/image", "sensor_msgs/msg/Image")
     assert parse_endpoint_token(node.token()) is None
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS 2's rules for names (design.ros2.org/articles/topic_and_service_names.html): a name given
+# that breaks one is refused, naming the rule
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("topic, rule", [
+    ("", r"must not be empty"),
+    ("/joint__states", r"must not contain '__' \(a repeated underscore\)"),
+    ("__ns/chatter", r"must not contain '__'"),
+    ("/joint_states/", r"must not end with '/'"),
+    ("/", r"must not end with '/'"),
+    ("/robot//cmd_vel", r"must not contain '//' \(an empty token\)"),
+    ("/2d/points", r"a token must not start with a digit \('2d'\)"),
+    ("123abc", r"a token must not start with a digit"),
+    ("/cmd-vel", r"may hold only ASCII letters, digits, '_' and '/', not '-'"),
+    ("/cäm", r"may hold only ASCII letters.*, not 'ä'"),
+    ("/foo bar", r"may hold only ASCII letters.*, not ' '"),
+    ("~foo", r"'~' stands alone, first: '~' or '~/name'"),
+    ("foo/~/bar", r"'~' stands alone, first"),
+    ("{robot}/cmd_vel", r"substitutions \('\{robot\}'\) are not expanded here: write the name out"),
+])
+def test_a_topic_name_ros_2_does_not_allow_is_refused_naming_the_rule(topic, rule):
+    message = rf"ROS topic name {re.escape(repr(topic))}: {rule}(.|\n)*hint: .*topic_and_service_names"
+    with pytest.raises(ValueError, match=message):
+        fully_qualified(topic)
+    with pytest.raises(ValueError, match=message):  # where users give it
+        Ros2Subscriber(topic, "std_msgs/msg/String", domain_id=0)
+
+
+@pytest.mark.parametrize("topic, namespace, node, expected", [
+    ("joint_states_", "/", "retriever", "/joint_states_"),  # a token may end with '_'
+    ("/_hidden/x", "/", "retriever", "/_hidden/x"),  # or start with one: hidden from ROS tools
+    ("image", "/robot1/front", "cam", "/robot1/front/image"),
+    ("image", "robot1", "cam", "/robot1/image"),  # a relative namespace is in the root one, as rclcpp has it
+    ("~", "/robot1", "arm", "/robot1/arm"),  # the node's private namespace
+    ("~/status", "/robot1", "arm", "/robot1/arm/status"),
+    ("~/status", "/", "arm", "/arm/status"),
+])
+def test_names_ros_2_allows_resolve_as_ros_does(topic, namespace, node, expected):
+    assert Ros2Publisher(topic, "std_msgs/msg/String", node=node, namespace=namespace, domain_id=0).topic == expected
+
+
+@pytest.mark.parametrize("options, said", [
+    ({"node": "my__node"}, r"ROS node name 'my__node': must not contain '__'"),
+    ({"node": "my-node"}, r"ROS node name 'my-node': may hold only ASCII letters, digits and '_', not '-'"),
+    ({"node": "2nd"}, r"ROS node name '2nd': must not start with a digit"),
+    ({"node": ""}, r"ROS node name '': must not be empty"),
+    ({"node": "a/b"}, r"ROS node name 'a/b': may hold only ASCII letters, digits and '_', not '/'"),
+    ({"namespace": "/robot__1"}, r"ROS namespace '/robot__1': must not contain '__'"),
+    ({"namespace": "/robot1/"}, r"ROS namespace '/robot1/': must not end with '/'"),
+    ({"namespace": "/1robot"}, r"ROS namespace '/1robot': a token must not start with a digit"),
+    ({"namespace": "~/x"}, r"ROS namespace '~/x': may hold only ASCII letters, digits, '_' and '/', not '~'"),
+])
+def test_a_node_name_or_namespace_ros_2_does_not_allow_is_refused_naming_the_rule(options, said):
+    for end in (Ros2Publisher, Ros2Subscriber):
+        with pytest.raises(ValueError, match=rf"{said}(.|\n)*hint: .*topic_and_service_names"):
+            end("/chatter", "std_msgs/msg/String", domain_id=0, **options)

@@ -88,11 +88,13 @@ def test_a_run_streamed_to_an_rrd_holds_its_steps_and_values_on_the_event_timeli
 
 
 def test_a_file_that_cannot_be_written_is_said_before_the_run_starts_and_closes_the_other_view(tmp_path):
+    """A folder that takes no file (/proc: not even root may make one there), which no check
+    before the run can tell: the SDK's own error, said as the view starts (before T0)."""
     pipe = live_pipeline()
     port = free_port()
-    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at .*missing/live\.rrd(.|\n)*"
-                                       r"hint: give a new path"):
-        pipe.run(duration=1.0, backend="zenoh", quiet=True, rerun=tmp_path / "missing" / "live.rrd", foxglove=port)
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at /proc/retriever-live\.rrd: .*"
+                                       r"(.|\n)*hint: give a new path"):
+        pipe.run(duration=1.0, backend="zenoh", quiet=True, rerun="/proc/retriever-live.rrd", foxglove=port)
     with socket.socket() as s:  # the Foxglove view, started first, is closed: its port is free again
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", port))
@@ -171,3 +173,71 @@ def test_the_cli_takes_rerun_without_a_target_and_refuses_it_in_process():
     assert_cli_error(result, "--rerun streams a real-time run: it needs --backend zenoh or dora",
                      "for an in-process run, write a log and open its export: "
                      "retriever log export run.mcap --format rerun -o run.rrd")
+
+
+#: a pipeline whose file and whose flow's setup() each leave a mark: what ran before a refusal
+MARKED = '''
+from pathlib import Path
+from retriever import Flow, Pipeline, Rate
+
+Path(__file__).with_name("loaded").touch()
+
+class Marked(Flow):
+    def setup(self):
+        Path(__file__).with_name("set_up").touch()
+
+    def step(self):
+        return {"x": 1.0}
+
+with Pipeline("marked") as pipe:
+    Marked() @ Rate(hz=10)
+'''
+
+
+@pytest.mark.parametrize("option, said, hint", [
+    (["--rerun", "adir"], r"adir: it is a folder", r"give a path ending in \.rrd"),  # a folder, as a bare word
+    (["--rerun", "adir/"], r"adir/: it is a folder", r"give a path ending in \.rrd"),
+    (["--rerun", "adir.rrd"], r"adir\.rrd: it is a folder", r"give a path ending in \.rrd"),  # named as a file
+    (["--rerun", "missing/live.rrd"], r"missing/live\.rrd: its folder missing does not exist",
+     r"give a path ending in \.rrd in a folder that exists"),
+    (["--rerun=view.mcap"], r"view\.mcap: it is neither a Rerun viewer's URL \(rerun://…, rerun\+http://…, "
+                            r"rerun\+https://…\) nor a path ending in \.rrd", r"give a Rerun gRPC URL"),
+])
+def test_the_cli_refuses_a_target_that_is_no_file_or_url_before_the_pipeline_is_even_loaded(tmp_path, option, said,
+                                                                                            hint):
+    """--rerun takes a viewer's URL or a PATH.rrd (docs: TARGET_HINT), nothing else: a folder
+    (which used to be taken for a stray argument, or streamed to after the workers had started),
+    or a file in a folder that does not exist, is refused with the forms it accepts, before the
+    pipeline's file is imported or any worker starts."""
+    from tests.test_cli import assert_cli_error, cli
+
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "adir.rrd").mkdir()
+    (tmp_path / "marked.py").write_text(MARKED)
+    result = cli("run", "marked.py", "--duration", "0.5", "--backend", "zenoh", *option, cwd=tmp_path)
+    assert_cli_error(result, rf"^error: cannot stream the run to Rerun at {said}$",
+                     rf"{hint}.*rerun\+http://127\.0\.0\.1:9876/proxy")
+    assert not (tmp_path / "loaded").exists() and not (tmp_path / "set_up").exists(), "the pipeline was started"
+    assert "namespace" not in result.stderr, result.stderr  # no run was opened
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "adir.rrd", "marked.py"]
+
+
+@pytest.mark.parametrize("backend", ["zenoh", "dora"])
+@pytest.mark.parametrize("target, said", [("adir", r"adir: it is a folder"),
+                                          ("missing/live.rrd", r"live\.rrd: its folder .*missing does not exist")])
+def test_pipe_run_refuses_a_folder_or_a_missing_folder_before_any_worker_starts(tmp_path, capfd, backend, target,
+                                                                              said):
+    (tmp_path / "adir").mkdir()
+    with pytest.raises(LogError, match=rf"cannot stream the run to Rerun at .*{said}(.|\n)*hint: "):
+        live_pipeline().run(duration=0.5, backend=backend, rerun=tmp_path / target)
+    assert "namespace" not in capfd.readouterr().err  # no hub was opened, no worker started
+
+
+def test_deploy_refuses_a_folder_as_its_rerun_target_before_it_looks_for_workers(tmp_path):
+    from tests.test_cli import assert_cli_error, cli
+
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "marked.py").write_text(MARKED)
+    result = cli("deploy", "marked.py", "--connect", "tcp/127.0.0.1:9", "--insecure", "--rerun", "adir", cwd=tmp_path)
+    assert_cli_error(result, r"^error: cannot stream the run to Rerun at adir: it is a folder$")
+    assert not (tmp_path / "loaded").exists()

@@ -72,6 +72,10 @@ class Coordinator(Session):
                  startup_timeout: float = 60.0, start_margin: float = 0.3, hub_port: int = 0, quiet: bool = False,
                  secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False, keep: str = "trace",
                  foxglove: int | None = None, rerun: str | os.PathLike | None = None):
+        if rerun is not None:  # a target that cannot be one is said before anything starts
+            from ....log.rerun_live import check_target
+
+            check_target(rerun)
         super().__init__(graph, keep)
         self.hosting = hosting if hosting is not None else LocalHosting()
         self.backend_name = self.hosting.backend_name
