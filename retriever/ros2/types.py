@@ -187,11 +187,27 @@ def from_value(value: Any, type_name: str) -> Any:
     return cls(**kwargs)
 
 
+#: what a ROS 2 message holds sizes, strides and a sequence's length in (CDR's uint32)
+UINT32_MAX = 2**32 - 1
+
+
+def _check_sizes(type_name: str, shape: tuple, sizes: dict[str, int]) -> None:
+    """Refuse a value whose ``sizes`` (name → number) a ``type_name`` cannot hold, before its
+    bytes are copied (a 4 GiB row would be, and then fail in the serializer)."""
+    past = [f"{name} {number}" for name, number in sizes.items() if number > UINT32_MAX]
+    if past:
+        raise ValueError(f"a {type_name} cannot hold an array of shape {tuple(shape)}: its {', '.join(past)} "
+                         f"{'is' if len(past) == 1 else 'are'} past the uint32 a ROS 2 message holds sizes in "
+                         f"({UINT32_MAX}); publish it in parts")
+
+
 def _wrapped_value(value: Any, type_name: str, fields: list) -> Any:
     if [name for name, _ in fields] == ["data"]:
         return _store.types[type_name](data=_field_from_value(value, fields[0][1]))
     if type_name.endswith("MultiArray"):
         array = np.asarray(value)
+        _check_sizes(type_name, array.shape, {"length": array.size, **{f"dimension {i}": int(np.prod(
+            array.shape[i:], dtype=object)) for i in range(array.ndim)}})
         dims = [{"label": f"dim{i}", "size": size, "stride": int(np.prod(array.shape[i:]))}
                 for i, size in enumerate(array.shape)]
         return from_value({"layout": {"dim": dims}, "data": array.reshape(-1)}, type_name)
@@ -250,8 +266,10 @@ def _image_fields(value: Any) -> dict:
     if np.dtype(dtype) != image.dtype or expected != channels:
         raise ValueError(f"image encoding {encoding!r} is {expected} channel(s) of {np.dtype(dtype)}, "
                          f"the array is {channels} of {image.dtype}")
+    step = image.shape[1] * channels * image.dtype.itemsize
+    _check_sizes(_IMAGE, image.shape, {"height": image.shape[0], "width": image.shape[1], "step": step,
+                                       "length": image.shape[0] * step})
     little = np.ascontiguousarray(image, dtype=image.dtype.newbyteorder("<"))
     fields.update(height=image.shape[0], width=image.shape[1], encoding=encoding, is_bigendian=0,
-                  step=image.shape[1] * channels * image.dtype.itemsize,
-                  data=little.reshape(-1).view(np.uint8))
+                  step=step, data=little.reshape(-1).view(np.uint8))
     return fields

@@ -136,3 +136,15 @@ def test_an_image_of_an_encoding_not_read_here_keeps_its_raw_fields():
     bayer = types.to_value(types.from_value({"image": np.ones((2, 2), np.uint8), "encoding": "bayer_rggb8"},
                                             "sensor_msgs/msg/Image"), "sensor_msgs/msg/Image")
     assert_equal(bayer["image"], np.ones((2, 2), np.uint8))
+
+
+@pytest.mark.parametrize("shape, type_name, said", [
+    ((2, 2**31, 3), "sensor_msgs/msg/Image", r"shape \(2, 2147483648, 3\): its step 6442450944, length 12884901888 are past"),
+    ((2**32 + 1,), "std_msgs/msg/UInt8MultiArray", r"its length 4294967297, dimension 0 4294967297 are past"),
+])
+def test_a_value_past_what_a_ros_message_holds_is_refused_before_its_bytes_are_copied(shape, type_name, said):
+    """Publishing such a value copied it whole (gigabytes) before the serializer failed on it."""
+    from tests.log.test_ros2_export import _no_gigabytes, _view
+
+    with _no_gigabytes(), pytest.raises(ValueError, match=said + r" the uint32 a ROS 2 message holds sizes in"):
+        types.from_value(_view(shape, np.uint8), type_name)
