@@ -46,17 +46,17 @@ from typing import NamedTuple
 
 import zenoh
 
-from ...errors import OtherProtocolError, WorkerError
-from ...log.format import package_versions
-from .access import AccessError, RunAccess, TlsFiles, read_secret
-from .folders import DAEMON_FOLDER, private_folder, reap_stale
-from .hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
-                  remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
-from .protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
-                       Record, decode_reply, error_message)
-from .reach import why_no_session
+from ....errors import OtherProtocolError, WorkerError
+from ....log.format import package_versions
+from ..access import AccessError, RunAccess, TlsFiles, read_secret
+from ..folders import DAEMON_FOLDER, private_folder, reap_stale
+from ..hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
+                   remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
+from ..protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
+                        Record, decode_reply, error_message)
+from ..reach import why_no_session
+from ..wire import KeySpace, WireError, check_chunk
 from .runs import DaemonRuns
-from .wire import KeySpace, WireError, check_chunk
 
 DEFAULT_NAMESPACE = "default"
 #: Zenoh's own port, on every interface: where a coordinator on another machine finds the worker

@@ -12,11 +12,11 @@ import sys
 import time
 from typing import TYPE_CHECKING
 
-from .protocol import RunSpec
+from ..protocol import RunSpec
 
 if TYPE_CHECKING:
-    from ...plan import NodePlan
-    from .node import NodeLoop
+    from ....plan import NodePlan
+    from ..node import NodeLoop
 
 #: how long a restarted flow's process waits for its producers and consumers to answer before it
 #: says ready anyway (one that never answers has finished, or is stuck)
@@ -49,7 +49,7 @@ def link_to_hub(session, spec: RunSpec, loop: NodeLoop) -> None:
     process on another machine joins through its worker daemon and finds the hub by gossip,
     and a status it put before that link was up went nowhere (peers do not route). A client of
     routers waits for a router link instead: the router routes to the coordinator."""
-    from .hub import wait_for_links, wait_for_router
+    from ..hub import wait_for_links, wait_for_router
 
     if spec.router:
         wait_for_router(session, NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping)
@@ -68,7 +68,7 @@ def coordinator_linked(session, hub_zid: str | None, routers: list[str] | None =
     """Whether this process has its path to the coordinator: a direct link to the hub's session
     (``hub_zid``), or, for a client of ``routers``, a link to a router; None when it cannot
     tell (no hub id)."""
-    from .hub import router_linked
+    from ..hub import router_linked
 
     if routers:
         return router_linked(session)

@@ -10,11 +10,11 @@ import time
 from collections.abc import Collection
 from typing import TYPE_CHECKING
 
-from . import protocol
-from .worker_links import coordinator_linked
+from .. import protocol
+from .links import coordinator_linked
 
 if TYPE_CHECKING:
-    from .node import NodeLoop
+    from ..node import NodeLoop
 
 #: A worker that said ``ready`` and has not seen ``start`` after this long says ``ready`` again
 #: and asks the coordinator's ``ctl/start`` queryable for the start, and again every as long (a
@@ -41,8 +41,8 @@ REPORTS_TAKEN_MAX_S = 120.0
 def ask_start(session, keys, loop: NodeLoop) -> None:
     """Ask the coordinator for the run's start; its answer joins the loop's inbox as control (one
     the coordinator did not seal for this process, as the WireError saying so: garbage)."""
-    from .node import CONTROL
-    from .wire import WireError
+    from ..node import CONTROL
+    from ..wire import WireError
 
     nonce = protocol.new_nonce()
     for reply in session.get(keys.start(), attachment=nonce, timeout=START_ASK_S):
@@ -62,8 +62,8 @@ def await_control(loop: NodeLoop, wanted: type[protocol.Record], node_id: str, a
     every START_ASK_S without it. What else arrives meanwhile is put back in the loop's inbox."""
     import queue
 
-    from .node import CONTROL
-    from .wire import WireError
+    from ..node import CONTROL
+    from ..wire import WireError
 
     early = []
     try:
@@ -97,7 +97,7 @@ def drop_queued(loop: NodeLoop, kind: type[protocol.Record], node_id: str) -> No
     """Forget the control messages of ``kind`` to ``node_id`` queued in the loop's inbox; keep the rest."""
     import queue
 
-    from .node import CONTROL
+    from ..node import CONTROL
 
     kept = []
     while True:
@@ -123,7 +123,7 @@ def coordinator_says(session, keys, opener) -> tuple[set[str], set[str]]:
 def _finished(session, keys, opener) -> protocol.Finished | None:
     """The coordinator's ``finished`` answer (protocol.Finished), or None when it did not answer.
     An answer the coordinator did not seal for this process (``opener``: its ControlOpener) is none."""
-    from .wire import WireError
+    from ..wire import WireError
 
     nonce = protocol.new_nonce()
     said = None
