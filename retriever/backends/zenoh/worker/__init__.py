@@ -67,7 +67,11 @@ from collections.abc import Callable
 from typing import NoReturn
 
 from ..command import FRESH, JOIN, WORKER_MODULE, parse_command
+from ..hub import needs_shared_memory
+from ..node import Ending
+from ..origin import take_key
 from ..protocol import RunSpec
+from ..wire import KeySpace
 from .build import Serving, StatusSender, build, open_session, set_up_flow
 from .ending import finish, handle_signals, release, say_failed
 from .links import watch_hub_link
@@ -84,8 +88,6 @@ def main(argv: list[str], serve_with: Callable[[Launch, RunSpec, set[str]], int]
          module: str = WORKER_MODULE) -> NoReturn:
     """``SPEC.json NODE [MODE]``, the command line of ``module`` (command.py): serve the node
     (``serve_with``: what serves it, another module's, such as group.py's), then end the process."""
-    from ..origin import take_key
-
     key = take_key()  # before any flow code runs (origin.py)
     try:
         command = parse_command(argv, module)
@@ -133,9 +135,6 @@ def read_spec(launch: Launch) -> RunSpec:
 
 
 def _serve_node(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
-    from ..hub import needs_shared_memory
-    from ..wire import KeySpace
-
     keys = KeySpace(spec.namespace)
     shared_memory = needs_shared_memory(spec.ir, launch.node)
     with open_session(spec, launch.node, launch.mode, shared_memory) as session:
@@ -154,8 +153,6 @@ def _serve_node(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
 
 def run(w: Serving) -> int:
     """Wait for the start as the mode says, run the loop, and finish: the exit code."""
-    from ..node import Ending
-
     loop = w.loop
     wait = {None: start, JOIN: join, FRESH: start_afresh}[w.launch.mode.kind]
     try:

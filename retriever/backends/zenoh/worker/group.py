@@ -18,9 +18,18 @@ the run fails anyway, and the others say ``done``. Signals and ``failed`` are th
 from __future__ import annotations
 
 import dataclasses
+import sys
 
+from ....ir import IR
+from ..command import GROUP_MODULE
+from ..hub import needs_shared_memory
+from ..node import Ending
+from ..node.group import GroupLoop, GroupTransport, LocalBus
+from ..node.transport import ZenohTransport
 from ..protocol import RunSpec
-from .build import Serving, StatusSender, build, open_session, run_plan, set_up_flow
+from ..wire import KeySpace
+from . import main
+from .build import Serving, StatusSender, build, build_loop, open_session, run_plan, set_up_flow
 from .ending import handle_signals, release, say_done, say_failed
 from .links import watch_hub_link
 from .process import EXIT_ABANDONED, EXIT_FAILED, Launch
@@ -30,11 +39,6 @@ from .waits import await_reports_taken
 
 def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
     """Serve every member of the group ``launch.node`` from the session's open to its close."""
-    from ....ir import IR
-    from ..hub import needs_shared_memory
-    from ..node.group import GroupLoop, LocalBus
-    from ..wire import KeySpace
-
     members = list(spec.groups[launch.node])
     keys = KeySpace(spec.namespace)
     ir = IR(spec.ir, source="the run's IR")  # read and planned once, for every member
@@ -68,10 +72,6 @@ def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
 def _grouped_loop(bus, members: list[str], keys, ir):
     """The loop maker of a member: build_loop with its events on ``bus`` to the other members,
     on Zenoh to nodes elsewhere (only for the ports a node elsewhere consumes)."""
-    from ..node.group import GroupTransport
-    from ..node.transport import ZenohTransport
-    from .build import build_loop
-
     def make(spec: RunSpec, node: str, session, plan):
         elsewhere = {port for port, edges in plan.consumers.items() if any(c.dst not in members for c in edges)}
         transport = GroupTransport(bus, ZenohTransport(session, keys, node), node, elsewhere, bool(elsewhere))
@@ -82,8 +82,6 @@ def _grouped_loop(bus, members: list[str], keys, ir):
 
 def _run(served: list[Serving], group, members: frozenset[str]) -> int:
     """Every member ready, the start, the group's run, then each member's end: the exit code."""
-    from ..node import Ending
-
     readies = []
     for w in served:
         w.loop.declare()
@@ -130,9 +128,4 @@ def _run(served: list[Serving], group, members: frozenset[str]) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
-    from ..command import GROUP_MODULE
-    from . import main
-
     main(sys.argv[1:], serve_with=serve_group, module=GROUP_MODULE)

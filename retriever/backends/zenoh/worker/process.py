@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from ..command import FIRST, StartMode
+from ..hub import await_segments_released
 
 EXIT_FAILED = 1
 EXIT_HANDED_OVER = 3
@@ -168,8 +169,6 @@ def let_go_of(pool: set[str]) -> None:
     process that maps it lets go, and the exit handlers skip a segment this process still maps.
     The loop, which holds the session, goes first: the signal handlers held it (a stop has
     nothing left to stop: the process ends)."""
-    from ..hub import await_segments_released
-
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(PARENT_DIED, signal.SIG_IGN)
     if pool:
@@ -188,8 +187,6 @@ def no_timer_slack() -> None:
     if not sys.platform.startswith("linux"):
         return
     try:
-        import ctypes
-
         ctypes.CDLL(None).prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)
     except (OSError, AttributeError):
         pass
