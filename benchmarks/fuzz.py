@@ -988,7 +988,7 @@ class SpecTarget(Target):
     def __init__(self, *args):
         super().__init__(*args)
         from retriever.backends.zenoh import daemon
-        from retriever.backends.zenoh.runs import DaemonRuns
+        from retriever.backends.zenoh.daemon import DaemonRuns
 
         folder = self.workdir / "project"
         for name in ("venv", "test", "tests"):
@@ -1110,8 +1110,9 @@ class DaemonOpsTarget(Target):
         super().__init__(*args)
         import subprocess
 
-        from retriever.backends.zenoh import daemon, runs
+        from retriever.backends.zenoh import daemon
         from retriever.backends.zenoh.command import WORKER_MODULE
+        from retriever.backends.zenoh.daemon import runs
         from retriever.backends.zenoh.origin import KEY_BYTES, KEY_FD_ENV
 
         self.worker_module, self.key_fd_env, self.key_bytes = WORKER_MODULE, KEY_FD_ENV, KEY_BYTES

@@ -65,7 +65,8 @@ def _flt() -> int:
 
 def _in_worker() -> bool:
     spec = getattr(sys.modules["__main__"], "__spec__", None)
-    return spec is not None and spec.name == "retriever.backends.zenoh.worker"
+    # `python -m retriever.backends.zenoh.worker` runs the package's __main__
+    return spec is not None and spec.name == "retriever.backends.zenoh.worker.__main__"
 
 
 def _profile(frame, event, arg) -> None:

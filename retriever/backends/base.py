@@ -43,7 +43,7 @@ COUNTERS = {
     "moves": "times a flow started afresh on another worker after its worker was lost (retriever deploy)",
     "spin_ns": "ns flows spent busy-waiting for their ticks (configure(spin=)): CPU paid to start them on time",
     "redeclared": "times a starting flow declared its subscriptions and queryable again: a neighbour linked "
-                  "to it had not learned of them (worker_starts.REDECLARE_AFTER_S)",
+                  "to it had not learned of them (worker/starts.py, REDECLARE_AFTER_S)",
 }
 
 

@@ -66,7 +66,7 @@ def main(argv: list[str]) -> None:
 def loop_maker(names: DoraNames) -> Callable:
     """``(spec, node, session, plan) -> loop``: the node's loop, its events and progress over
     dora. The one place a dora node's loop is made."""
-    from ..zenoh.worker_build import build_loop
+    from ..zenoh.worker.build import build_loop
     from .link import DoraTransport
 
     def make(spec: RunSpec, node: str, session, plan):

@@ -12,9 +12,8 @@
     folders.py      private folders named by their process's PID, and the reaping of a dead one's
     node/           one node's real-time loop, split by concern (its docstring draws it); its
                     reporter sends step records and events to the coordinator
-    worker.py       the worker process around a loop, in phases (its docstring maps the worker_*.py
-                    modules each phase's work is in)
-    worker_group.py  the worker process around a group's loops (configure(process=)): the same phases
+    worker/         the worker process around a loop, in phases (its docstring maps the modules each
+                    phase's work is in); worker/group.py: around a group's loops (configure(process=))
     command.py      a worker's command line, built and read in one place
     output.py       what workers print, on the coordinator's streams, prefixed with the node
     host.py         where worker processes run (this machine: LocalHost), and how they are started
@@ -23,8 +22,8 @@
     seen.py         what the coordinator has seen of a run (event ids, recent ticks), in bounded memory
     remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
     deploy.py       a deployment: the coordinator hosted on worker daemons, its nodes placed there
-    daemon.py       a long-lived worker daemon (retriever-worker) and listing them (retriever workers)
-    runs.py         what a worker daemon runs for a coordinator: a run's spec and its processes
+    daemon/         a long-lived worker daemon (retriever-worker), what it runs for a coordinator
+                    (daemon/runs.py), and listing them (retriever workers); its docstring draws it
 """
 
 from __future__ import annotations

@@ -3,12 +3,12 @@
     python -m retriever.backends.zenoh.worker SPEC.json NODE                 the node's first process
     python -m retriever.backends.zenoh.worker SPEC.json NODE --join T0 END   a restarted flow's new one
     python -m retriever.backends.zenoh.worker SPEC.json NODE --fresh T0 END  one whose old process died
-    python -m retriever.backends.zenoh.worker_group SPEC.json NAME [MODE]    the process of a group of flows
+    python -m retriever.backends.zenoh.worker.group SPEC.json NAME [MODE]    the process of a group of flows
     python -m retriever.backends.dora.node SPEC.json DORA_ID                 a dora node (backends/dora)
 
 Every host starts a worker with :func:`worker_command`: this machine's (host.py), a worker daemon
-(runs.py), and dora's dataflow (dataflow.py). Every such process reads its own with
-:func:`parse_command` (worker.py, worker_group.py, dora/node.py), and a worker daemon checks the
+(daemon/runs.py), and dora's dataflow (dataflow.py). Every such process reads its own with
+:func:`parse_command` (worker/__init__.py, worker/group.py, dora/node.py), and a worker daemon checks the
 mode a coordinator's spawn request carries with :func:`parse_mode` (protocol/daemon.py), before
 it is ever a command line. T0 and END are nanoseconds, non-negative, as decimal digits.
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 #: the module a worker process runs; a group's (several flows in one process: configure(process=));
 #: a dora node's (dora starts it: backends/dora/node.py)
 WORKER_MODULE = "retriever.backends.zenoh.worker"
-GROUP_MODULE = "retriever.backends.zenoh.worker_group"
+GROUP_MODULE = "retriever.backends.zenoh.worker.group"
 DORA_NODE_MODULE = "retriever.backends.dora.node"
 #: what each module's command line names after the spec, and whether a start mode may follow
 NAMED = {WORKER_MODULE: ("NODE", True), GROUP_MODULE: ("NAME", True), DORA_NODE_MODULE: ("DORA_ID", False)}

@@ -36,7 +36,7 @@ LOOPBACK = "127.0.0.1"
 #: SHM_POOL_MAX, but at most 1/SHM_POOL_SHARE of what /dev/shm has free (Docker gives 64 MB by
 #: default; a write past a full tmpfs is a SIGBUS), and never less than Zenoh's default.
 #: Every worker of a run that sends to a consumer on its host has a pool (the hub has none:
-#: HUB_SHARED_MEMORY), and writes all of it (worker.py POOL_PADDING), so the run's workers share
+#: HUB_SHARED_MEMORY), and writes all of it (worker/starts.py, POOL_PADDING), so the run's workers share
 #: that 1/SHM_POOL_SHARE and SHM_POOL_RUN_MAX: 50 flows with 128 MiB each would write 6.4 GB of
 #: /dev/shm while they start, and the page faults take so long that some of them miss the run's
 #: start (benchmarks/reports/scale.md).
@@ -362,7 +362,7 @@ def wait_for_answers(session: zenoh.Session, keys: set[str], timeout: float, sto
     every node of the run, so N starting nodes would ask N² questions, and at scale the answers
     fall so far behind that some node never has its producer's (benchmarks/reports/deploy.md).
     ``nudge(missing)``, if given, is called every ``nudge_every`` s that some key has not answered.
-    ``payload``: what each question carries (the answerers ignore it: worker_starts.POOL_PADDING)."""
+    ``payload``: what each question carries (the answerers ignore it: worker/starts.py, POOL_PADDING)."""
     missing = set(keys)
     give_up = time.monotonic() + timeout
     next_nudge = time.monotonic() + nudge_every

@@ -1,4 +1,4 @@
-"""Worker processes on a worker daemon (``retriever-worker``, daemon.py), here or on another machine.
+"""Worker processes on a worker daemon (``retriever-worker``, daemon/), here or on another machine.
 
     coordinator                                          daemon <name>
       query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec

@@ -1,4 +1,4 @@
-"""A run's spec for the tests that build a node's loop by hand (worker_build.build_loop)."""
+"""A run's spec for the tests that build a node's loop by hand (worker/build.py, build_loop)."""
 
 from __future__ import annotations
 

@@ -268,7 +268,7 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
             ]
             for key, message in claims:
                 insider.put(key, message)
-            # sense, but not once the run started: no node declares itself again (worker_starts.REDECLARE_AFTER_S)
+            # sense, but not once the run started: no node declares itself again (worker/starts.py, REDECLARE_AFTER_S)
             insider.put(keys.node_status("total"), p.Unanswered(node="total", pid=1, nodes=("counter",)).encode())
         result = run.result()
     finally:

@@ -1,4 +1,4 @@
-"""worker_build.build_loop: a node loop wired as the run's plan says (retriever.plan, as JSON), the
+"""worker/build.py, build_loop: a node loop wired as the run's plan says (retriever.plan, as JSON), the
 coordinator's alike the IR's own."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import warnings
 import pytest
 
 from retriever import Latest, Pipeline, Queue, Rate, RetrieverWarning, Trigger
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 from retriever.errors import IRError
 from retriever.plan import plan_graph
 

@@ -1,4 +1,4 @@
-"""Worker daemons (``retriever-worker``) and ``retriever workers`` (issue 18; daemon.py).
+"""Worker daemons (``retriever-worker``) and ``retriever workers`` (issue 18; daemon/).
 
 Daemons run as real processes (``python -m retriever.cli worker``) on loopback ports picked by
 the test; a plain Zenoh session stands for a coordinator or a stranger. Every process a test

@@ -10,7 +10,7 @@ import pytest
 from retriever import Pipeline, Queue, Rate, Trigger
 from retriever.backends.zenoh.node import CONTROL, Ending
 from retriever.backends.zenoh.protocol import Handover, Lost, Stop
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 
 from .semantics_flows import Ticker, WhereRun
 from .specs import run_spec

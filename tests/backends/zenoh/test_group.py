@@ -17,7 +17,7 @@ from retriever.backends.zenoh.node.group import GroupLoop, GroupTransport, Local
 from retriever.backends.zenoh.node.transport import ZenohTransport
 from retriever.backends.zenoh.protocol import RunSpec
 from retriever.backends.zenoh.wire import KeySpace
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 
 from .specs import run_spec
 

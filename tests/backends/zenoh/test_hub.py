@@ -263,7 +263,7 @@ def test_a_worker_that_missed_the_start_asks_the_coordinator_for_it():
     from retriever.backends.zenoh.node import DATA
     from retriever.backends.zenoh.origin import new_key
     from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Start
-    from retriever.backends.zenoh.worker_waits import ask_start, await_control
+    from retriever.backends.zenoh.worker.waits import ask_start, await_control
 
     keys = KeySpace("missed-start")
     hub, at = open_hub(free_port())

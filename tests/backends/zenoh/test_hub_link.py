@@ -1,5 +1,5 @@
 """A worker says on stderr when its link to the coordinator is gone: while its node runs
-(worker_links.watch_hub_link) and when it ends (worker_waits.await_reports_taken). Zenoh drops a put that no
+(worker/links.py, watch_hub_link) and when it ends (worker/waits.py, await_reports_taken). Zenoh drops a put that no
 link carries without an error and does not open a link found by gossip again, so without these
 lines a flow that lost that link ended with only "exited with code 0 before it finished" on the
 coordinator's side (benchmarks/reports/partition_move.md; benchmarks/link_stall.py makes Zenoh
@@ -12,8 +12,8 @@ import time
 from retriever.backends.zenoh.hub import new_zid, open_hub, open_peer, wait_for_links
 from retriever.backends.zenoh.protocol import ControlOpener
 from retriever.backends.zenoh.wire import KeySpace
-from retriever.backends.zenoh.worker_links import watch_hub_link
-from retriever.backends.zenoh.worker_waits import await_reports_taken
+from retriever.backends.zenoh.worker.links import watch_hub_link
+from retriever.backends.zenoh.worker.waits import await_reports_taken
 
 BOUND_S = 20.0  # a bound only: the close is seen within ms
 

@@ -82,7 +82,7 @@ def test_bursts_of_frames_arrive_in_order_are_logged_and_replay(tmp_path):
 def test_each_worker_has_its_shared_memory_pool_before_t0():
     """Zenoh creates a session's shared-memory pool on its first big message, writing all of it
     (130 ms for 128 MiB here): a worker makes that happen before it says ``ready``, with a padded
-    question to each consumer (worker_starts.POOL_PADDING), so no tick pays for it. The first step of a
+    question to each consumer (worker/starts.py, POOL_PADDING), so no tick pays for it. The first step of a
     flow that has sent nothing yet finds the pool mapped."""
     with Pipeline("pool") as pipe:
         watcher = ImageShmWatcher().configure(name="watcher") @ Rate(hz=10)

@@ -75,7 +75,7 @@ TODAY = [
     # coordinator._answer_finished, _answer_start
     (control("finished", {"nodes": ["a", "b"], "complete": ["a"], "restarting": [], "handed_over": []}),
      p.Finished(nodes=("a", "b"), complete=("a",), restarting=(), handed_over=())),
-    # the worker's status(...) calls (worker.py's phases), in their order
+    # the worker's status(...) calls (worker/'s phases), in their order
     (worker_status("cam", "failed", error="cannot build node 'cam': ImportError: x", traceback="Traceback..."),
      p.Failed(node="cam", pid=PID, error="cannot build node 'cam': ImportError: x", traceback="Traceback...")),
     (worker_status("cam", "failed", error="RuntimeError: no GPU", setup=True, traceback="Traceback..."),
@@ -115,7 +115,7 @@ TODAY = [
      p.SignalRequest(run="r", pid=PID, signal=10)),
     (control("usage", {"run": "r"}), p.UsageRequest(run="r")),
     (control("end", {"run": "r"}), p.EndRequest(run="r")),
-    # daemon.WorkerDaemon.info, runs.DaemonRuns.prepare/spawn/signal/usage/end, daemon.answer's errors
+    # daemon/core.py WorkerDaemon.info, daemon/runs.py DaemonRuns.prepare/spawn/signal/usage/end, daemon.answer's errors
     (control("info", {"protocol": 2, "name": "w1", "labels": ["gpu"], "host": "robot", "pid": PID,
                                     "python": "3.11.7", "packages": {"retriever": "0.1.0"}, "clock_ns": T0,
                                     "nodes": [], "counts": {"refused": 1}}),
@@ -184,7 +184,7 @@ def test_every_message_kind_is_covered_by_todays_bytes():
 
 
 def test_the_one_status_whose_map_order_differs_from_todays_decodes_the_same():
-    """The worker's crash `failed` (worker.run, worker_ending.say_failed) puts counts after the traceback; every other failed puts
+    """The worker's crash `failed` (worker.run, ending.say_failed) puts counts after the traceback; every other failed puts
     tag and counts before it, which is the record's order: same keys, same values."""
     data = worker_status("cam", "failed", error="worker 'cam' crashed: OSError: x", traceback="T", counts={"late": 1})
     record = p.STATUS.decode(data, node="cam")

@@ -16,7 +16,7 @@ from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import DATA, INLINE_STEP_NS, NUDGE
 from retriever.errors import StopRun
 from retriever.backends.zenoh.wire import WireEncoder
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 
 from .semantics_flows import Counter, Faulty, Ticker, WhereRun
 from .specs import run_spec

@@ -1,4 +1,4 @@
-"""A starting worker that never hears its producer (worker_starts.REDECLARE_AFTER_S): it says
+"""A starting worker that never hears its producer (worker/starts.py, REDECLARE_AFTER_S): it says
 ``unanswered``, the coordinator tells that producer to ``redeclare``, and the producer declares
 its subscriptions and queryable anew. At 80 flows on 8 netns hosts, a worker linked to its
 producer was never told of the producer's queryable, and the deployment never started.
@@ -21,8 +21,8 @@ from retriever.backends.zenoh.node import CONTROL, DATA
 from retriever.backends.zenoh.origin import new_key
 from retriever.backends.zenoh.protocol import RUN_CONTROL, ControlOpener, ControlSigner, Start, Stop
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_progress
-from retriever.backends.zenoh.worker_build import build_loop
-from retriever.backends.zenoh.worker_waits import await_control
+from retriever.backends.zenoh.worker.build import build_loop
+from retriever.backends.zenoh.worker.waits import await_control
 
 from .payload_flows import Camera, Viewer, frame
 from .specs import run_spec

@@ -12,7 +12,7 @@ import pytest
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import FLUSH_AFTER_NS, RECORDS_FLUSH_AFTER_NS
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 
 from .payload_flows import Camera, Viewer, frame
 from .specs import run_spec

@@ -14,7 +14,7 @@ from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, 
 from retriever.backends.zenoh.node import handover
 from retriever.backends.zenoh.protocol import RUN_CONTROL
 from retriever.backends.zenoh.wire import WIRE_VERSION, Progress, WireEncoder, WireError
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 from retriever.log import format as fmt
 from retriever.log.writer import LogFile, LogWriter
 

@@ -1,4 +1,4 @@
-"""What a worker daemon does for a run's processes (runs.py) that the deploy tests cannot show
+"""What a worker daemon does for a run's processes (daemon/runs.py) that the deploy tests cannot show
 at will: how a process's output reaches the coordinator (a real child process prints; the
 daemon's forwarder, runs.forward_output, reads its pipe; what it would tell is collected in place
 of the signed Zenoh put), and what its spawn and signal ops refuse (a real DaemonRuns on a real
@@ -26,7 +26,7 @@ from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, SignalRequest, SpawnRequest,
                                                Stream)
 from retriever.backends.zenoh.protocol.schema import pack
-from retriever.backends.zenoh.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
+from retriever.backends.zenoh.daemon.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
 from tests.log.log_flows import build_small
 
@@ -145,7 +145,7 @@ def test_a_spawn_refuses_what_is_no_prepared_node_mode_or_key_and_starts_nothing
 
 
 def request(op: str, fields: dict):
-    """A request as the daemon reads it (daemon.WorkerDaemon.answer: protocol.REQUEST, then the
+    """A request as the daemon reads it (daemon/core.py, WorkerDaemon.answer: protocol.REQUEST, then the
     op), hand-made as an insider may send it."""
     return REQUEST.decode(pack([WIRE_VERSION, op, fields]))
 

@@ -12,7 +12,7 @@ import zenoh
 from retriever import Flow, Latest, Pipeline, Rate, RetrieverWarning, Trigger, Window
 from retriever.backends.zenoh.command import WORKER_MODULE
 from retriever.backends.zenoh.hub import peer_config
-from retriever.backends.zenoh.runs import DaemonRuns
+from retriever.backends.zenoh.daemon.runs import DaemonRuns
 from retriever.plan import plan_graph
 
 from ..test_conformance import CycleMonitor, CyclePolicy, Echo, Source, Value

@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from retriever import BackendError, Pipeline
-from retriever.backends.zenoh import worker_waits
+from retriever.backends.zenoh.worker import waits
 from retriever.backends.zenoh.hub import endpoint, free_port, new_zid, peer_config, wait_for_links
 from retriever.backends.zenoh.origin import new_key
 from retriever.backends.zenoh.protocol import ControlOpener, ControlSigner, Finished
@@ -126,14 +126,14 @@ def test_a_done_worker_waits_for_a_coordinator_that_answers_late(coordinator_and
     link to the coordinator is up, and returns once the coordinator has its reports."""
     c = coordinator_and_worker
     c.answers[:] = [None, [], ["src"]]  # no answer, then "not yet", then "every report in"
-    worker_waits.await_reports_taken(c.worker, c.keys, c.opener, "src", c.zid)
+    waits.await_reports_taken(c.worker, c.keys, c.opener, "src", c.zid)
     assert len(c.asked) == 3
 
 
 def test_a_done_worker_does_not_wait_for_a_coordinator_it_has_no_link_to(coordinator_and_worker):
     c = coordinator_and_worker
     c.answers[:] = [None]
-    worker_waits.await_reports_taken(c.worker, c.keys, c.opener, "src", new_zid())  # a session it is not linked to
+    waits.await_reports_taken(c.worker, c.keys, c.opener, "src", new_zid())  # a session it is not linked to
     assert len(c.asked) == 1
 
 

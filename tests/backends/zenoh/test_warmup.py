@@ -16,7 +16,7 @@ import pytest
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, quiet_source
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
-from retriever.backends.zenoh.worker_build import build_loop
+from retriever.backends.zenoh.worker.build import build_loop
 
 from .payload_flows import Camera, Viewer, frame
 from .specs import run_spec

@@ -1,4 +1,4 @@
-"""worker_ending.py: a single worker and a group's members end alike (issue 37). A failure, a
+"""worker/ending.py: a single worker and a group's members end alike (issue 37). A failure, a
 StopRun or a crash of the loop, is said once every held LET output is out: their seqs are in the
 step records, and a consumer would wait forever at the gap; a loop that failed before it spoke
 holds none. SIGTERM and PARENT_DIED stop every loop of the process."""
@@ -14,8 +14,8 @@ import pytest
 
 from retriever.backends.zenoh import protocol
 from retriever.backends.zenoh.node import CONTROL, Ending
-from retriever.backends.zenoh.worker_ending import handle_signals, say_failed
-from retriever.backends.zenoh.worker_process import PARENT_DIED
+from retriever.backends.zenoh.worker.ending import handle_signals, say_failed
+from retriever.backends.zenoh.worker.process import PARENT_DIED
 from retriever.errors import StopRun
 
 

@@ -25,7 +25,7 @@ from ..host import Host, WorkerProcess
 from ..node import RESTART_SEQ_GAP
 from ..origin import new_key
 from ..protocol import Lost, NodeState, Restarted, State, Stop
-from ..worker_process import EXIT_FAILED, EXIT_HANDED_OVER
+from ..worker.process import EXIT_FAILED, EXIT_HANDED_OVER
 from .book import RunBook
 from .control import RunControl
 from .diagnostics import FAILED_TAIL_LINES, Diagnostics, exit_text, failure_error

@@ -167,7 +167,7 @@ class StatusMachine:
         if node in book.fresh:
             self.supervisor.restart_afresh(node)
         elif node in book.restarted:
-            # said again: it has not seen `restarted` yet (worker_waits.START_ASK_S), nor, maybe, its consumers
+            # said again: it has not seen `restarted` yet (worker/waits.py, START_ASK_S), nor, maybe, its consumers
             self.control.put(Restarted(node=node, seqs=book.restarted[node], values=book.values))
         elif node in book.retiring:
             if book.state[node] == State.DONE:  # the run ended while it restarted: stopped at close

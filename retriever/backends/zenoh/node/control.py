@@ -21,7 +21,7 @@ def obey(loop, record: Record | WireError) -> None:
     elif kind is End:  # a step's sys.exit(0) ended the run there: the ticks before it still run
         with loop.lock:
             loop.run_clock.end = min(loop.run_clock.end, record.at)
-    elif kind is Redeclare:  # only for a node not started yet (worker_waits.await_control)
+    elif kind is Redeclare:  # only for a node not started yet (worker/waits.py, await_control)
         loop.notes.garbage(loop.keys.run_control(), WireError("a 'redeclare' control message during the run"))
     elif kind is Handover and record.node == loop.id and loop.restarting:
         loop.stop(Ending.HANDING_OVER)

@@ -167,7 +167,7 @@ class NodeLoop:
         """Declare the subscriptions and the progress queryable again, then drop the old ones
         (before the start only: no event flows yet). Zenoh then tells every linked peer of them
         anew. Under load, with many peers linking at once, a peer was seen linked to this node
-        and never told of its queryable (nor, maybe, its subscriptions): see worker_starts.py,
+        and never told of its queryable (nor, maybe, its subscriptions): see worker/starts.py,
         REDECLARE_AFTER_S."""
         if not self.declared:
             return

@@ -18,7 +18,7 @@ their own exact decoders in wire.py.
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
 MAC of the sending worker process's own key (origin.py); *sealed*, by the coordinator for each
 live process (seal.py: ctl/run and its answers); *run*, by a worker daemon with the key it made
-for the run and answered in its prepare reply (runs.py);
+for the run and answered in its prepare reply (daemon/runs.py);
 *none*, the session's credentials alone (anyone holding the run's or the namespace's password
 may send it). The last column: what the receiver checks today beyond the fields (which the
 decoders check).

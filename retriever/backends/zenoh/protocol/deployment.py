@@ -2,7 +2,7 @@
 
     deployment   query from the CLI     [2, op, {}]: a StatusQuery or a StopQuery
                  reply of the deployment [2, op, {fields}]: a StatusReply or a StopReply
-                 reply_err               [2, "error", {message}]: an ErrorReply (daemon.py)
+                 reply_err               [2, "error", {message}]: an ErrorReply (daemon/core.py)
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ in order; the window forgives a reordering all the same). A reply covers the non
 question it answers: an old answer, replayed, answers no new question.
 
 A worker daemon's events (``exit``, ``output`` on workers/<name>/events) go the same way with one
-key, the run's (runs.py seals them with a ControlSigner holding it; the coordinator's RemoteHost
+key, the run's (daemon/runs.py seals them with a ControlSigner holding it; the coordinator's RemoteHost
 opens them with a ControlOpener): forged, altered, another run's or replayed, they are refused. What it does not prove:
 that a message arrived at all (an insider with the run's password can still flood the links it
 shares, as it could before).

@@ -60,7 +60,7 @@ class Grant(Record):
 @dataclass(frozen=True, kw_only=True)
 class Redeclare(Record):
     """Before the start: ``nodes`` declare their subscriptions and queryables again (a consumer
-    never got their answer: worker_starts.REDECLARE_AFTER_S)."""
+    never got their answer: worker/starts.py, REDECLARE_AFTER_S)."""
 
     NAME = Op.REDECLARE
     nodes: tuple[str, ...] = field(ListOf(Name(), min_items=1))

@@ -10,24 +10,22 @@ import signal
 import sys
 import traceback
 from collections.abc import Iterable
-from typing import TYPE_CHECKING
 
-from . import protocol
-from .worker_build import Serving
-from .worker_process import EXIT_HANDED_OVER, PARENT_DIED, Parent
-from .worker_waits import await_reports_taken
-
-if TYPE_CHECKING:
-    from .node import NodeLoop
-    from .worker_starts import LoopStart
+from ....codec import packb
+from ....errors import StopRun
+from ....flow._base import tear_down
+from .. import protocol
+from ..node import CONTROL, Ending, NodeLoop
+from .build import Serving
+from .process import EXIT_HANDED_OVER, PARENT_DIED, Parent
+from .starts import LoopStart
+from .waits import await_reports_taken
 
 
 def handle_signals(loops: Iterable[NodeLoop], parent: Parent) -> None:
     """SIGTERM asks every loop of this process to stop; when the parent is dead (a SIGTERM sent
     by someone else then), or on PARENT_DIED, the process ends without a word, as if killed,
     promising its consumers nothing (not "done"): the run goes on without it."""
-    from .node import CONTROL, Ending
-
     loops = list(loops)
     stop_item = (CONTROL, None, protocol.Stop())  # this process's own: no seal to open
 
@@ -46,8 +44,6 @@ def say_failed(w: Serving, exc: BaseException) -> None:
     a deadline missed with "error", a causality error), or a crash of the loop itself. First the
     LET outputs the loop still holds go out: their seqs are in its step records already, and a
     consumer would wait forever at the gap they leave (node/outputs.py, release_held)."""
-    from ...errors import StopRun
-
     loop = w.loop
     try:
         if loop.outputs.progress_publisher is not None:  # (a loop that failed before it spoke holds none)
@@ -70,8 +66,6 @@ def say_failed(w: Serving, exc: BaseException) -> None:
 def finish(w: Serving, begin: LoopStart) -> int:
     """After the loop's run: hand the state over to the flow's new process (a restart), or say
     ``done``; release the flow; keep the session until the coordinator has every report."""
-    from .node import Ending
-
     if w.loop.ending is Ending.HANDING_OVER:
         hand_over(w)
         await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.hub_zid, handed_over=True,
@@ -85,8 +79,6 @@ def finish(w: Serving, begin: LoopStart) -> int:
 def hand_over(w: Serving) -> None:
     """The restarting flow's state, written for its new process (``<run dir>/<node>.handover``);
     then ``handed_over``, and the flow released."""
-    from ...codec import packb
-
     loop = w.loop
     loop.undeclare()  # first: no message may arrive after the state is taken
     state = packb(loop.handover_state())
@@ -101,8 +93,6 @@ def hand_over(w: Serving) -> None:
 
 def say_done(w: Serving, begin: LoopStart) -> None:
     """``done``, with what the coordinator checks the run's end against; the flow released."""
-    from .node import Ending
-
     loop = w.loop
     w.status(protocol.Done, counts=dict(loop.counts), reports=loop.reporter.sent, started_ns=begin.started_ns,
              ticks=loop.reports.recorded, stopped=loop.ending is Ending.TOLD_TO_STOP, sent=dict(loop.sent))
@@ -113,8 +103,6 @@ def say_done(w: Serving, begin: LoopStart) -> None:
 def release(loop: NodeLoop, node_id: str) -> None:
     """The flow's ``teardown()``, once (see Flow.setup): as soon as its process has nothing more
     to step, not after it waited for its reports to be taken. A failure is told, not fatal."""
-    from ...flow._base import tear_down
-
     try:
         tear_down(loop.flow)
     except Exception as exc:

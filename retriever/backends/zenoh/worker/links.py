@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import TYPE_CHECKING
 
-from .protocol import RunSpec
+import zenoh
 
-if TYPE_CHECKING:
-    from ...plan import NodePlan
-    from .node import NodeLoop
+from ....plan import NodePlan
+from ..hub import router_linked, wait_for_links, wait_for_router
+from ..node import NodeLoop
+from ..protocol import RunSpec
 
 #: how long a restarted flow's process waits for its producers and consumers to answer before it
 #: says ready anyway (one that never answers has finished, or is stuck)
@@ -49,8 +49,6 @@ def link_to_hub(session, spec: RunSpec, loop: NodeLoop) -> None:
     process on another machine joins through its worker daemon and finds the hub by gossip,
     and a status it put before that link was up went nowhere (peers do not route). A client of
     routers waits for a router link instead: the router routes to the coordinator."""
-    from .hub import wait_for_links, wait_for_router
-
     if spec.router:
         wait_for_router(session, NEIGHBOR_TIMEOUT_S, stop=lambda: loop.stopping)
     elif spec.hub_zid:
@@ -68,8 +66,6 @@ def coordinator_linked(session, hub_zid: str | None, routers: list[str] | None =
     """Whether this process has its path to the coordinator: a direct link to the hub's session
     (``hub_zid``), or, for a client of ``routers``, a link to a router; None when it cannot
     tell (no hub id)."""
-    from .hub import router_linked
-
     if routers:
         return router_linked(session)
     return None if not hub_zid else hub_zid in {str(z) for z in session.info.peers_zid()}
@@ -88,8 +84,6 @@ def watch_hub_link(session, hub_zid: str | None, node_id: str, routers: list[str
     queue a put holds (a consumer's host cut off, congestion control BLOCK): it takes that queue's
     lock, on a thread that also reads links, and waits for each put that holds it, up to its
     wait_before_close, before the link leaves the routes (benchmarks/reports/partition_move.md)."""
-    import zenoh
-
     if routers:
         return _watch_router_link(session, routers, node_id)
     if not hub_zid:
@@ -108,8 +102,6 @@ def _watch_router_link(session, routers: list[str], node_id: str):
     """watch_hub_link for a client of ``routers``: say on stderr when its last router link
     closes, and when one is back (Zenoh joins a router again by itself); what it put between
     the two went nowhere."""
-    import zenoh
-
     def changed(event) -> None:  # on a thread of zenoh-python's
         if event.kind == zenoh.SampleKind.DELETE and not list(session.info.routers_zid()):
             print(f"retriever: worker '{node_id}' lost its link to the router ({', '.join(routers)}) at "

@@ -5,16 +5,15 @@ says is finished; and, after its last status, until the coordinator took every r
 
 from __future__ import annotations
 
+import queue
 import sys
 import time
 from collections.abc import Collection
-from typing import TYPE_CHECKING
 
-from . import protocol
-from .worker_links import coordinator_linked
-
-if TYPE_CHECKING:
-    from .node import NodeLoop
+from .. import protocol
+from ..node import CONTROL, NodeLoop
+from ..wire import WireError
+from .links import coordinator_linked
 
 #: A worker that said ``ready`` and has not seen ``start`` after this long says ``ready`` again
 #: and asks the coordinator's ``ctl/start`` queryable for the start, and again every as long (a
@@ -41,9 +40,6 @@ REPORTS_TAKEN_MAX_S = 120.0
 def ask_start(session, keys, loop: NodeLoop) -> None:
     """Ask the coordinator for the run's start; its answer joins the loop's inbox as control (one
     the coordinator did not seal for this process, as the WireError saying so: garbage)."""
-    from .node import CONTROL
-    from .wire import WireError
-
     nonce = protocol.new_nonce()
     for reply in session.get(keys.start(), attachment=nonce, timeout=START_ASK_S):
         if reply.ok is not None:
@@ -60,11 +56,6 @@ def await_control(loop: NodeLoop, wanted: type[protocol.Record], node_id: str, a
     """Wait for the run's control to say ``wanted`` (a record of protocol.RUN_CONTROL: to this
     node, if it names one): that record; None on ``stop``. ``ask()``, if given, is called after
     every START_ASK_S without it. What else arrives meanwhile is put back in the loop's inbox."""
-    import queue
-
-    from .node import CONTROL
-    from .wire import WireError
-
     early = []
     try:
         while True:
@@ -95,10 +86,6 @@ def await_control(loop: NodeLoop, wanted: type[protocol.Record], node_id: str, a
 
 def drop_queued(loop: NodeLoop, kind: type[protocol.Record], node_id: str) -> None:
     """Forget the control messages of ``kind`` to ``node_id`` queued in the loop's inbox; keep the rest."""
-    import queue
-
-    from .node import CONTROL
-
     kept = []
     while True:
         try:
@@ -123,8 +110,6 @@ def coordinator_says(session, keys, opener) -> tuple[set[str], set[str]]:
 def _finished(session, keys, opener) -> protocol.Finished | None:
     """The coordinator's ``finished`` answer (protocol.Finished), or None when it did not answer.
     An answer the coordinator did not seal for this process (``opener``: its ControlOpener) is none."""
-    from .wire import WireError
-
     nonce = protocol.new_nonce()
     said = None
     for reply in session.get(keys.finished(), attachment=nonce, timeout=0.25):

@@ -2,7 +2,7 @@
 
 A worker process dies with its parent (PARENT_DIED), and a thread watches that parent
 (watch_parent) to exit within ORPHAN_GRACE_S once it is gone, removing the run's folders no
-one else will; its exit codes say how its node ended (worker.py's docstring).
+one else will; its exit codes say how its node ended (the package's docstring).
 """
 
 from __future__ import annotations
@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
 
-from .command import FIRST, StartMode
+from ..command import FIRST, StartMode
+from ..hub import await_segments_released
 
 EXIT_FAILED = 1
 EXIT_HANDED_OVER = 3
@@ -90,7 +91,7 @@ class Launch:
     key: bytes | None
     mode: StartMode = FIRST
     #: ``(spec, node, session, plan) -> NodeLoop``: the node's loop, wired as ``plan`` says; None:
-    #: worker_build.build_loop's
+    #: build.build_loop's
     make_loop: Callable | None = None
     #: folders of the run besides its run directory, removed with it once the parent is gone
     folders: tuple[Path, ...] = ()
@@ -168,8 +169,6 @@ def let_go_of(pool: set[str]) -> None:
     process that maps it lets go, and the exit handlers skip a segment this process still maps.
     The loop, which holds the session, goes first: the signal handlers held it (a stop has
     nothing left to stop: the process ends)."""
-    from .hub import await_segments_released
-
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(PARENT_DIED, signal.SIG_IGN)
     if pool:
@@ -188,8 +187,6 @@ def no_timer_slack() -> None:
     if not sys.platform.startswith("linux"):
         return
     try:
-        import ctypes
-
         ctypes.CDLL(None).prctl(PR_SET_TIMERSLACK, 1, 0, 0, 0)
     except (OSError, AttributeError):
         pass

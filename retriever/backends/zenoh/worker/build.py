@@ -15,17 +15,24 @@ import traceback
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
-from . import protocol
-from .command import StartMode
-from .protocol import RunSpec
-from .worker_process import Launch
+import zenoh
 
-if TYPE_CHECKING:
-    from ...ir import IR
-    from ...plan import NodePlan
-    from .node import NodeLoop
+from ....flow._base import Flow, set_up
+from ....graph import compile_graph
+from ....ir import DEFAULT_DEADLINE, IR
+from ....plan import NodePlan, Plan, bind_inputs
+from ....rebuild import rebuild_node
+from ....sync import PortBuffer
+from .. import protocol
+from ..access import RunAccess, TlsFiles
+from ..command import StartMode
+from ..hub import client_config, open_peer
+from ..node import InEdge, NodeLoop
+from ..origin import sign
+from ..protocol import RunSpec
+from ..wire import RELIABLE, KeySpace
+from .process import Launch
 
 #: the flows this process served, held until it ends: what a flow holds (a model, a device) is
 #: finalized once, as the interpreter ends; the session its loop held is let go of
@@ -52,9 +59,6 @@ def node_plan(spec: RunSpec, node_id: str, ir: IR | None = None) -> NodePlan:
 def run_plan(spec: RunSpec, ir: IR | None = None) -> dict[str, NodePlan]:
     """Every node's wiring as the run's plan says (``ir``: the spec's IR, if the caller has read
     it already)."""
-    from ...ir import IR
-    from ...plan import Plan
-
     if ir is None:
         ir = IR(spec.ir, source="the run's IR")
     return Plan.from_data(spec.plan, ir).nodes
@@ -66,15 +70,6 @@ def build_loop(spec: RunSpec, node_id: str, session, transport=None, plan: NodeP
     :func:`node_plan`'s): a ready NodeLoop, its events through ``transport`` (a dora node's), or
     on ``session`` when None. ``ir``: the spec's IR, if the caller has read it already (a group
     reads it once for all its members: checking it is linear in the run's size)."""
-    from ...flow._base import Flow
-    from ...graph import compile_graph
-    from ...ir import DEFAULT_DEADLINE, IR
-    from ...plan import bind_inputs
-    from ...rebuild import rebuild_node
-    from ...sync import PortBuffer
-    from .node import InEdge, NodeLoop
-    from .wire import KeySpace
-
     if ir is None:
         ir = IR(spec.ir, source="the run's IR")
     meta = ir.doc["metadata"]
@@ -121,9 +116,6 @@ class StatusSender:
 
     def __call__(self, kind: type[protocol.Status], **fields) -> None:
         """Say a status of ``kind`` (a record of protocol.STATUS) with ``fields``, this node's and pid."""
-        from .origin import sign
-        from .wire import RELIABLE
-
         key, payload = self.keys.node_status(self.node), kind(node=self.node, pid=os.getpid(), **fields).encode()
         self.session.put(key, payload, congestion_control=RELIABLE,
                          attachment=sign(self.key, key, payload) if self.key is not None else None)
@@ -162,11 +154,6 @@ def open_session(spec: RunSpec, node: str, mode: StartMode, shared_memory: bool)
     join; a TLS one's links use its files. The first process of a node has the session id the
     others expect (a restarted one, whose old process may still be linked, has its own: it
     finds its neighbours by their answers)."""
-    import zenoh
-
-    from .access import RunAccess, TlsFiles
-    from .hub import client_config, open_peer
-
     config = RunAccess.from_spec(spec.access) if spec.access else None
     tls = TlsFiles(**spec.tls).session_config() if spec.tls else {}
     zid = spec.zids.get(node) if mode.kind is None else None
@@ -209,8 +196,6 @@ def build(w: Serving) -> bool:
 def set_up_flow(w: Serving) -> bool:
     """The flow's heavy work (weights, devices), once, here, before this process says ready;
     then the loop's statuses hooked up. False when setup() raised (said)."""
-    from ...flow._base import set_up
-
     loop, status = w.loop, w.status
     try:
         set_up(loop.flow)

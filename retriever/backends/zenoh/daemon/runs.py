@@ -1,7 +1,7 @@
 """What a worker daemon runs for a coordinator: one run's spec and its worker processes.
 
 The coordinator side is remote.py; the ops here join the daemon's control queryable
-(daemon.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock. Each takes its
+(core.WorkerDaemon.ops), answered on Zenoh's threads under the daemon's lock. Each takes its
 request record, as protocol.REQUEST decoded it (every field's type and range checked), and
 returns its reply record (protocol/daemon.py):
 
@@ -10,7 +10,7 @@ returns its reply record (protocol/daemon.py):
                                  keep the spec in a private folder, made for this host: {nodes,
                                  warnings, key} (a code mismatch it runs anyway, with --code-mismatch
                                  warn; key: the run's events are signed with it, origin.sign)
-    spawn {run, node, mode}      start that node's worker process (worker.py), as the embedded run
+    spawn {run, node, mode}      start that node's worker process (worker/), as the embedded run
                                  does, with a key made for it (origin.py) in a pipe it inherits:
                                  {pid, key}, in the reply, which reaches the querier alone; what
                                  it prints goes to the coordinator, and its exit
@@ -46,20 +46,20 @@ from pathlib import Path
 
 import zenoh
 
-from ...code import code_mismatch
-from ...errors import IRError
-from ...ir import IR
-from ...plan import Plan
-from ...rebuild import check_node
-from .access import RunAccess, TlsFiles, write_private
-from .folders import DAEMON_FOLDER
-from .command import worker_command
-from .hub import weak_callback
-from .origin import KEY_FD_ENV, key_pipe, new_key
-from .protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit,
-                       ProcessOutput, Record, RunSpec, SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream,
-                       UsageReply, UsageRequest)
-from .wire import RELIABLE, KeySpace, WireError
+from ....code import code_mismatch
+from ....errors import IRError
+from ....ir import IR
+from ....plan import Plan
+from ....rebuild import check_node
+from ..access import RunAccess, TlsFiles, write_private
+from ..folders import DAEMON_FOLDER
+from ..command import worker_command
+from ..hub import weak_callback
+from ..origin import KEY_FD_ENV, key_pipe, new_key
+from ..protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit,
+                        ProcessOutput, Record, RunSpec, SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream,
+                        UsageReply, UsageRequest)
+from ..wire import RELIABLE, KeySpace, WireError
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
 #: issue's bound is 3 s from the coordinator's death to the flows' stop)
@@ -118,7 +118,7 @@ class DaemonRuns:
         self.router = router  # the routers the daemon joined through: its flows join through them too
         self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
         self.lease = lease  # how long its links live silent, and its flows' puts wait on one (local_spec)
-        self.code_mismatch = code_mismatch  # daemon.CODE_MISMATCH
+        self.code_mismatch = code_mismatch  # settings.CODE_MISMATCH
         self.pass_env = pass_env
         self._spawner = ThreadPoolExecutor(1, thread_name_prefix="retriever-spawner")
         self.paths = [str(Path(p).resolve()) for p in paths]

@@ -6,7 +6,8 @@
 writes ``SPEC.json`` — a protocol.RunSpec: the IR and its plan, the hub's endpoint, the
 namespace, the Python path the flows were imported from and the coordinator's ``sys.argv``,
 which the worker takes as its own — and starts one worker per node. A worker process goes
-through these phases, each a function (here, or in the module the list below the phases names):
+through these phases, each a function (here, or in the module of this package the list below
+the phases names):
 
     main             the command line and the process's key → a :class:`Launch`; a thread
                      watches the parent from then on (watch_parent)
@@ -23,18 +24,21 @@ through these phases, each a function (here, or in the module the list below the
                        until the coordinator took every report; the session closes
     exit_process     end the process with the node's exit code
 
-This module keeps the entry point and the phases' order; each phase's work is a module of its own:
+This ``__init__`` keeps the entry point and the phases' order; each phase's work is a module of
+its own:
 
-    worker_process.py   the OS process: its parent watched, its settings, its exit codes
-    worker_build.py     the session, the flow rebuilt and wired from the spec, its setup()
-    worker_starts.py    start, join and start_afresh: linked, asked, pooled, ``ready``, the start
-    worker_links.py     links to the hub and the neighbours, and the hub's link watched
-    worker_waits.py     waits on the coordinator: control, what is finished, reports taken
-    worker_ending.py    signals, ``failed``, ``done``, the hand-over, the flow released
+    __main__.py   ``python -m retriever.backends.zenoh.worker``: main() on the command line
+    process.py    the OS process: its parent watched, its settings, its exit codes
+    build.py      the session, the flow rebuilt and wired from the spec, its setup()
+    starts.py     start, join and start_afresh: linked, asked, pooled, ``ready``, the start
+    links.py      links to the hub and the neighbours, and the hub's link watched
+    waits.py      waits on the coordinator: control, what is finished, reports taken
+    ending.py     signals, ``failed``, ``done``, the hand-over, the flow released
+    group.py      the process of a group of flows, the same phases over every member
 
 A group of flows (``configure(process=NAME)``, the spec's ``groups``) is served by one process,
-``python -m retriever.backends.zenoh.worker_group SPEC.json NAME``, in the same phases over every
-member (worker_group.py).
+``python -m retriever.backends.zenoh.worker.group SPEC.json NAME``, in the same phases over every
+member (group.py).
 
 A start by dora (backends/dora/node.py) is the same phases with a :class:`Launch` of its own:
 its parent to watch, its key, its loop (events over dora) and its directory.
@@ -62,14 +66,18 @@ import traceback
 from collections.abc import Callable
 from typing import NoReturn
 
-from .command import FRESH, JOIN, WORKER_MODULE, parse_command
-from .protocol import RunSpec
-from .worker_build import Serving, StatusSender, build, open_session, set_up_flow
-from .worker_ending import finish, handle_signals, release, say_failed
-from .worker_links import watch_hub_link
-from .worker_process import (EXIT_ABANDONED, EXIT_FAILED, Launch, Parent, exit_process, let_go_of, no_timer_slack,
-                             prepare_process, watch_parent)
-from .worker_starts import POOL_PADDING, join, start, start_afresh
+from ..command import FRESH, JOIN, WORKER_MODULE, parse_command
+from ..hub import needs_shared_memory
+from ..node import Ending
+from ..origin import take_key
+from ..protocol import RunSpec
+from ..wire import KeySpace
+from .build import Serving, StatusSender, build, open_session, set_up_flow
+from .ending import finish, handle_signals, release, say_failed
+from .links import watch_hub_link
+from .process import (EXIT_ABANDONED, EXIT_FAILED, Launch, Parent, exit_process, let_go_of, no_timer_slack,
+                      prepare_process, watch_parent)
+from .starts import POOL_PADDING, join, start, start_afresh
 
 #: the node this process serves, once it is a worker: a run started here (a flow's module that
 #: runs a pipeline when imported) is refused, or every worker would start a run of its own
@@ -79,9 +87,7 @@ serving: str | None = None
 def main(argv: list[str], serve_with: Callable[[Launch, RunSpec, set[str]], int] | None = None,
          module: str = WORKER_MODULE) -> NoReturn:
     """``SPEC.json NODE [MODE]``, the command line of ``module`` (command.py): serve the node
-    (``serve_with``: what serves it, another module's, such as worker_group's), then end the process."""
-    from .origin import take_key
-
+    (``serve_with``: what serves it, another module's, such as group.py's), then end the process."""
     key = take_key()  # before any flow code runs (origin.py)
     try:
         command = parse_command(argv, module)
@@ -117,9 +123,8 @@ def read_spec(launch: Launch) -> RunSpec:
     coordinator's ``sys.argv``, as multiprocessing gives its children the parent's (a script or
     a flow's module that parses sys.argv when imported must see its own arguments, not this
     worker's, or it parses the wrong ones and exits)."""
-    from . import worker  # run with `python -m`, this module is __main__: the session reads the package's copy
-
-    worker.serving = launch.node
+    global serving
+    serving = launch.node
     spec = RunSpec.read_file(launch.spec_path)
     for path in reversed(spec.python_path):
         if path not in sys.path:
@@ -130,9 +135,6 @@ def read_spec(launch: Launch) -> RunSpec:
 
 
 def _serve_node(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
-    from .hub import needs_shared_memory
-    from .wire import KeySpace
-
     keys = KeySpace(spec.namespace)
     shared_memory = needs_shared_memory(spec.ir, launch.node)
     with open_session(spec, launch.node, launch.mode, shared_memory) as session:
@@ -151,8 +153,6 @@ def _serve_node(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
 
 def run(w: Serving) -> int:
     """Wait for the start as the mode says, run the loop, and finish: the exit code."""
-    from .node import Ending
-
     loop = w.loop
     wait = {None: start, JOIN: join, FRESH: start_afresh}[w.launch.mode.kind]
     try:
@@ -174,7 +174,3 @@ def run(w: Serving) -> int:
         say_failed(w, exc)
         return EXIT_FAILED
     return finish(w, begin)
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])

@@ -1,40 +1,44 @@
 """The worker process of a group: several flows in one process (``configure(process=NAME)``).
 
-    python -m retriever.backends.zenoh.worker_group SPEC.json NAME     NAME: a group of the spec's "groups"
+    python -m retriever.backends.zenoh.worker.group SPEC.json NAME     NAME: a group of the spec's "groups"
 
-The same phases as a worker of one node (worker.py), each over every member: one Zenoh session;
-the IR read once; each member rebuilt into its own loop, their events between them on a LocalBus
-and the run's control heard once for all (node/group.py);
-every member declared, linked and ``ready``; then the ``start``, and one GroupLoop stepping them
-all on this thread; then each says ``done`` (or ``failed``), releases, and the process waits until
-the coordinator has every report of every member.
+The same phases as a worker of one node (the package's docstring), each over every member: one
+Zenoh session; the IR read once; each member rebuilt into its own loop, their events between them
+on a LocalBus and the run's control heard once for all (node/group.py); every member declared,
+linked and ``ready``; then the ``start``, and one GroupLoop stepping them all on this thread; then
+each says ``done`` (or ``failed``), releases, and the process waits until the coordinator has
+every report of every member.
 
 No member restarts (``on_error="restart"`` keeps a flow out of every group: its restart is a new
 process, coordinator/spec.py). A member that fails (StopRun, a crash of its loop) ends the group:
 the run fails anyway, and the others say ``done``. Signals and ``failed`` are the single worker's
-(worker_ending.py).
+(ending.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import sys
 
-from .protocol import RunSpec
-from .worker_build import Serving, StatusSender, build, open_session, run_plan, set_up_flow
-from .worker_ending import handle_signals, release, say_done, say_failed
-from .worker_links import watch_hub_link
-from .worker_process import EXIT_ABANDONED, EXIT_FAILED, Launch
-from .worker_starts import POOL_PADDING, await_start, get_ready
-from .worker_waits import await_reports_taken
+from ....ir import IR
+from ..command import GROUP_MODULE
+from ..hub import needs_shared_memory
+from ..node import Ending
+from ..node.group import GroupLoop, GroupTransport, LocalBus
+from ..node.transport import ZenohTransport
+from ..protocol import RunSpec
+from ..wire import KeySpace
+from . import main
+from .build import Serving, StatusSender, build, build_loop, open_session, run_plan, set_up_flow
+from .ending import handle_signals, release, say_done, say_failed
+from .links import watch_hub_link
+from .process import EXIT_ABANDONED, EXIT_FAILED, Launch
+from .starts import POOL_PADDING, await_start, get_ready
+from .waits import await_reports_taken
 
 
 def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
     """Serve every member of the group ``launch.node`` from the session's open to its close."""
-    from ...ir import IR
-    from .hub import needs_shared_memory
-    from .node.group import GroupLoop, LocalBus
-    from .wire import KeySpace
-
     members = list(spec.groups[launch.node])
     keys = KeySpace(spec.namespace)
     ir = IR(spec.ir, source="the run's IR")  # read and planned once, for every member
@@ -68,10 +72,6 @@ def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
 def _grouped_loop(bus, members: list[str], keys, ir):
     """The loop maker of a member: build_loop with its events on ``bus`` to the other members,
     on Zenoh to nodes elsewhere (only for the ports a node elsewhere consumes)."""
-    from .node.group import GroupTransport
-    from .node.transport import ZenohTransport
-    from .worker_build import build_loop
-
     def make(spec: RunSpec, node: str, session, plan):
         elsewhere = {port for port, edges in plan.consumers.items() if any(c.dst not in members for c in edges)}
         transport = GroupTransport(bus, ZenohTransport(session, keys, node), node, elsewhere, bool(elsewhere))
@@ -82,8 +82,6 @@ def _grouped_loop(bus, members: list[str], keys, ir):
 
 def _run(served: list[Serving], group, members: frozenset[str]) -> int:
     """Every member ready, the start, the group's run, then each member's end: the exit code."""
-    from .node import Ending
-
     readies = []
     for w in served:
         w.loop.declare()
@@ -130,9 +128,4 @@ def _run(served: list[Serving], group, members: frozenset[str]) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
-    from .command import GROUP_MODULE
-    from .worker import main
-
     main(sys.argv[1:], serve_with=serve_group, module=GROUP_MODULE)

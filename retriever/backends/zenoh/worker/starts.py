@@ -11,10 +11,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from . import protocol
-from .worker_build import Serving
-from .worker_links import NEIGHBOR_TIMEOUT_S, consumers, link_to_hub, links_needed, names_of, producers
-from .worker_waits import ask_start, await_control, coordinator_says, drop_queued
+from .. import protocol
+from ..hub import mapped_segments, wait_for_answers, wait_for_links
+from ..node import RESTART_SEQ_GAP, handover
+from ..wire import WireError, decode_progress
+from .build import Serving
+from .links import NEIGHBOR_TIMEOUT_S, consumers, link_to_hub, links_needed, names_of, producers
+from .waits import ask_start, await_control, coordinator_says, drop_queued
 
 #: Before it says ``ready``, a worker asks each consumer's progress with this much padding, so
 #: that Zenoh sends the question through the session's shared-memory pool (messages over 3 KiB
@@ -63,8 +66,6 @@ def get_ready(w: Serving, same_process: frozenset[str] = frozenset()) -> Callabl
     """After ``declare``: linked, answered, pooled and routed as :func:`start` says, then say
     ``ready``; the function that says it again, or None when stopped first. ``same_process``:
     the nodes in this process (a group's), which need no link."""
-    from .hub import wait_for_answers, wait_for_links
-
     loop, session, spec, keys, status = w.loop, w.session, w.spec, w.keys, w.status
     timeout = spec.startup_timeout
     unlinked = wait_for_links(session, links_needed(spec, w.plan, same_process), timeout=timeout,
@@ -115,9 +116,6 @@ def join(w: Serving) -> LoopStart | None:
     each knowing the other's subscribers (once the old process stops, a message that reached
     neither would be a gap); its pool; say ``ready``; take the old process's place, and state,
     when told ``resume``. None: stopped first."""
-    from .hub import wait_for_answers
-    from .node import handover
-
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
     # the other end of each of its edges, and, if it has any, its old process (which answers for
@@ -153,7 +151,6 @@ def join(w: Serving) -> LoopStart | None:
 def start_afresh(w: Serving) -> LoopStart | None:
     """A flow whose process died, in its new process: a fresh flow on fresh inputs, its output
     seqs from the coordinator's ``restarted`` (:func:`_join_afresh`). None: stopped first."""
-    from .node import handover
     seqs = _join_afresh(w)
     if seqs is None:
         stopped_before_start(w)
@@ -171,8 +168,6 @@ def stopped_before_start(w: Serving) -> None:
 def _make_pool(w: Serving, ask: Callable[[], object]) -> None:
     """``ask()`` the consumers, with POOL_PADDING if the node has a pool to make, which Zenoh
     then makes: its /dev/shm segments are kept (let_go_of)."""
-    from .hub import mapped_segments
-
     before = mapped_segments() if w.padding is not None else set()
     ask()
     if w.padding is not None:
@@ -187,9 +182,6 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     seq of each output port. None on ``stop``. A neighbour that is itself starting afresh is not
     waited for as a consumer (each would wait for the other), only as a producer (it answers
     once restarted, not waiting for us)."""
-    from .hub import wait_for_answers
-    from .node import RESTART_SEQ_GAP, handover
-
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
     # its own outputs fed back to it start with the seqs it gets below (start_fresh)
@@ -223,8 +215,6 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
 def _producers_progress(w: Serving) -> dict:
     """Each producer's progress, as it answers (None for one the coordinator says is done), for
     NEIGHBOR_TIMEOUT_S at most; a producer that never answered is left out."""
-    from .wire import WireError, decode_progress
-
     wanted = producers(w.plan)
     answers: dict = {}
     give_up = time.monotonic() + NEIGHBOR_TIMEOUT_S
