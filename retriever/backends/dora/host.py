@@ -92,7 +92,7 @@ class DoraHost(Host):
         # read a line at a time, they held dora's daemon back for a second at a run's start).
         # It does not die with the coordinator: dora SIGKILLs its nodes as it exits, before they
         # could remove the run's directories; the nodes watch the coordinator, remove them and exit,
-        # and dora run ends with its last node (zenoh/worker.py, _watch_parent).
+        # and dora run ends with its last node (zenoh/worker/process.py, _watch_parent).
         # Its output goes to a file the coordinator follows, not a pipe: a dora run that writes to
         # a pipe whose reader died (a coordinator SIGKILLed as it started) ends at once, and
         # SIGKILLs its nodes before they could remove the run's directories.

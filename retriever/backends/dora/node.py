@@ -2,7 +2,7 @@
 
     python -m retriever.backends.dora.node SPEC.json DORA_ID       (dataflow.py writes this line)
 
-dora starts it; the zenoh worker's phases (backends/zenoh/worker.py) serve it, from a
+dora starts it; the zenoh worker's phases (backends/zenoh/worker/) serve it, from a
 :class:`~retriever.backends.zenoh.worker.Launch` made here:
 
     node      the node whose dora id is DORA_ID (the spec's ``dora`` part: protocol.DoraPart)

@@ -197,7 +197,7 @@ class Coordinator(Session):
         book = self.book
         states = list(book.state.items())
         done = tuple(sorted(node for node, state in states if state == State.DONE))
-        # and whose every report is in: their processes may now close their sessions (worker.py,
+        # and whose every report is in: their processes may now close their sessions (worker/waits.py,
         # REPORTS_TAKEN_S)
         def all_in(node: str) -> bool:
             return book.reports.get(node, 0) >= book.reports_sent.get(node, 0)
@@ -211,7 +211,7 @@ class Coordinator(Session):
 
     def _answer_start(self, query) -> None:
         """T0 and the end, to a worker that said ready and has not seen ``start`` (a put it may
-        have missed: see START_ASK_S in worker.py); nothing before the run has a start."""
+        have missed: see START_ASK_S in worker/waits.py); nothing before the run has a start."""
         t0 = self.book.t0
         if t0 is not None:
             self.control.reply(query, self.keys.start(), Start(t0=t0, end=self.book.end_ns, values=self.book.values))

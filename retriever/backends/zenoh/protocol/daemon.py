@@ -85,7 +85,7 @@ class InfoRequest(Record):
 @dataclass(frozen=True, kw_only=True)
 class PrepareRequest(Record):
     """Check ``nodes`` of the run's ``spec`` (its fields: run_spec.py; its IR: ir.IR; its plan
-    and modules: runs.py) and keep it."""
+    and modules: daemon/runs.py) and keep it."""
 
     NAME = DaemonOp.PREPARE
     run: str = field(RUN)

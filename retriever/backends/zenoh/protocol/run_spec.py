@@ -190,6 +190,6 @@ class RunSpec(Record):
             spill_dir     the run directory, on this machine: a daemon's processes share no
                           folder with the coordinator, and put every event in their reports
             main_file     a script on this machine, which a daemon's processes cannot import
-                          (a daemon refuses a class defined in it: runs.py)
+                          (a daemon refuses a class defined in it: daemon/runs.py)
         """
         return dataclasses.replace(self, access=None, python_path=(), spill_dir=None, main_file=None)
