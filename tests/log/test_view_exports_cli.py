@@ -4,7 +4,9 @@ only."""
 
 from __future__ import annotations
 
+import os
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -55,6 +57,18 @@ def test_a_folder_or_no_name_as_the_output_is_said_even_with_force(tmp_path, fmt
         done = _export(log_path, out, fmt, "--force", cwd=tmp_path)
         assert done.returncode == 1 and "is a folder, not a file" in done.stderr, done.stderr
         assert "Traceback" not in done.stderr and "IsADirectoryError" not in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("fmt", ["foxglove", "ros2", "rerun"])
+def test_a_device_or_fifo_as_the_output_is_refused_even_with_force(tmp_path, fmt):
+    """With --force, an export was renamed over a FIFO or a device node (as root, -o /dev/null
+    would have made the machine's /dev/null a file)."""
+    log_path = camera_log(tmp_path)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    done = _export(log_path, fifo, fmt, "--force", cwd=tmp_path)
+    assert done.returncode == 1 and "is no regular file" in done.stderr, done.stderr
+    assert stat.S_ISFIFO(fifo.lstat().st_mode)
 
 
 @pytest.mark.parametrize("export, name", [(export_ros2, "out.mcap"), (export_rerun, "run.rrd")])
