@@ -2,8 +2,9 @@
 
 Written with Rerun's own SDK (``rerun-sdk``, the extra ``retriever-robotics[rerun]``): a
 recording stream saved to an ``.rrd`` file, no viewer started, named after the pipeline. Each
-output port is an entity ``/<node>/<port>``, and a dataclass value's fields each an entity of
-their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
+output port is an entity ``/<node>/<port>``, and a dataclass value's fields or a dict value's
+items (what a ROS 2 subscriber sends) each an entity of their own (``/<node>/<port>/<field>``,
+views.value_leaves); a value is
 
 - an image (uint8 H×W, H×W×3, H×W×4): ``rr.Image`` (L, RGB, RGBA);
 - a number, or a flat array or list of at most SCALARS_MAX numbers: ``rr.Scalars``, which the

@@ -5,8 +5,9 @@ Foxglove and PlotJuggler read): ``ros2msg`` schemas and CDR payloads, both made 
 type store of ROS 2 Jazzy (the extra ``retriever-robotics[ros2]``; the standard messages written
 here are the same in every ROS 2 release since Humble), the file by ``mcap``'s writer, which,
 unlike ``rosbags``' own bag writer, keeps each message's publish time and sequence number.
-Each output port is a topic ``/<node>/<port>``, and a dataclass value's fields each a topic of
-their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
+Each output port is a topic ``/<node>/<port>``, and a dataclass value's fields or a dict value's items
+(what a ROS 2 subscriber sends) each a topic of their own (``/<node>/<port>/<field>``,
+views.value_leaves); a value is
 
 - an image (uint8 H×W, H×W×3, H×W×4): ``sensor_msgs/msg/Image`` (``mono8``, ``rgb8``, ``rgba8``),
   its ``header.stamp`` the event's tag and its ``frame_id`` the node;
@@ -14,7 +15,7 @@ their own (``/<node>/<port>/<field>``, views.value_leaves); a value is
   ``Float64``, ``Float32``, ``UInt8``...; an array of numbers, or a flat list of them,
   ``std_msgs/msg/<Type>MultiArray`` with its shape as the layout's dimensions (row-major);
 - text: ``std_msgs/msg/String``;
-- anything else (a dict, bytes, a nested list, a number too big for 64 bits...): ``std_msgs/msg/String``
+- anything else (bytes, a nested list, a dict with a key that names no path part, a number too big for 64 bits...): ``std_msgs/msg/String``
   holding the value as JSON (bigger arrays summarised: foxglove.to_json), counted as ``as_json``.
 
 A topic's type is its first value's. A later value that fits it without loss is written in it

@@ -1,6 +1,6 @@
 """Flows whose logs the exports to other viewers (ROS 2, Rerun) are checked on: a camera sending
 a dataclass frame (images among plain fields) and an RGBA image, and a flow sending numbers,
-arrays, text and a dict computed from each frame; and logs written by hand, with what no run
+arrays, text and a list of dicts computed from each frame; and logs written by hand, with what no run
 writes."""
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ class Stats(Flow):
         rgb = frame.rgb
         return {"mean": float(rgb.mean()), "hist": np.bincount(rgb.reshape(-1), minlength=4)[:4],
                 "pixels": rgb[:2, :2, 0].astype(np.float32), "count": int(rgb[1, 1, 0]), "bright": bool(rgb.mean() > 3),
-                "label": f"frame {int(rgb[1, 1, 0])}", "extra": {"k": int(rgb[1, 1, 0])}}
+                "label": f"frame {int(rgb[1, 1, 0])}", "extra": [{"k": int(rgb[1, 1, 0])}]}
 
 
 def camera_log(tmp_path: Path) -> Path:
@@ -140,4 +140,32 @@ def long_log(path: Path, seconds: float = 60.0) -> Path:
     with Pipeline("long") as pipe:
         Counter().configure(name="count") @ Rate(hz=1000)
     pipe.run(duration=seconds, log=path, keep="counters")
+    return path
+
+
+class RosCamera(Flow):
+    """A source sending what a ROS 2 subscriber of ``sensor_msgs/msg/Image`` and of
+    ``sensor_msgs/msg/JointState`` sends (ros2/types.py ``to_value``): dicts, an image, a stamp
+    and a frame among them."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        image = np.full((4, 5, 3), self.k, dtype=np.uint8)
+        image[0, 0] = (255, 0, 7)
+        stamp = 1_700_000_000_000_000_000 + self.k
+        return {"image": {"image": image, "stamp": stamp, "frame_id": "cam", "height": 4, "width": 5,
+                          "encoding": "rgb8"},
+                "joints": {"stamp": stamp, "frame_id": "", "name": ["shoulder", "elbow"],
+                           "position": np.array([0.5, -0.25]) * self.k, "velocity": np.zeros(2)}}
+
+
+def ros_camera_log(tmp_path: Path) -> Path:
+    """A log of three ticks of :class:`RosCamera`."""
+    with Pipeline("roscam") as pipe:
+        RosCamera().configure(name="cam") @ Rate(hz=10)
+    path = tmp_path / "roscam.mcap"
+    pipe.run(duration=0.3, log=path)
     return path

@@ -15,7 +15,7 @@ import rerun as rr
 
 from retriever import LogError, read_log
 from retriever.log.rerun import export_rerun
-from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log
+from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log, ros_camera_log
 
 #: each entity, the archetype it is logged as, and how a leaf is read from the log's value
 ENTITIES = {
@@ -116,6 +116,29 @@ def test_each_kind_of_value_is_shown_as_what_it_is(tmp_path):
     tensor = _rows(recording, "/kinds/two_channels")["data"][0][0]
     assert tensor["shape"] == [2, 3, 2] and tensor["buffer"] == list(range(12))
     assert json.loads(_rows(recording, "/kinds/blob")["text"][0][0]) == {"bytes": 2}
+
+
+def test_a_dicts_leaves_are_shown_by_their_kind_an_image_as_an_image(tmp_path):
+    """What a ROS 2 subscriber sends (a dict: image, stamp, frame...) is opened as a dataclass is."""
+    log_path = ros_camera_log(tmp_path)
+    out = tmp_path / "roscam.rrd"
+    export_rerun(read_log(log_path), out)
+    log = read_log(log_path)
+    values = {port: [log.value(e) for e in log.iter_events() if e.port == port] for port in ("image", "joints")}
+    recording = rr.dataframe.load_recording(out)
+    archetypes = {c.entity_path: c.archetype.rpartition(".")[2] for c in recording.schema().component_columns()}
+    assert archetypes == {
+        "/__properties": "RecordingInfo", "/cam/image/image": "Image", "/cam/image/stamp": "Scalars",
+        "/cam/image/frame_id": "TextLog", "/cam/image/height": "Scalars", "/cam/image/width": "Scalars",
+        "/cam/image/encoding": "TextLog", "/cam/joints/stamp": "Scalars", "/cam/joints/frame_id": "TextLog",
+        "/cam/joints/name": "TextLog", "/cam/joints/position": "Scalars", "/cam/joints/velocity": "Scalars",
+        "/retriever/steps/cam": "TextLog"}
+    images = _rows(recording, "/cam/image/image")
+    assert len(values["image"]) == 3
+    assert [bytes(buffer[0]) for buffer in images["buffer"]] == [v["image"].tobytes() for v in values["image"]]
+    assert [(f[0]["height"], f[0]["width"]) for f in images["format"]] == [(4, 5)] * 3
+    assert _rows(recording, "/cam/joints/position")["scalars"] == [v["position"].tolist() for v in values["joints"]]
+    assert _rows(recording, "/cam/image/frame_id")["text"] == [["cam"]] * 3
 
 
 def test_without_the_sdk_the_export_says_how_to_get_it(tmp_path, monkeypatch):

@@ -24,7 +24,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from retriever import LogError, read_log
 from retriever.log.ros2 import Ros2Bag, export_ros2
-from tests.log.export_flows import Frame, camera_log, event_data, hand_written_log, kinds_log, shadowed_steps_log
+from tests.log.export_flows import (Frame, camera_log, event_data, hand_written_log, kinds_log, ros_camera_log,
+                                   shadowed_steps_log)
 from tests.log.helpers import cli_env
 from tests.log.log_flows import build_emit
 
@@ -89,7 +90,7 @@ def test_rosbags_and_mcap_ros2_read_the_logs_counts_stamps_values_and_images(tmp
     log_path = camera_log(tmp_path)
     out = tmp_path / "run_ros2.mcap"
     summary = export_ros2(read_log(log_path), out)
-    assert summary.types == EXPECTED_TYPES and summary.as_json == 5  # the dicts of /stats/extra
+    assert summary.types == EXPECTED_TYPES and summary.as_json == 5  # the lists of /stats/extra
     log = read_log(log_path)
     expected = _expected(log)
     assert summary.written == Counter({topic: len(messages) for topic, messages in expected.items()})
@@ -252,6 +253,41 @@ def test_a_damaged_log_is_a_log_error_and_leaves_no_file(tmp_path, events, messa
     with pytest.raises(LogError, match=message):
         export_ros2(log, tmp_path / "out.mcap")
     assert [p.name for p in tmp_path.iterdir()] == ["odd.mcap"]
+
+
+def test_a_dicts_leaves_are_exported_by_their_kind_an_image_as_an_image(tmp_path):
+    """What a ROS 2 subscriber sends (a dict: image, stamp, frame...) is opened as a dataclass
+    is: the image a sensor_msgs/msg/Image with the log's bytes, numbers numbers, arrays arrays."""
+    log_path = ros_camera_log(tmp_path)
+    out = tmp_path / "roscam_ros2.mcap"
+    summary = export_ros2(read_log(log_path), out)
+    assert summary.types == {
+        "/cam/image/image": "sensor_msgs/msg/Image", "/cam/image/stamp": "std_msgs/msg/Int64",
+        "/cam/image/frame_id": "std_msgs/msg/String", "/cam/image/height": "std_msgs/msg/Int64",
+        "/cam/image/width": "std_msgs/msg/Int64", "/cam/image/encoding": "std_msgs/msg/String",
+        "/cam/joints/stamp": "std_msgs/msg/Int64", "/cam/joints/frame_id": "std_msgs/msg/String",
+        "/cam/joints/name": "std_msgs/msg/String", "/cam/joints/position": "std_msgs/msg/Float64MultiArray",
+        "/cam/joints/velocity": "std_msgs/msg/Float64MultiArray", "/retriever/steps/cam": "std_msgs/msg/String"}
+    log = read_log(log_path)
+    values = {port: [log.value(e) for e in log.iter_events() if e.port == port] for port in ("image", "joints")}
+    assert len(values["image"]) == 3 and summary.as_json == 3  # the joints' names: a list of text
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        by_rosbags: dict[str, list] = {}
+        for connection, _, raw in reader.messages():
+            by_rosbags.setdefault(connection.topic, []).append(reader.deserialize(raw, connection.msgtype))
+    with out.open("rb") as f:
+        by_mcap: dict[str, list] = {}
+        for _, channel, _, decoded in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            by_mcap.setdefault(channel.topic, []).append(decoded)
+    for decoded in (by_rosbags, by_mcap):
+        for message, value in zip(decoded["/cam/image/image"], values["image"], strict=True):
+            assert (message.height, message.width, message.encoding) == (4, 5, "rgb8")
+            assert bytes(message.data) == value["image"].tobytes()
+        assert [m.data for m in decoded["/cam/image/stamp"]] == [v["stamp"] for v in values["image"]]
+        assert [m.data for m in decoded["/cam/image/frame_id"]] == ["cam"] * 3
+        assert [list(m.data) for m in decoded["/cam/joints/position"]] == [
+            v["position"].tolist() for v in values["joints"]]
+        assert [json.loads(m.data) for m in decoded["/cam/joints/name"]] == [["shoulder", "elbow"]] * 3
 
 
 # ---------------------------------------------------------------------------------------------
