@@ -19,7 +19,9 @@ views.value_leaves); a value is
   holding the value as JSON (bigger arrays summarised: foxglove.to_json), counted as ``as_json``.
 
 A topic's type is its first value's. A later value that fits it without loss is written in it
-(an int on a Float64 topic); one that does not goes, as JSON, on ``<topic>/json``.
+(an int on a Float64 topic, an int8 on an Int64 one); one that does not (a float on an Int64
+topic, a negative int on a UInt64 one, an int past the width of the topic's type) goes, as JSON,
+on ``<topic>/json``: an integer is never written wrapped around.
 
 Names: each node, port and field name is made a ROS name token (``ros_name``: a character no
 token holds becomes ``_``, a run of ``_`` one, since ROS 2 names hold no ``__``; a leading digit
@@ -212,13 +214,19 @@ def json_text(value: Any) -> str:
 
 def fit(value: Any, ros_type: str) -> Any | None:
     """``value`` as a number of the std_msgs type ``ros_type`` (a scalar's or an array's) if
-    it converts without loss, else None (and None for any other type)."""
+    it converts without loss, else None (and None for any other type). An integer goes into an
+    integer type only if it is within that type's range: a cast and back alone would pass what
+    two's complement wraps around (2**64 - 1 as Int64 -1, -3 as UInt64 2**64 - 3)."""
     kind = ros_type.removeprefix("std_msgs/msg/")
     scalar = kind.removesuffix("MultiArray")
     dtype = MESSAGE_DTYPES.get(scalar)
     array = numeric_array(value)
     if dtype is None or array is None or (array.ndim == 0) != (scalar == kind):
         return None
+    if array.dtype.kind in "iu" and np.dtype(dtype).kind in "iu" and array.size:
+        limits = np.iinfo(dtype)
+        if int(array.min()) < limits.min or int(array.max()) > limits.max:  # Python ints: compared exactly
+            return None
     with np.errstate(all="ignore"):  # a cast that overflows is caught by the way back
         cast = array.astype(dtype)
         back = cast.astype(array.dtype)

@@ -149,6 +149,43 @@ def test_a_port_whose_values_change_kind_keeps_its_type_and_sends_the_rest_as_js
     assert summary.as_json == 5  # JSON keeps 2**70 whole; uint64 max is no float64; None is no event
 
 
+def test_an_integer_is_written_in_a_topics_type_only_when_that_type_holds_it_else_as_json(tmp_path):
+    """Values of both signs and at the edges of each width: a value the topic's type (its first
+    value's) holds is written exactly; one it does not (a sign it has not, a width past its own)
+    goes on ``<topic>/json`` whole: none wraps around (2**64 - 1 as Int64 -1, -3 as UInt64
+    2**64 - 3, uint32 4294967295 as Int32 -1)."""
+    columns = {
+        "i64": [1, np.uint64(2**64 - 1), -1, 2**63 - 1, -2**63],
+        "u64": [np.uint64(5), -3, np.uint64(2**64 - 1), 0, np.uint8(255)],
+        "i32": [np.int32(7), np.uint32(2**32 - 1), np.int32(-2**31), np.int64(2**31), np.int64(-2**31)],
+        "u8s": [np.array([1, 2], np.uint8), np.array([-1, 255]), np.array([0, 255], np.int64), np.array([256, 0]),
+                np.array([3, 4], np.uint16)],
+        "f32": [np.float32(0.5), 2**24 + 1, 2**24, 0.1, -2],
+    }
+    path = tmp_path / "ints.mcap"
+    build_emit([{name: column[k] for name, column in columns.items()} for k in range(5)]).run(duration=1, log=path)
+    out = tmp_path / "ints_ros2.mcap"
+    summary = export_ros2(read_log(path), out)
+    with out.open("rb") as f:
+        decoded: dict[str, list] = {}
+        for _, channel, _, message in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            data = message.data
+            decoded.setdefault(channel.topic, []).append(
+                json.loads(data) if channel.topic.endswith("/json") else data if isinstance(data, (int, float)) else list(data))
+    assert {topic: summary.types[topic] for topic in decoded if not topic.startswith("/retriever")} == {
+        "/emit/value/i64": "std_msgs/msg/Int64", "/emit/value/u64": "std_msgs/msg/UInt64",
+        "/emit/value/i32": "std_msgs/msg/Int32", "/emit/value/u8s": "std_msgs/msg/UInt8MultiArray",
+        "/emit/value/f32": "std_msgs/msg/Float32", **{f"/emit/value/{name}/json": "std_msgs/msg/String"
+                                                      for name in columns}}
+    assert {topic: m for topic, m in decoded.items() if not topic.startswith("/retriever")} == {
+        "/emit/value/i64": [1, -1, 2**63 - 1, -2**63], "/emit/value/i64/json": [2**64 - 1],
+        "/emit/value/u64": [5, 2**64 - 1, 0, 255], "/emit/value/u64/json": [-3],
+        "/emit/value/i32": [7, -2**31, -2**31], "/emit/value/i32/json": [2**32 - 1, 2**31],
+        "/emit/value/u8s": [[1, 2], [0, 255], [3, 4]], "/emit/value/u8s/json": [[-1, 255], [256, 0]],
+        "/emit/value/f32": [0.5, 2.0**24, -2.0], "/emit/value/f32/json": [2**24 + 1, 0.1],
+    }
+    assert summary.as_json == 8
+
 def test_each_kind_of_number_keeps_its_width_and_what_no_message_holds_is_json(tmp_path):
     out = tmp_path / "kinds_ros2.mcap"
     summary = export_ros2(read_log(kinds_log(tmp_path)), out)
