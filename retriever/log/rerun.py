@@ -15,10 +15,13 @@ views.value_leaves); a value is
 Step records are ``rr.TextLog`` on ``/retriever/steps/<node>`` (views.step_json), at level INFO
 when the step ran, WARN when it was skipped, incomplete, late or overran, ERROR when it failed.
 
-Two timelines: ``event_time``, the tag (a duration from the run's T0: a replayed run and the live
-one line up on it), which the recording's blueprint selects, and ``wall_time``, when the event
-was published (a step: when it began), where the log has it. Rerun adds ``log_time`` and
-``log_tick`` of its own: when this export wrote each row.
+Three timelines: ``event_time``, the tag (a duration from the run's T0: a replayed run and the live
+one line up on it), which the recording's blueprint selects; ``wall_time``, when the event was
+published (a step: when it began), where the log has it; and ``seq``, a sequence: an event's seq
+on its port, a step record's number among its node's (0, 1, 2...). Events of one tag (a
+``Burst``'s) share their event time, where Rerun keeps one row per time of an entity, the last;
+on ``seq`` each is a row of its own, its tag beside it. Rerun adds ``log_time`` and ``log_tick``
+of its own: when this export wrote each row.
 
 :class:`RerunRecording` is the one writer of this mapping: the export feeds it from a log, the
 live view (rerun_live.py) from a running pipeline's reports.
@@ -45,7 +48,7 @@ from .views import numeric_array, step_json, value_leaves
 RERUN_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 #: a flat array of up to this many numbers is plotted, one series per element; a bigger one is a tensor
 SCALARS_MAX = 16
-EVENT_TIME, WALL_TIME = "event_time", "wall_time"
+EVENT_TIME, WALL_TIME, SEQ = "event_time", "wall_time", "seq"
 STEP_LEVELS = {"ok": "INFO", "error": "ERROR"}  # any other status: WARN
 MAX_NS = 2**63 - 1  # Rerun's times are signed 64-bit nanoseconds
 
@@ -96,13 +99,16 @@ class RerunRecording:
     def __init__(self, rr, stream):
         self._rr, self._stream = rr, stream
         self.written: Counter = Counter()
+        self._steps: Counter = Counter()  # step records logged, per node: the next one's seq
 
-    def at(self, tag_ns: int, wall_ns: int) -> None:
-        """Log what follows at ``tag_ns`` on the event timeline and, when known, ``wall_ns`` on the wall one."""
+    def at(self, tag_ns: int, wall_ns: int, seq: int) -> None:
+        """Log what follows at ``tag_ns`` on the event timeline, ``seq`` on the sequence one and,
+        when known, ``wall_ns`` on the wall one."""
         if tag_ns > MAX_NS or wall_ns > MAX_NS:
             raise LogError(f"a time in the log ({max(tag_ns, wall_ns)} ns) is past what Rerun's times hold "
                            "(signed 64-bit nanoseconds)", "the log's times are damaged")
         self._stream.set_time(EVENT_TIME, duration=np.timedelta64(tag_ns, "ns"))
+        self._stream.set_time(SEQ, sequence=seq)
         if wall_ns:
             self._stream.set_time(WALL_TIME, timestamp=np.datetime64(wall_ns, "ns"))
         else:
@@ -119,14 +125,16 @@ class RerunRecording:
         self._stream.log(parts, self._rr.TextLog(text, level=STEP_LEVELS.get(status, "WARN")))
         self.written["/" + "/".join(parts)] += 1
 
-    def log_event(self, node: str, port: str, tag_ns: int, publish_ns: int, value: Any) -> None:
-        """One event at its tag, and at its publish time on the wall timeline (0: unknown)."""
-        self.at(tag_ns, publish_ns)
+    def log_event(self, node: str, port: str, tag_ns: int, publish_ns: int, seq: int, value: Any) -> None:
+        """One event at its tag, its seq, and its publish time on the wall timeline (0: unknown)."""
+        self.at(tag_ns, publish_ns, seq)
         self.event(node, port, value)
 
     def log_step(self, step: StepRecord) -> None:
-        """One step record at its tick's tag, and at when its step began on the wall timeline."""
-        self.at(step.tag[0], step.wall_start_ns)
+        """One step record at its tick's tag, its number among its node's, and at when its step
+        began on the wall timeline."""
+        self.at(step.tag[0], step.wall_start_ns, self._steps[step.node])
+        self._steps[step.node] += 1
         self.step(step.node, step_json(step), step.status)
 
 
@@ -145,7 +153,7 @@ def export_rerun(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Co
         stream.send_recording_name(log.run.get("pipeline") or Path(log.path).stem)
         recording = RerunRecording(rr, stream)
         for event in log.iter_events():
-            recording.log_event(event.node, event.port, event.tag[0], event.publish_ns,
+            recording.log_event(event.node, event.port, event.tag[0], event.publish_ns, event.seq,
                                 log.value(event, keep_unregistered=True))
         for step in log.iter_steps():
             recording.log_step(step)

@@ -57,7 +57,8 @@ def check_target(target: str | os.PathLike) -> None:
 
 class RerunLiveView:
     """One recording stream, to a viewer or an ``.rrd`` file, fed with the run's events (at their
-    tags on ``event_time`` and their publish times on ``wall_time``) and step records."""
+    tags on ``event_time``, their seqs on ``seq`` and their publish times on ``wall_time``) and
+    step records."""
 
     title = "the Rerun live view"
 
@@ -95,7 +96,7 @@ class RerunLiveView:
 
     def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
         if value is not NOT_KEPT:
-            self._recording.log_event(node, port, tag[0], wall_ns, value)
+            self._recording.log_event(node, port, tag[0], wall_ns, seq, value)
 
     def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
         self._recording.log_step(StepRecord(node, tag, consumed, produced, status, detail, start_ns, wall_ns))

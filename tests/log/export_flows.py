@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from retriever import Flow, Pipeline, Rate, Trigger, io
+from retriever import Burst, Flow, Pipeline, Rate, Trigger, io
 from retriever.codec import packb
 from retriever.log.mcap_writer import McapWriter
 
@@ -167,5 +167,25 @@ def ros_camera_log(tmp_path: Path) -> Path:
     with Pipeline("roscam") as pipe:
         RosCamera().configure(name="cam") @ Rate(hz=10)
     path = tmp_path / "roscam.mcap"
+    pipe.run(duration=0.3, log=path)
+    return path
+
+
+class Bursts(Flow):
+    """A source sending three events at each tag (a Burst: three events of one tag, seqs apart)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"x": Burst([10.0 * self.k + i for i in range(3)])}
+
+
+def burst_log(tmp_path: Path) -> Path:
+    """A log of three ticks of :class:`Bursts`: 9 events at 3 tags."""
+    with Pipeline("bursts") as pipe:
+        Bursts().configure(name="burst") @ Rate(hz=10)
+    path = tmp_path / "bursts.mcap"
     pipe.run(duration=0.3, log=path)
     return path

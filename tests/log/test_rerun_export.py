@@ -15,7 +15,7 @@ import rerun as rr
 
 from retriever import LogError, read_log
 from retriever.log.rerun import export_rerun
-from tests.log.export_flows import camera_log, event_data, hand_written_log, kinds_log, ros_camera_log
+from tests.log.export_flows import burst_log, camera_log, event_data, hand_written_log, kinds_log, ros_camera_log
 
 #: each entity, the archetype it is logged as, and how a leaf is read from the log's value
 ENTITIES = {
@@ -139,6 +139,28 @@ def test_a_dicts_leaves_are_shown_by_their_kind_an_image_as_an_image(tmp_path):
     assert [(f[0]["height"], f[0]["width"]) for f in images["format"]] == [(4, 5)] * 3
     assert _rows(recording, "/cam/joints/position")["scalars"] == [v["position"].tolist() for v in values["joints"]]
     assert _rows(recording, "/cam/image/frame_id")["text"] == [["cam"]] * 3
+
+
+def test_every_event_of_a_burst_is_a_row_at_its_tag_on_the_seq_timeline(tmp_path):
+    """A Burst's events share their tag, so ``event_time`` holds one row per tag; the ``seq``
+    timeline (an event's seq on its port) holds each event as a row, its tag on event_time."""
+    log_path = burst_log(tmp_path)
+    out = tmp_path / "bursts.rrd"
+    export_rerun(read_log(log_path), out)
+    log = read_log(log_path)
+    events = list(log.iter_events())
+    assert len(events) == 9 and len({e.tag for e in events}) == 3
+    recording = rr.dataframe.load_recording(out)
+    assert "seq" in {c.name for c in recording.schema().index_columns()}
+    by_time = recording.view(index="event_time", contents="/burst/x").select().read_all()
+    assert by_time.num_rows == 3  # Rerun's one row per time of an entity: why seq is there
+    table = recording.view(index="seq", contents="/burst/x").select().read_all()
+    rows = {name.rpartition(":")[2]: table.column(name).to_pylist() for name in table.column_names}
+    assert rows["seq"] == [e.seq for e in events]
+    assert table.column("event_time").cast(pa.int64()).to_pylist() == [e.tag[0] for e in events]
+    assert rows["scalars"] == [[log.value(e)] for e in events]
+    steps = recording.view(index="seq", contents="/retriever/steps/burst").select().read_all()
+    assert steps.column("seq").to_pylist() == [0, 1, 2]  # a step record's number among its node's
 
 
 def test_without_the_sdk_the_export_says_how_to_get_it(tmp_path, monkeypatch):

@@ -68,6 +68,7 @@ def test_a_run_streamed_to_an_rrd_holds_its_steps_and_values_on_the_event_timeli
         rows = rows_by_tag(recording, entity)
         assert [row["event_time"] for row in rows] == [e.tag[0] for e in logged], entity
         assert [row["wall_time"] for row in rows] == [e.publish_ns for e in logged], entity
+        assert [row["seq"] for row in rows] == [e.seq for e in logged], entity  # the seq timeline
         for row, event in zip(rows, logged):
             if ENTITIES[entity] == "Scalars":
                 assert row["scalars"] == np.asarray(event.value, dtype=np.float64).reshape(-1).tolist(), entity
@@ -80,6 +81,7 @@ def test_a_run_streamed_to_an_rrd_holds_its_steps_and_values_on_the_event_timeli
         steps = sorted((s for s in trace.steps if s.node == node), key=lambda s: s.tag)
         rows = rows_by_tag(recording, f"/retriever/steps/{node}")
         assert len(rows) == len(steps) == pipe.stats()[node].ticks
+        assert [row["seq"] for row in rows] == list(range(len(steps)))
         for row, step in zip(rows, steps):
             record = json.loads(row["text"][0])
             assert (row["event_time"], record["node"], record["status"], record["tag_ns"], record["microstep"]) == (
