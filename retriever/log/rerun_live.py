@@ -13,8 +13,10 @@ backends and the command call it before any worker starts or the pipeline is loa
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from ..errors import LogError
 from ..trace import NOT_KEPT, StepRecord
@@ -23,6 +25,12 @@ from .rerun import RERUN_VIEWER_URL, RerunRecording, event_time_blueprint, new_s
 TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path ending in .rrd"
 #: the schemes of the URLs Rerun's SDK connects to
 URL_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")
+#: how long a viewer's port may take to accept a TCP connection before the run is refused
+VIEWER_CONNECT_TIMEOUT_S = 1.0
+#: how to have a viewer listen where a URL points
+START_VIEWER_HINT = (f"start a viewer first: `rerun` (the desktop viewer, listening on {RERUN_VIEWER_URL}), or "
+                     "`rerun --serve-web` (a web viewer, its gRPC port the same); `--port PORT` for another port; "
+                     "or give a path ending in .rrd to save the stream to a file")
 
 
 def is_rrd_path(target: str | os.PathLike) -> bool:
@@ -31,11 +39,12 @@ def is_rrd_path(target: str | os.PathLike) -> bool:
 
 
 def check_target(target: str | os.PathLike) -> None:
-    """A LogError unless ``target`` is a viewer's URL or a new file's path in a folder that exists
-    (what can be told without the SDK, and without reaching the viewer): said before a run
-    starts, with the forms a target takes."""
+    """A LogError unless ``target`` is the URL of a viewer that listens (:func:`check_viewer`) or
+    a new file's path in a folder that exists (what can be told without the SDK): said before a
+    run starts, with the forms a target takes."""
     text = str(target)
     if not is_rrd_path(target) and text.lower().startswith(URL_SCHEMES):
+        check_viewer(text)
         return
     path = Path(target)
     folder = path.parent if str(path.parent) != "" else Path(".")
@@ -53,6 +62,41 @@ def check_target(target: str | os.PathLike) -> None:
         why = "is not a folder" if folder.exists() else "does not exist"
         raise LogError(f"cannot stream the run to Rerun at {text}: its folder {folder} {why}",
                        f"give a path ending in .rrd in a folder that exists (or create {folder} first), {either}")
+
+
+def viewer_address(url: str) -> tuple[str, int]:
+    """``(host, port)`` of a viewer's URL (``rerun+http://HOST:PORT/proxy``), or a LogError for
+    one Rerun's SDK would not take (no host, a port past 65535, a path other than ``/proxy``,
+    an unclosed ``[``): without a port, the one its scheme's transport has (http 80, else 443)."""
+    def refuse(why: str) -> LogError:
+        return LogError(f"cannot stream the run to Rerun at {url}: {why}", TARGET_HINT)
+
+    try:
+        parts = urlsplit(url)
+        port = parts.port
+    except ValueError as e:  # an unclosed '[', a port that is no number or past 65535
+        raise refuse(f"it is not a valid URL ({e})") from None
+    if not parts.hostname:
+        raise refuse("it names no host")
+    if parts.path != "/proxy" or parts.query or parts.fragment:
+        raise refuse("a Rerun viewer's URL ends in /proxy after its host and port")
+    if port is None:
+        port = 80 if parts.scheme.lower() == "rerun+http" else 443
+    return parts.hostname, port
+
+
+def check_viewer(url: str, timeout: float = VIEWER_CONNECT_TIMEOUT_S) -> None:
+    """A LogError unless ``url`` is well formed and something accepts a TCP connection at its
+    host and port within ``timeout`` seconds: a run is refused before any worker starts (or its
+    log is made), not after its workers did and Rerun's SDK gave up seconds later."""
+    host, port = viewer_address(url)
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            pass
+    except OSError as e:
+        why = "no answer" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+        raise LogError(f"cannot stream the run to Rerun at {url}: no viewer listens at {host}:{port} ({why})",
+                       START_VIEWER_HINT) from None
 
 
 class RerunLiveView:
@@ -87,7 +131,7 @@ class RerunLiveView:
     def _hint(self) -> str:
         if is_rrd_path(self.target):
             return "give a new path (none that exists: remove it first) in a folder you may write to"
-        return f"start the viewer (rerun), or {TARGET_HINT}"
+        return START_VIEWER_HINT
 
     @property
     def written(self):

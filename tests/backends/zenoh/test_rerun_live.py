@@ -6,6 +6,7 @@ that cannot be reached is said before the run starts."""
 from __future__ import annotations
 
 import json
+import re
 import socket
 import warnings
 from collections import defaultdict
@@ -117,9 +118,20 @@ def test_a_file_that_exists_is_never_replaced_not_even_the_runs_log(tmp_path):
 
 
 def test_a_viewer_url_nothing_listens_on_is_said_with_how_to_start_one():
-    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at rerun\+http://127\.0\.0\.1:\d+/proxy"
-                                       r"(.|\n)*hint: start the viewer"):
+    with pytest.raises(LogError, match=r"cannot stream the run to Rerun at rerun\+http://127\.0\.0\.1:\d+/proxy: "
+                                       r"no viewer listens at 127\.0\.0\.1:\d+ \(Connection refused\)"
+                                       r"(.|\n)*hint: start a viewer first: `rerun`.*`rerun --serve-web`"):
         RerunLiveView(f"rerun+http://127.0.0.1:{free_port()}/proxy", "live")
+
+
+@pytest.mark.parametrize("backend", ["zenoh", "dora"])
+def test_pipe_run_refuses_a_viewer_url_nothing_listens_on_before_any_worker_starts_and_leaves_no_log(
+        tmp_path, capfd, backend):
+    url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    with pytest.raises(LogError, match=rf"cannot stream the run to Rerun at {re.escape(url)}: no viewer listens"):
+        live_pipeline().run(duration=0.5, backend=backend, rerun=url, log=tmp_path / "x.mcap")
+    assert "namespace" not in capfd.readouterr().err  # no hub was opened, no worker started
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_viewer_that_listens_takes_the_stream():
@@ -204,6 +216,14 @@ with Pipeline("marked") as pipe:
      r"give a path ending in \.rrd in a folder that exists"),
     (["--rerun=view.mcap"], r"view\.mcap: it is neither a Rerun viewer's URL \(rerun://…, rerun\+http://…, "
                             r"rerun\+https://…\) nor a path ending in \.rrd", r"give a Rerun gRPC URL"),
+    (["--rerun", "rerun://"], r"rerun://: it names no host", r"give a Rerun gRPC URL"),
+    (["--rerun", "rerun+http://[::1"], r"rerun\+http://\[::1: it is not a valid URL \(Invalid IPv6 URL\)",
+     r"give a Rerun gRPC URL"),
+    (["--rerun", "rerun+http://127.0.0.1:9876"], r"rerun\+http://127\.0\.0\.1:9876: a Rerun viewer's URL ends in "
+                                                  r"/proxy after its host and port", r"give a Rerun gRPC URL"),
+    (["--rerun", "rerun+http://127.0.0.1:1/proxy"], r"rerun\+http://127\.0\.0\.1:1/proxy: no viewer listens at "
+                                                     r"127\.0\.0\.1:1 \(Connection refused\)",
+     r"start a viewer first: `rerun`"),  # port 1: nothing listens there (tcpmux is long gone)
 ])
 def test_the_cli_refuses_a_target_that_is_no_file_or_url_before_the_pipeline_is_even_loaded(tmp_path, option, said,
                                                                                             hint):
@@ -216,7 +236,8 @@ def test_the_cli_refuses_a_target_that_is_no_file_or_url_before_the_pipeline_is_
     (tmp_path / "adir").mkdir()
     (tmp_path / "adir.rrd").mkdir()
     (tmp_path / "marked.py").write_text(MARKED)
-    result = cli("run", "marked.py", "--duration", "0.5", "--backend", "zenoh", *option, cwd=tmp_path)
+    result = cli("run", "marked.py", "--duration", "0.5", "--backend", "zenoh", *option, "--log", "x.mcap",
+                 cwd=tmp_path)
     assert_cli_error(result, rf"^error: cannot stream the run to Rerun at {said}$",
                      rf"{hint}.*rerun\+http://127\.0\.0\.1:9876/proxy")
     assert not (tmp_path / "loaded").exists() and not (tmp_path / "set_up").exists(), "the pipeline was started"
