@@ -42,6 +42,8 @@ def check_target(target: str | os.PathLike) -> None:
     """A LogError unless ``target`` is the URL of a viewer that listens (:func:`check_viewer`) or
     a new file's path in a folder that exists (what can be told without the SDK): said before a
     run starts, with the forms a target takes."""
+    if not isinstance(target, (str, os.PathLike)) or isinstance(target, bytes):
+        refuse_target_type(target)
     text = str(target)
     if not is_rrd_path(target) and text.lower().startswith(URL_SCHEMES):
         check_viewer(text)
@@ -62,6 +64,18 @@ def check_target(target: str | os.PathLike) -> None:
         why = "is not a folder" if folder.exists() else "does not exist"
         raise LogError(f"cannot stream the run to Rerun at {text}: its folder {folder} {why}",
                        f"give a path ending in .rrd in a folder that exists (or create {folder} first), {either}")
+
+
+def refuse_target_type(target: Any) -> None:
+    """The LogError for a ``rerun=`` that is neither a str nor a path (``True``, a port number...):
+    it names the forms a target takes, and the URL a port number or True meant."""
+    if isinstance(target, int) and not isinstance(target, bool):
+        meant = f"for a viewer listening on port {target}, rerun='rerun+http://127.0.0.1:{target}/proxy'"
+    else:
+        meant = f"for the local viewer, rerun={RERUN_VIEWER_URL!r}"
+    raise LogError(f"rerun={target!r} is no Rerun target: it takes a viewer's gRPC URL (a str: rerun://…, "
+                   f"rerun+http://…, rerun+https://…) or a path ending in .rrd (a str or a pathlib.Path), "
+                   f"the file to save the stream to", f"{meant}; or rerun='live.rrd'")
 
 
 def viewer_address(url: str) -> tuple[str, int]:

@@ -256,6 +256,20 @@ def test_pipe_run_refuses_a_folder_or_a_missing_folder_before_any_worker_starts(
     assert "namespace" not in capfd.readouterr().err  # no hub was opened, no worker started
 
 
+@pytest.mark.parametrize("target, meant", [
+    (True, r"for the local viewer, rerun='rerun\+http://127\.0\.0\.1:9876/proxy'; or rerun='live\.rrd'"),
+    (9876, r"for a viewer listening on port 9876, rerun='rerun\+http://127\.0\.0\.1:9876/proxy'"),
+    (b"live.rrd", r"for the local viewer, rerun='rerun\+http://127\.0\.0\.1:9876/proxy'; or rerun='live\.rrd'"),
+])
+def test_pipe_run_refuses_a_target_that_is_no_str_or_path_naming_the_forms_it_takes(tmp_path, capfd, target, meant):
+    with pytest.raises(LogError, match=rf"rerun={re.escape(repr(target))} is no Rerun target: it takes a viewer's "
+                                       rf"gRPC URL \(a str: rerun://…, rerun\+http://…, rerun\+https://…\) or a "
+                                       rf"path ending in \.rrd \(a str or a pathlib\.Path\)(.|\n)*hint: {meant}"):
+        live_pipeline().run(duration=0.5, backend="zenoh", rerun=target, log=tmp_path / "x.mcap")
+    assert "namespace" not in capfd.readouterr().err  # no hub was opened, no worker started
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_deploy_refuses_a_folder_as_its_rerun_target_before_it_looks_for_workers(tmp_path):
     from tests.test_cli import assert_cli_error, cli
 
