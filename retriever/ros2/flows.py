@@ -35,6 +35,7 @@ import threading
 import time
 from collections.abc import Sequence
 
+import numpy as np
 import zenoh
 
 from ..flow import Flow
@@ -46,6 +47,8 @@ from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
 
 #: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
 MAX_PENDING = 1024
+#: what a list of numbers on a publisher's input holds (numpy's scalars and bools among them)
+_NUMBERS = (int, float, np.number, np.bool_)
 
 
 class _Ros2Endpoint(Flow):
@@ -108,6 +111,15 @@ class Ros2Subscriber(_Ros2Endpoint):
                 self.dropped += 1
             self._pending.append(sample.payload.to_bytes())
 
+    @property
+    def pending(self) -> int:
+        """The messages that arrived and wait for the next tick."""
+        lock = getattr(self, "_lock", None)
+        if lock is None:  # not set up
+            return 0
+        with lock:
+            return len(self._pending)
+
     def step(self):
         with self._lock:
             taken = [self._pending.popleft() for _ in range(min(len(self._pending), MAX_BURST))]
@@ -128,13 +140,23 @@ class Ros2Subscriber(_Ros2Endpoint):
 class Ros2Publisher(_Ros2Endpoint):
     """A sink flow: the value on its input port ``msg`` published on a ROS 2 topic at each tick
     (types.py says which message a value becomes), as an rmw_zenoh publisher does; behind
-    ``Trigger("msg")`` and ``Latest()``, one message per event. ``published`` counts them."""
+    ``Trigger("msg")`` and ``Latest()``, one message per event. ``published`` counts them.
+
+    A ``list`` on ``msg`` is what a ``Queue()`` (or ``Window``) edge delivers: the events since the
+    last tick (a subscriber's Burst among them). Each of its elements is published as a message of
+    its own, in order; an empty list publishes nothing. The one exception is a list of numbers for
+    a type one value of which is a list of numbers (a Vector3, Point or Quaternion ``[x, y, z]``, a
+    MultiArray's data: ``types.list_of_numbers_is_one_value``), since no element of it could be a
+    message: that list is one message. So a MultiArray of two or more dimensions comes as a numpy
+    array, not a nested list. Every element is converted before any is put: a tick whose list holds
+    one that does not convert publishes none (and the error says which)."""
 
     def _begin(self) -> None:
         self.published = 0
         self.configure(replay="log")
 
     def setup(self) -> None:
+        self._one_value_is_a_list = types.list_of_numbers_is_one_value(self.msgtype)
         self._ros = self._open_node()
         token = self._ros.declare(PUBLISHER, self.topic, self.msgtype, self.type_hash, QoS())
         self._gid = gid(token)
@@ -142,11 +164,23 @@ class Ros2Publisher(_Ros2Endpoint):
         self._sequence = 0
 
     def step(self, msg):
-        payload = types.serialize(types.from_value(msg, self.msgtype), self.msgtype)
-        self._sequence += 1
-        attachment = Attachment(self._sequence, time.time_ns(), self._gid)
-        self._publisher.put(payload, attachment=encode(attachment))
-        self.published += 1
+        if type(msg) is not list:
+            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+        elif msg and self._one_value_is_a_list and all(isinstance(v, _NUMBERS) for v in msg):
+            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+        else:  # a Queue's (or Window's) events: a message each, all converted before any is put
+            payloads = []
+            for i, value in enumerate(msg):
+                try:
+                    payloads.append(types.serialize(types.from_value(value, self.msgtype), self.msgtype))
+                except (TypeError, ValueError) as error:
+                    raise (TypeError if isinstance(error, TypeError) else ValueError)(f"element {i} of the list of {len(msg)} on msg (a Queue's events, each "
+                                      f"published as a message; none of them was): {error}") from error
+        for payload in payloads:
+            self._sequence += 1
+            attachment = Attachment(self._sequence, time.time_ns(), self._gid)
+            self._publisher.put(payload, attachment=encode(attachment))
+            self.published += 1
 
     def teardown(self) -> None:
         self._publisher.undeclare()

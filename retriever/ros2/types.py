@@ -188,6 +188,13 @@ class _Where:
         return error(f"{place}: takes {takes}, got {_given(value)}{why}")
 
 
+def list_of_numbers_is_one_value(type_name: str) -> bool:
+    """Whether a list of numbers is one value of ``type_name``: a Vector3, Point, Point32 or
+    Quaternion (``[x, y, z]``), or a ``std_msgs`` MultiArray (its data); of every other type a
+    value is never a list of numbers."""
+    return type_name in _VECTORS or type_name.startswith("std_msgs/msg/") and type_name.endswith("MultiArray")
+
+
 def _given(value: Any) -> str:
     if isinstance(value, np.ndarray):
         return f"an array of {value.dtype} of shape {value.shape}"

@@ -250,3 +250,81 @@ def test_a_node_with_no_router_where_it_connects_warns_naming_the_endpoint_and_r
     with warnings.catch_warnings():
         warnings.simplefilter("error", RetrieverWarning)
         Ros2Node("linked", connect=[router[1]]).close()
+
+
+STRING = "std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+
+
+def _string_cdr(text: str) -> bytes:
+    return bytes(_jazzy.serialize_cdr(_jazzy.types["std_msgs/msg/String"](data=text), "std_msgs/msg/String"))
+
+
+def test_a_burst_relayed_through_a_queue_is_published_a_message_each_in_order(router):
+    """A subscriber's Burst, delivered by a Queue() as a list, went out as one String: the list's
+    repr ("['m0', 'm1', ...]"), not one message per event."""
+    session, at = router
+    in_key = f"{DOMAIN}/{NAMESPACE.strip('/')}/relay_in/{STRING}"
+    out_key = f"{DOMAIN}/{NAMESPACE.strip('/')}/relay_out/{STRING}"
+    received = []
+    listener = session.declare_subscriber(out_key, lambda sample: received.append(
+        (_jazzy.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/String").data,
+         zext.z_deserialize(tuple[zext.Int64, zext.Int64, bytes], zenoh.ZBytes(sample.attachment.to_bytes()))[0])))
+    with Pipeline("ros_relay") as pipe:
+        subscriber = Ros2Subscriber(f"{NAMESPACE}/relay_in", "std_msgs/msg/String", domain_id=DOMAIN,
+                                    connect=[at], listen=[]) @ Rate(hz=100)
+        publisher = Ros2Publisher(f"{NAMESPACE}/relay_out", "std_msgs/msg/String", domain_id=DOMAIN,
+                                  connect=[at], listen=[]) @ Trigger("msg")
+        subscriber.then(publisher, sync=Queue())
+    try:
+        pipe.step(0.01)
+        publisher_in = session.declare_publisher(in_key)
+        deadline = time.monotonic() + BOUND_S
+        while not received and time.monotonic() < deadline:  # until both ends are linked
+            publisher_in.put(_string_cdr("warm-up"))
+            pipe.step(0.01)
+        assert received, f"nothing was relayed in {BOUND_S} s"
+        pipe.step(0.01)
+        batch = [f"m{i}" for i in range(5)]
+        for text in batch:
+            publisher_in.put(_string_cdr(text))
+        while subscriber.pending < len(batch) and time.monotonic() < deadline:  # all 5 for one tick
+            time.sleep(0.001)
+        assert subscriber.pending == len(batch)
+        pipe.step(0.01)  # the subscriber's burst of 5, a list of 5 to the publisher at the same tick
+        while (not received or received[-1][0] != batch[-1]) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        publisher_in.undeclare()
+    finally:
+        pipe.reset()
+        listener.undeclare()
+    texts = [text for text, _ in received]
+    assert texts[texts.index("m0"):] == batch, texts
+    sequences = [sequence for _, sequence in received]  # the publisher's: one per message, none skipped
+    assert sequences == list(range(sequences[0], sequences[0] + len(sequences)))
+
+
+class Numbers(Flow):
+    def step(self):
+        return {"msg": [1.5, 2.5, 3.5]}
+
+
+def test_a_list_of_numbers_for_a_multi_array_is_one_message(router):
+    """A list of numbers is one value of a MultiArray (or a Vector3, Point, Quaternion), not a
+    Queue's events: no number could be a message of such a type."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/commands/std_msgs::msg::dds_::Float64MultiArray_/"
+    received = []
+    listener = session.declare_subscriber(key + "*", lambda sample: received.append(
+        _jazzy.deserialize_cdr(sample.payload.to_bytes(), "std_msgs/msg/Float64MultiArray").data.tolist()))
+    with Pipeline("ros_commands") as pipe:
+        publisher = Ros2Publisher(f"{NAMESPACE}/commands", "std_msgs/msg/Float64MultiArray", domain_id=DOMAIN,
+                                  connect=[at], listen=[]) @ Trigger("msg")
+        (Numbers() @ Rate(hz=10)).then(publisher)
+    try:
+        deadline = time.monotonic() + BOUND_S
+        while not received and time.monotonic() < deadline:
+            pipe.step(0.1)
+    finally:
+        pipe.reset()
+        listener.undeclare()
+    assert received and all(data == [1.5, 2.5, 3.5] for data in received)
