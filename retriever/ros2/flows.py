@@ -33,11 +33,13 @@ from __future__ import annotations
 import collections
 import threading
 import time
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
 import zenoh
 
+from ..errors import RetrieverWarning
 from ..flow import Flow
 from ..flow.burst import MAX_BURST, Burst
 from . import types
@@ -86,11 +88,28 @@ class _Ros2Endpoint(Flow):
 
 class Ros2Subscriber(_Ros2Endpoint):
     """A source flow: the messages of a ROS 2 topic, each an event of port ``msg`` (types.py says
-    which value a message becomes). ``received``, ``dropped`` (past ``MAX_PENDING`` between two
-    ticks) and ``undecodable`` (not CDR of the type) count what came."""
+    which value a message becomes). ``received``, ``dropped`` (past ``max_pending`` messages,
+    ``MAX_PENDING`` by default, between two ticks: the oldest go) and ``undecodable`` (not CDR of
+    the type) count what came. They live in the process that steps the flow (a worker's, on the
+    real-time backends), so the flow says them where a user looks: a tick that dropped or could
+    not decode a message says so in its step record, ``detail["flow"] = {"received": n,
+    "dropped": n, "undecodable": n}`` (the counts since the record before that said them), in the
+    trace and the log (``retriever log show`` prints it); and the end of the run warns
+    (RetrieverWarning) with the totals of a subscriber that dropped or could not decode any."""
+
+    def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
+                 domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
+                 listen: Sequence[str] = ("tcp/127.0.0.1:0",), msgdef: str | None = None,
+                 max_pending: int = MAX_PENDING):
+        if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
+            raise ValueError(f"Ros2Subscriber: max_pending must be an int >= 1, got {max_pending!r}")
+        self.max_pending = max_pending
+        super().__init__(topic, msgtype, node=node, namespace=namespace, domain_id=domain_id, connect=connect,
+                         listen=listen, msgdef=msgdef)
 
     def _begin(self) -> None:
         self.received = self.dropped = self.undecodable = 0
+        self._said = (0, 0, 0)  # received, dropped and undecodable as the last step record said
 
     def setup(self) -> None:
         self._pending: collections.deque = collections.deque()
@@ -106,7 +125,7 @@ class Ros2Subscriber(_Ros2Endpoint):
     def _arrived(self, sample) -> None:
         """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step)."""
         with self._lock:
-            if len(self._pending) >= MAX_PENDING:
+            if len(self._pending) >= self.max_pending:
                 self._pending.popleft()
                 self.dropped += 1
             self._pending.append(sample.payload.to_bytes())
@@ -130,11 +149,25 @@ class Ros2Subscriber(_Ros2Endpoint):
             except Exception:  # a stranger's bytes on the key: counted, never handed on
                 self.undecodable += 1
         self.received += len(values)
+        with self._lock:
+            counts = (self.received, self.dropped, self.undecodable)
+        if counts[1:] != self._said[1:]:  # a message was lost since the last record: say it in this one
+            self.add_step_detail(**{name: now - before for name, now, before in
+                                    zip(("received", "dropped", "undecodable"), counts, self._said)})
+            self._said = counts
         return {"msg": Burst(values)} if values else None
 
     def teardown(self) -> None:
         self._subscriber.undeclare()
         self._ros.close()
+        if self.dropped or self.undecodable:
+            hint = ("tick the subscriber faster than the topic comes, or raise max_pending" if self.dropped else
+                    "another type is published on the topic's key, or another definition of the type")
+            warnings.warn(
+                f"Ros2Subscriber of {self.topic} ({self.msgtype}) received {self.received} message(s), dropped "
+                f"{self.dropped} (more than {self.max_pending} arrived between two ticks) and could not decode "
+                f"{self.undecodable} (not CDR of {self.msgtype})\n    hint: {hint}; the step records' "
+                "detail[\"flow\"] say which ticks lost them", RetrieverWarning, stacklevel=2)
 
 
 class Ros2Publisher(_Ros2Endpoint):
@@ -174,8 +207,9 @@ class Ros2Publisher(_Ros2Endpoint):
                 try:
                     payloads.append(types.serialize(types.from_value(value, self.msgtype), self.msgtype))
                 except (TypeError, ValueError) as error:
-                    raise (TypeError if isinstance(error, TypeError) else ValueError)(f"element {i} of the list of {len(msg)} on msg (a Queue's events, each "
-                                      f"published as a message; none of them was): {error}") from error
+                    kind = TypeError if isinstance(error, TypeError) else ValueError
+                    raise kind(f"element {i} of the list of {len(msg)} on msg (a Queue's events, each published "
+                               f"as a message; none of them was): {error}") from error
         for payload in payloads:
             self._sequence += 1
             attachment = Attachment(self._sequence, time.time_ns(), self._gid)

@@ -24,7 +24,7 @@ import zenoh
 import zenoh.ext as zext
 from rosbags.typesys import Stores, get_typestore
 
-from retriever import Flow, Pipeline, Queue, Rate, Trigger
+from retriever import Flow, Pipeline, Queue, Rate, Trigger, read_log
 from retriever.backends.zenoh.hub import endpoint, free_port
 from retriever.errors import RetrieverWarning
 from retriever.ros2 import Ros2Publisher, Ros2Subscriber
@@ -111,12 +111,16 @@ def test_garbage_on_the_key_is_counted_and_never_handed_on(router):
         while not sink.got and time.monotonic() < deadline:
             session.put(key, b"\x00\x01\x00\x00garbage")
             session.put(key, _joint_state_cdr(1))
-            pipe.step(0.01)
+            trace = pipe.step(0.01)  # the trace so far
         got, undecodable = sink.got, subscriber.undecodable
+        said = [s.detail["flow"] for s in trace.steps if s.node == "ros2_subscriber" and s.detail
+                and "flow" in s.detail]
     finally:
-        pipe.reset()
+        with pytest.warns(RetrieverWarning, match=r"could not decode [1-9]\d* \(not CDR of sensor_msgs/msg/JointState"):
+            pipe.reset()
     assert got and all(value["name"] == ["j0", "j1"] for value in got)
     assert undecodable >= 1
+    assert sum(detail["undecodable"] for detail in said) == undecodable
 
 
 class Speed(Flow):
@@ -328,3 +332,41 @@ def test_a_list_of_numbers_for_a_multi_array_is_one_message(router):
         pipe.reset()
         listener.undeclare()
     assert received and all(data == [1.5, 2.5, 3.5] for data in received)
+
+
+def test_on_the_realtime_backend_a_flood_and_garbage_are_counted_in_the_log(router, tmp_path):
+    """A subscriber's received, dropped and undecodable counts lived in its worker process, seen
+    by nobody: now each tick that lost messages says so in its step record, which the log keeps."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/flood/{JOINT_STATE}"
+    with Pipeline("ros_flood") as pipe:
+        Ros2Subscriber(f"{NAMESPACE}/flood", "sensor_msgs/msg/JointState", domain_id=DOMAIN, connect=[at],
+                       listen=[], max_pending=4) @ Rate(hz=2)
+    publisher, run_over, flooded = session.declare_publisher(key), threading.Event(), []
+
+    def flood_once_subscribed():
+        while not publisher.matching_status.matching:  # the worker's subscription reached the router
+            if run_over.wait(0.01):
+                return
+        for i in range(50):  # within a ms: at most two of the 2 Hz ticks between them
+            publisher.put(_joint_state_cdr(i))
+        publisher.put(b"\x00\x01\x00\x00garbage")  # last: the oldest are the ones dropped
+        flooded.append(True)
+
+    flooder = threading.Thread(target=flood_once_subscribed)
+    flooder.start()
+    log = tmp_path / "flood.mcap"
+    try:
+        pipe.run(duration=8.0, backend="zenoh", log=log)
+    finally:
+        run_over.set()
+        flooder.join()
+        publisher.undeclare()
+        pipe.reset()
+    assert flooded, "the subscription never reached the router in an 8 s run"
+    steps = [s for s in read_log(log).iter_steps() if s.node == "ros2_subscriber"]
+    said = [s.detail["flow"] for s in steps if s.detail and "flow" in s.detail]
+    dropped, undecodable = sum(d["dropped"] for d in said), sum(d["undecodable"] for d in said)
+    assert undecodable == 1, said
+    assert 51 - 2 * 4 <= dropped <= 51 - 4, said  # 4 kept for each tick the flood came before
+    assert sum(d["received"] for d in said) == 51 - dropped - undecodable

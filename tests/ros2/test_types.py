@@ -151,7 +151,8 @@ def test_a_value_past_what_a_ros_message_holds_is_refused_before_its_bytes_are_c
 
 
 @pytest.mark.parametrize("value, type_name, error, said", [
-    ([["x"]], "std_msgs/msg/String", TypeError, r"std_msgs/msg/String field data: takes a str.*got list of 1 \[\['x'\]\]"),
+    ([["x"]], "std_msgs/msg/String", TypeError,
+     r"std_msgs/msg/String field data: takes a str.*got list of 1 \[\['x'\]\]"),
     (b"x", "std_msgs/msg/String", TypeError, r"std_msgs/msg/String field data: takes a str.*got bytes"),
     ({"stamp": 1}, "std_msgs/msg/String", ValueError, r"std_msgs/msg/String has no field\(s\) stamp"),
     ("false", "std_msgs/msg/Bool", TypeError, r"std_msgs/msg/Bool field data: takes a bool.*got str 'false'"),
@@ -178,7 +179,8 @@ def test_a_value_past_what_a_ros_message_holds_is_refused_before_its_bytes_are_c
     ({"position": [0.5, "x"]}, "sensor_msgs/msg/JointState", TypeError,
      r"sensor_msgs/msg/JointState field position: takes a sequence of float64.*got list of 2 \[0.5, 'x'\]"),
     ({"position": [[0.5], [1.0]]}, "sensor_msgs/msg/JointState", ValueError,
-     r"sensor_msgs/msg/JointState field position: takes a sequence of float64.*got an array of float64 of shape \(2, 1\)"),
+     r"sensor_msgs/msg/JointState field position: takes a sequence of float64.*"
+     r"got an array of float64 of shape \(2, 1\)"),
     ({"orientation_covariance": np.zeros(8)}, "sensor_msgs/msg/Imu", ValueError,
      r"sensor_msgs/msg/Imu field orientation_covariance: takes 9 float64.*got an array of float64 of shape \(8,\)"),
     ({"data": [1, 256]}, "sensor_msgs/msg/CompressedImage", ValueError,
