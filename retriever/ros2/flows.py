@@ -49,6 +49,9 @@ from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
 
 #: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
 MAX_PENDING = 1024
+#: bytes of messages a subscriber holds between two ticks (1024 frames of 6 MB would be 6 GB);
+#: past it the oldest are dropped (and counted), and a message bigger on its own is dropped too
+MAX_PENDING_BYTES = 256 << 20
 #: what a list of numbers on a publisher's input holds (numpy's scalars and bools among them)
 _NUMBERS = (int, float, np.number, np.bool_)
 
@@ -89,7 +92,8 @@ class _Ros2Endpoint(Flow):
 class Ros2Subscriber(_Ros2Endpoint):
     """A source flow: the messages of a ROS 2 topic, each an event of port ``msg`` (types.py says
     which value a message becomes). ``received``, ``dropped`` (past ``max_pending`` messages,
-    ``MAX_PENDING`` by default, between two ticks: the oldest go) and ``undecodable`` (not CDR of
+    ``MAX_PENDING`` by default, or ``max_pending_bytes`` of them, ``MAX_PENDING_BYTES``, between
+    two ticks: the oldest go) and ``undecodable`` (not CDR of
     the type) count what came. They live in the process that steps the flow (a worker's, on the
     real-time backends), so the flow says them where a user looks: a tick that dropped or could
     not decode a message says so in its step record, ``detail["flow"] = {"received": n,
@@ -100,10 +104,11 @@ class Ros2Subscriber(_Ros2Endpoint):
     def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
                  domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
                  listen: Sequence[str] = ("tcp/127.0.0.1:0",), msgdef: str | None = None,
-                 max_pending: int = MAX_PENDING):
-        if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
-            raise ValueError(f"Ros2Subscriber: max_pending must be an int >= 1, got {max_pending!r}")
-        self.max_pending = max_pending
+                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES):
+        for name, bound in (("max_pending", max_pending), ("max_pending_bytes", max_pending_bytes)):
+            if isinstance(bound, bool) or not isinstance(bound, int) or bound < 1:
+                raise ValueError(f"Ros2Subscriber: {name} must be an int >= 1, got {bound!r}")
+        self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
         super().__init__(topic, msgtype, node=node, namespace=namespace, domain_id=domain_id, connect=connect,
                          listen=listen, msgdef=msgdef)
 
@@ -113,6 +118,7 @@ class Ros2Subscriber(_Ros2Endpoint):
 
     def setup(self) -> None:
         self._pending: collections.deque = collections.deque()
+        self._pending_bytes = 0
         self._lock = threading.Lock()
         self._ros = self._open_node()
         self._ros.declare(SUBSCRIPTION, self.topic, self.msgtype, self.type_hash, QoS())
@@ -123,12 +129,20 @@ class Ros2Subscriber(_Ros2Endpoint):
             self.key, zenoh.handlers.Callback(self._arrived, indirect=False))
 
     def _arrived(self, sample) -> None:
-        """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step)."""
+        """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step),
+        within both bounds: past either, the oldest go (a payload past the byte bound on its own
+        is not kept at all)."""
+        size = len(sample.payload)
         with self._lock:
-            if len(self._pending) >= self.max_pending:
-                self._pending.popleft()
+            if size > self.max_pending_bytes:
                 self.dropped += 1
-            self._pending.append(sample.payload.to_bytes())
+                return
+            pending = self._pending
+            while pending and (len(pending) >= self.max_pending or self._pending_bytes + size > self.max_pending_bytes):
+                self._pending_bytes -= len(pending.popleft())
+                self.dropped += 1
+            pending.append(sample.payload.to_bytes())
+            self._pending_bytes += size
 
     @property
     def pending(self) -> int:
@@ -142,6 +156,7 @@ class Ros2Subscriber(_Ros2Endpoint):
     def step(self):
         with self._lock:
             taken = [self._pending.popleft() for _ in range(min(len(self._pending), MAX_BURST))]
+            self._pending_bytes -= sum(map(len, taken))
         values = []
         for payload in taken:
             try:
@@ -161,11 +176,12 @@ class Ros2Subscriber(_Ros2Endpoint):
         self._subscriber.undeclare()
         self._ros.close()
         if self.dropped or self.undecodable:
-            hint = ("tick the subscriber faster than the topic comes, or raise max_pending" if self.dropped else
+            hint = ("tick the subscriber faster than the topic comes, or raise max_pending(_bytes)" if self.dropped else
                     "another type is published on the topic's key, or another definition of the type")
             warnings.warn(
                 f"Ros2Subscriber of {self.topic} ({self.msgtype}) received {self.received} message(s), dropped "
-                f"{self.dropped} (more than {self.max_pending} arrived between two ticks) and could not decode "
+                f"{self.dropped} (past max_pending={self.max_pending} messages or max_pending_bytes="
+                f"{self.max_pending_bytes} bytes between two ticks) and could not decode "
                 f"{self.undecodable} (not CDR of {self.msgtype})\n    hint: {hint}; the step records' "
                 "detail[\"flow\"] say which ticks lost them", RetrieverWarning, stacklevel=2)
 

@@ -370,3 +370,38 @@ def test_on_the_realtime_backend_a_flood_and_garbage_are_counted_in_the_log(rout
     assert undecodable == 1, said
     assert 51 - 2 * 4 <= dropped <= 51 - 4, said  # 4 kept for each tick the flood came before
     assert sum(d["received"] for d in said) == 51 - dropped - undecodable
+
+
+def test_a_subscribers_backlog_is_bounded_in_bytes_too_dropping_the_oldest(router):
+    """The backlog was bounded by count alone (1024 messages): of 6 MB frames, 6 GB."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/frames/{STRING}"
+    frames = [_string_cdr(f"{i:02d}" + "x" * 998) for i in range(10)]  # each the same size
+    size = len(frames[0])
+    with Pipeline("ros_frames") as pipe:
+        subscriber = Ros2Subscriber(f"{NAMESPACE}/frames", "std_msgs/msg/String", domain_id=DOMAIN, connect=[at],
+                                    listen=[], max_pending=100, max_pending_bytes=3 * size + size // 2) @ Rate(hz=100)
+        sink = Collect() @ Trigger("msg")
+        subscriber.then(sink, sync=Queue())
+    try:
+        pipe.step(0.01)
+        publisher = session.declare_publisher(key)
+        deadline = time.monotonic() + BOUND_S
+        while not publisher.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.001)
+        for frame in frames:
+            publisher.put(frame)
+        publisher.put(_string_cdr("y" * 4 * size))  # bigger than the bound on its own: never kept
+        while subscriber.dropped + subscriber.pending < len(frames) + 1 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        trace = pipe.step(0.01)
+        got, dropped = list(sink.got), subscriber.dropped
+        said = [s.detail["flow"] for s in trace.steps if s.node == "ros2_subscriber" and s.detail
+                and "flow" in s.detail]
+        publisher.undeclare()
+    finally:
+        with pytest.warns(RetrieverWarning, match=r"dropped 8 \(past max_pending=100 messages or max_pending_bytes="):
+            pipe.reset()
+    assert [text[:2] for text in got] == ["07", "08", "09"]  # the newest 3 that fit: the oldest went
+    assert dropped == len(frames) - 3 + 1
+    assert said == [{"received": 3, "dropped": 8, "undecodable": 0}]
