@@ -599,8 +599,9 @@ def with_step_detail(flow: Flow, detail: dict | None) -> dict | None:
     said = flow._retriever.step_detail
     if not said:
         return detail
-    flow._retriever.step_detail = {}
-    return {**(detail or {}), "flow": said}
+    taken = dict(said)
+    said.clear()  # in place: the in-process backend's compiled ticks look at this one dict
+    return {**(detail or {}), "flow": taken}
 
 
 def make_invoker(flow: Flow, spec: FlowSpec) -> Callable[[dict], Any]:
