@@ -57,8 +57,55 @@ _DEFAULT_ENCODINGS = {("u1", 1): "mono8", ("u1", 3): "rgb8", ("u1", 4): "rgba8",
 
 
 def register_msg(type_name: str, definition: str) -> None:
-    """Add a message type from its ``.msg`` text (the types it names must be known already)."""
-    _store.register(get_types_from_msg(definition, type_name))
+    """Add a message type from its ``.msg`` text (the types it names must be known already).
+    The same definition again is taken (nothing changes); another one under a name known already
+    is a ValueError, as is a name not of three parts (``pkg/msg/Name``) or a field of a type that
+    is not known; nothing is registered then."""
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
+        meant = f"{parts[0]}/msg/{parts[-1]}" if len(parts) >= 2 and parts[0] and parts[-1] else "pkg/msg/Name"
+        raise ValueError(f"{type_name!r} is not a ROS 2 message type name: they have three parts, like "
+                         f"sensor_msgs/msg/Image\n    hint: name it {meant} (msgdef= was given)")
+    parsed = get_types_from_msg(definition, type_name)
+    known = set(_store.fielddefs) | set(parsed)
+    for name, (_, fields) in parsed.items():
+        for field, desc in fields:
+            named = _named_type(desc)
+            if named is not None and named not in known:
+                raise ValueError(f"{name}'s msgdef names {named} (field {field}), which is not known\n    hint: "
+                                 "use a standard type (sensor_msgs/msg/Image is written sensor_msgs/Image in a .msg), "
+                                 "or add that one first with its own msgdef (register_msg)")
+    for name, fielddef in parsed.items():
+        if name in _store.fielddefs and _store.fielddefs[name] != fielddef:
+            raise ValueError(f"{name} is defined already, differently ({_described(_store.fielddefs[name])}); "
+                             f"the new definition is ({_described(fielddef)})\n    hint: a type has one definition in "
+                             "a program: give the new definition another name")
+    _store.register(parsed)
+
+
+def _named_type(desc: tuple) -> str | None:
+    """The message type a field's description names (of an array's elements too), or None."""
+    kind, detail = desc
+    if kind == Nodetype.NAME:
+        return detail
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return _named_type(detail[0])
+    return None
+
+
+def _described(fielddef: tuple) -> str:
+    """A type's fields as a .msg would list them, on one line: ``int32 a, string b``."""
+    def spelled(desc: tuple) -> str:
+        kind, detail = desc
+        if kind == Nodetype.NAME:
+            return detail
+        if kind == Nodetype.BASE:
+            return detail[0] + (f"<={detail[1]}" if detail[1] else "")
+        element, length = detail
+        bound = str(length) if kind == Nodetype.ARRAY else f"<={length}" if length else ""
+        return f"{spelled(element)}[{bound}]"
+
+    return ", ".join(f"{spelled(desc)} {name}" for name, desc in fielddef[1])
 
 
 def check_type(type_name: str) -> None:

@@ -218,3 +218,31 @@ def test_exact_conversions_still_pass():
     assert _through_cdr({"stamp": 5.0}, "std_msgs/msg/Header")["stamp"] == 5
     assert_equal(_through_cdr({"data": np.array([1.0, 255.0])}, "std_msgs/msg/UInt8MultiArray"),
                  np.array([1, 255], np.uint8))
+
+
+def test_a_msgdef_naming_an_unknown_type_is_refused_naming_it_and_registers_nothing():
+    """It was a bare KeyError('nope_msgs/msg/Thing') from the type hash, and the type stayed
+    registered half-made: a corrected definition then clashed with it."""
+    from retriever.ros2 import Ros2Publisher
+
+    with pytest.raises(ValueError, match=r"retriever_test_msgs/msg/Broken's msgdef names nope_msgs/msg/Thing "
+                                         r"\(field x\), which is not known"):
+        Ros2Publisher("/x", "retriever_test_msgs/msg/Broken", msgdef="nope_msgs/Thing x")
+    Ros2Publisher("/x", "retriever_test_msgs/msg/Broken", msgdef="geometry_msgs/Point x")  # the fix is taken
+
+
+def test_a_msgdef_under_a_name_not_of_three_parts_says_so_not_that_msgdef_is_missing():
+    from retriever.ros2 import Ros2Publisher
+
+    with pytest.raises(ValueError, match=r"(?s)'retriever_test_msgs/Short' is not a ROS 2 message type name.*"
+                                         r"retriever_test_msgs/msg/Short"):
+        Ros2Publisher("/x", "retriever_test_msgs/Short", msgdef="int32 a")
+
+
+def test_a_type_defined_again_the_same_is_taken_and_differently_is_refused_clearly():
+    """Defining it differently raised rosbags' TypesysError."""
+    types.register_msg("retriever_test_msgs/msg/Twice", "int32 a\nstring b")
+    types.register_msg("retriever_test_msgs/msg/Twice", "int32 a\nstring b")
+    with pytest.raises(ValueError, match=r"(?s)retriever_test_msgs/msg/Twice is defined already, differently "
+                                         r"\(int32 a, string b\).*give the new definition another name"):
+        types.register_msg("retriever_test_msgs/msg/Twice", "float64 a\nstring b")
