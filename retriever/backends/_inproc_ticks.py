@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 from time import time_ns
 from typing import Any
 
+from ..flow._base import settings_of
 from ..sync import Latest
 
 
@@ -162,6 +163,9 @@ class _TickWriter:
             f"stats{k}": rt.stats, f"node{k}": rt.id, f"step{k}": rt.flow.step, f"seqs{k}": rt.seq,
             f"read{k}": rt.read, f"rt{k}": rt, f"in_type{k}": spec.in_type, f"out_type{k}": spec.out_type,
             f"known{k}": tuple(known),
+            # what the step said of its tick (Flow.add_step_detail): a record with detail, which
+            # only the generic path writes (the one dict, emptied in place when it is taken)
+            f"detail{k}": settings_of(rt.flow).step_detail,
         }
         self.ports = [port for port, *_ in rt.inputs]
         self.required = [port_spec.required for *_, port_spec in rt.inputs]
@@ -334,12 +338,14 @@ def generic{k}(tau, raw, start, now{entries}):
 
     def _generic(self) -> list[str]:
         """When the generic path takes the outputs: another type, values the codec must look at,
-        a trigger past max_microsteps (an error, raised as _emit does, after the outputs before it)."""
+        a trigger past max_microsteps (an error, raised as _emit does, after the outputs before it),
+        a step that said something of its tick (Flow.add_step_detail: its record has detail)."""
         rt = self.rt
         conditions = [f"type({v}) not in plain" for v in self.values] or ["outputs is not None"]
         if not rt.latency_ns and any(triggers and not delay_ns for port in self.known
                                      for _, _, delay_ns, triggers in rt.downstream.get(port, ())):
             conditions.append("out_tag[1] > max_microsteps")
+        conditions.append(f"detail{self.k}")  # the step said something of its tick: a record with detail
         return conditions
 
     def _record(self) -> str:

@@ -60,7 +60,7 @@ import numpy as np
 
 from ..codec import packb
 from ..errors import BackendError, CausalityError, CodecError, ReplayedError, RetrieverWarning, RunEnded, SetupError
-from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down
+from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down, with_step_detail
 from ..flow.burst import Burst
 from ..graph import Graph, Node
 from ..plan import NodePlan, bind_inputs, plan_graph, tie_order
@@ -273,7 +273,8 @@ class _Recorder:
                         continue
                     self._check_output(rt, tau, port, value, consumed, start, produced)
                 event(rt, tau, port, value, out_tag, end, produced)
-        self.tape.append((rt.id, tau, consumed, tuple(produced), "ok", dropped, start, end - start))
+        self.tape.append((rt.id, tau, consumed, tuple(produced), "ok", with_step_detail(rt.flow, dropped), start,
+                          end - start))
 
     def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
                end: int, produced: list) -> None:

@@ -362,6 +362,8 @@ class FlowSettings:
     #: (the default reset() keeps them)
     is_set_up: bool = field(default=False, compare=False)
     setup_attrs: tuple = field(default=(), compare=False)
+    #: what the flow said of its current tick with add_step_detail(): its step record's detail["flow"]
+    step_detail: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
@@ -409,6 +411,14 @@ class Flow(Generic[In, Out]):
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         """Call ``step`` directly, with no runtime: ``flow(In(...))``."""
         return self.step(*args, **kwargs)
+
+    def add_step_detail(self, **detail: Any) -> None:
+        """Say something of the tick running now in its step record: ``detail`` (names to values
+        Retriever encodes: numbers, strings, lists, dicts) lands under ``detail["flow"]`` of the
+        record, in the trace and the log, on every backend (``retriever log show`` prints it).
+        For what a flow counts that no event shows (messages it dropped, bytes it could not read).
+        Called in ``step()``; said in ``setup()`` or ``teardown()``, it goes with the next record."""
+        self._retriever.step_detail.update(detail)
 
     def setup(self) -> None:
         """Acquire what is heavy or belongs to one process (weights, a GPU, a camera, a socket):
@@ -581,6 +591,17 @@ def tear_down(flow: Flow) -> None:
     if settings.is_set_up:
         settings.is_set_up = False
         flow.teardown()
+
+
+def with_step_detail(flow: Flow, detail: dict | None) -> dict | None:
+    """``detail`` of a step record of ``flow``, with what the flow said of the tick
+    (:meth:`Flow.add_step_detail`) under ``"flow"``; that is then said."""
+    said = flow._retriever.step_detail
+    if not said:
+        return detail
+    taken = dict(said)
+    said.clear()  # in place: the in-process backend's compiled ticks look at this one dict
+    return {**(detail or {}), "flow": taken}
 
 
 def make_invoker(flow: Flow, spec: FlowSpec) -> Callable[[dict], Any]:

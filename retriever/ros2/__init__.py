@@ -19,9 +19,9 @@ except ImportError:
     raise ImportError("retriever.ros2 needs rosbags, which is not installed\n"
                       "    hint: pip install 'retriever-robotics[ros2]'") from None
 
-from .flows import MAX_PENDING, Ros2Publisher, Ros2Subscriber
+from .flows import MAX_PENDING, MAX_PENDING_BYTES, Ros2Publisher, Ros2Subscriber
 from .keys import QoS, topic_key
 from .types import from_value, register_msg, to_value, type_hash
 
-__all__ = ["MAX_PENDING", "QoS", "Ros2Publisher", "Ros2Subscriber", "from_value", "register_msg", "to_value",
-           "topic_key", "type_hash"]
+__all__ = ["MAX_PENDING", "MAX_PENDING_BYTES", "QoS", "Ros2Publisher", "Ros2Subscriber", "from_value", "register_msg",
+           "to_value", "topic_key", "type_hash"]

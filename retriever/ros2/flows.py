@@ -33,10 +33,13 @@ from __future__ import annotations
 import collections
 import threading
 import time
+import warnings
 from collections.abc import Sequence
 
+import numpy as np
 import zenoh
 
+from ..errors import RetrieverWarning
 from ..flow import Flow
 from ..flow.burst import MAX_BURST, Burst
 from . import types
@@ -46,6 +49,11 @@ from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
 
 #: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
 MAX_PENDING = 1024
+#: bytes of messages a subscriber holds between two ticks (1024 frames of 6 MB would be 6 GB);
+#: past it the oldest are dropped (and counted), and a message bigger on its own is dropped too
+MAX_PENDING_BYTES = 256 << 20
+#: what a list of numbers on a publisher's input holds (numpy's scalars and bools among them)
+_NUMBERS = (int, float, np.number, np.bool_)
 
 
 class _Ros2Endpoint(Flow):
@@ -83,14 +91,34 @@ class _Ros2Endpoint(Flow):
 
 class Ros2Subscriber(_Ros2Endpoint):
     """A source flow: the messages of a ROS 2 topic, each an event of port ``msg`` (types.py says
-    which value a message becomes). ``received``, ``dropped`` (past ``MAX_PENDING`` between two
-    ticks) and ``undecodable`` (not CDR of the type) count what came."""
+    which value a message becomes). ``received``, ``dropped`` (past ``max_pending`` messages,
+    ``MAX_PENDING`` by default, or ``max_pending_bytes`` of them, ``MAX_PENDING_BYTES``, between
+    two ticks: the oldest go) and ``undecodable`` (not CDR of
+    the type) count what came. They live in the process that steps the flow (a worker's, on the
+    real-time backends), so the flow says them where a user looks: a tick that dropped or could
+    not decode a message says so in its step record, ``detail["flow"] = {"received": n,
+    "dropped": n, "undecodable": n}`` (the counts since the record before that said them), in the
+    trace and the log (``retriever log show`` prints it); and the end of the run warns
+    (RetrieverWarning) with the totals of a subscriber that dropped or could not decode any."""
+
+    def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
+                 domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
+                 listen: Sequence[str] = ("tcp/127.0.0.1:0",), msgdef: str | None = None,
+                 max_pending: int = MAX_PENDING, max_pending_bytes: int = MAX_PENDING_BYTES):
+        for name, bound in (("max_pending", max_pending), ("max_pending_bytes", max_pending_bytes)):
+            if isinstance(bound, bool) or not isinstance(bound, int) or bound < 1:
+                raise ValueError(f"Ros2Subscriber: {name} must be an int >= 1, got {bound!r}")
+        self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
+        super().__init__(topic, msgtype, node=node, namespace=namespace, domain_id=domain_id, connect=connect,
+                         listen=listen, msgdef=msgdef)
 
     def _begin(self) -> None:
         self.received = self.dropped = self.undecodable = 0
+        self._said = (0, 0, 0)  # received, dropped and undecodable as the last step record said
 
     def setup(self) -> None:
         self._pending: collections.deque = collections.deque()
+        self._pending_bytes = 0
         self._lock = threading.Lock()
         self._ros = self._open_node()
         self._ros.declare(SUBSCRIPTION, self.topic, self.msgtype, self.type_hash, QoS())
@@ -101,16 +129,34 @@ class Ros2Subscriber(_Ros2Endpoint):
             self.key, zenoh.handlers.Callback(self._arrived, indirect=False))
 
     def _arrived(self, sample) -> None:
-        """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step)."""
+        """On Zenoh's thread: keep the payload for the next tick (decoding waits for the step),
+        within both bounds: past either, the oldest go (a payload past the byte bound on its own
+        is not kept at all)."""
+        size = len(sample.payload)
         with self._lock:
-            if len(self._pending) >= MAX_PENDING:
-                self._pending.popleft()
+            if size > self.max_pending_bytes:
                 self.dropped += 1
-            self._pending.append(sample.payload.to_bytes())
+                return
+            pending = self._pending
+            while pending and (len(pending) >= self.max_pending or self._pending_bytes + size > self.max_pending_bytes):
+                self._pending_bytes -= len(pending.popleft())
+                self.dropped += 1
+            pending.append(sample.payload.to_bytes())
+            self._pending_bytes += size
+
+    @property
+    def pending(self) -> int:
+        """The messages that arrived and wait for the next tick."""
+        lock = getattr(self, "_lock", None)
+        if lock is None:  # not set up
+            return 0
+        with lock:
+            return len(self._pending)
 
     def step(self):
         with self._lock:
             taken = [self._pending.popleft() for _ in range(min(len(self._pending), MAX_BURST))]
+            self._pending_bytes -= sum(map(len, taken))
         values = []
         for payload in taken:
             try:
@@ -118,23 +164,48 @@ class Ros2Subscriber(_Ros2Endpoint):
             except Exception:  # a stranger's bytes on the key: counted, never handed on
                 self.undecodable += 1
         self.received += len(values)
+        with self._lock:
+            counts = (self.received, self.dropped, self.undecodable)
+        if counts[1:] != self._said[1:]:  # a message was lost since the last record: say it in this one
+            self.add_step_detail(**{name: now - before for name, now, before in
+                                    zip(("received", "dropped", "undecodable"), counts, self._said)})
+            self._said = counts
         return {"msg": Burst(values)} if values else None
 
     def teardown(self) -> None:
         self._subscriber.undeclare()
         self._ros.close()
+        if self.dropped or self.undecodable:
+            hint = ("tick the subscriber faster than the topic comes, or raise max_pending(_bytes)" if self.dropped else
+                    "another type is published on the topic's key, or another definition of the type")
+            warnings.warn(
+                f"Ros2Subscriber of {self.topic} ({self.msgtype}) received {self.received} message(s), dropped "
+                f"{self.dropped} (past max_pending={self.max_pending} messages or max_pending_bytes="
+                f"{self.max_pending_bytes} bytes between two ticks) and could not decode "
+                f"{self.undecodable} (not CDR of {self.msgtype})\n    hint: {hint}; the step records' "
+                "detail[\"flow\"] say which ticks lost them", RetrieverWarning, stacklevel=2)
 
 
 class Ros2Publisher(_Ros2Endpoint):
     """A sink flow: the value on its input port ``msg`` published on a ROS 2 topic at each tick
     (types.py says which message a value becomes), as an rmw_zenoh publisher does; behind
-    ``Trigger("msg")`` and ``Latest()``, one message per event. ``published`` counts them."""
+    ``Trigger("msg")`` and ``Latest()``, one message per event. ``published`` counts them.
+
+    A ``list`` on ``msg`` is what a ``Queue()`` (or ``Window``) edge delivers: the events since the
+    last tick (a subscriber's Burst among them). Each of its elements is published as a message of
+    its own, in order; an empty list publishes nothing. The one exception is a list of numbers for
+    a type one value of which is a list of numbers (a Vector3, Point or Quaternion ``[x, y, z]``, a
+    MultiArray's data: ``types.list_of_numbers_is_one_value``), since no element of it could be a
+    message: that list is one message. So a MultiArray of two or more dimensions comes as a numpy
+    array, not a nested list. Every element is converted before any is put: a tick whose list holds
+    one that does not convert publishes none (and the error says which)."""
 
     def _begin(self) -> None:
         self.published = 0
         self.configure(replay="log")
 
     def setup(self) -> None:
+        self._one_value_is_a_list = types.list_of_numbers_is_one_value(self.msgtype)
         self._ros = self._open_node()
         token = self._ros.declare(PUBLISHER, self.topic, self.msgtype, self.type_hash, QoS())
         self._gid = gid(token)
@@ -142,11 +213,24 @@ class Ros2Publisher(_Ros2Endpoint):
         self._sequence = 0
 
     def step(self, msg):
-        payload = types.serialize(types.from_value(msg, self.msgtype), self.msgtype)
-        self._sequence += 1
-        attachment = Attachment(self._sequence, time.time_ns(), self._gid)
-        self._publisher.put(payload, attachment=encode(attachment))
-        self.published += 1
+        if type(msg) is not list:
+            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+        elif msg and self._one_value_is_a_list and all(isinstance(v, _NUMBERS) for v in msg):
+            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+        else:  # a Queue's (or Window's) events: a message each, all converted before any is put
+            payloads = []
+            for i, value in enumerate(msg):
+                try:
+                    payloads.append(types.serialize(types.from_value(value, self.msgtype), self.msgtype))
+                except (TypeError, ValueError) as error:
+                    kind = TypeError if isinstance(error, TypeError) else ValueError
+                    raise kind(f"element {i} of the list of {len(msg)} on msg (a Queue's events, each published "
+                               f"as a message; none of them was): {error}") from error
+        for payload in payloads:
+            self._sequence += 1
+            attachment = Attachment(self._sequence, time.time_ns(), self._gid)
+            self._publisher.put(payload, attachment=encode(attachment))
+            self.published += 1
 
     def teardown(self) -> None:
         self._publisher.undeclare()

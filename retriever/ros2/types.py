@@ -23,7 +23,10 @@ and three refinements where the dict would be clumsy:
 So ``JointState`` is ``{"stamp", "frame_id", "name": [...], "position": array, …}``, ``Twist``
 ``{"linear": array(3), "angular": array(3)}``, ``PoseStamped`` ``{"stamp", "frame_id",
 "pose": {"position": array(3), "orientation": array(4)}}``. Going back, a missing field is its
-zero value, so ``{"linear": [0.2, 0, 0]}`` is a Twist.
+zero value, so ``{"linear": [0.2, 0, 0]}`` is a Twist. A value converts exactly or not at all:
+a string field takes a ``str``, a bool a bool, an int a whole number within its range (3.0 but
+not 3.7), a float a number, a fixed-size array its length of them; anything else is a TypeError
+or ValueError naming the type, the field's path and what it takes and got.
 
 Type hashes (``RIHS01_…``, REP-2011) are rosbags', over the ROS 2 Jazzy definitions.
 """
@@ -54,8 +57,55 @@ _DEFAULT_ENCODINGS = {("u1", 1): "mono8", ("u1", 3): "rgb8", ("u1", 4): "rgba8",
 
 
 def register_msg(type_name: str, definition: str) -> None:
-    """Add a message type from its ``.msg`` text (the types it names must be known already)."""
-    _store.register(get_types_from_msg(definition, type_name))
+    """Add a message type from its ``.msg`` text (the types it names must be known already).
+    The same definition again is taken (nothing changes); another one under a name known already
+    is a ValueError, as is a name not of three parts (``pkg/msg/Name``) or a field of a type that
+    is not known; nothing is registered then."""
+    parts = type_name.split("/")
+    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
+        meant = f"{parts[0]}/msg/{parts[-1]}" if len(parts) >= 2 and parts[0] and parts[-1] else "pkg/msg/Name"
+        raise ValueError(f"{type_name!r} is not a ROS 2 message type name: they have three parts, like "
+                         f"sensor_msgs/msg/Image\n    hint: name it {meant} (msgdef= was given)")
+    parsed = get_types_from_msg(definition, type_name)
+    known = set(_store.fielddefs) | set(parsed)
+    for name, (_, fields) in parsed.items():
+        for field, desc in fields:
+            named = _named_type(desc)
+            if named is not None and named not in known:
+                raise ValueError(f"{name}'s msgdef names {named} (field {field}), which is not known\n    hint: "
+                                 "use a standard type (sensor_msgs/msg/Image is written sensor_msgs/Image in a .msg), "
+                                 "or add that one first with its own msgdef (register_msg)")
+    for name, fielddef in parsed.items():
+        if name in _store.fielddefs and _store.fielddefs[name] != fielddef:
+            raise ValueError(f"{name} is defined already, differently ({_described(_store.fielddefs[name])}); "
+                             f"the new definition is ({_described(fielddef)})\n    hint: a type has one definition in "
+                             "a program: give the new definition another name")
+    _store.register(parsed)
+
+
+def _named_type(desc: tuple) -> str | None:
+    """The message type a field's description names (of an array's elements too), or None."""
+    kind, detail = desc
+    if kind == Nodetype.NAME:
+        return detail
+    if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+        return _named_type(detail[0])
+    return None
+
+
+def _described(fielddef: tuple) -> str:
+    """A type's fields as a .msg would list them, on one line: ``int32 a, string b``."""
+    def spelled(desc: tuple) -> str:
+        kind, detail = desc
+        if kind == Nodetype.NAME:
+            return detail
+        if kind == Nodetype.BASE:
+            return detail[0] + (f"<={detail[1]}" if detail[1] else "")
+        element, length = detail
+        bound = str(length) if kind == Nodetype.ARRAY else f"<={length}" if length else ""
+        return f"{spelled(element)}[{bound}]"
+
+    return ", ".join(f"{spelled(desc)} {name}" for name, desc in fielddef[1])
 
 
 def check_type(type_name: str) -> None:
@@ -161,29 +211,84 @@ def _encoding(encoding: str) -> tuple[str, int]:
 # ---------------------------------------------------------------------------------------------
 def from_value(value: Any, type_name: str) -> Any:
     """The rosbags message of ``type_name`` for a Retriever value (the inverse of :func:`to_value`;
-    missing fields are zero)."""
+    missing fields are zero). Conversions are exact or refused: a value a field cannot take as it
+    is (a list for a string, ``"false"`` or 1 for a bool, 3.7 for an int, 4 numbers for a Vector3,
+    300 for a uint8) is a TypeError or ValueError that names the type, the field's path in it, what
+    the field takes and what it got. An int-valued float (3.0) passes for an int."""
+    return _message(value, type_name, _Where(type_name, ""))
+
+
+class _Where:
+    """Where in the published value a conversion is: the message type published, the field's path."""
+
+    def __init__(self, root: str, path: str):
+        self.root, self.path = root, path
+
+    def field(self, name: str) -> _Where:
+        return _Where(self.root, f"{self.path}.{name}" if self.path else name)
+
+    def item(self, index: int) -> _Where:
+        return _Where(self.root, f"{self.path}[{index}]")
+
+    def refuse(self, takes: str, value: Any, error: type = TypeError, why: str = "") -> Exception:
+        place = f"{self.root} field {self.path}" if self.path else self.root
+        return error(f"{place}: takes {takes}, got {_given(value)}{why}")
+
+
+def list_of_numbers_is_one_value(type_name: str) -> bool:
+    """Whether a list of numbers is one value of ``type_name``: a Vector3, Point, Point32 or
+    Quaternion (``[x, y, z]``), or a ``std_msgs`` MultiArray (its data); of every other type a
+    value is never a list of numbers."""
+    return type_name in _VECTORS or type_name.startswith("std_msgs/msg/") and type_name.endswith("MultiArray")
+
+
+def _given(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"an array of {value.dtype} of shape {value.shape}"
+    text = repr(value)
+    text = text if len(text) <= 60 else text[:57] + "..."
+    if isinstance(value, (list, tuple)):
+        return f"{type(value).__name__} of {len(value)} {text}"
+    return f"{type(value).__name__} {text}"
+
+
+def _message(value: Any, type_name: str, where: _Where) -> Any:
     cls = _store.types[type_name]
     if type_name in _TIME_TYPES:
-        ns = int(value or 0)
+        ns = _integer(0 if value is None else value, "an int of ns", where)
+        if not -2**31 * 1_000_000_000 <= ns < 2**31 * 1_000_000_000:
+            raise where.refuse("an int of ns within an int32 of seconds", value, ValueError)
         return cls(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
     if type_name in _VECTORS:
-        return cls(**dict(zip(_VECTORS[type_name], (float(v) for v in value))))
+        axes = _VECTORS[type_name]
+        takes = f"{len(axes)} numbers [{', '.join(axes)}] (a {type_name})"
+        if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__len__"):
+            raise where.refuse(takes, value)
+        if len(value) != len(axes) or isinstance(value, np.ndarray) and value.ndim != 1:
+            raise where.refuse(takes, value, ValueError)
+        return cls(**{axis: _base_value(item, "float64", where.field(axis)) for axis, item in zip(axes, value)})
     fields = _fields(type_name)
     if type_name.startswith("std_msgs/msg/") and not isinstance(value, dict):
-        return _wrapped_value(value, type_name, fields)
+        return _wrapped_value(value, type_name, fields, where)
     if type_name == _IMAGE and (isinstance(value, np.ndarray) or isinstance(value, dict) and "image" in value):
         value = _image_fields(value)
     if not isinstance(value, dict):
+        if where.path:
+            raise where.refuse(f"a dict of the fields of a {type_name}", value)
         raise TypeError(f"a {type_name} is published from a dict of its fields, got {type(value).__name__}")
-    unknown = set(value) - {name for name, _ in fields} - {"stamp", "frame_id"}
+    header = [name for name, desc in fields if desc == (Nodetype.NAME, _HEADER)]
+    unknown = set(value) - {name for name, _ in fields} - ({"stamp", "frame_id"} if header else set())
     if unknown:
-        raise ValueError(f"{type_name} has no field(s) {', '.join(sorted(unknown))}")
+        place = f"{where.root} field {where.path}" if where.path else where.root
+        raise ValueError(f"{place} has no field(s) {', '.join(sorted(map(str, unknown)))}")
     kwargs = {}
     for name, desc in fields:
-        if desc == (Nodetype.NAME, _HEADER):
-            kwargs[name] = from_value({"stamp": value.get("stamp"), "frame_id": value.get("frame_id", "")}, _HEADER)
+        if desc == (Nodetype.NAME, _HEADER):  # its stamp and frame_id are keys of the value itself
+            kwargs[name] = _store.types[_HEADER](
+                stamp=_message(value.get("stamp"), "builtin_interfaces/msg/Time", where.field("stamp")),
+                frame_id=_base_value(value.get("frame_id"), "string", where.field("frame_id")))
         else:
-            kwargs[name] = _field_from_value(value.get(name), desc)
+            kwargs[name] = _field_from_value(value.get(name), desc, where.field(name))
     return cls(**kwargs)
 
 
@@ -201,31 +306,43 @@ def _check_sizes(type_name: str, shape: tuple, sizes: dict[str, int]) -> None:
                          f"({UINT32_MAX}); publish it in parts")
 
 
-def _wrapped_value(value: Any, type_name: str, fields: list) -> Any:
+def _wrapped_value(value: Any, type_name: str, fields: list, where: _Where) -> Any:
     if [name for name, _ in fields] == ["data"]:
-        return _store.types[type_name](data=_field_from_value(value, fields[0][1]))
+        return _store.types[type_name](data=_field_from_value(value, fields[0][1], where.field("data")))
     if type_name.endswith("MultiArray"):
-        array = np.asarray(value)
+        array = _array(value, fields[1][1][1][0][1][0], where.field("data"), any_shape=True)
         _check_sizes(type_name, array.shape, {"length": array.size, **{f"dimension {i}": int(np.prod(
             array.shape[i:], dtype=object)) for i in range(array.ndim)}})
         dims = [{"label": f"dim{i}", "size": size, "stride": int(np.prod(array.shape[i:]))}
                 for i, size in enumerate(array.shape)]
-        return from_value({"layout": {"dim": dims}, "data": array.reshape(-1)}, type_name)
+        return _message({"layout": {"dim": dims}, "data": array.reshape(-1)}, type_name, where)
     raise TypeError(f"a {type_name} is published from a dict of its fields, got {type(value).__name__}")
 
 
-def _field_from_value(value: Any, desc: tuple) -> Any:
+def _field_from_value(value: Any, desc: tuple, where: _Where) -> Any:
     kind, detail = desc
     if kind == Nodetype.NAME:
-        return from_value(_zero_value(detail) if value is None else value, detail)
+        return _message(_zero_value(detail) if value is None else value, detail, where)
     if kind == Nodetype.BASE:
-        return _base_value(value, detail[0])
+        return _base_value(value, detail[0], where, detail[1])
     element, length = detail
-    if element[0] == Nodetype.BASE and element[1][0] != "string":
-        array = np.asarray([] if value is None else value, dtype=_BASE_DTYPES[element[1][0]])
-        return np.zeros(length, array.dtype) if value is None and kind == Nodetype.ARRAY else array
-    items = list(value) if value is not None else [None] * (length if kind == Nodetype.ARRAY else 0)
-    return [_field_from_value(item, element) for item in items]
+    fixed = kind == Nodetype.ARRAY
+    if element[0] == Nodetype.BASE and element[1][0] not in ("string", "wstring"):
+        if value is None:
+            return np.zeros(length if fixed else 0, _BASE_DTYPES[element[1][0]])
+        array = _array(value, element[1][0], where, length=length, fixed=fixed)
+        return array
+    name = element[1] if element[0] == Nodetype.NAME else element[1][0]
+    takes = f"{length} {name}" if fixed else f"a sequence of {name}" + (f" (at most {length})" if length else "")
+    if value is None:
+        items = [None] * (length if fixed else 0)
+    elif isinstance(value, (str, bytes, dict)) or not hasattr(value, "__iter__"):
+        raise where.refuse(takes, value)
+    else:
+        items = list(value)
+    if fixed and len(items) != length or not fixed and length and len(items) > length:
+        raise where.refuse(takes, value, ValueError)
+    return [_field_from_value(item, element, where.item(i)) for i, item in enumerate(items)]
 
 
 def _zero_value(type_name: str) -> Any:
@@ -240,14 +357,105 @@ _BASE_DTYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np
                 "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
 
 
-def _base_value(value: Any, base: str) -> Any:
-    if base in ("string", "wstring"):
-        return "" if value is None else str(value)
+#: the largest finite float32, as a Python float (compared with one, numpy would cast the other to float32)
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _takes(base: str) -> str:
+    """What a field of ``base`` takes, in words."""
     if base == "bool":
+        return "a bool (or numpy bool)"
+    dtype = np.dtype(_BASE_DTYPES[base])
+    if dtype.kind == "f":
+        return f"a {base} (an int or a float)"
+    info = np.iinfo(dtype)
+    return f"a{'n' if base[0] in 'i' else ''} {base} (a whole number from {info.min} to {info.max})"
+
+
+def _integer(value: Any, takes: str, where: _Where) -> int:
+    """``value`` as an int: an int, or a float that is one (3.0, not 3.7); never a bool or a str."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise where.refuse(takes, value)
+    if isinstance(value, (float, np.floating)):
+        if not np.isfinite(value) or not float(value).is_integer():
+            raise where.refuse(takes, value, ValueError, " (not a whole number)")
+    return int(value)
+
+
+def _base_value(value: Any, base: str, where: _Where, bound: int = 0) -> Any:
+    if base in ("string", "wstring"):
+        if value is None:
+            return ""
+        if not isinstance(value, str):
+            raise where.refuse("a str" + (f" of at most {bound} characters" if bound else ""), value)
+        if bound and len(value) > bound:
+            raise where.refuse(f"a str of at most {bound} characters", value, ValueError)
+        return str(value)
+    if base == "bool":
+        if value is None:
+            return False
+        if not isinstance(value, (bool, np.bool_)):
+            raise where.refuse(_takes(base), value)
         return bool(value)
+    if value is None:
+        value = 0
     if base.startswith("float"):
-        return float(value or 0.0)
-    return int(value or 0)
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise where.refuse(_takes(base), value)
+        try:
+            number = float(value)
+        except OverflowError:
+            raise where.refuse(_takes(base), value, ValueError) from None
+        if base == "float32" and np.isfinite(number) and abs(number) > _FLOAT32_MAX:
+            raise where.refuse(_takes(base), value, ValueError, " (past float32's range)")
+        return number
+    number = _integer(value, _takes(base), where)
+    info = np.iinfo(_BASE_DTYPES[base])
+    if not info.min <= number <= info.max:
+        raise where.refuse(_takes(base), value, ValueError)
+    return number
+
+
+def _array(value: Any, base: str, where: _Where, *, length: int = 0, fixed: bool = False,
+           any_shape: bool = False) -> np.ndarray:
+    """A numeric array or sequence field's value as a numpy array of its dtype, exactly: bools for
+    bool only, whole numbers within range for ints, numbers for floats (bytes for uint8/byte/char);
+    a fixed-size array of its length, a bounded sequence within its bound."""
+    dtype = np.dtype(_BASE_DTYPES[base])
+    what = (f"{length} {base}" if fixed else f"a sequence of {base}" + (f" (at most {length})" if length else ""))
+    takes = what + (f" (whole numbers from {np.iinfo(dtype).min} to {np.iinfo(dtype).max})"
+                    if dtype.kind in "iu" else "")
+    if isinstance(value, (bytes, bytearray, memoryview)) and dtype == np.uint8:
+        array = np.frombuffer(value, np.uint8)
+    elif isinstance(value, (str, bytes, bytearray, dict)) or not hasattr(value, "__len__"):
+        raise where.refuse(takes, value)
+    else:
+        try:
+            array = np.asarray(value)
+        except ValueError:  # ragged
+            raise where.refuse(takes, value, ValueError) from None
+    if array.ndim != 1 and not any_shape:
+        raise where.refuse(takes, array, ValueError)
+    kind = array.dtype.kind
+    if array.size == 0 and kind in "fO":  # [] is float64 to numpy, an empty sequence to us
+        return array.astype(dtype).reshape(array.shape)
+    if (dtype.kind == "b") != (kind == "b") or kind not in "biuf":
+        raise where.refuse(takes, array if kind in "biuf" else value)
+    if dtype.kind in "iu" and array.size:
+        if kind == "f":
+            if not np.all(np.isfinite(array)) or not np.all(array == np.floor(array)):
+                raise where.refuse(takes, array, ValueError, " (not whole numbers)")
+        low, high = int(array.min()), int(array.max())
+        info = np.iinfo(dtype)
+        if low < info.min or high > info.max:
+            raise where.refuse(takes, array, ValueError, f" (from {low} to {high})")
+    if dtype == np.float32 and kind == "f" and array.size:
+        finite = array[np.isfinite(array)]
+        if finite.size and float(np.abs(finite).max()) > _FLOAT32_MAX:
+            raise where.refuse(takes, array, ValueError, " (past float32's range)")
+    if fixed and array.shape != (length,) or not fixed and length and array.size > length:
+        raise where.refuse(takes, array, ValueError)
+    return array.astype(dtype, copy=False)
 
 
 def _image_fields(value: Any) -> dict:

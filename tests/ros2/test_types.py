@@ -148,3 +148,101 @@ def test_a_value_past_what_a_ros_message_holds_is_refused_before_its_bytes_are_c
 
     with _no_gigabytes(), pytest.raises(ValueError, match=said + r" the uint32 a ROS 2 message holds sizes in"):
         types.from_value(_view(shape, np.uint8), type_name)
+
+
+@pytest.mark.parametrize("value, type_name, error, said", [
+    ([["x"]], "std_msgs/msg/String", TypeError,
+     r"std_msgs/msg/String field data: takes a str.*got list of 1 \[\['x'\]\]"),
+    (b"x", "std_msgs/msg/String", TypeError, r"std_msgs/msg/String field data: takes a str.*got bytes"),
+    ({"stamp": 1}, "std_msgs/msg/String", ValueError, r"std_msgs/msg/String has no field\(s\) stamp"),
+    ("false", "std_msgs/msg/Bool", TypeError, r"std_msgs/msg/Bool field data: takes a bool.*got str 'false'"),
+    (1, "std_msgs/msg/Bool", TypeError, r"std_msgs/msg/Bool field data: takes a bool.*got int 1"),
+    (3.7, "std_msgs/msg/Int32", ValueError, r"std_msgs/msg/Int32 field data: takes an int32.*got float 3.7"),
+    ("3", "std_msgs/msg/Int32", TypeError, r"std_msgs/msg/Int32 field data: takes an int32.*got str '3'"),
+    (True, "std_msgs/msg/Float64", TypeError, r"std_msgs/msg/Float64 field data: takes a float64.*got bool True"),
+    (2**31, "std_msgs/msg/Int32", ValueError, r"std_msgs/msg/Int32 field data: takes an int32 .*-2147483648.*"
+                                              r"2147483647.*got int 2147483648"),
+    (-1, "std_msgs/msg/UInt8", ValueError, r"std_msgs/msg/UInt8 field data: takes a uint8 .*got int -1"),
+    (1e39, "std_msgs/msg/Float32", ValueError, r"std_msgs/msg/Float32 field data: takes a float32.*got float 1e\+39"),
+    ({"linear": [1, 2, 3, 4]}, "geometry_msgs/msg/Twist", ValueError,
+     r"geometry_msgs/msg/Twist field linear: takes 3 numbers \[x, y, z\].*got list of 4 \[1, 2, 3, 4\]"),
+    ({"linear": [1, "a", 3]}, "geometry_msgs/msg/Twist", TypeError,
+     r"geometry_msgs/msg/Twist field linear.y: takes a float64.*got str 'a'"),
+    ({"pose": {"orientation": [0, 0, 1]}}, "geometry_msgs/msg/PoseStamped", ValueError,
+     r"geometry_msgs/msg/PoseStamped field pose.orientation: takes 4 numbers \[x, y, z, w\].*got list of 3"),
+    ({"pose": [1, 2]}, "geometry_msgs/msg/PoseStamped", TypeError,
+     r"geometry_msgs/msg/PoseStamped field pose: takes a dict of the fields of a geometry_msgs/msg/Pose.*got list"),
+    ({"name": "ab"}, "sensor_msgs/msg/JointState", TypeError,
+     r"sensor_msgs/msg/JointState field name: takes a sequence of string.*got str 'ab'"),
+    ({"name": ["a", 1]}, "sensor_msgs/msg/JointState", TypeError,
+     r"sensor_msgs/msg/JointState field name\[1\]: takes a str.*got int 1"),
+    ({"position": [0.5, "x"]}, "sensor_msgs/msg/JointState", TypeError,
+     r"sensor_msgs/msg/JointState field position: takes a sequence of float64.*got list of 2 \[0.5, 'x'\]"),
+    ({"position": [[0.5], [1.0]]}, "sensor_msgs/msg/JointState", ValueError,
+     r"sensor_msgs/msg/JointState field position: takes a sequence of float64.*"
+     r"got an array of float64 of shape \(2, 1\)"),
+    ({"orientation_covariance": np.zeros(8)}, "sensor_msgs/msg/Imu", ValueError,
+     r"sensor_msgs/msg/Imu field orientation_covariance: takes 9 float64.*got an array of float64 of shape \(8,\)"),
+    ({"data": [1, 256]}, "sensor_msgs/msg/CompressedImage", ValueError,
+     r"sensor_msgs/msg/CompressedImage field data: takes a sequence of uint8 .*0.*255.*got .*256"),
+    ({"data": [1.5]}, "sensor_msgs/msg/CompressedImage", ValueError,
+     r"sensor_msgs/msg/CompressedImage field data: takes a sequence of uint8.*got .*not whole"),
+    ({"data": [True]}, "sensor_msgs/msg/CompressedImage", TypeError,
+     r"sensor_msgs/msg/CompressedImage field data: takes a sequence of uint8.*got an array of bool"),
+    ({"stamp": 1.5}, "sensor_msgs/msg/JointState", ValueError,
+     r"sensor_msgs/msg/JointState field stamp: takes an int of ns.*got float 1.5"),
+    ({"stamp": "1"}, "sensor_msgs/msg/JointState", TypeError,
+     r"sensor_msgs/msg/JointState field stamp: takes an int of ns.*got str '1'"),
+    ({"frame_id": 7}, "sensor_msgs/msg/JointState", TypeError,
+     r"sensor_msgs/msg/JointState field frame_id: takes a str.*got int 7"),
+])
+def test_a_value_that_does_not_convert_exactly_is_refused_naming_the_type_and_the_field(value, type_name, error, said):
+    """Publishing converted silently: [['x']] became the String "[['x']]", "false" a True Bool, 3.7
+    the Int32 3, a fourth element of a Vector3 was dropped, and an int past int32 failed in the
+    serializer with struct's "'i' format requires ...", naming no field."""
+    with pytest.raises(error, match=said):
+        types.serialize(types.from_value(value, type_name), type_name)
+
+
+def test_exact_conversions_still_pass():
+    assert _through_cdr(3.0, "std_msgs/msg/Int32") == 3
+    assert _through_cdr(np.int64(-4), "std_msgs/msg/Int8") == -4
+    assert _through_cdr(np.bool_(False), "std_msgs/msg/Bool") is False
+    assert _through_cdr(2, "std_msgs/msg/Float64") == 2.0
+    assert _through_cdr(np.float32(0.5), "std_msgs/msg/Float32") == 0.5
+    assert _through_cdr(2**64 - 1, "std_msgs/msg/UInt64") == 2**64 - 1
+    assert _through_cdr(float("inf"), "std_msgs/msg/Float32") == float("inf")
+    assert_equal(_through_cdr({"linear": np.array([1, 2, 3])}, "geometry_msgs/msg/Twist")["linear"],
+                 np.array([1.0, 2, 3]))
+    assert _through_cdr({"data": b"\xff\xd8"}, "sensor_msgs/msg/CompressedImage")["data"].tobytes() == b"\xff\xd8"
+    assert _through_cdr({"stamp": 5.0}, "std_msgs/msg/Header")["stamp"] == 5
+    assert_equal(_through_cdr({"data": np.array([1.0, 255.0])}, "std_msgs/msg/UInt8MultiArray"),
+                 np.array([1, 255], np.uint8))
+
+
+def test_a_msgdef_naming_an_unknown_type_is_refused_naming_it_and_registers_nothing():
+    """It was a bare KeyError('nope_msgs/msg/Thing') from the type hash, and the type stayed
+    registered half-made: a corrected definition then clashed with it."""
+    from retriever.ros2 import Ros2Publisher
+
+    with pytest.raises(ValueError, match=r"retriever_test_msgs/msg/Broken's msgdef names nope_msgs/msg/Thing "
+                                         r"\(field x\), which is not known"):
+        Ros2Publisher("/x", "retriever_test_msgs/msg/Broken", msgdef="nope_msgs/Thing x")
+    Ros2Publisher("/x", "retriever_test_msgs/msg/Broken", msgdef="geometry_msgs/Point x")  # the fix is taken
+
+
+def test_a_msgdef_under_a_name_not_of_three_parts_says_so_not_that_msgdef_is_missing():
+    from retriever.ros2 import Ros2Publisher
+
+    with pytest.raises(ValueError, match=r"(?s)'retriever_test_msgs/Short' is not a ROS 2 message type name.*"
+                                         r"retriever_test_msgs/msg/Short"):
+        Ros2Publisher("/x", "retriever_test_msgs/Short", msgdef="int32 a")
+
+
+def test_a_type_defined_again_the_same_is_taken_and_differently_is_refused_clearly():
+    """Defining it differently raised rosbags' TypesysError."""
+    types.register_msg("retriever_test_msgs/msg/Twice", "int32 a\nstring b")
+    types.register_msg("retriever_test_msgs/msg/Twice", "int32 a\nstring b")
+    with pytest.raises(ValueError, match=r"(?s)retriever_test_msgs/msg/Twice is defined already, differently "
+                                         r"\(int32 a, string b\).*give the new definition another name"):
+        types.register_msg("retriever_test_msgs/msg/Twice", "float64 a\nstring b")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+from ....flow._base import with_step_detail
 from ....tick import timed_step
 from .timing import WARM_AHEAD_NS
 
@@ -90,4 +91,4 @@ def quiet_source(loop) -> None:
             schedule.running = None
         if loop.outputs.consumed:
             loop.outputs.publish(())  # the frontier, for its consumers
-        reports.record(tau, {}, (), "ok", None, start, wall)
+        reports.record(tau, {}, (), "ok", with_step_detail(loop.flow, None), start, wall)

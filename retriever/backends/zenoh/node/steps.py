@@ -11,6 +11,7 @@ import time
 from typing import Any
 
 from ....errors import StopRun
+from ....flow._base import with_step_detail
 from ....flow.burst import Burst
 from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
@@ -139,7 +140,7 @@ class Steps:
             if publish:
                 outputs.sending = publish[0][0]
         outputs.publish(publish)  # first: the record is for the coordinator, and can wait
-        self.reports.record(tau, consumed, produced, status, detail, start, wall)
+        self.reports.record(tau, consumed, produced, status, with_step_detail(self.loop.flow, detail), start, wall)
 
     def source_stepped(self, tau, outputs: list, detail, start: int, wall: int) -> None:
         """A plain source's step returned ``outputs``: publish them and keep the record, as
