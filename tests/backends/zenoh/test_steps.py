@@ -21,11 +21,18 @@ from retriever.backends.base import NodeStats
 from retriever.backends.zenoh.node import Ending
 from retriever.backends.zenoh.node.steps import Steps
 from retriever.errors import StopRun
-from retriever.flow._base import PortSpec
+from retriever.flow._base import Flow, PortSpec
 from retriever.sync import PortBuffer
 from retriever.tick import Decision, decide, run_tick
 
 TAU = (150_000_000, 0)
+
+
+class Faulty(Flow):
+    """The stand-in loop's flow: says nothing of its ticks (Flow.add_step_detail)."""
+
+    def step(self, x: int) -> int:
+        return x
 
 
 def stand_in_loop(on_error: str) -> SimpleNamespace:
@@ -35,7 +42,7 @@ def stand_in_loop(on_error: str) -> SimpleNamespace:
         notes=SimpleNamespace(detail={}), schedule=SimpleNamespace(running=TAU),
         outputs=SimpleNamespace(publish=lambda batch: None), reports=SimpleNamespace(records=[]),
         streams=None, run_clock=None, lock=threading.Lock(), last_wall=0,
-        endings=[], restarting=False, exits=[], restarts=[])
+        endings=[], restarting=False, exits=[], restarts=[], flow=Faulty())
     loop.stop = loop.endings.append
     loop.reports.record = lambda *record: loop.reports.records.append(record)
     loop.on_exit = loop.exits.append
