@@ -150,7 +150,7 @@ def plain_topic(origin: Origin) -> str:
 def message_kind(value: Any) -> tuple[str, Any]:
     """``(ROS type, value made ready for it)`` for one leaf: an image as a contiguous array,
     a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``.
-    A ValueError (:func:`sizes_too_big`) for an array whose sizes no such message holds, said
+    A LogError (:func:`sizes_too_big`) for an array whose sizes no such message holds, said
     before the array is copied."""
     if image_encoding(value) is not None:
         _refuse_sizes(IMAGE, value)
@@ -193,19 +193,14 @@ def sizes_too_big(ros_type: str, value: np.ndarray) -> str | None:
     return next((f"{name} {int(number)}" for name, number in sizes if number > UINT32_MAX), None)
 
 
-class _SizesTooBig(ValueError):
-    """A leaf whose sizes no ROS message of its type holds: ``sizes_too_big``'s words."""
-
-    def __init__(self, ros_type: str, value: np.ndarray, said: str):
-        shape = ", ".join(map(str, value.shape))
-        super().__init__(f"its value, {value.dtype.name}[{shape}], does not fit a {ros_type}: its {said} is more than "
-                         f"the uint32 a ROS 2 message holds it in ({UINT32_MAX})")
-
-
 def _refuse_sizes(ros_type: str, value: np.ndarray) -> None:
+    """A LogError (without the event: :meth:`Ros2Bag.event` adds it) for an array whose sizes no
+    ``ros_type`` holds (``sizes_too_big``'s words)."""
     said = sizes_too_big(ros_type, value)
     if said is not None:
-        raise _SizesTooBig(ros_type, value, said)
+        shape = ", ".join(map(str, value.shape))
+        raise LogError(f"its value, {value.dtype.name}[{shape}], does not fit a {ros_type}: its {said} is more than "
+                       f"the uint32 a ROS 2 message holds it in ({UINT32_MAX})")
 
 
 def json_text(value: Any) -> str:
@@ -339,7 +334,7 @@ class Ros2Bag:
         for path, leaf in value_leaves(value):
             try:
                 kind, ready = message_kind(leaf)
-            except _SizesTooBig as e:
+            except LogError as e:  # (only sizes past a uint32: message_kind)
                 field = f", field {path[1:].replace('/', '.')}" if path else ""
                 raise LogError(f"event {node}.{port} #{seq}{field}: {e}", TOO_BIG_HINT) from None
             self.summary.as_json += kind == JSON
