@@ -411,7 +411,6 @@ def _replay(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], g
     soon as the outputs it names have been read; what is held is what the instants still to come
     need (deliveries not due, comparisons waiting for a LET output, the survey's exceptions)."""
     survey.check_events()
-    trace = session.trace
     encode = Encoder().pack
     routes = session.take_routes()
     late, gaps, missed = survey.late, survey.gaps, survey.views()
@@ -532,9 +531,9 @@ def _replay(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], g
             _, _, consumer, buf, entry = heapq.heappop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
                 buf.insert(entry)
-        _execute(session, step)
+        replayed, events = _execute(session, step)
         if keep_trace:
-            kept_parts.append(list(trace.raw_events))
+            kept_parts.append(events)
         stats.replayed += 1
         if lost and not lost.isdisjoint(step.produced):
             stats.lost += 1
@@ -544,14 +543,13 @@ def _replay(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], g
             stats.cut += 1
             claim(step.produced, None)
         else:
-            replayed, = trace.raw_steps
             found = _compare_record(step, replayed)
             if found is not None:
                 claim(step.produced, None)
                 checks.append(_Check(step, stats, found))
             else:
                 check = _Check(step, stats, done=False)
-                check.events, check.stamped = list(trace.raw_events), step.node in stamped
+                check.events, check.stamped = events, step.node in stamped
                 claim(step.produced, check)
                 checks.append(check)
                 if check.waiting == 0:
@@ -610,16 +608,25 @@ def _microstep_node(step) -> tuple[int, str]:
     return (step.tag[1], step.node)
 
 
-def _execute(session: InprocSession, step) -> None:
-    """Run the recorded tick again, its trace (only) in ``session.trace``."""
+def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
+    """Run the recorded tick again: its step record and its events, taken out of ``session.trace``."""
     trace = session.trace
-    del trace.raw_events[:], trace.raw_steps[:]
     try:
         session.tick(step.node, step.tag)
     except (StepError, RunEnded):
         pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
     if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
+    tape = trace.tape
+    if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
+        events = [item for item in tape if len(item) == 6]
+        records = [item for item in tape if len(item) != 6]
+        del tape[:]
+    else:  # expanded already (by a retract), or compact ones: through the trace
+        events, records = list(trace.raw_events), list(trace.raw_steps)
+        del trace.raw_events[:], trace.raw_steps[:]
+    replayed, = records
+    return replayed, events
 
 
 def _diverged(report: ReplayReport, stats: NodeReplay, found: Divergence) -> None:
