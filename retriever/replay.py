@@ -21,8 +21,34 @@ file the replay loaded (retriever/code.py): a module edited since the run is war
 value is compared, and named again in the report (``code_changes``), so that a divergence it
 causes is not taken for nondeterminism.
 
+**Memory: a log larger than RAM replays.** ``replay_file(path)`` (what ``retriever replay``
+runs) reads the file twice and keeps neither:
+
+1. ``log.reader.scan_log`` checks it whole, as ``read_log`` does (the same errors for a log torn
+   or damaged, before anything runs), handing each message to a :class:`LogSurvey`: what the
+   replay must know of the whole log before its first step, in memory that grows with what was
+   unusual in the run, not with its length (the nodes, the step count, the event ids as ranges
+   of seqs per port, the ``late`` / ``had_below`` / ``restart_gap`` details), and where the chunks
+   are;
+2. ``ScannedLog.time_ordered`` reads the messages again in log-time order (ties in file
+   order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
+   chunks whose times overlap. The replay takes them an instant (a log time) at a time: the
+   instant's events go to their consumers' deliveries (decoded once, on a heap by arrival), then
+   its step records run in ``(tag, node)`` order, as when every record was sorted up front. An
+   event waits until the record that produced it has run (the same instant, for a log a run
+   wrote); a step's outputs are compared once they are read (a LET step's come later in the
+   log than its tick), the comparisons reported in step order. An id that the survey says the
+   log lacks is known to be missing at once (the log is cut short, or it is a divergence).
+
+``replay(log)`` of a log read whole (``read_log``) takes the same two steps over its message
+list. Only a changed log can tell them apart: a record that names as late an event from its own
+future puts it in at once rather than at that record, and a second record naming an event the
+first already took compares as if the log lacked it. ``keep_trace`` holds the whole replayed run,
+so only ``replay`` has it.
+
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
-and compares the full trace: it proves the log is one consistent run of this graph.
+and compares the full trace: it proves the log is one consistent run of this graph. It reads the
+log whole.
 
 Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``.
 """

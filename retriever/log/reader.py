@@ -280,7 +280,8 @@ class ScannedLog(LogHead):
                     records = breakup_chunk(chunk, validate_crc=True)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
-                                   f"reads ({type(e).__name__}: {e})", "read it again, once nothing writes it") from None
+                                   f"reads ({type(e).__name__}: {e})",
+                                   "read it again, once nothing writes it") from None
                 new = [(m.log_time, offset, i, m) for i, m in enumerate(records) if type(m) is Message]
                 if held:
                     held += new

@@ -136,7 +136,8 @@ def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
         whole, reports[path] = replay(read_log(path)), replay_file(path)
         _same(whole, reports[path])
         assert (reports[path].divergent_steps, reports[path].nodes["brightness"].cut) == (divergent, not_compared)
-    assert "value differs\n      logged:   '<not in the log: the log ends here>'" in str(reports[missing].divergences[0])
+    first = str(reports[missing].divergences[0])
+    assert "value differs\n      logged:   '<not in the log: the log ends here>'" in first
 
 
 # ---------------------------------------------------------------------------------------------
