@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from retriever import read_log
+from retriever import LogError, read_log
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter
 from retriever.log.reader import scan_log
@@ -171,3 +171,40 @@ def test_replay_prints_no_progress_on_a_pipe(small_chunks):
     done = cli("replay", small_chunks)
     assert done.returncode == 0 and "identical:" in done.stdout, done.stdout + done.stderr
     assert done.stderr == ""
+
+
+def test_a_log_changed_between_the_two_readings_is_refused(small_chunks, tmp_path):
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(small_chunks.read_bytes())
+    scanned = scan_log(copy, lambda channel, m: None)
+    with open(copy, "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(LogError, match=r"copy\.mcap changed since it was read\n    hint: read it again"):
+        next(scanned.time_ordered())
+
+
+def test_a_log_with_messages_outside_chunks_is_replayed_read_whole(small_chunks, tmp_path):
+    """MCAP allows messages outside chunks (Retriever's writer makes none): time_ordered() does
+    not read those, and replay_file replays such a log as replay() does, read whole."""
+    from mcap.writer import Writer
+
+    log = read_log(small_chunks)
+    loose = tmp_path / "loose.mcap"
+    with open(loose, "wb") as out:
+        writer = Writer(out, use_chunking=False)
+        writer.start(profile=log.profile, library="test")
+        ids = {c.id: writer.register_channel(c.topic, c.message_encoding, 0, dict(c.metadata))
+               for c in log.channels.values()}
+        for a in log.attachments.values():
+            writer.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
+        for name, data in log.metadata.items():
+            writer.add_metadata(name, data)
+        for m in log.messages:
+            writer.add_message(ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+        writer.finish()
+    scanned = scan_log(loose, lambda channel, m: None)
+    assert scanned.loose == len(log.messages) and not scanned.chunks
+    with pytest.raises(LogError, match="messages outside its chunks"):
+        next(scanned.time_ordered())
+    _same(replay(read_log(loose)), replay_file(loose))
+    assert replay_file(loose).identical
