@@ -21,8 +21,34 @@ file the replay loaded (retriever/code.py): a module edited since the run is war
 value is compared, and named again in the report (``code_changes``), so that a divergence it
 causes is not taken for nondeterminism.
 
+**Memory: a log larger than RAM replays.** ``replay_file(path)`` (what ``retriever replay``
+runs) reads the file twice and keeps neither:
+
+1. ``log.reader.scan_log`` checks it whole, as ``read_log`` does (the same errors for a log torn
+   or damaged, before anything runs), handing each message to a :class:`LogSurvey`: what the
+   replay must know of the whole log before its first step, in memory that grows with what was
+   unusual in the run, not with its length (the nodes, the step count, the event ids as ranges
+   of seqs per port, the ``late`` / ``had_below`` / ``restart_gap`` details), and where the chunks
+   are;
+2. ``ScannedLog.time_ordered`` reads the messages again in log-time order (ties in file
+   order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
+   chunks whose times overlap. The replay takes them an instant (a log time) at a time: the
+   instant's events go to their consumers' deliveries (decoded once, on a heap by arrival), then
+   its step records run in ``(tag, node)`` order, as when every record was sorted up front. An
+   event waits until the record that produced it has run (the same instant, for a log a run
+   wrote); a step's outputs are compared once they are read (a LET step's come later in the
+   log than its tick), the comparisons reported in step order. An id that the survey says the
+   log lacks is known to be missing at once (the log is cut short, or it is a divergence).
+
+``replay(log)`` of a log read whole (``read_log``) takes the same two steps over its message
+list. Only a changed log can tell them apart: a record that names as late an event from its own
+future puts it in at once rather than at that record, and a second record naming an event the
+first already took compares as if the log lacked it. ``keep_trace`` holds the whole replayed run,
+so only ``replay`` has it.
+
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
-and compares the full trace: it proves the log is one consistent run of this graph.
+and compares the full trace: it proves the log is one consistent run of this graph. It reads the
+log whole.
 
 Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``.
 """
@@ -31,11 +57,15 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import heapq
 import json
 import os
 import warnings
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from itertools import chain as _chain
+from pathlib import Path
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -44,7 +74,8 @@ from .code import code_mismatches
 from .codec import Encoder, unpackb
 from .errors import IRError, LogError, ReplayedError, RetrieverWarning, RunEnded, SetupError, StepError
 from .flow._base import settings_of
-from .log.reader import LoggedEvent, RunLog
+from .log import format as fmt
+from .log.reader import LogHead, LoggedEvent, RunLog, read_log, scan_log
 from .pipeline import Pipeline
 from .time import format_tag
 from .trace import STEPPED, StepRecord, Trace
@@ -105,9 +136,11 @@ class ReplayReport:
         return sum(n.replayed for n in self.nodes.values())
 
 
-def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
+def pipeline_for(log: LogHead, pipeline: Pipeline | None = None,
+                 logged_nodes: Callable[[], set[str]] | None = None) -> Pipeline:
     """The pipeline to replay: the given one (its flows reset to their initial state), or the
-    one rebuilt from the log's IR."""
+    one rebuilt from the log's IR. It must have every node the log has steps of
+    (``logged_nodes()``; by default read from ``log.iter_steps()``)."""
     if pipeline is None:
         script = _script_that_ran(log)
         if script is not None:  # the fix first: an IR's advice (`retriever ir`) is no fix for a replay
@@ -127,8 +160,8 @@ def pipeline_for(log: RunLog, pipeline: Pipeline | None = None) -> Pipeline:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RetrieverWarning)  # the original run already showed them
         graph = pipeline.compile()
-    logged_nodes = {s.node for s in log.iter_steps()}
-    unknown = sorted(logged_nodes - set(graph.nodes))
+    nodes = {s.node for s in log.iter_steps()} if logged_nodes is None else logged_nodes()
+    unknown = sorted(nodes - set(graph.nodes))
     if unknown:
         raise LogError(f"{log.path} has steps of node(s) {', '.join(unknown)}, which pipeline "
                        f"'{graph.name}' does not have (it has: {', '.join(sorted(graph.nodes))})",
@@ -155,14 +188,47 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     """Re-execute every non-source step of ``log``; see the module docstring. The flows are set
     up before the first step and torn down at the end, as in a run. ``keep_trace=True`` keeps
     the replayed run in ``report.trace`` (what an export of the replay reads: docs/learning.md)."""
-    pipeline = pipeline_for(log, pipeline)
+    survey = LogSurvey(log.path)
+    channels = log.channels
+    for m in log.messages:
+        survey.take(channels[m.channel_id], m)
+    return _replay_surveyed(log, survey, lambda: iter(sorted(log.messages, key=_log_time)), pipeline, progress,
+                            keep_trace)
+
+
+def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeline] | None = None,
+                progress: Callable[[str, int, int], None] | None = None) -> ReplayReport:
+    """:func:`replay` of the log at ``path`` that holds no more than a few of its chunks in memory
+    at a time, however long the log (the module docstring says how). ``pipeline``: as for
+    :func:`replay`, or a function that makes it, called once the log has been read (so a log
+    that cannot be read is said first). ``progress(what, done, total)``: ``"reading"`` with bytes
+    as the file is checked, then ``"replaying"`` with steps. A log with messages outside its chunks
+    (MCAP allows them; Retriever's writer makes none) is replayed by :func:`replay`, read whole."""
+    survey = LogSurvey(Path(path))
+    read = None if progress is None else (lambda done, total: progress("reading", done, total))
+    log = scan_log(path, survey.take, progress=read)
+    if callable(pipeline):
+        pipeline = pipeline()
+    steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
+    if log.loose:
+        return replay(read_log(path), pipeline, steps)
+    return _replay_surveyed(log, survey, log.time_ordered, pipeline, steps, False)
+
+
+def _log_time(message) -> int:
+    return message.log_time
+
+
+def _replay_surveyed(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], pipeline: Pipeline | None,
+                     progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
+    pipeline = pipeline_for(log, pipeline, survey.logged_nodes)
     graph = pipeline.compile()
     changes = code_changes(log, graph)
     session = InprocSession(graph)
     logged = from_the_log(graph)
     _set_up(session, logged)
     try:
-        report = _replay(log, graph, session, logged, progress, keep_trace)
+        report = _replay(log, survey, messages, graph, session, logged, progress, keep_trace)
     finally:
         session.close()
     report.code_changes = changes
@@ -215,16 +281,169 @@ def from_the_log(graph) -> frozenset[str]:
                      if not node.inputs or settings_of(node.flow).replay == "log")
 
 
-def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
-            progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
-    trace = session.trace
+class LogSurvey:
+    """What a replay must know of the whole log before its first step, gathered from its
+    messages in one pass in file order (as the file is checked, or from a read log's list), in
+    memory that grows with what was unusual in the run, not with its length: the nodes that
+    have steps and how many steps; which event ids the log holds (per port, ranges of seqs: one
+    range for a port whose events all are there), so an event logged twice is found; the events
+    that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
+    records' ``late``, ``had_below`` and ``restart_gap``). A record that is not one is kept as
+    the error the replay raises where it would have read it whole."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.nodes: set[str] = set()
+        self.steps = 0
+        self.seqs: dict[tuple[str, str], _Seqs] = {}
+        #: ((consumer, port), event id) -> the tag of the consumer's record that names it late
+        self.late: dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]] = {}
+        self._views: dict[tuple[tuple[str, str], str, str], list] = {}
+        self.gaps: dict[tuple[str, str], list[tuple[str, str, int, int]]] = {}
+        self.step_error: LogError | None = None
+        self.event_error: LogError | None = None
+        self.twice: LogError | None = None
+        self._kinds: dict[int, Any] = {}  # channel id -> _STEPS, (node, port, seqs), or None
+
+    def take(self, channel, m) -> None:
+        kind = self._kinds.get(m.channel_id, _UNSEEN)
+        if kind is _UNSEEN:
+            kind = self._kinds[m.channel_id] = self._kind(channel)
+        if kind is _STEPS:
+            self._step(m)
+        elif kind is not None:
+            node, port, seqs = kind
+            if self.event_error is None:
+                try:
+                    fmt.split_event(m.data)
+                except ValueError as e:
+                    self.event_error = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is malformed ({e})")
+            if not seqs.add(m.sequence) and self.twice is None:
+                self.twice = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is logged twice",
+                                      "the file is damaged or was edited: retriever replay reads logs as a run "
+                                      "wrote them")
+
+    def _kind(self, channel) -> Any:
+        if channel.topic == fmt.STEPS_TOPIC:
+            return _STEPS
+        port = fmt.parse_data_topic(channel.topic)
+        return None if port is None else (*port, self.seqs.setdefault(port, _Seqs()))
+
+    def _step(self, m) -> None:
+        if self.step_error is not None:
+            return
+        try:
+            node, microstep, _, _, _, detail, _ = fmt.decode_step(m.data)
+        except Exception as e:
+            self.step_error = LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})")
+            return
+        self.steps += 1
+        self.nodes.add(node)
+        if not detail:
+            return
+        tag = (m.log_time, microstep)
+        for port, ids in (detail.get("late") or {}).items():
+            for event_id in ids:
+                key = ((node, port), tuple(event_id))
+                if self.late.get(key, tag) <= tag:  # named late twice: the record that sorts last
+                    self.late[key] = tag
+        for port, streams in (detail.get("had_below") or {}).items():
+            for src, out, seq in streams:
+                self._views.setdefault(((node, port), src, out), []).append((tag, seq))
+        for port, ranges in (detail.get("restart_gap") or {}).items():
+            self.gaps.setdefault((node, port), []).extend(tuple(r) for r in ranges)
+
+    def logged_nodes(self) -> set[str]:
+        """The nodes the log has steps of (or the error of its first step record that is not one)."""
+        if self.step_error is not None:
+            raise self.step_error
+        return self.nodes
+
+    def check_events(self) -> None:
+        """Raise what is wrong with the log's events: one that is not one, one logged twice."""
+        if self.event_error is not None:
+            raise self.event_error
+        if self.twice is not None:
+            raise self.twice
+
+    def views(self) -> dict[tuple[tuple[str, str], str, str], tuple[list, list]]:
+        """Per ``((consumer node, port), producer, producer port)``, the tags of the consumer's ticks
+        that ran incomplete on it and, at each, the seq that stream's next event would have had
+        (their ``had_below`` detail): the two lists in tag order."""
+        return {key: tuple(map(list, zip(*sorted(v)))) for key, v in self._views.items()}
+
+    def in_log(self, event_id: tuple[str, str, int]) -> bool:
+        seqs = self.seqs.get(event_id[:2])
+        return seqs is not None and event_id[2] in seqs
+
+
+_STEPS = "steps"
+_UNSEEN = object()
+
+
+class _Seqs:
+    """A set of seqs held as sorted ranges ``[lo, hi)``: as small as the gaps between them."""
+
+    __slots__ = ("lo", "hi")
+
+    def __init__(self) -> None:
+        self.lo: list[int] = []
+        self.hi: list[int] = []
+
+    def add(self, seq: int) -> bool:
+        """Put ``seq`` in; False if it was there."""
+        lo, hi = self.lo, self.hi
+        if hi and hi[-1] == seq:  # the next one: the common case
+            hi[-1] = seq + 1
+            return True
+        i = bisect.bisect_right(lo, seq)
+        if i and seq < hi[i - 1]:
+            return False
+        after, before = i and hi[i - 1] == seq, i < len(lo) and lo[i] == seq + 1
+        if after and before:
+            hi[i - 1] = hi[i]
+            del lo[i], hi[i]
+        elif after:
+            hi[i - 1] = seq + 1
+        elif before:
+            lo[i] = seq
+        else:
+            lo.insert(i, seq)
+            hi.insert(i, seq + 1)
+        return True
+
+    def __contains__(self, seq: int) -> bool:
+        i = bisect.bisect_right(self.lo, seq)
+        return bool(i) and seq < self.hi[i - 1]
+
+
+class _Check:
+    """One logged step's comparison, in step order: decided when every logged output it needs
+    has been read (a LET step's outputs come later in the log than its tick)."""
+
+    __slots__ = ("step", "stats", "replayed", "events", "stamped", "originals", "waiting", "found", "done")
+
+    def __init__(self, step, stats: NodeReplay, found: Divergence | None = None, done: bool = True) -> None:
+        self.step, self.stats, self.found, self.done = step, stats, found, done
+        self.originals: dict[tuple, LoggedEvent] = {}
+        self.waiting = 0
+
+
+def _replay(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], graph, session: InprocSession,
+            sources: frozenset[str], progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
+    """The replay, reading the log's messages once in log-time order (``messages()``) and an
+    instant at a time: an instant's events go to the consumers' deliveries (decoded once, in
+    arrival order on a heap), then its step records run in (tag, node) order, each compared as
+    soon as the outputs it names have been read; what is held is what the instants still to come
+    need (deliveries not due, comparisons waiting for a LET output, the survey's exceptions)."""
+    survey.check_events()
     encode = Encoder().pack
-    steps = sorted(log.iter_steps(), key=lambda s: (s.tag, s.node))
-    events, logged = _logged_events(log)
-    deliveries, late_at = _deliveries(log, events, session.take_routes(), steps)
+    routes = session.take_routes()
+    late, gaps, missed = survey.late, survey.gaps, survey.views()
+    in_log = survey.in_log
     # a lost process's outputs that its records claim and no report carried: not comparable (a
     # consumer may still have carried one in: that one is in the log, and compared)
-    lost = {event_id for fault in log.faults for event_id in fault["lost_events"]} - logged.keys()
+    lost = {event_id for fault in log.faults for event_id in fault["lost_events"] if not in_log(event_id)}
     floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
 
     # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
@@ -235,109 +454,205 @@ def _replay(log: RunLog, graph, session: InprocSession, sources: frozenset[str],
     # a log whose writer was killed, recovered or read with salvage=True, may keep a step record
     # (one chunk) and lose the events it consumed or produced (another): such a step cannot be compared
     cut_short = not log.complete or "retriever.recovered" in log.metadata
-    kept = Trace() if keep_trace else None
-    delivered = 0
-    seen_ticks: set[tuple[str, tuple[int, int]]] = set()
-    for i, step in enumerate(steps):
-        if progress is not None and i % PROGRESS_EVERY == 0:
-            progress(i, len(steps))
+    steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
+    ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
+
+    deliveries: list = []  # heap of (arrival, n, consumer node, buffer, entry)
+    delivered = 0  # events put on the heap: its tie-break, the order the log was read in
+    late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> [(buf, entry)]
+    unclaimed: dict[tuple, LoggedEvent] = {}  # events read whose step record has not been replayed yet
+    waiting: dict[tuple, _Check | None] = {}  # outputs a replayed record named, not read yet -> its check
+    checks: deque[_Check] = deque()  # in step order, from the first not decided
+    kept_steps, kept_parts, kept_events = [], [], {}  # keep_trace: in step order, the outputs of each
+    now = (-1, 0)  # the tag of the instant whose steps run
+    done = 0
+    total = survey.steps
+
+    def read(m, port) -> None:
+        """An event read: to its consumers' deliveries, and to the check waiting for it."""
+        nonlocal delivered
+        try:
+            microstep, raw = fmt.split_event(m.data)
+        except ValueError as e:
+            raise LogError(f"{log.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+        e = LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+        event_id = (port[0], port[1], m.sequence)
+        if keep_trace:
+            kept_events[event_id] = e
+        consumers = routes.get(port)
+        if consumers:
+            value = log.value(e)
+            for consumer, buf, delay_ns in consumers:
+                if gaps and _in_gap(gaps.get(consumer), e):
+                    continue
+                arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
+                entry = (arrival, e.node, e.port, e.seq, value)
+                seen_at = late.get((consumer, event_id)) if late else None
+                if seen_at is not None:
+                    if seen_at < now:  # a record before its time names it (a changed log): in at once
+                        buf.insert(entry)
+                    else:
+                        late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
+                elif not missed or not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
+                    heapq.heappush(deliveries, (arrival, delivered, consumer[0], buf, entry))
+                    delivered += 1
+        check = waiting.pop(event_id, _UNSEEN)
+        if check is _UNSEEN:
+            unclaimed[event_id] = e
+        elif check is not None:
+            check.originals[event_id] = e
+            check.waiting -= 1
+            if check.waiting == 0:
+                decide(check)
+                flush()
+
+    def claim(ids, check: _Check | None) -> None:
+        """A record's logged outputs: to its check (None: not compared, let go)."""
+        for event_id in ids:
+            e = unclaimed.pop(event_id, None)
+            if e is not None:
+                if check is not None:
+                    check.originals[event_id] = e
+            elif in_log(event_id):
+                waiting[event_id] = check
+                if check is not None:
+                    check.waiting += 1
+
+    def decide(check: _Check) -> None:
+        check.found = _compare_outputs(check.step, check.events, check.originals, encode, check.stamped)
+        check.done = True
+        check.events = check.originals = None
+
+    def flush() -> None:
+        while checks and checks[0].done:
+            check = checks.popleft()
+            if check.found is None:
+                check.stats.identical += 1
+            else:
+                _diverged(report, check.stats, check.found)
+
+    def run(step) -> None:
         stats = report.nodes[step.node]
         stats.steps += 1
         # a source is not re-executed: its records are checked against its clock (a forged
         # record between its ticks, or a second at one, is no step the run made)
         found = _off_clock(step, graph.nodes[step.node].clock, seen_ticks)
         if found is not None:
-            _diverged(report, stats, found)
-            continue
+            checks.append(_Check(step, stats, found))
+            flush()
+            return
         restarted = (step.detail or {}).get("restarted")
         if restarted is not None:
             _restart_afresh(session, step.node, restarted, floors)
         for buf, entry in late_at.pop((step.node, step.tag), ()):
             buf.insert(entry)  # it arrived late: in the buffer from this record on, as in the run
-        if kept is not None:
-            kept.raw_steps.append(tuple(step))
+        if keep_trace:
+            kept_steps.append(tuple(step))
         if step.node in sources or not _stepped(step):
-            if kept is not None:  # not re-executed: its outputs as logged
-                kept.raw_events.extend((e.tag, e.node, e.port, e.seq, log.value(e), e.publish_ns)
-                                       for e in map(logged.get, step.produced) if e is not None)
-            continue
-        while delivered < len(deliveries) and deliveries[delivered][0] <= step.tag:
-            _, consumer, buf, entry = deliveries[delivered]
+            claim(step.produced, None)
+            if keep_trace:  # not re-executed: its outputs as logged
+                kept_parts.append(step.produced)
+            return
+        while deliveries and deliveries[0][0] <= step.tag:
+            _, _, consumer, buf, entry = heapq.heappop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
                 buf.insert(entry)
-            delivered += 1
-        _execute(session, step)
-        if kept is not None:
-            kept.raw_events.extend(trace.raw_events)
+        replayed, events = _execute(session, step)
+        if keep_trace:
+            kept_parts.append(events)
         stats.replayed += 1
         if lost and not lost.isdisjoint(step.produced):
             stats.lost += 1
-        elif cut_short and any(event_id not in logged for event_id in
+            claim(step.produced, None)
+        elif cut_short and any(not in_log(event_id) for event_id in
                                (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
             stats.cut += 1
+            claim(step.produced, None)
         else:
-            found = _compare(step, trace, logged, encode, step.node in stamped)
-            if found is None:
-                stats.identical += 1
+            found = _compare_record(step, replayed)
+            if found is not None:
+                claim(step.produced, None)
+                checks.append(_Check(step, stats, found))
             else:
-                _diverged(report, stats, found)
+                check = _Check(step, stats, done=False)
+                check.events, check.stamped = events, step.node in stamped
+                claim(step.produced, check)
+                checks.append(check)
+                if check.waiting == 0:
+                    decide(check)
+            flush()
+
+    steps: list = []
+    seen_ticks: set[tuple[str, tuple[int, int]]] = set()
+    instant = None
+    for m in _chain(messages(), (None,)):
+        if m is None or m.log_time != instant:
+            if steps:  # the instant's messages are read: run its steps, in (tag, node) order
+                steps.sort(key=_microstep_node)
+                for step in steps:
+                    if progress is not None and done % PROGRESS_EVERY == 0:
+                        progress(done, total)
+                    done += 1
+                    run(step)
+                steps.clear()
+                seen_ticks.clear()
+            if m is None:
+                break
+            instant = m.log_time
+            now = (instant, 0)  # every record before it has run
+        channel = m.channel_id
+        if channel in steps_channels:
+            try:
+                node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+            except Exception as e:
+                raise LogError(f"{log.path}: step record #{m.sequence} is malformed ({e})") from None
+            steps.append(StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
+                                    m.publish_time, wall_ns))
+        else:
+            port = ports.get(channel)
+            if port is not None:
+                read(m, port)
+    for check in checks:  # what no output came for: the log ends before it
+        if not check.done:
+            decide(check)
+    flush()
     if progress is not None:
-        progress(len(steps), len(steps))
-    report.trace = kept
+        progress(total, total)
+    if keep_trace:
+        kept = report.trace = Trace()
+        kept.raw_steps.extend(kept_steps)
+        for part in kept_parts:
+            if type(part) is tuple:
+                kept.raw_events.extend((e.tag, e.node, e.port, e.seq, log.value(e), e.publish_ns)
+                                       for e in map(kept_events.get, part) if e is not None)
+            else:
+                kept.raw_events.extend(part)
     return report
 
 
-def _logged_events(log: RunLog) -> tuple[list[LoggedEvent], dict]:
-    """The log's events in the order it holds them, and by id; an id logged twice is refused."""
-    events = list(log.iter_events())
-    logged = {e.id: e for e in events}
-    if len(logged) < len(events):
-        twice = next(e for i, e in enumerate(events) if any(e.id == f.id for f in events[:i]))
-        raise LogError(f"{log.path}: event {twice.node}.{twice.port} #{twice.seq} is logged twice",
-                       "the file is damaged or was edited: retriever replay reads logs as a run wrote them")
-    return events, logged
+def _microstep_node(step) -> tuple[int, str]:
+    return (step.tag[1], step.node)
 
 
-def _deliveries(log: RunLog, events: list[LoggedEvent], routes: dict, steps: list) -> tuple[list, dict]:
-    """Where each logged event goes: ``(arrival, consumer node, buffer, entry)`` in arrival order
-    at each consumer (an edge's delay shifts it), but for the late ones: in real time they reached
-    a consumer after a tick at or past their tag had run without them, so they go in its buffer
-    right before the record that names them (the second result, by (consumer node, record tag)).
-    An event a consumer never had (a restart's gap, an incomplete view) goes nowhere."""
-    late = _late_events(steps)
-    missed = _incomplete_views(steps)
-    gaps = _restart_gaps(steps)
-    late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> (buf, entry)
-    deliveries = []
-    for e in events:
-        consumers = routes.get((e.node, e.port))
-        if not consumers:
-            continue
-        value = log.value(e)
-        for consumer, buf, delay_ns in consumers:
-            if _in_gap(gaps.get(consumer), e):
-                continue
-            arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
-            entry = (arrival, e.node, e.port, e.seq, value)
-            seen_at = late.get((consumer, e.id))
-            if seen_at is not None:
-                late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
-            elif not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
-                deliveries.append((arrival, consumer[0], buf, entry))
-    deliveries.sort(key=lambda d: d[0])
-    return deliveries, late_at
-
-
-def _execute(session: InprocSession, step) -> None:
-    """Run the recorded tick again, its trace (only) in ``session.trace``."""
+def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
+    """Run the recorded tick again: its step record and its events, taken out of ``session.trace``."""
     trace = session.trace
-    del trace.raw_events[:], trace.raw_steps[:]
     try:
         session.tick(step.node, step.tag)
     except (StepError, RunEnded):
         pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
     if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
+    tape = trace.tape
+    if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
+        events = [item for item in tape if len(item) == 6]
+        records = [item for item in tape if len(item) != 6]
+        del tape[:]
+    else:  # expanded already (by a retract), or compact ones: through the trace
+        events, records = list(trace.raw_events), list(trace.raw_steps)
+        del trace.raw_events[:], trace.raw_steps[:]
+    replayed, = records
+    return replayed, events
 
 
 def _diverged(report: ReplayReport, stats: NodeReplay, found: Divergence) -> None:
@@ -359,27 +674,6 @@ def _off_clock(step, clock, seen: set[tuple[str, tuple[int, int]]]) -> Divergenc
     return None
 
 
-def _late_events(steps) -> dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]]:
-    """``((consumer node, port), event id)`` of every event that reached a real-time consumer
-    late, to the tag of the consumer's record that names it (its ``late`` detail, ``{port:
-    [event id, ...]}``): the first tick whose buffer had it."""
-    return {((s.node, port), (node, out, seq)): s.tag
-            for s in steps if s.detail and "late" in s.detail
-            for port, ids in s.detail["late"].items() for node, out, seq in ids}
-
-
-def _incomplete_views(steps) -> dict[tuple[tuple[str, str], str, str], tuple[list, list]]:
-    """Per ``((consumer node, port), producer, producer port)``, the tags of the consumer's ticks
-    that ran incomplete on it and, at each, the seq that stream's next event would have had
-    (their ``had_below`` detail): the two lists in tag order."""
-    views: dict[tuple[tuple[str, str], str, str], list] = {}
-    for s in steps:
-        for port, streams in ((s.detail or {}).get("had_below") or {}).items():
-            for node, out, seq in streams:
-                views.setdefault(((s.node, port), node, out), []).append((s.tag, seq))
-    return {key: tuple(map(list, zip(*sorted(v)))) for key, v in views.items()}
-
-
 def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: int) -> bool:
     """Whether a consumer never had an event that no record of it names late: the first of its
     ticks at or past the event's tag ran incomplete without it. Had it come afterwards, a later
@@ -389,16 +683,6 @@ def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: in
     tags, seqs = view
     i = bisect.bisect_left(tags, arrival)
     return i < len(tags) and seq >= seqs[i]
-
-
-def _restart_gaps(steps) -> dict[tuple[str, str], list[tuple[str, str, int, int]]]:
-    """Per ``(consumer node, port)``, the seq ranges ``[lo, hi)`` of a restarted producer's
-    streams it gave up (the dead process's events it never got), from its records' ``restart_gap``."""
-    gaps: dict[tuple[str, str], list[tuple[str, str, int, int]]] = {}
-    for s in steps:
-        for port, ranges in ((s.detail or {}).get("restart_gap") or {}).items():
-            gaps.setdefault((s.node, port), []).extend(tuple(r) for r in ranges)
-    return gaps
 
 
 def _in_gap(ranges: list[tuple[str, str, int, int]] | None, event: LoggedEvent) -> bool:
@@ -419,8 +703,10 @@ def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: 
                 buf.insert(entry)
 
 
-def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:
-    (_, tag, consumed, produced, status, detail, *_), = trace.raw_steps
+def _compare_record(step, replayed: tuple) -> Divergence | None:
+    """The replayed step record against the logged one: the ids it consumed, its status, its
+    error, the ids it produced."""
+    _, tag, consumed, produced, status, detail, *_ = replayed
 
     def differs(what: str, logged_value: Any, replayed: Any, port: str | None = None) -> Divergence:
         return Divergence(step.node, step.tag, what, port, logged_value, replayed)
@@ -434,19 +720,25 @@ def _compare(step, trace: Trace, logged: dict[tuple, LoggedEvent], encode, stamp
         return differs("error", step.detail.get("error"), detail.get("error"))
     if produced != step.produced:
         return differs("outputs (produced event ids)", list(step.produced), list(produced))
-    for ev in trace.raw_events:
+    return None
+
+
+def _compare_outputs(step, events: list, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:
+    """The replayed outputs of a step whose record matched, against the logged ones (``logged``:
+    by id, those the log holds): their tags and every value's msgpack bytes."""
+    for ev in events:
         tag, node, port, seq, value = ev[:5]
         original = logged.get((node, port, seq))
         if original is None:
-            return differs("value", "<not in the log: the log ends here>", value, port)
+            return Divergence(step.node, step.tag, "value", port, "<not in the log: the log ends here>", value)
         if stamped:
             if original.tag <= step.tag:
-                return differs("output tag (not after its tick: causality)", format_tag(original.tag),
-                               f"after {format_tag(step.tag)}", port)
+                return Divergence(step.node, step.tag, "output tag (not after its tick: causality)", port,
+                                  format_tag(original.tag), f"after {format_tag(step.tag)}")
         elif tag != original.tag:
-            return differs("output tag", format_tag(original.tag), format_tag(tag), port)
+            return Divergence(step.node, step.tag, "output tag", port, format_tag(original.tag), format_tag(tag))
         if encode(value) != original.raw_value:
-            return differs("value", _logged_value(original), value, port)
+            return Divergence(step.node, step.tag, "value", port, _logged_value(original), value)
     return None
 
 

@@ -657,7 +657,9 @@ class InprocSession(Session):
 
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
-        self._compiled.drop()  # generated ticks keep their own seq counters
+        compiled = self._compiled
+        if compiled.ticks is not None or compiled.flushes:  # generated ticks keep their own seq counters
+            compiled.drop()
         run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
 
     def retract(self, node: str) -> None:

@@ -25,19 +25,17 @@ def replay(
     resim: Annotated[bool, typer.Option("--resim", help="Re-run the whole graph from the logged sources.")] = False,
 ) -> None:
     """Re-execute a logged run and compare every output byte for byte (exit 0 only if identical)."""
-    from rich.progress import Progress
+    from ..replay import replay_file, resim as resim_log
 
-    from ..replay import replay as replay_log, resim as resim_log
-
-    log = read(path)
-    pipe = None if pipeline is None else load(pipeline)
     try:
         if resim:
-            result = resim_log(log, pipe)
-        else:
-            with Progress(console=console.err, transient=True, disable=not console.err.is_terminal) as bar:
-                task = bar.add_task("replaying", total=None)
-                result = replay_log(log, pipe, progress=lambda done, total: bar.update(task, completed=done, total=total))
+            log = read(path)
+            result = resim_log(log, None if pipeline is None else load(pipeline))
+        else:  # the log is read in two passes, neither keeping it: a log larger than memory replays
+            with _ReplayProgress() as show:
+                result = replay_file(path, None if pipeline is None else (lambda: load(pipeline)), progress=show)
+    except typer.Exit:
+        raise
     except Exception as exc:
         fail(exc)
     source = f"--pipeline {pipeline}" if pipeline else "the IR in the log"
@@ -75,6 +73,33 @@ def replay(
                       f"differ{escape(visible(_code_changed(result.code_changes)))}. "
                       f"First:\n  {escape(visible(str(result.divergences[0])))}", highlight=False, markup=True)
     raise typer.Exit(code=1)
+
+
+class _ReplayProgress:
+    """The progress of ``retriever replay`` on stderr, when it is a terminal (a pipe or a file
+    gets nothing: what scripts read there is warnings and errors): a bar for reading the log
+    (checking it whole, by bytes), then one for replaying it (by steps); gone when it ends."""
+
+    def __enter__(self):
+        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeRemainingColumn
+
+        self._bar = Progress(TextColumn("{task.description}"), BarColumn(), TaskProgressColumn(),
+                             TextColumn("{task.fields[amount]}"), TimeRemainingColumn(), console=console.err,
+                             transient=True, disable=not console.err.is_terminal)
+        self._tasks: dict[str, object] = {}
+        self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._bar.__exit__(*exc)
+
+    def __call__(self, what: str, done: int, total: int) -> None:
+        amount = (f"{done / 1e6:,.1f} of {total / 1e6:,.1f} MB" if what == "reading"
+                  else f"{done:,} of {total:,} steps")
+        task = self._tasks.get(what)
+        if task is None:
+            task = self._tasks[what] = self._bar.add_task(what, total=total, amount=amount)
+        self._bar.update(task, completed=done, total=total, amount=amount)
 
 
 def _code_changed(changes: list[str]) -> str:

@@ -91,18 +91,20 @@ def decode_step(data: bytes) -> tuple:
             or not (detail is None or (type(detail) is dict and all(type(k) is str for k in detail)))
             or (detail is None and status in ("late", "error"))):
         raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
-    late = (detail or {}).get("late", {})
-    if type(late) is not dict:
-        raise ValueError("its late events are not {port: [event id, ...]}")
-    for ids in late.values():
-        event_ids(ids)
-    had_below = (detail or {}).get("had_below", {})
-    if type(had_below) is not dict:
-        raise ValueError("what its incomplete inputs had is not {port: [[node, port, next seq], ...]}")
-    for streams in had_below.values():
-        event_ids(streams)
-    _check_restart_detail(detail or {})
-    consumed = {port: event_ids(ids) for port, ids in consumed.items()}
+    if detail is not None:  # (most records have none)
+        late = detail.get("late", {})
+        if type(late) is not dict:
+            raise ValueError("its late events are not {port: [event id, ...]}")
+        for ids in late.values():
+            event_ids(ids)
+        had_below = detail.get("had_below", {})
+        if type(had_below) is not dict:
+            raise ValueError("what its incomplete inputs had is not {port: [[node, port, next seq], ...]}")
+        for streams in had_below.values():
+            event_ids(streams)
+        _check_restart_detail(detail)
+    if consumed:
+        consumed = {port: event_ids(ids) for port, ids in consumed.items()}
     return node, microstep, consumed, event_ids(produced), status, detail, wall_ns
 
 
@@ -132,10 +134,18 @@ def _is_range(item: Any) -> bool:
 
 def event_ids(ids: Any) -> tuple:
     """``[[node, port, seq], ...]`` → a tuple of event ids, or ValueError."""
-    if type(ids) is not list or not all(type(i) is list and len(i) == 3 and type(i[0]) is str and type(i[1]) is str
-                                        and type(i[2]) is int and i[2] >= 0 for i in ids):
-        raise ValueError("its event ids are not [node, port, seq] triples")
-    return tuple(map(tuple, ids))
+    if type(ids) is list:
+        out = []
+        for i in ids:  # (a loop, not all(): two or three ids a record, read for every record of a log)
+            if type(i) is not list or len(i) != 3:
+                break
+            node, port, seq = i
+            if type(node) is not str or type(port) is not str or type(seq) is not int or seq < 0:
+                break
+            out.append((node, port, seq))
+        else:
+            return tuple(out)
+    raise ValueError("its event ids are not [node, port, seq] triples")
 
 
 @functools.cache

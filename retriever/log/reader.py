@@ -8,6 +8,7 @@ salvage=True)`` (what ``retriever log recover`` uses) keeps every record before 
 
 from __future__ import annotations
 
+import bisect
 import json
 import os
 import struct
@@ -15,12 +16,12 @@ import sys
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, ChunkIndex, Footer, Header, Message, Metadata, Schema
-from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
 from ..codec import unpackb
 from ..errors import ChunkTooLargeError, CodecError, IRError, LogError, UnregisteredTypeError
@@ -57,8 +58,10 @@ class LoggedEvent:
 
 
 @dataclass
-class RunLog:
-    """Everything one log file holds, in file order."""
+class LogHead:
+    """What one log file says of its run, but its messages: header, channels, attachments (the
+    IR), metadata, and whether it was finished. :class:`RunLog` adds the messages;
+    :class:`ScannedLog`, read by :func:`scan_log`, keeps none."""
 
     path: Path
     profile: str = ""  # the header's: "retriever" for a Retriever log
@@ -66,10 +69,8 @@ class RunLog:
     schemas: dict[int, Schema] = field(default_factory=dict)
     attachments: dict[str, Attachment] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    messages: list[Message] = field(default_factory=list)
     complete: bool = False  # the writer finished the file (footer read)
     damage: str | None = None  # why reading stopped early, when salvaging
-    _steps: list[StepRecord] | None = field(default=None, repr=False)
 
     # -- what the run was --------------------------------------------------------------------
     @property
@@ -153,37 +154,6 @@ class RunLog:
             found.append({"node": record["node"], "port": record["port"], **fields})
         return found
 
-    # -- its records -------------------------------------------------------------------------
-    def iter_events(self) -> Iterator[LoggedEvent]:
-        """Every event, in file order, value undecoded."""
-        ports = {c.id: parsed for c in self.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
-        for m in self.messages:
-            port = ports.get(m.channel_id)
-            if port is None:
-                continue
-            try:
-                microstep, raw = fmt.split_event(m.data)
-            except ValueError as e:
-                raise LogError(f"{self.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
-            yield LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
-
-    def iter_steps(self) -> Iterator[StepRecord]:
-        """Every step record, in file order (decoded once, then kept)."""
-        if self._steps is None:
-            self._steps = list(self._decode_steps())
-        return iter(self._steps)
-
-    def _decode_steps(self) -> Iterator[StepRecord]:
-        steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
-        for m in self.messages:
-            if m.channel_id in steps:
-                try:
-                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
-                except Exception as e:
-                    raise LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})") from None
-                yield StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
-                                 m.publish_time, wall_ns)
-
     def add_import_paths(self) -> None:
         """Put the folders the run imported its flows from on ``sys.path`` (those that exist
         here), so its classes can be imported again from any working directory."""
@@ -217,16 +187,161 @@ class RunLog:
             raise LogError(f"{self.path}: event {event.node}.{event.port} #{event.seq} is not valid msgpack "
                            f"({type(e).__name__})", "the file is damaged: retriever log recover") from None
 
+
+@dataclass
+class RunLog(LogHead):
+    """Everything one log file holds, in file order."""
+
+    messages: list[Message] = field(default_factory=list)
+    _steps: list[StepRecord] | None = field(default=None, repr=False)
+
+    # -- its records -------------------------------------------------------------------------
+    def iter_events(self) -> Iterator[LoggedEvent]:
+        """Every event, in file order, value undecoded."""
+        ports = {c.id: parsed for c in self.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
+        for m in self.messages:
+            port = ports.get(m.channel_id)
+            if port is None:
+                continue
+            try:
+                microstep, raw = fmt.split_event(m.data)
+            except ValueError as e:
+                raise LogError(f"{self.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+            yield LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+
+    def iter_steps(self) -> Iterator[StepRecord]:
+        """Every step record, in file order (decoded once, then kept)."""
+        if self._steps is None:
+            self._steps = list(self._decode_steps())
+        return iter(self._steps)
+
+    def _decode_steps(self) -> Iterator[StepRecord]:
+        steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
+        for m in self.messages:
+            if m.channel_id in steps:
+                try:
+                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+                except Exception as e:
+                    raise LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})") from None
+                yield StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
+                                 m.publish_time, wall_ns)
+
     def trace(self) -> Trace:
         """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""
         events = [Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns) for e in self.iter_events()]
         return Trace(events, list(self.iter_steps()))
 
 
+
 def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
     """Read and validate a log. ``salvage=True`` keeps the records before a tear or corruption
     instead of raising (``log.complete`` and ``log.damage`` then say what happened)."""
-    path = Path(path)
+    log = RunLog(Path(path))
+    _read(log, log.messages.append, salvage)
+    return log
+
+
+@dataclass
+class ScannedLog(LogHead):
+    """A log read through once by :func:`scan_log`: what it says of its run, and where its
+    messages are, without them; :meth:`time_ordered` reads them again, chunk by chunk."""
+
+    messages_read: int = 0
+    size: int = 0  # bytes
+    #: ``[first log_time, offset]`` of every chunk that holds messages: the chunk's own word on its
+    #: times is not taken, its messages' are (a chunk says when it starts; a changed file may lie)
+    chunks: list[list[int]] = field(default_factory=list, repr=False)
+    loose: int = 0  # messages outside any chunk (MCAP allows them; Retriever's writer makes none)
+    _identity: tuple = field(default=(), repr=False)
+
+    def time_ordered(self) -> Iterator[Message]:
+        """Every message, in log-time order, ties in file order (what a stable sort of the
+        file's messages by ``log_time`` gives), read again from the file a chunk at a time:
+        chunks are taken in the order of their first message's time, and a message is handed
+        on once no chunk still to be read can hold an earlier one. What is held at a time is
+        the chunks whose times overlap: for a log as a run writes it, a few chunks (its LET
+        latencies and late reports make them overlap), however long the log."""
+        if self.loose:
+            raise LogError(f"{self.path} holds {self.loose} messages outside its chunks, which time_ordered() "
+                           "does not read", "read it whole: read_log(path)")
+        order = sorted(self.chunks)
+        held: list[tuple[int, int, int, Message]] = []  # (log_time, chunk offset, index in it, message), sorted
+        try:
+            stream = open(self.path, "rb")
+        except OSError as e:
+            raise LogError(f"cannot open the log {self.path} again: {e.strerror}") from None
+        with stream:
+            if _identity(stream) != self._identity:
+                raise LogError(f"{self.path} changed since it was read", "read it again, once nothing writes it")
+            for k, (_, offset) in enumerate(order):
+                try:
+                    stream.seek(offset)
+                    chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
+                    records = breakup_chunk(chunk, validate_crc=True)
+                except Exception as e:  # the file was read whole before: it changed since
+                    raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
+                                   f"reads ({type(e).__name__}: {e})",
+                                   "read it again, once nothing writes it") from None
+                new = [(m.log_time, offset, i, m) for i, m in enumerate(records) if type(m) is Message]
+                if held:
+                    held += new
+                    held.sort()  # (log_time, offset, index) are unique: messages are never compared
+                else:
+                    held = new
+                    if any(a[0] > b[0] for a, b in zip(new, new[1:])):
+                        held.sort()
+                if k + 1 < len(order):  # hand on what no chunk still to be read can come before
+                    cut = bisect.bisect_left(held, (order[k + 1][0],))
+                    ready, held = held[:cut], held[cut:]
+                else:
+                    ready, held = held, []
+                for item in ready:
+                    yield item[3]
+
+
+def scan_log(path: str | Path, take: Callable[[LogChannel, Message], None], *,
+             progress: Callable[[int, int], None] | None = None) -> ScannedLog:
+    """Read and validate a log as :func:`read_log` does (the same errors, for a log torn or
+    damaged), handing each message with its channel to ``take`` in file order instead of keeping
+    it: what is kept is the log's head and where its chunks are (``log.time_ordered()`` reads
+    them again). ``progress(bytes read, file size)`` is called as the file is read."""
+    log = ScannedLog(Path(path))
+    channels, chunks = log.channels, log.chunks
+    chunk: list[int] | None = None
+
+    def at_chunk(offset: int | None) -> None:
+        nonlocal chunk
+        if offset is None:  # a message outside any chunk
+            chunk = None
+        else:
+            chunk = [2 ** 64, offset]  # past any log time until its first message
+            chunks.append(chunk)
+
+    def add(message: Message) -> None:
+        if chunk is None:
+            log.loose += 1
+        elif message.log_time < chunk[0]:
+            chunk[0] = message.log_time
+        take(channels[message.channel_id], message)
+
+    _read(log, add, False, progress=progress, at_chunk=at_chunk)
+    chunks[:] = [c for c in chunks if c[0] < 2 ** 64]
+    if progress is not None:
+        progress(log.size, log.size)
+    return log
+
+
+def _identity(stream) -> tuple:
+    """What tells a file that was changed (rewritten, appended to) from the one read before."""
+    stat = os.fstat(stream.fileno())
+    return (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+
+
+def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
+          progress: Callable[[int, int], None] | None = None,
+          at_chunk: Callable[[int | None], None] | None = None) -> None:
+    """Read and validate the log at ``log.path`` into ``log``, each message handed to ``add``."""
+    path = log.path
     try:
         stream = open(path, "rb")
     except FileNotFoundError:
@@ -234,20 +349,29 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
     except OSError as e:
         raise LogError(f"cannot open the log {path}: {e.strerror}",
                        "give the path of a .mcap file written by --log / log=") from None
-    log = RunLog(path)
     with stream:
         if stream.read(len(MAGIC)) != MAGIC:
             raise LogError(f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)",
                            "retriever reads the .mcap files written by pipe.run(log=...) or --log")
         stream.seek(0)
         size = os.fstat(stream.fileno()).st_size
-        tracked = _Tracked(stream)
-        reader = _StreamReader(tracked, validate_crcs=True)
+        if isinstance(log, ScannedLog):
+            log.size, log._identity = size, _identity(stream)
+        tracked = _Tracked(stream, size, progress)
+        reader = _StreamReader(tracked, validate_crcs=True, at_chunk=at_chunk)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
         bad_attachment = None
         footer, chunk_indexes = None, []
+        read = 0  # messages
+        channels = log.channels
         try:
             for record in reader.records:
+                if type(record) is Message:
+                    if record.channel_id not in channels:
+                        raise ValueError(f"message on unknown channel {record.channel_id}")
+                    add(record)
+                    read += 1
+                    continue
                 if isinstance(record, ChunkIndex):
                     chunk_indexes.append(record)
                 elif isinstance(record, Footer):
@@ -265,7 +389,7 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
                         continue
                 _take(log, record)
         except Exception as e:  # EndOfFile, CRCs, struct.error, zstd errors, bad UTF-8: a tear or a bad byte
-            _damaged(log, salvage, _diagnose(stream, size, tracked.last_read_at, e))
+            _damaged(log, salvage, _diagnose(stream, size, tracked.last_read_at, e), read)
         else:
             closing = None if footer is None else _closing_damage(stream, size, tracked.position, footer,
                                                                    chunk_indexes)
@@ -274,11 +398,12 @@ def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
                               "refuse it")
         if dropped:
             log.damage = "; ".join([*dropped, *([log.damage] if log.damage else [])])
+        if isinstance(log, ScannedLog):
+            log.messages_read = read
     if bad_attachment is not None:
         raise LogError(f"{path} cannot be read: {bad_attachment}",
                        f"`retriever log recover {path}` writes a readable copy without the damaged attachment "
                        "(replay that one with --pipeline FILE:ATTR)")
-    return log
 
 
 def _attachment_crc_error(record: Attachment, crc_bytes: bytes) -> CRCValidationError | None:
@@ -306,12 +431,20 @@ class _StreamReader(StreamReader):
     """``mcap``'s stream reader, passing over MessageIndex records unparsed: a log is read whole,
     so their entries (one per message, parsed field by field in Python: a third of a read) are
     of no use here. Their bytes are still read, so the data section's CRC covers them. A chunk
-    that says it holds more than MAX_CHUNK_BYTES is refused before it is decompressed."""
+    that says it holds more than MAX_CHUNK_BYTES is refused before it is decompressed.
+    ``at_chunk(offset)`` is told where each chunk starts before its messages are read (None for
+    a message outside any chunk)."""
+
+    def __init__(self, *args, at_chunk: Callable[[int | None], None] | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._at_chunk = at_chunk
 
     def _read_record(self, opcode: int, length: int):
         if opcode == Opcode.MESSAGE_INDEX:
             self._stream.read(length)
             return None
+        if self._at_chunk is not None and opcode in (Opcode.CHUNK, Opcode.MESSAGE):  # where its messages come from
+            self._at_chunk(self._stream.count - _RECORD_HEAD if opcode == Opcode.CHUNK else None)
         record = super()._read_record(opcode, length)
         if isinstance(record, Chunk):
             size = _uncompressed_size(record)
@@ -360,13 +493,17 @@ def _closing_damage(stream, size: int, end: int, footer: Footer, chunk_indexes: 
 
 class _Tracked:
     """A file as the MCAP reader reads it, remembering where its last read began: a read that
-    fails begins inside the record that is damaged (a damaged length may make it end far past)."""
+    fails begins inside the record that is damaged (a damaged length may make it end far past);
+    ``progress(bytes read, size)``, if given, is told every ``size / 1000`` bytes (1 MiB at least)."""
 
-    def __init__(self, stream):
+    def __init__(self, stream, size: int = 0, progress: Callable[[int, int], None] | None = None):
         self._stream = stream
         self._pos = 0
         self.last_read_at = 0
         self.last_data = b""
+        self._size, self._progress = size, progress
+        self._every = max(size // 1000, 1 << 20)  # bytes between two calls of progress
+        self._next = 0 if progress is not None else float("inf")
 
     @property
     def position(self) -> int:
@@ -378,6 +515,9 @@ class _Tracked:
         data = self._stream.read(n)
         self._pos += len(data)
         self.last_data = data if len(data) <= 8 else b""  # only small reads are kept (a CRC field)
+        if self._pos >= self._next:
+            self._next = self._pos + self._every
+            self._progress(self._pos, self._size)
         return data
 
 
@@ -490,12 +630,9 @@ def _diagnose(stream, size: int, where: int, error: Exception) -> str:
     return f"it is corrupt at {record}: {what}; the file was damaged after it was written"
 
 
-def _take(log: RunLog, record: Any) -> None:
-    if isinstance(record, Message):
-        if record.channel_id not in log.channels:
-            raise ValueError(f"message on unknown channel {record.channel_id}")
-        log.messages.append(record)
-    elif isinstance(record, Channel):
+def _take(log: LogHead, record: Any) -> None:
+    """Keep a record other than a message (``_read`` hands those on)."""
+    if isinstance(record, Channel):
         log.channels[record.id] = LogChannel(record.id, record.topic, record.message_encoding, dict(record.metadata),
                                              record.schema_id)
     elif isinstance(record, Schema):
@@ -510,12 +647,12 @@ def _take(log: RunLog, record: Any) -> None:
         log.complete = True
 
 
-def _damaged(log: RunLog, salvage: bool, why: str) -> None:
-    log.damage = f"{why} ({len(log.messages)} messages read before it)"
+def _damaged(log: LogHead, salvage: bool, why: str, read: int) -> None:
+    log.damage = f"{why} ({read} messages read before it)"
     if not salvage:
         raise LogError(f"{log.path} cannot be read: {log.damage}",
                        f"`retriever log recover {log.path}` writes a readable copy of everything before the damage"
-                       if log.messages else
+                       if read else
                        f"no message comes before the damage: `retriever log recover {log.path}` can keep only "
                        "the run's metadata")
 

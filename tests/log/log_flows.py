@@ -2,7 +2,8 @@
 and its ``@io`` values (codec dataclass extension) can be rebuilt by ``read_log``, ``replay`` and
 ``resim``, in this process or in a ``retriever`` subprocess started from the repository root.
 
-Everything is a pure function of inputs and flow state: no wall time, no randomness.
+Everything is a pure function of inputs and flow state: no wall time, no randomness (the frames'
+noise comes from a generator seeded with the tick's count).
 
 - ``build_small()``: the pipeline the golden log pins. A typed source, a typed filter and an
   untyped Trigger sink; three data channels with ints, floats, strings, bytes, a small numpy
@@ -11,6 +12,8 @@ Everything is a pure function of inputs and flow state: no wall time, no randomn
   and two cycles (one broken in time by the delay, one instantaneous, bounded by the values).
 - ``build_deep()``: one instant of many microsteps (past 127, the envelope's fixint) whose
   events carry 0-d float64 arrays.
+- ``build_frames()``: a camera of incompressible frames and a LET flow of their brightness: a log
+  that grows by about a frame per event, for replay's memory (tests/log/test_replay_stream.py).
 - ``Emit``: an untyped source that emits, one per tick, the values it was given as an attribute
   (the Hypothesis round trip drives it).
 """
@@ -223,4 +226,41 @@ def build_deep(hops: int = 150) -> Pipeline:
         start.then(a, sync=Queue(), map={"n": "n"})
         a.then(b, sync=Queue(), map={"n": "n"})
         b.then(a, sync=Queue(), map={"n": "n"})
+    return pipe
+
+
+# ---------------------------------------------------------------------------------------------
+# Big frames: a log that grows fast for few steps (replay's memory)
+# ---------------------------------------------------------------------------------------------
+class Frames(Flow):
+    """Untyped source: ``size`` bytes of noise a tick, seeded with the tick's count (zstd cannot
+    shrink it: the log grows by about ``size`` an event)."""
+
+    def __init__(self, size: int = 1 << 16):
+        self.size = size
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"frame": np.random.default_rng(self.k).integers(0, 256, self.size, dtype=np.uint8)}
+
+
+class Brightness(Flow):
+    """Untyped: the newest frame's mean, and how many it has seen."""
+
+    def __init__(self):
+        self.seen = 0
+
+    def step(self, frame):
+        self.seen += 1
+        return {"mean": float(frame.mean()), "seen": self.seen}
+
+
+def build_frames(size: int = 1 << 16) -> Pipeline:
+    """camera @ 30 Hz → brightness @ 30 Hz (offset 10 ms, latency 0.1 s: its outputs are logged
+    three ticks after it runs), ``Latest()``."""
+    with Pipeline("frames") as pipe:
+        camera = Frames(size).named("camera") @ Rate(hz=30)
+        brightness = Brightness().named("brightness").configure(latency=0.1) @ Rate(hz=30, offset=0.01)
+        camera.then(brightness, sync=Latest())
     return pipe

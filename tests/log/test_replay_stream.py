@@ -1,0 +1,210 @@
+"""``retriever replay`` streams the log (issue 42): its memory stays flat however long the log,
+it reads the messages in log-time order a few chunks at a time, it says the same as a replay of
+the log read whole, and it shows its progress on a terminal (and nothing on a pipe)."""
+
+from __future__ import annotations
+
+import os
+import pty
+import re
+import select
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from retriever import LogError, read_log
+from retriever.backends.inproc import InprocSession
+from retriever.log import LogWriter
+from retriever.log.reader import scan_log
+from retriever.replay import replay, replay_file
+from retriever.log.format import RECOVERED_METADATA
+from tests.log.helpers import RETRIEVER, chunks, cli, cli_env, rewrite
+from tests.log.log_flows import Brightness, Frames, build_frames
+
+
+def _frames_log(path: Path, seconds: float, batch: int = 16) -> Path:
+    """A log of ``build_frames()`` (64 KiB of noise a frame at 30 Hz: about 2 MB a second), a
+    chunk every ``batch`` steps: a chunk is read whole, so the chunks' size, which the writer
+    otherwise sets by the wall clock, bounds what a replay holds."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(InprocSession, "LOG_BATCH", batch)
+        mp.setitem(LogWriter.__init__.__kwdefaults__, "flush_interval", 0.0)
+        build_frames().run(duration=seconds, log=path, keep="counters")
+    return path
+
+
+_PEAK = ("import resource, subprocess, sys\n"
+         "done = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
+         "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
+         "sys.stdout.write(done.stdout + done.stderr)\n"
+         "sys.exit(done.returncode)\n")
+
+
+def _replay_peak_rss_kib(log: Path) -> int:
+    """The peak RSS of ``retriever replay LOG``, in KiB: measured by a process of its own, whose
+    only child is the replay (RUSAGE_CHILDREN is the largest child a process waited for)."""
+    done = subprocess.run([sys.executable, "-c", _PEAK, str(RETRIEVER), "replay", str(log)], capture_output=True,
+                          text=True, env=cli_env(), timeout=120)
+    peak, _, output = done.stdout.partition("\n")
+    assert done.returncode == 0 and "identical:" in output, output
+    return int(peak)
+
+
+def test_replay_memory_is_flat_however_long_the_log(tmp_path):
+    """A log 8 times as long (4 MB and 32 MB of frames) replays in the same memory, within a few
+    MB: before the replay streamed, every message was held, and every frame decoded (+83 MB)."""
+    short = _frames_log(tmp_path / "short.mcap", 2.0)
+    long = _frames_log(tmp_path / "long.mcap", 16.0)
+    assert long.stat().st_size > 7.5 * short.stat().st_size > 7.5 * 3e6
+    one, eight = _replay_peak_rss_kib(short), _replay_peak_rss_kib(long)
+    assert eight - one < 16 * 1024, f"peak RSS {one} KiB for the 1x log, {eight} KiB for the 8x log"
+
+
+# ---------------------------------------------------------------------------------------------
+# Read in log-time order, a few chunks at a time; the same report as the log read whole
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_chunks(tmp_path_factory) -> Path:
+    """A frames log cut into a chunk every 8 steps: the LET outputs of one chunk's ticks are in the
+    next ones, so chunks overlap in time."""
+    path = _frames_log(tmp_path_factory.mktemp("frames") / "frames.mcap", 3.0, batch=8)
+    assert len(chunks(path.read_bytes())) > 20
+    return path
+
+
+def test_time_ordered_is_the_files_messages_sorted_by_log_time(small_chunks):
+    seen = []
+    scanned = scan_log(small_chunks, lambda channel, m: seen.append(m))
+    whole = read_log(small_chunks).messages
+    assert [m.log_time for m in seen] == [m.log_time for m in whole] != sorted(m.log_time for m in whole)
+    ordered = list(scanned.time_ordered())
+    assert ordered == sorted(whole, key=lambda m: m.log_time)  # ties in file order: the sort is stable
+
+
+def _same(a, b) -> None:
+    assert a.nodes == b.nodes
+    assert (a.divergent_steps, list(map(str, a.divergences))) == (b.divergent_steps, list(map(str, b.divergences)))
+    assert a.code_changes == b.code_changes
+
+
+def test_replay_file_says_what_replay_of_the_log_read_whole_says(small_chunks):
+    whole, streamed = replay(read_log(small_chunks)), replay_file(small_chunks)
+    _same(whole, streamed)
+    assert streamed.identical and streamed.nodes["brightness"].identical == 90
+
+
+class Dimmer(Brightness):
+    """Half the brightness from its 10th frame on: a divergence at every later step."""
+
+    def step(self, frame):
+        out = super().step(frame)
+        return {**out, "mean": out["mean"] / 2} if self.seen >= 10 else out
+
+
+def _dimmed():
+    from retriever import Latest, Pipeline, Rate
+
+    with Pipeline("frames") as pipe:
+        camera = Frames().named("camera") @ Rate(hz=30)
+        brightness = Dimmer().named("brightness").configure(latency=0.1) @ Rate(hz=30, offset=0.01)
+        camera.then(brightness, sync=Latest())
+    return pipe
+
+
+def test_a_divergence_is_reported_in_step_order_as_before(small_chunks):
+    """Each LET step is compared when its outputs are read, 0.1 s of log later; the divergences
+    are still reported in step order, the first first."""
+    whole, streamed = replay(read_log(small_chunks), _dimmed()), replay_file(small_chunks, _dimmed)
+    _same(whole, streamed)
+    assert streamed.divergent_steps == 81
+    assert str(streamed.divergences[0]).startswith("brightness.mean at tick t=0.310000000s m=0: value differs")
+
+
+def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
+    """The outputs of one LET step left out: a divergence (<not in the log>) in a log that says it
+    is whole; a step not compared (``cut``) in one that says it was recovered."""
+    def keep(topic, message) -> bool:
+        return not (topic.startswith("data/brightness/") and message.sequence == 20)
+
+    missing = rewrite(small_chunks, tmp_path / "missing.mcap", keep=keep)
+    cut = rewrite(small_chunks, tmp_path / "cut.mcap", keep=keep, add={RECOVERED_METADATA: {"source": "x"}})
+    reports = {}
+    for path, divergent, not_compared in ((missing, 1, 0), (cut, 0, 1)):
+        whole, reports[path] = replay(read_log(path)), replay_file(path)
+        _same(whole, reports[path])
+        assert (reports[path].divergent_steps, reports[path].nodes["brightness"].cut) == (divergent, not_compared)
+    first = str(reports[missing].divergences[0])
+    assert "value differs\n      logged:   '<not in the log: the log ends here>'" in first
+
+
+# ---------------------------------------------------------------------------------------------
+# Progress: a bar on a terminal, nothing on a pipe
+# ---------------------------------------------------------------------------------------------
+def test_replay_shows_its_progress_on_a_terminal(small_chunks):
+    main, tty = pty.openpty()
+    env = {**cli_env(), "TERM": "xterm-256color"}
+    with subprocess.Popen([str(RETRIEVER), "replay", str(small_chunks)], stdout=subprocess.PIPE, stderr=tty,
+                          env=env) as proc:
+        os.close(tty)
+        shown = b""
+        while True:  # read the terminal while the replay writes to it (its buffer is small)
+            ready, _, _ = select.select([main], [], [], 60)
+            try:
+                data = os.read(main, 65536) if ready else b""
+            except OSError:  # EIO: the replay closed its end
+                data = b""
+            if not data:
+                break
+            shown += data
+        out = proc.stdout.read().decode()
+        assert proc.wait(timeout=60) == 0, out
+    os.close(main)
+    text = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", shown.decode(errors="replace"))
+    assert "identical:" in out
+    assert re.search(r"reading .*100%.* MB", text), text
+    assert re.search(r"replaying .*100%.*180 of 180 steps", text), text
+
+
+def test_replay_prints_no_progress_on_a_pipe(small_chunks):
+    done = cli("replay", small_chunks)
+    assert done.returncode == 0 and "identical:" in done.stdout, done.stdout + done.stderr
+    assert done.stderr == ""
+
+
+def test_a_log_changed_between_the_two_readings_is_refused(small_chunks, tmp_path):
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(small_chunks.read_bytes())
+    scanned = scan_log(copy, lambda channel, m: None)
+    with open(copy, "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(LogError, match=r"copy\.mcap changed since it was read\n    hint: read it again"):
+        next(scanned.time_ordered())
+
+
+def test_a_log_with_messages_outside_chunks_is_replayed_read_whole(small_chunks, tmp_path):
+    """MCAP allows messages outside chunks (Retriever's writer makes none): time_ordered() does
+    not read those, and replay_file replays such a log as replay() does, read whole."""
+    from mcap.writer import Writer
+
+    log = read_log(small_chunks)
+    loose = tmp_path / "loose.mcap"
+    with open(loose, "wb") as out:
+        writer = Writer(out, use_chunking=False)
+        writer.start(profile=log.profile, library="test")
+        ids = {c.id: writer.register_channel(c.topic, c.message_encoding, 0, dict(c.metadata))
+               for c in log.channels.values()}
+        for a in log.attachments.values():
+            writer.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
+        for name, data in log.metadata.items():
+            writer.add_metadata(name, data)
+        for m in log.messages:
+            writer.add_message(ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+        writer.finish()
+    scanned = scan_log(loose, lambda channel, m: None)
+    assert scanned.loose == len(log.messages) and not scanned.chunks
+    with pytest.raises(LogError, match="messages outside its chunks"):
+        next(scanned.time_ordered())
+    _same(replay(read_log(loose)), replay_file(loose))
+    assert replay_file(loose).identical
