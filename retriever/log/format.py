@@ -26,6 +26,7 @@ import getpass
 import json
 import os
 import platform
+import re
 import socket
 import subprocess
 import sys
@@ -35,6 +36,7 @@ from typing import Any
 
 import msgpack
 
+from ..ir import NODE_ID, PORT_NAME
 from ..trace import STEP_STATUSES
 
 PROFILE = "retriever"
@@ -55,13 +57,27 @@ PACKAGES = {"retriever": DISTRIBUTION, "eclipse-zenoh": "eclipse-zenoh", "msgpac
             "mcap": "mcap", "mujoco": "mujoco"}
 
 
+_DATA_TOPIC = re.compile(f"data/({NODE_ID})/({PORT_NAME})")
+
+
 def data_topic(node: str, port: str) -> str:
     return f"data/{node}/{port}"
 
 
 def parse_data_topic(topic: str) -> tuple[str, str] | None:
-    parts = topic.split("/")
-    return (parts[1], parts[2]) if len(parts) == 3 and parts[0] == "data" else None
+    """``data/<node>/<port>`` → ``(node, port)``; None for any other topic, one whose node or port
+    is no name (a port holding '/' among them) too: :func:`data_topic_problem` says why."""
+    match = _DATA_TOPIC.fullmatch(topic)
+    return (match[1], match[2]) if match else None
+
+
+def data_topic_problem(topic: str) -> str | None:
+    """Why a topic under ``data/`` is not ``data/<node id>/<port name>`` (ir.NODE_ID, ir.PORT_NAME),
+    or None: a reader that skipped such a channel would lose its events without a word."""
+    if not topic.startswith("data/") or _DATA_TOPIC.fullmatch(topic):
+        return None
+    return (f"its channel topic {topic!r:.80} is under data/ but is not data/<node>/<port> with a node id and a "
+            "port name (letters, digits, _ and -: no '/')")
 
 
 def split_event(data: bytes) -> tuple[int, bytes]:

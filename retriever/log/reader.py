@@ -360,7 +360,7 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
         tracked = _Tracked(stream, size, progress)
         reader = _StreamReader(tracked, validate_crcs=True, at_chunk=at_chunk)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
-        bad_attachment = None
+        bad_attachment = bad_channel = None
         footer, chunk_indexes = None, []
         read = 0  # messages
         channels = log.channels
@@ -376,6 +376,10 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
                     chunk_indexes.append(record)
                 elif isinstance(record, Footer):
                     footer = record
+                elif isinstance(record, Channel) and log.profile == fmt.PROFILE:
+                    bad_channel = fmt.data_topic_problem(record.topic)
+                    if bad_channel is not None:
+                        break
                 if isinstance(record, Attachment):
                     error = _attachment_crc_error(record, tracked.last_data)
                     if error is not None:
@@ -400,6 +404,10 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
             log.damage = "; ".join([*dropped, *([log.damage] if log.damage else [])])
         if isinstance(log, ScannedLog):
             log.messages_read = read
+    if bad_channel is not None:
+        raise LogError(f"{path} cannot be read: {bad_channel}",
+                       "the log was changed after it was written, or written by a Retriever that let a port name "
+                       "hold '/' (its events were lost from every view)")
     if bad_attachment is not None:
         raise LogError(f"{path} cannot be read: {bad_attachment}",
                        f"`retriever log recover {path}` writes a readable copy without the damaged attachment "
