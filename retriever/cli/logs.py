@@ -261,9 +261,8 @@ def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | 
                             "lerobot or npz"))
     if len(paths) != 1:
         fail(RetrieverError(f"--format {format} exports one log, got {len(paths)}\n    hint: export each apart"))
-    log = read(paths[0])
-    try:
-        said = VIEWS[format](log, out, force)
+    try:  # the export reads the log itself, streamed: never held whole (reader.log_records)
+        said = VIEWS[format](paths[0], out, force)
     except Exception as exc:
         fail(exc)
     console.out.print(f"wrote {out}: {said}", highlight=False)

@@ -33,9 +33,9 @@ import numpy as np
 
 from ..codec import dataclass_fields
 from ..errors import LogError, RetrieverWarning
-from ..trace import NOT_KEPT
+from ..trace import NOT_KEPT, StepRecord
 from .outputs import export_path
-from .reader import RunLog
+from .reader import LogHead, LogRecords, RunLog, log_records
 
 #: arrays up to this many elements go into JSON whole; bigger ones as dtype, shape and a head
 JSON_ARRAY_MAX = 1024
@@ -118,13 +118,12 @@ def to_json(value: Any, depth: int = 0) -> Any:
     return str(value)
 
 
-def run_start_ns(log: RunLog) -> int:
+def run_start_ns(log: LogRecords) -> int:
     """The wall time (Unix ns) of the run's tag 0: the earliest publish time less its tag (an
     event is published at or after its tag), else when the log was started."""
-    starts = [e.publish_ns - e.tag[0] for e in log.iter_events() if e.publish_ns]
-    if starts:
-        return max(0, min(starts))
-    return int(log.run.get("started_unix_ns", "0") or 0)
+    if log.wall_start_ns is not None:
+        return max(0, log.wall_start_ns)
+    return int(log.head.run.get("started_unix_ns", "0") or 0)
 
 
 class FoxgloveWriter:
@@ -197,12 +196,15 @@ class FoxgloveWriter:
         self.written[topic] += 1
 
 
-def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
-    """Write ``log`` as a Foxglove MCAP to ``out``; the messages written, per topic."""
+def export_foxglove(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Counter:
+    """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a Foxglove MCAP to
+    ``out``; the messages written, per topic."""
     foxglove = _sdk()[0]
-    out = export_path(log.path, out, overwrite)
-    zero = run_start_ns(log)
-    ir = log.ir
+    out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)
+    source = log_records(log)
+    head = source.head
+    zero = run_start_ns(source)
+    ir = head.ir
     context = foxglove.Context()
     # written beside it, then renamed: an export that fails leaves no file that looks whole, and
     # never writes into the file that stands at ``out`` (a hard link to the log, say)
@@ -214,12 +216,13 @@ def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) ->
     try:
         try:
             view = FoxgloveWriter(context, ir, zero)
-            for event in log.iter_events():
-                view.event(event.node, event.port, event.tag, event.seq, log.value(event, keep_unregistered=True),
-                           zero + event.tag[0])
-            for step in log.iter_steps():
-                view.step(step.node, step.tag, step.consumed, step.produced, step.status, step.detail, step.wall_ns,
-                          zero + step.tag[0])
+            for record in source.records():
+                if type(record) is StepRecord:
+                    view.step(record.node, record.tag, record.consumed, record.produced, record.status,
+                              record.detail, record.wall_ns, zero + record.tag[0])
+                else:
+                    view.event(record.node, record.port, record.tag, record.seq,
+                               head.value(record, keep_unregistered=True), zero + record.tag[0])
         finally:
             writer.close()
         os.replace(partial, out)

@@ -64,10 +64,11 @@ import numpy as np
 from mcap.writer import Writer
 
 from ..errors import LogError
+from ..trace import StepRecord
 from .foxglove import image_encoding, to_json
 from .format import parse_data_topic
 from .outputs import export_path
-from .reader import RunLog
+from .reader import LogHead, RunLog, log_records
 from .views import numeric_array, step_json, value_leaves
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -343,10 +344,13 @@ class Ros2Bag:
                        seq)
 
 
-def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros2Export:
-    """Write ``log`` as a ROS 2 MCAP to ``out``; what was written, per topic."""
+def export_ros2(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Ros2Export:
+    """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a ROS 2 MCAP to
+    ``out``; what was written, per topic."""
     store = _typestore()
-    out = export_path(log.path, out, overwrite)
+    out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)
+    source = log_records(log)
+    head = source.head
     # written beside it, then renamed: an export that fails leaves no file that looks whole
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     try:
@@ -358,15 +362,18 @@ def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros
             writer = Writer(stream)
             writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
             bag = Ros2Bag(writer, store)
-            bag.reserve([("steps", step.node) for step in log.iter_steps()] +
-                        [("port", *port, "") for c in log.channels.values() if (port := parse_data_topic(c.topic))])
-            for event in log.iter_events():
-                bag.event(event.node, event.port, log.value(event, keep_unregistered=True), event.tag[0],
-                          event.publish_ns, event.seq)
-            for index, step in enumerate(log.iter_steps()):
-                topic, _, text = bag.topic_for(("steps", step.node), JSON, step_json(step))
-                bag.write(topic, STRING, bag.message(STRING, text, 0, ""), step.tag[0],
-                          step.wall_start_ns or step.tag[0], index)
+            bag.reserve([("steps", node) for node in source.step_nodes] +
+                        [("port", *port, "") for c in head.channels.values() if (port := parse_data_topic(c.topic))])
+            steps = 0
+            for record in source.records():
+                if type(record) is StepRecord:
+                    topic, _, text = bag.topic_for(("steps", record.node), JSON, step_json(record))
+                    bag.write(topic, STRING, bag.message(STRING, text, 0, ""), record.tag[0],
+                              record.wall_start_ns or record.tag[0], steps)
+                    steps += 1
+                else:
+                    bag.event(record.node, record.port, head.value(record, keep_unregistered=True), record.tag[0],
+                              record.publish_ns, record.seq)
             writer.finish()
         os.replace(partial, out)
     finally:
