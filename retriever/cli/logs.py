@@ -124,7 +124,7 @@ def log_cat(
     """Print decoded events (or step records), in tag order."""
     import json
 
-    from ..log.foxglove import to_json
+    from ..log.views import to_json
     from ..log.show import show_value
     from ..time import format_tag, seconds_problem
 

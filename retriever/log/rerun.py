@@ -39,10 +39,9 @@ import numpy as np
 
 from ..errors import LogError
 from ..trace import StepRecord
-from .foxglove import image_encoding, to_json
 from .outputs import export_path, stdout_stream, to_stdout
 from .reader import LogHead, LogRecords, RunLog, log_records
-from .views import numeric_array, step_json, value_leaves
+from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
 
 #: the URL of the Rerun viewer that ``rerun`` starts on this machine (rerun-sdk's own default)
 RERUN_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"

@@ -65,11 +65,10 @@ from mcap.writer import Writer
 
 from ..errors import LogError
 from ..trace import StepRecord
-from .foxglove import image_encoding, to_json
 from .format import parse_data_topic
 from .outputs import CountedStream, export_path, stdout_stream, to_stdout
 from .reader import LogHead, LogRecords, RunLog, log_records
-from .views import numeric_array, step_json, value_leaves
+from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
 
 IMAGE = "sensor_msgs/msg/Image"
 STRING = "std_msgs/msg/String"
