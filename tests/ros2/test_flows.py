@@ -336,6 +336,34 @@ def test_a_list_of_numbers_for_a_multi_array_is_one_message(router):
     assert received and all(data == [1.5, 2.5, 3.5] for data in received)
 
 
+class Frames(Flow):
+    def step(self):
+        return {"msg": np.full((2, 3, 3), 7, dtype=np.uint8)}
+
+
+@pytest.mark.parametrize("frame_id, expected", [(None, "camera_node"), ("camera_optical", "camera_optical")])
+def test_an_image_published_from_an_array_names_its_frame(router, frame_id, expected):
+    """An image array alone says no frame: its Header's frame_id is the publisher's ``frame_id=``,
+    by default its ROS node's name (it was '', which no subscriber can place)."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/frames/sensor_msgs::msg::dds_::Image_/"
+    received = []
+    listener = session.declare_subscriber(key + "*", lambda sample: received.append(
+        _jazzy.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/Image")))
+    with Pipeline("ros_frames") as pipe:
+        publisher = Ros2Publisher(f"{NAMESPACE}/frames", "sensor_msgs/msg/Image", node="camera_node",
+                                  domain_id=DOMAIN, connect=[at], listen=[], frame_id=frame_id) @ Trigger("msg")
+        (Frames() @ Rate(hz=10)).then(publisher)
+    try:
+        deadline = time.monotonic() + BOUND_S
+        while not received and time.monotonic() < deadline:
+            pipe.step(0.1)
+    finally:
+        pipe.reset()
+        listener.undeclare()
+    assert received and all(m.header.frame_id == expected and (m.width, m.height) == (3, 2) for m in received)
+
+
 def test_on_the_realtime_backend_a_flood_and_garbage_are_counted_in_the_log(router, tmp_path):
     """A subscriber's received, dropped and undecodable counts lived in its worker process, seen
     by nobody: now each tick that lost messages says so in its step record, which the log keeps."""
