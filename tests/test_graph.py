@@ -25,6 +25,7 @@ from retriever import (
     io,
 )
 from retriever.graph import fits
+from retriever.log import read_log
 
 
 @io
@@ -280,6 +281,21 @@ def test_an_untyped_output_port_that_is_no_port_name_is_refused(port):
     with pytest.raises(GraphError, match=re.escape(f"flow 'camera' (tests.test_graph:") + r".*"
                        + re.escape(f"output port {port!r} is not a port name: letters, digits, _ and -")):
         pipe.build_ir()
+
+
+def test_a_port_named_by_any_python_identifier_is_taken(tmp_path):
+    class Scale(Flow):
+        def step(self):
+            return {"größe": 1.0}
+
+    class Sink(Flow):
+        def step(self, größe):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Scale() @ Rate(hz=1)).then(Sink() @ Rate(hz=1))
+    pipe.run(duration=1.0, log=tmp_path / "run.mcap")
+    assert [(e.node, e.port) for e in read_log(tmp_path / "run.mcap").iter_events()] == [("scale", "größe")]
 
 
 def test_a_returned_key_that_is_no_port_name_is_refused_though_no_edge_reads_it():
