@@ -11,6 +11,7 @@ import dataclasses
 import inspect
 import json
 import os
+import re
 import sys
 import types
 import typing
@@ -22,7 +23,7 @@ from .code import code_hashes
 from .codec import type_path
 from .errors import CodecError, GraphError, Problem
 from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
-from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir
+from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir, port_name_problem
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns
 
@@ -339,6 +340,7 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
         if src.spec.outputs is None and e.src_port not in src.outputs:
             src.outputs[e.src_port] = PortSpec(e.src_port)
 
+    _check_port_names(nodes, problems)
     _check_fan_in_and_duplicates(edges, problems)
     _check_clocks(nodes, edges, problems)
     edges = [_bind_policy(e, nodes[e.dst]) for e in edges]
@@ -378,6 +380,21 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
             f"max_microsteps={max_microsteps} (fix: latency=, delay=, or a Rate clock on the cycle)")
     return Graph(name, nodes, edges, max_microsteps, realtime, deadline, cycles, instantaneous, warnings,
                  declaration_warnings)
+
+
+def _check_port_names(nodes: dict[str, Node], problems: list[Problem]) -> None:
+    """Every port name one segment (ir.PORT_NAME): an untyped flow's outputs are the keys its step()
+    returns and its edges' ``map=`` names, any str; one holding '/' was lost from the log's views."""
+    for node in nodes.values():
+        returned = node.spec.returned_keys or frozenset()
+        for kind, ports in (("input", set(node.inputs)), ("output", set(node.outputs) | returned)):
+            for port in sorted(ports, key=str):
+                problem = port_name_problem(port)
+                if problem is not None:
+                    fix = re.sub(r"[^A-Za-z0-9_\-]", "_", str(port))
+                    fix = fix if re.match(r"[A-Za-z_]", fix) else f"p_{fix}"
+                    problems.append(Problem(f"flow '{node.id}' ({type_path(type(node.flow))}): {kind} port {problem}",
+                                            f"rename it, e.g. {fix!r}, in its step() and in the edges' map="))
 
 
 def _ports_list(ports: dict[str, PortSpec]) -> str:

@@ -39,6 +39,10 @@ REALTIME_MODES = ("hard", "soft", "best_effort")
 DEFAULT_DEADLINE = 0.1
 #: what a node id may be: one segment of the key space (flow ``configure(name=)`` checks the same)
 NODE_ID = r"[A-Za-z_][A-Za-z0-9_\-]*"
+#: what a port name may be: one segment too, as a node id (a log's topic is ``data/<node>/<port>``,
+#: a key ``.../data/<node>/<port>``, a qualified name ``node.port``: a '/' or '.' in it splits them);
+#: any Python identifier is one too (a dataclass field, a step() parameter: ``größe``)
+PORT_NAME = NODE_ID
 #: microsteps one instant may run before the run stops with a Zeno-loop error
 DEFAULT_MAX_MICROSTEPS = 1000
 
@@ -424,10 +428,20 @@ def _check_node(problems: list[str], i: int, n: Any, ids: dict[str, dict]) -> No
                         f"'my_robot.flows:Camera'), got {n.get('type')!r}")
     _expect(problems, f"{where}.params", n.get("params"), dict, "an object")
     for key in ("inputs", "outputs"):
-        _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type")
+        if _expect(problems, f"{where}.{key}", n.get(key), dict, "an object of port: type"):
+            problems.extend(f"{where}.{key}: {port_name_problem(port)}" for port in n[key]
+                            if port_name_problem(port) is not None)
     config = n.get("config")
     if _expect(problems, f"{where}.config", config, dict, "an object"):
         _check_config(problems, f"{where}.config", config)
+
+
+def port_name_problem(port: Any) -> str | None:
+    """What makes ``port`` no port name (:data:`PORT_NAME`, or a Python identifier), or None."""
+    if isinstance(port, str) and (port.isidentifier() or re.fullmatch(PORT_NAME, port)):
+        return None
+    return (f"{port!r:.60} is not a port name: letters, digits, _ and -, not starting with a digit or - "
+            "(a port is one segment of the log's topic data/<node>/<port> and of the key space)")
 
 
 def _check_config(problems: list[str], where: str, config: dict) -> None:

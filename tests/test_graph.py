@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Optional, Sequence
 
+import re
 import warnings
 
 import pytest
@@ -14,6 +15,7 @@ from retriever import (
     Flow,
     GraphError,
     Latest,
+    LogError,
     Pipeline,
     Queue,
     Rate,
@@ -23,6 +25,7 @@ from retriever import (
     io,
 )
 from retriever.graph import fits
+from retriever.log import read_log
 
 
 @io
@@ -259,6 +262,72 @@ def test_map_naming_a_key_an_untyped_step_never_returns_is_refused():
     with pytest.raises(GraphError, match=r"map names output port 'imgae', but camera is untyped and its step\(\) "
                                          r"returns 'image', never 'imgae': policy.image would never get an event"):
         pipe.build_ir()
+
+
+@pytest.mark.parametrize("port", ["a/b", "a.b", "", "1st", "a*", "-a"])
+def test_an_untyped_output_port_that_is_no_port_name_is_refused(port):
+    """A port is one segment of the log's topic data/<node>/<port>: a '/' in one lost its events
+    from read_log and every view and export (issue 39)."""
+    class Camera(Flow):
+        def step(self):
+            return {port: 1.0, "ok": 2.0}
+
+    class Policy(Flow):
+        def step(self, image, ok):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=1)).then(Policy() @ Rate(hz=1), map={port: "image", "ok": "ok"})
+    with pytest.raises(GraphError, match=re.escape(f"flow 'camera' (tests.test_graph:") + r".*"
+                       + re.escape(f"output port {port!r} is not a port name: letters, digits, _ and -")):
+        pipe.build_ir()
+
+
+def test_a_port_named_by_any_python_identifier_is_taken(tmp_path):
+    class Scale(Flow):
+        def step(self):
+            return {"größe": 1.0}
+
+    class Sink(Flow):
+        def step(self, größe):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Scale() @ Rate(hz=1)).then(Sink() @ Rate(hz=1))
+    pipe.run(duration=1.0, log=tmp_path / "run.mcap")
+    assert [(e.node, e.port) for e in read_log(tmp_path / "run.mcap").iter_events()] == [("scale", "größe")]
+
+
+def test_a_returned_key_that_is_no_port_name_is_refused_though_no_edge_reads_it():
+    class Camera(Flow):
+        def step(self):
+            return {"rgb/left": 1.0, "ok": 2.0}
+
+    class Policy(Flow):
+        def step(self, ok):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=1)).then(Policy() @ Rate(hz=1))
+    with pytest.raises(GraphError, match=r"output port 'rgb/left' is not a port name.*\n.*hint: rename it, e\.g\. "
+                                         r"'rgb_left', in its step\(\) and in the edges' map="):
+        pipe.build_ir()
+
+
+def test_a_key_only_known_at_run_time_that_is_no_port_name_is_refused_by_the_log(tmp_path):
+    class Camera(Flow):
+        def step(self):
+            return dict([("rgb/left", 1.0), ("ok", 2.0)])
+
+    class Policy(Flow):
+        def step(self, ok):
+            return None
+
+    with Pipeline("p") as pipe:
+        (Camera() @ Rate(hz=1)).then(Policy() @ Rate(hz=1))
+    with pytest.raises(LogError, match=r"an event of camera cannot be logged: the output port 'rgb/left' is not a "
+                                       r"port name"):
+        pipe.run(duration=1.0, log=tmp_path / "run.mcap")
 
 
 def test_map_routes_ports_explicitly():

@@ -124,7 +124,7 @@ def log_cat(
     """Print decoded events (or step records), in tag order."""
     import json
 
-    from ..log.foxglove import to_json
+    from ..log.views import to_json
     from ..log.show import show_value
     from ..time import format_tag, seconds_problem
 
@@ -214,7 +214,7 @@ def log_export(
                                         "of ROS 2 messages (CDR); rerun: a Rerun recording (.rrd); lerobot: a "
                                         "LeRobot dataset; npz: the same frames as NumPy arrays.")] = "foxglove",
     out: Annotated[Path, typer.Option("--out", "-o", help="The file (foxglove, ros2, rerun) or folder (lerobot, "
-                                      "npz) to write.")] = ...,
+                                      "npz) to write; - for standard output, a pipe (ros2, rerun: | rerun -).")] = ...,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the output if it exists.")] = False,
     flow: Annotated[Optional[str], typer.Option("--flow", metavar="NODE", help="lerobot, npz: the Rate flow whose "
                                                 "ticks are the frames.")] = None,
@@ -253,6 +253,13 @@ def log_export(
 
 def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | None, maps: list[str] | None,
             task: str | None, exclude: list[str] | None, gaps: str, repo_id: str | None) -> None:
+    from ..log.outputs import NOT_STREAMED, stdout_stream, to_stdout
+
+    if to_stdout(out) and format in NOT_STREAMED:
+        try:
+            stdout_stream(format)  # says why this format is not written to standard output
+        except Exception as exc:
+            fail(exc)
     if format in ("lerobot", "npz"):
         _export_dataset(paths, format, out, force, flow, maps or [], task, exclude or [], gaps, repo_id)
         return
@@ -261,12 +268,14 @@ def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | 
                             "lerobot or npz"))
     if len(paths) != 1:
         fail(RetrieverError(f"--format {format} exports one log, got {len(paths)}\n    hint: export each apart"))
-    log = read(paths[0])
-    try:
-        said = VIEWS[format](log, out, force)
+    try:  # the export reads the log itself, streamed: never held whole (reader.log_records)
+        said = VIEWS[format](paths[0], out, force)
     except Exception as exc:
         fail(exc)
-    console.out.print(f"wrote {out}: {said}", highlight=False)
+    if to_stdout(out):  # standard output is the export's: what was written is said on stderr
+        console.err.print(f"wrote standard output: {said}", highlight=False)
+    else:
+        console.out.print(f"wrote {out}: {said}", highlight=False)
 
 
 def _foxglove(log, out: Path, force: bool) -> str:
@@ -289,10 +298,12 @@ def _ros2(log, out: Path, force: bool) -> str:
 
 
 def _rerun(log, out: Path, force: bool) -> str:
+    from ..log.outputs import to_stdout
     from ..log.rerun import export_rerun
 
     written = export_rerun(log, out, overwrite=force)
-    return f"{sum(written.values())} rows on {len(written)} entities; open it with: rerun {out}"
+    return f"{sum(written.values())} rows on {len(written)} entities; " + (
+        "a viewer reads it from a pipe: | rerun -" if to_stdout(out) else f"open it with: rerun {out}")
 
 
 #: --format → the export of one log to a viewer's file, and what it says it wrote

@@ -26,6 +26,7 @@ import getpass
 import json
 import os
 import platform
+import re
 import socket
 import subprocess
 import sys
@@ -55,13 +56,30 @@ PACKAGES = {"retriever": DISTRIBUTION, "eclipse-zenoh": "eclipse-zenoh", "msgpac
             "mcap": "mcap", "mujoco": "mujoco"}
 
 
+#: a data channel's topic: a node and a port, one segment each (a run's names are ir.NODE_ID and
+#: ir.PORT_NAME; a reader takes any segment, so that a log's odd names reach the exports, which make
+#: them names of their own, but never a port of two segments)
+_DATA_TOPIC = re.compile(r"data/([^/]+)/([^/]+)")
+
+
 def data_topic(node: str, port: str) -> str:
     return f"data/{node}/{port}"
 
 
 def parse_data_topic(topic: str) -> tuple[str, str] | None:
-    parts = topic.split("/")
-    return (parts[1], parts[2]) if len(parts) == 3 and parts[0] == "data" else None
+    """``data/<node>/<port>`` → ``(node, port)``; None for any other topic, one under ``data/`` of
+    other than two segments too (a port holding '/'): :func:`data_topic_problem` says so."""
+    match = _DATA_TOPIC.fullmatch(topic)
+    return (match[1], match[2]) if match else None
+
+
+def data_topic_problem(topic: str) -> str | None:
+    """Why a topic under ``data/`` is not ``data/<node>/<port>``, or None: a reader that skipped
+    such a channel would lose its events without a word."""
+    if not topic.startswith("data/") or _DATA_TOPIC.fullmatch(topic):
+        return None
+    return (f"its channel topic {topic!r:.80} is under data/ but is not data/<node>/<port>, a node and a port of "
+            "one non-empty segment each (a port name holds no '/')")
 
 
 def split_event(data: bytes) -> tuple[int, bytes]:

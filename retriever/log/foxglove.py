@@ -6,7 +6,9 @@ channel has a schema the app decodes:
 
 - an image port (uint8 arrays H×W, H×W×3 or H×W×4) is a ``foxglove.RawImage`` channel
   (``mono8``, ``rgb8``, ``rgba8``) on ``/<node>/<port>``, and so is an image field of a dataclass
-  value (a camera frame with its time) on ``/<node>/<port>/<field>`` (nested: ``.../<a>/<b>``);
+  value (a camera frame with its time) or an image item of a dict value (what a ROS 2 subscriber
+  sends) on ``/<node>/<port>/<field>`` (nested: ``.../<a>/<b>``), as the ROS 2 and Rerun exports
+  open values (views.value_leaves);
 - any other port is a JSON channel on ``/<node>/<port>`` whose messages are ``{"value": ...,
   "tag_ns", "microstep", "seq"}`` (numbers and small arrays as they are; a bigger array as its
   dtype, shape and first elements; a dataclass as its fields, whether this process registered
@@ -31,15 +33,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..codec import dataclass_fields
 from ..errors import LogError, RetrieverWarning
-from ..trace import NOT_KEPT
+from ..trace import NOT_KEPT, StepRecord
 from .outputs import export_path
-from .reader import RunLog
-
-#: arrays up to this many elements go into JSON whole; bigger ones as dtype, shape and a head
-JSON_ARRAY_MAX = 1024
-IMAGE_ENCODINGS = {3: "rgb8", 4: "rgba8"}  # H×W×channels (an H×W array is mono8; H×W×2 is no image)
+from .reader import LogHead, LogRecords, RunLog, log_records
+from .views import image_encoding, to_json, value_leaves
 
 VALUE_SCHEMA = {"type": "object", "properties": {
     "value": {}, "tag_ns": {"type": "integer"}, "microstep": {"type": "integer"}, "seq": {"type": "integer"}}}
@@ -65,66 +63,22 @@ def _sdk():
     return foxglove, RawImageChannel, RawImage, Timestamp
 
 
-def image_encoding(value: Any) -> str | None:
-    """``mono8``, ``rgb8`` or ``rgba8`` for a uint8 array shaped as an image; else None."""
-    if not isinstance(value, np.ndarray) or value.dtype != np.uint8 or value.ndim not in (2, 3):
-        return None
-    if value.ndim == 2:
-        return "mono8" if min(value.shape) > 1 else None
-    return IMAGE_ENCODINGS.get(value.shape[2]) if min(value.shape[:2]) > 1 else None
-
-
-def image_fields(value: Any, path: str = "") -> Iterator[tuple[str, np.ndarray, str]]:
-    """``(path, image, encoding)`` for each image among a dataclass value's fields, nested
-    dataclasses too, ``path`` as ``/field`` or ``/field/inner``."""
-    for name, field_value in (dataclass_fields(value) or {}).items():
-        encoding = image_encoding(field_value)
+def image_fields(value: Any) -> Iterator[tuple[str, np.ndarray, str]]:
+    """``(path, image, encoding)`` for each image among a value's leaves (views.value_leaves: a
+    dataclass's fields and a dict's items, what a ROS 2 subscriber sends, nested ones too), ``path``
+    as ``/field`` or ``/field/inner``."""
+    for path, leaf in value_leaves(value):
+        encoding = image_encoding(leaf) if path else None
         if encoding is not None:
-            yield f"{path}/{name}", field_value, encoding
-        else:
-            yield from image_fields(field_value, f"{path}/{name}")
+            yield path, leaf, encoding
 
 
-#: how deep to_json opens nested lists, dicts and dataclasses; deeper is said, not opened (a
-#: value from a log is hostile: a thousand nested lists must not exhaust the stack)
-JSON_DEPTH_MAX = 32
-
-
-def to_json(value: Any, depth: int = 0) -> Any:
-    """A value as JSON: numbers, strings, lists and dicts as they are, small arrays as lists,
-    bigger ones summarised, a dataclass as its fields, anything else as its text."""
-    if value is None or isinstance(value, (bool, int, float, str)):
-        return value if not isinstance(value, float) or np.isfinite(value) else str(value)
-    if isinstance(value, np.generic):
-        return to_json(value.item())
-    if isinstance(value, np.ndarray):
-        # by its size and by each dimension: a (10**8, 0) array holds nothing, yet as lists it is 10**8 of them
-        small = value.size <= JSON_ARRAY_MAX and max(value.shape, default=0) <= JSON_ARRAY_MAX
-        if small and value.dtype.kind in "biuf":
-            return to_json(value.tolist(), depth)
-        return {"dtype": str(value.dtype), "shape": list(value.shape),
-                "head": to_json(value.reshape(-1)[:8].tolist()) if value.dtype.kind in "biuf" else None}
-    if depth >= JSON_DEPTH_MAX:
-        return f"<{type(value).__name__} nested deeper than {JSON_DEPTH_MAX}>"
-    fields = dataclass_fields(value)  # before tuples: an UnregisteredValue is one
-    if fields is not None:
-        return {name: to_json(v, depth + 1) for name, v in fields.items()}
-    if isinstance(value, dict):
-        return {str(k): to_json(v, depth + 1) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_json(v, depth + 1) for v in value]
-    if isinstance(value, bytes):
-        return {"bytes": len(value)}
-    return str(value)
-
-
-def run_start_ns(log: RunLog) -> int:
+def run_start_ns(log: LogRecords) -> int:
     """The wall time (Unix ns) of the run's tag 0: the earliest publish time less its tag (an
     event is published at or after its tag), else when the log was started."""
-    starts = [e.publish_ns - e.tag[0] for e in log.iter_events() if e.publish_ns]
-    if starts:
-        return max(0, min(starts))
-    return int(log.run.get("started_unix_ns", "0") or 0)
+    if log.wall_start_ns is not None:
+        return max(0, log.wall_start_ns)
+    return int(log.head.run.get("started_unix_ns", "0") or 0)
 
 
 class FoxgloveWriter:
@@ -197,12 +151,15 @@ class FoxgloveWriter:
         self.written[topic] += 1
 
 
-def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
-    """Write ``log`` as a Foxglove MCAP to ``out``; the messages written, per topic."""
+def export_foxglove(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Counter:
+    """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a Foxglove MCAP to
+    ``out``; the messages written, per topic."""
     foxglove = _sdk()[0]
-    out = export_path(log.path, out, overwrite)
-    zero = run_start_ns(log)
-    ir = log.ir
+    out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)
+    source = log_records(log)
+    head = source.head
+    zero = run_start_ns(source)
+    ir = head.ir
     context = foxglove.Context()
     # written beside it, then renamed: an export that fails leaves no file that looks whole, and
     # never writes into the file that stands at ``out`` (a hard link to the log, say)
@@ -214,12 +171,13 @@ def export_foxglove(log: RunLog, out: str | Path, *, overwrite: bool = False) ->
     try:
         try:
             view = FoxgloveWriter(context, ir, zero)
-            for event in log.iter_events():
-                view.event(event.node, event.port, event.tag, event.seq, log.value(event, keep_unregistered=True),
-                           zero + event.tag[0])
-            for step in log.iter_steps():
-                view.step(step.node, step.tag, step.consumed, step.produced, step.status, step.detail, step.wall_ns,
-                          zero + step.tag[0])
+            for record in source.records():
+                if type(record) is StepRecord:
+                    view.step(record.node, record.tag, record.consumed, record.produced, record.status,
+                              record.detail, record.wall_ns, zero + record.tag[0])
+                else:
+                    view.event(record.node, record.port, record.tag, record.seq,
+                               head.value(record, keep_unregistered=True), zero + record.tag[0])
         finally:
             writer.close()
         os.replace(partial, out)

@@ -201,13 +201,8 @@ class RunLog(LogHead):
         ports = {c.id: parsed for c in self.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
         for m in self.messages:
             port = ports.get(m.channel_id)
-            if port is None:
-                continue
-            try:
-                microstep, raw = fmt.split_event(m.data)
-            except ValueError as e:
-                raise LogError(f"{self.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
-            yield LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+            if port is not None:
+                yield logged_event(self.path, port, m)
 
     def iter_steps(self) -> Iterator[StepRecord]:
         """Every step record, in file order (decoded once, then kept)."""
@@ -219,18 +214,31 @@ class RunLog(LogHead):
         steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
         for m in self.messages:
             if m.channel_id in steps:
-                try:
-                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
-                except Exception as e:
-                    raise LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})") from None
-                yield StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
-                                 m.publish_time, wall_ns)
+                yield step_record(self.path, m)
 
     def trace(self) -> Trace:
         """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""
         events = [Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns) for e in self.iter_events()]
         return Trace(events, list(self.iter_steps()))
 
+
+
+def logged_event(path: Path, port: tuple[str, str], m: Message) -> LoggedEvent:
+    """The event a message on the channel of ``port`` (``(node, port)``) holds, value undecoded."""
+    try:
+        microstep, raw = fmt.split_event(m.data)
+    except ValueError as e:
+        raise LogError(f"{path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+    return LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+
+
+def step_record(path: Path, m: Message) -> StepRecord:
+    """The step record a message on the steps channel holds."""
+    try:
+        node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+    except Exception as e:
+        raise LogError(f"{path}: step record #{m.sequence} is malformed ({e})") from None
+    return StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail, m.publish_time, wall_ns)
 
 
 def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
@@ -299,6 +307,22 @@ class ScannedLog(LogHead):
                     yield item[3]
 
 
+    def records(self) -> Iterator[LoggedEvent | StepRecord]:
+        """Every event (value undecoded) and step record, in log-time order (:meth:`time_ordered`),
+        read again from the file: what is held at a time is a few chunks, however long the log."""
+        kinds: dict[int, tuple[str, str] | None] = {
+            c.id: fmt.parse_data_topic(c.topic) for c in self.channels.values() if c.topic != fmt.STEPS_TOPIC}
+        for m in self.time_ordered():
+            port = kinds.get(m.channel_id, _STEPS)
+            if port is _STEPS:
+                yield step_record(self.path, m)
+            elif port is not None:
+                yield logged_event(self.path, port, m)
+
+
+_STEPS = ("steps",)  # ScannedLog.records: a channel of step records (a port is a pair)
+
+
 def scan_log(path: str | Path, take: Callable[[LogChannel, Message], None], *,
              progress: Callable[[int, int], None] | None = None) -> ScannedLog:
     """Read and validate a log as :func:`read_log` does (the same errors, for a log torn or
@@ -331,6 +355,58 @@ def scan_log(path: str | Path, take: Callable[[LogChannel, Message], None], *,
     return log
 
 
+@dataclass
+class LogRecords:
+    """A log as an export to a viewer reads it: what it says of its run (``head``: its IR, run
+    record, ``value()``), what a first reading found (the nodes with step records, the wall time
+    of the run's tag 0), and ``records()``, its events and step records read again."""
+
+    head: LogHead
+    step_nodes: set[str]
+    #: the earliest publish time less its event's tag (an event is published at or after its
+    #: tag), None when no event has a publish time
+    wall_start_ns: int | None
+    records: Callable[[], Iterator[LoggedEvent | StepRecord]]
+
+
+def log_records(log: RunLog | str | Path) -> LogRecords:
+    """``log`` for an export: a log read whole (its events in file order, then its step records),
+    or the path of one, which is read twice and never held (scan_log; its records in log-time
+    order, a few chunks at a time), so that an export's memory does not grow with the log's
+    length (a log with messages outside its chunks, which Retriever's writer never makes, is
+    read whole)."""
+    if isinstance(log, RunLog):
+        starts = [e.publish_ns - e.tag[0] for e in log.iter_events() if e.publish_ns]
+        return LogRecords(log, {step.node for step in log.iter_steps()}, min(starts, default=None),
+                          lambda: _whole_records(log))
+    path = Path(log)
+    nodes: set[str] = set()
+    start: list[int | None] = [None]
+    kinds: dict[int, Any] = {}
+
+    def take(channel: LogChannel, m: Message) -> None:
+        kind = kinds.get(channel.id, _UNSEEN)
+        if kind is _UNSEEN:
+            kind = kinds[channel.id] = _STEPS if channel.topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(channel.topic)
+        if kind is _STEPS:
+            nodes.add(step_record(path, m).node)
+        elif kind is not None and m.publish_time and (start[0] is None or m.publish_time - m.log_time < start[0]):
+            start[0] = m.publish_time - m.log_time
+
+    scanned = scan_log(path, take)
+    if scanned.loose:
+        return log_records(read_log(path))
+    return LogRecords(scanned, nodes, start[0], scanned.records)
+
+
+def _whole_records(log: RunLog) -> Iterator[LoggedEvent | StepRecord]:
+    yield from log.iter_events()
+    yield from log.iter_steps()
+
+
+_UNSEEN = ("unseen",)
+
+
 def _identity(stream) -> tuple:
     """What tells a file that was changed (rewritten, appended to) from the one read before."""
     stat = os.fstat(stream.fileno())
@@ -360,7 +436,7 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
         tracked = _Tracked(stream, size, progress)
         reader = _StreamReader(tracked, validate_crcs=True, at_chunk=at_chunk)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
-        bad_attachment = None
+        bad_attachment = bad_channel = None
         footer, chunk_indexes = None, []
         read = 0  # messages
         channels = log.channels
@@ -376,6 +452,10 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
                     chunk_indexes.append(record)
                 elif isinstance(record, Footer):
                     footer = record
+                elif isinstance(record, Channel) and log.profile == fmt.PROFILE:
+                    bad_channel = fmt.data_topic_problem(record.topic)
+                    if bad_channel is not None:
+                        break
                 if isinstance(record, Attachment):
                     error = _attachment_crc_error(record, tracked.last_data)
                     if error is not None:
@@ -400,6 +480,10 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
             log.damage = "; ".join([*dropped, *([log.damage] if log.damage else [])])
         if isinstance(log, ScannedLog):
             log.messages_read = read
+    if bad_channel is not None:
+        raise LogError(f"{path} cannot be read: {bad_channel}",
+                       "the log was changed after it was written, or written by a Retriever that let a port name "
+                       "hold '/' (its events were lost from every view)")
     if bad_attachment is not None:
         raise LogError(f"{path} cannot be read: {bad_attachment}",
                        f"`retriever log recover {path}` writes a readable copy without the damaged attachment "

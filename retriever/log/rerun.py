@@ -39,10 +39,9 @@ import numpy as np
 
 from ..errors import LogError
 from ..trace import StepRecord
-from .foxglove import image_encoding, to_json
-from .outputs import export_path
-from .reader import RunLog
-from .views import numeric_array, step_json, value_leaves
+from .outputs import export_path, stdout_stream, to_stdout
+from .reader import LogHead, LogRecords, RunLog, log_records
+from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
 
 #: the URL of the Rerun viewer that ``rerun`` starts on this machine (rerun-sdk's own default)
 RERUN_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
@@ -138,10 +137,21 @@ class RerunRecording:
         self.step(step.node, step_json(step), step.status)
 
 
-def export_rerun(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Counter:
-    """Write ``log`` as a Rerun recording (``.rrd``) to ``out``; the rows written, per entity."""
+def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Counter:
+    """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a Rerun recording
+    (``.rrd``) to ``out`` (``-``: standard output, a pipe: ``| rerun -``); the rows written, per entity."""
     rr = rerun_sdk()
-    out = export_path(log.path, out, overwrite)
+    if to_stdout(out):
+        stdout_stream("rerun")  # a LogError for a terminal: Rerun's SDK would hold the recording in memory
+        source = log_records(log)
+        stream = new_stream(rr)
+        try:
+            stream.stdout(default_blueprint=event_time_blueprint(rr))
+            return _write_rerun(rr, source, stream)
+        finally:
+            stream.disconnect()
+    out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)
+    source = log_records(log)
     # written beside it, then renamed: an export that fails leaves no file that looks whole
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     stream = new_stream(rr)
@@ -150,17 +160,25 @@ def export_rerun(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Co
             stream.save(partial, default_blueprint=event_time_blueprint(rr))
         except Exception as e:  # the SDK's own error for a path it cannot create
             raise LogError(f"cannot write {out}: {e}") from None
-        stream.send_recording_name(log.run.get("pipeline") or Path(log.path).stem)
-        recording = RerunRecording(rr, stream)
-        for event in log.iter_events():
-            recording.log_event(event.node, event.port, event.tag[0], event.publish_ns, event.seq,
-                                log.value(event, keep_unregistered=True))
-        for step in log.iter_steps():
-            recording.log_step(step)
-        stream.flush()
-        stream.disconnect()
+        written = _write_rerun(rr, source, stream)
         os.replace(partial, out)
     finally:
         stream.disconnect()
         partial.unlink(missing_ok=True)
+    return written
+
+
+def _write_rerun(rr, source: LogRecords, stream) -> Counter:
+    """The log's records logged on ``stream`` (its sink set), flushed and disconnected."""
+    head = source.head
+    stream.send_recording_name(head.run.get("pipeline") or Path(head.path).stem)
+    recording = RerunRecording(rr, stream)
+    for record in source.records():
+        if type(record) is StepRecord:
+            recording.log_step(record)
+        else:
+            recording.log_event(record.node, record.port, record.tag[0], record.publish_ns, record.seq,
+                                head.value(record, keep_unregistered=True))
+    stream.flush()
+    stream.disconnect()
     return recording.written

@@ -64,11 +64,11 @@ import numpy as np
 from mcap.writer import Writer
 
 from ..errors import LogError
-from .foxglove import image_encoding, to_json
+from ..trace import StepRecord
 from .format import parse_data_topic
-from .outputs import export_path
-from .reader import RunLog
-from .views import numeric_array, step_json, value_leaves
+from .outputs import CountedStream, export_path, stdout_stream, to_stdout
+from .reader import LogHead, LogRecords, RunLog, log_records
+from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
 
 IMAGE = "sensor_msgs/msg/Image"
 STRING = "std_msgs/msg/String"
@@ -343,10 +343,15 @@ class Ros2Bag:
                        seq)
 
 
-def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros2Export:
-    """Write ``log`` as a ROS 2 MCAP to ``out``; what was written, per topic."""
+def export_ros2(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Ros2Export:
+    """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a ROS 2 MCAP to
+    ``out`` (``-``: standard output, a pipe); what was written, per topic."""
     store = _typestore()
-    out = export_path(log.path, out, overwrite)
+    if to_stdout(out):
+        source = log_records(log)
+        return _write_ros2(source, CountedStream(stdout_stream("ros2")), store)
+    out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)
+    source = log_records(log)
     # written beside it, then renamed: an export that fails leaves no file that looks whole
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
     try:
@@ -355,20 +360,30 @@ def export_ros2(log: RunLog, out: str | Path, *, overwrite: bool = False) -> Ros
         raise LogError(f"cannot write {out}: {e.strerror}") from None
     try:
         with stream:
-            writer = Writer(stream)
-            writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
-            bag = Ros2Bag(writer, store)
-            bag.reserve([("steps", step.node) for step in log.iter_steps()] +
-                        [("port", *port, "") for c in log.channels.values() if (port := parse_data_topic(c.topic))])
-            for event in log.iter_events():
-                bag.event(event.node, event.port, log.value(event, keep_unregistered=True), event.tag[0],
-                          event.publish_ns, event.seq)
-            for index, step in enumerate(log.iter_steps()):
-                topic, _, text = bag.topic_for(("steps", step.node), JSON, step_json(step))
-                bag.write(topic, STRING, bag.message(STRING, text, 0, ""), step.tag[0],
-                          step.wall_start_ns or step.tag[0], index)
-            writer.finish()
+            summary = _write_ros2(source, stream, store)
         os.replace(partial, out)
     finally:
         partial.unlink(missing_ok=True)
+    return summary
+
+
+def _write_ros2(source: LogRecords, stream, store) -> Ros2Export:
+    """The log's records as a ROS 2 MCAP written front to back onto ``stream``."""
+    head = source.head
+    writer = Writer(stream)
+    writer.start(profile="ros2", library="retriever log export --format ros2 (rosbags CDR)")
+    bag = Ros2Bag(writer, store)
+    bag.reserve([("steps", node) for node in source.step_nodes] +
+                [("port", *port, "") for c in head.channels.values() if (port := parse_data_topic(c.topic))])
+    steps = 0
+    for record in source.records():
+        if type(record) is StepRecord:
+            topic, _, text = bag.topic_for(("steps", record.node), JSON, step_json(record))
+            bag.write(topic, STRING, bag.message(STRING, text, 0, ""), record.tag[0],
+                      record.wall_start_ns or record.tag[0], steps)
+            steps += 1
+        else:
+            bag.event(record.node, record.port, head.value(record, keep_unregistered=True), record.tag[0],
+                      record.publish_ns, record.seq)
+    writer.finish()
     return bag.summary

@@ -1,5 +1,6 @@
-"""What the exports of a log to other viewers (ROS 2, Rerun) share: a value as the leaves a
-viewer shows, a number as a plain NumPy value, a step record as JSON.
+"""What the exports of a log to other viewers (ROS 2, Rerun, Foxglove) share: a value as the
+leaves a viewer shows, an image's encoding, a number as a plain NumPy value, a value and a step
+record as JSON.
 
 A viewer plots a number and shows an image, but knows nothing of a dataclass or a dict: a
 dataclass value (registered here or not) is opened into its fields, and a dict (what a ROS 2
@@ -19,7 +20,53 @@ import numpy as np
 
 from ..codec import dataclass_fields
 from ..trace import StepRecord
-from .foxglove import to_json
+
+
+#: arrays up to this many elements go into JSON whole; bigger ones as dtype, shape and a head
+JSON_ARRAY_MAX = 1024
+IMAGE_ENCODINGS = {3: "rgb8", 4: "rgba8"}  # H×W×channels (an H×W array is mono8; H×W×2 is no image)
+
+
+def image_encoding(value: Any) -> str | None:
+    """``mono8``, ``rgb8`` or ``rgba8`` for a uint8 array shaped as an image; else None."""
+    if not isinstance(value, np.ndarray) or value.dtype != np.uint8 or value.ndim not in (2, 3):
+        return None
+    if value.ndim == 2:
+        return "mono8" if min(value.shape) > 1 else None
+    return IMAGE_ENCODINGS.get(value.shape[2]) if min(value.shape[:2]) > 1 else None
+
+
+#: how deep to_json opens nested lists, dicts and dataclasses; deeper is said, not opened (a
+#: value from a log is hostile: a thousand nested lists must not exhaust the stack)
+JSON_DEPTH_MAX = 32
+
+
+def to_json(value: Any, depth: int = 0) -> Any:
+    """A value as JSON: numbers, strings, lists and dicts as they are, small arrays as lists,
+    bigger ones summarised, a dataclass as its fields, anything else as its text."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value if not isinstance(value, float) or np.isfinite(value) else str(value)
+    if isinstance(value, np.generic):
+        return to_json(value.item())
+    if isinstance(value, np.ndarray):
+        # by its size and by each dimension: a (10**8, 0) array holds nothing, yet as lists it is 10**8 of them
+        small = value.size <= JSON_ARRAY_MAX and max(value.shape, default=0) <= JSON_ARRAY_MAX
+        if small and value.dtype.kind in "biuf":
+            return to_json(value.tolist(), depth)
+        return {"dtype": str(value.dtype), "shape": list(value.shape),
+                "head": to_json(value.reshape(-1)[:8].tolist()) if value.dtype.kind in "biuf" else None}
+    if depth >= JSON_DEPTH_MAX:
+        return f"<{type(value).__name__} nested deeper than {JSON_DEPTH_MAX}>"
+    fields = dataclass_fields(value)  # before tuples: an UnregisteredValue is one
+    if fields is not None:
+        return {name: to_json(v, depth + 1) for name, v in fields.items()}
+    if isinstance(value, dict):
+        return {str(k): to_json(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json(v, depth + 1) for v in value]
+    if isinstance(value, bytes):
+        return {"bytes": len(value)}
+    return str(value)
 
 
 def value_leaves(value: Any, path: str = "") -> Iterator[tuple[str, Any]]:

@@ -24,6 +24,7 @@ from mcap.opcode import Opcode
 
 from ..codec import Encoder, array_encoding_head
 from ..errors import CodecError, LogError, LogWriteError
+from ..ir import port_name_problem
 from . import format as fmt
 from .mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
 from .mcap_writer import McapWriter
@@ -160,6 +161,12 @@ class LogWriter:
                                    f" (`retriever log recover {self.path}` salvages what reached it)")) from None
 
     def _add_channel(self, node: str, port: str, port_type: Any = None) -> int:
+        # an untyped flow's step() may return a key compile_graph could not see: a channel the log's
+        # readers would not take (format.data_topic_problem) is refused, not written
+        problem = port_name_problem(port)
+        if problem is not None:
+            raise LogError(f"an event of {node} cannot be logged: the output port {problem}",
+                           f"rename the key {node}'s step() returns, e.g. to letters, digits and _")
         type_name = "" if port_type is None else getattr(port_type, "__qualname__", str(port_type))
         channel = self._mcap.add_channel(fmt.data_topic(node, port), fmt.MESSAGE_ENCODING,
                                          {"node": node, "port": port, "type": type_name})

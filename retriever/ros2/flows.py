@@ -198,7 +198,22 @@ class Ros2Publisher(_Ros2Endpoint):
     MultiArray's data: ``types.list_of_numbers_is_one_value``), since no element of it could be a
     message: that list is one message. So a MultiArray of two or more dimensions comes as a numpy
     array, not a nested list. Every element is converted before any is put: a tick whose list holds
-    one that does not convert publishes none (and the error says which)."""
+    one that does not convert publishes none (and the error says which).
+
+    A message with a ``std_msgs/msg/Header`` (an Image, a JointState, a PoseStamped...) whose value
+    says no ``frame_id`` (an image array alone, a dict without the key) gets ``frame_id``: by default
+    the ROS node's name (``node``), so that a subscriber can tell whose frame it is rather than
+    reading an empty one; give the frame its coordinates are in (``frame_id="camera_optical"``)."""
+
+    def __init__(self, topic: str, msgtype: str, *, node: str = "retriever", namespace: str = "/",
+                 domain_id: int | None = None, connect: Sequence[str] = (ROS_ROUTER,),
+                 listen: Sequence[str] = ("tcp/127.0.0.1:0",), msgdef: str | None = None,
+                 frame_id: str | None = None):
+        if frame_id is not None and not isinstance(frame_id, str):
+            raise TypeError(f"Ros2Publisher: frame_id must be a str, got {type(frame_id).__name__}")
+        super().__init__(topic, msgtype, node=node, namespace=namespace, domain_id=domain_id, connect=connect,
+                         listen=listen, msgdef=msgdef)
+        self.frame_id = self.node_name if frame_id is None else frame_id
 
     def _begin(self) -> None:
         self.published = 0
@@ -212,16 +227,19 @@ class Ros2Publisher(_Ros2Endpoint):
         self._publisher = self._ros.session.declare_publisher(self.key)
         self._sequence = 0
 
+    def _payload(self, value) -> bytes:
+        return types.serialize(types.from_value(value, self.msgtype, frame_id=self.frame_id), self.msgtype)
+
     def step(self, msg):
         if type(msg) is not list:
-            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+            payloads = [self._payload(msg)]
         elif msg and self._one_value_is_a_list and all(isinstance(v, _NUMBERS) for v in msg):
-            payloads = [types.serialize(types.from_value(msg, self.msgtype), self.msgtype)]
+            payloads = [self._payload(msg)]
         else:  # a Queue's (or Window's) events: a message each, all converted before any is put
             payloads = []
             for i, value in enumerate(msg):
                 try:
-                    payloads.append(types.serialize(types.from_value(value, self.msgtype), self.msgtype))
+                    payloads.append(self._payload(value))
                 except (TypeError, ValueError) as error:
                     kind = TypeError if isinstance(error, TypeError) else ValueError
                     raise kind(f"element {i} of the list of {len(msg)} on msg (a Queue's events, each published "

@@ -4,8 +4,10 @@ One rule for every message type, so a type a user adds from its ``.msg`` text ma
 standard ones:
 
 - a message is a ``dict`` of its fields; a ``std_msgs/msg/Header`` field becomes two keys,
-  ``stamp`` (int ns since the epoch) and ``frame_id``; every other ``builtin_interfaces`` Time or
-  Duration is an int of ns;
+  ``stamp`` (int ns since the epoch) and ``frame_id``, where that is unambiguous (one Header, and
+  no other field named ``stamp`` or ``frame_id``: :func:`flat_header`), else a dict of those two
+  under its own field's name, so that a Header and a field ``stamp`` stay two stamps; every other
+  ``builtin_interfaces`` Time or Duration is an int of ns;
 - numeric arrays and sequences are numpy arrays (``uint8[]`` too), strings ``str``;
 - ``geometry_msgs`` Vector3, Point and Point32 are float arrays ``[x, y, z]``, Quaternion
   ``[x, y, z, w]``.
@@ -146,9 +148,10 @@ def to_value(message: Any, type_name: str) -> Any:
             data = np.array(message.data)
             return data.reshape(shape) if shape and int(np.prod(shape)) == data.size else data
     value: dict[str, Any] = {}
+    flat = flat_header(type_name)
     for name, desc in fields:
         field = getattr(message, name)
-        if desc == (Nodetype.NAME, _HEADER):
+        if name == flat:
             value["stamp"] = to_value(field.stamp, "builtin_interfaces/msg/Time")
             value["frame_id"] = field.frame_id
         else:
@@ -209,26 +212,40 @@ def _encoding(encoding: str) -> tuple[str, int]:
 # ---------------------------------------------------------------------------------------------
 # value → message
 # ---------------------------------------------------------------------------------------------
-def from_value(value: Any, type_name: str) -> Any:
+def from_value(value: Any, type_name: str, *, frame_id: str = "") -> Any:
     """The rosbags message of ``type_name`` for a Retriever value (the inverse of :func:`to_value`;
-    missing fields are zero). Conversions are exact or refused: a value a field cannot take as it
-    is (a list for a string, ``"false"`` or 1 for a bool, 3.7 for an int, 4 numbers for a Vector3,
-    300 for a uint8) is a TypeError or ValueError that names the type, the field's path in it, what
-    the field takes and what it got. An int-valued float (3.0) passes for an int."""
-    return _message(value, type_name, _Where(type_name, ""))
+    missing fields are zero, but a Header's ``frame_id``, which is ``frame_id``). Conversions are
+    exact or refused: a value a field cannot take as it is (a list for a string, ``"false"`` or 1
+    for a bool, 3.7 for an int, 4 numbers for a Vector3, 300 for a uint8) is a TypeError or
+    ValueError that names the type, the field's path in it, what the field takes and what it got.
+    An int-valued float (3.0) passes for an int."""
+    return _message(value, type_name, _Where(type_name, "", frame_id))
+
+
+def flat_header(type_name: str) -> str | None:
+    """The name of ``type_name``'s Header field if its ``stamp`` and ``frame_id`` are keys of the
+    value itself: when it has one Header and no other field is named ``stamp`` or ``frame_id``
+    (``{"header": ..., "stamp": ...}`` would collapse two stamps into one key); else None, and
+    each Header is a dict ``{"stamp", "frame_id"}`` under its own field's name."""
+    fields = _fields(type_name)
+    headers = [name for name, desc in fields if desc == (Nodetype.NAME, _HEADER)]
+    if len(headers) != 1 or any(name in ("stamp", "frame_id") for name, _ in fields):
+        return None
+    return headers[0]
 
 
 class _Where:
-    """Where in the published value a conversion is: the message type published, the field's path."""
+    """Where in the published value a conversion is: the message type published, the field's path,
+    and the frame_id a Header the value leaves without one gets."""
 
-    def __init__(self, root: str, path: str):
-        self.root, self.path = root, path
+    def __init__(self, root: str, path: str, frame_id: str = ""):
+        self.root, self.path, self.frame_id = root, path, frame_id
 
     def field(self, name: str) -> _Where:
-        return _Where(self.root, f"{self.path}.{name}" if self.path else name)
+        return _Where(self.root, f"{self.path}.{name}" if self.path else name, self.frame_id)
 
     def item(self, index: int) -> _Where:
-        return _Where(self.root, f"{self.path}[{index}]")
+        return _Where(self.root, f"{self.path}[{index}]", self.frame_id)
 
     def refuse(self, takes: str, value: Any, error: type = TypeError, why: str = "") -> Exception:
         place = f"{self.root} field {self.path}" if self.path else self.root
@@ -276,20 +293,35 @@ def _message(value: Any, type_name: str, where: _Where) -> Any:
         if where.path:
             raise where.refuse(f"a dict of the fields of a {type_name}", value)
         raise TypeError(f"a {type_name} is published from a dict of its fields, got {type(value).__name__}")
-    header = [name for name, desc in fields if desc == (Nodetype.NAME, _HEADER)]
-    unknown = set(value) - {name for name, _ in fields} - ({"stamp", "frame_id"} if header else set())
+    flat = flat_header(type_name)
+    unknown = set(value) - {name for name, _ in fields if name != flat} - ({"stamp", "frame_id"} if flat else set())
     if unknown:
         place = f"{where.root} field {where.path}" if where.path else where.root
         raise ValueError(f"{place} has no field(s) {', '.join(sorted(map(str, unknown)))}")
     kwargs = {}
     for name, desc in fields:
-        if desc == (Nodetype.NAME, _HEADER):  # its stamp and frame_id are keys of the value itself
-            kwargs[name] = _store.types[_HEADER](
-                stamp=_message(value.get("stamp"), "builtin_interfaces/msg/Time", where.field("stamp")),
-                frame_id=_base_value(value.get("frame_id"), "string", where.field("frame_id")))
+        if name == flat:  # its stamp and frame_id are keys of the value itself
+            kwargs[name] = _header(value, where)
+        elif desc == (Nodetype.NAME, _HEADER):
+            header = value.get(name)
+            if header is not None and not isinstance(header, dict):
+                raise where.field(name).refuse('a dict {"stamp": ns, "frame_id": str} (a std_msgs/msg/Header)', header)
+            place = where.field(name)
+            if header and set(header) - {"stamp", "frame_id"}:
+                raise ValueError(f"{place.root} field {place.path} (a std_msgs/msg/Header) has no field(s) "
+                                 f"{', '.join(sorted(map(str, set(header) - {'stamp', 'frame_id'})))}")
+            kwargs[name] = _header(header or {}, place)
         else:
             kwargs[name] = _field_from_value(value.get(name), desc, where.field(name))
     return cls(**kwargs)
+
+
+def _header(value: dict, where: _Where) -> Any:
+    """The Header of ``value``'s ``stamp`` and ``frame_id`` (``where.frame_id`` when it has none)."""
+    frame_id = value.get("frame_id")
+    return _store.types[_HEADER](
+        stamp=_message(value.get("stamp"), "builtin_interfaces/msg/Time", where.field("stamp")),
+        frame_id=_base_value(where.frame_id if frame_id is None else frame_id, "string", where.field("frame_id")))
 
 
 #: what a ROS 2 message holds sizes, strides and a sequence's length in (CDR's uint32)

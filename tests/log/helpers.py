@@ -81,10 +81,10 @@ def cut(path: Path, size: int, out: Path) -> Path:
     return out
 
 
-def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None) -> Path:
+def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None, topic=None) -> Path:
     """A copy of the log ``src`` made with the ``mcap`` writer, as a forger would: ``metadata(name,
     dict)`` changes a metadata record in place, ``keep(topic, message)`` drops messages it says no
-    to, ``add`` holds metadata records to add ({name: {key: value}})."""
+    to, ``add`` holds metadata records to add ({name: {key: value}}), ``topic(topic)`` renames a channel."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -102,7 +102,8 @@ def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None 
             if keep is not None and not keep(channel.topic, message):
                 continue
             if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, 0,
+                channels[channel.id] = writer.register_channel(channel.topic if topic is None else topic(channel.topic),
+                                                               channel.message_encoding, 0,
                                                                dict(channel.metadata))
             writer.add_message(channels[channel.id], log_time=message.log_time, data=message.data,
                                publish_time=message.publish_time, sequence=message.sequence)

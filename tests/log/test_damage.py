@@ -20,6 +20,7 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from retriever import LogError, RetrieverWarning, read_log
+from retriever.log.reader import scan_log
 from retriever._loading import load_pipeline
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter, recover
@@ -303,6 +304,24 @@ def test_recover_keeps_schema_records_and_the_profile(tmp_path: Path):
     assert summary.statistics.schema_count == 2
     assert {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values() if c.schema_id} == {
         "/point": "demo.Point", "/image": "demo.Image"}
+
+
+@pytest.mark.parametrize("renamed", ["data/counter/k/x", "data/counter", "data//k", "data/counter/"])
+def test_a_data_channel_that_is_no_node_and_port_is_refused_not_left_out(one_chunk: Path, tmp_path: Path, renamed):
+    """A port named 'k/x' (which Retriever once let a flow return) made a topic data/counter/k/x
+    that every reader skipped: its events were lost from read_log, replay, info and every export
+    without a word (issue 39). It is said, by read_log, scan_log and the CLI alike."""
+    topic = list(read_log(one_chunk).channels.values())[0].topic
+    assert topic.startswith("data/")
+    forged = rewrite(one_chunk, tmp_path / "forged.mcap", topic=lambda t: renamed if t == topic else t)
+    says = re.escape(f"{forged} cannot be read: its channel topic {renamed!r} is under data/ but is not "
+                     "data/<node>/<port>, a node and a port of one non-empty segment each")
+    for read in (read_log, lambda p: scan_log(p, lambda channel, message: None)):
+        with pytest.raises(LogError, match=says + r".*\n    hint: the log was changed after it was written, or "
+                                               r"written by a Retriever that let a port name hold '/'"):
+            read(forged)
+    for command in (("log", "info"), ("replay",), ("log", "export", "--format", "rerun", "-o", str(tmp_path / "x.rrd"))):
+        assert_cli_error(cli(*command, forged), says)
 
 
 def test_recover_a_complete_log_has_nothing_to_do(one_chunk: Path):

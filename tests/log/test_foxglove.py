@@ -18,7 +18,9 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from retriever import Flow, LogError, Pipeline, Rate, Trigger, io, read_log
-from retriever.log.foxglove import JSON_DEPTH_MAX, export_foxglove, to_json
+from retriever.log.foxglove import export_foxglove
+from retriever.log.views import JSON_DEPTH_MAX, to_json
+from tests.log.export_flows import ros_camera_log
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -204,6 +206,27 @@ def test_images_inside_dataclass_values_are_raw_images_and_the_cli_writes_the_sa
     frame = by_python["/cam/frame"][0][1]["value"]
     assert frame == {"camera": "head", "t": 0.1, "rgb": [[[1] * 3] * 5] * 4, "mask": np.eye(4, 5, dtype=int).tolist()}
     assert by_python["/cam/pair"][0][1]["value"]["left"] == frame
+
+
+def test_images_inside_dict_values_are_raw_images_as_the_other_exports_open_them(tmp_path):
+    """What a ROS 2 subscriber sends is a dict (``{"image": ..., "stamp": ..., "frame_id": ...}``):
+    its image is a RawImage channel of its own, as the ROS 2 and Rerun exports open it item by
+    item (views.value_leaves); before, the image was only JSON in the port's value, summarised."""
+    log_path = ros_camera_log(tmp_path)
+    out = tmp_path / "view.mcap"
+    written = export_foxglove(log_path, out)
+    assert written["/cam/image/image"] == 3
+    by_topic = _messages(out)
+    with out.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    kinds = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
+    assert kinds["/cam/image/image"] == "foxglove.RawImage" and kinds["/cam/image"] == "retriever.Value"
+    images = [_protobuf_class(summary.schemas[next(c.schema_id for c in summary.channels.values()
+                                                  if c.topic == "/cam/image/image")]).FromString(body)
+              for _, body in by_topic["/cam/image/image"]]
+    assert [(i.encoding, i.width, i.height, i.data[:3], i.data[3]) for i in images] == [
+        ("rgb8", 5, 4, bytes([255, 0, 7]), k) for k in (1, 2, 3)]
+    assert by_topic["/cam/image"][0][1]["value"]["frame_id"] == "cam"
 
 
 def _with_a_damaged_frame(log_path: Path, out: Path) -> Path:

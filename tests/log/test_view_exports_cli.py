@@ -125,3 +125,71 @@ def test_an_export_stopped_by_a_signal_leaves_no_file_and_says_so_in_one_line(tm
     assert export.returncode == 128 + signum, (export.returncode, stdout, stderr)
     assert stderr.splitlines() == [f"interrupted by {name}: {out} was not written"], stderr
     assert list(views.iterdir()) == [], "a file was left behind"
+
+
+# ---------------------------------------------------------------------------------------------
+# -o -: standard output, where the format is written front to back (issue 39)
+# ---------------------------------------------------------------------------------------------
+def _piped(log_path, fmt: str, cwd) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "retriever.cli", "log", "export", str(log_path), "--format", fmt,
+                           "-o", "-"], capture_output=True, timeout=180, cwd=cwd, env=cli_env())
+
+
+def test_ros2_to_standard_output_is_the_file_it_writes(tmp_path):
+    """Before, ``-o -`` wrote a file named '-' in the working folder."""
+    log_path = camera_log(tmp_path)
+    piped = _piped(log_path, "ros2", tmp_path)
+    assert piped.returncode == 0, piped.stderr
+    assert piped.stderr.decode().startswith("wrote standard output: ") and not (tmp_path / "-").exists()
+    export_ros2(log_path, tmp_path / "view.mcap")
+    assert piped.stdout == (tmp_path / "view.mcap").read_bytes()
+
+
+def test_rerun_to_standard_output_loads_as_the_file_it_writes(tmp_path):
+    import rerun as rr
+
+    log_path = camera_log(tmp_path)
+    piped = _piped(log_path, "rerun", tmp_path)
+    assert piped.returncode == 0, piped.stderr
+    assert "a viewer reads it from a pipe: | rerun -" in piped.stderr.decode() and not (tmp_path / "-").exists()
+    (tmp_path / "piped.rrd").write_bytes(piped.stdout)
+    written = export_rerun(log_path, tmp_path / "view.rrd")
+    for path in (tmp_path / "piped.rrd", tmp_path / "view.rrd"):
+        recording = rr.dataframe.load_recording(path)
+        for entity, rows in written.items():
+            assert recording.view(index="event_time", contents=entity).select().read_all().num_rows <= rows
+            assert recording.view(index="seq", contents=entity).select().read_all().num_rows == rows, (path, entity)
+
+
+@pytest.mark.parametrize("fmt, why", [("foxglove", "Foxglove's SDK writes its MCAP only to a file it opens by name"),
+                                      ("npz", "a dataset is a folder of files")])
+def test_a_format_not_written_front_to_back_refuses_standard_output_saying_why(tmp_path, fmt, why):
+    log_path = camera_log(tmp_path)
+    done = _piped(log_path, fmt, tmp_path)
+    assert done.returncode == 1 and not done.stdout and not (tmp_path / "-").exists()
+    assert done.stderr.decode().startswith(f"error: --format {fmt} cannot be written to standard output (-o -): "
+                                           f"{why}\nhint: give it a path: -o FILE"), done.stderr
+
+
+def test_standard_output_on_a_terminal_is_refused(tmp_path):
+    import pty
+
+    log_path = camera_log(tmp_path)
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the export, its standard output a terminal
+        os.chdir(tmp_path)
+        os.execve(sys.executable, [sys.executable, "-m", "retriever.cli", "log", "export", str(log_path), "--format",
+                                   "ros2", "-o", "-"], cli_env())
+    said = b""
+    while True:
+        try:
+            chunk = os.read(fd, 4096)
+        except OSError:
+            break
+        if not chunk:
+            break
+        said += chunk
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 1
+    assert b"-o - writes the ros2 export to standard output, which is a terminal" in said, said
+    assert not (tmp_path / "-").exists()

@@ -29,14 +29,13 @@ from retriever.backends.zenoh.hub import endpoint, free_port
 from retriever.errors import RetrieverWarning
 from retriever.ros2 import Ros2Publisher, Ros2Subscriber
 from retriever.ros2.node import Ros2Node
+from tests.ros2.helpers import BOUND_S, until
 
 DOMAIN = 117
 NAMESPACE = f"/retriever_test_{os.getpid()}"
 JOINT_STATE = ("sensor_msgs::msg::dds_::JointState_/"
                "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e")
 TWIST = "geometry_msgs::msg::dds_::Twist_/RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
-#: how long a test waits for Zenoh to link the sessions and deliver, at most
-BOUND_S = 20.0
 ROOT = Path(__file__).resolve().parents[2]
 
 _jazzy = get_typestore(Stores.ROS2_JAZZY)
@@ -74,18 +73,17 @@ def test_a_subscriber_takes_what_a_plain_zenoh_publisher_puts_on_the_documented_
     try:
         pipe.step(0.01)  # the subscriber's setup(): its session, tokens and subscription
         publisher = session.declare_publisher(key)
-        deadline, sent = time.monotonic() + BOUND_S, 0
-        while not sink.got and time.monotonic() < deadline:  # until the subscription reached us
-            sent += 1
-            publisher.put(_joint_state_cdr(sent), attachment=zext.z_serialize(
-                (zext.Int64(sent), zext.Int64(time.time_ns()), gid)).to_bytes())
-            pipe.step(0.01)
-        assert sink.got, f"nothing arrived in {BOUND_S} s"
-        for i in LINKED:  # now linked: every message arrives, in order
+        sent = iter(range(1, LINKED[0]))
+
+        def put(i: int) -> None:
             publisher.put(_joint_state_cdr(i), attachment=zext.z_serialize(
                 (zext.Int64(i), zext.Int64(time.time_ns()), gid)).to_bytes())
-        while sink.got[-1]["position"][0] != LINKED[-1] and time.monotonic() < deadline:
-            pipe.step(0.01)
+
+        until(lambda: sink.got, "a message on the documented key", lambda: (put(next(sent)), pipe.step(0.01)))
+        for i in LINKED:  # now linked: every message arrives, in order
+            put(i)
+        until(lambda: sink.got[-1]["position"][0] == LINKED[-1], "the messages sent once linked",
+              lambda: pipe.step(0.01))
         publisher.undeclare()
         got, undecodable = sink.got, subscriber.undecodable
     finally:
@@ -106,14 +104,17 @@ def test_garbage_on_the_key_is_counted_and_never_handed_on(router):
         sink = Collect() @ Trigger("msg")
         subscriber.then(sink, sync=Queue(maxsize=1000))
     try:
-        pipe.step(0.01)
-        deadline = time.monotonic() + BOUND_S
-        # until both came: one round's garbage may be lost while the subscription reaches the
-        # router and its valid message not (this test failed about every other run on that)
-        while not (sink.got and subscriber.undecodable) and time.monotonic() < deadline:
+        trace = pipe.step(0.01)  # the trace so far
+
+        def put_both() -> None:
+            nonlocal trace
             session.put(key, b"\x00\x01\x00\x00garbage")
             session.put(key, _joint_state_cdr(1))
-            trace = pipe.step(0.01)  # the trace so far
+            trace = pipe.step(0.01)
+
+        # until both came: one round's garbage may be lost while the subscription reaches the
+        # router and its valid message not (this test failed about every other run on that)
+        until(lambda: sink.got and subscriber.undecodable, "a message and garbage", put_both)
         got, undecodable = sink.got, subscriber.undecodable
         said = [s.detail["flow"] for s in trace.steps if s.node == "ros2_subscriber" and s.detail
                 and "flow" in s.detail]
@@ -152,9 +153,7 @@ def test_a_publisher_puts_cdr_with_rmw_zenohs_attachment_and_announces_itself(ro
                                   domain_id=DOMAIN, connect=[at], listen=[]) @ Trigger("msg")
         speed.then(publisher)
     try:
-        deadline = time.monotonic() + BOUND_S
-        while not arrived.wait(0.05) and time.monotonic() < deadline:
-            pipe.step(0.1)
+        until(lambda: arrived.wait(0.05), "a Twist on the documented key", lambda: pipe.step(0.1))
         tokens = [str(reply.ok.key_expr) for reply in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**")]
         published = publisher.published
     finally:
@@ -284,21 +283,16 @@ def test_a_burst_relayed_through_a_queue_is_published_a_message_each_in_order(ro
     try:
         pipe.step(0.01)
         publisher_in = session.declare_publisher(in_key)
-        deadline = time.monotonic() + BOUND_S
-        while not received and time.monotonic() < deadline:  # until both ends are linked
-            publisher_in.put(_string_cdr("warm-up"))
-            pipe.step(0.01)
-        assert received, f"nothing was relayed in {BOUND_S} s"
+        until(lambda: received, "a message relayed (both ends linked)",
+              lambda: (publisher_in.put(_string_cdr("warm-up")), pipe.step(0.01)))
         pipe.step(0.01)
         batch = [f"m{i}" for i in range(5)]
         for text in batch:
             publisher_in.put(_string_cdr(text))
-        while subscriber.pending < len(batch) and time.monotonic() < deadline:  # all 5 for one tick
-            time.sleep(0.001)
+        until(lambda: subscriber.pending >= len(batch), "all 5 waiting for one tick")
         assert subscriber.pending == len(batch)
         pipe.step(0.01)  # the subscriber's burst of 5, a list of 5 to the publisher at the same tick
-        while (not received or received[-1][0] != batch[-1]) and time.monotonic() < deadline:
-            time.sleep(0.001)
+        until(lambda: received and received[-1][0] == batch[-1], "the burst relayed")
         publisher_in.undeclare()
     finally:
         pipe.reset()
@@ -327,13 +321,37 @@ def test_a_list_of_numbers_for_a_multi_array_is_one_message(router):
                                   connect=[at], listen=[]) @ Trigger("msg")
         (Numbers() @ Rate(hz=10)).then(publisher)
     try:
-        deadline = time.monotonic() + BOUND_S
-        while not received and time.monotonic() < deadline:
-            pipe.step(0.1)
+        until(lambda: received, "a Float64MultiArray", lambda: pipe.step(0.1))
     finally:
         pipe.reset()
         listener.undeclare()
-    assert received and all(data == [1.5, 2.5, 3.5] for data in received)
+    assert all(data == [1.5, 2.5, 3.5] for data in received)
+
+
+class Frames(Flow):
+    def step(self):
+        return {"msg": np.full((2, 3, 3), 7, dtype=np.uint8)}
+
+
+@pytest.mark.parametrize("frame_id, expected", [(None, "camera_node"), ("camera_optical", "camera_optical")])
+def test_an_image_published_from_an_array_names_its_frame(router, frame_id, expected):
+    """An image array alone says no frame: its Header's frame_id is the publisher's ``frame_id=``,
+    by default its ROS node's name (it was '', which no subscriber can place)."""
+    session, at = router
+    key = f"{DOMAIN}/{NAMESPACE.strip('/')}/image_frames/sensor_msgs::msg::dds_::Image_/"
+    received = []
+    listener = session.declare_subscriber(key + "*", lambda sample: received.append(
+        _jazzy.deserialize_cdr(sample.payload.to_bytes(), "sensor_msgs/msg/Image")))
+    with Pipeline("ros_frames") as pipe:
+        publisher = Ros2Publisher(f"{NAMESPACE}/image_frames", "sensor_msgs/msg/Image", node="camera_node",
+                                  domain_id=DOMAIN, connect=[at], listen=[], frame_id=frame_id) @ Trigger("msg")
+        (Frames() @ Rate(hz=10)).then(publisher)
+    try:
+        until(lambda: received, "an Image", lambda: pipe.step(0.1))
+    finally:
+        pipe.reset()
+        listener.undeclare()
+    assert all(m.header.frame_id == expected and (m.width, m.height) == (3, 2) for m in received)
 
 
 def test_on_the_realtime_backend_a_flood_and_garbage_are_counted_in_the_log(router, tmp_path):
@@ -388,14 +406,11 @@ def test_a_subscribers_backlog_is_bounded_in_bytes_too_dropping_the_oldest(route
     try:
         pipe.step(0.01)
         publisher = session.declare_publisher(key)
-        deadline = time.monotonic() + BOUND_S
-        while not publisher.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.001)
+        until(lambda: publisher.matching_status.matching, "the subscription reaching the router")
         for frame in frames:
             publisher.put(frame)
         publisher.put(_string_cdr("y" * 4 * size))  # bigger than the bound on its own: never kept
-        while subscriber.dropped + subscriber.pending < len(frames) + 1 and time.monotonic() < deadline:
-            time.sleep(0.001)
+        until(lambda: subscriber.dropped + subscriber.pending >= len(frames) + 1, "every frame taken or dropped")
         trace = pipe.step(0.01)
         got, dropped = list(sink.got), subscriber.dropped
         said = [s.detail["flow"] for s in trace.steps if s.node == "ros2_subscriber" and s.detail

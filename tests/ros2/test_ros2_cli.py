@@ -12,14 +12,14 @@ import json
 import os
 import shutil
 import subprocess
-import time
 
 import pytest
 
 from retriever import Flow, Pipeline, Rate, Trigger
 from retriever.ros2 import Ros2Publisher
 
-from .test_flows import BOUND_S, DOMAIN, NAMESPACE
+from .helpers import BOUND_S, until
+from .test_flows import DOMAIN, NAMESPACE
 
 
 def _ros2_with_rmw_zenoh() -> str | None:
@@ -61,13 +61,15 @@ def test_ros2_topic_echo_and_list_see_a_ros2_publisher_flow(router, tmp_path):
     echo = subprocess.Popen(["ros2", "topic", "echo", "--once", topic, "std_msgs/msg/String"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.monotonic() + BOUND_S * 3  # ros2's own start-up is slow
-        while echo.poll() is None and time.monotonic() < deadline:
+        def step_and_wait() -> None:
             pipe.step(0.1)
             try:
                 echo.wait(timeout=0.05)
             except subprocess.TimeoutExpired:
                 pass
+
+        until(lambda: echo.poll() is not None, "ros2 topic echo's message", step_and_wait,
+              timeout=BOUND_S * 3)  # ros2's own start-up is slow
         listed = subprocess.run(["ros2", "topic", "list", "--no-daemon", "-t"], env=env, capture_output=True,
                                 text=True, timeout=BOUND_S * 3)
     finally:

@@ -117,6 +117,37 @@ def test_a_type_added_from_its_msg_text_maps_by_the_same_rules():
     assert types.type_hash("retriever_test_msgs/msg/Grip").startswith("RIHS01_")
 
 
+def test_a_header_beside_a_field_named_stamp_stays_two_stamps():
+    """sensor_msgs/msg/TimeReference-like types carry a Header and a time of their own: flattened,
+    the Header's stamp and the field ``stamp`` were one key, and one of the two was lost (issue 39)."""
+    name = "retriever_test_msgs/msg/Stamped"
+    types.register_msg(name, "std_msgs/Header header\nbuiltin_interfaces/Time stamp\nstring frame_id\nfloat64 x")
+    value = {"header": {"stamp": 5, "frame_id": "base"}, "stamp": 7, "frame_id": "other", "x": 1.5}
+    back = types.to_value(types.deserialize(types.serialize(types.from_value(value, name), name), name), name)
+    assert back == value
+    assert types.flat_header(name) is None and types.flat_header("sensor_msgs/msg/Image") == "header"
+    with pytest.raises(ValueError, match=r"Stamped field header \(a std_msgs/msg/Header\) has no field\(s\) seq"):
+        types.from_value({"header": {"seq": 1}}, name)
+    with pytest.raises(TypeError, match=r"Stamped field header: takes a dict \{\"stamp\": ns, \"frame_id\": str\}"):
+        types.from_value({"header": 5}, name)
+
+
+def test_two_headers_stay_apart():
+    name = "retriever_test_msgs/msg/TwoHeaders"
+    types.register_msg(name, "std_msgs/Header left\nstd_msgs/Header right")
+    value = {"left": {"stamp": 1, "frame_id": "l"}, "right": {"stamp": 2, "frame_id": "r"}}
+    assert types.to_value(types.deserialize(types.serialize(types.from_value(value, name), name), name), name) == value
+
+
+def test_a_header_without_a_frame_id_gets_the_one_given():
+    image = np.zeros((2, 3, 3), dtype=np.uint8)
+    message = types.from_value(image, "sensor_msgs/msg/Image", frame_id="camera_optical")
+    assert message.header.frame_id == "camera_optical"
+    said = types.from_value({"image": image, "frame_id": "left"}, "sensor_msgs/msg/Image", frame_id="camera_optical")
+    assert said.header.frame_id == "left"
+    assert types.from_value(image, "sensor_msgs/msg/Image").header.frame_id == ""
+
+
 def test_unknown_types_and_fields_are_named():
     with pytest.raises(ValueError, match="'my_msgs/msg/Nope' is not known"):
         types.check_type("my_msgs/msg/Nope")

@@ -16,7 +16,6 @@ import os
 import queue
 import subprocess
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -24,7 +23,8 @@ import pytest
 from retriever import Pipeline, Queue, Rate, Trigger
 from retriever.ros2 import Ros2Publisher, Ros2Subscriber, type_hash
 
-from .test_flows import BOUND_S, DOMAIN, NAMESPACE, Collect, Speed
+from .helpers import until
+from .test_flows import DOMAIN, NAMESPACE, Collect, Speed
 
 SDK_PYTHON = os.environ.get("RETRIEVER_ZENOH_ROS2_SDK_PYTHON")
 PEER = Path(__file__).with_name("zenoh_ros2_sdk_peer.py")
@@ -48,16 +48,24 @@ class SdkPeer:
         for line in self.process.stdout:
             self.lines.put(json.loads(line))
 
-    def next(self, deadline: float, while_waiting=lambda: None) -> dict:
-        while time.monotonic() < deadline:
-            while_waiting()
+    def next(self, act=lambda: None) -> dict:
+        """The peer's next line, ``act()`` while it waits; the test fails if none comes within the
+        bound, or the peer ended without one (saying what it wrote on stderr)."""
+        got: list[dict] = []
+
+        def wait_a_little() -> None:
+            act()
             try:
-                return self.lines.get(timeout=0.05)
+                got.append(self.lines.get(timeout=0.05))
             except queue.Empty:
-                if self.process.poll() is not None and self.lines.empty():
-                    break
-        raise AssertionError(f"the SDK's peer said nothing more (exit {self.process.poll()}): "
-                             f"{self.process.stderr.read() if self.process.poll() is not None else ''}")
+                pass
+
+        until(lambda: got or (self.process.poll() is not None and self.lines.empty()),
+              "a line from the SDK's peer", wait_a_little)
+        if not got:
+            raise AssertionError(f"the SDK's peer said nothing more (exit {self.process.poll()}): "
+                                 f"{self.process.stderr.read()}")
+        return got[0]
 
     def stop(self) -> None:
         if self.process.poll() is None:
@@ -77,8 +85,7 @@ def test_the_sdk_computes_the_same_type_hashes(msgs_dir):
     names = ["std_msgs/msg/Header", "geometry_msgs/msg/Twist", "sensor_msgs/msg/JointState", "sensor_msgs/msg/Image"]
     peer = SdkPeer(msgs_dir, "hash", *names)
     try:
-        deadline = time.monotonic() + BOUND_S
-        theirs = {fact["type"]: fact["hash"] for fact in (peer.next(deadline) for _ in names)}
+        theirs = {fact["type"]: fact["hash"] for fact in (peer.next() for _ in names)}
     finally:
         peer.stop()
     assert theirs == {name: type_hash(name) for name in names}
@@ -94,9 +101,8 @@ def test_the_sdks_subscriber_takes_what_a_ros2_publisher_flow_publishes(router, 
                                   connect=[at], listen=[]) @ Trigger("msg")
         speed.then(publisher)
     try:
-        deadline = time.monotonic() + BOUND_S
-        assert peer.next(deadline) == {"ready": True}
-        got = [peer.next(deadline, while_waiting=lambda: pipe.step(0.1)) for _ in range(3)]
+        assert peer.next() == {"ready": True}
+        got = [peer.next(act=lambda: pipe.step(0.1)) for _ in range(3)]
     finally:
         pipe.reset()
         peer.stop()
@@ -115,15 +121,12 @@ def test_a_ros2_subscriber_flow_takes_what_the_sdks_publisher_publishes(router, 
         sink = Collect() @ Trigger("msg")
         subscriber.then(sink, sync=Queue(maxsize=1000))
     try:
-        deadline = time.monotonic() + BOUND_S
-        assert peer.next(deadline) == {"ready": True}
-        while len(sink.got) < 3 and time.monotonic() < deadline:
-            pipe.step(0.01)
+        assert peer.next() == {"ready": True}
+        until(lambda: len(sink.got) >= 3, "3 messages from the SDK's publisher", lambda: pipe.step(0.01))
         got = sink.got
     finally:
         pipe.reset()
         peer.stop()
-    assert len(got) >= 3, f"{len(got)} messages in {BOUND_S} s"
     positions = [value["position"][0] for value in got]
     assert positions == sorted(positions) and all(p == int(p) for p in positions)
     assert all(value["name"] == ["a"] and value["frame_id"] == "sdk" and
@@ -142,7 +145,7 @@ def test_the_sdks_discovery_sees_a_ros2_publisher_flow_and_its_node(router, msgs
         pipe.step(0.1)  # setup(): the publisher's tokens are declared
         peer = SdkPeer(msgs_dir, "topics", port, DOMAIN, f"{NAMESPACE}/seen")
         try:
-            seen = peer.next(time.monotonic() + BOUND_S)
+            seen = peer.next()
         finally:
             peer.stop()
     finally:
