@@ -244,7 +244,7 @@ class Deployment(Hosting):
         access = {**access, **forward_dropping(self.run.keys)}  # a watcher's link never holds the hub
         last: Exception | None = None
         for _ in range(5):
-            port = free_port(host.strip("[]"))
+            port = free_port(host) if ":" not in host else free_port()  # (an IPv6 host: one free on loopback)
             try:
                 hub = zenoh.open(peer_config(listen=[f"{proto}/{host}:{port}"], access=access, lease=self._lease,
                                              shared_memory=HUB_SHARED_MEMORY))
