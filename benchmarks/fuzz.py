@@ -995,7 +995,7 @@ class SpecTarget(Target):
             (folder / name).mkdir(parents=True)  # namespace packages: never admitted
         paths = [str(ROOT), str(folder)]
         self.session = _daemon_session()  # no coordinator's liveliness token on it
-        self.runs = DaemonRuns(self.session, "fuzz", NAMESPACE, listen=(), access=None,
+        self.runs = DaemonRuns(self.session, "fuzz", NAMESPACE, listen=(), secret=None,
                                allowed=lambda module: daemon.module_allowed(module, [], paths),
                                refusal=lambda module: daemon.refusal(module, [], paths), paths=())
         ir = self.genuine.pipeline.build_ir().doc
@@ -1037,7 +1037,7 @@ class SpecTarget(Target):
         except WireError as e:
             if "liveliness token" not in str(e):
                 raise
-        spec = self.runs.local_spec(request.spec, self.workdir)  # every check passed: what it would write
+        spec = self.runs.local_spec(request.spec, self.workdir, request.run)  # every check passed: what it would write
         if spec.argv is not None:
             return 1  # the network's argv reached a worker's spec
         return 0
@@ -1126,7 +1126,7 @@ class DaemonOpsTarget(Target):
         self.sentinel = subprocess.Popen([sys.executable, "-I", "-S", "-c", sleep], start_new_session=True,
                                          stdin=subprocess.DEVNULL)
         paths = [str(ROOT)]
-        self.runs = runs.DaemonRuns(self.session, "fuzz", namespace, listen=(), access=None,
+        self.runs = runs.DaemonRuns(self.session, "fuzz", namespace, listen=(), secret=None,
                                     allowed=lambda module: daemon.module_allowed(module, [], paths),
                                     refusal=lambda module: daemon.refusal(module, [], paths), paths=(), lease=None)
         # the coordinator's liveliness token, without which the daemon prepares nothing

@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -430,6 +431,103 @@ def test_status_and_stop_from_another_machine(hosts, secret, tmp_path):
     assert all(d.poll() is None for d in daemons)
     none = arm.run([*ask, "status", *where], timeout=BOUND_S)
     assert none.returncode == 1 and "no deployment runs in namespace 'default'" in none.stderr, none.stderr
+
+
+#: a stranger on a host of the lab: which endpoints admit a client session proving user/password
+STRANGER = r"""
+import json, sys, zenoh
+from retriever.backends.zenoh.hub import peer_config
+user, password, *endpoints = sys.argv[1:]
+admitted = []
+for at in endpoints:
+    config = peer_config(connect=[at])
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": password}))
+    try:
+        zenoh.open(config).close()
+    except zenoh.ZError:
+        continue
+    admitted.append(at)
+print(json.dumps(admitted))
+"""
+
+
+def _run_passwords(daemon_pid: int, seen: set[Path]) -> tuple[Path, dict]:
+    """The passwords a daemon derived for a run it prepared (its flows' spec, in a run folder not
+    in ``seen``: the lab's hosts share this machine's files) once they are there."""
+    def found():
+        for folder in Path(tempfile.gettempdir()).glob(f"retriever-worker-{daemon_pid}-run-*"):
+            try:
+                if folder not in seen:
+                    return folder, json.loads((folder / "spec.json").read_text())["access"]
+            except (OSError, ValueError, KeyError):  # being written
+                pass
+        return None
+
+    return poll(found, "a run prepared by the daemon")
+
+
+def _listening(pid: int, host) -> list[str]:
+    """The TCP endpoints process ``pid`` listens on, in its host's network namespace (Linux /proc)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = str(fd.readlink())
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    ports = set()
+    for row in Path(f"/proc/{pid}/net/tcp").read_text().splitlines()[1:]:
+        fields = row.split()
+        if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
+            ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return [f"tcp/{host.address}:{port}" for port in sorted(ports)]
+
+
+def test_a_run_left_behind_opens_no_later_run_nor_any_worker(hosts, secret, tmp_path):
+    """Issue 40: a run's password was its namespace's, so the one a killed run left on a disk (its
+    flows' spec, its dictionary, its watcher file) opened every later deployment and every worker
+    daemon. Now each deployment's run has its own, derived for its run id; and the namespace's
+    (the daemons' and the coordinator's control) open no run's hub or flows, as a run's opens no
+    daemon. From a third host, each tried against every endpoint of run 2 and of the daemons."""
+    from retriever.backends.zenoh.access import RUN_USER, RunAccess, read_secret
+
+    coordinator, arm, gpu = hosts
+    daemons = [start_worker(arm, "arm-pc", secret, "--path", str(HERE)),
+               start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
+    first = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--log", str(tmp_path / "one.mcap"))
+    folder, left = _run_passwords(daemons[0].pid, set())
+    wait_going(first, tmp_path / "one.mcap")
+    first.send_signal(signal.SIGINT)  # over: what it left is all a stranger holds of it
+    finish(first)
+    second = start_deploy(coordinator, [arm, gpu], secret, "--duration", "60", "--log", str(tmp_path / "two.mcap"))
+    try:
+        _, own = _run_passwords(daemons[0].pid, {folder})
+        assert left["run_password"] != own["run_password"], "two runs of the namespace have one password"
+        wait_going(second, tmp_path / "two.mcap")
+        flows = [at for d, host in zip(daemons, (arm, gpu)) for pid in flow_processes(d.pid)
+                 for at in _listening(pid, host)]
+        coordinator_at = _listening(second.pid, coordinator)  # its control session's and its hub's
+        daemons_at = [f"tcp/{arm.address}:7447", f"tcp/{gpu.address}:7447"]
+        assert flows and len(coordinator_at) == 2, (flows, coordinator_at)
+        namespace = RunAccess.create("default", read_secret(secret)).run_password
+
+        def admitted(password: str) -> set[str]:
+            tried = arm.run([PYTHON, "-c", STRANGER, RUN_USER, password, *flows, *coordinator_at, *daemons_at],
+                            timeout=BOUND_S)
+            assert tried.returncode == 0, tried.stderr
+            return set(json.loads(tried.stdout.splitlines()[-1]))
+
+        assert admitted(left["run_password"]) == set(), "run 1's password opened a session of run 2 or a worker"
+        by_run = admitted(own["run_password"])  # the hub and every flow, never a daemon
+        by_namespace = admitted(namespace)  # the daemons and the coordinator's control, never the run
+        assert by_run >= set(flows) and len(by_run & set(coordinator_at)) == 1, by_run
+        assert by_namespace == set(daemons_at) | (set(coordinator_at) - by_run), by_namespace
+    finally:
+        if second.poll() is None:
+            second.send_signal(signal.SIGINT)
+        finish(second)
 
 
 def _openssl(*args: str, cwd: Path) -> None:

@@ -11,9 +11,19 @@ any of its sessions and none of its messages arrive. Two users per run:
                      put, delete, query, reply, queryable and liveliness token
 
 Passwords are per run: random, or derived from a deployment secret (``secret=``, a file), so
-that processes started elsewhere with the same secret can join the same namespace (new_secret,
-``retriever secret new FILE``, writes a fresh one). They reach the workers in the run's spec
-file, in the run's private directory (mode 0700); the dictionary file Zenoh reads is there too.
+that processes started elsewhere with the same secret can join (new_secret, ``retriever secret
+new FILE``, writes a fresh one). A deployment's run derives them for its namespace *and its run
+id* (``RunAccess.create(namespace, secret, run=...)``: HMAC(secret, "retriever/run/<ns>/<run>")):
+the coordinator for its hub, each worker daemon for the flows of the run it prepared, from the
+secret it holds and the run id of the prepare request (no password is ever sent). So a run's
+password, or a watcher file, left behind by a killed run is worth nothing to any other run.
+The namespace's own passwords (no ``run``: HMAC(secret, "retriever/run/<ns>")) are those of the
+control links between a coordinator and the worker daemons (daemon/security.py), and of every
+session of a deployment joined through a router, whose dictionary is fixed when it starts
+(router.py). No session of one kind ever links to a session of the other: the daemons' and the
+coordinator's control sessions link to each other only; the hub and the run's flows likewise.
+The passwords reach the workers in the run's spec file, in the run's private directory (mode
+0700); the dictionary file Zenoh reads is there too.
 A watcher gets a Zenoh config file of its own (JSON5, mode 0600) that holds the watcher's
 password only: ``zenoh.Config.from_file(path)`` joins the hub, in client mode, read-only.
 
@@ -54,6 +64,10 @@ WATCHER_UNSEEN = [KeySpace.every_control()]
 
 #: the file, in a run's or a daemon's private folder, of the user:password lines Zenoh checks peers against
 DICTIONARY = "zenoh-users.txt"
+
+#: the file, in a deployment's run folder, of the namespace's user:password lines, which its
+#: control session checks the worker daemons against (removed once that session opened)
+CONTROL_DICTIONARY = "zenoh-control-users.txt"
 
 #: the fewest bytes a deployment secret file must hold
 SECRET_MIN_BYTES = 16
@@ -172,23 +186,27 @@ class RunAccess:
     watch_password: str
 
     @classmethod
-    def create(cls, namespace: str, secret: bytes | None = None) -> RunAccess:
+    def create(cls, namespace: str, secret: bytes | None = None, run: str | None = None) -> RunAccess:
         """Fresh random passwords, or with ``secret`` the ones every holder of it derives for
-        ``namespace`` (a watcher's password tells nothing of the run's)."""
+        ``namespace`` and, if given, its ``run`` (a deployment's run id: the passwords of that
+        run alone, see the module's docstring); a watcher's password tells nothing of the run's.
+        A namespace holds no ``/`` (wire.check_chunk), so no two (namespace, run) give one text."""
         if secret is None:
             return cls(secrets.token_hex(32), secrets.token_hex(32))
+        scope = namespace if run is None else f"{namespace}/{run}"
 
         def derive(role: str) -> str:
-            return hmac.new(secret, f"retriever/{role}/{namespace}".encode(), hashlib.sha256).hexdigest()
+            return hmac.new(secret, f"retriever/{role}/{scope}".encode(), hashlib.sha256).hexdigest()
 
         return cls(derive("run"), derive("watch"))
 
     # -----------------------------------------------------------------------------------------
     # Files
     # -----------------------------------------------------------------------------------------
-    def write_dictionary(self, directory: Path) -> Path:
-        """The user:password lines Zenoh checks a connecting peer against (mode 0600)."""
-        return write_private(directory / DICTIONARY,
+    def write_dictionary(self, directory: Path, name: str = DICTIONARY) -> Path:
+        """The user:password lines Zenoh checks a connecting peer against (mode 0600), in file
+        ``name`` of ``directory``."""
+        return write_private(directory / name,
                               f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n")
 
     def write_watcher_config(self, path: Path, hub_endpoint: str, user: str = WATCH_USER) -> Path:

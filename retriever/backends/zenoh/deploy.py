@@ -1,15 +1,22 @@
 """A deployment: the coordinator (coordinator/), hosted on worker daemons (docs/deploy.md).
 
     retriever deploy app.py --connect tcp/10.0.0.2:7447 --placement lab.toml --secret lab.key
-        │ join the namespace (Zenoh peer; the secret's credentials), find its workers (liveliness
-        │ tokens workers/<name>) and ask each for its info: protocol, labels, load, clock offset
+        │ join the namespace (its control session: Zenoh peer, the namespace's credentials) and
+        │ open the run's hub (the credentials of this run alone: access.py), find its workers
+        │ (liveliness tokens workers/<name>) and ask each for its info: protocol, labels, load, clock offset
         │ place every node (placement.py: pins, labels, load), refuse what cannot be met, all at once
         │ prepare each chosen worker (remote.py: the spec; it checks every class it will import)
         │ declare the deployment's liveliness token: a worker stops its flows once it goes
         ▼ from here on as the embedded run: spawn, ready, T0, reports, the log, faults, stop
 
-With ``--router ENDPOINT`` every session (the coordinator's, each daemon's, each flow's) is
-instead a client of that Zenoh router (router.py), which routes between them: none listens.
+Two sessions, so that nothing of one run links to the daemons or to another run: the control
+session links to the worker daemons alone (prepare, spawn, their events and tokens, ``retriever
+status``/``stop``); the hub, whose dictionary holds this run's users alone, listens for the run's
+flows, which each daemon points at it (the address it reached that daemon from, the hub's port)
+with the run's passwords, derived there from the secret and the run id. With ``--router
+ENDPOINT`` every session (the coordinator's, each daemon's, each flow's) is instead a client of
+that Zenoh router (router.py), which routes between them: none listens, one coordinator session
+does both, and every password is the namespace's (a router's dictionary is fixed when it starts).
 
 A worker that is lost mid-run (its token went) takes its nodes' processes with it; with
 ``on_worker_loss="replace"`` (the default) each of them starts afresh on another worker that its
@@ -19,8 +26,10 @@ the run stops naming the worker.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import re
 import secrets
 import sys
 import threading
@@ -38,10 +47,11 @@ from ...graph import Graph
 from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
-from .access import DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles, watch_user
+from .access import (CONTROL_DICTIONARY, DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles,
+                     secret_bytes, watch_user)
 from .daemon import (ENDPOINT, QUERY_S, DaemonInfo, WorkerError, check_security, credentials, describe, in_session,
                      no_router, open_access)
-from .hub import (HUB_SHARED_MEMORY, client_config, peer_config, raise_open_file_limit,
+from .hub import (HUB_SHARED_MEMORY, client_config, forward_dropping, free_port, peer_config, raise_open_file_limit,
                   remove_orphaned_segments_at_exit, router_linked, wait_for_peers, weak_callback)
 from .protocol import (ABSENT, DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, PROTOCOL_VERSION, DaemonOp, DeploymentOp,
                        ErrorReply, InfoReply, InfoRequest, NodeStatus, StatusQuery, StatusReply, StopQuery, StopReply,
@@ -129,6 +139,13 @@ class Deployment(Hosting):
                 raise BackendError(str(e)) from None
         self._connect, self._listen_at, self._insecure = list(connect), list(listen), insecure
         self._router = list(router)
+        self._secret = secret
+        #: the session that links to the worker daemons, with the namespace's credentials (the hub
+        #: itself when joined through routers); ``_control_keep``: what is declared on it
+        self._control: zenoh.Session | None = None
+        self._control_keep: list = []
+        self._hub_port: int | None = None  # where the hub listens, on every address of its host
+        self._hub_proto, self._hub_host = "tcp", "0.0.0.0"
         self._placement = load_placement(placement) if isinstance(placement, str) else placement
         self._run_id = secrets.token_hex(6)
         self._max_offset_ns = round(max_clock_offset * 1e9)
@@ -157,31 +174,121 @@ class Deployment(Hosting):
                                "or deploy the script as FILE:ATTR so that it is imported as a module")
 
     def run_access(self, namespace: str, secret) -> RunAccess | None:
-        return None if self._insecure else super().run_access(namespace, secret)
+        """The hub's credentials: those of this run alone (its run id), which each worker daemon
+        derives for the run's flows from the secret it holds; through routers, the namespace's."""
+        if self._insecure:
+            return None
+        if self._router:
+            return super().run_access(namespace, secret)
+        try:
+            return RunAccess.create(namespace, secret_bytes(secret), run=self._run_id)
+        except AccessError as e:
+            raise BackendError(str(e)) from None
 
     def open_hub(self, port: int, access: dict[str, str] | None):
         if self._router:
             return self._open_client()
-        # it listens even when told only where to connect: peers do not route for each other, so
-        # each worker process opens a link of its own to it (gossip tells them where), or the
-        # coordinator to them, whichever side Zenoh picks (hub.GOSSIP_ONE_WAY)
-        listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
+        run = self.run
         links = self._tls.session_config() if self._tls is not None else {}
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
         with self._phase("join"):
-            hub = zenoh.open(peer_config(listen=listen, connect=self._connect, access={**(access or {}), **links},
-                                         lease=self._lease, shared_memory=HUB_SHARED_MEMORY))
+            self._control = self._open_control(links)
             try:
-                # Zenoh read it as the session opened, and no process of this machine reads it after (the
-                # workers' flows read their daemon's): the deployment's password is not left on disk here,
-                # not even by a SIGKILLed coordinator
-                (self.run.run_dir / DICTIONARY).unlink(missing_ok=True)
-                self._linked = wait_for_peers(hub, len(self._connect), JOIN_S)
+                hub = self._open_run_hub({**(access or {}), **links})
             except BaseException:
-                hub.close()
+                self._close_control()
                 raise
-        return hub, (self._listen_at or self._connect)[0]
+            # Zenoh read the run's dictionary as the hub opened, and no process of this machine reads
+            # it after (the workers' flows read their daemon's): not left on disk here
+            (run.run_dir / DICTIONARY).unlink(missing_ok=True)
+        host = "127.0.0.1" if self._hub_host in ("0.0.0.0", "[::]") else self._hub_host
+        return hub, f"{self._hub_proto}/{host}:{self._hub_port}"
+
+    def _open_control(self, links: dict[str, str]) -> zenoh.Session:
+        """The session that links to the worker daemons, with the namespace's credentials. It
+        listens even when told only where to connect (as the daemons do: a daemon it learns of
+        by gossip may open the link). The namespace's dictionary is removed once it opened (Zenoh
+        reads it then): not left on disk here, not even by a SIGKILLed coordinator."""
+        listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
+        access = dict(links)
+        dictionary = self.run.run_dir / CONTROL_DICTIONARY
+        if not self._insecure:
+            try:
+                namespace_access = RunAccess.create(self.run.namespace, secret_bytes(self._secret))
+            except AccessError as e:
+                raise BackendError(str(e)) from None
+            access.update(namespace_access.session_config(namespace_access.write_dictionary(
+                self.run.run_dir, CONTROL_DICTIONARY)))
+        try:
+            control = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access or None,
+                                             lease=self._lease, shared_memory=False))
+        finally:
+            dictionary.unlink(missing_ok=True)
+        try:
+            self._linked = wait_for_peers(control, len(self._connect), JOIN_S)
+        except BaseException:
+            control.close()
+            raise
+        return control
+
+    def _open_run_hub(self, access: dict[str, str]) -> zenoh.Session:
+        """The run's hub: it checks the run's flows (and watchers) against this run's dictionary
+        alone, listening on a free port of every address of its host (or of the --listen one's
+        host), which each daemon's flows connect to (:meth:`_hub_for`). It connects nowhere."""
+        proto, host = "tls" if self._tls else "tcp", "0.0.0.0"
+        if self._listen_at:
+            proto, _, address = self._listen_at[0].partition("/")
+            host = address.split("#")[0].rpartition(":")[0] or host
+        self._hub_proto, self._hub_host = proto, host
+        access = {**access, **forward_dropping(self.run.keys)}  # a watcher's link never holds the hub
+        last: Exception | None = None
+        for _ in range(5):
+            port = free_port(host) if ":" not in host else free_port()  # (an IPv6 host: one free on loopback)
+            try:
+                hub = zenoh.open(peer_config(listen=[f"{proto}/{host}:{port}"], access=access, lease=self._lease,
+                                             shared_memory=HUB_SHARED_MEMORY))
+            except zenoh.ZError as e:  # taken between the check and the bind: try another
+                last = e
+                continue
+            self._hub_port = port
+            return hub
+        raise BackendError(f"could not open the run's hub on {proto}/{host}: {last}")
+
+    def _hub_for(self, name: str) -> str:
+        """The hub's endpoint as worker ``name``'s host reaches it: the address of this machine
+        on the control session's link to that daemon (peers do not route for each other: a
+        daemon the coordinator asks has a direct link), the hub's port."""
+        if self._router:
+            return self.run.endpoint
+        replier = self.daemons[name].zid or ""  # the replier's id: "EntityGlobalId { zid: <hex>, eid: N }"
+        found = re.search(r"zid: ([0-9a-f]+)", replier)
+        zid = found.group(1) if found else replier
+        for link in self._control.info.links():
+            if zid and str(link.zid) == zid:
+                _, _, address = str(link.src).partition("/")
+                host = address.split("#")[0].rpartition(":")[0]
+                if host:
+                    return f"{self._hub_proto}/{host}:{self._hub_port}"
+        if self._hub_host not in ("0.0.0.0", "[::]"):
+            return f"{self._hub_proto}/{self._hub_host}:{self._hub_port}"
+        raise BackendError(f"the coordinator has no link to worker '{name}' to tell it where the run's hub is\n"
+                           "    hint: pass --connect with each worker's endpoint")
+
+    def _close_control(self) -> None:
+        """Undeclare what the control session holds and close it (not the hub: the coordinator's)."""
+        for declared in self._control_keep:
+            try:
+                declared.undeclare()
+            except zenoh.ZError:
+                pass
+        self._control_keep.clear()
+        control, self._control = self._control, None
+        if control is not None and control is not self.run.hub:
+            try:
+                control.close()
+            except zenoh.ZError:
+                pass
 
     def _open_client(self):
         """open_hub through the routers: a client of theirs, with the namespace's password for
@@ -198,6 +305,7 @@ class Deployment(Hosting):
             except zenoh.ZError:
                 raise BackendError(no_router("the deployment", self._router, self._tls, run.namespace)) from None
         self._linked = True
+        self._control = hub  # one session does both, with the namespace's credentials
         return hub, self._router[0]
 
     def watcher_user(self) -> str:
@@ -223,20 +331,26 @@ class Deployment(Hosting):
         except PlacementError as e:
             raise BackendError(str(e)) from None
         # the token first: a worker prepares a run only while its coordinator's token is there
-        self._token = run.hub.liveliness().declare_token(run.keys.deployment())
+        control = self._control
+        self._token = control.liveliness().declare_token(run.keys.deployment())
         with self._phase("prepare"):
             for name in sorted(set(self.placed.values())):
                 differences = package_differences(package_versions(), self.daemons[name].info.packages)
                 if differences:
                     print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                           f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-                host = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id, self.daemons[name].zid)
-                self._say_warnings(name, host.prepare(run.spec.for_remote(),
+                host = self._remotes[name] = RemoteHost(control, run.keys, name, self._run_id, self.daemons[name].zid)
+                self._say_warnings(name, host.prepare(self._spec_for(name),
                                                       sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
-        run.keep(run.hub.declare_queryable(run.keys.deployment(), weak_callback(self._answer)))
-        run.keep(run.hub.liveliness().declare_subscriber(run.keys.workers(), weak_callback(self._worker_token)))
+        self._control_keep.append(control.declare_queryable(run.keys.deployment(), weak_callback(self._answer)))
+        self._control_keep.append(control.liveliness().declare_subscriber(run.keys.workers(),
+                                                                          weak_callback(self._worker_token)))
         return {nid: self._remotes[name] for nid, name in self.placed.items()}
+
+    def _spec_for(self, name: str):
+        """The run's spec as worker ``name`` gets it: the hub where its host reaches it."""
+        return dataclasses.replace(self.run.spec.for_remote(), hub=self._hub_for(name))
 
     @contextmanager
     def _phase(self, name: str) -> Iterator[None]:
@@ -255,7 +369,7 @@ class Deployment(Hosting):
 
     def _discover(self) -> dict[str, DaemonInfo]:
         """The namespace's live workers and their info; every problem with them at once."""
-        hub, keys, namespace = self.run.hub, self.run.keys, self.run.namespace
+        hub, keys, namespace = self._control, self.run.keys, self.run.namespace
         names = sorted({str(r.ok.key_expr).rsplit("/", 1)[-1]
                         for r in hub.liveliness().get(keys.workers(), timeout=DISCOVER_S) if r.ok})
         # tokens of one key are one to Zenoh: ask each name who answers, every reply kept
@@ -310,7 +424,7 @@ class Deployment(Hosting):
     def _answering(self, name: str) -> int:
         """How many daemons answer as worker ``name`` (distinct pids and hosts)."""
         who = set()
-        hub, keys = self.run.hub, self.run.keys
+        hub, keys = self._control, self.run.keys
         for reply in hub.get(keys.ctl(name), payload=InfoRequest().encode(), timeout=QUERY_S,
                              consolidation=zenoh.ConsolidationMode.NONE):
             try:
@@ -435,7 +549,7 @@ class Deployment(Hosting):
         if name not in self._returned:
             return AwaitHost()
         self._returned.discard(name)
-        daemon = describe(run.hub, run.namespace, name)
+        daemon = describe(self._control, run.namespace, name)
         if daemon.info is None:
             return AwaitHost()  # not (yet) a worker that answers as one (of this protocol): wait on
         del self._waiting[name]
@@ -450,9 +564,9 @@ class Deployment(Hosting):
         for name in sorted(set(targets.values())):
             remote = self._remotes.get(name)
             if remote is None:
-                remote = self._remotes[name] = RemoteHost(run.hub, run.keys, name, self._run_id,
+                remote = self._remotes[name] = RemoteHost(self._control, run.keys, name, self._run_id,
                                                           self.daemons[name].zid)
-            self._say_warnings(name, remote.prepare(run.spec.for_remote(),
+            self._say_warnings(name, remote.prepare(self._spec_for(name),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
             print(f"retriever: worker '{lost}' was lost; its node '{nid}' starts afresh on worker '{name}'",
@@ -491,6 +605,7 @@ class Deployment(Hosting):
         if self._token is not None:
             self._token.undeclare()
             self._token = None
+        self._close_control()
 
 
 def placement_target(name: str, info: InfoReply, load: int) -> WorkerInfo:

@@ -373,7 +373,8 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())  # as a coordinator now
         for (op, node_type), expected in refused.items():
             request = {"prepare": lambda: PrepareRequest(run="r1", nodes=("counter",),
-                                                         spec=run_spec(_ir_doc(node_type), namespace)),
+                                                         spec=run_spec(_ir_doc(node_type), namespace,
+                                                                       hub=endpoint(port))),
                        "spawn": lambda: SpawnRequest(run="never-prepared", node="counter", mode=()),
                        "signal": lambda: SignalRequest(run="never-prepared", pid=1, signal=9),
                        "end": lambda: EndRequest(run="never-prepared")}[op]()
@@ -395,7 +396,10 @@ def test_a_coordinators_requests_are_checked_before_anything_is_imported_or_star
                      {"run": "r1", "spec": spec(zids={"ghost": "abc"}), "nodes": ["counter"]},
                      {"run": "r1", "spec": spec(zids={"counter": "abc"}), "nodes": ["counter"]},
                      {"run": "r1", "spec": spec(hub_zid="../etc"), "nodes": ["counter"]},
-                     {"run": "r1", "spec": spec(virtual_time="yes"), "nodes": ["counter"]}):
+                     {"run": "r1", "spec": spec(virtual_time="yes"), "nodes": ["counter"]},
+                     # the hub its flows join: the coordinator's to say (none, or no endpoint)
+                     {"run": "r1", "spec": run_spec(_ir_doc(), namespace), "nodes": ["counter"]},
+                     {"run": "r1", "spec": spec(hub="nowhere"), "nodes": ["counter"]}):
             with pytest.raises(WorkerError, match="refused prepare"):
                 ask(session, namespace, "w", PrepareRequest(run=args["run"], spec=args["spec"],
                                                             nodes=tuple(args["nodes"])))

@@ -106,7 +106,7 @@ def prepared():
         hub = f"tcp/127.0.0.1:{s.getsockname()[1]}"
     namespace = f"runs-test-{id(object())}"
     with zenoh.open(peer_config(listen=[hub], shared_memory=False)) as session:
-        runs = DaemonRuns(session, "w", namespace, listen=(), access=None,
+        runs = DaemonRuns(session, "w", namespace, listen=(), secret=None,
                           allowed=lambda module: daemon.module_allowed(module, [], [ROOT]),
                           refusal=lambda module: daemon.refusal(module, [], [ROOT]), paths=())
         token = session.liveliness().declare_token(KeySpace(namespace).deployment())

@@ -80,10 +80,10 @@ def test_a_worker_daemon_forwards_the_plan_to_its_workers(tmp_path):
         graph = pipe.compile()
     spec = run_spec(graph.to_ir().doc, "shipped", plan=plan_graph(graph).to_data(), hub="tcp/127.0.0.1:7447")
     with zenoh.open(peer_config(shared_memory=False)) as session:
-        runs = DaemonRuns(session, "w", "shipped", listen=(), access=None, allowed=lambda module: True,
+        runs = DaemonRuns(session, "w", "shipped", listen=(), secret=None, allowed=lambda module: True,
                           refusal=lambda module: "", paths=())
         try:
-            local = runs.local_spec(spec, tmp_path)
+            local = runs.local_spec(spec, tmp_path, "r1")
         finally:
             runs.close()
     assert local.plan == spec.plan

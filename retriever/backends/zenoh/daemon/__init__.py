@@ -20,7 +20,8 @@ child of the daemon. It imports flow classes only from the modules its allowlist
 before anything is imported. Who may talk to it: with ``--secret FILE`` its session admits only
 peers that hold the secret (``access.py``: passwords derived from it for the namespace, access
 control); without one it refuses to start unless ``--insecure`` says so (a lab on a trusted
-network).
+network). A run's flows hold passwords of that run alone, derived here for its run id, and link
+to the coordinator's hub and to each other, never to the daemon's session.
 
     settings.py    DaemonSettings: the flags over a worker.toml; the endpoints and namespace unless told
     security.py    who may join: a deployment secret, or --insecure; why an endpoint admitted no one

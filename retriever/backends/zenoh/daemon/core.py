@@ -36,7 +36,7 @@ import zenoh
 
 from ....errors import OtherProtocolError, WorkerError
 from ....log.format import package_versions
-from ..access import RunAccess, read_secret
+from ..access import read_secret
 from ..hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
                    remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
 from ..protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
@@ -72,8 +72,7 @@ class WorkerDaemon:
         self._packages = package_versions()
         #: what it runs for a coordinator (runs.py): prepare, spawn, signal, end
         self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen,
-                               access=RunAccess.create(settings.namespace, read_secret(settings.secret))
-                               if settings.secret is not None else None,
+                               secret=read_secret(settings.secret) if settings.secret is not None else None,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
                                tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
                                pass_env=settings.pass_env, router=settings.router)

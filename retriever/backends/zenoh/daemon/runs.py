@@ -60,6 +60,7 @@ from ..protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareRe
                         ProcessOutput, Record, RunSpec, SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream,
                         UsageReply, UsageRequest)
 from ..wire import RELIABLE, KeySpace, WireError
+from .settings import ENDPOINT
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
 #: issue's bound is 3 s from the coordinator's death to the flows' stop)
@@ -111,12 +112,14 @@ class DaemonRuns:
     """The runs ops of one daemon (see the module docstring)."""
 
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
-                 access: RunAccess | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
+                 secret: bytes | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
                  paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None,
                  code_mismatch: str = "refuse", pass_env: tuple[str, ...] = (), router: tuple[str, ...] = ()):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.router = router  # the routers the daemon joined through: its flows join through them too
-        self.listen, self.access, self.allowed, self.refusal, self.tls = listen, access, allowed, refusal, tls
+        # the deployment secret (None: --insecure): each run's passwords are derived from it for
+        # that run alone (access.RunAccess.create), never sent
+        self.listen, self.secret, self.allowed, self.refusal, self.tls = listen, secret, allowed, refusal, tls
         self.lease = lease  # how long its links live silent, and its flows' puts wait on one (local_spec)
         self.code_mismatch = code_mismatch  # settings.CODE_MISMATCH
         self.pass_env = pass_env
@@ -169,12 +172,15 @@ class DaemonRuns:
         if not self._coordinator_up():
             raise WireError(f"worker '{self.name}' prepares runs only for a coordinator whose liveliness token "
                             f"({self.keys.deployment()}) is up: none is (its processes would never be stopped)")
+        if not self.router and (spec.hub is None or not ENDPOINT.fullmatch(spec.hub)):
+            raise WireError(f"worker '{self.name}' was given no hub endpoint its flows can join "
+                            f"(hub {spec.hub!r:.80})")
         # mode 0700; named by this daemon's pid: the next daemon removes it if this one was SIGKILLed
         # (it holds the run's passwords), as it does the daemon's own folder (reap_stale_folders)
         folder = Path(tempfile.mkdtemp(prefix=f"{DAEMON_FOLDER}-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
         run.ir = ir.doc
-        write_private(folder / "spec.json", self.local_spec(spec, folder).to_json())
+        write_private(folder / "spec.json", self.local_spec(spec, folder, run_id).to_json())
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
         return PrepareReply(nodes=tuple(sorted(nodes)), warnings=tuple(warnings), key=run.key)
@@ -303,19 +309,28 @@ class DaemonRuns:
                   if self.code_mismatch == "refuse" else " (it runs its own copy: --code-mismatch warn)"))
         return f"node '{nid}': {problem}\n    hint: {fix}"
 
-    def local_spec(self, spec: RunSpec, folder: Path) -> RunSpec:
+    def local_spec(self, spec: RunSpec, folder: Path, run_id: str) -> RunSpec:
         """The coordinator's ``spec`` as this host runs it, which prepare writes to the run's
-        ``folder`` for its processes: its Python path, its credentials (their files in
-        ``folder``), its address (or, for a daemon joined through routers, those routers, whose
-        clients its flows are too: ``router``); no shared folder with the coordinator, no main
-        script, no argv (a worker's flows see the worker's own: sys.argv is no channel for a
-        stranger's arguments to a module that parses them when imported), no groups."""
+        ``folder`` for its processes: its Python path, the credentials of run ``run_id``
+        (derived here from the secret: access.RunAccess.create; their files in ``folder``), the
+        hub's address as this host reaches it, which the coordinator put in ``spec`` (or, for a
+        daemon joined through routers, those routers, whose clients its flows are too:
+        ``router``, with the namespace's credentials, which a router's fixed dictionary holds);
+        no shared folder with the coordinator, no main script, no argv (a worker's flows see the
+        worker's own: sys.argv is no channel for a stranger's arguments to a module that parses
+        them when imported), no groups.
+
+        The flows link to the hub and to each other, never to this daemon's session: it holds
+        the namespace's credentials, theirs are the run's (nothing of one run opens a link to
+        the daemons, nor to another run)."""
         if self.router:
             hub, router, listen = None, tuple(self.router), ()
+            access = RunAccess.create(self.keys.namespace, self.secret) if self.secret is not None else None
         else:
-            proto, host, port = _split(self.listen[0]) if self.listen else ("tcp", "127.0.0.1", None)
-            hub = f"{proto}/{'127.0.0.1' if host in ('0.0.0.0', '[::]') else host}:{port}" if port else spec.hub
-            router, listen = (), (f"{proto}/{host}:0",)
+            proto, host, _ = _split(self.listen[0]) if self.listen else ("tcp", "127.0.0.1", None)
+            hub, router, listen = spec.hub, (), (f"{proto}/{host}:0",)
+            access = (RunAccess.create(self.keys.namespace, self.secret, run=run_id)
+                      if self.secret is not None else None)
         # The flows keep Zenoh's lease: the daemon's short one, taken by every link of a flow,
         # closes links that are merely slow and stalls the producers behind them. But a put held
         # by a link that took nothing for the daemon's lease (its far end cut off: the link's
@@ -326,7 +341,7 @@ class DaemonRuns:
             spec, namespace=self.keys.namespace, hub=hub, router=router, listen=listen,
             python_path=(*self.paths, *(p for p in sys.path if p and os.path.isdir(p))),
             main_file=None, spill_dir=None, argv=None, groups={}, dora=None,
-            access=self.access.to_spec(self.access.write_dictionary(folder)) if self.access else None,
+            access=access.to_spec(access.write_dictionary(folder)) if access is not None else None,
             tls=vars(self.tls) if self.tls is not None else None, lease=None, blocked_put=self.lease)
 
     def _await_exit(self, run: Run, node: str, proc: subprocess.Popen) -> None:

@@ -1,5 +1,7 @@
 """Who may join a worker daemon's namespace: a deployment secret (access.py derives the namespace's
 passwords from it, and its access control), or ``--insecure``; and why an endpoint admitted none.
+The namespace's passwords are those of the daemons' control; each run's flows get passwords of
+their run alone (runs.DaemonRuns.local_spec), with which they never link to a daemon.
 """
 
 from __future__ import annotations

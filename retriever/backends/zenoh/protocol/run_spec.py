@@ -184,8 +184,8 @@ class RunSpec(Record):
         own (runs.DaemonRuns.local_spec) or to go without:
 
             access        the coordinator's credentials for its processes, whose dictionary is a
-                          file in its run directory: a daemon's processes join with the
-                          daemon's own
+                          file in its run directory: a daemon's processes join with the run's,
+                          which the daemon derives from its secret for the run id (access.py)
             python_path   this machine's directories: a daemon's processes import from its own
             spill_dir     the run directory, on this machine: a daemon's processes share no
                           folder with the coordinator, and put every event in their reports
