@@ -10,6 +10,7 @@ from typing import Any
 
 from ....flow._base import with_step_detail
 from ....tick import timed_step
+from ....trace import StepStatus
 from .timing import WARM_AHEAD_NS
 
 
@@ -91,4 +92,4 @@ def quiet_source(loop) -> None:
             schedule.running = None
         if loop.outputs.consumed:
             loop.outputs.publish(())  # the frontier, for its consumers
-        reports.record(tau, {}, (), "ok", with_step_detail(loop.flow, None), start, wall)
+        reports.record(tau, {}, (), StepStatus.OK, with_step_detail(loop.flow, None), start, wall)

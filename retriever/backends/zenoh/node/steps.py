@@ -15,6 +15,7 @@ from ....flow._base import with_step_detail
 from ....flow.burst import Burst
 from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
+from ....trace import StepStatus
 from .ending import Ending
 
 
@@ -51,7 +52,7 @@ class Steps:
             notes.counts["incomplete"] += 1
             detail = {**(detail or {}), "incomplete": incomplete, "had_below": self.streams.had_below(incomplete)}
             if self.realtime == "hard":  # the tick does not step: skipped, and the run stops
-                self.reports.record(tau, {}, (), "skipped", detail, time.time_ns(), 0)
+                self.reports.record(tau, {}, (), StepStatus.SKIPPED, detail, time.time_ns(), 0)
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
                               f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
                               "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
@@ -69,7 +70,7 @@ class Steps:
         self.loop.last_wall = wall
         overran = self.period_ns and wall > self.period_ns and not self.virtual
         self.emit(tau, consumed, outputs, detail, start, wall,
-                  "overrun" if overran else "incomplete" if incomplete else "ok")
+                  StepStatus.OVERRUN if overran else StepStatus.INCOMPLETE if incomplete else StepStatus.OK)
         if overran:
             self.overran(tau, wall, start + wall - self.clock.t0)
 
@@ -122,7 +123,7 @@ class Steps:
                   "on_deadline_miss": "error" if stop else self.on_deadline_miss}
         if stop or self.on_deadline_miss == "drop":
             self.outputs.unnumber(batch)
-            self.finish_tick(tau, consumed, (), "late", detail, start, wall)
+            self.finish_tick(tau, consumed, (), StepStatus.LATE, detail, start, wall)
             if stop:
                 hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
                         f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
@@ -131,7 +132,7 @@ class Steps:
                               f"finished {late_ns / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
             return
         self.outputs.release(start + wall - self.clock.t0)  # earlier ticks' held outputs go first
-        self.finish_tick(tau, consumed, produced, "late", detail, start, wall, publish=batch)
+        self.finish_tick(tau, consumed, produced, StepStatus.LATE, detail, start, wall, publish=batch)
 
     def finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         outputs = self.outputs
@@ -146,7 +147,7 @@ class Steps:
         """A plain source's step returned ``outputs``: publish them and keep the record, as
         ``tick`` would, then handle an overrun."""
         overran = self.period_ns and wall > self.period_ns
-        status = "overrun" if overran else "ok"
+        status = StepStatus.OVERRUN if overran else StepStatus.OK
         if outputs:
             self.emit(tau, {}, outputs, detail, start, wall, status)
         else:  # as emit with no event: no stamp, nothing to publish but progress
