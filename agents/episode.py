@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from retriever import NOT_KEPT
+from retriever import NOT_KEPT, StepStatus
 
 
 @dataclass
@@ -71,7 +71,7 @@ def lateness(trace) -> dict[str, tuple[list[float], list[float]]]:
     if t0 is None:
         return late
     for s in trace.steps:
-        if s.status != "skipped" and s.wall_start_ns:
+        if s.status != StepStatus.SKIPPED and s.wall_start_ns:
             times, ms = late.setdefault(s.node, ([], []))
             times.append(s.tag[0] / 1e9)
             ms.append((s.wall_start_ns - s.tag[0] - t0) / 1e6)
@@ -91,7 +91,7 @@ def _rates(trace, ir, duration: float) -> list[FlowRate]:
     t0, late_ms = _wall_t0(trace), lateness(trace)
     rates = []
     for node, steps in sorted(by_node.items()):
-        ran = [s for s in steps if s.status not in ("skipped",)]
+        ran = [s for s in steps if s.status != StepStatus.SKIPPED]
         hz = clocks.get(node)
         late = late_ms.get(node, ([], []))[1]
         starts = sorted(s.wall_start_ns for s in steps if s.wall_start_ns)
@@ -103,5 +103,6 @@ def _rates(trace, ir, duration: float) -> list[FlowRate]:
             achieved = len(steps) / duration if duration else 0.0
         rates.append(FlowRate(node, hz, len(ran), achieved, float(np.percentile(late, 99)) if late else None,
                               behind=sum(x > 1e3 / hz for x in late) if hz else 0,
-                              missed=sum(s.status in ("late", "overrun", "incomplete") for s in steps)))
+                              missed=sum(s.status in (StepStatus.LATE, StepStatus.OVERRUN, StepStatus.INCOMPLETE)
+                                         for s in steps)))
     return rates

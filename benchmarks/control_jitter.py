@@ -111,7 +111,7 @@ def stats(late_ns: list[int], period_ns: int, expected: int) -> dict:
 def run(args) -> dict:
     from zenoh_flows import BackgroundRun, Burner, Idle
 
-    from retriever import Pipeline, Rate
+    from retriever import Pipeline, Rate, StepStatus
 
     period_ns = round(1e9 / args.hz)
     if args.breakdown:
@@ -138,7 +138,7 @@ def run(args) -> dict:
     trace = run.finish()
     warm_ns = int(args.warmup * 1e9)
     ctrl = [r for r in trace.steps if r.node == "ctrl" and r.tag[0] >= warm_ns]
-    late = [r.wall_start_ns - (t0 + r.tag[0]) for r in ctrl if r.status == "ok"]
+    late = [r.wall_start_ns - (t0 + r.tag[0]) for r in ctrl if r.status == StepStatus.OK]
     expected = len(range(-(-warm_ns // period_ns), -(-int(args.seconds * 1e9) // period_ns)))
     out = {"retriever": stats(late, period_ns, expected), "counts": dict(session.counts),
            "cpu": {n: (cpu1[n] - cpu0[n]) / (w1 - w0) * 100 for n in pids},
@@ -167,10 +167,11 @@ def run(args) -> dict:
 def breakdown(trace, ctrl_records, t0: int) -> dict:
     """Split each tick's lateness (probed run, zenoh_probe.ProbeTicker): the OS timed wait's
     oversleep (woke − the time it was asked to wake) and the loop's work from waking to step()."""
+    from retriever import StepStatus
     values = {ev.id: ev.value for ev in trace.events if ev.node == "ctrl"}
     oversleep, to_step, unwaited = [], [], 0
     for r in ctrl_records:
-        if r.status != "ok" or not r.produced:
+        if r.status != StepStatus.OK or not r.produced:
             continue
         wait_until, woke, start = values[r.produced[0]]
         scheduled = t0 + r.tag[0]

@@ -265,10 +265,11 @@ def kill_mid_worker(pipe, after_s: float, out: dict) -> None:
 def failover_result(trace, session, killed: dict) -> dict:
     """From the kill to ``mid``'s first step on its new worker, and to the first step of ``sink``
     on an event of that new process (the pipeline end to end again)."""
+    from retriever import StepStatus
     kill = killed.get("kill_ns")
     if kill is None:
         return {"error": "the worker of mid was never killed"}
-    mid_after = [s for s in trace.steps if s.node == "mid" and s.status == "ok" and s.wall_start_ns > kill]
+    mid_after = [s for s in trace.steps if s.node == "mid" and s.status == StepStatus.OK and s.wall_start_ns > kill]
     first_mid = min(mid_after, key=lambda s: s.wall_start_ns) if mid_after else None
     new_ids = {i for s in mid_after for i in s.produced}
     sink_after = [s for s in trace.steps if s.node == "sink" and s.wall_start_ns > kill
@@ -282,11 +283,12 @@ def failover_result(trace, session, killed: dict) -> dict:
 
 def chains_result(trace, session) -> dict:
     """Each node's first tick (Unix ns) and steps; where each node ran; edges across workers."""
+    from retriever import StepStatus
     first: dict[str, int] = {}
     steps: dict[str, int] = {}
     for st in trace.steps:
         first[st.node] = min(first.get(st.node, st.wall_start_ns), st.wall_start_ns)
-        steps[st.node] = steps.get(st.node, 0) + (st.status == "ok")
+        steps[st.node] = steps.get(st.node, 0) + (st.status == StepStatus.OK)
     placed = session.hosting.placed
     crossing = sum(placed[e.src] != placed[e.dst] for e in session.graph.edges)
     return {"first_tick": first, "ok_steps": steps, "nodes": sorted(session.graph.nodes),

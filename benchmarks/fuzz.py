@@ -103,7 +103,7 @@ from retriever.log.reader import run_info  # noqa: E402
 from retriever.log.recover import recover  # noqa: E402
 from retriever.replay import replay  # noqa: E402
 from retriever.log.mcap_writer import McapWriter  # noqa: E402
-from retriever.trace import STEP_STATUSES, Trace  # noqa: E402
+from retriever.trace import STEP_STATUSES, StepStatus, Trace  # noqa: E402
 
 CRASH_DIR = Path(__file__).resolve().parent / "fuzz_crashes"
 #: an input that takes longer than this is a hang (the slowest genuine input, a log replay, takes ~50 ms)
@@ -860,7 +860,7 @@ class InsiderTarget(CoordinatorTarget):
                 HandedOver(**said, counts={"late": 1000}, reports=1), Ready(**said), Reached(**said, until=10**12)])
             key, payload = keys.node_status(node), status.encode()
         else:
-            records = tuple((tick, {}, (), "ok", rng.choice([None, {"exit": 0}]), 0, 0)
+            records = tuple((tick, {}, (), StepStatus.OK, rng.choice([None, {"exit": 0}]), 0, 0)
                             for tick in {tick, (tick[0] + 1, 0), (self.end_ns + 10**8, 0)})
             key, payload = keys.report(node), Report(node=node, records=records, events=()).encode()
         if rng.random() < 0.3:

@@ -53,13 +53,13 @@ from .ir import IR
 from .log import read_log
 from .pipeline import Pipeline
 from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
-from .trace import NOT_KEPT, Event, StepRecord, Trace
+from .trace import NOT_KEPT, Event, StepRecord, StepStatus, Trace
 
 __all__ = sorted([
     "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "Burst", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
     "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StarvedFlowWarning", "StepError", "StepRecord",
-    "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "flow_io", "init", "io",
+    "StepStatus", "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "flow_io", "init", "io",
     "read_log",
 ])

@@ -1,5 +1,9 @@
 """Placement: which worker runs each node of an IR, for ``retriever deploy`` (docs/deploy.md).
 
+A *worker* here is a worker daemon (``retriever worker --name NAME``, backends/zenoh/daemon/), as
+the placement file and ``retriever workers`` name it; not the process that serves one node on
+it (backends/zenoh/worker/), which the daemon starts once the node is placed.
+
 A placement file pins nodes to workers by name, or asks for workers with labels::
 
     [nodes]
@@ -64,8 +68,8 @@ ANYWHERE = Constraint()
 
 @dataclass(frozen=True)
 class WorkerInfo:
-    """A worker that is up: its name (unique among the workers up), its labels, how many nodes it already
-    runs (its load), and the host it runs on, if known."""
+    """A worker daemon that is up: its name (unique among the workers up), its labels, how many nodes it
+    already runs (its load), and the host it runs on, if known."""
 
     name: str
     labels: frozenset[str] = frozenset()

@@ -78,7 +78,7 @@ from .log import format as fmt
 from .log.reader import LogHead, LoggedEvent, RunLog, read_log, scan_log
 from .pipeline import Pipeline
 from .time import format_tag
-from .trace import STEPPED, StepRecord, Trace
+from .trace import STEPPED, StepRecord, StepStatus, Trace
 
 MAX_DIVERGENCES_KEPT = 20
 PROGRESS_EVERY = 2000
@@ -641,7 +641,7 @@ def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
         session.tick(step.node, step.tag)
     except (StepError, RunEnded):
         pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
-    if step.status == "late" and step.detail.get("on_deadline_miss") in ("drop", "error"):
+    if step.status == StepStatus.LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
     tape = trace.tape
     if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
@@ -714,9 +714,9 @@ def _compare_record(step, replayed: tuple) -> Divergence | None:
     if consumed != step.consumed:
         port = next((p for p in sorted(set(consumed) | set(step.consumed)) if consumed.get(p) != step.consumed.get(p)))
         return differs("inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
-    if status != ("ok" if step.status in STEPPED else step.status):
+    if status != (StepStatus.OK if step.status in STEPPED else step.status):
         return differs("status", _status(step.status, step.detail), _status(status, detail))
-    if status == "error" and (detail or {}).get("error") != (step.detail or {}).get("error"):
+    if status == StepStatus.ERROR and (detail or {}).get("error") != (step.detail or {}).get("error"):
         return differs("error", step.detail.get("error"), detail.get("error"))
     if produced != step.produced:
         return differs("outputs (produced event ids)", list(step.produced), list(produced))
@@ -753,7 +753,7 @@ def _logged_value(event: LoggedEvent) -> Any:
 def _stepped(step) -> bool:
     """Whether the run called step() at this tick or its policy skipped it: every tick but one
     that a real-time run stopped before stepping (realtime="hard", an incomplete edge)."""
-    return step.status != "skipped" or "missing" in (step.detail or {})
+    return step.status != StepStatus.SKIPPED or "missing" in (step.detail or {})
 
 
 def _status(status: str, detail: dict | None) -> str:
@@ -859,7 +859,7 @@ def _logged_outputs(step: StepRecord, values: dict) -> list | ReplayedError:
     """What a replayed source's tick gives the re-simulation: its logged events, or its logged
     error (raised again, so that the tick is an error record, handled by ``on_error``, as in
     the run)."""
-    if step.status == "error":
+    if step.status == StepStatus.ERROR:
         error = (step.detail or {}).get("error")
         return ReplayedError(error if type(error) is str else "an error (the log does not say which)")
     return [(i[1], values[i]) for i in step.produced]
@@ -886,7 +886,8 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
     values = {e.id: e.value for e in original.events}
     logged = from_the_log(graph)
     for nid in logged:
-        ticks = sorted((s for s in original.steps if s.node == nid and s.status != "skipped"), key=lambda s: s.tag)
+        ticks = sorted((s for s in original.steps if s.node == nid and s.status != StepStatus.SKIPPED),
+                       key=lambda s: s.tag)
         session.replace_step(nid, iter([_logged_outputs(s, values) for s in ticks]))
     try:
         _set_up(session, logged)

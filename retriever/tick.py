@@ -33,6 +33,7 @@ from typing import Any
 
 from .errors import ReplayedError, RestartLimitError, RetrieverError, RunEnded, StepError
 from .sync import MISSING
+from .trace import StepStatus
 
 
 def select_inputs(inputs: list[tuple], tau: tuple[int, int]) -> tuple[dict, dict, list | None, list | None, dict | None]:
@@ -201,18 +202,18 @@ def ending(decision: Decision, node: str, tau: tuple[int, int] | None, exc: Base
 # edges, Queue drops), and returns ``(status, detail)`` for the step record. The keys are read
 # back by the coordinator (an ``exit`` status is believed only beside its ``{"exit": 0}`` record)
 # and by replay (a skipped tick re-runs only with its ``missing`` ports): one spelling for both.
-def skipped_outcome(missing: list[str], detail: dict | None = None) -> tuple[str, dict]:
+def skipped_outcome(missing: list[str], detail: dict | None = None) -> tuple[StepStatus, dict]:
     """A tick skipped because the required ports ``missing`` had nothing (nothing consumed)."""
-    return "skipped", {**detail, "missing": missing} if detail else {"missing": missing}
+    return StepStatus.SKIPPED, {**detail, "missing": missing} if detail else {"missing": missing}
 
 
-def exit_outcome(detail: dict | None = None) -> tuple[str, dict]:
+def exit_outcome(detail: dict | None = None) -> tuple[StepStatus, dict]:
     """A step that called ``sys.exit()`` or ``sys.exit(0)`` (Decision.END_RUN): the run ends
     cleanly at it, and it counts as a step that ran."""
-    return "ok", {**detail, "exit": 0} if detail else {"exit": 0}
+    return StepStatus.OK, {**detail, "exit": 0} if detail else {"exit": 0}
 
 
-def error_outcome(error: str, on_error: str, detail: dict | None = None) -> tuple[str, dict]:
+def error_outcome(error: str, on_error: str, detail: dict | None = None) -> tuple[StepStatus, dict]:
     """A step that raised (``error``: :func:`error_text`), and the ``on_error`` acted on."""
     outcome = {"error": error, "on_error": on_error}
-    return "error", {**detail, **outcome} if detail else outcome
+    return StepStatus.ERROR, {**detail, **outcome} if detail else outcome

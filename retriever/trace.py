@@ -13,6 +13,7 @@ import gc
 import hashlib
 import threading
 from contextlib import contextmanager
+from enum import StrEnum
 from typing import Any, Callable, Iterator, NamedTuple
 
 from .codec import packb
@@ -100,17 +101,32 @@ class Event(NamedTuple):
         return hash(self[:5])
 
 
-#: What a step record's status may be (docs/log.md). ``skipped``: the tick did not step (an
-#: input's policy had nothing, ``detail["missing"]``; or, realtime="hard", an incomplete edge
-#: stopped the run). ``error``: step() raised. The others stepped and returned, in real time:
-#: ``incomplete``, with an edge not complete up to the tick (``detail["incomplete"]``);
-#: ``overrun``, the step outlasted its Rate period; ``late``, a LET step finished after tick +
-#: latency (``detail["on_deadline_miss"]`` says what became of its outputs).
-STEP_STATUSES = ("ok", "skipped", "incomplete", "late", "overrun", "error")
+class StepStatus(StrEnum):
+    """What a step record's status may be (docs/log.md). A ``str``: a log and the wire carry its
+    value (``"ok"``), and a status read back from either compares equal to its member."""
+
+    #: stepped and returned
+    OK = "ok"
+    #: did not step: an input's policy had nothing (``detail["missing"]``); or, realtime="hard",
+    #: an incomplete edge stopped the run
+    SKIPPED = "skipped"
+    #: in real time, stepped with an edge not complete up to the tick (``detail["incomplete"]``)
+    INCOMPLETE = "incomplete"
+    #: in real time, a LET step finished after tick + latency (``detail["on_deadline_miss"]``
+    #: says what became of its outputs)
+    LATE = "late"
+    #: in real time, the step outlasted its Rate period
+    OVERRUN = "overrun"
+    #: step() raised
+    ERROR = "error"
+
+
+#: every status, in the order docs/log.md lists them
+STEP_STATUSES = tuple(StepStatus)
 #: statuses of a step that returned
-STEPPED = frozenset({"ok", "incomplete", "late", "overrun"})
+STEPPED = frozenset({StepStatus.OK, StepStatus.INCOMPLETE, StepStatus.LATE, StepStatus.OVERRUN})
 #: statuses that say when a step ran, not what it did: they compare as ``ok``
-TIMING_STATUSES = frozenset({"late", "overrun"})
+TIMING_STATUSES = frozenset({StepStatus.LATE, StepStatus.OVERRUN})
 
 #: step-record detail keys that say *when* things happened in a real-time run, not *what*: a LET
 #: output released late, events that arrived after their tick, ticks skipped after an overrun.
@@ -119,8 +135,9 @@ TIMING_DETAIL = frozenset({"deadline_miss_ns", "on_deadline_miss", "late", "over
 
 
 def semantic_status(status: str) -> str:
-    """``status`` as traces compare it: timing statuses read ``ok``."""
-    return "ok" if status in TIMING_STATUSES else status
+    """``status`` (a :class:`StepStatus`, or its value as a log reads it back) as traces compare
+    it: timing statuses read ``ok``."""
+    return StepStatus.OK if status in TIMING_STATUSES else status
 
 
 def semantic_detail(detail: dict | None) -> dict | None:
@@ -136,7 +153,7 @@ class StepRecord(NamedTuple):
 
     ``consumed`` maps each input port to the ids of the events its policy selected (ports that
     got MISSING or a default are absent); ``produced`` lists the ids of the events emitted;
-    ``status`` is one of :data:`STEP_STATUSES`; ``detail`` holds the missing ports, Queue
+    ``status`` is a :class:`StepStatus` (its value, read back from a log); ``detail`` holds the missing ports, Queue
     drop counts or the error text, when there are any. ``wall_start_ns`` (Unix ns) and
     ``wall_ns`` say when ``step()`` ran and for how long; they are logged but never compared,
     and neither are the timing keys of ``detail`` (:data:`TIMING_DETAIL`).
@@ -386,7 +403,8 @@ class Trace:
             yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
         for s in steps:
             consumed = sorted(s.consumed.items())
-            yield packb(("step", s.node, s.tag, consumed, s.produced, semantic_status(s.status),
+            # str(): the codec packs exact strs only, and a status is a StepStatus or its value
+            yield packb(("step", s.node, s.tag, consumed, s.produced, str(semantic_status(s.status)),
                          semantic_detail(s.detail)))
 
     def digest(self) -> str:

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import ast
 import gc
 import threading
+from pathlib import Path
+
+import msgpack
 
 from retriever import Flow, Pipeline, Rate, Trigger
-from retriever.trace import Trace, holding_full_collections
+from retriever.trace import STEP_STATUSES, StepStatus, Trace, holding_full_collections
 
 
 def test_the_tape_expands_in_recording_order_on_first_read():
@@ -161,3 +165,85 @@ def test_latest_knows_the_ports_of_an_untyped_flow_that_no_edge_reads():
     with pytest.raises(ValueError, match=r"'controller' has no output port 'comand' \(outputs: command\)\n"
                                          r"    hint: did you mean 'command'\?"):
         trace.latest("controller", "comand")
+
+
+# -- step statuses: one spelling, trace.StepStatus ---------------------------------------------
+ROOT = Path(__file__).resolve().parents[1]
+#: what the check reads: the package, the agents and the benchmarks (the tests build records by hand)
+SCANNED = ("retriever", "agents", "benchmarks")
+#: where status literals still wait for their module's owner to take StepStatus (path → on how many lines):
+#: each entry is removed once its literals are, so the check tightens as code moves
+WAITING = {"retriever/log/format.py": 1, "retriever/log/frames.py": 1}
+#: calls that take a step record's fields positionally (a status among them)
+RECORDING = {"record", "finish_tick", "emit", "StepRecord", "ReportedStep"}
+
+
+def _names_status(node: ast.AST) -> bool:
+    """Whether ``node`` is a name or attribute that holds a status (``status``, ``s.status``)."""
+    name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else ""
+    return "status" in name.lower()
+
+
+def _status_literals(tree: ast.AST) -> list[int]:
+    """The lines where a step status is spelled as a string: compared with a status, assigned to
+    one, passed to a call that records a step, in a step record's tuple (7 fields or more), or
+    returned as a tick's outcome ``(status, detail)``."""
+    statuses = {status.value for status in StepStatus}
+
+    def literals(node: ast.AST | None) -> list[ast.Constant]:
+        if isinstance(node, ast.Constant) and node.value in statuses:
+            return [node]
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return [c for item in node.elts for c in literals(item)]
+        if isinstance(node, ast.IfExp):
+            return literals(node.body) + literals(node.orelse)
+        return []
+
+    found: list[ast.Constant] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Compare) and any(map(_names_status, [node.left, *node.comparators])):
+            found += [c for side in [node.left, *node.comparators] for c in literals(side)]
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(_names_status(t) for t in targets):
+                found += literals(node.value)
+        elif isinstance(node, ast.Call):
+            callee = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            if callee in RECORDING:
+                found += [c for arg in node.args for c in literals(arg)]
+        elif (isinstance(node, ast.Tuple) and len(node.elts) >= 7  # a record, not a table's column names
+              and not all(isinstance(item, ast.Constant) for item in node.elts)):
+            found += [c for item in node.elts if isinstance(item, ast.Constant) for c in literals(item)]
+        elif isinstance(node, ast.Return) and isinstance(node.value, ast.Tuple) and len(node.value.elts) == 2:
+            found += literals(node.value.elts[0])
+    return sorted({c.lineno for c in found})
+
+
+def _status_literals_in(root: Path) -> dict[str, list[int]]:
+    files = sorted(p for top in SCANNED for p in (root / top).rglob("*.py"))
+    found = {str(p.relative_to(root)): _status_literals(ast.parse(p.read_text(), str(p))) for p in files}
+    return {path: lines for path, lines in found.items() if lines and path != "retriever/trace.py"}
+
+
+def test_step_statuses_are_spelled_once_as_step_status():
+    found = _status_literals_in(ROOT)
+    spelled = [f"{path}: line {', '.join(map(str, lines))}" for path, lines in found.items()
+               if len(lines) != WAITING.get(path)]
+    assert spelled == [], "a step status spelled as a string; use trace.StepStatus:\n" + "\n".join(spelled)
+
+
+def test_each_waiting_file_still_spells_its_statuses():
+    """An exception that no file needs any more is deleted."""
+    found = _status_literals_in(ROOT)
+    stale = [path for path, count in WAITING.items() if len(found.get(path, ())) != count]
+    assert stale == [], "no longer needed; remove from WAITING in tests/test_trace.py: " + ", ".join(stale)
+
+
+def test_a_step_status_is_its_value_in_a_log_and_on_the_wire():
+    assert [str(s) for s in STEP_STATUSES] == ["ok", "skipped", "incomplete", "late", "overrun", "error"]
+    for status in StepStatus:
+        assert msgpack.packb(status, use_bin_type=True) == msgpack.packb(status.value, use_bin_type=True)
+        assert status == status.value and hash(status) == hash(status.value) and f"{status}" == status.value
+    trace = Trace(steps=[("a", (0, 0), {}, (), StepStatus.LATE, None, 0, 0)])
+    same = Trace(steps=[("a", (0, 0), {}, (), "ok", None, 0, 0)])  # as a log reads one back
+    assert trace == same and trace.digest() == same.digest()

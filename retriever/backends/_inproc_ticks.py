@@ -51,6 +51,7 @@ from typing import Any
 
 from ..flow._base import settings_of
 from ..sync import Latest
+from ..trace import StepStatus
 
 
 @dataclass(eq=False)
@@ -478,7 +479,7 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
     xsteps{k} += 1
     xwall{k} += wall
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
-    add_step((node{k}, tau, consumed, produced, 'ok', None, start, wall))
+    add_step((node{k}, tau, consumed, produced, OK, None, start, wall))
 {_indent(leave)}    return i + {len(fields)}
 """
 
@@ -517,7 +518,7 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
       over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats).
     """
     names: dict[str, Any] = {
-        "time_ns": time_ns, "insort": insort, "tape_extend": host.tape.extend, "emit": host.emit,
+        "time_ns": time_ns, "insort": insort, "OK": StepStatus.OK, "tape_extend": host.tape.extend, "emit": host.emit,
         "skipped": host.skipped, "failed": host.failed, "schedule": host.schedule,
         "after": host.after, "next_add": host.after.append, "keep_next": host.keep_next,
         "saw_ports": host.saw_ports, "max_microsteps": host.max_microsteps, "plain": host.plain_types,

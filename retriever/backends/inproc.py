@@ -68,7 +68,7 @@ from ..sync import PortBuffer
 from ..tick import (Decision, RestartBudget, decide, ending, error_outcome, error_text, exit_outcome, run_tick,
                     select_inputs, skipped_outcome)
 from ..time import format_tag
-from ..trace import holding_full_collections
+from ..trace import StepStatus, holding_full_collections
 from .base import Backend, NodeStats, Session
 from .inproc_compiled import CompiledTicks
 
@@ -273,8 +273,8 @@ class _Recorder:
                         continue
                     self._check_output(rt, tau, port, value, consumed, start, produced)
                 event(rt, tau, port, value, out_tag, end, produced)
-        self.tape.append((rt.id, tau, consumed, tuple(produced), "ok", with_step_detail(rt.flow, dropped), start,
-                          end - start))
+        self.tape.append((rt.id, tau, consumed, tuple(produced), StepStatus.OK, with_step_detail(rt.flow, dropped),
+                          start, end - start))
 
     def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
                end: int, produced: list) -> None:

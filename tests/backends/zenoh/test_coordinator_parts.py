@@ -3,6 +3,8 @@ the status machine's table, its stages, and a hosting handed in."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections import Counter
 from types import SimpleNamespace
 
@@ -99,3 +101,36 @@ def test_a_host_lost_goes_to_the_hosting_handed_in(offline):
     with pytest.raises(BackendError, match="zenoh run stopped: worker 'gone-box' was lost"):
         parts.supervisor.check()
     assert hosting.lost == [["counter"]]
+
+
+class _AskedProcess(subprocess.Popen):
+    """A real child process that counts how often it is asked whether it ended."""
+
+    asked = 0
+
+    def poll(self):
+        self.asked += 1
+        return super().poll()
+
+
+def test_a_check_asks_each_process_once_whether_it_ended(offline):
+    """An idle coordinator checks its processes every pass: each is polled once a check (it was
+    twice: once to stop sealing control for it, once to see whether it died), running or ended."""
+    book, parts, _ = offline
+
+    class Up:
+        name, alive = "box", True
+
+    book.hosts = {"counter": Up()}
+    proc = _AskedProcess([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    try:
+        book.workers = {"counter": proc}
+        parts.control.signer.add(proc, b"k" * 32)
+        parts.supervisor.check()
+        assert (proc.asked, parts.control.signer.holders()) == (1, [proc])  # running: control still sealed
+    finally:
+        proc.stdin.close()
+        proc.wait()
+    proc.asked = 0
+    parts.supervisor.check()  # its own exit (0): its last status may still come; control is no longer sealed
+    assert (proc.asked, parts.control.signer.holders()) == (1, [])

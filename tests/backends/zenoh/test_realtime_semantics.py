@@ -196,7 +196,7 @@ def test_on_error_skip_tick_records_the_error_and_goes_on_with_the_same_state():
 
 @pytest.mark.parametrize("on_error", ["skip_tick", "stop"])
 def test_a_source_that_fails_or_outputs_nothing_is_recorded_as_any_flow(on_error):
-    """A Rate source's ticks take the loop's short pass (node/source.py, source_pass): its error, a tick
+    """A Rate source's ticks take the loop's short pass (node/source.py, PlainSource.one_pass): its error, a tick
     that outputs nothing, and its consumer see what a flow with inputs would."""
     with Pipeline(f"src_{on_error}") as pipe:
         src = FailingTicker(fail_at=[3], quiet_at=[5]).configure(name="src", on_error=on_error) @ Rate(hz=20)
@@ -219,7 +219,7 @@ def test_a_source_that_fails_or_outputs_nothing_is_recorded_as_any_flow(on_error
 
 
 def test_a_quiet_source_keeps_every_record_and_its_consumer_on_time():
-    """A source whose steps return nothing runs in node/source.py's quiet_source, a lean loop of its
+    """A source whose steps return nothing runs in node/source.py's PlainSource.run_quiet, a lean loop of its
     own: each tick still has its record (an error and an overrun too, and the ticks the overrun
     skipped are counted), the events it does emit arrive where a flow with inputs would put
     them, and its consumer, on the same Rate, ticks on time throughout."""

@@ -37,12 +37,14 @@ class Faulty(Flow):
 
 def stand_in_loop(on_error: str) -> SimpleNamespace:
     settings = SimpleNamespace(on_error=on_error, on_overrun="skip", on_deadline_miss="publish_late")
+    flow = Faulty()
     loop = SimpleNamespace(
-        id="faulty", virtual=False, node=SimpleNamespace(settings=settings, clock=SimpleNamespace(hz=None)),
+        id="faulty", virtual=False,
+        node=SimpleNamespace(id="faulty", flow=flow, settings=settings, clock=SimpleNamespace(hz=None)),
         notes=SimpleNamespace(detail={}), schedule=SimpleNamespace(running=TAU),
         outputs=SimpleNamespace(publish=lambda batch: None), reports=SimpleNamespace(records=[]),
         streams=None, run_clock=None, lock=threading.Lock(), last_wall=0,
-        endings=[], restarting=False, exits=[], restarts=[], flow=Faulty())
+        endings=[], restarting=False, exits=[], restarts=[], flow=flow)
     loop.stop = loop.endings.append
     loop.reports.record = lambda *record: loop.reports.records.append(record)
     loop.on_exit = loop.exits.append
@@ -50,12 +52,19 @@ def stand_in_loop(on_error: str) -> SimpleNamespace:
     return loop
 
 
+def steps_of(loop: SimpleNamespace, inputs: list[tuple], fallbacks: dict, invoke, read) -> Steps:
+    """The stand-in loop's Steps, handed its parts as NodeLoop hands them."""
+    return Steps(loop, loop.node, inputs, fallbacks, invoke, read, realtime="soft", virtual=loop.virtual,
+                 notes=loop.notes, schedule=loop.schedule, outputs=loop.outputs, reports=loop.reports,
+                 streams=loop.streams, clock=loop.run_clock, lock=loop.lock)
+
+
 @pytest.mark.parametrize("on_error", ["stop", "skip_tick", "restart"])
 @pytest.mark.parametrize("exc", [ValueError("bad"), SystemExit(3), SystemExit(0), SystemExit()],
                          ids=["ValueError", "exit-3", "exit-0", "exit"])
 def test_a_failed_step_does_what_decide_says(on_error, exc):
     loop = stand_in_loop(on_error)
-    steps = Steps(loop, [], {}, None, None, realtime="soft")
+    steps = steps_of(loop, [], {}, None, None)
     decision = decide(on_error, exc, None, TAU[0])
     if decision is Decision.STOP:
         with pytest.raises(StopRun, match=f"faulty.step\\(\\) raised {type(exc).__name__}") as info:
@@ -130,7 +139,7 @@ def test_a_node_loops_tick_takes_its_inputs_and_steps_as_the_reference_tick_does
     loop.outputs.stamp = lambda tau, events: ((tau[0], tau[1] + 1), events, tuple(port for port, _ in events))
     seen_by_loop = []
     loop_inputs = bound_inputs(spec)
-    Steps(loop, loop_inputs, fallbacks, step(seen_by_loop), lambda raw: raw.items(), realtime="soft").tick(TAU, [])
+    steps_of(loop, loop_inputs, fallbacks, step(seen_by_loop), lambda raw: raw.items()).tick(TAU, [])
 
     (tau, consumed, produced, status, detail, *_), = loop.reports.records
     (ref_status, ref_consumed, ref_detail), = reference

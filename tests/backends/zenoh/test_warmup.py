@@ -14,7 +14,7 @@ import time
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
-from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, quiet_source
+from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from retriever.backends.zenoh.worker.build import build_loop
 
@@ -128,7 +128,7 @@ def test_a_warm_up_that_fails_is_skipped_not_raised(session, spec):
 
 @pytest.mark.parametrize("sent", [True, False])
 def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(session, spec, sent):
-    """node/source.py's quiet_source, driven by hand for one tick 10 ms ahead: a source that has sent
+    """node/source.py's PlainSource.run_quiet, driven by hand for one tick 10 ms ahead: a source that has sent
     warms up on warm/cam before it steps (and publishes its frame), as the general loop would;
     one that has not sent goes straight to the step."""
     keys = KeySpace(spec.namespace)
@@ -141,7 +141,7 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
         loop.run_clock.t0 = time.time_ns()
         loop.run_clock.end = 10 * MS + 1  # one tick, at 10 ms: a wait longer than WARM_AFTER_IDLE_NS
         loop.schedule.next_rate = (10 * MS, 0)
-        quiet_source(loop)
+        loop.source.run_quiet()
         end(session, keys, done)
         assert [record[3] for record in loop.reports.records] == ["ok"], loop.reports.records  # its status
         published = [key for key, _ in seen if key.startswith((keys.warm("cam"), keys.data("cam", "image")))]

@@ -85,12 +85,13 @@ class Supervisor:
     def raise_failure(self) -> None:
         raise failure_error(self.book, self.backend_name)
 
-    def forget_ended(self) -> None:
+    def forget_ended(self, polled: dict[int, int | None] | None = None) -> None:
         """Seal no more control for the processes whose exit is confirmed (a process that may
-        still run keeps getting it: a ``stop``, its answers); each of them is reaped on the way."""
+        still run keeps getting it: a ``stop``, its answers); each of them is reaped on the way.
+        ``polled``: what ``poll()`` said of each process this check, by ``id``: each is asked once."""
         signer = self.control.signer
         for proc in signer.holders():
-            if exit_confirmed(proc):
+            if exit_confirmed(proc, polled):
                 signer.drop(proc)
 
     # ---------------------------------------------------------------------------------------
@@ -101,14 +102,15 @@ class Supervisor:
         (on_error="restart", a deployment's on_worker_loss) starts its flows afresh."""
         book = self.book
         self.hosting.check()
-        self.forget_ended()
+        polled: dict[int, int | None] = {}  # each process polled once a check: a waitpid, every pass
+        self.forget_ended(polled)
         for host in {id(h): h for h in book.hosts.values()}.values():
             if not host.alive and book.failure is None:  # its flows stopped with it, whatever they said
                 self.host_lost(host)
                 if book.failure is not None:
                     self.raise_failure()
         for nid, proc in [*book.workers.items(), *book.retiring.items()]:
-            code = proc.poll()
+            code = polled[id(proc)] if id(proc) in polled else proc.poll()
             if code is None or book.state[nid] == State.DONE or not book.hosts[nid].alive:
                 continue  # running, finished, or gone with its host (above)
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
@@ -285,9 +287,16 @@ class Supervisor:
         self.forget_ended()
 
 
-def exit_confirmed(proc: WorkerProcess) -> bool:
+def exit_confirmed(proc: WorkerProcess, polled: dict[int, int | None] | None = None) -> bool:
     """Whether ``proc`` is known to have ended: a child of this process, or dora's, once
-    ``poll()`` says how; a worker daemon's once its daemon said it exited (remote.RemoteProcess:
-    one whose daemon was lost counts as killed, yet may still run and read control)."""
+    ``poll()`` says how (kept in ``polled``, by ``id``, when given: asked once); a worker
+    daemon's once its daemon said it exited (remote.RemoteProcess: one whose daemon was lost
+    counts as killed, yet may still run and read control)."""
     confirmed = getattr(proc, "exit_confirmed", None)
-    return proc.poll() is not None if confirmed is None else confirmed
+    if confirmed is not None:
+        return confirmed
+    if polled is None:
+        return proc.poll() is not None
+    if id(proc) not in polled:
+        polled[id(proc)] = proc.poll()
+    return polled[id(proc)] is not None

@@ -17,7 +17,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from ....trace import NOT_KEPT, STEPPED, Trace
+from ....trace import NOT_KEPT, STEPPED, StepStatus, Trace
 from ..protocol import Have, Report, ReportedStep
 from ..wire import WireError, decode_events
 from .book import RunBook
@@ -71,7 +71,7 @@ class ReportIngest:
             return
         book.ticks.add((node, tag))
         exit_code = detail.get("exit") if detail is not None else None
-        if status == "ok" and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
+        if status == StepStatus.OK and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
             book.exit_recorded[node] = (tag, sender)
             self.on_exit_recorded(node)
         self.step((node, tag, consumed, produced, status, detail, start, wall))
@@ -94,7 +94,7 @@ class ReportIngest:
         if status in STEPPED:
             stats.steps += 1
             stats.step_ns += wall
-        elif status == "skipped":
+        elif status == StepStatus.SKIPPED:
             stats.skips += 1
         else:
             stats.errors += 1

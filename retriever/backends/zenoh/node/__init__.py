@@ -56,7 +56,6 @@ from .inbox import CONTROL, DATA, NUDGE, PROGRESS
 from .loop import INLINE_STEP_NS, RESTART_POLL_NS, NodeLoop
 from .reports import (FLUSH_AFTER_NS, FLUSH_MAX, FLUSH_MAX_BYTES, FLUSH_MAX_SEQS, HOLD_RECORDS_NS,
                       RECORDS_FLUSH_AFTER_NS, SPILL_BYTES)
-from .source import quiet_source
 from .timing import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
 from .transport import Transport, ZenohTransport
 from .waiting import ASK_EVERY_NS, PROBE_AFTER_NS, VIRTUAL_IDLE_NS
@@ -66,5 +65,4 @@ __all__ = [
     "FLUSH_MAX_BYTES", "FLUSH_MAX_SEQS", "HOLD_RECORDS_NS", "INLINE_STEP_NS", "NEVER", "NUDGE", "PROBE_AFTER_NS",
     "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "RESTART_SEQ_GAP", "SPILL_BYTES", "VIRTUAL_IDLE_NS",
     "WAITING_MAX", "WARM_AFTER_IDLE_NS", "WARM_AHEAD_NS", "InEdge", "NodeLoop", "Transport", "ZenohTransport",
-    "quiet_source",
 ]

@@ -25,7 +25,7 @@ from .plane import ControlPlane
 from .reporter import Reporter
 from .reports import SPILL_BYTES, Reports
 from .schedule import DONE, TICKED, Schedule
-from .source import is_plain_source, quiet_source, source_pass
+from .source import PlainSource
 from .steps import Steps
 from .timing import Pacer, Warmup
 from .transport import Transport, ZenohTransport
@@ -87,11 +87,18 @@ class NodeLoop:
                                schedule=self.schedule, streams=self.streams, reports=self.reports,
                                transport=self.transport)
         self.warmup = Warmup(self.outputs, self.schedule, self.run_clock)
-        self.pacer = Pacer(self)
-        self.steps = Steps(self, inputs, fallbacks, make_invoker(node.flow, node.spec), make_output_reader(node.spec),
-                           realtime=realtime)
-        self.waiting = Waiting(self)
         self.spin_ns = 0 if virtual else node.settings.spin_ns  # (virtual time: nothing to be on time for)
+        self.pacer = Pacer(self, warmup=self.warmup, schedule=self.schedule, clock=self.run_clock, spin_ns=self.spin_ns,
+                           counts=self.notes.counts)
+        self.steps = Steps(self, node, inputs, fallbacks, make_invoker(node.flow, node.spec),
+                           make_output_reader(node.spec), realtime=realtime, virtual=virtual, notes=self.notes,
+                           schedule=self.schedule, outputs=self.outputs, reports=self.reports, streams=self.streams,
+                           clock=self.run_clock, lock=self.lock)
+        self.waiting = Waiting(self, virtual=virtual, session=session, keys=keys, streams=self.streams,
+                               clock=self.run_clock, outputs=self.outputs, reports=self.reports)
+        self.source = PlainSource(self, steps=self.steps, waiting=self.waiting, schedule=self.schedule,
+                                  notes=self.notes, outputs=self.outputs, reports=self.reports, warmup=self.warmup,
+                                  clock=self.run_clock, lock=self.lock)
         self.plain_source = False  # whether it takes the short way of a plain source (source.py), from begin()
         # whether a GroupLoop runs its passes among others' (group.py): none may wait, and the
         # group hears the run's control for all of them (GroupLoop.hear_control)
@@ -317,7 +324,8 @@ class NodeLoop:
         else:
             self.schedule.start()
         self.outputs.publish_progress()
-        self.plain_source = is_plain_source(self) and not self.grouped
+        self.plain_source = (self.source.fits(virtual=self.virtual, edges=self.streams.edges, spin_ns=self.spin_ns)
+                             and not self.grouped)
 
     def one_pass(self) -> tuple[int, int | str]:
         """One pass of the loop: what came is handled, held outputs now due released, the next
@@ -328,13 +336,13 @@ class NodeLoop:
         quiet = self.plain_source and not (self.schedule.pending or outputs.held or self.restarting
                                            or self.inbox.qsize())
         if quiet and not self.notes.detail:
-            quiet_source(self)  # its ticks for as long as they are quiet
+            self.source.run_quiet()  # its ticks for as long as they are quiet
             if self.stopping:
                 return clock.now(), DONE
             quiet = not (self.schedule.pending or outputs.held or self.restarting or self.inbox.qsize())
         if quiet:
             now = clock.now()
-            wake = source_pass(self, now)
+            wake = self.source.one_pass(now)
         else:
             self.drain()
             now = clock.now()

@@ -7,38 +7,65 @@ the in-process backend uses them); what is here is a real-time node's accounts o
 
 from __future__ import annotations
 
+import threading
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 from ....errors import StopRun
+from ....graph import Node
 from ....flow._base import with_step_detail
 from ....flow.burst import Burst
 from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
+from ....trace import StepStatus
+from .clock import RunClock
 from .ending import Ending
+from .frontiers import Streams
+from .notes import Notes
+from .outputs import Outputs
+from .reports import Reports
+from .schedule import Schedule
+
+
+class StepsOwner(Protocol):
+    """What :class:`Steps` reads and sets of the loop it serves (a NodeLoop), as it changes."""
+
+    #: how long the last step took (set here; the loop reads it to run a tick inline or not)
+    last_wall: int | None
+    #: set here when a failed step starts a restart (on_error="restart")
+    restarting: bool
+    #: called with the tick whose step called sys.exit(0); with (tag, error) when a restart starts
+    on_exit: Callable[[tuple[int, int]], None] | None
+    on_restart: Callable[[tuple[int, int], str], None] | None
+
+    def stop(self, ending: Ending) -> None: ...
 
 
 class Steps:
-    """The ticks of ``loop`` (a NodeLoop): its flow, called as the in-process backend calls it,
-    and its settings (``on_error``, ``on_overrun``, ``on_deadline_miss``; ``realtime``)."""
+    """The ticks of ``node``: its flow, called as the in-process backend calls it (``invoke``,
+    ``read``), and its settings (``on_error``, ``on_overrun``, ``on_deadline_miss``;
+    ``realtime``). The parts of the loop it works with are handed in; ``owner`` is the loop's
+    state it changes (:class:`StepsOwner`)."""
 
-    def __init__(self, loop, inputs: list[tuple], fallbacks: dict, invoke, read, *, realtime: str):
-        self.loop = loop
-        self.id, self.virtual = loop.id, loop.virtual
+    def __init__(self, owner: StepsOwner, node: Node, inputs: list[tuple], fallbacks: dict, invoke, read, *,
+                 realtime: str, virtual: bool, notes: Notes, schedule: Schedule, outputs: Outputs, reports: Reports,
+                 streams: Streams, clock: RunClock, lock: threading.Lock):
+        self.owner = owner
+        self.id, self.flow, self.virtual = node.id, node.flow, virtual
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
         self.fallbacks = fallbacks
         self.invoke, self.read = invoke, read
-        self.notes, self.schedule, self.outputs, self.reports = loop.notes, loop.schedule, loop.outputs, loop.reports
-        self.streams, self.clock, self.lock = loop.streams, loop.run_clock, loop.lock
-        settings = loop.node.settings
+        self.notes, self.schedule, self.outputs, self.reports = notes, schedule, outputs, reports
+        self.streams, self.clock, self.lock = streams, clock, lock
+        settings = node.settings
         self.realtime = realtime
         self.on_error, self.on_overrun, self.on_deadline_miss = (
             settings.on_error, settings.on_overrun, settings.on_deadline_miss)
         if realtime == "best_effort":  # misses are counted and logged, never fatal
             self.on_overrun = "skip" if self.on_overrun == "error" else self.on_overrun
             self.on_deadline_miss = "publish_late" if self.on_deadline_miss == "error" else self.on_deadline_miss
-        clock = loop.node.clock
-        self.period_ns = round(1e9 / float(clock.hz)) if clock.hz is not None else 0
+        self.period_ns = round(1e9 / float(node.clock.hz)) if node.clock.hz is not None else 0
 
     def tick(self, tau: tuple[int, int], incomplete: list[str]) -> None:
         """Run the tick ``tau`` (taken from the schedule); ``incomplete``: its edges past deadline."""
@@ -51,7 +78,7 @@ class Steps:
             notes.counts["incomplete"] += 1
             detail = {**(detail or {}), "incomplete": incomplete, "had_below": self.streams.had_below(incomplete)}
             if self.realtime == "hard":  # the tick does not step: skipped, and the run stops
-                self.reports.record(tau, {}, (), "skipped", detail, time.time_ns(), 0)
+                self.reports.record(tau, {}, (), StepStatus.SKIPPED, detail, time.time_ns(), 0)
                 raise StopRun(f"{self.id}: input(s) {', '.join(incomplete)} not complete up to the tick at "
                               f"t={tau[0] / 1e9:.6f} s within the deadline (realtime='hard')\n"
                               "    hint: raise the edge's deadline= or the Pipeline's, or use realtime='soft'", tau)
@@ -66,10 +93,10 @@ class Steps:
             self.step_failed(tau, consumed, detail, exc, start)
             return
         wall = end - start
-        self.loop.last_wall = wall
+        self.owner.last_wall = wall
         overran = self.period_ns and wall > self.period_ns and not self.virtual
         self.emit(tau, consumed, outputs, detail, start, wall,
-                  "overrun" if overran else "incomplete" if incomplete else "ok")
+                  StepStatus.OVERRUN if overran else StepStatus.INCOMPLETE if incomplete else StepStatus.OK)
         if overran:
             self.overran(tau, wall, start + wall - self.clock.t0)
 
@@ -77,24 +104,24 @@ class Steps:
         """The step raised ``exc`` (not KeyboardInterrupt): record it, then act on what
         tick.decide makes of ``on_error``: stop the run, go on, ask the coordinator (which holds
         the restart budget) for a restart, or end the whole run cleanly (``sys.exit(0)``)."""
-        loop = self.loop
-        wall = loop.last_wall = time.time_ns() - start
+        owner = self.owner
+        wall = owner.last_wall = time.time_ns() - start
         decision = decide(self.on_error, exc, None, tau[0])
         if decision is Decision.END_RUN:
             # the coordinator is told first (it stops every node), then this loop ends as if told to stop
             self.finish_tick(tau, consumed, (), *exit_outcome(detail), start, wall)
-            if loop.on_exit is not None:
-                loop.on_exit(tau)
-            loop.stop(Ending.TOLD_TO_STOP)
+            if owner.on_exit is not None:
+                owner.on_exit(tau)
+            owner.stop(Ending.TOLD_TO_STOP)
             return
         error = error_text(exc)
         self.finish_tick(tau, consumed, (), *error_outcome(error, self.on_error, detail), start, wall)
         if decision is Decision.STOP:
             raise StopRun(f"{self.id}.step() raised {error}", tau, raised=error) from exc
         if decision is Decision.RESTART:
-            loop.restarting = True
-            if loop.on_restart is not None:
-                loop.on_restart(tau, error)
+            owner.restarting = True
+            if owner.on_restart is not None:
+                owner.on_restart(tau, error)
 
     def emit(self, tau, consumed, outputs, detail, start, wall, status) -> None:
         """Publish a step's outputs (or hold them, LET) and record it with ``status``: ``ok``,
@@ -122,7 +149,7 @@ class Steps:
                   "on_deadline_miss": "error" if stop else self.on_deadline_miss}
         if stop or self.on_deadline_miss == "drop":
             self.outputs.unnumber(batch)
-            self.finish_tick(tau, consumed, (), "late", detail, start, wall)
+            self.finish_tick(tau, consumed, (), StepStatus.LATE, detail, start, wall)
             if stop:
                 hint = ("raise latency=, or run the pipeline with realtime='soft', where on_deadline_miss "
                         f"(now '{self.on_deadline_miss}') decides" if self.realtime == "hard" else
@@ -131,7 +158,7 @@ class Steps:
                               f"finished {late_ns / 1e6:.3f} ms after t+latency\n    hint: {hint}", tau)
             return
         self.outputs.release(start + wall - self.clock.t0)  # earlier ticks' held outputs go first
-        self.finish_tick(tau, consumed, produced, "late", detail, start, wall, publish=batch)
+        self.finish_tick(tau, consumed, produced, StepStatus.LATE, detail, start, wall, publish=batch)
 
     def finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         outputs = self.outputs
@@ -140,13 +167,13 @@ class Steps:
             if publish:
                 outputs.sending = publish[0][0]
         outputs.publish(publish)  # first: the record is for the coordinator, and can wait
-        self.reports.record(tau, consumed, produced, status, with_step_detail(self.loop.flow, detail), start, wall)
+        self.reports.record(tau, consumed, produced, status, with_step_detail(self.flow, detail), start, wall)
 
     def source_stepped(self, tau, outputs: list, detail, start: int, wall: int) -> None:
         """A plain source's step returned ``outputs``: publish them and keep the record, as
         ``tick`` would, then handle an overrun."""
         overran = self.period_ns and wall > self.period_ns
-        status = "overrun" if overran else "ok"
+        status = StepStatus.OVERRUN if overran else StepStatus.OK
         if outputs:
             self.emit(tau, {}, outputs, detail, start, wall, status)
         else:  # as emit with no event: no stamp, nothing to publish but progress

@@ -14,8 +14,13 @@ shorter than WARM_AFTER_IDLE_NS leave the caches warm.
 
 from __future__ import annotations
 
+import queue
+from collections import Counter
+from typing import Protocol
+
 from ..wire import decode_events
 from .clock import RunClock
+from .schedule import Schedule
 
 WARM_AHEAD_NS = 1_000_000
 WARM_AFTER_IDLE_NS = 4_000_000
@@ -68,42 +73,53 @@ class Warmup:
             outputs.warm_publish = None
 
 
-class Pacer:
-    """How a node loop (``loop``) sleeps until its next wake: warmed up for the moment it
-    foresees (Warmup), spinning the last ``spin_ns`` to a Rate tick (configure(spin=)), or
-    plainly. A message ends any of them: the loop's ``wait`` handles it, and the loop looks again."""
+class PacerOwner(Protocol):
+    """What :class:`Pacer` uses of the loop it serves (a NodeLoop)."""
 
-    def __init__(self, loop):
-        self.loop = loop
+    #: what a message comes into (read when spinning: a group gives its loops inboxes of their own)
+    inbox: queue.SimpleQueue
+
+    def wait(self, ns: int) -> bool:
+        """Wait up to ``ns`` for a message and handle it; whether one came."""
+
+
+class Pacer:
+    """How a node loop sleeps until its next wake: warmed up for the moment it foresees
+    (``warmup``), spinning the last ``spin_ns`` to a Rate tick of ``schedule`` (configure(spin=),
+    the time spun counted in ``counts``), or plainly. A message ends any of them: the
+    ``owner``'s ``wait`` handles it (:class:`PacerOwner`), and the loop looks again."""
+
+    def __init__(self, owner: PacerOwner, *, warmup: Warmup, schedule: Schedule, clock: RunClock, spin_ns: int,
+                 counts: Counter):
+        self.owner, self.warmup, self.schedule, self.clock = owner, warmup, schedule, clock
+        self.spin_ns, self.counts = spin_ns, counts
 
     def sleep(self, now: int, wake: int) -> None:
         """Until ``wake`` (ns since T0), or a message."""
-        loop = self.loop
-        warmup = loop.warmup
+        wait, warmup = self.owner.wait, self.warmup
         target, message = warmup.target(now, wake)
         if target is not None:
             early = target - WARM_AHEAD_NS
             # nothing came meanwhile, and the wait (at most 100 ms) lasted to the moment
-            if not loop.wait(early - now) and loop.run_clock.now() >= early:
+            if not wait(early - now) and self.clock.now() >= early:
                 warmup.warm(message)
                 warmup.warmed_for = target
             return
-        next_rate = loop.schedule.next_rate
-        if loop.spin_ns and next_rate is not None and wake == next_rate[0]:
+        next_rate = self.schedule.next_rate
+        if self.spin_ns and next_rate is not None and wake == next_rate[0]:
             self._spin_to(wake)
         else:
-            loop.wait(wake - loop.run_clock.now())
+            wait(wake - self.clock.now())
 
     def _spin_to(self, wake: int) -> None:
         """Wait for the Rate tick at ``wake``: sleep until ``spin_ns`` before it, then busy-wait
         to it, unless a message comes (the loop then looks again)."""
-        loop = self.loop
-        now = loop.run_clock.now
-        while (left := wake - loop.spin_ns - now()) > 0:  # (one wait sleeps at most 100 ms)
-            if loop.wait(left):
+        owner, now = self.owner, self.clock.now
+        while (left := wake - self.spin_ns - now()) > 0:  # (one wait sleeps at most 100 ms)
+            if owner.wait(left):
                 return
-        inbox = loop.inbox  # (read now: a GroupLoop gives its loops inboxes of its own)
+        inbox = owner.inbox  # (read now: a GroupLoop gives its loops inboxes of its own)
         began = now()
         while now() < wake and not inbox.qsize():
             pass
-        loop.counts["spin_ns"] += now() - began
+        self.counts["spin_ns"] += now() - began

@@ -11,9 +11,18 @@ window (coordinator/waiting.py).
 
 from __future__ import annotations
 
+import queue
+from collections.abc import Callable
+from typing import Protocol
+
 import zenoh
 
+from ..wire import KeySpace
+from .clock import RunClock
+from .frontiers import Streams
 from .inbox import PROGRESS
+from .outputs import Outputs
+from .reports import Reports
 from .schedule import DONE
 
 #: how long a blocked tick waits for a data or progress message before asking the producer
@@ -25,14 +34,29 @@ ASK_EVERY_NS = 2_000_000
 VIRTUAL_IDLE_NS = 100_000_000
 
 
-class Waiting:
-    """The waits of ``loop`` (a NodeLoop): ``ask_after``, per producer, when it may be asked
-    again; ``blocked``, in virtual time, the tick waiting for its inputs and since when (wall);
-    ``reached``, the last grant this node said it reached."""
+class WaitingOwner(Protocol):
+    """What :class:`Waiting` reads and sets of the loop it serves (a NodeLoop), as it changes."""
 
-    def __init__(self, loop):
-        self.loop = loop
-        self.streams, self.clock, self.outputs, self.reports = loop.streams, loop.run_clock, loop.outputs, loop.reports
+    #: virtual time: ticks below this (ns since T0) may run; raised here, on a grant
+    granted: int
+    #: whether the flow is being restarted (its new process says what it reached)
+    restarting: bool
+    #: virtual time: on_reached(until) says the node reached a grant
+    on_reached: Callable[[int], None] | None
+    #: where the producers' answers go (read when asking: a group gives its loops inboxes of their own)
+    inbox: queue.SimpleQueue
+
+
+class Waiting:
+    """The waits of a node: ``ask_after``, per producer, when it may be asked again (over
+    ``session``, on ``keys``); ``blocked``, in virtual time, the tick waiting for its inputs and
+    since when (wall); ``reached``, the last grant this node said it reached. ``owner`` is the
+    loop's state it reads and changes (:class:`WaitingOwner`)."""
+
+    def __init__(self, owner: WaitingOwner, *, virtual: bool, session: zenoh.Session, keys: KeySpace,
+                 streams: Streams, clock: RunClock, outputs: Outputs, reports: Reports):
+        self.owner, self.virtual, self.session, self.keys = owner, virtual, session, keys
+        self.streams, self.clock, self.outputs, self.reports = streams, clock, outputs, reports
         self.ask_after: dict[str, int] = {}
         self.blocked: tuple[tuple[int, int], int] | None = None
         self.reached = -1
@@ -41,7 +65,7 @@ class Waiting:
         """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
         look again if some edge may still complete in time."""
         late_ports, wake = [], None
-        edge_frontier, virtual = self.streams.edge_frontier, self.loop.virtual
+        edge_frontier, virtual = self.streams.edge_frontier, self.virtual
         for e in self.streams.edges:
             if edge_frontier(e) > tau:
                 continue
@@ -67,7 +91,7 @@ class Waiting:
         if now < after:
             return after
         self.ask_after[src] = now + ASK_EVERY_NS
-        put = self.loop.inbox.put
+        put = self.owner.inbox.put
 
         def on_reply(reply: zenoh.Reply, src: str = src) -> None:
             if reply.ok is not None:
@@ -75,7 +99,7 @@ class Waiting:
             else:
                 put((PROGRESS, src, None))
 
-        self.loop.session.get(self.loop.keys.progress(src), handler=on_reply, timeout=1.0)
+        self.session.get(self.keys.progress(src), handler=on_reply, timeout=1.0)
         return now + ASK_EVERY_NS
 
     def done_waiting(self, now: int) -> int | str:
@@ -88,7 +112,7 @@ class Waiting:
         end_tag = (end, 0)
         for e in self.streams.triggering:
             f = self.streams.edge_frontier(e)
-            if f >= end_tag or (now >= end + e.deadline_ns and not self.loop.virtual):
+            if f >= end_tag or (now >= end + e.deadline_ns and not self.virtual):
                 continue
             again = min(end + e.deadline_ns, self.ask(e.src, now, end))
             wake = again if wake is None else min(wake, again)
@@ -104,7 +128,7 @@ class Waiting:
     def ask_triggers(self, now: int) -> int:
         """No tick below the grant is known, but a trigger edge may still bring one: ask its
         producer for its frontier now and then; when to look again."""
-        granted = self.loop.granted
+        granted = self.owner.granted
         wake = now + VIRTUAL_IDLE_NS
         since = self.blocked_since((granted, -1), now)
         for e in self.streams.triggering:
@@ -115,22 +139,22 @@ class Waiting:
     def at_grant(self, now: int) -> int:
         """Every tick below the grant has run; say so once (with this node's frontier to its
         consumers first), then wait for the next grant."""
-        loop = self.loop
-        if self.reached < loop.granted and not loop.restarting:  # (the new process will say it)
-            self.reached = loop.granted
+        owner = self.owner
+        if self.reached < owner.granted and not owner.restarting:  # (the new process will say it)
+            self.reached = owner.granted
             if self.outputs.consumed:
                 self.outputs.publish_progress()
             self.reports.flush()
-            if loop.on_reached is not None:
-                loop.on_reached(loop.granted)
+            if owner.on_reached is not None:
+                owner.on_reached(owner.granted)
         return now + VIRTUAL_IDLE_NS
 
     def granted(self, until) -> None:
         """Control ``grant`` {until}: ticks below ``until`` may run (and our word, if it was
         missed, is said again)."""
-        loop = self.loop
-        loop.granted = max(loop.granted, min(until, self.clock.end))
-        if until <= self.reached and loop.on_reached is not None:
-            loop.on_reached(self.reached)
+        owner = self.owner
+        owner.granted = max(owner.granted, min(until, self.clock.end))
+        if until <= self.reached and owner.on_reached is not None:
+            owner.on_reached(self.reached)
 
 

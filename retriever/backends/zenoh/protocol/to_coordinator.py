@@ -15,7 +15,7 @@ from enum import StrEnum
 from typing import Any, NamedTuple
 
 from ....errors import WireError
-from ....trace import STEP_STATUSES
+from ....trace import STEP_STATUSES, StepStatus
 from ..wire import WIRE_VERSION, shown
 from .schema import (MAX_ITEMS, MAX_MESSAGE_BYTES, MAX_NAME_CHARS, NS_MAX, PID_MAX, SEQ_MAX, Bool, Int, ListOf,
                      MapOf, Name, Nullable, Plain, Record, Row, Text, field, pack, port, unpack)
@@ -179,7 +179,7 @@ class ReportedStep(NamedTuple):
     tag: tuple[int, int]
     consumed: dict[str, tuple[tuple[str, str, int], ...]]
     produced: tuple[tuple[str, str, int], ...]
-    status: str
+    status: StepStatus
     detail: dict | None
     wall_start_ns: int
     wall_ns: int
@@ -230,6 +230,10 @@ class Report(Record):
                    events=tuple([_event(e, where, i) for i, e in enumerate(events)]))
 
 
+#: a step record's status as the wire spells it → its StepStatus
+_STEP_STATUS = {status.value: status for status in StepStatus}
+
+
 def _step(raw: Any, report: str, i: int) -> ReportedStep:
     """A step record, read on a fast path (reports come by the thousand): each field checked
     inline, and only a bad one read again by its kind, for the error that names it."""
@@ -248,7 +252,8 @@ def _step(raw: Any, report: str, i: int) -> ReportedStep:
         if type(name) is not str or not 0 < len(name) <= MAX_NAME_CHARS:
             PORT.read(name, f"{report}: record {i}: field 'consumed' key")
         ids[name] = _ids(events, report, i, "consumed")
-    if status not in STEP_STATUSES:
+    said = _STEP_STATUS.get(status) if type(status) is str else None
+    if said is None:
         raise WireError(f"{report}: record {i}: field 'status' must be one of {', '.join(STEP_STATUSES)}, "
                         f"got {shown(status, 30)}")
     if detail is not None:
@@ -260,7 +265,7 @@ def _step(raw: Any, report: str, i: int) -> ReportedStep:
         WALL.read(start, f"{report}: record {i}: field 'wall_start_ns'")
         WALL.read(wall, f"{report}: record {i}: field 'wall_ns'")
     # tuple.__new__: a NamedTuple's own constructor is Python code, run once per record
-    return tuple.__new__(ReportedStep, ((tag[0], tag[1]), ids, _ids(produced, report, i, "produced"), status, detail,
+    return tuple.__new__(ReportedStep, ((tag[0], tag[1]), ids, _ids(produced, report, i, "produced"), said, detail,
                                         start, wall))
 
 
