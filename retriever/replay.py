@@ -67,6 +67,7 @@ from itertools import chain as _chain
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import msgpack
 import numpy as np
 
 from .backends.inproc import InprocSession
@@ -288,8 +289,9 @@ class LogSurvey:
     have steps and how many steps; which event ids the log holds (per port, ranges of seqs: one
     range for a port whose events all are there), so an event logged twice is found; the events
     that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
-    records' ``late``, ``had_below`` and ``restart_gap``). A record that is not one is kept as
-    the error the replay raises where it would have read it whole."""
+    records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
+    is kept as the error the replay raises before its first step; one without detail (nearly
+    all: only its node is read here) the replay refuses where it reads it, with the same error."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -331,6 +333,16 @@ class LogSurvey:
 
     def _step(self, m) -> None:
         if self.step_error is not None:
+            return
+        # a record without detail tells the survey only its node: read, not checked (the replay's
+        # own reading of it checks it, and refuses the log with the same error there)
+        try:
+            record = msgpack.unpackb(m.data, use_list=False)
+        except Exception:
+            record = None
+        if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
+            self.steps += 1
+            self.nodes.add(record[0])
             return
         try:
             node, microstep, _, _, _, detail, _ = fmt.decode_step(m.data)

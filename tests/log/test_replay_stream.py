@@ -139,6 +139,30 @@ def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
     assert "value differs\n      logged:   '<not in the log: the log ends here>'" in first
 
 
+@pytest.mark.parametrize("field, value", [(4, "exploded"), (1, -1), (3, [["brightness", "mean"]]), (6, 1.5)])
+def test_a_step_record_that_is_not_one_mid_log_is_refused_by_both(small_chunks, tmp_path, field, value):
+    """A step record without detail that is not one, in the middle of the log: the survey reads only
+    its node, the replay refuses the log where it reads it, with the error a replay of the log read
+    whole gives, and no report."""
+    import msgpack
+
+    def keep(topic, message) -> bool:
+        if topic == "steps" and message.sequence == 60:
+            record = msgpack.unpackb(message.data)
+            assert record[5] is None
+            record[field] = value
+            message.data = msgpack.packb(record)
+        return True
+
+    changed = rewrite(small_chunks, tmp_path / "changed.mcap", keep=keep)
+    said = []
+    for run in (lambda: replay(read_log(changed)), lambda: replay_file(changed)):
+        with pytest.raises(LogError, match=r"step record #60 is malformed") as raised:
+            run()
+        said.append(str(raised.value))
+    assert said[0] == said[1]
+
+
 # ---------------------------------------------------------------------------------------------
 # Progress: a bar on a terminal, nothing on a pipe
 # ---------------------------------------------------------------------------------------------
