@@ -249,7 +249,7 @@ def test_chunk_records_are_breakup_chunks_record_for_record(small_chunks):
     ``breakup_chunk(validate_crc=True)`` gives, for every chunk of a log and for chunks cut short,
     with a byte changed or records of another type in them (their CRC left out: the records are
     read as they are), down to the error a damaged one raises."""
-    from mcap.records import Chunk
+    from mcap.records import Channel, Chunk
     from mcap.stream_reader import StreamReader, breakup_chunk
 
     from retriever.log.reader import chunk_records
@@ -264,7 +264,12 @@ def test_chunk_records_are_breakup_chunks_record_for_record(small_chunks):
     plain = breakup_chunk(read[0])
     data = b"".join(_record_bytes(r) for r in plain)
     unknown = b"\x80" + (3).to_bytes(8, "little") + b"abc"  # another type's record: skipped
-    variants = [data, data + unknown, unknown + data, data[:-1], data[:40], data[:9], data[:3], b""]
+    first = _record_bytes(plain[0])
+    assert first[0] == 0x05  # a Message record: then one shorter than its fields (its length changed)
+    short = first[:1] + (10).to_bytes(8, "little") + first[9:]
+    channel = _record_bytes(Channel(id=9, schema_id=0, topic="t", message_encoding="m", metadata={}))
+    variants = [data, data + unknown, unknown + data, data[:-1], data[:40], data[:9], data[:3], b"", short + data,
+                data + short, first + channel + data, first + channel[:-1], first + first[:30]]
     variants += [data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:] for i in (0, 1, 5, 9, 11, 20, 30, 31, len(data) - 1)]
     for body in variants:
         chunk = Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
