@@ -597,7 +597,7 @@ def _replay(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], g
 
     steps: list = []
     seen_ticks: set[tuple[str, tuple[int, int]]] = set()
-    on_clock = _OnClock(graph)
+    on_clock = TickCheck(graph)
     instant = None
     for m in _chain(messages(), (None,)):
         if m is None or m.log_time != instant:
@@ -681,7 +681,7 @@ def _diverged(report: ReplayReport, stats: NodeReplay, found: Divergence) -> Non
         report.divergences.append(found)
 
 
-class _OnClock:
+class TickCheck:
     """Whether a record's tag is a tick of its node's clock (``clock.may_tick_at``): a rate's tick
     after the one last found is known without the clock's arithmetic (a node's records come tick
     after tick)."""
@@ -707,7 +707,7 @@ class _OnClock:
         return True
 
 
-def _off_clock(step, on_clock: _OnClock, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
+def _off_clock(step, on_clock: TickCheck, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
     """The record at a tag where its node's clock has no tick, or at one it already recorded."""
     key = (step.node, step.tag)
     if not on_clock(step.node, step.tag):

@@ -488,7 +488,7 @@ def test_the_replays_clock_check_is_may_tick_at():
     import random
 
     from retriever import Rate, Trigger
-    from retriever.replay import _OnClock
+    from retriever.replay import TickCheck
 
     class Graph:
         nodes = {}
@@ -500,7 +500,7 @@ def test_the_replays_clock_check_is_may_tick_at():
     rng = random.Random(7)
     for clock in (Rate(hz=50), Rate(hz=3, offset=0.1), Rate(hz=7), Rate(hz=1e9 / 3), Trigger()):
         Graph.nodes = {"n": Node(clock)}
-        on_clock = _OnClock(Graph)
+        on_clock = TickCheck(Graph)
         times = [clock.tick_time(k) for k in range(40)] if not clock.triggered else list(range(0, 400, 10))
         tags = []
         for t in times:
