@@ -29,7 +29,9 @@ runs) reads the file twice and keeps neither:
    replay must know of the whole log before its first step, in memory that grows with what was
    unusual in the run, not with its length (the nodes, the step count, the event ids as ranges
    of seqs per port, the ``late`` / ``had_below`` / ``restart_gap`` details), and where the chunks
-   are;
+   are. A step record without detail (nearly all) is only read for its node there: the second
+   pass checks it, and a log with one that is not one is refused there, with the same error and
+   no report;
 2. ``ScannedLog.time_ordered`` reads the messages again in log-time order (ties in file
    order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
    chunks whose times overlap. The replay takes them an instant (a log time) at a time: the
