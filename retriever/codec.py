@@ -221,7 +221,7 @@ def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType
     if isinstance(obj, int):  # beyond 64 bits
         return msgpack.ExtType(EXT_BIGINT, str(obj).encode())
     if is_value_type(type(obj)):
-        fields = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+        fields = {name: getattr(obj, name) for name in _field_names(type(obj))}
         return msgpack.ExtType(EXT_DATACLASS, _nested(pack_nested, [value_type_path(type(obj)), fields]))
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         raise CodecError(
@@ -277,14 +277,26 @@ def _dataclass(path: str, fields: dict, keep_unregistered: bool) -> Any:
                          "in this process, and decoding never imports or calls anything else\n"
                          "    hint: import the module that defines it (its @io class registers itself) before "
                          "decoding")
-    known = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(fields) - known)
-    if unknown:
+    known = _init_fields(cls)
+    if not known.issuperset(fields):
+        unknown = sorted(set(fields) - known)
         raise CodecError(f"cannot decode a {path}: it has no field(s) {', '.join(unknown)[:200]}")
     try:
         return cls(**fields)
     except Exception as e:
         raise CodecError(f"cannot decode a {path}: its constructor raised {type(e).__name__}: {e}") from None
+
+
+@functools.lru_cache(maxsize=1024)
+def _field_names(cls: type) -> tuple[str, ...]:
+    """A value type's fields, in order: what its encoding holds (a class's fields never change)."""
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
+@functools.lru_cache(maxsize=1024)
+def _init_fields(cls: type) -> frozenset[str]:
+    """The fields a value type's constructor takes: what a decoded one may hold."""
+    return frozenset(f.name for f in dataclasses.fields(cls) if f.init)
 
 
 def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
@@ -435,11 +447,17 @@ def _unpack(data: bytes, keep_unregistered: bool, buffers: list | None, depth: i
     if depth > MAX_EXT_DEPTH:
         raise CodecError(f"a value nests tuples or dataclasses deeper than {MAX_EXT_DEPTH} levels, which this "
                          f"codec does not decode\n    hint: nest tuples and @io dataclasses at most {MAX_EXT_DEPTH} deep")
-    if buffers is None and not keep_unregistered and not depth:
-        hook = _ext_hook
+    if buffers is None:
+        hook = _ext_hook if not keep_unregistered and not depth else _hook(keep_unregistered, depth)
     else:
         hook = functools.partial(_ext_hook, keep_unregistered=keep_unregistered, buffers=buffers, depth=depth)
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
+
+
+@functools.lru_cache(maxsize=2 * (MAX_EXT_DEPTH + 1))
+def _hook(keep_unregistered: bool, depth: int) -> Callable:
+    """The ext hook of a value nested ``depth`` deep, made once (a dataclass's fields are one level down)."""
+    return functools.partial(_ext_hook, keep_unregistered=keep_unregistered, buffers=None, depth=depth)
 
 
 class OutOfBandEncoder:

@@ -99,9 +99,25 @@ def split_event(data: bytes) -> tuple[int, bytes]:
     return microstep, data[1 + unpacker.tell():]
 
 
+#: the statuses of a step record without detail (a late or error record has some)
+_PLAIN_STATUSES = frozenset(STEP_STATUSES) - {"late", "error"}
+
+
 def decode_step(data: bytes) -> tuple:
     """A steps message → ``(node, microstep, consumed, produced, status, detail, wall_ns)``,
     event ids as tuples like the in-memory trace has them."""
+    # most records have no detail: their arrays are read as the tuples they are kept as, checked
+    # in place (a replay reads every step record of the log, twice)
+    node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, use_list=False)
+    if detail is None:
+        if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
+                or (consumed and not all(type(p) is str for p in consumed)) or status not in _PLAIN_STATUSES
+                or type(wall_ns) is not int):
+            raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
+        for ids in consumed.values():
+            _check_ids(ids)
+        _check_ids(produced)
+        return node, microstep, consumed, produced, status, None, wall_ns
     node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, raw=False)
     # what readers (log info, replay) rely on; a damaged or forged record is a ValueError here
     if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
@@ -148,6 +164,20 @@ def _check_restart_detail(detail: dict) -> None:
 def _is_range(item: Any) -> bool:
     return (type(item) is list and len(item) == 4 and type(item[0]) is str and type(item[1]) is str
             and all(type(n) is int and n >= 0 for n in item[2:]))
+
+
+def _check_ids(ids: Any) -> None:
+    """:func:`event_ids` of ids read as tuples: checked, kept as they are."""
+    if type(ids) is tuple:
+        for i in ids:
+            if type(i) is not tuple or len(i) != 3:
+                break
+            node, port, seq = i
+            if type(node) is not str or type(port) is not str or type(seq) is not int or seq < 0:
+                break
+        else:
+            return
+    raise ValueError("its event ids are not [node, port, seq] triples")
 
 
 def event_ids(ids: Any) -> tuple:

@@ -479,3 +479,31 @@ def test_forged_source_records_are_caught_against_the_sources_clock(tmp_path):
     assert {(d.node, d.what) for d in report.divergences} == {("counter", "tick")}, report.divergences
     assert "no tick of Rate(hz=50) there" in str(report.divergences[0])
     assert report.nodes["smoother"].divergent == 0 and report.nodes["smoother"].identical > 0
+
+
+def test_the_replays_clock_check_is_may_tick_at():
+    """The replay checks each record's tag against its node's clock remembering the tick after
+    the last one found (records come tick after tick): it says what ``clock.may_tick_at`` says,
+    for ticks in order, ticks left out, repeated, before the first, between two, at microstep 1."""
+    import random
+
+    from retriever import Rate, Trigger
+    from retriever.replay import TickCheck
+
+    class Graph:
+        nodes = {}
+
+    class Node:
+        def __init__(self, clock):
+            self.clock = clock
+
+    rng = random.Random(7)
+    for clock in (Rate(hz=50), Rate(hz=3, offset=0.1), Rate(hz=7), Rate(hz=1e9 / 3), Trigger()):
+        Graph.nodes = {"n": Node(clock)}
+        on_clock = TickCheck(Graph)
+        times = [clock.tick_time(k) for k in range(40)] if not clock.triggered else list(range(0, 400, 10))
+        tags = []
+        for t in times:
+            tags += rng.choice([[(t, 0)], [], [(t, 0), (t, 0)], [(t + 1, 0), (t, 0)], [(t, 1), (t, 0)], [(t - 1, 0)]])
+        tags += [(-5, 0), (times[3], 0), (times[2] + 1, 0), (times[4], 0)]
+        assert [on_clock("n", tag) for tag in tags] == [clock.may_tick_at(tag) for tag in tags], clock

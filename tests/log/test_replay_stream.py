@@ -139,6 +139,30 @@ def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
     assert "value differs\n      logged:   '<not in the log: the log ends here>'" in first
 
 
+@pytest.mark.parametrize("field, value", [(4, "exploded"), (1, -1), (3, [["brightness", "mean"]]), (6, 1.5)])
+def test_a_step_record_that_is_not_one_mid_log_is_refused_by_both(small_chunks, tmp_path, field, value):
+    """A step record without detail that is not one, in the middle of the log: the survey reads only
+    its node, the replay refuses the log where it reads it, with the error a replay of the log read
+    whole gives, and no report."""
+    import msgpack
+
+    def keep(topic, message) -> bool:
+        if topic == "steps" and message.sequence == 60:
+            record = msgpack.unpackb(message.data)
+            assert record[5] is None
+            record[field] = value
+            message.data = msgpack.packb(record)
+        return True
+
+    changed = rewrite(small_chunks, tmp_path / "changed.mcap", keep=keep)
+    said = []
+    for run in (lambda: replay(read_log(changed)), lambda: replay_file(changed)):
+        with pytest.raises(LogError, match=r"step record #60 is malformed") as raised:
+            run()
+        said.append(str(raised.value))
+    assert said[0] == said[1]
+
+
 # ---------------------------------------------------------------------------------------------
 # Progress: a bar on a terminal, nothing on a pipe
 # ---------------------------------------------------------------------------------------------
@@ -208,3 +232,54 @@ def test_a_log_with_messages_outside_chunks_is_replayed_read_whole(small_chunks,
         next(scanned.time_ordered())
     _same(replay(read_log(loose)), replay_file(loose))
     assert replay_file(loose).identical
+
+
+# ---------------------------------------------------------------------------------------------
+# The reader's chunks: mcap's record readers over the bytes, as breakup_chunk reads them
+# ---------------------------------------------------------------------------------------------
+def _outcome(read, chunk):
+    try:
+        return read(chunk)
+    except Exception as e:  # the same kind of error, from the same field
+        return type(e).__name__, str(e)
+
+
+def test_chunk_records_are_breakup_chunks_record_for_record(small_chunks):
+    """``chunk_records`` (what the reader breaks chunks up with) gives what ``mcap``'s
+    ``breakup_chunk(validate_crc=True)`` gives, for every chunk of a log and for chunks cut short,
+    with a byte changed or records of another type in them (their CRC left out: the records are
+    read as they are), down to the error a damaged one raises."""
+    from mcap.records import Channel, Chunk
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from retriever.log.reader import chunk_records
+
+    def reference(chunk):
+        return breakup_chunk(chunk, validate_crc=True)
+
+    read = [r for r in StreamReader(open(small_chunks, "rb"), emit_chunks=True).records if type(r) is Chunk]
+    assert len(read) > 20
+    for chunk in read:
+        assert chunk_records(chunk) == reference(chunk)
+    plain = breakup_chunk(read[0])
+    data = b"".join(_record_bytes(r) for r in plain)
+    unknown = b"\x80" + (3).to_bytes(8, "little") + b"abc"  # another type's record: skipped
+    first = _record_bytes(plain[0])
+    assert first[0] == 0x05  # a Message record: then one shorter than its fields (its length changed)
+    short = first[:1] + (10).to_bytes(8, "little") + first[9:]
+    channel = _record_bytes(Channel(id=9, schema_id=0, topic="t", message_encoding="m", metadata={}))
+    variants = [data, data + unknown, unknown + data, data[:-1], data[:40], data[:9], data[:3], b"", short + data,
+                data + short, first + channel + data, first + channel[:-1], first + first[:30]]
+    variants += [data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:] for i in (0, 1, 5, 9, 11, 20, 30, 31, len(data) - 1)]
+    for body in variants:
+        chunk = Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
+                      uncompressed_crc=0, uncompressed_size=len(body))
+        assert _outcome(chunk_records, chunk) == _outcome(reference, chunk), body[:40]
+
+
+def _record_bytes(record) -> bytes:
+    from mcap.data_stream import RecordBuilder
+
+    builder = RecordBuilder()
+    record.write(builder)
+    return builder.end()
