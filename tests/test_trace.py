@@ -171,9 +171,6 @@ def test_latest_knows_the_ports_of_an_untyped_flow_that_no_edge_reads():
 ROOT = Path(__file__).resolve().parents[1]
 #: what the check reads: the package, the agents and the benchmarks (the tests build records by hand)
 SCANNED = ("retriever", "agents", "benchmarks")
-#: where status literals still wait for their module's owner to take StepStatus (path → on how many lines):
-#: each entry is removed once its literals are, so the check tightens as code moves
-WAITING = {"retriever/log/format.py": 1, "retriever/log/frames.py": 1}
 #: calls that take a step record's fields positionally (a status among them)
 RECORDING = {"record", "finish_tick", "emit", "StepRecord", "ReportedStep"}
 
@@ -227,16 +224,8 @@ def _status_literals_in(root: Path) -> dict[str, list[int]]:
 
 def test_step_statuses_are_spelled_once_as_step_status():
     found = _status_literals_in(ROOT)
-    spelled = [f"{path}: line {', '.join(map(str, lines))}" for path, lines in found.items()
-               if len(lines) != WAITING.get(path)]
+    spelled = [f"{path}: line {', '.join(map(str, lines))}" for path, lines in found.items()]
     assert spelled == [], "a step status spelled as a string; use trace.StepStatus:\n" + "\n".join(spelled)
-
-
-def test_each_waiting_file_still_spells_its_statuses():
-    """An exception that no file needs any more is deleted."""
-    found = _status_literals_in(ROOT)
-    stale = [path for path, count in WAITING.items() if len(found.get(path, ())) != count]
-    assert stale == [], "no longer needed; remove from WAITING in tests/test_trace.py: " + ", ".join(stale)
 
 
 def test_a_step_status_is_its_value_in_a_log_and_on_the_wire():

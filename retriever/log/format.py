@@ -36,7 +36,7 @@ from typing import Any
 
 import msgpack
 
-from ..trace import STEP_STATUSES
+from ..trace import STEP_STATUSES, StepStatus
 
 PROFILE = "retriever"
 FORMAT_VERSION = "1"
@@ -99,8 +99,10 @@ def split_event(data: bytes) -> tuple[int, bytes]:
     return microstep, data[1 + unpacker.tell():]
 
 
-#: the statuses of a step record without detail (a late or error record has some)
-_PLAIN_STATUSES = frozenset(STEP_STATUSES) - {"late", "error"}
+#: the statuses a step record has detail with
+_DETAILED_STATUSES = frozenset({StepStatus.LATE, StepStatus.ERROR})
+#: the statuses of a step record without detail
+_PLAIN_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
 
 
 def decode_step(data: bytes) -> tuple:
@@ -123,7 +125,7 @@ def decode_step(data: bytes) -> tuple:
     if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
             or not all(type(p) is str for p in consumed) or status not in STEP_STATUSES or type(wall_ns) is not int
             or not (detail is None or (type(detail) is dict and all(type(k) is str for k in detail)))
-            or (detail is None and status in ("late", "error"))):
+            or (detail is None and status in _DETAILED_STATUSES)):
         raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
     if detail is not None:  # (most records have none)
         late = detail.get("late", {})

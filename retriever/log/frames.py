@@ -34,11 +34,11 @@ from ..features import ACTION, OBSERVATION, FeatureError, excluded, feature_keys
 from ..ir import IR
 from ..sync import ActionChunking, PortBuffer, policy_from_ir
 from ..time import NS_PER_S, exact_rational, format_tag, seconds_to_ns
-from ..trace import StepRecord, Trace
+from ..trace import StepRecord, StepStatus, Trace
 from .reader import RunLog
 
 #: the statuses of a tick that becomes a frame
-FRAME_STATUSES = ("ok", "overrun")
+FRAME_STATUSES = frozenset({StepStatus.OK, StepStatus.OVERRUN})
 #: what a tick left out is counted as when it has no status of its own
 NO_RECORD = "without a step record"
 NO_VALUE = "without a value on {port}"
