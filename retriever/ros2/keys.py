@@ -156,9 +156,26 @@ def fully_qualified(topic: str, namespace: str = "/", node: str | None = None) -
     return namespace.rstrip("/") + "/" + topic
 
 
+#: the largest ROS domain id: ROS 2's documented range is 0 to 232 (DDS maps a domain to UDP
+#: ports, and 232 is the last whose ports fit; rmw_zenoh keeps the same range so one
+#: ROS_DOMAIN_ID means one thing on every rmw)
+MAX_DOMAIN_ID = 232
+
+
+def check_domain_id(domain_id: object, where: str = "domain_id") -> int:
+    """``domain_id`` if it is an int (not a bool) from 0 to :data:`MAX_DOMAIN_ID`, else a
+    ValueError that names the fix. It becomes the first chunk of every key expression, so a
+    string such as ``"0/**"`` would make a wildcard: only an int is taken."""
+    if isinstance(domain_id, bool) or not isinstance(domain_id, int) or not 0 <= domain_id <= MAX_DOMAIN_ID:
+        raise ValueError(f"{where}={domain_id!r}: a ROS domain id is an int from 0 to {MAX_DOMAIN_ID}\n"
+                         f"    hint: pass domain_id=<0..{MAX_DOMAIN_ID}> (an int), or set ROS_DOMAIN_ID "
+                         "to one, as the ROS nodes you talk to have it")
+    return domain_id
+
+
 def topic_key(domain_id: int, topic: str, type_name: str, type_hash: str) -> str:
     """The key expression a topic's samples travel on."""
-    return f"{domain_id}/{fully_qualified(topic).strip('/')}/{dds_type_name(type_name)}/{type_hash}"
+    return f"{check_domain_id(domain_id)}/{fully_qualified(topic).strip('/')}/{dds_type_name(type_name)}/{type_hash}"
 
 
 def qos_chunk(qos: QoS) -> str:
