@@ -29,7 +29,9 @@ gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam
 things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
 are named first, before any value is read, those whose names needed no change before the others,
 each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
-``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. So the same log always
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. A topic longer than rmw
+takes (247 characters: a long dict key's, say) is cut to that length, and one cut to a name
+taken takes the next free ``_N`` the same way (``fitted``). So the same log always
 gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
 moved, and where.
 
@@ -121,6 +123,28 @@ def ros_name(text: str) -> str:
     of ``_`` one (a log's names are checked, not trusted; a Retriever node name may hold ``-``)."""
     token = re.sub(r"_{2,}", "_", re.sub(r"[^A-Za-z0-9_]", "_", text)) or "_"
     return "_" + token if token[0].isdigit() else token
+
+
+#: the longest fully qualified topic rmw takes (rmw/validate_full_topic_name.h:
+#: RMW_TOPIC_MAX_NAME_LENGTH, 255 less 8 kept for a DDS rmw's prefixes)
+MAX_TOPIC_LENGTH = 255 - 8
+
+
+def fitted(wanted: str, n: int) -> str:
+    """The ``n``-th topic ``wanted`` may take: itself (``n`` 1), else ``<wanted>_<n>`` (no ``_``
+    added after one: never a ``__``); a topic past :data:`MAX_TOPIC_LENGTH` is cut to leave room
+    for its ``_<n>``, then stripped of a trailing ``/`` or ``_`` (a valid ROS name again), so
+    that two long names cut to one prefix are kept apart by the same ``_<n>`` rule."""
+    if n == 1:
+        return wanted if len(wanted) <= MAX_TOPIC_LENGTH else _cut(wanted, MAX_TOPIC_LENGTH)
+    topic = f"{wanted}{'' if wanted.endswith('_') else '_'}{n}"
+    return topic if len(topic) <= MAX_TOPIC_LENGTH else f"{_cut(wanted, MAX_TOPIC_LENGTH - len(str(n)) - 1)}_{n}"
+
+
+def _cut(topic: str, length: int) -> str:
+    """``topic``'s first ``length`` characters, less a trailing ``/`` or ``_`` (``/topic`` if
+    nothing else is left)."""
+    return topic[:length].rstrip("/_") or "/topic"
 
 
 #: what a topic stands for: ``("steps", node)``, the step records of a node; ``("port", node,
@@ -262,15 +286,15 @@ class Ros2Bag:
 
     def topic_of(self, origin: Origin) -> str:
         """``origin``'s topic: the one it was given, else the one its names make if free, else the
-        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``)."""
+        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``); each cut to
+        rmw's length first (:func:`fitted`)."""
         topic = self._named.get(origin)
         if topic is None:
-            topic = wanted = self.wanted(origin)
-            sep = "" if wanted.endswith("_") else "_"  # never a '__'
-            n = 1
+            wanted = self.wanted(origin)
+            topic, n = fitted(wanted, 1), 1
             while topic in self._taken:
                 n += 1
-                topic = f"{wanted}{sep}{n}"
+                topic = fitted(wanted, n)
             self._taken[topic], self._named[origin] = origin, topic
             if topic != wanted:
                 self.summary.renamed[origin_text(origin)] = topic

@@ -388,3 +388,31 @@ def test_a_field_too_big_for_a_ros_message_is_named_with_its_port():
             r"sensor_msgs/msg/Image: its step 6442450944 is more than")
     with _no_gigabytes(), pytest.raises(LogError, match=said):
         bag.event("cam", "frame", frame, 10, 10, 0)
+
+
+def test_a_topic_past_rmws_length_is_cut_to_it_and_long_names_cut_alike_are_kept_apart(tmp_path):
+    """A dict key of 300 characters made a topic no rmw takes (RMW_TOPIC_MAX_NAME_LENGTH: 247)."""
+    long_a, long_b = "k" * 300 + "a", "k" * 300 + "b"
+    events = [("data/cam/v", 5, event_data({long_a: 1.0, long_b: 2.0, "short": 3.0}))]
+    out = tmp_path / "out.mcap"
+    summary = export_ros2(read_log(hand_written_log(tmp_path / "long.mcap", events)), out)
+    cut = "/cam/v/" + "k" * 240
+    assert len(cut) == 247
+    assert summary.types == {cut: "std_msgs/msg/Float64", cut[:245] + "_2": "std_msgs/msg/Float64",
+                             "/cam/v/short": "std_msgs/msg/Float64"}
+    assert summary.renamed == {f"cam.v.{long_a}": cut, f"cam.v.{long_b}": cut[:245] + "_2"}
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        got = {c.topic: reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages()}
+    assert got == {cut: 1.0, cut[:245] + "_2": 2.0, "/cam/v/short": 3.0}
+    assert all(len(topic) <= 247 for topic in got)
+
+
+def test_what_goes_as_json_beside_a_cut_topic_is_cut_too():
+    bag = _bag()
+    long = "k" * 300
+    bag.event("cam", "v", {long: 1.0}, 5, 0, 0)
+    bag.event("cam", "v", {long: "text"}, 6, 0, 1)  # not a Float64: as JSON, beside it
+    topics = dict(bag.summary.types)
+    assert all(len(topic) <= 247 for topic in topics)
+    assert sorted(topics.values()) == ["std_msgs/msg/Float64", "std_msgs/msg/String"]
+    assert bag.summary.renamed[f"cam.v.{long} as JSON"] == "/cam/v/" + "k" * 238 + "_2"
