@@ -253,10 +253,13 @@ def log_export(
     except KeyboardInterrupt:
         signum = stop_signal() or signal.SIGINT
         if to_stdout(out):
-            written = stdout_written()
+            written = stdout_written()  # None: nothing began to write it, or Rerun's SDK did (not counted)
+            written = (0, 0) if written is None and format != "rerun" else written
+            least, most = written or (0, 0)
+            amount = f"{least}" if least == most else f"{least} to {most}"
             done = (f"standard output may hold part of the {format} export (not a whole one)" if written is None
-                    else f"{written} bytes of the {format} export were written to standard output (not a whole "
-                    "one)" if written else "nothing was written to standard output")
+                    else "nothing was written to standard output" if most == 0
+                    else f"{amount} bytes of the {format} export were written to standard output (not a whole one)")
         else:
             done = f"{out} " + (
                 "was written before it stopped" if _identity(out) not in (None, before) else "was not written")
