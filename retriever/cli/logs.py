@@ -239,21 +239,37 @@ def log_export(
     'retriever-robotics\\[rerun]'). --format lerobot | npz --flow NODE: a training
     set, one frame per tick of a Rate flow: what it consumed and produced there (docs/learning.md;
     lerobot needs pip install 'retriever-robotics\\[lerobot]'). Stopped by Ctrl-C or SIGTERM, it leaves
-    nothing behind (the export is written beside OUT, then renamed) and exits 128 + the signal."""
+    nothing behind (the export is written beside OUT, then renamed) and exits 128 + the signal; with
+    -o -, a reader that goes away (| head) ends it quietly with 141 (128 + SIGPIPE)."""
     stop_on_sigterm()  # SIGTERM stops it as Ctrl-C does: the half-written file is removed, not left
+    from ..log.outputs import abandon_stdout, stdout_written, to_stdout
+
     before = _identity(out)
     try:
         _export(paths, format, out, force, flow, maps, task, exclude, gaps, repo_id)
+    except BrokenPipeError:  # `| head`: the reader has what it wanted; quiet, 128 + SIGPIPE as Unix tools exit
+        abandon_stdout()
+        raise typer.Exit(code=128 + signal.SIGPIPE) from None
     except KeyboardInterrupt:
         signum = stop_signal() or signal.SIGINT
-        done = "was written before it stopped" if _identity(out) not in (None, before) else "was not written"
-        console.err.print(f"interrupted by {signal.Signals(signum).name}: {out} {done}", highlight=False)
+        if to_stdout(out):
+            written = stdout_written()  # None: nothing began to write it, or Rerun's SDK did (not counted)
+            written = (0, 0) if written is None and format != "rerun" else written
+            least, most = written or (0, 0)
+            amount = f"{least}" if least == most else f"{least} to {most}"
+            done = (f"standard output may hold part of the {format} export (not a whole one)" if written is None
+                    else "nothing was written to standard output" if most == 0
+                    else f"{amount} bytes of the {format} export were written to standard output (not a whole one)")
+        else:
+            done = f"{out} " + (
+                "was written before it stopped" if _identity(out) not in (None, before) else "was not written")
+        console.err.print(f"interrupted by {signal.Signals(signum).name}: {done}", highlight=False)
         raise typer.Exit(code=128 + signum) from None
 
 
 def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | None, maps: list[str] | None,
             task: str | None, exclude: list[str] | None, gaps: str, repo_id: str | None) -> None:
-    from ..log.outputs import NOT_STREAMED, stdout_stream, to_stdout
+    from ..log.outputs import NOT_STREAMED, abandon_stdout, stdout_stream, to_stdout
 
     if to_stdout(out) and format in NOT_STREAMED:
         try:
@@ -270,7 +286,11 @@ def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | 
         fail(RetrieverError(f"--format {format} exports one log, got {len(paths)}\n    hint: export each apart"))
     try:  # the export reads the log itself, streamed: never held whole (reader.log_records)
         said = VIEWS[format](paths[0], out, force)
+    except BrokenPipeError:
+        raise  # the reader of standard output went away (log_export)
     except Exception as exc:
+        if to_stdout(out):  # each write was flushed: what Python may still hold is what failed, and
+            abandon_stdout()  # would fail again at exit, a second error
         fail(exc)
     if to_stdout(out):  # standard output is the export's: what was written is said on stderr
         console.err.print(f"wrote standard output: {said}", highlight=False)

@@ -3,6 +3,7 @@ before it writes a byte (Foxglove, ROS 2, Rerun)."""
 
 from __future__ import annotations
 
+import errno
 import os
 import sys
 from pathlib import Path
@@ -34,29 +35,85 @@ def stdout_stream(format: str):
     if format not in STREAMED_FORMATS:
         raise LogError(f"--format {format} cannot be written to standard output (-o -): {NOT_STREAMED[format]}",
                        "give it a path: -o FILE")
+    if sys.stdout is None or not _fd_open(1):  # `>&-`: Python leaves sys.stdout None
+        raise LogError("standard output is closed",
+                       f"pipe it into a program ({PIPED[format]}), redirect it (> FILE) or give a path: -o FILE")
     if sys.stdout.isatty():
         raise LogError(f"-o - writes the {format} export to standard output, which is a terminal",
                        f"pipe it into a program ({PIPED[format]}), redirect it (> FILE) or give a path: -o FILE")
     return sys.stdout.buffer
 
 
+def _fd_open(fd: int) -> bool:
+    try:
+        os.fstat(fd)
+    except OSError:
+        return False
+    return True
+
+
+#: bytes an export wrote to standard output in this process (a :class:`CountedStream` on it), or
+#: None if none did, and those of the write under way: what an export stopped half-way says it
+#: left there
+_stdout = {"written": None, "under_way": 0}
+
+
+def stdout_written() -> tuple[int, int] | None:
+    """``(at least, at most)`` bytes exports wrote to standard output in this process, None if
+    none wrote there through a :class:`CountedStream` (Rerun's SDK writes it itself: unknown).
+    The two differ only when a signal stopped it during a write, which may have gone out in part
+    (a write is counted when it returns; the signal may come just before)."""
+    if _stdout["written"] is None:
+        return None
+    return _stdout["written"], _stdout["written"] + _stdout["under_way"]
+
+
+def abandon_stdout() -> None:
+    """Point file descriptor 1 at /dev/null: after a write to it failed (a reader gone, a disk
+    full), so that what Python still holds for it is not tried again at exit, which would print
+    a second error."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+    finally:
+        os.close(devnull)
+
+
 class CountedStream:
-    """A stream written front to back that says how much it took (``tell``): a pipe, for a
-    writer (mcap's) that asks where it is."""
+    """Standard output for a writer (mcap's) that asks where it is (``tell``), written front to
+    back straight to its file descriptor (no buffer left to flush at exit, after an error or a
+    Ctrl-C), each byte counted once it is out (``stdout_written``). A reader that went away
+    (``| head``) is the BrokenPipeError it is (a command exits quietly on it, as Unix tools do);
+    any other failure (a full disk: ``> /dev/full``) is a LogError saying so."""
 
     def __init__(self, stream):
-        self._stream, self._written = stream, 0
+        stream.flush()
+        self._fd, self._written = stream.fileno(), 0
+        _stdout["written"] = _stdout["written"] or 0
 
     def write(self, data) -> int:
-        self._stream.write(data)
-        self._written += len(data)
+        view = memoryview(data).cast("B")
+        while view:
+            _stdout["under_way"] = len(view)  # set before: a count that missed a write is said as a range
+            try:
+                done = os.write(self._fd, view)
+            except BrokenPipeError:
+                raise
+            except OSError as e:
+                state = "is full" if e.errno == errno.ENOSPC else "failed"
+                raise LogError(f"standard output {state}: {e.strerror or e} ({self._written} bytes were written "
+                               "before; not a whole export)", "write the export to a file with room: -o FILE") from None
+            _stdout["written"] += done
+            self._written += done
+            view = view[done:]
+        _stdout["under_way"] = 0
         return len(data)
 
     def tell(self) -> int:
         return self._written
 
     def flush(self) -> None:
-        self._stream.flush()
+        pass  # nothing is held
 
 
 def export_path(log_path: str | os.PathLike, out: str | os.PathLike, overwrite: bool) -> Path:

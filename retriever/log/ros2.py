@@ -10,7 +10,10 @@ Each output port is a topic ``/<node>/<port>``, and a dataclass value's fields o
 views.value_leaves); a value is
 
 - an image (uint8 H×W, H×W×3, H×W×4): ``sensor_msgs/msg/Image`` (``mono8``, ``rgb8``, ``rgba8``),
-  its ``header.stamp`` the event's tag and its ``frame_id`` the node;
+  its ``header.stamp`` the event's tag and its ``frame_id`` the node; a depth image too (a 2-D
+  uint16 array: ``16UC1``, float32: ``32FC1``); and an ``image`` beside an ``encoding`` in a
+  dict (what a Ros2Subscriber makes of a ``sensor_msgs/msg/Image``: mono16, bgr8, yuv422,
+  bayer...) in that encoding, when the array holds what it says (``ros_image_encoding``);
 - a number (bool, int, float, NumPy's of each width): ``std_msgs/msg/Bool``, ``Int64``,
   ``Float64``, ``Float32``, ``UInt8``...; an array of numbers, or a flat list of them,
   ``std_msgs/msg/<Type>MultiArray`` with its shape as the layout's dimensions (row-major);
@@ -29,7 +32,9 @@ gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam
 things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
 are named first, before any value is read, those whose names needed no change before the others,
 each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
-``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. So the same log always
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. A topic longer than rmw
+takes (247 characters: a long dict key's, say) is cut to that length, and one cut to a name
+taken takes the next free ``_N`` the same way (``fitted``). So the same log always
 gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
 moved, and where.
 
@@ -91,6 +96,17 @@ UINT32_MAX = 2**32 - 1
 TOO_BIG_HINT = ("ROS 2 messages hold sizes, row strides and lengths as uint32: have the flow send such a "
                 "value in parts (tiles of the image, chunks of the array)")
 STEPS_PREFIX = "/retriever/steps/"
+#: a bare 2-D array of these is an image too: a depth image (16UC1 in mm, 32FC1 in m, as ROS
+#: depth cameras publish them); uint8 ones are views.image_encoding's (mono8, rgb8, rgba8)
+DEPTH_ENCODINGS = {"uint16": "16UC1", "float32": "32FC1"}
+#: sensor_msgs/image_encodings.hpp: what an encoding holds, ``(dtype, channels)`` (as
+#: retriever/ros2/types.py reads them; bayer_*, yuv422 and <depth>C<n> are read by rule)
+IMAGE_LAYOUTS = {"rgb8": ("uint8", 3), "bgr8": ("uint8", 3), "rgba8": ("uint8", 4), "bgra8": ("uint8", 4),
+                 "mono8": ("uint8", 1), "rgb16": ("uint16", 3), "bgr16": ("uint16", 3), "rgba16": ("uint16", 4),
+                 "bgra16": ("uint16", 4), "mono16": ("uint16", 1), "yuv422": ("uint8", 2), "uyvy": ("uint8", 2),
+                 "yuyv": ("uint8", 2), "yuv422_yuy2": ("uint8", 2)}
+_DEPTHS = {"8U": "uint8", "8S": "int8", "16U": "uint16", "16S": "int16", "32S": "int32", "32F": "float32",
+           "64F": "float64"}
 
 
 def _typestore():
@@ -123,6 +139,28 @@ def ros_name(text: str) -> str:
     return "_" + token if token[0].isdigit() else token
 
 
+#: the longest fully qualified topic rmw takes (rmw/validate_full_topic_name.h:
+#: RMW_TOPIC_MAX_NAME_LENGTH, 255 less 8 kept for a DDS rmw's prefixes)
+MAX_TOPIC_LENGTH = 255 - 8
+
+
+def fitted(wanted: str, n: int) -> str:
+    """The ``n``-th topic ``wanted`` may take: itself (``n`` 1), else ``<wanted>_<n>`` (no ``_``
+    added after one: never a ``__``); a topic past :data:`MAX_TOPIC_LENGTH` is cut to leave room
+    for its ``_<n>``, then stripped of a trailing ``/`` or ``_`` (a valid ROS name again), so
+    that two long names cut to one prefix are kept apart by the same ``_<n>`` rule."""
+    if n == 1:
+        return wanted if len(wanted) <= MAX_TOPIC_LENGTH else _cut(wanted, MAX_TOPIC_LENGTH)
+    topic = f"{wanted}{'' if wanted.endswith('_') else '_'}{n}"
+    return topic if len(topic) <= MAX_TOPIC_LENGTH else f"{_cut(wanted, MAX_TOPIC_LENGTH - len(str(n)) - 1)}_{n}"
+
+
+def _cut(topic: str, length: int) -> str:
+    """``topic``'s first ``length`` characters, less a trailing ``/`` or ``_`` (``/topic`` if
+    nothing else is left)."""
+    return topic[:length].rstrip("/_") or "/topic"
+
+
 #: what a topic stands for: ``("steps", node)``, the step records of a node; ``("port", node,
 #: port, path)``, a port's values (``path`` ``""``) or a field of them (``"/field/inner"``);
 #: ``("json", origin)``, what did not fit the message of another origin's topic
@@ -147,14 +185,42 @@ def plain_topic(origin: Origin) -> str:
     return plain_topic(origin[1]) + "/json"
 
 
-def message_kind(value: Any) -> tuple[str, Any]:
+def image_layout(encoding: str) -> tuple[str, int] | None:
+    """``(dtype name, channels)`` an image of ``encoding`` holds, None for one not known here."""
+    if encoding in IMAGE_LAYOUTS:
+        return IMAGE_LAYOUTS[encoding]
+    if encoding.startswith("bayer_") and encoding.endswith(("8", "16")):
+        return ("uint8" if encoding.endswith("8") else "uint16"), 1
+    depth, _, channels = encoding.partition("C")
+    if depth in _DEPTHS and channels.isdecimal() and 1 <= int(channels) <= 4:
+        return _DEPTHS[depth], int(channels)
+    return None
+
+
+def ros_image_encoding(value: Any, declared: Any = None) -> str | None:
+    """The encoding ``value`` is exported in as a ``sensor_msgs/msg/Image``, or None if it is no
+    image: ``declared`` (the ``encoding`` beside it in a dict: what a Ros2Subscriber's image
+    is) when the array holds what that encoding does, else a uint8 image's (views.image_encoding),
+    else a 2-D uint16 or float32 array's (DEPTH_ENCODINGS)."""
+    if not isinstance(value, np.ndarray) or value.ndim not in (2, 3) or min(value.shape[:2]) < 2:
+        return None
+    channels = value.shape[2] if value.ndim == 3 else 1
+    if isinstance(declared, str) and image_layout(declared) == (value.dtype.name, channels):
+        return declared
+    encoding = image_encoding(value)
+    if encoding is None and value.ndim == 2:
+        encoding = DEPTH_ENCODINGS.get(value.dtype.name)
+    return encoding
+
+
+def message_kind(value: Any, declared: Any = None) -> tuple[str, Any]:
     """``(ROS type, value made ready for it)`` for one leaf: an image as a contiguous array,
     a number or array as NumPy's, text as itself; anything else ``(JSON, its JSON text)``.
     A LogError (:func:`sizes_too_big`) for an array whose sizes no such message holds, said
     before the array is copied."""
-    if image_encoding(value) is not None:
+    if ros_image_encoding(value, declared) is not None:
         _refuse_sizes(IMAGE, value)
-        return IMAGE, np.ascontiguousarray(value)
+        return IMAGE, np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("<"))  # is_bigendian 0
     if isinstance(value, str):
         return STRING, value
     if isinstance(value, np.ndarray) and value.ndim and value.dtype.name in ARRAYS:  # before any copy
@@ -262,15 +328,15 @@ class Ros2Bag:
 
     def topic_of(self, origin: Origin) -> str:
         """``origin``'s topic: the one it was given, else the one its names make if free, else the
-        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``)."""
+        first free ``<that>_2``, ``<that>_3``... (said in ``summary.renamed``); each cut to
+        rmw's length first (:func:`fitted`)."""
         topic = self._named.get(origin)
         if topic is None:
-            topic = wanted = self.wanted(origin)
-            sep = "" if wanted.endswith("_") else "_"  # never a '__'
-            n = 1
+            wanted = self.wanted(origin)
+            topic, n = fitted(wanted, 1), 1
             while topic in self._taken:
                 n += 1
-                topic = f"{wanted}{sep}{n}"
+                topic = fitted(wanted, n)
             self._taken[topic], self._named[origin] = origin, topic
             if topic != wanted:
                 self.summary.renamed[origin_text(origin)] = topic
@@ -307,8 +373,9 @@ class Ros2Bag:
                 continue
             origin = ("json", origin)
 
-    def message(self, ros_type: str, value: Any, stamp_ns: int, frame_id: str):
-        """The ``rosbags`` message of ``ros_type`` holding ``value``."""
+    def message(self, ros_type: str, value: Any, stamp_ns: int, frame_id: str, encoding: str | None = None):
+        """The ``rosbags`` message of ``ros_type`` holding ``value`` (an image in ``encoding``, else
+        its own: ros_image_encoding)."""
         types = self._types
         if ros_type == IMAGE:
             if stamp_ns >= MAX_STAMP_NS:
@@ -317,8 +384,8 @@ class Ros2Bag:
             height, width = value.shape[:2]
             stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
             return types[IMAGE](header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id),
-                                height=height, width=width, encoding=image_encoding(value), is_bigendian=0,
-                                step=value.strides[0], data=value.reshape(-1))
+                                height=height, width=width, encoding=encoding or ros_image_encoding(value),
+                                is_bigendian=0, step=value.strides[0], data=value.reshape(-1).view(np.uint8))
         if ros_type == STRING:
             return types[STRING](data=value)
         if not ros_type.endswith("MultiArray"):
@@ -332,15 +399,28 @@ class Ros2Bag:
     def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
         """One event: each of its leaves as a message on its topic."""
         for path, leaf in value_leaves(value):
+            declared = declared_encoding(value, path)
             try:
-                kind, ready = message_kind(leaf)
+                kind, ready = message_kind(leaf, declared)
             except LogError as e:  # (only sizes past a uint32: message_kind)
                 field = f", field {path[1:].replace('/', '.')}" if path else ""
                 raise LogError(f"event {node}.{port} #{seq}{field}: {e}", TOO_BIG_HINT) from None
             self.summary.as_json += kind == JSON
             topic, ros_type, ready = self.topic_for(("port", node, port, path), kind, ready)
-            self.write(topic, ros_type, self.message(ros_type, ready, tag_ns, node), tag_ns, publish_ns or tag_ns,
-                       seq)
+            encoding = ros_image_encoding(ready, declared) if ros_type == IMAGE else None
+            self.write(topic, ros_type, self.message(ros_type, ready, tag_ns, node, encoding), tag_ns,
+                       publish_ns or tag_ns, seq)
+
+
+def declared_encoding(value: Any, path: str) -> Any:
+    """The ``encoding`` beside the leaf at ``path`` (``/.../image``) in a dict of ``value``: what
+    a Ros2Subscriber's sensor_msgs/msg/Image is (ros2/types.py), else None."""
+    parts = path.split("/")[1:]
+    if not parts or parts[-1] != "image":
+        return None
+    for part in parts[:-1]:
+        value = value.get(part) if isinstance(value, dict) else None
+    return value.get("encoding") if isinstance(value, dict) else None
 
 
 def export_ros2(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Ros2Export:

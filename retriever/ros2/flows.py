@@ -44,7 +44,8 @@ from ..flow import Flow
 from ..flow.burst import MAX_BURST, Burst
 from . import types
 from .attachment import Attachment, encode
-from .keys import PUBLISHER, SUBSCRIPTION, QoS, check_namespace, check_node_name, fully_qualified, topic_key
+from .keys import (PUBLISHER, SUBSCRIPTION, QoS, check_domain_id, check_namespace, check_node_name, fully_qualified,
+                   topic_key)
 from .node import ROS_ROUTER, Ros2Node, domain_id_from_env, gid
 
 #: messages a subscriber holds between two ticks; past it the oldest are dropped (and counted)
@@ -75,7 +76,7 @@ class _Ros2Endpoint(Flow):
         # names as ROS 2's rules allow them (keys.py; a name that breaks one is refused, naming it)
         self.node_name, self.namespace = check_node_name(node), check_namespace(namespace)
         self.topic, self.msgtype = fully_qualified(topic, self.namespace, self.node_name), msgtype
-        self.domain_id = domain_id_from_env() if domain_id is None else domain_id
+        self.domain_id = domain_id_from_env() if domain_id is None else check_domain_id(domain_id)
         self.connect, self.listen = list(connect), list(listen)
         self.type_hash = types.type_hash(msgtype)
         self.key = topic_key(self.domain_id, self.topic, msgtype, self.type_hash)

@@ -79,6 +79,25 @@ def _split_type_name(type_name: str) -> tuple[str, str, str]:
 NAME_RULES = "https://design.ros2.org/articles/topic_and_service_names.html"
 
 
+#: the longest names rmw takes (rmw/validate_full_topic_name.h, validate_node_name.h,
+#: validate_namespace.h): a fully qualified topic of 255 - 8 characters (8 are kept for the
+#: prefixes a DDS rmw adds), a node name of 255, a namespace of the topic's less 2 (room for '/X')
+MAX_TOPIC_LENGTH = 255 - 8
+MAX_NODE_NAME_LENGTH = 255
+MAX_NAMESPACE_LENGTH = MAX_TOPIC_LENGTH - 2
+
+
+def _shown(name: str) -> str:
+    """A name as an error says it: its start only, if long."""
+    return name if len(name) <= 60 else name[:40] + "..."
+
+
+def _too_long(name: str, most: int, resolved: str = "") -> str:
+    shown = f" (resolved: {len(resolved)} characters)" if resolved and resolved != name else ""
+    return (f"is {len(resolved or name)} characters long{shown}, past the {most} rmw takes "
+            "(RMW_TOPIC_MAX_NAME_LENGTH etc.): shorten it")
+
+
 def _name_error(what: str, name: str, rule: str) -> ValueError:
     return ValueError(f"{what} {name!r}: {rule}\n    hint: ROS 2's rules for names are in {NAME_RULES}")
 
@@ -117,6 +136,8 @@ def check_node_name(name: str) -> str:
         raise _name_error("ROS node name", name, "must not contain '__' (a repeated underscore)")
     if name[0].isdigit():
         raise _name_error("ROS node name", name, "must not start with a digit")
+    if len(name) > MAX_NODE_NAME_LENGTH:
+        raise _name_error("ROS node name", _shown(name), _too_long(name, MAX_NODE_NAME_LENGTH))
     return name
 
 
@@ -128,6 +149,8 @@ def check_namespace(namespace: str) -> str:
     problem = None if absolute == "/" else _path_problem(absolute)
     if problem is not None:
         raise _name_error("ROS namespace", namespace, problem)
+    if len(absolute) > MAX_NAMESPACE_LENGTH:
+        raise _name_error("ROS namespace", _shown(namespace), _too_long(namespace, MAX_NAMESPACE_LENGTH, absolute))
     return absolute
 
 
@@ -149,16 +172,36 @@ def fully_qualified(topic: str, namespace: str = "/", node: str | None = None) -
     if topic.startswith("~"):
         if node is None:
             raise _name_error(what, topic, "'~' is the node's private namespace: it needs the node's name")
-        private = namespace.rstrip("/") + "/" + check_node_name(node)
-        return private + topic[1:]
-    if topic.startswith("/"):
-        return topic
-    return namespace.rstrip("/") + "/" + topic
+        full = namespace.rstrip("/") + "/" + check_node_name(node) + topic[1:]
+    elif topic.startswith("/"):
+        full = topic
+    else:
+        full = namespace.rstrip("/") + "/" + topic
+    if len(full) > MAX_TOPIC_LENGTH:
+        raise _name_error(what, _shown(topic), _too_long(topic, MAX_TOPIC_LENGTH, full))
+    return full
+
+
+#: the largest ROS domain id: ROS 2's documented range is 0 to 232 (DDS maps a domain to UDP
+#: ports, and 232 is the last whose ports fit; rmw_zenoh keeps the same range so one
+#: ROS_DOMAIN_ID means one thing on every rmw)
+MAX_DOMAIN_ID = 232
+
+
+def check_domain_id(domain_id: object, where: str = "domain_id") -> int:
+    """``domain_id`` if it is an int (not a bool) from 0 to :data:`MAX_DOMAIN_ID`, else a
+    ValueError that names the fix. It becomes the first chunk of every key expression, so a
+    string such as ``"0/**"`` would make a wildcard: only an int is taken."""
+    if isinstance(domain_id, bool) or not isinstance(domain_id, int) or not 0 <= domain_id <= MAX_DOMAIN_ID:
+        raise ValueError(f"{where}={domain_id!r}: a ROS domain id is an int from 0 to {MAX_DOMAIN_ID}\n"
+                         f"    hint: pass domain_id=<0..{MAX_DOMAIN_ID}> (an int), or set ROS_DOMAIN_ID "
+                         "to one, as the ROS nodes you talk to have it")
+    return domain_id
 
 
 def topic_key(domain_id: int, topic: str, type_name: str, type_hash: str) -> str:
     """The key expression a topic's samples travel on."""
-    return f"{domain_id}/{fully_qualified(topic).strip('/')}/{dds_type_name(type_name)}/{type_hash}"
+    return f"{check_domain_id(domain_id)}/{fully_qualified(topic).strip('/')}/{dds_type_name(type_name)}/{type_hash}"
 
 
 def qos_chunk(qos: QoS) -> str:

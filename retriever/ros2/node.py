@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import zenoh
 
 from ..errors import RetrieverWarning
-from .keys import Node, QoS, check_namespace, check_node_name
+from .keys import MAX_DOMAIN_ID, Node, QoS, check_domain_id, check_namespace, check_node_name
 
 #: where rmw_zenoh's router listens, and where a ROS node's session connects, by default
 ROS_ROUTER = "tcp/localhost:7447"
@@ -32,9 +32,14 @@ def domain_id_from_env() -> int:
     value = os.environ.get("ROS_DOMAIN_ID", "").strip()
     if not value:
         return 0
-    if not value.isdigit():
-        raise ValueError(f"ROS_DOMAIN_ID={value!r}: expected a number from 0 to 232")
-    return int(value)
+    # ASCII decimal digits only (str.isdigit also takes '²' and other scripts' digits)
+    number = int(value) if value.isascii() and value.isdigit() else -1
+    if not 0 <= number <= MAX_DOMAIN_ID:
+        raise ValueError(f"ROS_DOMAIN_ID={value!r}: a ROS domain id is a decimal number from 0 to "
+                         f"{MAX_DOMAIN_ID}\n"
+                         f"    hint: set ROS_DOMAIN_ID to one (export ROS_DOMAIN_ID=0), or unset it for domain 0, "
+                         "or pass domain_id=<int> to the flow")
+    return number
 
 
 def session_config(connect: Sequence[str], listen: Sequence[str]) -> zenoh.Config:
@@ -60,6 +65,7 @@ class Ros2Node:
     def __init__(self, name: str, *, namespace: str = "/", domain_id: int = 0,
                  connect: Sequence[str] = (ROS_ROUTER,), listen: Sequence[str] = ("tcp/127.0.0.1:0",)):
         name, namespace = check_node_name(name), check_namespace(namespace)  # before the session opens
+        domain_id = check_domain_id(domain_id)
         self.session = zenoh.open(session_config(list(connect), list(listen)))
         self.node = Node(domain_id, str(self.session.info.zid()), 0, name, namespace)
         self._tokens = [self.session.liveliness().declare_token(self.node.token())]

@@ -77,12 +77,69 @@ def register_msg(type_name: str, definition: str) -> None:
                 raise ValueError(f"{name}'s msgdef names {named} (field {field}), which is not known\n    hint: "
                                  "use a standard type (sensor_msgs/msg/Image is written sensor_msgs/Image in a .msg), "
                                  "or add that one first with its own msgdef (register_msg)")
+    fielddefs = {**_store.fielddefs, **parsed}
+    for name in parsed:
+        cycle = _cycle(name, fielddefs, [])
+        if cycle:
+            raise ValueError(f"{name}'s msgdef holds itself: {' -> '.join(cycle)}\n    hint: a ROS 2 message has a "
+                             "fixed shape, so a type cannot contain itself, directly or through another; hold a "
+                             "sequence of ids or an index instead")
+    for name in parsed:
+        cost = _fixed_cost((Nodetype.NAME, name), fielddefs)
+        if cost > MAX_FIXED_BYTES:
+            raise ValueError(f"{name}'s msgdef fixes more than {MAX_FIXED_BYTES} bytes (16 MiB, what Retriever "
+                             f"takes) in fixed-size arrays (nested ones multiplied out, {_ELEMENT_COST} bytes at least "
+                             "per message element)\n    hint: a message this size is made in full for every value "
+                             "(a missing field is zeros); use an unbounded sequence (T[]) for bulk data")
     for name, fielddef in parsed.items():
         if name in _store.fielddefs and _store.fielddefs[name] != fielddef:
             raise ValueError(f"{name} is defined already, differently ({_described(_store.fielddefs[name])}); "
                              f"the new definition is ({_described(fielddef)})\n    hint: a type has one definition in "
                              "a program: give the new definition another name")
     _store.register(parsed)
+
+
+#: the most bytes a registered type's fixed-size arrays may hold, nested ones multiplied out (16 MiB):
+#: each value is made in full (a field left out is its zeros), so ``int32[4294967296] x`` would
+#: allocate 16 GiB for ``{}``; the standard types fix a few hundred bytes at most (a covariance's
+#: float64[36]), and bulk data goes in sequences, which hold what the value holds
+MAX_FIXED_BYTES = 1 << 24
+#: what one message element of a fixed-size array costs at least: made as a Python object
+_ELEMENT_COST = 64
+
+
+def _cycle(name: str, fielddefs: dict, path: list[str]) -> list[str]:
+    """The types from ``name`` back to one on ``path`` (a type that holds itself), or []."""
+    if name in path:
+        return path[path.index(name):] + [name]
+    for _, desc in fielddefs[name][1]:
+        named = _named_type(desc)
+        if named is not None and named in fielddefs:
+            cycle = _cycle(named, fielddefs, path + [name])
+            if cycle:
+                return cycle
+    return []
+
+
+def _fixed_cost(desc: tuple, fielddefs: dict) -> int:
+    """The bytes a field of ``desc`` holds whatever its value: base values their size, a sequence
+    its length (its items are the value's), a fixed-size array its length times its element's,
+    a message element at least :data:`_ELEMENT_COST`. Stops counting past :data:`MAX_FIXED_BYTES`."""
+    kind, detail = desc
+    if kind == Nodetype.BASE:
+        return np.dtype(_BASE_DTYPES[detail[0]]).itemsize if detail[0] in _BASE_DTYPES else 4
+    if kind == Nodetype.NAME:
+        total = 0
+        for _, field in fielddefs[detail][1]:
+            total += _fixed_cost(field, fielddefs)
+            if total > MAX_FIXED_BYTES:
+                break
+        return total
+    if kind == Nodetype.SEQUENCE:
+        return 4
+    element, length = detail
+    each = _fixed_cost(element, fielddefs) + (_ELEMENT_COST if element[0] == Nodetype.NAME else 0)
+    return min(length * max(each, 1), MAX_FIXED_BYTES + 1)
 
 
 def _named_type(desc: tuple) -> str | None:

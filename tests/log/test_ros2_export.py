@@ -35,7 +35,7 @@ EXPECTED_TYPES = {
     "/cam/frame/rgb": "sensor_msgs/msg/Image", "/cam/frame/mask": "sensor_msgs/msg/Image",
     "/cam/frame/exposure": "std_msgs/msg/Float64", "/cam/rgba": "sensor_msgs/msg/Image",
     "/stats/mean": "std_msgs/msg/Float64", "/stats/hist": "std_msgs/msg/Int64MultiArray",
-    "/stats/pixels": "std_msgs/msg/Float32MultiArray", "/stats/count": "std_msgs/msg/Int64",
+    "/stats/pixels": "sensor_msgs/msg/Image", "/stats/count": "std_msgs/msg/Int64",
     "/stats/bright": "std_msgs/msg/Bool", "/stats/label": "std_msgs/msg/String", "/stats/extra": "std_msgs/msg/String",
     "/retriever/steps/cam": "std_msgs/msg/String", "/retriever/steps/stats": "std_msgs/msg/String",
 }
@@ -67,9 +67,10 @@ def _check(topic: str, message, value) -> None:
     if kind == "sensor_msgs/msg/Image":
         channels = 1 if value.ndim == 2 else value.shape[2]
         height, width = value.shape[:2]
-        assert (message.height, message.width, message.step) == (height, width, width * channels)
-        assert message.encoding == {1: "mono8", 3: "rgb8", 4: "rgba8"}[channels]
-        assert bytes(message.data) == value.tobytes()
+        assert (message.height, message.width, message.step) == (height, width, width * channels * value.itemsize)
+        assert message.encoding == ("32FC1" if value.dtype == np.float32 else {1: "mono8", 3: "rgb8", 4: "rgba8"}[
+            channels])  # a 2-D float32 array: a depth image
+        assert message.is_bigendian == 0 and bytes(message.data) == value.astype("<" + value.dtype.str[1:]).tobytes()
     elif kind.endswith("MultiArray"):
         assert [(d.size, d.stride) for d in message.layout.dim] == [
             (n, int(np.prod(value.shape[i:]))) for i, n in enumerate(value.shape)]
@@ -365,7 +366,8 @@ def _view(shape: tuple[int, ...], dtype) -> np.ndarray:
     (_view((2**32, 2), np.uint8), r"height 4294967296"),  # a mono8 image too tall
     (_view((2, 2**31, 3), np.uint8), r"step 6442450944"),  # its width fits, its row stride does not
     (_view((2**32,), np.float64), r"dimension 0 size 4294967296"),
-    (_view((2, 2**31), np.float32), r"dimension 0 stride 4294967296"),  # each size fits, the first stride not
+    (_view((2, 2**31), np.float64), r"dimension 0 stride 4294967296"),  # each size fits, the first stride not
+    (_view((2, 2**31), np.float32), r"step 8589934592"),  # a 32FC1 depth image whose rows are past a uint32
     (_view((2**32,), ">i4"), r"dimension 0 size 4294967296"),  # said before it is made native-endian
 ])
 def test_a_size_past_what_a_ros_message_holds_is_a_log_error_naming_the_port_and_the_shape(value, said):
@@ -388,3 +390,106 @@ def test_a_field_too_big_for_a_ros_message_is_named_with_its_port():
             r"sensor_msgs/msg/Image: its step 6442450944 is more than")
     with _no_gigabytes(), pytest.raises(LogError, match=said):
         bag.event("cam", "frame", frame, 10, 10, 0)
+
+
+def test_a_topic_past_rmws_length_is_cut_to_it_and_long_names_cut_alike_are_kept_apart(tmp_path):
+    """A dict key of 300 characters made a topic no rmw takes (RMW_TOPIC_MAX_NAME_LENGTH: 247)."""
+    long_a, long_b = "k" * 300 + "a", "k" * 300 + "b"
+    events = [("data/cam/v", 5, event_data({long_a: 1.0, long_b: 2.0, "short": 3.0}))]
+    out = tmp_path / "out.mcap"
+    summary = export_ros2(read_log(hand_written_log(tmp_path / "long.mcap", events)), out)
+    cut = "/cam/v/" + "k" * 240
+    assert len(cut) == 247
+    assert summary.types == {cut: "std_msgs/msg/Float64", cut[:245] + "_2": "std_msgs/msg/Float64",
+                             "/cam/v/short": "std_msgs/msg/Float64"}
+    assert summary.renamed == {f"cam.v.{long_a}": cut, f"cam.v.{long_b}": cut[:245] + "_2"}
+    with AnyReader([out], default_typestore=get_typestore(Stores.EMPTY)) as reader:
+        got = {c.topic: reader.deserialize(raw, c.msgtype).data for c, _, raw in reader.messages()}
+    assert got == {cut: 1.0, cut[:245] + "_2": 2.0, "/cam/v/short": 3.0}
+    assert all(len(topic) <= 247 for topic in got)
+
+
+def test_what_goes_as_json_beside_a_cut_topic_is_cut_too():
+    bag = _bag()
+    long = "k" * 300
+    bag.event("cam", "v", {long: 1.0}, 5, 0, 0)
+    bag.event("cam", "v", {long: "text"}, 6, 0, 1)  # not a Float64: as JSON, beside it
+    topics = dict(bag.summary.types)
+    assert all(len(topic) <= 247 for topic in topics)
+    assert sorted(topics.values()) == ["std_msgs/msg/Float64", "std_msgs/msg/String"]
+    assert bag.summary.renamed[f"cam.v.{long} as JSON"] == "/cam/v/" + "k" * 238 + "_2"
+
+
+# ---------------------------------------------------------------------------------------------
+# images sensor_msgs/msg/Image holds besides uint8 ones: depth arrays, a subscriber's encodings
+# ---------------------------------------------------------------------------------------------
+def _images(events) -> tuple[Ros2Bag, dict]:
+    """What a bag writes of ``events`` (``(port, value)``): its summary, and per topic the
+    decoded messages."""
+    buffer = io.BytesIO()
+    writer = Writer(buffer)
+    writer.start(profile="ros2", library="test")
+    bag = Ros2Bag(writer, get_typestore(Stores.ROS2_JAZZY))
+    for seq, (port, value) in enumerate(events):
+        bag.event("cam", port, value, 10 + seq, 0, seq)
+    writer.finish()
+    buffer.seek(0)
+    decoded: dict[str, list] = {}
+    for _, channel, _, message in make_reader(buffer, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+        decoded.setdefault(channel.topic, []).append(message)
+    return bag, decoded
+
+
+@pytest.mark.parametrize("array, encoding", [
+    (np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000, "16UC1"),  # a depth camera's mm
+    (np.arange(12, dtype=">u2").reshape(3, 4) * 1000, "16UC1"),  # big-endian: written little, as is_bigendian 0 says
+    (np.linspace(0.5, 4.0, 12, dtype=np.float32).reshape(3, 4), "32FC1"),  # metres
+])
+def test_a_2d_uint16_or_float32_array_is_a_depth_image(array, encoding):
+    """A uint16 depth image was a UInt16MultiArray, which no image panel shows."""
+    bag, decoded = _images([("depth", array)])
+    assert bag.summary.types == {"/cam/depth": "sensor_msgs/msg/Image"}
+    (message,) = decoded["/cam/depth"]
+    assert (message.height, message.width, message.encoding, message.is_bigendian, message.step) == \
+        (3, 4, encoding, 0, 4 * array.itemsize)
+    assert np.array_equal(np.frombuffer(bytes(message.data), "<" + array.dtype.str[1:]).reshape(3, 4), array)
+
+
+@pytest.mark.parametrize("encoding, array", [
+    ("mono16", np.arange(20, dtype=np.uint16).reshape(4, 5) * 3000),
+    ("yuv422", np.arange(40, dtype=np.uint8).reshape(4, 5, 2)),
+    ("bgr8", np.arange(60, dtype=np.uint8).reshape(4, 5, 3)),  # was written as rgb8: its colours swapped
+    ("32FC1", np.linspace(0, 1, 20, dtype=np.float32).reshape(4, 5)),
+    ("16UC1", np.arange(20, dtype=np.uint16).reshape(4, 5)),
+    ("bayer_rggb8", np.arange(20, dtype=np.uint8).reshape(4, 5)),
+])
+def test_a_ros2_subscribers_image_is_exported_as_an_image_in_its_own_encoding(encoding, array):
+    """What a Ros2Subscriber made of a sensor_msgs/msg/Image (ros2/types.py to_value): mono16 and
+    yuv422 ones went to MultiArrays or JSON; each is an Image again, in the encoding it came in,
+    and reads back (to_value) as the same array."""
+    from retriever.ros2 import types
+
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    height, width = array.shape[:2]
+    received = types.to_value(types.from_value({"image": array, "encoding": encoding, "frame_id": "cam"},
+                                               "sensor_msgs/msg/Image"), "sensor_msgs/msg/Image")
+    assert received["encoding"] == encoding and np.array_equal(received["image"], array)
+    bag, decoded = _images([("image", received)])
+    assert bag.summary.types["/cam/image/image"] == "sensor_msgs/msg/Image"
+    (message,) = decoded["/cam/image/image"]
+    assert (message.encoding, message.height, message.width, message.step) == \
+        (encoding, height, width, width * channels * array.itemsize)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    again = types.to_value(store.deserialize_cdr(store.serialize_cdr(
+        store.types["sensor_msgs/msg/Image"](header=store.types["std_msgs/msg/Header"](
+            stamp=store.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="cam"),
+            height=message.height, width=message.width, encoding=message.encoding,
+            is_bigendian=message.is_bigendian, step=message.step, data=np.frombuffer(bytes(message.data), np.uint8)),
+        "sensor_msgs/msg/Image"), "sensor_msgs/msg/Image"), "sensor_msgs/msg/Image")
+    assert np.array_equal(again["image"], array)
+
+
+def test_an_encoding_that_does_not_match_its_array_is_not_trusted():
+    """A dict whose 'encoding' says rgb8 beside a 2-D uint16 array: the array's own (16UC1)."""
+    _, decoded = _images([("image", {"image": np.zeros((2, 3), np.uint16), "encoding": "rgb8"})])
+    assert decoded["/cam/image/image"][0].encoding == "16UC1"

@@ -5,6 +5,7 @@ only."""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import stat
 import subprocess
@@ -193,3 +194,71 @@ def test_standard_output_on_a_terminal_is_refused(tmp_path):
     assert os.waitstatus_to_exitcode(status) == 1
     assert b"-o - writes the ros2 export to standard output, which is a terminal" in said, said
     assert not (tmp_path / "-").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# -o - when standard output cannot take the export: one designed line each (issue 39)
+# ---------------------------------------------------------------------------------------------
+def _export_argv(log_path, fmt: str = "ros2") -> list[str]:
+    return [sys.executable, "-m", "retriever.cli", "log", "export", str(log_path), "--format", fmt, "-o", "-"]
+
+
+@pytest.mark.parametrize("fmt", ["ros2", "rerun"])
+def test_a_closed_standard_output_is_said_in_one_line(tmp_path, fmt):
+    """`>&-` was AttributeError: 'NoneType' object has no attribute 'isatty'."""
+    log_path = camera_log(tmp_path)
+    done = subprocess.run(_export_argv(log_path, fmt), stderr=subprocess.PIPE, text=True, timeout=180, cwd=tmp_path,
+                          env=cli_env(), preexec_fn=lambda: os.close(1))  # the child's `>&-`
+    assert done.returncode == 1, done.stderr
+    piped = "| mcap info /dev/stdin" if fmt == "ros2" else "| rerun -"
+    assert done.stderr.splitlines() == ["error: standard output is closed", f"hint: pipe it into a program ({piped}), "
+                                        "redirect it (> FILE) or give a path: -o FILE"], done.stderr
+
+
+def test_a_full_standard_output_is_said_in_one_line(tmp_path):
+    """`> /dev/full` was a raw OSError: [Errno 28] No space left on device."""
+    log_path = camera_log(tmp_path)
+    with open("/dev/full", "wb") as full:
+        done = subprocess.run(_export_argv(log_path), stdout=full, stderr=subprocess.PIPE, text=True, timeout=180,
+                              cwd=tmp_path, env=cli_env())
+    assert done.returncode == 1, done.stderr
+    assert done.stderr.splitlines() == [
+        "error: standard output is full: No space left on device (0 bytes were written before; not a whole export)",
+        "hint: write the export to a file with room: -o FILE"], done.stderr
+
+
+def test_a_reader_that_went_away_ends_the_export_quietly_with_141(tmp_path):
+    """`| head -c 10` was BrokenPipeError and exit 1; Unix tools end quietly, 128 + SIGPIPE."""
+    log_path = camera_log(tmp_path)
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the first write: EPIPE for certain, not a race with head
+    try:
+        done = subprocess.run(_export_argv(log_path), stdout=write, stderr=subprocess.PIPE, text=True, timeout=180,
+                              cwd=tmp_path, env=cli_env())
+    finally:
+        os.close(write)
+    assert (done.returncode, done.stderr) == (128 + signal.SIGPIPE, "")
+
+
+def test_ctrl_c_while_writing_standard_output_says_how_much_was_written(tmp_path, long_log_path):
+    """It said '- was not written' although the export had written to the pipe."""
+    export = subprocess.Popen(_export_argv(long_log_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0,
+                              cwd=tmp_path, env=cli_env())
+    try:
+        first = export.stdout.read(1)  # blocks until the export writes: it is under way
+        assert first, export.communicate()
+        export.send_signal(signal.SIGINT)
+        rest, stderr = export.communicate(timeout=120)
+    finally:
+        if export.poll() is None:
+            export.kill()
+            export.communicate()
+    received = len(first) + len(rest)
+    assert export.returncode == 128 + signal.SIGINT, (export.returncode, stderr)
+    said = stderr.decode().splitlines()
+    amount = re.fullmatch(r"interrupted by SIGINT: (\d+)(?: to (\d+))? bytes of the ros2 export were written to "
+                          r"standard output \(not a whole one\)", said[0]) if len(said) == 1 else None
+    assert amount, said
+    # a range only when the signal came during a write, which may have gone out in part
+    least, most = int(amount[1]), int(amount[2] or amount[1])
+    assert least <= received <= most and received > 0, (said, received)

@@ -114,3 +114,62 @@ def test_a_node_name_or_namespace_ros_2_does_not_allow_is_refused_naming_the_rul
     for end in (Ros2Publisher, Ros2Subscriber):
         with pytest.raises(ValueError, match=rf"{said}(.|\n)*hint: .*topic_and_service_names"):
             end("/chatter", "std_msgs/msg/String", domain_id=0, **options)
+
+
+# ---------------------------------------------------------------------------------------------
+# the ROS domain id: the first chunk of every key expression, so only an int 0..232 is taken
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("domain_id", ["0/**", "0", -1, 233, 999, True, False, 1.5, 2.0])
+def test_a_domain_id_that_is_not_an_int_from_0_to_232_is_refused_naming_the_fix(domain_id):
+    for end in (Ros2Publisher, Ros2Subscriber):
+        with pytest.raises(ValueError, match=r"domain_id=.*: a ROS domain id is an int from 0 to 232(.|\n)*"
+                                             r"hint: pass domain_id=<0\.\.232> \(an int\), or set ROS_DOMAIN_ID"):
+            end("/chatter", "std_msgs/msg/String", domain_id=domain_id)
+    with pytest.raises(ValueError, match="a ROS domain id is an int"):
+        topic_key(domain_id, "/chatter", "std_msgs/msg/String", STRING_HASH)
+
+
+@pytest.mark.parametrize("domain_id", [0, 1, 101, 232])
+def test_a_domain_id_from_0_to_232_is_taken(domain_id):
+    end = Ros2Subscriber("/chatter", "std_msgs/msg/String", domain_id=domain_id)
+    assert end.key.startswith(f"{domain_id}/chatter/")
+
+
+@pytest.mark.parametrize("value", ["0/**", "-1", "233", "1.5", "²", "0x10", "abc"])
+def test_a_ros_domain_id_from_the_environment_out_of_range_is_refused_naming_the_fix(value, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", value)
+    with pytest.raises(ValueError, match=r"ROS_DOMAIN_ID=.*: a ROS domain id is a decimal number from 0 to 232"
+                                         r"(.|\n)*hint: set ROS_DOMAIN_ID to one"):
+        Ros2Subscriber("/chatter", "std_msgs/msg/String")
+
+
+@pytest.mark.parametrize("value, domain_id", [("", 0), (" 7 ", 7), ("232", 232)])
+def test_a_ros_domain_id_from_the_environment_in_range_is_taken(value, domain_id, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", value)
+    assert Ros2Subscriber("/chatter", "std_msgs/msg/String").domain_id == domain_id
+
+
+# ---------------------------------------------------------------------------------------------
+# rmw's limits on a name's length (rmw/validate_*.h): refused where the flow is made
+# ---------------------------------------------------------------------------------------------
+def test_names_up_to_rmws_limits_are_taken():
+    assert len(fully_qualified("/" + "t" * 246)) == 247  # RMW_TOPIC_MAX_NAME_LENGTH = 255 - 8
+    end = Ros2Publisher("/x", "std_msgs/msg/String", node="n" * 255, namespace="/" + "s" * 244, domain_id=0)
+    assert len(end.node_name) == 255 and len(end.namespace) == 245
+
+
+@pytest.mark.parametrize("options, said", [
+    ({"topic": "/" + "t" * 247}, r"ROS topic name '/t{39}\.\.\.': is 248 characters long, past the 247 rmw takes"),
+    ({"topic": "t" * 200, "namespace": "/" + "s" * 50},  # long only once resolved in its namespace
+     r"ROS topic name 't{40}\.\.\.': is 252 characters long \(resolved: 252 characters\), past the 247"),
+    ({"topic": "~/" + "t" * 200, "node": "n" * 50},
+     r"ROS topic name '~/t{38}\.\.\.': is 252 characters long \(resolved: 252 characters\), past the 247"),
+    ({"node": "n" * 256}, r"ROS node name 'n{40}\.\.\.': is 256 characters long, past the 255 rmw takes"),
+    ({"namespace": "/" + "s" * 245}, r"ROS namespace '/s{39}\.\.\.': is 246 characters long, past the 245 rmw takes"),
+])
+def test_a_name_past_rmws_limit_is_refused_where_the_flow_is_made(options, said):
+    """They were taken, and rmw_zenoh's nodes would not see (or refuse) the topic."""
+    topic = options.pop("topic", "/chatter")
+    for end in (Ros2Publisher, Ros2Subscriber):
+        with pytest.raises(ValueError, match=rf"{said}(.|\n)*hint: .*topic_and_service_names"):
+            end(topic, "std_msgs/msg/String", domain_id=0, **options)

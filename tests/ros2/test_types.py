@@ -277,3 +277,53 @@ def test_a_type_defined_again_the_same_is_taken_and_differently_is_refused_clear
     with pytest.raises(ValueError, match=r"(?s)retriever_test_msgs/msg/Twice is defined already, differently "
                                          r"\(int32 a, string b\).*give the new definition another name"):
         types.register_msg("retriever_test_msgs/msg/Twice", "float64 a\nstring b")
+
+
+@pytest.mark.parametrize("name, definition, cycle", [
+    ("retriever_test_msgs/msg/Rec", "retriever_test_msgs/Rec r",
+     "retriever_test_msgs/msg/Rec -> retriever_test_msgs/msg/Rec"),
+    ("retriever_test_msgs/msg/RecArray", "int32 a\nretriever_test_msgs/RecArray[2] more",
+     "retriever_test_msgs/msg/RecArray -> retriever_test_msgs/msg/RecArray"),
+    ("retriever_test_msgs/msg/RecSeq", "retriever_test_msgs/RecSeq[] children",
+     "retriever_test_msgs/msg/RecSeq -> retriever_test_msgs/msg/RecSeq"),
+])
+def test_a_type_that_holds_itself_is_refused_at_registration_and_registers_nothing(name, definition, cycle):
+    """It was registered, and its type hash (so the flow) or from_value then raised RecursionError."""
+    from retriever.ros2 import Ros2Publisher
+
+    with pytest.raises(ValueError, match=rf"(?s){name}'s msgdef holds itself: {cycle}.*hint: "):
+        Ros2Publisher("/x", name, msgdef=definition)
+    with pytest.raises(ValueError, match="is not known"):
+        types.check_type(name)
+
+
+def test_a_type_that_holds_itself_through_another_is_refused():
+    ping, pong = "retriever_test_msgs/msg/Ping", "retriever_test_msgs/msg/Pong"
+    definition = ("retriever_test_msgs/Pong pong\n"
+                  "================================================================================\n"
+                  f"MSG: {pong}\nretriever_test_msgs/Ping ping\n")
+    with pytest.raises(ValueError, match=rf"holds itself: {ping} -> {pong} -> {ping}"):
+        types.register_msg(ping, definition)
+    for name in (ping, pong):
+        with pytest.raises(ValueError, match="is not known"):
+            types.check_type(name)
+
+
+@pytest.mark.parametrize("definition", [
+    "int32[4294967296] x",  # 16 GiB of zeros for {}
+    "float64[2097153] x",  # one byte past 16 MiB
+    "geometry_msgs/Point[200000] points",  # 200000 x (24 bytes + a Python object each)
+])
+def test_a_type_whose_fixed_arrays_hold_more_than_16_mib_is_refused(definition):
+    """``int32[4294967296] x`` was registered, and from_value({}) then tried to allocate 16 GiB."""
+    with pytest.raises(ValueError, match=r"(?s)retriever_test_msgs/msg/Huge's msgdef fixes more than 16777216 bytes "
+                                         r"\(16 MiB.*hint: .*unbounded sequence"):
+        types.register_msg("retriever_test_msgs/msg/Huge", definition)
+    with pytest.raises(ValueError, match="is not known"):
+        types.check_type("retriever_test_msgs/msg/Huge")
+
+
+def test_fixed_arrays_up_to_16_mib_and_every_standard_type_are_taken():
+    types.register_msg("retriever_test_msgs/msg/Big", "float64[2097151] x\nint32[] free")
+    assert types.from_value({}, "retriever_test_msgs/msg/Big").x.shape == (2097151,)
+    assert types.type_hash("nav_msgs/msg/Odometry").startswith("RIHS01_")
