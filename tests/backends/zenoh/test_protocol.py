@@ -769,13 +769,13 @@ def test_seals_travel_as_zenoh_attachments_of_puts_queries_and_replies(session):
 
 def test_the_info_of_a_daemon_of_another_protocol_says_which_and_the_retriever_it_runs():
     """What a coordinator tells its user of such a worker (deploy._discover: the version to install alike)."""
-    with pytest.raises(p.OtherProtocol) as refused:
+    with pytest.raises(p.OtherProtocolReply) as refused:
         p.decode_reply(control("info", {"protocol": 3, "packages": {"retriever": "9.9"}, "anything": "new"}),
                        p.DaemonOp.INFO)
     assert (refused.value.protocol, refused.value.retriever) == (3, "9.9")
     assert isinstance(refused.value, WireError)
     for packages in ({}, {"retriever": 9}, "9.9"):  # it says no version of Retriever it runs
-        with pytest.raises(p.OtherProtocol) as refused:
+        with pytest.raises(p.OtherProtocolReply) as refused:
             p.decode_reply(control("info", {"protocol": 1, "packages": packages}), p.DaemonOp.INFO)
         assert (refused.value.protocol, refused.value.retriever) == (1, None)
 
