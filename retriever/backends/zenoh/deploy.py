@@ -45,7 +45,7 @@ import zenoh
 from ...errors import BackendError, PlacementError
 from ...graph import Graph
 from ...log.format import package_versions
-from ...placement import Placement, WorkerInfo, load_placement, move, place
+from ...placement import LiveDaemon, Placement, load_placement, move, place
 from ...trace import KEEP
 from .access import (CONTROL_DICTIONARY, DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles,
                      secret_bytes, watch_user)
@@ -575,7 +575,7 @@ class Deployment(Hosting):
         return Relocate({nid: self._remotes[name] for nid, name in targets.items()}, dict(targets), at,
                         f"was lost with its worker '{lost}'")
 
-    def _workers_up(self) -> list[WorkerInfo]:
+    def _workers_up(self) -> list[LiveDaemon]:
         """The workers still up, each with the nodes placed on it as its load (a move's candidates)."""
         load = Counter(self.placed.values())
         return [placement_target(name, daemon.info, load[name]) for name, daemon in sorted(self.daemons.items())]
@@ -608,10 +608,10 @@ class Deployment(Hosting):
         self._close_control()
 
 
-def placement_target(name: str, info: InfoReply, load: int) -> WorkerInfo:
+def placement_target(name: str, info: InfoReply, load: int) -> LiveDaemon:
     """Worker ``name`` as placement weighs it: the labels and host of its info reply, and ``load``
     nodes on it (at the start, those its info lists; when a lost worker's nodes move, those placed there)."""
-    return WorkerInfo(name, frozenset(info.labels), load, info.host)
+    return LiveDaemon(name, frozenset(info.labels), load, info.host)
 
 
 def package_differences(ours: dict[str, str], theirs: dict[str, str]) -> list[str]:
