@@ -70,7 +70,7 @@ ANYWHERE = Constraint()
 class LiveDaemon:
     """A worker daemon that is up, as placement weighs it: its name (unique among the workers up), its
     labels, how many nodes it already runs (its load), and the host it runs on, if known. (What a
-    daemon says of itself when asked is daemon/listing.py's DaemonInfo; deploy.placement_target
+    daemon says of itself when asked is daemon/listing.py's DaemonInfo; deploy/book.py's placement_target
     makes this of it.)"""
 
     name: str
