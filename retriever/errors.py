@@ -23,7 +23,7 @@
     │   └── UnmappableError        export_dataset: a port's value that no dataset feature can hold
     ├── AccessError (ValueError)   zenoh: a deployment secret that cannot be read, used or written
     ├── WireError                  zenoh: a message on the key space is no Retriever message of this version
-    │   └── OtherProtocol          ... a daemon's answer in another protocol version: which, and its Retriever's
+    │   └── OtherProtocolReply     ... a daemon's answer in another protocol version: which, and its Retriever's
     ├── ReportError                zenoh: a report could not be sent; the coordinator will not get its records
     ├── WorkerError                zenoh: a worker that cannot start as asked, or a worker query with no answer
     │   └── OtherProtocolError     ... a worker that speaks another protocol version than this process
@@ -241,9 +241,10 @@ class WireError(RetrieverError):
     """A message on the key space is not a Retriever message of this version."""
 
 
-class OtherProtocol(WireError):
-    """The info of a daemon that speaks another protocol version: which one, and the version of
-    Retriever it says it runs (what to install alike on both machines), as far as it says."""
+class OtherProtocolReply(WireError):
+    """Raised in place of the info reply of a daemon that speaks another protocol version: which
+    one, and the version of Retriever it says it runs (what to install alike on both machines), as
+    far as it says. (Its asker raises OtherProtocolError, which names the worker.)"""
 
     def __init__(self, message: str, protocol: int, retriever: str | None):
         super().__init__(message)
@@ -262,7 +263,7 @@ class OtherProtocolError(WorkerError):
     """A worker that speaks another protocol version (``other.protocol``) than this process (``ours``):
     which one, and the version of Retriever it runs, as far as it said."""
 
-    def __init__(self, name: str, other: OtherProtocol, ours: int):
+    def __init__(self, name: str, other: OtherProtocolReply, ours: int):
         super().__init__(f"worker '{name}' speaks protocol {other.protocol}, this process {ours}")
         self.protocol, self.retriever = other.protocol, other.retriever
 

@@ -67,9 +67,11 @@ ANYWHERE = Constraint()
 
 
 @dataclass(frozen=True)
-class WorkerInfo:
-    """A worker daemon that is up: its name (unique among the workers up), its labels, how many nodes it
-    already runs (its load), and the host it runs on, if known."""
+class LiveDaemon:
+    """A worker daemon that is up, as placement weighs it: its name (unique among the workers up), its
+    labels, how many nodes it already runs (its load), and the host it runs on, if known. (What a
+    daemon says of itself when asked is daemon/listing.py's DaemonInfo; deploy/book.py's placement_target
+    makes this of it.)"""
 
     name: str
     labels: frozenset[str] = frozenset()
@@ -167,7 +169,7 @@ def _labels(where: str, labels: object, problems: list[Problem]) -> frozenset[st
 # ---------------------------------------------------------------------------------------------
 # Placing nodes on workers
 # ---------------------------------------------------------------------------------------------
-def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[WorkerInfo]) -> dict[str, str]:
+def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon]) -> dict[str, str]:
     """Each node's worker, for a deployment's start: node id -> worker name, in the order of ``node_ids``.
 
     The placement and the workers up are checked first: a placement that cannot be met raises one
@@ -185,7 +187,7 @@ def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequenc
     return chosen
 
 
-def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[WorkerInfo]) -> dict[str, str] | None:
+def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon]) -> dict[str, str] | None:
     """Where the nodes of a lost worker start afresh: node id -> worker name among ``workers`` (those
     still up, each with the nodes it runs as its load), by the rule of the first placement
     (:func:`assign`); None when some node has nowhere to go."""
@@ -198,7 +200,8 @@ def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence
     return chosen
 
 
-def assign(nodes: Sequence[str], rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo]) -> dict[str, str | None]:
+def assign(nodes: Sequence[str], rules: Mapping[str, Constraint],
+           workers: Sequence[LiveDaemon]) -> dict[str, str | None]:
     """The one placement rule, for a start and for a move: node id -> worker name, or None where no
     worker up meets the node's constraint.
 
@@ -219,7 +222,7 @@ def assign(nodes: Sequence[str], rules: Mapping[str, Constraint], workers: Seque
     return {node: chosen[node] for node in nodes}
 
 
-def check_assignment(chosen: Mapping[str, str], rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo],
+def check_assignment(chosen: Mapping[str, str], rules: Mapping[str, Constraint], workers: Sequence[LiveDaemon],
                      source: str | None = None) -> None:
     """The one check of what :func:`assign` decided: every node on a worker that is up and meets its
     constraint. A failure is a bug of the rule, raised as one PlacementError naming each node."""
@@ -230,7 +233,7 @@ def check_assignment(chosen: Mapping[str, str], rules: Mapping[str, Constraint],
         raise PlacementError(source, problems)
 
 
-def _eligible(constraint: Constraint, workers: Sequence[WorkerInfo]) -> list[str]:
+def _eligible(constraint: Constraint, workers: Sequence[LiveDaemon]) -> list[str]:
     """The names of the workers up that may run a node under ``constraint``."""
     return [w.name for w in workers if constraint.worker in (None, w.name) and constraint.labels <= w.labels]
 
@@ -247,7 +250,7 @@ def _unknown_nodes(rules: Mapping[str, Constraint], nodes: list[str]) -> list[Pr
     return problems
 
 
-def _worker_problems(rules: Mapping[str, Constraint], workers: Sequence[WorkerInfo], source: str | None,
+def _worker_problems(rules: Mapping[str, Constraint], workers: Sequence[LiveDaemon], source: str | None,
                      has_nodes: bool) -> list[Problem]:
     """Problems with the workers up: none at all, two of one name, pins and labels they cannot meet."""
     if not workers:
@@ -265,7 +268,7 @@ def _worker_problems(rules: Mapping[str, Constraint], workers: Sequence[WorkerIn
     return problems
 
 
-def _duplicate_names(workers: Sequence[WorkerInfo]) -> list[Problem]:
+def _duplicate_names(workers: Sequence[LiveDaemon]) -> list[Problem]:
     """A problem for each name that more than one worker up has: a pin to it would be ambiguous."""
     counts = Counter(w.name for w in workers)
     return [Problem(f"{count} workers are up under the name {_show(name)} (hosts: "
@@ -273,7 +276,7 @@ def _duplicate_names(workers: Sequence[WorkerInfo]) -> list[Problem]:
                     "give each worker its own --name") for name, count in sorted(counts.items()) if count > 1]
 
 
-def _not_up(node: str, worker: str, up: Mapping[str, WorkerInfo]) -> Problem:
+def _not_up(node: str, worker: str, up: Mapping[str, LiveDaemon]) -> Problem:
     close = difflib.get_close_matches(worker, sorted(up), n=1)
     hint = (f"did you mean {_show(close[0])}? " if close else "") + \
         f"Start it ({WORKER_COMMAND.replace('NAME', _arg(worker))}), or pin {_show(node)} to a worker that is up"
@@ -281,7 +284,7 @@ def _not_up(node: str, worker: str, up: Mapping[str, WorkerInfo]) -> Problem:
                    f"(workers up: {_names(sorted(up))})", hint)
 
 
-def _pinned_without_labels(node: str, constraint: Constraint, worker: WorkerInfo) -> Problem:
+def _pinned_without_labels(node: str, constraint: Constraint, worker: LiveDaemon) -> Problem:
     missing = sorted(constraint.labels - worker.labels)
     return Problem(f"[nodes] {_show(node)} is pinned to worker {_show(worker.name)}, which lacks the label(s) "
                    f"{_names(missing)} that {_show(node)} needs (it has {_labels_of(worker)})",
@@ -289,7 +292,7 @@ def _pinned_without_labels(node: str, constraint: Constraint, worker: WorkerInfo
                    f"from the entry of {_show(node)}")
 
 
-def _missing_labels(node: str, labels: frozenset[str], workers: Sequence[WorkerInfo],
+def _missing_labels(node: str, labels: frozenset[str], workers: Sequence[LiveDaemon],
                     source: str | None) -> list[Problem]:
     if any(labels <= w.labels for w in workers):
         return []
@@ -300,7 +303,7 @@ def _missing_labels(node: str, labels: frozenset[str], workers: Sequence[WorkerI
                     f"of {_show(node)} in {source}")]
 
 
-def _labels_of(worker: WorkerInfo) -> str:
+def _labels_of(worker: LiveDaemon) -> str:
     return _names(sorted(worker.labels)) if worker.labels else "no labels"
 
 

@@ -84,7 +84,7 @@ MAPS = {
     **{path: (path.rsplit("/", 1)[0], "\n".join(_dedented_docstring(path)))
        for path in ("retriever/backends/zenoh/__init__.py", "retriever/backends/zenoh/node/__init__.py",
                     "retriever/backends/zenoh/coordinator/__init__.py", "retriever/backends/zenoh/worker/__init__.py",
-                    "retriever/backends/zenoh/daemon/__init__.py",
+                    "retriever/backends/zenoh/daemon/__init__.py", "retriever/backends/zenoh/deploy/__init__.py",
                     "retriever/backends/zenoh/protocol/__init__.py", "retriever/backends/dora/__init__.py")},
 }
 #: a line of a map that names files or folders (``name.py``, ``name/``, several: ``a.py, b.py``),

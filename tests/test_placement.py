@@ -13,14 +13,14 @@ from hypothesis import strategies as st
 import retriever
 from retriever import PlacementError, RetrieverError
 from retriever.errors import Problem
-from retriever.placement import Constraint, Placement, WorkerInfo, load_placement, parse_placement, place
+from retriever.placement import Constraint, LiveDaemon, Placement, load_placement, parse_placement, place
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "deploy" / "placement.example.toml"
 SETTINGS = settings(max_examples=300, deadline=None)
 
 
-def worker(name: str, *labels: str, nodes: int = 0, host: str | None = None) -> WorkerInfo:
-    return WorkerInfo(name, frozenset(labels), nodes, host)
+def worker(name: str, *labels: str, nodes: int = 0, host: str | None = None) -> LiveDaemon:
+    return LiveDaemon(name, frozenset(labels), nodes, host)
 
 
 def rules(**nodes) -> Placement:
@@ -403,7 +403,7 @@ def any_workers():
     """One to six workers of distinct names, each with some labels and a load."""
     names = st.lists(st.sampled_from(WORKER_NAMES), min_size=1, max_size=6, unique=True)
     return names.flatmap(lambda names: st.tuples(*(
-        st.builds(WorkerInfo, st.just(name), st.frozensets(st.sampled_from(LABELS)), st.integers(0, 3))
+        st.builds(LiveDaemon, st.just(name), st.frozensets(st.sampled_from(LABELS)), st.integers(0, 3))
         for name in names))).map(list)
 
 
@@ -422,7 +422,7 @@ def satisfiable(draw):
     return nodes, Placement(placement), workers
 
 
-def _meets(w: WorkerInfo, c: Constraint) -> bool:
+def _meets(w: LiveDaemon, c: Constraint) -> bool:
     return c.worker in (None, w.name) and c.labels <= w.labels
 
 
@@ -469,11 +469,11 @@ def test_a_move_goes_to_the_least_loaded_worker_still_up_that_the_placement_allo
     from retriever.placement import move
 
     rules = Placement({"policy": Constraint(labels=frozenset({"gpu"})), "camera": Constraint(worker="arm")})
-    up = [WorkerInfo("a", frozenset({"gpu"}), nodes=3), WorkerInfo("b", frozenset({"gpu"}), nodes=1),
-          WorkerInfo("c", nodes=0)]
+    up = [LiveDaemon("a", frozenset({"gpu"}), nodes=3), LiveDaemon("b", frozenset({"gpu"}), nodes=1),
+          LiveDaemon("c", nodes=0)]
     assert move(["policy", "other", "more"], rules, up) == {"policy": "b", "other": "c", "more": "c"}
     assert move(["camera"], rules, up) is None  # pinned to a worker that is gone: nowhere to go
-    assert move(["policy"], rules, [WorkerInfo("c")]) is None  # no worker up with its labels
+    assert move(["policy"], rules, [LiveDaemon("c")]) is None  # no worker up with its labels
 
 
 @settings(max_examples=50, deadline=None)
@@ -481,7 +481,7 @@ def test_a_move_goes_to_the_least_loaded_worker_still_up_that_the_placement_allo
 def test_a_move_and_a_first_placement_decide_alike(names, load):
     from retriever.placement import move
 
-    workers = [WorkerInfo(name, frozenset({"gpu"}) if i % 2 else frozenset(), nodes=load * i)
+    workers = [LiveDaemon(name, frozenset({"gpu"}) if i % 2 else frozenset(), nodes=load * i)
                for i, name in enumerate(names)]
     rules = Placement({"n1": Constraint(labels=frozenset({"gpu"}))}) if len(names) > 1 else None
     nodes = ["n0", "n1", "n2", "n3"]
@@ -492,4 +492,4 @@ def test_the_shared_check_refuses_an_assignment_its_rule_could_not_make():
     from retriever.placement import check_assignment
 
     with pytest.raises(PlacementError, match="node 'n' was assigned to worker 'gone', which is not up"):
-        check_assignment({"n": "gone"}, {}, [WorkerInfo("up")])
+        check_assignment({"n": "gone"}, {}, [LiveDaemon("up")])

@@ -89,8 +89,8 @@ class DoraHosting(Hosting):
         # and each node's process finds the key it signs with (origin.py) in the private spec
         keys = run.book.first_keys
         keys.update((nid, new_key()) for nid in graph.nodes)
-        run.spec = dataclasses.replace(run.spec, dora=names.part(cwd=os.getcwd(), coordinator=os.getpid(),
-                                                                 dir=str(dora_dir), keys=keys))
+        run.spec = dataclasses.replace(run.spec, dora_part=names.part(cwd=os.getcwd(), coordinator=os.getpid(),
+                                                                      dir=str(dora_dir), keys=keys))
         spec_path = run.spec.write_file(run.run_dir / "spec.json")
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"

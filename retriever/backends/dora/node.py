@@ -43,7 +43,7 @@ def main(argv: list[str]) -> None:
         print(e, file=sys.stderr, flush=True)
         worker.exit_process(worker.EXIT_FAILED)
     spec_path, dora_id = command.spec_path, command.name
-    dora = RunSpec.read_file(spec_path).dora
+    dora = RunSpec.read_file(spec_path).dora_part
     if dora is None:
         raise WireError(f"the run's spec {spec_path} has no dora part: no dora run's coordinator wrote it")
     names = DoraNames.of_part(dora)

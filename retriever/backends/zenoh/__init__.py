@@ -21,7 +21,8 @@
                     where the hosts are is a Hosting handed to it (this machine, a deployment, dora)
     seen.py         what the coordinator has seen of a run (event ids, recent ticks), in bounded memory
     remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
-    deploy.py       a deployment: the coordinator hosted on worker daemons, its nodes placed there
+    deploy/         a deployment: the coordinator hosted on worker daemons, its nodes placed there;
+                    Deployment wires its parts (discovery, links, status, usage, the loss policy)
     daemon/         a long-lived worker daemon (retriever-worker), what it runs for a coordinator
                     (daemon/runs.py), and listing them (retriever workers); its docstring draws it
 """
@@ -37,7 +38,7 @@ class ZenohBackend(Backend):
     name = "zenoh"
     OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "virtual_time", "keep",
                "foxglove", "rerun")
-    #: options of a deployment on worker daemons (deploy.py): given any of the first three, the
+    #: options of a deployment on worker daemons (deploy/): given any of the first three, the
     #: run's nodes go to the workers reached there instead of processes of this machine
     DEPLOY_OPTIONS = ("connect", "listen", "router", "placement", "insecure", "max_clock_offset", "on_worker_loss",
                       "lease", "tls", "on_phase")

@@ -92,8 +92,9 @@ def test_the_specs_dora_part_is_the_dict_it_was_and_a_node_reads_its_names_back(
                                 "cwd": "/home/me", "coordinator": 4242, "dir": "/tmp/retriever-dora-x",
                                 "keys": {"src": "01" * KEY_BYTES, "echo": "02" * KEY_BYTES}}
     spec = RunSpec(ir=doc, namespace="dora-part", hub="tcp/127.0.0.1:7447", plan={"nodes": []}, startup_timeout=60.0,
-                   zids={}, hub_zid=None, virtual_time=False, dora=part)
-    read = RunSpec.read_file(spec.write_file(tmp_path / "spec.json")).dora
+                   zids={}, hub_zid=None, virtual_time=False,
+                   dora_part=part)
+    read = RunSpec.read_file(spec.write_file(tmp_path / "spec.json")).dora_part
     assert read == part and DoraNames.of_part(read) == names and read.keys["echo"] == keys["echo"]
 
 

@@ -48,7 +48,7 @@ def worker_status(node: str, state: str, **info) -> bytes:
 # ---------------------------------------------------------------------------------------------
 T0, END = 1_780_000_000_123_456_789, 30_000_000_000
 HEX = "ab" * KEY_BYTES
-#: a run's spec as deploy.py's coordinator sends it (its fields at their default left out)
+#: a run's spec as a deployment's coordinator sends it (its fields at their default left out)
 SPEC_FIELDS = {"ir": {"nodes": [{"id": "cam"}, {"id": "sink"}]}, "namespace": "proto", "hub": "tcp/10.0.0.2:7447",
                "plan": {"nodes": []}, "argv": ["deploy.py", "--fast"], "startup_timeout": 60.0,
                "zids": {"cam": "1a2b", "sink": "3c4d"}, "hub_zid": "ef01", "virtual_time": False}
@@ -103,7 +103,7 @@ TODAY = [
             sent={"rgb": 1499})),
     (worker_status("cam", "done", counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={}),
      p.Done(node="cam", pid=PID, counts={}, reports=0, started_ns=None, ticks=0, stopped=True, sent={})),
-    # remote.RemoteHost.request ({"run": run, **args}), the deployment's discovery (deploy.py), daemon.ask
+    # remote.RemoteHost.request ({"run": run, **args}), the deployment's discovery (deploy/discovery.py), daemon.ask
     (control("info", {}), p.InfoRequest()),
     (control("prepare", {"run": "5f3a9c0d1e2b", "spec": SPEC_FIELDS, "nodes": ["cam"]}),
      p.PrepareRequest(run="5f3a9c0d1e2b", spec=SPEC, nodes=("cam",))),
@@ -134,7 +134,7 @@ TODAY = [
      p.ProcessOutput(run="r", node="cam", stream=p.Stream.STDERR, lines=("a", "b"))),
     (control("exit", {"run": "r", "node": "cam", "pid": PID, "code": -9}),
      p.ProcessExit(run="r", node="cam", pid=PID, code=-9)),
-    # deploy.ask_deployment, Deployment._answer, Deployment.status
+    # deploy.ask_deployment, DeploymentQueryable.answer, Deployment.status
     (control("status", {}), p.StatusQuery()),
     (control("stop", {}), p.StopQuery()),
     (control("stop", {"pipeline": "demo"}), p.StopReply(pipeline="demo")),
@@ -768,14 +768,14 @@ def test_seals_travel_as_zenoh_attachments_of_puts_queries_and_replies(session):
 
 
 def test_the_info_of_a_daemon_of_another_protocol_says_which_and_the_retriever_it_runs():
-    """What a coordinator tells its user of such a worker (deploy._discover: the version to install alike)."""
-    with pytest.raises(p.OtherProtocol) as refused:
+    """What a coordinator tells its user of such a worker (deploy/discovery.py: the version to install alike)."""
+    with pytest.raises(p.OtherProtocolReply) as refused:
         p.decode_reply(control("info", {"protocol": 3, "packages": {"retriever": "9.9"}, "anything": "new"}),
                        p.DaemonOp.INFO)
     assert (refused.value.protocol, refused.value.retriever) == (3, "9.9")
     assert isinstance(refused.value, WireError)
     for packages in ({}, {"retriever": 9}, "9.9"):  # it says no version of Retriever it runs
-        with pytest.raises(p.OtherProtocol) as refused:
+        with pytest.raises(p.OtherProtocolReply) as refused:
             p.decode_reply(control("info", {"protocol": 1, "packages": packages}), p.DaemonOp.INFO)
         assert (refused.value.protocol, refused.value.retriever) == (1, None)
 

@@ -76,7 +76,7 @@ def test_the_spec_written_and_sent_is_what_the_dict_was(startup_timeout, virtual
                                            if v not in (None, [], {})}
     assert old["main_file"] is None and "main_file" not in json.loads(hosting.written)
     assert RunSpec.from_fields(json.loads(json.dumps(old)), "the dict") == spec
-    # the prepare request: byte for byte what deploy.py sent, the dict filtered by its keys
+    # the prepare request: byte for byte what the deployment (deploy/) sent, the dict filtered by its keys
     remote = {k: v for k, v in old.items() if k not in ("access", "python_path", "spill_dir", "main_file")}
     before = PrepareRequest(run="r", spec=RunSpec.from_fields(remote, "the run's spec"), nodes=("counter",))
     assert PrepareRequest(run="r", spec=spec.for_remote(), nodes=("counter",)).encode() == before.encode()

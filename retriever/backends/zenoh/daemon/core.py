@@ -39,8 +39,8 @@ from ....log.format import package_versions
 from ..access import read_secret
 from ..hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
                    remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
-from ..protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
-                        Record, decode_reply, error_message)
+from ..protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest,
+                        OtherProtocolReply, Record, decode_reply, error_message)
 from ..wire import KeySpace, WireError
 from .allowlist import ALWAYS_ALLOWED, module_allowed, path_modules, refusal
 from .runs import DaemonRuns
@@ -137,7 +137,7 @@ def ask_whom(session: zenoh.Session, namespace: str, name: str, request: Record,
             if message is None:  # Zenoh's own error reply (the query timed out): no answer
                 break
             raise WorkerError(f"worker '{name}' refused {op}: {message}")
-        except OtherProtocol as e:
+        except OtherProtocolReply as e:
             raise OtherProtocolError(name, e, PROTOCOL_VERSION) from None
         except WireError as e:
             raise WorkerError(f"worker '{name}' answered {op} with no control message: {e}") from None

@@ -340,7 +340,7 @@ class DaemonRuns:
         return dataclasses.replace(
             spec, namespace=self.keys.namespace, hub=hub, router=router, listen=listen,
             python_path=(*self.paths, *(p for p in sys.path if p and os.path.isdir(p))),
-            main_file=None, spill_dir=None, argv=None, groups={}, dora=None,
+            main_file=None, spill_dir=None, argv=None, groups={}, dora_part=None,
             access=access.to_spec(access.write_dictionary(folder)) if access is not None else None,
             tls=vars(self.tls) if self.tls is not None else None, lease=None, blocked_put=self.lease)
 

@@ -134,9 +134,10 @@ from __future__ import annotations
 
 from ..command import SpawnMode
 from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST,
-                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest, OtherProtocol,
-                     PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply, SignalRequest, SpawnReply,
-                     SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply, error_message)
+                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest,
+                     OtherProtocolReply, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply,
+                     SignalRequest, SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply,
+                     error_message)
 from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeState, NodeStatus, StatusQuery,
                          StatusReply, StopQuery, StopReply)
 from .run_spec import DoraPart, RunSpec
@@ -152,7 +153,7 @@ __all__ = sorted([
     "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
     "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "DoraPart", "End", "EndReply", "EndRequest",
     "ErrorReply", "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest",
-    "Lost", "NodeState", "NodeStatus", "Op", "OtherProtocol", "PrepareReply", "PrepareRequest", "ProcessExit",
+    "Lost", "NodeState", "NodeStatus", "Op", "OtherProtocolReply", "PrepareReply", "PrepareRequest", "ProcessExit",
     "ProcessOutput", "Reached",
     "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
     "RunSpec", "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
-from ....errors import OtherProtocol, WireError
+from ....errors import OtherProtocolReply, WireError
 from ..command import parse_mode
 from ..origin import KEY_BYTES
 from .run_spec import RunSpec
@@ -49,7 +49,7 @@ class Stream(StrEnum):
 ERROR = "error"
 #: the protocol version a daemon's info says, first: raised whenever a message changes its fields
 #: or their meaning, so that a coordinator and a worker of different versions refuse each other
-#: with a word on the versions (OtherProtocol) instead of misreading each other's records
+#: with a word on the versions (OtherProtocolReply) instead of misreading each other's records
 PROTOCOL_VERSION = 2
 #: the largest control request a daemon reads (a prepare carries the run's IR)
 MAX_REQUEST_BYTES = 8 << 20
@@ -148,8 +148,8 @@ class InfoReply(Record):
         if type(protocol) is int and protocol != PROTOCOL_VERSION:
             packages = fields.get("packages")
             retriever = packages.get("retriever") if type(packages) is dict else None
-            raise OtherProtocol(f"{where}: the worker speaks protocol {protocol}, this process {PROTOCOL_VERSION}",
-                                protocol, retriever if type(retriever) is str else None)
+            raise OtherProtocolReply(f"{where}: the worker speaks protocol {protocol}, this process "
+                                     f"{PROTOCOL_VERSION}", protocol, retriever if type(retriever) is str else None)
         return super().from_fields(fields, where, **envelope)
 
 

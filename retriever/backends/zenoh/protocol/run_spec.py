@@ -130,7 +130,7 @@ class RunSpec(Record):
     lease: float | None = field(Nullable(SECONDS), default=None)
     blocked_put: float | None = field(Nullable(SECONDS), default=None)
     #: a dora run's own part (backends/dora), read by dora's node module
-    dora: DoraPart | None = field(Nullable(Nested(DoraPart)), default=None)
+    dora_part: DoraPart | None = field(Nullable(Nested(DoraPart)), default=None)
 
     @classmethod
     def from_fields(cls, fields: Any, where: str, **envelope: Any) -> RunSpec:
