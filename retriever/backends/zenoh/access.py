@@ -275,6 +275,14 @@ def watch_user(namespace: str) -> str:
     return f"{WATCH_USER}.{namespace}"
 
 
+def daemon_control_key(secret: bytes, namespace: str) -> bytes:
+    """The key a coordinator seals its requests to ``namespace``'s worker daemons with, and each
+    daemon checks them with (protocol/seal.py RequestSealer): derived from the secret itself, so
+    that a holder of the namespace's passwords alone (every daemon's dictionary, every flow of a
+    routed deployment) cannot make a request a daemon takes."""
+    return hmac.new(secret, f"retriever/daemon-control/{namespace}".encode(), hashlib.sha256).digest()
+
+
 def router_password(secret: bytes) -> str:
     """The password a router proves to another router it links to (ROUTER_USER): every holder
     of the secret derives the same, whatever namespaces it serves."""

@@ -339,7 +339,8 @@ class Deployment(Hosting):
                 if differences:
                     print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                           f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-                host = self._remotes[name] = RemoteHost(control, run.keys, name, self._run_id, self.daemons[name].zid)
+                host = self._remotes[name] = RemoteHost(control, run.keys, name, self._run_id, self.daemons[name].zid,
+                                                              self._secret)
                 self._say_warnings(name, host.prepare(self._spec_for(name),
                                                       sorted(n for n, w in self.placed.items() if w == name)))
         threading.Thread(target=self._watch_usage, name="retriever-usage", daemon=True).start()
@@ -565,7 +566,7 @@ class Deployment(Hosting):
             remote = self._remotes.get(name)
             if remote is None:
                 remote = self._remotes[name] = RemoteHost(self._control, run.keys, name, self._run_id,
-                                                          self.daemons[name].zid)
+                                                          self.daemons[name].zid, self._secret)
             self._say_warnings(name, remote.prepare(self._spec_for(name),
                                                     sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):
