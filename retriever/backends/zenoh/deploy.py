@@ -47,7 +47,7 @@ from ...graph import Graph
 from ...log.format import package_versions
 from ...placement import Placement, WorkerInfo, load_placement, move, place
 from ...trace import KEEP
-from .access import (CONTROL_DICTIONARY, DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles,
+from .access import (CONTROL_DICTIONARY, WATCH_USER, AccessError, RunAccess, TlsFiles,
                      secret_bytes, watch_user)
 from .daemon import (ENDPOINT, QUERY_S, DaemonInfo, WorkerError, check_security, credentials, describe, in_session,
                      no_router, open_access)
@@ -188,43 +188,54 @@ class Deployment(Hosting):
     def open_hub(self, port: int, access: dict[str, str] | None):
         if self._router:
             return self._open_client()
-        run = self.run
         links = self._tls.session_config() if self._tls is not None else {}
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
         with self._phase("join"):
-            self._control = self._open_control(links)
             try:
-                hub = self._open_run_hub({**(access or {}), **links})
-            except BaseException:
-                self._close_control()
-                raise
-            # Zenoh read the run's dictionary as the hub opened, and no process of this machine reads
-            # it after (the workers' flows read their daemon's): not left on disk here
-            (run.run_dir / DICTIONARY).unlink(missing_ok=True)
+                self._control = self._open_control(links)
+                try:
+                    hub = self._open_run_hub({**(access or {}), **links})
+                except BaseException:
+                    self._close_control()
+                    raise
+            finally:  # Zenoh read the run's dictionary as the hub opened; no process of this machine reads it after
+                self._drop_hub_dictionary()
         host = "127.0.0.1" if self._hub_host in ("0.0.0.0", "[::]") else self._hub_host
         return hub, f"{self._hub_proto}/{host}:{self._hub_port}"
+
+    def hub_dictionary(self, access: RunAccess, run_dir) -> Path:
+        """The hub's dictionary, in memory (access.SessionDictionary: no file on disk, on Linux);
+        no process but this one reads it, and open_hub drops it once the hub opened."""
+        self._hub_dictionary = access.session_dictionary(run_dir)
+        return self._hub_dictionary.path
+
+    def _drop_hub_dictionary(self) -> None:
+        dictionary, self._hub_dictionary = getattr(self, "_hub_dictionary", None), None
+        if dictionary is not None:
+            dictionary.close()
 
     def _open_control(self, links: dict[str, str]) -> zenoh.Session:
         """The session that links to the worker daemons, with the namespace's credentials. It
         listens even when told only where to connect (as the daemons do: a daemon it learns of
-        by gossip may open the link). The namespace's dictionary is removed once it opened (Zenoh
-        reads it then): not left on disk here, not even by a SIGKILLed coordinator."""
+        by gossip may open the link). Zenoh reads the namespace's dictionary as it opens: it is given
+        in memory (access.SessionDictionary), closed then: on disk at no time, on Linux."""
         listen = self._listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self._tls else ANY_ADDRESS]
         access = dict(links)
-        dictionary = self.run.run_dir / CONTROL_DICTIONARY
+        dictionary = None
         if not self._insecure:
             try:
                 namespace_access = RunAccess.create(self.run.namespace, secret_bytes(self._secret))
             except AccessError as e:
                 raise BackendError(str(e)) from None
-            access.update(namespace_access.session_config(namespace_access.write_dictionary(
-                self.run.run_dir, CONTROL_DICTIONARY)))
+            dictionary = namespace_access.session_dictionary(self.run.run_dir, CONTROL_DICTIONARY)
+            access.update(namespace_access.session_config(dictionary.path))
         try:
             control = zenoh.open(peer_config(listen=listen, connect=self._connect, access=access or None,
                                              lease=self._lease, shared_memory=False))
         finally:
-            dictionary.unlink(missing_ok=True)
+            if dictionary is not None:
+                dictionary.close()
         try:
             self._linked = wait_for_peers(control, len(self._connect), JOIN_S)
         except BaseException:
@@ -298,7 +309,7 @@ class Deployment(Hosting):
                   **(self._tls.session_config() if self._tls is not None else {})}
         remove_orphaned_segments_at_exit()
         with self._phase("join"):
-            (run.run_dir / DICTIONARY).unlink(missing_ok=True)  # a client has none (see open_hub)
+            self._drop_hub_dictionary()  # a client has none (see open_hub)
             try:
                 hub = zenoh.open(client_config(connect=self._router, access=access or None, lease=self._lease,
                                                shared_memory=HUB_SHARED_MEMORY))
