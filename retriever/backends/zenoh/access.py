@@ -23,7 +23,9 @@ session of a deployment joined through a router, whose dictionary is fixed when 
 (router.py). No session of one kind ever links to a session of the other: the daemons' and the
 coordinator's control sessions link to each other only; the hub and the run's flows likewise.
 The passwords reach the workers in the run's spec file, in the run's private directory (mode
-0700); the dictionary file Zenoh reads is there too.
+0700); the dictionary file Zenoh reads is there too. A deployment's coordinator, whose sessions
+alone read its dictionaries, gives Zenoh each in memory (SessionDictionary: on Linux no file on
+disk, not even while a SIGKILLed ``retriever deploy`` starts).
 A watcher gets a Zenoh config file of its own (JSON5, mode 0600) that holds the watcher's
 password only: ``zenoh.Config.from_file(path)`` joins the hub, in client mode, read-only.
 
@@ -65,8 +67,9 @@ WATCHER_UNSEEN = [KeySpace.every_control()]
 #: the file, in a run's or a daemon's private folder, of the user:password lines Zenoh checks peers against
 DICTIONARY = "zenoh-users.txt"
 
-#: the file, in a deployment's run folder, of the namespace's user:password lines, which its
-#: control session checks the worker daemons against (removed once that session opened)
+#: the name of a deployment's dictionary of the namespace's user:password lines, which its control
+#: session checks the worker daemons against (in memory on Linux, SessionDictionary; else a file
+#: in its run folder, removed once that session opened)
 CONTROL_DICTIONARY = "zenoh-control-users.txt"
 
 #: the fewest bytes a deployment secret file must hold
@@ -206,8 +209,15 @@ class RunAccess:
     def write_dictionary(self, directory: Path, name: str = DICTIONARY) -> Path:
         """The user:password lines Zenoh checks a connecting peer against (mode 0600), in file
         ``name`` of ``directory``."""
-        return write_private(directory / name,
-                              f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n")
+        return write_private(directory / name, self._dictionary_text())
+
+    def session_dictionary(self, directory: Path, name: str = DICTIONARY) -> SessionDictionary:
+        """The dictionary of a session of this process alone, which Zenoh reads once as the
+        session opens: no file on disk where the system allows it (:class:`SessionDictionary`)."""
+        return SessionDictionary(self._dictionary_text(), directory / name)
+
+    def _dictionary_text(self) -> str:
+        return f"{RUN_USER}:{self.run_password}\n{WATCH_USER}:{self.watch_password}\n"
 
     def write_watcher_config(self, path: Path, hub_endpoint: str, user: str = WATCH_USER) -> Path:
         """A Zenoh config (JSON5, mode 0600) with which ``zenoh.Config.from_file`` joins the
@@ -275,6 +285,14 @@ def watch_user(namespace: str) -> str:
     return f"{WATCH_USER}.{namespace}"
 
 
+def daemon_control_key(secret: bytes, namespace: str) -> bytes:
+    """The key a coordinator seals its requests to ``namespace``'s worker daemons with, and each
+    daemon checks them with (protocol/seal.py RequestSealer): derived from the secret itself, so
+    that a holder of the namespace's passwords alone (every daemon's dictionary, every flow of a
+    routed deployment) cannot make a request a daemon takes."""
+    return hmac.new(secret, f"retriever/daemon-control/{namespace}".encode(), hashlib.sha256).digest()
+
+
 def router_password(secret: bytes) -> str:
     """The password a router proves to another router it links to (ROUTER_USER): every holder
     of the secret derives the same, whatever namespaces it serves."""
@@ -318,6 +336,37 @@ class TlsFiles:
         plain = [e for e in endpoints if not str(e).startswith("tls/")]
         if plain:
             raise AccessError(f"with TLS every endpoint is tls/HOST:PORT, not {', '.join(plain)}")
+
+
+class SessionDictionary:
+    """A dictionary (user:password lines) for a session this process opens: Zenoh reads it once,
+    as the session opens, at ``path``. On Linux it is an anonymous memory file (``memfd_create``)
+    named by ``/proc/self/fd/N``, which no other process of another user can open and which is gone
+    when this process is, however it ends (a SIGKILL too: no password left on disk); elsewhere a
+    file (mode 0600) at the path given. :meth:`close` once the session opened (the memory file
+    closed, or the file removed)."""
+
+    def __init__(self, text: str, fallback: Path):
+        self._fd: int | None = None
+        if hasattr(os, "memfd_create") and os.path.isdir("/proc/self/fd"):
+            fd = os.memfd_create(f"retriever-{fallback.name}", getattr(os, "MFD_CLOEXEC", 0))
+            try:
+                data = text.encode()
+                while data:
+                    data = data[os.write(fd, data):]
+            except BaseException:
+                os.close(fd)
+                raise
+            self._fd, self.path = fd, Path(f"/proc/self/fd/{fd}")
+        else:
+            self.path = write_private(fallback, text)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        else:
+            self.path.unlink(missing_ok=True)
 
 
 def write_private(path: Path, text: str) -> Path:

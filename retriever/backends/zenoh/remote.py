@@ -13,6 +13,9 @@ A remote worker process answers the coordinator as a local one does (host.Worker
 exit code arrives as an ``exit`` event, or, when the daemon itself is lost (its liveliness token
 went), every process of it counts as killed (:meth:`RemoteHost.lost`).
 
+Every request but ``info`` is sealed with a key derived from the deployment secret (seal.py
+RequestSealer), which a daemon with a secret checks, taking each once: a holder of the namespace's
+passwords alone cannot have a daemon prepare or start anything, nor replay what it captured.
 A query reaches every queryable on its key, an insider's too (one holding the namespace's
 secret), so nothing secret goes in one: the key a process signs with (origin.py) is made by the
 daemon and comes back in its reply, which Zenoh routes to the querier alone. And since an insider
@@ -32,11 +35,12 @@ import time
 from collections.abc import Sequence
 import zenoh
 
-from ...errors import BackendError
+from ...errors import AccessError, BackendError
+from .access import daemon_control_key, secret_bytes
 from .host import Host
 from .hub import weak_callback
-from .protocol import (DAEMON_EVENT, ControlOpener, EndRequest, PrepareRequest, ProcessExit, Record, RunSpec,
-                       SignalRequest, SpawnRequest, UsageRequest, decode_reply, error_message)
+from .protocol import (DAEMON_EVENT, SEALED_OPS, ControlOpener, EndRequest, PrepareRequest, ProcessExit, Record,
+                       RequestSealer, RunSpec, SignalRequest, SpawnRequest, UsageRequest, decode_reply, error_message)
 from .wire import KeySpace, WireError
 
 #: how long the coordinator waits for a daemon to answer a request (a spawn forks a process)
@@ -97,11 +101,17 @@ class RemoteProcess:
 
 class RemoteHost(Host):
     """The worker daemon ``name``, for one run of the coordinator's session; ``zid``: its
-    session's Zenoh id, the only replier whose answers are taken."""
+    session's Zenoh id, the only replier whose answers are taken; ``secret``: the deployment's
+    (bytes or its file; None: --insecure), with which every request but info is sealed (seal.py)."""
 
-    def __init__(self, session: zenoh.Session, keys: KeySpace, name: str, run: str, zid: str):
+    def __init__(self, session: zenoh.Session, keys: KeySpace, name: str, run: str, zid: str, secret=None):
         super().__init__()
         self.session, self.keys, self.name, self.run, self.zid = session, keys, name, run, zid
+        try:
+            self.sealer = (RequestSealer(daemon_control_key(secret_bytes(secret), keys.namespace))
+                           if secret is not None else None)
+        except AccessError as e:
+            raise BackendError(str(e)) from None
         self.processes: dict[int, RemoteProcess] = {}
         self.garbage = 0  # events on its key that were not its daemon's
         # opens its events with the run's key from the prepare reply, each once (seal.py)
@@ -111,8 +121,9 @@ class RemoteHost(Host):
     # -- requests ------------------------------------------------------------------------------
     def request(self, request: Record) -> Record:
         """Ask the daemon; its reply (exact), or a BackendError saying what it answered."""
-        op = request.NAME
-        replies = self.session.get(self.keys.ctl(self.name), payload=request.encode(), timeout=REQUEST_TIMEOUT_S,
+        op, payload, selector = request.NAME, request.encode(), self.keys.ctl(self.name)
+        seal = self.sealer.seal(selector, payload) if self.sealer is not None and op in SEALED_OPS else None
+        replies = self.session.get(selector, payload=payload, attachment=seal, timeout=REQUEST_TIMEOUT_S,
                                    consolidation=zenoh.ConsolidationMode.NONE)  # one answer may not hide another
         for reply in replies:  # the first of the daemon's: a silent queryable of an insider's does not delay it
             if reply.replier_id is None or str(reply.replier_id) != self.zid:

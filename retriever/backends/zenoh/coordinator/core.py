@@ -118,7 +118,7 @@ class Coordinator(Session):
     def _open(self, hub_port: int) -> None:
         """Open the hub, listen, place the nodes and start their workers."""
         access, graph = self.access, self.graph
-        dictionary = access.write_dictionary(self.run_dir) if access else None
+        dictionary = self.hosting.hub_dictionary(access, self.run_dir) if access else None
         self.hub, self.endpoint = self.hosting.open_hub(hub_port, access.session_config(dictionary) if access else None)
         #: a Zenoh config file with which a client joins the run as a read-only watcher
         self.watch_config = (access.write_watcher_config(self.run_dir / "watch.json5", self.endpoint,

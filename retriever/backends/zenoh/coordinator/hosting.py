@@ -118,6 +118,11 @@ class Hosting:
         except AccessError as e:
             raise BackendError(str(e)) from None
 
+    def hub_dictionary(self, access: RunAccess, run_dir: Path) -> Path:
+        """The dictionary file the hub checks a joining peer against, in the run's folder (where
+        this machine's workers read it too); :meth:`open_hub` opens the hub with it."""
+        return access.write_dictionary(run_dir)
+
     def open_hub(self, port: int, access: dict[str, str] | None):
         """Open the run's own session, which the workers join: ``(session, endpoint)``."""
         return open_hub(port, access=access, keys=self.run.keys)

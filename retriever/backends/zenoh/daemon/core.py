@@ -15,7 +15,9 @@ that op's reply record; an op it does not know, or a payload that is no request,
     info    InfoRequest -> InfoReply {protocol, name, labels, host, pid, python, packages, clock_ns, nodes, counts}
 
 and, for ``retriever deploy`` (the coordinator, remote.py), ``prepare``, ``spawn``, ``signal``,
-``usage`` and ``end`` (runs.py): a worker imports flow classes only from the modules its allowlist admits
+``usage`` and ``end`` (runs.py), each taken, from a daemon with a secret, only sealed by the
+coordinator with a key derived from the secret, and once (protocol/seal.py: a holder of the
+namespace's passwords alone, or a replay of a captured request, is refused and counted): a worker imports flow classes only from the modules its allowlist admits
 (allowlist.py: ``--path`` and ``--allow``), and refuses others with its refusal's message, before
 anything is imported.
 """
@@ -36,11 +38,11 @@ import zenoh
 
 from ....errors import OtherProtocolError, WorkerError
 from ....log.format import package_versions
-from ..access import read_secret
+from ..access import daemon_control_key, read_secret
 from ..hub import (await_segments_released, client_config, mapped_segments, peer_config, raise_open_file_limit,
                    remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
-from ..protocol import (PROTOCOL_VERSION, REQUEST, DaemonOp, ErrorReply, InfoReply, InfoRequest,
-                        OtherProtocolReply, Record, decode_reply, error_message)
+from ..protocol import (PROTOCOL_VERSION, REQUEST, SEALED_OPS, DaemonOp, ErrorReply, InfoReply, InfoRequest,
+                        OtherProtocolReply, Record, RequestOpener, decode_reply, error_message)
 from ..wire import KeySpace, WireError
 from .allowlist import ALWAYS_ALLOWED, module_allowed, path_modules, refusal
 from .runs import DaemonRuns
@@ -71,8 +73,11 @@ class WorkerDaemon:
         # read once: info answers at once, reading the clock last (a query measures its offset)
         self._packages = package_versions()
         #: what it runs for a coordinator (runs.py): prepare, spawn, signal, end
-        self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen,
-                               secret=read_secret(settings.secret) if settings.secret is not None else None,
+        secret = read_secret(settings.secret) if settings.secret is not None else None
+        #: with a secret, every op but info is taken only sealed by a holder of it (seal.RequestOpener)
+        self.requests = (RequestOpener(daemon_control_key(secret, settings.namespace))
+                         if secret is not None else None)
+        self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen, secret=secret,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
                                tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
                                pass_env=settings.pass_env, router=settings.router)
@@ -94,10 +99,13 @@ class WorkerDaemon:
     def answer(self, query: zenoh.Query) -> None:
         """The queryable's callback: one reply per query, never an exception into Zenoh. A
         request past protocol.MAX_REQUEST_BYTES is refused unread (an IR of hundreds of flows is
-        well below it)."""
+        well below it); with a secret, a SEALED_OPS request without the coordinator's seal, or one
+        taken before, is refused before its op runs (seal.RequestOpener)."""
         try:
-            request = REQUEST.decode(query.payload.to_bytes() if query.payload is not None else b"",
-                                     who=f"worker '{self.settings.name}'")
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request = REQUEST.decode(payload, who=f"worker '{self.settings.name}'")
+            if self.requests is not None and request.NAME in SEALED_OPS:
+                self.requests.open(self.keys.ctl(self.settings.name), payload, query.attachment)
             with self._lock:
                 reply = self.ops[request.NAME](request)
         except WireError as e:

@@ -33,11 +33,13 @@ class WorkerBook:
     #: what each worker said of the code it runs anyway (--code-mismatch warn): into the log
     ran_other_code: dict[str, list[str]] = field(default_factory=dict)
 
-    def host_of(self, name: str, control: zenoh.Session, keys: KeySpace) -> RemoteHost:
-        """Worker ``name``'s host in the run, made on ``control`` the first time it is asked for."""
+    def host_of(self, name: str, control: zenoh.Session, keys: KeySpace, secret=None) -> RemoteHost:
+        """Worker ``name``'s host in the run, made on ``control`` the first time it is asked for;
+        ``secret``: the deployment's, which seals its requests (None: --insecure, unsealed)."""
         remote = self.remotes.get(name)
         if remote is None:
-            remote = self.remotes[name] = RemoteHost(control, keys, name, self.run_id, self.daemons[name].zid)
+            remote = self.remotes[name] = RemoteHost(control, keys, name, self.run_id, self.daemons[name].zid,
+                                                     secret)
         return remote
 
     def workers_up(self) -> list[LiveDaemon]:

@@ -6,6 +6,7 @@ import json
 import os
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from ....errors import BackendError, PlacementError
 from ....graph import Graph
@@ -139,6 +140,10 @@ class Deployment(Hosting):
         except AccessError as e:
             raise BackendError(str(e)) from None
 
+    def hub_dictionary(self, access: RunAccess, run_dir: Path) -> Path:
+        # no process of this machine but this one reads it: in memory (Links.hub_dictionary)
+        return self._links.hub_dictionary(access, run_dir)
+
     def open_hub(self, port: int, access: dict[str, str] | None):
         return self._links.open_hub(self.run, access)
 
@@ -168,7 +173,7 @@ class Deployment(Hosting):
                 if differences:
                     print(f"retriever: warning: worker '{name}' has other versions of the run's packages than this "
                           f"machine: {'; '.join(differences)}", file=sys.stderr, flush=True)
-                host = book.host_of(name, control, run.keys)
+                host = book.host_of(name, control, run.keys, self._links.secret)
                 book.say_warnings(name, host.prepare(links.spec_for(run, name, book.daemons),
                                                      sorted(n for n, w in book.placed.items() if w == name)))
         self._usage.start()

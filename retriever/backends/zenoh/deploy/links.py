@@ -8,11 +8,12 @@ import re
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 
 import zenoh
 
 from ....errors import BackendError
-from ..access import CONTROL_DICTIONARY, DICTIONARY, AccessError, RunAccess, TlsFiles, secret_bytes
+from ..access import CONTROL_DICTIONARY, AccessError, RunAccess, SessionDictionary, TlsFiles, secret_bytes
 from ..daemon import DaemonInfo, no_router
 from ..hub import (HUB_SHARED_MEMORY, client_config, forward_dropping, free_port, peer_config, raise_open_file_limit,
                    remove_orphaned_segments_at_exit, wait_for_peers)
@@ -43,7 +44,12 @@ class Links:
     def __init__(self, *, connect: list[str], listen: list[str], router: list[str], secret, insecure: bool,
                  lease: float | None, tls: TlsFiles | None, on_phase: Callable[[str, float], None] | None):
         self.connect, self.listen_at, self.router = list(connect), list(listen), list(router)
-        self.tls, self._secret, self._insecure, self._lease, self._on_phase = tls, secret, insecure, lease, on_phase
+        self.tls, self._insecure, self._lease, self._on_phase = tls, insecure, lease, on_phase
+        #: the deployment secret (a file or bytes; None: --insecure): the namespace's credentials,
+        #: and the key that seals each request to a daemon (remote.RemoteHost)
+        self.secret = secret
+        #: the hub's dictionary, in memory until the hub opened (hub_dictionary)
+        self._hub_dictionary: SessionDictionary | None = None
         #: the session that links to the worker daemons, with the namespace's credentials (the hub
         #: itself when joined through routers); ``control_keep``: what is declared on it
         self.control: zenoh.Session | None = None
@@ -61,38 +67,50 @@ class Links:
         raise_open_file_limit()  # it listens where strangers may connect too (hub.accept_pending)
         remove_orphaned_segments_at_exit()
         with phase(self._on_phase, "join"):
-            self.control = self._open_control(run, links)
             try:
-                hub = self._open_run_hub(run, {**(access or {}), **links})
-            except BaseException:
-                self.close(run.hub)
-                raise
-            # Zenoh read the run's dictionary as the hub opened, and no process of this machine reads
-            # it after (the workers' flows read their daemon's): not left on disk here
-            (run.run_dir / DICTIONARY).unlink(missing_ok=True)
+                self.control = self._open_control(run, links)
+                try:
+                    hub = self._open_run_hub(run, {**(access or {}), **links})
+                except BaseException:
+                    self.close(run.hub)
+                    raise
+            finally:  # Zenoh read the run's dictionary as the hub opened; no process of this machine reads it after
+                self.drop_hub_dictionary()
         host = "127.0.0.1" if self._hub_host in ("0.0.0.0", "[::]") else self._hub_host
         return hub, f"{self._hub_proto}/{host}:{self._hub_port}"
+
+    def hub_dictionary(self, access: RunAccess, run_dir) -> Path:
+        """The hub's dictionary, in memory (access.SessionDictionary: no file on disk, on Linux);
+        no process but this one reads it, and open_hub drops it once the hub opened."""
+        self._hub_dictionary = access.session_dictionary(run_dir)
+        return self._hub_dictionary.path
+
+    def drop_hub_dictionary(self) -> None:
+        dictionary, self._hub_dictionary = self._hub_dictionary, None
+        if dictionary is not None:
+            dictionary.close()
 
     def _open_control(self, run: HostedRun, links: dict[str, str]) -> zenoh.Session:
         """The session that links to the worker daemons, with the namespace's credentials. It
         listens even when told only where to connect (as the daemons do: a daemon it learns of
-        by gossip may open the link). The namespace's dictionary is removed once it opened (Zenoh
-        reads it then): not left on disk here, not even by a SIGKILLed coordinator."""
+        by gossip may open the link). Zenoh reads the namespace's dictionary as it opens: it is given
+        in memory (access.SessionDictionary), closed then: on disk at no time, on Linux."""
         listen = self.listen_at or [ANY_ADDRESS.replace("tcp/", "tls/") if self.tls else ANY_ADDRESS]
         access = dict(links)
-        dictionary = run.run_dir / CONTROL_DICTIONARY
+        dictionary = None
         if not self._insecure:
             try:
-                namespace_access = RunAccess.create(run.namespace, secret_bytes(self._secret))
+                namespace_access = RunAccess.create(run.namespace, secret_bytes(self.secret))
             except AccessError as e:
                 raise BackendError(str(e)) from None
-            access.update(namespace_access.session_config(namespace_access.write_dictionary(
-                run.run_dir, CONTROL_DICTIONARY)))
+            dictionary = namespace_access.session_dictionary(run.run_dir, CONTROL_DICTIONARY)
+            access.update(namespace_access.session_config(dictionary.path))
         try:
             control = zenoh.open(peer_config(listen=listen, connect=self.connect, access=access or None,
                                              lease=self._lease, shared_memory=False))
         finally:
-            dictionary.unlink(missing_ok=True)
+            if dictionary is not None:
+                dictionary.close()
         try:
             self._linked = wait_for_peers(control, len(self.connect), JOIN_S)
         except BaseException:
@@ -165,7 +183,7 @@ class Links:
                   **(self.tls.session_config() if self.tls is not None else {})}
         remove_orphaned_segments_at_exit()
         with phase(self._on_phase, "join"):
-            (run.run_dir / DICTIONARY).unlink(missing_ok=True)  # a client has none (see open_hub)
+            self.drop_hub_dictionary()  # a client has none (see open_hub)
             try:
                 hub = zenoh.open(client_config(connect=self.router, access=access or None, lease=self._lease,
                                                shared_memory=HUB_SHARED_MEMORY))

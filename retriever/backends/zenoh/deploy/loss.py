@@ -97,7 +97,7 @@ class LossPolicy:
         prepared for it."""
         run, book = self.run, self._book
         for name in sorted(set(targets.values())):
-            remote = book.host_of(name, self._links.control, run.keys)
+            remote = book.host_of(name, self._links.control, run.keys, self._links.secret)
             book.say_warnings(name, remote.prepare(self._links.spec_for(run, name, book.daemons),
                                                    sorted(n for n, w in targets.items() if w == name)))
         for nid, name in sorted(targets.items()):

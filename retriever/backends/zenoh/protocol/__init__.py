@@ -18,8 +18,9 @@ their own exact decoders in wire.py.
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
 MAC of the sending worker process's own key (origin.py); *sealed*, by the coordinator for each
 live process (seal.py: ctl/run and its answers); *run*, by a worker daemon with the key it made
-for the run and answered in its prepare reply (daemon/runs.py);
-*none*, the session's credentials alone (anyone holding the run's or the namespace's password
+for the run and answered in its prepare reply (daemon/runs.py); *request*, by the coordinator
+with a key derived from the deployment secret, each nonce taken once (seal.py: every op of
+ctl/<name> but ``info``, when the daemon has a secret); *none*, the session's credentials alone (anyone holding the run's or the namespace's password
 may send it). The last column: what the receiver checks today beyond the fields (which the
 decoders check).
 
@@ -93,7 +94,7 @@ decoders check).
                            coordinator     restarting}
                            reply
     ---------------------- --------------- -------------------------------- ------- ---------------------------------
-    ctl/<name>             coordinator     [2, op, {fields}] → [2, op,      none    the daemon: size
+    ctl/<name>             coordinator     [2, op, {fields}] → [2, op,      request the daemon: size
                            query → daemon  {fields}], or reply_err [2,              (MAX_REQUEST_BYTES), op; the
                            reply           "error", {message}]                      coordinator: replies only from
                                                                                     the session it learned the daemon
@@ -134,7 +135,7 @@ from __future__ import annotations
 
 from ..command import SpawnMode
 from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOCOL_VERSION, REPLY, REQUEST,
-                     DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest,
+                     SEALED_OPS, DaemonEvent, DaemonOp, EndReply, EndRequest, ErrorReply, InfoReply, InfoRequest,
                      OtherProtocolReply, PrepareReply, PrepareRequest, ProcessExit, ProcessOutput, SignalReply,
                      SignalRequest, SpawnReply, SpawnRequest, Stream, UsageReply, UsageRequest, decode_reply,
                      error_message)
@@ -142,7 +143,7 @@ from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeS
                          StatusReply, StopQuery, StopReply)
 from .run_spec import DoraPart, RunSpec
 from .schema import ABSENT, Record
-from .seal import ControlOpener, ControlSigner, new_nonce
+from .seal import ControlOpener, ControlSigner, RequestOpener, RequestSealer, new_nonce
 from .to_coordinator import (STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
                              ReportedStep, Restart, State, Status, Unanswered)
 from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Handover, Have, Lost, Op, Redeclare,
@@ -150,11 +151,11 @@ from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Hando
 
 __all__ = sorted([
     "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "FINISHED_REPLY",
-    "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "STATUS", "ControlOpener",
+    "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "SEALED_OPS", "STATUS", "ControlOpener",
     "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "DoraPart", "End", "EndReply", "EndRequest",
     "ErrorReply", "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest",
     "Lost", "NodeState", "NodeStatus", "Op", "OtherProtocolReply", "PrepareReply", "PrepareRequest", "ProcessExit",
-    "ProcessOutput", "Reached",
+    "ProcessOutput", "Reached", "RequestOpener", "RequestSealer",
     "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
     "RunSpec", "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
     "StatusQuery", "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply",

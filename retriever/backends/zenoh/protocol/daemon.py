@@ -35,6 +35,11 @@ class DaemonOp(StrEnum):
     USAGE = "usage"
 
 
+#: the ops a deployment's coordinator seals (seal.RequestSealer) and a daemon with a secret takes
+#: only sealed: each starts a process, links one to a run, or tells of a run; ``info`` tells nothing secret
+SEALED_OPS = frozenset(DaemonOp) - {DaemonOp.INFO}
+
+
 class DaemonEvent(StrEnum):
     OUTPUT = "output"
     EXIT = "exit"

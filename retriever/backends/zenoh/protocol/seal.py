@@ -26,6 +26,20 @@ key, the run's (daemon/runs.py seals them with a ControlSigner holding it; the c
 opens them with a ControlOpener): forged, altered, another run's or replayed, they are refused. What it does not prove:
 that a message arrived at all (an insider with the run's password can still flood the links it
 shares, as it could before).
+
+A coordinator's requests to a worker daemon (ctl/<name>: prepare, spawn, signal, usage, end, which
+start processes, link them to a run, or tell of it) are sealed too, with one key derived from the
+deployment secret itself (access.daemon_control_key), never from a password: the namespace's
+passwords sit in every daemon's dictionary and, routed, in every flow, and a request with a live
+run's id would have the daemon derive that run's passwords for a process of the sender's choosing.
+
+    query ctl/<name>   attachment = nonce (NONCE_BYTES) + time (REQUEST_TIME_BYTES, ns since the
+                       epoch, big-endian) + MAC(key, key_expr, nonce + time + payload)
+
+The daemon (daemon/core.py) takes a sealed op only with a valid MAC, each nonce once: it keeps the
+nonces it took (RequestOpener), at most REQUEST_NONCES; a request older than the newest it forgot
+is refused, and so is one whose time lies more than REQUEST_MAX_AGE_S from its clock (a restarted
+daemon remembers no nonce). The read-only ``info`` stays unsealed: it tells nothing secret.
 """
 
 from __future__ import annotations
@@ -33,6 +47,9 @@ from __future__ import annotations
 import hmac
 import secrets
 import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 from ....errors import WireError
@@ -44,6 +61,14 @@ COUNTER_BYTES = 8
 NONCE_BYTES = 16
 #: how far behind the newest counter a process took a control message may be and still be taken
 REPLAY_WINDOW = 1024
+#: a sealed request's time: ns since the Unix epoch, big-endian
+REQUEST_TIME_BYTES = 8
+#: how far from the daemon's clock a sealed request's time may lie (a deployment's clocks agree to
+#: within milliseconds: deploy.CLOCK_REFUSE_NS)
+REQUEST_MAX_AGE_S = 60.0
+#: how many nonces of sealed requests a daemon remembers (a deployment asks each daemon for its
+#: usage once a second: over an hour's)
+REQUEST_NONCES = 4096
 #: a run's live processes, at most, that one control message is sealed for: its attachment stays small
 MAX_SEALED = 4096
 
@@ -162,6 +187,53 @@ class ControlOpener:
             if behind >= REPLAY_WINDOW or self._seen >> behind & 1:
                 raise WireError(f"a control message on {key_expr} taken before (counter {counter}): a replay")
             self._seen |= 1 << behind
+
+
+class RequestSealer:
+    """The coordinator's side of ctl/<name>: seals each request it sends a daemon (safe to call
+    from any thread). ``clock``: ns since the epoch (time.time_ns; a test's own)."""
+
+    def __init__(self, key: bytes, clock: Callable[[], int] = time.time_ns):
+        self._key, self._clock = key, clock
+
+    def seal(self, key_expr: str, payload: bytes) -> bytes:
+        """The attachment of a request put on ``key_expr`` (the daemon's ctl/<name>)."""
+        head = new_nonce() + self._clock().to_bytes(REQUEST_TIME_BYTES, "big")
+        return head + sign(self._key, key_expr, head + payload)
+
+
+class RequestOpener:
+    """A daemon's side of ctl/<name>: takes a sealed request once, or says why not (safe to call
+    from Zenoh's threads)."""
+
+    def __init__(self, key: bytes, clock: Callable[[], int] = time.time_ns):
+        self._key, self._clock = key, clock
+        self._taken: OrderedDict[bytes, int] = OrderedDict()  # nonce -> its request's time, oldest first
+        self._floor = -1  # the newest time of a nonce forgotten: a request no newer is refused
+        self._lock = threading.Lock()
+
+    def open(self, key_expr: str, payload: bytes, attachment: Any) -> None:
+        """Take a request on ``key_expr`` (this daemon's ctl/<name>), or raise WireError."""
+        seal = _bytes(attachment)
+        head_bytes = NONCE_BYTES + REQUEST_TIME_BYTES
+        if len(seal) != head_bytes + MAC_BYTES:
+            raise WireError(f"a request on {key_expr} without the coordinator's seal (a deployment's requests "
+                            "are sealed with a key derived from its secret; the namespace's password is not enough)")
+        head, mac = seal[:head_bytes], seal[head_bytes:]
+        if not hmac.compare_digest(sign(self._key, key_expr, head + bytes(payload)), mac):
+            raise WireError(f"a request on {key_expr} that no holder of the deployment secret sealed "
+                            "(forged, altered, or another namespace's)")
+        nonce, stamp = head[:NONCE_BYTES], int.from_bytes(head[NONCE_BYTES:], "big")
+        if abs(self._clock() - stamp) > REQUEST_MAX_AGE_S * 1e9:
+            raise WireError(f"a request on {key_expr} sealed {(self._clock() - stamp) / 1e9:.1f} s from this "
+                            f"worker's clock, past {REQUEST_MAX_AGE_S:g} s: a replay, or clocks that disagree")
+        with self._lock:
+            if nonce in self._taken or stamp <= self._floor:
+                raise WireError(f"a request on {key_expr} taken before: a replay")
+            self._taken[nonce] = stamp
+            while len(self._taken) > REQUEST_NONCES:
+                _, forgotten = self._taken.popitem(last=False)
+                self._floor = max(self._floor, forgotten)
 
 
 def _bytes(attachment: Any) -> bytes:
