@@ -38,7 +38,9 @@ gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam
 things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
 are named first, before any value is read, those whose names needed no change before the others,
 each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
-``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. A topic longer than rmw
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise (the fields of one value
+named as the ports are: ``{"#": 2.0, "_": 3.0}`` gives ``_`` the topic ``.../_``, ``#`` ``.../_2``;
+a field first met in a later value than another's finds what that one took). A topic longer than rmw
 takes (247 characters: a long dict key's, say) is cut to that length, and one cut to a name
 taken takes the next free ``_N`` the same way (``fitted``). So the same log always
 gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
@@ -416,8 +418,13 @@ class Ros2Bag:
         return types[ros_type](layout=layout, data=np.ascontiguousarray(value, dtype=dtype).reshape(-1))
 
     def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
-        """One event: each of its leaves as a message on its topic."""
-        for path, leaf in value_leaves(value):
+        """One event: each of its leaves as a message on its topic (those not named yet named
+        first, as :meth:`reserve` does: a field whose name needed no change keeps its topic)."""
+        leaves = list(value_leaves(value))
+        fresh = [origin for path, _ in leaves if (origin := ("port", node, port, path)) not in self._named]
+        if fresh:
+            self.reserve(fresh)
+        for path, leaf in leaves:
             declared = declared_encoding(value, path)
             try:
                 kind, ready = message_kind(leaf, declared)

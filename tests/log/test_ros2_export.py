@@ -519,3 +519,12 @@ def test_an_array_of_no_element_with_a_dimension_past_a_uint32_is_exported_as_js
     assert json.loads(decoded["/cam/empty"][0].data) == {"dtype": "uint8", "shape": [0, 2**40, 3], "head": []}
     assert json.loads(decoded["/cam/zc"][0].data) == {"dtype": "complex128", "shape": [2**33, 0], "head": None}
     assert decoded["/cam/ok"][0].data == 1.0 and bag.summary.as_json == 2
+
+
+def test_a_field_whose_name_needed_no_change_keeps_its_topic_whatever_the_key_order():
+    """``#`` and ``_`` both make the ROS name ``_``: ``_`` needed no change and keeps ``/cam/p/_``,
+    ``#`` takes ``/cam/p/_2``, in either key order (as docs/log.md says)."""
+    for value in ({"#": 2.0, "_": 3.0}, {"_": 3.0, "#": 2.0}):
+        bag, decoded = _images([("p", value)])
+        assert {topic: [m.data for m in ms] for topic, ms in decoded.items()} == {"/cam/p/_": [3.0], "/cam/p/_2": [2.0]}
+        assert bag.summary.renamed == {"cam.p.#": "/cam/p/_2"}
