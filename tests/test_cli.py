@@ -837,3 +837,13 @@ def test_log_cat_shows_floats_with_the_digits_that_tell_them_apart():
     values = np.array([0.4803160625, 1 / 3])
     assert show_value(values, "summary") == "array([0.4803160625, 0.3333333333333333])"
     assert "0.4803160625" in show_value(values, "full") and "0.3333333333333333" in show_value(values, "full")
+
+
+def test_the_consoles_print_no_emoji_for_a_colon_code_in_a_message():
+    """Rich read ``:-1:`` in ``127.0.0.1:-1:`` (``--foxglove=-1``'s error) as the 👎 emoji."""
+    from retriever.cli import console
+
+    for printer in (console.out, console.err):
+        with printer.capture() as captured:
+            printer.print("cannot serve the Foxglove live view on 127.0.0.1:-1: number too small")
+        assert "127.0.0.1:-1: number" in captured.get(), captured.get()

@@ -64,9 +64,9 @@ def cell(value: object) -> Text:
 
 
 #: where a command prints its results (stdout) and its progress and errors (stderr): strings are
-#: never markup and their control characters are shown escaped
-out = _Console(markup=False)
-err = _Console(stderr=True, soft_wrap=True, markup=False)
+#: never markup nor emoji codes, and their control characters are shown escaped
+out = _Console(markup=False, emoji=False)  # no emoji codes either: "127.0.0.1:-1:" is not 👎
+err = _Console(stderr=True, soft_wrap=True, markup=False, emoji=False)
 
 
 def set_debug(debug: bool) -> None:

@@ -321,9 +321,12 @@ def _rerun(log, out: Path, force: bool) -> str:
     from ..log.outputs import to_stdout
     from ..log.rerun import export_rerun
 
-    written = export_rerun(log, out, overwrite=force)
-    return f"{sum(written.values())} rows on {len(written)} entities; " + (
-        "a viewer reads it from a pipe: | rerun -" if to_stdout(out) else f"open it with: rerun {out}")
+    done = export_rerun(log, out, overwrite=force)
+    said = f"{sum(done.written.values())} rows on {len(done.written)} entities; "
+    if done.renamed:  # names that made one entity: each kept apart
+        moved = ", ".join(f"{what} on {entity}" for what, entity in sorted(done.renamed.items()))
+        said += f"entities kept apart: {moved}; "
+    return said + ("a viewer reads it from a pipe: | rerun -" if to_stdout(out) else f"open it with: rerun {out}")
 
 
 #: --format → the export of one log to a viewer's file, and what it says it wrote

@@ -15,6 +15,12 @@ views.value_leaves); a value is
 Step records are ``rr.TextLog`` on ``/retriever/steps/<node>`` (views.step_json), at level INFO
 when the step ran, WARN when it was skipped, incomplete, late or overran, ERROR when it failed.
 
+Two things never share an entity (node ``retriever``'s port ``steps`` with a field ``x``, beside
+a node ``x``, would make ``/retriever/steps/x`` twice): as in the ROS 2 export, the step records'
+entities and the ports' are named first (the export knows them before it reads a value), and
+what finds its entity taken gets the first free ``<entity>_2``, ``<entity>_3``... (its last part
+suffixed), said in ``RerunExport.renamed``; a field, met later, likewise.
+
 Three timelines: ``event_time``, the tag (a duration from the run's T0: a replayed run and the live
 one line up on it), which the recording's blueprint selects; ``wall_time``, when the event was
 published (a step: when it began), where the log has it; and ``seq``, a sequence: an event's seq
@@ -32,6 +38,7 @@ from __future__ import annotations
 import json
 import os
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +46,7 @@ import numpy as np
 
 from ..errors import LogError
 from ..trace import StepRecord
+from .format import parse_data_topic
 from .outputs import export_path, stdout_stream, to_stdout
 from .reader import LogHead, LogRecords, RunLog, log_records
 from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
@@ -92,13 +100,58 @@ def archetype(rr, value: Any):
     return rr.Tensor(array.astype(np.uint8) if array.dtype.kind == "b" else array)
 
 
+@dataclass
+class RerunExport:
+    """What :func:`export_rerun` wrote: the rows per entity, and what had to move to an entity of
+    its own (``node.port[.field]``, ``the step records of NODE``) because another had taken the
+    one its names make: the entity it got."""
+
+    written: Counter = field(default_factory=Counter)
+    renamed: dict[str, str] = field(default_factory=dict)
+
+
+def origin_text(origin: tuple) -> str:
+    if origin[0] == "steps":
+        return f"the step records of {origin[1]}"
+    _, node, port, path = origin
+    return ".".join([node, port, *path.split("/")[1:]])
+
+
 class RerunRecording:
     """A run's events and step records logged on one recording stream, on both timelines."""
 
     def __init__(self, rr, stream):
         self._rr, self._stream = rr, stream
         self.written: Counter = Counter()
+        self.renamed: dict[str, str] = {}
         self._steps: Counter = Counter()  # step records logged, per node: the next one's seq
+        self._taken: dict[tuple[str, ...], tuple] = {}  # entity parts -> what they stand for
+        self._named: dict[tuple, list[str]] = {}  # and back
+
+    def reserve(self, step_nodes, ports) -> None:
+        """Name the entities of the step records of ``step_nodes`` and of ``ports`` (``(node,
+        port)``) before any value is logged, each in its names' order: the same log gives the
+        same entities whatever the order of its records."""
+        for node in sorted(step_nodes):
+            self.entity(("steps", node))
+        for node, port in sorted(ports):
+            self.entity(("port", node, port, ""))
+
+    def entity(self, origin: tuple) -> list[str]:
+        """``origin``'s entity parts: the ones it was given, else the ones its names make if
+        free, else those with the first free ``_2``, ``_3``... after the last (said in ``renamed``)."""
+        parts = self._named.get(origin)
+        if parts is None:
+            wanted = (entity_path("retriever", "steps", origin[1]) if origin[0] == "steps"
+                      else entity_path(origin[1], origin[2], *origin[3].split("/")[1:]))
+            parts, n = wanted, 1
+            while tuple(parts) in self._taken:
+                n += 1
+                parts = [*wanted[:-1], f"{wanted[-1]}_{n}"]
+            self._taken[tuple(parts)], self._named[origin] = origin, parts
+            if parts != wanted:
+                self.renamed[origin_text(origin)] = "/" + "/".join(parts)
+        return parts
 
     def at(self, tag_ns: int, wall_ns: int, seq: int) -> None:
         """Log what follows at ``tag_ns`` on the event timeline, ``seq`` on the sequence one and,
@@ -115,12 +168,12 @@ class RerunRecording:
 
     def event(self, node: str, port: str, value: Any) -> None:
         for path, leaf in value_leaves(value):
-            parts = entity_path(node, port, *path.split("/")[1:])
+            parts = self.entity(("port", node, port, path))
             self._stream.log(parts, archetype(self._rr, leaf))
             self.written["/" + "/".join(parts)] += 1
 
     def step(self, node: str, text: str, status: str) -> None:
-        parts = entity_path("retriever", "steps", node)
+        parts = self.entity(("steps", node))
         self._stream.log(parts, self._rr.TextLog(text, level=STEP_LEVELS.get(status, "WARN")))
         self.written["/" + "/".join(parts)] += 1
 
@@ -137,9 +190,10 @@ class RerunRecording:
         self.step(step.node, step_json(step), step.status)
 
 
-def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> Counter:
+def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = False) -> RerunExport:
     """Write ``log`` (read whole, or its path: streamed, reader.log_records) as a Rerun recording
-    (``.rrd``) to ``out`` (``-``: standard output, a pipe: ``| rerun -``); the rows written, per entity."""
+    (``.rrd``) to ``out`` (``-``: standard output, a pipe: ``| rerun -``); the rows written, per
+    entity, and the entities renamed."""
     rr = rerun_sdk()
     if to_stdout(out):
         stdout_stream("rerun")  # a LogError for a terminal: Rerun's SDK would hold the recording in memory
@@ -168,11 +222,12 @@ def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool =
     return written
 
 
-def _write_rerun(rr, source: LogRecords, stream) -> Counter:
+def _write_rerun(rr, source: LogRecords, stream) -> RerunExport:
     """The log's records logged on ``stream`` (its sink set), flushed and disconnected."""
     head = source.head
     stream.send_recording_name(head.run.get("pipeline") or Path(head.path).stem)
     recording = RerunRecording(rr, stream)
+    recording.reserve(source.step_nodes, [port for c in head.channels.values() if (port := parse_data_topic(c.topic))])
     for record in source.records():
         if type(record) is StepRecord:
             recording.log_step(record)
@@ -181,4 +236,4 @@ def _write_rerun(rr, source: LogRecords, stream) -> Counter:
                                 head.value(record, keep_unregistered=True))
     stream.flush()
     stream.disconnect()
-    return recording.written
+    return RerunExport(recording.written, recording.renamed)

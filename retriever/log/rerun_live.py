@@ -51,6 +51,9 @@ def check_target(target: str | os.PathLike) -> None:
     path = Path(target)
     folder = path.parent if str(path.parent) != "" else Path(".")
     either = f"or a running viewer's URL ({RERUN_VIEWER_URL})"
+    if text == "":  # Path("") is ".": a folder, which it was not given as
+        raise LogError("cannot stream the run to Rerun at '': it is empty",
+                       f"give a path ending in .rrd, the file to save the stream to (live.rrd), {either}")
     if path.is_dir():
         raise LogError(f"cannot stream the run to Rerun at {text}: it is a folder",
                        f"give a path ending in .rrd, the file to save the stream to ({path / 'live.rrd'}), {either}")

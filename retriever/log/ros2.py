@@ -18,7 +18,13 @@ views.value_leaves); a value is
   ``Float64``, ``Float32``, ``UInt8``...; an array of numbers, or a flat list of them,
   ``std_msgs/msg/<Type>MultiArray`` with its shape as the layout's dimensions (row-major);
 - text: ``std_msgs/msg/String``;
-- anything else (bytes, a nested list, a dict with a key that names no path part, a number too big for 64 bits...): ``std_msgs/msg/String``
+- bytes: ``std_msgs/msg/UInt8MultiArray`` holding them;
+- a complex number or array (complex64, complex128): ``std_msgs/msg/Float32MultiArray`` or
+  ``Float64MultiArray`` of its real and imaginary parts, along a last dimension of size 2 added to
+  its shape (``[re, im, re, im...]``; a complex scalar is shape ``[2]``);
+- an array that holds no element but has a dimension past a uint32 (``(0, 2**40)``): JSON (below),
+  its dtype and shape;
+- anything else (a nested list, a dict with a key that names no path part, a number too big for 64 bits...): ``std_msgs/msg/String``
   holding the value as JSON (bigger arrays summarised: foxglove.to_json), counted as ``as_json``.
 
 A topic's type is its first value's. A later value that fits it without loss is written in it
@@ -32,7 +38,9 @@ gets a ``_`` before it). Names that differ can then meet (``cam-left`` and ``cam
 things never share a topic. The step records' topics (``/retriever/steps/<node>``) and the ports'
 are named first, before any value is read, those whose names needed no change before the others,
 each in the order of its names; a topic already taken goes to the first free ``<topic>_2``,
-``<topic>_3``...; a field's or a ``json`` topic, met later, likewise. A topic longer than rmw
+``<topic>_3``...; a field's or a ``json`` topic, met later, likewise (the fields of one value
+named as the ports are: ``{"#": 2.0, "_": 3.0}`` gives ``_`` the topic ``.../_``, ``#`` ``.../_2``;
+a field first met in a later value than another's finds what that one took). A topic longer than rmw
 takes (247 characters: a long dict key's, say) is cut to that length, and one cut to a name
 taken takes the next free ``_N`` the same way (``fitted``). So the same log always
 gives the same topics, whatever the order of its records; ``Ros2Export.renamed`` says which
@@ -83,6 +91,8 @@ SCALARS = {"bool": "Bool", "int8": "Int8", "int16": "Int16", "int32": "Int32", "
            "uint8": "UInt8", "uint16": "UInt16", "uint32": "UInt32", "uint64": "UInt64",
            "float16": "Float32", "float32": "Float32", "float64": "Float64"}
 ARRAYS = {**{name: f"{kind}MultiArray" for name, kind in SCALARS.items()}, "bool": "UInt8MultiArray"}
+#: a complex number's parts' NumPy type (a complex one is written as its parts: message_kind)
+COMPLEX = {"complex64": "float32", "complex128": "float64"}
 #: the NumPy type each std_msgs number message holds
 MESSAGE_DTYPES = {"Bool": "bool", "Float32": "float32", "Float64": "float64",
                   **{kind: name for name, kind in SCALARS.items() if kind[0] in "IU"}}
@@ -223,7 +233,18 @@ def message_kind(value: Any, declared: Any = None) -> tuple[str, Any]:
         return IMAGE, np.ascontiguousarray(value, dtype=value.dtype.newbyteorder("<"))  # is_bigendian 0
     if isinstance(value, str):
         return STRING, value
+    if isinstance(value, (bytes, bytearray)):  # its content, as the bytes of a UInt8MultiArray
+        value = np.frombuffer(value, np.uint8)
+    elif isinstance(value, (complex, np.complexfloating, np.ndarray)) and np.asarray(value).dtype.name in COMPLEX:
+        # each number as its real and imaginary parts, along a trailing dimension of 2
+        array = np.asarray(value)
+        if array.size == 0 and max(array.shape, default=0) > UINT32_MAX:
+            return JSON, json_text(array)
+        _refuse_sizes(f"std_msgs/msg/{ARRAYS[COMPLEX[array.dtype.name]]}", array)
+        value = np.stack((array.real, array.imag), axis=-1)
     if isinstance(value, np.ndarray) and value.ndim and value.dtype.name in ARRAYS:  # before any copy
+        if value.size == 0 and max(value.shape) > UINT32_MAX:  # holds nothing: its shape, as JSON
+            return JSON, json_text(value)
         _refuse_sizes(f"std_msgs/msg/{ARRAYS[value.dtype.name]}", value)
     array = numeric_array(value)
     if array is None:
@@ -397,8 +418,13 @@ class Ros2Bag:
         return types[ros_type](layout=layout, data=np.ascontiguousarray(value, dtype=dtype).reshape(-1))
 
     def event(self, node: str, port: str, value: Any, tag_ns: int, publish_ns: int, seq: int) -> None:
-        """One event: each of its leaves as a message on its topic."""
-        for path, leaf in value_leaves(value):
+        """One event: each of its leaves as a message on its topic (those not named yet named
+        first, as :meth:`reserve` does: a field whose name needed no change keeps its topic)."""
+        leaves = list(value_leaves(value))
+        fresh = [origin for path, _ in leaves if (origin := ("port", node, port, path)) not in self._named]
+        if fresh:
+            self.reserve(fresh)
+        for path, leaf in leaves:
             declared = declared_encoding(value, path)
             try:
                 kind, ready = message_kind(leaf, declared)

@@ -15,7 +15,8 @@ import rerun as rr
 
 from retriever import LogError, read_log
 from retriever.log.rerun import export_rerun
-from tests.log.export_flows import burst_log, camera_log, event_data, hand_written_log, kinds_log, ros_camera_log
+from tests.log.export_flows import (burst_log, camera_log, event_data, hand_written_log, kinds_log, ros_camera_log,
+                                    shadowed_steps_log)
 
 #: each entity, the archetype it is logged as, and how a leaf is read from the log's value
 ENTITIES = {
@@ -77,7 +78,7 @@ def _check(entity: str, rows: dict[str, list], index: int, value) -> None:
 def test_rerun_loads_the_logs_rows_times_values_and_images(tmp_path):
     log_path = camera_log(tmp_path)
     out = tmp_path / "run.rrd"
-    written = export_rerun(read_log(log_path), out)
+    written = export_rerun(read_log(log_path), out).written
     expected = _expected(read_log(log_path))
     assert written == {entity: len(rows) for entity, rows in expected.items()}
     assert set(expected) == set(ENTITIES) and len(expected["/cam/frame/rgb"]) == 5
@@ -100,7 +101,7 @@ def test_rerun_loads_the_logs_rows_times_values_and_images(tmp_path):
 
 def test_each_kind_of_value_is_shown_as_what_it_is(tmp_path):
     out = tmp_path / "kinds.rrd"
-    written = export_rerun(read_log(kinds_log(tmp_path)), out)
+    written = export_rerun(read_log(kinds_log(tmp_path)), out).written
     assert set(written.values()) == {2}
     recording = rr.dataframe.load_recording(out)
     archetypes = {c.entity_path: c.archetype.rpartition(".")[2] for c in recording.schema().component_columns()}
@@ -182,3 +183,19 @@ def test_a_damaged_log_is_a_log_error_and_leaves_no_file(tmp_path, events, messa
     with pytest.raises(LogError, match=message):
         export_rerun(log, tmp_path / "run.rrd")
     assert [p.name for p in tmp_path.iterdir()] == ["odd.mcap"]
+
+
+def test_a_field_never_shares_the_entity_of_a_nodes_step_records(tmp_path):
+    """Node ``retriever``'s port ``steps`` with a field ``cam``, beside a node ``cam``: the step
+    records keep ``/retriever/steps/cam``, the field goes to ``/retriever/steps/cam_2``, said in
+    ``renamed``; each entity holds one archetype."""
+    out = tmp_path / "shadow.rrd"
+    done = export_rerun(read_log(shadowed_steps_log(tmp_path)), out)
+    recording = rr.dataframe.load_recording(out)
+    archetypes: dict[str, set] = {}
+    for c in recording.schema().component_columns():
+        archetypes.setdefault(c.entity_path, set()).add(c.archetype.rpartition(".")[2])
+    assert archetypes["/retriever/steps/cam"] == {"TextLog"} and archetypes["/retriever/steps/cam_2"] == {"Scalars"}
+    texts = _rows(recording, "/retriever/steps/cam")["text"]
+    assert texts and {json.loads(t[0])["node"] for t in texts} == {"cam"}
+    assert done.renamed == {"retriever.steps.cam": "/retriever/steps/cam_2"}

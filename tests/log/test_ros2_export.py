@@ -146,7 +146,7 @@ def test_a_port_whose_values_change_kind_keeps_its_type_and_sends_the_rest_as_js
             decoded.setdefault(channel.topic, []).append(message.data)
     assert decoded["/emit/value"] == [1.5, 2.0, 0.25]
     as_json = [json.loads(text) for text in decoded["/emit/value/json"]]
-    assert as_json == ["two", 2**70, 2**64 - 1, [1, [2]], {"bytes": 2}]
+    assert as_json == ["two", 2**70, 2**64 - 1, [1, [2]], [0, 1]]  # the bytes' content, not their length
     assert summary.as_json == 5  # JSON keeps 2**70 whole; uint64 max is no float64; None is no event
 
 
@@ -195,9 +195,9 @@ def test_each_kind_of_number_keeps_its_width_and_what_no_message_holds_is_json(t
         "/kinds/flags": "std_msgs/msg/UInt8MultiArray", "/kinds/big_endian": "std_msgs/msg/Int32MultiArray",
         "/kinds/two_channels": "std_msgs/msg/UInt8MultiArray",  # H×W×2 is no image
         "/kinds/records": "std_msgs/msg/String", "/kinds/empty": "std_msgs/msg/Float64MultiArray",
-        "/kinds/pair": "std_msgs/msg/Float64MultiArray", "/kinds/blob": "std_msgs/msg/String",
+        "/kinds/pair": "std_msgs/msg/Float64MultiArray", "/kinds/blob": "std_msgs/msg/UInt8MultiArray",
         "/retriever/steps/kinds": "std_msgs/msg/String"}
-    assert summary.as_json == 4 and set(summary.written.values()) == {2}
+    assert summary.as_json == 2 and set(summary.written.values()) == {2}
     with out.open("rb") as f:
         decoded = {channel.topic: message for _, channel, _, message in
                    make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()}
@@ -209,7 +209,7 @@ def test_each_kind_of_number_keeps_its_width_and_what_no_message_holds_is_json(t
     assert [d.size for d in decoded["/kinds/empty"].layout.dim] == [0, 3] and list(decoded["/kinds/empty"].data) == []
     assert list(decoded["/kinds/pair"].data) == [1.0, 2.5]
     assert json.loads(decoded["/kinds/records"].data) == {"dtype": "[('a', '<f4')]", "shape": [2], "head": None}
-    assert json.loads(decoded["/kinds/blob"].data) == {"bytes": 2}
+    assert bytes(decoded["/kinds/blob"].data) == b"\x00\x01"
 
 
 def test_a_process_that_never_imported_the_value_types_writes_the_same_file(tmp_path):
@@ -493,3 +493,38 @@ def test_an_encoding_that_does_not_match_its_array_is_not_trusted():
     """A dict whose 'encoding' says rgb8 beside a 2-D uint16 array: the array's own (16UC1)."""
     _, decoded = _images([("image", {"image": np.zeros((2, 3), np.uint16), "encoding": "rgb8"})])
     assert decoded["/cam/image/image"][0].encoding == "16UC1"
+
+
+def test_bytes_and_complex_values_are_exported_with_their_content():
+    """Bytes are a UInt8MultiArray of them (not their length); a complex array (or number) a
+    Float64/Float32MultiArray of its real and imaginary parts along a last dimension of 2."""
+    z = np.array([[1 + 2j, -3.5j], [0.25, 4 - 1j]])
+    bag, decoded = _images([("blob", b"\x00\x01\xff"), ("z", z), ("z32", np.complex64(1.5 - 2j)),
+                            ("nothing", b"")])
+    assert bag.summary.types["/cam/blob"] == "std_msgs/msg/UInt8MultiArray"
+    assert bytes(decoded["/cam/blob"][0].data) == b"\x00\x01\xff"
+    assert list(decoded["/cam/nothing"][0].data) == []
+    message = decoded["/cam/z"][0]
+    assert bag.summary.types["/cam/z"] == "std_msgs/msg/Float64MultiArray"
+    assert [(d.size, d.stride) for d in message.layout.dim] == [(2, 8), (2, 4), (2, 2)]
+    assert list(message.data) == [1.0, 2.0, 0.0, -3.5, 0.25, 0.0, 4.0, -1.0]
+    assert bag.summary.types["/cam/z32"] == "std_msgs/msg/Float32MultiArray"
+    assert list(decoded["/cam/z32"][0].data) == [1.5, -2.0] and bag.summary.as_json == 0
+
+
+def test_an_array_of_no_element_with_a_dimension_past_a_uint32_is_exported_as_json():
+    """It holds 0 bytes: its dtype and shape go as JSON, the export goes on (no size error)."""
+    bag, decoded = _images([("empty", np.zeros((0, 2**40, 3), np.uint8)), ("ok", 1.0),
+                            ("zc", np.zeros((2**33, 0), np.complex128))])
+    assert json.loads(decoded["/cam/empty"][0].data) == {"dtype": "uint8", "shape": [0, 2**40, 3], "head": []}
+    assert json.loads(decoded["/cam/zc"][0].data) == {"dtype": "complex128", "shape": [2**33, 0], "head": None}
+    assert decoded["/cam/ok"][0].data == 1.0 and bag.summary.as_json == 2
+
+
+def test_a_field_whose_name_needed_no_change_keeps_its_topic_whatever_the_key_order():
+    """``#`` and ``_`` both make the ROS name ``_``: ``_`` needed no change and keeps ``/cam/p/_``,
+    ``#`` takes ``/cam/p/_2``, in either key order (as docs/log.md says)."""
+    for value in ({"#": 2.0, "_": 3.0}, {"_": 3.0, "#": 2.0}):
+        bag, decoded = _images([("p", value)])
+        assert {topic: [m.data for m in ms] for topic, ms in decoded.items()} == {"/cam/p/_": [3.0], "/cam/p/_2": [2.0]}
+        assert bag.summary.renamed == {"cam.p.#": "/cam/p/_2"}

@@ -17,7 +17,7 @@ import pytest
 from retriever import LogError, read_log
 from retriever.log.rerun import export_rerun
 from retriever.log.ros2 import export_ros2
-from tests.log.export_flows import camera_log, long_log
+from tests.log.export_flows import camera_log, long_log, shadowed_steps_log
 from tests.log.helpers import cli_env
 
 
@@ -38,6 +38,15 @@ def test_the_command_writes_the_view_and_refuses_to_overwrite(tmp_path, fmt, sai
     assert again.returncode == 1 and "exists" in again.stderr and "--force" in again.stderr, again.stderr
     assert _export(log_path, out, fmt, "--force", cwd=tmp_path).returncode == 0
     assert read_log(log_path).path == log_path  # the log itself is untouched and still reads
+
+
+@pytest.mark.parametrize("fmt, said", [("ros2", "names that make one ROS name kept apart: "),
+                                       ("rerun", "entities kept apart: ")])
+def test_the_command_says_which_names_were_kept_apart(tmp_path, fmt, said):
+    out = tmp_path / f"view.{'mcap' if fmt == 'ros2' else 'rrd'}"
+    done = _export(shadowed_steps_log(tmp_path), out, fmt, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert f"{said}retriever.steps.cam on /retriever/steps/cam_2" in " ".join(done.stdout.split()), done.stdout
 
 
 def test_a_view_takes_one_log_and_an_unknown_format_is_named(tmp_path):
@@ -154,7 +163,7 @@ def test_rerun_to_standard_output_loads_as_the_file_it_writes(tmp_path):
     assert piped.returncode == 0, piped.stderr
     assert "a viewer reads it from a pipe: | rerun -" in piped.stderr.decode() and not (tmp_path / "-").exists()
     (tmp_path / "piped.rrd").write_bytes(piped.stdout)
-    written = export_rerun(log_path, tmp_path / "view.rrd")
+    written = export_rerun(log_path, tmp_path / "view.rrd").written
     for path in (tmp_path / "piped.rrd", tmp_path / "view.rrd"):
         recording = rr.dataframe.load_recording(path)
         for entity, rows in written.items():

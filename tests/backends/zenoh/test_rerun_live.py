@@ -209,6 +209,7 @@ with Pipeline("marked") as pipe:
 
 
 @pytest.mark.parametrize("option, said, hint", [
+    (["--rerun="], r"'': it is empty", r"give a path ending in \.rrd"),  # not "a folder" (Path("") is ".")
     (["--rerun", "adir"], r"adir: it is a folder", r"give a path ending in \.rrd"),  # a folder, as a bare word
     (["--rerun", "adir/"], r"adir/: it is a folder", r"give a path ending in \.rrd"),
     (["--rerun", "adir.rrd"], r"adir\.rrd: it is a folder", r"give a path ending in \.rrd"),  # named as a file
@@ -267,6 +268,16 @@ def test_pipe_run_refuses_a_target_that_is_no_str_or_path_naming_the_forms_it_ta
                                        rf"path ending in \.rrd \(a str or a pathlib\.Path\)(.|\n)*hint: {meant}"):
         live_pipeline().run(duration=0.5, backend="zenoh", rerun=target, log=tmp_path / "x.mcap")
     assert "namespace" not in capfd.readouterr().err  # no hub was opened, no worker started
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_pipe_run_on_the_inproc_backend_says_how_to_see_the_run_in_rerun(tmp_path):
+    from retriever.errors import BackendError
+
+    with pytest.raises(BackendError, match=r"the inproc backend takes no options \['rerun'\](.|\n)*hint: a live view "
+                                           r"needs backend='zenoh' or 'dora'(.|\n)*retriever log export run\.mcap "
+                                           r"--format rerun"):
+        live_pipeline().run(duration=0.5, rerun=tmp_path / "live.rrd")
     assert list(tmp_path.iterdir()) == []
 
 
