@@ -734,8 +734,13 @@ class InprocBackend(Backend):
         if options:
             from ..errors import BackendError
 
-            hint = ("\n    hint: inproc always runs in virtual time; virtual_time=True is for backend='zenoh' "
-                    "(one process per flow, the same trace)" if "virtual_time" in options else "\n    hint: a live view needs backend='zenoh' or 'dora'; for an in-process run, write a log (log='run.mcap') and export it: retriever log export run.mcap --format rerun -o run.rrd" if "rerun" in options else "")
+            hint = ""
+            if "virtual_time" in options:
+                hint = ("\n    hint: inproc always runs in virtual time; virtual_time=True is for backend='zenoh' "
+                        "(one process per flow, the same trace)")
+            elif "rerun" in options:
+                hint = ("\n    hint: a live view needs backend='zenoh' or 'dora'; for an in-process run, write a log "
+                        "(log='run.mcap') and export it: retriever log export run.mcap --format rerun -o run.rrd")
             raise BackendError(f"the inproc backend takes no options {sorted(options)} "
                                f"(it accepts tie_break_seed=, keep=, generate_ticks=){hint}")
         return InprocSession(graph, tie_break_seed=tie_break_seed, keep=keep, generate_ticks=generate_ticks)

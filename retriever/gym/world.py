@@ -68,6 +68,8 @@ class GymWorld(Flow[EnvAction, EnvStep]):
             raise ValueError(f"GymWorld(seed={seed!r}): expected an integer >= 0, or None for an unseeded env")
         if kwargs is not None and not isinstance(kwargs, dict):
             raise TypeError(f"GymWorld(kwargs={kwargs!r}): expected a dict of gymnasium.make keyword arguments")
+        if isinstance(env, str):
+            _refuse_paths(kwargs or {}, "kwargs")
         self.env_id = env
         self.seed = seed
         self.kwargs = dict(kwargs or {})
@@ -124,3 +126,30 @@ def _as_action(action: Any, space: Any) -> Any:
     if isinstance(space, spaces.Discrete):
         return int(action)
     return action
+
+
+def _looks_like_path(text: str) -> bool:
+    """Whether an env would take ``text`` as a file of the machine it runs on: gymnasium's MuJoCo
+    envs read ``xml_file`` as a path when it starts with ``/``, ``.`` or ``~`` (else as one of
+    their own assets), and any other env may open what names a folder."""
+    return text.startswith(("/", ".", "~")) or "/" in text or "\\" in text
+
+
+def _refuse_paths(value: object, where: str) -> None:
+    """Refuse a file path among the gymnasium.make keyword arguments of an env named by its id.
+
+    Such a GymWorld travels in the IR, and a worker daemon rebuilds it from there: an IR's path
+    would make the worker read a file an insider chose (and tell, by its error, whether it
+    exists; issue 40). A function that makes the env runs in-process only, so it may name any file."""
+    if isinstance(value, str):
+        if _looks_like_path(value):
+            raise ValueError(f"GymWorld: {where} = {value!r} is a file path, which a worker rebuilding this flow "
+                             "from the IR would read on its own machine\n    hint: pass a function that makes the "
+                             "env (GymWorld(lambda: gymnasium.make(ID, ...))), which runs in-process only, or "
+                             "name one of the env's own assets")
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            _refuse_paths(item, f"{where}[{key!r}]")
+    elif isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            _refuse_paths(item, f"{where}[{i}]")

@@ -131,3 +131,18 @@ def test_a_kwargs_value_the_ir_cannot_carry_is_named_by_its_path_and_type():
     (node,) = pipe.build_ir().nodes
     assert node["rebuild_problem"].startswith("argument 'kwargs' holds a object at kwargs['render_mode'], which the "
                                               "IR cannot carry")
+
+
+@pytest.mark.parametrize("kwargs", [{"xml_file": "/root/secret.xml"}, {"xml_file": "./x.xml"}, {"xml_file": "~/x.xml"},
+                                    {"assets": ["ok", "../x"]}, {"nested": {"path": "models/x.xml"}}])
+def test_a_file_path_among_an_env_ids_kwargs_is_refused(kwargs):
+    """A GymWorld named by its id travels in the IR; a worker rebuilding it would read the path on
+    its own machine (an insider's choice of file: issue 40)."""
+    with pytest.raises(ValueError, match=r"is a file path, which a worker rebuilding this flow from the IR would "
+                                         r"read on its own machine\n    hint: pass a function that makes the env"):
+        GymWorld("CartPole-v1", kwargs=kwargs)
+
+
+def test_an_env_function_may_name_any_file_and_plain_kwargs_pass():
+    GymWorld(lambda **kw: None, kwargs={"xml_file": "/home/me/robot.xml"})  # in-process only: the user's own file
+    GymWorld("CartPole-v1", kwargs={"render_mode": "rgb_array", "max_episode_steps": 10, "xml_file": "ant.xml"})
