@@ -3,6 +3,7 @@ recover`` and ``log export`` (``log info`` is log_info.py's)."""
 
 from __future__ import annotations
 
+import os
 import signal
 from pathlib import Path
 from typing import Annotated, Optional
@@ -213,7 +214,7 @@ def log_export(
     format: Annotated[str, typer.Option("--format", help="foxglove: an MCAP with Foxglove's schemas; ros2: an MCAP "
                                         "of ROS 2 messages (CDR); rerun: a Rerun recording (.rrd); lerobot: a "
                                         "LeRobot dataset; npz: the same frames as NumPy arrays.")] = "foxglove",
-    out: Annotated[Path, typer.Option("--out", "-o", help="The file (foxglove, ros2, rerun) or folder (lerobot, "
+    out: Annotated[str, typer.Option("--out", "-o", help="The file (foxglove, ros2, rerun) or folder (lerobot, "
                                       "npz) to write; - for standard output, a pipe (ros2, rerun: | rerun -).")] = ...,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the output if it exists.")] = False,
     flow: Annotated[Optional[str], typer.Option("--flow", metavar="NODE", help="lerobot, npz: the Rate flow whose "
@@ -267,7 +268,7 @@ def log_export(
         raise typer.Exit(code=128 + signum) from None
 
 
-def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | None, maps: list[str] | None,
+def _export(paths: list[Path], format: str, out: str, force: bool, flow: str | None, maps: list[str] | None,
             task: str | None, exclude: list[str] | None, gaps: str, repo_id: str | None) -> None:
     from ..log.outputs import NOT_STREAMED, abandon_stdout, stdout_stream, to_stdout
 
@@ -277,7 +278,7 @@ def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | 
         except Exception as exc:
             fail(exc)
     if format in ("lerobot", "npz"):
-        _export_dataset(paths, format, out, force, flow, maps or [], task, exclude or [], gaps, repo_id)
+        _export_dataset(paths, format, Path(out), force, flow, maps or [], task, exclude or [], gaps, repo_id)
         return
     if format not in VIEWS:
         fail(RetrieverError(f"unknown export format {format!r}\n    hint: use --format foxglove, ros2, rerun, "
@@ -298,14 +299,14 @@ def _export(paths: list[Path], format: str, out: Path, force: bool, flow: str | 
         console.out.print(f"wrote {out}: {said}", highlight=False)
 
 
-def _foxglove(log, out: Path, force: bool) -> str:
+def _foxglove(log, out: str, force: bool) -> str:
     from ..log.foxglove import export_foxglove
 
     written = export_foxglove(log, out, overwrite=force)
     return f"{sum(written.values())} messages on {len(written)} topics; open it in the Foxglove app"
 
 
-def _ros2(log, out: Path, force: bool) -> str:
+def _ros2(log, out: str, force: bool) -> str:
     from ..log.ros2 import export_ros2
 
     done = export_ros2(log, out, overwrite=force)
@@ -317,7 +318,7 @@ def _ros2(log, out: Path, force: bool) -> str:
     return said
 
 
-def _rerun(log, out: Path, force: bool) -> str:
+def _rerun(log, out: str, force: bool) -> str:
     from ..log.outputs import to_stdout
     from ..log.rerun import export_rerun
 
@@ -357,10 +358,10 @@ def _export_dataset(paths: list[Path], format: str, out: Path, force: bool, flow
     console.out.print(str(summary), highlight=False, soft_wrap=True)
 
 
-def _identity(path: Path) -> tuple[int, int, int, int] | None:
+def _identity(path: str | Path) -> tuple[int, int, int, int] | None:
     """What tells the file or folder at ``path`` from another or from its earlier self (None: none)."""
     try:
-        st = path.stat()
+        st = os.stat(path)
     except OSError:
         return None
     return st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size

@@ -122,9 +122,9 @@ def export_path(log_path: str | os.PathLike, out: str | os.PathLike, overwrite: 
     file, /dev/null for root); a LogError that says which, and what to do."""
     if to_stdout(out):  # the exports that may, take "-" before (stdout_stream)
         raise LogError("this export cannot be written to standard output (-o -)", "give it a path: -o FILE")
-    out = Path(out)
-    if not out.name or out.is_dir():
-        raise LogError(f"{str(out) or repr('')} is a folder, not a file", "give the export a file name: -o view.mcap")
+    text, out = os.fspath(out), Path(out)
+    if not out.name or out.is_dir() or text.endswith(("/", os.sep)):  # (Path drops a trailing /: "bag/" names a folder)
+        raise LogError(f"{text or repr('')} is a folder, not a file", "give the export a file name: -o view.mcap")
     if out.exists() and not overwrite:
         raise LogError(f"{out} exists", "pass --force (overwrite=True) to replace it")
     if out.exists() and not out.is_file():  # an export is written aside, then renamed over it

@@ -63,10 +63,11 @@ def test_a_view_takes_one_log_and_an_unknown_format_is_named(tmp_path):
 @pytest.mark.parametrize("fmt", ["foxglove", "ros2", "rerun"])
 def test_a_folder_or_no_name_as_the_output_is_said_even_with_force(tmp_path, fmt):
     log_path = camera_log(tmp_path)
-    for out in (tmp_path, ""):
+    for out in (tmp_path, "", "newbag/"):  # a trailing / names a folder, even one not there (it wrote a file 'newbag')
         done = _export(log_path, out, fmt, "--force", cwd=tmp_path)
         assert done.returncode == 1 and "is a folder, not a file" in done.stderr, done.stderr
         assert "Traceback" not in done.stderr and "IsADirectoryError" not in done.stderr, done.stderr
+    assert not (tmp_path / "newbag").exists()
 
 
 @pytest.mark.parametrize("fmt", ["foxglove", "ros2", "rerun"])
