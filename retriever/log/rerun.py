@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import LogError
-from ..trace import StepRecord
+from ..trace import StepRecord, StepStatus
 from .format import parse_data_topic
 from .outputs import export_path, stdout_stream, to_stdout
 from .reader import LogHead, LogRecords, RunLog, log_records
@@ -56,7 +56,7 @@ RERUN_VIEWER_URL = "rerun+http://127.0.0.1:9876/proxy"
 #: a flat array of up to this many numbers is plotted, one series per element; a bigger one is a tensor
 SCALARS_MAX = 16
 EVENT_TIME, WALL_TIME, SEQ = "event_time", "wall_time", "seq"
-STEP_LEVELS = {"ok": "INFO", "error": "ERROR"}  # any other status: WARN
+STEP_LEVELS = {StepStatus.OK: "INFO", StepStatus.ERROR: "ERROR"}  # any other status: WARN
 MAX_NS = 2**63 - 1  # Rerun's times are signed 64-bit nanoseconds
 
 
