@@ -92,7 +92,7 @@ from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, a
 from retriever.backends.zenoh.origin import new_key, sign  # noqa: E402
 from retriever.backends.zenoh.protocol import (  # noqa: E402
     REQUEST, RUN_CONTROL, STATUS, ControlOpener, ControlSigner, DaemonOp, Done, End, Exit, Failed, Grant, HandedOver,
-    Handover, Lost, PrepareRequest, Reached, Ready, Report, Restart, RunSpec, SpawnRequest, Start, Stop)
+    Handover, Lost, PrepareRequest, Reached, Ready, Report, Restart, RunSpec, SpawnRequest, Start, State, Stop)
 from retriever.backends.zenoh.protocol.seal import COUNTER_BYTES  # noqa: E402
 from retriever.backends.zenoh.wire import (  # noqa: E402
     RELIABLE, WIRE_VERSION, KeySpace, WireEncoder, WireError, decode_events, decode_progress)
@@ -899,7 +899,7 @@ class InsiderTarget(CoordinatorTarget):
                                               for n, _, _, _, _, d, *_ in steps):
             changed += 1
         if not signed and (book.failure is not None or book.stop_sent or book.exit_said
-                           or any(state != "ready" for state in book.state.values())
+                           or any(state != State.READY for state in book.state.values())
                            or any(st.counts for st in book.stats.values()) or any(book.reports_sent.values())):
             changed += 1
         if not changed and not signed:
@@ -1195,12 +1195,12 @@ class DaemonOpsTarget(Target):
     def make(self) -> bytes:
         rng = self.m.rng
         if rng.random() < 0.5:
-            op = "spawn"
+            op = DaemonOp.SPAWN
             args: dict = {"run": self.RUN, "node": self.node,
                           "mode": rng.choice(([], ["--join", "12", "34"], ["--fresh", "0", "9" * 19]))}
             fields = ["run", "node", "mode", "key"]
         else:
-            op = "signal"
+            op = DaemonOp.SIGNAL
             args = {"run": self.RUN, "pid": rng.choice(self._pids() or [0]), "signal": int(rng.choice(self.signals))}
             fields = ["run", "pid", "signal"]
         legitimate = self.legitimate_left > 0 and rng.random() < 0.05
@@ -1216,7 +1216,7 @@ class DaemonOpsTarget(Target):
             args[extra[0]] = extra[1]
         if legitimate:
             return pack_tree([WIRE_VERSION, op, args])
-        if op == "spawn" and rng.random() < 0.1:
+        if op == DaemonOp.SPAWN and rng.random() < 0.1:
             args.pop(rng.choice(fields), None)
         if rng.random() < 0.3:
             args = self.m.tree(args)

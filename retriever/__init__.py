@@ -50,7 +50,7 @@ from .errors import (
 )
 from .flow import Burst, EventStream, Flow, flow_io, io
 from .ir import IR
-from .log import read_log
+from .log import RunEnd, read_log
 from .pipeline import Pipeline
 from .sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
 from .trace import NOT_KEPT, Event, StepRecord, StepStatus, Trace
@@ -59,7 +59,7 @@ __all__ = sorted([
     "IR", "MISSING", "NOT_KEPT", "ActionChunking", "BackendError", "Burst", "CausalityError", "Clock", "ClockError",
     "CodecError", "Event", "EventStream", "Exact", "Flow", "GraphError", "Hybrid", "IRError",
     "InternalError", "Latest", "LatestDistinct", "LogError", "LogWriteError", "Pipeline", "PlacementError",
-    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "SetupError", "StarvedFlowWarning", "StepError", "StepRecord",
+    "Queue", "Rate", "RestartLimitError", "RetrieverError", "RetrieverWarning", "RunEnd", "SetupError", "StarvedFlowWarning", "StepError", "StepRecord",
     "StepStatus", "SyncPolicy", "Trace", "Trigger", "UnregisteredTypeError", "ValuesNotKeptError", "Window", "available_backends", "flow_io", "init", "io",
     "read_log",
 ])

@@ -28,6 +28,7 @@ from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning
 from .flow._base import Flow, settings_of
 from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
+from .log.format import RunEnd
 from .log.reader import LoggedTrace
 from .rebuild import check_node, construct_node
 from .starved import describe_starved, starved_flows
@@ -481,11 +482,11 @@ class RunLog:
             # absolute: pipe.trace reads the log back later, maybe from another working directory
             session.logged_to = session.trace.log_path = os.path.abspath(writer.path)
         if exc is None:
-            status, error = "finished", ""
+            status, error = RunEnd.FINISHED, ""
         elif isinstance(exc, KeyboardInterrupt):
-            status, error = "interrupted", "stopped by Ctrl-C or SIGTERM"
+            status, error = RunEnd.INTERRUPTED, "stopped by Ctrl-C or SIGTERM"
         else:
-            status, error = "error", f"{type(exc).__name__}: {exc}"
+            status, error = RunEnd.ERROR, f"{type(exc).__name__}: {exc}"
         # a stopped run ends at its last tick (real-time backends append records as they arrive)
         end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
         try:

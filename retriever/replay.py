@@ -924,7 +924,7 @@ def resim(log: RunLog, pipeline: Pipeline | None = None) -> ResimReport:
     changes = code_changes(log, graph)
     original = log.trace()
     end = log.end
-    if end is not None and end.get("status") == "finished":
+    if end is not None and end.get("status") == fmt.RunEnd.FINISHED:
         horizon = int(end["end_ns"])
     else:  # a recovered or failed run: its last instant may be cut short, compare before it
         horizon = max((s.tag[0] for s in original.steps), default=0)

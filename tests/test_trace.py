@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import ast
 import gc
 import threading
-from pathlib import Path
 
 import msgpack
 
@@ -18,13 +16,13 @@ def test_the_tape_expands_in_recording_order_on_first_read():
         """A compact record [pair, tag, node, seq]: one event and the step that made it."""
         _, tag, node, seq = tape[i:i + 4]
         add_event(((tag[0], tag[1] + 1), node, "out", seq, seq * 10, 0))
-        add_step((node, tag, {}, ((node, "out", seq),), "ok", None, 0, 0))
+        add_step((node, tag, {}, ((node, "out", seq),), StepStatus.OK, None, 0, 0))
         return i + 4
 
     trace = Trace()
     trace.tape += [pair, (0, 0), "a", 0]
     trace.tape.append(((0, 1), "b", "out", 0, "x", 0))  # plain records, in between
-    trace.tape.append(("b", (0, 0), {}, (("b", "out", 0),), "ok", None, 0, 0))
+    trace.tape.append(("b", (0, 0), {}, (("b", "out", 0),), StepStatus.OK, None, 0, 0))
     trace.tape += [pair, (1, 0), "a", 1]
     assert [e[1:4] for e in trace.raw_events] == [("a", "out", 0), ("b", "out", 0), ("a", "out", 1)]
     assert [(s.node, s.tag) for s in trace.steps] == [("a", (0, 0)), ("b", (0, 0)), ("a", (1, 0))]
@@ -57,7 +55,7 @@ def test_a_trace_expanded_from_within_its_own_expansion_returns_at_once():
     """A signal handler that reads the trace (pipe.stats()) while its thread is expanding the
     tape: the inner expansion does nothing (no hang on the trace's lock, no record twice)."""
     trace = Trace()
-    step = ("n", (0, 0), {}, (), "ok", None, 0, 0)
+    step = ("n", (0, 0), {}, (), StepStatus.OK, None, 0, 0)
 
     def compact(tape, i, add_event, add_step):
         trace.expand()  # as the handler would, in the middle of this expansion
@@ -73,7 +71,7 @@ def test_expanding_without_waiting_leaves_a_tape_whose_lock_is_held():
     without waiting: if its lock is held (the handler came while this thread was taking it), they
     leave it as it is, rather than wait for themselves."""
     trace = Trace()
-    step = ("n", (0, 0), {}, (), "ok", None, 0, 0)
+    step = ("n", (0, 0), {}, (), StepStatus.OK, None, 0, 0)
     holding, done = threading.Event(), threading.Event()
 
     def hold() -> None:  # as the thread the handler interrupted: expanding, the lock held
@@ -167,67 +165,7 @@ def test_latest_knows_the_ports_of_an_untyped_flow_that_no_edge_reads():
         trace.latest("controller", "comand")
 
 
-# -- step statuses: one spelling, trace.StepStatus ---------------------------------------------
-ROOT = Path(__file__).resolve().parents[1]
-#: what the check reads: the package, the agents and the benchmarks (the tests build records by hand)
-SCANNED = ("retriever", "agents", "benchmarks")
-#: calls that take a step record's fields positionally (a status among them)
-RECORDING = {"record", "finish_tick", "emit", "StepRecord", "ReportedStep"}
-
-
-def _names_status(node: ast.AST) -> bool:
-    """Whether ``node`` is a name or attribute that holds a status (``status``, ``s.status``)."""
-    name = node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else ""
-    return "status" in name.lower()
-
-
-def _status_literals(tree: ast.AST) -> list[int]:
-    """The lines where a step status is spelled as a string: compared with a status, assigned to
-    one, passed to a call that records a step, in a step record's tuple (7 fields or more), or
-    returned as a tick's outcome ``(status, detail)``."""
-    statuses = {status.value for status in StepStatus}
-
-    def literals(node: ast.AST | None) -> list[ast.Constant]:
-        if isinstance(node, ast.Constant) and node.value in statuses:
-            return [node]
-        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
-            return [c for item in node.elts for c in literals(item)]
-        if isinstance(node, ast.IfExp):
-            return literals(node.body) + literals(node.orelse)
-        return []
-
-    found: list[ast.Constant] = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Compare) and any(map(_names_status, [node.left, *node.comparators])):
-            found += [c for side in [node.left, *node.comparators] for c in literals(side)]
-        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
-            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
-            if any(_names_status(t) for t in targets):
-                found += literals(node.value)
-        elif isinstance(node, ast.Call):
-            callee = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
-            if callee in RECORDING:
-                found += [c for arg in node.args for c in literals(arg)]
-        elif (isinstance(node, ast.Tuple) and len(node.elts) >= 7  # a record, not a table's column names
-              and not all(isinstance(item, ast.Constant) for item in node.elts)):
-            found += [c for item in node.elts if isinstance(item, ast.Constant) for c in literals(item)]
-        elif isinstance(node, ast.Return) and isinstance(node.value, ast.Tuple) and len(node.value.elts) == 2:
-            found += literals(node.value.elts[0])
-    return sorted({c.lineno for c in found})
-
-
-def _status_literals_in(root: Path) -> dict[str, list[int]]:
-    files = sorted(p for top in SCANNED for p in (root / top).rglob("*.py"))
-    found = {str(p.relative_to(root)): _status_literals(ast.parse(p.read_text(), str(p))) for p in files}
-    return {path: lines for path, lines in found.items() if lines and path != "retriever/trace.py"}
-
-
-def test_step_statuses_are_spelled_once_as_step_status():
-    found = _status_literals_in(ROOT)
-    spelled = [f"{path}: line {', '.join(map(str, lines))}" for path, lines in found.items()]
-    assert spelled == [], "a step status spelled as a string; use trace.StepStatus:\n" + "\n".join(spelled)
-
-
+# -- step statuses: one spelling, trace.StepStatus (tests/test_enum_literals.py checks it) -------
 def test_a_step_status_is_its_value_in_a_log_and_on_the_wire():
     assert [str(s) for s in STEP_STATUSES] == ["ok", "skipped", "incomplete", "late", "overrun", "error"]
     for status in StepStatus:

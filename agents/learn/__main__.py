@@ -29,6 +29,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from retriever.errors import RetrieverError
+from retriever.log import RunEnd
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -101,7 +102,7 @@ def export(folder: Path, out: Path, format: str = "lerobot", force: bool = False
         raise ValueError(f"{out} already exists; pass --force to replace it")
     for log in logs:
         ending = _ending(log)
-        if ending != "finished":
+        if ending != RunEnd.FINISHED:
             raise ValueError(f"{log}: its run did not end normally ({ending}); collect that seed again "
                              f"(python -m agents.learn collect --force)")
     with _bar() as bar:

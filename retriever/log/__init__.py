@@ -11,8 +11,10 @@ layers), so ``replay``, ``resim`` and their reports are ``retriever.replay``'s:
 """
 
 from .dataset import ExportSummary, export_dataset
+from .format import RunEnd
 from .reader import LoggedEvent, RunLog, read_log
 from .recover import Recovered, recover
 from .writer import LogWriter
 
-__all__ = ["ExportSummary", "LogWriter", "LoggedEvent", "Recovered", "RunLog", "export_dataset", "read_log", "recover"]
+__all__ = ["ExportSummary", "LogWriter", "LoggedEvent", "Recovered", "RunEnd", "RunLog", "export_dataset", "read_log",
+           "recover"]

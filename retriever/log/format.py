@@ -11,11 +11,12 @@ channel ``steps``      a message per step: ``log_time`` = tick time, ``publish_t
                        produced, status, detail, wall_ns]`` with ``consumed`` = ``{port: [[node,
                        port, seq], ...]}`` and ``produced`` = ``[[node, port, seq], ...]``
 attachment             ``pipeline.ir.json``: the IR the run executed
-metadata               ``retriever.run`` (written first) and ``retriever.end`` (written last;
-                       absent when the writer was killed), plus ``retriever.recovered``, and
-                       ``retriever.fault.N`` (N = 1, 2, ...) when a run's process was lost: node,
-                       at_ns, exit, restarted, seqs (JSON: the new process's first seq per port)
-                       and lost_events (JSON: ids its step records produced that were never logged)``
+metadata               ``retriever.run`` (written first) and ``retriever.end`` (written last,
+                       its status a :class:`RunEnd`; absent when the writer was killed), plus
+                       ``retriever.recovered``, and ``retriever.fault.N`` (N = 1, 2, ...) when a
+                       run's process was lost: node, at_ns, exit, restarted, seqs (JSON: the new
+                       process's first seq per port) and lost_events (JSON: ids its step records
+                       produced that were never logged)
 =====================  =========================================================================
 """
 
@@ -30,6 +31,7 @@ import re
 import socket
 import subprocess
 import sys
+from enum import StrEnum
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any
@@ -54,6 +56,19 @@ DISTRIBUTION = "retriever-robotics"
 #: each: Retriever's own by its import name, so that the key does not change with the distribution's
 PACKAGES = {"retriever": DISTRIBUTION, "eclipse-zenoh": "eclipse-zenoh", "msgpack": "msgpack", "numpy": "numpy",
             "mcap": "mcap", "mujoco": "mujoco"}
+
+
+class RunEnd(StrEnum):
+    """How a run ended: the ``status`` of its log's ``retriever.end`` record (docs/log.md). A
+    ``str``: the log holds its value (``"finished"``), and a status read back compares equal to its
+    member. A log whose writer was killed has no end record, so no status (``RunLog.end`` is None)."""
+
+    #: ran to its end, or a flow ended it (``sys.exit()``)
+    FINISHED = "finished"
+    #: stopped between two ticks by Ctrl-C, SIGTERM or ``RunHandle.stop()``
+    INTERRUPTED = "interrupted"
+    #: stopped by an exception; the record's ``error`` names it
+    ERROR = "error"
 
 
 #: a data channel's topic: a node and a port, one segment each (a run's names are ir.NODE_ID and

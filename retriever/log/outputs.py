@@ -100,8 +100,8 @@ class CountedStream:
             except BrokenPipeError:
                 raise
             except OSError as e:
-                state = "is full" if e.errno == errno.ENOSPC else "failed"
-                raise LogError(f"standard output {state}: {e.strerror or e} ({self._written} bytes were written "
+                trouble = "is full" if e.errno == errno.ENOSPC else "failed"
+                raise LogError(f"standard output {trouble}: {e.strerror or e} ({self._written} bytes were written "
                                "before; not a whole export)", "write the export to a file with room: -o FILE") from None
             _stdout["written"] += done
             self._written += done

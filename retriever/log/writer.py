@@ -303,7 +303,7 @@ class LogWriter:
                                 "or @io dataclasses")
         return LogError("an event cannot be logged (the codec refused a value it later accepted)")
 
-    def close(self, trace: "Trace", end_ns: int, *, status: str = "finished", error: str = "",
+    def close(self, trace: "Trace", end_ns: int, *, status: fmt.RunEnd = fmt.RunEnd.FINISHED, error: str = "",
               stats: dict | None = None, counts: dict | None = None) -> None:
         """Write what is left and the ``retriever.end`` record, then finish the file."""
         if self.closed:
@@ -321,7 +321,7 @@ class LogWriter:
                 except OSError:  # bytes the OS refused: the failure was already raised
                     pass
 
-    def _finish(self, trace: "Trace", end_ns: int, status: str, error: str, stats: dict | None,
+    def _finish(self, trace: "Trace", end_ns: int, status: fmt.RunEnd, error: str, stats: dict | None,
                 counts: dict | None) -> None:
         try:
             self._write(trace)

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from retriever import LogError, RetrieverWarning, read_log
+from retriever import LogError, RetrieverWarning, RunEnd, read_log
 from retriever._loading import load_pipeline
 from retriever.codec import Encoder, packb
 from retriever.replay import replay, resim
@@ -153,6 +153,13 @@ def test_ir_attachment_and_run_metadata(small, small_plain):
     stats = json.loads(end["stats"])
     assert {n: (s["ticks"], s["steps"], s["skips"], s["errors"]) for n, s in stats.items()} == {
         "counter": (5, 5, 0, 0), "accumulate": (3, 3, 0, 0), "tally": (3, 3, 0, 0)}
+
+
+def test_a_run_end_is_its_value_in_the_end_record():
+    """RunEnd's values are the end record's ``status`` as logs hold it: the logs written before
+    read the same, and a status read back compares equal to its member."""
+    assert [str(s) for s in RunEnd] == ["finished", "interrupted", "error"]
+    assert all(s == s.value and type(s.value) is str for s in RunEnd)
 
 
 def test_small_log_matches_golden_file(small_plain):
