@@ -131,7 +131,7 @@ class Watch:
     """Stamps the coordinator's steps from outside it, in its process: the deployment's own steps
     (join, discover, prepare) as its ``on_phase`` reports each one's end; from a thread of its own,
     polling every ``POLL_S``: the session built (``pipe.session`` set, once each flow's process is
-    spawned), each node's first ``ready`` (the session's ``book.state``), and, once T0 is chosen
+    spawned), each node's first ``ready`` (the session's ``book.processes.state``), and, once T0 is chosen
     (``book.t0`` set: every flow ready; ``start`` is put right after), when that was (T0 less the
     start margin) and the CPU this process used by then, the watcher's own left out; and it
     prints the failure that makes the session close early as soon as the book holds it (a hang
@@ -180,15 +180,15 @@ class Watch:
                     stamps["spawn"][1] = now
             book = getattr(session, "book", None)
             if book is not None:
-                for node, state in list(book.state.items()):
+                for node, state in list(book.processes.state.items()):
                     if state == State.READY and node not in self.ready_at:
                         self.ready_at[node] = now
                 if book.t0 is not None and "ready" not in stamps:
                     stamps["ready"] = book.t0 - session.start_margin_ns  # T0 is chosen that far ahead
                     stamps["cpu_at_start"] = self.cpu_seconds() - (time.thread_time_ns() - begin) / 1e9
-                if book.failure is not None and not told:
+                if book.ending.failure is not None and not told:
                     told = True
-                    self._tell(now, book.failure)
+                    self._tell(now, book.ending.failure)
             self.own_cpu_ns += time.thread_time_ns() - begin
 
     def _tell(self, now: int, failure) -> None:

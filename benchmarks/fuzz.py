@@ -713,7 +713,7 @@ class CoordinatorTarget(Target):
         self.spill.mkdir()
         self.base = self._session()
         for key, data in self.reports:
-            self.base.inbox.handle((key, data, self.base.book.workers[key.rsplit("/", 1)[1]]))
+            self.base.inbox.handle((key, data, self.base.book.processes.workers[key.rsplit("/", 1)[1]]))
         if self.base.trace != self.genuine.trace or self.base.counts["garbage"]:
             raise SystemExit("the coordinator harness does not rebuild the genuine run's trace from its reports: "
                              "the coordinator's handlers changed; update CoordinatorTarget._session")
@@ -723,8 +723,8 @@ class CoordinatorTarget(Target):
     def _session(self) -> _Offline:
         s = _Offline(self.graph, self.spill)
         # each node's process, as the coordinator knows it: what signed its messages (origin.py)
-        s.book.workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
-        s.book.state = {nid: "ready" for nid in self.graph.nodes}
+        s.book.processes.workers = {nid: _Process(40_000 + i) for i, nid in enumerate(sorted(self.graph.nodes))}
+        s.book.processes.state = {nid: "ready" for nid in self.graph.nodes}
         return s
 
     def seeds(self) -> list[bytes]:
@@ -756,16 +756,16 @@ class CoordinatorTarget(Target):
         s = self._session()
         base = self.base
         s.trace.raw_events[:], s.trace.raw_steps[:] = base.trace.raw_events, base.trace.raw_steps
-        s.book.event_ids, s.book.ticks = base.book.event_ids.copy(), base.book.ticks.copy()
+        s.book.intake.event_ids, s.book.intake.ticks = base.book.intake.event_ids.copy(), base.book.intake.ticks.copy()
         s.counts["garbage"] = GARBAGE_PRINTED  # past the few it prints: it prints none
         return s, (key.decode(), report)
 
     def feed(self, prepared: tuple) -> int:
         """As the node's own process sent it (signed with its key): what any process of the run may send."""
         s, (key, report) = prepared
-        s.inbox.handle((key, report, s.book.workers.get(key.rsplit("/", 1)[1])))
+        s.inbox.handle((key, report, s.book.processes.workers.get(key.rsplit("/", 1)[1])))
         forged = self._forged(s, key)
-        refused = s.counts["garbage"] - GARBAGE_PRINTED + s.book.senders.refused
+        refused = s.counts["garbage"] - GARBAGE_PRINTED + s.book.processes.senders.refused
         if not forged and refused:
             raise Dropped(refused)
         return forged
@@ -779,10 +779,10 @@ class CoordinatorTarget(Target):
                 or any(a is not b for a, b in zip(events, base.raw_events))
                 or any(a is not b for a, b in zip(steps, base.raw_steps))):
             return 1  # a genuine record was changed or displaced
-        forged, seen_ids, seen_ticks = 0, self.base.book.event_ids.copy(), self.base.book.ticks.copy()
+        forged, seen_ids, seen_ticks = 0, self.base.book.intake.event_ids.copy(), self.base.book.intake.ticks.copy()
         new_events, new_steps = events[len(base.raw_events):], steps[len(base.raw_steps):]
         for tag, producer, port, seq, value, _ in new_events:
-            own = (producer, port) in s.book.streams or producer in s.book.open_outputs
+            own = (producer, port) in s.book.intake.streams or producer in s.book.intake.open_outputs
             if producer != node or not own or (producer, port, seq) in seen_ids or not _inert(value) \
                     or not _is_tag(tag):
                 forged += 1
@@ -836,9 +836,10 @@ class InsiderTarget(CoordinatorTarget):
     def _session(self) -> _Offline:
         s = super()._session()
         s.book.t0, s.book.end_ns = 0, round(RUN_S * 1e9)
-        s.book.hosts = {nid: _Host() for nid in s.book.workers}  # where a signed `restart` starts a process
-        for nid, proc in s.book.workers.items():
-            s.book.senders.add(nid, self.keys[nid], proc)
+        procs = s.book.processes
+        procs.hosts = {nid: _Host() for nid in procs.workers}  # where a signed `restart` starts a process
+        for nid, proc in procs.workers.items():
+            procs.senders.add(nid, self.keys[nid], proc)
         return s
 
     def seeds(self) -> list[bytes]:
@@ -852,7 +853,7 @@ class InsiderTarget(CoordinatorTarget):
                            (rng.randrange(1, 10**8), 0), (self.end_ns + rng.randrange(10**9), 0),
                            (clock.tick_time(1) if clock.hz else 5, rng.randrange(1, 4))])
         if rng.random() < 0.55:
-            said = {"node": node, "pid": self.base.book.workers[node].pid}
+            said = {"node": node, "pid": self.base.book.processes.workers[node].pid}
             status = rng.choice([
                 Exit(**said, tag=tick), Exit(**said, tag=tick), Done(**said, counts={"late": 1000}, reports=1,
                                                                      stopped=True),
@@ -881,7 +882,7 @@ class InsiderTarget(CoordinatorTarget):
         s, (key, payload, mac) = prepared
         node = key.rsplit("/", 1)[1]
         signed = node in self.keys and mac == sign(self.keys[node], key, payload)  # by its process, in truth
-        sender = s.book.senders.sender(node, key, payload, mac)
+        sender = s.book.processes.senders.sender(node, key, payload, mac)
         if sender is None:  # refused before anything was decoded or held
             return self._changed(s, signed)
         s.inbox.handle((key, payload, sender))
@@ -892,18 +893,19 @@ class InsiderTarget(CoordinatorTarget):
         was not signed; an end of the run without the node's exit record."""
         steps = s.trace.raw_steps
         book = s.book
+        ending, intake = book.ending, book.intake
         changed = sum(1 for n, tag, *_ in steps
                       if not signed or not self.graph.nodes[n].clock.may_tick_at(tag, book.end_ns))
         changed += len(s.trace.raw_events) if not signed else 0
-        if book.ended_by is not None and not any(n == book.ended_by and (d or {}).get("exit") == 0
-                                              for n, _, _, _, _, d, *_ in steps):
+        if ending.ended_by is not None and not any(n == ending.ended_by and (d or {}).get("exit") == 0
+                                                   for n, _, _, _, _, d, *_ in steps):
             changed += 1
-        if not signed and (book.failure is not None or book.stop_sent or book.exit_said
-                           or any(state != State.READY for state in book.state.values())
-                           or any(st.counts for st in book.stats.values()) or any(book.reports_sent.values())):
+        if not signed and (ending.failure is not None or ending.stop_sent or ending.exit_said
+                           or any(state != State.READY for state in book.processes.state.values())
+                           or any(st.counts for st in intake.stats.values()) or any(intake.reports_sent.values())):
             changed += 1
         if not changed and not signed:
-            raise Dropped(book.senders.refused)
+            raise Dropped(book.processes.senders.refused)
         return changed
 
 

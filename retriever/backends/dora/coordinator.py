@@ -87,8 +87,8 @@ class DoraHosting(Hosting):
         # the workers are dora's children: they watch this process to know when they are orphans
         # (and then remove the run's directories, which no one else will)
         # and each node's process finds the key it signs with (origin.py) in the private spec
-        keys = run.book.first_keys
-        keys.update((nid, new_key()) for nid in graph.nodes)
+        keys = {nid: new_key() for nid in graph.nodes}
+        run.expect_keys(keys)
         run.spec = dataclasses.replace(run.spec, dora_part=names.part(cwd=os.getcwd(), coordinator=os.getpid(),
                                                                       dir=str(dora_dir), keys=keys))
         spec_path = run.spec.write_file(run.run_dir / "spec.json")

@@ -12,7 +12,7 @@ import pytest
 
 from retriever import BackendError, Pipeline, Rate
 from retriever.backends.base import output_ports
-from retriever.backends.zenoh.coordinator import Hosting, RunBook, RunControl, assemble
+from retriever.backends.zenoh.coordinator import BookView, Hosting, RunBook, RunControl, assemble
 from retriever.backends.zenoh.protocol import Done, Failed, Ready, State, Status
 from retriever.backends.zenoh.wire import KeySpace
 from retriever.trace import Trace
@@ -55,11 +55,11 @@ def offline(tmp_path):
     trace, counts = Trace(keep="trace"), Counter()
     trace.ports = output_ports(graph)
     book = RunBook(graph, counts)
-    book.workers = {"counter": _Process(40_000)}
-    book.state = {"counter": "starting"}
+    book.processes.workers = {"counter": _Process(40_000)}
+    book.processes.state = {"counter": "starting"}
     hosting = _LostHosting()
     parts = assemble(book, trace, tmp_path, RunControl(_Hub(), KeySpace(NAMESPACE)), hosting)
-    hosting.attach(SimpleNamespace(book=book))  # what a hosting reads of its run here (HostedRun)
+    hosting.attach(SimpleNamespace(book=BookView(book)))  # what a hosting reads of its run here (HostedRun)
     return book, parts, hosting
 
 
@@ -74,21 +74,23 @@ def test_every_state_a_worker_may_say_has_one_handler(offline):
 
 def test_a_process_goes_from_ready_to_done_once_and_a_replay_is_garbage(offline):
     book, parts, _ = offline
-    sender = book.workers["counter"]
+    sender = book.processes.workers["counter"]
     parts.inbox.handle((*_status(Ready), sender))
-    assert book.state["counter"] == "ready"
+    assert book.processes.state["counter"] == "ready"
     parts.inbox.handle((*_status(Done, reports=2, counts={"late": 1}), sender))
-    assert (book.state["counter"], book.reports_sent["counter"], book.stats["counter"].counts) == ("done", 2, {"late": 1})
+    assert (book.processes.state["counter"], book.intake.reports_sent["counter"],
+            book.intake.stats["counter"].counts) == ("done", 2, {"late": 1})
     parts.inbox.handle((*_status(Done, reports=2, counts={"late": 1}), sender))  # replayed: refused, not counted
     parts.inbox.handle((*_status(Ready), sender))
-    assert (book.state["counter"], book.reports_sent["counter"], book.counts["garbage"]) == ("done", 2, 2)
+    assert (book.processes.state["counter"], book.intake.reports_sent["counter"],
+            book.counts["garbage"]) == ("done", 2, 2)
 
 
 def test_a_status_no_process_of_the_node_signed_changes_nothing(offline):
     book, parts, _ = offline
     forged = _status(Failed, error="forged", traceback=None)
     parts.inbox.handle((*forged, _Process(40_000)))  # same pid, another process
-    assert (book.failure, book.state["counter"], book.counts["garbage"]) == (None, "starting", 1)
+    assert (book.ending.failure, book.processes.state["counter"], book.counts["garbage"]) == (None, "starting", 1)
 
 
 def test_a_host_lost_goes_to_the_hosting_handed_in(offline):
@@ -97,7 +99,7 @@ def test_a_host_lost_goes_to_the_hosting_handed_in(offline):
     class Gone:
         name, alive = "gone-box", False
 
-    book.hosts = {"counter": Gone()}
+    book.processes.hosts = {"counter": Gone()}
     with pytest.raises(BackendError, match="zenoh run stopped: worker 'gone-box' was lost"):
         parts.supervisor.check()
     assert hosting.lost == [["counter"]]
@@ -121,10 +123,10 @@ def test_a_check_asks_each_process_once_whether_it_ended(offline):
     class Up:
         name, alive = "box", True
 
-    book.hosts = {"counter": Up()}
+    book.processes.hosts = {"counter": Up()}
     proc = _AskedProcess([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
     try:
-        book.workers = {"counter": proc}
+        book.processes.workers = {"counter": proc}
         parts.control.signer.add(proc, b"k" * 32)
         parts.supervisor.check()
         assert (proc.asked, parts.control.signer.holders()) == (1, [proc])  # running: control still sealed

@@ -105,13 +105,13 @@ def test_in_virtual_time_the_run_ends_at_the_earliest_exit_whichever_is_heard_fi
     trace.ports = output_ports(graph)
     book = RunBook(graph, Counter())
     processes = {"late": SimpleNamespace(pid=40_001), "early": SimpleNamespace(pid=40_002)}
-    book.workers, book.state, book.t0 = dict(processes), {n: "ready" for n in processes}, 0
+    book.processes.workers, book.processes.state, book.t0 = dict(processes), {n: "ready" for n in processes}, 0
     control = SeenControl()
     parts = assemble(book, trace, tmp_path, control, Hosting(), virtual_time=True)
     for node, t_ms in (("late", 800), ("early", 200)):
         process, tag = processes[node], (t_ms * MS, 0)
-        book.exit_recorded[node] = (tag, process)  # (its step record came first)
+        book.ending.exit_recorded[node] = (tag, process)  # (its step record came first)
         parts.inbox.handle((control.keys.node_status(node), Exit(node=node, pid=process.pid, tag=tag).encode(),
                             process))
     assert [r.at for r in control.records if isinstance(r, End)] == [800 * MS + 1, 200 * MS + 1]
-    assert book.ended_by == "early"
+    assert book.ending.ended_by == "early"

@@ -745,7 +745,8 @@ def test_every_event_a_logged_step_consumed_is_in_the_log_after_a_sigkill_of_its
             session = pipe.session
             if session is not None and session.t0 is not None:
                 steps = [s for s in list(session.trace.raw_steps) if s[0] == "total"]
-                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in session.book.event_ids]
+                seen = session.book.intake.event_ids
+                unknown = [s for s in steps for ids in s[2].values() for eid in ids if eid not in seen]
                 if unknown or len(steps) >= 40:
                     killed["race"] = bool(unknown)
                     os.kill(session.worker_pids()["counter"], signal.SIGKILL)

@@ -20,7 +20,7 @@ MANY_FLOWS = 50
 def _stop_before_the_start(session, node: str) -> None:
     """Have ``node``'s worker stop (SIGTERM) and exit just before the coordinator puts the run's
     start: it says ``done`` having run nothing, and exits 0."""
-    proc = session.book.workers[node]
+    proc = session.book.processes.workers[node]
     put = session.control.put
 
     def control(record) -> None:

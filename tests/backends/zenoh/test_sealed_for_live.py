@@ -101,7 +101,7 @@ def supervised(tmp_path):
     trace.ports = output_ports(graph)
     book = RunBook(graph, Counter())
     host = _Host()
-    book.hosts = {"counter": host}
+    book.processes.hosts = {"counter": host}
     hub = _Hub()
     parts = assemble(book, trace, tmp_path, RunControl(hub, KeySpace("sealed")), Hosting())
     book.t0 = time.time_ns()
@@ -111,7 +111,7 @@ def supervised(tmp_path):
 def _restart_afresh(book, supervisor, times: int) -> None:
     """Start the flow afresh ``times`` times (as after its process died): each old one SIGKILLed."""
     for _ in range(times):
-        proc = book.workers["counter"]
+        proc = book.processes.workers["counter"]
         supervisor.start_afresh("counter", {"node": "counter", "at_ns": 0, "pid": proc.pid,
                                             "exit": "was killed by SIGKILL"})
 
@@ -130,7 +130,7 @@ def test_control_is_sealed_for_the_processes_whose_exit_is_not_confirmed(supervi
     supervisor.check()
     control.put(Stop())
     assert sealed_for(hub.attachments[-1]) == 1
-    assert control.signer.holders() == [book.workers["counter"]]
+    assert control.signer.holders() == [book.processes.workers["counter"]]
 
 
 def test_once_the_runs_processes_are_reaped_control_is_sealed_for_none(supervised):

@@ -146,15 +146,15 @@ def test_a_done_node_short_of_reports_is_said_so_naming_the_events_they_held(nam
     pipe = two_node_pipeline("short", source_hz=20, sink_hz=10)
     pipe.run(duration=0.5, backend="zenoh", namespace=namespace, quiet=True)
     book = pipe.session.book
-    last = book.done_info["counter"]["sent"]["n"]  # what its worker said it sent, in its done status
-    assert last == book.have[("counter", "n")] >= 9
-    book.reports_sent["counter"] += 1
-    book.have[("counter", "n")] = last - 5
-    book.event_ids = EventIds()  # of the last five events, the coordinator got the third only
+    last = book.intake.done_info["counter"]["sent"]["n"]  # what its worker said it sent, in its done status
+    assert last == book.intake.have[("counter", "n")] >= 9
+    book.intake.reports_sent["counter"] += 1
+    book.intake.have[("counter", "n")] = last - 5
+    book.intake.event_ids = EventIds()  # of the last five events, the coordinator got the third only
     for seq in [*range(last - 4), last - 2]:
-        book.event_ids.add(("counter", "n", seq))
+        book.intake.event_ids.add(("counter", "n", seq))
     said = pipe.session.diagnostics.unfinished("counter")
-    assert said.startswith(f"    counter said done after {book.reports_sent['counter']} report(s), of which 1 "
+    assert said.startswith(f"    counter said done after {book.intake.reports_sent['counter']} report(s), of which 1 "
                            f"never reached the coordinator; it never got the event(s) counter.n seqs {last - 4}-{last - 3}, "
                            f"{last - 1}-{last}\n"), said
     assert "    counter: no stacks: its process had ended (exited with code 0)" in said, said

@@ -24,7 +24,7 @@ What it listens to, and what it decides::
 
     core.py         Coordinator: opens the hub, wires the parts below, runs, closes
     hosting.py      where the processes run (Hosting; LocalHosting: this machine)
-    book.py         RunBook: what the coordinator knows of the run
+    book.py         RunBook: what the coordinator knows of the run, a part per concern and writer
     inbox.py        the signed messages, dispatched to their handler
     statuses.py     the status state machine (PROCESS_STAGES, may_say)
     reports.py      report and event ingest
@@ -44,7 +44,7 @@ the kernel for SIGTERM when its parent dies).
 
 from __future__ import annotations
 
-from .book import RunBook
+from .book import BookView, RunBook
 from .control import RunControl
 from .core import Coordinator, Parts, assemble
 from .diagnostics import STACKS_WAIT_S
@@ -54,5 +54,5 @@ from .processes import STOP_GRACE_S
 from .spec import run_dir
 from .statuses import PROCESS_STAGES, may_say
 
-__all__ = ["PROCESS_STAGES", "STACKS_WAIT_S", "STOP_GRACE_S", "Coordinator", "Hosting", "LocalHosting", "Parts",
-           "RunBook", "RunControl", "assemble", "may_say", "run_dir", "ticks_due"]
+__all__ = ["PROCESS_STAGES", "STACKS_WAIT_S", "STOP_GRACE_S", "BookView", "Coordinator", "Hosting", "LocalHosting",
+           "Parts", "RunBook", "RunControl", "assemble", "may_say", "run_dir", "ticks_due"]

@@ -26,7 +26,7 @@ from ...base import NodeStats, Session
 from ..hub import new_zid, weak_callback
 from ..protocol import Finished, RunSpec, Start, State
 from ..wire import KeySpace
-from .book import RunBook
+from .book import BookView, RunBook
 from .control import RunControl
 from .diagnostics import Diagnostics
 from .endchecks import (check_every_flow_ticked, check_exit_recorded, record_starved, warn_forged,
@@ -105,8 +105,9 @@ class Coordinator(Session):
         self.run_dir = run_dir()
         self.hub = None
         self.subscribers: list = []
-        self.hosted = HostedRun(graph, self.namespace, self.keys, self.access, self.run_dir, self.book,
-                                keep=self.subscribers.append, stop=self._stop_asked, closed=lambda: self.closed)
+        self.hosted = HostedRun(graph, self.namespace, self.keys, self.access, self.run_dir, BookView(self.book),
+                                keep=self.subscribers.append, stop=self._stop_asked, closed=lambda: self.closed,
+                                expect_keys=self.book.processes.expect_keys)
         self.hosting.attach(self.hosted)
         _OPEN.add(self)  # closed at the interpreter's exit at the latest (see _close_open_coordinators)
         try:
@@ -145,7 +146,7 @@ class Coordinator(Session):
             # linked to its neighbours and the hub, whatever other peers it has
             zids=zids, hub_zid=str(self.hub.zid()),
             virtual_time=self.virtual_time, groups={name: tuple(members) for name, members in groups.items()})
-        self.book.hosts = self.hosting.place()
+        self.book.processes.hosts = self.hosting.place()
         grouped = {nid for members in groups.values() for nid in members}
         for name, members in groups.items():
             self.supervisor.spawn_group(name, members)
@@ -177,7 +178,7 @@ class Coordinator(Session):
 
     def _listen(self) -> None:
         """Take the workers' statuses and reports, answer their questions (what is finished, the start)."""
-        put, senders = self.inbox.put, self.book.senders
+        put, senders = self.inbox.put, self.book.processes.senders
 
         def take(sample) -> None:  # on Zenoh's thread: what no process of the node signed is held nowhere
             key, data, mac = str(sample.key_expr), sample.payload.to_bytes(), sample.attachment
@@ -194,19 +195,19 @@ class Coordinator(Session):
         """Which nodes are done, which of them have every report in, which start afresh after
         their process died (a restarted flow's process waits for answers from the others, but
         from these), and whose old process that handed over has every report in (it may exit)."""
-        book = self.book
-        states = list(book.state.items())
+        procs, intake = self.book.processes, self.book.intake
+        states = list(procs.state.items())
         done = tuple(sorted(node for node, state in states if state == State.DONE))
         # and whose every report is in: their processes may now close their sessions (worker/waits.py,
         # REPORTS_TAKEN_S)
         def all_in(node: str) -> bool:
-            return book.reports.get(node, 0) >= book.reports_sent.get(node, 0)
+            return intake.reports.get(node, 0) >= intake.reports_sent.get(node, 0)
 
         complete = tuple(sorted(node for node, state in states if state in (State.DONE, State.HANDED_OVER)
                                 and all_in(node)))
-        handed_over = tuple(sorted(node for node in book.handed_over if all_in(node)))
+        handed_over = tuple(sorted(node for node in procs.handed_over if all_in(node)))
         self.control.reply(query, self.keys.finished(), Finished(nodes=done, complete=complete,
-                                                                 restarting=tuple(sorted(book.fresh)),
+                                                                 restarting=tuple(sorted(self.book.faults.fresh)),
                                                                  handed_over=handed_over))
 
     def _answer_start(self, query) -> None:
@@ -239,7 +240,7 @@ class Coordinator(Session):
             book.t0 = self.hub.new_timestamp().get_time_as_ntp64().as_nanos() + self.start_margin_ns
             book.end_ns = until_ns
             # values come to the coordinator only for the trace (keep="trace"), the log, or a live view
-            book.values = self.keep == "trace" or self.log is not None or book.live is not None
+            book.values = self.keep == "trace" or self.log is not None or book.intake.live is not None
             self.waits.until_finished(Start(t0=book.t0, end=until_ns, values=book.values), self.virtual_time)
         except BaseException:
             self.stop_workers()  # their last reports, then: which outputs died with a process
@@ -249,7 +250,8 @@ class Coordinator(Session):
             self.close()
             raise
         # in virtual time, a step's sys.exit(0) ended the run at its tick, as in-process
-        self.now_ns = book.exit_said[book.ended_by][0][0] if self.virtual_time and book.ended_by else until_ns
+        ended_by = book.ending.ended_by
+        self.now_ns = book.ending.exit_said[ended_by][0][0] if self.virtual_time and ended_by else until_ns
         self.supervisor.record_faults_left()
         record_starved(book, self.log)
         self.close()  # a real-time run is over when its time is: workers reaped, hub closed
@@ -265,8 +267,8 @@ class Coordinator(Session):
             if not self.quiet:
                 print(f"retriever: {text}", file=sys.stderr, flush=True)
 
-        self.book.live = open_live_views(self.graph.to_ir(), foxglove=self.foxglove_port, rerun=self.rerun_target,
-                                         say=say)
+        self.book.intake.live = open_live_views(self.graph.to_ir(), foxglove=self.foxglove_port,
+                                                rerun=self.rerun_target, say=say)
 
     def stop_workers(self, grace: float = STOP_GRACE_S) -> None:
         """Stop every worker (processes.Supervisor.stop); nothing before the hub is open."""
@@ -278,12 +280,12 @@ class Coordinator(Session):
             return
         self.closed = True
         book = self.book
-        if any(p.poll() is None for p in book.processes()):
+        if any(p.poll() is None for p in book.processes.started()):
             self.stop_workers()
-        if book.live is not None:
-            book.live.close()
+        if book.intake.live is not None:
+            book.intake.live.close()
         give_up = time.monotonic() + OUTPUT_DRAIN_S  # their last lines, before the run returns
-        for output in {id(o): o for host in book.hosts.values() for o in host.outputs()}.values():
+        for output in {id(o): o for host in book.processes.hosts.values() for o in host.outputs()}.values():
             output.drain(max(0.0, give_up - time.monotonic()))
         if self.hub is not None:
             self.hosting.release()
@@ -307,15 +309,15 @@ class Coordinator(Session):
     # What the run says of itself
     # ---------------------------------------------------------------------------------------
     def stats(self) -> dict[str, NodeStats]:
-        return self.book.stats
+        return self.book.intake.stats
 
     def produced_counts(self) -> dict[tuple[str, str], int]:
         # from the step records' produced ids, which every run reports whatever it keeps
-        return {key: seq + 1 for key, seq in self.book.max_seq.items()}
+        return {key: seq + 1 for key, seq in self.book.intake.max_seq.items()}
 
     def worker_pids(self) -> dict[str, int]:
         """PIDs of the worker processes, by node (for tests and tools)."""
-        return {nid: p.pid for nid, p in self.book.workers.items()}
+        return {nid: p.pid for nid, p in self.book.processes.workers.items()}
 
     def log_metadata(self) -> dict[str, str]:
         """``time``: a run in lockstep virtual time says so (its wall times mean nothing); and
@@ -325,7 +327,7 @@ class Coordinator(Session):
     @property
     def starved(self) -> list[dict]:
         """Each span in which an input had no event while its producers made some (starved.py)."""
-        return self.book.starvation.episodes
+        return self.book.intake.starvation.episodes
 
     @property
     def t0(self) -> int | None:
@@ -339,22 +341,22 @@ class Coordinator(Session):
     @property
     def ended_by(self) -> str | None:
         """The node whose step called sys.exit(0), ending the run."""
-        return self.book.ended_by
+        return self.book.ending.ended_by
 
     @property
     def faults(self) -> list[dict]:
         """What went wrong with the run's processes, as the log's fault records have it."""
-        return [fault.log_fields() for fault in self.book.faults]
+        return [fault.log_fields() for fault in self.book.faults.logged]
 
     @property
     def reported_bytes(self) -> int:
         """Bytes of the workers' reports (step records and events) received, spilled ones included."""
-        return self.book.reported_bytes
+        return self.book.intake.reported_bytes
 
     @property
     def live(self):
         """The live views fed with what the reports bring (log/live.py), if any were asked for."""
-        return self.book.live
+        return self.book.intake.live
 
 
 @dataclass(frozen=True)

@@ -32,46 +32,49 @@ class Diagnostics:
 
     def __init__(self, book: RunBook, hosting):
         self.book, self.hosting = book, hosting
+        #: nodes asked for their stacks that printed none, and how long waited (for :meth:`unfinished`)
+        self.stackless: dict[str, float] = {}
 
     def dump_stacks(self, nodes: list[str], wait: float = STACKS_WAIT_S, show: bool = True) -> None:
         """Have these workers print every thread's Python stack to their stderr (SIGUSR1): on
         the coordinator's stderr (``show``), or only kept for an error message that shows them."""
-        book, before = self.book, {}
+        procs, before = self.book.processes, {}
         for nid in nodes:
-            proc = book.workers.get(nid)
+            proc = procs.workers.get(nid)
             if proc is not None and proc.poll() is None:
-                output = book.hosts[nid].output(nid)
+                output = procs.hosts[nid].output(nid)
                 before[nid] = output.stderr_lines
                 output.forwarding = show
                 proc.send_signal(signal.SIGUSR1)
         give_up = time.monotonic() + wait  # a bound: the dump is written at once by a C handler
         for nid, lines in before.items():
-            output = book.hosts[nid].output(nid)
+            output = procs.hosts[nid].output(nid)
             output.settle(lines, max(0.0, give_up - time.monotonic()))
             if output.stderr_lines == lines:  # asked, and nothing came: the error says so (unfinished)
-                book.stackless[nid] = wait
+                self.stackless[nid] = wait
 
     def unfinished(self, nid: str) -> str:
         """What the error of a run that did not finish says of node ``nid``: the stacks its process
         printed (on its stderr, last), or why there are none; and, done but short of reports, the
         events it sent that never reached the coordinator (lost with those reports)."""
-        book, said = self.book, ""
-        missing = book.reports_sent[nid] - book.reports[nid]
-        if book.state.get(nid) == State.DONE and missing > 0:
-            lost = [f"{nid}.{port} {seqs}" for port, last in sorted(book.done_info.get(nid, {}).get("sent", {}).items())
+        procs, intake, said = self.book.processes, self.book.intake, ""
+        missing = intake.reports_sent[nid] - intake.reports[nid]
+        if procs.state.get(nid) == State.DONE and missing > 0:
+            sent = intake.done_info.get(nid, {}).get("sent", {})
+            lost = [f"{nid}.{port} {seqs}" for port, last in sorted(sent.items())
                     if (seqs := self.unseen_seqs(nid, port, last))]
-            said = (f"    {nid} said done after {book.reports_sent[nid]} report(s), of which {missing} never reached "
+            said = (f"    {nid} said done after {intake.reports_sent[nid]} report(s), of which {missing} never reached "
                     f"the coordinator" + (f"; it never got the event(s) {', '.join(lost)}" if lost else "") + "\n")
-        proc = book.workers.get(nid)
+        proc = procs.workers.get(nid)
         code = proc.poll() if proc is not None else None
         tail = self.hosting.stderr_tail(nid, UNFINISHED_TAIL_LINES)
-        if code is None and nid not in book.stackless:
+        if code is None and nid not in self.stackless:
             return f"{said}    {nid} stderr (its stacks last):\n{tail}\n"
         if code is not None:
             why = f"its process had ended ({exit_text(code)})"
         else:
-            stopped = isinstance(book.hosts[nid], LocalHost) and is_stopped(proc.pid)
-            why = (f"its process (pid {proc.pid}) printed none within {book.stackless[nid]:g} s of SIGUSR1: "
+            stopped = isinstance(procs.hosts[nid], LocalHost) and is_stopped(proc.pid)
+            why = (f"its process (pid {proc.pid}) printed none within {self.stackless[nid]:g} s of SIGUSR1: "
                    + ("it is stopped (SIGSTOP, or a debugger)" if stopped else
                       "stopped, or stuck in code that holds Python's lock"))
         return f"{said}    {nid}: no stacks: {why}" + (f"; its stderr last:\n{tail}\n" if tail.strip() else "\n")
@@ -80,8 +83,9 @@ class Diagnostics:
         """The seqs up to ``last`` of stream ``nid.port`` that never reached the coordinator, as
         ``seqs 3, 5-7`` (the first ``most`` runs of them, of the last UNSEEN_SEARCHED seqs at most)."""
         runs: list[list[int]] = []
-        for seq in range(max(self.book.have.get((nid, port), -1) + 1, last - UNSEEN_SEARCHED + 1), last + 1):
-            if (nid, port, seq) in self.book.event_ids:
+        intake = self.book.intake
+        for seq in range(max(intake.have.get((nid, port), -1) + 1, last - UNSEEN_SEARCHED + 1), last + 1):
+            if (nid, port, seq) in intake.event_ids:
                 continue
             if runs and runs[-1][1] == seq - 1:
                 runs[-1][1] = seq
@@ -96,15 +100,16 @@ class Diagnostics:
 
 
 def failure_error(book: RunBook, backend_name: str) -> Exception:
-    """The error a failed run raises, from what its failing node's process said (``book.failure``)."""
-    node, error, said = book.failure.node, book.failure.error, book.failure.failed
+    """The error a failed run raises, from what its failing node's process said (``book.ending.failure``)."""
+    failure = book.ending.failure
+    node, error, said = failure.node, failure.error, failure.failed
     graph = book.graph
     tb = said.traceback if said is not None else None
     where = "\n    worker traceback:\n" + "\n".join("        " + line for line in tb.strip().splitlines()) if tb else ""
     tag = said.tag if said is not None and said.tag is not ABSENT else None
     settings = graph.nodes[node].settings if node in graph.nodes else None
-    if book.limit is not None:
-        return book.limit
+    if book.ending.limit is not None:
+        return book.ending.limit
     cycle = next((c for c in graph.instantaneous_cycles if node in c), None)
     if said is not None and said.zeno is True and cycle is not None and tag is not None:
         return CausalityError(cycle, tag, graph.max_microsteps)

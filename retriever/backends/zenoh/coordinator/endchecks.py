@@ -31,15 +31,15 @@ def warn_forged(book: RunBook) -> None:
     book.tell_forged()
     if book.counts["forged"]:
         warnings.warn(f"{book.counts['forged']} message(s) or record(s) on the run's key space were refused: "
-                      f"no process of the run's node made them ({'; '.join(book.senders.reasons)})\n"
+                      f"no process of the run's node made them ({'; '.join(book.processes.senders.reasons)})\n"
                       "    hint: a process holding the run's secret or password put them; none reached the "
                       "trace or the log (pipe.counts()['forged'])", RetrieverWarning, stacklevel=WARN_STACKLEVEL)
 
 
 def exit_unrecorded(book: RunBook) -> str | None:
     """A node whose process said its step called sys.exit(0), and never sent the record of that step."""
-    return next((node for node, said in sorted(book.exit_said.items(), key=lambda item: item[0])
-                 if book.exit_recorded.get(node) != said), None)
+    return next((node for node, said in sorted(book.ending.exit_said.items(), key=lambda item: item[0])
+                 if book.ending.exit_recorded.get(node) != said), None)
 
 
 def check_exit_recorded(book: RunBook, backend_name: str) -> None:
@@ -48,7 +48,7 @@ def check_exit_recorded(book: RunBook, backend_name: str) -> None:
     node = exit_unrecorded(book)
     if node is not None:
         raise BackendError(f"{backend_name} run: the process of '{node}' said its step called sys.exit(0) "
-                           f"at {book.exit_said[node][0]}, and never sent the record of that step: the run "
+                           f"at {book.ending.exit_said[node][0]}, and never sent the record of that step: the run "
                            "went on without it")
 
 
@@ -56,14 +56,14 @@ def check_every_flow_ticked(book: RunBook, backend_name: str, start_margin_ns: i
     """A flow with a rate that had ticks due in the run's window, and ran none, fails the
     run: a run that exits 0 with flows that never ran looks fine and is not, which is worse
     than one that fails. Its worker's ``done`` says what it saw."""
-    if book.ended_by is not None:  # a step's sys.exit(0) ended the run before its end
+    if book.ending.ended_by is not None:  # a step's sys.exit(0) ended the run before its end
         return
     idle = []
     for nid, node in book.graph.nodes.items():
         due = ticks_due(node.clock, book.end_ns)
-        if due == 0 or book.stats[nid].ticks > 0:
+        if due == 0 or book.intake.stats[nid].ticks > 0:
             continue
-        said = book.done_info.get(nid, {})
+        said = book.intake.done_info.get(nid, {})
         if said.get("ticks"):
             why = f"its worker ran {said['ticks']} ticks, whose step records never reached the coordinator"
         elif "started_ns" in said:
@@ -81,7 +81,7 @@ def check_every_flow_ticked(book: RunBook, backend_name: str, start_margin_ns: i
 def say_starved(book: RunBook) -> None:
     """Say at once which input starves (its node skips tick after tick while its producer makes
     events), and when one that did has an event again."""
-    news, book.starvation.news = book.starvation.news, []
+    news, book.intake.starvation.news = book.intake.starvation.news, []
     for what, episode in news:
         node, port = episode["node"], episode["port"]
         if what == "starved":
@@ -98,24 +98,24 @@ def say_starved(book: RunBook) -> None:
 
 def record_starved(book: RunBook, log) -> None:
     """Log each starved span (the run ends: one still starved lasted to its end)."""
-    if book.starvation.news:
+    if book.intake.starvation.news:
         say_starved(book)
     if log is not None:
-        for episode in book.starvation.episodes:
+        for episode in book.intake.starvation.episodes:
             log.add_starved(episode)
 
 
 def warn_starved_by_late_events(book: RunBook, trace: Trace) -> None:
     """A flow that never stepped though events came on its inputs, late (after the ticks they
     were for): say which edge, and the fix. The run stands (it did what its policies say)."""
-    for nid, stats in sorted(book.stats.items()):
+    for nid, stats in sorted(book.intake.stats.items()):
         if stats.steps or not stats.counts.get("late"):
             continue
         ports = sorted({port for node, _, _, _, _, detail, *_ in trace.raw_steps
                         if node == nid and detail for port in (detail.get("late") or {})})
         # the edges into the ports the step records name (none are kept under keep="counters"),
         # whose producer made any event: another into the same port may have been silent
-        into = [e for e in book.graph.edges if e.dst == nid and (e.src, e.src_port) in book.max_seq]
+        into = [e for e in book.graph.edges if e.dst == nid and (e.src, e.src_port) in book.intake.max_seq]
         edges = [e for e in into if e.dst_port in ports] or into
         names = ", ".join(f"{e.src}.{e.src_port} → {nid}.{e.dst_port}" for e in edges)
         e = edges[0] if edges else None

@@ -9,7 +9,8 @@ The coordinator's logic (readiness, T0, reports, the log, restarts, lost process
 on each; a hosting answers what differs: how the hub opens and who may join it, where the nodes
 go (:meth:`place`), what a host lost means, how the processes stop, what a run's log says of it.
 A hosting serves one run, which :meth:`attach` hands it before the hub opens: a :class:`HostedRun`,
-what it may read of the run and the two things it may do to it (keep a subscription, stop it).
+what it may read of the run and the three things it may do to it (keep a subscription, stop it,
+give nodes the keys their first processes sign with).
 What a host lost means is a decision it returns (:class:`FailRun`, :class:`Relocate`,
 :class:`AwaitHost`), which the coordinator's Supervisor carries out (processes.py).
 """
@@ -29,7 +30,7 @@ from ..host import Host, LocalHost
 from ..hub import open_hub
 from ..protocol import RunSpec
 from ..wire import KeySpace
-from .book import RunBook
+from .book import BookView
 from .faults import Fault
 
 
@@ -37,23 +38,25 @@ from .faults import Fault
 class HostedRun:
     """The run a hosting serves: what it reads of it, filled in as the coordinator opens it
     (``hub``, ``endpoint``, ``watch_config`` once the hub is open; ``spec`` before :meth:`Hosting.place`,
-    which may replace it with one that has a part of its own: dora's). ``book`` is the
-    coordinator's record, to read (states, counters, pids, run time; :meth:`Hosting.place` may
-    give nodes their first keys): what a host lost changes in it goes through the decision
-    :meth:`Hosting.host_lost` returns."""
+    which may replace it with one that has a part of its own: dora's). ``book`` is a read-only
+    view of the coordinator's record (states, counters, processes, run time): what a host lost
+    changes in it goes through the decision :meth:`Hosting.host_lost` returns."""
 
     graph: Graph
     namespace: str
     keys: KeySpace
     access: RunAccess | None
     run_dir: Path
-    book: RunBook
+    book: BookView
     #: keep a subscription or queryable of the hub until the run closes
     keep: Callable[[Any], None]
     #: end the run now, as Ctrl-C here would (``retriever stop``)
     stop: Callable[[], None]
     #: whether the run has closed
     closed: Callable[[], bool]
+    #: the keys some nodes' first processes sign with, made by the hosting (:meth:`Hosting.place`:
+    #: dora's, in its spec) instead of at their spawn (book.Processes.expect_keys)
+    expect_keys: Callable[[dict[str, bytes]], None]
     hub: Any = None
     endpoint: str | None = None
     watch_config: Path | None = None

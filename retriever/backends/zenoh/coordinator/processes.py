@@ -62,24 +62,24 @@ class Supervisor:
     def spawn(self, nid: str, join: tuple[int, int] | None = None, fresh: bool = False) -> None:
         """Start the worker process of ``nid``; ``join``: (T0, end) of the run it joins, taking
         over the state of the process it replaces, or, ``fresh``, starting afresh (that one died)."""
-        book = self.book
+        procs = self.book.processes
         mode = mode_args(join, fresh)
-        book.workers[nid], key = book.hosts[nid].spawn(nid, mode, book.first_keys.pop(nid, None) or new_key())
-        book.senders.add(nid, key, book.workers[nid])
-        self.control.signer.add(book.workers[nid], key)
+        procs.workers[nid], key = procs.hosts[nid].spawn(nid, mode, procs.first_keys.pop(nid, None) or new_key())
+        procs.senders.add(nid, key, procs.workers[nid])
+        self.control.signer.add(procs.workers[nid], key)
         if join is not None:
-            book.joining.add(nid)
-        book.state[nid] = NodeState.STARTING
+            procs.joining.add(nid)
+        procs.state[nid] = NodeState.STARTING
 
     def spawn_group(self, name: str, nodes: list[str]) -> None:
         """Start the one process of the group ``name`` (its first: its members' restarts are
         processes of their own, spawn): every member's process, with one key."""
-        book = self.book
-        proc, key = book.hosts[nodes[0]].spawn_group(name, nodes, new_key())
+        procs = self.book.processes
+        proc, key = procs.hosts[nodes[0]].spawn_group(name, nodes, new_key())
         for nid in nodes:
-            book.workers[nid] = proc
-            book.senders.add(nid, key, proc)
-            book.state[nid] = NodeState.STARTING
+            procs.workers[nid] = proc
+            procs.senders.add(nid, key, proc)
+            procs.state[nid] = NodeState.STARTING
         self.control.signer.add(proc, key)
 
     def raise_failure(self) -> None:
@@ -100,34 +100,34 @@ class Supervisor:
     def check(self) -> None:
         """Look at the hosts and the processes: a lost host or a dead process fails the run, or
         (on_error="restart", a deployment's on_worker_loss) starts its flows afresh."""
-        book = self.book
+        book, procs = self.book, self.book.processes
         self.hosting.check()
         polled: dict[int, int | None] = {}  # each process polled once a check: a waitpid, every pass
         self.forget_ended(polled)
-        for host in {id(h): h for h in book.hosts.values()}.values():
-            if not host.alive and book.failure is None:  # its flows stopped with it, whatever they said
+        for host in {id(h): h for h in procs.hosts.values()}.values():
+            if not host.alive and book.ending.failure is None:  # its flows stopped with it, whatever they said
                 self.host_lost(host)
-                if book.failure is not None:
+                if book.ending.failure is not None:
                     self.raise_failure()
-        for nid, proc in [*book.workers.items(), *book.retiring.items()]:
+        for nid, proc in [*procs.workers.items(), *procs.retiring.items()]:
             code = polled[id(proc)] if id(proc) in polled else proc.poll()
-            if code is None or book.state[nid] == State.DONE or not book.hosts[nid].alive:
+            if code is None or procs.state[nid] == State.DONE or not procs.hosts[nid].alive:
                 continue  # running, finished, or gone with its host (above)
             if code in (0, EXIT_HANDED_OVER, EXIT_FAILED):
                 # a worker's own exit: its last status may still be on the way (it says why it ended)
-                exited = book.exited.setdefault(proc.pid, time.monotonic())
+                exited = procs.exited.setdefault(proc.pid, time.monotonic())
                 if time.monotonic() - exited < EXIT_GRACE_S:
                     continue
             # it died, or ended without a word (os._exit in a step): its state is lost
-            if book.failure is not None:
+            if book.ending.failure is not None:
                 self.raise_failure()
             if book.t0 is not None and book.graph.nodes[nid].settings.on_error == "restart":
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time
-            book.hosts[nid].output(nid).drain()
+            procs.hosts[nid].output(nid).drain()
             if book.t0 is not None:  # the log says what died, and which of its outputs with it
-                book.unrecovered.append(Fault(nid, book.run_time(), proc.pid, exit_text(code)))
-            book.failure = RunFailure(nid, f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
+                book.faults.unrecovered.append(Fault(nid, book.run_time(), proc.pid, exit_text(code)))
+            book.ending.failure = RunFailure(nid, f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
                                            f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}")
             self.raise_failure()
 
@@ -135,20 +135,20 @@ class Supervisor:
         """A host went with its nodes' processes: do what the hosting decides it means (hosting.py):
         fail the run (the log says which processes went with it, once their last reports are
         in), start the nodes afresh elsewhere, or go on without them until it is back."""
-        book = self.book
-        nodes = book.nodes_of(host)
+        book, procs = self.book, self.book.processes
+        nodes = procs.nodes_of(host)
         decision = self.hosting.host_lost(host, nodes)
         if isinstance(decision, FailRun):
             if book.t0 is not None:
-                book.unrecovered += [Fault(nid, book.run_time(), book.workers[nid].pid, decision.exit)
+                book.faults.unrecovered += [Fault(nid, book.run_time(), procs.workers[nid].pid, decision.exit)
                                      for nid in nodes]
-            book.failure = RunFailure(nodes[0], decision.reason)
+            book.ending.failure = RunFailure(nodes[0], decision.reason)
         elif isinstance(decision, Relocate):
             for nid, new_host in sorted(decision.hosts.items()):
-                book.hosts[nid] = new_host
-                counts = book.stats[nid].counts
+                procs.hosts[nid] = new_host
+                counts = book.intake.stats[nid].counts
                 counts["moves"] = counts.get("moves", 0) + 1
-                self.start_afresh(nid, Fault(nid, decision.at_ns, book.workers[nid].pid, decision.exit,
+                self.start_afresh(nid, Fault(nid, decision.at_ns, procs.workers[nid].pid, decision.exit,
                                              moved_to=decision.moved_to[nid]))
         else:  # AwaitHost: their processes, if a hung host still has them, stop; their consumers know
             for nid in decision.lost:
@@ -163,16 +163,16 @@ class Supervisor:
         book = self.book
         at = book.run_time()
         why = f"its worker process (pid {proc.pid}) {exit_text(code)} at t={at / 1e9:.3f} s"
-        if nid in book.fresh:  # the last one died before it was ready: that fault stands on its own
-            self.record_fault(book.fresh.pop(nid), None)
-        budget = book.restarts[nid]
+        if nid in book.faults.fresh:  # the last one died before it was ready: that fault stands on its own
+            self.record_fault(book.faults.fresh.pop(nid), None)
+        budget = book.faults.restarts[nid]
         decision = take_restart(budget, at)
         if decision is not Decision.RESTART:
-            book.limit = ending(decision, nid, None, why, budget)
-            book.unrecovered.append(Fault(nid, at, proc.pid, exit_text(code)))
-            book.failure = RunFailure(nid, str(book.limit))
+            book.ending.limit = ending(decision, nid, None, why, budget)
+            book.faults.unrecovered.append(Fault(nid, at, proc.pid, exit_text(code)))
+            book.ending.failure = RunFailure(nid, str(book.ending.limit))
             return
-        counts = book.stats[nid].counts
+        counts = book.intake.stats[nid].counts
         for name in ("restarts", "crash_restarts"):
             counts[name] = counts.get(name, 0) + 1
         print(f"retriever: flow '{nid}': {why}; starting it afresh (on_error='restart')",
@@ -182,49 +182,49 @@ class Supervisor:
     def start_afresh(self, nid: str, fault: Fault) -> None:
         """Start ``nid`` afresh in a new process on its host (node/handover.py);
         ``fault``: what became of the old one, logged once the new one is ready."""
-        book = self.book
-        for other in (book.workers.get(nid), book.retiring.pop(nid, None)):
+        book, procs = self.book, self.book.processes
+        for other in (procs.workers.get(nid), procs.retiring.pop(nid, None)):
             if other is not None:
                 if other.poll() is None:
                     other.kill()
-                book.retired.append(other)
+                procs.retired.append(other)
         self.control.put(Lost(node=nid))
-        book.restarted.pop(nid, None)
-        book.fresh[nid] = fault
+        procs.restarted.pop(nid, None)
+        book.faults.fresh[nid] = fault
         self.spawn(nid, join=(book.t0, book.end_ns), fresh=True)
 
     def restart_afresh(self, nid: str) -> None:
         """The new process of ``nid`` is ready: its streams go on past every seq the dead one may
         have used; the consumers and it are told (control ``restarted``), the log gets the fault."""
         book = self.book
-        ports = {port for node, port in book.max_seq if node == nid} | set(book.graph.nodes[nid].outputs)
-        seqs = {port: book.max_seq.get((nid, port), -1) + 1 + RESTART_SEQ_GAP for port in sorted(ports)}
+        ports = {port for node, port in book.intake.max_seq if node == nid} | set(book.graph.nodes[nid].outputs)
+        seqs = {port: book.intake.max_seq.get((nid, port), -1) + 1 + RESTART_SEQ_GAP for port in sorted(ports)}
         for port, first in seqs.items():  # the consumers give up the seqs below: nothing to wait for
-            book.have[(nid, port)] = max(book.have.get((nid, port), -1), first - 1)
-        self.record_fault(book.fresh.pop(nid), seqs)
-        book.restarted[nid] = seqs
+            book.intake.have[(nid, port)] = max(book.intake.have.get((nid, port), -1), first - 1)
+        self.record_fault(book.faults.fresh.pop(nid), seqs)
+        book.processes.restarted[nid] = seqs
         self.control.put(Restarted(node=nid, seqs=seqs, values=book.values))
-        book.joining.discard(nid)
+        book.processes.joining.discard(nid)
 
     def record_fault(self, fault: Fault, seqs: dict[str, int] | None) -> None:
         """Keep a lost process's fault, and log it: the outputs its step records claimed and no
         report carried (LET outputs it still held) are lost, which a replay must know."""
         book = self.book
-        lost = sorted(event_id for event_id in book.unseen if event_id[0] == fault.node)
-        book.unseen.difference_update(lost)
+        lost = sorted(event_id for event_id in book.intake.unseen if event_id[0] == fault.node)
+        book.intake.unseen.difference_update(lost)
         fault = fault.settled(seqs, [list(event_id) for event_id in lost])
-        book.faults.append(fault)
+        book.faults.logged.append(fault)
         self.on_fault(fault)
 
     def record_faults_left(self) -> None:
         """Log the faults of processes that died and were not started afresh (not allowed, out
         of budget, the run ended first, or their host never came back), once their last reports are in."""
-        book = self.book
-        book.unrecovered += self.hosting.faults_left()
-        for fault in [*book.fresh.values(), *book.unrecovered]:
+        faults = self.book.faults
+        faults.unrecovered += self.hosting.faults_left()
+        for fault in [*faults.fresh.values(), *faults.unrecovered]:
             self.record_fault(fault, None)
-        book.fresh.clear()
-        book.unrecovered.clear()
+        faults.fresh.clear()
+        faults.unrecovered.clear()
 
     # ---------------------------------------------------------------------------------------
     # Stopping
@@ -233,33 +233,33 @@ class Supervisor:
         """Ask every live worker to stop, collect what they send, then make sure they are gone:
         one still running after ``grace`` is stuck in a step, so its stacks are printed and it is
         killed. Before the run's start they have nothing to send, and may not listen yet: SIGTERM them."""
-        book = self.book
+        book, procs = self.book, self.book.processes
         self.hosting.before_stop()
         if book.t0 is None:
-            for p in book.processes():
+            for p in procs.started():
                 if p.poll() is None:
                     p.send_signal(signal.SIGTERM)
             self.reap()
             return
-        book.stop_sent = True
+        book.ending.stop_sent = True
         try:
             self.control.put(Stop())
         except Exception:
             pass
         # a process not in the run yet (a restarted flow's, before it took over or was told its
         # seqs) has nothing to send, and may be waiting for its neighbours, not reading control
-        for nid in book.joining:
-            p = book.workers.get(nid)
+        for nid in procs.joining:
+            p = procs.workers.get(nid)
             if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGTERM)
         give_up = time.monotonic() + grace
-        while time.monotonic() < give_up and any(p.poll() is None for p in book.processes()):
+        while time.monotonic() < give_up and any(p.poll() is None for p in procs.started()):
             self.inbox.take_one(STOP_POLL_S)
         self.inbox.drain()
         # one that said done is past its flow's teardown and only ending (Python collecting a big
         # model object by object takes seconds): reap gives it REAP_GRACE_S; the others are stuck
-        running = [(nid, p) for nid, p in [*book.workers.items(), *book.retiring.items()] if p.poll() is None]
-        stuck = sorted(nid for nid, p in running if book.state.get(nid) != State.DONE or p in book.retiring.values())
+        running = [(nid, p) for nid, p in [*procs.workers.items(), *procs.retiring.items()] if p.poll() is None]
+        stuck = sorted(nid for nid, p in running if procs.state.get(nid) != State.DONE or p in procs.retiring.values())
         if stuck:  # they had their grace: where are they? (once, on our stderr, prefixed with the node)
             print(f"retriever: worker(s) {', '.join(stuck)} did not stop within {grace:g} s; their stacks, "
                   "then SIGKILL:", file=sys.stderr, flush=True)
@@ -271,14 +271,14 @@ class Supervisor:
 
     def reap(self, grace: float = REAP_GRACE_S) -> None:
         """Wait for every worker to exit; SIGTERM, then SIGKILL, the ones that do not."""
-        procs = self.book.processes()
+        started = self.book.processes.started()
         deadline = time.monotonic() + grace
-        for p in procs:
+        for p in started:
             try:
                 p.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 p.send_signal(signal.SIGTERM)
-        for p in procs:
+        for p in started:
             try:
                 p.wait(timeout=TERM_GRACE_S)
             except subprocess.TimeoutExpired:

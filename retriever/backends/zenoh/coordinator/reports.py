@@ -20,7 +20,7 @@ from pathlib import Path
 from ....trace import NOT_KEPT, STEPPED, StepStatus, Trace
 from ..protocol import Have, Report, ReportedStep
 from ..wire import WireError, decode_events
-from .book import RunBook
+from .book import Intake, RunBook
 from .control import RunControl
 from .exits import ExitCut
 
@@ -42,17 +42,17 @@ class ReportIngest:
 
     def take(self, key: str, data: bytes, sender: object) -> None:
         """A report on ``key``, signed by ``sender`` (a process of its node: origin.py)."""
-        book = self.book
-        book.reported_bytes += len(data)
+        book, intake = self.book, self.book.intake
+        intake.reported_bytes += len(data)
         try:
             report = Report.decode(data, node=key.rsplit("/", 1)[1])
         except WireError as e:
             book.garbage(key, e)
             return
-        if report.node not in book.stats:
+        if report.node not in intake.stats:
             book.garbage(key, WireError(f"a report of an unknown node '{report.node}'"))
             return
-        book.reports[report.node] += 1
+        intake.reports[report.node] += 1
         for wall, message in report.events:
             self._events(key, report.node, wall, message)
         for record in report.records:
@@ -60,36 +60,36 @@ class ReportIngest:
 
     def _record(self, key: str, node: str, sender: object, record: ReportedStep) -> None:
         """One step record of ``node``, checked: on to :meth:`take_step` (in virtual time, once final)."""
-        book = self.book
+        book, intake = self.book, self.book.intake
         tag, consumed, produced, status, detail, start, wall = record
-        if (node, tag) in book.ticks:
+        if (node, tag) in intake.ticks:
             book.garbage(key, WireError(f"a second step record of {node} at {tag}"))
             return
         clock = book.graph.nodes[node].clock
         if not clock.may_tick_at(tag, book.end_ns if book.t0 is not None else None):
-            book.senders.refuse(f"a step record of {node} at {tag}, which is no tick of its {clock!r}")
+            book.processes.senders.refuse(f"a step record of {node} at {tag}, which is no tick of its {clock!r}")
             return
-        book.ticks.add((node, tag))
+        intake.ticks.add((node, tag))
         exit_code = detail.get("exit") if detail is not None else None
         if status == StepStatus.OK and type(exit_code) is int and exit_code == 0:  # its step's sys.exit(0)
-            book.exit_recorded[node] = (tag, sender)
+            book.ending.exit_recorded[node] = (tag, sender)
             self.on_exit_recorded(node)
         self.step((node, tag, consumed, produced, status, detail, start, wall))
 
     def take_step(self, record: tuple) -> None:
         """A step record final: into the trace, the node's counters and the starvation watch."""
-        book = self.book
+        intake = self.book.intake
         node, tag, consumed, produced, status, detail, start, wall = record
         self.trace.raw_steps.append(record)
-        if book.live is not None:
-            book.live.step(node, tag, consumed, produced, status, detail, start, wall)
-        book.starvation.step(node, tag, produced, detail)
+        if intake.live is not None:
+            intake.live.step(node, tag, consumed, produced, status, detail, start, wall)
+        intake.starvation.step(node, tag, produced, detail)
         for event_id in produced:  # a LET output is published after its record went
-            if event_id not in book.event_ids:
-                book.unseen.add(event_id)
-            if event_id[2] > book.max_seq.get(event_id[:2], -1):
-                book.max_seq[event_id[:2]] = event_id[2]
-        stats = book.stats[node]
+            if event_id not in intake.event_ids:
+                intake.unseen.add(event_id)
+            if event_id[2] > intake.max_seq.get(event_id[:2], -1):
+                intake.max_seq[event_id[:2]] = event_id[2]
+        stats = intake.stats[node]
         stats.ticks += 1
         if status in STEPPED:
             stats.steps += 1
@@ -113,49 +113,49 @@ class ReportIngest:
             self._event(key, node, wall, msg)
 
     def _event(self, key: str, node: str, wall: int, msg) -> None:
-        book = self.book
+        book, intake = self.book, self.book.intake
         stream = (msg.producer, msg.port)
         event_id = (msg.producer, msg.port, msg.seq)
         if msg.producer != node:  # carried by a consumer, for a producer whose report may be lost
-            if (msg.producer, msg.port, node) not in book.feeds:
+            if (msg.producer, msg.port, node) not in intake.feeds:
                 book.garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
                                             "which is no output port of it nor one it consumes"))
-            elif event_id not in book.event_ids:
-                book.carried.add(event_id)
+            elif event_id not in intake.event_ids:
+                intake.carried.add(event_id)
                 self._keep(event_id, msg, wall)
             return
-        if stream not in book.streams and node not in book.open_outputs:
+        if stream not in intake.streams and node not in intake.open_outputs:
             book.garbage(key, WireError(f"{node} reported an event of {msg.producer}.{msg.port}, "
                                         "which is no output port of it"))
             return
-        if event_id in book.carried:  # its producer's report came after all
-            book.carried.discard(event_id)
+        if event_id in intake.carried:  # its producer's report came after all
+            intake.carried.discard(event_id)
             return
-        if event_id in book.event_ids:
+        if event_id in intake.event_ids:
             book.garbage(key, WireError(f"event {event_id} arrived twice"))
             return
         self._keep(event_id, msg, wall)
 
     def _keep(self, event_id: tuple[str, str, int], msg, wall: int) -> None:
-        book = self.book
-        book.event_ids.add(event_id)
-        book.unseen.discard(event_id)
+        book, intake = self.book, self.book.intake
+        intake.event_ids.add(event_id)
+        intake.unseen.discard(event_id)
         producer, port, seq = event_id
-        have = book.have.get((producer, port), -1)
-        while (producer, port, have + 1) in book.event_ids:  # every seq up to it (carried ones may skip)
+        have = intake.have.get((producer, port), -1)
+        while (producer, port, have + 1) in intake.event_ids:  # every seq up to it (carried ones may skip)
             have += 1
-        book.have[(producer, port)] = have
+        intake.have[(producer, port)] = have
         self.event((msg.tag, producer, port, seq, msg.value if book.values else NOT_KEPT, wall))
 
     def take_event(self, event: tuple) -> None:
         """An event final: into the trace."""
-        book = self.book
+        intake = self.book.intake
         tag, producer, port, seq, value, wall = event
-        if seq > book.max_seq.get((producer, port), -1):
-            book.max_seq[(producer, port)] = seq
+        if seq > intake.max_seq.get((producer, port), -1):
+            intake.max_seq[(producer, port)] = seq
         self.trace.raw_events.append(event)
-        if book.live is not None:
-            book.live.event(producer, port, tag, seq, value, wall)
+        if intake.live is not None:
+            intake.live.event(producer, port, tag, seq, value, wall)
 
     def _unspill(self, node: str, name: str) -> mmap.mmap:
         """A message a worker wrote to a file of the run directory: mapped (its arrays are views
@@ -170,7 +170,7 @@ class ReportIngest:
         try:
             path.unlink()
             mapped = mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
-            self.book.reported_bytes += len(mapped)
+            self.book.intake.reported_bytes += len(mapped)
             return mapped
         except (OSError, ValueError) as e:  # ValueError: an empty file
             raise WireError(f"{node} reported an event in {path}, which cannot be mapped: {e}") from None
@@ -178,10 +178,11 @@ class ReportIngest:
             os.close(fd)
 
 
-def tell_have(book: RunBook, control: RunControl) -> None:
+def tell_have(intake: Intake, control: RunControl) -> None:
     """Tell the consumers which events the coordinator has (the last seq of each stream that
     moved on since last told): they forget those messages and report the records that wait."""
-    moved = tuple((src, port, seq) for (src, port), seq in book.have.items() if book.have_told.get((src, port)) != seq)
+    moved = tuple((src, port, seq) for (src, port), seq in intake.have.items()
+                  if intake.have_told.get((src, port)) != seq)
     if moved:
         control.put(Have(streams=moved))
-        book.have_told.update(((src, port), seq) for src, port, seq in moved)
+        intake.have_told.update(((src, port), seq) for src, port, seq in moved)

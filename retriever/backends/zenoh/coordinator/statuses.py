@@ -54,8 +54,8 @@ class StatusMachine:
         except WireError as e:
             book.garbage(key, e)
             return
-        node, state = status.node, status.NAME
-        if node not in book.state:
+        node, state, procs = status.node, status.NAME, book.processes
+        if node not in procs.state:
             book.garbage(key, WireError(f"status of an unknown node '{node}'"))
             return
         # Only the node's own process speaks for it: its running one (a restart spawns a process,
@@ -63,18 +63,18 @@ class StatusMachine:
         # handed over). A status signed by another of its processes (one that already handed
         # over or was replaced) is garbage; an insider's (a `failed` stopped the run, a `done`
         # added its counts, an `exit` ended it) is signed by none and never got here.
-        current, retiring = book.workers.get(node), book.retiring.get(node)
+        current, retiring = procs.workers.get(node), procs.retiring.get(node)
         sayers = {State.HANDED_OVER: (retiring,), State.DONE: (current, retiring), State.FAILED: (current, retiring)}
         if sender is None or not any(sender is p for p in sayers.get(state, (current,))):
             book.garbage(key, WireError(f"a '{state}' status of {node} from pid {status.pid}, "
                                         f"which is not the process of {node} that could say it"))
             return
         if state in PROCESS_STAGES:
-            if not may_say(book.said.get((sender, node)), state):
+            if not may_say(procs.said.get((sender, node)), state):
                 book.garbage(key, WireError(f"a '{state}' status of {node} after its process said "
-                                            f"'{book.said[sender, node]}' (a replay)"))
+                                            f"'{procs.said[sender, node]}' (a replay)"))
                 return
-            book.said[sender, node] = state
+            procs.said[sender, node] = state
             self._count(status)
         self.handlers[state](key, status, sender)
 
@@ -83,14 +83,14 @@ class StatusMachine:
         book, node = self.book, status.node
         counts = getattr(status, "counts", ABSENT)
         if counts is not ABSENT:
-            node_counts = book.stats[node].counts
+            node_counts = book.intake.stats[node].counts
             for name, n in counts.items():
                 node_counts[name] = node_counts.get(name, 0) + n
         reports = getattr(status, "reports", ABSENT)
         if reports is not ABSENT:
-            book.reports_sent[node] += reports
+            book.intake.reports_sent[node] += reports
         if status.NAME != State.READY:
-            book.restarted.pop(node, None)
+            book.processes.restarted.pop(node, None)
 
     # ---------------------------------------------------------------------------------------
     # News of a process's run
@@ -102,28 +102,27 @@ class StatusMachine:
             book.garbage(key, WireError(f"a 'reached' status of {status.node} with until {status.until} in a run "
                                         "not in virtual time"))
             return
-        # past the grant (one it was told by someone else): it reached this one on the way
-        book.reached[status.node] = max(book.reached.get(status.node, -1), min(status.until, book.granted))
+        book.grants.reach(status.node, status.until)
 
     def _exit(self, key: str, status: Exit, sender: object) -> None:
         """Its step called sys.exit(0): the run ends there, once its record is in."""
-        self.book.exit_said[status.node] = (status.tag, sender)
+        self.book.ending.exit_said[status.node] = (status.tag, sender)
         self.end_by_exit(status.node)
 
     def end_by_exit(self, node: str) -> None:
         """End the run as a step of ``node`` asked (sys.exit(0)), once its process both said so
         (status ``exit``) and recorded that step (status ok, detail ``{"exit": 0}``) at that tag."""
         book = self.book
-        said = book.exit_said.get(node)
-        if said is None or book.exit_recorded.get(node) != said or book.t0 is None:
+        said = book.ending.exit_said.get(node)
+        if said is None or book.ending.exit_recorded.get(node) != said or book.t0 is None:
             return
         if self.exits is not None:
             self._end_in_virtual_time(node)
             return
-        if book.stop_sent:
+        if book.ending.stop_sent:
             return
-        book.stop_sent = True
-        book.ended_by = node
+        book.ending.stop_sent = True
+        book.ending.ended_by = node
         # as if the run ended now: no tick at or past the exit, but every event sent before
         # it (each stamped before now, the exit's tag may be earlier on a late node) still
         # reaches the ticks it triggers, within their deadline, as at any run's end
@@ -134,15 +133,15 @@ class StatusMachine:
         another node's, said, is earlier. Every tick at its time still runs (the nodes before it
         in the tie order are recorded, the others dropped with what runs past it: exits.py)."""
         book = self.book
-        tag, first = self.exits.earliest(book.exit_said)
-        if first == node and book.ended_by != node:
-            book.stop_sent, book.ended_by = True, node
+        tag, first = self.exits.earliest(book.ending.exit_said)
+        if first == node and book.ending.ended_by != node:
+            book.ending.stop_sent, book.ending.ended_by = True, node
             self.control.put(End(at=tag[0] + 1))
 
     def _unanswered(self, key: str, status: Unanswered, sender: object) -> None:
         """Before the start: its neighbours declare themselves again."""
         book = self.book
-        if not all(n in book.state for n in status.nodes):
+        if not all(n in book.processes.state for n in status.nodes):
             book.garbage(key, WireError(f"an 'unanswered' status of {status.node} that names no nodes of the run"))
         elif book.t0 is not None:  # no worker asks once the run started
             book.garbage(key, WireError(f"an 'unanswered' status of {status.node} after the run's start"))
@@ -154,69 +153,73 @@ class StatusMachine:
     # ---------------------------------------------------------------------------------------
     def _ready(self, key: str, status: Ready, sender: object) -> None:
         book, node = self.book, status.node
-        if status.linked is False and book.failure is None:
+        if status.linked is False and book.ending.failure is None:
             # peers do not route for each other: a worker without a link to another would never
             # get that one's events, nor it this one's
             unlinked = (", ".join(f"'{n:.60}'" for n in status.unlinked[:8])
                         if status.unlinked is not ABSENT else "some of its neighbours")
-            book.failure = RunFailure(node, (
+            book.ending.failure = RunFailure(node, (
                 f"the worker of '{node}' has no direct link to {unlinked} after {self.startup_timeout:g} s\n"
                 f"    hint: on a loaded machine, give it longer: pipe.run(..., startup_timeout=seconds); across "
                 f"machines, each must reach the others at the address it listens on (retriever-worker --listen)"))
             return
-        if node in book.fresh:
+        procs = book.processes
+        if node in book.faults.fresh:
             self.supervisor.restart_afresh(node)
-        elif node in book.restarted:
+        elif node in procs.restarted:
             # said again: it has not seen `restarted` yet (worker/waits.py, START_ASK_S), nor, maybe, its consumers
-            self.control.put(Restarted(node=node, seqs=book.restarted[node], values=book.values))
-        elif node in book.retiring:
-            if book.state[node] == State.DONE:  # the run ended while it restarted: stopped at close
+            self.control.put(Restarted(node=node, seqs=procs.restarted[node], values=book.values))
+        elif node in procs.retiring:
+            if procs.state[node] == State.DONE:  # the run ended while it restarted: stopped at close
                 return
             self.control.put(Handover(node=node))
-        book.state[node] = State.READY
+        procs.state[node] = State.READY
 
     def _restart(self, key: str, status: Restart, sender: object) -> None:
         """Its flow asks for a restart in a new process: the old one keeps listening until the
         new one takes over."""
         book, node, tag = self.book, status.node, status.tag
-        budget = book.restarts[node]
+        budget = book.faults.restarts[node]
         decision = take_restart(budget, tag[0])  # the node decided on a restart; the budget here
         if decision is not Decision.RESTART:
-            book.limit = ending(decision, node, tag, status.error, budget)
-            book.failure = RunFailure(node, str(book.limit))
+            book.ending.limit = ending(decision, node, tag, status.error, budget)
+            book.ending.failure = RunFailure(node, str(book.ending.limit))
             return
-        node_counts = book.stats[node].counts
+        node_counts = book.intake.stats[node].counts
         node_counts["restarts"] = node_counts.get("restarts", 0) + 1
-        book.retiring[node] = book.workers[node]
-        book.handed_over.discard(node)  # (the old process it replaces has not handed over yet)
+        procs = book.processes
+        procs.retiring[node] = procs.workers[node]
+        procs.handed_over.discard(node)  # (the old process it replaces has not handed over yet)
         self.supervisor.spawn(node, join=(book.t0, book.end_ns))
 
     def _failed(self, key: str, status: Failed, sender: object) -> None:
-        self.book.failure = RunFailure.said(status)
-        self.book.state[status.node] = State.FAILED
+        self.book.ending.failure = RunFailure.said(status)
+        self.book.processes.state[status.node] = State.FAILED
 
     def _handed_over(self, key: str, status: HandedOver, sender: object) -> None:
         """The old process of a restarting node gave its state to the new one, which resumes."""
-        book = self.book
-        book.retired.append(book.retiring.pop(status.node))
-        book.handed_over.add(status.node)
+        procs = self.book.processes
+        procs.retired.append(procs.retiring.pop(status.node))
+        procs.handed_over.add(status.node)
         self.control.put(Resume(node=status.node))
-        book.joining.discard(status.node)
+        procs.joining.discard(status.node)
 
     def _done(self, key: str, status: Done, sender: object) -> None:
         book, node = self.book, status.node
-        if (status.stopped is True and not book.stop_sent and book.t0 is not None and book.failure is None
-                and node not in book.exit_said):  # (an exit's record may come after its `done`)
+        if (status.stopped is True and not book.ending.stop_sent and book.t0 is not None
+                and book.ending.failure is None
+                and node not in book.ending.exit_said):  # (an exit's record may come after its `done`)
             # it ended before the run's end on a stop this coordinator never sent: a run cut
             # short must not look finished (a SIGTERM to it: a `stop` on ctl/run it takes only sealed)
-            book.failure = RunFailure(node, (
+            book.ending.failure = RunFailure(node, (
                 f"{node} stopped before the run's end: told to stop, and not by this coordinator (someone sent "
                 "its worker SIGTERM)"))
-        book.done_info[node] = {k: v for k in ("started_ns", "ticks") if type(v := getattr(status, k)) is int}
+        book.intake.done_info[node] = {k: v for k in ("started_ns", "ticks") if type(v := getattr(status, k)) is int}
         # {port: last seq put}: which events its reports held (diagnostics.unfinished)
         if status.sent is not ABSENT and all(p in book.graph.nodes[node].outputs for p in status.sent):
-            book.done_info[node]["sent"] = status.sent
-        old = book.retiring.pop(node, None)
+            book.intake.done_info[node]["sent"] = status.sent
+        procs = book.processes
+        old = procs.retiring.pop(node, None)
         if old is not None:
-            book.retired.append(old)
-        book.state[node] = State.DONE
+            procs.retired.append(old)
+        procs.state[node] = State.DONE

@@ -53,15 +53,17 @@ class Waits:
         self.supervisor, self.diagnostics, self.exits = supervisor, diagnostics, exits
 
     def until_ready(self, timeout: float) -> None:
-        self.wait(lambda: all(s == State.READY for s in self.book.state.values()), time.monotonic() + timeout, "start")
+        procs = self.book.processes
+        self.wait(lambda: all(s == State.READY for s in procs.state.values()), time.monotonic() + timeout, "start")
 
     def until_finished(self, start: Start, virtual_time: bool) -> None:
         """Put the run's ``start`` and wait for every node to be done with every report in."""
         book, end_ns = self.book, start.end
         if virtual_time:
-            book.granted = min(LOCKSTEP_WINDOW_NS, end_ns)
-            book.last_grant = (time.monotonic(), time.monotonic())
-            self.control.put(dataclasses.replace(start, grant=book.granted))
+            grants = book.grants
+            grants.granted = min(LOCKSTEP_WINDOW_NS, end_ns)
+            grants.last_grant = (time.monotonic(), time.monotonic())
+            self.control.put(dataclasses.replace(start, grant=grants.granted))
             try:
                 self.wait(lambda: self.lockstep() and book.finished(), float("inf"), "finish")
             finally:  # what is held goes to the trace and the log (a failed run's too: what it ran)
@@ -83,55 +85,55 @@ class Waits:
         """Grant the next window once every node not done has reached this one; whether the
         last grant is out: the run's end, or the one in which a step called sys.exit(0), past
         which no node is to run. Fails the run when nothing moved for LOCKSTEP_STALL_S."""
-        book, now = self.book, time.monotonic()
-        behind = sorted(n for n, s in book.state.items() if s != State.DONE and book.reached.get(n, -1) < book.granted)
-        first_exit = self.exits.earliest(book.exit_said)
+        book, grants, state, now = self.book, self.book.grants, self.book.processes.state, time.monotonic()
+        behind = sorted(n for n, s in state.items() if s != State.DONE and grants.reached.get(n, -1) < grants.granted)
+        first_exit = self.exits.earliest(book.ending.exit_said)
         last = book.end_ns if first_exit is None else min(book.end_ns, first_exit[0][0] + 1)
         if not behind:  # every exit below the grant is said (exits.py)
-            self.exits.final_below(book.granted if first_exit is None else min(book.granted, first_exit[0][0]))
-        if not behind and book.granted < last:
-            book.granted = min(book.granted + LOCKSTEP_WINDOW_NS, book.end_ns)
-            book.last_grant = (now, now)
-            self.control.put(Grant(until=book.granted))
+            self.exits.final_below(grants.granted if first_exit is None else min(grants.granted, first_exit[0][0]))
+        if not behind and grants.granted < last:
+            grants.granted = min(grants.granted + LOCKSTEP_WINDOW_NS, book.end_ns)
+            grants.last_grant = (now, now)
+            self.control.put(Grant(until=grants.granted))
             return False
-        if behind and now - book.last_grant[1] > REGRANT_S:  # a put may be missed: again
-            book.last_grant = (book.last_grant[0], now)
-            self.control.put(Grant(until=book.granted))
-        if now - book.last_grant[0] > LOCKSTEP_STALL_S:
-            waiting = behind or sorted(n for n, s in book.state.items()
-                                       if s != State.DONE or book.reports[n] < book.reports_sent[n])
+        if behind and now - grants.last_grant[1] > REGRANT_S:  # a put may be missed: again
+            grants.last_grant = (grants.last_grant[0], now)
+            self.control.put(Grant(until=grants.granted))
+        if now - grants.last_grant[0] > LOCKSTEP_STALL_S:
+            waiting = behind or sorted(n for n, s in state.items()
+                                       if s != State.DONE or book.intake.reports[n] < book.intake.reports_sent[n])
             self.diagnostics.dump_stacks(waiting, show=False)
             raise BackendError(
                 f"zenoh run (virtual time): worker(s) {', '.join(waiting)} did not "
-                + (f"reach t={book.granted / 1e9:g} s" if behind else "finish")
+                + (f"reach t={grants.granted / 1e9:g} s" if behind else "finish")
                 + f" within {LOCKSTEP_STALL_S:g} s of wall time\n"
                 + "".join(self.diagnostics.unfinished(n) for n in waiting)
                 + "    hint: the stacks show where a step that did not return is")
-        return book.granted >= last
+        return grants.granted >= last
 
     def settle(self) -> None:
         """Virtual time, the run over: what is held is final but what its earliest exit cuts off
         (exits.ExitCut), and the run ended there."""
         book = self.book
-        cut = self.exits.earliest(book.exit_said)
+        cut = self.exits.earliest(book.ending.exit_said)
         self.exits.settle(cut)
         if cut is not None:
-            book.ended_by = cut[1]
+            book.ending.ended_by = cut[1]
 
     def wait(self, condition, give_up: float, what: str, patience: float | None = None) -> None:
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``
         (with ``patience``, at the latest that long after the last report came)."""
         session, book = self.session, self.book
         next_write = next_have = time.monotonic()
-        reports = sum(book.reports.values())
+        reports = sum(book.intake.reports.values())
         while not condition():
             if session.stop_requested:  # asked from afar (retriever stop): as Ctrl-C here would
                 raise KeyboardInterrupt
             self.inbox.take(POLL_S)
             book.tell_forged()
-            if book.failure is not None:
+            if book.ending.failure is not None:
                 self.supervisor.raise_failure()
-            if book.starvation.news:
+            if book.intake.starvation.news:
                 say_starved(book)
             self.supervisor.check()
             now = time.monotonic()
@@ -145,10 +147,10 @@ class Waits:
                     session.drop_records()
                 next_write = now + session.LOG_HANDOVER_S
             if now >= next_have:
-                tell_have(book, self.control)
+                tell_have(book.intake, self.control)
                 next_have = now + HAVE_EVERY_S
-            if patience is not None and sum(book.reports.values()) != reports:
-                reports = sum(book.reports.values())
+            if patience is not None and sum(book.intake.reports.values()) != reports:
+                reports = sum(book.intake.reports.values())
                 give_up = max(give_up, now + patience)
             if now > give_up and not condition():  # (what was just taken may have met it)
                 self._timed_out(what)
@@ -158,13 +160,14 @@ class Waits:
     def _timed_out(self, what: str) -> None:
         """The run did not ``start`` or ``finish`` in time: name each node waited for."""
         book, session = self.book, self.session
-        waiting = sorted(n for n, s in book.state.items() if s != (State.READY if what == "start" else State.DONE)
-                         or book.reports[n] < book.reports_sent[n])
+        intake, awaited = book.intake, State.READY if what == "start" else State.DONE
+        waiting = sorted(n for n, s in book.processes.state.items()
+                         if s != awaited or intake.reports[n] < intake.reports_sent[n])
         self.diagnostics.dump_stacks(waiting, show=False)  # the error below shows them
         said = "".join(self.diagnostics.unfinished(n) for n in waiting)  # (before the kill: how each was found)
         if what == "finish":  # stuck in a step (SIGTERM only asks the loop to stop): no use waiting
             for nid in waiting:
-                book.workers[nid].kill()
+                book.processes.workers[nid].kill()
         raise BackendError(f"{session.backend_name} run: worker(s) {', '.join(waiting)} did not {what} in time\n"
                            + said
                            + ("    hint: a flow that takes longer to load needs pipe.run(..., startup_timeout="
