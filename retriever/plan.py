@@ -455,6 +455,10 @@ class Unfed:
     def commit_to(self, buf: PortBuffer, commit: Any) -> None:
         """Nothing to commit: it never selects."""
 
+    def selectable(self, buf: PortBuffer, after: tuple[int, int]) -> PortBuffer:
+        """Nothing: it never selects (and no edge fills its buffer)."""
+        return PortBuffer(buf.trim_batch)
+
 
 UNFED = Unfed()
 

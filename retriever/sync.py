@@ -8,6 +8,7 @@ Runtime interface (used by every backend):
 
     select(buf, tau) -> (value, consumed_ids, dropped, commit)
     commit_to(buf, commit)        # applied only when the tick is not skipped
+    selectable(buf, after) -> buf # what a tick after ``after`` can still select: a restart's hand-over
 
 ``buf`` is a :class:`PortBuffer`. Splitting select from commit is what lets a skipped tick
 consume nothing: ``Queue`` and ``LatestDistinct`` events stay for the next tick. A ``commit``
@@ -16,7 +17,7 @@ of ``None`` means nothing to record; committing it is a no-op.
 
 from __future__ import annotations
 
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from fractions import Fraction
 from typing import Any
 
@@ -102,6 +103,19 @@ class PortBuffer:
         twin.entries, twin.visible, twin.cursor, twin.last_id = list(self.entries), self.visible, self.cursor, self.last_id
         return twin
 
+    def keeping(self, spans: list[tuple[int, int]]) -> "PortBuffer":
+        """A buffer of only the entries in ``spans`` (``(start, stop)`` index ranges, in order and
+        disjoint; empty ones allowed), at the same positions relative to ``visible`` and ``cursor``."""
+        twin = PortBuffer(self.trim_batch)
+        twin.last_id = self.last_id
+        for start, stop in spans:
+            if start >= stop:
+                continue
+            twin.entries += self.entries[start:stop]
+            twin.visible += max(0, min(self.visible, stop) - start)
+            twin.cursor += max(0, min(self.cursor, stop) - start)
+        return twin
+
     def trim(self, keep_from: int) -> None:
         """Forget entries before index ``keep_from``, which no future tick can select."""
         if keep_from >= self.trim_batch:
@@ -132,6 +146,13 @@ class SyncPolicy:
     def commit_to(self, buf: PortBuffer, commit: Any) -> None:
         """Record consumption; called only for ticks that run ``step``."""
 
+    def selectable(self, buf: PortBuffer, after: tuple[int, int]) -> PortBuffer:
+        """A copy of ``buf`` holding only what a tick with a tag past ``after`` (the last tick run)
+        can still select, whatever events are inserted later: a restarted consumer's new process
+        takes this over (zenoh/node/handover.py), and selects from it exactly what it would have
+        selected from ``buf``. This one keeps every entry; the policies that forget some say which."""
+        return buf.copy()
+
     def __eq__(self, other: object) -> bool:
         return type(self) is type(other) and self.params() == other.params()
 
@@ -157,6 +178,35 @@ def _positive_int(owner: str, name: str, value: object, allow_none: bool = True)
         return
     if not isinstance(value, int) or isinstance(value, bool) or value < 1:
         raise ValueError(f"{owner}({name}={value!r}): {name} must be an integer >= 1")
+
+
+def _past(tag: tuple[int, int]) -> tuple:
+    """A bisect key between the entries at ``tag`` and those after it (a 1-tuple sorts before
+    every entry that starts with the same tag)."""
+    return ((tag[0], tag[1] + 1),)
+
+
+def _past_time(tag: tuple[int, int]) -> tuple:
+    """A bisect key between the entries at ``tag``'s time (any microstep) and those after it."""
+    return ((tag[0] + 1,),)
+
+
+def _tag_runs(entries: list[tuple], start: int, past=_past):
+    """``(start, stop)`` of each run of entries at one tag (``past=_past_time``: at one time), the
+    first from ``start`` to its run's end. A burst is one run: its events share their tag."""
+    end = len(entries)
+    while start < end:
+        stop = bisect_left(entries, past(entries[start][0]), start, end)
+        yield start, stop
+        start = stop
+
+
+def _newest_of_each_tag(buf: PortBuffer, after: tuple[int, int]) -> PortBuffer:
+    """What Latest and LatestDistinct can still select: the newest entry at each tag, from the
+    newest at or before ``after`` on. An older one at its tag is never the newest of H again."""
+    entries = buf.entries
+    first = max(bisect_left(entries, _past(after)) - 1, 0)
+    return buf.keeping([(stop - 1, stop) for _, stop in _tag_runs(entries, first)])
 
 
 class Latest(SyncPolicy):
@@ -187,6 +237,9 @@ class Latest(SyncPolicy):
             buf.trim(n - 1)
         return entry[4], ((entry[1], entry[2], entry[3]),), 0, None
 
+    def selectable(self, buf, after):
+        return _newest_of_each_tag(buf, after)
+
 
 class LatestDistinct(SyncPolicy):
     """The newest event of H if this consumer has not consumed it on this port before, else MISSING."""
@@ -208,6 +261,9 @@ class LatestDistinct(SyncPolicy):
     def commit_to(self, buf, commit):
         if commit is not None:  # None: this tick saw MISSING here and consumed nothing
             buf.last_id = commit
+
+    def selectable(self, buf, after):
+        return _newest_of_each_tag(buf, after)
 
 
 class Window(SyncPolicy):
@@ -243,6 +299,21 @@ class Window(SyncPolicy):
         if self.buffer_size is not None or self._duration_ns is not None:
             buf.trim(lo)
         return [e[4] for e in window], tuple((e[1], e[2], e[3]) for e in window), 0, None
+
+    def selectable(self, buf, after):
+        """All but what no later tick reaches: the events more than ``duration`` older than
+        ``after``; with a ``buffer_size``, those that ``buffer_size`` later events are visible
+        beside at every tick to come (of those at or before ``after``, all but the last
+        ``buffer_size``; of a burst's, all but its last ``buffer_size``)."""
+        size, entries = self.buffer_size, buf.entries
+        if size is None and self._duration_ns is None:
+            return buf.copy()
+        lo = 0 if self._duration_ns is None else bisect_left(entries, ((after[0] - self._duration_ns,),))
+        if size is None:
+            return buf.keeping([(lo, len(entries))])
+        seen = bisect_left(entries, _past(after))
+        return buf.keeping([(max(lo, seen - size), seen),
+                            *((max(start, stop - size), stop) for start, stop in _tag_runs(entries, seen))])
 
 
 class Queue(SyncPolicy):
@@ -305,6 +376,14 @@ class Exact(SyncPolicy):
         entry = entries[i]
         buf.trim(i)
         return entry[4], ((entry[1], entry[2], entry[3]),), 0, None
+
+    def selectable(self, buf, after):
+        """The earliest entry at each time, from the time of the newest at or before ``after`` on:
+        the newest time of H is all a tick looks at, and it takes that time's earliest entry."""
+        entries = buf.entries
+        seen = bisect_left(entries, _past(after))
+        first = 0 if not seen else bisect_left(entries, ((entries[seen - 1][0][0],),))
+        return buf.keeping([(start, start + 1) for start, _ in _tag_runs(entries, first, past=_past_time)])
 
 
 class ActionChunking(SyncPolicy):

@@ -6,6 +6,7 @@ process goes on from it; a state as the old process writes it comes back whole."
 from __future__ import annotations
 
 import msgpack
+import numpy as np
 import pytest
 
 from retriever import Burst
@@ -44,6 +45,28 @@ def test_a_state_as_the_old_process_writes_it_comes_back_whole(loop, tmp_path):
     assert type(loop.outputs.held[0][2]) is Burst and loop.outputs.held[0][2].values == ("a", "b")
 
 
+def test_a_buffer_goes_as_runs_and_comes_back_as_its_entries(loop, tmp_path):
+    """A run: one tag, producer and port, consecutive seqs (a burst, or what is left of one);
+    arrays of one dtype and shape as the rows of one array. What is read back is what was there."""
+    rows = np.arange(12, dtype=np.float32).reshape(4, 3)
+    entries = [((50 * MS, 0), "counter", "value", 0, "a"), ((50 * MS, 0), "counter", "value", 1, ("b", 1)),
+               ((50 * MS, 0), "counter", "value", 3, "after a gap"),
+               ((60 * MS, 0), "counter", "value", 4, rows[0]), ((60 * MS, 0), "counter", "value", 5, rows[1]),
+               ((65 * MS, 0), "counter", "value", 6, np.zeros(2, np.int8)),
+               ((70 * MS, 1), "counter", "value", 7, np.float32(2.5)), ((70 * MS, 1), "counter", "value", 8, {"c": 3}),
+               ((70 * MS, 1), "counter", "value", 9, rows[2])]  # arrays beside other values: one by one
+    (_, buf, *_), = loop.steps.inputs
+    buf.entries, buf.visible, buf.cursor = list(entries), 3, 2
+    written = loop.handover_state()
+    assert [run[3] for run in written["buffers"][0][1]] == [0, 3, 4, 6, 7]
+    assert type(written["buffers"][0][1][2][4]) is np.ndarray  # rows 0 and 1, stacked
+    state = handover.read_state(_state_file(tmp_path, written), loop)
+    buf.entries = []
+    handover.take_over(loop, state)
+    assert [e[:4] for e in buf.entries] == [e[:4] for e in entries] and (buf.visible, buf.cursor) == (3, 2)
+    assert Burst.unchecked(tuple(e[4] for e in buf.entries)) == Burst.unchecked(tuple(e[4] for e in entries))
+
+
 @pytest.mark.parametrize("content, says", [
     (b"", r"not Retriever codec data \(ValueError"),
     (b"not msgpack at all \xc1", r"not Retriever codec data \(ExtraData"),
@@ -65,8 +88,9 @@ def test_a_missing_file_is_refused_with_the_hint(loop, tmp_path):
 
 
 def _buffer(state: dict, **changes) -> list:
-    port, entries, visible, cursor, last_id = state["buffers"][0]
-    row = {"port": port, "entries": entries, "visible": visible, "cursor": cursor, "last_id": last_id, **changes}
+    """The state's buffer with ``changes``; its entries are ``runs``: [tag, producer, port, first seq, values]."""
+    port, runs, visible, cursor, last_id = state["buffers"][0]
+    row = {"port": port, "runs": runs, "visible": visible, "cursor": cursor, "last_id": last_id, **changes}
     return [list(row.values())]
 
 
@@ -89,8 +113,15 @@ WRONG = [
     (lambda s: {"buffers": _buffer(s, visible=99)}, r"'buffers\[0\]\[2\]' \(visible\) is 99, past the buffer's 2"),
     (lambda s: {"buffers": _buffer(s, cursor=-1)}, r"'buffers\[0\]\[3\]' must be an integer >= 0"),
     (lambda s: {"buffers": _buffer(s, last_id=("counter", "value"))}, r"'buffers\[0\]\[4\]' must be a tuple of 3"),
-    (lambda s: {"buffers": _buffer(s, entries=[((50 * MS, 0), 7, "value", 0, 0)])},
+    (lambda s: {"buffers": _buffer(s, runs=[[(50 * MS, 0), 7, "value", 0, [0]]])},
      r"'buffers\[0\]\[1\]\[0\]\[1\]' must be a name, got int"),
+    (lambda s: {"buffers": _buffer(s, runs=[((50 * MS, 0), "counter", "value", 0, [0])])},
+     r"'buffers\[0\]\[1\]\[0\]' must be a list of 5, got tuple"),
+    (lambda s: {"buffers": _buffer(s, runs=[[(50 * MS, 0), "counter", "value", 0, []]])},
+     r"'buffers\[0\]\[1\]\[0\]\[4\]' must be a list of the run's values or an array of them, got list \[\]"),
+    (lambda s: {"buffers": _buffer(s, runs=[[(50 * MS, 0), "counter", "value", 0, [0, 1]],
+                                            [(50 * MS, 0), "counter", "value", 1, [2]]])},
+     r"'buffers\[0\]\[1\]\[1\]' starts at \(\(50000000, 0\), 'counter', 'value', 1\), not after the run before it"),
     (lambda s: {"streams": [["counter", "other", (0, 0), 0, [], []]]},
      r"'streams' holds \[\('counter', 'other'\)\]; the node's are \[\('counter', 'value'\)\]"),
     (lambda s: {"streams": [["counter", "value", (0, 0), 0, [], [(1, (0, 0), 9)]]]},

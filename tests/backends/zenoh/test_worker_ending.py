@@ -1,7 +1,8 @@
 """worker/ending.py: a single worker and a group's members end alike (issue 37). A failure, a
 StopRun or a crash of the loop, is said once every held LET output is out: their seqs are in the
 step records, and a consumer would wait forever at the gap; a loop that failed before it spoke
-holds none. SIGTERM and PARENT_DIED stop every loop of the process."""
+holds none. SIGTERM and PARENT_DIED stop every loop of the process. A hand-over too big to make
+is said as a failure."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ import pytest
 
 from retriever.backends.zenoh import protocol
 from retriever.backends.zenoh.node import CONTROL, Ending
-from retriever.backends.zenoh.worker.ending import handle_signals, say_failed
-from retriever.backends.zenoh.worker.process import PARENT_DIED
+from retriever.backends.zenoh.worker.ending import finish, handle_signals, say_failed
+from retriever.backends.zenoh.worker.process import EXIT_FAILED, PARENT_DIED
 from retriever.errors import StopRun
 
 
@@ -65,6 +66,22 @@ def test_a_failure_releases_the_held_outputs_then_says_failed_and_undeclares(exc
     else:
         assert fields["error"] == "worker 'cam' crashed: ZeroDivisionError: in the loop"
         assert "ZeroDivisionError" in fields["traceback"]
+
+
+def test_a_hand_over_too_big_to_make_says_failed_and_writes_nothing():
+    """node/handover.py refuses a state with more events than a new process takes over in time:
+    the old process says so as its failure (the run stops); its held outputs go with the run."""
+    w, said = serving()
+
+    def too_big():
+        raise StopRun("flow 'cam' cannot restart after its step failed at t=0.000000005s m=0: ...", (5, 0))
+
+    w.loop.handover_state, w.loop.ending = too_big, Ending.HANDING_OVER
+    assert finish(w, None) == EXIT_FAILED
+    [(kind, fields)] = said
+    assert kind is protocol.Failed and fields["error"].startswith("flow 'cam' cannot restart")
+    assert fields["tag"] == (5, 0)
+    assert w.loop.undeclared and w.loop.outputs.held != []
 
 
 def test_a_loop_that_failed_before_it_spoke_says_failed_without_publishing():

@@ -9,7 +9,9 @@ goes to the new process in a file (``handover_state``, ``take_over``). The new l
 that state with a fresh flow, so what it consumes is what one process would have consumed: a log
 replays, the replay resetting the flow at the error record as the in-process backend does. Rate
 ticks that came due meanwhile are skipped but the newest (like an overrun), and triggered ticks
-run late.
+run late. Of each input buffer, filled meanwhile, only what its policy can still select goes
+(SyncPolicy.selectable), a burst's events as one run; more than HANDOVER_EVENTS_MAX of them (a
+Queue far behind) stop the run instead, saying why (too_many_to_hand_over).
 
 The process died (kill -9, a segfault): nothing can be handed over. The flow starts afresh in a
 new process, with empty input buffers. The coordinator says ``lost`` {node} at once; the new
@@ -27,23 +29,42 @@ from __future__ import annotations
 
 import heapq
 import time
+from bisect import bisect_left
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ....codec import unpackb
-from ....errors import WorkerError
-from ....flow.burst import Burst
+from ....errors import StopRun, WorkerError
+from ....flow.burst import Burst, travels_as_rows
+from ....time import format_tag
 from ..wire import DataMessage, WireError, shown
 from .frontiers import EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, Streams
 
 
+#: The most input events a restarting flow's old process hands over. Of a buffer it hands over
+#: only what the input's policy can still select (SyncPolicy.selectable): the newest event of
+#: each tag for Latest, however big the bursts that came while the flow restarted; every event
+#: for a Queue, which may be millions when its flow falls behind. Writing them and reading them
+#: back takes about 1 µs an event of small values, 2 to 3 µs an array row (a million: one to three
+#: seconds on a loaded 2-core machine), while the new process's inbox fills and the run's end
+#: waits FINISH_SLACK_S (coordinator/waiting.py): past this many, the run stops saying why
+#: (too_many_to_hand_over) rather than restart into a backlog it would not work off in time.
+HANDOVER_EVENTS_MAX = 1 << 20
+
+
 def handover_state(loop) -> dict:
     """The state of ``loop`` (a NodeLoop), for the process that takes over (call after
-    ``undeclare`` and the loop's last drain: no more messages come)."""
+    ``undeclare`` and the loop's last drain: no more messages come). StopRun when its inputs hold
+    more than HANDOVER_EVENTS_MAX events a later tick may still select."""
     streams, schedule, outputs = loop.streams, loop.schedule, loop.outputs
+    kept = [(port, policy, policy.selectable(buf, schedule.last_tick)) for port, buf, policy, _ in loop.steps.inputs]
+    if sum(len(buf.entries) for *_, buf in kept) > HANDOVER_EVENTS_MAX:
+        raise too_many_to_hand_over(loop.id, kept, schedule.last_tick)
     return {
-        "buffers": [[port, buf.entries, buf.visible, buf.cursor, buf.last_id] for port, buf, *_ in loop.steps.inputs],
+        "buffers": [[port, _runs(buf.entries), buf.visible, buf.cursor, buf.last_id] for port, _, buf in kept],
         "streams": [[src, port, streams.frontiers[(src, port)], streams.expect[(src, port)],
                      [tuple(m) for m in streams.early[(src, port)].values()], streams.waiting[(src, port)]]
                     for src, port in sorted(streams.frontiers)],
@@ -54,6 +75,39 @@ def handover_state(loop) -> dict:
                  for tag, port, value, seq in outputs.held],
         "pending_detail": loop.notes.detail, "values": loop.reports.values,
     }
+
+
+def too_many_to_hand_over(node: str, kept: list[tuple], tag: tuple[int, int]) -> StopRun:
+    """Why the run stops: ``node``'s inputs hold more events than a restart hands over in time
+    (``kept``: per input, its port, its policy and what that can still select)."""
+    port, policy, buf = max(kept, key=lambda k: len(k[2].entries))
+    total, most = sum(len(b.entries) for *_, b in kept), len(buf.entries)
+    held = f"{most:,} events of {node}.{port} ({policy!r})" if total == most else \
+        f"{total:,} events, {most:,} of them of {node}.{port} ({policy!r}),"
+    return StopRun(
+        f"flow '{node}' cannot restart after its step failed at {format_tag(tag)}: its new process would take "
+        f"over {held} that its next ticks may still select, more than it can in time (HANDOVER_EVENTS_MAX = "
+        f"{HANDOVER_EVENTS_MAX:,})\n    hint: on {node}.{port}, Latest() or Window(n) hand over only the events "
+        "they may still select; or on_error='skip_tick' goes on in the same process", tag)
+
+
+def _runs(entries: list[tuple]) -> list[list]:
+    """A buffer's entries (tag, producer, port, seq, value), in order, as runs of one tag, producer
+    and port with consecutive seqs: ``[tag, producer, port, first seq, values]`` (a burst is one
+    run: its events are written, and checked when read, as a whole). Values that are arrays of
+    one dtype and shape go as the rows of one array, as a burst of them travels (flow/burst.py)."""
+    runs, start, end = [], 0, len(entries)
+    while start < end:
+        tag, producer, port, seq, _ = entries[start]
+        # past every entry at this tag from this port: no port name sorts between it and port + "\0"
+        stop = bisect_left(entries, (tag, producer, port + "\0"), start, end)
+        if entries[stop - 1][3] - seq != stop - 1 - start:  # a gap in the seqs: the run ends before it
+            stop = start + bisect_left(range(start, stop), True, key=lambda i: entries[i][3] - seq != i - start)
+        values = [e[4] for e in entries[start:stop]]
+        rows = Burst.unchecked(values).stacked()
+        runs.append([tag, producer, port, seq, rows if rows is not None and travels_as_rows(rows) else values])
+        start = stop
+    return runs
 
 
 def take_over(loop, state: HandoverState) -> None:
@@ -214,16 +268,35 @@ def _detail(value: Any) -> dict:
     return value
 
 
-def _event(value: Any, where: str) -> tuple:
-    """A buffer's entry: (arrival tag, producer, port, seq, value)."""
-    tag, producer, port, seq, _ = _row(value, where, 5)
-    return (_tag(tag, f"{where}[0]"), _name(producer, f"{where}[1]"), _name(port, f"{where}[2]"),
-            _int(seq, f"{where}[3]"), value[4])
+def _run(value: Any, where: str) -> list[tuple]:
+    """A run of a buffer's entries (:func:`_runs`) as the entries (arrival tag, producer, port, seq,
+    value): what is checked of the run holds for each of them."""
+    tag, producer, port, seq, values = _row(value, where, 5, list)
+    tag, producer, port = _tag(tag, f"{where}[0]"), _name(producer, f"{where}[1]"), _name(port, f"{where}[2]")
+    seq = _int(seq, f"{where}[3]")
+    if type(values) is np.ndarray and travels_as_rows(values):
+        values = list(values)
+    elif type(values) is not list or not values:
+        raise WireError(f"'{where}[4]' must be a list of the run's values or an array of them, got {_got(values)}")
+    return [(tag, producer, port, seq + i, v) for i, v in enumerate(values)]
+
+
+def _entries(value: Any, where: str) -> list[tuple]:
+    """A buffer's runs as its entries, which must be in order (PortBuffer.insert bisects them)."""
+    if type(value) is not list:
+        raise WireError(f"'{where}' must be a list, got {_got(value)}")
+    entries: list[tuple] = []
+    for i, run in enumerate(value):
+        events = _run(run, f"{where}[{i}]")
+        if entries and entries[-1][:4] >= events[0][:4]:
+            raise WireError(f"'{where}[{i}]' starts at {shown(events[0][:4], 80)}, not after the run before it")
+        entries += events
+    return entries
 
 
 def _buffer(value: Any, where: str) -> tuple:
     port, entries, visible, cursor, last_id = _row(value, where, 5, list)
-    entries = _items(entries, f"{where}[1]", _event)
+    entries = _entries(entries, f"{where}[1]")
     for i, (index, what) in enumerate(((visible, "visible"), (cursor, "cursor")), 2):
         if _int(index, f"{where}[{i}]") > len(entries):
             raise WireError(f"'{where}[{i}]' ({what}) is {index}, past the buffer's {len(entries)} entries")

@@ -17,7 +17,7 @@ from ....flow._base import tear_down
 from .. import protocol
 from ..node import CONTROL, Ending, NodeLoop
 from .build import Serving
-from .process import EXIT_HANDED_OVER, PARENT_DIED, Parent
+from .process import EXIT_FAILED, EXIT_HANDED_OVER, PARENT_DIED, Parent
 from .starts import LoopStart
 from .waits import await_reports_taken
 
@@ -51,6 +51,13 @@ def say_failed(w: Serving, exc: BaseException) -> None:
     except Exception as held_exc:  # a crash of the outputs themselves: the status must still go
         print(f"worker '{w.node}' could not publish its held outputs: {type(held_exc).__name__}: {held_exc}",
               file=sys.stderr, flush=True)
+    tell_failed(w, exc)
+    loop.undeclare()
+
+
+def tell_failed(w: Serving, exc: BaseException) -> None:
+    """The last reports, then ``failed`` with why (say_failed)."""
+    loop = w.loop
     loop.reports.finish()
     if isinstance(exc, StopRun):
         cause = exc.__cause__  # the exception a step raised: where in the flow's code
@@ -60,14 +67,14 @@ def say_failed(w: Serving, exc: BaseException) -> None:
     else:
         w.status(protocol.Failed, error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
                  traceback="".join(traceback.format_exception(exc)), counts=dict(loop.counts))
-    loop.undeclare()
 
 
 def finish(w: Serving, begin: LoopStart) -> int:
     """After the loop's run: hand the state over to the flow's new process (a restart), or say
     ``done``; release the flow; keep the session until the coordinator has every report."""
     if w.loop.ending is Ending.HANDING_OVER:
-        hand_over(w)
+        if not hand_over(w):
+            return EXIT_FAILED
         await_reports_taken(w.session, w.keys, w.loop.opener, w.node, w.spec.hub_zid, handed_over=True,
                             routers=list(w.spec.router))
         return EXIT_HANDED_OVER
@@ -76,12 +83,18 @@ def finish(w: Serving, begin: LoopStart) -> int:
     return 0
 
 
-def hand_over(w: Serving) -> None:
+def hand_over(w: Serving) -> bool:
     """The restarting flow's state, written for its new process (``<run dir>/<node>.handover``);
-    then ``handed_over``, and the flow released."""
+    then ``handed_over``, and the flow released. False: more to hand over than a new process
+    takes over in time (node/handover.py, HANDOVER_EVENTS_MAX): ``failed``, saying so, instead
+    (the outputs it holds go with the run, which stops)."""
     loop = w.loop
     loop.undeclare()  # first: no message may arrive after the state is taken
-    state = packb(loop.handover_state())
+    try:
+        state = packb(loop.handover_state())
+    except StopRun as exc:
+        tell_failed(w, exc)
+        return False
     loop.reports.finish()
     handover_file = w.launch.run_dir / f"{w.node}.handover"
     tmp = handover_file.with_suffix(".tmp")
@@ -89,6 +102,7 @@ def hand_over(w: Serving) -> None:
     tmp.replace(handover_file)
     w.status(protocol.HandedOver, counts=dict(loop.counts), reports=loop.reporter.sent)
     release(loop, w.node)  # the new process has set up its own: free this one's now
+    return True
 
 
 def say_done(w: Serving, begin: LoopStart) -> None:
