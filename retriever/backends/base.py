@@ -31,6 +31,8 @@ COUNTERS = {
     "restart_skipped": "Rate ticks skipped while a flow's process restarted (on_error='restart')",
     "deadline_miss": "LET outputs whose step finished after tick + latency (on_deadline_miss)",
     "unrun_ticks": "ticks triggered before the end whose inputs never completed in time",
+    "unfinished_inputs": "input streams whose producer was done but whose last messages had not reached the "
+                         "node seconds past the run's end: events of them it never took were lost",
     "garbage": "messages on the run's key space that were not the run's, dropped",
     "forged": "statuses and reports no process of their node signed, and step records at no tick of their "
               "node's clock, refused (a process holding the run's secret put them)",

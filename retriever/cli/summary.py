@@ -101,6 +101,7 @@ def _errors_hint(stats: dict, errors: dict, restarts: dict, moves: dict) -> str:
 _COUNTER_LABELS = {"late": "late events", "incomplete": "ticks with an incomplete edge", "overrun": "ticks skipped after overruns",
                    "restart_skipped": "ticks skipped during restarts",
                    "deadline_miss": "LET deadline misses", "unrun_ticks": "ticks never run",
+                   "unfinished_inputs": "input streams cut off at the end",
                    "garbage": "garbage messages dropped", "forged": "forged messages or records refused",
                    "report_waits": "waits for the log"}
 

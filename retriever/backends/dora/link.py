@@ -4,6 +4,9 @@
                                                    Zenoh subscriber's callback would: INLINE_STEP_NS)
     loop ──send_output(port | "progress")──▶ dora ──▶ the consumers' inputs
 
+A receiving thread that dies hands its error to the loop (inbox.FAILED), which raises it: the
+run fails naming it, where the node would otherwise hear nothing more, and never step again.
+
 Everything else is the node loop's (backends/zenoh/node/): clocks, frontiers, deadlines, LET,
 step records. The run's control plane stays on the run's private Zenoh hub: ``start`` and
 ``stop``, the reports that become the trace and the log, and the answers to a consumer that asks
@@ -16,7 +19,7 @@ import threading
 import time
 from typing import Callable
 
-from ..zenoh.node import DATA, PROGRESS, Transport
+from ..zenoh.node import DATA, FAILED, PROGRESS, Transport
 from .dataflow import PROGRESS as PROGRESS_OUTPUT
 from .dataflow import DoraNames
 
@@ -61,6 +64,7 @@ class DoraTransport(Transport):
         self.receiving = False
         self.greeted: set[str] = set()  # inputs a producer's greeting came through
         self.greetings = threading.Condition()
+        self.failure: Exception | None = None  # what ended the receiving thread, if it died
 
     def _dora(self):
         """This process's dora node (created once: dora starts the dataflow when every node has one)."""
@@ -93,8 +97,10 @@ class DoraTransport(Transport):
     def await_routes(self, timeout: float, stopping: Callable[[], bool]) -> None:
         give_up, wanted = time.monotonic() + timeout, set(self.routes)
         with self.greetings:  # (in short waits: a stop, from a signal handler, notifies no one)
-            while not (stopping() or self.greeted >= wanted) and time.monotonic() < give_up:
+            while not (stopping() or self.greeted >= wanted or self.failure) and time.monotonic() < give_up:
                 self.greetings.wait(0.1)
+        if self.failure is not None:  # no greeting can come any more
+            raise self.failure
 
     def undeclare(self) -> None:
         self.receiving = False
@@ -104,18 +110,28 @@ class DoraTransport(Transport):
 
     def _receive(self, node, receive, put) -> None:
         """The receiving thread: every input event, in dora's order, to the loop (until dora says
-        every sender is gone, or the transport is undeclared)."""
+        every sender is gone, or the transport is undeclared); if it dies, its error, to the loop."""
+        try:
+            self._take_events(node, receive, put)
+        except Exception as exc:
+            with self.greetings:
+                self.failure = exc
+                self.greetings.notify_all()
+            put((FAILED, None, exc))
+
+    def _take_events(self, node, receive, put) -> None:
         routes = self.routes
         while self.receiving:
             event = node.next(timeout=RECEIVE_TIMEOUT_S)
-            if event is None:
+            if event is None:  # the stream ended: after a STOP, or dora run (its daemon) is gone
                 return
             if event["type"] != "INPUT":  # a timeout (ERROR), INPUT_CLOSED, STOP: queued inputs still follow
                 continue
             route = routes.get(event["id"])
             if route is None:
                 continue
-            data = memoryview(event["value"].to_numpy(zero_copy_only=False))  # a view of dora's buffer
+            # a view of dora's buffer, which it holds: dora reuses none while a view of it lives
+            data = memoryview(event["value"].to_numpy(zero_copy_only=False))
             if not len(data):  # a greeting (no Retriever message is empty)
                 with self.greetings:
                     self.greeted.add(event["id"])

@@ -7,7 +7,8 @@
       ┌─▶ drain the inbox ── handle ─┬─ DATA ─────▶ frontiers.Streams: in seq order, frontiers,
       │                              │               deliver to buffers, schedule trigger ticks
       │                              ├─ PROGRESS ─▶ frontiers.Streams: frontiers
-      │                              └─ CONTROL ──▶ control.obey: stop, end, grant, have, lost, …
+      │                              ├─ CONTROL ──▶ control.obey: stop, end, grant, have, lost, …
+      │                              └─ FAILED ───▶ raised: the transport's receiving thread died
       │   outputs.release: held LET outputs whose time came
       │   try_tick: τ = the schedule's next Rate tick or pending trigger tag
       │     waiting: inputs complete up to τ (producers' frontiers > τ), or past deadline? else
@@ -52,7 +53,7 @@ The modules, one job each:
 
 from .ending import Ending
 from .frontiers import CLOCK_AHEAD_MAX_NS, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, WAITING_MAX, InEdge
-from .inbox import CONTROL, DATA, NUDGE, PROGRESS
+from .inbox import CONTROL, DATA, FAILED, NUDGE, PROGRESS
 from .loop import INLINE_STEP_NS, RESTART_POLL_NS, NodeLoop
 from .reports import (FLUSH_AFTER_NS, FLUSH_MAX, FLUSH_MAX_BYTES, FLUSH_MAX_SEQS, HOLD_RECORDS_NS,
                       RECORDS_FLUSH_AFTER_NS, SPILL_BYTES)
@@ -61,8 +62,9 @@ from .transport import Transport, ZenohTransport
 from .waiting import ASK_EVERY_NS, PROBE_AFTER_NS, VIRTUAL_IDLE_NS
 
 __all__ = [
-    "ASK_EVERY_NS", "CLOCK_AHEAD_MAX_NS", "CONTROL", "DATA", "EARLY_SEQS_MAX", "Ending", "FLUSH_AFTER_NS", "FLUSH_MAX",
-    "FLUSH_MAX_BYTES", "FLUSH_MAX_SEQS", "HOLD_RECORDS_NS", "INLINE_STEP_NS", "NEVER", "NUDGE", "PROBE_AFTER_NS",
-    "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "RESTART_SEQ_GAP", "SPILL_BYTES", "VIRTUAL_IDLE_NS",
-    "WAITING_MAX", "WARM_AFTER_IDLE_NS", "WARM_AHEAD_NS", "InEdge", "NodeLoop", "Transport", "ZenohTransport",
+    "ASK_EVERY_NS", "CLOCK_AHEAD_MAX_NS", "CONTROL", "DATA", "EARLY_SEQS_MAX", "Ending", "FAILED", "FLUSH_AFTER_NS",
+    "FLUSH_MAX", "FLUSH_MAX_BYTES", "FLUSH_MAX_SEQS", "HOLD_RECORDS_NS", "INLINE_STEP_NS", "NEVER", "NUDGE",
+    "PROBE_AFTER_NS", "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "RESTART_SEQ_GAP", "SPILL_BYTES",
+    "VIRTUAL_IDLE_NS", "WAITING_MAX", "WARM_AFTER_IDLE_NS", "WARM_AHEAD_NS", "InEdge", "NodeLoop", "Transport",
+    "ZenohTransport",
 ]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..protocol import End, Grant, Handover, Have, Lost, Record, Redeclare, Restarted, Stop
+from ..protocol import End, Finished, Grant, Handover, Have, Lost, Record, Redeclare, Restarted, Stop
 from ..wire import WireError
 from .ending import Ending
 from .handover import producer_restarted
@@ -11,8 +11,9 @@ from .inbox import CONTROL
 
 def obey(loop, record: Record | WireError) -> None:
     """One control message to ``loop`` (a NodeLoop), as the loop's control subscriber queued it:
-    a record of protocol.RUN_CONTROL, or the WireError that refused it (malformed, or not sealed
-    for this process: plane.ControlPlane), which is garbage, never applied."""
+    a record of protocol.RUN_CONTROL or the coordinator's Finished answer to the loop's question, or
+    the WireError that refused it (malformed, or not sealed for this process: plane.ControlPlane),
+    which is garbage, never applied."""
     kind = type(record)
     if isinstance(record, WireError):
         loop.notes.garbage(loop.keys.run_control(), record)
@@ -37,6 +38,8 @@ def obey(loop, record: Record | WireError) -> None:
         loop.streams.lost_producers.add(record.node)
     elif kind is Restarted and record.node in loop.streams.sources:
         producer_restarted(loop, record.node, record.seqs)
+    elif kind is Finished:  # the coordinator's answer to the loop's question (waiting.py, last_word)
+        loop.waiting.said_finished(record)
 
 
 def opened_control(opener, sample) -> tuple:

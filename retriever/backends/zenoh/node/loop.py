@@ -18,7 +18,7 @@ from .clock import RunClock
 from .control import obey
 from .ending import Ending
 from .frontiers import NEVER, InEdge, Streams
-from .inbox import DATA, EVENTS, NUDGE, NUDGED, PROGRESS
+from .inbox import DATA, EVENTS, FAILED, NUDGE, NUDGED, PROGRESS
 from .notes import Notes
 from .outputs import Outputs
 from .plane import ControlPlane
@@ -262,6 +262,8 @@ class NodeLoop:
                 return
             for stream in mine:
                 streams.progress(stream, progress.sent.get(stream[1], -1), progress.frontier)
+        elif kind == FAILED:
+            raise data
         else:
             obey(self, data)
 

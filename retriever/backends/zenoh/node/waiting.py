@@ -17,10 +17,11 @@ from typing import Protocol
 
 import zenoh
 
-from ..wire import KeySpace
+from ..protocol import ControlOpener, Finished, new_nonce
+from ..wire import KeySpace, WireError
 from .clock import RunClock
-from .frontiers import Streams
-from .inbox import PROGRESS
+from .frontiers import InEdge, Streams
+from .inbox import CONTROL, PROGRESS
 from .outputs import Outputs
 from .reports import Reports
 from .schedule import DONE
@@ -29,6 +30,21 @@ from .schedule import DONE
 PROBE_AFTER_NS = 500_000
 #: after asking a producer for its frontier, how long before asking again
 ASK_EVERY_NS = 2_000_000
+#: how long a producer has to answer a question for its frontier
+ASK_TIMEOUT_S = 1.0
+#: Past the run's end plus a trigger edge's deadline, with its producer's frontier short of the
+#: end, a node asks the coordinator whether that producer is done (``status/finished``), and
+#: waits this long for the answer at most; without one it gives the edge up.
+FINISHED_ASK_NS = 1_000_000_000
+#: A done producer published its last frontier before it said ``done``: until that reaches the
+#: node, events it made before the end are still on their way. On a loaded machine the transport
+#: (dora's daemon) or this process can stall past the deadline; the node waits for them (its
+#: triggered ticks before the end then run, late), this long past the end plus the deadline at
+#: most, well within the coordinator's patience (coordinator/waiting.py, FINISH_SLACK_S); a
+#: stream whose last word never came is counted (``unfinished_inputs``).
+LAST_WORD_MAX_NS = 5_000_000_000
+#: meanwhile, how often it looks again (what it waits for wakes it sooner)
+LAST_WORD_POLL_NS = 100_000_000
 #: virtual time: how long a loop at its grant, or with no tick known below it, waits before
 #: looking again (any message wakes it sooner: the next grant, a frontier)
 VIRTUAL_IDLE_NS = 100_000_000
@@ -45,6 +61,8 @@ class WaitingOwner(Protocol):
     on_reached: Callable[[int], None] | None
     #: where the producers' answers go (read when asking: a group gives its loops inboxes of their own)
     inbox: queue.SimpleQueue
+    #: opens the coordinator's answers, with this process's key (set by the worker)
+    opener: ControlOpener
 
 
 class Waiting:
@@ -60,6 +78,10 @@ class Waiting:
         self.ask_after: dict[str, int] = {}
         self.blocked: tuple[tuple[int, int], int] | None = None
         self.reached = -1
+        # past the end: when the coordinator was asked which nodes are done, and its answer
+        self.finished_asked: int | None = None
+        self.finished: frozenset[str] | None = None
+        self.unfinished: set[tuple[str, str]] = set()  # streams given up without their last word
 
     def incomplete(self, tau: tuple[int, int], now: int) -> tuple[list[str], int | None]:
         """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
@@ -99,24 +121,72 @@ class Waiting:
             else:
                 put((PROGRESS, src, None))
 
-        self.session.get(self.keys.progress(src), handler=on_reply, timeout=1.0)
+        self.session.get(self.keys.progress(src), handler=on_reply, timeout=ASK_TIMEOUT_S)
         return now + ASK_EVERY_NS
 
     def done_waiting(self, now: int) -> int | str:
         """No tick below ``end`` is known: ``DONE`` once no edge can still trigger one, else when
-        to look again."""
+        to look again. An edge whose producer's frontier is short of the end is waited for until
+        the end plus its deadline, and past that only while its producer's last messages are on
+        their way (:meth:`last_word`)."""
         if self.outputs.held:
             return self.outputs.held[0][0][0]
         wake: int | None = None
         end = self.clock.end
         end_tag = (end, 0)
         for e in self.streams.triggering:
-            f = self.streams.edge_frontier(e)
-            if f >= end_tag or (now >= end + e.deadline_ns and not self.virtual):
+            if self.streams.edge_frontier(e) >= end_tag:
                 continue
-            again = min(end + e.deadline_ns, self.ask(e.src, now, end))
+            if self.virtual or now < end + e.deadline_ns:
+                again = min(end + e.deadline_ns, self.ask(e.src, now, end))
+            else:
+                again = self.last_word(e, now)
+                if again is None:
+                    continue
             wake = again if wake is None else min(wake, again)
         return DONE if wake is None else wake
+
+    def last_word(self, e: InEdge, now: int) -> int | None:
+        """Past the end plus ``e``'s deadline, its producer's frontier short of the end: when to
+        look again while that producer is done (the coordinator says so) and its last messages
+        have not come (see LAST_WORD_MAX_NS), or None to give the edge up: the producer is not
+        done (a step outlasting the end is waited for no longer than its deadline), or the
+        coordinator did not answer."""
+        if self.finished is None:
+            if self.finished_asked is None:
+                self.ask_finished(now)
+            return now + LAST_WORD_POLL_NS if now < self.finished_asked + FINISHED_ASK_NS else None
+        if e.src not in self.finished:
+            return None
+        if now < self.clock.end + e.deadline_ns + LAST_WORD_MAX_NS:
+            return now + LAST_WORD_POLL_NS
+        stream = (e.src, e.src_port)
+        if stream not in self.unfinished:
+            self.unfinished.add(stream)
+            self.streams.notes.counts["unfinished_inputs"] += 1
+        return None
+
+    def ask_finished(self, now: int) -> None:
+        """Ask the coordinator which nodes are done; its answer joins the inbox as control
+        (one it did not seal for this process, as the WireError saying so: garbage)."""
+        self.finished_asked = now
+        put, opener, nonce = self.owner.inbox.put, self.owner.opener, new_nonce()
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return  # unanswered: given up at FINISHED_ASK_NS
+            try:
+                put((CONTROL, None, opener.reply(Finished, str(reply.ok.key_expr), reply.ok.payload.to_bytes(),
+                                                 reply.ok.attachment, nonce)))
+            except WireError as e:
+                put((CONTROL, None, e))
+
+        self.session.get(self.keys.finished(), attachment=nonce, handler=on_reply,
+                         timeout=FINISHED_ASK_NS / 1e9)
+
+    def said_finished(self, record: Finished) -> None:
+        """The coordinator's answer to :meth:`ask_finished`: the nodes done."""
+        self.finished = frozenset(record.nodes)
 
     # -- virtual time -------------------------------------------------------------------------
     def blocked_since(self, tau: tuple[int, int], now: int) -> int:

@@ -1,0 +1,65 @@
+"""The dora transport's receiving thread (backends/dora/link.py) under a real NodeLoop, its dora
+node dora's own stand-in (dora.testing.MockNode: the events a node would be handed, with no
+dataflow), since a real one cannot be made to fail on demand. No test here waits on time but
+for that thread's end."""
+
+from __future__ import annotations
+
+import pytest
+import zenoh
+from dora.testing import MockNode
+
+from retriever import Latest, Pipeline, Rate, Trigger
+from retriever.backends.dora.dataflow import DoraNames
+from retriever.backends.dora.link import DoraTransport
+from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.worker.build import build_loop
+
+from ..zenoh.semantics_flows import Ticker, WhereRun
+from ..zenoh.specs import run_spec
+
+BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
+
+
+@pytest.fixture
+def session():
+    with zenoh.open(peer_config()) as s:
+        yield s
+
+
+def _loop_fed_by(session, events: list[dict]):
+    """The loop of ``where`` (Trigger on counter's values), its dora node handing over ``events``."""
+    with Pipeline("link") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=10)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    ir = pipe.compile().to_ir().doc
+    transport = DoraTransport(DoraNames.of(ir), "where")
+    transport.dora_node = MockNode(events)
+    return build_loop(run_spec(ir, "link-test"), "where", session, transport=transport), transport
+
+
+def test_a_receiving_thread_that_dies_fails_its_loop_and_the_wait_for_greetings(session):
+    """An input event with no value stands for any error on that thread (dora's next() raising):
+    the node would never hear, nor step, again. Its loop raises the error at its next pass, and
+    the wait for the producers' greetings (before the node says ready) ends with it."""
+    loop, transport = _loop_fed_by(session, [{"type": "INPUT", "id": "counter__value", "value": None}])
+    loop.declare()
+    try:
+        transport.receiver.join(BOUND_S)
+        with pytest.raises(AttributeError, match="to_numpy"):
+            loop.drain()
+        with pytest.raises(AttributeError, match="to_numpy"):
+            loop.await_routes(timeout=BOUND_S)
+    finally:
+        loop.undeclare()
+
+
+def test_a_stream_dora_ends_after_its_stop_ends_the_thread_quietly(session):
+    loop, transport = _loop_fed_by(session, [{"type": "INPUT_CLOSED", "id": "counter__value"}])
+    loop.declare()
+    try:
+        transport.receiver.join(BOUND_S)
+        assert not transport.receiver.is_alive() and transport.failure is None
+        loop.drain()
+    finally:
+        loop.undeclare()
