@@ -80,7 +80,7 @@ class Sink(Flow[Num, None]):
 # ---------------------------------------------------------------------------------------------
 def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
     """`--duration inf` runs until Ctrl-C; the interrupted run still shows its table and counters
-    (it used to print only "interrupted")."""
+    (not only "interrupted")."""
     import signal
     import time
 

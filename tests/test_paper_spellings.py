@@ -77,7 +77,7 @@ def test_a_handle_asked_to_stop_once_its_run_is_over_stops_nothing_after():
 def test_sys_exit_0_in_a_step_ends_the_whole_run_cleanly_and_the_log_replays(backend, tmp_path):
     """issue 19 §4: the paper's benchmark ends with sys.exit(0) in a step. That ends the run, as
     a clean stop: the step's record is ok with detail exit 0, nothing ticks after it, and pipe.run
-    returns the trace (it used to be the step's error)."""
+    returns the trace (not the step's error)."""
     options = {"quiet": True} if backend == "multiprocessing" else {}
     log = tmp_path / "run.mcap"
     pipe = build_ending(at=5)
@@ -96,7 +96,7 @@ def test_what_was_sent_before_a_sys_exit_still_reaches_its_consumer(backend):
     big frames (8 MiB each, the last one sent 50 ms before the exit, or less on a slow machine)
     may still be on their way, and each reaches the sink within its deadline (generous here: on
     a loaded machine dora's daemon took 0.3 s to deliver them), which still steps on it (the run
-    used to stop every flow at once). No tick runs past the exit: the sink steps on nothing more."""
+    does not stop every flow at once). No tick runs past the exit: the sink steps on nothing more."""
     pipe = build_ending(at=5, size=1 << 20, deadline=10.0)
     trace = pipe.run(backend=backend, duration=30.0, quiet=True)
     source = trace.steps_of("source")  # (a step may overrun its 50 ms on a loaded machine: its ticks skip)

@@ -1,5 +1,5 @@
 """The README's pipeline, as a user copies it: run as a script, and by `retriever run` on both
-backends (it runs as shown; a module-level pipe.run used to break `retriever run` and zenoh)."""
+backends (it runs as shown: a module-level pipe.run must not break `retriever run` or zenoh)."""
 
 from __future__ import annotations
 

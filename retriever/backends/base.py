@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING
 
 from ..errors import BackendError
 from ..graph import Graph
-from ..tick import RestartBudget  # noqa: F401 - the backends' name for it (coordinator/book.py)
 from ..trace import KEEP, Trace
 
 if TYPE_CHECKING:

@@ -28,7 +28,8 @@ from types import MappingProxyType
 from ....errors import RestartLimitError
 from ....graph import Graph
 from ....starved import StarvationWatch
-from ...base import NodeStats, RestartBudget
+from ....tick import RestartBudget
+from ...base import NodeStats
 from ..host import Host, WorkerProcess
 from ..origin import Senders
 from ..protocol import NodeState, State
