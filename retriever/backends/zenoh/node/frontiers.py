@@ -172,7 +172,7 @@ class Streams:
             # A tick at or after this tag already ran without it: never applied to that past tick,
             # but in the buffer, by its tag, for every tick from the next one on (a slow policy's
             # chunk still reaches its controller). Its next record names it, by id: a replay puts
-            # it in the buffer at exactly that point (retriever/replay.py). It triggers no past tick.
+            # it in the buffer at exactly that point (retriever/replay/steps.py). It triggers no past tick.
             self.notes.counts["late"] += 1
             self.notes.detail.setdefault("late", {}).setdefault(e.port, []).append(
                 (msg.producer, msg.port, msg.seq))

@@ -1,0 +1,101 @@
+"""One replayed step against the log: its tag a tick of its node's clock, its record (the ids it
+consumed, its status, its error, the ids it produced), its outputs' tags and every value's bytes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..codec import unpackb
+from ..log.reader import LoggedEvent
+from ..time import format_tag
+from ..trace import STEPPED, StepStatus
+from .report import Divergence
+
+
+class TickCheck:
+    """Whether a record's tag is a tick of its node's clock (``clock.may_tick_at``): a rate's tick
+    after the one last found is known without the clock's arithmetic (a node's records come tick
+    after tick)."""
+
+    __slots__ = ("clocks", "next")
+
+    def __init__(self, graph) -> None:
+        self.clocks = {nid: node.clock for nid, node in graph.nodes.items()}
+        self.next: dict[str, tuple[tuple[int, int], int]] = {}  # node -> (the tag of its tick k, k)
+
+    def __call__(self, node: str, tag: tuple[int, int]) -> bool:
+        expected = self.next.get(node)
+        clock = self.clocks[node]
+        if expected is not None and expected[0] == tag:
+            k = expected[1]
+        elif not clock.may_tick_at(tag):
+            return False
+        elif clock.triggered or clock.hz is None:
+            return True
+        else:
+            k = clock.first_tick_at_or_after(tag[0])
+        self.next[node] = ((clock.tick_time(k + 1), 0), k + 1)
+        return True
+
+
+def off_clock(step, on_clock: TickCheck, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
+    """The record at a tag where its node's clock has no tick, or at one it already recorded."""
+    key = (step.node, step.tag)
+    if not on_clock(step.node, step.tag):
+        return Divergence(step.node, step.tag, "tick", None, f"a record at {format_tag(step.tag)}",
+                          f"no tick of {on_clock.clocks[step.node]!r} there")
+    if key in seen:
+        return Divergence(step.node, step.tag, "tick", None, "a second record of this tick", "one record a tick")
+    seen.add(key)
+    return None
+
+
+def compare_record(step, replayed: tuple) -> Divergence | None:
+    """The replayed step record against the logged one: the ids it consumed, its status, its
+    error, the ids it produced."""
+    _, tag, consumed, produced, status, detail, *_ = replayed
+
+    def differs(what: str, logged_value: Any, replayed: Any, port: str | None = None) -> Divergence:
+        return Divergence(step.node, step.tag, what, port, logged_value, replayed)
+
+    if consumed != step.consumed:
+        port = next((p for p in sorted(set(consumed) | set(step.consumed)) if consumed.get(p) != step.consumed.get(p)))
+        return differs("inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
+    if status != (StepStatus.OK if step.status in STEPPED else step.status):
+        return differs("status", _status(step.status, step.detail), _status(status, detail))
+    if status == StepStatus.ERROR and (detail or {}).get("error") != (step.detail or {}).get("error"):
+        return differs("error", step.detail.get("error"), detail.get("error"))
+    if produced != step.produced:
+        return differs("outputs (produced event ids)", list(step.produced), list(produced))
+    return None
+
+
+def compare_outputs(step, events: list, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:
+    """The replayed outputs of a step whose record matched, against the logged ones (``logged``:
+    by id, those the log holds): their tags and every value's msgpack bytes."""
+    for ev in events:
+        tag, node, port, seq, value = ev[:5]
+        original = logged.get((node, port, seq))
+        if original is None:
+            return Divergence(step.node, step.tag, "value", port, "<not in the log: the log ends here>", value)
+        if stamped:
+            if original.tag <= step.tag:
+                return Divergence(step.node, step.tag, "output tag (not after its tick: causality)", port,
+                                  format_tag(original.tag), f"after {format_tag(step.tag)}")
+        elif tag != original.tag:
+            return Divergence(step.node, step.tag, "output tag", port, format_tag(original.tag), format_tag(tag))
+        if encode(value) != original.raw_value:
+            return Divergence(step.node, step.tag, "value", port, _logged_value(original), value)
+    return None
+
+
+def _logged_value(event: LoggedEvent) -> Any:
+    """A logged value to show beside the replayed one: itself, or what it is when it does not decode."""
+    try:
+        return unpackb(event.raw_value, keep_unregistered=True)
+    except Exception as e:  # a damaged value differs from any replayed one: say what it is
+        return f"<{len(event.raw_value)} bytes that do not decode: {type(e).__name__}>"
+
+
+def _status(status: str, detail: dict | None) -> str:
+    return f"{status} {detail}" if detail else status

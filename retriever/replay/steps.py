@@ -1,0 +1,365 @@
+"""The replay of a log's steps (:class:`StepReplay`): each logged step of a flow the replay
+re-executes runs again on inputs rebuilt from the logged events, as the run delivered them, and
+is compared with the log (compare.py), the comparisons reported in step order."""
+
+from __future__ import annotations
+
+import bisect
+import heapq
+from collections import deque
+from itertools import chain as _chain
+from typing import Callable, Iterator
+
+from ..backends.inproc import InprocSession
+from ..codec import Encoder
+from ..errors import LogError, RunEnded, StepError
+from ..log import format as fmt
+from ..log.reader import LogHead, LoggedEvent
+from ..trace import StepRecord, StepStatus, Trace
+from .compare import TickCheck, compare_outputs, compare_record, off_clock
+from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
+from .survey import LogSurvey
+
+PROGRESS_EVERY = 2000
+_UNSEEN = object()  # the default of waiting.pop: no record claimed the event yet (None: one let it go)
+
+
+class _Check:
+    """One logged step's comparison, in step order: decided when every logged output it needs
+    has been read (a LET step's outputs come later in the log than its tick)."""
+
+    __slots__ = ("step", "stats", "events", "stamped", "originals", "waiting", "found", "done")
+
+    def __init__(self, step, stats: NodeReplay, found: Divergence | None = None, done: bool = True) -> None:
+        self.step, self.stats, self.found, self.done = step, stats, found, done
+        self.originals: dict[tuple, LoggedEvent] = {}
+        self.waiting = 0
+
+
+class StepReplay:
+    """One replay of a log's steps (:meth:`play`): the log's messages read once in log-time
+    order (``messages()``), an instant at a time::
+
+        an instant's messages ─┬─ events ─→ read: decoded once, to the consumers' deliveries (a
+                               │            heap by arrival) and to the check waiting for them
+                               └─ records → run, in (tag, node) order: checked against the clock,
+                                            the deliveries due put in, the tick re-executed,
+                                            compared (its outputs once read: decide), the
+                                            comparisons reported in step order (flush)
+        the log's end ─────────→ finish: the checks no output came for; the kept trace
+
+    What is held is what the instants still to come need (deliveries not due, comparisons waiting
+    for a LET output, the survey's exceptions)."""
+
+    __slots__ = ("log", "session", "sources", "keep_trace", "encode", "routes", "late", "gaps", "missed", "in_log",
+                 "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "seen_ticks",
+                 "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
+                 "kept_steps", "kept_parts", "kept_events")
+
+    def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
+                 keep_trace: bool) -> None:
+        survey.check_events()
+        self.log, self.session, self.sources, self.keep_trace = log, session, sources, keep_trace
+        self.encode = Encoder().pack
+        self.routes = session.take_routes()
+        self.late, self.gaps, self.missed = survey.late, survey.gaps, survey.views()
+        self.in_log = survey.in_log
+        # a lost process's outputs that its records claim and no report carried: not comparable (a
+        # consumer may still have carried one in: that one is in the log, and compared)
+        self.lost = {event_id for fault in log.faults for event_id in fault["lost_events"] if not self.in_log(event_id)}
+        self.floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
+        # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
+        # is then checked for causality (after the tick), not recomputed.
+        realtime = log.run.get("backend", "inproc") != "inproc"
+        self.stamped = {nid for nid, node in graph.nodes.items() if realtime and not node.settings.latency_ns}
+        # a log whose writer was killed, recovered or read with salvage=True, may keep a step record
+        # (one chunk) and lose the events it consumed or produced (another): such a step cannot be compared
+        self.cut_short = not log.complete or "retriever.recovered" in log.metadata
+        self.report = ReplayReport({nid: NodeReplay(from_log=nid in sources) for nid in sorted(graph.nodes)})
+        self.total, self.done = survey.steps, 0
+        self.on_clock = TickCheck(graph)
+        self.seen_ticks: set[tuple[str, tuple[int, int]]] = set()  # this instant's (node, tag)s
+        self.deliveries: list = []  # heap of (arrival, n, consumer node, buffer, entry)
+        self.delivered = 0  # events put on the heap: its tie-break, the order the log was read in
+        self.late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> [(buf, entry)]
+        self.unclaimed: dict[tuple, LoggedEvent] = {}  # events read whose step record has not been replayed yet
+        self.waiting: dict[tuple, _Check | None] = {}  # outputs a replayed record named, not read yet -> its check
+        self.checks: deque[_Check] = deque()  # in step order, from the first not decided
+        self.now = (-1, 0)  # the tag of the instant whose steps run
+        # keep_trace: every step record, and in step order the outputs of each
+        self.kept_steps, self.kept_parts, self.kept_events = [], [], {}
+
+    def play(self, messages: Callable[[], Iterator], progress: Callable[[int, int], None] | None) -> ReplayReport:
+        """Replay the log: each instant's messages read, then its step records run."""
+        log = self.log
+        steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
+        ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
+        read = self.read
+        steps: list = []
+        instant = None
+        for m in _chain(messages(), (None,)):
+            if m is None or m.log_time != instant:
+                if steps:  # the instant's messages are read: run its steps
+                    self.run_instant(steps, progress)
+                if m is None:
+                    break
+                instant = m.log_time
+                self.now = (instant, 0)  # every record before it has run
+            channel = m.channel_id
+            if channel in steps_channels:
+                try:
+                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+                except Exception as e:
+                    raise LogError(f"{log.path}: step record #{m.sequence} is malformed ({e})") from None
+                steps.append(StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
+                                        m.publish_time, wall_ns))
+            else:
+                port = ports.get(channel)
+                if port is not None:
+                    read(m, port)
+        return self.finish(progress)
+
+    def read(self, m, port: tuple[str, str]) -> None:
+        """An event read: to its consumers' deliveries, and to the check waiting for it."""
+        try:
+            microstep, raw = fmt.split_event(m.data)
+        except ValueError as e:
+            raise LogError(f"{self.log.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+        e = LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+        event_id = (port[0], port[1], m.sequence)
+        if self.keep_trace:
+            self.kept_events[event_id] = e
+        consumers = self.routes.get(port)
+        if consumers:
+            value = self.log.value(e)
+            gaps, late, missed = self.gaps, self.late, self.missed
+            for consumer, buf, delay_ns in consumers:
+                if gaps and _in_gap(gaps.get(consumer), e):
+                    continue
+                arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
+                entry = (arrival, e.node, e.port, e.seq, value)
+                seen_at = late.get((consumer, event_id)) if late else None
+                if seen_at is not None:
+                    if seen_at < self.now:  # a record before its time names it (a changed log): in at once
+                        buf.insert(entry)
+                    else:
+                        self.late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
+                elif not missed or not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
+                    heapq.heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
+                    self.delivered += 1
+        check = self.waiting.pop(event_id, _UNSEEN)
+        if check is _UNSEEN:
+            self.unclaimed[event_id] = e
+        elif check is not None:
+            check.originals[event_id] = e
+            check.waiting -= 1
+            if check.waiting == 0:
+                self.decide(check)
+                self.flush()
+
+    def run_instant(self, steps: list, progress: Callable[[int, int], None] | None) -> None:
+        """Run an instant's step records, its messages all read, in (tag, node) order."""
+        steps.sort(key=_microstep_node)
+        run, done = self.run, self.done
+        for step in steps:
+            if progress is not None and done % PROGRESS_EVERY == 0:
+                progress(done, self.total)
+            done += 1
+            run(step)
+        self.done = done
+        steps.clear()
+        self.seen_ticks.clear()
+
+    def run(self, step) -> None:
+        """One logged step: checked against its node's clock, the run's restart and late arrivals
+        at it done again, then re-executed and compared; a source's, or a tick the run did not
+        step, is not re-executed: its outputs are taken from the log."""
+        stats = self.report.nodes[step.node]
+        stats.steps += 1
+        # a source is not re-executed: its records are checked against its clock (a forged
+        # record between its ticks, or a second at one, is no step the run made)
+        found = off_clock(step, self.on_clock, self.seen_ticks)
+        if found is not None:
+            self.checks.append(_Check(step, stats, found))
+            self.flush()
+            return
+        restarted = (step.detail or {}).get("restarted")
+        if restarted is not None:
+            _restart_afresh(self.session, step.node, restarted, self.floors)
+        if self.late_at:
+            for buf, entry in self.late_at.pop((step.node, step.tag), ()):
+                buf.insert(entry)  # it arrived late: in the buffer from this record on, as in the run
+        keep_trace = self.keep_trace
+        if keep_trace:
+            self.kept_steps.append(tuple(step))
+        if step.node in self.sources or not _stepped(step):
+            self.claim(step.produced, None)
+            if keep_trace:  # not re-executed: its outputs as logged
+                self.kept_parts.append(step.produced)
+            return
+        self.deliver_due(step.tag)
+        replayed, events = _execute(self.session, step)
+        if keep_trace:
+            self.kept_parts.append(events)
+        stats.replayed += 1
+        self.compare(step, stats, replayed, events)
+
+    def deliver_due(self, tag: tuple[int, int]) -> None:
+        """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
+        consumer no longer takes."""
+        deliveries, floors = self.deliveries, self.floors
+        while deliveries and deliveries[0][0] <= tag:
+            _, _, consumer, buf, entry = heapq.heappop(deliveries)
+            if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
+                buf.insert(entry)
+
+    def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
+        """A re-executed step against the log: its record now, its outputs once the log's are read;
+        not compared when the log lost what it needs (with a dead process, or cut short)."""
+        in_log = self.in_log
+        if self.lost and not self.lost.isdisjoint(step.produced):
+            stats.lost += 1
+            self.claim(step.produced, None)
+        elif self.cut_short and any(not in_log(event_id) for event_id in
+                                    (*step.produced, *(i for ids in step.consumed.values() for i in ids))):
+            stats.cut += 1
+            self.claim(step.produced, None)
+        else:
+            found = compare_record(step, replayed)
+            if found is not None:
+                self.claim(step.produced, None)
+                self.checks.append(_Check(step, stats, found))
+            else:
+                check = _Check(step, stats, done=False)
+                check.events, check.stamped = events, step.node in self.stamped
+                self.claim(step.produced, check)
+                self.checks.append(check)
+                if check.waiting == 0:
+                    self.decide(check)
+            self.flush()
+
+    def claim(self, ids, check: _Check | None) -> None:
+        """A record's logged outputs: to its check (None: not compared, let go)."""
+        unclaimed = self.unclaimed
+        for event_id in ids:
+            e = unclaimed.pop(event_id, None)
+            if e is not None:
+                if check is not None:
+                    check.originals[event_id] = e
+            elif self.in_log(event_id):
+                self.waiting[event_id] = check
+                if check is not None:
+                    check.waiting += 1
+
+    def decide(self, check: _Check) -> None:
+        """A check whose logged outputs are all read (or never will be): compare them."""
+        check.found = compare_outputs(check.step, check.events, check.originals, self.encode, check.stamped)
+        check.done = True
+        check.events = check.originals = None
+
+    def flush(self) -> None:
+        """Report the checks decided, in step order: up to the first still waiting."""
+        checks, report = self.checks, self.report
+        while checks and checks[0].done:
+            check = checks.popleft()
+            if check.found is None:
+                check.stats.identical += 1
+            else:
+                _diverged(report, check.stats, check.found)
+
+    def finish(self, progress: Callable[[int, int], None] | None) -> ReplayReport:
+        """The log has ended: decide what no output came for, report, keep the trace."""
+        for check in self.checks:  # what no output came for: the log ends before it
+            if not check.done:
+                self.decide(check)
+        self.flush()
+        if progress is not None:
+            progress(self.total, self.total)
+        if self.keep_trace:
+            self.report.trace = self.kept_trace()
+        return self.report
+
+    def kept_trace(self) -> Trace:
+        """The run as replayed: every step record, and each step's outputs (as replayed, or as
+        logged for a step not re-executed)."""
+        kept = Trace()
+        kept.raw_steps.extend(self.kept_steps)
+        for part in self.kept_parts:
+            if type(part) is tuple:
+                kept.raw_events.extend((e.tag, e.node, e.port, e.seq, self.log.value(e), e.publish_ns)
+                                       for e in map(self.kept_events.get, part) if e is not None)
+            else:
+                kept.raw_events.extend(part)
+        return kept
+
+
+def _microstep_node(step) -> tuple[int, str]:
+    return (step.tag[1], step.node)
+
+
+def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
+    """Run the recorded tick again: its step record and its events, taken out of ``session.trace``."""
+    trace = session.trace
+    try:
+        session.tick(step.node, step.tag)
+    except (StepError, RunEnded):
+        pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
+    if step.status == StepStatus.LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
+        session.retract(step.node)  # the run dropped what this step returned
+    tape = trace.tape
+    if len(tape) == 2:  # one event and the record (the commonest): as below, without the scans
+        event, replayed = tape
+        if type(event) is tuple and type(replayed) is tuple and len(event) == 6 and len(replayed) != 6:
+            tape.clear()
+            return replayed, [event]
+    if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
+        events = [item for item in tape if len(item) == 6]
+        records = [item for item in tape if len(item) != 6]
+        del tape[:]
+    else:  # expanded already (by a retract), or compact ones: through the trace
+        events, records = list(trace.raw_events), list(trace.raw_steps)
+        del trace.raw_events[:], trace.raw_steps[:]
+    replayed, = records
+    return replayed, events
+
+
+def _diverged(report: ReplayReport, stats: NodeReplay, found: Divergence) -> None:
+    stats.divergent += 1
+    report.divergent_steps += 1
+    if len(report.divergences) < MAX_DIVERGENCES_KEPT:
+        report.divergences.append(found)
+
+
+def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: int) -> bool:
+    """Whether a consumer never had an event that no record of it names late: the first of its
+    ticks at or past the event's tag ran incomplete without it. Had it come afterwards, a later
+    record would name it; it came after the consumer's last record, or never (a real-time run)."""
+    if view is None:
+        return False
+    tags, seqs = view
+    i = bisect.bisect_left(tags, arrival)
+    return i < len(tags) and seq >= seqs[i]
+
+
+def _in_gap(ranges: list[tuple[str, str, int, int]] | None, event: LoggedEvent) -> bool:
+    """Whether ``event`` falls in one of a consumer port's restart gaps."""
+    return ranges is not None and any(src == event.node and port == event.port and lo <= event.seq < hi
+                                      for src, port, lo, hi in ranges)
+
+
+def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: dict) -> None:
+    """Start ``node`` afresh at its first record after its process died: its buffers keep only
+    the events from where the new process took each stream on, and later ones below are not given."""
+    for port, ids in restarted["inputs"].items():
+        for src, src_port, first in ids:
+            floors[(node, src, src_port)] = first
+    for buf, entries in session.restart_afresh(node, restarted["seqs"]):
+        for entry in entries:
+            if entry[3] >= floors.get((node, entry[1], entry[2]), 0):
+                buf.insert(entry)
+
+
+def _stepped(step) -> bool:
+    """Whether the run called step() at this tick or its policy skipped it: every tick but one
+    that a real-time run stopped before stepping (realtime="hard", an incomplete edge)."""
+    return step.status != StepStatus.SKIPPED or "missing" in (step.detail or {})

@@ -1,0 +1,159 @@
+"""The replay's first pass over a log: what it must know of the whole log before its first step."""
+
+from __future__ import annotations
+
+import bisect
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from ..errors import LogError
+from ..log import format as fmt
+
+
+class LogSurvey:
+    """What a replay must know of the whole log before its first step, gathered from its
+    messages in one pass in file order (as the file is checked, or from a read log's list), in
+    memory that grows with what was unusual in the run, not with its length: the nodes that
+    have steps and how many steps; which event ids the log holds (per port, ranges of seqs: one
+    range for a port whose events all are there), so an event logged twice is found; the events
+    that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
+    records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
+    is kept as the error the replay raises before its first step; one without detail (nearly
+    all: only its node is read here) the replay refuses where it reads it, with the same error."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.nodes: set[str] = set()
+        self.steps = 0
+        self.seqs: dict[tuple[str, str], _Seqs] = {}
+        #: ((consumer, port), event id) -> the tag of the consumer's record that names it late
+        self.late: dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]] = {}
+        self._views: dict[tuple[tuple[str, str], str, str], list] = {}
+        self.gaps: dict[tuple[str, str], list[tuple[str, str, int, int]]] = {}
+        self.step_error: LogError | None = None
+        self.event_error: LogError | None = None
+        self.twice: LogError | None = None
+        self._kinds: dict[int, Any] = {}  # channel id -> _STEPS, (node, port, seqs), or None
+
+    def take(self, channel, m) -> None:
+        kind = self._kinds.get(m.channel_id, _UNSEEN)
+        if kind is _UNSEEN:
+            kind = self._kinds[m.channel_id] = self._kind(channel)
+        if kind is _STEPS:
+            self._step(m)
+        elif kind is not None:
+            node, port, seqs = kind
+            if self.event_error is None:
+                try:
+                    fmt.split_event(m.data)
+                except ValueError as e:
+                    self.event_error = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is malformed ({e})")
+            if not seqs.add(m.sequence) and self.twice is None:
+                self.twice = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is logged twice",
+                                      "the file is damaged or was edited: retriever replay reads logs as a run "
+                                      "wrote them")
+
+    def _kind(self, channel) -> Any:
+        if channel.topic == fmt.STEPS_TOPIC:
+            return _STEPS
+        port = fmt.parse_data_topic(channel.topic)
+        return None if port is None else (*port, self.seqs.setdefault(port, _Seqs()))
+
+    def _step(self, m) -> None:
+        if self.step_error is not None:
+            return
+        # a record without detail tells the survey only its node: read, not checked (the replay's
+        # own reading of it checks it, and refuses the log with the same error there)
+        try:
+            record = msgpack.unpackb(m.data, use_list=False)
+        except Exception:
+            record = None
+        if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
+            self.steps += 1
+            self.nodes.add(record[0])
+            return
+        try:
+            node, microstep, _, _, _, detail, _ = fmt.decode_step(m.data)
+        except Exception as e:
+            self.step_error = LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})")
+            return
+        self.steps += 1
+        self.nodes.add(node)
+        if not detail:
+            return
+        tag = (m.log_time, microstep)
+        for port, ids in (detail.get("late") or {}).items():
+            for event_id in ids:
+                key = ((node, port), tuple(event_id))
+                if self.late.get(key, tag) <= tag:  # named late twice: the record that sorts last
+                    self.late[key] = tag
+        for port, streams in (detail.get("had_below") or {}).items():
+            for src, out, seq in streams:
+                self._views.setdefault(((node, port), src, out), []).append((tag, seq))
+        for port, ranges in (detail.get("restart_gap") or {}).items():
+            self.gaps.setdefault((node, port), []).extend(tuple(r) for r in ranges)
+
+    def logged_nodes(self) -> set[str]:
+        """The nodes the log has steps of (or the error of its first step record that is not one)."""
+        if self.step_error is not None:
+            raise self.step_error
+        return self.nodes
+
+    def check_events(self) -> None:
+        """Raise what is wrong with the log's events: one that is not one, one logged twice."""
+        if self.event_error is not None:
+            raise self.event_error
+        if self.twice is not None:
+            raise self.twice
+
+    def views(self) -> dict[tuple[tuple[str, str], str, str], tuple[list, list]]:
+        """Per ``((consumer node, port), producer, producer port)``, the tags of the consumer's ticks
+        that ran incomplete on it and, at each, the seq that stream's next event would have had
+        (their ``had_below`` detail): the two lists in tag order."""
+        return {key: tuple(map(list, zip(*sorted(v)))) for key, v in self._views.items()}
+
+    def in_log(self, event_id: tuple[str, str, int]) -> bool:
+        seqs = self.seqs.get(event_id[:2])
+        return seqs is not None and event_id[2] in seqs
+
+
+_STEPS = "steps"
+_UNSEEN = object()
+
+
+class _Seqs:
+    """A set of seqs held as sorted ranges ``[lo, hi)``: as small as the gaps between them."""
+
+    __slots__ = ("lo", "hi")
+
+    def __init__(self) -> None:
+        self.lo: list[int] = []
+        self.hi: list[int] = []
+
+    def add(self, seq: int) -> bool:
+        """Put ``seq`` in; False if it was there."""
+        lo, hi = self.lo, self.hi
+        if hi and hi[-1] == seq:  # the next one: the common case
+            hi[-1] = seq + 1
+            return True
+        i = bisect.bisect_right(lo, seq)
+        if i and seq < hi[i - 1]:
+            return False
+        after, before = i and hi[i - 1] == seq, i < len(lo) and lo[i] == seq + 1
+        if after and before:
+            hi[i - 1] = hi[i]
+            del lo[i], hi[i]
+        elif after:
+            hi[i - 1] = seq + 1
+        elif before:
+            lo[i] = seq
+        else:
+            lo.insert(i, seq)
+            hi.insert(i, seq + 1)
+        return True
+
+    def __contains__(self, seq: int) -> bool:
+        i = bisect.bisect_right(self.lo, seq)
+        return bool(i) and seq < self.hi[i - 1]
