@@ -74,7 +74,7 @@ class StepReplay:
         self.stamped = {nid for nid, node in graph.nodes.items() if realtime and not node.settings.latency_ns}
         # a log whose writer was killed, recovered or read with salvage=True, may keep a step record
         # (one chunk) and lose the events it consumed or produced (another): such a step cannot be compared
-        self.cut_short = not log.complete or "retriever.recovered" in log.metadata
+        self.cut_short = not log.complete or fmt.RECOVERED_METADATA in log.metadata
         self.report = ReplayReport({nid: NodeReplay(from_log=nid in sources) for nid in sorted(graph.nodes)})
         self.total, self.done = survey.steps, 0
         self.on_clock = TickCheck(graph)
