@@ -298,7 +298,7 @@ def test_the_nodes_of_a_lost_worker_start_afresh_on_it_once_it_is_back_when_told
 
 
 def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_takes_new_work(
-        partitionable, hosts, secret):
+        partitionable, hosts, secret, tmp_path):
     """nftables drops everything of gpu-box's host: within the lease (1 s here) the coordinator
     counts it lost and moves its node; gpu-box, cut off from the coordinator as long, stops its
     flows (their safe state). Healed, it takes the next deployment."""
@@ -306,10 +306,9 @@ def test_a_partitioned_worker_stops_its_flows_its_nodes_move_and_once_healed_it_
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--lease", "1")
     victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--lease", "1")
     start_worker(coordinator, "spare", secret, "--path", str(HERE), "--lease", "1")
-    placement = Path(f"/tmp/{coordinator.name}-part.toml")
+    placement = tmp_path / "part.toml"
     placement.write_text('[nodes]\ncounter = "arm-pc"\nsink = "arm-pc"\n')  # relay: gpu-box by load
-    log = Path(f"/tmp/{coordinator.name}-part.mcap")
-    log.unlink(missing_ok=True)
+    log = tmp_path / "part.mcap"
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "8", "--placement",
                        str(placement), "--lease", "1", "--allow-errors", "--log", str(log))
     wait_going(run, log)
@@ -338,7 +337,7 @@ MOVE_TRIALS = 3
 
 
 def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_within_a_lease(
-        lab, partitionable, hosts, secret):
+        lab, partitionable, hosts, secret, tmp_path):
     """Issue 40: the viewer (50 Hz, its own clock) runs on gpu-box, the camera's 32 KiB frames
     come from arm-pc. nftables cuts gpu-box off: the camera's link to it fills up and holds
     its puts (BLOCK); the coordinator moves the viewer to spare. Once it runs there, the
@@ -356,7 +355,7 @@ def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_withi
     errors = []
     for trial in range(MOVE_TRIALS):
         try:
-            _move_trial(partitionable, hosts, secret)
+            _move_trial(partitionable, hosts, secret, tmp_path / f"trial{trial + 1}")
             return
         except AssertionError as e:
             errors.append(f"trial {trial + 1}: {e}")
@@ -366,16 +365,16 @@ def test_a_consumer_moved_off_a_partitioned_host_gets_its_producers_events_withi
     raise AssertionError("\n\n".join(errors))
 
 
-def _move_trial(partitionable, hosts, secret) -> None:
+def _move_trial(partitionable, hosts, secret, folder: Path) -> None:
+    folder.mkdir()
     coordinator, arm, gpu = hosts
     lease = str(LEASE_S)
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--lease", lease)
     start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--lease", lease)
     start_worker(coordinator, "spare", secret, "--path", str(HERE), "--lease", lease)
-    placement = Path(f"/tmp/{coordinator.name}-move.toml")
+    placement = folder / "move.toml"
     placement.write_text('[nodes]\ncamera = "arm-pc"\n')  # viewer: gpu-box by load
-    log = Path(f"/tmp/{coordinator.name}-move.mcap")
-    log.unlink(missing_ok=True)
+    log = folder / "move.mcap"
     # the deployment keeps Zenoh's lease (10 s): the workers' lease is what moves the viewer and
     # gives up the camera's held put
     run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "16", "--placement",
@@ -611,7 +610,7 @@ def test_two_workers_of_one_name_that_never_met_are_refused(hosts, secret):
     assert done.returncode == 1 and "several workers are named 'twin'" in done.stderr, done.stderr
 
 
-def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):
+def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret, tmp_path):
     coordinator, arm, gpu = hosts
     start_worker(arm, "arm-pc", secret, "--path", str(HERE), "--namespace", "lab-a")
     start_worker(gpu, "gpu-box", secret, "--path", str(HERE), "--namespace", "lab-b")
@@ -620,12 +619,12 @@ def test_two_namespaces_on_one_network_do_not_see_each_other(hosts, secret):
                              timeout=BOUND_S)
     assert "arm-pc" in listed.stdout and "gpu-box" not in listed.stdout, listed.stdout + listed.stderr
     done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:pipe", "--namespace", "lab-b", "--duration", "1.5",
-                  "--placement", str(_pin_all(coordinator, "arm-pc")))
+                  "--placement", str(_pin_all(tmp_path, "arm-pc")))
     assert done.returncode == 1 and "arm-pc" in done.stderr and "not up" in done.stderr, done.stderr
 
 
-def _pin_all(host, worker: str) -> Path:
-    path = Path(f"/tmp/{host.name}-pin.toml")
+def _pin_all(folder: Path, worker: str) -> Path:
+    path = folder / "pin.toml"
     path.write_text(f'[nodes]\ncounter = "{worker}"\n')
     return path
 
