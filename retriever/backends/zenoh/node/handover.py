@@ -48,9 +48,10 @@ from .frontiers import EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, Streams
 #: only what the input's policy can still select (SyncPolicy.selectable): the newest event of
 #: each tag for Latest, however big the bursts that came while the flow restarted; every event
 #: for a Queue, which may be millions when its flow falls behind. Writing them and reading them
-#: back takes time in proportion (seconds for a million), while the new process's inbox fills and the run's end waits
-#: FINISH_SLACK_S (coordinator/waiting.py): past this many, the run stops saying why
-#: (too_many_to_hand_over) rather than restart into a backlog it would not work off in time.
+#: back takes time in proportion (seconds for a million), while the new process's inbox fills
+#: and the run's end waits FINISH_SLACK_S (coordinator/waiting.py): past this many, the run
+#: stops saying why (too_many_to_hand_over) rather than restart into a backlog it would not work
+#: off in time.
 HANDOVER_EVENTS_MAX = 1 << 20
 
 
