@@ -93,13 +93,11 @@ class _Periodic(Clock):
 
     def first_tick_at_or_after(self, t: int, t0: int = 0) -> int:
         """The smallest ``k`` whose tick time is ``>= t``."""
-        rate = self._rate
         rel = t - t0 - self.offset_ns
         if rel <= 0:
             return 0
-        # smallest k with floor(k*1e9*q/p) >= rel  <=>  k*1e9*q >= rel*p
-        num, den = rel * rate.numerator, NS_PER_S * rate.denominator
-        return -(-num // den)
+        # smallest k with floor(k*1e9*q/p) >= rel  <=>  k*1e9*q >= rel*p  (p = _step_den, 1e9*q = _step_num)
+        return -(-(rel * self._step_den) // self._step_num)
 
 
 class Rate(_Periodic):

@@ -200,7 +200,8 @@ class StarvationWatch:
 
     def step(self, node: str, tag: tuple[int, int], produced, detail) -> None:
         """One step record of ``node`` (its fields as reported: ``produced`` event ids, ``detail``)."""
-        made = Counter((event_id[0], event_id[1]) for event_id in produced if (event_id[0], event_id[1]) in self._fed)
+        made = Counter((event_id[0], event_id[1]) for event_id in produced
+                       if (event_id[0], event_id[1]) in self._fed) if produced else {}
         for stream, n in made.items():
             self._made[stream] += n
             history = self._history.setdefault(stream, deque())

@@ -2,7 +2,8 @@
 
     wait(condition, give_up)
       ┌──▶ a stop asked from afar? ──▶ KeyboardInterrupt
-      │    take what came (Inbox) ─ a failure? raise it ─ say who starves ─ look at the processes
+      │    take what came (Inbox) ─ a failure? raise it ─ say who starves
+      │    every CHECK_EVERY_S: look at the processes, count what was refused as forged
       │    hand the records to the log ─ tell the consumers what the coordinator has (`have`)
       └─── until condition(); past give_up: name each node waited for, with its stacks
 
@@ -29,8 +30,12 @@ from .reports import tell_have
 
 #: how often, at most, the coordinator tells the consumers which events it has (control `have`)
 HAVE_EVERY_S = 0.02
-#: how long the coordinator waits for a message before it looks at the processes again
-POLL_S = 0.02
+#: how long the coordinator waits for a message before it looks at the time again (a message
+#: wakes it at once: a status, a report, a node reaching a grant)
+POLL_S = 0.05
+#: how often the coordinator looks at its processes and hosts (a dead one is found this late at
+#: most): a pass polls each process and asks the hosting, too much for every wake of a busy run
+CHECK_EVERY_S = 0.1
 #: a real-time run may finish this long past its end and its longest deadline (at least a second)
 #: before it is said stuck: workers send their last reports after the end
 FINISH_SLACK_S = 10.0
@@ -124,19 +129,21 @@ class Waits:
         """Collect messages until ``condition()``; fail on a failed or dead worker or at ``give_up``
         (with ``patience``, at the latest that long after the last report came)."""
         session, book = self.session, self.book
-        next_write = next_have = time.monotonic()
+        next_write = next_have = next_check = time.monotonic()
         reports = sum(book.intake.reports.values())
         while not condition():
             if session.stop_requested:  # asked from afar (retriever stop): as Ctrl-C here would
                 raise KeyboardInterrupt
             self.inbox.take(POLL_S)
-            book.tell_forged()
             if book.ending.failure is not None:
                 self.supervisor.raise_failure()
             if book.intake.starvation.news:
                 say_starved(book)
-            self.supervisor.check()
             now = time.monotonic()
+            if now >= next_check:
+                book.tell_forged()
+                self.supervisor.check()
+                next_check = now + CHECK_EVERY_S
             if now >= next_write:
                 if session.log is not None:
                     session.write_log()
