@@ -56,7 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # step_overhead, besid
 
 from step_overhead import VARIANTS, Chain, build  # the same chain, the same flow classes
 
-from retriever._loading import load_pipeline
+from retriever.loading import load_pipeline
 from retriever.log import format as fmt
 from retriever.log import read_log
 from retriever.replay import replay, resim

@@ -53,7 +53,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
 
 from retriever import Flow, Latest, Pipeline, Rate, Trigger, io  # noqa: E402
-from retriever.backends import _inproc_ticks  # noqa: E402
+from retriever.backends import inproc_ticks  # noqa: E402
 from retriever.time import seconds_to_ns  # noqa: E402
 
 TARGET_STEPS_PER_S = 500_000  # typed chains
@@ -148,7 +148,7 @@ def run_framework(chain: Chain, hz: float, duration: float, cold: bool = False):
     the graph, wire it, generate the ticks: ``cold``, with no code of an earlier session at hand)."""
     pipe, names = build(chain, hz)
     if cold:
-        _inproc_ticks.clear_compiled_ticks()
+        inproc_ticks.clear_compiled_ticks()
     t0 = time.perf_counter()
     pipe.step(0.0)  # open the session outside the timed region
     opened = time.perf_counter() - t0

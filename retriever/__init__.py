@@ -7,12 +7,12 @@ Layers, lowest first: a module imports from its own layer and those below, never
 (not lazily inside a function, not under ``if TYPE_CHECKING:``); ``<`` separates layers, spaces
 the modules of one layer, and a package stands for its modules (tests/test_layers.py checks it).
 
-    kernel     time < errors < codec code < clocks < sync < trace < _context < flow < ir < graph < rebuild features < plan tick
+    kernel     time < errors < codec code < clocks < sync < trace < declaring < flow < ir < graph < rebuild features < plan tick
     plan       placement
     log        log
-    backends   backends.base < starved < backends._inproc_ticks backends.inproc_compiled backends.inproc < backends.zenoh < backends.dora < backends
+    backends   backends.base < starved < backends.inproc_ticks backends.inproc_compiled backends.inproc < backends.zenoh < backends.dora < backends
     pipeline   pipeline
-    run        _loading
+    run        loading
     replay     replay
     libraries  gym learn ros2
     cli        cli __main__

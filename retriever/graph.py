@@ -22,7 +22,7 @@ from .clocks import Clock
 from .code import code_hashes
 from .codec import type_path
 from .errors import CodecError, GraphError, Problem
-from .flow._base import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
+from .flow.core import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
 from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir, port_name_problem
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns

@@ -23,7 +23,7 @@ from .code import SHA256_HEX
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
 from .time import is_finite_number, max_microsteps_problem, seconds_problem
-from .flow._base import MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
+from .flow.core import MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
 from .sync import policy_from_ir
 
 #: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);

@@ -22,10 +22,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterator
 
-from . import _context
+from . import declaring
 from .backends import Session, open_backend
 from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, SetupError, StarvedFlowWarning
-from .flow._base import Flow, settings_of
+from .flow.core import Flow, settings_of
 from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
 from .log.format import RunEnd
@@ -68,11 +68,11 @@ class Pipeline:
 
     # -- declaring ---------------------------------------------------------------------------
     def __enter__(self) -> "Pipeline":
-        _context.push(self)
+        declaring.push(self)
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        _context.pop(self)
+        declaring.pop(self)
 
     def add(self, flow: Flow, name: str | None = None) -> Flow:
         """Add a flow (flows join automatically when created inside ``with`` or wired)."""

@@ -57,7 +57,7 @@ from .sync import MISSING, PortBuffer, SyncPolicy, policy_from_ir
 from .time import MAX_TIME_NS, seconds_to_ns
 
 if TYPE_CHECKING:
-    from .flow._base import PortSpec
+    from .flow.core import PortSpec
     from .graph import Graph
 
 

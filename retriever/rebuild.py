@@ -15,7 +15,7 @@ import sys
 from typing import Any
 
 from .clocks import clock_from_ir
-from .flow._base import Flow
+from .flow.core import Flow
 from .ir import param_from_ir
 
 

@@ -12,7 +12,7 @@
     decide(on_error) ──▶ SKIP · STOP · RESTART · OUT_OF_RESTARTS · END_RUN
 
 :func:`run_tick` is that tick, which the in-process backend runs for every node whose tick it
-does not generate; its generated ticks (``backends/_inproc_ticks.py``) are the fast path, held
+does not generate; its generated ticks (``backends/inproc_ticks.py``) are the fast path, held
 to the same trace on random graphs (tests/backends/test_inproc_ticks.py). The zenoh node loop
 runs the same tick from the same two parts, :func:`take_inputs` (select, commit, fallbacks) and
 :func:`timed_step`, with the accounts of a real-time node around them. :func:`select_inputs`
@@ -102,7 +102,7 @@ def timed_step(invoke: Callable, read: Callable, values: dict) -> tuple[Any, Bas
 def run_tick(node: Any, tau: tuple[int, int], skipped: Callable, failed: Callable, emit: Callable) -> None:
     """One tick of ``node`` at ``tau``, the reference (module docstring). ``node`` has ``stats``
     (NodeStats), ``inputs`` (plan.bind_inputs), ``fallbacks``, ``invoke`` and ``read``
-    (flow._base.make_invoker, make_output_reader); what became of the tick goes to one of:
+    (flow.core.make_invoker, make_output_reader); what became of the tick goes to one of:
     ``skipped(node, tau, missing)``, ``failed(node, tau, consumed, exc, start, wall)`` (the
     backend records it, then acts on :func:`decide`), ``emit(node, tau, outputs, consumed,
     start, end, dropped)``. A KeyboardInterrupt in the step is not the step's: it propagates.

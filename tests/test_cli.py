@@ -157,7 +157,7 @@ with Pipeline("long") as pipe:
 
 
 def test_run_digest_is_the_in_process_digest():
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     pipe = load_pipeline(str(QUICKSTART))
     pipe.reset()
@@ -374,7 +374,7 @@ def test_ir_json_by_default():
 
 
 def test_ir_json_is_the_library_json():
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     expected = load_pipeline(str(QUICKSTART)).build_ir().to_json()
     assert quickstart_ir("json") == expected
@@ -568,7 +568,7 @@ def test_no_arguments_prints_help():
 
 
 def test_load_pipeline_in_process_matches_the_cli_target_syntax():
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     pipe = load_pipeline(f"{QUICKSTART}:pipe")
     assert isinstance(pipe, Pipeline) and pipe.name == "quickstart"

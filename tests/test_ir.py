@@ -255,7 +255,7 @@ def test_load_bad_code_hashes(tmp_path: Path, doc: dict, bad):
 
 
 def test_an_ir_records_the_sha256_of_each_flow_modules_file(tmp_path: Path):
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     (tmp_path / "hashed_flows.py").write_text(QUICKSTART.read_text(encoding="utf-8") + "# a copy\n", encoding="utf-8")
     try:
@@ -267,7 +267,7 @@ def test_an_ir_records_the_sha256_of_each_flow_modules_file(tmp_path: Path):
 
 
 def test_an_ir_of_a_script_records_the_folder_of_its_flows(tmp_path: Path):
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     script = tmp_path / "folder_flows.py"
     script.write_text("from tests.ir_flows import build\npipe = build()\n", encoding="utf-8")

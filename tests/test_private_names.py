@@ -4,8 +4,8 @@ A leading underscore says "this module's business": a module may use its own pri
 likes, and another module asks for what it needs through a public name. Checked over the AST of
 every module, in the three forms that can be told apart without knowing types:
 
-- ``from m import _x``: a private name imported from another module (a private *module*, such as
-  ``retriever._context``, is the package's own implementation and may be imported);
+- ``from m import _x``: a private name imported from another module (no module of the package
+  is private: each has a public name, checked below);
 - ``obj._x``, read, written or called, ``self._x`` included, where no class and no top level of
   this module defines ``_x`` but another module of ``retriever`` does: ``_x`` can only be that
   module's (for ``self``, inherited from a base class there). A name this module defines too is
@@ -172,7 +172,7 @@ def _private_reads(module: str) -> dict[tuple[str, str], list[str]]:
         if isinstance(node, ast.ImportFrom):
             source = _source(module, is_package, node)
             for alias in node.names:
-                if _is_private(alias.name) and f"{source}.{alias.name}" not in MODULES and source != module:
+                if _is_private(alias.name) and source != module:
                     found[(module, alias.name)].append(f"line {node.lineno}: from {source} import {alias.name}")
         elif (isinstance(node, ast.Attribute) and _is_private(node.attr) and node.attr not in own
               and not (isinstance(node.value, ast.Name) and node.value.id in foreign)):
@@ -196,6 +196,13 @@ def _all_private_reads() -> dict[tuple[str, str], list[str]]:
 ALL_READS = _all_private_reads()
 
 
+def test_no_module_of_the_package_is_private():
+    """A module's name says what it is, with no underscore (``__init__`` and ``__main__`` aside):
+    no check here needs the exemption a private module would."""
+    private = sorted(m for m in MODULES if any(_is_private(part) for part in m.split(".")))
+    assert private == [], "private modules (give each a public name): " + ", ".join(private)
+
+
 def test_no_module_reads_another_modules_private_names():
     new = [f"{module} uses {name}: " + "; ".join(where)
            for (module, name), where in sorted(ALL_READS.items()) if (module, name) not in KNOWN]
@@ -215,7 +222,7 @@ OUTSIDE = ("tests", "benchmarks", "agents", "examples")
 
 def _outside_uses(path: Path) -> list[str]:
     """In a test, benchmark, agent or example: each private name imported from a module of the
-    package (a private *module* may be: tests mirror the package, its own included), and each
+    package, and each
     private name patched (``monkeypatch.setattr(x, "_y", ...)``, ``mock.patch.object(x, "_y", ...)``,
     ``setattr(x, "_y", ...)``): a seam a test or benchmark needs is a public one."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
@@ -223,7 +230,7 @@ def _outside_uses(path: Path) -> list[str]:
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] == PACKAGE:
             found += [f"line {node.lineno}: from {node.module} import {a.name}" for a in node.names
-                      if _is_private(a.name) and f"{node.module}.{a.name}" not in MODULES]
+                      if _is_private(a.name)]
         elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
               and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "object")
               and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
@@ -268,18 +275,12 @@ def _root(node: ast.expr) -> str | None:
     return node.id if isinstance(node, ast.Name) else None
 
 
-def _is_private_module(dotted: str) -> bool:
-    return dotted in MODULES and any(_is_private(part) for part in dotted.split("."))
-
-
 def _outside_reads_and_replacements(path: Path) -> list[str]:
     """In a test, benchmark, agent or example: each ``obj._x`` (``self``/``cls``, another library's
     module and a named tuple's methods aside) where the package defines ``_x`` and this file does
-    not (a class of its own may have a ``_x``); each
+    not (a class of its own may have a ``_x``); and each
     attribute of the package's set by plain assignment (``Outputs.publish = timed``: a method or
-    a setting replaced for good); and each attribute patched on a private module of the package
-    (``mock.patch.object(_inproc_ticks, "compile_tick", ...)``): a private module's names are
-    its own business, however they are spelled."""
+    a setting replaced for good)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     own, bound = _defined(tree) | NAMEDTUPLE_API, _package_bindings(tree)
     foreign = {name for name in _foreign_modules(tree) if name not in bound}
@@ -294,11 +295,6 @@ def _outside_reads_and_replacements(path: Path) -> list[str]:
                 for leaf in (target.elts if isinstance(target, ast.Tuple) else [target]):
                     if isinstance(leaf, ast.Attribute) and _root(leaf) in bound:
                         found.append(f"line {node.lineno}: sets {ast.unparse(leaf)}")
-        elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
-              and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "object")
-              and node.args and isinstance(node.args[0], ast.Name)
-              and _is_private_module(bound.get(node.args[0].id, ""))):
-            found.append(f"line {node.lineno}: patches {ast.unparse(node)[:80]}")
     return found
 
 

@@ -9,7 +9,7 @@ import pytest
 from retriever import Latest, Queue, RestartLimitError, StepError
 from retriever.backends.base import NodeStats
 from retriever.errors import ReplayedError, RunEnded
-from retriever.flow._base import PortSpec
+from retriever.flow.core import PortSpec
 from retriever.sync import PortBuffer
 from retriever.tick import (Decision, RestartBudget, decide, ending, error_text, run_tick, select_inputs, take_inputs,
                             take_restart, timed_step)

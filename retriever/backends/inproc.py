@@ -29,7 +29,7 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
   producer's tick at the same tag, whose outputs are not, comes later), and skips that test;
 - ticks at ``(t, m + 1)`` are made only by ticks at ``(t, m)`` (zero-latency outputs on undelayed
   edges), so they wait in a list the loop runs microstep by microstep, never on the heap;
-- nodes whose inputs are all ``Latest()`` run tick code generated for them (``_inproc_ticks``),
+- nodes whose inputs are all ``Latest()`` run tick code generated for them (``inproc_ticks``),
   which does what ``tick.run_tick`` does with the node's ports, calling convention and consumers
   inlined: a rate group's in one function, a chain of Trigger flows' in one function; a tick
   known to be the only one at its tag (a chain's) skips the test of what is visible on inputs
@@ -41,7 +41,7 @@ What keeps the loop near the cost of the step calls (benchmarks/step_overhead.py
 trace. The session's parts: ``_Agenda``, the ticks due; ``_Recorder``, what became of each tick
 (records, delivered events, the on_error decision acted on); the loop (``_advance``); and the
 tick functions (``CompiledTicks``, backends/inproc_compiled.py): the generated ticks, which read
-the session through one public surface, ``_inproc_ticks.Host``, and the reference elsewhere.
+the session through one public surface, ``inproc_ticks.Host``, and the reference elsewhere.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ import numpy as np
 
 from ..codec import packb
 from ..errors import BackendError, CausalityError, CodecError, ReplayedError, RetrieverWarning, RunEnded, SetupError
-from ..flow._base import Flow, make_invoker, make_output_reader, set_up, tear_down, with_step_detail
+from ..flow.core import Flow, make_invoker, make_output_reader, set_up, tear_down, with_step_detail
 from ..flow.burst import Burst
 from ..graph import Graph, Node
 from ..plan import NodePlan, bind_inputs, plan_graph, tie_order
@@ -106,7 +106,7 @@ def _encodes_surely(value: Any) -> bool:
 
 class NodeRuntime:
     """Everything the hot loop needs about one node, flattened into slots: what the generic tick
-    (tick.run_tick) and the generated ones (_inproc_ticks) read of a node."""
+    (tick.run_tick) and the generated ones (inproc_ticks) read of a node."""
 
     __slots__ = ("index", "id", "flow", "spec", "invoke", "read", "latency_ns", "on_error", "inputs", "plan",
                  "downstream", "seq", "clock", "stats", "cycle", "fallbacks", "replaced", "restarts", "ports_seen")
@@ -156,7 +156,7 @@ class _RateGroup:
         self.order = order  # node indices, consumers first (plan.tie_order): the tick order
         # their tick functions, in that order, or the one that runs them all (CompiledTicks.functions)
         self.ticks: tuple = ()
-        # the function that runs its ticks while nothing else is due, if compiled (_inproc_ticks.make_ticks)
+        # the function that runs its ticks while nothing else is due, if compiled (inproc_ticks.make_ticks)
         self.alone = None
         self.k = 0
         # the clocks' tick_time(k) is offset_ns + k * step_num // step_den (inlined in the loop)
@@ -361,7 +361,7 @@ class InprocSession(Session):
             if rt.clock.hz is not None:
                 groups.setdefault(rt.clock.schedule, []).append(rt.index)
         # consumers first: a fused rate group's ticks then skip the test of what is visible on the
-        # edges within it (_inproc_ticks._without_visible_tests)
+        # edges within it (inproc_ticks._without_visible_tests)
         tie = tie_order(plan)
         self._rank = rank = [tie[rt.id] for rt in self._nodes]
         self._groups = [_RateGroup(schedule, tuple(sorted(indices, key=rank.__getitem__)))

@@ -1,5 +1,5 @@
 """The tick functions of an in-process session (backends/inproc.py): generated for every node whose
-tick ``_inproc_ticks`` can write, the reference ``tick.run_tick`` for the others; and what the
+tick ``inproc_ticks`` can write, the reference ``tick.run_tick`` for the others; and what the
 generated ones keep to themselves (counts, seqs, how far they looked into their buffers) until
 they hand it to the nodes.
 
@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ..tick import run_tick
-from . import _inproc_ticks
+from . import inproc_ticks
 
 
 class CompiledTicks:
@@ -32,7 +32,7 @@ class CompiledTicks:
         self.records, self.nodes, self.groups, self.recorder, self.fuse = records, nodes, groups, recorder, fuse
         #: what the generated ticks call and read of the session; its ``look`` is set when the
         #: loop is to look at a stop asked for, a recompile, the flushes other threads wait for
-        self.host = _inproc_ticks.Host(
+        self.host = inproc_ticks.Host(
             nodes={rt.id: rt for rt in nodes}, tape=records.tape, after=agenda.after, heap=agenda.heap,
             max_microsteps=max_microsteps, plain_types=plain_types, emit=recorder.emit, skipped=recorder.skipped,
             failed=recorder.failed, schedule=agenda.schedule, keep_next=agenda.keep_next, saw_ports=self.saw_ports,
@@ -51,7 +51,7 @@ class CompiledTicks:
 
     def functions(self) -> list:
         """Per node index, ``f(tau, (tau[0], tau[1] + 1))`` running one tick, generated where
-        :func:`._inproc_ticks.compile_tick` can, else the reference ``tick.run_tick``; and, set here
+        :func:`.inproc_ticks.compile_tick` can, else the reference ``tick.run_tick``; and, set here
         and on the rate groups: the same per node, when it is the only tick due, going on along
         a chain of Trigger flows (``chains``), and per rate group its ticks in order (one fused
         function, with ``fuse``) and its loop while nothing else is due (``alone``).
@@ -61,14 +61,14 @@ class CompiledTicks:
         parts = []
         recorder = self.recorder
         for rt in self.nodes:
-            code = None if self.generic_only or not self.generate else _inproc_ticks.compile_tick(self.host, rt)
+            code = None if self.generic_only or not self.generate else inproc_ticks.compile_tick(self.host, rt)
             if code is not None:
                 self.generated.add(rt.id)
             parts.append(code or (lambda tau, out_tag, rt=rt, r=recorder: run_tick(rt, tau, r.skipped, r.failed,
                                                                                    r.emit) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self.groups]
-        if any(isinstance(part, _inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush, peek = _inproc_ticks.make_ticks(self.host, parts, groups,
+        if any(isinstance(part, inproc_ticks.NodeCode) for part in parts):
+            ticks, chains, fused, alone, flush, peek = inproc_ticks.make_ticks(self.host, parts, groups,
                                                                                  fuse=self.fuse)
             self.flushes.append(flush)
             self.peeks.append(peek)

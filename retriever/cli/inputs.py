@@ -9,7 +9,7 @@ from .console import fail
 
 
 def load(target: str):
-    from .._loading import load_pipeline
+    from ..loading import load_pipeline
 
     try:
         return load_pipeline(target)

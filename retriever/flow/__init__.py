@@ -3,7 +3,7 @@ flow_io, Rate, Trigger, Pipeline, Latest`` (Listing 4). ``flow_io`` is the paper
 
 from ..clocks import Clock, Hybrid, Rate, Trigger
 from ..sync import MISSING, ActionChunking, Exact, Latest, LatestDistinct, Queue, SyncPolicy, Window
-from ._base import Flow, flow_io, io
+from .core import Flow, flow_io, io
 from .burst import Burst
 from .types import EventStream
 

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..clocks import Rate
 from ..flow import Flow
-from ..flow._base import flow_spec, settings_of
+from ..flow.core import flow_spec, settings_of
 from .features import ObservationFeatures
 from .rtc import ChunkTimeline, Leftover
 

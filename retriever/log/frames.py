@@ -32,7 +32,8 @@ import numpy as np
 from ..errors import LogError, UnmappableError
 from ..features import ACTION, OBSERVATION, FeatureError, excluded, feature_keys, port_features
 from ..ir import IR
-from ..sync import ActionChunking, PortBuffer, policy_from_ir
+from ..plan import plan_ir
+from ..sync import ActionChunking, PortBuffer
 from ..time import NS_PER_S, exact_rational, format_tag, seconds_to_ns
 from ..trace import StepRecord, StepStatus, Trace
 from .reader import RunLog
@@ -161,21 +162,15 @@ def _tick_index(t: int, hz: Fraction, offset: int) -> int | None:
 
 
 class _Inputs:
-    """Each input port's sync policy and the delay of each edge into it, from the IR."""
+    """Each input port's sync policy and the delay of each edge into it: the flow's plan (plan.py)."""
 
     def __init__(self, ir: IR, flow: str, hz: Fraction):
-        self.policies: dict[str, Any] = {}
-        self.delays: dict[tuple[str, str, str], int] = {}  # (port, producer, its port) -> ns
-        for edge in ir.edges:
-            dst = edge["destination"]
-            if dst["node"] != flow:
-                continue
-            policy = policy_from_ir(edge["adapter"])
-            if isinstance(policy, ActionChunking):
-                policy = policy.bound_to_rate(float(hz))
-            self.policies[dst["port"]] = policy
-            self.delays[(dst["port"], edge["source"]["node"], edge["source"]["port"])] = seconds_to_ns(
-                edge.get("delay") or 0)
+        node = plan_ir(ir).nodes[flow]
+        self.policies: dict[str, Any] = {
+            port: policy.bound_to_rate(float(hz)) if isinstance(policy, ActionChunking) else policy
+            for port, policy in node.policies.items()}
+        #: (port, producer, its port) -> ns
+        self.delays: dict[tuple[str, str, str], int] = {(f.port, f.src, f.src_port): f.delay_ns for f in node.feeds}
 
     def value(self, port: str, tau: tuple[int, int], events: list[tuple[EventId, tuple[int, int], Any]]) -> Any:
         """What the port's policy selects from exactly these events at ``tau``."""

@@ -11,7 +11,7 @@ from typing import Callable
 from ..backends.inproc import InprocSession
 from ..code import code_mismatches
 from ..errors import IRError, LogError, RetrieverWarning, SetupError
-from ..flow._base import settings_of
+from ..flow.core import settings_of
 from ..log.reader import LogHead, RunLog
 from ..pipeline import Pipeline
 

@@ -1,4 +1,4 @@
-"""The compiled per-node ticks of the inproc backend (backends/_inproc_ticks.py) against the
+"""The compiled per-node ticks of the inproc backend (backends/inproc_ticks.py) against the
 reference tick, ``retriever.tick.run_tick``: the same graph, run once with every node it can compile
 compiled and once with none, must record the same events and step records in the same order
 (wall-clock fields aside), the same stats, and fail the same way.

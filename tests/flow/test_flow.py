@@ -12,7 +12,7 @@ import pytest
 import retriever
 import retriever.flow
 import retriever.flow.adapter
-from retriever.flow._base import settings_of
+from retriever.flow.core import settings_of
 from retriever import MISSING, ClockError, Flow, GraphError, Pipeline, Rate, StepError, io
 from retriever.backends import default_backend
 from retriever.flow import EventStream, Hybrid, Latest, Trigger, Window

@@ -13,9 +13,9 @@ import pytest
 torch = pytest.importorskip("torch", reason="policy flows run torch models (the retriever[lerobot] extra)")
 pytest.importorskip("lerobot", reason="LeRobotPolicy loads LeRobot checkpoints (the retriever[lerobot] extra)")
 
-from retriever.flow._base import settings_of
+from retriever.flow.core import settings_of
 from retriever import ActionChunking, Latest, Pipeline, Rate, SetupError, read_log  # noqa: E402
-from retriever.flow._base import set_up, tear_down  # noqa: E402
+from retriever.flow.core import set_up, tear_down  # noqa: E402
 from retriever.learn import LeRobotPolicy  # noqa: E402
 from retriever.replay import replay  # noqa: E402
 from tests.learn.policies import (  # noqa: E402

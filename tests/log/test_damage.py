@@ -21,7 +21,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from retriever import LogError, RetrieverWarning, read_log
 from retriever.log.reader import scan_log
-from retriever._loading import load_pipeline
+from retriever.loading import load_pipeline
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter, recover
 from retriever.replay import Divergence, replay, resim

@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from retriever import LogError, RetrieverWarning, RunEnd, read_log
-from retriever._loading import load_pipeline
+from retriever.loading import load_pipeline
 from retriever.codec import Encoder, packb
 from retriever.replay import replay, resim
 from retriever.log.format import decode_step

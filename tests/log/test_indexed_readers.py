@@ -26,7 +26,7 @@ from mcap.records import Chunk, MessageIndex
 from mcap.stream_reader import breakup_chunk
 
 from retriever import read_log
-from retriever._loading import load_pipeline
+from retriever.loading import load_pipeline
 from retriever.log.mcap_writer import McapWriter
 from retriever.log.ros2 import export_ros2
 from tests.log.export_flows import camera_log

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from retriever import LogError, read_log
-from retriever._loading import load_pipeline
+from retriever.loading import load_pipeline
 from retriever.codec import packb
 from retriever.log import recover
 from retriever.replay import replay, resim

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from retriever.flow._base import settings_of
+from retriever.flow.core import settings_of
 from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, SetupError, StepError, io
 from retriever.log import read_log
 from retriever.replay import replay, resim
@@ -147,7 +147,7 @@ def logged(pipe: Pipeline, tmp_path: Path, duration: float = 2.0, name: str = "r
 
 # -- identical ----------------------------------------------------------------------------------
 def test_quickstart_replays_and_resimulates_identically(tmp_path):
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     pipe = load_pipeline(str(QUICKSTART))
     pipe.reset()  # the module's pipeline is shared by every test that loads it
@@ -416,7 +416,7 @@ def test_replay_says_which_flow_module_changed_since_the_run_before_it_compares(
 
 def test_replay_from_another_directory_finds_the_flow_classes(tmp_path):
     """The log records where the flows were imported from; replay works from any directory."""
-    from retriever._loading import load_pipeline
+    from retriever.loading import load_pipeline
 
     path = tmp_path / "q.mcap"
     pipe = load_pipeline(str(QUICKSTART))

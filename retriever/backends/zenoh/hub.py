@@ -234,7 +234,7 @@ def _session_config(mode: str, connect: list[str], *, sessions: int, lease: floa
     return config
 
 
-#: the words of a port type (as the IR writes it, flow/_base.type_name) whose values are a few
+#: the words of a port type (as the IR writes it, flow/core.type_name) whose values are a few
 #: bytes whatever they hold: Zenoh's shared memory carries messages over 3 KiB only
 _SMALL_TYPE_WORDS = frozenset({"int", "float", "bool", "complex", "None", "NoneType"})
 #: ``Optional[...]`` and ``Union[...]`` hold what their brackets say (bare, they hold anything)

@@ -43,7 +43,8 @@ import zenoh
 from retriever import BackendError, Flow, Latest, LogError, Pipeline, Rate, RestartLimitError, Trigger, read_log
 from retriever.backends.zenoh.hub import await_segments_released, endpoint, free_port, mapped_segments, peer_config
 from retriever.backends.zenoh.worker.build import build_loop
-from retriever.backends.zenoh.worker.process import EXIT_ABANDONED, PARENT_DIED, Parent
+from retriever.backends.zenoh.protocol import EXIT_ABANDONED
+from retriever.backends.zenoh.worker.process import PARENT_DIED, Parent
 from retriever.replay import replay
 
 from .lifecycle_flows import (Count, Counter, ExitOnce, Looped, Nap, Scaled, SegfaultOnce, Sink, Total,

@@ -13,7 +13,8 @@ import threading
 
 import pytest
 
-from retriever.backends.zenoh.node import FLUSH_MAX_SEQS, RESTART_SEQ_GAP
+from retriever.backends.zenoh.node import FLUSH_MAX_SEQS
+from retriever.backends.zenoh.protocol import RESTART_SEQ_GAP
 from retriever.backends.zenoh.node.reporter import (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS, Reporter,
                                                     session_put)
 from retriever.backends.zenoh.protocol import Report

@@ -10,7 +10,8 @@ import msgpack
 import pytest
 
 from retriever import LogError, Pipeline, Queue, Rate, Trigger, read_log
-from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP
+from retriever.backends.zenoh.node import CONTROL, DATA, EARLY_SEQS_MAX, NEVER
+from retriever.backends.zenoh.protocol import RESTART_SEQ_GAP
 from retriever.backends.zenoh.node import handover
 from retriever.backends.zenoh.protocol import RUN_CONTROL
 from retriever.backends.zenoh.wire import WIRE_VERSION, Progress, WireEncoder, WireError

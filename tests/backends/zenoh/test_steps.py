@@ -21,7 +21,7 @@ from retriever.backends.base import NodeStats
 from retriever.backends.zenoh.node import Ending
 from retriever.backends.zenoh.node.steps import Steps
 from retriever.errors import StopRun
-from retriever.flow._base import Flow, PortSpec
+from retriever.flow.core import Flow, PortSpec
 from retriever.sync import PortBuffer
 from retriever.tick import Decision, decide, run_tick
 

@@ -16,7 +16,8 @@ import pytest
 from retriever.backends.zenoh import protocol
 from retriever.backends.zenoh.node import CONTROL, Ending
 from retriever.backends.zenoh.worker.ending import finish, handle_signals, say_failed
-from retriever.backends.zenoh.worker.process import EXIT_FAILED, PARENT_DIED
+from retriever.backends.zenoh.protocol import EXIT_FAILED
+from retriever.backends.zenoh.worker.process import PARENT_DIED
 from retriever.errors import StopRun
 
 

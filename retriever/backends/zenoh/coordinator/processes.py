@@ -22,10 +22,8 @@ from collections.abc import Callable
 from ....tick import Decision, ending, take_restart
 from ..command import mode_args
 from ..host import Host, WorkerProcess
-from ..node import RESTART_SEQ_GAP
 from ..origin import new_key
-from ..protocol import Lost, NodeState, Restarted, State, Stop
-from ..worker.process import EXIT_FAILED, EXIT_HANDED_OVER
+from ..protocol import EXIT_FAILED, EXIT_HANDED_OVER, RESTART_SEQ_GAP, Lost, NodeState, Restarted, State, Stop
 from .book import RunBook
 from .control import RunControl
 from .diagnostics import FAILED_TAIL_LINES, Diagnostics, exit_text, failure_error

@@ -2,12 +2,14 @@
 
     transport thread ──(DATA: key, bytes)──▶ inbox ──┐   (or, the main thread waiting and the
     control, progress ──(CONTROL, PROGRESS)────────▶ │    node's steps short: handled right
-                                                     │    there, NodeLoop.receive)
+    a producer of this process ──(EVENTS)──────────▶ │    there, NodeLoop.receive, then NUDGE)
     NodeLoop.run ◀───────────────────────────────────┘
       ┌─▶ drain the inbox ── handle ─┬─ DATA ─────▶ frontiers.Streams: in seq order, frontiers,
       │                              │               deliver to buffers, schedule trigger ticks
+      │                              ├─ EVENTS ───▶ the same, values by reference, nothing decoded
       │                              ├─ PROGRESS ─▶ frontiers.Streams: frontiers
       │                              ├─ CONTROL ──▶ control.obey: stop, end, grant, have, lost, …
+      │                              ├─ NUDGE ────▶ nothing to take: look again at the time to wake
       │                              └─ FAILED ───▶ raised: the transport's receiving thread died
       │   outputs.release: held LET outputs whose time came
       │   try_tick: τ = the schedule's next Rate tick or pending trigger tag
@@ -52,7 +54,7 @@ The modules, one job each:
 """
 
 from .ending import Ending
-from .frontiers import CLOCK_AHEAD_MAX_NS, EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, WAITING_MAX, InEdge
+from .frontiers import CLOCK_AHEAD_MAX_NS, EARLY_SEQS_MAX, NEVER, WAITING_MAX, InEdge
 from .inbox import CONTROL, DATA, FAILED, NUDGE, PROGRESS
 from .loop import INLINE_STEP_NS, RESTART_POLL_NS, NodeLoop
 from .reports import (FLUSH_AFTER_NS, FLUSH_MAX, FLUSH_MAX_BYTES, FLUSH_MAX_SEQS, HOLD_RECORDS_NS,
@@ -64,7 +66,7 @@ from .waiting import ASK_EVERY_NS, PROBE_AFTER_NS, VIRTUAL_IDLE_NS
 __all__ = [
     "ASK_EVERY_NS", "CLOCK_AHEAD_MAX_NS", "CONTROL", "DATA", "EARLY_SEQS_MAX", "Ending", "FAILED", "FLUSH_AFTER_NS",
     "FLUSH_MAX", "FLUSH_MAX_BYTES", "FLUSH_MAX_SEQS", "HOLD_RECORDS_NS", "INLINE_STEP_NS", "NEVER", "NUDGE",
-    "PROBE_AFTER_NS", "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "RESTART_SEQ_GAP", "SPILL_BYTES",
+    "PROBE_AFTER_NS", "PROGRESS", "RECORDS_FLUSH_AFTER_NS", "RESTART_POLL_NS", "SPILL_BYTES",
     "VIRTUAL_IDLE_NS", "WAITING_MAX", "WARM_AFTER_IDLE_NS", "WARM_AHEAD_NS", "InEdge", "NodeLoop", "Transport",
     "ZenohTransport",
 ]

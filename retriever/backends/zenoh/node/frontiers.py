@@ -14,6 +14,7 @@ from bisect import bisect_left, insort
 from typing import Any
 
 from ....sync import PortBuffer
+from ..protocol import RESTART_SEQ_GAP
 from ..wire import WireError
 from .clock import RunClock
 from .notes import Notes
@@ -37,16 +38,6 @@ EARLY_SEQS_MAX = 4096
 #: forgotten (a frontier is a promise that only makes a tick run sooner: forgetting one delays a
 #: tick to the next promise, it never changes what a tick sees).
 WAITING_MAX = 4096
-
-#: A flow whose process died (kill -9, a segfault) under on_error="restart" starts afresh in a
-#: new process, its state lost (handover.py). Its streams go on from a seq past every one the
-#: dead process may have used: the coordinator knows the seqs it reported; at most its
-#: unreported seqs were published unknown to the coordinator: fewer than FLUSH_MAX_SEQS +
-#: MAX_BURST in the loop, at most MAX_PENDING_SEQS (or one report) in the reporter's queue,
-#: 655,360 in all, far fewer than RESTART_SEQ_GAP. A consumer told that a producer was lost takes
-#: its seqs up to that far ahead (EARLY_SEQS_MAX is for running streams).
-RESTART_SEQ_GAP = 1 << 21
-
 
 class InEdge:
     """One incoming edge: where its events go and how long a tick waits for it."""

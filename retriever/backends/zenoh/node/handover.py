@@ -40,8 +40,9 @@ from ....codec import unpackb
 from ....errors import StopRun, WorkerError
 from ....flow.burst import Burst, travels_as_rows
 from ....time import format_tag
+from ..protocol import RESTART_SEQ_GAP
 from ..wire import DataMessage, WireError, shown
-from .frontiers import EARLY_SEQS_MAX, NEVER, RESTART_SEQ_GAP, Streams
+from .frontiers import EARLY_SEQS_MAX, NEVER, Streams
 
 
 #: The most input events a restarting flow's old process hands over. Of a buffer it hands over

@@ -9,7 +9,7 @@ import time
 
 import zenoh
 
-from ....flow._base import make_invoker, make_output_reader
+from ....flow.core import make_invoker, make_output_reader
 from ....graph import Node
 from ..protocol import ControlOpener
 from ..wire import KeySpace, WireError, decode_events, decode_progress

@@ -10,7 +10,7 @@ import threading
 import time
 from typing import Any, Protocol
 
-from ....flow._base import with_step_detail
+from ....flow.core import with_step_detail
 from ....tick import timed_step
 from ....trace import StepStatus
 from .clock import RunClock

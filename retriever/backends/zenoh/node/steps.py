@@ -14,7 +14,7 @@ from typing import Any, Protocol
 
 from ....errors import StopRun
 from ....graph import Node
-from ....flow._base import with_step_detail
+from ....flow.core import with_step_detail
 from ....flow.burst import Burst
 from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)

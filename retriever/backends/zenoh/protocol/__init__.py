@@ -144,13 +144,14 @@ from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeS
 from .run_spec import DoraPart, RunSpec
 from .schema import ABSENT, Record
 from .seal import ControlOpener, ControlSigner, RequestOpener, RequestSealer, new_nonce
-from .to_coordinator import (STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
+from .to_coordinator import (EXIT_ABANDONED, EXIT_FAILED, EXIT_HANDED_OVER, STATUS, Done, Exit, Failed, HandedOver, Reached, Ready, Report, ReportedEvent,
                              ReportedStep, Restart, State, Status, Unanswered)
-from .to_worker import (FINISHED_REPLY, RUN_CONTROL, End, Finished, Grant, Handover, Have, Lost, Op, Redeclare,
+from .to_worker import (FINISHED_REPLY, RESTART_SEQ_GAP, RUN_CONTROL, End, Finished, Grant, Handover, Have, Lost, Op, Redeclare,
                         Restarted, Resume, Start, Stop)
 
 __all__ = sorted([
-    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "FINISHED_REPLY",
+    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "EXIT_ABANDONED",
+    "EXIT_FAILED", "EXIT_HANDED_OVER", "FINISHED_REPLY", "RESTART_SEQ_GAP",
     "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "SEALED_OPS", "STATUS", "ControlOpener",
     "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "DoraPart", "End", "EndReply", "EndRequest",
     "ErrorReply", "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest",

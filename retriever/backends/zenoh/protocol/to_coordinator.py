@@ -139,6 +139,12 @@ class Exit(Status):
     tag: tuple[int, int] = field(TAG)
 
 
+#: how a worker process ends, beside 0 (done) and a signal: its exit code, which its parent reads
+#: when its last status may not have come
+EXIT_FAILED = 1
+EXIT_HANDED_OVER = 3
+EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended without a word
+
 STATUSES = {record.NAME: record for record in (Ready, Done, Failed, Restart, HandedOver, Reached, Unanswered, Exit)}
 #: a report may carry big frames inline (a spill directory on another host is no use): no bound
 #: but the one its transport has

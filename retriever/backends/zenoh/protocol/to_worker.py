@@ -35,6 +35,16 @@ class Op(StrEnum):
 
 NS = Int(0, NS_MAX)
 
+#: A flow whose process died (kill -9, a segfault) under on_error="restart" starts afresh in a
+#: new process, its state lost (node/handover.py). Its streams go on from a seq past every one the
+#: dead process may have used: the coordinator knows the seqs it reported; at most its
+#: unreported seqs were published unknown to the coordinator: fewer than FLUSH_MAX_SEQS +
+#: MAX_BURST in the node loop, at most MAX_PENDING_SEQS (or one report) in the reporter's queue,
+#: 655,360 in all, far fewer than RESTART_SEQ_GAP. A consumer told that a producer was lost takes
+#: its seqs up to that far ahead (node/frontiers.py's EARLY_SEQS_MAX is for running
+#: streams). The coordinator's ``restarted`` puts each first seq that far past the last it knows.
+RESTART_SEQ_GAP = 1 << 21
+
 
 @dataclass(frozen=True, kw_only=True)
 class Start(Record):

@@ -70,12 +70,12 @@ from ..command import FRESH, JOIN, WORKER_MODULE, parse_command
 from ..hub import needs_shared_memory
 from ..node import Ending
 from ..origin import take_key
-from ..protocol import RunSpec
+from ..protocol import EXIT_ABANDONED, EXIT_FAILED, RunSpec
 from ..wire import KeySpace
 from .build import Serving, StatusSender, build, open_session, set_up_flow
 from .ending import finish, handle_signals, release, say_failed
 from .links import watch_hub_link
-from .process import (EXIT_ABANDONED, EXIT_FAILED, Launch, Parent, exit_process, let_go_of, no_timer_slack,
+from .process import (Launch, Parent, exit_process, let_go_of, no_timer_slack,
                       prepare_process, watch_parent)
 from .starts import POOL_PADDING, join, start, start_afresh
 

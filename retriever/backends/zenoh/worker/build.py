@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from ....flow._base import Flow, set_up
+from ....flow.core import Flow, set_up
 from ....graph import compile_graph
 from ....ir import DEFAULT_DEADLINE, IR
 from ....plan import NodePlan, Plan, bind_inputs

@@ -13,11 +13,12 @@ from collections.abc import Iterable
 
 from ....codec import packb
 from ....errors import StopRun
-from ....flow._base import tear_down
+from ....flow.core import tear_down
 from .. import protocol
 from ..node import CONTROL, Ending, NodeLoop
 from .build import Serving
-from .process import EXIT_FAILED, EXIT_HANDED_OVER, PARENT_DIED, Parent
+from ..protocol import EXIT_FAILED, EXIT_HANDED_OVER
+from .process import PARENT_DIED, Parent
 from .starts import LoopStart
 from .waits import await_reports_taken
 

@@ -26,13 +26,13 @@ from ..hub import needs_shared_memory
 from ..node import Ending
 from ..node.group import GroupLoop, GroupTransport, LocalBus
 from ..node.transport import ZenohTransport
-from ..protocol import RunSpec
+from ..protocol import EXIT_ABANDONED, EXIT_FAILED, RunSpec
 from ..wire import KeySpace
 from . import main
 from .build import Serving, StatusSender, build, build_loop, open_session, run_plan, set_up_flow
 from .ending import handle_signals, release, say_done, say_failed
 from .links import watch_hub_link
-from .process import EXIT_ABANDONED, EXIT_FAILED, Launch
+from .process import Launch
 from .starts import POOL_PADDING, await_start, get_ready
 from .waits import await_reports_taken
 

@@ -24,10 +24,6 @@ from typing import NoReturn
 from ..command import FIRST, StartMode
 from ..hub import await_segments_released
 
-EXIT_FAILED = 1
-EXIT_HANDED_OVER = 3
-EXIT_ABANDONED = 4  # its parent (a coordinator, a worker daemon) died: it ended without a word
-
 #: The signal a worker gets when the thread that started it dies (PR_SET_PDEATHSIG): its own, not
 #: SIGTERM, which a coordinator or daemon sends to stop a worker that goes on finishing. Told
 #: apart, a worker whose parent was SIGKILLed ends without a word, whatever ``_orphaned`` sees:

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 from .. import protocol
 from ..hub import mapped_segments, wait_for_answers, wait_for_links
-from ..node import RESTART_SEQ_GAP, handover
+from ..node import handover
+from ..protocol import RESTART_SEQ_GAP
 from ..wire import WireError, decode_progress
 from .build import Serving
 from .links import NEIGHBOR_TIMEOUT_S, consumers, link_to_hub, links_needed, names_of, producers

@@ -25,7 +25,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Callable, Generic, TypeVar
 
-from .. import _context
+from .. import declaring
 from ..clocks import Clock
 from ..codec import is_value_type, register_value_type
 from ..errors import ClockError, OutputError
@@ -398,7 +398,7 @@ class Flow(Generic[In, Out]):
     def __new__(cls, *args: Any, **kwargs: Any):
         self = super().__new__(cls)
         self.__dict__["_retriever"] = FlowSettings(args, dict(kwargs))
-        pipe = _context.current_pipeline()
+        pipe = declaring.current_pipeline()
         if pipe is not None:
             pipe.add(self)
         return self
@@ -457,7 +457,7 @@ class Flow(Generic[In, Out]):
             raise ClockError(f"{self!r} @ {clock!r}: the flow already has the clock {settings.clock!r}, and a flow "
                              "has one clock\n    hint: to tick on a rate and on events, bind one Hybrid(hz=..., "
                              "trigger=[...])")
-        pipe = _context.current_pipeline()
+        pipe = declaring.current_pipeline()
         if pipe is not None:
             pipe.add(self)  # raises if the flow belongs to another pipeline
         settings.clock = clock
@@ -547,7 +547,7 @@ class Flow(Generic[In, Out]):
     def then(self, other: "Flow", sync=None, map: dict[str, str] | None = None,
              delay: float = 0.0, qsize: int = 10, deadline: float | None = None) -> "Flow":
         """Connect this flow to ``other`` in the current pipeline; returns ``other`` to chain."""
-        pipe = _context.current_pipeline()
+        pipe = declaring.current_pipeline()
         if pipe is None:
             raise RuntimeError(
                 f"{type(self).__qualname__}.then(...) was called outside a `with Pipeline(...)` block\n"

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 from time import time_ns
 from typing import Any
 
-from ..flow._base import settings_of
+from ..flow.core import settings_of
 from ..sync import Latest
 from ..trace import StepStatus
 
