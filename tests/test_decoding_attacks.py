@@ -1,7 +1,8 @@
 """Decoding never runs code (issue 17 §1): a value naming ``os:system`` reaches every entry point
-that decodes values — the codec, the wire (data messages and reports), an IR parameter, a log
-(``read_log().trace()``, ``retriever log cat``, ``retriever replay``) — and each refuses it, or
-shows it inert, without running the command: a marker file the command would create stays absent.
+that decodes values — the codec, the wire (data messages and reports), the hand-over state file
+of a restarting flow, an IR parameter, a log (``read_log().trace()``, ``retriever log cat``,
+``retriever replay``) — and each refuses it, or shows it inert, without running the command: a
+marker file the command would create stays absent.
 
 The zenoh runtime's end-to-end case (a message published into a live run) is in
 ``tests/backends/zenoh/test_access.py``.
@@ -20,7 +21,7 @@ import msgpack
 import pytest
 
 from retriever import CodecError, LogError, read_log
-from retriever.backends.zenoh.protocol import Report
+from retriever.backends.zenoh.protocol import Report, decode_handover_state
 from retriever.backends.zenoh.wire import WIRE_VERSION, WireError, decode_data
 from retriever.codec import EXT_DATACLASS, UnregisteredValue, packb, unpackb, unpackb_out_of_band
 from tests.log.helpers import ROOT, cli, cli_env
@@ -112,6 +113,17 @@ def test_a_report_carrying_a_forged_event_is_garbage_when_its_events_are_decoded
     decoded = Report.decode(report, node="camera")
     with pytest.raises(WireError, match="'os:system'"):
         decode_data(decoded.events[0][1])
+
+
+# ---------------------------------------------------------------------------------------------
+# The hand-over state file: a restarting flow's old process writes it, its new one reads it
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("target", TARGETS)
+def test_a_hand_over_state_holding_a_forged_value_is_refused(target, marker):
+    state = b"\x81" + msgpack.packb("held") + b"\x91" + forged(target, marker)  # {"held": [value]}
+    with pytest.raises(WireError, match=rf"^not Retriever codec data \(\w+Error: cannot decode a value of type "
+                                        rf"'{target}': no value type of that name is registered"):
+        decode_handover_state(state)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """The hand-over state file (node/handover.py: a restarting flow's old process writes it, the new
-one reads it), attacked: garbage, a map of other fields, fields of the wrong type, another
-node's inputs. Each is refused with an error that names the file and the field, before the new
-process goes on from it; a state as the old process writes it comes back whole."""
+one reads it, decoded by protocol/handover.py), attacked: garbage, a map of other fields, fields
+of the wrong type, another node's inputs. Each is refused with an error that names the file and
+the field, before the new process goes on from it; a state as the old process writes it comes
+back whole. The decoder alone, without a loop: test_protocol_handover.py."""
 
 from __future__ import annotations
 

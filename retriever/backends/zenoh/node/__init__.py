@@ -45,8 +45,8 @@ The modules, one job each:
     reporter.py   sending those reports, from a thread of its own
     notes.py      counts, and what the next step record must tell
     timing.py     warming up before a predictable moment; the loop's sleep to its next wake
-    handover.py   restarts: the hand-over to a new process (its state file, read exactly), a fresh start
-                  after a lost one
+    handover.py   restarts: the hand-over to a new process (its state file, which the protocol reads
+                  exactly), a fresh start after a lost one
     control.py    the run's control messages
     ending.py     how a loop ends before the run's end, and which of two endings wins
     plane.py      the control plane on the run's session: control heard, progress queries answered

@@ -30,30 +30,15 @@ from __future__ import annotations
 import heapq
 import time
 from bisect import bisect_left
-from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from ....codec import unpackb
 from ....errors import StopRun, WorkerError
 from ....flow.burst import Burst, travels_as_rows
 from ....time import format_tag
-from ..protocol import RESTART_SEQ_GAP
-from ..wire import DataMessage, WireError, shown
+from ..protocol import HANDOVER_EVENTS_MAX, RESTART_SEQ_GAP, HandoverState, decode_handover_state
+from ..wire import DataMessage, WireError
 from .frontiers import EARLY_SEQS_MAX, NEVER, Streams
-
-
-#: The most input events a restarting flow's old process hands over. Of a buffer it hands over
-#: only what the input's policy can still select (SyncPolicy.selectable): the newest event of
-#: each tag for Latest, however big the bursts that came while the flow restarted; every event
-#: for a Queue, which may be millions when its flow falls behind. Writing them and reading them
-#: back takes time in proportion (seconds for a million), while the new process's inbox fills
-#: and the run's end waits FINISH_SLACK_S (coordinator/waiting.py): past this many, the run
-#: stops saying why (too_many_to_hand_over) rather than restart into a backlog it would not work
-#: off in time.
-HANDOVER_EVENTS_MAX = 1 << 20
 
 
 def handover_state(loop) -> dict:
@@ -137,28 +122,8 @@ def take_over(loop, state: HandoverState) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# The state file, read exactly
+# The state file, read exactly (protocol/handover.py), of this loop's inputs
 # ---------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class HandoverState:
-    """A restarting loop's state as its new process reads it (:func:`read_state`): the map
-    :func:`handover_state` makes, every field checked. Tags are ``(t, m)`` tuples, events and
-    held outputs tuples, values what the codec decodes (registered value types only)."""
-
-    buffers: tuple  # (port, entries, visible, cursor, last_id) per input port
-    streams: tuple  # (src, port, frontier, expect, early messages, waiting (seq, frontier)) per stream
-    pending: tuple
-    k: int
-    next_rate: tuple | None
-    last_tick: tuple
-    last_stamp: int
-    seqs: dict
-    sent: dict
-    held: tuple  # (tag, port, value, seq), or (tag, port, burst values, seq, "burst")
-    pending_detail: dict
-    values: bool
-
-
 #: how the new process learns what went wrong, and what to do
 _HINT = ("    hint: the flow's old process writes it in the run's private folder just before the new one "
          "reads it: both must run the same Retriever, and nothing else may write there; run again")
@@ -179,162 +144,17 @@ def read_state(path: Path, loop) -> HandoverState:
 
 
 def decode_state(data: bytes, loop) -> HandoverState:
-    """:func:`handover_state`'s map, encoded by the codec, as a :class:`HandoverState` of
-    ``loop``'s inputs (the same ports and streams); WireError naming the field otherwise."""
-    try:
-        given = unpackb(data)
-    except Exception as e:  # msgpack's own errors on garbage, or the codec's (CodecError)
-        raise WireError(f"not Retriever codec data ({type(e).__name__}: {e})"[:300]) from None
-    if type(given) is not dict:
-        raise WireError(f"the state is a map of its fields, got {_got(given)}")
-    missing, extra = sorted(_FIELDS.difference(given)), [k for k in given if k not in _FIELDS]
-    if missing or extra:
-        raise WireError(f"fields missing: {', '.join(missing)}" if missing else
-                        f"a field the state has none of: {shown(extra[0], 40)}")
-    ports = sorted(port for port, *_ in loop.steps.inputs)
-    buffers = _items(given["buffers"], "buffers", _buffer)
-    if sorted(b[0] for b in buffers) != ports:
-        raise WireError(f"'buffers' holds the ports {sorted(b[0] for b in buffers)}; the node's are {ports}")
-    streams = _items(given["streams"], "streams", _stream)
-    if sorted(s[:2] for s in streams) != sorted(loop.streams.frontiers):
-        raise WireError(f"'streams' holds {sorted(s[:2] for s in streams)}; the node's are "
-                        f"{sorted(loop.streams.frontiers)}")
-    next_rate = given["next_rate"]
-    return HandoverState(
-        buffers=buffers, streams=streams,
-        pending=_items(given["pending"], "pending", _tag),
-        k=_int(given["k"], "k"),
-        next_rate=None if next_rate is None else _tag(next_rate, "next_rate"),
-        last_tick=_tag(given["last_tick"], "last_tick", low=-1),
-        last_stamp=_int(given["last_stamp"], "last_stamp"),
-        seqs=_seqs(given["seqs"], "seqs", low=0), sent=_seqs(given["sent"], "sent", low=-1),
-        held=_items(given["held"], "held", _held),
-        pending_detail=_detail(given["pending_detail"]),
-        values=_bool(given["values"], "values"))
-
-
-_FIELDS = frozenset(f.name for f in fields(HandoverState))
-
-
-def _got(value: Any) -> str:
-    return f"{type(value).__name__} {shown(value, 60)}"
-
-
-def _int(value: Any, where: str, low: int = 0) -> int:
-    if type(value) is not int or value < low:
-        raise WireError(f"'{where}' must be an integer >= {low}, got {_got(value)}")
-    return value
-
-
-def _bool(value: Any, where: str) -> bool:
-    if type(value) is not bool:
-        raise WireError(f"'{where}' must be true or false, got {_got(value)}")
-    return value
-
-
-def _name(value: Any, where: str) -> str:
-    if type(value) is not str or not value:
-        raise WireError(f"'{where}' must be a name, got {_got(value)}")
-    return value
-
-
-def _tag(value: Any, where: str, low: int = 0) -> tuple:
-    if (type(value) is not tuple or len(value) != 2 or type(value[0]) is not int or type(value[1]) is not int
-            or value[0] < low or value[1] < 0):
-        raise WireError(f"'{where}' must be a tag (t_ns, microstep), got {_got(value)}")
-    return value
-
-
-def _row(value: Any, where: str, size: int, kind: type = tuple) -> Any:
-    if type(value) is not kind or len(value) != size:
-        raise WireError(f"'{where}' must be a {kind.__name__} of {size}, got {_got(value)}")
-    return value
-
-
-def _items(value: Any, where: str, read) -> tuple:
-    if type(value) is not list:
-        raise WireError(f"'{where}' must be a list, got {_got(value)}")
-    return tuple(read(item, f"{where}[{i}]") for i, item in enumerate(value))
-
-
-def _seqs(value: Any, where: str, low: int) -> dict:
-    if type(value) is not dict:
-        raise WireError(f"'{where}' must be a map of ports to seqs, got {_got(value)}")
-    return {_name(port, f"{where} key"): _int(seq, f"{where}[{port}]", low) for port, seq in value.items()}
-
-
-def _detail(value: Any) -> dict:
-    if type(value) is not dict or not all(type(k) is str for k in value):
-        raise WireError(f"'pending_detail' must be a map with string keys, got {_got(value)}")
-    return value
-
-
-def _run(value: Any, where: str) -> list[tuple]:
-    """A run of a buffer's entries (:func:`_runs`) as the entries (arrival tag, producer, port, seq,
-    value): what is checked of the run holds for each of them."""
-    tag, producer, port, seq, values = _row(value, where, 5, list)
-    tag, producer, port = _tag(tag, f"{where}[0]"), _name(producer, f"{where}[1]"), _name(port, f"{where}[2]")
-    seq = _int(seq, f"{where}[3]")
-    if type(values) is np.ndarray and travels_as_rows(values):
-        values = list(values)
-    elif type(values) is not list or not values:
-        raise WireError(f"'{where}[4]' must be a list of the run's values or an array of them, got {_got(values)}")
-    return [(tag, producer, port, seq + i, v) for i, v in enumerate(values)]
-
-
-def _entries(value: Any, where: str) -> list[tuple]:
-    """A buffer's runs as its entries, which must be in order (PortBuffer.insert bisects them)."""
-    if type(value) is not list:
-        raise WireError(f"'{where}' must be a list, got {_got(value)}")
-    entries: list[tuple] = []
-    for i, run in enumerate(value):
-        events = _run(run, f"{where}[{i}]")
-        if entries and entries[-1][:4] >= events[0][:4]:
-            raise WireError(f"'{where}[{i}]' starts at {shown(events[0][:4], 80)}, not after the run before it")
-        entries += events
-    return entries
-
-
-def _buffer(value: Any, where: str) -> tuple:
-    port, entries, visible, cursor, last_id = _row(value, where, 5, list)
-    entries = _entries(entries, f"{where}[1]")
-    for i, (index, what) in enumerate(((visible, "visible"), (cursor, "cursor")), 2):
-        if _int(index, f"{where}[{i}]") > len(entries):
-            raise WireError(f"'{where}[{i}]' ({what}) is {index}, past the buffer's {len(entries)} entries")
-    if last_id is not None:
-        producer, src_port, seq = _row(last_id, f"{where}[4]", 3)
-        last_id = (_name(producer, f"{where}[4][0]"), _name(src_port, f"{where}[4][1]"), _int(seq, f"{where}[4][2]"))
-    return (_name(port, f"{where}[0]"), entries, visible, cursor, last_id)
-
-
-def _message(value: Any, where: str) -> tuple:
-    """An early data message: (tag, seq, frontier, producer, port, value)."""
-    tag, seq, frontier, producer, port, _ = _row(value, where, 6)
-    return (_tag(tag, f"{where}[0]"), _int(seq, f"{where}[1]"), _tag(frontier, f"{where}[2]"),
-            _name(producer, f"{where}[3]"), _name(port, f"{where}[4]"), value[5])
-
-
-def _promise(value: Any, where: str) -> tuple:
-    seq, frontier = _row(value, where, 2)
-    return (_int(seq, f"{where}[0]"), _tag(frontier, f"{where}[1]"))
-
-
-def _stream(value: Any, where: str) -> tuple:
-    src, port, frontier, expect, early, waiting = _row(value, where, 6, list)
-    return (_name(src, f"{where}[0]"), _name(port, f"{where}[1]"), _tag(frontier, f"{where}[2]"),
-            _int(expect, f"{where}[3]"), _items(early, f"{where}[4]", _message),
-            _items(waiting, f"{where}[5]", _promise))
-
-
-def _held(value: Any, where: str) -> tuple:
-    """A held LET output: (tag, port, value, seq), or a burst's (tag, port, values, seq, "burst")."""
-    if type(value) is tuple and len(value) == 5:
-        tag, port, values, seq, mark = value
-        if mark != "burst" or type(values) is not tuple or not values:
-            raise WireError(f"'{where}' must be a held burst (tag, port, values, seq, 'burst'), got {_got(value)}")
-        return (_tag(tag, f"{where}[0]"), _name(port, f"{where}[1]"), values, _int(seq, f"{where}[3]"), mark)
-    tag, port, single, seq = _row(value, where, 4)
-    return (_tag(tag, f"{where}[0]"), _name(port, f"{where}[1]"), single, _int(seq, f"{where}[3]"))
+    """:func:`handover_state`'s map, encoded by the codec, as a :class:`HandoverState`
+    (protocol.decode_handover_state) of ``loop``'s inputs: the same ports and streams; WireError
+    naming the field otherwise."""
+    state = decode_handover_state(data)
+    ports, held = sorted(port for port, *_ in loop.steps.inputs), sorted(b[0] for b in state.buffers)
+    if held != ports:
+        raise WireError(f"'buffers' holds the ports {held}; the node's are {ports}")
+    streams, mine = sorted(s[:2] for s in state.streams), sorted(loop.streams.frontiers)
+    if streams != mine:
+        raise WireError(f"'streams' holds {streams}; the node's are {mine}")
+    return state
 
 
 def _replace(mapping: dict, items: dict) -> None:

@@ -13,6 +13,8 @@ their own exact decoders in wire.py.
     deployment.py      `retriever status` / `retriever stop` ↔ a deployment's coordinator
     run_spec.py        the run's spec: coordinator or daemon → each worker process (a dora
                        run's with a part of its own: DoraPart)
+    handover.py        restarting worker process → its successor: the hand-over state file
+                       (HandoverState, read from the codec's bytes: values may be arrays)
     seal.py            signed control: the coordinator seals, each worker process opens
 
 Every message of the key space (under ``retriever/<namespace>/``). Signed: *process*, with the
@@ -141,6 +143,7 @@ from .daemon import (DAEMON_EVENT, ERROR, ERROR_REPLY, MAX_REQUEST_BYTES, PROTOC
                      error_message)
 from .deployment import (DEPLOYMENT_QUERY, DEPLOYMENT_REPLY, DeploymentOp, NodeState, NodeStatus, StatusQuery,
                          StatusReply, StopQuery, StopReply)
+from .handover import HANDOVER_EVENTS_MAX, HandoverState, decode_handover_state
 from .run_spec import DoraPart, RunSpec
 from .schema import ABSENT, Record
 from .seal import ControlOpener, ControlSigner, RequestOpener, RequestSealer, new_nonce
@@ -150,15 +153,15 @@ from .to_worker import (FINISHED_REPLY, RESTART_SEQ_GAP, RUN_CONTROL, End, Finis
                         Restarted, Resume, Start, Stop)
 
 __all__ = sorted([
-    "ABSENT", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "ERROR", "ERROR_REPLY", "EXIT_ABANDONED",
-    "EXIT_FAILED", "EXIT_HANDED_OVER", "FINISHED_REPLY", "RESTART_SEQ_GAP",
-    "MAX_REQUEST_BYTES", "PROTOCOL_VERSION", "REPLY", "REQUEST", "RUN_CONTROL", "SEALED_OPS", "STATUS", "ControlOpener",
-    "ControlSigner", "DaemonEvent", "DaemonOp", "DeploymentOp", "Done", "DoraPart", "End", "EndReply", "EndRequest",
-    "ErrorReply", "Exit", "Failed", "Finished", "Grant", "HandedOver", "Handover", "Have", "InfoReply", "InfoRequest",
-    "Lost", "NodeState", "NodeStatus", "Op", "OtherProtocolReply", "PrepareReply", "PrepareRequest", "ProcessExit",
-    "ProcessOutput", "Reached", "RequestOpener", "RequestSealer",
-    "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep", "Restart", "Restarted", "Resume",
-    "RunSpec", "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
+    "ABSENT", "ControlOpener", "ControlSigner", "DAEMON_EVENT", "DEPLOYMENT_QUERY", "DEPLOYMENT_REPLY", "DaemonEvent",
+    "DaemonOp", "DeploymentOp", "Done", "DoraPart", "ERROR", "ERROR_REPLY", "EXIT_ABANDONED", "EXIT_FAILED",
+    "EXIT_HANDED_OVER", "End", "EndReply", "EndRequest", "ErrorReply", "Exit", "FINISHED_REPLY", "Failed", "Finished",
+    "Grant", "HANDOVER_EVENTS_MAX", "HandedOver", "Handover", "HandoverState", "Have", "InfoReply", "InfoRequest",
+    "Lost", "MAX_REQUEST_BYTES", "NodeState", "NodeStatus", "Op", "OtherProtocolReply", "PROTOCOL_VERSION",
+    "PrepareReply", "PrepareRequest", "ProcessExit", "ProcessOutput", "REPLY", "REQUEST", "RESTART_SEQ_GAP",
+    "RUN_CONTROL", "Reached", "Ready", "Record", "Redeclare", "Report", "ReportedEvent", "ReportedStep",
+    "RequestOpener", "RequestSealer", "Restart", "Restarted", "Resume", "RunSpec", "SEALED_OPS", "STATUS",
+    "SignalReply", "SignalRequest", "SpawnMode", "SpawnReply", "SpawnRequest", "Start", "State", "Status",
     "StatusQuery", "StatusReply", "Stop", "StopQuery", "StopReply", "Stream", "Unanswered", "UsageReply",
-    "UsageRequest", "decode_reply", "error_message", "new_nonce",
+    "UsageRequest", "decode_handover_state", "decode_reply", "error_message", "new_nonce",
 ])

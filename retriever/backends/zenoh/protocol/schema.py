@@ -60,7 +60,8 @@ class _Absent:
 ABSENT: Any = _Absent()
 
 
-def _got(value: Any) -> str:
+def got(value: Any) -> str:
+    """A decoded value as an error says what arrived: its type, then the value, short (wire.shown)."""
     return f"{type(value).__name__} {shown(value, 60)}"
 
 
@@ -77,7 +78,7 @@ class Kind:
         return value
 
     def refuse(self, value: Any, where: str) -> WireError:
-        return WireError(f"{where} must be {self.expects}, got {_got(value)}")
+        return WireError(f"{where} must be {self.expects}, got {got(value)}")
 
 
 class Int(Kind):
@@ -193,18 +194,19 @@ class ListOf(Kind):
 
 
 class Row(Kind):
-    """A list of a fixed length whose items have kinds of their own (``[node, port, seq]``), held as a tuple."""
+    """A list of a fixed length whose items have kinds of their own (``[node, port, seq]``), held as a tuple.
+    ``of=tuple``: a tuple, as the project codec decodes one (codec.unpackb; plain msgpack has none)."""
 
-    def __init__(self, *items: Kind, expects: str):
-        self.items, self.expects = items, expects
+    def __init__(self, *items: Kind, expects: str, of: type[list] | type[tuple] = list):
+        self.items, self.expects, self.of = items, expects, of
 
     def read(self, value: Any, where: str) -> tuple:
-        if type(value) is not list or len(value) != len(self.items):
+        if type(value) is not self.of or len(value) != len(self.items):
             raise self.refuse(value, where)
         return tuple(kind.read(item, f"{where}[{i}]") for i, (kind, item) in enumerate(zip(self.items, value)))
 
-    def write(self, value: tuple) -> list:
-        return [kind.write(item) for kind, item in zip(self.items, value)]
+    def write(self, value: tuple) -> list | tuple:
+        return self.of(kind.write(item) for kind, item in zip(self.items, value))
 
 
 class MapOf(Kind):
@@ -217,9 +219,12 @@ class MapOf(Kind):
     def read(self, value: Any, where: str) -> dict:
         if type(value) is not dict or len(value) > self.max_items:
             raise self.refuse(value, where)
-        read_key, read_value = self.key.read, self.value.read
-        return {read_key(k, f"{where} key {shown(k, 40)}"): read_value(v, f"{where}[{shown(k, 40)}]")
-                for k, v in value.items()}
+        read_key, read_value, at = self.key.read, self.value.read, self.at
+        return {read_key(k, f"{where} key {shown(k, 40)}"): read_value(v, at(where, k)) for k, v in value.items()}
+
+    def at(self, where: str, key: Any) -> str:
+        """Where the value of ``key`` is, as its errors say (``key`` is read first: a valid key)."""
+        return f"{where}[{shown(key, 40)}]"
 
     def write(self, value: dict) -> dict:
         write_key, write_value = self.key.write, self.value.write
@@ -374,7 +379,7 @@ class Record:
         """The record of a decoded map (exact: every field read, none missing, none more);
         ``envelope``: fields that travel outside the map (a status's node)."""
         if type(fields) is not dict:
-            raise WireError(f"{where} must carry a map of its fields, got {_got(fields)}")
+            raise WireError(f"{where} must carry a map of its fields, got {got(fields)}")
         values = dict(envelope)
         for name, kind, optional in cls.schema():
             if name in fields:
@@ -417,7 +422,7 @@ def unpack(data: Any, count: int, what: str, max_bytes: int, exact_maps: bool = 
     except Exception as e:  # msgpack's own errors on garbage: ExtraData, ValueError, UnicodeDecodeError, ...
         raise WireError(f"{what} is not valid msgpack ({type(e).__name__}: {e})"[:300]) from None
     if type(fields) is not list or len(fields) != count:
-        raise WireError(f"{what} must be a msgpack array of {count}, got {_got(fields)}")
+        raise WireError(f"{what} must be a msgpack array of {count}, got {got(fields)}")
     if type(fields[0]) is not int or fields[0] != WIRE_VERSION:
         raise WireError(f"{what} of wire format {shown(fields[0], 20)}; this process speaks {WIRE_VERSION}")
     return fields
