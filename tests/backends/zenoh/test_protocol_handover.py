@@ -143,9 +143,9 @@ def test_buffers_past_the_events_a_hand_over_holds_together_are_refused():
 
 
 def test_a_list_past_its_bound_is_refused():
-    early = [((9, 0), seq, (9, 1), "counter", "value", 0) for seq in range((1 << 16) + 1)]
-    with pytest.raises(WireError, match=r"^'streams\[0\]\[4\]' must be a list of 0 to 65536 items, got list"):
-        decode_handover_state(packb(state(streams=[["counter", "value", (4, 0), 5, early, []]])))
+    promises = [(seq, (9, 1)) for seq in range((1 << 16) + 1)]
+    with pytest.raises(WireError, match=r"^'streams\[0\]\[5\]' must be a list of 0 to 65536 items, got list"):
+        decode_handover_state(packb(state(streams=[["counter", "value", (4, 0), 5, [], promises]])))
 
 
 #: values a hostile or broken file may hold where a field is expected

@@ -127,6 +127,20 @@ def test_a_queue_too_far_behind_is_not_handed_over_and_says_why(session):
     assert info.value.tag == (0, 0)
 
 
+def test_more_pending_ticks_than_a_new_process_takes_are_not_handed_over(session):
+    """As many trigger ticks pending as the reader of the state takes at most (protocol/handover.py)
+    and one more: the state is not written, the run stops saying why."""
+    old = consumer_loop(session, Latest(), fail_at=SIZE - 1)
+    old.handle(burst(0))
+    tick_all(old)
+    old.schedule.pending = [(t, 0) for t in range(1, HANDOVER_EVENTS_MAX + 2)]
+    with pytest.raises(StopRun, match=(
+            rf"^flow 'consumer' cannot restart after its step failed: it has {HANDOVER_EVENTS_MAX + 1:,} trigger "
+            rf"ticks pending, more than a new process takes over \(HANDOVER_EVENTS_MAX = {HANDOVER_EVENTS_MAX:,}\)\n"
+            r"    hint: on_error='skip_tick' goes on in the same process$")):
+        old.handover_state()
+
+
 # ---------------------------------------------------------------------------------------------
 # Real runs
 # ---------------------------------------------------------------------------------------------

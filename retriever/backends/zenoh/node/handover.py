@@ -49,6 +49,11 @@ def handover_state(loop) -> dict:
     kept = [(port, policy, policy.selectable(buf, schedule.last_tick)) for port, buf, policy, _ in loop.steps.inputs]
     if sum(len(buf.entries) for *_, buf in kept) > HANDOVER_EVENTS_MAX:
         raise too_many_to_hand_over(loop.id, kept, schedule.last_tick)
+    for what, items in (("trigger ticks pending", schedule.pending), ("LET outputs held", outputs.held)):
+        if len(items) > HANDOVER_EVENTS_MAX:  # as many as the reader takes (protocol/handover.py)
+            raise StopRun(f"flow '{loop.id}' cannot restart after its step failed: it has {len(items):,} {what}, "
+                          f"more than a new process takes over (HANDOVER_EVENTS_MAX = {HANDOVER_EVENTS_MAX:,})\n"
+                          "    hint: on_error='skip_tick' goes on in the same process", schedule.last_tick)
     return {
         "buffers": [[port, _runs(buf.entries), buf.visible, buf.cursor, buf.last_id] for port, _, buf in kept],
         "streams": [[src, port, streams.frontiers[(src, port)], streams.expect[(src, port)],

@@ -25,6 +25,7 @@ from ....flow.burst import travels_as_rows
 from ..wire import shown
 from .schema import (MAX_NAME_CHARS, Bool, Document, Int, Kind, ListOf, MapOf, Nullable, Record, Row, Text,
                      field, got)
+from .to_worker import RESTART_SEQ_GAP
 
 #: The most input events a restarting flow's old process hands over. Of a buffer it hands over
 #: only what the input's policy can still select (SyncPolicy.selectable): the newest event of
@@ -190,8 +191,11 @@ class Buffers(Items):
 #: an early data message: (tag, seq, frontier, producer, port, value); a promise: (seq, frontier)
 MESSAGE = Fixed(tuple, Tag(), Count(), Tag(), LABEL, LABEL, VALUE)
 PROMISE = Fixed(tuple, Count(), Tag())
-#: an input stream: [producer, port, frontier, next seq expected, early messages, promises waiting]
-INPUT_STREAM = Fixed(list, LABEL, LABEL, Tag(), Count(), Items(MESSAGE), Items(PROMISE))
+#: an input stream: [producer, port, frontier, next seq expected, early messages, promises waiting];
+#: an early message is at most RESTART_SEQ_GAP + EARLY_SEQS_MAX (4,096) seqs ahead of its stream
+#: (node/frontiers.py), promises at most WAITING_MAX (4,096) a stream
+EARLY_MAX = 2 * RESTART_SEQ_GAP
+INPUT_STREAM = Fixed(list, LABEL, LABEL, Tag(), Count(), Items(MESSAGE, EARLY_MAX), Items(PROMISE))
 
 
 class Held(Quoted):
