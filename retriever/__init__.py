@@ -8,7 +8,7 @@ Layers, lowest first: a module imports from its own layer and those below, never
 the modules of one layer, and a package stands for its modules (tests/test_layers.py checks it).
 
     kernel     time < errors < codec code < clocks < sync < trace < declaring < flow < ir < graph < rebuild features < plan tick
-    plan       placement
+    placement  placement
     log        log
     backends   backends.base < starved < backends.inproc_ticks backends.inproc_compiled backends.inproc < backends.zenoh < backends.dora < backends
     pipeline   pipeline

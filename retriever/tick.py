@@ -15,10 +15,17 @@
 does not generate; its generated ticks (``backends/inproc_ticks.py``) are the fast path, held
 to the same trace on random graphs (tests/backends/test_inproc_ticks.py). The zenoh node loop
 runs the same tick from the same two parts, :func:`take_inputs` (select, commit, fallbacks) and
-:func:`timed_step`, with the accounts of a real-time node around them. :func:`select_inputs`
-is the one place inputs are selected; :func:`decide` the one place ``on_error`` is read (its
-restart, :func:`take_restart`, is also the coordinator's, which holds a real-time flow's budget); and
-:func:`skipped_outcome`, :func:`exit_outcome` and :func:`error_outcome` the one place the step
+:func:`timed_step`, with the accounts of a real-time node around them; a quiet Rate source
+there runs its ticks in a loop of its own while nothing else is due (node/source.py,
+``PlainSource.run_quiet``: a tick with no inputs, no events and no error, held to the general
+loop's records by tests/backends/zenoh/test_realtime_semantics.py and test_warmup.py).
+:func:`select_inputs` is the one place inputs are selected; :func:`decide` the one decision on a
+step that raised (its restart, :func:`take_restart`, is also the coordinator's, which holds a
+real-time flow's budget). Elsewhere ``on_error`` is read only for what a restart needs before any
+step raised: a process of its own (coordinator/spec.py; dora refuses it), and a flow whose process
+died started afresh (coordinator/processes.py). A value the codec cannot encode stops the run
+whatever ``on_error`` says: it is no error of the step, but an output the run cannot carry.
+:func:`skipped_outcome`, :func:`exit_outcome` and :func:`error_outcome` are the one place the step
 record of a tick that did not end ``ok`` with outputs is made. Recording and delivering a tick's
 outputs is each backend's own: it knows where they go.
 """

@@ -10,9 +10,11 @@ The rule, over each module's AST. A *field name* is an identifier one of whose w
 or state a record carries). A string equal to a value of an enum is flagged where it stands for
 that enum's field: alone, in a literal tuple, list or set, or as a branch of ``a if c else b``,
 
-- compared with a field name (``==``, ``!=``, ``in``, ``is``; tuples against tuples by position);
+- compared with a field name (``==``, ``!=``, ``in``, ``is``; tuples against tuples by position),
+  or matched against one (``match status: case "ok"``);
 - assigned to a field name (tuples by position), or its default (``def f(status="finished")``);
-- a keyword argument named by a field (``f(status="ok")``);
+- a keyword argument named by a field (``f(status="ok")``), or the default of a field's ``get``
+  (``end.get("status", "finished")``);
 - a dict's value under a field's key (``{"status": "finished"}``), or a key of a dict whose every
   key (two or more) is a value of one enum: a table keyed by that enum;
 - for step records, whose status goes by position: an argument of a call that records a step
@@ -147,8 +149,23 @@ class _Scan(ast.NodeVisitor):
         self.generic_visit(node)
 
     # -- a step record's status, by position ----------------------------------------------------
+    def visit_Match(self, node: ast.Match) -> None:
+        """``match status: case "ok": ...``: each value a case matches the subject's field against."""
+        fields = _words(_identifier(node.subject))
+        patterns = [case.pattern for case in node.cases]
+        while patterns:
+            pattern = patterns.pop()
+            if isinstance(pattern, ast.MatchValue):
+                self.spelled(pattern.value, fields)
+            elif isinstance(pattern, ast.MatchOr):
+                patterns += pattern.patterns
+        self.generic_visit(node)
+
     def visit_Call(self, node: ast.Call) -> None:
         callee = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+        if (callee == "get" and len(node.args) >= 2 and isinstance(node.args[0], ast.Constant)
+                and isinstance(node.args[0].value, str)):  # end.get("status", "finished"): the default
+            self.spelled(node.args[1], _words(node.args[0].value))
         if callee in RECORDING:
             for arg in node.args:
                 self.spelled(arg, {"status"}, only=StepStatus)
@@ -198,6 +215,9 @@ end = {"status": "error"}
 levels = {"ok": 1, "late": 2}
 record("a", (0, 0), {}, (), "skipped", None, 0)
 def outcome(): return "overrun", {}
+said = end.get("status", "interrupted")
+match msg.op:
+    case "grant" | "have": pass
 '''
     assert spelled_literals(source) == [
         "<string>:2: 'finished' -> use RunEnd.FINISHED (retriever.log.format)",
@@ -213,6 +233,9 @@ def outcome(): return "overrun", {}
         "<string>:7: 'ok' -> use StepStatus.OK (retriever.trace)",
         "<string>:8: 'skipped' -> use StepStatus.SKIPPED (retriever.trace)",
         "<string>:9: 'overrun' -> use StepStatus.OVERRUN (retriever.trace)",
+        "<string>:10: 'interrupted' -> use RunEnd.INTERRUPTED (retriever.log.format)",
+        "<string>:12: 'grant' -> use Op.GRANT (retriever.backends.zenoh.protocol.to_worker)",
+        "<string>:12: 'have' -> use Op.HAVE (retriever.backends.zenoh.protocol.to_worker)",
     ]
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from ...errors import BackendError
 from ..zenoh.host import Host
 from ..zenoh.output import write_line
+from ..zenoh.protocol import Stream
 
 #: a node whose process is gone without saying how it ended (killed, or a crash): its exit code
 LOST = 255
@@ -82,7 +83,7 @@ class DoraHost(Host):
         self.fifos: list[str] = []
         self.interrupted = False  # ended by interrupt(): what dora says of its nodes' ends is ours
         for nid, dora_id in nodes.items():
-            paths = {name: str(run_dir / f"{dora_id}.{name}") for name in ("stdout", "stderr")}
+            paths = {stream: str(run_dir / f"{dora_id}.{stream}") for stream in Stream}
             for path in paths.values():
                 os.mkfifo(path, 0o600)
             self.fifos += paths.values()

@@ -28,7 +28,7 @@ from pathlib import Path
 from ...errors import WireError
 from ..zenoh import worker
 from ..zenoh.command import DORA_NODE_MODULE, parse_command
-from ..zenoh.protocol import RunSpec
+from ..zenoh.protocol import RunSpec, Stream
 from .dataflow import DoraNames
 
 #: dora's own directory (its logs) is named so; only such a directory is removed
@@ -77,9 +77,9 @@ def loop_maker(names: DoraNames) -> Callable:
 
 def _output_to_pipes(run_dir: Path, dora_id: str) -> None:
     """This process's stdout and stderr to the coordinator, which reads them (host.py)."""
-    for fd, name in ((1, "stdout"), (2, "stderr")):
+    for fd, stream in ((1, Stream.STDOUT), (2, Stream.STDERR)):
         with contextlib.suppress(OSError):
-            pipe = os.open(run_dir / f"{dora_id}.{name}", os.O_WRONLY)
+            pipe = os.open(run_dir / f"{dora_id}.{stream}", os.O_WRONLY)
             os.dup2(pipe, fd)
             os.close(pipe)
 

@@ -16,6 +16,8 @@ import time
 from collections import deque
 from collections.abc import Callable
 
+from .protocol import Stream
+
 #: one line at a time on the coordinator's streams, whichever worker it comes from
 _WRITING = threading.Lock()
 
@@ -46,45 +48,45 @@ class WorkerOutput:
     def attach(self, proc: subprocess.Popen) -> None:
         """Forward this process's stdout and stderr (both ``subprocess.PIPE``) until it closes them."""
         self._pumps = [p for p in self._pumps if p.is_alive()]
-        for pipe, name in ((proc.stdout, "stdout"), (proc.stderr, "stderr")):
-            pump = threading.Thread(target=self._pump, args=(pipe, name), daemon=True,
-                                    name=f"retriever-{name}-{self.node}")
+        for pipe, stream in ((proc.stdout, Stream.STDOUT), (proc.stderr, Stream.STDERR)):
+            pump = threading.Thread(target=self._pump, args=(pipe, stream), daemon=True,
+                                    name=f"retriever-{stream}-{self.node}")
             pump.start()
             self._pumps.append(pump)
 
-    def attach_fifos(self, paths: dict[str, str], noise: Callable[[str], bool] | None = None) -> None:
+    def attach_fifos(self, paths: dict[Stream, str], noise: Callable[[str], bool] | None = None) -> None:
         """Forward what a process that is not this one's child writes to these named pipes
-        (``{"stdout": path, "stderr": path}``), from when it opens them until it closes them;
-        lines that ``noise`` says are noise are dropped."""
-        for name, path in paths.items():
-            pump = threading.Thread(target=self._pump_fifo, args=(path, name, noise), daemon=True,
-                                    name=f"retriever-{name}-{self.node}")
+        (``{Stream.STDOUT: path, Stream.STDERR: path}``), from when it opens them until it closes
+        them; lines that ``noise`` says are noise are dropped."""
+        for stream, path in paths.items():
+            pump = threading.Thread(target=self._pump_fifo, args=(path, stream, noise), daemon=True,
+                                    name=f"retriever-{stream}-{self.node}")
             pump.start()
             self._pumps.append(pump)
 
-    def _pump_fifo(self, path: str, name: str, noise: Callable[[str], bool] | None) -> None:
+    def _pump_fifo(self, path: str, stream: Stream, noise: Callable[[str], bool] | None) -> None:
         try:
             pipe = open(path, "rb")  # blocks until the writer opens it (or close_fifos does)
         except OSError:
             return
-        self._pump(pipe, name, noise)
+        self._pump(pipe, stream, noise)
 
-    def _pump(self, pipe, name: str, noise: Callable[[str], bool] | None = None) -> None:
+    def _pump(self, pipe, stream: Stream, noise: Callable[[str], bool] | None = None) -> None:
         with pipe:
             for raw in iter(pipe.readline, b""):
                 line = raw.decode(errors="replace").rstrip("\r\n")
                 if noise is None or not noise(line):
-                    self.feed(name, line)
+                    self.feed(stream, line)
 
-    def feed(self, name: str, line: str) -> None:
-        """One line the node's process wrote to ``name`` (``stdout`` or ``stderr``): kept if
-        stderr, and written to the coordinator's stream of that name, prefixed with the node."""
-        if name == "stderr":
+    def feed(self, stream: Stream, line: str) -> None:
+        """One line the node's process wrote to ``stream``: kept if stderr, and written to the
+        coordinator's stream of that name, prefixed with the node."""
+        if stream == Stream.STDERR:
             self._tail.append(line)
             self.stderr_lines += 1
             if not self.forwarding:
                 return
-        write_line(getattr(sys, name), f"[{self.node}] {line}")  # looked up per line: pytest and rich replace it
+        write_line(getattr(sys, stream), f"[{self.node}] {line}")  # looked up per line: pytest and rich replace it
 
     def keep(self, line: str) -> None:
         """Keep ``line`` in the tail that an error about this node shows, beside its stderr (what

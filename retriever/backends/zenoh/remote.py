@@ -211,4 +211,4 @@ class RemoteHost(Host):
             return
         output = self.output(event.node)
         for line in event.lines:
-            output.feed(event.stream.value, line)
+            output.feed(event.stream, line)
