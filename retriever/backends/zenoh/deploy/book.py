@@ -43,9 +43,11 @@ class WorkerBook:
         return remote
 
     def workers_up(self) -> list[LiveDaemon]:
-        """The workers still up, each with the nodes placed on it as its load (a move's candidates)."""
+        """The workers still up, each loaded as at the start (the nodes of other runs its info listed
+        when it was found) plus this run's nodes placed on it: a move's candidates."""
         load = Counter(self.placed.values())
-        return [placement_target(name, daemon.info, load[name]) for name, daemon in sorted(self.daemons.items())]
+        return [placement_target(name, daemon.info, len(daemon.info.nodes) + load[name])
+                for name, daemon in sorted(self.daemons.items())]
 
     def say_warnings(self, name: str, warnings: list[str]) -> None:
         """Say what worker ``name`` warned of as it prepared (the code it runs anyway), and keep it for the log."""
@@ -56,5 +58,6 @@ class WorkerBook:
 
 def placement_target(name: str, info: InfoReply, load: int) -> LiveDaemon:
     """Worker ``name`` as placement weighs it: the labels and host of its info reply, and ``load``
-    nodes on it (at the start, those its info lists; when a lost worker's nodes move, those placed there)."""
+    nodes on it (at the start, those its info lists; when a lost worker's nodes move, those and
+    this run's placed there)."""
     return LiveDaemon(name, frozenset(info.labels), load, info.host)
