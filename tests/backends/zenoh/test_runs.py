@@ -25,7 +25,7 @@ from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, RunSpec, SignalRequest,
-                                               SpawnRequest, Stream)
+                                               SpawnRequest, Stream, UsageRequest)
 from retriever.backends.zenoh.protocol.schema import pack
 from retriever.backends.zenoh.daemon.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
@@ -191,6 +191,7 @@ def test_a_group_starts_as_one_process_only_when_every_member_is_prepared_here(p
     pid = runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True)).pid
     assert runs.run.processes[pid][1].args[2:5] == [GROUP_MODULE, str(runs.run.folder / "spec.json"), "g"]
     assert runs.nodes() == sorted(ids)  # what the daemon says it runs: the group's members
+    assert set(runs.usage(UsageRequest(run="r2")).cpu_s) == set(ids)  # each, its process's CPU
 
 
 @pytest.mark.parametrize("plan", [b"\x00" * 8, {"nodes": b"x"}, {"nodes": [], "extra": 1}, [1, 2, 3]])

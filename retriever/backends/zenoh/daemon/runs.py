@@ -263,13 +263,13 @@ class DaemonRuns:
         return SignalReply()
 
     def usage(self, request: UsageRequest) -> UsageReply:
-        """The CPU time of each live process of the run, by node."""
+        """The CPU time of each live process of the run, by node (a group's process: for each member)."""
         run = self._run_of(request.run)
         cpu = {}
-        for pid, (node, proc) in list(run.processes.items()):
+        for pid, (name, proc) in list(run.processes.items()):
             seconds = cpu_seconds(pid) if proc.poll() is None else None
             if seconds is not None:
-                cpu[node] = seconds
+                cpu.update(dict.fromkeys(run.members.get(pid, (name,)), seconds))
         return UsageReply(cpu_s=cpu)
 
     def end(self, request: EndRequest) -> EndReply:
