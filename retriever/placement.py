@@ -14,8 +14,10 @@ A placement file pins nodes to workers by name, or asks for workers with labels:
     # nodes not listed go to any worker, spread by load
 
 A *process* name groups flows into one worker process, as ``configure(process=NAME)`` does (the
-file's name wins over the flow's): a group is placed as one unit, on one worker, which must meet
-every member's constraint; members pinned to different workers are refused, naming them.
+file's name wins over the flow's; the coordinator makes the groups of both, coordinator/spec.py,
+and hands them to :func:`place` and :func:`move`): a group is placed as one unit, on one worker,
+which must meet every member's constraint; members pinned to different workers are refused,
+naming them.
 
 :func:`load_placement` reads and validates a file; :func:`place` maps an IR's nodes onto the
 workers that are up, :func:`move` the nodes of a lost worker onto those still up: both by one rule
