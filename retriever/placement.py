@@ -10,25 +10,35 @@ A placement file pins nodes to workers by name, or asks for workers with labels:
     camera = "arm-pc"                                    # on the worker named arm-pc
     policy = { labels = ["gpu"] }                        # on a worker that has every one of these labels
     planner = { worker = "gpu-box", labels = ["gpu"] }   # on gpu-box, which must have these labels
+    detector = { process = "perception" }                # in one process with the other flows of that name
     # nodes not listed go to any worker, spread by load
+
+A *process* name groups flows into one worker process, as ``configure(process=NAME)`` does (the
+file's name wins over the flow's; the coordinator makes the groups of both, coordinator/spec.py,
+and hands them to :func:`place` and :func:`move`): a group is placed as one unit, on one worker,
+which must meet every member's constraint; members pinned to different workers are refused,
+naming them.
 
 :func:`load_placement` reads and validates a file; :func:`place` maps an IR's nodes onto the
 workers that are up, :func:`move` the nodes of a lost worker onto those still up: both by one rule
-(:func:`assign`), whose result one check validates (:func:`check_assignment`). Each reports every problem at once, in one :class:`PlacementError`, before
-anything starts. Pure: the only I/O is :func:`load_placement` reading its file.
+(:func:`assign`, which keeps each group of flows together), whose result one check validates
+(:func:`check_assignment`). Each reports every problem at once, in one :class:`PlacementError`,
+before anything starts. Pure: the only I/O is :func:`load_placement` reading its file.
 """
 
 from __future__ import annotations
 
 import difflib
+import re
 import shlex
 import tomllib
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import PlacementError, Problem
+from .ir import NODE_ID
 
 #: how a hint tells the user to start a worker daemon (issue 18); labels are added as ``--labels A,B``
 WORKER_COMMAND = "retriever-worker --name NAME"
@@ -36,8 +46,8 @@ WORKER_COMMAND = "retriever-worker --name NAME"
 LISTED_NAMES = 20
 #: a name in a message is cut after this many characters (of its repr)
 SHOWN_CHARS = 60
-#: the two keys of a node's table
-ENTRY_KEYS = ("worker", "labels")
+#: the keys of a node's table
+ENTRY_KEYS = ("worker", "labels", "process")
 #: the hint of a document that is no placement at all
 EXAMPLE_HINT = ('a placement is a [nodes] table: camera = "arm-pc" pins a node, policy = { labels = ["gpu"] } '
                 'asks for labels (see deploy/placement.example.toml)')
@@ -60,6 +70,8 @@ class Placement:
 
     nodes: Mapping[str, Constraint]
     source: str = "<memory>"
+    #: the process name given to a node (``process = "NAME"``): the nodes of one name share a process
+    processes: Mapping[str, str] = field(default_factory=dict)
 
 
 #: the constraint of a node a placement does not list: any worker up
@@ -113,40 +125,55 @@ def parse_placement(doc: object, source: str = "<memory>") -> Placement:
     if not isinstance(table, dict):
         problems.append(Problem(f"[nodes]: expected a table of node = worker, got {_show(table)}", EXAMPLE_HINT))
         table = {}
-    nodes = {}
+    nodes, processes = {}, {}
     for node, value in table.items():
-        constraint = _constraint(node, value, problems)
-        if constraint is not None:
-            nodes[node] = constraint
+        entry = _entry(node, value, problems)
+        if entry is not None:
+            constraint, process = entry
+            if constraint != ANYWHERE:
+                nodes[node] = constraint
+            if process is not None:
+                processes[node] = process
     if problems:
         raise PlacementError(source, problems)
-    return Placement(nodes, source)
+    return Placement(nodes, source, processes)
 
 
-def _constraint(node: object, value: object, problems: list[Problem]) -> Constraint | None:
-    """One ``[nodes]`` entry as a Constraint, or None after adding its problems."""
+def _entry(node: object, value: object, problems: list[Problem]) -> tuple[Constraint, str | None] | None:
+    """One ``[nodes]`` entry as its Constraint and process name, or None after adding its problems."""
     if not isinstance(node, str):
         problems.append(Problem(f"[nodes] has a key that is {_show(node)}; a node name is a string"))
         return None
     where = f"[nodes] {_show(node)}"
     if isinstance(value, str):
         if value:
-            return Constraint(worker=value)
+            return Constraint(worker=value), None
         problems.append(Problem(f"{where}: the worker name is empty", "name a worker that is up, or remove the line"))
         return None
     if not isinstance(value, dict):
         problems.append(Problem(f"{where}: expected {_ENTRY_FORMS}, got {_show(value)}"))
         return None
     before = len(problems)
-    problems += [Problem(f"{where}: unknown key {_show(key)}", 'a node\'s table has only worker = "NAME" and '
-                         'labels = ["LABEL", ...]') for key in value if key not in ENTRY_KEYS]
+    problems += [Problem(f"{where}: unknown key {_show(key)}", 'a node\'s table has only worker = "NAME", '
+                         'labels = ["LABEL", ...] and process = "NAME"') for key in value if key not in ENTRY_KEYS]
     if not any(key in value for key in ENTRY_KEYS):
         problems.append(Problem(f"{where}: says neither worker nor labels", f"write {_ENTRY_FORMS}"))
     worker = value.get("worker")
     if "worker" in value and not (isinstance(worker, str) and worker):
         problems.append(Problem(f"{where}: worker: expected a worker name (a non-empty string), got {_show(worker)}"))
     labels = _labels(where, value["labels"], problems) if "labels" in value else frozenset()
-    return Constraint(worker, labels) if len(problems) == before else None
+    process = _process(where, value["process"], problems) if "process" in value else None
+    return (Constraint(worker, labels), process) if len(problems) == before else None
+
+
+def _process(where: str, name: object, problems: list[Problem]) -> str | None:
+    """A node's ``process``: a name as configure(process=) takes it (problem added otherwise)."""
+    if isinstance(name, str) and re.fullmatch(NODE_ID, name):
+        return name
+    problems.append(Problem(f"{where}: process: expected a process name (letters, digits, _ and -, not starting "
+                            f"with a digit or -), got {_show(name)}",
+                            'write process = "perception": the flows of one name share a process'))
+    return None
 
 
 def _labels(where: str, labels: object, problems: list[Problem]) -> frozenset[str]:
@@ -169,8 +196,14 @@ def _labels(where: str, labels: object, problems: list[Problem]) -> frozenset[st
 # ---------------------------------------------------------------------------------------------
 # Placing nodes on workers
 # ---------------------------------------------------------------------------------------------
-def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon]) -> dict[str, str]:
-    """Each node's worker, for a deployment's start: node id -> worker name, in the order of ``node_ids``.
+#: groups of flows that share a process: name -> its nodes (the run spec's ``groups``)
+Groups = Mapping[str, Sequence[str]]
+
+
+def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon],
+          groups: Groups | None = None) -> dict[str, str]:
+    """Each node's worker, for a deployment's start: node id -> worker name, in the order of ``node_ids``;
+    ``groups``: the flows that share a process, each group on one worker.
 
     The placement and the workers up are checked first: a placement that cannot be met raises one
     PlacementError listing every problem, and nothing is placed. Then :func:`assign` decides, and
@@ -179,58 +212,130 @@ def place(node_ids: Iterable[str], placement: Placement | None, workers: Sequenc
     nodes = list(dict.fromkeys(node_ids))
     rules = dict(placement.nodes) if placement is not None else {}
     source = placement.source if placement is not None else None
-    problems = _unknown_nodes(rules, nodes) + _worker_problems(rules, workers, source, bool(nodes))
+    named = [*rules, *(n for n in (placement.processes if placement is not None else {}) if n not in rules)]
+    problems = (_unknown_nodes(named, nodes) + _worker_problems(rules, workers, source, bool(nodes))
+                + _group_problems(nodes, groups, rules, workers))
     if problems:
         raise PlacementError(source, problems)
-    chosen = assign(nodes, rules, workers)
-    check_assignment(chosen, rules, workers, source)
+    chosen = assign(nodes, rules, workers, groups)
+    check_assignment(chosen, rules, workers, source, groups)
     return chosen
 
 
-def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon]) -> dict[str, str] | None:
+def move(node_ids: Iterable[str], placement: Placement | None, workers: Sequence[LiveDaemon],
+         groups: Groups | None = None) -> dict[str, str] | None:
     """Where the nodes of a lost worker start afresh: node id -> worker name among ``workers`` (those
     still up, each with the nodes it runs as its load), by the rule of the first placement
-    (:func:`assign`); None when some node has nowhere to go."""
+    (:func:`assign`: a group's members together); None when some node has nowhere to go."""
     nodes = list(dict.fromkeys(node_ids))
     rules = dict(placement.nodes) if placement is not None else {}
-    chosen = assign(nodes, rules, workers)
+    chosen = assign(nodes, rules, workers, groups)
     if any(name is None for name in chosen.values()):
         return None
-    check_assignment(chosen, rules, workers, placement.source if placement is not None else None)
+    check_assignment(chosen, rules, workers, placement.source if placement is not None else None, groups)
     return chosen
 
 
-def assign(nodes: Sequence[str], rules: Mapping[str, Constraint],
-           workers: Sequence[LiveDaemon]) -> dict[str, str | None]:
+def assign(nodes: Sequence[str], rules: Mapping[str, Constraint], workers: Sequence[LiveDaemon],
+           groups: Groups | None = None) -> dict[str, str | None]:
     """The one placement rule, for a start and for a move: node id -> worker name, or None where no
     worker up meets the node's constraint.
 
-    A pinned node goes to its worker; a node with labels to the least-loaded worker that has them
-    all; any other node to the least-loaded worker. A worker's load is the nodes it already runs
-    plus those assigned so far; ties go to the first name. Pins go first, then the other nodes,
-    fewest eligible workers first (so a node with labels goes before one any worker may run), ties
-    by node id. Pure and deterministic: which worker a node gets depends on neither the order of
-    ``nodes`` nor that of ``workers``.
+    A unit is a node, or the nodes of ``nodes`` in one group (which share a process): it goes to
+    one worker, which must meet the constraint of each of its nodes. A pinned unit goes to its
+    worker; a unit with labels to the least-loaded worker that has them all; any other unit to
+    the least-loaded worker. A worker's load is the nodes it already runs plus those assigned so
+    far; ties go to the first name. Pins go first, then the other units, fewest eligible workers
+    first (so a unit with labels goes before one any worker may run), ties by node id. Pure and
+    deterministic: which worker a node gets depends on neither the order of ``nodes`` nor that
+    of ``workers``.
     """
-    eligible = {node: _eligible(rules.get(node, ANYWHERE), workers) for node in nodes}
+    units = _units(nodes, groups)
+    joined = {unit: _joined(unit, rules) for unit in units}
+    eligible = {unit: _eligible(joined[unit], workers) if joined[unit] is not None else [] for unit in units}
     load = {w.name: w.nodes for w in workers}
     chosen: dict[str, str | None] = {}
-    for node in sorted(nodes, key=lambda n: (rules.get(n, ANYWHERE).worker is None, len(eligible[n]), n)):
-        name = chosen[node] = min(eligible[node], key=lambda w: (load[w], w), default=None)
+    pinned = {unit: joined[unit] is None or joined[unit].worker is not None for unit in units}
+    for unit in sorted(units, key=lambda u: (not pinned[u], len(eligible[u]), u[0])):
+        name = min(eligible[unit], key=lambda w: (load[w], w), default=None)
+        chosen.update(dict.fromkeys(unit, name))
         if name is not None:
-            load[name] += 1
+            load[name] += len(unit)
     return {node: chosen[node] for node in nodes}
 
 
 def check_assignment(chosen: Mapping[str, str], rules: Mapping[str, Constraint], workers: Sequence[LiveDaemon],
-                     source: str | None = None) -> None:
+                     source: str | None = None, groups: Groups | None = None) -> None:
     """The one check of what :func:`assign` decided: every node on a worker that is up and meets its
-    constraint. A failure is a bug of the rule, raised as one PlacementError naming each node."""
+    constraint, every group on one worker. A failure is a bug of the rule, raised as one
+    PlacementError naming each node."""
+    bug = "this is a bug in Retriever's placement: please report it"
     problems = [Problem(f"node {_show(node)} was assigned to worker {_show(name)}, which is not up or does not "
-                        "meet its constraint", "this is a bug in Retriever's placement: please report it")
+                        "meet its constraint", bug)
                 for node, name in chosen.items() if name not in _eligible(rules.get(node, ANYWHERE), workers)]
+    problems += [Problem(f"the nodes {_names(unit)}, which share a process, were assigned to workers "
+                         f"{_names(sorted({chosen[n] for n in unit}))}", bug)
+                 for unit in _units(list(chosen), groups) if len({chosen[n] for n in unit}) > 1]
     if problems:
         raise PlacementError(source, problems)
+
+
+def _units(nodes: Sequence[str], groups: Groups | None) -> list[tuple[str, ...]]:
+    """``nodes`` as the units placement moves: each group's members among them (sorted), and
+    each other node alone."""
+    units, grouped = [], set()
+    for members in (groups or {}).values():
+        unit = tuple(sorted(set(members) & set(nodes)))
+        if unit:
+            units.append(unit)
+            grouped.update(unit)
+    return units + [(node,) for node in nodes if node not in grouped]
+
+
+def _joined(unit: tuple[str, ...], rules: Mapping[str, Constraint]) -> Constraint | None:
+    """Where every node of ``unit`` may run at once, or None when their pins differ."""
+    constraints = [rules.get(node, ANYWHERE) for node in unit]
+    pins = {c.worker for c in constraints if c.worker is not None}
+    if len(pins) > 1:
+        return None
+    return Constraint(next(iter(pins), None), frozenset().union(*(c.labels for c in constraints)))
+
+
+def _group_problems(nodes: Sequence[str], groups: Groups | None, rules: Mapping[str, Constraint],
+                    workers: Sequence[LiveDaemon]) -> list[Problem]:
+    """A problem for each group whose members no one worker may run together, though each alone
+    could run somewhere (what one member cannot meet alone is that member's problem)."""
+    fix = ("a group's flows run in one process, on one worker: pin them to one worker (or none), or give "
+           "the ones that must run elsewhere another process name (configure(process=), or process = \"NAME\" "
+           "in [nodes]); a flow with no process name runs in a process of its own")
+    problems = []
+    for name, members in sorted((groups or {}).items()):
+        unit = tuple(sorted(set(members) & set(nodes)))
+        if len(unit) < 2:
+            continue
+        pins = {n: rules[n].worker for n in unit if n in rules and rules[n].worker is not None}
+        if len(set(pins.values())) > 1:
+            where = ", ".join(f"{_show(n)} on {_show(w)}" for n, w in sorted(pins.items()))
+            problems.append(Problem(f"process {_show(name)}: its flows {_names(unit)} share one process, on one "
+                                    f"worker, and are pinned to different workers ({where})", fix))
+        elif all(_eligible(rules.get(n, ANYWHERE), workers) for n in unit) and not _eligible(_joined(unit, rules),
+                                                                                             workers):
+            problems.append(Problem(f"process {_show(name)}: its flows {_names(unit)} share one process, on one "
+                                    f"worker, and no worker up meets all their constraints together "
+                                    f"({_constraints_of(unit, rules)})", fix))
+    return problems
+
+
+def _constraints_of(unit: tuple[str, ...], rules: Mapping[str, Constraint]) -> str:
+    """What each node of ``unit`` that has a constraint asks for, for a message."""
+    asks = []
+    for node in unit:
+        c = rules.get(node, ANYWHERE)
+        wants = ([f"worker {_show(c.worker)}"] if c.worker else []) + \
+            ([f"label(s) {_names(sorted(c.labels))}"] if c.labels else [])
+        if wants:
+            asks.append(f"{_show(node)} wants {' and '.join(wants)}")
+    return _cut(asks, "; ")
 
 
 def _eligible(constraint: Constraint, workers: Sequence[LiveDaemon]) -> list[str]:
@@ -238,8 +343,8 @@ def _eligible(constraint: Constraint, workers: Sequence[LiveDaemon]) -> list[str
     return [w.name for w in workers if constraint.worker in (None, w.name) and constraint.labels <= w.labels]
 
 
-def _unknown_nodes(rules: Mapping[str, Constraint], nodes: list[str]) -> list[Problem]:
-    """A problem for each node the placement names that the IR does not have."""
+def _unknown_nodes(rules: Iterable[str], nodes: list[str]) -> list[Problem]:
+    """A problem for each node the placement names (``rules``) that the IR does not have."""
     problems, known = [], set(nodes)
     for name in rules:
         if name not in known:

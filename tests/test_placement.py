@@ -55,6 +55,7 @@ def test_the_example_file_loads_and_places():
     assert placement.source == str(EXAMPLE)
     assert placement.nodes == {"camera": Constraint(worker="arm-pc"), "policy": Constraint(labels=frozenset({"gpu"})),
                                "planner": Constraint("gpu-box", frozenset({"gpu", "cuda"}))}
+    assert placement.processes == {"viz": "viewers"}
     workers = [worker("arm-pc", "camera"), worker("gpu-box", "gpu", "cuda"), worker("spare")]
     assert place(["camera", "policy", "planner", "arm", "viz", "logger"], placement, workers) == {
         "camera": "arm-pc", "policy": "gpu-box", "planner": "gpu-box", "arm": "spare", "viz": "spare",
@@ -281,6 +282,13 @@ def test_toml_nested_past_the_recursion_limit_is_a_placement_error(tmp_path):
     ("[nodes]\npolicy = { labels = { gpu = true } }\n", r"expected a non-empty list of labels, got a table"),
     ('[nodes]\npolicy = { labels = ["gpu", 7] }\n', r"'policy': labels\[1\]: expected a label .*, got an integer"),
     ('[nodes]\npolicy = { labels = ["gpu", ""] }\n', r"labels\[1\]: expected a label \(a non-empty string\), got ''"),
+    ('[nodes]\ncamera = { process = "" }\n', r"'camera': process: expected a process name \(letters, digits, _ and -, "
+                                              r"not starting with a digit or -\), got ''\n    hint: write process = "),
+    ('[nodes]\ncamera = { process = "a b" }\n', r"'camera': process: expected a process name .*, got 'a b'"),
+    ('[nodes]\ncamera = { process = "9lives" }\n', r"'camera': process: expected a process name .*, got '9lives'"),
+    ('[nodes]\ncamera = { process = "-x" }\n', r"'camera': process: expected a process name .*, got '-x'"),
+    ("[nodes]\ncamera = { process = 3 }\n", r"'camera': process: expected a process name .*, got an integer"),
+    ('[nodes]\ncamera = { process = ["a"] }\n', r"'camera': process: expected a process name .*, got an array"),
 ])
 def test_a_malformed_placement_says_what_is_wrong(tmp_path, text, expected):
     with pytest.raises(PlacementError, match=expected):
@@ -292,7 +300,7 @@ def test_an_unknown_key_in_a_node_table_is_a_problem_and_a_typo_leaves_the_entry
         load_placement(write(tmp_path, '[nodes]\npolicy = { label = ["gpu"] }\n'))
     assert problems_of(excinfo) == [
         ("[nodes] 'policy': unknown key 'label'\n"
-         '    hint: a node\'s table has only worker = "NAME" and labels = ["LABEL", ...]'),
+         '    hint: a node\'s table has only worker = "NAME", labels = ["LABEL", ...] and process = "NAME"'),
         ("[nodes] 'policy': says neither worker nor labels\n"
          '    hint: write a worker name ("arm-pc") or a table ({ labels = ["gpu"] }, optionally with worker = "NAME")')]
 
@@ -493,3 +501,80 @@ def test_the_shared_check_refuses_an_assignment_its_rule_could_not_make():
 
     with pytest.raises(PlacementError, match="node 'n' was assigned to worker 'gone', which is not up"):
         check_assignment({"n": "gone"}, {}, [LiveDaemon("up")])
+
+
+# ---------------------------------------------------------------------------------------------
+# Flows that share a process: placed as one unit, on one worker
+# ---------------------------------------------------------------------------------------------
+def test_a_process_name_in_the_file_is_read_beside_the_constraints(tmp_path):
+    placement = load_placement(write(tmp_path, '[nodes]\ncamera = { worker = "arm-pc", process = "perception" }\n'
+                                               'detector = { process = "perception" }\nplanner = "gpu-box"\n'))
+    assert placement.nodes == {"camera": Constraint(worker="arm-pc"), "planner": Constraint(worker="gpu-box")}
+    assert placement.processes == {"camera": "perception", "detector": "perception"}
+
+
+def test_a_process_name_for_a_node_the_ir_does_not_have_is_a_problem():
+    placement = Placement({}, "placement.toml", {"ghost": "front"})
+    with pytest.raises(PlacementError, match=r"\[nodes\] 'ghost': the IR has no such node"):
+        place(["camera"], placement, [worker("a")])
+
+
+def test_a_group_goes_to_one_worker_by_its_members_load_and_follows_a_members_pin():
+    workers = [worker("a"), worker("b"), worker("c", "gpu")]
+    assert place(["cam", "det", "viz", "log"], None, workers, {"front": ["cam", "det", "viz"]}) == {
+        "cam": "a", "det": "a", "viz": "a", "log": "b"}
+    assert place(["cam", "det", "log"], rules(det="b"), workers, {"front": ["cam", "det"]}) == {
+        "cam": "b", "det": "b", "log": "a"}
+    assert place(["cam", "det"], rules(cam={"gpu"}), workers, {"front": ["cam", "det"]}) == {"cam": "c", "det": "c"}
+
+
+def test_a_group_pinned_to_different_workers_is_refused_naming_the_process_its_flows_their_workers_and_the_fix():
+    with pytest.raises(PlacementError) as excinfo:
+        place(["cam", "det", "log"], rules(cam="a", det="b"), [worker("a"), worker("b")], {"front": ["cam", "det"]})
+    assert problems_of(excinfo) == [
+        "process 'front': its flows 'cam', 'det' share one process, on one worker, and are pinned to different "
+        "workers ('cam' on 'a', 'det' on 'b')\n"
+        "    hint: a group's flows run in one process, on one worker: pin them to one worker (or none), or give the "
+        "ones that must run elsewhere another process name (configure(process=), or process = \"NAME\" in "
+        "[nodes]); a flow with no process name runs in a process of its own"]
+
+
+def test_a_group_whose_members_no_one_worker_meets_together_is_refused():
+    with pytest.raises(PlacementError) as excinfo:
+        place(["cam", "det"], rules(cam={"camera"}, det="b"), [worker("a", "camera"), worker("b")],
+              {"front": ["cam", "det"]})
+    assert problems_of(excinfo)[0].startswith(
+        "process 'front': its flows 'cam', 'det' share one process, on one worker, and no worker up meets all "
+        "their constraints together ('cam' wants label(s) 'camera'; 'det' wants worker 'b')")
+
+
+def test_a_lost_workers_group_moves_together():
+    from retriever.placement import move
+
+    up = [LiveDaemon("a", nodes=1), LiveDaemon("b", nodes=0)]
+    assert move(["cam", "det", "log"], None, up, {"front": ["cam", "det"]}) == {"cam": "b", "det": "b", "log": "a"}
+    assert move(["cam", "det"], rules(cam={"gpu"}), up, {"front": ["cam", "det"]}) is None  # nowhere for both
+
+
+def test_the_shared_check_refuses_a_group_split_across_workers():
+    from retriever.placement import check_assignment
+
+    with pytest.raises(PlacementError, match=r"the nodes 'cam', 'det', which share a process, were assigned to "
+                                             r"workers 'a', 'b'\n    hint: this is a bug"):
+        check_assignment({"cam": "a", "det": "b"}, {}, [LiveDaemon("a"), LiveDaemon("b")], None, {"f": ["cam", "det"]})
+
+
+@SETTINGS
+@given(case=satisfiable(), data=st.data())
+def test_every_group_lands_on_one_worker_whenever_a_placement_takes_it(case, data):
+    nodes, placement, workers = case
+    members = data.draw(st.lists(st.sampled_from(nodes), unique=True, max_size=4))
+    groups = {"g": members} if len(members) > 1 else {}
+    try:
+        result = place(nodes, placement, workers, groups)
+    except PlacementError as e:
+        assert any("process 'g'" in p.message for p in e.problems), e
+        return
+    assert len({result[n] for n in members}) <= 1
+    by_name = {w.name: w for w in workers}
+    assert all(_meets(by_name[result[n]], placement.nodes.get(n, Constraint())) for n in nodes)

@@ -84,8 +84,8 @@ def run(
 def deploy(
     target: Annotated[str, typer.Argument(metavar="FILE[:ATTR]", help="Python file (and Pipeline name) or IR .json")],
     placement: Annotated[Optional[Path], typer.Option(
-        help="A placement file (TOML): in its nodes table, NODE = \"WORKER\" or { labels = [\"gpu\"] }; "
-             "others by load.")] = None,
+        help="A placement file (TOML): in its nodes table, NODE = \"WORKER\" or { labels = [\"gpu\"] } "
+             "(process = \"NAME\": one process with the flows of that name); others by load.")] = None,
     connect: Annotated[Optional[list[str]], typer.Option(
         help="Zenoh endpoint of a worker (or router) to join, e.g. tcp/10.0.0.2:7447; repeatable.")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(

@@ -80,3 +80,13 @@ with Pipeline("lab-watch") as watched:
     camera = Camera().configure(name="camera") @ Rate(hz=50)
     viewer = Viewer().configure(name="viewer") @ Rate(hz=50)
     camera.then(viewer, sync=Latest())
+
+
+with Pipeline("lab-grouped") as grouped:
+    # counter and relay share the process "front" (the placement file adds tap: test_deploy.py);
+    # echo and sink run alone
+    source = Counter().configure(name="counter", process="front") @ Rate(hz=20)
+    middle = Relay().configure(name="relay", process="front") @ Trigger()
+    source.then(middle, sync=Latest()).then(Relay().configure(name="sink") @ Trigger(), sync=Latest())
+    source.then(Relay().configure(name="tap") @ Trigger(), sync=Latest())
+    middle.then(Relay().configure(name="echo") @ Trigger(), sync=Latest())

@@ -22,6 +22,7 @@ from pathlib import Path
 import pytest
 
 from retriever import read_log
+from retriever.backends.zenoh.command import GROUP_MODULE, WORKER_MODULE
 from retriever.replay import replay
 
 HERE = Path(__file__).resolve().parent
@@ -402,6 +403,101 @@ def _move_trial(partitionable, hosts, secret, folder: Path) -> None:
     camera = trace.steps_of("camera")
     assert camera[-1].tag[0] >= 15_000_000_000 and all(s.status == "ok" for s in camera)
     assert replay(recorded).identical
+
+
+# ---------------------------------------------------------------------------------------------
+# Flows that share a process (issue 38)
+# ---------------------------------------------------------------------------------------------
+def served(daemon_pid: int) -> list[tuple[str, str]]:
+    """What each live worker process a daemon started serves: (its module, its node or group)."""
+    found = []
+    for pid in flow_processes(daemon_pid):
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:  # (ended meanwhile)
+            continue
+        found.append((argv[2], argv[4]))  # python -m MODULE SPEC.json NAME
+    return sorted(found)
+
+
+def test_a_group_runs_in_one_process_of_its_worker_beside_flows_alone_and_its_log_replays(hosts, secret, tmp_path):
+    """counter and relay share the process "front" (configure(process=)), tap joins it by the
+    placement file; echo runs alone beside them on arm-pc, sink alone on gpu-box. arm-pc's daemon
+    starts two processes, the group's and echo's; the log says where each node ran and replays."""
+    coordinator, arm, gpu = hosts
+    daemons = [start_worker(arm, "arm-pc", secret, "--path", str(HERE)),
+               start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ncounter = "arm-pc"\ntap = { process = "front" }\necho = "arm-pc"\n'
+                         'sink = "gpu-box"\n')
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu], secret, "--duration", "3", "--placement", str(placement),
+                       "--log", str(log), pipeline="grouped")
+    wait_going(run, log)
+    on_arm, on_gpu = served(daemons[0].pid), served(daemons[1].pid)
+    out, err = finish(run)
+    assert run.returncode == 0, err
+    assert on_arm == [(WORKER_MODULE, "echo"), (GROUP_MODULE, "front")], on_arm
+    assert on_gpu == [(WORKER_MODULE, "sink")], on_gpu
+    recorded = read_log(log)
+    assert json.loads(recorded.run["deployment"])["placed"] == {
+        "counter": "arm-pc", "relay": "arm-pc", "tap": "arm-pc", "echo": "arm-pc", "sink": "gpu-box"}
+    trace = recorded.trace()
+    assert len(trace.steps_of("counter")) >= 50, len(trace.steps_of("counter"))
+    assert all(len([s for s in trace.steps_of(n) if s.consumed]) >= 40 for n in ("relay", "tap", "echo", "sink"))
+    assert replay(recorded).identical
+
+
+def test_a_lost_workers_group_moves_together_and_the_log_replays(hosts, secret, tmp_path):
+    """The group "front" (counter, relay, tap) goes by load to gpu-box, which is SIGKILLed: its
+    three flows move together to spare, each starting afresh in a process of its own there (as a
+    flow whose process died does); echo and sink on arm-pc go on, and the log replays."""
+    coordinator, arm, gpu = hosts
+    start_worker(arm, "arm-pc", secret, "--path", str(HERE))
+    victim = start_worker(gpu, "gpu-box", secret, "--path", str(HERE))
+    spare = start_worker(coordinator, "spare", secret, "--path", str(HERE))
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\necho = "arm-pc"\nsink = "arm-pc"\ntap = { process = "front" }\n')
+    log = tmp_path / "run.mcap"
+    run = start_deploy(coordinator, [arm, gpu, coordinator], secret, "--duration", "6", "--placement",
+                       str(placement), "--log", str(log), "--allow-errors", pipeline="grouped")
+    wait_going(run, log)
+    assert served(victim.pid) == [(GROUP_MODULE, "front")]
+    victim.kill()
+    moved = poll(lambda: (found := served(spare.pid)) and len(found) == 3 and found, "the group's flows on spare")
+    out, err = finish(run)
+    assert run.returncode == 0, err
+    assert moved == [(WORKER_MODULE, "counter"), (WORKER_MODULE, "relay"), (WORKER_MODULE, "tap")], moved
+    for node in ("counter", "relay", "tap"):
+        assert f"worker 'gpu-box' was lost; its node '{node}' starts afresh on worker 'spare'" in err, err
+    recorded = read_log(log)
+    assert sorted((f["node"], f["moved_to"]) for f in recorded.faults) == [
+        ("counter", "spare"), ("relay", "spare"), ("tap", "spare")], recorded.faults
+    trace = recorded.trace()
+    (after,) = [s for s in trace.steps_of("relay") if s.detail and "restarted" in s.detail]
+    assert any(s.tag > after.tag and s.consumed for s in trace.steps_of("sink"))
+    assert replay(recorded).identical
+
+
+def test_a_group_split_across_workers_or_a_malformed_process_name_is_refused_before_anything_starts(
+        hosts, secret, tmp_path):
+    coordinator, arm, gpu = hosts
+    placement = tmp_path / "place.toml"
+    placement.write_text('[nodes]\ntap = { process = "front end" }\n')
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:grouped", "--placement", str(placement))
+    assert done.returncode == 1, done.stderr
+    assert "[nodes] 'tap': process: expected a process name (letters, digits, _ and -, not starting with a digit " \
+           "or -), got 'front end'" in done.stderr, done.stderr
+    daemons = [start_worker(arm, "arm-pc", secret, "--path", str(HERE)),
+               start_worker(gpu, "gpu-box", secret, "--path", str(HERE))]
+    placement.write_text('[nodes]\ncounter = "arm-pc"\nrelay = "gpu-box"\n')
+    done = deploy(coordinator, [arm, gpu], secret, f"{FLOWS}:grouped", "--placement", str(placement),
+                  "--duration", "2")
+    assert done.returncode == 1, done.stderr
+    assert ("process 'front': its flows 'counter', 'relay' share one process, on one worker, and are pinned to "
+            "different workers ('counter' on 'arm-pc', 'relay' on 'gpu-box')") in done.stderr, done.stderr
+    assert "hint: a group's flows run in one process, on one worker: pin them to one worker" in done.stderr
+    assert not any(flow_processes(d.pid) for d in daemons)
 
 
 def test_status_and_stop_from_another_machine(hosts, secret, tmp_path):

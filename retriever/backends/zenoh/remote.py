@@ -3,6 +3,7 @@
     coordinator                                          daemon <name>
       query ctl/<name>  prepare {run, spec, nodes}  ──▶   checks each node's class (allowlist), keeps the spec
       query ctl/<name>  spawn {run, node, mode}     ──▶   starts that node's worker process: {pid, key}
+                        spawn {run, node, group}    ──▶   ... or the one process of a group of flows
       query ctl/<name>  signal {run, pid, signal}   ──▶   signals one (SIGUSR1: its stacks; SIGKILL)
       query ctl/<name>  usage {run}                 ──▶   the CPU seconds of its live processes: {cpu_s}
       query ctl/<name>  end {run}                   ──▶   stops what is left of the run, forgets it
@@ -162,6 +163,14 @@ class RemoteHost(Host):
         """(``key``: unused; the daemon makes its process's key, and answers it.)"""
         reply = self.request(SpawnRequest(run=self.run, node=node, mode=tuple(mode)))
         proc = self.processes[reply.pid] = RemoteProcess(self, node, reply.pid, reply.key)
+        return proc, reply.key
+
+    def spawn_group(self, name: str, nodes: list[str], key: bytes) -> tuple[RemoteProcess, bytes]:
+        """The one process of the group ``name`` (``key``: unused, as for :meth:`spawn`); what it
+        prints is each of its ``nodes``' output."""
+        reply = self.request(SpawnRequest(run=self.run, node=name, mode=(), group=True))
+        proc = self.processes[reply.pid] = RemoteProcess(self, name, reply.pid, reply.key)
+        self.share_output(name, nodes)
         return proc, reply.key
 
     def usage(self) -> dict[str, float]:

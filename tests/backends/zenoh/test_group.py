@@ -211,3 +211,17 @@ def test_a_mixed_run_in_real_time_logs_and_replays_identically(tmp_path):
 
     report = replay(retriever.read_log(path))
     assert report.identical, report.divergences[:3]
+
+
+def test_names_a_hosting_gives_win_over_the_flows_and_a_restarting_flow_stays_alone():
+    """A deployment's placement file names processes too (Hosting.process_names): its name wins
+    over configure(process=); a flow with on_error="restart" stays out of every group, whoever
+    named it, and is said to run alone."""
+    from retriever.backends.zenoh.coordinator.spec import process_groups, restarting_alone
+
+    graph = grouped_pipeline(fail_at=[5], with_pid=False).compile()  # faulty restarts
+    assert process_groups(graph) == {}  # counter alone in "front": no group
+    assert process_groups(graph, {"sink": "front"}) == {"front": ["counter", "sink"]}
+    assert process_groups(graph, {"counter": "back", "sink": "front"}) == {}
+    assert restarting_alone(graph, {"sink": "front"}) == ["faulty"]
+    assert process_groups(grouped_pipeline().compile(), {"faulty": "solo"}) == {}  # a name of its own: alone

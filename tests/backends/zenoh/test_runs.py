@@ -20,11 +20,12 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh import daemon
+from retriever.backends.zenoh.command import GROUP_MODULE
 from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
-from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, SignalRequest, SpawnRequest,
-                                               Stream)
+from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, RunSpec, SignalRequest,
+                                               SpawnRequest, Stream, UsageRequest)
 from retriever.backends.zenoh.protocol.schema import pack
 from retriever.backends.zenoh.daemon.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
@@ -167,16 +168,30 @@ def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal
     assert proc.wait(timeout=10) == -signal.SIGKILL
 
 
-def test_a_prepare_with_groups_is_refused_before_anything_changes(prepared):
-    """A daemon runs each node in a process of its own: a spec's groups, whose members share a
-    Zenoh id, would give two of its processes one id."""
-    runs, node = prepared
+def test_a_group_starts_as_one_process_only_when_every_member_is_prepared_here(prepared):
+    """A spec's groups (flows that share a process, whose members share a Zenoh id): the daemon
+    starts a group's one process (worker/group.py) once every member is prepared on it, and
+    refuses a group it does not have, one split across workers, and a mode for one."""
+    runs, _ = prepared
     ir = build_small().build_ir().doc
     ids = [n["id"] for n in ir["nodes"]]
-    spec = run_spec(ir, "runs-test-groups", zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
-    with pytest.raises(WireError, match=r"runs each node in a process of its own: a spec with groups \(g\)"):
-        runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(node,)))
-    assert runs.run.id == "r1"
+    hub = RunSpec.read_file(runs.run.folder / "spec.json").hub  # (run r1's)
+    spec = run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
+                    zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+    runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(ids[0],)))
+    with pytest.raises(WireError, match=rf"group 'g': its node\(s\) {', '.join(sorted(ids[1:]))} were not prepared "
+                                        r"on worker 'w' \(a group's nodes run in one process, on one worker\)"):
+        runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True))
+    with pytest.raises(WireError, match=r"'h' is no group of run r2's spec \(its groups: g\)"):
+        runs.spawn(SpawnRequest(run="r2", node="h", mode=(), group=True))
+    runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=tuple(ids)))  # the others: prepared too
+    with pytest.raises(WireError, match="a group's process starts with its run only"):
+        runs.spawn(SpawnRequest(run="r2", node="g", mode=("--fresh", "1", "2"), group=True))
+    assert runs.run.processes == {}
+    pid = runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True)).pid
+    assert runs.run.processes[pid][1].args[2:5] == [GROUP_MODULE, str(runs.run.folder / "spec.json"), "g"]
+    assert runs.nodes() == sorted(ids)  # what the daemon says it runs: the group's members
+    assert set(runs.usage(UsageRequest(run="r2")).cpu_s) == set(ids)  # each, its process's CPU
 
 
 @pytest.mark.parametrize("plan", [b"\x00" * 8, {"nodes": b"x"}, {"nodes": [], "extra": 1}, [1, 2, 3]])

@@ -156,7 +156,8 @@ class Coordinator(Session):
 
     def _groups(self) -> dict[str, list[str]]:
         """The groups of flows that share a process, where the hosting starts them so."""
-        groups, alone = process_groups(self.graph), restarting_alone(self.graph)
+        named = self.hosting.process_names()
+        groups, alone = process_groups(self.graph, named), restarting_alone(self.graph, named)
         if alone and self.hosting.shares_processes:
             warnings.warn(f"{', '.join(alone)}: a flow with on_error='restart' runs in a process of its own, whatever "
                           "its configure(process=): its restart is a new process", RetrieverWarning, stacklevel=4)

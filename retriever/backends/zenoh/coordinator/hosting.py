@@ -146,8 +146,14 @@ class Hosting:
         return (f"watch it read-only with zenoh.Config.from_file('{run.watch_config}') and a subscriber on "
                 f"{run.keys.all_data()}")
 
+    def process_names(self) -> dict[str, str]:
+        """The process name the hosting gives some nodes, winning over their configure(process=)
+        (a deployment's placement file): none by default."""
+        return {}
+
     def place(self) -> dict[str, Host]:
-        """Each node's host, where its processes start (the run's ``spec`` is written)."""
+        """Each node's host, where its processes start (the run's ``spec`` is written, with its
+        ``groups``: a group's nodes go to one host, which starts their one process)."""
         raise NotImplementedError
 
     # -- while the run goes --------------------------------------------------------------------

@@ -14,6 +14,8 @@ returns its reply record (protocol/daemon.py):
                                  does, with a key made for it (origin.py) in a pipe it inherits:
                                  {pid, key}, in the reply, which reaches the querier alone; what
                                  it prints goes to the coordinator, and its exit
+    spawn {run, node, group}     the same for the one process of a group of the spec's (flows that
+                                 share a process: worker/group.py), every member prepared here
     signal {run, pid, signal}    SIGUSR1 (its stacks), SIGTERM or SIGKILL to one of the run's processes
     usage {run}                  the CPU seconds of each live process of the run: {cpu_s}
     end {run}                    stop what is left of the run, remove its folder
@@ -53,7 +55,7 @@ from ....plan import Plan
 from ....rebuild import check_node
 from ..access import RunAccess, TlsFiles, write_private
 from ..folders import DAEMON_FOLDER
-from ..command import worker_command
+from ..command import GROUP_MODULE, WORKER_MODULE, worker_command
 from ..hub import weak_callback
 from ..origin import KEY_FD_ENV, key_pipe, new_key
 from ..protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareReply, PrepareRequest, ProcessExit,
@@ -103,7 +105,9 @@ class Run:
         self.key = new_key()
         self.events = ControlSigner()  # seals its events with the key, each with a counter (seal.py)
         self.events.add(self, self.key)
-        self.processes: dict[int, tuple[str, subprocess.Popen]] = {}
+        self.processes: dict[int, tuple[str, subprocess.Popen]] = {}  # by pid: (node or group, process)
+        self.groups: dict[str, tuple[str, ...]] = {}  # the spec's groups (flows that share a process)
+        self.members: dict[int, tuple[str, ...]] = {}  # by pid: the nodes a group's process serves
         self.watch = None  # the liveliness subscriber on the coordinator's token
         self.ir: dict = {}
 
@@ -142,16 +146,16 @@ class DaemonRuns:
                 DaemonOp.END: self.end, DaemonOp.USAGE: self.usage}
 
     def nodes(self) -> list[str]:
-        """The nodes whose processes run now."""
+        """The nodes whose processes run now (a group's process: each of its members)."""
         run = self.run
-        return sorted({node for node, proc in run.processes.values() if proc.poll() is None}) if run else []
+        if run is None:
+            return []
+        return sorted({node for pid, (name, proc) in run.processes.items() if proc.poll() is None
+                       for node in run.members.get(pid, (name,))})
 
     # -- ops -----------------------------------------------------------------------------------
     def prepare(self, request: PrepareRequest) -> PrepareReply:
         run_id, spec, nodes = request.run, request.spec, list(request.nodes)
-        if spec.groups:  # (whose members share a Zenoh id: RunSpec takes that of a group's alone)
-            raise WireError(f"worker '{self.name}' runs each node in a process of its own: a spec with groups "
-                            f"({', '.join(sorted(spec.groups))[:200]}) is refused")
         if self.run is not None and self.run.id == run_id:  # more nodes of its run (a lost worker's)
             if spec.ir != self.run.ir:
                 raise WireError(f"run {run_id} was prepared on worker '{self.name}' with another IR")
@@ -179,7 +183,7 @@ class DaemonRuns:
         # (it holds the run's passwords), as it does the daemon's own folder (reap_stale_folders)
         folder = Path(tempfile.mkdtemp(prefix=f"{DAEMON_FOLDER}-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
-        run.ir = ir.doc
+        run.ir, run.groups = ir.doc, dict(spec.groups)
         write_private(folder / "spec.json", self.local_spec(spec, folder, run_id).to_json())
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
@@ -188,37 +192,65 @@ class DaemonRuns:
     def spawn(self, request: SpawnRequest) -> SpawnReply:
         """(A key in the request is refused by its decoder: a query reaches every queryable on
         ctl/<name>, an insider's too.)"""
-        run, node = self._run_of(request.run), request.node
-        if node not in run.nodes:
-            raise WireError(f"node {node!r:.60} was not prepared on worker '{self.name}'")
+        run, name = self._run_of(request.run), request.node
+        nodes = self._served(run, name, request.group)
         mode = [str(part) for part in request.mode]
+        if request.group and mode:
+            raise WireError(f"group '{name}': a group's process starts with its run only (mode {mode!r:.60})")
         if self.code_mismatch == "refuse":  # its file may have changed since prepare (a restart comes much later)
-            mismatch = self._code_mismatch(run.ir, node)
-            if mismatch is not None:
-                raise WireError(f"worker '{self.name}' will not run {mismatch}")
-        live = [pid for pid, (n, proc) in run.processes.items() if n == node and proc.poll() is None]
+            for node in nodes:
+                mismatch = self._code_mismatch(run.ir, node)
+                if mismatch is not None:
+                    raise WireError(f"worker '{self.name}' will not run {mismatch}")
+        live = [pid for pid, (n, proc) in run.processes.items() if n == name and proc.poll() is None]
         if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
-            raise WireError(f"node '{node}' already runs in {len(live)} processes on worker '{self.name}' "
+            raise WireError(f"{'group' if request.group else 'node'} '{name}' already runs in {len(live)} processes "
+                            f"on worker '{self.name}' "
                             f"(pids {', '.join(map(str, live))})")
-        key = new_key()  # answered in the reply, which Zenoh routes to the querier alone (origin.py)
-        # from a thread that lives as long as the daemon: a worker gets PR_SET_PDEATHSIG when the
-        # thread that started it ends, which a thread of Zenoh's (this op's) may do at any time
+        module = GROUP_MODULE if request.group else WORKER_MODULE
+        proc, key = self._start(worker_command(str(run.folder / "spec.json"), name, mode, module=module))
+        run.processes[proc.pid] = (name, proc)
+        if request.group:
+            run.members[proc.pid] = tuple(nodes)
+        tell = functools.partial(self._tell, run)
+        for stream, pipe in ((Stream.STDOUT, proc.stdout), (Stream.STDERR, proc.stderr)):
+            threading.Thread(target=forward_output, args=(pipe, tell, run.id, name, stream), daemon=True,
+                             name=f"retriever-{stream}-{name}").start()
+        threading.Thread(target=self._await_exit, args=(run, name, proc), daemon=True,
+                         name=f"retriever-exit-{name}").start()
+        return SpawnReply(pid=proc.pid, key=key)
+
+    def _served(self, run: Run, name: str, group: bool) -> list[str]:
+        """The nodes a spawn of ``name`` serves: that node, or a group's members, each prepared here."""
+        if not group:
+            if name not in run.nodes:
+                raise WireError(f"node {name!r:.60} was not prepared on worker '{self.name}'")
+            return [name]
+        members = run.groups.get(name)
+        if members is None:
+            raise WireError(f"{name!r:.60} is no group of run {run.id}'s spec (its groups: "
+                            f"{', '.join(sorted(run.groups)) or 'none'})"[:300])
+        missing = sorted(set(members) - run.nodes)
+        if missing:
+            raise WireError(f"group '{name}': its node(s) {', '.join(missing)} were not prepared on worker "
+                            f"'{self.name}' (a group's nodes run in one process, on one worker)"[:300])
+        return list(members)
+
+    def _start(self, command: list[str]) -> tuple[subprocess.Popen, bytes]:
+        """Start ``command`` with a key made for it (answered in the reply, which Zenoh routes to
+        the querier alone: origin.py), from a thread that lives as long as the daemon: a worker
+        gets PR_SET_PDEATHSIG when the thread that started it ends, which a thread of Zenoh's
+        (this op's) may do at any time."""
+        key = new_key()
         pipe = key_pipe(key)
         try:
             proc = self._spawner.submit(
-                subprocess.Popen, worker_command(str(run.folder / "spec.json"), node, mode),
-                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                pass_fds=(pipe,), env={**flow_environment(os.environ, self.pass_env), KEY_FD_ENV: str(pipe)}).result()
+                subprocess.Popen, command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                start_new_session=True, pass_fds=(pipe,),
+                env={**flow_environment(os.environ, self.pass_env), KEY_FD_ENV: str(pipe)}).result()
         finally:
             os.close(pipe)
-        run.processes[proc.pid] = (node, proc)
-        tell = functools.partial(self._tell, run)
-        for stream, pipe in ((Stream.STDOUT, proc.stdout), (Stream.STDERR, proc.stderr)):
-            threading.Thread(target=forward_output, args=(pipe, tell, run.id, node, stream), daemon=True,
-                             name=f"retriever-{stream}-{node}").start()
-        threading.Thread(target=self._await_exit, args=(run, node, proc), daemon=True,
-                         name=f"retriever-exit-{node}").start()
-        return SpawnReply(pid=proc.pid, key=key)
+        return proc, key
 
     def signal(self, request: SignalRequest) -> SignalReply:
         run, pid, sig = self._run_of(request.run), request.pid, request.signal
@@ -231,13 +263,13 @@ class DaemonRuns:
         return SignalReply()
 
     def usage(self, request: UsageRequest) -> UsageReply:
-        """The CPU time of each live process of the run, by node."""
+        """The CPU time of each live process of the run, by node (a group's process: for each member)."""
         run = self._run_of(request.run)
         cpu = {}
-        for pid, (node, proc) in list(run.processes.items()):
+        for pid, (name, proc) in list(run.processes.items()):
             seconds = cpu_seconds(pid) if proc.poll() is None else None
             if seconds is not None:
-                cpu[node] = seconds
+                cpu.update(dict.fromkeys(run.members.get(pid, (name,)), seconds))
         return UsageReply(cpu_s=cpu)
 
     def end(self, request: EndRequest) -> EndReply:
@@ -318,7 +350,7 @@ class DaemonRuns:
         ``router``, with the namespace's credentials, which a router's fixed dictionary holds);
         no shared folder with the coordinator, no main script, no argv (a worker's flows see the
         worker's own: sys.argv is no channel for a stranger's arguments to a module that parses
-        them when imported), no groups.
+        them when imported).
 
         The flows link to the hub and to each other, never to this daemon's session: it holds
         the namespace's credentials, theirs are the run's (nothing of one run opens a link to
@@ -340,7 +372,7 @@ class DaemonRuns:
         return dataclasses.replace(
             spec, namespace=self.keys.namespace, hub=hub, router=router, listen=listen,
             python_path=(*self.paths, *(p for p in sys.path if p and os.path.isdir(p))),
-            main_file=None, spill_dir=None, argv=None, groups={}, dora_part=None,
+            main_file=None, spill_dir=None, argv=None, dora_part=None,
             access=access.to_spec(access.write_dictionary(folder)) if access is not None else None,
             tls=vars(self.tls) if self.tls is not None else None, lease=None, blocked_put=self.lease)
 

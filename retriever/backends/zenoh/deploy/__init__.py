@@ -4,7 +4,7 @@
         │ join the namespace (its control session: Zenoh peer, the namespace's credentials) and
         │ open the run's hub (the credentials of this run alone: access.py), find its workers
         │ (liveliness tokens workers/<name>) and ask each for its info: protocol, labels, load, clock offset
-        │ place every node (placement.py: pins, labels, load), refuse what cannot be met, all at once
+        │ place every node (placement.py: pins, labels, load; a group of flows as one), refuse what cannot be met
         │ prepare each chosen worker (remote.py: the spec; it checks every class it will import)
         │ declare the deployment's liveliness token: a worker stops its flows once it goes
         ▼ from here on as the embedded run: spawn, ready, T0, reports, the log, faults, stop

@@ -60,7 +60,14 @@ class Deployment(Hosting):
     ``router``: Zenoh routers (``retriever router``, or any) that every session of the
     deployment joins as a client, the coordinator's, each worker daemon's and each flow's
     (hub.client_config): no session listens, so a machine behind NAT takes part; without them,
-    every session is a peer of the others, linked directly."""
+    every session is a peer of the others, linked directly.
+
+    Flows that share a process (``configure(process=NAME)``, or ``process = "NAME"`` in the
+    placement file, which wins) are placed as one unit (placement.assign) and started as one
+    process by their worker's daemon; a worker lost moves them together, each then starting
+    afresh in a process of its own (as a flow whose process died does)."""
+
+    shares_processes = True
 
     def __init__(self, *, connect: list[str] = (), listen: list[str] = (), router: list[str] = (),
                  placement: Placement | str | None = None,
@@ -154,6 +161,10 @@ class Deployment(Hosting):
     def where(self) -> str:
         return self._links.where()
 
+    def process_names(self) -> dict[str, str]:
+        """The process names of the placement file (``process = "NAME"``)."""
+        return dict(self._placement.processes) if self._placement is not None else {}
+
     def place(self) -> dict[str, RemoteHost]:
         run, book, links = self.run, self._book, self._links
         with phase(self._on_phase, "discover"):
@@ -161,7 +172,7 @@ class Deployment(Hosting):
         candidates = [placement_target(name, daemon.info, len(daemon.info.nodes))
                       for name, daemon in sorted(found.items())]
         try:
-            book.placed = place(sorted(run.graph.nodes), self._placement, candidates)
+            book.placed = place(sorted(run.graph.nodes), self._placement, candidates, run.spec.groups)
         except PlacementError as e:
             raise BackendError(str(e)) from None
         # the token first: a worker prepares a run only while its coordinator's token is there

@@ -55,7 +55,7 @@ class LossPolicy:
             return self._await_return(host, nodes)
         self._book.remotes.pop(host.name, None)
         self._book.daemons.pop(host.name, None)
-        targets = move(nodes, self._placement, self._book.workers_up())
+        targets = move(nodes, self._placement, self._book.workers_up(), run.spec.groups)  # a group's together
         if targets is None:
             return None
         return self._move(host.name, targets, run.book.run_time())

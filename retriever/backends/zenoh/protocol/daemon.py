@@ -20,8 +20,8 @@ from ....errors import OtherProtocolReply, WireError
 from ..command import parse_mode
 from ..origin import KEY_BYTES
 from .run_spec import RunSpec
-from .schema import (MAX_NAME_CHARS, NS_MAX, PID_MAX, Channel, Float, HexKey, Int, Kind, ListOf, MapOf, Name, Nested,
-                     OneOf, Record, Text, field)
+from .schema import (MAX_NAME_CHARS, NS_MAX, PID_MAX, Bool, Channel, Float, HexKey, Int, Kind, ListOf, MapOf, Name,
+                     Nested, OneOf, Record, Text, field)
 
 
 class DaemonOp(StrEnum):
@@ -100,7 +100,8 @@ class PrepareRequest(Record):
 
 @dataclass(frozen=True, kw_only=True)
 class SpawnRequest(Record):
-    """Start ``node``'s worker process (``mode``: as it joins the run)."""
+    """Start ``node``'s worker process (``mode``: as it joins the run); ``group``: ``node`` names a
+    group of the spec's (flows that share a process), whose one process starts."""
 
     NAME = DaemonOp.SPAWN
     REFUSED = {"key": "a spawn request carries no key: the worker makes its process's key and answers it to the "
@@ -108,6 +109,7 @@ class SpawnRequest(Record):
     run: str = field(RUN)
     node: str = field(Name())
     mode: tuple[str, ...] = field(Mode())
+    group: bool = field(Bool(), default=False)
 
 
 @dataclass(frozen=True, kw_only=True)
