@@ -161,6 +161,12 @@ def _foreign_modules(tree: ast.Module) -> set[str]:
             for alias in node.names if alias.name.partition(".")[0] != PACKAGE}
 
 
+#: the builtins that read or write an attribute named by a string
+BY_NAME = ("getattr", "hasattr", "setattr", "delattr")
+#: named tuples' public methods, underscored so as not to clash with field names
+NAMEDTUPLE_API = frozenset({"_make", "_replace", "_asdict", "_fields", "_field_defaults"})
+
+
 def _private_reads(module: str) -> dict[tuple[str, str], list[str]]:
     """``(module, private name) -> where and how`` for each private name of another module that
     ``module`` uses."""
@@ -179,6 +185,13 @@ def _private_reads(module: str) -> dict[tuple[str, str], list[str]]:
             owners = sorted(DEFINED_BY[node.attr] - {module})
             if owners:
                 found[(module, node.attr)].append(f"line {node.lineno}: {ast.unparse(node)} (of {' or '.join(owners)})")
+        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in BY_NAME
+              and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str)
+              and _is_private(node.args[1].value) and node.args[1].value not in own | NAMEDTUPLE_API):
+            name = node.args[1].value  # getattr(obj, "_x"): obj._x spelled otherwise
+            owners = sorted(DEFINED_BY[name] - {module})
+            if owners:
+                found[(module, name)].append(f"line {node.lineno}: {ast.unparse(node)[:80]} (of {' or '.join(owners)})")
     for cls in _classes(tree):
         methods = {n.name: n.lineno for n in cls.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
         for source, parent in _bases_elsewhere(module, cls):
@@ -222,9 +235,10 @@ OUTSIDE = ("tests", "benchmarks", "agents", "examples")
 
 def _outside_uses(path: Path) -> list[str]:
     """In a test, benchmark, agent or example: each private name imported from a module of the
-    package, and each
-    private name patched (``monkeypatch.setattr(x, "_y", ...)``, ``mock.patch.object(x, "_y", ...)``,
-    ``setattr(x, "_y", ...)``): a seam a test or benchmark needs is a public one."""
+    package, and each private name patched (``monkeypatch.setattr(x, "_y", ...)``,
+    ``mock.patch.object(x, "_y", ...)``, ``setattr(x, "_y", ...)``, or by its dotted path:
+    ``monkeypatch.setattr("retriever.m._y", ...)``, ``mock.patch("retriever.m._y")``): a seam a
+    test or benchmark needs is a public one."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     found = []
     for node in ast.walk(tree):
@@ -235,6 +249,12 @@ def _outside_uses(path: Path) -> list[str]:
               and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "object")
               and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant)
               and isinstance(node.args[1].value, str) and _is_private(node.args[1].value)):
+            found.append(f"line {node.lineno}: {ast.unparse(node)[:80]}")
+        elif (isinstance(node, ast.Call) and isinstance(node.func, (ast.Attribute, ast.Name))
+              and (node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id) in ("setattr", "patch")
+              and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)
+              and node.args[0].value.split(".")[0] == PACKAGE
+              and any(_is_private(part) for part in node.args[0].value.split("."))):
             found.append(f"line {node.lineno}: {ast.unparse(node)[:80]}")
     return found
 
@@ -250,8 +270,6 @@ def test_tests_and_benchmarks_use_public_seams():
 #: every private name the package defines: at a module's top level, or as a class's member
 #: (``def _x``, a class attribute, ``self._x = ...``): ``obj._x`` outside the package reads one of these
 PRIVATE_DEFINED = frozenset(name for names in DEFINED.values() for name in names if _is_private(name))
-#: named tuples' public methods, underscored so as not to clash with field names
-NAMEDTUPLE_API = frozenset({"_make", "_replace", "_asdict", "_fields", "_field_defaults"})
 
 
 def _package_bindings(tree: ast.Module) -> dict[str, str]:
