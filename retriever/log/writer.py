@@ -11,6 +11,7 @@ import errno
 import json
 import os
 import stat
+import struct
 import time
 from contextlib import contextmanager
 from operator import itemgetter
@@ -34,7 +35,10 @@ if TYPE_CHECKING:
 
 
 _value = itemgetter(4)
-_HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
+#: an event's data is msgpack ``[microstep, value]``: a fixarray of 2 (this byte), then, almost always,
+#: a fixint microstep (< 128), which _EVENT_HEAD packs with the Message record's head in one call
+_FIXARRAY_2 = 0x92
+_EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
@@ -234,19 +238,25 @@ class LogWriter:
     def _add_events(self, new: list[tuple]) -> None:
         if not new:
             return
-        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
+        head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
         channels, encode = self._channels, self._encode
         try:
-            # data = [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
-            records = [head(op, fields + len(data := _HEADS[tag[1]] + encode(value) if tag[1] < 128
-                                             else encode([tag[1], value])),
+            records = [head(op, fields + len(value_data := encode(value)),
                             channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
-                            published) + data
+                            published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+                       else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
             raise self._unencodable(new) from None
         self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
+
+    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any, published: int) -> bytes:
+        """The Message record of an event whose microstep is not a msgpack fixint (128 or more)."""
+        data = self._encode([tag[1], value])
+        channel = self._channels.get((node, port)) or self._add_channel(node, port)
+        return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
+                                 published) + data
 
     def _add_large_event(self, event: tuple) -> None:
         """An event whose value is a big array: its record is assembled in one buffer into which
@@ -257,7 +267,7 @@ class LogWriter:
             value_head = array_encoding_head(value)
         except CodecError:
             raise self._unencodable([event]) from None
-        data_head = (_HEADS[microstep] if microstep < 128 else b"\x92" + self._encode(microstep)) + value_head
+        data_head = bytes((_FIXARRAY_2,)) + self._encode(microstep) + value_head
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
         head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + value.nbytes, channel,
                                  seq & 0xFFFFFFFF, log_time, published) + data_head
