@@ -487,10 +487,9 @@ class RunLog:
             status, error = RunEnd.INTERRUPTED, "stopped by Ctrl-C or SIGTERM"
         else:
             status, error = RunEnd.ERROR, f"{type(exc).__name__}: {exc}"
-        # a stopped run ends at its last tick (real-time backends append records as they arrive)
-        end_ns = max(session.now_ns, writer.last_step_ns, max((rec[1][0] for rec in steps), default=0))
+        # a stopped run ends at its last tick: the writer ends the log at the latest of its step records
         try:
-            writer.close(session.trace, end_ns, status=status, error=error, stats=session.stats(),
+            writer.close(session.trace, session.now_ns, status=status, error=error, stats=session.stats(),
                          counts=session.counts)
         finally:
             if unstarted:

@@ -225,7 +225,8 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
-def _git_revision(folders: list[str], files: list[str] = ()) -> tuple[str, str]:
+@functools.cache
+def _git_revision(folders: tuple[str, ...], files: tuple[str, ...] = ()) -> tuple[str, str]:
     """``(HEAD, "")`` of the first of ``folders`` inside a git work tree, ``-dirty`` appended when
     tracked files changed or one of ``files`` (the flow modules') in it is not tracked (HEAD does
     not hold the code that ran); else ``("", why)``: what git said of the first folder it refused
@@ -233,7 +234,11 @@ def _git_revision(folders: list[str], files: list[str] = ()) -> tuple[str, str]:
     ``safe.directory``), or "" when none is in one (or git is not installed).
 
     Every folder is tried, not only the first: the flows of one run may come from a checkout and
-    from an installed package (``agents``), and the working directory is the last resort."""
+    from an installed package (``agents``), and the working directory is the last resort.
+
+    Asked once per process for the same folders and files: git takes two or three processes,
+    tens of ms, which every logged run would pay again; and a process runs the code it imported,
+    whatever is edited in the checkout afterwards."""
     refused = ""
     for folder in folders:
         try:
@@ -283,7 +288,7 @@ def run_metadata(pipeline: str, backend: str, seeds: dict[str, Any], started_uni
     except (KeyError, OSError):
         user = ""
     files = [f for name in flow_modules if isinstance(f := getattr(sys.modules.get(name), "__file__", None), str)]
-    revision, git_refused = _git_revision([*roots, os.getcwd()], files)
+    revision, git_refused = _git_revision((*roots, os.getcwd()), tuple(files))
     return {
         "format": FORMAT_VERSION,
         "pipeline": pipeline,

@@ -32,11 +32,11 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from .mcap_records import MAGIC, ZSTD, chunk_fields, chunk_head, message_indexes, record_bytes
+from .mcap_records import MAGIC, ZSTD, ChunkIndexes, chunk_fields, chunk_head, record_bytes
 
 
 class McapFile:
-    """Writes records to ``stream`` and remembers what the summary indexes."""
+    """Writes records to ``stream`` and remembers what the summary indexes and counts."""
 
     def __init__(self, stream: BinaryIO):
         self._stream = stream
@@ -46,6 +46,12 @@ class McapFile:
         self._chunk_indexes: list[ChunkIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
+        self._message_counts: Counter[int] = Counter()
+        self._start_time: int | None = None  # of the messages written so far
+        self._end_time = 0
+        #: each channel's latest log time among the messages written so far (another thread reads
+        #: it only once the I/O thread is idle: McapWriter.channel_end_time waits for it)
+        self.channel_end_times: dict[int, int] = {}
 
     def write(self, data: bytes | bytearray) -> None:
         """Bytes of the data section, as they are."""
@@ -74,36 +80,40 @@ class McapFile:
         """Push what is written to the OS: it then survives a kill."""
         self._stream.flush()
 
-    def write_chunk(self, data: bytearray, lengths: list[int], start: int, end: int) -> None:
-        """A chunk of Message records whose lengths are ``lengths`` and log times lie in
-        ``[start, end]``, compressed, with its MessageIndex records after it."""
+    def write_chunk(self, data: bytearray, lengths: list[int]) -> None:
+        """A chunk of Message records whose lengths are ``lengths``, compressed, with its
+        MessageIndex records after it."""
         compressed = self._compressor.compress(data)
+        read = ChunkIndexes(data, lengths)
+        start, end = read.start_time, read.end_time
         builder = RecordBuilder()
         Chunk(message_start_time=start, message_end_time=end, uncompressed_size=len(data),
               uncompressed_crc=zlib.crc32(data), compression=ZSTD, data=compressed).write(builder)
         chunk = builder.end()
         chunk_offset = self._offset
-        indexes = message_indexes(data, lengths)
         offsets, at = {}, chunk_offset + len(chunk)
-        for channel_id, record in indexes:
+        for channel_id, record in read.records:
             offsets[channel_id] = at
             at += len(record)
         # one write: a kill leaves the chunk with its indexes, or a torn record at the end
-        self.write(b"".join([chunk, *(record for _, record in indexes)]))
+        self.write(b"".join([chunk, *(record for _, record in read.records)]))
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=start, message_end_time=end, chunk_start_offset=chunk_offset,
             chunk_length=len(chunk), message_index_offsets=offsets,
             message_index_length=at - chunk_offset - len(chunk), compression=ZSTD, compressed_size=len(compressed),
             uncompressed_size=len(data)))
+        self._tally(read)
 
-    def write_large_chunk(self, record: np.ndarray, log_time: int) -> None:
+    def write_large_chunk(self, record: np.ndarray) -> None:
         """The chunk of one big record, written without joining its parts (zstd, crc32 and file
         writes of big buffers let the run's other threads go on meanwhile)."""
         compressed = self._compressor.compress(record)
+        read = ChunkIndexes(record, [len(record)])
+        log_time = read.start_time
         fields = chunk_fields(len(compressed))
         head = chunk_head(log_time, len(record), zlib.crc32(record), len(compressed))
         chunk_offset = self._offset
-        [(channel_id, index)] = message_indexes(record, [len(record)])
+        [(channel_id, index)] = read.records
         self.write(head)
         self.write(compressed)
         self.write(index)
@@ -112,9 +122,18 @@ class McapFile:
             chunk_length=1 + 8 + fields, message_index_offsets={channel_id: chunk_offset + 1 + 8 + fields},
             message_index_length=len(index), compression=ZSTD, compressed_size=len(compressed),
             uncompressed_size=len(record)))
+        self._tally(read)
 
-    def finish(self, schemas: list[Schema], channels: list[Channel], message_counts: Counter[int],
-               start_time: int, end_time: int) -> None:
+    def _tally(self, read: ChunkIndexes) -> None:
+        """Count a chunk's messages into the summary's statistics."""
+        self._message_counts.update(read.counts)
+        self._start_time = read.start_time if self._start_time is None else min(self._start_time, read.start_time)
+        self._end_time = max(self._end_time, read.end_time)
+        ends = self.channel_end_times
+        for channel_id, end in read.channel_end_times.items():
+            ends[channel_id] = max(ends.get(channel_id, 0), end)
+
+    def finish(self, schemas: list[Schema], channels: list[Channel]) -> None:
         """End the data section, then write the summary (schemas, channels, statistics, indexes),
         the footer and the closing magic."""
         self.write_record(DataEnd(data_section_crc=self._data_crc))
@@ -133,12 +152,13 @@ class McapFile:
 
         group(Opcode.SCHEMA, schemas)
         group(Opcode.CHANNEL, channels)
+        counts = self._message_counts
         group(Opcode.STATISTICS, [Statistics(
-            message_count=sum(message_counts.values()), schema_count=len(schemas),
+            message_count=sum(counts.values()), schema_count=len(schemas),
             channel_count=len(channels), attachment_count=len(self._attachment_indexes),
             metadata_count=len(self._metadata_indexes), chunk_count=len(self._chunk_indexes),
-            message_start_time=start_time, message_end_time=end_time,
-            channel_message_counts=dict(message_counts))])
+            message_start_time=self._start_time or 0, message_end_time=self._end_time,
+            channel_message_counts=dict(sorted(counts.items())))])
         group(Opcode.CHUNK_INDEX, self._chunk_indexes)
         group(Opcode.ATTACHMENT_INDEX, self._attachment_indexes)
         group(Opcode.METADATA_INDEX, self._metadata_indexes)

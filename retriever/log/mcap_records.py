@@ -7,7 +7,6 @@ classes (:func:`record_bytes`).
 from __future__ import annotations
 
 import struct
-from collections import Counter
 
 import numpy as np
 from mcap.data_stream import RecordBuilder
@@ -39,14 +38,11 @@ def record_bytes(record: McapRecord) -> bytes:
     return builder.end()
 
 
-def message_records(messages: list[tuple[int, int, int, int, bytes]]) -> tuple[list[bytes], int, int, Counter[int]]:
-    """The Message records of ``(channel_id, log_time, publish_time, sequence, data)`` messages,
-    with the earliest and latest log time among them and how many each channel has."""
+def message_records(messages: list[tuple[int, int, int, int, bytes]]) -> list[bytes]:
+    """The Message records of ``(channel_id, log_time, publish_time, sequence, data)`` messages."""
     pack = MESSAGE_HEAD.pack
-    records = [pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel_id, sequence & _U32, log_time,
-                    publish_time) + data for channel_id, log_time, publish_time, sequence, data in messages]
-    times = [m[1] for m in messages]
-    return records, min(times), max(times), Counter(m[0] for m in messages)
+    return [pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel_id, sequence & _U32, log_time, publish_time)
+            + data for channel_id, log_time, publish_time, sequence, data in messages]
 
 
 def chunk_head(log_time: int, uncompressed_size: int, uncompressed_crc: int, compressed_size: int) -> bytes:
@@ -62,23 +58,33 @@ def chunk_fields(compressed_size: int) -> int:
     return CHUNK_FIELDS + len(ZSTD) + compressed_size
 
 
-def message_indexes(chunk: bytes | bytearray, lengths: list[int]) -> list[tuple[int, bytes]]:
-    """The MessageIndex records of a chunk of Message records whose lengths are ``lengths``:
-    ``(channel_id, record)`` by channel id, each listing ``(log_time, offset in the chunk)`` in
-    log-time order (ties in file order)."""
-    sizes = np.array(lengths, dtype=np.int64)
-    offsets = np.cumsum(sizes) - sizes
-    raw = np.frombuffer(chunk, dtype=np.uint8)
-    channels = raw[offsets + _CHANNEL_AT].astype(np.uint16) | (raw[offsets + _CHANNEL_AT + 1].astype(np.uint16) << 8)
-    times = np.ascontiguousarray(raw[offsets[:, None] + _LOG_TIME_BYTES]).view("<u8").ravel()
-    order = np.lexsort((times, channels))  # by channel, then log time; stable
-    channels, entries = channels[order], np.empty((len(order), 2), dtype="<u8")
-    entries[:, 0], entries[:, 1] = times[order], offsets[order]
-    firsts = np.flatnonzero(np.r_[True, channels[1:] != channels[:-1]])
-    records = []
-    for first, last in zip(firsts, [*firsts[1:], len(order)]):
-        body = entries[first:last].tobytes()
-        channel_id = int(channels[first])
-        records.append((channel_id, MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + len(body), channel_id,
-                                                             len(body)) + body))
-    return records
+class ChunkIndexes:
+    """What the summary and the indexes say of a chunk of Message records, read from its bytes
+    (on the I/O thread, so that the run's thread adds a batch of records with one ``join``):
+    its MessageIndex records, how many messages each channel has in it, its earliest and latest
+    log time, and each channel's latest."""
+
+    def __init__(self, chunk: bytes | bytearray, lengths: list[int]):
+        sizes = np.array(lengths, dtype=np.int64)
+        offsets = np.cumsum(sizes) - sizes
+        raw = np.frombuffer(chunk, dtype=np.uint8)
+        channels = (raw[offsets + _CHANNEL_AT].astype(np.uint16)
+                    | (raw[offsets + _CHANNEL_AT + 1].astype(np.uint16) << 8))
+        times = np.ascontiguousarray(raw[offsets[:, None] + _LOG_TIME_BYTES]).view("<u8").ravel()
+        self.start_time, self.end_time = int(times.min()), int(times.max())
+        order = np.lexsort((times, channels))  # by channel, then log time; stable
+        channels, entries = channels[order], np.empty((len(order), 2), dtype="<u8")
+        entries[:, 0], entries[:, 1] = times[order], offsets[order]
+        firsts = np.flatnonzero(np.r_[True, channels[1:] != channels[:-1]])
+        #: ``(channel_id, MessageIndex record)`` by channel id, each listing ``(log_time, offset in
+        #: the chunk)`` in log-time order (ties in file order)
+        self.records: list[tuple[int, bytes]] = []
+        self.counts: dict[int, int] = {}
+        self.channel_end_times: dict[int, int] = {}
+        for first, last in zip(firsts.tolist(), [*firsts[1:].tolist(), len(order)]):
+            body = entries[first:last].tobytes()
+            channel_id = int(channels[first])
+            self.records.append((channel_id, MESSAGE_INDEX_HEAD.pack(Opcode.MESSAGE_INDEX, 2 + 4 + len(body),
+                                                                      channel_id, len(body)) + body))
+            self.counts[channel_id] = last - first
+            self.channel_end_times[channel_id] = int(entries[last - 1, 0])

@@ -10,7 +10,8 @@ own record classes, and the result is read back by the plain ``mcap`` reader in 
 Each chunk is followed by its MessageIndex records (one per channel: log time and offset of every
 message), which MCAP's indexed readers (Foxglove's ``McapIndexedReader``, Rerun's import) need to
 find a chunk's messages. They are built on the I/O thread, vectorised with numpy, from the chunk's
-bytes and the records' lengths: the hot path adds one ``extend`` per batch.
+bytes and the records' lengths, and so are the summary's statistics (messages per channel, first
+and last log time): the hot path adds one ``join`` and one ``extend`` per batch.
 
 Crash safety comes from the layout: schemas, channels, attachments and metadata go straight into
 the data section as they are added, and each :meth:`flush` closes the open chunk (zstd-compressed, with a
@@ -27,7 +28,6 @@ most one torn record, which ``mcap``'s non-seeking reader reads up to (``retriev
 
 from __future__ import annotations
 
-from collections import Counter
 from typing import BinaryIO
 
 import numpy as np
@@ -62,45 +62,25 @@ class Registry:
 
 
 class OpenChunk:
-    """Message records joined into the chunk not yet closed, and the tally of every message added
-    (the summary's statistics): how many per channel, the earliest and latest log time."""
+    """Message records joined into the chunk not yet closed, and their lengths (what the I/O
+    thread reads the chunk's indexes and statistics by, mcap_records.ChunkIndexes)."""
 
     def __init__(self) -> None:
         self.data = bytearray()
-        self._lengths: list[int] = []  # of the open chunk's records, in order (for its message indexes)
-        self._times: list[int] | None = None  # [earliest, latest] log time in the open chunk
-        self.message_counts: Counter[int] = Counter()
-        self.start_time: int | None = None
-        self.end_time = 0
+        self._lengths: list[int] = []  # of the open chunk's records, in order
 
-    def add(self, records: list[bytes], start: int, end: int, counts: dict[int, int]) -> None:
+    def add(self, records: list[bytes]) -> None:
         self.data += b"".join(records)
         self._lengths.extend(map(len, records))
-        if self._times is None:
-            self._times = [start, end]
-        else:
-            self._times[0] = min(self._times[0], start)
-            self._times[1] = max(self._times[1], end)
-        self.message_counts.update(counts)
 
-    def count_one(self, channel_id: int, log_time: int) -> None:
-        """Tally a message written in a chunk of its own (never joined into this one)."""
-        self._span(log_time, log_time)
-        self.message_counts[channel_id] += 1
-
-    def take(self) -> tuple[bytearray, list[int], int, int] | None:
-        """Close the chunk: its bytes, its records' lengths, its earliest and latest log time; None
-        when it is empty. The next records start a new one."""
+    def take(self) -> tuple[bytearray, list[int]] | None:
+        """Close the chunk: its bytes and its records' lengths; None when it is empty. The next
+        records start a new one."""
         if not self.data:
             return None
-        data, lengths, (start, end) = self.data, self._lengths, self._times
-        self.data, self._lengths, self._times = bytearray(), [], None
-        self._span(start, end)
-        return data, lengths, start, end
-
-    def _span(self, start: int, end: int) -> None:
-        self.start_time = start if self.start_time is None else min(self.start_time, start)
-        self.end_time = max(self.end_time, end)
+        data, lengths = self.data, self._lengths
+        self.data, self._lengths = bytearray(), []
+        return data, lengths
 
 
 class McapWriter:
@@ -159,24 +139,23 @@ class McapWriter:
     def add_messages(self, messages: list[tuple[int, int, int, int, bytes]]) -> None:
         """Append ``(channel_id, log_time, publish_time, sequence, data)`` messages to the open chunk."""
         if messages:
-            self.add_records(*message_records(messages))
+            self.add_records(message_records(messages))
 
-    def add_records(self, records: list[bytes], start: int, end: int, counts: dict[int, int]) -> None:
-        """Append whole Message records (built with :data:`MESSAGE_HEAD`), whose log times lie in
-        ``[start, end]`` and which ``counts`` counts per channel: the hot path of the log writer."""
+    def add_records(self, records: list[bytes]) -> None:
+        """Append whole Message records (built with :data:`MESSAGE_HEAD`): the hot path of the
+        log writer. What the summary counts of them is read on the I/O thread."""
         if not records:
             return
-        self._chunk.add(records, start, end, counts)
+        self._chunk.add(records)
         if len(self._chunk.data) >= self._chunk_size:
             self._close_chunk()
 
-    def add_large_record(self, record: np.ndarray, log_time: int, channel_id: int) -> None:
+    def add_large_record(self, record: np.ndarray) -> None:
         """Append one big Message record (its bytes, in a buffer nobody changes afterwards) in a
         chunk of its own: it is not copied on this thread, and the I/O thread compresses and
         writes it as it is."""
         self._close_chunk()
-        self._chunk.count_one(channel_id, log_time)
-        self._queue.submit(self._file.write_large_chunk, record, log_time, size=len(record))
+        self._queue.submit(self._file.write_large_chunk, record, size=len(record))
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS (as soon as the I/O thread gets
@@ -187,6 +166,13 @@ class McapWriter:
     def wait(self) -> None:
         """Block until every queued write reached the OS; raise the first write that failed."""
         self._queue.wait()
+
+    def channel_end_time(self, channel_id: int) -> int:
+        """The latest log time among the messages of a channel added so far (0: none). Closes
+        the open chunk and waits for the I/O thread, which reads the times from the chunks."""
+        self._close_chunk()
+        self.wait()
+        return self._file.channel_end_times.get(channel_id, 0)
 
     def abandon(self) -> None:
         """Stop writing after a failure: let the I/O thread end; the file stays as it is."""
@@ -207,6 +193,4 @@ class McapWriter:
         self._close_chunk()
         self._queue.close()  # every queued write is done: the file is this thread's now
         self._queue.check()
-        chunk = self._chunk
-        self._file.finish(self._registry.schemas, self._registry.channels, chunk.message_counts,
-                          chunk.start_time or 0, chunk.end_time)
+        self._file.finish(self._registry.schemas, self._registry.channels)

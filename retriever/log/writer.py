@@ -11,8 +11,8 @@ import errno
 import json
 import os
 import stat
+import struct
 import time
-from collections import Counter
 from contextlib import contextmanager
 from operator import itemgetter
 from pathlib import Path
@@ -34,8 +34,11 @@ if TYPE_CHECKING:
     from ..trace import Trace
 
 
-_first, _second, _node_port, _value = itemgetter(0), itemgetter(1), itemgetter(1, 2), itemgetter(4)
-_HEADS = [bytes((0x92, m)) for m in range(128)]  # msgpack: fixarray of 2, fixint microstep
+_value = itemgetter(4)
+#: an event's data is msgpack ``[microstep, value]``: a fixarray of 2 (this byte), then, almost always,
+#: a fixint microstep (< 128), which _EVENT_HEAD packs with the Message record's head in one call
+_FIXARRAY_2 = 0x92
+_EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
@@ -137,7 +140,6 @@ class LogWriter:
         # records written and then dropped from the trace (keep="counters": release()), before those
         self._events_released = 0
         self._steps_released = 0
-        self.last_step_ns = 0  # the latest tick of a step written
         self.last_bytes = 0  # the events' bytes of the last write() that had events
         self._faults = 0
         self._starved = 0
@@ -226,10 +228,7 @@ class LogWriter:
                             channel, index & u32, tag[0], start) + data
                        for index, (node, tag, consumed, produced, status, detail, start, wall)
                        in enumerate(new, self._steps_released + self._steps_done)]
-            tags = list(map(_second, new))
-            last = max(tags)[0]
-            self.last_step_ns = max(self.last_step_ns, last)
-            self._mcap.add_records(records, min(tags)[0], last, {channel: len(new)})
+            self._mcap.add_records(records)
             self._steps_done = len(steps)
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
@@ -239,22 +238,25 @@ class LogWriter:
     def _add_events(self, new: list[tuple]) -> None:
         if not new:
             return
-        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
+        head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
         channels, encode = self._channels, self._encode
         try:
-            # data = [microstep, value]: a fixarray of 2 and, almost always, a fixint microstep
-            records = [head(op, fields + len(data := _HEADS[tag[1]] + encode(value) if tag[1] < 128
-                                             else encode([tag[1], value])),
+            records = [head(op, fields + len(value_data := encode(value)),
                             channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
-                            published) + data
+                            published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+                       else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
             raise self._unencodable(new) from None
-        tags = list(map(_first, new))
-        counts = Counter(map(_node_port, new))
-        self._mcap.add_records(records, min(tags)[0], max(tags)[0],
-                               {channels[key]: n for key, n in counts.items()})
+        self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
+
+    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any, published: int) -> bytes:
+        """The Message record of an event whose microstep is not a msgpack fixint (128 or more)."""
+        data = self._encode([tag[1], value])
+        channel = self._channels.get((node, port)) or self._add_channel(node, port)
+        return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
+                                 published) + data
 
     def _add_large_event(self, event: tuple) -> None:
         """An event whose value is a big array: its record is assembled in one buffer into which
@@ -265,14 +267,14 @@ class LogWriter:
             value_head = array_encoding_head(value)
         except CodecError:
             raise self._unencodable([event]) from None
-        data_head = (_HEADS[microstep] if microstep < 128 else b"\x92" + self._encode(microstep)) + value_head
+        data_head = bytes((_FIXARRAY_2,)) + self._encode(microstep) + value_head
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
         head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + value.nbytes, channel,
                                  seq & 0xFFFFFFFF, log_time, published) + data_head
         record = np.empty(len(head) + value.nbytes, dtype=np.uint8)
         record[:len(head)] = np.frombuffer(head, dtype=np.uint8)
         np.copyto(record[len(head):].view(value.dtype).reshape(value.shape), value)
-        self._mcap.add_large_record(record, log_time, channel)
+        self._mcap.add_large_record(record)
         self.last_bytes += len(record)
 
     def add_fault(self, fault: dict) -> None:
@@ -305,7 +307,9 @@ class LogWriter:
 
     def close(self, trace: "Trace", end_ns: int, *, status: fmt.RunEnd = fmt.RunEnd.FINISHED, error: str = "",
               stats: dict | None = None, counts: dict | None = None) -> None:
-        """Write what is left and the ``retriever.end`` record, then finish the file."""
+        """Write what is left and the ``retriever.end`` record, then finish the file. The run
+        ends at ``end_ns`` or at its latest step record's tick, whichever is later (a stopped
+        real-time run's records may come after the time it reached)."""
         if self.closed:
             return
         self.closed = True
@@ -326,6 +330,7 @@ class LogWriter:
         try:
             self._write(trace)
         finally:  # a value the codec refused still leaves a finished log that says so
+            end_ns = max(end_ns, self._mcap.channel_end_time(self._steps_channel))
             end = {"status": status, "end_ns": str(end_ns), "events": str(self._events_released + self._events_done),
                    "steps": str(self.steps_total), "finished_unix_ns": str(time.time_ns())}
             if error:
