@@ -3,13 +3,17 @@ on loopback: what routes through the two, and whom the run router refuses."""
 
 from __future__ import annotations
 
+import shutil
+
+import pytest
 import zenoh
 
-from retriever.backends.zenoh.access import RunAccess
+from retriever.backends.zenoh.access import RunAccess, TlsFiles
 from retriever.backends.zenoh.daemon.run_router import open_run_router
-from retriever.backends.zenoh.hub import client_config
+from retriever.backends.zenoh.hub import client_config, free_port
 from retriever.backends.zenoh.wire import KeySpace
-from tests.backends.zenoh.test_router import SECRET, A, client, keys_seen, router, routers, secret, until  # noqa: F401
+from tests.backends.zenoh.test_router import (SECRET, A, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
+                                              routers, secret, until)
 
 RUN = "run-1"
 
@@ -20,9 +24,10 @@ def run_client(at: str, run: str = RUN, secret: bytes = SECRET) -> zenoh.Session
     return zenoh.open(client_config(connect=[at], access=access, shared_memory=False))
 
 
-def upstream_ids(at: str) -> list[str]:
+def upstream_ids(at: str, tls: TlsFiles | None = None) -> list[str]:
     """The Zenoh id of the router at ``at``, as a daemon's session joined to it knows it."""
-    with client(at, A) as daemon:
+    access = {**RunAccess.create(A, SECRET).client_config(A), **(tls.session_config() if tls else {})}
+    with zenoh.open(client_config(connect=[at], access=access, shared_memory=False)) as daemon:
         return [str(z) for z in daemon.info.routers_zid()]
 
 
@@ -66,3 +71,24 @@ def test_a_run_router_refuses_a_session_without_the_runs_password(router, tmp_pa
     finally:
         run_router.close()
     assert not list(folder.iterdir())  # its dictionary was in memory (or removed once it opened)
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="the test makes certificates with openssl")
+def test_a_run_router_links_to_an_upstream_router_over_mutual_tls(routers, secret, tmp_path):
+    files = certificates(tmp_path)
+    tls = TlsFiles(files["ca.pem"], files["client.pem"], files["client.key"])
+    upstream = f"tls/127.0.0.1:{free_port()}"
+    routers("--secret", str(secret), "--listen", upstream, "--namespace", A, *_tls_flags(files)).wait_started()
+    folder = tmp_path / "run"
+    folder.mkdir()
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream, tls), folder, tls=tls)
+    keys = KeySpace(A)
+    try:
+        far_access = {**RunAccess.create(A, SECRET).client_config(A), **tls.session_config()}
+        with run_client(run_router.endpoint) as camera, \
+                zenoh.open(client_config(connect=[upstream], access=far_access, shared_memory=False)) as policy:
+            far, _far_sub = keys_seen(policy, keys.data("camera", "**"))
+            until(lambda: far, "a put reaching beyond the upstream router over TLS",
+                  act=lambda: camera.put(keys.data("camera", "frame"), b"1"))
+    finally:
+        run_router.close()
