@@ -11,7 +11,7 @@ import zenoh
 from retriever.backends.zenoh.access import RunAccess, TlsFiles
 from retriever.backends.zenoh.daemon.run_router import open_run_router
 from retriever.backends.zenoh.hub import client_config, free_port
-from retriever.backends.zenoh.wire import KeySpace
+from retriever.backends.zenoh.wire import KeySpace, WireError
 from tests.backends.zenoh.test_router import (SECRET, A, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
                                               routers, secret, until)
 
@@ -92,3 +92,8 @@ def test_a_run_router_links_to_an_upstream_router_over_mutual_tls(routers, secre
                   act=lambda: camera.put(keys.data("camera", "frame"), b"1"))
     finally:
         run_router.close()
+
+
+def test_a_run_router_is_not_opened_while_the_worker_has_no_router(tmp_path):
+    with pytest.raises(WireError, match=r"run run-1: the worker has no link to its router \(tcp/127.0.0.1:7447\) now"):
+        open_run_router(A, SECRET, RUN, ("tcp/127.0.0.1:7447",), [], tmp_path)

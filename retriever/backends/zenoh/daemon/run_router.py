@@ -59,11 +59,17 @@ class RunRouter:
 
 
 def open_run_router(namespace: str, secret: bytes, run_id: str, upstream: tuple[str, ...], upstream_ids: list[str],
-                    folder: Path, tls: TlsFiles | None = None, lease: float | None = None) -> RunRouter:
+                    folder: Path, tls: TlsFiles | None = None) -> RunRouter:
     """Run ``run_id``'s router: on a free loopback port, linked to the routers at ``upstream``
     (admitted by their Zenoh ids, ``upstream_ids``), admitting the run's password alone (see the
     module's docstring); ``folder``: the run's private folder, where the dictionary is written
-    where the system has no memory file for it (access.SessionDictionary)."""
+    where the system has no memory file for it (access.SessionDictionary).
+
+    Its upstream link keeps Zenoh's lease, as the flows' own links to a remote router do
+    (runs.DaemonRuns.local_spec: the daemon's short one closes links that are merely slow)."""
+    if not upstream_ids:  # its access control would admit no router: nothing would route
+        raise WireError(f"run {run_id}: the worker has no link to its router ({', '.join(upstream)}) now, "
+                        "so its router for the run would have none")
     run_password = RunAccess.create(namespace, secret, run=run_id).run_password
     own = RunAccess.create(namespace, secret)  # the daemon's: what the upstream routers admit
     dictionary = SessionDictionary(f"{run_user(namespace)}:{run_password}\n", folder / "zenoh-run-router-users.txt")
@@ -71,7 +77,7 @@ def open_run_router(namespace: str, secret: bytes, run_id: str, upstream: tuple[
     try:
         session = zenoh.open(router_session_config(
             listen=[at], connect=upstream, user=run_user(namespace), password=own.run_password,
-            dictionary_file=dictionary.path, access=access_control([namespace], upstream_ids), tls=tls, lease=lease,
+            dictionary_file=dictionary.path, access=access_control([namespace], upstream_ids), tls=tls, lease=None,
             max_sessions=MAX_RUN_SESSIONS))
     except zenoh.ZError as e:
         raise WireError(f"run {run_id}: the worker's router for it cannot open on {at}: {e}") from None

@@ -360,7 +360,7 @@ class DaemonRuns:
         Zenoh thread that answers this query, which must not wait on Zenoh itself."""
         upstream_ids = [str(z) for z in self.session.info.routers_zid()]
         return self._spawner.submit(open_run_router, self.keys.namespace, self.secret, run.id, self.router,
-                                    upstream_ids, run.folder, self.tls, self.lease).result()
+                                    upstream_ids, run.folder, self.tls).result()
 
     def local_spec(self, spec: RunSpec, folder: Path, run_id: str, run_router: RunRouter | None = None) -> RunSpec:
         """The coordinator's ``spec`` as this host runs it, which prepare writes to the run's
