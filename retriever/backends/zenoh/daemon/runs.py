@@ -195,7 +195,7 @@ class DaemonRuns:
         if self.local_router:
             try:
                 run.router = self._open_run_router(run)
-            except WireError:
+            except Exception:  # no run is left half made: its folder holds its passwords
                 self._end(run)
                 raise
         write_private(folder / "spec.json", self.local_spec(spec, folder, run_id, run.router).to_json())
@@ -436,7 +436,7 @@ class DaemonRuns:
         if run.watch is not None:
             run.watch.undeclare()
             run.watch = None
-        if run.router is not None:  # after its flows, what they said last on its way; as it opened (_open_run_router)
+        if run.router is not None:  # after its flows, whose last words have left; on the thread it opened on
             self._spawner.submit(run.router.close).result()
             run.router = None
         shutil.rmtree(run.folder, ignore_errors=True)
