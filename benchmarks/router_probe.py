@@ -5,8 +5,12 @@
     python benchmarks/router_probe.py latency [T…]  put→subscriber latency: direct peers, clients of a router,
                                                     clients of two linked routers (TOPOLOGIES)
     python benchmarks/router_probe.py links N MODE  N client or peer sessions through one router: links, startup
+    python benchmarks/router_probe.py robot         (root) a robot-local edge in the netns lab, the robot behind
+                                                    NAT: through a router on the robot linked to the remote
+                                                    one, through the remote router, and direct (ROBOT_TOPOLOGIES)
 
-Every session listens and connects on loopback with multicast scouting off. Prints one line per check.
+Every session listens and connects on loopback (``robot``: the netns lab's addresses) with multicast
+scouting off. Prints one line per check.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
@@ -267,8 +272,21 @@ def role(argv: list[str]) -> None:
             pub.undeclare()
 
 
-def spawn(*args: str, stdin=None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, __file__, "role", *args], stdout=subprocess.PIPE, stdin=stdin, text=True)
+def spawn(*args: str, stdin=None, host=None) -> subprocess.Popen:
+    """A process of ``role``, here or on ``host`` of the netns lab (tests/deploy/lab.py)."""
+    argv = [sys.executable, os.path.abspath(__file__), "role", *args]
+    return (host.popen if host is not None else subprocess.Popen)(argv, stdout=subprocess.PIPE, stdin=stdin, text=True)
+
+
+def measure(sub_args: tuple, pub_args: tuple, shm: bool, size: int, n: int, rate: float, host=None) -> str:
+    """One put→subscriber latency measurement (``role`` sub and pub, here or on ``host``): what the subscriber said."""
+    sub = spawn("sub", *sub_args, "1" if shm else "0", str(n), host=host)
+    sub.stdout.readline()
+    pub = spawn("pub", *pub_args, "1" if shm else "0", str(size), str(n), str(rate), host=host)
+    out = sub.stdout.readline()
+    pub.wait(timeout=180)
+    sub.wait(timeout=30)
+    return out.strip()
 
 
 TOPOLOGIES = ("direct peers", "router, clients", "2 routers, clients")
@@ -303,18 +321,65 @@ def latency_once(topology: str, shm: bool, size: int, n: int, rate: float) -> fl
             procs.append(spawn("router", ep(40), "1" if shm else "0", stdin=subprocess.PIPE))
             time.sleep(1.0)
             sub_args, pub_args = ("client", "-", ep(40)), ("client", "-", ep(40))
-        sub = spawn("sub", *sub_args, "1" if shm else "0", str(n))
-        sub.stdout.readline()
-        pub = spawn("pub", *pub_args, "1" if shm else "0", str(size), str(n), str(rate))
-        out = sub.stdout.readline()
-        pub.wait(timeout=180)
-        sub.wait(timeout=30)
+        out = measure(sub_args, pub_args, shm, size, n, rate)
         for p in procs:
             p.stdin.close()
             p.wait(timeout=30)
         load = open("/proc/loadavg").read().split()[0]
-        print(f"{size:>9} B  {topology:<18} shm={'on ' if shm else 'off'}  {out.strip()}  load1={load}", flush=True)
-        return json.loads(out)["p50_us"] if out.strip() else None
+        print(f"{size:>9} B  {topology:<18} shm={'on ' if shm else 'off'}  {out}  load1={load}", flush=True)
+        return json.loads(out)["p50_us"] if out else None
+
+
+#: where a robot-local edge's two sessions (both on the robot) meet: direct (peers, the link a
+#: deployment without --router uses; with and without shared memory), through a router on the
+#: robot linked to the remote one (retriever worker --local-router), through the remote router
+#: (--router alone). Retriever's routers carry no shared memory (routing.ROUTER_SHARED_MEMORY);
+#: "local router, shm" is what a router of its own process, with shared memory, would give.
+ROBOT_TOPOLOGIES = ("direct peers", "direct peers, shm", "local router", "local router, shm", "remote router")
+ROBOT_SIZES = [(64, 300, 100), (1 << 20, 300, 50)]
+#: the lab's subnet: not the tests' (tests/deploy/lab.py), so that both can run at once
+ROBOT_SUBNET = "10.200.79.0/24"
+
+
+def robot() -> None:
+    """ROBOT_TOPOLOGIES in the netns lab: a router host, and a robot host behind NAT whose
+    publisher and subscriber talk; each topology's median against the direct peers' (shm off)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.deploy from this checkout
+    from tests.deploy.lab import Lab
+
+    with Lab(2, subnet=ROBOT_SUBNET) as lab:
+        hub, robot_host = lab.hosts
+        lab.nat(robot_host)
+        remote, local = f"tcp/{hub.address}:{BASE_PORT + 40}", ep(42)
+        routers = [spawn("router", remote, "0", stdin=subprocess.PIPE, host=hub)]
+        time.sleep(1.5)
+        routers.append(spawn("router", local, "0", remote, stdin=subprocess.PIPE, host=robot_host))
+        routers.append(spawn("router", ep(43), "1", remote, stdin=subprocess.PIPE, host=robot_host))
+        time.sleep(1.5)
+        pairs = {"direct peers": (("peer", ep(41), "-"), ("peer", "-", ep(41)), False),
+                 "direct peers, shm": (("peer", ep(41), "-"), ("peer", "-", ep(41)), True),
+                 "local router": (("client", "-", local), ("client", "-", local), False),
+                 "local router, shm": (("client", "-", ep(43)), ("client", "-", ep(43)), True),
+                 "remote router": (("client", "-", remote), ("client", "-", remote), False)}
+        medians: dict[tuple[int, str], float | None] = {}
+        try:
+            for size, n, rate in ROBOT_SIZES:
+                for topology in ROBOT_TOPOLOGIES:
+                    sub_args, pub_args, shm = pairs[topology]
+                    out = measure(sub_args, pub_args, shm, size, n, rate, host=robot_host)
+                    load = open("/proc/loadavg").read().split()[0]
+                    print(f"{size:>9} B  {topology:<18} {out}  load1={load}", flush=True)
+                    medians[(size, topology)] = json.loads(out)["p50_us"] if out else None
+        finally:
+            for p in routers:
+                p.stdin.close()
+                p.wait(timeout=30)
+            lab.unnat(robot_host)
+    print("\nmedian / direct peers' median, shm off (same run):", flush=True)
+    for (size, topology), p50 in medians.items():
+        direct = medians.get((size, "direct peers"))
+        if topology != "direct peers" and direct and p50:
+            print(f"{size:>9} B  {topology:<18} {p50 / direct:5.2f}x  ({p50 - direct:+,.0f} us)", flush=True)
 
 
 #: as Retriever's peers (hub.GOSSIP_ONE_WAY): of two peers, only the one of greater id opens their link
@@ -361,4 +426,5 @@ def links(n: int, mode: str) -> None:
 
 if __name__ == "__main__":
     {"functions": lambda: functions(), "tls": lambda: tls(sys.argv[2]), "latency": lambda: latency(sys.argv[2:]),
-     "role": lambda: role(sys.argv[2:]), "links": lambda: links(int(sys.argv[2]), sys.argv[3])}[sys.argv[1]]()
+     "role": lambda: role(sys.argv[2:]), "links": lambda: links(int(sys.argv[2]), sys.argv[3]),
+     "robot": lambda: robot()}[sys.argv[1]]()

@@ -23,6 +23,9 @@ def worker(
     router: Annotated[Optional[list[str]], typer.Option(
         metavar="ENDPOINT", help="Join through the Zenoh router there (retriever router) as a client listening "
                                  "nowhere, its flows too (repeatable); instead of --listen and --connect.")] = None,
+    local_router: Annotated[bool, typer.Option(
+        "--local-router", help="With --router: each run's flows join a router of the run's on this machine, linked to "
+                               "--router, so that edges between them stay on this machine.")] = False,
     namespace: Annotated[Optional[str], typer.Option(help="The deployment's namespace (default: default).")] = None,
     path: Annotated[Optional[list[Path]], typer.Option(
         metavar="DIR", help="A folder flows are imported from; its modules are allowed (repeatable).")] = None,
@@ -55,6 +58,7 @@ def worker(
 
     try:
         settings = load_settings(config, name=name, labels=labels, listen=listen, connect=connect, router=router,
+                                 local_router=local_router,
                                  namespace=namespace, path=[str(p) for p in path] if path else None,
                                  allow=allow, secret=None if secret is None else str(secret), insecure=insecure,
                                  lease=lease, code_mismatch=code_mismatch, pass_env=pass_env,

@@ -90,3 +90,43 @@ with Pipeline("lab-grouped") as grouped:
     source.then(middle, sync=Latest()).then(Relay().configure(name="sink") @ Trigger(), sync=Latest())
     source.then(Relay().configure(name="tap") @ Trigger(), sync=Latest())
     middle.then(Relay().configure(name="echo") @ Trigger(), sync=Latest())
+
+
+@io
+@dataclass
+class Command:
+    a: int
+
+
+@io
+@dataclass
+class ControlIn:
+    n: int  # the camera's count, from beside it
+    a: int | None = None  # the policy's command, from another machine; None until one came
+
+
+class Policy(Flow[Count, Command]):
+    """Commands the count it was shown."""
+
+    def step(self, inp: Count) -> Command:
+        return Command(a=inp.n)
+
+
+class Controller(Flow[ControlIn, None]):
+    """Acts on the newest frame count and command, on a clock of its own."""
+
+    def step(self, inp: ControlIn) -> None:
+        return None
+
+
+#: how long the controller's tick waits for the policy's command before it runs without it
+POLICY_DEADLINE_S = 0.03
+
+
+with Pipeline("lab-local") as local:
+    # camera and controller on the robot, the policy on another machine (test_run_router_deploy.py)
+    frames = Counter().configure(name="camera") @ Rate(hz=20)
+    controller = Controller().configure(name="controller") @ Rate(hz=20)
+    frames.then(controller, sync=Latest())
+    frames.then(Policy().configure(name="policy") @ Trigger(), sync=Latest()).then(
+        controller, sync=Latest(), deadline=POLICY_DEADLINE_S)

@@ -8,6 +8,7 @@
     origin.py       which process sent a status or report: each worker process's own key, and the MAC it puts on them
     hub.py          peer sessions: the run's hub and the workers joining it
     router.py       retriever router: a Zenoh router that deployments join as clients (hub.client_config)
+    routing.py      a router-mode session's access control and config (router.py's, a daemon's run router)
     reach.py        why an endpoint admitted no session (nothing listens, refused, wrong credentials)
     folders.py      private folders named by their process's PID, and the reaping of a dead one's
     node/           one node's real-time loop, split by concern (its docstring draws it); its

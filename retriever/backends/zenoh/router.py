@@ -40,13 +40,13 @@ from pathlib import Path
 import zenoh
 
 from ...errors import AccessError, RouterError
-from .access import (ROUTER_USER, WATCHER_MAY_NOT, RunAccess, TlsFiles, read_secret, router_password, run_user,
-                     watch_user, write_private)
+from .access import ROUTER_USER, RunAccess, TlsFiles, read_secret, router_password, write_private
 from .daemon import DEFAULT_NAMESPACE, LEASE_RANGE, credentials
 from .folders import private_folder
-from .hub import ACCEPT_TIMEOUT_S, accept_pending, client_config, raise_open_file_limit
+from .hub import client_config, raise_open_file_limit
 from .reach import why_no_session
-from .wire import KeySpace, check_chunk
+from .routing import access_control, router_session_config
+from .wire import check_chunk
 
 #: the kind of private folder (folders.py) of a router's dictionary file
 ROUTER_FOLDER = "retriever-router"
@@ -62,16 +62,6 @@ STOP_CHECK_S = 0.5
 #: how long a linked router is given to answer who it is
 LINK_CHECK_S = 5.0
 
-#: every kind of message Zenoh's access control tells apart
-ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
-                "liveliness_query", "declare_liveliness_subscriber")
-
-#: A router forwards shared memory between clients on its host only if it maps their pools, and
-#: a process keeps every pool it mapped until it exits (hub.HUB_SHARED_MEMORY): a router that
-#: outlives many runs would hold all of their flows' pools in /dev/shm. So its links carry every
-#: message over TCP.
-ROUTER_SHARED_MEMORY = False
-
 
 @dataclass(frozen=True)
 class RouterSettings:
@@ -84,65 +74,14 @@ class RouterSettings:
     max_sessions: int = MAX_SESSIONS
 
 
-def access_control(namespaces: Iterable[str], router_ids: Iterable[str] = ()) -> dict:
-    """The router's access control: deny by default; per namespace, its run user everything on
-    its keys, its watcher access.py's read-only share; the routers linked to (by their user when
-    they connect here, by ``router_ids`` when this router connects to them) every served key."""
-    rules, subjects, policies = [], [{"id": "routers", "usernames": [ROUTER_USER]}], []
-    served = []
-    for ns in namespaces:
-        keys = KeySpace(ns)
-        own = keys.everything()
-        served.append(own)
-        rules += [{"id": f"run:{ns}", "messages": list(ALL_MESSAGES), "flows": ["ingress", "egress"],
-                   "permission": "allow", "key_exprs": [own]},
-                  {"id": f"watch-sends:{ns}", "messages": [m for m in ALL_MESSAGES if m not in WATCHER_MAY_NOT],
-                   "flows": ["ingress"], "permission": "allow", "key_exprs": [own]},
-                  {"id": f"watch-gets:{ns}", "messages": list(ALL_MESSAGES), "flows": ["egress"],
-                   "permission": "allow", "key_exprs": [own]},
-                  {"id": f"watch-sees-no-control:{ns}", "messages": ["put", "delete"], "flows": ["egress"],
-                   "permission": "deny", "key_exprs": [keys.ctl("**")]}]
-        subjects += [{"id": f"run:{ns}", "usernames": [run_user(ns)]},
-                     {"id": f"watch:{ns}", "usernames": [watch_user(ns)]}]
-        policies += [{"rules": [f"run:{ns}"], "subjects": [f"run:{ns}"]},
-                     {"rules": [f"watch-sends:{ns}", f"watch-gets:{ns}", f"watch-sees-no-control:{ns}"],
-                      "subjects": [f"watch:{ns}"]}]
-    rules.append({"id": "routers", "messages": list(ALL_MESSAGES), "flows": ["ingress", "egress"],
-                  "permission": "allow", "key_exprs": served})
-    policies.append({"rules": ["routers"], "subjects": ["routers"]})
-    if router_ids := list(router_ids):
-        subjects.append({"id": "linked", "zids": router_ids})
-        policies.append({"rules": ["routers"], "subjects": ["linked"]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
-
-
 def router_config(settings: RouterSettings, secret: bytes, dictionary_file: Path,
                   router_ids: Iterable[str] = ()) -> zenoh.Config:
     """The router's session config: router mode on ``settings.listen``, linked to
     ``settings.connect`` as ROUTER_USER, checking every link against ``dictionary_file``."""
-    config = zenoh.Config()
-    entries = {
-        "mode": "router",
-        "listen/endpoints": list(settings.listen),
-        "connect/endpoints": list(settings.connect),
-        "connect/retry": {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2},
-        "scouting/multicast/enabled": False,
-        "transport/unicast/max_sessions": settings.max_sessions,
-        # strangers' idle connections must not keep the deployments' links out (hub.ACCEPT_TIMEOUT_S)
-        "transport/unicast/accept_timeout": round(ACCEPT_TIMEOUT_S * 1000),
-        "transport/unicast/accept_pending": accept_pending(),
-        "transport/shared_memory/enabled": ROUTER_SHARED_MEMORY,
-        "transport/auth/usrpwd": {"user": ROUTER_USER, "password": router_password(secret),
-                                  "dictionary_file": str(dictionary_file)},
-        "access_control": access_control(settings.namespaces, router_ids),
-    }
-    if settings.lease is not None:
-        entries["transport/link/tx/lease"] = round(settings.lease * 1000)
-    for key, value in entries.items():
-        config.insert_json5(key, json.dumps(value))
-    for key, value in (settings.tls.session_config() if settings.tls else {}).items():
-        config.insert_json5(key, value)
-    return config
+    return router_session_config(
+        listen=settings.listen, connect=settings.connect, user=ROUTER_USER, password=router_password(secret),
+        dictionary_file=dictionary_file, access=access_control(settings.namespaces, router_ids), tls=settings.tls,
+        lease=settings.lease, max_sessions=settings.max_sessions)
 
 
 def check_settings(settings: RouterSettings) -> None:

@@ -956,6 +956,21 @@ def test_a_worker_joined_through_a_router_listens_nowhere(tmp_path):
     assert load_settings(name="bare").router == ()
 
 
+def test_a_local_router_needs_a_router_and_a_secret(tmp_path):
+    config = tmp_path / "worker.toml"
+    config.write_text('name = "robot"\nrouter = "tcp/10.0.0.1:7447"\nlocal_router = true\nsecret = "lab.key"\n')
+    assert load_settings(config).local_router and not load_settings(name="bare").local_router
+    with pytest.raises(WorkerError, match=r"--local-router links each run's router to the routers of --router: "
+                                          r"give --router ENDPOINT"):
+        load_settings(name="robot", local_router=True, insecure=True)
+    with pytest.raises(WorkerError, match=r"--local-router admits each run's flows by the run's password, derived "
+                                          r"from the deployment secret: give --secret FILE \(not --insecure\)"):
+        load_settings(name="robot", router=["tcp/10.0.0.1:7447"], local_router=True, insecure=True)
+    config.write_text('name = "robot"\nrouter = "tcp/10.0.0.1:7447"\nlocal_router = "yes"\nsecret = "lab.key"\n')
+    with pytest.raises(WorkerError, match=r"'local_router' must be true or false, got 'yes'"):
+        load_settings(config)
+
+
 def test_a_deployment_through_a_router_takes_no_connect_or_listen(tmp_path):
     from retriever import BackendError
     from retriever.backends.zenoh.deploy import Deployment, load_deploy_config

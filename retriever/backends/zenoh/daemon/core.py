@@ -80,7 +80,8 @@ class WorkerDaemon:
         self.runs = DaemonRuns(session, settings.name, settings.namespace, listen=settings.listen, secret=secret,
                                allowed=self.module_allowed, refusal=self.refusal, paths=settings.path,
                                tls=settings.tls, lease=settings.lease, code_mismatch=settings.code_mismatch,
-                               pass_env=settings.pass_env, router=settings.router)
+                               pass_env=settings.pass_env, router=settings.router,
+                               local_router=settings.local_router)
         #: op -> handler(request) -> its reply
         self.ops: dict[DaemonOp, Callable[[Record], Record]] = {DaemonOp.INFO: self.info, **self.runs.ops}
 
@@ -251,7 +252,9 @@ def name_taken(session: zenoh.Session, namespace: str, name: str) -> str | None:
 def _start_line(settings: DaemonSettings) -> str:
     allowed = [*ALWAYS_ALLOWED, *path_modules(list(settings.path)), *settings.allow]
     parts = [f"retriever-worker '{settings.name}' in namespace '{settings.namespace}'",
-             f"joined through router {', '.join(settings.router)}" if settings.router else
+             f"joined through router {', '.join(settings.router)}"
+             + ("; each run's flows through a router of the run's here" if settings.local_router else "")
+             if settings.router else
              f"listening on {', '.join(settings.listen)}"]
     if settings.connect:
         parts.append(f"connecting to {', '.join(settings.connect)}")

@@ -23,6 +23,10 @@ returns its reply record (protocol/daemon.py):
 and it tells the coordinator what the run's processes print and how they exit (ProcessOutput,
 ProcessExit on workers/<name>/events), signed with the run's key.
 
+A daemon joined through routers with ``--local-router`` opens a router of each run's on this
+machine when it prepares the run, which the run's flows join (run_router.py), and closes it
+with the run.
+
 A daemon serves one run at a time, and ends it by itself when its coordinator's liveliness token
 goes (the coordinator died, or lost the network): its processes get SIGTERM, then, still there
 after COORDINATOR_GRACE_S, SIGKILL. Its worker processes die with it (PR_SET_PDEATHSIG).
@@ -62,6 +66,7 @@ from ..protocol import (ControlSigner, DaemonOp, EndReply, EndRequest, PrepareRe
                         ProcessOutput, Record, RunSpec, SignalReply, SignalRequest, SpawnReply, SpawnRequest, Stream,
                         UsageReply, UsageRequest)
 from ..wire import RELIABLE, KeySpace, WireError
+from .run_router import RunRouter, open_run_router
 from .settings import ENDPOINT
 
 #: after its coordinator is gone, how long a run's processes have to stop before SIGKILL (the
@@ -110,6 +115,7 @@ class Run:
         self.members: dict[int, tuple[str, ...]] = {}  # by pid: the nodes a group's process serves
         self.watch = None  # the liveliness subscriber on the coordinator's token
         self.ir: dict = {}
+        self.router: RunRouter | None = None  # the run's own router (--local-router)
 
 
 class DaemonRuns:
@@ -118,9 +124,11 @@ class DaemonRuns:
     def __init__(self, session: zenoh.Session, name: str, namespace: str, *, listen: tuple[str, ...],
                  secret: bytes | None, allowed: Callable[[str], bool], refusal: Callable[[str], str],
                  paths: tuple[str, ...], tls: TlsFiles | None = None, lease: float | None = None,
-                 code_mismatch: str = "refuse", pass_env: tuple[str, ...] = (), router: tuple[str, ...] = ()):
+                 code_mismatch: str = "refuse", pass_env: tuple[str, ...] = (), router: tuple[str, ...] = (),
+                 local_router: bool = False):
         self.session, self.name, self.keys = session, name, KeySpace(namespace)
         self.router = router  # the routers the daemon joined through: its flows join through them too
+        self.local_router = local_router  # or through a router of each run's here, linked to those (run_router.py)
         # the deployment secret (None: --insecure): each run's passwords are derived from it for
         # that run alone (access.RunAccess.create), never sent
         self.listen, self.secret, self.allowed, self.refusal, self.tls = listen, secret, allowed, refusal, tls
@@ -184,7 +192,13 @@ class DaemonRuns:
         folder = Path(tempfile.mkdtemp(prefix=f"{DAEMON_FOLDER}-{os.getpid()}-run-"))
         self.run = run = Run(run_id, folder, nodes)
         run.ir, run.groups = ir.doc, dict(spec.groups)
-        write_private(folder / "spec.json", self.local_spec(spec, folder, run_id).to_json())
+        if self.local_router:
+            try:
+                run.router = self._open_run_router(run)
+            except Exception:  # no run is left half made: its folder holds its passwords
+                self._end(run)
+                raise
+        write_private(folder / "spec.json", self.local_spec(spec, folder, run_id, run.router).to_json())
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
         return PrepareReply(nodes=tuple(sorted(nodes)), warnings=tuple(warnings), key=run.key)
@@ -341,13 +355,21 @@ class DaemonRuns:
                   if self.code_mismatch == "refuse" else " (it runs its own copy: --code-mismatch warn)"))
         return f"node '{nid}': {problem}\n    hint: {fix}"
 
-    def local_spec(self, spec: RunSpec, folder: Path, run_id: str) -> RunSpec:
+    def _open_run_router(self, run: Run) -> RunRouter:
+        """``run``'s own router (run_router.py), opened on the spawner's thread: not on the
+        Zenoh thread that answers this query, which must not wait on Zenoh itself."""
+        upstream_ids = [str(z) for z in self.session.info.routers_zid()]
+        return self._spawner.submit(open_run_router, self.keys.namespace, self.secret, run.id, self.router,
+                                    upstream_ids, run.folder, self.tls).result()
+
+    def local_spec(self, spec: RunSpec, folder: Path, run_id: str, run_router: RunRouter | None = None) -> RunSpec:
         """The coordinator's ``spec`` as this host runs it, which prepare writes to the run's
         ``folder`` for its processes: its Python path, the credentials of run ``run_id``
         (derived here from the secret: access.RunAccess.create; their files in ``folder``), the
         hub's address as this host reaches it, which the coordinator put in ``spec`` (or, for a
         daemon joined through routers, those routers, whose clients its flows are too:
-        ``router``, with the namespace's credentials, which a router's fixed dictionary holds);
+        ``router``, with the namespace's credentials, which a router's fixed dictionary holds;
+        or ``run_router``, the run's own here, with the run's credentials: run_router.py);
         no shared folder with the coordinator, no main script, no argv (a worker's flows see the
         worker's own: sys.argv is no channel for a stranger's arguments to a module that parses
         them when imported).
@@ -355,7 +377,10 @@ class DaemonRuns:
         The flows link to the hub and to each other, never to this daemon's session: it holds
         the namespace's credentials, theirs are the run's (nothing of one run opens a link to
         the daemons, nor to another run)."""
-        if self.router:
+        if run_router is not None:  # its one link is on loopback: no TLS
+            hub, router, listen = None, (run_router.endpoint,), ()
+            access = RunAccess.create(self.keys.namespace, self.secret, run=run_id)
+        elif self.router:
             hub, router, listen = None, tuple(self.router), ()
             access = RunAccess.create(self.keys.namespace, self.secret) if self.secret is not None else None
         else:
@@ -374,7 +399,8 @@ class DaemonRuns:
             python_path=(*self.paths, *(p for p in sys.path if p and os.path.isdir(p))),
             main_file=None, spill_dir=None, argv=None, dora_part=None,
             access=access.to_spec(access.write_dictionary(folder)) if access is not None else None,
-            tls=vars(self.tls) if self.tls is not None else None, lease=None, blocked_put=self.lease)
+            tls=vars(self.tls) if self.tls is not None and run_router is None else None, lease=None,
+            blocked_put=self.lease)
 
     def _await_exit(self, run: Run, node: str, proc: subprocess.Popen) -> None:
         code = proc.wait()
@@ -410,6 +436,9 @@ class DaemonRuns:
         if run.watch is not None:
             run.watch.undeclare()
             run.watch = None
+        if run.router is not None:  # after its flows, whose last words have left; on the thread it opened on
+            self._spawner.submit(run.router.close).result()
+            run.router = None
         shutil.rmtree(run.folder, ignore_errors=True)
         if self.run is run:
             self.run = None

@@ -21,7 +21,7 @@ DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 
 CONFIG_KEYS = ("name", "labels", "listen", "connect", "namespace", "path", "allow", "secret", "insecure", "lease",
-               "tls_ca", "tls_cert", "tls_key", "code_mismatch", "pass_env", "router")
+               "tls_ca", "tls_cert", "tls_key", "code_mismatch", "pass_env", "router", "local_router")
 #: what a worker does with a node whose module's file here differs from the coordinator's (the
 #: IR's sha256): refuse to run it (the default), or run it and warn
 CODE_MISMATCH = ("refuse", "warn")
@@ -53,6 +53,9 @@ class DaemonSettings:
     #: the Zenoh routers it joins through, as a client listening nowhere (router.py), its flows
     #: too; none: a peer on ``listen`` and ``connect``
     router: tuple[str, ...] = ()
+    #: with ``router``: each run's flows join a router of the run's on this machine
+    #: (run_router.py), linked to ``router``, so that their edges between each other stay here
+    local_router: bool = False
 
 
 def load_settings(config: str | os.PathLike | None = None, **flags) -> DaemonSettings:
@@ -156,11 +159,19 @@ def _validate(values: dict, problems: list[str]) -> DaemonSettings | None:
     for variable in pass_env:
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", variable):
             problems.append(f"'pass_env' names environment variables, got {variable!r:.60}")
+    local_router = values.get("local_router", False)
+    if not isinstance(local_router, bool):
+        problems.append(f"'local_router' must be true or false, got {local_router!r:.60}")
+    elif local_router and not router:
+        problems.append("--local-router links each run's router to the routers of --router: give --router ENDPOINT")
+    elif local_router and secret is None:
+        problems.append("--local-router admits each run's flows by the run's password, derived from the deployment "
+                        "secret: give --secret FILE (not --insecure)")
     if problems:
         return None
     return DaemonSettings(name, labels, listen, connect, namespace, tuple(paths), strings("allow"),
                           None if secret is None else str(secret), insecure,
-                          None if lease is None else float(lease), tls, code_mismatch, pass_env, router)
+                          None if lease is None else float(lease), tls, code_mismatch, pass_env, router, local_router)
 
 
 def _check_chunk(kind: str, value: object, problems: list[str]) -> None:
