@@ -235,7 +235,10 @@ def restart_in_place(w: Serving, ir: IR) -> None:
         except Exception as exc:
             raise StopRun(f"{w.node}.setup() raised {type(exc).__name__}: {exc}, as the flow restarted after its "
                           "step failed") from exc
-        _kept_to_the_end.append(flow)
+        # kept in the old one's place (still the loop's, torn down), which goes: not one more
+        # model held per restart until the process ends (the first stays its loop's Node's)
+        old = w.loop.flow
+        _kept_to_the_end[:] = [f for f in _kept_to_the_end if f is not old] + [flow]
         return flow
 
     w.loop.in_place = InPlaceRestart(RestartBudget(settings.max_restarts, settings.restart_window), fresh)
