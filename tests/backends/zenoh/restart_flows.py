@@ -56,3 +56,13 @@ class CountedSink(SetUpCounted, Flow[OptXIn, Report]):
 
     def step(self, inp: OptXIn) -> Report:
         return Report(inp.x)
+
+
+class SetUpOnce(FailingMiddle):
+    """A FailingMiddle whose setup() raises once it ran in this process before (a device one
+    process may open only once)."""
+
+    def setup(self) -> None:
+        super().setup()
+        if SET_UPS[type(self).__name__] > 1:
+            raise RuntimeError("the device is taken")

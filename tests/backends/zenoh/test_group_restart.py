@@ -12,7 +12,7 @@ import retriever
 from retriever import Latest, Pipeline, Rate, RestartLimitError, Trigger
 from retriever.replay import replay
 
-from .restart_flows import CountedSink, CountingSource, FailingMiddle
+from .restart_flows import CountedSink, CountingSource, FailingMiddle, SetUpOnce
 
 
 def chain(fail_at: list, process: str | None = "chain", **budget) -> Pipeline:
@@ -105,6 +105,16 @@ def test_a_member_restarts_in_place_in_virtual_time_as_in_process():
     assert pipe.counts()["restarts"] == 2
     assert trace.first_difference(reference) is None
     assert trace.digest() == reference.digest()
+
+
+def test_a_fresh_flow_whose_setup_raises_stops_the_run_saying_so():
+    with Pipeline("group_restart_setup") as pipe:
+        src = CountingSource().configure(name="src", process="chain") @ Rate(hz=20)
+        mid = SetUpOnce(fail_at=[3]).configure(name="mid", process="chain", on_error="restart") @ Trigger("x")
+        src.then(mid, sync=Latest(), map={"value": "x"})
+    with pytest.raises(retriever.BackendError, match=r"zenoh run stopped: mid\.setup\(\) raised RuntimeError: the "
+                                                     r"device is taken, as the flow restarted after its step failed"):
+        pipe.run(duration=2.0, backend="zenoh", quiet=True)
 
 
 def test_a_member_whose_process_dies_takes_the_group_down_whatever_its_on_error(tmp_path):
