@@ -120,8 +120,8 @@ class Supervisor:
             if book.ending.failure is not None:
                 self.raise_failure()
             # (a group's process takes all its members with it: none starts afresh on its own)
-            if book.t0 is not None and book.graph.nodes[nid].settings.on_error == "restart" and \
-                    not procs.shares_process(nid):
+            restarts = book.graph.nodes[nid].settings.on_error == "restart" and not procs.shares_process(nid)
+            if book.t0 is not None and restarts:
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time
             procs.hosts[nid].output(nid).drain()
