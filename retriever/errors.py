@@ -285,14 +285,16 @@ class RunEnded(RetrieverError):
 class StopRun(RetrieverError):
     """The run must stop: a step failed with on_error="stop", or a miss in realtime="hard";
     ``zeno``: an instant ran past max_microsteps (the coordinator raises CausalityError);
-    ``raised``: what the step raised, when it did (the coordinator raises StepError)."""
+    ``raised``: what the step raised, when it did (the coordinator raises StepError);
+    ``out_of_restarts``: that step's restart was past the flow's budget (RestartLimitError)."""
 
     def __init__(self, message: str, tag: tuple[int, int] | None = None, zeno: bool = False,
-                 raised: str | None = None):
+                 raised: str | None = None, out_of_restarts: bool = False):
         super().__init__(message)
         self.tag = tag
         self.zeno = zeno
         self.raised = raised
+        self.out_of_restarts = out_of_restarts
 
 
 class ReplayedError(RetrieverError):

@@ -21,7 +21,8 @@ there runs its ticks in a loop of its own while nothing else is due (node/source
 loop's records by tests/backends/zenoh/test_realtime_semantics.py and test_warmup.py).
 :func:`select_inputs` is the one place inputs are selected; :func:`decide` the one decision on a
 step that raised (its restart, :func:`take_restart`, is also the coordinator's, which holds a
-real-time flow's budget). Elsewhere ``on_error`` is read only for what a restart needs before any
+real-time flow's budget; a flow that restarts in place, a group's member, has its loop hold it:
+backends/zenoh/node/in_place.py). Elsewhere ``on_error`` is read only for what a restart needs before any
 step raised: a process of its own (coordinator/spec.py; dora refuses it), and a flow whose process
 died started afresh (coordinator/processes.py). A value the codec cannot encode stops the run
 whatever ``on_error`` says: it is no error of the step, but an output the run cannot carry.

@@ -174,18 +174,19 @@ def test_a_grouped_run_in_virtual_time_is_the_in_process_run():
     assert trace.digest() == reference.digest()
 
 
-def test_a_flow_that_restarts_runs_alone_whatever_its_process_name(tmp_path):
-    """faulty (on_error="restart") is given process "front" but runs alone, and says so; its step
-    raises at x=5 and it restarts in a new process; counter, in "front", runs on; the log replays."""
+def test_a_flow_that_restarts_is_grouped_and_restarts_in_its_groups_process(tmp_path, recwarn):
+    """faulty (on_error="restart") shares process "front" with counter, with no warning; its step
+    raises at x=5 and it restarts in place (test_group_restart.py has the rest); counter, in
+    "front", runs on; the log replays."""
     pipe = grouped_pipeline(fail_at=[5], with_pid=False)
-    with pytest.warns(RetrieverWarning, match=r"faulty: a flow with on_error='restart' runs in a process of its own"):
-        session = pipe.open("zenoh", quiet=True)
+    session = pipe.open("zenoh", quiet=True)
+    assert not [w for w in recwarn if issubclass(w.category, RetrieverWarning)]
     first = session.worker_pids()
-    assert len(set(first.values())) == 3, first
+    assert first["counter"] == first["faulty"] != first["sink"], first
     path = tmp_path / "run.mcap"
     trace = pipe.run(duration=2.0, backend="zenoh", log=path)
     assert pipe.stats()["faulty"].counts.get("restarts") == 1
-    assert pipe.session.worker_pids()["counter"] == first["counter"]
+    assert pipe.session.worker_pids() == first
     assert len([s for s in trace.steps if s.node == "counter"]) == 40
     import retriever
     from retriever.replay import replay
@@ -213,15 +214,13 @@ def test_a_mixed_run_in_real_time_logs_and_replays_identically(tmp_path):
     assert report.identical, report.divergences[:3]
 
 
-def test_names_a_hosting_gives_win_over_the_flows_and_a_restarting_flow_stays_alone():
+def test_names_a_hosting_gives_win_over_the_flows():
     """A deployment's placement file names processes too (Hosting.process_names): its name wins
-    over configure(process=); a flow with on_error="restart" stays out of every group, whoever
-    named it, and is said to run alone."""
-    from retriever.backends.zenoh.coordinator.spec import process_groups, restarting_alone
+    over configure(process=); a flow with on_error="restart" is grouped as any other."""
+    from retriever.backends.zenoh.coordinator.spec import process_groups
 
     graph = grouped_pipeline(fail_at=[5], with_pid=False).compile()  # faulty restarts
-    assert process_groups(graph) == {}  # counter alone in "front": no group
-    assert process_groups(graph, {"sink": "front"}) == {"front": ["counter", "sink"]}
-    assert process_groups(graph, {"counter": "back", "sink": "front"}) == {}
-    assert restarting_alone(graph, {"sink": "front"}) == ["faulty"]
+    assert process_groups(graph) == {"front": ["counter", "faulty"]}
+    assert process_groups(graph, {"sink": "front"}) == {"front": ["counter", "faulty", "sink"]}
+    assert process_groups(graph, {"counter": "back", "faulty": "solo", "sink": "front"}) == {}
     assert process_groups(grouped_pipeline().compile(), {"faulty": "solo"}) == {}  # a name of its own: alone

@@ -95,6 +95,11 @@ TODAY = [
                    zeno=True),
      p.Failed(node="cam", pid=PID, error="cam.step() raised X", tag=(3, 1), counts={"late": 2}, traceback="T",
               zeno=True)),
+    # a restart in place past the budget (worker/ending.tell_failed, node/in_place.py)
+    (worker_status("cam", "failed", error="flow 'cam' failed again", tag=[3, 1], counts={"restarts": 1},
+                   traceback="T", zeno=False, raised="ValueError: bad", out_of_restarts=True),
+     p.Failed(node="cam", pid=PID, error="flow 'cam' failed again", tag=(3, 1), counts={"restarts": 1},
+              traceback="T", zeno=False, raised="ValueError: bad", out_of_restarts=True)),
     (worker_status("cam", "handed_over", counts={}, reports=12),
      p.HandedOver(node="cam", pid=PID, counts={}, reports=12)),
     (worker_status("cam", "done", counts={"late": 3}, reports=7, started_ns=-250_000_000, ticks=1500, stopped=False,
@@ -491,6 +496,8 @@ def test_nothing_decoded_is_imported_or_called():
     (worker_status("cam", "done", counts={"late": -1}), r"field 'counts'\['late'\] must be an integer from 0"),
     (worker_status("cam", "unanswered", nodes=[]), "field 'nodes' must be a list of 1 to"),
     (worker_status("cam", "reached"), "lacks its field 'until'"),
+    (worker_status("cam", "failed", error="x", traceback=None, out_of_restarts=1),
+     "'failed' status of cam: field 'out_of_restarts' must be true or false"),
     (today(2, "cam", "ready"), "array of 4"),
 ])
 def test_malformed_statuses_are_refused_with_an_error_naming_what(data, error):

@@ -4,12 +4,14 @@ and its tick takes its inputs and calls its step as the reference tick (tick.run
 The Steps of a stand-in loop (only what a failed step touches: its records, its hooks to the
 worker, its flags) take each kind of failure under each ``on_error``; what they do is checked
 against the decision tick.decide takes for it. The restart budget is the coordinator's, so the
-node itself never runs out of restarts: it asks for one.
+node itself never runs out of restarts: it asks for one; unless it restarts in place (a group's
+member: node/in_place.py), with the budget its loop holds.
 """
 
 from __future__ import annotations
 
 import threading
+from collections import Counter
 from types import SimpleNamespace
 
 import pytest
@@ -19,20 +21,27 @@ from hypothesis import strategies as st
 from retriever import Latest, Queue
 from retriever.backends.base import NodeStats
 from retriever.backends.zenoh.node import Ending
+from retriever.backends.zenoh.node.in_place import InPlaceRestart
 from retriever.backends.zenoh.node.steps import Steps
 from retriever.errors import StopRun
-from retriever.flow.core import Flow, PortSpec
+from retriever.flow.core import Flow, PortSpec, flow_spec, set_up
 from retriever.sync import PortBuffer
-from retriever.tick import Decision, decide, run_tick
+from retriever.tick import Decision, RestartBudget, decide, run_tick
 
 TAU = (150_000_000, 0)
 
 
 class Faulty(Flow):
-    """The stand-in loop's flow: says nothing of its ticks (Flow.add_step_detail)."""
+    """The stand-in loop's flow: says nothing of its ticks (Flow.add_step_detail); counts its teardowns."""
+
+    def __init__(self):
+        self.torn_down = 0
 
     def step(self, x: int) -> int:
         return x
+
+    def teardown(self) -> None:
+        self.torn_down += 1
 
 
 def stand_in_loop(on_error: str) -> SimpleNamespace:
@@ -40,11 +49,12 @@ def stand_in_loop(on_error: str) -> SimpleNamespace:
     flow = Faulty()
     loop = SimpleNamespace(
         id="faulty", virtual=False,
-        node=SimpleNamespace(id="faulty", flow=flow, settings=settings, clock=SimpleNamespace(hz=None)),
-        notes=SimpleNamespace(detail={}), schedule=SimpleNamespace(running=TAU),
+        node=SimpleNamespace(id="faulty", flow=flow, spec=flow_spec(Faulty), settings=settings,
+                             clock=SimpleNamespace(hz=None)),
+        notes=SimpleNamespace(detail={}, counts=Counter()), schedule=SimpleNamespace(running=TAU),
         outputs=SimpleNamespace(publish=lambda batch: None), reports=SimpleNamespace(records=[]),
         streams=None, run_clock=None, lock=threading.Lock(), last_wall=0,
-        endings=[], restarting=False, exits=[], restarts=[], flow=flow)
+        endings=[], restarting=False, exits=[], restarts=[], flow=flow, in_place=None)
     loop.stop = loop.endings.append
     loop.reports.record = lambda *record: loop.reports.records.append(record)
     loop.on_exit = loop.exits.append
@@ -83,6 +93,38 @@ def test_a_failed_step_does_what_decide_says(on_error, exc):
         assert not loop.exits and not loop.endings
     assert loop.restarting is (decision is Decision.RESTART)
     assert loop.restarts == ([(TAU, error)] if decision is Decision.RESTART else [])
+
+
+def test_a_flow_restarted_in_place_goes_on_fresh_within_its_budget_then_stops_the_run():
+    """A group's member (in_place set): within the budget its loop holds, the old flow is torn
+    down and a fresh one steps from then on, counted under ``restarts``, with no word to the
+    coordinator; past the budget, a StopRun that says ``out_of_restarts`` with the
+    RestartLimitError's text (the coordinator raises that error)."""
+    loop = stand_in_loop("restart")
+    made: list[Faulty] = []
+
+    def fresh() -> Faulty:
+        made.append(Faulty())
+        set_up(made[-1])
+        return made[-1]
+
+    loop.in_place = InPlaceRestart(RestartBudget(1, 10.0), fresh)
+    steps = steps_of(loop, [], {}, None, None)
+    old = steps.flow
+    set_up(old)
+    steps.step_failed(TAU, {"x": ()}, None, ValueError("bad"), 0)
+    assert steps.flow is made[0] is not old and old.torn_down == 1 and made[0].torn_down == 0
+    assert steps.invoke({"x": 5}) == 5
+    assert loop.notes.counts["restarts"] == 1
+    assert not loop.restarting and loop.restarts == [] and loop.endings == []
+    with pytest.raises(StopRun, match=r"^flow 'faulty' failed again after 1 restart\(s\) within 10 s "
+                                      r"\(max_restarts=1, restart_window=10\): ValueError: worse \(tick at ") as info:
+        steps.step_failed(TAU, {"x": ()}, None, ValueError("worse"), 0)
+    assert info.value.out_of_restarts and info.value.raised == "ValueError: worse" and info.value.tag == TAU
+    assert steps.flow is made[0] and len(made) == 1 and loop.notes.counts["restarts"] == 1
+    assert [r[3:5] for r in loop.reports.records] == [
+        ("error", {"error": "ValueError: bad", "on_error": "restart"}),
+        ("error", {"error": "ValueError: worse", "on_error": "restart"})]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -73,6 +73,11 @@ class Processes:
         """Every worker process this run started (a group's once)."""
         return list({id(p): p for p in [*self.workers.values(), *self.retiring.values(), *self.retired]}.values())
 
+    def shares_process(self, node: str) -> bool:
+        """Whether ``node``'s process serves other nodes too (a group's)."""
+        proc = self.workers[node]
+        return any(p is proc for n, p in self.workers.items() if n != node)
+
     def nodes_of(self, host: Host) -> list[str]:
         """The nodes whose processes run on ``host``."""
         return sorted(n for n, h in self.hosts.items() if h is host)

@@ -37,7 +37,7 @@ from .hosting import HostedRun, Hosting, LocalHosting
 from .inbox import Inbox
 from .processes import STOP_GRACE_S, Supervisor
 from .reports import ReportIngest
-from .spec import main_file, process_groups, python_path, restarting_alone, run_dir, shipped_plan
+from .spec import main_file, process_groups, python_path, run_dir, shipped_plan
 from .statuses import StatusMachine
 from .waiting import Waits
 
@@ -157,10 +157,7 @@ class Coordinator(Session):
     def _groups(self) -> dict[str, list[str]]:
         """The groups of flows that share a process, where the hosting starts them so."""
         named = self.hosting.process_names()
-        groups, alone = process_groups(self.graph, named), restarting_alone(self.graph, named)
-        if alone and self.hosting.shares_processes:
-            warnings.warn(f"{', '.join(alone)}: a flow with on_error='restart' runs in a process of its own, whatever "
-                          "its configure(process=): its restart is a new process", RetrieverWarning, stacklevel=4)
+        groups = process_groups(self.graph, named)
         if groups and not self.hosting.shares_processes:
             warnings.warn(f"the {self.backend_name} backend {self.hosting.where()} starts each flow in a process of "
                           f"its own: configure(process=) ({', '.join(sorted(groups))}) is not taken here (yet)",

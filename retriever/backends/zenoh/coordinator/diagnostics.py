@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from ....errors import BackendError, CausalityError, RemoteError, SetupError, StepError
+from ....tick import Decision, ending
 from ..host import LocalHost
 from ..protocol import ABSENT, State
 from .book import RunBook
@@ -118,6 +119,9 @@ def failure_error(book: RunBook, backend_name: str) -> Exception:
         failure.args = (failure.args[0] + where,)
         return failure
     raised = said.raised if said is not None and said.raised is not ABSENT else None
+    if said is not None and said.out_of_restarts is True and tag is not None and raised is not None and settings:
+        # a restart in place past the budget its process held: as a coordinator's own refusal says it
+        return ending(Decision.OUT_OF_RESTARTS, node, tag, raised, book.faults.restarts[node])
     if tag is not None and settings is not None and raised is not None:
         failure = StepError(node, tag, RemoteError(raised))
         failure.args = (failure.args[0] + where,)

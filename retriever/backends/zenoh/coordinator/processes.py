@@ -70,8 +70,8 @@ class Supervisor:
         procs.state[nid] = NodeState.STARTING
 
     def spawn_group(self, name: str, nodes: list[str]) -> None:
-        """Start the one process of the group ``name`` (its first: its members' restarts are
-        processes of their own, spawn): every member's process, with one key."""
+        """Start the one process of the group ``name``: every member's process, with one key (a
+        member restarts in it: node/in_place.py)."""
         procs = self.book.processes
         proc, key = procs.hosts[nodes[0]].spawn_group(name, nodes, new_key())
         for nid in nodes:
@@ -119,7 +119,9 @@ class Supervisor:
             # it died, or ended without a word (os._exit in a step): its state is lost
             if book.ending.failure is not None:
                 self.raise_failure()
-            if book.t0 is not None and book.graph.nodes[nid].settings.on_error == "restart":
+            # (a group's process takes all its members with it: none starts afresh on its own)
+            restarts = book.graph.nodes[nid].settings.on_error == "restart" and not procs.shares_process(nid)
+            if book.t0 is not None and restarts:
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time
             procs.hosts[nid].output(nid).drain()

@@ -45,23 +45,15 @@ def main_file(graph: Graph) -> str | None:
 def process_groups(graph: Graph, named: Mapping[str, str] | None = None) -> dict[str, list[str]]:
     """The groups of flows that share a worker process (``configure(process=NAME)``, or ``named``:
     a process name by node that wins over the flow's, a deployment's placement file): name -> its
-    nodes, in the graph's order. A name only one flow has is no group (that flow runs alone), nor
-    is a flow with ``on_error="restart"`` in one: its restart is a new process (see
-    :func:`restarting_alone`)."""
+    nodes, in the graph's order. A name only one flow has is no group (that flow runs alone). A
+    member with ``on_error="restart"`` restarts in place, in the group's process
+    (node/in_place.py)."""
     groups: dict[str, list[str]] = {}
     for nid, node in graph.nodes.items():
         process = (named or {}).get(nid, node.settings.process)
-        if process is not None and node.settings.on_error != "restart":
+        if process is not None:
             groups.setdefault(process, []).append(nid)
     return {name: nodes for name, nodes in groups.items() if len(nodes) > 1}
-
-
-def restarting_alone(graph: Graph, named: Mapping[str, str] | None = None) -> list[str]:
-    """The flows given a process name (their own, or ``named``'s) that run alone all the same:
-    their ``on_error="restart"`` starts a new process of their own (a restart within a group's
-    process is not built yet)."""
-    return [nid for nid, node in graph.nodes.items()
-            if (named or {}).get(nid, node.settings.process) is not None and node.settings.on_error == "restart"]
 
 
 def shipped_plan(graph: Graph) -> dict:

@@ -47,6 +47,7 @@ The modules, one job each:
     timing.py     warming up before a predictable moment; the loop's sleep to its next wake
     handover.py   restarts: the hand-over to a new process (its state file, which the protocol reads
                   exactly), a fresh start after a lost one
+    in_place.py   a restart where the flow runs (a group's member): a fresh flow in the same loop
     control.py    the run's control messages
     ending.py     how a loop ends before the run's end, and which of two endings wins
     plane.py      the control plane on the run's session: control heard, progress queries answered

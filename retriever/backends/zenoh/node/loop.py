@@ -60,7 +60,7 @@ class NodeLoop:
                  inline: bool = False, cycle: list[str] | None = None, instant_ports: frozenset = frozenset(),
                  max_microsteps: int = 1000, virtual: bool = False, transport: Transport | None = None):
         self.session, self.keys, self.node, self.id = session, keys, node, node.id
-        self.flow, self.virtual = node.flow, virtual
+        self.virtual = virtual
         self.ports = list(ports if ports is not None else node.outputs)  # untyped flows: the IR knows
         self.transport = transport if transport is not None else ZenohTransport(session, keys, self.id)
         self.lock = threading.Lock()  # guards what the progress queryable reads
@@ -120,8 +120,15 @@ class NodeLoop:
         self.restarting = False
         self.on_exit = None  # called with the tick whose step called sys.exit(0): the run ends
         self.on_restart = None  # called with (tag, error) when a step's failure starts a restart
+        # on_error="restart" where it runs (a group's member: in_place.py); None: in a new process
+        self.in_place = None
         self.plane = ControlPlane(self)  # the run's control, progress queries: on `session`
         self.declared = self.plane.declared  # its subscriber and queryable
+
+    @property
+    def flow(self):
+        """The flow it steps now (a restart in place puts a fresh one: in_place.py)."""
+        return self.steps.flow
 
     # ---------------------------------------------------------------------------------------
     # How the loop ends early (ending.py)

@@ -14,14 +14,15 @@ from typing import Any, Protocol
 
 from ....errors import StopRun
 from ....graph import Node
-from ....flow.core import with_step_detail
+from ....flow.core import make_invoker, with_step_detail
 from ....flow.burst import Burst
-from ....tick import (Decision, decide, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
+from ....tick import (Decision, decide, ending, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
 from ....trace import StepStatus
 from .clock import RunClock
 from .ending import Ending
 from .frontiers import Streams
+from .in_place import InPlaceRestart
 from .notes import Notes
 from .outputs import Outputs
 from .reports import Reports
@@ -38,6 +39,8 @@ class StepsOwner(Protocol):
     #: called with the tick whose step called sys.exit(0); with (tag, error) when a restart starts
     on_exit: Callable[[tuple[int, int]], None] | None
     on_restart: Callable[[tuple[int, int], str], None] | None
+    #: a flow restarted where it runs (a group's member: in_place.py); None: in a new process
+    in_place: InPlaceRestart | None
 
     def stop(self, ending: Ending) -> None: ...
 
@@ -52,7 +55,7 @@ class Steps:
                  realtime: str, virtual: bool, notes: Notes, schedule: Schedule, outputs: Outputs, reports: Reports,
                  streams: Streams, clock: RunClock, lock: threading.Lock):
         self.owner = owner
-        self.id, self.flow, self.virtual = node.id, node.flow, virtual
+        self.id, self.flow, self.spec, self.virtual = node.id, node.flow, node.spec, virtual
         self.inputs = inputs  # (port, buffer, policy, port spec), as in the in-process backend
         self.fallbacks = fallbacks
         self.invoke, self.read = invoke, read
@@ -102,11 +105,12 @@ class Steps:
 
     def step_failed(self, tau, consumed, detail, exc: BaseException, start: int) -> None:
         """The step raised ``exc`` (not KeyboardInterrupt): record it, then act on what
-        tick.decide makes of ``on_error``: stop the run, go on, ask the coordinator (which holds
-        the restart budget) for a restart, or end the whole run cleanly (``sys.exit(0)``)."""
-        owner = self.owner
+        tick.decide makes of ``on_error``: stop the run, go on, restart the flow (in place, within
+        the budget held here; or in a new process: ask the coordinator, which holds the budget),
+        or end the whole run cleanly (``sys.exit(0)``)."""
+        owner, in_place = self.owner, self.owner.in_place
         wall = owner.last_wall = time.time_ns() - start
-        decision = decide(self.on_error, exc, None, tau[0])
+        decision = decide(self.on_error, exc, None if in_place is None else in_place.budget, tau[0])
         if decision is Decision.END_RUN:
             # the coordinator is told first (it stops every node), then this loop ends as if told to stop
             self.finish_tick(tau, consumed, (), *exit_outcome(detail), start, wall)
@@ -118,7 +122,14 @@ class Steps:
         self.finish_tick(tau, consumed, (), *error_outcome(error, self.on_error, detail), start, wall)
         if decision is Decision.STOP:
             raise StopRun(f"{self.id}.step() raised {error}", tau, raised=error) from exc
-        if decision is Decision.RESTART:
+        if decision is Decision.OUT_OF_RESTARTS:  # (in place: a new process's budget is the coordinator's)
+            limit = ending(decision, self.id, tau, error, in_place.budget)
+            raise StopRun(str(limit), tau, raised=error, out_of_restarts=True) from exc
+        if decision is Decision.RESTART and in_place is not None:
+            self.notes.counts["restarts"] += 1
+            self.flow = in_place.renew(self.flow, self.id)
+            self.invoke = make_invoker(self.flow, self.spec)
+        elif decision is Decision.RESTART:
             owner.restarting = True
             if owner.on_restart is not None:
                 owner.on_restart(tau, error)

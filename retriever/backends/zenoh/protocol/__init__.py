@@ -50,7 +50,9 @@ decoders check).
                                            ticks, stopped, sent]                    the run fails; sent: output ports
                                                                                     of the node
       failed                               error, [setup], [tag], [counts],         the run fails: SetupError
-                                           traceback, [zeno]                        (setup), CausalityError (zeno),
+                                           traceback, [zeno], [raised],             (setup), CausalityError (zeno),
+                                           [out_of_restarts]                        RestartLimitError
+                                                                                    (out_of_restarts, tag, raised),
                                                                                     StepError (tag)
       restart                              tag, error                               the node's restart budget
       handed_over                          counts, reports                          -

@@ -85,7 +85,8 @@ class Done(Status):
 @dataclass(frozen=True, kw_only=True)
 class Failed(Status):
     """The process failed: why, where (the tick, if a step raised), and its traceback;
-    ``raised``: what its step raised, when that failed it."""
+    ``raised``: what its step raised, when that failed it; ``out_of_restarts``: true when that
+    step's restart in place (a group's member) was past the flow's budget."""
 
     NAME = State.FAILED
     error: str = field(Text())
@@ -95,6 +96,7 @@ class Failed(Status):
     traceback: str | None = field(Nullable(Text()))
     zeno: bool = field(Bool(), optional=True)
     raised: str | None = field(Nullable(Text()), optional=True)
+    out_of_restarts: bool = field(Bool(), optional=True)
 
 
 @dataclass(frozen=True, kw_only=True)

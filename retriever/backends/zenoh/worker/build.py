@@ -4,6 +4,7 @@ the process's session, and the statuses it signs.
     open_session    the Zenoh peer (or a client of the deployment's routers)
     build           the flow rebuilt from the IR (build_loop, or the loop a Launch hands in)
     set_up_flow     the flow's setup(), once, before the process says ready
+    restart_in_place  a group's member with on_error="restart": its fresh flows (node/in_place.py)
 """
 
 from __future__ import annotations
@@ -18,17 +19,20 @@ from dataclasses import dataclass
 
 import zenoh
 
+from ....errors import StopRun
 from ....flow.core import Flow, set_up
 from ....graph import compile_graph
 from ....ir import DEFAULT_DEADLINE, IR
 from ....plan import NodePlan, Plan, bind_inputs
 from ....rebuild import rebuild_node
 from ....sync import PortBuffer
+from ....tick import RestartBudget
 from .. import protocol
 from ..access import RunAccess, TlsFiles
 from ..command import StartMode
 from ..hub import client_config, open_peer
 from ..node import InEdge, NodeLoop
+from ..node.in_place import InPlaceRestart
 from ..origin import sign
 from ..protocol import RunSpec
 from ..wire import RELIABLE, KeySpace
@@ -73,17 +77,9 @@ def build_loop(spec: RunSpec, node_id: str, session, transport=None, plan: NodeP
     if ir is None:
         ir = IR(spec.ir, source="the run's IR")
     meta = ir.doc["metadata"]
-    flows: dict = {}
-    problems: list[str] = []
-    node_doc = dict(ir.node(node_id))
-    if spec.main_file and node_doc.get("rebuild_needs_main"):
-        node_doc["rebuildable"] = True  # _import_main made __main__ importable here
-    rebuild_node(node_doc, flows, problems)
-    if problems:
-        raise RuntimeError("; ".join(problems))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        graph = compile_graph(ir.name, [flows[node_id]], [], meta.get("max_microsteps", 1000),
+        graph = compile_graph(ir.name, [rebuild_flow(spec, node_id, ir)], [], meta.get("max_microsteps", 1000),
                               meta.get("realtime", "soft"), meta.get("deadline", DEFAULT_DEADLINE))
     node = graph.nodes[node_id]
     if plan is None:
@@ -92,8 +88,6 @@ def build_loop(spec: RunSpec, node_id: str, session, transport=None, plan: NodeP
     buffers = {port: buf for port, buf, _, _ in inputs}
     edges = [InEdge(f.src, f.src_port, f.port, buffers[f.port], f.delay_ns, f.triggers, f.deadline_ns,
                     f.src_latency_ns) for f in plan.feeds]
-    if type(node.flow).reset is not Flow.reset:
-        node.flow.reset()  # the paper's flows initialise their state in reset()
     return NodeLoop(session, KeySpace(spec.namespace), node, edges, inputs, fallbacks,
                     realtime=meta.get("realtime", "soft"),
                     ports=sorted(ir.node(node_id)["outputs"]),
@@ -105,6 +99,23 @@ def build_loop(spec: RunSpec, node_id: str, session, transport=None, plan: NodeP
                     cycle=plan.cycle, instant_ports=plan.instant_ports,
                     max_microsteps=meta.get("max_microsteps", 1000), virtual=spec.virtual_time,
                     transport=transport)
+
+
+def rebuild_flow(spec: RunSpec, node_id: str, ir: IR) -> Flow:
+    """``node_id``'s flow rebuilt from ``ir`` (the spec's), in its initial state: what a new
+    process of the node steps first (and a restart in place: worker/group.py)."""
+    flows: dict = {}
+    problems: list[str] = []
+    node_doc = dict(ir.node(node_id))
+    if spec.main_file and node_doc.get("rebuild_needs_main"):
+        node_doc["rebuildable"] = True  # _import_main made __main__ importable here
+    rebuild_node(node_doc, flows, problems)
+    if problems:
+        raise RuntimeError("; ".join(problems))
+    flow = flows[node_id]
+    if type(flow).reset is not Flow.reset:
+        flow.reset()  # the paper's flows initialise their state in reset()
+    return flow
 
 
 class StatusSender:
@@ -207,3 +218,27 @@ def set_up_flow(w: Serving) -> bool:
     if loop.virtual:  # lockstep (a restarted flow's process learns the grant from the next one put)
         loop.on_reached = lambda until: status(protocol.Reached, until=until)
     return True
+
+
+def restart_in_place(w: Serving, ir: IR) -> None:
+    """Restart the flow of ``w`` where it runs if it has ``on_error="restart"`` (a group's member,
+    whose process must not end with it: node/in_place.py), within its budget, held by its loop:
+    each fresh flow is rebuilt from ``ir`` and set up here, as a new process would."""
+    settings = w.loop.node.settings
+    if settings.on_error != "restart":
+        return
+
+    def fresh() -> Flow:
+        flow = rebuild_flow(w.spec, w.node, ir)
+        try:
+            set_up(flow)
+        except Exception as exc:
+            raise StopRun(f"{w.node}.setup() raised {type(exc).__name__}: {exc}, as the flow restarted after its "
+                          "step failed") from exc
+        # kept in the old one's place (still the loop's, torn down), which goes: not one more
+        # model held per restart until the process ends (the first stays its loop's Node's)
+        old = w.loop.flow
+        _kept_to_the_end[:] = [f for f in _kept_to_the_end if f is not old] + [flow]
+        return flow
+
+    w.loop.in_place = InPlaceRestart(RestartBudget(settings.max_restarts, settings.restart_window), fresh)

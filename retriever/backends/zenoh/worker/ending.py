@@ -64,7 +64,7 @@ def tell_failed(w: Serving, exc: BaseException) -> None:
         cause = exc.__cause__  # the exception a step raised: where in the flow's code
         w.status(protocol.Failed, error=str(exc), tag=tuple(exc.tag) if exc.tag else None, counts=dict(loop.counts),
                  traceback="".join(traceback.format_exception(cause)) if cause is not None else None,
-                 zeno=exc.zeno, raised=exc.raised)
+                 zeno=exc.zeno, raised=exc.raised, **({"out_of_restarts": True} if exc.out_of_restarts else {}))
     else:
         w.status(protocol.Failed, error=f"worker '{w.node}' crashed: {type(exc).__name__}: {exc}",
                  traceback="".join(traceback.format_exception(exc)), counts=dict(loop.counts))

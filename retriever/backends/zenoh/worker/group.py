@@ -9,10 +9,12 @@ linked and ``ready``; then the ``start``, and one GroupLoop stepping them all on
 each says ``done`` (or ``failed``), releases, and the process waits until the coordinator has
 every report of every member.
 
-No member restarts (``on_error="restart"`` keeps a flow out of every group: its restart is a new
-process, coordinator/spec.py). A member that fails (StopRun, a crash of its loop) ends the group:
-the run fails anyway, and the others say ``done``. Signals and ``failed`` are the single worker's
-(ending.py).
+A member with ``on_error="restart"`` restarts in place: its step raised, and a fresh flow, rebuilt
+from the IR and set up here, goes on in its loop, within the budget that loop holds; the other
+members step on untouched (node/in_place.py). A member that fails (StopRun, a restart past its
+budget, a crash of its loop) ends the group: the run fails anyway, and the others say ``done``.
+The process dying takes every member with it, and the run fails (coordinator/processes.py: no
+member is started afresh on its own). Signals and ``failed`` are the single worker's (ending.py).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from ..node.transport import ZenohTransport
 from ..protocol import EXIT_ABANDONED, EXIT_FAILED, RunSpec
 from ..wire import KeySpace
 from . import main
-from .build import Serving, StatusSender, build, build_loop, open_session, run_plan, set_up_flow
+from .build import Serving, StatusSender, build, build_loop, open_session, restart_in_place, run_plan, set_up_flow
 from .ending import handle_signals, release, say_done, say_failed
 from .links import watch_hub_link
 from .process import Launch
@@ -55,6 +57,7 @@ def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
                             padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool, plan=plans[node])
                 if not build(w):
                     return EXIT_FAILED
+                restart_in_place(w, ir)
                 served.append(w)
             group = GroupLoop([w.loop for w in served])
             control = group.hear_control(session, keys, served[0].loop.opener)
