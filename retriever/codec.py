@@ -237,6 +237,8 @@ def _extension(obj: Any, pack_nested: Callable[[Any], bytes]) -> msgpack.ExtType
 def _ext_hook(code: int, data: bytes, *, keep_unregistered: bool = False, buffers: list | None = None,
               depth: int = 0) -> Any:
     try:
+        if code == EXT_NDARRAY_OOB:  # (the wire's arrays, one call sooner: this runs per array received)
+            return _out_of_band_array(data, buffers)
         return _ext_value(code, data, keep_unregistered, buffers, depth)
     except CodecError:
         raise
@@ -304,7 +306,9 @@ def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
     descr, shape, index = msgpack.unpackb(data, raw=False)
     if buffers is None or type(index) is not int or not 0 <= index < len(buffers):
         raise CodecError(f"an out-of-band array refers to buffer {index!r:.20}, which the message does not carry")
-    dtype = _array_dtype(descr)
+    dtype = _dtypes.get(descr) if type(descr) is str else None  # (a dtype seen before: no call)
+    if dtype is None:
+        dtype = _array_dtype(descr)
     buf = buffers[index]
     if type(shape) is not list or len(buf) != dtype.itemsize * math.prod(shape):
         raise CodecError(f"an out-of-band array of shape {shape!r:.40} and dtype {dtype} does not fit its "
@@ -440,7 +444,9 @@ def unpackb(data: bytes, *, keep_unregistered: bool = False) -> Any:
 def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
     """Decode what :class:`OutOfBandEncoder` packed, given its buffers (any bytes-like objects,
     e.g. memoryviews of the received message). Arrays come back as read-only views of them."""
-    return _unpack(data, False, buffers)
+    # (_unpack's work at depth 0, one call sooner: this runs per message received)
+    hook = functools.partial(_ext_hook, keep_unregistered=False, buffers=buffers, depth=0)
+    return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
 
 
 def _unpack(data: bytes, keep_unregistered: bool, buffers: list | None, depth: int = 0) -> Any:
@@ -491,9 +497,12 @@ class OutOfBandEncoder:
 
     def _default(self, obj: Any) -> Any:
         if isinstance(obj, np.ndarray):
-            head = _array_head(obj)  # raises for dtype object
+            # the cached head first, without a call (_array_head raises for dtype object, which
+            # is never cached): this runs per array sent
+            head = _array_heads.get((obj.dtype, obj.shape)) or _array_head(obj)
             if not obj.flags.c_contiguous:
                 obj = np.ascontiguousarray(obj)
             self._buffers.append(obj.reshape(-1).view(np.uint8))
-            return msgpack.ExtType(EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1))
+            # ExtType without its constructor's checks (two Python calls): its code and bytes are ours
+            return tuple.__new__(msgpack.ExtType, (EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1)))
         return _extension(obj, self._nested)

@@ -124,9 +124,11 @@ class Streams:
         if msg.seq > expect:
             self.early[stream][msg.seq] = msg
             return
-        early = self.early[stream]
+        early, frontiers = self.early[stream], self.frontiers
         while msg is not None:
-            self.advance(stream, msg.frontier)
+            if msg.frontier > frontiers[stream]:  # (advance, inline: this runs per event)
+                with self.lock:
+                    frontiers[stream] = msg.frontier
             for e in self.edges:
                 if e.src == msg.producer and e.src_port == msg.port:
                     self.deliver(e, msg)

@@ -224,7 +224,8 @@ class NodeLoop:
         if self.stopping:
             return
         now = self.run_clock.now()
-        self.outputs.release(now)
+        if self.outputs.held:  # (a call saved per message when nothing is: the usual case)
+            self.outputs.release(now)
         while (self.last_wall is not None and self.last_wall < INLINE_STEP_NS
                and self.try_tick(now) is TICKED):
             now = self.run_clock.now()

@@ -194,8 +194,8 @@ class Outputs:
             self.publish_progress(frontier)
 
     def _encode(self, tag: tuple[int, int], seq: int, frontier: tuple[int, int], port: str, value) -> bytes:
-        try:
-            return self.encoder.data(tag, seq, frontier, self.id, port, value)
+        try:  # (WireEncoder.data's join, one call sooner: this runs per event sent)
+            return b"".join(self.encoder.data_parts(tag, seq, frontier, self.id, port, value))
         except CodecError as e:  # the step returned it; in-process it would have gone by reference
             what = "the Burst (value[i]: its value i)" if type(value) is Burst else "the event"
             raise StopRun(f"{self.id}.{port}: {what} at t={tag[0] / 1e9:.6f} s cannot be sent to another "

@@ -10,11 +10,11 @@ its events. :class:`ZenohTransport` carries them on that session; the dora backe
 
 from __future__ import annotations
 
+import weakref
 from typing import Callable
 
 import zenoh
 
-from ..hub import weak_callback
 from ..wire import RELIABLE, KeySpace
 from .inbox import DATA, PROGRESS
 
@@ -83,14 +83,10 @@ class ZenohTransport(Transport):
 
     def declare_inputs(self, streams, sources, inline, put) -> None:
         self.inputs = (streams, sources, inline, put)
-        receive = weak_callback(inline) if inline is not None else put
         s, keys = self.session, self.keys
         for src, src_port in streams:
             key = keys.data(src, src_port)
-
-            def callback(sample, k=(src, src_port)):
-                receive((DATA, k, sample.payload.to_bytes()))
-
+            callback = _data_callback((src, src_port), inline, put)
             self.subscribers.append(s.declare_subscriber(
                 key, callback if self.tap is None else self.tap.callback(key, callback)))
         for src in sources:
@@ -129,3 +125,23 @@ class ZenohTransport(Transport):
         for d in [*self.subscribers, *self.publishers]:
             d.undeclare()
         self.subscribers, self.publishers = [], []
+
+
+def _data_callback(stream: tuple[str, str], inline: Callable[[tuple], None] | None,
+                   put: Callable[[tuple], None]) -> Callable:
+    """The Zenoh callback of ``stream``'s data messages: each to ``inline``, held weakly as
+    hub.weak_callback holds a method (why: there) but without its wrapper's call (one call less
+    per message received), or to ``put`` when ``inline`` is None."""
+    if inline is None:
+        def queue(sample):
+            put((DATA, stream, sample.payload.to_bytes()))
+
+        return queue
+    loop = weakref.WeakMethod(inline)
+
+    def receive(sample):
+        bound = loop()
+        if bound is not None:
+            bound((DATA, stream, sample.payload.to_bytes()))
+
+    return receive

@@ -87,9 +87,11 @@ class Waiting:
         """Ports whose edge is not complete up to ``tau`` and past deadline; or the wall time to
         look again if some edge may still complete in time."""
         late_ports, wake = [], None
-        edge_frontier, virtual = self.streams.edge_frontier, self.virtual
+        frontiers, virtual = self.streams.frontiers, self.virtual
         for e in self.streams.edges:
-            if edge_frontier(e) > tau:
+            # (Streams.edge_frontier, inline: this runs on every tick, for every edge)
+            f = frontiers[(e.src, e.src_port)]
+            if ((f[0] + e.delay_ns, 0) if e.delay_ns else f) > tau:
                 continue
             if virtual:  # no deadline: wait for it, asking its producer now and then
                 since = self.blocked_since(tau, now)
@@ -101,7 +103,7 @@ class Waiting:
                 continue
             wake = min(tau[0] + e.deadline_ns, wake if wake is not None else tau[0] + e.deadline_ns,
                        self.ask(e.src, now, tau[0]))
-        return sorted(set(late_ports)), wake
+        return (sorted(set(late_ports)) if late_ports else late_ports), wake
 
     def ask(self, src: str, now: int, since: int) -> int:
         """Ask a producer for its frontier once a wait has lasted ``PROBE_AFTER_NS`` past
