@@ -436,6 +436,13 @@ SPEC_ATTACKS = [
      "field 'zids' gives nodes 'cam' and 'sink' one Zenoh id, and they are no group's"),
     ("a hub zid that is a path", spec_with(hub_zid="../etc"), "field 'hub_zid' must be a Zenoh id"),
     ("a group of no node", spec_with(groups={"g": []}), r"field 'groups'\['g'\] must be a list of 1"),
+    # a node in two groups' processes, or twice in one, would run twice at once
+    ("a node in two groups", spec_with(groups={"g": ["cam", "sink"], "h": ["cam"]}),
+     "field 'groups' puts node 'cam' in groups 'g' and 'h': a node runs in one process"),
+    ("a node twice in a group", spec_with(groups={"g": ["cam", "sink", "cam"]}),
+     "field 'groups' puts node 'cam' in group 'g' twice: a node runs in one process"),
+    ("a group of a node not in the IR", spec_with(groups={"g": ["cam", "ghost"]}),
+     "field 'groups' names node 'ghost' in group 'g', which its IR does not have"),
     ("access that is a string", spec_with(access="secret"), "field 'access' must be a map"),
     ("an extension type", spec_with(main_file=msgpack.ExtType(4, b"os:system")), "field 'main_file' must be a string.*ExtType"),
 ]
