@@ -204,6 +204,8 @@ def test_a_node_runs_in_at_most_two_processes_its_groups_counted(prepared):
     spec = run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
                     zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
     runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=tuple(ids)))
+    with pytest.raises(WireError, match=rf"'{ids[0]}' is no group of run r2's spec \(its groups: g\)"):
+        runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=(), group=True))  # a node, told it is a group
     runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True))
     runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=()))
     with pytest.raises(WireError, match=rf"node '{ids[0]}' already runs in 2 processes on worker 'w'"):
