@@ -53,7 +53,8 @@ EXAMPLE_HINT = ('a placement is a [nodes] table: camera = "arm-pc" pins a node, 
                 'asks for labels (see deploy/placement.example.toml)')
 #: what TOML calls the values a placement document may hold in the wrong place
 _TOML_KINDS = {dict: "a table", list: "an array", int: "an integer", float: "a float", bool: "a boolean"}
-_ENTRY_FORMS = 'a worker name ("arm-pc") or a table ({ labels = ["gpu"] }, optionally with worker = "NAME")'
+_ENTRY_FORMS = ('a worker name ("arm-pc") or a table ({ labels = ["gpu"] } or { process = "NAME" }, optionally '
+                 'with worker = "NAME")')
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,7 @@ def _entry(node: object, value: object, problems: list[Problem]) -> tuple[Constr
     problems += [Problem(f"{where}: unknown key {_show(key)}", 'a node\'s table has only worker = "NAME", '
                          'labels = ["LABEL", ...] and process = "NAME"') for key in value if key not in ENTRY_KEYS]
     if not any(key in value for key in ENTRY_KEYS):
-        problems.append(Problem(f"{where}: says neither worker nor labels", f"write {_ENTRY_FORMS}"))
+        problems.append(Problem(f"{where}: says none of worker, labels and process", f"write {_ENTRY_FORMS}"))
     worker = value.get("worker")
     if "worker" in value and not (isinstance(worker, str) and worker):
         problems.append(Problem(f"{where}: worker: expected a worker name (a non-empty string), got {_show(worker)}"))

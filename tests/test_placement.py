@@ -273,7 +273,7 @@ def test_toml_nested_past_the_recursion_limit_is_a_placement_error(tmp_path):
     ("[nodes]\ncamera = 1.5\n", r"got a float"),
     ("[nodes]\ncamera = 1979-05-27\n", r"got a value of type date"),
     ('[nodes]\ncamera = ""\n', r"\[nodes\] 'camera': the worker name is empty"),
-    ("[nodes]\ncamera = {}\n", r"'camera': says neither worker nor labels"),
+    ("[nodes]\ncamera = {}\n", r"'camera': says none of worker, labels and process"),
     ('[nodes]\ncamera = { worker = "" }\n', r"'camera': worker: expected a worker name \(a non-empty string\), got ''"),
     ("[nodes]\ncamera = { worker = 3 }\n", r"worker: expected a worker name .*, got an integer"),
     ('[nodes]\npolicy = { labels = "gpu" }\n',
@@ -289,6 +289,10 @@ def test_toml_nested_past_the_recursion_limit_is_a_placement_error(tmp_path):
     ('[nodes]\ncamera = { process = "-x" }\n', r"'camera': process: expected a process name .*, got '-x'"),
     ("[nodes]\ncamera = { process = 3 }\n", r"'camera': process: expected a process name .*, got an integer"),
     ('[nodes]\ncamera = { process = ["a"] }\n', r"'camera': process: expected a process name .*, got an array"),
+    ('[nodes]\ncamera = { process = "caméra" }\n', r"'camera': process: expected a process name .*, got 'caméra'"),
+    ('[nodes]\ncamera = { process = "ｆront" }\n', r"'camera': process: expected a process name .*, got 'ｆront'"),
+    ('[nodes]\ncamera = { process = "a\\u001b[2Jb" }\n', r"'camera': process: expected a process name .*, got 'a\\x1b\[2Jb'"),
+    ("[nodes]\ncamera = { process = {} }\n", r"'camera': process: expected a process name .*, got a table"),
 ])
 def test_a_malformed_placement_says_what_is_wrong(tmp_path, text, expected):
     with pytest.raises(PlacementError, match=expected):
@@ -301,8 +305,9 @@ def test_an_unknown_key_in_a_node_table_is_a_problem_and_a_typo_leaves_the_entry
     assert problems_of(excinfo) == [
         ("[nodes] 'policy': unknown key 'label'\n"
          '    hint: a node\'s table has only worker = "NAME", labels = ["LABEL", ...] and process = "NAME"'),
-        ("[nodes] 'policy': says neither worker nor labels\n"
-         '    hint: write a worker name ("arm-pc") or a table ({ labels = ["gpu"] }, optionally with worker = "NAME")')]
+        ("[nodes] 'policy': says none of worker, labels and process\n"
+         '    hint: write a worker name ("arm-pc") or a table ({ labels = ["gpu"] } or { process = "NAME" }, '
+         'optionally with worker = "NAME")')]
 
 
 def test_every_problem_of_a_file_is_reported_at_once(tmp_path):

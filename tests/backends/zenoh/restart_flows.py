@@ -66,3 +66,18 @@ class SetUpOnce(FailingMiddle):
         super().setup()
         if SET_UPS[type(self).__name__] > 1:
             raise RuntimeError("the device is taken")
+
+
+#: per flow class, the flows this process made (``__init__`` ran)
+MADE: Counter = Counter()
+
+
+class MadeOnce(FailingMiddle):
+    """A FailingMiddle whose ``__init__`` raises once one was made in this process before (a
+    device its constructor opens, which one process may open only once)."""
+
+    def __init__(self, fail_at: list):
+        MADE[type(self).__name__] += 1
+        if MADE[type(self).__name__] > 1:
+            raise RuntimeError("the device is taken")
+        super().__init__(fail_at)

@@ -136,3 +136,19 @@ def test_a_check_asks_each_process_once_whether_it_ended(offline):
     proc.asked = 0
     parts.supervisor.check()  # its own exit (0): its last status may still come; control is no longer sealed
     assert (proc.asked, parts.control.signer.holders()) == (1, [])
+
+
+def test_out_of_restarts_from_a_flow_that_never_restarts_is_its_step_error(offline):
+    """``out_of_restarts`` is said by a group's member restarting in place: from a flow whose
+    on_error is not "restart" (the counter's: "stop") it names a budget the flow never had, so
+    the run raises the step's own error."""
+    from retriever import RestartLimitError, StepError
+    from retriever.backends.zenoh.coordinator.diagnostics import failure_error
+
+    book, parts, _ = offline
+    sender = book.processes.workers["counter"]
+    parts.inbox.handle((*_status(Failed, error="counter.step() raised ValueError: x", traceback=None, tag=(7, 0),
+                                 raised="ValueError: x", out_of_restarts=True), sender))
+    error = failure_error(book, "zenoh")
+    assert isinstance(error, StepError) and not isinstance(error, RestartLimitError), error
+    assert "ValueError: x" in str(error)

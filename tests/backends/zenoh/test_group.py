@@ -17,6 +17,7 @@ from retriever.backends.zenoh.node.group import GroupLoop, GroupTransport, Local
 from retriever.backends.zenoh.node.transport import ZenohTransport
 from retriever.backends.zenoh.protocol import RunSpec
 from retriever.backends.zenoh.wire import KeySpace
+from retriever.errors import BackendError
 from retriever.backends.zenoh.worker.build import build_loop
 
 from .specs import run_spec
@@ -224,3 +225,16 @@ def test_names_a_hosting_gives_win_over_the_flows():
     assert process_groups(graph, {"sink": "front"}) == {"front": ["counter", "faulty", "sink"]}
     assert process_groups(graph, {"counter": "back", "faulty": "solo", "sink": "front"}) == {}
     assert process_groups(grouped_pipeline().compile(), {"faulty": "solo"}) == {}  # a name of its own: alone
+
+
+def test_a_process_with_the_name_of_a_node_outside_it_is_refused_naming_both():
+    """What a group's process prints is told under its name, as a node's under its id: a process
+    named as another node would show its lines as that node's (a member's own id is fine)."""
+    from retriever.backends.zenoh.coordinator.spec import process_groups
+
+    graph = grouped_pipeline(with_pid=False).compile()
+    assert process_groups(graph, {"counter": "faulty", "faulty": "faulty"}) == {"faulty": ["counter", "faulty"]}
+    with pytest.raises(BackendError, match=r"process 'sink' \(flows 'counter', 'faulty'\) has the name of node 'sink', "
+                                           r"which is not one of them: .*\n    hint: give the process another "
+                                           r"name \(configure\(process=\), or process = \"NAME\" in a placement file\)"):
+        process_groups(graph, {"counter": "sink", "faulty": "sink"})

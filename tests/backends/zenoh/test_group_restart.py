@@ -12,7 +12,7 @@ import retriever
 from retriever import Latest, Pipeline, Rate, RestartLimitError, Trigger
 from retriever.replay import replay
 
-from .restart_flows import CountedSink, CountingSource, FailingMiddle, SetUpOnce
+from .restart_flows import CountedSink, CountingSource, FailingMiddle, MadeOnce, SetUpOnce
 
 
 def chain(fail_at: list, process: str | None = "chain", **budget) -> Pipeline:
@@ -115,6 +115,21 @@ def test_a_fresh_flow_whose_setup_raises_stops_the_run_saying_so():
     with pytest.raises(retriever.BackendError, match=r"zenoh run stopped: mid\.setup\(\) raised RuntimeError: the "
                                                      r"device is taken, as the flow restarted after its step failed"):
         pipe.run(duration=2.0, backend="zenoh", quiet=True)
+
+
+def test_a_fresh_flow_that_cannot_be_made_stops_the_run_saying_so():
+    """Its constructor (or reset()) raises as the flow is rebuilt from the IR: the run stops saying
+    which flow and why, as when its setup() raises, not as a crash of the group's process."""
+    with Pipeline("group_restart_made") as pipe:
+        src = CountingSource().configure(name="src", process="chain") @ Rate(hz=20)
+        mid = MadeOnce(fail_at=[3]).configure(name="mid", process="chain", on_error="restart") @ Trigger("x")
+        src.then(mid, sync=Latest(), map={"value": "x"})
+    with pytest.raises(retriever.BackendError, match=r"zenoh run stopped: mid: its fresh flow could not be made: "
+                                                     r"RuntimeError: node 'mid': .*MadeOnce.* raised RuntimeError: the "
+                                                     r"device is taken, as the flow restarted after its step "
+                                                     r"failed") as raised:
+        pipe.run(duration=2.0, backend="zenoh", quiet=True)
+    assert "crashed" not in str(raised.value)
 
 
 def test_a_member_whose_process_dies_takes_the_group_down_whatever_its_on_error(tmp_path):

@@ -51,7 +51,9 @@ def secret(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def routers():
-    """Start routers (``routers(*args)``); each is killed by its PID at the end, whatever happened."""
+    """Start routers (``routers(*args)``); each is stopped by its PID at the end, whatever happened:
+    SIGTERM, so that it removes its folder (its dictionary of the namespaces' passwords), then
+    SIGKILL if it is still up after BOUND_S."""
     started: list[Router] = []
 
     def start(*args: str) -> Router:
@@ -60,6 +62,12 @@ def routers():
 
     yield start
     for router in started:
+        if router.proc.poll() is None:
+            router.proc.terminate()
+            try:
+                router.proc.wait(BOUND_S)
+            except subprocess.TimeoutExpired:
+                pass
         router.kill()
 
 

@@ -3,24 +3,31 @@ on loopback: what routes through the two, and whom the run router refuses."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import pytest
 import zenoh
 
-from retriever.backends.zenoh.access import RunAccess, TlsFiles
+from retriever.backends.zenoh.access import RunAccess, TlsFiles, run_user
 from retriever.backends.zenoh.daemon.run_router import open_run_router
 from retriever.backends.zenoh.hub import client_config, free_port
 from retriever.backends.zenoh.wire import KeySpace, WireError
-from tests.backends.zenoh.test_router import (SECRET, A, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
+from tests.backends.zenoh.test_router import (SECRET, A, B, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
                                               routers, secret, until)
 
 RUN = "run-1"
+USRPWD = "transport/auth/usrpwd"
 
 
-def run_client(at: str, run: str = RUN, secret: bytes = SECRET) -> zenoh.Session:
-    """A client of namespace A with the passwords of ``run`` (a flow of that run)."""
-    access = RunAccess.create(A, secret, run=run).client_config(A)
+def run_client(at: str, run: str = RUN, secret: bytes = SECRET, namespace: str = A,
+               user: str | None = None) -> zenoh.Session:
+    """A client with the passwords of ``run`` of ``namespace`` (a flow of that run; A's by
+    default), under ``user`` if given (else its namespace's run user)."""
+    access = RunAccess.create(namespace, secret, run=run).client_config(namespace)
+    if user is not None:
+        pair = json.loads(access[USRPWD])
+        access = {USRPWD: json.dumps({**pair, "user": user})}
     return zenoh.open(client_config(connect=[at], access=access, shared_memory=False))
 
 
@@ -58,6 +65,9 @@ def test_a_run_router_refuses_a_session_without_the_runs_password(router, tmp_pa
     run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream), folder)
     try:
         for stranger in (lambda: run_client(run_router.endpoint, run="run-2"),  # another run's flow
+                         # the same run id in another namespace of the secret, under its user or A's
+                         lambda: run_client(run_router.endpoint, namespace=B),
+                         lambda: run_client(run_router.endpoint, namespace=B, user=run_user(A)),
                          lambda: client(run_router.endpoint, A),  # the namespace's passwords: a daemon's
                          lambda: zenoh.open(client_config(connect=[run_router.endpoint], shared_memory=False))):
             try:

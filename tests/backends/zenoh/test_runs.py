@@ -194,6 +194,27 @@ def test_a_group_starts_as_one_process_only_when_every_member_is_prepared_here(p
     assert set(runs.usage(UsageRequest(run="r2")).cpu_s) == set(ids)  # each, its process's CPU
 
 
+def test_a_node_runs_in_at_most_two_processes_its_groups_counted(prepared):
+    """A node runs in one process, two while it restarts: a group's process counts for each member,
+    so a holder of the secret cannot start a member alone beside its group's process twice over."""
+    runs, _ = prepared
+    ir = build_small().build_ir().doc
+    ids = [n["id"] for n in ir["nodes"]]
+    hub = RunSpec.read_file(runs.run.folder / "spec.json").hub  # (run r1's)
+    spec = run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
+                    zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+    runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=tuple(ids)))
+    with pytest.raises(WireError, match=rf"'{ids[0]}' is no group of run r2's spec \(its groups: g\)"):
+        runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=(), group=True))  # a node, told it is a group
+    runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True))
+    runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=()))
+    with pytest.raises(WireError, match=rf"node '{ids[0]}' already runs in 2 processes on worker 'w'"):
+        runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=()))
+    with pytest.raises(WireError, match=rf"group 'g': its node '{ids[0]}' already runs in 2 processes"):
+        runs.spawn(SpawnRequest(run="r2", node="g", mode=(), group=True))
+    assert len(runs.run.processes) == 2
+
+
 @pytest.mark.parametrize("plan", [b"\x00" * 8, {"nodes": b"x"}, {"nodes": [], "extra": 1}, [1, 2, 3]])
 def test_a_prepare_with_a_plan_its_ir_contradicts_is_refused_and_makes_no_folder(prepared, plan):
     """The plan in a spec came from the network: the daemon checks it against the IR before it

@@ -119,8 +119,10 @@ def failure_error(book: RunBook, backend_name: str) -> Exception:
         failure.args = (failure.args[0] + where,)
         return failure
     raised = said.raised if said is not None and said.raised is not ABSENT else None
-    if said is not None and said.out_of_restarts is True and tag is not None and raised is not None and settings:
+    if (said is not None and said.out_of_restarts is True and tag is not None and raised is not None and settings
+            and settings.on_error == "restart"):
         # a restart in place past the budget its process held: as a coordinator's own refusal says it
+        # (believed of a flow that restarts: another never had a budget to spend)
         return ending(Decision.OUT_OF_RESTARTS, node, tag, raised, book.faults.restarts[node])
     if tag is not None and settings is not None and raised is not None:
         failure = StepError(node, tag, RemoteError(raised))

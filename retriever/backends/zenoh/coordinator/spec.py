@@ -47,13 +47,21 @@ def process_groups(graph: Graph, named: Mapping[str, str] | None = None) -> dict
     a process name by node that wins over the flow's, a deployment's placement file): name -> its
     nodes, in the graph's order. A name only one flow has is no group (that flow runs alone). A
     member with ``on_error="restart"`` restarts in place, in the group's process
-    (node/in_place.py)."""
+    (node/in_place.py). A group named as a node outside it is refused: what a process prints is
+    told under its name (host.share_output), so its lines would show as that node's."""
     groups: dict[str, list[str]] = {}
     for nid, node in graph.nodes.items():
         process = (named or {}).get(nid, node.settings.process)
         if process is not None:
             groups.setdefault(process, []).append(nid)
-    return {name: nodes for name, nodes in groups.items() if len(nodes) > 1}
+    groups = {name: nodes for name, nodes in groups.items() if len(nodes) > 1}
+    clashes = [f"process '{name}' (flows {', '.join(repr(n) for n in nodes)}) has the name of node '{name}', which "
+               "is not one of them: what the process prints would show as that node's"
+               for name, nodes in groups.items() if name in graph.nodes and name not in nodes]
+    if clashes:
+        raise BackendError("\n".join(clashes) + '\n    hint: give the process another name (configure(process=), '
+                           'or process = "NAME" in a placement file)')
+    return groups
 
 
 def shipped_plan(graph: Graph) -> dict:

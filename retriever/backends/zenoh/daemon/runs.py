@@ -216,11 +216,7 @@ class DaemonRuns:
                 mismatch = self._code_mismatch(run.ir, node)
                 if mismatch is not None:
                     raise WireError(f"worker '{self.name}' will not run {mismatch}")
-        live = [pid for pid, (n, proc) in run.processes.items() if n == name and proc.poll() is None]
-        if len(live) >= MAX_PROCESSES_PER_NODE:  # a node runs in one process, two while it restarts
-            raise WireError(f"{'group' if request.group else 'node'} '{name}' already runs in {len(live)} processes "
-                            f"on worker '{self.name}' "
-                            f"(pids {', '.join(map(str, live))})")
+        self._check_room(run, name, nodes, request.group)
         module = GROUP_MODULE if request.group else WORKER_MODULE
         proc, key = self._start(worker_command(str(run.folder / "spec.json"), name, mode, module=module))
         run.processes[proc.pid] = (name, proc)
@@ -249,6 +245,16 @@ class DaemonRuns:
             raise WireError(f"group '{name}': its node(s) {', '.join(missing)} were not prepared on worker "
                             f"'{self.name}' (a group's nodes run in one process, on one worker)"[:300])
         return list(members)
+
+    def _check_room(self, run: Run, name: str, nodes: list[str], group: bool) -> None:
+        """Refuse a spawn that would run a node in more than MAX_PROCESSES_PER_NODE processes (one, two
+        while it restarts): a group's process counts for each of its members."""
+        for node in nodes:
+            live = [pid for pid, (n, proc) in run.processes.items()
+                    if node in run.members.get(pid, (n,)) and proc.poll() is None]
+            if len(live) >= MAX_PROCESSES_PER_NODE:
+                raise WireError(f"{f'group {name!r}: its ' if group else ''}node '{node}' already runs in {len(live)} "
+                                f"processes on worker '{self.name}' (pids {', '.join(map(str, live))})")
 
     def _start(self, command: list[str]) -> tuple[subprocess.Popen, bytes]:
         """Start ``command`` with a key made for it (answered in the reply, which Zenoh routes to

@@ -140,7 +140,8 @@ class RunSpec(Record):
 
     def _check_ids(self, where: str) -> None:
         """None, or one id for every node of the IR: a process that knew some would wait for links
-        to those only, and say ready with the others unlinked. Nodes share one only in one group."""
+        to those only, and say ready with the others unlinked. Nodes share one only in one group; a
+        group's members are nodes of the IR, each in one group once (a node runs in one process)."""
         nodes = self.ir.get("nodes")  # (ir.IR checks the IR later: here, only the ids that are names count)
         known = ({n["id"] for n in nodes if isinstance(n, dict) and type(n.get("id")) is str}
                  if isinstance(nodes, list) else set())
@@ -148,13 +149,30 @@ class RunSpec(Record):
             amiss = sorted(set(self.zids) ^ known)
             raise WireError(f"{where}: field 'zids' must name one Zenoh id for each node of its IR, or none "
                             f"(amiss: {', '.join(shown(node, 40) for node in amiss[:5])})")
-        group_of = {node: name for name, members in self.groups.items() for node in members}
+        group_of = self._group_of(where, known)
         first: dict[str, str] = {}
         for node, zid in self.zids.items():
             other = first.setdefault(zid, node)
             if other != node and (node not in group_of or group_of.get(other) != group_of[node]):
                 raise WireError(f"{where}: field 'zids' gives nodes '{other}' and '{node}' one Zenoh id, and they "
                                 "are no group's")
+
+    def _group_of(self, where: str, known: set[str]) -> dict[str, str]:
+        """Each grouped node's group: a member is a node of the IR, in one group once (a node runs
+        in one process; two groups' processes would run it twice)."""
+        group_of: dict[str, str] = {}
+        for name, members in self.groups.items():
+            for i, node in enumerate(members):
+                if node not in known:
+                    raise WireError(f"{where}: field 'groups' names node {shown(node, 40)} in group "
+                                    f"{shown(name, 40)}, which its IR does not have")
+                other = group_of.setdefault(node, name)
+                if other != name or node in members[:i]:
+                    twice = (f"groups {shown(other, 40)} and {shown(name, 40)}" if other != name
+                             else f"group {shown(name, 40)} twice")
+                    raise WireError(f"{where}: field 'groups' puts node {shown(node, 40)} in {twice}: a node runs "
+                                    "in one process")
+        return group_of
 
     @classmethod
     def read_file(cls, path: Path) -> RunSpec:

@@ -229,7 +229,11 @@ def restart_in_place(w: Serving, ir: IR) -> None:
         return
 
     def fresh() -> Flow:
-        flow = rebuild_flow(w.spec, w.node, ir)
+        try:  # its constructor or reset() raising is the flow's failure, not a crash of the group's process
+            flow = rebuild_flow(w.spec, w.node, ir)
+        except Exception as exc:
+            raise StopRun(f"{w.node}: its fresh flow could not be made: {type(exc).__name__}: {exc}, as the flow "
+                          "restarted after its step failed") from exc
         try:
             set_up(flow)
         except Exception as exc:
