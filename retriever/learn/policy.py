@@ -31,9 +31,11 @@ processor file whose steps name a class to import (rather than LeRobot's registr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -284,6 +286,21 @@ def hub_offline() -> None:
         reset_sessions()
 
 
+@contextlib.contextmanager
+def _temporary_files_removed():
+    """Python's temporary files made meanwhile go to a folder of their own, removed after: LeRobot's
+    ``PreTrainedConfig.from_pretrained`` writes the config it parses to a temporary file it never
+    removes (``NamedTemporaryFile(delete=False)``), one more in the machine's /tmp per load. The
+    folder is the process's for that while (``tempfile.tempdir``): a policy loads in its flow's
+    setup, before its run's threads make files of their own."""
+    with tempfile.TemporaryDirectory(prefix="retriever-lerobot-") as folder:
+        before, tempfile.tempdir = tempfile.tempdir, folder
+        try:
+            yield
+        finally:
+            tempfile.tempdir = before
+
+
 class LeRobotPolicy(PolicyFlow):
     """A LeRobot ``PreTrainedPolicy`` checkpoint directory (``config.json``, ``model.safetensors``,
     and, as ``lerobot-train`` writes them, its pre/post-processors: normalization). Its config's
@@ -295,7 +312,8 @@ class LeRobotPolicy(PolicyFlow):
         from lerobot.policies.factory import get_policy_class
 
         try:
-            config = PreTrainedConfig.from_pretrained(path, local_files_only=True)
+            with _temporary_files_removed():
+                config = PreTrainedConfig.from_pretrained(path, local_files_only=True)
         except Exception as e:
             raise ValueError(f"{self._owner()}: {path / 'config.json'} is no LeRobot policy config that this lerobot "
                              f"reads ({type(e).__name__}: {str(e)[:300]})\n    hint: give the directory "

@@ -305,3 +305,18 @@ def test_a_config_lerobot_cannot_read_names_the_flow_and_the_path(tmp_path, chec
     with pytest.raises(ValueError, match=rf"ActPick: {path / 'config.json'} is no LeRobot policy config that this "
                                          r"lerobot reads \(DecodingError(.|\n)*hint: give the directory"):
         set_up(ActPick(str(path)))
+
+
+def test_loading_a_checkpoint_leaves_no_temporary_file(tmp_path, checkpoint, monkeypatch):
+    """LeRobot's PreTrainedConfig.from_pretrained writes a temporary file it never removes; a
+    policy flow's load removes it (a run's workers would otherwise leave one in /tmp each load)."""
+    import tempfile
+
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temporary))
+    policy = ActPick(str(checkpoint))
+    set_up(policy)
+    tear_down(policy)
+    assert sorted(p.name for p in temporary.iterdir()) == []
+    assert tempfile.gettempdir() == str(temporary)
