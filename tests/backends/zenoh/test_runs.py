@@ -168,16 +168,21 @@ def test_a_signal_goes_only_to_a_pid_of_the_run_as_an_int_with_an_allowed_signal
     assert proc.wait(timeout=10) == -signal.SIGKILL
 
 
+def grouped_spec(runs) -> tuple[list[str], object]:
+    """The small pipeline's node ids, and a spec of it whose nodes are all one group, "g"."""
+    ir = build_small().build_ir().doc
+    ids = [n["id"] for n in ir["nodes"]]
+    hub = RunSpec.read_file(runs.run.folder / "spec.json").hub  # (run r1's)
+    return ids, run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
+                         zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+
+
 def test_a_group_starts_as_one_process_only_when_every_member_is_prepared_here(prepared):
     """A spec's groups (flows that share a process, whose members share a Zenoh id): the daemon
     starts a group's one process (worker/group.py) once every member is prepared on it, and
     refuses a group it does not have, one split across workers, and a mode for one."""
     runs, _ = prepared
-    ir = build_small().build_ir().doc
-    ids = [n["id"] for n in ir["nodes"]]
-    hub = RunSpec.read_file(runs.run.folder / "spec.json").hub  # (run r1's)
-    spec = run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
-                    zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+    ids, spec = grouped_spec(runs)
     runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=(ids[0],)))
     with pytest.raises(WireError, match=rf"group 'g': its node\(s\) {', '.join(sorted(ids[1:]))} were not prepared "
                                         r"on worker 'w' \(a group's nodes run in one process, on one worker\)"):
@@ -198,11 +203,7 @@ def test_a_node_runs_in_at_most_two_processes_its_groups_counted(prepared):
     """A node runs in one process, two while it restarts: a group's process counts for each member,
     so a holder of the secret cannot start a member alone beside its group's process twice over."""
     runs, _ = prepared
-    ir = build_small().build_ir().doc
-    ids = [n["id"] for n in ir["nodes"]]
-    hub = RunSpec.read_file(runs.run.folder / "spec.json").hub  # (run r1's)
-    spec = run_spec(ir, runs.keys.namespace, hub=hub, startup_timeout=600.0,
-                    zids=dict.fromkeys(ids, "1a2b"), groups={"g": tuple(ids)})
+    ids, spec = grouped_spec(runs)
     runs.prepare(PrepareRequest(run="r2", spec=spec, nodes=tuple(ids)))
     with pytest.raises(WireError, match=rf"'{ids[0]}' is no group of run r2's spec \(its groups: g\)"):
         runs.spawn(SpawnRequest(run="r2", node=ids[0], mode=(), group=True))  # a node, told it is a group
