@@ -22,7 +22,7 @@ from .clocks import Clock
 from .code import code_hashes
 from .codec import type_path
 from .errors import CodecError, GraphError, Problem
-from .flow.core import Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
+from .flow.core import NAME_MAX, Flow, FlowSettings, FlowSpec, PortSpec, flow_spec, settings_of, snake_case
 from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir, port_name_problem
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns
@@ -295,10 +295,10 @@ def _assign_ids(flows: list[Flow], problems: list[Problem]) -> dict[int, str]:
         if base.endswith("_flow") and base != "_flow":
             base = base[: -len("_flow")]
         base = base or "flow"
-        name, n = base, 1
+        name, n = base[:NAME_MAX], 1  # a long class name cut to a node id's length
         while name in taken:
             n += 1
-            name = f"{base}_{n}"
+            name = f"{base[:NAME_MAX - len(str(n)) - 1]}_{n}"
         taken[name] = f
         ids[id(f)] = name
     return ids

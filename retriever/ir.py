@@ -23,7 +23,7 @@ from .code import SHA256_HEX
 from .codec import packb, unpackb
 from .errors import CodecError, IRError
 from .time import is_finite_number, max_microsteps_problem, seconds_problem
-from .flow.core import MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
+from .flow.core import NAME_MAX, NODE_ID, MAX_SPIN_S, ON_DEADLINE_MISS, ON_ERROR, ON_OVERRUN, REPLAY
 from .sync import policy_from_ir
 
 #: 1.1: constructor arguments JSON cannot hold exactly are tagged (:func:`param_to_ir`);
@@ -37,12 +37,11 @@ SCRIPT_FOLDER_ATTR = "__retriever_folder__"
 REALTIME_MODES = ("hard", "soft", "best_effort")
 #: seconds a real-time tick waits for an incomplete input edge, unless the edge says otherwise
 DEFAULT_DEADLINE = 0.1
-#: what a node id may be: one segment of the key space (flow ``configure(name=)`` checks the same)
-NODE_ID = r"[A-Za-z_][A-Za-z0-9_\-]*"
-#: what a port name may be: one segment too, as a node id (a log's topic is ``data/<node>/<port>``,
+#: what a port name may be: one segment, as a node id (flow/core.py's NODE_ID) but of any length
+#: (it names no file) (a log's topic is ``data/<node>/<port>``,
 #: a key ``.../data/<node>/<port>``, a qualified name ``node.port``: a '/' or '.' in it splits them);
 #: any Python identifier is one too (a dataclass field, a step() parameter: ``größe``)
-PORT_NAME = NODE_ID
+PORT_NAME = r"[A-Za-z_][A-Za-z0-9_\-]*"
 #: microsteps one instant may run before the run stops with a Zeno-loop error
 DEFAULT_MAX_MICROSTEPS = 1000
 
@@ -416,8 +415,8 @@ def _check_node(problems: list[str], i: int, n: Any, ids: dict[str, dict]) -> No
         return
     nid = n.get("id")
     if not isinstance(nid, str) or not re.fullmatch(NODE_ID, nid):
-        problems.append(f"{where}.id: expected a node name of letters, digits, _ and - (it becomes a key-space "
-                        f"segment), got {nid!r:.60}")
+        problems.append(f"{where}.id: expected a node name of letters, digits, _ and -, at most {NAME_MAX} (it "
+                        f"becomes a key-space segment and names files), got {nid!r:.60}")
         return
     where = f"node '{nid}'"
     if nid in ids:
@@ -462,7 +461,8 @@ def _check_config(problems: list[str], where: str, config: dict) -> None:
         problems.append(f"{where}.spin: expected seconds from 0 to {MAX_SPIN_S:g}, got {spin!r:.40}")
     process = config.get("process")
     if process is not None and not (isinstance(process, str) and re.fullmatch(NODE_ID, process)):
-        problems.append(f"{where}.process: expected a name (letters, digits, _ and -), got {process!r:.40}")
+        problems.append(f"{where}.process: expected a name (letters, digits, _ and -, at most {NAME_MAX}), "
+                        f"got {process!r:.40}")
     window = config.get("restart_window", 1.0)
     if not isinstance(window, (int, float)) or isinstance(window, bool) or not window > 0:
         problems.append(f"{where}.restart_window: expected seconds > 0, got {window!r}")

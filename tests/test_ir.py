@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from retriever import IR, IRError, Pipeline, Rate
+from retriever.ir import NAME_MAX
 from tests import ir_flows
 
 GOLDEN = Path(__file__).parent / "golden" / "small_pipeline.ir.json"
@@ -654,7 +655,10 @@ def _node(doc: dict, nid: str = "planner") -> dict:
     (lambda d: _node(d, "camera")["config"].update(spin="fast"), r"node 'camera'\.config\.spin: .*, got 'fast'"),
     (lambda d: _node(d, "camera")["config"].update(spin=True), r"node 'camera'\.config\.spin: .*, got True"),
     (lambda d: _node(d, "camera")["config"].update(process="a b"),
-     r"node 'camera'\.config\.process: expected a name \(letters, digits, _ and -\), got 'a b'"),
+     r"node 'camera'\.config\.process: expected a name \(letters, digits, _ and -, at most 128\), got 'a b'"),
+    (lambda d: _node(d, "camera")["config"].update(process="p" * 129), r"node 'camera'\.config\.process: .*at most 128"),
+    (lambda d: d["nodes"][0].update(id="n" * 129), r"nodes\[0\]\.id: expected a node name .*, at most 128 \(it becomes "
+                                                   r"a key-space segment and names files\)"),
     (lambda d: _node(d, "camera")["config"].update(process=7), r"node 'camera'\.config\.process: .*, got 7"),
 ])
 def test_an_ir_value_no_pipeline_can_take_is_an_ir_error(change, problem):
@@ -756,3 +760,18 @@ def test_a_flows_process_name_goes_through_the_ir(tmp_path: Path):
     assert {nid: n.settings.process for nid, n in rebuilt.nodes.items() if n.settings.process} == {node.id: "perception"}
     with pytest.raises(ValueError, match=r"configure\(process='a b'\): a process name must be"):
         node.flow.configure(process="a b")
+    with pytest.raises(ValueError, match=r"a process name must be .*at most 128"):
+        node.flow.configure(process="p" * 129)
+    node.flow.configure(process="p" * 128)
+
+
+def test_a_node_id_made_from_a_long_class_name_is_cut_to_a_valid_one():
+    """A node's id names files of a run (``<node>.handover``, at most 255 bytes): a class name past
+    NAME_MAX characters gives ids of NAME_MAX, still each its own, that the IR takes."""
+    long = type("Long" * 40, (ir_flows.Camera,), {})
+    with Pipeline("long_names") as pipe:
+        long() @ Rate(hz=1)
+        long() @ Rate(hz=1)
+    ids = [n["id"] for n in pipe.build_ir().doc["nodes"]]
+    assert [len(i) for i in ids] == [NAME_MAX, NAME_MAX] and len(set(ids)) == 2, ids
+    assert ids[1].endswith("_2")

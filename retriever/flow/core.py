@@ -45,6 +45,11 @@ REPLAY = ("rerun", "log")
 MAX_RESTARTS = 5
 #: ``configure(spin=...)``: at most this many seconds of busy-waiting before each tick
 MAX_SPIN_S = 0.001
+#: the longest node id or process name: each names files of a run (``<node>.<pid>.<n>.msg``,
+#: ``<node>.handover``), and a file's name is at most 255 bytes
+NAME_MAX = 128
+#: what a node id or process name may be: one segment of the key space, at most NAME_MAX characters
+NODE_ID = rf"[A-Za-z_][A-Za-z0-9_\-]{{0,{NAME_MAX - 1}}}"
 RESTART_WINDOW_S = 10.0
 
 class _NoDefault:
@@ -499,9 +504,9 @@ class Flow(Generic[In, Out]):
         s = self._retriever
         owner = type(self).__qualname__
         if name is not None:
-            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):  # ir.NODE_ID
-                raise ValueError(f"{owner}: node name {name!r} must be an identifier-like str "
-                                 "(letters, digits, _ and -; it becomes a key-space segment)")
+            if not isinstance(name, str) or not re.fullmatch(NODE_ID, name):
+                raise ValueError(f"{owner}: node name {name!r:.60} must be an identifier-like str (letters, digits, "
+                                 f"_ and -, at most {NAME_MAX}; it becomes a key-space segment and names files)")
             s.name = name
         if latency is not None:
             problem = seconds_problem("latency", latency)
@@ -534,9 +539,10 @@ class Flow(Generic[In, Out]):
                                  "each tick its worker busy-waits instead of sleeping, e.g. spin=100e-6")
             s.spin, s.spin_ns = spin, seconds_to_ns(spin)
         if process is not None:
-            if not isinstance(process, str) or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", process):  # ir.NODE_ID
+            if not isinstance(process, str) or not re.fullmatch(NODE_ID, process):
                 raise ValueError(f"{owner}.configure(process={process!r:.40}): a process name must be an "
-                                 "identifier-like str (letters, digits, _ and -), e.g. process='perception'")
+                                 f"identifier-like str (letters, digits, _ and -, at most {NAME_MAX}), "
+                                 "e.g. process='perception'")
             s.process = process
         return self
 
