@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import tempfile
 
 import numpy as np
 import pytest
@@ -62,7 +63,12 @@ def reference_chunk(path, image, state):
     from lerobot.processor import PolicyProcessorPipeline
     from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
 
-    policy = ACTPolicy.from_pretrained(path).eval()
+    with tempfile.TemporaryDirectory() as folder:  # its config load leaves a temporary copy of the config
+        before, tempfile.tempdir = tempfile.tempdir, folder
+        try:
+            policy = ACTPolicy.from_pretrained(path).eval()
+        finally:
+            tempfile.tempdir = before
     pre = PolicyProcessorPipeline.from_pretrained(path, config_filename="policy_preprocessor.json")
     post = PolicyProcessorPipeline.from_pretrained(path, config_filename="policy_postprocessor.json",
                                                    to_transition=policy_action_to_transition,
