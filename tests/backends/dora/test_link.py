@@ -11,7 +11,7 @@ from dora.testing import MockNode
 
 from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.dora.dataflow import DoraNames
-from retriever.backends.dora.link import DoraTransport
+from retriever.backends.dora.link import DoraLink, DoraTransport
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.worker.build import build_loop
 
@@ -33,19 +33,20 @@ def _loop_fed_by(session, events: list[dict]):
         src = Ticker().configure(name="counter") @ Rate(hz=10)
         src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
     ir = pipe.compile().to_ir().doc
-    transport = DoraTransport(DoraNames.of(ir), "where")
-    transport.dora_node = MockNode(events)
-    return build_loop(run_spec(ir, "link-test"), "where", session, transport=transport), transport
+    link = DoraLink()
+    link.dora_node = MockNode(events)
+    return build_loop(run_spec(ir, "link-test"), "where", session, transport=DoraTransport(link, DoraNames.of(ir),
+                                                                                         "where")), link
 
 
 def test_a_receiving_thread_that_dies_fails_its_loop_and_the_wait_for_greetings(session):
     """An input event with no value stands for any error on that thread (dora's next() raising):
     the node would never hear, nor step, again. Its loop raises the error at its next pass, and
     the wait for the producers' greetings (before the node says ready) ends with it."""
-    loop, transport = _loop_fed_by(session, [{"type": "INPUT", "id": "counter__value", "value": None}])
+    loop, link = _loop_fed_by(session, [{"type": "INPUT", "id": "counter__value", "value": None}])
     loop.declare()
     try:
-        transport.receiver.join(BOUND_S)
+        link.receiver.join(BOUND_S)
         with pytest.raises(AttributeError, match="to_numpy"):
             loop.drain()
         with pytest.raises(AttributeError, match="to_numpy"):
@@ -55,11 +56,11 @@ def test_a_receiving_thread_that_dies_fails_its_loop_and_the_wait_for_greetings(
 
 
 def test_a_stream_dora_ends_after_its_stop_ends_the_thread_quietly(session):
-    loop, transport = _loop_fed_by(session, [{"type": "INPUT_CLOSED", "id": "counter__value"}])
+    loop, link = _loop_fed_by(session, [{"type": "INPUT_CLOSED", "id": "counter__value"}])
     loop.declare()
     try:
-        transport.receiver.join(BOUND_S)
-        assert not transport.receiver.is_alive() and transport.failure is None
+        link.receiver.join(BOUND_S)
+        assert not link.receiver.is_alive() and link.failure is None
         loop.drain()
     finally:
         loop.undeclare()
