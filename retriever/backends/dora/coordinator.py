@@ -27,6 +27,7 @@ from ...graph import Graph
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.coordinator.hosting import FailRun
+from ..zenoh.coordinator.spec import process_groups
 from ..zenoh.host import Host
 from ..zenoh.origin import new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -66,8 +67,13 @@ class DoraHosting(Hosting):
     def check_deployable(self, graph: Graph) -> None:
         restarting = sorted(nid for nid, node in graph.nodes.items() if node.settings.on_error == "restart")
         if restarting:
+            group_of = {nid: name for name, members in process_groups(graph, self.process_names()).items()
+                        for nid in members}
+            named = ", ".join(f"{nid} (in process '{group_of[nid]}')" if nid in group_of else nid for nid in restarting)
+            in_place = (" (on zenoh a group's member restarts in its group's process: not on dora)"
+                        if any(nid in group_of for nid in restarting) else "")
             raise BackendError(f"the dora backend cannot restart a flow in a new process (on_error='restart' on "
-                               f"{', '.join(restarting)}): dora starts the dataflow's processes once\n"
+                               f"{named}): dora starts the dataflow's processes once{in_place}\n"
                                "    hint: use on_error='skip_tick' or 'stop', or run on backend='zenoh'")
         dora_command()  # installed? (before any process starts)
         super().check_deployable(graph)

@@ -9,12 +9,14 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from retriever import BackendError, Latest, Pipeline, Rate, Trigger, read_log
+from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
 from retriever.replay import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, Total
+from ..zenoh.test_group import grouped_pipeline
+from .dora_flows import Raises
 from .test_dora import _nothing_left
 
 QUEUE = {"queue_size": QUEUE_SIZE, "queue_policy": "backpressure"}
@@ -94,12 +96,42 @@ def test_a_grouped_run_is_one_process_per_group_inprocs_trace_and_replays_identi
     _nothing_left(pipe.session)
 
 
+def test_a_mixed_run_in_real_time_logs_and_replays_identically(tmp_path):
+    """counter and faulty share a process, sink runs alone, no LET (outputs stamped when the step
+    ends): as on zenoh (tests/backends/zenoh/test_group.py), every tick of the group's source is
+    recorded, sink hears faulty's reports over dora, and the log replays identically."""
+    pipe = grouped_pipeline(with_pid=False)
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=2.0, backend="dora", log=path, quiet=True)
+    pids = pipe.session.worker_pids()
+    assert pids["counter"] == pids["faulty"] != pids["sink"], pids
+    counter = [s for s in trace.steps if s.node == "counter"]
+    assert len(counter) == 40 and all(s.status == "ok" for s in counter)
+    assert len([s for s in trace.steps if s.node == "sink" and s.consumed]) >= 35
+    report = replay(read_log(path))
+    assert report.identical, report.divergences[:3]
+    _nothing_left(pipe.session)
+
+
+def test_a_member_whose_step_raises_stops_the_run_with_its_traceback():
+    with Pipeline("raises") as pipe:
+        src = Counter().configure(process="both") @ Rate(hz=20)
+        bad = Raises(at=3).named("bad").configure(process="both") @ Trigger()
+        src.then(bad, sync=Latest())
+    with pytest.raises(StepError, match=r"bad\.step\(\) raised RemoteError: ValueError: third time(.|\n)*"
+                                        r"worker traceback:(.|\n)*dora_flows\.py"):
+        pipe.run(duration=5.0, backend="dora", quiet=True)
+    _nothing_left(pipe.session)
+
+
 def test_a_group_member_that_restarts_is_refused():
     with Pipeline("restart") as pipe:
         src = Counter().configure(process="both") @ Rate(hz=20)
         total = Total().configure(name="total", on_error="restart", process="both") @ Trigger()
         src.then(total, sync=Latest())
-    with pytest.raises(BackendError, match=r"cannot restart a flow in a new process \(on_error='restart' on total\)"
-                                           r"(.|\n)*hint: use on_error='skip_tick' or 'stop', or run on "
+    with pytest.raises(BackendError, match=r"cannot restart a flow in a new process \(on_error='restart' on total "
+                                           r"\(in process 'both'\)\): dora starts the dataflow's processes once "
+                                           r"\(on zenoh a group's member restarts in its group's process: not on "
+                                           r"dora\)\n    hint: use on_error='skip_tick' or 'stop', or run on "
                                            r"backend='zenoh'"):
         pipe.run(duration=1.0, backend="dora")
