@@ -14,9 +14,10 @@ serve it, from a :class:`~retriever.backends.zenoh.worker.Launch` made here:
     folders    dora's directory, removed with the run's once the coordinator is gone
 
 Before that, the process says what a child of the coordinator would say by being one: its pid in
-``<node>.pid`` (a group's: ``<group>.pid``) of the run's directory, its output in the named pipes ``<dora id>.stdout`` and
-``.stderr`` there (the coordinator reads them: host.py), and, at its end, its exit code in
-``<node>.exit`` (``<group>.exit``). It works in the coordinator's directory, as a child would.
+``<node>.pid`` (a group's: ``<group>.pid``) of the run's directory, its output in the named pipes
+``<dora id>.stdout`` and ``.stderr`` there (the coordinator reads them: host.py), and, at its end,
+its exit code in ``<node>.exit`` (``<group>.exit``). It works in the coordinator's directory, as a
+child would.
 """
 
 from __future__ import annotations
