@@ -5,6 +5,10 @@ for that thread's end."""
 
 from __future__ import annotations
 
+import threading
+
+import numpy as np
+import pyarrow as pa
 import pytest
 import zenoh
 from dora.testing import MockNode
@@ -13,6 +17,7 @@ from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.dora.dataflow import DoraNames
 from retriever.backends.dora.link import DoraLink, DoraTransport
 from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.node import DATA, PROGRESS
 from retriever.backends.zenoh.worker.build import build_loop
 
 from ..zenoh.semantics_flows import Ticker, WhereRun
@@ -64,3 +69,44 @@ def test_a_stream_dora_ends_after_its_stop_ends_the_thread_quietly(session):
         loop.drain()
     finally:
         loop.undeclare()
+
+
+class _Held:
+    """A dora node whose events wait until ``gate`` is set (so that every listener is in first)."""
+
+    def __init__(self, node: MockNode, gate: threading.Event):
+        self.node, self.gate = node, gate
+
+    def next(self, timeout=None):
+        assert self.gate.wait(BOUND_S)
+        return self.node.next(timeout=timeout)
+
+
+def test_one_receiving_thread_hands_a_stream_two_members_consume_to_each_until_the_last_leaves():
+    """A group's members share their process's dora node (one DoraLink): a stream both consume
+    is one dora input, and each of its events reaches both; the thread serves them until the
+    last one undeclares."""
+    with Pipeline("shared") as pipe:
+        src = Ticker().configure(name="src") @ Rate(hz=10)
+        src.then(WhereRun().configure(name="a", process="both") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+        src.then(WhereRun().configure(name="b", process="both") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    names = DoraNames.of(pipe.compile().to_ir().doc, {"both": ["a", "b"]})
+    assert names.inputs["a"] == names.inputs["b"] == {"src__value": ["src", "value"], "src__progress": ["src", None]}
+    gate, link = threading.Event(), DoraLink()
+    link.dora_node = _Held(MockNode([("src__value", pa.array([], type=pa.uint8())),  # a greeting
+                                     ("src__value", pa.array(np.frombuffer(b"event", np.uint8))),
+                                     ("src__progress", pa.array(np.frombuffer(b"progress", np.uint8)))]), gate)
+    got: dict[str, list] = {"a": [], "b": []}
+    members = {node: DoraTransport(link, names, node) for node in got}
+    for node, transport in members.items():
+        transport.declare_inputs([], [], None, got[node].append)
+    gate.set()
+    link.receiver.join(BOUND_S)
+    assert link.greeted == {"src__value"}
+    for node in got:
+        assert [(kind, source, bytes(data)) for kind, source, data in got[node]] == [
+            (DATA, ("src", "value"), b"event"), (PROGRESS, "src", b"progress")], node
+    members["a"].undeclare()
+    assert link.receiver is not None and list(link.listeners) == ["src__value", "src__progress"]
+    members["b"].undeclare()
+    assert link.receiver is None and link.listeners == {}
