@@ -20,7 +20,9 @@ from .test_conformance import (
     PairSource, SkipRecorder, Source, SparseSource, UntypedSparse, WindowQueueRecorder,
 )
 
-REALTIME_BACKENDS = ["inproc", "zenoh", "dora"]
+# "dora-grouped": dora with the flows in two processes, alternately (configure(process=)): a group
+# is one dora node; edges between its members stay in its process, the others go over dora.
+REALTIME_BACKENDS = ["inproc", "zenoh", "dora", "dora-grouped"]
 DURATION = 1.0
 GENEROUS = 5.0  # seconds a tick may wait for its inputs
 
@@ -34,8 +36,16 @@ def run_on(build, backend, check_trace):
     """Run the graph ``build()`` returns on ``backend``; on a real-time backend, also on ``inproc``
     and require the identical trace."""
     pipe = build()
+    grouped = backend.endswith("-grouped")
+    if grouped:
+        backend = backend.removesuffix("-grouped")
+        processes = ["even", "odd"]
+        for i, node in enumerate(pipe.compile().nodes.values()):
+            node.flow.configure(process=processes[i % 2])
     options = {"quiet": True} if backend != "inproc" else {}
     trace = pipe.run(duration=DURATION, backend=backend, **options)
+    if grouped:
+        assert len(set(pipe.session.worker_pids().values())) == min(2, len(pipe.compile().nodes))
     check_trace(pipe, trace)
     assert trace.events and trace.steps
     if backend != "inproc":

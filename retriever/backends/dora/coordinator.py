@@ -2,7 +2,7 @@
 
     pipe.run(duration=10, backend="dora")
         │ open the run's private Zenoh hub (the control plane), write spec.json and dataflow.yml
-        │ `dora run dataflow.yml` ──▶ one worker per flow, each a dora node, says `ready`
+        │ `dora run dataflow.yml` ──▶ one worker per flow (or group of flows), each a dora node, says `ready`
         │ put `start` {T0, end}; the workers' events and progress go to each other over dora
         │ collect their reports (step records, events) into the trace and the log
         ▼ every worker says `done` → dora run ends; the hub closes
@@ -27,6 +27,7 @@ from ...graph import Graph
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.coordinator.hosting import FailRun
+from ..zenoh.coordinator.spec import process_groups
 from ..zenoh.host import Host
 from ..zenoh.origin import new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -53,9 +54,11 @@ def open_coordinator(graph: Graph, **options) -> Coordinator:
 
 
 class DoraHosting(Hosting):
-    """Every node a dora node of one dataflow, which ``dora run`` starts (host.DoraHost)."""
+    """Every process a dora node of one dataflow, which ``dora run`` starts (host.DoraHost): a
+    node's, or a group's (``configure(process=)``: its members' one process)."""
 
     backend_name = "dora"
+    shares_processes = True
 
     def __init__(self) -> None:
         #: ``dora run`` and what it prints, once the nodes are placed
@@ -64,8 +67,13 @@ class DoraHosting(Hosting):
     def check_deployable(self, graph: Graph) -> None:
         restarting = sorted(nid for nid, node in graph.nodes.items() if node.settings.on_error == "restart")
         if restarting:
+            group_of = {nid: name for name, members in process_groups(graph, self.process_names()).items()
+                        for nid in members}
+            named = ", ".join(f"{nid} (in process '{group_of[nid]}')" if nid in group_of else nid for nid in restarting)
+            in_place = (" (on zenoh a group's member restarts in its group's process: not on dora)"
+                        if any(nid in group_of for nid in restarting) else "")
             raise BackendError(f"the dora backend cannot restart a flow in a new process (on_error='restart' on "
-                               f"{', '.join(restarting)}): dora starts the dataflow's processes once\n"
+                               f"{named}): dora starts the dataflow's processes once{in_place}\n"
                                "    hint: use on_error='skip_tick' or 'stop', or run on backend='zenoh'")
         dora_command()  # installed? (before any process starts)
         super().check_deployable(graph)
@@ -80,7 +88,8 @@ class DoraHosting(Hosting):
     def place(self) -> dict[str, Host]:
         run = self.run
         graph = run.graph
-        names = DoraNames.of(run.spec.ir)
+        groups = {name: list(members) for name, members in run.spec.groups.items()}
+        names = DoraNames.of(run.spec.ir, groups)
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
         dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
@@ -88,6 +97,8 @@ class DoraHosting(Hosting):
         # (and then remove the run's directories, which no one else will)
         # and each node's process finds the key it signs with (origin.py) in the private spec
         keys = {nid: new_key() for nid in graph.nodes}
+        for members in groups.values():  # a group's process signs for all its members with one
+            keys.update(dict.fromkeys(members, keys[members[0]]))
         run.expect_keys(keys)
         run.spec = dataclasses.replace(run.spec, dora_part=names.part(cwd=os.getcwd(), coordinator=os.getpid(),
                                                                       dir=str(dora_dir), keys=keys))
@@ -95,7 +106,7 @@ class DoraHosting(Hosting):
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(graph.name, names, sys.executable, str(spec_path), package_root))
-        self.dora = DoraHost(run.run_dir, dataflow, names.nodes)
+        self.dora = DoraHost(run.run_dir, dataflow, names.processes(groups))
         return {nid: self.dora for nid in graph.nodes}
 
     def check(self) -> None:

@@ -1,4 +1,5 @@
-"""A pipeline's IR compiled to a dora dataflow descriptor: one dora node per flow.
+"""A pipeline's IR compiled to a dora dataflow descriptor: one dora node per process (a flow's,
+or a group's: ``configure(process=NAME)``).
 
     nodes:
       - id: camera                       # the flow's node id (ids dora refuses are renamed n0, n1, ...)
@@ -13,7 +14,11 @@
 
 Each node is a Retriever worker process (the flow rebuilt from the IR), as on the zenoh backend,
 started through node.py;
-its events and its progress messages go to its consumers over dora. A dropped event would leave
+its events and its progress messages go to its consumers over dora. A group's dora node (its id
+the group's name) is its members' one process: its outputs are ``MEMBER__PORT`` for the ports a
+node outside the group consumes, and ``MEMBER__progress``; its inputs, the streams its members
+consume from outside (one input for a stream two members consume). What goes between members
+is no dora route: it stays in the process (backends/zenoh/node/group.py). A dropped event would leave
 a gap in its stream that no frontier crosses, so every input is ``queue_policy: backpressure``
 with a long queue. Dora's default route (straight between the nodes, drop-oldest) can lose
 messages of a fast stream with no warning, the last progress message of a producer among them,
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from ..zenoh.command import DORA_NODE_MODULE, worker_command
@@ -44,32 +50,73 @@ _DORA_ID = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,63}$")
 
 @dataclass(frozen=True)
 class DoraNames:
-    """The dora ids of a run: per node, its id, its outputs by port, and its inputs by stream."""
+    """The dora ids of a run: per node, its dora node's id, its outputs by port, its progress
+    output, and its inputs by stream. A group's members (``configure(process=)``) share one dora
+    node: each has outputs only for the ports a node outside the group consumes, and inputs only
+    from nodes outside it (what goes between members stays in their process: node/group.py)."""
 
     nodes: dict[str, str]                       # node id -> dora node id
     outputs: dict[str, dict[str, str]]          # node id -> {port: dora output id}
+    progress: dict[str, str]                    # node id -> its progress's dora output id (if heard over dora)
     inputs: dict[str, dict[str, list]]          # node id -> {dora input id: [producer, port or None]}
 
     @classmethod
-    def of(cls, ir_doc: dict) -> "DoraNames":
-        nodes, outputs = {}, {}
+    def of(cls, ir_doc: dict, groups: Mapping[str, Sequence[str]] | None = None) -> "DoraNames":
+        """The ids of the IR ``ir_doc``'s nodes, ``groups`` (the run spec's: name -> members)
+        each one dora node."""
+        group_of = {nid: name for name, members in (groups or {}).items() for nid in members}
+        nodes, by_group, used = {}, {}, set()
         for i, node in enumerate(ir_doc["nodes"]):
             nid = node["id"]
-            nodes[nid] = nid if _DORA_ID.match(nid) and nid != "dora" else f"n{i}"
-            outputs[nid] = {port: port if _DORA_ID.match(port) and port != PROGRESS else f"o{j}"
-                            for j, port in enumerate(sorted(node["outputs"]))}
+            group = group_of.get(nid)
+            if group in by_group:
+                nodes[nid] = by_group[group]
+                continue
+            name = nid if group is None else group
+            nodes[nid] = name if _DORA_ID.match(name) and name != "dora" and name not in used else f"n{i}"
+            used.add(nodes[nid])
+            if group is not None:
+                by_group[group] = nodes[nid]
+        crossing = [e for e in ir_doc["edges"]
+                    if e["source"]["node"] not in group_of
+                    or group_of[e["source"]["node"]] != group_of.get(e["destination"]["node"])]
+        heard = {e["source"]["node"] for e in crossing}
+        outputs, progress, taken = {}, {}, {}
+        for i, node in enumerate(ir_doc["nodes"]):
+            nid = node["id"]
+            ports = {port: port if _DORA_ID.match(port) and port != PROGRESS else f"o{j}"
+                     for j, port in enumerate(sorted(node["outputs"]))}
+            if nid not in group_of:
+                outputs[nid] = ports
+                if nid in heard:
+                    progress[nid] = PROGRESS
+                continue
+            # a member's outputs in its group's dora node: named by member and port, unique there
+            used = taken.setdefault(nodes[nid], set())
+            member = nid if _DORA_ID.match(nid) else f"n{i}"
+            remote = {e["source"]["port"] for e in crossing if e["source"]["node"] == nid}
+            outputs[nid] = {port: _unique(f"{member}__{ports[port]}", used, f"o{i}_{j}")
+                            for j, port in enumerate(sorted(node["outputs"])) if port in remote}
+            if nid in heard:
+                progress[nid] = _unique(f"{member}__{PROGRESS}", used, f"p{i}")
         inputs: dict[str, dict[str, list]] = {nid: {} for nid in nodes}
-        for e in ir_doc["edges"]:
+        for e in crossing:
             src, port, dst = e["source"]["node"], e["source"]["port"], e["destination"]["node"]
             if port not in outputs[src]:  # an untyped flow's port: the IR lists every port an edge names
                 raise ValueError(f"edge from {src}.{port}: no such output port in the IR")
             inputs[dst][f"{nodes[src]}__{outputs[src][port]}"] = [src, port]
-            inputs[dst][f"{nodes[src]}__{PROGRESS}"] = [src, None]
-        return cls(nodes, outputs, inputs)
+            inputs[dst][f"{nodes[src]}__{progress[src]}"] = [src, None]
+        return cls(nodes, outputs, progress, inputs)
 
-    def node_of(self, dora_id: str) -> str:
-        """The node id whose dora node is ``dora_id`` (a worker's argument)."""
-        return next(nid for nid, did in self.nodes.items() if did == dora_id)
+    def processes(self, groups: Mapping[str, Sequence[str]]) -> dict[str, str]:
+        """Each process's dora node id: a node's own by its id, a group's by its name."""
+        grouped = {nid for members in groups.values() for nid in members}
+        return {**{nid: did for nid, did in self.nodes.items() if nid not in grouped},
+                **{name: self.nodes[members[0]] for name, members in groups.items()}}
+
+    def members(self, dora_id: str) -> list[str]:
+        """The node ids whose dora node is ``dora_id`` (a worker's argument): one, or a group's."""
+        return [nid for nid, did in self.nodes.items() if did == dora_id]
 
     def part(self, *, cwd: str, coordinator: int, dir: str, keys: dict[str, bytes]) -> DoraPart:
         """The run's spec's dora part (protocol.DoraPart): these ids, and what a node's process
@@ -77,26 +124,36 @@ class DoraNames:
         return DoraPart(nodes=dict(self.nodes), outputs={nid: dict(ports) for nid, ports in self.outputs.items()},
                         inputs={nid: {input_id: tuple(stream) for input_id, stream in inputs.items()}
                                 for nid, inputs in self.inputs.items()},
-                        cwd=cwd, coordinator=coordinator, dir=dir, keys=dict(keys))
+                        progress=dict(self.progress), cwd=cwd, coordinator=coordinator, dir=dir, keys=dict(keys))
 
     @classmethod
     def of_part(cls, part: DoraPart) -> "DoraNames":
         """The ids a run's spec's dora part holds (:meth:`part`)."""
-        return cls(dict(part.nodes), {nid: dict(ports) for nid, ports in part.outputs.items()},
+        return cls(dict(part.nodes), {nid: dict(ports) for nid, ports in part.outputs.items()}, dict(part.progress),
                    {nid: {input_id: list(stream) for input_id, stream in inputs.items()}
                     for nid, inputs in part.inputs.items()})
+
+
+def _unique(name: str, used: set[str], fallback: str) -> str:
+    """``name`` if dora takes it and it is not ``used`` yet, else ``fallback``; marked used."""
+    chosen = name if _DORA_ID.match(name) and name not in used else fallback
+    used.add(chosen)
+    return chosen
 
 
 def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pythonpath: str) -> str:
     """The dataflow descriptor (YAML; scalars written as JSON strings, which YAML reads alike)."""
     q = json.dumps
-    lines = [f"# Retriever pipeline {q(name)} as a dora dataflow: one node per flow, each a Retriever worker",
-             "# (the flow rebuilt from the IR in spec.json); events and progress go over dora.", "nodes:"]
-    for nid, dora_id in names.nodes.items():
-        outputs = [*names.outputs[nid].values()]
-        consumed = any(src == nid for node_inputs in names.inputs.values() for src, _ in node_inputs.values())
-        if consumed:
-            outputs.append(PROGRESS)
+    lines = [f"# Retriever pipeline {q(name)} as a dora dataflow: one node per process (a flow's, or a group's),",
+             "# each a Retriever worker (its flows rebuilt from the IR in spec.json); events and progress go over "
+             "dora.", "nodes:"]
+    for dora_id in dict.fromkeys(names.nodes.values()):
+        members = names.members(dora_id)
+        outputs = []
+        for nid in members:
+            outputs += [*names.outputs[nid].values(), *([names.progress[nid]] if nid in names.progress else [])]
+        # a group's members consuming one stream: one input of their dora node
+        inputs = {input_id: stream for nid in members for input_id, stream in names.inputs[nid].items()}
         path, *args = worker_command(spec_path, dora_id, module=DORA_NODE_MODULE, python=python)
         lines += [f"  - id: {q(dora_id)}",
                   f"    path: {q(path)}",
@@ -104,11 +161,10 @@ def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pyth
                   "    env:",
                   f"      PYTHONPATH: {q(pythonpath)}",
                   f"    outputs: [{', '.join(q(o) for o in outputs)}]"]
-        node_inputs = names.inputs[nid]
-        if node_inputs:
+        if inputs:
             lines.append("    inputs:")
-            for input_id, (src, port) in node_inputs.items():
-                output = PROGRESS if port is None else names.outputs[src][port]
+            for input_id, (src, port) in inputs.items():
+                output = names.progress[src] if port is None else names.outputs[src][port]
                 lines.append(f"      {q(input_id)}: {{source: {q(names.nodes[src] + '/' + output)}, "
                              f"queue_size: {QUEUE_SIZE}, queue_policy: backpressure}}")
     return "\n".join(lines) + "\n"

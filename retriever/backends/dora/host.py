@@ -1,6 +1,7 @@
 """Where a dora run's worker processes run: ``dora run`` starts them all, from the dataflow.
 
-    DoraHost         starts ``dora run dataflow.yml`` (one dora node per flow) in a directory of
+    DoraHost         starts ``dora run dataflow.yml`` (one dora node per process: a flow's, or a
+                     group's) in a directory of
                      its own (dora writes its logs there), and reads dora's errors; each worker
                      writes its stdout and stderr to named pipes of the run's directory, which the
                      coordinator forwards prefixed with the node, as on the zenoh backend
@@ -73,16 +74,18 @@ class DoraHost(Host):
 
     name = "dora"
 
-    def __init__(self, run_dir: Path, dataflow: Path, nodes: dict[str, str]):
+    def __init__(self, run_dir: Path, dataflow: Path, processes: dict[str, str]):
+        """``processes``: each worker process's dora node id, by the process's name (a node's id,
+        or a group's name: DoraNames.processes)."""
         super().__init__()
         self.dir = run_dir  # the workers' pid, exit and output files
         self.dora_dir = dataflow.parent  # dora's: its logs grow there, on disk
-        self.by_dora_id = {dora_id: nid for nid, dora_id in nodes.items()}
+        self.by_dora_id = {dora_id: name for name, dora_id in processes.items()}
         self.tail: deque[str] = deque(maxlen=50)  # dora's own errors
-        self.signalled: dict[str, int] = {}  # node -> how its process ended, as dora said (-signal or code)
+        self.signalled: dict[str, int] = {}  # process -> how it ended, as dora said (-signal or code)
         self.fifos: list[str] = []
         self.interrupted = False  # ended by interrupt(): what dora says of its nodes' ends is ours
-        for nid, dora_id in nodes.items():
+        for nid, dora_id in processes.items():
             paths = {stream: str(run_dir / f"{dora_id}.{stream}") for stream in Stream}
             for path in paths.values():
                 os.mkfifo(path, 0o600)
@@ -111,6 +114,11 @@ class DoraHost(Host):
         if mode:  # a restart's new process: dora started the dataflow's processes once
             raise BackendError(f"the dora backend cannot start another process for '{node}'")
         return DoraNodeProcess(node, self), key
+
+    def spawn_group(self, name: str, nodes: list[str], key: bytes) -> tuple["DoraNodeProcess", bytes]:
+        """The process of the group ``name`` (one dora node): what it prints is each member's."""
+        self.share_output(name, nodes)
+        return DoraNodeProcess(name, self), key
 
     def _read(self) -> None:
         """Follows dora's output file until dora run ended and its last line is read."""
@@ -200,7 +208,8 @@ class DoraHost(Host):
 
 
 class DoraNodeProcess:
-    """One node's worker process under dora: what ``subprocess.Popen`` would say of it."""
+    """One worker process under dora (a node's, or a group's, by its name), as ``subprocess.Popen``
+    would say of it."""
 
     def __init__(self, node: str, host: DoraHost):
         self.node, self.host = node, host

@@ -1,11 +1,16 @@
 """A node's events and progress over dora: the transport a node loop is handed in a dora run.
 
-    dora inputs ──receiving thread: node.next()──▶ the loop's inbox (or handled right there, as a
-                                                   Zenoh subscriber's callback would: INLINE_STEP_NS)
-    loop ──send_output(port | "progress")──▶ dora ──▶ the consumers' inputs
+    dora inputs ──DoraLink's receiving thread: node.next()──▶ each listening loop's inbox (or
+                                                 handled right there, as a Zenoh subscriber's
+                                                 callback would: INLINE_STEP_NS)
+    loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
 
-A receiving thread that dies hands its error to the loop (inbox.FAILED), which raises it: the
-run fails naming it, where the node would otherwise hear nothing more, and never step again.
+A process has one dora node, and so one :class:`DoraLink`: its receiving thread hands each
+input's events to every node of the process that listens to that input (a group's members,
+``configure(process=)``, share one process: backends/zenoh/node/group.py; each has a
+:class:`DoraTransport` of its own on the one link). A receiving thread that dies hands its error
+to every listening loop (inbox.FAILED), which raises it: the run fails naming it, where the node
+would otherwise hear nothing more, and never step again.
 
 Everything else is the node loop's (backends/zenoh/node/): clocks, frontiers, deadlines, LET,
 step records. The run's control plane stays on the run's private Zenoh hub: ``start`` and
@@ -20,7 +25,6 @@ import time
 from typing import Callable
 
 from ..zenoh.node import DATA, FAILED, PROGRESS, Transport
-from .dataflow import PROGRESS as PROGRESS_OUTPUT
 from .dataflow import DoraNames
 
 #: how long the receiving thread waits in ``node.next()`` before it looks whether to stop
@@ -53,20 +57,22 @@ class Nowhere:
         pass
 
 
-class DoraTransport(Transport):
-    """Events and progress of the node ``node_id`` with this process's dora node."""
+class DoraLink:
+    """This process's dora node and its receiving thread, shared by the transports of the nodes
+    the process serves. ``listen`` adds a node's routes (dora input id -> (producer, port or None
+    for its progress)); the thread runs while any node listens."""
 
-    def __init__(self, names: DoraNames, node_id: str):
-        self.names, self.id = names, node_id
-        self.routes = {input_id: (src, port) for input_id, (src, port) in names.inputs[node_id].items()}
+    def __init__(self):
         self.dora_node = None
         self.receiver: threading.Thread | None = None
         self.receiving = False
+        #: per dora input, who hears it: (its route, receive, put) of each listening node
+        self.listeners: dict[str, list[tuple[tuple, Callable, Callable]]] = {}
         self.greeted: set[str] = set()  # inputs a producer's greeting came through
         self.greetings = threading.Condition()
         self.failure: Exception | None = None  # what ended the receiving thread, if it died
 
-    def _dora(self):
+    def node(self):
         """This process's dora node (created once: dora starts the dataflow when every node has one)."""
         if self.dora_node is None:
             from dora import Node
@@ -74,20 +80,103 @@ class DoraTransport(Transport):
             self.dora_node = Node()
         return self.dora_node
 
-    def declare_inputs(self, streams, sources, inline, put) -> None:
-        node = self._dora()
-        if self.receiver is None and self.routes:
+    def listen(self, routes: dict[str, tuple], receive: Callable, put: Callable) -> list:
+        """Hand each event of ``routes``' inputs to ``receive`` (data) or ``put`` (progress, and
+        the thread's failure); the thread starts with the first listener. What to ``leave``."""
+        node = self.node()
+        entries = []
+        with self.greetings:  # (a new list per input: the thread reads them without the lock)
+            for input_id, route in routes.items():
+                entry = (route, receive, put)
+                self.listeners[input_id] = [*self.listeners.get(input_id, ()), entry]
+                entries.append((input_id, entry))
+        if self.receiver is None:
             self.receiving = True
-            self.receiver = threading.Thread(target=self._receive, args=(node, inline or put, put), daemon=True,
-                                             name=f"retriever-dora-{self.id}")
+            self.receiver = threading.Thread(target=self._receive, args=(node,), daemon=True,
+                                             name="retriever-dora-receiver")
             self.receiver.start()
+        return entries
+
+    def leave(self, entries: list) -> None:
+        """Hear no more what ``listen`` added; the last listener gone, the thread ends."""
+        with self.greetings:
+            for input_id, entry in entries:
+                left = [e for e in self.listeners.get(input_id, ()) if e is not entry]
+                if left:
+                    self.listeners[input_id] = left
+                else:
+                    self.listeners.pop(input_id, None)
+            last = not self.listeners
+        if last and self.receiver is not None:
+            self.receiving = False
+            if self.receiver is not threading.current_thread():
+                self.receiver.join()
+            self.receiver = None
+
+    def await_greetings(self, wanted: set[str], timeout: float, stopping: Callable[[], bool]) -> None:
+        """Until a greeting came through each input of ``wanted`` (or stopping, or ``timeout``);
+        the receiving thread's error if it died."""
+        give_up = time.monotonic() + timeout
+        with self.greetings:  # (in short waits: a stop, from a signal handler, notifies no one)
+            while not (stopping() or self.greeted >= wanted or self.failure) and time.monotonic() < give_up:
+                self.greetings.wait(0.1)
+        if self.failure is not None:  # no greeting can come any more
+            raise self.failure
+
+    def _receive(self, node) -> None:
+        """The receiving thread: every input event, in dora's order, to its listeners (until dora
+        says every sender is gone, or no one listens); if it dies, its error, to every listener."""
+        try:
+            self._take_events(node)
+        except Exception as exc:
+            with self.greetings:
+                self.failure = exc
+                self.greetings.notify_all()
+                puts = {id(put): put for entries in self.listeners.values() for _, _, put in entries}
+            for put in puts.values():
+                put((FAILED, None, exc))
+
+    def _take_events(self, node) -> None:
+        listeners = self.listeners
+        while self.receiving:
+            event = node.next(timeout=RECEIVE_TIMEOUT_S)
+            if event is None:  # the stream ended: after a STOP, or dora run (its daemon) is gone
+                return
+            if event["type"] != "INPUT":  # a timeout (ERROR), INPUT_CLOSED, STOP: queued inputs still follow
+                continue
+            # a view of dora's buffer, which it holds: dora reuses none while a view of it lives
+            data = memoryview(event["value"].to_numpy(zero_copy_only=False))
+            if not len(data):  # a greeting (no Retriever message is empty), maybe before its listener
+                with self.greetings:
+                    self.greeted.add(event["id"])
+                    self.greetings.notify_all()
+                continue
+            for (src, port), receive, put in listeners.get(event["id"], ()):
+                if port is None:
+                    put((PROGRESS, src, data))
+                else:
+                    receive((DATA, (src, port), data))
+
+
+class DoraTransport(Transport):
+    """Events and progress of the node ``node_id`` on ``link``, its process's dora node."""
+
+    def __init__(self, link: DoraLink, names: DoraNames, node_id: str):
+        self.link, self.names, self.id = link, names, node_id
+        self.routes = {input_id: tuple(stream) for input_id, stream in names.inputs[node_id].items()}
+        self.listening: list | None = None
+
+    def declare_inputs(self, streams, sources, inline, put) -> None:
+        self.link.node()
+        if self.listening is None and self.routes:
+            self.listening = self.link.listen(self.routes, inline or put, put)
 
     def declare_outputs(self, ports, consumed):
-        node = self._dora()
-        outputs = self.names.outputs[self.id]
+        node = self.link.node()
+        outputs, progress_output = self.names.outputs[self.id], self.names.progress.get(self.id)
         publishers = {port: DoraOutput(node, outputs[port]) if port in outputs else Nowhere() for port in ports}
-        progress = DoraOutput(node, PROGRESS_OUTPUT) if consumed else Nowhere()
-        for output in {*outputs.values(), *([PROGRESS_OUTPUT] if consumed else [])}:
+        progress = DoraOutput(node, progress_output) if consumed and progress_output else Nowhere()
+        for output in {*outputs.values(), *([progress_output] if progress_output else [])}:
             node.send_output(output, GREETING)
         return publishers, progress, None
 
@@ -95,50 +184,9 @@ class DoraTransport(Transport):
         return Nowhere()
 
     def await_routes(self, timeout: float, stopping: Callable[[], bool]) -> None:
-        give_up, wanted = time.monotonic() + timeout, set(self.routes)
-        with self.greetings:  # (in short waits: a stop, from a signal handler, notifies no one)
-            while not (stopping() or self.greeted >= wanted or self.failure) and time.monotonic() < give_up:
-                self.greetings.wait(0.1)
-        if self.failure is not None:  # no greeting can come any more
-            raise self.failure
+        self.link.await_greetings(set(self.routes), timeout, stopping)
 
     def undeclare(self) -> None:
-        self.receiving = False
-        if self.receiver is not None and self.receiver is not threading.current_thread():
-            self.receiver.join()
-        self.receiver = None
-
-    def _receive(self, node, receive, put) -> None:
-        """The receiving thread: every input event, in dora's order, to the loop (until dora says
-        every sender is gone, or the transport is undeclared); if it dies, its error, to the loop."""
-        try:
-            self._take_events(node, receive, put)
-        except Exception as exc:
-            with self.greetings:
-                self.failure = exc
-                self.greetings.notify_all()
-            put((FAILED, None, exc))
-
-    def _take_events(self, node, receive, put) -> None:
-        routes = self.routes
-        while self.receiving:
-            event = node.next(timeout=RECEIVE_TIMEOUT_S)
-            if event is None:  # the stream ended: after a STOP, or dora run (its daemon) is gone
-                return
-            if event["type"] != "INPUT":  # a timeout (ERROR), INPUT_CLOSED, STOP: queued inputs still follow
-                continue
-            route = routes.get(event["id"])
-            if route is None:
-                continue
-            # a view of dora's buffer, which it holds: dora reuses none while a view of it lives
-            data = memoryview(event["value"].to_numpy(zero_copy_only=False))
-            if not len(data):  # a greeting (no Retriever message is empty)
-                with self.greetings:
-                    self.greeted.add(event["id"])
-                    self.greetings.notify_all()
-                continue
-            src, port = route
-            if port is None:
-                put((PROGRESS, src, data))
-            else:
-                receive((DATA, (src, port), data))
+        if self.listening is not None:
+            self.link.leave(self.listening)
+        self.listening = None

@@ -78,7 +78,7 @@ def test_ids_dora_would_refuse_are_renamed_and_mapped_back():
     assert names.nodes == {"cam.left": "n0", "dora": "n1"}
     assert names.outputs["cam.left"] == {"img": "img", "progress": "o1"}  # the port named like the progress output
     assert names.inputs["dora"] == {"n0__o1": ["cam.left", "progress"], "n0__progress": ["cam.left", None]}
-    assert names.node_of("n0") == "cam.left"
+    assert names.members("n0") == ["cam.left"] and names.progress == {"cam.left": PROGRESS}
     flow = yaml.safe_load(dataflow_yaml("odd", names, "/py", "/spec.json", "/src"))
     assert [n["id"] for n in flow["nodes"]] == ["n0", "n1"] and flow["nodes"][0]["outputs"] == ["img", "o1", PROGRESS]
 
@@ -89,6 +89,7 @@ def test_the_specs_dora_part_is_the_dict_it_was_and_a_node_reads_its_names_back(
     part = names.part(cwd="/home/me", coordinator=4242, dir="/tmp/retriever-dora-x", keys=keys)
     # as DoraHosting.place wrote it when the spec was a dict: the same keys, in the same order
     assert part.to_fields() == {"nodes": names.nodes, "outputs": names.outputs, "inputs": names.inputs,
+                                "progress": names.progress,
                                 "cwd": "/home/me", "coordinator": 4242, "dir": "/tmp/retriever-dora-x",
                                 "keys": {"src": "01" * KEY_BYTES, "echo": "02" * KEY_BYTES}}
     spec = RunSpec(ir=doc, namespace="dora-part", hub="tcp/127.0.0.1:7447", plan={"nodes": []}, startup_timeout=60.0,

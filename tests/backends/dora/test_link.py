@@ -5,14 +5,19 @@ for that thread's end."""
 
 from __future__ import annotations
 
+import threading
+
+import numpy as np
+import pyarrow as pa
 import pytest
 import zenoh
 from dora.testing import MockNode
 
 from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.dora.dataflow import DoraNames
-from retriever.backends.dora.link import DoraTransport
+from retriever.backends.dora.link import DoraLink, DoraTransport
 from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.node import DATA, PROGRESS
 from retriever.backends.zenoh.worker.build import build_loop
 
 from ..zenoh.semantics_flows import Ticker, WhereRun
@@ -33,19 +38,20 @@ def _loop_fed_by(session, events: list[dict]):
         src = Ticker().configure(name="counter") @ Rate(hz=10)
         src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
     ir = pipe.compile().to_ir().doc
-    transport = DoraTransport(DoraNames.of(ir), "where")
-    transport.dora_node = MockNode(events)
-    return build_loop(run_spec(ir, "link-test"), "where", session, transport=transport), transport
+    link = DoraLink()
+    link.dora_node = MockNode(events)
+    return build_loop(run_spec(ir, "link-test"), "where", session, transport=DoraTransport(link, DoraNames.of(ir),
+                                                                                         "where")), link
 
 
 def test_a_receiving_thread_that_dies_fails_its_loop_and_the_wait_for_greetings(session):
     """An input event with no value stands for any error on that thread (dora's next() raising):
     the node would never hear, nor step, again. Its loop raises the error at its next pass, and
     the wait for the producers' greetings (before the node says ready) ends with it."""
-    loop, transport = _loop_fed_by(session, [{"type": "INPUT", "id": "counter__value", "value": None}])
+    loop, link = _loop_fed_by(session, [{"type": "INPUT", "id": "counter__value", "value": None}])
     loop.declare()
     try:
-        transport.receiver.join(BOUND_S)
+        link.receiver.join(BOUND_S)
         with pytest.raises(AttributeError, match="to_numpy"):
             loop.drain()
         with pytest.raises(AttributeError, match="to_numpy"):
@@ -55,11 +61,52 @@ def test_a_receiving_thread_that_dies_fails_its_loop_and_the_wait_for_greetings(
 
 
 def test_a_stream_dora_ends_after_its_stop_ends_the_thread_quietly(session):
-    loop, transport = _loop_fed_by(session, [{"type": "INPUT_CLOSED", "id": "counter__value"}])
+    loop, link = _loop_fed_by(session, [{"type": "INPUT_CLOSED", "id": "counter__value"}])
     loop.declare()
     try:
-        transport.receiver.join(BOUND_S)
-        assert not transport.receiver.is_alive() and transport.failure is None
+        link.receiver.join(BOUND_S)
+        assert not link.receiver.is_alive() and link.failure is None
         loop.drain()
     finally:
         loop.undeclare()
+
+
+class _Held:
+    """A dora node whose events wait until ``gate`` is set (so that every listener is in first)."""
+
+    def __init__(self, node: MockNode, gate: threading.Event):
+        self.node, self.gate = node, gate
+
+    def next(self, timeout=None):
+        assert self.gate.wait(BOUND_S)
+        return self.node.next(timeout=timeout)
+
+
+def test_one_receiving_thread_hands_a_stream_two_members_consume_to_each_until_the_last_leaves():
+    """A group's members share their process's dora node (one DoraLink): a stream both consume
+    is one dora input, and each of its events reaches both; the thread serves them until the
+    last one undeclares."""
+    with Pipeline("shared") as pipe:
+        src = Ticker().configure(name="src") @ Rate(hz=10)
+        src.then(WhereRun().configure(name="a", process="both") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+        src.then(WhereRun().configure(name="b", process="both") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    names = DoraNames.of(pipe.compile().to_ir().doc, {"both": ["a", "b"]})
+    assert names.inputs["a"] == names.inputs["b"] == {"src__value": ["src", "value"], "src__progress": ["src", None]}
+    gate, link = threading.Event(), DoraLink()
+    link.dora_node = _Held(MockNode([("src__value", pa.array([], type=pa.uint8())),  # a greeting
+                                     ("src__value", pa.array(np.frombuffer(b"event", np.uint8))),
+                                     ("src__progress", pa.array(np.frombuffer(b"progress", np.uint8)))]), gate)
+    got: dict[str, list] = {"a": [], "b": []}
+    members = {node: DoraTransport(link, names, node) for node in got}
+    for node, transport in members.items():
+        transport.declare_inputs([], [], None, got[node].append)
+    gate.set()
+    link.receiver.join(BOUND_S)
+    assert link.greeted == {"src__value"}
+    for node in got:
+        assert [(kind, source, bytes(data)) for kind, source, data in got[node]] == [
+            (DATA, ("src", "value"), b"event"), (PROGRESS, "src", b"progress")], node
+    members["a"].undeclare()
+    assert link.receiver is not None and list(link.listeners) == ["src__value", "src__progress"]
+    members["b"].undeclare()
+    assert link.receiver is None and link.listeners == {}

@@ -3,7 +3,7 @@
     Hosting                   the coordinator's questions about where its run is
     ├── LocalHosting          every node a child process of this one (the embedded default)
     ├── deploy.Deployment     the nodes on worker daemons of a namespace, placed (placement.py)
-    └── dora.DoraHosting      `dora run` starting every node as a dora node
+    └── dora.DoraHosting      `dora run` starting every node (or group) as a dora node
 
 The coordinator's logic (readiness, T0, reports, the log, restarts, lost processes) is the same
 on each; a hosting answers what differs: how the hub opens and who may join it, where the nodes

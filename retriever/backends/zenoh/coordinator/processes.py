@@ -73,7 +73,9 @@ class Supervisor:
         """Start the one process of the group ``name``: every member's process, with one key (a
         member restarts in it: node/in_place.py)."""
         procs = self.book.processes
-        proc, key = procs.hosts[nodes[0]].spawn_group(name, nodes, new_key())
+        # the key the hosting made, if it did (a dora run's, in its spec: the first member's), else a new one
+        made = [procs.first_keys.pop(nid, None) for nid in nodes]
+        proc, key = procs.hosts[nodes[0]].spawn_group(name, nodes, made[0] or new_key())
         for nid in nodes:
             procs.workers[nid] = proc
             procs.senders.add(nid, key, proc)

@@ -71,13 +71,15 @@ class DoraPart(Record):
     and what a dora node's process is not told by being the coordinator's child (dora's daemon
     starts it). Written by dora's hosting (DoraHosting.place), read by dora's node module."""
 
-    #: each node's dora node id
+    #: each node's dora node id (a group's members: the group's one)
     nodes: dict[str, str] = field(MapOf(Name(), Name()))
     #: each node's dora output id, by output port
     outputs: dict[str, dict[str, str]] = field(MapOf(Name(), MapOf(port(), Name())))
     #: each node's dora inputs: the producer and port each brings (the port None: its progress)
     inputs: dict[str, dict[str, tuple[str, str | None]]] = field(MapOf(Name(), MapOf(Name(), Row(
         Name(), Nullable(port()), expects="[a producer node, its port or nil]"))))
+    #: the dora output each node's progress goes on, for a node heard in another dora node
+    progress: dict[str, str] = field(MapOf(Name(), Name()))
     #: the coordinator's working directory, which a node's process works in, as its child would
     cwd: str = field(PATH)
     #: the coordinator's pid, which a node's process watches in place of its parent (dora's daemon)
@@ -85,7 +87,8 @@ class DoraPart(Record):
     #: dora's own directory (its logs), which a node's process removes with the run's once the
     #: coordinator is gone
     dir: str = field(PATH)
-    #: the key each node's first process signs its statuses and reports with (origin.py)
+    #: the key each node's first process signs its statuses and reports with (origin.py; a
+    #: group's members: its process's one)
     keys: dict[str, bytes] = field(MapOf(Name(), HexKey(KEY_BYTES)))
 
 

@@ -14,7 +14,7 @@ the phases names):
     serve            prepare_process (die with the parent, keep freed memory, signals for stacks)
       read_spec        the spec, its Python path and argv
       open_session     the Zenoh peer, the statuses it signs (StatusSender)
-      build            the flow rebuilt and wired (build_loop, or the loop a Launch hands in),
+      build            the flow rebuilt and wired (build_loop, on the transport a Launch names),
                        SIGTERM and PARENT_DIED handled, the flow's setup()
       start            first process: declare, link, say ``ready``, wait for ``start`` {T0, end}
       | join           --join: take over a restarted flow's state when told ``resume``

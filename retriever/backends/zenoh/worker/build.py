@@ -2,7 +2,7 @@
 the process's session, and the statuses it signs.
 
     open_session    the Zenoh peer (or a client of the deployment's routers)
-    build           the flow rebuilt from the IR (build_loop, or the loop a Launch hands in)
+    build           the flow rebuilt from the IR (build_loop), its events on the transport a Launch names
     set_up_flow     the flow's setup(), once, before the process says ready
     restart_in_place  a group's member with on_error="restart": its fresh flows (node/in_place.py)
 """
@@ -148,6 +148,10 @@ class Serving:
     pool: set[str]
     #: the node's wiring (node_plan): its loop's, and whose answers and links it waits for
     plan: NodePlan | None = None
+    #: the run's IR, read once (a group's, for all its members: build_loop); None: read here
+    ir: IR | None = None
+    #: ``(session, node) -> Transport``, winning over the launch's (a group's member: worker/group.py)
+    transport: Callable | None = None
     loop: NodeLoop | None = None
 
     @property
@@ -190,10 +194,9 @@ def build(w: Serving) -> bool:
             _import_main(w.spec.main_file)
         if w.plan is None:  # (a group's members come with theirs: the run's plan decoded once)
             w.plan = node_plan(w.spec, w.node)
-        if w.launch.make_loop is not None:
-            w.loop = w.launch.make_loop(w.spec, w.node, w.session, w.plan)
-        else:
-            w.loop = build_loop(w.spec, w.node, w.session, plan=w.plan)
+        make_transport = w.transport or w.launch.transport
+        transport = make_transport(w.session, w.node) if make_transport is not None else None
+        w.loop = build_loop(w.spec, w.node, w.session, transport=transport, plan=w.plan, ir=w.ir)
         w.loop.reporter.key = w.launch.key
         w.loop.opener = protocol.ControlOpener(w.launch.key)
         _kept_to_the_end.append(w.loop.flow)

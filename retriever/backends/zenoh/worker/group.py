@@ -15,6 +15,9 @@ members step on untouched (node/in_place.py). A member that fails (StopRun, a re
 budget, a crash of its loop) ends the group: the run fails anyway, and the others say ``done``.
 The process dying takes every member with it, and the run fails (coordinator/processes.py: no
 member is started afresh on its own). Signals and ``failed`` are the single worker's (ending.py).
+
+A group on dora (backends/dora/node.py) is served here too: its launch names dora's transport,
+which carries what the members exchange with nodes outside the group, as Zenoh does here.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from ..node.transport import ZenohTransport
 from ..protocol import EXIT_ABANDONED, EXIT_FAILED, RunSpec
 from ..wire import KeySpace
 from . import main
-from .build import Serving, StatusSender, build, build_loop, open_session, restart_in_place, run_plan, set_up_flow
+from .build import Serving, StatusSender, build, open_session, restart_in_place, run_plan, set_up_flow
 from .ending import handle_signals, release, say_done, say_failed
 from .links import watch_hub_link
 from .process import Launch
@@ -48,13 +51,15 @@ def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
     shared_memory = any(needs_shared_memory(spec.ir, n) for n in members)
     with open_session(spec, members[0], launch.mode, shared_memory) as session:
         bus = LocalBus(set(members))
+        inner = launch.transport or (lambda session, node: ZenohTransport(session, keys, node))
         served: list[Serving] = []
         control = None
         try:
             for node in members:
-                member = dataclasses.replace(launch, node=node, make_loop=_grouped_loop(bus, members, keys, ir))
-                w = Serving(member, spec, session, keys, StatusSender(session, keys, node, launch.key),
-                            padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool, plan=plans[node])
+                w = Serving(dataclasses.replace(launch, node=node), spec, session, keys,
+                            StatusSender(session, keys, node, launch.key),
+                            padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool, plan=plans[node],
+                            ir=ir, transport=_member_transport(bus, plans[node], inner))
                 if not build(w):
                     return EXIT_FAILED
                 restart_in_place(w, ir)
@@ -72,13 +77,13 @@ def serve_group(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
                 release(w.loop, w.node)
 
 
-def _grouped_loop(bus, members: list[str], keys, ir):
-    """The loop maker of a member: build_loop with its events on ``bus`` to the other members,
-    on Zenoh to nodes elsewhere (only for the ports a node elsewhere consumes)."""
-    def make(spec: RunSpec, node: str, session, plan):
-        elsewhere = {port for port, edges in plan.consumers.items() if any(c.dst not in members for c in edges)}
-        transport = GroupTransport(bus, ZenohTransport(session, keys, node), node, elsewhere, bool(elsewhere))
-        return build_loop(spec, node, session, transport=transport, plan=plan, ir=ir)
+def _member_transport(bus: LocalBus, plan, inner):
+    """A member's transport maker: its events on ``bus`` to the other members, on ``inner``'s
+    transport (Zenoh, or the launch's: dora's) to nodes elsewhere, for the ports a node
+    elsewhere consumes only."""
+    def make(session, node: str) -> GroupTransport:
+        elsewhere = {port for port, edges in plan.consumers.items() if any(c.dst not in bus.members for c in edges)}
+        return GroupTransport(bus, inner(session, node), node, elsewhere, bool(elsewhere))
 
     return make
 

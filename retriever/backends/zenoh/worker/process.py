@@ -86,9 +86,9 @@ class Launch:
     #: the key it signs its statuses and reports with (origin.py); None: it signs nothing
     key: bytes | None
     mode: StartMode = FIRST
-    #: ``(spec, node, session, plan) -> NodeLoop``: the node's loop, wired as ``plan`` says; None:
-    #: build.build_loop's
-    make_loop: Callable | None = None
+    #: ``(session, node) -> Transport``: how a node's events travel (dora's: backends/dora/link.py);
+    #: None: on the process's Zenoh session (node/transport.py, ZenohTransport)
+    transport: Callable | None = None
     #: folders of the run besides its run directory, removed with it once the parent is gone
     folders: tuple[Path, ...] = ()
 

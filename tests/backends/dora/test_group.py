@@ -1,0 +1,137 @@
+"""Flows that share a process (``configure(process=NAME)``) on the dora backend: the group is one
+dora node, with its members' inputs and outputs from and to nodes outside it; between members,
+events stay in the process (backends/zenoh/node/group.py), as on the zenoh backend
+(tests/backends/zenoh/test_group.py). The conformance suite's real-time part runs grouped on dora
+too (test_let_conformance.py, "dora-grouped")."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
+from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
+from retriever.replay import replay
+
+from ..test_conformance import Echo, EchoOpt, Source
+from ..zenoh.lifecycle_flows import Counter, Total
+from ..zenoh.test_group import grouped_pipeline
+from .dora_flows import Raises
+from .test_dora import _nothing_left
+
+QUEUE = {"queue_size": QUEUE_SIZE, "queue_policy": "backpressure"}
+
+
+def _grouped(name: str = "grouped") -> Pipeline:
+    """src ──value──▶ echo, hyb; echo ──saw──▶ slow ──saw──▶ sink: LET everywhere (its trace is
+    inproc's), echo, hyb and slow in the process "mid", src and sink each in its own."""
+    with Pipeline(name, deadline=5.0) as pipe:
+        src = Source().named("src").configure(latency=0.01) @ Rate(20)
+        echo = Echo().named("echo").configure(latency=0.005, process="mid") @ Trigger("x")
+        hyb = EchoOpt().named("hyb").configure(latency=0.02, process="mid") @ Rate(10, offset=0.005)
+        slow = EchoOpt().named("slow").configure(latency=0.02, process="mid") @ Rate(10, offset=0.015)
+        sink = EchoOpt().named("sink").configure(latency=0.005) @ Trigger("x")
+        src.then(echo, sync=Latest(), map={"value": "x"})
+        src.then(hyb, sync=Latest(), map={"value": "x"})
+        echo.then(slow, sync=Latest(), map={"saw": "x"})
+        slow.then(sink, sync=Latest(), map={"saw": "x"})
+    return pipe
+
+
+GROUPS = {"mid": ["echo", "hyb", "slow"]}
+
+
+# ---------------------------------------------------------------------------------------------
+# The dataflow
+# ---------------------------------------------------------------------------------------------
+def test_a_group_is_one_dora_node_with_its_members_inputs_and_outputs_but_none_between_them():
+    names = DoraNames.of(_grouped().compile().to_ir().doc, GROUPS)
+    assert names.nodes == {"src": "src", "echo": "mid", "hyb": "mid", "slow": "mid", "sink": "sink"}
+    assert names.members("mid") == ["echo", "hyb", "slow"] and names.members("src") == ["src"]
+    assert names.processes(GROUPS) == {"src": "src", "sink": "sink", "mid": "mid"}
+    # echo's events go to slow only, in the process: no dora output; slow's go to sink over dora
+    assert names.outputs["echo"] == {} and names.outputs["slow"] == {"saw": "slow__saw"}
+    assert names.progress == {"src": PROGRESS, "slow": f"slow__{PROGRESS}"}
+    assert names.inputs["slow"] == {} and names.inputs["echo"] == names.inputs["hyb"] == {
+        "src__value": ["src", "value"], "src__progress": ["src", None]}
+    doc = yaml.safe_load(dataflow_yaml("grouped", names, "/venv/bin/python", "/run/spec.json", "/src"))
+    nodes = {n["id"]: n for n in doc["nodes"]}
+    assert sorted(nodes) == ["mid", "sink", "src"]
+    assert nodes["mid"]["args"] == "-m retriever.backends.dora.node /run/spec.json mid"
+    assert nodes["mid"]["outputs"] == ["slow__saw", f"slow__{PROGRESS}"]
+    # one input for the stream two members consume
+    assert nodes["mid"]["inputs"] == {"src__value": {"source": "src/value", **QUEUE},
+                                      "src__progress": {"source": "src/progress", **QUEUE}}
+    assert nodes["sink"]["inputs"] == {"mid__slow__saw": {"source": "mid/slow__saw", **QUEUE},
+                                       "mid__slow__progress": {"source": "mid/slow__progress", **QUEUE}}
+
+
+def test_names_dora_would_refuse_in_a_group_are_renamed():
+    doc = {"nodes": [{"id": "cam.left", "outputs": {"img": {}}}, {"id": "b", "outputs": {"progress": {}}},
+                     {"id": "c", "outputs": {}}],
+           "edges": [{"source": {"node": "cam.left", "port": "img"}, "destination": {"node": "c", "port": "x"}},
+                     {"source": {"node": "b", "port": "progress"}, "destination": {"node": "c", "port": "y"}}]}
+    names = DoraNames.of(doc, {"front.left": ["cam.left", "b"]})
+    assert names.nodes == {"cam.left": "n0", "b": "n0", "c": "c"}
+    assert names.outputs == {"cam.left": {"img": "n0__img"}, "b": {"progress": "b__o0"}, "c": {}}
+    assert names.progress == {"cam.left": "n0__progress", "b": "b__progress"}
+    assert names.processes({"front.left": ["cam.left", "b"]}) == {"c": "c", "front.left": "n0"}
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs
+# ---------------------------------------------------------------------------------------------
+def test_a_grouped_run_is_one_process_per_group_inprocs_trace_and_replays_identically(tmp_path):
+    path = tmp_path / "run.mcap"
+    pipe = _grouped()
+    trace = pipe.run(duration=1.0, backend="dora", quiet=True, log=path)
+    pids = pipe.session.worker_pids()
+    assert pids["echo"] == pids["hyb"] == pids["slow"] and len(set(pids.values())) == 3, pids
+    reference = _grouped().run(duration=1.0, backend="inproc")
+    assert trace.first_difference(reference) is None and trace.digest() == reference.digest()
+    assert len(trace.steps_of("sink")) == 10
+    log = read_log(path)
+    assert log.end["status"] == "finished" and log.run["backend"] == "dora"
+    assert replay(log).identical
+    _nothing_left(pipe.session)
+
+
+def test_a_mixed_run_in_real_time_logs_and_replays_identically(tmp_path):
+    """counter and faulty share a process, sink runs alone, no LET (outputs stamped when the step
+    ends): as on zenoh (tests/backends/zenoh/test_group.py), every tick of the group's source is
+    recorded, sink hears faulty's reports over dora, and the log replays identically."""
+    pipe = grouped_pipeline(with_pid=False)
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=2.0, backend="dora", log=path, quiet=True)
+    pids = pipe.session.worker_pids()
+    assert pids["counter"] == pids["faulty"] != pids["sink"], pids
+    counter = [s for s in trace.steps if s.node == "counter"]
+    assert len(counter) == 40 and all(s.status == "ok" for s in counter)
+    assert len([s for s in trace.steps if s.node == "sink" and s.consumed]) >= 35
+    report = replay(read_log(path))
+    assert report.identical, report.divergences[:3]
+    _nothing_left(pipe.session)
+
+
+def test_a_member_whose_step_raises_stops_the_run_with_its_traceback():
+    with Pipeline("raises") as pipe:
+        src = Counter().configure(process="both") @ Rate(hz=20)
+        bad = Raises(at=3).named("bad").configure(process="both") @ Trigger()
+        src.then(bad, sync=Latest())
+    with pytest.raises(StepError, match=r"bad\.step\(\) raised RemoteError: ValueError: third time(.|\n)*"
+                                        r"worker traceback:(.|\n)*dora_flows\.py"):
+        pipe.run(duration=5.0, backend="dora", quiet=True)
+    _nothing_left(pipe.session)
+
+
+def test_a_group_member_that_restarts_is_refused():
+    with Pipeline("restart") as pipe:
+        src = Counter().configure(process="both") @ Rate(hz=20)
+        total = Total().configure(name="total", on_error="restart", process="both") @ Trigger()
+        src.then(total, sync=Latest())
+    with pytest.raises(BackendError, match=r"cannot restart a flow in a new process \(on_error='restart' on total "
+                                           r"\(in process 'both'\)\): dora starts the dataflow's processes once "
+                                           r"\(on zenoh a group's member restarts in its group's process: not on "
+                                           r"dora\)\n    hint: use on_error='skip_tick' or 'stop', or run on "
+                                           r"backend='zenoh'"):
+        pipe.run(duration=1.0, backend="dora")
