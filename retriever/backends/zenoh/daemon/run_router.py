@@ -107,10 +107,10 @@ class RouterProcessSettings:
 
 #: the module a run router's process runs
 ROUTER_PROCESS_MODULE = "retriever.backends.zenoh.daemon.router_process"
-#: how long a run router's process is given to start: its interpreter and imports (1.5–2.6 s to
-#: ready on a 2-core machine at load 10),
-#: its session, and its upstream link, for which it waits UPSTREAM_LINK_S itself; all within the
-#: prepare it is started in, which a coordinator waits 10 s for (remote.REQUEST_TIMEOUT_S)
+#: how long a run router's process is given to start: its interpreter and imports, its session
+#: and its upstream link, for which it waits UPSTREAM_LINK_S itself (1.5–2.6 s to ready when
+#: linked at once, on a 2-core machine at load 10); all within the prepare it is started in,
+#: which a coordinator waits 10 s for (remote.REQUEST_TIMEOUT_S)
 START_S = UPSTREAM_LINK_S + 4.0
 #: how long a run router's process has to close its session and exit after SIGTERM, before SIGKILL
 STOP_S = 5.0
