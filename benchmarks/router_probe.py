@@ -7,10 +7,12 @@
     python benchmarks/router_probe.py links N MODE  N client or peer sessions through one router: links, startup
     python benchmarks/router_probe.py robot         (root) a robot-local edge in the netns lab, the robot behind
                                                     NAT: through a router on the robot linked to the remote
-                                                    one, through the remote router, and direct (ROBOT_TOPOLOGIES)
+                                                    one, through the remote router, and direct (ROBOT_TOPOLOGIES);
+                                                    and through Retriever's own run router (--local-router)
 
 Every session listens and connects on loopback (``robot``: the netns lab's addresses) with multicast
-scouting off. Prints one line per check.
+scouting off. Prints one line per check. Plain zenoh-python sessions, but for ``robot``'s "run
+router", which is Retriever's (daemon/run_router.py), linked to a ``retriever router``.
 """
 
 from __future__ import annotations
@@ -238,9 +240,14 @@ def role(argv: list[str]) -> None:
         with zenoh.open(config("router", listen=[rest[0]], connect=rest[2:3], extra=shm_entry(rest[1] == "1"))):
             sys.stdin.read()  # until the parent closes it
         return
+    if kind == "runrouter":
+        run_router(*rest)
+        return
     mode, listen, connect, shm = rest[0], rest[1], rest[2], rest[3] == "1"
+    # PROBE_ACCESS: config entries with the run's password, for a client of a run router (robot);
+    # PROBE_KEY: the key they talk on (a run router admits its namespace's keys alone)
     c = config(mode, listen=[listen] if listen != "-" else [], connect=[connect] if connect != "-" else [],
-               extra=shm_entry(shm))
+               extra={**shm_entry(shm), **json.loads(os.environ.get("PROBE_ACCESS", "{}"))})
     with zenoh.open(c) as s:
         if kind == "sub":
             n, got, done = int(rest[4]), [], threading.Event()
@@ -253,7 +260,7 @@ def role(argv: list[str]) -> None:
                     got.append((now - sent) / 1e3)
                 if len(got) >= n:
                     done.set()
-            sub = s.declare_subscriber("lat/x", take)
+            sub = s.declare_subscriber(os.environ.get("PROBE_KEY", "lat/x"), take)
             print("ready", flush=True)
             done.wait(120)
             sub.undeclare()
@@ -262,7 +269,7 @@ def role(argv: list[str]) -> None:
                               "p90_us": got[int(len(got) * 0.9)] if got else None}), flush=True)
         else:
             size, n, rate = int(rest[4]), int(rest[5]), float(rest[6])
-            pub = s.declare_publisher("lat/x", express=True, congestion_control=zenoh.CongestionControl.BLOCK)
+            pub = s.declare_publisher(os.environ.get("PROBE_KEY", "lat/x"), express=True, congestion_control=zenoh.CongestionControl.BLOCK)
             time.sleep(1.5)  # the subscriber's declaration arrives
             pad = bytes(max(0, size - 16))
             for seq in range(n + WARMUP):
@@ -272,17 +279,20 @@ def role(argv: list[str]) -> None:
             pub.undeclare()
 
 
-def spawn(*args: str, stdin=None, host=None) -> subprocess.Popen:
-    """A process of ``role``, here or on ``host`` of the netns lab (tests/deploy/lab.py)."""
+def spawn(*args: str, stdin=None, host=None, env=None) -> subprocess.Popen:
+    """A process of ``role``, here or on ``host`` of the netns lab (tests/deploy/lab.py), with
+    ``env`` added to its environment."""
     argv = [sys.executable, os.path.abspath(__file__), "role", *args]
-    return (host.popen if host is not None else subprocess.Popen)(argv, stdout=subprocess.PIPE, stdin=stdin, text=True)
+    env = {**os.environ, **(env or {})}
+    return (host.popen if host is not None else subprocess.Popen)(argv, stdout=subprocess.PIPE, stdin=stdin, text=True,
+                                                                   env=env)
 
 
-def measure(sub_args: tuple, pub_args: tuple, shm: bool, size: int, n: int, rate: float, host=None) -> str:
+def measure(sub_args: tuple, pub_args: tuple, shm: bool, size: int, n: int, rate: float, host=None, env=None) -> str:
     """One put→subscriber latency measurement (``role`` sub and pub, here or on ``host``): what the subscriber said."""
-    sub = spawn("sub", *sub_args, "1" if shm else "0", str(n), host=host)
+    sub = spawn("sub", *sub_args, "1" if shm else "0", str(n), host=host, env=env)
     sub.stdout.readline()
-    pub = spawn("pub", *pub_args, "1" if shm else "0", str(size), str(n), str(rate), host=host)
+    pub = spawn("pub", *pub_args, "1" if shm else "0", str(size), str(n), str(rate), host=host, env=env)
     out = sub.stdout.readline()
     pub.wait(timeout=180)
     sub.wait(timeout=30)
@@ -331,42 +341,89 @@ def latency_once(topology: str, shm: bool, size: int, n: int, rate: float) -> fl
 
 
 #: where a robot-local edge's two sessions (both on the robot) meet: direct (peers, the link a
-#: deployment without --router uses; with and without shared memory), through a router on the
-#: robot linked to the remote one (retriever worker --local-router), through the remote router
-#: (--router alone). Retriever's routers carry no shared memory (routing.ROUTER_SHARED_MEMORY);
-#: "local router, shm" is what a router of its own process, with shared memory, would give.
-ROBOT_TOPOLOGIES = ("direct peers", "direct peers, shm", "local router", "local router, shm", "remote router")
+#: deployment without --router uses; with and without shared memory), through a plain router on
+#: the robot linked to the remote one (without shared memory, as the run routers of
+#: ``retriever worker --local-router`` were when they were sessions of the daemon; and with it),
+#: through Retriever's own run router (daemon/run_router.py: a process of the run's, with shared
+#: memory, linked to a ``retriever router``), through the remote router (--router alone)
+ROBOT_TOPOLOGIES = ("direct peers", "direct peers, shm", "local router", "local router, shm", "run router",
+                    "remote router")
 ROBOT_SIZES = [(64, 300, 100), (1 << 20, 300, 50)]
 #: the lab's subnet: not the tests' (tests/deploy/lab.py), so that both can run at once
 ROBOT_SUBNET = "10.200.79.0/24"
+#: the namespace and run of the run router the probe opens
+PROBE_NAMESPACE, PROBE_RUN = "default", "probe"
+
+
+def run_router(secret_file: str, upstream: str) -> None:
+    """``role runrouter``: open Retriever's router for run PROBE_RUN, linked to the ``retriever
+    router`` at ``upstream`` as a worker daemon would (its Zenoh id asked with the namespace's
+    password), print its endpoint, and close it when stdin closes."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.daemon.run_router import open_run_router
+    from retriever.backends.zenoh.hub import client_config
+
+    secret = read_secret(secret_file)
+    daemon = RunAccess.create(PROBE_NAMESPACE, secret).client_config(PROBE_NAMESPACE)
+    with zenoh.open(client_config(connect=[upstream], access=daemon, shared_memory=False)) as session:
+        ids = [str(z) for z in session.info.routers_zid()]
+    router = open_run_router(PROBE_NAMESPACE, secret, PROBE_RUN, (upstream,), ids)
+    print(router.endpoint, flush=True)
+    sys.stdin.read()
+    router.close()
+
+
+def retriever_router(host, at: str, secret_file: str) -> subprocess.Popen:
+    """``retriever router`` on ``host`` at ``at``, once it listens."""
+    proc = host.popen([sys.executable, "-m", "retriever.cli", "router", "--listen", at, "--secret", secret_file],
+                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    line = proc.stderr.readline()
+    if not line.startswith("retriever router listening on"):
+        raise RuntimeError(f"retriever router did not start: {line}{proc.stderr.read()}")
+    return proc
 
 
 def robot() -> None:
     """ROBOT_TOPOLOGIES in the netns lab: a router host, and a robot host behind NAT whose
     publisher and subscriber talk; each topology's median against the direct peers' (shm off)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.deploy from this checkout
+    from retriever.backends.zenoh.access import RunAccess, read_secret
+    from retriever.backends.zenoh.wire import KeySpace
     from tests.deploy.lab import Lab
 
-    with Lab(2, subnet=ROBOT_SUBNET) as lab:
+    with Lab(2, subnet=ROBOT_SUBNET) as lab, tempfile.TemporaryDirectory() as folder:
         hub, robot_host = lab.hosts
         lab.nat(robot_host)
+        secret_file = Path(folder) / "probe.key"
+        secret_file.write_text(os.urandom(32).hex() + "\n")
+        secret_file.chmod(0o600)
         remote, local = f"tcp/{hub.address}:{BASE_PORT + 40}", ep(42)
         routers = [spawn("router", remote, "0", stdin=subprocess.PIPE, host=hub)]
+        upstream = f"tcp/{hub.address}:{BASE_PORT + 44}"
+        retriever_router(hub, upstream, str(secret_file))
         time.sleep(1.5)
         routers.append(spawn("router", local, "0", remote, stdin=subprocess.PIPE, host=robot_host))
         routers.append(spawn("router", ep(43), "1", remote, stdin=subprocess.PIPE, host=robot_host))
+        routers.append(spawn("runrouter", str(secret_file), upstream, stdin=subprocess.PIPE, host=robot_host))
+        run_at = routers[-1].stdout.readline().strip()
+        flows = {"PROBE_ACCESS": json.dumps(RunAccess.create(PROBE_NAMESPACE, read_secret(secret_file), run=PROBE_RUN)
+                                            .client_config(PROBE_NAMESPACE)),  # the run's flows' passwords
+                 "PROBE_KEY": KeySpace(PROBE_NAMESPACE).data("camera", "frame")}
         time.sleep(1.5)
         pairs = {"direct peers": (("peer", ep(41), "-"), ("peer", "-", ep(41)), False),
                  "direct peers, shm": (("peer", ep(41), "-"), ("peer", "-", ep(41)), True),
                  "local router": (("client", "-", local), ("client", "-", local), False),
                  "local router, shm": (("client", "-", ep(43)), ("client", "-", ep(43)), True),
+                 "run router": (("client", "-", run_at), ("client", "-", run_at), True),
                  "remote router": (("client", "-", remote), ("client", "-", remote), False)}
         medians: dict[tuple[int, str], float | None] = {}
         try:
             for size, n, rate in ROBOT_SIZES:
                 for topology in ROBOT_TOPOLOGIES:
                     sub_args, pub_args, shm = pairs[topology]
-                    out = measure(sub_args, pub_args, shm, size, n, rate, host=robot_host)
+                    out = measure(sub_args, pub_args, shm, size, n, rate, host=robot_host,
+                                  env=flows if topology == "run router" else None)
                     load = open("/proc/loadavg").read().split()[0]
                     print(f"{size:>9} B  {topology:<18} {out}  load1={load}", flush=True)
                     medians[(size, topology)] = json.loads(out)["p50_us"] if out else None
@@ -374,6 +431,7 @@ def robot() -> None:
             for p in routers:
                 p.stdin.close()
                 p.wait(timeout=30)
+            lab.stop_processes()
             lab.unnat(robot_host)
     print("\nmedian / direct peers' median, shm off (same run):", flush=True)
     for (size, topology), p50 in medians.items():

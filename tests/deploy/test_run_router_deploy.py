@@ -9,11 +9,13 @@ while the robot is cut off from the router.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import time
 from pathlib import Path
 
 from retriever import StepStatus, read_log
+from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_MODULE
 from retriever.replay import replay
 from tests.deploy.test_deploy import BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, poll, secret  # noqa: F401
 from tests.deploy.test_deploy import start_worker, wait_going
@@ -115,3 +117,67 @@ def test_a_robot_local_edge_keeps_its_ticks_while_the_robot_is_cut_off(partition
     finally:
         partitionable.stop_processes()
         partitionable.unnat(robot)
+
+
+def run_router_process(daemon_pid: int) -> int:
+    """The pid of the live run router process (daemon/router_process.py) a daemon started."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if int(fields[1]) == daemon_pid and fields[0] not in "ZX" and ROUTER_PROCESS_MODULE.encode() in cmdline:
+            found.append(int(entry.name))
+    assert len(found) <= 1, found
+    return found[0] if found else 0
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, which has ended, does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] not in "ZX"
+
+
+def test_a_run_router_dies_with_its_sigkilled_daemon(hosts, secret, tmp_path):
+    """The run router is a process the daemon started for the run: SIGKILLed, the daemon takes
+    it along (as it does the run's flows)."""
+    hub, gpu, robot = hosts
+    router = start_router(hub, secret)
+    daemons = start_workers(gpu, robot, secret, router)
+    log = tmp_path / "run.mcap"
+    run = start_deploy(hub, router, secret, tmp_path, "--duration", "60", "--log", str(log))
+    wait_going(run, log)
+    pid = poll(lambda: run_router_process(daemons[1].pid), "the robot's run router process")
+    flows = flow_processes(daemons[1].pid)
+    daemons[1].kill()
+    daemons[1].wait()
+    poll(lambda: not alive(pid), "the run router's end after its daemon's")
+    poll(lambda: not any(map(alive, flows)), "the robot's flows' end after their daemon's")
+    run.kill()
+    finish(run)
+
+
+def test_a_crashed_run_router_is_reported_to_the_coordinator(hosts, secret, tmp_path):
+    """The robot's run router killed mid-run: its daemon tells the coordinator how it ended and
+    stops the run's flows there, which have no link to anyone: the run ends with an error, long
+    before its duration."""
+    hub, gpu, robot = hosts
+    router = start_router(hub, secret)
+    daemons = start_workers(gpu, robot, secret, router)
+    log = tmp_path / "run.mcap"
+    run = start_deploy(hub, router, secret, tmp_path, "--duration", "60", "--log", str(log))
+    wait_going(run, log)
+    pid = poll(lambda: run_router_process(daemons[1].pid), "the robot's run router process")
+    robot.run(["kill", "-KILL", str(pid)], timeout=BOUND_S)
+    killed = time.monotonic()
+    out, err = finish(run)
+    assert time.monotonic() - killed < BOUND_S / 2, "the run went on without the robot's flows"
+    assert re.search(r"error: run \S+: the worker's router for it \(pid %d, tcp/127\.0\.0\.1:\d+\) was killed by "
+                     r"SIGKILL; the run's flows on this machine have no link to anyone" % pid, out + err), out + err
+    assert run.returncode != 0

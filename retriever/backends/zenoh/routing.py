@@ -1,8 +1,9 @@
 """What a Zenoh session in router mode is opened with: its access control and its config.
 
 Two kinds of router open one: ``retriever router`` (router.py), which serves the namespaces it
-was told for as long as it runs, and a worker daemon's router for one run (daemon/run_router.py),
-which its flows join in place of the remote router, so that their edges on that machine stay on it.
+was told for as long as it runs, and a worker daemon's router for one run (daemon/run_router.py,
+a process of its own: daemon/router_process.py), which its flows join in place of the remote
+router, so that their edges on that machine stay on it.
 """
 
 from __future__ import annotations
@@ -23,9 +24,13 @@ ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declar
 
 #: A router forwards shared memory between clients on its host only if it maps their pools, and
 #: a process keeps every pool it mapped until it exits (hub.HUB_SHARED_MEMORY): a router that
-#: outlives many runs (``retriever router``, a worker daemon's) would hold all of their flows'
-#: pools in /dev/shm. So its links carry every message over TCP.
+#: outlives many runs (``retriever router``) would hold all of their flows' pools in /dev/shm.
+#: So its links carry every message over TCP.
 ROUTER_SHARED_MEMORY = False
+#: A worker daemon's router for one run is a process of that run's (daemon/router_process.py),
+#: which exits with it and lets go of its flows' pools then: between two flows of its machine a
+#: big message goes through shared memory (benchmarks/reports/router.md §4).
+RUN_ROUTER_SHARED_MEMORY = True
 
 
 def access_control(namespaces: Iterable[str], router_ids: Iterable[str] = ()) -> dict:
@@ -62,11 +67,13 @@ def access_control(namespaces: Iterable[str], router_ids: Iterable[str] = ()) ->
 
 def router_session_config(*, listen: Iterable[str], connect: Iterable[str], user: str, password: str,
                           dictionary_file: Path, access: dict, tls: TlsFiles | None, lease: float | None,
-                          max_sessions: int) -> zenoh.Config:
+                          max_sessions: int, shared_memory: bool = ROUTER_SHARED_MEMORY) -> zenoh.Config:
     """Router mode on ``listen``, linked to the routers at ``connect`` proving ``user`` and
     ``password``, checking every link to it against ``dictionary_file`` and every message against
     ``access`` (access_control); mutual TLS on its ``tls/`` links with ``tls``; ``lease``: seconds
-    (None: Zenoh's 10 s); at most ``max_sessions`` links at once."""
+    (None: Zenoh's 10 s); at most ``max_sessions`` links at once; ``shared_memory``: whether its
+    links on this host carry big messages through the senders' shared-memory pools (see
+    ROUTER_SHARED_MEMORY)."""
     config = zenoh.Config()
     entries = {
         "mode": "router",
@@ -78,7 +85,7 @@ def router_session_config(*, listen: Iterable[str], connect: Iterable[str], user
         # strangers' idle connections must not keep the deployments' links out (hub.ACCEPT_TIMEOUT_S)
         "transport/unicast/accept_timeout": round(ACCEPT_TIMEOUT_S * 1000),
         "transport/unicast/accept_pending": accept_pending(),
-        "transport/shared_memory/enabled": ROUTER_SHARED_MEMORY,
+        "transport/shared_memory/enabled": shared_memory,
         "transport/auth/usrpwd": {"user": user, "password": password, "dictionary_file": str(dictionary_file)},
         "access_control": access,
     }

@@ -4,14 +4,20 @@ on loopback: what routes through the two, and whom the run router refuses."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 import zenoh
 
 from retriever.backends.zenoh.access import RunAccess, TlsFiles, run_user
-from retriever.backends.zenoh.daemon.run_router import open_run_router
-from retriever.backends.zenoh.hub import client_config, free_port
+from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_FOLDER, open_run_router
+from retriever.backends.zenoh.hub import client_config, free_port, port_is_free
 from retriever.backends.zenoh.wire import KeySpace, WireError
 from tests.backends.zenoh.test_router import (SECRET, A, B, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
                                               routers, secret, until)
@@ -38,9 +44,9 @@ def upstream_ids(at: str, tls: TlsFiles | None = None) -> list[str]:
         return [str(z) for z in daemon.info.routers_zid()]
 
 
-def test_a_run_routers_flows_reach_each_other_and_the_upstream_routers_clients(router, tmp_path):
+def test_a_run_routers_flows_reach_each_other_and_the_upstream_routers_clients(router):
     _, upstream = router
-    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream), tmp_path)
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
     keys = KeySpace(A)
     try:
         with run_client(run_router.endpoint) as camera, run_client(run_router.endpoint) as controller, \
@@ -58,11 +64,9 @@ def test_a_run_routers_flows_reach_each_other_and_the_upstream_routers_clients(r
         run_router.close()
 
 
-def test_a_run_router_refuses_a_session_without_the_runs_password(router, tmp_path):
+def test_a_run_router_refuses_a_session_without_the_runs_password(router):
     _, upstream = router
-    folder = tmp_path / "run"
-    folder.mkdir()
-    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream), folder)
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
     try:
         for stranger in (lambda: run_client(run_router.endpoint, run="run-2"),  # another run's flow
                          # the same run id in another namespace of the secret, under its user or A's
@@ -80,7 +84,8 @@ def test_a_run_router_refuses_a_session_without_the_runs_password(router, tmp_pa
             assert list(flow.info.routers_zid())
     finally:
         run_router.close()
-    assert not list(folder.iterdir())  # its dictionary was in memory (or removed once it opened)
+    # its dictionary was in memory (or removed once it opened)
+    assert not list(Path(tempfile.gettempdir()).glob(f"{ROUTER_PROCESS_FOLDER}-{run_router.pid}-*"))
 
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="the test makes certificates with openssl")
@@ -89,9 +94,7 @@ def test_a_run_router_links_to_an_upstream_router_over_mutual_tls(routers, secre
     tls = TlsFiles(files["ca.pem"], files["client.pem"], files["client.key"])
     upstream = f"tls/127.0.0.1:{free_port()}"
     routers("--secret", str(secret), "--listen", upstream, "--namespace", A, *_tls_flags(files)).wait_started()
-    folder = tmp_path / "run"
-    folder.mkdir()
-    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream, tls), folder, tls=tls)
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream, tls), tls=tls)
     keys = KeySpace(A)
     try:
         far_access = {**RunAccess.create(A, SECRET).client_config(A), **tls.session_config()}
@@ -104,6 +107,109 @@ def test_a_run_router_links_to_an_upstream_router_over_mutual_tls(routers, secre
         run_router.close()
 
 
-def test_a_run_router_is_not_opened_while_the_worker_has_no_router(tmp_path):
+def test_a_run_router_is_not_opened_while_the_worker_has_no_router():
     with pytest.raises(WireError, match=r"run run-1: the worker has no link to its router \(tcp/127.0.0.1:7447\) now"):
-        open_run_router(A, SECRET, RUN, ("tcp/127.0.0.1:7447",), [], tmp_path)
+        open_run_router(A, SECRET, RUN, ("tcp/127.0.0.1:7447",), [])
+
+
+def test_a_run_router_that_gets_no_upstream_link_says_so(router):
+    _, upstream = router
+    with pytest.raises(WireError, match=r"run run-1: the worker's router for it did not start: it got no link to the "
+                                        rf"upstream router \({upstream}\) within 5 s"):
+        open_run_router(A, SECRET, RUN, (upstream,), ["123456789abcdef0123456789abcdef"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Its process
+# ---------------------------------------------------------------------------------------------
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, which has ended, does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat[stat.rindex(")") + 2] not in "ZX"
+
+
+def test_a_run_router_is_a_process_that_ends_when_closed(router):
+    _, upstream = router
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
+    ended = []
+    run_router.watch(ended.append)
+    try:
+        assert alive(run_router.pid) and run_router.pid != os.getpid()
+        with run_client(run_router.endpoint) as flow:
+            assert list(flow.info.routers_zid())
+    finally:
+        run_router.close()
+    assert run_router.process.returncode == 0  # it closed its session and exited, on SIGTERM
+    assert not alive(run_router.pid)
+    assert port_is_free(int(run_router.endpoint.rsplit(":", 1)[1]))
+    assert run_router.ended() is None and not ended  # a close is no crash
+
+
+def test_a_crashed_run_router_is_told_with_how_it_ended(router):
+    _, upstream = router
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
+    ended = []
+    run_router.watch(ended.append)
+    try:
+        os.kill(run_router.pid, signal.SIGKILL)
+        until(lambda: ended, "the run router's end told")
+    finally:
+        run_router.close()
+    assert ended == [f"run run-1: the worker's router for it (pid {run_router.pid}, {run_router.endpoint}) was killed "
+                     "by SIGKILL; the run's flows on this machine have no link to anyone"]
+
+
+#: a stand-in for a worker daemon: starts a run router from its main thread, as a daemon does from
+#: its spawner thread (both live as long as the process), says its pid, and waits to be killed
+DAEMON = """
+import sys
+from retriever.backends.zenoh.daemon.run_router import open_run_router
+run_router = open_run_router(sys.argv[1], bytes.fromhex(sys.argv[2]), "run-1", (sys.argv[3],), sys.argv[4:])
+print(run_router.pid, flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_run_router_dies_with_its_sigkilled_daemon(router):
+    _, upstream = router
+    daemon = subprocess.Popen([sys.executable, "-c", DAEMON, A, SECRET.hex(), upstream, *upstream_ids(upstream)],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(daemon.stdout.readline())
+        assert alive(pid)
+        daemon.kill()
+        daemon.wait()
+        until(lambda: not alive(pid), "the run router's end after its daemon's")
+    finally:
+        daemon.kill()
+        daemon.wait()
+        daemon.stdin.close()
+        daemon.stdout.close()
+
+
+#: how many frames the shared-memory test sends at least
+FRAMES = 5
+
+
+def test_a_big_message_between_two_flows_of_a_run_router_goes_through_shared_memory(router):
+    """A 1 MiB put of a flow reaches the other flow on this machine as a shared-memory buffer:
+    the run router maps the sender's pool and forwards the buffer, not its bytes."""
+    _, upstream = router
+    run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
+    keys = KeySpace(A)
+    access = RunAccess.create(A, SECRET, run=RUN).client_config(A)
+    got = []
+    try:
+        with zenoh.open(client_config(connect=[run_router.endpoint], access=access)) as camera, \
+                zenoh.open(client_config(connect=[run_router.endpoint], access=access)) as controller:
+            _sub = controller.declare_subscriber(
+                keys.data("camera", "frame"), lambda s: got.append(s.payload.as_shm() is not None))
+            # the sender makes its pool at its first big message, which goes over TCP
+            until(lambda: len(got) >= FRAMES, f"{FRAMES} frames of 1 MiB between two flows",
+                  act=lambda: camera.put(keys.data("camera", "frame"), bytes(1 << 20)))
+    finally:
+        run_router.close()
+    assert got[-1], f"the frames came over TCP ({got})"

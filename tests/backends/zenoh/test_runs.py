@@ -22,13 +22,15 @@ import zenoh
 from retriever.backends.zenoh import daemon
 from retriever.backends.zenoh.command import GROUP_MODULE
 from retriever.backends.zenoh.folders import DAEMON_FOLDER
-from retriever.backends.zenoh.hub import peer_config
+from retriever.backends.zenoh.access import RunAccess
+from retriever.backends.zenoh.hub import client_config, free_port, peer_config
 from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import (REQUEST, PrepareRequest, ProcessOutput, RunSpec, SignalRequest,
                                                SpawnRequest, Stream, UsageRequest)
 from retriever.backends.zenoh.protocol.schema import pack
 from retriever.backends.zenoh.daemon.runs import MAX_LINE_BYTES, OUTPUT_BATCH, DaemonRuns, forward_output
 from retriever.backends.zenoh.wire import WIRE_VERSION, KeySpace, WireError
+from tests.backends.zenoh.test_router import SECRET, A, routers, secret  # noqa: F401
 from tests.log.log_flows import build_small
 
 from .specs import run_spec
@@ -227,3 +229,42 @@ def test_a_prepare_with_a_plan_its_ir_contradicts_is_refused_and_makes_no_folder
     with pytest.raises(WireError, match="plan"):  # by the request's decoder, or by prepare
         runs.prepare(request("prepare", {"run": "r2", "spec": spec, "nodes": [node]}))
     assert set(Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{os.getpid()}-run-*")) <= folders
+
+
+# -- a run's router (--local-router) -------------------------------------------------------------
+def test_a_run_whose_router_died_has_its_processes_stopped_and_no_new_one_started(routers, secret):
+    """A daemon joined through a router with --local-router: its run's router killed mid-run, the
+    run's process there is stopped (it has no link to anyone) and a spawn is refused, saying why."""
+    upstream = f"tcp/127.0.0.1:{free_port()}"
+    routers("--secret", str(secret), "--listen", upstream, "--namespace", A).wait_started()
+    own = RunAccess.create(A, SECRET).client_config(A)
+    with zenoh.open(client_config(connect=[upstream], access=own, shared_memory=False)) as session:
+        runs = DaemonRuns(session, "w", A, listen=(), secret=SECRET,
+                          allowed=lambda module: daemon.module_allowed(module, [], [ROOT]),
+                          refusal=lambda module: daemon.refusal(module, [], [ROOT]), paths=(),
+                          router=(upstream,), local_router=True)
+        token = session.liveliness().declare_token(KeySpace(A).deployment())
+        ir = build_small().build_ir().doc
+        node = ir["nodes"][0]["id"]
+        try:
+            give_up = time.monotonic() + 10.0
+            while True:  # the daemon's subscriber sees the token on a Zenoh thread
+                try:
+                    runs.prepare(PrepareRequest(run="r1", spec=run_spec(ir, A, hub=None, startup_timeout=600.0),
+                                                nodes=(node,)))
+                    break
+                except WireError as e:
+                    if "liveliness token" not in str(e) or time.monotonic() > give_up:
+                        raise
+                    time.sleep(0.05)
+            router = runs.run.router
+            proc = runs.run.processes[runs.spawn(SpawnRequest(run="r1", node=node, mode=())).pid][1]
+            os.kill(router.pid, signal.SIGKILL)
+            assert proc.wait(timeout=BOUND_S) is not None
+            with pytest.raises(WireError, match=rf"worker 'w' cannot start '{node}': run r1: the worker's router for "
+                                                rf"it \(pid {router.pid}, tcp/127\.0\.0\.1:\d+\) was killed by SIGKILL; "
+                                                "the run's flows on this machine have no link to anyone"):
+                runs.spawn(SpawnRequest(run="r1", node=node, mode=()))
+        finally:
+            runs.close()
+            token.undeclare()

@@ -5,7 +5,7 @@ machine flows may run on, which a deployment's coordinator asks to run its nodes
         │ its settings: the flags over the file, every problem said at once
         │ no secret and no --insecure? refuse to start
         │ join the namespace: a Zenoh peer (--listen, --connect), or a client of routers (--router;
-        │ with --local-router each run's flows join a router of the run's here, linked to those)
+        │ with --local-router each run's flows join a router process of the run's here, linked to those)
         │ a daemon of its name live in the namespace already? refuse
         │ declare ctl/<name>, its control queryable; then workers/<name>, its liveliness token
         ▼ answer until SIGINT or SIGTERM; what it still runs stops with it
@@ -30,6 +30,7 @@ to the coordinator's hub and to each other, never to the daemon's session.
     core.py        WorkerDaemon: its session, its token, its answers on ctl/<name>; ask, a daemon's answer
     runs.py        what it runs for a coordinator: a run's spec and its worker processes
     run_router.py  with --router and --local-router: a router of each run's here, its flows' (their edges stay here)
+    router_process.py  that router's process (python -m), started and stopped with its run, gone with the daemon
     listing.py     retriever workers: the live daemons of a namespace, their info, their clocks' offsets
 """
 

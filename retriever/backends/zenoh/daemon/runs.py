@@ -23,13 +23,15 @@ returns its reply record (protocol/daemon.py):
 and it tells the coordinator what the run's processes print and how they exit (ProcessOutput,
 ProcessExit on workers/<name>/events), signed with the run's key.
 
-A daemon joined through routers with ``--local-router`` opens a router of each run's on this
-machine when it prepares the run, which the run's flows join (run_router.py), and closes it
-with the run.
+A daemon joined through routers with ``--local-router`` starts a router of each run's on this
+machine when it prepares the run, a process the run's flows join (run_router.py), and stops it
+with the run. One that ends before is told to the coordinator, the run's processes here are
+stopped, and its spawns here refused from then on: its flows here would join no one.
 
 A daemon serves one run at a time, and ends it by itself when its coordinator's liveliness token
 goes (the coordinator died, or lost the network): its processes get SIGTERM, then, still there
-after COORDINATOR_GRACE_S, SIGKILL. Its worker processes die with it (PR_SET_PDEATHSIG).
+after COORDINATOR_GRACE_S, SIGKILL. Its worker processes and run routers die with it
+(PR_SET_PDEATHSIG).
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ OUTPUT_FLUSH_S = 0.05
 MAX_LINE_BYTES = 1 << 16
 #: how many processes of one node may run at once: its own, and the one taking over while it restarts
 MAX_PROCESSES_PER_NODE = 2
+#: the name under which the coordinator prints what a daemon says of a run's router (run_router.py)
+RUN_ROUTER_NAME = "run-router"
 #: the signals a coordinator may send a run's process
 SIGNALS = (signal.SIGUSR1, signal.SIGTERM, signal.SIGKILL)
 
@@ -198,6 +202,7 @@ class DaemonRuns:
             except Exception:  # no run is left half made: its folder holds its passwords
                 self._end(run)
                 raise
+            run.router.watch(functools.partial(self._router_ended, run))
         write_private(folder / "spec.json", self.local_spec(spec, folder, run_id, run.router).to_json())
         run.watch = self.session.liveliness().declare_subscriber(
             self.keys.deployment(), weak_callback(self._coordinator_token, run), history=True)
@@ -208,6 +213,9 @@ class DaemonRuns:
         ctl/<name>, an insider's too.)"""
         run, name = self._run_of(request.run), request.node
         nodes = self._served(run, name, request.group)
+        ended = run.router.ended() if run.router is not None else None
+        if ended is not None:
+            raise WireError(f"worker '{self.name}' cannot start '{name}': {ended}")
         mode = [str(part) for part in request.mode]
         if request.group and mode:
             raise WireError(f"group '{name}': a group's process starts with its run only (mode {mode!r:.60})")
@@ -362,11 +370,23 @@ class DaemonRuns:
         return f"node '{nid}': {problem}\n    hint: {fix}"
 
     def _open_run_router(self, run: Run) -> RunRouter:
-        """``run``'s own router (run_router.py), opened on the spawner's thread: not on the
-        Zenoh thread that answers this query, which must not wait on Zenoh itself."""
+        """``run``'s own router (run_router.py), started from the spawner's thread: its process
+        dies with that thread (PARENT_DIED), which lives as long as the daemon, and the Zenoh
+        thread that answers this query must not wait that long itself."""
         upstream_ids = [str(z) for z in self.session.info.routers_zid()]
         return self._spawner.submit(open_run_router, self.keys.namespace, self.secret, run.id, self.router,
-                                    upstream_ids, run.folder, self.tls).result()
+                                    upstream_ids, self.tls, flow_environment(os.environ)).result()
+
+    def _router_ended(self, run: Run, why: str) -> None:
+        """``run``'s router ended before its run: said on the daemon's stderr and to the
+        coordinator, and the run's processes here are stopped (SIGTERM), for they have no link to
+        anyone, each other included: the coordinator learns of their exits, and decides."""
+        print(f"retriever-worker {self.name}: error: {why}", file=sys.stderr, flush=True)
+        self._tell(run, ProcessOutput(run=run.id, node=RUN_ROUTER_NAME, stream=Stream.STDERR,
+                                      lines=tuple(line[:MAX_LINE_BYTES] for line in f"error: {why}".splitlines())))
+        for _, proc in list(run.processes.values()):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
 
     def local_spec(self, spec: RunSpec, folder: Path, run_id: str, run_router: RunRouter | None = None) -> RunSpec:
         """The coordinator's ``spec`` as this host runs it, which prepare writes to the run's
@@ -442,8 +462,8 @@ class DaemonRuns:
         if run.watch is not None:
             run.watch.undeclare()
             run.watch = None
-        if run.router is not None:  # after its flows, whose last words have left; on the thread it opened on
-            self._spawner.submit(run.router.close).result()
+        if run.router is not None:  # after its flows, whose last words have left
+            run.router.close()
             run.router = None
         shutil.rmtree(run.folder, ignore_errors=True)
         if self.run is run:
