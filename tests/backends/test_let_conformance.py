@@ -17,7 +17,7 @@ from retriever import (
 
 from .test_conformance import (
     BurstRecorder, BurstSource, ChunkSource, CycleMonitor, CyclePolicy, Echo, EchoOpt, MissingRecorder, PairEcho,
-    PairSource, SkipRecorder, Source, SparseSource, UntypedSparse, WindowQueueRecorder,
+    PairSource, Restartable, SkipRecorder, Source, SparseSource, UntypedSparse, WindowQueueRecorder,
 )
 
 # "dora-grouped": dora with the flows in two processes, alternately (configure(process=)): a group
@@ -212,3 +212,26 @@ def test_quickstart_shape_with_latency_everywhere(rt_backend, check_trace):
         return pipe
 
     run_on(build, rt_backend, check_trace)
+
+
+# Where the flow restarts in place (a fresh flow in its process, from the next tick: a group's on
+# zenoh, any on dora, which starts its processes once). Not a lone flow on zenoh: a new process
+# takes over, and the ticks while it starts are not run (tests/backends/zenoh/test_restart_afresh.py).
+@pytest.mark.parametrize("backend", ["inproc", "zenoh-grouped", "dora", "dora-grouped"])
+def test_on_error_restart_in_place(backend, check_trace):
+    """§5 on_error="restart" in real time: the failing tick is recorded as "error", the flow goes on
+    from its initial state from the next tick, and its consumer sees the same (inproc: reset();
+    elsewhere a fresh flow rebuilt from the IR, set up in the flow's process)."""
+    def build():
+        with let_pipeline("let_restart") as pipe:
+            r = Restartable(fail_on=3).named("r").configure(latency=0.01, on_error="restart") @ Rate(10)
+            sink = EchoOpt().named("sink").configure(latency=0.005) @ Trigger("x")
+            r.then(sink, sync=Latest(), map={"n": "x"})
+            near = EchoOpt().named("near").configure(latency=0.005) @ Rate(20, offset=0.002)  # (grouped: r's neighbour)
+            r.then(near, sync=Latest(), map={"n": "x"})
+        return pipe
+
+    trace = run_on(build, backend, check_trace)
+    assert [s.status == "error" for s in trace.steps_of("r")] == [False, False, True] * 3 + [False]
+    assert trace.values_of("r", "n") == [1, 2] * 3 + [1]
+    assert trace.values_of("sink", "saw") == [1, 2] * 3 + [1]

@@ -83,10 +83,12 @@ def test_a_flow_steps_on_the_thread_that_set_it_up(backend, tmp_path):
             assert len(threads) <= 1, f"{node} (pid {pid}) set up, stepped and tore down on {len(threads)} threads"
 
 
-@pytest.mark.parametrize("backend", ["inproc", "zenoh"])  # dora cannot restart a flow (tests/backends/dora)
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_a_restarted_flow_keeps_what_setup_made(backend, tmp_path):
     """In-process the flow is reset: its weights stay, setup does not run again. On zenoh a new
-    process takes over: it sets up once, and the old one tears down once."""
+    process takes over: it sets up once, and the old one tears down once. On dora the flow
+    restarts in place (dora starts its processes once): in its process the old flow tears down
+    and a fresh one sets up."""
     journal = tmp_path / "journal"
     pipe = _pipeline(journal, fail_at=[3], on_error="restart")
     trace = _run(pipe, backend)
@@ -95,7 +97,9 @@ def test_a_restarted_flow_keeps_what_setup_made(backend, tmp_path):
     assert trace.values_of("policy", "n")[-1] == 2 * 10, "stepped with its weights after the restart"
     processes = _journal(journal)["policy"]
     lifecycles = [_lifecycle(events) for events in processes.values() if "step" in events]
-    assert lifecycles == [["setup", "step", "teardown"]] * (1 if backend == "inproc" else 2), lifecycles
+    expected = {"inproc": [["setup", "step", "teardown"]], "zenoh": [["setup", "step", "teardown"]] * 2,
+                "dora": [["setup", "step", "teardown"] * 2]}
+    assert lifecycles == expected[backend], lifecycles
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -12,7 +12,9 @@ Each flow runs in its own process, rebuilt from the IR, with the same loop as on
 backend (clocks, sync policies, deadlines, LET, step records: the same trace and the same log);
 only the events between flows travel over dora. Flows given one ``configure(process=NAME)``
 share one process, one dora node, served by the zenoh backend's group worker (their events
-between them by reference, in the process). The run's control plane (start, stop, reports,
+between them by reference, in the process). A flow with ``on_error="restart"`` restarts in
+place, in its process (dora starts them once): a group's member in its group's, a flow alone as
+a group of one (coordinator.py). The run's control plane (start, stop, reports,
 frontier queries) stays on its private Zenoh hub.
 """
 

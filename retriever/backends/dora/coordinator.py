@@ -7,9 +7,11 @@
         │ collect their reports (step records, events) into the trace and the log
         ▼ every worker says `done` → dora run ends; the hub closes
 
-What dora cannot do here is refused before anything starts: a flow that restarts in a new
-process (on_error="restart": dora started the dataflow's processes once) and lockstep virtual
-time (use inproc or zenoh's ``virtual_time=True``).
+A flow with on_error="restart" restarts in place, in its process, as a group's member does on
+zenoh (zenoh/node/in_place.py): dora starts the dataflow's processes once, so none starts afresh.
+A group's member is so already; a flow alone runs as a group of one (:meth:`DoraHosting.groups_of_one`).
+A process that dies (a segfault) ends the run, whatever its flows' on_error. Lockstep virtual
+time is refused before anything starts (use inproc or zenoh's ``virtual_time=True``).
 """
 
 from __future__ import annotations
@@ -22,12 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from ...errors import BackendError
 from ...graph import Graph
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.coordinator.hosting import FailRun
-from ..zenoh.coordinator.spec import process_groups
 from ..zenoh.host import Host
 from ..zenoh.origin import new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -65,18 +65,15 @@ class DoraHosting(Hosting):
         self.dora: DoraHost | None = None
 
     def check_deployable(self, graph: Graph) -> None:
-        restarting = sorted(nid for nid, node in graph.nodes.items() if node.settings.on_error == "restart")
-        if restarting:
-            group_of = {nid: name for name, members in process_groups(graph, self.process_names()).items()
-                        for nid in members}
-            named = ", ".join(f"{nid} (in process '{group_of[nid]}')" if nid in group_of else nid for nid in restarting)
-            in_place = (" (on zenoh a group's member restarts in its group's process: not on dora)"
-                        if any(nid in group_of for nid in restarting) else "")
-            raise BackendError(f"the dora backend cannot restart a flow in a new process (on_error='restart' on "
-                               f"{named}): dora starts the dataflow's processes once{in_place}\n"
-                               "    hint: use on_error='skip_tick' or 'stop', or run on backend='zenoh'")
         dora_command()  # installed? (before any process starts)
         super().check_deployable(graph)
+
+    def groups_of_one(self, graph: Graph, groups: dict[str, list[str]]) -> list[str]:
+        """A flow with on_error="restart" outside any group: dora starts its process once, so the
+        group worker serves it alone and restarts it in place, as a group's member (its dora node,
+        outputs, pid and output files are a lone flow's: named as the node)."""
+        grouped = {nid for members in groups.values() for nid in members}
+        return [nid for nid, node in graph.nodes.items() if node.settings.on_error == "restart" and nid not in grouped]
 
     def where(self) -> str:
         return f"a dora dataflow, control on the Zenoh hub at {self.run.endpoint}"

@@ -53,7 +53,9 @@ class DoraNames:
     """The dora ids of a run: per node, its dora node's id, its outputs by port, its progress
     output, and its inputs by stream. A group's members (``configure(process=)``) share one dora
     node: each has outputs only for the ports a node outside the group consumes, and inputs only
-    from nodes outside it (what goes between members stays in their process: node/group.py)."""
+    from nodes outside it (what goes between members stays in their process: node/group.py). A
+    group of one (a flow alone with on_error="restart": DoraHosting.groups_of_one) is named as
+    the lone flow it is: its outputs ``PORT`` and ``progress``."""
 
     nodes: dict[str, str]                       # node id -> dora node id
     outputs: dict[str, dict[str, str]]          # node id -> {port: dora output id}
@@ -86,7 +88,7 @@ class DoraNames:
             nid = node["id"]
             ports = {port: port if _DORA_ID.match(port) and port != PROGRESS else f"o{j}"
                      for j, port in enumerate(sorted(node["outputs"]))}
-            if nid not in group_of:
+            if nid not in group_of or len(groups[group_of[nid]]) == 1:  # (a group of one's, as a lone node's)
                 outputs[nid] = ports
                 if nid in heard:
                     progress[nid] = PROGRESS

@@ -9,12 +9,12 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
+from retriever import Latest, Pipeline, Rate, StepError, Trigger, read_log
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
 from retriever.replay import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
-from ..zenoh.lifecycle_flows import Counter, Total
+from ..zenoh.lifecycle_flows import Counter
 from ..zenoh.test_group import grouped_pipeline
 from .dora_flows import Raises
 from .test_dora import _nothing_left
@@ -122,16 +122,3 @@ def test_a_member_whose_step_raises_stops_the_run_with_its_traceback():
                                         r"worker traceback:(.|\n)*dora_flows\.py"):
         pipe.run(duration=5.0, backend="dora", quiet=True)
     _nothing_left(pipe.session)
-
-
-def test_a_group_member_that_restarts_is_refused():
-    with Pipeline("restart") as pipe:
-        src = Counter().configure(process="both") @ Rate(hz=20)
-        total = Total().configure(name="total", on_error="restart", process="both") @ Trigger()
-        src.then(total, sync=Latest())
-    with pytest.raises(BackendError, match=r"cannot restart a flow in a new process \(on_error='restart' on total "
-                                           r"\(in process 'both'\)\): dora starts the dataflow's processes once "
-                                           r"\(on zenoh a group's member restarts in its group's process: not on "
-                                           r"dora\)\n    hint: use on_error='skip_tick' or 'stop', or run on "
-                                           r"backend='zenoh'"):
-        pipe.run(duration=1.0, backend="dora")

@@ -66,6 +66,8 @@ class Processes:
     restarted: dict[str, dict[str, int]] = field(default_factory=dict)
     #: who sent what (origin.py): the keys of each node's processes, and what was refused as forged
     senders: Senders = field(default_factory=Senders)
+    #: the nodes whose process is a group's (spawn_group), a hosting's group of one among them
+    grouped: set[str] = field(default_factory=set)
     #: the keys of nodes' first processes, made ahead (a dora run's, in its spec): taken at their spawn
     first_keys: dict[str, bytes] = field(default_factory=dict)
 
@@ -73,10 +75,10 @@ class Processes:
         """Every worker process this run started (a group's once)."""
         return list({id(p): p for p in [*self.workers.values(), *self.retiring.values(), *self.retired]}.values())
 
-    def shares_process(self, node: str) -> bool:
-        """Whether ``node``'s process serves other nodes too (a group's)."""
-        proc = self.workers[node]
-        return any(p is proc for n, p in self.workers.items() if n != node)
+    def in_group(self, node: str) -> bool:
+        """Whether ``node``'s process is a group's, its members' one (a hosting's group of one too:
+        dora's), which none of them survives: none starts afresh on its own."""
+        return node in self.grouped
 
     def nodes_of(self, host: Host) -> list[str]:
         """The nodes whose processes run on ``host``."""

@@ -163,6 +163,9 @@ class Coordinator(Session):
                           f"its own: configure(process=) ({', '.join(sorted(groups))}) is not taken here (yet)",
                           RetrieverWarning, stacklevel=4)
             return {}
+        alone = set(self.hosting.groups_of_one(self.graph, groups))
+        if alone:  # (in the graph's order, as the others)
+            groups = {**groups, **{nid: [nid] for nid in self.graph.nodes if nid in alone}}
         return groups
 
     def _assemble(self, control: RunControl) -> None:

@@ -151,6 +151,11 @@ class Hosting:
         (a deployment's placement file): none by default."""
         return {}
 
+    def groups_of_one(self, graph: Graph, groups: dict[str, list[str]]) -> list[str]:
+        """The nodes outside ``groups`` whose process the hosting starts as a group of one (named
+        as the node, served by the group worker): none by default."""
+        return []
+
     def place(self) -> dict[str, Host]:
         """Each node's host, where its processes start (the run's ``spec`` is written, with its
         ``groups``: a group's nodes go to one host, which starts their one process)."""

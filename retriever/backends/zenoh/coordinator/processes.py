@@ -63,6 +63,7 @@ class Supervisor:
         procs = self.book.processes
         mode = mode_args(join, fresh)
         procs.workers[nid], key = procs.hosts[nid].spawn(nid, mode, procs.first_keys.pop(nid, None) or new_key())
+        procs.grouped.discard(nid)  # (a group's member moved elsewhere runs alone there: deploy's Relocate)
         procs.senders.add(nid, key, procs.workers[nid])
         self.control.signer.add(procs.workers[nid], key)
         if join is not None:
@@ -76,6 +77,7 @@ class Supervisor:
         # the key the hosting made, if it did (a dora run's, in its spec: the first member's), else a new one
         made = [procs.first_keys.pop(nid, None) for nid in nodes]
         proc, key = procs.hosts[nodes[0]].spawn_group(name, nodes, made[0] or new_key())
+        procs.grouped.update(nodes)
         for nid in nodes:
             procs.workers[nid] = proc
             procs.senders.add(nid, key, proc)
@@ -122,7 +124,7 @@ class Supervisor:
             if book.ending.failure is not None:
                 self.raise_failure()
             # (a group's process takes all its members with it: none starts afresh on its own)
-            restarts = book.graph.nodes[nid].settings.on_error == "restart" and not procs.shares_process(nid)
+            restarts = book.graph.nodes[nid].settings.on_error == "restart" and not procs.in_group(nid)
             if book.t0 is not None and restarts:
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time

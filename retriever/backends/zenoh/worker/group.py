@@ -17,7 +17,8 @@ The process dying takes every member with it, and the run fails (coordinator/pro
 member is started afresh on its own). Signals and ``failed`` are the single worker's (ending.py).
 
 A group on dora (backends/dora/node.py) is served here too: its launch names dora's transport,
-which carries what the members exchange with nodes outside the group, as Zenoh does here.
+which carries what the members exchange with nodes outside the group, as Zenoh does here; and so
+is a flow alone there with on_error="restart", a group of one (dora starts its processes once).
 """
 
 from __future__ import annotations
