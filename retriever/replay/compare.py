@@ -6,7 +6,6 @@ from __future__ import annotations
 from typing import Any
 
 from ..codec import unpackb
-from ..log.reader import LoggedEvent
 from ..time import format_tag
 from ..trace import STEPPED, StepStatus
 from .report import Divergence
@@ -70,31 +69,34 @@ def compare_record(step, replayed: tuple) -> Divergence | None:
     return None
 
 
-def compare_outputs(step, events: list, logged: dict[tuple, LoggedEvent], encode, stamped: bool) -> Divergence | None:
+def compare_outputs(step, events: list, logged: dict[tuple, tuple[tuple[int, int], bytes]], encode,
+                    stamped: bool) -> Divergence | None:
     """The replayed outputs of a step whose record matched, against the logged ones (``logged``:
-    by id, those the log holds): their tags and every value's msgpack bytes."""
+    by id, the tag and the value's bytes of those the log holds): their tags and every value's
+    msgpack bytes."""
     for ev in events:
         tag, node, port, seq, value = ev[:5]
         original = logged.get((node, port, seq))
         if original is None:
             return Divergence(step.node, step.tag, "value", port, "<not in the log: the log ends here>", value)
+        logged_tag, raw = original
         if stamped:
-            if original.tag <= step.tag:
+            if logged_tag <= step.tag:
                 return Divergence(step.node, step.tag, "output tag (not after its tick: causality)", port,
-                                  format_tag(original.tag), f"after {format_tag(step.tag)}")
-        elif tag != original.tag:
-            return Divergence(step.node, step.tag, "output tag", port, format_tag(original.tag), format_tag(tag))
-        if encode(value) != original.raw_value:
-            return Divergence(step.node, step.tag, "value", port, _logged_value(original), value)
+                                  format_tag(logged_tag), f"after {format_tag(step.tag)}")
+        elif tag != logged_tag:
+            return Divergence(step.node, step.tag, "output tag", port, format_tag(logged_tag), format_tag(tag))
+        if encode(value) != raw:
+            return Divergence(step.node, step.tag, "value", port, _logged_value(raw), value)
     return None
 
 
-def _logged_value(event: LoggedEvent) -> Any:
+def _logged_value(raw: bytes) -> Any:
     """A logged value to show beside the replayed one: itself, or what it is when it does not decode."""
     try:
-        return unpackb(event.raw_value, keep_unregistered=True)
+        return unpackb(raw, keep_unregistered=True)
     except Exception as e:  # a damaged value differs from any replayed one: say what it is
-        return f"<{len(event.raw_value)} bytes that do not decode: {type(e).__name__}>"
+        return f"<{len(raw)} bytes that do not decode: {type(e).__name__}>"
 
 
 def _status(status: str, detail: dict | None) -> str:

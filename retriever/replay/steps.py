@@ -11,7 +11,7 @@ from itertools import chain as _chain
 from typing import Callable, Iterator
 
 from ..backends.inproc import InprocSession
-from ..codec import Encoder
+from ..codec import Encoder, unpackb
 from ..errors import LogError, RunEnded, StepError
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
@@ -32,7 +32,7 @@ class _Check:
 
     def __init__(self, step, stats: NodeReplay, found: Divergence | None = None, done: bool = True) -> None:
         self.step, self.stats, self.found, self.done = step, stats, found, done
-        self.originals: dict[tuple, LoggedEvent] = {}
+        self.originals: dict[tuple, tuple] = {}  # id -> (tag, raw value): a logged output read
         self.waiting = 0
 
 
@@ -82,7 +82,8 @@ class StepReplay:
         self.deliveries: list = []  # heap of (arrival, n, consumer node, buffer, entry)
         self.delivered = 0  # events put on the heap: its tie-break, the order the log was read in
         self.late_at: dict[tuple[str, tuple[int, int]], list] = {}  # (consumer node, record tag) -> [(buf, entry)]
-        self.unclaimed: dict[tuple, LoggedEvent] = {}  # events read whose step record has not been replayed yet
+        # events read whose step record has not been replayed yet: id -> (tag, raw value)
+        self.unclaimed: dict[tuple, tuple] = {}
         self.waiting: dict[tuple, _Check | None] = {}  # outputs a replayed record named, not read yet -> its check
         self.checks: deque[_Check] = deque()  # in step order, from the first not decided
         self.now = (-1, 0)  # the tag of the instant whose steps run
@@ -125,33 +126,38 @@ class StepReplay:
             microstep, raw = fmt.split_event(m.data)
         except ValueError as e:
             raise LogError(f"{self.log.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
-        e = LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
-        event_id = (port[0], port[1], m.sequence)
+        # (a LoggedEvent only where one is needed: the kept trace, a value that does not decode)
+        tag, (node, port_name), seq = (m.log_time, microstep), port, m.sequence
+        event_id = (node, port_name, seq)
         if self.keep_trace:
-            self.kept_events[event_id] = e
+            self.kept_events[event_id] = LoggedEvent(tag, node, port_name, seq, raw, m.publish_time)
         consumers = self.routes.get(port)
         if consumers:
-            value = self.log.value(e)
+            try:
+                value = unpackb(raw)
+            except Exception:  # what it is, said as the log says it
+                self.log.value(LoggedEvent(tag, node, port_name, seq, raw, m.publish_time))
+                raise
             gaps, late, missed = self.gaps, self.late, self.missed
             for consumer, buf, delay_ns in consumers:
-                if gaps and _in_gap(gaps.get(consumer), e):
+                if gaps and _in_gap(gaps.get(consumer), node, port_name, seq):
                     continue
-                arrival = (e.tag[0] + delay_ns, 0) if delay_ns else e.tag
-                entry = (arrival, e.node, e.port, e.seq, value)
+                arrival = (tag[0] + delay_ns, 0) if delay_ns else tag
+                entry = (arrival, node, port_name, seq, value)
                 seen_at = late.get((consumer, event_id)) if late else None
                 if seen_at is not None:
                     if seen_at < self.now:  # a record before its time names it (a changed log): in at once
                         buf.insert(entry)
                     else:
                         self.late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
-                elif not missed or not _never_had(missed.get((consumer, e.node, e.port)), arrival, e.seq):
+                elif not missed or not _never_had(missed.get((consumer, node, port_name)), arrival, seq):
                     heapq.heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
                     self.delivered += 1
         check = self.waiting.pop(event_id, _UNSEEN)
         if check is _UNSEEN:
-            self.unclaimed[event_id] = e
+            self.unclaimed[event_id] = (tag, raw)
         elif check is not None:
-            check.originals[event_id] = e
+            check.originals[event_id] = (tag, raw)
             check.waiting -= 1
             if check.waiting == 0:
                 self.decide(check)
@@ -341,10 +347,9 @@ def _never_had(view: tuple[list, list] | None, arrival: tuple[int, int], seq: in
     return i < len(tags) and seq >= seqs[i]
 
 
-def _in_gap(ranges: list[tuple[str, str, int, int]] | None, event: LoggedEvent) -> bool:
-    """Whether ``event`` falls in one of a consumer port's restart gaps."""
-    return ranges is not None and any(src == event.node and port == event.port and lo <= event.seq < hi
-                                      for src, port, lo, hi in ranges)
+def _in_gap(ranges: list[tuple[str, str, int, int]] | None, node: str, port: str, seq: int) -> bool:
+    """Whether the event ``(node, port, seq)`` falls in one of a consumer port's restart gaps."""
+    return ranges is not None and any(src == node and out == port and lo <= seq < hi for src, out, lo, hi in ranges)
 
 
 def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: dict) -> None:

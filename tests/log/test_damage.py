@@ -24,7 +24,7 @@ from retriever.log.reader import scan_log
 from retriever.loading import load_pipeline
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter, recover
-from retriever.replay import Divergence, replay, resim
+from retriever.replay import Divergence, replay, replay_file, resim
 from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import (
     CHUNK,
@@ -738,6 +738,30 @@ def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path)
 
     report = replay(read_log(_rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)), build_small())
     assert report.divergences[0].logged == "<1 bytes that do not decode: FormatError>"
+
+
+@pytest.mark.parametrize("value, error", [
+    (b"\xc1", r"event counter\.k #0 is not valid msgpack \(FormatError\)"),
+    (b"\xc7\x03\x04\x92\x01\x02", r"event counter\.k #0 is damaged: a dataclass value must be"),
+])
+def test_a_routed_value_that_does_not_decode_refuses_the_replay_as_the_log_says_it(tmp_path, value, error):
+    """A value a consumer is given is decoded as it is read (counter.k goes to acc): one that does
+    not decode refuses the log, with the error its reading (``log.value``) gives, read whole or
+    streamed; the replay does not build a LoggedEvent for every event to say it."""
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        event = _first(messages, "data/counter/k")
+        event[4] = event[4][:2] + value  # microstep, then the value
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)
+    log = read_log(path)
+    with pytest.raises(LogError, match=error):
+        log.value(next(e for e in log.iter_events() if e.id == ("counter", "k", 0)))
+    with pytest.raises(LogError, match=error):
+        replay(read_log(path), build_small())
+    with pytest.raises(LogError, match=error):
+        replay_file(path, build_small)
 
 
 def test_log_info_of_a_run_record_whose_packages_are_not_json_is_a_log_error(tmp_path):
