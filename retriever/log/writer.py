@@ -8,6 +8,7 @@ least every ``flush_interval`` seconds of wall time, which bounds what a ``kill 
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import os
 import stat
@@ -123,6 +124,8 @@ class LogWriter:
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
         self.closed = False
         self.failed = False
+        # the trace whose expanders make the step records (Trace.log_steps), once the first write began it
+        self._step_log: "Trace | None" = None
         with self._refused_writes(RUN_NOT_STARTED):
             self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
@@ -147,6 +150,7 @@ class LogWriter:
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
+        self._step_head = functools.partial(MESSAGE_HEAD.pack, Opcode.MESSAGE)
 
     @contextmanager
     def _refused_writes(self, outcome: str) -> Iterator[None]:
@@ -156,6 +160,7 @@ class LogWriter:
             yield
         except OSError as e:
             self.failed = True
+            self._stop_step_log()
             self._mcap.abandon()
             raise LogWriteError(f"cannot write the log {self.path}: {describe_os_error(e)}; {outcome}",
                                 "log to a disk with room, or to a path that takes files"
@@ -207,8 +212,12 @@ class LogWriter:
         """One comprehension per kind builds whole MCAP message records: this runs for every event
         and step of a logged run, so it avoids every intermediate object it can.
         """
+        if self._step_log is not trace:  # the first hand-over: from here on, expanders make step records
+            self._stop_step_log()
+            trace.log_steps(self._step_head, MESSAGE_FIELDS, self._steps_channel)
+            self._step_log = trace
+        made, made_from, n_steps = trace.take_step_log(self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
-        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
         if len(events) > self._events_done:
             new = events[self._events_done:]
             large = ([i for i, value in enumerate(map(_value, new)) if type(value) is np.ndarray
@@ -221,19 +230,35 @@ class LogWriter:
                 begin = i + 1
             self._add_events(new[begin:])
             self._events_done = len(events)
-        if len(steps) > self._steps_done:
-            pack, channel = self._pack_step, self._steps_channel
-            new = steps[self._steps_done:]
-            records = [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                            channel, index & u32, tag[0], start) + data
-                       for index, (node, tag, consumed, produced, status, detail, start, wall)
-                       in enumerate(new, self._steps_released + self._steps_done)]
+        if n_steps > self._steps_done:
+            new = steps[self._steps_done:n_steps]
+            first = self._steps_released + self._steps_done
+            if made_from == first and len(made) == len(new):  # the expanders made them, all but the None
+                records = made
+                if None in records:
+                    for j in [j for j, record in enumerate(records) if record is None]:
+                        records[j] = self._step_records([new[j]], first + j)[0]
+            else:  # (a trace expanded before the log began, or not through a tape: another backend's)
+                records = self._step_records(new, first)
             self._mcap.add_records(records)
-            self._steps_done = len(steps)
+            self._steps_done = n_steps
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
             self._mcap.flush()
             self._last_flush = now
+
+    def _step_records(self, steps: list[tuple], first: int) -> list[bytes]:
+        """The Message records of ``steps``, the first the log's step record ``first``."""
+        head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
+                                                self._pack_step, self._steps_channel)
+        return [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                     channel, index & u32, tag[0], start) + data
+                for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
+
+    def _stop_step_log(self) -> None:
+        if self._step_log is not None:
+            self._step_log.stop_step_log()
+            self._step_log = None
 
     def _add_events(self, new: list[tuple]) -> None:
         if not new:
@@ -319,6 +344,7 @@ class LogWriter:
                     self._finish(trace, end_ns, status, error, stats, counts)
                     self._file.close()
         finally:
+            self._stop_step_log()
             if not self._file.closed:
                 try:
                     self._file.close()
