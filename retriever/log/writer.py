@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import itertools
 import json
 import os
 import stat
@@ -233,13 +234,14 @@ class LogWriter:
         if n_steps > self._steps_done:
             new = steps[self._steps_done:n_steps]
             first = self._steps_released + self._steps_done
-            if made_from == first and len(made) == len(new):  # the expanders made them, all but the None
-                records = made
-                if None in records:
-                    for j in [j for j, record in enumerate(records) if record is None]:
-                        records[j] = self._step_records([new[j]], first + j)[0]
-            else:  # (a trace expanded before the log began, or not through a tape: another backend's)
+            if made_from != first or len(made) != len(new) or made.count(None) == len(made):
+                # none made: a trace expanded before the log began, or not through a tape (another
+                # backend's), or records of other shapes
                 records = self._step_records(new, first)
+            elif None in made:
+                records = self._step_records(new, first, made)
+            else:
+                records = made
             self._mcap.add_records(records)
             self._steps_done = n_steps
         now = time.monotonic()
@@ -247,13 +249,20 @@ class LogWriter:
             self._mcap.flush()
             self._last_flush = now
 
-    def _step_records(self, steps: list[tuple], first: int) -> list[bytes]:
-        """The Message records of ``steps``, the first the log's step record ``first``."""
+    def _step_records(self, steps: list[tuple], first: int, made: list[bytes | None] | None = None) -> list[bytes]:
+        """The Message records of ``steps``, the first the log's step record ``first``; with
+        ``made``, those of them that are not None as they are (Trace.take_step_log)."""
         head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
                                                 self._pack_step, self._steps_channel)
-        return [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+        if made is None:
+            return [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                         channel, index & u32, tag[0], start) + data
+                    for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
+        return [record if record is not None else
+                head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
                      channel, index & u32, tag[0], start) + data
-                for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
+                for index, record, (node, tag, consumed, produced, status, detail, start, wall)
+                in zip(itertools.count(first), made, steps)]
 
     def _stop_step_log(self) -> None:
         if self._step_log is not None:
