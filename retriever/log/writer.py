@@ -133,6 +133,7 @@ class LogWriter:
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
             self._channels: dict[tuple[str, str], int] = {}
+            self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
                 for port, spec in node.outputs.items():
                     self._add_channel(node.id, port, spec.type)
@@ -179,6 +180,7 @@ class LogWriter:
         channel = self._mcap.add_channel(fmt.data_topic(node, port), fmt.MESSAGE_ENCODING,
                                          {"node": node, "port": port, "type": type_name})
         self._channels[(node, port)] = channel
+        self._channel_of.setdefault(node, {})[port] = channel
         return channel
 
     @property
@@ -273,15 +275,20 @@ class LogWriter:
         if not new:
             return
         head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
-        channels, encode = self._channels, self._encode
+        channel_of, encode = self._channel_of, self._encode
         try:
-            records = [head(op, fields + len(value_data := encode(value)),
-                            channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
-                            published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+            records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
             raise self._unencodable(new) from None
+        except KeyError:  # a port no event came from before (an untyped flow's): its channel, then again
+            added = [self._add_channel(node, port) for _, node, port, *_ in new
+                     if port not in channel_of.get(node, ())]
+            if not added:
+                raise
+            return self._add_events(new)
         self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
 
