@@ -316,7 +316,7 @@ class Trace:
         sequence, log_time, publish_time) + data``, the sequence the record's index among the
         trace's step records (those :meth:`discard` dropped counted in, as ``released`` says).
         Records expanded before this call have none."""
-        with self._expanding:
+        with self._held():
             self._step_log = []
             self._step_log_base = len(self._raw_steps)
             self._step_log_with = (self._step_log.append, head, fields, channel)
@@ -345,8 +345,18 @@ class Trace:
 
     def stop_step_log(self) -> None:
         """The log is done: expanding makes no more of its records."""
-        with self._expanding:
+        with self._held():
             self._step_log = self._step_log_with = None
+
+    @contextmanager
+    def _held(self) -> Iterator[None]:
+        """The expanding lock, unless this thread holds it already (a signal handler's, that came
+        while it expanded the tape)."""
+        if self._expander == threading.get_ident():
+            yield
+            return
+        with self._expanding:
+            yield
 
     def forget_values(self, upto: int | None = None) -> None:
         """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``
