@@ -20,6 +20,8 @@ from .codec import packb
 from .errors import ValuesNotKeptError
 from .time import format_tag
 
+_U32 = 0xFFFFFFFF  # a log record's sequence number is a uint32 (the step's index, wrapped)
+
 EventId = tuple[str, str, int]
 
 #: What a run may keep in memory (``pipe.run(..., keep=...)``): ``"trace"``, every event with its
@@ -306,7 +308,7 @@ class Trace:
                     n += 1
                 i += 1
             else:  # an expander adds one step record
-                i = item(tape, i, add_event, add_step, with_log, n & 0xFFFFFFFF)
+                i = item(tape, i, add_event, add_step, with_log, n & _U32)
                 n += 1
 
     def log_steps(self, head: Callable[..., bytes], fields: int, channel: int) -> None:

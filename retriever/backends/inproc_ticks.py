@@ -32,6 +32,9 @@ edge comes from), the consumed buffer entry when several edges feed the port, No
 optional port had nothing; an output's value and seq are None when it made no event. A chain's
 link keeps a shorter record (see _TickWriter._record_line). The node's steps and step time are
 counted as its records are expanded (the session expands the tape before it reads the counts).
+While a log is written (``Trace.log_steps``), an expander also makes the log's Message record of
+the step it expands, where the record has the one common shape (see _TickWriter._step_log): a
+logged step then costs no msgpack of nested tuples (benchmarks/reports/logging_overhead.md).
 
 Kept in sync with ``tick.run_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with
 the compiled ticks and with ``run_tick`` only and compares the traces record by record (wall-clock

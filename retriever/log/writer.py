@@ -3,6 +3,9 @@
 A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall time (at most
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
+From its first write on, the trace's tape expanders make the step records they can
+(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer encodes
+the others, and every event.
 """
 
 from __future__ import annotations
