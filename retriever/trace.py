@@ -20,6 +20,8 @@ from .codec import packb
 from .errors import ValuesNotKeptError
 from .time import format_tag
 
+_U32 = 0xFFFFFFFF  # a log record's sequence number is a uint32 (the step's index, wrapped)
+
 EventId = tuple[str, str, int]
 
 #: What a run may keep in memory (``pipe.run(..., keep=...)``): ``"trace"``, every event with its
@@ -231,6 +233,11 @@ class Trace:
         self._newest: dict[tuple[str, str], tuple] = {}  # latest(): each port's newest raw event ...
         self._newest_upto = 0  # ... among raw_events before this index
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
+        # the log's step records made as the tape is expanded (log_steps), and the index in the
+        # log of the first of them; (append, head, fields, channel), what an expander makes them with
+        self._step_log: list | None = None
+        self._step_log_base = 0
+        self._step_log_with: tuple | None = None
 
     @property
     def raw_events(self) -> list[tuple]:
@@ -270,6 +277,9 @@ class Trace:
         tape = self.tape
         add_event, add_step = self._raw_events.append, self._raw_steps.append
         i, end = 0, len(tape)
+        if self._step_log is not None:
+            self._expand_logged(tape, end, add_event, add_step)
+            i = end
         while i < end:
             item = tape[i]
             if type(item) is tuple:
@@ -280,6 +290,75 @@ class Trace:
         del tape[:end]
         if then is not None:
             then()
+
+    def _expand_logged(self, tape: list, end: int, add_event: Callable, add_step: Callable) -> None:
+        """_expand, with each step record's log record made by its expander, or None for the
+        log writer to make (a plain record's, an expander's of a record of another shape)."""
+        log = self._step_log
+        assert log is not None and self._step_log_with is not None
+        with_log, add_record, n, i = self._step_log_with, log.append, self._step_log_base + len(log), 0
+        while i < end:
+            item = tape[i]
+            if type(item) is tuple:
+                if len(item) == 6:
+                    add_event(item)
+                else:
+                    add_step(item)
+                    add_record(None)
+                    n += 1
+                i += 1
+            else:  # an expander adds one step record
+                i = item(tape, i, add_event, add_step, with_log, n & _U32)
+                n += 1
+
+    def log_steps(self, head: Callable[..., bytes], fields: int, channel: int) -> None:
+        """From now on, as the tape is expanded, have each step record's Message record made by its
+        expander where it can (a compiled tick's: its msgpack data in one ``struct.pack``), for
+        the log writer to take (:meth:`take_step_log`): ``head(fields + len(data), channel,
+        sequence, log_time, publish_time) + data``, the sequence the record's index among the
+        trace's step records (those :meth:`discard` dropped counted in, as ``released`` says).
+        Records expanded before this call have none."""
+        with self._held():
+            self._step_log = []
+            self._step_log_base = len(self._raw_steps)
+            self._step_log_with = (self._step_log.append, head, fields, channel)
+
+    def take_step_log(self, released: int) -> tuple[list, int, int]:
+        """Expand the tape; hand over the step log's records made since the last call: ``(records,
+        index of the first, step records in the trace)``. A record is bytes, or None where the
+        expander left it to the writer. The index counts from :meth:`log_steps`, ``released``
+        the step records dropped from the trace since (discard)."""
+        taken: list = []
+        out: list = []
+
+        def swap() -> None:
+            if self._step_log is not None:
+                out[:] = [self._step_log, self._step_log_base, len(self._raw_steps)]
+                self._step_log = []
+                self._step_log_base = released + len(self._raw_steps)
+                with_log = self._step_log_with
+                assert with_log is not None
+                self._step_log_with = (self._step_log.append, *with_log[1:])
+
+        self.expand(then=swap)
+        if not out:  # not logging, or this thread is expanding already (a signal handler's write)
+            return taken, -1, len(self._raw_steps)
+        return out[0], out[1], out[2]
+
+    def stop_step_log(self) -> None:
+        """The log is done: expanding makes no more of its records."""
+        with self._held():
+            self._step_log = self._step_log_with = None
+
+    @contextmanager
+    def _held(self) -> Iterator[None]:
+        """The expanding lock, unless this thread holds it already (a signal handler's, that came
+        while it expanded the tape)."""
+        if self._expander == threading.get_ident():
+            yield
+            return
+        with self._expanding:
+            yield
 
     def forget_values(self, upto: int | None = None) -> None:
         """Put :data:`NOT_KEPT` in place of the values of the events recorded before ``upto``

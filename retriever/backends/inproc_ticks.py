@@ -32,6 +32,9 @@ edge comes from), the consumed buffer entry when several edges feed the port, No
 optional port had nothing; an output's value and seq are None when it made no event. A chain's
 link keeps a shorter record (see _TickWriter._record_line). The node's steps and step time are
 counted as its records are expanded (the session expands the tape before it reads the counts).
+While a log is written (``Trace.log_steps``), an expander also makes the log's Message record of
+the step it expands, where the record has the one common shape (see _TickWriter._step_log): a
+logged step then costs no msgpack of nested tuples (benchmarks/reports/logging_overhead.md).
 
 Kept in sync with ``tick.run_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with
 the compiled ticks and with ``run_tick`` only and compares the traces record by record (wall-clock
@@ -43,11 +46,14 @@ from __future__ import annotations
 import functools
 import keyword
 import re
+import struct
 from bisect import insort
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from time import time_ns
 from typing import Any
+
+import msgpack
 
 from ..flow.core import settings_of
 from ..sync import Latest
@@ -472,7 +478,7 @@ if v{j} is not None:
     produced.append((node{k}, {port!r}, s{j}))
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
-def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step):
+def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step, log=None, seq=0):
     nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
 {_indent(head)}    wall = end - start
@@ -480,8 +486,49 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
     xwall{k} += wall
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
     add_step((node{k}, tau, consumed, produced, OK, None, start, wall))
-{_indent(leave)}    return i + {len(fields)}
+    if log is not None:
+{_indent(self._step_log(), "        ")}{_indent(leave)}    return i + {len(fields)}
 """
+
+    def _step_log(self) -> str:
+        """An expander's lines that add the log's record of the step it expanded (Trace.log_steps):
+        the Message record, its data the step's msgpack ``(node, microstep, consumed, produced,
+        status, detail, wall)`` in one ``struct.pack`` of the bytes that stay the same from step to
+        step and the ints that change, each int in a fixed width (uint32 seqs, uint64 wall time: as
+        valid msgpack as the shortest, and read back the same); None, for the log writer to encode
+        from the record, where the record is not of the one shape written here (an output that
+        made no event, an optional or many-edged input, a microstep of 128 or more, ...)."""
+        k, rt, known = self.k, self.rt, self.known
+        none = "log[0](None)\n"
+        # the inputs in its consumed ids: each fed by one edge (an optional one consumed something:
+        # c{i} is not None); an optional input nothing feeds is never in them
+        fed = [i for i, feeds in enumerate(self.sources) if feeds or self.required[i]]
+        if (len(known) != 1 or len(fed) > 15 or not all(len(self.sources[i]) == 1 for i in fed)):
+            return none
+        pack = functools.partial(msgpack.packb, use_bin_type=True)
+        u32 = 0xFFFFFFFF
+        parts: list[bytes | tuple[str, str]] = [b"\x97" + pack(rt.id), ("B", "tau[1]"), bytes((0x80 | len(fed),))]
+        for i in fed:
+            (src, src_port), = self.sources[i]
+            parts += [pack(self.ports[i]) + b"\x91\x93" + pack(src) + pack(src_port) + b"\xce", ("I", f"c{i}")]
+        parts += [b"\x91\x93" + pack(rt.id) + pack(known[0]) + b"\xce", ("I", "s0"),
+                  pack(StepStatus.OK.value) + b"\xc0\xcf", ("Q", "wall")]
+        merged: list[bytes | tuple[str, str]] = []  # neighbouring bytes as one
+        for part in parts:
+            if type(part) is bytes and merged and type(merged[-1]) is bytes:
+                merged[-1] += part
+            else:
+                merged.append(part)
+        data = struct.Struct(">" + "".join(f"{len(p)}s" if type(p) is bytes else p[0] for p in merged))
+        self.names[f"step_data{k}"] = data.pack
+        args = ", ".join(repr(p) if type(p) is bytes else p[1] for p in merged)
+        ints = " and ".join([*(f"c{i} is None" for i in range(len(self.ports)) if i not in fed),
+                             *(f"c{i} is not None" for i in fed if not self.required[i]),
+                             *(f"c{i} <= {u32}" for i in fed), f"s0 <= {u32}", "wall >= 0"])
+        return (f"if v0 is not None and tau[1] < 128 and {ints}:\n"
+                f"    append, head, fields, channel = log\n"
+                f"    append(head(fields + {data.size}, channel, seq, tau[0], start) + step_data{k}({args}))\n"
+                f"else:\n    {none}")
 
 
 #: the most ticks one chain function runs before the loop takes over again (bounds its code)

@@ -3,11 +3,16 @@
 A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall time (at most
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
+From its first write on, the trace's tape expanders make the step records they can
+(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer encodes
+the others, and every event.
 """
 
 from __future__ import annotations
 
 import errno
+import functools
+import itertools
 import json
 import os
 import stat
@@ -123,12 +128,15 @@ class LogWriter:
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
         self.closed = False
         self.failed = False
+        # the trace whose expanders make the step records (Trace.log_steps), once the first write began it
+        self._step_log: "Trace | None" = None
         with self._refused_writes(RUN_NOT_STARTED):
             self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
             self._channels: dict[tuple[str, str], int] = {}
+            self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
                 for port, spec in node.outputs.items():
                     self._add_channel(node.id, port, spec.type)
@@ -147,6 +155,7 @@ class LogWriter:
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
+        self._step_head = functools.partial(MESSAGE_HEAD.pack, Opcode.MESSAGE)
 
     @contextmanager
     def _refused_writes(self, outcome: str) -> Iterator[None]:
@@ -156,6 +165,7 @@ class LogWriter:
             yield
         except OSError as e:
             self.failed = True
+            self._stop_step_log()
             self._mcap.abandon()
             raise LogWriteError(f"cannot write the log {self.path}: {describe_os_error(e)}; {outcome}",
                                 "log to a disk with room, or to a path that takes files"
@@ -173,6 +183,7 @@ class LogWriter:
         channel = self._mcap.add_channel(fmt.data_topic(node, port), fmt.MESSAGE_ENCODING,
                                          {"node": node, "port": port, "type": type_name})
         self._channels[(node, port)] = channel
+        self._channel_of.setdefault(node, {})[port] = channel
         return channel
 
     @property
@@ -207,8 +218,12 @@ class LogWriter:
         """One comprehension per kind builds whole MCAP message records: this runs for every event
         and step of a logged run, so it avoids every intermediate object it can.
         """
+        if self._step_log is not trace:  # the first hand-over: from here on, expanders make step records
+            self._stop_step_log()
+            trace.log_steps(self._step_head, MESSAGE_FIELDS, self._steps_channel)
+            self._step_log = trace
+        made, made_from, n_steps = trace.take_step_log(self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
-        head, op, fields, u32 = MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF
         if len(events) > self._events_done:
             new = events[self._events_done:]
             large = ([i for i, value in enumerate(map(_value, new)) if type(value) is np.ndarray
@@ -221,33 +236,62 @@ class LogWriter:
                 begin = i + 1
             self._add_events(new[begin:])
             self._events_done = len(events)
-        if len(steps) > self._steps_done:
-            pack, channel = self._pack_step, self._steps_channel
-            new = steps[self._steps_done:]
-            records = [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                            channel, index & u32, tag[0], start) + data
-                       for index, (node, tag, consumed, produced, status, detail, start, wall)
-                       in enumerate(new, self._steps_released + self._steps_done)]
+        if n_steps > self._steps_done:
+            new = steps[self._steps_done:n_steps]
+            first = self._steps_released + self._steps_done
+            if made_from != first or len(made) != len(new) or made.count(None) == len(made):
+                # none made: a trace expanded before the log began, or not through a tape (another
+                # backend's), or records of other shapes
+                records = self._step_records(new, first)
+            elif None in made:
+                records = self._step_records(new, first, made)
+            else:
+                records = made
             self._mcap.add_records(records)
-            self._steps_done = len(steps)
+            self._steps_done = n_steps
         now = time.monotonic()
         if now - self._last_flush >= self._flush_interval:
             self._mcap.flush()
             self._last_flush = now
 
+    def _step_records(self, steps: list[tuple], first: int, made: list[bytes | None] | None = None) -> list[bytes]:
+        """The Message records of ``steps``, the first the log's step record ``first``; with
+        ``made``, those of them that are not None as they are (Trace.take_step_log)."""
+        head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
+                                                self._pack_step, self._steps_channel)
+        if made is None:
+            return [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                         channel, index & u32, tag[0], start) + data
+                    for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
+        return [record if record is not None else
+                head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                     channel, index & u32, tag[0], start) + data
+                for index, record, (node, tag, consumed, produced, status, detail, start, wall)
+                in zip(itertools.count(first), made, steps)]
+
+    def _stop_step_log(self) -> None:
+        if self._step_log is not None:
+            self._step_log.stop_step_log()
+            self._step_log = None
+
     def _add_events(self, new: list[tuple]) -> None:
         if not new:
             return
         head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
-        channels, encode = self._channels, self._encode
+        channel_of, encode = self._channel_of, self._encode
         try:
-            records = [head(op, fields + len(value_data := encode(value)),
-                            channels.get((node, port)) or self._add_channel(node, port), seq & u32, tag[0],
-                            published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+            records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
             raise self._unencodable(new) from None
+        except KeyError:  # a port no event came from before (an untyped flow's): its channel, then again
+            added = [self._add_channel(node, port) for _, node, port, *_ in new
+                     if port not in channel_of.get(node, ())]
+            if not added:
+                raise
+            return self._add_events(new)
         self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
 
@@ -319,6 +363,7 @@ class LogWriter:
                     self._finish(trace, end_ns, status, error, stats, counts)
                     self._file.close()
         finally:
+            self._stop_step_log()
             if not self._file.closed:
                 try:
                     self._file.close()

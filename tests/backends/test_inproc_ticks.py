@@ -262,6 +262,66 @@ def test_mixed_graph_matches_under_tie_breaking():
         assert_same(mixed, tie_break_seed=seed, min_compiled=10)
 
 
+def test_the_step_records_compiled_ticks_make_for_the_log_are_the_writers():
+    """What an expander makes for the log (Trace.log_steps) of each step record it expands: where
+    it makes one, the Message record of the step with the head the writer gives it and data that
+    decode to the step's fields; where it does not (another shape, a plain record), None, for the
+    writer. Made for the steps of a chain of plain ints (all but its first skipped ticks), for
+    some of the mixed graph's."""
+    from retriever.log.format import decode_step
+    from retriever.log.mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
+
+    def head(*fields):
+        return MESSAGE_HEAD.pack(5, *fields)
+
+    def plain_chain():
+        with Pipeline("plain_chain") as pipe:
+            prev = Count().named("src") @ Rate(1000)
+            for i, clock in enumerate([Trigger(), Rate(1000), Trigger()]):
+                prev = prev.then(Plain().named(f"p{i}") @ clock, map={"x" if i == 0 else "int": "int"},
+                                 sync=Latest())
+        return pipe
+
+    # (the last graph's cycle nests its values deeper than a log takes: not logged)
+    for build, runs, least, logged in ((plain_chain, (0.2, 0.0005, 0.3), 0.99, True), (mixed, (0.5, 0.25), 0.1, True),
+                                       (one_group_consumers_first, (0.3,), 0.1, False)):
+        pipe = build()
+        pipe.step(0.0)
+        trace = pipe.session.trace
+        trace.log_steps(head, MESSAGE_FIELDS, 42)
+        made: list = []
+        for duration in runs:
+            pipe.run(duration=duration)
+            records, first, steps = trace.take_step_log(0)
+            assert first == len(made) and steps == len(made) + len(records) == len(trace.raw_steps)
+            made += records
+        trace.stop_step_log()
+        assert len(made) == len(trace.raw_steps) > 100
+        assert sum(record is not None for record in made) >= least * len(made)
+        for index, (record, step) in enumerate(zip(made, trace.raw_steps)):
+            if record is None:
+                continue
+            node, tag, consumed, produced, status, detail, start, wall = step
+            op, length, channel, sequence, log_time, publish = MESSAGE_HEAD.unpack_from(record)
+            assert (op, length, channel, sequence, log_time, publish) == (
+                5, len(record) - 9, 42, index, tag[0], start)
+            assert decode_step(record[MESSAGE_HEAD.size:]) == (node, tag[1], consumed, produced, status, detail, wall)
+        assert not logged or read_steps_equal(build)
+
+
+def read_steps_equal(build) -> bool:
+    """A logged run of ``build()`` reads back as its trace (its records made as above)."""
+    import tempfile
+    from pathlib import Path
+
+    from retriever import read_log
+
+    with tempfile.TemporaryDirectory() as folder:
+        again = build()
+        trace = again.run(duration=0.5, log=Path(folder) / "run.mcap")
+        return read_log(Path(folder) / "run.mcap").trace() == trace
+
+
 def test_stop_on_error_matches():
     def build():
         with Pipeline("stop") as pipe:

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import pytest
 
-from retriever import Latest, LogError, Pipeline, Rate, Trigger, read_log
+from retriever import Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
 from retriever.errors import LogWriteError
+from retriever.log import format as fmt
 from retriever.log import recover
 from retriever.replay import replay
 from tests.log import log_flows
@@ -234,3 +235,35 @@ def test_a_writer_faster_than_its_disk_waits_for_it_instead_of_queueing_without_
     assert most[0] <= (4 << 20) + (1 << 20) + 1024, most
     stream.seek(0)
     assert sum(1 for _ in make_reader(stream).iter_messages()) == 40
+
+
+# ---------------------------------------------------------------------------------------------
+# Channels the graph did not name
+# ---------------------------------------------------------------------------------------------
+def test_ports_an_untyped_flow_returns_at_run_time_get_channels_in_the_order_their_events_came(tmp_path: Path):
+    """An untyped flow's step may return ports no edge reads and the graph did not know: each
+    gets its channel when its first event is written (the writer looks channels up by node, then
+    port, and adds the missing ones of a batch before it encodes it), and the log reads back as
+    the trace."""
+
+    class Camera(Flow):
+        def __init__(self):
+            self.k = 0
+
+        def step(self):
+            self.k += 1
+            return {"ok": self.k, **({"late": -self.k} if self.k > 3 else {}), **({"later": 0.5} if self.k > 6 else {})}
+
+    class Policy(Flow):
+        def step(self, ok):
+            return {"done": ok}
+
+    with Pipeline("late_ports") as pipe:
+        (Camera().named("camera") @ Rate(hz=10)).then(Policy().named("policy") @ Rate(hz=10))
+    path = tmp_path / "run.mcap"
+    trace = pipe.run(duration=2.0, log=path)
+    log = read_log(path)
+    assert log.trace() == trace
+    topics = [channel.topic for channel in sorted(log.channels.values(), key=lambda c: c.id)]
+    assert [t for t in topics if "late" in t] == [fmt.data_topic("camera", "late"), fmt.data_topic("camera", "later")]
+    assert {e.port for e in trace.events_of("camera")} == {"ok", "late", "later"}
