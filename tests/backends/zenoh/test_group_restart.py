@@ -69,9 +69,11 @@ def test_a_member_restarts_in_place_and_its_neighbours_step_on(tmp_path):
     assert report.identical, report.divergences[:3]
 
 
-def test_a_member_past_its_budget_stops_the_run_as_a_lone_flow_does():
+def test_a_member_past_its_budget_stops_the_run_as_a_lone_flow_does(capfd):
     """mid fails at x=3 and x=6 with one restart allowed: the second failure stops the run with
-    the RestartLimitError a lone flow's run raises (the same text but for the tick's tag)."""
+    the RestartLimitError a lone flow's run raises (the same text but for the tick's tag), and
+    the group's process ends on its own, as a lone flow's does: it waits for no `complete` of
+    its failed member, which never comes (it was killed, its stacks on the terminal)."""
     messages = []
     for process in ("chain", None):
         pipe = chain(fail_at=[3, 6], process=process, max_restarts=1, restart_window=10.0)
@@ -81,6 +83,7 @@ def test_a_member_past_its_budget_stops_the_run_as_a_lone_flow_does():
             pipe.run(duration=3.0, backend="zenoh", quiet=True)
         assert raised.value.node == "mid"
         messages.append(re.sub(r"\(tick at [^)]*\)", "(tick at …)", str(raised.value)))
+        assert "did not stop" not in capfd.readouterr().err
     assert messages[0] == messages[1]
 
 
