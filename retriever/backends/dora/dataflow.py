@@ -75,8 +75,7 @@ class DoraNames:
                 nodes[nid] = by_group[group]
                 continue
             name = nid if group is None else group
-            nodes[nid] = name if _DORA_ID.match(name) and name != "dora" and name not in used else f"n{i}"
-            used.add(nodes[nid])
+            nodes[nid] = _unique(name if name != "dora" else "", used, f"n{i}")
             if group is not None:
                 by_group[group] = nodes[nid]
         crossing = [e for e in ir_doc["edges"]
@@ -86,7 +85,8 @@ class DoraNames:
         outputs, progress, taken = {}, {}, {}
         for i, node in enumerate(ir_doc["nodes"]):
             nid = node["id"]
-            ports = {port: port if _DORA_ID.match(port) and port != PROGRESS else f"o{j}"
+            own: set[str] = set()
+            ports = {port: _unique(port if port != PROGRESS else "", own, f"o{j}")
                      for j, port in enumerate(sorted(node["outputs"]))}
             if nid not in group_of or len(groups[group_of[nid]]) == 1:  # (a group of one's, as a lone node's)
                 outputs[nid] = ports
@@ -102,12 +102,19 @@ class DoraNames:
             if nid in heard:
                 progress[nid] = _unique(f"{member}__{PROGRESS}", used, f"p{i}")
         inputs: dict[str, dict[str, list]] = {nid: {} for nid in nodes}
+        # per dora node, its input per stream: PRODUCER__OUTPUT, which two streams may both be named
+        # (node a's output b__c and node a__b's c): the second is i0, i1, … (no '__': no clash)
+        input_ids: dict[str, dict[tuple, str]] = {}
         for e in crossing:
             src, port, dst = e["source"]["node"], e["source"]["port"], e["destination"]["node"]
             if port not in outputs[src]:  # an untyped flow's port: the IR lists every port an edge names
                 raise ValueError(f"edge from {src}.{port}: no such output port in the IR")
-            inputs[dst][f"{nodes[src]}__{outputs[src][port]}"] = [src, port]
-            inputs[dst][f"{nodes[src]}__{progress[src]}"] = [src, None]
+            ids = input_ids.setdefault(nodes[dst], {})
+            for stream, output in (((src, port), outputs[src][port]), ((src, None), progress[src])):
+                if stream not in ids:
+                    wanted = f"{nodes[src]}__{output}"
+                    ids[stream] = wanted if wanted not in ids.values() else f"i{len(ids)}"
+                inputs[dst][ids[stream]] = list(stream)
         return cls(nodes, outputs, progress, inputs)
 
     def processes(self, groups: Mapping[str, Sequence[str]]) -> dict[str, str]:
@@ -137,8 +144,13 @@ class DoraNames:
 
 
 def _unique(name: str, used: set[str], fallback: str) -> str:
-    """``name`` if dora takes it and it is not ``used`` yet, else ``fallback``; marked used."""
+    """``name`` if dora takes it and it is not ``used`` yet, else ``fallback`` (``fallback_1``, …
+    if a name taken before is ``fallback`` already); marked used."""
     chosen = name if _DORA_ID.match(name) and name not in used else fallback
+    k = 0
+    while chosen in used:
+        k += 1
+        chosen = f"{fallback}_{k}"
     used.add(chosen)
     return chosen
 

@@ -78,6 +78,36 @@ def test_names_dora_would_refuse_in_a_group_are_renamed():
     assert names.processes({"front.left": ["cam.left", "b"]}) == {"c": "c", "front.left": "n0"}
 
 
+def test_no_two_nodes_outputs_or_inputs_get_one_dora_id():
+    """A renamed node's fallback id (n1) taken by a node of that name already, a renamed port's
+    (o0) by a port of that name, and two streams one consumer hears named alike (node a's output
+    b__c and node a__b's c, both a__b__c): each gets an id of its own, or two flows would be one
+    dora node (the run failed to start) or one stream would be lost with no error."""
+    def node(nid, outputs):
+        return {"id": nid, "outputs": dict.fromkeys(outputs, {})}
+
+    def edge(src, port, dst, to):
+        return {"source": {"node": src, "port": port}, "destination": {"node": dst, "port": to}}
+
+    doc = {"nodes": [node("n1", ["v"]), node("_cam", ["v"]), node("a", ["b__c", "_x", "o1"]), node("a__b", ["c"]),
+                     node("c", [])],
+           "edges": [edge("n1", "v", "c", "x"), edge("_cam", "v", "c", "x"), edge("a", "b__c", "c", "x"),
+                     edge("a__b", "c", "c", "x"), edge("a", "_x", "c", "y"), edge("a", "o1", "c", "z")]}
+    names = DoraNames.of(doc)
+    assert len(set(names.nodes.values())) == 5, names.nodes
+    assert len(set(names.outputs["a"].values())) == 3, names.outputs["a"]
+    streams = [tuple(s) for s in names.inputs["c"].values()]
+    assert len(streams) == 10 and set(streams) == {("n1", "v"), ("n1", None), ("_cam", "v"), ("_cam", None),
+                                                    ("a", "b__c"), ("a", "_x"), ("a", "o1"), ("a", None),
+                                                    ("a__b", "c"), ("a__b", None)}
+    # in a group's dora node too: member x's output y (g__x__y) and a lone node g__x's y
+    doc = {"nodes": [node("x", ["y"]), node("w", []), node("g__x", ["y"]), node("c", [])],
+           "edges": [edge("x", "y", "c", "a"), edge("g__x", "y", "c", "b")]}
+    names = DoraNames.of(doc, {"g": ["x", "w"]})
+    streams = [tuple(s) for s in names.inputs["c"].values()]
+    assert len(streams) == 4 and set(streams) == {("g__x", None), ("g__x", "y"), ("x", None), ("x", "y")}
+
+
 # ---------------------------------------------------------------------------------------------
 # Runs
 # ---------------------------------------------------------------------------------------------

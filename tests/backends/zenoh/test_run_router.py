@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -16,7 +17,8 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh.access import RunAccess, TlsFiles, run_user
-from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_FOLDER, open_run_router
+from retriever.backends.zenoh.daemon.run_router import (EXIT_FAILED, ROUTER_PROCESS_FOLDER, ROUTER_PROCESS_MODULE,
+                                                        open_run_router)
 from retriever.backends.zenoh.hub import client_config, free_port, port_is_free
 from retriever.backends.zenoh.wire import KeySpace, WireError
 from tests.backends.zenoh.test_router import (SECRET, A, B, _tls_flags, certificates, client, keys_seen, router,  # noqa: F401
@@ -117,6 +119,29 @@ def test_a_run_router_that_gets_no_upstream_link_says_so(router):
     with pytest.raises(WireError, match=r"run run-1: the worker's router for it did not start: it got no link to the "
                                         rf"upstream router \({upstream}\) within 5 s"):
         open_run_router(A, SECRET, RUN, (upstream,), ["123456789abcdef0123456789abcdef"])
+
+
+#: settings a daemon would write, but for what each case changes
+GOOD = {"namespace": A, "run": RUN, "listen": "tcp/127.0.0.1:0", "upstream": ["tcp/127.0.0.1:7447"],
+        "upstream_ids": ["123456789abcdef0123456789abcdef"], "run_password": "p", "upstream_password": "q"}
+
+
+@pytest.mark.parametrize("given, why", [
+    ("[" * 100_000, "maximum recursion depth exceeded"),
+    (json.dumps({**GOOD, "namespace": "a/**"}), "namespace 'a/**' cannot be a Zenoh key chunk"),
+    (json.dumps({**GOOD, "upstream": "tcp/127.0.0.1:7447"}), "upstream and upstream_ids are no lists"),
+    (json.dumps({**GOOD, "tls": {"ca": 1, "cert": 2, "key": 3}}), "a value that is no text"),
+    (json.dumps({**GOOD, "run_password": "p\nu:x"}), "a password of more than one line"),
+])
+def test_a_run_routers_process_refuses_settings_that_are_not_a_daemons_in_a_line(given, why):
+    """What its stdin holds if no daemon wrote it: its process says so on stderr and exits,
+    never with a traceback (a namespace that is no key chunk was one, from its access control,
+    and JSON nested too deep another)."""
+    done = subprocess.run([sys.executable, "-m", ROUTER_PROCESS_MODULE], input=given, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == EXIT_FAILED and done.stdout == ""
+    said = rf"the run router's settings are not a daemon's: [^\n]*{re.escape(why)}[^\n]*\n"
+    assert re.fullmatch(said, done.stderr), done.stderr
 
 
 # ---------------------------------------------------------------------------------------------

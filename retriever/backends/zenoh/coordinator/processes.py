@@ -131,7 +131,9 @@ class Supervisor:
             procs.hosts[nid].output(nid).drain()
             if book.t0 is not None:  # the log says what died, and which of its outputs with it
                 book.faults.unrecovered.append(Fault(nid, book.run_time(), proc.pid, exit_text(code)))
-            book.ending.failure = RunFailure(nid, f"worker process of '{nid}' (pid {proc.pid}) {exit_text(code)} "
+            # (a group's process: every member it ran, which all went with it)
+            served = ", ".join(f"'{n}'" for n in sorted(n for n, p in procs.workers.items() if p is proc) or [nid])
+            book.ending.failure = RunFailure(nid, f"worker process of {served} (pid {proc.pid}) {exit_text(code)} "
                                            f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}")
             self.raise_failure()
 

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 
 from ..access import RunAccess, TlsFiles
 from ..hub import LOOPBACK, endpoint, free_port
-from ..wire import WireError
+from ..wire import WireError, check_chunk
 
 #: what the process prints on its stdout once it is linked upstream, and nothing else
 READY = "ready"
@@ -93,15 +93,21 @@ class RouterProcessSettings:
         """The settings a daemon wrote; ValueError for anything else."""
         try:
             doc = json.loads(text)
+            if not all(isinstance(doc[key], list) for key in ("upstream", "upstream_ids")):
+                raise TypeError("upstream and upstream_ids are no lists")
             doc["upstream"], doc["upstream_ids"] = tuple(doc["upstream"]), tuple(doc["upstream_ids"])
             doc["tls"] = TlsFiles(**doc["tls"]) if doc.get("tls") else None
             settings = cls(**doc)
-        except (TypeError, KeyError, AttributeError, json.JSONDecodeError) as e:
+            check_chunk("namespace", settings.namespace)
+        except (TypeError, KeyError, AttributeError, ValueError, RecursionError) as e:  # RecursionError: too deep
             raise ValueError(f"the run router's settings are not a daemon's: {e}") from None
+        tls = (settings.tls.ca, settings.tls.cert, settings.tls.key) if settings.tls else ()
         if not all(isinstance(v, str) for v in (settings.namespace, settings.run, settings.listen,
                                                   settings.run_password, settings.upstream_password,
-                                                  *settings.upstream, *settings.upstream_ids)):
+                                                  *settings.upstream, *settings.upstream_ids, *tls)):
             raise ValueError("the run router's settings are not a daemon's: a value that is no text")
+        if any(c in settings.run_password for c in "\r\n"):  # one line of the router's dictionary
+            raise ValueError("the run router's settings are not a daemon's: a password of more than one line")
         return settings
 
 

@@ -130,9 +130,12 @@ def _run(served: list[Serving], group, members: frozenset[str]) -> int:
         else:  # (a member failed: the run ends, and these end with it)
             w.loop.end()
             say_done(w, began[w.node])
+    # (a failed member is never `complete`: like a lone flow's process that failed, none waits for it)
+    waiting = [w.node for w in served if failed is None or failed[0] != w.node]
     first = served[0]
-    await_reports_taken(first.session, first.keys, first.loop.opener, members, first.spec.hub_zid,
-                        routers=list(first.spec.router))
+    if waiting:
+        await_reports_taken(first.session, first.keys, first.loop.opener, waiting, first.spec.hub_zid,
+                            routers=list(first.spec.router))
     return code
 
 
