@@ -371,6 +371,14 @@ class FlowSettings:
     step_detail: dict = field(default_factory=dict, repr=False, compare=False)
 
 
+def _shown(name: object, most: int = 40) -> str:
+    """``name``'s repr for an error, a long one cut with its length said (the length may be its fault)."""
+    text = repr(name)
+    if len(text) <= most:
+        return text
+    return f"{text[:most]}… ({len(name)} characters)" if isinstance(name, str) else f"{text[:most]}…"
+
+
 def _choice(owner: str, name: str, value: str, allowed: tuple[str, ...]) -> str:
     if value not in allowed:
         raise ValueError(f"{owner}: {name}={value!r} is not one of {', '.join(map(repr, allowed))}")
@@ -505,7 +513,7 @@ class Flow(Generic[In, Out]):
         owner = type(self).__qualname__
         if name is not None:
             if not isinstance(name, str) or not re.fullmatch(NODE_ID, name):
-                raise ValueError(f"{owner}: node name {name!r:.60} must be an identifier-like str (letters, digits, "
+                raise ValueError(f"{owner}: node name {_shown(name)} must be an identifier-like str (letters, digits, "
                                  f"_ and -, at most {NAME_MAX}; it becomes a key-space segment and names files)")
             s.name = name
         if latency is not None:
@@ -540,7 +548,7 @@ class Flow(Generic[In, Out]):
             s.spin, s.spin_ns = spin, seconds_to_ns(spin)
         if process is not None:
             if not isinstance(process, str) or not re.fullmatch(NODE_ID, process):
-                raise ValueError(f"{owner}.configure(process={process!r:.40}): a process name must be an "
+                raise ValueError(f"{owner}.configure(process={_shown(process)}): a process name must be an "
                                  f"identifier-like str (letters, digits, _ and -, at most {NAME_MAX}), "
                                  "e.g. process='perception'")
             s.process = process

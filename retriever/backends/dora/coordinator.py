@@ -20,7 +20,7 @@ import dataclasses
 import os
 import signal
 import sys
-import tempfile
+import shutil
 import time
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from ...graph import Graph
 from ..zenoh.coordinator import Coordinator, Hosting
 from ..zenoh.coordinator.diagnostics import exit_text
 from ..zenoh.coordinator.hosting import FailRun
+from ..zenoh.folders import DORA_FOLDER, private_folder
 from ..zenoh.host import Host
 from ..zenoh.origin import new_key
 from .dataflow import DoraNames, dataflow_yaml
@@ -89,7 +90,18 @@ class DoraHosting(Hosting):
         names = DoraNames.of(run.spec.ir, groups)
         # dora's own directory (it writes its logs there, as long as the run goes): on disk, not in
         # the run's directory, which may be in shared memory
-        dora_dir = Path(tempfile.mkdtemp(prefix="retriever-dora-"))
+        dora_dir = private_folder(DORA_FOLDER)  # named with this pid: reaped once this process is gone
+        try:
+            self.dora = self.dora_host(dora_dir, names, groups)
+        except BaseException:
+            shutil.rmtree(dora_dir, ignore_errors=True)
+            raise
+        return {nid: self.dora for nid in graph.nodes}
+
+    def dora_host(self, dora_dir: Path, names: DoraNames, groups: dict[str, list[str]]) -> DoraHost:
+        """The run's spec and dataflow written, and the host that runs it with ``dora run``."""
+        run = self.run
+        graph = run.graph
         # the workers are dora's children: they watch this process to know when they are orphans
         # (and then remove the run's directories, which no one else will)
         # and each node's process finds the key it signs with (origin.py) in the private spec
@@ -103,8 +115,7 @@ class DoraHosting(Hosting):
         package_root = str(Path(__file__).resolve().parents[3])  # the workers run this copy of retriever
         dataflow = dora_dir / "dataflow.yml"
         dataflow.write_text(dataflow_yaml(graph.name, names, sys.executable, str(spec_path), package_root))
-        self.dora = DoraHost(run.run_dir, dataflow, names.processes(groups))
-        return {nid: self.dora for nid in graph.nodes}
+        return DoraHost(run.run_dir, dataflow, names.processes(groups))
 
     def check(self) -> None:
         dora = self.dora

@@ -31,12 +31,13 @@ from pathlib import Path
 from ...errors import WireError
 from ..zenoh import worker
 from ..zenoh.command import DORA_NODE_MODULE, parse_command
+from ..zenoh.folders import DORA_FOLDER
 from ..zenoh.protocol import RunSpec, Stream
 from ..zenoh.worker.group import serve_group
 from .dataflow import DoraNames
 
 #: dora's own directory (its logs) is named so; only such a directory is removed
-DORA_DIR_PREFIX = "retriever-dora-"
+DORA_DIR_PREFIX = f"{DORA_FOLDER}-"
 
 
 def main(argv: list[str]) -> None:

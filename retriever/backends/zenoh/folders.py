@@ -17,6 +17,8 @@ from pathlib import Path
 #: the kinds of folder: a run's (its coordinator's process), a worker daemon's and its runs'
 RUN_FOLDER = "retriever-run"
 DAEMON_FOLDER = "retriever-worker"
+#: the dora backend's folder for dora's own files (its dataflow, its logs), on disk
+DORA_FOLDER = "retriever-dora"
 
 
 def private_folder(kind: str, base: str | None = None) -> Path:

@@ -8,9 +8,11 @@ what it refuses, a step that raises, a killed worker, and no process left behind
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -22,6 +24,7 @@ from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, 
 from retriever.backends.dora import host as dora_host
 from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
 from retriever.backends.dora.host import pid_alive
+from retriever.backends.zenoh.folders import DORA_FOLDER
 from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import RunSpec
 from retriever.replay import replay
@@ -112,6 +115,21 @@ def test_a_logged_run_is_inprocs_trace_and_replays_identically(tmp_path):
     assert log.end["status"] == "finished" and log.run["backend"] == "dora"
     assert replay(log).identical
     _nothing_left(pipe.session)
+
+
+def test_dora_folders_of_a_process_that_is_gone_are_removed_by_the_next_run():
+    """dora's folder (its dataflow, its logs) is named with the coordinator's pid, so that one left
+    by a killed coordinator whose workers never ran to remove it is reaped by the next dora run."""
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    stale = Path(tempfile.gettempdir()) / f"{DORA_FOLDER}-{gone.pid}-left"
+    stale.mkdir()
+    (stale / "dora.out").write_text("a killed run's")
+    try:
+        _let_chain().run(duration=0.2, backend="dora", quiet=True)
+        assert not stale.exists()
+    finally:
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 def test_an_output_no_edge_takes_is_logged(tmp_path):
