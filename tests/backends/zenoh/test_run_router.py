@@ -17,6 +17,7 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh.access import RunAccess, TlsFiles, run_user
+from retriever.backends.zenoh.daemon.router_process import SETTINGS_MAX
 from retriever.backends.zenoh.daemon.run_router import (EXIT_FAILED, ROUTER_PROCESS_FOLDER, ROUTER_PROCESS_MODULE,
                                                         open_run_router)
 from retriever.backends.zenoh.hub import client_config, free_port, port_is_free
@@ -132,6 +133,7 @@ GOOD = {"namespace": A, "run": RUN, "listen": "tcp/127.0.0.1:0", "upstream": ["t
     (json.dumps({**GOOD, "upstream": "tcp/127.0.0.1:7447"}), "upstream and upstream_ids are no lists"),
     (json.dumps({**GOOD, "tls": {"ca": 1, "cert": 2, "key": 3}}), "a value that is no text"),
     (json.dumps({**GOOD, "run_password": "p\nu:x"}), "a password of more than one line"),
+    (" " * (SETTINGS_MAX + 1), f"more than {SETTINGS_MAX:,} characters"),
 ])
 def test_a_run_routers_process_refuses_settings_that_are_not_a_daemons_in_a_line(given, why):
     """What its stdin holds if no daemon wrote it: its process says so on stderr and exits,

@@ -33,6 +33,9 @@ from ..worker.process import PARENT_DIED, Parent, prepare_process
 from .run_router import (EXIT_FAILED, LINK_POLL_S, MAX_RUN_SESSIONS, PARENT_CHECK_S, READY, ROUTER_PROCESS_FOLDER,
                          UPSTREAM_LINK_S, RouterProcessSettings)
 
+#: the most its stdin's settings may be (a daemon's are a few hundred characters): no more is read
+SETTINGS_MAX = 1 << 20
+
 
 def open_router(settings: RouterProcessSettings) -> zenoh.Session:
     """The run's router session, linked to an upstream router (see the module's docstring);
@@ -88,7 +91,10 @@ def main() -> int:
     if not prepare_process():  # its daemon is gone already
         return EXIT_FAILED
     try:
-        settings = RouterProcessSettings.from_json(sys.stdin.read())
+        text = sys.stdin.read(SETTINGS_MAX + 1)
+        if len(text) > SETTINGS_MAX:
+            raise ValueError(f"the run router's settings are not a daemon's: more than {SETTINGS_MAX:,} characters")
+        settings = RouterProcessSettings.from_json(text)
     except ValueError as e:
         print(e, file=sys.stderr, flush=True)
         return EXIT_FAILED
