@@ -16,11 +16,14 @@ default this one; give two to compare), interleaved:
 
 It prints one row per code and length: medians with [min-max] over the repeats, and how much
 the peak RSS grows per MB of log between the shortest and the longest. The replay must say
-``identical``; a run that does not is an error.
+``identical``; a run that does not is an error. ``--resim`` measures ``retriever replay --resim
+LOG`` instead (the whole graph re-run from the logged sources; its steps column counts the steps
+compared).
 
     .venv/bin/python benchmarks/replay_memory.py                                   # 1x 2x 4x of 750 s, 3 repeats
     .venv/bin/python benchmarks/replay_memory.py --code . --code /path/to/old/checkout
     .venv/bin/python benchmarks/replay_memory.py --lengths 16 --repeats 1          # a 216 MB log
+    .venv/bin/python benchmarks/replay_memory.py --resim                           # the same, of --resim
 
 ``--json FILE`` writes every measurement. Logs go to a temporary folder, removed at the end
 (``--logs DIR`` keeps them there, and reuses those already there).
@@ -88,14 +91,18 @@ def make_log(path: Path, seconds: float) -> None:
                     str(path), "--keep", "counters"], check=True, env=env_for(ROOT), stdout=subprocess.DEVNULL)
 
 
-def replay_once(code: Path, log: Path) -> dict:
-    done = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m", "retriever.cli", "replay", str(log)],
-                          capture_output=True, text=True, env=env_for(code), cwd=code)
+def replay_once(code: Path, log: Path, resim: bool = False) -> dict:
+    flags = ["--resim"] if resim else []
+    done = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m", "retriever.cli", "replay", *flags,
+                           str(log)], capture_output=True, text=True, env=env_for(code), cwd=code)
     first, _, output = done.stdout.partition("\n")
     if done.returncode != 0 or "identical:" not in output:
         raise SystemExit(f"replay of {log} with {code} did not say identical (exit {done.returncode}):\n{output}"
                          f"{done.stderr}")
-    steps = int(output.split("identical: ")[1].split()[0])
+    if resim:  # "re-simulated LOG to t=... s with ...: N steps and M events compared"
+        steps = int(output.split(" steps and ")[0].split()[-1])
+    else:
+        steps = int(output.split("identical: ")[1].split()[0])
     rss_kib, cpu, wall = first.split()
     return {"peak_rss_mb": int(rss_kib) / 1024, "cpu_s": float(cpu), "wall_s": float(wall), "steps_replayed": steps}
 
@@ -119,6 +126,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--code", type=Path, action="append", help="a checkout to replay with (repeatable)")
     parser.add_argument("--no-run", action="store_true", help="do not time the unlogged run")
+    parser.add_argument("--resim", action="store_true", help="measure retriever replay --resim instead")
     parser.add_argument("--logs", type=Path, help="keep the logs in this folder (and reuse them)")
     parser.add_argument("--json", type=Path, help="write every measurement here")
     args = parser.parse_args()
@@ -140,7 +148,7 @@ def main() -> None:
     for repeat in range(args.repeats):
         for length in args.lengths:
             for code in codes:
-                measured = replay_once(code, logs[length])
+                measured = replay_once(code, logs[length], args.resim)
                 if not args.no_run:
                     measured |= run_once(code, args.seconds * length)
                 results.setdefault((str(code), length), []).append(measured)
@@ -167,11 +175,13 @@ def main() -> None:
             megabytes = (logs[long].stat().st_size - logs[short].stat().st_size) / 1e6
             print(f"{'':<14} peak RSS grew {grown:+.0f} MB from {short:g}x to {long:g}x: "
                   f"{grown / megabytes:+.2f} MB per MB of log")
-    print("\npeak RSS, wall and CPU: `retriever replay LOG` in a process of its own (interpreter start and imports "
+    command = "retriever replay --resim LOG" if args.resim else "retriever replay LOG"
+    print(f"\npeak RSS, wall and CPU: `{command}` in a process of its own (interpreter start and imports "
           "included), median [min-max] over the repeats; run CPU s: the unlogged in-process run over the same "
           "virtual time; CPU/run: the replay's CPU over it")
     if args.json:
         args.json.write_text(json.dumps({"codes": {str(c): revision(c) for c in codes}, "seconds": args.seconds,
+                                         "resim": args.resim,
                                          "logs": {str(k): v.stat().st_size for k, v in logs.items()},
                                          "load_end": load_end,
                                          "results": [{"code": c, "length": n, "runs": rows}

@@ -188,6 +188,19 @@ class StepRecord(NamedTuple):
         return f"{self.node} @ {format_tag(self.tag)}: {self.status}{extra}"
 
 
+def event_bytes(e: Event) -> bytes:
+    """What traces compare of an event: its tag, node, port, seq and value, packed."""
+    return packb(("event", e.tag, e.node, e.port, e.seq, e.value))
+
+
+def step_bytes(s: StepRecord) -> bytes:
+    """What traces compare of a step record: no wall-clock fields, no timing status or detail."""
+    consumed = sorted(s.consumed.items())
+    # str(): the codec packs exact strs only, and a status is a StepStatus or its value
+    return packb(("step", s.node, s.tag, consumed, s.produced, str(semantic_status(s.status)),
+                  semantic_detail(s.detail)))
+
+
 def _event_key(ev: Event):
     return (ev.tag, ev.node, ev.port, ev.seq)
 
@@ -479,12 +492,9 @@ class Trace:
     def _encoded(self, canonical: tuple[list[Event], list[StepRecord]] | None = None) -> Iterator[bytes]:
         events, steps = canonical or self.canonical()
         for e in events:
-            yield packb(("event", e.tag, e.node, e.port, e.seq, e.value))
+            yield event_bytes(e)
         for s in steps:
-            consumed = sorted(s.consumed.items())
-            # str(): the codec packs exact strs only, and a status is a StepStatus or its value
-            yield packb(("step", s.node, s.tag, consumed, s.produced, str(semantic_status(s.status)),
-                         semantic_detail(s.detail)))
+            yield step_bytes(s)
 
     def digest(self) -> str:
         """Hex SHA-256 of the canonical trace: equal traces, equal digests, on any machine."""

@@ -26,15 +26,13 @@ def replay(
     resim: Annotated[bool, typer.Option("--resim", help="Re-run the whole graph from the logged sources.")] = False,
 ) -> None:
     """Re-execute a logged run and compare every output byte for byte (exit 0 only if identical)."""
-    from ..replay import replay_file, resim as resim_log
+    from ..replay import replay_file, resim_file
 
+    # the log is read in two passes, neither keeping it: a log larger than memory replays (or re-simulates)
+    run = resim_file if resim else replay_file
     try:
-        if resim:
-            log = read(path)
-            result = resim_log(log, None if pipeline is None else load(pipeline))
-        else:  # the log is read in two passes, neither keeping it: a log larger than memory replays
-            with _ReplayProgress() as show:
-                result = replay_file(path, None if pipeline is None else (lambda: load(pipeline)), progress=show)
+        with _ReplayProgress() as show:
+            result = run(path, None if pipeline is None else (lambda: load(pipeline)), progress=show)
     except typer.Exit:
         raise
     except Exception as exc:

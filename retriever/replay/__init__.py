@@ -49,8 +49,10 @@ first already took compares as if the log lacked it. ``keep_trace`` holds the wh
 so only ``replay`` has it.
 
 ``resim`` re-runs the whole graph in virtual time, with the sources emitting their logged events,
-and compares the full trace: it proves the log is one consistent run of this graph. It reads the
-log whole.
+and compares the full trace: it proves the log is one consistent run of this graph.
+``resim_file(path)`` (what ``retriever replay --resim`` runs) reads the file twice and keeps
+neither, as ``replay_file`` does: a check of the whole, then its records in log-time order as the
+re-simulation advances, a second of virtual time at a time (resimulation.py says how).
 
 Replay runs the pipeline and the in-process backend, so it sits above them, not in ``log/``.
 This ``__init__`` holds the two ways in, ``replay`` and ``replay_file``, and re-exports the public
@@ -80,14 +82,14 @@ from ..pipeline import Pipeline
 from .compare import TickCheck
 from .prepare import MAX_SAID, code_changes, from_the_log, pipeline_for, ran_other_code, set_up_flows
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport, explain_difference
-from .resimulation import ResimReport, resim
+from .resimulation import ResimReport, ResimSurvey, resim, resim_file
 from .steps import PROGRESS_EVERY, StepReplay
 from .survey import LogSurvey
 
 __all__ = sorted([
     "MAX_DIVERGENCES_KEPT", "MAX_SAID", "PROGRESS_EVERY", "Divergence", "LogSurvey", "NodeReplay", "ReplayReport",
-    "ResimReport", "TickCheck", "code_changes", "explain_difference", "from_the_log", "pipeline_for",
-    "ran_other_code", "replay", "replay_file", "resim",
+    "ResimReport", "ResimSurvey", "TickCheck", "code_changes", "explain_difference", "from_the_log", "pipeline_for",
+    "ran_other_code", "replay", "replay_file", "resim", "resim_file",
 ])
 
 

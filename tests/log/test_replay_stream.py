@@ -1,6 +1,7 @@
-"""``retriever replay`` streams the log (issue 42): its memory stays flat however long the log,
-it reads the messages in log-time order a few chunks at a time, it says the same as a replay of
-the log read whole, and it shows its progress on a terminal (and nothing on a pipe)."""
+"""``retriever replay`` streams the log (issue 42), and so does ``retriever replay --resim``: its
+memory stays flat however long the log, it reads the messages in log-time order a few chunks at a
+time, it says the same as a replay (a re-simulation) of the log read whole, and it shows its
+progress on a terminal (and nothing on a pipe)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from retriever import LogError, read_log
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter
 from retriever.log.reader import scan_log
-from retriever.replay import replay, replay_file
+from retriever.replay import replay, replay_file, resim, resim_file
 from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import RETRIEVER, chunks, cli, cli_env, rewrite
 from tests.log.log_flows import Brightness, Frames, build_frames
@@ -42,23 +43,33 @@ _PEAK = ("import resource, subprocess, sys\n"
          "sys.exit(done.returncode)\n")
 
 
-def _replay_peak_rss_kib(log: Path) -> int:
-    """The peak RSS of ``retriever replay LOG``, in KiB: measured by a process of its own, whose
-    only child is the replay (RUSAGE_CHILDREN is the largest child a process waited for)."""
-    done = subprocess.run([sys.executable, "-c", _PEAK, str(RETRIEVER), "replay", str(log)], capture_output=True,
-                          text=True, env=cli_env(), timeout=120)
+def _replay_peak_rss_kib(log: Path, *flags: str) -> int:
+    """The peak RSS of ``retriever replay [FLAGS] LOG``, in KiB: measured by a process of its own,
+    whose only child is the replay (RUSAGE_CHILDREN is the largest child a process waited for)."""
+    done = subprocess.run([sys.executable, "-c", _PEAK, str(RETRIEVER), "replay", *flags, str(log)],
+                          capture_output=True, text=True, env=cli_env(), timeout=240)
     peak, _, output = done.stdout.partition("\n")
     assert done.returncode == 0 and "identical:" in output, output
     return int(peak)
 
 
-def test_replay_memory_is_flat_however_long_the_log(tmp_path):
-    """A log 8 times as long (4 MB and 32 MB of frames) replays in the same memory, within a few
-    MB: before the replay streamed, every message was held, and every frame decoded (+83 MB)."""
-    short = _frames_log(tmp_path / "short.mcap", 2.0)
-    long = _frames_log(tmp_path / "long.mcap", 16.0)
+@pytest.fixture(scope="module")
+def frames_logs(tmp_path_factory) -> tuple[Path, Path]:
+    """A log and one 8 times as long: 4 MB and 32 MB of frames."""
+    folder = tmp_path_factory.mktemp("lengths")
+    short = _frames_log(folder / "short.mcap", 2.0)
+    long = _frames_log(folder / "long.mcap", 16.0)
     assert long.stat().st_size > 7.5 * short.stat().st_size > 7.5 * 3e6
-    one, eight = _replay_peak_rss_kib(short), _replay_peak_rss_kib(long)
+    return short, long
+
+
+@pytest.mark.parametrize("flags", [(), ("--resim",)], ids=["replay", "resim"])
+def test_replay_memory_is_flat_however_long_the_log(frames_logs, flags):
+    """A log 8 times as long (4 MB and 32 MB of frames) replays, and re-simulates, in the same
+    memory, within a few MB: before the replay streamed, every message was held, and every frame
+    decoded (+83 MB); before the re-simulation streamed, it grew by 27 MB."""
+    short, long = frames_logs
+    one, eight = _replay_peak_rss_kib(short, *flags), _replay_peak_rss_kib(long, *flags)
     assert eight - one < 16 * 1024, f"peak RSS {one} KiB for the 1x log, {eight} KiB for the 8x log"
 
 
@@ -95,6 +106,20 @@ def test_replay_file_says_what_replay_of_the_log_read_whole_says(small_chunks):
     assert streamed.identical and streamed.nodes["brightness"].identical == 90
 
 
+def _same_resim(a, b) -> None:
+    def said(report) -> tuple:  # (a re-simulated event's publish time is when the re-simulation made it)
+        difference = None if report.difference is None else re.sub(r"publish_ns=\d+\)$", ")", report.difference)
+        return report.horizon_ns, report.steps_compared, report.events_compared, difference, report.code_changes
+
+    assert said(a) == said(b)
+
+
+def test_resim_file_says_what_resim_of_the_log_read_whole_says(small_chunks):
+    whole, streamed = resim(read_log(small_chunks)), resim_file(small_chunks)
+    _same_resim(whole, streamed)
+    assert streamed.identical and streamed.steps_compared == 180
+
+
 class Dimmer(Brightness):
     """Half the brightness from its 10th frame on: a divergence at every later step."""
 
@@ -122,6 +147,19 @@ def test_a_divergence_is_reported_in_step_order_as_before(small_chunks):
     assert str(streamed.divergences[0]).startswith("brightness.mean at tick t=0.310000000s m=0: value differs")
 
 
+def test_a_divergence_is_resimulated_as_before(small_chunks):
+    """The first difference of the two traces, an event's value 0.41 s in (a LET output whose tag
+    is in the second after the tick's, when the window is 0.1 s), as the whole traces say it."""
+    import retriever.replay.resimulation as resimulation
+
+    whole = resim(read_log(small_chunks), _dimmed())
+    assert whole.difference.startswith("record 31: Event(tag=(410000000, 0), node='brightness', port='mean', seq=9")
+    with pytest.MonkeyPatch.context() as mp:
+        for window in (10**9, 10**8, 7 * 10**6):
+            mp.setattr(resimulation, "WINDOW_NS", window)
+            _same_resim(whole, resim_file(small_chunks, _dimmed))
+
+
 def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
     """The outputs of one LET step left out: a divergence (<not in the log>) in a log that says it
     is whole; a step not compared (``cut``) in one that says it was recovered."""
@@ -134,6 +172,7 @@ def test_a_log_without_an_output_replays_as_before(small_chunks, tmp_path):
     for path, divergent, not_compared in ((missing, 1, 0), (cut, 0, 1)):
         whole, reports[path] = replay(read_log(path)), replay_file(path)
         _same(whole, reports[path])
+        _same_resim(resim(read_log(path)), resim_file(path))
         assert (reports[path].divergent_steps, reports[path].nodes["brightness"].cut) == (divergent, not_compared)
     first = str(reports[missing].divergences[0])
     assert "value differs\n      logged:   '<not in the log: the log ends here>'" in first
@@ -156,20 +195,22 @@ def test_a_step_record_that_is_not_one_mid_log_is_refused_by_both(small_chunks, 
 
     changed = rewrite(small_chunks, tmp_path / "changed.mcap", keep=keep)
     said = []
-    for run in (lambda: replay(read_log(changed)), lambda: replay_file(changed)):
+    for run in (lambda: replay(read_log(changed)), lambda: replay_file(changed), lambda: resim(read_log(changed)),
+                lambda: resim_file(changed)):
         with pytest.raises(LogError, match=r"step record #60 is malformed") as raised:
             run()
         said.append(str(raised.value))
-    assert said[0] == said[1]
+    assert said[0] == said[1] == said[2] == said[3]
 
 
 # ---------------------------------------------------------------------------------------------
 # Progress: a bar on a terminal, nothing on a pipe
 # ---------------------------------------------------------------------------------------------
-def test_replay_shows_its_progress_on_a_terminal(small_chunks):
+@pytest.mark.parametrize("flags", [(), ("--resim",)], ids=["replay", "resim"])
+def test_replay_shows_its_progress_on_a_terminal(small_chunks, flags):
     main, tty = pty.openpty()
     env = {**cli_env(), "TERM": "xterm-256color"}
-    with subprocess.Popen([str(RETRIEVER), "replay", str(small_chunks)], stdout=subprocess.PIPE, stderr=tty,
+    with subprocess.Popen([str(RETRIEVER), "replay", *flags, str(small_chunks)], stdout=subprocess.PIPE, stderr=tty,
                           env=env) as proc:
         os.close(tty)
         shown = b""
@@ -191,8 +232,9 @@ def test_replay_shows_its_progress_on_a_terminal(small_chunks):
     assert re.search(r"replaying .*100%.*180 of 180 steps", text), text
 
 
-def test_replay_prints_no_progress_on_a_pipe(small_chunks):
-    done = cli("replay", small_chunks)
+@pytest.mark.parametrize("flags", [(), ("--resim",)], ids=["replay", "resim"])
+def test_replay_prints_no_progress_on_a_pipe(small_chunks, flags):
+    done = cli("replay", *flags, small_chunks)
     assert done.returncode == 0 and "identical:" in done.stdout, done.stdout + done.stderr
     assert done.stderr == ""
 
