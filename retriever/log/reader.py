@@ -604,11 +604,14 @@ def chunk_messages(chunk: Chunk, at: int, channels) -> tuple[list[tuple], list]:
     messages: list[tuple] = []
     append = messages.append
     base = at << 32  # a chunk holds less than 2**32 bytes (MAX_CHUNK_BYTES)
-    pos, head, fields, message = 0, MESSAGE_HEAD.unpack_from, _RECORD_HEAD + MESSAGE_FIELDS, Opcode.MESSAGE
-    while pos + fields <= length:
+    # (constants as locals: this loop runs once a message, twice a replay)
+    pos, head, message, least, record_head = 0, MESSAGE_HEAD.unpack_from, Opcode.MESSAGE, MESSAGE_FIELDS, _RECORD_HEAD
+    fields = record_head + least
+    last = length - fields  # the last offset a Message record's head fits at
+    while pos <= last:
         opcode, size, channel_id, sequence, log_time, publish_time = head(raw, pos)
-        end = pos + _RECORD_HEAD + size
-        if opcode != message or size < MESSAGE_FIELDS or end > length or channel_id not in channels:
+        end = pos + record_head + size
+        if opcode != message or size < least or end > length or channel_id not in channels:
             break
         append((log_time, base + pos, channel_id, sequence, publish_time, raw[pos + fields:end]))
         pos = end

@@ -53,7 +53,10 @@ class LogSurvey:
                         fmt.split_event(data)
                     except ValueError as e:
                         self.event_error = LogError(f"{self.path}: event {node}.{port} #{sequence} is malformed ({e})")
-                if not seqs.add(sequence) and self.twice is None:
+                hi = seqs.hi
+                if hi and hi[-1] == sequence:  # the next one: the common case (_Seqs.add's first)
+                    hi[-1] = sequence + 1
+                elif not seqs.add(sequence) and self.twice is None:
                     self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
                                           "the file is damaged or was edited: retriever replay reads logs as a run "
                                           "wrote them")
