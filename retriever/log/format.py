@@ -120,6 +120,9 @@ _DETAILED_STATUSES = frozenset({StepStatus.LATE, StepStatus.ERROR})
 _PLAIN_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
 
 
+_NOT_A_STEP = "it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step"
+
+
 def decode_step(data: bytes) -> tuple:
     """A steps message → ``(node, microstep, consumed, produced, status, detail, wall_ns)``,
     event ids as tuples like the in-memory trace has them."""
@@ -127,10 +130,14 @@ def decode_step(data: bytes) -> tuple:
     # in place (a replay reads every step record of the log, twice)
     node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, use_list=False)
     if detail is None:
-        if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
-                or (consumed and not all(type(p) is str for p in consumed)) or status not in _PLAIN_STATUSES
-                or type(wall_ns) is not int):
-            raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
+        # checked in the order of the reading below (an unhashable status raises TypeError, after the ports)
+        if type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict:
+            raise ValueError(_NOT_A_STEP)
+        for port in consumed:  # (a loop, not all(): its generator costs more than the check)
+            if type(port) is not str:
+                raise ValueError(_NOT_A_STEP)
+        if status not in _PLAIN_STATUSES or type(wall_ns) is not int:
+            raise ValueError(_NOT_A_STEP)
         for ids in consumed.values():
             _check_ids(ids)
         _check_ids(produced)
@@ -141,7 +148,7 @@ def decode_step(data: bytes) -> tuple:
             or not all(type(p) is str for p in consumed) or status not in STEP_STATUSES or type(wall_ns) is not int
             or not (detail is None or (type(detail) is dict and all(type(k) is str for k in detail)))
             or (detail is None and status in _DETAILED_STATUSES)):
-        raise ValueError("it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step")
+        raise ValueError(_NOT_A_STEP)
     if detail is not None:  # (most records have none)
         late = detail.get("late", {})
         if type(late) is not dict:

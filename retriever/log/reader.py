@@ -4,6 +4,15 @@ One sequential pass with ``mcap``'s stream reader, CRCs checked (chunk contents 
 section), so a flipped byte is an error and not silently wrong data. A file whose writer was
 killed ends mid-record: :func:`read_log` refuses it with a hint, ``read_log(...,
 salvage=True)`` (what ``retriever log recover`` uses) keeps every record before the damage.
+
+A log is read a chunk at a time: a chunk's Message records are walked with one ``unpack_from``
+each (:func:`chunk_messages`), and handed on, where a reader takes them in bulk (:func:`scan_log`,
+``ScannedLog.time_ordered``: the replay's two passes), as **message tuples**
+``(log_time, position, channel_id, sequence, publish_time, data)`` rather than ``mcap``
+``Message`` objects (making those was most of a log's reading). ``position`` says where the
+record is (its chunk's offset in the file times 2**32, plus its own in the chunk's records):
+unique and increasing in file order, so message tuples sort by log time, ties in file order,
+and no further field is compared. :func:`read_log` keeps ``Message`` objects.
 """
 
 from __future__ import annotations
@@ -204,7 +213,7 @@ class RunLog(LogHead):
         for m in self.messages:
             port = ports.get(m.channel_id)
             if port is not None:
-                yield logged_event(self.path, port, m)
+                yield logged_event(self.path, port, m.log_time, m.sequence, m.publish_time, m.data)
 
     def iter_steps(self) -> Iterator[StepRecord]:
         """Every step record, in file order (decoded once, then kept)."""
@@ -216,7 +225,7 @@ class RunLog(LogHead):
         steps = {c.id for c in self.channels.values() if c.topic == fmt.STEPS_TOPIC}
         for m in self.messages:
             if m.channel_id in steps:
-                yield step_record(self.path, m)
+                yield step_record(self.path, m.log_time, m.sequence, m.publish_time, m.data)
 
     def trace(self) -> Trace:
         """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""
@@ -225,29 +234,37 @@ class RunLog(LogHead):
 
 
 
-def logged_event(path: Path, port: tuple[str, str], m: Message) -> LoggedEvent:
+def logged_event(path: Path, port: tuple[str, str], log_time: int, sequence: int, publish_time: int,
+                 data: bytes) -> LoggedEvent:
     """The event a message on the channel of ``port`` (``(node, port)``) holds, value undecoded."""
     try:
-        microstep, raw = fmt.split_event(m.data)
+        microstep, raw = fmt.split_event(data)
     except ValueError as e:
-        raise LogError(f"{path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
-    return LoggedEvent((m.log_time, microstep), port[0], port[1], m.sequence, raw, m.publish_time)
+        raise LogError(f"{path}: event {port[0]}.{port[1]} #{sequence} is malformed ({e})") from None
+    return LoggedEvent((log_time, microstep), port[0], port[1], sequence, raw, publish_time)
 
 
-def step_record(path: Path, m: Message) -> StepRecord:
+def step_record(path: Path, log_time: int, sequence: int, publish_time: int, data: bytes) -> StepRecord:
     """The step record a message on the steps channel holds."""
     try:
-        node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+        node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
     except Exception as e:
-        raise LogError(f"{path}: step record #{m.sequence} is malformed ({e})") from None
-    return StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail, m.publish_time, wall_ns)
+        raise LogError(f"{path}: step record #{sequence} is malformed ({e})") from None
+    return StepRecord(node, (log_time, microstep), consumed, produced, status, detail, publish_time, wall_ns)
 
 
 def read_log(path: str | Path, *, salvage: bool = False) -> RunLog:
     """Read and validate a log. ``salvage=True`` keeps the records before a tear or corruption
     instead of raising (``log.complete`` and ``log.damage`` then say what happened)."""
     log = RunLog(Path(path))
-    _read(log, log.messages.append, salvage)
+    messages = log.messages
+
+    def add(read: list[tuple]) -> None:
+        messages.extend([Message(channel_id=channel_id, log_time=log_time, data=data, publish_time=publish_time,
+                                 sequence=sequence)
+                         for log_time, _, channel_id, sequence, publish_time, data in read])
+
+    _read(log, add, salvage)
     return log
 
 
@@ -264,18 +281,19 @@ class ScannedLog(LogHead):
     loose: int = 0  # messages outside any chunk (MCAP allows them; Retriever's writer makes none)
     _identity: tuple = field(default=(), repr=False)
 
-    def time_ordered(self) -> Iterator[Message]:
-        """Every message, in log-time order, ties in file order (what a stable sort of the
-        file's messages by ``log_time`` gives), read again from the file a chunk at a time:
-        chunks are taken in the order of their first message's time, and a message is handed
-        on once no chunk still to be read can hold an earlier one. What is held at a time is
-        the chunks whose times overlap: for a log as a run writes it, a few chunks (its LET
-        latencies and late reports make them overlap), however long the log."""
+    def time_ordered(self) -> Iterator[tuple]:
+        """Every message as a message tuple (the module docstring), in log-time order, ties in file order
+        (what a stable sort of the file's messages by ``log_time`` gives: the tuples sort so),
+        read again from the file a chunk at a time: chunks are taken in the order of their first
+        message's time, and a message is handed on once no chunk still to be read can hold an
+        earlier one. What is held at a time is the chunks whose times overlap: for a log as a run
+        writes it, a few chunks (its LET latencies and late reports make them overlap), however
+        long the log."""
         if self.loose:
             raise LogError(f"{self.path} holds {self.loose} messages outside its chunks, which time_ordered() "
                            "does not read", "read it whole: read_log(path)")
         order = sorted(self.chunks)
-        held: list[tuple[int, int, int, Message]] = []  # (log_time, chunk offset, index in it, message), sorted
+        held: list[tuple] = []  # sorted: by log time, then position (unique: nothing after it is compared)
         try:
             stream = open(self.path, "rb")
         except OSError as e:
@@ -287,50 +305,47 @@ class ScannedLog(LogHead):
                 try:
                     stream.seek(offset)
                     chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
-                    records = chunk_records(chunk)
+                    messages, rest = chunk_messages(chunk, offset, self.channels)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
                                    "read it again, once nothing writes it") from None
-                new = [(m.log_time, offset, i, m) for i, m in enumerate(records) if type(m) is Message]
-                if held:
-                    held += new
-                    held.sort()  # (log_time, offset, index) are unique: messages are never compared
-                else:
-                    held = new
-                    if any(a[0] > b[0] for a, b in zip(new, new[1:])):
-                        held.sort()
+                held += messages
+                if rest:
+                    held += [record for record in rest if type(record) is tuple]
+                held.sort()  # timsort: the held run and the chunk's, each (nearly) in order already
                 if k + 1 < len(order):  # hand on what no chunk still to be read can come before
                     cut = bisect.bisect_left(held, (order[k + 1][0],))
                     ready, held = held[:cut], held[cut:]
                 else:
                     ready, held = held, []
-                for item in ready:
-                    yield item[3]
-
+                yield from ready
 
     def records(self) -> Iterator[LoggedEvent | StepRecord]:
         """Every event (value undecoded) and step record, in log-time order (:meth:`time_ordered`),
         read again from the file: what is held at a time is a few chunks, however long the log."""
         kinds: dict[int, tuple[str, str] | None] = {
             c.id: fmt.parse_data_topic(c.topic) for c in self.channels.values() if c.topic != fmt.STEPS_TOPIC}
-        for m in self.time_ordered():
-            port = kinds.get(m.channel_id, _STEPS)
+        path = self.path
+        for log_time, _, channel_id, sequence, publish_time, data in self.time_ordered():
+            port = kinds.get(channel_id, _STEPS)
             if port is _STEPS:
-                yield step_record(self.path, m)
+                yield step_record(path, log_time, sequence, publish_time, data)
             elif port is not None:
-                yield logged_event(self.path, port, m)
+                yield logged_event(path, port, log_time, sequence, publish_time, data)
 
 
 _STEPS = ("steps",)  # ScannedLog.records: a channel of step records (a port is a pair)
 
 
-def scan_log(path: str | Path, take: Callable[[LogChannel, Message], None], *,
+def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple]], None], *,
              progress: Callable[[int, int], None] | None = None) -> ScannedLog:
     """Read and validate a log as :func:`read_log` does (the same errors, for a log torn or
-    damaged), handing each message with its channel to ``take`` in file order instead of keeping
-    it: what is kept is the log's head and where its chunks are (``log.time_ordered()`` reads
-    them again). ``progress(bytes read, file size)`` is called as the file is read."""
+    damaged), handing its messages to ``take(channels, messages)`` in file order instead of
+    keeping them: ``messages`` is a list of message tuples (the module docstring) (a chunk's at a time,
+    nearly always), ``channels`` the log's by id (each message's is there). What is kept is the
+    log's head and where its chunks are (``log.time_ordered()`` reads them again).
+    ``progress(bytes read, file size)`` is called as the file is read."""
     log = ScannedLog(Path(path))
     channels, chunks = log.channels, log.chunks
     chunk: list[int] | None = None
@@ -343,12 +358,14 @@ def scan_log(path: str | Path, take: Callable[[LogChannel, Message], None], *,
             chunk = [2 ** 64, offset]  # past any log time until its first message
             chunks.append(chunk)
 
-    def add(message: Message) -> None:
+    def add(messages: list[tuple]) -> None:
         if chunk is None:
-            log.loose += 1
-        elif message.log_time < chunk[0]:
-            chunk[0] = message.log_time
-        take(channels[message.channel_id], message)
+            log.loose += len(messages)
+        else:
+            first = min(messages)[0]
+            if first < chunk[0]:
+                chunk[0] = first
+        take(channels, messages)
 
     _read(log, add, False, progress=progress, at_chunk=at_chunk)
     chunks[:] = [c for c in chunks if c[0] < 2 ** 64]
@@ -386,14 +403,16 @@ def log_records(log: RunLog | str | Path) -> LogRecords:
     start: list[int | None] = [None]
     kinds: dict[int, Any] = {}
 
-    def take(channel: LogChannel, m: Message) -> None:
-        kind = kinds.get(channel.id, _UNSEEN)
-        if kind is _UNSEEN:
-            kind = kinds[channel.id] = _STEPS if channel.topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(channel.topic)
-        if kind is _STEPS:
-            nodes.add(step_record(path, m).node)
-        elif kind is not None and m.publish_time and (start[0] is None or m.publish_time - m.log_time < start[0]):
-            start[0] = m.publish_time - m.log_time
+    def take(channels: dict[int, LogChannel], messages: list[tuple]) -> None:
+        for log_time, _, channel_id, sequence, publish_time, data in messages:
+            kind = kinds.get(channel_id, _UNSEEN)
+            if kind is _UNSEEN:
+                topic = channels[channel_id].topic
+                kind = kinds[channel_id] = _STEPS if topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(topic)
+            if kind is _STEPS:
+                nodes.add(step_record(path, log_time, sequence, publish_time, data).node)
+            elif kind is not None and publish_time and (start[0] is None or publish_time - log_time < start[0]):
+                start[0] = publish_time - log_time
 
     scanned = scan_log(path, take)
     if scanned.loose:
@@ -415,10 +434,12 @@ def _identity(stream) -> tuple:
     return (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
 
 
-def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
+def _read(log: LogHead, add: Callable[[list[tuple]], None], salvage: bool, *,
           progress: Callable[[int, int], None] | None = None,
           at_chunk: Callable[[int | None], None] | None = None) -> None:
-    """Read and validate the log at ``log.path`` into ``log``, each message handed to ``add``."""
+    """Read and validate the log at ``log.path`` into ``log``, its messages handed to ``add`` as
+    lists of message tuples, in file order: a chunk's Message records up to its first other
+    record at once, any other message alone."""
     path = log.path
     try:
         stream = open(path, "rb")
@@ -436,7 +457,7 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
         if isinstance(log, ScannedLog):
             log.size, log._identity = size, _identity(stream)
         tracked = _Tracked(stream, size, progress)
-        # chunks as they are, broken up here (chunk_records: what mcap's breakup_chunk does, faster)
+        # chunks as they are, broken up here (chunk_messages: what mcap's breakup_chunk does, faster)
         reader = _StreamReader(tracked, validate_crcs=True, emit_chunks=True, at_chunk=at_chunk)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
         bad_attachment = bad_channel = None
@@ -444,11 +465,15 @@ def _read(log: LogHead, add: Callable[[Message], None], salvage: bool, *,
         read = 0  # messages
         channels = log.channels
         try:
-            for record in _records_in_chunks(reader.records):
-                if type(record) is Message:
-                    if record.channel_id not in channels:
-                        raise ValueError(f"message on unknown channel {record.channel_id}")
+            for record in _records_in_chunks(reader, channels):
+                if type(record) is list:  # a chunk's messages, each on a channel read before
                     add(record)
+                    read += len(record)
+                    continue
+                if type(record) is tuple:
+                    if record[2] not in channels:
+                        raise ValueError(f"message on unknown channel {record[2]}")
+                    add([record])
                     read += 1
                     continue
                 if isinstance(record, ChunkIndex):
@@ -520,18 +545,22 @@ class _StreamReader(StreamReader):
     of no use here. Their bytes are still read, so the data section's CRC covers them. A chunk
     that says it holds more than MAX_CHUNK_BYTES is refused before it is decompressed.
     ``at_chunk(offset)`` is told where each chunk starts before its messages are read (None for
-    a message outside any chunk)."""
+    a message outside any chunk); ``record_at`` is where the last Chunk or Message record read
+    begins."""
 
     def __init__(self, *args, at_chunk: Callable[[int | None], None] | None = None, **kwargs):
         super().__init__(*args, **kwargs)
         self._at_chunk = at_chunk
+        self.record_at = 0
 
     def _read_record(self, opcode: int, length: int):
         if opcode == Opcode.MESSAGE_INDEX:
             self._stream.read(length)
             return None
-        if self._at_chunk is not None and opcode in (Opcode.CHUNK, Opcode.MESSAGE):  # where its messages come from
-            self._at_chunk(self._stream.count - _RECORD_HEAD if opcode == Opcode.CHUNK else None)
+        if opcode == Opcode.CHUNK or opcode == Opcode.MESSAGE:  # where its messages come from
+            self.record_at = self._stream.count - _RECORD_HEAD
+            if self._at_chunk is not None:
+                self._at_chunk(self.record_at if opcode == Opcode.CHUNK else None)
         record = super()._read_record(opcode, length)
         if isinstance(record, Chunk):
             size = _uncompressed_size(record)
@@ -541,54 +570,70 @@ class _StreamReader(StreamReader):
         return record
 
 
-def _records_in_chunks(records: Iterator) -> Iterator:
+def _records_in_chunks(reader: _StreamReader, channels: dict[int, LogChannel]) -> Iterator:
     """The records of a stream read with ``emit_chunks=True``, each chunk's in its place (as a
-    stream reader without it yields them), a chunk's records all made before the first is handed on."""
-    for record in records:
+    stream reader without it yields them), a chunk's records all read before the first is handed
+    on; messages as message tuples, the Message records that begin a chunk on a channel of
+    ``channels`` as one list."""
+    for record in reader.records:
         if type(record) is Chunk:
-            yield from chunk_records(record)
+            messages, rest = chunk_messages(record, reader.record_at, channels)
+            if messages:
+                yield messages
+            yield from rest
+        elif type(record) is Message:  # outside any chunk
+            yield (record.log_time, reader.record_at << 32, record.channel_id, record.sequence, record.publish_time,
+                   record.data)
         else:
             yield record
 
 
-def chunk_records(chunk: Chunk) -> list:
-    """The records in ``chunk``, its CRC checked: what ``mcap``'s ``breakup_chunk(chunk,
-    validate_crc=True)`` returns, record for record, and the same errors. ``mcap`` decompresses
-    and checks the chunk; a whole Message record is read with the layout the writer writes it
-    with (``MESSAGE_HEAD``, one ``unpack_from``: the library's field by field was half the time
-    of a log's reading); from the first other record on (a Channel, a Schema, another type's, a
-    Message that is cut short or shorter than its fields), the library's own record readers read
-    the rest, from :class:`_ChunkBytes` (the decompressed bytes, without a file-like object's
-    call per field)."""
+def chunk_messages(chunk: Chunk, at: int, channels) -> tuple[list[tuple], list]:
+    """The records in ``chunk`` (at byte ``at`` of its file), its CRC checked, as ``mcap``'s
+    ``breakup_chunk(chunk, validate_crc=True)`` reads them, record for record, with the same
+    errors, but each Message record as a message tuple (the module docstring): the Message
+    records before the first other record, or the first on a channel not in ``channels``, and
+    then the records from there on (none, in a log Retriever wrote). ``mcap`` decompresses and
+    checks the chunk; a whole Message record is read with the layout the writer writes it with
+    (``MESSAGE_HEAD``, one ``unpack_from``, into one tuple); from the first other record on (a
+    Channel, a Schema, another type's, a Message that is cut short or shorter than its fields),
+    the library's own record readers read the rest, from :class:`_ChunkBytes` (the decompressed
+    bytes, without a file-like object's call per field)."""
     stream, length = get_chunk_data_stream(chunk, validate_crc=True)
     raw = stream.read(length) if length else b""
-    records: list = []
-    append = records.append
-    pos, head, fields, message = 0, MESSAGE_HEAD.unpack_from, _RECORD_HEAD + MESSAGE_FIELDS, Opcode.MESSAGE
-    while pos + fields <= length:
+    messages: list[tuple] = []
+    append = messages.append
+    base = at << 32  # a chunk holds less than 2**32 bytes (MAX_CHUNK_BYTES)
+    # (constants as locals: this loop runs once a message, twice a replay)
+    pos, head, message, least, record_head = 0, MESSAGE_HEAD.unpack_from, Opcode.MESSAGE, MESSAGE_FIELDS, _RECORD_HEAD
+    fields = record_head + least
+    last = length - fields  # the last offset a Message record's head fits at
+    while pos <= last:
         opcode, size, channel_id, sequence, log_time, publish_time = head(raw, pos)
-        end = pos + _RECORD_HEAD + size
-        if opcode != message or size < MESSAGE_FIELDS or end > length:
+        end = pos + record_head + size
+        if opcode != message or size < least or end > length or channel_id not in channels:
             break
-        append(Message(channel_id=channel_id, log_time=log_time, data=raw[pos + fields:end],
-                       publish_time=publish_time, sequence=sequence))
+        append((log_time, base + pos, channel_id, sequence, publish_time, raw[pos + fields:end]))
         pos = end
+    rest: list = []
     if pos == length:
-        return records
+        return messages, rest
     data = _ChunkBytes(raw, pos)
     read1, read8 = data.read1, data.read8
     while data.count < length:
+        start = data.count
         opcode = read1()
         size = read8()
         if opcode == Opcode.MESSAGE:
-            append(Message.read(data, size))
+            m = Message.read(data, size)
+            rest.append((m.log_time, base + start, m.channel_id, m.sequence, m.publish_time, m.data))
         elif opcode == Opcode.CHANNEL:
-            append(Channel.read(data))
+            rest.append(Channel.read(data))
         elif opcode == Opcode.SCHEMA:
-            append(Schema.read(data))
+            rest.append(Schema.read(data))
         else:  # a record of another type: skipped, as mcap's breakup_chunk does
             data.read(size)
-    return records
+    return messages, rest
 
 
 class _ChunkBytes(ReadDataStream):

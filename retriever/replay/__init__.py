@@ -99,11 +99,10 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     up before the first step and torn down at the end, as in a run. ``keep_trace=True`` keeps
     the replayed run in ``report.trace`` (what an export of the replay reads: docs/learning.md)."""
     survey = LogSurvey(log.path)
-    channels = log.channels
-    for m in log.messages:
-        survey.take(channels[m.channel_id], m)
-    return _replay_surveyed(log, survey, lambda: iter(sorted(log.messages, key=_log_time)), pipeline, progress,
-                            keep_trace)
+    # as message tuples (log/reader.py), positioned by their index: sorted, in log-time order, ties in file order
+    messages = [(m.log_time, i, m.channel_id, m.sequence, m.publish_time, m.data) for i, m in enumerate(log.messages)]
+    survey.take(log.channels, messages)
+    return _replay_surveyed(log, survey, lambda: iter(sorted(messages)), pipeline, progress, keep_trace)
 
 
 def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeline] | None = None,
@@ -123,10 +122,6 @@ def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipel
     if log.loose:
         return replay(read_log(path), pipeline, steps)
     return _replay_surveyed(log, survey, log.time_ordered, pipeline, steps, False)
-
-
-def _log_time(message) -> int:
-    return message.log_time
 
 
 def _replay_surveyed(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], pipeline: Pipeline | None,

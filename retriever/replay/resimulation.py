@@ -71,24 +71,29 @@ class ResimSurvey:
         self.step_error: LogError | None = None
         self._steps_channels: dict[int, bool] = {}
 
-    def take(self, channel, m) -> None:
-        steps = self._steps_channels.get(m.channel_id)
-        if steps is None:
-            steps = self._steps_channels[m.channel_id] = channel.topic == fmt.STEPS_TOPIC
-        if not steps:
-            self.events.take(channel, m)
-            return
-        if self.step_error is not None:
-            return
-        try:
-            node = step_record(self.path, m).node
-        except LogError as e:
-            self.step_error = e
-            return
-        self.nodes.add(node)
-        self.steps += 1
-        if self.last_ns is None or m.log_time > self.last_ns:
-            self.last_ns = m.log_time
+    def take(self, channels: dict, messages: list[tuple]) -> None:
+        """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
+        events = []
+        for message in messages:
+            log_time, _, channel_id, sequence, publish_time, data = message
+            steps = self._steps_channels.get(channel_id)
+            if steps is None:
+                steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
+            if not steps:
+                events.append(message)
+                continue
+            if self.step_error is not None:
+                continue
+            try:
+                node = step_record(self.path, log_time, sequence, publish_time, data).node
+            except LogError as e:
+                self.step_error = e
+                continue
+            self.nodes.add(node)
+            self.steps += 1
+            if self.last_ns is None or log_time > self.last_ns:
+                self.last_ns = log_time
+        self.events.take(channels, events)
 
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
@@ -107,10 +112,10 @@ def resim(log: RunLog, pipeline: Pipeline | None = None,
     """Re-run the graph in virtual time from the logged source events; compare the trace.
     ``progress(steps compared, steps in the log)`` is called as it goes."""
     survey = ResimSurvey(log.path)
-    channels = log.channels
-    for m in log.messages:
-        survey.take(channels[m.channel_id], m)
-    return _resim(log, survey, lambda: _records(log), pipeline, progress)
+    # as message tuples (log/reader.py), positioned by their index: sorted, in log-time order, ties in file order
+    messages = [(m.log_time, i, m.channel_id, m.sequence, m.publish_time, m.data) for i, m in enumerate(log.messages)]
+    survey.take(log.channels, messages)
+    return _resim(log, survey, lambda: _records(log, sorted(messages)), pipeline, progress)
 
 
 def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeline] | None = None,
@@ -131,20 +136,16 @@ def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeli
     return _resim(log, survey, log.records, pipeline, steps)
 
 
-def _records(log: RunLog) -> Iterator[LoggedEvent | StepRecord]:
-    """A log read whole's events and step records in log-time order, ties in file order."""
+def _records(log: RunLog, messages: list[tuple]) -> Iterator[LoggedEvent | StepRecord]:
+    """A log read whole's events and step records, from its message tuples in log-time order."""
     kinds = {c.id: (True if c.topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(c.topic))
              for c in log.channels.values()}
-    for m in sorted(log.messages, key=_log_time):
-        kind = kinds.get(m.channel_id)
+    for log_time, _, channel_id, sequence, publish_time, data in messages:
+        kind = kinds.get(channel_id)
         if kind is True:
-            yield step_record(log.path, m)
+            yield step_record(log.path, log_time, sequence, publish_time, data)
         elif kind is not None:
-            yield logged_event(log.path, kind, m)
-
-
-def _log_time(message) -> int:
-    return message.log_time
+            yield logged_event(log.path, kind, log_time, sequence, publish_time, data)
 
 
 def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], pipeline: Pipeline | None,

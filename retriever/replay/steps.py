@@ -7,7 +7,6 @@ from __future__ import annotations
 import bisect
 import heapq
 from collections import deque
-from itertools import chain as _chain
 from typing import Callable, Iterator
 
 from ..backends.inproc import InprocSession
@@ -98,45 +97,44 @@ class StepReplay:
         read = self.read
         steps: list = []
         instant = None
-        for m in _chain(messages(), (None,)):
-            if m is None or m.log_time != instant:
+        for log_time, _, channel, sequence, publish_time, data in messages():
+            if log_time != instant:
                 if steps:  # the instant's messages are read: run its steps
                     self.run_instant(steps, progress)
-                if m is None:
-                    break
-                instant = m.log_time
+                instant = log_time
                 self.now = (instant, 0)  # every record before it has run
-            channel = m.channel_id
             if channel in steps_channels:
                 try:
-                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(m.data)
+                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
                 except Exception as e:
-                    raise LogError(f"{log.path}: step record #{m.sequence} is malformed ({e})") from None
-                steps.append(StepRecord(node, (m.log_time, microstep), consumed, produced, status, detail,
-                                        m.publish_time, wall_ns))
+                    raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
+                steps.append(StepRecord(node, (log_time, microstep), consumed, produced, status, detail,
+                                        publish_time, wall_ns))
             else:
                 port = ports.get(channel)
                 if port is not None:
-                    read(m, port)
+                    read(port, log_time, sequence, publish_time, data)
+        if steps:
+            self.run_instant(steps, progress)
         return self.finish(progress)
 
-    def read(self, m, port: tuple[str, str]) -> None:
+    def read(self, port: tuple[str, str], log_time: int, seq: int, publish_time: int, data: bytes) -> None:
         """An event read: to its consumers' deliveries, and to the check waiting for it."""
         try:
-            microstep, raw = fmt.split_event(m.data)
+            microstep, raw = fmt.split_event(data)
         except ValueError as e:
-            raise LogError(f"{self.log.path}: event {port[0]}.{port[1]} #{m.sequence} is malformed ({e})") from None
+            raise LogError(f"{self.log.path}: event {port[0]}.{port[1]} #{seq} is malformed ({e})") from None
         # (a LoggedEvent only where one is needed: the kept trace, a value that does not decode)
-        tag, (node, port_name), seq = (m.log_time, microstep), port, m.sequence
+        tag, (node, port_name) = (log_time, microstep), port
         event_id = (node, port_name, seq)
         if self.keep_trace:
-            self.kept_events[event_id] = LoggedEvent(tag, node, port_name, seq, raw, m.publish_time)
+            self.kept_events[event_id] = LoggedEvent(tag, node, port_name, seq, raw, publish_time)
         consumers = self.routes.get(port)
         if consumers:
             try:
                 value = unpackb(raw)
             except Exception:  # what it is, said as the log says it
-                self.log.value(LoggedEvent(tag, node, port_name, seq, raw, m.publish_time))
+                self.log.value(LoggedEvent(tag, node, port_name, seq, raw, publish_time))
                 raise
             gaps, late, missed = self.gaps, self.late, self.missed
             for consumer, buf, delay_ns in consumers:

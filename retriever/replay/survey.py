@@ -37,23 +37,29 @@ class LogSurvey:
         self.twice: LogError | None = None
         self._kinds: dict[int, Any] = {}  # channel id -> _STEPS, (node, port, seqs), or None
 
-    def take(self, channel, m) -> None:
-        kind = self._kinds.get(m.channel_id, _UNSEEN)
-        if kind is _UNSEEN:
-            kind = self._kinds[m.channel_id] = self._kind(channel)
-        if kind is _STEPS:
-            self._step(m)
-        elif kind is not None:
-            node, port, seqs = kind
-            if self.event_error is None:
-                try:
-                    fmt.split_event(m.data)
-                except ValueError as e:
-                    self.event_error = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is malformed ({e})")
-            if not seqs.add(m.sequence) and self.twice is None:
-                self.twice = LogError(f"{self.path}: event {node}.{port} #{m.sequence} is logged twice",
-                                      "the file is damaged or was edited: retriever replay reads logs as a run "
-                                      "wrote them")
+    def take(self, channels: dict, messages: list[tuple]) -> None:
+        """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
+        kinds = self._kinds
+        for log_time, _, channel_id, sequence, _, data in messages:
+            kind = kinds.get(channel_id, _UNSEEN)
+            if kind is _UNSEEN:
+                kind = kinds[channel_id] = self._kind(channels[channel_id])
+            if kind is _STEPS:
+                self._step(log_time, sequence, data)
+            elif kind is not None:
+                node, port, seqs = kind
+                if self.event_error is None:
+                    try:
+                        fmt.split_event(data)
+                    except ValueError as e:
+                        self.event_error = LogError(f"{self.path}: event {node}.{port} #{sequence} is malformed ({e})")
+                hi = seqs.hi
+                if hi and hi[-1] == sequence:  # the next one: the common case (_Seqs.add's first)
+                    hi[-1] = sequence + 1
+                elif not seqs.add(sequence) and self.twice is None:
+                    self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
+                                          "the file is damaged or was edited: retriever replay reads logs as a run "
+                                          "wrote them")
 
     def _kind(self, channel) -> Any:
         if channel.topic == fmt.STEPS_TOPIC:
@@ -61,13 +67,13 @@ class LogSurvey:
         port = fmt.parse_data_topic(channel.topic)
         return None if port is None else (*port, self.seqs.setdefault(port, _Seqs()))
 
-    def _step(self, m) -> None:
+    def _step(self, log_time: int, sequence: int, data: bytes) -> None:
         if self.step_error is not None:
             return
         # a record without detail tells the survey only its node: read, not checked (the replay's
         # own reading of it checks it, and refuses the log with the same error there)
         try:
-            record = msgpack.unpackb(m.data, use_list=False)
+            record = msgpack.unpackb(data, use_list=False)
         except Exception:
             record = None
         if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
@@ -75,15 +81,15 @@ class LogSurvey:
             self.nodes.add(record[0])
             return
         try:
-            node, microstep, _, _, _, detail, _ = fmt.decode_step(m.data)
+            node, microstep, _, _, _, detail, _ = fmt.decode_step(data)
         except Exception as e:
-            self.step_error = LogError(f"{self.path}: step record #{m.sequence} is malformed ({e})")
+            self.step_error = LogError(f"{self.path}: step record #{sequence} is malformed ({e})")
             return
         self.steps += 1
         self.nodes.add(node)
         if not detail:
             return
-        tag = (m.log_time, microstep)
+        tag = (log_time, microstep)
         for port, ids in (detail.get("late") or {}).items():
             for event_id in ids:
                 key = ((node, port), tuple(event_id))

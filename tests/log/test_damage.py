@@ -316,7 +316,7 @@ def test_a_data_channel_that_is_no_node_and_port_is_refused_not_left_out(one_chu
     forged = rewrite(one_chunk, tmp_path / "forged.mcap", topic=lambda t: renamed if t == topic else t)
     says = re.escape(f"{forged} cannot be read: its channel topic {renamed!r} is under data/ but is not "
                      "data/<node>/<port>, a node and a port of one non-empty segment each")
-    for read in (read_log, lambda p: scan_log(p, lambda channel, message: None)):
+    for read in (read_log, lambda p: scan_log(p, lambda channels, messages: None)):
         with pytest.raises(LogError, match=says + r".*\n    hint: the log was changed after it was written, or "
                                                r"written by a Retriever that let a port name hold '/'"):
             read(forged)

@@ -452,6 +452,9 @@ _ID = ["prod", "value", 7]
     ["c", 0, {}, [["p", "q", 1.0]], "ok", None, 5], ["c", 0, {}, [[b"p", "q", 1]], "ok", None, 5],
     ["c", 0, {}, "p", "ok", None, 5], ["c", 0, {}, [], "ok", None], ["c", 0, {}, [], "ok", None, 5, 6], "c", 5,
     {"c": 0}, ["c", 0, {"x": [_ID], 5: [_ID]}, [], "ok", None, 5], ["c", 0, {"x": [[_ID]]}, [], "ok", None, 5],
+    # two things wrong: the error of the one checked first
+    ["c", 0, {b"x": [_ID]}, [], {"a": 1}, None, 5], ["c", 0, {"x": [["p", "q"]]}, [], "ok", None, 1.0],
+    ["c", 0, {5: [["p", "q"]]}, [], "exploded", None, 5], ["c", 0, {"x": [["p", "q"]]}, [], "exploded", None, 5],
 ])
 def test_a_step_record_without_detail_reads_as_read_as_lists(record):
     """decode_step reads a record without detail as tuples, checked in place (faster: a replay

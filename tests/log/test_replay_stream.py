@@ -85,13 +85,24 @@ def small_chunks(tmp_path_factory) -> Path:
     return path
 
 
+def _fields(m) -> tuple:
+    """A message's fields, of an ``mcap`` Message or of a message tuple (log/reader.py)."""
+    if type(m) is tuple:
+        log_time, _, channel_id, sequence, publish_time, data = m
+        return (log_time, channel_id, sequence, publish_time, data)
+    return (m.log_time, m.channel_id, m.sequence, m.publish_time, m.data)
+
+
 def test_time_ordered_is_the_files_messages_sorted_by_log_time(small_chunks):
     seen = []
-    scanned = scan_log(small_chunks, lambda channel, m: seen.append(m))
+    scanned = scan_log(small_chunks, lambda channels, messages: seen.extend(messages))
     whole = read_log(small_chunks).messages
-    assert [m.log_time for m in seen] == [m.log_time for m in whole] != sorted(m.log_time for m in whole)
+    assert [m[0] for m in seen] == [m.log_time for m in whole] != sorted(m.log_time for m in whole)
+    assert list(map(_fields, seen)) == list(map(_fields, whole))
+    assert all(a[1] < b[1] for a, b in zip(seen, seen[1:])), "positions increase in file order"
     ordered = list(scanned.time_ordered())
-    assert ordered == sorted(whole, key=lambda m: m.log_time)  # ties in file order: the sort is stable
+    # ties in file order: the sort is stable
+    assert list(map(_fields, ordered)) == list(map(_fields, sorted(whole, key=lambda m: m.log_time)))
 
 
 def _same(a, b) -> None:
@@ -242,7 +253,7 @@ def test_replay_prints_no_progress_on_a_pipe(small_chunks, flags):
 def test_a_log_changed_between_the_two_readings_is_refused(small_chunks, tmp_path):
     copy = tmp_path / "copy.mcap"
     copy.write_bytes(small_chunks.read_bytes())
-    scanned = scan_log(copy, lambda channel, m: None)
+    scanned = scan_log(copy, lambda channels, messages: None)
     with open(copy, "ab") as f:
         f.write(b"\0")
     with pytest.raises(LogError, match=r"copy\.mcap changed since it was read\n    hint: read it again"):
@@ -268,7 +279,7 @@ def test_a_log_with_messages_outside_chunks_is_replayed_read_whole(small_chunks,
         for m in log.messages:
             writer.add_message(ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
         writer.finish()
-    scanned = scan_log(loose, lambda channel, m: None)
+    scanned = scan_log(loose, lambda channels, messages: None)
     assert scanned.loose == len(log.messages) and not scanned.chunks
     with pytest.raises(LogError, match="messages outside its chunks"):
         next(scanned.time_ordered())
@@ -286,24 +297,32 @@ def _outcome(read, chunk):
         return type(e).__name__, str(e)
 
 
-def test_chunk_records_are_breakup_chunks_record_for_record(small_chunks):
-    """``chunk_records`` (what the reader breaks chunks up with) gives what ``mcap``'s
-    ``breakup_chunk(validate_crc=True)`` gives, for every chunk of a log and for chunks cut short,
-    with a byte changed or records of another type in them (their CRC left out: the records are
-    read as they are), down to the error a damaged one raises."""
-    from mcap.records import Channel, Chunk
+def test_chunk_messages_are_breakup_chunks_record_for_record(small_chunks):
+    """``chunk_messages`` (what the reader breaks chunks up with) gives what ``mcap``'s
+    ``breakup_chunk(validate_crc=True)`` gives, its Messages as message tuples, for every chunk
+    of a log and for chunks cut short, with a byte changed or records of another type in them
+    (their CRC left out: the records are read as they are), with a channel it is not told of,
+    down to the error a damaged one raises; and a message's position is where its record is."""
+    from mcap.records import Channel, Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from retriever.log.reader import chunk_records
+    from retriever.log.reader import chunk_messages
 
     def reference(chunk):
-        return breakup_chunk(chunk, validate_crc=True)
+        return [_fields(r) if type(r) is Message else r for r in breakup_chunk(chunk, validate_crc=True)]
 
-    read = [r for r in StreamReader(open(small_chunks, "rb"), emit_chunks=True).records if type(r) is Chunk]
-    assert len(read) > 20
-    for chunk in read:
-        assert chunk_records(chunk) == reference(chunk)
-    plain = breakup_chunk(read[0])
+    def read(chunk, channels=range(1 << 16)):
+        messages, rest = chunk_messages(chunk, 7, channels)
+        return [_fields(r) if type(r) is tuple else r for r in messages + rest]
+
+    chunks_read = [r for r in StreamReader(open(small_chunks, "rb"), emit_chunks=True).records if type(r) is Chunk]
+    assert len(chunks_read) > 20
+    for chunk in chunks_read:
+        assert read(chunk) == reference(chunk)
+        messages, rest = chunk_messages(chunk, 7, range(1 << 16))
+        assert not rest and [m[1] >> 32 for m in messages] == [7] * len(messages)
+        assert messages[0][1] == 7 << 32 and all(a[1] < b[1] for a, b in zip(messages, messages[1:]))
+    plain = breakup_chunk(chunks_read[0])
     data = b"".join(_record_bytes(r) for r in plain)
     unknown = b"\x80" + (3).to_bytes(8, "little") + b"abc"  # another type's record: skipped
     first = _record_bytes(plain[0])
@@ -316,7 +335,17 @@ def test_chunk_records_are_breakup_chunks_record_for_record(small_chunks):
     for body in variants:
         chunk = Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
                       uncompressed_crc=0, uncompressed_size=len(body))
-        assert _outcome(chunk_records, chunk) == _outcome(reference, chunk), body[:40]
+        assert _outcome(read, chunk) == _outcome(reference, chunk), body[:40]
+    # a channel it is not told of: from its first message on, mcap's readers read the rest, the same records
+    chunk = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                  uncompressed_size=len(data))
+    left_out = plain[-1].channel_id
+    cut = next(i for i, m in enumerate(plain) if m.channel_id == left_out)
+    messages, rest = chunk_messages(chunk, 0, {m.channel_id for m in plain} - {left_out})
+    assert (len(messages), len(rest)) == (cut, len(plain) - cut) and cut > 0
+    assert list(map(_fields, messages + rest)) == reference(chunk)
+    sizes = [len(_record_bytes(m)) for m in plain]
+    assert [m[1] for m in messages + rest] == [sum(sizes[:i]) for i in range(len(plain))]
 
 
 def _record_bytes(record) -> bytes:
