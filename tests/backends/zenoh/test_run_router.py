@@ -217,8 +217,6 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(router):
         daemon.stdout.close()
 
 
-#: how many frames the shared-memory test sends at least
-FRAMES = 5
 
 
 def test_a_big_message_between_two_flows_of_a_run_router_goes_through_shared_memory(router):
@@ -234,9 +232,9 @@ def test_a_big_message_between_two_flows_of_a_run_router_goes_through_shared_mem
                 zenoh.open(client_config(connect=[run_router.endpoint], access=access)) as controller:
             _sub = controller.declare_subscriber(
                 keys.data("camera", "frame"), lambda s: got.append(s.payload.as_shm() is not None))
-            # the sender makes its pool at its first big message, which goes over TCP
-            until(lambda: len(got) >= FRAMES, f"{FRAMES} frames of 1 MiB between two flows",
+            # the sender makes its pool at its first big message, which goes over TCP, and a loaded
+            # machine may send a few more so while the pool is made: one of them comes through it
+            until(lambda: any(got), "a frame of 1 MiB between two flows through shared memory",
                   act=lambda: camera.put(keys.data("camera", "frame"), bytes(1 << 20)))
     finally:
         run_router.close()
-    assert got[-1], f"the frames came over TCP ({got})"
