@@ -217,8 +217,6 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(router):
         daemon.stdout.close()
 
 
-
-
 def test_a_big_message_between_two_flows_of_a_run_router_goes_through_shared_memory(router):
     """A 1 MiB put of a flow reaches the other flow on this machine as a shared-memory buffer:
     the run router maps the sender's pool and forwards the buffer, not its bytes."""
