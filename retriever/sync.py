@@ -49,8 +49,9 @@ MISSING: Any = _Missing()
 
 # Trim consumed history in batches so per-tick cost stays O(1) amortized.
 _TRIM_BATCH = 16
-#: fill() bounds a buffer (bound()) once it holds this many entries, or twice what its last bound left
-BOUND_AT = 64
+#: fill() bounds a buffer (bound()) once it holds twice what its last bound left, and at least
+#: this many, or twice its trim batch (a real-time one: 4 entries, each may be a camera frame)
+BOUND_MIN = 4
 #: the greatest microstep a tag before another at microstep 0 is given (before()): past any real one
 _LAST_MICROSTEP = 1 << 62
 
@@ -79,7 +80,7 @@ class PortBuffer:
         # the policy its consumer selects with (plan.bind_inputs): what bound() asks what to keep;
         # None keeps everything. bound_at: the length at which fill() bounds it next
         self.policy = policy
-        self.bound_at = BOUND_AT
+        self.bound_at = max(BOUND_MIN, 2 * trim_batch)
 
     def insert(self, entry: tuple) -> None:
         """Put ``entry`` in its place by tag. In real time one may come *late*, after a tick at
@@ -158,8 +159,8 @@ def bound(buf: PortBuffer, after: tuple[int, int], visible: int | None = None) -
     its own, inproc_ticks) stay where they are, so the consumer's count of them stays true:
     keeping more than ``selectable`` asks is safe (an entry it leaves out is hidden at every tick
     to come by entries it keeps, which stay). The list is changed in place (generated ticks hold
-    it). The next bound is due at twice what stays, at least :data:`BOUND_AT`: amortized O(1)
-    per event."""
+    it). The next bound is due at twice what stays, at least :data:`BOUND_MIN` and twice the
+    trim batch (what a consumer's ticks let pile up): amortized O(1) per event."""
     entries = buf.entries
     policy = buf.policy
     if policy is not None:
@@ -169,7 +170,7 @@ def bound(buf: PortBuffer, after: tuple[int, int], visible: int | None = None) -
             start = bisect_right(kept, entries[visible - 1]) if visible else 0
             if len(entries) - visible > len(kept) - start:
                 entries[visible:] = kept[start:]
-    buf.bound_at = max(BOUND_AT, 2 * len(entries))
+    buf.bound_at = max(BOUND_MIN, 2 * buf.trim_batch, 2 * len(entries))
 
 
 class SyncPolicy:
