@@ -44,7 +44,8 @@ class CompiledTicks:
         self.chains: list = []
         self.flushes: list = []  # flush() of the generated ticks: hand their counts to stats and rt.seq
         self.peeks: list = []  # and their peek(): those counts, left where they are
-        self.visibles: list = []  # and their visibles(): how far each input's tick looked into its buffer
+        #: and their visibles: per input buffer's id, how far its tick looked into it now
+        self.visibles: dict[int, Callable[[], int]] = {}
         self.generic_only = False  # set by the session's take_routes(): replay delivers events itself
         self.recompile = False  # set by saw_ports(): generate the ticks anew between two instants
         self.generate = generate
@@ -74,7 +75,7 @@ class CompiledTicks:
                                                                                            fuse=self.fuse)
             self.flushes.append(flush)
             self.peeks.append(peek)
-            self.visibles.append(visibles)
+            self.visibles.update(visibles)
         else:
             ticks, chains, fused, alone = parts, parts, [], []
         for g, group in enumerate(self.groups):
@@ -97,18 +98,14 @@ class CompiledTicks:
         """Hand the generated ticks' counts back and forget them; the next :meth:`functions`
         generates them anew (from rt.seq, which the reference tick may change in between)."""
         self.flush()
-        self.ticks, self.flushes, self.peeks, self.visibles = None, [], [], []
+        self.ticks, self.flushes, self.peeks, self.visibles = None, [], [], {}
 
     def bound(self, buf: PortBuffer, tau: tuple[int, int]) -> None:
         """A tick at ``tau`` filled ``buf`` to its ``bound_at``: forget what its consumer can no
         longer select (sync.bound). Every tick to come is at or after ``tau`` (ticks run in tag
         order); a generated tick's count of what it saw in ``buf`` stays where it is."""
-        visible = None
-        for visibles in self.visibles:
-            for held, count in visibles():
-                if held is buf:
-                    visible = count
-        bound(buf, before(tau), visible)
+        visible = self.visibles.get(id(buf))
+        bound(buf, before(tau), None if visible is None else visible())
 
     def saw_ports(self, rt: Any, outputs: dict) -> None:
         """An untyped step returned ports its generated tick did not expect: the first time, expect them."""

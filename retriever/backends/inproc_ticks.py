@@ -129,7 +129,7 @@ class NodeCode:
     #: ``record``, and that record's expander (``link{k}_{i}``, see _TickWriter._expander)
     links: dict[int, tuple[str, str]] = field(default_factory=dict)
     #: per input, the variable of its count of visible entries (the buffer's ``visible`` is
-    #: behind it until flush(); visibles() reads them, for the session's ``bound``)
+    #: behind it until flush(); make_ticks' ``visibles`` read them, for the session's ``bound``)
     visible: list[str] = field(default_factory=list)
 
 
@@ -572,8 +572,8 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
       ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them);
     - ``peek()``, per compiled node, ``(index, ticks, steps, step ns)`` counted and not handed
       over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats);
-    - ``visibles()``, per input of a compiled node, ``(buffer, its visible count now)``, changing
-      nothing (for the session's ``bound``, which must not move what a tick counted as seen).
+    - ``visibles``, per input buffer of a compiled node (by ``id``), a function that reads its
+      visible count now (for the session's ``bound``, which must not move what a tick counted as seen).
     """
     names: dict[str, Any] = {
         "time_ns": time_ns, "insort": insort, "OK": StepStatus.OK, "tape_extend": host.tape.extend, "emit": host.emit,
@@ -608,8 +608,8 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
         src.append(_alone(g, group, schedule, codes, bodies, names, everyone, short))
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
-    src.append("def visibles():\n    return (" + "".join(
-        f"(buf{k}_{i}, {v}), " for k, code in codes.items() for i, v in enumerate(code.visible)) + ")\n")
+    src.append("visibles = {" + "".join(
+        f"id(buf{k}_{i}): lambda: {v}, " for k, code in codes.items() for i, v in enumerate(code.visible)) + "}\n")
     src.append("def peek():\n    return (" + "".join(
         f"({k}, ticks{k} + steps{k} + xsteps{k}, steps{k} + xsteps{k}, wall{k} + xwall{k}), " for k in codes) + ")\n")
     src += [code.expand + code.helpers for code in codes.values()]
