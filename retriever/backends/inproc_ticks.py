@@ -413,12 +413,22 @@ def generic{k}(tau, raw, start, now{entries}):
             else:
                 out.append(f"if not {dbuf} or {dbuf}[-1] < {entry}:\n    {dbuf}.append({entry})\n"
                            f"else:\n    insort({dbuf}, {entry})\n")
-            # sync.fill's bound, inlined: what the consumer's policy can no longer select goes
-            out.append(f"if len({dbuf}) >= dbo{k}_{j}_{c}.bound_at:\n    bound(dbo{k}_{j}_{c}, tau)\n")
+            if not (triggers or self._keeps_pace(self.nodes[edge.dst])):
+                # sync.fill's bound, inlined: what the consumer's policy can no longer select goes
+                out.append(f"if len({dbuf}) >= dbo{k}_{j}_{c}.bound_at:\n    bound(dbo{k}_{j}_{c}, tau)\n")
             if triggers:  # a tick of the consumer at the event's arrival: the next microstep, if undelayed
                 out.append(f"schedule({entry}[0], consumer{k}_{j}_{c})\n" if delay_ns or rt.latency_ns
                            else f"next_add(consumer{k}_{j}_{c})\n")
         return "".join(out)
+
+    def _keeps_pace(self, consumer: Any) -> bool:
+        """Whether ``consumer`` ticks at least as often as this node, a Rate flow, emits: its own
+        ticks trim its buffer of this node's events (its selects do, skipped or not), so the
+        bound need not be looked at on this edge (nor paid for; a consumer this edge triggers
+        ticks on each of its events)."""
+        mine, theirs = self.rt.clock, consumer.clock
+        return (not mine.triggered and mine.hz is not None and theirs.hz is not None
+                and theirs.hz >= mine.hz)
 
     def _to_seqs(self) -> str:
         return "".join(f"seqs{self.k}[{port!r}] = {s}\n" for port, s in zip(self.known, self.seq))
