@@ -467,13 +467,15 @@ def bind_inputs(plan: NodePlan, ports: dict[str, PortSpec], new_buffer: Callable
                 ) -> tuple[list[tuple[str, PortBuffer, Any, PortSpec]], dict[str, PortSpec]]:
     """A node's inputs as a tick selects them (retriever.tick.select_inputs): ``(port, buffer,
     policy, port spec)`` per port an edge feeds (one ``new_buffer()`` each, which every edge into
-    it fills) or that is required (:data:`UNFED`), in the flow's port order; and the optional
-    ports nothing feeds, which take their fallback at every tick."""
+    it fills, bounded by its policy: sync.fill) or that is required (:data:`UNFED`), in the
+    flow's port order; and the optional ports nothing feeds, which take their fallback at every tick."""
     inputs, fallbacks = [], {}
     for port, spec in ports.items():
         policy = plan.policies.get(port)
         if policy is not None:
-            inputs.append((port, new_buffer(), policy, spec))
+            buf = new_buffer()
+            buf.policy = policy  # what sync.bound keeps of it between ticks
+            inputs.append((port, buf, policy, spec))
         elif spec.required:
             inputs.append((port, PortBuffer(), UNFED, spec))
         else:

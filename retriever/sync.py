@@ -8,7 +8,8 @@ Runtime interface (used by every backend):
 
     select(buf, tau) -> (value, consumed_ids, dropped, commit)
     commit_to(buf, commit)        # applied only when the tick is not skipped
-    selectable(buf, after) -> buf # what a tick after ``after`` can still select: a restart's hand-over
+    selectable(buf, after) -> buf # what a tick after ``after`` can still select: a restart's hand-over,
+                                  # and what fill()/bound() keep of a buffer between its consumer's ticks
 
 ``buf`` is a :class:`PortBuffer`. Splitting select from commit is what lets a skipped tick
 consume nothing: ``Queue`` and ``LatestDistinct`` events stay for the next tick. A ``commit``
@@ -48,6 +49,11 @@ MISSING: Any = _Missing()
 
 # Trim consumed history in batches so per-tick cost stays O(1) amortized.
 _TRIM_BATCH = 16
+#: fill() bounds a buffer (bound()) once it holds twice what its last bound left, and at least
+#: this many, or twice its trim batch (a real-time one: 4 entries, each may be a camera frame)
+BOUND_MIN = 4
+#: the greatest microstep a tag before another at microstep 0 is given (before()): past any real one
+_LAST_MICROSTEP = 1 << 62
 
 
 class PortBuffer:
@@ -61,9 +67,9 @@ class PortBuffer:
     ``arrival_tag ≤`` the tag of the consumer's current tick.
     """
 
-    __slots__ = ("entries", "visible", "cursor", "last_id", "trim_batch")
+    __slots__ = ("entries", "visible", "cursor", "last_id", "trim_batch", "policy", "bound_at")
 
-    def __init__(self, trim_batch: int = _TRIM_BATCH) -> None:
+    def __init__(self, trim_batch: int = _TRIM_BATCH, policy: "SyncPolicy | None" = None) -> None:
         self.entries: list[tuple] = []
         self.visible = 0
         self.cursor = 0  # Queue: index of the first event not yet consumed
@@ -71,6 +77,10 @@ class PortBuffer:
         # forget consumed entries once this many piled up: batches make it cheap in virtual time;
         # a real-time backend forgets at once (each entry may hold a camera frame)
         self.trim_batch = trim_batch
+        # the policy its consumer selects with (plan.bind_inputs): what bound() asks what to keep;
+        # None keeps everything. bound_at: the length at which fill() bounds it next
+        self.policy = policy
+        self.bound_at = max(BOUND_MIN, 2 * trim_batch)
 
     def insert(self, entry: tuple) -> None:
         """Put ``entry`` in its place by tag. In real time one may come *late*, after a tick at
@@ -99,14 +109,14 @@ class PortBuffer:
     def copy(self) -> "PortBuffer":
         """A buffer holding the same entries at the same positions: a policy may select from it
         (and trim it) without consuming anything here (InprocSession.inputs_at)."""
-        twin = PortBuffer(self.trim_batch)
+        twin = PortBuffer(self.trim_batch, self.policy)
         twin.entries, twin.visible, twin.cursor, twin.last_id = list(self.entries), self.visible, self.cursor, self.last_id
         return twin
 
     def keeping(self, spans: list[tuple[int, int]]) -> "PortBuffer":
         """A buffer of only the entries in ``spans`` (``(start, stop)`` index ranges, in order and
         disjoint; empty ones allowed), at the same positions relative to ``visible`` and ``cursor``."""
-        twin = PortBuffer(self.trim_batch)
+        twin = PortBuffer(self.trim_batch, self.policy)
         twin.last_id = self.last_id
         for start, stop in spans:
             if start >= stop:
@@ -122,6 +132,45 @@ class PortBuffer:
             del self.entries[:keep_from]
             self.visible -= keep_from
             self.cursor = max(0, self.cursor - keep_from)
+
+
+def before(tag: tuple[int, int]) -> tuple[int, int]:
+    """The tag just before ``tag``: a tick past it is at or after ``tag``."""
+    t, m = tag
+    return (t, m - 1) if m else (t - 1, _LAST_MICROSTEP)
+
+
+def fill(buf: PortBuffer, entry: tuple, after, *args) -> None:
+    """Put ``entry`` in ``buf`` (PortBuffer.insert), and once the buffer has grown to its
+    ``bound_at``, forget what no tick of its consumer past ``after`` can select (:func:`bound`).
+    Every backend fills its buffers so, or inlines it (inproc's generated ticks): a consumer that
+    rarely ticks (a Trigger on a rare event) holds what its policy may still select, not every
+    event since its last tick. ``after`` is a tag, or a function of ``args`` returning one, called
+    only when a bound is due (a real-time node's looks at its schedule and frontiers)."""
+    buf.insert(entry)
+    if len(buf.entries) >= buf.bound_at:
+        bound(buf, after(*args) if callable(after) else after)
+
+
+def bound(buf: PortBuffer, after: tuple[int, int], visible: int | None = None) -> None:
+    """Forget the entries of ``buf`` that no tick of its consumer with a tag past ``after`` can
+    select, whatever is inserted later: what ``buf.policy.selectable`` leaves out. The first
+    ``visible`` entries (``buf.visible`` by default; the live count where a generated tick keeps
+    its own, inproc_ticks) stay where they are, so the consumer's count of them stays true:
+    keeping more than ``selectable`` asks is safe (an entry it leaves out is hidden at every tick
+    to come by entries it keeps, which stay). The list is changed in place (generated ticks hold
+    it). The next bound is due at twice what stays, at least :data:`BOUND_MIN` and twice the
+    trim batch (what a consumer's ticks let pile up): amortized O(1) per event."""
+    entries = buf.entries
+    policy = buf.policy
+    if policy is not None:
+        visible = buf.visible if visible is None else visible
+        kept = policy.selectable(buf, after).entries
+        if len(kept) < len(entries):
+            start = bisect_right(kept, entries[visible - 1]) if visible else 0
+            if len(entries) - visible > len(kept) - start:
+                entries[visible:] = kept[start:]
+    buf.bound_at = max(BOUND_MIN, 2 * buf.trim_batch, 2 * len(entries))
 
 
 class SyncPolicy:
@@ -464,6 +513,21 @@ class ActionChunking(SyncPolicy):
                 return MISSING, None, 0, None
             row = length - 1
         return rows[row], ((entry[1], entry[2], entry[3]),), 0, None
+
+    def selectable(self, buf, after):
+        """From the newest chunk at or before ``after`` that has started by ``after``'s time on:
+        every tick to come sees it, past its start, so it hides every older one."""
+        entries = buf.entries
+        t = after[0]
+        for i in range(bisect_left(entries, _past(after)) - 1, -1, -1):
+            entry = entries[i]
+            try:
+                started = chunk_rows(entry[4], entry[0][0])[1] <= t
+            except Exception:  # (a value select fails on: kept, for select to say so)
+                return buf.copy()
+            if started:
+                return buf.keeping([(i, len(entries))])
+        return buf.copy()
 
 
 def chunk_rows(value: Any, tag_time: int) -> tuple[Any, int]:

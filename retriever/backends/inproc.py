@@ -54,7 +54,7 @@ import warnings
 import weakref
 from heapq import heappop, heappush
 from time import time_ns
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -251,6 +251,7 @@ class _Recorder:
 
     def __init__(self, tape: list, nodes: list[NodeRuntime], max_microsteps: int, schedule):
         self.tape, self.nodes, self.max_microsteps, self.schedule = tape, nodes, max_microsteps, schedule
+        self.bound: Callable | None = None  # bound(buf, tau): CompiledTicks.bound, set by the session
 
     def emit(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
              dropped: dict | None = None) -> None:
@@ -288,7 +289,9 @@ class _Recorder:
         # the event is the buffer entry of an undelayed edge
         for consumer, buf, delay_ns, triggers in rt.downstream.get(port, ()):
             entry = ((out_tag[0] + delay_ns, 0), node_id, port, seq, value, end) if delay_ns else event
-            buf.insert(entry)
+            buf.insert(entry)  # (sync.fill, with the session's bound: a generated tick keeps its own count)
+            if len(buf.entries) >= buf.bound_at:
+                self.bound(buf, tau)
             if triggers:
                 if entry[0][1] > self.max_microsteps:
                     raise CausalityError(rt.cycle or self.nodes[consumer].cycle, tau, self.max_microsteps)
@@ -373,6 +376,7 @@ class InprocSession(Session):
                                        max_microsteps=self.max_microsteps, plain_types=PLAIN_TYPES,
                                        microsteps=self._microsteps, fuse=self._rng is None,
                                        generate=generate_ticks)
+        recorder.bound = self._compiled.bound
         # the counts and seqs the generated ticks keep go to the nodes (CompiledTicks.flush) in the
         # thread that runs them: held by advance(); another thread asks for it (stats()), and the
         # loop does it between two instants
@@ -709,6 +713,11 @@ class InprocSession(Session):
 
         rt.invoke = invoke
         rt.read = lambda raw: raw
+
+    def held(self, node: str) -> dict[str, int]:
+        """Per input port of ``node``, how many events its buffer holds now: what its policy may
+        still select at a tick to come, and a few more (sync.fill bounds it as events come)."""
+        return {port: len(buf.entries) for port, buf, _, _ in self._by_id[node].inputs}
 
     def inputs_at(self, node: str, tau: tuple[int, int]) -> tuple[dict[str, Any], dict[str, tuple], list[str] | None]:
         """What ``node``'s tick at ``tau`` is handed if it runs next: its input values (an optional

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from ..sync import PortBuffer, before, bound
 from ..tick import run_tick
 from . import inproc_ticks
 
@@ -36,13 +37,15 @@ class CompiledTicks:
             nodes={rt.id: rt for rt in nodes}, tape=records.tape, after=agenda.after, heap=agenda.heap,
             max_microsteps=max_microsteps, plain_types=plain_types, emit=recorder.emit, skipped=recorder.skipped,
             failed=recorder.failed, schedule=agenda.schedule, keep_next=agenda.keep_next, saw_ports=self.saw_ports,
-            microsteps=microsteps, resume_group=agenda.resume_group)
+            microsteps=microsteps, resume_group=agenda.resume_group, bound=self.bound)
         #: per node index, the function that runs one tick, and the one that runs it when it is
         #: the only tick due, which may go on along a chain; None until :meth:`functions`
         self.ticks: list | None = None
         self.chains: list = []
         self.flushes: list = []  # flush() of the generated ticks: hand their counts to stats and rt.seq
         self.peeks: list = []  # and their peek(): those counts, left where they are
+        #: and their visibles: per input buffer's id, how far its tick looked into it now
+        self.visibles: dict[int, Callable[[], int]] = {}
         self.generic_only = False  # set by the session's take_routes(): replay delivers events itself
         self.recompile = False  # set by saw_ports(): generate the ticks anew between two instants
         self.generate = generate
@@ -68,10 +71,11 @@ class CompiledTicks:
                                                                                    r.emit) or out_tag))
         groups = [(group.order, (group.offset_ns, group.step_num, group.step_den)) for group in self.groups]
         if any(isinstance(part, inproc_ticks.NodeCode) for part in parts):
-            ticks, chains, fused, alone, flush, peek = inproc_ticks.make_ticks(self.host, parts, groups,
-                                                                                 fuse=self.fuse)
+            ticks, chains, fused, alone, flush, peek, visibles = inproc_ticks.make_ticks(self.host, parts, groups,
+                                                                                           fuse=self.fuse)
             self.flushes.append(flush)
             self.peeks.append(peek)
+            self.visibles.update(visibles)
         else:
             ticks, chains, fused, alone = parts, parts, [], []
         for g, group in enumerate(self.groups):
@@ -94,7 +98,14 @@ class CompiledTicks:
         """Hand the generated ticks' counts back and forget them; the next :meth:`functions`
         generates them anew (from rt.seq, which the reference tick may change in between)."""
         self.flush()
-        self.ticks, self.flushes, self.peeks = None, [], []
+        self.ticks, self.flushes, self.peeks, self.visibles = None, [], [], {}
+
+    def bound(self, buf: PortBuffer, tau: tuple[int, int]) -> None:
+        """A tick at ``tau`` filled ``buf`` to its ``bound_at``: forget what its consumer can no
+        longer select (sync.bound). Every tick to come is at or after ``tau`` (ticks run in tag
+        order); a generated tick's count of what it saw in ``buf`` stays where it is."""
+        visible = self.visibles.get(id(buf))
+        bound(buf, before(tau), None if visible is None else visible())
 
     def saw_ports(self, rt: Any, outputs: dict) -> None:
         """An untyped step returned ports its generated tick did not expect: the first time, expect them."""

@@ -78,6 +78,8 @@ class Host:
     saw_ports: Callable  # saw_ports(rt, outputs): an untyped step returned other ports than expected
     microsteps: Callable  # microsteps(tag, ran) -> (tag, ran): run ``after`` and what it triggers
     resume_group: Callable  # resume_group(g, k): rate group ``g`` goes on from its tick ``k``
+    #: bound(buf, tau): a tick at ``tau`` filled ``buf`` past its ``bound_at`` (sync.fill)
+    bound: Callable
     #: set by the session when the loop is to look at it (a stop, a flush asked for, ticks to
     #: generate anew): a lone group's loop stops at its next tick
     look: bool = False
@@ -126,6 +128,9 @@ class NodeCode:
     #: input it alone feeds): the line that appends this node's short record there in place of
     #: ``record``, and that record's expander (``link{k}_{i}``, see _TickWriter._expander)
     links: dict[int, tuple[str, str]] = field(default_factory=dict)
+    #: per input, the variable of its count of visible entries (the buffer's ``visible`` is
+    #: behind it until flush(); make_ticks' ``visibles`` read them, for the session's ``bound``)
+    visible: list[str] = field(default_factory=list)
 
 
 def compile_tick(host: Host, rt: Any) -> NodeCode | None:
@@ -207,7 +212,7 @@ class _TickWriter:
             if feeds.count(self.sources[i][0][0]) == 1:  # its one edge to this node
                 links[producer] = (self._record_line(link=i), self._expander(link=i))
         return NodeCode(k, self.names, state, init, self._body(), flush, self._expander(), self._helpers(), follower,
-                        fed_by, self._record_line(), links)
+                        fed_by, self._record_line(), links, self.visible)
 
     def _fed_by(self) -> dict[int, int]:
         """NodeCode.fed_by: input ``i`` -> the index of the node that alone feeds it, where that
@@ -387,7 +392,8 @@ def generic{k}(tau, raw, start, now{entries}):
         return f"tape_extend(({', '.join(record)},))\n"
 
     def _deliver(self, j: int, port: str) -> str:
-        """Deliver output ``j``'s event ``ev`` to each consumer (``PortBuffer.insert`` inlined).
+        """Deliver output ``j``'s event ``ev`` to each consumer (``sync.fill`` inlined: the
+        session's ``bound`` when a buffer is due, with the consumer's count of entries it saw).
 
         A buffer that only this port feeds gets its entries in order (a node's ticks run in tag
         order, and its output tags and an edge's delay keep that order), so it is appended to. The
@@ -398,6 +404,7 @@ def generic{k}(tau, raw, start, now{entries}):
         for c, ((consumer, buf, delay_ns, triggers), edge) in enumerate(edges):
             dbuf = f"dbuf{k}_{j}_{c}"
             self.names[dbuf], self.names[f"consumer{k}_{j}_{c}"] = buf.entries, consumer
+            self.names[f"dbo{k}_{j}_{c}"] = buf
             if delay_ns:
                 out.append(f"entry = ((ev[0][0] + {delay_ns}, 0), *ev[1:])\n")
             entry = "entry" if delay_ns else "ev"
@@ -406,10 +413,22 @@ def generic{k}(tau, raw, start, now{entries}):
             else:
                 out.append(f"if not {dbuf} or {dbuf}[-1] < {entry}:\n    {dbuf}.append({entry})\n"
                            f"else:\n    insort({dbuf}, {entry})\n")
+            if not (triggers or self._keeps_pace(self.nodes[edge.dst])):
+                # sync.fill's bound, inlined: what the consumer's policy can no longer select goes
+                out.append(f"if len({dbuf}) >= dbo{k}_{j}_{c}.bound_at:\n    bound(dbo{k}_{j}_{c}, tau)\n")
             if triggers:  # a tick of the consumer at the event's arrival: the next microstep, if undelayed
                 out.append(f"schedule({entry}[0], consumer{k}_{j}_{c})\n" if delay_ns or rt.latency_ns
                            else f"next_add(consumer{k}_{j}_{c})\n")
         return "".join(out)
+
+    def _keeps_pace(self, consumer: Any) -> bool:
+        """Whether ``consumer`` ticks at least as often as this node, a Rate flow, emits: its own
+        ticks trim its buffer of this node's events (its selects do, skipped or not), so the
+        bound need not be looked at on this edge (nor paid for; a consumer this edge triggers
+        ticks on each of its events)."""
+        mine, theirs = self.rt.clock, consumer.clock
+        return (not mine.triggered and mine.hz is not None and theirs.hz is not None
+                and theirs.hz >= mine.hz)
 
     def _to_seqs(self) -> str:
         return "".join(f"seqs{self.k}[{port!r}] = {s}\n" for port, s in zip(self.known, self.seq))
@@ -540,7 +559,7 @@ Schedule = tuple[int, int, int]  # a rate group's (offset_ns, step_num, step_den
 
 def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[tuple[int, ...], Schedule]],
                fuse: bool) -> tuple:
-    """``(ticks, chains, fused, alone, flush, peek)`` of every node: ``parts[i]`` is node ``i``'s code, or
+    """``(ticks, chains, fused, alone, flush, peek, visibles)`` of every node: ``parts[i]`` is node ``i``'s code, or
     its generic tick; ``groups`` are the rate groups' nodes and schedules ``(offset_ns, step_num,
     step_den)``. Each function ``f(tau, out_tag)`` runs at ``tau`` with ``out_tag`` the next
     microstep, and returns the ``out_tag`` of the last tick it ran:
@@ -562,7 +581,9 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
     - ``flush()`` hands the counts to each ``rt.stats``, the seqs to ``rt.seq`` and each input's
       ``visible`` to its buffer (the session calls it, after expanding the tape, before it reads them);
     - ``peek()``, per compiled node, ``(index, ticks, steps, step ns)`` counted and not handed
-      over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats).
+      over yet, changing nothing (for counts read where flushing is not safe: InprocSession.stats);
+    - ``visibles``, per input buffer of a compiled node (by ``id``), a function that reads its
+      visible count now (for the session's ``bound``, which must not move what a tick counted as seen).
     """
     names: dict[str, Any] = {
         "time_ns": time_ns, "insort": insort, "OK": StepStatus.OK, "tape_extend": host.tape.extend, "emit": host.emit,
@@ -570,6 +591,7 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
         "after": host.after, "next_add": host.after.append, "keep_next": host.keep_next,
         "saw_ports": host.saw_ports, "max_microsteps": host.max_microsteps, "plain": host.plain_types,
         "host": host, "heap": host.heap, "microsteps": host.microsteps, "resume": host.resume_group,
+        "bound": host.bound,
     }
     codes = {i: part for i, part in enumerate(parts) if isinstance(part, NodeCode)}
     everyone = set(range(len(parts)))
@@ -596,6 +618,8 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
         src.append(_alone(g, group, schedule, codes, bodies, names, everyone, short))
     state = _nonlocal(s for code in codes.values() for s in code.state)
     src.append(f"def flush():\n{state}{_indent(''.join(code.flush for code in codes.values()))}    pass\n")
+    src.append("visibles = {" + "".join(
+        f"id(buf{k}_{i}): lambda: {v}, " for k, code in codes.items() for i, v in enumerate(code.visible)) + "}\n")
     src.append("def peek():\n    return (" + "".join(
         f"({k}, ticks{k} + steps{k} + xsteps{k}, steps{k} + xsteps{k}, wall{k} + xwall{k}), " for k in codes) + ")\n")
     src += [code.expand + code.helpers for code in codes.values()]
@@ -604,12 +628,12 @@ def make_ticks(host: Host, parts: list[NodeCode | Callable], groups: list[tuple[
     source = (f"def make():\n{_indent(''.join(src))}"
               f"    return ([{', '.join(f'tick{i}' for i in range(len(parts)))}], "
               f"[{', '.join(chain_of)}], [{', '.join(f'fused{g}' for g in range(len(groups)))}], "
-              f"[{', '.join(f'alone{g}' for g in range(len(groups)))}], flush, peek)\n")
+              f"[{', '.join(f'alone{g}' for g in range(len(groups)))}], flush, peek, visibles)\n")
     exec(_compiled(source), names)  # noqa: S102
-    ticks, chain_ticks, fused, alone, flush, peek = names["make"]()
+    ticks, chain_ticks, fused, alone, flush, peek, visibles = names["make"]()
     for f in [*(ticks[i] for i in codes), *(chain_ticks[i] for i in chains), *fused, *alone]:
         f.source = source
-    return ticks, chain_ticks, fused, alone, flush, peek
+    return ticks, chain_ticks, fused, alone, flush, peek, visibles
 
 
 def _chains(codes: dict, groups: list[tuple[tuple[int, ...], Schedule]]) -> list[tuple[int, list[int]]]:

@@ -14,6 +14,7 @@ from ..codec import Encoder, unpackb
 from ..errors import LogError, RunEnded, StepError
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
+from ..sync import before, fill
 from ..trace import StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
@@ -192,7 +193,7 @@ class StepReplay:
             _restart_afresh(self.session, step.node, restarted, self.floors)
         if self.late_at:
             for buf, entry in self.late_at.pop((step.node, step.tag), ()):
-                buf.insert(entry)  # it arrived late: in the buffer from this record on, as in the run
+                fill(buf, entry, before(step.tag))  # it arrived late: in the buffer from this record on, as in the run
         keep_trace = self.keep_trace
         if keep_trace:
             self.kept_steps.append(tuple(step))
@@ -212,10 +213,11 @@ class StepReplay:
         """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
         consumer no longer takes."""
         deliveries, floors = self.deliveries, self.floors
+        after = before(tag)  # steps run in tag order: every tick to come is at or after this one
         while deliveries and deliveries[0][0] <= tag:
             _, _, consumer, buf, entry = heapq.heappop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                buf.insert(entry)
+                fill(buf, entry, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
         """A re-executed step against the log: its record now, its outputs once the log's are read;

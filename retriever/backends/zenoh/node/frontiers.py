@@ -13,7 +13,7 @@ import threading
 from bisect import bisect_left, insort
 from typing import Any
 
-from ....sync import PortBuffer
+from ....sync import PortBuffer, before, fill
 from ..protocol import RESTART_SEQ_GAP
 from ..wire import WireError
 from .clock import RunClock
@@ -88,6 +88,18 @@ class Streams:
         for e in self.triggering:
             bound = min(bound, self.edge_frontier(e))
         return bound
+
+    def horizon(self, tag: tuple[int, int]) -> tuple[int, int]:
+        """Every future tick of this node is past this tag, while an event with tag ``tag`` is
+        delivered: past the last one, and at or after the tick in progress, the next Rate tick,
+        the pending trigger ticks, each triggering edge's frontier (:meth:`tick_bound`) and
+        ``tag`` (the event may trigger a tick there, not yet pending; its frontier already
+        counts it). What sync.fill bounds a buffer by."""
+        schedule = self.schedule
+        with self.lock:
+            running, bound = schedule.running, self.tick_bound()
+        bound = min(bound, tag) if running is None else min(bound, tag, running)
+        return max(schedule.last_tick, before(bound))
 
     def check_claims(self, stream: tuple[str, str], seq: int | None, frontier: tuple[int, int]) -> None:
         """Refuse a data message's seq from the future or a frontier its producer cannot promise
@@ -169,9 +181,9 @@ class Streams:
             self.notes.counts["late"] += 1
             self.notes.detail.setdefault("late", {}).setdefault(e.port, []).append(
                 (msg.producer, msg.port, msg.seq))
-            e.buf.insert(entry)
+            fill(e.buf, entry, self.horizon, msg.tag)
             return
-        e.buf.insert(entry)
+        fill(e.buf, entry, self.horizon, msg.tag)
         if e.triggers and arrival[0] < self.clock.end and arrival not in schedule.pending_set:
             with self.lock:
                 schedule.pending_set.add(arrival)
