@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
 from retriever import StepStatus, read_log
 from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_MODULE
+from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.replay import replay
 from tests.deploy.test_deploy import BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, poll, secret  # noqa: F401
 from tests.deploy.test_deploy import start_worker, wait_going
@@ -157,10 +160,15 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(hosts, secret, tmp_path):
     flows = flow_processes(daemons[1].pid)
     daemons[1].kill()
     daemons[1].wait()
-    poll(lambda: not alive(pid), "the run router's end after its daemon's")
-    poll(lambda: not any(map(alive, flows)), "the robot's flows' end after their daemon's")
-    run.kill()
-    finish(run)
+    try:
+        poll(lambda: not alive(pid), "the run router's end after its daemon's")
+        poll(lambda: not any(map(alive, flows)), "the robot's flows' end after their daemon's")
+    finally:
+        run.kill()
+        finish(run)
+        # the killed daemon's run folder (its flows' spec, the run's passwords): its next start would reap it
+        for folder in Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{daemons[1].pid}-run-*"):
+            shutil.rmtree(folder)
 
 
 def test_a_crashed_run_router_is_reported_to_the_coordinator(hosts, secret, tmp_path):
