@@ -100,6 +100,20 @@ def test_a_process_that_prints_nothing_sends_nothing():
 ROOT = str(Path(__file__).resolve().parents[3])
 
 
+def prepare_once_the_token_is_seen(runs: DaemonRuns, request: PrepareRequest) -> None:
+    """``runs.prepare(request)``, once the daemon's subscriber has seen the coordinator's liveliness
+    token (declared just before, seen on a Zenoh thread): until then it refuses, saying so."""
+    give_up = time.monotonic() + 10.0
+    while True:
+        try:
+            runs.prepare(request)
+            return
+        except WireError as e:
+            if "liveliness token" not in str(e) or time.monotonic() > give_up:
+                raise
+            time.sleep(0.05)
+
+
 @pytest.fixture
 def prepared():
     """A daemon's runs with run ``r1`` prepared for the first node of the log tests' pipeline:
@@ -117,15 +131,7 @@ def prepared():
         node = ir["nodes"][0]["id"]
         spec = run_spec(ir, namespace, hub=hub, startup_timeout=600.0)
         try:
-            give_up = time.monotonic() + 10.0
-            while True:  # the daemon's subscriber sees the token on a Zenoh thread
-                try:
-                    runs.prepare(PrepareRequest(run="r1", spec=spec, nodes=(node,)))
-                    break
-                except WireError as e:
-                    if "liveliness token" not in str(e) or time.monotonic() > give_up:
-                        raise
-                    time.sleep(0.05)
+            prepare_once_the_token_is_seen(runs, PrepareRequest(run="r1", spec=spec, nodes=(node,)))
             yield runs, node
         finally:
             runs.close()
@@ -247,16 +253,8 @@ def test_a_run_whose_router_died_has_its_processes_stopped_and_no_new_one_starte
         ir = build_small().build_ir().doc
         node = ir["nodes"][0]["id"]
         try:
-            give_up = time.monotonic() + 10.0
-            while True:  # the daemon's subscriber sees the token on a Zenoh thread
-                try:
-                    runs.prepare(PrepareRequest(run="r1", spec=run_spec(ir, A, hub=None, startup_timeout=600.0),
-                                                nodes=(node,)))
-                    break
-                except WireError as e:
-                    if "liveliness token" not in str(e) or time.monotonic() > give_up:
-                        raise
-                    time.sleep(0.05)
+            prepare_once_the_token_is_seen(runs, PrepareRequest(
+                run="r1", spec=run_spec(ir, A, hub=None, startup_timeout=600.0), nodes=(node,)))
             router = runs.run.router
             proc = runs.run.processes[runs.spawn(SpawnRequest(run="r1", node=node, mode=())).pid][1]
             os.kill(router.pid, signal.SIGKILL)
