@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from retriever import StepStatus, read_log
+from retriever.backends.dora.host import pid_alive
 from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_MODULE
 from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.replay import replay
@@ -138,15 +139,6 @@ def run_router_process(daemon_pid: int) -> int:
     return found[0] if found else 0
 
 
-def alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie, which has ended, does not)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] not in "ZX"
-
-
 def test_a_run_router_dies_with_its_sigkilled_daemon(hosts, secret, tmp_path):
     """The run router is a process the daemon started for the run: SIGKILLed, the daemon takes
     it along (as it does the run's flows)."""
@@ -161,8 +153,8 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(hosts, secret, tmp_path):
     daemons[1].kill()
     daemons[1].wait()
     try:
-        poll(lambda: not alive(pid), "the run router's end after its daemon's")
-        poll(lambda: not any(map(alive, flows)), "the robot's flows' end after their daemon's")
+        poll(lambda: not pid_alive(pid), "the run router's end after its daemon's")
+        poll(lambda: not any(map(pid_alive, flows)), "the robot's flows' end after their daemon's")
     finally:
         run.kill()
         finish(run)

@@ -17,6 +17,7 @@ import pytest
 import zenoh
 
 from retriever.backends.zenoh.access import RunAccess, TlsFiles, run_user
+from retriever.backends.dora.host import pid_alive
 from retriever.backends.zenoh.daemon.router_process import SETTINGS_MAX
 from retriever.backends.zenoh.daemon.run_router import (EXIT_FAILED, ROUTER_PROCESS_FOLDER, ROUTER_PROCESS_MODULE,
                                                         open_run_router)
@@ -149,28 +150,19 @@ def test_a_run_routers_process_refuses_settings_that_are_not_a_daemons_in_a_line
 # ---------------------------------------------------------------------------------------------
 # Its process
 # ---------------------------------------------------------------------------------------------
-def alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie, which has ended, does not)."""
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat[stat.rindex(")") + 2] not in "ZX"
-
-
 def test_a_run_router_is_a_process_that_ends_when_closed(router):
     _, upstream = router
     run_router = open_run_router(A, SECRET, RUN, (upstream,), upstream_ids(upstream))
     ended = []
     run_router.watch(ended.append)
     try:
-        assert alive(run_router.pid) and run_router.pid != os.getpid()
+        assert pid_alive(run_router.pid) and run_router.pid != os.getpid()
         with run_client(run_router.endpoint) as flow:
             assert list(flow.info.routers_zid())
     finally:
         run_router.close()
     assert run_router.process.returncode == 0  # it closed its session and exited, on SIGTERM
-    assert not alive(run_router.pid)
+    assert not pid_alive(run_router.pid)
     assert port_is_free(int(run_router.endpoint.rsplit(":", 1)[1]))
     assert run_router.ended() is None and not ended  # a close is no crash
 
@@ -206,10 +198,10 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(router):
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         pid = int(daemon.stdout.readline())
-        assert alive(pid)
+        assert pid_alive(pid)
         daemon.kill()
         daemon.wait()
-        until(lambda: not alive(pid), "the run router's end after its daemon's")
+        until(lambda: not pid_alive(pid), "the run router's end after its daemon's")
     finally:
         daemon.kill()
         daemon.wait()
