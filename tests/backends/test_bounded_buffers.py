@@ -13,13 +13,9 @@ import pytest
 from retriever import Flow, Latest, Pipeline, Queue, Rate, Trigger, Window, io
 from retriever.backends.inproc import InprocSession
 
+from .test_inproc_inputs_at import Count, Counter
+
 S = 1_000_000_000
-
-
-@io
-@dataclass
-class Count:
-    n: int
 
 
 @io
@@ -32,15 +28,6 @@ class Seen:
 @dataclass
 class Batch:
     n: list
-
-
-class Counter(Flow[None, Count]):
-    def __init__(self):
-        self.n = 0
-
-    def step(self) -> Count:
-        self.n += 1
-        return Count(self.n)
 
 
 class Rare(Flow[Seen, Count]):

@@ -145,6 +145,11 @@ def test_a_coordinator_without_the_secret_finds_no_worker(hosts, secret, tmp_pat
 # ---------------------------------------------------------------------------------------------
 def flow_processes(daemon_pid: int) -> list[int]:
     """The live worker processes (flows) a daemon started."""
+    return child_processes(daemon_pid, "retriever.backends.zenoh.worker")
+
+
+def child_processes(daemon_pid: int, module: str) -> list[int]:
+    """The live processes a daemon started whose command line names ``module``."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -155,7 +160,7 @@ def flow_processes(daemon_pid: int) -> list[int]:
         except OSError:
             continue
         fields = stat[stat.rindex(")") + 2:].split()
-        if int(fields[1]) == daemon_pid and fields[0] not in "ZX" and b"retriever.backends.zenoh.worker" in cmdline:
+        if int(fields[1]) == daemon_pid and fields[0] not in "ZX" and module.encode() in cmdline:
             found.append(int(entry.name))
     return found
 

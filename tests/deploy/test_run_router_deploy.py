@@ -22,7 +22,7 @@ from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_MODULE
 from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.replay import replay
 from tests.deploy.test_deploy import BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, poll, secret  # noqa: F401
-from tests.deploy.test_deploy import start_worker, wait_going
+from tests.deploy.test_deploy import child_processes, start_worker, wait_going
 from tests.deploy.test_router_deploy import start_router
 
 #: camera and controller on the robot, the policy on the gpu worker
@@ -125,16 +125,7 @@ def test_a_robot_local_edge_keeps_its_ticks_while_the_robot_is_cut_off(partition
 
 def run_router_process(daemon_pid: int) -> int:
     """The pid of the live run router process (daemon/router_process.py) a daemon started."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        try:
-            stat = (entry / "stat").read_text()
-            cmdline = (entry / "cmdline").read_bytes()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2:].split()
-        if int(fields[1]) == daemon_pid and fields[0] not in "ZX" and ROUTER_PROCESS_MODULE.encode() in cmdline:
-            found.append(int(entry.name))
+    found = child_processes(daemon_pid, ROUTER_PROCESS_MODULE)
     assert len(found) <= 1, found
     return found[0] if found else 0
 
