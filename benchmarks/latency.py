@@ -315,7 +315,7 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
 # ---------------------------------------------------------------------------------------------
 ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
     ("step→publish", "sent", "publish", "step returns; outputs read; HLC stamp, seq, step record"),
-    ("frontier+encode", "publish", "encoded", "frontier() (lock, HLC) and WireEncoder.data (codec)"),
+    ("frontier+encode", "publish", "encoded", "frontier() (lock, HLC) and Outputs.encode (codec)"),
     ("put", "put_in", "put_out", "Publisher.put (express) returns, in the source's main thread"),
     ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx, the sink's callback thread gets the GIL"),
     ("to_bytes", "cb_in", "cb_out", "sample.payload.to_bytes() in the callback"),

@@ -13,7 +13,7 @@ process):
     source worker                                    sink worker
     sent      step() takes time.time_ns()            cb_in     zenoh callback entered (network thread)
     publish   Outputs.publish entered                cb_out    payload.to_bytes() returned
-    encoded   WireEncoder.data returned               handle    NodeLoop.handle entered (callback or main thread)
+    encoded   Outputs.encode returned                handle    NodeLoop.handle entered (callback or main thread)
     put_in    Publisher.put called                    decoded   wire.decode_events returned
     put_out   Publisher.put returned                  delivered Streams.deliver returned (PortBuffer.insert)
                                                       received  sink's step() starts
@@ -38,7 +38,7 @@ from collections import deque
 from zenoh_flows import Frame, Lat, PayloadSource
 
 from retriever import Flow
-from retriever.backends.zenoh import node, wire
+from retriever.backends.zenoh import node
 from retriever.backends.zenoh.node.frontiers import Streams
 from retriever.backends.zenoh.node.outputs import Outputs
 from retriever.backends.zenoh.node.reports import Reports
@@ -191,7 +191,7 @@ def install_stamps() -> None:
     loop = node.NodeLoop
     ON_CALL.update({Outputs.publish.__code__: _published, loop.handle.__code__: _handling,
                     Streams.check_claims.__code__: _checking_claims, loop.wait.__code__: _waiting})
-    ON_RETURN.update({wire.WireEncoder.data.__code__: _encoded, loop.handle.__code__: _handled,
+    ON_RETURN.update({Outputs.encode.__code__: _encoded, loop.handle.__code__: _handled,
                       Streams.deliver.__code__: _delivered, loop.wait.__code__: _woke})
     sys.setprofile(_profile)
 

@@ -88,7 +88,7 @@ def test_a_producer_warm_up_puts_only_on_its_warm_key(session, spec):
         watcher.undeclare()
 
 
-def test_a_consumer_foresees_a_periodic_stream_and_decodes_its_last_message(session, spec):
+def test_a_consumer_foresees_a_periodic_stream_and_rehearses_its_last_message(session, spec):
     loop = build_loop(spec, "viewer", session)
     far = 10_000 * MS  # a Trigger node with nothing pending waits long
     stream = ("cam", "image")
@@ -98,9 +98,15 @@ def test_a_consumer_foresees_a_periodic_stream_and_decodes_its_last_message(sess
     loop.warmup.arrived(stream, message(2), 100 * MS)
     target, data = loop.warmup.target(101 * MS, far)
     assert target == 150 * MS and data == message(2)
-    loop.warmup.warm(data)  # decodes it; delivers nothing
+    before = (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts))
+    loop.warmup.warm(data)  # rehearses its arrival on scratch inputs; delivers nothing
     assert not loop.schedule.pending
     assert all(not e.buf.entries for e in loop.streams.edges), "a warm-up must not deliver"
+    assert (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts)) == before
+    rehearsal = loop.warmup.rehearsal
+    assert rehearsal.streams.frontiers[stream] == (100 * MS + 1, 0), "the rehearsal took it in order"
+    assert not rehearsal.schedule.pending and all(not buf.entries for _, buf, _, _ in rehearsal.inputs), \
+        "and forgot it"
 
     # the foreseen arrival must lie ahead and before the wake it would delay
     assert loop.warmup.target(151 * MS, far) == (None, None)

@@ -27,7 +27,7 @@ from .reports import SPILL_BYTES, Reports
 from .schedule import DONE, TICKED, Schedule
 from .source import PlainSource
 from .steps import Steps
-from .timing import Pacer, Warmup
+from .timing import Pacer, Rehearsal, Warmup
 from .transport import Transport, ZenohTransport
 from .waiting import Waiting
 
@@ -86,7 +86,8 @@ class NodeLoop:
                                max_microsteps=max_microsteps, lock=self.lock, clock=self.run_clock,
                                schedule=self.schedule, streams=self.streams, reports=self.reports,
                                transport=self.transport)
-        self.warmup = Warmup(self.outputs, self.schedule, self.run_clock)
+        self.warmup = Warmup(self.outputs, self.schedule, self.run_clock,
+                             Rehearsal(self.id, node.clock, edges, inputs, self.run_clock))
         self.spin_ns = 0 if virtual else node.settings.spin_ns  # (virtual time: nothing to be on time for)
         self.pacer = Pacer(self, warmup=self.warmup, schedule=self.schedule, clock=self.run_clock, spin_ns=self.spin_ns,
                            counts=self.notes.counts)

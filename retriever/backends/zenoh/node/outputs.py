@@ -163,7 +163,7 @@ class Outputs:
                 publisher = publishers[port] = self.transport.publisher(port)
             burst, carries = type(value) is Burst, frontier if i == last else tag
             local = type(publisher) is LocalPublisher  # (consumers in this process: handed over as they are)
-            message = None if local and publisher.remote is None else self._encode(tag, seq, carries, port, value)
+            message = None if local and publisher.remote is None else self.encode(tag, seq, carries, port, value)
             # counted as sent before the put, not after: a consumer that subscribes meanwhile and
             # asks where the stream stands (a node started afresh: sync_inputs) must not be told
             # to wait for this seq. Zenoh chose the put's subscribers when it began, and a put held
@@ -181,7 +181,7 @@ class Outputs:
                 blank = Burst.unchecked((None,) * len(value.values)) if burst else None  # sent as nil
                 message = data(tag, seq, carries, me, port, blank)
             elif message is None:  # (handed over in this process only: the coordinator still wants it)
-                message = self._encode(tag, seq, carries, port, value)
+                message = self.encode(tag, seq, carries, port, value)
             reports.published.append((time.time_ns(), message))
             reports.published_bytes += len(message)
             reports.published_seqs += len(value.values) if burst else 1
@@ -193,7 +193,8 @@ class Outputs:
         if self.consumed and not (batch and self.single_port):
             self.publish_progress(frontier)
 
-    def _encode(self, tag: tuple[int, int], seq: int, frontier: tuple[int, int], port: str, value) -> bytes:
+    def encode(self, tag: tuple[int, int], seq: int, frontier: tuple[int, int], port: str, value) -> bytes:
+        """One event's data message as it is sent; StopRun if its value cannot leave the process."""
         try:  # (WireEncoder.data's join, one call sooner: this runs per event sent)
             return b"".join(self.encoder.data_parts(tag, seq, frontier, self.id, port, value))
         except CodecError as e:  # the step returned it; in-process it would have gone by reference

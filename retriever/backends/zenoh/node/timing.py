@@ -5,34 +5,79 @@ After a sleep of ~10 ms or more, the code and data of the send and receive paths
 CPU's caches, and that cold run is most of a small message's latency (benchmarks/reports/
 latency.md). So before a moment that is predictable (the next Rate tick of a node with
 consumers, the next arrival on a periodic input stream) that follows such a sleep, the loop
-wakes WARM_AHEAD_NS early and runs its encoder on the last event it sent, its decoder on the
-last message it got (arrays are not copied for that), reads the HLC, and, if it publishes, puts
-an empty message on its ``warm/<node>`` key, which no one subscribes to (Zenoh's put path, up to
-the routing). It changes only how fast a tick starts, never what it reads or emits. Sleeps
-shorter than WARM_AFTER_IDLE_NS leave the caches warm.
+wakes WARM_AHEAD_NS early and runs its encoder on the last event it sent, reads the HLC, and, if
+it publishes, puts an empty message on its ``warm/<node>`` key, which no one subscribes to
+(Zenoh's put path, up to the routing); and it rehearses the receive path on the last message it
+got (:class:`Rehearsal`: decoded, taken in order, delivered and selected on scratch copies of its
+inputs; arrays are not copied for that). It changes only how fast a tick starts, never what it
+reads or emits. Sleeps shorter than WARM_AFTER_IDLE_NS leave the caches warm.
 """
 
 from __future__ import annotations
 
 import queue
+import threading
 from collections import Counter
 from typing import Protocol
 
+from ....clocks import Clock
+from ....sync import PortBuffer
+from ....tick import select_inputs
 from ..wire import decode_events
 from .clock import RunClock
+from .frontiers import InEdge, Streams
+from .notes import Notes
 from .schedule import Schedule
 
 WARM_AHEAD_NS = 1_000_000
 WARM_AFTER_IDLE_NS = 4_000_000
 
 
+class Rehearsal:
+    """A node's receive path run on scratch copies of its inputs, up to the flow's step, which it
+    never calls: a message decoded, its claims checked, taken in order and delivered to scratch
+    buffers (with their policies) by a :class:`Streams` of its own, on a schedule of its own, and
+    each input selected at its tag, as a tick would. Decoding alone left most of that path cold
+    (benchmarks/reports/latency.md). Nothing of the loop's is written; the scratch is emptied after."""
+
+    def __init__(self, node_id: str, node_clock: Clock, edges: list[InEdge], inputs: list[tuple], clock: RunClock):
+        scratch = {port: PortBuffer(buf.trim_batch, policy) for port, buf, policy, _ in inputs}
+        self.inputs = [(port, scratch[port], policy, spec) for port, _, policy, spec in inputs]
+        lock = threading.Lock()
+        self.schedule = Schedule(node_clock, lock)
+        self.streams = Streams(node_id, [InEdge(e.src, e.src_port, e.port, scratch[e.port], e.delay_ns, e.triggers,
+                                                e.deadline_ns, e.src_latency_ns) for e in edges],
+                               self.schedule, clock, Notes(node_id), lock)
+
+    def run(self, message: bytes) -> None:
+        """Rehearse the arrival of ``message`` (one event; a burst is only decoded)."""
+        events = decode_events(message)
+        streams, msg = self.streams, events[0]
+        stream = (msg.producer, msg.port)
+        if len(events) != 1 or stream not in streams.expect:
+            return
+        try:
+            streams.expect[stream] = msg.seq  # (taken in order: the next one expected)
+            streams.check_claims(stream, msg.seq, msg.frontier)
+            streams.in_order(stream, msg)
+            select_inputs(self.inputs, msg.tag)
+        finally:
+            for _, buf, _, _ in self.inputs:
+                buf.entries.clear()
+                buf.visible = buf.cursor = 0
+                buf.last_id = None
+            self.schedule.pending.clear()
+            self.schedule.pending_set.clear()
+
+
 class Warmup:
     """Per input stream, its last arrival (ns since T0), the gap before it, and its last message;
     ``warmed_for``: the moment last warmed up for (once per moment). What it warms on the send
-    side is the ``outputs``' last event and warm publisher."""
+    side is the ``outputs``' last event and warm publisher; on the receive side, ``rehearsal``
+    runs on the last message of the stream foreseen."""
 
-    def __init__(self, outputs, schedule, clock: RunClock):
-        self.outputs, self.schedule, self.clock = outputs, schedule, clock
+    def __init__(self, outputs, schedule, clock: RunClock, rehearsal: Rehearsal):
+        self.outputs, self.schedule, self.clock, self.rehearsal = outputs, schedule, clock, rehearsal
         self.arrivals: dict[tuple[str, str], tuple[int, int, bytes]] = {}
         self.warmed_for: int | None = None
 
@@ -57,7 +102,7 @@ class Warmup:
         return target, message
 
     def warm(self, message: bytes | None) -> None:
-        """Run the encoder and the decoder once, results unused. Both did this work before;
+        """Run the encoder and the receive path once, results unused. Both did this work before;
         should it fail now (a flow changed a value it had emitted), the warm-up is simply
         skipped: it never stops a run."""
         outputs = self.outputs
@@ -68,7 +113,7 @@ class Warmup:
                 if outputs.warm_publisher is not None:
                     outputs.warm_publisher.put(b"")
             if message is not None:
-                decode_events(message)
+                self.rehearsal.run(message)
         except Exception:
             outputs.warm_publish = None
 
