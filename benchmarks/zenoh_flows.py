@@ -18,7 +18,7 @@ from retriever import Burst, Flow, io
 
 
 # ---------------------------------------------------------------------------------------------
-# latency.py
+# latency.py, receive_cold.py
 # ---------------------------------------------------------------------------------------------
 @io
 @dataclass
@@ -69,6 +69,17 @@ class LatencySink(Flow[Frame, Lat]):
             with open(self.record, "a", encoding="ascii") as f:
                 f.write(f"{lat[0]} {lat[1]} {lat[2]}\n")
         return Lat(lat=lat)
+
+
+class StampedSink(LatencySink):
+    """The latency sink, noting in ``starts`` (this process's) when each step starts, by
+    ``time.perf_counter_ns()`` (receive_cold.py)."""
+
+    starts: list[int] = []
+
+    def step(self, inp: Frame) -> Lat:
+        StampedSink.starts.append(time.perf_counter_ns())
+        return super().step(inp)
 
 
 # ---------------------------------------------------------------------------------------------
