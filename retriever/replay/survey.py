@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from ..errors import LogError
 from ..log import format as fmt
+from ..log.reader import ChunkMessages
 
 
 class LogSurvey:
@@ -60,6 +62,51 @@ class LogSurvey:
                     self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
                                           "the file is damaged or was edited: retriever replay reads logs as a run "
                                           "wrote them")
+
+    def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: its events
+        checked at once with numpy where each port's are framed as ``[microstep < 128, value]``
+        and its seqs follow on (nearly always), only its step records read one by one; a chunk with
+        anything else is taken as message tuples (:meth:`take`), so the same is found and said."""
+        kinds = self._kinds
+        heads, raw = chunk.heads, chunk.raw
+        channel_ids = heads["channel_id"]
+        found = np.flatnonzero(np.bincount(channel_ids)).tolist()
+        for channel_id in found:
+            if channel_id not in kinds:
+                kinds[channel_id] = self._kind(channels[channel_id])
+        if len(found) > 1:
+            at = {channel_id: np.flatnonzero(channel_ids == channel_id) for channel_id in found}
+        else:
+            at = {found[0]: np.arange(len(channel_ids))}
+        steps, ranges = [], []
+        bytes_ = np.frombuffer(raw, dtype=np.uint8)
+        for channel_id, which in at.items():
+            kind = kinds[channel_id]
+            if kind is _STEPS:
+                steps.append(which)
+            elif kind is not None:
+                seqs = heads["sequence"][which]
+                starts = chunk.offsets[which] + _DATA_AT
+                framed = ((chunk.ends[which] - starts >= 3).all()
+                          and (bytes_[starts] == 0x92).all() and (bytes_[starts + 1] < 0x80).all())
+                first, last = int(seqs[0]), int(seqs[-1])
+                hi = kind[2].hi
+                if not framed or (hi and hi[-1] != first) or last - first != len(seqs) - 1 \
+                        or (len(seqs) > 1 and (np.diff(seqs.astype(np.int64)) != 1).any()):
+                    self.take(channels, chunk.tuples())
+                    return
+                ranges.append((kind[2], first, last))
+        for seqs, first, last in ranges:
+            if not seqs.hi:
+                seqs.add(first)
+            seqs.hi[-1] = last + 1
+        if steps:
+            which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
+            step = self._step
+            for log_time, sequence, data in zip(heads["log_time"][which].tolist(), heads["sequence"][which].tolist(),
+                                                chunk.data(which)):
+                step(log_time, sequence, data)
 
     def _kind(self, channel) -> Any:
         if channel.topic == fmt.STEPS_TOPIC:
@@ -127,6 +174,7 @@ class LogSurvey:
 
 _STEPS = "steps"
 _UNSEEN = object()
+_DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 
 
 class _Seqs:
