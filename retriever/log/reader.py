@@ -789,6 +789,8 @@ class _ChunkBytes(ReadDataStream):
     def read(self, length: int) -> bytes:
         if length == 0:
             return b""
+        if length > sys.maxsize:  # (a damaged length: BytesIO's error)
+            raise OverflowError("cannot fit 'int' into an index-sized integer")
         start = self._count
         # a negative length (a record shorter than its fields) reads to the end, as BytesIO does
         data = self._data[start:start + length] if length > 0 else self._data[start:]
