@@ -5,8 +5,10 @@ section), so a flipped byte is an error and not silently wrong data. A file whos
 killed ends mid-record: :func:`read_log` refuses it with a hint, ``read_log(...,
 salvage=True)`` (what ``retriever log recover`` uses) keeps every record before the damage.
 
-A log is read a chunk at a time: a chunk's Message records are walked with one ``unpack_from``
-each (:func:`chunk_messages`), and handed on, where a reader takes them in bulk (:func:`scan_log`,
+A log is read a chunk at a time: a chunk's Message records are found by the MessageIndex
+records after it, every record's head read at once with numpy (checked to tile the chunk
+exactly; else walked with one ``unpack_from`` each: :func:`chunk_messages`), and handed on,
+where a reader takes them in bulk (:func:`scan_log`, or as numpy arrays, :class:`ChunkMessages`;
 ``ScannedLog.time_ordered``: the replay's two passes), as **message tuples**
 ``(log_time, position, channel_id, sequence, publish_time, data)`` rather than ``mcap``
 ``Message`` objects (making those was most of a log's reading). ``position`` says where the
