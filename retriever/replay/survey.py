@@ -194,7 +194,8 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     msgpack width (msgpack.unpackb reads such a record as a 7-tuple whose node is a str and
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
     time for all of them at once; and where each one's node (its fixstr) is."""
-    not_ascii_before = np.concatenate(([0], np.cumsum(data >= 0x80, dtype=np.int32)))  # bytes >= 0x80 before i
+    not_ascii_before = np.zeros(len(data) + 1, dtype=np.int32)  # bytes >= 0x80 before each offset
+    np.cumsum(data >= 0x80, dtype=np.int32, out=not_ascii_before[1:])
     last = len(data) - 1
     ok = ends - starts >= 2
     p = starts.copy()
