@@ -5,8 +5,10 @@ section), so a flipped byte is an error and not silently wrong data. A file whos
 killed ends mid-record: :func:`read_log` refuses it with a hint, ``read_log(...,
 salvage=True)`` (what ``retriever log recover`` uses) keeps every record before the damage.
 
-A log is read a chunk at a time: a chunk's Message records are walked with one ``unpack_from``
-each (:func:`chunk_messages`), and handed on, where a reader takes them in bulk (:func:`scan_log`,
+A log is read a chunk at a time: a chunk's Message records are found by the MessageIndex
+records after it, every record's head read at once with numpy (checked to tile the chunk
+exactly; else walked with one ``unpack_from`` each: :func:`chunk_messages`), and handed on,
+where a reader takes them in bulk (:func:`scan_log`, or as numpy arrays, :class:`ChunkMessages`;
 ``ScannedLog.time_ordered``: the replay's two passes), as **message tuples**
 ``(log_time, position, channel_id, sequence, publish_time, data)`` rather than ``mcap``
 ``Message`` objects (making those was most of a log's reading). ``position`` says where the
@@ -27,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+import numpy as np
 import zstandard
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import EndOfFile
@@ -305,7 +308,8 @@ class ScannedLog(LogHead):
                 try:
                     stream.seek(offset)
                     chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
-                    messages, rest = chunk_messages(chunk, offset, self.channels)
+                    messages, rest = chunk_messages(chunk, offset, self.channels, _indexes_after(stream),
+                                                    by_time=True)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
@@ -313,7 +317,7 @@ class ScannedLog(LogHead):
                 held += messages
                 if rest:
                     held += [record for record in rest if type(record) is tuple]
-                held.sort()  # timsort: the held run and the chunk's, each (nearly) in order already
+                held.sort()  # timsort: the held run and the chunk's, each in order already (nearly, walked)
                 if k + 1 < len(order):  # hand on what no chunk still to be read can come before
                     cut = bisect.bisect_left(held, (order[k + 1][0],))
                     ready, held = held[:cut], held[cut:]
@@ -339,13 +343,16 @@ _STEPS = ("steps",)  # ScannedLog.records: a channel of step records (a port is 
 
 
 def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple]], None], *,
-             progress: Callable[[int, int], None] | None = None) -> ScannedLog:
+             progress: Callable[[int, int], None] | None = None,
+             take_chunk: Callable[[dict[int, LogChannel], ChunkMessages], None] | None = None) -> ScannedLog:
     """Read and validate a log as :func:`read_log` does (the same errors, for a log torn or
     damaged), handing its messages to ``take(channels, messages)`` in file order instead of
     keeping them: ``messages`` is a list of message tuples (the module docstring) (a chunk's at a time,
     nearly always), ``channels`` the log's by id (each message's is there). What is kept is the
     log's head and where its chunks are (``log.time_ordered()`` reads them again).
-    ``progress(bytes read, file size)`` is called as the file is read."""
+    ``progress(bytes read, file size)`` is called as the file is read. ``take_chunk``, if given,
+    takes instead each chunk whose MessageIndex records tile it (every chunk of a log Retriever
+    wrote) as a :class:`ChunkMessages`, without a Python object per message."""
     log = ScannedLog(Path(path))
     channels, chunks = log.channels, log.chunks
     chunk: list[int] | None = None
@@ -358,16 +365,21 @@ def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple
             chunk = [2 ** 64, offset]  # past any log time until its first message
             chunks.append(chunk)
 
-    def add(messages: list[tuple]) -> None:
+    def add(messages: list[tuple] | ChunkMessages) -> None:
         if chunk is None:
             log.loose += len(messages)
+            take(channels, messages)
+            return
+        if type(messages) is ChunkMessages:
+            first = int(messages.heads["log_time"].min())
+            take_chunk(channels, messages)
         else:
             first = min(messages)[0]
-            if first < chunk[0]:
-                chunk[0] = first
-        take(channels, messages)
+            take(channels, messages)
+        if first < chunk[0]:
+            chunk[0] = first
 
-    _read(log, add, False, progress=progress, at_chunk=at_chunk)
+    _read(log, add, False, progress=progress, at_chunk=at_chunk, arrays=take_chunk is not None)
     chunks[:] = [c for c in chunks if c[0] < 2 ** 64]
     if progress is not None:
         progress(log.size, log.size)
@@ -436,10 +448,11 @@ def _identity(stream) -> tuple:
 
 def _read(log: LogHead, add: Callable[[list[tuple]], None], salvage: bool, *,
           progress: Callable[[int, int], None] | None = None,
-          at_chunk: Callable[[int | None], None] | None = None) -> None:
+          at_chunk: Callable[[int | None], None] | None = None, arrays: bool = False) -> None:
     """Read and validate the log at ``log.path`` into ``log``, its messages handed to ``add`` as
     lists of message tuples, in file order: a chunk's Message records up to its first other
-    record at once, any other message alone."""
+    record at once, any other message alone; with ``arrays``, a chunk its indexes tile as one
+    :class:`ChunkMessages`."""
     path = log.path
     try:
         stream = open(path, "rb")
@@ -458,15 +471,15 @@ def _read(log: LogHead, add: Callable[[list[tuple]], None], salvage: bool, *,
             log.size, log._identity = size, _identity(stream)
         tracked = _Tracked(stream, size, progress)
         # chunks as they are, broken up here (chunk_messages: what mcap's breakup_chunk does, faster)
-        reader = _StreamReader(tracked, validate_crcs=True, emit_chunks=True, at_chunk=at_chunk)
+        reader = _StreamReader(tracked, validate_crcs=True, emit_chunks=True)
         dropped: list[str] = []  # salvaging: damaged attachments left out, and why
         bad_attachment = bad_channel = None
         footer, chunk_indexes = None, []
         read = 0  # messages
         channels = log.channels
         try:
-            for record in _records_in_chunks(reader, channels):
-                if type(record) is list:  # a chunk's messages, each on a channel read before
+            for record in _records_in_chunks(reader, tracked, channels, at_chunk, arrays):
+                if type(record) is list or type(record) is ChunkMessages:  # a chunk's, each on a channel read before
                     add(record)
                     read += len(record)
                     continue
@@ -540,27 +553,20 @@ MAX_CHUNK_BYTES = 1 << 30
 
 
 class _StreamReader(StreamReader):
-    """``mcap``'s stream reader, passing over MessageIndex records unparsed: a log is read whole,
-    so their entries (one per message, parsed field by field in Python: a third of a read) are
-    of no use here. Their bytes are still read, so the data section's CRC covers them. A chunk
-    that says it holds more than MAX_CHUNK_BYTES is refused before it is decompressed.
-    ``at_chunk(offset)`` is told where each chunk starts before its messages are read (None for
-    a message outside any chunk); ``record_at`` is where the last Chunk or Message record read
-    begins."""
+    """``mcap``'s stream reader, handing on MessageIndex records unparsed (:class:`_Index`: their
+    entries, parsed field by field in Python, were a third of a read; :func:`chunk_messages` reads
+    them with numpy). A chunk that says it holds more than MAX_CHUNK_BYTES is refused before it
+    is decompressed. ``record_at`` is where the last Chunk or Message record read begins."""
 
-    def __init__(self, *args, at_chunk: Callable[[int | None], None] | None = None, **kwargs):
+    def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self._at_chunk = at_chunk
         self.record_at = 0
 
     def _read_record(self, opcode: int, length: int):
         if opcode == Opcode.MESSAGE_INDEX:
-            self._stream.read(length)
-            return None
+            return _Index(self._stream.read(length))
         if opcode == Opcode.CHUNK or opcode == Opcode.MESSAGE:  # where its messages come from
             self.record_at = self._stream.count - _RECORD_HEAD
-            if self._at_chunk is not None:
-                self._at_chunk(self.record_at if opcode == Opcode.CHUNK else None)
         record = super()._read_record(opcode, length)
         if isinstance(record, Chunk):
             size = _uncompressed_size(record)
@@ -570,40 +576,103 @@ class _StreamReader(StreamReader):
         return record
 
 
-def _records_in_chunks(reader: _StreamReader, channels: dict[int, LogChannel]) -> Iterator:
+class _Index:
+    """A MessageIndex record's fields, unparsed (channel id, entries' length, entries)."""
+
+    __slots__ = ("body",)
+
+    def __init__(self, body: bytes) -> None:
+        self.body = body
+
+
+def _records_in_chunks(reader: _StreamReader, tracked: _Tracked, channels: dict[int, LogChannel],
+                       at_chunk: Callable[[int | None], None] | None = None, arrays: bool = False) -> Iterator:
     """The records of a stream read with ``emit_chunks=True``, each chunk's in its place (as a
     stream reader without it yields them), a chunk's records all read before the first is handed
     on; messages as message tuples, the Message records that begin a chunk on a channel of
-    ``channels`` as one list."""
-    for record in reader.records:
+    ``channels`` as one list. A chunk is broken up once the MessageIndex records after it are read
+    (:func:`chunk_messages` walks it by them), as if where it was read: a chunk that does not
+    read is blamed where it is (``tracked``'s last read is set back to it), and before a damaged
+    record after it. ``at_chunk(offset)`` is told where each chunk starts before its messages are
+    handed on (None for a message outside any chunk). ``arrays``: as :func:`chunk_messages`."""
+    records = reader.records
+    held = None  # (chunk, its offset, the file's last read in it), its MessageIndex records being read
+    indexes: list[bytes] = []
+
+    def broken_up(chunk: Chunk, at: int, read_at: int, indexes: list[bytes]) -> Iterator:
+        now, tracked.last_read_at = tracked.last_read_at, read_at
+        messages, rest = chunk_messages(chunk, at, channels, indexes, arrays=arrays)
+        tracked.last_read_at = now
+        if at_chunk is not None:
+            at_chunk(at)
+        if messages:
+            yield messages
+        yield from rest
+
+    while True:
+        try:
+            record = next(records, None)
+        except Exception:
+            if held is not None:  # the chunk first, as if read alone
+                yield from broken_up(*held, [])
+            raise
+        if type(record) is _Index:
+            if held is not None:
+                indexes.append(record.body)
+            continue  # one after no chunk: skipped (mcap's readers read it for nothing)
+        if held is not None:
+            yield from broken_up(*held, indexes)
+            held, indexes = None, []
+        if record is None:
+            return
         if type(record) is Chunk:
-            messages, rest = chunk_messages(record, reader.record_at, channels)
-            if messages:
-                yield messages
-            yield from rest
+            held = (record, reader.record_at, tracked.last_read_at)
         elif type(record) is Message:  # outside any chunk
+            if at_chunk is not None:
+                at_chunk(None)
             yield (record.log_time, reader.record_at << 32, record.channel_id, record.sequence, record.publish_time,
                    record.data)
         else:
             yield record
 
 
-def chunk_messages(chunk: Chunk, at: int, channels) -> tuple[list[tuple], list]:
+def _indexes_after(stream) -> list[bytes]:
+    """The MessageIndex records' fields from where ``stream`` is (after a chunk), unparsed."""
+    bodies = []
+    while True:
+        head = stream.read(_RECORD_HEAD)
+        if len(head) < _RECORD_HEAD or head[0] != Opcode.MESSAGE_INDEX:
+            return bodies
+        bodies.append(stream.read(int.from_bytes(head[1:], "little")))
+
+
+def chunk_messages(chunk: Chunk, at: int, channels, indexes: list[bytes] = (), *, by_time: bool = False,
+                   arrays: bool = False) -> tuple[list[tuple] | ChunkMessages, list]:
     """The records in ``chunk`` (at byte ``at`` of its file), its CRC checked, as ``mcap``'s
     ``breakup_chunk(chunk, validate_crc=True)`` reads them, record for record, with the same
     errors, but each Message record as a message tuple (the module docstring): the Message
     records before the first other record, or the first on a channel not in ``channels``, and
     then the records from there on (none, in a log Retriever wrote). ``mcap`` decompresses and
-    checks the chunk; a whole Message record is read with the layout the writer writes it with
+    checks the chunk. ``indexes``, the fields of the MessageIndex records after it, say where its
+    records are: when they tile it exactly with whole Message records on channels of
+    ``channels`` (:func:`_indexed_heads`), numpy reads every record's head at once, and with
+    ``by_time`` the messages come in log-time order (ties in file order); with ``arrays``, as one
+    :class:`ChunkMessages` (its ``tuples()`` are the message tuples). Else the chunk is
+    walked: a whole Message record is read with the layout the writer writes it with
     (``MESSAGE_HEAD``, one ``unpack_from``, into one tuple); from the first other record on (a
     Channel, a Schema, another type's, a Message that is cut short or shorter than its fields),
     the library's own record readers read the rest, from :class:`_ChunkBytes` (the decompressed
     bytes, without a file-like object's call per field)."""
     stream, length = get_chunk_data_stream(chunk, validate_crc=True)
     raw = stream.read(length) if length else b""
+    base = at << 32  # a chunk holds less than 2**32 bytes (MAX_CHUNK_BYTES)
+    if indexes:
+        heads = _indexed_heads(raw, indexes, channels)
+        if heads is not None:
+            found = ChunkMessages(raw, base, *heads)
+            return (found if arrays else found.tuples(by_time)), []
     messages: list[tuple] = []
     append = messages.append
-    base = at << 32  # a chunk holds less than 2**32 bytes (MAX_CHUNK_BYTES)
     # (constants as locals: this loop runs once a message, twice a replay)
     pos, head, message, least, record_head = 0, MESSAGE_HEAD.unpack_from, Opcode.MESSAGE, MESSAGE_FIELDS, _RECORD_HEAD
     fields = record_head + least
@@ -636,6 +705,80 @@ def chunk_messages(chunk: Chunk, at: int, channels) -> tuple[list[tuple], list]:
     return messages, rest
 
 
+#: a Message record's head as numpy reads it (``MESSAGE_HEAD``'s layout)
+_HEAD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel_id", "<u2"), ("sequence", "<u4"),
+                  ("log_time", "<u8"), ("publish_time", "<u8")])
+
+
+def _indexed_heads(raw: bytes, indexes: list[bytes], channels) -> tuple | None:
+    """Where the records of a chunk's bytes ``raw`` are, by its MessageIndex records' fields
+    ``indexes``, and their heads: ``(offsets, heads, ends)`` in file order, when the offsets the
+    indexes give tile ``raw`` exactly with whole Message records (each ends where the next
+    begins, the last where ``raw`` does; none shorter than its fields) on channels of
+    ``channels``; else None (an index missing, damaged, or naming no record: the chunk is walked).
+    Every field is the record's own: the index gives only where it is."""
+    length = len(raw)
+    entries = []
+    for body in indexes:
+        size = int.from_bytes(body[2:6], "little") if len(body) >= 6 else -1
+        if size < 0 or size % 16 or len(body) != 6 + size:
+            return None
+        entries.append(body[6:])
+    offsets = np.sort(np.frombuffer(b"".join(entries), dtype="<u8")[1::2])
+    if not len(offsets) or offsets[0] != 0 or length < MESSAGE_HEAD.size or offsets[-1] > length - MESSAGE_HEAD.size \
+            or (offsets[1:] == offsets[:-1]).any():
+        return None
+    offsets = offsets.astype(np.int64)
+    # each record's head, 31 bytes from its offset: rows of a sliding view, copied whole
+    heads = np.lib.stride_tricks.sliding_window_view(np.frombuffer(raw, dtype=np.uint8), MESSAGE_HEAD.size)[offsets]
+    heads = heads.view(_HEAD).ravel()
+    lengths = heads["length"]
+    if (heads["opcode"] != Opcode.MESSAGE).any() or (lengths < MESSAGE_FIELDS).any() or (lengths > length).any():
+        return None
+    ends = offsets + _RECORD_HEAD + lengths.astype(np.int64)
+    if ends[-1] != length or (ends[:-1] != offsets[1:]).any():
+        return None
+    if not all(channel_id in channels for channel_id in np.flatnonzero(np.bincount(heads["channel_id"])).tolist()):
+        return None
+    return offsets, heads, ends
+
+
+@dataclass
+class ChunkMessages:
+    """A chunk's Message records, all of it, as numpy found them (:func:`_indexed_heads`):
+    ``raw`` the chunk's bytes, ``offsets`` where each record is in them (file order), ``heads``
+    their fields (``opcode``, ``length``, ``channel_id``, ``sequence``, ``log_time``,
+    ``publish_time``), ``ends`` where each ends; a record's data is ``raw[offset + 31:end]``
+    (:meth:`data`); ``base``: its chunk's offset in the file times 2**32 (for positions)."""
+
+    raw: bytes
+    base: int
+    offsets: np.ndarray
+    heads: np.ndarray
+    ends: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.offsets)
+
+    def data(self, which: np.ndarray) -> list[bytes]:
+        """The data of the records at indexes ``which``, in their order."""
+        starts = (self.offsets[which] + (_RECORD_HEAD + MESSAGE_FIELDS)).tolist()
+        return list(map(self.raw.__getitem__, map(slice, starts, self.ends[which].tolist())))
+
+    def tuples(self, by_time: bool = False) -> list[tuple]:
+        """The message tuples (the module docstring), in file order or by log time (ties in file order)."""
+        offsets, heads, ends = self.offsets, self.heads, self.ends
+        if by_time:
+            order = np.lexsort((offsets, heads["log_time"]))
+            offsets, heads, ends = offsets[order], heads[order], ends[order]
+        starts = (offsets + (_RECORD_HEAD + MESSAGE_FIELDS)).tolist()
+        data = list(map(self.raw.__getitem__, map(slice, starts, ends.tolist())))
+        base = self.base
+        positions = (offsets + base).tolist() if base < 1 << 62 else [base + offset for offset in offsets.tolist()]
+        return list(zip(heads["log_time"].tolist(), positions, heads["channel_id"].tolist(),
+                        heads["sequence"].tolist(), heads["publish_time"].tolist(), data))
+
+
 class _ChunkBytes(ReadDataStream):
     """``mcap``'s ReadDataStream over bytes in memory: the same values and errors (a field that
     runs past the end takes the library's own path), each field one ``unpack_from``."""
@@ -648,6 +791,8 @@ class _ChunkBytes(ReadDataStream):
     def read(self, length: int) -> bytes:
         if length == 0:
             return b""
+        if length > sys.maxsize:  # (a damaged length: BytesIO's error)
+            raise OverflowError("cannot fit 'int' into an index-sized integer")
         start = self._count
         # a negative length (a record shorter than its fields) reads to the end, as BytesIO does
         data = self._data[start:start + length] if length > 0 else self._data[start:]

@@ -115,7 +115,7 @@ def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipel
     (MCAP allows them; Retriever's writer makes none) is replayed by :func:`replay`, read whole."""
     survey = LogSurvey(Path(path))
     read = None if progress is None else (lambda done, total: progress("reading", done, total))
-    log = scan_log(path, survey.take, progress=read)
+    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
     if callable(pipeline):
         pipeline = pipeline()
     steps = None if progress is None else (lambda done, total: progress("replaying", done, total))

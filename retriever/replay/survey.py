@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import numpy as np
 
 from ..errors import LogError
 from ..log import format as fmt
+from ..log.reader import ChunkMessages
 
 
 class LogSurvey:
@@ -60,6 +62,62 @@ class LogSurvey:
                     self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
                                           "the file is damaged or was edited: retriever replay reads logs as a run "
                                           "wrote them")
+
+    def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: its events
+        checked at once with numpy where each port's are framed as ``[microstep < 128, value]``
+        and its seqs follow on (nearly always; a chunk with anything else is taken as message
+        tuples, :meth:`take`, so the same is found and said), its step records without detail as
+        Retriever writes nearly all of them parsed at once for their nodes (:func:`_plain_steps`),
+        the others read one by one, in file order, as :meth:`take` reads them."""
+        kinds = self._kinds
+        heads, raw = chunk.heads, chunk.raw
+        channel_ids = heads["channel_id"]
+        found = np.flatnonzero(np.bincount(channel_ids)).tolist()
+        for channel_id in found:
+            if channel_id not in kinds:
+                kinds[channel_id] = self._kind(channels[channel_id])
+        if len(found) > 1:
+            at = {channel_id: np.flatnonzero(channel_ids == channel_id) for channel_id in found}
+        else:
+            at = {found[0]: np.arange(len(channel_ids))}
+        steps, ranges = [], []
+        bytes_ = np.frombuffer(raw, dtype=np.uint8)
+        for channel_id, which in at.items():
+            kind = kinds[channel_id]
+            if kind is _STEPS:
+                steps.append(which)
+            elif kind is not None:
+                seqs = heads["sequence"][which]
+                starts = chunk.offsets[which] + _DATA_AT
+                framed = ((chunk.ends[which] - starts >= 3).all()
+                          and (bytes_[starts] == 0x92).all() and (bytes_[starts + 1] < 0x80).all())
+                first, last = int(seqs[0]), int(seqs[-1])
+                hi = kind[2].hi
+                if not framed or (hi and hi[-1] != first) or last - first != len(seqs) - 1 \
+                        or (len(seqs) > 1 and (np.diff(seqs.astype(np.int64)) != 1).any()):
+                    self.take(channels, chunk.tuples())
+                    return
+                ranges.append((kind[2], first, last))
+        for seqs, first, last in ranges:
+            if not seqs.hi:
+                seqs.add(first)
+            seqs.hi[-1] = last + 1
+        if steps and self.step_error is None:
+            which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
+            starts = chunk.offsets[which] + _DATA_AT
+            plain, node_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            others = np.flatnonzero(~plain)
+            step = self._step
+            for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
+                                                       heads["sequence"][which[others]].tolist(),
+                                                       chunk.data(which[others])):
+                step(log_time, sequence, data)
+                if self.step_error is not None:  # the records after it are not taken (as by take)
+                    plain[other:] = False
+                    break
+            self.steps += int(plain.sum())
+            self.nodes.update(_names(bytes_, node_at[plain]))
 
     def _kind(self, channel) -> Any:
         if channel.topic == fmt.STEPS_TOPIC:
@@ -127,6 +185,92 @@ class LogSurvey:
 
 _STEPS = "steps"
 _UNSEEN = object()
+
+
+def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the step records ``data[starts:ends]`` are, as Retriever writes nearly every one,
+    ``[node, microstep, {port: [id, ...]}, [id, ...], status, nil, wall_ns]`` with ids ``[node,
+    port, seq]``, every string an ASCII fixstr, arrays and maps of up to 15, integers of any
+    msgpack width (msgpack.unpackb reads such a record as a 7-tuple whose node is a str and
+    detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
+    time for all of them at once; and where each one's node (its fixstr) is."""
+    not_ascii_before = np.zeros(len(data) + 1, dtype=np.int32)  # bytes >= 0x80 before each offset
+    np.cumsum(data >= 0x80, dtype=np.int32, out=not_ascii_before[1:])
+    last = len(data) - 1
+    ok = ends - starts >= 2
+    p = starts.copy()
+
+    def at(where: np.ndarray) -> np.ndarray:
+        return data[np.minimum(where, last)].astype(np.int64)
+
+    def text(act: np.ndarray) -> None:
+        nonlocal ok
+        h = at(p)
+        size = h - 0xA0
+        valid = (p < ends) & (h >= 0xA0) & (h <= 0xBF)
+        size = np.where(valid, size, 0)
+        begin = np.minimum(p + 1, last + 1)
+        valid &= not_ascii_before[np.minimum(begin + size, last + 1)] == not_ascii_before[begin]
+        ok &= ~act | valid
+        p[:] = np.where(act & ok, p + 1 + size, p)
+
+    def integer(act: np.ndarray, signed: bool = False) -> None:
+        nonlocal ok
+        h = at(p)
+        width = np.select([h < 0x80, h == 0xCC, h == 0xCD, h == 0xCE, h == 0xCF], [1, 2, 3, 5, 9], 0)
+        if signed:
+            width = np.select([width > 0, h >= 0xE0, h == 0xD0, h == 0xD1, h == 0xD2, h == 0xD3],
+                              [width, 1, 2, 3, 5, 9], 0)
+        ok &= ~act | ((p < ends) & (width > 0))
+        p[:] = np.where(act & ok, p + width, p)
+
+    def header(act: np.ndarray, low: int) -> np.ndarray:
+        nonlocal ok
+        h = at(p)
+        ok &= ~act | ((p < ends) & (h >= low) & (h <= low + 15))
+        p[:] = np.where(act & ok, p + 1, p)
+        return np.where(act & ok, h - low, 0)
+
+    def ids(act: np.ndarray) -> None:
+        nonlocal ok
+        count = header(act, 0x90)
+        for k in range(int(count.max(initial=0))):
+            one = act & ok & (k < count)
+            ok &= ~one | ((p < ends) & (at(p) == 0x93))
+            p[:] = np.where(one & ok, p + 1, p)
+            text(one & ok)
+            text(one & ok)
+            integer(one & ok)
+
+    ok &= at(p) == 0x97
+    p[:] = p + 1
+    node_at = p.copy()
+    text(ok.copy())
+    integer(ok.copy())
+    ports = header(ok.copy(), 0x80)
+    for k in range(int(ports.max(initial=0))):
+        text(ok & (k < ports))
+        ids(ok & (k < ports))
+    ids(ok.copy())
+    text(ok.copy())
+    ok &= (p < ends) & (at(p) == 0xC0)
+    p[:] = np.where(ok, p + 1, p)
+    integer(ok.copy(), signed=True)
+    return ok & (p == ends), node_at
+
+
+def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
+    """The distinct ASCII fixstrs at ``node_at`` in ``data``."""
+    if not len(node_at):
+        return set()
+    padded = np.concatenate((data, np.zeros(32, dtype=np.uint8)))
+    rows = np.lib.stride_tricks.sliding_window_view(padded, 32)[node_at]
+    rows = rows * (np.arange(32) <= (rows[:, :1].astype(np.int64) - 0xA0))  # the bytes after each name: 0
+    words = np.ascontiguousarray(rows).view("<u8")  # (n, 4)
+    rows = rows[np.lexsort(words.T[::-1])]
+    firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
+    return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
+_DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 
 
 class _Seqs:

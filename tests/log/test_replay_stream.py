@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgpack
 import pytest
 
 from retriever import LogError, read_log
@@ -354,3 +355,194 @@ def _record_bytes(record) -> bytes:
     builder = RecordBuilder()
     record.write(builder)
     return builder.end()
+
+
+def _index_bodies(entries: dict[int, list[tuple[int, int]]]) -> list[bytes]:
+    """MessageIndex records' fields (channel id, entries' length, ``(log_time, offset)`` entries)."""
+    import struct
+
+    return [struct.pack("<HI", channel_id, 16 * len(pairs)) + b"".join(struct.pack("<QQ", *p) for p in pairs)
+            for channel_id, pairs in entries.items()]
+
+
+def test_chunk_messages_walked_by_their_indexes_are_breakup_chunks(small_chunks):
+    """A chunk walked by the MessageIndex records after it (numpy reading every record's head)
+    gives what ``breakup_chunk`` gives, in file order, or by log time (ties in file order) for
+    ``time_ordered``; indexes that are missing, damaged or do not tile the chunk exactly with
+    whole Message records make it walked as before, with the same records and errors."""
+    from mcap.records import Channel, Chunk, Message, MessageIndex
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from retriever.log.reader import ChunkMessages, chunk_messages
+
+    def reference(chunk):
+        return [_fields(r) if type(r) is Message else r for r in breakup_chunk(chunk, validate_crc=True)]
+
+    def read(indexes, by_time=False):
+        def read(chunk):
+            messages, rest = chunk_messages(chunk, 7, range(1 << 16), indexes, by_time=by_time)
+            return [_fields(r) if type(r) is tuple else r for r in messages + rest]
+        return read
+
+    def indexed(chunk, indexes) -> bool:
+        try:
+            return type(chunk_messages(chunk, 7, range(1 << 16), indexes, arrays=True)[0]) is ChunkMessages
+        except Exception:
+            return False
+
+    # every chunk of a log, with the indexes its writer wrote after it
+    chunks_read, bodies = [], []
+    for record in StreamReader(open(small_chunks, "rb"), emit_chunks=True).records:
+        if type(record) is Chunk:
+            chunks_read.append(record)
+            bodies.append([])
+        elif type(record) is MessageIndex and bodies:
+            bodies[-1] += _index_bodies({record.channel_id: record.records})
+    assert len(chunks_read) > 20
+    for chunk, indexes in zip(chunks_read, bodies):
+        assert indexed(chunk, indexes)
+        assert read(indexes)(chunk) == reference(chunk)
+        assert read(indexes, by_time=True)(chunk) == sorted(reference(chunk), key=lambda m: m[0])
+        tuples = chunk_messages(chunk, 7, range(1 << 16), indexes)[0]
+        assert tuples == chunk_messages(chunk, 7, range(1 << 16))[0]  # positions too
+    # one chunk, its indexes made here: right, odd and damaged
+    plain = max((breakup_chunk(chunk) for chunk in chunks_read), key=len)
+    assert len(plain) > 4
+    data = b"".join(_record_bytes(r) for r in plain)
+    sizes = [len(_record_bytes(m)) for m in plain]
+    offsets = [sum(sizes[:i]) for i in range(len(plain))]
+    by_channel: dict[int, list] = {}
+    for m, offset in zip(plain, offsets):
+        by_channel.setdefault(m.channel_id, []).append((m.log_time, offset))
+    good = _index_bodies(by_channel)
+    one = list(by_channel)[0]
+    every = [(0, offset) for offset in offsets]
+    cases = {
+        "as written": (good, True),
+        "all in one index, times and channel wrong": (_index_bodies({one: every[::-1]}), True),
+        "none": ([], False),
+        "one entry left out": (_index_bodies({one: every[1:]}), False),
+        "the last left out": (_index_bodies({one: every[:-1]}), False),
+        "one twice": (_index_bodies({one: every + every[-1:]}), False),
+        "one off by a byte": (_index_bodies({one: every[:3] + [(0, offsets[3] + 1)] + every[4:]}), False),
+        "one past the end": (_index_bodies({one: every + [(0, len(data) + 100)]}), False),
+        "one at 2**64 - 1": (_index_bodies({one: every + [(0, 2 ** 64 - 1)]}), False),
+        "an entry cut short": ([good[0][:-3], *good[1:]], False),
+        "its length wrong": ([good[0][:2] + (17).to_bytes(4, "little") + good[0][6:], *good[1:]], False),
+        "its length not whole entries": ([good[0][:2] + (8).to_bytes(4, "little") + good[0][6:14], *good[1:]], False),
+        "a record of 3 bytes": ([b"abc", *good], False),
+    }
+    for name, (indexes, walked_by_them) in cases.items():
+        chunk = Chunk(compression="", data=data, message_start_time=0, message_end_time=0,
+                      uncompressed_crc=0, uncompressed_size=len(data))
+        assert indexed(chunk, indexes) is walked_by_them, name
+        assert _outcome(read(indexes), chunk) == _outcome(reference, chunk), name
+    # the chunk's bytes changed (its indexes as written): a record cut, a byte changed, another
+    # type's record, a Channel: not tiled, walked as before, the same records and errors
+    unknown = b"\x80" + (3).to_bytes(8, "little") + b"abc"
+    first = _record_bytes(plain[0])
+    channel = _record_bytes(Channel(id=9, schema_id=0, topic="t", message_encoding="m", metadata={}))
+    variants = [data + unknown, data[:-1], data[:40], b"", first + channel + data[len(first):], data[:-len(first)]]
+    variants += [data[:i] + bytes([data[i] ^ 0xFF]) + data[i + 1:] for i in (0, 1, 5, 9, 11, 20, 30, 31, len(data) - 1)]
+    for body in variants:
+        chunk = Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
+                      uncompressed_crc=0, uncompressed_size=len(body))
+        assert _outcome(read(good), chunk) == _outcome(reference, chunk), body[:40]
+    # every chunk of the log with a byte changed: a length changed may run past the chunk, or past
+    # 2**63 (BytesIO's OverflowError in breakup_chunk: the walk raises it too)
+    for each in chunks_read:
+        records = breakup_chunk(each)
+        whole = b"".join(_record_bytes(r) for r in records)
+        at, entries = 0, {}
+        for r in records:
+            entries.setdefault(r.channel_id, []).append((r.log_time, at))
+            at += len(_record_bytes(r))
+        for i in (0, 1, 5, 9, 11, 20, 30, 31, len(whole) - 1):
+            body = whole[:i] + bytes([whole[i] ^ 0xFF]) + whole[i + 1:]
+            changed = Chunk(compression="", data=body, message_start_time=0, message_end_time=0,
+                            uncompressed_crc=0, uncompressed_size=len(body))
+            assert _outcome(read(_index_bodies(entries)), changed) == _outcome(reference, changed), i
+    # a channel it is not told of: walked as before
+    chunk = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                  uncompressed_size=len(data))
+    left_out = plain[-1].channel_id
+    messages, rest = chunk_messages(chunk, 0, {m.channel_id for m in plain} - {left_out}, good)
+    assert type(messages) is list and rest and list(map(_fields, messages + rest)) == reference(chunk)
+
+
+def test_the_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(small_chunks, tmp_path):
+    """``LogSurvey.take_chunk`` (a chunk as numpy read it) finds what ``take`` finds of the same
+    messages as tuples, on a log as written and on chunks whose events skip a seq, repeat one,
+    or are framed otherwise."""
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from retriever.log.reader import chunk_messages
+    from retriever.replay import LogSurvey
+
+    def state(survey):
+        return (survey.nodes, survey.steps, {k: (v.lo, v.hi) for k, v in survey.seqs.items()}, survey.late,
+                survey.views(), survey.gaps, *(str(e) for e in (survey.step_error, survey.event_error, survey.twice)))
+
+    by_arrays, by_tuples = LogSurvey(small_chunks), LogSurvey(small_chunks)
+    scan_log(small_chunks, by_arrays.take, take_chunk=by_arrays.take_chunk)
+    scan_log(small_chunks, by_tuples.take)
+    assert state(by_arrays) == state(by_tuples) and by_arrays.steps > 100
+
+    channels = scan_log(small_chunks, lambda c, m: None).channels
+    chunk = next(r for r in StreamReader(open(small_chunks, "rb"), emit_chunks=True).records if type(r) is Chunk)
+    plain = breakup_chunk(chunk)
+    events = [i for i, m in enumerate(plain) if channels[m.channel_id].topic.startswith("data/")]
+
+    def changed(i, **fields):
+        m = plain[i]
+        return [*plain[:i], Message(**{**{k: getattr(m, k) for k in ("channel_id", "sequence", "log_time",
+                                                                      "publish_time", "data")}, **fields}),
+                *plain[i + 1:]]
+
+    last = events[-1]
+    steps = [i for i, m in enumerate(plain) if channels[m.channel_id].topic == "steps"]
+    one, two = steps[len(steps) // 2], steps[-1]
+    written = msgpack.unpackb(plain[one].data)
+    assert written[5] is None
+
+    def record(*fields, **changes):
+        fields = list(fields or written)
+        for at, value in changes.items():
+            fields["node microstep consumed produced status detail wall_ns".split().index(at)] = value
+        return msgpack.packb(fields)
+
+    ids = [["a", "b", 1], ["c", "d", 2 ** 40]]
+    kinds_of_steps = [
+        record(detail={"late": {"in": [["camera", "frame", 3]]}}, status="late"),
+        record(detail={"had_below": {"in": [["camera", "frame", 3]]}}),
+        record(detail={"restart_gap": {"in": [["camera", "frame", 3, 5]]}}),
+        record(detail={"missing": ["in"]}, status="skipped"), record(detail=5), record(detail={"late": 5}),
+        record(node="é"), record(node="x" * 40), record(node=""), record(consumed={"é": ids}),
+        record(consumed={"in": [["a", "é", 1]]}), record(produced=[["a", "b", -1]]), record(produced=[["a", "b"]]),
+        record(consumed={f"p{i}": ids for i in range(16)}), record(produced=ids * 8),
+        record(wall_ns=-5), record(wall_ns=2 ** 63), record(wall_ns=1.5), record(microstep=-1), record(microstep=300),
+        record(status="nonsense"), record(status="é"), record(consumed=[]), record(consumed={1: ids}),
+        record()[:-1], record() + b"\x00", b"\xc1", b"", b"\x97", msgpack.packb([*written, 1]),
+        msgpack.packb(written[:6]), b"\x97" + record()[1:].replace(b"\xc0", b"\xc2"),
+    ]
+    variants = [plain, changed(last, sequence=plain[last].sequence + 5), changed(last, sequence=0),
+                changed(last, data=b"\x93\x00\x00"), changed(last, data=b"\x92\xcc\x80\x00"),
+                changed(last, data=b"\x92")]
+    variants += [changed(one, data=data) for data in kinds_of_steps]
+    variants += [changed(two, data=data) for data in kinds_of_steps[:3]]
+    for records in variants:
+        sizes = [len(_record_bytes(m)) for m in records]
+        data = b"".join(_record_bytes(m) for m in records)
+        entries: dict[int, list] = {}
+        for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
+            entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
+        body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                     uncompressed_size=len(data))
+        arrays = chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0]
+        tuples = chunk_messages(body, 0, channels)[0]
+        a, b = LogSurvey(small_chunks), LogSurvey(small_chunks)
+        for _ in range(2):  # a chunk, then another after it
+            a.take_chunk(channels, arrays)
+            b.take(channels, tuples)
+            assert state(a) == state(b)
