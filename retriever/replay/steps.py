@@ -14,13 +14,14 @@ from ..codec import Encoder, unpackb
 from ..errors import LogError, RunEnded, StepError
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
-from ..sync import before, fill
+from ..sync import before, bound, fill
 from ..trace import StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
 from .survey import LogSurvey
 
 PROGRESS_EVERY = 2000
+_SKIPPED = StepStatus.SKIPPED
 _UNSEEN = object()  # the default of waiting.pop: no record claimed the event yet (None: one let it go)
 
 
@@ -164,7 +165,8 @@ class StepReplay:
 
     def run_instant(self, steps: list, progress: Callable[[int, int], None] | None) -> None:
         """Run an instant's step records, its messages all read, in (tag, node) order."""
-        steps.sort(key=_microstep_node)
+        if len(steps) > 1:
+            steps.sort(key=_microstep_node)
         run, done = self.run, self.done
         for step in steps:
             if progress is not None and done % PROGRESS_EVERY == 0:
@@ -179,7 +181,8 @@ class StepReplay:
         """One logged step: checked against its node's clock, the run's restart and late arrivals
         at it done again, then re-executed and compared; a source's, or a tick the run did not
         step, is not re-executed: its outputs are taken from the log."""
-        stats = self.report.nodes[step.node]
+        node, tag, detail = step.node, step.tag, step.detail
+        stats = self.report.nodes[node]
         stats.steps += 1
         # a source is not re-executed: its records are checked against its clock (a forged
         # record between its ticks, or a second at one, is no step the run made)
@@ -188,21 +191,26 @@ class StepReplay:
             self.checks.append(_Check(step, stats, found))
             self.flush()
             return
-        restarted = (step.detail or {}).get("restarted")
-        if restarted is not None:
-            _restart_afresh(self.session, step.node, restarted, self.floors)
+        if detail:
+            restarted = detail.get("restarted")
+            if restarted is not None:
+                _restart_afresh(self.session, node, restarted, self.floors)
         if self.late_at:
-            for buf, entry in self.late_at.pop((step.node, step.tag), ()):
-                fill(buf, entry, before(step.tag))  # it arrived late: in the buffer from this record on, as in the run
+            for buf, entry in self.late_at.pop((node, tag), ()):
+                fill(buf, entry, before(tag))  # it arrived late: in the buffer from this record on, as in the run
         keep_trace = self.keep_trace
         if keep_trace:
             self.kept_steps.append(tuple(step))
-        if step.node in self.sources or not _stepped(step):
+        # the run called step() at every tick but one that a real-time run stopped before stepping
+        # (realtime="hard", an incomplete edge): a skipped tick without "missing"
+        if node in self.sources or (step.status == _SKIPPED and not (detail and "missing" in detail)):
             self.claim(step.produced, None)
             if keep_trace:  # not re-executed: its outputs as logged
                 self.kept_parts.append(step.produced)
             return
-        self.deliver_due(step.tag)
+        deliveries = self.deliveries
+        if deliveries and deliveries[0][0] <= tag:
+            self.deliver_due(tag)
         replayed, events = _execute(self.session, step)
         if keep_trace:
             self.kept_parts.append(events)
@@ -212,12 +220,14 @@ class StepReplay:
     def deliver_due(self, tag: tuple[int, int]) -> None:
         """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
         consumer no longer takes."""
-        deliveries, floors = self.deliveries, self.floors
+        deliveries, floors, pop = self.deliveries, self.floors, heapq.heappop
         after = before(tag)  # steps run in tag order: every tick to come is at or after this one
         while deliveries and deliveries[0][0] <= tag:
-            _, _, consumer, buf, entry = heapq.heappop(deliveries)
+            _, _, consumer, buf, entry = pop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                fill(buf, entry, after)
+                buf.insert(entry)  # (sync.fill, inlined)
+                if len(buf.entries) >= buf.bound_at:
+                    bound(buf, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
         """A re-executed step against the log: its record now, its outputs once the log's are read;
@@ -236,6 +246,20 @@ class StepReplay:
                 self.claim(step.produced, None)
                 self.checks.append(_Check(step, stats, found))
             else:
+                unclaimed = self.unclaimed
+                for event_id in step.produced:
+                    if event_id not in unclaimed:
+                        break
+                else:  # every logged output read (the commonest): decided now
+                    found = compare_outputs(step, events, {event_id: unclaimed.pop(event_id)
+                                                           for event_id in step.produced},
+                                            self.encode, step.node in self.stamped)
+                    if found is None:  # an identical step is a count: it needs no place in step order
+                        stats.identical += 1
+                        return
+                    self.checks.append(_Check(step, stats, found))
+                    self.flush()
+                    return
                 check = _Check(step, stats, done=False)
                 check.events, check.stamped = events, step.node in self.stamped
                 self.claim(step.produced, check)
@@ -363,8 +387,3 @@ def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: 
             if entry[3] >= floors.get((node, entry[1], entry[2]), 0):
                 buf.insert(entry)
 
-
-def _stepped(step) -> bool:
-    """Whether the run called step() at this tick or its policy skipped it: every tick but one
-    that a real-time run stopped before stepping (realtime="hard", an incomplete edge)."""
-    return step.status != StepStatus.SKIPPED or "missing" in (step.detail or {})
