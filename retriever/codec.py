@@ -515,6 +515,16 @@ def unpackb(data: bytes, *, keep_unregistered: bool = False) -> Any:
     return _unpack(data, keep_unregistered, None)
 
 
+def decodes_surely(data: bytes) -> bool:
+    """Whether :func:`unpackb` decodes ``data`` surely, told without decoding it: an array's
+    encoding that begins as one of the same length that it decoded before (``_array_decodings``).
+    False says nothing: decode it to know. A decoder may put off decoding what decodes surely."""
+    if type(data) is not bytes:
+        return False
+    known = _array_decodings.get(len(data))
+    return known is not None and data.startswith(known[0])
+
+
 #: the length of an array's encoding -> (the bytes before its raw bytes, its dtype, its shape), as
 #: unpackb last decoded one that long. Bytes of that length that begin with the same bytes encode
 #: an array of that dtype and shape whatever the rest (the raw bytes of the same count), which

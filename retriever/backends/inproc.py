@@ -659,6 +659,21 @@ class InprocSession(Session):
         self._compiled.generic_only = True  # generated ticks deliver, and expect inproc entries
         return routes
 
+    def prepare_inputs(self, node: str, prepare: Callable[[dict], None]) -> None:
+        """Have ``prepare(values)`` make, in place, the input values that ``node``'s ticks selected
+        into what its step takes, before each step: a replay's logged values, decoded only once a
+        tick takes one. Only after :meth:`take_routes` (generated ticks call the step themselves)."""
+        if not self._compiled.generic_only:
+            raise RuntimeError("prepare_inputs() needs take_routes() first")
+        rt = self._by_id[node]
+        invoke = rt.invoke
+
+        def prepared(values: dict) -> Any:
+            prepare(values)
+            return invoke(values)
+
+        rt.invoke = prepared
+
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
         compiled = self._compiled
