@@ -679,7 +679,8 @@ class InprocSession(Session):
         compiled = self._compiled
         if compiled.ticks is not None or compiled.flushes:  # generated ticks keep their own seq counters
             compiled.drop()
-        run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
+        recorder = self._recorder
+        run_tick(self._by_id[node], tau, recorder.skipped, recorder.failed, recorder.emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that

@@ -5,7 +5,8 @@ is compared with the log (compare.py), the comparisons reported in step order.""
 from __future__ import annotations
 
 import bisect
-import heapq
+import functools
+from heapq import heappop, heappush
 from collections import deque
 from typing import Callable, Iterator
 
@@ -21,7 +22,7 @@ from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
 from .survey import LogSurvey
 
 PROGRESS_EVERY = 2000
-_SKIPPED = StepStatus.SKIPPED
+_SKIPPED, _LATE = StepStatus.SKIPPED, StepStatus.LATE
 _UNSEEN = object()  # the default of waiting.pop: no record claimed the event yet (None: one let it go)
 
 
@@ -123,6 +124,7 @@ class StepReplay:
         steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
         read = self.read
+        record = _step_record
         steps: list = []
         instant = None
         for log_time, _, channel, sequence, publish_time, data in messages():
@@ -136,8 +138,8 @@ class StepReplay:
                     node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
                 except Exception as e:
                     raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
-                steps.append(StepRecord(node, (log_time, microstep), consumed, produced, status, detail,
-                                        publish_time, wall_ns))
+                steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,
+                                     publish_time, wall_ns)))
             else:
                 port = ports.get(channel)
                 if port is not None:
@@ -180,7 +182,7 @@ class StepReplay:
                     else:
                         self.late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
                 elif not missed or not _never_had(missed.get((consumer, node, port_name)), arrival, seq):
-                    heapq.heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
+                    heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
                     self.delivered += 1
         check = self.waiting.pop(event_id, _UNSEEN)
         if check is _UNSEEN:
@@ -249,7 +251,7 @@ class StepReplay:
     def deliver_due(self, tag: tuple[int, int]) -> None:
         """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
         consumer no longer takes."""
-        deliveries, floors, pop = self.deliveries, self.floors, heapq.heappop
+        deliveries, floors, pop = self.deliveries, self.floors, heappop
         after = before(tag)  # steps run in tag order: every tick to come is at or after this one
         while deliveries and deliveries[0][0] <= tag:
             _, _, consumer, buf, entry = pop(deliveries)
@@ -275,14 +277,14 @@ class StepReplay:
                 self.claim(step.produced, None)
                 self.checks.append(_Check(step, stats, found))
             else:
-                unclaimed = self.unclaimed
-                for event_id in step.produced:
+                unclaimed, produced = self.unclaimed, step.produced
+                for event_id in produced:
                     if event_id not in unclaimed:
                         break
-                else:  # every logged output read (the commonest): decided now
-                    found = compare_outputs(step, events, {event_id: unclaimed.pop(event_id)
-                                                           for event_id in step.produced},
-                                            self.encode, step.node in self.stamped)
+                else:  # every logged output read (the commonest): decided now, then let go
+                    found = compare_outputs(step, events, unclaimed, self.encode, step.node in self.stamped)
+                    for event_id in produced:
+                        del unclaimed[event_id]
                     if found is None:  # an identical step is a count: it needs no place in step order
                         stats.identical += 1
                         return
@@ -352,6 +354,10 @@ class StepReplay:
         return kept
 
 
+#: StepRecord(*fields) without its Python-level __new__: one a logged step
+_step_record = functools.partial(tuple.__new__, StepRecord)
+
+
 def _microstep_node(step) -> tuple[int, str]:
     return (step.tag[1], step.node)
 
@@ -363,7 +369,7 @@ def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
         session.tick(step.node, step.tag)
     except (StepError, RunEnded):
         pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
-    if step.status == StepStatus.LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
+    if step.status == _LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
     tape = trace.tape
     if len(tape) == 2:  # one event and the record (the commonest): as below, without the scans
