@@ -63,8 +63,9 @@ class StepReplay:
     """One replay of a log's steps (:meth:`play`): the log's messages read once in log-time
     order (``messages()``), an instant at a time::
 
-        an instant's messages ─┬─ events ─→ read: decoded once, to the consumers' deliveries (a
-                               │            heap by arrival) and to the check waiting for them
+        an instant's messages ─┬─ events ─→ read: decoded once (_Logged: once taken), to the
+                               │            consumers' deliveries (a heap by arrival) and to
+                               │            the check waiting for them
                                └─ records → run, in (tag, node) order: checked against the clock,
                                             the deliveries due put in, the tick re-executed,
                                             compared (its outputs once read: decide), the
