@@ -106,6 +106,8 @@ def dataclass_fields(value: Any) -> dict[str, Any] | None:
 
 
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
+#: packs what packb packs without its `default` (no tuple, array, dataclass, int past 64 bits), or raises
+_pack_strict = msgpack.Packer(use_bin_type=True, strict_types=True).pack
 
 
 _array_heads: dict[tuple, bytes] = {}  # (dtype, shape) -> the msgpack bytes of "[descr, shape, " below
@@ -181,15 +183,77 @@ def array_encoding_head(arr: np.ndarray) -> bytes:
     """What ``Encoder.pack(arr)`` puts before the array's raw bytes (in C order): a big array's
     encoding can then be assembled in a buffer numpy copies the array into, which lets other
     threads run meanwhile (``tobytes`` and joining bytes hold the GIL for the whole copy)."""
-    head, n = _array_head(arr), arr.nbytes
-    size = _bin_head(n)
-    return _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
+    key = (arr.dtype, arr.shape)
+    whole = _array_encoding_heads.get(key)
+    if whole is None:
+        head, n = _array_head(arr), arr.nbytes
+        size = _bin_head(n)
+        whole = _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
+        if len(_array_encoding_heads) < 4096:
+            _array_encoding_heads[key] = whole
+    return whole
+
+
+#: (dtype, shape) -> what precedes an array's raw bytes in its encoding (array_encoding_head)
+_array_encoding_heads: dict[tuple, bytes] = {}
 
 
 def _default(obj: Any) -> Any:
+    if type(obj) is tuple:  # (an event id, a tag: the commonest, in traces and step records)
+        ext = _plain_tuple(obj, _depth.level)
+        if ext is not None:
+            return ext
     if isinstance(obj, np.ndarray):
         return msgpack.ExtType(EXT_NDARRAY, _array_payload(obj))
     return _extension(obj, packb)
+
+
+#: what a tuple's items may be for :func:`_plain_tuple` (with tuples, lists and arrays)
+_PLAIN_ITEMS = frozenset({int, str, float, bool, bytes, type(None)})
+
+
+def _plain_tuple(obj: tuple, level: int) -> msgpack.ExtType | None:
+    """The extension :func:`_extension` makes of a tuple nested ``level`` deep, for a tuple of
+    plain values, arrays, and tuples and lists of them (an event id, a tag, a trace's record),
+    made with one packer call rather than one a level (what it packs is what packb would); None
+    for any other tuple, or one nested too deep: then :func:`_extension` makes it."""
+    if level >= MAX_EXT_DEPTH:
+        return None
+    items = list(obj)
+    if not _plain_items(items, level, True):
+        return None
+    try:
+        return _ext_type((EXT_TUPLE, _pack_strict(items)))
+    except (OverflowError, ValueError):  # an int past 64 bits (packb widens it), a str too long
+        return None
+
+
+def _plain_items(items: list, level: int, lists: bool) -> bool:
+    """Make the tuples and arrays in ``items`` (and, with ``lists``, in lists in it: a list one
+    level only) their extensions, in place; False if something else is in it."""
+    for i, item in enumerate(items):
+        kind = type(item)
+        if kind in _PLAIN_ITEMS:
+            continue
+        if kind is tuple:
+            item = _plain_tuple(item, level + 1)
+            if item is None:
+                return False
+            items[i] = item
+        elif kind is np.ndarray and not item.dtype.hasobject:  # as _default makes it
+            items[i] = _ext_type((EXT_NDARRAY, _array_payload(item)))
+        elif kind is list and lists:
+            item = list(item)
+            if not _plain_items(item, level, False):
+                return False
+            items[i] = item
+        else:
+            return False
+    return True
+
+
+#: an ExtType of (code, bytes) made without its checks (both are the codec's own)
+_ext_type = functools.partial(tuple.__new__, msgpack.ExtType)
 
 
 class _Depth(threading.local):
@@ -396,7 +460,8 @@ class Encoder:
 
     def pack(self, value: Any) -> bytes:
         if type(value) is np.ndarray:  # the commonest payload: skip msgpack's `default` round trip
-            return _ext_bytes(EXT_NDARRAY, _array_payload(value))
+            head = _array_encoding_heads.get((value.dtype, value.shape))
+            return (array_encoding_head(value) if head is None else head) + value.tobytes()
         try:
             return self._pack(value)
         except OverflowError:
@@ -438,7 +503,34 @@ def unpackb(data: bytes, *, keep_unregistered: bool = False) -> Any:
     """Decode bytes made by :func:`packb`. A dataclass comes back as its registered value type;
     one not registered here raises CodecError, or with ``keep_unregistered=True`` (tools that only
     show values) comes back as an :class:`UnregisteredValue`."""
+    if type(data) is bytes:
+        known = _array_decodings.get(len(data))
+        if known is not None and data.startswith(known[0]):  # an array as one decoded before: its data differs
+            head, dtype, shape = known
+            return np.frombuffer(data, dtype, offset=len(head)).reshape(shape).copy()
+        value = _unpack(data, keep_unregistered, None)
+        if type(value) is np.ndarray and value.dtype.itemsize and len(_array_decodings) < 1024:
+            _array_decodings[len(data)] = (data[:len(data) - value.nbytes], value.dtype, value.shape)
+        return value
     return _unpack(data, keep_unregistered, None)
+
+
+def decodes_surely(data: bytes) -> bool:
+    """Whether :func:`unpackb` decodes ``data`` surely, told without decoding it: an array's
+    encoding that begins as one of the same length that it decoded before (``_array_decodings``).
+    False says nothing: decode it to know. A decoder may put off decoding what decodes surely."""
+    if type(data) is not bytes:
+        return False
+    known = _array_decodings.get(len(data))
+    return known is not None and data.startswith(known[0])
+
+
+#: the length of an array's encoding -> (the bytes before its raw bytes, its dtype, its shape), as
+#: unpackb last decoded one that long. Bytes of that length that begin with the same bytes encode
+#: an array of that dtype and shape whatever the rest (the raw bytes of the same count), which
+#: decodes as that one did, no check failing: the decoding of the log's and the wire's arrays of a
+#: few dtypes and shapes, without msgpack and the extension hook
+_array_decodings: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 
 
 def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:

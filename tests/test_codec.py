@@ -390,3 +390,63 @@ def test_a_dtype_numpy_would_parse_as_text_is_refused_without_compiling_it(descr
     finally:
         armed[0] = False
     assert compiled == []
+
+
+# ---------------------------------------------------------------------------------------------
+# The fast paths give the bytes and values of the general one
+# ---------------------------------------------------------------------------------------------
+def _one_level_at_a_time(value):
+    """What packb packs for a value of plain items, lists, dicts and tuples, made with msgpack's
+    own packer: each tuple an extension whose payload is packed on its own, a level deeper."""
+    import msgpack
+
+    if type(value) is tuple:
+        return msgpack.ExtType(2, msgpack.packb([_one_level_at_a_time(v) for v in value], use_bin_type=True))
+    if type(value) is list:
+        return [_one_level_at_a_time(v) for v in value]
+    if type(value) is dict:
+        return {_one_level_at_a_time(k): _one_level_at_a_time(v) for k, v in value.items()}
+    if type(value) is int and not -(2**63) <= value < 2**64:
+        return msgpack.ExtType(3, str(value).encode())
+    return value
+
+
+plain_values = st.recursive(
+    st.none() | st.booleans() | ints | floats | st.text(max_size=8) | st.binary(max_size=8),
+    lambda children: (st.lists(children, max_size=4) | st.lists(children, max_size=4).map(tuple)
+                      | st.dictionaries(keys, children, max_size=4)),
+    max_leaves=20,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(plain_values)
+def test_tuples_of_plain_values_pack_as_a_level_at_a_time(value):
+    import msgpack
+
+    # event ids and tags (tuples of plain values, of tuples of them) are packed at once (codec._plain_tuple)
+    expected = msgpack.packb(_one_level_at_a_time(value), use_bin_type=True)
+    assert packb(value) == expected
+    assert packb(("step", value, (value, ((1, "a"), value)))) == msgpack.packb(
+        _one_level_at_a_time(("step", value, (value, ((1, "a"), value)))), use_bin_type=True)
+
+
+def test_arrays_as_long_as_one_decoded_before_decode_as_themselves():
+    # an array's encoding that begins as one of the same length decoded before decodes without
+    # msgpack (codec._array_decodings): what it decodes to, and what it refuses, stay the same
+    first, same_length = np.array([1.5, -2.0]), np.array([7, 8], dtype="<i8")
+    assert len(packb(first)) == len(packb(same_length))
+    for arr in [first, np.array([3.0, 4.0]), same_length, np.array([[9, 10]], dtype="<i8"), first[::-1]]:
+        data = packb(arr)
+        for _ in range(2):
+            assert_same(np.ascontiguousarray(arr), unpackb(data))
+        decoded = unpackb(data)
+        assert decoded.flags.writeable and decoded.flags.owndata  # a copy, as msgpack's way gives
+    head = packb(first)[:-16]
+    wrong_dtype = head.replace(b"<f8", b"<O8") + bytes(16)  # same length, another head: refused as before
+    with pytest.raises(CodecError, match="cannot create an OBJECT array"):
+        unpackb(wrong_dtype)
+    short = bytearray(packb(first))
+    short[-17] = 15  # the bin's length says 15 of the 16 bytes: msgpack's ExtraData, as before
+    with pytest.raises(CodecError, match="ExtraData"):
+        unpackb(bytes(short))

@@ -659,12 +659,28 @@ class InprocSession(Session):
         self._compiled.generic_only = True  # generated ticks deliver, and expect inproc entries
         return routes
 
+    def prepare_inputs(self, node: str, prepare: Callable[[dict], None]) -> None:
+        """Have ``prepare(values)`` make, in place, the input values that ``node``'s ticks selected
+        into what its step takes, before each step: a replay's logged values, decoded only once a
+        tick takes one. Only after :meth:`take_routes` (generated ticks call the step themselves)."""
+        if not self._compiled.generic_only:
+            raise RuntimeError("prepare_inputs() needs take_routes() first")
+        rt = self._by_id[node]
+        invoke = rt.invoke
+
+        def prepared(values: dict) -> Any:
+            prepare(values)
+            return invoke(values)
+
+        rt.invoke = prepared
+
     def tick(self, node: str, tau: tuple[int, int]) -> None:
         """Run one tick of ``node`` at ``tau`` now, as the loop would (records land in the trace)."""
         compiled = self._compiled
         if compiled.ticks is not None or compiled.flushes:  # generated ticks keep their own seq counters
             compiled.drop()
-        run_tick(self._by_id[node], tau, self._recorder.skipped, self._recorder.failed, self._recorder.emit)
+        recorder = self._recorder
+        run_tick(self._by_id[node], tau, recorder.skipped, recorder.failed, recorder.emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that

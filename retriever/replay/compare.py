@@ -20,20 +20,20 @@ class TickCheck:
 
     def __init__(self, graph) -> None:
         self.clocks = {nid: node.clock for nid, node in graph.nodes.items()}
-        self.next: dict[str, tuple[tuple[int, int], int]] = {}  # node -> (the tag of its tick k, k)
+        self.next: dict[str, tuple[tuple[int, int], int, Any]] = {}  # node -> (the tag of its tick k, k, clock)
 
     def __call__(self, node: str, tag: tuple[int, int]) -> bool:
         expected = self.next.get(node)
-        clock = self.clocks[node]
         if expected is not None and expected[0] == tag:
-            k = expected[1]
-        elif not clock.may_tick_at(tag):
-            return False
-        elif clock.triggered or clock.hz is None:
-            return True
+            _, k, clock = expected
         else:
+            clock = self.clocks[node]
+            if not clock.may_tick_at(tag):
+                return False
+            if clock.triggered or clock.hz is None:
+                return True
             k = clock.first_tick_at_or_after(tag[0])
-        self.next[node] = ((clock.tick_time(k + 1), 0), k + 1)
+        self.next[node] = ((clock.tick_time(k + 1), 0), k + 1, clock)
         return True
 
 
@@ -52,21 +52,24 @@ def off_clock(step, on_clock: TickCheck, seen: set[tuple[str, tuple[int, int]]])
 def compare_record(step, replayed: tuple) -> Divergence | None:
     """The replayed step record against the logged one: the ids it consumed, its status, its
     error, the ids it produced."""
-    _, tag, consumed, produced, status, detail, *_ = replayed
-
-    def differs(what: str, logged_value: Any, replayed: Any, port: str | None = None) -> Divergence:
-        return Divergence(step.node, step.tag, what, port, logged_value, replayed)
-
+    consumed, produced, status, detail = replayed[2:6]
     if consumed != step.consumed:
         port = next((p for p in sorted(set(consumed) | set(step.consumed)) if consumed.get(p) != step.consumed.get(p)))
-        return differs("inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
-    if status != (StepStatus.OK if step.status in STEPPED else step.status):
-        return differs("status", _status(step.status, step.detail), _status(status, detail))
-    if status == StepStatus.ERROR and (detail or {}).get("error") != (step.detail or {}).get("error"):
-        return differs("error", step.detail.get("error"), detail.get("error"))
+        return _differs(step, "inputs (consumed event ids)", step.consumed.get(port), consumed.get(port), port)
+    if status != (_OK if step.status in STEPPED else step.status):
+        return _differs(step, "status", _status(step.status, step.detail), _status(status, detail))
+    if status == _ERROR and (detail or {}).get("error") != (step.detail or {}).get("error"):
+        return _differs(step, "error", step.detail.get("error"), detail.get("error"))
     if produced != step.produced:
-        return differs("outputs (produced event ids)", list(step.produced), list(produced))
+        return _differs(step, "outputs (produced event ids)", list(step.produced), list(produced))
     return None
+
+
+_OK, _ERROR = StepStatus.OK, StepStatus.ERROR
+
+
+def _differs(step, what: str, logged_value: Any, replayed: Any, port: str | None = None) -> Divergence:
+    return Divergence(step.node, step.tag, what, port, logged_value, replayed)
 
 
 def compare_outputs(step, events: list, logged: dict[tuple, tuple[tuple[int, int], bytes]], encode,

@@ -5,22 +5,24 @@ is compared with the log (compare.py), the comparisons reported in step order.""
 from __future__ import annotations
 
 import bisect
-import heapq
+import functools
+from heapq import heappop, heappush
 from collections import deque
 from typing import Callable, Iterator
 
 from ..backends.inproc import InprocSession
-from ..codec import Encoder, unpackb
+from ..codec import Encoder, decodes_surely, unpackb
 from ..errors import LogError, RunEnded, StepError
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
-from ..sync import before, fill
+from ..sync import Latest, before, bound, fill
 from ..trace import StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
 from .survey import LogSurvey
 
 PROGRESS_EVERY = 2000
+_SKIPPED, _LATE = StepStatus.SKIPPED, StepStatus.LATE
 _UNSEEN = object()  # the default of waiting.pop: no record claimed the event yet (None: one let it go)
 
 
@@ -36,12 +38,34 @@ class _Check:
         self.waiting = 0
 
 
+class _Logged:
+    """A logged value that decodes surely (codec.decodes_surely), decoded when a tick first takes
+    it (then that one value at every tick that takes it, as in the run): routed to Latest inputs
+    only, whose policy never looks at it, and most of which no tick takes (the quickstart's
+    policy takes 1 in 100 of the controller's states)."""
+
+    __slots__ = ("raw", "value")
+
+    def __init__(self, raw: bytes) -> None:
+        self.raw, self.value = raw, _Logged
+
+
+def _take_logged(values: dict) -> None:
+    """A tick's input values, those still logged decoded (InprocSession.prepare_inputs)."""
+    for port, value in values.items():
+        if type(value) is _Logged:
+            if value.value is _Logged:
+                value.value = unpackb(value.raw)
+            values[port] = value.value
+
+
 class StepReplay:
     """One replay of a log's steps (:meth:`play`): the log's messages read once in log-time
     order (``messages()``), an instant at a time::
 
-        an instant's messages ─┬─ events ─→ read: decoded once, to the consumers' deliveries (a
-                               │            heap by arrival) and to the check waiting for them
+        an instant's messages ─┬─ events ─→ read: decoded once (_Logged: once taken), to the
+                               │            consumers' deliveries (a heap by arrival) and to
+                               │            the check waiting for them
                                └─ records → run, in (tag, node) order: checked against the clock,
                                             the deliveries due put in, the tick re-executed,
                                             compared (its outputs once read: decide), the
@@ -51,7 +75,7 @@ class StepReplay:
     What is held is what the instants still to come need (deliveries not due, comparisons waiting
     for a LET output, the survey's exceptions)."""
 
-    __slots__ = ("log", "session", "sources", "keep_trace", "encode", "routes", "late", "gaps", "missed", "in_log",
+    __slots__ = ("log", "session", "sources", "keep_trace", "encode", "routes", "put_off", "late", "gaps", "missed", "in_log",
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "seen_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
                  "kept_steps", "kept_parts", "kept_events")
@@ -62,6 +86,11 @@ class StepReplay:
         self.log, self.session, self.sources, self.keep_trace = log, session, sources, keep_trace
         self.encode = Encoder().pack
         self.routes = session.take_routes()
+        # the ports whose every consumer takes them with Latest: their values decoded once taken
+        self.put_off = {port for port, consumers in self.routes.items()
+                        if consumers and all(type(buf.policy) is Latest for _, buf, _ in consumers)}
+        for node in {consumer[0] for port in self.put_off for consumer, _, _ in self.routes[port]}:
+            session.prepare_inputs(node, _take_logged)
         self.late, self.gaps, self.missed = survey.late, survey.gaps, survey.views()
         self.in_log = survey.in_log
         # a lost process's outputs that its records claim and no report carried: not comparable (a
@@ -96,6 +125,7 @@ class StepReplay:
         steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
         read = self.read
+        record = _step_record
         steps: list = []
         instant = None
         for log_time, _, channel, sequence, publish_time, data in messages():
@@ -109,8 +139,8 @@ class StepReplay:
                     node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
                 except Exception as e:
                     raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
-                steps.append(StepRecord(node, (log_time, microstep), consumed, produced, status, detail,
-                                        publish_time, wall_ns))
+                steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,
+                                     publish_time, wall_ns)))
             else:
                 port = ports.get(channel)
                 if port is not None:
@@ -132,11 +162,14 @@ class StepReplay:
             self.kept_events[event_id] = LoggedEvent(tag, node, port_name, seq, raw, publish_time)
         consumers = self.routes.get(port)
         if consumers:
-            try:
-                value = unpackb(raw)
-            except Exception:  # what it is, said as the log says it
-                self.log.value(LoggedEvent(tag, node, port_name, seq, raw, publish_time))
-                raise
+            if port in self.put_off and decodes_surely(raw):
+                value = _Logged(raw)
+            else:
+                try:
+                    value = unpackb(raw)
+                except Exception:  # what it is, said as the log says it
+                    self.log.value(LoggedEvent(tag, node, port_name, seq, raw, publish_time))
+                    raise
             gaps, late, missed = self.gaps, self.late, self.missed
             for consumer, buf, delay_ns in consumers:
                 if gaps and _in_gap(gaps.get(consumer), node, port_name, seq):
@@ -150,7 +183,7 @@ class StepReplay:
                     else:
                         self.late_at.setdefault((consumer[0], seen_at), []).append((buf, entry))
                 elif not missed or not _never_had(missed.get((consumer, node, port_name)), arrival, seq):
-                    heapq.heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
+                    heappush(self.deliveries, (arrival, self.delivered, consumer[0], buf, entry))
                     self.delivered += 1
         check = self.waiting.pop(event_id, _UNSEEN)
         if check is _UNSEEN:
@@ -164,7 +197,8 @@ class StepReplay:
 
     def run_instant(self, steps: list, progress: Callable[[int, int], None] | None) -> None:
         """Run an instant's step records, its messages all read, in (tag, node) order."""
-        steps.sort(key=_microstep_node)
+        if len(steps) > 1:
+            steps.sort(key=_microstep_node)
         run, done = self.run, self.done
         for step in steps:
             if progress is not None and done % PROGRESS_EVERY == 0:
@@ -179,7 +213,8 @@ class StepReplay:
         """One logged step: checked against its node's clock, the run's restart and late arrivals
         at it done again, then re-executed and compared; a source's, or a tick the run did not
         step, is not re-executed: its outputs are taken from the log."""
-        stats = self.report.nodes[step.node]
+        node, tag, detail = step.node, step.tag, step.detail
+        stats = self.report.nodes[node]
         stats.steps += 1
         # a source is not re-executed: its records are checked against its clock (a forged
         # record between its ticks, or a second at one, is no step the run made)
@@ -188,21 +223,26 @@ class StepReplay:
             self.checks.append(_Check(step, stats, found))
             self.flush()
             return
-        restarted = (step.detail or {}).get("restarted")
-        if restarted is not None:
-            _restart_afresh(self.session, step.node, restarted, self.floors)
+        if detail:
+            restarted = detail.get("restarted")
+            if restarted is not None:
+                _restart_afresh(self.session, node, restarted, self.floors)
         if self.late_at:
-            for buf, entry in self.late_at.pop((step.node, step.tag), ()):
-                fill(buf, entry, before(step.tag))  # it arrived late: in the buffer from this record on, as in the run
+            for buf, entry in self.late_at.pop((node, tag), ()):
+                fill(buf, entry, before(tag))  # it arrived late: in the buffer from this record on, as in the run
         keep_trace = self.keep_trace
         if keep_trace:
             self.kept_steps.append(tuple(step))
-        if step.node in self.sources or not _stepped(step):
+        # the run called step() at every tick but one that a real-time run stopped before stepping
+        # (realtime="hard", an incomplete edge): a skipped tick without "missing"
+        if node in self.sources or (step.status == _SKIPPED and not (detail and "missing" in detail)):
             self.claim(step.produced, None)
             if keep_trace:  # not re-executed: its outputs as logged
                 self.kept_parts.append(step.produced)
             return
-        self.deliver_due(step.tag)
+        deliveries = self.deliveries
+        if deliveries and deliveries[0][0] <= tag:
+            self.deliver_due(tag)
         replayed, events = _execute(self.session, step)
         if keep_trace:
             self.kept_parts.append(events)
@@ -212,12 +252,14 @@ class StepReplay:
     def deliver_due(self, tag: tuple[int, int]) -> None:
         """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
         consumer no longer takes."""
-        deliveries, floors = self.deliveries, self.floors
+        deliveries, floors, pop = self.deliveries, self.floors, heappop
         after = before(tag)  # steps run in tag order: every tick to come is at or after this one
         while deliveries and deliveries[0][0] <= tag:
-            _, _, consumer, buf, entry = heapq.heappop(deliveries)
+            _, _, consumer, buf, entry = pop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                fill(buf, entry, after)
+                buf.insert(entry)  # (sync.fill, inlined)
+                if len(buf.entries) >= buf.bound_at:
+                    bound(buf, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
         """A re-executed step against the log: its record now, its outputs once the log's are read;
@@ -236,6 +278,20 @@ class StepReplay:
                 self.claim(step.produced, None)
                 self.checks.append(_Check(step, stats, found))
             else:
+                unclaimed, produced = self.unclaimed, step.produced
+                for event_id in produced:
+                    if event_id not in unclaimed:
+                        break
+                else:  # every logged output read (the commonest): decided now, then let go
+                    found = compare_outputs(step, events, unclaimed, self.encode, step.node in self.stamped)
+                    for event_id in produced:
+                        del unclaimed[event_id]
+                    if found is None:  # an identical step is a count: it needs no place in step order
+                        stats.identical += 1
+                        return
+                    self.checks.append(_Check(step, stats, found))
+                    self.flush()
+                    return
                 check = _Check(step, stats, done=False)
                 check.events, check.stamped = events, step.node in self.stamped
                 self.claim(step.produced, check)
@@ -299,6 +355,10 @@ class StepReplay:
         return kept
 
 
+#: StepRecord(*fields) without its Python-level __new__: one a logged step
+_step_record = functools.partial(tuple.__new__, StepRecord)
+
+
 def _microstep_node(step) -> tuple[int, str]:
     return (step.tag[1], step.node)
 
@@ -310,7 +370,7 @@ def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
         session.tick(step.node, step.tag)
     except (StepError, RunEnded):
         pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
-    if step.status == StepStatus.LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
+    if step.status == _LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
     tape = trace.tape
     if len(tape) == 2:  # one event and the record (the commonest): as below, without the scans
@@ -363,8 +423,3 @@ def _restart_afresh(session: InprocSession, node: str, restarted: dict, floors: 
             if entry[3] >= floors.get((node, entry[1], entry[2]), 0):
                 buf.insert(entry)
 
-
-def _stepped(step) -> bool:
-    """Whether the run called step() at this tick or its policy skipped it: every tick but one
-    that a real-time run stopped before stepping (realtime="hard", an incomplete edge)."""
-    return step.status != StepStatus.SKIPPED or "missing" in (step.detail or {})
