@@ -19,9 +19,8 @@ import stat
 import struct
 import time
 from contextlib import contextmanager
-from operator import itemgetter
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import msgpack
 import numpy as np
@@ -39,7 +38,6 @@ if TYPE_CHECKING:
     from ..trace import Trace
 
 
-_value = itemgetter(4)
 #: an event's data is msgpack ``[microstep, value]``: a fixarray of 2 (this byte), then, almost always,
 #: a fixint microstep (< 128), which _EVENT_HEAD packs with the Message record's head in one call
 _FIXARRAY_2 = 0x92
@@ -152,6 +150,9 @@ class LogWriter:
         self._faults = 0
         self._starved = 0
         self._encode = Encoder().pack
+        # (dtype, shape) of an array value -> (the struct.pack of its event record's head and its
+        # encoding's head, that record's fields but the array's bytes, its encoding's head)
+        self._array_heads: dict[tuple, tuple[Callable[..., bytes], int, bytes]] = {}
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
@@ -225,16 +226,8 @@ class LogWriter:
         made, made_from, n_steps = trace.take_step_log(self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
         if len(events) > self._events_done:
-            new = events[self._events_done:]
-            large = ([i for i, value in enumerate(map(_value, new)) if type(value) is np.ndarray
-                      and value.nbytes >= LARGE_VALUE_BYTES] if np.ndarray in set(map(type, map(_value, new))) else [])
             self.last_bytes = 0
-            begin = 0
-            for i in large:  # in recording order: the small events before it, then it
-                self._add_events(new[begin:i])
-                self._add_large_event(new[i])
-                begin = i + 1
-            self._add_events(new[begin:])
+            self._add_events(events[self._events_done:])
             self._events_done = len(events)
         if n_steps > self._steps_done:
             new = steps[self._steps_done:n_steps]
@@ -275,13 +268,19 @@ class LogWriter:
             self._step_log = None
 
     def _add_events(self, new: list[tuple]) -> None:
-        if not new:
-            return
-        head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
-        channel_of, encode = self._channel_of, self._encode
+        """The Message records of ``new`` events, in recording order; a big array's (None in the
+        comprehension) in a chunk of its own (_add_large_event)."""
+        head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
+        channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
         try:
-            records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
-                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+            # an array of a dtype and shape seen before: its record in one struct.pack, then its bytes
+            records = [array[0](op, array[1] + len(raw := value.tobytes()), channel_of[node][port], seq & u32,
+                                tag[0], published, _FIXARRAY_2, tag[1], array[2]) + raw
+                       if type(value) is ndarray and (array := array_heads.get((value.dtype, value.shape)))
+                       and tag[1] < 128
+                       else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                                 tag[0], published, _FIXARRAY_2, tag[1]) + value_data
+                       if tag[1] < 128 and type(value) is not ndarray
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
@@ -292,13 +291,39 @@ class LogWriter:
             if not added:
                 raise
             return self._add_events(new)
+        if None in records:
+            begin = 0
+            for i in [i for i, record in enumerate(records) if record is None]:
+                self._add_small_events(records[begin:i])
+                self._add_large_event(new[i])
+                begin = i + 1
+            records = records[begin:]
+        self._add_small_events(records)
+
+    def _add_small_events(self, records: list[bytes]) -> None:
         self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
 
-    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any, published: int) -> bytes:
-        """The Message record of an event whose microstep is not a msgpack fixint (128 or more)."""
-        data = self._encode([tag[1], value])
+    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any,
+                      published: int) -> bytes | None:
+        """The Message record of an event the comprehension in _add_events does not make: an
+        array of a dtype and shape not seen before (which it makes from then on), or a big one
+        (None: _add_large_event makes it), or any value at a microstep of 128 or more (not a
+        msgpack fixint)."""
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
+        if type(value) is np.ndarray:
+            if value.nbytes >= LARGE_VALUE_BYTES:
+                return None
+            if tag[1] < 128:
+                value_head = array_encoding_head(value)
+                array = (struct.Struct(f"{_EVENT_HEAD.format}{len(value_head)}s").pack,
+                         MESSAGE_FIELDS + 2 + len(value_head), value_head)
+                if len(self._array_heads) < 1024:
+                    self._array_heads[(value.dtype, value.shape)] = array
+                raw = value.tobytes()
+                return array[0](Opcode.MESSAGE, array[1] + len(raw), channel, seq & 0xFFFFFFFF, tag[0], published,
+                                _FIXARRAY_2, tag[1], value_head) + raw
+        data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
                                  published) + data
 

@@ -8,14 +8,20 @@ import re
 import resource
 import subprocess
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from retriever import Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
+from retriever.codec import packb
 from retriever.errors import LogWriteError
 from retriever.log import format as fmt
 from retriever.log import recover
+from retriever.log.writer import LARGE_VALUE_BYTES, LogFile, LogWriter
 from retriever.replay import replay
+from retriever.trace import Trace
 from tests.log import log_flows
 from tests.log.helpers import QUICKSTART, RETRIEVER, assert_cli_error, cli, cli_env
 
@@ -267,3 +273,36 @@ def test_ports_an_untyped_flow_returns_at_run_time_get_channels_in_the_order_the
     topics = [channel.topic for channel in sorted(log.channels.values(), key=lambda c: c.id)]
     assert [t for t in topics if "late" in t] == [fmt.data_topic("camera", "late"), fmt.data_topic("camera", "later")]
     assert {e.port for e in trace.events_of("camera")} == {"ok", "late", "later"}
+
+
+def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_them(tmp_path: Path):
+    """Arrays take the writer's fast path (a head cached by dtype and shape, then their bytes),
+    the first time and after; a big array a chunk of its own, between the others; any value at
+    a microstep past msgpack's fixint the general one: each Message record's data is the codec's
+    ``[microstep, value]``, byte for byte, in the order the events came."""
+    class Source(Flow[None, Any]):
+        def step(self, inp: None) -> Any:
+            return 0
+
+    with Pipeline("values") as pipe:
+        Source().named("src") @ Rate(hz=10)
+    graph = pipe.compile()
+    big = np.arange(LARGE_VALUE_BYTES // 8 + 1, dtype=">f8")
+    grid = np.arange(24, dtype=np.int16).reshape(4, 6)
+    values = [np.eye(3), np.eye(3) * 2, grid[:, ::2], grid.T, np.float32(1.5), np.array(7, dtype=np.uint8),
+              np.zeros((0, 3)), big, np.eye(3), 0.25, np.asfortranarray(grid), {"k": [np.ones(2)]},
+              np.zeros(5, dtype=[("a", "<i4"), ("b", "S2")]), np.eye(3)]
+    microsteps = [1] * len(values)
+    microsteps[2] = microsteps[9] = 200
+    trace = Trace()
+    for seq, (value, microstep) in enumerate(zip(values, microsteps)):
+        trace.raw_events.append(((seq * 1000, microstep), "src", "out", seq, value, seq))
+    path = tmp_path / "values.mcap"
+    writer = LogWriter(LogFile(path), graph, backend="inproc")
+    writer.write(trace)
+    writer.close(trace, len(values) * 1000)
+    with open(path, "rb") as f:
+        datas = [message.data for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+                 if channel.topic == fmt.data_topic("src", "out")]
+    assert datas == [packb([microstep, value]) for value, microstep in zip(values, microsteps)]
+    assert len(datas) == len(values)
