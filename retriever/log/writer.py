@@ -4,8 +4,10 @@ A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
 From its first write on, the trace's tape expanders make the step records they can
-(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer encodes
-the others, and every event.
+(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer makes the
+others, a generic tick's of the common shape the same way (_step_record_maker), the rest with
+msgpack; and every event, an array of a dtype and shape seen before in one ``struct.pack`` and
+its bytes (benchmarks/reports/logging_overhead.md).
 """
 
 from __future__ import annotations
@@ -225,7 +227,7 @@ class LogWriter:
         self._starved = 0
         self._encode = Encoder().pack
         # (dtype, shape) of an array value -> (the struct.pack of its event record's head and its
-        # encoding's head, that record's fields but the array's bytes, its encoding's head)
+        # encoding's head, that record's length field, its encoding's head)
         self._array_heads: dict[tuple, tuple[Callable[..., bytes], int, bytes]] = {}
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
@@ -373,8 +375,8 @@ class LogWriter:
             records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
                             tag[0], published, _FIXARRAY_2, tag[1]) + value_data
                        if type(value) is not ndarray and tag[1] < 128
-                       else array[0](op, array[1] + len(raw := value.tobytes()), channel_of[node][port], seq & u32,
-                                     tag[0], published, _FIXARRAY_2, tag[1], array[2]) + raw
+                       else array[0](op, array[1], channel_of[node][port], seq & u32, tag[0], published,
+                                     _FIXARRAY_2, tag[1], array[2]) + value.tobytes()
                        if tag[1] < 128 and type(value) is ndarray
                        and (array := array_heads.get((value.dtype, value.shape)))
                        else self._event_record(tag, node, port, seq, value, published)
@@ -413,12 +415,11 @@ class LogWriter:
             if tag[1] < 128:
                 value_head = array_encoding_head(value)
                 array = (struct.Struct(f"{_EVENT_HEAD.format}{len(value_head)}s").pack,
-                         MESSAGE_FIELDS + 2 + len(value_head), value_head)
+                         MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, value_head)
                 if len(self._array_heads) < 1024:
                     self._array_heads[(value.dtype, value.shape)] = array
-                raw = value.tobytes()
-                return array[0](Opcode.MESSAGE, array[1] + len(raw), channel, seq & 0xFFFFFFFF, tag[0], published,
-                                _FIXARRAY_2, tag[1], value_head) + raw
+                return array[0](Opcode.MESSAGE, array[1], channel, seq & 0xFFFFFFFF, tag[0], published,
+                                _FIXARRAY_2, tag[1], value_head) + value.tobytes()
         data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
                                  published) + data
