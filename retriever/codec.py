@@ -179,23 +179,25 @@ def _bin_head(n: int) -> bytes:
     return b"\xc6" + n.to_bytes(4, "big")
 
 
+#: (dtype, shape) -> array_encoding_head of an array of that dtype and shape
+_encoding_heads: dict[tuple, bytes] = {}
+
+
 def array_encoding_head(arr: np.ndarray) -> bytes:
-    """What ``Encoder.pack(arr)`` puts before the array's raw bytes (in C order): a big array's
-    encoding can then be assembled in a buffer numpy copies the array into, which lets other
-    threads run meanwhile (``tobytes`` and joining bytes hold the GIL for the whole copy)."""
+    """What ``Encoder.pack(arr)`` puts before the array's raw bytes (in C order, ``arr.tobytes()``),
+    cached by dtype and shape, which decide it: the log writer makes an array's record from it
+    in one ``struct.pack``, and a big array's encoding can be assembled in a buffer numpy copies
+    the array into, which lets other threads run meanwhile (``tobytes`` and joining bytes hold
+    the GIL for the whole copy)."""
     key = (arr.dtype, arr.shape)
-    whole = _array_encoding_heads.get(key)
-    if whole is None:
+    found = _encoding_heads.get(key)
+    if found is None:
         head, n = _array_head(arr), arr.nbytes
         size = _bin_head(n)
-        whole = _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
-        if len(_array_encoding_heads) < 4096:
-            _array_encoding_heads[key] = whole
-    return whole
-
-
-#: (dtype, shape) -> what precedes an array's raw bytes in its encoding (array_encoding_head)
-_array_encoding_heads: dict[tuple, bytes] = {}
+        found = _ext_head(EXT_NDARRAY, len(head) + len(size) + n) + head + size
+        if len(_encoding_heads) < 4096:
+            _encoding_heads[key] = found
+    return found
 
 
 def _default(obj: Any) -> Any:
@@ -429,13 +431,9 @@ def _located(error: CodecError, value: Any) -> CodecError:
 _FIXEXT = {1: 0xD4, 2: 0xD5, 4: 0xD6, 8: 0xD7, 16: 0xD8}
 
 
-def _ext_bytes(code: int, payload: bytes) -> bytes:
-    """Exactly msgpack's encoding of ``ExtType(code, payload)``: fixext 1/2/4/8/16, else ext 8/16/32."""
-    return _ext_head(code, len(payload)) + payload
-
-
 def _ext_head(code: int, n: int) -> bytes:
-    """What precedes an ``ExtType(code, payload)``'s payload of ``n`` bytes in msgpack."""
+    """What precedes an ``ExtType(code, payload)``'s payload of ``n`` bytes in msgpack (exactly
+    msgpack's: fixext 1/2/4/8/16, else ext 8/16/32)."""
     fixed = _FIXEXT.get(n)
     if fixed is not None:
         return bytes((fixed, code))
@@ -460,8 +458,8 @@ class Encoder:
 
     def pack(self, value: Any) -> bytes:
         if type(value) is np.ndarray:  # the commonest payload: skip msgpack's `default` round trip
-            head = _array_encoding_heads.get((value.dtype, value.shape))
-            return (array_encoding_head(value) if head is None else head) + value.tobytes()
+            head = _encoding_heads.get((value.dtype, value.shape))  # (a dtype and shape seen before: no call)
+            return (head or array_encoding_head(value)) + value.tobytes()
         try:
             return self._pack(value)
         except OverflowError:

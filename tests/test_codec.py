@@ -6,6 +6,7 @@ import dataclasses
 import math
 import struct
 
+import msgpack
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -13,7 +14,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from retriever import CodecError, io
-from retriever.codec import packb, unpackb
+from retriever.codec import Encoder, array_encoding_head, packb, unpackb
 
 
 @io
@@ -156,6 +157,41 @@ def test_numpy_arrays(arr):
     back = roundtrip(arr)
     assert_same(arr, back)
     assert back.flags.writeable
+
+
+@st.composite
+def any_arrays(draw):
+    """arrays() and bigger ones (an encoding's bin 16/32 and ext 16/32 heads), structured ones too."""
+    kind = draw(st.sampled_from(["small", "big", "structured"]))
+    if kind == "small":
+        return draw(arrays())
+    if kind == "structured":
+        dtype = np.dtype([("a", "<i4"), ("b", ">f8", (2,)), ("c", "S3")])
+        return np.zeros(draw(st.integers(0, 3)), dtype=dtype)
+    dtype = np.dtype(draw(st.sampled_from(["uint8", ">f8", "float32"])))
+    n = draw(st.sampled_from([255, 256, 65535, 65536, 70000, 300000])) // dtype.itemsize
+    arr = np.arange(n, dtype=dtype)
+    return arr[::2] if draw(st.booleans()) else arr
+
+
+def _msgpack_encoding(arr):
+    """An array's encoding as the codec defines it, spelt with msgpack's own ExtType."""
+    descr = np.lib.format.dtype_to_descr(arr.dtype) if arr.dtype.fields else arr.dtype.str
+    payload = msgpack.packb([descr, list(arr.shape), arr.tobytes()], use_bin_type=True)
+    return msgpack.packb(msgpack.ExtType(1, payload), use_bin_type=True)
+
+
+@settings(max_examples=300, deadline=None)
+@given(any_arrays())
+def test_an_arrays_encoding_is_its_cached_head_then_its_bytes(arr):
+    """The fast path (Encoder.pack, the log writer's records: a head cached by dtype and shape,
+    then tobytes()) writes what msgpack writes of the array's ExtType, byte for byte, and what
+    packb writes of an array inside a value, the first time and from the cache."""
+    expected = _msgpack_encoding(arr)
+    assert array_encoding_head(arr) + arr.tobytes() == expected
+    encoder = Encoder()
+    assert encoder.pack(arr) == encoder.pack(arr) == expected
+    assert packb([arr]) == b"\x91" + expected
 
 
 def test_zero_d_array_stays_an_array():

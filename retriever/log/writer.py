@@ -4,8 +4,10 @@ A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
 From its first write on, the trace's tape expanders make the step records they can
-(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer encodes
-the others, and every event.
+(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer makes the
+others, a generic tick's of the common shape the same way (_step_record_maker), the rest with
+msgpack; and every event, an array of a dtype and shape seen before in one ``struct.pack`` and
+its bytes (benchmarks/reports/logging_overhead.md).
 """
 
 from __future__ import annotations
@@ -19,9 +21,8 @@ import stat
 import struct
 import time
 from contextlib import contextmanager
-from operator import itemgetter
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterator
 
 import msgpack
 import numpy as np
@@ -30,6 +31,7 @@ from mcap.opcode import Opcode
 from ..codec import Encoder, array_encoding_head
 from ..errors import CodecError, LogError, LogWriteError
 from ..ir import port_name_problem
+from ..trace import StepStatus
 from . import format as fmt
 from .mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
 from .mcap_writer import McapWriter
@@ -39,11 +41,11 @@ if TYPE_CHECKING:
     from ..trace import Trace
 
 
-_value = itemgetter(4)
 #: an event's data is msgpack ``[microstep, value]``: a fixarray of 2 (this byte), then, almost always,
 #: a fixint microstep (< 128), which _EVENT_HEAD packs with the Message record's head in one call
 _FIXARRAY_2 = 0x92
 _EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
+_HEAD_FIXED = 1 + 8 + 2  # a Message record's opcode, record length and channel id: the head's first bytes
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
@@ -61,6 +63,78 @@ def describe_os_error(e: OSError) -> str:
 def _folder(path: Path) -> tuple[str, str]:
     return (f"cannot create the log {path}: it is a folder",
             f"pass --log / log= a file path, e.g. {path / 'run.mcap'}")
+
+
+def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
+                       channel: int) -> Callable[..., bytes | None] | None:
+    """``make(tag, consumed, produced, status, detail, start, wall, sequence)``: the Message record of
+    a step of ``node`` (a generic tick's, which no tape expander made) when it has the common shape:
+    ``ok``, no detail, a microstep below 128, one event on ``output``, and one event consumed on
+    each input port fed by one edge (``fed``: the ports in the order a tick consumes them, each
+    with its edge's source node and port), no more; None for any other, which the writer then
+    packs with msgpack. As the tape expanders do (Trace.log_steps): the msgpack data in one
+    ``struct.pack`` of the bytes fixed here and the ints that change, each in a fixed width
+    (uint32 seqs, uint64 wall time: read back the same). None for a node with 3 inputs or more."""
+    if len(fed) > 2:
+        return None
+    pack = functools.partial(msgpack.packb, use_bin_type=True)
+    consts = [b"\x97" + pack(node), bytes((0x80 | len(fed),))]  # then the microstep, a fixint
+    for port, src, src_port in fed:
+        consts[-1] += pack(port) + b"\x91\x93" + pack(src) + pack(src_port) + b"\xce"
+        consts.append(b"")  # then the seq of the event consumed, a uint32
+    consts[-1] += b"\x91\x93" + pack(node) + pack(output) + b"\xce"
+    consts.append(pack(StepStatus.OK.value) + b"\xc0\xcf")  # then the wall time, a uint64
+    data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", "Q"])))
+    # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
+    fixed = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + data.size, channel, 0, 0, 0)[:_HEAD_FIXED]
+    head_pack = struct.Struct(f"<{_HEAD_FIXED}sIQQ").pack  # and its sequence, log time and publish time
+    c, ok, errors = consts, StepStatus.OK, (ValueError, TypeError, struct.error)
+    data_pack = data.pack
+    # (an int out of its field's range is a struct.error; a consumed or produced of another length a ValueError)
+    if not fed:
+        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+            try:
+                if status is ok and detail is None and not consumed and tag[1] < 128:
+                    (n, p, s), = produced
+                    if n == node and p == output:
+                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
+                            c[0], tag[1], c[1], s, c[2], wall)
+            except errors:
+                pass
+            return None
+    elif len(fed) == 1:
+        (port0, src0, src_port0), = fed
+
+        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+            try:
+                if status is ok and detail is None and tag[1] < 128:
+                    p0, = consumed
+                    (a0, b0, s0), = consumed[p0]
+                    (n, p, s), = produced
+                    if p0 == port0 and a0 == src0 and b0 == src_port0 and n == node and p == output:
+                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
+                            c[0], tag[1], c[1], s0, c[2], s, c[3], wall)
+            except errors:
+                pass
+            return None
+    else:
+        (port0, src0, src_port0), (port1, src1, src_port1) = fed
+
+        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+            try:
+                if status is ok and detail is None and tag[1] < 128:
+                    p0, p1 = consumed
+                    (a0, b0, s0), = consumed[p0]
+                    (a1, b1, s1), = consumed[p1]
+                    (n, p, s), = produced
+                    if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
+                            and b1 == src_port1 and n == node and p == output):
+                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
+                            c[0], tag[1], c[1], s0, c[2], s1, c[3], s, c[4], wall)
+            except errors:
+                pass
+            return None
+    return make
 
 
 class LogFile:
@@ -152,10 +226,30 @@ class LogWriter:
         self._faults = 0
         self._starved = 0
         self._encode = Encoder().pack
+        # (dtype, shape) of an array value -> (the struct.pack of its event record's head and its
+        # encoding's head, that record's length field, its encoding's head)
+        self._array_heads: dict[tuple, tuple[Callable[..., bytes], int, bytes]] = {}
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
         self._step_head = functools.partial(MESSAGE_HEAD.pack, Opcode.MESSAGE)
+        # by node: what makes the step records of its generic ticks that have the common shape
+        self._step_makers = {node.id: maker for node in graph.nodes.values()
+                             if (maker := self._step_maker(graph, node.id)) is not None}
+
+    def _step_maker(self, graph: "Graph", node: str) -> Callable[..., bytes | None] | None:
+        """_step_record_maker for ``node``: None unless it has one output and each input that
+        an edge feeds is fed by one."""
+        outputs = list(graph.nodes[node].outputs)
+        fed = []
+        for port in graph.nodes[node].inputs:
+            edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
+            if len(edges) > 1:
+                return None
+            fed += [(port, *edge) for edge in edges]
+        if len(outputs) != 1:
+            return None
+        return _step_record_maker(node, fed, outputs[0], self._steps_channel)
 
     @contextmanager
     def _refused_writes(self, outcome: str) -> Iterator[None]:
@@ -225,16 +319,8 @@ class LogWriter:
         made, made_from, n_steps = trace.take_step_log(self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
         if len(events) > self._events_done:
-            new = events[self._events_done:]
-            large = ([i for i, value in enumerate(map(_value, new)) if type(value) is np.ndarray
-                      and value.nbytes >= LARGE_VALUE_BYTES] if np.ndarray in set(map(type, map(_value, new))) else [])
             self.last_bytes = 0
-            begin = 0
-            for i in large:  # in recording order: the small events before it, then it
-                self._add_events(new[begin:i])
-                self._add_large_event(new[i])
-                begin = i + 1
-            self._add_events(new[begin:])
+            self._add_events(events[self._events_done:])
             self._events_done = len(events)
         if n_steps > self._steps_done:
             new = steps[self._steps_done:n_steps]
@@ -259,13 +345,17 @@ class LogWriter:
         ``made``, those of them that are not None as they are (Trace.take_step_log)."""
         head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
                                                 self._pack_step, self._steps_channel)
+        makers = self._step_makers  # a record of a node's common shape, in one call; else msgpack here
         if made is None:
-            return [head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                         channel, index & u32, tag[0], start) + data
+            return [(make(tag, consumed, produced, status, detail, start, wall, index & u32)
+                     if (make := makers.get(node)) else None)
+                    or head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                            channel, index & u32, tag[0], start) + data
                     for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
-        return [record if record is not None else
-                head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                     channel, index & u32, tag[0], start) + data
+        return [record or (make(tag, consumed, produced, status, detail, start, wall, index & u32)
+                           if (make := makers.get(node)) else None)
+                or head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
+                        channel, index & u32, tag[0], start) + data
                 for index, record, (node, tag, consumed, produced, status, detail, start, wall)
                 in zip(itertools.count(first), made, steps)]
 
@@ -275,13 +365,20 @@ class LogWriter:
             self._step_log = None
 
     def _add_events(self, new: list[tuple]) -> None:
-        if not new:
-            return
-        head, op, fields, u32 = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF
-        channel_of, encode = self._channel_of, self._encode
+        """The Message records of ``new`` events, in recording order; a big array's (None in the
+        comprehension) in a chunk of its own (_add_large_event)."""
+        head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
+        channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
         try:
+            # any value but an array, encoded; an array of a dtype and shape seen before: its record in
+            # one struct.pack, then its bytes
             records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
-                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data if tag[1] < 128
+                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data
+                       if type(value) is not ndarray and tag[1] < 128
+                       else array[0](op, array[1], channel_of[node][port], seq & u32, tag[0], published,
+                                     _FIXARRAY_2, tag[1], array[2]) + value.tobytes()
+                       if tag[1] < 128 and type(value) is ndarray
+                       and (array := array_heads.get((value.dtype, value.shape)))
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
@@ -292,13 +389,38 @@ class LogWriter:
             if not added:
                 raise
             return self._add_events(new)
+        if None in records:
+            begin = 0
+            for i in [i for i, record in enumerate(records) if record is None]:
+                self._add_small_events(records[begin:i])
+                self._add_large_event(new[i])
+                begin = i + 1
+            records = records[begin:]
+        self._add_small_events(records)
+
+    def _add_small_events(self, records: list[bytes]) -> None:
         self._mcap.add_records(records)
         self.last_bytes += sum(map(len, records))
 
-    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any, published: int) -> bytes:
-        """The Message record of an event whose microstep is not a msgpack fixint (128 or more)."""
-        data = self._encode([tag[1], value])
+    def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any,
+                      published: int) -> bytes | None:
+        """The Message record of an event the comprehension in _add_events does not make: an
+        array of a dtype and shape not seen before (which it makes from then on), or a big one
+        (None: _add_large_event makes it), or any value at a microstep of 128 or more (not a
+        msgpack fixint)."""
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
+        if type(value) is np.ndarray:
+            if value.nbytes >= LARGE_VALUE_BYTES:
+                return None
+            if tag[1] < 128:
+                value_head = array_encoding_head(value)
+                array = (struct.Struct(f"{_EVENT_HEAD.format}{len(value_head)}s").pack,
+                         MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, value_head)
+                if len(self._array_heads) < 1024:
+                    self._array_heads[(value.dtype, value.shape)] = array
+                return array[0](Opcode.MESSAGE, array[1], channel, seq & 0xFFFFFFFF, tag[0], published,
+                                _FIXARRAY_2, tag[1], value_head) + value.tobytes()
+        data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
                                  published) + data
 

@@ -7,15 +7,23 @@ from __future__ import annotations
 import re
 import resource
 import subprocess
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import msgpack
+import numpy as np
 import pytest
+from mcap.reader import make_reader
 
-from retriever import Flow, Latest, LogError, Pipeline, Rate, Trigger, read_log
+from retriever import Flow, Latest, LogError, Pipeline, Rate, Trigger, io, read_log
+from retriever.codec import packb
 from retriever.errors import LogWriteError
 from retriever.log import format as fmt
 from retriever.log import recover
+from retriever.log.writer import LARGE_VALUE_BYTES, LogFile, LogWriter
 from retriever.replay import replay
+from retriever.trace import StepStatus, Trace
 from tests.log import log_flows
 from tests.log.helpers import QUICKSTART, RETRIEVER, assert_cli_error, cli, cli_env
 
@@ -267,3 +275,109 @@ def test_ports_an_untyped_flow_returns_at_run_time_get_channels_in_the_order_the
     topics = [channel.topic for channel in sorted(log.channels.values(), key=lambda c: c.id)]
     assert [t for t in topics if "late" in t] == [fmt.data_topic("camera", "late"), fmt.data_topic("camera", "later")]
     assert {e.port for e in trace.events_of("camera")} == {"ok", "late", "later"}
+
+
+def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_them(tmp_path: Path):
+    """Arrays take the writer's fast path (a head cached by dtype and shape, then their bytes),
+    the first time and after; a big array a chunk of its own, between the others; any value at
+    a microstep past msgpack's fixint the general one: each Message record's data is the codec's
+    ``[microstep, value]``, byte for byte, in the order the events came."""
+    class Source(Flow[None, Any]):
+        def step(self, inp: None) -> Any:
+            return 0
+
+    with Pipeline("values") as pipe:
+        Source().named("src") @ Rate(hz=10)
+    graph = pipe.compile()
+    big = np.arange(LARGE_VALUE_BYTES // 8 + 1, dtype=">f8")
+    grid = np.arange(24, dtype=np.int16).reshape(4, 6)
+    values = [np.eye(3), np.eye(3) * 2, grid[:, ::2], grid.T, np.float32(1.5), np.array(7, dtype=np.uint8),
+              np.zeros((0, 3)), big, np.eye(3), 0.25, np.asfortranarray(grid), {"k": [np.ones(2)]},
+              np.zeros(5, dtype=[("a", "<i4"), ("b", "S2")]), np.eye(3)]
+    microsteps = [1] * len(values)
+    microsteps[2] = microsteps[9] = 200
+    trace = Trace()
+    for seq, (value, microstep) in enumerate(zip(values, microsteps)):
+        trace.raw_events.append(((seq * 1000, microstep), "src", "out", seq, value, seq))
+    path = tmp_path / "values.mcap"
+    writer = LogWriter(LogFile(path), graph, backend="inproc")
+    writer.write(trace)
+    writer.close(trace, len(values) * 1000)
+    with open(path, "rb") as f:
+        datas = [message.data for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+                 if channel.topic == fmt.data_topic("src", "out")]
+    assert datas == [packb([microstep, value]) for value, microstep in zip(values, microsteps)]
+    assert len(datas) == len(values)
+
+
+@io
+@dataclass
+class _Pair:
+    a: float
+    b: float
+
+
+def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_shape(tmp_path: Path):
+    """The writer makes a generic tick's step record of the common shape (ok, one event out, one
+    consumed per input fed by one edge) in two struct.packs with fixed-width ints, for nodes of
+    0, 1 and 2 inputs; any other record it packs with msgpack: each reads back as msgpack of the
+    record, in the order they came."""
+
+    class Source(Flow[None, float]):
+        def step(self, inp: None) -> float:
+            return 1.0
+
+    class Double(Flow[float, float]):
+        def step(self, inp: float) -> float:
+            return 2 * inp
+
+    class Join(Flow[_Pair, float]):
+        def step(self, inp: _Pair) -> float:
+            return inp.a + inp.b
+
+    with Pipeline("shapes") as pipe:
+        src = Source().named("src") @ Rate(hz=10)
+        double = Double().named("double") @ Rate(hz=10)
+        join = Join().named("join") @ Rate(hz=10)
+        src.then(double, sync=Latest())
+        src.then(join, sync=Latest(), map={"float": "a"})
+        double.then(join, sync=Latest(), map={"float": "b"})
+    graph = pipe.compile()
+    ok, u32 = StepStatus.OK, 0xFFFFFFFF
+    ids = {"src": ("src", "float", 3), "double": ("double", "float", 4)}
+    common = [("src", (1000, 0), {}, (ids["src"],), ok, None, 5, 70),
+              ("double", (1000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, 80),
+              ("join", (1000, 2), {"a": (ids["src"],), "b": (ids["double"],)}, (("join", "float", 2),), ok, None, 7,
+               90)]
+    other = [("double", (2000, 0), {}, (), StepStatus.SKIPPED, {"missing": ["float"]}, 0, 0),
+             ("double", (2000, 200), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, 80),
+             ("double", (2000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, {"dropped": {"float": 1}}, 6, 80),
+             ("double", (2000, 1), {"float": (ids["src"], ids["src"])}, (ids["double"],), ok, None, 6, 80),
+             ("double", (2000, 1), {"float": (("src", "float", u32 + 1),)}, (ids["double"],), ok, None, 6, 80),
+             ("double", (2000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, -1),
+             ("double", (2000, 1), {"float": (ids["src"],)}, (), ok, None, 6, 80),
+             ("double", (2000, 1), {"float": (("join", "float", 1),)}, (ids["double"],), ok, None, 6, 80),
+             ("join", (2000, 2), {"b": (ids["double"],), "a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
+             ("join", (2000, 2), {"a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
+             ("src", (2000, 0), {}, (ids["src"],), StepStatus.ERROR, {"error": "ValueError: x"}, 5, 70),
+             ("src", (2000, 0), {}, (ids["src"],), "ok", None, 5, 70)]
+    trace = Trace()
+    trace.raw_steps.extend([*common, *other])
+    path = tmp_path / "shapes.mcap"
+    writer = LogWriter(LogFile(path), graph, backend="inproc")
+    writer.write(trace)
+    writer.close(trace, 3000)
+    with open(path, "rb") as f:
+        datas = [message.data for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+                 if channel.topic == fmt.STEPS_TOPIC]
+
+    def unpack(data: bytes):
+        return msgpack.unpackb(data, strict_map_key=False)
+
+    expected = [unpack(msgpack.packb((node, tag[1], consumed, produced, status, detail, wall)))
+                for node, tag, consumed, produced, status, detail, _, wall in [*common, *other]]
+    assert [unpack(data) for data in datas] == expected
+    # the common ones in fixed widths (their wall time a uint64), the others as msgpack packs them
+    assert [data[-9] for data in datas[:len(common)]] == [0xCF] * len(common)
+    assert datas[len(common):] == [msgpack.packb((node, tag[1], consumed, produced, status, detail, wall))
+                                   for node, tag, consumed, produced, status, detail, _, wall in other]
