@@ -43,7 +43,7 @@ from ..zenoh.protocol import DoraPart
 
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
-#: the output a node whose events are heard puts an empty message on before its next tick, to
+#: the output a node whose events are heard puts an empty message on before a moment it foresees, to
 #: warm its send path and dora's daemon (node/timing.py: Warmup); no input takes it (renamed
 #: ``warm_1``, … past its dora node's other outputs)
 WARM = "warm"

@@ -4,7 +4,7 @@
                                                  handled right there, as a Zenoh subscriber's
                                                  callback would: INLINE_STEP_NS)
     loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
-         ──send_output(warm, b"")──▶ dora's daemon, before a tick it foresees (timing.py: Warmup)
+         ──send_output(warm, b"")──▶ dora's daemon, before a moment it foresees (timing.py: Warmup)
 
 A process has one dora node, and so one :class:`DoraLink`: its receiving thread hands each
 input's events to every node of the process that listens to that input (a group's members,
@@ -183,7 +183,7 @@ class DoraTransport(Transport):
         progress = DoraOutput(node, progress_output) if consumed and progress_output else Nowhere()
         for output in {*outputs.values(), *([progress_output] if progress_output else [])}:
             node.send_output(output, GREETING)
-        # the empty message a loop puts before a tick it foresees (node/timing.py: Warmup) goes
+        # the empty message a loop puts before a moment it foresees (node/timing.py: Warmup) goes
         # to dora's daemon on an output no input takes: the send path up to the routing, warm
         warm = self.names.warm(self.names.nodes[self.id]) if consumed and progress_output else None
         return publishers, progress, None if warm is None else DoraOutput(node, warm)
