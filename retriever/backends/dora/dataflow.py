@@ -5,7 +5,8 @@ or a group's: ``configure(process=NAME)``).
       - id: camera                       # the flow's node id (ids dora refuses are renamed n0, n1, ...)
         path: /…/python                  # the coordinator's interpreter
         args: -m retriever.backends.dora.node /dev/shm/retriever-run-…/spec.json camera
-        outputs: [image, progress]       # one output per output port, and its progress (frontiers)
+        outputs: [image, progress, warm] # one output per output port, its progress (frontiers), and
+                                         # one no input takes, to warm the send path (WARM)
       - id: policy
         …
         inputs:
@@ -42,6 +43,10 @@ from ..zenoh.protocol import DoraPart
 
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
+#: the output a node whose events are heard puts an empty message on before a moment it foresees, to
+#: warm its send path and dora's daemon (node/timing.py: Warmup); no input takes it (renamed
+#: ``warm_1``, … past its dora node's other outputs)
+WARM = "warm"
 #: an input's queue (dora drops past ten times that with backpressure: see the module docstring)
 QUEUE_SIZE = 100_000
 
@@ -117,6 +122,15 @@ class DoraNames:
                 inputs[dst][ids[stream]] = list(stream)
         return cls(nodes, outputs, progress, inputs)
 
+    def warm(self, dora_id: str) -> str | None:
+        """The dora node ``dora_id``'s warm-up output (WARM), if one of its nodes is heard over
+        dora (it has a progress output); else None. Derived from the other ids, by both sides."""
+        members = self.members(dora_id)
+        if not any(nid in self.progress for nid in members):
+            return None
+        taken = {o for nid in members for o in (*self.outputs[nid].values(), self.progress.get(nid))}
+        return _unique(WARM, taken, WARM)
+
     def processes(self, groups: Mapping[str, Sequence[str]]) -> dict[str, str]:
         """Each process's dora node id: a node's own by its id, a group's by its name."""
         grouped = {nid for members in groups.values() for nid in members}
@@ -166,6 +180,8 @@ def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pyth
         outputs = []
         for nid in members:
             outputs += [*names.outputs[nid].values(), *([names.progress[nid]] if nid in names.progress else [])]
+        warm = names.warm(dora_id)
+        outputs += [warm] if warm is not None else []
         # a group's members consuming one stream: one input of their dora node
         inputs = {input_id: stream for nid in members for input_id, stream in names.inputs[nid].items()}
         path, *args = worker_command(spec_path, dora_id, module=DORA_NODE_MODULE, python=python)

@@ -4,6 +4,7 @@
                                                  handled right there, as a Zenoh subscriber's
                                                  callback would: INLINE_STEP_NS)
     loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
+         ──send_output(warm, b"")──▶ dora's daemon, before a moment it foresees (timing.py: Warmup)
 
 A process has one dora node, and so one :class:`DoraLink`: its receiving thread hands each
 input's events to every node of the process that listens to that input (a group's members,
@@ -20,6 +21,7 @@ a producer for its frontier (dora has no queries).
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from typing import Callable
@@ -38,15 +40,13 @@ GREETING = b""
 
 
 class DoraOutput:
-    """One dora output of this node, put to as a Zenoh publisher is."""
+    """One dora output of this node, put to as a Zenoh publisher is: ``put(message)`` is the
+    node's ``send_output`` bound to the output (no Python frame of its own per message sent)."""
 
-    __slots__ = ("node", "output")
+    __slots__ = ("put",)
 
     def __init__(self, node, output: str):
-        self.node, self.output = node, output
-
-    def put(self, message: bytes) -> None:
-        self.node.send_output(self.output, message)
+        self.put = functools.partial(node.send_output, output)
 
 
 class Nowhere:
@@ -66,8 +66,10 @@ class DoraLink:
         self.dora_node = None
         self.receiver: threading.Thread | None = None
         self.receiving = False
-        #: per dora input, who hears it: (its route, receive, put) of each listening node
-        self.listeners: dict[str, list[tuple[tuple, Callable, Callable]]] = {}
+        #: per dora input, who hears it: (handler, kind, key, put) of each listening node, which
+        #: hands each event's (kind, key, data) to handler (its receive for data, its put for
+        #: progress), and its failure to put
+        self.listeners: dict[str, list[tuple[Callable, str, object, Callable]]] = {}
         self.greeted: set[str] = set()  # inputs a producer's greeting came through
         self.greetings = threading.Condition()
         self.failure: Exception | None = None  # what ended the receiving thread, if it died
@@ -86,8 +88,9 @@ class DoraLink:
         node = self.node()
         entries = []
         with self.greetings:  # (a new list per input: the thread reads them without the lock)
-            for input_id, route in routes.items():
-                entry = (route, receive, put)
+            for input_id, (src, port) in routes.items():
+                # what the thread does with each event of the input: hand (kind, key, data) on
+                entry = (put, PROGRESS, src, put) if port is None else (receive, DATA, (src, port), put)
                 self.listeners[input_id] = [*self.listeners.get(input_id, ()), entry]
                 entries.append((input_id, entry))
         if self.receiver is None:
@@ -132,7 +135,7 @@ class DoraLink:
             with self.greetings:
                 self.failure = exc
                 self.greetings.notify_all()
-                puts = {id(put): put for entries in self.listeners.values() for _, _, put in entries}
+                puts = {id(put): put for entries in self.listeners.values() for *_, put in entries}
             for put in puts.values():
                 put((FAILED, None, exc))
 
@@ -144,18 +147,20 @@ class DoraLink:
                 return
             if event["type"] != "INPUT":  # a timeout (ERROR), INPUT_CLOSED, STOP: queued inputs still follow
                 continue
-            # a view of dora's buffer, which it holds: dora reuses none while a view of it lives
-            data = memoryview(event["value"].to_numpy(zero_copy_only=False))
-            if not len(data):  # a greeting (no Retriever message is empty), maybe before its listener
+            value = event["value"]  # a uint8 array: what send_output made of a message's bytes
+            size = len(value)
+            if not size:  # a greeting (no Retriever message is empty), maybe before its listener
                 with self.greetings:
                     self.greeted.add(event["id"])
                     self.greetings.notify_all()
                 continue
-            for (src, port), receive, put in listeners.get(event["id"], ()):
-                if port is None:
-                    put((PROGRESS, src, data))
-                else:
-                    receive((DATA, (src, port), data))
+            # a view of dora's buffer (the array's values, as unsigned bytes: no copy), which it
+            # holds: dora reuses none while a view of it lives
+            data = memoryview(value.buffers()[1]).cast("B")
+            if value.offset or len(data) != size:  # (a slice of a bigger buffer: never seen)
+                data = data[value.offset:value.offset + size]
+            for handler, kind, key, _ in listeners.get(event["id"], ()):
+                handler((kind, key, data))
 
 
 class DoraTransport(Transport):
@@ -178,7 +183,10 @@ class DoraTransport(Transport):
         progress = DoraOutput(node, progress_output) if consumed and progress_output else Nowhere()
         for output in {*outputs.values(), *([progress_output] if progress_output else [])}:
             node.send_output(output, GREETING)
-        return publishers, progress, None
+        # the empty message a loop puts before a moment it foresees (node/timing.py: Warmup) goes
+        # to dora's daemon on an output no input takes: the send path up to the routing, warm
+        warm = self.names.warm(self.names.nodes[self.id]) if consumed and progress_output else None
+        return publishers, progress, None if warm is None else DoraOutput(node, warm)
 
     def publisher(self, port: str) -> Nowhere:
         return Nowhere()

@@ -22,7 +22,7 @@ import yaml
 
 from retriever import BackendError, Latest, Pipeline, Rate, StepError, Trigger, read_log
 from retriever.backends.dora import host as dora_host
-from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
+from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, WARM, DoraNames, dataflow_yaml
 from retriever.backends.dora.host import pid_alive
 from retriever.backends.zenoh.folders import DORA_FOLDER
 from retriever.backends.zenoh.origin import KEY_BYTES
@@ -66,7 +66,7 @@ def test_the_dataflow_has_a_node_per_flow_an_output_per_port_and_progress_for_co
     assert sorted(nodes) == ["echo", "slow", "src"]
     assert nodes["src"]["args"] == "-m retriever.backends.dora.node /run/spec.json src"
     assert nodes["src"]["path"] == "/venv/bin/python" and nodes["src"]["env"] == {"PYTHONPATH": "/src"}
-    assert nodes["src"]["outputs"] == ["value", PROGRESS]
+    assert nodes["src"]["outputs"] == ["value", PROGRESS, WARM]  # warm: no input takes it
     assert nodes["slow"]["outputs"] == ["saw"] and "inputs" not in nodes["src"]  # slow: nobody consumes it
     queue = {"queue_size": QUEUE_SIZE, "queue_policy": "backpressure"}  # dora's direct route lost events
     assert nodes["echo"]["inputs"] == {"src__value": {"source": "src/value", **queue},
@@ -83,7 +83,17 @@ def test_ids_dora_would_refuse_are_renamed_and_mapped_back():
     assert names.inputs["dora"] == {"n0__o1": ["cam.left", "progress"], "n0__progress": ["cam.left", None]}
     assert names.members("n0") == ["cam.left"] and names.progress == {"cam.left": PROGRESS}
     flow = yaml.safe_load(dataflow_yaml("odd", names, "/py", "/spec.json", "/src"))
-    assert [n["id"] for n in flow["nodes"]] == ["n0", "n1"] and flow["nodes"][0]["outputs"] == ["img", "o1", PROGRESS]
+    assert [n["id"] for n in flow["nodes"]] == ["n0", "n1"] and flow["nodes"][0]["outputs"] == ["img", "o1", PROGRESS, WARM]
+
+
+def test_the_warm_up_output_is_named_past_the_ports_and_only_where_events_are_heard():
+    doc = {"nodes": [{"id": "a", "outputs": {"warm": {}, "warm_1": {}}}, {"id": "b", "outputs": {"out": {}}}],
+           "edges": [{"source": {"node": "a", "port": "warm"}, "destination": {"node": "b", "port": "x"}}]}
+    names = DoraNames.of(doc)
+    assert names.warm("a") == "warm_2" and names.warm("b") is None  # b: nobody hears it
+    flow = {n["id"]: n for n in yaml.safe_load(dataflow_yaml("w", names, "/py", "/spec.json", "/src"))["nodes"]}
+    assert flow["a"]["outputs"] == ["warm", "warm_1", PROGRESS, "warm_2"] and flow["b"]["outputs"] == ["out"]
+    assert all(i["source"] != "a/warm_2" for i in flow["b"]["inputs"].values())
 
 
 def test_the_specs_dora_part_is_the_dict_it_was_and_a_node_reads_its_names_back(tmp_path):

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from retriever import Latest, Pipeline, Rate, StepError, Trigger, read_log
-from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, DoraNames, dataflow_yaml
+from retriever.backends.dora.dataflow import PROGRESS, QUEUE_SIZE, WARM, DoraNames, dataflow_yaml
 from retriever.replay import replay
 
 from ..test_conformance import Echo, EchoOpt, Source
@@ -58,7 +58,7 @@ def test_a_group_is_one_dora_node_with_its_members_inputs_and_outputs_but_none_b
     nodes = {n["id"]: n for n in doc["nodes"]}
     assert sorted(nodes) == ["mid", "sink", "src"]
     assert nodes["mid"]["args"] == "-m retriever.backends.dora.node /run/spec.json mid"
-    assert nodes["mid"]["outputs"] == ["slow__saw", f"slow__{PROGRESS}"]
+    assert nodes["mid"]["outputs"] == ["slow__saw", f"slow__{PROGRESS}", WARM]
     # one input for the stream two members consume
     assert nodes["mid"]["inputs"] == {"src__value": {"source": "src/value", **QUEUE},
                                       "src__progress": {"source": "src/progress", **QUEUE}}

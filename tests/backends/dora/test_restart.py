@@ -45,7 +45,7 @@ def test_a_lone_flow_is_a_group_of_one_whose_dataflow_is_a_lone_flows():
             == dataflow_yaml("c", alone, "/venv/bin/python", "/run/spec.json", "/src"))
     doc = yaml.safe_load(dataflow_yaml("c", of_one, "/venv/bin/python", "/run/spec.json", "/src"))
     mid = next(n for n in doc["nodes"] if n["id"] == "mid")
-    assert mid["outputs"] == ["report", "progress"]
+    assert mid["outputs"] == ["report", "progress", "warm"]
     assert sorted(mid["inputs"]) == ["src__progress", "src__value"]
 
 
