@@ -19,7 +19,6 @@ and no further field is compared. :func:`read_log` keeps ``Message`` objects.
 
 from __future__ import annotations
 
-import bisect
 import json
 import os
 import struct
@@ -292,11 +291,34 @@ class ScannedLog(LogHead):
         earlier one. What is held at a time is the chunks whose times overlap: for a log as a run
         writes it, a few chunks (its LET latencies and late reports make them overlap), however
         long the log."""
+        for held, data in self._ordered():
+            ats, offsets = held["at"], held["offset"]
+            if not len(ats) or int(ats.max()) < 1 << 30:
+                positions = ((ats.astype(np.int64) << 32) + offsets).tolist()
+            else:
+                positions = [(at << 32) + offset for at, offset in zip(ats.tolist(), offsets.tolist())]
+            yield from zip(held["log_time"].tolist(), positions, held["channel_id"].tolist(),
+                           held["sequence"].tolist(), held["publish_time"].tolist(), data)
+
+    def in_order(self) -> Iterator[tuple[list, list, list, list, list]]:
+        """The messages of :meth:`time_ordered`, in its order, in batches of columns: each batch
+        ``(log_times, channel_ids, sequences, publish_times, data)``, lists of the same length
+        (no position, no tuple a message: what the replay reads)."""
+        for held, data in self._ordered():
+            yield (held["log_time"].tolist(), held["channel_id"].tolist(), held["sequence"].tolist(),
+                   held["publish_time"].tolist(), data)
+
+    def _ordered(self) -> Iterator[tuple[np.ndarray, list[bytes]]]:
+        """:meth:`time_ordered`'s reading: the messages in batches, each the messages' fields
+        (:data:`_HELD`) and their data. The messages held are kept as arrays (sorted with numpy:
+        by log time, then chunk, then place in it) and their data in their chunks' bytes, sliced
+        once a message is handed on."""
         if self.loose:
             raise LogError(f"{self.path} holds {self.loose} messages outside its chunks, which time_ordered() "
                            "does not read", "read it whole: read_log(path)")
         order = sorted(self.chunks)
-        held: list[tuple] = []  # sorted: by log time, then position (unique: nothing after it is compared)
+        held = np.empty(0, dtype=_HELD)  # sorted: by log time, then chunk, then offset in it (unique)
+        raws: dict[int, bytes] = {}  # the bytes of the chunks that held messages are in, by piece
         try:
             stream = open(self.path, "rb")
         except OSError as e:
@@ -308,22 +330,23 @@ class ScannedLog(LogHead):
                 try:
                     stream.seek(offset)
                     chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
-                    messages, rest = chunk_messages(chunk, offset, self.channels, _indexes_after(stream),
-                                                    by_time=True)
+                    messages, rest = chunk_messages(chunk, offset, self.channels, _indexes_after(stream), arrays=True)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
                                    "read it again, once nothing writes it") from None
-                held += messages
-                if rest:
-                    held += [record for record in rest if type(record) is tuple]
-                held.sort()  # timsort: the held run and the chunk's, each in order already (nearly, walked)
+                found, raws[k] = _held(messages, rest, offset, k)
+                if len(found):
+                    held = np.concatenate((held, found)) if len(held) else found
+                    held = held[np.lexsort((held["offset"], held["at"], held["log_time"]))]
                 if k + 1 < len(order):  # hand on what no chunk still to be read can come before
-                    cut = bisect.bisect_left(held, (order[k + 1][0],))
+                    cut = int(np.searchsorted(held["log_time"], np.uint64(order[k + 1][0])))
                     ready, held = held[:cut], held[cut:]
                 else:
-                    ready, held = held, []
-                yield from ready
+                    ready, held = held, held[:0]
+                if len(ready):
+                    yield ready, _data(ready, raws)
+                raws = {piece: raws[piece] for piece in np.unique(held["piece"]).tolist()}
 
     def records(self) -> Iterator[LoggedEvent | StepRecord]:
         """Every event (value undecoded) and step record, in log-time order (:meth:`time_ordered`),
@@ -340,6 +363,55 @@ class ScannedLog(LogHead):
 
 
 _STEPS = ("steps",)  # ScannedLog.records: a channel of step records (a port is a pair)
+
+#: the fields of a message :meth:`ScannedLog._ordered` holds: its head's, where its record is
+#: (``at`` its chunk's offset in the file, ``offset`` its own in the chunk's records) and where its
+#: data is (``piece``: which chunk's bytes, ``start``, ``end`` in them)
+_HELD = np.dtype([("log_time", "<u8"), ("at", "<u8"), ("offset", "<i8"), ("channel_id", "<u2"), ("sequence", "<u4"),
+                  ("publish_time", "<u8"), ("piece", "<i8"), ("start", "<i8"), ("end", "<i8")])
+
+
+def _held(messages: list[tuple] | ChunkMessages, rest: list, at: int, piece: int) -> tuple[np.ndarray, bytes]:
+    """A chunk's messages (:func:`chunk_messages` with ``arrays=True``, at byte ``at``) as
+    :data:`_HELD` rows, and the bytes their data is in: a chunk walked by its indexes as its
+    arrays; one walked otherwise (its message tuples, and those among its other records) as
+    the data joined."""
+    if type(messages) is ChunkMessages:
+        heads = messages.heads
+        found = np.empty(len(messages), dtype=_HELD)
+        for name in ("log_time", "channel_id", "sequence", "publish_time"):
+            found[name] = heads[name]
+        found["at"], found["offset"], found["piece"] = at, messages.offsets, piece
+        found["start"], found["end"] = messages.offsets + (_RECORD_HEAD + MESSAGE_FIELDS), messages.ends
+        return found, messages.raw
+    tuples = messages + [record for record in rest if type(record) is tuple]
+    found = np.empty(len(tuples), dtype=_HELD)
+    if not tuples:
+        return found, b""
+    log_times, positions, channel_ids, sequences, publish_times, data = zip(*tuples)
+    base = at << 32
+    found["log_time"], found["channel_id"], found["sequence"] = log_times, channel_ids, sequences
+    found["publish_time"], found["at"], found["piece"] = publish_times, at, piece
+    found["offset"] = [position - base for position in positions]
+    lengths = np.fromiter(map(len, data), dtype=np.int64, count=len(data))
+    ends = np.cumsum(lengths)
+    found["start"], found["end"] = ends - lengths, ends
+    return found, b"".join(data)
+
+
+def _data(held: np.ndarray, raws: dict[int, bytes]) -> list[bytes]:
+    """The data of the messages ``held`` (:data:`_HELD` rows), in their order, sliced from ``raws``."""
+    pieces, starts, ends = held["piece"], held["start"], held["end"]
+    first = int(pieces[0])
+    if (pieces == first).all():
+        raw = raws[first]
+        return list(map(raw.__getitem__, map(slice, starts.tolist(), ends.tolist())))
+    data = np.empty(len(held), dtype=object)
+    for piece in np.unique(pieces).tolist():
+        which = np.flatnonzero(pieces == piece)
+        raw = raws[piece]
+        data[which] = list(map(raw.__getitem__, map(slice, starts[which].tolist(), ends[which].tolist())))
+    return data.tolist()
 
 
 def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple]], None], *,

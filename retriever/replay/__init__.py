@@ -32,9 +32,9 @@ runs) reads the file twice and keeps neither:
    are. A step record without detail (nearly all) is only read for its node there: the second
    pass checks it, and a log with one that is not one is refused there, with the same error and
    no report;
-2. ``ScannedLog.time_ordered`` reads the messages again in log-time order (ties in file
+2. ``ScannedLog.in_order`` reads the messages again in log-time order (ties in file
    order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
-   chunks whose times overlap. The replay takes them an instant (a log time) at a time: the
+   chunks whose times overlap (as numpy arrays, in batches of columns: no tuple a message). The replay takes them an instant (a log time) at a time: the
    instant's events go to their consumers' deliveries (decoded once, on a heap by arrival; a
    value only ``Latest`` inputs take, once a tick takes it, when it decodes surely), then
    its step records run in ``(tag, node)`` order, as when every record was sorted up front. An
@@ -103,7 +103,14 @@ def replay(log: RunLog, pipeline: Pipeline | None = None,
     # as message tuples (log/reader.py), positioned by their index: sorted, in log-time order, ties in file order
     messages = [(m.log_time, i, m.channel_id, m.sequence, m.publish_time, m.data) for i, m in enumerate(log.messages)]
     survey.take(log.channels, messages)
-    return _replay_surveyed(log, survey, lambda: iter(sorted(messages)), pipeline, progress, keep_trace)
+
+    def ordered() -> Iterator[tuple[list, ...]]:  # one batch of columns, as ScannedLog.in_order hands them
+        if not messages:
+            return iter(())
+        log_times, _, channel_ids, sequences, publish_times, data = map(list, zip(*sorted(messages)))
+        return iter([(log_times, channel_ids, sequences, publish_times, data)])
+
+    return _replay_surveyed(log, survey, ordered, pipeline, progress, keep_trace)
 
 
 def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeline] | None = None,
@@ -122,7 +129,7 @@ def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipel
     steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
     if log.loose:
         return replay(read_log(path), pipeline, steps)
-    return _replay_surveyed(log, survey, log.time_ordered, pipeline, steps, False)
+    return _replay_surveyed(log, survey, log.in_order, pipeline, steps, False)
 
 
 def _replay_surveyed(log: LogHead, survey: LogSurvey, messages: Callable[[], Iterator], pipeline: Pipeline | None,

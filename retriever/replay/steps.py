@@ -128,23 +128,25 @@ class StepReplay:
         record = _step_record
         steps: list = []
         instant = None
-        for log_time, _, channel, sequence, publish_time, data in messages():
-            if log_time != instant:
-                if steps:  # the instant's messages are read: run its steps
-                    self.run_instant(steps, progress)
-                instant = log_time
-                self.now = (instant, 0)  # every record before it has run
-            if channel in steps_channels:
-                try:
-                    node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
-                except Exception as e:
-                    raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
-                steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,
-                                     publish_time, wall_ns)))
-            else:
-                port = ports.get(channel)
-                if port is not None:
-                    read(port, log_time, sequence, publish_time, data)
+        for log_times, channels, sequences, publish_times, datas in messages():
+            for log_time, channel, sequence, publish_time, data in zip(log_times, channels, sequences,
+                                                                       publish_times, datas):
+                if log_time != instant:
+                    if steps:  # the instant's messages are read: run its steps
+                        self.run_instant(steps, progress)
+                    instant = log_time
+                    self.now = (instant, 0)  # every record before it has run
+                if channel in steps_channels:
+                    try:
+                        node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
+                    except Exception as e:
+                        raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
+                    steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,
+                                         publish_time, wall_ns)))
+                else:
+                    port = ports.get(channel)
+                    if port is not None:
+                        read(port, log_time, sequence, publish_time, data)
         if steps:
             self.run_instant(steps, progress)
         return self.finish(progress)

@@ -81,10 +81,12 @@ def cut(path: Path, size: int, out: Path) -> Path:
     return out
 
 
-def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None, topic=None) -> Path:
+def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None, topic=None,
+            writer_options: dict | None = None) -> Path:
     """A copy of the log ``src`` made with the ``mcap`` writer, as a forger would: ``metadata(name,
     dict)`` changes a metadata record in place, ``keep(topic, message)`` drops messages it says no
-    to, ``add`` holds metadata records to add ({name: {key: value}}), ``topic(topic)`` renames a channel."""
+    to, ``add`` holds metadata records to add ({name: {key: value}}), ``topic(topic)`` renames a
+    channel; ``writer_options``: the ``mcap`` Writer's (``chunk_size``, ``index_types``...)."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -95,7 +97,7 @@ def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None 
         attachments = list(reader.iter_attachments())
         metas = list(reader.iter_metadata())
     with open(dst, "wb") as out:
-        writer = Writer(out)
+        writer = Writer(out, **(writer_options or {}))
         writer.start(profile=header.profile, library=header.library)
         channels: dict[int, int] = {}
         for _, channel, message in messages:

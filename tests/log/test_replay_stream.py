@@ -15,6 +15,7 @@ from pathlib import Path
 
 import msgpack
 import pytest
+from mcap.opcode import Opcode
 
 from retriever import LogError, read_log
 from retriever.backends.inproc import InprocSession
@@ -23,6 +24,7 @@ from retriever.log.reader import scan_log
 from retriever.replay import replay, replay_file, resim, resim_file
 from retriever.log.format import RECOVERED_METADATA
 from tests.log.helpers import RETRIEVER, chunks, cli, cli_env, rewrite
+from tests.log.helpers import records as file_records
 from tests.log.log_flows import Brightness, Frames, build_frames
 
 
@@ -104,6 +106,30 @@ def test_time_ordered_is_the_files_messages_sorted_by_log_time(small_chunks):
     ordered = list(scanned.time_ordered())
     # ties in file order: the sort is stable
     assert list(map(_fields, ordered)) == list(map(_fields, sorted(whole, key=lambda m: m.log_time)))
+
+
+def test_in_order_is_time_ordered_in_columns_read_by_the_indexes_or_not(small_chunks, tmp_path):
+    """``in_order``'s batches are ``time_ordered``'s messages, positions left out; both read a
+    log the same whether its chunks are walked by their MessageIndex records (as written) or
+    not (a copy without them, in small chunks: walked one record at a time), and the replay of
+    either says what the replay of the log read whole says."""
+    from mcap.writer import IndexType
+
+    unindexed = rewrite(small_chunks, tmp_path / "unindexed.mcap",
+                        writer_options={"index_types": IndexType.CHUNK, "chunk_size": 100_000})
+    opcodes = [opcode for opcode, _, _ in file_records(unindexed.read_bytes())]
+    assert opcodes.count(Opcode.CHUNK) > 20 and Opcode.MESSAGE_INDEX not in opcodes
+    for path in (small_chunks, unindexed):
+        scanned = scan_log(path, lambda channels, messages: None)
+        ordered = list(scanned.time_ordered())
+        whole = read_log(path).messages
+        assert list(map(_fields, ordered)) == list(map(_fields, sorted(whole, key=lambda m: m.log_time)))
+        assert sorted(m[1] for m in ordered) == sorted(set(m[1] for m in ordered)), "positions unique"
+        batches = list(scanned.in_order())
+        assert len(batches) > 1
+        columns = [sum((list(batch[k]) for batch in batches), []) for k in range(5)]
+        assert list(zip(*columns)) == list(map(_fields, ordered))
+        _same(replay(read_log(path)), replay_file(path))
 
 
 def _same(a, b) -> None:
