@@ -293,7 +293,7 @@ class ScannedLog(LogHead):
         long the log."""
         for held, data in self._ordered():
             ats, offsets = held["at"], held["offset"]
-            if not len(ats) or int(ats.max()) < 1 << 30:
+            if int(ats.max()) < 1 << 30:
                 positions = ((ats.astype(np.int64) << 32) + offsets).tolist()
             else:
                 positions = [(at << 32) + offset for at, offset in zip(ats.tolist(), offsets.tolist())]
@@ -308,16 +308,16 @@ class ScannedLog(LogHead):
             yield (held["log_time"].tolist(), held["channel_id"].tolist(), held["sequence"].tolist(),
                    held["publish_time"].tolist(), data)
 
-    def _ordered(self) -> Iterator[tuple[np.ndarray, list[bytes]]]:
+    def _ordered(self) -> Iterator[tuple[dict[str, np.ndarray], list[bytes]]]:
         """:meth:`time_ordered`'s reading: the messages in batches, each the messages' fields
-        (:data:`_HELD`) and their data. The messages held are kept as arrays (sorted with numpy:
-        by log time, then chunk, then place in it) and their data in their chunks' bytes, sliced
-        once a message is handed on."""
+        (:data:`_HELD`, an array each) and their data. The messages held are kept as arrays (sorted
+        with numpy: by log time, then chunk, then place in it) and their data in their chunks'
+        bytes, sliced once a message is handed on."""
         if self.loose:
             raise LogError(f"{self.path} holds {self.loose} messages outside its chunks, which time_ordered() "
                            "does not read", "read it whole: read_log(path)")
         order = sorted(self.chunks)
-        held = np.empty(0, dtype=_HELD)  # sorted: by log time, then chunk, then offset in it (unique)
+        held: dict[str, np.ndarray] | None = None  # sorted: by log time, then chunk, then offset in it (unique)
         raws: dict[int, bytes] = {}  # the bytes of the chunks that held messages are in, by piece
         try:
             stream = open(self.path, "rb")
@@ -336,17 +336,24 @@ class ScannedLog(LogHead):
                                    f"reads ({type(e).__name__}: {e})",
                                    "read it again, once nothing writes it") from None
                 found, raws[k] = _held(messages, rest, offset, k)
-                if len(found):
-                    held = np.concatenate((held, found)) if len(held) else found
-                    held = held[np.lexsort((held["offset"], held["at"], held["log_time"]))]
+                if found is not None:
+                    if held is not None:
+                        found = {name: np.concatenate((held[name], found[name])) for name in _HELD}
+                    order_by = np.lexsort((found["offset"], found["at"], found["log_time"]))
+                    held = {name: column[order_by] for name, column in found.items()}
+                if held is None:
+                    continue
                 if k + 1 < len(order):  # hand on what no chunk still to be read can come before
                     cut = int(np.searchsorted(held["log_time"], np.uint64(order[k + 1][0])))
-                    ready, held = held[:cut], held[cut:]
                 else:
-                    ready, held = held, held[:0]
-                if len(ready):
-                    yield ready, _data(ready, raws)
-                raws = {piece: raws[piece] for piece in np.unique(held["piece"]).tolist()}
+                    cut = len(held["log_time"])
+                if cut:
+                    yield {name: column[:cut] for name, column in held.items()}, _data(held, cut, raws)
+                if cut == len(held["log_time"]):
+                    held, raws = None, {}
+                else:
+                    held = {name: column[cut:] for name, column in held.items()}
+                    raws = {piece: raws[piece] for piece in np.unique(held["piece"]).tolist()}
 
     def records(self) -> Iterator[LoggedEvent | StepRecord]:
         """Every event (value undecoded) and step record, in log-time order (:meth:`time_ordered`),
@@ -367,51 +374,48 @@ _STEPS = ("steps",)  # ScannedLog.records: a channel of step records (a port is 
 #: the fields of a message :meth:`ScannedLog._ordered` holds: its head's, where its record is
 #: (``at`` its chunk's offset in the file, ``offset`` its own in the chunk's records) and where its
 #: data is (``piece``: which chunk's bytes, ``start``, ``end`` in them)
-_HELD = np.dtype([("log_time", "<u8"), ("at", "<u8"), ("offset", "<i8"), ("channel_id", "<u2"), ("sequence", "<u4"),
-                  ("publish_time", "<u8"), ("piece", "<i8"), ("start", "<i8"), ("end", "<i8")])
+_HELD = ("log_time", "at", "offset", "channel_id", "sequence", "publish_time", "piece", "start", "end")
 
 
-def _held(messages: list[tuple] | ChunkMessages, rest: list, at: int, piece: int) -> tuple[np.ndarray, bytes]:
+def _held(messages: list[tuple] | ChunkMessages, rest: list, at: int,
+          piece: int) -> tuple[dict[str, np.ndarray] | None, bytes]:
     """A chunk's messages (:func:`chunk_messages` with ``arrays=True``, at byte ``at``) as
-    :data:`_HELD` rows, and the bytes their data is in: a chunk walked by its indexes as its
-    arrays; one walked otherwise (its message tuples, and those among its other records) as
-    the data joined."""
+    :data:`_HELD` columns (None if it has none), and the bytes their data is in: a chunk walked by
+    its indexes as its arrays; one walked otherwise (its message tuples, and those among its
+    other records) as the data joined."""
     if type(messages) is ChunkMessages:
-        heads = messages.heads
-        found = np.empty(len(messages), dtype=_HELD)
-        for name in ("log_time", "channel_id", "sequence", "publish_time"):
-            found[name] = heads[name]
-        found["at"], found["offset"], found["piece"] = at, messages.offsets, piece
-        found["start"], found["end"] = messages.offsets + (_RECORD_HEAD + MESSAGE_FIELDS), messages.ends
-        return found, messages.raw
+        heads, offsets, n = messages.heads, messages.offsets, len(messages)
+        return {"log_time": heads["log_time"], "at": np.full(n, at, dtype=np.uint64), "offset": offsets,
+                "channel_id": heads["channel_id"], "sequence": heads["sequence"], "publish_time": heads["publish_time"],
+                "piece": np.full(n, piece, dtype=np.int64), "start": offsets + (_RECORD_HEAD + MESSAGE_FIELDS),
+                "end": messages.ends}, messages.raw
     tuples = messages + [record for record in rest if type(record) is tuple]
-    found = np.empty(len(tuples), dtype=_HELD)
     if not tuples:
-        return found, b""
+        return None, b""
     log_times, positions, channel_ids, sequences, publish_times, data = zip(*tuples)
-    base = at << 32
-    found["log_time"], found["channel_id"], found["sequence"] = log_times, channel_ids, sequences
-    found["publish_time"], found["at"], found["piece"] = publish_times, at, piece
-    found["offset"] = [position - base for position in positions]
-    lengths = np.fromiter(map(len, data), dtype=np.int64, count=len(data))
+    base, n = at << 32, len(tuples)
+    lengths = np.fromiter(map(len, data), dtype=np.int64, count=n)
     ends = np.cumsum(lengths)
-    found["start"], found["end"] = ends - lengths, ends
-    return found, b"".join(data)
+    return {"log_time": np.array(log_times, dtype=np.uint64), "at": np.full(n, at, dtype=np.uint64),
+            "offset": np.array([position - base for position in positions], dtype=np.int64),
+            "channel_id": np.array(channel_ids, dtype=np.uint16), "sequence": np.array(sequences, dtype=np.uint32),
+            "publish_time": np.array(publish_times, dtype=np.uint64), "piece": np.full(n, piece, dtype=np.int64),
+            "start": ends - lengths, "end": ends}, b"".join(data)
 
 
-def _data(held: np.ndarray, raws: dict[int, bytes]) -> list[bytes]:
-    """The data of the messages ``held`` (:data:`_HELD` rows), in their order, sliced from ``raws``."""
-    pieces, starts, ends = held["piece"], held["start"], held["end"]
-    first = int(pieces[0])
-    if (pieces == first).all():
-        raw = raws[first]
-        return list(map(raw.__getitem__, map(slice, starts.tolist(), ends.tolist())))
-    data = np.empty(len(held), dtype=object)
-    for piece in np.unique(pieces).tolist():
-        which = np.flatnonzero(pieces == piece)
-        raw = raws[piece]
-        data[which] = list(map(raw.__getitem__, map(slice, starts[which].tolist(), ends[which].tolist())))
-    return data.tolist()
+def _data(held: dict[str, np.ndarray], cut: int, raws: dict[int, bytes]) -> list[bytes]:
+    """The data of the first ``cut`` messages ``held`` (:data:`_HELD` columns), in their order,
+    sliced from ``raws`` (the chunks' bytes they are in, joined when more than one)."""
+    pieces, starts, ends = held["piece"][:cut], held["start"][:cut], held["end"][:cut]
+    if len(raws) > 1:
+        kept = sorted(raws)
+        firsts = np.cumsum([0] + [len(raws[piece]) for piece in kept[:-1]])  # where each begins, joined
+        shift = firsts[np.searchsorted(kept, pieces)]
+        raw = b"".join(raws[piece] for piece in kept)
+        starts, ends = starts + shift, ends + shift
+    else:
+        raw = raws[int(pieces[0])]
+    return list(map(raw.__getitem__, map(slice, starts.tolist(), ends.tolist())))
 
 
 def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple]], None], *,
