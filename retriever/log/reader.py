@@ -9,7 +9,8 @@ A log is read a chunk at a time: a chunk's Message records are found by the Mess
 records after it, every record's head read at once with numpy (checked to tile the chunk
 exactly; else walked with one ``unpack_from`` each: :func:`chunk_messages`), and handed on,
 where a reader takes them in bulk (:func:`scan_log`, or as numpy arrays, :class:`ChunkMessages`;
-``ScannedLog.time_ordered``: the replay's two passes), as **message tuples**
+``ScannedLog.time_ordered``, or as batches of columns ``ScannedLog.in_order``: the replay's two
+passes), as **message tuples**
 ``(log_time, position, channel_id, sequence, publish_time, data)`` rather than ``mcap``
 ``Message`` objects (making those was most of a log's reading). ``position`` says where the
 record is (its chunk's offset in the file times 2**32, plus its own in the chunk's records):
