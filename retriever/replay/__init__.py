@@ -34,9 +34,10 @@ runs) reads the file twice and keeps neither:
    no report;
 2. ``ScannedLog.in_order`` reads the messages again in log-time order (ties in file
    order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
-   chunks whose times overlap (as numpy arrays, in batches of columns: no tuple a message). The replay takes them an instant (a log time) at a time: the
-   instant's events go to their consumers' deliveries (decoded once, on a heap by arrival; a
-   value only ``Latest`` inputs take, once a tick takes it, when it decodes surely), then
+   chunks whose times overlap (as numpy arrays; handed on in batches of columns, no tuple a
+   message). The replay takes them an instant (a log time) at a time: the instant's events go
+   to their consumers' deliveries (decoded once, on a heap by arrival; a value only ``Latest``
+   inputs take, once a tick takes it, when it decodes surely), then
    its step records run in ``(tag, node)`` order, as when every record was sorted up front. An
    event waits until the record that produced it has run (the same instant, for a log a run
    wrote); a step's outputs are compared once they are read (a LET step's come later in the

@@ -120,7 +120,9 @@ class StepReplay:
         self.kept_steps, self.kept_parts, self.kept_events = [], [], {}
 
     def play(self, messages: Callable[[], Iterator], progress: Callable[[int, int], None] | None) -> ReplayReport:
-        """Replay the log: each instant's messages read, then its step records run."""
+        """Replay the log: each instant's messages read, then its step records run. ``messages()``
+        gives them in log-time order (ties in file order) in batches of columns, as
+        ``ScannedLog.in_order`` does: ``(log_times, channel_ids, sequences, publish_times, data)``."""
         log = self.log
         steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
