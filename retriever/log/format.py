@@ -121,6 +121,7 @@ _PLAIN_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
 
 
 _NOT_A_STEP = "it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step"
+_NOT_IDS = "its event ids are not [node, port, seq] triples"
 
 
 def decode_step(data: bytes) -> tuple:
@@ -128,9 +129,11 @@ def decode_step(data: bytes) -> tuple:
     event ids as tuples like the in-memory trace has them."""
     # most records have no detail: their arrays are read as the tuples they are kept as, checked
     # in place (a replay reads every step record of the log, twice)
-    node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, use_list=False)
+    step = msgpack.unpackb(data, use_list=False)
+    node, microstep, consumed, produced, status, detail, wall_ns = step
     if detail is None:
-        # checked in the order of the reading below (an unhashable status raises TypeError, after the ports)
+        # checked in the order of the reading below (an unhashable status raises TypeError, after the ports);
+        # the ids as event_ids checks them, inline (a call per port costs more than its checks)
         if type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict:
             raise ValueError(_NOT_A_STEP)
         for port in consumed:  # (a loop, not all(): its generator costs more than the check)
@@ -138,10 +141,25 @@ def decode_step(data: bytes) -> tuple:
                 raise ValueError(_NOT_A_STEP)
         if status not in _PLAIN_STATUSES or type(wall_ns) is not int:
             raise ValueError(_NOT_A_STEP)
-        for ids in consumed.values():
-            _check_ids(ids)
-        _check_ids(produced)
-        return node, microstep, consumed, produced, status, None, wall_ns
+        if consumed:
+            for ids in consumed.values():
+                if type(ids) is not tuple:
+                    raise ValueError(_NOT_IDS)
+                for i in ids:
+                    if type(i) is not tuple or len(i) != 3:
+                        raise ValueError(_NOT_IDS)
+                    id_node, id_port, seq = i
+                    if type(id_node) is not str or type(id_port) is not str or type(seq) is not int or seq < 0:
+                        raise ValueError(_NOT_IDS)
+        if type(produced) is not tuple:
+            raise ValueError(_NOT_IDS)
+        for i in produced:
+            if type(i) is not tuple or len(i) != 3:
+                raise ValueError(_NOT_IDS)
+            id_node, id_port, seq = i
+            if type(id_node) is not str or type(id_port) is not str or type(seq) is not int or seq < 0:
+                raise ValueError(_NOT_IDS)
+        return step
     node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, raw=False)
     # what readers (log info, replay) rely on; a damaged or forged record is a ValueError here
     if (type(node) is not str or type(microstep) is not int or microstep < 0 or type(consumed) is not dict
@@ -190,20 +208,6 @@ def _is_range(item: Any) -> bool:
             and all(type(n) is int and n >= 0 for n in item[2:]))
 
 
-def _check_ids(ids: Any) -> None:
-    """:func:`event_ids` of ids read as tuples: checked, kept as they are."""
-    if type(ids) is tuple:
-        for i in ids:
-            if type(i) is not tuple or len(i) != 3:
-                break
-            node, port, seq = i
-            if type(node) is not str or type(port) is not str or type(seq) is not int or seq < 0:
-                break
-        else:
-            return
-    raise ValueError("its event ids are not [node, port, seq] triples")
-
-
 def event_ids(ids: Any) -> tuple:
     """``[[node, port, seq], ...]`` → a tuple of event ids, or ValueError."""
     if type(ids) is list:
@@ -217,7 +221,7 @@ def event_ids(ids: Any) -> tuple:
             out.append((node, port, seq))
         else:
             return tuple(out)
-    raise ValueError("its event ids are not [node, port, seq] triples")
+    raise ValueError(_NOT_IDS)
 
 
 @functools.cache
