@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import os
 from collections import deque
+from operator import itemgetter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
@@ -213,11 +214,12 @@ def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], p
     return ResimReport(horizon, feed.steps_kept, comparison.counts[0][0], comparison.difference(), changes)
 
 
-def _drained(session: InprocSession) -> tuple[list[Event], list[StepRecord]]:
-    """The records the session recorded since the last call, taken out of its trace."""
+def _drained(session: InprocSession) -> tuple[list[tuple], list[tuple]]:
+    """The records the session recorded since the last call, taken out of its trace: plain tuples
+    of the fields of an :class:`Event` and a :class:`StepRecord` (made those to be reported)."""
     trace = session.trace
     events, steps = trace.raw_events, trace.raw_steps
-    taken = list(map(Event._make, events)), sorted(map(StepRecord._make, steps), key=_step_key)
+    taken = list(events), sorted(steps, key=_raw_step_key)
     trace.discard(len(events), len(steps))
     return taken
 
@@ -325,22 +327,26 @@ class _Feed:
         return expected, kept
 
 
-def _same_event(logged: LoggedEvent, again: Event) -> bool:
+def _same_event(logged: LoggedEvent, again: tuple) -> bool:
     """Whether ``event_bytes`` of the logged event, its value decoded, is that of the session's,
     told from the logged value's bytes, where they tell it exactly: a value that decodes surely
     (an array of a dtype and shape decoded before) packs again as it was logged, so the two are
     the same if the session's is an array of a plain dtype (no fields, no objects: packed by its
     dtype's string, which decodes to the same dtype) that packs to those bytes. False says
-    nothing: compare them decoded."""
-    value = again.value
+    nothing: compare them decoded. ``again``: the fields of an :class:`Event`, a plain tuple."""
+    tag, node, port, seq, value = again[:5]
     if type(value) is not np.ndarray or value.dtype.fields is not None or value.dtype.hasobject:
         return False
-    return (logged.seq == again.seq and logged.tag == again.tag and logged.port == again.port
-            and logged.node == again.node and array_encoding_head(value) + value.tobytes() == logged.raw_value)
+    return (logged.seq == seq and logged.tag == tag and logged.port == port and logged.node == node
+            and array_encoding_head(value) + value.tobytes() == logged.raw_value)
 
 
 def _event_key(e: Event) -> tuple:
     return e.tag, e.node, e.port, e.seq
+
+
+#: _event_key and _step_key of the session's records, plain tuples (_drained)
+_raw_event_key, _raw_step_key = itemgetter(0, 1, 2, 3), itemgetter(1, 0)
 
 
 def _step_key(s: StepRecord) -> tuple:
@@ -355,18 +361,19 @@ class _Comparison:
     def __init__(self, value: Callable[[LoggedEvent], object]) -> None:
         self.value = value  # a logged event's value, decoded (RunLog.value)
         #: per side (0: the log's, 1: the session's): events and step records not yet paired
-        #: (the log's events as read, LoggedEvent, when their value decodes surely: _Feed.take_before)
+        #: (the log's events as read, LoggedEvent, when their value decodes surely: _Feed.take_before;
+        #: the session's records as plain tuples, _drained)
         self.events: tuple[deque, deque] = (deque(), deque())
         self.steps: tuple[deque, deque] = (deque(), deque())
         self.counts = [[0, 0], [0, 0]]  # [side][events, steps]
-        self.first_step: list[StepRecord | None] = [None, None]
+        self.first_step: list[StepRecord | tuple | None] = [None, None]
         self.event_difference: str | None = None
         self.step_difference: tuple[int, StepRecord, StepRecord] | None = None
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
         self.paired_events = self.paired_steps = 0
         self.session_done = False  # the session's records are all in
 
-    def add(self, expected: tuple[list[Event], list[StepRecord]], again: tuple[list[Event], list[StepRecord]]) -> None:
+    def add(self, expected: tuple[list[Event | LoggedEvent], list[StepRecord]], again: tuple[list[tuple], list[tuple]]) -> None:
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
             if steps and self.first_step[side] is None:
@@ -381,10 +388,12 @@ class _Comparison:
             arrived = self.arrived[side]
             if t is None:
                 ready, later = list(arrived), []
+            elif side:
+                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
             else:
                 ready, later = [e for e in arrived if e.tag[0] < t], [e for e in arrived if e.tag[0] >= t]
             self.arrived[side][:] = later
-            ready.sort(key=_event_key)
+            ready.sort(key=_raw_event_key if side else _event_key)
             self.counts[side][0] += len(ready)
             if self.event_difference is None:
                 self.events[side].extend(ready)
@@ -396,6 +405,7 @@ class _Comparison:
                     self.paired_events += 1
                     continue
                 a = self._decoded(a)
+            b = Event._make(b)
             if event_bytes(a) != event_bytes(b):
                 self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
                 mine.clear()
@@ -409,9 +419,10 @@ class _Comparison:
             a, b = mine.popleft(), theirs.popleft()
             # the same fields without detail pack the same (step_bytes): the log's are exact strs and
             # ints (format.decode_step checks them), the session's the backend's own
-            if a.detail is None and b.detail is None and a[:5] == b[:5]:
+            if a.detail is None and b[5] is None and a[:5] == b[:5]:
                 self.paired_steps += 1
                 continue
+            b = StepRecord._make(b)
             if step_bytes(a) != step_bytes(b):
                 self.step_difference = (self.paired_steps, a, b)
                 mine.clear()
@@ -440,9 +451,10 @@ class _Comparison:
             return None
         # one side has more events: where the other's step records begin, an event meets a step
         if events < events_again:
-            a, b = self.first_step[0], self.events[1][0]
+            a, b = self.first_step[0], Event._make(self.events[1][0])
         else:
             a, b = self._decoded(self.events[0][0]), self.first_step[1]
+            b = None if b is None else StepRecord._make(b)
         if a is None or b is None:
             return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
         return f"record {min(events, events_again)}: {a!r} != {b!r}"
