@@ -5,7 +5,8 @@ sources emitting their logged events, and the full trace compared with the log's
 reads the file twice and keeps neither, as ``replay_file`` does:
 
 1. ``log.reader.scan_log`` checks it whole (the same errors as ``read_log``, before anything
-   runs), handing each message to a :class:`ResimSurvey`: the nodes with step records, how many
+   runs), handing each chunk (as arrays where its indexes tile it, else message tuples) to a
+   :class:`ResimSurvey`: the nodes with step records (each one read and checked), how many
    and the time of the last (the horizon of a run that did not finish), which event ids the log
    holds (``LogSurvey``'s ranges of seqs), and the first step record or event that is not one
    (in file order: the error ``read_log(path).trace()`` raises);
@@ -41,7 +42,7 @@ from ..backends.inproc import InprocSession
 from ..codec import array_encoding_head, decodes_surely
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
-from ..log.reader import LogHead, LoggedEvent, RunLog, logged_event, read_log, scan_log, step_record
+from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, scan_log, step_record
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows
@@ -83,24 +84,46 @@ class ResimSurvey:
         events = []
         for message in messages:
             log_time, _, channel_id, sequence, publish_time, data = message
-            steps = self._steps_channels.get(channel_id)
-            if steps is None:
-                steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
-            if not steps:
+            if self._is_steps(channels, channel_id):
+                self._step(log_time, sequence, publish_time, data)
+            else:
                 events.append(message)
-                continue
-            if self.step_error is not None:
-                continue
-            try:
-                node = step_record(self.path, log_time, sequence, publish_time, data).node
-            except LogError as e:
-                self.step_error = e
-                continue
-            self.nodes.add(node)
-            self.steps += 1
-            if self.last_ns is None or log_time > self.last_ns:
-                self.last_ns = log_time
         self.events.take(channels, events)
+
+    def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: the step
+        records read one by one in file order, as :meth:`take` reads them, the events by
+        ``LogSurvey.take_chunk`` (a chunk at a time)."""
+        heads = chunk.heads
+        channel_ids = heads["channel_id"]
+        steps = [c for c in np.unique(channel_ids).tolist() if self._is_steps(channels, c)]
+        if steps and self.step_error is None:
+            which = np.flatnonzero(channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps))
+            step = self._step
+            for log_time, sequence, publish_time, data in zip(heads["log_time"][which].tolist(),
+                                                              heads["sequence"][which].tolist(),
+                                                              heads["publish_time"][which].tolist(), chunk.data(which)):
+                step(log_time, sequence, publish_time, data)
+        self.events.take_chunk(channels, chunk)
+
+    def _is_steps(self, channels: dict, channel_id: int) -> bool:
+        steps = self._steps_channels.get(channel_id)
+        if steps is None:
+            steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
+        return steps
+
+    def _step(self, log_time: int, sequence: int, publish_time: int, data: bytes) -> None:
+        if self.step_error is not None:
+            return
+        try:
+            node = step_record(self.path, log_time, sequence, publish_time, data).node
+        except LogError as e:
+            self.step_error = e
+            return
+        self.nodes.add(node)
+        self.steps += 1
+        if self.last_ns is None or log_time > self.last_ns:
+            self.last_ns = log_time
 
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
@@ -134,7 +157,7 @@ def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeli
     ``"replaying"`` with steps. A log with messages outside its chunks is read whole."""
     survey = ResimSurvey(Path(path))
     read = None if progress is None else (lambda done, total: progress("reading", done, total))
-    log = scan_log(path, survey.take, progress=read)
+    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
     if callable(pipeline):
         pipeline = pipeline()
     steps = None if progress is None else (lambda done, total: progress("replaying", done, total))

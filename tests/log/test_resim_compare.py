@@ -108,3 +108,73 @@ def test_an_identical_resim_decodes_only_what_its_sources_emit(tmp_path, monkeyp
     report = resim_file(path, _pipe("same"))
     assert report.identical and report.events_compared == 40 + 20
     assert len(decoded) <= 40 + 1, len(decoded)
+
+
+
+def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(tmp_path):
+    """``ResimSurvey.take_chunk`` (a chunk as numpy read it: what ``resim_file`` takes) finds what
+    ``take`` finds of the same messages as tuples (what ``resim`` of a log read whole takes): on
+    the log as written, and on a chunk of it whose step records or events are not ones (the
+    first of each kept), or whose event is there twice."""
+    import msgpack
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from retriever.log.reader import chunk_messages, scan_log
+    from retriever.replay.resimulation import ResimSurvey
+    from tests.log.test_replay_stream import _index_bodies, _record_bytes
+
+    path = tmp_path / "run.mcap"
+    _pipe("raises").run(duration=2.0, log=path)
+
+    def state(survey):
+        return (survey.nodes, survey.steps, survey.last_ns, str(survey.step_error), str(survey.events.event_error),
+                str(survey.events.twice), {k: (v.lo, v.hi) for k, v in survey.events.seqs.items()})
+
+    by_arrays, by_tuples, chunks = ResimSurvey(path), ResimSurvey(path), []
+    scan_log(path, by_arrays.take, take_chunk=lambda c, m: chunks.append(m) or by_arrays.take_chunk(c, m))
+    scan_log(path, by_tuples.take)
+    assert chunks and state(by_arrays) == state(by_tuples) and by_arrays.steps == 60
+
+    channels = scan_log(path, lambda c, m: None).channels
+    chunk = next(r for r in StreamReader(open(path, "rb"), emit_chunks=True).records if type(r) is Chunk)
+    plain = breakup_chunk(chunk)
+    steps = [i for i, m in enumerate(plain) if channels[m.channel_id].topic == "steps"]
+    events = [i for i, m in enumerate(plain) if channels[m.channel_id].topic.startswith("data/scale/")]
+
+    def changed(records, i, **fields):
+        m = records[i]
+        return [*records[:i], Message(**{**{k: getattr(m, k) for k in ("channel_id", "sequence", "log_time",
+                                                                          "publish_time", "data")}, **fields}),
+                *records[i + 1:]]
+
+    def record(i, **changes):
+        fields = msgpack.unpackb(plain[i].data)
+        for at, value in changes.items():
+            fields["node microstep consumed produced status detail wall_ns".split().index(at)] = value
+        return msgpack.packb(fields)
+
+    one, two, last = steps[len(steps) // 2], steps[-1], events[-1]
+    variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
+                changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
+                changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
+                changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
+                changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
+                changed(plain, last, sequence=plain[events[0]].sequence),
+                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1")]
+    for n, records in enumerate(variants):
+        sizes = [len(_record_bytes(m)) for m in records]
+        data = b"".join(_record_bytes(m) for m in records)
+        entries: dict[int, list] = {}
+        for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
+            entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
+        body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                     uncompressed_size=len(data))
+        arrays = chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0]
+        tuples = chunk_messages(body, 0, channels)[0]
+        assert type(tuples) is list and type(arrays) is not list
+        a, b = ResimSurvey(path), ResimSurvey(path)
+        for _ in range(2):  # a chunk, then another after it
+            a.take_chunk(channels, arrays)
+            b.take(channels, tuples)
+            assert state(a) == state(b), n
