@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from operator import itemgetter
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Callable, Iterator
 
