@@ -5,7 +5,8 @@ sources emitting their logged events, and the full trace compared with the log's
 reads the file twice and keeps neither, as ``replay_file`` does:
 
 1. ``log.reader.scan_log`` checks it whole (the same errors as ``read_log``, before anything
-   runs), handing each message to a :class:`ResimSurvey`: the nodes with step records, how many
+   runs), handing each chunk (as arrays where its indexes tile it, else message tuples) to a
+   :class:`ResimSurvey`: the nodes with step records (each one read and checked), how many
    and the time of the last (the horizon of a run that did not finish), which event ids the log
    holds (``LogSurvey``'s ranges of seqs), and the first step record or event that is not one
    (in file order: the error ``read_log(path).trace()`` raises);
@@ -15,7 +16,10 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    records of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
    step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
-   waits for the second it is in.
+   waits for the second it is in. A logged event whose value is an array that decodes surely
+   (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
+   to the same bytes is the same record (``_same_event``); a step record without detail by its
+   fields (``_Comparison.pair``); anything else decoded and packed, as the two traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -28,13 +32,17 @@ from __future__ import annotations
 import os
 from collections import deque
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Callable, Iterator
 
+import numpy as np
+
 from ..backends.inproc import InprocSession
+from ..codec import array_encoding_head, decodes_surely
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
-from ..log.reader import LogHead, LoggedEvent, RunLog, logged_event, read_log, scan_log, step_record
+from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, scan_log, step_record
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows
@@ -76,24 +84,46 @@ class ResimSurvey:
         events = []
         for message in messages:
             log_time, _, channel_id, sequence, publish_time, data = message
-            steps = self._steps_channels.get(channel_id)
-            if steps is None:
-                steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
-            if not steps:
+            if self._is_steps(channels, channel_id):
+                self._step(log_time, sequence, publish_time, data)
+            else:
                 events.append(message)
-                continue
-            if self.step_error is not None:
-                continue
-            try:
-                node = step_record(self.path, log_time, sequence, publish_time, data).node
-            except LogError as e:
-                self.step_error = e
-                continue
-            self.nodes.add(node)
-            self.steps += 1
-            if self.last_ns is None or log_time > self.last_ns:
-                self.last_ns = log_time
         self.events.take(channels, events)
+
+    def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: the step
+        records read one by one in file order, as :meth:`take` reads them, the events by
+        ``LogSurvey.take_chunk`` (a chunk at a time)."""
+        heads = chunk.heads
+        channel_ids = heads["channel_id"]
+        steps = [c for c in np.unique(channel_ids).tolist() if self._is_steps(channels, c)]
+        if steps and self.step_error is None:
+            which = np.flatnonzero(channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps))
+            step = self._step
+            for log_time, sequence, publish_time, data in zip(heads["log_time"][which].tolist(),
+                                                              heads["sequence"][which].tolist(),
+                                                              heads["publish_time"][which].tolist(), chunk.data(which)):
+                step(log_time, sequence, publish_time, data)
+        self.events.take_chunk(channels, chunk)
+
+    def _is_steps(self, channels: dict, channel_id: int) -> bool:
+        steps = self._steps_channels.get(channel_id)
+        if steps is None:
+            steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
+        return steps
+
+    def _step(self, log_time: int, sequence: int, publish_time: int, data: bytes) -> None:
+        if self.step_error is not None:
+            return
+        try:
+            node = step_record(self.path, log_time, sequence, publish_time, data).node
+        except LogError as e:
+            self.step_error = e
+            return
+        self.nodes.add(node)
+        self.steps += 1
+        if self.last_ns is None or log_time > self.last_ns:
+            self.last_ns = log_time
 
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
@@ -127,7 +157,7 @@ def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeli
     ``"replaying"`` with steps. A log with messages outside its chunks is read whole."""
     survey = ResimSurvey(Path(path))
     read = None if progress is None else (lambda done, total: progress("reading", done, total))
-    log = scan_log(path, survey.take, progress=read)
+    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
     if callable(pipeline):
         pipeline = pipeline()
     steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
@@ -170,7 +200,7 @@ def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], p
     feed = _Feed(log, survey, records(), logged, horizon)
     for nid in logged:
         session.replace_step(nid, feed.outputs(nid))
-    comparison = _Comparison()
+    comparison = _Comparison(log.value)
 
     def compare_before(t: int | None) -> None:
         comparison.add(feed.take_before(t), _drained(session))
@@ -207,11 +237,12 @@ def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], p
     return ResimReport(horizon, feed.steps_kept, comparison.counts[0][0], comparison.difference(), changes)
 
 
-def _drained(session: InprocSession) -> tuple[list[Event], list[StepRecord]]:
-    """The records the session recorded since the last call, taken out of its trace."""
+def _drained(session: InprocSession) -> tuple[list[tuple], list[tuple]]:
+    """The records the session recorded since the last call, taken out of its trace: plain tuples
+    of the fields of an :class:`Event` and a :class:`StepRecord` (made those to be reported)."""
     trace = session.trace
     events, steps = trace.raw_events, trace.raw_steps
-    taken = list(map(Event._make, events)), sorted(map(StepRecord._make, steps), key=_step_key)
+    taken = list(events), sorted(steps, key=_raw_step_key)
     trace.discard(len(events), len(steps))
     return taken
 
@@ -310,14 +341,35 @@ class _Feed:
             if event_id in owed:
                 if not twice:
                     owed.discard(event_id)
-                expected.append(Event(e.tag, e.node, e.port, e.seq, value(e), e.publish_ns))
+                # a value that decodes surely is compared by its bytes, decoded only if they differ;
+                # any other is decoded here, so that a damaged one refuses the log here, as it did
+                expected.append(e if decodes_surely(e.raw_value) else
+                                Event(e.tag, e.node, e.port, e.seq, value(e), e.publish_ns))
         expected.sort(key=_event_key)
         kept.sort(key=_step_key)
         return expected, kept
 
 
+def _same_event(logged: LoggedEvent, again: tuple) -> bool:
+    """Whether ``event_bytes`` of the logged event, its value decoded, is that of the session's,
+    told from the logged value's bytes, where they tell it exactly: a value that decodes surely
+    (an array of a dtype and shape decoded before) packs again as it was logged, so the two are
+    the same if the session's is an array of a plain dtype (no fields, no objects: packed by its
+    dtype's string, which decodes to the same dtype) that packs to those bytes. False says
+    nothing: compare them decoded. ``again``: the fields of an :class:`Event`, a plain tuple."""
+    tag, node, port, seq, value = again[:5]
+    if type(value) is not np.ndarray or value.dtype.fields is not None or value.dtype.hasobject:
+        return False
+    return (logged.seq == seq and logged.tag == tag and logged.port == port and logged.node == node
+            and array_encoding_head(value) + value.tobytes() == logged.raw_value)
+
+
 def _event_key(e: Event) -> tuple:
     return e.tag, e.node, e.port, e.seq
+
+
+#: _event_key and _step_key of the session's records, plain tuples (_drained)
+_raw_event_key, _raw_step_key = itemgetter(0, 1, 2, 3), itemgetter(1, 0)
 
 
 def _step_key(s: StepRecord) -> tuple:
@@ -329,19 +381,22 @@ class _Comparison:
     as they come: the events, in order, pair by pair, then the step records, the first
     difference of each kept; what is held is what one side has that the other has not yet."""
 
-    def __init__(self) -> None:
+    def __init__(self, value: Callable[[LoggedEvent], object]) -> None:
+        self.value = value  # a logged event's value, decoded (RunLog.value)
         #: per side (0: the log's, 1: the session's): events and step records not yet paired
+        #: (the log's events as read, LoggedEvent, when their value decodes surely: _Feed.take_before;
+        #: the session's records as plain tuples, _drained)
         self.events: tuple[deque, deque] = (deque(), deque())
         self.steps: tuple[deque, deque] = (deque(), deque())
         self.counts = [[0, 0], [0, 0]]  # [side][events, steps]
-        self.first_step: list[StepRecord | None] = [None, None]
+        self.first_step: list[StepRecord | tuple | None] = [None, None]
         self.event_difference: str | None = None
         self.step_difference: tuple[int, StepRecord, StepRecord] | None = None
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
         self.paired_events = self.paired_steps = 0
         self.session_done = False  # the session's records are all in
 
-    def add(self, expected: tuple[list[Event], list[StepRecord]], again: tuple[list[Event], list[StepRecord]]) -> None:
+    def add(self, expected: tuple[list[Event | LoggedEvent], list[StepRecord]], again: tuple[list[tuple], list[tuple]]) -> None:
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
             if steps and self.first_step[side] is None:
@@ -356,16 +411,24 @@ class _Comparison:
             arrived = self.arrived[side]
             if t is None:
                 ready, later = list(arrived), []
+            elif side:
+                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
             else:
                 ready, later = [e for e in arrived if e.tag[0] < t], [e for e in arrived if e.tag[0] >= t]
             self.arrived[side][:] = later
-            ready.sort(key=_event_key)
+            ready.sort(key=_raw_event_key if side else _event_key)
             self.counts[side][0] += len(ready)
             if self.event_difference is None:
                 self.events[side].extend(ready)
         mine, theirs = self.events
         while mine and theirs and self.event_difference is None:
             a, b = mine.popleft(), theirs.popleft()
+            if type(a) is LoggedEvent:
+                if _same_event(a, b):
+                    self.paired_events += 1
+                    continue
+                a = self._decoded(a)
+            b = Event._make(b)
             if event_bytes(a) != event_bytes(b):
                 self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
                 mine.clear()
@@ -377,6 +440,12 @@ class _Comparison:
         mine, theirs = self.steps
         while mine and theirs and self.step_difference is None:
             a, b = mine.popleft(), theirs.popleft()
+            # the same fields without detail pack the same (step_bytes): the log's are exact strs and
+            # ints (format.decode_step checks them), the session's the backend's own
+            if a.detail is None and b[5] is None and a[:5] == b[:5]:
+                self.paired_steps += 1
+                continue
+            b = StepRecord._make(b)
             if step_bytes(a) != step_bytes(b):
                 self.step_difference = (self.paired_steps, a, b)
                 mine.clear()
@@ -384,6 +453,12 @@ class _Comparison:
             self.paired_steps += 1
         if self.session_done and not theirs:
             mine.clear()  # nothing more to pair them with (they are counted)
+
+    def _decoded(self, e: LoggedEvent | Event) -> Event:
+        """A logged event as the comparison of two whole traces has it: its value decoded."""
+        if type(e) is not LoggedEvent:
+            return e
+        return Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns)
 
     def difference(self) -> str | None:
         """What ``expected.first_difference(again)`` says of the two whole traces."""
@@ -399,9 +474,10 @@ class _Comparison:
             return None
         # one side has more events: where the other's step records begin, an event meets a step
         if events < events_again:
-            a, b = self.first_step[0], self.events[1][0]
+            a, b = self.first_step[0], Event._make(self.events[1][0])
         else:
-            a, b = self.events[0][0], self.first_step[1]
+            a, b = self._decoded(self.events[0][0]), self.first_step[1]
+            b = None if b is None else StepRecord._make(b)
         if a is None or b is None:
             return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
         return f"record {min(events, events_again)}: {a!r} != {b!r}"

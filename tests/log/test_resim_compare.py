@@ -1,0 +1,180 @@
+"""``--resim`` compares the log's events with the re-simulation's by their bytes where that is
+exact (an array value the log holds as it was packed), and decoded where it is not: its report is
+the first difference of the two whole traces, ``Trace.first_difference``, whatever the values
+(arrays of another dtype, shape, order or kind than logged, structured arrays, lists, scalars,
+an event left out or added, a step that raised)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+import retriever.log.reader as reader
+from retriever import Flow, Latest, Pipeline, Rate
+from retriever.log import read_log
+from retriever.replay import resim, resim_file
+
+_PAIR = np.dtype([("a", "<i4"), ("b", "<f8")])
+
+
+class Ramp(Flow):
+    """A source: an array of four floats a tick."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"x": np.arange(4.0) + self.k}
+
+
+class Scale(Flow):
+    """Twice its input, as ``kind`` says from its 5th tick on (``same``: as the run did)."""
+
+    def __init__(self, kind: str = "same"):
+        self.kind, self.n = kind, 0
+
+    def step(self, x):
+        self.n += 1
+        y = x * 2
+        kind = self.kind if self.n >= 5 else "same"
+        if kind == "value":
+            y = x * 3
+        elif kind == "float32":  # the same numbers, another dtype
+            y = y.astype(np.float32)
+        elif kind == "reshaped":
+            y = y.reshape(1, 4)
+        elif kind == "fortran":  # the same array in another memory order: packed the same
+            y = np.asfortranarray(np.stack([y, y]))
+        elif kind == "c-order":
+            y = np.ascontiguousarray(np.stack([y, y]))
+        elif kind == "list":
+            y = y.tolist()
+        elif kind == "scalar":
+            y = float(y[0])
+        elif kind == "structured":
+            y = np.array([(int(x[0]), y[1])], dtype=_PAIR)
+        elif kind == "structured-other":
+            y = np.array([(int(x[0]) + 1, y[1])], dtype=_PAIR)
+        elif kind == "left-out":
+            return {}
+        elif kind == "added":
+            return {"y": y, "z": y}
+        elif kind == "raises" and self.n % 3 == 0:  # an error record (skip_tick), its text compared
+            raise ValueError(f"no y at {self.n}")
+        return {"y": y}
+
+
+def _pipe(kind: str) -> Pipeline:
+    with Pipeline("ramp") as pipe:
+        scale = Scale(kind).named("scale").configure(on_error="skip_tick")
+        (Ramp().named("ramp") @ Rate(hz=20)).then(scale @ Rate(hz=10, offset=0.01), sync=Latest())
+    return pipe
+
+
+def _said(difference: str | None) -> str | None:
+    # (an event's publish time is when a run made it)
+    return None if difference is None else re.sub(r"publish_ns=\d+", "publish_ns=_", difference)
+
+
+@pytest.mark.parametrize("logged, again", [
+    ("same", "same"), ("same", "value"), ("same", "float32"), ("same", "reshaped"), ("same", "list"),
+    ("same", "scalar"), ("same", "left-out"), ("same", "added"), ("fortran", "c-order"), ("c-order", "fortran"),
+    ("fortran", "reshaped"), ("structured", "structured"), ("structured", "structured-other"),
+    ("list", "list"), ("list", "same"), ("scalar", "same"), ("left-out", "same"), ("added", "same"),
+    ("same", "raises"), ("raises", "same"), ("raises", "raises"),
+])
+def test_resim_says_what_the_two_whole_traces_say(tmp_path, logged, again):
+    path = tmp_path / "run.mcap"
+    _pipe(logged).run(duration=2.0, log=path)
+    expected = read_log(path).trace().first_difference(_pipe(again).run(duration=2.0))
+    assert (expected is None) == (logged == again or {logged, again} == {"fortran", "c-order"}), expected
+    for report in (resim(read_log(path), _pipe(again)), resim_file(path, _pipe(again))):
+        assert _said(report.difference) == _said(expected)
+        assert report.steps_compared == 60
+
+
+def test_an_identical_resim_decodes_only_what_its_sources_emit(tmp_path, monkeypatch):
+    """The log's events whose values are arrays as they were logged are compared by their bytes:
+    only the replayed source's values are decoded (to be emitted again), and the first of each
+    encoding's length (after which an array of that length decodes surely)."""
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+    decoded = []
+    unpackb = reader.unpackb
+    monkeypatch.setattr(reader, "unpackb", lambda data, **kw: decoded.append(data) or unpackb(data, **kw))
+    report = resim_file(path, _pipe("same"))
+    assert report.identical and report.events_compared == 40 + 20
+    assert len(decoded) <= 40 + 1, len(decoded)
+
+
+
+def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(tmp_path):
+    """``ResimSurvey.take_chunk`` (a chunk as numpy read it: what ``resim_file`` takes) finds what
+    ``take`` finds of the same messages as tuples (what ``resim`` of a log read whole takes): on
+    the log as written, and on a chunk of it whose step records or events are not ones (the
+    first of each kept), or whose event is there twice."""
+    import msgpack
+    from mcap.records import Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    from retriever.log.reader import chunk_messages, scan_log
+    from retriever.replay.resimulation import ResimSurvey
+    from tests.log.test_replay_stream import _index_bodies, _record_bytes
+
+    path = tmp_path / "run.mcap"
+    _pipe("raises").run(duration=2.0, log=path)
+
+    def state(survey):
+        return (survey.nodes, survey.steps, survey.last_ns, str(survey.step_error), str(survey.events.event_error),
+                str(survey.events.twice), {k: (v.lo, v.hi) for k, v in survey.events.seqs.items()})
+
+    by_arrays, by_tuples, chunks = ResimSurvey(path), ResimSurvey(path), []
+    scan_log(path, by_arrays.take, take_chunk=lambda c, m: chunks.append(m) or by_arrays.take_chunk(c, m))
+    scan_log(path, by_tuples.take)
+    assert chunks and state(by_arrays) == state(by_tuples) and by_arrays.steps == 60
+
+    channels = scan_log(path, lambda c, m: None).channels
+    chunk = next(r for r in StreamReader(open(path, "rb"), emit_chunks=True).records if type(r) is Chunk)
+    plain = breakup_chunk(chunk)
+    steps = [i for i, m in enumerate(plain) if channels[m.channel_id].topic == "steps"]
+    events = [i for i, m in enumerate(plain) if channels[m.channel_id].topic.startswith("data/scale/")]
+
+    def changed(records, i, **fields):
+        m = records[i]
+        return [*records[:i], Message(**{**{k: getattr(m, k) for k in ("channel_id", "sequence", "log_time",
+                                                                          "publish_time", "data")}, **fields}),
+                *records[i + 1:]]
+
+    def record(i, **changes):
+        fields = msgpack.unpackb(plain[i].data)
+        for at, value in changes.items():
+            fields["node microstep consumed produced status detail wall_ns".split().index(at)] = value
+        return msgpack.packb(fields)
+
+    one, two, last = steps[len(steps) // 2], steps[-1], events[-1]
+    variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
+                changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
+                changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
+                changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
+                changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
+                changed(plain, last, sequence=plain[events[0]].sequence),
+                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1")]
+    for n, records in enumerate(variants):
+        sizes = [len(_record_bytes(m)) for m in records]
+        data = b"".join(_record_bytes(m) for m in records)
+        entries: dict[int, list] = {}
+        for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
+            entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
+        body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                     uncompressed_size=len(data))
+        arrays = chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0]
+        tuples = chunk_messages(body, 0, channels)[0]
+        assert type(tuples) is list and type(arrays) is not list
+        a, b = ResimSurvey(path), ResimSurvey(path)
+        for _ in range(2):  # a chunk, then another after it
+            a.take_chunk(channels, arrays)
+            b.take(channels, tuples)
+            assert state(a) == state(b), n
