@@ -94,7 +94,9 @@ class LogSurvey:
                           and (bytes_[starts] == 0x92).all() and (bytes_[starts + 1] < 0x80).all())
                 first, last = int(seqs[0]), int(seqs[-1])
                 hi = kind[2].hi
+                # (a port on two channels, an edited log: its seqs are put in one by one, by take)
                 if not framed or (hi and hi[-1] != first) or last - first != len(seqs) - 1 \
+                        or any(taken is kind[2] for taken, _, _ in ranges) \
                         or (len(seqs) > 1 and (np.diff(seqs.astype(np.int64)) != 1).any()):
                     self.take(channels, chunk.tuples())
                     return

@@ -572,3 +572,37 @@ def test_the_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(small_c
             a.take_chunk(channels, arrays)
             b.take(channels, tuples)
             assert state(a) == state(b)
+
+
+@pytest.mark.parametrize("second", [range(10), range(5, 8)], ids=["same seqs", "seqs inside"])
+def test_the_survey_of_a_chunk_as_arrays_finds_a_port_logged_twice_on_two_channels(second, tmp_path):
+    """Two channels with one data topic (an edited log: the reader takes it) whose events repeat
+    seqs in one chunk: ``take`` says an event is logged twice, and so must ``take_chunk`` (which
+    put each channel's seqs in after all of them were checked against the port's seqs before)."""
+    import struct
+
+    from mcap.records import Chunk, Message
+
+    from retriever.log.reader import LogChannel, chunk_messages
+    from retriever.replay import LogSurvey
+
+    channels = {c: LogChannel(c, "data/cam/frame", "msgpack", {}) for c in (1, 2)}
+    messages = [Message(channel_id=c, sequence=s, log_time=s, publish_time=s, data=msgpack.packb([0, s]))
+                for c, seqs in ((1, range(10)), (2, second)) for s in seqs]
+    data, entries = b"", {}
+    for m in messages:
+        entries.setdefault(m.channel_id, []).append((m.log_time, len(data)))
+        data += _record_bytes(m)
+    body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                 uncompressed_size=len(data))
+    indexes = [struct.pack("<HI", c, 16 * len(p)) + b"".join(struct.pack("<QQ", *e) for e in p)
+               for c, p in entries.items()]
+    arrays = chunk_messages(body, 0, channels, indexes, arrays=True)[0]
+    assert type(arrays).__name__ == "ChunkMessages"
+    by_arrays, by_tuples = LogSurvey(tmp_path / "x.mcap"), LogSurvey(tmp_path / "x.mcap")
+    by_arrays.take_chunk(channels, arrays)
+    by_tuples.take(channels, chunk_messages(body, 0, channels)[0])
+    assert "logged twice" in str(by_tuples.twice)
+    assert str(by_arrays.twice) == str(by_tuples.twice)
+    assert [by_arrays.in_log(("cam", "frame", s)) for s in range(12)] == \
+        [by_tuples.in_log(("cam", "frame", s)) for s in range(12)]

@@ -10,15 +10,17 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import dataclass, field
 
+import numpy as np
 import pytest
 
-from retriever import Pipeline, Rate, Trigger
+from retriever import Flow, Pipeline, Rate, Trigger, io
 from retriever.backends.zenoh.node import WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
 from retriever.backends.zenoh.wire import KeySpace, WireEncoder
 from retriever.backends.zenoh.worker.build import build_loop
 
-from .payload_flows import Camera, Viewer, frame
+from .payload_flows import Camera, Seen, Viewer, frame
 from .specs import run_spec
 
 MS = 1_000_000
@@ -157,3 +159,53 @@ def test_a_source_in_its_quiet_loop_warms_up_before_its_tick_once_it_has_sent(se
     finally:
         loop.undeclare()
         watcher.undeclare()
+
+
+FACTORY_CALLS: list[int] = []
+
+
+def _counted() -> int:
+    """A default factory with a side effect: what a user's may have."""
+    FACTORY_CALLS.append(1)
+    return 0
+
+
+@io
+@dataclass
+class Count:
+    n: int
+
+
+@io
+@dataclass
+class Looked:
+    image: np.ndarray
+    k: int
+    n: int = field(default_factory=_counted)
+
+
+class Ticks(Flow[None, Count]):
+    def step(self, inp: None) -> Count:
+        return Count(n=1)
+
+
+class Looker(Flow[Looked, Seen]):
+    def step(self, inp: Looked) -> Seen:
+        return Seen(k=inp.k, checksum=inp.n)
+
+
+def test_a_rehearsal_runs_no_code_of_the_flow(session):
+    """The rehearsal selects the consumer's inputs on scratch buffers, where every port but the
+    rehearsed stream's is MISSING: an optional port's default factory (user code) must not run
+    for it (the warm-up changes only how fast a tick starts)."""
+    with Pipeline("rehearsal") as pipe:
+        cam = Camera(size=4096).named("cam") @ Rate(20)
+        ticks = Ticks().named("ticks") @ Rate(20)
+        looker = Looker().named("looker") @ Trigger("image")
+        pipe.connect(cam, looker)
+        pipe.connect(ticks, looker)
+    loop = build_loop(run_spec(pipe.compile().to_ir().doc, "rehearsal-test"), "looker", session)
+    FACTORY_CALLS.clear()
+    loop.warmup.warm(message(2))
+    assert loop.warmup.rehearsal.streams.frontiers[("cam", "image")] == (100 * MS + 1, 0), "it rehearsed"
+    assert FACTORY_CALLS == [], "the rehearsal called the flow's default factory"

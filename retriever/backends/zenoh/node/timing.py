@@ -33,6 +33,16 @@ WARM_AHEAD_NS = 1_000_000
 WARM_AFTER_IDLE_NS = 4_000_000
 
 
+class _Rehearsed:
+    """A rehearsed input's port spec for select_inputs: MISSING is only noted, never its fallback
+    made (a default factory is the flow's code, which a rehearsal does not run)."""
+
+    required = True
+
+
+_REHEARSED = _Rehearsed()
+
+
 class Rehearsal:
     """A node's receive path run on scratch copies of its inputs, up to the flow's step, which it
     never calls: a message decoded, its claims checked, taken in order and delivered to scratch
@@ -42,7 +52,7 @@ class Rehearsal:
 
     def __init__(self, node_id: str, node_clock: Clock, edges: list[InEdge], inputs: list[tuple], clock: RunClock):
         scratch = {port: PortBuffer(buf.trim_batch, policy) for port, buf, policy, _ in inputs}
-        self.inputs = [(port, scratch[port], policy, spec) for port, _, policy, spec in inputs]
+        self.inputs = [(port, scratch[port], policy, _REHEARSED) for port, _, policy, _ in inputs]
         lock = threading.Lock()
         self.schedule = Schedule(node_clock, lock)
         self.streams = Streams(node_id, [InEdge(e.src, e.src_port, e.port, scratch[e.port], e.delay_ns, e.triggers,
