@@ -331,7 +331,9 @@ class ScannedLog(LogHead):
                 try:
                     stream.seek(offset)
                     chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
-                    messages, rest = chunk_messages(chunk, offset, self.channels, _indexes_after(stream), arrays=True)
+                    messages, rest = chunk_messages(chunk, offset, self.channels,
+                                                   _indexes_after(stream, _index_room(chunk, self.channels)),
+                                                   arrays=True)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
@@ -675,6 +677,7 @@ def _records_in_chunks(reader: _StreamReader, tracked: _Tracked, channels: dict[
     records = reader.records
     held = None  # (chunk, its offset, the file's last read in it), its MessageIndex records being read
     indexes: list[bytes] = []
+    room = 0  # what more of them could still tile the held chunk (_index_room)
 
     def broken_up(chunk: Chunk, at: int, read_at: int, indexes: list[bytes]) -> Iterator:
         now, tracked.last_read_at = tracked.last_read_at, read_at
@@ -695,7 +698,11 @@ def _records_in_chunks(reader: _StreamReader, tracked: _Tracked, channels: dict[
             raise
         if type(record) is _Index:
             if held is not None:
-                indexes.append(record.body)
+                room -= len(record.body)
+                if room >= 0:
+                    indexes.append(record.body)
+                else:  # more than could tile it: not kept, the chunk is walked
+                    indexes.clear()
             continue  # one after no chunk: skipped (mcap's readers read it for nothing)
         if held is not None:
             yield from broken_up(*held, indexes)
@@ -704,6 +711,7 @@ def _records_in_chunks(reader: _StreamReader, tracked: _Tracked, channels: dict[
             return
         if type(record) is Chunk:
             held = (record, reader.record_at, tracked.last_read_at)
+            room = _index_room(record, channels)
         elif type(record) is Message:  # outside any chunk
             if at_chunk is not None:
                 at_chunk(None)
@@ -713,14 +721,27 @@ def _records_in_chunks(reader: _StreamReader, tracked: _Tracked, channels: dict[
             yield record
 
 
-def _indexes_after(stream) -> list[bytes]:
-    """The MessageIndex records' fields from where ``stream`` is (after a chunk), unparsed."""
+def _indexes_after(stream, room: int) -> list[bytes]:
+    """The MessageIndex records' fields from where ``stream`` is (after a chunk), unparsed; none
+    if they take more than ``room`` bytes (:func:`_index_room`: then they cannot tile the chunk)."""
     bodies = []
     while True:
         head = stream.read(_RECORD_HEAD)
         if len(head) < _RECORD_HEAD or head[0] != Opcode.MESSAGE_INDEX:
             return bodies
-        bodies.append(stream.read(int.from_bytes(head[1:], "little")))
+        length = int.from_bytes(head[1:], "little")
+        room -= length
+        if room < 0:
+            return []
+        bodies.append(stream.read(length))
+
+
+def _index_room(chunk: Chunk, channels) -> int:
+    """How many bytes of MessageIndex fields can tile ``chunk``: 16 for each record it may hold (a
+    record is at least a Message's head long), and an index's own 6 for each channel. Indexes past
+    that are not kept (the chunk is walked record by record): a forged log's indexes take no more
+    memory than its chunks' own size."""
+    return 16 * (_uncompressed_size(chunk) // MESSAGE_HEAD.size) + 6 * len(channels)
 
 
 def chunk_messages(chunk: Chunk, at: int, channels, indexes: list[bytes] = (), *, by_time: bool = False,
