@@ -390,6 +390,23 @@ def _index_bodies(entries: dict[int, list[tuple[int, int]]]) -> list[bytes]:
     return [struct.pack("<HI", channel_id, 16 * len(pairs)) + b"".join(struct.pack("<QQ", *p) for p in pairs)
             for channel_id, pairs in entries.items()]
 
+def chunk_read_both_ways(records: list, channels) -> tuple:
+    """A chunk of ``records`` (``mcap`` Messages) with MessageIndex records made for it, read by
+    them (``chunk_messages(..., arrays=True)``) and walked record by record: the two readings."""
+    from mcap.records import Chunk
+
+    from retriever.log.reader import chunk_messages
+
+    sizes = [len(_record_bytes(m)) for m in records]
+    data = b"".join(_record_bytes(m) for m in records)
+    entries: dict[int, list] = {}
+    for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
+        entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
+    body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
+                 uncompressed_size=len(data))
+    return (chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0],
+            chunk_messages(body, 0, channels)[0])
+
 
 def test_chunk_messages_walked_by_their_indexes_are_breakup_chunks(small_chunks):
     """A chunk walked by the MessageIndex records after it (numpy reading every record's head)
@@ -503,7 +520,6 @@ def test_the_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(small_c
     from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from retriever.log.reader import chunk_messages
     from retriever.replay import LogSurvey
 
     def state(survey):
@@ -558,15 +574,7 @@ def test_the_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(small_c
     variants += [changed(one, data=data) for data in kinds_of_steps]
     variants += [changed(two, data=data) for data in kinds_of_steps[:3]]
     for records in variants:
-        sizes = [len(_record_bytes(m)) for m in records]
-        data = b"".join(_record_bytes(m) for m in records)
-        entries: dict[int, list] = {}
-        for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
-            entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
-        body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
-                     uncompressed_size=len(data))
-        arrays = chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0]
-        tuples = chunk_messages(body, 0, channels)[0]
+        arrays, tuples = chunk_read_both_ways(records, channels)
         a, b = LogSurvey(small_chunks), LogSurvey(small_chunks)
         for _ in range(2):  # a chunk, then another after it
             a.take_chunk(channels, arrays)

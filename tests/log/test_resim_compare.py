@@ -120,9 +120,9 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
     from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
 
-    from retriever.log.reader import chunk_messages, scan_log
+    from retriever.log.reader import scan_log
     from retriever.replay.resimulation import ResimSurvey
-    from tests.log.test_replay_stream import _index_bodies, _record_bytes
+    from tests.log.test_replay_stream import chunk_read_both_ways
 
     path = tmp_path / "run.mcap"
     _pipe("raises").run(duration=2.0, log=path)
@@ -163,15 +163,7 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
                 changed(plain, last, sequence=plain[events[0]].sequence),
                 changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1")]
     for n, records in enumerate(variants):
-        sizes = [len(_record_bytes(m)) for m in records]
-        data = b"".join(_record_bytes(m) for m in records)
-        entries: dict[int, list] = {}
-        for m, size_before in zip(records, [sum(sizes[:i]) for i in range(len(records))]):
-            entries.setdefault(m.channel_id, []).append((m.log_time, size_before))
-        body = Chunk(compression="", data=data, message_start_time=0, message_end_time=0, uncompressed_crc=0,
-                     uncompressed_size=len(data))
-        arrays = chunk_messages(body, 0, channels, _index_bodies(entries), arrays=True)[0]
-        tuples = chunk_messages(body, 0, channels)[0]
+        arrays, tuples = chunk_read_both_ways(records, channels)
         assert type(tuples) is list and type(arrays) is not list
         a, b = ResimSurvey(path), ResimSurvey(path)
         for _ in range(2):  # a chunk, then another after it
