@@ -356,7 +356,7 @@ class ScannedLog(LogHead):
                     held, raws = None, {}
                 else:
                     held = {name: column[cut:] for name, column in held.items()}
-                    raws = {piece: raws[piece] for piece in np.unique(held["piece"]).tolist()}
+                    raws = _kept(held, raws)
 
     def records(self) -> Iterator[LoggedEvent | StepRecord]:
         """Every event (value undecoded) and step record, in log-time order (:meth:`time_ordered`),
@@ -408,17 +408,40 @@ def _held(messages: list[tuple] | ChunkMessages, rest: list, at: int,
 
 def _data(held: dict[str, np.ndarray], cut: int, raws: dict[int, bytes]) -> list[bytes]:
     """The data of the first ``cut`` messages ``held`` (:data:`_HELD` columns), in their order,
-    sliced from ``raws`` (the chunks' bytes they are in, joined when more than one)."""
+    sliced from ``raws`` (the chunks' bytes they are in, those joined when more than one)."""
     pieces, starts, ends = held["piece"][:cut], held["start"][:cut], held["end"][:cut]
-    if len(raws) > 1:
-        kept = sorted(raws)
-        firsts = np.cumsum([0] + [len(raws[piece]) for piece in kept[:-1]])  # where each begins, joined
-        shift = firsts[np.searchsorted(kept, pieces)]
-        raw = b"".join(raws[piece] for piece in kept)
+    used = np.unique(pieces).tolist()
+    if len(used) > 1:
+        firsts = np.cumsum([0] + [len(raws[piece]) for piece in used[:-1]])  # where each begins, joined
+        shift = firsts[np.searchsorted(used, pieces)]
+        raw = b"".join(raws[piece] for piece in used)
         starts, ends = starts + shift, ends + shift
     else:
-        raw = raws[int(pieces[0])]
+        raw = raws[used[0]]
     return list(map(raw.__getitem__, map(slice, starts.tolist(), ends.tolist())))
+
+
+def _kept(held: dict[str, np.ndarray], raws: dict[int, bytes]) -> dict[int, bytes]:
+    """The bytes that the messages still ``held`` have their data in, by piece: a chunk's whole
+    bytes while they are most of it; else only their data, copied out (and ``held``'s start and
+    end set to where it is now), so that a message that waits long (a LET output, or a forged
+    far-future one in every chunk) does not keep its whole chunk."""
+    kept = {}
+    pieces = held["piece"]
+    for piece in np.unique(pieces).tolist():
+        raw = raws[piece]
+        rows = np.flatnonzero(pieces == piece)
+        starts, ends = held["start"][rows], held["end"][rows]
+        waiting = int((ends - starts).sum())
+        if 4 * waiting >= len(raw):
+            kept[piece] = raw
+            continue
+        kept[piece] = b"".join(map(raw.__getitem__, map(slice, starts.tolist(), ends.tolist())))
+        moved_ends = np.cumsum(ends - starts)
+        held["start"] = held["start"].copy()  # (a view of the batch's columns until now)
+        held["end"] = held["end"].copy()
+        held["start"][rows], held["end"][rows] = moved_ends - (ends - starts), moved_ends
+    return kept
 
 
 def scan_log(path: str | Path, take: Callable[[dict[int, LogChannel], list[tuple]], None], *,
