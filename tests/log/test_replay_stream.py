@@ -17,7 +17,7 @@ import msgpack
 import pytest
 from mcap.opcode import Opcode
 
-from retriever import LogError, read_log
+from retriever import Latest, LogError, Pipeline, Rate, read_log
 from retriever.backends.inproc import InprocSession
 from retriever.log import LogWriter
 from retriever.log.reader import scan_log
@@ -74,6 +74,33 @@ def test_replay_memory_is_flat_however_long_the_log(frames_logs, flags):
     short, long = frames_logs
     one, eight = _replay_peak_rss_kib(short, *flags), _replay_peak_rss_kib(long, *flags)
     assert eight - one < 16 * 1024, f"peak RSS {one} KiB for the 1x log, {eight} KiB for the 8x log"
+
+
+def test_a_message_that_waits_past_its_chunk_does_not_keep_the_chunk(tmp_path):
+    """Reading in log-time order (``time_ordered``, what the replay reads) holds a message until no
+    chunk still to be read can come before it: a LET output 2 s late waits 60 frames. It keeps its
+    own data, not its chunk's 64 KiB frames: 1.4 MB at most here (before: every chunk with a
+    waiting output, 8.8 MB; a forged far-future message in every chunk kept the whole log)."""
+    import tracemalloc
+
+    with Pipeline("late_outputs") as pipe:
+        camera = Frames(1 << 16).named("camera") @ Rate(hz=30)
+        camera.then(Brightness().named("brightness").configure(latency=2.0) @ Rate(hz=30, offset=0.01), sync=Latest())
+    path = tmp_path / "late.mcap"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(InprocSession, "LOG_BATCH", 8)
+        mp.setitem(LogWriter.__init__.__kwdefaults__, "flush_interval", 0.0)
+        pipe.run(duration=4.0, log=path, keep="counters")
+    log = scan_log(path, lambda channels, messages: None)
+    assert len(log.chunks) > 30
+    tracemalloc.start()
+    try:
+        count = sum(1 for _ in log.time_ordered())
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert count > 300
+    assert peak < 2_000_000, f"{peak} bytes held at most while reading in log-time order"
 
 
 # ---------------------------------------------------------------------------------------------
