@@ -103,6 +103,48 @@ def test_a_message_that_waits_past_its_chunk_does_not_keep_the_chunk(tmp_path):
     assert peak < 2_000_000, f"{peak} bytes held at most while reading in log-time order"
 
 
+def test_message_indexes_that_cannot_tile_their_chunk_are_not_kept(small_chunks, tmp_path):
+    """A forged log with 4.8 MB of MessageIndex records after its first chunk (more than could
+    tile it) reads the same messages, both ways, holding none of them: before, every one was kept
+    and joined (17 MB at most, 3.5 times their size)."""
+    import struct
+    import tracemalloc
+
+    from mcap.writer import IndexType
+
+    # no summary and no chunk indexes: nothing points past the forged records, so the file reads whole
+    plain = rewrite(small_chunks, tmp_path / "plain.mcap", writer_options={
+        "index_types": IndexType.MESSAGE, "use_summary_offsets": False, "use_statistics": False,
+        "repeat_channels": False, "repeat_schemas": False, "chunk_size": 1 << 18})
+    data = plain.read_bytes()
+    found = file_records(data)
+    first = next(i for i, (opcode, _, _) in enumerate(found) if opcode == Opcode.CHUNK)
+    after = next(offset for opcode, offset, _ in found[first + 1:] if opcode != Opcode.MESSAGE_INDEX)
+    body = struct.pack("<HI", 1, 16 * 1000) + b"".join(struct.pack("<QQ", 0, 8 * k) for k in range(1000))
+    extra = (bytes([Opcode.MESSAGE_INDEX]) + struct.pack("<Q", len(body)) + body) * 300
+    forged = tmp_path / "forged.mcap"
+    forged.write_bytes(data[:after] + extra + data[after:])
+
+    def read(path):
+        """The messages in log-time order (their data by its hash), and the peaks of memory of
+        the two readings."""
+        tracemalloc.start()
+        try:
+            log = scan_log(path, lambda channels, messages: None)
+            in_file_order = tracemalloc.get_traced_memory()[1]
+            tracemalloc.reset_peak()
+            messages = [(m[0], m[2], m[3], hash(m[5])) for m in log.time_ordered()]
+            return messages, in_file_order, tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    messages, scan_plain, ordered_plain = read(plain)
+    forged_messages, scan_forged, ordered_forged = read(forged)
+    assert forged_messages == messages and len(messages) > 300
+    assert scan_forged < scan_plain + 1_000_000 and ordered_forged < ordered_plain + 1_000_000, \
+        (scan_plain, scan_forged, ordered_plain, ordered_forged)
+
+
 # ---------------------------------------------------------------------------------------------
 # Read in log-time order, a few chunks at a time; the same report as the log read whole
 # ---------------------------------------------------------------------------------------------
