@@ -79,10 +79,10 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from ..backends.inproc import InprocSession
-from ..log.reader import LogHead, RunLog, read_log, scan_log
+from ..log.reader import LogHead, RunLog, read_log
 from ..pipeline import Pipeline
 from .compare import TickCheck
-from .prepare import MAX_SAID, code_changes, from_the_log, pipeline_for, ran_other_code, set_up_flows
+from .prepare import MAX_SAID, code_changes, from_the_log, pipeline_for, ran_other_code, set_up_flows, surveyed
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport, explain_difference
 from .resimulation import ResimReport, ResimSurvey, resim, resim_file
 from .steps import PROGRESS_EVERY, StepReplay
@@ -123,11 +123,7 @@ def replay_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipel
     as the file is checked, then ``"replaying"`` with steps. A log with messages outside its chunks
     (MCAP allows them; Retriever's writer makes none) is replayed by :func:`replay`, read whole."""
     survey = LogSurvey(Path(path))
-    read = None if progress is None else (lambda done, total: progress("reading", done, total))
-    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
-    if callable(pipeline):
-        pipeline = pipeline()
-    steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
+    log, pipeline, steps = surveyed(path, survey, pipeline, progress)
     if log.loose:
         return replay(read_log(path), pipeline, steps)
     return _replay_surveyed(log, survey, log.in_order, pipeline, steps, False)

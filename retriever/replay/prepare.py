@@ -12,7 +12,7 @@ from ..backends.inproc import InprocSession
 from ..code import code_mismatches
 from ..errors import IRError, LogError, RetrieverWarning, SetupError
 from ..flow.core import settings_of
-from ..log.reader import LogHead, RunLog
+from ..log.reader import LogHead, RunLog, ScannedLog, scan_log
 from ..pipeline import Pipeline
 
 
@@ -107,3 +107,19 @@ def from_the_log(graph) -> frozenset[str]:
     flows configured with ``replay="log"`` (their step consults the world outside the program)."""
     return frozenset(nid for nid, node in graph.nodes.items()
                      if not node.inputs or settings_of(node.flow).replay == "log")
+
+
+def surveyed(path: str | os.PathLike, survey, pipeline: Pipeline | Callable[[], Pipeline] | None,
+             progress: Callable[[str, int, int], None] | None
+             ) -> tuple[ScannedLog, Pipeline | None, Callable[[int, int], None] | None]:
+    """The first reading of a log file that is replayed or re-simulated streamed: ``survey`` (a
+    LogSurvey, or a ResimSurvey) takes its messages, a chunk's as arrays where it can, as the file is
+    checked, ``progress("reading", bytes, size)`` told; then ``pipeline`` made, if it is a function
+    that makes it (after the log read: one that cannot be read is said first). Returns the scanned
+    log, the pipeline and what to tell of the steps (``progress("replaying", ...)``)."""
+    read = None if progress is None else (lambda done, total: progress("reading", done, total))
+    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
+    if callable(pipeline):
+        pipeline = pipeline()
+    steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
+    return log, pipeline, steps

@@ -42,10 +42,10 @@ from ..backends.inproc import InprocSession
 from ..codec import array_encoding_head, decodes_surely
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
-from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, scan_log, step_record
+from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
-from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows
+from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
 from .survey import LogSurvey
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
@@ -156,11 +156,7 @@ def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeli
     ``progress(what, done, total)``: ``"reading"`` with bytes as the file is checked, then
     ``"replaying"`` with steps. A log with messages outside its chunks is read whole."""
     survey = ResimSurvey(Path(path))
-    read = None if progress is None else (lambda done, total: progress("reading", done, total))
-    log = scan_log(path, survey.take, progress=read, take_chunk=survey.take_chunk)
-    if callable(pipeline):
-        pipeline = pipeline()
-    steps = None if progress is None else (lambda done, total: progress("replaying", done, total))
+    log, pipeline, steps = surveyed(path, survey, pipeline, progress)
     if log.loose:
         return resim(read_log(path), pipeline, steps)
     return _resim(log, survey, log.records, pipeline, steps)
