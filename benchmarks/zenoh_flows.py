@@ -37,19 +37,26 @@ class Lat:
 class PayloadSource(Flow[None, Frame]):
     """Emits ``{"data": uint8[size], "sent_ns": wall ns}`` on port ``frame``.
 
-    The array is allocated once (a camera driver would hand over a fresh buffer; allocating 16 MiB
-    per tick would only add noise to both sides). Its first bytes change each step, so no layer
-    could skip or dedupe anything. ``sent_ns`` is taken last, right before ``step`` returns."""
+    Each step emits a fresh array, as a camera driver hands over a fresh buffer (an emitted value
+    is immutable: docs/semantics.md), copied from one allocated once before ``sent_ns`` is taken:
+    the copy is not timed. Its first bytes change each step, so no layer could skip or dedupe
+    anything. ``sent_ns`` is taken last, right before ``step`` returns."""
 
     def __init__(self, size: int):
         self.size = size
         self.data = np.zeros(size, dtype=np.uint8)
         self.k = 0
 
-    def step(self) -> Frame:
+    def fresh(self) -> np.ndarray:
+        """This step's array: the template's copy, its first bytes the step's count."""
         self.k += 1
-        self.data[: min(8, self.size)] = self.k % 256
-        return Frame(frame={"data": self.data, "sent_ns": time.time_ns()})
+        data = self.data.copy()
+        data[: min(8, self.size)] = self.k % 256
+        return data
+
+    def step(self) -> Frame:
+        data = self.fresh()
+        return Frame(frame={"data": data, "sent_ns": time.time_ns()})
 
 
 class LatencySink(Flow[Frame, Lat]):

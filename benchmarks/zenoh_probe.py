@@ -206,10 +206,9 @@ class ProbeSource(PayloadSource):
         install_stamps()
 
     def step(self) -> Frame:
-        self.k += 1
-        self.data[: min(8, self.size)] = self.k % 256
+        data = self.fresh()
         prev = [STAMPS.get(k, 0) for k in SOURCE_KEYS] + [FAULTS.get("encoded", 0) - FAULTS.get("publish", 0)]
-        return Frame(frame={"data": self.data, "k": self.k, "probe_prev": prev, "sent_ns": time.time_ns()})
+        return Frame(frame={"data": data, "k": self.k, "probe_prev": prev, "sent_ns": time.time_ns()})
 
 
 class ProbeSink(Flow[Frame, Lat]):

@@ -133,6 +133,10 @@ def _wrapped(head: str, cause: BaseException | str, context: str, hint: str) -> 
     return "\n".join([f"{head}{first}{context}", *rest, *([] if own_hint else [f"    hint: {hint}"])])
 
 
+#: what numpy says of a write into a read-only array (flow/read_only.py makes an event's arrays so)
+_READ_ONLY_WRITE = "is read-only"
+
+
 class StepError(RetrieverError):
     """A flow's ``step()`` raised. The original exception is chained as ``__cause__``."""
 
@@ -141,9 +145,14 @@ class StepError(RetrieverError):
         self.tag = tag
         from .time import format_tag
 
-        super().__init__(_wrapped(f"{node}.step() raised ", cause, f" (tick at {format_tag(tag)})",
-                                  f"set on_error='skip_tick' or 'restart' on '{node}' "
-                                  "(flow.configure(on_error=...)) to keep the pipeline running"))
+        if _READ_ONLY_WRITE in str(cause):
+            hint = (f"an emitted value is immutable: '{node}' wrote into an array of an event (its input, or "
+                    "one it emitted before), which other consumers and the log share; copy it first "
+                    "(x = inp.frame.copy(); emit a new array each tick). docs/semantics.md says why")
+        else:
+            hint = (f"set on_error='skip_tick' or 'restart' on '{node}' "
+                    "(flow.configure(on_error=...)) to keep the pipeline running")
+        super().__init__(_wrapped(f"{node}.step() raised ", cause, f" (tick at {format_tag(tag)})", hint))
 
 
 class SetupError(RetrieverError):

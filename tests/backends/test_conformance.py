@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 import pytest
 
 from retriever import (
@@ -1128,6 +1129,78 @@ def test_on_error_stop_raises_step_error(backend):
         assert "ValueError: boom at 3" in str(err)
     assert step_at(pipe.trace, "flaky", (300 * MS, 0)).status == "error"
     assert [v for _, v in saw(pipe.trace, "sink")] == [0, 1, 2]
+
+
+class ArrayRamp(Flow[None, Value]):
+    """Emits a new array [k + 1.0] at tick k; with ``reuse``, one buffer of its own, refilled
+    each tick after it was emitted (the mistake of a producer that reuses its emitted buffer)."""
+
+    def __init__(self, reuse: bool = False):
+        self.reuse, self.k, self.buf = reuse, 0, None
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        if not self.reuse or self.buf is None:
+            self.buf = np.array([float(self.k)])
+        else:
+            self.buf[0] = float(self.k)
+        return Value(self.buf)
+
+
+class TripleInPlace(Flow[XIn, Saw]):
+    """Triples its input array in place, then emits what it holds (the mistake of a consumer
+    that changes its input)."""
+
+    def step(self, inp: XIn) -> Saw:
+        inp.x *= 3
+        return Saw(float(inp.x[0]))
+
+
+class Triple(Flow[XIn, Saw]):
+    def step(self, inp: XIn) -> Saw:
+        return Saw(float(inp.x[0]) * 3)
+
+
+def test_an_emitted_value_is_immutable_a_consumer_cannot_change_its_input(backend, check_trace):
+    """§"An emitted value is immutable": an event's arrays are read-only for its consumers on
+    every backend (in one process they share the producer's array, which the log encodes after
+    the step): a consumer's write into its input fails at that tick, with a hint, and the
+    producer's events, the other consumer's and the log keep the values emitted. (Found
+    2026-12-04: in-process the write went through, and a ramp 1, 2, 3 was logged as 3, 6, 9.)"""
+    with Pipeline("immutable-input") as pipe:
+        ramp = ArrayRamp().named("ramp") @ Rate(5)
+        bad = TripleInPlace().named("bad").configure(on_error="skip_tick") @ Trigger("x")
+        good = Triple().named("good") @ Trigger("x")
+        ramp.then(bad, map={"value": "x"})
+        ramp.then(good, map={"value": "x"})
+    trace = pipe.run(duration=0.6, backend=backend)
+    check_trace(pipe, trace)
+    assert [float(v[0]) for v in trace.values_of("ramp", "value")] == [1.0, 2.0, 3.0]
+    assert [v for _, v in saw(trace, "good")] == [3.0, 6.0, 9.0]
+    assert [s.status for s in trace.steps_of("bad")] == ["error"] * 3
+    assert "ValueError: output array is read-only" in str(trace.steps_of("bad")[0].detail)
+
+    with Pipeline("immutable-input-stop") as pipe:
+        ramp = ArrayRamp().named("ramp") @ Rate(5)
+        ramp.then(TripleInPlace().named("bad") @ Trigger("x"), map={"value": "x"})
+    with pytest.raises(StepError, match=r"(?s)bad\.step\(\) raised (RemoteError: )?ValueError: output array is read-only.*"
+                                        r"hint: an emitted value is immutable: 'bad' wrote into an array"):
+        pipe.run(duration=0.6, backend=backend)
+
+
+def test_an_emitted_value_is_immutable_a_producer_cannot_refill_it(backend, check_trace):
+    """§"An emitted value is immutable": the array a step emitted is read-only from then on, in
+    its producer too, on every backend: refilling it at a later tick fails there (its consumers
+    and the log hold it), and a producer that emits a new array each tick runs."""
+    with Pipeline("immutable-output") as pipe:
+        ramp = ArrayRamp(reuse=True).named("ramp").configure(on_error="skip_tick") @ Rate(5)
+        ramp.then(Triple().named("good") @ Trigger("x"), map={"value": "x"})
+    trace = pipe.run(duration=0.6, backend=backend)
+    check_trace(pipe, trace)
+    assert [s.status for s in trace.steps_of("ramp")] == ["ok", "error", "error"]
+    assert "ValueError: assignment destination is read-only" in str(trace.steps_of("ramp")[1].detail)
+    assert [float(v[0]) for v in trace.values_of("ramp", "value")] == [1.0]
+    assert [v for _, v in saw(trace, "good")] == [3.0]
 
 
 def test_sys_exit_in_a_step_ends_the_run_at_its_tick(backend):

@@ -16,6 +16,7 @@ from ....errors import StopRun
 from ....graph import Node
 from ....flow.core import make_invoker, with_step_detail
 from ....flow.burst import Burst
+from ....flow.read_only import make_read_only
 from ....tick import (Decision, decide, ending, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
 from ....trace import StepStatus
@@ -140,6 +141,7 @@ class Steps:
         events = []  # (a loop, not a comprehension: one call less per tick)
         for port, value in outputs:  # None, or an empty burst: no event
             if value is not None and not (type(value) is Burst and not value.values):
+                make_read_only(value)  # an emitted value is immutable: consumers in this process share it
                 events.append((port, value))
         tag, batch, produced = self.outputs.stamp(tau, events)
         if self.outputs.latency_ns and not self.virtual:  # (in virtual time, LET outputs go at once: the tag says when)

@@ -1,0 +1,61 @@
+"""An emitted value is immutable (docs/semantics.md): the arrays of an event's value are made
+read-only when the step that made them returns.
+
+In one process an event's value goes to its consumers by reference, and the log writer encodes
+it after the step: a consumer that changed its input in place (``inp.frame *= 2``), or a producer
+that wrote into a buffer it had emitted, would change what every other consumer sees and what the
+log holds, and the run would no longer replay. Marking the arrays read-only (numpy's
+``writeable`` flag, no copy) turns such a write into numpy's ``ValueError: assignment destination
+is read-only`` at the line that makes it, on every backend alike: between processes the arrays
+arrive read-only already, and a replay's values, decoded from the log, are read-only too.
+
+What is not caught: a write through another array that shares the memory (an emitted view of a
+buffer the flow keeps writing, an array a C library fills), and changes to lists, dicts and
+dataclass fields themselves; those are the flow's to avoid (copy first).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .burst import Burst
+
+#: values with nothing inside to protect (immutable Python values)
+_IMMUTABLE = frozenset({int, float, str, bytes, bool, complex, type(None)})
+
+
+def make_read_only(value: Any) -> None:
+    """Mark every numpy array in ``value`` read-only, in place: the value itself, the items of
+    lists and tuples, the values of dicts, the fields of dataclass values, and a Burst's values
+    (and the array whose rows they are)."""
+    kind = type(value)
+    if kind is np.ndarray:
+        value.flags.writeable = False
+    elif kind in _IMMUTABLE:
+        return
+    elif kind is list or kind is tuple:
+        for item in value:
+            make_read_only(item)
+    elif kind is dict:
+        for item in value.values():
+            make_read_only(item)
+    elif kind is Burst:
+        if value.rows is not None:
+            value.rows.flags.writeable = False
+        for item in value.values:
+            make_read_only(item)
+    elif isinstance(value, np.ndarray):  # a subclass of ndarray
+        value.flags.writeable = False
+    else:
+        fields = getattr(kind, "__dataclass_fields__", None)
+        if fields is not None and not isinstance(value, type):
+            for name in fields:
+                make_read_only(getattr(value, name, None))
+        elif isinstance(value, (list, tuple)):  # a NamedTuple, a list subclass
+            for item in value:
+                make_read_only(item)
+        elif isinstance(value, dict):
+            for item in value.values():
+                make_read_only(item)

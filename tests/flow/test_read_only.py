@@ -1,0 +1,69 @@
+"""flow/read_only.py: an event's arrays made read-only where they are, through every container a
+value may hold them in; nothing else touched."""
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+
+from retriever import Burst, io
+from retriever.flow.read_only import make_read_only
+
+
+@io
+@dataclass
+class Pose:
+    xyz: np.ndarray
+    label: str = "a"
+
+
+class Pair(NamedTuple):
+    left: np.ndarray
+    right: np.ndarray
+
+
+class Frame(np.ndarray):
+    pass
+
+
+def _arrays():
+    return [np.arange(3.0) for _ in range(12)]
+
+
+def test_every_array_in_a_value_becomes_read_only_where_it_is():
+    a = _arrays()
+    value = {"pose": Pose(a[0]), "list": [a[1], (a[2], {"deep": a[3]})], "pair": Pair(a[4], a[5]),
+             "sub": a[6].view(Frame), "scalar": np.float64(1.0), "text": "x", "n": 3, "none": None}
+    make_read_only(value)
+    for arr in (value["pose"].xyz, a[1], a[2], a[3], a[4], a[5], value["sub"]):
+        assert not arr.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 7.0
+    assert a[6].flags.writeable  # the view is read-only, not the array it views (docs: not caught)
+    assert value["pose"].label == "a" and value["n"] == 3
+
+
+def test_a_bursts_values_and_rows_become_read_only():
+    rows = np.zeros((4, 2))
+    burst = Burst(rows)
+    make_read_only(burst)
+    assert not rows.flags.writeable
+    assert all(not row.flags.writeable for row in burst.values)
+    items = _arrays()[:3]
+    make_read_only(Burst(items))
+    assert not any(item.flags.writeable for item in items)
+
+
+def test_plain_values_and_arrays_already_read_only_are_left_as_they_are():
+    for value in (1, 2.5, "s", b"b", True, None, 1j, np.int32(3)):
+        make_read_only(value)
+    frozen = np.frombuffer(b"\x00" * 8, dtype=np.float64)
+    make_read_only(frozen)
+    assert not frozen.flags.writeable
+    class Plain:  # not a value the codec encodes: nothing inside is looked at
+        def __init__(self):
+            self.a = np.zeros(2)
+    plain = Plain()
+    make_read_only(plain)
+    assert plain.a.flags.writeable
