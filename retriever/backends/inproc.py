@@ -270,14 +270,12 @@ class _Recorder:
                             for i, item in enumerate(value.values):
                                 if type(item) not in PLAIN_TYPES:
                                     self._check_output(rt, tau, port, item, consumed, start, produced, i)
-                        if not rt.replaced:
-                            make_read_only(value)
+                        make_read_only(value)
                         for item in value.values:
                             event(rt, tau, port, item, out_tag, end, produced)
                         continue
                     self._check_output(rt, tau, port, value, consumed, start, produced)
-                    if not rt.replaced:  # (a replayed step's values, decoded from the log, are read-only)
-                        make_read_only(value)  # an emitted value is immutable: its consumers share it
+                    make_read_only(value)  # an emitted value is immutable: its consumers share it
                 event(rt, tau, port, value, out_tag, end, produced)
         self.tape.append((rt.id, tau, consumed, tuple(produced), StepStatus.OK, with_step_detail(rt.flow, dropped),
                           start, end - start))

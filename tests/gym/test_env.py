@@ -249,3 +249,52 @@ def test_an_action_outside_the_action_space_is_refused_before_the_step_and_the_e
         assert (env.now, env.trace.digest()) == before
     went_on = [env.step(action)[0] for action in (1, 0, np.int64(1))]
     assert [o.tobytes() for o in went_on] == [o.tobytes() for o in episode(cartpole_env(), 3, [1, 0, 1])[1:]]
+
+
+@io
+@dataclass
+class Thrust:
+    force: np.ndarray
+
+
+@io
+@dataclass
+class Speed:
+    v: float = 0.0
+
+
+class Pilot(Flow[Speed, Thrust]):
+    def step(self, inp: Speed) -> Thrust:
+        raise AssertionError("the env supplies this flow's actions")
+
+
+class Rocket(Flow[Thrust, Speed]):
+    """Doubles the thrust it is given in place (a mistake: it is the agent's event)."""
+
+    def step(self, inp: Thrust) -> Speed:
+        inp.force *= 2
+        return Speed(float(inp.force[0]))
+
+
+def test_the_agents_action_is_immutable_for_its_consumers_as_any_emitted_value():
+    """The env's action is the agent's event (its tick replaced by the env): a consumer that
+    writes into it fails as it would on any event (docs/semantics.md, "An emitted value is
+    immutable"), and the caller's own array is left writable (the env copies it in)."""
+    def rocket(seed):
+        with Pipeline("rocket") as pipe:
+            world = Rocket().named("world").configure(on_error="skip_tick") @ Trigger("force")
+            pilot = Pilot().named("pilot") @ Rate(10)
+            pilot.then(world)
+            world.then(pilot, delay=0.01)
+        return pipe
+
+    env = PipelineEnv(rocket, "pilot", observation_space=gymnasium.spaces.Dict({"v": gymnasium.spaces.Box(-9, 9)}),
+                      action_space=gymnasium.spaces.Box(-1.0, 1.0, shape=(1,)))
+    env.reset(seed=0)
+    action = np.array([0.5], dtype=np.float32)
+    env.step(action)
+    env.step(action)
+    action[0] = 0.25  # the caller's array stays its own
+    errors = [s for s in env.trace.steps_of("world") if s.status == "error"]
+    assert errors and "ValueError: output array is read-only" in str(errors[0].detail)
+    assert [float(v[0]) for v in env.trace.values_of("pilot", "force")] == [0.5, 0.5]
