@@ -164,11 +164,11 @@ def export_foxglove(log: RunLog | str | Path, out: str | Path, *, overwrite: boo
     # written beside it, then renamed: an export that fails leaves no file that looks whole, and
     # never writes into the file that stands at ``out`` (a hard link to the log, say)
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
-    try:
-        writer = foxglove.open_mcap(str(partial), allow_overwrite=True, context=context)
-    except Exception as e:  # the SDK's own error for a path it cannot create
-        raise LogError(f"cannot write {out}: {e}") from None
-    try:
+    try:  # (the file's removal guards its creation too: a signal may come as open_mcap returns)
+        try:
+            writer = foxglove.open_mcap(str(partial), allow_overwrite=True, context=context)
+        except Exception as e:  # the SDK's own error for a path it cannot create
+            raise LogError(f"cannot write {out}: {e}") from None
         try:
             view = FoxgloveWriter(context, ir, zero)
             for record in source.records():

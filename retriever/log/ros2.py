@@ -460,11 +460,11 @@ def export_ros2(log: RunLog | str | Path, out: str | Path, *, overwrite: bool = 
     source = log_records(log)
     # written beside it, then renamed: an export that fails leaves no file that looks whole
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
-    try:
-        stream = open(partial, "wb")
-    except OSError as e:
-        raise LogError(f"cannot write {out}: {e.strerror}") from None
-    try:
+    try:  # (the file's removal guards its creation too: a signal may come as open returns)
+        try:
+            stream = open(partial, "wb")
+        except OSError as e:
+            raise LogError(f"cannot write {out}: {e.strerror}") from None
         with stream:
             summary = _write_ros2(source, stream, store)
         os.replace(partial, out)

@@ -272,3 +272,38 @@ def test_ctrl_c_while_writing_standard_output_says_how_much_was_written(tmp_path
     # a range only when the signal came during a write, which may have gone out in part
     least, most = int(amount[1]), int(amount[2] or amount[1])
     assert least <= received <= most and received > 0, (said, received)
+
+
+@pytest.mark.parametrize("fmt", ["foxglove", "ros2"])
+def test_an_interrupt_right_as_the_partial_file_is_created_leaves_no_file(tmp_path, monkeypatch, fmt):
+    """The window the signal test above found under load (a foxglove ``.partial`` left behind):
+    the interrupt raised the moment the SDK's ``open_mcap`` (or ``open``) returned, before the
+    cleanup's ``try``. The real opener runs (the file is made); then KeyboardInterrupt, as a
+    signal handler raises it there. Nothing may remain beside the output."""
+    from retriever.log import foxglove as foxglove_module
+    from retriever.log import ros2 as ros2_module
+
+    log_path = camera_log(tmp_path)
+    out = tmp_path / "views" / "out.mcap"
+    out.parent.mkdir()
+
+    def interrupted(opener):
+        def open_then_interrupt(*args, **kwargs):
+            opened = opener(*args, **kwargs)
+            interrupted.opened = opened
+            raise KeyboardInterrupt
+        return open_then_interrupt
+
+    if fmt == "foxglove":
+        sdk = foxglove_module._sdk()[0]
+        monkeypatch.setattr(sdk, "open_mcap", interrupted(sdk.open_mcap))
+        export = foxglove_module.export_foxglove
+    else:
+        monkeypatch.setattr(ros2_module, "open", interrupted(open), raising=False)
+        export = export_ros2
+    with pytest.raises(KeyboardInterrupt):
+        export(log_path, out)
+    closer = getattr(interrupted.opened, "close", None)
+    if closer is not None:
+        closer()
+    assert list(out.parent.iterdir()) == [], "a file was left behind"
