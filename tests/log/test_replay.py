@@ -326,6 +326,27 @@ def test_changed_step_is_caught_by_replay_with_another_pipeline(tmp_path):
     assert report.nodes["smoother"].divergent > 0 and report.nodes["smoother_2"].divergent == 0
 
 
+def test_an_output_at_another_tag_is_caught_though_its_record_and_value_are_the_same(tmp_path):
+    """A step whose record and output value are the logged ones but whose output comes at another
+    tag (here the middle flow given a latency: its output at the tick's time + 10 ms, not at the
+    tick's next microstep) diverges at its output's tag, every step of it that ran, read whole or streamed."""
+    from retriever.replay import replay_file
+
+    log = logged(chain(Smoother), tmp_path)
+    with Pipeline("chain") as changed:
+        src = Counter() @ Rate(hz=50)
+        mid = Smoother().configure(latency=0.01) @ Rate(hz=20)  # same ids, same values, later outputs
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(mid, sync=Latest()).then(sink, sync=Latest())
+    for report in (replay(log, changed), replay_file(log.path, changed)):
+        mid = report.nodes["smoother"]
+        assert mid.replayed > 30 and mid.divergent == mid.replayed - 1 and mid.identical == 1, mid  # (its first tick skipped)
+        assert report.nodes["smoother_2"].divergent == 0 and report.nodes["smoother_2"].identical > 0
+        first = report.divergences[0]
+        assert (first.node, first.what, first.port) == ("smoother", "output tag", "x"), first
+        assert (first.tag, first.logged, first.replayed) == ((50_000_000, 0), "t=0.050000000s m=1", "t=0.060000000s m=0")
+
+
 def test_changed_policy_is_reported_as_different_inputs(tmp_path):
     log = logged(chain(Smoother), tmp_path)
     with Pipeline("chain") as changed:
