@@ -79,7 +79,7 @@ class StepReplay:
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "next_ticks",
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
-                 "kept_steps", "kept_parts", "kept_events")
+                 "kept_steps", "kept_parts", "kept_events", "unchecked")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -93,7 +93,7 @@ class StepReplay:
         for node in {consumer[0] for port in self.put_off for consumer, _, _ in self.routes[port]}:
             session.prepare_inputs(node, _take_logged)
         self.late, self.gaps, self.missed = survey.late, survey.gaps, survey.views()
-        self.in_log = survey.in_log
+        self.in_log, self.unchecked = survey.in_log, survey.unchecked
         # a lost process's outputs that its records claim and no report carried: not comparable (a
         # consumer may still have carried one in: that one is in the log, and compared)
         self.lost = {event_id for fault in log.faults for event_id in fault["lost_events"] if not self.in_log(event_id)}
@@ -130,6 +130,7 @@ class StepReplay:
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
         read = self.read
         record = _step_record
+        unchecked = self.unchecked
         steps: list = []
         instant = None
         for log_times, channels, sequences, publish_times, datas in messages():
@@ -141,8 +142,9 @@ class StepReplay:
                     instant = log_time
                     self.now = (instant, 0)  # every record before it has run
                 if channel in steps_channels:
-                    try:
-                        node, microstep, consumed, produced, status, detail, wall_ns = fmt.decode_step(data)
+                    try:  # (found plain by the survey, which read the same file: its status to check)
+                        node, microstep, consumed, produced, status, detail, wall_ns = (
+                            fmt.decode_step(data) if sequence in unchecked else fmt.decode_plain_step(data))
                     except Exception as e:
                         raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
                     steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,

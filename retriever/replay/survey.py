@@ -38,6 +38,10 @@ class LogSurvey:
         self.event_error: LogError | None = None
         self.twice: LogError | None = None
         self._kinds: dict[int, Any] = {}  # channel id -> _STEPS, (node, port, seqs), or None
+        #: the sequences of the step records not found plain here (_plain_steps; a chunk's taken as
+        #: message tuples: all of them): the replay checks these whole as it reads the file again
+        #: (format.decode_step), the others for their status alone (format.decode_plain_step)
+        self.unchecked: set[int] = set()
 
     def take(self, channels: dict, messages: list[tuple]) -> None:
         """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
@@ -47,6 +51,7 @@ class LogSurvey:
             if kind is _UNSEEN:
                 kind = kinds[channel_id] = self._kind(channels[channel_id])
             if kind is _STEPS:
+                self.unchecked.add(sequence)
                 self._step(log_time, sequence, data)
             elif kind is not None:
                 node, port, seqs = kind
@@ -120,6 +125,8 @@ class LogSurvey:
                     break
             self.steps += int(plain.sum())
             self.nodes.update(_names(bytes_, node_at[plain]))
+            if len(others):
+                self.unchecked.update(heads["sequence"][which[~plain]].tolist())
 
     def _kind(self, channel) -> Any:
         if channel.topic == fmt.STEPS_TOPIC:
