@@ -286,12 +286,19 @@ class StepReplay:
         """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
         consumer no longer takes."""
         deliveries, floors, pop = self.deliveries, self.floors, heappop
-        after = before(tag)  # steps run in tag order: every tick to come is at or after this one
+        after = None
         while deliveries and deliveries[0][0] <= tag:
             _, _, consumer, buf, entry = pop(deliveries)
             if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                buf.insert(entry)  # (sync.fill, inlined)
-                if len(buf.entries) >= buf.bound_at:
+                # (sync.fill, inlined, and PortBuffer.insert's commonest case: the newest entry)
+                entries = buf.entries
+                if entries and entries[-1] >= entry:
+                    buf.insert(entry)
+                else:
+                    entries.append(entry)
+                if len(entries) >= buf.bound_at:
+                    if after is None:
+                        after = before(tag)  # steps run in tag order: every tick to come is at or after this one
                     bound(buf, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
