@@ -144,7 +144,8 @@ class StepReplay:
                 if channel in steps_channels:
                     try:  # (found plain by the survey, which read the same file: its status to check)
                         node, microstep, consumed, produced, status, detail, wall_ns = (
-                            fmt.decode_step(data) if sequence in unchecked else fmt.decode_plain_step(data))
+                            fmt.decode_step(data) if unchecked is None or sequence in unchecked
+                            else fmt.decode_plain_step(data))
                     except Exception as e:
                         raise LogError(f"{log.path}: step record #{sequence} is malformed ({e})") from None
                     steps.append(record((node, (log_time, microstep), consumed, produced, status, detail,
