@@ -23,7 +23,8 @@ class LogSurvey:
     that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
     records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
     is kept as the error the replay raises before its first step; one without detail (nearly
-    all: only its node is read here) the replay refuses where it reads it, with the same error."""
+    all: only its node is read here) the replay refuses where it reads it, with the same error,
+    checking it whole unless it was found plain here (``unchecked``)."""
 
     def __init__(self, path: Path, max_unchecked: int = 65_536) -> None:
         self.path = path
