@@ -184,6 +184,17 @@ def decode_step(data: bytes) -> tuple:
     return node, microstep, consumed, event_ids(produced), status, detail, wall_ns
 
 
+def decode_plain_step(data: bytes) -> tuple:
+    """:func:`decode_step` of a record whose bytes were found to be a step record without detail
+    as Retriever writes nearly every one (replay/survey.py, ``_plain_steps``: a node, ports and ids
+    of ASCII fixstrs, a microstep and seqs of msgpack's unsigned integers, a fixstr status, nil,
+    an integer), which leaves only its status to check; another status is decode_step's error."""
+    step = msgpack.unpackb(data, use_list=False)
+    if step[4] not in _PLAIN_STATUSES:
+        return decode_step(data)
+    return step
+
+
 def _check_restart_detail(detail: dict) -> None:
     """What replay reads of a restart (zenoh/node/handover.py), or ValueError:
     ``restart_gap`` {port: [[node, port, first seq given up, first seq taken], ...]} on a consumer's

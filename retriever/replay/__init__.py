@@ -29,9 +29,11 @@ runs) reads the file twice and keeps neither:
    replay must know of the whole log before its first step, in memory that grows with what was
    unusual in the run, not with its length (the nodes, the step count, the event ids as ranges
    of seqs per port, the ``late`` / ``had_below`` / ``restart_gap`` details), and where the chunks
-   are. A step record without detail (nearly all) is only read for its node there: the second
-   pass checks it, and a log with one that is not one is refused there, with the same error and
-   no report;
+   are. A step record without detail (nearly all) is only read for its node there (where the
+   chunk is read as arrays, every one at once: whether it has the plain shape Retriever writes,
+   ``survey._plain_steps``): the second pass checks it, whole where the survey did not find it
+   plain (``LogSurvey.unchecked``), else its status alone, which is all the shape leaves to
+   check; a log with one that is not one is refused there, with the same error and no report;
 2. ``ScannedLog.in_order`` reads the messages again in log-time order (ties in file
    order: what sorting the file's messages by log time gives), chunk by chunk, holding only the
    chunks whose times overlap (as numpy arrays; handed on in batches of columns, no tuple a

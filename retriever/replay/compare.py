@@ -14,18 +14,19 @@ from .report import Divergence
 class TickCheck:
     """Whether a record's tag is a tick of its node's clock (``clock.may_tick_at``): a rate's tick
     after the one last found is known without the clock's arithmetic (a node's records come tick
-    after tick)."""
+    after tick). ``next[node]``: ``(the tag of its tick k, k, offset_ns, num, den)``, the rate's
+    ``schedule``, tick k at ``offset_ns + k * num // den`` (StepReplay.run reads it inline)."""
 
     __slots__ = ("clocks", "next")
 
     def __init__(self, graph) -> None:
         self.clocks = {nid: node.clock for nid, node in graph.nodes.items()}
-        self.next: dict[str, tuple[tuple[int, int], int, Any]] = {}  # node -> (the tag of its tick k, k, clock)
+        self.next: dict[str, tuple[tuple[int, int], int, int, int, int]] = {}
 
     def __call__(self, node: str, tag: tuple[int, int]) -> bool:
         expected = self.next.get(node)
         if expected is not None and expected[0] == tag:
-            _, k, clock = expected
+            _, k, offset, num, den = expected
         else:
             clock = self.clocks[node]
             if not clock.may_tick_at(tag):
@@ -33,19 +34,22 @@ class TickCheck:
             if clock.triggered or clock.hz is None:
                 return True
             k = clock.first_tick_at_or_after(tag[0])
-        self.next[node] = ((clock.tick_time(k + 1), 0), k + 1, clock)
+            offset, num, den = clock.schedule
+        k += 1
+        self.next[node] = ((offset + k * num // den, 0), k, offset, num, den)
         return True
 
 
-def off_clock(step, on_clock: TickCheck, seen: set[tuple[str, tuple[int, int]]]) -> Divergence | None:
-    """The record at a tag where its node's clock has no tick, or at one it already recorded."""
-    key = (step.node, step.tag)
+def off_clock(step, on_clock: TickCheck, last: dict[str, tuple[int, int]]) -> Divergence | None:
+    """The record at a tag where its node's clock has no tick, or at one it already recorded
+    (``last``: the tag of each node's record last found on its clock; an instant's records run in
+    (microstep, node) order, so a second record of a tick comes right after the first of them)."""
     if not on_clock(step.node, step.tag):
         return Divergence(step.node, step.tag, "tick", None, f"a record at {format_tag(step.tag)}",
                           f"no tick of {on_clock.clocks[step.node]!r} there")
-    if key in seen:
+    if last.get(step.node) == step.tag:
         return Divergence(step.node, step.tag, "tick", None, "a second record of this tick", "one record a tick")
-    seen.add(key)
+    last[step.node] = step.tag
     return None
 
 

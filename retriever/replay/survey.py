@@ -23,9 +23,10 @@ class LogSurvey:
     that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
     records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
     is kept as the error the replay raises before its first step; one without detail (nearly
-    all: only its node is read here) the replay refuses where it reads it, with the same error."""
+    all: only its node is read here) the replay refuses where it reads it, with the same error,
+    checking it whole unless it was found plain here (``unchecked``)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, max_unchecked: int = 65_536) -> None:
         self.path = path
         self.nodes: set[str] = set()
         self.steps = 0
@@ -38,6 +39,12 @@ class LogSurvey:
         self.event_error: LogError | None = None
         self.twice: LogError | None = None
         self._kinds: dict[int, Any] = {}  # channel id -> _STEPS, (node, port, seqs), or None
+        #: the sequences of the step records not found plain here (_plain_steps): the replay checks
+        #: these whole as it reads the file again (format.decode_step), the others for their status
+        #: alone (format.decode_plain_step); None: every one whole (a chunk was taken as message
+        #: tuples, or more than ``max_unchecked`` records were not found plain: memory it would hold)
+        self.unchecked: set[int] | None = set()
+        self.max_unchecked = max_unchecked
 
     def take(self, channels: dict, messages: list[tuple]) -> None:
         """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
@@ -47,6 +54,7 @@ class LogSurvey:
             if kind is _UNSEEN:
                 kind = kinds[channel_id] = self._kind(channels[channel_id])
             if kind is _STEPS:
+                self.unchecked = None
                 self._step(log_time, sequence, data)
             elif kind is not None:
                 node, port, seqs = kind
@@ -120,6 +128,10 @@ class LogSurvey:
                     break
             self.steps += int(plain.sum())
             self.nodes.update(_names(bytes_, node_at[plain]))
+            if len(others) and self.unchecked is not None:
+                self.unchecked.update(heads["sequence"][which[~plain]].tolist())
+                if len(self.unchecked) > self.max_unchecked:
+                    self.unchecked = None
 
     def _kind(self, channel) -> Any:
         if channel.topic == fmt.STEPS_TOPIC:

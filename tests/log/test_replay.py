@@ -326,6 +326,60 @@ def test_changed_step_is_caught_by_replay_with_another_pipeline(tmp_path):
     assert report.nodes["smoother"].divergent > 0 and report.nodes["smoother_2"].divergent == 0
 
 
+def test_an_output_at_another_tag_is_caught_though_its_record_and_value_are_the_same(tmp_path):
+    """A step whose record and output value are the logged ones but whose output comes at another
+    tag (here the middle flow given a latency: its output at the tick's time + 10 ms, not at the
+    tick's next microstep) diverges at its output's tag, every step of it that ran, read whole or streamed."""
+    from retriever.replay import replay_file
+
+    log = logged(chain(Smoother), tmp_path)
+    with Pipeline("chain") as changed:
+        src = Counter() @ Rate(hz=50)
+        mid = Smoother().configure(latency=0.01) @ Rate(hz=20)  # same ids, same values, later outputs
+        sink = Smoother(alpha=0.25) @ Rate(hz=10)
+        src.then(mid, sync=Latest()).then(sink, sync=Latest())
+    for report in (replay(log, changed), replay_file(log.path, changed)):
+        mid = report.nodes["smoother"]
+        assert mid.replayed > 30 and mid.divergent == mid.replayed - 1 and mid.identical == 1, mid  # (its first tick skipped)
+        assert report.nodes["smoother_2"].divergent == 0 and report.nodes["smoother_2"].identical > 0
+        first = report.divergences[0]
+        assert (first.node, first.what, first.port) == ("smoother", "output tag", "x"), first
+        assert (first.tag, first.logged, first.replayed) == ((50_000_000, 0), "t=0.050000000s m=1", "t=0.060000000s m=0")
+
+
+def test_a_survey_holds_the_step_records_it_leaves_unchecked_up_to_a_bound(tmp_path):
+    """The survey of a log file keeps the sequences of the step records it did not find plain
+    (here the skipped ticks' records, with detail: 51), which the replay reads again whole; past
+    ``max_unchecked`` of them, or once a chunk is taken as message tuples (a log read whole),
+    none: every record is read again whole (its memory does not grow with such records). The
+    replay says the same either way."""
+    from retriever.log.reader import scan_log
+    from retriever.replay import LogSurvey, replay_file
+
+    with Pipeline("skips") as pipe:
+        src = Counter() @ Rate(hz=10, offset=1.0)
+        mid = Smoother() @ Rate(hz=50)  # its ticks before the first reading: skipped
+        src.then(mid, sync=Latest())
+    path = tmp_path / "skips.mcap"
+    pipe.run(duration=2.0, log=path)
+    surveys = []
+    for bound in (10_000, 50):
+        survey = LogSurvey(path, max_unchecked=bound)
+        scan_log(path, survey.take, take_chunk=survey.take_chunk)
+        surveys.append(survey.unchecked)
+    skipped = {m.sequence for m in read_log(path).messages
+               if m.channel_id in {c.id for c in read_log(path).channels.values() if c.topic == "steps"}
+               and b"missing" in m.data}
+    assert surveys[0] == skipped and len(skipped) > 50 and surveys[1] is None
+    whole = LogSurvey(path)
+    whole.take(read_log(path).channels, [(m.log_time, 0, m.channel_id, m.sequence, m.publish_time, m.data)
+                                         for m in read_log(path).messages])
+    assert whole.unchecked is None
+    streamed, read_whole = replay_file(path), replay(read_log(path))
+    assert streamed.identical and read_whole.identical and streamed.nodes == read_whole.nodes
+    assert streamed.nodes["smoother"].replayed == 100
+
+
 def test_changed_policy_is_reported_as_different_inputs(tmp_path):
     log = logged(chain(Smoother), tmp_path)
     with Pipeline("chain") as changed:
