@@ -108,7 +108,7 @@ class LogSurvey:
         if steps and self.step_error is None:
             which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
             starts = chunk.offsets[which] + _DATA_AT
-            plain, node_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            plain, node_at, _ = _plain_steps(bytes_, starts, chunk.ends[which])
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -189,13 +189,13 @@ _STEPS = "steps"
 _UNSEEN = object()
 
 
-def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which of the step records ``data[starts:ends]`` are, as Retriever writes nearly every one,
     ``[node, microstep, {port: [id, ...]}, [id, ...], status, nil, wall_ns]`` with ids ``[node,
     port, seq]``, every string an ASCII fixstr, arrays and maps of up to 15, integers of any
     msgpack width (msgpack.unpackb reads such a record as a 7-tuple whose node is a str and
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
-    time for all of them at once; and where each one's node (its fixstr) is."""
+    time for all of them at once; and where each one's node and status (their fixstrs) are."""
     not_ascii_before = np.zeros(len(data) + 1, dtype=np.int32)  # bytes >= 0x80 before each offset
     np.cumsum(data >= 0x80, dtype=np.int32, out=not_ascii_before[1:])
     last = len(data) - 1
@@ -254,11 +254,12 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
         text(ok & (k < ports))
         ids(ok & (k < ports))
     ids(ok.copy())
+    status_at = p.copy()
     text(ok.copy())
     ok &= (p < ends) & (at(p) == 0xC0)
     p[:] = np.where(ok, p + 1, p)
     integer(ok.copy(), signed=True)
-    return ok & (p == ends), node_at
+    return ok & (p == ends), node_at, status_at
 
 
 def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
@@ -272,6 +273,20 @@ def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
     rows = rows[np.lexsort(words.T[::-1])]
     firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
     return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
+def plain_step_records(chunk: ChunkMessages, which: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                        np.ndarray]:
+    """:func:`_plain_steps` of the step records among a chunk's messages (``which``, positions in
+    it): which are plain, where their nodes and their statuses are (offsets in the chunk's
+    bytes), and the chunk's bytes, as an array."""
+    data = np.frombuffer(chunk.raw, dtype=np.uint8)
+    return (*_plain_steps(data, chunk.offsets[which] + _DATA_AT, chunk.ends[which]), data)
+
+
+def fixstrs(data: np.ndarray, at: np.ndarray) -> set[str]:
+    """The distinct ASCII fixstrs at ``at`` in ``data`` (the nodes :func:`plain_step_records` found)."""
+    return _names(data, at)
+
+
 _DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 
 

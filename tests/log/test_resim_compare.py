@@ -158,6 +158,10 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
     variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
                 changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
                 changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
+                # a status that a record without detail does not have; another that it has; a valid
+                # record that is not of the shape parsed with numpy (a node not ASCII)
+                changed(plain, one, data=record(one, status="late")), changed(plain, one, data=record(one, status="error")),
+                changed(plain, one, data=record(one, status="skipped")), changed(plain, one, data=record(one, node="nöde")),
                 changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
                 changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
                 changed(plain, last, sequence=plain[events[0]].sequence),
