@@ -503,7 +503,7 @@ class _Comparison:
         """Pair off the events before ``t`` (None: all) and the step records in."""
         for side in (0, 1):
             arrived = self.arrived[side]
-            if t is None:
+            if t is None or not side:  # (the log's are all before t: _Feed.take_before)
                 ready, later = list(arrived), []
             else:
                 ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
