@@ -6,12 +6,14 @@ reads the file twice and keeps neither, as ``replay_file`` does:
 
 1. ``log.reader.scan_log`` checks it whole (the same errors as ``read_log``, before anything
    runs), handing each chunk (as arrays where its indexes tile it, else message tuples) to a
-   :class:`ResimSurvey`: the nodes with step records (each one read and checked), how many
+   :class:`ResimSurvey`: the nodes with step records (each one checked: those without detail
+   as Retriever writes them parsed with numpy a chunk at a time, the others read), how many
    and the time of the last (the horizon of a run that did not finish), which event ids the log
    holds (``LogSurvey``'s ranges of seqs), and the first step record or event that is not one
    (in file order: the error ``read_log(path).trace()`` raises);
-2. the log's records are read again in log-time order (``ScannedLog.records``), as far as the
-   re-simulation needs them: a second of virtual time at a time (``WINDOW_NS``) the session
+2. the log's records are read again in log-time order (``ScannedLog.in_order``'s batches of
+   columns; a record kept as a plain tuple of its fields, a step record without detail as
+   msgpack reads it, since the survey checked it), as far as the re-simulation needs them: a second of virtual time at a time (``WINDOW_NS``) the session
    advances, each replayed source taking its logged ticks as it reaches them, and then the
    records of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
