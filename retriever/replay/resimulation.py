@@ -13,9 +13,10 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    (in file order: the error ``read_log(path).trace()`` raises);
 2. the log's records are read again in log-time order (``ScannedLog.in_order``'s batches of
    columns; a record kept as a plain tuple of its fields, a step record without detail as
-   msgpack reads it, since the survey checked it), as far as the re-simulation needs them: a second of virtual time at a time (``WINDOW_NS``) the session
-   advances, each replayed source taking its logged ticks as it reaches them, and then the
-   records of that second, the log's and the session's, are compared in the order
+   msgpack reads it, since the survey checked it), as far as the re-simulation needs them: a
+   second of virtual time at a time (``WINDOW_NS``) the session advances, each replayed source
+   taking its logged ticks as it reaches them (and decoding their values), and then the records
+   of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
    step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
@@ -56,6 +57,8 @@ from .survey import LogSurvey, fixstrs, plain_step_records
 WINDOW_NS = 1_000_000_000
 
 _STEPS = "steps"  # _Feed.kinds: the channel of step records
+#: how many records a replayed source's tick reads on at a time, as far as its own
+_READ_AHEAD = 64
 
 
 @dataclass
@@ -301,7 +304,8 @@ class _Feed:
                  logged: frozenset[str], horizon: int) -> None:
         self.log, self.survey, self.batches, self.horizon = log, survey, batches, horizon
         self.ticks: dict[str, deque[tuple]] = {nid: deque() for nid in logged}
-        self.values: dict[tuple, object] = {}  # a replayed source's logged events, until its tick takes them
+        #: a replayed source's logged events, until its tick takes them (and decodes their values)
+        self.values: dict[tuple, tuple] = {}
         self.events: list[tuple] = []  # read, not yet taken by the comparison (in log-time order)
         self.steps: list[tuple] = []
         #: the ids that steps before the horizon produced, whose events are still to be taken
@@ -326,66 +330,75 @@ class _Feed:
         self.batch, self.at, self.exhausted = ([], [], [], [], []), 0, True
         return False
 
-    def _read_one(self) -> bool:
-        at = self.at
-        if at == len(self.batch[0]):
-            if not self._next_batch():
-                return False
-            at = 0
-        self.at = at + 1
-        log_times, channel_ids, sequences, publish_times, data = self.batch
-        self._read(log_times[at], channel_ids[at], sequences[at], publish_times[at], data[at])
+    def _read_some(self) -> bool:
+        """Read a few records on (``_READ_AHEAD``: a replayed source's tick reads as far as its
+        record, one at a time would cost a call each); False at the log's end."""
+        if self.at == len(self.batch[0]) and not self._next_batch():
+            return False
+        self._read_to(min(self.at + _READ_AHEAD, len(self.batch[0])))
         return True
-
-    def _read(self, log_time: int, channel_id: int, sequence: int, publish_time: int, data: bytes) -> None:
-        if log_time > self.read_ns:
-            self.read_ns = log_time
-        kind = self.kinds.get(channel_id)
-        if kind is _STEPS:
-            record = _step_fields(self.log.path, log_time, sequence, publish_time, data)
-            self.steps.append(record)
-            ticks = self.ticks.get(record[0])
-            if ticks is not None and record[4] != StepStatus.SKIPPED:
-                ticks.append(record)
-        elif kind is not None:
-            node, port = kind
-            if len(data) >= 3 and data[0] == 0x92 and data[1] < 0x80:  # [microstep < 128, value]: nearly all
-                record = ((log_time, data[1]), node, port, sequence, data[2:], publish_time)
-            else:
-                e = logged_event(self.log.path, kind, log_time, sequence, publish_time, data)
-                record = (e.tag, node, port, sequence, e.raw_value, publish_time)
-            self.events.append(record)
-            if node in self.ticks:
-                self.values[(node, port, sequence)] = self.log.value(LoggedEvent(*record))
 
     def read_to(self, t: int) -> None:
         """Read every record before log time ``t``."""
-        read = self._read
         while True:
-            log_times, channel_ids, sequences, publish_times, data = self.batch
-            at, end = self.at, len(log_times)
-            if at < end and log_times[at] < t:
-                stop = bisect_left(log_times, t, at)
-                self.at = stop
-                for k in range(at, stop):
-                    read(log_times[k], channel_ids[k], sequences[k], publish_times[k], data[k])
-            if self.at < end or not self._next_batch():
+            log_times = self.batch[0]
+            if self.at < len(log_times) and log_times[self.at] < t:
+                self._read_to(bisect_left(log_times, t, self.at))
+            if self.at < len(log_times) or not self._next_batch():
                 return
+
+    def _read_to(self, stop: int) -> None:
+        """Read the batch's messages up to ``stop``."""
+        log_times, channel_ids, sequences, publish_times, data = self.batch
+        kinds, ticks, values, path = self.kinds, self.ticks, self.values, self.log.path
+        add_step, add_event = self.steps.append, self.events.append
+        unpack, skipped = msgpack.unpackb, StepStatus.SKIPPED
+        start, self.at = self.at, stop
+        self.read_ns = max(self.read_ns, log_times[stop - 1])
+        for k in range(start, stop):
+            kind = kinds.get(channel_ids[k])
+            if kind is _STEPS:
+                one = data[k]
+                try:
+                    node, microstep, consumed, produced, status, detail, wall_ns = unpack(one, use_list=False)
+                except Exception:
+                    detail = ()
+                if detail is None:
+                    record = (node, (log_times[k], microstep), consumed, produced, status, None, publish_times[k],
+                              wall_ns)
+                else:  # (the survey checked it: what step_record reads, or its error)
+                    record = tuple(step_record(path, log_times[k], sequences[k], publish_times[k], one))
+                    node, status = record[0], record[4]
+                add_step(record)
+                if node in ticks and status != skipped:
+                    ticks[node].append(record)
+            elif kind is not None:
+                node, port = kind
+                one = data[k]
+                if len(one) >= 3 and one[0] == 0x92 and one[1] < 0x80:  # [microstep < 128, value]: nearly all
+                    record = (log_times[k], one[1]), node, port, sequences[k], one[2:], publish_times[k]
+                else:
+                    e = logged_event(path, kind, log_times[k], sequences[k], publish_times[k], one)
+                    record = e.tag, node, port, e.seq, e.raw_value, e.publish_ns
+                add_event(record)
+                if node in ticks:
+                    values[record[1:4]] = record
 
     def outputs(self, node: str) -> Iterator[list | ReplayedError]:
         """A replayed source's ticks: its logged records that were not skipped, in log order."""
         ticks = self.ticks[node]
         while True:
             while not ticks:
-                if not self._read_one():
+                if not self._read_some():
                     return
             yield _logged_outputs(ticks.popleft(), self._value)
 
     def _value(self, event_id: tuple) -> object:
         values = self.values
-        while event_id not in values and self.survey.events.in_log(event_id) and self._read_one():
+        while event_id not in values and self.survey.events.in_log(event_id) and self._read_some():
             pass
-        return values.pop(event_id)  # (a KeyError if the log lacks it, as when the log was read whole)
+        # (a KeyError if the log lacks it, as when the log was read whole)
+        return self.log.value(LoggedEvent(*values.pop(event_id)))
 
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
@@ -417,6 +430,11 @@ class _Feed:
                 if in_log(i):
                     owed.add(i)
         self.steps_kept += len(now)
+        values = self.values
+        if values:  # a source's events no tick took (at the horizon, after the session's end): decoded, as read
+            for e in ready:
+                if e[1:4] in values:
+                    self.log.value(LoggedEvent(*values.pop(e[1:4])))
         expected = []
         for e in ready:
             event_id = e[1:4]
@@ -457,19 +475,6 @@ def _decoded(log: LogHead, e: tuple | Event) -> Event:
     if type(e) is not tuple:
         return e
     return Event(e[0], e[1], e[2], e[3], log.value(LoggedEvent(*e)), e[5])
-
-
-def _step_fields(path: Path, log_time: int, sequence: int, publish_time: int, data: bytes) -> tuple:
-    """The fields of the :class:`StepRecord` a steps message holds, a plain tuple: one without
-    detail as msgpack reads it (the survey checked it: ``ResimSurvey``), any other as
-    ``step_record`` reads it (its error if it is not one)."""
-    try:
-        node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(data, use_list=False)
-    except Exception:
-        detail = ()
-    if detail is not None:
-        return tuple(step_record(path, log_time, sequence, publish_time, data))
-    return node, (log_time, microstep), consumed, produced, status, None, publish_time, wall_ns
 
 
 class _Comparison:
