@@ -51,7 +51,7 @@ from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_eve
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
-from .survey import LogSurvey, fixstrs, plain_step_records
+from .survey import LogSurvey
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
@@ -77,58 +77,47 @@ class ResimReport:
 class ResimSurvey:
     """What the re-simulation must know of the whole log before it starts, from its messages
     in file order, in memory that does not grow with the log's length (but for what was
-    unusual: gaps in an output's seqs)."""
+    unusual: gaps in an output's seqs): a ``LogSurvey`` that checks every step record
+    (``check_steps``: those without detail as Retriever writes them parsed with numpy a chunk at
+    a time, with their statuses; the others read), and the time of the latest step record."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.events = LogSurvey(path)  # which event ids the log holds; its first malformed event
-        self.nodes: set[str] = set()
-        self.steps = 0
+        #: the nodes with steps and how many, which event ids the log holds, its first malformed
+        #: step record and event
+        self.events = LogSurvey(path, check_steps=True)
         self.last_ns: int | None = None  # the time of the latest step record
-        self.step_error: LogError | None = None
         self._steps_channels: dict[int, bool] = {}
+
+    @property
+    def nodes(self) -> set[str]:
+        return self.events.nodes
+
+    @property
+    def steps(self) -> int:
+        return self.events.steps
+
+    @property
+    def step_error(self) -> LogError | None:
+        return self.events.step_error
 
     def take(self, channels: dict, messages: list[tuple]) -> None:
         """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
-        events = []
-        for message in messages:
-            log_time, _, channel_id, sequence, publish_time, data = message
-            if self._is_steps(channels, channel_id):
-                self._step(log_time, sequence, publish_time, data)
-            else:
-                events.append(message)
-        self.events.take(channels, events)
+        for log_time, _, channel_id, _, _, _ in messages:
+            if self._is_steps(channels, channel_id) and (self.last_ns is None or log_time > self.last_ns):
+                self.last_ns = log_time
+        self.events.take(channels, messages)
 
     def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
-        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: the step
-        records without detail as Retriever writes nearly all of them parsed at once with numpy
-        (``survey.plain_step_records``: a record of that shape with one of the statuses such a record
-        has is one, as ``format.decode_step`` would find it), the others read one by one in file
-        order, as :meth:`take` reads them (the first that is not one is the error); the events by
-        ``LogSurvey.take_chunk`` (a chunk at a time)."""
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk`` (as arrays)."""
         heads = chunk.heads
         channel_ids = heads["channel_id"]
         steps = [c for c in np.unique(channel_ids).tolist() if self._is_steps(channels, c)]
-        if steps and self.step_error is None:
-            which = np.flatnonzero(channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps))
-            plain, node_at, status_at, data = plain_step_records(chunk, which)
-            plain &= _plain_statuses(data, status_at)
-            others = np.flatnonzero(~plain)
-            step = self._step
-            for other, log_time, sequence, publish_time, record in zip(
-                    others.tolist(), heads["log_time"][which[others]].tolist(),
-                    heads["sequence"][which[others]].tolist(), heads["publish_time"][which[others]].tolist(),
-                    chunk.data(which[others])):
-                step(log_time, sequence, publish_time, record)
-                if self.step_error is not None:  # the records after it are not taken (as by take)
-                    plain[other:] = False
-                    break
-            if plain.any():
-                self.steps += int(plain.sum())
-                self.nodes.update(fixstrs(data, node_at[plain]))
-                last = int(heads["log_time"][which[plain]].max())
-                if self.last_ns is None or last > self.last_ns:
-                    self.last_ns = last
+        if steps:
+            at = channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps)
+            last = int(heads["log_time"][at].max())
+            if self.last_ns is None or last > self.last_ns:
+                self.last_ns = last
         self.events.take_chunk(channels, chunk)
 
     def _is_steps(self, channels: dict, channel_id: int) -> bool:
@@ -137,19 +126,6 @@ class ResimSurvey:
             steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
         return steps
 
-    def _step(self, log_time: int, sequence: int, publish_time: int, data: bytes) -> None:
-        if self.step_error is not None:
-            return
-        try:
-            node = step_record(self.path, log_time, sequence, publish_time, data).node
-        except LogError as e:
-            self.step_error = e
-            return
-        self.nodes.add(node)
-        self.steps += 1
-        if self.last_ns is None or log_time > self.last_ns:
-            self.last_ns = log_time
-
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
         if self.step_error is not None:
@@ -157,26 +133,10 @@ class ResimSurvey:
         return self.nodes
 
     def check_events(self) -> None:
-        """Raise the error of the log's first event that is not one."""
+        """Raise the error of the log's first event that is not one (an event logged twice is
+        not: each copy is expected of the re-simulation)."""
         if self.events.event_error is not None:
             raise self.events.event_error
-
-
-#: a step record's status without detail, as msgpack packs it (a fixstr): what _plain_statuses looks for
-_PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
-
-
-def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
-    """Which of the fixstrs at ``status_at`` in ``data`` are a status a record without detail has
-    (``format.decode_step`` refuses any other)."""
-    last = len(data) - 1
-    found = np.zeros(len(status_at), dtype=bool)
-    for status in _PLAIN_STATUS_BYTES:
-        same = np.ones(len(status_at), dtype=bool)
-        for k, byte in enumerate(status):
-            same &= data[np.minimum(status_at + k, last)] == byte
-        found |= same
-    return found
 
 
 def resim(log: RunLog, pipeline: Pipeline | None = None,

@@ -23,10 +23,13 @@ class LogSurvey:
     that reached a consumer late, the incomplete ticks' views and the restart gaps (the step
     records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
     is kept as the error the replay raises before its first step; one without detail (nearly
-    all: only its node is read here) the replay refuses where it reads it, with the same error."""
+    all: only its node is read here) the replay refuses where it reads it, with the same error.
+    With ``check_steps`` (the re-simulation's survey), every step record is checked here, as
+    ``format.decode_step`` checks it, and the first that is not one kept as the error."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, *, check_steps: bool = False) -> None:
         self.path = path
+        self.check_steps = check_steps
         self.nodes: set[str] = set()
         self.steps = 0
         self.seqs: dict[tuple[str, str], _Seqs] = {}
@@ -108,7 +111,9 @@ class LogSurvey:
         if steps and self.step_error is None:
             which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
             starts = chunk.offsets[which] + _DATA_AT
-            plain, node_at, _ = _plain_steps(bytes_, starts, chunk.ends[which])
+            plain, node_at, status_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            if self.check_steps:
+                plain &= _plain_statuses(bytes_, status_at)
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -130,16 +135,17 @@ class LogSurvey:
     def _step(self, log_time: int, sequence: int, data: bytes) -> None:
         if self.step_error is not None:
             return
-        # a record without detail tells the survey only its node: read, not checked (the replay's
-        # own reading of it checks it, and refuses the log with the same error there)
-        try:
-            record = msgpack.unpackb(data, use_list=False)
-        except Exception:
-            record = None
-        if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
-            self.steps += 1
-            self.nodes.add(record[0])
-            return
+        if not self.check_steps:
+            # a record without detail tells the survey only its node: read, not checked (the replay's
+            # own reading of it checks it, and refuses the log with the same error there)
+            try:
+                record = msgpack.unpackb(data, use_list=False)
+            except Exception:
+                record = None
+            if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
+                self.steps += 1
+                self.nodes.add(record[0])
+                return
         try:
             node, microstep, _, _, _, detail, _ = fmt.decode_step(data)
         except Exception as e:
@@ -262,6 +268,23 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     return ok & (p == ends), node_at, status_at
 
 
+#: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
+_PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
+
+
+def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
+    """Which of the fixstrs at ``status_at`` in ``data`` are a status a step record without detail
+    has (``format.decode_step`` refuses any other)."""
+    last = len(data) - 1
+    found = np.zeros(len(status_at), dtype=bool)
+    for status in _PLAIN_STATUS_BYTES:
+        same = np.ones(len(status_at), dtype=bool)
+        for k, byte in enumerate(status):
+            same &= data[np.minimum(status_at + k, last)] == byte
+        found |= same
+    return found
+
+
 def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
     """The distinct ASCII fixstrs at ``node_at`` in ``data``."""
     if not len(node_at):
@@ -273,20 +296,6 @@ def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
     rows = rows[np.lexsort(words.T[::-1])]
     firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
     return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
-def plain_step_records(chunk: ChunkMessages, which: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                        np.ndarray]:
-    """:func:`_plain_steps` of the step records among a chunk's messages (``which``, positions in
-    it): which are plain, where their nodes and their statuses are (offsets in the chunk's
-    bytes), and the chunk's bytes, as an array."""
-    data = np.frombuffer(chunk.raw, dtype=np.uint8)
-    return (*_plain_steps(data, chunk.offsets[which] + _DATA_AT, chunk.ends[which]), data)
-
-
-def fixstrs(data: np.ndarray, at: np.ndarray) -> set[str]:
-    """The distinct ASCII fixstrs at ``at`` in ``data`` (the nodes :func:`plain_step_records` found)."""
-    return _names(data, at)
-
-
 _DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 
 
