@@ -35,6 +35,7 @@ from __future__ import annotations
 import os
 from bisect import bisect_left
 from collections import deque
+from itertools import chain
 from dataclasses import dataclass, field
 from operator import itemgetter
 from pathlib import Path
@@ -384,26 +385,36 @@ class _Feed:
         if now and now[-1][1][0] >= horizon:
             now = [s for s in now if s[1][0] < horizon]
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
-        owed, in_log = self.owed, self.survey.events.in_log
-        for s in now:  # (an id the log lacks is expected of no event: not held)
-            for i in s[3]:
-                if in_log(i):
-                    owed.add(i)
+        owed, log = self.owed, self.log
+        produced = list(chain.from_iterable(map(_produced, now)))
+        owed.update(produced)
         self.steps_kept += len(now)
+        ids = list(map(_event_id, ready))
         values = self.values
-        if values:  # a source's events no tick took (at the horizon, after the session's end): decoded, as read
-            for e in ready:
-                if e[1:4] in values:
-                    self.log.value(LoggedEvent(*values.pop(e[1:4])))
-        expected = []
-        for e in ready:
-            event_id = e[1:4]
-            if event_id in owed:
-                if not twice:
+        if values and not values.keys().isdisjoint(ids):
+            # a source's events no tick took (at the horizon, after the session's end): decoded, as read
+            for event_id in ids:
+                if event_id in values:
+                    log.value(LoggedEvent(*values.pop(event_id)))
+        if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
+            owed.difference_update(ids)
+            # a value that decodes surely is compared by its bytes, decoded only if they differ;
+            # any other is decoded here, so that a damaged one refuses the log here, as it did
+            surely = list(map(decodes_surely, map(_raw_value, ready)))
+            expected = ready if surely.count(True) == len(surely) else [
+                e if sure else _decoded(log, e) for e, sure in zip(ready, surely)]
+        else:
+            expected = []
+            for e, event_id in zip(ready, ids):
+                if event_id in owed:
+                    if not twice:
+                        owed.discard(event_id)
+                    expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
+        if produced:  # an id the log lacks is expected of no event: not held
+            in_log = self.survey.events.in_log
+            for event_id in owed.intersection(produced):
+                if not in_log(event_id):
                     owed.discard(event_id)
-                # a value that decodes surely is compared by its bytes, decoded only if they differ;
-                # any other is decoded here, so that a damaged one refuses the log here, as it did
-                expected.append(e if decodes_surely(e[4]) else _decoded(self.log, e))
         expected.sort(key=_raw_event_key)
         now.sort(key=_raw_step_key)
         return expected, now
@@ -423,6 +434,8 @@ def _same_event(logged: tuple, again: tuple) -> bool:
     return (logged[3] == seq and logged[0] == tag and logged[2] == port and logged[1] == node
             and array_encoding_head(value) + value.tobytes() == logged[4])
 
+
+_produced, _event_id, _raw_value = itemgetter(3), itemgetter(1, 2, 3), itemgetter(4)  # of the plain tuples
 
 #: how a trace sorts its events (tag, node, port, seq) and step records (tag, node), of an Event or
 #: StepRecord and of the plain tuples of their fields alike
