@@ -117,7 +117,7 @@ def split_event(data: bytes) -> tuple[int, bytes]:
 #: the statuses a step record has detail with
 _DETAILED_STATUSES = frozenset({StepStatus.LATE, StepStatus.ERROR})
 #: the statuses of a step record without detail
-_PLAIN_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
+PLAIN_STEP_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
 
 
 _NOT_A_STEP = "it is not [node, microstep, consumed, produced, status, detail, wall_ns] of a step"
@@ -139,7 +139,7 @@ def decode_step(data: bytes) -> tuple:
         for port in consumed:  # (a loop, not all(): its generator costs more than the check)
             if type(port) is not str:
                 raise ValueError(_NOT_A_STEP)
-        if status not in _PLAIN_STATUSES or type(wall_ns) is not int:
+        if status not in PLAIN_STEP_STATUSES or type(wall_ns) is not int:
             raise ValueError(_NOT_A_STEP)
         if consumed:
             for ids in consumed.values():

@@ -6,14 +6,17 @@ reads the file twice and keeps neither, as ``replay_file`` does:
 
 1. ``log.reader.scan_log`` checks it whole (the same errors as ``read_log``, before anything
    runs), handing each chunk (as arrays where its indexes tile it, else message tuples) to a
-   :class:`ResimSurvey`: the nodes with step records (each one read and checked), how many
+   :class:`ResimSurvey`: the nodes with step records (each one checked: those without detail
+   as Retriever writes them parsed with numpy a chunk at a time, the others read), how many
    and the time of the last (the horizon of a run that did not finish), which event ids the log
    holds (``LogSurvey``'s ranges of seqs), and the first step record or event that is not one
    (in file order: the error ``read_log(path).trace()`` raises);
-2. the log's records are read again in log-time order (``ScannedLog.records``), as far as the
-   re-simulation needs them: a second of virtual time at a time (``WINDOW_NS``) the session
-   advances, each replayed source taking its logged ticks as it reaches them, and then the
-   records of that second, the log's and the session's, are compared in the order
+2. the log's records are read again in log-time order (``ScannedLog.in_order``'s batches of
+   columns; a record kept as a plain tuple of its fields, a step record without detail as
+   msgpack reads it, since the survey checked it), as far as the re-simulation needs them: a
+   second of virtual time at a time (``WINDOW_NS``) the session advances, each replayed source
+   taking its logged ticks as it reaches them (and decoding their values), and then the records
+   of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
    step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
@@ -30,12 +33,15 @@ difference, counted the same way (``record i`` over the events, then the step re
 from __future__ import annotations
 
 import os
+from bisect import bisect_left
 from collections import deque
+from itertools import chain
 from dataclasses import dataclass, field
 from operator import itemgetter
 from pathlib import Path
 from typing import Callable, Iterator
 
+import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
@@ -50,6 +56,10 @@ from .survey import LogSurvey
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
+
+_STEPS = "steps"  # _Feed.kinds: the channel of step records
+#: how many records a replayed source's tick reads on at a time, as far as its own
+_READ_AHEAD = 64
 
 
 @dataclass
@@ -68,42 +78,47 @@ class ResimReport:
 class ResimSurvey:
     """What the re-simulation must know of the whole log before it starts, from its messages
     in file order, in memory that does not grow with the log's length (but for what was
-    unusual: gaps in an output's seqs)."""
+    unusual: gaps in an output's seqs): a ``LogSurvey`` that checks every step record
+    (``check_steps``: those without detail as Retriever writes them parsed with numpy a chunk at
+    a time, with their statuses; the others read), and the time of the latest step record."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.events = LogSurvey(path)  # which event ids the log holds; its first malformed event
-        self.nodes: set[str] = set()
-        self.steps = 0
+        #: the nodes with steps and how many, which event ids the log holds, its first malformed
+        #: step record and event
+        self.events = LogSurvey(path, check_steps=True)
         self.last_ns: int | None = None  # the time of the latest step record
-        self.step_error: LogError | None = None
         self._steps_channels: dict[int, bool] = {}
+
+    @property
+    def nodes(self) -> set[str]:
+        return self.events.nodes
+
+    @property
+    def steps(self) -> int:
+        return self.events.steps
+
+    @property
+    def step_error(self) -> LogError | None:
+        return self.events.step_error
 
     def take(self, channels: dict, messages: list[tuple]) -> None:
         """Take ``messages``, message tuples in file order (log/reader.py), ``channels`` the log's by id."""
-        events = []
-        for message in messages:
-            log_time, _, channel_id, sequence, publish_time, data = message
-            if self._is_steps(channels, channel_id):
-                self._step(log_time, sequence, publish_time, data)
-            else:
-                events.append(message)
-        self.events.take(channels, events)
+        for log_time, _, channel_id, _, _, _ in messages:
+            if self._is_steps(channels, channel_id) and (self.last_ns is None or log_time > self.last_ns):
+                self.last_ns = log_time
+        self.events.take(channels, messages)
 
     def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
-        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: the step
-        records read one by one in file order, as :meth:`take` reads them, the events by
-        ``LogSurvey.take_chunk`` (a chunk at a time)."""
+        """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk`` (as arrays)."""
         heads = chunk.heads
         channel_ids = heads["channel_id"]
         steps = [c for c in np.unique(channel_ids).tolist() if self._is_steps(channels, c)]
-        if steps and self.step_error is None:
-            which = np.flatnonzero(channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps))
-            step = self._step
-            for log_time, sequence, publish_time, data in zip(heads["log_time"][which].tolist(),
-                                                              heads["sequence"][which].tolist(),
-                                                              heads["publish_time"][which].tolist(), chunk.data(which)):
-                step(log_time, sequence, publish_time, data)
+        if steps:
+            at = channel_ids == steps[0] if len(steps) == 1 else np.isin(channel_ids, steps)
+            last = int(heads["log_time"][at].max())
+            if self.last_ns is None or last > self.last_ns:
+                self.last_ns = last
         self.events.take_chunk(channels, chunk)
 
     def _is_steps(self, channels: dict, channel_id: int) -> bool:
@@ -112,19 +127,6 @@ class ResimSurvey:
             steps = self._steps_channels[channel_id] = channels[channel_id].topic == fmt.STEPS_TOPIC
         return steps
 
-    def _step(self, log_time: int, sequence: int, publish_time: int, data: bytes) -> None:
-        if self.step_error is not None:
-            return
-        try:
-            node = step_record(self.path, log_time, sequence, publish_time, data).node
-        except LogError as e:
-            self.step_error = e
-            return
-        self.nodes.add(node)
-        self.steps += 1
-        if self.last_ns is None or log_time > self.last_ns:
-            self.last_ns = log_time
-
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
         if self.step_error is not None:
@@ -132,7 +134,8 @@ class ResimSurvey:
         return self.nodes
 
     def check_events(self) -> None:
-        """Raise the error of the log's first event that is not one."""
+        """Raise the error of the log's first event that is not one (an event logged twice is
+        not: each copy is expected of the re-simulation)."""
         if self.events.event_error is not None:
             raise self.events.event_error
 
@@ -145,7 +148,7 @@ def resim(log: RunLog, pipeline: Pipeline | None = None,
     # as message tuples (log/reader.py), positioned by their index: sorted, in log-time order, ties in file order
     messages = [(m.log_time, i, m.channel_id, m.sequence, m.publish_time, m.data) for i, m in enumerate(log.messages)]
     survey.take(log.channels, messages)
-    return _resim(log, survey, lambda: _records(log, sorted(messages)), pipeline, progress)
+    return _resim(log, survey, lambda: _in_order(messages), pipeline, progress)
 
 
 def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeline] | None = None,
@@ -159,22 +162,18 @@ def resim_file(path: str | os.PathLike, pipeline: Pipeline | Callable[[], Pipeli
     log, pipeline, steps = surveyed(path, survey, pipeline, progress)
     if log.loose:
         return resim(read_log(path), pipeline, steps)
-    return _resim(log, survey, log.records, pipeline, steps)
+    return _resim(log, survey, log.in_order, pipeline, steps)
 
 
-def _records(log: RunLog, messages: list[tuple]) -> Iterator[LoggedEvent | StepRecord]:
-    """A log read whole's events and step records, from its message tuples in log-time order."""
-    kinds = {c.id: (True if c.topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(c.topic))
-             for c in log.channels.values()}
-    for log_time, _, channel_id, sequence, publish_time, data in messages:
-        kind = kinds.get(channel_id)
-        if kind is True:
-            yield step_record(log.path, log_time, sequence, publish_time, data)
-        elif kind is not None:
-            yield logged_event(log.path, kind, log_time, sequence, publish_time, data)
+def _in_order(messages: list[tuple]) -> Iterator[tuple[list, ...]]:
+    """A log read whole's messages in log-time order (ties in file order), from its message
+    tuples, as one batch of columns, as ``ScannedLog.in_order`` hands them."""
+    if messages:
+        log_times, _, channel_ids, sequences, publish_times, data = map(list, zip(*sorted(messages)))
+        yield log_times, channel_ids, sequences, publish_times, data
 
 
-def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], pipeline: Pipeline | None,
+def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], pipeline: Pipeline | None,
            progress: Callable[[int, int], None] | None) -> ResimReport:
     if log.faults:  # the run lost state with a process: no re-run from the start can match it
         nodes = ", ".join(sorted({fault["node"] for fault in log.faults}))
@@ -193,10 +192,10 @@ def _resim(log: LogHead, survey: ResimSurvey, records: Callable[[], Iterator], p
 
     session = InprocSession(graph)
     logged = from_the_log(graph)
-    feed = _Feed(log, survey, records(), logged, horizon)
+    feed = _Feed(log, survey, batches(), logged, horizon)
     for nid in logged:
         session.replace_step(nid, feed.outputs(nid))
-    comparison = _Comparison(log.value)
+    comparison = _Comparison(log)
 
     def compare_before(t: int | None) -> None:
         comparison.add(feed.take_before(t), _drained(session))
@@ -243,133 +242,212 @@ def _drained(session: InprocSession) -> tuple[list[tuple], list[tuple]]:
     return taken
 
 
-def _logged_outputs(step: StepRecord, values: Callable[[tuple], object]) -> list | ReplayedError:
+def _logged_outputs(step: tuple, values: Callable[[tuple], object]) -> list | ReplayedError:
     """What a replayed source's tick gives the re-simulation: its logged events, or its logged
     error (raised again, so that the tick is an error record, handled by ``on_error``, as in
-    the run)."""
-    if step.status == StepStatus.ERROR:
-        error = (step.detail or {}).get("error")
+    the run). ``step``: the fields of its :class:`StepRecord`, a plain tuple."""
+    if step[4] == StepStatus.ERROR:
+        error = (step[5] or {}).get("error")
         return ReplayedError(error if type(error) is str else "an error (the log does not say which)")
-    return [(i[1], values(i)) for i in step.produced]
+    return [(i[1], values(i)) for i in step[3]]
 
 
 class _Feed:
     """The log's records in log-time order, read as far as asked: by a replayed source's next
     tick (its record and the events it produced) or by the comparison (every record before a
-    time). Held until the comparison takes them; the sources' values until their tick."""
+    time). Held until the comparison takes them; the sources' values until their tick. A record
+    is held as a plain tuple of the fields of a :class:`StepRecord` or of a ``LoggedEvent`` (its
+    value undecoded), read from the batches of columns ``ScannedLog.in_order`` hands: a step
+    record without detail as msgpack reads it, unchecked, since the survey checked every one
+    (``ResimSurvey``: the log is refused before anything runs if one is not one)."""
 
-    def __init__(self, log: LogHead, survey: ResimSurvey, records: Iterator, logged: frozenset[str],
-                 horizon: int) -> None:
-        self.log, self.survey, self.records, self.horizon = log, survey, records, horizon
-        self.ticks: dict[str, deque[StepRecord]] = {nid: deque() for nid in logged}
-        self.values: dict[tuple, object] = {}  # a replayed source's logged events, until its tick takes them
-        self.events: list[LoggedEvent] = []  # read, not yet taken by the comparison
-        self.steps: list[StepRecord] = []
+    def __init__(self, log: LogHead, survey: ResimSurvey, batches: Iterator[tuple[list, ...]],
+                 logged: frozenset[str], horizon: int) -> None:
+        self.log, self.survey, self.batches, self.horizon = log, survey, batches, horizon
+        self.ticks: dict[str, deque[tuple]] = {nid: deque() for nid in logged}
+        #: a replayed source's logged events, until its tick takes them (and decodes their values)
+        self.values: dict[tuple, tuple] = {}
+        self.events: list[tuple] = []  # read, not yet taken by the comparison (in log-time order)
+        self.steps: list[tuple] = []
         #: the ids that steps before the horizon produced, whose events are still to be taken
         #: (the events the comparison expects; those of later steps are not compared)
         self.owed: set[tuple] = set()
         self.steps_kept = 0
         self.read_ns = 0  # the log time of the latest record read
-        self.ahead = next(records, None)
+        #: per channel id: _STEPS, the (node, port) of an event's, or None (neither: not read)
+        self.kinds: dict[int, object] = {c.id: _STEPS if c.topic == fmt.STEPS_TOPIC else fmt.parse_data_topic(c.topic)
+                                         for c in log.channels.values()}
+        self.batch: tuple[list, ...] = ([], [], [], [], [])  # the columns being read, from ...
+        self.at = 0  # ... this message on
+        self.exhausted = False
+        self._next_batch()
 
-    @property
-    def exhausted(self) -> bool:
-        return self.ahead is None
+    def _next_batch(self) -> bool:
+        """Go on to the next batch of columns with a message; False (and exhausted) at the log's end."""
+        for batch in self.batches:
+            if batch[0]:
+                self.batch, self.at = batch, 0
+                return True
+        self.batch, self.at, self.exhausted = ([], [], [], [], []), 0, True
+        return False
 
-    def _read_one(self) -> bool:
-        record = self.ahead
-        if record is None:
+    def _read_some(self) -> bool:
+        """Read a few records on (``_READ_AHEAD``: a replayed source's tick reads as far as its
+        record, one at a time would cost a call each); False at the log's end."""
+        if self.at == len(self.batch[0]) and not self._next_batch():
             return False
-        self.ahead = next(self.records, None)
-        self.read_ns = max(self.read_ns, record.tag[0])
-        if type(record) is StepRecord:
-            self.steps.append(record)
-            ticks = self.ticks.get(record.node)
-            if ticks is not None and record.status != StepStatus.SKIPPED:
-                ticks.append(record)
-        else:
-            self.events.append(record)
-            if record.node in self.ticks:
-                self.values[record.id] = self.log.value(record)
+        self._read_to(min(self.at + _READ_AHEAD, len(self.batch[0])))
         return True
 
     def read_to(self, t: int) -> None:
         """Read every record before log time ``t``."""
-        while self.ahead is not None and self.ahead.tag[0] < t:
-            self._read_one()
+        while True:
+            log_times = self.batch[0]
+            if self.at < len(log_times) and log_times[self.at] < t:
+                self._read_to(bisect_left(log_times, t, self.at))
+            if self.at < len(log_times) or not self._next_batch():
+                return
+
+    def _read_to(self, stop: int) -> None:
+        """Read the batch's messages up to ``stop``."""
+        log_times, channel_ids, sequences, publish_times, data = self.batch
+        kinds, ticks, values, path = self.kinds, self.ticks, self.values, self.log.path
+        add_step, add_event = self.steps.append, self.events.append
+        unpack, skipped = msgpack.unpackb, StepStatus.SKIPPED
+        start, self.at = self.at, stop
+        self.read_ns = max(self.read_ns, log_times[stop - 1])
+        for k in range(start, stop):
+            kind = kinds.get(channel_ids[k])
+            if kind is _STEPS:
+                one = data[k]
+                try:
+                    node, microstep, consumed, produced, status, detail, wall_ns = unpack(one, use_list=False)
+                except Exception:
+                    detail = ()
+                if detail is None:
+                    record = (node, (log_times[k], microstep), consumed, produced, status, None, publish_times[k],
+                              wall_ns)
+                else:  # (the survey checked it: what step_record reads, or its error)
+                    record = tuple(step_record(path, log_times[k], sequences[k], publish_times[k], one))
+                    node, status = record[0], record[4]
+                add_step(record)
+                if node in ticks and status != skipped:
+                    ticks[node].append(record)
+            elif kind is not None:
+                node, port = kind
+                one = data[k]
+                if len(one) >= 3 and one[0] == 0x92 and one[1] < 0x80:  # [microstep < 128, value]: nearly all
+                    record = (log_times[k], one[1]), node, port, sequences[k], one[2:], publish_times[k]
+                else:
+                    e = logged_event(path, kind, log_times[k], sequences[k], publish_times[k], one)
+                    record = e.tag, node, port, e.seq, e.raw_value, e.publish_ns
+                add_event(record)
+                if node in ticks:
+                    values[record[1:4]] = record
 
     def outputs(self, node: str) -> Iterator[list | ReplayedError]:
         """A replayed source's ticks: its logged records that were not skipped, in log order."""
         ticks = self.ticks[node]
         while True:
             while not ticks:
-                if not self._read_one():
+                if not self._read_some():
                     return
             yield _logged_outputs(ticks.popleft(), self._value)
 
     def _value(self, event_id: tuple) -> object:
         values = self.values
-        while event_id not in values and self.survey.events.in_log(event_id) and self._read_one():
+        while event_id not in values and self.survey.events.in_log(event_id) and self._read_some():
             pass
-        return values.pop(event_id)  # (a KeyError if the log lacks it, as when the log was read whole)
+        # (a KeyError if the log lacks it, as when the log was read whole)
+        return self.log.value(LoggedEvent(*values.pop(event_id)))
 
-    def take_before(self, t: int | None) -> tuple[list[Event], list[StepRecord]]:
+    def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
-        before the horizon and the events they produced, values decoded; each list sorted as a
-        trace compares them."""
+        before the horizon and the events they produced (an event as read, a plain tuple, when its
+        value decodes surely, else an :class:`Event`, value decoded); each list sorted as a trace
+        compares them. (The records are read in log-time order: those before ``t`` come first.)"""
         steps, events = self.steps, self.events
         if t is None:
             now, self.steps = steps, []
             ready, self.events = events, []
         else:
-            now, self.steps = [s for s in steps if s.tag[0] < t], [s for s in steps if s.tag[0] >= t]
-            ready, self.events = [e for e in events if e.tag[0] < t], [e for e in events if e.tag[0] >= t]
-        kept = [s for s in now if s.tag[0] < self.horizon]
+            cut = len(steps)
+            while cut and steps[cut - 1][1][0] >= t:
+                cut -= 1
+            now = steps[:cut]
+            del steps[:cut]
+            cut = len(events)
+            while cut and events[cut - 1][0][0] >= t:
+                cut -= 1
+            ready = events[:cut]
+            del events[:cut]
+        horizon = self.horizon
+        if now and now[-1][1][0] >= horizon:
+            now = [s for s in now if s[1][0] < horizon]
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
-        owed, in_log = self.owed, self.survey.events.in_log
-        for s in kept:  # (an id the log lacks is expected of no event: not held)
-            owed.update(i for i in s.produced if in_log(i))
-        self.steps_kept += len(kept)
-        value = self.log.value
-        expected = []
-        for e in ready:
-            event_id = e.id
-            if event_id in owed:
-                if not twice:
+        owed, log = self.owed, self.log
+        produced = list(chain.from_iterable(map(_produced, now)))
+        owed.update(produced)
+        self.steps_kept += len(now)
+        ids = list(map(_event_id, ready))
+        values = self.values
+        if values and not values.keys().isdisjoint(ids):
+            # a source's events no tick took (at the horizon, after the session's end): decoded, as read
+            for event_id in ids:
+                if event_id in values:
+                    log.value(LoggedEvent(*values.pop(event_id)))
+        if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
+            owed.difference_update(ids)
+            # a value that decodes surely is compared by its bytes, decoded only if they differ;
+            # any other is decoded here, so that a damaged one refuses the log here, as it did
+            surely = list(map(decodes_surely, map(_raw_value, ready)))
+            expected = ready if surely.count(True) == len(surely) else [
+                e if sure else _decoded(log, e) for e, sure in zip(ready, surely)]
+        else:
+            expected = []
+            for e, event_id in zip(ready, ids):
+                if event_id in owed:
+                    if not twice:
+                        owed.discard(event_id)
+                    expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
+        if produced:  # an id the log lacks is expected of no event: not held
+            in_log = self.survey.events.in_log
+            for event_id in owed.intersection(produced):
+                if not in_log(event_id):
                     owed.discard(event_id)
-                # a value that decodes surely is compared by its bytes, decoded only if they differ;
-                # any other is decoded here, so that a damaged one refuses the log here, as it did
-                expected.append(e if decodes_surely(e.raw_value) else
-                                Event(e.tag, e.node, e.port, e.seq, value(e), e.publish_ns))
-        expected.sort(key=_event_key)
-        kept.sort(key=_step_key)
-        return expected, kept
+        expected.sort(key=_raw_event_key)
+        now.sort(key=_raw_step_key)
+        return expected, now
 
 
-def _same_event(logged: LoggedEvent, again: tuple) -> bool:
+def _same_event(logged: tuple, again: tuple) -> bool:
     """Whether ``event_bytes`` of the logged event, its value decoded, is that of the session's,
     told from the logged value's bytes, where they tell it exactly: a value that decodes surely
     (an array of a dtype and shape decoded before) packs again as it was logged, so the two are
     the same if the session's is an array of a plain dtype (no fields, no objects: packed by its
     dtype's string, which decodes to the same dtype) that packs to those bytes. False says
-    nothing: compare them decoded. ``again``: the fields of an :class:`Event`, a plain tuple."""
+    nothing: compare them decoded. ``logged``: the fields of a ``LoggedEvent``, ``again`` of an
+    :class:`Event`, plain tuples."""
     tag, node, port, seq, value = again[:5]
     if type(value) is not np.ndarray or value.dtype.fields is not None or value.dtype.hasobject:
         return False
-    return (logged.seq == seq and logged.tag == tag and logged.port == port and logged.node == node
-            and array_encoding_head(value) + value.tobytes() == logged.raw_value)
+    return (logged[3] == seq and logged[0] == tag and logged[2] == port and logged[1] == node
+            and array_encoding_head(value) + value.tobytes() == logged[4])
 
 
-def _event_key(e: Event) -> tuple:
-    return e.tag, e.node, e.port, e.seq
+_produced, _event_id, _raw_value = itemgetter(3), itemgetter(1, 2, 3), itemgetter(4)  # of the plain tuples
 
-
-#: _event_key and _step_key of the session's records, plain tuples (_drained)
+#: how a trace sorts its events (tag, node, port, seq) and step records (tag, node), of an Event or
+#: StepRecord and of the plain tuples of their fields alike
 _raw_event_key, _raw_step_key = itemgetter(0, 1, 2, 3), itemgetter(1, 0)
 
 
-def _step_key(s: StepRecord) -> tuple:
-    return s.tag, s.node
+def _decoded(log: LogHead, e: tuple | Event) -> Event:
+    """A logged event as the comparison of two whole traces has it: its value decoded.
+    ``e``: the fields of a ``LoggedEvent``, a plain tuple, or an Event already."""
+    if type(e) is not tuple:
+        return e
+    return Event(e[0], e[1], e[2], e[3], log.value(LoggedEvent(*e)), e[5])
 
 
 class _Comparison:
@@ -377,22 +455,22 @@ class _Comparison:
     as they come: the events, in order, pair by pair, then the step records, the first
     difference of each kept; what is held is what one side has that the other has not yet."""
 
-    def __init__(self, value: Callable[[LoggedEvent], object]) -> None:
-        self.value = value  # a logged event's value, decoded (RunLog.value)
+    def __init__(self, log: LogHead) -> None:
+        self.log = log  # whose events' values are decoded (RunLog.value)
         #: per side (0: the log's, 1: the session's): events and step records not yet paired
-        #: (the log's events as read, LoggedEvent, when their value decodes surely: _Feed.take_before;
-        #: the session's records as plain tuples, _drained)
+        #: (the log's events as read, plain tuples, when their value decodes surely: _Feed.take_before;
+        #: its step records and the session's records as plain tuples too, _Feed and _drained)
         self.events: tuple[deque, deque] = (deque(), deque())
         self.steps: tuple[deque, deque] = (deque(), deque())
         self.counts = [[0, 0], [0, 0]]  # [side][events, steps]
-        self.first_step: list[StepRecord | tuple | None] = [None, None]
+        self.first_step: list[tuple | None] = [None, None]
         self.event_difference: str | None = None
         self.step_difference: tuple[int, StepRecord, StepRecord] | None = None
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
         self.paired_events = self.paired_steps = 0
         self.session_done = False  # the session's records are all in
 
-    def add(self, expected: tuple[list[Event | LoggedEvent], list[StepRecord]], again: tuple[list[tuple], list[tuple]]) -> None:
+    def add(self, expected: tuple[list[Event | tuple], list[tuple]], again: tuple[list[tuple], list[tuple]]) -> None:
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
             if steps and self.first_step[side] is None:
@@ -405,25 +483,23 @@ class _Comparison:
         """Pair off the events before ``t`` (None: all) and the step records in."""
         for side in (0, 1):
             arrived = self.arrived[side]
-            if t is None:
+            if t is None or not side:  # (the log's are all before t: _Feed.take_before)
                 ready, later = list(arrived), []
-            elif side:
-                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
             else:
-                ready, later = [e for e in arrived if e.tag[0] < t], [e for e in arrived if e.tag[0] >= t]
+                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
             self.arrived[side][:] = later
-            ready.sort(key=_raw_event_key if side else _event_key)
+            ready.sort(key=_raw_event_key)
             self.counts[side][0] += len(ready)
             if self.event_difference is None:
                 self.events[side].extend(ready)
         mine, theirs = self.events
         while mine and theirs and self.event_difference is None:
             a, b = mine.popleft(), theirs.popleft()
-            if type(a) is LoggedEvent:
+            if type(a) is tuple:
                 if _same_event(a, b):
                     self.paired_events += 1
                     continue
-                a = self._decoded(a)
+                a = _decoded(self.log, a)
             b = Event._make(b)
             if event_bytes(a) != event_bytes(b):
                 self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
@@ -438,10 +514,10 @@ class _Comparison:
             a, b = mine.popleft(), theirs.popleft()
             # the same fields without detail pack the same (step_bytes): the log's are exact strs and
             # ints (format.decode_step checks them), the session's the backend's own
-            if a.detail is None and b[5] is None and a[:5] == b[:5]:
+            if a[5] is None and b[5] is None and a[:5] == b[:5]:
                 self.paired_steps += 1
                 continue
-            b = StepRecord._make(b)
+            a, b = StepRecord._make(a), StepRecord._make(b)
             if step_bytes(a) != step_bytes(b):
                 self.step_difference = (self.paired_steps, a, b)
                 mine.clear()
@@ -449,12 +525,6 @@ class _Comparison:
             self.paired_steps += 1
         if self.session_done and not theirs:
             mine.clear()  # nothing more to pair them with (they are counted)
-
-    def _decoded(self, e: LoggedEvent | Event) -> Event:
-        """A logged event as the comparison of two whole traces has it: its value decoded."""
-        if type(e) is not LoggedEvent:
-            return e
-        return Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns)
 
     def difference(self) -> str | None:
         """What ``expected.first_difference(again)`` says of the two whole traces."""
@@ -471,8 +541,9 @@ class _Comparison:
         # one side has more events: where the other's step records begin, an event meets a step
         if events < events_again:
             a, b = self.first_step[0], Event._make(self.events[1][0])
+            a = None if a is None else StepRecord._make(a)
         else:
-            a, b = self._decoded(self.events[0][0]), self.first_step[1]
+            a, b = _decoded(self.log, self.events[0][0]), self.first_step[1]
             b = None if b is None else StepRecord._make(b)
         if a is None or b is None:
             return f"lengths differ: {events + steps} records vs {events_again + steps_again}"

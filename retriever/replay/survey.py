@@ -24,10 +24,13 @@ class LogSurvey:
     records' ``late``, ``had_below`` and ``restart_gap``). A record with detail that is not one
     is kept as the error the replay raises before its first step; one without detail (nearly
     all: only its node is read here) the replay refuses where it reads it, with the same error,
-    checking it whole unless it was found plain here (``unchecked``)."""
+    checking it whole unless it was found plain here (``unchecked``). With ``check_steps`` (the
+    re-simulation's survey), every step record is checked here, as ``format.decode_step`` checks
+    it, and the first that is not one kept as the error."""
 
-    def __init__(self, path: Path, max_unchecked: int = 65_536) -> None:
+    def __init__(self, path: Path, max_unchecked: int = 65_536, *, check_steps: bool = False) -> None:
         self.path = path
+        self.check_steps = check_steps
         self.nodes: set[str] = set()
         self.steps = 0
         self.seqs: dict[tuple[str, str], _Seqs] = {}
@@ -116,7 +119,9 @@ class LogSurvey:
         if steps and self.step_error is None:
             which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
             starts = chunk.offsets[which] + _DATA_AT
-            plain, node_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            plain, node_at, status_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            if self.check_steps:
+                plain &= _plain_statuses(bytes_, status_at)
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -142,16 +147,17 @@ class LogSurvey:
     def _step(self, log_time: int, sequence: int, data: bytes) -> None:
         if self.step_error is not None:
             return
-        # a record without detail tells the survey only its node: read, not checked (the replay's
-        # own reading of it checks it, and refuses the log with the same error there)
-        try:
-            record = msgpack.unpackb(data, use_list=False)
-        except Exception:
-            record = None
-        if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
-            self.steps += 1
-            self.nodes.add(record[0])
-            return
+        if not self.check_steps:
+            # a record without detail tells the survey only its node: read, not checked (the replay's
+            # own reading of it checks it, and refuses the log with the same error there)
+            try:
+                record = msgpack.unpackb(data, use_list=False)
+            except Exception:
+                record = None
+            if type(record) is tuple and len(record) == 7 and record[5] is None and type(record[0]) is str:
+                self.steps += 1
+                self.nodes.add(record[0])
+                return
         try:
             node, microstep, _, _, _, detail, _ = fmt.decode_step(data)
         except Exception as e:
@@ -201,13 +207,13 @@ _STEPS = "steps"
 _UNSEEN = object()
 
 
-def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which of the step records ``data[starts:ends]`` are, as Retriever writes nearly every one,
     ``[node, microstep, {port: [id, ...]}, [id, ...], status, nil, wall_ns]`` with ids ``[node,
     port, seq]``, every string an ASCII fixstr, arrays and maps of up to 15, integers of any
     msgpack width (msgpack.unpackb reads such a record as a 7-tuple whose node is a str and
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
-    time for all of them at once; and where each one's node (its fixstr) is."""
+    time for all of them at once; and where each one's node and status (their fixstrs) are."""
     not_ascii_before = np.zeros(len(data) + 1, dtype=np.int32)  # bytes >= 0x80 before each offset
     np.cumsum(data >= 0x80, dtype=np.int32, out=not_ascii_before[1:])
     last = len(data) - 1
@@ -266,11 +272,29 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
         text(ok & (k < ports))
         ids(ok & (k < ports))
     ids(ok.copy())
+    status_at = p.copy()
     text(ok.copy())
     ok &= (p < ends) & (at(p) == 0xC0)
     p[:] = np.where(ok, p + 1, p)
     integer(ok.copy(), signed=True)
-    return ok & (p == ends), node_at
+    return ok & (p == ends), node_at, status_at
+
+
+#: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
+_PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
+
+
+def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
+    """Which of the fixstrs at ``status_at`` in ``data`` are a status a step record without detail
+    has (``format.decode_step`` refuses any other)."""
+    last = len(data) - 1
+    found = np.zeros(len(status_at), dtype=bool)
+    for status in _PLAIN_STATUS_BYTES:
+        same = np.ones(len(status_at), dtype=bool)
+        for k, byte in enumerate(status):
+            same &= data[np.minimum(status_at + k, last)] == byte
+        found |= same
+    return found
 
 
 def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:

@@ -729,6 +729,23 @@ def test_an_event_logged_twice_is_a_log_error_in_replay(tmp_path):
         replay(log, build_small())
 
 
+def test_an_event_logged_twice_is_expected_twice_by_resim(tmp_path):
+    """``--resim`` takes each copy of an event logged twice as an event the run made (a trace of
+    the log has both): it reports what the log's trace and the re-run's say, read whole and
+    streamed."""
+    from retriever.replay import resim_file
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        messages.append(list(_first(messages, "data/counter/k")))
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)
+    expected = read_log(path).trace().first_difference(build_small().run(duration=0.5))
+    assert expected is not None
+    for report in (resim(read_log(path), build_small()), resim_file(path, build_small)):
+        assert re.sub(r"publish_ns=\d+", "", report.difference) == re.sub(r"publish_ns=\d+", "", expected)
+
+
 def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):
     from tests.log.log_flows import build_small
 

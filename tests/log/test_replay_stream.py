@@ -744,3 +744,19 @@ def test_the_survey_of_a_chunk_as_arrays_finds_a_port_logged_twice_on_two_channe
     assert str(by_arrays.twice) == str(by_tuples.twice)
     assert [by_arrays.in_log(("cam", "frame", s)) for s in range(12)] == \
         [by_tuples.in_log(("cam", "frame", s)) for s in range(12)]
+
+
+def test_resim_file_reads_events_framed_otherwise_as_the_log_read_whole(small_chunks, tmp_path):
+    """Events whose microstep is packed wider than a fixint (valid msgpack, not as Retriever writes
+    it): ``resim_file``'s reading of nearly every event (``[microstep < 128, value]``) does not
+    apply, the event is read as ``read_log`` reads it, and the re-simulation is identical."""
+    def keep(topic, message) -> bool:
+        if topic.startswith("data/"):
+            assert message.data[0] == 0x92 and message.data[1] < 0x80
+            message.data = b"\x92\xcc" + message.data[1:]  # the same microstep, as a uint 8
+        return True
+
+    wide = rewrite(small_chunks, tmp_path / "wide.mcap", keep=keep)
+    whole, streamed = resim(read_log(wide)), resim_file(wide)
+    _same_resim(whole, streamed)
+    assert streamed.identical and streamed.steps_compared == 180 and streamed.events_compared > 100

@@ -158,6 +158,12 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
     variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
                 changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
                 changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
+                # a status that a record without detail does not have; another that it has; a valid
+                # record that is not of the shape parsed with numpy (a node not ASCII)
+                changed(plain, one, data=record(one, status="late")),
+                changed(plain, one, data=record(one, status="error")),
+                changed(plain, one, data=record(one, status="skipped")),
+                changed(plain, one, data=record(one, node="nöde")),
                 changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
                 changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
                 changed(plain, last, sequence=plain[events[0]].sequence),
@@ -170,3 +176,32 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
             a.take_chunk(channels, arrays)
             b.take(channels, tuples)
             assert state(a) == state(b), n
+
+
+def test_a_damaged_source_value_no_tick_takes_refuses_the_resim(tmp_path):
+    """A replayed source's logged value is decoded when its tick takes it, and one that no tick
+    takes (here, the last tick's of a run that did not finish: it is not compared, and the
+    re-simulation stops before it) when the comparison reads past it: a damaged one refuses the
+    log, as ``RunLog.value`` says it, read whole and streamed."""
+    from retriever.errors import LogError
+    from tests.log.helpers import rewrite
+
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+
+    def interrupted(name, values) -> None:
+        if name == "retriever.end":
+            values["status"] = "interrupted"
+
+    def damaged(topic, message) -> bool:
+        if topic == "data/ramp/x" and message.sequence == 39:  # the last, at 1.95 s
+            message.data = message.data[:2] + b"\xc1"
+        return True
+
+    whole = rewrite(path, tmp_path / "interrupted.mcap", metadata=interrupted)
+    for report in (resim(read_log(whole), _pipe("same")), resim_file(whole, _pipe("same"))):
+        assert report.identical and report.horizon_ns == 1_950_000_000
+    log = rewrite(path, tmp_path / "damaged.mcap", metadata=interrupted, keep=damaged)
+    for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
+        with pytest.raises(LogError, match="event ramp.x #39 is not valid msgpack"):
+            again()
