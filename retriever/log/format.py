@@ -190,7 +190,7 @@ def decode_plain_step(data: bytes) -> tuple:
     of ASCII fixstrs, a microstep and seqs of msgpack's unsigned integers, a fixstr status, nil,
     an integer), which leaves only its status to check; another status is decode_step's error."""
     step = msgpack.unpackb(data, use_list=False)
-    if step[4] not in _PLAIN_STATUSES:
+    if step[4] not in PLAIN_STEP_STATUSES:
         return decode_step(data)
     return step
 
