@@ -3,11 +3,12 @@
 A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall time (at most
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
-From its first write on, the trace's tape expanders make the step records they can
-(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer makes the
-others, a generic tick's of the common shape the same way (_step_record_maker), the rest with
-msgpack; and every event, an array of a dtype and shape seen before in one ``struct.pack`` and
-its bytes (benchmarks/reports/logging_overhead.md).
+From its first write on, the trace's tape expanders make the records they can
+(``Trace.log_records``: a compiled in-process tick's step record, in two ``struct.pack``s, and
+its event's if the value is a float or an int of up to 32 bits, in two more); the writer makes
+the others, a generic tick's step record of the common shape the same way (_step_record_maker),
+the rest with msgpack; and the other events, an array of a dtype and shape seen before in one
+``struct.pack`` and its bytes (benchmarks/reports/logging_overhead.md).
 """
 
 from __future__ import annotations
@@ -46,6 +47,12 @@ if TYPE_CHECKING:
 _FIXARRAY_2 = 0x92
 _EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
 _HEAD_FIXED = 1 + 8 + 2  # a Message record's opcode, record length and channel id: the head's first bytes
+#: a Message record's head as those first bytes (fixed for a kind of record on a channel), then its
+#: sequence, log time and publish time
+_FIXED_HEAD = struct.Struct(f"<{_HEAD_FIXED}sIQQ")
+#: the most bytes of an event's data the tape's expanders make (``[microstep, value]`` of a float: a
+#: fixarray, a fixint, a float 64's head and 8 bytes)
+_EVENT_DATA_MAX = 1 + 1 + 1 + 8
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
@@ -72,7 +79,7 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     ``ok``, no detail, a microstep below 128, one event on ``output``, and one event consumed on
     each input port fed by one edge (``fed``: the ports in the order a tick consumes them, each
     with its edge's source node and port), no more; None for any other, which the writer then
-    packs with msgpack. As the tape expanders do (Trace.log_steps): the msgpack data in one
+    packs with msgpack. As the tape expanders do (Trace.log_records): the msgpack data in one
     ``struct.pack`` of the bytes fixed here and the ints that change, each in a fixed width
     (uint32 seqs, uint64 wall time: read back the same). None for a node with 3 inputs or more."""
     if len(fed) > 2:
@@ -86,8 +93,8 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     consts.append(pack(StepStatus.OK.value) + b"\xc0\xcf")  # then the wall time, a uint64
     data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", "Q"])))
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
-    fixed = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + data.size, channel, 0, 0, 0)[:_HEAD_FIXED]
-    head_pack = struct.Struct(f"<{_HEAD_FIXED}sIQQ").pack  # and its sequence, log time and publish time
+    fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
+    head_pack = _FIXED_HEAD.pack
     c, ok, errors = consts, StepStatus.OK, (ValueError, TypeError, struct.error)
     data_pack = data.pack
     # (an int out of its field's range is a struct.error; a consumed or produced of another length a ValueError)
@@ -135,6 +142,11 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                 pass
             return None
     return make
+
+
+def _fixed_head(length: int, channel: int) -> bytes:
+    """The first bytes of a Message record's head (_FIXED_HEAD): opcode, record length, channel."""
+    return MESSAGE_HEAD.pack(Opcode.MESSAGE, length, channel, 0, 0, 0)[:_HEAD_FIXED]
 
 
 class LogFile:
@@ -202,7 +214,7 @@ class LogWriter:
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
         self.closed = False
         self.failed = False
-        # the trace whose expanders make the step records (Trace.log_steps), once the first write began it
+        # the trace whose expanders make records (Trace.log_records), once the first write began it
         self._step_log: "Trace | None" = None
         with self._refused_writes(RUN_NOT_STARTED):
             self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
@@ -232,7 +244,6 @@ class LogWriter:
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
-        self._step_head = functools.partial(MESSAGE_HEAD.pack, Opcode.MESSAGE)
         # by node: what makes the step records of its generic ticks that have the common shape
         self._step_makers = {node.id: maker for node in graph.nodes.values()
                              if (maker := self._step_maker(graph, node.id)) is not None}
@@ -312,16 +323,20 @@ class LogWriter:
         """One comprehension per kind builds whole MCAP message records: this runs for every event
         and step of a logged run, so it avoids every intermediate object it can.
         """
-        if self._step_log is not trace:  # the first hand-over: from here on, expanders make step records
+        if self._step_log is not trace:  # the first hand-over: from here on, expanders make records
             self._stop_step_log()
-            trace.log_steps(self._step_head, MESSAGE_FIELDS, self._steps_channel)
+            trace.log_records(_FIXED_HEAD.pack, self._step_fixed_head, self._event_heads)
             self._step_log = trace
-        made, made_from, n_steps = trace.take_step_log(self._steps_released)
+        made, made_from, n_steps, made_events, made_events_from, n_events = trace.take_log(
+            self._events_released, self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
-        if len(events) > self._events_done:
+        if n_events > self._events_done:
             self.last_bytes = 0
-            self._add_events(events[self._events_done:])
-            self._events_done = len(events)
+            new_events = events[self._events_done:n_events]
+            if made_events_from != self._events_released + self._events_done or len(made_events) != len(new_events):
+                made_events = None  # none made (as for step records below)
+            self._add_events(new_events, made_events)
+            self._events_done = n_events
         if n_steps > self._steps_done:
             new = steps[self._steps_done:n_steps]
             first = self._steps_released + self._steps_done
@@ -342,7 +357,7 @@ class LogWriter:
 
     def _step_records(self, steps: list[tuple], first: int, made: list[bytes | None] | None = None) -> list[bytes]:
         """The Message records of ``steps``, the first the log's step record ``first``; with
-        ``made``, those of them that are not None as they are (Trace.take_step_log)."""
+        ``made``, those of them that are not None as they are (Trace.take_log)."""
         head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
                                                 self._pack_step, self._steps_channel)
         makers = self._step_makers  # a record of a node's common shape, in one call; else msgpack here
@@ -359,14 +374,49 @@ class LogWriter:
                 for index, record, (node, tag, consumed, produced, status, detail, start, wall)
                 in zip(itertools.count(first), made, steps)]
 
+    def _step_fixed_head(self, size: int) -> bytes:
+        """The fixed first bytes of the head of a step record whose data is ``size`` bytes
+        (Trace.log_records)."""
+        return _fixed_head(MESSAGE_FIELDS + size, self._steps_channel)
+
+    def _event_heads(self, node: str, port: str) -> tuple[bytes, ...] | None:
+        """The fixed first bytes of the heads of the records of events on ``node.port``, by the
+        size of their data (up to _EVENT_DATA_MAX); None when the log has no channel for it yet
+        (the writer makes those records, and the channel, in the order the events came)
+        (Trace.log_records)."""
+        channel = self._channel_of.get(node, {}).get(port)
+        return None if channel is None else tuple(_fixed_head(MESSAGE_FIELDS + size, channel)
+                                                  for size in range(_EVENT_DATA_MAX + 1))
+
     def _stop_step_log(self) -> None:
         if self._step_log is not None:
-            self._step_log.stop_step_log()
+            self._step_log.stop_log()
             self._step_log = None
 
-    def _add_events(self, new: list[tuple]) -> None:
-        """The Message records of ``new`` events, in recording order; a big array's (None in the
-        comprehension) in a chunk of its own (_add_large_event)."""
+    def _add_events(self, new: list[tuple], made: list[bytes | None] | None = None) -> None:
+        """The Message records of ``new`` events, in recording order; with ``made``, those of
+        them that are not None as they are (Trace.take_log); a big array's in a chunk of its own
+        (_add_large_event)."""
+        if made is None:
+            records = self._event_records(new)
+        elif None in made:
+            left = [i for i, record in enumerate(made) if record is None]
+            records = made
+            for i, record in zip(left, self._event_records([new[i] for i in left])):
+                records[i] = record
+        else:
+            records = made
+        if None in records:
+            begin = 0
+            for i in [i for i, record in enumerate(records) if record is None]:
+                self._add_small_events(records[begin:i])
+                self._add_large_event(new[i])
+                begin = i + 1
+            records = records[begin:]
+        self._add_small_events(records)
+
+    def _event_records(self, new: list[tuple]) -> list[bytes | None]:
+        """The Message records of ``new`` events; None for a big array's (_add_large_event)."""
         head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
         channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
         try:
@@ -388,15 +438,8 @@ class LogWriter:
                      if port not in channel_of.get(node, ())]
             if not added:
                 raise
-            return self._add_events(new)
-        if None in records:
-            begin = 0
-            for i in [i for i, record in enumerate(records) if record is None]:
-                self._add_small_events(records[begin:i])
-                self._add_large_event(new[i])
-                begin = i + 1
-            records = records[begin:]
-        self._add_small_events(records)
+            return self._event_records(new)
+        return records
 
     def _add_small_events(self, records: list[bytes]) -> None:
         self._mcap.add_records(records)

@@ -381,3 +381,53 @@ def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_sh
     assert [data[-9] for data in datas[:len(common)]] == [0xCF] * len(common)
     assert datas[len(common):] == [msgpack.packb((node, tag[1], consumed, produced, status, detail, wall))
                                    for node, tag, consumed, produced, status, detail, _, wall in other]
+
+
+class _Values(Flow[None, Any]):
+    """Each tick the next of ``VALUES``: ints in every msgpack form, floats, others."""
+
+    VALUES = [0, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, -1, -200, 1.5, float("nan"), True, "s",
+              np.float64(2.5), [1, 2.0]]
+
+    def __init__(self):
+        self.k = -1
+
+    def step(self, inp: None) -> Any:
+        self.k += 1
+        return self.VALUES[self.k % len(self.VALUES)]
+
+
+class _Relay(Flow[Any, Any]):
+    def step(self, inp: Any) -> Any:
+        return inp
+
+
+def test_the_records_compiled_ticks_make_are_the_writers_byte_for_byte(tmp_path: Path):
+    """A logged run whose compiled ticks make the records of their steps and of their float and
+    int events as the tape is expanded (Trace.log_records), the writer the others (other values,
+    none made): the log holds the records the writer makes of the trace, in the order the events
+    came, byte for byte (each event's data the codec's ``[microstep, value]``), reads back as the
+    trace, and replays identically."""
+    def build():
+        with Pipeline("made_records") as pipe:
+            prev = _Values().named("src") @ Rate(hz=1000)
+            for i in range(3):
+                prev = prev.then(_Relay().named(f"r{i}") @ (Trigger() if i == 1 else Rate(hz=1000)), sync=Latest())
+        return pipe
+
+    pipe = build()
+    path = tmp_path / "made.mcap"
+    trace = pipe.run(duration=0.5, log=path)
+    assert len(pipe.session.generated_ticks()) == 4
+    with open(path, "rb") as f:
+        messages = [(channel.topic, message.sequence, message.log_time, message.publish_time, message.data)
+                    for _, channel, message in make_reader(f).iter_messages(log_time_order=False)]
+    events = [(fmt.data_topic(node, port), seq, tag[0], published, packb([tag[1], value]))
+              for tag, node, port, seq, value, published in trace.raw_events]
+    assert [m for m in messages if m[0] != fmt.STEPS_TOPIC] == events
+    steps = [m for m in messages if m[0] == fmt.STEPS_TOPIC]
+    assert [(sequence, log_time, publish) for _, sequence, log_time, publish, _ in steps] == [
+        (index, tag[0], start) for index, (_, tag, *_, start, _) in enumerate(trace.raw_steps)]
+    log = read_log(path)
+    assert log.trace() == trace
+    assert replay(log, build()).identical
