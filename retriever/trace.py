@@ -329,7 +329,8 @@ class Trace:
                 n += 1
 
     def log_records(self, head: Callable[..., bytes], step_head: Callable[[int], bytes],
-                    event_heads: Callable[[str, str], tuple[bytes, ...] | None]) -> None:
+                    event_heads: Callable[[str, str], tuple[bytes, ...] | None],
+                    record_pack: Callable[[str], Callable[..., bytes]]) -> None:
         """From now on, as the tape is expanded, have each step record's Message record, and each
         event's, made by its expander where it can (a compiled tick's: a step record's msgpack data
         in one ``struct.pack``, a float or int event's in another), for the log writer to take
@@ -337,11 +338,13 @@ class Trace:
         ``fixed`` the record's first bytes (opcode, length, channel): ``step_head(len(data))`` for
         a step record, whose sequence is its index among the trace's step records (those
         :meth:`discard` dropped counted in); ``event_heads(node, port)[len(data)]`` for an event
-        (None: the writer makes those of that port). Records expanded before this call have none."""
+        (None: the writer makes those of that port); or the whole record in one call,
+        ``record_pack(data_format)(fixed, sequence, log_time, publish_time, *data)``, of data
+        whose bytes have no byte order. Records expanded before this call have none."""
         with self._held():
             self._step_log, self._event_log = [], []
             self._step_log_base, self._event_log_base = len(self._raw_steps), len(self._raw_events)
-            self._log_with = (self._step_log.append, self._event_log.append, head, step_head, event_heads)
+            self._log_with = (self._step_log.append, self._event_log.append, head, step_head, event_heads, record_pack)
 
     def take_log(self, released_events: int, released_steps: int) -> tuple[list, int, int, list, int, int]:
         """Expand the tape; hand over the log's records made since the last call: ``(step records,

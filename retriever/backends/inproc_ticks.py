@@ -62,10 +62,12 @@ from ..sync import Latest
 from ..trace import StepStatus
 
 _U32 = 0xFFFFFFFF
-#: the data of an event's log record, msgpack ``[microstep, value]``, by the value's msgpack type:
-#: a fixarray of 2, a fixint microstep, then the value (its type's byte, big-endian bytes)
-_EVENT_DATA = {"float": struct.Struct(">BBBd"), "fixint": struct.Struct(">BBB"), "uint8": struct.Struct(">BBBB"),
-               "uint16": struct.Struct(">BBBH"), "uint32": struct.Struct(">BBBI")}
+#: the data of an event's log record, msgpack ``[microstep, value]``, of a value whose bytes have a
+#: byte order: a fixarray of 2, a fixint microstep, the value's type byte, the value big-endian
+_EVENT_DATA = {"float": struct.Struct(">BBBd"), "uint32": struct.Struct(">BBBI")}
+#: the data's formats of the others (a fixint, a uint8, a uint16 as two bytes), each packed with
+#: the record's head in one call (Trace.log_records: ``record_pack``)
+_WHOLE_EVENT_DATA = ("BBB", "BBBB", "BBBBB")
 
 
 @dataclass(eq=False)
@@ -195,7 +197,8 @@ class _TickWriter:
 
     def code(self) -> NodeCode:
         k, rt = self.k, self.rt
-        init = f"ticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\nlogged{k} = step_fixed{k} = event_heads{k} = None\n"
+        init = (f"ticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\n"
+                f"logged{k} = step_fixed{k} = event_heads{k} = event_packs{k} = None\n")
         init += "".join(f"{s} = seqs{k}.get({port!r}, 0)\n" for port, s in zip(self.known, self.seq))
         init += "".join(f"{v} = buf{k}_{i}.visible\n" for i, v in enumerate(self.visible))
         flush = (f"stats{k}.ticks += ticks{k} + steps{k} + xsteps{k}\nstats{k}.steps += steps{k} + xsteps{k}\n"
@@ -506,7 +509,7 @@ if v{j} is not None:
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
 def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step, log=None, seq=0):
-    nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s, logged{k}, step_fixed{k}, event_heads{k}
+    nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s, logged{k}, step_fixed{k}, event_heads{k}, event_packs{k}
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
 {_indent(head)}    wall = end - start
     xsteps{k} += 1
@@ -519,34 +522,40 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
 
     def _log_records(self) -> str:
         """An expander's lines that add the log's records of the step it expanded and of its
-        events (Trace.log_records): first, the fixed bytes of this node's records' heads, once
-        per hand-over of the log (``logged{k}``, the ``log`` they were read for), then
-        _step_log's lines and _event_log's."""
+        events (Trace.log_records): first, what this node's records are made with (the fixed
+        bytes of their heads, the packs of whole records), once per hand-over of the log
+        (``logged{k}``, the ``log`` they were read for), then _step_log's lines and _event_log's."""
         k, known = self.k, self.known
         step, size = self._step_log()
         event = self._event_log()
         heads = "".join([f"step_fixed{k} = log[3]({size})\n" if size else "",
-                         f"event_heads{k} = log[4](node{k}, {known[0]!r})\n" if len(known) == 1 else ""])
+                         f"event_heads{k} = log[4](node{k}, {known[0]!r})\n"
+                         f"event_packs{k} = ({', '.join(f'log[5]({f!r})' for f in _WHOLE_EVENT_DATA)})\n"
+                         if len(known) == 1 else ""])
         return (f"if log is not logged{k}:\n    logged{k} = log\n{_indent(heads)}" if heads else "") + step + event
 
     def _event_log(self) -> str:
         """An expander's lines that add the log's record of each event of the step it expanded,
         in the order the events were added: of a float or an int from 0 to 2**32 - 1 (one output),
         the Message record, its data the msgpack ``[microstep, value]`` (a fixarray, a fixint
-        microstep, the value as msgpack writes it: a float 64, the shortest uint) in one
-        ``struct.pack`` (``event_data``), its head's fixed bytes ``event_heads{k}[len(data)]``;
+        microstep, the value as msgpack writes it: a float 64, the shortest uint), its head's
+        fixed bytes ``event_heads{k}[len(data)]``: a value of one to three bytes in one
+        ``struct.pack`` of the whole record (its bytes have no byte order: ``event_packs{k}``), a
+        float or uint32 in a pack of the head and one of the data (``event_data``, big-endian);
         None, for the log writer to make, for any other event (another type, a microstep of 128
         or more, a port the log has no channel for yet)."""
         k, known = self.k, self.known
         if len(known) != 1:
             return "".join(f"if v{j} is not None:\n    log[1](None)\n" for j in range(len(known)))
         self.names.update({f"event_{kind}": data.pack for kind, data in _EVENT_DATA.items()})
-        record = ("log[1](log[2](event_heads{k}[{size}], s0 & {u32}, out_tag[0], end) + "
-                  "event_{kind}(0x92, out_tag[1]{args}))\n")
-        lines = [("float", ", 0xCB, v0"), ("fixint", ", v0"), ("uint8", ", 0xCC, v0"), ("uint16", ", 0xCD, v0"),
-                 ("uint32", ", 0xCE, v0")]
-        made = {kind: record.format(k=k, size=_EVENT_DATA[kind].size, u32=_U32, kind=kind, args=args)
-                for kind, args in lines}
+        head = f"event_heads{k}[{{size}}], s0 & {_U32}, out_tag[0], end"
+        whole = f"log[1](event_packs{k}[{{i}}]({head}, 0x92, out_tag[1], {{value}}))\n"
+        made = {kind: whole.format(i=i, size=2 + len(data_format), value=value)
+                for i, (kind, data_format, value) in enumerate([("fixint", "B", "v0"), ("uint8", "BB", "0xCC, v0"),
+                                                                  ("uint16", "BBB", "0xCD, v0 >> 8, v0 & 255")])}
+        for kind, value in (("float", "0xCB, v0"), ("uint32", "0xCE, v0")):
+            made[kind] = (f"log[1](log[2]({head.format(size=_EVENT_DATA[kind].size)}) + "
+                          f"event_{kind}(0x92, out_tag[1], {value}))\n")
         return f"""\
 if v0 is not None:
     if out_tag[1] >= 128 or event_heads{k} is None:

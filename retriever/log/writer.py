@@ -149,6 +149,25 @@ def _fixed_head(length: int, channel: int) -> bytes:
     return MESSAGE_HEAD.pack(Opcode.MESSAGE, length, channel, 0, 0, 0)[:_HEAD_FIXED]
 
 
+@functools.cache
+def _event_heads(channel: int) -> tuple[bytes, ...]:
+    """The fixed first bytes of the heads of event records on ``channel``, by their data's size
+    (asked for at each hand-over of the trace to the writer, by each node's expander)."""
+    return tuple(_fixed_head(MESSAGE_FIELDS + size, channel) for size in range(_EVENT_DATA_MAX + 1))
+
+
+@functools.cache
+def _step_fixed_head(size: int, channel: int) -> bytes:
+    return _fixed_head(MESSAGE_FIELDS + size, channel)
+
+
+@functools.cache
+def _record_pack(data_format: str) -> Callable[..., bytes]:
+    """``pack(fixed, sequence, log time, publish time, *data)``: a whole Message record, its data of
+    ``data_format`` (little-endian: a format of bytes only, which have no byte order)."""
+    return struct.Struct(_FIXED_HEAD.format + data_format).pack
+
+
 class LogFile:
     """The file a run's log goes to, opened before the run starts, so that a path that cannot be
     a log (it exists, it is a folder, its folder is missing or read-only) is refused before any
@@ -325,7 +344,7 @@ class LogWriter:
         """
         if self._step_log is not trace:  # the first hand-over: from here on, expanders make records
             self._stop_step_log()
-            trace.log_records(_FIXED_HEAD.pack, self._step_fixed_head, self._event_heads)
+            trace.log_records(_FIXED_HEAD.pack, self._step_fixed_head, self._event_heads, _record_pack)
             self._step_log = trace
         made, made_from, n_steps, made_events, made_events_from, n_events = trace.take_log(
             self._events_released, self._steps_released)
@@ -377,7 +396,7 @@ class LogWriter:
     def _step_fixed_head(self, size: int) -> bytes:
         """The fixed first bytes of the head of a step record whose data is ``size`` bytes
         (Trace.log_records)."""
-        return _fixed_head(MESSAGE_FIELDS + size, self._steps_channel)
+        return _step_fixed_head(size, self._steps_channel)
 
     def _event_heads(self, node: str, port: str) -> tuple[bytes, ...] | None:
         """The fixed first bytes of the heads of the records of events on ``node.port``, by the
@@ -385,8 +404,7 @@ class LogWriter:
         (the writer makes those records, and the channel, in the order the events came)
         (Trace.log_records)."""
         channel = self._channel_of.get(node, {}).get(port)
-        return None if channel is None else tuple(_fixed_head(MESSAGE_FIELDS + size, channel)
-                                                  for size in range(_EVENT_DATA_MAX + 1))
+        return None if channel is None else _event_heads(channel)
 
     def _stop_step_log(self) -> None:
         if self._step_log is not None:

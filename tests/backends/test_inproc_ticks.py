@@ -295,7 +295,8 @@ def logged_records(build, runs):
     pipe.step(0.0)
     trace = pipe.session.trace
     trace.log_records(struct.Struct("<11sIQQ").pack, lambda size: fixed(size, 42),
-                      lambda node, port: tuple(fixed(size, 7) for size in range(12)))
+                      lambda node, port: tuple(fixed(size, 7) for size in range(12)),
+                      lambda data_format: struct.Struct("<11sIQQ" + data_format).pack)
     steps: list = []
     events: list = []
     for duration in runs:
