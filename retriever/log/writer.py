@@ -7,8 +7,8 @@ From its first write on, the trace's tape expanders make the records they can
 (``Trace.log_records``: a compiled in-process tick's step record, in two ``struct.pack``s, and
 its event's if the value is a float or an int of up to 32 bits, in two more); the writer makes
 the others, a generic tick's step record of the common shape the same way (_step_record_maker),
-the rest with msgpack; and the other events, an array of a dtype and shape seen before in one
-``struct.pack`` and its bytes (benchmarks/reports/logging_overhead.md).
+the rest with msgpack; and the other events, an array of a dtype and shape seen before on its
+port in one ``struct.pack`` with its bytes (benchmarks/reports/logging_overhead.md).
 """
 
 from __future__ import annotations
@@ -59,6 +59,8 @@ RUN_STOPPED = "the run was stopped, and the file holds only what was written bef
 RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
 #: an array value at least this big is logged without joining its bytes (LogWriter._add_large_event)
 LARGE_VALUE_BYTES = 1 << 20
+#: the most (port, dtype, shape) of array values whose record's struct the writer keeps
+MAX_ARRAY_HEADS = 1024
 
 
 def describe_os_error(e: OSError) -> str:
@@ -95,22 +97,24 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
     fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
     head_pack = _FIXED_HEAD.pack
-    c, ok, errors = consts, StepStatus.OK, (ValueError, TypeError, struct.error)
+    ok, errors = StepStatus.OK, (ValueError, TypeError, struct.error)
     data_pack = data.pack
     # (an int out of its field's range is a struct.error; a consumed or produced of another length a ValueError)
     if not fed:
+        c0, c1, c2 = consts
+
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
                 if status is ok and detail is None and not consumed and tag[1] < 128:
                     (n, p, s), = produced
                     if n == node and p == output:
-                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s, c[2], wall)
+                        return head_pack(fixed, sequence, tag[0], start) + data_pack(c0, tag[1], c1, s, c2, wall)
             except errors:
                 pass
             return None
     elif len(fed) == 1:
         (port0, src0, src_port0), = fed
+        c0, c1, c2, c3 = consts
 
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
@@ -120,12 +124,13 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                     (n, p, s), = produced
                     if p0 == port0 and a0 == src0 and b0 == src_port0 and n == node and p == output:
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s0, c[2], s, c[3], wall)
+                            c0, tag[1], c1, s0, c2, s, c3, wall)
             except errors:
                 pass
             return None
     else:
         (port0, src0, src_port0), (port1, src1, src_port1) = fed
+        c0, c1, c2, c3, c4 = consts
 
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
@@ -137,7 +142,7 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                     if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
                             and b1 == src_port1 and n == node and p == output):
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s0, c[2], s1, c[3], s, c[4], wall)
+                            c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
             except errors:
                 pass
             return None
@@ -240,6 +245,10 @@ class LogWriter:
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
+            # by node, then port, then (dtype, shape) of an array value: (the struct.pack of its event's
+            # whole record, the bytes fixed in its head, its encoding's head); at most MAX_ARRAY_HEADS in all
+            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Callable[..., bytes], bytes, bytes]]]] = {}
+            self._array_heads_kept = 0
             self._channels: dict[tuple[str, str], int] = {}
             self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
@@ -257,9 +266,6 @@ class LogWriter:
         self._faults = 0
         self._starved = 0
         self._encode = Encoder().pack
-        # (dtype, shape) of an array value -> (the struct.pack of its event record's head and its
-        # encoding's head, that record's length field, its encoding's head)
-        self._array_heads: dict[tuple, tuple[Callable[..., bytes], int, bytes]] = {}
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
@@ -308,6 +314,7 @@ class LogWriter:
                                          {"node": node, "port": port, "type": type_name})
         self._channels[(node, port)] = channel
         self._channel_of.setdefault(node, {})[port] = channel
+        self._array_heads.setdefault(node, {})[port] = {}
         return channel
 
     @property
@@ -422,8 +429,9 @@ class LogWriter:
             records = made
             for i, record in zip(left, self._event_records([new[i] for i in left])):
                 records[i] = record
-        else:
-            records = made
+        else:  # all made: no big array among them
+            self._add_small_events(made)
+            return
         if None in records:
             begin = 0
             for i in [i for i, record in enumerate(records) if record is None]:
@@ -438,15 +446,15 @@ class LogWriter:
         head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
         channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
         try:
-            # any value but an array, encoded; an array of a dtype and shape seen before: its record in
-            # one struct.pack, then its bytes
-            records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
-                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data
+            # an array of a dtype and shape seen before on its port: its record in one struct.pack
+            # with its bytes; any value but an array: its head in one, then the value encoded
+            records = [array[0](array[1], seq & u32, tag[0], published, _FIXARRAY_2, tag[1], array[2],
+                                value.tobytes())
+                       if type(value) is ndarray and tag[1] < 128
+                       and (array := array_heads[node][port].get((value.dtype, value.shape)))
+                       else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                                 tag[0], published, _FIXARRAY_2, tag[1]) + value_data
                        if type(value) is not ndarray and tag[1] < 128
-                       else array[0](op, array[1], channel_of[node][port], seq & u32, tag[0], published,
-                                     _FIXARRAY_2, tag[1], array[2]) + value.tobytes()
-                       if tag[1] < 128 and type(value) is ndarray
-                       and (array := array_heads.get((value.dtype, value.shape)))
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
@@ -460,8 +468,7 @@ class LogWriter:
         return records
 
     def _add_small_events(self, records: list[bytes]) -> None:
-        self._mcap.add_records(records)
-        self.last_bytes += sum(map(len, records))
+        self.last_bytes += self._mcap.add_records(records)
 
     def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any,
                       published: int) -> bytes | None:
@@ -475,12 +482,13 @@ class LogWriter:
                 return None
             if tag[1] < 128:
                 value_head = array_encoding_head(value)
-                array = (struct.Struct(f"{_EVENT_HEAD.format}{len(value_head)}s").pack,
-                         MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, value_head)
-                if len(self._array_heads) < 1024:
-                    self._array_heads[(value.dtype, value.shape)] = array
-                return array[0](Opcode.MESSAGE, array[1], channel, seq & 0xFFFFFFFF, tag[0], published,
-                                _FIXARRAY_2, tag[1], value_head) + value.tobytes()
+                array = (struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
+                         _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
+                if self._array_heads_kept < MAX_ARRAY_HEADS:
+                    self._array_heads[node][port][(value.dtype, value.shape)] = array
+                    self._array_heads_kept += 1
+                return array[0](array[1], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], value_head,
+                                value.tobytes())
         data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
                                  published) + data

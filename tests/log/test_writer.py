@@ -278,10 +278,11 @@ def test_ports_an_untyped_flow_returns_at_run_time_get_channels_in_the_order_the
 
 
 def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_them(tmp_path: Path):
-    """Arrays take the writer's fast path (a head cached by dtype and shape, then their bytes),
-    the first time and after; a big array a chunk of its own, between the others; any value at
-    a microstep past msgpack's fixint the general one: each Message record's data is the codec's
-    ``[microstep, value]``, byte for byte, in the order the events came."""
+    """Arrays take the writer's fast path (a record's struct cached by port, dtype and shape),
+    the first time and after, on each port; a big array a chunk of its own, between the others;
+    any value at a microstep past msgpack's fixint the general one: each Message record's data
+    is the codec's ``[microstep, value]``, byte for byte, on its port's channel, in the order the
+    events came."""
     class Source(Flow[None, Any]):
         def step(self, inp: None) -> Any:
             return 0
@@ -299,15 +300,18 @@ def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_the
     trace = Trace()
     for seq, (value, microstep) in enumerate(zip(values, microsteps)):
         trace.raw_events.append(((seq * 1000, microstep), "src", "out", seq, value, seq))
+        if seq % 4 == 0:  # the same arrays on a port the graph does not know, whose channel comes later
+            trace.raw_events.append(((seq * 1000, microstep), "src", "more", seq, value, seq))
     path = tmp_path / "values.mcap"
     writer = LogWriter(LogFile(path), graph, backend="inproc")
     writer.write(trace)
     writer.close(trace, len(values) * 1000)
     with open(path, "rb") as f:
-        datas = [message.data for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
-                 if channel.topic == fmt.data_topic("src", "out")]
-    assert datas == [packb([microstep, value]) for value, microstep in zip(values, microsteps)]
-    assert len(datas) == len(values)
+        messages = [(channel.topic, message.data)
+                    for _, channel, message in make_reader(f).iter_messages(log_time_order=False)]
+    assert messages == [(fmt.data_topic(node, port), packb([tag[1], value]))
+                        for tag, node, port, _, value, _ in trace.raw_events]
+    assert len(messages) == len(values) + len(values[::4])
 
 
 @io
