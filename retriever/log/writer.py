@@ -59,7 +59,7 @@ RUN_STOPPED = "the run was stopped, and the file holds only what was written bef
 RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
 #: an array value at least this big is logged without joining its bytes (LogWriter._add_large_event)
 LARGE_VALUE_BYTES = 1 << 20
-#: the most (port, dtype, shape) of array values whose record's struct the writer keeps
+#: the most (port, shape) of array values whose record's struct the writer keeps
 MAX_ARRAY_HEADS = 1024
 
 
@@ -97,9 +97,10 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
     fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
     head_pack = _FIXED_HEAD.pack
-    ok, errors = StepStatus.OK, (ValueError, TypeError, struct.error)
+    ok, errors = StepStatus.OK, (ValueError, TypeError, KeyError, struct.error)
     data_pack = data.pack
-    # (an int out of its field's range is a struct.error; a consumed or produced of another length a ValueError)
+    # (an int out of its field's range is a struct.error; a consumed or produced of another length a
+    # ValueError; a consumed without the port a KeyError)
     if not fed:
         c0, c1, c2 = consts
 
@@ -118,11 +119,10 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
 
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
-                if status is ok and detail is None and tag[1] < 128:
-                    p0, = consumed
-                    (a0, b0, s0), = consumed[p0]
+                if status is ok and detail is None and tag[1] < 128 and len(consumed) == 1:
+                    (a0, b0, s0), = consumed[port0]
                     (n, p, s), = produced
-                    if p0 == port0 and a0 == src0 and b0 == src_port0 and n == node and p == output:
+                    if a0 == src0 and b0 == src_port0 and n == node and p == output:
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(
                             c0, tag[1], c1, s0, c2, s, c3, wall)
             except errors:
@@ -245,9 +245,10 @@ class LogWriter:
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
-            # by node, then port, then (dtype, shape) of an array value: (the struct.pack of its event's
-            # whole record, the bytes fixed in its head, its encoding's head); at most MAX_ARRAY_HEADS in all
-            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Callable[..., bytes], bytes, bytes]]]] = {}
+            # by node, then port, then shape of an array value: (its dtype, the struct.pack of its event's
+            # whole record, the bytes fixed in its head, its encoding's head), the latest dtype seen in
+            # that shape; at most MAX_ARRAY_HEADS in all
+            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Any, Callable[..., bytes], bytes, bytes]]]] = {}
             self._array_heads_kept = 0
             self._channels: dict[tuple[str, str], int] = {}
             self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
@@ -359,7 +360,8 @@ class LogWriter:
         if n_events > self._events_done:
             self.last_bytes = 0
             new_events = events[self._events_done:n_events]
-            if made_events_from != self._events_released + self._events_done or len(made_events) != len(new_events):
+            if (made_events_from != self._events_released + self._events_done or len(made_events) != len(new_events)
+                    or made_events.count(None) == len(made_events)):
                 made_events = None  # none made (as for step records below)
             self._add_events(new_events, made_events)
             self._events_done = n_events
@@ -448,10 +450,11 @@ class LogWriter:
         try:
             # an array of a dtype and shape seen before on its port: its record in one struct.pack
             # with its bytes; any value but an array: its head in one, then the value encoded
-            records = [array[0](array[1], seq & u32, tag[0], published, _FIXARRAY_2, tag[1], array[2],
+            # (its dtype the very one seen last in its shape: no hash of a dtype, which costs)
+            records = [array[1](array[2], seq & u32, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
                        if type(value) is ndarray and tag[1] < 128
-                       and (array := array_heads[node][port].get((value.dtype, value.shape)))
+                       and (array := array_heads[node][port].get(value.shape)) and array[0] is value.dtype
                        else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
                                  tag[0], published, _FIXARRAY_2, tag[1]) + value_data
                        if type(value) is not ndarray and tag[1] < 128
@@ -481,13 +484,16 @@ class LogWriter:
             if value.nbytes >= LARGE_VALUE_BYTES:
                 return None
             if tag[1] < 128:
-                value_head = array_encoding_head(value)
-                array = (struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
-                         _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
-                if self._array_heads_kept < MAX_ARRAY_HEADS:
-                    self._array_heads[node][port][(value.dtype, value.shape)] = array
-                    self._array_heads_kept += 1
-                return array[0](array[1], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], value_head,
+                heads = self._array_heads[node][port]
+                array = heads.get(value.shape)
+                if array is None or array[0] != value.dtype:
+                    value_head = array_encoding_head(value)
+                    array = (value.dtype, struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
+                             _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
+                if value.shape in heads or self._array_heads_kept < MAX_ARRAY_HEADS:
+                    self._array_heads_kept += value.shape not in heads
+                    heads[value.shape] = array  # (an equal dtype: this one, checked by identity next time)
+                return array[1](array[2], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
         data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],

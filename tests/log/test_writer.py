@@ -361,6 +361,7 @@ def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_sh
              ("double", (2000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, -1),
              ("double", (2000, 1), {"float": (ids["src"],)}, (), ok, None, 6, 80),
              ("double", (2000, 1), {"float": (("join", "float", 1),)}, (ids["double"],), ok, None, 6, 80),
+             ("double", (2000, 1), {"other": (ids["src"],)}, (ids["double"],), ok, None, 6, 80),
              ("join", (2000, 2), {"b": (ids["double"],), "a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
              ("join", (2000, 2), {"a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
              ("src", (2000, 0), {}, (ids["src"],), StepStatus.ERROR, {"error": "ValueError: x"}, 5, 70),
