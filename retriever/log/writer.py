@@ -475,8 +475,9 @@ class LogWriter:
 
     def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any,
                       published: int) -> bytes | None:
-        """The Message record of an event the comprehension in _add_events does not make: an
-        array of a dtype and shape not seen before (which it makes from then on), or a big one
+        """The Message record of an event the comprehension in _event_records does not make: an
+        array of a shape not seen before on its port, or of another dtype object than the one
+        seen last in that shape (which it makes from then on), or a big one
         (None: _add_large_event makes it), or any value at a microstep of 128 or more (not a
         msgpack fixint)."""
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
@@ -490,9 +491,11 @@ class LogWriter:
                     value_head = array_encoding_head(value)
                     array = (value.dtype, struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
                              _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
+                else:  # an equal dtype, another object: this one is checked by identity from now on
+                    array = (value.dtype, *array[1:])
                 if value.shape in heads or self._array_heads_kept < MAX_ARRAY_HEADS:
                     self._array_heads_kept += value.shape not in heads
-                    heads[value.shape] = array  # (an equal dtype: this one, checked by identity next time)
+                    heads[value.shape] = array
                 return array[1](array[2], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
         data = self._encode([tag[1], value])

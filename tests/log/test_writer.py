@@ -278,8 +278,9 @@ def test_ports_an_untyped_flow_returns_at_run_time_get_channels_in_the_order_the
 
 
 def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_them(tmp_path: Path):
-    """Arrays take the writer's fast path (a record's struct cached by port, dtype and shape),
-    the first time and after, on each port; a big array a chunk of its own, between the others;
+    """Arrays take the writer's fast path (a record's struct cached by port and shape, for the
+    dtype seen last in it: another dtype of the shape, an equal dtype of another object, take the
+    slow one), the first time and after, on each port; a big array a chunk of its own, between the others;
     any value at a microstep past msgpack's fixint the general one: each Message record's data
     is the codec's ``[microstep, value]``, byte for byte, on its port's channel, in the order the
     events came."""
@@ -294,7 +295,9 @@ def test_each_event_record_holds_its_microstep_and_value_as_the_codec_writes_the
     grid = np.arange(24, dtype=np.int16).reshape(4, 6)
     values = [np.eye(3), np.eye(3) * 2, grid[:, ::2], grid.T, np.float32(1.5), np.array(7, dtype=np.uint8),
               np.zeros((0, 3)), big, np.eye(3), 0.25, np.asfortranarray(grid), {"k": [np.ones(2)]},
-              np.zeros(5, dtype=[("a", "<i4"), ("b", "S2")]), np.eye(3)]
+              np.zeros(5, dtype=[("a", "<i4"), ("b", "S2")]), np.eye(3), np.ones((3, 3), dtype=np.int8), np.eye(3),
+              np.ones(5, dtype=[("a", "<i4"), ("b", "S2")]), np.ones(5, dtype=[("a", "<i4"), ("b", "S2")]),
+              np.ones(5, dtype=[("a", ">i4"), ("b", "S2")])]
     microsteps = [1] * len(values)
     microsteps[2] = microsteps[9] = 200
     trace = Trace()
