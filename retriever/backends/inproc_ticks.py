@@ -34,8 +34,8 @@ link keeps a shorter record (see _TickWriter._record_line). The node's steps and
 counted as its records are expanded (the session expands the tape before it reads the counts).
 While a log is written (``Trace.log_records``), an expander also makes the log's Message records
 of the step it expands, where the record has the one common shape (see _TickWriter._step_log),
-and of its event, where the value is a float (_TickWriter._event_log): a logged step then costs
-no msgpack of nested tuples and no writer's pass over its events
+and of its event, where the value is a float or an int of up to 32 bits (_TickWriter._event_log):
+a logged step then costs no msgpack of nested tuples and no writer's pass over its events
 (benchmarks/reports/logging_overhead.md).
 
 Kept in sync with ``tick.run_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with
@@ -541,7 +541,8 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
         microstep, the value as msgpack writes it: a float 64, the shortest uint), its head's
         fixed bytes ``event_heads{k}[len(data)]``: a value of one to three bytes in one
         ``struct.pack`` of the whole record (its bytes have no byte order: ``event_packs{k}``), a
-        float or uint32 in a pack of the head and one of the data (``event_data``, big-endian);
+        float or uint32 in a pack of the head and one of the data (``event_float``,
+        ``event_uint32``: _EVENT_DATA, big-endian);
         None, for the log writer to make, for any other event (another type, a microstep of 128
         or more, a port the log has no channel for yet)."""
         k, known = self.k, self.known
