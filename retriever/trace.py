@@ -246,11 +246,13 @@ class Trace:
         self._newest: dict[tuple[str, str], tuple] = {}  # latest(): each port's newest raw event ...
         self._newest_upto = 0  # ... among raw_events before this index
         self.log_path = None  # where the values are, when the run wrote a log (set by the pipeline)
-        # the log's step records made as the tape is expanded (log_steps), and the index in the
-        # log of the first of them; (append, head, fields, channel), what an expander makes them with
+        # the log's step and event records made as the tape is expanded (log_records), and the
+        # index in the log of the first of each; what an expander makes them with (_log_with)
         self._step_log: list | None = None
         self._step_log_base = 0
-        self._step_log_with: tuple | None = None
+        self._event_log: list = []
+        self._event_log_base = 0
+        self._log_with: tuple | None = None
 
     @property
     def raw_events(self) -> list[tuple]:
@@ -305,63 +307,74 @@ class Trace:
             then()
 
     def _expand_logged(self, tape: list, end: int, add_event: Callable, add_step: Callable) -> None:
-        """_expand, with each step record's log record made by its expander, or None for the
-        log writer to make (a plain record's, an expander's of a record of another shape)."""
+        """_expand, with each step record's and each event's log record made by its expander, or
+        None for the log writer to make (a plain record's, an expander's of another shape)."""
         log = self._step_log
-        assert log is not None and self._step_log_with is not None
-        with_log, add_record, n, i = self._step_log_with, log.append, self._step_log_base + len(log), 0
+        assert log is not None and self._log_with is not None
+        with_log, add_record, add_event_record = self._log_with, log.append, self._event_log.append
+        n, i = self._step_log_base + len(log), 0
         while i < end:
             item = tape[i]
             if type(item) is tuple:
                 if len(item) == 6:
                     add_event(item)
+                    add_event_record(None)
                 else:
                     add_step(item)
                     add_record(None)
                     n += 1
                 i += 1
-            else:  # an expander adds one step record
+            else:  # an expander adds one step record, and its events
                 i = item(tape, i, add_event, add_step, with_log, n & _U32)
                 n += 1
 
-    def log_steps(self, head: Callable[..., bytes], fields: int, channel: int) -> None:
-        """From now on, as the tape is expanded, have each step record's Message record made by its
-        expander where it can (a compiled tick's: its msgpack data in one ``struct.pack``), for
-        the log writer to take (:meth:`take_step_log`): ``head(fields + len(data), channel,
-        sequence, log_time, publish_time) + data``, the sequence the record's index among the
-        trace's step records (those :meth:`discard` dropped counted in, as ``released`` says).
-        Records expanded before this call have none."""
+    def log_records(self, head: Callable[..., bytes], step_head: Callable[[int], bytes],
+                    event_heads: Callable[[str, str], tuple[bytes, ...] | None],
+                    record_pack: Callable[[str], Callable[..., bytes]]) -> None:
+        """From now on, as the tape is expanded, have each step record's Message record, and each
+        event's, made by its expander where it can (a compiled tick's: a step record's msgpack data
+        in one ``struct.pack``, a float or int event's in another), for the log writer to take
+        (:meth:`take_log`). A record is ``head(fixed, sequence, log_time, publish_time) + data``,
+        ``fixed`` the record's first bytes (opcode, length, channel): ``step_head(len(data))`` for
+        a step record, whose sequence is its index among the trace's step records (those
+        :meth:`discard` dropped counted in); ``event_heads(node, port)[len(data)]`` for an event
+        (None: the writer makes those of that port); or the whole record in one call,
+        ``record_pack(data_format)(fixed, sequence, log_time, publish_time, *data)``, of data
+        whose bytes have no byte order. Records expanded before this call have none."""
         with self._held():
-            self._step_log = []
-            self._step_log_base = len(self._raw_steps)
-            self._step_log_with = (self._step_log.append, head, fields, channel)
+            self._step_log, self._event_log = [], []
+            self._step_log_base, self._event_log_base = len(self._raw_steps), len(self._raw_events)
+            self._log_with = (self._step_log.append, self._event_log.append, head, step_head, event_heads, record_pack)
 
-    def take_step_log(self, released: int) -> tuple[list, int, int]:
-        """Expand the tape; hand over the step log's records made since the last call: ``(records,
-        index of the first, step records in the trace)``. A record is bytes, or None where the
-        expander left it to the writer. The index counts from :meth:`log_steps`, ``released``
-        the step records dropped from the trace since (discard)."""
-        taken: list = []
+    def take_log(self, released_events: int, released_steps: int) -> tuple[list, int, int, list, int, int]:
+        """Expand the tape; hand over the log's records made since the last call: ``(step records,
+        index of the first, step records in the trace, event records, index of the first, events
+        in the trace)``. A record is bytes, or None where the expander left it to the writer. The
+        indexes count from :meth:`log_records`, ``released_*`` the records dropped from the
+        trace since (discard)."""
         out: list = []
 
         def swap() -> None:
             if self._step_log is not None:
-                out[:] = [self._step_log, self._step_log_base, len(self._raw_steps)]
-                self._step_log = []
-                self._step_log_base = released + len(self._raw_steps)
-                with_log = self._step_log_with
+                out[:] = [self._step_log, self._step_log_base, len(self._raw_steps),
+                          self._event_log, self._event_log_base, len(self._raw_events)]
+                self._step_log, self._event_log = [], []
+                self._step_log_base = released_steps + len(self._raw_steps)
+                self._event_log_base = released_events + len(self._raw_events)
+                with_log = self._log_with
                 assert with_log is not None
-                self._step_log_with = (self._step_log.append, *with_log[1:])
+                self._log_with = (self._step_log.append, self._event_log.append, *with_log[2:])
 
         self.expand(then=swap)
         if not out:  # not logging, or this thread is expanding already (a signal handler's write)
-            return taken, -1, len(self._raw_steps)
-        return out[0], out[1], out[2]
+            return [], -1, len(self._raw_steps), [], -1, len(self._raw_events)
+        return tuple(out)  # type: ignore[return-value]
 
-    def stop_step_log(self) -> None:
+    def stop_log(self) -> None:
         """The log is done: expanding makes no more of its records."""
         with self._held():
-            self._step_log = self._step_log_with = None
+            self._step_log = self._log_with = None
+            self._event_log = []
 
     @contextmanager
     def _held(self) -> Iterator[None]:

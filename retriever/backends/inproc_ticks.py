@@ -32,9 +32,11 @@ edge comes from), the consumed buffer entry when several edges feed the port, No
 optional port had nothing; an output's value and seq are None when it made no event. A chain's
 link keeps a shorter record (see _TickWriter._record_line). The node's steps and step time are
 counted as its records are expanded (the session expands the tape before it reads the counts).
-While a log is written (``Trace.log_steps``), an expander also makes the log's Message record of
-the step it expands, where the record has the one common shape (see _TickWriter._step_log): a
-logged step then costs no msgpack of nested tuples (benchmarks/reports/logging_overhead.md).
+While a log is written (``Trace.log_records``), an expander also makes the log's Message records
+of the step it expands, where the record has the one common shape (see _TickWriter._step_log),
+and of its event, where the value is a float or an int of up to 32 bits (_TickWriter._event_log):
+a logged step then costs no msgpack of nested tuples and no writer's pass over its events
+(benchmarks/reports/logging_overhead.md).
 
 Kept in sync with ``tick.run_tick`` by tests/backends/test_inproc_ticks.py, which runs graphs with
 the compiled ticks and with ``run_tick`` only and compares the traces record by record (wall-clock
@@ -58,6 +60,14 @@ import msgpack
 from ..flow.core import settings_of
 from ..sync import Latest
 from ..trace import StepStatus
+
+_U32 = 0xFFFFFFFF
+#: the data of an event's log record, msgpack ``[microstep, value]``, of a value whose bytes have a
+#: byte order: a fixarray of 2, a fixint microstep, the value's type byte, the value big-endian
+_EVENT_DATA = {"float": struct.Struct(">BBBd"), "uint32": struct.Struct(">BBBI")}
+#: the data's formats of the others (a fixint, a uint8, a uint16 as two bytes), each packed with
+#: the record's head in one call (Trace.log_records: ``record_pack``)
+_WHOLE_EVENT_DATA = ("BBB", "BBBB", "BBBBB")
 
 
 @dataclass(eq=False)
@@ -187,7 +197,8 @@ class _TickWriter:
 
     def code(self) -> NodeCode:
         k, rt = self.k, self.rt
-        init = f"ticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\n"
+        init = (f"ticks{k} = steps{k} = wall{k} = xsteps{k} = xwall{k} = 0\n"
+                f"logged{k} = step_fixed{k} = event_heads{k} = event_packs{k} = None\n")
         init += "".join(f"{s} = seqs{k}.get({port!r}, 0)\n" for port, s in zip(self.known, self.seq))
         init += "".join(f"{v} = buf{k}_{i}.visible\n" for i, v in enumerate(self.visible))
         flush = (f"stats{k}.ticks += ticks{k} + steps{k} + xsteps{k}\nstats{k}.steps += steps{k} + xsteps{k}\n"
@@ -498,7 +509,7 @@ if v{j} is not None:
 """ for j, port in enumerate(known)) + "produced = tuple(produced)\n"
         return f"""\
 def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"}(tape, i, add_event, add_step, log=None, seq=0):
-    nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s
+    nonlocal xsteps{k}, xwall{k}, last_tau, last_out, chain_tau, chain_end, chain_s, logged{k}, step_fixed{k}, event_heads{k}, event_packs{k}
     {", ".join(fields)}, = tape[i:i + {len(fields)}]
 {_indent(head)}    wall = end - start
     xsteps{k} += 1
@@ -506,26 +517,81 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
 {_indent(self._consumed("c") + (out_tag if known else "") + events)}\
     add_step((node{k}, tau, consumed, produced, OK, None, start, wall))
     if log is not None:
-{_indent(self._step_log(), "        ")}{_indent(leave)}    return i + {len(fields)}
+{_indent(self._log_records(), "        ")}{_indent(leave)}    return i + {len(fields)}
 """
 
-    def _step_log(self) -> str:
-        """An expander's lines that add the log's record of the step it expanded (Trace.log_steps):
-        the Message record, its data the step's msgpack ``(node, microstep, consumed, produced,
-        status, detail, wall)`` in one ``struct.pack`` of the bytes that stay the same from step to
-        step and the ints that change, each int in a fixed width (uint32 seqs, uint64 wall time: as
-        valid msgpack as the shortest, and read back the same); None, for the log writer to encode
-        from the record, where the record is not of the one shape written here (an output that
-        made no event, an optional or many-edged input, a microstep of 128 or more, ...)."""
+    def _log_records(self) -> str:
+        """An expander's lines that add the log's records of the step it expanded and of its
+        events (Trace.log_records): first, what this node's records are made with (the fixed
+        bytes of their heads, the packs of whole records), once per hand-over of the log
+        (``logged{k}``, the ``log`` they were read for), then _step_log's lines and _event_log's."""
+        k, known = self.k, self.known
+        step, size = self._step_log()
+        event = self._event_log()
+        heads = "".join([f"step_fixed{k} = log[3]({size})\n" if size else "",
+                         f"event_heads{k} = log[4](node{k}, {known[0]!r})\n"
+                         f"event_packs{k} = ({', '.join(f'log[5]({f!r})' for f in _WHOLE_EVENT_DATA)})\n"
+                         if len(known) == 1 else ""])
+        return (f"if log is not logged{k}:\n    logged{k} = log\n{_indent(heads)}" if heads else "") + step + event
+
+    def _event_log(self) -> str:
+        """An expander's lines that add the log's record of each event of the step it expanded,
+        in the order the events were added: of a float or an int from 0 to 2**32 - 1 (one output),
+        the Message record, its data the msgpack ``[microstep, value]`` (a fixarray, a fixint
+        microstep, the value as msgpack writes it: a float 64, the shortest uint), its head's
+        fixed bytes ``event_heads{k}[len(data)]``: a value of one to three bytes in one
+        ``struct.pack`` of the whole record (its bytes have no byte order: ``event_packs{k}``), a
+        float or uint32 in a pack of the head and one of the data (``event_float``,
+        ``event_uint32``: _EVENT_DATA, big-endian);
+        None, for the log writer to make, for any other event (another type, a microstep of 128
+        or more, a port the log has no channel for yet)."""
+        k, known = self.k, self.known
+        if len(known) != 1:
+            return "".join(f"if v{j} is not None:\n    log[1](None)\n" for j in range(len(known)))
+        self.names.update({f"event_{kind}": data.pack for kind, data in _EVENT_DATA.items()})
+        head = f"event_heads{k}[{{size}}], s0 & {_U32}, out_tag[0], end"
+        whole = f"log[1](event_packs{k}[{{i}}]({head}, 0x92, out_tag[1], {{value}}))\n"
+        made = {kind: whole.format(i=i, size=2 + len(data_format), value=value)
+                for i, (kind, data_format, value) in enumerate([("fixint", "B", "v0"), ("uint8", "BB", "0xCC, v0"),
+                                                                  ("uint16", "BBB", "0xCD, v0 >> 8, v0 & 255")])}
+        for kind, value in (("float", "0xCB, v0"), ("uint32", "0xCE, v0")):
+            made[kind] = (f"log[1](log[2]({head.format(size=_EVENT_DATA[kind].size)}) + "
+                          f"event_{kind}(0x92, out_tag[1], {value}))\n")
+        return f"""\
+if v0 is not None:
+    if out_tag[1] >= 128 or event_heads{k} is None:
+        log[1](None)
+    elif type(v0) is float:
+        {made["float"]}\
+    elif type(v0) is not int or v0 < 0 or v0 > {_U32}:
+        log[1](None)
+    elif v0 < 128:
+        {made["fixint"]}\
+    elif v0 < 256:
+        {made["uint8"]}\
+    elif v0 < 65536:
+        {made["uint16"]}\
+    else:
+        {made["uint32"]}\
+"""
+
+    def _step_log(self) -> tuple[str, int]:
+        """An expander's lines that add the log's record of the step it expanded (Trace.log_records),
+        and the size of its data (0: none made): the Message record, its data the step's msgpack
+        ``(node, microstep, consumed, produced, status, detail, wall)`` in one ``struct.pack`` of
+        the bytes that stay the same from step to step and the ints that change, each int in a
+        fixed width (uint32 seqs, uint64 wall time: as valid msgpack as the shortest, and read
+        back the same); None, for the log writer to encode from the record, where the record is
+        not of the one shape written here (an output that made no event, an optional or
+        many-edged input, a microstep of 128 or more, ...)."""
         k, rt, known = self.k, self.rt, self.known
         none = "log[0](None)\n"
         # the inputs in its consumed ids: each fed by one edge (an optional one consumed something:
         # c{i} is not None); an optional input nothing feeds is never in them
         fed = [i for i, feeds in enumerate(self.sources) if feeds or self.required[i]]
         if (len(known) != 1 or len(fed) > 15 or not all(len(self.sources[i]) == 1 for i in fed)):
-            return none
+            return none, 0
         pack = functools.partial(msgpack.packb, use_bin_type=True)
-        u32 = 0xFFFFFFFF
         parts: list[bytes | tuple[str, str]] = [b"\x97" + pack(rt.id), ("B", "tau[1]"), bytes((0x80 | len(fed),))]
         for i in fed:
             (src, src_port), = self.sources[i]
@@ -543,11 +609,10 @@ def {"expand" if link is None else "link"}{k}{"" if link is None else f"_{link}"
         args = ", ".join(repr(p) if type(p) is bytes else p[1] for p in merged)
         ints = " and ".join([*(f"c{i} is None" for i in range(len(self.ports)) if i not in fed),
                              *(f"c{i} is not None" for i in fed if not self.required[i]),
-                             *(f"c{i} <= {u32}" for i in fed), f"s0 <= {u32}", "wall >= 0"])
+                             *(f"c{i} <= {_U32}" for i in fed), f"s0 <= {_U32}", "wall >= 0"])
         return (f"if v0 is not None and tau[1] < 128 and {ints}:\n"
-                f"    append, head, fields, channel = log\n"
-                f"    append(head(fields + {data.size}, channel, seq, tau[0], start) + step_data{k}({args}))\n"
-                f"else:\n    {none}")
+                f"    log[0](log[2](step_fixed{k}, seq, tau[0], start) + step_data{k}({args}))\n"
+                f"else:\n    {none}"), data.size
 
 
 #: the most ticks one chain function runs before the loop takes over again (bounds its code)

@@ -69,9 +69,12 @@ class OpenChunk:
         self.data = bytearray()
         self._lengths: list[int] = []  # of the open chunk's records, in order
 
-    def add(self, records: list[bytes]) -> None:
-        self.data += b"".join(records)
+    def add(self, records: list[bytes]) -> int:
+        """Join ``records`` into the chunk; return how many bytes they are."""
+        joined = b"".join(records)
+        self.data += joined
         self._lengths.extend(map(len, records))
+        return len(joined)
 
     def take(self) -> tuple[bytearray, list[int]] | None:
         """Close the chunk: its bytes and its records' lengths; None when it is empty. The next
@@ -141,14 +144,16 @@ class McapWriter:
         if messages:
             self.add_records(message_records(messages))
 
-    def add_records(self, records: list[bytes]) -> None:
+    def add_records(self, records: list[bytes]) -> int:
         """Append whole Message records (built with :data:`MESSAGE_HEAD`): the hot path of the
-        log writer. What the summary counts of them is read on the I/O thread."""
+        log writer. What the summary counts of them is read on the I/O thread. Returns their
+        bytes."""
         if not records:
-            return
-        self._chunk.add(records)
+            return 0
+        added = self._chunk.add(records)
         if len(self._chunk.data) >= self._chunk_size:
             self._close_chunk()
+        return added
 
     def add_large_record(self, record: np.ndarray) -> None:
         """Append one big Message record (its bytes, in a buffer nobody changes afterwards) in a

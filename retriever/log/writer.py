@@ -3,11 +3,12 @@
 A session calls :meth:`LogWriter.write` with its trace about every 20 ms of wall time (at most
 every 4096 steps, see ``Session.write_log``); each call encodes the records appended since the last. The chunk is closed and the file flushed at
 least every ``flush_interval`` seconds of wall time, which bounds what a ``kill -9`` can take.
-From its first write on, the trace's tape expanders make the step records they can
-(``Trace.log_steps``: a compiled in-process tick's, in two ``struct.pack``s); the writer makes the
-others, a generic tick's of the common shape the same way (_step_record_maker), the rest with
-msgpack; and every event, an array of a dtype and shape seen before in one ``struct.pack`` and
-its bytes (benchmarks/reports/logging_overhead.md).
+From its first write on, the trace's tape expanders make the records they can
+(``Trace.log_records``: a compiled in-process tick's step record, in two ``struct.pack``s, and
+its event's if the value is a float or an int of up to 32 bits, in two more); the writer makes
+the others, a generic tick's step record of the common shape the same way (_step_record_maker),
+the rest with msgpack; and the other events, an array of a dtype and shape seen before on its
+port in one ``struct.pack`` with its bytes (benchmarks/reports/logging_overhead.md).
 """
 
 from __future__ import annotations
@@ -46,12 +47,20 @@ if TYPE_CHECKING:
 _FIXARRAY_2 = 0x92
 _EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
 _HEAD_FIXED = 1 + 8 + 2  # a Message record's opcode, record length and channel id: the head's first bytes
+#: a Message record's head as those first bytes (fixed for a kind of record on a channel), then its
+#: sequence, log time and publish time
+_FIXED_HEAD = struct.Struct(f"<{_HEAD_FIXED}sIQQ")
+#: the most bytes of an event's data the tape's expanders make (``[microstep, value]`` of a float: a
+#: fixarray, a fixint, a float 64's head and 8 bytes)
+_EVENT_DATA_MAX = 1 + 1 + 1 + 8
 # what became of the run when its log could not be written
 RUN_NOT_STARTED = "the run did not start"
 RUN_STOPPED = "the run was stopped, and the file holds only what was written before"
 RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
 #: an array value at least this big is logged without joining its bytes (LogWriter._add_large_event)
 LARGE_VALUE_BYTES = 1 << 20
+#: the most (port, shape) of array values whose record's struct the writer keeps
+MAX_ARRAY_HEADS = 1024
 
 
 def describe_os_error(e: OSError) -> str:
@@ -72,7 +81,7 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     ``ok``, no detail, a microstep below 128, one event on ``output``, and one event consumed on
     each input port fed by one edge (``fed``: the ports in the order a tick consumes them, each
     with its edge's source node and port), no more; None for any other, which the writer then
-    packs with msgpack. As the tape expanders do (Trace.log_steps): the msgpack data in one
+    packs with msgpack. As the tape expanders do (Trace.log_records): the msgpack data in one
     ``struct.pack`` of the bytes fixed here and the ints that change, each in a fixed width
     (uint32 seqs, uint64 wall time: read back the same). None for a node with 3 inputs or more."""
     if len(fed) > 2:
@@ -86,39 +95,42 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
     consts.append(pack(StepStatus.OK.value) + b"\xc0\xcf")  # then the wall time, a uint64
     data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", "Q"])))
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
-    fixed = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + data.size, channel, 0, 0, 0)[:_HEAD_FIXED]
-    head_pack = struct.Struct(f"<{_HEAD_FIXED}sIQQ").pack  # and its sequence, log time and publish time
-    c, ok, errors = consts, StepStatus.OK, (ValueError, TypeError, struct.error)
+    fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
+    head_pack = _FIXED_HEAD.pack
+    ok, errors = StepStatus.OK, (ValueError, TypeError, KeyError, struct.error)
     data_pack = data.pack
-    # (an int out of its field's range is a struct.error; a consumed or produced of another length a ValueError)
+    # (an int out of its field's range is a struct.error; a consumed or produced of another length a
+    # ValueError; a consumed without the port a KeyError)
     if not fed:
+        c0, c1, c2 = consts
+
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
                 if status is ok and detail is None and not consumed and tag[1] < 128:
                     (n, p, s), = produced
                     if n == node and p == output:
-                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s, c[2], wall)
+                        return head_pack(fixed, sequence, tag[0], start) + data_pack(c0, tag[1], c1, s, c2, wall)
             except errors:
                 pass
             return None
     elif len(fed) == 1:
         (port0, src0, src_port0), = fed
+        c0, c1, c2, c3 = consts
 
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
-                if status is ok and detail is None and tag[1] < 128:
-                    p0, = consumed
-                    (a0, b0, s0), = consumed[p0]
+                if status is ok and detail is None and tag[1] < 128 and len(consumed) == 1:
+                    (a0, b0, s0), = consumed[port0]
                     (n, p, s), = produced
-                    if p0 == port0 and a0 == src0 and b0 == src_port0 and n == node and p == output:
+                    if a0 == src0 and b0 == src_port0 and n == node and p == output:
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s0, c[2], s, c[3], wall)
+                            c0, tag[1], c1, s0, c2, s, c3, wall)
             except errors:
                 pass
             return None
     else:
         (port0, src0, src_port0), (port1, src1, src_port1) = fed
+        c0, c1, c2, c3, c4 = consts
 
         def make(tag, consumed, produced, status, detail, start, wall, sequence):
             try:
@@ -130,11 +142,35 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                     if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
                             and b1 == src_port1 and n == node and p == output):
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c[0], tag[1], c[1], s0, c[2], s1, c[3], s, c[4], wall)
+                            c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
             except errors:
                 pass
             return None
     return make
+
+
+def _fixed_head(length: int, channel: int) -> bytes:
+    """The first bytes of a Message record's head (_FIXED_HEAD): opcode, record length, channel."""
+    return MESSAGE_HEAD.pack(Opcode.MESSAGE, length, channel, 0, 0, 0)[:_HEAD_FIXED]
+
+
+@functools.cache
+def _event_heads(channel: int) -> tuple[bytes, ...]:
+    """The fixed first bytes of the heads of event records on ``channel``, by their data's size
+    (asked for at each hand-over of the trace to the writer, by each node's expander)."""
+    return tuple(_fixed_head(MESSAGE_FIELDS + size, channel) for size in range(_EVENT_DATA_MAX + 1))
+
+
+@functools.cache
+def _step_fixed_head(size: int, channel: int) -> bytes:
+    return _fixed_head(MESSAGE_FIELDS + size, channel)
+
+
+@functools.cache
+def _record_pack(data_format: str) -> Callable[..., bytes]:
+    """``pack(fixed, sequence, log time, publish time, *data)``: a whole Message record, its data of
+    ``data_format`` (little-endian: a format of bytes only, which have no byte order)."""
+    return struct.Struct(_FIXED_HEAD.format + data_format).pack
 
 
 class LogFile:
@@ -202,13 +238,18 @@ class LogWriter:
         self._mcap = McapWriter(self._file, profile=fmt.PROFILE, library=f"retriever {version}")
         self.closed = False
         self.failed = False
-        # the trace whose expanders make the step records (Trace.log_steps), once the first write began it
+        # the trace whose expanders make records (Trace.log_records), once the first write began it
         self._step_log: "Trace | None" = None
         with self._refused_writes(RUN_NOT_STARTED):
             self._mcap.add_attachment(fmt.IR_ATTACHMENT, "application/json", graph.to_ir().to_json().encode())
             modules = sorted({type(node.flow).__module__ for node in graph.nodes.values()})
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
+            # by node, then port, then shape of an array value: (its dtype, the struct.pack of its event's
+            # whole record, the bytes fixed in its head, its encoding's head), the latest dtype seen in
+            # that shape; at most MAX_ARRAY_HEADS in all
+            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Any, Callable[..., bytes], bytes, bytes]]]] = {}
+            self._array_heads_kept = 0
             self._channels: dict[tuple[str, str], int] = {}
             self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
@@ -226,13 +267,9 @@ class LogWriter:
         self._faults = 0
         self._starved = 0
         self._encode = Encoder().pack
-        # (dtype, shape) of an array value -> (the struct.pack of its event record's head and its
-        # encoding's head, that record's length field, its encoding's head)
-        self._array_heads: dict[tuple, tuple[Callable[..., bytes], int, bytes]] = {}
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
-        self._step_head = functools.partial(MESSAGE_HEAD.pack, Opcode.MESSAGE)
         # by node: what makes the step records of its generic ticks that have the common shape
         self._step_makers = {node.id: maker for node in graph.nodes.values()
                              if (maker := self._step_maker(graph, node.id)) is not None}
@@ -278,6 +315,7 @@ class LogWriter:
                                          {"node": node, "port": port, "type": type_name})
         self._channels[(node, port)] = channel
         self._channel_of.setdefault(node, {})[port] = channel
+        self._array_heads.setdefault(node, {})[port] = {}
         return channel
 
     @property
@@ -312,16 +350,21 @@ class LogWriter:
         """One comprehension per kind builds whole MCAP message records: this runs for every event
         and step of a logged run, so it avoids every intermediate object it can.
         """
-        if self._step_log is not trace:  # the first hand-over: from here on, expanders make step records
+        if self._step_log is not trace:  # the first hand-over: from here on, expanders make records
             self._stop_step_log()
-            trace.log_steps(self._step_head, MESSAGE_FIELDS, self._steps_channel)
+            trace.log_records(_FIXED_HEAD.pack, self._step_fixed_head, self._event_heads, _record_pack)
             self._step_log = trace
-        made, made_from, n_steps = trace.take_step_log(self._steps_released)
+        made, made_from, n_steps, made_events, made_events_from, n_events = trace.take_log(
+            self._events_released, self._steps_released)
         events, steps = trace.raw_events, trace.raw_steps
-        if len(events) > self._events_done:
+        if n_events > self._events_done:
             self.last_bytes = 0
-            self._add_events(events[self._events_done:])
-            self._events_done = len(events)
+            new_events = events[self._events_done:n_events]
+            if (made_events_from != self._events_released + self._events_done or len(made_events) != len(new_events)
+                    or made_events.count(None) == len(made_events)):
+                made_events = None  # none made (as for step records below)
+            self._add_events(new_events, made_events)
+            self._events_done = n_events
         if n_steps > self._steps_done:
             new = steps[self._steps_done:n_steps]
             first = self._steps_released + self._steps_done
@@ -342,7 +385,7 @@ class LogWriter:
 
     def _step_records(self, steps: list[tuple], first: int, made: list[bytes | None] | None = None) -> list[bytes]:
         """The Message records of ``steps``, the first the log's step record ``first``; with
-        ``made``, those of them that are not None as they are (Trace.take_step_log)."""
+        ``made``, those of them that are not None as they are (Trace.take_log)."""
         head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
                                                 self._pack_step, self._steps_channel)
         makers = self._step_makers  # a record of a node's common shape, in one call; else msgpack here
@@ -359,36 +402,38 @@ class LogWriter:
                 for index, record, (node, tag, consumed, produced, status, detail, start, wall)
                 in zip(itertools.count(first), made, steps)]
 
+    def _step_fixed_head(self, size: int) -> bytes:
+        """The fixed first bytes of the head of a step record whose data is ``size`` bytes
+        (Trace.log_records)."""
+        return _step_fixed_head(size, self._steps_channel)
+
+    def _event_heads(self, node: str, port: str) -> tuple[bytes, ...] | None:
+        """The fixed first bytes of the heads of the records of events on ``node.port``, by the
+        size of their data (up to _EVENT_DATA_MAX); None when the log has no channel for it yet
+        (the writer makes those records, and the channel, in the order the events came)
+        (Trace.log_records)."""
+        channel = self._channel_of.get(node, {}).get(port)
+        return None if channel is None else _event_heads(channel)
+
     def _stop_step_log(self) -> None:
         if self._step_log is not None:
-            self._step_log.stop_step_log()
+            self._step_log.stop_log()
             self._step_log = None
 
-    def _add_events(self, new: list[tuple]) -> None:
-        """The Message records of ``new`` events, in recording order; a big array's (None in the
-        comprehension) in a chunk of its own (_add_large_event)."""
-        head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
-        channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
-        try:
-            # any value but an array, encoded; an array of a dtype and shape seen before: its record in
-            # one struct.pack, then its bytes
-            records = [head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
-                            tag[0], published, _FIXARRAY_2, tag[1]) + value_data
-                       if type(value) is not ndarray and tag[1] < 128
-                       else array[0](op, array[1], channel_of[node][port], seq & u32, tag[0], published,
-                                     _FIXARRAY_2, tag[1], array[2]) + value.tobytes()
-                       if tag[1] < 128 and type(value) is ndarray
-                       and (array := array_heads.get((value.dtype, value.shape)))
-                       else self._event_record(tag, node, port, seq, value, published)
-                       for tag, node, port, seq, value, published in new]
-        except CodecError:
-            raise self._unencodable(new) from None
-        except KeyError:  # a port no event came from before (an untyped flow's): its channel, then again
-            added = [self._add_channel(node, port) for _, node, port, *_ in new
-                     if port not in channel_of.get(node, ())]
-            if not added:
-                raise
-            return self._add_events(new)
+    def _add_events(self, new: list[tuple], made: list[bytes | None] | None = None) -> None:
+        """The Message records of ``new`` events, in recording order; with ``made``, those of
+        them that are not None as they are (Trace.take_log); a big array's in a chunk of its own
+        (_add_large_event)."""
+        if made is None:
+            records = self._event_records(new)
+        elif None in made:
+            left = [i for i, record in enumerate(made) if record is None]
+            records = made
+            for i, record in zip(left, self._event_records([new[i] for i in left])):
+                records[i] = record
+        else:  # all made: no big array among them
+            self._add_small_events(made)
+            return
         if None in records:
             begin = 0
             for i in [i for i, record in enumerate(records) if record is None]:
@@ -398,14 +443,41 @@ class LogWriter:
             records = records[begin:]
         self._add_small_events(records)
 
+    def _event_records(self, new: list[tuple]) -> list[bytes | None]:
+        """The Message records of ``new`` events; None for a big array's (_add_large_event)."""
+        head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
+        channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
+        try:
+            # an array of a dtype and shape seen before on its port: its record in one struct.pack
+            # with its bytes; any value but an array: its head in one, then the value encoded
+            # (its dtype the very one seen last in its shape: no hash of a dtype, which costs)
+            records = [array[1](array[2], seq & u32, tag[0], published, _FIXARRAY_2, tag[1], array[3],
+                                value.tobytes())
+                       if type(value) is ndarray and tag[1] < 128
+                       and (array := array_heads[node][port].get(value.shape)) and array[0] is value.dtype
+                       else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                                 tag[0], published, _FIXARRAY_2, tag[1]) + value_data
+                       if type(value) is not ndarray and tag[1] < 128
+                       else self._event_record(tag, node, port, seq, value, published)
+                       for tag, node, port, seq, value, published in new]
+        except CodecError:
+            raise self._unencodable(new) from None
+        except KeyError:  # a port no event came from before (an untyped flow's): its channel, then again
+            added = [self._add_channel(node, port) for _, node, port, *_ in new
+                     if port not in channel_of.get(node, ())]
+            if not added:
+                raise
+            return self._event_records(new)
+        return records
+
     def _add_small_events(self, records: list[bytes]) -> None:
-        self._mcap.add_records(records)
-        self.last_bytes += sum(map(len, records))
+        self.last_bytes += self._mcap.add_records(records)
 
     def _event_record(self, tag: tuple[int, int], node: str, port: str, seq: int, value: Any,
                       published: int) -> bytes | None:
-        """The Message record of an event the comprehension in _add_events does not make: an
-        array of a dtype and shape not seen before (which it makes from then on), or a big one
+        """The Message record of an event the comprehension in _event_records does not make: an
+        array of a shape not seen before on its port, or of another dtype object than the one
+        seen last in that shape (which it makes from then on), or a big one
         (None: _add_large_event makes it), or any value at a microstep of 128 or more (not a
         msgpack fixint)."""
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
@@ -413,13 +485,19 @@ class LogWriter:
             if value.nbytes >= LARGE_VALUE_BYTES:
                 return None
             if tag[1] < 128:
-                value_head = array_encoding_head(value)
-                array = (struct.Struct(f"{_EVENT_HEAD.format}{len(value_head)}s").pack,
-                         MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, value_head)
-                if len(self._array_heads) < 1024:
-                    self._array_heads[(value.dtype, value.shape)] = array
-                return array[0](Opcode.MESSAGE, array[1], channel, seq & 0xFFFFFFFF, tag[0], published,
-                                _FIXARRAY_2, tag[1], value_head) + value.tobytes()
+                heads = self._array_heads[node][port]
+                array = heads.get(value.shape)
+                if array is None or array[0] != value.dtype:
+                    value_head = array_encoding_head(value)
+                    array = (value.dtype, struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
+                             _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
+                else:  # an equal dtype, another object: this one is checked by identity from now on
+                    array = (value.dtype, *array[1:])
+                if value.shape in heads or self._array_heads_kept < MAX_ARRAY_HEADS:
+                    self._array_heads_kept += value.shape not in heads
+                    heads[value.shape] = array
+                return array[1](array[2], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], array[3],
+                                value.tobytes())
         data = self._encode([tag[1], value])
         return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
                                  published) + data

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import struct
 import threading
 import time
 import warnings
@@ -145,6 +146,11 @@ class Plain(Flow[int, int]):
         return x + 1
 
 
+class Relay(Flow[Num, Num]):
+    def step(self, inp: Num) -> Num:
+        return Num(inp.x)
+
+
 class Both(Flow[Two, Num]):
     def step(self, inp: Two) -> Num:
         return Num((inp.a, inp.b))
@@ -262,17 +268,56 @@ def test_mixed_graph_matches_under_tie_breaking():
         assert_same(mixed, tie_break_seed=seed, min_compiled=10)
 
 
+class Values(Flow[None, Num]):
+    """Each tick's value the next of ``VALUES`` (every msgpack form an int takes, floats, others)."""
+
+    VALUES = [0, 1, 127, 128, 255, 256, 65535, 65536, 2**32 - 1, 2**32, 2**64 - 1, 2**70, -1, -32, -33, -129,
+              -2**31, -2**63, 1.5, -0.0, float("inf"), float("nan"), 1e300, True, False, "s", b"b", [1], None]
+
+    def __init__(self):
+        self.k = -1
+
+    def step(self) -> Num:
+        self.k += 1
+        return Num(self.VALUES[self.k % len(self.VALUES)])
+
+
+def logged_records(build, runs):
+    """Run ``build()`` for ``runs`` with the log's records made as the tape is expanded
+    (Trace.log_records: heads of channel 42 for step records, 7 for every port's events), as a
+    writer takes them: ``(pipe, step records, event records)``, each None where none was made."""
+    from retriever.log.mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
+
+    def fixed(size, channel):
+        return MESSAGE_HEAD.pack(5, MESSAGE_FIELDS + size, channel, 0, 0, 0)[:11]
+
+    pipe = build()
+    pipe.step(0.0)
+    trace = pipe.session.trace
+    trace.log_records(struct.Struct("<11sIQQ").pack, lambda size: fixed(size, 42),
+                      lambda node, port: tuple(fixed(size, 7) for size in range(12)),
+                      lambda data_format: struct.Struct("<11sIQQ" + data_format).pack)
+    steps: list = []
+    events: list = []
+    for duration in runs:
+        pipe.run(duration=duration)
+        made, first, n_steps, made_events, first_event, n_events = trace.take_log(0, 0)
+        assert first == len(steps) and n_steps == len(steps) + len(made) == len(trace.raw_steps)
+        assert first_event == len(events) and n_events == len(events) + len(made_events) == len(trace.raw_events)
+        steps += made
+        events += made_events
+    trace.stop_log()
+    return pipe, steps, events
+
+
 def test_the_step_records_compiled_ticks_make_for_the_log_are_the_writers():
-    """What an expander makes for the log (Trace.log_steps) of each step record it expands: where
+    """What an expander makes for the log (Trace.log_records) of each step record it expands: where
     it makes one, the Message record of the step with the head the writer gives it and data that
     decode to the step's fields; where it does not (another shape, a plain record), None, for the
     writer. Made for the steps of a chain of plain ints (all but its first skipped ticks), for
     some of the mixed graph's."""
     from retriever.log.format import decode_step
-    from retriever.log.mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
-
-    def head(*fields):
-        return MESSAGE_HEAD.pack(5, *fields)
+    from retriever.log.mcap_records import MESSAGE_HEAD
 
     def plain_chain():
         with Pipeline("plain_chain") as pipe:
@@ -285,17 +330,8 @@ def test_the_step_records_compiled_ticks_make_for_the_log_are_the_writers():
     # (the last graph's cycle nests its values deeper than a log takes: not logged)
     for build, runs, least, logged in ((plain_chain, (0.2, 0.0005, 0.3), 0.99, True), (mixed, (0.5, 0.25), 0.1, True),
                                        (one_group_consumers_first, (0.3,), 0.1, False)):
-        pipe = build()
-        pipe.step(0.0)
+        pipe, made, _ = logged_records(build, runs)
         trace = pipe.session.trace
-        trace.log_steps(head, MESSAGE_FIELDS, 42)
-        made: list = []
-        for duration in runs:
-            pipe.run(duration=duration)
-            records, first, steps = trace.take_step_log(0)
-            assert first == len(made) and steps == len(made) + len(records) == len(trace.raw_steps)
-            made += records
-        trace.stop_step_log()
         assert len(made) == len(trace.raw_steps) > 100
         assert sum(record is not None for record in made) >= least * len(made)
         for index, (record, step) in enumerate(zip(made, trace.raw_steps)):
@@ -307,6 +343,49 @@ def test_the_step_records_compiled_ticks_make_for_the_log_are_the_writers():
                 5, len(record) - 9, 42, index, tag[0], start)
             assert decode_step(record[MESSAGE_HEAD.size:]) == (node, tag[1], consumed, produced, status, detail, wall)
         assert not logged or read_steps_equal(build)
+
+
+def test_the_event_records_compiled_ticks_make_for_the_log_are_the_writers():
+    """What an expander makes for the log (Trace.log_records) of each event it expands: where it
+    makes one (a float, an int from 0 to 2**32 - 1, a microstep below 128), byte for byte the record
+    the writer makes of any event, the head and the codec's ``[microstep, value]``; None for every
+    other (another value, an event of a plain record, a node of two outputs), for the writer. Every
+    kind of value, at microsteps past 127 too (a chain of Trigger flows), and the mixed graph's."""
+    from retriever.codec import Encoder
+    from retriever.log.mcap_records import MESSAGE_FIELDS, MESSAGE_HEAD
+
+    def values():
+        with Pipeline("values") as pipe:
+            prev = Values().named("src") @ Rate(1000)
+            for i in range(3):
+                prev = prev.then(Relay().named(f"r{i}") @ Rate(1000), sync=Latest())
+        return pipe
+
+    def long_trigger_chain():
+        with Pipeline("long") as pipe:
+            prev = Values().named("src") @ Rate(100)
+            for i in range(140):
+                prev = prev.then(Relay().named(f"t{i:03}") @ Trigger(), sync=Latest())
+        return pipe
+
+    encode = Encoder().pack
+    for build, runs, least, at_most in ((values, (0.2, 0.0005, 0.3), 0.45, 0.55), (long_trigger_chain, (0.05,), 0.4, 0.98),
+                                        (mixed, (0.5, 0.25), 0.2, 0.99)):
+        pipe, _, made = logged_records(build, runs)
+        trace = pipe.session.trace
+        assert len(made) == len(trace.raw_events) > 100
+        assert least * len(made) <= sum(record is not None for record in made) <= at_most * len(made)
+        ports: dict[str, set] = {}
+        for _, node, port, *_ in trace.raw_events:
+            ports.setdefault(node, set()).add(port)
+        for record, (tag, node, port, seq, value, published) in zip(made, trace.raw_events):
+            if record is not None:
+                data = encode([tag[1], value])
+                assert record == MESSAGE_HEAD.pack(5, MESSAGE_FIELDS + len(data), 7, seq, tag[0], published) + data
+            else:
+                assert (tag[1] >= 128 or type(value) not in (int, float) or not 0 <= value < 2**32
+                        or len(ports[node]) > 1), (node, tag, value)
+        assert any(tag[1] >= 128 for tag, *_ in trace.raw_events) == (build is long_trigger_chain)
 
 
 def read_steps_equal(build) -> bool:
