@@ -79,7 +79,7 @@ class StepReplay:
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "next_ticks",
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
-                 "kept_steps", "kept_parts", "kept_events", "unchecked")
+                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -87,6 +87,7 @@ class StepReplay:
         self.log, self.session, self.sources, self.keep_trace = log, session, sources, keep_trace
         self.encode = Encoder().pack
         self.routes = session.take_routes()
+        self.tick, self.tape = session.tick, session.trace.tape  # a tick run again, and where it records
         # the ports whose every consumer takes them with Latest: their values decoded once taken
         self.put_off = {port for port, consumers in self.routes.items()
                         if consumers and all(type(buf.policy) is Latest for _, buf, _ in consumers)}
@@ -281,7 +282,20 @@ class StepReplay:
         deliveries = self.deliveries
         if deliveries and deliveries[0][0] <= tag:
             self.deliver_due(tag)
-        replayed, events = _execute(self.session, step)
+        try:
+            self.tick(node, tag)
+        except (StepError, RunEnded):
+            pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
+        tape = self.tape
+        if len(tape) == 2 and step.status != _LATE:  # one event and the record (the commonest): as _taken, without the scans
+            event, replayed = tape
+            if type(event) is tuple and type(replayed) is tuple and len(event) == 6 and len(replayed) != 6:
+                tape.clear()
+                events = [event]
+            else:
+                replayed, events = _taken(self.session, step)
+        else:
+            replayed, events = _taken(self.session, step)
         if keep_trace:
             self.kept_parts.append(events)
         stats.replayed += 1
@@ -426,21 +440,13 @@ def _microstep_node(step) -> tuple[int, str]:
     return (step.tag[1], step.node)
 
 
-def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
-    """Run the recorded tick again: its step record and its events, taken out of ``session.trace``."""
+def _taken(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
+    """The recorded tick run again (``session.tick``): its step record and its events, taken out
+    of ``session.trace`` (what a LET step that missed its deadline returned, dropped as in the run)."""
     trace = session.trace
-    try:
-        session.tick(step.node, step.tag)
-    except (StepError, RunEnded):
-        pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
     if step.status == _LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
     tape = trace.tape
-    if len(tape) == 2:  # one event and the record (the commonest): as below, without the scans
-        event, replayed = tape
-        if type(event) is tuple and type(replayed) is tuple and len(event) == 6 and len(replayed) != 6:
-            tape.clear()
-            return replayed, [event]
     if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
         events = [item for item in tape if len(item) == 6]
         records = [item for item in tape if len(item) != 6]
