@@ -281,7 +281,21 @@ class StepReplay:
             return
         deliveries = self.deliveries
         if deliveries and deliveries[0][0] <= tag:
-            self.deliver_due(tag)
+            # the deliveries that arrived by its tag in their buffers, but those a restarted consumer
+            # no longer takes (sync.fill inlined, and PortBuffer.insert's commonest case: the newest entry)
+            floors, after = self.floors, None
+            while deliveries and deliveries[0][0] <= tag:
+                _, _, consumer, buf, entry = heappop(deliveries)
+                if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
+                    entries = buf.entries
+                    if entries and entries[-1] >= entry:
+                        buf.insert(entry)
+                    else:
+                        entries.append(entry)
+                    if len(entries) >= buf.bound_at:
+                        if after is None:
+                            after = before(tag)  # steps run in tag order: every tick to come is at or after this one
+                        bound(buf, after)
         try:
             self.tick(node, tag)
         except (StepError, RunEnded):
@@ -299,26 +313,21 @@ class StepReplay:
         if keep_trace:
             self.kept_parts.append(events)
         stats.replayed += 1
+        produced = step.produced
+        if (len(produced) == 1 and len(events) == 1 and replayed[4] is _OK and not self.lost and not self.cut_short
+                and replayed[3] == produced and replayed[2] == step.consumed and step.status in STEPPED
+                and node not in self.stamped):
+            # the same record, of one output (the commonest; a record's ids are its events', in order):
+            # compare's checks, compare_record's and, once the output is read, compare_outputs', the one way they pass
+            unclaimed, (event_id,) = self.unclaimed, produced
+            original = unclaimed.get(event_id)
+            if original is not None:
+                event = events[0]
+                if event[0] == original[0] and self.encode(event[4]) == original[1]:
+                    del unclaimed[event_id]
+                    stats.identical += 1
+                    return
         self.compare(step, stats, replayed, events)
-
-    def deliver_due(self, tag: tuple[int, int]) -> None:
-        """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
-        consumer no longer takes."""
-        deliveries, floors, pop = self.deliveries, self.floors, heappop
-        after = None
-        while deliveries and deliveries[0][0] <= tag:
-            _, _, consumer, buf, entry = pop(deliveries)
-            if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                # (sync.fill, inlined, and PortBuffer.insert's commonest case: the newest entry)
-                entries = buf.entries
-                if entries and entries[-1] >= entry:
-                    buf.insert(entry)
-                else:
-                    entries.append(entry)
-                if len(entries) >= buf.bound_at:
-                    if after is None:
-                        after = before(tag)  # steps run in tag order: every tick to come is at or after this one
-                    bound(buf, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
         """A re-executed step against the log: its record now, its outputs once the log's are read;
@@ -338,17 +347,6 @@ class StepReplay:
             if (status is _OK and replayed_produced == produced and consumed == step.consumed
                     and step.status in STEPPED):
                 found = None
-                if len(produced) == 1 and len(events) == 1 and step.node not in self.stamped:
-                    # one output (the commonest; a record's ids are its events', in order): compare_outputs'
-                    # checks, once it is read, the one way they can pass
-                    unclaimed, (event_id,) = self.unclaimed, produced
-                    original = unclaimed.get(event_id)
-                    if original is not None:
-                        event = events[0]
-                        if event[0] == original[0] and self.encode(event[4]) == original[1]:
-                            del unclaimed[event_id]
-                            stats.identical += 1
-                            return
             else:
                 found = compare_record(step, replayed)
             if found is not None:
