@@ -88,6 +88,7 @@ def _tear_down_open_sessions() -> None:
 #: that step, as it does on a real-time backend, and not at the end in ``trace.digest()``; these
 #: need no check, which keeps it off the hot path (benchmarks/step_overhead.py)
 PLAIN_TYPES = frozenset({int, float, str, bytes, bool, type(None)})
+_OK = StepStatus.OK
 
 
 def _encodes_surely(value: Any) -> bool:
@@ -280,6 +281,41 @@ class _Recorder:
         self.tape.append((rt.id, tau, consumed, tuple(produced), StepStatus.OK, with_step_detail(rt.flow, dropped),
                           start, end - start))
 
+    def emit_undelivered(self, rt: NodeRuntime, tau: tuple[int, int], outputs, consumed: dict, start: int, end: int,
+                         dropped: dict | None = None) -> None:
+        """:meth:`emit` for a session whose routes were taken (InprocSession.take_routes: a
+        replay), which delivers nothing: each event recorded without ``_event``'s call, an array of
+        a plain dtype made read-only without ``_check_output``'s and ``make_read_only``'s (whose
+        verdicts on it these are); any other value as :meth:`emit` does."""
+        produced = []
+        if outputs:
+            out_tag = (tau[0] + rt.latency_ns, 0) if rt.latency_ns else (tau[0], tau[1] + 1)
+            tape, seqs, node_id = self.tape, rt.seq, rt.id
+            for port, value in outputs:
+                if value is None:  # sparse output: no event
+                    continue
+                kind = type(value)
+                if kind is np.ndarray and not value.dtype.hasobject:
+                    value.flags.writeable = False  # an emitted value is immutable (make_read_only)
+                elif kind not in PLAIN_TYPES:
+                    if kind is Burst:
+                        if value.rows is None or value.rows.dtype.hasobject:
+                            for i, item in enumerate(value.values):
+                                if type(item) not in PLAIN_TYPES:
+                                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
+                        make_read_only(value)
+                        for item in value.values:
+                            self._event(rt, tau, port, item, out_tag, end, produced)
+                        continue
+                    self._check_output(rt, tau, port, value, consumed, start, produced)
+                    make_read_only(value)
+                seq = seqs.get(port, 0)
+                seqs[port] = seq + 1
+                tape.append((out_tag, node_id, port, seq, value, end))
+                produced.append((node_id, port, seq))
+        self.tape.append((rt.id, tau, consumed, tuple(produced), _OK, with_step_detail(rt.flow, dropped),
+                          start, end - start))
+
     def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
                end: int, produced: list) -> None:
         """Record one event of a tick and deliver it to its consumers."""
@@ -380,6 +416,7 @@ class InprocSession(Session):
                                        microsteps=self._microsteps, fuse=self._rng is None,
                                        generate=generate_ticks)
         recorder.bound = self._compiled.bound
+        self._emit = recorder.emit  # what a tick() hands its outputs to (take_routes: emit_undelivered)
         # the counts and seqs the generated ticks keep go to the nodes (CompiledTicks.flush) in the
         # thread that runs them: held by advance(); another thread asks for it (stats()), and the
         # loop does it between two instants
@@ -658,6 +695,7 @@ class InprocSession(Session):
             for port, consumers in rt.downstream.items():
                 routes[(rt.id, port)] = [(owners[id(buf)], buf, delay_ns) for _, buf, delay_ns, _ in consumers]
             rt.downstream = {}
+        self._emit = self._recorder.emit_undelivered
         self._compiled.drop()
         self._compiled.generic_only = True  # generated ticks deliver, and expect inproc entries
         return routes
@@ -683,7 +721,7 @@ class InprocSession(Session):
         if compiled.ticks is not None or compiled.flushes:  # generated ticks keep their own seq counters
             compiled.drop()
         recorder = self._recorder
-        run_tick(self._by_id[node], tau, recorder.skipped, recorder.failed, recorder.emit)
+        run_tick(self._by_id[node], tau, recorder.skipped, recorder.failed, self._emit)
 
     def retract(self, node: str) -> None:
         """Take back the outputs of ``node``'s last recorded tick, as a real-time LET step that

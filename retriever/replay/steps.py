@@ -79,7 +79,7 @@ class StepReplay:
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "next_ticks",
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
-                 "kept_steps", "kept_parts", "kept_events", "unchecked")
+                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -87,6 +87,7 @@ class StepReplay:
         self.log, self.session, self.sources, self.keep_trace = log, session, sources, keep_trace
         self.encode = Encoder().pack
         self.routes = session.take_routes()
+        self.tick, self.tape = session.tick, session.trace.tape  # a tick run again, and where it records
         # the ports whose every consumer takes them with Latest: their values decoded once taken
         self.put_off = {port for port, consumers in self.routes.items()
                         if consumers and all(type(buf.policy) is Latest for _, buf, _ in consumers)}
@@ -128,7 +129,7 @@ class StepReplay:
         log = self.log
         steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
-        read = self.read
+        read, run = self.read, self.run
         record = _step_record
         unchecked = self.unchecked
         steps: list = []
@@ -138,7 +139,11 @@ class StepReplay:
                                                                        publish_times, datas):
                 if log_time != instant:
                     if steps:  # the instant's messages are read: run its steps
-                        self.run_instant(steps, progress)
+                        if len(steps) == 1 and progress is None:  # (the commonest, run_instant's loop inlined)
+                            self.done += 1
+                            run(steps.pop())
+                        else:
+                            self.run_instant(steps, progress)
                     instant = log_time
                     self.now = (instant, 0)  # every record before it has run
                 if channel in steps_channels:
@@ -276,31 +281,53 @@ class StepReplay:
             return
         deliveries = self.deliveries
         if deliveries and deliveries[0][0] <= tag:
-            self.deliver_due(tag)
-        replayed, events = _execute(self.session, step)
+            # the deliveries that arrived by its tag in their buffers, but those a restarted consumer
+            # no longer takes (sync.fill inlined, and PortBuffer.insert's commonest case: the newest entry)
+            floors, after = self.floors, None
+            while deliveries and deliveries[0][0] <= tag:
+                _, _, consumer, buf, entry = heappop(deliveries)
+                if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
+                    entries = buf.entries
+                    if entries and entries[-1] >= entry:
+                        buf.insert(entry)
+                    else:
+                        entries.append(entry)
+                    if len(entries) >= buf.bound_at:
+                        if after is None:
+                            after = before(tag)  # steps run in tag order: every tick to come is at or after this one
+                        bound(buf, after)
+        try:
+            self.tick(node, tag)
+        except (StepError, RunEnded):
+            pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
+        tape = self.tape
+        if len(tape) == 2 and step.status != _LATE:  # one event and the record (the commonest): as _taken, without the scans
+            event, replayed = tape
+            if type(event) is tuple and type(replayed) is tuple and len(event) == 6 and len(replayed) != 6:
+                tape.clear()
+                events = [event]
+            else:
+                replayed, events = _taken(self.session, step)
+        else:
+            replayed, events = _taken(self.session, step)
         if keep_trace:
             self.kept_parts.append(events)
         stats.replayed += 1
+        produced = step.produced
+        if (len(produced) == 1 and len(events) == 1 and replayed[4] is _OK and not self.lost and not self.cut_short
+                and replayed[3] == produced and replayed[2] == step.consumed and step.status in STEPPED
+                and node not in self.stamped):
+            # the same record, of one output (the commonest; a record's ids are its events', in order):
+            # compare's checks, compare_record's and, once the output is read, compare_outputs', the one way they pass
+            unclaimed, (event_id,) = self.unclaimed, produced
+            original = unclaimed.get(event_id)
+            if original is not None:
+                event = events[0]
+                if event[0] == original[0] and self.encode(event[4]) == original[1]:
+                    del unclaimed[event_id]
+                    stats.identical += 1
+                    return
         self.compare(step, stats, replayed, events)
-
-    def deliver_due(self, tag: tuple[int, int]) -> None:
-        """Put in their buffers the deliveries that arrived by ``tag``, but those a restarted
-        consumer no longer takes."""
-        deliveries, floors, pop = self.deliveries, self.floors, heappop
-        after = None
-        while deliveries and deliveries[0][0] <= tag:
-            _, _, consumer, buf, entry = pop(deliveries)
-            if not floors or entry[3] >= floors.get((consumer, entry[1], entry[2]), 0):
-                # (sync.fill, inlined, and PortBuffer.insert's commonest case: the newest entry)
-                entries = buf.entries
-                if entries and entries[-1] >= entry:
-                    buf.insert(entry)
-                else:
-                    entries.append(entry)
-                if len(entries) >= buf.bound_at:
-                    if after is None:
-                        after = before(tag)  # steps run in tag order: every tick to come is at or after this one
-                    bound(buf, after)
 
     def compare(self, step, stats: NodeReplay, replayed: tuple, events: list) -> None:
         """A re-executed step against the log: its record now, its outputs once the log's are read;
@@ -320,17 +347,6 @@ class StepReplay:
             if (status is _OK and replayed_produced == produced and consumed == step.consumed
                     and step.status in STEPPED):
                 found = None
-                if len(produced) == 1 and len(events) == 1 and step.node not in self.stamped:
-                    # one output (the commonest; a record's ids are its events', in order): compare_outputs'
-                    # checks, once it is read, the one way they can pass
-                    unclaimed, (event_id,) = self.unclaimed, produced
-                    original = unclaimed.get(event_id)
-                    if original is not None:
-                        event = events[0]
-                        if event[0] == original[0] and self.encode(event[4]) == original[1]:
-                            del unclaimed[event_id]
-                            stats.identical += 1
-                            return
             else:
                 found = compare_record(step, replayed)
             if found is not None:
@@ -422,21 +438,13 @@ def _microstep_node(step) -> tuple[int, str]:
     return (step.tag[1], step.node)
 
 
-def _execute(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
-    """Run the recorded tick again: its step record and its events, taken out of ``session.trace``."""
+def _taken(session: InprocSession, step) -> tuple[tuple, list[tuple]]:
+    """The recorded tick run again (``session.tick``): its step record and its events, taken out
+    of ``session.trace`` (what a LET step that missed its deadline returned, dropped as in the run)."""
     trace = session.trace
-    try:
-        session.tick(step.node, step.tag)
-    except (StepError, RunEnded):
-        pass  # on_error="stop", or sys.exit(0): the step is recorded; compare it like any other
     if step.status == _LATE and step.detail.get("on_deadline_miss") in ("drop", "error"):
         session.retract(step.node)  # the run dropped what this step returned
     tape = trace.tape
-    if len(tape) == 2:  # one event and the record (the commonest): as below, without the scans
-        event, replayed = tape
-        if type(event) is tuple and type(replayed) is tuple and len(event) == 6 and len(replayed) != 6:
-            tape.clear()
-            return replayed, [event]
     if tape and all(type(item) is tuple for item in tape):  # plain records (Trace): taken as they are
         events = [item for item in tape if len(item) == 6]
         records = [item for item in tape if len(item) != 6]

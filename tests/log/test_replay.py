@@ -129,6 +129,18 @@ class FailingCounter(Counter):
         return out
 
 
+class Refill(Flow):
+    """Untyped: emits the array it holds, as it is or in a list, refilled in place each step (an
+    emitted value is immutable: every refill after the first fails, and on_error skips the tick)."""
+
+    def __init__(self, nested: bool = False):
+        self.nested, self.held = nested, np.zeros(2)
+
+    def step(self, x):
+        self.held[:] = x
+        return {"value": [self.held] if self.nested else self.held}
+
+
 def chain(middle: type[Flow], *, on_error: str = "stop") -> Pipeline:
     with Pipeline("chain") as pipe:
         src = Counter() @ Rate(hz=50)
@@ -208,6 +220,27 @@ def test_error_steps_replay_with_the_same_error(tmp_path, on_error):
     report = replay(log)
     assert report.identical, report.divergences[:1]
     assert resim(log).identical
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_a_replayed_step_that_refills_the_array_it_emitted_fails_as_in_the_run(tmp_path, nested):
+    """A re-executed step's outputs go to no consumer (the replay delivers the logged ones), and
+    are still made read-only when it returns (docs/semantics.md, "An emitted value is
+    immutable"): a flow that refills the array it emitted fails at its second step, as in the
+    run, and the replay is identical, read whole and streamed."""
+    from retriever.replay import replay_file
+
+    with Pipeline("refill") as pipe:
+        src = Counter() @ Rate(hz=50)
+        src.then(Refill(nested).configure(on_error="skip_tick") @ Rate(hz=20), sync=Latest(), map={"x": "x"})
+    log = logged(pipe, tmp_path, duration=0.5)
+    steps = [s for s in log.iter_steps() if s.node == "refill"]
+    statuses = [s.status for s in steps if s.status != "skipped"]  # (its first tick, before the counter's event)
+    assert statuses[0] == "ok" and statuses[1:] == ["error"] * (len(statuses) - 1) and len(statuses) > 5, statuses
+    assert all("read-only" in s.detail["error"] for s in steps if s.status == "error")
+    for report in (replay(log), replay_file(log.path)):
+        assert report.identical, report.divergences[:1]
+        assert report.nodes["refill"].replayed == len(steps)
 
 
 def test_a_run_stopped_by_an_error_is_logged_and_replays(tmp_path):
