@@ -379,7 +379,19 @@ def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
     if type(shape) is not list or len(buf) != dtype.itemsize * math.prod(shape):
         raise CodecError(f"an out-of-band array of shape {shape!r:.40} and dtype {dtype} does not fit its "
                          f"buffer of {len(buf)} bytes")
-    return np.frombuffer(buf, dtype=dtype).reshape(shape)
+    array = np.frombuffer(buf, dtype=dtype).reshape(shape)
+    if type(data) is bytes and len(_out_of_band_heads) < 1024:
+        # (1-D: frombuffer's shape already, no reshape)
+        _out_of_band_heads[data] = (index, len(buf), dtype, None if len(shape) == 1 else tuple(shape))
+    return array
+
+
+#: an out-of-band array's extension data (``[descr, shape, index]``, packed) -> (index, its
+#: buffer's size, dtype, shape or None if 1-D), as :func:`_out_of_band_array` last decoded those
+#: bytes and found them fit their buffer: the same bytes with a buffer of that size decode the
+#: same way, no check failing (the wire's arrays of a few dtypes and shapes, without msgpack,
+#: the dtype and size checks and the hook's calls: :func:`unpackb_out_of_band`)
+_out_of_band_heads: dict[bytes, tuple[int, int, np.dtype, tuple | None]] = {}
 
 
 def packb(value: Any) -> bytes:
@@ -534,8 +546,19 @@ _array_decodings: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
     """Decode what :class:`OutOfBandEncoder` packed, given its buffers (any bytes-like objects,
     e.g. memoryviews of the received message). Arrays come back as read-only views of them."""
-    # (_unpack's work at depth 0, one call sooner: this runs per message received)
-    hook = functools.partial(_ext_hook, keep_unregistered=False, buffers=buffers, depth=0)
+    # (_unpack's work at depth 0, one call sooner: this runs per message received; the hook a
+    # closure, not a partial with keywords, which builds a dict per call; an array as decoded
+    # before, _out_of_band_heads, without a call)
+    heads = _out_of_band_heads
+
+    def hook(code: int, ext: bytes) -> Any:
+        if code == EXT_NDARRAY_OOB:
+            known = heads.get(ext)
+            if known is not None and known[0] < len(buffers) and len(buffers[known[0]]) == known[1]:
+                array = np.frombuffer(buffers[known[0]], known[2])
+                return array if known[3] is None else array.reshape(known[3])
+        return _ext_hook(code, ext, buffers=buffers)
+
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
 
 

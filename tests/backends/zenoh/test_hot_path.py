@@ -1,0 +1,157 @@
+"""How much Python a message costs on its hot path (issue 42; benchmarks/hot_path_cost.py counts
+its instructions): a data message's decoding, its delivery to an input buffer, a step's outputs
+read and stamped, an array's encoding. Each is counted in calls (``sys.setprofile``), so a
+change that puts calls back on the path fails here; and the short ways these counts ask for
+still refuse what the long ways refuse, and give what they give.
+
+Real node loops, rebuilt from the IR as a worker does, on a real (unconnected) Zenoh session.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from retriever import Pipeline, Rate, Trigger
+from retriever.backends.zenoh.wire import DataMessage, WireEncoder, WireError, decode_events
+from retriever.backends.zenoh.worker.build import build_loop
+from retriever.codec import unpackb_out_of_band
+from retriever.errors import CodecError
+
+from .payload_flows import Camera, Frame, Viewer, frame
+from .specs import run_spec
+
+MS = 1_000_000
+
+
+def calls(function, *args) -> tuple[list[str], list]:
+    """What ``function(*args)`` calls, itself first: its Python functions' names, and the C
+    functions it calls."""
+    python, c = [], []
+
+    def profile(frame, event, arg):
+        if event == "call":
+            python.append(frame.f_code.co_name)
+        elif event == "c_call":
+            c.append(arg)
+
+    sys.setprofile(profile)
+    try:
+        function(*args)
+    finally:
+        sys.setprofile(None)
+    return python, c
+
+
+def locked(c_calls: list) -> int:
+    """How often a lock was released (``with lock``: its ``__exit__``) among ``c_calls``."""
+    return sum(1 for f in c_calls if getattr(f, "__name__", "") == "__exit__"
+               and "lock" in type(getattr(f, "__self__", None)).__name__)
+
+
+@pytest.fixture(scope="module")
+def spec():
+    with Pipeline("hot-path") as pipe:
+        cam = Camera(size=4096).named("cam") @ Rate(20)
+        cam.then(Viewer().named("viewer") @ Trigger("image"))
+    return run_spec(pipe.compile().to_ir().doc, "hot-path-test")
+
+
+def message(k: int, array: np.ndarray) -> bytes:
+    return WireEncoder().data((k * 50 * MS, 0), k, (k * 50 * MS + 1, 0), "cam", "image",
+                              {"image": array, "k": k})
+
+
+def bins(data: bytes) -> tuple[bytes, bytes]:
+    """The envelope and the array of a message of one array, as bytes."""
+    assert data[0] == 0x92 and data[1] == 0xC6
+    end = 6 + int.from_bytes(data[2:6], "big")
+    return data[6:end], data[end + 5:]
+
+
+def of_bins(*parts: bytes) -> bytes:
+    return bytes((0x90 + len(parts),)) + b"".join(b"\xc6" + len(p).to_bytes(4, "big") + p for p in parts)
+
+
+def test_a_message_of_an_array_decodes_with_three_calls_once_its_array_head_is_known():
+    """decode_events, its bins, msgpack with its hook, and the hook: no call to check the
+    array's head again (it decoded before), none to make the DataMessage."""
+    array = frame(1, 4096).reshape(-1, 1024)
+    decode_events(message(0, array), expected=("cam", "image"))
+    data = message(1, array)
+    python, _ = calls(decode_events, data, ("cam", "image"))
+    assert python == ["decode_events", "_bins", "unpackb_out_of_band", "hook"]
+    (event,) = decode_events(data, expected=("cam", "image"))
+    assert type(event) is DataMessage and event[:5] == ((50 * MS, 0), 1, (50 * MS + 1, 0), "cam", "image")
+    got = event.value["image"]
+    assert got.shape == (4, 1024) and got.dtype == np.uint8 and not got.flags.writeable
+    assert np.array_equal(got, array)
+    flat = decode_events(message(2, frame(2, 4096)))[0].value["image"]  # the same bytes, 1-D: a head of its own
+    assert flat.shape == (4096,) and np.array_equal(flat, frame(2, 4096)) and not flat.flags.writeable
+
+
+def test_a_known_array_head_is_still_refused_with_a_buffer_it_does_not_fit():
+    """The head decoded before, with a buffer one byte short, or none: refused as before."""
+    array = frame(1, 4096)
+    decode_events(message(0, array))
+    envelope, raw = bins(message(1, array))
+    with pytest.raises(WireError, match="does not fit its buffer of 4095 bytes"):
+        decode_events(of_bins(envelope, raw[:-1]))
+    with pytest.raises(WireError, match="refers to buffer 0, which the message does not carry"):
+        decode_events(of_bins(envelope))
+    with pytest.raises(CodecError, match="refers to buffer 0"):
+        unpackb_out_of_band(envelope, [])
+    other = np.zeros(1024, np.float32)  # the same 4096 bytes, another dtype: another head
+    decode_events(message(0, other))
+    assert decode_events(of_bins(envelope, raw))[0].value["image"].dtype == np.uint8
+
+
+@pytest.mark.parametrize("cut, error", [
+    (lambda d: d + b"\x00", "trailing bytes"),
+    (lambda d: d[:-1], "truncated"),
+    (lambda d: d[:7], "truncated"),
+    (lambda d: d[:4], "truncated"),
+    (lambda d: d[:2] + (2**32 - 1).to_bytes(4, "big") + d[6:], "truncated"),
+])
+def test_a_message_of_two_bins_cut_or_padded_is_refused_as_before(cut, error):
+    """The short way through a message of an envelope and one array (``_bins``) refuses what
+    the general one does, with the same words."""
+    data = message(1, frame(1, 64))
+    assert decode_events(data)[0].seq == 1
+    with pytest.raises(WireError, match=error):
+        decode_events(cut(data))
+
+
+def test_an_event_in_order_is_delivered_with_one_call(session, spec):
+    """Streams.in_order puts an event after its buffer's last one without sync.fill and
+    PortBuffer.insert (inline); an event before it still goes in its place by tag."""
+    loop = build_loop(spec, "viewer", session)
+    loop.run_clock.start(0, 10**12)
+    streams, stream = loop.streams, ("cam", "image")
+    buf = streams.edges[0].buf
+
+    def event(seq: int, t: int) -> DataMessage:
+        return DataMessage((t, 0), seq, (t + 1, 0), "cam", "image", Frame(image=frame(seq, 4096), k=seq))
+
+    streams.in_order(stream, event(0, 10 * MS))
+    python, c = calls(streams.in_order, stream, event(1, 20 * MS))
+    assert python == ["in_order", "deliver"]
+    assert locked(c) == 1, "its frontier and its tick pending, under one acquisition of the lock"
+    streams.in_order(stream, event(2, 15 * MS))  # (a producer's clock may step back: its tag orders it)
+    assert [entry[0] for entry in buf.entries] == [(10 * MS, 0), (15 * MS, 0), (20 * MS, 0)]
+    assert [entry[3] for entry in buf.entries] == [0, 2, 1]
+    assert loop.schedule.pending == [(10 * MS, 0), (20 * MS, 0), (15 * MS, 0)]
+    assert streams.frontiers[stream] == (20 * MS + 1, 0) and streams.expect[stream] == 3
+
+
+def test_a_pass_reads_the_next_tick_without_the_lock(session, spec):
+    """The loop's thread is the schedule's only writer: reading it, it takes no lock (the lock
+    is for the progress queryable, which reads it from another thread)."""
+    loop = build_loop(spec, "viewer", session)
+    loop.run_clock.start(0, 10**12)
+    loop.schedule.pending, loop.schedule.pending_set = [(30 * MS, 0)], {(30 * MS, 0)}
+    python, c = calls(loop.try_tick, 10 * MS)
+    assert python == ["try_tick"] and locked(c) == 0
+    assert loop.try_tick(10 * MS) == 30 * MS
