@@ -106,6 +106,9 @@ def dataclass_fields(value: Any) -> dict[str, Any] | None:
 
 
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
+_UINT8 = np.dtype(np.uint8)
+#: msgpack's positive fixints, 0 to 127, by value: each one byte, the value itself
+_FIXINTS = tuple(bytes((i,)) for i in range(128))
 #: packs what packb packs without its `default` (no tuple, array, dataclass, int past 64 bits), or raises
 _pack_strict = msgpack.Packer(use_bin_type=True, strict_types=True).pack
 
@@ -615,7 +618,13 @@ class OutOfBandEncoder:
             head = _array_heads.get((obj.dtype, obj.shape)) or _array_head(obj)
             if not obj.flags.c_contiguous:
                 obj = np.ascontiguousarray(obj)
-            self._buffers.append(obj.reshape(-1).view(np.uint8))
+            if obj.ndim == 1:  # (flat already: one of bytes is its own buffer, another one a view away)
+                self._buffers.append(obj if obj.dtype is _UINT8 else obj.view(_UINT8))
+            else:
+                self._buffers.append(obj.reshape(-1).view(_UINT8))
             # ExtType without its constructor's checks (two Python calls): its code and bytes are ours
-            return tuple.__new__(msgpack.ExtType, (EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1)))
+            # (the index packed from a table while it is a positive fixint: no packer's call)
+            index = len(self._buffers) - 1
+            return tuple.__new__(msgpack.ExtType, (EXT_NDARRAY_OOB, head + (_FIXINTS[index] if index < 128
+                                                                             else _pack_plain(index))))
         return _extension(obj, self._nested)

@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import sys
 
+import msgpack
 import numpy as np
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
 from retriever.backends.zenoh.wire import DataMessage, WireEncoder, WireError, decode_events
 from retriever.backends.zenoh.worker.build import build_loop
-from retriever.codec import unpackb_out_of_band
+from retriever.codec import OutOfBandEncoder, unpackb_out_of_band
 from retriever.errors import CodecError
+from retriever.flow.core import make_output_reader
 
 from .payload_flows import Camera, Frame, Viewer, frame
 from .specs import run_spec
@@ -155,3 +157,58 @@ def test_a_pass_reads_the_next_tick_without_the_lock(session, spec):
     python, c = calls(loop.try_tick, 10 * MS)
     assert python == ["try_tick"] and locked(c) == 0
     assert loop.try_tick(10 * MS) == 30 * MS
+
+
+def test_a_steps_outputs_are_read_and_stamped_without_calls(session, spec):
+    """The step's output object read into events (no comprehension) and stamped with the HLC
+    (read inline): one Python call each."""
+    loop = build_loop(spec, "cam", session)
+    loop.run_clock.start(session.new_timestamp().get_time_as_ntp64().as_nanos(), 10**12)
+    read = make_output_reader(loop.node.spec)
+    out = Frame(image=frame(1, 4096), k=1)
+    python, _ = calls(read, out)
+    assert python == ["read_io"]
+    assert read(out) == [("image", out.image), ("k", 1)]
+    assert read(Frame(image=None, k=2)) == [("k", 2)]
+    python, _ = calls(loop.outputs.stamp, (0, 0), [("k", 1)])
+    assert python == ["stamp"]
+    tag, batch, produced = loop.outputs.stamp((0, 0), [("k", 2)])
+    assert tag[0] > 0 and tag[1] == 0 and batch == [(tag, "k", 2, 1)] and produced == (("cam", "k", 1),)
+    assert loop.outputs.stamp((0, 0), [("k", 3)])[0] > tag, "strictly increasing"
+
+
+def test_an_arrays_index_is_packed_as_msgpack_packs_it():
+    """An array's extension data is its cached head and its buffer index: a positive fixint
+    from a table up to 127 (no packer's call; msgpack's Cython calls are not profiled, so what
+    is checked here is only that it packs as msgpack does), packed by msgpack past that."""
+    encoder = OutOfBandEncoder()
+    arrays = [np.full(3, i % 256, np.uint8) for i in range(130)]
+    body, buffers = encoder.pack(arrays)
+    exts = msgpack.unpackb(body)
+    assert [msgpack.unpackb(e.data)[2] for e in exts] == list(range(130))
+    assert [e.data[-1:] for e in exts[:128]] == [msgpack.packb(i) for i in range(128)]
+    got = unpackb_out_of_band(body, [b.tobytes() for b in buffers])
+    assert all(np.array_equal(g, a) for g, a in zip(got, arrays))
+
+
+@pytest.mark.parametrize("array, numpy_calls", [
+    (np.arange(64, dtype=np.uint8), []),  # bytes, flat: its own buffer
+    (np.arange(16, dtype=np.float32), ["view"]),  # flat: viewed as bytes
+    (np.arange(64, dtype=np.uint8).reshape(8, 8), ["reshape", "view"]),
+    (np.arange(64, dtype=np.uint8).reshape(8, 8)[:, ::2], ["reshape", "view"]),  # made contiguous first
+    (np.array(7, dtype=np.int64), ["reshape", "view"]),  # 0-d
+])
+def test_an_array_is_sent_as_its_bytes_with_no_more_numpy_calls_than_its_shape_needs(array, numpy_calls):
+    """A flat array of bytes is its own buffer; another flat one is viewed as bytes; others
+    flattened first. The message is what it was, and decodes to the array."""
+    encoder = OutOfBandEncoder()
+    encoder.pack({"a": array})
+    _, c = calls(encoder.pack, {"a": array})
+    assert [f.__name__ for f in c if type(getattr(f, "__self__", None)) is np.ndarray] == numpy_calls
+    data = message(3, array)
+    assert data == b"".join(WireEncoder().data_parts((150 * MS, 0), 3, (150 * MS + 1, 0), "cam", "image",
+                                                      {"image": array, "k": 3}))
+    contiguous = np.ascontiguousarray(array)
+    assert data.endswith(contiguous.tobytes()) and bins(data)[1] == contiguous.tobytes()
+    got = decode_events(data)[0].value["image"]
+    assert got.dtype == array.dtype and got.shape == array.shape and np.array_equal(got, array)

@@ -93,7 +93,9 @@ class Outputs:
                 self.zeno(tau)
             # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
             # when the node runs late (the tag then passes the next tick's time)
-            self.last_stamp = max(self.clock.hlc(), tau[0] + 1, self.last_stamp + 1)
+            clock = self.clock  # (RunClock.hlc, inline: this runs per step with events)
+            hlc = clock.session.new_timestamp().get_time_as_ntp64().as_nanos() - clock.t0
+            self.last_stamp = max(hlc, tau[0] + 1, self.last_stamp + 1)
             tag = (self.last_stamp, microstep)
         else:  # nothing to stamp: no clock read (a later stamp is past this one's all the same)
             tag = None
