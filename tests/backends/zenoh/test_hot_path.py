@@ -212,3 +212,33 @@ def test_an_array_is_sent_as_its_bytes_with_no_more_numpy_calls_than_its_shape_n
     assert data.endswith(contiguous.tobytes()) and bins(data)[1] == contiguous.tobytes()
     got = decode_events(data)[0].value["image"]
     assert got.dtype == array.dtype and got.shape == array.shape and np.array_equal(got, array)
+
+
+def test_a_publish_reads_the_frontier_and_a_tick_trims_its_input_without_min_or_max(session, spec):
+    """builtin min and max parse keywords at every call: the stamp, the frontier a publish
+    carries, the tick bound and a Latest input's trim compare inline, with the same results."""
+    loop = build_loop(spec, "viewer", session)
+    loop.run_clock.start(session.new_timestamp().get_time_as_ntp64().as_nanos(), 10**12)
+    streams, outputs = loop.streams, loop.outputs
+    streams.frontiers[("cam", "image")] = (40 * MS, 3)
+    loop.schedule.pending = [(30 * MS, 0)]
+    python, c = calls(streams.tick_bound)
+    assert python == ["tick_bound"] and not [f for f in c if f in (min, max)]
+    assert streams.tick_bound() == (30 * MS, 0)
+    loop.schedule.pending = [(50 * MS, 0)]
+    assert streams.tick_bound() == (40 * MS, 3)
+    outputs.last_stamp = 10**13  # past the HLC: the stamp goes on from the last one
+    python, c = calls(outputs.stamp, (0, 0), [("checksum", 1)])
+    assert python == ["stamp"] and not [f for f in c if f in (min, max)]
+    assert outputs.stamp((0, 0), [("checksum", 2)])[0] == (10**13 + 2, 0)
+    python, c = calls(outputs.frontier, True)
+    assert python == ["frontier", "tick_bound"] and not [f for f in c if f in (min, max)]
+    assert outputs.frontier(True) == (10**13 + 3, 0)
+    outputs.last_stamp = 0
+    assert outputs.frontier(True) == (40 * MS + 1, 0), "past the tick bound"
+    buf = streams.edges[0].buf
+    buf.entries[:] = [((t * MS, 0), "cam", "image", t, None) for t in range(6)]
+    buf.visible, buf.cursor = 6, 2
+    python, c = calls(buf.trim, 5)
+    assert python == ["trim"] and not [f for f in c if f in (min, max)]
+    assert len(buf.entries) == 1 and buf.visible == 1 and buf.cursor == 0

@@ -86,10 +86,15 @@ class Streams:
         main thread)."""
         schedule = self.schedule
         bound = schedule.next_rate if schedule.next_rate is not None else NEVER
-        if schedule.pending:
-            bound = min(bound, schedule.pending[0])
-        for e in self.triggering:
-            bound = min(bound, self.edge_frontier(e))
+        if schedule.pending and schedule.pending[0] < bound:
+            bound = schedule.pending[0]
+        frontiers = self.frontiers
+        for e in self.triggering:  # (edge_frontier and min, inline: per event published, per progress answer)
+            f = frontiers[(e.src, e.src_port)]
+            if e.delay_ns:
+                f = (f[0] + e.delay_ns, 0)
+            if f < bound:
+                bound = f
         return bound
 
     def horizon(self, tag: tuple[int, int]) -> tuple[int, int]:
