@@ -20,13 +20,14 @@ the machine's load::
 Or count the path alone, under callgrind: only what runs inside ``operator.call`` (the path's
 call, nothing around it), with ``--evict-mib`` its cache misses as after a sleep::
 
-    OPENBLAS_NUM_THREADS=1 PYTHONHASHSEED=0 valgrind --tool=callgrind --toggle-collect=_operator_call \
-        --cache-sim=yes --LL=4194304,16,64 --callgrind-out-file=OUT .venv/bin/python \
+    OPENBLAS_NUM_THREADS=1 PYTHONHASHSEED=0 valgrind --tool=callgrind --toggle-collect=_operator_call \\
+        --cache-sim=yes --LL=4194304,16,64 --callgrind-out-file=OUT .venv/bin/python \\
         benchmarks/hot_path_cost.py --side sink --messages 200 --evict-mib 16
 
-``--calls``: instead, list the Python functions called for one message (sys.setprofile), from
-the path's entry to the flow's step (``sink``: ``receive`` → ``step``; ``source``: ``step``
-returned → ``put``), and after it up to the path's end, with their count.
+``--calls``: instead, list the functions called for one message (sys.setprofile), from the
+path's entry to the flow's step (``sink``: ``receive`` → ``step``; ``source``: ``step``
+returned → ``put``), and after it up to the path's end, with their count and the lock sections
+among them (benchmarks/reports/latency.md has the counts).
 """
 
 from __future__ import annotations
