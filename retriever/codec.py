@@ -106,6 +106,9 @@ def dataclass_fields(value: Any) -> dict[str, Any] | None:
 
 
 _pack_plain = msgpack.Packer(use_bin_type=True).pack  # no `default`, so it never re-enters Python
+_UINT8 = np.dtype(np.uint8)
+#: msgpack's positive fixints, 0 to 127, by value: each one byte, the value itself
+_FIXINTS = tuple(bytes((i,)) for i in range(128))
 #: packs what packb packs without its `default` (no tuple, array, dataclass, int past 64 bits), or raises
 _pack_strict = msgpack.Packer(use_bin_type=True, strict_types=True).pack
 
@@ -379,7 +382,19 @@ def _out_of_band_array(data: bytes, buffers: list | None) -> np.ndarray:
     if type(shape) is not list or len(buf) != dtype.itemsize * math.prod(shape):
         raise CodecError(f"an out-of-band array of shape {shape!r:.40} and dtype {dtype} does not fit its "
                          f"buffer of {len(buf)} bytes")
-    return np.frombuffer(buf, dtype=dtype).reshape(shape)
+    array = np.frombuffer(buf, dtype=dtype).reshape(shape)
+    if type(data) is bytes and len(_out_of_band_heads) < 1024:
+        # (1-D: frombuffer's shape already, no reshape)
+        _out_of_band_heads[data] = (index, len(buf), dtype, None if len(shape) == 1 else tuple(shape))
+    return array
+
+
+#: an out-of-band array's extension data (``[descr, shape, index]``, packed) -> (index, its
+#: buffer's size, dtype, shape or None if 1-D), as :func:`_out_of_band_array` last decoded those
+#: bytes and found them fit their buffer: the same bytes with a buffer of that size decode the
+#: same way, no check failing (the wire's arrays of a few dtypes and shapes, without msgpack,
+#: the dtype and size checks and the hook's calls: :func:`unpackb_out_of_band`)
+_out_of_band_heads: dict[bytes, tuple[int, int, np.dtype, tuple | None]] = {}
 
 
 def packb(value: Any) -> bytes:
@@ -534,8 +549,19 @@ _array_decodings: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
     """Decode what :class:`OutOfBandEncoder` packed, given its buffers (any bytes-like objects,
     e.g. memoryviews of the received message). Arrays come back as read-only views of them."""
-    # (_unpack's work at depth 0, one call sooner: this runs per message received)
-    hook = functools.partial(_ext_hook, keep_unregistered=False, buffers=buffers, depth=0)
+    # (_unpack's work at depth 0, one call sooner: this runs per message received; the hook a
+    # closure, not a partial with keywords, which builds a dict per call; an array as decoded
+    # before, _out_of_band_heads, without a call)
+    heads = _out_of_band_heads
+
+    def hook(code: int, ext: bytes) -> Any:
+        if code == EXT_NDARRAY_OOB:
+            known = heads.get(ext)
+            if known is not None and known[0] < len(buffers) and len(buffers[known[0]]) == known[1]:
+                array = np.frombuffer(buffers[known[0]], known[2])
+                return array if known[3] is None else array.reshape(known[3])
+        return _ext_hook(code, ext, buffers=buffers)
+
     return msgpack.unpackb(data, ext_hook=hook, raw=False, strict_map_key=False)
 
 
@@ -592,7 +618,13 @@ class OutOfBandEncoder:
             head = _array_heads.get((obj.dtype, obj.shape)) or _array_head(obj)
             if not obj.flags.c_contiguous:
                 obj = np.ascontiguousarray(obj)
-            self._buffers.append(obj.reshape(-1).view(np.uint8))
+            if obj.ndim == 1:  # (flat already: one of bytes is its own buffer, another one a view away)
+                self._buffers.append(obj if obj.dtype is _UINT8 else obj.view(_UINT8))
+            else:
+                self._buffers.append(obj.reshape(-1).view(_UINT8))
             # ExtType without its constructor's checks (two Python calls): its code and bytes are ours
-            return tuple.__new__(msgpack.ExtType, (EXT_NDARRAY_OOB, head + _pack_plain(len(self._buffers) - 1)))
+            # (the index packed from a table while it is a positive fixint: no packer's call)
+            index = len(self._buffers) - 1
+            return tuple.__new__(msgpack.ExtType, (EXT_NDARRAY_OOB, head + (_FIXINTS[index] if index < 128
+                                                                             else _pack_plain(index))))
         return _extension(obj, self._nested)

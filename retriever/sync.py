@@ -131,7 +131,8 @@ class PortBuffer:
         if keep_from >= self.trim_batch:
             del self.entries[:keep_from]
             self.visible -= keep_from
-            self.cursor = max(0, self.cursor - keep_from)
+            cursor = self.cursor - keep_from  # (max(0, ...) without its call: a Latest input trims per tick)
+            self.cursor = cursor if cursor > 0 else 0
 
 
 def before(tag: tuple[int, int]) -> tuple[int, int]:

@@ -13,7 +13,7 @@ import threading
 from bisect import bisect_left, insort
 from typing import Any
 
-from ....sync import PortBuffer, before, fill
+from ....sync import PortBuffer, before, bound, fill
 from ..protocol import RESTART_SEQ_GAP
 from ..wire import WireError
 from .clock import RunClock
@@ -67,6 +67,9 @@ class Streams:
         self.early: dict[tuple[str, str], dict[int, Any]] = {k: {} for k in streams}
         self.waiting: dict[tuple[str, str], list[tuple[int, tuple[int, int]]]] = {k: [] for k in streams}
         self.src_latency_ns = {(e.src, e.src_port): e.src_latency_ns for e in edges}
+        self.stream_edges: dict[tuple[str, str], list[InEdge]] = {k: [] for k in streams}  # where each goes
+        for e in edges:
+            self.stream_edges[(e.src, e.src_port)].append(e)
         self.sources = sorted({e.src for e in edges})
         self.triggering = [e for e in edges if e.triggers]
         self.taken_over: dict[tuple[str, str], int] = {}  # per stream, the seqs an earlier process took
@@ -83,10 +86,15 @@ class Streams:
         main thread)."""
         schedule = self.schedule
         bound = schedule.next_rate if schedule.next_rate is not None else NEVER
-        if schedule.pending:
-            bound = min(bound, schedule.pending[0])
-        for e in self.triggering:
-            bound = min(bound, self.edge_frontier(e))
+        if schedule.pending and schedule.pending[0] < bound:
+            bound = schedule.pending[0]
+        frontiers = self.frontiers
+        for e in self.triggering:  # (edge_frontier and min, inline: per event published, per progress answer)
+            f = frontiers[(e.src, e.src_port)]
+            if e.delay_ns:
+                f = (f[0] + e.delay_ns, 0)
+            if f < bound:
+                bound = f
         return bound
 
     def horizon(self, tag: tuple[int, int]) -> tuple[int, int]:
@@ -136,14 +144,26 @@ class Streams:
         if msg.seq > expect:
             self.early[stream][msg.seq] = msg
             return
-        early, frontiers = self.early[stream], self.frontiers
+        early, frontiers, edges = self.early[stream], self.frontiers, self.stream_edges[stream]
+        schedule = self.schedule
         while msg is not None:
-            if msg.frontier > frontiers[stream]:  # (advance, inline: this runs per event)
+            due = None  # the trigger ticks it makes (one per edge at most)
+            for e in edges:
+                tick = self.deliver(e, msg)
+                if tick is not None:
+                    due = [tick] if due is None else due + [tick]
+            # its frontier and the ticks it triggers, together under the lock (one acquisition
+            # per event; advance, inline): the progress queryable never sees the frontier past
+            # a tick not yet pending, which would let this node promise past that tick's outputs
+            if due is not None or msg.frontier > frontiers[stream]:
                 with self.lock:
-                    frontiers[stream] = msg.frontier
-            for e in self.edges:
-                if e.src == msg.producer and e.src_port == msg.port:
-                    self.deliver(e, msg)
+                    if msg.frontier > frontiers[stream]:
+                        frontiers[stream] = msg.frontier
+                    if due is not None:
+                        for tick in due:
+                            if tick not in schedule.pending_set:
+                                schedule.pending_set.add(tick)
+                                heapq.heappush(schedule.pending, tick)
             expect += 1
             msg = early.pop(expect, None)
         self.expect[stream] = expect
@@ -168,8 +188,9 @@ class Streams:
             with self.lock:
                 self.frontiers[stream] = frontier
 
-    def deliver(self, e: InEdge, msg) -> None:
-        """Put an event in its edge's buffer, and schedule the tick it triggers."""
+    def deliver(self, e: InEdge, msg) -> tuple[int, int] | None:
+        """Put an event in its edge's buffer; the tick it triggers, for the caller to schedule
+        (None if it triggers none, or one pending already)."""
         arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
         entry = (arrival, msg.producer, msg.port, msg.seq, msg.value)
         schedule = self.schedule
@@ -182,12 +203,19 @@ class Streams:
             self.notes.detail.setdefault("late", {}).setdefault(e.port, []).append(
                 (msg.producer, msg.port, msg.seq))
             fill(e.buf, entry, self.horizon, msg.tag)
-            return
-        fill(e.buf, entry, self.horizon, msg.tag)
+            return None
+        # (sync.fill and PortBuffer.insert, inline for an event after the buffer's last: in order)
+        buf = e.buf
+        entries = buf.entries
+        if entries and not entries[-1] < entry:
+            fill(buf, entry, self.horizon, msg.tag)
+        else:
+            entries.append(entry)
+            if len(entries) >= buf.bound_at:
+                bound(buf, self.horizon(msg.tag))
         if e.triggers and arrival[0] < self.clock.end and arrival not in schedule.pending_set:
-            with self.lock:
-                schedule.pending_set.add(arrival)
-                heapq.heappush(schedule.pending, arrival)
+            return arrival
+        return None
 
     def had_below(self, ports: list[str]) -> dict[str, list[list]]:
         """For a tick run incomplete: per port, each of its producers' streams and the seq it

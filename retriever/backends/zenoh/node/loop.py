@@ -224,12 +224,13 @@ class NodeLoop:
         self.handle(item)
         if self.stopping:
             return
-        now = self.run_clock.now()
+        clock = self.run_clock  # (RunClock.now, inline: a call saved per message, and per tick)
+        now = time.time_ns() - clock.t0
         if self.outputs.held:  # (a call saved per message when nothing is: the usual case)
             self.outputs.release(now)
         while (self.last_wall is not None and self.last_wall < INLINE_STEP_NS
                and self.try_tick(now) is TICKED):
-            now = self.run_clock.now()
+            now = time.time_ns() - clock.t0
 
     def handle(self, item: tuple) -> None:
         """One inbox item (inbox.py), on whichever thread holds ``turn``."""
@@ -387,10 +388,12 @@ class NodeLoop:
         """Run the next tick if it is due and its inputs are complete (or past deadline):
         ``TICKED``. Else the wall time (ns since T0) to look again, or ``DONE``."""
         schedule, end = self.schedule, self.run_clock.end
-        with self.lock:  # the next Rate tick or the lowest pending trigger tag
-            tau = schedule.next_rate
-            if schedule.pending and (tau is None or schedule.pending[0] < tau):
-                tau = schedule.pending[0]
+        # the next Rate tick or the lowest pending trigger tag, read without the lock: the lock
+        # keeps the progress queryable from reading a schedule half written, and whoever holds
+        # `turn` (this thread) is the schedule's only writer
+        tau = schedule.next_rate
+        if schedule.pending and (tau is None or schedule.pending[0] < tau):
+            tau = schedule.pending[0]
         if self.virtual:
             bound = self.streams.tick_bound()
             if bound >= (end, 0) or bound >= (self.granted, 0):

@@ -71,7 +71,7 @@ class Outputs:
             else:
                 # the tick in progress, or the next, is stamped past the last stamp and the HLC now
                 stamp = self.last_stamp + 1 if sent else max(self.clock.hlc(), self.last_stamp + 1)
-                own = (max(stamp, lower[0] + 1), 0)
+                own = (stamp if stamp > lower[0] else lower[0] + 1, 0)  # (max, without its call: per publish)
             if self.held:
                 own = min(own, self.held[0][0])
             if self.sending is not None and not sent:
@@ -93,8 +93,16 @@ class Outputs:
                 self.zeno(tau)
             # strictly increasing, so the frontier right after a publish is its tag + 1 ns even
             # when the node runs late (the tag then passes the next tick's time)
-            self.last_stamp = max(self.clock.hlc(), tau[0] + 1, self.last_stamp + 1)
-            tag = (self.last_stamp, microstep)
+            # (RunClock.hlc, and max(hlc, tau[0] + 1, last_stamp + 1), inline: this runs per step
+            # with events, and builtin max parses keywords at each call)
+            clock = self.clock
+            stamp = clock.session.new_timestamp().get_time_as_ntp64().as_nanos() - clock.t0
+            if stamp <= tau[0]:
+                stamp = tau[0] + 1
+            if stamp <= self.last_stamp:
+                stamp = self.last_stamp + 1
+            self.last_stamp = stamp
+            tag = (stamp, microstep)
         else:  # nothing to stamp: no clock read (a later stamp is past this one's all the same)
             tag = None
         batch, produced, seqs, me = [], [], self.seqs, self.id

@@ -136,8 +136,10 @@ class Waiting:
         wake: int | None = None
         end = self.clock.end
         end_tag = (end, 0)
+        frontiers = self.streams.frontiers
         for e in self.streams.triggering:
-            if self.streams.edge_frontier(e) >= end_tag:
+            f = frontiers[(e.src, e.src_port)]  # (Streams.edge_frontier, inline: this runs after every tick)
+            if ((f[0] + e.delay_ns, 0) if e.delay_ns else f) >= end_tag:
                 continue
             if self.virtual or now < end + e.deadline_ns:
                 again = min(end + e.deadline_ns, self.ask(e.src, now, end))
