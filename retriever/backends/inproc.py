@@ -267,11 +267,7 @@ class _Recorder:
                     continue
                 if type(value) not in PLAIN_TYPES:
                     if type(value) is Burst:  # an event per value, in order; none if one cannot be recorded
-                        if value.rows is None or value.rows.dtype.hasobject:
-                            for i, item in enumerate(value.values):
-                                if type(item) not in PLAIN_TYPES:
-                                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
-                        make_read_only(value)
+                        self._check_burst(rt, tau, port, value, consumed, start, produced)
                         for item in value.values:
                             event(rt, tau, port, item, out_tag, end, produced)
                         continue
@@ -299,11 +295,7 @@ class _Recorder:
                     value.flags.writeable = False  # an emitted value is immutable (make_read_only)
                 elif kind not in PLAIN_TYPES:
                     if kind is Burst:
-                        if value.rows is None or value.rows.dtype.hasobject:
-                            for i, item in enumerate(value.values):
-                                if type(item) not in PLAIN_TYPES:
-                                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
-                        make_read_only(value)
+                        self._check_burst(rt, tau, port, value, consumed, start, produced)
                         for item in value.values:
                             self._event(rt, tau, port, item, out_tag, end, produced)
                         continue
@@ -315,6 +307,16 @@ class _Recorder:
                 produced.append((node_id, port, seq))
         self.tape.append((rt.id, tau, consumed, tuple(produced), _OK, with_step_detail(rt.flow, dropped),
                           start, end - start))
+
+    def _check_burst(self, rt: NodeRuntime, tau: tuple[int, int], port: str, burst: Burst, consumed: dict,
+                     start: int, produced: list) -> None:
+        """Before a Burst's events are recorded: each value checked (_check_output: the run stops
+        at one that cannot be recorded, before any is), then made read-only."""
+        if burst.rows is None or burst.rows.dtype.hasobject:
+            for i, item in enumerate(burst.values):
+                if type(item) not in PLAIN_TYPES:
+                    self._check_output(rt, tau, port, item, consumed, start, produced, i)
+        make_read_only(burst)
 
     def _event(self, rt: NodeRuntime, tau: tuple[int, int], port: str, value: Any, out_tag: tuple[int, int],
                end: int, produced: list) -> None:
