@@ -709,6 +709,25 @@ def test_a_step_record_that_is_not_one_is_a_log_error_everywhere(tmp_path, chang
             read()
 
 
+def test_a_step_record_with_a_byte_msgpack_never_uses_says_so(tmp_path):
+    """msgpack's FormatError has no message: the error said "is malformed ()"."""
+    from retriever.replay import replay_file, resim_file
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        import msgpack
+
+        step = _first(messages, "steps")
+        fields = msgpack.unpackb(step[4])
+        step[4] = b"\x97" + b"".join(map(msgpack.packb, fields[:5])) + b"\xc1" + msgpack.packb(fields[6])  # as detail
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)
+    error = r"step record #\d+ is malformed \(it is not valid msgpack \(FormatError\)\)"
+    for read in (read_log(path).trace, lambda: replay_file(path, build_small), lambda: resim_file(path, build_small)):
+        with pytest.raises(LogError, match=error):
+            read()
+
+
 def test_an_event_whose_microstep_is_cut_short_is_a_log_error(tmp_path):
     def change(messages, metadata):
         _first(messages, "data/counter/k")[4] = b"\x92\xcd\x01"  # a uint16 microstep missing a byte
