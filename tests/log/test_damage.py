@@ -765,6 +765,41 @@ def test_an_event_logged_twice_is_expected_twice_by_resim(tmp_path):
         assert re.sub(r"publish_ns=\d+", "", report.difference) == re.sub(r"publish_ns=\d+", "", expected)
 
 
+def _source_record_names(port: str | None):
+    """A change: counter's (a source's) first step record that produced events names a port of
+    its second event that the log has no event on (``port``), or (None) is logged twice."""
+    def change(messages, metadata):
+        import msgpack
+
+        records = [m for m in messages if m[0] == "steps" and msgpack.unpackb(m[4])[0] == "counter"]
+        if port is None:
+            messages.append(list(records[1]))
+            return
+        fields = msgpack.unpackb(records[1][4])
+        fields[3][0][1] = port
+        records[1][4] = msgpack.packb(fields)
+    return change
+
+
+@pytest.mark.parametrize("port, says", [
+    ("luvel", "says it produced event counter.luvel #1, which the log does not have"),
+    (None, r"says it produced event counter.k #1, which an earlier step record said it produced too \(a record "
+           r"logged twice\?\)"),
+])
+def test_a_source_step_record_naming_an_event_it_cannot_give_is_a_log_error_in_resim(tmp_path, port, says):
+    """A replayed source's tick takes the events its step record names: one the log lacks was a
+    KeyError raised in its step, reported as 'the re-simulation stopped: counter.step() raised
+    KeyError: ...' with the hint to set on_error; it is the damaged log's LogError, as a value
+    that does not decode is."""
+    from retriever.replay import resim_file
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _source_record_names(port))
+    for run in (lambda: resim(read_log(path), build_small()), lambda: resim_file(path, build_small)):
+        with pytest.raises(LogError, match=r"odd\.mcap: the step record of counter at t=0\.100000000s m=0 " + says):
+            run()
+
+
 def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):
     from tests.log.log_flows import build_small
 
