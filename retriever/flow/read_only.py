@@ -35,8 +35,11 @@ def make_read_only(value: Any) -> None:
     lists and tuples, the values of dicts, the fields of dataclass values, and a Burst's values
     (and the array whose rows they are). CodecError if ``value`` nests too deeply to walk (it
     contains itself)."""
-    if type(value) is np.ndarray:  # (the commonest, without the walk's call)
+    kind = type(value)
+    if kind is np.ndarray:  # (the commonest, and a number, without the walk's call: per event)
         value.flags.writeable = False
+        return
+    if kind in _IMMUTABLE:
         return
     try:
         _walk(value)
