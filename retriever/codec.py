@@ -403,6 +403,30 @@ def packb(value: Any) -> bytes:
         return _pack_with(value, _default)
     except CodecError as e:
         raise _located(e, value) from None
+    except (RecursionError, ValueError) as e:
+        raise _too_deep(e, value) from None
+
+
+#: what msgpack's packer raises for a value nested deeper than its limit (511 levels)
+_MSGPACK_TOO_DEEP = "recursion limit exceeded"
+
+
+def _too_deep(error: RecursionError | ValueError, value: Any) -> BaseException:
+    """The CodecError of a value too deeply nested to encode (:func:`nested_too_deeply`): what
+    msgpack's ValueError or Python's RecursionError, through nested values' packers, mean;
+    another ValueError as it was."""
+    if isinstance(error, ValueError) and _MSGPACK_TOO_DEEP not in str(error):
+        return error
+    return nested_too_deeply(value)
+
+
+def nested_too_deeply(value: Any) -> CodecError:
+    """The error of a value nested too deeply to encode (or to walk: flow/read_only.py), most
+    often one that contains itself (a list appended to itself, a dataclass whose field refers
+    back to it); not located in the value (_path_to_unencodable would recurse as deep)."""
+    return CodecError(f"cannot encode a {type(value).__name__} nested too deeply (it may contain "
+                      "itself: a list or dict holding itself, a dataclass referring back to it)\n    hint: "
+                      "emit values that are trees, not graphs: copy out what a consumer needs")
 
 
 class _IdlePackers(threading.local):
@@ -436,7 +460,10 @@ def _pack_with(value: Any, default: Callable[[Any], Any], idle: list | None = No
 
 
 def _located(error: CodecError, value: Any) -> CodecError:
-    path = _path_to_unencodable(value)
+    try:
+        path = _path_to_unencodable(value)
+    except RecursionError:  # a value that contains itself (_too_deep's error, from a nested packer)
+        return error
     if not path:
         return error
     first, _, rest = str(error).partition("\n")
@@ -607,6 +634,8 @@ class OutOfBandEncoder:
                 return self._nested(value), buffers
         except CodecError as e:
             raise _located(e, value) from None
+        except (RecursionError, ValueError) as e:
+            raise _too_deep(e, value) from None
 
     def _nested(self, value: Any) -> bytes:
         return _pack_with(value, self._default, self._idle)

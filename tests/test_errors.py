@@ -9,6 +9,7 @@ import re
 import sys
 import threading
 
+import numpy as np
 import pytest
 
 import retriever
@@ -638,6 +639,10 @@ class Unrecordable(Flow):
         self.n += 1
         if self.n != self.bad_at:
             return {"x": self.n, "y": [self.n]}
+        if self.bad == "itself":  # a list that holds itself
+            itself: list = [np.zeros(2)]
+            itself.append(itself)
+            return {"x": self.n, "y": itself}
         value = {"lock": threading.Lock(), "set": {"a": {1, 2}}, "burst": Burst([7, threading.Lock()])}[self.bad]
         return {"x": self.n, "y": value}
 
@@ -659,6 +664,20 @@ def test_a_step_returning_an_unencodable_value_stops_the_run_at_that_step(bad, w
     assert last.detail["error"].startswith("CodecError: u.y: the step at t=0.100000000s m=0")
     assert pipe.stats()["u"].errors == 1
     pipe.trace.digest()  # what was recorded can be digested
+
+
+def test_a_step_returning_a_value_that_holds_itself_stops_the_run_at_that_step():
+    """A list appended to itself cannot be encoded (nor made read-only): the run stops at the
+    step with the codec's error, not a RecursionError from deep in the runtime."""
+    with Pipeline("p") as pipe:
+        Unrecordable("itself").named("u") @ Rate(hz=10)
+    with pytest.raises(CodecError, match=re.escape(
+            "u.y: the step at t=0.100000000s m=0 returned a value the run cannot record: cannot encode a list "
+            "nested too deeply (it may contain itself: a list or dict holding itself, a dataclass referring back "
+            "to it)\n    hint: emit values that are trees, not graphs")):
+        pipe.run(duration=1)
+    last = pipe.trace.steps[-1]
+    assert (last.tag, last.status, last.produced) == ((100_000_000, 0), "error", (("u", "x", 1),))
 
 
 def test_a_burst_holding_an_unencodable_value_stops_the_run_with_none_of_its_events():

@@ -344,8 +344,11 @@ class _Recorder:
         node, port, tick and type) if the codec cannot encode it, as a real-time backend, which
         cannot send it, does; whatever ``on_error`` says, since this is a bug in the flow, not a
         failure of one tick. The error record lists the events of the tick already ``produced``."""
-        if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
-            return
+        try:
+            if rt.replaced or _encodes_surely(value):  # a replayed step emits logged values
+                return
+        except RecursionError:  # a value that contains itself: the codec says so
+            pass
         try:
             packb(value)
         except CodecError as e:

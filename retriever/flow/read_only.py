@@ -12,6 +12,9 @@ arrive read-only already, and a replay's values, decoded from the log, are read-
 What is not caught: a write through another array that shares the memory (an emitted view of a
 buffer the flow keeps writing, an array a C library fills), and changes to lists, dicts and
 dataclass fields themselves; those are the flow's to avoid (copy first).
+
+A value that contains itself (a list appended to itself) cannot be walked, nor encoded: the
+codec's CodecError (``codec.nested_too_deeply``), not a RecursionError from deep in the runtime.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from ..codec import nested_too_deeply
 from .burst import Burst
 
 #: values with nothing inside to protect (immutable Python values)
@@ -29,7 +33,22 @@ _IMMUTABLE = frozenset({int, float, str, bytes, bool, complex, type(None)})
 def make_read_only(value: Any) -> None:
     """Mark every numpy array in ``value`` read-only, in place: the value itself, the items of
     lists and tuples, the values of dicts, the fields of dataclass values, and a Burst's values
-    (and the array whose rows they are)."""
+    (and the array whose rows they are). CodecError if ``value`` nests too deeply to walk (it
+    contains itself)."""
+    kind = type(value)
+    if kind is np.ndarray:  # (the commonest, and a number, without the walk's call: per event)
+        value.flags.writeable = False
+        return
+    if kind in _IMMUTABLE:
+        return
+    try:
+        _walk(value)
+    except RecursionError:
+        raise nested_too_deeply(value) from None
+
+
+def _walk(value: Any) -> None:
+    """:func:`make_read_only`, recursively."""
     kind = type(value)
     if kind is np.ndarray:
         value.flags.writeable = False
@@ -37,25 +56,25 @@ def make_read_only(value: Any) -> None:
         return
     elif kind is list or kind is tuple:
         for item in value:
-            make_read_only(item)
+            _walk(item)
     elif kind is dict:
         for item in value.values():
-            make_read_only(item)
+            _walk(item)
     elif kind is Burst:
         if value.rows is not None:
             value.rows.flags.writeable = False
         for item in value.values:
-            make_read_only(item)
+            _walk(item)
     elif isinstance(value, np.ndarray):  # a subclass of ndarray
         value.flags.writeable = False
     else:
         fields = getattr(kind, "__dataclass_fields__", None)
         if fields is not None and not isinstance(value, type):
             for name in fields:
-                make_read_only(getattr(value, name, None))
+                _walk(getattr(value, name, None))
         elif isinstance(value, (list, tuple)):  # a NamedTuple, a list subclass
             for item in value:
-                make_read_only(item)
+                _walk(item)
         elif isinstance(value, dict):
             for item in value.values():
-                make_read_only(item)
+                _walk(item)

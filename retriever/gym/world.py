@@ -15,6 +15,7 @@ action of an episode a tick makes no event.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -117,15 +118,17 @@ def _own(observation: Any) -> Any:
 
 
 def _as_action(action: Any, space: Any) -> Any:
-    """``action`` as ``space`` holds it: an array of the space's dtype for a Box (an agent's
-    float64 row for a float32 space), a Python int for a Discrete; else as it came."""
+    """``action`` as ``space`` holds it, the env's own: an array of the space's dtype for a Box
+    (an agent's float64 row for a float32 space), a Python int for a Discrete; else a copy of it.
+    The action is the agent's event, whose arrays are read-only (an emitted value is immutable),
+    and an env may change the action it is given (``np.clip(action, lo, hi, out=action)``)."""
     from gymnasium import spaces
 
     if isinstance(space, spaces.Box):
-        return np.asarray(action, dtype=space.dtype)
+        return np.array(action, dtype=space.dtype)
     if isinstance(space, spaces.Discrete):
         return int(action)
-    return action
+    return copy.deepcopy(action)
 
 
 def _looks_like_path(text: str) -> bool:

@@ -129,7 +129,12 @@ def decode_step(data: bytes) -> tuple:
     event ids as tuples like the in-memory trace has them."""
     # most records have no detail: their arrays are read as the tuples they are kept as, checked
     # in place (a replay reads every step record of the log, twice)
-    step = msgpack.unpackb(data, use_list=False)
+    try:
+        step = msgpack.unpackb(data, use_list=False)
+    except Exception as e:  # msgpack's FormatError (a byte it never uses) says nothing of itself
+        if str(e):
+            raise
+        raise ValueError(f"it is not valid msgpack ({type(e).__name__})") from None
     node, microstep, consumed, produced, status, detail, wall_ns = step
     if detail is None:
         # checked in the order of the reading below (an unhashable status raises TypeError, after the ports);

@@ -50,6 +50,7 @@ from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
+from ..time import format_tag
 from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
 from .survey import LogSurvey
@@ -214,6 +215,8 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
             if getattr(session, "ended", None) is not None:  # a step's sys.exit(0): the run is over
                 break
     except StepError as e:
+        if isinstance(e.__cause__, LogError):  # a replayed source's tick found the log damaged
+            raise e.__cause__ from None
         if not isinstance(e.__cause__, ReplayedError):  # (a logged source's error stopped the run too)
             return ResimReport(horizon, 0, 0, f"the re-simulation stopped: {e}", changes)
     finally:
@@ -352,7 +355,16 @@ class _Feed:
             while not ticks:
                 if not self._read_some():
                     return
-            yield _logged_outputs(ticks.popleft(), self._value)
+            step = ticks.popleft()
+            try:
+                outputs = _logged_outputs(step, self._value)
+            except KeyError as e:  # (raised in the source's tick: _resim refuses the log with it)
+                node, port, seq = e.args[0]
+                which = ("which an earlier step record said it produced too (a record logged twice?)"
+                         if self.survey.events.in_log(e.args[0]) else "which the log does not have")
+                raise LogError(f"{self.log.path}: the step record of {step[0]} at {format_tag(step[1])} says it "
+                               f"produced event {node}.{port} #{seq}, {which}") from None
+            yield outputs
 
     def _value(self, event_id: tuple) -> object:
         values = self.values

@@ -13,6 +13,7 @@ from typing import Callable, Iterator
 from ..backends.inproc import InprocSession
 from ..codec import Encoder, decodes_surely, unpackb
 from ..errors import LogError, RunEnded, StepError
+from ..flow.read_only import make_read_only
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
 from ..sync import Latest, before, bound, fill
@@ -38,6 +39,10 @@ class _Check:
         self.waiting = 0
 
 
+#: decoded values with no array in them
+_PLAIN = frozenset({int, float, str, bytes, bool, type(None)})
+
+
 class _Logged:
     """A logged value that decodes surely (codec.decodes_surely), decoded when a tick first takes
     it (then that one value at every tick that takes it, as in the run): routed to Latest inputs
@@ -56,6 +61,7 @@ def _take_logged(values: dict) -> None:
         if type(value) is _Logged:
             if value.value is _Logged:
                 value.value = unpackb(value.raw)
+                make_read_only(value.value)  # an emitted value is immutable, as in the run (see read())
             values[port] = value.value
 
 
@@ -188,6 +194,11 @@ class StepReplay:
                 except Exception:  # what it is, said as the log says it
                     self.log.value(LoggedEvent(tag, node, port_name, seq, raw, publish_time))
                     raise
+                if type(value) not in _PLAIN:  # (the commonest, a number, has no array)
+                    # an emitted value is immutable: its arrays read-only, as the run's consumers
+                    # had them (the codec decodes a copy, writable), so that a step that wrote into
+                    # its input fails in the replay as it did in the run
+                    make_read_only(value)
             gaps, late, missed = self.gaps, self.late, self.missed
             if gaps or late or missed:
                 self.deliver_later(consumers, tag, node, port_name, seq, event_id, value)

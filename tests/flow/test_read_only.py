@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from retriever import Burst, io
+from retriever.errors import CodecError
 from retriever.flow.read_only import make_read_only
 
 
@@ -67,3 +68,25 @@ def test_plain_values_and_arrays_already_read_only_are_left_as_they_are():
     plain = Plain()
     make_read_only(plain)
     assert plain.a.flags.writeable
+
+
+@io
+@dataclass
+class Tree:
+    parent: object = None
+    leaf: object = None
+
+
+def test_a_value_that_holds_itself_is_the_codecs_error_not_a_recursion_error():
+    """Such a value cannot be walked (nor encoded): a CodecError that says so, not a RecursionError
+    from deep in the runtime (on zenoh, where the arrays are made read-only before the value is
+    encoded, that crashed the worker)."""
+    itself: list = [np.zeros(2)]
+    itself.append(itself)
+    mapping: dict = {"a": np.zeros(2)}
+    mapping["self"] = mapping
+    tree = Tree(leaf=np.zeros(2))
+    tree.parent = [tree]
+    for value in (itself, mapping, tree, Burst([1, itself])):
+        with pytest.raises(CodecError, match=r"nested too deeply \(it may contain itself"):
+            make_read_only(value)

@@ -76,6 +76,46 @@ def test_pendulum_takes_a_float64_action_row_as_its_float32_box():
     assert played_back(trace, "Pendulum-v1", seed=2) == 59  # every world tick after the first (the reset)
 
 
+class ClipsInPlace(gymnasium.Env):
+    """An env that clips the action it is given in place, as an env may (its own argument)."""
+
+    observation_space = gymnasium.spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+    action_space = gymnasium.spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(1, dtype=np.float32), {}
+
+    def step(self, action):
+        np.clip(action, -0.5, 0.5, out=action)
+        return action.copy(), 0.0, False, False, {}
+
+
+@io
+@dataclass
+class Pushed:
+    action: np.ndarray
+
+
+class PushHard(Flow[PendulumView, Pushed]):
+    def step(self, inp: PendulumView) -> Pushed:
+        return Pushed(np.array([0.9], dtype=np.float32))  # of the space's dtype: no conversion copies it
+
+
+def test_an_env_that_changes_the_action_it_is_given_changes_a_copy_not_the_agents_event():
+    """The action is the agent's event, read-only (an emitted value is immutable): the env gets
+    its own copy, so an env that writes into its argument runs (it failed, with a hint blaming
+    the world flow), and the agent's logged action stays what it emitted."""
+    with Pipeline("clips") as pipe:
+        world = GymWorld(ClipsInPlace).named("world") @ Rate(10, offset=0.05)
+        push = PushHard().named("push") @ Rate(10)
+        world.then(push).then(world)
+    trace = pipe.run(duration=1.0)
+    assert {s.status for s in trace.steps_of("world")} == {"ok"}
+    assert [float(v[0]) for v in trace.values_of("world", "observation")][1:] == [0.5] * 9
+    assert {float(v[0]) for v in trace.values_of("push", "action")} == {np.float32(0.9)}
+
+
 def test_latest_holds_the_last_action_and_latest_distinct_steps_only_on_a_new_one():
     consumed = {}
     for sync in (Latest(), LatestDistinct()):

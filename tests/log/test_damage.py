@@ -709,6 +709,25 @@ def test_a_step_record_that_is_not_one_is_a_log_error_everywhere(tmp_path, chang
             read()
 
 
+def test_a_step_record_with_a_byte_msgpack_never_uses_says_so(tmp_path):
+    """msgpack's FormatError has no message: the error said "is malformed ()"."""
+    from retriever.replay import replay_file, resim_file
+    from tests.log.log_flows import build_small
+
+    def change(messages, metadata):
+        import msgpack
+
+        step = _first(messages, "steps")
+        fields = msgpack.unpackb(step[4])
+        step[4] = b"\x97" + b"".join(map(msgpack.packb, fields[:5])) + b"\xc1" + msgpack.packb(fields[6])  # as detail
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", change)
+    error = r"step record #\d+ is malformed \(it is not valid msgpack \(FormatError\)\)"
+    for read in (read_log(path).trace, lambda: replay_file(path, build_small), lambda: resim_file(path, build_small)):
+        with pytest.raises(LogError, match=error):
+            read()
+
+
 def test_an_event_whose_microstep_is_cut_short_is_a_log_error(tmp_path):
     def change(messages, metadata):
         _first(messages, "data/counter/k")[4] = b"\x92\xcd\x01"  # a uint16 microstep missing a byte
@@ -744,6 +763,41 @@ def test_an_event_logged_twice_is_expected_twice_by_resim(tmp_path):
     assert expected is not None
     for report in (resim(read_log(path), build_small()), resim_file(path, build_small)):
         assert re.sub(r"publish_ns=\d+", "", report.difference) == re.sub(r"publish_ns=\d+", "", expected)
+
+
+def _source_record_names(port: str | None):
+    """A change: counter's (a source's) first step record that produced events names a port of
+    its second event that the log has no event on (``port``), or (None) is logged twice."""
+    def change(messages, metadata):
+        import msgpack
+
+        records = [m for m in messages if m[0] == "steps" and msgpack.unpackb(m[4])[0] == "counter"]
+        if port is None:
+            messages.append(list(records[1]))
+            return
+        fields = msgpack.unpackb(records[1][4])
+        fields[3][0][1] = port
+        records[1][4] = msgpack.packb(fields)
+    return change
+
+
+@pytest.mark.parametrize("port, says", [
+    ("luvel", "says it produced event counter.luvel #1, which the log does not have"),
+    (None, r"says it produced event counter.k #1, which an earlier step record said it produced too \(a record "
+           r"logged twice\?\)"),
+])
+def test_a_source_step_record_naming_an_event_it_cannot_give_is_a_log_error_in_resim(tmp_path, port, says):
+    """A replayed source's tick takes the events its step record names: one the log lacks was a
+    KeyError raised in its step, reported as 'the re-simulation stopped: counter.step() raised
+    KeyError: ...' with the hint to set on_error; it is the damaged log's LogError, as a value
+    that does not decode is."""
+    from retriever.replay import resim_file
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _source_record_names(port))
+    for run in (lambda: resim(read_log(path), build_small()), lambda: resim_file(path, build_small)):
+        with pytest.raises(LogError, match=r"odd\.mcap: the step record of counter at t=0\.100000000s m=0 " + says):
+            run()
 
 
 def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):

@@ -21,7 +21,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 
 from retriever.flow.core import settings_of
-from retriever import Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, SetupError, StepError, io
+from retriever import (Flow, Latest, LogError, Pipeline, Queue, Rate, RetrieverWarning, SetupError, StepError, Trigger,
+                       io)
 from retriever.log import read_log
 from retriever.replay import replay, resim
 from tests.backends.test_schedule_independence import budget, graphs
@@ -241,6 +242,32 @@ def test_a_replayed_step_that_refills_the_array_it_emitted_fails_as_in_the_run(t
     for report in (replay(log), replay_file(log.path)):
         assert report.identical, report.divergences[:1]
         assert report.nodes["refill"].replayed == len(steps)
+
+
+@pytest.mark.parametrize("latest", [False, True])
+def test_a_step_that_writes_into_its_input_fails_in_the_replay_as_in_the_run(tmp_path, latest):
+    """The values the replay delivers are decoded from the log (the codec's copies, writable):
+    they are made read-only as the run's were (docs/semantics.md, "An emitted value is
+    immutable"), so a consumer that wrote into its input fails in the replay as in the run; it
+    ran there, and the replay diverged at its first tick. Decoded as read (a Trigger input) and
+    when a tick takes it (a Latest input's, put off), read whole and streamed."""
+    from retriever.replay import replay_file
+    from tests.backends.test_conformance import ArrayRamp, TripleInPlace
+
+    with Pipeline("writes-input") as pipe:
+        ramp = ArrayRamp().named("ramp") @ Rate(5)
+        bad = TripleInPlace().named("bad").configure(on_error="skip_tick")
+        if latest:
+            ramp.then(bad @ Rate(5, offset=0.1), map={"value": "x"}, sync=Latest())
+        else:
+            ramp.then(bad @ Trigger("x"), map={"value": "x"})
+    log = logged(pipe, tmp_path, duration=1.0)
+    steps = [s for s in log.iter_steps() if s.node == "bad"]
+    assert [s.status for s in steps] == ["error"] * 5
+    assert all("read-only" in s.detail["error"] for s in steps)
+    for report in (replay(log), replay_file(log.path)):
+        assert report.identical, report.divergences[:1]
+        assert report.nodes["bad"].replayed == 5
 
 
 def test_a_run_stopped_by_an_error_is_logged_and_replays(tmp_path):

@@ -17,6 +17,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from retriever import Flow, io
 
 from ..test_conformance import ABIn, PairSource  # noqa: F401  (re-exported for the tests)
@@ -112,6 +114,21 @@ class Unsendable(Flow[None, Value]):
     def step(self, inp: None) -> Value:
         self.k += 1
         return Value(object() if self.k == 3 else self.k)
+
+
+class HoldsItself(Flow[None, Value]):
+    """A source whose second output is a list that holds itself (and an array)."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp: None) -> Value:
+        self.k += 1
+        if self.k != 2:
+            return Value(self.k)
+        value = [np.zeros(2)]
+        value.append(value)
+        return Value(value)
 
 
 class Faulty(Flow[XIn, Report]):

@@ -40,6 +40,7 @@ from .semantics_flows import (
     Echo,
     FailingTicker,
     Faulty,
+    HoldsItself,
     PairProbe,
     PairSource,
     Probe,
@@ -419,6 +420,21 @@ def test_an_output_that_cannot_be_sent_stops_the_run_naming_its_port_and_time():
     assert "odd.value: the event at t=0.2" in msg and "cannot be sent to another process" in msg, msg
     assert "cannot encode a value of type builtins.object" in msg and "crashed" not in msg, msg
     assert [s.tag[0] for s in pipe.trace.steps_of("odd")] == [0, 100 * MS]  # the two before it
+
+
+def test_an_output_that_holds_itself_stops_the_run_naming_its_port_and_time():
+    """A list appended to itself can be neither made read-only (an emitted value is immutable)
+    nor sent: the run stops with the node, port and tick and what is wrong with the value, not
+    with a RecursionError from deep in the worker (a crash)."""
+    with Pipeline("holds_itself") as pipe:
+        HoldsItself().configure(name="odd") @ Rate(hz=10)
+    with pytest.raises(BackendError) as info:
+        run(pipe, 1.0)
+    msg = str(info.value)
+    assert "odd.value: the step at t=0.100000000s m=0 returned a value the run cannot send or record: cannot " \
+           "encode a list nested too deeply (it may contain itself" in msg, msg
+    assert "RecursionError" not in msg and "crashed" not in msg, msg
+    assert [s.tag[0] for s in pipe.trace.steps_of("odd")] == [0]  # the one before it
 
 
 # =============================================================================================

@@ -12,13 +12,14 @@ import time
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from ....errors import StopRun
+from ....errors import CodecError, StopRun
 from ....graph import Node
 from ....flow.core import make_invoker, with_step_detail
 from ....flow.burst import Burst
 from ....flow.read_only import make_read_only
 from ....tick import (Decision, decide, ending, error_outcome, error_text, exit_outcome, skipped_outcome, take_inputs,
                       timed_step)
+from ....time import format_tag
 from ....trace import StepStatus
 from .clock import RunClock
 from .ending import Ending
@@ -141,7 +142,11 @@ class Steps:
         events = []  # (a loop, not a comprehension: one call less per tick)
         for port, value in outputs:  # None, or an empty burst: no event
             if value is not None and not (type(value) is Burst and not value.values):
-                make_read_only(value)  # an emitted value is immutable: consumers in this process share it
+                try:
+                    make_read_only(value)  # an emitted value is immutable: consumers in this process share it
+                except CodecError as e:  # it contains itself: it cannot be sent either (as Outputs.encode says)
+                    raise StopRun(f"{self.id}.{port}: the step at {format_tag(tau)} returned a value the run cannot "
+                                  f"send or record: {e}", tau) from None
                 events.append((port, value))
         tag, batch, produced = self.outputs.stamp(tau, events)
         if self.outputs.latency_ns and not self.virtual:  # (in virtual time, LET outputs go at once: the tag says when)
