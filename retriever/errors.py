@@ -146,8 +146,8 @@ class StepError(RetrieverError):
         from .time import format_tag
 
         if _READ_ONLY_WRITE in str(cause):
-            hint = (f"an emitted value is immutable: '{node}' wrote into an array of an event (its input, or "
-                    "one it emitted before), which other consumers and the log share; copy it first "
+            hint = (f"if the array is an event's ('{node}''s input, or an array it emitted before): an emitted "
+                    "value is immutable, since other consumers and the log share it; copy it first "
                     "(x = inp.frame.copy(); emit a new array each tick). docs/semantics.md says why")
         else:
             hint = (f"set on_error='skip_tick' or 'restart' on '{node}' "

@@ -19,6 +19,7 @@ codec's CodecError (``codec.nested_too_deeply``), not a RecursionError from deep
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -28,6 +29,8 @@ from .burst import Burst
 
 #: values with nothing inside to protect (immutable Python values)
 _IMMUTABLE = frozenset({int, float, str, bytes, bool, complex, type(None)})
+#: a dataclass's instance fields by class (not its ClassVar entries, which its class holds for every instance)
+_FIELDS: dict[type, tuple[str, ...]] = {}
 
 
 def make_read_only(value: Any) -> None:
@@ -68,8 +71,10 @@ def _walk(value: Any) -> None:
     elif isinstance(value, np.ndarray):  # a subclass of ndarray
         value.flags.writeable = False
     else:
-        fields = getattr(kind, "__dataclass_fields__", None)
-        if fields is not None and not isinstance(value, type):
+        fields = _FIELDS.get(kind)
+        if fields is None and hasattr(kind, "__dataclass_fields__") and not isinstance(value, type):
+            fields = _FIELDS[kind] = tuple(field.name for field in dataclasses.fields(kind))
+        if fields is not None:
             for name in fields:
                 _walk(getattr(value, name, None))
         elif isinstance(value, (list, tuple)):  # a NamedTuple, a list subclass

@@ -2,7 +2,7 @@
 value may hold them in; nothing else touched."""
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 import pytest
@@ -90,3 +90,17 @@ def test_a_value_that_holds_itself_is_the_codecs_error_not_a_recursion_error():
     for value in (itself, mapping, tree, Burst([1, itself])):
         with pytest.raises(CodecError, match=r"nested too deeply \(it may contain itself"):
             make_read_only(value)
+
+
+@io
+@dataclass
+class Scaled:
+    SCALE: ClassVar[np.ndarray] = np.ones(2)  # a class-level constant, not an instance's field
+    v: np.ndarray = None
+
+
+def test_a_dataclass_values_fields_become_read_only_not_its_class_constants():
+    value = Scaled(np.zeros(2))
+    make_read_only(value)
+    assert not value.v.flags.writeable
+    assert Scaled.SCALE.flags.writeable  # every instance's, and the flow's own: not the event's
