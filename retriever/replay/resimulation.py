@@ -45,7 +45,7 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import array_encoding_head, decodes_surely
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
@@ -400,9 +400,8 @@ class _Feed:
             owed.difference_update(ids)
             # a value that decodes surely is compared by its bytes, decoded only if they differ;
             # any other is decoded here, so that a damaged one refuses the log here, as it did
-            surely = list(map(decodes_surely, map(_raw_value, ready)))
-            expected = ready if surely.count(True) == len(surely) else [
-                e if sure else _decoded(log, e) for e, sure in zip(ready, surely)]
+            expected = ready if all_decode_surely(map(_raw_value, ready)) else [
+                e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
         else:
             expected = []
             for e, event_id in zip(ready, ids):
