@@ -430,9 +430,10 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
     packs to those bytes, its encoding's head (``codec.array_encoding_head``) then its raw
     bytes. The head is looked up by the logged value's length (``heads``: per length, a head of
     that long an encoding, with its array's dtype and shape, as the session's arrays had them):
-    the session's value has that head when its dtype and shape are those, and the logged bytes
-    begin with that head, so the two are the same if the logged bytes end with the session's
-    raw bytes (the head and they are that length). ``mine``'s: the fields of a ``LoggedEvent``
+    the session's value has that head when its dtype and shape are those, and the two are the
+    same if that head and the session's raw bytes are the logged bytes (one join and one
+    compare: ``startswith`` and ``endswith`` parse their arguments, 1.4k instructions an event
+    more). ``mine``'s: the fields of a ``LoggedEvent``
     or an :class:`Event`; ``theirs``: the fields of an :class:`Event`, plain tuples."""
     paired = 0
     ndarray = np.ndarray
@@ -449,7 +450,7 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
                     head = array_encoding_head(value)
                     if len(head) + value.nbytes == len(raw):
                         known = heads[len(raw)] = head, dtype, shape
-            if known is not None and raw.startswith(known[0]) and raw.endswith(value.tobytes()):
+            if known is not None and known[0] + value.tobytes() == raw:
                 paired += 1
                 continue
         mine.appendleft(a)
