@@ -21,8 +21,8 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
-   to the same bytes is the same record (``_same_event``); a step record without detail by its
-   fields (``_Comparison.pair``); anything else decoded and packed, as the two traces would be.
+   to the same bytes is the same record (``_same_events``); a step record without detail by its
+   fields (``_same_steps``); anything else decoded and packed, as the two traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -45,7 +45,7 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import array_encoding_head, decodes_surely
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
@@ -412,9 +412,8 @@ class _Feed:
             owed.difference_update(ids)
             # a value that decodes surely is compared by its bytes, decoded only if they differ;
             # any other is decoded here, so that a damaged one refuses the log here, as it did
-            surely = list(map(decodes_surely, map(_raw_value, ready)))
-            expected = ready if surely.count(True) == len(surely) else [
-                e if sure else _decoded(log, e) for e, sure in zip(ready, surely)]
+            expected = ready if all_decode_surely(map(_raw_value, ready)) else [
+                e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
         else:
             expected = []
             for e, event_id in zip(ready, ids):
@@ -432,19 +431,62 @@ class _Feed:
         return expected, now
 
 
-def _same_event(logged: tuple, again: tuple) -> bool:
-    """Whether ``event_bytes`` of the logged event, its value decoded, is that of the session's,
-    told from the logged value's bytes, where they tell it exactly: a value that decodes surely
-    (an array of a dtype and shape decoded before) packs again as it was logged, so the two are
-    the same if the session's is an array of a plain dtype (no fields, no objects: packed by its
-    dtype's string, which decodes to the same dtype) that packs to those bytes. False says
-    nothing: compare them decoded. ``logged``: the fields of a ``LoggedEvent``, ``again`` of an
-    :class:`Event`, plain tuples."""
-    tag, node, port, seq, value = again[:5]
-    if type(value) is not np.ndarray or value.dtype.fields is not None or value.dtype.hasobject:
-        return False
-    return (logged[3] == seq and logged[0] == tag and logged[2] == port and logged[1] == node
-            and array_encoding_head(value) + value.tobytes() == logged[4])
+def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dtype, tuple]]) -> int:
+    """Pair off the events at the front of ``mine`` (the log's) and ``theirs`` (the session's)
+    whose ``event_bytes`` are the same, told from the logged value's bytes, where they tell it
+    exactly, in one loop; how many. Stops at the first pair it cannot tell (left in place): the
+    comparison's own loop compares it decoded. A logged value that decodes surely (left a plain
+    tuple by ``_Feed.take_before``: an array of a dtype and shape decoded before) packs again as
+    it was logged, so the two are the same if the session's is an array of a plain dtype (no
+    fields, no objects: packed by its dtype's string, which decodes to the same dtype) that
+    packs to those bytes, its encoding's head (``codec.array_encoding_head``) then its raw
+    bytes. The head is looked up by the logged value's length (``heads``: per length, a head of
+    that long an encoding, with its array's dtype and shape, as the session's arrays had them):
+    the session's value has that head when its dtype and shape are those, and the two are the
+    same if that head and the session's raw bytes are the logged bytes (one join and one
+    compare: ``startswith`` and ``endswith`` parse their arguments, 1.4k instructions an event
+    more). ``mine``'s: the fields of a ``LoggedEvent``
+    or an :class:`Event`; ``theirs``: the fields of an :class:`Event`, plain tuples."""
+    paired = 0
+    ndarray = np.ndarray
+    while mine and theirs:
+        a, b = mine.popleft(), theirs.popleft()
+        value = b[4]
+        if type(a) is tuple and type(value) is ndarray and a[3] == b[3] and a[0] == b[0] and a[2] == b[2] \
+                and a[1] == b[1]:
+            raw, dtype, shape = a[4], value.dtype, value.shape
+            known = heads.get(len(raw))
+            if known is None or (known[1] is not dtype and known[1] != dtype) or known[2] != shape:
+                known = None
+                if dtype.fields is None and not dtype.hasobject:
+                    head = array_encoding_head(value)
+                    if len(head) + value.nbytes == len(raw):
+                        known = heads[len(raw)] = head, dtype, shape
+            if known is not None and known[0] + value.tobytes() == raw:
+                paired += 1
+                continue
+        mine.appendleft(a)
+        theirs.appendleft(b)
+        return paired
+    return paired
+
+
+def _same_steps(mine: deque, theirs: deque) -> int:
+    """Pair off the step records at the front of ``mine`` (the log's) and ``theirs`` (the
+    session's) that are the same without detail, in one loop; how many. Stops at the first pair
+    that is not (left in place): the comparison's own loop takes it. (The same fields without
+    detail pack the same, ``step_bytes``: the log's are exact strs and ints, ``format.decode_step``
+    checks them, the session's the backend's own.)"""
+    paired = 0
+    while mine and theirs:
+        a, b = mine.popleft(), theirs.popleft()
+        if a[5] is None and b[5] is None and a[:5] == b[:5]:
+            paired += 1
+            continue
+        mine.appendleft(a)
+        theirs.appendleft(b)
+        return paired
+    return paired
 
 
 _produced, _event_id, _raw_value = itemgetter(3), itemgetter(1, 2, 3), itemgetter(4)  # of the plain tuples
@@ -481,6 +523,9 @@ class _Comparison:
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
         self.paired_events = self.paired_steps = 0
         self.session_done = False  # the session's records are all in
+        #: per length of a logged value: (the head of an array's encoding that long, its dtype, its shape),
+        #: of a plain dtype, as the session's arrays had them (_same_events)
+        self._heads: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 
     def add(self, expected: tuple[list[Event | tuple], list[tuple]], again: tuple[list[tuple], list[tuple]]) -> None:
         for side, (events, steps) in enumerate((expected, again)):
@@ -506,13 +551,10 @@ class _Comparison:
                 self.events[side].extend(ready)
         mine, theirs = self.events
         while mine and theirs and self.event_difference is None:
-            a, b = mine.popleft(), theirs.popleft()
-            if type(a) is tuple:
-                if _same_event(a, b):
-                    self.paired_events += 1
-                    continue
-                a = _decoded(self.log, a)
-            b = Event._make(b)
+            self.paired_events += _same_events(mine, theirs, self._heads)
+            if not (mine and theirs):
+                break
+            a, b = _decoded(self.log, mine.popleft()), Event._make(theirs.popleft())
             if event_bytes(a) != event_bytes(b):
                 self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
                 mine.clear()
@@ -523,13 +565,10 @@ class _Comparison:
                 mine.pop()
         mine, theirs = self.steps
         while mine and theirs and self.step_difference is None:
-            a, b = mine.popleft(), theirs.popleft()
-            # the same fields without detail pack the same (step_bytes): the log's are exact strs and
-            # ints (format.decode_step checks them), the session's the backend's own
-            if a[5] is None and b[5] is None and a[:5] == b[:5]:
-                self.paired_steps += 1
-                continue
-            a, b = StepRecord._make(a), StepRecord._make(b)
+            self.paired_steps += _same_steps(mine, theirs)
+            if not (mine and theirs):
+                break
+            a, b = StepRecord._make(mine.popleft()), StepRecord._make(theirs.popleft())
             if step_bytes(a) != step_bytes(b):
                 self.step_difference = (self.paired_steps, a, b)
                 mine.clear()

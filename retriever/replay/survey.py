@@ -119,7 +119,8 @@ class LogSurvey:
         if steps and self.step_error is None:
             which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
             starts = chunk.offsets[which] + _DATA_AT
-            plain, node_at, status_at = _plain_steps(bytes_, starts, chunk.ends[which])
+            padded = np.concatenate((bytes_, np.zeros(_PAD, dtype=np.uint8)))
+            plain, node_at, status_at = _plain_steps(padded, starts, chunk.ends[which])
             if self.check_steps:
                 plain &= _plain_statuses(bytes_, status_at)
             others = np.flatnonzero(~plain)
@@ -132,7 +133,7 @@ class LogSurvey:
                     plain[other:] = False
                     break
             self.steps += int(plain.sum())
-            self.nodes.update(_names(bytes_, node_at[plain]))
+            self.nodes.update(_names(padded, node_at[plain]))
             if len(others) and self.unchecked is not None:
                 self.unchecked.update(heads["sequence"][which[~plain]].tolist())
                 if len(self.unchecked) > self.max_unchecked:
@@ -213,9 +214,12 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     port, seq]``, every string an ASCII fixstr, arrays and maps of up to 15, integers of any
     msgpack width (msgpack.unpackb reads such a record as a 7-tuple whose node is a str and
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
-    time for all of them at once; and where each one's node and status (their fixstrs) are."""
-    not_ascii_before = np.zeros(len(data) + 1, dtype=np.int32)  # bytes >= 0x80 before each offset
-    np.cumsum(data >= 0x80, dtype=np.int32, out=not_ascii_before[1:])
+    time for all of them at once; and where each one's node and status (their fixstrs) are.
+    ``data``: the bytes, followed by ``_PAD`` zeros."""
+    # the 8 bytes from each offset, as a little-endian uint64 (past the end: the zeros), which tell
+    # a string of up to 8 bytes ASCII at once (no bit of 0x80 set among its bytes: _HIGH_BITS)
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    end = len(data) - _PAD
     last = len(data) - 1
     ok = ends - starts >= 2
     p = starts.copy()
@@ -229,8 +233,9 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
         size = h - 0xA0
         valid = (p < ends) & (h >= 0xA0) & (h <= 0xBF)
         size = np.where(valid, size, 0)
-        begin = np.minimum(p + 1, last + 1)
-        valid &= not_ascii_before[np.minimum(begin + size, last + 1)] == not_ascii_before[begin]
+        begin = np.minimum(p + 1, end)
+        for k in range(0, int(size.max(initial=0)), 8):  # (a fixstr has up to 31 bytes)
+            valid &= (words[begin + k] & _HIGH_BITS[np.minimum(np.maximum(size - k, 0), 8)]) == 0
         ok &= ~act | valid
         p[:] = np.where(act & ok, p + 1 + size, p)
 
@@ -280,6 +285,9 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     return ok & (p == ends), node_at, status_at
 
 
+#: per count of bytes (0 to 8), the bits of 0x80 of that many low bytes of a uint64: _plain_steps' ASCII check
+_HIGH_BITS = np.array([0x8080808080808080 & ((1 << 8 * n) - 1) for n in range(9)], dtype=np.uint64)
+
 #: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
 _PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
 
@@ -298,17 +306,17 @@ def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
 
 
 def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
-    """The distinct ASCII fixstrs at ``node_at`` in ``data``."""
+    """The distinct ASCII fixstrs at ``node_at`` in ``data`` (followed by ``_PAD`` zeros)."""
     if not len(node_at):
         return set()
-    padded = np.concatenate((data, np.zeros(32, dtype=np.uint8)))
-    rows = np.lib.stride_tricks.sliding_window_view(padded, 32)[node_at]
+    rows = np.lib.stride_tricks.sliding_window_view(data, _PAD)[node_at]
     rows = rows * (np.arange(32) <= (rows[:, :1].astype(np.int64) - 0xA0))  # the bytes after each name: 0
     words = np.ascontiguousarray(rows).view("<u8")  # (n, 4)
     rows = rows[np.lexsort(words.T[::-1])]
     firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
     return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
 _DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
+_PAD = 32  # zeros after a chunk's bytes, for _plain_steps and _names: a fixstr's head and bytes fit
 
 
 class _Seqs:
