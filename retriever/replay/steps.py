@@ -10,7 +10,7 @@ from heapq import heappop, heappush
 from collections import deque
 from typing import Callable, Iterator
 
-from ..backends.inproc import InprocSession
+from ..backends.inproc import PLAIN_TYPES, InprocSession
 from ..codec import Encoder, decodes_surely, unpackb
 from ..errors import LogError, RunEnded, StepError
 from ..flow.read_only import make_read_only
@@ -37,10 +37,6 @@ class _Check:
         self.step, self.stats, self.found, self.done = step, stats, found, done
         self.originals: dict[tuple, tuple] = {}  # id -> (tag, raw value): a logged output read
         self.waiting = 0
-
-
-#: decoded values with no array in them
-_PLAIN = frozenset({int, float, str, bytes, bool, type(None)})
 
 
 class _Logged:
@@ -194,7 +190,7 @@ class StepReplay:
                 except Exception:  # what it is, said as the log says it
                     self.log.value(LoggedEvent(tag, node, port_name, seq, raw, publish_time))
                     raise
-                if type(value) not in _PLAIN:  # (the commonest, a number, has no array)
+                if type(value) not in PLAIN_TYPES:  # (the commonest, a number, has no array)
                     # an emitted value is immutable: its arrays read-only, as the run's consumers
                     # had them (the codec decodes a copy, writable), so that a step that wrote into
                     # its input fails in the replay as it did in the run
