@@ -3,7 +3,7 @@
 The library never imports the agents (``retriever/__init__.py`` draws the layers): the command
 reaches the CLI through the ``retriever.commands`` entry point group (pyproject.toml:
 ``demo = "agents.command:demo"``), and reports through the CLI's public seam
-(``retriever.cli.fail``, ``out``, ``err``, ``stop_on_sigterm``). What it imports at the top is
+(``retriever.cli.fail``, ``out``, ``err``, ``stop_on_signals``). What it imports at the top is
 light, since every ``retriever`` command loads it; the agent itself is imported when it runs.
 """
 
@@ -105,7 +105,7 @@ def demo(
         where = "the target in the bag" if task == "bag" else f"the spice in {drawer or 'a drawer the seed chose'}"
         cli.err.print(f"Retriever-0 on {canonical(backend)}, {task} task: seed {seed}, {where}; logging to {log}",
                    highlight=False)
-        cli.stop_on_sigterm()  # stop like Ctrl-C: the log is finished, not torn
+        cli.stop_on_signals()  # stop like Ctrl-C: the log is finished, not torn
         pipe = build(config)
         trace, episode, wall = run_episode(config, backend=canonical(backend), duration=duration, log=str(log),
                                            overwrite=force, pipe=pipe)

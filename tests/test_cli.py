@@ -105,6 +105,26 @@ def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
     assert f"interrupted; the run so far is in {log}" in err, err
 
 
+@pytest.mark.parametrize("signum", [15, 2])  # SIGTERM, SIGINT
+def test_a_signal_that_lands_in_an_exec_still_ends_with_the_status_the_command_chose(tmp_path: Path, signum):
+    """A stop signal that came while an exec() of a string ran (rosbags making a message class,
+    a dataclass being made): CPython takes a bare KeyboardInterrupt leaving it as unhandled, even
+    once caught, and ended a ``python -m`` process (as ``retriever`` is) by SIGINT (-2), not with
+    the command's 128 + the signal. An export stopped by SIGTERM exited -2 so, in CI."""
+    (tmp_path / "stopped.py").write_text(
+        "import os, sys\n"
+        "from retriever.cli import stop_on_signals, stop_signal\n"
+        "stop_on_signals()\n"
+        "try:\n"
+        f"    exec('os.kill(os.getpid(), {signum})\\nfor _ in range(10**7): pass')\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(128 + stop_signal())\n"
+        "sys.exit('the signal never came')\n")
+    done = subprocess.run([sys.executable, "-m", "stopped"], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert done.returncode == 128 + signum, (done.returncode, done.stderr)
+
+
 def test_version_as_a_flag_and_python_dash_m():
     from importlib import metadata
 

@@ -117,17 +117,26 @@ def print_held_warnings() -> None:
     _after_summary.clear()
 
 
+class Interrupted(KeyboardInterrupt):
+    """A stop signal (SIGTERM, or Ctrl-C's SIGINT) raised as Ctrl-C's exception: every ``except
+    KeyboardInterrupt`` takes it. A subclass, not KeyboardInterrupt itself: CPython marks a bare
+    KeyboardInterrupt that leaves an ``exec`` or ``eval`` of a string (a dataclass or a message
+    class being made) as unhandled even when a command catches it later, and then ends the
+    process by SIGINT instead of with the exit status the command chose."""
+
+
 def _interrupt(signum, frame) -> None:
     _state["signal"] = signum
-    raise KeyboardInterrupt
+    raise Interrupted(signum)
 
 
-def stop_on_sigterm() -> None:
-    """From now on SIGTERM stops the command as Ctrl-C does (a KeyboardInterrupt), and
-    :func:`stop_signal` says which signal it was."""
+def stop_on_signals() -> None:
+    """From now on SIGTERM and SIGINT (Ctrl-C) stop the command as an :class:`Interrupted` (a
+    KeyboardInterrupt), and :func:`stop_signal` says which signal it was."""
     signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGINT, _interrupt)
 
 
 def stop_signal() -> int | None:
-    """The signal that stopped the command through :func:`stop_on_sigterm` or a run, if any."""
+    """The signal that stopped the command through :func:`stop_on_signals` or a run, if any."""
     return _state.get("signal")

@@ -15,7 +15,7 @@ from rich.text import Text
 
 from ..errors import RetrieverError
 from . import console
-from .console import cell, fail, stop_on_sigterm, stop_signal, visible
+from .console import cell, fail, stop_on_signals, stop_signal, visible
 from .inputs import load, read
 
 
@@ -240,7 +240,7 @@ def log_export(
     lerobot needs pip install 'retriever-robotics\\[lerobot]'). Stopped by Ctrl-C or SIGTERM, it leaves
     nothing behind (the export is written beside OUT, then renamed) and exits 128 + the signal; with
     -o -, a reader that goes away (| head) ends it quietly with 141 (128 + SIGPIPE)."""
-    stop_on_sigterm()  # SIGTERM stops it as Ctrl-C does: the half-written file is removed, not left
+    stop_on_signals()  # SIGTERM stops it as Ctrl-C does: the half-written file is removed, not left
     from ..log.outputs import abandon_stdout, stdout_written, to_stdout
 
     before = _identity(out)

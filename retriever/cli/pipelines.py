@@ -14,7 +14,7 @@ from ..backends import canonical, default_backend
 from ..errors import BackendError, LogWriteError, RetrieverError
 from ..ir import IR
 from . import console
-from .console import fail, print_held_warnings, stop_on_sigterm, stop_signal
+from .console import fail, print_held_warnings, stop_on_signals, stop_signal
 from .deployments import status_table
 from .inputs import load, read
 from .options import (FOXGLOVE_OPTION, KEEP_OPTION, RERUN_OPTION, TLS_CA_OPTION, TLS_CERT_OPTION, TLS_KEY_OPTION,
@@ -182,7 +182,7 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     """Run ``pipe``, print its table and counters, and exit as ``retriever run`` documents;
     ``live``: a deployment's namespace, whose status table shows while it runs (on a terminal)."""
     before = _identity(log)
-    stop_on_sigterm()  # stop like Ctrl-C: the log is finished, not torn
+    stop_on_signals()  # stop like Ctrl-C: the log is finished, not torn
     watching = _show_live(pipe, live) if live is not None and console.err.is_terminal else None
     try:
         trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)

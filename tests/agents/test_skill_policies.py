@@ -283,7 +283,7 @@ def test_a_demo_whose_policy_setup_fails_leaves_no_log_and_says_so(tmp_path, mon
 
     path = _mlp_checkpoint(tmp_path / "policy")
     monkeypatch.setattr(LearnedSkill, "setup", broken)
-    monkeypatch.setattr(command.cli, "stop_on_sigterm", lambda: None)    # the test process keeps its handlers
+    monkeypatch.setattr(command.cli, "stop_on_signals", lambda: None)    # the test process keeps its handlers
     with pytest.raises(typer.Exit):
         command.demo(backend="inproc", seed=2, drawer="TL", duration=20.0, skill_policy=path,
                      log=tmp_path / "run.mcap", out=tmp_path / "pictures")
