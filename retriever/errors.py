@@ -36,6 +36,8 @@
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
     └── StarvedFlowWarning         after a run: a flow skipped (nearly) every tick, and the input that starved it
 
+    Interrupted (KeyboardInterrupt)  a command stopped by SIGTERM or Ctrl-C (retriever.cli.stop_on_signals)
+
 Every exception class of ``retriever/`` is defined here and drawn above (tests/test_errors.py
 checks it); the modules that raise them re-export the ones their users import from there.
 Every message names the thing (by its qualified name, ``node.port``), says what was expected
@@ -334,3 +336,12 @@ class RetrieverWarning(UserWarning):
 class StarvedFlowWarning(RetrieverWarning):
     """After a run: a flow skipped every tick, or most of them, for an input that never had an
     event (a misspelled port wires nothing); names the port and the edge."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A stop signal (SIGTERM, or Ctrl-C's SIGINT) raised as Ctrl-C's exception in a command
+    (``retriever.cli.stop_on_signals``): every ``except KeyboardInterrupt`` takes it. A subclass,
+    not KeyboardInterrupt itself: CPython marks a bare KeyboardInterrupt that leaves an ``exec`` or
+    ``eval`` of a string (a dataclass or a message class being made) as unhandled even when the
+    command catches it later, and then ends the process by SIGINT instead of with the exit status
+    the command chose."""

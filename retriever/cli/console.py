@@ -16,7 +16,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from ..errors import RetrieverError, RetrieverWarning, StarvedFlowWarning
+from ..errors import Interrupted, RetrieverError, RetrieverWarning, StarvedFlowWarning
 
 _state = {"debug": False}
 
@@ -115,14 +115,6 @@ def print_held_warnings() -> None:
     for text in _after_summary:
         err.print(text, highlight=False, markup=False)
     _after_summary.clear()
-
-
-class Interrupted(KeyboardInterrupt):
-    """A stop signal (SIGTERM, or Ctrl-C's SIGINT) raised as Ctrl-C's exception: every ``except
-    KeyboardInterrupt`` takes it. A subclass, not KeyboardInterrupt itself: CPython marks a bare
-    KeyboardInterrupt that leaves an ``exec`` or ``eval`` of a string (a dataclass or a message
-    class being made) as unhandled even when a command catches it later, and then ends the
-    process by SIGINT instead of with the exit status the command chose."""
 
 
 def _interrupt(signum, frame) -> None:
