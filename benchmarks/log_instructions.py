@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -57,9 +58,9 @@ def main() -> None:
     parser.add_argument("--log", action="store_true", help="write the event log")
     parser.add_argument("--cpu", type=int, default=0, help="alternate this many unlogged and logged runs, timed")
     args = parser.parse_args()
-    Session.LOG_HANDOVER_S = 1000.0
     pipe = build(args.workload)
-    with tempfile.TemporaryDirectory() as folder:
+    # (as tests/backends/test_inproc_loop.py sets LOG_BATCH)
+    with mock.patch.object(Session, "LOG_HANDOVER_S", 1000.0), tempfile.TemporaryDirectory() as folder:
         if not args.cpu:
             one_run(pipe, args.duration, args.log, folder)
             print(f"{args.workload} {args.duration:g} s {'logged' if args.log else 'unlogged'}")

@@ -13,9 +13,9 @@ import gc
 import hashlib
 import threading
 from contextlib import contextmanager
+from enum import StrEnum
 from itertools import compress, repeat
 from operator import eq, ne
-from enum import StrEnum
 from typing import Any, Callable, Iterator, NamedTuple
 
 from .codec import packb
