@@ -14,6 +14,8 @@ import hashlib
 import threading
 from contextlib import contextmanager
 from enum import StrEnum
+from itertools import compress, repeat
+from operator import eq, ne
 from typing import Any, Callable, Iterator, NamedTuple
 
 from .codec import packb
@@ -292,7 +294,10 @@ class Trace:
         tape = self.tape
         add_event, add_step = self._raw_events.append, self._raw_steps.append
         i, end = 0, len(tape)
-        if self._step_log is not None:
+        if end and all(map(isinstance, tape, repeat(tuple, end))):
+            self._expand_plain(tape, end)
+            i = end
+        elif self._step_log is not None:
             self._expand_logged(tape, end, add_event, add_step)
             i = end
         while i < end:
@@ -305,6 +310,19 @@ class Trace:
         del tape[:end]
         if then is not None:
             then()
+
+    def _expand_plain(self, tape: list, end: int) -> None:
+        """_expand of the first ``end`` items of a tape that holds plain records only (every tick
+        generic: no compact record), split into events and step records by their length with no
+        Python loop (benchmarks/reports/logging_overhead.md); the log's records of them are all
+        the writer's. (Each iterator stops after ``end`` items: another thread may append meanwhile.)"""
+        events, steps = self._raw_events, self._raw_steps
+        n_events, n_steps = len(events), len(steps)
+        events.extend(compress(tape, map(eq, repeat(6, end), map(len, tape))))
+        steps.extend(compress(tape, map(ne, repeat(6, end), map(len, tape))))
+        if self._step_log is not None:
+            self._event_log.extend(repeat(None, len(events) - n_events))
+            self._step_log.extend(repeat(None, len(steps) - n_steps))
 
     def _expand_logged(self, tape: list, end: int, add_event: Callable, add_step: Callable) -> None:
         """_expand, with each step record's and each event's log record made by its expander, or

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 import resource
+import runpy
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from retriever import Flow, Latest, LogError, Pipeline, Rate, Trigger, io, read_log
+from retriever import Burst, Flow, Latest, LogError, Pipeline, Rate, Trigger, io, read_log
 from retriever.codec import packb
 from retriever.errors import LogWriteError
 from retriever.log import format as fmt
@@ -25,6 +26,7 @@ from retriever.log.writer import LARGE_VALUE_BYTES, LogFile, LogWriter
 from retriever.replay import replay
 from retriever.trace import StepStatus, Trace
 from tests.log import log_flows
+from tests.backends.test_inproc_ticks import mixed
 from tests.log.helpers import QUICKSTART, RETRIEVER, assert_cli_error, cli, cli_env
 
 NOTES = "my notes, not a log\n"
@@ -439,3 +441,124 @@ def test_the_records_compiled_ticks_make_are_the_writers_byte_for_byte(tmp_path:
     log = read_log(path)
     assert log.trace() == trace
     assert replay(log, build()).identical
+
+
+class _ArraySource(Flow[None, Any]):
+    """Each tick the next of ``values()``: arrays of a few dtypes and shapes (a structured dtype's
+    equal copy of another object, a big one), ints in every msgpack form, other values, Bursts."""
+
+    def __init__(self):
+        self.k = -1
+
+    @staticmethod
+    def values(k: int) -> list:
+        record = np.dtype([("a", "<i4"), ("b", "S2")])  # a new dtype object, equal to the last
+        return [np.full((8, 8), k % 256, dtype=np.uint8), np.linspace(0.0, k, 4), np.zeros(3, dtype=record),
+                np.arange(6, dtype=">i2").reshape(2, 3), *_Values.VALUES, 2**64 - 1, -2**63, None, b"b",
+                Burst([np.ones(2) * k, np.zeros(2)]), Burst(np.eye(3)), Burst([1, 2.5, "x"]), np.float32(k),
+                *([np.zeros(LARGE_VALUE_BYTES // 8 + 1)] if k == 40 else [])]
+
+    def step(self, inp: None) -> Any:
+        self.k += 1
+        values = self.values(self.k // 9)
+        return values[self.k % len(values)]
+
+
+class _ArrayRelay(Flow[Any, Any]):
+    def step(self, inp: Any) -> Any:
+        return inp
+
+
+@io
+@dataclass
+class _Halves:
+    left: Any
+    right: Any = None
+
+
+class _TwoArrays(Flow[Any, _Halves]):
+    """Two outputs: a node with no step-record maker; its arrays' records are made all the same."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self, inp: Any) -> _Halves:
+        self.k += 1
+        return _Halves(left=np.ones(2) * self.k, right=inp if self.k % 3 else None)
+
+
+class _Either(Flow[_Halves, Any]):
+    """An array each tick, of one dtype and shape: ticked at microsteps below 128 and past it."""
+
+    def step(self, inp: _Halves) -> Any:
+        return np.ones(2) * (inp.left is None)
+
+
+def _logged_and_rewritten(pipe: Pipeline, path: Path, duration: float, **options: Any) -> tuple[dict, dict]:
+    """Run ``pipe`` logged to ``path``; write its trace again with a writer of its own, which makes
+    every record itself from the trace's plain records: each log's messages by channel (``(channel,
+    sequence, log time, publish time, data)``, in the order they are in the file)."""
+    pipe.reset()
+    pipe.step(0.0, **options)
+    trace = pipe.session.trace
+    pipe.run(duration, log=path)
+    again = Trace()
+    again.raw_events.extend(trace.raw_events)
+    again.raw_steps.extend(trace.raw_steps)
+    writer = LogWriter(LogFile(path.with_suffix(".again.mcap")), pipe.compile(), backend="inproc")
+    writer.write(again)
+    writer.close(again, 0)
+
+    def by_channel(log: Path) -> dict:
+        found: dict = {}
+        with open(log, "rb") as f:
+            for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
+                found.setdefault(channel.topic, []).append(
+                    (message.channel_id, message.sequence, message.log_time, message.publish_time, message.data))
+        return found
+    return by_channel(path), by_channel(path.with_suffix(".again.mcap"))
+
+
+def test_a_logged_run_holds_the_records_the_writer_makes_of_its_trace_byte_for_byte(tmp_path: Path):
+    """Whoever makes a record (the writer, from the trace's records, split from the tape by a
+    Python loop or, a tape of plain records only, in C; a compiled tick's expander), every message
+    of a run's log is byte for byte the one a writer makes by itself of the run's trace, on each
+    channel, in order. The quickstart, whose tape holds plain records only; arrays of several
+    dtypes and shapes, an equal dtype of another object, a big array, Bursts, ints of every msgpack
+    width and other values, a node of two outputs, one ticked at microsteps below 128 and past it
+    (a chain of 140 Trigger flows); the mixed graph's skips, errors and fan-ins, all generic, and
+    with its compiled ticks, whose compact records the tape then holds too."""
+    def quickstart():
+        return runpy.run_path(str(QUICKSTART), run_name="quickstart")["pipe"]
+
+    def arrays():
+        with Pipeline("arrays") as pipe:
+            src = _ArraySource().named("src") @ Rate(hz=200)
+            two = _TwoArrays().named("two") @ Rate(hz=200)
+            src.then(two, sync=Latest())
+            prev = two.then(_ArrayRelay().named("t000") @ Trigger(), sync=Latest(), map={"left": "any"})
+            for i in range(1, 140):
+                prev = prev.then(_ArrayRelay().named(f"t{i:03}") @ Trigger(), sync=Latest())
+            either = _Either().named("either") @ Trigger()
+            prev.then(either, sync=Latest(), map={"any": "left"})
+            src.then(either, sync=Latest(), map={"any": "right"})
+        return pipe
+
+    for build, duration, options in ((quickstart, 20.0, {}), (arrays, 1.0, {"generate_ticks": False}),
+                                     (mixed, 1.0, {"generate_ticks": False}), (mixed, 1.0, {})):
+        path = tmp_path / f"{build.__name__}{len(options)}.mcap"
+        pipe = build()
+        logged, again = _logged_and_rewritten(pipe, path, duration, **options)
+        assert logged.keys() == again.keys()
+        for topic in logged:
+            assert logged[topic] == again[topic], topic
+        trace = pipe.session.trace
+        # compact records in the tape (the compiled mixed graph's) or none (the quickstart's
+        # camera, though compiled, emits arrays, which its tick records as a generic one does)
+        assert bool(pipe.session.generated_ticks()) == (build is quickstart or not options)
+        if build is arrays:
+            assert {tag[1] >= 128 for tag, node, *_ in trace.raw_events if node == "either"} == {True, False}
+        if build is quickstart:
+            log = read_log(path)
+            assert log.trace() == trace
+            assert replay(log, build()).identical
