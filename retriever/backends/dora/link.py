@@ -3,6 +3,8 @@
     dora inputs ──DoraLink's receiving thread: node.next()──▶ each listening loop's inbox (or
                                                  handled right there, as a Zenoh subscriber's
                                                  callback would: INLINE_STEP_NS)
+                  (and, WARM_AHEAD_NS before an input's next event it foresees, its own work
+                   once on the last event: warm, as the loop's Warmup warms the decoding)
     loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
          ──send_output(warm, b"")──▶ dora's daemon, before a moment it foresees (timing.py: Warmup)
 
@@ -26,7 +28,7 @@ import threading
 import time
 from typing import Callable
 
-from ..zenoh.node import DATA, FAILED, PROGRESS, Transport
+from ..zenoh.node import DATA, FAILED, PROGRESS, WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, Transport
 from .dataflow import DoraNames
 
 #: how long the receiving thread waits in ``node.next()`` before it looks whether to stop
@@ -73,6 +75,7 @@ class DoraLink:
         self.greeted: set[str] = set()  # inputs a producer's greeting came through
         self.greetings = threading.Condition()
         self.failure: Exception | None = None  # what ended the receiving thread, if it died
+        self.clock: Callable[[], int] = time.monotonic_ns  # when events come (to foresee the next)
 
     def node(self):
         """This process's dora node (created once: dora starts the dataflow when every node has one)."""
@@ -140,27 +143,55 @@ class DoraLink:
                 put((FAILED, None, exc))
 
     def _take_events(self, node) -> None:
-        listeners = self.listeners
+        """Each input event to its listeners. Before the next event of the input the last one
+        came on, foreseen from the gap between that input's last two (when the gap is a sleep
+        long enough to leave the caches cold: WARM_AFTER_IDLE_NS), the thread wakes
+        WARM_AHEAD_NS early and takes that event's bytes once more, results unused: cold, after
+        a sleep of 50 ms, ``len``, ``buffers`` and the view took ~20 µs of a message's latency,
+        warmed ~6 (benchmarks/reports/fig7a.md, 2026-12-05, dora12). It changes no event, nor
+        when one is handed on."""
+        listeners, clock = self.listeners, self.clock
+        last: dict[str, int] = {}  # per input, when its last event came
+        due, warm = None, None  # when to warm up next, and on which event's value
         while self.receiving:
-            event = node.next(timeout=RECEIVE_TIMEOUT_S)
+            timeout = RECEIVE_TIMEOUT_S
+            if due is not None:
+                wait = due - clock()
+                if wait <= 0:
+                    _bytes_of(warm, len(warm))
+                    due = None
+                    continue
+                timeout = min(timeout, wait / 1e9)
+            event = node.next(timeout=timeout)
             if event is None:  # the stream ended: after a STOP, or dora run (its daemon) is gone
                 return
             if event["type"] != "INPUT":  # a timeout (ERROR), INPUT_CLOSED, STOP: queued inputs still follow
                 continue
             value = event["value"]  # a uint8 array: what send_output made of a message's bytes
             size = len(value)
+            input_id = event["id"]
             if not size:  # a greeting (no Retriever message is empty), maybe before its listener
                 with self.greetings:
-                    self.greeted.add(event["id"])
+                    self.greeted.add(input_id)
                     self.greetings.notify_all()
                 continue
-            # a view of dora's buffer (the array's values, as unsigned bytes: no copy), which it
-            # holds: dora reuses none while a view of it lives
-            data = memoryview(value.buffers()[1]).cast("B")
-            if value.offset or len(data) != size:  # (a slice of a bigger buffer: never seen)
-                data = data[value.offset:value.offset + size]
-            for handler, kind, key, _ in listeners.get(event["id"], ()):
+            data = _bytes_of(value, size)
+            for handler, kind, key, _ in listeners.get(input_id, ()):
                 handler((kind, key, data))
+            now = clock()
+            gap = now - last.get(input_id, now)
+            last[input_id] = now
+            due, warm = (now + gap - WARM_AHEAD_NS, value) if gap >= WARM_AFTER_IDLE_NS else (None, None)
+
+
+def _bytes_of(value, size: int) -> memoryview:
+    """A view of the bytes of ``value``, a uint8 array of ``size`` elements: of dora's buffer
+    (the array's values, as unsigned bytes: no copy), which it holds: dora reuses none while a
+    view of it lives."""
+    data = memoryview(value.buffers()[1]).cast("B")
+    if len(data) != size:  # (a slice of a bigger buffer, at an offset or not: never seen)
+        data = data[value.offset:value.offset + size]
+    return data
 
 
 class DoraTransport(Transport):

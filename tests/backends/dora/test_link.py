@@ -15,9 +15,9 @@ from dora.testing import MockNode
 
 from retriever import Latest, Pipeline, Rate, Trigger
 from retriever.backends.dora.dataflow import DoraNames
-from retriever.backends.dora.link import DoraLink, DoraTransport
+from retriever.backends.dora.link import RECEIVE_TIMEOUT_S, DoraLink, DoraTransport
 from retriever.backends.zenoh.hub import peer_config
-from retriever.backends.zenoh.node import DATA, PROGRESS
+from retriever.backends.zenoh.node import DATA, PROGRESS, WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
 from retriever.backends.zenoh.worker.build import build_loop
 
 from ..zenoh.semantics_flows import Ticker, WhereRun
@@ -110,3 +110,51 @@ def test_one_receiving_thread_hands_a_stream_two_members_consume_to_each_until_t
     assert link.receiver is not None and list(link.listeners) == ["src__value", "src__progress"]
     members["b"].undeclare()
     assert link.receiver is None and link.listeners == {}
+
+
+class _Paced:
+    """A dora node handing ``node``'s events ``gap_ns`` apart on a logical clock (``now``): a
+    ``next(timeout)`` shorter than the wait for the next event returns a timeout (an ERROR
+    event, as dora's does) ``timeout`` later. It notes each ``next()``'s timeout, in ns."""
+
+    def __init__(self, node: MockNode, gap_ns: int):
+        self.node, self.gap_ns, self.now, self.comes, self.timeouts = node, gap_ns, 0, gap_ns, []
+
+    def clock(self) -> int:
+        return self.now
+
+    def next(self, timeout=None):
+        self.timeouts.append(round(timeout * 1e9))
+        if self.now + self.timeouts[-1] < self.comes:
+            self.now += self.timeouts[-1]
+            return {"type": "ERROR", "error": "timeout"}
+        self.now, self.comes = self.comes, self.comes + self.gap_ns
+        return self.node.next(timeout=timeout)
+
+
+def test_the_receiving_thread_warms_up_before_an_input_event_it_foresees_and_hands_on_only_events():
+    """Events 50 ms apart: after the second (the first gap), the thread waits only until
+    WARM_AHEAD_NS before the third, takes the second's bytes once more there (results unused),
+    then waits for the third; it hands on each event once, as it came (a slice of a bigger
+    buffer too), and nothing at its warm-ups. Events closer than WARM_AFTER_IDLE_NS: no warm-up."""
+    with Pipeline("paced") as pipe:
+        src = Ticker().configure(name="src") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    names = DoraNames.of(pipe.compile().to_ir().doc)
+    for gap_ns, warmed in ((50_000_000, True), (WARM_AFTER_IDLE_NS - 1, False)):
+        events = [("src__value", pa.array(np.frombuffer(b"one", np.uint8))),
+                  ("src__value", pa.array(np.frombuffer(b"..two", np.uint8)).slice(2)),
+                  ("src__value", pa.array(np.frombuffer(b"three", np.uint8)))]
+        node, link, got = _Paced(MockNode(events), gap_ns), DoraLink(), []
+        link.dora_node, link.clock = node, node.clock
+        transport = DoraTransport(link, names, "where")
+        transport.declare_inputs([], [], None, got.append)
+        link.receiver.join(BOUND_S)
+        assert link.failure is None
+        assert [(kind, source, bytes(data)) for kind, source, data in got] == [
+            (DATA, ("src", "value"), b"one"), (DATA, ("src", "value"), b"two"), (DATA, ("src", "value"), b"three")]
+        timeout = round(RECEIVE_TIMEOUT_S * 1e9)
+        # after the second event, the wait for the third ends WARM_AHEAD_NS before it (then a warm-up)
+        assert node.timeouts[:3] == [timeout, timeout, gap_ns - WARM_AHEAD_NS if warmed else timeout]
+        assert (gap_ns - WARM_AHEAD_NS in node.timeouts) is warmed
+        transport.undeclare()
