@@ -49,6 +49,22 @@ def test_short_steps_of_a_node_on_no_cycle_run_on_the_receiving_thread():
     assert xs == list(range(len(xs))), "every input, once, in order"
 
 
+def test_steps_off_the_main_thread_run_on_zenohs_receiving_thread_which_keeps_its_python_state():
+    # Zenoh's own thread (indirect=False), not a Python thread zenoh-python starts and wakes for
+    # each sample; and that thread's Python state is kept from one message to the next (node/
+    # transport.py, _keep_thread_state): a flow's threading.local holds there as on a Python thread
+    with Pipeline("inline_rx") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest())
+    trace = run(pipe, 1.0)
+    off = [e.value for e in trace.events_of("where") if not e.value["main"]]
+    assert len(off) >= 2, [e.value for e in trace.events_of("where")]
+    assert {v["thread"].split("-")[0] for v in off} == {"rx"}, off
+    for tid in {v["tid"] for v in off}:
+        befores = [v["before"] for v in off if v["tid"] == tid]
+        assert befores == list(range(len(befores))), (tid, befores)
+
+
 def test_a_node_on_a_cycle_runs_every_step_on_its_main_thread():
     with Pipeline("inline_cycle") as pipe:
         count = Counter().configure(name="count") @ Rate(hz=20)
