@@ -199,12 +199,11 @@ def test_a_steps_end_reads_the_frontier_its_outputs_carry_in_the_lock_section_th
     message carries the frontier a publish read itself would have."""
     loop = build_loop(spec, "cam", session)
     loop.declare()
+    heard = session.declare_subscriber(loop.keys.data("cam", "k"))  # (the same session: heard in the put)
     try:
         loop.run_clock.start(session.new_timestamp().get_time_as_ntp64().as_nanos(), 10**12)
         outputs, steps = loop.outputs, loop.steps
         outputs.consumed = True
-        put = []
-        outputs.publishers["k"] = type("Recording", (), {"put": staticmethod(put.append)})()
 
         def end(k: int) -> None:
             loop.schedule.running = (k * MS, 0)
@@ -216,8 +215,11 @@ def test_a_steps_end_reads_the_frontier_its_outputs_carry_in_the_lock_section_th
         assert "frontier_held" in python and "frontier" not in python
         assert locked(c) == 2, "the tick's end with its frontier, and the put's end: one section each"
         assert loop.schedule.running is None and outputs.sending is None
-        assert decode_events(put[-1])[0].frontier == outputs.frontier(True)
+        sent = [heard.try_recv(), heard.try_recv()]
+        assert sent[1] is not None and heard.try_recv() is None, "one message per tick's end"
+        assert decode_events(sent[1].payload.to_bytes())[0].frontier == outputs.frontier(True)
     finally:
+        heard.undeclare()
         loop.undeclare()
 
 
