@@ -35,8 +35,9 @@ from .waiting import Waiting
 #: handled on the transport's thread that received it: decoded, delivered, and the ticks it
 #: makes ready run there too, as a plain subscriber callback would. Handing it to the main thread
 #: instead costs a thread wake-up, a good part of a small message's latency
-#: (benchmarks/reports/latency.md, with and without). Only steps known to be short run there (the
-#: node's last step took under INLINE_STEP_NS): meanwhile that link receives nothing more. And
+#: (benchmarks/reports/latency.md, with and without). With Zenoh, that thread is Zenoh's own
+#: receiving thread (node/transport.py). Only steps known to be short run there (the node's last
+#: step took under INLINE_STEP_NS): meanwhile that thread receives nothing more. And
 #: only on nodes on no cycle of the graph, so that a put blocked by a congested link can never
 #: wait, around a cycle, on a receiving thread that is itself blocked in a put. Nor on nodes whose
 #: flow has a ``setup()``: what it acquired may belong to its thread (an EGL context, a CUDA
