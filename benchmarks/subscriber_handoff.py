@@ -12,7 +12,8 @@ Interleaved in the same processes, the three share the machine's load sample by 
   indirect=True)``): on a Python thread zenoh-python starts for it, which Zenoh's thread wakes.
 - ``direct``: ``Callback(f, indirect=False)``: on Zenoh's receiving thread itself, its Python thread
   state kept from one callback to the next (one PyGILState_Ensure never released), as the Zenoh
-  backend's data subscribers do (retriever/backends/zenoh/node/transport.py).
+  backend's data subscribers do (retriever/backends/zenoh/node/transport.py); with
+  ``--fresh-state``, not kept (zenoh-python's own way: a thread state made and deleted per call).
 
     .venv/bin/python benchmarks/subscriber_handoff.py --samples 300
 """
@@ -39,7 +40,7 @@ ATTACH = struct.Struct("<qq")
 WAYS = ("iter", "indirect", "direct")
 
 
-def sub(listen: str, total: int) -> int:
+def sub(listen: str, total: int, keep: bool) -> int:
     import zenoh
 
     got: dict[str, list[tuple[int, int]]] = {way: [] for way in WAYS}
@@ -50,7 +51,7 @@ def sub(listen: str, total: int) -> int:
         out = got[way]
 
         def take(sample) -> None:
-            if way == "direct" and threading.get_ident() not in kept:
+            if keep and way == "direct" and threading.get_ident() not in kept:
                 ctypes.pythonapi.PyGILState_Ensure()
                 kept.add(threading.get_ident())
             sample.payload.to_bytes()
@@ -111,25 +112,28 @@ def pub(connect: str, total: int, gap_ns: int) -> int:
 
 def main(argv: list[str]) -> int:
     if argv and argv[0] == "--sub":
-        return sub(argv[1], int(argv[2]))
+        return sub(argv[1], int(argv[2]), argv[3] == "keep")
     if argv and argv[0] == "--pub":
         return pub(argv[1], int(argv[2]), int(argv[3]))
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--samples", type=int, default=300, help="per way, after --warmup")
     p.add_argument("--warmup", type=int, default=10)
     p.add_argument("--gap-ms", type=float, default=50 / 3, help="between two puts (each way: 3 gaps)")
+    p.add_argument("--fresh-state", action="store_true", help="direct: Python's thread state not kept")
     args = p.parse_args(argv)
     total = args.samples + args.warmup
     listen = f"tcp/127.0.0.1:{free_port()}"
     me = [sys.executable, __file__]
     with open("/proc/loadavg") as f:
         load = f.read().split()[:3]
-    s = subprocess.Popen(me + ["--sub", listen, str(total)], stdout=subprocess.PIPE, text=True)
+    s = subprocess.Popen(me + ["--sub", listen, str(total), "fresh" if args.fresh_state else "keep"],
+                         stdout=subprocess.PIPE, text=True)
     if s.stdout.readline().strip() != "READY":
         raise SystemExit("the subscriber did not start")
     subprocess.run(me + ["--pub", listen, str(total), str(round(args.gap_ms * 1e6))], check=True)
     got = json.loads(s.communicate()[0].strip().splitlines()[-1])
-    print(f"64 B, {args.samples} samples per way, one every {3 * args.gap_ms:.1f} ms; load at start {' '.join(load)}")
+    print(f"64 B, {args.samples} samples per way, one every {3 * args.gap_ms:.1f} ms; direct's thread state "
+          f"{'fresh per call' if args.fresh_state else 'kept'}; load at start {' '.join(load)}")
     meds = {}
     for way in WAYS:
         lat = sorted(d / 1e3 for seq, d in got[way] if seq >= args.warmup)
