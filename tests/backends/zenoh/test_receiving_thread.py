@@ -120,6 +120,26 @@ def test_a_message_that_comes_while_the_main_thread_waits_is_stepped_on_arrival(
         loop.undeclare()
 
 
+def test_a_grouped_loop_hears_its_data_only_to_queue_it_off_zenohs_thread(session):
+    # a group's loops never lend their turn to a receiving thread (GroupLoop waits for them): their
+    # data subscribers only queue, on zenoh-python's thread, never taking the GIL on Zenoh's own
+    loop = faulty_loop(session)
+    try:
+        assert loop.transport.inputs[2] == loop.receive, "a lone loop may step on Zenoh's thread"
+    finally:
+        loop.undeclare()
+    with Pipeline("inline_grouped") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(Faulty(fail_at=[]).configure(name="faulty") @ Trigger("x"), sync=Latest())
+    grouped = build_loop(run_spec(pipe.compile().to_ir().doc, "inline-test"), "faulty", session)
+    grouped.grouped = True  # as GroupLoop sets it, before the loop declares anything
+    grouped.declare()
+    try:
+        assert grouped.inline and grouped.transport.inputs[2] is None
+    finally:
+        grouped.undeclare()
+
+
 def test_a_message_that_comes_while_the_main_thread_works_is_queued_for_it(session):
     loop = faulty_loop(session)
     try:

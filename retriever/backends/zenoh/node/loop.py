@@ -167,8 +167,11 @@ class NodeLoop:
     def declare_inputs(self) -> None:
         """What this node listens to: its input streams, their producers' progress, the run's control."""
         put = self.inbox.put
+        # a grouped loop never waits on its own (the group does, GroupLoop.run): it never lends
+        # its turn to a receiving thread, which then only queues, off Zenoh's thread
+        # (transport.py: a receiving thread that may step is Zenoh's own)
         self.transport.declare_inputs(sorted(self.streams.frontiers), self.streams.sources,
-                                      self.receive if self.inline else None, put)
+                                      self.receive if self.inline and not self.grouped else None, put)
         if not self.grouped:  # (a group hears the run's control once for all: GroupLoop.hear_control)
             self.plane.listen()
 
