@@ -314,10 +314,10 @@ def _unseen(pipe, trace, sink_events) -> list[str]:
 # --breakdown: the probed pipeline (benchmarks/zenoh_probe.py)
 # ---------------------------------------------------------------------------------------------
 ZENOH_STAGES = [  # (name, from stamp, to stamp, what happens there)
-    ("step→publish", "sent", "publish", "step returns; outputs read; HLC stamp, seq, step record"),
-    ("frontier+encode", "publish", "encoded", "frontier() (lock, HLC) and Outputs.encode (codec)"),
+    ("step→publish", "sent", "publish", "step returns; outputs read; HLC stamp, seq; the tick's end, its frontier"),
+    ("encode", "publish", "encoded", "Outputs.encode (codec)"),
     ("put", "put_in", "put_out", "Publisher.put (express) returns, in the source's main thread"),
-    ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx, the sink's callback thread gets the GIL"),
+    ("put→callback", "put_in", "cb_in", "zenoh: tx, loopback TCP, rx; the callback, on Zenoh's rx thread, gets the GIL"),
     ("to_bytes", "cb_in", "cb_out", "sample.payload.to_bytes() in the callback"),
     ("→handle", "cb_out", "handle", "the callback thread takes the idle loop (else inbox, main wakes)"),
     ("decode", "handle", "decoded", "wire.decode_events (msgpack + codec; arrays are views)"),

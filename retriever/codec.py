@@ -35,6 +35,10 @@ import numpy as np
 
 from .errors import CodecError, UnregisteredTypeError
 
+#: (numpy's module has a ``__getattr__``, so CPython 3.11 reads ``np.X`` the slow way at each use:
+#: these run per message, sent or received)
+_NDARRAY, _frombuffer = np.ndarray, np.frombuffer
+
 EXT_NDARRAY = 1
 EXT_TUPLE = 2
 EXT_BIGINT = 3
@@ -499,7 +503,7 @@ class Encoder:
         self._pack = msgpack.Packer(default=_default, use_bin_type=True, strict_types=True).pack
 
     def pack(self, value: Any) -> bytes:
-        if type(value) is np.ndarray:  # the commonest payload: skip msgpack's `default` round trip
+        if type(value) is _NDARRAY:  # the commonest payload: skip msgpack's `default` round trip
             head = _encoding_heads.get((value.dtype, value.shape))  # (a dtype and shape seen before: no call)
             return (head or array_encoding_head(value)) + value.tobytes()
         try:
@@ -598,7 +602,7 @@ def unpackb_out_of_band(data: bytes | memoryview, buffers: list) -> Any:
         if code == EXT_NDARRAY_OOB:
             known = heads.get(ext)
             if known is not None and known[0] < len(buffers) and len(buffers[known[0]]) == known[1]:
-                array = np.frombuffer(buffers[known[0]], known[2])
+                array = _frombuffer(buffers[known[0]], known[2])
                 return array if known[3] is None else array.reshape(known[3])
         return _ext_hook(code, ext, buffers=buffers)
 
@@ -654,7 +658,7 @@ class OutOfBandEncoder:
         return _pack_with(value, self._default, self._idle)
 
     def _default(self, obj: Any) -> Any:
-        if isinstance(obj, np.ndarray):
+        if isinstance(obj, _NDARRAY):
             # the cached head first, without a call (_array_head raises for dtype object, which
             # is never cached): this runs per array sent
             head = _array_heads.get((obj.dtype, obj.shape)) or _array_head(obj)

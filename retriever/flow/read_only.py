@@ -29,6 +29,9 @@ from .burst import Burst
 
 #: values with nothing inside to protect (immutable Python values)
 _IMMUTABLE = frozenset({int, float, str, bytes, bool, complex, type(None)})
+#: (numpy's module has a ``__getattr__``, so CPython 3.11 reads ``np.ndarray`` the slow way at each
+#: use: this runs per event emitted)
+_NDARRAY = np.ndarray
 #: a dataclass's instance fields by class (not its ClassVar entries, which its class holds for every instance)
 _FIELDS: dict[type, tuple[str, ...]] = {}
 
@@ -39,11 +42,19 @@ def make_read_only(value: Any) -> None:
     (and the array whose rows they are). CodecError if ``value`` nests too deeply to walk (it
     contains itself)."""
     kind = type(value)
-    if kind is np.ndarray:  # (the commonest, and a number, without the walk's call: per event)
+    if kind is _NDARRAY:  # (the commonest, and a number, without the walk's call: per event)
         value.flags.writeable = False
         return
     if kind in _IMMUTABLE:
         return
+    if kind is dict or kind is list or kind is tuple:  # (of arrays and plain values only: no call either)
+        for item in (value.values() if kind is dict else value):
+            if type(item) is _NDARRAY:
+                item.flags.writeable = False
+            elif type(item) not in _IMMUTABLE:
+                break  # something to walk: the walk takes it all (an array marked twice is marked)
+        else:
+            return
     try:
         _walk(value)
     except RecursionError:
@@ -53,22 +64,28 @@ def make_read_only(value: Any) -> None:
 def _walk(value: Any) -> None:
     """:func:`make_read_only`, recursively."""
     kind = type(value)
-    if kind is np.ndarray:
+    if kind is _NDARRAY:
         value.flags.writeable = False
     elif kind in _IMMUTABLE:
         return
     elif kind is list or kind is tuple:
-        for item in value:
-            _walk(item)
+        for item in value:  # (an array or a plain item without a call)
+            if type(item) is _NDARRAY:
+                item.flags.writeable = False
+            elif type(item) not in _IMMUTABLE:
+                _walk(item)
     elif kind is dict:
         for item in value.values():
-            _walk(item)
+            if type(item) is _NDARRAY:
+                item.flags.writeable = False
+            elif type(item) not in _IMMUTABLE:
+                _walk(item)
     elif kind is Burst:
         if value.rows is not None:
             value.rows.flags.writeable = False
         for item in value.values:
             _walk(item)
-    elif isinstance(value, np.ndarray):  # a subclass of ndarray
+    elif isinstance(value, _NDARRAY):  # a subclass of ndarray
         value.flags.writeable = False
     else:
         fields = _FIELDS.get(kind)

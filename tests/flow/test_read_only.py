@@ -1,6 +1,7 @@
 """flow/read_only.py: an event's arrays made read-only where they are, through every container a
 value may hold them in; nothing else touched."""
 
+import sys
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
@@ -104,3 +105,30 @@ def test_a_dataclass_values_fields_become_read_only_not_its_class_constants():
     make_read_only(value)
     assert not value.v.flags.writeable
     assert Scaled.SCALE.flags.writeable  # every instance's, and the flow's own: not the event's
+
+
+def test_a_flat_dict_or_list_of_arrays_and_plain_values_takes_one_call():
+    """The arrays and plain values directly in a dict, list or tuple are handled in the loop over
+    them, not a call each (this runs per event emitted); nested containers still get theirs."""
+    seen = []
+
+    def profile(frame, event, arg):
+        if event == "call":
+            seen.append(frame.f_code.co_name)
+
+    def calls(value) -> list[str]:
+        seen.clear()
+        sys.setprofile(profile)
+        try:
+            make_read_only(value)
+        finally:
+            sys.setprofile(None)
+        return list(seen)
+
+    a = _arrays()
+    for value in ({"data": a[0], "sent_ns": 7, "none": None}, [1, 2, 3, a[1]], (a[2], "x", 1.5)):
+        assert calls(value) == ["make_read_only"], value
+    assert not any(arr.flags.writeable for arr in a[:3])
+    # the dict walked, the list in it (its array in the loop), the dataclass and each of its fields
+    assert calls({"list": [a[3]], "pose": Pose(a[4])}) == ["make_read_only"] + ["_walk"] * 5
+    assert not a[3].flags.writeable and not a[4].flags.writeable

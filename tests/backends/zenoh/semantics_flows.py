@@ -285,7 +285,19 @@ class WhereRun(Flow[XIn, Report]):
     def step(self, inp: XIn) -> Report:
         if self.sleep:
             time.sleep(self.sleep)
-        return Report({"x": inp.x, "main": threading.current_thread() is threading.main_thread()})
+        # the native thread (its id and name), and how many steps it ran before this one as its
+        # Python thread state remembers them (a threading.local)
+        before = getattr(_THREAD_STEPS, "n", 0)
+        _THREAD_STEPS.n = before + 1
+        tid = threading.get_native_id()
+        with open(f"/proc/self/task/{tid}/comm") as f:
+            name = f.read().strip()
+        return Report({"x": inp.x, "main": threading.current_thread() is threading.main_thread(),
+                       "tid": tid, "thread": name, "before": before})
+
+
+#: WhereRun's steps per thread
+_THREAD_STEPS = threading.local()
 
 
 class Counter(Flow[OptXIn, Value]):

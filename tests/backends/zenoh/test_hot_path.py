@@ -148,6 +148,22 @@ def test_an_event_in_order_is_delivered_with_one_call(session, spec):
     assert streams.frontiers[stream] == (20 * MS + 1, 0) and streams.expect[stream] == 3
 
 
+def test_an_event_is_taken_and_delivered_by_its_fields_positions_not_their_names(session, spec):
+    """A NamedTuple's field read by name is a generic attribute lookup at every read in CPython
+    3.11 (no specialisation): Streams.in_order and deliver read a DataMessage's fields by
+    position (one unpacking), so a plain tuple of the same fields is taken the same way."""
+    loop = build_loop(spec, "viewer", session)
+    loop.run_clock.start(0, 10**12)
+    streams, stream = loop.streams, ("cam", "image")
+    value = Frame(image=frame(0, 4096), k=0)
+    streams.in_order(stream, ((10 * MS, 0), 0, (10 * MS + 1, 0), "cam", "image", value))  # (no field names)
+    streams.in_order(stream, DataMessage((20 * MS, 0), 1, (20 * MS + 1, 0), "cam", "image", value))
+    buf = streams.edges[0].buf
+    assert [entry[:4] for entry in buf.entries] == [((10 * MS, 0), "cam", "image", 0), ((20 * MS, 0), "cam", "image", 1)]
+    assert buf.entries[0][4] is value and streams.frontiers[stream] == (20 * MS + 1, 0)
+    assert loop.schedule.pending == [(10 * MS, 0), (20 * MS, 0)]
+
+
 def test_a_pass_reads_the_next_tick_without_the_lock(session, spec):
     """The loop's thread is the schedule's only writer: reading it, it takes no lock (the lock
     is for the progress queryable, which reads it from another thread)."""
@@ -175,6 +191,36 @@ def test_a_steps_outputs_are_read_and_stamped_without_calls(session, spec):
     tag, batch, produced = loop.outputs.stamp((0, 0), [("k", 2)])
     assert tag[0] > 0 and tag[1] == 0 and batch == [(tag, "k", 2, 1)] and produced == (("cam", "k", 1),)
     assert loop.outputs.stamp((0, 0), [("k", 3)])[0] > tag, "strictly increasing"
+
+
+def test_a_steps_end_reads_the_frontier_its_outputs_carry_in_the_lock_section_that_ends_the_tick(session, spec):
+    """Steps.finish_tick marks the tick done and reads the frontier the outputs carry under one
+    acquisition of the lock (not one each); the put's end takes its own. The
+    message carries the frontier a publish read itself would have."""
+    loop = build_loop(spec, "cam", session)
+    loop.declare()
+    heard = session.declare_subscriber(loop.keys.data("cam", "k"))  # (the same session: heard in the put)
+    try:
+        loop.run_clock.start(session.new_timestamp().get_time_as_ntp64().as_nanos(), 10**12)
+        outputs, steps = loop.outputs, loop.steps
+        outputs.consumed = True
+
+        def end(k: int) -> None:
+            loop.schedule.running = (k * MS, 0)
+            tag, batch, produced = outputs.stamp((k * MS, 0), [("k", k)])
+            steps.finish_tick((k * MS, 0), {}, produced, "ok", None, 0, 1, publish=batch)
+
+        end(1)
+        python, c = calls(end, 2)
+        assert "frontier_held" in python and "frontier" not in python
+        assert locked(c) == 2, "the tick's end with its frontier, and the put's end: one section each"
+        assert loop.schedule.running is None and outputs.sending is None
+        sent = [heard.try_recv(), heard.try_recv()]
+        assert sent[1] is not None and heard.try_recv() is None, "one message per tick's end"
+        assert decode_events(sent[1].payload.to_bytes())[0].frontier == outputs.frontier(True)
+    finally:
+        heard.undeclare()
+        loop.undeclare()
 
 
 def test_an_arrays_index_is_packed_as_msgpack_packs_it():
@@ -231,8 +277,8 @@ def test_a_publish_reads_the_frontier_and_a_tick_trims_its_input_without_min_or_
     python, c = calls(outputs.stamp, (0, 0), [("checksum", 1)])
     assert python == ["stamp"] and not [f for f in c if f in (min, max)]
     assert outputs.stamp((0, 0), [("checksum", 2)])[0] == (10**13 + 2, 0)
-    python, c = calls(outputs.frontier, True)
-    assert python == ["frontier", "tick_bound"] and not [f for f in c if f in (min, max)]
+    python, c = calls(outputs.frontier_held, True)
+    assert python == ["frontier_held", "tick_bound"] and not [f for f in c if f in (min, max)]
     assert outputs.frontier(True) == (10**13 + 3, 0)
     outputs.last_stamp = 0
     assert outputs.frontier(True) == (40 * MS + 1, 0), "past the tick bound"

@@ -49,6 +49,22 @@ def test_short_steps_of_a_node_on_no_cycle_run_on_the_receiving_thread():
     assert xs == list(range(len(xs))), "every input, once, in order"
 
 
+def test_steps_off_the_main_thread_run_on_zenohs_receiving_thread_which_keeps_its_python_state():
+    # Zenoh's own thread (indirect=False), not a Python thread zenoh-python starts and wakes for
+    # each sample; and that thread's Python state is kept from one message to the next (node/
+    # transport.py, _keep_thread_state): a flow's threading.local holds there as on a Python thread
+    with Pipeline("inline_rx") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest())
+    trace = run(pipe, 1.0)
+    off = [e.value for e in trace.events_of("where") if not e.value["main"]]
+    assert len(off) >= 2, [e.value for e in trace.events_of("where")]
+    assert {v["thread"].split("-")[0] for v in off} == {"rx"}, off
+    for tid in {v["tid"] for v in off}:
+        befores = [v["before"] for v in off if v["tid"] == tid]
+        assert befores == list(range(len(befores))), (tid, befores)
+
+
 def test_a_node_on_a_cycle_runs_every_step_on_its_main_thread():
     with Pipeline("inline_cycle") as pipe:
         count = Counter().configure(name="count") @ Rate(hz=20)
@@ -102,6 +118,26 @@ def test_a_message_that_comes_while_the_main_thread_waits_is_stepped_on_arrival(
         assert loop.turn.acquire(blocking=False), "the receiving thread gave the loop back"
     finally:
         loop.undeclare()
+
+
+def test_a_grouped_loop_hears_its_data_only_to_queue_it_off_zenohs_thread(session):
+    # a group's loops never lend their turn to a receiving thread (GroupLoop waits for them): their
+    # data subscribers only queue, on zenoh-python's thread, never taking the GIL on Zenoh's own
+    loop = faulty_loop(session)
+    try:
+        assert loop.transport.inputs[2] == loop.receive, "a lone loop may step on Zenoh's thread"
+    finally:
+        loop.undeclare()
+    with Pipeline("inline_grouped") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(Faulty(fail_at=[]).configure(name="faulty") @ Trigger("x"), sync=Latest())
+    grouped = build_loop(run_spec(pipe.compile().to_ir().doc, "inline-test"), "faulty", session)
+    grouped.grouped = True  # as GroupLoop sets it, before the loop declares anything
+    grouped.declare()
+    try:
+        assert grouped.inline and grouped.transport.inputs[2] is None
+    finally:
+        grouped.undeclare()
 
 
 def test_a_message_that_comes_while_the_main_thread_works_is_queued_for_it(session):

@@ -52,7 +52,9 @@ def stand_in_loop(on_error: str) -> SimpleNamespace:
         node=SimpleNamespace(id="faulty", flow=flow, spec=flow_spec(Faulty), settings=settings,
                              clock=SimpleNamespace(hz=None)),
         notes=SimpleNamespace(detail={}, counts=Counter()), schedule=SimpleNamespace(running=TAU),
-        outputs=SimpleNamespace(publish=lambda batch: None), reports=SimpleNamespace(records=[]),
+        outputs=SimpleNamespace(publish=lambda batch, frontier=None: None, consumed=False,
+                                frontier_held=lambda sent=False: (0, 0)),
+        reports=SimpleNamespace(records=[]),
         streams=None, run_clock=None, lock=threading.Lock(), last_wall=0,
         endings=[], restarting=False, exits=[], restarts=[], flow=flow, in_place=None)
     loop.stop = loop.endings.append

@@ -134,15 +134,15 @@ class Streams:
     def in_order(self, stream: tuple[str, str], msg) -> None:
         """Take a stream's events in seq order (Zenoh may reorder across routes); a frontier
         holds once every seq before it has been taken."""
-        expect = self.expect[stream]
-        if msg.seq < expect or msg.seq in self.early[stream]:
+        expect, seq = self.expect[stream], msg[1]  # (msg.seq: a NamedTuple's field is a slow read in 3.11)
+        if seq < expect or seq in self.early[stream]:
             # a duplicate; below taken_over it is one the process this one took over from had
             # too (both listened meanwhile): expected, not garbage
-            if msg.seq >= self.taken_over.get(stream, 0):
-                self.notes.garbage(stream, WireError(f"seq {msg.seq} of {stream[0]}.{stream[1]} arrived twice"))
+            if seq >= self.taken_over.get(stream, 0):
+                self.notes.garbage(stream, WireError(f"seq {seq} of {stream[0]}.{stream[1]} arrived twice"))
             return
-        if msg.seq > expect:
-            self.early[stream][msg.seq] = msg
+        if seq > expect:
+            self.early[stream][seq] = msg
             return
         early, frontiers, edges = self.early[stream], self.frontiers, self.stream_edges[stream]
         schedule = self.schedule
@@ -155,10 +155,11 @@ class Streams:
             # its frontier and the ticks it triggers, together under the lock (one acquisition
             # per event; advance, inline): the progress queryable never sees the frontier past
             # a tick not yet pending, which would let this node promise past that tick's outputs
-            if due is not None or msg.frontier > frontiers[stream]:
+            frontier = msg[2]  # (msg.frontier)
+            if due is not None or frontier > frontiers[stream]:
                 with self.lock:
-                    if msg.frontier > frontiers[stream]:
-                        frontiers[stream] = msg.frontier
+                    if frontier > frontiers[stream]:
+                        frontiers[stream] = frontier
                     if due is not None:
                         for tick in due:
                             if tick not in schedule.pending_set:
@@ -191,8 +192,9 @@ class Streams:
     def deliver(self, e: InEdge, msg) -> tuple[int, int] | None:
         """Put an event in its edge's buffer; the tick it triggers, for the caller to schedule
         (None if it triggers none, or one pending already)."""
-        arrival = (msg.tag[0] + e.delay_ns, 0) if e.delay_ns else msg.tag
-        entry = (arrival, msg.producer, msg.port, msg.seq, msg.value)
+        tag, seq, _, producer, port, value = msg  # (one unpacking: a NamedTuple's fields are slow reads in 3.11)
+        arrival = (tag[0] + e.delay_ns, 0) if e.delay_ns else tag
+        entry = (arrival, producer, port, seq, value)
         schedule = self.schedule
         if arrival <= schedule.last_tick:
             # A tick at or after this tag already ran without it: never applied to that past tick,
@@ -200,19 +202,18 @@ class Streams:
             # chunk still reaches its controller). Its next record names it, by id: a replay puts
             # it in the buffer at exactly that point (retriever/replay/steps.py). It triggers no past tick.
             self.notes.counts["late"] += 1
-            self.notes.detail.setdefault("late", {}).setdefault(e.port, []).append(
-                (msg.producer, msg.port, msg.seq))
-            fill(e.buf, entry, self.horizon, msg.tag)
+            self.notes.detail.setdefault("late", {}).setdefault(e.port, []).append((producer, port, seq))
+            fill(e.buf, entry, self.horizon, tag)
             return None
         # (sync.fill and PortBuffer.insert, inline for an event after the buffer's last: in order)
         buf = e.buf
         entries = buf.entries
         if entries and not entries[-1] < entry:
-            fill(buf, entry, self.horizon, msg.tag)
+            fill(buf, entry, self.horizon, tag)
         else:
             entries.append(entry)
             if len(entries) >= buf.bound_at:
-                bound(buf, self.horizon(msg.tag))
+                bound(buf, self.horizon(tag))
         if e.triggers and arrival[0] < self.clock.end and arrival not in schedule.pending_set:
             return arrival
         return None

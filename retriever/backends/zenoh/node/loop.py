@@ -35,8 +35,9 @@ from .waiting import Waiting
 #: handled on the transport's thread that received it: decoded, delivered, and the ticks it
 #: makes ready run there too, as a plain subscriber callback would. Handing it to the main thread
 #: instead costs a thread wake-up, a good part of a small message's latency
-#: (benchmarks/reports/latency.md, with and without). Only steps known to be short run there (the
-#: node's last step took under INLINE_STEP_NS): meanwhile that link receives nothing more. And
+#: (benchmarks/reports/latency.md, with and without). With Zenoh, that thread is Zenoh's own
+#: receiving thread (node/transport.py). Only steps known to be short run there (the node's last
+#: step took under INLINE_STEP_NS): meanwhile that thread receives nothing more. And
 #: only on nodes on no cycle of the graph, so that a put blocked by a congested link can never
 #: wait, around a cycle, on a receiving thread that is itself blocked in a put. Nor on nodes whose
 #: flow has a ``setup()``: what it acquired may belong to its thread (an EGL context, a CUDA
@@ -166,8 +167,11 @@ class NodeLoop:
     def declare_inputs(self) -> None:
         """What this node listens to: its input streams, their producers' progress, the run's control."""
         put = self.inbox.put
+        # a grouped loop never waits on its own (the group does, GroupLoop.run): it never lends
+        # its turn to a receiving thread, which then only queues, off Zenoh's thread
+        # (transport.py: a receiving thread that may step is Zenoh's own)
         self.transport.declare_inputs(sorted(self.streams.frontiers), self.streams.sources,
-                                      self.receive if self.inline else None, put)
+                                      self.receive if self.inline and not self.grouped else None, put)
         if not self.grouped:  # (a group hears the run's control once for all: GroupLoop.hear_control)
             self.plane.listen()
 
@@ -249,9 +253,9 @@ class NodeLoop:
             reports = self.reports
             if reports.values:
                 have, kept = reports.have.get(key, -1), (arrival, data)  # one for a burst's events: sent once
-                for msg in events:
-                    if msg.seq > have:
-                        reports.kept[(msg.producer, msg.port, msg.seq)] = kept
+                for _, seq, _, producer, port, _ in events:  # (unpacked: a NamedTuple's fields are slow reads in 3.11)
+                    if seq > have:
+                        reports.kept[(producer, port, seq)] = kept
             for msg in events:
                 streams.in_order(key, msg)
         elif kind == EVENTS:  # from a producer of this process (group.py): trusted, by reference

@@ -58,25 +58,30 @@ class Outputs:
         if the outputs being put now were out already (the frontier they carry); the main
         thread, which just stamped them, then skips reading the HLC again."""
         with self.lock:
-            if not self.clock.started:  # its end not known yet: nothing promised past the run's start
-                return (0, 0)
-            running = self.schedule.running
-            lower = running or self.streams.tick_bound()
-            if lower >= (self.clock.end, 0) and running is None:
-                own = NEVER
-            elif self.latency_ns:
-                own = (lower[0] + self.latency_ns, 0)
-            elif self.virtual:
-                own = (lower[0], lower[1] + 1)
-            else:
-                # the tick in progress, or the next, is stamped past the last stamp and the HLC now
-                stamp = self.last_stamp + 1 if sent else max(self.clock.hlc(), self.last_stamp + 1)
-                own = (stamp if stamp > lower[0] else lower[0] + 1, 0)  # (max, without its call: per publish)
-            if self.held:
-                own = min(own, self.held[0][0])
-            if self.sending is not None and not sent:
-                own = min(own, self.sending)
-            return own
+            return self.frontier_held(sent)
+
+    def frontier_held(self, sent: bool = False) -> tuple[int, int]:
+        """:meth:`frontier`, by a caller that holds ``lock`` (a step's end: the tick no longer
+        running and its frontier read in one lock section)."""
+        if not self.clock.started:  # its end not known yet: nothing promised past the run's start
+            return (0, 0)
+        running = self.schedule.running
+        lower = running or self.streams.tick_bound()
+        if lower >= (self.clock.end, 0) and running is None:
+            own = NEVER
+        elif self.latency_ns:
+            own = (lower[0] + self.latency_ns, 0)
+        elif self.virtual:
+            own = (lower[0], lower[1] + 1)
+        else:
+            # the tick in progress, or the next, is stamped past the last stamp and the HLC now
+            stamp = self.last_stamp + 1 if sent else max(self.clock.hlc(), self.last_stamp + 1)
+            own = (stamp if stamp > lower[0] else lower[0] + 1, 0)  # (max, without its call: per publish)
+        if self.held:
+            own = min(own, self.held[0][0])
+        if self.sending is not None and not sent:
+            own = min(own, self.sending)
+        return own
 
     def stamp(self, tau: tuple[int, int], events: list) -> tuple[tuple[int, int] | None, list, tuple]:
         """A step's events, stamped and numbered: their tag (None: no events, nothing stamped),
@@ -157,12 +162,14 @@ class Outputs:
             self.sending = batch[0][0] if batch else None
         self.publish(batch)
 
-    def publish(self, batch: list) -> None:
+    def publish(self, batch: list, frontier: tuple[int, int] | None = None) -> None:
         """Send events (each but the last carries its own tag as frontier, the last the node's
-        frontier), then a progress message if some consumer's port did not get the frontier."""
+        frontier), then a progress message if some consumer's port did not get the frontier.
+        ``frontier``: ``frontier_held(sent=True)``, read by the caller under the lock (else here)."""
         if not batch and not self.consumed:  # (an idle tick of a flow no one consumes: nothing to say)
             return
-        frontier = self.frontier(sent=True)
+        if frontier is None:
+            frontier = self.frontier(sent=True)
         data, publishers, reports, me = self.encoder.data, self.publishers, self.reports, self.id
         last = len(batch) - 1
         for i, (tag, port, value, seq) in enumerate(batch):

@@ -182,11 +182,12 @@ class Steps:
 
     def finish_tick(self, tau, consumed, produced, status, detail, start, wall, publish=()) -> None:
         outputs = self.outputs
-        with self.lock:
+        with self.lock:  # (one section: the tick done, and the frontier its outputs carry read)
             self.schedule.running = None
             if publish:
                 outputs.sending = publish[0][0]
-        outputs.publish(publish)  # first: the record is for the coordinator, and can wait
+            frontier = outputs.frontier_held(sent=True) if publish or outputs.consumed else None
+        outputs.publish(publish, frontier)  # first: the record is for the coordinator, and can wait
         self.reports.record(tau, consumed, produced, status, with_step_detail(self.flow, detail), start, wall)
 
     def source_stepped(self, tau, outputs: list, detail, start: int, wall: int) -> None:

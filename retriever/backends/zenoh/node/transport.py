@@ -10,7 +10,9 @@ its events. :class:`ZenohTransport` carries them on that session; the dora backe
 
 from __future__ import annotations
 
+import ctypes
 import weakref
+from threading import get_ident
 from typing import Callable
 
 import zenoh
@@ -87,8 +89,20 @@ class ZenohTransport(Transport):
         for src, src_port in streams:
             key = keys.data(src, src_port)
             callback = _data_callback((src, src_port), inline, put)
-            self.subscribers.append(s.declare_subscriber(
-                key, callback if self.tap is None else self.tap.callback(key, callback)))
+            if self.tap is not None:
+                callback = self.tap.callback(key, callback)
+            if inline is not None:
+                # called on Zenoh's receiving thread itself (indirect=False), not on the Python
+                # thread zenoh-python would start for the callback and wake for each sample: that
+                # wake-up was one hand-off more per message than `for sample in subscriber:`
+                # (benchmarks/reports/latency.md, 2026-12-05 lat12). Zenoh's thread then takes
+                # the GIL itself: while the main thread runs Python it waits, up to the
+                # interpreter's switch interval (5 ms), and receives nothing meanwhile. So only
+                # for a loop that may run ticks on the receiving thread (NodeLoop's
+                # INLINE_STEP_NS: short steps, no cycle, no setup); a loop that only queues
+                # keeps zenoh-python's thread between Zenoh's and its long steps.
+                callback = zenoh.handlers.Callback(callback, indirect=False)
+            self.subscribers.append(s.declare_subscriber(key, callback))
         for src in sources:
             self.subscribers.append(s.declare_subscriber(
                 keys.progress(src), lambda sample, k=src: put((PROGRESS, k, sample.payload.to_bytes()))))
@@ -140,8 +154,27 @@ def _data_callback(stream: tuple[str, str], inline: Callable[[tuple], None] | No
     loop = weakref.WeakMethod(inline)
 
     def receive(sample):
+        if get_ident() not in _kept:
+            _keep_thread_state()
         bound = loop()
         if bound is not None:
             bound((DATA, stream, sample.payload.to_bytes()))
 
     return receive
+
+
+#: the threads of Zenoh's whose Python thread state is kept (:func:`_keep_thread_state`)
+_kept: set[int] = set()
+
+
+def _keep_thread_state() -> None:
+    """Keep the Python thread state of the Zenoh thread this runs on (in a callback with
+    indirect=False) from one callback to the next. zenoh-python takes the GIL for each callback
+    with PyGILState_Ensure, which, on a thread Python did not start, makes a new thread state
+    and deletes it after: each message then paid for a thread state made and freed, its frame
+    stack's 16 KiB chunk mapped and unmapped (mmap, munmap, a page fault) and run cold. One
+    PyGILState_Ensure of our own, never released, keeps the count above zero, so the state
+    stays, as a Python thread's does. It goes with the interpreter; a thread that ends leaves
+    it unused (Zenoh's threads end with the session, at the process's end)."""
+    ctypes.pythonapi.PyGILState_Ensure()
+    _kept.add(get_ident())
