@@ -18,7 +18,12 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    taking its logged ticks as it reaches them (and decoding their values), and then the records
    of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
-   step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
+   step records by tag and node) and dropped. A second's records of both sides are first paired
+   in the order they came (the log's events and step records in log-time order, ties in file
+   order, which is nearly always that order; the session's events sorted, its step records in
+   the order it recorded them): if each pair is the same, sorted they pair the same, so nothing
+   else is sorted; at the first pair that is not, they are sorted and compared from the start
+   (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
    to the same bytes is the same record (``_same_events``); a step record without detail by its
@@ -236,11 +241,12 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
 
 
 def _drained(session: InprocSession) -> tuple[list[tuple], list[tuple]]:
-    """The records the session recorded since the last call, taken out of its trace: plain tuples
-    of the fields of an :class:`Event` and a :class:`StepRecord` (made those to be reported)."""
+    """The records the session recorded since the last call, taken out of its trace, in the order it
+    recorded them: plain tuples of the fields of an :class:`Event` and a :class:`StepRecord` (made
+    those to be reported)."""
     trace = session.trace
     events, steps = trace.raw_events, trace.raw_steps
-    taken = list(events), sorted(steps, key=_raw_step_key)
+    taken = list(events), list(steps)
     trace.discard(len(events), len(steps))
     return taken
 
@@ -376,8 +382,9 @@ class _Feed:
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
         before the horizon and the events they produced (an event as read, a plain tuple, when its
-        value decodes surely, else an :class:`Event`, value decoded); each list sorted as a trace
-        compares them. (The records are read in log-time order: those before ``t`` come first.)"""
+        value decodes surely, else an :class:`Event`, value decoded); each list in log-time order,
+        ties in file order (the comparison sorts them as a trace compares them, where it must). (The
+        records are read in log-time order: those before ``t`` come first.)"""
         steps, events = self.steps, self.events
         if t is None:
             now, self.steps = steps, []
@@ -399,7 +406,6 @@ class _Feed:
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
         owed, log = self.owed, self.log
         produced = list(chain.from_iterable(map(_produced, now)))
-        owed.update(produced)
         self.steps_kept += len(now)
         ids = list(map(_event_id, ready))
         values = self.values
@@ -408,6 +414,14 @@ class _Feed:
             for event_id in ids:
                 if event_id in values:
                     log.value(LoggedEvent(*values.pop(event_id)))
+        if not owed and not twice and len(produced) == len(ids) and set(produced) == set(ids):
+            # the events read are exactly those these steps produced, nothing else owed: nearly
+            # always (what owed's bookkeeping below would find, without it: each id expected once,
+            # every produced id in the log, owed left empty)
+            expected = ready if all_decode_surely(map(_raw_value, ready)) else [
+                e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
+            return expected, now
+        owed.update(produced)
         if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
             owed.difference_update(ids)
             # a value that decodes surely is compared by its bytes, decoded only if they differ;
@@ -426,8 +440,6 @@ class _Feed:
             for event_id in owed.intersection(produced):
                 if not in_log(event_id):
                     owed.discard(event_id)
-        expected.sort(key=_raw_event_key)
-        now.sort(key=_raw_step_key)
         return expected, now
 
 
@@ -471,6 +483,15 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
     return paired
 
 
+def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
+    """Whether each step record of ``mine`` (the log's) is the same without detail as the one at its
+    place in ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
+    for a, b in zip(mine, theirs):
+        if a[5] is not None or b[5] is not None or a[:5] != b[:5]:
+            return False
+    return True
+
+
 def _same_steps(mine: deque, theirs: deque) -> int:
     """Pair off the step records at the front of ``mine`` (the log's) and ``theirs`` (the
     session's) that are the same without detail, in one loop; how many. Stops at the first pair
@@ -494,6 +515,7 @@ _produced, _event_id, _raw_value = itemgetter(3), itemgetter(1, 2, 3), itemgette
 #: how a trace sorts its events (tag, node, port, seq) and step records (tag, node), of an Event or
 #: StepRecord and of the plain tuples of their fields alike
 _raw_event_key, _raw_step_key = itemgetter(0, 1, 2, 3), itemgetter(1, 0)
+_tag = itemgetter(0)  # of an event's plain tuple: (time, microstep), sorted before (t,) when time < t
 
 
 def _decoded(log: LogHead, e: tuple | Event) -> Event:
@@ -528,28 +550,54 @@ class _Comparison:
         self._heads: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 
     def add(self, expected: tuple[list[Event | tuple], list[tuple]], again: tuple[list[tuple], list[tuple]]) -> None:
+        """Take a second's records of each side (each in any order: sorted here as a trace compares
+        them, as far as needed); the step records are paired at once when they are the same in the
+        order they came (then, sorted, they pair the same: the same records, in the same order)."""
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
             if steps and self.first_step[side] is None:
-                self.first_step[side] = steps[0]
-            if self.step_difference is None:
-                self.steps[side].extend(steps)
+                self.first_step[side] = min(steps, key=_raw_step_key)  # (the first of them sorted)
             self.arrived[side].extend(events)
+        if self.step_difference is not None:
+            return
+        mine, theirs = self.steps
+        steps, steps_again = expected[1], again[1]
+        if not mine and not theirs and len(steps) == len(steps_again) and _same_in_order(steps, steps_again):
+            self.paired_steps += len(steps)
+            return
+        steps.sort(key=_raw_step_key)
+        steps_again.sort(key=_raw_step_key)
+        mine.extend(steps)
+        theirs.extend(steps_again)
 
     def pair(self, t: int | None) -> None:
         """Pair off the events before ``t`` (None: all) and the step records in."""
-        for side in (0, 1):
-            arrived = self.arrived[side]
-            if t is None or not side:  # (the log's are all before t: _Feed.take_before)
-                ready, later = list(arrived), []
-            else:
-                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
-            self.arrived[side][:] = later
-            ready.sort(key=_raw_event_key)
-            self.counts[side][0] += len(ready)
-            if self.event_difference is None:
-                self.events[side].extend(ready)
+        arrived, arrived_again = self.arrived
+        ready = arrived[:]  # (the log's are all before t: _Feed.take_before)
+        arrived.clear()
+        arrived_again.sort(key=_raw_event_key)  # the session's before t come first, sorted by tag first
+        cut = len(arrived_again) if t is None else bisect_left(arrived_again, (t,), key=_tag)
+        ready_again = arrived_again[:cut]
+        del arrived_again[:cut]
+        self.counts[0][0] += len(ready)
+        self.counts[1][0] += len(ready_again)
         mine, theirs = self.events
+        if self.event_difference is None:
+            if not mine and not theirs and len(ready) == len(ready_again):
+                # the log's as read (in log-time order, nearly always sorted already): if each is the
+                # same as the session's at its place, sorted they pair the same (they are in order)
+                mine.extend(ready)
+                theirs.extend(ready_again)
+                paired = _same_events(mine, theirs, self._heads)
+                if not mine:
+                    self.paired_events += paired
+                    ready = ready_again = []
+                else:
+                    mine.clear()
+                    theirs.clear()
+            ready.sort(key=_raw_event_key)
+            mine.extend(ready)
+            theirs.extend(ready_again)
         while mine and theirs and self.event_difference is None:
             self.paired_events += _same_events(mine, theirs, self._heads)
             if not (mine and theirs):
