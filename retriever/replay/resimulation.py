@@ -20,10 +20,11 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
    step records by tag and node) and dropped. A second's records of both sides are first paired
    in the order they came (the log's events and step records in log-time order, ties in file
-   order, which is nearly always that order; the session's events sorted, its step records in
-   the order it recorded them): if each pair is the same, sorted they pair the same, so nothing
-   else is sorted; at the first pair that is not, they are sorted and compared from the start
-   (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
+   order; the session's in the order it recorded them, its events sorted by tag alone, ties in
+   that order): the same records in the same order nearly always. If each pair is the same,
+   sorted they pair the same (the same keys in the same order: one permutation sorts both), so
+   nothing else is sorted; at the first pair that is not, both are sorted and compared from the
+   start (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
    to the same bytes is the same record (``_same_events``); a step record without detail by its
@@ -575,7 +576,8 @@ class _Comparison:
         arrived, arrived_again = self.arrived
         ready = arrived[:]  # (the log's are all before t: _Feed.take_before)
         arrived.clear()
-        arrived_again.sort(key=_raw_event_key)  # the session's before t come first, sorted by tag first
+        # the session's before t: first once sorted by tag (a stable sort: ties in the order recorded)
+        arrived_again.sort(key=_tag)
         cut = len(arrived_again) if t is None else bisect_left(arrived_again, (t,), key=_tag)
         ready_again = arrived_again[:cut]
         del arrived_again[:cut]
@@ -584,8 +586,9 @@ class _Comparison:
         mine, theirs = self.events
         if self.event_difference is None:
             if not mine and not theirs and len(ready) == len(ready_again):
-                # the log's as read (in log-time order, nearly always sorted already): if each is the
-                # same as the session's at its place, sorted they pair the same (they are in order)
+                # as they came (the log's in log-time order, ties in file order; nearly always the
+                # order the session recorded them in): if each pair is the same, sorted they pair the
+                # same (the same keys in the same order: the same permutation sorts both)
                 mine.extend(ready)
                 theirs.extend(ready_again)
                 paired = _same_events(mine, theirs, self._heads)
@@ -596,6 +599,7 @@ class _Comparison:
                     mine.clear()
                     theirs.clear()
             ready.sort(key=_raw_event_key)
+            ready_again.sort(key=_raw_event_key)
             mine.extend(ready)
             theirs.extend(ready_again)
         while mine and theirs and self.event_difference is None:

@@ -305,3 +305,28 @@ def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path):
     for report in (resim(read_log(path), _two(offset=0.099, more_at=30)),
                    resim_file(path, _two(offset=0.099, more_at=30))):
         assert _said(report.difference) == _said(expected)
+
+
+
+def _let(differ: str = "") -> Pipeline:
+    """LET outputs of two nodes at the same tags: ``zeta2``'s (0.1 s after its step) recorded
+    before ``alpha2``'s (0.05 s after its step, 0.05 s later), which a trace sorts first."""
+    with Pipeline("let") as pipe:
+        for name, offset, latency in (("zeta", 0.0, 0.1), ("alpha", 0.05, 0.05)):
+            twice = Twice(name[0] in differ).named(f"{name}2").configure(latency=latency, on_error="skip_tick")
+            (Ramp().named(name) @ Rate(hz=20)).then(twice @ Rate(hz=10, offset=offset), sync=Latest())
+    return pipe
+
+
+@pytest.mark.parametrize("differ", ["", "z", "a", "za"])
+def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path, differ):
+    """The session's events of a tag are in the order it recorded them (``zeta2``'s first), and so
+    are the log's: paired as they came when each pair is the same; otherwise both sorted, and the
+    first difference is the one ``Trace.first_difference`` finds."""
+    path = tmp_path / "run.mcap"
+    _let().run(duration=3.0, log=path)
+    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0))
+    assert (expected is None) == (differ == "")
+    for report in (resim(read_log(path), _let(differ)), resim_file(path, _let(differ))):
+        assert _said(report.difference) == _said(expected)
+        assert report.steps_compared == 2 * (60 + 30)
