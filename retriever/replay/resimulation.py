@@ -51,7 +51,7 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import all_decode_surely, array_encoding_head, decodes_surely
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely, unpackb
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
@@ -378,7 +378,11 @@ class _Feed:
         while event_id not in values and self.survey.events.in_log(event_id) and self._read_some():
             pass
         # (a KeyError if the log lacks it, as when the log was read whole)
-        return self.log.value(LoggedEvent(*values.pop(event_id)))
+        record = values.pop(event_id)
+        try:
+            return unpackb(record[4])
+        except Exception:  # RunLog.value's error for it (the same decoding, which says what is wrong)
+            return self.log.value(LoggedEvent(*record))
 
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
@@ -482,6 +486,24 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
         theirs.appendleft(b)
         return paired
     return paired
+
+
+def _same_events_in_order(mine: list, theirs: list[tuple], heads: dict[int, tuple[bytes, np.dtype, tuple]]) -> bool:
+    """Whether each event of ``mine`` (the log's) is the same as the one at its place in ``theirs``
+    (the session's, as many) as :func:`_same_events` tells a pair by its bytes (a head it has not
+    found yet: not told here)."""
+    ndarray = np.ndarray
+    for a, b in zip(mine, theirs):
+        value = b[4]
+        if type(a) is not tuple or type(value) is not ndarray or a[3] != b[3] or a[0] != b[0] or a[2] != b[2] \
+                or a[1] != b[1]:
+            return False
+        raw, dtype = a[4], value.dtype
+        known = heads.get(len(raw))
+        if known is None or (known[1] is not dtype and known[1] != dtype) or known[2] != value.shape \
+                or known[0] + value.tobytes() != raw:
+            return False
+    return True
 
 
 def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
@@ -589,15 +611,9 @@ class _Comparison:
                 # as they came (the log's in log-time order, ties in file order; nearly always the
                 # order the session recorded them in): if each pair is the same, sorted they pair the
                 # same (the same keys in the same order: the same permutation sorts both)
-                mine.extend(ready)
-                theirs.extend(ready_again)
-                paired = _same_events(mine, theirs, self._heads)
-                if not mine:
-                    self.paired_events += paired
+                if _same_events_in_order(ready, ready_again, self._heads):
+                    self.paired_events += len(ready)
                     ready = ready_again = []
-                else:
-                    mine.clear()
-                    theirs.clear()
             ready.sort(key=_raw_event_key)
             ready_again.sort(key=_raw_event_key)
             mine.extend(ready)

@@ -330,3 +330,28 @@ def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path,
     for report in (resim(read_log(path), _let(differ)), resim_file(path, _let(differ))):
         assert _said(report.difference) == _said(expected)
         assert report.steps_compared == 2 * (60 + 30)
+
+
+@pytest.mark.parametrize("damage", [b"\xc1", b"\xd4\x7f\x00", b"\x93\x01"])
+def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage):
+    """A replayed source's logged value is decoded when its tick takes it: one that is not valid
+    msgpack, not a value the codec makes, or cut short refuses the log with ``RunLog.value``'s
+    error, read whole and streamed."""
+    from retriever.errors import LogError
+
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+
+    def damaged(topic, message) -> bool:
+        if topic == "data/ramp/x" and message.sequence == 10:
+            message.data = message.data[:2] + damage
+        return True
+
+    log = rewrite(path, tmp_path / "damaged.mcap", keep=damaged)
+    whole = read_log(log)
+    event = next(e for e in whole.iter_events() if e.node == "ramp" and e.seq == 10)
+    with pytest.raises(LogError) as said:
+        whole.value(event)
+    for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
+        with pytest.raises(LogError, match=re.escape(str(said.value))):
+            again()
