@@ -509,8 +509,9 @@ def _same_events_in_order(mine: list, theirs: list[tuple], heads: dict[int, tupl
 def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
     """Whether each step record of ``mine`` (the log's) is the same without detail as the one at its
     place in ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
-    for a, b in zip(mine, theirs):
-        if a[5] is not None or b[5] is not None or a[:5] != b[:5]:
+    for a, b in zip(mine, theirs):  # (field by field: no slices made)
+        if a[5] is not None or b[5] is not None or a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] \
+                or a[4] != b[4]:
             return False
     return True
 
