@@ -412,20 +412,20 @@ class _Feed:
         owed, log = self.owed, self.log
         produced = list(chain.from_iterable(map(_produced, now)))
         self.steps_kept += len(now)
-        ids = list(map(_event_id, ready))
         values = self.values
-        if values and not values.keys().isdisjoint(ids):
+        if values and not values.keys().isdisjoint(map(_event_id, ready)):
             # a source's events no tick took (at the horizon, after the session's end): decoded, as read
-            for event_id in ids:
+            for event_id in list(map(_event_id, ready)):
                 if event_id in values:
                     log.value(LoggedEvent(*values.pop(event_id)))
-        if not owed and not twice and len(produced) == len(ids) and set(produced) == set(ids):
+        if not owed and not twice and _the_ids_of(produced, ready):
             # the events read are exactly those these steps produced, nothing else owed: nearly
-            # always (what owed's bookkeeping below would find, without it: each id expected once,
-            # every produced id in the log, owed left empty)
+            # always (what owed's bookkeeping below would find, without it and without a set of
+            # them: each id expected once, every produced id in the log, owed left empty)
             expected = ready if all_decode_surely(map(_raw_value, ready)) else [
                 e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
             return expected, now
+        ids = list(map(_event_id, ready))
         owed.update(produced)
         if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
             owed.difference_update(ids)
@@ -446,6 +446,35 @@ class _Feed:
                 if not in_log(event_id):
                     owed.discard(event_id)
         return expected, now
+
+
+def _the_ids_of(produced: list[tuple], events: list[tuple]) -> bool:
+    """Whether ``produced`` (event ids) are the ids of ``events`` (plain tuples, their ids distinct),
+    each once, told in one pass as far as the two orders agree (nearly all: an event is logged at
+    the time of the step that produced it, but for a LET output, logged later, whose id waits in a
+    set for its event). False says nothing when both hold the same ids in another order than that
+    (an event before the step record that produced it)."""
+    n = len(produced)
+    if n != len(events):
+        return False
+    ahead: set[tuple] = set()  # produced, their events not met yet
+    i = 0
+    for e in events:
+        while True:
+            if i < n:
+                p = produced[i]
+                if p[2] == e[3] and p[1] == e[2] and p[0] == e[1]:
+                    i += 1
+                    break
+            event_id = e[1:4]
+            if event_id in ahead:
+                ahead.discard(event_id)
+                break
+            if i == n:  # an event none of them produced (so too if one was produced twice: as many)
+                return False
+            ahead.add(p)
+            i += 1
+    return True
 
 
 def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dtype, tuple]]) -> int:
