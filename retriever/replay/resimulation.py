@@ -27,8 +27,9 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    start (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
-   to the same bytes is the same record (``_same_events``); a step record without detail by its
-   fields (``_same_steps``); anything else decoded and packed, as the two traces would be.
+   to the same bytes is the same record (``_same_events``); a step record by its fields, and its
+   detail, if any, packed alone (``_same_steps``); anything else decoded and packed, as the two
+   traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -51,13 +52,13 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import all_decode_surely, array_encoding_head, decodes_surely, unpackb
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely, packb, unpackb
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
 from ..time import format_tag
-from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
+from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
 from .survey import LogSurvey
 
@@ -536,25 +537,34 @@ def _same_events_in_order(mine: list, theirs: list[tuple], heads: dict[int, tupl
 
 
 def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
-    """Whether each step record of ``mine`` (the log's) is the same without detail as the one at its
-    place in ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
+    """Whether each step record of ``mine`` (the log's) is the same as the one at its place in
+    ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
     for a, b in zip(mine, theirs):  # (field by field: no slices made)
-        if a[5] is not None or b[5] is not None or a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] \
-                or a[4] != b[4]:
+        if a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] or a[4] != b[4] \
+                or (a[5] is not None or b[5] is not None) and not _same_detail(a[5], b[5]):
             return False
     return True
 
 
+def _same_detail(a: dict | None, b: dict | None) -> bool:
+    """Whether two step records whose other compared fields are the same (as Python values, as
+    :func:`_same_steps` has them) are the same record: their details (but the timing keys) packed
+    as ``step_bytes`` packs them. (Packing the detail alone, not the whole record, whose tag and
+    ids go through the codec's tuple extension.)"""
+    return packb(semantic_detail(a)) == packb(semantic_detail(b))
+
+
 def _same_steps(mine: deque, theirs: deque) -> int:
     """Pair off the step records at the front of ``mine`` (the log's) and ``theirs`` (the
-    session's) that are the same without detail, in one loop; how many. Stops at the first pair
-    that is not (left in place): the comparison's own loop takes it. (The same fields without
-    detail pack the same, ``step_bytes``: the log's are exact strs and ints, ``format.decode_step``
-    checks them, the session's the backend's own.)"""
+    session's) that are the same, in one loop; how many. Stops at the first pair that is not
+    (left in place): the comparison's own loop takes it. (The same fields pack the same,
+    ``step_bytes``: the log's are exact strs and ints, ``format.decode_step`` checks them, the
+    session's the backend's own; a detail, which may hold anything msgpack reads, is compared
+    packed, :func:`_same_detail`.)"""
     paired = 0
     while mine and theirs:
         a, b = mine.popleft(), theirs.popleft()
-        if a[5] is None and b[5] is None and a[:5] == b[:5]:
+        if a[:5] == b[:5] and (a[5] is None and b[5] is None or _same_detail(a[5], b[5])):
             paired += 1
             continue
         mine.appendleft(a)

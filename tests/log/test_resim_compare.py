@@ -65,6 +65,8 @@ class Scale(Flow):
             return {"y": y, "z": y}
         elif kind == "raises" and self.n % 3 == 0:  # an error record (skip_tick), its text compared
             raise ValueError(f"no y at {self.n}")
+        elif kind == "raises-other" and self.n % 3 == 0:  # the same records but for the error's text
+            raise ValueError(f"no y at tick {self.n}")
         return {"y": y}
 
 
@@ -85,7 +87,7 @@ def _said(difference: str | None) -> str | None:
     ("same", "scalar"), ("same", "left-out"), ("same", "added"), ("fortran", "c-order"), ("c-order", "fortran"),
     ("fortran", "reshaped"), ("structured", "structured"), ("structured", "structured-other"),
     ("list", "list"), ("list", "same"), ("scalar", "same"), ("left-out", "same"), ("added", "same"),
-    ("same", "raises"), ("raises", "same"), ("raises", "raises"),
+    ("same", "raises"), ("raises", "same"), ("raises", "raises"), ("raises", "raises-other"),
 ])
 def test_resim_says_what_the_two_whole_traces_say(tmp_path, logged, again):
     path = tmp_path / "run.mcap"
