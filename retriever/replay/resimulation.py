@@ -52,7 +52,7 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import all_decode_surely, array_encoding_head, decodes_surely, packb, unpackb
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely, packb, unpackb_read_only
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
@@ -380,8 +380,8 @@ class _Feed:
             pass
         # (a KeyError if the log lacks it, as when the log was read whole)
         record = values.pop(event_id)
-        try:
-            return unpackb(record[4])
+        try:  # (an array as a read-only view of the logged bytes: the tick's emit makes it read-only)
+            return unpackb_read_only(record[4])
         except Exception:  # RunLog.value's error for it (the same decoding, which says what is wrong)
             return self.log.value(LoggedEvent(*record))
 

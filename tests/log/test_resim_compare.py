@@ -334,11 +334,12 @@ def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path,
         assert report.steps_compared == 2 * (60 + 30)
 
 
-@pytest.mark.parametrize("damage", [b"\xc1", b"\xd4\x7f\x00", b"\x93\x01"])
+@pytest.mark.parametrize("damage", [b"\xc1", b"\xd4\x7f\x00", b"\x93\x01", "dtype"])
 def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage):
     """A replayed source's logged value is decoded when its tick takes it: one that is not valid
-    msgpack, not a value the codec makes, or cut short refuses the log with ``RunLog.value``'s
-    error, read whole and streamed."""
+    msgpack, not a value the codec makes, cut short, or as long as the others but with another
+    head (a dtype no array has: not decoded as the others, by their head) refuses the log with
+    ``RunLog.value``'s error, read whole and streamed."""
     from retriever.errors import LogError
 
     path = tmp_path / "run.mcap"
@@ -346,7 +347,7 @@ def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage)
 
     def damaged(topic, message) -> bool:
         if topic == "data/ramp/x" and message.sequence == 10:
-            message.data = message.data[:2] + damage
+            message.data = message.data.replace(b"<f8", b"<z8") if damage == "dtype" else message.data[:2] + damage
         return True
 
     log = rewrite(path, tmp_path / "damaged.mcap", keep=damaged)
