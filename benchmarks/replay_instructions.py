@@ -11,7 +11,8 @@ imports and builds the same pipeline (``imports``):
 - ``resim``: ``resim_file(LOG)`` likewise.
 
 The log is written by this checkout (``retriever run examples/quickstart.py --duration SECONDS
---log LOG --keep counters``) unless ``--log`` names one. Compile the tree first when it was
+--log LOG --keep counters``) unless ``--log`` names one. The counted processes import this
+checkout's ``retriever`` (its folder first on ``PYTHONPATH``), not the one a venv has installed. Compile the tree first when it was
 exported with ``git archive``: a machine with ``PYTHONDONTWRITEBYTECODE=1`` (this one) would
 otherwise compile every module in every counted process.
 
@@ -36,7 +37,9 @@ MODES = ("imports", "run", "replay", "resim")
 
 def counted(mode: str, log: Path, seconds: float) -> int:
     """The instructions of one process running ``mode`` (valgrind's ``I refs``)."""
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
+    # this tree's retriever first (a venv may have another checkout installed editable)
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0", "PYTHONPATH": path}
     done = subprocess.run(["valgrind", "--tool=cachegrind", "--cache-sim=no", "--cachegrind-out-file=/dev/null",
                            sys.executable, __file__, "--mode", mode, "--log", str(log), "--seconds", str(seconds)],
                           cwd=ROOT, env=env, capture_output=True, text=True, check=True)

@@ -559,6 +559,18 @@ def unpackb(data: bytes, *, keep_unregistered: bool = False) -> Any:
     return _unpack(data, keep_unregistered, None)
 
 
+def unpackb_read_only(data: bytes) -> Any:
+    """:func:`unpackb`, but an array that decodes surely (:func:`decodes_surely`) comes back as a
+    read-only view of ``data``, not a copy: a value decoded to be emitted again (which makes it
+    read-only anyway), e.g. a replayed source's."""
+    if type(data) is bytes:
+        known = _array_decodings.get(len(data))
+        if known is not None and data.startswith(known[0]):
+            head, dtype, shape = known
+            return np.frombuffer(data, dtype, offset=len(head)).reshape(shape)
+    return unpackb(data)
+
+
 def decodes_surely(data: bytes) -> bool:
     """Whether :func:`unpackb` decodes ``data`` surely, told without decoding it: an array's
     encoding that begins as one of the same length that it decoded before (``_array_decodings``).

@@ -486,3 +486,21 @@ def test_arrays_as_long_as_one_decoded_before_decode_as_themselves():
     short[-17] = 15  # the bin's length says 15 of the 16 bytes: msgpack's ExtraData, as before
     with pytest.raises(CodecError, match="ExtraData"):
         unpackb(bytes(short))
+
+
+def test_unpackb_read_only_is_unpackb_an_array_a_read_only_view():
+    """``unpackb_read_only`` decodes as ``unpackb`` does; an array that decodes surely (one of that
+    length decoded before, the same head) is a read-only view of the bytes, not a copy; bytes of
+    that length with another head are decoded, as ``unpackb`` decodes (or refuses) them."""
+    from retriever.codec import packb, unpackb, unpackb_read_only
+
+    first, second = packb(np.arange(6.0).reshape(2, 3)), packb(np.arange(6.0).reshape(2, 3) + 1)
+    assert unpackb(first).flags.writeable  # (and the encoding's head is now known)
+    view = unpackb_read_only(second)
+    assert not view.flags.writeable and view.base is not None
+    np.testing.assert_array_equal(view, unpackb(second))
+    other = packb(np.arange(6, dtype=np.int64).reshape(3, 2))  # as long, another head
+    assert len(other) == len(second)
+    decoded = unpackb_read_only(other)
+    assert decoded.dtype == np.int64 and decoded.shape == (3, 2)
+    assert unpackb_read_only(packb({"a": [1, 2]})) == {"a": [1, 2]}

@@ -18,11 +18,18 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    taking its logged ticks as it reaches them (and decoding their values), and then the records
    of that second, the log's and the session's, are compared in the order
    ``Trace.first_difference`` compares two whole traces (events by tag, node, port and seq, then
-   step records by tag and node) and dropped. An event whose tag is still ahead (a LET output)
+   step records by tag and node) and dropped. A second's records of both sides are first paired
+   in the order they came (the log's events and step records in log-time order, ties in file
+   order; the session's in the order it recorded them, its events sorted by tag alone, ties in
+   that order): the same records in the same order nearly always. If each pair is the same,
+   sorted they pair the same (the same keys in the same order: one permutation sorts both), so
+   nothing else is sorted; at the first pair that is not, both are sorted and compared from the
+   start (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
-   to the same bytes is the same record (``_same_events``); a step record without detail by its
-   fields (``_same_steps``); anything else decoded and packed, as the two traces would be.
+   to the same bytes is the same record (``_same_events``); a step record by its fields, and its
+   detail, if any, packed alone (``_same_steps``); anything else decoded and packed, as the two
+   traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -45,13 +52,13 @@ import msgpack
 import numpy as np
 
 from ..backends.inproc import InprocSession
-from ..codec import all_decode_surely, array_encoding_head, decodes_surely
+from ..codec import all_decode_surely, array_encoding_head, decodes_surely, packb, unpackb_read_only
 from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
 from ..time import format_tag
-from ..trace import Event, StepRecord, StepStatus, event_bytes, step_bytes
+from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
 from .survey import LogSurvey
 
@@ -236,11 +243,12 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
 
 
 def _drained(session: InprocSession) -> tuple[list[tuple], list[tuple]]:
-    """The records the session recorded since the last call, taken out of its trace: plain tuples
-    of the fields of an :class:`Event` and a :class:`StepRecord` (made those to be reported)."""
+    """The records the session recorded since the last call, taken out of its trace, in the order it
+    recorded them: plain tuples of the fields of an :class:`Event` and a :class:`StepRecord` (made
+    those to be reported)."""
     trace = session.trace
     events, steps = trace.raw_events, trace.raw_steps
-    taken = list(events), sorted(steps, key=_raw_step_key)
+    taken = list(events), list(steps)
     trace.discard(len(events), len(steps))
     return taken
 
@@ -371,13 +379,18 @@ class _Feed:
         while event_id not in values and self.survey.events.in_log(event_id) and self._read_some():
             pass
         # (a KeyError if the log lacks it, as when the log was read whole)
-        return self.log.value(LoggedEvent(*values.pop(event_id)))
+        record = values.pop(event_id)
+        try:  # (an array as a read-only view of the logged bytes: the tick's emit makes it read-only)
+            return unpackb_read_only(record[4])
+        except Exception:  # RunLog.value's error for it (the same decoding, which says what is wrong)
+            return self.log.value(LoggedEvent(*record))
 
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
         before the horizon and the events they produced (an event as read, a plain tuple, when its
-        value decodes surely, else an :class:`Event`, value decoded); each list sorted as a trace
-        compares them. (The records are read in log-time order: those before ``t`` come first.)"""
+        value decodes surely, else an :class:`Event`, value decoded); each list in log-time order,
+        ties in file order (the comparison sorts them as a trace compares them, where it must). (The
+        records are read in log-time order: those before ``t`` come first.)"""
         steps, events = self.steps, self.events
         if t is None:
             now, self.steps = steps, []
@@ -399,15 +412,22 @@ class _Feed:
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
         owed, log = self.owed, self.log
         produced = list(chain.from_iterable(map(_produced, now)))
-        owed.update(produced)
         self.steps_kept += len(now)
-        ids = list(map(_event_id, ready))
         values = self.values
-        if values and not values.keys().isdisjoint(ids):
+        if values and not values.keys().isdisjoint(map(_event_id, ready)):
             # a source's events no tick took (at the horizon, after the session's end): decoded, as read
-            for event_id in ids:
+            for event_id in list(map(_event_id, ready)):
                 if event_id in values:
                     log.value(LoggedEvent(*values.pop(event_id)))
+        if not owed and not twice and _the_ids_of(produced, ready):
+            # the events read are exactly those these steps produced, nothing else owed: nearly
+            # always (what owed's bookkeeping below would find, without it and without a set of
+            # them: each id expected once, every produced id in the log, owed left empty)
+            expected = ready if all_decode_surely(map(_raw_value, ready)) else [
+                e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
+            return expected, now
+        ids = list(map(_event_id, ready))
+        owed.update(produced)
         if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
             owed.difference_update(ids)
             # a value that decodes surely is compared by its bytes, decoded only if they differ;
@@ -426,9 +446,36 @@ class _Feed:
             for event_id in owed.intersection(produced):
                 if not in_log(event_id):
                     owed.discard(event_id)
-        expected.sort(key=_raw_event_key)
-        now.sort(key=_raw_step_key)
         return expected, now
+
+
+def _the_ids_of(produced: list[tuple], events: list[tuple]) -> bool:
+    """Whether ``produced`` (event ids) are the ids of ``events`` (plain tuples, their ids distinct),
+    each once, told in one pass as far as the two orders agree (nearly all: an event is logged at
+    the time of the step that produced it, but for a LET output, logged later, whose id waits in a
+    set for its event). False says nothing when both hold the same ids in another order than that
+    (an event before the step record that produced it)."""
+    n = len(produced)
+    if n != len(events):
+        return False
+    ahead: set[tuple] = set()  # produced, their events not met yet
+    i = 0
+    for e in events:
+        while True:
+            if i < n:
+                p = produced[i]
+                if p[2] == e[3] and p[1] == e[2] and p[0] == e[1]:
+                    i += 1
+                    break
+            event_id = e[1:4]
+            if event_id in ahead:
+                ahead.discard(event_id)
+                break
+            if i == n:  # an event none of them produced (so too if one was produced twice: as many)
+                return False
+            ahead.add(p)
+            i += 1
+    return True
 
 
 def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dtype, tuple]]) -> int:
@@ -471,16 +518,53 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
     return paired
 
 
+def _same_events_in_order(mine: list, theirs: list[tuple], heads: dict[int, tuple[bytes, np.dtype, tuple]]) -> bool:
+    """Whether each event of ``mine`` (the log's) is the same as the one at its place in ``theirs``
+    (the session's, as many) as :func:`_same_events` tells a pair by its bytes (a head it has not
+    found yet: not told here)."""
+    ndarray = np.ndarray
+    for a, b in zip(mine, theirs):
+        value = b[4]
+        if type(a) is not tuple or type(value) is not ndarray or a[3] != b[3] or a[0] != b[0] or a[2] != b[2] \
+                or a[1] != b[1]:
+            return False
+        raw, dtype = a[4], value.dtype
+        known = heads.get(len(raw))
+        if known is None or (known[1] is not dtype and known[1] != dtype) or known[2] != value.shape \
+                or known[0] + value.tobytes() != raw:
+            return False
+    return True
+
+
+def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
+    """Whether each step record of ``mine`` (the log's) is the same as the one at its place in
+    ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
+    for a, b in zip(mine, theirs):  # (field by field: no slices made)
+        if a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] or a[4] != b[4] \
+                or (a[5] is not None or b[5] is not None) and not _same_detail(a[5], b[5]):
+            return False
+    return True
+
+
+def _same_detail(a: dict | None, b: dict | None) -> bool:
+    """Whether two step records whose other compared fields are the same (as Python values, as
+    :func:`_same_steps` has them) are the same record: their details (but the timing keys) packed
+    as ``step_bytes`` packs them. (Packing the detail alone, not the whole record, whose tag and
+    ids go through the codec's tuple extension.)"""
+    return packb(semantic_detail(a)) == packb(semantic_detail(b))
+
+
 def _same_steps(mine: deque, theirs: deque) -> int:
     """Pair off the step records at the front of ``mine`` (the log's) and ``theirs`` (the
-    session's) that are the same without detail, in one loop; how many. Stops at the first pair
-    that is not (left in place): the comparison's own loop takes it. (The same fields without
-    detail pack the same, ``step_bytes``: the log's are exact strs and ints, ``format.decode_step``
-    checks them, the session's the backend's own.)"""
+    session's) that are the same, in one loop; how many. Stops at the first pair that is not
+    (left in place): the comparison's own loop takes it. (The same fields pack the same,
+    ``step_bytes``: the log's are exact strs and ints, ``format.decode_step`` checks them, the
+    session's the backend's own; a detail, which may hold anything msgpack reads, is compared
+    packed, :func:`_same_detail`.)"""
     paired = 0
     while mine and theirs:
         a, b = mine.popleft(), theirs.popleft()
-        if a[5] is None and b[5] is None and a[:5] == b[:5]:
+        if a[:5] == b[:5] and (a[5] is None and b[5] is None or _same_detail(a[5], b[5])):
             paired += 1
             continue
         mine.appendleft(a)
@@ -494,6 +578,7 @@ _produced, _event_id, _raw_value = itemgetter(3), itemgetter(1, 2, 3), itemgette
 #: how a trace sorts its events (tag, node, port, seq) and step records (tag, node), of an Event or
 #: StepRecord and of the plain tuples of their fields alike
 _raw_event_key, _raw_step_key = itemgetter(0, 1, 2, 3), itemgetter(1, 0)
+_tag = itemgetter(0)  # of an event's plain tuple: (time, microstep), sorted before (t,) when time < t
 
 
 def _decoded(log: LogHead, e: tuple | Event) -> Event:
@@ -528,28 +613,51 @@ class _Comparison:
         self._heads: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 
     def add(self, expected: tuple[list[Event | tuple], list[tuple]], again: tuple[list[tuple], list[tuple]]) -> None:
+        """Take a second's records of each side (each in any order: sorted here as a trace compares
+        them, as far as needed); the step records are paired at once when they are the same in the
+        order they came (then, sorted, they pair the same: the same records, in the same order)."""
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
             if steps and self.first_step[side] is None:
-                self.first_step[side] = steps[0]
-            if self.step_difference is None:
-                self.steps[side].extend(steps)
+                self.first_step[side] = min(steps, key=_raw_step_key)  # (the first of them sorted)
             self.arrived[side].extend(events)
+        if self.step_difference is not None:
+            return
+        mine, theirs = self.steps
+        steps, steps_again = expected[1], again[1]
+        if not mine and not theirs and len(steps) == len(steps_again) and _same_in_order(steps, steps_again):
+            self.paired_steps += len(steps)
+            return
+        steps.sort(key=_raw_step_key)
+        steps_again.sort(key=_raw_step_key)
+        mine.extend(steps)
+        theirs.extend(steps_again)
 
     def pair(self, t: int | None) -> None:
         """Pair off the events before ``t`` (None: all) and the step records in."""
-        for side in (0, 1):
-            arrived = self.arrived[side]
-            if t is None or not side:  # (the log's are all before t: _Feed.take_before)
-                ready, later = list(arrived), []
-            else:
-                ready, later = [e for e in arrived if e[0][0] < t], [e for e in arrived if e[0][0] >= t]
-            self.arrived[side][:] = later
-            ready.sort(key=_raw_event_key)
-            self.counts[side][0] += len(ready)
-            if self.event_difference is None:
-                self.events[side].extend(ready)
+        arrived, arrived_again = self.arrived
+        ready = arrived[:]  # (the log's are all before t: _Feed.take_before)
+        arrived.clear()
+        # the session's before t: first once sorted by tag (a stable sort: ties in the order recorded)
+        arrived_again.sort(key=_tag)
+        cut = len(arrived_again) if t is None else bisect_left(arrived_again, (t,), key=_tag)
+        ready_again = arrived_again[:cut]
+        del arrived_again[:cut]
+        self.counts[0][0] += len(ready)
+        self.counts[1][0] += len(ready_again)
         mine, theirs = self.events
+        if self.event_difference is None:
+            if not mine and not theirs and len(ready) == len(ready_again):
+                # as they came (the log's in log-time order, ties in file order; nearly always the
+                # order the session recorded them in): if each pair is the same, sorted they pair the
+                # same (the same keys in the same order: the same permutation sorts both)
+                if _same_events_in_order(ready, ready_again, self._heads):
+                    self.paired_events += len(ready)
+                    ready = ready_again = []
+            ready.sort(key=_raw_event_key)
+            ready_again.sort(key=_raw_event_key)
+            mine.extend(ready)
+            theirs.extend(ready_again)
         while mine and theirs and self.event_difference is None:
             self.paired_events += _same_events(mine, theirs, self._heads)
             if not (mine and theirs):

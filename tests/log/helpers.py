@@ -82,11 +82,12 @@ def cut(path: Path, size: int, out: Path) -> Path:
 
 
 def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None = None, topic=None,
-            writer_options: dict | None = None) -> Path:
+            writer_options: dict | None = None, order=None) -> Path:
     """A copy of the log ``src`` made with the ``mcap`` writer, as a forger would: ``metadata(name,
     dict)`` changes a metadata record in place, ``keep(topic, message)`` drops messages it says no
     to, ``add`` holds metadata records to add ({name: {key: value}}), ``topic(topic)`` renames a
-    channel; ``writer_options``: the ``mcap`` Writer's (``chunk_size``, ``index_types``...)."""
+    channel; ``writer_options``: the ``mcap`` Writer's (``chunk_size``, ``index_types``...);
+    ``order(messages)``: the ``(schema, channel, message)`` triples in the order to write them."""
     from mcap.reader import make_reader
     from mcap.writer import Writer
 
@@ -94,6 +95,8 @@ def rewrite(src: Path, dst: Path, *, metadata=None, keep=None, add: dict | None 
         reader = make_reader(f)
         header = reader.get_header()
         messages = list(reader.iter_messages())
+        if order is not None:
+            messages = list(order(messages))
         attachments = list(reader.iter_attachments())
         metas = list(reader.iter_metadata())
     with open(dst, "wb") as out:

@@ -15,6 +15,7 @@ import retriever.log.reader as reader
 from retriever import Flow, Latest, Pipeline, Rate
 from retriever.log import read_log
 from retriever.replay import resim, resim_file
+from tests.log.helpers import rewrite
 
 _PAIR = np.dtype([("a", "<i4"), ("b", "<f8")])
 
@@ -64,6 +65,8 @@ class Scale(Flow):
             return {"y": y, "z": y}
         elif kind == "raises" and self.n % 3 == 0:  # an error record (skip_tick), its text compared
             raise ValueError(f"no y at {self.n}")
+        elif kind == "raises-other" and self.n % 3 == 0:  # the same records but for the error's text
+            raise ValueError(f"no y at tick {self.n}")
         return {"y": y}
 
 
@@ -75,8 +78,8 @@ def _pipe(kind: str) -> Pipeline:
 
 
 def _said(difference: str | None) -> str | None:
-    # (an event's publish time is when a run made it)
-    return None if difference is None else re.sub(r"publish_ns=\d+", "publish_ns=_", difference)
+    # (an event's publish time and a step's wall times are when and how long a run made it)
+    return None if difference is None else re.sub(r"(publish_ns|wall_start_ns|wall_ns)=\d+", r"\1=_", difference)
 
 
 @pytest.mark.parametrize("logged, again", [
@@ -84,7 +87,7 @@ def _said(difference: str | None) -> str | None:
     ("same", "scalar"), ("same", "left-out"), ("same", "added"), ("fortran", "c-order"), ("c-order", "fortran"),
     ("fortran", "reshaped"), ("structured", "structured"), ("structured", "structured-other"),
     ("list", "list"), ("list", "same"), ("scalar", "same"), ("left-out", "same"), ("added", "same"),
-    ("same", "raises"), ("raises", "same"), ("raises", "raises"),
+    ("same", "raises"), ("raises", "same"), ("raises", "raises"), ("raises", "raises-other"),
 ])
 def test_resim_says_what_the_two_whole_traces_say(tmp_path, logged, again):
     path = tmp_path / "run.mcap"
@@ -184,7 +187,6 @@ def test_a_damaged_source_value_no_tick_takes_refuses_the_resim(tmp_path):
     re-simulation stops before it) when the comparison reads past it: a damaged one refuses the
     log, as ``RunLog.value`` says it, read whole and streamed."""
     from retriever.errors import LogError
-    from tests.log.helpers import rewrite
 
     path = tmp_path / "run.mcap"
     _pipe("same").run(duration=2.0, log=path)
@@ -204,4 +206,155 @@ def test_a_damaged_source_value_no_tick_takes_refuses_the_resim(tmp_path):
     log = rewrite(path, tmp_path / "damaged.mcap", metadata=interrupted, keep=damaged)
     for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
         with pytest.raises(LogError, match="event ramp.x #39 is not valid msgpack"):
+            again()
+
+
+
+class Twice(Flow):
+    """Twice its input (three times when it ``differs``); a ``sink`` returns nothing, and raises
+    from its 5th tick on when it differs; with ``more_at``, another event at that tick."""
+
+    def __init__(self, differs: bool = False, sink: bool = False, more_at: int = 0):
+        self.differs, self.sink, self.more_at, self.n = differs, sink, more_at, 0
+
+    def step(self, x):
+        self.n += 1
+        if self.sink:
+            if self.differs and self.n >= 5:
+                raise ValueError(f"no sink at {self.n}")
+            return {}
+        if self.n == self.more_at:
+            return {"y": x * 2, "z": x}
+        return {"y": x * (3 if self.differs else 2)}
+
+
+def _two(differ: str = "", sinks: bool = False, offset: float = 0.01, more_at: int = 0) -> Pipeline:
+    """Two chains that tick at the same instants; those whose names start with a letter of
+    ``differ`` differ from the run's (``Twice``, at 10 Hz from ``offset``; ``zeta2`` with another
+    event at its ``more_at``th tick)."""
+    with Pipeline("two") as pipe:
+        for name in ("zeta", "alpha"):
+            twice = Twice(name[0] in differ, sinks, more_at if name == "zeta" else 0).named(f"{name}2")
+            twice = twice.configure(on_error="skip_tick")
+            (Ramp().named(name) @ Rate(hz=20)).then(twice @ Rate(hz=10, offset=offset), sync=Latest())
+    return pipe
+
+
+def _each_instant_reversed(messages: list) -> list:
+    """A log's messages (in log-time order) with those of each log time in the reverse order:
+    ``zeta``'s records of an instant before ``alpha``'s, as a log of another backend may hold them
+    (in the order they arrived), which a trace sorts after."""
+    by_time: dict[int, list] = {}
+    for m in messages:
+        by_time.setdefault(m[2].log_time, []).append(m)
+    return [m for t in sorted(by_time) for m in reversed(by_time[t])]
+
+
+@pytest.mark.parametrize("sinks", [False, True])
+@pytest.mark.parametrize("differ", ["", "z", "a", "za"])
+@pytest.mark.parametrize("reversed_", [False, True])
+def test_records_read_in_another_order_than_a_trace_sorts_them(tmp_path, differ, sinks, reversed_):
+    """A second's records of both sides are first paired in the order they came (the log's in
+    log-time order, ties in file order; the session's events sorted, its step records as it
+    recorded them): that order pairs them only when each pair is the same. Otherwise, as when the
+    log holds an instant's records in another order (``reversed_``: ``zeta``'s first), they are
+    sorted and compared as two whole traces are: identical if only the order differs, and the first
+    difference is the one ``Trace.first_difference`` finds (``alpha``'s where both differ)."""
+    path = tmp_path / "run.mcap"
+    _two(sinks=sinks).run(duration=3.0, log=path)
+    if reversed_:
+        path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
+    expected = read_log(path).trace().first_difference(_two(differ, sinks).run(duration=3.0))
+    assert (expected is None) == (differ == "")
+    if "a" in differ:
+        assert "alpha2" in expected
+    for report in (resim(read_log(path), _two(differ, sinks)), resim_file(path, _two(differ, sinks))):
+        assert _said(report.difference) == _said(expected)
+        assert report.steps_compared == 2 * (60 + 30)
+
+
+@pytest.mark.parametrize("sinks", [False, True])
+def test_a_record_the_log_lacks_at_the_end_of_a_second(tmp_path, sinks):
+    """The log lacks the last record of the first second (``zeta2``'s event, or its step record:
+    the last of the second as a trace sorts them), and the next seconds are the same: the
+    session's record left over is compared with the log's next one, as in the two whole traces,
+    not put aside while the next second pairs on its own."""
+    path = tmp_path / "run.mcap"
+    _two(sinks=sinks, offset=0.099).run(duration=3.0, log=path)
+    lacked = "steps" if sinks else "data/zeta2/y"
+
+    def kept(topic, message) -> bool:
+        return not (topic == lacked and message.log_time == 999_000_000
+                    and (topic != "steps" or message.data.startswith(b"\x97\xa5zeta2")))
+
+    path = rewrite(path, tmp_path / "lacking.mcap", keep=kept)
+    expected = read_log(path).trace().first_difference(_two(sinks=sinks, offset=0.099).run(duration=3.0))
+    assert expected is not None and expected.startswith("record "), expected
+    for report in (resim(read_log(path), _two(sinks=sinks, offset=0.099)),
+                   resim_file(path, _two(sinks=sinks, offset=0.099))):
+        assert _said(report.difference) == _said(expected)
+
+
+def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path):
+    """The session has one event more than the log, the last of all (its other records the same),
+    and the log holds each instant's records in another order than a trace sorts them: the first
+    difference is where the log's step records begin, as a trace sorts them (``alpha``'s first)."""
+    path = tmp_path / "run.mcap"
+    _two(offset=0.099).run(duration=3.0, log=path)
+    path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
+    expected = read_log(path).trace().first_difference(_two(offset=0.099, more_at=30).run(duration=3.0))
+    assert expected is not None and "StepRecord(node='alpha', tag=(0, 0)" in expected, expected
+    for report in (resim(read_log(path), _two(offset=0.099, more_at=30)),
+                   resim_file(path, _two(offset=0.099, more_at=30))):
+        assert _said(report.difference) == _said(expected)
+
+
+
+def _let(differ: str = "") -> Pipeline:
+    """LET outputs of two nodes at the same tags: ``zeta2``'s (0.1 s after its step) recorded
+    before ``alpha2``'s (0.05 s after its step, 0.05 s later), which a trace sorts first."""
+    with Pipeline("let") as pipe:
+        for name, offset, latency in (("zeta", 0.0, 0.1), ("alpha", 0.05, 0.05)):
+            twice = Twice(name[0] in differ).named(f"{name}2").configure(latency=latency, on_error="skip_tick")
+            (Ramp().named(name) @ Rate(hz=20)).then(twice @ Rate(hz=10, offset=offset), sync=Latest())
+    return pipe
+
+
+@pytest.mark.parametrize("differ", ["", "z", "a", "za"])
+def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path, differ):
+    """The session's events of a tag are in the order it recorded them (``zeta2``'s first), and so
+    are the log's: paired as they came when each pair is the same; otherwise both sorted, and the
+    first difference is the one ``Trace.first_difference`` finds."""
+    path = tmp_path / "run.mcap"
+    _let().run(duration=3.0, log=path)
+    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0))
+    assert (expected is None) == (differ == "")
+    for report in (resim(read_log(path), _let(differ)), resim_file(path, _let(differ))):
+        assert _said(report.difference) == _said(expected)
+        assert report.steps_compared == 2 * (60 + 30)
+
+
+@pytest.mark.parametrize("damage", [b"\xc1", b"\xd4\x7f\x00", b"\x93\x01", "dtype"])
+def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage):
+    """A replayed source's logged value is decoded when its tick takes it: one that is not valid
+    msgpack, not a value the codec makes, cut short, or as long as the others but with another
+    head (a dtype no array has: not decoded as the others, by their head) refuses the log with
+    ``RunLog.value``'s error, read whole and streamed."""
+    from retriever.errors import LogError
+
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+
+    def damaged(topic, message) -> bool:
+        if topic == "data/ramp/x" and message.sequence == 10:
+            message.data = message.data.replace(b"<f8", b"<z8") if damage == "dtype" else message.data[:2] + damage
+        return True
+
+    log = rewrite(path, tmp_path / "damaged.mcap", keep=damaged)
+    whole = read_log(log)
+    event = next(e for e in whole.iter_events() if e.node == "ramp" and e.seq == 10)
+    with pytest.raises(LogError) as said:
+        whole.value(event)
+    for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
+        with pytest.raises(LogError, match=re.escape(str(said.value))):
             again()
