@@ -6,6 +6,7 @@ import functools
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -123,6 +124,21 @@ def test_a_signal_that_lands_in_an_exec_still_ends_with_the_status_the_command_c
     done = subprocess.run([sys.executable, "-m", "stopped"], capture_output=True, text=True, timeout=120,
                           cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert done.returncode == 128 + signum, (done.returncode, done.stderr)
+
+
+def test_a_command_started_with_sigint_ignored_keeps_ignoring_it(tmp_path: Path):
+    """A shell's background job starts with SIGINT ignored (the terminal's Ctrl-C is for the
+    foreground): taking SIGTERM as Ctrl-C must not make it take Ctrl-C again."""
+    (tmp_path / "ignoring.py").write_text(
+        "import os, signal, sys\n"
+        "from retriever.cli import stop_on_signals\n"
+        "stop_on_signals()\n"
+        "os.kill(os.getpid(), signal.SIGINT)\n"
+        "sys.exit(0 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN else 'SIGINT is no longer ignored')\n")
+    done = subprocess.run([sys.executable, "-m", "ignoring"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=lambda: signal.signal(signal.SIGINT,
+                                                                                                       signal.SIG_IGN))
+    assert done.returncode == 0, (done.returncode, done.stderr)
 
 
 def test_version_as_a_flag_and_python_dash_m():

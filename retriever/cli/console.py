@@ -124,9 +124,12 @@ def _interrupt(signum, frame) -> None:
 
 def stop_on_signals() -> None:
     """From now on SIGTERM and SIGINT (Ctrl-C) stop the command as an :class:`Interrupted` (a
-    KeyboardInterrupt), and :func:`stop_signal` says which signal it was."""
+    KeyboardInterrupt), and :func:`stop_signal` says which signal it was. A SIGINT the command
+    was started to ignore (a shell's background job: the terminal's Ctrl-C is not for it) stays
+    ignored."""
     signal.signal(signal.SIGTERM, _interrupt)
-    signal.signal(signal.SIGINT, _interrupt)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, _interrupt)
 
 
 def stop_signal() -> int | None:
