@@ -11,12 +11,13 @@ hand over every few dozen steps). A run of 1 s counted the same way gives what a
 ``(I(100 s) - I(1 s)) / (steps(100 s) - steps(1 s))`` is the cost of a step (the quickstart: 23,200
 and 232 step records, 22,968 apart; nothing here reads the trace, which would expand it).
 Without valgrind, ``--cpu N`` times N alternating unlogged and logged runs instead
-(``time.thread_time``, best of each) and prints their ratio.
+(``time.thread_time``, best of each, a full collection before each) and prints their ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import runpy
 import sys
@@ -67,7 +68,12 @@ def main() -> None:
             return
         off, on = [], []
         for _ in range(args.cpu):
+            # a full collection owed by the earlier runs' traces, before the clock starts: else it
+            # lands in a run's setup (the writer's, which comes before the run holds full
+            # collections) or not by a few allocations' phase, +40-120 ms in a run
+            gc.collect()
             off.append(one_run(pipe, args.duration, False, folder))
+            gc.collect()
             on.append(one_run(pipe, args.duration, True, folder))
         steps = len(pipe.session.trace.raw_steps)
         print(f"{args.workload} {args.duration:g} s, best of {args.cpu}: off {min(off) * 1e3:.1f} ms, "

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import errno
 import functools
-import itertools
 import json
 import os
 import stat
@@ -23,7 +22,7 @@ import struct
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator
 
 import msgpack
 import numpy as np
@@ -45,6 +44,8 @@ if TYPE_CHECKING:
 #: an event's data is msgpack ``[microstep, value]``: a fixarray of 2 (this byte), then, almost always,
 #: a fixint microstep (< 128), which _EVENT_HEAD packs with the Message record's head in one call
 _FIXARRAY_2 = 0x92
+#: a Message record's sequence is 32 bits: an index or a seq past them is logged as its low 32 bits
+_U32 = 0xFFFFFFFF
 _EVENT_HEAD = struct.Struct(MESSAGE_HEAD.format + "BB")
 _HEAD_FIXED = 1 + 8 + 2  # a Message record's opcode, record length and channel id: the head's first bytes
 #: a Message record's head as those first bytes (fixed for a kind of record on a channel), then its
@@ -61,6 +62,8 @@ RUN_UNFINISHED_LOG = "the run ended, but its log is incomplete"
 LARGE_VALUE_BYTES = 1 << 20
 #: the most (port, shape) of array values whose record's struct the writer keeps
 MAX_ARRAY_HEADS = 1024
+#: a port's last array (LogWriter._last_array) before it had one: no dtype is None
+_NO_ARRAY = (None, None, None, None, None)
 
 
 def describe_os_error(e: OSError) -> str:
@@ -74,51 +77,59 @@ def _folder(path: Path) -> tuple[str, str]:
             f"pass --log / log= a file path, e.g. {path / 'run.mcap'}")
 
 
-def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
-                       channel: int) -> Callable[..., bytes | None] | None:
-    """``make(tag, consumed, produced, status, detail, start, wall, sequence)``: the Message record of
-    a step of ``node`` (a generic tick's, which no tape expander made) when it has the common shape:
-    ``ok``, no detail, a microstep below 128, one event on ``output``, and one event consumed on
-    each input port fed by one edge (``fed``: the ports in the order a tick consumes them, each
-    with its edge's source node and port), no more; None for any other, which the writer then
-    packs with msgpack. As the tape expanders do (Trace.log_records): the msgpack data in one
-    ``struct.pack`` of the bytes fixed here and the ints that change, each in a fixed width
-    (uint32 seqs, uint64 wall time: read back the same). None for a node with 3 inputs or more."""
+def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, channel: int,
+                       otherwise: Callable[[tuple, int], bytes], wall_bytes: int = 8) -> Callable[[tuple, int], bytes]:
+    """``make(step, sequence)``: the Message record of ``step``, a step record of ``node`` (a
+    generic tick's, which no tape expander made), the log's step record ``sequence`` (its low 32
+    bits). One of the common shape: ``ok``, no detail, a microstep below 128, one event on
+    ``output``, and one event consumed on each input port fed by one edge (``fed``: the ports in
+    the order a tick consumes them, each with its edge's source node and port), no more, is made
+    here; any other by ``otherwise(step, sequence)`` (msgpack). As the tape expanders do
+    (Trace.log_records): the msgpack data in one ``struct.pack`` of the bytes fixed here and the
+    ints that change, each in a fixed width (uint32 seqs, uint64 wall time: read back the same).
+    ``otherwise`` itself for a node with 3 inputs or more. With ``wall_bytes=4``, a wall time
+    below 2**32 ns only (the uint64's first 4 bytes fixed zeros: a uint32's pack costs ~100
+    instructions less), any other step to ``otherwise``. (The writer's comprehension calls it
+    with the step tuple whole: unpacked here, its fields are fast locals of one frame, not
+    arguments passed one by one, benchmarks/reports/logging_overhead.md.)"""
     if len(fed) > 2:
-        return None
+        return otherwise
     pack = functools.partial(msgpack.packb, use_bin_type=True)
     consts = [b"\x97" + pack(node), bytes((0x80 | len(fed),))]  # then the microstep, a fixint
     for port, src, src_port in fed:
         consts[-1] += pack(port) + b"\x91\x93" + pack(src) + pack(src_port) + b"\xce"
         consts.append(b"")  # then the seq of the event consumed, a uint32
     consts[-1] += b"\x91\x93" + pack(node) + pack(output) + b"\xce"
-    consts.append(pack(StepStatus.OK.value) + b"\xc0\xcf")  # then the wall time, a uint64
-    data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", "Q"])))
+    consts.append(pack(StepStatus.OK.value) + b"\xc0\xcf" + bytes(8 - wall_bytes))  # then the wall time, a uint64
+    wall_format = {8: "Q", 4: "I"}[wall_bytes]
+    data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", wall_format])))
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
     fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
     head_pack = _FIXED_HEAD.pack
     ok, errors = StepStatus.OK, (ValueError, TypeError, KeyError, struct.error)
     data_pack = data.pack
-    # (an int out of its field's range is a struct.error; a consumed or produced of another length a
-    # ValueError; a consumed without the port a KeyError)
+    # (an int out of its field's range is a struct.error; a consumed or produced of another length, or
+    # a step of another length, a ValueError; a consumed without the port a KeyError)
     if not fed:
         c0, c1, c2 = consts
 
-        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+        def make(step, sequence):
             try:
+                _, tag, consumed, produced, status, detail, start, wall = step
                 if status is ok and detail is None and not consumed and tag[1] < 128:
                     (n, p, s), = produced
                     if n == node and p == output:
                         return head_pack(fixed, sequence, tag[0], start) + data_pack(c0, tag[1], c1, s, c2, wall)
             except errors:
                 pass
-            return None
+            return otherwise(step, sequence)
     elif len(fed) == 1:
         (port0, src0, src_port0), = fed
         c0, c1, c2, c3 = consts
 
-        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+        def make(step, sequence):
             try:
+                _, tag, consumed, produced, status, detail, start, wall = step
                 if status is ok and detail is None and tag[1] < 128 and len(consumed) == 1:
                     (a0, b0, s0), = consumed[port0]
                     (n, p, s), = produced
@@ -127,13 +138,14 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                             c0, tag[1], c1, s0, c2, s, c3, wall)
             except errors:
                 pass
-            return None
+            return otherwise(step, sequence)
     else:
         (port0, src0, src_port0), (port1, src1, src_port1) = fed
         c0, c1, c2, c3, c4 = consts
 
-        def make(tag, consumed, produced, status, detail, start, wall, sequence):
+        def make(step, sequence):
             try:
+                _, tag, consumed, produced, status, detail, start, wall = step
                 if status is ok and detail is None and tag[1] < 128:
                     p0, p1 = consumed
                     (a0, b0, s0), = consumed[p0]
@@ -145,8 +157,18 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str,
                             c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
             except errors:
                 pass
-            return None
+            return otherwise(step, sequence)
     return make
+
+
+def sequences(first: int, count: int) -> Iterable[int]:
+    """The sequences of the Message records of ``count`` step records from the log's ``first``:
+    each index's low 32 bits (a record's sequence is a uint32). A range while they do not wrap,
+    with no ``&`` a record (~150 instructions each, benchmarks/reports/logging_overhead.md)."""
+    start = first & _U32
+    if start + count <= _U32 + 1:
+        return range(start, start + count)
+    return map(_U32.__and__, range(first, first + count))
 
 
 def _fixed_head(length: int, channel: int) -> bytes:
@@ -246,10 +268,13 @@ class LogWriter:
             self._mcap.add_metadata(fmt.RUN_METADATA, {**fmt.run_metadata(graph.name, backend, seeds or {},
                                                                            time.time_ns(), modules), **(extra or {})})
             # by node, then port, then shape of an array value: (its dtype, the struct.pack of its event's
-            # whole record, the bytes fixed in its head, its encoding's head), the latest dtype seen in
-            # that shape; at most MAX_ARRAY_HEADS in all
-            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Any, Callable[..., bytes], bytes, bytes]]]] = {}
+            # whole record, the bytes fixed in its head, its encoding's head, the shape), the latest dtype
+            # seen in that shape; at most MAX_ARRAY_HEADS in all
+            self._array_heads: dict[str, dict[str, dict[tuple, tuple[Any, Callable[..., bytes], bytes, bytes, tuple]]]] = {}
             self._array_heads_kept = 0
+            # by node, then port: the one of those last made (_NO_ARRAY: none yet), which an array of
+            # its dtype and shape finds with no dict lookup by its shape, which costs
+            self._last_array: dict[str, dict[str, tuple]] = {}
             self._channels: dict[tuple[str, str], int] = {}
             self._channel_of: dict[str, dict[str, int]] = {}  # the same, by node then port (no tuple to make)
             for node in sorted(graph.nodes.values(), key=lambda n: n.id):
@@ -270,23 +295,25 @@ class LogWriter:
         self._pack_step = msgpack.Packer(use_bin_type=True).pack
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
-        # by node: what makes the step records of its generic ticks that have the common shape
-        self._step_makers = {node.id: maker for node in graph.nodes.values()
-                             if (maker := self._step_maker(graph, node.id)) is not None}
+        # by node: what makes the step records of its generic ticks (those of the common shape in
+        # two struct.packs, _step_record_maker; the others with msgpack, _packed_step_record)
+        self._step_makers = {node.id: self._step_maker(graph, node.id) for node in graph.nodes.values()}
 
-    def _step_maker(self, graph: "Graph", node: str) -> Callable[..., bytes | None] | None:
-        """_step_record_maker for ``node``: None unless it has one output and each input that
-        an edge feeds is fed by one."""
+    def _step_maker(self, graph: "Graph", node: str) -> Callable[[tuple, int], bytes]:
+        """_step_record_maker for ``node``; _packed_step_record unless it has one output and each
+        input that an edge feeds is fed by one."""
         outputs = list(graph.nodes[node].outputs)
         fed = []
         for port in graph.nodes[node].inputs:
             edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
             if len(edges) > 1:
-                return None
+                return self._packed_step_record
             fed += [(port, *edge) for edge in edges]
         if len(outputs) != 1:
-            return None
-        return _step_record_maker(node, fed, outputs[0], self._steps_channel)
+            return self._packed_step_record
+        # a wall time below 2**32 ns (4.3 s) in a uint32's pack, else the uint64's, else msgpack
+        wide = _step_record_maker(node, fed, outputs[0], self._steps_channel, self._packed_step_record)
+        return _step_record_maker(node, fed, outputs[0], self._steps_channel, wide, wall_bytes=4)
 
     @contextmanager
     def _refused_writes(self, outcome: str) -> Iterator[None]:
@@ -316,6 +343,7 @@ class LogWriter:
         self._channels[(node, port)] = channel
         self._channel_of.setdefault(node, {})[port] = channel
         self._array_heads.setdefault(node, {})[port] = {}
+        self._last_array.setdefault(node, {})[port] = _NO_ARRAY
         return channel
 
     @property
@@ -386,21 +414,25 @@ class LogWriter:
     def _step_records(self, steps: list[tuple], first: int, made: list[bytes | None] | None = None) -> list[bytes]:
         """The Message records of ``steps``, the first the log's step record ``first``; with
         ``made``, those of them that are not None as they are (Trace.take_log)."""
-        head, op, fields, u32, pack, channel = (MESSAGE_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS, 0xFFFFFFFF,
-                                                self._pack_step, self._steps_channel)
-        makers = self._step_makers  # a record of a node's common shape, in one call; else msgpack here
-        if made is None:
-            return [(make(tag, consumed, produced, status, detail, start, wall, index & u32)
-                     if (make := makers.get(node)) else None)
-                    or head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                            channel, index & u32, tag[0], start) + data
-                    for index, (node, tag, consumed, produced, status, detail, start, wall) in enumerate(steps, first)]
-        return [record or (make(tag, consumed, produced, status, detail, start, wall, index & u32)
-                           if (make := makers.get(node)) else None)
-                or head(op, fields + len(data := pack((node, tag[1], consumed, produced, status, detail, wall))),
-                        channel, index & u32, tag[0], start) + data
-                for index, record, (node, tag, consumed, produced, status, detail, start, wall)
-                in zip(itertools.count(first), made, steps)]
+        makers = self._step_makers  # by node: a record of its common shape in two packs, else msgpack
+        try:
+            if made is None:
+                return [makers[step[0]](step, sequence) for sequence, step in zip(sequences(first, len(steps)), steps)]
+            return [record or makers[step[0]](step, sequence)
+                    for sequence, record, step in zip(sequences(first, len(steps)), made, steps)]
+        except KeyError:  # a node the graph did not have when the writer began (none does): msgpack
+            missing = {step[0] for step in steps} - makers.keys()
+            if not missing:
+                raise
+            makers.update(dict.fromkeys(missing, self._packed_step_record))
+            return self._step_records(steps, first, made)
+
+    def _packed_step_record(self, step: tuple, sequence: int) -> bytes:
+        """The Message record of ``step``, the log's step record ``sequence``, its data packed by msgpack."""
+        node, tag, consumed, produced, status, detail, start, wall = step
+        data = self._pack_step((node, tag[1], consumed, produced, status, detail, wall))
+        return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), self._steps_channel, sequence, tag[0],
+                                 start) + data
 
     def _step_fixed_head(self, size: int) -> bytes:
         """The fixed first bytes of the head of a step record whose data is ``size`` bytes
@@ -445,23 +477,31 @@ class LogWriter:
 
     def _event_records(self, new: list[tuple]) -> list[bytes | None]:
         """The Message records of ``new`` events; None for a big array's (_add_large_event)."""
-        head, op, fields, u32, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, 0xFFFFFFFF, np.ndarray
-        channel_of, encode, array_heads = self._channel_of, self._encode, self._array_heads
+        head, op, fields, ndarray = _EVENT_HEAD.pack, Opcode.MESSAGE, MESSAGE_FIELDS + 2, np.ndarray
+        channel_of, encode, array_heads, last_array = self._channel_of, self._encode, self._array_heads, self._last_array
         try:
             # an array of a dtype and shape seen before on its port: its record in one struct.pack
             # with its bytes; any value but an array: its head in one, then the value encoded
-            # (its dtype the very one seen last in its shape: no hash of a dtype, which costs)
-            records = [array[1](array[2], seq & u32, tag[0], published, _FIXARRAY_2, tag[1], array[3],
+            # (its dtype the very one seen last in its shape: no hash of a dtype, which costs; the
+            # port's last array's dtype and shape first: no hash of the shape either)
+            # (a seq past 32 bits: struct.error, then again with the low 32 bits, the log's sequence)
+            records = [array[1](array[2], seq, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
                        if type(value) is ndarray and tag[1] < 128
-                       and (array := array_heads[node][port].get(value.shape)) and array[0] is value.dtype
-                       else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq & u32,
+                       and ((array := last_array[node][port])[0] is value.dtype and array[4] == value.shape
+                            or (array := array_heads[node][port].get(value.shape)) and array[0] is value.dtype)
+                       else head(op, fields + len(value_data := encode(value)), channel_of[node][port], seq,
                                  tag[0], published, _FIXARRAY_2, tag[1]) + value_data
                        if type(value) is not ndarray and tag[1] < 128
                        else self._event_record(tag, node, port, seq, value, published)
                        for tag, node, port, seq, value, published in new]
         except CodecError:
             raise self._unencodable(new) from None
+        except struct.error:
+            if all(0 <= seq <= _U32 for _, _, _, seq, _, _ in new):
+                raise
+            return self._event_records([(tag, node, port, seq & _U32, value, published)
+                                        for tag, node, port, seq, value, published in new])
         except KeyError:  # a port no event came from before (an untyped flow's): its channel, then again
             added = [self._add_channel(node, port) for _, node, port, *_ in new
                      if port not in channel_of.get(node, ())]
@@ -490,12 +530,14 @@ class LogWriter:
                 if array is None or array[0] != value.dtype:
                     value_head = array_encoding_head(value)
                     array = (value.dtype, struct.Struct(f"{_FIXED_HEAD.format}BB{len(value_head)}s{value.nbytes}s").pack,
-                             _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head)
+                             _fixed_head(MESSAGE_FIELDS + 2 + len(value_head) + value.nbytes, channel), value_head,
+                             value.shape)
                 else:  # an equal dtype, another object: this one is checked by identity from now on
                     array = (value.dtype, *array[1:])
                 if value.shape in heads or self._array_heads_kept < MAX_ARRAY_HEADS:
                     self._array_heads_kept += value.shape not in heads
                     heads[value.shape] = array
+                    self._last_array[node][port] = array
                 return array[1](array[2], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
         data = self._encode([tag[1], value])

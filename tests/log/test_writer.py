@@ -22,7 +22,7 @@ from retriever.codec import packb
 from retriever.errors import LogWriteError
 from retriever.log import format as fmt
 from retriever.log import recover
-from retriever.log.writer import LARGE_VALUE_BYTES, LogFile, LogWriter
+from retriever.log.writer import LARGE_VALUE_BYTES, LogFile, LogWriter, sequences
 from retriever.replay import replay
 from retriever.trace import StepStatus, Trace
 from tests.log import log_flows
@@ -328,9 +328,9 @@ class _Pair:
 
 def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_shape(tmp_path: Path):
     """The writer makes a generic tick's step record of the common shape (ok, one event out, one
-    consumed per input fed by one edge) in two struct.packs with fixed-width ints, for nodes of
-    0, 1 and 2 inputs; any other record it packs with msgpack: each reads back as msgpack of the
-    record, in the order they came."""
+    consumed per input fed by one edge) in two struct.packs with fixed-width ints (a wall time
+    past 32 bits too), for nodes of 0, 1 and 2 inputs; any other record it packs with msgpack (one of a node the graph does not
+    have too): each reads back as msgpack of the record, in the order they came."""
 
     class Source(Flow[None, float]):
         def step(self, inp: None) -> float:
@@ -357,7 +357,9 @@ def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_sh
     common = [("src", (1000, 0), {}, (ids["src"],), ok, None, 5, 70),
               ("double", (1000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, 80),
               ("join", (1000, 2), {"a": (ids["src"],), "b": (ids["double"],)}, (("join", "float", 2),), ok, None, 7,
-               90)]
+               90),
+              ("double", (1000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, u32),
+              ("double", (1000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, u32 + 1)]  # 4.3 s
     other = [("double", (2000, 0), {}, (), StepStatus.SKIPPED, {"missing": ["float"]}, 0, 0),
              ("double", (2000, 200), {"float": (ids["src"],)}, (ids["double"],), ok, None, 6, 80),
              ("double", (2000, 1), {"float": (ids["src"],)}, (ids["double"],), ok, {"dropped": {"float": 1}}, 6, 80),
@@ -370,7 +372,8 @@ def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_sh
              ("join", (2000, 2), {"b": (ids["double"],), "a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
              ("join", (2000, 2), {"a": (ids["src"],)}, (("join", "float", 2),), ok, None, 7, 90),
              ("src", (2000, 0), {}, (ids["src"],), StepStatus.ERROR, {"error": "ValueError: x"}, 5, 70),
-             ("src", (2000, 0), {}, (ids["src"],), "ok", None, 5, 70)]
+             ("src", (2000, 0), {}, (ids["src"],), "ok", None, 5, 70),
+             ("ghost", (2000, 3), {}, (("ghost", "float", 1),), ok, None, 8, 95)]  # no node of the graph
     trace = Trace()
     trace.raw_steps.extend([*common, *other])
     path = tmp_path / "shapes.mcap"
@@ -389,8 +392,50 @@ def test_a_generic_ticks_step_record_reads_back_as_msgpack_of_it_whatever_its_sh
     assert [unpack(data) for data in datas] == expected
     # the common ones in fixed widths (their wall time a uint64), the others as msgpack packs them
     assert [data[-9] for data in datas[:len(common)]] == [0xCF] * len(common)
+    assert not {packed for packed, (node, tag, consumed, produced, status, detail, _, wall) in zip(datas, common)
+                if packed == msgpack.packb((node, tag[1], consumed, produced, status, detail, wall))}
     assert datas[len(common):] == [msgpack.packb((node, tag[1], consumed, produced, status, detail, wall))
                                    for node, tag, consumed, produced, status, detail, _, wall in other]
+
+
+def test_a_records_sequence_is_the_low_32_bits_of_its_index_or_seq(tmp_path: Path):
+    """A step record's sequence is its index in the log, an event's its seq, each as a uint32: the
+    low 32 bits of one past them (or below 0), on every path that makes the record (a float's, a
+    new array's, a cached array's); the data as the codec writes it."""
+    u32 = 0xFFFFFFFF
+    for first, count in ((0, 5), (5, 3), (u32 - 1, 4), (u32 + 1, 3), (2**33 + 3, 2), (2**40 - 2, 6)):
+        assert list(sequences(first, count)) == [(first + i) & u32 for i in range(count)]
+    class Source(Flow[None, float]):
+        def step(self, inp: None) -> float:
+            return 1.5
+
+    class Ones(Flow[float, np.ndarray]):
+        def step(self, inp: float) -> np.ndarray:
+            return np.ones(2) * inp
+
+    with Pipeline("wide") as pipe:
+        src = Source().named("src") @ Rate(hz=10)
+        src.then(Ones().named("double") @ Rate(hz=10), sync=Latest())
+    graph = pipe.compile()
+    (port,) = graph.nodes["src"].outputs
+    (double_port,) = graph.nodes["double"].outputs
+    seqs = [3, u32, u32 + 1, 2**32 + 5, 2**40 + 7, -1, 4]
+    events = [((1000 * i, 0), "src", port, seq, 1.5, 7 + i) for i, seq in enumerate(seqs)]
+    events += [((1000 * i, 1), "double", double_port, seq, np.ones(2) * i, 20 + i) for i, seq in enumerate(seqs)]
+    for made_with in ("all", "each"):  # one batch, or a batch an event (the array cached from the first)
+        trace = Trace()
+        path = tmp_path / f"wide-{made_with}.mcap"
+        writer = LogWriter(LogFile(path), graph, backend="inproc")
+        for event in events if made_with == "each" else [None]:
+            trace.raw_events.extend([event] if event else events)
+            writer.write(trace)
+        writer.close(trace, 10_000)
+        with open(path, "rb") as f:
+            messages = [(channel.topic, message.sequence, message.log_time, message.publish_time, message.data)
+                        for _, channel, message in make_reader(f).iter_messages(log_time_order=False)
+                        if channel.topic != fmt.STEPS_TOPIC]
+        assert messages == [(fmt.data_topic(node, p), seq & u32, tag[0], published, packb([tag[1], value]))
+                            for tag, node, p, seq, value, published in events]
 
 
 class _Values(Flow[None, Any]):
@@ -444,8 +489,8 @@ def test_the_records_compiled_ticks_make_are_the_writers_byte_for_byte(tmp_path:
 
 
 class _ArraySource(Flow[None, Any]):
-    """Each tick the next of ``values()``: arrays of a few dtypes and shapes (a structured dtype's
-    equal copy of another object, a big one), ints in every msgpack form, other values, Bursts."""
+    """Each tick the next of ``values()``: arrays of a few dtypes and shapes (float64 in several
+    shapes, a structured dtype's equal copy of another object, a big one), ints in every msgpack form, other values, Bursts."""
 
     def __init__(self):
         self.k = -1
@@ -453,7 +498,8 @@ class _ArraySource(Flow[None, Any]):
     @staticmethod
     def values(k: int) -> list:
         record = np.dtype([("a", "<i4"), ("b", "S2")])  # a new dtype object, equal to the last
-        return [np.full((8, 8), k % 256, dtype=np.uint8), np.linspace(0.0, k, 4), np.zeros(3, dtype=record),
+        return [np.full((8, 8), k % 256, dtype=np.uint8), np.linspace(0.0, k, 4), np.full(k % 3 + 2, float(k)),
+                np.zeros(3, dtype=record),
                 np.arange(6, dtype=">i2").reshape(2, 3), *_Values.VALUES, 2**64 - 1, -2**63, None, b"b",
                 Burst([np.ones(2) * k, np.zeros(2)]), Burst(np.eye(3)), Burst([1, 2.5, "x"]), np.float32(k),
                 *([np.zeros(LARGE_VALUE_BYTES // 8 + 1)] if k == 40 else [])]
@@ -527,7 +573,8 @@ def test_a_logged_run_holds_the_records_the_writer_makes_of_its_trace_byte_for_b
     dtypes and shapes, an equal dtype of another object, a big array, Bursts, ints of every msgpack
     width and other values, a node of two outputs, one ticked at microsteps below 128 and past it
     (a chain of 140 Trigger flows); the mixed graph's skips, errors and fan-ins, all generic, and
-    with its compiled ticks, whose compact records the tape then holds too."""
+    with its compiled ticks, whose compact records the tape then holds too. Each event's data is
+    also the codec's ``[microstep, value]`` of the trace's event."""
     def quickstart():
         return runpy.run_path(str(QUICKSTART), run_name="quickstart")["pipe"]
 
@@ -553,6 +600,14 @@ def test_a_logged_run_holds_the_records_the_writer_makes_of_its_trace_byte_for_b
         for topic in logged:
             assert logged[topic] == again[topic], topic
         trace = pipe.session.trace
+        # and each event's record is the codec's [microstep, value], whatever cached struct made it
+        # (a port's arrays of one dtype in several shapes, the one last made found first)
+        expected: dict = {}
+        for tag, node, port, seq, value, published in trace.raw_events:
+            expected.setdefault(fmt.data_topic(node, port), []).append((seq, tag[0], published,
+                                                                        packb([tag[1], value])))
+        assert {topic: [message[1:] for message in messages] for topic, messages in logged.items()
+                if topic != fmt.STEPS_TOPIC} == expected
         # compact records in the tape (the compiled mixed graph's) or none (the quickstart's
         # camera, though compiled, emits arrays, which its tick records as a generic one does)
         assert bool(pipe.session.generated_ticks()) == (build is quickstart or not options)
