@@ -14,6 +14,10 @@ from ..log import format as fmt
 from ..log.reader import ChunkMessages
 
 
+#: the hint of a LogError for a log whose records do not add up (an event twice, one a record cannot have produced)
+DAMAGED = "the file is damaged or was edited: retriever replay reads logs as a run wrote them"
+
+
 class LogSurvey:
     """What a replay must know of the whole log before its first step, gathered from its
     messages in one pass in file order (as the file is checked, or from a read log's list), in
@@ -70,9 +74,7 @@ class LogSurvey:
                 if hi and hi[-1] == sequence:  # the next one: the common case (_Seqs.add's first)
                     hi[-1] = sequence + 1
                 elif not seqs.add(sequence) and self.twice is None:
-                    self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
-                                          "the file is damaged or was edited: retriever replay reads logs as a run "
-                                          "wrote them")
+                    self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice", DAMAGED)
 
     def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
         """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: its events
