@@ -259,11 +259,6 @@ class StepReplay:
         node, tag, detail = step.node, step.tag, step.detail
         stats = self.report.nodes[node]
         stats.steps += 1
-        if node in self.sources:  # its events, as its record names them (before its clock: a record twice names them twice)
-            unclaimed = self.unclaimed
-            for event_id in step.produced:
-                if unclaimed.pop(event_id, None) is None:  # (the commonest: its event read already, in its instant)
-                    self.expect(step, event_id)
         # a source is not re-executed: its records are checked against its clock (a forged
         # record between its ticks, or a second at one, is no step the run made)
         expected = self.next_ticks.get(node)
@@ -275,6 +270,8 @@ class StepReplay:
         else:
             found = off_clock(step, self.on_clock, self.last_ticks)
             if found is not None:
+                if node in self.sources:  # (a record twice names its events twice)
+                    self.take_logged(step)
                 self.checks.append(_Check(step, stats, found))
                 self.flush()
                 return
@@ -290,9 +287,16 @@ class StepReplay:
             self.kept_steps.append(tuple(step))
         # the run called step() at every tick but one that a real-time run stopped before stepping
         # (realtime="hard", an incomplete edge): a skipped tick without "missing"
-        if node in self.sources or (step.status == _SKIPPED and not (detail and "missing" in detail)):
-            if node not in self.sources:
-                self.claim(step.produced, None)
+        if node in self.sources:
+            unclaimed = self.unclaimed
+            for event_id in step.produced:  # (take_logged inlined)
+                if unclaimed.pop(event_id, None) is None:
+                    self.expect(step, event_id)
+            if keep_trace:  # not re-executed: its outputs as logged
+                self.kept_parts.append(step.produced)
+            return
+        if step.status == _SKIPPED and not (detail and "missing" in detail):
+            self.claim(step.produced, None)
             if keep_trace:  # not re-executed: its outputs as logged
                 self.kept_parts.append(step.produced)
             return
@@ -404,6 +408,15 @@ class StepReplay:
                 self.waiting[event_id] = check
                 if check is not None:
                     check.waiting += 1
+
+    def take_logged(self, step) -> None:
+        """A source's record (or a flow's the replay does not re-execute): its events as it names
+        them, taken out of those read (the commonest: read already, in its instant), the others
+        expected (:meth:`expect`)."""
+        unclaimed = self.unclaimed
+        for event_id in step.produced:
+            if unclaimed.pop(event_id, None) is None:
+                self.expect(step, event_id)
 
     def expect(self, step, event_id: tuple) -> None:
         """An event a source's record names that was not read before it: one the log holds, still
