@@ -225,70 +225,70 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     last = len(data) - 1
     ok = ends - starts >= 2
     p = starts.copy()
+    # Each field is read where the one before it ended, for the records still found plain
+    # (``act``, always among ``ok``), not checked to be within the record's bytes: a record whose
+    # last field ends where it ends had each within them (each field moves on by a byte or more).
 
     def at(where: np.ndarray) -> np.ndarray:
-        return data[np.minimum(where, last)].astype(np.int64)
+        return data[np.minimum(where, last)]
 
-    def text(act: np.ndarray) -> None:
+    def moved(act: np.ndarray, valid: np.ndarray, width) -> np.ndarray:
+        """The records ``act`` whose field is ``valid`` past it (``width`` bytes), the others not
+        plain; returns the first."""
         nonlocal ok
-        h = at(p)
-        size = h - 0xA0
-        valid = (p < ends) & (h >= 0xA0) & (h <= 0xBF)
-        size = np.where(valid, size, 0)
+        move = act & valid
+        ok ^= act ^ move
+        p[:] += np.where(move, width, 0)
+        return move
+
+    def text(act: np.ndarray) -> np.ndarray:
+        size = _FIXSTR_SIZE[at(p)]  # (-1: no fixstr)
+        valid = size >= 0
         begin = np.minimum(p + 1, end)
-        for k in range(0, int(size.max(initial=0)), 8):  # (a fixstr has up to 31 bytes)
-            valid &= (words[begin + k] & _HIGH_BITS[np.minimum(np.maximum(size - k, 0), 8)]) == 0
-        ok &= ~act | valid
-        p[:] = np.where(act & ok, p + 1 + size, p)
+        for k in range((int(size.max(initial=0)) + 7) // 8):  # (a fixstr has up to 31 bytes)
+            valid &= (words[8 * k:][begin] & _ASCII_MASKS[k][size]) == 0
+        return moved(act, valid, size + 1)
 
-    def integer(act: np.ndarray, signed: bool = False) -> None:
-        nonlocal ok
-        h = at(p)
-        width = np.select([h < 0x80, h == 0xCC, h == 0xCD, h == 0xCE, h == 0xCF], [1, 2, 3, 5, 9], 0)
-        if signed:
-            width = np.select([width > 0, h >= 0xE0, h == 0xD0, h == 0xD1, h == 0xD2, h == 0xD3],
-                              [width, 1, 2, 3, 5, 9], 0)
-        ok &= ~act | ((p < ends) & (width > 0))
-        p[:] = np.where(act & ok, p + width, p)
+    def integer(act: np.ndarray, signed: bool = False) -> np.ndarray:
+        width = (_INT_WIDTH if signed else _UINT_WIDTH)[at(p)]
+        return moved(act, width > 0, width)
 
     def header(act: np.ndarray, low: int) -> np.ndarray:
-        nonlocal ok
         h = at(p)
-        ok &= ~act | ((p < ends) & (h >= low) & (h <= low + 15))
-        p[:] = np.where(act & ok, p + 1, p)
-        return np.where(act & ok, h - low, 0)
+        return np.where(moved(act, (h & 0xF0) == low, 1), h & 0x0F, 0)
 
     def ids(act: np.ndarray) -> None:
-        nonlocal ok
         count = header(act, 0x90)
         for k in range(int(count.max(initial=0))):
-            one = act & ok & (k < count)
-            ok &= ~one | ((p < ends) & (at(p) == 0x93))
-            p[:] = np.where(one & ok, p + 1, p)
-            text(one & ok)
-            text(one & ok)
-            integer(one & ok)
+            integer(text(text(moved(ok & (k < count), at(p) == 0x93, 1))))
 
     ok &= at(p) == 0x97
-    p[:] = p + 1
+    p += 1
     node_at = p.copy()
-    text(ok.copy())
-    integer(ok.copy())
-    ports = header(ok.copy(), 0x80)
+    ports = header(integer(text(ok)), 0x80)
     for k in range(int(ports.max(initial=0))):
-        text(ok & (k < ports))
-        ids(ok & (k < ports))
-    ids(ok.copy())
+        ids(text(ok & (k < ports)))
+    ids(ok)
     status_at = p.copy()
-    text(ok.copy())
-    ok &= (p < ends) & (at(p) == 0xC0)
-    p[:] = np.where(ok, p + 1, p)
-    integer(ok.copy(), signed=True)
+    integer(moved(text(ok), at(p) == 0xC0, 1), signed=True)
     return ok & (p == ends), node_at, status_at
 
 
 #: per count of bytes (0 to 8), the bits of 0x80 of that many low bytes of a uint64: _plain_steps' ASCII check
 _HIGH_BITS = np.array([0x8080808080808080 & ((1 << 8 * n) - 1) for n in range(9)], dtype=np.uint64)
+
+#: per 8 bytes of a fixstr (the 0th to the 3rd) and per size (0 to 31), _HIGH_BITS of its bytes among them
+_ASCII_MASKS = np.array([[_HIGH_BITS[min(max(size - 8 * k, 0), 8)] for size in range(32)] for k in range(4)],
+                        dtype=np.uint64)
+
+#: per first byte, _plain_steps' reading of it: a fixstr's size (-1: no fixstr); an unsigned, a
+#: signed integer's width in bytes, its head's with it (0: none)
+_FIXSTR_SIZE = np.array([b - 0xA0 if 0xA0 <= b <= 0xBF else -1 for b in range(256)], dtype=np.int64)
+_UINT_WIDTH = np.array([1 if b < 0x80 else {0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9}.get(b, 0) for b in range(256)],
+                       dtype=np.int64)
+_INT_WIDTH = np.array([1 if b < 0x80 or b >= 0xE0 else {0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9, 0xD0: 2, 0xD1: 3,
+                                                         0xD2: 5, 0xD3: 9}.get(b, 0) for b in range(256)],
+                      dtype=np.int64)
 
 #: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
 _PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
