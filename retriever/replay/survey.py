@@ -311,12 +311,21 @@ def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
     """The distinct ASCII fixstrs at ``node_at`` in ``data`` (followed by ``_PAD`` zeros)."""
     if not len(node_at):
         return set()
-    rows = np.lib.stride_tricks.sliding_window_view(data, _PAD)[node_at]
-    rows = rows * (np.arange(32) <= (rows[:, :1].astype(np.int64) - 0xA0))  # the bytes after each name: 0
-    words = np.ascontiguousarray(rows).view("<u8")  # (n, 4)
-    rows = rows[np.lexsort(words.T[::-1])]
-    firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
-    return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
+    # each one's head and bytes as up to 4 little-endian uint64 (the bytes after it: 0), a row
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    size = data[node_at].astype(np.intp) - 0xA0 + 1
+    keys = np.empty((len(node_at), (int(size.max()) + 7) // 8), dtype="<u8")
+    for k in range(keys.shape[1]):
+        keys[:, k] = words[8 * k:][node_at] & _LOW_BYTES[k][size]
+    keys = keys[np.lexsort(keys.T[::-1])] if keys.shape[1] > 1 else np.sort(keys, axis=0)
+    rows = keys[np.r_[True, (keys[1:] != keys[:-1]).any(axis=1)]]
+    return {(b := row.tobytes())[1:b[0] - 0x9F].decode("ascii") for row in rows}
+
+
+#: per 8 bytes of a fixstr (the 0th to the 3rd) and per count of its head and bytes (0 to 32), the bits
+#: of those among them: _names'
+_LOW_BYTES = np.array([[(1 << 8 * min(max(n - 8 * k, 0), 8)) - 1 for n in range(33)] for k in range(4)],
+                      dtype=np.uint64)
 _DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 _PAD = 32  # zeros after a chunk's bytes, for _plain_steps and _names: a fixstr's head and bytes fit
 
