@@ -218,60 +218,75 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
     time for all of them at once; and where each one's node and status (their fixstrs) are.
     ``data``: the bytes, followed by ``_PAD`` zeros."""
-    # the 8 bytes from each offset, as a little-endian uint64 (past the end: the zeros), which tell
-    # a string of up to 8 bytes ASCII at once (no bit of 0x80 set among its bytes: _HIGH_BITS)
-    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
-    end = len(data) - _PAD
-    last = len(data) - 1
-    ok = ends - starts >= 2
-    p = starts.copy()
-    # Each field is read where the one before it ended, for the records still found plain
-    # (``act``, always among ``ok``), not checked to be within the record's bytes: a record whose
-    # last field ends where it ends had each within them (each field moves on by a byte or more).
+    fields = _Fields(data, starts.copy(), ends, ends - starts >= 2)
+    fields.ok &= fields.at(fields.p) == 0x97
+    fields.p += 1
+    node_at = fields.p.copy()
+    ports = fields.header(fields.integer(fields.text(fields.ok)), 0x80)
+    # the rest read apart for the records of each count of ports (nearly all have one), so that
+    # a record with more costs no array operation over all the others
+    plain, status_at = np.zeros(len(starts), dtype=bool), np.zeros_like(starts)
+    for count in np.unique(ports[fields.ok]).tolist():
+        rows = np.flatnonzero(fields.ok & (ports == count))
+        group = fields if len(rows) == len(starts) else _Fields(data, fields.p[rows], ends[rows],
+                                                                 np.ones(len(rows), dtype=bool))
+        for _ in range(count):
+            group.ids(group.text(group.ok))
+        group.ids(group.ok)
+        status_at[rows] = group.p
+        group.integer(group.moved(group.text(group.ok), group.at(group.p) == 0xC0, 1), signed=True)
+        plain[rows] = group.ok & (group.p == group.ends)
+    return plain, node_at, status_at
 
-    def at(where: np.ndarray) -> np.ndarray:
-        return data[np.minimum(where, last)]
 
-    def moved(act: np.ndarray, valid: np.ndarray, width) -> np.ndarray:
+class _Fields:
+    """The step records ``_plain_steps`` reads, a field at a time: where each one is (``p``), where
+    it ends, and whether it is still found plain (``ok``). Each field is read where the one before
+    it ended, for the records still found plain (``act``, always among ``ok``), not checked to be
+    within the record's bytes: a record whose last field ends where it ends had each within them
+    (each field moves on by a byte or more)."""
+
+    __slots__ = ("data", "words", "end", "last", "p", "ends", "ok")
+
+    def __init__(self, data: np.ndarray, p: np.ndarray, ends: np.ndarray, ok: np.ndarray) -> None:
+        # the 8 bytes from each offset, as a little-endian uint64 (past the end: the zeros), which tell
+        # a string of up to 8 bytes ASCII at once (no bit of 0x80 set among its bytes: _HIGH_BITS)
+        self.data, self.words = data, np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+        self.end, self.last = len(data) - _PAD, len(data) - 1
+        self.p, self.ends, self.ok = p, ends, ok
+
+    def at(self, where: np.ndarray) -> np.ndarray:
+        return self.data[np.minimum(where, self.last)]
+
+    def moved(self, act: np.ndarray, valid: np.ndarray, width) -> np.ndarray:
         """The records ``act`` whose field is ``valid`` past it (``width`` bytes), the others not
         plain; returns the first."""
-        nonlocal ok
         move = act & valid
-        ok ^= act ^ move
-        p[:] += np.where(move, width, 0)
+        self.ok ^= act ^ move
+        self.p += np.where(move, width, 0)
         return move
 
-    def text(act: np.ndarray) -> np.ndarray:
-        size = _FIXSTR_SIZE[at(p)]  # (-1: no fixstr)
+    def text(self, act: np.ndarray) -> np.ndarray:
+        p = self.p
+        size = _FIXSTR_SIZE[self.at(p)]  # (-1: no fixstr)
         valid = size >= 0
-        begin = np.minimum(p + 1, end)
+        begin = np.minimum(p + 1, self.end)
         for k in range((int(size.max(initial=0)) + 7) // 8):  # (a fixstr has up to 31 bytes)
-            valid &= (words[8 * k:][begin] & _ASCII_MASKS[k][size]) == 0
-        return moved(act, valid, size + 1)
+            valid &= (self.words[8 * k:][begin] & _ASCII_MASKS[k][size]) == 0
+        return self.moved(act, valid, size + 1)
 
-    def integer(act: np.ndarray, signed: bool = False) -> np.ndarray:
-        width = (_INT_WIDTH if signed else _UINT_WIDTH)[at(p)]
-        return moved(act, width > 0, width)
+    def integer(self, act: np.ndarray, signed: bool = False) -> np.ndarray:
+        width = (_INT_WIDTH if signed else _UINT_WIDTH)[self.at(self.p)]
+        return self.moved(act, width > 0, width)
 
-    def header(act: np.ndarray, low: int) -> np.ndarray:
-        h = at(p)
-        return np.where(moved(act, (h & 0xF0) == low, 1), h & 0x0F, 0)
+    def header(self, act: np.ndarray, low: int) -> np.ndarray:
+        h = self.at(self.p)
+        return np.where(self.moved(act, (h & 0xF0) == low, 1), h & 0x0F, 0)
 
-    def ids(act: np.ndarray) -> None:
-        count = header(act, 0x90)
+    def ids(self, act: np.ndarray) -> None:
+        count = self.header(act, 0x90)
         for k in range(int(count.max(initial=0))):
-            integer(text(text(moved(ok & (k < count), at(p) == 0x93, 1))))
-
-    ok &= at(p) == 0x97
-    p += 1
-    node_at = p.copy()
-    ports = header(integer(text(ok)), 0x80)
-    for k in range(int(ports.max(initial=0))):
-        ids(text(ok & (k < ports)))
-    ids(ok)
-    status_at = p.copy()
-    integer(moved(text(ok), at(p) == 0xC0, 1), signed=True)
-    return ok & (p == ends), node_at, status_at
+            self.integer(self.text(self.text(self.moved(self.ok & (k < count), self.at(self.p) == 0x93, 1))))
 
 
 #: per count of bytes (0 to 8), the bits of 0x80 of that many low bytes of a uint64: _plain_steps' ASCII check
