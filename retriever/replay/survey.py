@@ -124,7 +124,7 @@ class LogSurvey:
             padded = np.concatenate((bytes_, np.zeros(_PAD, dtype=np.uint8)))
             plain, node_at, status_at = _plain_steps(padded, starts, chunk.ends[which])
             if self.check_steps:
-                plain &= _plain_statuses(bytes_, status_at)
+                plain &= _plain_statuses(padded, status_at)
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -307,17 +307,24 @@ _INT_WIDTH = np.array([1 if b < 0x80 or b >= 0xE0 else {0xCC: 2, 0xCD: 3, 0xCE: 
 
 #: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
 _PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
+#: each as its first 8 bytes and the 8 after (little-endian uint64s), and the bits of them it has
+#: (a status has up to 15 bytes: "incomplete" 11)
+_PLAIN_STATUS_WORDS = [tuple(np.uint64(n) for n in (int.from_bytes(b[:8], "little"), (1 << 8 * len(b[:8])) - 1,
+                                                    int.from_bytes(b[8:16], "little"), (1 << 8 * len(b[8:16])) - 1))
+                       for b in _PLAIN_STATUS_BYTES]
 
 
 def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
-    """Which of the fixstrs at ``status_at`` in ``data`` are a status a step record without detail
-    has (``format.decode_step`` refuses any other)."""
-    last = len(data) - 1
+    """Which of the fixstrs at ``status_at`` in ``data`` (followed by ``_PAD`` zeros) are a status
+    a step record without detail has (``format.decode_step`` refuses any other)."""
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    at = np.minimum(status_at, len(data) - 16)  # (a status found is within the bytes, before the zeros)
+    first, second = words[at], words[at + 8]
     found = np.zeros(len(status_at), dtype=bool)
-    for status in _PLAIN_STATUS_BYTES:
-        same = np.ones(len(status_at), dtype=bool)
-        for k, byte in enumerate(status):
-            same &= data[np.minimum(status_at + k, last)] == byte
+    for low, low_bits, high, high_bits in _PLAIN_STATUS_WORDS:
+        same = (first & low_bits) == low
+        if high_bits:
+            same &= (second & high_bits) == high
         found |= same
     return found
 
