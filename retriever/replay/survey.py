@@ -219,10 +219,10 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     time for all of them at once; and where each one's node and status (their fixstrs) are.
     ``data``: the bytes, followed by ``_PAD`` zeros."""
     fields = _Fields(data, starts.copy(), ends, ends - starts >= 2)
-    fields.ok &= fields.at(fields.p) == 0x97
-    fields.p += 1
+    fields.moved(None, fields.at(fields.p) == 0x97, 1)
     node_at = fields.p.copy()
-    ports = fields.header(fields.integer(fields.text(fields.ok)), 0x80)
+    fields.integer(fields.text(None))
+    ports = fields.header(None, 0x80)
     # the rest read apart for the records of each count of ports (nearly all have one), so that
     # a record with more costs no array operation over all the others
     plain, status_at = np.zeros(len(starts), dtype=bool), np.zeros_like(starts)
@@ -231,10 +231,10 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
         group = fields if len(rows) == len(starts) else _Fields(data, fields.p[rows], ends[rows],
                                                                  np.ones(len(rows), dtype=bool))
         for _ in range(count):
-            group.ids(group.text(group.ok))
-        group.ids(group.ok)
+            group.ids(group.text(None))
+        group.ids(None)
         status_at[rows] = group.p
-        group.integer(group.moved(group.text(group.ok), group.at(group.p) == 0xC0, 1), signed=True)
+        group.integer(group.moved(group.text(None), group.at(group.p) == 0xC0, 1), signed=True)
         plain[rows] = group.ok & (group.p == group.ends)
     return plain, node_at, status_at
 
@@ -242,9 +242,10 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
 class _Fields:
     """The step records ``_plain_steps`` reads, a field at a time: where each one is (``p``), where
     it ends, and whether it is still found plain (``ok``). Each field is read where the one before
-    it ended, for the records still found plain (``act``, always among ``ok``), not checked to be
-    within the record's bytes: a record whose last field ends where it ends had each within them
-    (each field moves on by a byte or more)."""
+    it ended, for every record (``act`` None) or those that have it (``act``), each record moved
+    on whether found plain or not (one not plain then reads what it reads: it stays not plain), not
+    checked to be within the record's bytes: a record whose last field ends where it ends had each
+    within them (each field moves on by a byte or more)."""
 
     __slots__ = ("data", "words", "end", "last", "p", "ends", "ok")
 
@@ -258,35 +259,40 @@ class _Fields:
     def at(self, where: np.ndarray) -> np.ndarray:
         return self.data[np.minimum(where, self.last)]
 
-    def moved(self, act: np.ndarray, valid: np.ndarray, width) -> np.ndarray:
-        """The records ``act`` whose field is ``valid`` past it (``width`` bytes), the others not
-        plain; returns the first."""
-        move = act & valid
-        self.ok ^= act ^ move
-        self.p += np.where(move, width, 0)
-        return move
+    def moved(self, act: np.ndarray | None, valid: np.ndarray, width) -> np.ndarray | None:
+        """The records ``act`` (None: all) past a field ``width`` bytes long, those where it is not
+        ``valid`` not plain; returns ``act``."""
+        if act is None:
+            self.ok &= valid
+            self.p += width
+        else:
+            self.ok &= valid | ~act
+            self.p += np.where(act, width, 0)
+        return act
 
-    def text(self, act: np.ndarray) -> np.ndarray:
+    def text(self, act: np.ndarray | None) -> np.ndarray | None:
         p = self.p
-        size = _FIXSTR_SIZE[self.at(p)]  # (-1: no fixstr)
+        size = _FIXSTR_SIZE[self.at(p)]  # (-1: no fixstr, which moves on by 0 bytes)
         valid = size >= 0
         begin = np.minimum(p + 1, self.end)
         for k in range((int(size.max(initial=0)) + 7) // 8):  # (a fixstr has up to 31 bytes)
             valid &= (self.words[8 * k:][begin] & _ASCII_MASKS[k][size]) == 0
         return self.moved(act, valid, size + 1)
 
-    def integer(self, act: np.ndarray, signed: bool = False) -> np.ndarray:
+    def integer(self, act: np.ndarray | None, signed: bool = False) -> np.ndarray | None:
         width = (_INT_WIDTH if signed else _UINT_WIDTH)[self.at(self.p)]
         return self.moved(act, width > 0, width)
 
-    def header(self, act: np.ndarray, low: int) -> np.ndarray:
+    def header(self, act: np.ndarray | None, low: int) -> np.ndarray:
+        """A fixarray's or fixmap's count (``low``: 0x90, 0x80): 0 where the record has none or is not plain."""
         h = self.at(self.p)
-        return np.where(self.moved(act, (h & 0xF0) == low, 1), h & 0x0F, 0)
+        self.moved(act, (h & 0xF0) == low, 1)
+        return np.where(self.ok if act is None else act & self.ok, h & 0x0F, 0)
 
-    def ids(self, act: np.ndarray) -> None:
+    def ids(self, act: np.ndarray | None) -> None:
         count = self.header(act, 0x90)
         for k in range(int(count.max(initial=0))):
-            self.integer(self.text(self.text(self.moved(self.ok & (k < count), self.at(self.p) == 0x93, 1))))
+            self.integer(self.text(self.text(self.moved(k < count, self.at(self.p) == 0x93, 1))))
 
 
 #: per count of bytes (0 to 8), the bits of 0x80 of that many low bytes of a uint64: _plain_steps' ASCII check
