@@ -44,7 +44,10 @@ runs) reads the file twice and keeps neither:
    event waits until the record that produced it has run (the same instant, for a log a run
    wrote); a step's outputs are compared once they are read (a LET step's come later in the
    log than its tick), the comparisons reported in step order. An id that the survey says the
-   log lacks is known to be missing at once (the log is cut short, or it is a divergence).
+   log lacks is known to be missing at once (the log is cut short, or it is a divergence). A
+   source is not re-executed, so its records are checked against the log's events: one naming
+   an event the log lacks, or one an earlier record named, and an event no record of its source
+   named, refuse the log (a LogError; not in a log cut short or whose process died).
 
 ``replay(log)`` of a log read whole (``read_log``) takes the same two steps over its message
 list. Only a changed log can tell them apart: a record that names as late an event from its own

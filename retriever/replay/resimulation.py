@@ -60,7 +60,7 @@ from ..pipeline import Pipeline
 from ..time import format_tag
 from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
-from .survey import LogSurvey
+from .survey import DAMAGED, LogSurvey
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
@@ -371,7 +371,7 @@ class _Feed:
                 which = ("which an earlier step record said it produced too (a record logged twice?)"
                          if self.survey.events.in_log(e.args[0]) else "which the log does not have")
                 raise LogError(f"{self.log.path}: the step record of {step[0]} at {format_tag(step[1])} says it "
-                               f"produced event {node}.{port} #{seq}, {which}") from None
+                               f"produced event {node}.{port} #{seq}, {which}", DAMAGED) from None
             yield outputs
 
     def _value(self, event_id: tuple) -> object:

@@ -17,10 +17,11 @@ from ..flow.read_only import make_read_only
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
 from ..sync import Latest, before, bound, fill
+from ..time import format_tag
 from ..trace import STEPPED, StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
-from .survey import LogSurvey
+from .survey import DAMAGED, LogSurvey
 
 PROGRESS_EVERY = 2000
 _SKIPPED, _LATE, _OK = StepStatus.SKIPPED, StepStatus.LATE, StepStatus.OK
@@ -81,7 +82,7 @@ class StepReplay:
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "next_ticks",
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
-                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape")
+                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape", "expected")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -119,6 +120,7 @@ class StepReplay:
         # events read whose step record has not been replayed yet: id -> (tag, raw value)
         self.unclaimed: dict[tuple, tuple] = {}
         self.waiting: dict[tuple, _Check | None] = {}  # outputs a replayed record named, not read yet -> its check
+        self.expected: dict[tuple, tuple] = {}  # a source's outputs its record named, not read yet -> the record
         self.checks: deque[_Check] = deque()  # in step order, from the first not decided
         self.now = (-1, 0)  # the tag of the instant whose steps run
         # keep_trace: every step record, and in step order the outputs of each
@@ -214,6 +216,8 @@ class StepReplay:
             if check.waiting == 0:
                 self.decide(check)
                 self.flush()
+        elif self.expected:
+            self.expected.pop(event_id, None)
 
     def deliver_later(self, consumers: list, tag: tuple[int, int], node: str, port_name: str, seq: int,
                       event_id: tuple, value) -> None:
@@ -266,6 +270,8 @@ class StepReplay:
         else:
             found = off_clock(step, self.on_clock, self.last_ticks)
             if found is not None:
+                if node in self.sources:  # (a record twice names its events twice)
+                    self.take_logged(step)
                 self.checks.append(_Check(step, stats, found))
                 self.flush()
                 return
@@ -281,7 +287,15 @@ class StepReplay:
             self.kept_steps.append(tuple(step))
         # the run called step() at every tick but one that a real-time run stopped before stepping
         # (realtime="hard", an incomplete edge): a skipped tick without "missing"
-        if node in self.sources or (step.status == _SKIPPED and not (detail and "missing" in detail)):
+        if node in self.sources:
+            unclaimed = self.unclaimed
+            for event_id in step.produced:  # (take_logged inlined)
+                if unclaimed.pop(event_id, None) is None:
+                    self.expect(step, event_id)
+            if keep_trace:  # not re-executed: its outputs as logged
+                self.kept_parts.append(step.produced)
+            return
+        if step.status == _SKIPPED and not (detail and "missing" in detail):
             self.claim(step.produced, None)
             if keep_trace:  # not re-executed: its outputs as logged
                 self.kept_parts.append(step.produced)
@@ -395,6 +409,28 @@ class StepReplay:
                 if check is not None:
                     check.waiting += 1
 
+    def take_logged(self, step) -> None:
+        """A source's record (or a flow's the replay does not re-execute): its events as it names
+        them, taken out of those read (the commonest: read already, in its instant), the others
+        expected (:meth:`expect`)."""
+        unclaimed = self.unclaimed
+        for event_id in step.produced:
+            if unclaimed.pop(event_id, None) is None:
+                self.expect(step, event_id)
+
+    def expect(self, step, event_id: tuple) -> None:
+        """An event a source's record names that was not read before it: one the log holds, still
+        to come (a source with latency logs its outputs later), or refused: the log lacks it (but
+        where it was cut short or lost it with a process), or a record named it before."""
+        if not self.in_log(event_id):
+            if self.cut_short or event_id in self.lost:
+                return
+            raise _not_its(self.log, step, event_id, "which the log does not have")
+        if event_id in self.expected:
+            raise _twice(self.log, step, event_id)
+        self.waiting[event_id] = None  # (read: let go)
+        self.expected[event_id] = step
+
     def decide(self, check: _Check) -> None:
         """A check whose logged outputs are all read (or never will be): compare them."""
         check.found = compare_outputs(check.step, check.events, check.originals, self.encode, check.stamped)
@@ -412,7 +448,20 @@ class StepReplay:
                 _diverged(report, check.stats, check.found)
 
     def finish(self, progress: Callable[[int, int], None] | None) -> ReplayReport:
-        """The log has ended: decide what no output came for, report, keep the trace."""
+        """The log has ended: decide what no output came for, report, keep the trace. A source's
+        event that a record named and that never came after it came before it, and an earlier
+        record took it (or the same record named it twice); one that no record of its source
+        named is no output of a step: the log is refused (but where it was cut short, or a process
+        died, which may leave a record without its events, or an event without its record)."""
+        if self.expected:
+            event_id, step = next(iter(self.expected.items()))
+            raise _twice(self.log, step, event_id)
+        if not self.cut_short and not self.log.faults:
+            sources = self.sources
+            for node, port, seq in self.unclaimed:
+                if node in sources:
+                    raise LogError(f"{self.log.path}: event {node}.{port} #{seq} is in the log, but no step record "
+                                   f"of {node} says it produced it", DAMAGED)
         for check in self.checks:  # what no output came for: the log ends before it
             if not check.done:
                 self.decide(check)
@@ -439,6 +488,17 @@ class StepReplay:
 
 #: StepRecord(*fields) without its Python-level __new__: one a logged step
 _step_record = functools.partial(tuple.__new__, StepRecord)
+
+
+def _not_its(log: LogHead, step, event_id: tuple, which: str) -> LogError:
+    """A source's step record names an event it cannot have produced: the log is refused."""
+    node, port, seq = event_id
+    return LogError(f"{log.path}: the step record of {step.node} at {format_tag(step.tag)} says it produced event "
+                    f"{node}.{port} #{seq}, {which}", DAMAGED)
+
+
+def _twice(log: LogHead, step, event_id: tuple) -> LogError:
+    return _not_its(log, step, event_id, "which an earlier step record said it produced too (a record logged twice?)")
 
 
 def _microstep_node(step) -> tuple[int, str]:

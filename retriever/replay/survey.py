@@ -14,6 +14,10 @@ from ..log import format as fmt
 from ..log.reader import ChunkMessages
 
 
+#: the hint of a LogError for a log whose records do not add up (an event twice, one a record cannot have produced)
+DAMAGED = "the file is damaged or was edited: retriever replay reads logs as a run wrote them"
+
+
 class LogSurvey:
     """What a replay must know of the whole log before its first step, gathered from its
     messages in one pass in file order (as the file is checked, or from a read log's list), in
@@ -70,9 +74,7 @@ class LogSurvey:
                 if hi and hi[-1] == sequence:  # the next one: the common case (_Seqs.add's first)
                     hi[-1] = sequence + 1
                 elif not seqs.add(sequence) and self.twice is None:
-                    self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice",
-                                          "the file is damaged or was edited: retriever replay reads logs as a run "
-                                          "wrote them")
+                    self.twice = LogError(f"{self.path}: event {node}.{port} #{sequence} is logged twice", DAMAGED)
 
     def take_chunk(self, channels: dict, chunk: ChunkMessages) -> None:
         """Take a chunk's messages, as :func:`scan_log` hands them with ``take_chunk``: its events
@@ -122,7 +124,7 @@ class LogSurvey:
             padded = np.concatenate((bytes_, np.zeros(_PAD, dtype=np.uint8)))
             plain, node_at, status_at = _plain_steps(padded, starts, chunk.ends[which])
             if self.check_steps:
-                plain &= _plain_statuses(bytes_, status_at)
+                plain &= _plain_statuses(padded, status_at)
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -216,91 +218,122 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
     detail None: what LogSurvey._step takes for its node alone), parsed with numpy a field at a
     time for all of them at once; and where each one's node and status (their fixstrs) are.
     ``data``: the bytes, followed by ``_PAD`` zeros."""
-    # the 8 bytes from each offset, as a little-endian uint64 (past the end: the zeros), which tell
-    # a string of up to 8 bytes ASCII at once (no bit of 0x80 set among its bytes: _HIGH_BITS)
-    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
-    end = len(data) - _PAD
-    last = len(data) - 1
-    ok = ends - starts >= 2
-    p = starts.copy()
+    fields = _Fields(data, starts.copy(), ends, ends - starts >= 2)
+    fields.moved(None, fields.at(fields.p) == 0x97, 1)
+    node_at = fields.p.copy()
+    fields.integer(fields.text(None))
+    ports = fields.header(None, 0x80)
+    # the rest read apart for the records of each count of ports (nearly all have one), so that
+    # a record with more costs no array operation over all the others
+    plain, status_at = np.zeros(len(starts), dtype=bool), np.zeros_like(starts)
+    for count in np.unique(ports[fields.ok]).tolist():
+        rows = np.flatnonzero(fields.ok & (ports == count))
+        group = fields if len(rows) == len(starts) else _Fields(data, fields.p[rows], ends[rows],
+                                                                 np.ones(len(rows), dtype=bool))
+        for _ in range(count):
+            group.ids(group.text(None))
+        group.ids(None)
+        status_at[rows] = group.p
+        group.integer(group.moved(group.text(None), group.at(group.p) == 0xC0, 1), signed=True)
+        plain[rows] = group.ok & (group.p == group.ends)
+    return plain, node_at, status_at
 
-    def at(where: np.ndarray) -> np.ndarray:
-        return data[np.minimum(where, last)].astype(np.int64)
 
-    def text(act: np.ndarray) -> None:
-        nonlocal ok
-        h = at(p)
-        size = h - 0xA0
-        valid = (p < ends) & (h >= 0xA0) & (h <= 0xBF)
-        size = np.where(valid, size, 0)
-        begin = np.minimum(p + 1, end)
-        for k in range(0, int(size.max(initial=0)), 8):  # (a fixstr has up to 31 bytes)
-            valid &= (words[begin + k] & _HIGH_BITS[np.minimum(np.maximum(size - k, 0), 8)]) == 0
-        ok &= ~act | valid
-        p[:] = np.where(act & ok, p + 1 + size, p)
+class _Fields:
+    """The step records ``_plain_steps`` reads, a field at a time: where each one is (``p``), where
+    it ends, and whether it is still found plain (``ok``). Each field is read where the one before
+    it ended, for every record (``act`` None) or those that have it (``act``), each record moved
+    on whether found plain or not (one not plain then reads what it reads: it stays not plain), not
+    checked to be within the record's bytes: a record whose last field ends where it ends had each
+    within them (each field moves on by a byte or more)."""
 
-    def integer(act: np.ndarray, signed: bool = False) -> None:
-        nonlocal ok
-        h = at(p)
-        width = np.select([h < 0x80, h == 0xCC, h == 0xCD, h == 0xCE, h == 0xCF], [1, 2, 3, 5, 9], 0)
-        if signed:
-            width = np.select([width > 0, h >= 0xE0, h == 0xD0, h == 0xD1, h == 0xD2, h == 0xD3],
-                              [width, 1, 2, 3, 5, 9], 0)
-        ok &= ~act | ((p < ends) & (width > 0))
-        p[:] = np.where(act & ok, p + width, p)
+    __slots__ = ("data", "words", "end", "last", "p", "ends", "ok")
 
-    def header(act: np.ndarray, low: int) -> np.ndarray:
-        nonlocal ok
-        h = at(p)
-        ok &= ~act | ((p < ends) & (h >= low) & (h <= low + 15))
-        p[:] = np.where(act & ok, p + 1, p)
-        return np.where(act & ok, h - low, 0)
+    def __init__(self, data: np.ndarray, p: np.ndarray, ends: np.ndarray, ok: np.ndarray) -> None:
+        # the 8 bytes from each offset, as a little-endian uint64 (past the end: the zeros), which tell
+        # a string of up to 8 bytes ASCII at once (no bit of 0x80 set among its bytes: _HIGH_BITS)
+        self.data, self.words = data, np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+        self.end, self.last = len(data) - _PAD, len(data) - 1
+        self.p, self.ends, self.ok = p, ends, ok
 
-    def ids(act: np.ndarray) -> None:
-        nonlocal ok
-        count = header(act, 0x90)
+    def at(self, where: np.ndarray) -> np.ndarray:
+        return self.data[np.minimum(where, self.last)]
+
+    def moved(self, act: np.ndarray | None, valid: np.ndarray, width) -> np.ndarray | None:
+        """The records ``act`` (None: all) past a field ``width`` bytes long, those where it is not
+        ``valid`` not plain; returns ``act``."""
+        if act is None:
+            self.ok &= valid
+            self.p += width
+        else:
+            self.ok &= valid | ~act
+            self.p += np.where(act, width, 0)
+        return act
+
+    def text(self, act: np.ndarray | None) -> np.ndarray | None:
+        p = self.p
+        size = _FIXSTR_SIZE[self.at(p)]  # (-1: no fixstr, which moves on by 0 bytes)
+        valid = size >= 0
+        begin = np.minimum(p + 1, self.end)
+        for k in range((int(size.max(initial=0)) + 7) // 8):  # (a fixstr has up to 31 bytes)
+            valid &= (self.words[8 * k:][begin] & _ASCII_MASKS[k][size]) == 0
+        return self.moved(act, valid, size + 1)
+
+    def integer(self, act: np.ndarray | None, signed: bool = False) -> np.ndarray | None:
+        width = (_INT_WIDTH if signed else _UINT_WIDTH)[self.at(self.p)]
+        return self.moved(act, width > 0, width)
+
+    def header(self, act: np.ndarray | None, low: int) -> np.ndarray:
+        """A fixarray's or fixmap's count (``low``: 0x90, 0x80): 0 where the record has none or is not plain."""
+        h = self.at(self.p)
+        self.moved(act, (h & 0xF0) == low, 1)
+        return np.where(self.ok if act is None else act & self.ok, h & 0x0F, 0)
+
+    def ids(self, act: np.ndarray | None) -> None:
+        count = self.header(act, 0x90)
         for k in range(int(count.max(initial=0))):
-            one = act & ok & (k < count)
-            ok &= ~one | ((p < ends) & (at(p) == 0x93))
-            p[:] = np.where(one & ok, p + 1, p)
-            text(one & ok)
-            text(one & ok)
-            integer(one & ok)
-
-    ok &= at(p) == 0x97
-    p[:] = p + 1
-    node_at = p.copy()
-    text(ok.copy())
-    integer(ok.copy())
-    ports = header(ok.copy(), 0x80)
-    for k in range(int(ports.max(initial=0))):
-        text(ok & (k < ports))
-        ids(ok & (k < ports))
-    ids(ok.copy())
-    status_at = p.copy()
-    text(ok.copy())
-    ok &= (p < ends) & (at(p) == 0xC0)
-    p[:] = np.where(ok, p + 1, p)
-    integer(ok.copy(), signed=True)
-    return ok & (p == ends), node_at, status_at
+            one = k < count
+            if one.all():  # (every record has it: read as for all, the cheaper way)
+                one = None
+            self.integer(self.text(self.text(self.moved(one, self.at(self.p) == 0x93, 1))))
 
 
 #: per count of bytes (0 to 8), the bits of 0x80 of that many low bytes of a uint64: _plain_steps' ASCII check
 _HIGH_BITS = np.array([0x8080808080808080 & ((1 << 8 * n) - 1) for n in range(9)], dtype=np.uint64)
 
+#: per 8 bytes of a fixstr (the 0th to the 3rd) and per size (0 to 31), _HIGH_BITS of its bytes among them
+_ASCII_MASKS = np.array([[_HIGH_BITS[min(max(size - 8 * k, 0), 8)] for size in range(32)] for k in range(4)],
+                        dtype=np.uint64)
+
+#: per first byte, _plain_steps' reading of it: a fixstr's size (-1: no fixstr); an unsigned, a
+#: signed integer's width in bytes, its head's with it (0: none)
+_FIXSTR_SIZE = np.array([b - 0xA0 if 0xA0 <= b <= 0xBF else -1 for b in range(256)], dtype=np.int64)
+_UINT_WIDTH = np.array([1 if b < 0x80 else {0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9}.get(b, 0) for b in range(256)],
+                       dtype=np.int64)
+_INT_WIDTH = np.array([1 if b < 0x80 or b >= 0xE0 else {0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9, 0xD0: 2, 0xD1: 3,
+                                                         0xD2: 5, 0xD3: 9}.get(b, 0) for b in range(256)],
+                      dtype=np.int64)
+
 #: the statuses of a step record without detail, as msgpack packs them (fixstrs): _plain_statuses'
 _PLAIN_STATUS_BYTES = [msgpack.packb(str(status)) for status in sorted(fmt.PLAIN_STEP_STATUSES)]
+#: each as its first 8 bytes and the 8 after (little-endian uint64s), and the bits of them it has
+#: (a status has up to 15 bytes: "incomplete" 11)
+_PLAIN_STATUS_WORDS = [tuple(np.uint64(n) for n in (int.from_bytes(b[:8], "little"), (1 << 8 * len(b[:8])) - 1,
+                                                    int.from_bytes(b[8:16], "little"), (1 << 8 * len(b[8:16])) - 1))
+                       for b in _PLAIN_STATUS_BYTES]
 
 
 def _plain_statuses(data: np.ndarray, status_at: np.ndarray) -> np.ndarray:
-    """Which of the fixstrs at ``status_at`` in ``data`` are a status a step record without detail
-    has (``format.decode_step`` refuses any other)."""
-    last = len(data) - 1
+    """Which of the fixstrs at ``status_at`` in ``data`` (followed by ``_PAD`` zeros) are a status
+    a step record without detail has (``format.decode_step`` refuses any other)."""
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    at = np.minimum(status_at, len(data) - 16)  # (a status found is within the bytes, before the zeros)
+    first, second = words[at], words[at + 8]
     found = np.zeros(len(status_at), dtype=bool)
-    for status in _PLAIN_STATUS_BYTES:
-        same = np.ones(len(status_at), dtype=bool)
-        for k, byte in enumerate(status):
-            same &= data[np.minimum(status_at + k, last)] == byte
+    for low, low_bits, high, high_bits in _PLAIN_STATUS_WORDS:
+        same = (first & low_bits) == low
+        if high_bits:
+            same &= (second & high_bits) == high
         found |= same
     return found
 
@@ -309,12 +342,21 @@ def _names(data: np.ndarray, node_at: np.ndarray) -> set[str]:
     """The distinct ASCII fixstrs at ``node_at`` in ``data`` (followed by ``_PAD`` zeros)."""
     if not len(node_at):
         return set()
-    rows = np.lib.stride_tricks.sliding_window_view(data, _PAD)[node_at]
-    rows = rows * (np.arange(32) <= (rows[:, :1].astype(np.int64) - 0xA0))  # the bytes after each name: 0
-    words = np.ascontiguousarray(rows).view("<u8")  # (n, 4)
-    rows = rows[np.lexsort(words.T[::-1])]
-    firsts = np.flatnonzero(np.r_[True, (rows[1:] != rows[:-1]).any(axis=1)])
-    return {bytes(row[1:1 + row[0] - 0xA0]).decode("ascii") for row in rows[firsts]}
+    # each one's head and bytes as up to 4 little-endian uint64 (the bytes after it: 0), a row
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    size = data[node_at].astype(np.intp) - 0xA0 + 1
+    keys = np.empty((len(node_at), (int(size.max()) + 7) // 8), dtype="<u8")
+    for k in range(keys.shape[1]):
+        keys[:, k] = words[8 * k:][node_at] & _LOW_BYTES[k][size]
+    keys = keys[np.lexsort(keys.T[::-1])] if keys.shape[1] > 1 else np.sort(keys, axis=0)
+    rows = keys[np.r_[True, (keys[1:] != keys[:-1]).any(axis=1)]]
+    return {(b := row.tobytes())[1:b[0] - 0x9F].decode("ascii") for row in rows}
+
+
+#: per 8 bytes of a fixstr (the 0th to the 3rd) and per count of its head and bytes (0 to 32), the bits
+#: of those among them: _names'
+_LOW_BYTES = np.array([[(1 << 8 * min(max(n - 8 * k, 0), 8)) - 1 for n in range(33)] for k in range(4)],
+                      dtype=np.uint64)
 _DATA_AT = 9 + 22  # a Message record's data, after its opcode, length and fields
 _PAD = 32  # zeros after a chunk's bytes, for _plain_steps and _names: a fixstr's head and bytes fit
 

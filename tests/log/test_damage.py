@@ -800,6 +800,58 @@ def test_a_source_step_record_naming_an_event_it_cannot_give_is_a_log_error_in_r
             run()
 
 
+def _source_record_changed(how: str):
+    """A change: counter's (a source's) step records that produced events, ``how``: its second
+    names a port the log has no event on (``"port"``), or is logged twice (``"twice"``); its
+    third names the second's event in place of its own (``"other"``); its second names none
+    (``"none"``: its event is no record's)."""
+    def change(messages, metadata):
+        import msgpack
+
+        records = [m for m in messages if m[0] == "steps" and msgpack.unpackb(m[4])[0] == "counter"]
+        second, third = (msgpack.unpackb(r[4]) for r in records[1:3])
+        if how == "twice":
+            messages.append(list(records[1]))
+        elif how == "port":
+            second[3][0][1] = "luvel"
+        elif how == "other":
+            third[3] = second[3]
+        else:
+            second[3] = []
+        records[1][4], records[2][4] = msgpack.packb(second), msgpack.packb(third)
+    return change
+
+
+_TWICE = r"which an earlier step record said it produced too \(a record logged twice\?\)"
+
+
+@pytest.mark.parametrize("how, says", [
+    ("port", r"the step record of counter at t=0\.100000000s m=0 says it produced event counter\.luvel #1, "
+             r"which the log does not have"),
+    ("twice", r"the step record of counter at t=0\.100000000s m=0 says it produced event counter\.k #1, " + _TWICE),
+    ("other", r"the step record of counter at t=0\.200000000s m=0 says it produced event counter\.k #1, " + _TWICE),
+    ("none", r"event counter\.k #1 is in the log, but no step record of counter says it produced it"),
+])
+def test_a_source_step_record_that_does_not_match_the_logs_events_is_a_log_error_in_replay(tmp_path, how, says):
+    """Replay takes a source's events from the log and does not run it: a record of it naming an
+    event the log lacks, or one a record named already, and an event no record of it names, were
+    taken as they were (the replay identical); the log is refused, as ``--resim`` refuses it, read
+    whole and streamed, and by the CLI."""
+    from retriever.replay import resim_file
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _source_record_changed(how))
+    hint = "the file is damaged or was edited: retriever replay reads logs as a run wrote them"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small),
+                lambda: replay(read_log(path), build_small(), keep_trace=True)):
+        with pytest.raises(LogError, match=r"odd\.mcap: " + says + r"\n    hint: " + hint):
+            run()
+    assert_cli_error(cli("replay", path), r"^error: .*odd\.mcap: " + says, hint=hint)
+    if how != "none":  # (resim compares the traces: an event no record names is a difference)
+        with pytest.raises(LogError, match=r"odd\.mcap: " + says + r"\n    hint: " + hint):
+            resim_file(path, build_small)
+
+
 def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):
     from tests.log.log_flows import build_small
 
