@@ -57,10 +57,9 @@ from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
-from ..time import format_tag
 from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
-from .survey import DAMAGED, LogSurvey
+from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
@@ -367,11 +366,8 @@ class _Feed:
             try:
                 outputs = _logged_outputs(step, self._value)
             except KeyError as e:  # (raised in the source's tick: _resim refuses the log with it)
-                node, port, seq = e.args[0]
-                which = ("which an earlier step record said it produced too (a record logged twice?)"
-                         if self.survey.events.in_log(e.args[0]) else "which the log does not have")
-                raise LogError(f"{self.log.path}: the step record of {step[0]} at {format_tag(step[1])} says it "
-                               f"produced event {node}.{port} #{seq}, {which}", DAMAGED) from None
+                which = NAMED_BEFORE if self.survey.events.in_log(e.args[0]) else NOT_IN_LOG
+                raise not_its_event(self.log.path, step, e.args[0], which) from None
             yield outputs
 
     def _value(self, event_id: tuple) -> object:

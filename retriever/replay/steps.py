@@ -17,11 +17,10 @@ from ..flow.read_only import make_read_only
 from ..log import format as fmt
 from ..log.reader import LogHead, LoggedEvent
 from ..sync import Latest, before, bound, fill
-from ..time import format_tag
 from ..trace import STEPPED, StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
-from .survey import DAMAGED, LogSurvey
+from .survey import DAMAGED, NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
 
 PROGRESS_EVERY = 2000
 _SKIPPED, _LATE, _OK = StepStatus.SKIPPED, StepStatus.LATE, StepStatus.OK
@@ -288,10 +287,7 @@ class StepReplay:
         # the run called step() at every tick but one that a real-time run stopped before stepping
         # (realtime="hard", an incomplete edge): a skipped tick without "missing"
         if node in self.sources:
-            unclaimed = self.unclaimed
-            for event_id in step.produced:  # (take_logged inlined)
-                if unclaimed.pop(event_id, None) is None:
-                    self.expect(step, event_id)
+            self.take_logged(step)
             if keep_trace:  # not re-executed: its outputs as logged
                 self.kept_parts.append(step.produced)
             return
@@ -425,9 +421,9 @@ class StepReplay:
         if not self.in_log(event_id):
             if self.cut_short or event_id in self.lost:
                 return
-            raise _not_its(self.log, step, event_id, "which the log does not have")
+            raise not_its_event(self.log.path, step, event_id, NOT_IN_LOG)
         if event_id in self.expected:
-            raise _twice(self.log, step, event_id)
+            raise not_its_event(self.log.path, step, event_id, NAMED_BEFORE)
         self.waiting[event_id] = None  # (read: let go)
         self.expected[event_id] = step
 
@@ -455,7 +451,7 @@ class StepReplay:
         died, which may leave a record without its events, or an event without its record)."""
         if self.expected:
             event_id, step = next(iter(self.expected.items()))
-            raise _twice(self.log, step, event_id)
+            raise not_its_event(self.log.path, step, event_id, NAMED_BEFORE)
         if not self.cut_short and not self.log.faults:
             sources = self.sources
             for node, port, seq in self.unclaimed:
@@ -488,17 +484,6 @@ class StepReplay:
 
 #: StepRecord(*fields) without its Python-level __new__: one a logged step
 _step_record = functools.partial(tuple.__new__, StepRecord)
-
-
-def _not_its(log: LogHead, step, event_id: tuple, which: str) -> LogError:
-    """A source's step record names an event it cannot have produced: the log is refused."""
-    node, port, seq = event_id
-    return LogError(f"{log.path}: the step record of {step.node} at {format_tag(step.tag)} says it produced event "
-                    f"{node}.{port} #{seq}, {which}", DAMAGED)
-
-
-def _twice(log: LogHead, step, event_id: tuple) -> LogError:
-    return _not_its(log, step, event_id, "which an earlier step record said it produced too (a record logged twice?)")
 
 
 def _microstep_node(step) -> tuple[int, str]:

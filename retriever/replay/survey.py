@@ -12,10 +12,22 @@ import numpy as np
 from ..errors import LogError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages
+from ..time import format_tag
 
 
 #: the hint of a LogError for a log whose records do not add up (an event twice, one a record cannot have produced)
 DAMAGED = "the file is damaged or was edited: retriever replay reads logs as a run wrote them"
+#: why a step record cannot have produced an event it names (:func:`not_its_event`)
+NOT_IN_LOG = "which the log does not have"
+NAMED_BEFORE = "which an earlier step record said it produced too (a record logged twice?)"
+
+
+def not_its_event(path: Path, step: tuple, event_id: tuple, which: str) -> LogError:
+    """A source's step record (a StepRecord, or the plain tuple of its fields) names an event it
+    cannot have produced (``which``: NOT_IN_LOG, NAMED_BEFORE): the log is refused."""
+    node, port, seq = event_id
+    return LogError(f"{path}: the step record of {step[0]} at {format_tag(step[1])} says it produced event "
+                    f"{node}.{port} #{seq}, {which}", DAMAGED)
 
 
 class LogSurvey:
