@@ -538,10 +538,10 @@ class LogWriter:
                     self._array_heads_kept += value.shape not in heads
                     heads[value.shape] = array
                     self._last_array[node][port] = array
-                return array[1](array[2], seq & 0xFFFFFFFF, tag[0], published, _FIXARRAY_2, tag[1], array[3],
+                return array[1](array[2], seq & _U32, tag[0], published, _FIXARRAY_2, tag[1], array[3],
                                 value.tobytes())
         data = self._encode([tag[1], value])
-        return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & 0xFFFFFFFF, tag[0],
+        return MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data), channel, seq & _U32, tag[0],
                                  published) + data
 
     def _add_large_event(self, event: tuple) -> None:
@@ -556,7 +556,7 @@ class LogWriter:
         data_head = bytes((_FIXARRAY_2,)) + self._encode(microstep) + value_head
         channel = self._channels.get((node, port)) or self._add_channel(node, port)
         head = MESSAGE_HEAD.pack(Opcode.MESSAGE, MESSAGE_FIELDS + len(data_head) + value.nbytes, channel,
-                                 seq & 0xFFFFFFFF, log_time, published) + data_head
+                                 seq & _U32, log_time, published) + data_head
         record = np.empty(len(head) + value.nbytes, dtype=np.uint8)
         record[:len(head)] = np.frombuffer(head, dtype=np.uint8)
         np.copyto(record[len(head):].view(value.dtype).reshape(value.shape), value)
