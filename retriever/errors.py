@@ -340,7 +340,7 @@ class StarvedFlowWarning(RetrieverWarning):
 
 class Interrupted(KeyboardInterrupt):
     """A stop signal (SIGTERM, or Ctrl-C's SIGINT) raised as Ctrl-C's exception in a command
-    (``retriever.cli.stop_on_signals``): every ``except KeyboardInterrupt`` takes it. A subclass,
+    (``retriever.cli.stop_on_signals``), or a second one during a logged run: every ``except KeyboardInterrupt`` takes it. A subclass,
     not KeyboardInterrupt itself: CPython marks a bare KeyboardInterrupt that leaves an ``exec`` or
     ``eval`` of a string (a dataclass or a message class being made) as unhandled even when the
     command catches it later, and then ends the process by SIGINT instead of with the exit status

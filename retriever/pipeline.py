@@ -24,7 +24,8 @@ from typing import Any, Iterator
 
 from . import declaring
 from .backends import Session, open_backend
-from .errors import BackendError, GraphError, IRError, Problem, RetrieverWarning, SetupError, StarvedFlowWarning
+from .errors import (BackendError, GraphError, Interrupted, IRError, Problem, RetrieverWarning, SetupError,
+                     StarvedFlowWarning)
 from .flow.core import Flow, settings_of
 from .graph import DeclaredEdge, Graph, compile_graph
 from .ir import DEFAULT_DEADLINE, DEFAULT_MAX_MICROSTEPS, IR, REALTIME_MODES
@@ -415,7 +416,7 @@ def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
 
     def request_stop(signum, frame) -> None:
         if session.stop_requested:
-            raise KeyboardInterrupt
+            raise Interrupted(signum)  # (not a bare KeyboardInterrupt: see Interrupted)
         session.stop_requested = True
         session.stop_signal = signum
 

@@ -141,6 +141,97 @@ def test_a_command_started_with_sigint_ignored_keeps_ignoring_it(tmp_path: Path)
     assert done.returncode == 0, (done.returncode, done.stderr)
 
 
+@pytest.mark.parametrize("first, second", [(15, 15), (2, 2), (15, 2), (2, 15)])
+def test_a_second_stop_signal_during_the_clean_up_changes_nothing_and_a_third_ends_at_once(tmp_path: Path, first,
+                                                                                            second):
+    """Ctrl-C pressed twice, or SIGTERM then Ctrl-C: the second signal comes while the command
+    cleans up after the first (an export removing its half-written file, a run printing its table)
+    or while the interpreter ends. Raised there it cut the clean-up short, or printed "Exception
+    ignored in: <module 'threading'> ... Interrupted" after the command's one line: it is ignored.
+    A third means the clean-up hangs: the process ends at once, by the signal."""
+    script = (
+        "import os, sys, threading\n"
+        "from retriever.cli import cleaning_up, stop_on_signals, stop_signal\n"
+        "stop_on_signals()\n"
+        "threading.Thread(target=lambda: None).start()  # as a run's: threading._shutdown runs at exit\n"
+        "try:\n"
+        f"    os.kill(os.getpid(), {first})\n"
+        "    for _ in range(10**7): pass\n"
+        "    sys.exit('the first signal never came')\n"
+        "except KeyboardInterrupt:\n"
+        "    cleaning_up()\n"
+        f"    os.kill(os.getpid(), {second})  # handled at the next instruction, in the clean-up\n"
+        "    for _ in range(1000): pass\n"
+        "    if len(sys.argv) > 1:\n"
+        f"        os.kill(os.getpid(), {first})\n"
+        "        for _ in range(10**7): pass\n"
+        "        sys.exit('the third signal did not end it')\n"
+        "    print('cleaned up', file=sys.stderr)\n"
+        "    sys.exit(128 + stop_signal())\n")
+    (tmp_path / "twice.py").write_text(script)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    twice = subprocess.run([sys.executable, "-m", "twice"], capture_output=True, text=True, timeout=120,
+                           cwd=tmp_path, env=env)
+    assert (twice.returncode, twice.stderr) == (128 + first, "cleaned up\n")
+    thrice = subprocess.run([sys.executable, "-m", "twice", "thrice"], capture_output=True, text=True, timeout=120,
+                            cwd=tmp_path, env=env)
+    assert (thrice.returncode, thrice.stderr) == (-first, "")
+
+
+STOPPED_INSIDE = FLOWS + '''
+
+import os, signal
+
+
+class Dropping:
+    """Sends the signal from its __del__, where Python drops an exception (the handler's)."""
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000): pass
+
+
+class DropsTheStop(Flow[None, Num]):
+    dropped = False
+
+    def step(self, inp):
+        if not self.dropped:
+            self.dropped = True
+            Dropping()
+        return Num(1)
+
+
+class FailsWithTheStop(Flow[None, Num]):
+    def setup(self):
+        try:  # as a C extension whose import the signal interrupts: ImportError, not the signal
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(10**7): pass
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None
+
+    def step(self, inp):
+        return Num(1)
+
+
+with Pipeline("dropped") as dropped:
+    (DropsTheStop() @ Rate(hz=10)).then(Sink() @ Trigger())
+with Pipeline("failed") as failed:
+    (FailsWithTheStop() @ Rate(hz=10)).then(Sink() @ Trigger())
+'''
+
+
+@pytest.mark.parametrize("pipe", ["dropped", "failed"])
+def test_a_run_whose_stop_signal_was_dropped_or_turned_into_an_error_still_ends_interrupted(tmp_path: Path, pipe):
+    """SIGTERM's exception raised where Python drops it (a __del__: "Exception ignored in") let
+    the run go on and exit 0; one that a setup() turned into another error (a C extension's
+    import interrupted says ImportError) was reported as that setup's failure. The command was
+    stopped by a signal: it says "interrupted" and exits 143."""
+    path = write(tmp_path / "stopped.py", STOPPED_INSIDE)
+    result = cli("run", f"{path}:{pipe}", "--duration", "2")
+    assert result.returncode == 143, (result.returncode, result.stderr)
+    assert result.stderr.rstrip().endswith("interrupted"), result.stderr
+    assert "error:" not in result.stderr
+
+
 def test_version_as_a_flag_and_python_dash_m():
     from importlib import metadata
 

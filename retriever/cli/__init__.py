@@ -25,7 +25,7 @@ from typing import Annotated
 
 import typer
 
-from .console import err, fail, out, set_debug, stop_on_signals, stop_signal
+from .console import cleaning_up, err, fail, out, set_debug, stop_on_signals, stop_signal
 from .daemons import router_command, secret_new, worker
 from .deployments import status_command, status_table, stop_command, workers_command
 from .log_info import log_info
@@ -35,8 +35,8 @@ from .pipelines import LIVE_EVERY_S, UNTIL_STOPPED_S, deploy, ir_command, run
 from .plugins import COMMANDS_GROUP, add_registered_commands
 from .summary import counters_in_words, run_errors
 
-__all__ = ["COMMANDS_GROUP", "FOXGLOVE_PORT", "LIVE_EVERY_S", "UNTIL_STOPPED_S", "app", "counters_in_words", "err",
-           "fail", "main", "out", "run_errors", "status_table", "stop_on_signals", "stop_signal", "worker_main"]
+__all__ = ["COMMANDS_GROUP", "FOXGLOVE_PORT", "LIVE_EVERY_S", "UNTIL_STOPPED_S", "app", "cleaning_up",
+           "counters_in_words", "err", "fail", "main", "out", "run_errors", "status_table", "stop_on_signals", "stop_signal", "worker_main"]
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")

@@ -5,6 +5,7 @@ of a run; and the signal that stopped a command."""
 
 from __future__ import annotations
 
+import os
 import signal
 import traceback
 import warnings
@@ -118,18 +119,35 @@ def print_held_warnings() -> None:
 
 
 def _interrupt(signum, frame) -> None:
-    _state["signal"] = signum
-    raise Interrupted(signum)
+    _state.setdefault("signal", signum)
+    if not _state.get("cleaning"):
+        raise Interrupted(signum)
+    if not _state.get("ignored"):  # (raised there, it would cut the clean-up short)
+        _state["ignored"] = signum
+        return
+    signal.signal(signum, signal.SIG_DFL)  # asked a third time: the clean-up hangs; end at once
+    os.kill(os.getpid(), signum)
 
 
 def stop_on_signals() -> None:
     """From now on SIGTERM and SIGINT (Ctrl-C) stop the command as an :class:`Interrupted` (a
     KeyboardInterrupt), and :func:`stop_signal` says which signal it was. A SIGINT the command
     was started to ignore (a shell's background job: the terminal's Ctrl-C is not for it) stays
-    ignored."""
+    ignored. Once the command cleans up (:func:`cleaning_up`), the next stop signal is ignored and
+    the one after it ends the process at once."""
+    for key in ("signal", "cleaning", "ignored"):  # a command's before this one, in the same process
+        _state.pop(key, None)
     signal.signal(signal.SIGTERM, _interrupt)
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         signal.signal(signal.SIGINT, _interrupt)
+
+
+def cleaning_up() -> None:
+    """The command has taken its stop signal and cleans up (removes a half-written file, prints
+    what ran), then ends: one more stop signal (Ctrl-C pressed twice) no longer raises, where it
+    would cut that short or print a traceback at the interpreter's end; a third ends the process
+    at once, by the signal's default (a clean-up that hangs is not a trap)."""
+    _state["cleaning"] = True
 
 
 def stop_signal() -> int | None:

@@ -15,7 +15,7 @@ from rich.text import Text
 
 from ..errors import RetrieverError
 from . import console
-from .console import cell, fail, stop_on_signals, stop_signal, visible
+from .console import cell, cleaning_up, fail, stop_on_signals, stop_signal, visible
 from .inputs import load, read
 
 
@@ -250,6 +250,7 @@ def log_export(
         abandon_stdout()
         raise typer.Exit(code=128 + signal.SIGPIPE) from None
     except KeyboardInterrupt:
+        cleaning_up()
         signum = stop_signal() or signal.SIGINT
         if to_stdout(out):
             written = stdout_written()  # None: nothing began to write it, or Rerun's SDK did (not counted)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NoReturn, Optional
 
 import typer
 
@@ -14,7 +14,7 @@ from ..backends import canonical, default_backend
 from ..errors import BackendError, LogWriteError, RetrieverError
 from ..ir import IR
 from . import console
-from .console import fail, print_held_warnings, stop_on_signals, stop_signal
+from .console import cleaning_up, fail, print_held_warnings, stop_on_signals, stop_signal
 from .deployments import status_table
 from .inputs import load, read
 from .options import (FOXGLOVE_OPTION, KEEP_OPTION, RERUN_OPTION, TLS_CA_OPTION, TLS_CERT_OPTION, TLS_KEY_OPTION,
@@ -184,36 +184,50 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     before = _identity(log)
     stop_on_signals()  # stop like Ctrl-C: the log is finished, not torn
     watching = _show_live(pipe, live) if live is not None and console.err.is_terminal else None
-    try:
-        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)
-    except KeyboardInterrupt:
+
+    def stop_watching() -> None:  # the live table goes before the final one is printed
+        nonlocal watching
         if watching is not None:
             watching[0].set()
             watching[1].join(timeout=2.0)
             watching = None
-        recorded = _identity(log) not in (None, before)
-        if pipe.session is not None:  # what ran until the interrupt, as at the end of a run
-            print_summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
-            for line in pipe.starved():
-                console.err.print(f"warning: pipeline '{pipe.name}': {line}", highlight=False, markup=False)
-        console.err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
-        # during a logged run the pipeline's own handler took the signal (it stops between ticks)
-        signum = stop_signal() or getattr(pipe.session, "stop_signal", None) or signal.SIGINT
-        raise typer.Exit(code=128 + signum) from None
+
+    try:
+        trace = pipe.run(duration=duration, backend=backend, log=log, overwrite=force, **options)
+    except KeyboardInterrupt:
+        stop_watching()
+        _interrupted(pipe, log, before, title)
     except Exception as exc:
+        stop_watching()
+        if stop_signal() is not None:  # a stop signal came as it failed: e.g. inside a C extension's
+            _interrupted(pipe, log, before, title)  # import in a setup(), which says ImportError
         # only a log this run wrote holds it (a refused run leaves the file as it was; a log that
         # could not be written says so in its own error)
         if _identity(log) not in (None, before) and not isinstance(exc, LogWriteError):
             console.err.print(f"the run up to the error is in {log}", highlight=False)
         fail(exc)
     finally:
-        if watching is not None:  # the live table goes before the final one is printed
-            watching[0].set()
-            watching[1].join(timeout=2.0)
+        stop_watching()
+    if stop_signal() is not None:  # the run went on to its end: the signal's exception was raised
+        _interrupted(pipe, log, before, title)  # where Python drops it (a __del__, a weakref's callback)
     print_summary(pipe, trace, title, log)
     print_held_warnings()
     if not allow_errors:
         _fail_on_errors(pipe)
+
+
+def _interrupted(pipe, log: Path | None, before, title: str) -> NoReturn:
+    """Print what ran until the stop signal (as at the end of a run) and exit 128 + the signal."""
+    cleaning_up()
+    recorded = _identity(log) not in (None, before)
+    if pipe.session is not None:
+        print_summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
+        for line in pipe.starved():
+            console.err.print(f"warning: pipeline '{pipe.name}': {line}", highlight=False, markup=False)
+    console.err.print("interrupted" + (f"; the run so far is in {log}" if recorded else ""), highlight=False)
+    # during a logged run the pipeline's own handler took the signal (it stops between ticks)
+    signum = stop_signal() or getattr(pipe.session, "stop_signal", None) or signal.SIGINT
+    raise typer.Exit(code=128 + signum) from None
 
 
 def _show_live(pipe, namespace: str):
