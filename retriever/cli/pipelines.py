@@ -208,12 +208,15 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
         fail(exc)
     finally:
         stop_watching()
-    if stop_signal() is not None:  # the run went on to its end: the signal's exception was raised
-        _interrupted(pipe, log, before, title)  # where Python drops it (a __del__, a weakref's callback)
+    cleaning_up()  # the run is over: a signal from here on no longer cuts its table short
     print_summary(pipe, trace, title, log)
     print_held_warnings()
     if not allow_errors:
         _fail_on_errors(pipe)
+    signum = stop_signal()  # one came as the table was printed, or the run went on to its end: its
+    if signum is not None:  # exception raised where Python drops it (a __del__, a weakref's callback)
+        console.err.print("interrupted", highlight=False)
+        raise typer.Exit(code=128 + signum)
 
 
 def _interrupted(pipe, log: Path | None, before, title: str) -> NoReturn:
