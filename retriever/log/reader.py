@@ -39,6 +39,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader, get_chunk_data_
 
 from ..codec import unpackb
 from ..errors import ChunkTooLargeError, CodecError, IRError, LogError, UnregisteredTypeError
+from ..flow.read_only import make_read_only
 from ..ir import IR
 from ..trace import Event, StepRecord, Trace
 from . import format as fmt
@@ -231,8 +232,11 @@ class RunLog(LogHead):
                 yield step_record(self.path, m.log_time, m.sequence, m.publish_time, m.data)
 
     def trace(self) -> Trace:
-        """The logged run as a :class:`Trace` (values decoded), comparable with a live one."""
+        """The logged run as a :class:`Trace` (values decoded), comparable with a live one: its
+        values read-only, as a run's are (an emitted value is immutable)."""
         events = [Event(e.tag, e.node, e.port, e.seq, self.value(e), e.publish_ns) for e in self.iter_events()]
+        for event in events:
+            make_read_only(event.value)
         return Trace(events, list(self.iter_steps()))
 
 

@@ -52,6 +52,28 @@ def small_plain(small):
 # ---------------------------------------------------------------------------------------------
 # The golden small log, read with mcap + msgpack only
 # ---------------------------------------------------------------------------------------------
+def test_a_logged_trace_has_read_only_values_as_the_run_had(small):
+    """An emitted value is immutable (docs/semantics.md): a run's trace holds its arrays
+    read-only, and so does the trace read back from its log (it held them writable)."""
+    path, trace = small
+    logged = read_log(path).trace()
+    assert logged == trace
+
+    def arrays(value):
+        if isinstance(value, np.ndarray):
+            yield value
+        elif isinstance(value, dict):
+            for item in value.values():
+                yield from arrays(item)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                yield from arrays(item)
+
+    for run in (trace, logged):
+        found = [a for e in run.events for a in arrays(e.value)]
+        assert found and not any(a.flags.writeable for a in found)
+
+
 def test_small_log_is_a_valid_mcap_file_with_the_retriever_profile(small_plain):
     """Header profile, CRCs (chunks, data section, summary), one channel per port plus steps."""
     assert small_plain["profile"] == "retriever"
