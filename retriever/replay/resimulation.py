@@ -57,12 +57,14 @@ from ..errors import LogError, ReplayedError, StepError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
-from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
+from ..trace import Event, StepRecord, StepStatus, event_bytes, event_difference, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
 from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
+#: how the report names the two traces compared (``Trace.first_difference``'s ``names``): the log's, the session's
+TRACES = ("the log", "the re-simulation")
 
 _STEPS = "steps"  # _Feed.kinds: the channel of step records
 #: how many records a replayed source's tick reads on at a time, as far as its own
@@ -598,7 +600,6 @@ class _Comparison:
         self.events: tuple[deque, deque] = (deque(), deque())
         self.steps: tuple[deque, deque] = (deque(), deque())
         self.counts = [[0, 0], [0, 0]]  # [side][events, steps]
-        self.first_step: list[tuple | None] = [None, None]
         self.event_difference: str | None = None
         self.step_difference: tuple[int, StepRecord, StepRecord] | None = None
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
@@ -614,8 +615,6 @@ class _Comparison:
         order they came (then, sorted, they pair the same: the same records, in the same order)."""
         for side, (events, steps) in enumerate((expected, again)):
             self.counts[side][1] += len(steps)
-            if steps and self.first_step[side] is None:
-                self.first_step[side] = min(steps, key=_raw_step_key)  # (the first of them sorted)
             self.arrived[side].extend(events)
         if self.step_difference is not None:
             return
@@ -660,7 +659,7 @@ class _Comparison:
                 break
             a, b = _decoded(self.log, mine.popleft()), Event._make(theirs.popleft())
             if event_bytes(a) != event_bytes(b):
-                self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
+                self.event_difference = event_difference(self.paired_events, a, b, TRACES)
                 mine.clear()
                 theirs.clear()
             self.paired_events += 1
@@ -693,13 +692,7 @@ class _Comparison:
             if steps != steps_again:
                 return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
             return None
-        # one side has more events: where the other's step records begin, an event meets a step
+        # one side has more events: the first of those it has left is the other's to lack
         if events < events_again:
-            a, b = self.first_step[0], Event._make(self.events[1][0])
-            a = None if a is None else StepRecord._make(a)
-        else:
-            a, b = _decoded(self.log, self.events[0][0]), self.first_step[1]
-            b = None if b is None else StepRecord._make(b)
-        if a is None or b is None:
-            return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
-        return f"record {min(events, events_again)}: {a!r} != {b!r}"
+            return event_difference(events, None, Event._make(self.events[1][0]), TRACES)
+        return event_difference(events_again, _decoded(self.log, self.events[0][0]), None, TRACES)

@@ -15,6 +15,7 @@ import retriever.log.reader as reader
 from retriever import Flow, Latest, Pipeline, Rate
 from retriever.log import read_log
 from retriever.replay import resim, resim_file
+from retriever.replay.resimulation import TRACES
 from tests.log.helpers import rewrite
 
 _PAIR = np.dtype([("a", "<i4"), ("b", "<f8")])
@@ -92,7 +93,7 @@ def _said(difference: str | None) -> str | None:
 def test_resim_says_what_the_two_whole_traces_say(tmp_path, logged, again):
     path = tmp_path / "run.mcap"
     _pipe(logged).run(duration=2.0, log=path)
-    expected = read_log(path).trace().first_difference(_pipe(again).run(duration=2.0))
+    expected = read_log(path).trace().first_difference(_pipe(again).run(duration=2.0), TRACES)
     assert (expected is None) == (logged == again or {logged, again} == {"fortran", "c-order"}), expected
     for report in (resim(read_log(path), _pipe(again)), resim_file(path, _pipe(again))):
         assert _said(report.difference) == _said(expected)
@@ -264,7 +265,7 @@ def test_records_read_in_another_order_than_a_trace_sorts_them(tmp_path, differ,
     _two(sinks=sinks).run(duration=3.0, log=path)
     if reversed_:
         path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
-    expected = read_log(path).trace().first_difference(_two(differ, sinks).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_two(differ, sinks).run(duration=3.0), TRACES)
     assert (expected is None) == (differ == "")
     if "a" in differ:
         assert "alpha2" in expected
@@ -288,26 +289,43 @@ def test_a_record_the_log_lacks_at_the_end_of_a_second(tmp_path, sinks):
                     and (topic != "steps" or message.data.startswith(b"\x97\xa5zeta2")))
 
     path = rewrite(path, tmp_path / "lacking.mcap", keep=kept)
-    expected = read_log(path).trace().first_difference(_two(sinks=sinks, offset=0.099).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_two(sinks=sinks, offset=0.099).run(duration=3.0), TRACES)
     assert expected is not None and expected.startswith("record "), expected
     for report in (resim(read_log(path), _two(sinks=sinks, offset=0.099)),
                    resim_file(path, _two(sinks=sinks, offset=0.099))):
         assert _said(report.difference) == _said(expected)
 
 
-def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path):
-    """The session has one event more than the log, the last of all (its other records the same),
+@pytest.mark.parametrize("more_in", ["session", "log"])
+def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path, more_in):
+    """One side has one event more than the other, the last of all (its other records the same),
     and the log holds each instant's records in another order than a trace sorts them: the first
-    difference is where the log's step records begin, as a trace sorts them (``alpha``'s first)."""
+    difference is that event, named, and which side has it (not the other side's first step
+    record, with which the canonical records pair it)."""
     path = tmp_path / "run.mcap"
-    _two(offset=0.099).run(duration=3.0, log=path)
+    _two(offset=0.099, more_at=30 if more_in == "log" else 0).run(duration=3.0, log=path)
     path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
-    expected = read_log(path).trace().first_difference(_two(offset=0.099, more_at=30).run(duration=3.0))
-    assert expected is not None and "StepRecord(node='alpha', tag=(0, 0)" in expected, expected
-    for report in (resim(read_log(path), _two(offset=0.099, more_at=30)),
-                   resim_file(path, _two(offset=0.099, more_at=30))):
+    again = _two(offset=0.099, more_at=30 if more_in == "session" else 0)
+    expected = read_log(path).trace().first_difference(again.run(duration=3.0), TRACES)
+    has, lacks = ("the re-simulation", "the log") if more_in == "session" else ("the log", "the re-simulation")
+    assert expected.startswith(f"record 180: event zeta2.z #0 at t=2.999000000s m=1 is in {has}, not in {lacks}: "
+                               "Event(tag=(2999000000, 1), node='zeta2', port='z', seq=0, value=array("), expected
+    for report in (resim(read_log(path), _two(offset=0.099, more_at=30 if more_in == "session" else 0)),
+                   resim_file(path, _two(offset=0.099, more_at=30 if more_in == "session" else 0))):
         assert _said(report.difference) == _said(expected)
 
+
+@pytest.mark.parametrize("again, said", [
+    ("left-out", "record 13: event scale.y #4 at t=0.410000000s m=1 is in the log, not in the re-simulation: "),
+    ("added", "record 14: event scale.z #0 at t=0.410000000s m=1 is in the re-simulation, not in the log: "),
+])
+def test_an_event_one_side_lacks_is_named(tmp_path, again, said):
+    """An event the re-simulation did not produce, or produced in addition, is named by its id,
+    read whole and streamed."""
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+    for report in (resim(read_log(path), _pipe(again)), resim_file(path, _pipe(again))):
+        assert report.difference.startswith(said), report.difference
 
 
 def _let(differ: str = "") -> Pipeline:
@@ -327,7 +345,7 @@ def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path,
     first difference is the one ``Trace.first_difference`` finds."""
     path = tmp_path / "run.mcap"
     _let().run(duration=3.0, log=path)
-    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0), TRACES)
     assert (expected is None) == (differ == "")
     for report in (resim(read_log(path), _let(differ)), resim_file(path, _let(differ))):
         assert _said(report.difference) == _said(expected)
