@@ -59,7 +59,7 @@ from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_eve
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, event_difference, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
-from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
+from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, no_record_of, not_its_event
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
@@ -284,6 +284,11 @@ class _Feed:
         #: the ids that steps before the horizon produced, whose events are still to be taken
         #: (the events the comparison expects; those of later steps are not compared)
         self.owed: set[tuple] = set()
+        #: the ids that steps at or after the horizon produced (not compared, nor their events)
+        self.past_horizon: set[tuple] = set()
+        #: a log whose writer was killed, recovered or read with salvage=True may keep an event
+        #: and lose the step record that produced it (another chunk): such an event is let go
+        self.cut_short = not log.complete or fmt.RECOVERED_METADATA in log.metadata
         self.steps_kept = 0
         self.read_ns = 0  # the log time of the latest record read
         #: per channel id: _STEPS, the (node, port) of an event's, or None (neither: not read)
@@ -363,6 +368,7 @@ class _Feed:
         while True:
             while not ticks:
                 if not self._read_some():
+                    self._no_record_of(node)
                     return
             step = ticks.popleft()
             try:
@@ -371,6 +377,15 @@ class _Feed:
                 which = NAMED_BEFORE if self.survey.events.in_log(e.args[0]) else NOT_IN_LOG
                 raise not_its_event(self.log.path, step, e.args[0], which) from None
             yield outputs
+
+    def _no_record_of(self, node: str) -> None:
+        """The log has ended, and a replayed source's tick is due that it has no record for: an
+        event of it that no tick took (in ``values``) is one no record of it names (the log is
+        refused, but where it was cut short); else its ticks ran out (the re-simulation stops)."""
+        if not self.cut_short:
+            for event_id in self.values:
+                if event_id[0] == node:
+                    raise no_record_of(self.log.path, event_id)
 
     def _value(self, event_id: tuple) -> object:
         values = self.values
@@ -385,7 +400,9 @@ class _Feed:
 
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
-        before the horizon and the events they produced (an event as read, a plain tuple, when its
+        before the horizon and the events they produced, and those no step record produced (the
+        log lacks the record: compared, as in the two whole traces; a replayed source's refuses
+        the log, as plain replay refuses it; let go where the log was cut short) (an event as read, a plain tuple, when its
         value decodes surely, else an :class:`Event`, value decoded); each list in log-time order,
         ties in file order (the comparison sorts them as a trace compares them, where it must). (The
         records are read in log-time order: those before ``t`` come first.)"""
@@ -406,6 +423,7 @@ class _Feed:
             del events[:cut]
         horizon = self.horizon
         if now and now[-1][1][0] >= horizon:
+            self.past_horizon.update(chain.from_iterable(map(_produced, [s for s in now if s[1][0] >= horizon])))
             now = [s for s in now if s[1][0] < horizon]
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
         owed, log = self.owed, self.log
@@ -438,7 +456,12 @@ class _Feed:
                 if event_id in owed:
                     if not twice:
                         owed.discard(event_id)
-                    expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
+                elif event_id in self.past_horizon or self.cut_short:
+                    continue
+                elif event_id[0] in self.ticks:  # a replayed source's, which no record of it names
+                    raise no_record_of(log.path, event_id)
+                # (else an event whose step record the log lacks: compared, as the two traces are)
+                expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
         if produced:  # an id the log lacks is expected of no event: not held
             in_log = self.survey.events.in_log
             for event_id in owed.intersection(produced):

@@ -30,6 +30,14 @@ def not_its_event(path: Path, step: tuple, event_id: tuple, which: str) -> LogEr
                     f"{node}.{port} #{seq}, {which}", DAMAGED)
 
 
+def no_record_of(path: Path, event_id: tuple) -> LogError:
+    """An event of the log that no step record of its node says it produced (a source's, which a
+    replay takes from the log as its records name them): the log is refused."""
+    node, port, seq = event_id
+    return LogError(f"{path}: event {node}.{port} #{seq} is in the log, but no step record of {node} says it "
+                    "produced it", DAMAGED)
+
+
 class LogSurvey:
     """What a replay must know of the whole log before its first step, gathered from its
     messages in one pass in file order (as the file is checked, or from a read log's list), in
