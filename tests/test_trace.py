@@ -186,14 +186,15 @@ def test_first_difference_names_an_event_one_trace_has_and_the_other_has_not():
         return Trace([(tag, "a", port, seq, value, 0) for tag, port, seq, value in events], [step])
 
     one, two, three = ((0, 1), "x", 0, 1.0), ((0, 1), "y", 0, 2.0), ((5, 0), "x", 1, 3.0)
-    last = "record 2: event a.x #1 at t=0.000000005s m=0 is in {}, not in {}: Event(tag=(5, 0), node='a', port='x'"
-    assert trace(one, two, three).first_difference(trace(one, two)).startswith(last.format("the first trace", "the second"))
-    assert trace(one, two).first_difference(trace(one, two, three)).startswith(last.format("the second", "the first trace"))
+    last = "record 2: event a.x #1 at t=0.000000005s m=0 is in {}, not in {}: Event(tag=(5, 0), node='a'"
+    first, second = "the first trace", "the second"
+    assert trace(one, two, three).first_difference(trace(one, two)).startswith(last.format(first, second))
+    assert trace(one, two).first_difference(trace(one, two, three)).startswith(last.format(second, first))
     assert trace(one, two).first_difference(trace(one, two, three), ("the log", "the re-run")).startswith(
         last.format("the re-run", "the log"))
     middle = "record 1: event a.y #0 at t=0.000000000s m=1 is in {}, not in {}: "
-    assert trace(one, two, three).first_difference(trace(one, three)).startswith(middle.format("the first trace", "the second"))
-    assert trace(one, three).first_difference(trace(one, two, three)).startswith(middle.format("the second", "the first trace"))
+    assert trace(one, two, three).first_difference(trace(one, three)).startswith(middle.format(first, second))
+    assert trace(one, three).first_difference(trace(one, two, three)).startswith(middle.format(second, first))
     assert trace(one, two).first_difference(trace(one, ((0, 1), "y", 0, 2.5))) == (
         "record 1: Event(tag=(0, 1), node='a', port='y', seq=0, value=2.0, publish_ns=0) != "
         "Event(tag=(0, 1), node='a', port='y', seq=0, value=2.5, publish_ns=0)")

@@ -400,12 +400,13 @@ class _Feed:
 
     def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
         """The records read before ``t`` (None: all) that the comparison expects: the step records
-        before the horizon and the events they produced, and those no step record produced (the
-        log lacks the record: compared, as in the two whole traces; a replayed source's refuses
-        the log, as plain replay refuses it; let go where the log was cut short) (an event as read, a plain tuple, when its
-        value decodes surely, else an :class:`Event`, value decoded); each list in log-time order,
-        ties in file order (the comparison sorts them as a trace compares them, where it must). (The
-        records are read in log-time order: those before ``t`` come first.)"""
+        before the horizon, the events they produced and those no step record produced (the log
+        lacks the record: compared, as in the two whole traces; a replayed source's refuses the
+        log, as plain replay refuses it; let go where the log was cut short) (an event as read, a
+        plain tuple, when its value decodes surely, else an :class:`Event`, value decoded); each
+        list in log-time order, ties in file order (the comparison sorts them as a trace compares
+        them, where it must). (The records are read in log-time order: those before ``t`` come
+        first.)"""
         steps, events = self.steps, self.events
         if t is None:
             now, self.steps = steps, []
