@@ -159,6 +159,13 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
         return msgpack.packb(fields)
 
     one, two, last = steps[len(steps) // 2], steps[-1], events[-1]
+
+    def bytes_at(i, at, new):
+        data = plain[i].data
+        return data[:at] + new + data[at + len(new):] if at != -len(new) else data[:at] + new
+
+    microstep = 2 + plain[one].data[1] - 0xA0  # (after the record's head and its node's fixstr)
+    seq = plain[one].data.index(b"\xce")  # the first seq's head (the writer packs a seq as a uint32)
     variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
                 changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
                 changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
@@ -171,7 +178,15 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
                 changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
                 changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
                 changed(plain, last, sequence=plain[events[0]].sequence),
-                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1")]
+                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1"),
+                # as long as the others of its node (told by their bytes, survey._shapes), but another
+                # node, a node not ASCII, a microstep no fixint (its high bit), a wall time a negative
+                # fixint, another seq's width, or detail
+                *(changed(plain, one, data=bytes_at(one, at, new)) for at, new in (
+                    (2, b"Z"), (2, b"\xff"), (microstep, b"\x80"), (microstep, b"\xff"), (-9, b"\xd3"), (-9, b"\xcb"),
+                    (seq, b"\xcf"), (-10, b"\x90"))),
+                # the first of its length (the shape taken) a node not ASCII (UTF-8: it reads)
+                changed(plain, steps[0], data=bytes_at(steps[0], 2, "é".encode()))]
     for n, records in enumerate(variants):
         arrays, tuples = chunk_read_both_ways(records, channels)
         assert type(tuples) is list and type(arrays) is not list
