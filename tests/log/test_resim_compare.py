@@ -391,3 +391,53 @@ def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage)
     for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
         with pytest.raises(LogError, match=re.escape(str(said.value))):
             again()
+
+
+@pytest.mark.parametrize("how", ["msgpack", "wall", "seq", "time"])
+def test_step_records_compared_by_their_bytes_where_they_tell_it(tmp_path, how):
+    """A step record not of a replayed source is compared by its data as the log writer packs the
+    session's (its seqs and wall time in fixed widths: the quickstart's controller's), but for its
+    wall time, where that tells it: records packed otherwise (``msgpack``: the smallest ints) or
+    with other wall times are the same records (read and compared field by field, where the bytes
+    differ); one that names another seq, or at another time (its log time: its tag's), is the first
+    difference of the two whole traces, read whole and streamed."""
+    import msgpack
+
+    from retriever.loading import load_pipeline
+
+    def quickstart():
+        pipe = load_pipeline("examples/quickstart.py")
+        pipe.reset()
+        return pipe
+
+    path = tmp_path / "run.mcap"
+    quickstart().run(duration=2.0, log=path)
+    changed = []
+
+    def keep(topic, message) -> bool:
+        data = message.data
+        if topic == "steps" and data.startswith(b"\x97\xaacontroller") and data[-9] == 0xCF:  # (the writer's)
+            if how == "msgpack":
+                data = msgpack.packb(msgpack.unpackb(data))
+            elif how == "wall":
+                data = data[:-8] + (int.from_bytes(data[-8:], "big") + 1_000_003).to_bytes(8, "big")
+            elif changed:
+                return True
+            elif how == "time":
+                message.log_time += 1
+                changed.append(data)
+                return True
+            else:  # the seq of the event consumed (a uint32), one more
+                at = data.index(b"\xa6policy\xa5chunk\xce") + 14
+                data = data[:at] + (int.from_bytes(data[at:at + 4], "big") + 1).to_bytes(4, "big") + data[at + 4:]
+            assert data != message.data
+            changed.append(data)
+            message.data = data
+        return True
+
+    log = rewrite(path, tmp_path / "changed.mcap", keep=keep)
+    assert len(changed) == (1 if how in ("seq", "time") else 240)
+    expected = read_log(log).trace().first_difference(quickstart().run(duration=2.0), TRACES)
+    assert (expected is None) == (how in ("msgpack", "wall")), expected
+    for report in (resim(read_log(log), quickstart()), resim_file(log, quickstart())):
+        assert _said(report.difference) == _said(expected)
