@@ -203,6 +203,28 @@ def step_bytes(s: StepRecord) -> bytes:
                   semantic_detail(s.detail)))
 
 
+#: how :meth:`Trace.first_difference` names the two traces (the one it is called on, the other)
+TRACES = ("the first trace", "the second")
+
+
+def event_difference(i: int, a: Event | None, b: Event | None, names: tuple[str, str] = TRACES) -> str:
+    """What :meth:`Trace.first_difference` says of the first events of two traces, in their
+    canonical order, that are not the same: ``a`` and ``b``, each the ``i``-th of its trace (None:
+    that trace has no more). The same event (node, port, seq) in both: the two, as they are. Else
+    the lesser (by tag, node, port, seq; or the one left) is an event the other trace has not
+    (``names[0]`` has ``a``, ``names[1]`` has ``b``): every event of the other up to ``i`` is the
+    same as this one's, and its ``i``-th comes after it, or it has none."""
+    if a is not None and b is not None and a[1:4] == b[1:4]:
+        return f"record {i}: {a!r} != {b!r}"
+    if b is None or a is not None and _event_key(a) < _event_key(b):
+        one, has, lacks = a, names[0], names[1]
+    else:
+        one, has, lacks = b, names[1], names[0]
+    assert one is not None
+    return (f"record {i}: event {one.node}.{one.port} #{one.seq} at {format_tag(one.tag)} is in {has}, "
+            f"not in {lacks}: {one!r}")
+
+
 def _event_key(ev: Event):
     return (ev.tag, ev.node, ev.port, ev.seq)
 
@@ -547,18 +569,26 @@ class Trace:
 
     __hash__ = None  # type: ignore[assignment]
 
-    def first_difference(self, other: "Trace") -> str | None:
-        """Describe the first canonical record where two traces differ, or None if equal."""
+    def first_difference(self, other: "Trace", names: tuple[str, str] = TRACES) -> str | None:
+        """Describe the first canonical record where two traces differ, or None if equal: the
+        events (sorted by tag, node, port, seq), then the step records (by tag, node), ``record
+        i`` counted over both. Where one trace has an event the other has not, it names that
+        event, and which trace has it (``names``: this trace's, the other's; :func:`event_difference`)."""
         self._need_values("trace.first_difference()")
         other._need_values("trace.first_difference()")
-        canon_a, canon_b = self.canonical(), other.canonical()
-        mine, theirs = list(self._encoded(canon_a)), list(other._encoded(canon_b))
-        records_a, records_b = [*canon_a[0], *canon_a[1]], [*canon_b[0], *canon_b[1]]
-        for i, (a, b) in enumerate(zip(mine, theirs)):
-            if a != b:
-                return f"record {i}: {records_a[i]!r} != {records_b[i]!r}"
-        if len(mine) != len(theirs):
-            return f"lengths differ: {len(mine)} records vs {len(theirs)}"
+        (events_a, steps_a), (events_b, steps_b) = self.canonical(), other.canonical()
+        for i, (a, b) in enumerate(zip(events_a, events_b)):
+            if event_bytes(a) != event_bytes(b):
+                return event_difference(i, a, b, names)
+        n = min(len(events_a), len(events_b))
+        if len(events_a) != len(events_b):  # one has events left: the first of them is the other's to lack
+            return event_difference(n, events_a[n] if n < len(events_a) else None,
+                                    events_b[n] if n < len(events_b) else None, names)
+        for j, (a, b) in enumerate(zip(steps_a, steps_b)):
+            if step_bytes(a) != step_bytes(b):
+                return f"record {n + j}: {a!r} != {b!r}"
+        if len(steps_a) != len(steps_b):
+            return f"lengths differ: {n + len(steps_a)} records vs {n + len(steps_b)}"
         return None
 
     def __len__(self) -> int:

@@ -174,3 +174,31 @@ def test_a_step_status_is_its_value_in_a_log_and_on_the_wire():
     trace = Trace(steps=[("a", (0, 0), {}, (), StepStatus.LATE, None, 0, 0)])
     same = Trace(steps=[("a", (0, 0), {}, (), "ok", None, 0, 0)])  # as a log reads one back
     assert trace == same and trace.digest() == same.digest()
+
+
+def test_first_difference_names_an_event_one_trace_has_and_the_other_has_not():
+    """Where one trace has an event the other has not, the first difference names it (by its
+    id and tag) and says which trace has it: at the end of the events too, where the two whole
+    traces' canonical records pair it with the other's first step record; the same event with
+    another value or at another tag is the two events, as they are."""
+    def trace(*events):
+        step = ("a", (0, 0), {}, (), StepStatus.OK, None, 0, 0)
+        return Trace([(tag, "a", port, seq, value, 0) for tag, port, seq, value in events], [step])
+
+    one, two, three = ((0, 1), "x", 0, 1.0), ((0, 1), "y", 0, 2.0), ((5, 0), "x", 1, 3.0)
+    last = "record 2: event a.x #1 at t=0.000000005s m=0 is in {}, not in {}: Event(tag=(5, 0), node='a'"
+    first, second = "the first trace", "the second"
+    assert trace(one, two, three).first_difference(trace(one, two)).startswith(last.format(first, second))
+    assert trace(one, two).first_difference(trace(one, two, three)).startswith(last.format(second, first))
+    assert trace(one, two).first_difference(trace(one, two, three), ("the log", "the re-run")).startswith(
+        last.format("the re-run", "the log"))
+    middle = "record 1: event a.y #0 at t=0.000000000s m=1 is in {}, not in {}: "
+    assert trace(one, two, three).first_difference(trace(one, three)).startswith(middle.format(first, second))
+    assert trace(one, three).first_difference(trace(one, two, three)).startswith(middle.format(second, first))
+    assert trace(one, two).first_difference(trace(one, ((0, 1), "y", 0, 2.5))) == (
+        "record 1: Event(tag=(0, 1), node='a', port='y', seq=0, value=2.0, publish_ns=0) != "
+        "Event(tag=(0, 1), node='a', port='y', seq=0, value=2.5, publish_ns=0)")
+    assert trace(one, two).first_difference(trace(one, ((0, 2), "y", 0, 2.0))).startswith(
+        "record 1: Event(tag=(0, 1), node='a', port='y', seq=0, value=2.0, publish_ns=0) != Event(tag=(0, 2)")
+    assert trace(one, two).first_difference(trace(one, two)) is None
+    assert trace(one).first_difference(Trace([(one[0], "a", "x", 0, 1.0, 0)], [])) == "lengths differ: 2 records vs 1"

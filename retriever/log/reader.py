@@ -335,9 +335,11 @@ class ScannedLog(LogHead):
                 try:
                     stream.seek(offset)
                     chunk = next(_StreamReader(stream, skip_magic=True, emit_chunks=True).records)
+                    # (its CRC was checked as the file was read through, and the file is the same:
+                    # _identity; a CRC of the decompressed bytes costs 4 instructions a byte)
                     messages, rest = chunk_messages(chunk, offset, self.channels,
                                                    _indexes_after(stream, _index_room(chunk, self.channels)),
-                                                   arrays=True)
+                                                   arrays=True, check_crc=False)
                 except Exception as e:  # the file was read whole before: it changed since
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
@@ -772,8 +774,9 @@ def _index_room(chunk: Chunk, channels) -> int:
 
 
 def chunk_messages(chunk: Chunk, at: int, channels, indexes: list[bytes] = (), *, by_time: bool = False,
-                   arrays: bool = False) -> tuple[list[tuple] | ChunkMessages, list]:
-    """The records in ``chunk`` (at byte ``at`` of its file), its CRC checked, as ``mcap``'s
+                   arrays: bool = False, check_crc: bool = True) -> tuple[list[tuple] | ChunkMessages, list]:
+    """The records in ``chunk`` (at byte ``at`` of its file), its CRC checked (unless not
+    ``check_crc``: a chunk read again, checked the first time), as ``mcap``'s
     ``breakup_chunk(chunk, validate_crc=True)`` reads them, record for record, with the same
     errors, but each Message record as a message tuple (the module docstring): the Message
     records before the first other record, or the first on a channel not in ``channels``, and
@@ -788,7 +791,7 @@ def chunk_messages(chunk: Chunk, at: int, channels, indexes: list[bytes] = (), *
     Channel, a Schema, another type's, a Message that is cut short or shorter than its fields),
     the library's own record readers read the rest, from :class:`_ChunkBytes` (the decompressed
     bytes, without a file-like object's call per field)."""
-    stream, length = get_chunk_data_stream(chunk, validate_crc=True)
+    stream, length = get_chunk_data_stream(chunk, validate_crc=check_crc)
     raw = stream.read(length) if length else b""
     base = at << 32  # a chunk holds less than 2**32 bytes (MAX_CHUNK_BYTES)
     if indexes:

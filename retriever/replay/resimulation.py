@@ -7,13 +7,15 @@ reads the file twice and keeps neither, as ``replay_file`` does:
 1. ``log.reader.scan_log`` checks it whole (the same errors as ``read_log``, before anything
    runs), handing each chunk (as arrays where its indexes tile it, else message tuples) to a
    :class:`ResimSurvey`: the nodes with step records (each one checked: those without detail
-   as Retriever writes them parsed with numpy a chunk at a time, the others read), how many
+   as Retriever writes them told by their bytes or parsed with numpy a chunk at a time, the
+   others read), how many
    and the time of the last (the horizon of a run that did not finish), which event ids the log
    holds (``LogSurvey``'s ranges of seqs), and the first step record or event that is not one
    (in file order: the error ``read_log(path).trace()`` raises);
 2. the log's records are read again in log-time order (``ScannedLog.in_order``'s batches of
-   columns; a record kept as a plain tuple of its fields, a step record without detail as
-   msgpack reads it, since the survey checked it), as far as the re-simulation needs them: a
+   columns; an event kept as a plain tuple of its fields, a replayed source's step record too
+   (as msgpack reads it, since the survey checked it), any other step record as read), as far
+   as the re-simulation needs them: a
    second of virtual time at a time (``WINDOW_NS``) the session advances, each replayed source
    taking its logged ticks as it reaches them (and decoding their values), and then the records
    of that second, the log's and the session's, are compared in the order
@@ -24,12 +26,15 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    that order): the same records in the same order nearly always. If each pair is the same,
    sorted they pair the same (the same keys in the same order: one permutation sorts both), so
    nothing else is sorted; at the first pair that is not, both are sorted and compared from the
-   start (``_Comparison.add`` and ``pair``). An event whose tag is still ahead (a LET output)
+   start (``_Comparison.add_steps`` and ``pair``). An event whose tag is still ahead (a LET output)
    waits for the second it is in. A logged event whose value is an array that decodes surely
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
-   to the same bytes is the same record (``_same_events``); a step record by its fields, and its
-   detail, if any, packed alone (``_same_steps``); anything else decoded and packed, as the two
-   traces would be.
+   to the same bytes is the same record (``_same_events``). A step record as read is the same as
+   the session's if its log time is its tag's time and its data but its wall time is the
+   session's packed as the log writer packs a record of the common shape (its seqs and wall time
+   in fixed widths: ``_step_packer``, nearly all, and no record is decoded); else it is read and
+   compared by its fields, and its detail, if any, packed alone (``_same_steps``); anything else
+   decoded and packed, as the two traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -40,6 +45,7 @@ difference, counted the same way (``record i`` over the events, then the step re
 from __future__ import annotations
 
 import os
+import struct
 from bisect import bisect_left
 from collections import deque
 from itertools import chain
@@ -54,15 +60,18 @@ import numpy as np
 from ..backends.inproc import InprocSession
 from ..codec import all_decode_surely, array_encoding_head, decodes_surely, packb, unpackb_read_only
 from ..errors import LogError, ReplayedError, StepError
+from ..graph import Graph
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
 from ..pipeline import Pipeline
-from ..trace import Event, StepRecord, StepStatus, event_bytes, semantic_detail, step_bytes
+from ..trace import Event, StepRecord, StepStatus, event_bytes, event_difference, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
-from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
+from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, no_record_of, not_its_event
 
 #: the virtual time the re-simulation advances before it compares what it and the log recorded
 WINDOW_NS = 1_000_000_000
+#: how the report names the two traces compared (``Trace.first_difference``'s ``names``): the log's, the session's
+TRACES = ("the log", "the re-simulation")
 
 _STEPS = "steps"  # _Feed.kinds: the channel of step records
 #: how many records a replayed source's tick reads on at a time, as far as its own
@@ -202,10 +211,12 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
     feed = _Feed(log, survey, batches(), logged, horizon)
     for nid in logged:
         session.replace_step(nid, feed.outputs(nid))
-    comparison = _Comparison(log)
+    comparison = _Comparison(log, graph)
 
     def compare_before(t: int | None) -> None:
-        comparison.add(feed.take_before(t), _drained(session))
+        events_again, steps_again = _drained(session)
+        produced = comparison.add_steps(feed.steps_before(t), steps_again)
+        comparison.add_events(feed.events_before(t, produced), events_again)
         comparison.pair(t)
         if progress is not None:
             progress(feed.steps_kept, survey.steps)
@@ -228,7 +239,9 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
     finally:
         session.close()
     # what the session recorded is all in; the rest of the log, a second at a time
-    comparison.add(([], []), _drained(session))
+    events_again, steps_again = _drained(session)
+    comparison.add_steps([], steps_again)
+    comparison.add_events([], events_again)
     comparison.session_done = True
     t = feed.read_ns
     while not feed.exhausted:
@@ -266,15 +279,19 @@ class _Feed:
     """The log's records in log-time order, read as far as asked: by a replayed source's next
     tick (its record and the events it produced) or by the comparison (every record before a
     time). Held until the comparison takes them; the sources' values until their tick. A record
-    is held as a plain tuple of the fields of a :class:`StepRecord` or of a ``LoggedEvent`` (its
-    value undecoded), read from the batches of columns ``ScannedLog.in_order`` hands: a step
-    record without detail as msgpack reads it, unchecked, since the survey checked every one
-    (``ResimSurvey``: the log is refused before anything runs if one is not one)."""
+    is held as a plain tuple of the fields of a ``LoggedEvent`` (its value undecoded) or of a
+    :class:`StepRecord`, read from the batches of columns ``ScannedLog.in_order`` hands: a
+    replayed source's step record without detail as msgpack reads it, unchecked, since the
+    survey checked every one (``ResimSurvey``: the log is refused before anything runs if one is
+    not one); any other step record as read (``(None, (log time,), data, publish time,
+    sequence)``: :func:`_step_of` reads it, where the comparison must)."""
 
     def __init__(self, log: LogHead, survey: ResimSurvey, batches: Iterator[tuple[list, ...]],
                  logged: frozenset[str], horizon: int) -> None:
         self.log, self.survey, self.batches, self.horizon = log, survey, batches, horizon
         self.ticks: dict[str, deque[tuple]] = {nid: deque() for nid in logged}
+        #: the replayed sources' nodes as a step record's data has them, after its head (fixstrs)
+        self.sources = {msgpack.packb(nid) for nid in logged}
         #: a replayed source's logged events, until its tick takes them (and decodes their values)
         self.values: dict[tuple, tuple] = {}
         self.events: list[tuple] = []  # read, not yet taken by the comparison (in log-time order)
@@ -282,6 +299,11 @@ class _Feed:
         #: the ids that steps before the horizon produced, whose events are still to be taken
         #: (the events the comparison expects; those of later steps are not compared)
         self.owed: set[tuple] = set()
+        #: the ids that steps at or after the horizon produced (not compared, nor their events)
+        self.past_horizon: set[tuple] = set()
+        #: a log whose writer was killed, recovered or read with salvage=True may keep an event
+        #: and lose the step record that produced it (another chunk): such an event is let go
+        self.cut_short = not log.complete or fmt.RECOVERED_METADATA in log.metadata
         self.steps_kept = 0
         self.read_ns = 0  # the log time of the latest record read
         #: per channel id: _STEPS, the (node, port) of an event's, or None (neither: not read)
@@ -322,27 +344,22 @@ class _Feed:
         """Read the batch's messages up to ``stop``."""
         log_times, channel_ids, sequences, publish_times, data = self.batch
         kinds, ticks, values, path = self.kinds, self.ticks, self.values, self.log.path
-        add_step, add_event = self.steps.append, self.events.append
-        unpack, skipped = msgpack.unpackb, StepStatus.SKIPPED
+        add_step, add_event, sources = self.steps.append, self.events.append, self.sources
+        skipped = StepStatus.SKIPPED
         start, self.at = self.at, stop
         self.read_ns = max(self.read_ns, log_times[stop - 1])
         for k in range(start, stop):
             kind = kinds.get(channel_ids[k])
             if kind is _STEPS:
                 one = data[k]
-                try:
-                    node, microstep, consumed, produced, status, detail, wall_ns = unpack(one, use_list=False)
-                except Exception:
-                    detail = ()
-                if detail is None:
-                    record = (node, (log_times[k], microstep), consumed, produced, status, None, publish_times[k],
-                              wall_ns)
-                else:  # (the survey checked it: what step_record reads, or its error)
-                    record = tuple(step_record(path, log_times[k], sequences[k], publish_times[k], one))
-                    node, status = record[0], record[4]
+                record = (None, (log_times[k],), one, publish_times[k], sequences[k])
+                if len(one) > 1 and 0xA0 <= one[1] <= 0xBF and one[1:one[1] - 0x9E] not in sources:
+                    add_step(record)  # not a replayed source's (its node a fixstr, not theirs): as read
+                    continue
+                record = _step_of(path, record)
                 add_step(record)
-                if node in ticks and status != skipped:
-                    ticks[node].append(record)
+                if record[0] in ticks and record[4] != skipped:
+                    ticks[record[0]].append(record)
             elif kind is not None:
                 node, port = kind
                 one = data[k]
@@ -361,6 +378,7 @@ class _Feed:
         while True:
             while not ticks:
                 if not self._read_some():
+                    self._no_record_of(node)
                     return
             step = ticks.popleft()
             try:
@@ -369,6 +387,15 @@ class _Feed:
                 which = NAMED_BEFORE if self.survey.events.in_log(e.args[0]) else NOT_IN_LOG
                 raise not_its_event(self.log.path, step, e.args[0], which) from None
             yield outputs
+
+    def _no_record_of(self, node: str) -> None:
+        """The log has ended, and a replayed source's tick is due that it has no record for: an
+        event of it that no tick took (in ``values``) is one no record of it names (the log is
+        refused, but where it was cut short); else its ticks ran out (the re-simulation stops)."""
+        if not self.cut_short:
+            for event_id in self.values:
+                if event_id[0] == node:
+                    raise no_record_of(self.log.path, event_id)
 
     def _value(self, event_id: tuple) -> object:
         values = self.values
@@ -381,34 +408,48 @@ class _Feed:
         except Exception:  # RunLog.value's error for it (the same decoding, which says what is wrong)
             return self.log.value(LoggedEvent(*record))
 
-    def take_before(self, t: int | None) -> tuple[list[Event | tuple], list[tuple]]:
-        """The records read before ``t`` (None: all) that the comparison expects: the step records
-        before the horizon and the events they produced (an event as read, a plain tuple, when its
-        value decodes surely, else an :class:`Event`, value decoded); each list in log-time order,
-        ties in file order (the comparison sorts them as a trace compares them, where it must). (The
+    def steps_before(self, t: int | None) -> list[tuple]:
+        """The step records read before ``t`` (None: all) that the comparison expects: those
+        before the horizon, in log-time order, ties in file order (the comparison sorts them as a
+        trace compares them, where it must): a replayed source's as the fields of a
+        :class:`StepRecord`, any other left as read (``_RAW``, :func:`_step_of` reads it). (The
         records are read in log-time order: those before ``t`` come first.)"""
-        steps, events = self.steps, self.events
+        steps = self.steps
         if t is None:
             now, self.steps = steps, []
-            ready, self.events = events, []
         else:
             cut = len(steps)
             while cut and steps[cut - 1][1][0] >= t:
                 cut -= 1
             now = steps[:cut]
             del steps[:cut]
+        horizon = self.horizon
+        if now and now[-1][1][0] >= horizon:
+            path = self.log.path
+            past = [_step_of(path, s) for s in now if s[1][0] >= horizon]
+            self.past_horizon.update(chain.from_iterable(map(_produced, past)))
+            now = [s for s in now if s[1][0] < horizon]
+        self.steps_kept += len(now)
+        return now
+
+    def events_before(self, t: int | None, produced: list[tuple]) -> list[Event | tuple]:
+        """The events read before ``t`` (None: all) that the comparison expects, ``produced`` the
+        ids the step records before ``t`` that it expects produced (:meth:`steps_before`): those,
+        and those no step record produced (the log lacks the record: compared, as in the two whole
+        traces; a replayed source's refuses the log, as plain replay refuses it; let go where the
+        log was cut short); an event as read, a plain tuple, when its value decodes surely, else
+        an :class:`Event`, value decoded; in log-time order, ties in file order."""
+        events = self.events
+        if t is None:
+            ready, self.events = events, []
+        else:
             cut = len(events)
             while cut and events[cut - 1][0][0] >= t:
                 cut -= 1
             ready = events[:cut]
             del events[:cut]
-        horizon = self.horizon
-        if now and now[-1][1][0] >= horizon:
-            now = [s for s in now if s[1][0] < horizon]
         twice = self.survey.events.twice is not None  # an id logged twice: each copy is expected
         owed, log = self.owed, self.log
-        produced = list(chain.from_iterable(map(_produced, now)))
-        self.steps_kept += len(now)
         values = self.values
         if values and not values.keys().isdisjoint(map(_event_id, ready)):
             # a source's events no tick took (at the horizon, after the session's end): decoded, as read
@@ -419,9 +460,8 @@ class _Feed:
             # the events read are exactly those these steps produced, nothing else owed: nearly
             # always (what owed's bookkeeping below would find, without it and without a set of
             # them: each id expected once, every produced id in the log, owed left empty)
-            expected = ready if all_decode_surely(map(_raw_value, ready)) else [
+            return ready if all_decode_surely(map(_raw_value, ready)) else [
                 e if decodes_surely(e[4]) else _decoded(log, e) for e in ready]
-            return expected, now
         ids = list(map(_event_id, ready))
         owed.update(produced)
         if not twice and len(owed.intersection(ids)) == len(ids):  # each one expected: nearly always
@@ -436,13 +476,112 @@ class _Feed:
                 if event_id in owed:
                     if not twice:
                         owed.discard(event_id)
-                    expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
+                elif event_id in self.past_horizon or self.cut_short:
+                    continue
+                elif event_id[0] in self.ticks:  # a replayed source's, which no record of it names
+                    raise no_record_of(log.path, event_id)
+                # (else an event whose step record the log lacks: compared, as the two traces are)
+                expected.append(e if decodes_surely(e[4]) else _decoded(log, e))
         if produced:  # an id the log lacks is expected of no event: not held
             in_log = self.survey.events.in_log
             for event_id in owed.intersection(produced):
                 if not in_log(event_id):
                     owed.discard(event_id)
-        return expected, now
+        return expected
+
+
+def _step_of(path: Path, record: tuple) -> tuple:
+    """A step record as the fields of a :class:`StepRecord`, a plain tuple, from one left as read
+    (``(None, (log time,), data, publish time, sequence)``, :meth:`_Feed._read_to`; any other is
+    one already): one without detail as msgpack reads it (the survey checked it), else as
+    ``step_record`` reads it (or its error)."""
+    if record[0] is not None:
+        return record
+    _, (log_time,), one, publish_ns, sequence = record
+    try:
+        node, microstep, consumed, produced, status, detail, wall_ns = msgpack.unpackb(one, use_list=False)
+    except Exception:
+        detail = ()
+    if detail is None:
+        return node, (log_time, microstep), consumed, produced, status, None, publish_ns, wall_ns
+    return tuple(step_record(path, log_time, sequence, publish_ns, one))
+
+
+_PACK_ERRORS = (ValueError, TypeError, KeyError, struct.error)
+
+
+def _step_packer(graph: Graph, node: str) -> Callable[[tuple], bytes | None] | None:
+    """``pack(step)``: the data of a step record of ``node`` (the fields of a :class:`StepRecord`,
+    a plain tuple) as the log writer packs one of the common shape (``log/writer.py``, its
+    ``_step_record_maker``: ``ok``, no detail, a microstep below 128, one event on the node's one
+    output and one consumed on each input port an edge feeds, its seqs uint32s, its wall time a
+    uint64), but for its wall time's 8 bytes; None for a step of another shape. None: the node has
+    no such shape (other than one output, an input fed by two edges, more than two fed)."""
+    spec = graph.nodes[node]
+    fed = []
+    for port in spec.inputs:
+        edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
+        if len(edges) > 1:
+            return None
+        fed += [(port, *edge) for edge in edges]
+    if len(spec.outputs) != 1 or len(fed) > 2:
+        return None
+    output, = spec.outputs
+    consts = [b"\x97" + msgpack.packb(node), bytes((0x80 | len(fed),))]  # then the microstep, a fixint
+    for port, src, src_port in fed:
+        consts[-1] += msgpack.packb(port) + b"\x91\x93" + msgpack.packb(src) + msgpack.packb(src_port) + b"\xce"
+        consts.append(b"")  # then the seq of the event consumed, a uint32
+    consts[-1] += b"\x91\x93" + msgpack.packb(node) + msgpack.packb(output) + b"\xce"
+    consts.append(msgpack.packb(StepStatus.OK.value) + b"\xc0\xcf")  # (then the wall time's 8 bytes)
+    pack = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", ""]))).pack
+    ok = StepStatus.OK
+    if not fed:
+        c0, c1, c2 = consts
+
+        def packed(step: tuple) -> bytes | None:
+            try:
+                _, tag, consumed, produced, status, detail, _, _ = step
+                if status is ok and detail is None and not consumed and tag[1] < 128:
+                    (n, p, s), = produced
+                    if n == node and p == output:
+                        return pack(c0, tag[1], c1, s, c2)
+            except _PACK_ERRORS:
+                pass
+            return None
+    elif len(fed) == 1:
+        (port0, src0, src_port0), = fed
+        c0, c1, c2, c3 = consts
+
+        def packed(step: tuple) -> bytes | None:
+            try:
+                _, tag, consumed, produced, status, detail, _, _ = step
+                if status is ok and detail is None and tag[1] < 128 and len(consumed) == 1:
+                    (a0, b0, s0), = consumed[port0]
+                    (n, p, s), = produced
+                    if a0 == src0 and b0 == src_port0 and n == node and p == output:
+                        return pack(c0, tag[1], c1, s0, c2, s, c3)
+            except _PACK_ERRORS:
+                pass
+            return None
+    else:
+        (port0, src0, src_port0), (port1, src1, src_port1) = fed
+        c0, c1, c2, c3, c4 = consts
+
+        def packed(step: tuple) -> bytes | None:
+            try:
+                _, tag, consumed, produced, status, detail, _, _ = step
+                if status is ok and detail is None and tag[1] < 128:
+                    p0, p1 = consumed
+                    (a0, b0, s0), = consumed[p0]
+                    (a1, b1, s1), = consumed[p1]
+                    (n, p, s), = produced
+                    if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
+                            and b1 == src_port1 and n == node and p == output):
+                        return pack(c0, tag[1], c1, s0, c2, s1, c3, s, c4)
+            except _PACK_ERRORS:
+                pass
+            return None
+    return packed
 
 
 def _the_ids_of(produced: list[tuple], events: list[tuple]) -> bool:
@@ -479,7 +618,7 @@ def _same_events(mine: deque, theirs: deque, heads: dict[int, tuple[bytes, np.dt
     whose ``event_bytes`` are the same, told from the logged value's bytes, where they tell it
     exactly, in one loop; how many. Stops at the first pair it cannot tell (left in place): the
     comparison's own loop compares it decoded. A logged value that decodes surely (left a plain
-    tuple by ``_Feed.take_before``: an array of a dtype and shape decoded before) packs again as
+    tuple by ``_Feed.events_before``: an array of a dtype and shape decoded before) packs again as
     it was logged, so the two are the same if the session's is an array of a plain dtype (no
     fields, no objects: packed by its dtype's string, which decodes to the same dtype) that
     packs to those bytes, its encoding's head (``codec.array_encoding_head``) then its raw
@@ -532,16 +671,6 @@ def _same_events_in_order(mine: list, theirs: list[tuple], heads: dict[int, tupl
     return True
 
 
-def _same_in_order(mine: list[tuple], theirs: list[tuple]) -> bool:
-    """Whether each step record of ``mine`` (the log's) is the same as the one at its place in
-    ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair."""
-    for a, b in zip(mine, theirs):  # (field by field: no slices made)
-        if a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] or a[4] != b[4] \
-                or (a[5] is not None or b[5] is not None) and not _same_detail(a[5], b[5]):
-            return False
-    return True
-
-
 def _same_detail(a: dict | None, b: dict | None) -> bool:
     """Whether two step records whose other compared fields are the same (as Python values, as
     :func:`_same_steps` has them) are the same record: their details (but the timing keys) packed
@@ -590,15 +719,16 @@ class _Comparison:
     as they come: the events, in order, pair by pair, then the step records, the first
     difference of each kept; what is held is what one side has that the other has not yet."""
 
-    def __init__(self, log: LogHead) -> None:
+    def __init__(self, log: LogHead, graph: Graph) -> None:
         self.log = log  # whose events' values are decoded (RunLog.value)
+        #: per node: its step records' data as the log writer packs those of the common shape (_step_packer)
+        self.packers = {node: _step_packer(graph, node) for node in graph.nodes}
         #: per side (0: the log's, 1: the session's): events and step records not yet paired
-        #: (the log's events as read, plain tuples, when their value decodes surely: _Feed.take_before;
+        #: (the log's events as read, plain tuples, when their value decodes surely: _Feed.events_before;
         #: its step records and the session's records as plain tuples too, _Feed and _drained)
         self.events: tuple[deque, deque] = (deque(), deque())
         self.steps: tuple[deque, deque] = (deque(), deque())
         self.counts = [[0, 0], [0, 0]]  # [side][events, steps]
-        self.first_step: list[tuple | None] = [None, None]
         self.event_difference: str | None = None
         self.step_difference: tuple[int, StepRecord, StepRecord] | None = None
         self.arrived: tuple[list, list] = ([], [])  # events whose tag is still ahead (a LET output)
@@ -608,31 +738,65 @@ class _Comparison:
         #: of a plain dtype, as the session's arrays had them (_same_events)
         self._heads: dict[int, tuple[bytes, np.dtype, tuple]] = {}
 
-    def add(self, expected: tuple[list[Event | tuple], list[tuple]], again: tuple[list[tuple], list[tuple]]) -> None:
-        """Take a second's records of each side (each in any order: sorted here as a trace compares
-        them, as far as needed); the step records are paired at once when they are the same in the
-        order they came (then, sorted, they pair the same: the same records, in the same order)."""
-        for side, (events, steps) in enumerate((expected, again)):
-            self.counts[side][1] += len(steps)
-            if steps and self.first_step[side] is None:
-                self.first_step[side] = min(steps, key=_raw_step_key)  # (the first of them sorted)
-            self.arrived[side].extend(events)
-        if self.step_difference is not None:
-            return
+    def add_steps(self, steps: list[tuple], again: list[tuple]) -> list[tuple]:
+        """Take a second's step records of each side (the log's as :meth:`_Feed.steps_before`
+        gives them, the session's as it recorded them; each in any order: sorted here as a trace
+        compares them, as far as needed), paired at once when they are the same in the order they
+        came (then, sorted, they pair the same: the same records, in the same order); the ids the
+        log's produced, in their order."""
+        self.counts[0][1] += len(steps)
+        self.counts[1][1] += len(again)
         mine, theirs = self.steps
-        steps, steps_again = expected[1], again[1]
-        if not mine and not theirs and len(steps) == len(steps_again) and _same_in_order(steps, steps_again):
-            self.paired_steps += len(steps)
-            return
-        steps.sort(key=_raw_step_key)
-        steps_again.sort(key=_raw_step_key)
-        mine.extend(steps)
-        theirs.extend(steps_again)
+        if self.step_difference is None and not mine and not theirs and len(steps) == len(again):
+            produced = self._same_in_order(steps, again)
+            if produced is not None:
+                self.paired_steps += len(steps)
+                return produced
+        path = self.log.path
+        steps = [_step_of(path, s) for s in steps]
+        produced = list(chain.from_iterable(map(_produced, steps)))
+        if self.step_difference is None:
+            steps.sort(key=_raw_step_key)
+            again.sort(key=_raw_step_key)
+            mine.extend(steps)
+            theirs.extend(again)
+        return produced
+
+    def _same_in_order(self, mine: list[tuple], theirs: list[tuple]) -> list[tuple] | None:
+        """Whether each step record of ``mine`` (the log's) is the same as the one at its place in
+        ``theirs`` (the session's, as many), as :func:`_same_steps` tells a pair: the ids the log's
+        produced, or None. One left as read is the same as the session's if its log time is its tag's
+        time and its data but its wall time's 8 bytes is the session's packed as the log writer
+        packs it (``packers``: one of the common shape, nearly all); else it is read, and compared
+        field by field (no slices made)."""
+        packers, path = self.packers, self.log.path
+        produced: list[tuple] = []
+        add = produced.extend
+        for a, b in zip(mine, theirs):
+            if a[0] is None:
+                pack = packers.get(b[0])
+                if pack is not None and a[1][0] == b[1][0]:
+                    data = pack(b)
+                    if data is not None and data == a[2][:-8]:
+                        add(b[3])
+                        continue
+                a = _step_of(path, a)
+            if a[1] != b[1] or a[0] != b[0] or a[3] != b[3] or a[2] != b[2] or a[4] != b[4] \
+                    or (a[5] is not None or b[5] is not None) and not _same_detail(a[5], b[5]):
+                return None
+            add(a[3])
+        return produced
+
+    def add_events(self, expected: list[Event | tuple], again: list[tuple]) -> None:
+        """Take a second's events of each side (the log's as :meth:`_Feed.events_before` gives
+        them, the session's as it recorded them): paired by :meth:`pair`."""
+        self.arrived[0].extend(expected)
+        self.arrived[1].extend(again)
 
     def pair(self, t: int | None) -> None:
         """Pair off the events before ``t`` (None: all) and the step records in."""
         arrived, arrived_again = self.arrived
-        ready = arrived[:]  # (the log's are all before t: _Feed.take_before)
+        ready = arrived[:]  # (the log's are all before t: _Feed.events_before)
         arrived.clear()
         # the session's before t: first once sorted by tag (a stable sort: ties in the order recorded)
         arrived_again.sort(key=_tag)
@@ -660,7 +824,7 @@ class _Comparison:
                 break
             a, b = _decoded(self.log, mine.popleft()), Event._make(theirs.popleft())
             if event_bytes(a) != event_bytes(b):
-                self.event_difference = f"record {self.paired_events}: {a!r} != {b!r}"
+                self.event_difference = event_difference(self.paired_events, a, b, TRACES)
                 mine.clear()
                 theirs.clear()
             self.paired_events += 1
@@ -693,13 +857,7 @@ class _Comparison:
             if steps != steps_again:
                 return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
             return None
-        # one side has more events: where the other's step records begin, an event meets a step
+        # one side has more events: the first of those it has left is the other's to lack
         if events < events_again:
-            a, b = self.first_step[0], Event._make(self.events[1][0])
-            a = None if a is None else StepRecord._make(a)
-        else:
-            a, b = _decoded(self.log, self.events[0][0]), self.first_step[1]
-            b = None if b is None else StepRecord._make(b)
-        if a is None or b is None:
-            return f"lengths differ: {events + steps} records vs {events_again + steps_again}"
-        return f"record {min(events, events_again)}: {a!r} != {b!r}"
+            return event_difference(events, None, Event._make(self.events[1][0]), TRACES)
+        return event_difference(events_again, _decoded(self.log, self.events[0][0]), None, TRACES)

@@ -20,7 +20,7 @@ from ..sync import Latest, before, bound, fill
 from ..trace import STEPPED, StepRecord, StepStatus, Trace
 from .compare import TickCheck, compare_outputs, compare_record, off_clock
 from .report import MAX_DIVERGENCES_KEPT, Divergence, NodeReplay, ReplayReport
-from .survey import DAMAGED, NAMED_BEFORE, NOT_IN_LOG, LogSurvey, not_its_event
+from .survey import NAMED_BEFORE, NOT_IN_LOG, LogSurvey, no_record_of, not_its_event
 
 PROGRESS_EVERY = 2000
 _SKIPPED, _LATE, _OK = StepStatus.SKIPPED, StepStatus.LATE, StepStatus.OK
@@ -454,10 +454,9 @@ class StepReplay:
             raise not_its_event(self.log.path, step, event_id, NAMED_BEFORE)
         if not self.cut_short and not self.log.faults:
             sources = self.sources
-            for node, port, seq in self.unclaimed:
-                if node in sources:
-                    raise LogError(f"{self.log.path}: event {node}.{port} #{seq} is in the log, but no step record "
-                                   f"of {node} says it produced it", DAMAGED)
+            for event_id in self.unclaimed:
+                if event_id[0] in sources:
+                    raise no_record_of(self.log.path, event_id)
         for check in self.checks:  # what no output came for: the log ends before it
             if not check.done:
                 self.decide(check)

@@ -30,6 +30,14 @@ def not_its_event(path: Path, step: tuple, event_id: tuple, which: str) -> LogEr
                     f"{node}.{port} #{seq}, {which}", DAMAGED)
 
 
+def no_record_of(path: Path, event_id: tuple) -> LogError:
+    """An event of the log that no step record of its node says it produced (a source's, which a
+    replay takes from the log as its records name them): the log is refused."""
+    node, port, seq = event_id
+    return LogError(f"{path}: event {node}.{port} #{seq} is in the log, but no step record of {node} says it "
+                    "produced it", DAMAGED)
+
+
 class LogSurvey:
     """What a replay must know of the whole log before its first step, gathered from its
     messages in one pass in file order (as the file is checked, or from a read log's list), in
@@ -93,7 +101,8 @@ class LogSurvey:
         checked at once with numpy where each port's are framed as ``[microstep < 128, value]``
         and its seqs follow on (nearly always; a chunk with anything else is taken as message
         tuples, :meth:`take`, so the same is found and said), its step records without detail as
-        Retriever writes nearly all of them parsed at once for their nodes (:func:`_plain_steps`),
+        Retriever writes nearly all of them told by their bytes, a length at a time (:func:`_shapes`),
+        the rest parsed at once for their nodes (:func:`_plain_steps`),
         the others read one by one, in file order, as :meth:`take` reads them."""
         kinds = self._kinds
         heads, raw = chunk.heads, chunk.raw
@@ -134,9 +143,17 @@ class LogSurvey:
             which = steps[0] if len(steps) == 1 else np.sort(np.concatenate(steps))
             starts = chunk.offsets[which] + _DATA_AT
             padded = np.concatenate((bytes_, np.zeros(_PAD, dtype=np.uint8)))
-            plain, node_at, status_at = _plain_steps(padded, starts, chunk.ends[which])
-            if self.check_steps:
-                plain &= _plain_statuses(padded, status_at)
+            ends = chunk.ends[which]
+            # the records of a shape seen (nearly all: _shapes), then the others parsed a field at a time
+            shape, shape_nodes = _shapes(padded, starts, ends - starts, self.check_steps)
+            rest = np.flatnonzero(shape < 0)
+            plain = shape >= 0
+            node_at = np.zeros(0, dtype=starts.dtype)
+            if len(rest):
+                rest_plain, node_at, status_at = _plain_steps(padded, starts[rest], ends[rest])
+                if self.check_steps:
+                    rest_plain &= _plain_statuses(padded, status_at)
+                plain[rest] = rest_plain
             others = np.flatnonzero(~plain)
             step = self._step
             for other, log_time, sequence, data in zip(others.tolist(), heads["log_time"][which[others]].tolist(),
@@ -147,7 +164,9 @@ class LogSurvey:
                     plain[other:] = False
                     break
             self.steps += int(plain.sum())
-            self.nodes.update(_names(padded, node_at[plain]))
+            self.nodes.update(shape_nodes[k] for k in np.unique(shape[plain]).tolist() if k >= 0)
+            if len(rest):
+                self.nodes.update(_names(padded, node_at[plain[rest]]))
             if len(others) and self.unchecked is not None:
                 self.unchecked.update(heads["sequence"][which[~plain]].tolist())
                 if len(self.unchecked) > self.max_unchecked:
@@ -249,6 +268,103 @@ def _plain_steps(data: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> tupl
         group.integer(group.moved(group.text(None), group.at(group.p) == 0xC0, 1), signed=True)
         plain[rows] = group.ok & (group.p == group.ends)
     return plain, node_at, status_at
+
+
+def _shapes(data: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
+            statuses: bool) -> tuple[np.ndarray, list[str]]:
+    """Which of the step records ``data[starts:starts + lengths]`` (followed by ``_PAD`` zeros)
+    are of a shape :func:`_plain_steps` finds plain, told by their bytes: per record, the index
+    of its shape (-1: not told here) and per shape its node. A shape is a record of a length
+    taken as it is (``_shape``: one parsed in Python, plain, with ``statuses`` a status a record
+    without detail has), but for the bits of its integers' values (its microstep, seqs and wall
+    time: the writer packs seqs and wall times in fixed widths, so a node's records of one
+    shape are one length): a record of that length whose other bits are the same is plain too
+    (each head, count and string the same: it parses the same, its integers' values aside) and
+    has that node. Told for all the records of a length at once, 8 bytes at a time (each record
+    as many uint64 as its length takes, masked); up to ``_SHAPES_A_LENGTH`` shapes a length, each
+    the first record of that length not of one before."""
+    shape = np.full(len(starts), -1, dtype=np.intp)
+    nodes: list[str] = []
+    words = np.ndarray((len(data) - 7,), "<u8", data, 0, (1,))
+    for length in np.unique(lengths).tolist():
+        rows = np.flatnonzero(lengths == length)
+        for _ in range(_SHAPES_A_LENGTH):
+            first = int(starts[rows[0]])
+            found = _shape(data[first:first + length].tobytes(), statuses)
+            if found is None:
+                break
+            node, fixed, value = found
+            got = words[starts[rows][:, None] + np.arange(0, 8 * len(fixed), 8)]
+            same = ((got ^ value) & fixed == 0).all(axis=1)
+            shape[rows[same]] = len(nodes)
+            nodes.append(node)
+            rows = rows[~same]
+            if not len(rows):
+                break
+    return shape, nodes
+
+
+#: how many shapes of one length :func:`_shapes` tries (records of other shapes are parsed a field at a time)
+_SHAPES_A_LENGTH = 4
+_UINT_HEADS = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8}  # an unsigned integer's head: its value's bytes
+_INT_HEADS = {**_UINT_HEADS, 0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}
+
+
+def _shape(record: bytes, statuses: bool) -> tuple[str, np.ndarray, np.ndarray] | None:
+    """A step record as a shape (:func:`_shapes`): its node, and as little-endian uint64s (its
+    bytes then zeros) the bits that are not its integers' values, and its bits; None if
+    :func:`_plain_steps` would not find it plain (or, with ``statuses``, its status is not one of
+    a record without detail: ``_plain_statuses``)."""
+    values = bytearray(len(record))  # per byte, the bits of an integer's value
+
+    def text(p: int) -> tuple[int, str]:
+        size = record[p] - 0xA0
+        s = record[p + 1:p + 1 + size]
+        if not 0 <= size < 32 or len(s) != size:
+            raise ValueError
+        return p + 1 + size, s.decode("ascii")  # (a UnicodeDecodeError, a ValueError, if not ASCII)
+
+    def integer(p: int, signed: bool) -> int:
+        head = record[p]
+        if head < 0x80:  # a positive fixint: its 7 low bits
+            values[p] = 0x7F
+            return p + 1
+        if signed and head >= 0xE0:  # a negative fixint: taken as it is
+            return p + 1
+        width = (_INT_HEADS if signed else _UINT_HEADS)[head]
+        values[p + 1:p + 1 + width] = b"\xff" * width
+        return p + 1 + width
+
+    def ids(p: int) -> int:
+        if record[p] & 0xF0 != 0x90:
+            raise ValueError
+        count, p = record[p] & 0x0F, p + 1
+        for _ in range(count):
+            if record[p] != 0x93:
+                raise ValueError
+            p = integer(text(text(p + 1)[0])[0], False)
+        return p
+
+    try:
+        if record[0] != 0x97:
+            return None
+        p, node = text(1)
+        p = integer(p, False)
+        if record[p] & 0xF0 != 0x80:
+            return None
+        count, p = record[p] & 0x0F, p + 1
+        for _ in range(count):
+            p = ids(text(p)[0])
+        p, status = text(ids(p))
+        if record[p] != 0xC0 or integer(p + 1, True) != len(record):
+            return None
+    except (IndexError, KeyError, ValueError):
+        return None
+    if statuses and status not in fmt.PLAIN_STEP_STATUSES:
+        return None
+    room = -len(record) % 8
+    fixed = bytes(~b & 0xFF for b in values) + bytes(room)
+    return node, np.frombuffer(fixed, "<u8"), np.frombuffer(record + bytes(room), "<u8")
 
 
 class _Fields:

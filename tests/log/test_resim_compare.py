@@ -15,6 +15,7 @@ import retriever.log.reader as reader
 from retriever import Flow, Latest, Pipeline, Rate
 from retriever.log import read_log
 from retriever.replay import resim, resim_file
+from retriever.replay.resimulation import TRACES
 from tests.log.helpers import rewrite
 
 _PAIR = np.dtype([("a", "<i4"), ("b", "<f8")])
@@ -92,7 +93,7 @@ def _said(difference: str | None) -> str | None:
 def test_resim_says_what_the_two_whole_traces_say(tmp_path, logged, again):
     path = tmp_path / "run.mcap"
     _pipe(logged).run(duration=2.0, log=path)
-    expected = read_log(path).trace().first_difference(_pipe(again).run(duration=2.0))
+    expected = read_log(path).trace().first_difference(_pipe(again).run(duration=2.0), TRACES)
     assert (expected is None) == (logged == again or {logged, again} == {"fortran", "c-order"}), expected
     for report in (resim(read_log(path), _pipe(again)), resim_file(path, _pipe(again))):
         assert _said(report.difference) == _said(expected)
@@ -158,6 +159,13 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
         return msgpack.packb(fields)
 
     one, two, last = steps[len(steps) // 2], steps[-1], events[-1]
+
+    def bytes_at(i, at, new):
+        data = plain[i].data
+        return data[:at] + new + data[at + len(new):] if at != -len(new) else data[:at] + new
+
+    microstep = 2 + plain[one].data[1] - 0xA0  # (after the record's head and its node's fixstr)
+    seq = plain[one].data.index(b"\xce")  # the first seq's head (the writer packs a seq as a uint32)
     variants = [plain, changed(plain, one, data=b"\xc1"), changed(plain, one, data=record(one, status="nonsense")),
                 changed(plain, one, data=record(one, node="nobody")), changed(plain, one, data=record(one, microstep=-1)),
                 changed(plain, one, data=record(one, detail={"late": {"x": [["ramp", "x", 3]]}}, status="late")),
@@ -170,7 +178,15 @@ def test_the_resim_survey_of_a_chunk_as_arrays_is_its_survey_as_message_tuples(t
                 changed(changed(plain, one, data=b""), two, data=record(two, status="nonsense")),
                 changed(plain, last, data=b"\x92"), changed(plain, last, data=b"\x92\xc1"),
                 changed(plain, last, sequence=plain[events[0]].sequence),
-                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1")]
+                changed(changed(plain, last, data=b"\x92"), two, data=b"\xc1"),
+                # as long as the others of its node (told by their bytes, survey._shapes), but another
+                # node, a node not ASCII, a microstep no fixint (its high bit), a wall time a negative
+                # fixint, another seq's width, or detail
+                *(changed(plain, one, data=bytes_at(one, at, new)) for at, new in (
+                    (2, b"Z"), (2, b"\xff"), (microstep, b"\x80"), (microstep, b"\xff"), (-9, b"\xd3"), (-9, b"\xcb"),
+                    (seq, b"\xcf"), (-10, b"\x90"))),
+                # the first of its length (the shape taken) a node not ASCII (UTF-8: it reads)
+                changed(plain, steps[0], data=bytes_at(steps[0], 2, "é".encode()))]
     for n, records in enumerate(variants):
         arrays, tuples = chunk_read_both_ways(records, channels)
         assert type(tuples) is list and type(arrays) is not list
@@ -264,7 +280,7 @@ def test_records_read_in_another_order_than_a_trace_sorts_them(tmp_path, differ,
     _two(sinks=sinks).run(duration=3.0, log=path)
     if reversed_:
         path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
-    expected = read_log(path).trace().first_difference(_two(differ, sinks).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_two(differ, sinks).run(duration=3.0), TRACES)
     assert (expected is None) == (differ == "")
     if "a" in differ:
         assert "alpha2" in expected
@@ -288,26 +304,43 @@ def test_a_record_the_log_lacks_at_the_end_of_a_second(tmp_path, sinks):
                     and (topic != "steps" or message.data.startswith(b"\x97\xa5zeta2")))
 
     path = rewrite(path, tmp_path / "lacking.mcap", keep=kept)
-    expected = read_log(path).trace().first_difference(_two(sinks=sinks, offset=0.099).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_two(sinks=sinks, offset=0.099).run(duration=3.0), TRACES)
     assert expected is not None and expected.startswith("record "), expected
     for report in (resim(read_log(path), _two(sinks=sinks, offset=0.099)),
                    resim_file(path, _two(sinks=sinks, offset=0.099))):
         assert _said(report.difference) == _said(expected)
 
 
-def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path):
-    """The session has one event more than the log, the last of all (its other records the same),
+@pytest.mark.parametrize("more_in", ["session", "log"])
+def test_one_more_event_at_the_end_of_a_log_of_instants_reversed(tmp_path, more_in):
+    """One side has one event more than the other, the last of all (its other records the same),
     and the log holds each instant's records in another order than a trace sorts them: the first
-    difference is where the log's step records begin, as a trace sorts them (``alpha``'s first)."""
+    difference is that event, named, and which side has it (not the other side's first step
+    record, with which the canonical records pair it)."""
     path = tmp_path / "run.mcap"
-    _two(offset=0.099).run(duration=3.0, log=path)
+    _two(offset=0.099, more_at=30 if more_in == "log" else 0).run(duration=3.0, log=path)
     path = rewrite(path, tmp_path / "reversed.mcap", order=_each_instant_reversed)
-    expected = read_log(path).trace().first_difference(_two(offset=0.099, more_at=30).run(duration=3.0))
-    assert expected is not None and "StepRecord(node='alpha', tag=(0, 0)" in expected, expected
-    for report in (resim(read_log(path), _two(offset=0.099, more_at=30)),
-                   resim_file(path, _two(offset=0.099, more_at=30))):
+    again = _two(offset=0.099, more_at=30 if more_in == "session" else 0)
+    expected = read_log(path).trace().first_difference(again.run(duration=3.0), TRACES)
+    has, lacks = ("the re-simulation", "the log") if more_in == "session" else ("the log", "the re-simulation")
+    assert expected.startswith(f"record 180: event zeta2.z #0 at t=2.999000000s m=1 is in {has}, not in {lacks}: "
+                               "Event(tag=(2999000000, 1), node='zeta2', port='z', seq=0, value=array("), expected
+    for report in (resim(read_log(path), _two(offset=0.099, more_at=30 if more_in == "session" else 0)),
+                   resim_file(path, _two(offset=0.099, more_at=30 if more_in == "session" else 0))):
         assert _said(report.difference) == _said(expected)
 
+
+@pytest.mark.parametrize("again, said", [
+    ("left-out", "record 13: event scale.y #4 at t=0.410000000s m=1 is in the log, not in the re-simulation: "),
+    ("added", "record 14: event scale.z #0 at t=0.410000000s m=1 is in the re-simulation, not in the log: "),
+])
+def test_an_event_one_side_lacks_is_named(tmp_path, again, said):
+    """An event the re-simulation did not produce, or produced in addition, is named by its id,
+    read whole and streamed."""
+    path = tmp_path / "run.mcap"
+    _pipe("same").run(duration=2.0, log=path)
+    for report in (resim(read_log(path), _pipe(again)), resim_file(path, _pipe(again))):
+        assert report.difference.startswith(said), report.difference
 
 
 def _let(differ: str = "") -> Pipeline:
@@ -327,7 +360,7 @@ def test_let_outputs_recorded_in_another_order_than_a_trace_sorts_them(tmp_path,
     first difference is the one ``Trace.first_difference`` finds."""
     path = tmp_path / "run.mcap"
     _let().run(duration=3.0, log=path)
-    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0))
+    expected = read_log(path).trace().first_difference(_let(differ).run(duration=3.0), TRACES)
     assert (expected is None) == (differ == "")
     for report in (resim(read_log(path), _let(differ)), resim_file(path, _let(differ))):
         assert _said(report.difference) == _said(expected)
@@ -358,3 +391,53 @@ def test_a_damaged_source_value_a_tick_takes_refuses_the_resim(tmp_path, damage)
     for again in (lambda: resim(read_log(log), _pipe("same")), lambda: resim_file(log, _pipe("same"))):
         with pytest.raises(LogError, match=re.escape(str(said.value))):
             again()
+
+
+@pytest.mark.parametrize("how", ["msgpack", "wall", "seq", "time"])
+def test_step_records_compared_by_their_bytes_where_they_tell_it(tmp_path, how):
+    """A step record not of a replayed source is compared by its data as the log writer packs the
+    session's (its seqs and wall time in fixed widths: the quickstart's controller's), but for its
+    wall time, where that tells it: records packed otherwise (``msgpack``: the smallest ints) or
+    with other wall times are the same records (read and compared field by field, where the bytes
+    differ); one that names another seq, or at another time (its log time: its tag's), is the first
+    difference of the two whole traces, read whole and streamed."""
+    import msgpack
+
+    from retriever.loading import load_pipeline
+
+    def quickstart():
+        pipe = load_pipeline("examples/quickstart.py")
+        pipe.reset()
+        return pipe
+
+    path = tmp_path / "run.mcap"
+    quickstart().run(duration=2.0, log=path)
+    changed = []
+
+    def keep(topic, message) -> bool:
+        data = message.data
+        if topic == "steps" and data.startswith(b"\x97\xaacontroller") and data[-9] == 0xCF:  # (the writer's)
+            if how == "msgpack":
+                data = msgpack.packb(msgpack.unpackb(data))
+            elif how == "wall":
+                data = data[:-8] + (int.from_bytes(data[-8:], "big") + 1_000_003).to_bytes(8, "big")
+            elif changed:
+                return True
+            elif how == "time":
+                message.log_time += 1
+                changed.append(data)
+                return True
+            else:  # the seq of the event consumed (a uint32), one more
+                at = data.index(b"\xa6policy\xa5chunk\xce") + 14
+                data = data[:at] + (int.from_bytes(data[at:at + 4], "big") + 1).to_bytes(4, "big") + data[at + 4:]
+            assert data != message.data
+            changed.append(data)
+            message.data = data
+        return True
+
+    log = rewrite(path, tmp_path / "changed.mcap", keep=keep)
+    assert len(changed) == (1 if how in ("seq", "time") else 240)
+    expected = read_log(log).trace().first_difference(quickstart().run(duration=2.0), TRACES)
+    assert (expected is None) == (how in ("msgpack", "wall")), expected
+    for report in (resim(read_log(log), quickstart()), resim_file(log, quickstart())):
+        assert _said(report.difference) == _said(expected)
