@@ -446,17 +446,16 @@ class StepReplay:
     def finish(self, progress: Callable[[int, int], None] | None) -> ReplayReport:
         """The log has ended: decide what no output came for, report, keep the trace. A source's
         event that a record named and that never came after it came before it, and an earlier
-        record took it (or the same record named it twice); one that no record of its source
-        named is no output of a step: the log is refused (but where it was cut short, or a process
-        died, which may leave a record without its events, or an event without its record)."""
+        record took it (or the same record named it twice); an event (a source's, or a re-executed
+        flow's, then compared with nothing) that no record of its node named is no output of a
+        step: the log is refused (but where it was cut short, or a process died, which may leave a
+        record without its events, or an event without its record)."""
         if self.expected:
             event_id, step = next(iter(self.expected.items()))
             raise not_its_event(self.log.path, step, event_id, NAMED_BEFORE)
         if not self.cut_short and not self.log.faults:
-            sources = self.sources
             for event_id in self.unclaimed:
-                if event_id[0] in sources:
-                    raise no_record_of(self.log.path, event_id)
+                raise no_record_of(self.log.path, event_id)
         for check in self.checks:  # what no output came for: the log ends before it
             if not check.done:
                 self.decide(check)

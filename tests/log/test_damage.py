@@ -898,6 +898,23 @@ def test_an_event_whose_step_record_the_log_lacks_is_not_left_out_of_resim(tmp_p
         assert report.difference.startswith("the re-simulation stopped: counter.step() raised StopIteration")
 
 
+def test_an_event_of_a_replayed_flow_that_no_step_record_names_refuses_the_replay(tmp_path):
+    """Plain replay re-executes a flow's steps from its records and compares their outputs with the
+    log's: an event of that flow no record names was compared with nothing, and the replay said
+    "identical" of a log holding an output no step made. It refuses the log, as it refuses a
+    source's such event (read whole, streamed, and by the CLI)."""
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _step_record_left_out("accumulate"))
+    says = r"odd\.mcap: event accumulate\.total #1 is in the log, but no step record of accumulate says it produced it"
+    hint = "the file is damaged or was edited: retriever replay reads logs as a run wrote them"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small),
+                lambda: replay(read_log(path), build_small(), keep_trace=True)):
+        with pytest.raises(LogError, match=says + r"\n    hint: " + hint):
+            run()
+    assert_cli_error(cli("replay", path), r"^error: .*" + says, hint=hint)
+
+
 def test_a_logged_value_that_does_not_decode_is_a_divergence_in_replay(tmp_path):
     from tests.log.log_flows import build_small
 
