@@ -52,7 +52,7 @@ def _export_peak_rss_kib(log: Path, format: str, out: Path) -> int:
 
 
 #: how much more a log 8 times as long may take to export, in KiB: flat, within a few MB (under 2
-#: MB more measured for ros2 and foxglove, 0 to 6 for rerun). Read whole, each export of the
+#: MB more measured for ros2 and foxglove, 0 to 2 for rerun). Read whole, each export of the
 #: frames took 29 to 35 MB more; Rerun's SDK, as it batches by default, held a log's numbers and
 #: step records whole (+22 MB for the longer numbers log, +8 to +14 for the frames; issue 42)
 _MORE_KIB = 12 * 1024
