@@ -58,6 +58,18 @@ SCALARS_MAX = 16
 EVENT_TIME, WALL_TIME, SEQ = "event_time", "wall_time", "seq"
 STEP_LEVELS = {StepStatus.OK: "INFO", StepStatus.ERROR: "ERROR"}  # any other status: WARN
 MAX_NS = 2**63 - 1  # Rerun's times are signed 64-bit nanoseconds
+#: what the export hands Rerun's SDK between two blocking flushes, in bytes of values, a record
+#: counting RECORD_BYTES more (about what a row of a few numbers or a step record costs the SDK
+#: while it holds it, its values as Python-made Arrow arrays). The SDK holds a row until its
+#: entity has 1 MiB of rows or its 200 ms tick, which it skips whenever an entity flushed for
+#: its bytes since the last (an image stream does, many times a tick in an export), and queues
+#: what it is handed without bound (to its batcher, to its file writer): without these flushes a
+#: log's numbers and step records were held whole, and a fast export held what it had not written
+FLUSH_BYTES = 4 << 20
+RECORD_BYTES = 4096
+#: the bytes of rows the export's stream makes a chunk of (the SDK's default: 1 MiB): 1 MiB
+#: chunks of images left the SDK's allocator holding ~10 MB more after a few hundred frames
+CHUNK_BYTES = 256 << 10
 
 
 def rerun_sdk(what: str = "the Rerun export"):
@@ -71,9 +83,16 @@ def rerun_sdk(what: str = "the Rerun export"):
     return rerun
 
 
-def new_stream(rr):
-    """A recording stream of a run, no sink yet (no viewer spawned, no properties sent)."""
-    return rr.RecordingStream("retriever", send_properties=False)
+def new_stream(rr, batcher=None):
+    """A recording stream of a run, no sink yet (no viewer spawned, no properties sent);
+    ``batcher``: its rr.ChunkBatcherConfig, else the SDK's default."""
+    return rr.RecordingStream("retriever", send_properties=False, batcher_config=batcher)
+
+
+def export_stream(rr):
+    """The export's recording stream: chunks of CHUNK_BYTES (_write_rerun flushes it every
+    FLUSH_BYTES)."""
+    return new_stream(rr, rr.ChunkBatcherConfig(flush_num_bytes=CHUNK_BYTES))
 
 
 def event_time_blueprint(rr):
@@ -198,7 +217,7 @@ def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool =
     if to_stdout(out):
         stdout_stream("rerun")  # a LogError for a terminal: Rerun's SDK would hold the recording in memory
         source = log_records(log)
-        stream = new_stream(rr)
+        stream = export_stream(rr)
         try:
             stream.stdout(default_blueprint=event_time_blueprint(rr))
             return _write_rerun(rr, source, stream)
@@ -208,7 +227,7 @@ def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool =
     source = log_records(log)
     # written beside it, then renamed: an export that fails leaves no file that looks whole
     partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
-    stream = new_stream(rr)
+    stream = export_stream(rr)
     try:
         try:
             stream.save(partial, default_blueprint=event_time_blueprint(rr))
@@ -223,17 +242,24 @@ def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool =
 
 
 def _write_rerun(rr, source: LogRecords, stream) -> RerunExport:
-    """The log's records logged on ``stream`` (its sink set), flushed and disconnected."""
+    """The log's records logged on ``stream`` (its sink set), flushed every FLUSH_BYTES handed
+    and at the end, and disconnected."""
     head = source.head
     stream.send_recording_name(head.run.get("pipeline") or Path(head.path).stem)
     recording = RerunRecording(rr, stream)
     recording.reserve(source.step_nodes, [port for c in head.channels.values() if (port := parse_data_topic(c.topic))])
+    handed = 0  # since the stream's last flush, in bytes (FLUSH_BYTES)
     for record in source.records():
         if type(record) is StepRecord:
             recording.log_step(record)
+            handed += RECORD_BYTES
         else:
             recording.log_event(record.node, record.port, record.tag[0], record.publish_ns, record.seq,
                                 head.value(record, keep_unregistered=True))
+            handed += RECORD_BYTES + len(record.raw_value)
+        if handed >= FLUSH_BYTES:
+            stream.flush()
+            handed = 0
     stream.flush()
     stream.disconnect()
     return RerunExport(recording.written, recording.renamed)

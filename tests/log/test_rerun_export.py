@@ -14,6 +14,7 @@ import pytest
 import rerun as rr
 
 from retriever import LogError, read_log
+from retriever.log import rerun as rerun_export
 from retriever.log.rerun import export_rerun
 from tests.log.export_flows import (burst_log, camera_log, event_data, hand_written_log, kinds_log, ros_camera_log,
                                     shadowed_steps_log)
@@ -75,7 +76,11 @@ def _check(entity: str, rows: dict[str, list], index: int, value) -> None:
         assert rows["text"][index] == [value]
 
 
-def test_rerun_loads_the_logs_rows_times_values_and_images(tmp_path):
+@pytest.mark.parametrize("flush_bytes", [rerun_export.FLUSH_BYTES, 1], ids=["default", "each-record"])
+def test_rerun_loads_the_logs_rows_times_values_and_images(tmp_path, monkeypatch, flush_bytes):
+    """Whether Rerun's SDK is flushed once or after every record (FLUSH_BYTES: what keeps the
+    export's memory flat), the recording holds every row."""
+    monkeypatch.setattr(rerun_export, "FLUSH_BYTES", flush_bytes)
     log_path = camera_log(tmp_path)
     out = tmp_path / "run.rrd"
     written = export_rerun(read_log(log_path), out).written
