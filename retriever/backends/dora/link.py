@@ -4,7 +4,8 @@
                                                  handled right there, as a Zenoh subscriber's
                                                  callback would: INLINE_STEP_NS)
                   (and, WARM_AHEAD_NS before an input's next event it foresees, its own work
-                   once on the last event: warm, as the loop's Warmup warms the decoding)
+                   once on the last event, results unused: the view of its bytes and, where the
+                   loop takes it on this thread, their decoding: warm, on the thread that runs it)
     loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
          ──send_output(warm, b"")──▶ dora's daemon, before a moment it foresees (timing.py: Warmup)
 
@@ -28,7 +29,9 @@ import threading
 import time
 from typing import Callable
 
+from ...errors import WireError
 from ..zenoh.node import DATA, FAILED, PROGRESS, WARM_AFTER_IDLE_NS, WARM_AHEAD_NS, Transport
+from ..zenoh.wire import decode_events
 from .dataflow import DoraNames
 
 #: how long the receiving thread waits in ``node.next()`` before it looks whether to stop
@@ -146,19 +149,19 @@ class DoraLink:
         """Each input event to its listeners. Before the next event of the input the last one
         came on, foreseen from the gap between that input's last two (when the gap is a sleep
         long enough to leave the caches cold: WARM_AFTER_IDLE_NS), the thread wakes
-        WARM_AHEAD_NS early and takes that event's bytes once more, results unused: cold, after
-        a sleep of 50 ms, ``len``, ``buffers`` and the view took ~20 µs of a message's latency,
-        warmed ~6 (benchmarks/reports/fig7a.md, 2026-12-05, dora12). It changes no event, nor
-        when one is handed on."""
+        WARM_AHEAD_NS early and does its work on that event once more, results unused
+        (:func:`_warm`): cold, after a sleep of 50 ms, ``len``, ``buffers`` and the view took ~20
+        µs of a message's latency, warmed ~6 (benchmarks/reports/fig7a.md, 2026-12-05, dora12).
+        It changes no event, nor when one is handed on."""
         listeners, clock = self.listeners, self.clock
         last: dict[str, int] = {}  # per input, when its last event came
-        due, warm = None, None  # when to warm up next, and on which event's value
+        due, warm = None, None  # when to warm up next, and on which event: (its value, its input's listeners)
         while self.receiving:
             timeout = RECEIVE_TIMEOUT_S
             if due is not None:
                 wait = due - clock()
                 if wait <= 0:
-                    _bytes_of(warm, len(warm))
+                    _warm(*warm)
                     due = None
                     continue
                 timeout = min(timeout, wait / 1e9)
@@ -176,12 +179,32 @@ class DoraLink:
                     self.greetings.notify_all()
                 continue
             data = _bytes_of(value, size)
-            for handler, kind, key, _ in listeners.get(input_id, ()):
+            entries = listeners.get(input_id, ())
+            for handler, kind, key, _ in entries:
                 handler((kind, key, data))
             now = clock()
             gap = now - last.get(input_id, now)
             last[input_id] = now
-            due, warm = (now + gap - WARM_AHEAD_NS, value) if gap >= WARM_AFTER_IDLE_NS else (None, None)
+            due, warm = (now + gap - WARM_AHEAD_NS, (value, entries)) if gap >= WARM_AFTER_IDLE_NS else (None, None)
+
+
+def _warm(value, entries: list) -> None:
+    """The receiving thread's own work on an input's event once more, results unused: the view
+    of its bytes and, if a listener steps on this thread (its handler is its loop's ``receive``,
+    not its queue's ``put``: NodeLoop.receive), their decoding, which the loop does first. The
+    loop's Warmup rehearses the decoding too, but on the loop's main thread; the thread that
+    will decode the event is this one, and it ran cold: warmed here, the sink's stage from dora's
+    ``next()`` to the step went from ~85 to ~62 µs at 64 B, the medians of 13 interleaved runs
+    (no change seen at 64 KiB: benchmarks/reports/fig7a.md, 2026-12-05, dora13). A message the
+    loop refused as garbage when it came is refused again, and warms no further."""
+    data = _bytes_of(value, len(value))
+    for handler, kind, key, put in entries:
+        if kind == DATA and handler is not put:
+            try:
+                decode_events(data, expected=key)
+            except WireError:
+                pass
+            return
 
 
 def _bytes_of(value, size: int) -> memoryview:

@@ -18,6 +18,7 @@ from retriever.backends.dora.dataflow import DoraNames
 from retriever.backends.dora.link import RECEIVE_TIMEOUT_S, DoraLink, DoraTransport
 from retriever.backends.zenoh.hub import peer_config
 from retriever.backends.zenoh.node import DATA, PROGRESS, WARM_AFTER_IDLE_NS, WARM_AHEAD_NS
+from retriever.backends.zenoh.wire import WireEncoder, decode_events
 from retriever.backends.zenoh.worker.build import build_loop
 
 from ..zenoh.semantics_flows import Ticker, WhereRun
@@ -157,4 +158,46 @@ def test_the_receiving_thread_warms_up_before_an_input_event_it_foresees_and_han
         # after the second event, the wait for the third ends WARM_AHEAD_NS before it (then a warm-up)
         assert node.timeouts[:3] == [timeout, timeout, gap_ns - WARM_AHEAD_NS if warmed else timeout]
         assert (gap_ns - WARM_AHEAD_NS in node.timeouts) is warmed
+        transport.undeclare()
+
+
+def test_the_warm_up_decodes_the_last_event_on_the_thread_its_loop_takes_it_on():
+    """A listener that may step on the receiving thread (its handler is not its queue's put:
+    NodeLoop.receive) has each event decoded there: at the warm-up before the third event, the
+    thread decodes the second once more (results unused), as its stream's (and the third before
+    a fourth that never comes: the stream then ends); a listener that
+    only queues (its loop decodes on its own thread) gets no decoding from it. Garbage at a
+    warm-up (its loop refused it when it came) leaves the thread running. Each event is handed
+    on once, as it came."""
+    with Pipeline("paced") as pipe:
+        src = Ticker().configure(name="src") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    names = DoraNames.of(pipe.compile().to_ir().doc)
+    messages = [WireEncoder().data((k * 50_000_000, 0), k, (k * 50_000_000 + 1, 0), "src", "value", k) for k in range(3)]
+    decoding = decode_events.__code__
+    stream = ("src", "value")
+    for second, inline, decoded in ((messages[1], True, [(messages[1], stream), (messages[2], stream)]),
+                                    (messages[1], False, []),
+                                    (b"garbage", True, [(b"garbage", stream), (messages[2], stream)])):
+        sent = [messages[0], second, messages[2]]
+        node, link, got, queued = _Paced(MockNode([("src__value", pa.array(np.frombuffer(m, np.uint8))) for m in sent]),
+                                         50_000_000), DoraLink(), [], []
+        link.dora_node, link.clock = node, node.clock
+        calls = []
+
+        def profile(frame, event, arg):
+            if event == "call" and frame.f_code is decoding:
+                calls.append((bytes(frame.f_locals["data"]), frame.f_locals["expected"]))
+
+        transport = DoraTransport(link, names, "where")
+        threading.setprofile(profile)  # (the receiving thread starts in declare_inputs)
+        try:
+            transport.declare_inputs([], [], got.append if inline else None, queued.append)
+        finally:
+            threading.setprofile(None)
+        link.receiver.join(BOUND_S)
+        assert link.failure is None
+        assert [bytes(data) for _, _, data in (got if inline else queued)] == sent
+        assert (queued if inline else got) == []
+        assert calls == decoded
         transport.undeclare()
