@@ -12,11 +12,11 @@ release the GIL).
 A report may be handed over with a time before which it does not go (``not_before``): the loop
 hands its report over right after a tick that published, and the reporter's work (spilling the
 frames, the put) and the coordinator's (mapping them, recording) then ran beside that tick's
-messages on their way, and made them late: on a 2-core host a message sent right before a report
-of megabytes took twice as long to arrive (benchmarks/reports/latency.md, 2026-12-05 lat13). So
-the loop defers its report into the idle time before its next wake. A report goes at once,
-whatever its time, when another is handed over behind it (the loop is ahead of the reporter) or
-the reporter closes.
+messages on their way, and made them late: on a 2-core host, frames of 256 KiB-4 MiB that met a
+report on their way took 1.4-3 times as long to arrive (benchmarks/reports/latency.md,
+2026-12-05 lat13). So the loop defers its report into the idle time before its next wake. A
+report goes at once, whatever its time, when another is handed over behind it (the loop is
+ahead of the reporter), a send waits for room, or the reporter closes.
 
 Reports go out in the order they were handed over. At most MAX_PENDING reports, holding at most
 MAX_PENDING_BYTES of messages, wait; a loop further ahead waits for the reporter, as it would for
