@@ -101,8 +101,10 @@ class Reports:
     def flush(self, final: bool = False, defer_ns: int = 0) -> None:
         """Hand step records and published events to the reporter, for the coordinator: records
         that consumed an event it may lack wait (HOLD_RECORDS_NS), in order; past that, or when
-        ``final``, they go with the messages of those events. ``defer_ns``: the report goes that
-        much later (Reporter.send's ``not_before``)."""
+        ``final``, they go with the messages of those events. ``defer_ns``: a report with events
+        goes that much later (Reporter.send's ``not_before``; reporter.py says why); one of step
+        records alone goes at once (nothing of size goes with it, and the reporter's thread
+        wakes once, not twice: an idle flow's cost, benchmarks/reports/idle_cpu.md)."""
         held = self.held_records
         if self.records:
             since = time.monotonic_ns()
@@ -122,7 +124,7 @@ class Reports:
             events = events + list({id(k): k for k in kept}.values())  # a burst's events share a message
         if records or events:
             self.reporter.send(records, events, self.published_seqs,
-                               time.monotonic_ns() + defer_ns if defer_ns > 0 else None)
+                               time.monotonic_ns() + defer_ns if defer_ns > 0 and events else None)
         self.published, self.published_bytes, self.published_seqs = [], 0, 0
         self.flush_due = self.clock.now() + FLUSH_AFTER_NS if held else None
 
