@@ -88,7 +88,7 @@ class Reporter:
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
         self.room = threading.Condition()  # guards the counts below, and tells a deferred report what changed
         self.crowded = False  # a send waits for room (a deferred report then goes at once)
-        self.closing = False  # close() was called (so do they all)
+        self.closing = False  # close() was called: a deferred report goes at once
         self.pending = 0  # reports handed over, not yet sent
         self.pending_bytes = 0  # bytes of the messages in them
         self.pending_seqs = 0  # seqs of the events they were published with
@@ -104,7 +104,8 @@ class Reporter:
         ``seqs`` seqs); waits only while the reports still unsent leave no room for these
         (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS). ``not_before``: a
         ``time.monotonic_ns()`` before which this report does not go, unless another is handed
-        over behind it or the reporter closes (see the module's docstring)."""
+        over behind it, a send waits for room, or the reporter closes (the module's docstring says
+        why)."""
         self._raise()
         if self.thread is None:
             self.thread = threading.Thread(target=self._run, name=f"retriever-report-{self.node}", daemon=True)
