@@ -8,6 +8,8 @@ clock read from a variable: no test here waits on the wall clock.
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from retriever import Pipeline, Rate, Trigger
@@ -72,3 +74,14 @@ def test_an_event_first_then_its_record_goes_within_100_ms(cam):
     publish(loop, 20 * MS, 0)
     record(loop, 20 * MS)
     assert loop.reports.flush_due == 20 * MS + FLUSH_AFTER_NS
+
+
+def test_a_report_of_step_records_alone_is_not_deferred(cam):
+    """The loop defers a report into its idle time (reporter.py) for the events it carries; one of
+    records alone goes at once: nothing big goes with it, and its thread wakes once, not twice."""
+    loop, clock = cam
+    went = threading.Event()
+    loop.reports.reporter.put = lambda payload, attachment: went.set()
+    record(loop, 0)
+    loop.reports.flush(defer_ns=3600 * 10**9)
+    assert went.wait(timeout=30), "a report of records alone waited"

@@ -10,6 +10,7 @@ broken run).
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -183,3 +184,52 @@ def test_a_failed_report_is_raised_naming_the_node(session):
         reporter.close()
     with pytest.raises(ReportError):
         reporter.send([], [(2, b"m")])
+
+
+class TimedLink:
+    """A put on KEY that notes when (time.monotonic_ns) each report went, and tells the test."""
+
+    def __init__(self, session):
+        self.session_put = session_put(session, KEY)
+        self.times: list[int] = []
+        self.went = threading.Semaphore(0)
+
+    def put(self, payload, attachment):
+        self.times.append(time.monotonic_ns())
+        self.session_put(payload, attachment)
+        self.went.release()
+
+    def wait(self) -> None:
+        assert self.went.acquire(timeout=30), "a report never went"
+
+
+def test_a_deferred_report_goes_at_its_time_or_at_once_when_another_comes_behind_it_or_it_closes(session, reports):
+    """The loop defers its report into its idle time (reporter.py): the report waits until
+    ``not_before``; one handed over behind it, or the reporter's close, sends it at once."""
+    link = TimedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put)
+    not_before = time.monotonic_ns() + 200_000_000
+    reporter.send([], [(0, b"a")], not_before=not_before)
+    link.wait()
+    assert link.times[0] >= not_before, "a deferred report waits for its time"
+
+    start = time.monotonic_ns()
+    reporter.send([], [(1, b"b")], not_before=start + 3600 * 10**9)
+    reporter.send([], [(2, b"c")])
+    link.wait()
+    link.wait()
+    reporter.send([], [(3, b"d")], not_before=time.monotonic_ns() + 3600 * 10**9)
+    reporter.close()
+    assert len(link.times) == 4 and link.times[-1] - start < 30 * 10**9, "none waited its hour"
+    assert [r.events[0][0] for r in reports.settle()] == [0, 1, 2, 3], "in order"
+
+
+def test_a_send_that_waits_for_room_held_by_a_deferred_report_sends_that_report_at_once(session, reports):
+    link = TimedLink(session)
+    reporter = Reporter(session, KEY, "cam", spill_dir=None, spill_bytes=1 << 20, put=link.put, max_pending=1)
+    start = time.monotonic_ns()
+    reporter.send([], [(0, b"a")], not_before=start + 3600 * 10**9)
+    reporter.send([], [(1, b"b")])  # no room while the first waits: it goes now, then this one
+    reporter.close()
+    assert reporter.waits == 1 and link.times[-1] - start < 30 * 10**9, "neither waited the hour"
+    assert [r.events[0][0] for r in reports.settle()] == [0, 1]

@@ -23,7 +23,7 @@ from .notes import Notes
 from .outputs import Outputs
 from .plane import ControlPlane
 from .reporter import Reporter
-from .reports import SPILL_BYTES, Reports
+from .reports import REPORT_DEFER_MAX_NS, SPILL_BYTES, Reports
 from .schedule import DONE, TICKED, Schedule
 from .source import PlainSource
 from .steps import Steps
@@ -375,8 +375,10 @@ class NodeLoop:
         if reports.flush_due is not None and reports.flush_due <= wake:
             # before waiting, not after: a tick that came due is not held up by it, and the
             # reporter thread does its work while this one waits (a report that went out just
-            # as a tick came due made that tick late: control_jitter.py shows it)
-            reports.flush()
+            # as a tick came due made that tick late: control_jitter.py shows it); halfway into
+            # the wait, not at its start, when the messages of the tick just run are on their way
+            # (reporter.py)
+            reports.flush(defer_ns=min(REPORT_DEFER_MAX_NS, (wake - now) // 2))
             if reports.flush_due is not None:
                 wake = min(wake, reports.flush_due)
         if outputs.held:

@@ -9,6 +9,15 @@ period, and a node that did it between ticks would fall further behind with each
 (benchmarks/reports/latency.md). On their own thread they overlap the loop (file writes and puts
 release the GIL).
 
+A report may be handed over with a time before which it does not go (``not_before``): the loop
+hands its report over right after a tick that published, and the reporter's work (spilling the
+frames, the put) and the coordinator's (mapping them, recording) then ran beside that tick's
+messages on their way, and made them late: on a 2-core host, frames of 256 KiB-4 MiB that met a
+report on their way took 1.4-3 times as long to arrive (benchmarks/reports/latency.md,
+2026-12-05 lat13). So the loop defers its report into the idle time before its next wake. A
+report goes at once, whatever its time, when another is handed over behind it (the loop is
+ahead of the reporter), a send waits for room, or the reporter closes.
+
 Reports go out in the order they were handed over. At most MAX_PENDING reports, holding at most
 MAX_PENDING_BYTES of messages, wait; a loop further ahead waits for the reporter, as it would for
 a congested link. The bound is in bytes because big messages are what falls behind: memory a
@@ -77,7 +86,9 @@ class Reporter:
         self.max_pending, self.max_pending_bytes = max_pending, max_pending_bytes
         self.max_pending_seqs = max_pending_seqs
         self.queue: queue.SimpleQueue = queue.SimpleQueue()
-        self.room = threading.Condition()  # guards the two counts below
+        self.room = threading.Condition()  # guards the counts below, and tells a deferred report what changed
+        self.crowded = False  # a send waits for room (a deferred report then goes at once)
+        self.closing = False  # close() was called: a deferred report goes at once
         self.pending = 0  # reports handed over, not yet sent
         self.pending_bytes = 0  # bytes of the messages in them
         self.pending_seqs = 0  # seqs of the events they were published with
@@ -88,10 +99,13 @@ class Reporter:
         self.waits = 0  # sends that had to wait for room
         self.waited_ns = 0  # and for how long in all (the loop's time, not its ticks')
 
-    def send(self, records: list, events: list[tuple[int, bytes]], seqs: int = 0) -> None:
+    def send(self, records: list, events: list[tuple[int, bytes]], seqs: int = 0, not_before: int | None = None) -> None:
         """Hand over step records and ``(wall ns, data message)`` pairs (of events that used
         ``seqs`` seqs); waits only while the reports still unsent leave no room for these
-        (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS)."""
+        (MAX_PENDING, MAX_PENDING_BYTES, MAX_PENDING_SEQS). ``not_before``: a
+        ``time.monotonic_ns()`` before which this report does not go, unless another is handed
+        over behind it, a send waits for room, or the reporter closes (the module's docstring says
+        why)."""
         self._raise()
         if self.thread is None:
             self.thread = threading.Thread(target=self._run, name=f"retriever-report-{self.node}", daemon=True)
@@ -100,14 +114,18 @@ class Reporter:
         with self.room:
             if not self.has_room(size, seqs):
                 start = time.monotonic_ns()
+                self.crowded = True
+                self.room.notify_all()
                 self.room.wait_for(lambda: self.has_room(size, seqs) or self.error is not None)
+                self.crowded = False
                 self.waits += 1
                 self.waited_ns += time.monotonic_ns() - start
             self._raise()
             self.pending += 1
             self.pending_bytes += size
             self.pending_seqs += seqs
-        self.queue.put((records, events, size, seqs))
+            self.room.notify_all()  # (one more pending: a deferred report before it goes now)
+        self.queue.put((records, events, size, seqs, not_before))
 
     def has_room(self, size: int, seqs: int = 0) -> bool:
         """Whether a report holding ``size`` bytes of messages (``seqs`` seqs) would go without waiting."""
@@ -118,9 +136,13 @@ class Reporter:
     def close(self) -> None:
         """Return once every report handed over is out (then no more may be sent)."""
         if self.thread is not None:
+            with self.room:
+                self.closing = True
+                self.room.notify_all()
             self.queue.put(None)
             self.thread.join()
             self.thread = None
+            self.closing = False
         self._raise()
 
     def _raise(self) -> None:
@@ -130,8 +152,10 @@ class Reporter:
 
     def _run(self) -> None:
         while (item := self.queue.get()) is not None:
-            records, events, size, seqs = item
+            records, events, size, seqs, not_before = item
             try:
+                if not_before is not None:
+                    self._defer(not_before)
                 if self.error is None:
                     self._deliver(records, events)
             except BaseException as exc:  # told to the loop at its next report
@@ -142,6 +166,16 @@ class Reporter:
                     self.pending_bytes -= size
                     self.pending_seqs -= seqs
                     self.room.notify_all()
+
+    def _defer(self, not_before: int) -> None:
+        """Wait until ``not_before`` (monotonic ns), unless another report was handed over behind
+        this one, a send waits for room, or the reporter closes."""
+        with self.room:
+            while not (self.pending > 1 or self.crowded or self.closing):
+                left = not_before - time.monotonic_ns()
+                if left <= 0:
+                    return
+                self.room.wait(left / 1e9)
 
     def _deliver(self, records: list, events: list[tuple[int, bytes]]) -> None:
         """One report: its big messages spilled, encoded, signed, put."""

@@ -37,6 +37,9 @@ FLUSH_MAX_SEQS = 1 << 16  # seqs published: a flush at least this often (bursts)
 SPILL_BYTES = 64 << 10
 #: how long a step record that consumed an event the coordinator lacks may wait for it (above)
 HOLD_RECORDS_NS = 200_000_000
+#: a report handed over before the loop waits goes halfway into that wait, but at most this late
+#: (reporter.py says why: its work and the coordinator's then run beside no message on its way)
+REPORT_DEFER_MAX_NS = 20_000_000
 
 
 class Reports:
@@ -95,10 +98,13 @@ class Reports:
         have, me = self.have, self.id  # its own events go in its own reports, before its records
         return [eid for ids in record[1].values() for eid in ids if eid[0] != me and eid[2] > have.get(eid[:2], -1)]
 
-    def flush(self, final: bool = False) -> None:
+    def flush(self, final: bool = False, defer_ns: int = 0) -> None:
         """Hand step records and published events to the reporter, for the coordinator: records
         that consumed an event it may lack wait (HOLD_RECORDS_NS), in order; past that, or when
-        ``final``, they go with the messages of those events."""
+        ``final``, they go with the messages of those events. ``defer_ns``: a report with events
+        goes that much later (Reporter.send's ``not_before``; reporter.py says why); one of step
+        records alone goes at once (nothing of size goes with it, and the reporter's thread
+        wakes once, not twice: an idle flow's cost, benchmarks/reports/idle_cpu.md)."""
         held = self.held_records
         if self.records:
             since = time.monotonic_ns()
@@ -117,7 +123,8 @@ class Reports:
             kept = (self.kept[eid] for eid in sorted(carried) if eid in self.kept)
             events = events + list({id(k): k for k in kept}.values())  # a burst's events share a message
         if records or events:
-            self.reporter.send(records, events, self.published_seqs)
+            self.reporter.send(records, events, self.published_seqs,
+                               time.monotonic_ns() + defer_ns if defer_ns > 0 and events else None)
         self.published, self.published_bytes, self.published_seqs = [], 0, 0
         self.flush_due = self.clock.now() + FLUSH_AFTER_NS if held else None
 
