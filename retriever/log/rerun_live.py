@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import socket
-import time
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
@@ -28,13 +27,15 @@ TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path end
 URL_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")
 #: how long a viewer's port may take to accept a TCP connection before the run is refused
 VIEWER_CONNECT_TIMEOUT_S = 1.0
-#: how long a row may wait in Rerun's SDK before the view flushes the stream (without waiting for
-#: it), in ns of the run's wall clock (the events' publish times, the steps' starts): the SDK
-#: holds a row until its entity has 1 MiB of rows or its own 200 ms tick, which it skips whenever
-#: an entity flushed for its bytes since the last one -- beside a camera of big frames, every
-#: tick, so the numbers and step records reached the viewer only in 1 MiB lumps, seconds to
-#: minutes late (benchmarks/reports/export_memory.md)
-LIVE_FLUSH_NS = 100_000_000
+#: the live view's stream is flushed by Rerun's SDK's tick, every LIVE_FLUSH_S seconds, and by an
+#: entity's bytes only past LIVE_FLUSH_BYTES (a tick's worth of 1.3 GB/s of frames). The SDK's
+#: default, 1 MiB, flushed a camera of big frames for its bytes several times a tick, and the SDK
+#: skips its tick whenever an entity did since the last: the numbers and step records beside it
+#: reached the viewer only in 1 MiB lumps, seconds to minutes late (benchmarks/reports/export_memory.md).
+#: A flush of our own (``stream.flush(timeout_sec=0)``) would also flush the sink, which logs an
+#: error on stderr each time once a viewer is gone
+LIVE_FLUSH_S = 0.1
+LIVE_FLUSH_BYTES = 128 << 20
 #: how to have a viewer listen where a URL points
 START_VIEWER_HINT = (f"start a viewer first: `rerun` (the desktop viewer, listening on {RERUN_VIEWER_URL}), or "
                      "`rerun --serve-web` (a web viewer, its gRPC port the same); `--port PORT` for another port; "
@@ -127,8 +128,8 @@ def check_viewer(url: str, timeout: float = VIEWER_CONNECT_TIMEOUT_S) -> None:
 class RerunLiveView:
     """One recording stream, to a viewer or an ``.rrd`` file, fed with the run's events (at their
     tags on ``event_time``, their seqs on ``seq`` and their publish times on ``wall_time``) and
-    step records, the stream flushed (not waited for) whenever the run's wall clock passed
-    LIVE_FLUSH_NS since the last flush: what was logged reaches the sink within about that."""
+    step records, batched by Rerun's SDK for at most LIVE_FLUSH_S: what was logged reaches the
+    sink within about that."""
 
     title = "the Rerun live view"
 
@@ -136,7 +137,8 @@ class RerunLiveView:
         check_target(target)
         rr = rerun_sdk(self.title)
         self.target = str(target)
-        self._stream = new_stream(rr)
+        self._stream = new_stream(rr, rr.ChunkBatcherConfig(flush_tick=LIVE_FLUSH_S,
+                                                             flush_num_bytes=LIVE_FLUSH_BYTES))
         try:
             self._open(target, rr)
         except Exception as e:  # the SDK's own error: a path it cannot create, a URL it cannot reach
@@ -144,7 +146,6 @@ class RerunLiveView:
             raise LogError(f"cannot stream the run to Rerun at {self.target}: {e}", self._hint()) from None
         self._stream.send_recording_name(pipeline)
         self._recording = RerunRecording(rr, self._stream)
-        self._flushed_ns = 0  # the run's wall clock that last flushed the stream (_flush_due)
 
     def _open(self, target: str | os.PathLike, rr) -> None:
         if is_rrd_path(target):
@@ -168,21 +169,9 @@ class RerunLiveView:
     def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
         if value is not NOT_KEPT:
             self._recording.log_event(node, port, tag[0], wall_ns, seq, value)
-            self._flush_due(wall_ns)
 
     def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
         self._recording.log_step(StepRecord(node, tag, consumed, produced, status, detail, start_ns, wall_ns))
-        self._flush_due(start_ns)
-
-    def _flush_due(self, now_ns: int) -> None:
-        """Flush the stream, without waiting, if the run's clock (``now_ns``, the time of what was
-        just logged; 0: unknown, this process's) passed LIVE_FLUSH_NS since the last flush. The last
-        flush is the latest time that made one: an earlier one (the reports of several workers come
-        in any order) neither flushes nor moves it back."""
-        now_ns = now_ns or time.time_ns()
-        if now_ns - self._flushed_ns >= LIVE_FLUSH_NS:
-            self._flushed_ns = now_ns
-            self._stream.flush(timeout_sec=0)
 
     def close(self) -> None:
         try:
