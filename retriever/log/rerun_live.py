@@ -27,6 +27,15 @@ TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path end
 URL_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")
 #: how long a viewer's port may take to accept a TCP connection before the run is refused
 VIEWER_CONNECT_TIMEOUT_S = 1.0
+#: the live view's stream is flushed by Rerun's SDK's tick, every LIVE_FLUSH_S seconds, and by an
+#: entity's bytes only past LIVE_FLUSH_BYTES (a tick's worth of 1.3 GB/s of frames). The SDK's
+#: default, 1 MiB, flushed a camera of big frames for its bytes several times a tick, and the SDK
+#: skips its tick whenever an entity did since the last: the numbers and step records beside it
+#: reached the viewer only in 1 MiB lumps, seconds to minutes late (benchmarks/reports/export_memory.md).
+#: A flush of our own (``stream.flush(timeout_sec=0)``) would also flush the sink, which logs an
+#: error on stderr each time once a viewer is gone
+LIVE_FLUSH_S = 0.1
+LIVE_FLUSH_BYTES = 128 << 20
 #: how to have a viewer listen where a URL points
 START_VIEWER_HINT = (f"start a viewer first: `rerun` (the desktop viewer, listening on {RERUN_VIEWER_URL}), or "
                      "`rerun --serve-web` (a web viewer, its gRPC port the same); `--port PORT` for another port; "
@@ -119,7 +128,8 @@ def check_viewer(url: str, timeout: float = VIEWER_CONNECT_TIMEOUT_S) -> None:
 class RerunLiveView:
     """One recording stream, to a viewer or an ``.rrd`` file, fed with the run's events (at their
     tags on ``event_time``, their seqs on ``seq`` and their publish times on ``wall_time``) and
-    step records."""
+    step records, batched by Rerun's SDK for at most LIVE_FLUSH_S: what was logged reaches the
+    sink within about that."""
 
     title = "the Rerun live view"
 
@@ -127,7 +137,8 @@ class RerunLiveView:
         check_target(target)
         rr = rerun_sdk(self.title)
         self.target = str(target)
-        self._stream = new_stream(rr)
+        self._stream = new_stream(rr, rr.ChunkBatcherConfig(flush_tick=LIVE_FLUSH_S,
+                                                             flush_num_bytes=LIVE_FLUSH_BYTES))
         try:
             self._open(target, rr)
         except Exception as e:  # the SDK's own error: a path it cannot create, a URL it cannot reach

@@ -289,3 +289,41 @@ def test_deploy_refuses_a_folder_as_its_rerun_target_before_it_looks_for_workers
     result = cli("deploy", "marked.py", "--connect", "tcp/127.0.0.1:9", "--insecure", "--rerun", "adir", cwd=tmp_path)
     assert_cli_error(result, r"^error: cannot stream the run to Rerun at adir: it is a folder$")
     assert not (tmp_path / "loaded").exists()
+
+
+def chunk_rows(rrd, entity: str) -> list[int]:
+    """The rows of each chunk of ``entity`` in ``rrd``, in the order they were written, as Rerun's
+    own CLI (``rerun rrd print``) lists them: a chunk is what the SDK flushed at once."""
+    import subprocess
+    import sys
+
+    listing = subprocess.run([sys.executable, "-m", "rerun_cli", "rrd", "print", str(rrd)], capture_output=True,
+                             text=True, check=True, timeout=120).stdout
+    return [int(m[1]) for m in re.finditer(rf"^Chunk\(\S+\) with (\d+) rows \(.*\) - {re.escape(entity)} - ",
+                                          listing, re.MULTILINE)]
+
+
+def test_numbers_beside_a_camera_of_big_frames_are_flushed_with_its_frames_not_in_1_mib_lumps(tmp_path):
+    """Rerun's SDK holds a row until its entity has 1 MiB of rows or its tick, and skips the tick
+    whenever an entity flushed for its bytes since the last: beside a camera of 230 kB frames (a
+    flush by bytes every 5 frames) a 100 Hz number's rows were held in 1 MiB lumps (here: all 300
+    of them, to the end). The view's stream flushes by bytes only past LIVE_FLUSH_BYTES, so its
+    tick is never skipped and takes every entity's rows at once: the number is cut into chunks
+    wherever the frames are (a tick, LIVE_FLUSH_S apart; or the end), and nothing is lost."""
+    out = tmp_path / "live.rrd"
+    view = RerunLiveView(out, "live")
+    frame = np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8)  # 230 kB
+    t0, period = 1_700_000_000_000_000_000, 10_000_000  # the number at 100 Hz, a frame every third (33 Hz)
+    for i in range(300):
+        view.event("sensor", "x", (i * period, 0), i, float(i), t0 + i * period)
+        if i % 3 == 0:
+            view.event("cam", "rgb", (i * period, 0), i // 3, frame, t0 + i * period)
+    view.close()
+    assert view.written == {"/sensor/x": 300, "/cam/rgb": 100}
+    numbers, frames = chunk_rows(out, "/sensor/x"), chunk_rows(out, "/cam/rgb")
+    assert sum(numbers) == 300 and sum(frames) == 100
+    # each cut of the frames cut the number too (the code before: [300] beside 20 chunks of 5 frames);
+    # one less for a tick that found a frame but no number since the last (a stall of the loop)
+    assert len(numbers) >= len(frames) - 1, (numbers, frames)
+    rows = rows_by_tag(rr.dataframe.load_recording(out), "/sensor/x")
+    assert [row["scalars"] for row in rows] == [[float(i)] for i in range(300)]
