@@ -407,14 +407,25 @@ def _user_stacklevel() -> int:
 def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
     """While a logged run goes, Ctrl-C and SIGTERM ask it to stop at the next hand-over to the log
     writer (between two ticks) instead of raising wherever the interpreter happens to be, which
-    could leave a tick half recorded. A second signal stops at once. SIGTERM, unless the program
+    could leave a tick half recorded. A second signal stops at once, but while the log's end is
+    written, where raising would tear the file, it is ignored, and a third ends the process at once
+    by the signal's default (an end that hangs is not a trap). SIGTERM, unless the program
     handles it itself, then ends the program with SystemExit(143), as it does a run that holds
     processes, logged or not."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
+    ignored = []
+
     def request_stop(signum, frame) -> None:
+        if session.stop_requested and session.ending_log and not ignored:
+            ignored.append(signum)  # the log's end is being written: raised there, it would tear the file
+            return
+        if session.stop_requested and session.ending_log:  # asked a third time: the end hangs; end at once
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
         if session.stop_requested:
             raise Interrupted(signum)  # (not a bare KeyboardInterrupt: see Interrupted)
         session.stop_requested = True
@@ -489,10 +500,12 @@ class RunLog:
         else:
             status, error = RunEnd.ERROR, f"{type(exc).__name__}: {exc}"
         # a stopped run ends at its last tick: the writer ends the log at the latest of its step records
+        session.ending_log = True  # a second stop signal now waits for the end (_stop_between_ticks)
         try:
             writer.close(session.trace, session.now_ns, status=status, error=error, stats=session.stats(),
                          counts=session.counts)
         finally:
+            session.ending_log = False
             if unstarted:
                 self.file.discard()
         if unstarted:

@@ -68,6 +68,17 @@ def stdout_written() -> tuple[int, int] | None:
     return _stdout["written"], _stdout["written"] + _stdout["under_way"]
 
 
+def stdout_reader_gone() -> bool:
+    """Whether standard output is a pipe whose reader went away (``| head`` had enough): what a
+    writer that does not say EPIPE itself (Rerun's SDK: its file writer's thread "shut down
+    prematurely") failed of."""
+    import select
+
+    poll = select.poll()
+    poll.register(1, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poll.poll(0))
+
+
 def abandon_stdout() -> None:
     """Point file descriptor 1 at /dev/null: after a write to it failed (a reader gone, a disk
     full), so that what Python still holds for it is not tried again at exit, which would print

@@ -344,6 +344,9 @@ class ScannedLog(LogHead):
                     raise LogError(f"{self.path} changed since it was read: the chunk at byte {offset} no longer "
                                    f"reads ({type(e).__name__}: {e})",
                                    "read it again, once nothing writes it") from None
+                if _identity(stream) != self._identity:  # written to in place as this reading went: what
+                    # was read may be the change (the CRC, not checked again, would have said so)
+                    raise LogError(f"{self.path} changed as it was read", "read it again, once nothing writes it")
                 found, raws[k] = _held(messages, rest, offset, k)
                 if found is not None:
                     if held is not None:

@@ -35,6 +35,7 @@ live view (rerun_live.py) from a running pipeline's reports.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from collections import Counter
@@ -47,7 +48,7 @@ import numpy as np
 from ..errors import LogError
 from ..trace import StepRecord, StepStatus
 from .format import parse_data_topic
-from .outputs import export_path, stdout_stream, to_stdout
+from .outputs import export_path, stdout_reader_gone, stdout_stream, to_stdout
 from .reader import LogHead, LogRecords, RunLog, log_records
 from .views import image_encoding, numeric_array, step_json, to_json, value_leaves
 
@@ -221,6 +222,10 @@ def export_rerun(log: RunLog | str | Path, out: str | Path, *, overwrite: bool =
         try:
             stream.stdout(default_blueprint=event_time_blueprint(rr))
             return _write_rerun(rr, source, stream)
+        except RuntimeError:  # the SDK's, for a write that failed: EPIPE is said as the others say it
+            if stdout_reader_gone():
+                raise BrokenPipeError(errno.EPIPE, "the reader of standard output went away") from None
+            raise
         finally:
             stream.disconnect()
     out = export_path(log.path if isinstance(log, LogHead) else log, out, overwrite)

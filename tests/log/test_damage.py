@@ -1246,3 +1246,29 @@ def test_a_log_whose_end_indexed_readers_refuse_is_called_damaged_and_recovered(
     assert again.damage is None and again.complete and again.trace() == log.trace()
     with result.output.open("rb") as f:  # what an indexed reader seeks by is whole again
         assert len(list(make_reader(f).iter_messages())) == len(again.messages)
+
+
+def test_an_event_no_step_record_names_is_let_go_only_for_a_flow_whose_process_died(tmp_path):
+    """A process that died may leave its flow's event without a record (the log's fault record
+    says whose): that flow's is let go, but another flow's still refuses the log (any fault in the
+    log let every flow's go, and the replay said "identical" of an output no step made)."""
+    import json
+
+    from tests.log.log_flows import build_small
+
+    def died(node: str):
+        def change(messages, metadata):
+            _step_record_left_out("accumulate")(messages, metadata)
+            metadata["retriever.fault.1"] = {"kind": "process_lost", "node": node, "at_ns": "300000000",
+                                             "pid": "7", "exit": "exited with code 3", "restarted": "false",
+                                             "seqs": json.dumps({}), "lost_events": json.dumps([])}
+        return change
+
+    small = _small_log(tmp_path)
+    says = r"event accumulate\.total #1 is in the log, but no step record of accumulate says it produced it"
+    other = _rewritten(small, tmp_path / "other.mcap", died("tally"))
+    for run in (lambda: replay(read_log(other), build_small()), lambda: replay_file(other, build_small)):
+        with pytest.raises(LogError, match=says):
+            run()
+    its = _rewritten(small, tmp_path / "its.mcap", died("accumulate"))
+    assert replay_file(its, build_small).steps_replayed > 0  # let go: a report, not that error

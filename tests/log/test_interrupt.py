@@ -135,3 +135,26 @@ def test_a_second_signal_as_the_log_is_begun_leaves_no_writer_behind(tmp_path, m
     assert not path.exists()
     pipe.run(duration=1)
     assert pipe.now == 1
+
+
+def test_a_second_signal_while_the_log_is_ended_does_not_tear_it(tmp_path, monkeypatch):
+    """Ctrl-C pressed twice: the first stops the run, the second lands as the log's end is written
+    (`retriever run --log` then said "the run so far is in" a file that only `log recover` could
+    read): it is ignored there, and the log is finished, marked interrupted."""
+    from retriever.log import writer
+    from tests.log.log_flows import build_small
+
+    close = writer.LogWriter.close
+
+    def interrupted_twice_then_close(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+        return close(self, *args, **kwargs)
+
+    monkeypatch.setattr(writer.LogWriter, "close", interrupted_twice_then_close)
+    path = tmp_path / "twice.mcap"
+    pipe = build_small()
+    pipe.run(duration=0.05, log=path)
+    log = read_log(path)
+    assert log.complete and log.end["status"] == "finished"
+    assert replay(log).identical

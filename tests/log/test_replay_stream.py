@@ -356,6 +356,25 @@ def test_a_log_changed_between_the_two_readings_is_refused(small_chunks, tmp_pat
         next(scanned.time_ordered())
 
 
+def test_a_log_written_to_in_place_as_its_second_reading_goes_is_refused(small_chunks, tmp_path):
+    """The second reading does not check a chunk's CRC again (the file is the same as the first
+    read through): a byte of a later chunk overwritten in place once that reading has begun (the
+    size kept) was read as the log's, and the replay of it said DIVERGED of a value no run made."""
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(small_chunks.read_bytes())
+    offset, length = chunks(copy.read_bytes())[-1]
+    reading = scan_log(copy, lambda channels, messages: None).time_ordered()
+    next(reading)
+    with open(copy, "r+b") as f:
+        f.seek(offset + length // 2)
+        byte = f.read(1)
+        f.seek(offset + length // 2)
+        f.write(bytes([byte[0] ^ 1]))
+    with pytest.raises(LogError, match=r"copy\.mcap changed as it was read\n    hint: read it again"):
+        for _ in reading:
+            pass
+
+
 def test_a_log_with_messages_outside_chunks_is_replayed_read_whole(small_chunks, tmp_path):
     """MCAP allows messages outside chunks (Retriever's writer makes none): time_ordered() does
     not read those, and replay_file replays such a log as replay() does, read whole."""

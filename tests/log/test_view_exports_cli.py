@@ -250,6 +250,22 @@ def test_a_reader_that_went_away_ends_the_export_quietly_with_141(tmp_path):
     assert (done.returncode, done.stderr) == (128 + signal.SIGPIPE, "")
 
 
+def test_a_reader_that_went_away_ends_the_rerun_export_with_141(tmp_path):
+    """Rerun's SDK writes standard output from a thread of its own, and its flush then raised
+    RuntimeError("File-writer thread shut down prematurely"): `| head -c 100000` ended with
+    exit 1 and "error: RuntimeError: ...". (The SDK's own log lines about it remain.)"""
+    log_path = camera_log(tmp_path)
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        done = subprocess.run(_export_argv(log_path, "rerun"), stdout=write, stderr=subprocess.PIPE, text=True,
+                              timeout=180, cwd=tmp_path, env=cli_env())
+    finally:
+        os.close(write)
+    assert done.returncode == 128 + signal.SIGPIPE, done.stderr
+    assert "error:" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
 def test_ctrl_c_while_writing_standard_output_says_how_much_was_written(tmp_path, long_log_path):
     """It said '- was not written' although the export had written to the pipe."""
     export = subprocess.Popen(_export_argv(long_log_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE, bufsize=0,
