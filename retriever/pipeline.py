@@ -416,11 +416,11 @@ def _stop_between_ticks(session: Session, logged: bool) -> Iterator[None]:
         yield
         return
 
-    ignored = []
+    session.signal_ignored = False  # (a run before this one's, on the same session)
 
     def request_stop(signum, frame) -> None:
-        if session.stop_requested and session.ending_log and not ignored:
-            ignored.append(signum)  # the log's end is being written: raised there, it would tear the file
+        if session.stop_requested and session.ending_log and not session.signal_ignored:
+            session.signal_ignored = True  # the log's end is being written: raised there, it would tear the file
             return
         if session.stop_requested and session.ending_log:  # asked a third time: the end hangs; end at once
             signal.signal(signum, signal.SIG_DFL)

@@ -178,6 +178,23 @@ def test_a_second_stop_signal_during_the_clean_up_changes_nothing_and_a_third_en
     assert (thrice.returncode, thrice.stderr) == (-first, "")
 
 
+def test_a_signal_a_logged_run_ignored_as_its_log_ended_counts_for_the_command_too(tmp_path: Path):
+    """A logged run ignores a second signal while it writes its log's end; the command's clean-up
+    then counts it (``cleaning_up(ignored_one=True)``): the next signal ends the process at once,
+    not a fourth."""
+    (tmp_path / "counted.py").write_text(
+        "import os, sys\n"
+        "from retriever.cli import cleaning_up, stop_on_signals\n"
+        "stop_on_signals()\n"
+        "cleaning_up(ignored_one=True)\n"
+        "os.kill(os.getpid(), 2)\n"
+        "for _ in range(10**7): pass\n"
+        "sys.exit('the signal did not end it')\n")
+    done = subprocess.run([sys.executable, "-m", "counted"], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert (done.returncode, done.stderr) == (-2, "")
+
+
 STOPPED_INSIDE = FLOWS + '''
 
 import os, signal

@@ -111,6 +111,7 @@ class Session(ABC):
         self.stop_requested = False  # set by Ctrl-C / SIGTERM during a logged run
         self.stop_signal: int | None = None  # and which of the two it was
         self.ending_log = False  # the log's end is being written: a second stop signal waits for it
+        self.signal_ignored = False  # and one did (the command's clean-up then ends at the next)
         #: what the run counted that no node owns (COUNTERS; a coordinator's dropped garbage)
         self.own_counts: Counter = Counter()
         #: the most records (events and steps) the trace held at a hand-over to the log (or, with

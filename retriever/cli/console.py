@@ -142,12 +142,15 @@ def stop_on_signals() -> None:
         signal.signal(signal.SIGINT, _interrupt)
 
 
-def cleaning_up() -> None:
+def cleaning_up(ignored_one: bool = False) -> None:
     """The command has taken its stop signal and cleans up (removes a half-written file, prints
     what ran), then ends: one more stop signal (Ctrl-C pressed twice) no longer raises, where it
     would cut that short or print a traceback at the interpreter's end; a third ends the process
-    at once, by the signal's default (a clean-up that hangs is not a trap)."""
+    at once, by the signal's default (a clean-up that hangs is not a trap). ``ignored_one``: a
+    second was ignored already (a logged run's, as its log ended): the next ends it at once."""
     _state["cleaning"] = True
+    if ignored_one:
+        _state["ignored"] = True
 
 
 def stop_signal() -> int | None:

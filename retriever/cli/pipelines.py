@@ -221,7 +221,7 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
 
 def _interrupted(pipe, log: Path | None, before, title: str) -> NoReturn:
     """Print what ran until the stop signal (as at the end of a run) and exit 128 + the signal."""
-    cleaning_up()
+    cleaning_up(ignored_one=getattr(pipe.session, "signal_ignored", False))
     recorded = _identity(log) not in (None, before)
     if pipe.session is not None:
         print_summary(pipe, pipe.trace, f"{title}, interrupted", log if recorded else None)
