@@ -21,6 +21,7 @@
     coordinator/    the coordinator: starts workers on hosts, agrees on T0, collects the trace and the log;
                     where the hosts are is a Hosting handed to it (this machine, a deployment, dora)
     seen.py         what the coordinator has seen of a run (event ids, recent ticks), in bounded memory
+    stopping.py     the stop a daemon or router waits on, asked for by a signal wherever it lands
     remote.py       worker processes on a worker daemon (RemoteHost), as the coordinator sees them
     deploy/         a deployment: the coordinator hosted on worker daemons, its nodes placed there;
                     Deployment wires its parts (discovery, links, status, usage, the loss policy)

@@ -31,7 +31,6 @@ import shutil
 import signal
 import socket
 import sys
-import threading
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -46,6 +45,7 @@ from .folders import private_folder
 from .hub import client_config, raise_open_file_limit
 from .reach import why_no_session
 from .routing import access_control, router_session_config
+from .stopping import Stop
 from .wire import check_chunk
 
 #: the kind of private folder (folders.py) of a router's dictionary file
@@ -172,9 +172,7 @@ def serve(settings: RouterSettings, say: Callable[[str], None] | None = None) ->
     say = say or (lambda line: print(line, file=sys.stderr, flush=True))
     check_settings(settings)
     secret = read_secret(settings.secret)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = Stop(signal.SIGINT, signal.SIGTERM)
     raise_open_file_limit()  # room for every client, and for strangers' idle connections (hub.accept_pending)
     router_ids = linked_router_ids(settings, secret)
     with dictionary(settings, secret) as users:

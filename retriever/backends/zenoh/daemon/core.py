@@ -43,6 +43,7 @@ from ..hub import (await_segments_released, client_config, mapped_segments, peer
                    remove_orphaned_segments_at_exit, wait_for_peers, weak_callback)
 from ..protocol import (PROTOCOL_VERSION, REQUEST, SEALED_OPS, DaemonOp, ErrorReply, InfoReply, InfoRequest,
                         OtherProtocolReply, Record, RequestOpener, decode_reply, error_message)
+from ..stopping import Stop
 from ..wire import KeySpace, WireError
 from .allowlist import ALWAYS_ALLOWED, module_allowed, path_modules, refusal
 from .runs import DaemonRuns
@@ -157,9 +158,7 @@ def serve(settings: DaemonSettings, say: Callable[[str], None] | None = None) ->
     """Run the daemon until SIGINT or SIGTERM; 0 once its session closed."""
     say = say or (lambda line: print(line, file=sys.stderr, flush=True))
     check_security(settings.secret, settings.insecure, "retriever-worker")
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = Stop(signal.SIGINT, signal.SIGTERM)
     if settings.insecure:
         say(f"warning: retriever-worker '{settings.name}' runs with --insecure: anyone who reaches "
             f"{', '.join(settings.listen or settings.router)} may join namespace '{settings.namespace}' and control it; "
@@ -170,7 +169,7 @@ def serve(settings: DaemonSettings, say: Callable[[str], None] | None = None) ->
     return 0
 
 
-def _serve_until(settings: DaemonSettings, stop: threading.Event, access: dict[str, str] | None,
+def _serve_until(settings: DaemonSettings, stop: Stop, access: dict[str, str] | None,
                  say: Callable[[str], None]) -> None:
     """Join, check the name is free, answer until ``stop``, close."""
     # a process that outlives the runs it serves keeps whatever pool it is sent through (hub.HUB_SHARED_MEMORY)
@@ -212,7 +211,7 @@ def in_session(config: zenoh.Config, use: Callable[[zenoh.Session], object]):
         await_segments_released(segments)
 
 
-def _announce_and_answer(settings: DaemonSettings, session: zenoh.Session, stop: threading.Event,
+def _announce_and_answer(settings: DaemonSettings, session: zenoh.Session, stop: Stop,
                          say: Callable[[str], None]) -> tuple[str | None, dict[str, int]]:
     """Unless a worker of its name runs (its refusal then), answer on ctl/<name> and hold the
     token until ``stop``; what it counted."""

@@ -20,7 +20,6 @@ import os
 import shutil
 import signal
 import sys
-import threading
 import time
 
 import zenoh
@@ -29,6 +28,7 @@ from ..access import SessionDictionary, run_user
 from ..folders import private_folder
 from ..hub import remove_orphaned_segments_at_exit
 from ..routing import RUN_ROUTER_SHARED_MEMORY, access_control, router_session_config
+from ..stopping import Stop
 from ..worker.process import PARENT_DIED, Parent, prepare_process
 from .run_router import (EXIT_FAILED, LINK_POLL_S, MAX_RUN_SESSIONS, PARENT_CHECK_S, READY, ROUTER_PROCESS_FOLDER,
                          UPSTREAM_LINK_S, RouterProcessSettings)
@@ -66,9 +66,7 @@ def open_router(settings: RouterProcessSettings) -> zenoh.Session:
 def serve(settings: RouterProcessSettings, parent: Parent, stat: int | None) -> int:
     """Route until SIGTERM or PARENT_DIED, or until ``parent`` is gone (``stat``: Parent.gone's);
     the exit code."""
-    stop = threading.Event()
-    for signum in (signal.SIGTERM, PARENT_DIED):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = Stop(signal.SIGTERM, PARENT_DIED)
     remove_orphaned_segments_at_exit()  # the segments of the run's flows, once no one maps them
     try:
         session = open_router(settings)
