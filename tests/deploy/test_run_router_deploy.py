@@ -8,9 +8,12 @@ while the robot is cut off from the router.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -149,6 +152,10 @@ def test_a_run_router_dies_with_its_sigkilled_daemon(hosts, secret, tmp_path):
     finally:
         run.kill()
         finish(run)
+        for left in [pid, *flows]:  # should the assertions fail: a process they waited on outlived its daemon
+            if pid_alive(left):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(left, signal.SIGKILL)
         # the killed daemon's run folder (its flows' spec, the run's passwords): its next start would reap it
         for folder in Path(tempfile.gettempdir()).glob(f"{DAEMON_FOLDER}-{daemons[1].pid}-run-*"):
             shutil.rmtree(folder)
