@@ -36,7 +36,8 @@ from .plugins import COMMANDS_GROUP, add_registered_commands
 from .summary import counters_in_words, run_errors
 
 __all__ = ["COMMANDS_GROUP", "FOXGLOVE_PORT", "LIVE_EVERY_S", "UNTIL_STOPPED_S", "app", "cleaning_up",
-           "counters_in_words", "err", "fail", "main", "out", "run_errors", "status_table", "stop_on_signals", "stop_signal", "worker_main"]
+           "counters_in_words", "err", "fail", "main", "out", "run_errors", "status_table", "stop_on_signals",
+           "stop_signal", "worker_main"]
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Retriever: closed-loop robot agents with explicit time.")
