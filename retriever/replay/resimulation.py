@@ -198,6 +198,7 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
                        "retriever replay LOG (without --resim) follows the run through its restarts")
     pipeline = pipeline_for(log, pipeline, survey.logged_nodes)
     graph = pipeline.compile()
+    survey.events.check_details(graph)
     changes = code_changes(log, graph)
     survey.check_events()
     end = log.end

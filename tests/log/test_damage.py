@@ -729,6 +729,65 @@ def test_a_step_record_with_a_byte_msgpack_never_uses_says_so(tmp_path):
             read()
 
 
+def _accumulate_detail(detail: dict):
+    """A change: accumulate's first step record (a flow fed by counter's k, level and pose) with
+    ``detail``."""
+    def change(messages, metadata):
+        import msgpack
+
+        for message in messages:
+            if message[0] == "steps":
+                record = msgpack.unpackb(message[4])
+                if record[0] == "accumulate":
+                    record[5] = detail
+                    message[4] = msgpack.packb(record)
+                    return
+    return change
+
+
+@pytest.mark.parametrize("detail, says", [
+    ({"bogus": 1}, r"has detail 'bogus', which Retriever does not write \(nor is it an input port of accumulate"),
+    ({"had_below": {"k": [["ghost", "k", 3]]}}, r"names in its detail 'had_below' the stream ghost\.k -> accumulate\.k, "
+                                                r"which is no edge of pipeline 'small_log'"),
+    ({"late": {"k": [["counter", "nope", 0]]}}, r"names in its detail 'late' the stream counter\.nope -> accumulate\.k, which is no edge"),
+    ({"restart_gap": {"nope": [["counter", "k", 1, 3]]}}, r"names in its detail 'restart_gap' the stream counter\.k -> accumulate\.nope"),
+    ({"restarted": {"seqs": {"nope": 0}, "inputs": {}}},
+     r"gives in its detail 'restarted' the first seq of output accumulate\.nope, which pipeline 'small_log' does not "
+     r"have"),
+    ({"restarted": {"seqs": {"total": 0}, "inputs": {"k": [["ghost", "k", 0]]}}},
+     r"names in its detail 'restarted' the stream ghost\.k -> accumulate\.k"),
+])
+def test_a_step_records_detail_naming_what_no_run_of_the_pipeline_writes_is_a_log_error(tmp_path, detail, says):
+    """A key no backend writes, or a stream into the node that is no edge (a node or port the
+    pipeline lacks), refuses the log before the first step: plain replay read its ``late``,
+    ``had_below``, ``restart_gap`` and ``restarted`` as they came and replayed such a log
+    identical (``--resim`` said the two traces differed, or, for ``late``, nothing)."""
+    from retriever.replay import replay_file, resim_file
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _accumulate_detail(detail))
+    error = r"step record #\d+ \(of accumulate at t=0\.050000000s m=0\) " + says
+    for read in (lambda: replay_file(path, build_small), lambda: replay(read_log(path), build_small()),
+                 lambda: resim_file(path, build_small)):
+        with pytest.raises(LogError, match=error) as refused:
+            read()
+        assert refused.value.hint.startswith("replay with the pipeline that wrote the log; else the file is damaged")
+
+
+@pytest.mark.parametrize("detail", [
+    {"level": 2},  # a Queue's drop count on an input port (tick.select_inputs)
+    {"flow": {"said": [1, "x"]}, "exit": 0},
+    {"late": {"k": [["counter", "k", 0]]}, "had_below": {"level": [["counter", "level", 1]]},
+     "restart_gap": {"pose": [["counter", "pose", 0, 0]]}, "restarted": {"seqs": {"total": 0}, "inputs": {}}},
+])
+def test_a_step_records_detail_as_a_writer_writes_it_replays(tmp_path, detail):
+    from retriever.replay import replay_file
+    from tests.log.log_flows import build_small
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "odd.mcap", _accumulate_detail(detail))
+    assert replay_file(path, build_small).identical
+
+
 def test_an_event_whose_microstep_is_cut_short_is_a_log_error(tmp_path):
     def change(messages, metadata):
         _first(messages, "data/counter/k")[4] = b"\x92\xcd\x01"  # a uint16 microstep missing a byte
