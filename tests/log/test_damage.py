@@ -1331,3 +1331,37 @@ def test_an_event_no_step_record_names_is_let_go_only_for_a_flow_whose_process_d
             run()
     its = _rewritten(small, tmp_path / "its.mcap", died("accumulate"))
     assert replay_file(its, build_small).steps_replayed > 0  # let go: a report, not that error
+
+
+@pytest.mark.parametrize("at_s, let_go", [
+    (0.1, False),  # before accumulate's record at 0.25 s, the last before its death at 0.3 s: no record was lost
+    (0.5, False),  # after its death: no process of it made it
+    (0.27, True),  # after that record, before the death: its record may have gone with the process
+])
+def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_last_record_before_the_death(
+        tmp_path, at_s, let_go):
+    """On zenoh a consumer logs an event it took whose producer's record a kill lost, with every
+    later record of that process (docs/log.md): an event of the dead flow that no record names is
+    let go only if it is later than the flow's last record before the death, and not after the
+    death. Any event of that flow was let go (session 13's cold review: one added to the log, dated
+    before the crash, replayed without a word)."""
+    import json
+
+    from tests.log.log_flows import build_small
+
+    def added(messages, metadata):
+        total = [m for m in messages if m[0] == "data/accumulate/total"]
+        assert [m[1] for m in total] == [50_000_000, 250_000_000, 450_000_000]  # accumulate's ticks
+        messages.append(["data/accumulate/total", int(at_s * 1e9), total[0][2], 9, total[0][4]])
+        metadata["retriever.fault.1"] = {"kind": "process_lost", "node": "accumulate", "at_ns": "300000000",
+                                         "pid": "7", "exit": "was killed by SIGKILL", "restarted": "false",
+                                         "seqs": json.dumps({}), "lost_events": json.dumps([])}
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "added.mcap", added)
+    says = r"event accumulate\.total #9 is in the log, but no step record of accumulate says it produced it"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
+        if let_go:
+            assert run().steps_replayed > 0  # a report, not that error
+        else:
+            with pytest.raises(LogError, match=says):
+                run()
