@@ -6,7 +6,7 @@ least every ``flush_interval`` seconds of wall time, which bounds what a ``kill 
 From its first write on, the trace's tape expanders make the records they can
 (``Trace.log_records``: a compiled in-process tick's step record, in two ``struct.pack``s, and
 its event's if the value is a float or an int of up to 32 bits, in two more); the writer makes
-the others, a generic tick's step record of the common shape the same way (_step_record_maker),
+the others, a generic tick's step record of the common shape the same way (step_record_maker),
 the rest with msgpack; and the other events, an array of a dtype and shape seen before on its
 port in one ``struct.pack`` with its bytes (benchmarks/reports/logging_overhead.md).
 """
@@ -77,23 +77,34 @@ def _folder(path: Path) -> tuple[str, str]:
             f"pass --log / log= a file path, e.g. {path / 'run.mcap'}")
 
 
-def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, channel: int,
-                       otherwise: Callable[[tuple, int], bytes], wall_bytes: int = 8) -> Callable[[tuple, int], bytes]:
+def step_record_maker(graph: "Graph", node: str, channel: int | None, otherwise: Callable[[tuple, int], Any],
+                      wall_bytes: int = 8) -> Callable[[tuple, int], Any]:
     """``make(step, sequence)``: the Message record of ``step``, a step record of ``node`` (a
     generic tick's, which no tape expander made), the log's step record ``sequence`` (its low 32
-    bits). One of the common shape: ``ok``, no detail, a microstep below 128, one event on
-    ``output``, and one event consumed on each input port fed by one edge (``fed``: the ports in
-    the order a tick consumes them, each with its edge's source node and port), no more, is made
-    here; any other by ``otherwise(step, sequence)`` (msgpack). As the tape expanders do
-    (Trace.log_records): the msgpack data in one ``struct.pack`` of the bytes fixed here and the
-    ints that change, each in a fixed width (uint32 seqs, uint64 wall time: read back the same).
-    ``otherwise`` itself for a node with 3 inputs or more. With ``wall_bytes=4``, a wall time
-    below 2**32 ns only (the uint64's first 4 bytes fixed zeros: a uint32's pack costs ~100
-    instructions less), any other step to ``otherwise``. (The writer's comprehension calls it
+    bits), on ``channel``; with ``channel`` None, the record's data alone (``sequence`` unused).
+    One of the common shape: ``ok``, no detail, a microstep below 128, one event on the node's one
+    output, and one event consumed on each input port that one edge of ``graph`` feeds, no more,
+    is made here; any other by ``otherwise(step, sequence)`` (msgpack, in the writer).
+    ``otherwise`` itself for a node that has no such shape (other than one output, an input fed
+    by two edges, or more than two fed). As the tape expanders do (Trace.log_records): the
+    msgpack data in one ``struct.pack`` of the bytes fixed here and the ints that change, each in
+    a fixed width (uint32 seqs, uint64 wall time: read back the same). With ``wall_bytes=4``, a
+    wall time below 2**32 ns only (the uint64's first 4 bytes fixed zeros: a uint32's pack costs
+    ~100 instructions less), any other step to ``otherwise``. (The writer's comprehension calls it
     with the step tuple whole: unpacked here, its fields are fast locals of one frame, not
-    arguments passed one by one, benchmarks/reports/logging_overhead.md.)"""
-    if len(fed) > 2:
+    arguments passed one by one, benchmarks/reports/logging_overhead.md.) Also ``--resim``'s way
+    of telling a logged record the same as the session's (replay/resimulation.py: the data alone,
+    ``otherwise`` giving None): one maker of the layout, written and compared."""
+    spec = graph.nodes[node]
+    fed = []  # the ports in the order a tick consumes them, each with its edge's source node and port
+    for port in spec.inputs:
+        edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
+        if len(edges) > 1:
+            return otherwise
+        fed += [(port, *edge) for edge in edges]
+    if len(spec.outputs) != 1 or len(fed) > 2:
         return otherwise
+    output, = spec.outputs
     pack = functools.partial(msgpack.packb, use_bin_type=True)
     consts = [b"\x97" + pack(node), bytes((0x80 | len(fed),))]  # then the microstep, a fixint
     for port, src, src_port in fed:
@@ -104,7 +115,7 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, 
     wall_format = {8: "Q", 4: "I"}[wall_bytes]
     data = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", wall_format])))
     # the Message record's head: its opcode, length and channel id fixed here, then the ints that change
-    fixed = _fixed_head(MESSAGE_FIELDS + data.size, channel)
+    fixed = None if channel is None else _fixed_head(MESSAGE_FIELDS + data.size, channel)
     head_pack = _FIXED_HEAD.pack
     ok, errors = StepStatus.OK, (ValueError, TypeError, KeyError, struct.error)
     data_pack = data.pack
@@ -119,7 +130,9 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, 
                 if status is ok and detail is None and not consumed and tag[1] < 128:
                     (n, p, s), = produced
                     if n == node and p == output:
-                        return head_pack(fixed, sequence, tag[0], start) + data_pack(c0, tag[1], c1, s, c2, wall)
+                        if fixed is not None:
+                            return head_pack(fixed, sequence, tag[0], start) + data_pack(c0, tag[1], c1, s, c2, wall)
+                        return data_pack(c0, tag[1], c1, s, c2, wall)
             except errors:
                 pass
             return otherwise(step, sequence)
@@ -134,8 +147,10 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, 
                     (a0, b0, s0), = consumed[port0]
                     (n, p, s), = produced
                     if a0 == src0 and b0 == src_port0 and n == node and p == output:
-                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c0, tag[1], c1, s0, c2, s, c3, wall)
+                        if fixed is not None:
+                            return head_pack(fixed, sequence, tag[0], start) + data_pack(
+                                c0, tag[1], c1, s0, c2, s, c3, wall)
+                        return data_pack(c0, tag[1], c1, s0, c2, s, c3, wall)
             except errors:
                 pass
             return otherwise(step, sequence)
@@ -153,8 +168,10 @@ def _step_record_maker(node: str, fed: list[tuple[str, str, str]], output: str, 
                     (n, p, s), = produced
                     if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
                             and b1 == src_port1 and n == node and p == output):
-                        return head_pack(fixed, sequence, tag[0], start) + data_pack(
-                            c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
+                        if fixed is not None:
+                            return head_pack(fixed, sequence, tag[0], start) + data_pack(
+                                c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
+                        return data_pack(c0, tag[1], c1, s0, c2, s1, c3, s, c4, wall)
             except errors:
                 pass
             return otherwise(step, sequence)
@@ -296,24 +313,14 @@ class LogWriter:
         self._flush_interval = flush_interval
         self._last_flush = time.monotonic()
         # by node: what makes the step records of its generic ticks (those of the common shape in
-        # two struct.packs, _step_record_maker; the others with msgpack, _packed_step_record)
+        # two struct.packs, step_record_maker; the others with msgpack, _packed_step_record)
         self._step_makers = {node.id: self._step_maker(graph, node.id) for node in graph.nodes.values()}
 
     def _step_maker(self, graph: "Graph", node: str) -> Callable[[tuple, int], bytes]:
-        """_step_record_maker for ``node``; _packed_step_record unless it has one output and each
-        input that an edge feeds is fed by one."""
-        outputs = list(graph.nodes[node].outputs)
-        fed = []
-        for port in graph.nodes[node].inputs:
-            edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
-            if len(edges) > 1:
-                return self._packed_step_record
-            fed += [(port, *edge) for edge in edges]
-        if len(outputs) != 1:
-            return self._packed_step_record
-        # a wall time below 2**32 ns (4.3 s) in a uint32's pack, else the uint64's, else msgpack
-        wide = _step_record_maker(node, fed, outputs[0], self._steps_channel, self._packed_step_record)
-        return _step_record_maker(node, fed, outputs[0], self._steps_channel, wide, wall_bytes=4)
+        """step_record_maker for ``node``: a wall time below 2**32 ns (4.3 s) in a uint32's pack,
+        else the uint64's, else (and for a node of another shape) _packed_step_record."""
+        wide = step_record_maker(graph, node, self._steps_channel, self._packed_step_record)
+        return step_record_maker(graph, node, self._steps_channel, wide, wall_bytes=4)
 
     @contextmanager
     def _refused_writes(self, outcome: str) -> Iterator[None]:

@@ -138,6 +138,7 @@ def _replay_surveyed(log: LogHead, survey: LogSurvey, messages: Callable[[], Ite
                      progress: Callable[[int, int], None] | None, keep_trace: bool) -> ReplayReport:
     pipeline = pipeline_for(log, pipeline, survey.logged_nodes)
     graph = pipeline.compile()
+    survey.check_details(graph)
     changes = code_changes(log, graph)
     session = InprocSession(graph)
     logged = from_the_log(graph)

@@ -31,10 +31,10 @@ reads the file twice and keeps neither, as ``replay_file`` does:
    (``codec.decodes_surely``) is compared by its bytes, undecoded: the session's value packed
    to the same bytes is the same record (``_same_events``). A step record as read is the same as
    the session's if its log time is its tag's time and its data but its wall time is the
-   session's packed as the log writer packs a record of the common shape (its seqs and wall time
-   in fixed widths: ``_step_packer``, nearly all, and no record is decoded); else it is read and
-   compared by its fields, and its detail, if any, packed alone (``_same_steps``); anything else
-   decoded and packed, as the two traces would be.
+   session's packed as the log writer packs a record of the common shape (its seqs and wall time in
+   fixed widths: ``log.writer.step_record_maker``, nearly all, and no record is decoded); else it
+   is read and compared by its fields, and its detail, if any, packed alone (``_same_steps``);
+   anything else decoded and packed, as the two traces would be.
 
 What is held is a second of records (and the log's chunks whose times overlap), however long
 the log. The report is the one a comparison of the two whole traces gives: the same first
@@ -45,7 +45,6 @@ difference, counted the same way (``record i`` over the events, then the step re
 from __future__ import annotations
 
 import os
-import struct
 from bisect import bisect_left
 from collections import deque
 from itertools import chain
@@ -63,6 +62,7 @@ from ..errors import LogError, ReplayedError, StepError
 from ..graph import Graph
 from ..log import format as fmt
 from ..log.reader import ChunkMessages, LogHead, LoggedEvent, RunLog, logged_event, read_log, step_record
+from ..log.writer import step_record_maker
 from ..pipeline import Pipeline
 from ..trace import Event, StepRecord, StepStatus, event_bytes, event_difference, semantic_detail, step_bytes
 from .prepare import code_changes, from_the_log, pipeline_for, set_up_flows, surveyed
@@ -198,6 +198,7 @@ def _resim(log: LogHead, survey: ResimSurvey, batches: Callable[[], Iterator], p
                        "retriever replay LOG (without --resim) follows the run through its restarts")
     pipeline = pipeline_for(log, pipeline, survey.logged_nodes)
     graph = pipeline.compile()
+    survey.events.check_details(graph)
     changes = code_changes(log, graph)
     survey.check_events()
     end = log.end
@@ -507,81 +508,22 @@ def _step_of(path: Path, record: tuple) -> tuple:
     return tuple(step_record(path, log_time, sequence, publish_ns, one))
 
 
-_PACK_ERRORS = (ValueError, TypeError, KeyError, struct.error)
+def _no_record(step: tuple, sequence: int) -> None:
+    """A step record's maker's ``otherwise`` (``log.writer.step_record_maker``) for ``--resim``:
+    a step of another shape than the common one is not packed, but read and compared."""
+    return None
 
 
-def _step_packer(graph: Graph, node: str) -> Callable[[tuple], bytes | None] | None:
-    """``pack(step)``: the data of a step record of ``node`` (the fields of a :class:`StepRecord`,
-    a plain tuple) as the log writer packs one of the common shape (``log/writer.py``, its
-    ``_step_record_maker``: ``ok``, no detail, a microstep below 128, one event on the node's one
-    output and one consumed on each input port an edge feeds, its seqs uint32s, its wall time a
-    uint64), but for its wall time's 8 bytes; None for a step of another shape. None: the node has
-    no such shape (other than one output, an input fed by two edges, more than two fed)."""
-    spec = graph.nodes[node]
-    fed = []
-    for port in spec.inputs:
-        edges = [(edge.src, edge.src_port) for edge in graph.edges if edge.dst == node and edge.dst_port == port]
-        if len(edges) > 1:
-            return None
-        fed += [(port, *edge) for edge in edges]
-    if len(spec.outputs) != 1 or len(fed) > 2:
-        return None
-    output, = spec.outputs
-    consts = [b"\x97" + msgpack.packb(node), bytes((0x80 | len(fed),))]  # then the microstep, a fixint
-    for port, src, src_port in fed:
-        consts[-1] += msgpack.packb(port) + b"\x91\x93" + msgpack.packb(src) + msgpack.packb(src_port) + b"\xce"
-        consts.append(b"")  # then the seq of the event consumed, a uint32
-    consts[-1] += b"\x91\x93" + msgpack.packb(node) + msgpack.packb(output) + b"\xce"
-    consts.append(msgpack.packb(StepStatus.OK.value) + b"\xc0\xcf")  # (then the wall time's 8 bytes)
-    pack = struct.Struct(">" + "".join(f"{len(c)}s{i}" for c, i in zip(consts, ["B", *"I" * len(fed), "I", ""]))).pack
-    ok = StepStatus.OK
-    if not fed:
-        c0, c1, c2 = consts
-
-        def packed(step: tuple) -> bytes | None:
-            try:
-                _, tag, consumed, produced, status, detail, _, _ = step
-                if status is ok and detail is None and not consumed and tag[1] < 128:
-                    (n, p, s), = produced
-                    if n == node and p == output:
-                        return pack(c0, tag[1], c1, s, c2)
-            except _PACK_ERRORS:
-                pass
-            return None
-    elif len(fed) == 1:
-        (port0, src0, src_port0), = fed
-        c0, c1, c2, c3 = consts
-
-        def packed(step: tuple) -> bytes | None:
-            try:
-                _, tag, consumed, produced, status, detail, _, _ = step
-                if status is ok and detail is None and tag[1] < 128 and len(consumed) == 1:
-                    (a0, b0, s0), = consumed[port0]
-                    (n, p, s), = produced
-                    if a0 == src0 and b0 == src_port0 and n == node and p == output:
-                        return pack(c0, tag[1], c1, s0, c2, s, c3)
-            except _PACK_ERRORS:
-                pass
-            return None
-    else:
-        (port0, src0, src_port0), (port1, src1, src_port1) = fed
-        c0, c1, c2, c3, c4 = consts
-
-        def packed(step: tuple) -> bytes | None:
-            try:
-                _, tag, consumed, produced, status, detail, _, _ = step
-                if status is ok and detail is None and tag[1] < 128:
-                    p0, p1 = consumed
-                    (a0, b0, s0), = consumed[p0]
-                    (a1, b1, s1), = consumed[p1]
-                    (n, p, s), = produced
-                    if (p0 == port0 and a0 == src0 and b0 == src_port0 and p1 == port1 and a1 == src1
-                            and b1 == src_port1 and n == node and p == output):
-                        return pack(c0, tag[1], c1, s0, c2, s1, c3, s, c4)
-            except _PACK_ERRORS:
-                pass
-            return None
-    return packed
+def _step_packers(graph: Graph) -> dict[str, Callable[[tuple, int], bytes | None]]:
+    """Per node that has the common shape: ``pack(step, sequence)``, the data of a step record of
+    it (the fields of a :class:`StepRecord`, a plain tuple) as the log writer packs one of that
+    shape (``log.writer.step_record_maker``: ``ok``, no detail, a microstep below 128, one event on
+    the node's one output and one consumed on each input port an edge feeds, its seqs uint32s, its
+    wall time a uint64), or None for a step of another shape, or of a wall time of 2**32 ns or
+    more (the uint64's first 4 bytes zeros: a uint32's pack, the cheaper; such a step is read and
+    compared instead)."""
+    makers = {node: step_record_maker(graph, node, None, _no_record, wall_bytes=4) for node in graph.nodes}
+    return {node: make for node, make in makers.items() if make is not _no_record}
 
 
 def _the_ids_of(produced: list[tuple], events: list[tuple]) -> bool:
@@ -721,8 +663,8 @@ class _Comparison:
 
     def __init__(self, log: LogHead, graph: Graph) -> None:
         self.log = log  # whose events' values are decoded (RunLog.value)
-        #: per node: its step records' data as the log writer packs those of the common shape (_step_packer)
-        self.packers = {node: _step_packer(graph, node) for node in graph.nodes}
+        #: per node: its step records' data as the log writer packs those of the common shape (_step_packers)
+        self.packers = _step_packers(graph)
         #: per side (0: the log's, 1: the session's): events and step records not yet paired
         #: (the log's events as read, plain tuples, when their value decodes surely: _Feed.events_before;
         #: its step records and the session's records as plain tuples too, _Feed and _drained)
@@ -776,8 +718,8 @@ class _Comparison:
             if a[0] is None:
                 pack = packers.get(b[0])
                 if pack is not None and a[1][0] == b[1][0]:
-                    data = pack(b)
-                    if data is not None and data == a[2][:-8]:
+                    data = pack(b, 0)
+                    if data is not None and data[:-8] == a[2][:-8]:
                         add(b[3])
                         continue
                 a = _step_of(path, a)

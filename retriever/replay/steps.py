@@ -81,7 +81,8 @@ class StepReplay:
                  "lost", "floors", "stamped", "cut_short", "report", "total", "done", "on_clock", "next_ticks",
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
-                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape", "expected")
+                 "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape", "expected", "died",
+                 "run_step")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -100,6 +101,12 @@ class StepReplay:
         # a lost process's outputs that its records claim and no report carried: not comparable (a
         # consumer may still have carried one in: that one is in the log, and compared)
         self.lost = {event_id for fault in log.faults for event_id in fault["lost_events"] if not self.in_log(event_id)}
+        # per node whose process died: per death, in time order, [its time, the tag of the node's last
+        # step record at or before it] (_run_noting_deaths; _died_with_its_record)
+        self.died: dict[str, list[list]] = {}
+        for fault in sorted(log.faults, key=lambda fault: int(fault.get("at_ns", "0"))):
+            self.died.setdefault(fault["node"], []).append([int(fault.get("at_ns", "0")), None])
+        self.run_step = self._run_noting_deaths if self.died else self.run
         self.floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
         # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
         # is then checked for causality (after the tick), not recomputed.
@@ -132,7 +139,7 @@ class StepReplay:
         log = self.log
         steps_channels = {c.id for c in log.channels.values() if c.topic == fmt.STEPS_TOPIC}
         ports = {c.id: parsed for c in log.channels.values() if (parsed := fmt.parse_data_topic(c.topic))}
-        read, run = self.read, self.run
+        read, run = self.read, self.run_step
         record = _step_record
         unchecked = self.unchecked
         steps: list = []
@@ -242,7 +249,7 @@ class StepReplay:
         """Run an instant's step records, its messages all read, in (tag, node) order."""
         if len(steps) > 1:
             steps.sort(key=_microstep_node)
-        run, done = self.run, self.done
+        run, done = self.run_step, self.done
         for step in steps:
             if progress is not None and done % PROGRESS_EVERY == 0:
                 progress(done, self.total)
@@ -250,6 +257,29 @@ class StepReplay:
             run(step)
         self.done = done
         steps.clear()
+
+    def _run_noting_deaths(self, step) -> None:
+        """:meth:`run`, in a log whose fault records say a process died: a record of its node
+        at or before a death is the node's last so far before it (records run in tag order)."""
+        deaths = self.died.get(step.node)
+        if deaths is not None:
+            for death in deaths:
+                if step.tag[0] <= death[0]:
+                    death[1] = step.tag
+        self.run(step)
+
+    def _died_with_its_record(self, event_id: tuple, tag: tuple[int, int]) -> bool:
+        """Whether an event that no step record names may be one whose record its process died
+        with: on ``zenoh`` a node reports its events before its records, which it sends in order
+        and may hold back (backends/zenoh/node/reports.py), and a consumer that took an event may
+        carry it in (docs/log.md); a kill loses the records not sent yet, none before one that was.
+        So: an event of a node whose process died at or after its tag, later than every record of
+        the node at or before that death (the first death at or after its tag: a fresh process's
+        records come after it). Any other such event is no output of a step the run made."""
+        for at_ns, last in self.died.get(event_id[0], ()):
+            if tag[0] <= at_ns:
+                return last is None or last < tag
+        return False
 
     def run(self, step) -> None:
         """One logged step: checked against its node's clock, the run's restart and late arrivals
@@ -448,15 +478,14 @@ class StepReplay:
         event that a record named and that never came after it came before it, and an earlier
         record took it (or the same record named it twice); an event (a source's, or a re-executed
         flow's, then compared with nothing) that no record of its node named is no output of a
-        step: the log is refused (but where it was cut short, or of a flow whose process died,
-        which may leave a record without its events, or an event without its record)."""
+        step: the log is refused (but where it was cut short, or one whose record a process
+        that died took with it, :meth:`_died_with_its_record`)."""
         if self.expected:
             event_id, step = next(iter(self.expected.items()))
             raise not_its_event(self.log.path, step, event_id, NAMED_BEFORE)
         if not self.cut_short:
-            died = {fault["node"] for fault in self.log.faults}  # (another flow's process did not)
-            for event_id in self.unclaimed:
-                if event_id[0] not in died:
+            for event_id, (tag, _) in self.unclaimed.items():
+                if not self._died_with_its_record(event_id, tag):
                     raise no_record_of(self.log.path, event_id)
         for check in self.checks:  # what no output came for: the log ends before it
             if not check.done:

@@ -62,6 +62,11 @@ class LogSurvey:
         self.late: dict[tuple[tuple[str, str], tuple[str, str, int]], tuple[int, int]] = {}
         self._views: dict[tuple[tuple[str, str], str, str], list] = {}
         self.gaps: dict[tuple[str, str], list[tuple[str, str, int, int]]] = {}
+        #: (node, detail key, what it names) -> (tag, sequence) of the first record of the node that names
+        #: it: a key of no writer's (what: None), a stream into an input port ((port, producer, its
+        #: port)) or an output port ((port,), ``restarted``'s seqs), which the pipeline must have
+        #: (:meth:`check_details`)
+        self._named: dict[tuple[str, str, tuple | None], tuple[tuple[int, int], int]] = {}
         self.step_error: LogError | None = None
         self.event_error: LogError | None = None
         self.twice: LogError | None = None
@@ -202,6 +207,7 @@ class LogSurvey:
         if not detail:
             return
         tag = (log_time, microstep)
+        self._note_names(node, tag, sequence, detail)
         for port, ids in (detail.get("late") or {}).items():
             for event_id in ids:
                 key = ((node, port), tuple(event_id))
@@ -212,6 +218,54 @@ class LogSurvey:
                 self._views.setdefault(((node, port), src, out), []).append((tag, seq))
         for port, ranges in (detail.get("restart_gap") or {}).items():
             self.gaps.setdefault((node, port), []).extend(tuple(r) for r in ranges)
+
+    def _note_names(self, node: str, tag: tuple[int, int], sequence: int, detail: dict) -> None:
+        """Note what a record's ``detail`` (checked by ``format.decode_step``) names that the
+        pipeline replayed must have (:meth:`check_details`)."""
+        named, where = self._named, (tag, sequence)
+        for key in detail:
+            if key not in fmt.DETAIL_KEYS:  # a Queue's drop count, if an input port of the node: else no writer's
+                named.setdefault((node, key, None), where)
+        for key in fmt.STREAM_DETAIL_KEYS:
+            for port, streams in (detail.get(key) or {}).items():
+                for stream in streams:
+                    named.setdefault((node, key, (port, stream[0], stream[1])), where)
+        restarted = detail.get("restarted")
+        if restarted is not None:
+            for port in restarted["seqs"]:
+                named.setdefault((node, "restarted", (port,)), where)
+            for port, streams in restarted["inputs"].items():
+                for stream in streams:
+                    named.setdefault((node, "restarted", (port, stream[0], stream[1])), where)
+
+    def check_details(self, graph) -> None:
+        """Refuse the log if a step record's detail has a key no Retriever writer writes (nor an
+        input port of its node's, whose Queue drops it would count), or names a stream into its
+        node (``late``, ``had_below``, ``restart_gap``, ``restarted``'s inputs) that is no edge of
+        ``graph``, or an output its node does not have (``restarted``'s seqs): the first such
+        record in the log's time order. A replay would withhold or put in events by what no
+        run of this pipeline wrote."""
+        edges = {(edge.src, edge.src_port, edge.dst, edge.dst_port) for edge in graph.edges}
+        found = []
+        for (node, key, what), where in self._named.items():
+            spec = graph.nodes.get(node)
+            if spec is None:  # (pipeline_for refuses a log with steps of a node the pipeline lacks)
+                continue
+            if what is None:
+                if key not in spec.inputs:
+                    found.append((where, node, f"has detail '{key}', which Retriever does not write (nor is it an "
+                                              f"input port of {node}, whose Queue drops it would count)"))
+            elif len(what) == 1:
+                if what[0] not in spec.outputs:
+                    found.append((where, node, f"gives in its detail '{key}' the first seq of output {node}.{what[0]}, "
+                                              f"which pipeline '{graph.name}' does not have"))
+            elif (what[1], what[2], node, what[0]) not in edges:
+                found.append((where, node, f"names in its detail '{key}' the stream {what[1]}.{what[2]} -> "
+                                          f"{node}.{what[0]}, which is no edge of pipeline '{graph.name}'"))
+        if found:
+            (tag, sequence), node, says = min(found, key=lambda f: f[0])
+            raise LogError(f"{self.path}: step record #{sequence} (of {node} at {format_tag(tag)}) {says}",
+                           f"replay with the pipeline that wrote the log; else {DAMAGED}")
 
     def logged_nodes(self) -> set[str]:
         """The nodes the log has steps of (or the error of its first step record that is not one)."""
