@@ -20,6 +20,14 @@ handle, the payload written by the publisher into a slot of a shared-memory ring
     raw-zenoh-shm-copy  the subscriber copies the slot out (an array it owns), then checks the
                         slot's generation (seqlock)
     raw-zenoh-shm-view  the subscriber takes a read-only view of the slot, no copy (as dora's)
+    raw-unix-shm-copy   raw-zenoh-shm-copy with the handles over a Unix datagram socket, no Zenoh
+
+and Retriever on Zenoh with such a ring under its transport (a prototype over the transport's
+public tap, benchmarks/shm_ring_flows.py: messages of 64 KiB or more):
+
+    retriever-zenoh-ring-copy  the sink's loop gets bytes copied out of the slot
+    retriever-zenoh-ring-view  the sink's loop gets a view of the slot (nothing holds it)
+    retriever-unix-ring-copy   ring-copy, the handles over a Unix datagram socket, not Zenoh
 
 The Retriever sides run ``src = PayloadSource(size) @ Rate(hz) ──frame──▶ LatencySink() @
 Trigger("frame")`` (benchmarks/zenoh_flows.py); every side takes ``time.time_ns()`` right before
@@ -57,7 +65,8 @@ import numpy as np  # noqa: E402
 from latency import fmt_size, parse_size, quantile, run_raw, run_retriever  # noqa: E402
 
 SIDES = ("retriever-inproc", "retriever-zenoh", "retriever-dora", "raw-zenoh", "raw-dora", "raw-dora-bp")
-DIAGNOSTIC_SIDES = ("raw-zenoh-shm-copy", "raw-zenoh-shm-view")
+DIAGNOSTIC_SIDES = ("raw-zenoh-shm-copy", "raw-zenoh-shm-view", "raw-unix-shm-copy",
+                    "retriever-zenoh-ring-copy", "retriever-zenoh-ring-view", "retriever-unix-ring-copy")
 DEFAULT_SIZES = ["64", "256", "1Ki", "4Ki", "16Ki", "64Ki", "256Ki", "1Mi", "4Mi", "16Mi"]
 DORA_PAIR = HERE / "dora_latency"
 
@@ -98,8 +107,14 @@ def run_side(side: str, size: int, total: int, hz: float, warmup: int) -> dict:
         return run_raw(size, total, hz, warmup, extra_sub=False, iterate=True)
     if side in DIAGNOSTIC_SIDES:
         from shm_ring import run_shm
+        from shm_ring_flows import run_retriever_ring
 
-        return run_shm(size, total, hz, warmup, side.removeprefix("raw-zenoh-shm-"))
+        ring_modes = {"retriever-zenoh-ring-copy": "copy", "retriever-zenoh-ring-view": "view",
+                      "retriever-unix-ring-copy": "unix"}
+        if side in ring_modes:
+            return run_retriever_ring(size, total, hz, warmup, ring_modes[side])
+        return run_shm(size, total, hz, warmup, {"raw-zenoh-shm-copy": "copy", "raw-zenoh-shm-view": "view",
+                                                 "raw-unix-shm-copy": "unix"}[side])
     if side in ("raw-dora", "raw-dora-bp"):
         return run_raw_dora(size, total, hz, warmup, backpressure=side == "raw-dora-bp")
     return run_retriever(size, total, hz, warmup, side.removeprefix("retriever-"))
@@ -120,7 +135,9 @@ def plot(rows: dict, sizes: list[int], sides: list[str], path: Path, title: str)
     styles = {"retriever-inproc": ("tab:gray", ":"), "retriever-zenoh": ("tab:blue", "-"),
               "retriever-dora": ("tab:orange", "-"), "raw-zenoh": ("tab:blue", "--"), "raw-dora": ("tab:orange", "--"),
               "raw-dora-bp": ("tab:red", "-."), "raw-zenoh-shm-copy": ("tab:green", "--"),
-              "raw-zenoh-shm-view": ("tab:green", ":")}
+              "raw-zenoh-shm-view": ("tab:green", ":"), "raw-unix-shm-copy": ("tab:olive", "--"),
+              "retriever-zenoh-ring-copy": ("tab:purple", "-"), "retriever-zenoh-ring-view": ("tab:purple", ":"),
+              "retriever-unix-ring-copy": ("tab:brown", "-")}
     for side in sides:
         xs = [s for s in sizes if rows[s][side]["n"]]
         color, line = styles[side]

@@ -21,6 +21,9 @@ and by the harness after both processes are gone (a publisher killed): nothing i
 
     python benchmarks/shm_ring.py --selftest     # hostile handles refused, a lapped slot detected
 
+``raw-unix-shm-copy`` (fig7a_latency.py): the copy side with no Zenoh at all, the handles over a
+Unix datagram socket: what the handle's own transport costs.
+
 ``SHM_RING_EXPRESS=1`` in the environment of fig7a_latency.py: the handle's publisher declared
 ``express=True``, as Retriever's publishers are (a diagnostic of this diagnostic).
 """
@@ -170,6 +173,18 @@ class Reader:
     def view(self, handle: bytes) -> np.ndarray:
         return self._locate(handle)[0]  # read-only (the mapping is)
 
+    def copy_bytes(self, handle: bytes) -> bytes:
+        """:meth:`copy`, as the bytes a data message is (what ``payload.to_bytes()`` gives)."""
+        src, table, slot, gen = self._locate(handle)
+        out = src.tobytes()
+        if int(table[slot, 0]) != gen:
+            raise RingError(f"slot {slot} rewritten while read: generation {int(table[slot, 0])}, the handle's {gen}")
+        return out
+
+    def view_memory(self, handle: bytes) -> memoryview:
+        """:meth:`view`, as a memoryview (what wire.decode_events takes): nothing holds the slot."""
+        return memoryview(self._locate(handle)[0])
+
     def close(self) -> None:
         maps = [ring[0] for ring in self.rings.values()]
         self.rings.clear()  # the arrays over the maps first: a map with views on it does not close
@@ -246,22 +261,86 @@ def shm_pub(key: str, connect: str, size: int, total: int, hz: float, ring_hex: 
     return 0
 
 
+def unix_sub(name: str, total: int, timeout: float) -> int:
+    """shm_sub's copy without Zenoh: the handles come over a Unix datagram socket (``name``, in
+    the abstract namespace), received by a plain blocking ``recv`` loop on a thread."""
+    import socket
+
+    from latency import ATTACH
+
+    got, errors, reader = [], [], Reader()
+    done = threading.Event()
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind("\0" + name)
+
+    def drain() -> None:
+        while True:
+            message = sock.recv(256)
+            cb_in = time.time_ns()
+            seq, sent = ATTACH.unpack_from(message, 0)
+            try:
+                arr = reader.copy(message[ATTACH.size:])
+            except RingError as e:
+                errors.append(str(e))
+            else:
+                got.append((seq, sent, time.time_ns(), arr.size, cb_in))
+                del arr
+            if seq == total - 1:
+                done.set()
+                return
+    threading.Thread(target=drain, daemon=True).start()
+    print("READY", flush=True)
+    done.wait(timeout)
+    sock.close()
+    reader.close()
+    print(json.dumps({"got": got, "errors": errors}), flush=True)
+    return 0
+
+
+def unix_pub(name: str, size: int, total: int, hz: float, ring_hex: str) -> int:
+    import socket
+
+    from latency import ATTACH
+
+    data = np.zeros(size, dtype=np.uint8)
+    period = round(1e9 / hz)
+    ring = Writer(bytes.fromhex(ring_hex), size)
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.connect("\0" + name)
+            deadline = time.time_ns() + period
+            for seq in range(total):
+                wait = deadline - time.time_ns()
+                if wait > 0:
+                    time.sleep(wait / 1e9)
+                data[: min(8, size)] = seq % 256
+                sent = time.time_ns()
+                sock.send(ATTACH.pack(seq, sent) + ring.write(data))
+                deadline += period
+    finally:
+        ring.close()
+    print("[]", flush=True)
+    return 0
+
+
 def run_shm(size: int, total: int, hz: float, warmup: int, mode: str) -> dict:
-    """One run of the side ``raw-zenoh-shm-<mode>``: a subscriber and a publisher process."""
+    """One run of the side ``raw-zenoh-shm-<mode>`` (or, ``mode`` unix, raw-unix-shm-copy): a
+    subscriber and a publisher process."""
     from latency import free_port
 
     key = f"bench/latency-shm/{os.getpid()}/{size}"
-    listen = f"tcp/127.0.0.1:{free_port()}"
+    listen = f"tcp/127.0.0.1:{free_port()}" if mode != "unix" else f"retriever-bench-{uuid.uuid4().hex}"
     timeout = total / hz + 30
     ring_id = uuid.uuid4().bytes
     me = [sys.executable, str(Path(__file__).resolve())]
-    sub = subprocess.Popen(me + ["--sub", key, listen, str(total), str(timeout), mode], stdout=subprocess.PIPE,
-                           text=True)
+    sub = subprocess.Popen(me + (["--sub", key, listen, str(total), str(timeout), mode] if mode != "unix" else
+                                 ["--unix-sub", listen, str(total), str(timeout)]), stdout=subprocess.PIPE, text=True)
     pub = None
     try:
         if sub.stdout.readline().strip() != "READY":
             raise SystemExit("shm subscriber did not start")
-        pub = subprocess.Popen(me + ["--pub", key, listen, str(size), str(total), str(hz), ring_id.hex()],
+        pub = subprocess.Popen(me + (["--pub", key] if mode != "unix" else ["--unix-pub"])
+                               + [listen, str(size), str(total), str(hz), ring_id.hex()],
                                stdout=subprocess.PIPE, text=True)
         out = json.loads(sub.communicate(timeout=timeout + 30)[0].strip().splitlines()[-1])
         pub.communicate(timeout=30)
@@ -332,6 +411,10 @@ def main(argv: list[str]) -> int:
         return shm_sub(argv[1], argv[2], int(argv[3]), float(argv[4]), argv[5])
     if argv[:1] == ["--pub"]:
         return shm_pub(argv[1], argv[2], int(argv[3]), int(argv[4]), float(argv[5]), argv[6])
+    if argv[:1] == ["--unix-sub"]:
+        return unix_sub(argv[1], int(argv[2]), float(argv[3]))
+    if argv[:1] == ["--unix-pub"]:
+        return unix_pub(argv[1], int(argv[2]), int(argv[3]), float(argv[4]), argv[5])
     if argv[:1] == ["--selftest"]:
         return selftest()
     raise SystemExit(__doc__)
