@@ -12,6 +12,23 @@
                       through its daemon, which the dora backend takes (dora's direct route lost
                       messages: docs/dora.md); the transport the retriever-dora side really has
 
+Diagnostic sides (not run unless named in ``--sides``; benchmarks/shm_ring.py,
+benchmarks/reports/shm_channel.md): raw-zenoh's processes and settings carrying only a 40-byte
+handle, the payload written by the publisher into a slot of a shared-memory ring of its own in
+/dev/shm (the array copied in once):
+
+    raw-zenoh-shm-copy  the subscriber copies the slot out (an array it owns), then checks the
+                        slot's generation (seqlock)
+    raw-zenoh-shm-view  the subscriber takes a read-only view of the slot, no copy (as dora's)
+    raw-unix-shm-copy   raw-zenoh-shm-copy with the handles over a Unix datagram socket, no Zenoh
+
+and Retriever on Zenoh with such a ring under its transport (a prototype over the transport's
+public tap, benchmarks/shm_ring_flows.py: messages of 64 KiB or more):
+
+    retriever-zenoh-ring-copy  the sink's loop gets bytes copied out of the slot
+    retriever-zenoh-ring-view  the sink's loop gets a view of the slot (nothing holds it)
+    retriever-unix-ring-copy   ring-copy, the handles over a Unix datagram socket, not Zenoh
+
 The Retriever sides run ``src = PayloadSource(size) @ Rate(hz) ──frame──▶ LatencySink() @
 Trigger("frame")`` (benchmarks/zenoh_flows.py); every side takes ``time.time_ns()`` right before
 the send and right after the array is in the receiver's hands, on one machine (one clock). Per
@@ -48,6 +65,8 @@ import numpy as np  # noqa: E402
 from latency import fmt_size, parse_size, quantile, run_raw, run_retriever  # noqa: E402
 
 SIDES = ("retriever-inproc", "retriever-zenoh", "retriever-dora", "raw-zenoh", "raw-dora", "raw-dora-bp")
+DIAGNOSTIC_SIDES = ("raw-zenoh-shm-copy", "raw-zenoh-shm-view", "raw-unix-shm-copy",
+                    "retriever-zenoh-ring-copy", "retriever-zenoh-ring-view", "retriever-unix-ring-copy")
 DEFAULT_SIZES = ["64", "256", "1Ki", "4Ki", "16Ki", "64Ki", "256Ki", "1Mi", "4Mi", "16Mi"]
 DORA_PAIR = HERE / "dora_latency"
 
@@ -86,6 +105,16 @@ def run_raw_dora(size: int, total: int, hz: float, warmup: int, backpressure: bo
 def run_side(side: str, size: int, total: int, hz: float, warmup: int) -> dict:
     if side == "raw-zenoh":
         return run_raw(size, total, hz, warmup, extra_sub=False, iterate=True)
+    if side in DIAGNOSTIC_SIDES:
+        from shm_ring import run_shm
+        from shm_ring_flows import run_retriever_ring
+
+        ring_modes = {"retriever-zenoh-ring-copy": "copy", "retriever-zenoh-ring-view": "view",
+                      "retriever-unix-ring-copy": "unix"}
+        if side in ring_modes:
+            return run_retriever_ring(size, total, hz, warmup, ring_modes[side])
+        return run_shm(size, total, hz, warmup, {"raw-zenoh-shm-copy": "copy", "raw-zenoh-shm-view": "view",
+                                                 "raw-unix-shm-copy": "unix"}[side])
     if side in ("raw-dora", "raw-dora-bp"):
         return run_raw_dora(size, total, hz, warmup, backpressure=side == "raw-dora-bp")
     return run_retriever(size, total, hz, warmup, side.removeprefix("retriever-"))
@@ -105,7 +134,10 @@ def plot(rows: dict, sizes: list[int], sides: list[str], path: Path, title: str)
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     styles = {"retriever-inproc": ("tab:gray", ":"), "retriever-zenoh": ("tab:blue", "-"),
               "retriever-dora": ("tab:orange", "-"), "raw-zenoh": ("tab:blue", "--"), "raw-dora": ("tab:orange", "--"),
-              "raw-dora-bp": ("tab:red", "-.")}
+              "raw-dora-bp": ("tab:red", "-."), "raw-zenoh-shm-copy": ("tab:green", "--"),
+              "raw-zenoh-shm-view": ("tab:green", ":"), "raw-unix-shm-copy": ("tab:olive", "--"),
+              "retriever-zenoh-ring-copy": ("tab:purple", "-"), "retriever-zenoh-ring-view": ("tab:purple", ":"),
+              "retriever-unix-ring-copy": ("tab:brown", "-")}
     for side in sides:
         xs = [s for s in sizes if rows[s][side]["n"]]
         color, line = styles[side]
@@ -128,7 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, metavar="N", help="payload sizes; suffixes Ki, Mi")
-    p.add_argument("--sides", default=",".join(SIDES), help=f"comma-separated, of {', '.join(SIDES)}")
+    p.add_argument("--sides", default=",".join(SIDES),
+                   help=f"comma-separated, of {', '.join(SIDES)}; diagnostics: {', '.join(DIAGNOSTIC_SIDES)}")
     p.add_argument("--hz", type=float, default=20.0, help="messages per second (default 20)")
     p.add_argument("--samples", type=int, default=100, help="samples kept per size and side (default 100)")
     p.add_argument("--warmup", type=int, default=5, help="first messages of each run dropped (default 5)")
@@ -138,9 +171,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     sizes = [parse_size(s) for s in args.sizes]
     sides = [s.strip() for s in args.sides.split(",") if s.strip()]
-    unknown = sorted(set(sides) - set(SIDES))
+    unknown = sorted(set(sides) - set(SIDES) - set(DIAGNOSTIC_SIDES))
     if unknown:
-        p.error(f"unknown side(s) {unknown}; of {', '.join(SIDES)}")
+        p.error(f"unknown side(s) {unknown}; of {', '.join(SIDES + DIAGNOSTIC_SIDES)}")
     per_round = args.warmup + -(-args.samples // args.rounds)
 
     from importlib.metadata import version
