@@ -55,7 +55,7 @@ LIVE_FLUSH_BYTES = 128 << 20
 #: of it, log/rerun.py) was handed to the SDK and not yet taken by its sink, the view drops large
 #: values. 64 MiB is a few seconds of a camera (9 s of 30 Hz 320x240 RGB, 2.4 s of VGA) for a
 #: viewer that stalls for a moment (a window dragged, a GC pause, a busy machine) before it
-#: drops a frame, and what the process grows by (the SDK holds about 1.7 bytes a byte handed,
+#: drops a frame, and what the process grows by (the SDK holds 1.6-1.7 bytes a byte handed,
 #: benchmarks/reports/export_memory.md) stays about 110 MB however long the viewer stalls
 BEHIND_BYTES = 64 << 20
 #: a value of at most this many bytes (a number, a short array or text) is small: past
