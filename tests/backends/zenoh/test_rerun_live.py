@@ -403,7 +403,7 @@ def test_a_stopped_viewer_holds_the_view_to_its_budget_it_drops_frames_first_say
     assert len(starts) == 1 and len(said) == 1, [str(w.message) for w in said]
     assert re.search(rf"the Rerun live view: the viewer at {re.escape(url)} is not taking the stream \(\d+ MiB sent "
                      r"it has not taken\): frames and other large values are dropped", str(starts[0].message))
-    assert view.dropped["values"] >= 20 and view.dropped["spells"] == 1
+    assert view.dropped["values"] >= 20 and view.dropped["spells"] >= 1  # (2 if its socket took a flush's worth)
     sent_frames = view.written["/cam/rgb"]
     assert view.written["/sensor/x"] == i + 1  # the numbers went on: small, under the 1 MiB more
     assert view.dropped["bytes"] == (i + 1 - sent_frames) * frame.nbytes  # every value dropped was a frame
@@ -417,7 +417,8 @@ def test_a_stopped_viewer_holds_the_view_to_its_budget_it_drops_frames_first_say
     with pytest.warns(ViewDroppedWarning, match=rf"the Rerun live view dropped {view.dropped['values']} values "
                                               rf"\(\d+\.\d MB\) and 0 step records that the viewer at "
                                               rf"{re.escape(url)} did not take in time \(behind by more than 4 "
-                                              rf"MiB 1 time\); a log of the run keeps them all"):
+                                              rf"MiB {view.dropped['spells']} times?\); a log of the run keeps them "
+                                              rf"all"):
         view.close()
 
 
