@@ -34,7 +34,8 @@
     └── InternalError              a bug in Retriever itself; please report it
 
     RetrieverWarning (UserWarning) instantaneous cycles, required ports nothing feeds
-    └── StarvedFlowWarning         after a run: a flow skipped (nearly) every tick, and the input that starved it
+    ├── StarvedFlowWarning         after a run: a flow skipped (nearly) every tick, and the input that starved it
+    └── ViewDroppedWarning         after a run: what a live view dropped because its viewer did not take it in time
 
     Interrupted (KeyboardInterrupt)  a command stopped by SIGTERM or Ctrl-C (retriever.cli.stop_on_signals)
 
@@ -336,6 +337,11 @@ class RetrieverWarning(UserWarning):
 class StarvedFlowWarning(RetrieverWarning):
     """After a run: a flow skipped every tick, or most of them, for an input that never had an
     event (a misspelled port wires nothing); names the port and the edge."""
+
+
+class ViewDroppedWarning(RetrieverWarning):
+    """After a run: a live view dropped values and step records its viewer did not take in time
+    (log/rerun_live.py: a viewer stopped or too slow); how many, naming the viewer."""
 
 
 class Interrupted(KeyboardInterrupt):

@@ -17,7 +17,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from ..errors import Interrupted, RetrieverError, RetrieverWarning, StarvedFlowWarning
+from ..errors import Interrupted, RetrieverError, RetrieverWarning, StarvedFlowWarning, ViewDroppedWarning
 
 _state = {"debug": False}
 
@@ -95,12 +95,13 @@ def fail(exc: BaseException) -> NoReturn:
     raise typer.Exit(code=1)
 
 
-#: warnings about how the run went, held back to be printed under its table
+#: warnings about how the run went (its starved flows, what a live view dropped), held back to be
+#: printed under its table
 _after_summary: list[str] = []
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    if issubclass(category, StarvedFlowWarning):
+    if issubclass(category, (StarvedFlowWarning, ViewDroppedWarning)):
         _after_summary.append(f"warning: {message}")
     elif issubclass(category, RetrieverWarning):
         err.print(f"warning: {message}", highlight=False, markup=False)
@@ -112,7 +113,8 @@ warnings.showwarning = _show_warning
 
 
 def print_held_warnings() -> None:
-    """Print the warnings held back to go under the run's table (its starved flows)."""
+    """Print the warnings held back to go under the run's table (its starved flows, what a live
+    view dropped)."""
     for text in _after_summary:
         err.print(text, highlight=False, markup=False)
     _after_summary.clear()

@@ -8,19 +8,34 @@ goes (a file that ``rerun FILE.rrd`` opens, during the run or after it). Nothing
 is no target (the view writes no file of its own naming into one), nor a path whose folder does
 not exist, nor a file that exists; :func:`check_target` says so before the run starts (the
 backends and the command call it before any worker starts or the pipeline is loaded).
+
+A viewer that stops taking the stream (frozen, suspended, on a slow machine or link) must not
+grow the run's process without bound: Rerun's SDK (0.26) queues what it is handed without bound
+and has no knob to bound it. The view knows how far its sink is behind (:class:`SinkWatch`: a
+thread of its own flushes the stream, with a timeout, and counts what the last flush that
+completed took) and, while more than BEHIND_BYTES is not known taken, drops what it is handed:
+large values (frames) first, then, past SMALL_BYTES more, numbers and step records too. What it
+dropped is counted and said (a warning when it starts, the count at the run's end); the log keeps
+everything. A viewer that goes away (killed, closed) stops the view with a warning.
 """
 
 from __future__ import annotations
 
 import os
 import socket
+import threading
+import warnings
+from collections import Counter
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from ..errors import LogError
+import numpy as np
+
+from ..errors import LogError, RetrieverWarning, ViewDroppedWarning
 from ..trace import NOT_KEPT, StepRecord
-from .rerun import RERUN_VIEWER_URL, RerunRecording, event_time_blueprint, new_stream, rerun_sdk
+from .rerun import RECORD_BYTES, RERUN_VIEWER_URL, RerunRecording, event_time_blueprint, new_stream, rerun_sdk
+from .views import value_leaves
 
 TARGET_HINT = f"give a Rerun gRPC URL (default {RERUN_VIEWER_URL}) or a path ending in .rrd"
 #: the schemes of the URLs Rerun's SDK connects to
@@ -36,6 +51,26 @@ VIEWER_CONNECT_TIMEOUT_S = 1.0
 #: error on stderr each time once a viewer is gone
 LIVE_FLUSH_S = 0.1
 LIVE_FLUSH_BYTES = 128 << 20
+#: while more than this (in bytes of values, a row counting RECORD_BYTES more: what the SDK holds
+#: of it, log/rerun.py) was handed to the SDK and not yet taken by its sink, the view drops large
+#: values. 64 MiB is a few seconds of a camera (9 s of 30 Hz 320x240 RGB, 2.4 s of VGA) for a
+#: viewer that stalls for a moment (a window dragged, a GC pause, a busy machine) before it
+#: drops a frame, and what the process grows by (the SDK holds 1.6-1.7 bytes a byte handed,
+#: benchmarks/reports/export_memory.md) stays about 110 MB however long the viewer stalls
+BEHIND_BYTES = 64 << 20
+#: a value of at most this many bytes (a number, a short array or text) is small: past
+#: BEHIND_BYTES small values and step records are still sent (the viewer's plots and step logs
+#: go on while frames are dropped), until SMALL_BYTES more (4,096 rows) are behind too
+SMALL_VALUE_BYTES = 1024
+SMALL_BYTES = 16 << 20
+#: how long the view's watch waits for one flush of the stream before it starts the next (a
+#: flush that times out says the sink is behind; the next one waits for all before it), twice as
+#: long each time it times out, up to WATCH_FLUSH_MAX_S: each flush is a command the SDK holds
+#: until its sink takes what came before, and says an error for on stderr if the sink dies first
+WATCH_FLUSH_S = 0.5
+WATCH_FLUSH_MAX_S = 4.0
+#: how long closing the view waits for its sink to take what is left, then to disconnect
+CLOSE_S = 5.0
 #: how to have a viewer listen where a URL points
 START_VIEWER_HINT = (f"start a viewer first: `rerun` (the desktop viewer, listening on {RERUN_VIEWER_URL}), or "
                      "`rerun --serve-web` (a web viewer, its gRPC port the same); `--port PORT` for another port; "
@@ -125,18 +160,90 @@ def check_viewer(url: str, timeout: float = VIEWER_CONNECT_TIMEOUT_S) -> None:
                        START_VIEWER_HINT) from None
 
 
+def value_bytes(value: Any) -> int:
+    """About how many bytes ``value``'s leaves hand Rerun's SDK: an array's, a text's or a
+    list's of numbers (8 each); 8 for anything else (a number, a flag)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, (int, float)):
+        return 8
+    size = 0
+    for _, leaf in value_leaves(value):
+        if isinstance(leaf, np.ndarray):
+            size += leaf.nbytes
+        elif isinstance(leaf, (str, bytes, bytearray)):
+            size += len(leaf)
+        elif isinstance(leaf, (list, tuple)):
+            size += 8 * len(leaf)
+        else:
+            size += 8
+    return size
+
+
+class SinkWatch:
+    """How far a recording stream's sink is behind: ``handed`` (bytes the run's thread gave the
+    SDK, added by it) less ``taken`` (of those, the ones handed before the start of the last
+    flush that completed). A thread of its own flushes the stream whenever something was handed
+    since, waiting at most WATCH_FLUSH_S a flush (the SDK releases the GIL meanwhile): the
+    run's thread never waits for the sink. A flush that fails other than by its timeout means
+    the sink is gone (a viewer closed or killed): ``gone`` says why, and the watch stops."""
+
+    def __init__(self, stream, period: float = LIVE_FLUSH_S):
+        self._stream, self._period = stream, period
+        self.handed = 0
+        self.taken = 0
+        #: why the sink is gone (the SDK's error), or None
+        self.gone: str | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="retriever-rerun-watch", daemon=True)
+        self._thread.start()
+
+    @property
+    def behind(self) -> int:
+        """Bytes handed that the sink is not known to have taken."""
+        return self.handed - self.taken
+
+    def _watch(self) -> None:
+        timeout = WATCH_FLUSH_S
+        while not self._stop.is_set():
+            mark = self.handed
+            if mark != self.taken:
+                try:
+                    self._stream.flush(timeout_sec=timeout)
+                except RuntimeError as e:  # the SDK's, for both: "Flush timed out ...", "... disconnected"
+                    if "timed out" in str(e):
+                        timeout = min(2 * timeout, WATCH_FLUSH_MAX_S)
+                        continue  # still behind: flush again (it waits for all before it)
+                    self.gone = str(e)
+                    return
+                self.taken, timeout = mark, WATCH_FLUSH_S
+            self._stop.wait(self._period)
+
+    def stop(self) -> None:
+        """Stop the watch; its thread ends on its own once the flush under way, if any, is over."""
+        self._stop.set()
+
+
 class RerunLiveView:
     """One recording stream, to a viewer or an ``.rrd`` file, fed with the run's events (at their
     tags on ``event_time``, their seqs on ``seq`` and their publish times on ``wall_time``) and
     step records, batched by Rerun's SDK for at most LIVE_FLUSH_S: what was logged reaches the
-    sink within about that."""
+    sink within about that. While the sink is more than ``behind_bytes`` behind (SinkWatch),
+    large values are dropped, and past ``small_bytes`` more every value and step record:
+    counted in ``dropped``, said once when it starts and, at close, how much."""
 
     title = "the Rerun live view"
 
-    def __init__(self, target: str | os.PathLike, pipeline: str):
+    def __init__(self, target: str | os.PathLike, pipeline: str, *, behind_bytes: int = BEHIND_BYTES,
+                 small_bytes: int = SMALL_BYTES):
         check_target(target)
         rr = rerun_sdk(self.title)
         self.target = str(target)
+        self.behind_bytes, self.small_bytes = behind_bytes, small_bytes
+        #: what was not sent because the sink was behind: "values", "bytes" (theirs), "records"
+        #: (step records), "spells" (times it began to drop after sending)
+        self.dropped: Counter = Counter()
+        self._dropping = False
         self._stream = new_stream(rr, rr.ChunkBatcherConfig(flush_tick=LIVE_FLUSH_S,
                                                              flush_num_bytes=LIVE_FLUSH_BYTES))
         try:
@@ -146,6 +253,7 @@ class RerunLiveView:
             raise LogError(f"cannot stream the run to Rerun at {self.target}: {e}", self._hint()) from None
         self._stream.send_recording_name(pipeline)
         self._recording = RerunRecording(rr, self._stream)
+        self._watch = SinkWatch(self._stream)
 
     def _open(self, target: str | os.PathLike, rr) -> None:
         if is_rrd_path(target):
@@ -162,19 +270,80 @@ class RerunLiveView:
         return START_VIEWER_HINT
 
     @property
+    def sink(self) -> str:
+        """The sink, as said: ``the viewer at URL`` or ``the file PATH``."""
+        return f"the file {self.target}" if is_rrd_path(self.target) else f"the viewer at {self.target}"
+
+    @property
     def written(self):
         """The rows sent so far, per entity."""
         return self._recording.written
 
+    @property
+    def behind(self) -> int:
+        """Bytes handed to the SDK that its sink is not known to have taken (SinkWatch)."""
+        return self._watch.behind
+
+    def _admit(self, size: int, small: bool) -> bool:
+        """Whether a row of ``size`` bytes is sent (counted as handed) rather than dropped."""
+        watch = self._watch
+        if watch.gone is not None:
+            raise LogError(f"{self.sink} went away: {watch.gone}", "the run goes on without the view; a log of "
+                           "the run (--log) keeps it all: retriever log export LOG --format rerun")
+        behind = watch.handed - watch.taken
+        if behind <= self.behind_bytes:
+            self._dropping = False  # caught up (or never behind): a spell of drops is over
+        if behind <= self.behind_bytes or (small and behind <= self.behind_bytes + self.small_bytes):
+            watch.handed += size
+            return True
+        if not self._dropping:
+            self._dropping = True
+            self.dropped["spells"] += 1
+            if self.dropped["spells"] == 1:
+                warnings.warn(f"{self.title}: {self.sink} is not taking the stream ({behind / 2**20:.0f} MiB sent "
+                              f"it has not taken): frames and other large values are dropped from the view until "
+                              f"it catches up, numbers and step records too past {self.small_bytes / 2**20:.0f} "
+                              f"MiB more (a log of the run keeps them all; how many is said at the run's end)",
+                              RetrieverWarning, stacklevel=4)
+        return False
+
     def event(self, node: str, port: str, tag, seq: int, value: Any, wall_ns: int) -> None:
-        if value is not NOT_KEPT:
+        if value is NOT_KEPT:
+            return
+        size = value_bytes(value)
+        if self._admit(RECORD_BYTES + size, size <= SMALL_VALUE_BYTES):
             self._recording.log_event(node, port, tag[0], wall_ns, seq, value)
+        else:
+            self.dropped["values"] += 1
+            self.dropped["bytes"] += size
 
     def step(self, node: str, tag, consumed, produced, status: str, detail, start_ns: int, wall_ns: int) -> None:
-        self._recording.log_step(StepRecord(node, tag, consumed, produced, status, detail, start_ns, wall_ns))
+        if self._admit(RECORD_BYTES, True):
+            self._recording.log_step(StepRecord(node, tag, consumed, produced, status, detail, start_ns, wall_ns))
+        else:
+            self.dropped["records"] += 1
 
     def close(self) -> None:
+        """What is left is sent, waiting at most CLOSE_S for the sink to take it and as long to
+        disconnect (a viewer that takes nothing, suspended, holds the SDK's disconnect until it
+        takes it or is gone: that is left to a thread of its own); what was dropped is said."""
+        self._watch.stop()  # its flush under way, if any, ends on its own; this one waits for it too
+        dropped = self.dropped
+        if dropped["values"] or dropped["records"]:
+            warnings.warn(f"{self.title} dropped {dropped['values']} values ({dropped['bytes'] / 1e6:.1f} MB) and "
+                          f"{dropped['records']} step records that {self.sink} did not take in time "
+                          f"(behind by more than {self.behind_bytes / 2**20:.0f} MiB {dropped['spells']} "
+                          f"time{'s' if dropped['spells'] != 1 else ''}); a log of the run keeps them all", ViewDroppedWarning,
+                          stacklevel=3)
+        left = None
         try:
-            self._stream.flush()
-        finally:
-            self._stream.disconnect()
+            self._stream.flush(timeout_sec=CLOSE_S)
+        except RuntimeError as e:  # timed out (a viewer that takes nothing) or gone
+            left = str(e)
+        disconnect = threading.Thread(target=self._stream.disconnect, name="retriever-rerun-disconnect", daemon=True)
+        disconnect.start()
+        if left is None:
+            disconnect.join(CLOSE_S)
+        else:  # the sink takes nothing: the SDK's disconnect waits for it (or its end) in its own thread
+            raise LogError(f"{self.sink} did not take the end of the stream: {left}",
+                           "a log of the run (--log) keeps every event and step record")

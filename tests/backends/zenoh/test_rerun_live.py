@@ -327,3 +327,147 @@ def test_numbers_beside_a_camera_of_big_frames_are_flushed_with_its_frames_not_i
     assert len(numbers) >= len(frames) - 1, (numbers, frames)
     rows = rows_by_tag(rr.dataframe.load_recording(out), "/sensor/x")
     assert [row["scalars"] for row in rows] == [[float(i)] for i in range(300)]
+
+
+#: a viewer in a process of its own (Rerun's SDK's gRPC server, as the viewer's): it says its URL
+#: once its port takes connections, and ends when its standard input closes
+VIEWER = r"""
+import socket, sys
+import rerun as rr
+s = rr.RecordingStream("viewer", send_properties=False)
+url = s.serve_grpc(grpc_port=int(sys.argv[1]))
+while True:
+    try:
+        socket.create_connection(("127.0.0.1", int(sys.argv[1])), 1.0).close()
+        break
+    except OSError:
+        pass
+print(url, flush=True)
+sys.stdin.read()
+"""
+#: how long a test waits for what a viewer process does
+VIEWER_BOUND_S = 30.0
+
+
+@pytest.fixture
+def viewer():
+    """A viewer process (VIEWER) and its URL; killed at the end whatever it was left as (stopped)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", VIEWER, str(free_port())], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("rerun+http://"), url
+        yield proc, url
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def poll(condition, what: str, bound: float = VIEWER_BOUND_S) -> None:
+    import time
+
+    give_up = time.monotonic() + bound
+    while not condition():
+        assert time.monotonic() < give_up, f"no {what} within {bound:g} s"
+        time.sleep(0.01)
+
+
+def test_a_stopped_viewer_holds_the_view_to_its_budget_it_drops_frames_first_says_so_and_resumes(viewer):
+    """Rerun's SDK queues without bound what a viewer does not take: a viewer suspended (SIGSTOP)
+    grew the run's process by 1.7 MB a MB of frames (benchmarks/reports/export_memory.md). Now
+    what the view hands the SDK and its sink did not take stays under its budget (here 4 MiB,
+    and 1 MiB more for small rows): frames are dropped first (the numbers beside them still go),
+    counted, said once as it starts and, at close, how many; once the viewer is resumed and has
+    taken what it was sent, frames go again."""
+    import os
+    import signal
+
+    from retriever.log.rerun import RECORD_BYTES
+
+    proc, url = viewer
+    budget, small = 4 << 20, 1 << 20
+    view = RerunLiveView(url, "live", behind_bytes=budget, small_bytes=small)
+    frame = np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8)  # 230 kB
+    os.kill(proc.pid, signal.SIGSTOP)
+    with pytest.warns(RetrieverWarning) as said:
+        for i in range(2000):  # at most 460 MB of frames: what a viewer's socket takes is a few MB
+            view.event("cam", "rgb", (i, 0), i, frame, 0)
+            view.event("sensor", "x", (i, 0), i, float(i), 0)
+            assert view.behind <= budget + RECORD_BYTES + frame.nbytes, i  # never past it by more than a row
+            if view.dropped["values"] >= 20:
+                break
+    starts = [w for w in said if "is not taking the stream" in str(w.message)]
+    assert len(starts) == 1 and len(said) == 1, [str(w.message) for w in said]
+    assert re.search(rf"the Rerun live view: the viewer at {re.escape(url)} is not taking the stream \(\d+ MiB sent "
+                     r"it has not taken\): frames and other large values are dropped", str(starts[0].message))
+    assert view.dropped["values"] >= 20 and view.dropped["spells"] >= 1  # (2 if its socket took a flush's worth)
+    sent_frames = view.written["/cam/rgb"]
+    assert view.written["/sensor/x"] == i + 1  # the numbers went on: small, under the 1 MiB more
+    assert view.dropped["bytes"] == (i + 1 - sent_frames) * frame.nbytes  # every value dropped was a frame
+
+    os.kill(proc.pid, signal.SIGCONT)
+    poll(lambda: view.behind <= budget, "catching up of the resumed viewer")
+    view.event("cam", "rgb", (i + 1, 0), i + 1, frame, 0)
+    assert view.written["/cam/rgb"] == sent_frames + 1  # frames go again
+    from retriever.errors import ViewDroppedWarning
+
+    with pytest.warns(ViewDroppedWarning, match=rf"the Rerun live view dropped {view.dropped['values']} values "
+                                              rf"\(\d+\.\d MB\) and 0 step records that the viewer at "
+                                              rf"{re.escape(url)} did not take in time \(behind by more than 4 "
+                                              rf"MiB {view.dropped['spells']} times?\); a log of the run keeps them "
+                                              rf"all"):
+        view.close()
+
+
+def test_a_viewer_that_stays_stopped_past_the_small_budget_gets_no_step_records_and_close_is_bounded(viewer):
+    """Past the small rows' budget too, step records are dropped (counted), and closing a view
+    whose viewer takes nothing waits a bounded time (the SDK's own flush would wait forever) and
+    says the viewer did not take the end."""
+    import os
+    import signal
+    import time
+
+    proc, url = viewer
+    view = RerunLiveView(url, "live", behind_bytes=1 << 20, small_bytes=64 << 10)
+    frame = np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    os.kill(proc.pid, signal.SIGSTOP)
+    with pytest.warns(RetrieverWarning, match="is not taking the stream"):
+        for i in range(2000):
+            view.event("cam", "rgb", (i, 0), i, frame, 0)
+            view.step("cam", (i, 0), {}, [("rgb", 0)], "ok", None, 0, 0)
+            if view.dropped["records"] >= 5:
+                break
+    assert view.dropped["records"] >= 5
+    start = time.monotonic()
+    with pytest.warns(RetrieverWarning, match=r"dropped \d+ values .* and \d+ step records"), \
+            pytest.raises(LogError, match=rf"the viewer at {re.escape(url)} did not take the end of the stream"):
+        view.close()
+    assert time.monotonic() - start < VIEWER_BOUND_S
+
+
+def test_a_viewer_killed_mid_run_stops_the_view_with_a_warning_naming_it(viewer):
+    from retriever.log.live import LiveViews
+
+    proc, url = viewer
+    view = RerunLiveView(url, "live")
+    views = LiveViews([view])
+    views.event("cam", "exposure", (10, 0), 0, 0.25, 0)
+    proc.kill()
+    proc.wait()
+    with pytest.warns(RetrieverWarning, match=rf"the Rerun live view stopped: LogError: the viewer at "
+                                              rf"{re.escape(url)} went away"):
+        poll(lambda: views.event("cam", "exposure", (20, 0), 1, 0.5, 0) or not views.views, "stop of the view")
+    views.close()
+
+
+def test_a_healthy_viewer_takes_a_camera_run_and_nothing_is_dropped(viewer):
+    """A run of a 10 Hz camera streamed to a viewer that reads: no drop said, nothing dropped."""
+    _, url = viewer
+    pipe = live_pipeline()
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        pipe.run(duration=1.0, backend="zenoh", quiet=True, rerun=url)
+    assert [str(w.message) for w in said if "Rerun" in str(w.message)] == []
