@@ -116,6 +116,36 @@ def test_a_consumer_foresees_a_periodic_stream_and_rehearses_its_last_message(se
     assert loop.warmup.target(150 * MS - WARM_AHEAD_NS, far) == (None, None)
 
 
+def test_a_producers_warm_up_makes_its_consumer_rehearse_on_the_thread_that_receives_it(session, spec):
+    """The producer's warm-up message (on warm/cam, 1 ms before its tick) reaches its consumer,
+    which rehearses the arrival of cam's last message on the thread that got it (its data
+    messages' receiving thread: here, the put's, local delivery), while its main thread waits;
+    none of the loop's state changes. With its main thread busy (``turn`` held), nothing runs."""
+    keys = KeySpace(spec.namespace)
+    loop = build_loop(spec, "viewer", session)
+    assert loop.inline, "a node on no cycle, without setup(): it may step on the receiving thread"
+    loop.declare()
+    stream = ("cam", "image")
+    try:
+        loop.warmup.arrived(stream, message(2), 100 * MS)
+        before = (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts))
+        rehearsed = loop.warmup.rehearsal.streams.frontiers
+        session.put(keys.warm("cam"), b"")  # the main thread busy: it holds `turn`
+        assert rehearsed[stream] == (0, 0), "rehearsed while the main thread held the loop"
+        loop.turn.release()  # the main thread waits
+        try:
+            session.put(keys.warm("other"), b"")  # no stream of this node's
+            assert rehearsed[stream] == (0, 0)
+            session.put(keys.warm("cam"), b"not read")
+            assert rehearsed[stream] == (100 * MS + 1, 0), "the consumer did not rehearse cam's last message"
+        finally:
+            loop.turn.acquire()
+        assert not loop.schedule.pending and all(not e.buf.entries for e in loop.streams.edges)
+        assert (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts)) == before
+    finally:
+        loop.undeclare()
+
+
 def test_the_nearest_stream_is_warmed_for(session, spec):
     loop = build_loop(spec, "viewer", session)
     slow, fast = ("cam", "image"), ("other", "out")

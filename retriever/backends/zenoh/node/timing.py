@@ -6,11 +6,20 @@ CPU's caches, and that cold run is most of a small message's latency (benchmarks
 latency.md). So before a moment that is predictable (the next Rate tick of a node with
 consumers, the next arrival on a periodic input stream) that follows such a sleep, the loop
 wakes WARM_AHEAD_NS early and runs its encoder on the last event it sent, reads the HLC, and, if
-it publishes, puts an empty message on its ``warm/<node>`` key, which no one subscribes to
-(Zenoh's put path, up to the routing); and it rehearses the receive path on the last message it
-got (:class:`Rehearsal`: decoded, taken in order, delivered and selected on scratch copies of its
-inputs; arrays are not copied for that). It changes only how fast a tick starts, never what it
-reads or emits. Sleeps shorter than WARM_AFTER_IDLE_NS leave the caches warm.
+it publishes, puts an empty message on its ``warm/<node>`` key; and it rehearses the receive
+path on the last message it got (:class:`Rehearsal`: decoded, taken in order, delivered and
+selected on scratch copies of its inputs; arrays are not copied for that). It changes only how
+fast a tick starts, never what it reads or emits. Sleeps shorter than WARM_AFTER_IDLE_NS leave
+the caches warm.
+
+The empty message goes to the producer's consumers that may step on their receiving thread
+(node/loop.py, INLINE_STEP_NS), over the link its next data message takes, about WARM_AHEAD_NS
+ahead of it. Each rehearses there, on the thread that will receive that message, the arrival of
+the producer's last one (:meth:`Warmup.rehearse`, if its main thread is waiting): the whole way,
+the producer's send down to its socket, Zenoh's receive and that thread's Python, runs once
+just before the message does; a rehearsal on the consumer's main thread warmed neither Zenoh's
+threads nor, maybe, their core (benchmarks/reports/latency.md, 2026-12-05 lat14). Its content is
+never read: anyone may put there, and it costs a rehearsal at most.
 """
 
 from __future__ import annotations
@@ -126,6 +135,16 @@ class Warmup:
                 self.rehearsal.run(message)
         except Exception:
             outputs.warm_publish = None
+
+    def rehearse(self, producer: str) -> None:
+        """Rehearse the arrival of the last message of each stream of ``producer`` (results
+        unused; a failure skips it, as in :meth:`warm`)."""
+        for (src, _), (_, _, data) in list(self.arrivals.items()):
+            if src == producer and data is not None:
+                try:
+                    self.rehearsal.run(data)
+                except Exception:
+                    return
 
 
 class PacerOwner(Protocol):
