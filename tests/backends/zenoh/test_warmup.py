@@ -142,8 +142,27 @@ def test_a_producers_warm_up_makes_its_consumer_rehearse_on_the_thread_that_rece
             loop.turn.acquire()
         assert not loop.schedule.pending and all(not e.buf.entries for e in loop.streams.edges)
         assert (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts)) == before
+        assert set(loop.warmup.heralds) == {"cam"}, "each of its producers' warm-up messages is noted, rehearsed or not"
     finally:
         loop.undeclare()
+
+
+def test_a_stream_whose_producer_warms_its_consumer_up_is_not_rehearsed_by_the_main_thread_too(session, spec):
+    """Once a stream's last message came after a warm-up message of its producer, the main
+    thread foresees no arrival of it (the receiving thread rehearses it then); a message that
+    came with none since the one before is foreseen again."""
+    loop = build_loop(spec, "viewer", session)
+    far, stream = 10_000 * MS, ("cam", "image")
+    loop.warmup.arrived(stream, message(1), 50 * MS)
+    loop.warmup.herald("cam", 99 * MS)
+    loop.warmup.arrived(stream, message(2), 100 * MS)
+    assert loop.warmup.target(101 * MS, far) == (None, None), "heralded: left to the receiving thread"
+    loop.warmup.herald("other", 149 * MS)  # another producer's: not cam's
+    loop.warmup.arrived(stream, message(3), 150 * MS)
+    assert loop.warmup.target(151 * MS, far) == (200 * MS, message(3)), "no warm-up message since: foreseen"
+    loop.warmup.herald("cam", 199 * MS)
+    loop.warmup.arrived(stream, message(4), 200 * MS)
+    assert loop.warmup.target(201 * MS, far) == (None, None)
 
 
 def test_the_nearest_stream_is_warmed_for(session, spec):

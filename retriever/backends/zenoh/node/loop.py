@@ -226,7 +226,9 @@ class NodeLoop:
         """``producer`` warms up for its next tick (its message is on its way in about
         timing.WARM_AHEAD_NS): on the thread that will receive it, if the main thread is
         waiting, rehearse the arrival of its streams' last messages (timing.Rehearsal); nothing
-        of the loop's changes. Else nothing: the main thread rehearses by its own foresight."""
+        of the loop's changes. The main thread no longer wakes to rehearse a stream so heralded
+        (Warmup.arrived): two rehearsals at once, one would wait for the other's ``turn``."""
+        self.warmup.herald(producer, time.time_ns() - self.run_clock.t0)
         if self.failure is None and self.turn.acquire(blocking=False):
             try:
                 self.warmup.rehearse(producer)

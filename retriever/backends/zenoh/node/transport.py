@@ -125,6 +125,7 @@ class ZenohTransport(Transport):
             def callback(sample, src=src):
                 if get_ident() not in _kept:
                     _keep_thread_state()
+                sample.payload.to_bytes()  # (as a data message's callback does; its content is never read)
                 bound = loop()
                 if bound is not None:
                     bound(src)
