@@ -130,8 +130,10 @@ def test_a_producers_warm_up_makes_its_consumer_rehearse_on_the_thread_that_rece
         loop.warmup.arrived(stream, message(2), 100 * MS)
         before = (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts))
         rehearsed = loop.warmup.rehearsal.streams.frontiers
-        session.put(keys.warm("cam"), b"")  # the main thread busy: it holds `turn`
+        session.put(keys.warm("cam"), b"")  # the main thread busy: it holds `turn`; the run not started
         assert rehearsed[stream] == (0, 0), "rehearsed while the main thread held the loop"
+        assert loop.warmup.heralds == {}, "heralded before the run's T0, by a time not since T0"
+        loop.run_clock.start(time.time_ns() - 200 * MS, 10_000 * MS)
         loop.turn.release()  # the main thread waits
         try:
             session.put(keys.warm("other"), b"")  # no stream of this node's
@@ -142,7 +144,8 @@ def test_a_producers_warm_up_makes_its_consumer_rehearse_on_the_thread_that_rece
             loop.turn.acquire()
         assert not loop.schedule.pending and all(not e.buf.entries for e in loop.streams.edges)
         assert (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts)) == before
-        assert set(loop.warmup.heralds) == {"cam"}, "each of its producers' warm-up messages is noted, rehearsed or not"
+        assert set(loop.warmup.heralds) == {"cam"}, "each of its producers' warm-up messages is noted"
+        assert 200 * MS <= loop.warmup.heralds["cam"] < 10_000 * MS, "noted in ns since T0"
     finally:
         loop.undeclare()
 

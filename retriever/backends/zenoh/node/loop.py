@@ -228,7 +228,9 @@ class NodeLoop:
         waiting, rehearse the arrival of its streams' last messages (timing.Rehearsal); nothing
         of the loop's changes. The main thread no longer wakes to rehearse a stream so heralded
         (Warmup.arrived): two rehearsals at once, one would wait for the other's ``turn``."""
-        self.warmup.herald(producer, time.time_ns() - self.run_clock.t0)
+        clock = self.run_clock
+        if clock.started:  # (before, its arrivals' times are not since T0: nothing to herald)
+            self.warmup.herald(producer, time.time_ns() - clock.t0)
         if self.failure is None and self.turn.acquire(blocking=False):
             try:
                 self.warmup.rehearse(producer)
