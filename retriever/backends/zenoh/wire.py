@@ -123,7 +123,9 @@ class KeySpace:
         return f"{self.prefix}/progress/{node}"
 
     def warm(self, node: str) -> str:
-        """Where a node puts empty messages to warm its send path; no one subscribes."""
+        """Where a node puts empty messages to warm its send path before a tick it foresees;
+        its consumers that may step on their receiving thread subscribe, and rehearse there
+        (node/timing.py). Their content is never read."""
         return f"{self.prefix}/warm/{node}"
 
     def status(self, *parts: str) -> str:

@@ -116,6 +116,58 @@ def test_a_consumer_foresees_a_periodic_stream_and_rehearses_its_last_message(se
     assert loop.warmup.target(150 * MS - WARM_AHEAD_NS, far) == (None, None)
 
 
+def test_a_producers_warm_up_makes_its_consumer_rehearse_on_the_thread_that_receives_it(session, spec):
+    """The producer's warm-up message (on warm/cam, 1 ms before its tick) reaches its consumer,
+    which rehearses the arrival of cam's last message on the thread that got it (its data
+    messages' receiving thread: here, the put's, local delivery), while its main thread waits;
+    none of the loop's state changes. With its main thread busy (``turn`` held), nothing runs."""
+    keys = KeySpace(spec.namespace)
+    loop = build_loop(spec, "viewer", session)
+    assert loop.inline, "a node on no cycle, without setup(): it may step on the receiving thread"
+    loop.declare()
+    stream = ("cam", "image")
+    try:
+        loop.warmup.arrived(stream, message(2), 100 * MS)
+        before = (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts))
+        rehearsed = loop.warmup.rehearsal.streams.frontiers
+        session.put(keys.warm("cam"), b"")  # the main thread busy: it holds `turn`; the run not started
+        assert rehearsed[stream] == (0, 0), "rehearsed while the main thread held the loop"
+        assert loop.warmup.heralds == {}, "heralded before the run's T0, by a time not since T0"
+        loop.run_clock.start(time.time_ns() - 200 * MS, 10_000 * MS)
+        loop.turn.release()  # the main thread waits
+        try:
+            session.put(keys.warm("other"), b"")  # no stream of this node's
+            assert rehearsed[stream] == (0, 0)
+            session.put(keys.warm("cam"), b"not read")
+            assert rehearsed[stream] == (100 * MS + 1, 0), "the consumer did not rehearse cam's last message"
+        finally:
+            loop.turn.acquire()
+        assert not loop.schedule.pending and all(not e.buf.entries for e in loop.streams.edges)
+        assert (dict(loop.streams.expect), dict(loop.streams.frontiers), dict(loop.notes.counts)) == before
+        assert set(loop.warmup.heralds) == {"cam"}, "each of its producers' warm-up messages is noted"
+        assert 200 * MS <= loop.warmup.heralds["cam"] < 10_000 * MS, "noted in ns since T0"
+    finally:
+        loop.undeclare()
+
+
+def test_a_stream_whose_producer_warms_its_consumer_up_is_not_rehearsed_by_the_main_thread_too(session, spec):
+    """Once a stream's last message came after a warm-up message of its producer, the main
+    thread foresees no arrival of it (the receiving thread rehearses it then); a message that
+    came with none since the one before is foreseen again."""
+    loop = build_loop(spec, "viewer", session)
+    far, stream = 10_000 * MS, ("cam", "image")
+    loop.warmup.arrived(stream, message(1), 50 * MS)
+    loop.warmup.herald("cam", 99 * MS)
+    loop.warmup.arrived(stream, message(2), 100 * MS)
+    assert loop.warmup.target(101 * MS, far) == (None, None), "heralded: left to the receiving thread"
+    loop.warmup.herald("other", 149 * MS)  # another producer's: not cam's
+    loop.warmup.arrived(stream, message(3), 150 * MS)
+    assert loop.warmup.target(151 * MS, far) == (200 * MS, message(3)), "no warm-up message since: foreseen"
+    loop.warmup.herald("cam", 199 * MS)
+    loop.warmup.arrived(stream, message(4), 200 * MS)
+    assert loop.warmup.target(201 * MS, far) == (None, None)
+
+
 def test_the_nearest_stream_is_warmed_for(session, spec):
     loop = build_loop(spec, "viewer", session)
     slow, fast = ("cam", "image"), ("other", "out")

@@ -172,6 +172,8 @@ class NodeLoop:
         # (transport.py: a receiving thread that may step is Zenoh's own)
         self.transport.declare_inputs(sorted(self.streams.frontiers), self.streams.sources,
                                       self.receive if self.inline and not self.grouped else None, put)
+        if self.inline and not self.grouped:
+            self.transport.declare_warm(self.streams.sources, self.warmed)
         if not self.grouped:  # (a group hears the run's control once for all: GroupLoop.hear_control)
             self.plane.listen()
 
@@ -219,6 +221,21 @@ class NodeLoop:
                 self.inbox.put(NUDGED)  # the main thread's wake-up time may have changed
         else:
             self.inbox.put(item)
+
+    def warmed(self, producer: str) -> None:
+        """``producer`` warms up for its next tick (its message is on its way in about
+        timing.WARM_AHEAD_NS): on the thread that will receive it, if the main thread is
+        waiting, rehearse the arrival of its streams' last messages (timing.Rehearsal); nothing
+        of the loop's changes. The main thread no longer wakes to rehearse a stream so heralded
+        (Warmup.arrived): two rehearsals at once, one would wait for the other's ``turn``."""
+        clock = self.run_clock
+        if clock.started:  # (before, its arrivals' times are not since T0: nothing to herald)
+            self.warmup.herald(producer, time.time_ns() - clock.t0)
+        if self.failure is None and self.turn.acquire(blocking=False):
+            try:
+                self.warmup.rehearse(producer)
+            finally:
+                self.turn.release()
 
     def _serve(self, item: tuple) -> None:
         """The main thread's work for one message: what was queued before it, the message, held

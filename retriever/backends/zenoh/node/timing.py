@@ -6,11 +6,20 @@ CPU's caches, and that cold run is most of a small message's latency (benchmarks
 latency.md). So before a moment that is predictable (the next Rate tick of a node with
 consumers, the next arrival on a periodic input stream) that follows such a sleep, the loop
 wakes WARM_AHEAD_NS early and runs its encoder on the last event it sent, reads the HLC, and, if
-it publishes, puts an empty message on its ``warm/<node>`` key, which no one subscribes to
-(Zenoh's put path, up to the routing); and it rehearses the receive path on the last message it
-got (:class:`Rehearsal`: decoded, taken in order, delivered and selected on scratch copies of its
-inputs; arrays are not copied for that). It changes only how fast a tick starts, never what it
-reads or emits. Sleeps shorter than WARM_AFTER_IDLE_NS leave the caches warm.
+it publishes, puts an empty message on its ``warm/<node>`` key; and it rehearses the receive
+path on the last message it got (:class:`Rehearsal`: decoded, taken in order, delivered and
+selected on scratch copies of its inputs; arrays are not copied for that). It changes only how
+fast a tick starts, never what it reads or emits. Sleeps shorter than WARM_AFTER_IDLE_NS leave
+the caches warm.
+
+The empty message goes to the producer's consumers that may step on their receiving thread
+(node/loop.py, INLINE_STEP_NS), over the link its next data message takes, about WARM_AHEAD_NS
+ahead of it. Each rehearses there, on the thread that will receive that message, the arrival of
+the producer's last one (:meth:`Warmup.rehearse`, if its main thread is waiting): the whole way,
+the producer's send down to its socket, Zenoh's receive and that thread's Python, runs once
+just before the message does; a rehearsal on the consumer's main thread warmed neither Zenoh's
+threads nor, maybe, their core (benchmarks/reports/latency.md, 2026-12-05 lat14). Its content is
+never read: anyone may put there, and it costs a rehearsal at most.
 """
 
 from __future__ import annotations
@@ -84,18 +93,27 @@ class Warmup:
     """Per input stream, its last arrival (ns since T0), the gap before it, and its last message;
     ``warmed_for``: the moment last warmed up for (once per moment). What it warms on the send
     side is the ``outputs``' last event and warm publisher; on the receive side, ``rehearsal``
-    runs on the last message of the stream foreseen."""
+    runs on the last message of the stream foreseen. ``heralds``: per producer, when its last
+    warm-up message came (ns since T0); ``heralded``: the streams whose last message came after
+    one, which the receiving thread rehearses for (:meth:`rehearse`), so the main thread does not."""
 
     def __init__(self, outputs, schedule, clock: RunClock, rehearsal: Rehearsal):
         self.outputs, self.schedule, self.clock, self.rehearsal = outputs, schedule, clock, rehearsal
         self.arrivals: dict[tuple[str, str], tuple[int, int, bytes]] = {}
         self.warmed_for: int | None = None
+        self.heralds: dict[str, int] = {}
+        self.heralded: set[tuple[str, str]] = set()
 
     def arrived(self, stream: tuple[str, str], data: bytes | None, now: int) -> None:
-        """Note when a stream's message came, to foresee its next one."""
+        """Note when a stream's message came, to foresee its next one (or to leave it to its
+        producer's warm-up message, if one came since the stream's last message)."""
         last = self.arrivals.get(stream)
         gap = now - last[0] if last is not None else 0
         self.arrivals[stream] = (now, gap, data)
+        if last is not None and self.heralds.get(stream[0], -1) > last[0]:
+            self.heralded.add(stream)
+        else:
+            self.heralded.discard(stream)
 
     def target(self, now: int, wake: int) -> tuple[int | None, bytes | None]:
         """The predictable moment before ``wake`` to warm up for, after a long enough sleep, and
@@ -103,7 +121,10 @@ class Warmup:
         target, message = None, None
         if self.outputs.warm_publish is not None and self.schedule.next_rate is not None:
             target = self.schedule.next_rate[0]
-        for last, gap, data in self.arrivals.values():
+        heralded = self.heralded
+        for stream, (last, gap, data) in self.arrivals.items():
+            if stream in heralded:  # (its producer's warm-up message will have it rehearsed)
+                continue
             expected = last + gap
             if now < expected and (target is None or expected < target):
                 target, message = expected, data
@@ -126,6 +147,21 @@ class Warmup:
                 self.rehearsal.run(message)
         except Exception:
             outputs.warm_publish = None
+
+    def herald(self, producer: str, now: int) -> None:
+        """``producer``'s warm-up message came at ``now`` (ns since T0): its next message is on
+        its way (any thread: one dict item set)."""
+        self.heralds[producer] = now
+
+    def rehearse(self, producer: str) -> None:
+        """Rehearse the arrival of the last message of each stream of ``producer`` (results
+        unused; a failure skips it, as in :meth:`warm`)."""
+        for (src, _), (_, _, data) in list(self.arrivals.items()):
+            if src == producer and data is not None:
+                try:
+                    self.rehearsal.run(data)
+                except Exception:
+                    return
 
 
 class PacerOwner(Protocol):

@@ -31,6 +31,11 @@ class Transport:
         ``inline`` is None; each progress message to ``put``."""
         raise NotImplementedError
 
+    def declare_warm(self, sources: list[str], warmed: Callable[[str], None]) -> None:
+        """Hear the ``sources``' warm-up messages (a producer's, 1 ms before a tick it foresees,
+        timing.py): each calls ``warmed(source)`` on the thread that receives their data
+        messages, if the transport has one that may step (else: nothing to warm, no call)."""
+
     def declare_outputs(self, ports: list[str], consumed: bool) -> tuple[dict, object, object | None]:
         """Start speaking: a publisher per output port, one for progress, and one to warm the put
         path with (see timing.WARM_AHEAD_NS), or None if the transport has none."""
@@ -82,6 +87,8 @@ class ZenohTransport(Transport):
         self.subscribers: list = []
         self.publishers: list = []  # every one undeclared at the end (see undeclare)
         self.inputs: tuple | None = None  # declare_inputs' arguments, for redeclare_inputs
+        self.warm: tuple | None = None  # declare_warm's, for redeclare_inputs
+        self.warm_subscribers: list = []
 
     def declare_inputs(self, streams, sources, inline, put) -> None:
         self.inputs = (streams, sources, inline, put)
@@ -107,6 +114,25 @@ class ZenohTransport(Transport):
             self.subscribers.append(s.declare_subscriber(
                 keys.progress(src), lambda sample, k=src: put((PROGRESS, k, sample.payload.to_bytes()))))
 
+    def declare_warm(self, sources, warmed) -> None:
+        # on Zenoh's receiving thread, as the data callbacks of a loop that may step there: the
+        # warm-up message comes over the link its data messages come over, so it warms that
+        # thread, its core and Zenoh's receive path (which a rehearsal on the main thread does
+        # not), and the producer's send path down to the socket (benchmarks/reports/latency.md)
+        self.warm = (sources, warmed)
+        loop = weakref.WeakMethod(warmed)
+        for src in sources:
+            def callback(sample, src=src):
+                if get_ident() not in _kept:
+                    _keep_thread_state()
+                sample.payload.to_bytes()  # (as a data message's callback does; its content is never read)
+                bound = loop()
+                if bound is not None:
+                    bound(src)
+
+            self.warm_subscribers.append(self.session.declare_subscriber(
+                self.keys.warm(src), zenoh.handlers.Callback(callback, indirect=False)))
+
     def declare_outputs(self, ports, consumed):
         keys = self.keys
         publishers = {port: self._declare(keys.data(self.id, port)) for port in ports}
@@ -130,15 +156,18 @@ class ZenohTransport(Transport):
             return
         old, self.subscribers = self.subscribers, []
         self.declare_inputs(*self.inputs)
+        if self.warm is not None:
+            old, self.warm_subscribers = old + self.warm_subscribers, []
+            self.declare_warm(*self.warm)
         for d in old:
             d.undeclare()
 
     def undeclare(self) -> None:
         # every declaration undeclared: one left holds the session, and with it its shared
         # memory, which then outlives the process in /dev/shm (Zenoh's exit() skips it)
-        for d in [*self.subscribers, *self.publishers]:
+        for d in [*self.subscribers, *self.warm_subscribers, *self.publishers]:
             d.undeclare()
-        self.subscribers, self.publishers = [], []
+        self.subscribers, self.warm_subscribers, self.publishers = [], [], []
 
 
 def _data_callback(stream: tuple[str, str], inline: Callable[[tuple], None] | None,

@@ -35,7 +35,8 @@ decoders check).
     progress/<node>        worker → its    wire.py: [2, frontier, producer, none    producer = key; frontier as above
                            consumers, put  {port: last seq}]
                            and reply
-    warm/<node>            worker, put     empty: no one subscribes         none    -
+    warm/<node>            worker → its    empty (never read): the consumer none    -
+                           consumers, put  rehearses an arrival (timing.py)
     ---------------------- --------------- -------------------------------- ------- ---------------------------------
     status/node/<node>     worker →        [2, node, state, {fields, pid}]  process node of the run; signed by its
                            coordinator,                                             current process (done, failed: or
