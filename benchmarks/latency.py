@@ -71,6 +71,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
@@ -189,12 +190,25 @@ def raw_sub(key: str, listen: str, total: int, timeout: float, iterate: bool = F
     return 0
 
 
+def paced(data: np.ndarray, total: int, hz: float) -> Iterator[tuple[int, int]]:
+    """A publisher's ticks: for each seq, sleep to its deadline (every 1/``hz`` from now), mark
+    the payload's first bytes with the seq, and give ``(seq, the send time)``."""
+    period = round(1e9 / hz)
+    deadline = time.time_ns() + period
+    for seq in range(total):
+        wait = deadline - time.time_ns()
+        if wait > 0:
+            time.sleep(wait / 1e9)
+        data[: min(8, data.size)] = seq % 256
+        yield seq, time.time_ns()
+        deadline += period
+
+
 def raw_pub(key: str, connect: str, size: int, total: int, hz: float, subscribers: int, express: bool) -> int:
     """Connect, wait until the subscriber(s) match, then put at ``hz`` to each next deadline."""
     import zenoh
 
     data = np.zeros(size, dtype=np.uint8)
-    period = round(1e9 / hz)
     puts = []  # (seq, put called, put returned)
     with zenoh.open(_config(connect=connect)) as session:
         pub = session.declare_publisher(key, express=express)
@@ -202,18 +216,11 @@ def raw_pub(key: str, connect: str, size: int, total: int, hz: float, subscriber
         while not pub.matching_status.matching and time.monotonic() < give_up:
             time.sleep(0.01)
         time.sleep(0.2 * subscribers)  # let every subscriber's route settle
-        deadline = time.time_ns() + period
-        for seq in range(total):
-            wait = deadline - time.time_ns()
-            if wait > 0:
-                time.sleep(wait / 1e9)
-            data[: min(8, size)] = seq % 256
-            sent = time.time_ns()
+        for seq, sent in paced(data, total, hz):
             payload = data.tobytes()
             put_in = time.time_ns()  # (only to split tobytes from put in the breakdown)
             pub.put(payload, attachment=ATTACH.pack(seq, sent))
             puts.append((seq, put_in, time.time_ns()))
-            deadline += period
         time.sleep(0.3)  # let the last samples leave before the session closes
         pub.undeclare()
     print(json.dumps(puts), flush=True)

@@ -41,6 +41,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -195,47 +196,53 @@ class Reader:
 # ---------------------------------------------------------------------------------------------
 # The two processes (run as this script with --pub / --sub), and the harness's side
 # ---------------------------------------------------------------------------------------------
+def _serve(arrivals: Iterator[tuple[int, int, int, bytes]], take, total: int, timeout: float) -> dict:
+    """A subscriber's side: on a thread, each arrival ``(arrival ns, seq, sent ns, handle)``'s
+    slot taken (copied out or viewed) and noted, or the reader's refusal, up to seq ``total`` - 1;
+    READY said first; what was got once the last came or ``timeout`` passed."""
+    got: list[tuple[int, int, int, int, int]] = []
+    errors: list[str] = []
+    done = threading.Event()
+
+    def drain() -> None:
+        for cb_in, seq, sent, handle in arrivals:
+            try:
+                arr = take(handle)
+            except RingError as e:
+                errors.append(str(e))
+            else:
+                got.append((seq, sent, time.time_ns(), arr.size, cb_in))
+                del arr
+            if seq == total - 1:
+                done.set()
+                return
+    threading.Thread(target=drain, daemon=True).start()
+    print("READY", flush=True)
+    done.wait(timeout)
+    return {"got": got, "errors": errors}
+
+
 def shm_sub(key: str, listen: str, total: int, timeout: float, mode: str) -> int:
     import zenoh
     from latency import ATTACH, _config
 
-    got: list[tuple[int, int, int, int, int]] = []
-    errors: list[str] = []
     reader = Reader()
-    take = reader.copy if mode == "copy" else reader.view
-    done = threading.Event()
     with zenoh.open(_config(listen=listen)) as session:
         sub = session.declare_subscriber(key)
-
-        def drain() -> None:
-            for sample in sub:
-                cb_in = time.time_ns()
-                seq, sent = ATTACH.unpack(sample.attachment.to_bytes())
-                try:
-                    arr = take(sample.payload.to_bytes())
-                except RingError as e:
-                    errors.append(str(e))
-                else:
-                    got.append((seq, sent, time.time_ns(), arr.size, cb_in))
-                    del arr
-                if seq == total - 1:
-                    done.set()
-                    return
-        threading.Thread(target=drain, daemon=True).start()
-        print("READY", flush=True)
-        done.wait(timeout)
+        arrivals = ((time.time_ns(), *ATTACH.unpack(sample.attachment.to_bytes()), sample.payload.to_bytes())
+                    for sample in sub)
+        result = _serve(arrivals, reader.copy if mode == "copy" else reader.view, total, timeout)
         sub.undeclare()
     reader.close()
-    print(json.dumps({"got": got, "errors": errors}), flush=True)
+    print(json.dumps(result), flush=True)
     return 0
 
 
 def shm_pub(key: str, connect: str, size: int, total: int, hz: float, ring_hex: str) -> int:
     import zenoh
-    from latency import ATTACH, _config
+    from latency import ATTACH, _config, paced
 
     data = np.zeros(size, dtype=np.uint8)
-    period = round(1e9 / hz)
     ring = Writer(bytes.fromhex(ring_hex), size)
     try:
         with zenoh.open(_config(connect=connect)) as session:
@@ -244,15 +251,8 @@ def shm_pub(key: str, connect: str, size: int, total: int, hz: float, ring_hex: 
             while not pub.matching_status.matching and time.monotonic() < give_up:
                 time.sleep(0.01)
             time.sleep(0.2)  # let the subscriber's route settle (as raw-zenoh's publisher)
-            deadline = time.time_ns() + period
-            for seq in range(total):
-                wait = deadline - time.time_ns()
-                if wait > 0:
-                    time.sleep(wait / 1e9)
-                data[: min(8, size)] = seq % 256
-                sent = time.time_ns()
+            for seq, sent in paced(data, total, hz):
                 pub.put(ring.write(data), attachment=ATTACH.pack(seq, sent))
-                deadline += period
             time.sleep(0.3)  # let the last samples leave before the session closes
             pub.undeclare()
     finally:
@@ -268,55 +268,33 @@ def unix_sub(name: str, total: int, timeout: float) -> int:
 
     from latency import ATTACH
 
-    got, errors, reader = [], [], Reader()
-    done = threading.Event()
+    reader = Reader()
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind("\0" + name)
 
-    def drain() -> None:
+    def arrivals() -> Iterator[tuple[int, int, int, bytes]]:
         while True:
             message = sock.recv(256)
-            cb_in = time.time_ns()
-            seq, sent = ATTACH.unpack_from(message, 0)
-            try:
-                arr = reader.copy(message[ATTACH.size:])
-            except RingError as e:
-                errors.append(str(e))
-            else:
-                got.append((seq, sent, time.time_ns(), arr.size, cb_in))
-                del arr
-            if seq == total - 1:
-                done.set()
-                return
-    threading.Thread(target=drain, daemon=True).start()
-    print("READY", flush=True)
-    done.wait(timeout)
+            yield (time.time_ns(), *ATTACH.unpack_from(message, 0), message[ATTACH.size:])
+    result = _serve(arrivals(), reader.copy, total, timeout)
     sock.close()
     reader.close()
-    print(json.dumps({"got": got, "errors": errors}), flush=True)
+    print(json.dumps(result), flush=True)
     return 0
 
 
 def unix_pub(name: str, size: int, total: int, hz: float, ring_hex: str) -> int:
     import socket
 
-    from latency import ATTACH
+    from latency import ATTACH, paced
 
     data = np.zeros(size, dtype=np.uint8)
-    period = round(1e9 / hz)
     ring = Writer(bytes.fromhex(ring_hex), size)
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
             sock.connect("\0" + name)
-            deadline = time.time_ns() + period
-            for seq in range(total):
-                wait = deadline - time.time_ns()
-                if wait > 0:
-                    time.sleep(wait / 1e9)
-                data[: min(8, size)] = seq % 256
-                sent = time.time_ns()
+            for seq, sent in paced(data, total, hz):
                 sock.send(ATTACH.pack(seq, sent) + ring.write(data))
-                deadline += period
     finally:
         ring.close()
     print("[]", flush=True)
