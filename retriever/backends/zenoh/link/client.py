@@ -101,6 +101,8 @@ class LinkClient:
                     on_message(kind, message)
         except LinkError as e:
             why = e
+        except ConnectionResetError:  # its process ended with our acks unread
+            why = LinkError(f"{peer} closed the connection (reset)")
         except OSError as e:
             why = LinkError(f"{peer}: the connection failed ({e.strerror or e})")
         except Exception as e:  # on_message's own error ends the stream: the next message would be out of order

@@ -103,7 +103,6 @@ class RingReader:
             self._map = mmap.mmap(fd, slots * stride, prot=mmap.PROT_READ)
         finally:
             os.close(fd)
-        self._view = memoryview(self._map)
         self.peer = peer
 
     def copy(self, slot: int, generation: int, length: int) -> bytes:
@@ -115,20 +114,17 @@ class RingReader:
         if not 0 <= length <= self.capacity:
             raise LinkError(f"{self.peer}: a handle says {length} bytes, past its ring's slots of {self.capacity}")
         start = slot * self.stride
-        header = self._view[start:start + 8]
-        if _HEADER.unpack(header)[0] != generation or generation == 0:
+        held = _HEADER.unpack_from(self._map, start)[0]
+        if held != generation or generation == 0:
             raise LinkError(f"{self.peer}: a handle of slot {slot} says generation {generation}, the slot holds "
-                            f"{_HEADER.unpack(header)[0]}: a stale handle, or a slot rewritten before it was read")
-        data = bytes(self._view[start + HEADER_BYTES:start + HEADER_BYTES + length])
-        if _HEADER.unpack(header)[0] != generation:
+                            f"{held}: a stale handle, or a slot rewritten before it was read")
+        data = self._map[start + HEADER_BYTES:start + HEADER_BYTES + length]  # bytes: the one copy
+        if _HEADER.unpack_from(self._map, start)[0] != generation:
             raise LinkError(f"{self.peer}: slot {slot} was rewritten while it was read (generation {generation})")
         return data
 
     def close(self) -> None:
-        if self._view is not None:
-            self._view.release()
-            self._map.close()
-            self._view = None
+        self._map.close()
 
 
 def _refusal(fd: int, slots: object, capacity: object, stride: object) -> str | None:
