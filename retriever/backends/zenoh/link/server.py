@@ -75,6 +75,8 @@ class LinkServer:
         self._next = 0
         self._consumers: tuple[_Consumer, ...] = ()  # replaced, never changed in place (send reads it unlocked)
         self._changed = threading.Condition()
+        self._closed = False
+        self._handshakes: set[socket.socket] = set()  # connections whose handshake is under way
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:
             self._listener.bind(str(self.path))
@@ -108,6 +110,8 @@ class LinkServer:
         consumers = self._consumers
         if not consumers:
             return
+        if not 0 <= kind < 256:
+            raise LinkError(f"{self.producer}: a link message's kind is a byte (0..255), not {kind!r}")
         length = sum(memoryview(part).nbytes for part in parts)
         if length < self.inline_below:
             frame = [frames.INLINE_HEADS[kind], *parts]
@@ -209,21 +213,39 @@ class LinkServer:
     # Admitting consumers (the acceptor's thread)
     # -----------------------------------------------------------------------------------------
     def _accept(self) -> None:
+        """Each connection's handshake on a thread of its own: one that says nothing holds up no other."""
         while True:
             try:
                 sock, _ = self._listener.accept()
             except OSError:  # closed: close() shut the listener down
                 return
-            try:
-                consumer = self._admit(sock)
-            except (LinkError, OSError) as e:
+            threading.Thread(target=self._admit_or_refuse, args=(sock,), name=f"link-{self.producer}-hello",
+                             daemon=True).start()
+
+    def _admit_or_refuse(self, sock: socket.socket) -> None:
+        with self._changed:
+            if self._closed:
                 sock.close()
-                self._note(e if isinstance(e, LinkError) else LinkError(
-                    f"{self.producer}: a consumer's handshake failed ({type(e).__name__}: {e})"))
-                continue
+                return
+            self._handshakes.add(sock)
+        try:
+            consumer = self._admit(sock)
+        except (LinkError, OSError) as e:
+            sock.close()
             with self._changed:
-                self._consumers = (*self._consumers, consumer)
-                self._changed.notify_all()
+                self._handshakes.discard(sock)
+                if self._closed:  # close() ended it
+                    return
+            self._note(e if isinstance(e, LinkError) else LinkError(
+                f"{self.producer}: a consumer's handshake failed ({type(e).__name__}: {e})"))
+            return
+        with self._changed:
+            self._handshakes.discard(sock)
+            if self._closed:
+                sock.close()
+                return
+            self._consumers = (*self._consumers, consumer)
+            self._changed.notify_all()
 
     def _admit(self, sock: socket.socket) -> _Consumer:
         pid, uid, _ = _CRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _CRED.size))
@@ -251,6 +273,13 @@ class LinkServer:
         """Stop admitting, unlink the socket, close every connection and the ring (idempotent)."""
         if self._listener.fileno() < 0:
             return
+        with self._changed:
+            self._closed = True
+            for sock in self._handshakes:  # a handshake under way ends now (its thread closes the socket)
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
         try:
             self._listener.shutdown(socket.SHUT_RDWR)
         except OSError:

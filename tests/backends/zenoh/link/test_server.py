@@ -199,3 +199,19 @@ def test_the_socket_wants_a_private_folder(tmp_path):
         LinkServer(open_folder / "p.sock", RUN, PRODUCER)
     with pytest.raises(LinkError, match="a link socket's path is longer than 107 bytes"):
         LinkServer(tmp_path / ("x" * 120), RUN, PRODUCER)
+
+
+def test_a_connection_that_says_nothing_holds_up_no_other_consumer(folder, peers):
+    server, dropped = _server(folder, handshake_timeout=600)  # far past the wait below: only a hold-up would fail
+    with server:
+        silent = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        silent.connect(str(folder / "p.sock"))
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready" and server.wait_for(1, 30)
+        _send_all(server, SIZES[:2])
+        assert good.lines(2) == _expected(SIZES[:2])
+        assert good.end() == 0
+        with pytest.raises(LinkError, match=r"a link message's kind is a byte \(0..255\), not 256"):
+            server.send([b"x"], kind=256)
+    silent.close()
+    assert dropped.empty()
