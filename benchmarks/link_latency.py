@@ -20,6 +20,7 @@ link / raw-zenoh per run.
 
     .venv/bin/python benchmarks/link_latency.py                       # 64 B, 64 KiB, 1 MiB, 4 MiB; ~1 min
     .venv/bin/python benchmarks/link_latency.py --sizes 1Mi --samples 300 --rounds 3
+    .venv/bin/python benchmarks/link_latency.py --threshold --sizes 4Ki 16Ki 32Ki 64Ki 120Ki   # inline or ring
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ import numpy as np
 ATTACH = struct.Struct("<QQ")  # seq, sent_ns
 RUN, PRODUCER = "bench", "source"
 SIZES = {"64": 64, "64Ki": 64 << 10, "1Mi": 1 << 20, "4Mi": 4 << 20}
+UNITS = {"Ki": 1 << 10, "Mi": 1 << 20}
 
 
 def _pace(total: int, hz: float, send) -> None:
@@ -70,11 +72,11 @@ def _collect(total: int, timeout: float):
 # ---------------------------------------------------------------------------------------------
 # The link's two processes
 # ---------------------------------------------------------------------------------------------
-def link_pub(path: str, size: int, total: int, hz: float) -> None:
+def link_pub(path: str, size: int, total: int, hz: float, inline_below: int) -> None:
     from retriever.backends.zenoh.link import LinkServer
 
     data = np.zeros(size, dtype=np.uint8)
-    with LinkServer(path, RUN, PRODUCER, slots=8, capacity=size + ATTACH.size) as server:
+    with LinkServer(path, RUN, PRODUCER, slots=8, capacity=size + ATTACH.size, inline_below=inline_below) as server:
         print("READY", flush=True)
         if not server.wait_for(1, 30):
             raise SystemExit("no consumer")
@@ -173,11 +175,11 @@ def _samples(out: str, warmup: int) -> tuple[list[int], int]:
     return [received - sent for seq, sent, received in got if seq >= warmup], len(got)
 
 
-def run_link(size: int, total: int, hz: float, warmup: int) -> tuple[list[int], int]:
+def run_link(size: int, total: int, hz: float, warmup: int, inline_below: int = 64 << 10) -> tuple[list[int], int]:
     folder = tempfile.mkdtemp(prefix="link-bench-")
     path = os.path.join(folder, "p.sock")
     try:
-        pub = subprocess.Popen(_me("--link-pub", path, size, total, hz), stdin=subprocess.PIPE,
+        pub = subprocess.Popen(_me("--link-pub", path, size, total, hz, inline_below), stdin=subprocess.PIPE,
                                stdout=subprocess.PIPE, text=True)
         if pub.stdout.readline().strip() != "READY":
             raise SystemExit("the link's producer did not start")
@@ -204,7 +206,8 @@ def run_zenoh(size: int, total: int, hz: float, warmup: int) -> tuple[list[int],
 
 
 def _size(text: str) -> int:
-    return SIZES.get(text) or int(text)
+    unit = UNITS.get(text[-2:], 1)
+    return int(text[:-2] if unit > 1 else text) * unit
 
 
 def main() -> int:
@@ -214,10 +217,16 @@ def main() -> int:
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--hz", type=float, default=50.0)
     p.add_argument("--warmup", type=int, default=10)
+    p.add_argument("--threshold", action="store_true",
+                   help="compare the link's two routes instead: link-inline (every message through the socket) "
+                        "against link-ring (every message through the ring), for sizes up to 128 KiB")
     args = p.parse_args()
     per_run = max(1, args.samples // args.rounds)
     total = args.warmup + per_run
     sides = {"link": run_link, "raw-zenoh": run_zenoh}
+    if args.threshold:
+        sides = {"link": lambda *a: run_link(*a, inline_below=0),  # the ring (the ratio's numerator)
+                 "link-inline": lambda *a: run_link(*a, inline_below=128 << 10)}
     results: dict[tuple[str, str], list[tuple[list[int], int]]] = {}
     for size in args.sizes:
         for round_ in range(args.rounds):
@@ -225,7 +234,9 @@ def main() -> int:
             for side in order:
                 results.setdefault((side, size), []).append(sides[side](_size(size), total, args.hz, args.warmup))
     print(f"load {os.getloadavg()[0]:.2f}; {per_run} samples per run, {args.rounds} rounds, {args.hz:g} Hz")
-    print(f"{'size':>6} {'side':>10} │ {'median µs':>9} {'(per run)':<22} {'p10–p90 µs':>13} {'received':>9} │ link/zenoh")
+    other = list(sides)[1]
+    print(f"{'size':>6} {'side':>11} │ {'median µs':>9} {'(per run)':<22} {'p10–p90 µs':>13} {'received':>9} │ "
+          f"link/{other}" + (" (link: every message through the ring)" if args.threshold else ""))
     for size in args.sizes:
         medians = {}
         for side in sides:
@@ -235,12 +246,8 @@ def main() -> int:
             p10, p90 = every[len(every) // 10], every[len(every) * 9 // 10]
             received = f"{sum(n for _, n in runs)}/{total * len(runs)}"
             per = ", ".join(f"{m:.0f}" for m in medians[side])
-            ratio = ""
-            if side == "link":
-                pass
-            else:
-                ratio = ", ".join(f"{a / b:.2f}" for a, b in zip(medians["link"], medians[side]))
-            print(f"{size:>6} {side:>10} │ {statistics.median(medians[side]):9.0f} ({per}){'':<{max(0, 20 - len(per))}} "
+            ratio = "" if side == "link" else ", ".join(f"{a / b:.2f}" for a, b in zip(medians["link"], medians[side]))
+            print(f"{size:>6} {side:>11} │ {statistics.median(medians[side]):9.0f} ({per}){'':<{max(0, 20 - len(per))}} "
                   f"{p10:6.0f}–{p90:<6.0f} {received:>9} │ {ratio}")
     return 0
 
@@ -250,7 +257,7 @@ if __name__ == "__main__":
             "link-pub", "link-sub", "zenoh-pub", "zenoh-sub"):
         command, rest = sys.argv[1], sys.argv[2:]
         if command == "--link-pub":
-            link_pub(rest[0], int(rest[1]), int(rest[2]), float(rest[3]))
+            link_pub(rest[0], int(rest[1]), int(rest[2]), float(rest[3]), int(rest[4]))
         elif command == "--link-sub":
             link_sub(rest[0], int(rest[1]), float(rest[2]))
         elif command == "--zenoh-pub":
