@@ -8,7 +8,8 @@ socket of its own instead of Zenoh (benchmarks/reports/shm_channel.md, design B)
 
 Small messages go inline through the socket, big ones through the ring with a handle on the
 socket; acks come back over it; a producer waits (bounded) for a slot rather than lose a message
-or rewrite one under a reader. A link carries opaque messages with a kind byte in one order, so
+or rewrite one under a reader; a message bigger than the slots makes a bigger ring, passed to each
+consumer in the stream's order. A link carries opaque messages with a kind byte in one order, so
 a producer's progress can go on the same stream as its data. Everything a peer sends is checked
 before use; a bad peer is dropped, never the process. A SIGKILLed process leaves at most its
 socket file in the run folder (removed with the folder, folders.py); a ring has no name.

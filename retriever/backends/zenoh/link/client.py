@@ -1,11 +1,12 @@
 """The consumer's end of a link: connects to its producer's socket, checks the handshake and
 the ring's memfd, and a thread of its own receives the producer's messages in order: an inline
 one as it came, a handle's slot copied out of the ring (its bounds and generation checked) and
-acked at once. Each message goes to ``on_message(kind, bytes)`` on that thread; the end of the
+acked at once, a new ring (checked as the first) in place of the old. Each message goes to ``on_message(kind, bytes)`` on that thread; the end of the
 connection, with why, to ``on_closed`` (once; not after :meth:`LinkClient.close`).
 
 Anything the producer sends that is not what frames.py says (a frame too short or too long, of
-an unknown type, a handle out of the ring or of a stale generation) ends the connection with a
+an unknown type, a handle out of the ring or of a stale generation, an fd with any frame but a
+ring's, which it closes) ends the connection with a
 LinkError naming it and the producer: nothing out of bounds is ever read.
 """
 
@@ -24,6 +25,11 @@ from .ring import RingReader
 from .server import HANDSHAKE_TIMEOUT, MAX_INLINE_BELOW
 
 _CRED = struct.Struct("3i")
+
+
+def _close(fds: list[int]) -> None:
+    for fd in fds:
+        os.close(fd)
 
 
 class LinkClient:
@@ -78,7 +84,7 @@ class LinkClient:
                 os.close(fd)
             raise
         ring = RingReader(fds[0], slots, capacity, stride, self.peer)  # owns the fd now
-        return ring, max(inline_below + 1, frames.HANDLE_FRAME.size)
+        return ring, max(inline_below + 1, frames.HANDLE_FRAME.size, frames.RING_FRAME.size)
 
     def _receive(self) -> None:
         sock, ring, peer, size = self._sock, self._ring, self.peer, self._frame_bytes
@@ -86,19 +92,32 @@ class LinkClient:
         why = None
         try:
             while True:
-                data, _, flags, _ = sock.recvmsg(size + 1)
+                data, fds, flags, _ = socket.recv_fds(sock, size + 1, 1)
                 if not data:
                     why = LinkError(f"{peer} closed the connection")
                     return
                 if flags & socket.MSG_TRUNC or len(data) > size:
+                    _close(fds)
                     raise LinkError(f"{peer}: sent a frame longer than its welcome allows ({size} bytes)")
-                if frames.frame_type(data, peer) == frames.INLINE:
+                try:
+                    kind = frames.frame_type(data, peer)
+                    if (kind == frames.RING) != (len(fds) == 1) or flags & socket.MSG_CTRUNC:
+                        raise LinkError(f"{peer}: sent {len(fds)} fds with a frame of type {kind} (a ring frame takes "
+                                        "one, the others none)")
+                except LinkError:
+                    _close(fds)
+                    raise
+                if kind == frames.INLINE:
                     on_message(data[1], data[2:])
-                else:
+                elif kind == frames.HANDLE:
                     _, kind, slot, generation, length = unpack(data)
                     message = ring.copy(slot, generation, length)
                     sock.sendall(ack(slot, generation))
                     on_message(kind, message)
+                else:
+                    _, slots, capacity, stride = frames.RING_FRAME.unpack(data)
+                    ring.close()
+                    ring = self._ring = RingReader(fds[0], slots, capacity, stride, peer)  # owns the fd
         except LinkError as e:
             why = e
         except ConnectionResetError:  # its process ended with our acks unread
@@ -109,7 +128,7 @@ class LinkClient:
             why = LinkError(f"{peer}: on_message raised {type(e).__name__}: {e}")
         finally:
             sock.close()
-            ring.close()
+            self._ring.close()
             if not self._closing:
                 self.on_closed(why)
 

@@ -8,6 +8,8 @@ SOCK_SEQPACKET record (the socket keeps their bounds and order):
 
     producer -> consumer   INLINE  type u8, kind u8, the message's bytes
                            HANDLE  type u8, kind u8, slot u32, generation u64, length u64 (22 bytes)
+                           RING    type u8, slots u32, capacity u64, stride u64 (21 bytes), with the
+                                   memfd of a new ring that replaces the old (no slot of which is held)
     consumer -> producer   ACK     type u8, slot u32, generation u64 (13 bytes)
 
 ``kind`` is the caller's: one ordered stream carries whatever kinds of message it sends (data,
@@ -25,8 +27,9 @@ from ....errors import LinkError
 
 LINK_VERSION = 1
 MAGIC = "retriever-link"
-INLINE, HANDLE, ACK = 1, 2, 3
+INLINE, HANDLE, ACK, RING = 1, 2, 3, 4
 HANDLE_FRAME = struct.Struct("<BBIQQ")
+RING_FRAME = struct.Struct("<BIQQ")
 ACK_FRAME = struct.Struct("<BIQ")
 #: a handshake message's bound, and a name's (a run, a producer, a consumer)
 MAX_HANDSHAKE = 4096
@@ -92,6 +95,10 @@ def handle(kind: int, slot: int, generation: int, length: int) -> bytes:
     return HANDLE_FRAME.pack(HANDLE, kind, slot, generation, length)
 
 
+def ring(slots: int, capacity: int, stride: int) -> bytes:
+    return RING_FRAME.pack(RING, slots, capacity, stride)
+
+
 def ack(slot: int, generation: int) -> bytes:
     return ACK_FRAME.pack(ACK, slot, generation)
 
@@ -105,12 +112,18 @@ def read_ack(data: bytes, peer: str) -> tuple[int, int]:
     return slot, generation
 
 
+#: the name of each frame a producer sends, and the bytes it must have (None: at least 2)
+_SIZES = {INLINE: ("message", None), HANDLE: ("handle", HANDLE_FRAME.size), RING: ("ring", RING_FRAME.size)}
+
+
 def frame_type(data: bytes, peer: str) -> int:
-    """INLINE or HANDLE, with the frame's length checked for it."""
+    """INLINE, HANDLE or RING, with the frame's length checked for it."""
     kind = data[0] if data else None
-    if kind == INLINE and len(data) >= 2 or kind == HANDLE and len(data) == HANDLE_FRAME.size:
+    if kind == INLINE and len(data) >= 2 or kind == HANDLE and len(data) == HANDLE_FRAME.size \
+            or kind == RING and len(data) == RING_FRAME.size:
         return kind
-    if kind in (INLINE, HANDLE):
-        raise LinkError(f"{peer}: sent a {'handle' if kind == HANDLE else 'message'} frame of {len(data)} bytes "
-                        f"({'exactly ' + str(HANDLE_FRAME.size) if kind == HANDLE else 'at least 2'} expected)")
+    if kind in _SIZES:
+        name, size = _SIZES[kind]
+        raise LinkError(f"{peer}: sent a {name} frame of {len(data)} bytes "
+                        f"({'exactly ' + str(size) if size else 'at least 2'} expected)")
     raise LinkError(f"{peer}: sent a frame of unknown type {kind} ({len(data)} bytes)")

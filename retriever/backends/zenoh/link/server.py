@@ -4,7 +4,8 @@ same-host consumers connect to, and the ordered stream of messages sent to each 
 A message below ``inline_below`` bytes goes whole in one frame (``sendmsg`` of its parts: no
 join); a bigger one goes into a free slot of the ring (its parts written straight in) and its
 handle to every consumer. A slot is written again only after every consumer its handle went to
-acked it (or was dropped). No free slot: :meth:`LinkServer.send` waits for acks, up to
+acked it (or was dropped). A message bigger than the slots makes a bigger ring (its fd sent
+to each consumer in the stream's order) once no slot of the old one is held. No free slot: :meth:`LinkServer.send` waits for acks, up to
 ``send_timeout``, then raises (a consumer that stopped reading backs its producer up, as Zenoh's
 BLOCK congestion control does: never a lost message, never a slot rewritten under a reader).
 
@@ -15,6 +16,7 @@ A consumer that sends anything but a well-formed ack for a slot it holds, or tha
 
 from __future__ import annotations
 
+import array
 import collections
 import os
 import select
@@ -28,7 +30,7 @@ from pathlib import Path
 
 from ....errors import LinkError
 from . import frames
-from .ring import Ring
+from .ring import MAX_RING_BYTES, Ring, stride_for
 
 #: messages below this many bytes go inline (a frame through the socket), the others through the
 #: ring; at most MAX_INLINE_BELOW (a SEQPACKET record must fit the socket's send buffer)
@@ -118,10 +120,10 @@ class LinkServer:
             for consumer in consumers:
                 self._put(consumer, frame)
             return
+        deadline = time.monotonic() + self.send_timeout
         if length > self._ring.capacity:
-            raise LinkError(f"{self.producer}: a message of {length} bytes is bigger than its link's ring slots "
-                            f"({self._ring.capacity} bytes)")
-        slot = self._free_slot(time.monotonic() + self.send_timeout)
+            self._grow(length, deadline)
+        slot = self._free_slot(deadline)
         self._generation += 1
         self._generations[slot] = generation = self._generation
         self._ring.write(slot, parts, length, generation)
@@ -131,13 +133,35 @@ class LinkServer:
             if self._put(consumer, frame):
                 held.add(consumer)
 
-    def _put(self, consumer: _Consumer, frame: list) -> bool:
+    def _grow(self, length: int, deadline: float) -> None:
+        """Replace the ring by one whose slots hold ``length`` bytes (twice the old at least), once
+        no consumer holds a slot of the old one; each consumer gets the new one's fd in a RING
+        frame, in the stream's order (a consumer joining meanwhile gets it in its welcome)."""
+        old = self._ring
+        capacity = max(length, 2 * old.capacity)
+        if old.slots * stride_for(capacity) > MAX_RING_BYTES:
+            raise LinkError(f"{self.producer}: a message of {length} bytes is bigger than its link's ring can grow "
+                            f"({old.slots} slots, {MAX_RING_BYTES} bytes in all)")
+        for slot in range(old.slots):
+            self._wait_free(slot, deadline)
+        new = Ring(old.slots, capacity, f"retriever-link-{self.producer}"[:200])
+        rights = [(socket.SOL_SOCKET, socket.SCM_RIGHTS, array.array("i", [new.fd]))]
+        frame = [frames.ring(new.slots, new.capacity, new.stride)]
+        with self._changed:
+            self._ring = new
+            consumers = self._consumers
+        for consumer in consumers:
+            self._put(consumer, frame, rights)
+        old.close()
+        self._next = 0
+
+    def _put(self, consumer: _Consumer, frame: list, ancillary: list = ()) -> bool:
         """Send one frame to ``consumer`` (waiting for room in its socket up to ``send_timeout``);
         False if it is gone (then dropped)."""
         deadline = None
         while True:
             try:
-                consumer.sock.sendmsg(frame, (), socket.MSG_NOSIGNAL)
+                consumer.sock.sendmsg(frame, ancillary, socket.MSG_NOSIGNAL)
                 return True
             except BlockingIOError:
                 deadline = deadline or time.monotonic() + self.send_timeout
@@ -153,8 +177,14 @@ class LinkServer:
                 return False
 
     def _free_slot(self, deadline: float) -> int:
-        """The next slot in turn once no consumer holds it: acks read meanwhile, until ``deadline``."""
+        """The next slot in turn once no consumer holds it."""
         slot = self._next
+        self._wait_free(slot, deadline)
+        self._next = (slot + 1) % len(self._held)
+        return slot
+
+    def _wait_free(self, slot: int, deadline: float) -> None:
+        """Until no consumer holds ``slot``: acks read meanwhile, until ``deadline``."""
         while self._held[slot]:
             self._read_acks(self._held[slot])
             if not self._held[slot]:
@@ -169,8 +199,6 @@ class LinkServer:
             for consumer in self._held[slot]:
                 poll.register(consumer.sock, select.POLLIN)
             poll.poll(left * 1000)
-        self._next = (slot + 1) % len(self._held)
-        return slot
 
     def _read_acks(self, consumers: set[_Consumer]) -> None:
         """Take every ack waiting on these consumers' connections (without waiting)."""
@@ -229,7 +257,18 @@ class LinkServer:
                 return
             self._handshakes.add(sock)
         try:
-            consumer = self._admit(sock)
+            name, peer = self._admit(sock)
+            with self._changed:  # the welcome and the joining at once: a new ring goes to it or is in it
+                self._handshakes.discard(sock)
+                if self._closed:
+                    sock.close()
+                    return
+                ring = self._ring
+                socket.send_fds(sock, [frames.welcome(self.run, self.producer, ring.slots, ring.capacity,
+                                                      ring.stride, self.inline_below)], [ring.fd])
+                sock.setblocking(False)  # sends wait in _put, acks are read without waiting
+                self._consumers = (*self._consumers, _Consumer(sock, name, peer))
+                self._changed.notify_all()
         except (LinkError, OSError) as e:
             sock.close()
             with self._changed:
@@ -238,16 +277,9 @@ class LinkServer:
                     return
             self._note(e if isinstance(e, LinkError) else LinkError(
                 f"{self.producer}: a consumer's handshake failed ({type(e).__name__}: {e})"))
-            return
-        with self._changed:
-            self._handshakes.discard(sock)
-            if self._closed:
-                sock.close()
-                return
-            self._consumers = (*self._consumers, consumer)
-            self._changed.notify_all()
 
-    def _admit(self, sock: socket.socket) -> _Consumer:
+    def _admit(self, sock: socket.socket) -> tuple[str, str]:
+        """The name and description of the consumer whose hello ``sock`` brings, once checked."""
         pid, uid, _ = _CRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _CRED.size))
         peer = f"a consumer (pid {pid})"
         if uid != os.getuid():
@@ -263,11 +295,7 @@ class LinkServer:
                       f"of run {self.run!r}")
             sock.send(frames.refusal(reason))
             raise LinkError(f"{self.producer}: {peer} refused: {reason}")
-        ring = self._ring
-        socket.send_fds(sock, [frames.welcome(self.run, self.producer, ring.slots, ring.capacity, ring.stride,
-                                              self.inline_below)], [ring.fd])
-        sock.setblocking(False)  # sends wait in _put, acks are read without waiting
-        return _Consumer(sock, name, peer)
+        return name, peer
 
     def close(self) -> None:
         """Stop admitting, unlink the socket, close every connection and the ring (idempotent)."""

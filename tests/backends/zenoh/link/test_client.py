@@ -57,7 +57,7 @@ class RawProducer:
         self.thread.start()
         self.path = folder / "p.sock"
 
-    def _serve(self, welcome: bytes, fds: list[int], sent: list[bytes], then: list[bytes]) -> None:
+    def _serve(self, welcome: bytes, fds: list[int], sent: list, then: list) -> None:
         sock, _ = self.listener.accept()
         with sock:
             assert frames.read_hello(sock.recv(4096), "test") == (RUN, PRODUCER, "sink")
@@ -67,8 +67,8 @@ class RawProducer:
             if then:
                 self.acks.append(sock.recv(64))
             try:
-                for frame in then:
-                    sock.send(frame)
+                for frame in then:  # a frame, or (a frame, its fds)
+                    socket.send_fds(sock, [frame[0]], frame[1]) if type(frame) is tuple else sock.send(frame)
                 while sock.recv(64):
                     pass
             except (BrokenPipeError, ConnectionResetError):  # the consumer ended (with frames unread)
@@ -182,3 +182,38 @@ def test_no_producer_listening_is_a_clear_error(folder):
     with pytest.raises(LinkError, match=r"producer 'camera' \(p.sock\): cannot connect to .*p.sock "
                                         r"\(No such file or directory\)"):
         LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda *_: None, lambda _: None)
+
+
+#: ring frames (and fds) after a good welcome and a good handle, and the error that ends the connection
+RINGS = {
+    "a ring frame with no fd": (lambda: (frames.ring(2, 100_000, stride_for(100_000)), []),
+                                r"sent 0 fds with a frame of type 4 \(a ring frame takes one, the others none\)"),
+    "an fd with a message": (lambda: (frames.INLINE_HEADS[0] + b"x", [_memfd(4096)]), r"sent 1 fds with a frame of type 1"),
+    "a ring frame with an unsealed memfd": (lambda: (frames.ring(2, 100_000, stride_for(100_000)),
+                                                     [_memfd(RING_BYTES, seals=0)]),
+                                            r"refused its ring: its memfd is not sealed against shrinking and growing"),
+    "a ring frame too short": (lambda: (frames.ring(2, 100_000, stride_for(100_000))[:-1], [_memfd(RING_BYTES)]),
+                               r"sent a ring frame of 20 bytes \(exactly 21 expected\)"),
+}
+
+
+@pytest.mark.parametrize("case", RINGS)
+def test_a_bad_ring_frame_ends_the_connection_and_leaves_no_fd_open(folder, case):
+    open_before = sorted(os.listdir("/proc/self/fd"))
+    made, error = RINGS[case]
+    frame, fds = made()
+    ring = Ring(2, 100_000)
+    ring.write(0, [b"slot0"], 5, 5)
+    producer = RawProducer(folder, _welcome(), [ring.fd], [frames.handle(2, 0, 5, 5)],
+                           [(frame, fds) if fds else frame, frames.INLINE_HEADS[0] + b"never"])
+    got, closed = [], queue.Queue()
+    client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda *message: got.append(message), closed.put)
+    with pytest.raises(LinkError, match=rf"producer 'camera' \(pid \d+, p.sock\): {error}"):
+        raise closed.get(timeout=30)
+    client.close()
+    producer.close()
+    ring.close()
+    for fd in fds:
+        os.close(fd)
+    assert got == [(2, b"slot0")]
+    assert sorted(os.listdir("/proc/self/fd")) == open_before  # what the consumer was sent it closed

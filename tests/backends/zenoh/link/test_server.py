@@ -176,14 +176,49 @@ def test_a_bad_ack_drops_its_consumer_and_the_others_go_on(folder, peers, case):
         os.close(fd)
 
 
-def test_a_message_bigger_than_the_slots_is_refused_and_parts_of_any_form_are_written_whole(folder, peers):
+def test_a_message_bigger_than_the_slots_grows_the_ring_in_the_streams_order(folder, peers):
+    server, dropped = _server(folder, capacity=100_000)
+    with server:
+        early = peers("consume", folder / "p.sock", RUN, PRODUCER, "early")
+        assert early.line() == "ready" and server.wait_for(1, 30)
+        sizes = [100_000, 300_000, 70_000, 100, 1 << 20, 200_000]  # grows at 300 000 (to 300 000) and 1 MiB
+        _send_all(server, sizes[:3])
+        late = peers("consume", folder / "p.sock", RUN, PRODUCER, "late")  # joins with the grown ring
+        assert late.line() == "ready" and server.wait_for(2, 30)
+        _send_all(server, sizes[3:], start=3)
+        assert early.lines(6) == _expected(sizes)
+        assert late.lines(3) == _expected(sizes)[3:]
+        assert early.end() == 0 and late.end() == 0
+    assert dropped.empty()
+
+
+def test_a_ring_grows_only_once_no_slot_of_the_old_one_is_held(folder):
+    server, dropped = _server(folder, send_timeout=0.2)
+    with server:
+        sock, fd = _raw_consumer(folder, "slow")
+        assert server.wait_for(1, 30)
+        server.send(message(0, 100_000))
+        assert _handle(sock)[1:3] == (0, 1)
+        with pytest.raises(LinkError, match=r"no free slot in its link's ring for 0.2s: consumer 'slow' \(pid \d+\) "
+                                            r"did not ack slot 0"):
+            server.send(message(1, 2 << 20))
+        sock.send(frames.ack(0, 1))
+        server.send(message(1, 2 << 20))
+        data, fds, _, _ = socket.recv_fds(sock, 64, 1)  # the new ring first, then its handle
+        assert frames.RING_FRAME.unpack(data)[:3] == (frames.RING, 2, 2 << 20) and len(fds) == 1
+        assert os.fstat(fds[0]).st_size == 2 * frames.RING_FRAME.unpack(data)[3]
+        assert _handle(sock)[1:] == (0, 2, 2 << 20)
+        for descriptor in (fd, *fds):
+            os.close(descriptor)
+        sock.close()
+    assert dropped.empty()
+
+
+def test_parts_of_any_form_are_written_whole(folder, peers):
     server, _ = _server(folder, capacity=100_000)
     with server:
         sink = peers("consume", folder / "p.sock", RUN, PRODUCER, "sink")
         assert sink.line() == "ready" and server.wait_for(1, 30)
-        with pytest.raises(LinkError, match=r"camera: a message of 100001 bytes is bigger than its link's ring "
-                                            r"slots \(100000 bytes\)"):
-            server.send([bytes(100_001)])
         head = (7).to_bytes(8, "little")
         server.send([memoryview(head), np.full(99_992 // 4, 3, np.float32)])  # a float array's bytes, uncast
         assert sink.line()["sha"] == __import__("hashlib").sha256(
