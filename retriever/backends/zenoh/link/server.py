@@ -107,8 +107,9 @@ class LinkServer:
     def send(self, parts: list, kind: int = 0) -> None:
         """Send the message made of ``parts`` (bytes-like, as the wire encoder's ``data_parts``)
         to every connected consumer, after the messages sent before it; ``kind`` (0..255) goes
-        with it. Raises LinkError when a consumer held up the send past ``send_timeout``, or the
-        message is bigger than the ring's slots."""
+        with it. Raises LinkError when a consumer held up the send past ``send_timeout`` (the
+        message may then have reached some consumers and not others: the link is out of order,
+        close it), or the ring cannot grow to the message."""
         consumers = self._consumers
         if not consumers:
             return
