@@ -250,3 +250,23 @@ def test_a_connection_that_says_nothing_holds_up_no_other_consumer(folder, peers
             server.send([b"x"], kind=256)
     silent.close()
     assert dropped.empty()
+
+
+def test_a_consumer_gone_with_slots_unacked_frees_them(folder, peers):
+    server, dropped = _server(folder, send_timeout=30)  # a bound on a hang only: the slots free at once
+    with server:
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready"
+        sock, fd = _raw_consumer(folder, "gone")
+        assert server.wait_for(2, 30)
+        _send_all(server, [100_000, 100_000])  # both slots: "gone" acks neither
+        assert [_handle(sock)[1:3] for _ in range(2)] == [(0, 1), (1, 2)]
+        sock.close()  # as the kernel does for a killed process
+        os.close(fd)
+        _send_all(server, [100_000, 100_000], start=2)  # slot 0 again: its holder's end is read, the slot freed
+        with pytest.raises(LinkError, match=r"camera: consumer 'gone' \(pid \d+\) is gone \(closed its connection\): "
+                                            r"dropped"):
+            raise dropped.get(timeout=30)
+        assert server.consumers == ["good"]
+        assert good.lines(4) == _expected([100_000] * 4)
+        assert good.end() == 0
