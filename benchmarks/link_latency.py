@@ -58,7 +58,7 @@ def _pace(total: int, hz: float, send) -> None:
         deadline += period
 
 
-def _collect(total: int, timeout: float):
+def _collect(total: int):
     got: list[tuple[int, int, int]] = []
     done = threading.Event()
 
@@ -91,7 +91,7 @@ def link_pub(path: str, size: int, total: int, hz: float, inline_below: int) -> 
 def link_sub(path: str, total: int, timeout: float) -> None:
     from retriever.backends.zenoh.link import LinkClient
 
-    got, done, on = _collect(total, timeout)
+    got, done, on = _collect(total)
 
     def on_message(kind: int, message: bytes) -> None:
         array = np.frombuffer(message, dtype=np.uint8, offset=ATTACH.size)
@@ -123,7 +123,7 @@ def _config(listen: str | None = None, connect: str | None = None):
 def zenoh_sub(key: str, listen: str, total: int, timeout: float) -> None:
     import zenoh
 
-    got, done, on = _collect(total, timeout)
+    got, done, on = _collect(total)
     with zenoh.open(_config(listen=listen)) as session:
         sub = session.declare_subscriber(key)
 
@@ -247,7 +247,8 @@ def main() -> int:
             received = f"{sum(n for _, n in runs)}/{total * len(runs)}"
             per = ", ".join(f"{m:.0f}" for m in medians[side])
             ratio = "" if side == "link" else ", ".join(f"{a / b:.2f}" for a, b in zip(medians["link"], medians[side]))
-            print(f"{size:>6} {side:>11} │ {statistics.median(medians[side]):9.0f} ({per}){'':<{max(0, 20 - len(per))}} "
+            pad = " " * max(0, 20 - len(per))
+            print(f"{size:>6} {side:>11} │ {statistics.median(medians[side]):9.0f} ({per}){pad} "
                   f"{p10:6.0f}–{p90:<6.0f} {received:>9} │ {ratio}")
     return 0
 

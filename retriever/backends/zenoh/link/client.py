@@ -1,13 +1,14 @@
 """The consumer's end of a link: connects to its producer's socket, checks the handshake and
 the ring's memfd, and a thread of its own receives the producer's messages in order: an inline
 one as it came, a handle's slot copied out of the ring (its bounds and generation checked) and
-acked at once, a new ring (checked as the first) in place of the old. Each message goes to ``on_message(kind, bytes)`` on that thread; the end of the
-connection, with why, to ``on_closed`` (once; not after :meth:`LinkClient.close`).
+acked at once, a new ring (checked as the first) in place of the old. Each message goes to
+``on_message(kind, bytes)`` on that thread; the end of the connection, with why, to
+``on_closed`` (once; not after :meth:`LinkClient.close`).
 
 Anything the producer sends that is not what frames.py says (a frame too short or too long, of
 an unknown type, a handle out of the ring or of a stale generation, an fd with any frame but a
-ring's, which it closes) ends the connection with a
-LinkError naming it and the producer: nothing out of bounds is ever read.
+ring's, which it closes) ends the connection with a LinkError naming it and the producer:
+nothing out of bounds is ever read.
 """
 
 from __future__ import annotations

@@ -5,9 +5,10 @@ A message below ``inline_below`` bytes goes whole in one frame (``sendmsg`` of i
 join); a bigger one goes into a free slot of the ring (its parts written straight in) and its
 handle to every consumer. A slot is written again only after every consumer its handle went to
 acked it (or was dropped). A message bigger than the slots makes a bigger ring (its fd sent
-to each consumer in the stream's order) once no slot of the old one is held. No free slot: :meth:`LinkServer.send` waits for acks, up to
-``send_timeout``, then raises (a consumer that stopped reading backs its producer up, as Zenoh's
-BLOCK congestion control does: never a lost message, never a slot rewritten under a reader).
+to each consumer in the stream's order) once no slot of the old one is held. No free slot:
+:meth:`LinkServer.send` waits for acks, up to ``send_timeout``, then raises (a consumer that
+stopped reading backs its producer up, as Zenoh's BLOCK congestion control does: never a lost
+message, never a slot rewritten under a reader).
 
 A consumer that sends anything but a well-formed ack for a slot it holds, or that is gone
 (EOF, EPIPE), is dropped: its connection closed, its slots released, the error (naming it) on

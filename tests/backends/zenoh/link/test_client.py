@@ -188,7 +188,8 @@ def test_no_producer_listening_is_a_clear_error(folder):
 RINGS = {
     "a ring frame with no fd": (lambda: (frames.ring(2, 100_000, stride_for(100_000)), []),
                                 r"sent 0 fds with a frame of type 4 \(a ring frame takes one, the others none\)"),
-    "an fd with a message": (lambda: (frames.INLINE_HEADS[0] + b"x", [_memfd(4096)]), r"sent 1 fds with a frame of type 1"),
+    "an fd with a message": (lambda: (frames.INLINE_HEADS[0] + b"x", [_memfd(4096)]),
+                             r"sent 1 fds with a frame of type 1"),
     "a ring frame with an unsealed memfd": (lambda: (frames.ring(2, 100_000, stride_for(100_000)),
                                                      [_memfd(RING_BYTES, seals=0)]),
                                             r"refused its ring: its memfd is not sealed against shrinking and growing"),
