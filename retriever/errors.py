@@ -24,6 +24,7 @@
     ├── AccessError (ValueError)   zenoh: a deployment secret that cannot be read, used or written
     ├── WireError                  zenoh: a message on the key space is no Retriever message of this version
     │   └── OtherProtocolReply     ... a daemon's answer in another protocol version: which, and its Retriever's
+    ├── LinkError                  zenoh: a same-host link refused a peer (what it sent, which peer), or a send waited too long
     ├── ReportError                zenoh: a report could not be sent; the coordinator will not get its records
     ├── WorkerError                zenoh: a worker that cannot start as asked, or a worker query with no answer
     │   └── OtherProtocolError     ... a worker that speaks another protocol version than this process
@@ -261,6 +262,11 @@ class OtherProtocolReply(WireError):
     def __init__(self, message: str, protocol: int, retriever: str | None):
         super().__init__(message)
         self.protocol, self.retriever = protocol, retriever
+
+
+class LinkError(RetrieverError):
+    """A same-host link (backends/zenoh/link/) refused what a peer sent, naming it and the
+    peer, or a producer's send waited past its bound for a consumer."""
 
 
 class ReportError(RetrieverError):

@@ -85,7 +85,8 @@ MAPS = {
        for path in ("retriever/backends/zenoh/__init__.py", "retriever/backends/zenoh/node/__init__.py",
                     "retriever/backends/zenoh/coordinator/__init__.py", "retriever/backends/zenoh/worker/__init__.py",
                     "retriever/backends/zenoh/daemon/__init__.py", "retriever/backends/zenoh/deploy/__init__.py",
-                    "retriever/backends/zenoh/protocol/__init__.py", "retriever/backends/dora/__init__.py",
+                    "retriever/backends/zenoh/protocol/__init__.py", "retriever/backends/zenoh/link/__init__.py",
+                    "retriever/backends/dora/__init__.py",
                     "retriever/replay/__init__.py")},
 }
 #: a line of a map that names files or folders (``name.py``, ``name/``, several: ``a.py, b.py``),

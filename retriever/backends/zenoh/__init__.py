@@ -11,6 +11,8 @@
     routing.py      a router-mode session's access control and config (router.py's, a daemon's run router)
     reach.py        why an endpoint admitted no session (nothing listens, refused, wrong credentials)
     folders.py      private folders named by their process's PID, and the reaping of a dead one's
+    link/           same-host links: a producer's messages to its consumers on its host over a Unix socket and
+                    a sealed memfd ring instead of Zenoh (its __init__ maps it; not yet wired into node/)
     node/           one node's real-time loop, split by concern (its docstring draws it); its
                     reporter sends step records and events to the coordinator
     worker/         the worker process around a loop, in phases (its docstring maps the modules each

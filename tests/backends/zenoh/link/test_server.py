@@ -1,0 +1,272 @@
+"""A link's producer end (retriever/backends/zenoh/link/server.py): its messages reach consumers
+in processes of their own in order, inline and through the ring; a consumer that withholds its
+acks holds it up, a killed one is dropped, and a hostile one (raw frames written here) is dropped
+with an error naming it while the others go on."""
+
+from __future__ import annotations
+
+import os
+import queue
+import socket
+
+import numpy as np
+import pytest
+
+from retriever.backends.zenoh.link import LinkServer
+from retriever.backends.zenoh.link import frames
+from retriever.errors import LinkError
+from tests.backends.zenoh.link.link_peers import digest, message
+
+RUN, PRODUCER = "run-1", "camera"
+#: sizes below and above the inline bound (64 KiB), more ring messages than its 2 slots
+SIZES = [64, 200_000, 16, 1 << 20, 70_000, 65_535, 65_536, 8, 1 << 20, 300_000, 100]
+
+
+def _expected(sizes: list[int]) -> list[dict]:
+    return [{"kind": i % 3, "index": i, "len": size, "sha": digest(i, size)} for i, size in enumerate(sizes)]
+
+
+def _server(folder, **options) -> tuple[LinkServer, queue.Queue]:
+    dropped: queue.Queue = queue.Queue()
+    options = {"slots": 2, "capacity": 1 << 20, **options}
+    return LinkServer(folder / "p.sock", RUN, PRODUCER, on_dropped=dropped.put, **options), dropped
+
+
+def _send_all(server: LinkServer, sizes: list[int], start: int = 0) -> None:
+    for index, size in enumerate(sizes, start):
+        server.send(message(index, size), kind=index % 3)
+
+
+def test_every_consumer_gets_every_message_in_order_inline_and_through_the_ring(folder, peers):
+    server, dropped = _server(folder)
+    with server:
+        consumers = [peers("consume", folder / "p.sock", RUN, PRODUCER, f"sink{i}") for i in range(3)]
+        assert [c.line() for c in consumers] == ["ready"] * 3
+        assert server.wait_for(3, 30)
+        assert sorted(server.consumers) == ["sink0", "sink1", "sink2"]
+        _send_all(server, SIZES)
+        for consumer in consumers:
+            assert consumer.lines(len(SIZES)) == _expected(SIZES)
+            assert consumer.end() == 0
+    assert dropped.empty()
+
+
+def _raw_consumer(folder, name: str = "raw", run: str = RUN, producer: str = PRODUCER) -> tuple[socket.socket, int]:
+    """A consumer written by hand: its socket after the handshake, and the ring's fd it was given."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    sock.connect(str(folder / "p.sock"))
+    sock.send(frames.hello(run, producer, name))
+    data, fds, _, _ = socket.recv_fds(sock, 4096, 1)
+    assert frames.read_welcome(data, "test")[:2] == (RUN, PRODUCER)
+    return sock, fds[0]
+
+
+def _handle(sock: socket.socket) -> tuple[int, int, int, int]:
+    """(kind, slot, generation, length) of the next frame, a handle."""
+    _, kind, slot, generation, length = frames.HANDLE_FRAME.unpack(sock.recv(64))
+    return kind, slot, generation, length
+
+
+def test_a_consumer_that_withholds_its_acks_holds_the_producer_up_until_it_acks(folder):
+    server, dropped = _server(folder, send_timeout=0.2)
+    with server:
+        sock, fd = _raw_consumer(folder, "slow")
+        assert server.wait_for(1, 30)
+        big = message(0, 100_000)
+        server.send(big)
+        server.send(big)
+        assert [_handle(sock)[1:3] for _ in range(2)] == [(0, 1), (1, 2)]
+        # both slots held by "slow", which acks neither: the third message waits, then gives up
+        with pytest.raises(LinkError, match=r"camera: no free slot in its link's ring for 0.2s: consumer 'slow' "
+                                            r"\(pid \d+\) did not ack slot 0; a consumer that stopped reading holds"):
+            server.send(big)
+        sock.send(frames.ack(0, 1))  # the slot it was done with: the send goes on, into that slot
+        server.send(big)
+        assert _handle(sock)[1:] == (0, 3, 100_000)
+        assert dropped.empty()
+        sock.close()
+        os.close(fd)
+
+
+def test_a_killed_consumer_is_dropped_and_the_others_go_on(folder, peers):
+    server, dropped = _server(folder)
+    with server:
+        alive, doomed = (peers("consume", folder / "p.sock", RUN, PRODUCER, name) for name in ("alive", "doomed"))
+        assert [alive.line(), doomed.line()] == ["ready", "ready"]
+        assert server.wait_for(2, 30)
+        _send_all(server, SIZES[:2])
+        assert doomed.lines(2) == _expected(SIZES[:2])
+        doomed.kill()
+        _send_all(server, SIZES[2:], start=2)
+        assert alive.lines(len(SIZES)) == _expected(SIZES)
+        assert server.consumers == ["alive"]
+        assert "consumer 'doomed'" in str(dropped.get(timeout=30)) and "is gone" in str(server.dropped[0])
+        assert alive.end() == 0
+
+
+HANDSHAKES = {
+    "garbage": (b"\xc1\x00garbage", r"a consumer \(pid \d+\): its hello is not valid msgpack"),
+    "not a handshake": (b"\x93\x01\x02\x03", r"its hello is no retriever link handshake"),
+    "another version": (frames.hello(RUN, PRODUCER, "x").replace(b"\x01", b"\x07", 1),
+                        r"its hello is of link version 7, this process's is 1"),
+    "too long": (b"\x00" * 5000, r"its hello is longer than 4096 bytes"),
+    "no names": (b"\x95\xaeretriever-link\x01\x01\x02\x03", r"its hello is not \[magic, version, run, producer"),
+    "another run": (frames.hello("run-2", PRODUCER, "x"),
+                    r"consumer 'x' \(pid \d+\) refused: it asked for producer 'camera' of run 'run-2'"),
+    "another producer": (frames.hello(RUN, "lidar", "x"), r"refused: it asked for producer 'lidar' of run 'run-1'"),
+}
+
+
+@pytest.mark.parametrize("case", HANDSHAKES)
+def test_a_bad_handshake_is_refused_and_the_others_go_on(folder, peers, case):
+    hello, error = HANDSHAKES[case]
+    server, dropped = _server(folder)
+    with server:
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready" and server.wait_for(1, 30)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        sock.connect(str(folder / "p.sock"))
+        sock.send(hello)
+        assert sock.recv(4096, socket.MSG_PEEK) is not None  # the refusal (if any), then the end
+        with pytest.raises(LinkError, match=error):
+            raise dropped.get(timeout=30)
+        if case.startswith("another ") and case != "another version":
+            with pytest.raises(LinkError, match="refused this consumer: it asked for"):
+                frames.read_welcome(sock.recv(4096), "test")
+        assert sock.recv(4096) == b""  # dropped
+        sock.close()
+        assert server.consumers == ["good"]
+        _send_all(server, SIZES[:4])
+        assert good.lines(4) == _expected(SIZES[:4])
+        assert good.end() == 0
+
+
+ACKS = {
+    "too short": (b"\x03\x00", r"consumer 'raw' \(pid \d+\): sent a frame of 2 bytes of type 3, not an ack"),
+    "too long": (frames.ack(0, 1) + b"\x00", r"sent a frame of 14 bytes of type 3, not an ack"),
+    "of an unknown type": (b"\x09" + frames.ack(0, 1)[1:], r"sent a frame of 13 bytes of type 9, not an ack"),
+    "of a slot never sent": (frames.ack(1, 1), r"acked slot 1 generation 1, which it does not hold"),
+    "of a slot out of range": (frames.ack(99, 1), r"acked slot 99 generation 1, which it does not hold"),
+    "of another generation": (frames.ack(0, 7), r"acked slot 0 generation 7, which it does not hold"),
+    "twice": (frames.ack(0, 1) * 2, r"acked slot 0 generation 1, which it does not hold \(never sent to it, or "
+                                    r"acked before\)"),
+}
+
+
+@pytest.mark.parametrize("case", ACKS)
+def test_a_bad_ack_drops_its_consumer_and_the_others_go_on(folder, peers, case):
+    sent, error = ACKS[case]
+    server, dropped = _server(folder)
+    with server:
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready"
+        sock, fd = _raw_consumer(folder)
+        assert server.wait_for(2, 30)
+        _send_all(server, [100_000])
+        assert _handle(sock)[1:3] == (0, 1)
+        for frame in [sent] if case != "twice" else [sent[:13], sent[13:]]:
+            sock.send(frame)
+        _send_all(server, [100_000, 100_000], start=1)  # the third needs slot 0: its acks are read
+        with pytest.raises(LinkError, match=error):
+            raise dropped.get(timeout=30)
+        assert server.consumers == ["good"]
+        assert good.lines(3) == _expected([100_000] * 3)
+        assert good.end() == 0
+        sock.close()
+        os.close(fd)
+
+
+def test_a_message_bigger_than_the_slots_grows_the_ring_in_the_streams_order(folder, peers):
+    server, dropped = _server(folder, capacity=100_000)
+    with server:
+        early = peers("consume", folder / "p.sock", RUN, PRODUCER, "early")
+        assert early.line() == "ready" and server.wait_for(1, 30)
+        sizes = [100_000, 300_000, 70_000, 100, 1 << 20, 200_000]  # grows at 300 000 (to 300 000) and 1 MiB
+        _send_all(server, sizes[:3])
+        late = peers("consume", folder / "p.sock", RUN, PRODUCER, "late")  # joins with the grown ring
+        assert late.line() == "ready" and server.wait_for(2, 30)
+        _send_all(server, sizes[3:], start=3)
+        assert early.lines(6) == _expected(sizes)
+        assert late.lines(3) == _expected(sizes)[3:]
+        assert early.end() == 0 and late.end() == 0
+    assert dropped.empty()
+
+
+def test_a_ring_grows_only_once_no_slot_of_the_old_one_is_held(folder):
+    server, dropped = _server(folder, send_timeout=0.2)
+    with server:
+        sock, fd = _raw_consumer(folder, "slow")
+        assert server.wait_for(1, 30)
+        server.send(message(0, 100_000))
+        assert _handle(sock)[1:3] == (0, 1)
+        with pytest.raises(LinkError, match=r"no free slot in its link's ring for 0.2s: consumer 'slow' \(pid \d+\) "
+                                            r"did not ack slot 0"):
+            server.send(message(1, 2 << 20))
+        sock.send(frames.ack(0, 1))
+        server.send(message(1, 2 << 20))
+        data, fds, _, _ = socket.recv_fds(sock, 64, 1)  # the new ring first, then its handle
+        assert frames.RING_FRAME.unpack(data)[:3] == (frames.RING, 2, 2 << 20) and len(fds) == 1
+        assert os.fstat(fds[0]).st_size == 2 * frames.RING_FRAME.unpack(data)[3]
+        assert _handle(sock)[1:] == (0, 2, 2 << 20)
+        for descriptor in (fd, *fds):
+            os.close(descriptor)
+        sock.close()
+    assert dropped.empty()
+
+
+def test_parts_of_any_form_are_written_whole(folder, peers):
+    server, _ = _server(folder, capacity=100_000)
+    with server:
+        sink = peers("consume", folder / "p.sock", RUN, PRODUCER, "sink")
+        assert sink.line() == "ready" and server.wait_for(1, 30)
+        head = (7).to_bytes(8, "little")
+        server.send([memoryview(head), np.full(99_992 // 4, 3, np.float32)])  # a float array's bytes, uncast
+        assert sink.line()["sha"] == __import__("hashlib").sha256(
+            head + np.full(99_992 // 4, 3, np.float32).tobytes()).hexdigest()
+        assert sink.end() == 0
+
+
+def test_the_socket_wants_a_private_folder(tmp_path):
+    open_folder = tmp_path / "open"
+    open_folder.mkdir(mode=0o755)
+    open_folder.chmod(0o755)
+    with pytest.raises(LinkError, match=r"a link socket's folder must be this user's alone \(mode 0700\)"):
+        LinkServer(open_folder / "p.sock", RUN, PRODUCER)
+    with pytest.raises(LinkError, match="a link socket's path is longer than 107 bytes"):
+        LinkServer(tmp_path / ("x" * 120), RUN, PRODUCER)
+
+
+def test_a_connection_that_says_nothing_holds_up_no_other_consumer(folder, peers):
+    server, dropped = _server(folder, handshake_timeout=600)  # far past the wait below: only a hold-up would fail
+    with server:
+        silent = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        silent.connect(str(folder / "p.sock"))
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready" and server.wait_for(1, 30)
+        _send_all(server, SIZES[:2])
+        assert good.lines(2) == _expected(SIZES[:2])
+        assert good.end() == 0
+        with pytest.raises(LinkError, match=r"a link message's kind is a byte \(0..255\), not 256"):
+            server.send([b"x"], kind=256)
+    silent.close()
+    assert dropped.empty()
+
+
+def test_a_consumer_gone_with_slots_unacked_frees_them(folder, peers):
+    server, dropped = _server(folder, send_timeout=30)  # a bound on a hang only: the slots free at once
+    with server:
+        good = peers("consume", folder / "p.sock", RUN, PRODUCER, "good")
+        assert good.line() == "ready"
+        sock, fd = _raw_consumer(folder, "gone")
+        assert server.wait_for(2, 30)
+        _send_all(server, [100_000, 100_000])  # both slots: "gone" acks neither
+        assert [_handle(sock)[1:3] for _ in range(2)] == [(0, 1), (1, 2)]
+        sock.close()  # as the kernel does for a killed process
+        os.close(fd)
+        _send_all(server, [100_000, 100_000], start=2)  # slot 0 again: its holder's end is read, the slot freed
+        with pytest.raises(LinkError, match=r"camera: consumer 'gone' \(pid \d+\) is gone \(closed its connection\): "
+                                            r"dropped"):
+            raise dropped.get(timeout=30)
+        assert server.consumers == ["good"]
+        assert good.lines(4) == _expected([100_000] * 4)
+        assert good.end() == 0
