@@ -39,23 +39,17 @@ import threading
 import time
 from pathlib import Path
 
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # run from a checkout without installing
+sys.path.insert(0, str(HERE))
+
 import numpy as np
+from latency import _config, paced  # (raw-iter's session settings and pacing)
 
 ATTACH = struct.Struct("<QQ")  # seq, sent_ns
 RUN, PRODUCER = "bench", "source"
 SIZES = {"64": 64, "64Ki": 64 << 10, "1Mi": 1 << 20, "4Mi": 4 << 20}
 UNITS = {"Ki": 1 << 10, "Mi": 1 << 20}
-
-
-def _pace(total: int, hz: float, send) -> None:
-    period = round(1e9 / hz)
-    deadline = time.time_ns() + period
-    for seq in range(total):
-        wait = deadline - time.time_ns()
-        if wait > 0:
-            time.sleep(wait / 1e9)
-        send(seq)
-        deadline += period
 
 
 def _collect(total: int):
@@ -81,10 +75,8 @@ def link_pub(path: str, size: int, total: int, hz: float, inline_below: int) -> 
         if not server.wait_for(1, 30):
             raise SystemExit("no consumer")
 
-        def send(seq: int) -> None:
-            data[: min(8, size)] = seq % 256
-            server.send([ATTACH.pack(seq, time.time_ns()), data])
-        _pace(total, hz, send)
+        for seq, sent in paced(data, total, hz):
+            server.send([ATTACH.pack(seq, sent), data])
         sys.stdin.read()  # until the harness has the consumer's samples
 
 
@@ -109,17 +101,6 @@ def link_sub(path: str, total: int, timeout: float) -> None:
 # ---------------------------------------------------------------------------------------------
 # Raw zenoh-python's two processes (latency.py's raw-iter)
 # ---------------------------------------------------------------------------------------------
-def _config(listen: str | None = None, connect: str | None = None):
-    import zenoh
-
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", json.dumps([listen] if listen else []))
-    c.insert_json5("connect/endpoints", json.dumps([connect] if connect else []))
-    return c
-
-
 def zenoh_sub(key: str, listen: str, total: int, timeout: float) -> None:
     import zenoh
 
@@ -154,11 +135,8 @@ def zenoh_pub(key: str, connect: str, size: int, total: int, hz: float) -> None:
             time.sleep(0.01)
         time.sleep(0.2)  # let the subscriber's route settle
 
-        def send(seq: int) -> None:
-            data[: min(8, size)] = seq % 256
-            sent = time.time_ns()
+        for seq, sent in paced(data, total, hz):
             pub.put(data.tobytes(), attachment=ATTACH.pack(seq, sent))
-        _pace(total, hz, send)
         time.sleep(0.3)  # let the last samples leave before the session closes
         pub.undeclare()
 

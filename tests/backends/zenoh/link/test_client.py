@@ -148,13 +148,9 @@ FRAMES = {
 }
 
 
-@pytest.mark.parametrize("case", FRAMES)
-def test_a_bad_frame_ends_the_connection_naming_it_and_the_producer(folder, case):
-    frame, error = FRAMES[case]
-    ring = Ring(2, 100_000)
-    ring.write(0, [b"slot", memoryview(b"0")], 5, 5)
-    good = [frames.INLINE_HEADS[1] + b"inline", frames.handle(2, 0, 5, 5)]
-    producer = RawProducer(folder, _welcome(), [ring.fd], good, [frame, frames.INLINE_HEADS[0] + b"never"])
+def _ended_with(folder, producer: RawProducer, ring: Ring, error: str) -> list:
+    """What a consumer of ``producer`` got before its connection ended with ``error`` (a pattern
+    of what follows the producer's name); the consumer, producer and ``ring`` closed."""
     got, closed = [], queue.Queue()
     client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda *message: got.append(message), closed.put)
     with pytest.raises(LinkError, match=rf"producer 'camera' \(pid \d+, p.sock\): {error}"):
@@ -162,6 +158,17 @@ def test_a_bad_frame_ends_the_connection_naming_it_and_the_producer(folder, case
     client.close()
     producer.close()
     ring.close()
+    return got
+
+
+@pytest.mark.parametrize("case", FRAMES)
+def test_a_bad_frame_ends_the_connection_naming_it_and_the_producer(folder, case):
+    frame, error = FRAMES[case]
+    ring = Ring(2, 100_000)
+    ring.write(0, [b"slot", memoryview(b"0")], 5, 5)
+    good = [frames.INLINE_HEADS[1] + b"inline", frames.handle(2, 0, 5, 5)]
+    producer = RawProducer(folder, _welcome(), [ring.fd], good, [frame, frames.INLINE_HEADS[0] + b"never"])
+    got = _ended_with(folder, producer, ring, error)
     assert got == [(1, b"inline"), (2, b"slot0")]  # what came before, and nothing after
     assert producer.acks == [frames.ack(0, 5)]
 
@@ -207,13 +214,7 @@ def test_a_bad_ring_frame_ends_the_connection_and_leaves_no_fd_open(folder, case
     ring.write(0, [b"slot0"], 5, 5)
     producer = RawProducer(folder, _welcome(), [ring.fd], [frames.handle(2, 0, 5, 5)],
                            [(frame, fds) if fds else frame, frames.INLINE_HEADS[0] + b"never"])
-    got, closed = [], queue.Queue()
-    client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda *message: got.append(message), closed.put)
-    with pytest.raises(LinkError, match=rf"producer 'camera' \(pid \d+, p.sock\): {error}"):
-        raise closed.get(timeout=30)
-    client.close()
-    producer.close()
-    ring.close()
+    got = _ended_with(folder, producer, ring, error)
     for fd in fds:
         os.close(fd)
     assert got == [(2, b"slot0")]
