@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import array
 import collections
+import errno
 import os
 import select
 import socket
@@ -82,7 +83,13 @@ class LinkServer:
         self._handshakes: set[socket.socket] = set()  # connections whose handshake is under way
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:
-            self._listener.bind(str(self.path))
+            _clear_stale(self.path)
+            try:
+                self._listener.bind(str(self.path))
+            except OSError as e:
+                if e.errno != errno.EADDRINUSE:
+                    raise
+                raise LinkError(f"a link socket's path was taken meanwhile: {self.path}") from None
             os.chmod(self.path, 0o600)
             self._listener.listen(16)
         except BaseException:
@@ -342,3 +349,28 @@ def _check_folder(path: Path) -> None:
     if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o077:
         raise LinkError(f"a link socket's folder must be this user's alone (mode 0700), not {oct(info.st_mode)} "
                         f"of user {info.st_uid}: {path.parent}")
+
+
+def _clear_stale(path: Path) -> None:
+    """Remove a socket at ``path`` that no one listens on (a SIGKILLed producer's, whose restart
+    binds the same path); anything else there (a live producer's socket, a symlink, a file) is
+    a LinkError naming it, left as it is."""
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(info.st_mode):
+        raise LinkError(f"a link socket's path is taken by something that is no socket (a symlink, a file): {path}; "
+                        "remove it, or give the link another path")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
+    try:
+        probe.connect(str(path))
+    except ConnectionRefusedError:  # no one listens: a dead producer's
+        os.unlink(path)
+        return
+    except OSError as e:
+        raise LinkError(f"a link socket's path is taken by a socket that is no link's ({e.strerror}): {path}") from None
+    finally:
+        probe.close()
+    raise LinkError(f"a link socket's path is taken: a producer listens at {path} (another one of the same node "
+                    "and run still running?)")
