@@ -159,10 +159,12 @@ class LinkServer:
         with self._changed:
             self._ring = new
             consumers = self._consumers
-        for consumer in consumers:
-            self._put(consumer, frame, rights)
-        old.close()
-        self._next = 0
+        try:
+            for consumer in consumers:
+                self._put(consumer, frame, rights)
+        finally:  # (a consumer that took no RING frame in time: send raises, the old ring closed all the same)
+            old.close()
+            self._next = 0
 
     def _put(self, consumer: _Consumer, frame: list, ancillary: list = ()) -> bool:
         """Send one frame to ``consumer`` (waiting for room in its socket up to ``send_timeout``);

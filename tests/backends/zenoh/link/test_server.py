@@ -359,3 +359,22 @@ def test_running_out_of_fds_while_connections_pile_up_leaves_a_later_consumer_ad
             sock.close()
     assert producer.end() == 0
     assert closed.empty()
+
+
+def test_a_ring_growth_that_times_out_leaves_no_ring_open(folder):
+    """A growth whose RING frame a consumer does not take in time raises (send's LinkError), the
+    new ring in place: the old one (its memfd and mapping, up to slots x capacity) was left open
+    for the process's life, close() closing only the new."""
+    open_before = sorted(os.listdir("/proc/self/fd"))
+    server, dropped = _server(folder, capacity=4096, send_timeout=0.2)
+    with server:
+        sock, fd = _raw_consumer(folder, "stuck")  # reads nothing from here on
+        assert server.wait_for(1, 30)
+        with pytest.raises(LinkError, match="took no message for 0.2s"):
+            for _ in range(100_000):  # until its socket is full
+                server.send([b"x" * 1000])
+        with pytest.raises(LinkError, match="took no message for 0.2s"):
+            server.send([bytes(100_000)])  # past the slots: a new ring, whose frame it does not take
+    sock.close()
+    os.close(fd)
+    assert sorted(os.listdir("/proc/self/fd")) == open_before
