@@ -41,6 +41,10 @@ MAX_INLINE_BELOW = 128 * 1024
 #: how long a send may wait for a consumer (a free slot, room in its socket), and a handshake
 SEND_TIMEOUT = 10.0
 HANDSHAKE_TIMEOUT = 5.0
+#: at most this many handshakes under way at once (a thread and an fd each, for up to
+#: HANDSHAKE_TIMEOUT); an accept that failed (out of fds) is tried again after ACCEPT_RETRY_S
+MAX_HANDSHAKES = 64
+ACCEPT_RETRY_S = 0.05
 #: the dropped consumers' errors kept on LinkServer.dropped
 KEPT_DROPS = 64
 #: a socket's path must fit sockaddr_un's sun_path (108 bytes with its NUL)
@@ -252,21 +256,44 @@ class LinkServer:
     # Admitting consumers (the acceptor's thread)
     # -----------------------------------------------------------------------------------------
     def _accept(self) -> None:
-        """Each connection's handshake on a thread of its own: one that says nothing holds up no other."""
+        """Each connection's handshake on a thread of its own: one that says nothing holds up no
+        other. At most MAX_HANDSHAKES under way (one more is closed at once, said); an accept
+        that fails (out of fds: EMFILE) is said once and tried again until close()."""
+        failing = False
         while True:
             try:
                 sock, _ = self._listener.accept()
-            except OSError:  # closed: close() shut the listener down
-                return
-            threading.Thread(target=self._admit_or_refuse, args=(sock,), name=f"link-{self.producer}-hello",
-                             daemon=True).start()
+            except OSError as e:
+                with self._changed:
+                    if self._closed:  # close() shut the listener down
+                        return
+                    self._changed.wait(ACCEPT_RETRY_S)  # (the listener stays readable: no poll for it)
+                if not failing:
+                    failing = True
+                    self._note(LinkError(f"{self.producer}: cannot accept a consumer's connection ({e.strerror}): "
+                                         f"tried again every {ACCEPT_RETRY_S:g}s"))
+                continue
+            failing = False
+            with self._changed:
+                crowded = len(self._handshakes) >= MAX_HANDSHAKES
+                if not crowded:
+                    self._handshakes.add(sock)
+            if crowded:
+                sock.close()
+                self._note(LinkError(f"{self.producer}: a connection closed at once: {MAX_HANDSHAKES} handshakes "
+                                     "are under way (connections that say nothing?)"))
+                continue
+            try:
+                threading.Thread(target=self._admit_or_refuse, args=(sock,), name=f"link-{self.producer}-hello",
+                                 daemon=True).start()
+            except RuntimeError as e:  # can't start new thread
+                with self._changed:
+                    self._handshakes.discard(sock)
+                sock.close()
+                self._note(LinkError(f"{self.producer}: a connection closed at once: {e}"))
 
     def _admit_or_refuse(self, sock: socket.socket) -> None:
-        with self._changed:
-            if self._closed:
-                sock.close()
-                return
-            self._handshakes.add(sock)
+        """(``sock`` is in _handshakes: close() shuts it down)"""
         try:
             name, peer = self._admit(sock)
             with self._changed:  # the welcome and the joining at once: a new ring goes to it or is in it
@@ -314,6 +341,7 @@ class LinkServer:
             return
         with self._changed:
             self._closed = True
+            self._changed.notify_all()  # (an acceptor waiting to try again)
             for sock in self._handshakes:  # a handshake under way ends now (its thread closes the socket)
                 try:
                     sock.shutdown(socket.SHUT_RDWR)

@@ -378,3 +378,23 @@ def test_a_ring_growth_that_times_out_leaves_no_ring_open(folder):
     sock.close()
     os.close(fd)
     assert sorted(os.listdir("/proc/self/fd")) == open_before
+
+
+def test_connections_past_the_handshakes_bound_are_closed_at_once(folder):
+    """Each connection under way holds a thread and an fd for up to its handshake's timeout: past
+    MAX_HANDSHAKES of them a connection is closed at once, and said (there was no bound)."""
+    from retriever.backends.zenoh.link.server import MAX_HANDSHAKES
+
+    server, dropped = _server(folder, handshake_timeout=600)  # only close() ends the silent ones
+    silent = []
+    with server:
+        for _ in range(MAX_HANDSHAKES + 1):
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            sock.connect(str(folder / "p.sock"))
+            silent.append(sock)
+        with pytest.raises(LinkError, match=rf"camera: a connection closed at once: {MAX_HANDSHAKES} handshakes are "
+                                            r"under way \(connections that say nothing\?\)"):
+            raise dropped.get(timeout=30)
+        assert silent[-1].recv(16) == b""  # the last one, closed
+    for sock in silent:
+        sock.close()
