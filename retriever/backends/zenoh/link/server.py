@@ -49,6 +49,8 @@ ACCEPT_RETRY_S = 0.05
 KEPT_DROPS = 64
 #: a socket's path must fit sockaddr_un's sun_path (108 bytes with its NUL)
 MAX_PATH = 107
+#: the most buffers one sendmsg takes (Linux's UIO_MAXIOV)
+IOV_MAX = os.sysconf("SC_IOV_MAX")
 _CRED = struct.Struct("3i")
 
 
@@ -129,7 +131,9 @@ class LinkServer:
             raise LinkError(f"{self.producer}: a link message's kind is a byte (0..255), not {kind!r}")
         length = sum(memoryview(part).nbytes for part in parts)
         if length < self.inline_below:
-            frame = [frames.INLINE_HEADS[kind], *parts]
+            # one sendmsg of the parts (no join), unless they are more than it takes (EMSGSIZE)
+            frame = [frames.INLINE_HEADS[kind], *parts] if len(parts) < IOV_MAX else \
+                [frames.INLINE_HEADS[kind], b"".join(parts)]
             for consumer in consumers:
                 self._put(consumer, frame)
             return

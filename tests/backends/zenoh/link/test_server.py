@@ -398,3 +398,19 @@ def test_connections_past_the_handshakes_bound_are_closed_at_once(folder):
         assert silent[-1].recv(16) == b""  # the last one, closed
     for sock in silent:
         sock.close()
+
+
+def test_a_message_of_more_parts_than_a_sendmsg_takes_reaches_every_consumer(folder):
+    """An inline message went as one sendmsg of its parts: past IOV_MAX (1024) of them, as the wire
+    encoder makes of a value with 510 arrays and more, sendmsg's EMSGSIZE was taken for a gone
+    consumer: every consumer was dropped ('is gone (Message too long)')."""
+    server, dropped = _server(folder)
+    got: queue.Queue = queue.Queue()
+    closed: queue.Queue = queue.Queue()
+    with server:
+        client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda kind, data: got.put(data), closed.put)
+        assert server.wait_for(1, 30)
+        server.send([b"ab"] * 1100)
+        assert got.get(timeout=30) == b"ab" * 1100
+        client.close()
+    assert dropped.empty() and closed.empty()
