@@ -14,6 +14,8 @@ noise comes from a generator seeded with the tick's count).
   events carry 0-d float64 arrays.
 - ``build_frames()``: a camera of incompressible frames and a LET flow of their brightness: a log
   that grows by about a frame per event, for replay's memory (tests/log/test_replay_stream.py).
+- ``build_port_named_late()``: a Queue port named ``late`` that drops (its step records' detail
+  counts the drops under the port's name, which is also a detail key).
 - ``Emit``: an untyped source that emits, one per tick, the values it was given as an attribute
   (the Hypothesis round trip drives it).
 """
@@ -263,4 +265,35 @@ def build_frames(size: int = 1 << 16) -> Pipeline:
         camera = Frames(size).named("camera") @ Rate(hz=30)
         brightness = Brightness().named("brightness").configure(latency=0.1) @ Rate(hz=30, offset=0.01)
         camera.then(brightness, sync=Latest())
+    return pipe
+
+
+# ---------------------------------------------------------------------------------------------
+# An input port named as a step record's detail key
+# ---------------------------------------------------------------------------------------------
+class Ticker(Flow):
+    """Untyped source: 1, 2, 3… on its port ``out``."""
+
+    def __init__(self):
+        self.k = 0
+
+    def step(self):
+        self.k += 1
+        return {"out": self.k}
+
+
+class LateReader(Flow):
+    """Untyped: how many values its Queue port ``late`` held at the tick."""
+
+    def step(self, late):
+        return {"n": len(late)}
+
+
+def build_port_named_late() -> Pipeline:
+    """A Queue(maxsize=2) port named ``late`` fed 10 values a tick: it drops 8 a tick, which its
+    step record's detail counts under the port's name (tick.select_inputs)."""
+    with Pipeline("port_named_late") as pipe:
+        ticker = Ticker() @ Rate(hz=20)
+        reader = LateReader() @ Rate(hz=2, offset=0.01)
+        ticker.then(reader, sync=Queue(maxsize=2), map={"out": "late"})
     return pipe

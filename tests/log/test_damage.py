@@ -1365,3 +1365,41 @@ def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_la
         else:
             with pytest.raises(LogError, match=says):
                 run()
+
+
+def test_an_orphan_event_of_a_flow_whose_process_died_in_virtual_time_is_let_go_after_its_last_record(tmp_path):
+    """A fault's ``at_ns`` is the coordinator's wall clock since T0 (book.run_time), which in a
+    virtual-time log (run record ``time: virtual``) says nothing of the tags: the run goes as fast
+    as its steps do. A process killed 10 ms into the run, its virtual time at 0.45 s, left an event
+    after its last record that the replay must let go; _died_with_its_record compared its tag
+    with the wall-clock death and refused the log (review14)."""
+    import json
+
+    from tests.log.log_flows import build_small
+
+    def added(messages, metadata):
+        total = [m for m in messages if m[0] == "data/accumulate/total"]
+        messages.append(["data/accumulate/total", 470_000_000, total[0][2], 9, total[0][4]])
+        metadata["retriever.run"]["time"] = "virtual"
+        metadata["retriever.fault.1"] = {"kind": "process_lost", "node": "accumulate", "at_ns": "10000000",
+                                         "pid": "7", "exit": "was killed by SIGKILL", "restarted": "false",
+                                         "seqs": json.dumps({}), "lost_events": json.dumps([])}
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "virtual.mcap", added)
+    assert read_log(path).run["time"] == "virtual"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
+        assert run().steps_replayed > 0  # a report, not 'no step record of accumulate says it produced it'
+
+
+def test_a_queue_port_named_as_a_detail_key_replays(tmp_path):
+    """A Queue's drop count goes in the step record's detail under its input port's name, and a
+    port may be called ``late`` (or ``had_below``, ``restart_gap``, ``restarted``, ``error``,
+    ``flow``...: any name ir.py allows): a run's own log, its record's detail ``{"late": 8}``, was
+    refused as malformed ("its late events are not {port: [event id, ...]}"); ``error``, ``exit``,
+    ``missing`` and ``flow`` overwrite or are overwritten by the record's own (review14)."""
+    from retriever.replay import replay_file
+    from tests.log.log_flows import build_port_named_late
+
+    path = tmp_path / "late.mcap"
+    build_port_named_late().run(duration=1.2, log=path)
+    assert replay_file(path, build_port_named_late).identical

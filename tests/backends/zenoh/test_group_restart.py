@@ -150,3 +150,24 @@ def test_a_member_whose_process_dies_takes_the_group_down_whatever_its_on_error(
         pipe.run(duration=3.0, backend="zenoh", quiet=True)
     assert (tmp_path / "crashed").exists()
     assert "crash_restarts" not in pipe.stats()["crash"].counts
+
+
+def test_a_group_process_that_dies_logs_a_fault_for_every_member_it_ran(tmp_path):
+    """Every member went with the group's process: the log's fault records must say so of each,
+    as a lost host's do (processes.host_lost), or a replay refuses a member's event whose step
+    record the process took with it ("no step record of counter says it produced it":
+    replay/steps.py's _died_with_its_record lets it go only for a node a fault names), and misses
+    a member's lost_events. Only the member the coordinator looked at first got one."""
+    from retriever.log import read_log
+
+    from .lifecycle_flows import Counter, SegfaultOnce
+
+    with Pipeline("group_segfault") as pipe:
+        crash = SegfaultOnce(str(tmp_path / "crashed")).configure(name="crash", process="g",
+                                                                  on_error="restart") @ Trigger()
+        counter = Counter().configure(name="counter", process="g") @ Rate(hz=50)
+        counter.then(crash, sync=Latest())
+    with pytest.raises(retriever.BackendError, match=r"worker process of 'counter', 'crash' \(pid \d+\) was killed"):
+        pipe.run(duration=3.0, backend="zenoh", quiet=True, log=tmp_path / "run.mcap")
+    faults = read_log(tmp_path / "run.mcap").faults
+    assert sorted(fault["node"] for fault in faults) == ["counter", "crash"]

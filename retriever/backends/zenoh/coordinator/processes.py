@@ -129,10 +129,12 @@ class Supervisor:
                 self._lost(nid, proc, code)
                 return  # the processes of the node changed: look again next time
             procs.hosts[nid].output(nid).drain()
-            if book.t0 is not None:  # the log says what died, and which of its outputs with it
-                book.faults.unrecovered.append(Fault(nid, book.run_time(), proc.pid, exit_text(code)))
             # (a group's process: every member it ran, which all went with it)
-            served = ", ".join(f"'{n}'" for n in sorted(n for n, p in procs.workers.items() if p is proc) or [nid])
+            members = sorted(n for n, p in procs.workers.items() if p is proc) or [nid]
+            if book.t0 is not None:  # the log says what died (each member), and which of its outputs with it
+                at = book.run_time()
+                book.faults.unrecovered += [Fault(n, at, proc.pid, exit_text(code)) for n in members]
+            served = ", ".join(f"'{n}'" for n in members)
             book.ending.failure = RunFailure(nid, f"worker process of {served} (pid {proc.pid}) {exit_text(code)} "
                                            f"before it finished\n{self.hosting.stderr_tail(nid, FAILED_TAIL_LINES)}")
             self.raise_failure()

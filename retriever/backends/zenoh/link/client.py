@@ -54,7 +54,10 @@ class LinkClient:
             self.peer = f"producer {producer!r} (pid {pid}, {Path(path).name})"
             if uid != os.getuid():
                 raise LinkError(f"{self.peer} is of user {uid}, not this process's {os.getuid()}")
-            sock.sendall(frames.hello(run, producer, consumer))
+            try:
+                sock.sendall(frames.hello(run, producer, consumer))
+            except OSError as e:  # (a timeout too)
+                raise LinkError(f"{self.peer}: the connection failed before its welcome ({e.strerror or e})") from None
             self._ring, self._frame_bytes = self._welcome(sock, run, producer)
             sock.settimeout(None)
         except BaseException:
@@ -69,6 +72,8 @@ class LinkClient:
             data, fds, flags, _ = socket.recv_fds(sock, frames.MAX_HANDSHAKE + 1, 2)
         except TimeoutError:
             raise LinkError(f"{self.peer}: no welcome within the handshake's timeout") from None
+        except OSError as e:  # reset: it closed the connection with the hello unread
+            raise LinkError(f"{self.peer}: the connection failed before its welcome ({e.strerror or e})") from None
         try:
             if flags & socket.MSG_TRUNC:
                 raise LinkError(f"{self.peer}: its welcome is longer than {frames.MAX_HANDSHAKE} bytes")

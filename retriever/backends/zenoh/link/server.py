@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import array
 import collections
+import errno
 import os
 import select
 import socket
@@ -40,10 +41,16 @@ MAX_INLINE_BELOW = 128 * 1024
 #: how long a send may wait for a consumer (a free slot, room in its socket), and a handshake
 SEND_TIMEOUT = 10.0
 HANDSHAKE_TIMEOUT = 5.0
+#: at most this many handshakes under way at once (a thread and an fd each, for up to
+#: HANDSHAKE_TIMEOUT); an accept that failed (out of fds) is tried again after ACCEPT_RETRY_S
+MAX_HANDSHAKES = 64
+ACCEPT_RETRY_S = 0.05
 #: the dropped consumers' errors kept on LinkServer.dropped
 KEPT_DROPS = 64
 #: a socket's path must fit sockaddr_un's sun_path (108 bytes with its NUL)
 MAX_PATH = 107
+#: the most buffers one sendmsg takes (Linux's UIO_MAXIOV)
+IOV_MAX = os.sysconf("SC_IOV_MAX")
 _CRED = struct.Struct("3i")
 
 
@@ -82,7 +89,13 @@ class LinkServer:
         self._handshakes: set[socket.socket] = set()  # connections whose handshake is under way
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
         try:
-            self._listener.bind(str(self.path))
+            _clear_stale(self.path)
+            try:
+                self._listener.bind(str(self.path))
+            except OSError as e:
+                if e.errno != errno.EADDRINUSE:
+                    raise
+                raise LinkError(f"a link socket's path was taken meanwhile: {self.path}") from None
             os.chmod(self.path, 0o600)
             self._listener.listen(16)
         except BaseException:
@@ -118,7 +131,9 @@ class LinkServer:
             raise LinkError(f"{self.producer}: a link message's kind is a byte (0..255), not {kind!r}")
         length = sum(memoryview(part).nbytes for part in parts)
         if length < self.inline_below:
-            frame = [frames.INLINE_HEADS[kind], *parts]
+            # one sendmsg of the parts (no join), unless they are more than it takes (EMSGSIZE)
+            frame = [frames.INLINE_HEADS[kind], *parts] if len(parts) < IOV_MAX else \
+                [frames.INLINE_HEADS[kind], b"".join(parts)]
             for consumer in consumers:
                 self._put(consumer, frame)
             return
@@ -152,10 +167,12 @@ class LinkServer:
         with self._changed:
             self._ring = new
             consumers = self._consumers
-        for consumer in consumers:
-            self._put(consumer, frame, rights)
-        old.close()
-        self._next = 0
+        try:
+            for consumer in consumers:
+                self._put(consumer, frame, rights)
+        finally:  # (a consumer that took no RING frame in time: send raises, the old ring closed all the same)
+            old.close()
+            self._next = 0
 
     def _put(self, consumer: _Consumer, frame: list, ancillary: list = ()) -> bool:
         """Send one frame to ``consumer`` (waiting for room in its socket up to ``send_timeout``);
@@ -243,21 +260,44 @@ class LinkServer:
     # Admitting consumers (the acceptor's thread)
     # -----------------------------------------------------------------------------------------
     def _accept(self) -> None:
-        """Each connection's handshake on a thread of its own: one that says nothing holds up no other."""
+        """Each connection's handshake on a thread of its own: one that says nothing holds up no
+        other. At most MAX_HANDSHAKES under way (one more is closed at once, said); an accept
+        that fails (out of fds: EMFILE) is said once and tried again until close()."""
+        failing = False
         while True:
             try:
                 sock, _ = self._listener.accept()
-            except OSError:  # closed: close() shut the listener down
-                return
-            threading.Thread(target=self._admit_or_refuse, args=(sock,), name=f"link-{self.producer}-hello",
-                             daemon=True).start()
+            except OSError as e:
+                with self._changed:
+                    if self._closed:  # close() shut the listener down
+                        return
+                    self._changed.wait(ACCEPT_RETRY_S)  # (the listener stays readable: no poll for it)
+                if not failing:
+                    failing = True
+                    self._note(LinkError(f"{self.producer}: cannot accept a consumer's connection ({e.strerror}): "
+                                         f"tried again every {ACCEPT_RETRY_S:g}s"))
+                continue
+            failing = False
+            with self._changed:
+                crowded = len(self._handshakes) >= MAX_HANDSHAKES
+                if not crowded:
+                    self._handshakes.add(sock)
+            if crowded:
+                sock.close()
+                self._note(LinkError(f"{self.producer}: a connection closed at once: {MAX_HANDSHAKES} handshakes "
+                                     "are under way (connections that say nothing?)"))
+                continue
+            try:
+                threading.Thread(target=self._admit_or_refuse, args=(sock,), name=f"link-{self.producer}-hello",
+                                 daemon=True).start()
+            except RuntimeError as e:  # can't start new thread
+                with self._changed:
+                    self._handshakes.discard(sock)
+                sock.close()
+                self._note(LinkError(f"{self.producer}: a connection closed at once: {e}"))
 
     def _admit_or_refuse(self, sock: socket.socket) -> None:
-        with self._changed:
-            if self._closed:
-                sock.close()
-                return
-            self._handshakes.add(sock)
+        """(``sock`` is in _handshakes: close() shuts it down)"""
         try:
             name, peer = self._admit(sock)
             with self._changed:  # the welcome and the joining at once: a new ring goes to it or is in it
@@ -305,6 +345,7 @@ class LinkServer:
             return
         with self._changed:
             self._closed = True
+            self._changed.notify_all()  # (an acceptor waiting to try again)
             for sock in self._handshakes:  # a handshake under way ends now (its thread closes the socket)
                 try:
                     sock.shutdown(socket.SHUT_RDWR)
@@ -342,3 +383,28 @@ def _check_folder(path: Path) -> None:
     if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o077:
         raise LinkError(f"a link socket's folder must be this user's alone (mode 0700), not {oct(info.st_mode)} "
                         f"of user {info.st_uid}: {path.parent}")
+
+
+def _clear_stale(path: Path) -> None:
+    """Remove a socket at ``path`` that no one listens on (a SIGKILLed producer's, whose restart
+    binds the same path); anything else there (a live producer's socket, a symlink, a file) is
+    a LinkError naming it, left as it is."""
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(info.st_mode):
+        raise LinkError(f"a link socket's path is taken by something that is no socket (a symlink, a file): {path}; "
+                        "remove it, or give the link another path")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
+    try:
+        probe.connect(str(path))
+    except ConnectionRefusedError:  # no one listens: a dead producer's
+        os.unlink(path)
+        return
+    except OSError as e:
+        raise LinkError(f"a link socket's path is taken by a socket that is no link's ({e.strerror}): {path}") from None
+    finally:
+        probe.close()
+    raise LinkError(f"a link socket's path is taken: a producer listens at {path} (another one of the same node "
+                    "and run still running?)")

@@ -6,12 +6,17 @@
     python link_peers.py produce PATH RUN PRODUCER CONSUMERS SIZE...
         prints "ready", waits for CONSUMERS consumers, sends message(i, size) for each size, prints
         "sent", then waits for its stdin's end
+    python link_peers.py short-of-fds PATH RUN PRODUCER SPARE
+        a producer (its handshakes' timeout 1 s) whose process may open SPARE more fds: prints
+        "ready", then "admitted" once a consumer is, and waits for its stdin's end
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import os
+import resource
 import sys
 
 import numpy as np
@@ -56,8 +61,21 @@ def produce(path: str, run: str, producer: str, consumers: int, sizes: list[int]
         sys.stdin.read()
 
 
+def short_of_fds(path: str, run: str, producer: str, spare: int) -> None:
+    with LinkServer(path, run, producer, slots=2, capacity=4096, handshake_timeout=1.0) as server:
+        highest = max(int(fd) for fd in os.listdir("/proc/self/fd"))
+        resource.setrlimit(resource.RLIMIT_NOFILE, (highest + 1 + spare, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+        _print("ready")
+        if not server.wait_for(1, 60):
+            raise SystemExit("no consumer admitted")
+        _print("admitted")
+        sys.stdin.read()
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "consume":
         consume(*sys.argv[2:6])
+    elif sys.argv[1] == "short-of-fds":
+        short_of_fds(*sys.argv[2:5], int(sys.argv[5]))
     else:
         produce(*sys.argv[2:5], int(sys.argv[5]), [int(size) for size in sys.argv[6:]])

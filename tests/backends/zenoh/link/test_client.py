@@ -219,3 +219,26 @@ def test_a_bad_ring_frame_ends_the_connection_and_leaves_no_fd_open(folder, case
         os.close(fd)
     assert got == [(2, b"slot0")]
     assert sorted(os.listdir("/proc/self/fd")) == open_before  # what the consumer was sent it closed
+
+
+def test_a_producer_that_closes_without_a_welcome_is_a_link_error(folder):
+    """A producer that takes the connection and closes it with the hello unread (a producer
+    closing, a hostile one) resets the connection: that is the producer's refusal, a LinkError
+    naming it, as its closing before a welcome is, not the socket's bare ConnectionResetError."""
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    listener.bind(str(folder / "p.sock"))
+    listener.listen()
+
+    def take_and_close() -> None:
+        sock, _ = listener.accept()
+        sock.close()
+
+    taker = threading.Thread(target=take_and_close)
+    taker.start()
+    try:
+        with pytest.raises(LinkError, match=r"producer 'camera' \(pid \d+, p.sock\)"):
+            LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda *_: None, lambda _: None)
+    finally:
+        taker.join()
+        listener.close()
+        os.unlink(folder / "p.sock")

@@ -12,7 +12,7 @@ import socket
 import numpy as np
 import pytest
 
-from retriever.backends.zenoh.link import LinkServer
+from retriever.backends.zenoh.link import LinkClient, LinkServer
 from retriever.backends.zenoh.link import frames
 from retriever.errors import LinkError
 from tests.backends.zenoh.link.link_peers import digest, message
@@ -270,3 +270,147 @@ def test_a_consumer_gone_with_slots_unacked_frees_them(folder, peers):
         assert server.consumers == ["good"]
         assert good.lines(4) == _expected([100_000] * 4)
         assert good.end() == 0
+
+
+def test_a_consumer_that_acks_every_slot_at_once_is_never_held_up_by_many_slots(folder):
+    """Acks are read only while a send waits for a slot: with more slots than a consumer's socket
+    holds of acks unread (~270 on Linux's default buffer), a consumer that acks each handle at
+    once blocks in its ack, so reads no more handles, and the producer waits for it: the link
+    stalls with a healthy consumer (send raised 'took no message' after ~550 of 2048; with 512
+    slots the sends went through and the last ~270 messages never reached the consumer)."""
+    server, dropped = _server(folder, slots=1024, capacity=1, inline_below=0, send_timeout=10)
+    got: queue.Queue = queue.Queue()
+    closed: queue.Queue = queue.Queue()
+    with server:
+        client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda kind, data: got.put(data), closed.put)
+        assert server.wait_for(1, 30)
+        for index in range(2048):
+            server.send([bytes([index % 256])])
+        assert [got.get(timeout=30) for _ in range(2048)] == [bytes([index % 256]) for index in range(2048)]
+        client.close()
+    assert dropped.empty() and closed.empty()
+
+
+def test_a_stale_socket_file_of_a_killed_producer_is_replaced(folder):
+    """A SIGKILLed producer leaves its socket file (link/__init__.py), and its restart makes a new
+    LinkServer at the same path: a socket no one listens on is stale, replaced; the bind's bare
+    'Address already in use' refused it."""
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    stale.bind(str(folder / "p.sock"))
+    stale.close()  # as the kernel closes a killed process's: the file stays
+    try:
+        server, dropped = _server(folder)
+    except BaseException:
+        os.unlink(folder / "p.sock")
+        raise
+    with server:
+        sock, fd = _raw_consumer(folder, "after")
+        assert server.wait_for(1, 30)
+        sock.close()
+        os.close(fd)
+    assert dropped.empty()
+
+
+@pytest.mark.parametrize("what", ["a live producer's socket", "a symlink", "a file"])
+def test_a_path_taken_by_something_else_is_a_link_error_naming_it(folder, what):
+    path = folder / "p.sock"
+    other = None
+    if what == "a live producer's socket":
+        other = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        other.bind(str(path))
+        other.listen()
+    elif what == "a symlink":
+        os.symlink(folder / "elsewhere.sock", path)
+    else:
+        path.write_bytes(b"")
+    try:
+        with pytest.raises(LinkError, match=r"p\.sock"):
+            LinkServer(path, RUN, PRODUCER)
+        assert os.path.lexists(path)  # what was there is left as it was
+    finally:
+        if other is not None:
+            other.close()
+        os.unlink(path)
+
+
+def test_running_out_of_fds_while_connections_pile_up_leaves_a_later_consumer_admitted(folder, peers):
+    """Each connection is accepted at once and holds an fd (and a thread) for its handshake, with
+    no bound: connections that say nothing use up the producer's fds, and accept's EMFILE was
+    taken for the listener's close, ending the acceptor: no consumer was admitted again, and
+    nothing said so. Once the silent ones time out (1 s), a consumer must get through."""
+    producer = peers("short-of-fds", folder / "p.sock", RUN, PRODUCER, 4)
+    assert producer.line() == "ready"
+    silent = []
+    for _ in range(12):  # more than its 4 spare fds (and the free numbers below its highest), fewer than the backlog
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        sock.connect(str(folder / "p.sock"))
+        silent.append(sock)
+    closed: queue.Queue = queue.Queue()
+    try:
+        client = LinkClient(folder / "p.sock", RUN, PRODUCER, "late", lambda *_: None, closed.put, timeout=30)
+        assert producer.line() == "admitted"
+        client.close()
+    except BaseException:
+        producer.kill()  # its socket file stays: removed here, as a run folder's cleanup would
+        os.unlink(folder / "p.sock")
+        raise
+    finally:
+        for sock in silent:
+            sock.close()
+    assert producer.end() == 0
+    assert closed.empty()
+
+
+def test_a_ring_growth_that_times_out_leaves_no_ring_open(folder):
+    """A growth whose RING frame a consumer does not take in time raises (send's LinkError), the
+    new ring in place: the old one (its memfd and mapping, up to slots x capacity) was left open
+    for the process's life, close() closing only the new."""
+    open_before = sorted(os.listdir("/proc/self/fd"))
+    server, dropped = _server(folder, capacity=4096, send_timeout=0.2)
+    with server:
+        sock, fd = _raw_consumer(folder, "stuck")  # reads nothing from here on
+        assert server.wait_for(1, 30)
+        with pytest.raises(LinkError, match="took no message for 0.2s"):
+            for _ in range(100_000):  # until its socket is full
+                server.send([b"x" * 1000])
+        with pytest.raises(LinkError, match="took no message for 0.2s"):
+            server.send([bytes(100_000)])  # past the slots: a new ring, whose frame it does not take
+    sock.close()
+    os.close(fd)
+    assert sorted(os.listdir("/proc/self/fd")) == open_before
+
+
+def test_connections_past_the_handshakes_bound_are_closed_at_once(folder):
+    """Each connection under way holds a thread and an fd for up to its handshake's timeout: past
+    MAX_HANDSHAKES of them a connection is closed at once, and said (there was no bound)."""
+    from retriever.backends.zenoh.link.server import MAX_HANDSHAKES
+
+    server, dropped = _server(folder, handshake_timeout=600)  # only close() ends the silent ones
+    silent = []
+    with server:
+        for _ in range(MAX_HANDSHAKES + 1):
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            sock.connect(str(folder / "p.sock"))
+            silent.append(sock)
+        with pytest.raises(LinkError, match=rf"camera: a connection closed at once: {MAX_HANDSHAKES} handshakes are "
+                                            r"under way \(connections that say nothing\?\)"):
+            raise dropped.get(timeout=30)
+        assert silent[-1].recv(16) == b""  # the last one, closed
+    for sock in silent:
+        sock.close()
+
+
+def test_a_message_of_more_parts_than_a_sendmsg_takes_reaches_every_consumer(folder):
+    """An inline message went as one sendmsg of its parts: past IOV_MAX (1024) of them, as the wire
+    encoder makes of a value with 510 arrays and more, sendmsg's EMSGSIZE was taken for a gone
+    consumer: every consumer was dropped ('is gone (Message too long)')."""
+    server, dropped = _server(folder)
+    got: queue.Queue = queue.Queue()
+    closed: queue.Queue = queue.Queue()
+    with server:
+        client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda kind, data: got.put(data), closed.put)
+        assert server.wait_for(1, 30)
+        server.send([b"ab"] * 1100)
+        assert got.get(timeout=30) == b"ab" * 1100
+        client.close()
+    assert dropped.empty() and closed.empty()
