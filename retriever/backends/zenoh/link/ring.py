@@ -28,8 +28,12 @@ _HEADER = struct.Struct("<Q")
 HEADER_BYTES = 64
 #: the seals every ring has, checked by its readers: no shrink, no grow, no seal changed
 SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | fcntl.F_SEAL_SEAL
-#: at most this many slots, and this many bytes in all: a geometry announced past them is refused
-MAX_SLOTS = 1 << 16
+#: at most this many slots, and this many bytes in all: a geometry announced past them is refused.
+#: A consumer acks each slot at once and the producer reads acks only when it needs a slot
+#: (server.py): up to ``slots`` acks wait unread in the consumer's socket, and one more would block
+#: the consumer in its ack, so it would read no more handles (a healthy link stalled: review14, at
+#: ~270 acks, what Linux's default socket buffer holds of them). 64 stays well below that.
+MAX_SLOTS = 64
 MAX_RING_BYTES = 1 << 36
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from retriever.backends.zenoh.link import LinkClient, LinkServer
 from retriever.backends.zenoh.link import frames
+from retriever.backends.zenoh.link.ring import MAX_SLOTS
 from retriever.errors import LinkError
 from tests.backends.zenoh.link.link_peers import digest, message
 
@@ -272,21 +273,24 @@ def test_a_consumer_gone_with_slots_unacked_frees_them(folder, peers):
         assert good.end() == 0
 
 
-def test_a_consumer_that_acks_every_slot_at_once_is_never_held_up_by_many_slots(folder):
-    """Acks are read only while a send waits for a slot: with more slots than a consumer's socket
-    holds of acks unread (~270 on Linux's default buffer), a consumer that acks each handle at
-    once blocks in its ack, so reads no more handles, and the producer waits for it: the link
-    stalls with a healthy consumer (send raised 'took no message' after ~550 of 2048; with 512
-    slots the sends went through and the last ~270 messages never reached the consumer)."""
-    server, dropped = _server(folder, slots=1024, capacity=1, inline_below=0, send_timeout=10)
+def test_a_consumer_that_acks_every_slot_at_once_is_never_held_up_by_the_most_slots(folder):
+    """Acks are read only while a send waits for a slot: up to ``slots`` acks wait unread in a
+    consumer's socket, and one more than it holds would block the consumer in its ack, so it read
+    no more handles and the link stalled with a healthy consumer (review14: with 1024 slots send
+    raised 'took no message' after ~550 of 2048; with 512 the last ~270 messages never came).
+    The most slots a ring may have (MAX_SLOTS) stay below that; more are refused."""
+    with pytest.raises(LinkError, match="out of bounds"):
+        _server(folder, slots=MAX_SLOTS + 1, capacity=1)
+    server, dropped = _server(folder, slots=MAX_SLOTS, capacity=1, inline_below=0, send_timeout=10)
     got: queue.Queue = queue.Queue()
     closed: queue.Queue = queue.Queue()
+    total = 32 * MAX_SLOTS
     with server:
         client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", lambda kind, data: got.put(data), closed.put)
         assert server.wait_for(1, 30)
-        for index in range(2048):
+        for index in range(total):
             server.send([bytes([index % 256])])
-        assert [got.get(timeout=30) for _ in range(2048)] == [bytes([index % 256]) for index in range(2048)]
+        assert [got.get(timeout=30) for _ in range(total)] == [bytes([index % 256]) for index in range(total)]
         client.close()
     assert dropped.empty() and closed.empty()
 
