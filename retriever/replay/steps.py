@@ -82,7 +82,7 @@ class StepReplay:
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
                  "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape", "expected", "died",
-                 "run_step")
+                 "deaths_timed", "run_step")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -106,7 +106,10 @@ class StepReplay:
         self.died: dict[str, list[list]] = {}
         for fault in sorted(log.faults, key=lambda fault: int(fault.get("at_ns", "0"))):
             self.died.setdefault(fault["node"], []).append([int(fault.get("at_ns", "0")), None])
-        self.run_step = self._run_noting_deaths if self.died else self.run
+        # a virtual-time run's fault has the coordinator's wall time since T0, which says nothing
+        # of its tags (the run goes as fast as its steps do): any event of a flow that died is let go
+        self.deaths_timed = log.run.get("time") != "virtual"
+        self.run_step = self._run_noting_deaths if self.died and self.deaths_timed else self.run
         self.floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
         # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
         # is then checked for causality (after the tick), not recomputed.
@@ -275,7 +278,10 @@ class StepReplay:
         carry it in (docs/log.md); a kill loses the records not sent yet, none before one that was.
         So: an event of a node whose process died at or after its tag, later than every record of
         the node at or before that death (the first death at or after its tag: a fresh process's
-        records come after it). Any other such event is no output of a step the run made."""
+        records come after it). Any other such event is no output of a step the run made. In a
+        virtual-time log the deaths' times are not the tags': any event of a node that died."""
+        if not self.deaths_timed:
+            return event_id[0] in self.died
         for at_ns, last in self.died.get(event_id[0], ()):
             if tag[0] <= at_ns:
                 return last is None or last < tag
