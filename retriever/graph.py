@@ -26,6 +26,7 @@ from .flow.core import NAME_MAX, Flow, FlowSettings, FlowSpec, PortSpec, flow_sp
 from .ir import IR, IR_VERSION, SCRIPT_FOLDER_ATTR, param_to_ir, port_name_problem
 from .sync import ActionChunking, SyncPolicy
 from .time import NS_PER_S, exact_rational, seconds_to_ns
+from .trace import DETAIL_KEYS
 
 MAX_CYCLES_LISTED = 64
 
@@ -384,7 +385,8 @@ def compile_graph(name: str, flows: list[Flow], declared: list["DeclaredEdge"], 
 
 def _check_port_names(nodes: dict[str, Node], problems: list[Problem]) -> None:
     """Every port name one segment (ir.PORT_NAME): an untyped flow's outputs are the keys its step()
-    returns and its edges' ``map=`` names, any str; one holding '/' was lost from the log's views."""
+    returns and its edges' ``map=`` names, any str; one holding '/' was lost from the log's views.
+    No input port named as a step record's detail key (trace.DETAIL_KEYS)."""
     for node in nodes.values():
         returned = node.spec.returned_keys or frozenset()
         for kind, ports in (("input", set(node.inputs)), ("output", set(node.outputs) | returned)):
@@ -395,6 +397,12 @@ def _check_port_names(nodes: dict[str, Node], problems: list[Problem]) -> None:
                     fix = fix if re.match(r"[A-Za-z_]", fix) else f"p_{fix}"
                     problems.append(Problem(f"flow '{node.id}' ({type_path(type(node.flow))}): {kind} port {problem}",
                                             f"rename it, e.g. {fix!r}, in its step() and in the edges' map="))
+                elif kind == "input" and port in DETAIL_KEYS:
+                    problems.append(Problem(
+                        f"flow '{node.id}' ({type_path(type(node.flow))}): input port '{port}' has the name of a "
+                        f"step record's detail key (a Queue's drop count is logged under its input port's name, "
+                        f"where it would take the place of the record's own '{port}')",
+                        f"rename it, e.g. '{port}_in', in its step() and in the edges' map="))
 
 
 def _ports_list(ports: dict[str, PortSpec]) -> str:

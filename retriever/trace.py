@@ -26,6 +26,16 @@ _U32 = 0xFFFFFFFF  # a log record's sequence number is a uint32 (the step's inde
 
 EventId = tuple[str, str, int]
 
+#: the keys of a step record's detail that Retriever's backends write (docs/log.md): a skipped tick's
+#: ``missing`` ports, a step's ``exit`` and ``error`` / ``on_error``, a real-time run's ``incomplete``,
+#: ``had_below``, ``late``, ``deadline_miss_ns``, ``on_deadline_miss``, ``overrun_skipped`` and
+#: ``restart_skipped``, a restart's ``restarted`` and ``restart_gap``, and what the flow said
+#: (``flow``, Flow.add_step_detail); besides these, only an input port of the record's node, the
+#: count of events its Queue dropped at the tick (tick.select_inputs): so no input port may be
+#: named as one of them (graph.py refuses it)
+DETAIL_KEYS = frozenset({"missing", "exit", "error", "on_error", "incomplete", "had_below", "late", "deadline_miss_ns",
+                         "on_deadline_miss", "overrun_skipped", "restart_skipped", "restarted", "restart_gap", "flow"})
+
 #: What a run may keep in memory (``pipe.run(..., keep=...)``): ``"trace"``, every event with its
 #: value and every step record (what tests and short debugging runs want); ``"records"``, every
 #: event's id, tag and wall time, and every step record, but no values (they are in the log, if the

@@ -264,6 +264,32 @@ def test_map_naming_a_key_an_untyped_step_never_returns_is_refused():
         pipe.build_ir()
 
 
+class _ReaderOfLate(Flow):
+    def step(self, late):
+        return None
+
+
+class _ReaderOfError(Flow):
+    def step(self, error):
+        return None
+
+
+@pytest.mark.parametrize("port, reader", [("late", _ReaderOfLate), ("error", _ReaderOfError)])
+def test_an_input_port_named_as_a_step_records_detail_key_is_refused(port, reader):
+    """A Queue's drop count is logged in the step record's detail under its input port's name: a
+    port named ``late`` that dropped made the run's own log refused as malformed, one named
+    ``error`` (or ``flow``, ``missing``, ...) lost the count or the record's own detail (review14)."""
+    class Ticker(Flow):
+        def step(self):
+            return {"out": 1}
+
+    with Pipeline("p") as pipe:
+        (Ticker() @ Rate(hz=20)).then(reader() @ Rate(hz=2), sync=Queue(maxsize=2), map={"out": port})
+    with pytest.raises(GraphError, match=re.escape(f"input port '{port}' has the name of a step record's detail "
+                                                   f"key") + r"[\s\S]*" + re.escape(f"rename it, e.g. '{port}_in'")):
+        pipe.build_ir()
+
+
 @pytest.mark.parametrize("port", ["a/b", "a.b", "", "1st", "a*", "-a"])
 def test_an_untyped_output_port_that_is_no_port_name_is_refused(port):
     """A port is one segment of the log's topic data/<node>/<port>: a '/' in one lost its events

@@ -118,14 +118,6 @@ def split_event(data: bytes) -> tuple[int, bytes]:
 _DETAILED_STATUSES = frozenset({StepStatus.LATE, StepStatus.ERROR})
 #: the statuses of a step record without detail
 PLAIN_STEP_STATUSES = frozenset(STEP_STATUSES) - _DETAILED_STATUSES
-#: the keys of a step record's detail that Retriever's backends write (docs/log.md): a skipped tick's
-#: ``missing`` ports, a step's ``exit`` and ``error`` / ``on_error``, a real-time run's ``incomplete``,
-#: ``had_below``, ``late``, ``deadline_miss_ns``, ``on_deadline_miss``, ``overrun_skipped`` and
-#: ``restart_skipped``, a restart's ``restarted`` and ``restart_gap``, and what the flow said
-#: (``flow``, Flow.add_step_detail); besides these, only an input port of the record's node, the
-#: count of events its Queue dropped at the tick (tick.select_inputs)
-DETAIL_KEYS = frozenset({"missing", "exit", "error", "on_error", "incomplete", "had_below", "late", "deadline_miss_ns",
-                         "on_deadline_miss", "overrun_skipped", "restart_skipped", "restarted", "restart_gap", "flow"})
 #: the keys of a step record's detail that name streams into its node's input ports: ``{port:
 #: [[producer, producer's port, ...], ...]}``
 STREAM_DETAIL_KEYS = ("late", "had_below", "restart_gap")

@@ -13,6 +13,7 @@ from ..errors import LogError
 from ..log import format as fmt
 from ..log.reader import ChunkMessages
 from ..time import format_tag
+from ..trace import DETAIL_KEYS
 
 
 #: the hint of a LogError for a log whose records do not add up (an event twice, one a record cannot have produced)
@@ -224,7 +225,7 @@ class LogSurvey:
         pipeline replayed must have (:meth:`check_details`)."""
         named, where = self._named, (tag, sequence)
         for key in detail:
-            if key not in fmt.DETAIL_KEYS:  # a Queue's drop count, if an input port of the node: else no writer's
+            if key not in DETAIL_KEYS:  # a Queue's drop count, if an input port of the node: else no writer's
                 named.setdefault((node, key, None), where)
         for key in fmt.STREAM_DETAIL_KEYS:
             for port, streams in (detail.get(key) or {}).items():

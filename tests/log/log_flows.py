@@ -266,34 +266,3 @@ def build_frames(size: int = 1 << 16) -> Pipeline:
         brightness = Brightness().named("brightness").configure(latency=0.1) @ Rate(hz=30, offset=0.01)
         camera.then(brightness, sync=Latest())
     return pipe
-
-
-# ---------------------------------------------------------------------------------------------
-# An input port named as a step record's detail key
-# ---------------------------------------------------------------------------------------------
-class Ticker(Flow):
-    """Untyped source: 1, 2, 3… on its port ``out``."""
-
-    def __init__(self):
-        self.k = 0
-
-    def step(self):
-        self.k += 1
-        return {"out": self.k}
-
-
-class LateReader(Flow):
-    """Untyped: how many values its Queue port ``late`` held at the tick."""
-
-    def step(self, late):
-        return {"n": len(late)}
-
-
-def build_port_named_late() -> Pipeline:
-    """A Queue(maxsize=2) port named ``late`` fed 10 values a tick: it drops 8 a tick, which its
-    step record's detail counts under the port's name (tick.select_inputs)."""
-    with Pipeline("port_named_late") as pipe:
-        ticker = Ticker() @ Rate(hz=20)
-        reader = LateReader() @ Rate(hz=2, offset=0.01)
-        ticker.then(reader, sync=Queue(maxsize=2), map={"out": "late"})
-    return pipe

@@ -1389,17 +1389,3 @@ def test_an_orphan_event_of_a_flow_whose_process_died_in_virtual_time_is_let_go_
     assert read_log(path).run["time"] == "virtual"
     for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
         assert run().steps_replayed > 0  # a report, not 'no step record of accumulate says it produced it'
-
-
-def test_a_queue_port_named_as_a_detail_key_replays(tmp_path):
-    """A Queue's drop count goes in the step record's detail under its input port's name, and a
-    port may be called ``late`` (or ``had_below``, ``restart_gap``, ``restarted``, ``error``,
-    ``flow``...: any name ir.py allows): a run's own log, its record's detail ``{"late": 8}``, was
-    refused as malformed ("its late events are not {port: [event id, ...]}"); ``error``, ``exit``,
-    ``missing`` and ``flow`` overwrite or are overwritten by the record's own (review14)."""
-    from retriever.replay import replay_file
-    from tests.log.log_flows import build_port_named_late
-
-    path = tmp_path / "late.mcap"
-    build_port_named_late().run(duration=1.2, log=path)
-    assert replay_file(path, build_port_named_late).identical
