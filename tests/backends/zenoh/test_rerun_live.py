@@ -20,6 +20,7 @@ from retriever import LogError, Pipeline, Rate, RetrieverWarning, Trigger
 from retriever.backends.zenoh.hub import free_port
 from retriever.log.rerun_live import RerunLiveView
 
+from ...deploy.test_deploy import poll
 from ...log.test_foxglove import Cam, Stats
 
 #: each port's entity and the archetype it is shown as (log/rerun.py's mapping)
@@ -366,15 +367,6 @@ def viewer():
         proc.wait()
 
 
-def poll(condition, what: str, bound: float = VIEWER_BOUND_S) -> None:
-    import time
-
-    give_up = time.monotonic() + bound
-    while not condition():
-        assert time.monotonic() < give_up, f"no {what} within {bound:g} s"
-        time.sleep(0.01)
-
-
 def test_a_stopped_viewer_holds_the_view_to_its_budget_it_drops_frames_first_says_so_and_resumes(viewer):
     """Rerun's SDK queues without bound what a viewer does not take: a viewer suspended (SIGSTOP)
     grew the run's process by 1.7 MB a MB of frames (benchmarks/reports/export_memory.md). Now
@@ -409,7 +401,7 @@ def test_a_stopped_viewer_holds_the_view_to_its_budget_it_drops_frames_first_say
     assert view.dropped["bytes"] == (i + 1 - sent_frames) * frame.nbytes  # every value dropped was a frame
 
     os.kill(proc.pid, signal.SIGCONT)
-    poll(lambda: view.behind <= budget, "catching up of the resumed viewer")
+    poll(lambda: view.behind <= budget, "catching up of the resumed viewer", VIEWER_BOUND_S)
     view.event("cam", "rgb", (i + 1, 0), i + 1, frame, 0)
     assert view.written["/cam/rgb"] == sent_frames + 1  # frames go again
     from retriever.errors import ViewDroppedWarning
@@ -459,7 +451,8 @@ def test_a_viewer_killed_mid_run_stops_the_view_with_a_warning_naming_it(viewer)
     proc.wait()
     with pytest.warns(RetrieverWarning, match=rf"the Rerun live view stopped: LogError: the viewer at "
                                               rf"{re.escape(url)} went away"):
-        poll(lambda: views.event("cam", "exposure", (20, 0), 1, 0.5, 0) or not views.views, "stop of the view")
+        poll(lambda: views.event("cam", "exposure", (20, 0), 1, 0.5, 0) or not views.views, "stop of the view",
+             VIEWER_BOUND_S)
     views.close()
 
 
