@@ -69,6 +69,13 @@ class LoggedDeployment:
             running[move.node] = Span(move.node, move.to, move.at_ns, None)
         return [*ended, *running.values()]
 
+    def clock_ahead_ns(self) -> int:
+        """How far ahead of the coordinator's clock the run's stamps can be: the furthest ahead a
+        worker said its clock ran when the run began (``offset_ns``, NTP-style), or 0. A node's
+        tags are its HLC's, which runs at its worker's clock or at a faster one it heard from."""
+        offsets = [worker.get("offset_ns") for worker in self.workers.values()]
+        return max([0, *(offset for offset in offsets if type(offset) is int)])
+
 
 def read_deployment(path, text: str | None, faults: list[dict[str, Any]]) -> LoggedDeployment | None:
     """The deployment that the run metadata's ``text`` (its ``deployment`` entry; None: the run

@@ -102,10 +102,14 @@ class StepReplay:
         # consumer may still have carried one in: that one is in the log, and compared)
         self.lost = {event_id for fault in log.faults for event_id in fault["lost_events"] if not self.in_log(event_id)}
         # per node whose process died: per death, in time order, [its time, the tag of the node's last
-        # step record at or before it] (_run_noting_deaths; _died_with_its_record)
+        # step record at or before it] (_run_noting_deaths; _died_with_its_record). A fault's time is
+        # the coordinator's clock; a deployment's nodes stamp by their workers' HLCs, up to the
+        # furthest ahead a worker said its clock was (else an event stamped just before a death that
+        # the coordinator noticed sooner than that was refused): the death is taken that much later
+        ahead = 0 if log.deployment is None else log.deployment.clock_ahead_ns()
         self.died: dict[str, list[list]] = {}
         for fault in sorted(log.faults, key=lambda fault: int(fault.get("at_ns", "0"))):
-            self.died.setdefault(fault["node"], []).append([int(fault.get("at_ns", "0")), None])
+            self.died.setdefault(fault["node"], []).append([int(fault.get("at_ns", "0")) + ahead, None])
         # a virtual-time run's fault has the coordinator's wall time since T0, which says nothing
         # of its tags (the run goes as fast as its steps do): any event of a flow that died is let go
         self.deaths_timed = log.run.get("time") != "virtual"

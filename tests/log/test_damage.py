@@ -1367,6 +1367,41 @@ def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_la
                 run()
 
 
+@pytest.mark.parametrize("ahead_ms, let_go", [
+    (300, True),  # its worker's clock ran 300 ms ahead: the event at 0.5 s is before its death at 0.6 s on it
+    (100, False),  # 100 ms: after its death at 0.4 s on that clock
+    (-300, False),  # behind: a stamp is never taken for earlier than the coordinator's clock says (HLC)
+])
+def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_workers(tmp_path, ahead_ms, let_go):
+    """A deployment's node stamps by its worker's HLC, whose clock the worker said (``offset_ns``,
+    in the run record's ``deployment``) was ahead of the coordinator's, which dates the death: an
+    event stamped on it just before the death (after the coordinator's time of it) is let go, not
+    refused as no step's output (session 14's note: the dead-flow rule against node clock skew)."""
+    import json
+
+    from tests.log.log_flows import build_small
+
+    def added(messages, metadata):
+        total = [m for m in messages if m[0] == "data/accumulate/total"]
+        messages.append(["data/accumulate/total", 500_000_000, total[0][2], 9, total[0][4]])
+        metadata["retriever.run"]["deployment"] = json.dumps({
+            "namespace": "lab", "placed": {"accumulate": "w1", "tally": "w0"}, "ran_other_code": {},
+            "workers": {"w0": {"host": "a", "offset_ns": 0}, "w1": {"host": "b", "offset_ns": ahead_ms * 1_000_000}}})
+        metadata["retriever.fault.1"] = {"kind": "process_lost", "node": "accumulate", "at_ns": "300000000",
+                                         "pid": "7", "exit": "was killed by SIGKILL", "restarted": "false",
+                                         "seqs": json.dumps({}), "lost_events": json.dumps([])}
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "deployed.mcap", added)
+    assert read_log(path).deployment.workers["w1"]["offset_ns"] == ahead_ms * 1_000_000
+    says = r"event accumulate\.total #9 is in the log, but no step record of accumulate says it produced it"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
+        if let_go:
+            assert run().steps_replayed > 0  # a report, not that error
+        else:
+            with pytest.raises(LogError, match=says):
+                run()
+
+
 def test_an_orphan_event_of_a_flow_whose_process_died_in_virtual_time_is_let_go_after_its_last_record(tmp_path):
     """A fault's ``at_ns`` is the coordinator's wall clock since T0 (book.run_time), which in a
     virtual-time log (run record ``time: virtual``) says nothing of the tags: the run goes as fast
