@@ -20,7 +20,7 @@ from retriever import LogError, Pipeline, Rate, RetrieverWarning, Trigger
 from retriever.backends.zenoh.hub import free_port
 from retriever.log.rerun_live import RerunLiveView
 
-from ...deploy.test_deploy import poll
+from ...helpers import poll
 from ...log.test_foxglove import Cam, Stats
 
 #: each port's entity and the archetype it is shown as (log/rerun.py's mapping)
