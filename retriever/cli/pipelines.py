@@ -208,6 +208,8 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
         fail(exc)
     finally:
         stop_watching()
+        if "rerun" in options:
+            _exit_past_a_stuck_viewer()
     cleaning_up()  # the run is over: a signal from here on no longer cuts its table short
     print_summary(pipe, trace, title, log)
     print_held_warnings()
@@ -217,6 +219,15 @@ def _execute(pipe, duration: float, backend: str | None, log: Path | None, force
     if signum is not None:  # exception raised where Python drops it (a __del__, a weakref's callback)
         console.err.print("interrupted", highlight=False)
         raise typer.Exit(code=128 + signum)
+
+
+def _exit_past_a_stuck_viewer() -> None:
+    """The command owns its process: when its Rerun live view's close gave up on a viewer that
+    takes nothing (suspended), Rerun's at-exit shutdown, which would wait on it for ever, is
+    dropped (the view said it did not take the end; the log, if any, is already finished)."""
+    from ..log.rerun_live import skip_rerun_shutdown_if_stuck
+
+    skip_rerun_shutdown_if_stuck()
 
 
 def _interrupted(pipe, log: Path | None, before, title: str) -> NoReturn:

@@ -17,6 +17,11 @@ completed took) and, while more than BEHIND_BYTES is not known taken, drops what
 large values (frames) first, then, past SMALL_BYTES more, numbers and step records too. What it
 dropped is counted and said (a warning when it starts, the count at the run's end); the log keeps
 everything. A viewer that goes away (killed, closed) stops the view with a warning.
+
+A viewer that takes nothing (suspended) holds the SDK's disconnect, and its at-exit shutdown,
+which disconnects every stream of the process, for as long: the view's close gives up after
+CLOSE_S and says so, and :func:`skip_rerun_shutdown_if_stuck` lets the process's owner (the
+command line) exit without that shutdown. A library user's process keeps it.
 """
 
 from __future__ import annotations
@@ -71,6 +76,11 @@ WATCH_FLUSH_S = 0.5
 WATCH_FLUSH_MAX_S = 4.0
 #: how long closing the view waits for its sink to take what is left, then to disconnect
 CLOSE_S = 5.0
+#: the start of the error Rerun's SDK (0.26.2) raises when a flush's timeout passes: a
+#: RuntimeError as for a sink that failed (both are its SinkFlushError, told apart in Python by
+#: the text only: SinkFlushError::Timeout's message, crates/top/re_sdk/src/log_sink.rs), pinned by
+#: tests/backends/zenoh/test_rerun_live.py
+FLUSH_TIMED_OUT = "Flush timed out"
 #: how to have a viewer listen where a URL points
 START_VIEWER_HINT = (f"start a viewer first: `rerun` (the desktop viewer, listening on {RERUN_VIEWER_URL}), or "
                      "`rerun --serve-web` (a web viewer, its gRPC port the same); `--port PORT` for another port; "
@@ -180,13 +190,38 @@ def value_bytes(value: Any) -> int:
     return size
 
 
+def flush_timed_out(error: BaseException) -> bool:
+    """Whether ``error``, raised by a stream's ``flush(timeout_sec=...)``, says its timeout
+    passed (the sink is behind) rather than that the sink failed."""
+    return isinstance(error, RuntimeError) and str(error).startswith(FLUSH_TIMED_OUT)
+
+
+#: the SDK's disconnects that a view's close left waiting, in a thread each, on a sink that took
+#: nothing: Rerun's at-exit shutdown disconnects every stream again, and would wait on those too
+_left_disconnects: list[threading.Thread] = []
+
+
+def skip_rerun_shutdown_if_stuck() -> bool:
+    """If a live view's close gave up on its sink (a viewer that took nothing, suspended), drop
+    Rerun's at-exit shutdown, which would wait on that sink for ever, and say True. Process-wide:
+    every stream of the process loses its at-exit flush; for the process's owner only (the
+    command line, once its run is over), never called by the library."""
+    if not any(disconnect.is_alive() for disconnect in _left_disconnects):
+        return False  # none, or each ended since (the viewer resumed, or went away)
+    import rerun
+
+    rerun.unregister_shutdown()
+    return True
+
+
 class SinkWatch:
     """How far a recording stream's sink is behind: ``handed`` (bytes the run's thread gave the
     SDK, added by it) less ``taken`` (of those, the ones handed before the start of the last
     flush that completed). A thread of its own flushes the stream whenever something was handed
     since, waiting at most WATCH_FLUSH_S a flush (the SDK releases the GIL meanwhile): the
     run's thread never waits for the sink. A flush that fails other than by its timeout means
-    the sink is gone (a viewer closed or killed): ``gone`` says why, and the watch stops."""
+    the sink is gone (a viewer closed or killed): ``gone`` says why, and the watch stops; any
+    other error stops it too, said in ``failed`` (its class and message)."""
 
     def __init__(self, stream, period: float = LIVE_FLUSH_S):
         self._stream, self._period = stream, period
@@ -194,6 +229,8 @@ class SinkWatch:
         self.taken = 0
         #: why the sink is gone (the SDK's error), or None
         self.gone: str | None = None
+        #: the error, other than the SDK's for its sink, that stopped the watch ("ValueError: ..."), or None
+        self.failed: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._watch, name="retriever-rerun-watch", daemon=True)
         self._thread.start()
@@ -204,14 +241,20 @@ class SinkWatch:
         return self.handed - self.taken
 
     def _watch(self) -> None:
+        try:
+            self._flush_while_handed()
+        except BaseException as e:  # noqa: BLE001 - said by the view's next call (a Rust panic is a BaseException)
+            self.failed = f"{type(e).__name__}: {e}"
+
+    def _flush_while_handed(self) -> None:
         timeout = WATCH_FLUSH_S
         while not self._stop.is_set():
             mark = self.handed
             if mark != self.taken:
                 try:
                     self._stream.flush(timeout_sec=timeout)
-                except RuntimeError as e:  # the SDK's, for both: "Flush timed out ...", "... disconnected"
-                    if "timed out" in str(e):
+                except RuntimeError as e:  # the SDK's, for both: its timeout passed, or its sink failed
+                    if flush_timed_out(e):
                         timeout = min(2 * timeout, WATCH_FLUSH_MAX_S)
                         continue  # still behind: flush again (it waits for all before it)
                     self.gone = str(e)
@@ -287,9 +330,10 @@ class RerunLiveView:
     def _admit(self, size: int, small: bool) -> bool:
         """Whether a row of ``size`` bytes is sent (counted as handed) rather than dropped."""
         watch = self._watch
-        if watch.gone is not None:
-            raise LogError(f"{self.sink} went away: {watch.gone}", "the run goes on without the view; a log of "
-                           "the run (--log) keeps it all: retriever log export LOG --format rerun")
+        if watch.gone is not None or watch.failed is not None:
+            why = f"went away: {watch.gone}" if watch.gone is not None else f"cannot be watched: {watch.failed}"
+            raise LogError(f"{self.sink} {why}", "the run goes on without the view; a log of the run (--log) "
+                           "keeps it all: retriever log export LOG --format rerun")
         behind = watch.handed - watch.taken
         if behind <= self.behind_bytes:
             self._dropping = False  # caught up (or never behind): a spell of drops is over
@@ -326,7 +370,8 @@ class RerunLiveView:
     def close(self) -> None:
         """What is left is sent, waiting at most CLOSE_S for the sink to take it and as long to
         disconnect (a viewer that takes nothing, suspended, holds the SDK's disconnect until it
-        takes it or is gone: that is left to a thread of its own); what was dropped is said."""
+        takes it or is gone: that is left to a thread of its own, kept for
+        :func:`skip_rerun_shutdown_if_stuck`); what was dropped is said."""
         self._watch.stop()  # its flush under way, if any, ends on its own; this one waits for it too
         dropped = self.dropped
         if dropped["values"] or dropped["records"]:
@@ -344,6 +389,9 @@ class RerunLiveView:
         disconnect.start()
         if left is None:
             disconnect.join(CLOSE_S)
-        else:  # the sink takes nothing: the SDK's disconnect waits for it (or its end) in its own thread
+            if disconnect.is_alive():
+                left = f"its disconnect did not end within {CLOSE_S:g} s"
+        if left is not None:  # the sink takes nothing: the SDK's disconnect waits for it (or its end) in its thread
+            _left_disconnects.append(disconnect)
             raise LogError(f"{self.sink} did not take the end of the stream: {left}",
                            "a log of the run (--log) keeps every event and step record")

@@ -24,6 +24,7 @@ import pytest
 from retriever import read_log
 from retriever.backends.zenoh.command import GROUP_MODULE, WORKER_MODULE
 from retriever.replay import replay
+from tests.helpers import poll
 
 HERE = Path(__file__).resolve().parent
 PYTHON = sys.executable
@@ -203,14 +204,6 @@ def finish(run: subprocess.Popen) -> tuple[str, str]:
     finally:
         if run.poll() is None:
             run.kill()
-
-
-def poll(condition, what: str, bound: float = BOUND_S):
-    give_up = time.monotonic() + bound
-    while not (value := condition()):
-        assert time.monotonic() < give_up, f"no {what} within {bound:g} s"
-        time.sleep(0.02)
-    return value
 
 
 def test_the_flows_of_a_killed_coordinator_stop_within_3_s_and_the_workers_stay_up(hosts, secret, tmp_path):

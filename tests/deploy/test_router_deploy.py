@@ -17,8 +17,9 @@ from pathlib import Path
 
 from retriever import read_log
 from retriever.replay import replay
-from tests.deploy.test_deploy import (BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, poll, secret,  # noqa: F401
+from tests.deploy.test_deploy import (BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, secret,  # noqa: F401
                                      start_worker, wait_going)
+from tests.helpers import poll
 
 PORT = 7448
 

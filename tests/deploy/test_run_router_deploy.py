@@ -24,9 +24,10 @@ from retriever.backends.dora.host import pid_alive
 from retriever.backends.zenoh.daemon.run_router import ROUTER_PROCESS_MODULE
 from retriever.backends.zenoh.folders import DAEMON_FOLDER
 from retriever.replay import replay
-from tests.deploy.test_deploy import BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, poll, secret  # noqa: F401
+from tests.deploy.test_deploy import BOUND_S, FLOWS, HERE, PYTHON, finish, flow_processes, secret  # noqa: F401
 from tests.deploy.test_deploy import child_processes, start_worker, wait_going
 from tests.deploy.test_router_deploy import start_router
+from tests.helpers import poll
 
 #: camera and controller on the robot, the policy on the gpu worker
 PLACEMENT = '[nodes]\ncamera = "robot"\ncontroller = "robot"\npolicy = { labels = ["gpu"] }\n'

@@ -47,6 +47,7 @@ from retriever.backends.zenoh.protocol import EXIT_ABANDONED
 from retriever.backends.zenoh.worker.process import PARENT_DIED, Parent
 from retriever.replay import replay
 
+from ...helpers import poll
 from .lifecycle_flows import (Count, Counter, ExitOnce, Looped, Nap, Scaled, SegfaultOnce, Sink, Total,
                               two_node_pipeline)
 from .specs import run_spec
@@ -119,17 +120,6 @@ def _ident(pid: int) -> Ident:
     st = _stat(pid)
     assert st is not None, f"process {pid} is gone"
     return (pid, st[2])
-
-
-def _poll(condition, what: str, bound: float = BOUND_S):
-    """Poll ``condition()`` until it returns something truthy (returned); fail after ``bound`` s."""
-    deadline = time.monotonic() + bound
-    while True:
-        value = condition()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"no {what} after {bound:g} s"
-        time.sleep(POLL_S)
 
 
 def _logged_steps(path: Path) -> int:
@@ -222,7 +212,7 @@ def test_cli_signal_stops_the_run_finishes_the_log_and_reaps_the_workers(tmp_pat
             workers = _worker_children(proc.pid)  # scanned while it runs: afterwards they are orphans or gone
             return workers if len(workers) == 2 and _logged_steps(path) > 0 else None
 
-        workers = _poll(going, "2 worker processes and a logged step")
+        workers = poll(going, "2 worker processes and a logged step")
         assert all(cmd.split()[-1] in ("counter", "total") for cmd in workers.values()), workers
         os.kill(proc.pid, sig)
         assert proc.wait(timeout=BOUND_S) == 128 + sig, (tmp_path / "stderr.txt").read_text()
@@ -438,7 +428,7 @@ def test_an_interrupted_cli_run_logs_its_last_tick_as_its_end(tmp_path):
             assert not any(s.node == "nap" for s in steps), "nap's first step ended before the signal"
             return any(s.node == "counter" and s.tag[0] > 0 for s in steps)
 
-        _poll(going, "a logged counter tick after T0")
+        poll(going, "a logged counter tick after T0")
         os.kill(proc.pid, signal.SIGINT)
         assert proc.wait(timeout=BOUND_S) == 130, (tmp_path / "stderr.txt").read_text()
     finally:
@@ -494,7 +484,7 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
             workers = _worker_children(proc.pid)
             return workers if len(workers) == 2 and _logged_steps(path) > 0 else None
 
-        workers = _poll(going, "2 worker processes and a logged step")
+        workers = poll(going, "2 worker processes and a logged step")
         run_dir = Path(next(iter(workers.values())).split()[-2]).parent  # ... worker SPEC NODE
         assert run_dir.name.startswith("retriever-run-") and run_dir.is_dir(), workers
         os.kill(proc.pid, signal.SIGKILL)
@@ -502,7 +492,7 @@ def test_workers_of_a_sigkilled_coordinator_exit_by_themselves(tmp_path, namespa
     finally:
         _kill(proc)
     # they get SIGTERM from the kernel (PR_SET_PDEATHSIG), stop their loop and close their session
-    _poll(lambda: not any(_alive(ident) for ident in workers),
+    poll(lambda: not any(_alive(ident) for ident in workers),
           f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
     # and remove the run directory, which the coordinator no longer can
     assert not run_dir.exists(), sorted(p.name for p in run_dir.iterdir())
@@ -544,12 +534,12 @@ def test_a_worker_stuck_in_its_step_exits_when_its_coordinator_is_sigkilled(tmp_
         proc = subprocess.Popen([sys.executable, "-c", STUCK_COORDINATOR, namespace, str(path)],
                                 stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT, env=_env())
     try:
-        workers = _poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"), "a logged counter tick after T0")
+        workers = poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"), "a logged counter tick after T0")
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
     finally:
         _kill(proc)
-    _poll(lambda: not any(_alive(ident) for ident in workers),
+    poll(lambda: not any(_alive(ident) for ident in workers),
           f"exit of the orphaned workers {sorted(workers)}", bound=ORPHAN_EXIT_S)
 
 
@@ -600,7 +590,7 @@ def test_a_signal_stops_a_cli_run_with_a_hung_step_promptly_printing_its_stack_o
                                  "60", "--log", str(path)], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
                                 env=_env())
     try:
-        workers = _poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"),
+        workers = poll(_nap_in_its_first_step(proc, path, tmp_path / "stderr.txt"),
                         "the run going, nap in its first step")
         os.kill(proc.pid, sig)
         signalled = time.monotonic()
@@ -664,11 +654,11 @@ def test_a_worker_still_waiting_for_its_peers_exits_when_its_coordinator_is_sigk
             # 'counter' has declared its SIGTERM handler (then its keys, then waits for its peers)
             return "counter" in workers and "total" in workers and _catches(workers["counter"][0], signal.SIGTERM)
 
-        _poll(waiting, "the 'counter' worker waiting for its peers")
+        poll(waiting, "the 'counter' worker waiting for its peers")
         assert not _catches(workers["total"][0], signal.SIGTERM), "'total' passed its gate"
         os.kill(proc.pid, signal.SIGKILL)
         assert proc.wait(timeout=BOUND_S) == -signal.SIGKILL
-        _poll(lambda: not _alive(workers["counter"]), "exit of the orphaned 'counter' worker (it got SIGTERM)",
+        poll(lambda: not _alive(workers["counter"]), "exit of the orphaned 'counter' worker (it got SIGTERM)",
               bound=ORPHAN_EXIT_S)
     finally:
         gate.touch()

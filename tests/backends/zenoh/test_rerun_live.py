@@ -20,7 +20,7 @@ from retriever import LogError, Pipeline, Rate, RetrieverWarning, Trigger
 from retriever.backends.zenoh.hub import free_port
 from retriever.log.rerun_live import RerunLiveView
 
-from ...deploy.test_deploy import poll
+from ...helpers import poll
 from ...log.test_foxglove import Cam, Stats
 
 #: each port's entity and the archetype it is shown as (log/rerun.py's mapping)
@@ -464,3 +464,116 @@ def test_a_healthy_viewer_takes_a_camera_run_and_nothing_is_dropped(viewer):
         warnings.simplefilter("always")
         pipe.run(duration=1.0, backend="zenoh", quiet=True, rerun=url)
     assert [str(w.message) for w in said if "Rerun" in str(w.message)] == []
+
+
+#: a camera of 230 kB frames at 30 Hz: more than a stopped viewer's socket and gRPC window take
+CAMERA = '''
+import numpy as np
+from retriever import Flow, Pipeline, Rate
+
+class Camera(Flow):
+    def setup(self):
+        self.frame = np.zeros((240, 320, 3), dtype=np.uint8)
+
+    def step(self):
+        return {"rgb": self.frame}
+
+with Pipeline("camera") as pipe:
+    Camera() @ Rate(hz=30)
+'''
+#: how long `retriever run` may take to exit once its run is over and its view's close gave up
+#: (CLOSE_S for the end's flush, then what the process's exit takes without Rerun's at-exit flush)
+EXIT_BOUND_S = 30.0
+
+
+def test_the_cli_exits_past_a_stopped_viewer_saying_it_did_not_take_the_end_and_its_log_is_complete(viewer,
+                                                                                                  tmp_path):
+    """Rerun's SDK flushes every stream at the process's exit (an atexit handler), and a viewer
+    that takes nothing (SIGSTOP) holds that flush for ever: `retriever run --rerun` never ended
+    though its run had and its view's close had given up after CLOSE_S. The CLI owns its process:
+    when its view gave up, it drops the SDK's at-exit flush, and exits."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from retriever.log import read_log
+    from tests.log.helpers import RETRIEVER, cli_env
+
+    proc, url = viewer
+    (tmp_path / "camera.py").write_text(CAMERA)
+    log = tmp_path / "run.mcap"
+    run = subprocess.Popen([str(RETRIEVER), "run", "camera.py", "--duration", "2", "--backend", "zenoh",
+                            "--rerun", url, "--log", str(log)], cwd=tmp_path, env=cli_env(),
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        said = []
+        for line in run.stderr:  # the view is up (connected to the viewer): stop the viewer
+            said.append(line)
+            if "Rerun live view streaming to" in line:
+                os.kill(proc.pid, signal.SIGSTOP)
+                stopped = time.monotonic()
+                break
+        else:
+            raise AssertionError("".join(said))
+        out, err = run.communicate(timeout=EXIT_BOUND_S + 2.0)
+        took = time.monotonic() - stopped
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+    err = "".join(said) + err
+    assert took < EXIT_BOUND_S, (took, err)
+    assert re.search(rf"the Rerun live view stopped: LogError: the viewer at {re.escape(url)} did not take the end "
+                     r"of the stream", err), err
+    assert run.returncode == 0, err
+    recorded = read_log(log)
+    assert recorded.complete and recorded.end["status"] == "finished"
+
+
+def test_the_sdks_flush_timeout_is_told_by_its_message_as_flush_timed_out_reads_it(viewer):
+    """Rerun's SDK (0.26.2) raises a RuntimeError both when a flush's timeout passes and when its
+    sink failed; only the message tells them apart (log/rerun_live.py's FLUSH_TIMED_OUT): pinned
+    here against a viewer that takes nothing, so that an SDK that words it otherwise fails this
+    test rather than stopping every view whose viewer is merely slow."""
+    import os
+    import signal
+
+    from retriever.log.rerun_live import flush_timed_out
+
+    proc, url = viewer
+    stream = rr.RecordingStream("pinned", send_properties=False)
+    stream.connect_grpc(url)
+    stream.flush()
+    os.kill(proc.pid, signal.SIGSTOP)
+    tensor = np.random.default_rng(0).integers(0, 256, 4 << 20, dtype=np.uint8)
+    for i in range(16):  # 64 MB: more than a stopped viewer's socket and gRPC window take
+        stream.log("x", rr.Tensor(tensor))
+    with pytest.raises(RuntimeError) as timed_out:
+        stream.flush(timeout_sec=0.5)
+    assert flush_timed_out(timed_out.value), str(timed_out.value)
+    assert not flush_timed_out(RuntimeError("gRPC connection to rerun+http://127.0.0.1:1/proxy disconnected"))
+    proc.kill()  # the stream's disconnect does not wait for a stopped viewer
+    proc.wait()
+    stream.disconnect()
+
+
+class BreakingStream:
+    """A stream whose flush raises an error that is none of the SDK's sink errors (a stand-in for
+    an SDK bug, a panic): what no real stream can be made to do on purpose."""
+
+    def flush(self, timeout_sec: float) -> None:
+        raise ValueError(f"no flush for {timeout_sec} s")
+
+
+def test_a_watch_that_fails_on_an_error_other_than_the_sdks_says_which_and_stops():
+    """The watch's thread died silently on an error other than RuntimeError: the view went on
+    handing the SDK what its sink was never checked to take, and said nothing. Now the watch
+    keeps the error (its class and message) for the view's next call to say."""
+    from retriever.log.rerun_live import SinkWatch
+
+    watch = SinkWatch(BreakingStream())
+    watch.handed = 100  # something to flush
+    failed = poll(lambda: watch.failed, "failure of the watch", VIEWER_BOUND_S)
+    assert failed == "ValueError: no flush for 0.5 s" and watch.gone is None
+    watch.stop()
