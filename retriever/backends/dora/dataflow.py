@@ -6,12 +6,13 @@ or a group's: ``configure(process=NAME)``).
         path: /…/python                  # the coordinator's interpreter
         args: -m retriever.backends.dora.node /dev/shm/retriever-run-…/spec.json camera
         outputs: [image, progress, warm] # one output per output port, its progress (frontiers), and
-                                         # one no input takes, to warm the send path (WARM)
+                                         # its warm-up messages (WARM)
       - id: policy
         …
         inputs:
           camera__image: {source: camera/image, queue_size: 100000, queue_policy: backpressure}
           camera__progress: {source: camera/progress, queue_size: 100000, queue_policy: backpressure}
+          camera__warm: {source: camera/warm, queue_size: 100000, queue_policy: backpressure}
 
 Each node is a Retriever worker process (the flow rebuilt from the IR), as on the zenoh backend,
 started through node.py;
@@ -43,9 +44,10 @@ from ..zenoh.protocol import DoraPart
 
 #: the output each node's progress messages go on (a port of that name is renamed)
 PROGRESS = "progress"
-#: the output a node whose events are heard puts an empty message on before a moment it foresees, to
-#: warm its send path and dora's daemon (node/timing.py: Warmup); no input takes it (renamed
-#: ``warm_1``, … past its dora node's other outputs)
+#: the output a node whose events are heard puts an empty message on before a moment it foresees
+#: (node/timing.py: Warmup); each consumer takes it on an input of its own, over the route its events
+#: take, and rehearses their arrival at it (DoraNames.warm_inputs; link.py); renamed ``warm_1``, …
+#: past its dora node's other outputs
 WARM = "warm"
 #: an input's queue (dora drops past ten times that with backpressure: see the module docstring)
 QUEUE_SIZE = 100_000
@@ -131,6 +133,26 @@ class DoraNames:
         taken = {o for nid in members for o in (*self.outputs[nid].values(), self.progress.get(nid))}
         return _unique(WARM, taken, WARM)
 
+    def warm_inputs(self, dora_id: str) -> dict[str, list[str]]:
+        """The dora node ``dora_id``'s warm-up inputs: per producing dora node it hears events of
+        (through a progress input) that has a warm-up output (:meth:`warm`), one input taking
+        that output, and the producers whose warm-ups it brings (the members of that node this
+        one hears). Named ``PRODUCER__WARM``, or ``w0``, ``w1``, … past this node's other inputs.
+        Derived from the other ids, by both sides."""
+        members = self.members(dora_id)
+        heard: dict[str, list[str]] = {}  # producing dora node -> its members heard here
+        for nid in members:
+            for src, port in self.inputs[nid].values():
+                if port is None and src not in heard.setdefault(self.nodes[src], []):
+                    heard[self.nodes[src]].append(src)
+        taken = {input_id for nid in members for input_id in self.inputs[nid]}
+        warm_inputs = {}
+        for k, producer in enumerate(sorted(heard)):
+            warm = self.warm(producer)
+            if warm is not None:
+                warm_inputs[_unique(f"{producer}__{warm}", taken, f"w{k}")] = sorted(heard[producer])
+        return warm_inputs
+
     def processes(self, groups: Mapping[str, Sequence[str]]) -> dict[str, str]:
         """Each process's dora node id: a node's own by its id, a group's by its name."""
         grouped = {nid for members in groups.values() for nid in members}
@@ -196,5 +218,10 @@ def dataflow_yaml(name: str, names: DoraNames, python: str, spec_path: str, pyth
             for input_id, (src, port) in inputs.items():
                 output = names.progress[src] if port is None else names.outputs[src][port]
                 lines.append(f"      {q(input_id)}: {{source: {q(names.nodes[src] + '/' + output)}, "
+                             f"queue_size: {QUEUE_SIZE}, queue_policy: backpressure}}")
+            # each producer's warm-up messages, on the route its events take (link.py: warmed)
+            for input_id, producers in names.warm_inputs(dora_id).items():
+                source = names.nodes[producers[0]]
+                lines.append(f"      {q(input_id)}: {{source: {q(source + '/' + names.warm(source))}, "
                              f"queue_size: {QUEUE_SIZE}, queue_policy: backpressure}}")
     return "\n".join(lines) + "\n"

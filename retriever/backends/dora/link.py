@@ -3,11 +3,14 @@
     dora inputs ──DoraLink's receiving thread: node.next()──▶ each listening loop's inbox (or
                                                  handled right there, as a Zenoh subscriber's
                                                  callback would: INLINE_STEP_NS)
-                  (and, WARM_AHEAD_NS before an input's next event it foresees, its own work
-                   once on the last event, results unused: the view of its bytes and, where the
-                   loop takes it on this thread, their decoding: warm, on the thread that runs it)
+                  (a producer's warm-up message: the listening loop's ``warmed(producer)``, right
+                   there: it rehearses the producer's last message on that thread, as on Zenoh;
+                   for a stream without them, WARM_AHEAD_NS before an input's next event it
+                   foresees, its own work once on the last event, results unused: the view of
+                   its bytes and, where the loop takes it on this thread, their decoding)
     loop ──send_output(port | progress)──▶ dora ──▶ the consumers' inputs
-         ──send_output(warm, b"")──▶ dora's daemon, before a moment it foresees (timing.py: Warmup)
+         ──send_output(warm, b"")──▶ dora ──▶ the consumers' warm-up inputs, WARM_AHEAD_NS
+                                   before a moment it foresees (timing.py: Warmup)
 
 A process has one dora node, and so one :class:`DoraLink`: its receiving thread hands each
 input's events to every node of the process that listens to that input (a group's members,
@@ -75,6 +78,9 @@ class DoraLink:
         #: hands each event's (kind, key, data) to handler (its receive for data, its put for
         #: progress), and its failure to put
         self.listeners: dict[str, list[tuple[Callable, str, object, Callable]]] = {}
+        #: per warm-up input (DoraNames.warm_inputs), who hears it: (warmed, producers) of each
+        #: listening node, which calls warmed(producer) for each of the producers it brings
+        self.heralds: dict[str, list[tuple[Callable, list[str]]]] = {}
         self.greeted: set[str] = set()  # inputs a producer's greeting came through
         self.greetings = threading.Condition()
         self.failure: Exception | None = None  # what ended the receiving thread, if it died
@@ -106,15 +112,27 @@ class DoraLink:
             self.receiver.start()
         return entries
 
+    def listen_warm(self, warm_inputs: dict[str, list[str]], warmed: Callable) -> list:
+        """Call ``warmed(producer)`` on the receiving thread for each warm-up message of
+        ``warm_inputs`` (dora input id -> the producers it brings). What to ``leave``."""
+        entries = []
+        with self.greetings:  # (a new list per input: the thread reads them without the lock)
+            for input_id, producers in warm_inputs.items():
+                entry = (warmed, producers)
+                self.heralds[input_id] = [*self.heralds.get(input_id, ()), entry]
+                entries.append((input_id, entry))
+        return entries
+
     def leave(self, entries: list) -> None:
         """Hear no more what ``listen`` added; the last listener gone, the thread ends."""
         with self.greetings:
             for input_id, entry in entries:
-                left = [e for e in self.listeners.get(input_id, ()) if e is not entry]
+                table = self.heralds if len(entry) == 2 else self.listeners  # (listen_warm's: (warmed, producers))
+                left = [e for e in table.get(input_id, ()) if e is not entry]
                 if left:
-                    self.listeners[input_id] = left
+                    table[input_id] = left
                 else:
-                    self.listeners.pop(input_id, None)
+                    table.pop(input_id, None)
             last = not self.listeners
         if last and self.receiver is not None:
             self.receiving = False
@@ -153,7 +171,8 @@ class DoraLink:
         (:func:`_warm`): cold, after a sleep of 50 ms, ``len``, ``buffers`` and the view took ~20
         µs of a message's latency, warmed ~6 (benchmarks/reports/fig7a.md, 2026-12-05, dora12).
         It changes no event, nor when one is handed on."""
-        listeners, clock = self.listeners, self.clock
+        listeners, heralds, clock = self.listeners, self.heralds, self.clock
+        heralded: dict[str, int] = {}  # per producer, when its last warm-up message came
         last: dict[str, int] = {}  # per input, when its last event came
         due, warm = None, None  # when to warm up next, and on which event: (its value, its input's listeners)
         while self.receiving:
@@ -173,19 +192,34 @@ class DoraLink:
             value = event["value"]  # a uint8 array: what send_output made of a message's bytes
             size = len(value)
             input_id = event["id"]
-            if not size:  # a greeting (no Retriever message is empty), maybe before its listener
-                with self.greetings:
-                    self.greeted.add(input_id)
-                    self.greetings.notify_all()
+            if input_id in heralds:  # a producer's warm-up message (its content is never read)
+                now = clock()
+                for warmed, producers in heralds.get(input_id, ()):
+                    for producer in producers:
+                        heralded[producer] = now
+                        warmed(producer)
+                continue
+            if not size:  # a greeting (no Retriever message is empty), maybe before its listener; or a
+                # warm-up message no loop here listens to (a group's members rehearse on their own)
+                if input_id not in self.greeted:
+                    with self.greetings:
+                        self.greeted.add(input_id)
+                        self.greetings.notify_all()
                 continue
             data = _bytes_of(value, size)
             entries = listeners.get(input_id, ())
             for handler, kind, key, _ in entries:
                 handler((kind, key, data))
             now = clock()
-            gap = now - last.get(input_id, now)
+            before = last.get(input_id, now)
             last[input_id] = now
-            due, warm = (now + gap - WARM_AHEAD_NS, (value, entries)) if gap >= WARM_AFTER_IDLE_NS else (None, None)
+            # (not if each producer's warm-up message came since the input's last event: the
+            # producer warms this thread up for its next one itself, the whole way: warmed)
+            if now - before >= WARM_AFTER_IDLE_NS and not all(heralded.get(key[0] if kind == DATA else key, -1) > before
+                                                              for _, kind, key, _ in entries):
+                due, warm = now + now - before - WARM_AHEAD_NS, (value, entries)
+            else:
+                due, warm = None, None
 
 
 def _warm(value, entries: list) -> None:
@@ -229,6 +263,15 @@ class DoraTransport(Transport):
         self.link.node()
         if self.listening is None and self.routes:
             self.listening = self.link.listen(self.routes, inline or put, put)
+
+    def declare_warm(self, sources, warmed) -> None:
+        # on the receiving thread, over the route the producers' events take (DoraNames.warm_inputs)
+        wanted = set(sources)
+        warm_inputs = {input_id: [p for p in producers if p in wanted]
+                       for input_id, producers in self.names.warm_inputs(self.names.nodes[self.id]).items()}
+        warm_inputs = {input_id: producers for input_id, producers in warm_inputs.items() if producers}
+        if warm_inputs and self.listening is not None:
+            self.listening += self.link.listen_warm(warm_inputs, warmed)
 
     def declare_outputs(self, ports, consumed):
         node = self.link.node()

@@ -66,11 +66,13 @@ def test_the_dataflow_has_a_node_per_flow_an_output_per_port_and_progress_for_co
     assert sorted(nodes) == ["echo", "slow", "src"]
     assert nodes["src"]["args"] == "-m retriever.backends.dora.node /run/spec.json src"
     assert nodes["src"]["path"] == "/venv/bin/python" and nodes["src"]["env"] == {"PYTHONPATH": "/src"}
-    assert nodes["src"]["outputs"] == ["value", PROGRESS, WARM]  # warm: no input takes it
+    assert nodes["src"]["outputs"] == ["value", PROGRESS, WARM]  # warm: its consumers' warm-up input takes it
     assert nodes["slow"]["outputs"] == ["saw"] and "inputs" not in nodes["src"]  # slow: nobody consumes it
     queue = {"queue_size": QUEUE_SIZE, "queue_policy": "backpressure"}  # dora's direct route lost events
     assert nodes["echo"]["inputs"] == {"src__value": {"source": "src/value", **queue},
-                                       "src__progress": {"source": "src/progress", **queue}}
+                                       "src__progress": {"source": "src/progress", **queue},
+                                       "src__warm": {"source": "src/warm", **queue}}  # on the events' route
+    assert names.warm_inputs("echo") == {"src__warm": ["src"]} and names.warm_inputs("src") == {}
 
 
 def test_ids_dora_would_refuse_are_renamed_and_mapped_back():
@@ -93,7 +95,8 @@ def test_the_warm_up_output_is_named_past_the_ports_and_only_where_events_are_he
     assert names.warm("a") == "warm_2" and names.warm("b") is None  # b: nobody hears it
     flow = {n["id"]: n for n in yaml.safe_load(dataflow_yaml("w", names, "/py", "/spec.json", "/src"))["nodes"]}
     assert flow["a"]["outputs"] == ["warm", "warm_1", PROGRESS, "warm_2"] and flow["b"]["outputs"] == ["out"]
-    assert all(i["source"] != "a/warm_2" for i in flow["b"]["inputs"].values())
+    assert flow["b"]["inputs"]["a__warm_2"]["source"] == "a/warm_2"  # b hears a: a's warm-ups, b's warm-up input
+    assert names.warm_inputs("b") == {"a__warm_2": ["a"]}
 
 
 def test_the_specs_dora_part_is_the_dict_it_was_and_a_node_reads_its_names_back(tmp_path):

@@ -61,9 +61,13 @@ def test_a_group_is_one_dora_node_with_its_members_inputs_and_outputs_but_none_b
     assert nodes["mid"]["outputs"] == ["slow__saw", f"slow__{PROGRESS}", WARM]
     # one input for the stream two members consume
     assert nodes["mid"]["inputs"] == {"src__value": {"source": "src/value", **QUEUE},
-                                      "src__progress": {"source": "src/progress", **QUEUE}}
+                                      "src__progress": {"source": "src/progress", **QUEUE},
+                                      "src__warm": {"source": "src/warm", **QUEUE}}
     assert nodes["sink"]["inputs"] == {"mid__slow__saw": {"source": "mid/slow__saw", **QUEUE},
-                                       "mid__slow__progress": {"source": "mid/slow__progress", **QUEUE}}
+                                       "mid__slow__progress": {"source": "mid/slow__progress", **QUEUE},
+                                       "mid__warm": {"source": "mid/warm", **QUEUE}}
+    # a group's warm-up output brings the warm-ups of the members the consumer hears
+    assert names.warm_inputs("mid") == {"src__warm": ["src"]} and names.warm_inputs("sink") == {"mid__warm": ["slow"]}
 
 
 def test_names_dora_would_refuse_in_a_group_are_renamed():
@@ -100,6 +104,15 @@ def test_no_two_nodes_outputs_or_inputs_get_one_dora_id():
     assert len(streams) == 10 and set(streams) == {("n1", "v"), ("n1", None), ("_cam", "v"), ("_cam", None),
                                                     ("a", "b__c"), ("a", "_x"), ("a", "o1"), ("a", None),
                                                     ("a__b", "c"), ("a__b", None)}
+    # a warm-up input named as a stream's (node a__b's warm output, a__b__warm, and node a's port b__warm)
+    doc = {"nodes": [node("a", ["b__warm"]), node("a__b", ["c"]), node("c", [])],
+           "edges": [edge("a", "b__warm", "c", "x"), edge("a__b", "c", "c", "y")]}
+    names = DoraNames.of(doc)
+    warm = names.warm_inputs("c")
+    assert "a__b__warm" in names.inputs["c"] and sorted(warm.values()) == [["a"], ["a__b"]]
+    assert len(warm) == 2 and not set(warm) & set(names.inputs["c"]), warm
+    flow = {n["id"]: n for n in yaml.safe_load(dataflow_yaml("w", names, "/py", "/spec.json", "/src"))["nodes"]}
+    assert len(flow["c"]["inputs"]) == 6
     # in a group's dora node too: member x's output y (g__x__y) and a lone node g__x's y
     doc = {"nodes": [node("x", ["y"]), node("w", []), node("g__x", ["y"]), node("c", [])],
            "edges": [edge("x", "y", "c", "a"), edge("g__x", "y", "c", "b")]}

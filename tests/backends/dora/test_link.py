@@ -201,3 +201,38 @@ def test_the_warm_up_decodes_the_last_event_on_the_thread_its_loop_takes_it_on()
         assert (queued if inline else got) == []
         assert calls == decoded
         transport.undeclare()
+
+
+def test_a_producers_warm_up_message_has_the_receiving_thread_rehearse_and_is_no_event():
+    """The producer's warm-up messages come on a dora input of their own (DoraNames.warm_inputs),
+    over the route its events take: each has the receiving thread call the loop's
+    ``warmed(producer)`` (NodeLoop.warmed: it rehearses the producer's last message there), and
+    is handed to no listener nor taken for a greeting. One came since the stream's last event:
+    the thread leaves its own warm-up before the next event (its foresight) to the producer's.
+    Without them, the same events 50 ms apart have the thread warm up before the third."""
+    with Pipeline("heralded") as pipe:
+        src = Ticker().configure(name="src") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest(), map={"value": "x"})
+    names = DoraNames.of(pipe.compile().to_ir().doc)
+    assert names.warm_inputs("where") == {"src__warm": ["src"]}
+    warm = ("src__warm", pa.array([], type=pa.uint8()))
+    gap_ns, timeout = 50_000_000, round(RECEIVE_TIMEOUT_S * 1e9)
+    for heralded in (True, False):
+        values = [("src__value", pa.array(np.frombuffer(m, np.uint8))) for m in (b"one", b"two", b"three")]
+        events = [values[0], warm, values[1], warm, values[2]] if heralded else values
+        gate, node, link, got, warmed = threading.Event(), _Paced(MockNode(events), gap_ns), DoraLink(), [], []
+        link.dora_node, link.clock = _Held(node, gate), node.clock
+        transport = DoraTransport(link, names, "where")
+        transport.declare_inputs([("src", "value")], ["src"], got.append, got.append)
+        transport.declare_warm(["src"], lambda producer: warmed.append((producer, threading.current_thread())))
+        gate.set()
+        link.receiver.join(BOUND_S)
+        assert link.failure is None
+        assert [(kind, source, bytes(data)) for kind, source, data in got] == [
+            (DATA, ("src", "value"), b"one"), (DATA, ("src", "value"), b"two"), (DATA, ("src", "value"), b"three")]
+        assert warmed == ([("src", link.receiver)] * 2 if heralded else [])
+        assert "src__warm" not in link.greeted
+        # the wait for the next event: shortened to warm up before it only where no warm-up message came
+        assert (gap_ns - WARM_AHEAD_NS in node.timeouts) is not heralded
+        transport.undeclare()
+        assert link.heralds == {} and link.listeners == {}

@@ -46,7 +46,7 @@ def test_a_lone_flow_is_a_group_of_one_whose_dataflow_is_a_lone_flows():
     doc = yaml.safe_load(dataflow_yaml("c", of_one, "/venv/bin/python", "/run/spec.json", "/src"))
     mid = next(n for n in doc["nodes"] if n["id"] == "mid")
     assert mid["outputs"] == ["report", "progress", "warm"]
-    assert sorted(mid["inputs"]) == ["src__progress", "src__value"]
+    assert sorted(mid["inputs"]) == ["src__progress", "src__value", "src__warm"]
 
 
 def test_a_lone_flow_restarts_in_place_in_its_own_process(tmp_path):
