@@ -1424,3 +1424,42 @@ def test_an_orphan_event_of_a_flow_whose_process_died_in_virtual_time_is_let_go_
     assert read_log(path).run["time"] == "virtual"
     for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
         assert run().steps_replayed > 0  # a report, not 'no step record of accumulate says it produced it'
+
+
+def test_an_orphan_event_of_a_restarted_flow_is_let_go_when_another_worker_ran_ahead(tmp_path):
+    """(review16a) The death is taken later by the furthest ahead any worker said its clock ran
+    (``clock_ahead_ns``), here 200 ms (a worker of tally's; accumulate's worker runs at the
+    coordinator's clock): accumulate, killed at 0.3 s and restarted, stepped again at 0.45 s,
+    before the death so taken (0.5 s). That record of its fresh process is then taken for the last
+    of the dead one, and the event the dead process stamped at 0.27 s, after its last record
+    (0.25 s) and before its death, is refused as no step's output: the same log without the
+    deployment lets it go (test above, at 0.27 s), and so should this one, a legitimate log of a
+    deployment with a worker 200 ms ahead (``--max-clock-offset 0.5``)."""
+    import json
+
+    import msgpack
+
+    from tests.log.log_flows import build_small
+
+    def added(messages, metadata):
+        total = [m for m in messages if m[0] == "data/accumulate/total"]
+        assert [m[1] for m in total] == [50_000_000, 250_000_000, 450_000_000]  # accumulate's ticks
+        messages.append(["data/accumulate/total", 270_000_000, total[0][2], 9, total[0][4]])
+        # its record at 0.45 s is its fresh process's first (detail.restarted), as a restart writes it
+        step = next(m for m in messages if m[0] == "steps" and m[1] == 450_000_000
+                    and msgpack.unpackb(m[4])[0] == "accumulate")
+        record = msgpack.unpackb(step[4])
+        record[5] = {"restarted": {"seqs": {"total": 2, "window": 2},
+                                   "inputs": {port: ids for port, ids in record[2].items()}}}
+        step[4] = msgpack.packb(record)
+        metadata["retriever.run"]["deployment"] = json.dumps({
+            "namespace": "lab", "placed": {"counter": "w1", "accumulate": "w1", "tally": "w0"}, "ran_other_code": {},
+            "workers": {"w0": {"host": "a", "offset_ns": 200_000_000}, "w1": {"host": "b", "offset_ns": 0}}})
+        metadata["retriever.fault.1"] = {"kind": "process_lost", "node": "accumulate", "at_ns": "300000000",
+                                         "pid": "7", "exit": "was killed by SIGKILL", "restarted": "true",
+                                         "seqs": json.dumps({"total": 2, "window": 2}), "lost_events": json.dumps([])}
+
+    path = _rewritten(_small_log(tmp_path), tmp_path / "restarted.mcap", added)
+    assert read_log(path).deployment.clock_ahead_ns() == 200_000_000
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
+        assert run().steps_replayed > 0  # a report, not "no step record of accumulate says it produced it"

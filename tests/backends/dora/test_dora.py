@@ -29,9 +29,10 @@ from retriever.backends.zenoh.origin import KEY_BYTES
 from retriever.backends.zenoh.protocol import RunSpec
 from retriever.replay import replay
 
+from ...helpers import poll
 from ..test_conformance import Echo, EchoOpt, Source
 from ..zenoh.lifecycle_flows import Counter, two_node_pipeline
-from ..zenoh.test_lifecycle import RETRIEVER, _cmdline, _env, _poll
+from ..zenoh.test_lifecycle import RETRIEVER, _cmdline, _env
 from .dora_flows import Extra, Frames, Raises
 
 BOUND_S = 60.0  # a bound on any wait: a loaded 2-core machine
@@ -264,14 +265,14 @@ def test_a_sigkilled_coordinators_workers_dora_and_directories_go_by_themselves(
     proc = subprocess.Popen([sys.executable, "-c", COORDINATOR], cwd=ROOT, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
-        dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
+        dora = poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
         run_dir, dora_dir = _directories_of(dora[0])
         if when == "once its workers run":
-            _poll(lambda: _children_of(proc.pid, "retriever.backends.dora.node"), "workers")
+            poll(lambda: _children_of(proc.pid, "retriever.backends.dora.node"), "workers")
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(BOUND_S)
 
-        _poll(lambda: not _left(dora[0], run_dir, dora_dir), "end of dora run, its workers and directories",
+        poll(lambda: not _left(dora[0], run_dir, dora_dir), "end of dora run, its workers and directories",
               bound=30.0)
     finally:
         if proc.poll() is None:
@@ -288,9 +289,9 @@ def test_ctrl_c_before_the_start_ends_dora_and_its_nodes_at_once_without_their_n
                                  "dora", "--duration", "5"], stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT,
                                 env=_env())
     try:
-        dora = _poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
+        dora = poll(lambda: proc.poll() is None and _children_of(proc.pid, "dora run"), "dora run")
         run_dir, dora_dir = _directories_of(dora[0])
-        _poll(lambda: all((run_dir / f"{node}.pid").exists() for node in ("ok", "stuck")), "both workers")
+        poll(lambda: all((run_dir / f"{node}.pid").exists() for node in ("ok", "stuck")), "both workers")
         os.kill(proc.pid, signal.SIGINT)
         assert proc.wait(timeout=BOUND_S) == 130, stderr.read_text()
     finally:
@@ -307,7 +308,7 @@ def _directories_of(dora: int) -> tuple[Path, Path]:
     """The run's directory and dora's, of the run whose `dora run` is ``dora``."""
     words = _cmdline(dora).split()
     dataflow = Path(words[words.index("run") + 1])
-    spec = yaml.safe_load(_poll(lambda: dataflow.read_text(), "dataflow.yml"))["nodes"][0]["args"].split()[2]
+    spec = yaml.safe_load(poll(lambda: dataflow.read_text(), "dataflow.yml"))["nodes"][0]["args"].split()[2]
     return Path(spec).parent, dataflow.parent
 
 
