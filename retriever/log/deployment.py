@@ -16,6 +16,11 @@ from typing import Any
 
 from ..errors import LogError
 
+#: the furthest ahead of the coordinator's clock a run's stamps are taken to be (clock_ahead_ns):
+#: the skew Zenoh's HLC tolerates between sessions, past which a node's progress is refused as
+#: garbage (backends/zenoh/node/frontiers.py, CLOCK_AHEAD_MAX_NS): a worker said further ahead
+#: could not have run its flows with the others (a log claiming more is bounded by it)
+CLOCK_AHEAD_MAX_NS = 500_000_000
 #: what ``log info`` shows of each worker's word on itself, in this order
 WORKER_FIELDS = ("host", "pid", "labels")
 
@@ -71,10 +76,11 @@ class LoggedDeployment:
 
     def clock_ahead_ns(self) -> int:
         """How far ahead of the coordinator's clock the run's stamps can be: the furthest ahead a
-        worker said its clock ran when the run began (``offset_ns``, NTP-style), or 0. A node's
-        tags are its HLC's, which runs at its worker's clock or at a faster one it heard from."""
+        worker said its clock ran when the run began (``offset_ns``, NTP-style), or 0, at most
+        CLOCK_AHEAD_MAX_NS. A node's tags are its HLC's, which runs at its worker's clock or at a
+        faster one it heard from."""
         offsets = [worker.get("offset_ns") for worker in self.workers.values()]
-        return max([0, *(offset for offset in offsets if type(offset) is int)])
+        return min(max([0, *(offset for offset in offsets if type(offset) is int)]), CLOCK_AHEAD_MAX_NS)
 
 
 def read_deployment(path, text: str | None, faults: list[dict[str, Any]]) -> LoggedDeployment | None:

@@ -82,7 +82,7 @@ class StepReplay:
                  "last_ticks",
                  "deliveries", "delivered", "late_at", "unclaimed", "waiting", "checks", "now",
                  "kept_steps", "kept_parts", "kept_events", "unchecked", "tick", "tape", "expected", "died",
-                 "deaths_timed", "run_step")
+                 "deaths_timed", "reborn", "run_step")
 
     def __init__(self, log: LogHead, survey: LogSurvey, graph, session: InprocSession, sources: frozenset[str],
                  keep_trace: bool) -> None:
@@ -113,6 +113,7 @@ class StepReplay:
         # a virtual-time run's fault has the coordinator's wall time since T0, which says nothing
         # of its tags (the run goes as fast as its steps do): any event of a flow that died is let go
         self.deaths_timed = log.run.get("time") != "virtual"
+        self.reborn: dict[str, int] = {}  # node -> how many of its deaths a new process followed (_run_noting_deaths)
         self.run_step = self._run_noting_deaths if self.died and self.deaths_timed else self.run
         self.floors: dict[tuple[str, str, str], int] = {}  # (consumer, producer, port) -> first seq it takes
         # In real time a flow without latency stamps its outputs when it finishes (ASAP): the tag
@@ -267,10 +268,17 @@ class StepReplay:
 
     def _run_noting_deaths(self, step) -> None:
         """:meth:`run`, in a log whose fault records say a process died: a record of its node
-        at or before a death is the node's last so far before it (records run in tag order)."""
-        deaths = self.died.get(step.node)
+        at or before a death is the node's last so far before it (records run in tag order), but
+        one of a process that replaced the dead one: a record with ``detail.restarted`` (its new
+        process's first) ends the earliest death still open, which no later record is then of
+        (a restart within the workers' clock lead of the death, taken later by it, was taken for
+        the dead process's last record)."""
+        node = step.node
+        deaths = self.died.get(node)
         if deaths is not None:
-            for death in deaths:
+            if step.detail and "restarted" in step.detail:
+                self.reborn[node] = self.reborn.get(node, 0) + 1
+            for death in deaths[self.reborn.get(node, 0):]:
                 if step.tag[0] <= death[0]:
                     death[1] = step.tag
         self.run(step)

@@ -1367,12 +1367,15 @@ def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_la
                 run()
 
 
-@pytest.mark.parametrize("ahead_ms, let_go", [
-    (300, True),  # its worker's clock ran 300 ms ahead: the event at 0.5 s is before its death at 0.6 s on it
-    (100, False),  # 100 ms: after its death at 0.4 s on that clock
-    (-300, False),  # behind: a stamp is never taken for earlier than the coordinator's clock says (HLC)
+@pytest.mark.parametrize("ahead_ms, at_s, let_go", [
+    (300, 0.5, True),  # its worker's clock ran 300 ms ahead: the event at 0.5 s is before its death at 0.6 s on it
+    (100, 0.5, False),  # 100 ms: after its death at 0.4 s on that clock
+    (-300, 0.5, False),  # behind: a stamp is never taken for earlier than the coordinator's clock says (HLC)
+    (2**42, 0.5, True),  # a log claiming more is bounded by Zenoh's HLC tolerance, 500 ms: 0.5 s let go,
+    (2**42, 0.85, False),  # but not past 0.3 + 0.5 s (a forged offset does not let every event go)
 ])
-def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_workers(tmp_path, ahead_ms, let_go):
+def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_workers(tmp_path, ahead_ms, at_s,
+                                                                                    let_go):
     """A deployment's node stamps by its worker's HLC, whose clock the worker said (``offset_ns``,
     in the run record's ``deployment``) was ahead of the coordinator's, which dates the death: an
     event stamped on it just before the death (after the coordinator's time of it) is let go, not
@@ -1383,7 +1386,7 @@ def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_wor
 
     def added(messages, metadata):
         total = [m for m in messages if m[0] == "data/accumulate/total"]
-        messages.append(["data/accumulate/total", 500_000_000, total[0][2], 9, total[0][4]])
+        messages.append(["data/accumulate/total", int(at_s * 1e9), total[0][2], 9, total[0][4]])
         metadata["retriever.run"]["deployment"] = json.dumps({
             "namespace": "lab", "placed": {"accumulate": "w1", "tally": "w0"}, "ran_other_code": {},
             "workers": {"w0": {"host": "a", "offset_ns": 0}, "w1": {"host": "b", "offset_ns": ahead_ms * 1_000_000}}})
