@@ -132,10 +132,12 @@ class _Inbound:
                 wait = min(2 * wait, RECONNECT_MAX_S)
 
     def close(self) -> None:
-        if self.client is not None:
-            self.client.close()
+        """(after the transport's ``closing`` is set) The reconnecting thread ends first: a
+        client it made meanwhile is then the one closed."""
         if self.reconnecting is not None and self.reconnecting is not threading.current_thread():
             self.reconnecting.join()
+        if self.client is not None:
+            self.client.close()
 
 
 class LinkedTransport(ZenohTransport):
