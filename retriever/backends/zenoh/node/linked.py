@@ -190,7 +190,8 @@ class LinkedTransport(ZenohTransport):
             linked = {port: tap.publisher(self.keys.data(self.id, port), p) for port, p in linked.items()}
         return linked, progress, warm
 
-    def join_links(self, timeout: float, stopping: Callable[[], bool], gone: Callable[[], set[str]] | None = None) -> None:
+    def join_links(self, timeout: float, stopping: Callable[[], bool],
+                   gone: Callable[[], set[str]] | None = None) -> None:
         """Connect to each linked producer, then wait for each linked consumer, ``timeout`` at
         most. ``gone``: None at a node's first start (every producer listens, every consumer
         comes, or the run fails with a LinkError naming the edge and the socket); else a restarted
