@@ -12,7 +12,7 @@
     reach.py        why an endpoint admitted no session (nothing listens, refused, wrong credentials)
     folders.py      private folders named by their process's PID, and the reaping of a dead one's
     link/           same-host links: a producer's messages to its consumers on its host over a Unix socket and
-                    a sealed memfd ring instead of Zenoh (its __init__ maps it; not yet wired into node/)
+                    a sealed memfd ring instead of Zenoh (its __init__ maps it); node/linked.py wires them in
     node/           one node's real-time loop, split by concern (its docstring draws it); its
                     reporter sends step records and events to the coordinator
     worker/         the worker process around a loop, in phases (its docstring maps the modules each
@@ -41,7 +41,7 @@ from ..base import Backend
 class ZenohBackend(Backend):
     name = "zenoh"
     OPTIONS = ("namespace", "startup_timeout", "start_margin", "hub_port", "quiet", "secret", "virtual_time", "keep",
-               "foxglove", "rerun")
+               "foxglove", "rerun", "same_host_links")
     #: options of a deployment on worker daemons (deploy/): given any of the first three, the
     #: run's nodes go to the workers reached there instead of processes of this machine
     DEPLOY_OPTIONS = ("connect", "listen", "router", "placement", "insecure", "max_clock_offset", "on_worker_loss",

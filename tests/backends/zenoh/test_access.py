@@ -48,6 +48,10 @@ print(json.dumps({"stats": {n: [s.ticks, s.steps, s.errors] for n, s in pipe.sta
                   "counts": pipe.counts()}), flush=True)
 """
 
+#: the run on Zenoh for its edges too (same_host_links=False): an insider's data and progress
+#: claims reach its consumer there (over a same-host link the consumer hears its producer only)
+RUN_ON_ZENOH = RUN.replace("else None)", "else None, same_host_links=False)")
+
 WATCH_LINE = re.compile(r"watch it read-only with zenoh\.Config\.from_file\('([^']+)'\)")
 
 
@@ -243,7 +247,8 @@ def test_what_an_insider_claims_is_checked_for_sense(tmp_path, namespace):
 
     secret = _secret_file(tmp_path)
     marker = tmp_path / "pwned"
-    run = Run(tmp_path, namespace, secret)
+    run = Run(tmp_path, namespace, secret, script=RUN_ON_ZENOH)
+    assert "same_host_links=False" in RUN_ON_ZENOH
     try:
         enc = WireEncoder()
         end = round(RUN_S * 1e9)

@@ -181,7 +181,9 @@ with Pipeline("run_after_run") as pipe:
     camera = Camera(64 * 64 * 3).configure(name="camera") @ Rate(hz=50)
     camera.then(SegmentsTaker().configure(name="taker") @ Trigger("image"))
 for _ in range(int(sys.argv[1])):
-    trace = pipe.run(duration=0.1, backend="zenoh", quiet=True)
+    # on Zenoh (same_host_links=False): the frames go through Zenoh's pools (over a same-host link
+    # the camera's session has no shared memory at all)
+    trace = pipe.run(duration=0.1, backend="zenoh", quiet=True, same_host_links=False)
     run_dir = str(pipe.session.run_dir)
     pipe.reset()
     taker = {path: size for segments in trace.values_of("taker", "segments") for path, size in segments}

@@ -87,7 +87,7 @@ def test_each_worker_has_its_shared_memory_pool_before_t0():
     with Pipeline("pool") as pipe:
         watcher = ImageShmWatcher().configure(name="watcher") @ Rate(hz=10)
         watcher.then(ShmOfImageTaker().configure(name="taker") @ Trigger("image"))
-    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
+    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True, same_host_links=False)  # (Zenoh's pools)
     first = min(trace.events_of("watcher", "zenoh_shm"), key=lambda e: e.seq)
     assert first.value >= SHM_POOL_MIN, f"no Zenoh pool mapped at the first step: biggest segment {first.value} B"
 
@@ -105,13 +105,22 @@ def test_only_a_node_whose_edges_may_carry_big_values_has_shared_memory():
         images.then(ShmOfScalarTaker().configure(name="scalar_taker") @ Trigger("zenoh_shm"))
     ir = {n["id"]: n for n in json.loads(pipe.build_ir().to_json())["nodes"]}
     assert ir["scalar_taker"]["inputs"] == {"zenoh_shm": "int"}, ir["scalar_taker"]  # what the test stands on
-    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
+    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True, same_host_links=False)  # (Zenoh's pools)
     biggest = {node: max(trace.values_of(node, "zenoh_shm"))
                for node in ("alone", "images", "image_taker", "scalar_taker")}
     assert biggest["images"] >= SHM_POOL_MIN, biggest
     # its session's own segment, and no pool: it sends to no one (and got only small images)
     assert 0 < biggest["image_taker"] < SHM_POOL_MIN, biggest
     assert biggest["alone"] == 0 and biggest["scalar_taker"] == 0, biggest
+
+    # over same-host links (the default), every edge of these nodes is a link: no session has
+    # shared memory, none makes a pool (worker/links.py, all_linked)
+    pipe.reset()
+    trace = pipe.run(duration=0.25, backend="zenoh", quiet=True)
+    assert pipe.session.hosted.spec.links
+    biggest = {node: max(trace.values_of(node, "zenoh_shm"))
+               for node in ("alone", "images", "image_taker", "scalar_taker")}
+    assert biggest == dict.fromkeys(biggest, 0), biggest
 
 
 def test_a_worker_rebuilds_its_flow_with_the_arguments_as_given():

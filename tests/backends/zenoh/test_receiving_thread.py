@@ -24,8 +24,8 @@ from .specs import run_spec
 MS = 1_000_000
 
 
-def run(pipe: Pipeline, duration: float):
-    return pipe.run(duration=duration, backend="zenoh", quiet=True)
+def run(pipe: Pipeline, duration: float, **options):
+    return pipe.run(duration=duration, backend="zenoh", quiet=True, **options)
 
 
 def where(trace, node: str) -> list[bool]:
@@ -53,16 +53,31 @@ def test_steps_off_the_main_thread_run_on_zenohs_receiving_thread_which_keeps_it
     # Zenoh's own thread (indirect=False), not a Python thread zenoh-python starts and wakes for
     # each sample; and that thread's Python state is kept from one message to the next (node/
     # transport.py, _keep_thread_state): a flow's threading.local holds there as on a Python thread
+    # on Zenoh (same_host_links=False; over a same-host link it is the link's thread: below)
     with Pipeline("inline_rx") as pipe:
         src = Ticker().configure(name="counter") @ Rate(hz=20)
         src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest())
-    trace = run(pipe, 1.0)
+    trace = run(pipe, 1.0, same_host_links=False)
     off = [e.value for e in trace.events_of("where") if not e.value["main"]]
     assert len(off) >= 2, [e.value for e in trace.events_of("where")]
     assert {v["thread"].split("-")[0] for v in off} == {"rx"}, off
     for tid in {v["tid"] for v in off}:
         befores = [v["before"] for v in off if v["tid"] == tid]
         assert befores == list(range(len(befores))), (tid, befores)
+
+
+def test_over_a_same_host_link_steps_off_the_main_thread_run_on_the_links_receiving_thread():
+    """Its LinkClient's thread (node/linked.py), as a Zenoh callback's: the message handled
+    where it was received, no hand-off to the main thread."""
+    with Pipeline("inline_link") as pipe:
+        src = Ticker().configure(name="counter") @ Rate(hz=20)
+        src.then(WhereRun().configure(name="where") @ Trigger("x"), sync=Latest())
+    trace = run(pipe, 1.0)
+    off = [e.value for e in trace.events_of("where") if not e.value["main"]]
+    assert len(off) >= 2, [e.value for e in trace.events_of("where")]
+    # one thread, a Python one (its native name is the interpreter's), not Zenoh's "rx-…"
+    assert len({v["tid"] for v in off}) == 1 and {v["thread"] for v in off} == {"python"}, off
+    assert [v["before"] for v in off] == list(range(len(off))), off
 
 
 def test_a_node_on_a_cycle_runs_every_step_on_its_main_thread():

@@ -56,7 +56,7 @@ def _as_the_dict_was(hosting: _WrittenHosting, graph, startup_timeout, virtual_t
             "python_path": python_path(), "main_file": main_file(graph), "argv": list(sys.argv),
             "spill_dir": str(hosting.run_dir), "access": access, "startup_timeout": startup_timeout,
             "zids": dict(spec.zids), "hub_zid": hosting.hub_zid, "virtual_time": virtual_time,
-            "groups": process_groups(graph)}
+            "groups": process_groups(graph), "links": True}  # (LocalHosting: same-host links)
 
 
 @pytest.mark.parametrize("startup_timeout, virtual_time", [(60.0, False), (5, True)])

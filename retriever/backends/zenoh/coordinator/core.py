@@ -71,7 +71,7 @@ class Coordinator(Session):
     def __init__(self, graph: Graph, *, hosting: Hosting | None = None, namespace: str | None = None,
                  startup_timeout: float = 60.0, start_margin: float = 0.3, hub_port: int = 0, quiet: bool = False,
                  secret: str | os.PathLike | bytes | None = None, virtual_time: bool = False, keep: str = "trace",
-                 foxglove: int | None = None, rerun: str | os.PathLike | None = None):
+                 foxglove: int | None = None, rerun: str | os.PathLike | None = None, same_host_links: bool = True):
         if rerun is not None:  # a target that cannot be one is said before anything starts
             from ....log.rerun_live import check_target
 
@@ -99,6 +99,9 @@ class Coordinator(Session):
         self.keys = KeySpace(self.namespace)
         self.access = self.hosting.run_access(self.namespace, secret)
         self.startup_timeout = startup_timeout
+        #: whether the edges between its processes go over same-host links where the hosting puts every
+        #: process on this host (LocalHosting): ``same_host_links=False`` keeps them all on Zenoh
+        self.same_host_links = bool(same_host_links) and self.hosting.one_host
         self.start_margin_ns = round(start_margin * 1e9)
         self.book = RunBook(graph, self.own_counts)
         self.ran = self.closed = False
@@ -145,7 +148,8 @@ class Coordinator(Session):
             # each first process's session id, and the hub's: a worker says ready once
             # linked to its neighbours and the hub, whatever other peers it has
             zids=zids, hub_zid=str(self.hub.zid()),
-            virtual_time=self.virtual_time, groups={name: tuple(members) for name, members in groups.items()})
+            virtual_time=self.virtual_time, groups={name: tuple(members) for name, members in groups.items()},
+            links=self.same_host_links)
         self.book.processes.hosts = self.hosting.place()
         grouped = {nid for members in groups.values() for nid in members}
         for name, members in groups.items():

@@ -103,6 +103,9 @@ class Hosting:
     #: whether it starts a group of flows in one process (configure(process=)); else each flow
     #: runs alone, and the run says so
     shares_processes = False
+    #: whether every process of the run is on one host, this one: its edges between processes may
+    #: then go over same-host links (the coordinator's ``same_host_links``, node/linked.py)
+    one_host = False
 
     def attach(self, run: HostedRun) -> None:
         """The run this hosting serves."""
@@ -197,6 +200,7 @@ class LocalHosting(Hosting):
     """Every node on this machine: the spec in the run directory, the workers its children."""
 
     shares_processes = True
+    one_host = True
 
     def place(self) -> dict[str, Host]:
         run = self.run

@@ -39,9 +39,10 @@ def open_deployment(graph: Graph, *, connect: list[str] = (), listen: list[str] 
                     max_clock_offset: float = CLOCK_REFUSE_NS / 1e9, on_worker_loss: str = "replace",
                     lease: float | None = None, tls: TlsFiles | None = None, virtual_time: bool = False,
                     keep: str = "trace", foxglove: int | None = None, rerun: str | os.PathLike | None = None,
-                    on_phase: Callable[[str, float], None] | None = None) -> Coordinator:
+                    on_phase: Callable[[str, float], None] | None = None, same_host_links: bool = True) -> Coordinator:
     """A run of ``graph`` on the worker daemons of a namespace: the coordinator, hosted by a
-    :class:`Deployment` (``on_phase``: its timing hook)."""
+    :class:`Deployment` (``on_phase``: its timing hook). ``same_host_links``: taken, and without
+    effect (yet): a deployment's edges all go over Zenoh, those within one daemon's host too."""
     hosting = Deployment(connect=connect, listen=listen, router=router, placement=placement, secret=secret,
                          insecure=insecure, max_clock_offset=max_clock_offset, on_worker_loss=on_worker_loss,
                          lease=lease, tls=tls, on_phase=on_phase)

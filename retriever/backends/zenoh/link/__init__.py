@@ -14,35 +14,31 @@ a producer's progress can go on the same stream as its data. Everything a peer s
 before use; a bad peer is dropped, never the process. A SIGKILLed process leaves at most its
 socket file in the run folder (removed with the folder, folders.py); a ring has no name.
 
-Part 2 (not built yet): wiring links into the node loop.
+Wired into the node loop behind the Transport seam (node/linked.py, LinkedTransport):
 
-- Which edges: the coordinator's plan knows which nodes run on which host (``Hosting``: the
-  spec gives each node's host); an edge whose producer and consumer one host spawns is a link,
-  one across hosts stays on Zenoh. Both ends read the same spec, so they agree without asking.
-- Where the socket is: the run folder both ends already share (the coordinator's
-  ``retriever-run-PID-…``, a daemon's ``retriever-worker-PID-run-…``), named by the producer
-  node (``link-<node>.sock``, short enough for sun_path). The producer's worker makes its
-  LinkServer before it says ready; a consumer connects after the start's barrier (every producer
-  ready), so no message before T0 is missed; a planned link that cannot connect fails the run,
-  naming the edge (no silent fallback: the consumer would wait for data that went elsewhere).
-- The sender: ``node/transport.py``'s ``declare_outputs`` gives a port with same-host consumers
-  the node's LinkServer; ``node/outputs.py``'s publish hands it ``encoder.data_parts(...)`` (no
-  join) with kind DATA. Progress (``WireEncoder.progress``) goes on the same link with kind
-  PROGRESS, so a watermark never overtakes the data it covers. Zenoh's put of the joined message
-  stays for remote consumers and watchers, made only while the Zenoh publisher's matching status
-  says someone matches the key (DESIGN.md: a plain Zenoh client on ``data/**`` can watch a run):
-  with only local consumers no join and no Zenoh put.
-- The receiver: ``transport.declare_inputs`` does not subscribe to the data and progress keys of
-  a same-host producer; it opens a LinkClient whose ``on_message`` hands ``(DATA | PROGRESS,
-  stream, bytes)`` to the loop's receive exactly as the Zenoh callback does; ``on_closed`` is
-  the producer's end (as the coordinator's loss of a worker is today: the run decides).
-- Restarts: a restarted consumer connects anew (its producer admits it; it gets the messages
-  from then on, as a restarted Zenoh subscriber does; the hand-over of its state is unchanged);
-  a restarted producer makes a new LinkServer at the same path (its consumers' on_closed, then
-  reconnect to it on the restart's control message).
-- The log: unchanged. The producer's reports still carry its events to the coordinator (the
-  report's copy of the message comes from the parts, or from the slot while the reporter holds
-  it); replay never meets a link.
+- Which edges: where every process of the run is on this host (the coordinator's Hosting says
+  so: LocalHosting, the spec's ``links``; ``pipe.run(..., same_host_links=False)`` opts out),
+  every edge between two processes but a group's (configure(process=): its process keeps Zenoh
+  for its edges). A deployment's (worker daemons) stay on Zenoh, those within one daemon too.
+  Both ends read it from the same spec (worker/links.py, link_plan), so they agree without
+  asking.
+- Where the socket is: the run folder both ends share, ``link-<node>.sock`` (``link-<i>.sock``
+  where that is too long for sun_path). The producer makes its LinkServer as it declares its
+  outputs, before it says ready; its consumers connect after the start's barrier (every
+  producer ready), before T0, and its first send waits for them there (worker/starts.py); a
+  planned link that cannot connect fails the run, naming the edge and the socket.
+- The sender: each output port's publisher and the progress publisher send on the node's one
+  LinkServer (kind 1 + the port's index, PROGRESS), so a watermark never overtakes the data it
+  covers; a warm-up (timing.py) too. Zenoh gets the message only while the Zenoh publisher's
+  matching status says someone matches the key (a ``data/**`` watcher, a consumer on Zenoh):
+  the run's linked consumers subscribe to none of it.
+- The receiver: no Zenoh subscription to a linked producer's data and progress; a LinkClient
+  whose messages go to the loop as the Zenoh callbacks' do (inline on the client's thread where
+  the loop may step there).
+- Restarts: a restarted consumer connects anew (worker/starts.py, join and start_afresh); a
+  restarted producer makes a new LinkServer at the same path, and its consumers, whose link
+  closed, connect to it by themselves (a producer whose loop finished says END: not waited for).
+- The log: unchanged (the reports carry the events); replay never meets a link.
 - The dora backend, and a group's flows in one process (by reference): untouched.
 """
 

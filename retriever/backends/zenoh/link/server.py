@@ -12,7 +12,11 @@ message, never a slot rewritten under a reader).
 
 A consumer that sends anything but a well-formed ack for a slot it holds, or that is gone
 (EOF, EPIPE), is dropped: its connection closed, its slots released, the error (naming it) on
-:attr:`LinkServer.dropped` and given to ``on_dropped``; the other consumers go on.
+:attr:`LinkServer.dropped` and given to ``on_dropped`` (one call at a time, whichever thread saw
+it); the other consumers go on. A send that failed after its message (or a new ring) reached
+some consumers and not others leaves the stream out of order: the link closes before the
+LinkError is raised, and every later send raises too; one that reached none (no free slot in
+time, the first consumer's socket full) may be tried again.
 """
 
 from __future__ import annotations
@@ -78,6 +82,8 @@ class LinkServer:
         self.inline_below, self.send_timeout, self.handshake_timeout = inline_below, send_timeout, handshake_timeout
         self.on_dropped = on_dropped
         self.dropped: collections.deque[LinkError] = collections.deque(maxlen=KEPT_DROPS)
+        self._partial = False  # whether the message being sent reached some consumer (send's)
+        self._noting = threading.Lock()  # on_dropped is called from the sender's and the admitting threads
         self._ring = Ring(slots, capacity, f"retriever-link-{producer}"[:200])
         self._held: list[set[_Consumer]] = [set() for _ in range(slots)]  # who has not acked each slot
         self._generations = [0] * slots
@@ -88,6 +94,7 @@ class LinkServer:
         self._closed = False
         self._handshakes: set[socket.socket] = set()  # connections whose handshake is under way
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET | socket.SOCK_CLOEXEC)
+        bound = False
         try:
             _clear_stale(self.path)
             try:
@@ -96,11 +103,17 @@ class LinkServer:
                 if e.errno != errno.EADDRINUSE:
                     raise
                 raise LinkError(f"a link socket's path was taken meanwhile: {self.path}") from None
+            bound = True
             os.chmod(self.path, 0o600)
             self._listener.listen(16)
         except BaseException:
             self._listener.close()
             self._ring.close()
+            if bound:  # (ours: no one else's file is removed)
+                try:
+                    os.unlink(self.path)
+                except FileNotFoundError:
+                    pass
             raise
         self._acceptor = threading.Thread(target=self._accept, name=f"link-{producer}", daemon=True)
         self._acceptor.start()
@@ -122,13 +135,28 @@ class LinkServer:
         """Send the message made of ``parts`` (bytes-like, as the wire encoder's ``data_parts``)
         to every connected consumer, after the messages sent before it; ``kind`` (0..255) goes
         with it. Raises LinkError when a consumer held up the send past ``send_timeout`` (the
-        message may then have reached some consumers and not others: the link is out of order,
-        close it), or the ring cannot grow to the message."""
+        message may then have reached some consumers and not others: the link is then closed), or
+        the ring cannot grow to the message, or the link is closed."""
         consumers = self._consumers
+        if self._closed:
+            raise LinkError(f"{self.producer}: its link is closed ({self.path})")
         if not consumers:
             return
         if not 0 <= kind < 256:
             raise LinkError(f"{self.producer}: a link message's kind is a byte (0..255), not {kind!r}")
+        self._partial = False
+        try:
+            self._send(consumers, parts, kind)
+        except LinkError:
+            if self._partial:  # some consumers have it (or the new ring) and others not: out of order
+                self.close()
+            raise
+        except ValueError:  # (close() on another thread meanwhile: the ring or a socket closed under us)
+            if not self._closed:
+                raise
+            raise LinkError(f"{self.producer}: its link closed during a send ({self.path})") from None
+
+    def _send(self, consumers: tuple[_Consumer, ...], parts, kind: int) -> None:
         length = sum(memoryview(part).nbytes for part in parts)
         if length < self.inline_below:
             # one sendmsg of the parts (no join), unless they are more than it takes (EMSGSIZE)
@@ -136,6 +164,7 @@ class LinkServer:
                 [frames.INLINE_HEADS[kind], b"".join(parts)]
             for consumer in consumers:
                 self._put(consumer, frame)
+                self._partial = True
             return
         deadline = time.monotonic() + self.send_timeout
         if length > self._ring.capacity:
@@ -149,6 +178,7 @@ class LinkServer:
         for consumer in self._consumers:
             if self._put(consumer, frame):
                 held.add(consumer)
+            self._partial = True
 
     def _grow(self, length: int, deadline: float) -> None:
         """Replace the ring by one whose slots hold ``length`` bytes (twice the old at least), once
@@ -167,6 +197,7 @@ class LinkServer:
         with self._changed:
             self._ring = new
             consumers = self._consumers
+        self._partial = True  # (a consumer that took no RING frame would read the next handle in the old ring)
         try:
             for consumer in consumers:
                 self._put(consumer, frame, rights)
@@ -182,18 +213,25 @@ class LinkServer:
             try:
                 consumer.sock.sendmsg(frame, ancillary, socket.MSG_NOSIGNAL)
                 return True
-            except BlockingIOError:
+            except OSError as e:
+                # no room in its socket (EAGAIN), or the kernel short of buffers for now (ENOBUFS,
+                # ENOMEM: no fault of the consumer's): wait, up to send_timeout
+                if not isinstance(e, BlockingIOError) and e.errno not in (errno.ENOBUFS, errno.ENOMEM):
+                    if self._closed:
+                        raise ValueError("closed") from None  # (send's: close() ran meanwhile)
+                    self._drop(consumer, f"is gone ({e.strerror})")
+                    return False
                 deadline = deadline or time.monotonic() + self.send_timeout
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise LinkError(f"{self.producer}: {consumer.peer} took no message for {self.send_timeout:g}s: "
                                     "a consumer that stopped reading holds its producer up") from None
-                poll = select.poll()
-                poll.register(consumer.sock, select.POLLOUT)
-                poll.poll(left * 1000)
-            except OSError as e:
-                self._drop(consumer, f"is gone ({e.strerror})")
-                return False
+                if isinstance(e, BlockingIOError):
+                    poll = select.poll()
+                    poll.register(consumer.sock, select.POLLOUT)
+                    poll.poll(left * 1000)
+                else:  # (POLLOUT says nothing of the kernel's buffers: look again soon)
+                    time.sleep(min(left, ACCEPT_RETRY_S / 10))
 
     def _free_slot(self, deadline: float) -> int:
         """The next slot in turn once no consumer holds it."""
@@ -252,9 +290,10 @@ class LinkServer:
         self._note(error or LinkError(f"{self.producer}: {consumer.peer} {why}: dropped"))
 
     def _note(self, error: LinkError) -> None:
-        self.dropped.append(error)
-        if self.on_dropped is not None:
-            self.on_dropped(error)
+        with self._noting:
+            self.dropped.append(error)
+            if self.on_dropped is not None:
+                self.on_dropped(error)
 
     # -----------------------------------------------------------------------------------------
     # Admitting consumers (the acceptor's thread)

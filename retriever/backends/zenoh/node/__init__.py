@@ -34,6 +34,7 @@ The modules, one job each:
     loop.py       NodeLoop: wiring, the inbox, the run loop (dispatch only)
     inbox.py      what the inbox holds
     transport.py  how events and progress travel (the seam; Zenoh's; dora's: retriever/backends/dora/link.py)
+    linked.py     the same over same-host links (backends/zenoh/link/) where both ends are on this host
     clock.py      T0, the end, the wall and HLC clocks read from T0
     schedule.py   Rate ticks and pending trigger ticks
     frontiers.py  input streams: seq order, frontiers, claims refused, delivery to the edges

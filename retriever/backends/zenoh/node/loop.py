@@ -460,6 +460,7 @@ class NodeLoop:
             self.counts["unrun_ticks"] += unrun
         self.outputs.release_held()
         self.outputs.publish_progress(NEVER)
+        self.transport.end_of_stream()
         self.reports.finish()
 
     def handover_state(self) -> dict:

@@ -4,8 +4,10 @@ A node loop speaks to its consumers through publishers (``put(bytes)``) and hear
 through two callbacks: ``receive`` for data messages, ``put`` for progress messages (both take
 an inbox item, see inbox.py). The run's control plane is not a transport's: the loop subscribes
 to the run's control and answers progress queries on the run's Zenoh session whatever carries
-its events. :class:`ZenohTransport` carries them on that session; the dora backend's transport
-(backends/dora/link.py) carries them over dora.
+its events. :class:`ZenohTransport` carries them on that session; :class:`~.linked.LinkedTransport`
+(linked.py) carries those between processes of one host over same-host links (backends/zenoh/link/)
+and the others on that session; the dora backend's transport (backends/dora/link.py) carries them
+over dora.
 """
 
 from __future__ import annotations
@@ -50,6 +52,16 @@ class Transport:
 
     def await_routes(self, timeout: float, stopping: Callable[[], bool]) -> None:
         """Before the node says ready: wait until its events' routes carry."""
+
+    def join_links(self, timeout: float, stopping: Callable[[], bool],
+                   gone: Callable[[], set[str]] | None = None) -> None:
+        """Connect the events' routes that are made once every end is up (same-host links:
+        node/linked.py), ``timeout`` at most: at a node's first start (``gone`` None) after
+        the start's barrier, at a restarted one's as it comes. Nothing by default."""
+
+    def end_of_stream(self) -> None:
+        """The node's loop finished: nothing more comes from this process (a consumer then does
+        not wait for a new one). Nothing by default."""
 
     def undeclare(self) -> None:
         """Stop hearing and speaking: everything declared goes."""

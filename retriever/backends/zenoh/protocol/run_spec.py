@@ -134,6 +134,9 @@ class RunSpec(Record):
     blocked_put: float | None = field(Nullable(SECONDS), default=None)
     #: a dora run's own part (backends/dora), read by dora's node module
     dora_part: DoraPart | None = field(Nullable(Nested(DoraPart)), default=None)
+    #: whether every edge between two processes of the run goes over a same-host link (node/linked.py:
+    #: every node on this host, the coordinator's ``same_host_links``); else all go over Zenoh
+    links: bool = field(Bool(), default=False)
 
     @classmethod
     def from_fields(cls, fields: Any, where: str, **envelope: Any) -> RunSpec:

@@ -72,9 +72,9 @@ from ..node import Ending
 from ..origin import take_key
 from ..protocol import EXIT_ABANDONED, EXIT_FAILED, RunSpec
 from ..wire import KeySpace
-from .build import Serving, StatusSender, build, open_session, set_up_flow
+from .build import Serving, StatusSender, build, node_plan, open_session, set_up_flow
 from .ending import finish, handle_signals, release, say_failed
-from .links import watch_hub_link
+from .links import all_linked, watch_hub_link
 from .process import (Launch, Parent, exit_process, let_go_of, no_timer_slack,
                       prepare_process, watch_parent)
 from .starts import POOL_PADDING, join, start, start_afresh
@@ -136,10 +136,13 @@ def read_spec(launch: Launch) -> RunSpec:
 
 def _serve_node(launch: Launch, spec: RunSpec, pool: set[str]) -> int:
     keys = KeySpace(spec.namespace)
-    shared_memory = needs_shared_memory(spec.ir, launch.node)
+    plan = node_plan(spec, launch.node) if spec.links else None
+    # a node whose every edge is a same-host link sends nothing big through Zenoh to this host:
+    # its session has no shared memory, and makes no pool
+    shared_memory = needs_shared_memory(spec.ir, launch.node) and not all_linked(spec, plan, launch.run_dir)
     with open_session(spec, launch.node, launch.mode, shared_memory) as session:
         w = Serving(launch, spec, session, keys, StatusSender(session, keys, launch.node, launch.key),
-                    padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool)
+                    padding=bytes(POOL_PADDING) if shared_memory else None, pool=pool, plan=plan)
         if not build(w):
             return EXIT_FAILED
         try:

@@ -33,10 +33,12 @@ from ..command import StartMode
 from ..hub import client_config, open_peer
 from ..node import InEdge, NodeLoop
 from ..node.in_place import InPlaceRestart
+from ..node.linked import LinkedTransport
 from ..origin import sign
 from ..protocol import RunSpec
 from ..wire import RELIABLE, KeySpace
 from .process import Launch
+from .links import link_plan
 
 #: the flows this process served, held until it ends: what a flow holds (a model, a device) is
 #: finalized once, as the interpreter ends; the session its loop held is let go of
@@ -196,6 +198,10 @@ def build(w: Serving) -> bool:
             w.plan = node_plan(w.spec, w.node)
         make_transport = w.transport or w.launch.transport
         transport = make_transport(w.session, w.node) if make_transport is not None else None
+        if transport is None:
+            links = link_plan(w.spec, w.plan, w.launch.run_dir)
+            if links is not None:  # (its edges to processes of this host over links: node/linked.py)
+                transport = LinkedTransport(w.session, w.keys, w.node, links)
         w.loop = build_loop(w.spec, w.node, w.session, transport=transport, plan=w.plan, ir=w.ir)
         w.loop.reporter.key = w.launch.key
         w.loop.opener = protocol.ControlOpener(w.launch.key)

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 import sys
 import time
+from pathlib import Path
 
 import zenoh
 
+from ....errors import LinkError
 from ....plan import NodePlan
 from ..hub import router_linked, wait_for_links, wait_for_router
+from ..link.server import MAX_PATH
 from ..node import NodeLoop
+from ..node.linked import MAX_LINKED_PORTS, LinkPlan
 from ..protocol import RunSpec
+
+#: how long a node's first process waits, after the start's barrier, for its same-host links to
+#: connect (its producers' sockets are there: each said ready after making its own)
+LINK_TIMEOUT_S = 10.0
 
 #: how long a restarted flow's process waits for its producers and consumers to answer before it
 #: says ready anyway (one that never answers has finished, or is stuck)
@@ -42,6 +50,51 @@ def producers(plan: NodePlan) -> set[str]:
 def consumers(plan: NodePlan) -> set[str]:
     """The other nodes with an edge from ``plan``'s node."""
     return {c.dst for out in plan.consumers.values() for c in out} - {plan.id}
+
+
+def link_plan(spec: RunSpec, plan: NodePlan, run_dir: Path) -> LinkPlan | None:
+    """``plan``'s node's same-host links (node/linked.py), or None when it has none: where the
+    spec says ``links`` (every process of the run on this host), each edge between two processes
+    but a group's (whose process keeps Zenoh for its edges, as its members' in-process flows
+    keep the group's bus). Both ends of an edge read it from the same spec."""
+    if not spec.links or plan.id in _grouped(spec):
+        return None
+    grouped = _grouped(spec)
+    outputs = {n["id"]: tuple(sorted(n["outputs"])) for n in spec.ir["nodes"]}
+    order = sorted(outputs)
+    for node in (plan.id, *producers(plan)):
+        if len(outputs[node]) > MAX_LINKED_PORTS:
+            raise LinkError(f"node {node!r} has {len(outputs[node])} output ports: a same-host link carries at most "
+                            f"{MAX_LINKED_PORTS}\n    hint: pipe.run(..., same_host_links=False)")
+    linked_consumers = frozenset(consumers(plan) - grouped)
+    linked_producers = {p: (socket_path(run_dir, p, order), outputs[p]) for p in sorted(producers(plan) - grouped)}
+    if not linked_consumers and not linked_producers:
+        return None
+    return LinkPlan(spec.namespace, socket_path(run_dir, plan.id, order) if linked_consumers else None,
+                    linked_consumers, linked_producers, outputs[plan.id])
+
+
+def all_linked(spec: RunSpec, plan: NodePlan | None, run_dir: Path) -> bool:
+    """Whether every edge of ``plan``'s node to another process is a same-host link (None: no
+    links in the run)."""
+    if plan is None or not (producers(plan) or consumers(plan)):
+        return False
+    try:
+        links = link_plan(spec, plan, run_dir)
+    except LinkError:  # (said by build, which makes the same plan: the node's status says it)
+        return False
+    return links is not None and set(links.producers) == producers(plan) and links.consumers == consumers(plan)
+
+
+def socket_path(run_dir: Path, node: str, nodes: list[str]) -> Path:
+    """``node``'s link socket in the run's folder: ``link-<node>.sock``, or, where that is longer
+    than a Unix socket's path may be, ``link-<i>.sock`` (``i``: its index in ``nodes``)."""
+    path = run_dir / f"link-{node}.sock"
+    return path if len(bytes(path)) <= MAX_PATH else run_dir / f"link-{nodes.index(node)}.sock"
+
+
+def _grouped(spec: RunSpec) -> set[str]:
+    return {n for members in spec.groups.values() for n in members}
 
 
 def link_to_hub(session, spec: RunSpec, loop: NodeLoop) -> None:

@@ -17,7 +17,7 @@ from ..node import handover
 from ..protocol import RESTART_SEQ_GAP
 from ..wire import WireError, decode_progress
 from .build import Serving
-from .links import NEIGHBOR_TIMEOUT_S, consumers, link_to_hub, links_needed, names_of, producers
+from .links import LINK_TIMEOUT_S, NEIGHBOR_TIMEOUT_S, consumers, link_to_hub, links_needed, names_of, producers
 from .waits import ask_start, await_control, coordinator_says, drop_queued
 
 #: Before it says ``ready``, a worker asks each consumer's progress with this much padding, so
@@ -105,6 +105,9 @@ def await_start(w: Serving, ready: Callable[[], None]) -> LoopStart | None:
         stopped_before_start(w)
         return None
     t0, end = said.t0, said.end
+    # every producer said ready, its link's socket made: each link connects now, before T0 (a
+    # planned link that cannot fails the run, naming it)
+    loop.transport.join_links(LINK_TIMEOUT_S, lambda: loop.stopping)
     loop.reports.values = said.values  # whether the coordinator wants the events' values
     if loop.virtual:  # lockstep: the ticks below the first grant may run
         loop.granted = min(0 if said.grant is protocol.ABSENT else said.grant, end)
@@ -119,6 +122,7 @@ def join(w: Serving) -> LoopStart | None:
     when told ``resume``. None: stopped first."""
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
+    loop.transport.join_links(NEIGHBOR_TIMEOUT_S, w.waiting(), gone=_gone(w))  # its producers' links
     # the other end of each of its edges, and, if it has any, its old process (which answers for
     # the node until the hand-over)
     ends = [f.src for f in w.plan.feeds] + [c.dst for out in w.plan.consumers.values() for c in out]
@@ -146,6 +150,7 @@ def join(w: Serving) -> LoopStart | None:
     handover.take_over(loop, handover.read_state(handover_file, loop))
     handover_file.unlink()
     loop.declare_outputs()
+    loop.transport.join_links(NEIGHBOR_TIMEOUT_S, w.waiting(), gone=_gone(w))  # its consumers, at its new socket
     return LoopStart(w.launch.mode.t0, w.launch.mode.end, resume=True)
 
 
@@ -158,7 +163,14 @@ def start_afresh(w: Serving) -> LoopStart | None:
         return None
     handover.start_fresh(w.loop, seqs, w.launch.mode.t0)
     w.loop.declare_outputs()
+    w.loop.transport.join_links(NEIGHBOR_TIMEOUT_S, w.waiting(), gone=_gone(w))  # its consumers, at its new socket
     return LoopStart(w.launch.mode.t0, w.launch.mode.end)
+
+
+def _gone(w: Serving) -> Callable[[], set[str]]:
+    """The nodes a restarted process's links wait for no more: those the coordinator says are
+    done or start afresh themselves."""
+    return lambda: set().union(*coordinator_says(w.session, w.keys, w.loop.opener))
 
 
 def stopped_before_start(w: Serving) -> None:
@@ -185,6 +197,7 @@ def _join_afresh(w: Serving) -> dict[str, int] | None:
     once restarted, not waiting for us)."""
     loop, session, spec, keys = w.loop, w.session, w.spec, w.keys
     loop.declare_inputs()
+    loop.transport.join_links(NEIGHBOR_TIMEOUT_S, w.waiting(), gone=_gone(w))  # its producers' links
     # its own outputs fed back to it start with the seqs it gets below (start_fresh)
     answers = _producers_progress(w)
     if loop.stopping:

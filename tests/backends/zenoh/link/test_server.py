@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import queue
 import socket
+import threading
 
 import numpy as np
 import pytest
@@ -418,3 +419,52 @@ def test_a_message_of_more_parts_than_a_sendmsg_takes_reaches_every_consumer(fol
         assert got.get(timeout=30) == b"ab" * 1100
         client.close()
     assert dropped.empty() and closed.empty()
+
+
+def test_a_send_that_reached_some_consumers_only_closes_the_link(folder):
+    """"good" took the message, "stuck" (its socket full) did not in time: the stream is out of
+    order between them, so the link closes, its socket goes, and every later send raises."""
+    server, _ = _server(folder, send_timeout=0.2)
+    with server:
+        good, good_fd = _raw_consumer(folder, "good")
+        assert server.wait_for(1, 30)
+        stuck, stuck_fd = _raw_consumer(folder, "stuck")  # reads nothing from here on
+        assert server.wait_for(2, 30)
+        reading = threading.Event()
+
+        def drain() -> None:
+            good.settimeout(5)
+            while not reading.is_set():
+                try:
+                    if not good.recv(70_000):
+                        return
+                except OSError:
+                    return
+
+        drainer = threading.Thread(target=drain)
+        drainer.start()
+        try:
+            with pytest.raises(LinkError, match="'stuck' .* took no message for 0.2s"):
+                for _ in range(100_000):  # until stuck's socket is full
+                    server.send([b"x" * 1000])
+            assert not (folder / "p.sock").exists(), "the link closed"
+            with pytest.raises(LinkError, match=r"camera: its link is closed"):
+                server.send([b"x"])
+        finally:
+            reading.set()
+            good.close()
+            drainer.join()
+    for fd in (good_fd, stuck_fd):
+        os.close(fd)
+    stuck.close()
+
+
+def test_a_send_after_close_raises_a_link_error_not_a_bare_one(folder):
+    server, _ = _server(folder)
+    sock, fd = _raw_consumer(folder, "late")
+    assert server.wait_for(1, 30)
+    server.close()
+    with pytest.raises(LinkError, match=r"camera: its link is closed"):
+        server.send([bytes(100_000)])
+    sock.close()
+    os.close(fd)
