@@ -106,6 +106,43 @@ def test_run_until_stopped_prints_its_table_when_interrupted(tmp_path: Path):
     assert f"interrupted; the run so far is in {log}" in err, err
 
 
+LINK_SEEING = FLOWS + '''
+import glob, os, tempfile
+
+
+class Seeing(Flow[Num, None]):
+    """Writes down the same-host link sockets in its run's folder (its parent's, the coordinator's)."""
+
+    def step(self, inp):
+        folders = {"/dev/shm", tempfile.gettempdir()}
+        found = [os.path.basename(p) for base in folders
+                 for p in glob.glob(f"{base}/retriever-run-{os.getppid()}-*/link-*.sock")]
+        with open("seen.txt", "a") as f:
+            f.write(" ".join(sorted(found)) + "\\n")
+
+
+with Pipeline("seeing") as pipe:
+    (Source().named("source") @ Rate(hz=20)).then(Seeing().named("seeing") @ Trigger())
+'''
+
+
+@pytest.mark.parametrize("option, sockets", [((), {"link-source.sock"}), (("--no-links",), {""})])
+def test_run_no_links_carries_every_edge_on_zenoh(tmp_path: Path, option, sockets):
+    """`retriever run --backend zenoh` carries an edge between two of its processes over a
+    same-host link (the producer's socket in the run's folder); `--no-links` keeps it on Zenoh."""
+    (tmp_path / "seeing.py").write_text(LINK_SEEING)
+    result = cli("run", "seeing.py:pipe", "--duration", "0.5", "--backend", "zenoh", *option, cwd=tmp_path)
+    assert result.returncode == 0, result.stdout + result.stderr
+    seen = (tmp_path / "seen.txt").read_text().splitlines()
+    assert seen and set(seen) == sockets, seen
+
+
+def test_run_no_links_is_for_zenoh_only(tmp_path: Path):
+    assert_cli_error(cli("run", str(QUICKSTART), "--no-links"),
+                     r"^error: --no-links is for --backend zenoh \(only its runs have same-host links\)$",
+                     hint=r"retriever run FILE --backend zenoh --no-links, or drop --no-links")
+
+
 @pytest.mark.parametrize("signum", [15, 2])  # SIGTERM, SIGINT
 def test_a_signal_that_lands_in_an_exec_still_ends_with_the_status_the_command_chose(tmp_path: Path, signum):
     """A stop signal that came while an exec() of a string ran (rosbags making a message class,

@@ -49,6 +49,9 @@ def run(
     virtual_time: Annotated[bool, typer.Option(
         "--virtual-time", help="zenoh: one process per flow, advanced in lockstep in logical time: the trace is "
                                "inproc's; --duration is then virtual seconds.")] = False,
+    no_links: Annotated[bool, typer.Option(
+        "--no-links", help="zenoh: carry every edge on Zenoh, none over same-host links (the default between "
+                           "the run's processes on this machine: a Unix socket and shared memory of its own).")] = False,
     keep: Annotated[Optional[str], KEEP_OPTION] = None,
     foxglove: Annotated[Optional[int], FOXGLOVE_OPTION] = None,
     rerun: Annotated[Optional[str], RERUN_OPTION] = None,
@@ -77,6 +80,11 @@ def run(
             fail(BackendError("--virtual-time is for --backend zenoh (inproc always runs in virtual time)\n"
                               "    hint: retriever run FILE --backend zenoh --virtual-time, or drop --virtual-time"))
         options["virtual_time"] = True
+    if no_links:
+        if canonical(backend or default_backend()) != "zenoh":
+            fail(BackendError("--no-links is for --backend zenoh (only its runs have same-host links)\n"
+                              "    hint: retriever run FILE --backend zenoh --no-links, or drop --no-links"))
+        options["same_host_links"] = False
     _execute(load(target), duration, backend, log, force, allow_errors, options,
              f"{shown}{' of virtual time' if virtual_time else ''} on {backend or default_backend()}")
 
