@@ -95,10 +95,16 @@ class LinkClient:
     def _receive(self) -> None:
         sock, ring, peer, size = self._sock, self._ring, self.peer, self._frame_bytes
         on_message, unpack, ack = self.on_message, frames.HANDLE_FRAME.unpack, frames.ack
-        why = None
+        why, reset = None, False
         try:
             while True:
-                data, fds, flags, _ = socket.recv_fds(sock, size + 1, 1)
+                try:
+                    data, fds, flags, _ = socket.recv_fds(sock, size + 1, 1)
+                except ConnectionResetError:  # its process ended with our acks unread: said once,
+                    if reset:  # before what it sent until then, which is still to read
+                        raise
+                    reset = True
+                    continue
                 if not data:
                     why = LinkError(f"{peer} closed the connection")
                     return
@@ -118,7 +124,10 @@ class LinkClient:
                 elif kind == frames.HANDLE:
                     _, kind, slot, generation, length = unpack(data)
                     message = ring.copy(slot, generation, length)
-                    sock.sendall(ack(slot, generation))
+                    try:
+                        sock.sendall(ack(slot, generation))
+                    except (BrokenPipeError, ConnectionResetError):  # it closed: the copy is ours, no ack is due
+                        pass
                     on_message(kind, message)
                 else:
                     _, slots, capacity, stride = frames.RING_FRAME.unpack(data)

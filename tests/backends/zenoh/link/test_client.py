@@ -242,3 +242,41 @@ def test_a_producer_that_closes_without_a_welcome_is_a_link_error(folder):
         taker.join()
         listener.close()
         os.unlink(folder / "p.sock")
+
+
+@pytest.mark.parametrize("first", ["inline", "ring"])
+def test_what_a_producer_sent_before_it_closed_is_all_delivered_to_a_consumer_still_busy(folder, first):
+    """A producer sends its last messages and END, and closes (its loop finished, or it hands
+    over), while its consumer is still busy with an earlier message (a step on the client's
+    thread): every message already in the consumer's socket is still delivered, in order, and
+    its end is then EOF. Neither the producer's acks left unread at its close (the consumer's
+    next read is ECONNRESET) nor the consumer's ack of a ring message after it (EPIPE) loses
+    them (review16b: the tail of a stream, END with it, was lost either way)."""
+    from retriever.backends.zenoh.link import LinkServer
+
+    server = LinkServer(folder / "p.sock", RUN, PRODUCER)
+    inside, release = threading.Event(), threading.Event()
+    got: list = []
+    closed: queue.Queue = queue.Queue()
+
+    def on_message(kind: int, data: bytes) -> None:
+        got.append((kind, len(data)))
+        if len(got) == 1:  # busy with the first: the rest waits in the socket
+            inside.set()
+            release.wait(30)
+
+    client = LinkClient(folder / "p.sock", RUN, PRODUCER, "sink", on_message, closed.put)
+    try:
+        assert server.wait_for(1, 30)
+        server.send([bytes(200_000) if first == "ring" else b"first"], 1)
+        assert inside.wait(30)
+        server.send([bytes(100_000)], 1)  # through the ring: its ack comes after the close
+        server.send([b"tail"], 1)
+        server.send([b""], 255)  # END
+    finally:
+        server.close()
+        release.set()
+    why = closed.get(timeout=30)
+    client.close()
+    assert got == [(1, 200_000 if first == "ring" else 5), (1, 100_000), (1, 4), (255, 0)], why
+    assert "closed the connection" in str(why) and "reset" not in str(why)
