@@ -6,8 +6,9 @@ same way at both ends). As a producer with such consumers it makes its :class:`L
 ``link-<node>.sock`` in the run's folder when it declares its outputs (before it says ready), and
 sends on it each data message (kind ``1 + port``'s index among its sorted output ports) and its
 progress (kind PROGRESS), in one order: a watermark never overtakes the data it covers. Zenoh
-still gets a message while the Zenoh publisher's matching status says someone matches its key (a
-``data/**`` watcher, a consumer on Zenoh): with only linked consumers, no Zenoh put. As a consumer
+still gets each message when a consumer hears it there (a group's process), else only while the
+Zenoh publisher's matching status says someone matches its key (a ``data/**`` watcher): with
+only linked consumers and no watcher, no Zenoh put. As a consumer
 it subscribes on Zenoh to none of a linked producer's data and progress keys; a
 :class:`LinkClient` per linked producer hands its messages to the loop as the Zenoh callbacks
 do (inline on the client's thread when the loop may step there, else queued).
@@ -23,6 +24,7 @@ unless the producer said it ended (END: its loop finished, nothing more comes).
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 import weakref
@@ -42,31 +44,40 @@ MAX_LINKED_PORTS = WARM_KIND - FIRST_DATA_KIND
 #: how often a consumer tries its producer's socket again while it is not there (the first try,
 #: then at most this apart)
 RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.005, 0.1
+#: after how long without its producer a consumer says so on stderr (once; and when it is back)
+RECONNECT_SAY_S = 10.0
 
 
 @dataclass(frozen=True)
 class LinkPlan:
     """A node's same-host links: ``run`` (the namespace, which both ends check), ``path`` its own
     socket (None: no linked consumer), ``consumers`` the nodes that connect to it, ``producers``
-    each linked producer's socket and sorted output ports, and ``ports`` this node's own."""
+    each linked producer's socket and sorted output ports, ``ports`` this node's own, and
+    ``on_zenoh`` whether a consumer of it hears it on Zenoh (a group's process): then each of its
+    messages is put there too, whatever Zenoh's matching status says."""
 
     run: str
     path: Path | None
     consumers: frozenset[str] = frozenset()
     producers: dict[str, tuple[Path, tuple[str, ...]]] = field(default_factory=dict)
     ports: tuple[str, ...] = ()
+    on_zenoh: bool = False
 
 
 class LinkPublisher:
     """An output port's (or the progress') publisher on a link: each message to the link's
-    consumers with ``kind``, and to Zenoh too while something there matches its key."""
+    consumers with ``kind``, and to Zenoh too: always when ``always`` (a consumer there, which
+    must miss none), else while something there matches its key (a watcher). Zenoh tells the
+    matching listener on a task of its own, after its routes carry a new subscriber: a put made
+    meanwhile would have reached it, and is not made (a watcher may miss its first messages; a
+    consumer, whose missed message is a seq gap its stream holds open, must not: ``always``)."""
 
     __slots__ = ("server", "kind", "zenoh", "watched", "listener")
 
-    def __init__(self, server: LinkServer, kind: int, zenoh_publisher):
+    def __init__(self, server: LinkServer, kind: int, zenoh_publisher, always: bool = False):
         self.server, self.kind, self.zenoh = server, kind, zenoh_publisher
-        self.watched = zenoh_publisher.matching_status.matching
-        self.listener = zenoh_publisher.declare_matching_listener(self._matching)
+        self.watched = always or zenoh_publisher.matching_status.matching
+        self.listener = None if always else zenoh_publisher.declare_matching_listener(self._matching)
 
     def _matching(self, status) -> None:  # on a thread of Zenoh's
         self.watched = status.matching
@@ -124,12 +135,21 @@ class _Inbound:
 
     def _reconnect(self) -> None:
         wait, closing = RECONNECT_FIRST_S, self.transport.closing
+        say_at = time.monotonic() + RECONNECT_SAY_S
         while not closing.wait(wait):
             try:
                 self.connect()
+                if say_at is None:
+                    print(f"retriever: worker '{self.transport.id}' reached its producer '{self.producer}' over its "
+                          f"same-host link again", file=sys.stderr, flush=True)
                 return
-            except LinkError:
+            except LinkError as e:
                 wait = min(2 * wait, RECONNECT_MAX_S)
+                if say_at is not None and time.monotonic() >= say_at:  # said once: nothing else would tell
+                    say_at = None
+                    print(f"retriever: worker '{self.transport.id}' has not reached its producer '{self.producer}' "
+                          f"over its same-host link for {RECONNECT_SAY_S:g} s ({e}): it gets nothing from it "
+                          f"until it does, and tries on", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         """(after the transport's ``closing`` is set) The reconnecting thread ends first: a
@@ -182,10 +202,12 @@ class LinkedTransport(ZenohTransport):
             publishers, progress, warm = super().declare_outputs(ports, consumed)
         finally:
             self.tap = tap
-        linked = {port: LinkPublisher(self.server, kind[port], publisher) for port, publisher in publishers.items()}
-        progress = LinkPublisher(self.server, PROGRESS_KIND, progress)
-        warm = LinkPublisher(self.server, WARM_KIND, warm)
-        self.listeners += [p.listener for p in (*linked.values(), progress, warm)]
+        always = plan.on_zenoh
+        linked = {port: LinkPublisher(self.server, kind[port], publisher, always)
+                  for port, publisher in publishers.items()}
+        progress = LinkPublisher(self.server, PROGRESS_KIND, progress, always)
+        warm = LinkPublisher(self.server, WARM_KIND, warm, always)
+        self.listeners += [p.listener for p in (*linked.values(), progress, warm) if p.listener is not None]
         if tap is not None:
             linked = {port: tap.publisher(self.keys.data(self.id, port), p) for port, p in linked.items()}
         return linked, progress, warm
@@ -215,8 +237,10 @@ class LinkedTransport(ZenohTransport):
             if time.monotonic() >= deadline:
                 if gone is None:
                     producer, e = next(iter(errors.items()))
-                    raise LinkError(f"the same-host link {producer} -> {self.id} cannot connect to "
-                                    f"{left[producer].path}: {e}") from None
+                    raise LinkError(f"the same-host link {producer} -> {self.id} cannot connect: {e}\n"
+                                    f"    hint: {producer}'s worker makes it before it says ready; to carry the "
+                                    f"run's edges on Zenoh instead: pipe.run(..., same_host_links=False) "
+                                    f"(retriever run --no-links)") from None
                 for inbound in left.values():  # (done, or it comes later: connected to then)
                     inbound.reconnect()
                 break
@@ -236,7 +260,9 @@ class LinkedTransport(ZenohTransport):
             if left_s <= 0:
                 if gone is None:
                     raise LinkError(f"the same-host link(s) {self.id} -> {', '.join(sorted(missing))}: no consumer "
-                                    f"connected to {self.plan.path} within {timeout:g}s")
+                                    f"connected to {self.plan.path} within {timeout:g}s\n    hint: to carry the "
+                                    f"run's edges on Zenoh instead: pipe.run(..., same_host_links=False) "
+                                    f"(retriever run --no-links)")
                 return
             server.wait_for(len(server.consumers) + 1, min(left_s, 0.25))
 

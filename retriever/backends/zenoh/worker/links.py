@@ -71,7 +71,7 @@ def link_plan(spec: RunSpec, plan: NodePlan, run_dir: Path) -> LinkPlan | None:
     if not linked_consumers and not linked_producers:
         return None
     return LinkPlan(spec.namespace, socket_path(run_dir, plan.id, order) if linked_consumers else None,
-                    linked_consumers, linked_producers, outputs[plan.id])
+                    linked_consumers, linked_producers, outputs[plan.id], on_zenoh=bool(consumers(plan) & grouped))
 
 
 def all_linked(spec: RunSpec, plan: NodePlan | None, run_dir: Path) -> bool:

@@ -5,6 +5,7 @@ that cannot connect named; a producer's restart at the same socket; the run's op
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import queue
 import tempfile
@@ -99,7 +100,9 @@ def test_a_planned_link_that_cannot_connect_fails_naming_the_edge_and_the_socket
     _, consumer_plan = _plans(folder)
     consumer, _ = _consumer(session, keys, consumer_plan, inline=False)
     try:
-        with pytest.raises(LinkError, match=r"the same-host link cam -> viewer cannot connect to .*link-cam\.sock"):
+        with pytest.raises(LinkError, match=r"the same-host link cam -> viewer cannot connect: producer 'cam' "
+                                            r"\(.*link-cam\.sock\): cannot connect to .*link-cam\.sock(.|\n)*hint: "
+                                            r".*same_host_links=False\) \(retriever run --no-links\)"):
             consumer.join_links(0.05, lambda: False)
     finally:
         consumer.undeclare()
@@ -111,7 +114,8 @@ def test_a_producer_that_waits_for_a_planned_consumer_that_never_comes_fails_nam
     producer = LinkedTransport(session, keys, "cam", producer_plan)
     producer.declare_outputs(["depth", "image"], True)
     try:
-        with pytest.raises(LinkError, match=r"cam -> viewer: no consumer connected to .*link-cam\.sock"):
+        with pytest.raises(LinkError, match=r"cam -> viewer: no consumer connected to .*link-cam\.sock(.|\n)*hint: "
+                                            r".*same_host_links=False\) \(retriever run --no-links\)"):
             producer.join_links(0.05, lambda: False)
     finally:
         producer.undeclare()
@@ -155,6 +159,47 @@ def test_a_restarted_producer_at_the_same_socket_is_heard_again_and_an_ended_one
         consumer.undeclare()
 
 
+def test_a_consumer_that_cannot_reach_its_restarted_producer_says_so_and_when_it_is_back(session, folder, capfd,
+                                                                                      monkeypatch):
+    """A link that closed under a consumer is tried again quietly; past RECONNECT_SAY_S without
+    its producer the consumer says so on stderr, once, and again when it is back (review16b: a
+    restarted consumer whose producer's socket was gone got nothing for the rest of the run,
+    and nothing said it)."""
+    from retriever.backends.zenoh.node import linked
+    from tests.helpers import poll
+
+    monkeypatch.setattr(linked, "RECONNECT_SAY_S", 0.0)
+    keys = KeySpace(f"link16-say-{os.getpid()}")
+    producer_plan, consumer_plan = _plans(folder)
+    consumer, got = _consumer(session, keys, consumer_plan, inline=False)
+    said = []
+
+    def saying(what: str):
+        said.append(capfd.readouterr().err)
+        return what in "".join(said)
+
+    try:
+        old = LinkedTransport(session, keys, "cam", producer_plan)
+        old.declare_outputs(["depth", "image"], True)
+        consumer.join_links(WAIT_S, lambda: False)
+        old.join_links(WAIT_S, lambda: False)
+        old.undeclare()  # (no END: a restart follows, which does not come yet)
+        poll(lambda: saying("worker 'viewer' has not reached its producer 'cam' over its same-host link"),
+             "the consumer to say it cannot reach its producer")
+        new = LinkedTransport(session, keys, "cam", producer_plan)
+        publishers, _, _ = new.declare_outputs(["depth", "image"], True)
+        try:
+            poll(lambda: saying("worker 'viewer' reached its producer 'cam' over its same-host link again"),
+                 "the consumer to say its producer is back")
+            publishers["image"].put(b"back")
+            assert _take(got, 1) == [("put", (DATA, ("cam", "image"), b"back"))]
+        finally:
+            new.undeclare()
+        assert "".join(said).count("has not reached") == 1, said
+    finally:
+        consumer.undeclare()
+
+
 def _pipeline():
     from retriever import Latest, Pipeline, Rate, Trigger
 
@@ -192,7 +237,7 @@ def test_a_zenoh_consumer_whose_subscription_reached_the_producer_gets_its_next_
     from retriever.backends.zenoh.hub import endpoint, free_port, peer_config
 
     keys = KeySpace(f"link16-match-{os.getpid()}")
-    producer_plan, _ = _plans(folder, keys.namespace)
+    producer_plan = dataclasses.replace(_plans(folder, keys.namespace)[0], on_zenoh=True)  # (link_plan: a group's)
     where = endpoint(free_port())
     with zenoh.open(peer_config(listen=[where])) as a, zenoh.open(peer_config(connect=[where])) as b:
         producer = LinkedTransport(a, keys, "cam", producer_plan)
