@@ -14,6 +14,7 @@ its copy, that refuses a slot rewritten by something that broke that rule.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import mmap
 import os
@@ -42,24 +43,40 @@ def stride_for(capacity: int) -> int:
     return -(-(HEADER_BYTES + capacity) // mmap.PAGESIZE) * mmap.PAGESIZE
 
 
+def check_geometry(slots: int, capacity: int) -> None:
+    """LinkError unless a ring of ``slots`` slots of ``capacity`` bytes is within the bounds."""
+    if not 1 <= slots <= MAX_SLOTS or capacity < 1 or slots * stride_for(capacity) > MAX_RING_BYTES:
+        raise LinkError(f"a link ring of {slots} slots of {capacity} bytes is out of bounds "
+                        f"(1..{MAX_SLOTS} slots, {MAX_RING_BYTES} bytes in all)")
+
+
+def _cannot_make(size: int, e: OSError) -> LinkError:
+    why = (" (the process's file size limit, ulimit -f, is below it: a memfd counts as a file)"
+           if e.errno == errno.EFBIG else "")
+    return LinkError(f"cannot make a link ring of {size} bytes: {e.strerror or e}{why}")
+
+
 class Ring:
     """The producer's ring: ``slots`` slots of messages up to ``capacity`` bytes, every page
     written once here (so the first messages do not pay the page faults). ``fd`` is what a
     consumer is handed; :meth:`close` closes this process's fd and mapping."""
 
     def __init__(self, slots: int, capacity: int, name: str = "retriever-link"):
-        if not 1 <= slots <= MAX_SLOTS or capacity < 1 or slots * stride_for(capacity) > MAX_RING_BYTES:
-            raise LinkError(f"a link ring of {slots} slots of {capacity} bytes is out of bounds "
-                            f"(1..{MAX_SLOTS} slots, {MAX_RING_BYTES} bytes in all)")
+        check_geometry(slots, capacity)
         self.slots, self.capacity, self.stride = slots, capacity, stride_for(capacity)
         self.size = slots * self.stride
-        self.fd = os.memfd_create(name, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+        try:
+            self.fd = os.memfd_create(name, os.MFD_CLOEXEC | os.MFD_ALLOW_SEALING)
+        except OSError as e:
+            raise _cannot_make(self.size, e) from None
         try:
             os.ftruncate(self.fd, self.size)
             fcntl.fcntl(self.fd, fcntl.F_ADD_SEALS, SEALS)
             self._map = mmap.mmap(self.fd, self.size)  # shared, read and write
-        except BaseException:
+        except BaseException as e:
             os.close(self.fd)
+            if isinstance(e, OSError):
+                raise _cannot_make(self.size, e) from None
             raise
         self._view = memoryview(self._map)
         self._view[:] = bytes(self.size)  # fault every page in now, not in the first messages

@@ -4,7 +4,8 @@ same-host consumers connect to, and the ordered stream of messages sent to each 
 A message below ``inline_below`` bytes goes whole in one frame (``sendmsg`` of its parts: no
 join); a bigger one goes into a free slot of the ring (its parts written straight in) and its
 handle to every consumer. A slot is written again only after every consumer its handle went to
-acked it (or was dropped). A message bigger than the slots makes a bigger ring (its fd sent
+acked it (or was dropped). The ring is one page until a message needs it (then ``slots`` slots
+of ``capacity`` bytes, or of that message); a message bigger than the slots makes a bigger ring (its fd sent
 to each consumer in the stream's order) once no slot of the old one is held. No free slot:
 :meth:`LinkServer.send` waits for acks, up to ``send_timeout``, then raises (a consumer that
 stopped reading backs its producer up, as Zenoh's BLOCK congestion control does: never a lost
@@ -36,7 +37,7 @@ from pathlib import Path
 
 from ....errors import LinkError
 from . import frames
-from .ring import MAX_RING_BYTES, Ring, stride_for
+from .ring import MAX_RING_BYTES, Ring, check_geometry, stride_for
 
 #: messages below this many bytes go inline (a frame through the socket), the others through the
 #: ring; at most MAX_INLINE_BELOW (a SEQPACKET record must fit the socket's send buffer)
@@ -84,9 +85,13 @@ class LinkServer:
         self.dropped: collections.deque[LinkError] = collections.deque(maxlen=KEPT_DROPS)
         self._partial = False  # whether the message being sent reached some consumer (send's)
         self._noting = threading.Lock()  # on_dropped is called from the sender's and the admitting threads
-        self._ring = Ring(slots, capacity, f"retriever-link-{producer}"[:200])
-        self._held: list[set[_Consumer]] = [set() for _ in range(slots)]  # who has not acked each slot
-        self._generations = [0] * slots
+        check_geometry(slots, capacity)
+        # the ring: a page until a message needs it, then ``slots`` slots of ``capacity`` bytes (or
+        # the message's): a producer of small messages maps no more, one of big ones what they take
+        self._slots, self._capacity = slots, capacity
+        self._ring = Ring(1, 1, f"retriever-link-{producer}"[:200])
+        self._held: list[set[_Consumer]] = [set()]  # who has not acked each slot
+        self._generations = [0]
         self._generation = 0
         self._next = 0
         self._consumers: tuple[_Consumer, ...] = ()  # replaced, never changed in place (send reads it unlocked)
@@ -167,7 +172,7 @@ class LinkServer:
                 self._partial = True
             return
         deadline = time.monotonic() + self.send_timeout
-        if length > self._ring.capacity:
+        if length > self._ring.capacity or self._ring.slots != self._slots:
             self._grow(length, deadline)
         slot = self._free_slot(deadline)
         self._generation += 1
@@ -184,14 +189,16 @@ class LinkServer:
         """Replace the ring by one whose slots hold ``length`` bytes (twice the old at least), once
         no consumer holds a slot of the old one; each consumer gets the new one's fd in a RING
         frame, in the stream's order (a consumer joining meanwhile gets it in its welcome)."""
-        old = self._ring
-        capacity = max(length, 2 * old.capacity)
-        if old.slots * stride_for(capacity) > MAX_RING_BYTES:
+        old, slots = self._ring, self._slots
+        capacity = max(length, 2 * old.capacity if old.slots == slots else self._capacity)  # (else the first page's)
+        if slots * stride_for(capacity) > MAX_RING_BYTES:
             raise LinkError(f"{self.producer}: a message of {length} bytes is bigger than its link's ring can grow "
-                            f"({old.slots} slots, {MAX_RING_BYTES} bytes in all)")
+                            f"({slots} slots, {MAX_RING_BYTES} bytes in all)")
         for slot in range(old.slots):
             self._wait_free(slot, deadline)
-        new = Ring(old.slots, capacity, f"retriever-link-{self.producer}"[:200])
+        new = Ring(slots, capacity, f"retriever-link-{self.producer}"[:200])
+        if new.slots != len(self._held):  # (every slot free: none held)
+            self._held, self._generations, self._next = [set() for _ in range(slots)], [0] * slots, 0
         rights = [(socket.SOL_SOCKET, socket.SCM_RIGHTS, array.array("i", [new.fd]))]
         frame = [frames.ring(new.slots, new.capacity, new.stride)]
         with self._changed:

@@ -260,10 +260,6 @@ def test_a_zenoh_consumer_whose_subscription_reached_the_producer_gets_its_next_
                 except queue.Empty:
                     missed.append(i)
                 sub.undeclare()
-                for _ in range(400):  # (the next round starts unwatched: bounded)
-                    if not image.watched:
-                        break
-                    threading.Event().wait(0.005)
         finally:
             queryable.undeclare()
             producer.undeclare()

@@ -64,8 +64,14 @@ def _raw_consumer(folder, name: str = "raw", run: str = RUN, producer: str = PRO
 
 
 def _handle(sock: socket.socket) -> tuple[int, int, int, int]:
-    """(kind, slot, generation, length) of the next frame, a handle."""
-    _, kind, slot, generation, length = frames.HANDLE_FRAME.unpack(sock.recv(64))
+    """(kind, slot, generation, length) of the next handle, past the ring the first one comes
+    after (a producer's ring is a page until a message needs it: its real ring comes first)."""
+    data, fds, _, _ = socket.recv_fds(sock, 64, 1)
+    if data[0] == frames.RING and fds:
+        assert frames.RING_FRAME.unpack(data)[1] == 2  # (_server's slots)
+        os.close(fds[0])
+        data = sock.recv(64)
+    _, kind, slot, generation, length = frames.HANDLE_FRAME.unpack(data)
     return kind, slot, generation, length
 
 
@@ -468,3 +474,57 @@ def test_a_send_after_close_raises_a_link_error_not_a_bare_one(folder):
         server.send([bytes(100_000)])
     sock.close()
     os.close(fd)
+
+
+def test_the_ring_is_a_page_until_a_message_needs_it(folder):
+    """A producer of small messages maps one page, not its slots' bytes (8 x 4 MiB by default,
+    every page written: 32 MiB of memory each): its ring comes with its first big message."""
+    import mmap
+
+    server = LinkServer(folder / "p.sock", RUN, PRODUCER)
+    with server:
+        sock, fd = _raw_consumer(folder, "small")
+        assert server.wait_for(1, 30)
+        assert os.fstat(fd).st_size == mmap.PAGESIZE
+        server.send(message(0, 1000))  # inline: no ring
+        server.send(message(1, 100_000))
+        assert sock.recv(64)[0] == frames.INLINE
+        data, fds, _, _ = socket.recv_fds(sock, 64, 1)
+        assert frames.RING_FRAME.unpack(data)[:3] == (frames.RING, 8, 4 << 20) and len(fds) == 1
+        assert frames.HANDLE_FRAME.unpack(sock.recv(64))[2:] == (0, 1, 100_000)
+        for descriptor in (fd, *fds):
+            os.close(descriptor)
+        sock.close()
+
+
+RING_PAST_THE_FILE_SIZE_LIMIT = """
+import resource, tempfile, os
+from pathlib import Path
+from retriever.backends.zenoh.link import LinkClient, LinkServer
+from retriever.errors import LinkError
+resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+folder = Path(tempfile.mkdtemp())
+with LinkServer(folder / "p.sock", "run-1", "camera") as server:  # a page: within the limit
+    client = LinkClient(folder / "p.sock", "run-1", "camera", "sink", lambda kind, data: None, lambda why: None)
+    assert server.wait_for(1, 30)
+    try:
+        server.send([bytes(100_000)])  # the ring of 8 x 4 MiB it needs: past the limit
+    except LinkError as e:
+        print(e)
+    client.close()
+os.rmdir(folder)
+"""
+
+
+def test_a_ring_past_the_file_size_limit_is_a_link_error_that_says_so():
+    """A memfd counts against RLIMIT_FSIZE (`ulimit -f`): past it the ring cannot be made, said as
+    such (it was a bare OSError, File too large: the worker's crash)."""
+    import re
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", RING_PAST_THE_FILE_SIZE_LIMIT], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert re.fullmatch(r"cannot make a link ring of \d+ bytes: File too large \(the process's file size limit, "
+                        r"ulimit -f, is below it: a memfd counts as a file\)\n", result.stdout), result.stdout
