@@ -1333,6 +1333,20 @@ def test_an_event_no_step_record_names_is_let_go_only_for_a_flow_whose_process_d
     assert replay_file(its, build_small).steps_replayed > 0  # let go: a report, not that error
 
 
+def _let_go_or_refused(path: Path, let_go: bool) -> None:
+    """``path``'s added event accumulate.total #9, which no step record names, is let go (the log
+    replays: a report) or refused, by replay and replay_file both."""
+    from tests.log.log_flows import build_small
+
+    says = r"event accumulate\.total #9 is in the log, but no step record of accumulate says it produced it"
+    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
+        if let_go:
+            assert run().steps_replayed > 0  # a report, not that error
+        else:
+            with pytest.raises(LogError, match=says):
+                run()
+
+
 @pytest.mark.parametrize("at_s, let_go", [
     (0.1, False),  # before accumulate's record at 0.25 s, the last before its death at 0.3 s: no record was lost
     (0.5, False),  # after its death: no process of it made it
@@ -1347,8 +1361,6 @@ def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_la
     before the crash, replayed without a word)."""
     import json
 
-    from tests.log.log_flows import build_small
-
     def added(messages, metadata):
         total = [m for m in messages if m[0] == "data/accumulate/total"]
         assert [m[1] for m in total] == [50_000_000, 250_000_000, 450_000_000]  # accumulate's ticks
@@ -1358,13 +1370,7 @@ def test_an_added_event_of_a_flow_whose_process_died_is_let_go_only_after_its_la
                                          "seqs": json.dumps({}), "lost_events": json.dumps([])}
 
     path = _rewritten(_small_log(tmp_path), tmp_path / "added.mcap", added)
-    says = r"event accumulate\.total #9 is in the log, but no step record of accumulate says it produced it"
-    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
-        if let_go:
-            assert run().steps_replayed > 0  # a report, not that error
-        else:
-            with pytest.raises(LogError, match=says):
-                run()
+    _let_go_or_refused(path, let_go)
 
 
 @pytest.mark.parametrize("ahead_ms, at_s, let_go", [
@@ -1382,8 +1388,6 @@ def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_wor
     refused as no step's output (session 14's note: the dead-flow rule against node clock skew)."""
     import json
 
-    from tests.log.log_flows import build_small
-
     def added(messages, metadata):
         total = [m for m in messages if m[0] == "data/accumulate/total"]
         messages.append(["data/accumulate/total", int(at_s * 1e9), total[0][2], 9, total[0][4]])
@@ -1396,13 +1400,7 @@ def test_an_orphan_event_of_a_deployments_flow_is_judged_by_the_clock_of_the_wor
 
     path = _rewritten(_small_log(tmp_path), tmp_path / "deployed.mcap", added)
     assert read_log(path).deployment.workers["w1"]["offset_ns"] == ahead_ms * 1_000_000
-    says = r"event accumulate\.total #9 is in the log, but no step record of accumulate says it produced it"
-    for run in (lambda: replay(read_log(path), build_small()), lambda: replay_file(path, build_small)):
-        if let_go:
-            assert run().steps_replayed > 0  # a report, not that error
-        else:
-            with pytest.raises(LogError, match=says):
-                run()
+    _let_go_or_refused(path, let_go)
 
 
 def test_an_orphan_event_of_a_flow_whose_process_died_in_virtual_time_is_let_go_after_its_last_record(tmp_path):
